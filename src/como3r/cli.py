@@ -1,0 +1,129 @@
+"""The ``como3r`` command (DESIGN.md, "Command line and files").
+
+Each command is a thin shell around one library function: it parses options, shows
+progress, prints a summary table, and turns every :class:`Como3rError` into one
+``error:`` line on stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from pathlib import Path
+from typing import Callable, List, Optional, TypeVar
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from como3r.errors import Como3rError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help="Collaborative monocular dense SLAM with a learned two-view 3D prior.")
+console = Console()
+err_console = Console(stderr=True)
+
+F = TypeVar("F", bound=Callable[..., None])
+
+EXIT_USER_ERROR = 2
+
+
+def user_errors(func: F) -> F:
+    """Report a :class:`Como3rError` as one line and exit with status 2."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        try:
+            return func(*args, **kwargs)
+        except Como3rError as exc:
+            err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+            raise typer.Exit(EXIT_USER_ERROR) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def progress_bar() -> Progress:
+    """A rich progress bar for long work (disabled automatically when not a terminal)."""
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=err_console,
+        transient=False,
+    )
+
+
+def print_rows(title: str, rows: list[dict[str, object]]) -> None:
+    """Print a list of uniform dicts as a rich table."""
+    table = Table(title=title)
+    if not rows:
+        console.print(f"{title}: nothing to show")
+        return
+    for key in rows[0]:
+        table.add_column(str(key), justify="right")
+    for row in rows:
+        table.add_row(*(f"{v:.4f}" if isinstance(v, float) else str(v) for v in row.values()))
+    console.print(table)
+
+
+@app.callback()
+def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Debug logging.")) -> None:
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+
+
+@app.command()
+@user_errors
+def synth(
+    out: Path = typer.Option(..., "--out", help="Folder to write the scene to."),
+    agents: int = typer.Option(2, "--agents", min=1, help="Number of agents."),
+    seed: int = typer.Option(0, "--seed", help="Random seed."),
+    overlap: float = typer.Option(0.2, "--overlap", min=0.0, max=1.0,
+                                  help="Fraction of each path shared with a neighbour."),
+    frames: int = typer.Option(100, "--frames", min=2, help="Frames per agent."),
+    preset: str = typer.Option("default", "--preset",
+                               help="default | aliasing | no-meeting | forward"),
+    width: int = typer.Option(320, "--width", min=16),
+    height: int = typer.Option(240, "--height", min=16),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
+) -> None:
+    """Synthesize a multi-agent outdoor scene with ground truth."""
+    from como3r.data.synth import synthesize
+    from como3r.io.output import atomic_output_dir
+
+    with atomic_output_dir(out, overwrite=overwrite) as staging, progress_bar() as bar:
+        task = bar.add_task("rendering", total=agents * frames)
+        synthesize(
+            staging, agents=agents, seed=seed, overlap=overlap, frames=frames, preset=preset,
+            width=width, height=height, progress=lambda: bar.advance(task),
+        )
+    console.print(f"wrote {agents} agent folder(s) to {out}")
+
+
+@app.command("eval")
+@user_errors
+def evaluate(
+    est: Path = typer.Option(..., "--est", help="Run output folder (trajectories/agent_<a>.txt)."),
+    gt: List[Path] = typer.Option(..., "--gt", help="Ground truth per agent: TUM file or agent folder."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Where to write ate.json and the plot "
+                                       "(default: the --est folder)."),
+) -> None:
+    """ATE (and RPE) per agent and merged, through evo."""
+    from como3r.evaluation.report import evaluate_run
+
+    summary = evaluate_run(est, gt, out if out is not None else est)
+    print_rows("ATE RMSE [m] (Sim(3)-aligned)", summary.table_rows())
+    for line in summary.notes:
+        console.print(line)
+
+
+def main() -> None:
+    """Entry point of the console script."""
+    app()
+
+
+if __name__ == "__main__":
+    main()

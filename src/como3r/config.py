@@ -1,0 +1,297 @@
+"""Typed configuration of como3r.
+
+Every default equals CoMo3R-SLAM Table 3 ("C-Tab. 3"); where the paper inherits a value
+from MASt3R-SLAM without listing it (matching iterations, occlusion distance, descriptor
+window, relocalization threshold), the MASt3R-SLAM released value is used and marked so.
+
+A configuration is a tree of frozen dataclasses. ``load_config`` reads YAML,
+``dump_config`` writes it, ``apply_overrides`` applies dotted ``key=value`` overrides as
+given on the command line (``--set tracking.sigma_ray=0.002``). Unknown keys and values of
+the wrong type are a :class:`~como3r.errors.ConfigError` naming the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Mapping, TypeVar, get_args, get_origin
+
+import yaml
+
+from como3r.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class InputConfig:
+    """Front-end input (C-Tab. 3, "Front-end input")."""
+
+    long_side: int = 512
+    frame_rate_hz: float = 30.0
+    subsample: int = 2
+
+
+@dataclass(frozen=True)
+class MatchingConfig:
+    """Projective matching of C-Eq. 1 (values of MASt3R-SLAM's released configuration)."""
+
+    max_iters: int = 10
+    lambda_init: float = 1e-8
+    convergence_tol: float = 1e-6
+    occlusion_distance: float = 0.1
+    descriptor_radius: int = 3
+    descriptor_dilation_max: int = 5
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Frame-to-keyframe tracking, C-Eq. 2 and C-Eq. 17; keyframing (C-Tab. 3)."""
+
+    sigma_ray: float = 3e-3
+    sigma_dist: float = 10.0
+    sigma_pixel: float = 1.0
+    sigma_depth: float = 10.0
+    huber_k: float = 1.345
+    max_iters: int = 50
+    rel_cost_tol: float = 1e-3
+    step_tol: float = 1e-3
+    lambda_init: float = 1e-6
+    lambda_max: float = 1e3
+    tikhonov_floor: float = 1e-9
+    keyframe_match_fraction: float = 0.333
+    q_min: float = 1.5
+    min_match_fraction: float = 0.05  # MASt3R-SLAM: below this the frame is lost
+    reloc_match_fraction: float = 0.3  # MASt3R-SLAM relocalization acceptance
+
+
+@dataclass(frozen=True)
+class LocalSolveConfig:
+    """Per-agent local keyframe-graph solve (C-Tab. 3, C-Sec. B.2)."""
+
+    max_iters: int = 10
+    pinned_keyframes: int = 1
+    step_tol: float = 1e-8
+    tikhonov_base: float = 1e-6
+    tikhonov_retries: int = 6
+    lm_lambda: float = 0.0
+    min_match_fraction: float = 0.1  # MASt3R-SLAM: intra-agent loop-closure acceptance
+
+
+@dataclass(frozen=True)
+class RetrievalConfig:
+    """Cross-agent retrieval with binary ASMK (C-Tab. 3, C-Sec. B.3)."""
+
+    codebook_size: int = 65536
+    binary: bool = True
+    use_idf: bool = False
+    alpha: float = 3.0
+    similarity_threshold_asmk: float = 0.0
+    multiple_assignment_build: int = 1
+    multiple_assignment_query: int = 5
+    k_nn: int = 3
+    min_similarity: float = 5e-3
+
+
+@dataclass(frozen=True)
+class VerificationConfig:
+    """Inter-agent geometric verification, C-Eq. 12."""
+
+    tau_inter: float = 0.1
+
+
+@dataclass(frozen=True)
+class GaugeConfig:
+    """Gauge synchronization, C-Eq. 14-15."""
+
+    min_correspondences: int = 64
+
+
+@dataclass(frozen=True)
+class GlobalBAConfig:
+    """Global Sim(3) bundle adjustment, C-Eq. 5 and C-Eq. 25 (C-Tab. 3)."""
+
+    trigger_interval_edges: int = 1
+    max_iters_stream: int = 50
+    max_iters_cleanup: int = 100
+    cleanup_passes: int = 5
+    cleanup_stop_translation_m: float = 5e-3
+    step_tol: float = 1e-8
+    lm_lambda: float = 0.0
+    tikhonov_base: float = 1e-6
+    tikhonov_retries: int = 6
+
+
+@dataclass(frozen=True)
+class DepthRefinementConfig:
+    """Segment-level depth refinement and alternation, C-Eq. 19-24, C-Sec. A.6-A.7."""
+
+    variant: Literal["segment", "pixel", "pixel_laplacian"] = "segment"
+    slic_segments: int = 200
+    slic_compactness: float = 8.0
+    slic_sigma: float = 1.0
+    slic_min_confidence: float = 1.5
+    min_valid_pixels: int = 16
+    sigma_point: float = 0.05
+    lambda_smooth: float = 1.0
+    lambda_prior: float = 1.0
+    lambda_lm: float = 0.05
+    step_clip: float = 0.5
+    inner_iters: int = 10
+    alternation_rounds: int = 100
+    pose_pass_iters: int = 50
+
+
+@dataclass(frozen=True)
+class VisualizationConfig:
+    """Map export and mesh visualisation (C-Tab. 3)."""
+
+    tau_slant: float = 0.1
+    map_min_confidence: float = 1.5
+    voxel_size_m: float = 0.0
+
+
+@dataclass(frozen=True)
+class SimulatedPriorConfig:
+    """Error model of the simulated prior (DESIGN.md, "Simulated prior")."""
+
+    scale_sigma: float = 0.05
+    depth_distortion_amplitude: float = 0.03
+    depth_distortion_wavelength: float = 1.0 / 3.0
+    range_noise: float = 0.005
+    rotation_noise_deg: float = 0.5
+    translation_noise: float = 0.01
+    descriptor_dim: int = 24
+    descriptor_noise: float = 0.1
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class Config:
+    """The full effective configuration of a run."""
+
+    input: InputConfig = field(default_factory=InputConfig)
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    local_solve: LocalSolveConfig = field(default_factory=LocalSolveConfig)
+    retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
+    verification: VerificationConfig = field(default_factory=VerificationConfig)
+    gauge: GaugeConfig = field(default_factory=GaugeConfig)
+    global_ba: GlobalBAConfig = field(default_factory=GlobalBAConfig)
+    depth: DepthRefinementConfig = field(default_factory=DepthRefinementConfig)
+    visualization: VisualizationConfig = field(default_factory=VisualizationConfig)
+    simulated_prior: SimulatedPriorConfig = field(default_factory=SimulatedPriorConfig)
+    calibrated: bool = False
+    loop_closure: bool = True
+    seed: int = 0
+
+
+C = TypeVar("C")
+
+
+def config_to_dict(config: Any) -> dict[str, Any]:
+    """Plain nested dict of a configuration dataclass (YAML-ready)."""
+    return dataclasses.asdict(config)
+
+
+def _coerce(value: Any, annotation: Any, key: str) -> Any:
+    """Check (and where lossless, convert) ``value`` to the field type ``annotation``."""
+    origin = get_origin(annotation)
+    if origin is Literal:
+        if value not in get_args(annotation):
+            raise ConfigError(f"{key}: {value!r} is not one of {list(get_args(annotation))}")
+        return value
+    if dataclasses.is_dataclass(annotation):
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{key}: expected a mapping of settings, got {value!r}")
+        return config_from_dict(annotation, value, prefix=f"{key}.")
+    if annotation is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}: expected true or false, got {value!r}")
+        return value
+    if annotation is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        return value
+    if annotation is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key}: expected a number, got {value!r}")
+        if not math.isfinite(float(value)):
+            raise ConfigError(f"{key}: expected a finite number, got {value!r}")
+        return float(value)
+    if annotation is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}: expected a string, got {value!r}")
+        return value
+    raise TypeError(f"unsupported configuration field type {annotation!r} for {key}")
+
+
+def config_from_dict(cls: type[C], values: Mapping[str, Any], prefix: str = "") -> C:
+    """Build a configuration dataclass from a (partial) nested mapping.
+
+    Missing keys keep their defaults; unknown keys raise :class:`ConfigError`.
+    """
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise ConfigError(f"unknown configuration key {prefix}{unknown[0]!s}")
+    kwargs = {name: _coerce(v, hints[name], f"{prefix}{name}") for name, v in values.items()}
+    return cls(**kwargs)
+
+
+def _parse_scalar(text: str) -> Any:
+    """Parse the right-hand side of a ``key=value`` override as a YAML scalar."""
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"cannot parse override value {text!r}: {exc}") from None
+
+
+def apply_overrides(config: Config, overrides: list[str]) -> Config:
+    """Apply dotted ``section.key=value`` overrides, e.g. ``tracking.sigma_ray=0.002``."""
+    tree = config_to_dict(config)
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"override {item!r} is not of the form section.key=value")
+        node = tree
+        parts = key.strip().split(".")
+        for i, part in enumerate(parts):
+            if not isinstance(node, dict) or part not in node:
+                raise ConfigError(f"unknown configuration key {'.'.join(parts[: i + 1])}")
+            if i == len(parts) - 1:
+                if isinstance(node[part], dict):
+                    raise ConfigError(f"{key} is a section; override one of its keys")
+                node[part] = _parse_scalar(text.strip())
+            else:
+                node = node[part]
+    return config_from_dict(Config, tree)
+
+
+def load_config(path: str | Path) -> Config:
+    """Read a YAML configuration; keys it does not mention keep their defaults."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read configuration ({exc.strerror})") from None
+    try:
+        values = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML ({exc})") from None
+    if values is None:
+        values = {}
+    if not isinstance(values, Mapping):
+        raise ConfigError(f"{path}: expected a mapping of configuration sections")
+    try:
+        return config_from_dict(Config, values)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def dump_config(config: Config, path: str | Path) -> None:
+    """Write the full effective configuration as YAML."""
+    Path(path).write_text(yaml.safe_dump(config_to_dict(config), sort_keys=False))
+

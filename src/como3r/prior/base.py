@@ -1,0 +1,135 @@
+"""The prior interface (DESIGN.md, "The prior interface"; C-Sec. 3.2).
+
+Everything above ``prior/`` depends on this module alone, so the MASt3R network and the
+simulated sensor are interchangeable. A prior turns views into geometry:
+
+* ``encode(view) -> Encoding``: per-image work done once.
+* ``decode(enc_i, enc_j) -> PairPrediction``: both pointmaps in camera i's frame.
+* ``decode_symmetric(pairs)``: (i, j) and (j, i) of many pairs at once.
+* ``retrieval_features(enc) -> (descriptors, attention)``: what ASMK indexes.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, fields
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+
+@dataclass(frozen=True)
+class View:
+    """One pre-processed frame as handed to a prior.
+
+    Attributes:
+        image: ``(3, H, W)`` float32 RGB in [-1, 1] (MAST3R_SPEC.md §2 normalisation).
+        agent: agent id the frame belongs to.
+        index: frame index within the agent's stream.
+        depth: optional ``(H, W)`` float32 metric depth (z) in metres; 0 where unknown.
+            Used by the simulated prior only.
+        surface: optional ``(H, W, 3)`` float32 appearance keys (texture id, s, t);
+            id < 0 for sky. Used by the simulated prior only.
+        T_WC: optional ``(8,)`` ground-truth camera pose (Sim(3) layout, s = 1).
+            Used by the simulated prior only; never by the SLAM system.
+        K: optional ``(3, 3)`` intrinsics at the resolution of ``image``.
+    """
+
+    image: Tensor
+    agent: int = 0
+    index: int = 0
+    depth: Tensor | None = None
+    surface: Tensor | None = None
+    T_WC: Tensor | None = None
+    K: Tensor | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(H, W)`` of the image."""
+        return int(self.image.shape[-2]), int(self.image.shape[-1])
+
+
+@dataclass(frozen=True)
+class Encoding:
+    """Per-image work of a prior, computed once per view.
+
+    Concrete priors subclass it and add their own fields (MASt3R: encoder tokens).
+
+    Attributes:
+        agent: agent id of the encoded view.
+        index: frame index of the encoded view.
+        shape: ``(H, W)`` of the encoded image.
+    """
+
+    agent: int
+    index: int
+    shape: tuple[int, int]
+
+
+@dataclass(frozen=True)
+class PairPrediction:
+    """Output of decoding the ordered pair (i, j), everything in camera i's frame.
+
+    Shapes are ``(H, W, ...)`` for one pair; a batch of pairs prepends ``B``.
+
+    Attributes:
+        X_ii: ``(H, W, 3)`` pointmap of view i in camera i.
+        X_ji: ``(H, W, 3)`` pointmap of view j in camera i.
+        C_ii: ``(H, W)`` confidence of ``X_ii``, >= 1.
+        C_ji: ``(H, W)`` confidence of ``X_ji``, >= 1.
+        D_ii: ``(H, W, d)`` unit-norm local descriptors of view i.
+        D_ji: ``(H, W, d)`` unit-norm local descriptors of view j.
+        Q_ii: ``(H, W)`` descriptor confidence of view i, > 0.
+        Q_ji: ``(H, W)`` descriptor confidence of view j, > 0.
+    """
+
+    X_ii: Tensor
+    X_ji: Tensor
+    C_ii: Tensor
+    C_ji: Tensor
+    D_ii: Tensor
+    D_ji: Tensor
+    Q_ii: Tensor
+    Q_ji: Tensor
+
+    def to(self, device: torch.device | str) -> "PairPrediction":
+        """Copy of the prediction with every tensor on ``device``."""
+        return PairPrediction(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
+
+    def unbatch(self) -> list["PairPrediction"]:
+        """Split a batched prediction ``(B, H, W, ...)`` into B single predictions."""
+        batch = self.X_ii.shape[0]
+        return [
+            PairPrediction(**{f.name: getattr(self, f.name)[b] for f in fields(self)})
+            for b in range(batch)
+        ]
+
+
+class Prior(abc.ABC):
+    """A learned (or simulated) two-view 3D prior."""
+
+    #: dimension ``d`` of the local descriptors in ``PairPrediction.D_*``
+    descriptor_dim: int = 24
+
+    @abc.abstractmethod
+    def encode(self, view: View) -> Encoding:
+        """Per-image work for ``view``; cache the result, it is reused by every pair."""
+
+    @abc.abstractmethod
+    def decode(self, enc_i: Encoding, enc_j: Encoding) -> PairPrediction:
+        """Predict the ordered pair (i, j): pointmaps of both views in camera i."""
+
+    def decode_symmetric(
+        self, pairs: Sequence[tuple[Encoding, Encoding]]
+    ) -> list[tuple[PairPrediction, PairPrediction]]:
+        """Decode (i, j) and (j, i) for every pair; priors override this to batch."""
+        return [(self.decode(a, b), self.decode(b, a)) for a, b in pairs]
+
+    @abc.abstractmethod
+    def retrieval_features(self, enc: Encoding) -> tuple[Tensor, Tensor]:
+        """Local retrieval descriptors ``(N, d_r)`` and their attention ``(N,)``."""
+
+    def describe(self) -> dict[str, object]:
+        """Parameters of the prior, reported with every result it produces."""
+        return {"name": type(self).__name__}
