@@ -14,6 +14,7 @@ from typing import Callable, List, Optional, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
@@ -56,7 +57,7 @@ def progress_bar() -> Progress:
 
 def print_rows(title: str, rows: list[dict[str, object]]) -> None:
     """Print a list of uniform dicts as a rich table."""
-    table = Table(title=title)
+    table = Table(title=escape(title))
     if not rows:
         console.print(f"{title}: nothing to show")
         return

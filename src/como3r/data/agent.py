@@ -1,0 +1,558 @@
+"""Agent inputs: one robot's camera stream and its optional side files (DESIGN.md,
+"Command line and files").
+
+An agent input is a folder with ``rgb/`` (images sorted by name) or a video file (the file
+itself, or a folder holding exactly one video and no ``rgb/``), plus optionally:
+
+* ``timestamps.txt``: one float per line, or ``timestamp filename`` lines as in TUM's
+  ``rgb.txt`` (then the file names pair with the images by stem); otherwise
+  ``timestamp = index / fps``;
+* ``groundtruth.txt`` and ``odometry.txt``: TUM trajectories (:func:`como3r.io.tum.read_tum`);
+* ``calib.txt``: ``fx fy cx cy`` on one line, in pixels of the original images;
+* ``depth/<stem>.png`` (16-bit, 5000 per metre as in TUM) or ``depth/<stem>.npy``
+  (float32 metres);
+* ``surface/<stem>.npy``: float32 ``(H, W, 3)`` appearance keys (texture id, s, t).
+
+For a video the frame stems are the zero-padded indices ``000000, 000001, ...`` and the side
+files live in the folder that holds the video.
+
+:func:`open_agent` does every cheap check up front (existence, counts, all text files, image
+and map headers), so a bad input fails before any SLAM work starts; pixels are decoded lazily
+by :meth:`AgentInput.load_frame` and :meth:`AgentInput.frames`, which check them in turn.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+import torch
+from PIL import Image, UnidentifiedImageError
+from torch import Tensor
+
+from como3r.errors import InputError
+from como3r.io.tum import Trajectory, read_tum
+
+logger = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg")
+DEPTH_PNG_PER_METRE = 5000.0
+"""TUM RGB-D convention: a 16-bit depth PNG stores 5000 units per metre."""
+DEPTH_PNG_MODES = ("I;16", "I;16B", "I;16L", "I")
+MIN_GT_TOLERANCE = 1e-3
+"""Seconds; lower bound of the frame <-> ground-truth association window."""
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One decoded frame of an agent input.
+
+    Attributes:
+        index: position of the frame in the agent's stream.
+        timestamp: seconds.
+        stem: file stem that pairs image, depth and surface maps.
+        image: ``(H, W, 3)`` uint8 RGB at the original resolution.
+        depth: ``(H, W)`` float32 metric depth (z) in metres, 0 = invalid; or None.
+        surface: ``(H, W, 3)`` float32 appearance keys; or None.
+        T_WC_gt: ``(8,)`` float64 ground-truth pose (t, q_xyzw, s = 1) associated by
+            timestamp; None when the agent has no ground truth or none near this frame.
+    """
+
+    index: int
+    timestamp: float
+    stem: str
+    image: np.ndarray
+    depth: np.ndarray | None = None
+    surface: np.ndarray | None = None
+    T_WC_gt: Tensor | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class AgentInput:
+    """A validated agent input; frames are decoded lazily.
+
+    Attributes:
+        root: the path the input was opened from (folder or video file).
+        name: folder name, or the video's stem for a bare video file.
+        num_frames: number of frames N.
+        image_size: ``(W, H)`` of the original images.
+        timestamps: ``(N,)`` float64 seconds, strictly increasing.
+        calib: ``(fx, fy, cx, cy)`` in original pixels, or None (uncalibrated).
+        groundtruth: ground-truth trajectory, or None.
+        odometry: metric odometry (decentralized mode), or None.
+        has_depth: every frame has a depth map.
+        has_surface: every frame has a surface (appearance key) map.
+        fps: frame rate used for default timestamps and the ground-truth window.
+        stems: ``(N,)`` frame stems.
+        image_paths: ``(N,)`` image files; empty for a video.
+        video: the video file, or None for an image folder.
+        depth_paths: ``(N,)`` depth files, empty without depth.
+        surface_paths: ``(N,)`` surface files, empty without surface maps.
+        gt_indices: ``(N,)`` int64 row of ``groundtruth`` associated with each frame, -1 if none.
+    """
+
+    root: Path
+    name: str
+    num_frames: int
+    image_size: tuple[int, int]
+    timestamps: np.ndarray
+    calib: tuple[float, float, float, float] | None
+    groundtruth: Trajectory | None
+    odometry: Trajectory | None
+    has_depth: bool
+    has_surface: bool
+    fps: float
+    stems: tuple[str, ...] = field(repr=False)
+    image_paths: tuple[Path, ...] = field(repr=False)
+    video: Path | None = field(repr=False)
+    depth_paths: tuple[Path, ...] = field(repr=False)
+    surface_paths: tuple[Path, ...] = field(repr=False)
+    gt_indices: np.ndarray = field(repr=False)
+
+    def __len__(self) -> int:
+        return self.num_frames
+
+    def __iter__(self) -> Iterator[Frame]:
+        return self.frames()
+
+    def frames(self) -> Iterator[Frame]:
+        """Every frame in order, decoded lazily (a video is decoded sequentially)."""
+        if self.video is None:
+            for i in range(self.num_frames):
+                yield self.load_frame(i)
+            return
+        capture = _open_capture(self.video)
+        try:
+            for i in range(self.num_frames):
+                ok, bgr = capture.read()
+                if not ok:
+                    logger.warning(
+                        "%s: video ended after %d of %d frames", self.video, i, self.num_frames
+                    )
+                    return
+                yield self._assemble(i, self._video_image(bgr, i))
+        finally:
+            capture.release()
+
+    def load_frame(self, i: int) -> Frame:
+        """Decode frame ``i`` (random access; a video seeks to it)."""
+        if not 0 <= i < self.num_frames:
+            raise IndexError(f"frame {i} out of range for {self.num_frames} frames")
+        if self.video is None:
+            image = _load_image(self.image_paths[i], self.image_size)
+        else:
+            capture = _open_capture(self.video)
+            try:
+                capture.set(cv2.CAP_PROP_POS_FRAMES, i)
+                ok, bgr = capture.read()
+            finally:
+                capture.release()
+            if not ok:
+                raise InputError(f"{self.video}: cannot decode frame {i}")
+            image = self._video_image(bgr, i)
+        return self._assemble(i, image)
+
+    def gt_for_frames(self) -> tuple[np.ndarray, Trajectory]:
+        """Ground truth associated with frames.
+
+        Returns:
+            ``(M,)`` int64 indices of the frames that have a ground-truth pose, and a
+            trajectory of those M poses stamped with the frames' timestamps (so it lines
+            up with an estimated trajectory written per frame). Empty without ground truth.
+        """
+        frames = np.flatnonzero(self.gt_indices >= 0).astype(np.int64)
+        if self.groundtruth is None or frames.size == 0:
+            return frames, Trajectory(np.zeros(0), torch.zeros(0, 8, dtype=torch.float64))
+        rows = torch.from_numpy(self.gt_indices[frames])
+        return frames, Trajectory(self.timestamps[frames].copy(), self.groundtruth.T_WC[rows])
+
+    def _video_image(self, bgr: np.ndarray, i: int) -> np.ndarray:
+        height, width = bgr.shape[:2]
+        if (width, height) != self.image_size:
+            raise InputError(
+                f"{self.video}: frame {i} is {width}x{height}, the first frame is "
+                f"{self.image_size[0]}x{self.image_size[1]}"
+            )
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+    def _assemble(self, i: int, image: np.ndarray) -> Frame:
+        depth = _load_depth(self.depth_paths[i], self.image_size) if self.has_depth else None
+        surface = (
+            _load_surface(self.surface_paths[i], self.image_size) if self.has_surface else None
+        )
+        gt_row = int(self.gt_indices[i])
+        T_WC_gt = None
+        if self.groundtruth is not None and gt_row >= 0:
+            T_WC_gt = self.groundtruth.T_WC[gt_row].clone()
+        return Frame(i, float(self.timestamps[i]), self.stems[i], image, depth, surface, T_WC_gt)
+
+
+def open_agent(path: str | Path, fps: float = 30.0) -> AgentInput:
+    """Open and validate an agent input (folder or video file).
+
+    Args:
+        path: agent folder, or a video file.
+        fps: frame rate for default timestamps (``index / fps``) and the ground-truth
+            association window ``max(0.5 / fps, 1 ms)``. A video without ``timestamps.txt``
+            uses its own frame rate when the container reports one.
+
+    Raises:
+        InputError: naming the offending file, for any missing, empty, unreadable or
+            inconsistent part of the input.
+    """
+    if not (math.isfinite(fps) and fps > 0):
+        raise InputError(f"fps must be a positive number, got {fps}")
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: agent input does not exist")
+    folder, video = _locate_source(path)
+    if video is None:
+        image_paths = _list_images(folder / "rgb")
+        stems = tuple(p.stem for p in image_paths)
+        image_size = _common_image_size(image_paths)
+    else:
+        num_frames, image_size, video_fps = _probe_video(video)
+        image_paths = ()
+        stems = tuple(f"{i:06d}" for i in range(num_frames))
+        fps = video_fps or fps
+
+    timestamps_file = folder / "timestamps.txt"
+    if timestamps_file.is_file():
+        timestamps = _read_timestamps(timestamps_file, stems, by_name=video is None)
+    else:
+        timestamps = np.arange(len(stems), dtype=np.float64) / fps
+
+    groundtruth = _optional_trajectory(folder / "groundtruth.txt")
+    gt_indices = np.full(len(stems), -1, dtype=np.int64)
+    if groundtruth is not None:
+        tolerance = max(0.5 / fps, MIN_GT_TOLERANCE)
+        gt_indices = associate_timestamps(timestamps, groundtruth.timestamps, tolerance)
+
+    depth_paths = _pair_maps(folder / "depth", stems, (".png", ".npy"), image_size, "depth")
+    surface_paths = _pair_maps(folder / "surface", stems, (".npy",), image_size, "surface")
+    calib_file = folder / "calib.txt"
+    return AgentInput(
+        root=path,
+        name=video.stem if path.is_file() else path.resolve().name,
+        num_frames=len(stems),
+        image_size=image_size,
+        timestamps=timestamps,
+        calib=read_calib(calib_file) if calib_file.is_file() else None,
+        groundtruth=groundtruth,
+        odometry=_optional_trajectory(folder / "odometry.txt"),
+        has_depth=bool(depth_paths),
+        has_surface=bool(surface_paths),
+        fps=float(fps),
+        stems=stems,
+        image_paths=image_paths,
+        video=video,
+        depth_paths=depth_paths,
+        surface_paths=surface_paths,
+        gt_indices=gt_indices,
+    )
+
+
+def associate_timestamps(
+    stamps: np.ndarray, reference: np.ndarray, tolerance: float
+) -> np.ndarray:
+    """Nearest reference stamp for each stamp, within ``tolerance`` seconds.
+
+    Args:
+        stamps: ``(N,)`` query timestamps.
+        reference: ``(M,)`` strictly increasing timestamps, M >= 1.
+        tolerance: largest accepted time difference (inclusive).
+
+    Returns:
+        ``(N,)`` int64 index into ``reference``, -1 where nothing is close enough.
+    """
+    after = np.searchsorted(reference, stamps)
+    left = np.clip(after - 1, 0, len(reference) - 1)
+    right = np.clip(after, 0, len(reference) - 1)
+    nearest = np.where(
+        np.abs(reference[left] - stamps) <= np.abs(reference[right] - stamps), left, right
+    )
+    return np.where(np.abs(reference[nearest] - stamps) <= tolerance, nearest, -1).astype(
+        np.int64
+    )
+
+
+def read_calib(path: Path) -> tuple[float, float, float, float]:
+    """``fx fy cx cy`` from the one data line of ``calib.txt`` (``#`` starts a comment)."""
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read calibration ({exc})") from None
+    data = [(n, t) for n, line in enumerate(lines, 1) if (t := line.split("#", 1)[0].strip())]
+    if len(data) != 1:
+        raise InputError(f"{path}: expected one line 'fx fy cx cy', found {len(data)} lines")
+    line_no, text = data[0]
+    parts = text.replace(",", " ").split()
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise InputError(f"{path}:{line_no}: not a number in {text!r}") from None
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise InputError(f"{path}:{line_no}: expected 4 finite numbers 'fx fy cx cy', got {text!r}")
+    fx, fy, cx, cy = values
+    if fx <= 0 or fy <= 0:
+        raise InputError(f"{path}:{line_no}: focal lengths must be positive, got fx={fx} fy={fy}")
+    return fx, fy, cx, cy
+
+
+def _locate_source(path: Path) -> tuple[Path, Path | None]:
+    """(folder holding the side files, video file or None for an rgb/ folder)."""
+    if path.is_file():
+        if path.suffix.lower() not in VIDEO_SUFFIXES:
+            raise InputError(
+                f"{path}: not a video file (expected one of {', '.join(VIDEO_SUFFIXES)}) "
+                "or an agent folder"
+            )
+        return path.parent, path
+    if (path / "rgb").is_dir():
+        return path, None
+    videos = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES)
+    if not videos:
+        raise InputError(f"{path}: agent folder has no rgb/ folder and no video file")
+    if len(videos) > 1:
+        names = ", ".join(p.name for p in videos)
+        raise InputError(f"{path}: agent folder holds {len(videos)} videos ({names}); expected one")
+    return path, videos[0]
+
+
+def _list_images(rgb: Path) -> tuple[Path, ...]:
+    images = sorted(
+        (p for p in rgb.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+        key=lambda p: p.name,
+    )
+    if not images:
+        raise InputError(f"{rgb}: no images ({', '.join(IMAGE_SUFFIXES)})")
+    seen: dict[str, Path] = {}
+    for image in images:
+        if image.stem in seen:
+            raise InputError(f"{image}: same stem as {seen[image.stem].name}; stems must be unique")
+        seen[image.stem] = image
+    return tuple(images)
+
+
+def _common_image_size(images: tuple[Path, ...]) -> tuple[int, int]:
+    """``(W, H)`` shared by all images, from their headers only."""
+    size = _header(images[0], "image")[0]
+    for image in images[1:]:
+        other = _header(image, "image")[0]
+        if other != size:
+            raise InputError(
+                f"{image}: image is {other[0]}x{other[1]}, but {images[0].name} is "
+                f"{size[0]}x{size[1]}; all images of an agent must have one size"
+            )
+    return size
+
+
+def _header(path: Path, kind: str) -> tuple[tuple[int, int], str]:
+    """``((W, H), mode)`` of an image file without decoding its pixels."""
+    try:
+        with Image.open(path) as image:
+            return image.size, image.mode
+    except UnidentifiedImageError:
+        raise InputError(f"{path}: cannot read {kind} (not an image in a known format)") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: cannot read {kind} ({exc})") from None
+
+
+def _load_image(path: Path, size: tuple[int, int]) -> np.ndarray:
+    """``(H, W, 3)`` uint8 RGB."""
+    try:
+        with Image.open(path) as image:
+            rgb = np.array(image.convert("RGB"))
+    except (UnidentifiedImageError, OSError, ValueError) as exc:
+        raise InputError(f"{path}: cannot decode image ({exc})") from None
+    if (rgb.shape[1], rgb.shape[0]) != size:
+        raise InputError(
+            f"{path}: image is {rgb.shape[1]}x{rgb.shape[0]}, expected {size[0]}x{size[1]}"
+        )
+    return rgb
+
+
+def _open_capture(video: Path) -> cv2.VideoCapture:
+    # FFmpeg would print its own diagnostics to stderr next to our one-line InputError;
+    # a user who wants them sets the variable themselves.
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+    capture = cv2.VideoCapture(str(video))
+    if not capture.isOpened():
+        capture.release()
+        raise InputError(f"{video}: cannot open video")
+    return capture
+
+
+def _probe_video(video: Path) -> tuple[int, tuple[int, int], float | None]:
+    """(frame count, ``(W, H)``, container frame rate or None) of a video."""
+    capture = _open_capture(video)
+    try:
+        ok, first = capture.read()
+        if not ok:
+            raise InputError(f"{video}: cannot decode the first video frame")
+        count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+        if count <= 0:
+            # Containers without a frame count in their header: count by demuxing.
+            count = 1
+            while capture.grab():
+                count += 1
+        rate = capture.get(cv2.CAP_PROP_FPS)
+    finally:
+        capture.release()
+    height, width = first.shape[:2]
+    return count, (width, height), rate if math.isfinite(rate) and rate > 0 else None
+
+
+def _read_timestamps(path: Path, stems: tuple[str, ...], by_name: bool) -> np.ndarray:
+    """``(N,)`` timestamps from ``timestamps.txt``, in frame order.
+
+    Lines are ``timestamp`` or ``timestamp filename`` (TUM ``rgb.txt``). With file names and
+    an image folder, each line is paired with the image of the same stem.
+    """
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read timestamps ({exc})") from None
+    rows: list[tuple[int, float, str | None]] = []
+    for line_no, line in enumerate(lines, 1):
+        text = line.split("#", 1)[0].strip()
+        if not text:
+            continue
+        parts = text.split()
+        if len(parts) > 2:
+            raise InputError(
+                f"{path}:{line_no}: expected 'timestamp' or 'timestamp filename', got {text!r}"
+            )
+        try:
+            stamp = float(parts[0])
+        except ValueError:
+            raise InputError(f"{path}:{line_no}: not a number: {parts[0]!r}") from None
+        if not math.isfinite(stamp):
+            raise InputError(f"{path}:{line_no}: non-finite timestamp {parts[0]!r}")
+        rows.append((line_no, stamp, parts[1] if len(parts) == 2 else None))
+    if len({name is None for _, _, name in rows}) > 1:
+        raise InputError(f"{path}: mixes 'timestamp' and 'timestamp filename' lines")
+    if len(rows) != len(stems):
+        raise InputError(f"{path}: {len(rows)} timestamps for {len(stems)} frames")
+    if by_name and rows and rows[0][2] is not None:
+        rows = _order_by_stem(path, rows, stems)
+    stamps = np.array([stamp for _, stamp, _ in rows], dtype=np.float64)
+    steps = np.diff(stamps)
+    if np.any(steps <= 0):
+        bad = int(np.argmax(steps <= 0)) + 1
+        raise InputError(
+            f"{path}:{rows[bad][0]}: timestamps are not strictly increasing "
+            f"({float(stamps[bad - 1])!r} then {float(stamps[bad])!r})"
+        )
+    return stamps
+
+
+def _order_by_stem(
+    path: Path, rows: list[tuple[int, float, str | None]], stems: tuple[str, ...]
+) -> list[tuple[int, float, str | None]]:
+    by_stem: dict[str, tuple[int, float, str | None]] = {}
+    for row in rows:
+        stem = Path(str(row[2])).stem
+        if stem in by_stem:
+            raise InputError(f"{path}:{row[0]}: image {row[2]!r} is listed twice")
+        by_stem[stem] = row
+    for stem in stems:
+        if stem not in by_stem:
+            raise InputError(f"{path}: no timestamp for image {stem!r}")
+    return [by_stem[stem] for stem in stems]
+
+
+def _optional_trajectory(path: Path) -> Trajectory | None:
+    return read_tum(path) if path.is_file() else None
+
+
+def _pair_maps(
+    folder: Path,
+    stems: tuple[str, ...],
+    suffixes: tuple[str, ...],
+    image_size: tuple[int, int],
+    kind: str,
+) -> tuple[Path, ...]:
+    """One map file per frame stem from ``folder`` (empty if the folder does not exist)."""
+    if not folder.is_dir():
+        return ()
+    by_stem: dict[str, Path] = {}
+    for candidate in sorted(folder.iterdir()):
+        if not (candidate.is_file() and candidate.suffix.lower() in suffixes):
+            continue
+        if candidate.stem in by_stem:
+            first = by_stem[candidate.stem].name
+            raise InputError(f"{candidate}: {kind} map given twice (also {first})")
+        by_stem[candidate.stem] = candidate
+    paths = []
+    for stem in stems:
+        if stem not in by_stem:
+            expected = " or ".join(f"{stem}{s}" for s in suffixes)
+            raise InputError(f"{folder / stem}: {kind} map missing for frame {stem!r} ({expected})")
+        _check_map_header(by_stem[stem], image_size, kind)
+        paths.append(by_stem[stem])
+    return tuple(paths)
+
+
+def _check_map_header(path: Path, image_size: tuple[int, int], kind: str) -> None:
+    width, height = image_size
+    if path.suffix.lower() == ".png":
+        size, mode = _header(path, f"{kind} map")
+        if mode not in DEPTH_PNG_MODES:
+            raise InputError(f"{path}: depth PNG must be 16-bit single channel, got mode {mode}")
+        if size != image_size:
+            raise InputError(
+                f"{path}: {kind} map is {size[0]}x{size[1]}, images are {width}x{height}"
+            )
+        return
+    expected = (height, width) if kind == "depth" else (height, width, 3)
+    array = _load_npy(path, kind, mmap=True)
+    if array.shape != expected or array.dtype.kind != "f":
+        raise InputError(
+            f"{path}: {kind} map has shape {array.shape} dtype {array.dtype}, "
+            f"expected float {expected}"
+        )
+
+
+def _load_npy(path: Path, kind: str, mmap: bool = False) -> np.ndarray:
+    try:
+        return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise InputError(f"{path}: cannot read {kind} map ({exc})") from None
+
+
+def _load_depth(path: Path, image_size: tuple[int, int]) -> np.ndarray:
+    """``(H, W)`` float32 metres; 0 marks invalid pixels (non-finite values become 0)."""
+    if path.suffix.lower() == ".png":
+        try:
+            with Image.open(path) as image:
+                raw = np.asarray(image)
+        except (UnidentifiedImageError, OSError, ValueError) as exc:
+            raise InputError(f"{path}: cannot decode depth map ({exc})") from None
+        depth = raw.astype(np.float32) / DEPTH_PNG_PER_METRE
+    else:
+        depth = np.asarray(_load_npy(path, "depth"), dtype=np.float32)
+        depth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
+        if np.any(depth < 0):
+            raise InputError(f"{path}: depth map has negative values")
+    if depth.shape != (image_size[1], image_size[0]):
+        raise InputError(f"{path}: depth map has shape {depth.shape}, expected {image_size[::-1]}")
+    return depth
+
+
+def _load_surface(path: Path, image_size: tuple[int, int]) -> np.ndarray:
+    """``(H, W, 3)`` float32 appearance keys."""
+    surface = np.asarray(_load_npy(path, "surface"), dtype=np.float32)
+    if surface.shape != (image_size[1], image_size[0], 3):
+        raise InputError(
+            f"{path}: surface map has shape {surface.shape}, "
+            f"expected {(image_size[1], image_size[0], 3)}"
+        )
+    return surface

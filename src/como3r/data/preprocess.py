@@ -1,0 +1,228 @@
+"""MASt3R image pre-processing (MAST3R_SPEC.md §2.1) and the matching per-pixel maps.
+
+An image of ``W1 x H1`` pixels is
+
+1. resized so its long side is ``long_side`` (512 for MASt3R), each side
+   ``round(x * long_side / max(W1, H1))`` with Python's ``round``; PIL ``LANCZOS`` when
+   shrinking (``max(W1, H1) > long_side``), ``BICUBIC`` otherwise;
+2. centre-cropped to multiples of 16: ``cx = W // 2``, ``halfw = ((2 * cx) // 16) * 8``
+   (same for y); a square resized image becomes 4:3 (``halfh = 3 * halfw / 4``) unless
+   ``square_ok``;
+3. normalised to ``2 * v / 255 - 1`` in [-1, 1] for the network.
+
+Intrinsics follow the image (C-Sec. B.4: "the per-sequence intrinsic matrix is rescaled to
+the same resolution and the principal point is recentred"). Depth and appearance-key maps
+follow it with nearest-neighbour sampling so every value stays a value of the input map.
+
+Pixel convention: integer pixel coordinates are pixel centres (OpenCV / TUM ``K``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TypeVar
+
+import numpy as np
+import torch
+from PIL import Image
+from torch import Tensor
+
+from como3r.data.agent import Frame
+from como3r.errors import InputError
+from como3r.prior.base import View
+
+PATCH = 16
+"""MASt3R patch size: network input sides must be multiples of it (MAST3R_SPEC.md §2.2)."""
+
+KType = TypeVar("KType", np.ndarray, Tensor)
+
+
+@dataclass(frozen=True)
+class ImageTransform:
+    """How :func:`resize_crop` maps an original image to the network input.
+
+    Attributes:
+        original: ``(W1, H1)`` of the input image.
+        resized: ``(W, H)`` after the resize, before the crop.
+        output: ``(W_crop, H_crop)`` of the network input, multiples of 16.
+        scale_w: ``W1 / W``.
+        scale_h: ``H1 / H``.
+        half_crop_w: ``(W - W_crop) / 2`` (MAST3R_SPEC.md §2.1 step 7).
+        half_crop_h: ``(H - H_crop) / 2``.
+        crop_left: first resized column kept; equals ``half_crop_w`` rounded down when
+            ``W - W_crop`` is odd, so it is what :meth:`intrinsics` uses.
+        crop_top: first resized row kept.
+    """
+
+    original: tuple[int, int]
+    resized: tuple[int, int]
+    output: tuple[int, int]
+    scale_w: float
+    scale_h: float
+    half_crop_w: float
+    half_crop_h: float
+    crop_left: int
+    crop_top: int
+
+    def intrinsics(self, K: KType) -> KType:
+        """Intrinsics of the network input from those of the original image.
+
+        Args:
+            K: ``(..., 3, 3)`` pinhole intrinsics in original pixels (numpy or torch).
+
+        Returns:
+            ``(..., 3, 3)`` intrinsics in output pixels, same type and dtype as ``K``:
+            focal lengths divided by the scale, principal point mapped through the resize
+            (pixel centres: ``u' = (u + 0.5) / scale - 0.5``) and shifted by the crop.
+        """
+        A = np.array(
+            [
+                [1.0 / self.scale_w, 0.0, 0.5 / self.scale_w - 0.5 - self.crop_left],
+                [0.0, 1.0 / self.scale_h, 0.5 / self.scale_h - 0.5 - self.crop_top],
+                [0.0, 0.0, 1.0],
+            ]
+        )
+        if isinstance(K, Tensor):
+            return torch.as_tensor(A, dtype=K.dtype, device=K.device) @ K
+        return (A @ K).astype(K.dtype, copy=False)
+
+    def apply_nearest(self, values: np.ndarray) -> np.ndarray:
+        """Resize and crop a per-pixel map aligned with the original image.
+
+        Nearest-neighbour sampling: output pixel ``x`` takes input column
+        ``floor((x + crop_left + 0.5) * scale_w)``, so depth zeros and appearance keys stay
+        exact values of the input.
+
+        Args:
+            values: ``(H1, W1)`` or ``(H1, W1, C)`` map, any dtype.
+
+        Returns:
+            ``(H_crop, W_crop[, C])`` map of the same dtype.
+        """
+        width, height = self.original
+        if values.shape[:2] != (height, width):
+            raise ValueError(f"map of shape {values.shape} does not match a {width}x{height} image")
+        cols = _nearest_source(self.output[0], self.crop_left, self.scale_w, width)
+        rows = _nearest_source(self.output[1], self.crop_top, self.scale_h, height)
+        return values[rows[:, None], cols[None, :]]
+
+    @staticmethod
+    def to_network(image: np.ndarray) -> Tensor:
+        """``(H, W, 3)`` uint8 RGB -> ``(3, H, W)`` float32 ``2 * v / 255 - 1`` in [-1, 1].
+
+        Computed as ``(v / 255 - 0.5) / 0.5``, the order of ``ToTensor`` + ``Normalize``.
+        """
+        pixels = torch.from_numpy(np.array(image, dtype=np.uint8)).permute(2, 0, 1)
+        return (pixels.to(torch.float32) / 255.0 - 0.5) / 0.5
+
+
+def compute_transform(
+    width: int, height: int, long_side: int = 512, square_ok: bool = False
+) -> ImageTransform:
+    """The :class:`ImageTransform` of a ``width x height`` image (MAST3R_SPEC.md §2.1).
+
+    Raises:
+        InputError: the image is so elongated that a side would be cropped to nothing.
+    """
+    if long_side < PATCH:
+        raise ValueError(f"long_side must be at least {PATCH}, got {long_side}")
+    longest = max(width, height)
+    resized_w = int(round(width * long_side / longest))
+    resized_h = int(round(height * long_side / longest))
+    cx, cy = resized_w // 2, resized_h // 2
+    half_w = ((2 * cx) // PATCH) * (PATCH // 2)
+    half_h = ((2 * cy) // PATCH) * (PATCH // 2)
+    if resized_w == resized_h and not square_ok:
+        # The spec's 4:3 rule (3 * halfw / 4) is a multiple of 8 for long_side = 512; rounding
+        # down to a multiple of 8 keeps the height a multiple of 16 for every other long side.
+        half_h = (3 * half_w // 4) // (PATCH // 2) * (PATCH // 2)
+    if half_w == 0 or half_h == 0:
+        raise InputError(
+            f"a {width}x{height} image resized to {resized_w}x{resized_h} leaves no "
+            f"{PATCH}-pixel patch after the centre crop"
+        )
+    return ImageTransform(
+        original=(width, height),
+        resized=(resized_w, resized_h),
+        output=(2 * half_w, 2 * half_h),
+        scale_w=width / resized_w,
+        scale_h=height / resized_h,
+        half_crop_w=(resized_w - 2 * half_w) / 2,
+        half_crop_h=(resized_h - 2 * half_h) / 2,
+        crop_left=cx - half_w,
+        crop_top=cy - half_h,
+    )
+
+
+def resize_crop(
+    image: np.ndarray, long_side: int = 512, square_ok: bool = False
+) -> tuple[np.ndarray, ImageTransform]:
+    """Resize and centre-crop an image for MASt3R (MAST3R_SPEC.md §2.1 steps 2-3).
+
+    Args:
+        image: ``(H1, W1, 3)`` uint8 RGB.
+        long_side: target long side (512 for MASt3R; smaller for fast tests).
+        square_ok: keep square images square instead of cropping them to 4:3.
+
+    Returns:
+        ``(H_crop, W_crop, 3)`` uint8 RGB and the transform that produced it.
+    """
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) uint8 image, got {image.shape} {image.dtype}")
+    transform = compute_transform(image.shape[1], image.shape[0], long_side, square_ok)
+    resample = (
+        Image.Resampling.LANCZOS
+        if max(transform.original) > long_side
+        else Image.Resampling.BICUBIC
+    )
+    resized = Image.fromarray(image).resize(transform.resized, resample)
+    left, top = transform.crop_left, transform.crop_top
+    width, height = transform.output
+    cropped = resized.crop((left, top, left + width, top + height))
+    return np.array(cropped), transform
+
+
+def make_view(
+    frame: Frame,
+    agent: int,
+    long_side: int = 512,
+    calib: tuple[float, float, float, float] | None = None,
+) -> View:
+    """The prior's :class:`View` of a frame at network resolution.
+
+    Args:
+        frame: decoded frame (original resolution).
+        agent: agent id.
+        long_side: long side of the resize (512 for MASt3R).
+        calib: ``(fx, fy, cx, cy)`` in original pixels, or None (uncalibrated).
+
+    Returns:
+        View with ``image (3, H, W)`` in [-1, 1], ``depth (H, W)`` and ``surface (H, W, 3)``
+        float32 when the frame has them, ``T_WC`` the ground-truth pose if any and
+        ``K (3, 3)`` float32 when ``calib`` is given.
+    """
+    image, transform = resize_crop(frame.image, long_side)
+    depth = surface = K = None
+    if frame.depth is not None:
+        depth = torch.from_numpy(np.ascontiguousarray(transform.apply_nearest(frame.depth)))
+    if frame.surface is not None:
+        surface = torch.from_numpy(np.ascontiguousarray(transform.apply_nearest(frame.surface)))
+    if calib is not None:
+        fx, fy, cx, cy = calib
+        K_original = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        K = torch.from_numpy(transform.intrinsics(K_original)).to(torch.float32)
+    return View(
+        image=ImageTransform.to_network(image),
+        agent=agent,
+        index=frame.index,
+        depth=depth,
+        surface=surface,
+        T_WC=frame.T_WC_gt,
+        K=K,
+    )
+
+
+def _nearest_source(size: int, offset: int, scale: float, limit: int) -> np.ndarray:
+    """Input index sampled by each of ``size`` output pixels (pixel-centre convention)."""
+    centres = (np.arange(size) + offset + 0.5) * scale
+    return np.minimum(np.floor(centres).astype(np.int64), limit - 1)

@@ -1,0 +1,74 @@
+"""`como3r eval` end to end through the typer app: exit codes, table, files, error line."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from como3r.cli import app
+from como3r.io.tum import write_tum
+
+FRAMES = 80
+
+
+def make_run(tmp_path: Path, agents: int = 2) -> tuple[Path, list[Path]]:
+    """A run folder whose estimates are noisy, per-agent rotated/scaled copies of the GT."""
+    rng = np.random.default_rng(0)
+    run, stamps, gt_dirs = tmp_path / "run", 0.1 * np.arange(FRAMES), []
+    s = np.linspace(0.0, 1.0, FRAMES)[:, None, None]
+    for a in range(agents):
+        freq, phase = rng.uniform(0.3, 1.5, (1, 3, 3)), rng.uniform(0, 2 * np.pi, (1, 3, 3))
+        positions = (3.0 * np.sin(2 * np.pi * freq * s + phase)).sum(-1)
+        quat = Rotation.from_rotvec((0.4 * np.sin(2 * np.pi * freq * s + phase)).sum(-1))
+        gt_dirs.append(tmp_path / f"agent{a}")
+        write_tum(gt_dirs[-1] / "groundtruth.txt", stamps,
+                  torch.from_numpy(np.concatenate([positions, quat.as_quat()], axis=1)))
+        rotation = Rotation.random(random_state=rng)
+        noisy = 1.5 * rotation.apply(positions) + rng.normal(0, 0.02, positions.shape)
+        est = np.concatenate([noisy, (rotation * quat).as_quat()], axis=1)
+        write_tum(run / "trajectories" / f"agent_{a}.txt", stamps, torch.from_numpy(est))
+    return run, gt_dirs
+
+
+def invoke(run: Path, gts: list[Path], *extra: str):
+    args = ["eval", "--est", str(run)] + [a for g in gts for a in ("--gt", str(g))] + list(extra)
+    return CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+
+
+def test_eval_good_run(tmp_path: Path) -> None:
+    run, gt_dirs = make_run(tmp_path)
+    out = tmp_path / "eval"
+    result = invoke(run, gt_dirs, "--out", str(out))
+    assert result.exit_code == 0, result.output
+    assert "merged" in result.stdout and "ATE RMSE" in result.stdout
+    assert (out / "ate.json").stat().st_size > 0
+    assert (out / "trajectories.png").stat().st_size > 0
+    assert str(out / "ate.json") in result.stdout
+
+
+def test_eval_defaults_to_writing_into_the_run(tmp_path: Path) -> None:
+    run, gt_dirs = make_run(tmp_path)
+    assert invoke(run, gt_dirs).exit_code == 0
+    assert (run / "ate.json").is_file() and (run / "trajectories.png").is_file()
+
+
+def test_eval_bad_input_prints_one_error_line(tmp_path: Path) -> None:
+    run, gt_dirs = make_run(tmp_path)
+    (gt_dirs[1] / "groundtruth.txt").unlink()
+    result = invoke(run, gt_dirs)
+    assert result.exit_code == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:")
+    assert str(gt_dirs[1]) in lines[0]
+    assert "Traceback" not in result.output
+
+
+def test_eval_count_mismatch_exits_2(tmp_path: Path) -> None:
+    run, gt_dirs = make_run(tmp_path)
+    result = invoke(run, gt_dirs[:1])
+    assert result.exit_code == 2
+    assert result.stderr.startswith("error:") and "trajectories" in result.stderr
