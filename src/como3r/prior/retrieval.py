@@ -1,0 +1,445 @@
+"""Place retrieval with binary ASMK over an incremental inverted file (C-Sec. B.3).
+
+Prior-agnostic: the MASt3R retrieval head and the simulated prior both produce local
+descriptors ``(n, d)``; this module indexes them per keyframe and answers "which stored
+keyframes look like this one". The ASMK kernel, the aggregation and the inverted file are
+those of the ``asmk`` package (MIT, jenicek/asmk; MAST3R_SPEC.md §8.7), configured as the
+MASt3R ``Retriever`` configures it (§8.3, :class:`~como3r.config.RetrievalConfig`):
+
+* quantisation to the ``multiple_assignment_build`` (1) nearest centroids when adding and
+  ``multiple_assignment_query`` (5) when querying;
+* per visual word, the residuals to the centroid are summed and binarised (``binary``);
+* ``s = 1 - 2 h`` for the normalised Hamming distance ``h`` of two words' bit vectors,
+  ``sigma(s) = s^alpha`` where ``s >= similarity_threshold_asmk`` and 0 elsewhere;
+* score ``S(q, d) = sum_w sigma(s_w) / sqrt(|W_q| |W_d|)`` (no IDF, ``use_idf`` False).
+
+The normaliser of ``h`` is the packed bit count, ``32 * ceil(d / 32)``: for ``d`` not a
+multiple of 32 the padding bits always agree and ``s`` is biased towards 1 (asmk behaviour,
+kept for identical scores). Features of the simulated prior should use such a ``d``.
+
+The codebook of the official release is a pickle; :func:`load_codebook` reads it with a
+restricted unpickler that admits only the numpy objects an array needs.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+import pickle
+from collections.abc import Collection
+from pathlib import Path
+from typing import Any, Literal, NamedTuple
+
+import numpy as np
+import torch
+
+from como3r.config import RetrievalConfig
+from como3r.errors import CheckpointError, ConfigError, InputError
+
+#: bits per packed word of ``asmk.hamming.binarize_and_pack_2D``
+PACK_BITS = 32
+
+
+class Hit(NamedTuple):
+    """One retrieved keyframe: its agent, its keyframe index and the ASMK similarity."""
+
+    agent: int
+    keyframe: int
+    similarity: float
+
+
+# ---------------------------------------------------------------------------------------
+# Codebook files
+# ---------------------------------------------------------------------------------------
+
+
+def _numpy_core(submodule: str) -> Any:
+    """``numpy._core.<submodule>`` (numpy >= 2) or ``numpy.core.<submodule>`` (numpy 1)."""
+    try:
+        return importlib.import_module(f"numpy._core.{submodule}")
+    except ImportError:
+        return importlib.import_module(f"numpy.core.{submodule}")
+
+
+def _latin1_encode(text: str, encoding: str) -> bytes:
+    """The only use of ``_codecs.encode`` in a protocol-2 numpy pickle: raw array bytes."""
+    if encoding not in ("latin1", "latin-1"):
+        raise pickle.UnpicklingError(f"refused _codecs.encode with encoding {encoding!r}")
+    return text.encode("latin1")
+
+
+def _allowed_globals() -> dict[tuple[str, str], Any]:
+    """Every global a pickled dict of numpy arrays can reference, by (module, name).
+
+    Pickles written under numpy 1 name ``numpy.core``, under numpy 2 ``numpy._core``; both
+    spellings resolve to the installed numpy's functions.
+    """
+    multiarray, numeric = _numpy_core("multiarray"), _numpy_core("numeric")
+    allowed: dict[tuple[str, str], Any] = {
+        ("numpy", "ndarray"): np.ndarray,
+        ("numpy", "dtype"): np.dtype,
+        ("_codecs", "encode"): _latin1_encode,
+    }
+    for package in ("numpy.core", "numpy._core"):
+        allowed[(f"{package}.multiarray", "_reconstruct")] = multiarray._reconstruct
+        allowed[(f"{package}.multiarray", "scalar")] = multiarray.scalar
+        allowed[(f"{package}.numeric", "_frombuffer")] = numeric._frombuffer
+    return allowed
+
+
+class _RefusedGlobal(pickle.UnpicklingError):
+    """A pickle referenced a global outside the allow-list."""
+
+    def __init__(self, qualified_name: str) -> None:
+        super().__init__(qualified_name)
+        self.qualified_name = qualified_name
+
+
+class _NumpyOnlyUnpickler(pickle.Unpickler):
+    """Unpickler that resolves only numpy array / dtype / scalar reconstruction globals.
+
+    Anything else (``os.system``, ``builtins.eval``, ``subprocess.Popen``...) is refused
+    before it is looked up, so a malicious file cannot run code.
+    """
+
+    _allowed = _allowed_globals()
+
+    def find_class(self, module: str, name: str) -> Any:
+        try:
+            return self._allowed[(module, name)]
+        except KeyError:
+            raise _RefusedGlobal(f"{module}.{name}") from None
+
+
+def _codebook_size(size: Any, path: Path) -> int:
+    """Number of centroids of asmk's ``params['size']``: an int or a string like ``'64k'``."""
+    if isinstance(size, (int, np.integer)) and not isinstance(size, bool):
+        return int(size)
+    if isinstance(size, str) and size[:-1].isdigit() and size[-1:] in ("k", "M"):
+        return int(size[:-1]) * {"k": 1024, "M": 1024**2}[size[-1]]
+    raise CheckpointError(f"{path}: codebook params.size {size!r} is not a codebook size")
+
+
+def load_codebook(path: str | Path) -> np.ndarray:
+    """Read an asmk codebook pickle (MAST3R_SPEC.md §8.1) without executing code.
+
+    The file holds ``{'type': 'Codebook', 'params': {'size': K or '64k'},
+    'state': {'centroids': ndarray (K, d)}}`` as written by ``asmk.codebook.Codebook``.
+
+    Returns:
+        ``(K, d)`` float32 C-contiguous centroids.
+
+    Raises:
+        CheckpointError: unreadable, truncated or malformed file, or a pickle that imports
+            anything but numpy array reconstruction (the refused global is named).
+    """
+    path = Path(path)
+    try:
+        with path.open("rb") as handle:
+            state = _NumpyOnlyUnpickler(handle).load()
+    except OSError as exc:
+        raise CheckpointError(f"{path}: cannot read codebook ({exc.strerror})") from None
+    except _RefusedGlobal as exc:
+        raise CheckpointError(
+            f"{path}: refused to load codebook: the pickle imports {exc.qualified_name}, "
+            "which a codebook never needs"
+        ) from None
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure means a broken file
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise CheckpointError(f"{path}: not a valid codebook pickle ({reason})") from None
+    return _centroids_of(state, path)
+
+
+def _centroids_of(state: Any, path: Path) -> np.ndarray:
+    """Validate the unpickled asmk codebook state dict and return its centroids."""
+    if not isinstance(state, dict) or state.get("type") != "Codebook":
+        raise CheckpointError(f"{path}: not an asmk codebook (expected a dict of type 'Codebook')")
+    params, inner = state.get("params"), state.get("state")
+    if not isinstance(params, dict) or "size" not in params:
+        raise CheckpointError(f"{path}: codebook has no params.size")
+    if not isinstance(inner, dict) or not isinstance(inner.get("centroids"), np.ndarray):
+        raise CheckpointError(f"{path}: codebook has no state.centroids array")
+    centroids = inner["centroids"]
+    if centroids.ndim != 2 or 0 in centroids.shape:
+        raise CheckpointError(f"{path}: codebook centroids have shape {centroids.shape}")
+    if not np.issubdtype(centroids.dtype, np.floating):
+        raise CheckpointError(f"{path}: codebook centroids have dtype {centroids.dtype}")
+    size = _codebook_size(params["size"], path)
+    if size != centroids.shape[0]:
+        raise CheckpointError(
+            f"{path}: codebook params.size {params['size']!r} != {centroids.shape[0]} centroids"
+        )
+    centroids = np.ascontiguousarray(centroids, dtype=np.float32)
+    if not np.isfinite(centroids).all():
+        raise CheckpointError(f"{path}: codebook centroids contain non-finite values")
+    return centroids
+
+
+def train_codebook(features: np.ndarray, k: int, seed: int, niter: int = 20) -> np.ndarray:
+    """Cluster ``features`` into ``k`` centroids with faiss k-means (L2).
+
+    Used for priors without an official codebook (the simulated prior). Deterministic for
+    a given ``seed`` and input.
+
+    Args:
+        features: ``(M, d)`` training descriptors, ``M >= k``.
+        k: number of centroids.
+        seed: k-means initialisation seed.
+        niter: Lloyd iterations.
+
+    Returns:
+        ``(k, d)`` float32 centroids.
+    """
+    import faiss  # deferred: faiss is an optional dependency (the ``retrieval`` extra)
+
+    features = _as_descriptor_array(features, "features")
+    if not 1 <= k <= features.shape[0]:
+        raise InputError(f"train_codebook: k = {k} must be in [1, {features.shape[0]}] (M)")
+    # min_points_per_centroid=1 silences faiss' stderr warning for small training sets.
+    kmeans = faiss.Kmeans(
+        features.shape[1], k, niter=niter, seed=seed, verbose=False, min_points_per_centroid=1
+    )
+    kmeans.train(features)
+    return np.ascontiguousarray(kmeans.centroids, dtype=np.float32)
+
+
+# ---------------------------------------------------------------------------------------
+# The database
+# ---------------------------------------------------------------------------------------
+
+
+def _as_descriptor_array(values: Any, name: str, dim: int | None = None) -> np.ndarray:
+    """``values`` (numpy or torch, ``(n, d)``) as finite float32 C-contiguous numpy."""
+    if isinstance(values, torch.Tensor):
+        values = values.detach().to("cpu", torch.float32).numpy()
+    array = np.ascontiguousarray(values, dtype=np.float32)
+    if array.ndim != 2 or array.shape[0] == 0:
+        raise InputError(f"{name}: expected a non-empty (n, d) array, got shape {array.shape}")
+    if dim is not None and array.shape[1] != dim:
+        raise InputError(f"{name}: descriptors have d = {array.shape[1]}, the codebook {dim}")
+    if not np.isfinite(array).all():
+        raise InputError(f"{name}: contains non-finite values")
+    return array
+
+
+class RetrievalDatabase:
+    """Incremental ASMK inverted file over the keyframes of all agents (C-Sec. B.3).
+
+    Every stored image is one keyframe ``(agent, keyframe)``; asmk image ids are assigned
+    consecutively in insertion order, as its inverted file requires (§8.4, "IVF add").
+
+    Args:
+        codebook: ``(K, d)`` float32 centroids (:func:`load_codebook`, :func:`train_codebook`).
+        config: ASMK parameters. ``config.codebook_size`` describes the official MASt3R
+            codebook and is not checked here: other priors bring codebooks of other sizes.
+    """
+
+    def __init__(self, codebook: np.ndarray, config: RetrievalConfig) -> None:
+        from asmk import codebook as asmk_codebook  # deferred: optional dependency
+        from asmk import index as asmk_index
+        from asmk import inverted_file, kernel
+
+        centroids = _as_descriptor_array(codebook, "codebook")
+        if min(config.multiple_assignment_build, config.multiple_assignment_query) < 1:
+            raise ConfigError("retrieval.multiple_assignment_* must be >= 1")
+        self.config = config
+        self._codebook = asmk_codebook.Codebook(
+            asmk_index.FaissL2Index(), size=int(centroids.shape[0])
+        )
+        self._codebook.index(centroids)
+        self._kernel = kernel.ASMKKernel(self._codebook, binary=config.binary)
+        self._ivf = inverted_file.IVF.initialize_empty(
+            use_idf=config.use_idf, codebook_size=self._codebook.size
+        )
+        self._similarity = functools.partial(
+            self._kernel.similarity,
+            alpha=config.alpha,
+            similarity_threshold=config.similarity_threshold_asmk,
+        )
+        self._keys: list[tuple[int, int]] = []
+        self._index_of: dict[tuple[int, int], int] = {}
+
+    def __len__(self) -> int:
+        """Number of stored keyframes."""
+        return len(self._keys)
+
+    @property
+    def dim(self) -> int:
+        """Descriptor dimension ``d`` of the codebook."""
+        return int(self._codebook.centroids.shape[1])
+
+    @property
+    def codebook_size(self) -> int:
+        """Number of visual words ``K``."""
+        return int(self._codebook.size)
+
+    @property
+    def keys(self) -> list[tuple[int, int]]:
+        """``(agent, keyframe)`` of every stored image, in insertion order."""
+        return list(self._keys)
+
+    def _assign(self, descriptors: np.ndarray, multiple_assignment: int) -> np.ndarray:
+        """``(n, MA)`` ids of the nearest centroids (L2), nearest first."""
+        ma = min(multiple_assignment, self.codebook_size)
+        _, word_ids = self._codebook.quantize(descriptors, multiple_assignment=ma)
+        return word_ids
+
+    def _store(self, agent: int, keyframe: int, descriptors: np.ndarray, words: np.ndarray) -> None:
+        """Aggregate the assigned descriptors and append them as the next asmk image."""
+        aggregated, unique_words = self._kernel.aggregate_image(descriptors, words)
+        image_ids = np.full(unique_words.shape[0], len(self._keys), dtype=np.int64)
+        self._ivf.add(aggregated, unique_words, image_ids)
+        self._index_of[(agent, keyframe)] = len(self._keys)
+        self._keys.append((agent, keyframe))
+
+    def _prepare(
+        self, agent: int, keyframe: int, descriptors: Any, attention: Any
+    ) -> np.ndarray:
+        """Validate an image to add; return its descriptors as float32 numpy."""
+        key = (int(agent), int(keyframe))
+        if key in self._index_of:
+            raise InputError(f"retrieval database: agent {key[0]} keyframe {key[1]} already added")
+        array = _as_descriptor_array(descriptors, "descriptors", self.dim)
+        if attention is not None and tuple(np.shape(attention)) != (array.shape[0],):
+            raise InputError(
+                f"attention: expected shape ({array.shape[0]},), got {tuple(np.shape(attention))}"
+            )
+        return array
+
+    def add(
+        self, agent: int, keyframe: int, descriptors: Any, attention: Any | None = None
+    ) -> None:
+        """Index one keyframe.
+
+        Args:
+            agent: agent id of the keyframe.
+            keyframe: keyframe index within the agent; ``(agent, keyframe)`` must be new.
+            descriptors: ``(n, d)`` local descriptors (numpy or torch).
+            attention: optional ``(n,)`` attention of the descriptors. Binary ASMK does not
+                weight descriptors (the head's top-k selection already used attention); it
+                is accepted so ``add(a, k, *prior.retrieval_features(enc))`` works.
+        """
+        array = self._prepare(agent, keyframe, descriptors, attention)
+        words = self._assign(array, self.config.multiple_assignment_build)
+        self._store(int(agent), int(keyframe), array, words)
+
+    def _scores_of(self, descriptors: np.ndarray, words: np.ndarray) -> np.ndarray:
+        """``(len(self),)`` float64 ASMK similarity of the query to every stored image."""
+        aggregated, unique_words = self._kernel.aggregate_image(descriptors, words)
+        ranks, ranked_scores = self._ivf.search(
+            aggregated, unique_words, similarity_func=self._similarity, topk=None
+        )
+        scores = np.zeros(len(self._keys), dtype=np.float64)
+        scores[ranks] = ranked_scores
+        return scores
+
+    def scores(self, descriptors: Any) -> np.ndarray:
+        """ASMK similarity of a query image to every stored image.
+
+        Args:
+            descriptors: ``(n, d)`` query descriptors.
+
+        Returns:
+            ``(len(self),)`` float64 scores in insertion order (see :attr:`keys`).
+        """
+        array = _as_descriptor_array(descriptors, "descriptors", self.dim)
+        if not self._keys:
+            return np.zeros(0, dtype=np.float64)
+        return self._scores_of(array, self._assign(array, self.config.multiple_assignment_query))
+
+    def _select(
+        self,
+        scores: np.ndarray,
+        k: int | None,
+        min_similarity: float | None,
+        agent: int | None,
+        exclude_agent: int | None,
+        exclude_keyframes: Collection[tuple[int, int]],
+    ) -> list[Hit]:
+        """Filter by agent, take the top ``k`` and keep those scoring > ``min_similarity``."""
+        k = self.config.k_nn if k is None else int(k)
+        threshold = self.config.min_similarity if min_similarity is None else min_similarity
+        if k < 0:
+            raise InputError(f"retrieval query: k = {k} must be >= 0")
+        excluded = {(int(a), int(f)) for a, f in exclude_keyframes}
+        candidates = [
+            i
+            for i, key in enumerate(self._keys)
+            if (agent is None or key[0] == agent)
+            and (exclude_agent is None or key[0] != exclude_agent)
+            and key not in excluded
+        ]
+        # Stable sort: equal scores keep insertion order, so results are deterministic.
+        ranked = sorted(candidates, key=lambda i: -scores[i])[:k]
+        return [
+            Hit(*self._keys[i], float(scores[i])) for i in ranked if scores[i] > threshold
+        ]
+
+    def query(
+        self,
+        descriptors: Any,
+        k: int | None = None,
+        min_similarity: float | None = None,
+        agent: int | None = None,
+        exclude_agent: int | None = None,
+        exclude_keyframes: Collection[tuple[int, int]] = (),
+    ) -> list[Hit]:
+        """Top-``k`` stored keyframes most similar to a query image.
+
+        Candidates are filtered first (``agent``: only this agent's keyframes;
+        ``exclude_agent``: only other agents'; ``exclude_keyframes``: ``(agent, keyframe)``
+        pairs to skip), then the ``k`` best are kept if their similarity is strictly greater
+        than ``min_similarity`` (MASt3R-SLAM's rule, §8.5).
+
+        Args:
+            descriptors: ``(n, d)`` query descriptors.
+            k: number of neighbours; default ``config.k_nn``.
+            min_similarity: similarity threshold; default ``config.min_similarity``.
+
+        Returns:
+            Hits sorted by similarity, highest first.
+        """
+        scores = self.scores(descriptors)
+        return self._select(scores, k, min_similarity, agent, exclude_agent, exclude_keyframes)
+
+    def query_and_add(
+        self,
+        agent: int,
+        keyframe: int,
+        descriptors: Any,
+        attention: Any | None = None,
+        k: int | None = None,
+        min_similarity: float | None = None,
+        scope: Literal["all", "own", "others"] = "all",
+        exclude_keyframes: Collection[tuple[int, int]] = (),
+    ) -> list[Hit]:
+        """Query with a new keyframe, then index it (MASt3R-SLAM ``update``, §8.5).
+
+        The nearest centroid of the query assignment is reused for indexing, so the
+        descriptors are quantised once. ``scope`` restricts the query to the keyframe's own
+        agent (``"own"``), to the other agents (``"others"``) or to none (``"all"``).
+
+        Returns:
+            The hits of the query, before the keyframe was added.
+        """
+        if scope not in ("all", "own", "others"):
+            raise InputError(f"query_and_add: scope {scope!r} is not 'all', 'own' or 'others'")
+        array = self._prepare(agent, keyframe, descriptors, attention)
+        ma_query, ma_build = (
+            self.config.multiple_assignment_query,
+            self.config.multiple_assignment_build,
+        )
+        words = self._assign(array, max(ma_query, ma_build))
+        hits: list[Hit] = []
+        if self._keys:
+            scores = self._scores_of(array, words[:, :ma_query])
+            hits = self._select(
+                scores,
+                k,
+                min_similarity,
+                agent if scope == "own" else None,
+                agent if scope == "others" else None,
+                exclude_keyframes,
+            )
+        self._store(int(agent), int(keyframe), array, words[:, :ma_build])
+        return hits
