@@ -1,0 +1,162 @@
+"""Per-match residuals with analytic Jacobians on Sim(3) (C-Sec. A.1, A.2, A.5).
+
+All Jacobians are with respect to the left perturbation ``T <- Exp(tau) T`` with
+``tau = (v, omega, zeta)`` (C-Sec. 3.2). Degenerate inputs (points at the camera centre, points
+with non-positive depth in the calibrated residual) give finite but meaningless values from a
+clamped norm / depth; callers mask them out (their IRLS weight is set to zero), which would be
+impossible with NaNs.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from como3r.geometry.lie import sim3_act, sim3_adjoint, sim3_inverse, skew
+
+__all__ = [
+    "psi",
+    "point_jacobian",
+    "ray_range_residual",
+    "calibrated_residual",
+    "edge_jacobians",
+    "huber_weight",
+]
+
+# Norms and depths are clamped to this before dividing (finite in float32: 1 / 1e-12 = 1e12).
+_MIN_NORM = 1e-12
+
+
+def _norm(x: Tensor) -> Tensor:
+    return x.norm(dim=-1).clamp_min(_MIN_NORM)
+
+
+def psi(x: Tensor) -> Tensor:
+    """Unit ray ``psi(x) = x / ||x||`` (C-Eq. 1). ``x``: ``(..., 3)`` -> ``(..., 3)``."""
+    return x / _norm(x)[..., None]
+
+
+def point_jacobian(x: Tensor) -> Tensor:
+    """``D(Exp(tau) x) / D tau`` at ``tau = 0``: ``[I, -[x]_x, x]`` (C-Eq. 9).
+
+    Args:
+        x: ``(..., 3)`` transformed points ``x = T X``.
+
+    Returns:
+        ``(..., 3, 7)``.
+    """
+    eye = torch.eye(3, dtype=x.dtype, device=x.device).expand(*x.shape[:-1], 3, 3)
+    return torch.cat([eye, -skew(x), x[..., None]], dim=-1)
+
+
+def _transform_matches(T_ij: Tensor, X_j: Tensor) -> Tensor:
+    """``T_ij X_j`` with ``T_ij``'s batch dims broadcast against ``X_j``'s dims before N."""
+    return sim3_act(T_ij[..., None, :], X_j)
+
+
+def ray_range_residual(T_ij: Tensor, X_j: Tensor, X_i: Tensor) -> tuple[Tensor, Tensor]:
+    """Ray-and-range residual of C-Eq. 6 and its Jacobian (C-Eq. 9-10).
+
+    ``e = [psi(T X_j) - psi(X_i); ||T X_j|| - ||X_i||]``. With ``x = T X_j``, ``d = ||x||`` and
+    ``r = x / d`` the chain rule of C-Eq. 10 through C-Eq. 9 simplifies, because
+    ``(I - r r^T) x = 0`` and ``r^T [x]_x = 0``, to
+
+        d e_psi / d tau = [(I - r r^T) / d,  -[r]_x,  0],
+        d e_d   / d tau = [r^T,              0,       d]:
+
+    a scale change moves points along their rays and a rotation keeps their range.
+
+    Args:
+        T_ij: ``(..., 8)`` pose of camera j in camera i.
+        X_j: ``(..., N, 3)`` points in camera j.
+        X_i: ``(..., N, 3)`` matched points in camera i. All batch dims broadcast.
+
+    Returns:
+        ``e``: ``(..., N, 4)``; ``J``: ``(..., N, 4, 7)`` = ``d e / d tau`` for
+        ``T_ij <- Exp(tau) T_ij``.
+    """
+    x = _transform_matches(T_ij, X_j)
+    d = _norm(x)
+    r = x / d[..., None]
+    d_i = _norm(X_i)
+    e = torch.cat([r - X_i / d_i[..., None], (d - d_i)[..., None]], dim=-1)
+
+    eye = torch.eye(3, dtype=x.dtype, device=x.device)
+    projector = eye - r[..., :, None] * r[..., None, :]
+    zero_col = x.new_zeros(*x.shape[:-1], 3, 1)
+    J_ray = torch.cat([projector / d[..., None, None], -skew(r), zero_col], dim=-1)
+    J_range = torch.cat([r, x.new_zeros(*x.shape[:-1], 3), d[..., None]], dim=-1)
+    J = torch.cat([J_ray, J_range[..., None, :]], dim=-2)
+    return e, J.expand(*e.shape, 7)
+
+
+def calibrated_residual(T_ij: Tensor, X_j: Tensor, p_i: Tensor, z_i: Tensor,
+                        K: Tensor) -> tuple[Tensor, Tensor]:
+    """Pixel-and-log-depth residual of the known-calibration variant (C-Eq. 17-18).
+
+    ``e = [Pi_K(T X_j) - p_i; log z(T X_j) - log z_i]`` with ``Pi_K(x) = (K x)_{1,2} / z``.
+    For ``x = (x, y, z)`` the pixel Jacobian ``(K_{1:2} - Pi_K(x) e_3^T) / z`` equals C-Eq. 18
+    (and also covers a skew term); the log-depth row is ``(0, 0, 1 / z)``. Both are composed with
+    C-Eq. 9.
+
+    Args:
+        T_ij: ``(..., 8)`` pose of camera j in camera i.
+        X_j: ``(..., N, 3)`` points in camera j.
+        p_i: ``(..., N, 2)`` observed pixels ``(u, v)`` in image i.
+        z_i: ``(..., N)`` observed depths (z) in camera i, positive.
+        K: ``(..., 3, 3)`` intrinsics of camera i (last row ``(0, 0, 1)``). All batch dims
+            broadcast.
+
+    Returns:
+        ``e``: ``(..., N, 3)``; ``J``: ``(..., N, 3, 7)`` = ``d e / d tau`` for
+        ``T_ij <- Exp(tau) T_ij``.
+    """
+    x = _transform_matches(T_ij, X_j)
+    z = x[..., 2].clamp_min(_MIN_NORM)
+    K_rows = K[..., None, :2, :]
+    uv = (K_rows @ x[..., None])[..., 0] / z[..., None]
+    log_z_error = z.log() - z_i.clamp_min(_MIN_NORM).log()
+    e = torch.cat([uv - p_i, log_z_error[..., None]], dim=-1)
+
+    D_x = point_jacobian(x)
+    e3 = torch.tensor([0.0, 0.0, 1.0], dtype=x.dtype, device=x.device)
+    J_pixel_x = (K_rows - uv[..., :, None] * e3) / z[..., None, None]
+    J_pixel = J_pixel_x @ D_x
+    J_log_z = D_x[..., 2:3, :] / z[..., None, None]
+    J = torch.cat([J_pixel, J_log_z], dim=-2)
+    return e, J.expand(*e.shape, 7)
+
+
+def edge_jacobians(T_WC_i: Tensor, J_rel: Tensor) -> tuple[Tensor, Tensor]:
+    """Jacobians of an edge residual with respect to both endpoint poses (C-Eq. 11).
+
+    For ``T_ij = T_WC_i^-1 T_WC_j``, a left perturbation of ``T_WC_j`` moves ``T_ij`` by
+    ``Exp(Ad_{T_WC_i^-1} delta)`` and one of ``T_WC_i`` by ``Exp(-Ad_{T_WC_i^-1} delta)``, so
+
+        J_i = -J_rel Ad_{T_WC_i^-1},    J_j = +J_rel Ad_{T_WC_i^-1}.
+
+    Args:
+        T_WC_i: ``(..., 8)`` world pose of camera i.
+        J_rel: ``(..., M, 7)`` Jacobian rows with respect to ``T_ij`` (e.g. ``(..., N*4, 7)``
+            from :func:`ray_range_residual`); its ``...`` broadcast against ``T_WC_i``'s.
+
+    Returns:
+        ``(J_i, J_j)``, each ``(..., M, 7)``.
+    """
+    J_j = J_rel @ sim3_adjoint(sim3_inverse(T_WC_i))
+    return -J_j, J_j
+
+
+def huber_weight(r: Tensor, k: float) -> Tensor:
+    """IRLS weight of the Huber kernel, ``min(1, k / |r|)`` (C-Sec. A.1).
+
+    Args:
+        r: ``(...)`` whitened residual components.
+        k: Huber breakpoint (1.345 in Table 3), positive.
+
+    Returns:
+        ``(...)`` weights in ``(0, 1]``.
+    """
+    if not k > 0:
+        raise ValueError(f"huber_weight: breakpoint k must be positive, got {k}")
+    return k / r.abs().clamp_min(k)
