@@ -1,0 +1,39 @@
+"""Non-linear least squares over Sim(3) poses (C-Sec. B.2), GTSAM-style.
+
+* :mod:`~como3r.optim.values` — ``PoseValues``: the poses and which are pinned;
+* :mod:`~como3r.optim.factors` — ``RayRangeFactors`` (C-Eq. 6) and ``CalibratedFactors``
+  (C-Eq. 17): dense relative-pose factor batches that linearize into 7x7 edge blocks;
+* :mod:`~como3r.optim.linear` — block assembly and the damped solve of C-Eq. 25 (dense or
+  sparse, with Tikhonov escalation);
+* :mod:`~como3r.optim.optimizer` — ``levenberg_marquardt_irls`` (tracking, C-Eq. 2) and
+  ``gauss_newton_irls`` (local solve and global BA, C-Eq. 5).
+"""
+
+from como3r.optim.factors import CalibratedFactors, Factor, RayRangeFactors, RelativePoseFactors
+from como3r.optim.linear import (
+    BlockSystem,
+    EdgeBlocks,
+    LinearSolution,
+    SolveStatus,
+    assemble,
+    solve,
+)
+from como3r.optim.optimizer import SolveReport, gauss_newton_irls, levenberg_marquardt_irls
+from como3r.optim.values import PoseValues
+
+__all__ = [
+    "BlockSystem",
+    "CalibratedFactors",
+    "EdgeBlocks",
+    "Factor",
+    "LinearSolution",
+    "PoseValues",
+    "RayRangeFactors",
+    "RelativePoseFactors",
+    "SolveReport",
+    "SolveStatus",
+    "assemble",
+    "gauss_newton_irls",
+    "levenberg_marquardt_irls",
+    "solve",
+]

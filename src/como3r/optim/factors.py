@@ -1,0 +1,341 @@
+"""Dense relative-pose factors over pointmap correspondences (C-Eq. 2, 5, 17).
+
+One factor batch holds E edges (i, j), each with P matched pixels (padded and masked by
+``valid``). Its residual is a function of the relative pose ``T_ij = T_WC_i^-1 T_WC_j``
+(C-Eq. 13) only, so the same class serves
+
+* tracking (C-Eq. 2): one edge (keyframe 0, frame 1) with the keyframe pinned at the
+  identity, so ``T_ij`` is the frame pose ``T_kf``;
+* the per-agent local keyframe-graph solve and the global bundle adjustment (C-Eq. 5).
+
+Each match contributes C residual components, each whitened by
+``Sigma_mn^-1/2 = sqrt(q_mn) / sigma_c`` (C-Eq. 7) and robustified independently by a
+Huber kernel (C-Eq. 8). ``linearize`` produces the per-edge Gauss-Newton blocks with the
+IRLS weights ``w = min(1, k/|r|)`` recomputed from the whitened residual of the poses it is
+given (C-Sec. B.2); ``cost`` evaluates the robust energy for Levenberg-Marquardt.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from typing import Protocol, Sequence
+
+import torch
+
+from como3r.config import TrackingConfig
+from como3r.errors import InputError
+from como3r.geometry.lie import sim3_act, sim3_adjoint, sim3_compose, sim3_inverse
+from como3r.geometry.residuals import calibrated_residual, huber_weight, ray_range_residual
+from como3r.optim.linear import EdgeBlocks
+
+# Matches linearized at once: bounds the (chunk, P, C, 7) Jacobian, its weighted copy and
+# the temporaries of the residual to ~100 MB in float32 whatever E and P are (a chunk holds
+# at least one edge, so one tracking edge of 200k pixels is a single chunk).
+DEFAULT_CHUNK_MATCHES = 1 << 18
+
+
+class Factor(Protocol):
+    """What an optimizer needs from a factor batch (GTSAM's NonlinearFactor, batched)."""
+
+    def linearize(self, poses: torch.Tensor) -> EdgeBlocks:
+        """Per-edge Gauss-Newton blocks at poses ``(N, 8)``."""
+        ...
+
+    def cost(self, poses: torch.Tensor) -> torch.Tensor:
+        """Robust energy at poses ``(N, 8)``, a float64 scalar."""
+        ...
+
+    @property
+    def max_pose_index(self) -> int:
+        """The largest pose index any edge refers to."""
+        ...
+
+
+class RelativePoseFactors(ABC):
+    """Common machinery of a batch of E relative-pose edges with P matches each.
+
+    Subclasses provide ``_residual(T_ij, edges)``: the residual ``(e, P, C)`` and its
+    Jacobian ``(e, P, C, 7)`` w.r.t. a left perturbation of ``T_ij`` for a slice of edges.
+    Matches that are invalid, whose confidence is not positive, or whose residual is not
+    defined (see the subclasses) get zero weight.
+    """
+
+    def __init__(
+        self,
+        i: torch.Tensor,
+        j: torch.Tensor,
+        q: torch.Tensor,
+        valid: torch.Tensor,
+        sigmas: Sequence[float],
+        huber_k: float,
+        chunk_matches: int,
+    ) -> None:
+        name = type(self).__name__
+        self.i = _edge_index(i, "i", name).to(q.device)
+        self.j = _edge_index(j, "j", name).to(q.device)
+        num_edges = self.i.shape[0]
+        if self.j.shape != self.i.shape:
+            raise InputError(f"{name}: i and j must have the same length, got {num_edges} and "
+                             f"{self.j.shape[0]}")
+        if bool((self.i == self.j).any()):
+            raise InputError(f"{name}: an edge connects a pose to itself (i == j)")
+        self._max_pose_index = int(torch.maximum(self.i, self.j).max()) if num_edges else -1
+        if q.ndim != 2 or q.shape[0] != num_edges:
+            raise InputError(f"{name}: q must have shape (E, P) with E={num_edges}, got "
+                             f"{tuple(q.shape)}")
+        if valid.shape != q.shape or valid.dtype != torch.bool:
+            raise InputError(f"{name}: valid must be a bool tensor of shape {tuple(q.shape)}")
+        for label, value in zip(("sigma", "huber_k"), (*sigmas, huber_k)):
+            if not (math.isfinite(value) and value > 0):
+                raise InputError(f"{name}: {label} must be a positive number, got {value}")
+        if chunk_matches < 1:
+            raise InputError(f"{name}: chunk_matches must be >= 1, got {chunk_matches}")
+        # A match with a non-finite or non-positive confidence carries no information.
+        self.valid = valid & torch.isfinite(q) & (q > 0)
+        self.q = torch.where(self.valid, q, torch.zeros_like(q))
+        self.huber_k = float(huber_k)
+        self._inv_sigmas = torch.tensor([1.0 / s for s in sigmas], dtype=q.dtype, device=q.device)
+        self._edges_per_chunk = max(1, chunk_matches // max(1, q.shape[1]))
+
+    @abstractmethod
+    def _residual(
+        self, T_ij: torch.Tensor, edges: slice
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """Residual ``(e, P, C)``, Jacobian ``(e, P, C, 7)`` and, where the residual can
+        degenerate at some poses, a ``(e, P)`` bool mask of the matches it is defined for."""
+
+    @property
+    def num_edges(self) -> int:
+        """E, the number of edges."""
+        return self.i.shape[0]
+
+    @property
+    def max_pose_index(self) -> int:
+        """The largest pose index any edge refers to (-1 for an empty batch)."""
+        return self._max_pose_index
+
+    def whitened_residual(
+        self, poses: torch.Tensor, edges: slice = slice(None)
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Whitened residual of a slice of edges at the given poses.
+
+        Args:
+            poses: ``(N, 8)`` poses ``T_WC``.
+            edges: which edges.
+
+        Returns:
+            ``r = Sigma^-1/2 e`` ``(e, P, C)``, ``sqrt_info`` ``(e, P, C)``, the raw Jacobian
+            ``J`` ``(e, P, C, 7)`` w.r.t. a left perturbation of ``T_ij``, and ``T_WC_i``
+            ``(e, 8)``. ``r`` and ``sqrt_info`` are zero for unusable matches (invalid, or
+            behind the camera in the calibrated residual).
+        """
+        self._check_poses(poses)
+        T_WC_i = poses[self.i[edges]]
+        T_ij = sim3_compose(sim3_inverse(T_WC_i), poses[self.j[edges]])
+        e, J, defined = self._residual(T_ij, edges)
+        # The stored inputs are finite (see _finite_rows), so e and J are finite for finite
+        # poses and a zero sqrt_info removes a match from every sum without masking J.
+        ok = self.valid[edges] if defined is None else self.valid[edges] & defined
+        sqrt_info = torch.sqrt(self.q[edges])[..., None] * self._inv_sigmas * ok[..., None]
+        return e * sqrt_info, sqrt_info, J, T_WC_i
+
+    def linearize(self, poses: torch.Tensor) -> EdgeBlocks:
+        """Per-edge Gauss-Newton blocks with Huber-IRLS weights at ``poses`` ``(N, 8)``.
+
+        In the relative tangent of ``T_ij`` an edge gives ``H = J^T W J`` and ``g = J^T W e``
+        with ``W = w(r) Sigma^-1`` per component. By C-Eq. 11 the endpoint Jacobians are
+        ``J_i = -J Ad`` and ``J_j = J Ad`` with ``Ad = Ad(T_WC_i^-1)``, constant over the
+        edge's matches, so the 7x7 edge blocks are projected once per edge instead of per
+        match: ``H_jj = H_ii = Ad^T H Ad = -H_ij``, ``g_j = Ad^T g = -g_i``.
+        """
+        parts = [self._linearize_chunk(poses, chunk) for chunk in self._chunks()]
+        if not parts:
+            return _empty_blocks(poses)
+        return EdgeBlocks.cat(parts)
+
+    def cost(self, poses: torch.Tensor) -> torch.Tensor:
+        """Robust energy ``sum rho(r_c)`` of C-Eq. 2 / 5 at ``poses`` ``(N, 8)``, float64.
+
+        ``rho`` is the Huber kernel with ``rho(r) = r^2/2`` inside the breakpoint, whose
+        IRLS weight is exactly ``w(r) = rho'(r)/r = min(1, k/|r|)``.
+        """
+        total = torch.zeros((), dtype=torch.float64, device=poses.device)
+        for chunk in self._chunks():
+            r = self.whitened_residual(poses, chunk)[0].abs().to(torch.float64)
+            k = self.huber_k
+            total = total + torch.where(r <= k, 0.5 * r * r, k * (r - 0.5 * k)).sum()
+        return total
+
+    def _linearize_chunk(self, poses: torch.Tensor, edges: slice) -> EdgeBlocks:
+        r, sqrt_info, J, T_WC_i = self.whitened_residual(poses, edges)
+        # The IRLS weight is absorbed into the square-root information (C-Sec. A.1): with
+        # s = sqrt_info and r = s e, H = J^T (w s^2) J and g = J^T (w s r) = J^T (w s^2) e.
+        weight = huber_weight(r, self.huber_k) * sqrt_info
+        num, P, C = r.shape
+        J_flat = J.reshape(num, P * C, 7)
+        WJ = (weight * sqrt_info).reshape(num, P * C, 1) * J_flat
+        H_rel = WJ.transpose(1, 2) @ J_flat
+        g_rel = torch.einsum("ekd,ek->ed", J_flat, (weight * r).reshape(num, P * C))
+        Ad = sim3_adjoint(sim3_inverse(T_WC_i))
+        Ad_T = Ad.transpose(1, 2)
+        H_jj = Ad_T @ H_rel @ Ad
+        H_jj = 0.5 * (H_jj + H_jj.transpose(1, 2))  # exactly symmetric, also in float32
+        g_j = (Ad_T @ g_rel[..., None])[..., 0]
+        return EdgeBlocks(self.i[edges], self.j[edges], H_jj, H_jj, -H_jj, -g_j, g_j)
+
+    def _chunks(self) -> list[slice]:
+        step = self._edges_per_chunk
+        return [slice(s, min(s + step, self.num_edges)) for s in range(0, self.num_edges, step)]
+
+    def _check_poses(self, poses: torch.Tensor) -> None:
+        if poses.ndim != 2 or poses.shape[1] != 8:
+            raise InputError(f"{type(self).__name__}: poses must be (N, 8), got "
+                             f"{tuple(poses.shape)}")
+        if self.max_pose_index >= poses.shape[0]:
+            raise InputError(
+                f"{type(self).__name__}: an edge refers to pose {self.max_pose_index} but only "
+                f"{poses.shape[0]} poses are given"
+            )
+
+
+class RayRangeFactors(RelativePoseFactors):
+    """Ray-and-range factors of C-Eq. 6 (uncalibrated tracking, local and global BA).
+
+    Args:
+        i, j: ``(E,)`` pose indices of each edge; the residual depends on
+            ``T_ij = T_WC_i^-1 T_WC_j``.
+        X_i: ``(E, P, 3)`` canonical points of keyframe i at the matched pixels m, in
+            camera i.
+        X_j: ``(E, P, 3)`` canonical points of j at the matched pixels n, in camera j.
+        q: ``(E, P)`` per-match confidence ``q_mn`` (C-Eq. 7).
+        valid: ``(E, P)`` bool, which matches exist.
+        sigma_ray, sigma_dist: ray and range noise (C-Tab. 3).
+        huber_k: Huber breakpoint on whitened components.
+        chunk_matches: how many matches to linearize at once (memory bound).
+    """
+
+    def __init__(
+        self,
+        i: torch.Tensor,
+        j: torch.Tensor,
+        X_i: torch.Tensor,
+        X_j: torch.Tensor,
+        q: torch.Tensor,
+        valid: torch.Tensor,
+        sigma_ray: float = TrackingConfig.sigma_ray,
+        sigma_dist: float = TrackingConfig.sigma_dist,
+        huber_k: float = TrackingConfig.huber_k,
+        chunk_matches: int = DEFAULT_CHUNK_MATCHES,
+    ) -> None:
+        super().__init__(i, j, q, valid, (sigma_ray,) * 3 + (sigma_dist,), huber_k, chunk_matches)
+        for label, X in (("X_i", X_i), ("X_j", X_j)):
+            if X.shape != (*q.shape, 3):
+                raise InputError(f"RayRangeFactors: {label} must have shape "
+                                 f"{(*q.shape, 3)}, got {tuple(X.shape)}")
+        # A point at the camera centre has no ray (the geometry clamps its norm instead of
+        # returning NaN), and Sim(3) maps only the centre to the centre, so this is static.
+        self.valid = self.valid & _usable_points(X_i) & _usable_points(X_j)
+        self.X_i = _finite_rows(X_i, self.valid)
+        self.X_j = _finite_rows(X_j, self.valid)
+
+    def _residual(
+        self, T_ij: torch.Tensor, edges: slice
+    ) -> tuple[torch.Tensor, torch.Tensor, None]:
+        e, J = ray_range_residual(T_ij, self.X_j[edges], self.X_i[edges])
+        return e, J, None
+
+
+class CalibratedFactors(RelativePoseFactors):
+    """Pixel-reprojection and log-depth factors of C-Eq. 17 (known calibration, C-Sec. A.5).
+
+    Args:
+        i, j: ``(E,)`` pose indices of each edge.
+        X_j: ``(E, P, 3)`` canonical points of j at the matched pixels n, in camera j.
+        p_i: ``(E, P, 2)`` observed pixel coordinates m in image i.
+        z_i: ``(E, P)`` depth ``[X_i]_3`` of keyframe i at pixel m (metres, > 0).
+        K: ``(E, 3, 3)`` or ``(3, 3)`` intrinsics of camera i.
+        q, valid: as in :class:`RayRangeFactors`.
+        sigma_pixel, sigma_depth: pixel and log-depth noise (C-Tab. 3).
+        huber_k, chunk_matches: as in :class:`RayRangeFactors`.
+    """
+
+    def __init__(
+        self,
+        i: torch.Tensor,
+        j: torch.Tensor,
+        X_j: torch.Tensor,
+        p_i: torch.Tensor,
+        z_i: torch.Tensor,
+        K: torch.Tensor,
+        q: torch.Tensor,
+        valid: torch.Tensor,
+        sigma_pixel: float = TrackingConfig.sigma_pixel,
+        sigma_depth: float = TrackingConfig.sigma_depth,
+        huber_k: float = TrackingConfig.huber_k,
+        chunk_matches: int = DEFAULT_CHUNK_MATCHES,
+    ) -> None:
+        super().__init__(
+            i, j, q, valid, (sigma_pixel,) * 2 + (sigma_depth,), huber_k, chunk_matches
+        )
+        for label, value, shape in (
+            ("X_j", X_j, (*q.shape, 3)),
+            ("p_i", p_i, (*q.shape, 2)),
+            ("z_i", z_i, tuple(q.shape)),
+        ):
+            if value.shape != shape:
+                raise InputError(f"CalibratedFactors: {label} must have shape {shape}, got "
+                                 f"{tuple(value.shape)}")
+        if K.shape == (3, 3):
+            K = K.expand(q.shape[0], 3, 3)
+        if K.shape != (q.shape[0], 3, 3):
+            raise InputError(f"CalibratedFactors: K must have shape (3, 3) or "
+                             f"({q.shape[0]}, 3, 3), got {tuple(K.shape)}")
+        observed = torch.isfinite(p_i).all(-1) & torch.isfinite(z_i) & (z_i > 0)
+        self.valid = self.valid & observed & _usable_points(X_j)
+        self.X_j = _finite_rows(X_j, self.valid)
+        self.p_i = _finite_rows(p_i, self.valid)
+        self.z_i = _finite_rows(z_i[..., None], self.valid)[..., 0]
+        self.K = K
+
+    def _residual(
+        self, T_ij: torch.Tensor, edges: slice
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        X_j = self.X_j[edges]
+        e, J = calibrated_residual(T_ij, X_j, self.p_i[edges], self.z_i[edges], self.K[edges])
+        # Pi_K and log z exist only in front of camera i; the geometry clamps z there, so the
+        # mask is recomputed at every iterate from the transformed depth.
+        in_front = sim3_act(T_ij[:, None, :], X_j)[..., 2] > 0
+        return e, J, in_front
+
+
+def _edge_index(index: torch.Tensor, label: str, name: str) -> torch.Tensor:
+    """Validate an ``(E,)`` pose index tensor and return it as int64."""
+    if not isinstance(index, torch.Tensor) or index.ndim != 1:
+        raise InputError(f"{name}: {label} must be a 1-D tensor of pose indices")
+    if index.is_floating_point() or index.dtype == torch.bool:
+        raise InputError(f"{name}: {label} must hold integer pose indices, got {index.dtype}")
+    if index.numel() and int(index.min()) < 0:
+        raise InputError(f"{name}: {label} holds a negative pose index")
+    return index.to(torch.int64)
+
+
+def _usable_points(X: torch.Tensor) -> torch.Tensor:
+    """``(E, P)`` bool: finite points away from the camera centre."""
+    return torch.isfinite(X).all(-1) & (torch.linalg.vector_norm(X, dim=-1) > 0)
+
+
+def _finite_rows(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """``values`` ``(E, P, k)`` with the rows of invalid matches set to 1 if any of them is
+    not finite: garbage behind the mask (NaN pointmap pixels) must not turn a zero weight
+    into NaN. Without such garbage the input is kept as is (no copy)."""
+    if bool(torch.isfinite(values).all()):
+        return values
+    return torch.where(valid[..., None], values, torch.ones_like(values))
+
+
+def _empty_blocks(poses: torch.Tensor) -> EdgeBlocks:
+    index = torch.zeros(0, dtype=torch.int64, device=poses.device)
+    block = torch.zeros(0, 7, 7, dtype=poses.dtype, device=poses.device)
+    vector = torch.zeros(0, 7, dtype=poses.dtype, device=poses.device)
+    return EdgeBlocks(index, index, block, block, block, vector, vector)

@@ -1,0 +1,310 @@
+"""The block-sparse normal equations of a pose solve and their damped solution (C-Eq. 25).
+
+Factors linearize into per-edge 7x7 blocks (:class:`EdgeBlocks`); :func:`assemble`
+scatter-adds them into the global block system (:class:`BlockSystem`) over N poses;
+:func:`solve` solves
+
+    (H + lambda diag(H) + eps_r I) tau = -g
+
+over the free poses with the Tikhonov escalation ``eps_r = eps_0 * 100^r``, r = 0..R-1 of
+C-Sec. B.2, returning a zero step and ``SolveStatus.FAILED`` when every attempt fails.
+Two interchangeable backends: a dense Cholesky in torch and a sparse symmetric LU in scipy.
+The linear algebra always runs in float64: pose Hessians of dense correspondences weigh
+rays by 1/sigma_ray^2 ~ 1e5 and ranges by 1/sigma_dist^2 = 1e-2 (C-Tab. 3), a spread of
+1e7 that is the whole precision of float32.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from dataclasses import dataclass
+from typing import Literal, Sequence
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+import torch
+
+from como3r.errors import InputError
+
+logger = logging.getLogger(__name__)
+
+D = 7  # tangent dimension of Sim(3)
+
+Backend = Literal["auto", "dense", "sparse"]
+
+# Crossover of backend="auto", measured with benchmarks/ba_scaling.py (2-core x86-64 CPU
+# shared with other jobs, torch.set_num_threads(1), chain + loop graphs with 2.25 edges per
+# keyframe): assembling the free-pose matrix, factorising and solving take the same time on
+# both backends at N = 55-63 keyframes (~400 unknowns) over three runs. Below it the dense
+# Cholesky wins (0.4 ms vs 0.8-1.7 ms at N = 10: no scipy conversion overhead); above it
+# its O(N^3) cost dominates (N = 500: dense 1.0-1.5 s, sparse 0.045-0.065 s).
+DENSE_MAX_FREE_POSES = 60
+
+
+@dataclass(frozen=True, eq=False)
+class EdgeBlocks:
+    """Per-edge Gauss-Newton blocks of a relative-pose factor batch over E edges.
+
+    For an edge (i, j) with stacked whitened Jacobians J_i, J_j and IRLS weights W:
+    ``H_ii = J_i^T W J_i``, ``H_jj = J_j^T W J_j``, ``H_ij = J_i^T W J_j``,
+    ``g_i = J_i^T W e``, ``g_j = J_j^T W e``.
+
+    Attributes:
+        i, j: ``(E,)`` int64 pose indices.
+        H_ii, H_jj, H_ij: ``(E, 7, 7)`` blocks.
+        g_i, g_j: ``(E, 7)`` gradient blocks.
+    """
+
+    i: torch.Tensor
+    j: torch.Tensor
+    H_ii: torch.Tensor
+    H_jj: torch.Tensor
+    H_ij: torch.Tensor
+    g_i: torch.Tensor
+    g_j: torch.Tensor
+
+    @staticmethod
+    def cat(parts: Sequence[EdgeBlocks]) -> EdgeBlocks:
+        """Concatenate edge batches (e.g. the chunks of one factor)."""
+        return EdgeBlocks(
+            *(torch.cat([getattr(p, name) for p in parts]) for name in _EDGE_FIELDS)
+        )
+
+
+_EDGE_FIELDS = ("i", "j", "H_ii", "H_jj", "H_ij", "g_i", "g_j")
+
+
+@dataclass(frozen=True, eq=False)
+class BlockSystem:
+    """Global block normal equations ``H tau = -g`` over N poses, H symmetric.
+
+    Attributes:
+        H_diag: ``(N, 7, 7)`` float64 diagonal blocks (scatter-added over edges).
+        off_i, off_j: ``(M,)`` int64 indices of the upper off-diagonal blocks; repeated
+            pairs are summed, the lower triangle is their transpose.
+        H_off: ``(M, 7, 7)`` float64 block at (off_i, off_j).
+        g: ``(N, 7)`` float64 gradient.
+    """
+
+    H_diag: torch.Tensor
+    off_i: torch.Tensor
+    off_j: torch.Tensor
+    H_off: torch.Tensor
+    g: torch.Tensor
+
+    @property
+    def num_poses(self) -> int:
+        """N, the number of pose variables (pinned ones included)."""
+        return self.H_diag.shape[0]
+
+    def to_dense(self) -> torch.Tensor:
+        """The full ``(7N, 7N)`` Hessian, both triangles."""
+        return _dense(*_free_triplets(self, torch.ones_like(self.g[:, 0], dtype=torch.bool)))
+
+
+def assemble(num_poses: int, contributions: Sequence[EdgeBlocks]) -> BlockSystem:
+    """Scatter-add per-edge blocks of one or more factor batches into a ``BlockSystem``.
+
+    Args:
+        num_poses: N.
+        contributions: edge blocks whose indices lie in ``[0, N)``.
+    """
+    if not contributions:
+        raise InputError("assemble: no factor contributions to assemble")
+    device = contributions[0].i.device
+    H_diag = torch.zeros(num_poses, D, D, dtype=torch.float64, device=device)
+    g = torch.zeros(num_poses, D, dtype=torch.float64, device=device)
+    for c in contributions:
+        H_diag.index_add_(0, c.i, c.H_ii.to(torch.float64))
+        H_diag.index_add_(0, c.j, c.H_jj.to(torch.float64))
+        g.index_add_(0, c.i, c.g_i.to(torch.float64))
+        g.index_add_(0, c.j, c.g_j.to(torch.float64))
+    return BlockSystem(
+        H_diag=H_diag,
+        off_i=torch.cat([c.i for c in contributions]),
+        off_j=torch.cat([c.j for c in contributions]),
+        H_off=torch.cat([c.H_ij.to(torch.float64) for c in contributions]),
+        g=g,
+    )
+
+
+class SolveStatus(enum.Enum):
+    """Outcome of one damped linear solve."""
+
+    SUCCESS = "success"  # the first factorisation (eps_0) succeeded
+    ESCALATED = "escalated"  # succeeded after raising the Tikhonov term (r > 0)
+    FAILED = "failed"  # every attempt failed; the step is zero
+
+
+@dataclass(frozen=True, eq=False)
+class LinearSolution:
+    """A step of C-Eq. 25 and how it was obtained.
+
+    Attributes:
+        step: ``(N, 7)`` tangent step (zeros at pinned poses, and everywhere on failure),
+            float64, on the device of the system.
+        status: see :class:`SolveStatus`.
+        attempts: number of factorisations tried (1..R).
+        epsilon: Tikhonov term of the successful attempt, ``None`` on failure.
+        backend: ``"dense"`` or ``"sparse"``, the backend actually used.
+    """
+
+    step: torch.Tensor
+    status: SolveStatus
+    attempts: int
+    epsilon: float | None
+    backend: str
+
+    @property
+    def escalations(self) -> int:
+        """How many times the Tikhonov term had to be raised (R when all attempts failed)."""
+        if self.status is SolveStatus.FAILED:
+            return self.attempts
+        return max(self.attempts - 1, 0)
+
+
+def solve(
+    system: BlockSystem,
+    free: torch.Tensor,
+    *,
+    lm_lambda: float = 0.0,
+    tikhonov_base: float = 1e-6,
+    retries: int = 6,
+    backend: Backend = "auto",
+) -> LinearSolution:
+    """Solve ``(H + lm_lambda diag(H) + eps_r I) tau = -g`` over the free poses (C-Eq. 25).
+
+    Args:
+        system: block normal equations over N poses.
+        free: ``(N,)`` bool, the poses to solve for; the others get a zero step.
+        lm_lambda: multiplicative Levenberg-Marquardt damping (0 for local/global BA).
+        tikhonov_base: eps_0 of the escalation eps_r = eps_0 * 100^r (C-Sec. B.2).
+        retries: R, the number of factorisation attempts.
+        backend: ``"dense"``, ``"sparse"`` or ``"auto"`` (dense up to
+            ``DENSE_MAX_FREE_POSES`` free poses).
+    """
+    if free.shape != (system.num_poses,) or free.dtype != torch.bool:
+        raise InputError(f"solve: free must be a bool tensor of shape ({system.num_poses},)")
+    if retries < 1:
+        raise InputError(f"solve: retries must be >= 1, got {retries}")
+    if backend not in ("auto", "dense", "sparse"):
+        raise InputError(f"solve: backend must be auto, dense or sparse, got {backend!r}")
+    num_free = int(free.sum())
+    if backend == "auto":
+        backend = "dense" if num_free <= DENSE_MAX_FREE_POSES else "sparse"
+    step = torch.zeros_like(system.g)
+    if num_free == 0:
+        return LinearSolution(step, SolveStatus.SUCCESS, 0, tikhonov_base, backend)
+    attempt = _dense_attempts if backend == "dense" else _sparse_attempts
+    for r, tau_free in enumerate(attempt(system, free, lm_lambda, tikhonov_base, retries)):
+        if tau_free is not None:
+            step[free] = tau_free
+            status = SolveStatus.SUCCESS if r == 0 else SolveStatus.ESCALATED
+            return LinearSolution(step, status, r + 1, tikhonov_base * 100.0**r, backend)
+    logger.warning(
+        "damped normal equations not positive definite after %d Tikhonov attempts "
+        "(eps up to %.0e); returning a zero step",
+        retries,
+        tikhonov_base * 100.0 ** (retries - 1),
+    )
+    return LinearSolution(step, SolveStatus.FAILED, retries, None, backend)
+
+
+def _dense_attempts(system, free, lm_lambda, tikhonov_base, retries):
+    """Yield the free-pose step ``(F, 7)`` of each escalation attempt, or None on failure."""
+    H = _dense(*_free_triplets(system, free))
+    rhs = -system.g[free].reshape(-1, 1)
+    damping = lm_lambda * H.diagonal()
+    for r in range(retries):
+        A = H.clone()  # one working copy at a time: 7N = 14000 is 1.5 GB per matrix
+        A.diagonal().add_(damping + tikhonov_base * 100.0**r)
+        L, info = torch.linalg.cholesky_ex(A)
+        del A
+        tau = torch.cholesky_solve(rhs, L) if int(info) == 0 else None
+        yield tau.reshape(-1, D) if tau is not None and bool(tau.isfinite().all()) else None
+
+
+def _sparse_attempts(system, free, lm_lambda, tikhonov_base, retries):
+    """Sparse counterpart of :func:`_dense_attempts` (scipy SuperLU in symmetric mode)."""
+    rows, cols, values, size = (
+        t.cpu().numpy() if isinstance(t, torch.Tensor) else t
+        for t in _free_triplets(system, free)
+    )
+    H = scipy.sparse.coo_matrix((values, (rows, cols)), shape=(size, size)).tocsc()  # sums
+    rhs = -system.g[free].reshape(-1).cpu().numpy()
+    damping = lm_lambda * H.diagonal()
+    for r in range(retries):
+        damped = H + scipy.sparse.diags(damping + tikhonov_base * 100.0**r, 0)
+        tau = _spd_solve(damped.tocsc(), rhs)
+        yield None if tau is None else torch.from_numpy(tau).to(system.g.device).reshape(-1, D)
+
+
+def _spd_solve(A: scipy.sparse.csc_matrix, rhs: np.ndarray) -> np.ndarray | None:
+    """Solve ``A x = rhs`` if A is numerically positive definite, else return None.
+
+    scipy has no sparse Cholesky, so this uses SuperLU as one: with a symmetric
+    fill-reducing ordering (MMD on A^T + A, applied to rows and columns alike),
+    ``SymmetricMode`` and ``diag_pivot_thresh = 0`` it always takes the diagonal pivot,
+    i.e. factors P A P^T = L U with no row exchanges. For symmetric A that is
+    A = L D L^T with D = diag(U), and a symmetric matrix is positive definite iff all
+    pivots of this elimination are positive. So "every diag(U) finite and > 0 and no row
+    exchange happened" (SuperLU only leaves the diagonal on an exactly zero pivot) is the
+    same success test as a Cholesky factorisation, and the step is the same up to rounding.
+    """
+    try:
+        lu = scipy.sparse.linalg.splu(
+            A,
+            permc_spec="MMD_AT_PLUS_A",
+            diag_pivot_thresh=0.0,
+            options=dict(SymmetricMode=True),
+        )
+    except RuntimeError:  # "Factor is exactly singular"
+        return None
+    pivots = lu.U.diagonal()
+    if not np.array_equal(lu.perm_r, lu.perm_c):
+        return None
+    if not (np.all(np.isfinite(pivots)) and np.all(pivots > 0.0)):
+        return None
+    x = lu.solve(rhs)
+    return x if np.all(np.isfinite(x)) else None
+
+
+def _free_triplets(
+    system: BlockSystem, free: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
+    """Scalar (row, col, value) triplets of the free-pose Hessian, both triangles, with
+    repeated entries left to be summed, and its size 7F. Built for all blocks at once."""
+    n = system.num_poses
+    new_index = torch.full((n,), -1, dtype=torch.int64, device=free.device)
+    new_index[free] = torch.arange(int(free.sum()), device=free.device)
+    diag = torch.arange(n, device=free.device)
+    rows, cols, values = [], [], []
+    for bi, bj, blocks in (
+        (diag, diag, system.H_diag),
+        (system.off_i, system.off_j, system.H_off),
+        (system.off_j, system.off_i, system.H_off.transpose(-1, -2)),
+    ):
+        keep = free[bi] & free[bj]
+        r, c = _block_entry_indices(new_index[bi[keep]], new_index[bj[keep]])
+        rows.append(r.reshape(-1))
+        cols.append(c.reshape(-1))
+        values.append(blocks[keep].reshape(-1))
+    return torch.cat(rows), torch.cat(cols), torch.cat(values), int(free.sum()) * D
+
+
+def _dense(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, size: int) -> torch.Tensor:
+    """Dense matrix of summed triplets."""
+    H = torch.zeros(size, size, dtype=values.dtype, device=values.device)
+    return H.index_put_((rows, cols), values, accumulate=True)
+
+
+def _block_entry_indices(
+    rows: torch.Tensor, cols: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Scalar row / column indices ``(B, 7, 7)`` of the entries of 7x7 blocks at (rows, cols)."""
+    offset = torch.arange(D, device=rows.device)
+    r = (rows[:, None, None] * D + offset[None, :, None]).expand(-1, D, D)
+    c = (cols[:, None, None] * D + offset[None, None, :]).expand(-1, D, D)
+    return r, c

@@ -1,0 +1,244 @@
+"""Tests of como3r.optim.factors: linearization against an independent autograd computation."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from como3r.errors import InputError
+from como3r.geometry.lie import sim3_act, sim3_compose, sim3_exp, sim3_inverse
+from como3r.optim.factors import CalibratedFactors, RayRangeFactors
+from como3r.optim.linear import assemble
+from como3r.optim.synthetic import chain_poses, random_sim3, synthetic_graph
+
+HUBER_K = 1.345
+
+
+# ---------------------------------------------------------------------------------------------
+# An independent reference: 4x4 matrices, first-order left perturbations, autograd.
+# ---------------------------------------------------------------------------------------------
+
+
+def _matrix(T: torch.Tensor) -> torch.Tensor:
+    """(N, 8) poses -> (N, 4, 4) matrices [[s R, t], [0, 1]], R from the quaternion."""
+    x, y, z, w = T[:, 3], T[:, 4], T[:, 5], T[:, 6]
+    ww, xx, yy, zz = w * w, x * x, y * y, z * z
+    R = torch.stack(
+        [
+            torch.stack([ww + xx - yy - zz, 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            torch.stack([2 * (x * y + w * z), ww - xx + yy - zz, 2 * (y * z - w * x)], -1),
+            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), ww - xx - yy + zz], -1),
+        ],
+        -2,
+    )
+    M = torch.zeros(T.shape[0], 4, 4, dtype=T.dtype)
+    M[:, :3, :3] = T[:, 7, None, None] * R
+    M[:, :3, 3] = T[:, :3]
+    M[:, 3, 3] = 1
+    return M
+
+
+def _perturbed(M: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
+    """(I + hat(tau)) M: exact to first order in tau, so its derivative at tau = 0 is the
+    derivative of the left perturbation Exp(tau) M (hat(v, w, z) = [[z I + [w]x, v], [0, 0]])."""
+    v, w, z = tau[:, :3], tau[:, 3:6], tau[:, 6]
+    hat = torch.zeros(M.shape[0], 4, 4, dtype=M.dtype)
+    hat[:, :3, :3] = torch.stack(
+        [torch.stack([z, -w[:, 2], w[:, 1]], -1),
+         torch.stack([w[:, 2], z, -w[:, 0]], -1),
+         torch.stack([-w[:, 1], w[:, 0], z], -1)], -2
+    )
+    hat[:, :3, 3] = v
+    return (torch.eye(4, dtype=M.dtype) + hat) @ M
+
+
+def _transformed(poses, i, j, X_j, tau):
+    """T_ij X_j for every edge, T_ij = M_i^-1 M_j under the perturbation tau (N, 7)."""
+    M = _perturbed(_matrix(poses), tau)
+    M_ij = torch.linalg.inv(M[i]) @ M[j]
+    return (M_ij[:, None, :3, :3] @ X_j[..., None])[..., 0] + M_ij[:, None, :3, 3]
+
+
+def _ray_range_whitened(poses, i, j, X_i, X_j, q, valid, sigmas, tau):
+    x = _transformed(poses, i, j, X_j, tau)
+    d = x.norm(dim=-1)
+    e = torch.cat([x / d[..., None] - X_i / X_i.norm(dim=-1, keepdim=True),
+                   (d - X_i.norm(dim=-1))[..., None]], -1)
+    r = e * q.sqrt()[..., None] / torch.tensor(sigmas, dtype=e.dtype)
+    return torch.where(valid[..., None], r, torch.zeros_like(r))
+
+
+def _calibrated_whitened(poses, i, j, X_j, p_i, z_i, K, q, valid, sigmas, tau):
+    x = _transformed(poses, i, j, X_j, tau)
+    Kx = (K[:, None] @ x[..., None])[..., 0]
+    e = torch.cat([Kx[..., :2] / x[..., 2:] - p_i, (x[..., 2].log() - z_i.log())[..., None]], -1)
+    r = e * q.sqrt()[..., None] / torch.tensor(sigmas, dtype=e.dtype)
+    return torch.where(valid[..., None], r, torch.zeros_like(r))
+
+
+def _reference_system(whitened, num_poses):
+    """H = J^T diag(w) J, g = J^T diag(w) r, and the robust cost, by autograd at tau = 0."""
+    tau0 = torch.zeros(num_poses, 7, dtype=torch.float64)
+    r = whitened(tau0).reshape(-1)
+    J = torch.autograd.functional.jacobian(lambda t: whitened(t).reshape(-1), tau0)
+    J = J.reshape(r.numel(), num_poses * 7)
+    w = torch.clamp(HUBER_K / r.abs(), max=1.0)
+    H = J.T @ (w[:, None] * J)
+    g = J.T @ (w * r)
+    a = r.abs()
+    cost = torch.where(a <= HUBER_K, 0.5 * a * a, HUBER_K * (a - 0.5 * HUBER_K)).sum()
+    return H, g.reshape(num_poses, 7), cost
+
+
+# ---------------------------------------------------------------------------------------------
+# A tiny graph: 4 poses, edges in both directions and a loop, P = 20, perturbed so that the
+# residual is non-zero and part of the components sit beyond the Huber breakpoint.
+# ---------------------------------------------------------------------------------------------
+
+
+def _tiny_graph(dtype=torch.float64):
+    generator = torch.Generator().manual_seed(7)
+    truth = chain_poses(4, generator)
+    i = torch.tensor([0, 1, 2, 3, 2])
+    j = torch.tensor([1, 2, 3, 0, 0])
+    graph = synthetic_graph(truth, i, j, 20, generator)
+    poses = sim3_compose(random_sim3(4, 1.0, 0.05, 0.02, generator), truth)
+    valid = graph.valid.clone()
+    valid[1, 3] = False
+    valid[4, :5] = False
+    X_j = graph.X_j.clone()
+    X_j[1, 3] = float("nan")  # garbage behind an invalid match must not leak
+    return poses.to(dtype), graph, X_j, valid
+
+
+def test_ray_range_linearization_matches_autograd():
+    poses, graph, X_j, valid = _tiny_graph()
+    sigmas = (3e-3,) * 3 + (0.05,)
+    factors = RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, graph.q, valid,
+                              sigma_ray=3e-3, sigma_dist=0.05, huber_k=HUBER_K)
+    system = assemble(4, [factors.linearize(poses)])
+
+    X_j_clean = torch.where(valid[..., None], X_j, graph.X_i)
+    H_ref, g_ref, cost_ref = _reference_system(
+        lambda t: _ray_range_whitened(poses, graph.i, graph.j, graph.X_i, X_j_clean,
+                                      graph.q, valid, sigmas, t), 4)
+    r = _ray_range_whitened(poses, graph.i, graph.j, graph.X_i, X_j_clean, graph.q, valid,
+                            sigmas, torch.zeros(4, 7, dtype=torch.float64))
+    beyond = (r.abs() > HUBER_K).float().mean()
+    assert 0.1 < beyond < 0.9, "the test must exercise both Huber regimes"
+
+    H = system.to_dense()
+    torch.testing.assert_close(H, H_ref, rtol=1e-9, atol=1e-9 * H_ref.abs().max().item())
+    torch.testing.assert_close(system.g, g_ref, rtol=1e-9, atol=1e-9 * g_ref.abs().max().item())
+    torch.testing.assert_close(factors.cost(poses), cost_ref, rtol=1e-12, atol=0)
+
+
+def test_calibrated_linearization_matches_autograd():
+    poses, graph, X_j, valid = _tiny_graph()
+    K = torch.tensor([[500.0, 0, 320], [0, 480, 240], [0, 0, 1]], dtype=torch.float64)
+    K = K.expand(5, 3, 3).clone()
+    K[2, 0, 0] = 450.0  # intrinsics are per edge
+    truth_x = graph.X_i
+    p_i = (K[:, None] @ truth_x[..., None])[..., 0]
+    p_i = p_i[..., :2] / p_i[..., 2:]
+    z_i = truth_x[..., 2]
+    sigmas = (1.0, 1.0, 0.01)
+    factors = CalibratedFactors(graph.i, graph.j, X_j, p_i, z_i, K, graph.q, valid,
+                                sigma_pixel=1.0, sigma_depth=0.01, huber_k=HUBER_K)
+    system = assemble(4, [factors.linearize(poses)])
+
+    X_j_clean = torch.where(valid[..., None], X_j, graph.X_i)
+    H_ref, g_ref, cost_ref = _reference_system(
+        lambda t: _calibrated_whitened(poses, graph.i, graph.j, X_j_clean, p_i, z_i, K,
+                                       graph.q, valid, sigmas, t), 4)
+
+    H = system.to_dense()
+    torch.testing.assert_close(H, H_ref, rtol=1e-9, atol=1e-9 * H_ref.abs().max().item())
+    torch.testing.assert_close(system.g, g_ref, rtol=1e-9, atol=1e-9 * g_ref.abs().max().item())
+    torch.testing.assert_close(factors.cost(poses), cost_ref, rtol=1e-12, atol=0)
+
+
+def test_calibrated_points_behind_the_camera_get_no_weight():
+    poses, graph, _, valid = _tiny_graph()
+    K = torch.tensor([[500.0, 0, 320], [0, 480, 240], [0, 0, 1]], dtype=torch.float64)
+    p_i = torch.zeros(*graph.q.shape, 2, dtype=torch.float64)
+    z_i = graph.X_i[..., 2]
+    X_j = graph.X_j.clone()
+    factors = CalibratedFactors(graph.i, graph.j, X_j, p_i, z_i, K, graph.q, valid)
+    before = factors.linearize(poses)
+    # Move one match of edge 0 behind camera i: T_ij X_j = -X_i has negative depth.
+    T_ij = sim3_compose(sim3_inverse(poses[0]), poses[1])
+    X_j[0, 0] = sim3_act(sim3_inverse(T_ij), -graph.X_i[0, 0])
+    moved = CalibratedFactors(graph.i, graph.j, X_j, p_i, z_i, K, graph.q, valid)
+    r = moved.whitened_residual(poses, slice(0, 1))[0]
+    assert torch.all(r[0, 0] == 0) and torch.all(r[0, 1] != 0)
+    blocks = moved.linearize(poses)
+    assert torch.isfinite(blocks.H_ii).all()
+    # Only edge 0 changed, and only by dropping that match.
+    torch.testing.assert_close(blocks.H_jj[1:], before.H_jj[1:])
+    assert not torch.allclose(blocks.H_jj[0], before.H_jj[0])
+
+
+def test_gradient_is_the_gradient_of_the_robust_cost():
+    """LM relies on g = d cost / d tau; check it by autograd through the factor's own cost."""
+    poses, graph, _, valid = _tiny_graph()  # finite points: autograd of where() needs them
+    factors = RayRangeFactors(graph.i, graph.j, graph.X_i, graph.X_j, graph.q, valid,
+                              sigma_ray=3e-3, sigma_dist=0.05)
+    tau = torch.zeros(4, 7, dtype=torch.float64, requires_grad=True)
+    factors.cost(sim3_compose(sim3_exp(tau), poses)).backward()
+    g = assemble(4, [factors.linearize(poses)]).g
+    torch.testing.assert_close(tau.grad, g, rtol=1e-8, atol=1e-8 * g.abs().max().item())
+
+
+def test_chunking_does_not_change_the_blocks():
+    poses, graph, X_j, valid = _tiny_graph()
+    whole = RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, graph.q, valid)
+    chunked = RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, graph.q, valid,
+                              chunk_matches=40)  # two edges per chunk, last chunk ragged
+    a, b = whole.linearize(poses), chunked.linearize(poses)
+    for name in ("i", "j", "H_ii", "H_jj", "H_ij", "g_i", "g_j"):
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=1e-12, atol=0)
+    torch.testing.assert_close(whole.cost(poses), chunked.cost(poses), rtol=1e-12, atol=0)
+
+
+def test_linearization_in_each_dtype(dtype):
+    poses, graph, X_j, valid = _tiny_graph()
+    reference = assemble(4, [RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, graph.q,
+                                             valid).linearize(poses)])
+    factors = RayRangeFactors(graph.i, graph.j, graph.X_i.to(dtype), X_j.to(dtype),
+                              graph.q.to(dtype), valid)
+    blocks = factors.linearize(poses.to(dtype))
+    assert blocks.H_ii.dtype == dtype
+    system = assemble(4, [blocks])
+    H = system.to_dense()
+    tolerance = 1e-3 if dtype == torch.float32 else 1e-10
+    scale = reference.to_dense().abs().max()
+    assert (H - reference.to_dense()).abs().max() <= tolerance * scale
+    torch.testing.assert_close(H, H.T)
+    assert torch.linalg.eigvalsh(H).min() > -1e-6 * scale
+
+
+def test_invalid_inputs_raise_input_error():
+    poses, graph, X_j, valid = _tiny_graph()
+    args = (graph.i, graph.j, graph.X_i, X_j, graph.q, valid)
+    with pytest.raises(InputError, match="X_i"):
+        RayRangeFactors(graph.i, graph.j, graph.X_i[:, :5], X_j, graph.q, valid)
+    with pytest.raises(InputError, match="itself"):
+        RayRangeFactors(graph.i, graph.i, *args[2:])
+    with pytest.raises(InputError, match="valid"):
+        RayRangeFactors(*args[:5], valid.float())
+    with pytest.raises(InputError, match="sigma"):
+        RayRangeFactors(*args, sigma_ray=0.0)
+    with pytest.raises(InputError, match="integer"):
+        RayRangeFactors(graph.i.float(), *args[1:])
+    with pytest.raises(InputError, match="refers to pose 3"):
+        RayRangeFactors(*args).linearize(poses[:3])
+
+
+def test_non_positive_confidence_means_no_information():
+    poses, graph, X_j, valid = _tiny_graph()
+    q = graph.q.clone()
+    q[0] = 0.0
+    blocks = RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, q, valid).linearize(poses)
+    assert torch.all(blocks.H_ii[0] == 0) and torch.all(blocks.g_j[0] == 0)
+    assert torch.any(blocks.H_ii[1] != 0)
