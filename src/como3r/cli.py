@@ -121,6 +121,50 @@ def evaluate(
         console.print(line)
 
 
+def _load_config(config_file: Optional[Path], overrides: List[str], calib: bool,
+                 no_loop_closure: bool):
+    from como3r.config import Config, apply_overrides, load_config
+
+    config = load_config(config_file) if config_file is not None else Config()
+    extra = (["calibrated=true"] if calib else []) + (["loop_closure=false"] if no_loop_closure else [])
+    return apply_overrides(config, [*overrides, *extra])
+
+
+@app.command()
+@user_errors
+def run(
+    agent: List[Path] = typer.Option(..., "--agent", help="Agent input folder (repeat per agent)."),
+    out: Path = typer.Option(..., "--out", help="Output folder."),
+    prior: str = typer.Option("simulated", "--prior", help="simulated | mast3r"),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="MASt3R checkpoint."),
+    retrieval_weights: Optional[Path] = typer.Option(None, "--retrieval-weights",
+                                                     help="MASt3R retrieval checkpoint."),
+    codebook: Optional[Path] = typer.Option(None, "--codebook", help="ASMK codebook .pkl."),
+    config_file: Optional[Path] = typer.Option(None, "--config", help="YAML configuration."),
+    overrides: List[str] = typer.Option([], "--set", help="Override, e.g. tracking.sigma_ray=0.002."),
+    calib: bool = typer.Option(False, "--calib", help="Use each agent's calib.txt (C-Sec. A.5)."),
+    no_loop_closure: bool = typer.Option(False, "--no-loop-closure", help="Ablation (C-Tab. 4)."),
+    device: str = typer.Option("cpu", "--device", help="cpu | cuda"),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
+) -> None:
+    """Run dense SLAM on one or more agents and write the output folder."""
+    from como3r.runtime.pipeline import PriorSpec, run as run_pipeline
+
+    config = _load_config(config_file, overrides, calib, no_loop_closure)
+    spec = PriorSpec(prior, weights, retrieval_weights, codebook, device)
+    with progress_bar() as bar:
+        task = bar.add_task("frames", total=None)
+        summary = run_pipeline(agent, out, config, spec, overwrite=overwrite,
+                               progress=lambda a, outcome, done, total: bar.update(
+                                   task, completed=done, total=total))
+    print_rows("agents", summary.agents)
+    if summary.evaluation is not None:
+        print_rows("ATE RMSE [m] (Sim(3)-aligned)", summary.evaluation.table_rows())
+    for line in summary.notes:
+        console.print(line)
+    console.print(f"wrote {out}")
+
+
 def main() -> None:
     """Entry point of the console script."""
     app()

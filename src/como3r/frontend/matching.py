@@ -185,21 +185,23 @@ def refine_with_descriptors(
         ``(B, P, 2)`` int64 refined pixels.
     """
     B, H, W, d = D_search.shape
-    flat = D_search.reshape(B, H * W, d)
+    # one flat table over the batch: row b * H * W + v * W + u (index_select is much
+    # faster than gather with an expanded (B, P * K, d) index)
+    table = D_search.reshape(B * H * W, d)
+    batch_offset = (torch.arange(B, device=pixel.device) * H * W)[:, None, None]
     upper = torch.tensor([W - 1, H - 1], device=pixel.device)
+    offsets = {dil: _window_offsets(radius, dil, pixel.device) for dil in range(1, dilation_max + 1)}
     out = pixel.clone()
     for start in range(0, pixel.shape[1], _REFINE_CHUNK):
         sl = slice(start, start + _REFINE_CHUNK)
         p = out[:, sl]
-        query = D_query[:, sl]
+        query = D_query[:, sl]  # (B, p, d)
         for dilation in range(dilation_max, 0, -1):
-            offsets = _window_offsets(radius, dilation, pixel.device)
-            cand = (p[:, :, None, :] + offsets).clamp(min=0).minimum(upper)  # (B, p, K, 2)
-            lin = cand[..., 1] * W + cand[..., 0]
-            desc = torch.gather(flat, 1, lin.reshape(B, -1, 1).expand(-1, -1, d))
-            score = (desc.reshape(*lin.shape, d) * query[:, :, None, :]).sum(-1)
-            best = score.argmax(dim=-1, keepdim=True)
-            p = torch.gather(cand, 2, best[..., None].expand(-1, -1, 1, 2)).squeeze(2)
+            cand = (p[:, :, None, :] + offsets[dilation]).clamp(min=0).minimum(upper)
+            lin = cand[..., 1] * W + cand[..., 0] + batch_offset  # (B, p, K)
+            desc = table.index_select(0, lin.reshape(-1)).reshape(*lin.shape, d)
+            best = torch.einsum("bpkd,bpd->bpk", desc, query).argmax(dim=-1)  # (B, p)
+            p = torch.gather(cand, 2, best[..., None, None].expand(-1, -1, 1, 2)).squeeze(2)
         out[:, sl] = p
     return out
 

@@ -1,0 +1,269 @@
+"""One agent's dense SLAM front-end (C-Sec. 3.3, A.8; the MASt3R-SLAM design).
+
+``AgentFrontend.process`` takes the agent's frames in order and
+
+1. initialises the first keyframe from the prior's prediction of the frame with itself;
+2. tracks each frame against the current keyframe (C-Eq. 2), fusing it (C-Eq. 3);
+3. when ``min(nu, nu_uniq)`` drops below the threshold, promotes the frame to a keyframe,
+   links it to its predecessor (sequential edge) and to verified intra-agent loop
+   candidates from the agent's own retrieval database, and refines the local keyframe
+   graph by LM-IRLS (C-Sec. B.2, pin 1);
+4. when tracking fails, relocalizes: retrieves the agent's keyframes most like the frame,
+   tracks against each and re-anchors on the first that matches well enough; frames that
+   cannot be relocalized are counted as lost, never invented.
+
+Every tracked frame is stored as ``(frame, anchor keyframe, T_rel)`` (C-Sec. A.8), so the
+trajectory written at the end follows every later correction of its anchor keyframe.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from como3r.config import Config
+from como3r.frontend.graph import Edge, build_factors
+from como3r.frontend.keyframes import Keyframe, KeyframeStore
+from como3r.frontend.pairs import PairLink, link_pairs
+from como3r.frontend.tracker import FrameTracker, TrackResult
+from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse
+from como3r.optim.optimizer import gauss_newton_irls
+from como3r.optim.values import PoseValues
+from como3r.prior.base import Encoding, Prior, View
+from como3r.prior.retrieval import RetrievalDatabase
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """A tracked frame: its pose is ``T_WC(anchor) * T_rel`` (C-Sec. A.8)."""
+
+    frame_index: int
+    timestamp: float
+    anchor: int
+    T_rel: Tensor
+
+
+@dataclass
+class FrontendStats:
+    """Counters reported in metrics.json."""
+
+    frames: int = 0
+    tracked: int = 0
+    lost: int = 0
+    relocalized: int = 0
+    keyframes: int = 0
+    loop_candidates: int = 0
+    loop_edges: int = 0
+    local_solves: int = 0
+    local_solve_seconds: float = 0.0
+    lost_frames: list[int] = field(default_factory=list)
+
+
+class AgentFrontend:
+    """Dense SLAM front-end of one agent.
+
+    Args:
+        prior: the two-view prior.
+        config: the run's configuration.
+        agent: the agent's id.
+        codebook: ``(K, d)`` retrieval codebook; without one there is no intra-agent loop
+            closure and relocalization only tries the most recent keyframes.
+    """
+
+    def __init__(self, prior: Prior, config: Config, agent: int = 0,
+                 codebook: np.ndarray | None = None) -> None:
+        self.prior = prior
+        self.config = config
+        self.agent = agent
+        self.keyframes = KeyframeStore()
+        self.edges: list[Edge] = []
+        self.records: list[FrameRecord] = []
+        self.stats = FrontendStats()
+        self.tracker = FrameTracker(prior, config)
+        self.database = RetrievalDatabase(codebook, config.retrieval) if codebook is not None else None
+        self.new_keyframes: list[int] = []  # keyframes not yet handed to a coordinator
+        self._T_kf_prev: Tensor | None = None
+        self._lost = False
+
+    def process(self, view: View, timestamp: float, colors: np.ndarray) -> str:
+        """Process the next frame; returns ``"keyframe"``, ``"tracked"``, ``"relocalized"``
+        or ``"lost"``.
+
+        Args:
+            view: the pre-processed frame.
+            timestamp: seconds.
+            colors: ``(H, W, 3)`` uint8 image at network resolution.
+        """
+        self.stats.frames += 1
+        enc = self.prior.encode(view)
+        if len(self.keyframes) == 0:
+            self._initialise(enc, view.index, timestamp, colors)
+            return "keyframe"
+        if self._lost:
+            return self._relocalize(enc, view.index, timestamp, colors)
+        result = self.tracker.track(enc, self.keyframes.last, self._T_kf_prev)
+        if not result.ok:
+            self._lost = True
+            return self._relocalize(enc, view.index, timestamp, colors)
+        self._accept(result, self.keyframes.last, view.index, timestamp, enc, colors)
+        return "keyframe" if result.new_keyframe else "tracked"
+
+    def _initialise(self, enc: Encoding, index: int, timestamp: float, colors: np.ndarray) -> None:
+        pred = self.prior.decode(enc, enc)
+        T_WC = sim3_identity(dtype=pred.X_ii.dtype, device=pred.X_ii.device)
+        self._add_keyframe(enc, index, timestamp, T_WC, pred.X_ii, pred.C_ii, colors)
+        self._T_kf_prev = sim3_identity(dtype=pred.X_ii.dtype, device=pred.X_ii.device)
+
+    def _accept(self, result: TrackResult, keyframe: Keyframe, index: int, timestamp: float,
+                enc: Encoding, colors: np.ndarray) -> None:
+        """Record a tracked frame; promote it to a keyframe when due."""
+        self.stats.tracked += 1
+        if not result.new_keyframe:
+            self.records.append(FrameRecord(index, timestamp, keyframe.kf_id, result.T_kf))
+            self._T_kf_prev = result.T_kf
+            return
+        T_WC = sim3_compose(keyframe.T_WC, result.T_kf)
+        new = self._add_keyframe(enc, index, timestamp, T_WC, result.X_ff, result.C_ff, colors)
+        self._link_new_keyframe(new)
+        self._T_kf_prev = sim3_identity(dtype=T_WC.dtype, device=T_WC.device)
+
+    def _add_keyframe(self, enc: Encoding, index: int, timestamp: float, T_WC: Tensor,
+                      X: Tensor, C: Tensor, colors: np.ndarray) -> Keyframe:
+        kf = Keyframe(
+            kf_id=len(self.keyframes), frame_index=index, timestamp=timestamp, encoding=enc,
+            T_WC=T_WC, X_hat=X.clone(), C_hat=C.clone(), X_init=X.clone(), C_init=C.clone(),
+            colors=colors,
+        )
+        self.keyframes.add(kf)
+        self.records.append(FrameRecord(index, timestamp, kf.kf_id, sim3_identity(
+            dtype=T_WC.dtype, device=T_WC.device)))
+        self.new_keyframes.append(kf.kf_id)
+        self.stats.keyframes += 1
+        self.tracker.reset_warm_start()
+        return kf
+
+    def _link_new_keyframe(self, kf: Keyframe) -> None:
+        """Sequential edge, verified loop edges, local solve, then index the keyframe."""
+        features = self._retrieval_features(kf.encoding)
+        candidates = self._loop_candidates(kf, features)
+        partners = [kf.kf_id - 1, *candidates]
+        links = link_pairs(
+            self.prior, [(self.keyframes[p].encoding, kf.encoding) for p in partners],
+            self.config.matching, self.config.tracking.q_min,
+        )
+        for partner, link in zip(partners, links):
+            sequential = partner == kf.kf_id - 1
+            if sequential or link.min_match_fraction >= self.config.local_solve.min_match_fraction:
+                self._add_edge_pair(partner, kf.kf_id, link, "sequential" if sequential else "loop")
+                self.stats.loop_edges += 0 if sequential else 1
+        self._local_solve()
+        if self.database is not None and features is not None:
+            self.database.add(self.agent, kf.kf_id, *features)
+
+    def _add_edge_pair(self, i: int, j: int, link: PairLink, kind: str) -> None:
+        self.edges.append(Edge(i, j, link.ij, kind))
+        self.edges.append(Edge(j, i, link.ji, kind))
+
+    def _retrieval_features(self, enc: Encoding) -> tuple[Tensor, Tensor] | None:
+        if self.database is None:
+            return None
+        return self.prior.retrieval_features(enc)
+
+    def _loop_candidates(self, kf: Keyframe, features: tuple[Tensor, Tensor] | None) -> list[int]:
+        """Own keyframes most like ``kf`` (not its predecessor), above the threshold."""
+        if not self.config.loop_closure or self.database is None or features is None:
+            return []
+        hits = self.database.query(
+            features[0], agent=self.agent, exclude_keyframes=[(self.agent, kf.kf_id - 1)],
+        )
+        self.stats.loop_candidates += len(hits)
+        return [h.keyframe for h in hits]
+
+    def _local_solve(self) -> None:
+        """LM-IRLS over the agent's keyframe graph with the first keyframe pinned."""
+        if not self.edges:
+            return
+        solve = self.config.local_solve
+        factors = build_factors(self.edges, self.keyframes.__getitem__, lambda k: k,
+                                self.config.tracking)
+        values = PoseValues.from_poses(self.keyframes.poses(), num_pinned=solve.pinned_keyframes)
+        solved, report = gauss_newton_irls(factors, values, solve)
+        self.stats.local_solves += 1
+        self.stats.local_solve_seconds += report.seconds
+        if report.diverged:
+            logger.warning("agent %d: local solve diverged; poses kept", self.agent)
+            return
+        self.keyframes.set_poses(solved.poses)
+
+    def _relocalize(self, enc: Encoding, index: int, timestamp: float, colors: np.ndarray) -> str:
+        """Re-anchor the frame on a retrieved keyframe, or count it as lost."""
+        identity = sim3_identity(dtype=self.keyframes.last.T_WC.dtype,
+                                 device=self.keyframes.last.T_WC.device)
+        for kf_id in self._relocalization_candidates(enc):
+            keyframe = self.keyframes[kf_id]
+            self.tracker.reset_warm_start()
+            result = self.tracker.track(enc, keyframe, identity, fuse=False)
+            if result.ok and result.match_fraction >= self.config.tracking.reloc_match_fraction:
+                self._lost = False
+                self.stats.relocalized += 1
+                logger.info("agent %d: frame %d relocalized on keyframe %d",
+                            self.agent, index, kf_id)
+                self._promote_after_reloc(result, keyframe, index, timestamp, enc, colors)
+                return "relocalized"
+        self.stats.lost += 1
+        self.stats.lost_frames.append(index)
+        return "lost"
+
+    def _promote_after_reloc(self, result: TrackResult, keyframe: Keyframe, index: int,
+                             timestamp: float, enc: Encoding, colors: np.ndarray) -> None:
+        """The relocalized frame becomes a keyframe linked to the keyframe it matched."""
+        self.stats.tracked += 1
+        T_WC = sim3_compose(keyframe.T_WC, result.T_kf)
+        new = self._add_keyframe(enc, index, timestamp, T_WC, result.X_ff, result.C_ff, colors)
+        link = link_pairs(self.prior, [(keyframe.encoding, new.encoding)],
+                          self.config.matching, self.config.tracking.q_min)[0]
+        self._add_edge_pair(keyframe.kf_id, new.kf_id, link, "loop")
+        self._local_solve()
+        features = self._retrieval_features(new.encoding)
+        if self.database is not None and features is not None:
+            self.database.add(self.agent, new.kf_id, *features)
+        self._T_kf_prev = sim3_identity(dtype=T_WC.dtype, device=T_WC.device)
+
+    def _relocalization_candidates(self, enc: Encoding) -> list[int]:
+        recent = list(range(len(self.keyframes) - 1, max(-1, len(self.keyframes) - 4), -1))
+        if self.database is None or len(self.database) == 0:
+            return recent
+        desc, _ = self.prior.retrieval_features(enc)
+        hits = self.database.query(desc, agent=self.agent)
+        return list(dict.fromkeys([h.keyframe for h in hits] + recent))
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray, Tensor]:
+        """Every tracked frame: ``(frame indices (N,), timestamps (N,), T_WC (N, 8))``."""
+        records = sorted(self.records, key=lambda r: r.frame_index)
+        if not records:
+            return np.zeros(0, dtype=np.int64), np.zeros(0), torch.zeros(0, 8)
+        anchors = torch.stack([self.keyframes[r.anchor].T_WC for r in records])
+        T_rel = torch.stack([r.T_rel.to(anchors) for r in records])
+        return (np.array([r.frame_index for r in records]),
+                np.array([r.timestamp for r in records]), sim3_compose(anchors, T_rel))
+
+    def keyframe_trajectory(self) -> tuple[np.ndarray, np.ndarray, Tensor]:
+        """Keyframes only: ``(frame indices, timestamps, T_WC (K, 8))``."""
+        if len(self.keyframes) == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros(0), torch.zeros(0, 8)
+        return (np.array([kf.frame_index for kf in self.keyframes]),
+                np.array([kf.timestamp for kf in self.keyframes]), self.keyframes.poses())
+
+    def apply_world_correction(self, T_new_old: Tensor) -> None:
+        """Left-multiply every keyframe pose by a Sim(3) (gauge transport, C-Eq. 15)."""
+        self.keyframes.set_poses(sim3_compose(T_new_old[None], self.keyframes.poses()))
+
+    def relative_to_last_keyframe(self, T_WC: Tensor) -> Tensor:
+        """``T_kf`` of a world pose w.r.t. the current keyframe."""
+        return sim3_compose(sim3_inverse(self.keyframes.last.T_WC), T_WC)

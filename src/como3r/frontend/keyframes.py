@@ -1,0 +1,117 @@
+"""Keyframes, their fused canonical pointmaps, and the growable store (C-Sec. 3.3).
+
+A keyframe keeps its encoding (so pairs with it decode without re-encoding), its pose
+``T_WC`` in the agent's (later: the shared) world frame, and its canonical pointmap
+``X_hat`` fused over every frame tracked against it by the confidence-weighted running
+average of C-Eq. 3. ``X_init`` is the frozen snapshot of the first canonical pointmap that
+the depth refinement of C-Eq. 19 starts from.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from como3r.geometry.lie import sim3_act
+from como3r.prior.base import Encoding
+
+
+@dataclass
+class Keyframe:
+    """One keyframe of one agent.
+
+    Attributes:
+        kf_id: index of the keyframe within its agent (0, 1, ...).
+        frame_index: index of the frame in the agent's stream.
+        timestamp: seconds.
+        encoding: the prior's encoding of the frame.
+        T_WC: ``(8,)`` Sim(3) pose.
+        X_hat: ``(H, W, 3)`` fused canonical pointmap in the keyframe's camera frame.
+        C_hat: ``(H, W)`` accumulated confidence of ``X_hat``.
+        X_init: ``(H, W, 3)`` frozen first canonical pointmap (C-Eq. 19).
+        C_init: ``(H, W)`` confidence of ``X_init``.
+        colors: ``(H, W, 3)`` uint8 image at network resolution (for the fused map).
+        fused_frames: how many frames contributed to ``X_hat``.
+    """
+
+    kf_id: int
+    frame_index: int
+    timestamp: float
+    encoding: Encoding
+    T_WC: Tensor
+    X_hat: Tensor
+    C_hat: Tensor
+    X_init: Tensor
+    C_init: Tensor
+    colors: np.ndarray
+    fused_frames: int = 1
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(H, W)`` of the keyframe's pointmap."""
+        return int(self.X_hat.shape[0]), int(self.X_hat.shape[1])
+
+    def fuse(self, T_kf: Tensor, X_kf: Tensor, C_kf: Tensor) -> None:
+        """Fuse the keyframe's points as predicted from a tracked frame (C-Eq. 3).
+
+        Args:
+            T_kf: ``(8,)`` pose of the frame in the keyframe's camera.
+            X_kf: ``(H, W, 3)`` the keyframe's pixels as predicted in the frame's camera.
+            C_kf: ``(H, W)`` their confidence.
+        """
+        X_k = sim3_act(T_kf.to(X_kf.dtype)[None, None, :], X_kf)
+        C_new = self.C_hat + C_kf
+        self.X_hat = (self.C_hat[..., None] * self.X_hat + C_kf[..., None] * X_k) / C_new[..., None]
+        self.C_hat = C_new
+        self.fused_frames += 1
+
+    def mean_confidence(self) -> Tensor:
+        """``(H, W)`` confidence per contributing frame (comparable to one prediction)."""
+        return self.C_hat / self.fused_frames
+
+
+@dataclass
+class KeyframeStore:
+    """The keyframes of one agent, growable without bound (no preallocated pool).
+
+    Attributes:
+        keyframes: keyframes in creation order; ``kf_id`` equals the list index.
+        keep_encodings_on_cpu: move each new keyframe's encoding tensors to the CPU
+            (saves accelerator memory on long sequences at the cost of a copy per pair).
+    """
+
+    keyframes: list[Keyframe] = field(default_factory=list)
+    keep_encodings_on_cpu: bool = False
+
+    def __len__(self) -> int:
+        return len(self.keyframes)
+
+    def __getitem__(self, kf_id: int) -> Keyframe:
+        return self.keyframes[kf_id]
+
+    def __iter__(self):
+        return iter(self.keyframes)
+
+    @property
+    def last(self) -> Keyframe:
+        """The most recent keyframe."""
+        return self.keyframes[-1]
+
+    def add(self, keyframe: Keyframe) -> Keyframe:
+        """Append a keyframe; its ``kf_id`` must be the next index."""
+        if keyframe.kf_id != len(self.keyframes):
+            raise ValueError(f"keyframe id {keyframe.kf_id} but {len(self.keyframes)} stored")
+        self.keyframes.append(keyframe)
+        return keyframe
+
+    def poses(self) -> Tensor:
+        """``(N, 8)`` poses of all keyframes."""
+        return torch.stack([kf.T_WC for kf in self.keyframes])
+
+    def set_poses(self, T_WC: Tensor) -> None:
+        """Overwrite all keyframe poses from ``(N, 8)``."""
+        for kf, pose in zip(self.keyframes, T_WC):
+            kf.T_WC = pose.clone()

@@ -1,0 +1,142 @@
+"""Frame-to-keyframe tracking with the ray-and-range residual (C-Eq. 2, C-Sec. 3.3).
+
+For an incoming frame f and the current keyframe k the prior decodes (f, k): the frame's
+pointmap ``X_ff`` and the keyframe's pixels predicted in the frame ``X_kf``. Projective
+matching finds, for every keyframe pixel m, the frame pixel n whose ray is closest to
+``X_kf[m]`` (C-Eq. 1). The relative pose ``T_kf`` then minimises C-Eq. 2 over the matches,
+with the keyframe's fused canonical pointmap ``X_hat`` as the target, by Levenberg-Marquardt
+inside IRLS (C-Sec. B.2, the tracker path). The keyframe's pointmap absorbs the frame's
+prediction (C-Eq. 3), and a new keyframe is due when ``min(nu, nu_uniq) < 0.333``.
+
+Failure is detected, never silent: too few valid matches, non-finite values, or a solve
+that could not produce a finite pose give ``ok=False`` with the reason.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from como3r.config import Config
+from como3r.frontend.keyframes import Keyframe
+from como3r.frontend.pairs import DirectedMatches, directed_matches, gather_points
+from como3r.geometry.lie import sim3_identity
+from como3r.optim.factors import RayRangeFactors
+from como3r.optim.optimizer import SolveReport, levenberg_marquardt_irls
+from como3r.optim.values import PoseValues
+from como3r.prior.base import Encoding, Prior
+
+logger = logging.getLogger(__name__)
+
+#: solver exits that mean no usable pose was found
+_FAILED_REASONS = frozenset({"solve_failed", "non_finite_cost", "diverged"})
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """Outcome of tracking one frame against one keyframe.
+
+    Attributes:
+        ok: a finite pose was estimated from enough matches.
+        reason: ``"ok"`` or why tracking failed.
+        T_kf: ``(8,)`` pose of the frame in the keyframe's camera.
+        match_fraction: ``nu``, share of keyframe pixels with a valid match.
+        unique_fraction: ``nu_uniq``, distinct frame pixels matched per keyframe pixel.
+        new_keyframe: ``min(nu, nu_uniq)`` fell below the keyframe threshold.
+        X_ff: ``(H, W, 3)`` the frame's own pointmap (its canonical map if it becomes a
+            keyframe).
+        C_ff: ``(H, W)`` confidence of ``X_ff``.
+        solve: the solver's report (None when no solve ran).
+    """
+
+    ok: bool
+    reason: str
+    T_kf: Tensor
+    match_fraction: float
+    unique_fraction: float
+    new_keyframe: bool
+    X_ff: Tensor
+    C_ff: Tensor
+    solve: SolveReport | None = None
+
+
+class FrameTracker:
+    """Tracks frames of one agent against its keyframes, warm-starting the matching."""
+
+    def __init__(self, prior: Prior, config: Config) -> None:
+        self.prior = prior
+        self.config = config
+        self._warm: tuple[int, Tensor] | None = None  # (keyframe id, (1, P, 2) pixels)
+
+    def track(
+        self, enc_f: Encoding, keyframe: Keyframe, T_kf_init: Tensor, fuse: bool = True
+    ) -> TrackResult:
+        """Estimate ``T_kf`` of a frame and (if ``fuse``) fuse it into the keyframe.
+
+        Args:
+            enc_f: the frame's encoding.
+            keyframe: the keyframe to track against.
+            T_kf_init: ``(8,)`` initial guess (the previous frame's relative pose).
+            fuse: update the keyframe's canonical pointmap on success (C-Eq. 3).
+        """
+        pred = self.prior.decode(enc_f, keyframe.encoding)
+        matches = directed_matches(
+            pred, self.config.matching, self.config.tracking.q_min, self._warm_start(keyframe)
+        )
+        self._remember(keyframe, matches, pred.X_ii.shape[1])
+        nu = matches.match_fraction
+        nu_unique = _unique_fraction(matches)
+        tracking = self.config.tracking
+        base = dict(match_fraction=nu, unique_fraction=nu_unique, X_ff=pred.X_ii, C_ff=pred.C_ii)
+        if nu < tracking.min_match_fraction:
+            return TrackResult(False, "too_few_matches", T_kf_init, new_keyframe=True, **base)
+        T_kf, report = self._solve(pred.X_ii, keyframe, matches, T_kf_init)
+        if report.reason in _FAILED_REASONS or not bool(torch.isfinite(T_kf).all()):
+            logger.info("tracking failed against keyframe %d: %s", keyframe.kf_id, report.reason)
+            return TrackResult(False, report.reason, T_kf_init, new_keyframe=True, solve=report,
+                               **base)
+        if fuse:
+            keyframe.fuse(T_kf, pred.X_ji, pred.C_ji)
+        new_kf = min(nu, nu_unique) < tracking.keyframe_match_fraction
+        return TrackResult(True, "ok", T_kf, new_keyframe=new_kf, solve=report, **base)
+
+    def reset_warm_start(self) -> None:
+        """Forget the previous matches (after relocalization)."""
+        self._warm = None
+
+    def _solve(
+        self, X_ff: Tensor, keyframe: Keyframe, matches: DirectedMatches, T_kf_init: Tensor
+    ) -> tuple[Tensor, SolveReport]:
+        """LM-IRLS on C-Eq. 2 with the keyframe pinned at the identity."""
+        tracking = self.config.tracking
+        factors = RayRangeFactors(
+            torch.tensor([0]), torch.tensor([1]),
+            keyframe.X_hat.reshape(1, -1, 3),
+            gather_points(X_ff, matches.idx)[None],
+            matches.q[None], matches.valid[None],
+            sigma_ray=tracking.sigma_ray, sigma_dist=tracking.sigma_dist, huber_k=tracking.huber_k,
+        )
+        identity = sim3_identity(dtype=T_kf_init.dtype, device=T_kf_init.device)
+        values = PoseValues(torch.stack([identity, T_kf_init]),
+                            torch.tensor([True, False], device=T_kf_init.device))
+        solved, report = levenberg_marquardt_irls(factors, values, tracking, backend="dense")
+        return solved.poses[1], report
+
+    def _warm_start(self, keyframe: Keyframe) -> Tensor | None:
+        if self._warm is not None and self._warm[0] == keyframe.kf_id:
+            return self._warm[1]
+        return None
+
+    def _remember(self, keyframe: Keyframe, matches: DirectedMatches, width: int) -> None:
+        pixels = torch.stack([matches.idx % width, matches.idx // width], dim=-1)
+        self._warm = (keyframe.kf_id, pixels[None].to(keyframe.X_hat.dtype))
+
+
+def _unique_fraction(matches: DirectedMatches) -> float:
+    """Distinct matched pixels of the searched view per query pixel (``nu_uniq``)."""
+    if matches.idx.numel() == 0:
+        return 0.0
+    return float(torch.unique(matches.idx[matches.valid]).numel() / matches.idx.numel())

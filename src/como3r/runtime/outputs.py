@@ -1,0 +1,109 @@
+"""Writing a run's output folder (DESIGN.md, "A run output folder").
+
+``config.yaml``, ``trajectories/agent_<a>.txt`` (every tracked frame), ``keyframes/agent_<a>.txt``,
+``map.ply`` (fused coloured cloud with agent ids), ``graph.json`` and ``metrics.json``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from como3r.config import Config, dump_config
+from como3r.frontend.agent import AgentFrontend
+from como3r.geometry.lie import sim3_act
+from como3r.io.ply import write_ply
+from como3r.io.tum import write_tum
+
+
+def write_trajectories(out: Path, frontends: Sequence[AgentFrontend]) -> None:
+    """All-frame and keyframe TUM trajectories per agent."""
+    for fe in frontends:
+        _, stamps, T_WC = fe.trajectory()
+        write_tum(out / "trajectories" / f"agent_{fe.agent}.txt", stamps, T_WC)
+        _, kf_stamps, kf_T_WC = fe.keyframe_trajectory()
+        write_tum(out / "keyframes" / f"agent_{fe.agent}.txt", kf_stamps, kf_T_WC)
+
+
+def fused_map(frontends: Sequence[AgentFrontend], min_confidence: float,
+              voxel_size: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every keyframe's canonical pointmap in the world, above a confidence threshold.
+
+    Returns:
+        ``xyz (N, 3)`` float32, ``rgb (N, 3)`` uint8 and ``agent_id (N,)`` int32.
+    """
+    xyz, rgb, agent_ids = [], [], []
+    for fe in frontends:
+        for kf in fe.keyframes:
+            keep = (kf.mean_confidence() > min_confidence).reshape(-1).cpu()
+            points = sim3_act(kf.T_WC[None, None, :].to(kf.X_hat), kf.X_hat).reshape(-1, 3).cpu()
+            xyz.append(points[keep].numpy().astype(np.float32))
+            rgb.append(kf.colors.reshape(-1, 3)[keep.numpy()])
+            agent_ids.append(np.full(int(keep.sum()), fe.agent, dtype=np.int32))
+    if not xyz:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros(0, np.int32)
+    xyz_all, rgb_all, ids_all = np.concatenate(xyz), np.concatenate(rgb), np.concatenate(agent_ids)
+    if voxel_size > 0 and len(xyz_all):
+        _, first = np.unique(np.floor(xyz_all / voxel_size).astype(np.int64), axis=0,
+                             return_index=True)
+        first.sort()
+        xyz_all, rgb_all, ids_all = xyz_all[first], rgb_all[first], ids_all[first]
+    return xyz_all, rgb_all, ids_all
+
+
+def write_map(out: Path, frontends: Sequence[AgentFrontend], config: Config) -> int:
+    """Write ``map.ply``; returns the number of points."""
+    xyz, rgb, ids = fused_map(frontends, config.visualization.map_min_confidence,
+                              config.visualization.voxel_size_m)
+    write_ply(out / "map.ply", xyz, rgb, ids)
+    return int(xyz.shape[0])
+
+
+def graph_document(frontends: Sequence[AgentFrontend],
+                   extra_edges: Sequence[dict[str, Any]] = (),
+                   components: Sequence[Sequence[int]] | None = None) -> dict[str, Any]:
+    """The keyframe graph as JSON-ready data: keyframes, edges with scores, components."""
+    keyframes, edges = [], []
+    for fe in frontends:
+        for kf in fe.keyframes:
+            keyframes.append({"agent": fe.agent, "keyframe": kf.kf_id, "frame": kf.frame_index,
+                              "timestamp": kf.timestamp, "T_WC": kf.T_WC.tolist()})
+        for e in fe.edges:
+            edges.append({"type": e.kind, "from": [fe.agent, e.i], "to": [fe.agent, e.j],
+                          "match_fraction": e.matches.match_fraction})
+    edges.extend(extra_edges)
+    if components is None:
+        components = [[fe.agent] for fe in frontends]
+    return {"keyframes": keyframes, "edges": edges,
+            "components": [list(c) for c in components]}
+
+
+def write_json(path: Path, document: dict[str, Any]) -> None:
+    """Write pretty JSON (numbers, strings, lists, dicts only)."""
+    path.write_text(json.dumps(document, indent=2, default=_jsonable))
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, (np.integer, np.floating)):
+        return value.item()
+    if isinstance(value, (np.ndarray, torch.Tensor)):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def frontend_metrics(fe: AgentFrontend, seconds: float) -> dict[str, Any]:
+    """Per-agent counters and rates."""
+    stats = asdict(fe.stats)
+    stats["seconds"] = seconds
+    stats["fps"] = fe.stats.frames / seconds if seconds > 0 else None
+    return stats
+
+
+def write_config(out: Path, config: Config) -> None:
+    """The full effective configuration."""
+    dump_config(config, out / "config.yaml")

@@ -1,0 +1,180 @@
+"""Running como3r on agent inputs, end to end, in one process.
+
+``run`` opens and validates every agent input first (so bad input fails before any work),
+builds the prior, feeds the agents' frames to their front-ends interleaved by timestamp
+(as concurrent robots would deliver them), writes the output folder atomically and, where
+ground truth exists, evaluates the trajectories.
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator, Sequence
+
+import numpy as np
+import torch
+
+from como3r.config import Config
+from como3r.data.agent import AgentInput, open_agent
+from como3r.data.preprocess import make_view
+from como3r.errors import InputError
+from como3r.frontend.agent import AgentFrontend
+from como3r.io.output import atomic_output_dir
+from como3r.prior.base import Prior, View
+from como3r.runtime import outputs
+
+logger = logging.getLogger(__name__)
+
+PRIORS = ("simulated", "mast3r")
+
+
+@dataclass(frozen=True)
+class PriorSpec:
+    """Which prior to build and from which files.
+
+    Attributes:
+        name: ``"simulated"`` or ``"mast3r"``.
+        weights: MASt3R checkpoint (``mast3r`` only).
+        retrieval_weights: MASt3R retrieval checkpoint (``..._retrieval_trainingfree.pth``).
+        codebook: ASMK codebook ``.pkl`` for the MASt3R retrieval.
+        device: ``"cpu"`` or ``"cuda"``.
+    """
+
+    name: str = "simulated"
+    weights: Path | None = None
+    retrieval_weights: Path | None = None
+    codebook: Path | None = None
+    device: str = "cpu"
+
+
+@dataclass
+class RunSummary:
+    """What a run did, for the command line's final table."""
+
+    out: Path
+    agents: list[dict[str, object]] = field(default_factory=list)
+    evaluation: object | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+def build_prior(spec: PriorSpec, config: Config) -> tuple[Prior, np.ndarray | None]:
+    """The prior and its retrieval codebook (None when retrieval is unavailable)."""
+    if spec.name == "simulated":
+        from como3r.prior.simulated import SimulatedPrior
+
+        prior = SimulatedPrior(config.simulated_prior)
+        return prior, prior.codebook()
+    if spec.name == "mast3r":
+        from como3r.prior.mast3r import load_mast3r
+
+        if spec.weights is None:
+            raise InputError("--prior mast3r needs --weights CHECKPOINT")
+        prior = load_mast3r(spec.weights, device=spec.device)
+        if spec.retrieval_weights is None:
+            logger.warning("no --retrieval-weights: loop closure and retrieval are disabled")
+            return prior, None
+        from como3r.prior.mast3r.retrieval import codebook_path_for, load_retrieval_head
+        from como3r.prior.retrieval import load_codebook
+
+        prior.retrieval = load_retrieval_head(spec.retrieval_weights, device=spec.device)
+        codebook = spec.codebook or codebook_path_for(spec.retrieval_weights)
+        return prior, load_codebook(codebook)
+    raise InputError(f"unknown prior {spec.name!r}; choose one of {', '.join(PRIORS)}")
+
+
+def open_agents(paths: Sequence[Path], config: Config) -> list[AgentInput]:
+    """Open and validate every agent input before any work starts."""
+    if not paths:
+        raise InputError("no --agent given")
+    return [open_agent(p, fps=config.input.frame_rate_hz) for p in paths]
+
+
+def _frame_schedule(agents: Sequence[AgentInput], stride: int) -> Iterator[tuple[int, int]]:
+    """``(agent, frame index)`` of every agent's every ``stride``-th frame, by timestamp."""
+    heap = [(float(a.timestamps[0]), k, 0) for k, a in enumerate(agents) if a.num_frames]
+    heapq.heapify(heap)
+    while heap:
+        _, k, i = heapq.heappop(heap)
+        yield k, i
+        nxt = i + stride
+        if nxt < agents[k].num_frames:
+            heapq.heappush(heap, (float(agents[k].timestamps[nxt]), k, nxt))
+
+
+def _colors(view: View) -> np.ndarray:
+    """``(H, W, 3)`` uint8 image of a view at network resolution."""
+    image = ((view.image.permute(1, 2, 0) + 1.0) * 127.5).round().clamp(0, 255)
+    return image.to(torch.uint8).numpy()
+
+
+def run(
+    agent_paths: Sequence[Path],
+    out: Path,
+    config: Config,
+    prior_spec: PriorSpec,
+    overwrite: bool = False,
+    progress: Callable[[int, str, int, int], None] | None = None,
+) -> RunSummary:
+    """Run the front-ends of all agents and write the output folder.
+
+    Args:
+        agent_paths: one agent input per agent, in agent order.
+        out: output folder (created atomically).
+        config: effective configuration.
+        prior_spec: which prior to use.
+        overwrite: replace an existing non-empty output folder.
+        progress: called after every frame with ``(agent, outcome, done, total)``.
+    """
+    agents = open_agents(agent_paths, config)
+    prior, codebook = build_prior(prior_spec, config)
+    needs_K = prior_spec.name == "simulated" or config.calibrated
+    frontends = [AgentFrontend(prior, config, a, codebook) for a in range(len(agents))]
+    seconds = [0.0] * len(agents)
+    stride = config.input.subsample
+    total = sum(len(range(0, a.num_frames, stride)) for a in agents)
+    with atomic_output_dir(out, overwrite=overwrite) as staging:
+        for done, (k, i) in enumerate(_frame_schedule(agents, stride), 1):
+            frame = agents[k].load_frame(i)
+            view = make_view(frame, k, config.input.long_side,
+                             agents[k].calib if needs_K else None)
+            start = time.perf_counter()
+            outcome = frontends[k].process(view, frame.timestamp, _colors(view))
+            seconds[k] += time.perf_counter() - start
+            if progress is not None:
+                progress(k, outcome, done, total)
+        summary = _write(staging, frontends, config, agents, seconds, prior)
+    summary.out = out
+    return summary
+
+
+def _write(staging: Path, frontends: list[AgentFrontend], config: Config,
+           agents: list[AgentInput], seconds: list[float], prior: Prior) -> RunSummary:
+    outputs.write_config(staging, config)
+    outputs.write_trajectories(staging, frontends)
+    points = outputs.write_map(staging, frontends, config)
+    outputs.write_json(staging / "graph.json", outputs.graph_document(frontends))
+    summary = RunSummary(out=staging)
+    metrics: dict[str, object] = {
+        "prior": prior.describe(),
+        "agents": [outputs.frontend_metrics(fe, s) for fe, s in zip(frontends, seconds)],
+        "map_points": points,
+    }
+    for fe, s in zip(frontends, seconds):
+        summary.agents.append({"agent": fe.agent, "frames": fe.stats.frames,
+                               "tracked": fe.stats.tracked, "lost": fe.stats.lost,
+                               "keyframes": len(fe.keyframes),
+                               "fps": fe.stats.frames / s if s > 0 else 0.0})
+    if all(a.groundtruth is not None for a in agents):
+        from como3r.evaluation.report import evaluate_run
+
+        evaluation = evaluate_run(staging, [a.root for a in agents], staging)
+        metrics["ate"] = evaluation.to_json()
+        summary.evaluation = evaluation
+    else:
+        summary.notes.append("no ground truth for every agent: ATE not computed")
+    outputs.write_json(staging / "metrics.json", metrics)
+    return summary
