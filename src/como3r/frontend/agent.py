@@ -28,6 +28,7 @@ from torch import Tensor
 from como3r.config import Config
 from como3r.frontend.graph import Edge, build_factors
 from como3r.frontend.keyframes import Keyframe, KeyframeStore
+from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import PairLink, link_pairs
 from como3r.frontend.tracker import FrameTracker, TrackResult
 from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse
@@ -117,7 +118,8 @@ class AgentFrontend:
     def _initialise(self, enc: Encoding, index: int, timestamp: float, colors: np.ndarray) -> None:
         pred = self.prior.decode(enc, enc)
         T_WC = sim3_identity(dtype=pred.X_ii.dtype, device=pred.X_ii.device)
-        self._add_keyframe(enc, index, timestamp, T_WC, pred.X_ii, pred.C_ii, colors)
+        kf = self._add_keyframe(enc, index, timestamp, T_WC, pred.X_ii, pred.C_ii, colors)
+        self._index(kf)
         self._T_kf_prev = sim3_identity(dtype=pred.X_ii.dtype, device=pred.X_ii.device)
 
     def _accept(self, result: TrackResult, keyframe: Keyframe, index: int, timestamp: float,
@@ -139,6 +141,7 @@ class AgentFrontend:
             kf_id=len(self.keyframes), frame_index=index, timestamp=timestamp, encoding=enc,
             T_WC=T_WC, X_hat=X.clone(), C_hat=C.clone(), X_init=X.clone(), C_init=C.clone(),
             colors=colors,
+            retrieval=self.prior.retrieval_features(enc) if self.database is not None else None,
         )
         self.keyframes.add(kf)
         self.records.append(FrameRecord(index, timestamp, kf.kf_id, sim3_identity(
@@ -150,8 +153,7 @@ class AgentFrontend:
 
     def _link_new_keyframe(self, kf: Keyframe) -> None:
         """Sequential edge, verified loop edges, local solve, then index the keyframe."""
-        features = self._retrieval_features(kf.encoding)
-        candidates = self._loop_candidates(kf, features)
+        candidates = self._loop_candidates(kf)
         partners = [kf.kf_id - 1, *candidates]
         links = link_pairs(
             self.prior, [(self.keyframes[p].encoding, kf.encoding) for p in partners],
@@ -163,24 +165,23 @@ class AgentFrontend:
                 self._add_edge_pair(partner, kf.kf_id, link, "sequential" if sequential else "loop")
                 self.stats.loop_edges += 0 if sequential else 1
         self._local_solve()
-        if self.database is not None and features is not None:
-            self.database.add(self.agent, kf.kf_id, *features)
+        self._index(kf)
+
+    def _index(self, kf: Keyframe) -> None:
+        """Add the keyframe to the agent's retrieval database (after querying with it)."""
+        if self.database is not None and kf.retrieval is not None:
+            self.database.add(self.agent, kf.kf_id, *kf.retrieval)
 
     def _add_edge_pair(self, i: int, j: int, link: PairLink, kind: str) -> None:
         self.edges.append(Edge(i, j, link.ij, kind))
         self.edges.append(Edge(j, i, link.ji, kind))
 
-    def _retrieval_features(self, enc: Encoding) -> tuple[Tensor, Tensor] | None:
-        if self.database is None:
-            return None
-        return self.prior.retrieval_features(enc)
-
-    def _loop_candidates(self, kf: Keyframe, features: tuple[Tensor, Tensor] | None) -> list[int]:
+    def _loop_candidates(self, kf: Keyframe) -> list[int]:
         """Own keyframes most like ``kf`` (not its predecessor), above the threshold."""
-        if not self.config.loop_closure or self.database is None or features is None:
+        if not self.config.loop_closure or self.database is None or kf.retrieval is None:
             return []
         hits = self.database.query(
-            features[0], agent=self.agent, exclude_keyframes=[(self.agent, kf.kf_id - 1)],
+            kf.retrieval[0], agent=self.agent, exclude_keyframes=[(self.agent, kf.kf_id - 1)],
         )
         self.stats.loop_candidates += len(hits)
         return [h.keyframe for h in hits]
@@ -230,9 +231,7 @@ class AgentFrontend:
                           self.config.matching, self.config.tracking.q_min)[0]
         self._add_edge_pair(keyframe.kf_id, new.kf_id, link, "loop")
         self._local_solve()
-        features = self._retrieval_features(new.encoding)
-        if self.database is not None and features is not None:
-            self.database.add(self.agent, new.kf_id, *features)
+        self._index(new)
         self._T_kf_prev = sim3_identity(dtype=T_WC.dtype, device=T_WC.device)
 
     def _relocalization_candidates(self, enc: Encoding) -> list[int]:
@@ -260,10 +259,41 @@ class AgentFrontend:
         return (np.array([kf.frame_index for kf in self.keyframes]),
                 np.array([kf.timestamp for kf in self.keyframes]), self.keyframes.poses())
 
-    def apply_world_correction(self, T_new_old: Tensor) -> None:
-        """Left-multiply every keyframe pose by a Sim(3) (gauge transport, C-Eq. 15)."""
-        self.keyframes.set_poses(sim3_compose(T_new_old[None], self.keyframes.poses()))
+    def export_keyframe(self, kf_id: int) -> KeyframePacket:
+        """The packet announcing keyframe ``kf_id`` to a coordinator (C-Sec. B.1)."""
+        kf = self.keyframes[kf_id]
+        seq = {(e.i, e.j): e.matches for e in self.edges if e.kind == "sequential"}
+        previous = None
+        if kf_id > 0:
+            prev = self.keyframes[kf_id - 1]
+            previous = PointmapRefresh(prev.kf_id, prev.X_hat, prev.C_hat, prev.fused_frames)
+        return KeyframePacket(
+            agent=self.agent, kf_id=kf_id, frame_index=kf.frame_index, timestamp=kf.timestamp,
+            T_WC=kf.T_WC, X_hat=kf.X_init, C_hat=kf.C_init, colors=kf.colors,
+            encoding=kf.encoding, retrieval=kf.retrieval,
+            sequential_ij=seq.get((kf_id - 1, kf_id)), sequential_ji=seq.get((kf_id, kf_id - 1)),
+            previous=previous,
+        )
 
-    def relative_to_last_keyframe(self, T_WC: Tensor) -> Tensor:
-        """``T_kf`` of a world pose w.r.t. the current keyframe."""
-        return sim3_compose(sim3_inverse(self.keyframes.last.T_WC), T_WC)
+    def drain_new_keyframes(self) -> list[KeyframePacket]:
+        """Packets of the keyframes created since the last call, oldest first."""
+        packets = [self.export_keyframe(k) for k in self.new_keyframes]
+        self.new_keyframes.clear()
+        return packets
+
+    def apply_pose_update(self, update: PoseUpdate) -> None:
+        """Overwrite keyframe poses with the coordinator's (C-Sec. A.8).
+
+        Keyframes created after the ones in the update (not yet known to the coordinator)
+        follow the newest updated keyframe rigidly, so the agent keeps tracking in the
+        shared frame.
+        """
+        if update.kf_ids.numel() == 0:
+            return
+        newest = int(update.kf_ids.max())
+        T_old = self.keyframes[newest].T_WC
+        for kf_id, pose in zip(update.kf_ids.tolist(), update.T_WC):
+            self.keyframes[kf_id].T_WC = pose.to(T_old).clone()
+        correction = sim3_compose(self.keyframes[newest].T_WC, sim3_inverse(T_old))
+        for kf in self.keyframes.keyframes[newest + 1:]:
+            kf.T_WC = sim3_compose(correction, kf.T_WC)

@@ -35,6 +35,7 @@ class Keyframe:
         C_init: ``(H, W)`` confidence of ``X_init``.
         colors: ``(H, W, 3)`` uint8 image at network resolution (for the fused map).
         fused_frames: how many frames contributed to ``X_hat``.
+        retrieval: ``(descriptors (N, d_r), attention (N,))`` or None without retrieval.
     """
 
     kf_id: int
@@ -48,6 +49,7 @@ class Keyframe:
     C_init: Tensor
     colors: np.ndarray
     fused_frames: int = 1
+    retrieval: tuple[Tensor, Tensor] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:

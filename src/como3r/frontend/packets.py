@@ -1,0 +1,93 @@
+"""What an agent sends to the coordinator and receives back (C-Sec. 3.1, A.8, B.1).
+
+Two payloads cross the agent/coordinator boundary:
+
+* :class:`KeyframePacket`, agent -> coordinator, once per new keyframe: everything the
+  coordinator needs to retrieve, verify and optimise with the keyframe (its encoding for
+  pair decodes, retrieval features, canonical pointmap, pose, and the dense sequential edge
+  to the agent's previous keyframe), plus a refresh of the previous keyframe's fused
+  canonical pointmap, which kept absorbing frames after it was sent.
+* :class:`PoseUpdate`, coordinator -> agent, after every gauge transport or global solve.
+
+They are plain dataclasses of tensors; ``como3r.runtime`` encodes them for transport.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from torch import Tensor
+
+from como3r.frontend.pairs import DirectedMatches
+from como3r.prior.base import Encoding
+
+
+@dataclass(frozen=True)
+class PointmapRefresh:
+    """The current fused canonical pointmap of an already sent keyframe.
+
+    Attributes:
+        kf_id: keyframe id within the agent.
+        X_hat: ``(H, W, 3)`` float32 canonical pointmap (camera frame).
+        C_hat: ``(H, W)`` float32 accumulated confidence.
+        fused_frames: frames fused into it.
+    """
+
+    kf_id: int
+    X_hat: Tensor
+    C_hat: Tensor
+    fused_frames: int
+
+
+@dataclass(frozen=True)
+class KeyframePacket:
+    """A new keyframe of one agent.
+
+    Attributes:
+        agent: agent id.
+        kf_id: keyframe id within the agent (0, 1, ...).
+        frame_index: frame index in the agent's stream.
+        timestamp: seconds.
+        T_WC: ``(8,)`` pose in the agent's current world frame.
+        X_hat: ``(H, W, 3)`` canonical pointmap at insertion (also the frozen ``X_init``
+            of C-Eq. 19).
+        C_hat: ``(H, W)`` its confidence.
+        colors: ``(H, W, 3)`` uint8 image at network resolution.
+        encoding: the prior's encoding of the keyframe.
+        retrieval: ``(descriptors (N, d_r), attention (N,))`` or None without retrieval.
+        sequential_ij: matches of the edge (kf_id - 1, kf_id), None for the first keyframe.
+        sequential_ji: matches of the edge (kf_id, kf_id - 1).
+        previous: refresh of keyframe ``kf_id - 1`` (None for the first keyframe).
+    """
+
+    agent: int
+    kf_id: int
+    frame_index: int
+    timestamp: float
+    T_WC: Tensor
+    X_hat: Tensor
+    C_hat: Tensor
+    colors: np.ndarray
+    encoding: Encoding
+    retrieval: tuple[Tensor, Tensor] | None
+    sequential_ij: DirectedMatches | None
+    sequential_ji: DirectedMatches | None
+    previous: PointmapRefresh | None
+
+
+@dataclass(frozen=True)
+class PoseUpdate:
+    """New world poses of some of an agent's keyframes.
+
+    Attributes:
+        agent: agent id.
+        kf_ids: ``(K,)`` int64 keyframe ids.
+        T_WC: ``(K, 8)`` their poses in the shared world frame.
+        reason: ``"gauge"``, ``"global_ba"`` or ``"cleanup"``.
+    """
+
+    agent: int
+    kf_ids: Tensor
+    T_WC: Tensor
+    reason: str
