@@ -50,8 +50,10 @@ def test_partial_yaml_keeps_defaults(tmp_path) -> None:
 
 
 def test_override_sets_value() -> None:
-    c = apply_overrides(Config(), ["tracking.sigma_ray=0.002", "calibrated=true"])
+    c = apply_overrides(Config(), ["tracking.sigma_ray=0.002", "calibrated=true",
+                                   "matching.occlusion_distance=1e9"])
     assert c.tracking.sigma_ray == 0.002
+    assert c.matching.occlusion_distance == 1e9
     assert c.calibrated is True
 
 

@@ -25,8 +25,10 @@ from torch import Tensor
 from como3r.config import MatchingConfig
 from como3r.geometry.residuals import psi
 
-#: query pixels processed at once by the descriptor refinement (bounds peak memory)
-_REFINE_CHUNK = 16384
+#: query pixels refined at once: small enough that the gathered (chunk, 49, d) candidate
+#: descriptors stay in cache (measured 2x faster than 16k on CPU), large enough to amortise
+#: the per-chunk overhead
+_REFINE_CHUNK = 1024
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,74 @@
+"""The single-agent front-end end to end on a small synthetic scene (simulated prior)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from como3r.config import Config, apply_overrides
+from como3r.data.agent import open_agent
+from como3r.data.preprocess import make_view
+from como3r.data.synth import synthesize
+from como3r.frontend.agent import AgentFrontend
+from como3r.frontend.packets import PoseUpdate
+from como3r.geometry.lie import sim3_compose, sim3_exp
+from como3r.geometry.umeyama import umeyama_rmse, umeyama_sim3
+from como3r.prior.simulated import SimulatedPrior
+from como3r.runtime.pipeline import _colors
+
+WIDTH, HEIGHT, FRAMES = 128, 96, 24
+
+
+@pytest.fixture(scope="module")
+def tracked(tmp_path_factory):
+    root = tmp_path_factory.mktemp("scene")
+    synthesize(root, agents=1, seed=5, overlap=0.2, frames=FRAMES, preset="default",
+               width=WIDTH, height=HEIGHT, progress=None)
+    agent = open_agent(root / "agent_0")
+    config = apply_overrides(Config(), [f"input.long_side={WIDTH}",
+                                        "matching.occlusion_distance=0.5"])
+    prior = SimulatedPrior(config.simulated_prior)
+    frontend = AgentFrontend(prior, config, 0, prior.codebook())
+    outcomes = []
+    for i in range(0, agent.num_frames, config.input.subsample):
+        frame = agent.load_frame(i)
+        view = make_view(frame, 0, WIDTH, agent.calib)
+        outcomes.append(frontend.process(view, frame.timestamp, _colors(view)))
+    return agent, frontend, outcomes
+
+
+def test_single_agent_ate_below_one_percent_of_path(tracked) -> None:
+    agent, frontend, outcomes = tracked
+    indices, _, T_WC = frontend.trajectory()
+    assert len(indices) == sum(o != "lost" for o in outcomes)
+    gt = agent.groundtruth.T_WC[indices, :3]
+    est = T_WC[:, :3].double()
+    path_length = float((gt[1:] - gt[:-1]).norm(dim=-1).sum())
+    ate = umeyama_rmse(umeyama_sim3(est, gt), est, gt)
+    assert ate <= 0.01 * path_length, (ate, path_length)
+
+
+def test_keyframe_count_is_sensible(tracked) -> None:
+    _, frontend, outcomes = tracked
+    assert "lost" not in outcomes
+    assert 2 <= len(frontend.keyframes) <= len(outcomes) // 2 + 1
+    assert frontend.stats.keyframes == len(frontend.keyframes)
+    kinds = {e.kind for e in frontend.edges}
+    assert "sequential" in kinds
+
+
+def test_frames_follow_their_anchor_keyframe(tracked) -> None:
+    _, frontend, _ = tracked
+    _, _, before = frontend.trajectory()
+    packets = frontend.drain_new_keyframes()
+    assert [p.kf_id for p in packets] == list(range(len(frontend.keyframes)))
+    assert frontend.drain_new_keyframes() == []
+    shift = sim3_exp(torch.tensor([0.5, -0.2, 0.1, 0.0, 0.05, 0.0, 0.1]))
+    last = len(frontend.keyframes) - 1
+    moved = sim3_compose(shift[None], frontend.keyframes.poses()[:last])
+    frontend.apply_pose_update(PoseUpdate(0, torch.arange(last), moved, "global_ba"))
+    _, _, after = frontend.trajectory()
+    expected = sim3_compose(shift[None].to(before), before)
+    # every frame, those anchored on the keyframe missing from the update included, moved
+    # with the update's correction
+    assert torch.allclose(after, expected, atol=1e-4)

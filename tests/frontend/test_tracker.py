@@ -1,0 +1,141 @@
+"""Frame-to-keyframe tracking (C-Eq. 2) on views rendered at chosen relative poses."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from como3r.config import Config, SimulatedPriorConfig, apply_overrides
+from como3r.data.preprocess import ImageTransform
+from como3r.data.synth import Intrinsics, Renderer, build_preset
+from como3r.frontend.keyframes import Keyframe
+from como3r.frontend.tracker import FrameTracker
+from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse, sim3_log
+from como3r.prior.base import PairPrediction, Prior, View
+from como3r.prior.simulated import SimulatedPrior
+
+W, H = 128, 96
+NOISE_FREE = SimulatedPriorConfig(scale_sigma=0.0, depth_distortion_amplitude=0.0, range_noise=0.0,
+                                  rotation_noise_deg=0.0, translation_noise=0.0,
+                                  descriptor_noise=0.0)
+
+
+@pytest.fixture(scope="module")
+def renderer_and_pose() -> tuple[Renderer, np.ndarray, np.ndarray, np.ndarray]:
+    spec = build_preset("default", 1, 30, 0.2, seed=3)
+    intrinsics = Intrinsics.from_hfov(W, H, 75.0)
+    path = spec.paths[0]
+    return Renderer(spec.scene, intrinsics), path.rotations[10], path.positions[10], \
+        intrinsics.matrix()
+
+
+def _view(renderer: Renderer, R_WC: np.ndarray, t_WC: np.ndarray, K: np.ndarray, index: int) -> View:
+    frame = renderer.render(R_WC, t_WC)
+    quat = Rotation.from_matrix(R_WC).as_quat()
+    T_WC = torch.tensor([*t_WC, *quat, 1.0], dtype=torch.float64)
+    return View(image=ImageTransform.to_network(frame.rgb), agent=0, index=index,
+                depth=torch.from_numpy(frame.depth), surface=torch.from_numpy(frame.surface),
+                T_WC=T_WC, K=torch.from_numpy(K).float())
+
+
+class _ScaledPrior(Prior):
+    """Scales the pointmaps of one ordered pair: a prior whose frame scale is off."""
+
+    def __init__(self, inner: Prior, scale: float) -> None:
+        self.inner, self.scale = inner, scale
+
+    def encode(self, view):
+        return self.inner.encode(view)
+
+    def decode(self, enc_i, enc_j) -> PairPrediction:
+        pred = self.inner.decode(enc_i, enc_j)
+        if enc_i.index == enc_j.index:
+            return pred
+        return replace(pred, X_ii=pred.X_ii * self.scale, X_ji=pred.X_ji * self.scale)
+
+    def retrieval_features(self, enc):
+        return self.inner.retrieval_features(enc)
+
+
+def _keyframe(prior: Prior, enc) -> Keyframe:
+    pred = prior.decode(enc, enc)
+    return Keyframe(kf_id=0, frame_index=0, timestamp=0.0, encoding=enc,
+                    T_WC=sim3_identity(dtype=torch.float32), X_hat=pred.X_ii.clone(),
+                    C_hat=pred.C_ii.clone(), X_init=pred.X_ii.clone(), C_init=pred.C_ii.clone(),
+                    colors=np.zeros((H, W, 3), np.uint8))
+
+
+@pytest.mark.parametrize("yaw_deg, forward_frac, scale", [
+    (0.0, 0.0, 1.0), (10.0, 0.0, 1.0), (3.0, 0.2, 1.0), (5.0, 0.1, 1.2), (-8.0, 0.15, 0.8),
+])
+def test_tracking_recovers_known_relative_sim3(renderer_and_pose, yaw_deg, forward_frac,
+                                               scale) -> None:
+    renderer, R_WC, t_WC, K = renderer_and_pose
+    view_k = _view(renderer, R_WC, t_WC, K, index=0)
+    median_depth = float(view_k.depth[view_k.depth > 0].median())
+    R_rel = Rotation.from_euler("y", yaw_deg, degrees=True).as_matrix()
+    t_rel = np.array([0.3 * forward_frac, 0.0, forward_frac]) * median_depth
+    view_f = _view(renderer, R_WC @ R_rel, t_WC + R_WC @ t_rel, K, index=1)
+
+    config = apply_overrides(Config(), ["matching.occlusion_distance=0.5"])
+    prior = _ScaledPrior(SimulatedPrior(NOISE_FREE), scale)
+    enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
+    keyframe = _keyframe(prior, enc_k)
+    result = FrameTracker(prior, config).track(enc_f, keyframe, sim3_identity(dtype=torch.float32))
+
+    assert result.ok, result.reason
+    T_true = sim3_compose(sim3_inverse(view_k.T_WC), view_f.T_WC).float()
+    T_true[7] = 1.0 / scale  # frame points are `scale` times too large: x_k = (1/scale) R x_f + t
+    error = sim3_log(sim3_compose(sim3_inverse(T_true), result.T_kf))
+    baseline = max(float(T_true[:3].norm()), 1e-3 * median_depth)
+    assert float(error[3:6].norm()) < 1e-3 * max(math.radians(abs(yaw_deg)), 1.0)
+    assert abs(float(result.T_kf[7]) / float(T_true[7]) - 1.0) < 1e-3
+    assert float((result.T_kf[:3] - T_true[:3]).norm()) < 1e-3 * max(baseline, median_depth)
+
+
+def test_tracking_converges_with_outliers(renderer_and_pose) -> None:
+    renderer, R_WC, t_WC, K = renderer_and_pose
+    view_k = _view(renderer, R_WC, t_WC, K, index=0)
+    R_rel = Rotation.from_euler("y", 4.0, degrees=True).as_matrix()
+    view_f = _view(renderer, R_WC @ R_rel, t_WC + R_WC @ np.array([0.1, 0.0, 0.4]), K, index=1)
+    prior = SimulatedPrior(NOISE_FREE)
+    enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
+
+    class Corrupting(_ScaledPrior):
+        def decode(self, enc_i, enc_j):
+            pred = self.inner.decode(enc_i, enc_j)
+            if enc_i.index == enc_j.index:
+                return pred
+            g = torch.Generator().manual_seed(0)
+            bad = torch.rand(pred.X_ii.shape[:2], generator=g) < 0.2
+            junk = pred.X_ii * (1.0 + 2.0 * torch.rand(pred.X_ii.shape, generator=g))
+            return replace(pred, X_ii=torch.where(bad[..., None], junk, pred.X_ii))
+
+    config = apply_overrides(Config(), ["matching.occlusion_distance=1e9"])
+    corrupt = Corrupting(prior, 1.0)
+    keyframe = _keyframe(corrupt, enc_k)
+    result = FrameTracker(corrupt, config).track(enc_f, keyframe, sim3_identity(dtype=torch.float32))
+    assert result.ok
+    T_true = sim3_compose(sim3_inverse(view_k.T_WC), view_f.T_WC).float()
+    error = sim3_log(sim3_compose(sim3_inverse(T_true), result.T_kf))
+    assert float(error[3:6].norm()) < math.radians(0.5)
+    assert float((result.T_kf[:3] - T_true[:3]).norm()) < 0.05 * float(T_true[:3].norm()) + 0.02
+
+
+def test_too_few_matches_is_a_detected_failure(renderer_and_pose) -> None:
+    renderer, R_WC, t_WC, K = renderer_and_pose
+    view_k = _view(renderer, R_WC, t_WC, K, index=0)
+    turned = R_WC @ Rotation.from_euler("y", 180.0, degrees=True).as_matrix()
+    view_f = _view(renderer, turned, t_WC, K, index=1)  # looking the other way: no overlap
+    prior = SimulatedPrior(NOISE_FREE)
+    enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
+    keyframe = _keyframe(prior, enc_k)
+    result = FrameTracker(prior, Config()).track(enc_f, keyframe, sim3_identity(dtype=torch.float32))
+    assert not result.ok
+    assert result.reason == "too_few_matches"
+    assert result.match_fraction < Config().tracking.min_match_fraction
