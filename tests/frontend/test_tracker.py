@@ -15,6 +15,7 @@ from como3r.data.preprocess import ImageTransform
 from como3r.data.synth import Intrinsics, Renderer, build_preset
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.tracker import FrameTracker
+from como3r.geometry.camera import lock_to_rays
 from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse, sim3_log
 from como3r.prior.base import PairPrediction, Prior, View
 from como3r.prior.simulated import SimulatedPrior
@@ -139,3 +140,24 @@ def test_too_few_matches_is_a_detected_failure(renderer_and_pose) -> None:
     assert not result.ok
     assert result.reason == "too_few_matches"
     assert result.match_fraction < Config().tracking.min_match_fraction
+
+
+def test_calibrated_tracking_recovers_known_relative_pose(renderer_and_pose) -> None:
+    renderer, R_WC, t_WC, K = renderer_and_pose
+    view_k = _view(renderer, R_WC, t_WC, K, index=0)
+    R_rel = Rotation.from_euler("y", 6.0, degrees=True).as_matrix()
+    view_f = _view(renderer, R_WC @ R_rel, t_WC + R_WC @ np.array([0.2, 0.0, 0.5]), K, index=1)
+    prior = SimulatedPrior(NOISE_FREE)
+    enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
+    keyframe = _keyframe(prior, enc_k)
+    keyframe.K = view_k.K
+    keyframe.X_hat = lock_to_rays(keyframe.X_hat, keyframe.K)
+    config = apply_overrides(Config(), ["matching.occlusion_distance=0.5", "calibrated=true"])
+    result = FrameTracker(prior, config).track(enc_f, keyframe, sim3_identity(dtype=torch.float32))
+    assert result.ok, result.reason
+    T_true = sim3_compose(sim3_inverse(view_k.T_WC), view_f.T_WC).float()
+    error = sim3_log(sim3_compose(sim3_inverse(T_true), result.T_kf))
+    assert float(error[3:6].norm()) < 1e-3
+    assert float((result.T_kf[:3] - T_true[:3]).norm()) < 1e-3 * float(view_k.depth.max())
+    # the frame's own pointmap was put on the calibrated rays (C-Eq. 16)
+    assert torch.allclose(result.X_ff, lock_to_rays(result.X_ff, view_k.K), atol=1e-5)

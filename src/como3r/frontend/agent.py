@@ -31,6 +31,8 @@ from como3r.frontend.keyframes import Keyframe, KeyframeStore
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import PairLink, link_pairs
 from como3r.frontend.tracker import FrameTracker, TrackResult
+from como3r.errors import InputError
+from como3r.geometry.camera import lock_to_rays
 from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.values import PoseValues
@@ -91,6 +93,7 @@ class AgentFrontend:
         self.new_keyframes: list[int] = []  # keyframes not yet handed to a coordinator
         self._T_kf_prev: Tensor | None = None
         self._lost = False
+        self._K: Tensor | None = None  # intrinsics at network resolution (calibrated runs)
 
     def process(self, view: View, timestamp: float, colors: np.ndarray) -> str:
         """Process the next frame; returns ``"keyframe"``, ``"tracked"``, ``"relocalized"``
@@ -102,6 +105,11 @@ class AgentFrontend:
             colors: ``(H, W, 3)`` uint8 image at network resolution.
         """
         self.stats.frames += 1
+        if self.config.calibrated:
+            if view.K is None:
+                raise InputError(f"agent {self.agent}: a calibrated run needs calib.txt "
+                                 "(fx fy cx cy) in the agent folder")
+            self._K = view.K
         enc = self.prior.encode(view)
         if len(self.keyframes) == 0:
             self._initialise(enc, view.index, timestamp, colors)
@@ -117,8 +125,9 @@ class AgentFrontend:
 
     def _initialise(self, enc: Encoding, index: int, timestamp: float, colors: np.ndarray) -> None:
         pred = self.prior.decode(enc, enc)
+        X = pred.X_ii if self._K is None else lock_to_rays(pred.X_ii, self._K.to(pred.X_ii))
         T_WC = sim3_identity(dtype=pred.X_ii.dtype, device=pred.X_ii.device)
-        kf = self._add_keyframe(enc, index, timestamp, T_WC, pred.X_ii, pred.C_ii, colors)
+        kf = self._add_keyframe(enc, index, timestamp, T_WC, X, pred.C_ii, colors)
         self._index(kf)
         self._T_kf_prev = sim3_identity(dtype=pred.X_ii.dtype, device=pred.X_ii.device)
 
@@ -142,6 +151,7 @@ class AgentFrontend:
             T_WC=T_WC, X_hat=X.clone(), C_hat=C.clone(), X_init=X.clone(), C_init=C.clone(),
             colors=colors,
             retrieval=self.prior.retrieval_features(enc) if self.database is not None else None,
+            K=None if self._K is None else self._K.to(X),
         )
         self.keyframes.add(kf)
         self.records.append(FrameRecord(index, timestamp, kf.kf_id, sim3_identity(

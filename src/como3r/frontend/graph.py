@@ -2,8 +2,8 @@
 
 A graph edge (i, j) stores only what the pair's decode produced (matches, validity,
 confidences: :class:`~como3r.frontend.pairs.DirectedMatches`); :func:`build_factors`
-turns a list of edges into one batch of ray-and-range factors on the keyframes' current
-canonical pointmaps, padding edges of different pixel counts, so the per-agent local solve
+turns a list of edges into one batch of factors (ray-and-range, or pixel and log-depth
+when calibrated) on the keyframes' current canonical pointmaps, padding edges of different pixel counts, so the per-agent local solve
 and the coordinator's global bundle adjustment build their problems with the same code.
 """
 
@@ -18,7 +18,8 @@ from torch import Tensor
 from como3r.config import TrackingConfig
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.pairs import DirectedMatches, gather_points
-from como3r.optim.factors import RayRangeFactors
+from como3r.geometry.camera import project
+from como3r.optim.factors import CalibratedFactors, RayRangeFactors
 
 
 @dataclass(frozen=True)
@@ -38,13 +39,39 @@ class Edge:
     kind: str = "sequential"
 
 
+def make_factors(
+    i: Tensor, j: Tensor, X_i: Tensor, X_j: Tensor, q: Tensor, valid: Tensor,
+    tracking: TrackingConfig, K_i: Tensor | None = None,
+) -> RayRangeFactors | CalibratedFactors:
+    """Factors for matched point pairs: ray-and-range (C-Eq. 6) or, with intrinsics,
+    pixel and log-depth (C-Eq. 17).
+
+    Args:
+        i, j: ``(E,)`` pose indices; the residual depends on ``T_ij = T_WC_i^-1 T_WC_j``.
+        X_i: ``(E, P, 3)`` target points in camera i (on the calibrated rays if ``K_i``).
+        X_j: ``(E, P, 3)`` matched points in camera j.
+        q: ``(E, P)`` match confidences; valid: ``(E, P)`` bool.
+        tracking: noise model and Huber breakpoint (C-Eq. 7-8).
+        K_i: ``(E, 3, 3)`` intrinsics of camera i for a calibrated run.
+    """
+    if K_i is None:
+        return RayRangeFactors(i, j, X_i, X_j, q, valid, sigma_ray=tracking.sigma_ray,
+                               sigma_dist=tracking.sigma_dist, huber_k=tracking.huber_k)
+    # X_i lies on K_i's rays (C-Eq. 16), so its projection is exactly its pixel
+    return CalibratedFactors(i, j, X_j, project(X_i, K_i[:, None]), X_i[..., 2], K_i, q, valid,
+                             sigma_pixel=tracking.sigma_pixel, sigma_depth=tracking.sigma_depth,
+                             huber_k=tracking.huber_k)
+
+
 def build_factors(
     edges: Sequence[Edge],
     keyframe: Callable[[int], Keyframe],
     pose_index: Callable[[int], int],
     tracking: TrackingConfig,
-) -> RayRangeFactors:
-    """One factor batch over ``edges`` on the current canonical pointmaps.
+) -> RayRangeFactors | CalibratedFactors:
+    """One factor batch over graph ``edges`` on the current canonical pointmaps.
+
+    Keyframes with intrinsics (a calibrated run, C-Sec. A.5) give C-Eq. 17 factors.
 
     Args:
         edges: the graph's edges.
@@ -53,7 +80,7 @@ def build_factors(
         tracking: noise model and Huber breakpoint (C-Eq. 7-8).
 
     Returns:
-        :class:`RayRangeFactors` with ``E = len(edges)`` and ``P`` the largest pixel count.
+        A factor batch with ``E = len(edges)`` and ``P`` the largest pixel count.
     """
     P = max(e.matches.idx.numel() for e in edges)
     X_i, X_j, q, valid = [], [], [], []
@@ -65,11 +92,12 @@ def build_factors(
         q.append(_pad(e.matches.q, pad))
         valid.append(_pad(e.matches.valid, pad))
     device = edges[0].matches.idx.device
-    return RayRangeFactors(
+    intrinsics = [keyframe(e.i).K for e in edges]
+    K_i = torch.stack(intrinsics).to(X_i[0]) if all(K is not None for K in intrinsics) else None
+    return make_factors(
         torch.tensor([pose_index(e.i) for e in edges], device=device),
         torch.tensor([pose_index(e.j) for e in edges], device=device),
-        torch.stack(X_i), torch.stack(X_j), torch.stack(q), torch.stack(valid),
-        sigma_ray=tracking.sigma_ray, sigma_dist=tracking.sigma_dist, huber_k=tracking.huber_k,
+        torch.stack(X_i), torch.stack(X_j), torch.stack(q), torch.stack(valid), tracking, K_i,
     )
 
 

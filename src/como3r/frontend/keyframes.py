@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from como3r.geometry.camera import lock_to_rays
 from como3r.geometry.lie import sim3_act
 from como3r.prior.base import Encoding
 
@@ -36,6 +37,8 @@ class Keyframe:
         colors: ``(H, W, 3)`` uint8 image at network resolution (for the fused map).
         fused_frames: how many frames contributed to ``X_hat``.
         retrieval: ``(descriptors (N, d_r), attention (N,))`` or None without retrieval.
+        K: ``(3, 3)`` intrinsics at the pointmap's resolution when the run is calibrated
+            (C-Sec. A.5): the canonical pointmap then stays on the calibrated rays.
     """
 
     kf_id: int
@@ -50,6 +53,7 @@ class Keyframe:
     colors: np.ndarray
     fused_frames: int = 1
     retrieval: tuple[Tensor, Tensor] | None = None
+    K: Tensor | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -67,6 +71,8 @@ class Keyframe:
         X_k = sim3_act(T_kf.to(X_kf.dtype)[None, None, :], X_kf)
         C_new = self.C_hat + C_kf
         self.X_hat = (self.C_hat[..., None] * self.X_hat + C_kf[..., None] * X_k) / C_new[..., None]
+        if self.K is not None:
+            self.X_hat = lock_to_rays(self.X_hat, self.K)
         self.C_hat = C_new
         self.fused_frames += 1
 

@@ -15,16 +15,17 @@ that could not produce a finite pose give ``ok=False`` with the reason.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
 
 from como3r.config import Config
 from como3r.frontend.keyframes import Keyframe
+from como3r.frontend.graph import make_factors
 from como3r.frontend.pairs import DirectedMatches, directed_matches, gather_points
+from como3r.geometry.camera import lock_to_rays
 from como3r.geometry.lie import sim3_identity
-from como3r.optim.factors import RayRangeFactors
 from como3r.optim.optimizer import SolveReport, levenberg_marquardt_irls
 from como3r.optim.values import PoseValues
 from como3r.prior.base import Encoding, Prior
@@ -83,6 +84,8 @@ class FrameTracker:
             fuse: update the keyframe's canonical pointmap on success (C-Eq. 3).
         """
         pred = self.prior.decode(enc_f, keyframe.encoding)
+        if keyframe.K is not None:  # the frame's own pointmap on the calibrated rays (C-Eq. 16)
+            pred = replace(pred, X_ii=lock_to_rays(pred.X_ii, keyframe.K))
         matches = directed_matches(
             pred, self.config.matching, self.config.tracking.q_min, self._warm_start(keyframe)
         )
@@ -110,19 +113,22 @@ class FrameTracker:
     def _solve(
         self, X_ff: Tensor, keyframe: Keyframe, matches: DirectedMatches, T_kf_init: Tensor
     ) -> tuple[Tensor, SolveReport]:
-        """LM-IRLS on C-Eq. 2 with the keyframe pinned at the identity."""
-        tracking = self.config.tracking
-        factors = RayRangeFactors(
-            torch.tensor([0]), torch.tensor([1]),
-            keyframe.X_hat.reshape(1, -1, 3),
-            gather_points(X_ff, matches.idx)[None],
-            matches.q[None], matches.valid[None],
-            sigma_ray=tracking.sigma_ray, sigma_dist=tracking.sigma_dist, huber_k=tracking.huber_k,
+        """LM-IRLS on C-Eq. 2 (C-Eq. 17 when calibrated), keyframe pinned at the identity.
+
+        The frame's matched points ``X_ff[n]`` move onto the keyframe's canonical points
+        ``X_hat[m]`` (every keyframe pixel m is a match, validity aside).
+        """
+        K = None if keyframe.K is None else keyframe.K[None].to(X_ff)
+        factors = make_factors(
+            torch.tensor([0]), torch.tensor([1]), keyframe.X_hat.reshape(1, -1, 3),
+            gather_points(X_ff, matches.idx)[None], matches.q[None], matches.valid[None],
+            self.config.tracking, K,
         )
         identity = sim3_identity(dtype=T_kf_init.dtype, device=T_kf_init.device)
         values = PoseValues(torch.stack([identity, T_kf_init]),
                             torch.tensor([True, False], device=T_kf_init.device))
-        solved, report = levenberg_marquardt_irls(factors, values, tracking, backend="dense")
+        solved, report = levenberg_marquardt_irls(factors, values, self.config.tracking,
+                                                  backend="dense")
         return solved.poses[1], report
 
     def _warm_start(self, keyframe: Keyframe) -> Tensor | None:

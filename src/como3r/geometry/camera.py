@@ -22,6 +22,7 @@ __all__ = [
     "rays_from_intrinsics",
     "scale_intrinsics",
     "crop_intrinsics",
+    "lock_to_rays",
 ]
 
 # Depths are clamped to this before dividing; points at or behind the camera project far
@@ -113,3 +114,16 @@ def crop_intrinsics(K: Tensor, left: float, top: float) -> Tensor:
     K[..., 0, 2] -= left
     K[..., 1, 2] -= top
     return K
+
+
+def lock_to_rays(X: Tensor, K: Tensor) -> Tensor:
+    """Constrain a pointmap to the calibrated rays, keeping its depths (C-Eq. 16).
+
+    Args:
+        X: ``(..., H, W, 3)`` pointmap in its own camera frame.
+        K: ``(..., 3, 3)`` intrinsics of that camera at the pointmap's resolution.
+
+    Returns:
+        ``(..., H, W, 3)`` points ``z_p K^-1 [u_p, v_p, 1]^T`` with ``z_p = [X_p]_3``.
+    """
+    return unproject_depth(X[..., 2], K)
