@@ -96,16 +96,31 @@ class RetrievalConfig:
 
 @dataclass(frozen=True)
 class VerificationConfig:
-    """Inter-agent geometric verification, C-Eq. 12."""
+    """Inter-agent geometric verification, C-Eq. 12.
+
+    ``max_residual_ratio`` is not in the paper (como3r addition): an edge that passes C-Eq. 12
+    must also agree with the poses it would constrain, i.e. the median distance of its
+    matched points lifted into the shared world is at most this fraction of their median
+    range (about the relative rotation error in radians). It rejects edges a prior
+    hallucinates on repeated structure. ``inf`` restores the paper's single test.
+    """
 
     tau_inter: float = 0.1
+    max_residual_ratio: float = 0.2
 
 
 @dataclass(frozen=True)
 class GaugeConfig:
-    """Gauge synchronization, C-Eq. 14-15."""
+    """Gauge synchronization, C-Eq. 14-15.
+
+    ``min_consistent_edges`` is not in the paper (como3r addition): two gauge components
+    merge once this many verified edges between them agree on the aligning transform
+    (each within ``verification.max_residual_ratio`` under it). 1 is the paper's
+    synchronization on the first verified edge.
+    """
 
     min_correspondences: int = 64
+    min_consistent_edges: int = 2
 
 
 @dataclass(frozen=True)
@@ -141,6 +156,7 @@ class DepthRefinementConfig:
     inner_iters: int = 10
     alternation_rounds: int = 100
     pose_pass_iters: int = 50
+    depth_convergence_tol: float = 1e-3  # max |delta s| that ends the alternation (A.7)
 
 
 @dataclass(frozen=True)

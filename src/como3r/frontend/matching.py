@@ -62,35 +62,51 @@ def ray_image_with_gradients(X: Tensor) -> Tensor:
     return torch.cat([rays, grad_u, grad_v], dim=-1)
 
 
-def _bilinear(image: Tensor, p: Tensor) -> Tensor:
-    """Sample ``image (B, H, W, C)`` at continuous pixels ``p (B, P, 2)`` -> ``(B, P, C)``."""
-    B, H, W, C = image.shape
-    u = p[..., 0].clamp(0, W - 1)
-    v = p[..., 1].clamp(0, H - 1)
-    u0 = u.floor().clamp(max=W - 2).long() if W > 1 else u.floor().long()
-    v0 = v.floor().clamp(max=H - 2).long() if H > 1 else v.floor().long()
+def _bilinear(table: Tensor, H: int, W: int, base: Tensor, p: Tensor) -> Tensor:
+    """Bilinear samples of a flattened image batch at continuous pixels.
+
+    Args:
+        table: ``(B * H * W, C)`` image rows, image b starting at row ``b * H * W``.
+        H, W: image size.
+        base: ``(M,)`` first row of each sample's image (``b * H * W``).
+        p: ``(M, 2)`` pixels ``(u, v)`` inside the image.
+
+    Returns:
+        ``(M, C)`` samples.
+    """
+    u = p[:, 0].clamp(0, W - 1)
+    v = p[:, 1].clamp(0, H - 1)
+    u0 = u.floor().clamp(max=max(W - 2, 0)).long()
+    v0 = v.floor().clamp(max=max(H - 2, 0)).long()
     u1 = (u0 + 1).clamp(max=W - 1)
     v1 = (v0 + 1).clamp(max=H - 1)
-    a = (u - u0).unsqueeze(-1)
-    b = (v - v0).unsqueeze(-1)
-    flat = image.reshape(B, H * W, C)
-
-    def gather(vv: Tensor, uu: Tensor) -> Tensor:
-        index = (vv * W + uu).unsqueeze(-1).expand(-1, -1, C)
-        return torch.gather(flat, 1, index)
-
-    top = gather(v0, u0) * (1 - a) + gather(v0, u1) * a
-    bottom = gather(v1, u0) * (1 - a) + gather(v1, u1) * a
+    a = (u - u0)[:, None]
+    b = (v - v0)[:, None]
+    top_row, bottom_row = base + v0 * W, base + v1 * W
+    top = table[top_row + u0] * (1 - a) + table[top_row + u1] * a
+    bottom = table[bottom_row + u0] * (1 - a) + table[bottom_row + u1] * a
     return top * (1 - b) + bottom * b
 
 
-def _ray_cost(rays_grad: Tensor, p: Tensor, target: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Squared ray error at ``p`` and the pieces of its Gauss-Newton system."""
-    sample = _bilinear(rays_grad, p)
-    ray = psi(sample[..., 0:3])
-    err = ray - target
-    J = torch.stack([sample[..., 3:6], sample[..., 6:9]], dim=-1)  # (B, P, 3, 2)
+def _ray_cost(table: Tensor, H: int, W: int, base: Tensor, p: Tensor,
+              target: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Squared ray error ``(M,)`` at ``p`` with its residual ``(M, 3)`` and Jacobian
+    ``(M, 3, 2)`` w.r.t. the pixel position."""
+    sample = _bilinear(table, H, W, base, p)
+    err = psi(sample[:, 0:3]) - target
+    J = torch.stack([sample[:, 3:6], sample[:, 6:9]], dim=-1)
     return (err * err).sum(-1), err, J
+
+
+def _damped_step(J: Tensor, err: Tensor, lam: Tensor) -> Tensor:
+    """Solve the 2x2 system ``(J^T J + lam I) step = -J^T err`` in closed form -> ``(M, 2)``."""
+    a11 = (J[:, :, 0] * J[:, :, 0]).sum(-1) + lam
+    a12 = (J[:, :, 0] * J[:, :, 1]).sum(-1)
+    a22 = (J[:, :, 1] * J[:, :, 1]).sum(-1) + lam
+    b1 = -(J[:, :, 0] * err).sum(-1)
+    b2 = -(J[:, :, 1] * err).sum(-1)
+    det = a11 * a22 - a12 * a12
+    return torch.stack([a22 * b1 - a12 * b2, a11 * b2 - a12 * b1], dim=-1) / det[:, None]
 
 
 def project_iteratively(
@@ -103,6 +119,10 @@ def project_iteratively(
 ) -> tuple[Tensor, Tensor]:
     """Damped Gauss-Newton on pixel positions minimising the ray error (C-Eq. 1).
 
+    Each pixel runs its own Levenberg-Marquardt: a step is taken only if it lowers the
+    pixel's ray error (damping / 10), else the damping grows (x 10). Converged pixels
+    leave the active set, so later iterations only touch the pixels still moving.
+
     Args:
         rays_grad: ``(B, H, W, 9)`` from :func:`ray_image_with_gradients`.
         target_rays: ``(B, P, 3)`` unit query rays.
@@ -114,27 +134,31 @@ def project_iteratively(
     Returns:
         ``(p (B, P, 2) float, converged (B, P) bool)``.
     """
-    _, H, W, _ = rays_grad.shape
+    B, H, W, C = rays_grad.shape
+    P = target_rays.shape[1]
+    table = rays_grad.reshape(B * H * W, C)
     upper = torch.tensor([W - 1, H - 1], dtype=p_init.dtype, device=p_init.device)
-    p = p_init.clone()
-    lam = torch.full(p.shape[:-1], lambda_init, dtype=p.dtype, device=p.device)
-    eye = torch.eye(2, dtype=p.dtype, device=p.device)
-    cost, err, J = _ray_cost(rays_grad, p, target_rays)
+    p = p_init.reshape(B * P, 2).clone()
+    target = target_rays.reshape(B * P, 3)
+    base = torch.arange(B, device=p.device).repeat_interleave(P) * (H * W)
+    cost, err, J = _ray_cost(table, H, W, base, p, target)
+    keep = ~(cost < convergence_tol)
+    active, err, J = keep.nonzero().squeeze(-1), err[keep], J[keep]
+    lam = torch.full_like(active, lambda_init, dtype=p.dtype)
     for _ in range(max_iters):
-        A = J.transpose(-1, -2) @ J + lam[..., None, None] * eye
-        rhs = -(J.transpose(-1, -2) @ err.unsqueeze(-1))
-        step = torch.linalg.solve_ex(A, rhs)[0].squeeze(-1)
-        candidate = torch.minimum(torch.maximum(p + step, torch.zeros_like(upper)), upper)
-        new_cost, new_err, new_J = _ray_cost(rays_grad, candidate, target_rays)
-        better = (new_cost < cost) & torch.isfinite(new_cost)
-        p = torch.where(better[..., None], candidate, p)
-        cost = torch.where(better, new_cost, cost)
-        err = torch.where(better[..., None], new_err, err)
-        J = torch.where(better[..., None, None], new_J, J)
-        lam = torch.where(better, lam * 0.1, lam * 10.0)
-        if bool((cost < convergence_tol).all()):
+        if active.numel() == 0:
             break
-    return p, cost < convergence_tol
+        candidate = (p[active] + _damped_step(J, err, lam)).clamp(min=0).minimum(upper)
+        new_cost, new_err, new_J = _ray_cost(table, H, W, base[active], candidate, target[active])
+        better = (new_cost < cost[active]) & torch.isfinite(new_cost)
+        moved = active[better]
+        p[moved], cost[moved] = candidate[better], new_cost[better]
+        err = torch.where(better[:, None], new_err, err)
+        J = torch.where(better[:, None, None], new_J, J)
+        lam = torch.where(better, lam * 0.1, lam * 10.0)
+        keep = ~(cost[active] < convergence_tol)
+        active, err, J, lam = active[keep], err[keep], J[keep], lam[keep]
+    return p.reshape(B, P, 2), (cost < convergence_tol).reshape(B, P)
 
 
 def _nearest_ray_pixel(rays: Tensor, p: Tensor, target_rays: Tensor) -> Tensor:
@@ -164,17 +188,14 @@ def _nearest_ray_pixel(rays: Tensor, p: Tensor, target_rays: Tensor) -> Tensor:
     return torch.gather(cand, 2, best[..., None].expand(-1, -1, 1, 2)).squeeze(2)
 
 
-def _window_offsets(radius: int, dilation: int, device: torch.device) -> Tensor:
-    """``(K, 2)`` integer offsets of a ``(2r+1)^2`` window with the given dilation."""
-    r = torch.arange(-radius, radius + 1, device=device) * dilation
-    dv, du = torch.meshgrid(r, r, indexing="ij")
-    return torch.stack([du.reshape(-1), dv.reshape(-1)], dim=-1)
-
-
 def refine_with_descriptors(
     D_search: Tensor, D_query: Tensor, pixel: Tensor, radius: int, dilation_max: int
 ) -> Tensor:
     """Move each match to the best descriptor match in shrinking dilated windows.
+
+    At each dilation d (from ``dilation_max`` down to 1) the match moves to the best of
+    the ``(2r+1)^2`` pixels ``p + d * (i, j)``, ``|i|, |j| <= r``, by descriptor dot
+    product; window pixels outside the image count as the nearest border pixel.
 
     Args:
         D_search: ``(B, H, W, d)`` descriptors of the searched view.
@@ -187,25 +208,32 @@ def refine_with_descriptors(
         ``(B, P, 2)`` int64 refined pixels.
     """
     B, H, W, d = D_search.shape
-    # one flat table over the batch: row b * H * W + v * W + u (index_select is much
-    # faster than gather with an expanded (B, P * K, d) index)
-    table = D_search.reshape(B * H * W, d)
-    batch_offset = (torch.arange(B, device=pixel.device) * H * W)[:, None, None]
+    P = pixel.shape[1]
+    margin = radius * dilation_max
+    # Border-replicated descriptor images, so every window pixel is one flat row index
+    # ``centre + offset`` with no per-candidate clamping (the hot loop is memory bound).
+    padded = torch.nn.functional.pad(D_search.permute(0, 3, 1, 2), (margin,) * 4, mode="replicate")
+    Wp, Hp = W + 2 * margin, H + 2 * margin
+    table = padded.permute(0, 2, 3, 1).reshape(B * Hp * Wp, d).contiguous()
+    steps = torch.arange(-radius, radius + 1, device=pixel.device)
+    grid_v, grid_u = torch.meshgrid(steps, steps, indexing="ij")
+    grid_u, grid_v = grid_u.reshape(-1), grid_v.reshape(-1)
     upper = torch.tensor([W - 1, H - 1], device=pixel.device)
-    offsets = {dil: _window_offsets(radius, dil, pixel.device) for dil in range(1, dilation_max + 1)}
-    out = pixel.clone()
-    for start in range(0, pixel.shape[1], _REFINE_CHUNK):
+    p = pixel.reshape(B * P, 2).clone()
+    base = torch.arange(B, device=pixel.device).repeat_interleave(P) * (Hp * Wp)
+    query = D_query.reshape(B * P, d)
+    for start in range(0, B * P, _REFINE_CHUNK):
         sl = slice(start, start + _REFINE_CHUNK)
-        p = out[:, sl]
-        query = D_query[:, sl]  # (B, p, d)
+        q = query[sl]
         for dilation in range(dilation_max, 0, -1):
-            cand = (p[:, :, None, :] + offsets[dilation]).clamp(min=0).minimum(upper)
-            lin = cand[..., 1] * W + cand[..., 0] + batch_offset  # (B, p, K)
-            desc = table.index_select(0, lin.reshape(-1)).reshape(*lin.shape, d)
-            best = torch.einsum("bpkd,bpd->bpk", desc, query).argmax(dim=-1)  # (B, p)
-            p = torch.gather(cand, 2, best[..., None, None].expand(-1, -1, 1, 2)).squeeze(2)
-        out[:, sl] = p
-    return out
+            centre = base[sl] + (p[sl, 1] + margin) * Wp + p[sl, 0] + margin
+            offsets = dilation * (grid_v * Wp + grid_u)
+            rows = (centre[:, None] + offsets).reshape(-1)
+            desc = table.index_select(0, rows).reshape(-1, offsets.numel(), d)  # (chunk, K, d)
+            best = (desc * q[:, None, :]).sum(-1).argmax(dim=-1)  # faster than bmm for K=49
+            step = torch.stack([grid_u[best], grid_v[best]], dim=-1) * dilation
+            p[sl] = (p[sl] + step).clamp(min=0).minimum(upper)
+    return p.reshape(B, P, 2)
 
 
 def match_pointmaps(

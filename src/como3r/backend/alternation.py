@@ -1,0 +1,198 @@
+"""Alternating pose-depth optimisation at cleanup (C-Sec. A.7).
+
+Pose and structure share only the data term, so the coordinator optimises them block-
+coordinate-wise once all agents have stopped:
+
+1. global pose passes (depths frozen) of at most ``cleanup_iters`` iterations, at most
+   ``cleanup_passes`` of them, until the largest translation update of a pass is below
+   ``translation_tol`` (5 mm);
+2. up to R rounds of: a depth step (segments from the current pointmaps, log-scale
+   refinement, write-back), a short pose pass so the poses absorb the depth change, and a
+   broadcast of the new poses to the agents.
+
+The paper runs step 2 for R rounds and notes that it "converges within a handful of rounds";
+here a round ends the loop early once both the depth step's ``max |ds|`` and the pose pass's
+``max ||dt||`` are below their tolerances.
+
+The solvers enter as callables, so this module knows nothing about graphs or keyframes::
+
+    alternate(pose_pass=lambda iters: ba.run(iters),            # -> max ||delta t|| [m]
+              depth_step=lambda: refine_keyframes(...).max_change,  # -> max |delta s|
+              settings=AlternationSettings.from_config(config.global_ba, config.depth),
+              broadcast=coordinator.broadcast_poses)
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+from como3r.config import DepthRefinementConfig, GlobalBAConfig
+from como3r.errors import ConfigError, SolverError
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["AlternationSettings", "AlternationRound", "AlternationReport", "alternate"]
+
+DEPTH_CONVERGENCE_TOL = DepthRefinementConfig.depth_convergence_tol
+"""Default ``max |ds|`` below which a depth step counts as converged (0.1 % in depth)."""
+
+
+@dataclass(frozen=True)
+class AlternationSettings:
+    """Schedule of C-Sec. A.7 (defaults: C-Tab. 3).
+
+    Attributes:
+        cleanup_iters: iterations of each step-1 pose pass.
+        cleanup_passes: maximum number of step-1 pose passes.
+        translation_tol: metres; a pose pass whose ``max ||dt||`` is below this has converged.
+        rounds: maximum number R of step-2 rounds.
+        pose_pass_iters: iterations of the pose pass of each round.
+        depth_convergence_tol: a depth step whose ``max |ds|`` is below this has converged.
+    """
+
+    cleanup_iters: int = 100
+    cleanup_passes: int = 5
+    translation_tol: float = 5e-3
+    rounds: int = 100
+    pose_pass_iters: int = 50
+    depth_convergence_tol: float = DEPTH_CONVERGENCE_TOL
+
+    def __post_init__(self) -> None:
+        for name in ("cleanup_iters", "cleanup_passes", "pose_pass_iters"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"alternation: {name} must be at least 1, "
+                                  f"got {getattr(self, name)}")
+        if self.rounds < 0:
+            raise ConfigError(f"alternation: rounds must be non-negative, got {self.rounds}")
+        for name in ("translation_tol", "depth_convergence_tol"):
+            if not getattr(self, name) >= 0:
+                raise ConfigError(f"alternation: {name} must be non-negative, "
+                                  f"got {getattr(self, name)}")
+
+    @classmethod
+    def from_config(cls, global_ba: GlobalBAConfig, depth: DepthRefinementConfig
+                    ) -> AlternationSettings:
+        """The schedule of a run's configuration."""
+        return cls(
+            cleanup_iters=global_ba.max_iters_cleanup,
+            cleanup_passes=global_ba.cleanup_passes,
+            translation_tol=global_ba.cleanup_stop_translation_m,
+            rounds=depth.alternation_rounds,
+            pose_pass_iters=depth.pose_pass_iters,
+            depth_convergence_tol=depth.depth_convergence_tol,
+        )
+
+
+@dataclass(frozen=True)
+class AlternationRound:
+    """One round of step 2.
+
+    Attributes:
+        max_depth_change: ``max |ds|`` of the depth step.
+        max_translation: ``max ||dt||`` [m] of the pose pass.
+    """
+
+    max_depth_change: float
+    max_translation: float
+
+
+@dataclass
+class AlternationReport:
+    """What the alternation did and where the time went.
+
+    Attributes:
+        cleanup_translations: ``max ||dt||`` of every step-1 pose pass.
+        rounds: every step-2 round.
+        converged: the last round met both tolerances (step 2), or, with ``rounds = 0``,
+            the last step-1 pass met the translation tolerance.
+        reason: ``"converged"``, ``"max_rounds"`` or, with ``rounds = 0``,
+            ``"pose_converged"`` / ``"max_passes"``.
+        pose_seconds: time in pose passes (both steps).
+        depth_seconds: time in depth steps.
+        broadcast_seconds: time in the broadcast callback.
+        seconds: total wall-clock time.
+    """
+
+    cleanup_translations: list[float] = field(default_factory=list)
+    rounds: list[AlternationRound] = field(default_factory=list)
+    converged: bool = False
+    reason: str = "max_rounds"
+    pose_seconds: float = 0.0
+    depth_seconds: float = 0.0
+    broadcast_seconds: float = 0.0
+    seconds: float = 0.0
+
+
+def _timed(fn: Callable[..., float], *args: int) -> tuple[float, float]:
+    """``(fn(*args), seconds)``, with the result checked to be a finite number."""
+    start = time.perf_counter()
+    value = float(fn(*args))
+    seconds = time.perf_counter() - start
+    if not math.isfinite(value):
+        raise SolverError(f"alternation: {getattr(fn, '__name__', 'callback')} returned "
+                          f"{value}, expected a finite step size")
+    return value, seconds
+
+
+def alternate(
+    pose_pass: Callable[[int], float],
+    depth_step: Callable[[], float],
+    settings: AlternationSettings | None = None,
+    broadcast: Callable[[], None] | None = None,
+) -> AlternationReport:
+    """Run the cleanup schedule of C-Sec. A.7.
+
+    Args:
+        pose_pass: runs the global pose LM-IRLS (C-Eq. 5) for the given number of iterations
+            with the depths frozen; returns the largest translation update ``max_i ||dt_i||``
+            of the pass (metres in the world frame).
+        depth_step: builds segments, refines the log-scales at frozen poses and writes the
+            pointmaps back (C-Eq. 19-24); returns ``max |ds|``.
+        settings: the schedule; default :class:`AlternationSettings`.
+        broadcast: called after every round to push the new poses to the agents (step 2e).
+
+    Returns:
+        The report.
+
+    Raises:
+        SolverError: a callback returned a non-finite step size.
+    """
+    settings = AlternationSettings() if settings is None else settings
+    report = AlternationReport()
+    start = time.perf_counter()
+
+    for _ in range(settings.cleanup_passes):
+        translation, seconds = _timed(pose_pass, settings.cleanup_iters)
+        report.pose_seconds += seconds
+        report.cleanup_translations.append(translation)
+        if translation < settings.translation_tol:
+            break
+    if settings.rounds == 0:
+        report.converged = report.cleanup_translations[-1] < settings.translation_tol
+        report.reason = "pose_converged" if report.converged else "max_passes"
+
+    for r in range(settings.rounds):
+        depth_change, seconds = _timed(depth_step)
+        report.depth_seconds += seconds
+        translation, seconds = _timed(pose_pass, settings.pose_pass_iters)
+        report.pose_seconds += seconds
+        if broadcast is not None:
+            broadcast_start = time.perf_counter()
+            broadcast()
+            report.broadcast_seconds += time.perf_counter() - broadcast_start
+        report.rounds.append(AlternationRound(depth_change, translation))
+        logger.debug("alternation round %d: max |ds| = %.3g, max ||dt|| = %.3g m", r + 1,
+                     depth_change, translation)
+        if (depth_change < settings.depth_convergence_tol
+                and translation < settings.translation_tol):
+            report.converged, report.reason = True, "converged"
+            break
+    report.seconds = time.perf_counter() - start
+    logger.info("alternation: %d cleanup passes, %d rounds (%s), pose %.2fs, depth %.2fs",
+                len(report.cleanup_translations), len(report.rounds), report.reason,
+                report.pose_seconds, report.depth_seconds)
+    return report

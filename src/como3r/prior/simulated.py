@@ -1,0 +1,630 @@
+"""The simulated prior: a seeded sensor simulator with MASt3R's outputs (DESIGN.md,
+"Simulated prior").
+
+For scenes with metric depth it produces :class:`~como3r.prior.base.PairPrediction` s of
+exactly MASt3R's types, shapes and value ranges from the true geometry, corrupted by a
+documented error model that imitates a learned prior. It is a sensor simulator, not an
+oracle: the ground-truth pose of a view is used only by :meth:`SimulatedPrior.encode` to
+build world-coordinate appearance keys when a view has no surface map; no encoding stores it
+and no prediction is made from it. The relative placement of view j in camera i is what a
+learned matcher would believe: a robust similarity fit (RANSAC + :func:`umeyama_sim3`)
+between the depth points of both views whose appearance keys coincide
+(:mod:`como3r.prior.simulated_keys`). Truly overlapping views with unique textures get the
+true relative pose, aliased views the wrong one, views without common keys a random one with
+low confidence.
+
+Error model (:class:`~como3r.config.SimulatedPriorConfig`; every draw is seeded by
+``(config.seed, agent and index of view i, agent and index of view j)``, so a decode is
+deterministic and (i, j), (j, i) are independent):
+
+* per pair, both pointmaps scaled by ``exp(scale_sigma * n)`` (log-normal scale error);
+* per pointmap, ranges multiplied by ``exp(A g(u, v))``, ``g`` a unit-RMS random Fourier field
+  of wavelength ``depth_distortion_wavelength`` times the image's long side (``A`` =
+  ``depth_distortion_amplitude`` is the RMS relative distortion), and by
+  ``exp(range_noise * n)`` per pixel;
+* the fitted relative pose rotated by ``Exp(omega)`` with ``omega ~ N(0, sigma^2 / 3 I)``
+  (``sigma`` = ``rotation_noise_deg``, the RMS rotation error) and translated by
+  ``delta ~ N(0, (translation_noise |t|)^2 / 3 I)`` (RMS error = ``translation_noise`` of the
+  baseline);
+* sky pixels (no depth) are 50-100 m along their ray with confidence about 1;
+* ``C = 1 + exp(l)``, ``l`` falling with range, at depth discontinuities and where a pixel of
+  view j has no counterpart (no equal key) in view i; ``Q = exp(l')`` with the same cues;
+* ``D`` = unit random features of the appearance key plus noise of RMS norm
+  ``descriptor_noise``.
+
+Retrieval features are per 16x16 patch, from an independent random-feature map of the same
+keys. :meth:`SimulatedPrior.codebook` trains their ASMK codebook once by k-means on features
+of a fixed synthetic sample and caches it as ``.npy`` under ``$XDG_CACHE_HOME/como3r/``
+(default ``~/.cache/como3r/``), named by a hash of every parameter it depends on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from como3r.config import SimulatedPriorConfig
+from como3r.errors import ConfigError, GeometryError, PriorError
+from como3r.geometry.camera import rays_from_intrinsics, unproject_depth
+from como3r.geometry.lie import matrix_to_quat, quat_to_matrix, sim3_act, so3_exp
+from como3r.geometry.umeyama import umeyama_sim3
+from como3r.prior.base import Encoding, PairPrediction, Prior, View
+from como3r.prior.simulated_keys import (
+    KeyMatches,
+    RandomFeatureMap,
+    generator,
+    key_footprint,
+    key_jacobians,
+    keys_from_surface,
+    keys_from_world,
+    match_key_cells,
+    stable_seed,
+)
+from como3r.prior.simulated_retrieval import (
+    cached_array,
+    default_cache_dir,
+    patch_features,
+    select_patches,
+    synthetic_patch_features,
+)
+
+logger = logging.getLogger(__name__)
+
+CODEBOOK_CACHE_VERSION = 1
+"""Bump when the codebook sample or the retrieval feature map changes."""
+
+
+@dataclass(frozen=True)
+class SimulatedConstants:
+    """Fixed constants of the sensor model (reported by :meth:`SimulatedPrior.describe`).
+
+    Logits are natural logs: ``C = 1 + exp(conf_*)``, ``Q = exp(q_*)``; ranges in metres.
+    """
+
+    sky_range: tuple[float, float] = (50.0, 100.0)
+    conf_base: float = 3.0
+    conf_range_ref: float = 5.0
+    conf_range_slope: float = 1.0
+    conf_edge_drop: float = 2.0
+    conf_unmatched_drop: float = 2.5
+    conf_sky: float = -4.0
+    conf_no_overlap: float = -3.0
+    conf_noise: float = 0.1
+    q_base: float = 2.5
+    q_range_slope: float = 0.5
+    q_edge_drop: float = 1.0
+    q_unmatched_drop: float = 2.5
+    q_sky: float = -1.5
+    q_noise: float = 0.1
+    edge_log_jump: float = 0.1
+    distortion_modes: int = 8
+    descriptor_wavelengths: tuple[float, float] = (0.05, 10.0)
+    descriptor_id_weight: float = 1.0
+    footprint_blur: float = 0.5
+    footprint_max_ratio: float = 20.0
+    cell_per_footprint: float = 2.0
+    ransac_hypotheses: int = 128
+    ransac_max_correspondences: int = 2048
+    ransac_scored_correspondences: int = 512
+    ransac_inlier_cells: float = 3.0
+    refine_inlier_cells: tuple[float, ...] = (1.0, 0.1, 0.01, 0.01)
+    newton_steps: int = 1
+    min_overlap_fraction: float = 0.005
+    min_inliers: int = 32
+    random_pose_max_angle_deg: float = 45.0
+    random_pose_distance: tuple[float, float] = (0.2, 1.0)
+    retrieval_dim: int = 128
+    retrieval_wavelengths: tuple[float, float] = (0.5, 20.0)
+    retrieval_noise: float = 0.05
+    retrieval_patch: int = 16
+    retrieval_stride: int = 4
+    retrieval_max_features: int = 300
+    retrieval_min_valid: float = 0.5
+    codebook_size: int = 1024
+    codebook_samples_per_word: int = 24
+    codebook_world_fraction: float = 0.25
+
+
+@dataclass(frozen=True)
+class SimulatedEncoding(Encoding):
+    """Per-view state of the simulated prior (about 90 bytes per pixel). Holds no pose.
+
+    Attributes:
+        rays: ``(H, W, 3)`` unit rays of the pixels, camera frame.
+        ranges: ``(H, W)`` true distance to the camera centre, 0 where ``~valid``.
+        valid: ``(H, W)`` bool, pixels with depth (the others are sky).
+        edges: ``(H, W)`` bool, valid pixels next to a depth discontinuity or the sky.
+        key_ids: ``(H, W)`` int64 appearance-key ids, -1 where none.
+        key_coords: ``(H, W, 3)`` float32 key coordinates (metres).
+        footprint: ``(H, W)`` key-space pixel size (metres).
+        median_footprint: median of ``footprint`` over keyed pixels (metres).
+        descriptors: ``(H, W, d)`` float16 noise-free unit descriptors.
+    """
+
+    rays: Tensor
+    ranges: Tensor
+    valid: Tensor
+    edges: Tensor
+    key_ids: Tensor
+    key_coords: Tensor
+    footprint: Tensor
+    median_footprint: float
+    descriptors: Tensor
+
+
+def _check_config(config: SimulatedPriorConfig) -> None:
+    """Raise ConfigError naming the first out-of-range simulated_prior key."""
+    non_negative = ("scale_sigma", "depth_distortion_amplitude", "range_noise",
+                    "rotation_noise_deg", "translation_noise", "descriptor_noise")
+    for name in non_negative:
+        if getattr(config, name) < 0:
+            raise ConfigError(f"simulated_prior.{name} must be >= 0, got {getattr(config, name)}")
+    if config.depth_distortion_wavelength <= 0:
+        raise ConfigError("simulated_prior.depth_distortion_wavelength must be > 0, "
+                          f"got {config.depth_distortion_wavelength}")
+    if config.descriptor_dim < 2:
+        raise ConfigError(f"simulated_prior.descriptor_dim must be >= 2, "
+                          f"got {config.descriptor_dim}")
+
+
+def _normalize(x: Tensor) -> Tensor:
+    """Unit vectors along the last dimension."""
+    return F.normalize(x, dim=-1)
+
+
+def _depth_edges(depth: Tensor, valid: Tensor, log_jump: float) -> Tensor:
+    """``(H, W)`` bool: pixels within one pixel of a depth discontinuity or the sky border."""
+    log_depth = torch.log(depth.clamp_min(1e-6))
+    edge = torch.zeros_like(valid)
+    for dim in (0, 1):
+        n = depth.shape[dim] - 1
+        jump = (log_depth.narrow(dim, 1, n) - log_depth.narrow(dim, 0, n)).abs() > log_jump
+        jump |= valid.narrow(dim, 1, n) != valid.narrow(dim, 0, n)
+        edge.narrow(dim, 1, n).logical_or_(jump)
+        edge.narrow(dim, 0, n).logical_or_(jump)
+    dilated = F.max_pool2d(edge[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
+    return dilated & valid
+
+
+def _minimal_similarities(src: Tensor, dst: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Batched closed-form similarity of minimal samples (RANSAC hypotheses).
+
+    Degenerate samples give arbitrary transforms, which simply collect few inliers.
+
+    Args:
+        src, dst: ``(B, k, 3)`` float64 point samples.
+
+    Returns:
+        ``R (B, 3, 3)``, ``t (B, 3)``, ``s (B,)`` with ``dst ~= s R src + t``.
+    """
+    mu_src, mu_dst = src.mean(1, keepdim=True), dst.mean(1, keepdim=True)
+    x, y = src - mu_src, dst - mu_dst
+    U, singular, Vh = torch.linalg.svd(y.transpose(1, 2) @ x)
+    d = torch.ones_like(singular)
+    d[:, 2] = torch.linalg.det(U @ Vh).sign()
+    R = U @ torch.diag_embed(d) @ Vh
+    s = (singular * d).sum(-1) / x.square().sum((1, 2)).clamp_min(1e-12)
+    t = mu_dst[:, 0] - s[:, None] * (R @ mu_src[:, 0, :, None])[..., 0]
+    return R, t, s
+
+
+class SimulatedPrior(Prior):
+    """Sensor simulator behind the :class:`~como3r.prior.base.Prior` interface.
+
+    Args:
+        config: error model (``simulated_prior`` section of the configuration).
+        constants: fixed constants of the sensor model; the defaults are the documented ones.
+    """
+
+    def __init__(self, config: SimulatedPriorConfig | None = None,
+                 constants: SimulatedConstants | None = None) -> None:
+        self.config = config or SimulatedPriorConfig()
+        self.constants = constants or SimulatedConstants()
+        _check_config(self.config)
+        self.descriptor_dim = self.config.descriptor_dim
+        c = self.constants
+        self._descriptor_map = RandomFeatureMap(
+            self.config.descriptor_dim, self.config.seed, *c.descriptor_wavelengths,
+            id_weight=c.descriptor_id_weight, blur=c.footprint_blur, name="descriptor",
+        )
+        self._retrieval_map = RandomFeatureMap(
+            c.retrieval_dim, self.config.seed, *c.retrieval_wavelengths,
+            id_weight=1.0, blur=c.footprint_blur, name="retrieval",
+        )
+
+    # ------------------------------------------------------------------ encode
+
+    def encode(self, view: View) -> SimulatedEncoding:
+        """Keys, true camera-frame geometry and noise-free descriptors of ``view``.
+
+        Raises:
+            PriorError: the view lacks depth or intrinsics ``K``, or has neither a surface
+                map nor a ground-truth pose ``T_WC`` to make keys from, or its maps do not
+                match the image size.
+        """
+        depth, K = self._validated_inputs(view)
+        H, W = view.shape
+        valid = torch.isfinite(depth) & (depth > 0)
+        depth = torch.where(valid, depth, torch.zeros_like(depth))
+        points = unproject_depth(depth, K)
+        rays = rays_from_intrinsics(H, W, K)
+        ranges = points.norm(dim=-1)
+        if view.surface is not None:
+            key_ids, key_coords = keys_from_surface(view.surface, valid)
+        else:
+            key_ids, key_coords = keys_from_world(points, view.T_WC, valid)
+        focal = 0.5 * float(K[0, 0] + K[1, 1])
+        footprint = key_footprint(key_ids, key_coords, ranges / focal + 1e-9,
+                                  self.constants.footprint_max_ratio)
+        keyed = key_ids >= 0
+        median_footprint = float(footprint[keyed].median()) if bool(keyed.any()) else 0.0
+        return SimulatedEncoding(
+            agent=view.agent, index=view.index, shape=(H, W), rays=rays, ranges=ranges,
+            valid=valid, edges=_depth_edges(depth, valid, self.constants.edge_log_jump),
+            key_ids=key_ids, key_coords=key_coords, footprint=footprint,
+            median_footprint=median_footprint,
+            # float16 as MASt3R-SLAM's matching kernels use them; far below the noise
+            descriptors=self._clean_descriptors(key_ids, key_coords, footprint).half(),
+        )
+
+    @staticmethod
+    def _validated_inputs(view: View) -> tuple[Tensor, Tensor]:
+        """``(depth (H, W), K (3, 3))`` as float32; PriorError naming what is missing."""
+        name = f"simulated prior: view (agent {view.agent}, frame {view.index})"
+        missing = [what for what, value in (("a depth map (depth/)", view.depth),
+                                            ("intrinsics K (calib.txt)", view.K))
+                   if value is None]
+        if view.surface is None and view.T_WC is None:
+            missing.append("a surface map (surface/) or a ground-truth pose (groundtruth.txt)")
+        if missing:
+            raise PriorError(f"{name} has no {' and no '.join(missing)}; the simulated prior "
+                             "needs them")
+        H, W = view.shape
+        if tuple(view.depth.shape) != (H, W):
+            raise PriorError(f"{name}: depth map of shape {tuple(view.depth.shape)} does not "
+                             f"match the {W}x{H} image")
+        if view.surface is not None and tuple(view.surface.shape) != (H, W, 3):
+            raise PriorError(f"{name}: surface map of shape {tuple(view.surface.shape)}, "
+                             f"expected ({H}, {W}, 3)")
+        if tuple(view.K.shape) != (3, 3):
+            raise PriorError(f"{name}: K of shape {tuple(view.K.shape)}, expected (3, 3)")
+        return view.depth.to(torch.float32), view.K.to(torch.float32)
+
+    def _base_logits(self, enc: SimulatedEncoding) -> tuple[Tensor, Tensor]:
+        """Pair-independent ``log(C - 1)`` and ``log Q``: falling with range and at edges."""
+        c = self.constants
+        ranges, valid, edges = enc.ranges, enc.valid, enc.edges
+        distance = torch.log1p(ranges / c.conf_range_ref)
+        conf = c.conf_base - c.conf_range_slope * distance - c.conf_edge_drop * edges.float()
+        desc_conf = c.q_base - c.q_range_slope * distance - c.q_edge_drop * edges.float()
+        conf = torch.where(valid, conf, torch.full_like(conf, c.conf_sky))
+        desc_conf = torch.where(valid, desc_conf, torch.full_like(desc_conf, c.q_sky))
+        return conf, desc_conf
+
+    def _clean_descriptors(self, key_ids: Tensor, key_coords: Tensor,
+                           footprint: Tensor) -> Tensor:
+        """``(H, W, d)`` unit descriptors of the keys; keyless pixels share the sky vector."""
+        keyed = key_ids >= 0
+        out = self._descriptor_map.embedding(-1).to(key_coords.device).expand(
+            *key_ids.shape, -1).clone()
+        if bool(keyed.any()):
+            out[keyed] = _normalize(self._descriptor_map(
+                key_ids[keyed], key_coords[keyed], footprint[keyed]))
+        return out
+
+    # ------------------------------------------------------------------ decode
+
+    def decode(self, enc_i: Encoding, enc_j: Encoding) -> PairPrediction:
+        """Predict the ordered pair (i, j), both pointmaps in camera i (module docstring).
+
+        Returns:
+            PairPrediction with ``X_ii (H_i, W_i, 3)``, ``X_ji (H_j, W_j, 3)``, ``C > 1``,
+            unit ``D`` of dimension ``config.descriptor_dim`` and ``Q > 0``, float32.
+        """
+        enc_i, enc_j = self._checked(enc_i), self._checked(enc_j)
+        gen = generator(self.config.seed, "pair", enc_i.agent, enc_i.index,
+                        enc_j.agent, enc_j.index)
+        scale = math.exp(self.config.scale_sigma * float(torch.randn((), generator=gen)))
+        matches = self._match_keys(enc_i, enc_j, gen)
+        fitted = self._robust_fit(enc_i, enc_j, matches, gen)
+        overlap = fitted is not None
+        R, t, s = fitted if overlap else self._random_pose(enc_i, gen)
+        R, t = self._perturb_pose(R, t, gen)
+        X_ii = scale * self._observe(enc_i, gen)
+        X_j = self._observe(enc_j, gen)
+        X_ji = scale * (s * X_j @ R.T + t)
+        C_ii, C_ji, Q_ii, Q_ji = self._confidences(enc_i, enc_j, matches, overlap, gen)
+        return PairPrediction(
+            X_ii=X_ii, X_ji=X_ji, C_ii=C_ii, C_ji=C_ji,
+            D_ii=self._noisy_descriptors(enc_i, gen), D_ji=self._noisy_descriptors(enc_j, gen),
+            Q_ii=Q_ii, Q_ji=Q_ji,
+        )
+
+    def _confidences(self, enc_i: SimulatedEncoding, enc_j: SimulatedEncoding,
+                     matches: KeyMatches, overlap: bool,
+                     gen: torch.Generator) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``C_ii, C_ji, Q_ii, Q_ji``: the range and edge cues of each view, lowered where a
+        pixel's key has no counterpart in the other view (everywhere without overlap) and,
+        without overlap, ``C_ji`` about 1 everywhere."""
+        c = self.constants
+        unmatched_i = ~matches.counterpart_i.view(enc_i.shape) & enc_i.valid
+        unmatched_j = ~matches.counterpart_j.view(enc_j.shape) & enc_j.valid
+        conf_i, desc_conf_i = self._base_logits(enc_i)
+        conf_j, desc_conf_j = self._base_logits(enc_j)
+        if not overlap:
+            unmatched_i, unmatched_j = enc_i.valid, enc_j.valid
+            conf_j = torch.full_like(conf_j, c.conf_no_overlap)
+        return (
+            self._conf(conf_i, gen),
+            self._conf(conf_j - c.conf_unmatched_drop * unmatched_j.float(), gen),
+            self._desc_conf(desc_conf_i - c.q_unmatched_drop * unmatched_i.float(), gen),
+            self._desc_conf(desc_conf_j - c.q_unmatched_drop * unmatched_j.float(), gen),
+        )
+
+    @staticmethod
+    def _checked(enc: Encoding) -> SimulatedEncoding:
+        if not isinstance(enc, SimulatedEncoding):
+            raise PriorError(f"simulated prior: cannot decode a {type(enc).__name__} "
+                             "(encode the view with the simulated prior)")
+        return enc
+
+    def _match_keys(self, enc_i: SimulatedEncoding, enc_j: SimulatedEncoding,
+                    gen: torch.Generator) -> KeyMatches:
+        """Key-cell matches of the pair; the cell is ``cell_per_footprint`` times the coarser
+        of the two median footprints, so both views sample almost every cell they share."""
+        cell = self.constants.cell_per_footprint * max(enc_i.median_footprint,
+                                                       enc_j.median_footprint, 1e-6)
+        return match_key_cells(enc_i.key_ids, enc_i.key_coords, enc_j.key_ids,
+                               enc_j.key_coords, cell, gen)
+
+    def _robust_fit(self, enc_i: SimulatedEncoding, enc_j: SimulatedEncoding,
+                    matches: KeyMatches, gen: torch.Generator
+                    ) -> tuple[Tensor, Tensor, Tensor] | None:
+        """RANSAC similarity ``x_i = s R x_j + t`` from the key matches, None if unsupported.
+
+        Hypotheses are minimal 3-point similarities scored by their inliers (distance below
+        ``ransac_inlier_cells`` key cells). The best is refined by :func:`umeyama_sim3` on its
+        inliers under shrinking thresholds (``refine_inlier_cells``): matches on planar
+        surfaces are exact (:meth:`_point_at_key`), while matches across curved or
+        self-similar surfaces of an object are off by up to a cell and must not bias the fit.
+        The fit is accepted when the final pose explains enough matches within
+        ``ransac_inlier_cells`` cells.
+        """
+        c = self.constants
+        needed = max(c.min_inliers, c.min_overlap_fraction * enc_j.valid.numel())
+        total = matches.pixels_j.numel()
+        if total < needed:
+            return None
+        keep = torch.randperm(total, generator=gen)[: c.ransac_max_correspondences]
+        keep = keep.to(matches.pixels_j.device)
+        pixels_i, pixels_j = matches.pixels_i[keep], matches.pixels_j[keep]
+        src = self._true_points(enc_j).reshape(-1, 3)[pixels_j].double()
+        dst = self._point_at_key(enc_i, pixels_i, enc_j.key_coords.reshape(-1, 3)[pixels_j])
+        # Hypotheses are scored on a subset; the refinement below uses every correspondence.
+        scored = slice(0, c.ransac_scored_correspondences)
+        samples = torch.randint(0, src.shape[0], (c.ransac_hypotheses, 3), generator=gen)
+        R, t, s = (x.to(torch.float32) for x in _minimal_similarities(src[samples], dst[samples]))
+        # s R x + t of every scored point under every hypothesis, as one (n, 3) @ (3, 3B) GEMM
+        rotated = (src[scored].float() @ R.reshape(-1, 3).T).view(-1, c.ransac_hypotheses, 3)
+        residual_sq = (s[None, :, None] * rotated + t[None] - dst[scored, None].float()).square()
+        threshold = c.ransac_inlier_cells * matches.cell
+        support = (residual_sq.sum(-1) < threshold**2).sum(0)
+        best = int(support.argmax())
+        T = torch.cat([t[best], matrix_to_quat(R[best]), s[best, None]]).double()
+        inliers = (sim3_act(T, src) - dst).norm(dim=-1) < threshold
+        for fraction in c.refine_inlier_cells:
+            refined = self._refit(src, dst, inliers, fraction * matches.cell)
+            if refined is None:
+                break
+            T, inliers = refined
+        supported = (sim3_act(T, src) - dst).norm(dim=-1) < threshold
+        if float(supported.float().mean()) * total < needed:
+            return None
+        T = T.to(torch.float32)
+        return quat_to_matrix(T[3:7]), T[:3], T[7]
+
+    def _point_at_key(self, enc: SimulatedEncoding, pixels: Tensor, keys: Tensor) -> Tensor:
+        """``(M, 3)`` float64 points of ``enc`` at exactly ``keys`` ``(M, 3)``, starting from
+        pixels of the same key cell.
+
+        A learned matcher localises correspondences to sub-pixel accuracy; a pixel of the
+        same cell is off by up to a cell, with a bias that depends on the perspective
+        sampling of the two views. Newton steps in the image (``d (u, v) / d key``) move to
+        the pixel of the nearest key, whose point is then corrected to first order
+        (``d point / d key``, :func:`~como3r.prior.simulated_keys.key_jacobians`); on
+        planar surfaces the result is exact.
+        """
+        H, W = enc.shape
+        ids, coords = enc.key_ids.reshape(-1), enc.key_coords.reshape(-1, 3)
+        points = self._true_points(enc)
+        key_to_pixel, jacobian = key_jacobians(enc.key_ids, enc.key_coords, points, pixels)
+        for _ in range(self.constants.newton_steps):
+            offset = (keys - coords[pixels])[:, :, None]
+            step = torch.round((key_to_pixel @ offset)[..., 0]).long()
+            u = (pixels % W + step[:, 0]).clamp(0, W - 1)
+            v = (pixels // W + step[:, 1]).clamp(0, H - 1)
+            candidate = v * W + u
+            candidate_to_pixel, candidate_jacobian = key_jacobians(
+                enc.key_ids, enc.key_coords, points, candidate)
+            better = (ids[candidate] == ids[pixels]) & (
+                candidate_to_pixel.abs().sum((1, 2)) > 0)
+            pixels = torch.where(better, candidate, pixels)
+            key_to_pixel = torch.where(better[:, None, None], candidate_to_pixel, key_to_pixel)
+            jacobian = torch.where(better[:, None, None], candidate_jacobian, jacobian)
+        offset = (keys - coords[pixels]).double()
+        return (points.reshape(-1, 3)[pixels].double()
+                + (jacobian.double() @ offset[:, :, None])[..., 0])
+
+    def _refit(self, src: Tensor, dst: Tensor, inliers: Tensor,
+               threshold: float) -> tuple[Tensor, Tensor] | None:
+        """Umeyama fit on ``inliers`` and its inliers within ``threshold``; None if the fit
+        is degenerate or keeps too few inliers (then the previous fit stands)."""
+        if int(inliers.sum()) < self.constants.min_inliers:
+            return None
+        try:
+            T = umeyama_sim3(src[inliers], dst[inliers])
+        except GeometryError:
+            return None
+        refined = (sim3_act(T, src) - dst).norm(dim=-1) < threshold
+        if int(refined.sum()) < self.constants.min_inliers:
+            return None
+        return T, refined
+
+    @staticmethod
+    def _true_points(enc: SimulatedEncoding) -> Tensor:
+        """``(H, W, 3)`` true camera-frame points (0 where invalid)."""
+        return enc.rays * enc.ranges[..., None]
+
+    def _random_pose(self, enc_i: SimulatedEncoding,
+                     gen: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+        """A plausible wrong pose for views without common keys: near camera i, turned."""
+        c = self.constants
+        axis = _normalize(torch.randn(3, generator=gen))
+        angle = math.radians(c.random_pose_max_angle_deg) * float(torch.rand((), generator=gen))
+        direction = _normalize(torch.randn(3, generator=gen))
+        valid_ranges = enc_i.ranges[enc_i.valid]
+        typical = float(valid_ranges.median()) if valid_ranges.numel() else 1.0
+        low, high = c.random_pose_distance
+        distance = typical * (low + (high - low) * float(torch.rand((), generator=gen)))
+        device = enc_i.rays.device
+        R = quat_to_matrix(so3_exp(axis * angle)).to(device)
+        return R, (direction * distance).to(device), torch.ones((), device=device)
+
+    def _perturb_pose(self, R: Tensor, t: Tensor, gen: torch.Generator) -> tuple[Tensor, Tensor]:
+        """Rotation ``Exp(omega) R`` and translation ``t + delta`` (RMS errors as configured)."""
+        sigma_rotation = math.radians(self.config.rotation_noise_deg) / math.sqrt(3.0)
+        omega = sigma_rotation * torch.randn(3, generator=gen, dtype=torch.float64)
+        sigma_translation = self.config.translation_noise * float(t.norm()) / math.sqrt(3.0)
+        delta = sigma_translation * torch.randn(3, generator=gen, dtype=torch.float64)
+        noise = quat_to_matrix(so3_exp(omega)).to(R)
+        return noise @ R, t + delta.to(t)
+
+    def _observe(self, enc: SimulatedEncoding, gen: torch.Generator) -> Tensor:
+        """``(H, W, 3)`` one noisy prediction of the view's own camera-frame pointmap."""
+        H, W = enc.shape
+        device = enc.rays.device
+        field = self._distortion_field(H, W, gen).to(device)
+        noise = torch.randn(H, W, generator=gen).to(device)
+        log_factor = (self.config.depth_distortion_amplitude * field
+                      + self.config.range_noise * noise)
+        low, high = self.constants.sky_range
+        sky = low + (high - low) * torch.rand(H, W, generator=gen).to(device)
+        ranges = torch.where(enc.valid, enc.ranges * torch.exp(log_factor), sky)
+        return enc.rays * ranges[..., None]
+
+    def _distortion_field(self, H: int, W: int, gen: torch.Generator) -> Tensor:
+        """``(H, W)`` unit-RMS random Fourier field of the configured wavelength.
+
+        ``sqrt(2 / M) sum_m cos(a_m u + b_m v + phi_m)`` with ``(a_m, b_m)`` of fixed length
+        in random directions, expanded as ``cos(a u) cos(b v + phi) - sin(a u) sin(b v + phi)``
+        so the field is two ``(H, M) @ (M, W)`` products.
+        """
+        modes = self.constants.distortion_modes
+        wavenumber = 2.0 * math.pi / (self.config.depth_distortion_wavelength * max(H, W))
+        angle = 2.0 * math.pi * torch.rand(modes, generator=gen)
+        phase = 2.0 * math.pi * torch.rand(modes, generator=gen)
+        along_u = wavenumber * torch.arange(W, dtype=torch.float32)[:, None] * torch.cos(angle)
+        along_v = (wavenumber * torch.arange(H, dtype=torch.float32)[:, None] * torch.sin(angle)
+                   + phase)
+        field = torch.cos(along_v) @ torch.cos(along_u).T - torch.sin(along_v) @ torch.sin(
+            along_u).T
+        return math.sqrt(2.0 / modes) * field
+
+    def _conf(self, logit: Tensor, gen: torch.Generator) -> Tensor:
+        """``C = 1 + exp(logit + noise)``."""
+        noise = torch.randn(logit.shape, generator=gen).to(logit.device)
+        return 1.0 + torch.exp(logit + self.constants.conf_noise * noise)
+
+    def _desc_conf(self, logit: Tensor, gen: torch.Generator) -> Tensor:
+        """``Q = exp(logit + noise)``."""
+        noise = torch.randn(logit.shape, generator=gen).to(logit.device)
+        return torch.exp(logit + self.constants.q_noise * noise)
+
+    def _noisy_descriptors(self, enc: SimulatedEncoding, gen: torch.Generator) -> Tensor:
+        """``(H, W, d)`` unit descriptors plus noise of RMS norm ``descriptor_noise``."""
+        d = enc.descriptors.shape[-1]
+        noisy = torch.randn(enc.descriptors.shape, generator=gen).to(enc.descriptors.device)
+        # in place: these are the largest tensors of a decode
+        noisy.mul_(self.config.descriptor_noise / math.sqrt(d)).add_(enc.descriptors)
+        return noisy.div_(noisy.norm(dim=-1, keepdim=True).clamp_min_(1e-12))
+
+    # ------------------------------------------------------------------ retrieval
+
+    def retrieval_features(self, enc: Encoding) -> tuple[Tensor, Tensor]:
+        """Per-16x16-patch retrieval descriptors of a view.
+
+        Each patch averages the retrieval random features of its keys plus per-view noise
+        (:func:`~como3r.prior.simulated_retrieval.patch_features`); its attention is the
+        fraction of keyed (non-sky) pixels. As MASt3R's head keeps its top tokens by
+        attention, the ``retrieval_max_features`` patches of highest attention among those
+        with at least ``retrieval_min_valid`` are kept.
+
+        Returns:
+            ``(N, retrieval_dim)`` float32 unit descriptors and ``(N,)`` attention, highest
+            first.
+        """
+        enc = self._checked(enc)
+        c = self.constants
+        if min(enc.shape) < c.retrieval_patch:
+            raise PriorError(f"simulated prior: a {enc.shape[1]}x{enc.shape[0]} view has no "
+                             f"{c.retrieval_patch}x{c.retrieval_patch} patch for retrieval")
+        gen = generator(self.config.seed, "retrieval", enc.agent, enc.index)
+        descriptors, attention = patch_features(
+            self._retrieval_map, enc.key_ids, enc.key_coords, enc.footprint,
+            c.retrieval_patch, c.retrieval_stride, c.retrieval_noise, gen)
+        return select_patches(descriptors, attention, c.retrieval_max_features,
+                              c.retrieval_min_valid)
+
+    def codebook(self, size: int | None = None, cache_dir: str | Path | None = None) -> np.ndarray:
+        """ASMK codebook of the retrieval features, trained once and cached on disk.
+
+        k-means (:func:`como3r.prior.retrieval.train_codebook`) on the retrieval features of
+        ``codebook_samples_per_word * size`` random synthetic patches
+        (:func:`~como3r.prior.simulated_retrieval.synthetic_patch_features`), deterministic
+        for the seed. Cached as ``simulated_codebook_<hash>.npy`` in ``cache_dir`` (default
+        ``$XDG_CACHE_HOME/como3r`` or ``~/.cache/como3r``), the hash covering the size, the
+        seed and every constant; written atomically.
+
+        Args:
+            size: number of centroids; default ``constants.codebook_size``.
+            cache_dir: cache folder.
+
+        Returns:
+            ``(size, retrieval_dim)`` float32 centroids.
+        """
+        from como3r.prior.retrieval import train_codebook  # deferred: imports faiss
+
+        c = self.constants
+        size = size or c.codebook_size
+        directory = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+        digest = stable_seed(CODEBOOK_CACHE_VERSION, size, self.config.seed,
+                             repr(dataclasses.astuple(c)))
+
+        def train() -> np.ndarray:
+            logger.info("training the simulated prior's %d-word codebook (once)", size)
+            sample = synthetic_patch_features(
+                self._retrieval_map, size * c.codebook_samples_per_word, c.retrieval_patch,
+                c.retrieval_stride, c.retrieval_noise, c.codebook_world_fraction,
+                generator(self.config.seed, "codebook sample"))
+            return train_codebook(sample.numpy(), size, self.config.seed)
+
+        return cached_array(directory / f"simulated_codebook_{digest:016x}.npy",
+                            (size, c.retrieval_dim), train)
+
+    # ------------------------------------------------------------------ report
+
+    def describe(self) -> dict[str, object]:
+        """Every parameter of the error model (reported with every result)."""
+        return {
+            "name": type(self).__name__,
+            **dataclasses.asdict(self.config),
+            "constants": dataclasses.asdict(self.constants),
+        }
