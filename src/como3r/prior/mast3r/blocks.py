@@ -1,0 +1,130 @@
+"""Transformer blocks of the MASt3R encoder and decoders (MAST3R_SPEC.md §3.4, §4.2).
+
+Attention uses ``torch.nn.functional.scaled_dot_product_attention``, which computes the same
+``softmax(q k^T / sqrt(D)) v`` as the explicit form (spec §9.3 item 7) with fused kernels.
+Module names equal the official ones so that the checkpoint's keys load directly.
+"""
+
+from __future__ import annotations
+
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from como3r.prior.mast3r.rope import RoPE2D
+
+#: every LayerNorm of the network uses this epsilon (spec §1.3)
+LAYER_NORM_EPS = 1e-6
+
+Grid = tuple[int, int]
+
+
+def layer_norm(dim: int) -> nn.LayerNorm:
+    """Affine LayerNorm with the network's epsilon."""
+    return nn.LayerNorm(dim, eps=LAYER_NORM_EPS)
+
+
+class Mlp(nn.Module):
+    """``fc1 -> exact (erf) GELU -> fc2``; keys ``fc1.*``, ``fc2.*``."""
+
+    def __init__(self, in_dim: int, hidden_dim: int, out_dim: int) -> None:
+        super().__init__()
+        self.fc1 = nn.Linear(in_dim, hidden_dim)
+        self.act = nn.GELU()
+        self.fc2 = nn.Linear(hidden_dim, out_dim)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """``(..., in_dim) -> (..., out_dim)``."""
+        return self.fc2(self.act(self.fc1(x)))
+
+
+def _split_heads(x: Tensor, num_heads: int) -> Tensor:
+    """``(B, N, C) -> (B, heads, N, C / heads)``; head ``h`` owns dims ``[hD, hD + D)``."""
+    return x.unflatten(-1, (num_heads, -1)).transpose(1, 2)
+
+
+def _merge_heads(x: Tensor) -> Tensor:
+    """``(B, heads, N, D) -> (B, N, heads * D)``, head-major."""
+    return x.transpose(1, 2).flatten(-2)
+
+
+class SelfAttention(nn.Module):
+    """Multi-head self-attention with 2-D RoPE on q and k; keys ``qkv.*``, ``proj.*``."""
+
+    def __init__(self, dim: int, num_heads: int, rope: RoPE2D) -> None:
+        super().__init__()
+        self.num_heads = num_heads
+        self.qkv = nn.Linear(dim, 3 * dim)
+        self.proj = nn.Linear(dim, dim)
+        self.rope = rope
+
+    def forward(self, x: Tensor, grid: Grid) -> Tensor:
+        """``x`` ``(B, N, C)`` tokens on the ``(h, w)`` grid -> ``(B, N, C)``."""
+        # qkv output rows are [q | k | v], each split head-major
+        q, k, v = (_split_heads(part, self.num_heads) for part in self.qkv(x).chunk(3, dim=-1))
+        q = self.rope.apply(q, grid)
+        k = self.rope.apply(k, grid)
+        return self.proj(_merge_heads(F.scaled_dot_product_attention(q, k, v)))
+
+
+class CrossAttention(nn.Module):
+    """Multi-head cross-attention, RoPE on q (own grid) and k (other grid).
+
+    Keys ``projq.*``, ``projk.*``, ``projv.*``, ``proj.*``.
+    """
+
+    def __init__(self, dim: int, num_heads: int, rope: RoPE2D) -> None:
+        super().__init__()
+        self.num_heads = num_heads
+        self.projq = nn.Linear(dim, dim)
+        self.projk = nn.Linear(dim, dim)
+        self.projv = nn.Linear(dim, dim)
+        self.proj = nn.Linear(dim, dim)
+        self.rope = rope
+
+    def forward(self, x: Tensor, y: Tensor, x_grid: Grid, y_grid: Grid) -> Tensor:
+        """Queries from ``x`` ``(B, N, C)``, keys and values from ``y`` ``(B, M, C)``.
+
+        Returns ``(B, N, C)``.
+        """
+        q = self.rope.apply(_split_heads(self.projq(x), self.num_heads), x_grid)
+        k = self.rope.apply(_split_heads(self.projk(y), self.num_heads), y_grid)
+        v = _split_heads(self.projv(y), self.num_heads)
+        return self.proj(_merge_heads(F.scaled_dot_product_attention(q, k, v)))
+
+
+class EncoderBlock(nn.Module):
+    """Pre-norm ViT block: ``x += attn(norm1(x)); x += mlp(norm2(x))`` (spec §3.4)."""
+
+    def __init__(self, dim: int, num_heads: int, mlp_ratio: float, rope: RoPE2D) -> None:
+        super().__init__()
+        self.norm1 = layer_norm(dim)
+        self.attn = SelfAttention(dim, num_heads, rope)
+        self.norm2 = layer_norm(dim)
+        self.mlp = Mlp(dim, int(dim * mlp_ratio), dim)
+
+    def forward(self, x: Tensor, grid: Grid) -> Tensor:
+        """``(B, N, C) -> (B, N, C)``."""
+        x = x + self.attn(self.norm1(x), grid)
+        return x + self.mlp(self.norm2(x))
+
+
+class DecoderBlock(nn.Module):
+    """Decoder block: self-attention, cross-attention to the other view, MLP (spec §4.2)."""
+
+    def __init__(
+        self, dim: int, num_heads: int, mlp_ratio: float, rope: RoPE2D, norm_other: bool
+    ) -> None:
+        super().__init__()
+        self.norm1 = layer_norm(dim)
+        self.attn = SelfAttention(dim, num_heads, rope)
+        self.cross_attn = CrossAttention(dim, num_heads, rope)
+        self.norm2 = layer_norm(dim)
+        self.norm3 = layer_norm(dim)
+        self.mlp = Mlp(dim, int(dim * mlp_ratio), dim)
+        self.norm_y = layer_norm(dim) if norm_other else nn.Identity()
+
+    def forward(self, x: Tensor, y: Tensor, x_grid: Grid, y_grid: Grid) -> Tensor:
+        """Update own tokens ``x`` ``(B, N, C)`` given the other view's ``y`` ``(B, M, C)``."""
+        x = x + self.attn(self.norm1(x), x_grid)
+        x = x + self.cross_attn(self.norm2(x), self.norm_y(y), x_grid, y_grid)
+        return x + self.mlp(self.norm3(x))
