@@ -253,9 +253,10 @@ class RandomFeatureMap:
     """Fixed random Fourier-feature map of appearance keys (module docstring).
 
     ``features = id_weight * E[id] + sqrt(2 / dim) * a(footprint) * cos(omega . k + phi)``
-    with ``E[id]`` a random unit vector per texture id, ``dim`` frequencies of log-uniform
-    wavelength in ``[wavelength_min, wavelength_max]``, in-plane for surface keys and in 3-D
-    for world keys, and ``a = exp(-|omega|^2 (blur * footprint)^2 / 2)``.
+    with ``E[id]`` a random unit vector per texture id (none for world keys, which show no
+    texture), ``dim`` frequencies of log-uniform wavelength in
+    ``[wavelength_min, wavelength_max]``, in-plane for surface keys and in 3-D for world
+    keys, and ``a = exp(-|omega|^2 (blur * footprint)^2 / 2)``.
 
     Args:
         dim: feature dimension.
@@ -331,4 +332,7 @@ class RandomFeatureMap:
         amplitude = math.sqrt(2.0 / self.dim) * torch.exp(
             -0.5 * self._magnitude_sq.to(device) * sigma_sq[:, None])
         waves = amplitude * torch.cos(phase + self._phase.to(device))
-        return waves + self.id_weight * self.embeddings(ids)
+        if bool(is_world.all()):
+            return waves  # world keys carry no texture: a shared embedding would only blur
+        embedding = self.embeddings(ids) * (~is_world)[:, None]
+        return waves + self.id_weight * embedding
