@@ -13,24 +13,14 @@ from scipy.spatial.transform import Rotation
 from como3r.data.preprocess import ImageTransform
 from como3r.data.synth import Intrinsics, Renderer, build_preset
 from como3r.prior.base import Encoding, PairPrediction, Prior, View
-from como3r.prior.mast3r import MASt3RNetwork, parse_model_string
 from como3r.prior.mast3r.prior import MASt3RPrior
 from como3r.prior.mast3r.retrieval import RetrievalHead
+from como3r.prior.mast3r.testing import tiny_network
 from como3r.prior.simulated import SimulatedPrior
 
 W, H = 64, 48
-TINY = (
-    "AsymmetricMASt3R(pos_embed='RoPE100', patch_embed_cls='ManyAR_PatchEmbed', "
-    "img_size=(512, 512), head_type='catmlp+dpt', output_mode='pts3d+desc24', "
-    "depth_mode=('exp', -inf, inf), conf_mode=('exp', 1, inf), enc_embed_dim=32, "
-    "enc_depth=2, enc_num_heads=2, dec_embed_dim=32, dec_depth=2, dec_num_heads=2, "
-    "two_confs=True, desc_conf_mode=('exp', 0, inf))"
-)
-
-
 def _tiny_mast3r() -> Prior:
-    torch.manual_seed(0)
-    prior = MASt3RPrior(MASt3RNetwork(parse_model_string(TINY)))
+    prior = MASt3RPrior(tiny_network(seed=0))
     prior.retrieval = RetrievalHead(in_dim=32, hdims=(16,)).eval()
     return prior
 
