@@ -89,18 +89,29 @@ def synth(
                                help="default | aliasing | no-meeting | forward"),
     width: int = typer.Option(320, "--width", min=16),
     height: int = typer.Option(240, "--height", min=16),
+    odometry: str = typer.Option("vio", "--odometry",
+                                 help="Simulated robot odometry written as odometry.txt "
+                                      "(decentralized mode): vio, lio or none."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
 ) -> None:
     """Synthesize a multi-agent outdoor scene with ground truth."""
     from como3r.data.synth import synthesize
+    from como3r.decentralized.odometry_sim import ODOMETRY_PRESETS, add_odometry
+    from como3r.errors import InputError
     from como3r.io.output import atomic_output_dir
 
+    if odometry != "none" and odometry not in ODOMETRY_PRESETS:
+        raise InputError(f"unknown --odometry {odometry!r}; choose none or one of "
+                         f"{', '.join(sorted(ODOMETRY_PRESETS))}")
     with atomic_output_dir(out, overwrite=overwrite) as staging, progress_bar() as bar:
         task = bar.add_task("rendering", total=agents * frames)
         synthesize(
             staging, agents=agents, seed=seed, overlap=overlap, frames=frames, preset=preset,
             width=width, height=height, progress=lambda: bar.advance(task),
         )
+        if odometry != "none":
+            for a in range(agents):
+                add_odometry(staging / f"agent_{a}", seed=seed * 1000 + a, params=odometry)
     console.print(f"wrote {agents} agent folder(s) to {out}")
 
 
@@ -145,18 +156,40 @@ def run(
     calib: bool = typer.Option(False, "--calib", help="Use each agent's calib.txt (C-Sec. A.5)."),
     no_loop_closure: bool = typer.Option(False, "--no-loop-closure", help="Ablation (C-Tab. 4)."),
     device: str = typer.Option("cpu", "--device", help="cpu | cuda"),
+    mode: str = typer.Option("centralized", "--mode", help="centralized | decentralized"),
+    single_process: bool = typer.Option(
+        False, "--single-process",
+        help="Run agents and coordinator in this process (deterministic; for debugging)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
 ) -> None:
-    """Run dense SLAM on one or more agents and write the output folder."""
+    """Run collaborative SLAM on one or more agents and write the output folder."""
+    from como3r.errors import InputError
     from como3r.runtime.pipeline import PriorSpec, run as run_pipeline
 
     config = _load_config(config_file, overrides, calib, no_loop_closure)
     spec = PriorSpec(prior, weights, retrieval_weights, codebook, device)
+    if mode == "decentralized":
+        from como3r.decentralized.runner import run_decentralized
+
+        summary = run_decentralized(agent, out, config, spec, overwrite=overwrite)
+        _print_summary(summary, out)
+        return
+    if mode != "centralized":
+        raise InputError(f"unknown --mode {mode!r}; choose centralized or decentralized")
+    if single_process:
+        runner = run_pipeline
+    else:
+        from como3r.runtime.processes import run_multiprocess as runner
     with progress_bar() as bar:
         task = bar.add_task("frames", total=None)
-        summary = run_pipeline(agent, out, config, spec, overwrite=overwrite,
-                               progress=lambda a, outcome, done, total: bar.update(
-                                   task, completed=done, total=total))
+        summary = runner(agent, out, config, spec, overwrite=overwrite,
+                         progress=lambda a, outcome, done, total: bar.update(
+                             task, completed=done, total=total))
+    _print_summary(summary, out)
+
+
+def _print_summary(summary, out: Path) -> None:
+    """The final tables of a run."""
     print_rows("agents", summary.agents)
     if summary.evaluation is not None:
         print_rows("ATE RMSE [m] (Sim(3)-aligned)", summary.evaluation.table_rows())

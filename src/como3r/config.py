@@ -21,6 +21,7 @@ from typing import Any, Literal, Mapping, TypeVar, get_args, get_origin
 
 import yaml
 
+from como3r.decentralized.config import DecentralizedConfig
 from como3r.errors import ConfigError
 
 
@@ -98,15 +99,24 @@ class RetrievalConfig:
 class VerificationConfig:
     """Inter-agent geometric verification, C-Eq. 12.
 
-    ``max_residual_ratio`` is not in the paper (como3r addition): an edge that passes C-Eq. 12
-    must also agree with the poses it would constrain, i.e. the median distance of its
-    matched points lifted into the shared world is at most this fraction of their median
-    range (about the relative rotation error in radians). It rejects edges a prior
-    hallucinates on repeated structure. ``inf`` restores the paper's single test.
+    The fields after ``tau_inter`` are not in the paper (como3r additions, see
+    :mod:`como3r.coordination.association`):
+
+    * ``min_covisible_ratio``: of the pixels of one view that the pair's own predicted
+      geometry places inside the other view, onto a pixel whose confidence is at least
+      ``covisible_min_confidence``, at least this share must be validly matched, in both
+      directions. A prior that hallucinates a pose from repeated façades predicts overlap
+      it cannot match. 0 restores the paper's single test.
+    * ``max_residual_ratio``: an edge between agents that already share a gauge must
+      agree with their poses: the median distance of its matched points lifted into the
+      shared world at most this fraction of their median range (about the relative
+      rotation error in radians). ``inf`` admits every such edge, as the paper does.
     """
 
     tau_inter: float = 0.1
-    max_residual_ratio: float = 0.2
+    min_covisible_ratio: float = 0.5
+    covisible_min_confidence: float = 1.5
+    max_residual_ratio: float = 0.25
 
 
 @dataclass(frozen=True)
@@ -115,12 +125,12 @@ class GaugeConfig:
 
     ``min_consistent_edges`` is not in the paper (como3r addition): two gauge components
     merge once this many verified edges between them agree on the aligning transform
-    (each within ``verification.max_residual_ratio`` under it). 1 is the paper's
-    synchronization on the first verified edge.
+    (each within ``verification.max_residual_ratio`` under it). The default 1 is the
+    paper's synchronization on the first verified edge.
     """
 
     min_correspondences: int = 64
-    min_consistent_edges: int = 2
+    min_consistent_edges: int = 1
 
 
 @dataclass(frozen=True)
@@ -198,6 +208,7 @@ class Config:
     depth: DepthRefinementConfig = field(default_factory=DepthRefinementConfig)
     visualization: VisualizationConfig = field(default_factory=VisualizationConfig)
     simulated_prior: SimulatedPriorConfig = field(default_factory=SimulatedPriorConfig)
+    decentralized: DecentralizedConfig = field(default_factory=DecentralizedConfig)
     calibrated: bool = False
     loop_closure: bool = True
     seed: int = 0

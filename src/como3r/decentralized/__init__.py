@@ -1,1 +1,18 @@
-"""como3r.decentralized"""
+"""The decentralized mode: FLOCC-SLAM (``papers/FLOCC-SLAM.txt``).
+
+Each robot brings a metric odometry and its images; robots in communication range find
+inter-robot loop closures with the prior and an elected robot solves a scale-aware
+multi-robot pose graph in GTSAM.
+
+* :mod:`.config` -- :class:`~.config.DecentralizedConfig`;
+* :mod:`.odometry_sim` -- VIO/LIO-like ``odometry.txt`` for synthetic robots
+  (:func:`~.odometry_sim.add_odometry`);
+* :mod:`.keyframes` -- keyframes by travelled distance;
+* :mod:`.place_recognition` -- global place descriptors and loop candidates (F-Sec. III-A);
+* :mod:`.registration` -- two-stage encode/decode registration (F-Sec. III-B);
+* :mod:`.confidence` -- the correspondence-ratio confidence (F-Eq. 1-2);
+* :mod:`.pose_graph` -- base, independent, smoothed and shared-scale graphs, LM and GNC
+  (F-Sec. III-C);
+* :mod:`.messages`, :mod:`.robot`, :mod:`.protocol` -- robots, rendezvous, election, routing;
+* :mod:`.runner` -- :func:`~.runner.run_decentralized`, the mode end to end.
+"""

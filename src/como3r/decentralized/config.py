@@ -1,0 +1,180 @@
+"""Configuration of the decentralized mode (FLOCC-SLAM, ``papers/FLOCC-SLAM.txt``).
+
+Typed frozen dataclasses like :mod:`como3r.config`, loadable with
+:func:`como3r.config.config_from_dict`. Values the paper states are cited ("F-Sec. IV":
+place threshold 0.1, ratio threshold 0.3; "F-Sec. III-C-c": cluster window of ten
+keyframes); the others are documented choices for metric VIO/LIO odometry and the
+simulated prior.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from como3r.errors import ConfigError
+
+Formulation = Literal["base", "independent", "smoothed", "shared"]
+Solver = Literal["lm", "gnc"]
+FORMULATIONS: tuple[str, ...] = ("base", "independent", "smoothed", "shared")
+SOLVERS: tuple[str, ...] = ("lm", "gnc")
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """Two-view registration of a keyframe pair (F-Sec. III-B).
+
+    Attributes:
+        match_stride: query pixels of view i on a grid of this stride (MASt3R's
+            subsampled reciprocal matching).
+        match_iterations: fixed-point iterations of the reciprocal nearest-neighbour search.
+        min_descriptor_confidence: matches need ``Q > this`` on both sides (CoMo3R's q_min).
+        ransac_hypotheses: minimal 3-point similarity hypotheses.
+        ransac_inlier_ratio: a correspondence is an inlier when its 3-D distance is below
+            this fraction of the point's range (the prior's scale is unknown).
+        min_inliers: fewer RANSAC inliers than this and the pair is not registered.
+        seed: seed of the RANSAC sampling (combined with the pair's ids).
+    """
+
+    match_stride: int = 4
+    match_iterations: int = 3
+    min_descriptor_confidence: float = 1.5
+    ransac_hypotheses: int = 256
+    ransac_inlier_ratio: float = 0.05
+    min_inliers: int = 12
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class PoseGraphConfig:
+    """Multi-robot pose graph (F-Sec. III-C) and its solvers.
+
+    Attributes:
+        formulation: ``base`` (loop scale from odometry, F-Eq. 6), ``independent`` (one
+            scale per loop, F-Eq. 7-8), ``smoothed`` (scales tied within clusters,
+            F-Sec. III-C-c) or ``shared`` (one scale for all loops).
+        solver: ``lm`` (Levenberg-Marquardt) or ``gnc`` (graduated non-convexity over LM).
+        scale_init: initial loop scale: ``odometry`` (F-Eq. 6) or ``prior`` (raw prior).
+        odom_sigma_rot_deg, odom_sigma_trans_m: odometry factor noise per keyframe step.
+        loop_sigma_rot_deg, loop_sigma_trans_m: loop factor noise at confidence p = 1; the
+            information is multiplied by p (F-Eq. 3).
+        scale_prior_sigma: weak prior on every scale variable, relative to its initial
+            value; makes a single loop between two robots well posed.
+        scale_smoothing_sigma: noise of the scale-difference factors of F-Sec. III-C-c: the
+            scatter allowed between the scales of loops in one cluster (0.2: the prior's
+            pair-to-pair scale inconsistency is of that order).
+        cluster_window: loops whose endpoints on both robots are fewer than this many
+            keyframes apart share a cluster (F-Sec. III-C-c: ten).
+        lm_max_iterations: Levenberg-Marquardt iterations per solve.
+        gnc_loss: ``tls`` (truncated least squares) or ``gm`` (Geman-McClure, GTSAM's default).
+        gnc_inlier_probability: chi-square quantile (6 dof) of the inlier threshold.
+        gnc_mu_step: factor of the GNC control parameter per outer iteration.
+        gnc_max_iterations: GNC outer iterations.
+    """
+
+    formulation: Formulation = "smoothed"
+    solver: Solver = "lm"
+    scale_init: Literal["odometry", "prior"] = "odometry"
+    odom_sigma_rot_deg: float = 0.5
+    odom_sigma_trans_m: float = 0.02
+    loop_sigma_rot_deg: float = 2.0
+    loop_sigma_trans_m: float = 0.1
+    scale_prior_sigma: float = 1.0
+    scale_smoothing_sigma: float = 0.2
+    cluster_window: int = 10
+    lm_max_iterations: int = 100
+    gnc_loss: Literal["tls", "gm"] = "tls"
+    gnc_inlier_probability: float = 0.99
+    gnc_mu_step: float = 1.4
+    gnc_max_iterations: int = 100
+
+
+@dataclass(frozen=True)
+class ProtocolConfig:
+    """Robots, messages and rendezvous (F-Sec. III-C: election as in Swarm-SLAM).
+
+    Attributes:
+        schedule: rendezvous file (``robot_id,start_s,end_s[,start_s,end_s...]`` per line);
+            empty: every robot is always in range.
+        round_period_s: extra exchange rounds every this many seconds of mission time while
+            robots are in range (0: rounds only when a rendezvous window closes and at the
+            end of the mission).
+        message_timeout_s: how long a robot waits for a peer before going on without it.
+        processes: one operating-system process per robot (otherwise threads in one process).
+        max_message_mb: messages larger than this are refused on decode.
+    """
+
+    schedule: str = ""
+    round_period_s: float = 0.0
+    message_timeout_s: float = 600.0
+    processes: bool = True
+    max_message_mb: float = 256.0
+
+
+@dataclass(frozen=True)
+class DecentralizedConfig:
+    """Everything the decentralized mode reads.
+
+    Attributes:
+        keyframe_distance_m: a new keyframe after this much travelled odometry distance.
+        place_method: global place descriptor: ``cosine`` (attention-weighted aggregate of
+            the prior's retrieval features, compared by cosine similarity) or ``asmk``.
+        place_threshold: minimum similarity of a candidate (F-Sec. IV: permissive 0.1).
+        ratio_threshold: ``R_thr`` of F-Eq. 1 (F-Sec. IV-A: 0.3).
+        confidence_k: steepness ``k`` of the logistic of F-Eq. 2.
+        table: solve every formulation with both solvers for metrics.json (F-Tables II-III).
+    """
+
+    keyframe_distance_m: float = 0.5
+    place_method: Literal["cosine", "asmk"] = "cosine"
+    place_threshold: float = 0.1
+    ratio_threshold: float = 0.3
+    confidence_k: float = 5.0
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    pose_graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
+    protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+    table: bool = True
+
+
+def check_config(config: DecentralizedConfig) -> None:
+    """Raise :class:`ConfigError` naming the first out-of-range ``decentralized`` key."""
+    positive = {
+        "keyframe_distance_m": config.keyframe_distance_m,
+        "confidence_k": config.confidence_k,
+        "pose_graph.odom_sigma_rot_deg": config.pose_graph.odom_sigma_rot_deg,
+        "pose_graph.odom_sigma_trans_m": config.pose_graph.odom_sigma_trans_m,
+        "pose_graph.loop_sigma_rot_deg": config.pose_graph.loop_sigma_rot_deg,
+        "pose_graph.loop_sigma_trans_m": config.pose_graph.loop_sigma_trans_m,
+        "pose_graph.scale_prior_sigma": config.pose_graph.scale_prior_sigma,
+        "pose_graph.scale_smoothing_sigma": config.pose_graph.scale_smoothing_sigma,
+        "protocol.message_timeout_s": config.protocol.message_timeout_s,
+        "protocol.max_message_mb": config.protocol.max_message_mb,
+        "registration.ransac_inlier_ratio": config.registration.ransac_inlier_ratio,
+    }
+    for key, value in positive.items():
+        if not value > 0:
+            raise ConfigError(f"decentralized.{key} must be > 0, got {value}")
+    at_least_one = {
+        "registration.match_stride": config.registration.match_stride,
+        "registration.match_iterations": config.registration.match_iterations,
+        "registration.ransac_hypotheses": config.registration.ransac_hypotheses,
+        "registration.min_inliers": config.registration.min_inliers,
+        "pose_graph.cluster_window": config.pose_graph.cluster_window,
+        "pose_graph.lm_max_iterations": config.pose_graph.lm_max_iterations,
+        "pose_graph.gnc_max_iterations": config.pose_graph.gnc_max_iterations,
+    }
+    for key, value in at_least_one.items():
+        if value < 1:
+            raise ConfigError(f"decentralized.{key} must be >= 1, got {value}")
+    if config.ratio_threshold < 0:
+        raise ConfigError(f"decentralized.ratio_threshold must be >= 0, got "
+                          f"{config.ratio_threshold}")
+    if config.protocol.round_period_s < 0:
+        raise ConfigError(f"decentralized.protocol.round_period_s must be >= 0, got "
+                          f"{config.protocol.round_period_s}")
+    if not 0 < config.pose_graph.gnc_inlier_probability < 1:
+        raise ConfigError("decentralized.pose_graph.gnc_inlier_probability must be in (0, 1), "
+                          f"got {config.pose_graph.gnc_inlier_probability}")
+    if not config.pose_graph.gnc_mu_step > 1:
+        raise ConfigError(f"decentralized.pose_graph.gnc_mu_step must be > 1, got "
+                          f"{config.pose_graph.gnc_mu_step}")

@@ -1,0 +1,174 @@
+"""The messages robots exchange in the decentralized mode (F-Sec. III, F-Fig. 1).
+
+Robots share nothing but these frozen dataclasses, encoded without pickle by
+:mod:`como3r.runtime.codec` (msgpack with raw array bytes, size-capped and validated on
+decode). Every robot-to-robot message names its ``sender``, ``recipient``, the exchange
+``round`` and the mission time ``time_s`` of that round, which the router checks against
+the rendezvous schedule: a message between robots that are not both in range is dropped.
+
+Robot -> robot, in the order of a round:
+
+* :class:`PlaceDescriptors` -- global place descriptors of new keyframes (F-Sec. III-A);
+* :class:`EncodingRequest` -- which of the recipient's keyframes the sender must decode;
+* :class:`EncodingReply` -- one keyframe's encoding, the latent that travels (F-Sec. III-B);
+* :class:`PoseGraphShare` -- to the elected robot: odometry, estimate and loop closures;
+* :class:`PoseEstimate` -- from the elected robot: the optimised keyframe poses.
+
+Driver <-> robot (simulation control, not radio traffic, not counted):
+
+* :class:`RobotTask` -- process mode only: the robot's whole job, its first message;
+* :class:`RobotReport` -- the robot's final state when the mission ends.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from como3r.decentralized.pose_graph import LoopClosure
+from como3r.runtime import codec
+
+#: ``recipient`` of messages to the driver (the process that runs the simulation).
+DRIVER = -1
+
+
+@dataclass(frozen=True)
+class PlaceDescriptors:
+    """Place descriptors of keyframes ``first .. first + len(descriptors) - 1``.
+
+    Attributes:
+        descriptors: one float32 array per keyframe (``(d,)`` cosine, ``(n, d)`` ASMK).
+    """
+
+    sender: int
+    recipient: int
+    round: int
+    time_s: float
+    first: int
+    descriptors: list[np.ndarray]
+    version: int = 1
+
+
+@dataclass(frozen=True)
+class EncodingRequest:
+    """The recipient's keyframes whose encodings the sender needs (possibly none: the
+    sender is done requesting for this round)."""
+
+    sender: int
+    recipient: int
+    round: int
+    time_s: float
+    keyframes: list[int]
+    version: int = 1
+
+
+@dataclass(frozen=True)
+class EncodingReply:
+    """The encoding of one of the sender's keyframes (a registered prior ``Encoding``)."""
+
+    sender: int
+    recipient: int
+    round: int
+    time_s: float
+    keyframe: int
+    encoding: Any
+    version: int = 1
+
+
+@dataclass(frozen=True)
+class PoseGraphShare:
+    """A robot's part of the multi-robot pose graph, sent to the elected robot.
+
+    Attributes:
+        odometry: ``(K, 8)`` float64 keyframe odometry poses ``T_OC``.
+        estimate: ``(K', 8)`` float64 current estimates of the first ``K'`` keyframes in
+            frame ``frame`` (``K' = 0``: none yet).
+        frame: id of the frame the estimate is expressed in (the robot's own id until it
+            joins another robot's frame).
+        loops: the loop closures this robot registered with robots of the round.
+    """
+
+    sender: int
+    recipient: int
+    round: int
+    time_s: float
+    odometry: np.ndarray
+    estimate: np.ndarray
+    frame: int
+    loops: list[LoopClosure]
+    version: int = 1
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """Optimised poses of the recipient's first ``len(poses)`` keyframes in frame ``frame``;
+    no poses: no update this round (``frame`` is then meaningless)."""
+
+    sender: int
+    recipient: int
+    round: int
+    time_s: float
+    poses: np.ndarray
+    frame: int
+    version: int = 1
+
+
+@dataclass(frozen=True)
+class RobotTask:
+    """Driver -> robot process: everything the robot needs.
+
+    Attributes:
+        robot: robot id.
+        agent_path: the robot's agent input folder.
+        config: the main configuration as a nested mapping (``config_to_dict``).
+        decentralized: the :class:`~como3r.decentralized.config.DecentralizedConfig` as a
+            nested mapping.
+        prior: prior specification (``name``, ``weights``, ``retrieval_weights``,
+            ``codebook``, ``device``; paths as strings or None).
+        rounds: ``(round, time_s, group)`` of every round this robot takes part in.
+        leave: ``(round, phase)`` at which the robot drops out (failure injection), or None.
+    """
+
+    robot: int
+    agent_path: str
+    config: dict[str, Any]
+    decentralized: dict[str, Any]
+    prior: dict[str, Any]
+    rounds: list[tuple[int, float, list[int]]]
+    leave: tuple[int, str] | None = None
+    version: int = 1
+
+
+@dataclass(frozen=True)
+class RobotReport:
+    """Robot -> driver: the robot's state at the end of the mission.
+
+    Attributes:
+        estimate: ``(K', 8)`` its last estimate of its first ``K'`` keyframes (frame ``frame``).
+        loops: loop closures it registered and accepted.
+        rejected: registered pairs it rejected (failed fit or ratio below threshold).
+        stats: counters (encodes, decodes, candidates, timings).
+        left: it dropped out before the end (failure injection).
+        error: what went wrong if it failed, else empty.
+    """
+
+    sender: int
+    recipient: int
+    estimate: np.ndarray
+    frame: int
+    loops: list[LoopClosure]
+    rejected: list[LoopClosure]
+    stats: dict[str, float] = field(default_factory=dict)
+    left: bool = False
+    error: str = ""
+    version: int = 1
+
+
+ROBOT_MESSAGES = (PlaceDescriptors, EncodingRequest, EncodingReply, PoseGraphShare, PoseEstimate)
+"""Messages robots send each other (counted as radio traffic)."""
+
+for _cls in (*ROBOT_MESSAGES, RobotTask, RobotReport):
+    codec.register(_cls, version=1)
+codec.register(LoopClosure, version=1)

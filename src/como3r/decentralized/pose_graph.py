@@ -1,0 +1,532 @@
+"""Scale-aware multi-robot pose graphs in GTSAM (F-Sec. III-C, F-Eq. 3-8).
+
+Variables are the keyframe poses ``T_alpha,i`` (``gtsam.Pose3``, camera-to-world) and, for
+the scale-aware formulations, loop scales ``s`` (doubles). Factors:
+
+* odometry (F-Eq. 4): ``BetweenFactorPose3`` of consecutive keyframes of a robot;
+* the gauge: a tight ``PriorFactorPose3`` on the anchor robot's first keyframe;
+* loops, by formulation (:data:`~como3r.decentralized.config.FORMULATIONS`):
+
+  - ``base``: ``BetweenFactorPose3`` with the prior's translation scaled once, by odometry
+    (F-Eq. 6) or not at all (``scale_init``);
+  - ``independent``: :func:`scaled_loop_factor`, the measurement
+    ``T_hat(s) = [R_bar, s t_bar]`` of F-Eq. 7 with its own scale variable ``s`` per loop
+    (F-Eq. 8); a weak prior keeps ``s`` near its initial value so that a single loop
+    between two robots stays well posed;
+  - ``smoothed``: the same plus ``BetweenFactorDouble(s_l, s_m, 0)`` (error ``s_m - s_l``,
+    Jacobians -1 and 1, F-Sec. III-C-c) along each cluster of loops whose endpoints are
+    fewer than ``cluster_window`` keyframes apart on both robots;
+  - ``shared``: one scale variable for all loops.
+
+  Every loop's information is multiplied by its confidence ``p`` (F-Eq. 3).
+
+Solvers: Levenberg-Marquardt, and graduated non-convexity (Yang et al. 2020, F-[6]) as an
+outer loop over LM that re-weights loop factors only: odometry, the gauge prior and scale
+factors are known inliers. GTSAM's ``GncLMOptimizer`` clones factors, which a Python
+``CustomFactor`` cannot survive, so the weights are applied by rebuilding the loop factors
+with scaled noise models.
+
+Jacobians of :func:`scaled_loop_error` (GTSAM's right perturbation ``T <- T Exp(xi)``,
+tangent ``(omega, v)``) with ``E = T_hat(s)^-1 T_a^-1 T_b`` and ``e = Log(E)``:
+
+    H_a = -J_r^-1(e) Ad(T_b^-1 T_a),  H_b = J_r^-1(e),  H_s = -J_r^-1(e) Ad(E^-1) [0; R_bar^T t_bar].
+
+At ``e = 0`` they reduce to the paper's ``-Ad(inv(T_a^-1 T_b))``, ``I`` and ``[0, -t_bar]``
+(with ``t_bar`` expressed in the loop's second camera).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import defaultdict, deque
+from dataclasses import dataclass, field
+from typing import Callable
+
+import gtsam
+import numpy as np
+from scipy.stats import chi2
+
+from como3r.decentralized.config import FORMULATIONS, SOLVERS, PoseGraphConfig
+from como3r.errors import ConfigError, SolverError
+
+
+#: Standard deviation of the gauge prior on the anchor's first keyframe (rad and m).
+ANCHOR_SIGMA = 1e-6
+#: Smallest GNC weight kept: keeps a robot whose loops are all rejected weakly attached.
+MIN_WEIGHT = 1e-6
+#: GNC stops once every weight is this close to 0 or 1 (TLS).
+WEIGHT_TOLERANCE = 1e-4
+#: Loops agreeing on a robot's alignment within these bounds support each other (init).
+CONSENSUS_TRANSLATION_M = 1.0
+CONSENSUS_ROTATION_RAD = math.radians(10.0)
+_POSE_DIM = 6
+
+
+@dataclass(frozen=True)
+class LoopClosure:
+    """An inter-robot loop closure between keyframe ``keyframe_a`` of robot ``robot_a``
+    (alpha, who registered it) and keyframe ``keyframe_b`` of robot ``robot_b`` (beta).
+
+    Attributes:
+        T_ab: ``(8,)`` float64 relative pose from the prior: camera b in camera a
+            (t in the prior's units, q_xyzw, s = the fit's scale, unused).
+        odometry_scale: F-Eq. 6 factor ``|t_odom(i-1, i)| / |t_prior(i-1, i)|``; NaN if
+            unavailable.
+        ratio: correspondence ratio r (F-Eq. 1).
+        probability: confidence p (F-Eq. 2).
+        correspondences: correspondences of the loop pair.
+    """
+
+    robot_a: int
+    keyframe_a: int
+    robot_b: int
+    keyframe_b: int
+    T_ab: np.ndarray
+    odometry_scale: float
+    ratio: float
+    probability: float
+    correspondences: int
+
+    @property
+    def robots(self) -> tuple[int, int]:
+        return self.robot_a, self.robot_b
+
+
+@dataclass
+class PoseGraphProblem:
+    """One connected multi-robot pose graph.
+
+    Attributes:
+        odometry: robot -> ``(K, 8)`` keyframe odometry poses ``T_OC`` in its own frame.
+        loops: loop closures between these robots.
+        anchor: the robot whose first keyframe fixes the gauge.
+        anchor_pose: ``(8,)`` pose of the anchor's first keyframe in the output frame.
+        initial: robot -> ``(K', 8)`` current estimates of its first ``K'`` keyframes,
+            already in the output frame (used for initialisation only).
+    """
+
+    odometry: dict[int, np.ndarray]
+    loops: list[LoopClosure]
+    anchor: int
+    anchor_pose: np.ndarray
+    initial: dict[int, np.ndarray] = field(default_factory=dict)
+
+
+@dataclass
+class PoseGraphSolution:
+    """Result of one solve.
+
+    Attributes:
+        poses: robot -> ``(K, 8)`` keyframe poses ``T_WC`` in the output frame.
+        loop_scales: ``(L,)`` scale applied to each loop's prior translation.
+        loop_weights: ``(L,)`` GNC weights (1 for LM).
+        loop_residuals: ``(L,)`` whitened squared residual of each loop at weight 1.
+        seconds: solver wall time.
+        iterations: LM iterations (summed over GNC's outer iterations).
+        cost: final value of the (weighted) objective.
+    """
+
+    poses: dict[int, np.ndarray]
+    loop_scales: np.ndarray
+    loop_weights: np.ndarray
+    loop_residuals: np.ndarray
+    seconds: float
+    iterations: int
+    cost: float
+
+
+# --------------------------------------------------------------------------- conversions
+
+
+def to_pose3(T: np.ndarray) -> gtsam.Pose3:
+    """``gtsam.Pose3`` of an ``(8,)`` (or ``(7,)``) pose ``(t, q_xyzw[, s])``."""
+    x, y, z, w = (float(v) for v in T[3:7])
+    return gtsam.Pose3(gtsam.Rot3.Quaternion(w, x, y, z), np.asarray(T[:3], dtype=np.float64))
+
+
+def from_pose3(pose: gtsam.Pose3) -> np.ndarray:
+    """``(8,)`` float64 ``(t, q_xyzw, 1)`` of a ``gtsam.Pose3`` (``w >= 0``)."""
+    q = pose.rotation().toQuaternion()
+    quat = np.array([q.x(), q.y(), q.z(), q.w()])
+    quat = -quat if quat[3] < 0 else quat
+    return np.concatenate([pose.translation(), quat / np.linalg.norm(quat), [1.0]])
+
+
+def pose_key(robot: int, keyframe: int) -> int:
+    """GTSAM key of robot ``robot``'s keyframe ``keyframe``."""
+    return gtsam.symbol("x", (robot << 24) | keyframe)
+
+
+def scale_key(index: int) -> int:
+    """GTSAM key of loop scale variable ``index``."""
+    return gtsam.symbol("s", index)
+
+
+# --------------------------------------------------------------------------- factors
+
+
+def scaled_loop_error(R_bar: np.ndarray, t_bar: np.ndarray, T_a: gtsam.Pose3, T_b: gtsam.Pose3,
+                      s: float) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Error of F-Eq. 8 and its exact Jacobians (module docstring).
+
+    Args:
+        R_bar: ``(3, 3)`` measured relative rotation (camera b in camera a).
+        t_bar: ``(3,)`` measured relative translation, prior units.
+        T_a, T_b: current poses of the two keyframes.
+        s: current loop scale.
+
+    Returns:
+        ``e (6,)`` in GTSAM's ``(omega, v)`` order and ``[H_a (6, 6), H_b (6, 6), H_s (6, 1)]``.
+    """
+    measured = gtsam.Pose3(gtsam.Rot3(R_bar), s * t_bar)
+    relative = T_a.between(T_b)
+    E = measured.between(relative)
+    J_log = np.zeros((_POSE_DIM, _POSE_DIM), order="F")
+    e = gtsam.Pose3.Logmap(E, J_log)
+    H_a = -J_log @ relative.inverse().AdjointMap()
+    xi_s = np.concatenate([np.zeros(3), R_bar.T @ t_bar])
+    H_s = -(J_log @ E.inverse().AdjointMap() @ xi_s)[:, None]
+    return e, [H_a, J_log.copy(), H_s]
+
+
+def scaled_loop_factor(keys: tuple[int, int, int], R_bar: np.ndarray, t_bar: np.ndarray,
+                       noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+    """``CustomFactor`` on ``(T_a, T_b, s)`` with the error of :func:`scaled_loop_error`."""
+    key_a, key_b, key_s = keys
+
+    def error(factor: gtsam.CustomFactor, values: gtsam.Values,
+              jacobians: list[np.ndarray] | None) -> np.ndarray:
+        e, H = scaled_loop_error(R_bar, t_bar, values.atPose3(key_a), values.atPose3(key_b),
+                                 values.atDouble(key_s))
+        if jacobians is not None:
+            jacobians[0], jacobians[1], jacobians[2] = H
+        return e
+
+    return gtsam.CustomFactor(noise, [key_a, key_b, key_s], error)
+
+
+def _pose_noise(sigma_rot_rad: float, sigma_trans_m: float, weight: float) -> gtsam.noiseModel.Base:
+    """Diagonal noise in GTSAM's (rotation, translation) order, information times ``weight``."""
+    sigmas = np.array([sigma_rot_rad] * 3 + [sigma_trans_m] * 3) / math.sqrt(weight)
+    return gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+
+
+# --------------------------------------------------------------------------- structure
+
+
+def connected_components(robots: list[int], loops: list[LoopClosure]) -> list[list[int]]:
+    """Groups of ``robots`` connected by ``loops`` (sorted; singletons included)."""
+    neighbours: dict[int, set[int]] = {r: set() for r in robots}
+    for loop in loops:
+        if loop.robot_a in neighbours and loop.robot_b in neighbours:
+            neighbours[loop.robot_a].add(loop.robot_b)
+            neighbours[loop.robot_b].add(loop.robot_a)
+    components, seen = [], set()
+    for start in sorted(robots):
+        if start in seen:
+            continue
+        queue, component = deque([start]), []
+        seen.add(start)
+        while queue:
+            robot = queue.popleft()
+            component.append(robot)
+            for other in sorted(neighbours[robot] - seen):
+                seen.add(other)
+                queue.append(other)
+        components.append(sorted(component))
+    return components
+
+
+def loop_clusters(loops: list[LoopClosure], window: int) -> list[list[int]]:
+    """Clusters of loop indices (F-Sec. III-C-c): same pair of robots, endpoints fewer than
+    ``window`` keyframes apart on both robots, closed transitively. Each cluster is sorted
+    by the keyframes of the robot with the smaller id."""
+    def endpoints(loop: LoopClosure) -> tuple[int, int, int, int]:
+        if loop.robot_a < loop.robot_b:
+            return loop.robot_a, loop.robot_b, loop.keyframe_a, loop.keyframe_b
+        return loop.robot_b, loop.robot_a, loop.keyframe_b, loop.keyframe_a
+
+    parent = list(range(len(loops)))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    ends = [endpoints(loop) for loop in loops]
+    for i, (ra, rb, ka, kb) in enumerate(ends):
+        for j in range(i):
+            ra2, rb2, ka2, kb2 = ends[j]
+            if (ra, rb) == (ra2, rb2) and abs(ka - ka2) < window and abs(kb - kb2) < window:
+                parent[find(i)] = find(j)
+    groups: dict[int, list[int]] = defaultdict(list)
+    for i in range(len(loops)):
+        groups[find(i)].append(i)
+    return sorted((sorted(g, key=lambda i: ends[i][2:] + (i,)) for g in groups.values()),
+                  key=lambda g: g[0])
+
+
+def initial_scales(loops: list[LoopClosure], scale_init: str) -> np.ndarray:
+    """``(L,)`` initial loop scales: F-Eq. 6 (``odometry``; 1 where unavailable) or 1
+    (``prior``: the prior's own scale)."""
+    if scale_init == "prior":
+        return np.ones(len(loops))
+    if scale_init != "odometry":
+        raise ConfigError(f"decentralized.pose_graph.scale_init: {scale_init!r} is not "
+                          "'odometry' or 'prior'")
+    scales = np.array([loop.odometry_scale for loop in loops], dtype=np.float64)
+    return np.where(np.isfinite(scales) & (scales > 0), scales, 1.0)
+
+
+def _measured(loop: LoopClosure, scale: float) -> gtsam.Pose3:
+    pose = to_pose3(loop.T_ab)
+    return gtsam.Pose3(pose.rotation(), scale * pose.translation())
+
+
+def _extend_by_odometry(estimate: np.ndarray, odometry: np.ndarray) -> list[gtsam.Pose3]:
+    """Poses of all keyframes: ``estimate`` for the first ones, then odometry increments."""
+    poses = [to_pose3(T) for T in estimate]
+    for k in range(len(poses), len(odometry)):
+        step = to_pose3(odometry[k - 1]).between(to_pose3(odometry[k]))
+        poses.append(poses[-1].compose(step))
+    return poses
+
+
+def _consensus_alignment(candidates: list[tuple[gtsam.Pose3, float]]) -> gtsam.Pose3:
+    """The candidate alignment with the largest confidence-weighted support."""
+    best, best_support = candidates[0][0], -1.0
+    for pose, _ in candidates:
+        support = 0.0
+        for other, probability in candidates:
+            delta = pose.between(other)
+            if (np.linalg.norm(delta.translation()) < CONSENSUS_TRANSLATION_M
+                    and np.linalg.norm(gtsam.Rot3.Logmap(delta.rotation())) < CONSENSUS_ROTATION_RAD):
+                support += probability
+        if support > best_support:
+            best, best_support = pose, support
+    return best
+
+
+def initial_poses(problem: PoseGraphProblem, scales: np.ndarray) -> dict[int, list[gtsam.Pose3]]:
+    """Initial keyframe poses of every robot in the output frame.
+
+    The anchor starts at ``anchor_pose``; robots with a current estimate start from it;
+    the others are placed breadth-first through the loops to robots already placed, each
+    by the loop-implied alignment that most other loops agree with.
+
+    Raises:
+        ValueError: a robot is connected to the anchor neither by loops nor by an estimate.
+    """
+    placed: dict[int, list[gtsam.Pose3]] = {}
+    anchor_odometry = problem.odometry[problem.anchor]
+    placed[problem.anchor] = _extend_by_odometry(problem.anchor_pose[None], anchor_odometry)
+    for robot, estimate in problem.initial.items():
+        if robot != problem.anchor and len(estimate):
+            placed[robot] = _extend_by_odometry(estimate, problem.odometry[robot])
+    pending = set(problem.odometry) - set(placed)
+    while pending:
+        candidates: dict[int, list[tuple[gtsam.Pose3, float]]] = defaultdict(list)
+        for loop, scale in zip(problem.loops, scales):
+            for src, kf_src, dst, kf_dst, relative in (
+                    (loop.robot_a, loop.keyframe_a, loop.robot_b, loop.keyframe_b,
+                     _measured(loop, scale)),
+                    (loop.robot_b, loop.keyframe_b, loop.robot_a, loop.keyframe_a,
+                     _measured(loop, scale).inverse())):
+                if src in placed and dst in pending:
+                    world_dst = placed[src][kf_src].compose(relative)
+                    odometry_dst = to_pose3(problem.odometry[dst][kf_dst])
+                    candidates[dst].append((world_dst.compose(odometry_dst.inverse()),
+                                            loop.probability))
+        if not candidates:
+            raise ValueError(f"robots {sorted(pending)} are not connected to anchor "
+                             f"{problem.anchor} by loop closures")
+        for robot, options in sorted(candidates.items()):
+            alignment = _consensus_alignment(options)
+            placed[robot] = [alignment.compose(to_pose3(T)) for T in problem.odometry[robot]]
+            pending.discard(robot)
+    return placed
+
+
+# --------------------------------------------------------------------------- graph
+
+
+@dataclass
+class _Graph:
+    """A formulation's factors: fixed ones and a builder for weighted loop factors."""
+
+    fixed: gtsam.NonlinearFactorGraph
+    initial: gtsam.Values
+    loop_factor: Callable[[int, float], gtsam.NonlinearFactor]
+    loop_scale: Callable[[gtsam.Values, int], float]
+    count: int
+
+    def with_weights(self, weights: np.ndarray) -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph(self.fixed)
+        for index, weight in enumerate(weights):
+            graph.add(self.loop_factor(index, float(weight)))
+        return graph
+
+    def residuals(self, values: gtsam.Values) -> np.ndarray:
+        """Whitened squared residual of every loop factor at weight 1."""
+        return np.array([2.0 * self.loop_factor(i, 1.0).error(values) for i in range(self.count)])
+
+
+def build_graph(problem: PoseGraphProblem, formulation: str,
+                config: PoseGraphConfig) -> _Graph:
+    """The factors and initial values of ``formulation`` (module docstring)."""
+    if formulation not in FORMULATIONS:
+        raise ConfigError(f"decentralized.pose_graph.formulation: {formulation!r} is not one "
+                          f"of {FORMULATIONS}")
+    scales = initial_scales(problem.loops, config.scale_init)
+    poses = initial_poses(problem, scales)
+    fixed = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    odom_rot = math.radians(config.odom_sigma_rot_deg)
+    for robot, odometry in sorted(problem.odometry.items()):
+        for k, pose in enumerate(poses[robot]):
+            values.insert(pose_key(robot, k), pose)
+        noise = _pose_noise(odom_rot, config.odom_sigma_trans_m, 1.0)
+        for k in range(1, len(odometry)):
+            step = to_pose3(odometry[k - 1]).between(to_pose3(odometry[k]))
+            fixed.add(gtsam.BetweenFactorPose3(pose_key(robot, k - 1), pose_key(robot, k),
+                                               step, noise))
+    fixed.add(gtsam.PriorFactorPose3(pose_key(problem.anchor, 0), to_pose3(problem.anchor_pose),
+                                     gtsam.noiseModel.Isotropic.Sigma(_POSE_DIM, ANCHOR_SIGMA)))
+
+    loops = problem.loops
+    loop_rot = math.radians(config.loop_sigma_rot_deg)
+    keys = [(pose_key(l.robot_a, l.keyframe_a), pose_key(l.robot_b, l.keyframe_b)) for l in loops]
+
+    def noise(index: int, weight: float) -> gtsam.noiseModel.Base:
+        return _pose_noise(loop_rot, config.loop_sigma_trans_m,
+                           max(weight, MIN_WEIGHT) * loops[index].probability)
+
+    if formulation == "base":
+        def base_factor(index: int, weight: float) -> gtsam.NonlinearFactor:
+            return gtsam.BetweenFactorPose3(*keys[index], _measured(loops[index], scales[index]),
+                                            noise(index, weight))
+
+        return _Graph(fixed, values, base_factor, lambda v, i: float(scales[i]), len(loops))
+
+    variable = [0] * len(loops) if formulation == "shared" else list(range(len(loops)))
+    for v in sorted(set(variable)):
+        members = [i for i in range(len(loops)) if variable[i] == v]
+        start = float(np.median(scales[members]))
+        values.insert(scale_key(v), start)
+        fixed.add(gtsam.PriorFactorDouble(scale_key(v), start, gtsam.noiseModel.Isotropic.Sigma(
+            1, config.scale_prior_sigma * abs(start))))
+    if formulation == "smoothed":
+        smoothing = gtsam.noiseModel.Isotropic.Sigma(1, config.scale_smoothing_sigma)
+        for cluster in loop_clusters(loops, config.cluster_window):
+            for first, second in zip(cluster, cluster[1:]):
+                fixed.add(gtsam.BetweenFactorDouble(scale_key(first), scale_key(second), 0.0,
+                                                    smoothing))
+    rotations = [to_pose3(l.T_ab).rotation().matrix() for l in loops]
+    translations = [np.asarray(l.T_ab[:3], dtype=np.float64) for l in loops]
+
+    def scaled_factor(index: int, weight: float) -> gtsam.NonlinearFactor:
+        return scaled_loop_factor((*keys[index], scale_key(variable[index])), rotations[index],
+                                  translations[index], noise(index, weight))
+
+    return _Graph(fixed, values, scaled_factor,
+                  lambda v, i: v.atDouble(scale_key(variable[i])), len(loops))
+
+
+# --------------------------------------------------------------------------- solvers
+
+
+def _levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
+                         max_iterations: int) -> tuple[gtsam.Values, int]:
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    try:
+        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+        result = optimizer.optimize()
+    except RuntimeError as exc:
+        raise SolverError(f"pose graph optimisation failed: {exc}") from None
+    return result, int(optimizer.iterations())
+
+
+def _gnc_weights(residuals: np.ndarray, mu: float, threshold: float, loss: str) -> np.ndarray:
+    """Closed-form GNC weights (Yang et al. 2020) of whitened squared residuals."""
+    if loss == "gm":
+        return (mu * threshold / (residuals + mu * threshold)) ** 2
+    upper = (mu + 1.0) / mu * threshold
+    lower = mu / (mu + 1.0) * threshold
+    middle = np.sqrt(threshold * mu * (mu + 1.0) / np.maximum(residuals, 1e-300)) - mu
+    return np.where(residuals >= upper, 0.0, np.where(residuals <= lower, 1.0, middle))
+
+
+def _graduated_non_convexity(graph: _Graph, config: PoseGraphConfig
+                             ) -> tuple[gtsam.Values, np.ndarray, int]:
+    """GNC over LM with the loop factors as the only uncertain measurements."""
+    weights = np.ones(graph.count)
+    values, iterations = _levenberg_marquardt(graph.with_weights(weights), graph.initial,
+                                              config.lm_max_iterations)
+    if graph.count == 0:
+        return values, weights, iterations
+    threshold = float(chi2.ppf(config.gnc_inlier_probability, _POSE_DIM))
+    residuals = graph.residuals(values)
+    largest = float(residuals.max())
+    if largest <= threshold:
+        return values, weights, iterations
+    if config.gnc_loss == "gm":
+        mu = 2.0 * largest / threshold
+    else:
+        mu = threshold / max(2.0 * largest - threshold, 1e-12)
+    for _ in range(config.gnc_max_iterations):
+        weights = _gnc_weights(residuals, mu, threshold, config.gnc_loss)
+        values, used = _levenberg_marquardt(graph.with_weights(weights), values,
+                                            config.lm_max_iterations)
+        iterations += used
+        residuals = graph.residuals(values)
+        if config.gnc_loss == "gm":
+            if mu <= 1.0:
+                break
+            mu = max(1.0, mu / config.gnc_mu_step)
+        else:
+            if np.all(np.minimum(weights, 1.0 - weights) < WEIGHT_TOLERANCE):
+                break
+            mu *= config.gnc_mu_step
+    return values, weights, iterations
+
+
+def solve_pose_graph(problem: PoseGraphProblem, formulation: str, solver: str,
+                     config: PoseGraphConfig) -> PoseGraphSolution:
+    """Solve one connected multi-robot pose graph.
+
+    Args:
+        problem: odometry, loops, anchor and initial estimates.
+        formulation: one of :data:`~como3r.decentralized.config.FORMULATIONS`.
+        solver: ``lm`` or ``gnc``.
+        config: noise models and solver parameters.
+
+    Raises:
+        ConfigError: unknown formulation or solver.
+        SolverError: GTSAM failed (e.g. an indeterminate linear system).
+    """
+    if solver not in SOLVERS:
+        raise ConfigError(f"decentralized.pose_graph.solver: {solver!r} is not one of {SOLVERS}")
+    graph = build_graph(problem, formulation, config)
+    start = time.perf_counter()
+    if solver == "lm":
+        weights = np.ones(graph.count)
+        values, iterations = _levenberg_marquardt(graph.with_weights(weights), graph.initial,
+                                                  config.lm_max_iterations)
+    else:
+        values, weights, iterations = _graduated_non_convexity(graph, config)
+    seconds = time.perf_counter() - start
+    poses = {robot: np.stack([from_pose3(values.atPose3(pose_key(robot, k)))
+                              for k in range(len(odometry))])
+             for robot, odometry in problem.odometry.items()}
+    return PoseGraphSolution(
+        poses=poses,
+        loop_scales=np.array([graph.loop_scale(values, i) for i in range(graph.count)]),
+        loop_weights=weights,
+        loop_residuals=graph.residuals(values),
+        seconds=seconds,
+        iterations=iterations,
+        cost=float(graph.with_weights(weights).error(values)),
+    )

@@ -1,0 +1,302 @@
+"""Two-stage registration of keyframe pairs with the prior (F-Sec. III-B, F-Fig. 1, F-Fig. 4).
+
+Each robot encodes its own keyframes once (:meth:`Registrar.own_encoding`); for a loop
+candidate (I_i^alpha, I_j^beta) the encoding of I_j^beta travels to robot alpha, which
+decodes the pair, matches the two views' descriptors (reciprocal nearest neighbours,
+:func:`reciprocal_matches`) and estimates the relative pose robustly from the matched 3-D
+points (:func:`ransac_similarity`: minimal 3-point similarities, then Umeyama on the
+inliers). Encodings are cached, so a keyframe in several candidates is encoded (and sent)
+once; :class:`RegistrationStats` counts what a naive pipeline that encodes both images of
+every pair would have encoded.
+
+The relative pose ``T_ij`` maps points of camera j into camera i; its translation is in the
+units of view i's pointmap (the prior's scale, resolved later by F-Eq. 6-8).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from como3r.decentralized.config import RegistrationConfig
+from como3r.errors import GeometryError
+from como3r.geometry.lie import matrix_to_quat, sim3_act
+from como3r.geometry.umeyama import umeyama_sim3
+from como3r.prior.base import Encoding, PairPrediction, Prior, View
+from como3r.prior.simulated_keys import generator
+
+#: Query pixels processed at once by the nearest-neighbour search (bounds peak memory).
+_CHUNK = 256
+
+
+@dataclass(frozen=True)
+class Registration:
+    """Result of registering the ordered pair (i, j).
+
+    Attributes:
+        correspondences: number of reciprocal descriptor matches (F-Eq. 1's counts).
+        inliers: matches consistent with ``T_ij``.
+        T_ij: ``(8,)`` float64 similarity mapping camera-j points into camera i (t, q_xyzw,
+            s), or None when no pose could be estimated.
+    """
+
+    correspondences: int
+    inliers: int
+    T_ij: Tensor | None
+
+
+@dataclass
+class RegistrationStats:
+    """Work done by one robot's registrar (F-Fig. 4).
+
+    Attributes:
+        encodes: images encoded (each keyframe at most once; place descriptors included).
+        encode_seconds: time spent encoding.
+        decodes: pairs decoded (both directions count as one symmetric decode).
+        decode_seconds: time spent decoding, matching and fitting.
+        naive_encodes: encodes of a pipeline that encodes both images of every decoded pair.
+        registration_encodes: this robot's keyframes whose encoding some decode used (here or
+            at another robot): what the two-stage scheme encodes for registration.
+    """
+
+    encodes: int = 0
+    encode_seconds: float = 0.0
+    decodes: int = 0
+    decode_seconds: float = 0.0
+    naive_encodes: int = 0
+    registration_encodes: int = 0
+
+    def to_json(self) -> dict[str, float]:
+        return {"encodes": self.encodes, "encode_seconds": self.encode_seconds,
+                "decodes": self.decodes, "decode_seconds": self.decode_seconds,
+                "naive_encodes": self.naive_encodes,
+                "registration_encodes": self.registration_encodes}
+
+
+def _nearest(queries: Tensor, database: Tensor) -> Tensor:
+    """Index of the most similar database row for each query row (dot product)."""
+    database_T = database.T.contiguous()
+    best = [torch.argmax(chunk @ database_T, dim=1) for chunk in queries.split(_CHUNK)]
+    return torch.cat(best)
+
+
+def reciprocal_matches(D_i: Tensor, D_j: Tensor, Q_i: Tensor, Q_j: Tensor,
+                       config: RegistrationConfig) -> tuple[Tensor, Tensor]:
+    """Reciprocal nearest neighbours between the confident descriptors of two views.
+
+    Only pixels with descriptor confidence ``Q > min_descriptor_confidence`` take part.
+    Queries start on a grid of view i; each iteration maps them to their nearest neighbour
+    in j and back to i, and a query whose round trip returns to itself is a match
+    (MASt3R's fast reciprocal matching).
+
+    Args:
+        D_i, D_j: ``(H, W, d)`` unit descriptors of views i and j (one decode).
+        Q_i, Q_j: ``(H, W)`` descriptor confidences.
+        config: matching parameters.
+
+    Returns:
+        ``(M,)`` int64 flat pixel indices of view i and ``(M,)`` of view j, unique pairs.
+    """
+    H, W, d = D_i.shape
+    q_min = config.min_descriptor_confidence
+    pixels_i = torch.nonzero(Q_i.reshape(-1) > q_min)[:, 0]
+    pixels_j = torch.nonzero(Q_j.reshape(-1) > q_min)[:, 0]
+    none = torch.zeros(0, dtype=torch.long)
+    if pixels_i.numel() == 0 or pixels_j.numel() == 0:
+        return none, none
+    flat_i = D_i.reshape(-1, d)[pixels_i].float()
+    flat_j = D_j.reshape(-1, d)[pixels_j].float()
+    stride = config.match_stride
+    on_grid = ((pixels_i // W) % stride == stride // 2) & ((pixels_i % W) % stride == stride // 2)
+    query = torch.nonzero(on_grid)[:, 0]
+    found_i, found_j = [none], [none]
+    for _ in range(config.match_iterations):
+        if query.numel() == 0:
+            break
+        in_j = _nearest(flat_i[query], flat_j)
+        back = _nearest(flat_j[in_j], flat_i)
+        converged = back == query
+        found_i.append(query[converged])
+        found_j.append(in_j[converged])
+        query = torch.unique(back[~converged])
+    pairs = torch.unique(torch.stack([torch.cat(found_i), torch.cat(found_j)], dim=1), dim=0)
+    return pixels_i[pairs[:, 0]], pixels_j[pairs[:, 1]]
+
+
+def _minimal_similarities(src: Tensor, dst: Tensor) -> Tensor:
+    """Closed-form similarities ``(B, 8)`` of ``B`` samples ``(B, 3, 3)`` (float64).
+
+    Degenerate samples give arbitrary transforms, which simply collect few inliers.
+    """
+    mu_src, mu_dst = src.mean(1, keepdim=True), dst.mean(1, keepdim=True)
+    x, y = src - mu_src, dst - mu_dst
+    U, singular, Vh = torch.linalg.svd(y.transpose(1, 2) @ x)
+    sign = torch.ones_like(singular)
+    sign[:, 2] = torch.linalg.det(U @ Vh).sign()
+    R = U @ torch.diag_embed(sign) @ Vh
+    s = (singular * sign).sum(-1) / x.square().sum((1, 2)).clamp_min(1e-12)
+    t = mu_dst[:, 0] - s[:, None] * (R @ mu_src[:, 0, :, None])[..., 0]
+    return torch.cat([t, matrix_to_quat(R), s[:, None]], dim=-1)
+
+
+def ransac_similarity(src: Tensor, dst: Tensor, config: RegistrationConfig,
+                      gen: torch.Generator) -> tuple[Tensor, Tensor] | None:
+    """Robust similarity ``dst ~= s R src + t`` from putative 3-D correspondences.
+
+    Args:
+        src: ``(M, 3)`` points (camera j).
+        dst: ``(M, 3)`` matched points (camera i).
+        config: hypotheses, inlier ratio and minimum inliers.
+        gen: random generator of the minimal samples.
+
+    Returns:
+        ``T (8,)`` float64 and the ``(M,)`` bool inlier mask, or None when fewer than
+        ``min_inliers`` correspondences support the best hypothesis.
+    """
+    count = src.shape[0]
+    if count < max(3, config.min_inliers):
+        return None
+    src, dst = src.double(), dst.double()
+    threshold = config.ransac_inlier_ratio * dst.norm(dim=-1)
+    samples = torch.stack([torch.randperm(count, generator=gen)[:3]
+                           for _ in range(config.ransac_hypotheses)])
+    hypotheses = _minimal_similarities(src[samples], dst[samples])
+    residual = (sim3_act(hypotheses[:, None, :], src[None]) - dst[None]).norm(dim=-1)
+    support = (residual < threshold).sum(dim=1)
+    best = hypotheses[int(torch.argmax(support))]
+    inliers = (sim3_act(best, src) - dst).norm(dim=-1) < threshold
+    for _ in range(2):
+        if int(inliers.sum()) < config.min_inliers:
+            return None
+        try:
+            refined = umeyama_sim3(src[inliers], dst[inliers])
+        except GeometryError:
+            return None
+        refined_inliers = (sim3_act(refined, src) - dst).norm(dim=-1) < threshold
+        if int(refined_inliers.sum()) < int(inliers.sum()):
+            break
+        best, inliers = refined, refined_inliers
+    if int(inliers.sum()) < config.min_inliers:
+        return None
+    return best, inliers
+
+
+def register_predictions(pred_ij: PairPrediction, pred_ji: PairPrediction,
+                         config: RegistrationConfig, gen: torch.Generator) -> Registration:
+    """Match a decoded pair and estimate the relative pose (module docstring).
+
+    Args:
+        pred_ij: decode of (i, j): ``X_ii``, descriptors ``D_ii`` (view i) and ``D_ji``
+            (view j) of one decoder pass.
+        pred_ji: decode of (j, i): ``X_ii`` is view j's pointmap in camera j.
+        config: registration parameters.
+        gen: RANSAC generator.
+    """
+    p_i, p_j = reciprocal_matches(pred_ij.D_ii, pred_ij.D_ji, pred_ij.Q_ii, pred_ij.Q_ji, config)
+    dst = pred_ij.X_ii.reshape(-1, 3)[p_i]
+    src = pred_ji.X_ii.reshape(-1, 3)[p_j]
+    fit = ransac_similarity(src, dst, config, gen)
+    if fit is None:
+        return Registration(int(p_i.numel()), 0, None)
+    T, inliers = fit
+    return Registration(int(p_i.numel()), int(inliers.sum()), T)
+
+
+@dataclass
+class Registrar:
+    """One robot's encoder and decoder with the caches of F-Sec. III-B.
+
+    Args:
+        prior: the prior.
+        robot: this robot's id.
+        view_of: loads the :class:`View` of one of this robot's keyframes.
+        config: registration parameters.
+    """
+
+    prior: Prior
+    robot: int
+    view_of: Callable[[int], View]
+    config: RegistrationConfig
+    stats: RegistrationStats = field(default_factory=RegistrationStats)
+    _own: dict[int, Encoding] = field(default_factory=dict)
+    _foreign: dict[tuple[int, int], Encoding] = field(default_factory=dict)
+    _consecutive: dict[int, Registration] = field(default_factory=dict)
+    _used: set[int] = field(default_factory=set)
+
+    def own_encoding(self, keyframe: int) -> Encoding:
+        """The encoding of one of this robot's keyframes, computed once."""
+        if keyframe not in self._own:
+            view = self.view_of(keyframe)
+            start = time.perf_counter()
+            self._own[keyframe] = self.prior.encode(view)
+            self.stats.encode_seconds += time.perf_counter() - start
+            self.stats.encodes += 1
+        return self._own[keyframe]
+
+    def encoding_for_peer(self, keyframe: int) -> Encoding:
+        """The encoding of one of this robot's keyframes, to send to a robot that decodes it."""
+        self._mark_used(keyframe)
+        return self.own_encoding(keyframe)
+
+    def _mark_used(self, keyframe: int) -> None:
+        if keyframe not in self._used:
+            self._used.add(keyframe)
+            self.stats.registration_encodes += 1
+
+    def has_foreign(self, robot: int, keyframe: int) -> bool:
+        """Whether the encoding of ``robot``'s ``keyframe`` has been received."""
+        return (robot, keyframe) in self._foreign
+
+    def add_foreign(self, robot: int, keyframe: int, encoding: Encoding) -> None:
+        """Cache an encoding received from another robot."""
+        self._foreign[(robot, keyframe)] = encoding
+
+    def register(self, keyframe: int, robot: int, other: int) -> Registration:
+        """Register this robot's ``keyframe`` (i) with ``robot``'s keyframe ``other`` (j).
+
+        The encoding of j must have been received (:meth:`add_foreign`).
+        """
+        self.stats.naive_encodes += 2
+        self._mark_used(keyframe)
+        enc_i = self.own_encoding(keyframe)
+        enc_j = self._foreign[(robot, other)]
+        return self._decode(enc_i, enc_j, ("loop", self.robot, keyframe, robot, other))
+
+    def consecutive(self, keyframe: int, count: int) -> tuple[int, Registration]:
+        """Registration of ``keyframe`` with its odometry neighbour (F-Eq. 1's denominator),
+        cached; ``count`` is the robot's number of keyframes.
+
+        Returns:
+            The neighbour (:func:`odometry_neighbour`) and the registration.
+        """
+        neighbour = odometry_neighbour(keyframe, count)
+        if keyframe not in self._consecutive:
+            self.stats.naive_encodes += 2
+            self._mark_used(keyframe)
+            self._mark_used(neighbour)
+            enc_i = self.own_encoding(keyframe)
+            enc_n = self.own_encoding(neighbour)
+            self._consecutive[keyframe] = self._decode(
+                enc_i, enc_n, ("odometry", self.robot, keyframe, neighbour))
+        return neighbour, self._consecutive[keyframe]
+
+    def _decode(self, enc_i: Encoding, enc_j: Encoding, name: tuple) -> Registration:
+        start = time.perf_counter()
+        pred_ij, pred_ji = self.prior.decode_symmetric([(enc_i, enc_j)])[0]
+        result = register_predictions(pred_ij.to("cpu"), pred_ji.to("cpu"), self.config,
+                                      generator(self.config.seed, *name))
+        self.stats.decode_seconds += time.perf_counter() - start
+        self.stats.decodes += 1
+        return result
+
+
+def odometry_neighbour(keyframe: int, count: int) -> int:
+    """The keyframe paired with ``keyframe`` for F-Eq. 1: its predecessor, or its successor
+    for the first keyframe (itself if the robot has a single keyframe)."""
+    if keyframe > 0:
+        return keyframe - 1
+    return 1 if count > 1 else 0

@@ -1,0 +1,396 @@
+"""One robot of the decentralized mode: its data, its caches and its part of every round.
+
+A round at mission time ``t`` with the group ``G`` of robots in range (F-Sec. III, F-Fig. 1):
+
+1. send the place descriptors of keyframes not yet sent to each peer (F-Sec. III-A);
+2. with the peers' descriptors, compute the loop candidates of each pair (the same on both
+   sides, :func:`~como3r.decentralized.place_recognition.candidate_pairs`) and request the
+   encodings of the peer's keyframes this robot registers;
+3. serve the peers' requests and receive the encodings (F-Sec. III-B), register the
+   candidates, weigh them by the correspondence ratio and drop those below the threshold
+   (F-Eq. 1-2);
+4. the elected robot -- the smallest id of the robots present (Swarm-SLAM, F-[9]) --
+   collects everyone's :class:`~.messages.PoseGraphShare`, solves the pose graph of each
+   connected group (F-Sec. III-C) and sends every robot its new poses.
+
+Every wait is bounded by ``protocol.message_timeout_s`` (twice that for the elected robot's
+answer, which may itself wait one timeout for a slow peer): a peer that does not answer (it
+left, or crashed) is left out of the rest of the round, and a robot whose elected robot
+disappears keeps its previous estimate. Requests are served whenever the robot waits, in
+any phase.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict
+from dataclasses import dataclass
+from typing import Any, Callable, Protocol
+
+import numpy as np
+
+from como3r.config import Config
+from como3r.data.agent import AgentInput
+from como3r.data.preprocess import make_view
+from como3r.decentralized.config import DecentralizedConfig
+from como3r.decentralized.confidence import accept_loop, correspondence_ratio, loop_probability
+from como3r.decentralized.keyframes import frame_odometry, select_keyframes
+from como3r.decentralized.messages import (
+    DRIVER,
+    EncodingReply,
+    EncodingRequest,
+    PlaceDescriptors,
+    PoseEstimate,
+    PoseGraphShare,
+    RobotReport,
+)
+from como3r.decentralized.place_recognition import PlaceRecognizer, candidate_pairs
+from como3r.decentralized.pose_graph import (
+    LoopClosure,
+    PoseGraphProblem,
+    connected_components,
+    solve_pose_graph,
+)
+from como3r.decentralized.registration import Registrar
+from como3r.errors import SolverError
+from como3r.prior.base import Encoding, Prior, View
+
+logger = logging.getLogger(__name__)
+
+#: Phases at which a robot can be made to leave (failure injection): before sending its
+#: descriptors, before registering, and before the pose-graph step (the elected robot
+#: leaves after collecting the shares, i.e. in the middle of the optimisation).
+PHASES = ("descriptors", "registration", "optimisation")
+
+
+class Link(Protocol):
+    """A robot's radio: messages out to the router, messages in from it."""
+
+    def send(self, message: Any) -> None:
+        """Queue a message (never blocks on the other side)."""
+
+    def receive(self, timeout: float) -> Any | None:
+        """The next message, or None after ``timeout`` seconds without one."""
+
+
+@dataclass(frozen=True)
+class RoundPlan:
+    """One exchange round: its id, mission time and the robots in range."""
+
+    round: int
+    time_s: float
+    group: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class _Task:
+    """A candidate this robot registers: its keyframe and the peer's."""
+
+    keyframe: int
+    peer: int
+    other: int
+
+
+class _Left(Exception):
+    """Raised inside a round when the robot drops out (failure injection)."""
+
+
+class Robot:
+    """A robot with its odometry, keyframes, prior and radio link.
+
+    Args:
+        robot: robot id.
+        agent: its opened agent input (needs ``odometry.txt``).
+        prior: the prior (shared between threads in single-process mode).
+        recognizer: place recognition.
+        config: main configuration (image size, calibration use).
+        settings: decentralized configuration.
+        link: radio link to the router.
+        needs_K: pass the agent's intrinsics to the prior (the simulated prior needs them).
+        leave: ``(round, phase)`` at which the robot drops out, for failure injection.
+    """
+
+    def __init__(self, robot: int, agent: AgentInput, prior: Prior, recognizer: PlaceRecognizer,
+                 config: Config, settings: DecentralizedConfig, link: Link, needs_K: bool,
+                 leave: tuple[int, str] | None = None) -> None:
+        self.robot = robot
+        self.agent = agent
+        self.settings = settings
+        self.link = link
+        self.leave = leave
+        self.keyframes = select_keyframes(frame_odometry(agent), settings.keyframe_distance_m)
+        self._long_side = config.input.long_side
+        self._calib = agent.calib if needs_K else None
+        self.recognizer = recognizer
+        self.registrar = Registrar(prior, robot, self._view, settings.registration)
+        self.odometry = self.keyframes.T_OC.numpy()
+        self.estimate = np.zeros((0, 8))
+        self.frame = robot
+        self.loops: list[LoopClosure] = []
+        self.rejected: list[LoopClosure] = []
+        self.candidates = 0
+        self.timeouts = 0
+        self._descriptors: list[np.ndarray] = []
+        self._peer_descriptors: dict[int, dict[int, np.ndarray]] = defaultdict(dict)
+        self._sent: dict[int, int] = defaultdict(int)
+        self._handled: dict[int, set[tuple[int, int]]] = defaultdict(set)
+        self._got_descriptors: set[tuple[int, int]] = set()
+        self._got_requests: set[tuple[int, int]] = set()
+        self._shares: dict[int, dict[int, PoseGraphShare]] = defaultdict(dict)
+        self._estimates: dict[int, PoseEstimate] = {}
+
+    # ------------------------------------------------------------------ running
+
+    def run(self, rounds: list[RoundPlan]) -> RobotReport:
+        """Take part in ``rounds`` (those whose group holds this robot), then report."""
+        left = False
+        for plan in rounds:
+            if self.robot not in plan.group:
+                continue
+            try:
+                self._round(plan)
+            except _Left:
+                logger.info("robot %d leaves during round %d", self.robot, plan.round)
+                left = True
+                break
+        return self.report(left)
+
+    def report(self, left: bool = False) -> RobotReport:
+        """The robot's final state for the driver."""
+        stats: dict[str, float] = {**self.registrar.stats.to_json(),
+                                   "keyframes": len(self.keyframes),
+                                   "candidates": self.candidates,
+                                   "loops": len(self.loops), "rejected": len(self.rejected),
+                                   "timeouts": self.timeouts}
+        return RobotReport(sender=self.robot, recipient=DRIVER, estimate=self.estimate,
+                           frame=self.frame, loops=list(self.loops),
+                           rejected=list(self.rejected), stats=stats, left=left)
+
+    def _round(self, plan: RoundPlan) -> None:
+        r, t = plan.round, plan.time_s
+        peers = [p for p in plan.group if p != self.robot]
+        count = self.keyframes.up_to(t)
+        self._check_leave(r, "descriptors")
+        self._send_descriptors(r, t, peers, count)
+        self._wait(lambda: all((r, p) in self._got_descriptors for p in peers))
+        present = [p for p in peers if (r, p) in self._got_descriptors]
+        leader = min([self.robot, *present])
+        self._check_leave(r, "registration")
+        tasks = self._candidates(present, count)
+        self._request_encodings(r, t, tasks, present)
+        self._wait(lambda: all((r, p) in self._got_requests for p in present)
+                   and all(self.registrar.has_foreign(k.peer, k.other) for k in tasks))
+        self._register(tasks, count)
+        # A peer whose request never came is gone for this round: nobody waits for it again.
+        present = [p for p in present if (r, p) in self._got_requests or p == leader]
+        participants = sorted([self.robot, *present])
+        if self.robot == leader:
+            self._wait(lambda: all(p in self._shares[r] for p in present))
+            self._check_leave(r, "optimisation")
+            self._solve_and_broadcast(r, t, present, self._share(r, t, leader, participants,
+                                                                 count))
+        else:
+            self._check_leave(r, "optimisation")
+            self.link.send(self._share(r, t, leader, participants, count))
+            # The elected robot may itself wait up to one timeout for a slower peer's share.
+            if self._wait(lambda: r in self._estimates, timeouts=2):
+                self._apply(self._estimates[r])
+
+    def _check_leave(self, r: int, phase: str) -> None:
+        if self.leave is not None and self.leave == (r, phase):
+            raise _Left
+
+    # ------------------------------------------------------------------ messages
+
+    def _wait(self, done: Callable[[], bool], timeouts: int = 1) -> bool:
+        """Handle incoming messages until ``done()`` or ``timeouts`` message timeouts have
+        passed; whether it is done."""
+        deadline = time.monotonic() + timeouts * self.settings.protocol.message_timeout_s
+        while not done():
+            remaining = deadline - time.monotonic()
+            message = self.link.receive(remaining) if remaining > 0 else None
+            if message is None:
+                self.timeouts += 1
+                logger.warning("robot %d: timed out waiting for its peers", self.robot)
+                return False
+            self._handle(message)
+        return True
+
+    def _handle(self, message: Any) -> None:
+        sender = message.sender
+        if isinstance(message, PlaceDescriptors):
+            for k, descriptor in enumerate(message.descriptors, start=message.first):
+                self._peer_descriptors[sender][k] = descriptor
+            self._got_descriptors.add((message.round, sender))
+        elif isinstance(message, EncodingRequest):
+            for keyframe in message.keyframes:
+                if 0 <= keyframe < len(self.keyframes):
+                    self.link.send(EncodingReply(
+                        sender=self.robot, recipient=sender, round=message.round,
+                        time_s=message.time_s, keyframe=keyframe,
+                        encoding=self.registrar.encoding_for_peer(keyframe)))
+            self._got_requests.add((message.round, sender))
+        elif isinstance(message, EncodingReply):
+            if isinstance(message.encoding, Encoding):
+                self.registrar.add_foreign(sender, message.keyframe, message.encoding)
+        elif isinstance(message, PoseGraphShare):
+            self._shares[message.round][sender] = message
+        elif isinstance(message, PoseEstimate):
+            self._estimates[message.round] = message
+
+    def _view(self, keyframe: int) -> View:
+        frame = self.agent.load_frame(int(self.keyframes.frames[keyframe]))
+        return make_view(frame, self.robot, self._long_side, self._calib)
+
+    def _send_descriptors(self, r: int, t: float, peers: list[int], count: int) -> None:
+        for k in range(len(self._descriptors), count):
+            encoding = self.registrar.own_encoding(k)
+            self._descriptors.append(
+                self.recognizer.describe(*self.registrar.prior.retrieval_features(encoding)))
+        for peer in peers:
+            first = self._sent[peer]
+            self.link.send(PlaceDescriptors(sender=self.robot, recipient=peer, round=r, time_s=t,
+                                            first=first, descriptors=self._descriptors[first:count]))
+            self._sent[peer] = max(first, count)
+
+    def _known_peer_descriptors(self, peer: int) -> list[np.ndarray]:
+        """The peer's descriptors of keyframes 0, 1, ... without a gap."""
+        known = self._peer_descriptors[peer]
+        out = []
+        while len(out) in known:
+            out.append(known[len(out)])
+        return out
+
+    def _candidates(self, present: list[int], count: int) -> list[_Task]:
+        """The candidates of every pair with a present peer that this robot registers."""
+        tasks = []
+        mine = self._descriptors[:count]
+        for peer in present:
+            theirs = self._known_peer_descriptors(peer)
+            lower = self.robot < peer
+            rows, cols = (mine, theirs) if lower else (theirs, mine)
+            similarity = self.recognizer.similarity(rows, cols)
+            found = candidate_pairs(similarity, self.settings.place_threshold, self._handled[peer])
+            self._handled[peer].update((c.row, c.col) for c in found)
+            for c in found:
+                if c.by_row == lower:
+                    keyframe, other = (c.row, c.col) if lower else (c.col, c.row)
+                    tasks.append(_Task(keyframe, peer, other))
+        self.candidates += len(tasks)
+        return tasks
+
+    def _request_encodings(self, r: int, t: float, tasks: list[_Task], present: list[int]) -> None:
+        for peer in present:
+            needed = sorted({k.other for k in tasks if k.peer == peer
+                             and not self.registrar.has_foreign(peer, k.other)})
+            self.link.send(EncodingRequest(sender=self.robot, recipient=peer, round=r, time_s=t,
+                                           keyframes=needed))
+
+    # ------------------------------------------------------------------ registration
+
+    def _register(self, tasks: list[_Task], count: int) -> None:
+        """Register each candidate whose encoding arrived; keep it if it passes F-Eq. 1."""
+        for task in tasks:
+            if not self.registrar.has_foreign(task.peer, task.other):
+                continue
+            registration = self.registrar.register(task.keyframe, task.peer, task.other)
+            neighbour, consecutive = self.registrar.consecutive(task.keyframe, count)
+            ratio = correspondence_ratio(registration.correspondences,
+                                         consecutive.correspondences)
+            loop = LoopClosure(
+                robot_a=self.robot, keyframe_a=task.keyframe, robot_b=task.peer,
+                keyframe_b=task.other,
+                T_ab=(np.zeros(8) if registration.T_ij is None
+                      else registration.T_ij.double().numpy()),
+                odometry_scale=self._odometry_scale(task.keyframe, neighbour, consecutive.T_ij),
+                ratio=ratio, probability=loop_probability(ratio, self.settings.confidence_k),
+                correspondences=registration.correspondences)
+            if registration.T_ij is not None and accept_loop(ratio, self.settings.ratio_threshold):
+                self.loops.append(loop)
+            else:
+                self.rejected.append(loop)
+
+    def _odometry_scale(self, keyframe: int, neighbour: int, T_prior: Any) -> float:
+        """F-Eq. 6: odometry distance over prior distance of the odometry pair (NaN if none)."""
+        if T_prior is None:
+            return float("nan")
+        prior_distance = float(T_prior[:3].norm())
+        odometry_distance = float(np.linalg.norm(self.odometry[keyframe, :3]
+                                                 - self.odometry[neighbour, :3]))
+        if prior_distance <= 0 or odometry_distance <= 0:
+            return float("nan")
+        return odometry_distance / prior_distance
+
+    # ------------------------------------------------------------------ pose graph
+
+    def _share(self, r: int, t: float, leader: int, participants: list[int],
+               count: int) -> PoseGraphShare:
+        loops = [loop for loop in self.loops if loop.robot_b in participants]
+        return PoseGraphShare(sender=self.robot, recipient=leader, round=r, time_s=t,
+                              odometry=self.odometry[:count], estimate=self.estimate[:count],
+                              frame=self.frame, loops=loops)
+
+    def _solve_and_broadcast(self, r: int, t: float, present: list[int],
+                             own: PoseGraphShare) -> None:
+        """The elected robot's step: solve every connected group, answer every robot."""
+        shares = {self.robot: own, **{p: self._shares[r][p] for p in present
+                                      if p in self._shares[r]}}
+        updates = solve_shares(shares, self.settings)
+        # Every robot present gets an answer, empty when it has no update, so none waits.
+        for robot in sorted([self.robot, *present]):
+            poses, frame = updates.get(robot, (np.zeros((0, 8)), -1))
+            estimate = PoseEstimate(sender=self.robot, recipient=robot, round=r, time_s=t,
+                                    poses=poses, frame=frame)
+            if robot == self.robot:
+                self._apply(estimate)
+            else:
+                self.link.send(estimate)
+
+    def _apply(self, estimate: PoseEstimate) -> None:
+        if len(estimate.poses):
+            self.estimate = np.asarray(estimate.poses, dtype=np.float64)
+            self.frame = estimate.frame
+
+
+def solve_shares(shares: dict[int, PoseGraphShare], settings: DecentralizedConfig,
+                 formulation: str | None = None,
+                 solver: str | None = None) -> dict[int, tuple[np.ndarray, int]]:
+    """Solve the pose graph of every group of robots connected by loops.
+
+    Each group is anchored on its smallest robot id, at that robot's current estimate (or
+    odometry) of its first keyframe, so the group joins the anchor's frame.
+
+    Args:
+        shares: every participating robot's share, by robot id.
+        settings: decentralized configuration (its formulation and solver by default).
+        formulation, solver: override the configured ones.
+
+    Returns:
+        robot -> (``(K, 8)`` poses, frame id) for every robot in a group of two or more.
+    """
+    graph_config = settings.pose_graph
+    loops = [loop for share in shares.values() for loop in share.loops
+             if loop.robot_a in shares and loop.robot_b in shares]
+    updates: dict[int, tuple[np.ndarray, int]] = {}
+    for component in connected_components(sorted(shares), loops):
+        if len(component) < 2:
+            continue
+        anchor = shares[component[0]]
+        frame = anchor.frame
+        anchor_pose = anchor.estimate[0] if len(anchor.estimate) else anchor.odometry[0]
+        problem = PoseGraphProblem(
+            odometry={r: shares[r].odometry for r in component},
+            loops=[loop for loop in loops if loop.robot_a in component],
+            anchor=component[0], anchor_pose=anchor_pose,
+            initial={r: shares[r].estimate for r in component
+                     if shares[r].frame == frame and len(shares[r].estimate)})
+        try:
+            solution = solve_pose_graph(problem, formulation or graph_config.formulation,
+                                        solver or graph_config.solver, graph_config)
+        except SolverError as exc:
+            logger.warning("robots %s: %s; estimates unchanged", component, exc)
+            continue
+        for robot in component:
+            updates[robot] = (solution.poses[robot], frame)
+    return updates

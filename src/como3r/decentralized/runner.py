@@ -1,0 +1,299 @@
+"""``como3r run --mode decentralized``: FLOCC-SLAM over agent inputs, end to end.
+
+:func:`run_decentralized` validates every input (each needs ``odometry.txt``), runs the
+robots (:func:`~como3r.decentralized.protocol.run_protocol`), and writes the output folder
+(DESIGN.md, "A run output folder"):
+
+* ``trajectories/agent_<a>.txt`` every frame with odometry, ``keyframes/agent_<a>.txt``,
+  in the frame the robot ended in (robots that met share one);
+* ``graph.json``: keyframes, accepted and rejected loop closures, frame groups;
+* ``metrics.json``: bytes per robot and message type, encode/decode counts and the
+  two-stage saving (F-Fig. 4), loop statistics, ATE per robot and merged (when every agent
+  has ground truth), and the table of F-Tables II-III: every formulation with LM and GNC
+  on the final multi-robot graph (all loops of the mission), with its merged ATE and
+  solver time;
+* ``config.yaml`` and, with ground truth, ``ate.json`` and ``trajectories.png``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import yaml
+
+from como3r.config import Config, config_to_dict
+from como3r.data.agent import AgentInput, open_agent
+from como3r.decentralized.config import (
+    FORMULATIONS,
+    SOLVERS,
+    DecentralizedConfig,
+    check_config,
+)
+from como3r.decentralized.keyframes import (
+    FrameOdometry,
+    Keyframes,
+    frame_odometry,
+    frame_poses,
+    select_keyframes,
+)
+from como3r.decentralized.messages import RobotReport
+from como3r.decentralized.pose_graph import (
+    LoopClosure,
+    PoseGraphProblem,
+    connected_components,
+    solve_pose_graph,
+)
+from como3r.decentralized.protocol import ProtocolResult, Schedule, run_protocol
+from como3r.errors import Como3rError, InputError
+from como3r.io.output import atomic_output_dir
+from como3r.io.tum import Trajectory, write_tum
+from como3r.prior.base import Prior
+
+
+
+@dataclasses.dataclass
+class _Robot:
+    """The driver's view of one robot: its input, odometry and keyframes."""
+
+    agent: AgentInput
+    odometry: FrameOdometry
+    keyframes: Keyframes
+
+
+def run_decentralized(
+    agent_paths: Sequence[str | Path],
+    out: str | Path,
+    config: Config,
+    prior_spec: Any,
+    decentralized: DecentralizedConfig | None = None,
+    overwrite: bool = False,
+    schedule: Schedule | None = None,
+    prior: Prior | None = None,
+    leave: dict[int, tuple[int, str]] | None = None,
+) -> Any:
+    """Run the decentralized mode and write the output folder.
+
+    Args:
+        agent_paths: one agent input per robot (robot ids in this order); each needs
+            ``odometry.txt``.
+        out: output folder (created atomically).
+        config: main configuration (image size, simulated prior, retrieval).
+        prior_spec: :class:`~como3r.runtime.pipeline.PriorSpec`.
+        decentralized: mode configuration; default ``config.decentralized`` if the main
+            configuration has that section, else the defaults.
+        overwrite: replace an existing non-empty output folder.
+        schedule: rendezvous schedule; default from ``protocol.schedule``.
+        prior: a prior shared by robot threads (``protocol.processes`` false only).
+        leave: robot -> ``(round, phase)`` at which it drops out (failure injection).
+
+    Returns:
+        A :class:`~como3r.runtime.pipeline.RunSummary` (output folder, per-robot rows,
+        evaluation, notes).
+
+    Raises:
+        InputError: a missing or malformed input (before any work starts).
+        ConfigError: an invalid decentralized setting.
+    """
+    from como3r.runtime.pipeline import RunSummary
+
+    settings = decentralized or getattr(config, "decentralized", None) or DecentralizedConfig()
+    check_config(settings)
+    if not agent_paths:
+        raise InputError("no --agent given")
+    robots = [_open_robot(path, config, settings) for path in agent_paths]
+    end_s = max(float(r.odometry.timestamps[-1]) for r in robots)
+    started = time.perf_counter()
+    result = run_protocol([str(p) for p in agent_paths], config, settings, prior_spec, end_s,
+                          schedule, prior, leave)
+    failed = {r: report.error for r, report in result.reports.items() if report.error}
+    if len(failed) == len(robots):
+        raise Como3rError(f"every robot failed; robot 0: {failed[0].splitlines()[0]}")
+    summary = RunSummary(out=Path(out))
+    summary.notes += [f"robot {r} failed: {error.splitlines()[0]}" for r, error in failed.items()]
+    with atomic_output_dir(out, overwrite=overwrite) as staging:
+        _write(staging, robots, result, config, settings, summary,
+               time.perf_counter() - started)
+    summary.out = Path(out)
+    return summary
+
+
+def _open_robot(path: str | Path, config: Config, settings: DecentralizedConfig) -> _Robot:
+    agent = open_agent(path, fps=config.input.frame_rate_hz)
+    odometry = frame_odometry(agent)
+    return _Robot(agent, odometry, select_keyframes(odometry, settings.keyframe_distance_m))
+
+
+def _frame_groups(reports: dict[int, RobotReport], count: int) -> list[list[int]]:
+    """Robots grouped by the frame their final estimate is expressed in."""
+    groups: dict[int, list[int]] = defaultdict(list)
+    for robot in range(count):
+        report = reports.get(robot)
+        groups[report.frame if report is not None else robot].append(robot)
+    return sorted(groups.values())
+
+
+def _write(staging: Path, robots: list[_Robot], result: ProtocolResult, config: Config,
+           settings: DecentralizedConfig, summary: Any, seconds: float) -> None:
+    from como3r.runtime.outputs import write_json
+
+    reports = result.reports
+    document = {**config_to_dict(config), "decentralized": dataclasses.asdict(settings)}
+    (staging / "config.yaml").write_text(yaml.safe_dump(document, sort_keys=False))
+    estimates = [reports[r].estimate if r in reports else np.zeros((0, 8))
+                 for r in range(len(robots))]
+    for r, (robot, estimate) in enumerate(zip(robots, estimates)):
+        poses = frame_poses(robot.odometry, robot.keyframes, estimate)
+        write_tum(staging / "trajectories" / f"agent_{r}.txt", robot.odometry.timestamps, poses)
+        write_tum(staging / "keyframes" / f"agent_{r}.txt", robot.keyframes.timestamps,
+                  poses[robot.keyframes.rows])
+    groups = _frame_groups(reports, len(robots))
+    loops = [loop for r in sorted(reports) for loop in reports[r].loops]
+    rejected = [loop for r in sorted(reports) for loop in reports[r].rejected]
+    metrics: dict[str, Any] = {
+        "mode": "decentralized",
+        "seconds": seconds,
+        "protocol_seconds": result.seconds,
+        "rounds": [{"round": p.round, "time_s": p.time_s, "group": list(p.group)}
+                   for p in result.rounds],
+        "frame_groups": groups,
+        "bytes": result.traffic.to_json(range(len(robots))),
+        "robots": [_robot_metrics(r, reports.get(r)) for r in range(len(robots))],
+        "two_stage": _two_stage(reports),
+        "loops": _loop_statistics(loops, rejected),
+    }
+    has_gt = all(r.agent.groundtruth is not None for r in robots)
+    table_weights: dict[tuple, float] = {}
+    if settings.table and has_gt and loops:
+        metrics["table"], table_weights = _formulation_table(robots, loops, settings)
+    write_json(staging / "graph.json", _graph_document(robots, estimates, loops, rejected,
+                                                       groups, table_weights))
+    for r, robot in enumerate(robots):
+        stats = reports[r].stats if r in reports else {}
+        summary.agents.append({"agent": r, "keyframes": len(robot.keyframes),
+                               "loops": int(stats.get("loops", 0)),
+                               "rejected": int(stats.get("rejected", 0)),
+                               "frame": groups.index(next(g for g in groups if r in g))})
+    if has_gt:
+        from como3r.evaluation.report import evaluate_run
+
+        evaluation = evaluate_run(staging, [r.agent.root for r in robots], staging,
+                                  components=groups if len(groups) > 1 else None)
+        metrics["ate"] = evaluation.to_json()
+        summary.evaluation = evaluation
+    else:
+        summary.notes.append("no ground truth for every agent: ATE not computed")
+    write_json(staging / "metrics.json", metrics)
+
+
+def _robot_metrics(robot: int, report: RobotReport | None) -> dict[str, Any]:
+    if report is None:
+        return {"robot": robot, "error": "no report"}
+    return {"robot": robot, **report.stats, "frame": report.frame, "left": report.left,
+            "error": report.error}
+
+
+def _two_stage(reports: dict[int, RobotReport]) -> dict[str, float]:
+    """F-Fig. 4: encodes of the two-stage scheme versus encoding both images of every pair."""
+    naive = sum(r.stats.get("naive_encodes", 0) for r in reports.values())
+    used = sum(r.stats.get("registration_encodes", 0) for r in reports.values())
+    encodes = sum(r.stats.get("encodes", 0) for r in reports.values())
+    encode_seconds = sum(r.stats.get("encode_seconds", 0.0) for r in reports.values())
+    mean = encode_seconds / encodes if encodes else 0.0
+    return {"naive_encodes": naive, "two_stage_encodes": used,
+            "saved_encodes": naive - used,
+            "saved_fraction": (naive - used) / naive if naive else 0.0,
+            "mean_encode_seconds": mean,
+            "saved_seconds_estimate": (naive - used) * mean,
+            "all_encodes_including_place_descriptors": encodes}
+
+
+def _loop_statistics(loops: list[LoopClosure], rejected: list[LoopClosure]) -> dict[str, Any]:
+    ratios = np.array([loop.ratio for loop in loops]) if loops else np.zeros(0)
+    return {"accepted": len(loops), "rejected": len(rejected),
+            "ratio_median": float(np.median(ratios)) if loops else None,
+            "probability_mean": float(np.mean([l.probability for l in loops])) if loops else None}
+
+
+def _formulation_table(robots: list[_Robot], loops: list[LoopClosure],
+                       settings: DecentralizedConfig) -> tuple[list[dict[str, Any]], dict]:
+    """Every formulation x solver on the mission's full graph (F-Tables II-III).
+
+    Each group of robots connected by loops is anchored on its smallest id at its odometry
+    origin; the merged ATE (one Sim(3) per group) is computed against ground truth, which
+    the solve never sees.
+
+    Returns:
+        The table rows and the GNC weight of every loop for the configured formulation,
+        keyed by ``(robot_a, keyframe_a, robot_b, keyframe_b)``.
+    """
+    from como3r.evaluation.trajectory import associate, merged_errors_by_component
+
+    components = [c for c in connected_components(list(range(len(robots))), loops) if len(c) > 1]
+    rows, weights = [], {}
+    for formulation in FORMULATIONS:
+        for solver in SOLVERS:
+            estimates = [np.zeros((0, 8)) for _ in robots]
+            seconds, inliers = 0.0, 0
+            try:
+                for component in components:
+                    problem = PoseGraphProblem(
+                        odometry={r: robots[r].keyframes.T_OC.numpy() for r in component},
+                        loops=[l for l in loops if l.robot_a in component],
+                        anchor=component[0],
+                        anchor_pose=robots[component[0]].keyframes.T_OC[0].numpy())
+                    solution = solve_pose_graph(problem, formulation, solver, settings.pose_graph)
+                    seconds += solution.seconds
+                    inliers += int((solution.loop_weights > 0.5).sum())
+                    for r in component:
+                        estimates[r] = solution.poses[r]
+                    if (formulation, solver) == (settings.pose_graph.formulation, "gnc"):
+                        weights.update({_loop_key(l): float(w) for l, w in
+                                        zip(problem.loops, solution.loop_weights)})
+            except Como3rError as exc:
+                rows.append({"formulation": formulation, "solver": solver, "error": str(exc)})
+                continue
+            pairs = [associate(Trajectory(r.odometry.timestamps,
+                                          frame_poses(r.odometry, r.keyframes, e)),
+                               r.agent.groundtruth, f"agent_{k}", str(r.agent.root))
+                     for k, (r, e) in enumerate(zip(robots, estimates))]
+            merged = merged_errors_by_component(pairs, components)
+            rows.append({"formulation": formulation, "solver": solver,
+                         "merged_ate_rmse": [m.ate.rmse for m in merged],
+                         "merged_ate_mean": [m.ate.mean for m in merged],
+                         "merged_ate_std": [m.ate.std for m in merged],
+                         "groups": [list(m.agents) for m in merged],
+                         "seconds": seconds, "loops": len(loops), "inlier_loops": inliers})
+    return rows, weights
+
+
+def _loop_key(loop: LoopClosure) -> tuple[int, int, int, int]:
+    return loop.robot_a, loop.keyframe_a, loop.robot_b, loop.keyframe_b
+
+
+def _graph_document(robots: list[_Robot], estimates: list[np.ndarray], loops: list[LoopClosure],
+                    rejected: list[LoopClosure], groups: list[list[int]],
+                    weights: dict) -> dict[str, Any]:
+    keyframes = []
+    for r, (robot, estimate) in enumerate(zip(robots, estimates)):
+        poses = frame_poses(robot.odometry, robot.keyframes, estimate)[robot.keyframes.rows]
+        for k in range(len(robot.keyframes)):
+            keyframes.append({"agent": r, "keyframe": k, "frame": int(robot.keyframes.frames[k]),
+                              "timestamp": float(robot.keyframes.timestamps[k]),
+                              "T_WC": poses[k].tolist()})
+    edges = []
+    for accepted, group in ((True, loops), (False, rejected)):
+        for loop in group:
+            edge = {"type": "inter", "from": [loop.robot_a, loop.keyframe_a],
+                    "to": [loop.robot_b, loop.keyframe_b], "accepted": accepted,
+                    "ratio": loop.ratio, "probability": loop.probability,
+                    "correspondences": loop.correspondences,
+                    "odometry_scale": loop.odometry_scale}
+            if _loop_key(loop) in weights:
+                edge["gnc_weight"] = weights[_loop_key(loop)]
+            edges.append(edge)
+    return {"keyframes": keyframes, "edges": edges, "components": groups}

@@ -1,0 +1,488 @@
+"""Typed, versioned, pickle-free encoding of messages (DESIGN.md, "Conventions").
+
+Processes share nothing but messages; a message is a registered dataclass encoded by
+:func:`encode` into one msgpack document and rebuilt by :func:`decode`, which only ever
+instantiates classes of :data:`REGISTRY` and validates everything it reads.
+
+Wire format (msgpack, every map carries a ``"#"`` tag):
+
+* ``None``, ``bool``, ``int``, ``float``, ``str``, ``bytes`` and lists: msgpack natives;
+* tuple: ``{"#": "tuple", "items": [...]}``;
+* dict (``str`` or ``int`` keys): ``{"#": "dict", "items": [[key, value], ...]}``;
+* ``np.ndarray`` / ``torch.Tensor``: ``{"#": "ndarray" | "tensor", "dtype": name,
+  "shape": [...], "data": raw little-endian bytes}``, dtype from :data:`ARRAY_DTYPES`
+  (tensors come back on the CPU, detached);
+* registered dataclass: ``{"#": "object", "type": name, "version": v, "fields": {...}}``.
+
+Decoding rejects with :class:`MessageError`: input over the size cap, anything that is not
+well-formed msgpack (pickle bytes, garbage, truncation), untagged or unknown maps, types not
+in the registry, a version other than the registered one, a field set other than the
+dataclass's, field values that do not match the dataclass's annotations, dtypes outside the
+allow-list, shapes that disagree with the byte count, and whatever the per-type checks of
+:func:`add_check` reject (shapes and ranges the receiver relies on, see
+:mod:`como3r.runtime.messages`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import math
+import types
+import typing
+from dataclasses import dataclass
+from typing import Any, Callable, Union
+
+import msgpack
+import numpy as np
+import torch
+from torch import Tensor
+
+from como3r.errors import Como3rError
+
+DEFAULT_MAX_BYTES = 256 * 2**20
+"""Default cap on the size of one encoded message (256 MiB)."""
+
+MAX_DEPTH = 32
+"""Deepest nesting of containers and dataclasses a message may have."""
+
+MAX_NDIM = 8
+"""Most dimensions an array may have."""
+
+MAX_ELEMENTS = 2**40
+"""Bound on the product of an array's non-zero dimensions (also for empty arrays, whose
+other dimensions could otherwise be arbitrarily large)."""
+
+TAG = "#"
+
+ARRAY_DTYPES: dict[str, tuple[np.dtype | None, torch.dtype]] = {
+    "bool": (np.dtype(np.bool_), torch.bool),
+    "uint8": (np.dtype("<u1"), torch.uint8),
+    "int8": (np.dtype("<i1"), torch.int8),
+    "int16": (np.dtype("<i2"), torch.int16),
+    "int32": (np.dtype("<i4"), torch.int32),
+    "int64": (np.dtype("<i8"), torch.int64),
+    "float16": (np.dtype("<f2"), torch.float16),
+    "float32": (np.dtype("<f4"), torch.float32),
+    "float64": (np.dtype("<f8"), torch.float64),
+    "bfloat16": (None, torch.bfloat16),  # tensors only: numpy has no bfloat16
+}
+"""Allow-list of array dtypes: wire name -> (little-endian numpy dtype, torch dtype)."""
+
+_TORCH_NAMES = {torch_dtype: name for name, (_, torch_dtype) in ARRAY_DTYPES.items()}
+_NUMPY_NAMES = {np_dtype.newbyteorder("="): name for name, (np_dtype, _) in ARRAY_DTYPES.items()
+                if np_dtype is not None}
+
+
+class MessageError(Como3rError):
+    """A message that cannot be encoded, or bytes that are not a valid message."""
+
+
+@dataclass(frozen=True)
+class MessageType:
+    """One entry of the registry.
+
+    Attributes:
+        name: the type's name on the wire.
+        path: ``"module:QualName"`` of the dataclass (imported on first use).
+        version: the schema version; decoding any other version is an error.
+    """
+
+    name: str
+    path: str
+    version: int
+
+
+REGISTRY: dict[str, MessageType] = {}
+"""Every type :func:`decode` may instantiate, by wire name."""
+
+_BY_PATH: dict[str, MessageType] = {}
+_RESOLVED: dict[str, type] = {}
+_HINTS: dict[type, dict[str, Any]] = {}
+_CHECKS: dict[str, Callable[[Any], None]] = {}
+
+
+def register(target: type | str, *, version: int = 1, name: str | None = None) -> None:
+    """Allow a dataclass on the wire.
+
+    Args:
+        target: the dataclass, or its ``"module:QualName"`` path (imported lazily, so an
+            optional dependency such as the MASt3R prior costs nothing until used).
+        version: schema version; a class with a ``version`` field must default it to this.
+        name: wire name (default: the class name).
+
+    Raises:
+        ValueError: the name is taken by a different class or version.
+        TypeError: the class is not a dataclass or its ``version`` default differs.
+    """
+    path = target if isinstance(target, str) else f"{target.__module__}:{target.__qualname__}"
+    wire_name = name or path.rpartition(":")[2].rpartition(".")[2]
+    entry = MessageType(wire_name, path, int(version))
+    known = REGISTRY.get(wire_name)
+    if known is not None and known != entry:
+        raise ValueError(f"message type name {wire_name!r} already registered as "
+                         f"{known.path} version {known.version}")
+    if not isinstance(target, str):
+        _check_registrable(target, entry)
+        _RESOLVED[wire_name] = target
+    REGISTRY[wire_name] = entry
+    _BY_PATH[path] = entry
+
+
+def add_check(name: str, check: Callable[[Any], None]) -> None:
+    """Run ``check(obj)`` on every decoded ``name`` (shape and range checks beyond types).
+
+    ``check`` raises :class:`MessageError` (or ``ValueError``) naming what is wrong.
+    """
+    if name not in REGISTRY:
+        raise ValueError(f"no registered message type {name!r}")
+    _CHECKS[name] = check
+
+
+def _resolve(entry: MessageType) -> type:
+    """The class of a registry entry, importing its module on first use."""
+    cls = _RESOLVED.get(entry.name)
+    if cls is None:
+        module, _, qualname = entry.path.partition(":")
+        try:
+            obj: Any = importlib.import_module(module)
+            for part in qualname.split("."):
+                obj = getattr(obj, part)
+        except (ImportError, AttributeError) as exc:
+            raise MessageError(
+                f"message type {entry.name} ({entry.path}) is not available here: {exc}"
+            ) from None
+        cls = obj
+        _check_registrable(cls, entry)
+        _RESOLVED[entry.name] = cls
+    return cls
+
+
+def _check_registrable(cls: type, entry: MessageType) -> None:
+    """A registered class is a dataclass whose ``version`` default, if any, matches."""
+    if not dataclasses.is_dataclass(cls):
+        raise TypeError(f"{entry.path} is not a dataclass")
+    for f in dataclasses.fields(cls):
+        if f.name == "version" and f.default != entry.version:
+            raise TypeError(f"{entry.path}.version defaults to {f.default}, "
+                            f"registered as version {entry.version}")
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    if cls not in _HINTS:
+        _HINTS[cls] = typing.get_type_hints(cls)
+    return _HINTS[cls]
+
+
+def _init_fields(cls: type) -> list[dataclasses.Field]:
+    return [f for f in dataclasses.fields(cls) if f.init]
+
+
+# ----------------------------------------------------------------------------- encoding
+
+
+def encode(message: Any, *, max_bytes: int = DEFAULT_MAX_BYTES) -> bytes:
+    """Encode a registered dataclass instance.
+
+    Raises:
+        MessageError: unregistered type, unsupported value, or the encoding exceeds
+            ``max_bytes``.
+    """
+    if not dataclasses.is_dataclass(message) or isinstance(message, type):
+        raise MessageError("only registered dataclasses are messages, "
+                           f"got {type(message).__name__}")
+    tree = _to_wire(message, type(message).__name__, 0)
+    try:
+        data = msgpack.packb(tree, use_bin_type=True)
+    except (ValueError, TypeError, OverflowError) as exc:
+        raise MessageError(f"cannot encode {type(message).__name__}: {exc}") from None
+    if len(data) > max_bytes:
+        raise MessageError(f"{type(message).__name__} encodes to {len(data)} bytes, "
+                           f"over the cap of {max_bytes} bytes")
+    return data
+
+
+def _to_wire(value: Any, path: str, depth: int) -> Any:
+    if depth > MAX_DEPTH:
+        raise MessageError(f"{path}: nested deeper than {MAX_DEPTH}")
+    if value is None or isinstance(value, (bool, int, float, str, bytes)):
+        return value
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Tensor):
+        return _array_to_wire("tensor", *_tensor_bytes(value, path))
+    if isinstance(value, np.ndarray):
+        return _array_to_wire("ndarray", *_ndarray_bytes(value, path))
+    if isinstance(value, list):
+        return [_to_wire(v, f"{path}[{i}]", depth + 1) for i, v in enumerate(value)]
+    if isinstance(value, tuple):
+        return {TAG: "tuple", "items": [_to_wire(v, f"{path}[{i}]", depth + 1)
+                                        for i, v in enumerate(value)]}
+    if isinstance(value, dict):
+        items = [[_dict_key(k, path), _to_wire(v, f"{path}[{k!r}]", depth + 1)]
+                 for k, v in value.items()]
+        return {TAG: "dict", "items": items}
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return _object_to_wire(value, path, depth)
+    raise MessageError(f"{path}: cannot encode a {type(value).__name__}")
+
+
+def _dict_key(key: Any, path: str) -> str | int:
+    if isinstance(key, bool) or not isinstance(key, (str, int)):
+        raise MessageError(f"{path}: dict keys must be str or int, got {type(key).__name__}")
+    return key
+
+
+def _object_to_wire(value: Any, path: str, depth: int) -> dict[str, Any]:
+    cls = type(value)
+    entry = _BY_PATH.get(f"{cls.__module__}:{cls.__qualname__}")
+    if entry is None:
+        raise MessageError(f"{path}: type {cls.__qualname__} is not a registered message type")
+    _RESOLVED.setdefault(entry.name, cls)
+    fields = {f.name: _to_wire(getattr(value, f.name), f"{path}.{f.name}", depth + 1)
+              for f in _init_fields(cls)}
+    return {TAG: "object", "type": entry.name, "version": entry.version, "fields": fields}
+
+
+def _tensor_bytes(value: Tensor, path: str) -> tuple[str, list[int], bytes]:
+    name = _TORCH_NAMES.get(value.dtype)
+    if name is None:
+        raise MessageError(f"{path}: tensor dtype {value.dtype} is not allowed on the wire")
+    tensor = value.detach().cpu().contiguous()
+    raw = tensor.view(torch.int16) if tensor.dtype == torch.bfloat16 else tensor
+    return name, list(tensor.shape), raw.numpy().tobytes()
+
+
+def _ndarray_bytes(value: np.ndarray, path: str) -> tuple[str, list[int], bytes]:
+    name = _NUMPY_NAMES.get(value.dtype.newbyteorder("="))
+    if name is None:
+        raise MessageError(f"{path}: array dtype {value.dtype} is not allowed on the wire")
+    little = np.ascontiguousarray(value, dtype=ARRAY_DTYPES[name][0])
+    return name, list(value.shape), little.tobytes()
+
+
+def _array_to_wire(kind: str, dtype: str, shape: list[int], data: bytes) -> dict[str, Any]:
+    return {TAG: kind, "dtype": dtype, "shape": shape, "data": data}
+
+
+# ----------------------------------------------------------------------------- decoding
+
+
+def decode(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES,
+           expected: type | tuple[type, ...] | None = None) -> Any:
+    """Decode and validate one message.
+
+    Args:
+        data: the encoded message.
+        max_bytes: size cap; longer input is rejected before it is parsed.
+        expected: the message class(es) acceptable here; None accepts any registered one.
+
+    Raises:
+        MessageError: naming what is wrong and where (``Type.field[index]...``).
+    """
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise MessageError(f"a message is bytes, got {type(data).__name__}")
+    if len(data) > max_bytes:
+        raise MessageError(f"message of {len(data)} bytes exceeds the cap of {max_bytes} bytes")
+    try:
+        tree = msgpack.unpackb(data, raw=False, use_list=True, strict_map_key=True)
+    except (ValueError, TypeError, msgpack.UnpackException) as exc:
+        raise MessageError(f"not a valid message (malformed msgpack: {exc})") from None
+    if not (isinstance(tree, dict) and tree.get(TAG) == "object"):
+        raise MessageError("not a valid message (the top level is not a typed object)")
+    message = _from_wire(tree, "message", 0)
+    if expected is not None and not isinstance(message, expected):
+        names = [c.__name__ for c in (expected if isinstance(expected, tuple) else (expected,))]
+        raise MessageError(f"expected a {' or '.join(names)} message, got {type(message).__name__}")
+    return message
+
+
+def _from_wire(value: Any, path: str, depth: int) -> Any:
+    if depth > MAX_DEPTH:
+        raise MessageError(f"{path}: nested deeper than {MAX_DEPTH}")
+    if value is None or isinstance(value, (bool, int, float, str, bytes)):
+        return value
+    if isinstance(value, list):
+        return [_from_wire(v, f"{path}[{i}]", depth + 1) for i, v in enumerate(value)]
+    if not isinstance(value, dict):
+        raise MessageError(f"{path}: unexpected wire value of type {type(value).__name__}")
+    tag = value.get(TAG)
+    if tag in ("ndarray", "tensor"):
+        return _array_from_wire(value, tag, path)
+    if tag == "tuple":
+        items = _exact_keys(value, ("items",), path)["items"]
+        return tuple(_from_wire(v, f"{path}[{i}]", depth + 1)
+                     for i, v in enumerate(_list(items, path)))
+    if tag == "dict":
+        items = _list(_exact_keys(value, ("items",), path)["items"], path)
+        return _dict_from_wire(items, path, depth)
+    if tag == "object":
+        return _object_from_wire(value, path, depth)
+    raise MessageError(f"{path}: unknown wire tag {tag!r}")
+
+
+def _exact_keys(value: dict, keys: tuple[str, ...], path: str) -> dict:
+    if set(value) != {TAG, *keys}:
+        raise MessageError(f"{path}: a {value.get(TAG)!r} has keys {sorted(map(str, value))}, "
+                           f"expected {sorted([TAG, *keys])}")
+    return value
+
+
+def _list(value: Any, path: str) -> list:
+    if not isinstance(value, list):
+        raise MessageError(f"{path}: expected a list on the wire, got {type(value).__name__}")
+    return value
+
+
+def _dict_from_wire(items: list, path: str, depth: int) -> dict:
+    out: dict[Any, Any] = {}
+    for item in items:
+        if not (isinstance(item, list) and len(item) == 2):
+            raise MessageError(f"{path}: a dict item is not a [key, value] pair")
+        key = item[0]
+        if isinstance(key, bool) or not isinstance(key, (str, int)) or key in out:
+            raise MessageError(f"{path}: invalid or repeated dict key {key!r}")
+        out[key] = _from_wire(item[1], f"{path}[{key!r}]", depth + 1)
+    return out
+
+
+def _array_from_wire(value: dict, kind: str, path: str) -> np.ndarray | Tensor:
+    _exact_keys(value, ("dtype", "shape", "data"), path)
+    name, shape, data = value["dtype"], value["shape"], value["data"]
+    if not isinstance(name, str) or name not in ARRAY_DTYPES:
+        raise MessageError(f"{path}: dtype {name!r} is not allowed "
+                           f"(allowed: {', '.join(ARRAY_DTYPES)})")
+    np_dtype, torch_dtype = ARRAY_DTYPES[name]
+    if np_dtype is None and kind == "ndarray":
+        raise MessageError(f"{path}: dtype {name} is only allowed for tensors")
+    if (not isinstance(shape, list) or len(shape) > MAX_NDIM
+            or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)
+            or math.prod(max(n, 1) for n in shape) > MAX_ELEMENTS):
+        raise MessageError(f"{path}: shape {shape!r} is not a list of at most {MAX_NDIM} "
+                           f"non-negative integers spanning at most {MAX_ELEMENTS} elements")
+    if not isinstance(data, bytes):
+        raise MessageError(f"{path}: array data is not bytes")
+    itemsize = torch.empty(0, dtype=torch_dtype).element_size()
+    if math.prod(shape) * itemsize != len(data):
+        raise MessageError(f"{path}: {len(data)} bytes do not hold a {name} array of shape "
+                           f"{tuple(shape)} ({math.prod(shape) * itemsize} bytes)")
+    if name == "bool" and data and max(data) > 1:
+        raise MessageError(f"{path}: bool array holds bytes other than 0 and 1")
+    if np_dtype is None:
+        bits = np.frombuffer(data, dtype="<i2").astype(np.int16)
+        return torch.from_numpy(bits).view(torch_dtype).reshape(shape)
+    array = np.frombuffer(data, dtype=np_dtype).reshape(shape).astype(np_dtype.newbyteorder("="))
+    return torch.from_numpy(array) if kind == "tensor" else array
+
+
+def _object_from_wire(value: dict, path: str, depth: int) -> Any:
+    _exact_keys(value, ("type", "version", "fields"), path)
+    name, version, fields = value["type"], value["version"], value["fields"]
+    if not isinstance(name, str) or name not in REGISTRY:
+        raise MessageError(f"{path}: unknown message type {name!r}")
+    entry = REGISTRY[name]
+    if isinstance(version, bool) or version != entry.version:
+        raise MessageError(f"{path}: {name} version {version!r} is not the supported "
+                           f"version {entry.version}")
+    cls = _resolve(entry)
+    path = name if path == "message" else path
+    if not isinstance(fields, dict):
+        raise MessageError(f"{path}: fields of {name} are not a map")
+    expected_names = [f.name for f in _init_fields(cls)]
+    if set(fields) != set(expected_names):
+        missing = sorted(set(expected_names) - set(fields))
+        extra = sorted(map(str, set(fields) - set(expected_names)))
+        raise MessageError(f"{path}: wrong fields for {name} "
+                           f"(missing {missing}, unexpected {extra})")
+    hints = _hints(cls)
+    kwargs = {}
+    for field_name in expected_names:
+        field_path = f"{path}.{field_name}"
+        decoded = _from_wire(fields[field_name], field_path, depth + 1)
+        if not _conforms(decoded, hints[field_name]):
+            raise MessageError(f"{field_path}: a {type(decoded).__name__} does not match the "
+                               f"declared type {_hint_name(hints[field_name])}")
+        kwargs[field_name] = decoded
+    if "version" in kwargs and kwargs["version"] != entry.version:
+        raise MessageError(f"{path}.version: {kwargs['version']!r} is not {entry.version}")
+    try:
+        obj = cls(**kwargs)
+        if name in _CHECKS:
+            _CHECKS[name](obj)
+    except (TypeError, ValueError, Como3rError) as exc:
+        raise MessageError(f"{path}: invalid {name}: {exc}") from None
+    return obj
+
+
+# ----------------------------------------------------------------------------- type checks
+
+
+def _conforms(value: Any, hint: Any) -> bool:
+    """Whether a decoded value matches a (resolved) type annotation."""
+    if hint is Any:
+        return True
+    if hint is None or hint is type(None):
+        return value is None
+    origin = typing.get_origin(hint)
+    if origin is Union or origin is types.UnionType:
+        return any(_conforms(value, h) for h in typing.get_args(hint))
+    if origin is typing.Literal:
+        return value in typing.get_args(hint)
+    if origin is tuple:
+        return _conforms_tuple(value, typing.get_args(hint))
+    if origin is list:
+        (item,) = typing.get_args(hint) or (Any,)
+        return isinstance(value, list) and all(_conforms(v, item) for v in value)
+    if origin is dict:
+        key, item = typing.get_args(hint) or (Any, Any)
+        return isinstance(value, dict) and all(
+            _conforms(k, key) and _conforms(v, item) for k, v in value.items())
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if isinstance(hint, type):
+        return isinstance(value, hint)
+    raise TypeError(f"unsupported annotation {hint!r} on a registered message type")
+
+
+def _conforms_tuple(value: Any, args: tuple) -> bool:
+    if not isinstance(value, tuple):
+        return False
+    if not args:
+        return True
+    if len(args) == 2 and args[1] is Ellipsis:
+        return all(_conforms(v, args[0]) for v in value)
+    return len(value) == len(args) and all(_conforms(v, a) for v, a in zip(value, args))
+
+
+def _hint_name(hint: Any) -> str:
+    return getattr(hint, "__name__", None) or repr(hint).replace("typing.", "")
+
+
+def registered_types() -> dict[str, type]:
+    """Every registered type that can be imported here, by wire name."""
+    out = {}
+    for name, entry in REGISTRY.items():
+        try:
+            out[name] = _resolve(entry)
+        except MessageError:
+            continue
+    return out
+
+
+def _register_payloads() -> None:
+    """The payloads that cross the agent/coordinator boundary (C-Sec. B.1)."""
+    for path in (
+        "como3r.frontend.packets:KeyframePacket",
+        "como3r.frontend.packets:PointmapRefresh",
+        "como3r.frontend.packets:PoseUpdate",
+        "como3r.frontend.pairs:DirectedMatches",
+        "como3r.frontend.agent:FrontendStats",
+        "como3r.prior.simulated:SimulatedEncoding",
+        "como3r.prior.mast3r.prior:MASt3REncoding",
+    ):
+        register(path, version=1)
+
+
+_register_payloads()

@@ -1,0 +1,203 @@
+"""Place recognition, registration and ratio confidence (decentralized/place_recognition.py,
+registration.py, confidence.py; F-Sec. III-A, III-B, F-Eq. 1-2)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from como3r.config import RetrievalConfig
+from como3r.data.agent import open_agent
+from como3r.data.preprocess import make_view
+from como3r.decentralized.config import RegistrationConfig
+from como3r.decentralized.confidence import accept_loop, correspondence_ratio, loop_probability
+from como3r.decentralized.keyframes import frame_odometry, select_keyframes
+from como3r.decentralized.place_recognition import PlaceRecognizer, candidate_pairs
+from como3r.decentralized.registration import (
+    Registrar,
+    odometry_neighbour,
+    ransac_similarity,
+    reciprocal_matches,
+)
+from como3r.errors import ConfigError
+from como3r.geometry.lie import quat_to_matrix, sim3_act, sim3_compose, sim3_inverse, so3_exp
+from como3r.prior.simulated import SimulatedPrior
+from como3r.prior.simulated_keys import generator
+
+# ----------------------------------------------------------------------------- confidence
+
+
+def test_ratio_and_logistic_confidence():
+    assert correspondence_ratio(150, 300) == 0.5
+    assert correspondence_ratio(10, 0) == 0.0
+    with pytest.raises(ValueError):
+        correspondence_ratio(-1, 3)
+    assert loop_probability(1.0, 5.0) == pytest.approx(0.5)
+    assert loop_probability(1.4, 5.0) == pytest.approx(1 / (1 + math.exp(-2.0)))
+    assert loop_probability(0.0, 1e4) == pytest.approx(0.0, abs=1e-300)
+    assert loop_probability(5.0, 1e4) == pytest.approx(1.0)
+    assert accept_loop(0.3, 0.3) and not accept_loop(0.29, 0.3)
+
+
+# ----------------------------------------------------------------------------- place recognition
+
+
+def test_cosine_descriptor_is_the_attention_weighted_mean():
+    features = torch.tensor([[1.0, 0.0], [0.0, 1.0]])
+    recognizer = PlaceRecognizer("cosine")
+    descriptor = recognizer.describe(features, torch.tensor([3.0, 1.0]))
+    np.testing.assert_allclose(descriptor, np.array([3.0, 1.0]) / math.sqrt(10), rtol=1e-6)
+    similarity = recognizer.similarity([descriptor], [descriptor, np.array([0.0, 1.0])])
+    np.testing.assert_allclose(similarity, [[1.0, 1 / math.sqrt(10)]], rtol=1e-6)
+
+
+def test_place_method_is_checked():
+    with pytest.raises(ConfigError, match="place_method"):
+        PlaceRecognizer("netvlad")
+    with pytest.raises(ConfigError, match="codebook"):
+        PlaceRecognizer("asmk")
+
+
+def test_asmk_similarity_ranks_the_same_place_first():
+    rng = np.random.default_rng(0)
+    codebook = rng.normal(size=(64, 32)).astype(np.float32)
+    places = [rng.normal(size=(40, 32)).astype(np.float32) for _ in range(3)]
+    noisy = [p + 0.05 * rng.normal(size=p.shape).astype(np.float32) for p in places]
+    recognizer = PlaceRecognizer("asmk", codebook, RetrievalConfig())
+    similarity = recognizer.similarity(noisy, places)
+    assert similarity.shape == (3, 3)
+    np.testing.assert_array_equal(np.argmax(similarity, axis=1), [0, 1, 2])
+
+
+def test_candidates_are_best_matches_above_threshold_from_both_sides():
+    similarity = np.array([[0.9, 0.2, 0.0],
+                           [0.8, 0.3, 0.05],
+                           [0.0, 0.05, 0.08]])
+    found = candidate_pairs(similarity, 0.1)
+    assert [(c.row, c.col, c.by_row, c.by_col) for c in found] == [
+        (0, 0, True, True), (1, 0, True, False), (1, 1, False, True)]
+    # Column 2's best (row 1, 0.05) and row 2's best (col 2, 0.08) are below the threshold.
+    assert [(c.row, c.col) for c in candidate_pairs(similarity, 0.1, {(0, 0)})] == [(1, 0), (1, 1)]
+
+
+# ----------------------------------------------------------------------------- registration
+
+
+def test_ransac_similarity_recovers_the_transform_despite_outliers(dtype):
+    gen = torch.Generator().manual_seed(0)
+    src = torch.randn(200, 3, generator=gen, dtype=dtype) * 2 + torch.tensor([0, 0, 6.0],
+                                                                              dtype=dtype)
+    T = torch.cat([torch.tensor([0.3, -0.2, 0.5]), so3_exp(torch.tensor([0.1, 0.2, -0.1])),
+                   torch.tensor([1.3])]).to(dtype)
+    dst = sim3_act(T, src)
+    dst[:60] += torch.randn(60, 3, generator=gen, dtype=dtype) * 3  # 30 % outliers
+    fit = ransac_similarity(src, dst, RegistrationConfig(), generator(0, "test"))
+    assert fit is not None
+    estimate, inliers = fit
+    assert estimate.dtype == torch.float64
+    torch.testing.assert_close(estimate, T.double(), atol=1e-5, rtol=1e-5)
+    assert int(inliers[60:].sum()) == 140 and int(inliers[:60].sum()) < 5
+
+
+def test_ransac_similarity_gives_up_without_support():
+    src = torch.randn(8, 3)
+    assert ransac_similarity(src, src, RegistrationConfig(min_inliers=12),
+                             generator(0)) is None
+
+
+def test_reciprocal_matches_find_the_permutation():
+    gen = torch.Generator().manual_seed(1)
+    H, W, d = 12, 16, 24
+    D_i = torch.nn.functional.normalize(torch.randn(H, W, d, generator=gen), dim=-1)
+    permutation = torch.randperm(H * W, generator=gen)
+    D_j = D_i.reshape(-1, d)[permutation].reshape(H, W, d)
+    Q = torch.full((H, W), 5.0)
+    Q_low = Q.clone()
+    Q_low[:6] = 1.0  # the top half of view i is not confident
+    config = RegistrationConfig(match_stride=2)
+    p_i, p_j = reciprocal_matches(D_i, D_j, Q, Q, config)
+    assert p_i.numel() == (H // 2) * (W // 2)
+    torch.testing.assert_close(permutation[p_j], p_i)
+    p_i, _ = reciprocal_matches(D_i, D_j, Q_low, Q, config)
+    assert p_i.numel() == (H // 4) * (W // 2) and bool((p_i >= 6 * W).all())
+
+
+def test_odometry_neighbour():
+    assert odometry_neighbour(3, 10) == 2
+    assert odometry_neighbour(0, 10) == 1
+    assert odometry_neighbour(0, 1) == 0
+
+
+@pytest.fixture(scope="module")
+def registrars(scene, main_config):
+    """Registrars of robots 0 and 1 of the scene, with their keyframes (2 m apart)."""
+    prior = SimulatedPrior(main_config.simulated_prior)
+    out = []
+    for robot in (0, 1):
+        agent = open_agent(scene[robot])
+        keyframes = select_keyframes(frame_odometry(agent), 2.0)
+
+        def view_of(k, agent=agent, keyframes=keyframes, robot=robot):
+            frame = agent.load_frame(int(keyframes.frames[k]))
+            return make_view(frame, robot, main_config.input.long_side, agent.calib)
+
+        out.append((Registrar(prior, robot, view_of, RegistrationConfig()), keyframes, agent))
+    return out
+
+
+def _true_relative(agent_a, frame_a, agent_b, frame_b):
+    return sim3_compose(sim3_inverse(agent_a.groundtruth.T_WC[frame_a]),
+                        agent_b.groundtruth.T_WC[frame_b])
+
+
+def _nearest_keyframe(agent_a, frame_a, agent_b, keyframes_b) -> int:
+    """Keyframe of robot b whose true camera centre is nearest to robot a's frame."""
+    centre = agent_a.groundtruth.T_WC[frame_a, :3]
+    distances = (agent_b.groundtruth.T_WC[torch.from_numpy(keyframes_b.frames), :3]
+                 - centre).norm(dim=1)
+    return int(torch.argmin(distances))
+
+
+def test_registration_of_an_overlapping_pair_and_ratio_rejection_of_a_distant_one(registrars):
+    """Robot 0's last keyframes share the road with robot 1's first ones (ring plan)."""
+    (reg_a, kf_a, agent_a), (reg_b, kf_b, agent_b) = registrars
+    mine = len(kf_a) - 3
+    near = _nearest_keyframe(agent_a, kf_a.frames[mine], agent_b, kf_b)
+    far = len(kf_b) - 1
+    for other in (near, far):
+        reg_a.add_foreign(1, other, reg_b.encoding_for_peer(other))
+    overlap = reg_a.register(mine, 1, near)
+    _, odometry_pair = reg_a.consecutive(mine, len(kf_a))
+    truth = _true_relative(agent_a, kf_a.frames[mine], agent_b, kf_b.frames[near])
+    assert overlap.T_ij is not None
+    R_error = quat_to_matrix(overlap.T_ij[3:7]).T @ quat_to_matrix(truth[3:7]).double()
+    angle = math.degrees(math.acos(min(1.0, (float(torch.trace(R_error)) - 1) / 2)))
+    assert angle < 3.0
+    direction = overlap.T_ij[:3] / overlap.T_ij[:3].norm()
+    assert float(direction @ (truth[:3] / truth[:3].norm()).double()) > 0.9
+    ratio = correspondence_ratio(overlap.correspondences, odometry_pair.correspondences)
+    assert accept_loop(ratio, 0.3)
+    # Robot 1's last keyframe is 20 m further along the ring road: the prior still returns
+    # a pair prediction, but with few correspondences -- a failed registration.
+    distant = reg_a.register(mine, 1, far)
+    ratio = correspondence_ratio(distant.correspondences, odometry_pair.correspondences)
+    assert not accept_loop(ratio, 0.3)
+
+
+def test_two_stage_encoding_encodes_each_keyframe_once(registrars):
+    (reg_a, kf_a, _), (reg_b, _, _) = registrars
+    last = len(kf_a) - 1
+    reg_a.add_foreign(1, 1, reg_b.encoding_for_peer(1))
+    reg_a.register(last, 1, 1)
+    encodes, naive, sent = reg_a.stats.encodes, reg_a.stats.naive_encodes, reg_b.stats.encodes
+    decodes = reg_a.stats.decodes
+    again = reg_a.register(last, 1, 1)
+    reg_a.add_foreign(1, 1, reg_b.encoding_for_peer(1))
+    assert reg_a.stats.encodes == encodes and reg_b.stats.encodes == sent
+    assert reg_a.stats.decodes == decodes + 1
+    assert reg_a.stats.naive_encodes == naive + 2  # a naive pipeline encodes both again
+    assert again.correspondences > 0
+    assert reg_b.stats.registration_encodes <= reg_b.stats.encodes

@@ -1,0 +1,238 @@
+"""Scale-aware multi-robot pose graphs (decentralized/pose_graph.py; F-Sec. III-C)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import gtsam
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from como3r.decentralized.config import FORMULATIONS, PoseGraphConfig
+from como3r.decentralized.pose_graph import (
+    LoopClosure,
+    PoseGraphProblem,
+    connected_components,
+    from_pose3,
+    initial_poses,
+    loop_clusters,
+    scaled_loop_error,
+    scaled_loop_factor,
+    solve_pose_graph,
+    to_pose3,
+)
+
+
+def _random_pose(rng: np.random.Generator, spread: float = 3.0) -> gtsam.Pose3:
+    return gtsam.Pose3(gtsam.Rot3.Rodrigues(rng.normal(size=3)), spread * rng.normal(size=3))
+
+
+def _numerical_jacobians(R_bar, t_bar, T_a, T_b, s, h=1e-6):
+    """Central differences of the error under GTSAM's retraction (what LM linearises)."""
+    def error(a, b, scale):
+        return scaled_loop_error(R_bar, t_bar, a, b, scale)[0]
+
+    H_a, H_b = np.zeros((6, 6)), np.zeros((6, 6))
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = h
+        H_a[:, k] = (error(T_a.retract(d), T_b, s) - error(T_a.retract(-d), T_b, s)) / (2 * h)
+        H_b[:, k] = (error(T_a, T_b.retract(d), s) - error(T_a, T_b.retract(-d), s)) / (2 * h)
+    H_s = ((error(T_a, T_b, s + h) - error(T_a, T_b, s - h)) / (2 * h))[:, None]
+    return [H_a, H_b, H_s]
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_scaled_loop_jacobians_match_central_differences(seed):
+    rng = np.random.default_rng(seed)
+    R_bar = gtsam.Rot3.Rodrigues(rng.normal(size=3)).matrix()
+    t_bar = 2.0 * rng.normal(size=3)
+    T_a, T_b = _random_pose(rng), _random_pose(rng)
+    s = float(rng.uniform(0.5, 2.0))
+    e, analytic = scaled_loop_error(R_bar, t_bar, T_a, T_b, s)
+    assert np.linalg.norm(e) > 0.5  # far from zero residual: the exact forms matter
+    for H, numeric in zip(analytic, _numerical_jacobians(R_bar, t_bar, T_a, T_b, s)):
+        np.testing.assert_allclose(H, numeric, atol=1e-7)
+
+
+def test_scaled_loop_jacobians_reduce_to_the_paper_at_zero_residual():
+    rng = np.random.default_rng(7)
+    T_a, T_b = _random_pose(rng), _random_pose(rng)
+    relative = T_a.between(T_b)
+    s = 1.7
+    R_bar, t_bar = relative.rotation().matrix(), relative.translation() / s
+    e, (H_a, H_b, H_s) = scaled_loop_error(R_bar, t_bar, T_a, T_b, s)
+    np.testing.assert_allclose(e, 0.0, atol=1e-12)
+    # F-Sec. III-C-b: H_Ta = -Adj(inv(T_a^-1 T_b)), H_Tb = I, H_s = [0, -t_bar] (in camera b).
+    np.testing.assert_allclose(H_a, -relative.inverse().AdjointMap(), atol=1e-12)
+    np.testing.assert_allclose(H_b, np.eye(6), atol=1e-12)
+    np.testing.assert_allclose(H_s[:, 0], np.concatenate([np.zeros(3), -R_bar.T @ t_bar]),
+                               atol=1e-12)
+
+
+def test_custom_factor_linearizes_to_the_analytic_jacobians():
+    rng = np.random.default_rng(3)
+    R_bar = gtsam.Rot3.Rodrigues(rng.normal(size=3)).matrix()
+    t_bar = rng.normal(size=3)
+    sigmas = np.array([0.1, 0.1, 0.1, 0.5, 0.5, 0.5])
+    factor = scaled_loop_factor((1, 2, 3), R_bar, t_bar, gtsam.noiseModel.Diagonal.Sigmas(sigmas))
+    values = gtsam.Values()
+    T_a, T_b = _random_pose(rng), _random_pose(rng)
+    values.insert(1, T_a)
+    values.insert(2, T_b)
+    values.insert(3, 0.8)
+    e, H = scaled_loop_error(R_bar, t_bar, T_a, T_b, 0.8)
+    assert factor.error(values) == pytest.approx(0.5 * np.sum((e / sigmas) ** 2))
+    A, b = factor.linearize(values).jacobian()
+    np.testing.assert_allclose(A, np.hstack(H) / sigmas[:, None], atol=1e-10)
+    np.testing.assert_allclose(b, -e / sigmas, atol=1e-10)
+
+
+def test_scale_smoothing_factor_jacobians_are_minus_one_and_one():
+    """F-Sec. III-C-c: phi = ||s_j - s_i||^2 with H_si = -1 and H_sj = 1."""
+    sigma = 0.2
+    factor = gtsam.BetweenFactorDouble(1, 2, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, sigma))
+    values = gtsam.Values()
+    values.insert(1, 0.7)
+    values.insert(2, 1.3)
+    A, b = factor.linearize(values).jacobian()
+    np.testing.assert_allclose(A, [[-1.0 / sigma, 1.0 / sigma]])
+    np.testing.assert_allclose(b, [-(1.3 - 0.7) / sigma])
+
+
+# ----------------------------------------------------------------------------- synthetic graphs
+
+
+def _circle(robot: int, count: int, radius: float = 6.0) -> list[gtsam.Pose3]:
+    """Ground-truth keyframe poses of a robot on a circle, looking along its path."""
+    poses = []
+    for k in range(count):
+        angle = 2 * math.pi * (k / count) + 0.6 * robot
+        heading = Rotation.from_euler("z", angle + math.pi / 2).as_matrix()
+        position = np.array([radius * math.cos(angle), radius * math.sin(angle), 0.3 * robot])
+        poses.append(gtsam.Pose3(gtsam.Rot3(heading), position))
+    return poses
+
+
+@dataclasses.dataclass
+class _Synthetic:
+    truth: dict[int, list[gtsam.Pose3]]
+    problem: PoseGraphProblem
+
+
+def _synthetic(rng: np.random.Generator, loop_scale_sigma: float = 0.0,
+               outliers: int = 0, robots: int = 3, count: int = 12) -> _Synthetic:
+    """Robots on circles, odometry in their own frames, loops between close keyframes.
+
+    Loop translations are multiplied by ``exp(N(0, loop_scale_sigma))`` (the prior's scale
+    inconsistency); the F-Eq. 6 factor is 1, so the base formulation cannot undo it.
+    """
+    truth = {r: _circle(r, count) for r in range(robots)}
+    odometry = {}
+    for r, poses in truth.items():
+        frame = _random_pose(rng, 10.0)
+        odometry[r] = np.stack([from_pose3(frame.compose(p)) for p in poses])
+    loops = []
+    for a in range(robots):
+        for b in range(a + 1, robots):
+            for i in range(0, count, 2):
+                j = (i + 1) % count
+                relative = truth[a][i].between(truth[b][j])
+                noisy = relative.compose(gtsam.Pose3.Expmap(
+                    np.concatenate([0.005 * rng.normal(size=3), 0.02 * rng.normal(size=3)])))
+                scale = math.exp(loop_scale_sigma * rng.normal())
+                T_ab = from_pose3(gtsam.Pose3(noisy.rotation(), scale * noisy.translation()))
+                loops.append(LoopClosure(a, i, b, j, T_ab, 1.0, 1.0, 0.9, 500))
+    for _ in range(outliers):
+        i, j = (int(v) for v in rng.integers(0, count, 2))
+        wrong = gtsam.Pose3(gtsam.Rot3.Rodrigues(rng.normal(size=3)), 5.0 * rng.normal(size=3))
+        loops.append(LoopClosure(0, i, 1, j, from_pose3(wrong), 1.0, 1.2, 0.9, 600))
+    anchor_pose = from_pose3(truth[0][0])
+    return _Synthetic(truth, PoseGraphProblem(odometry, loops, 0, anchor_pose))
+
+
+def _position_rmse(truth: dict[int, list[gtsam.Pose3]], poses: dict[int, np.ndarray]) -> float:
+    errors = [np.linalg.norm(poses[r][k, :3] - p.translation())
+              for r, ps in truth.items() for k, p in enumerate(ps)]
+    return float(np.sqrt(np.mean(np.square(errors))))
+
+
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_every_formulation_recovers_a_consistent_graph(formulation):
+    data = _synthetic(np.random.default_rng(0))
+    solution = solve_pose_graph(data.problem, formulation, "lm", PoseGraphConfig())
+    assert _position_rmse(data.truth, solution.poses) < 0.05
+    np.testing.assert_allclose(solution.loop_scales, 1.0, atol=0.05)
+    assert solution.iterations >= 1 and solution.seconds > 0
+
+
+def test_independent_and_smoothed_scales_beat_the_base_formulation_on_inconsistent_scales():
+    """F-Sec. III-C: loops whose prior scale is wrong hurt the base graph, not the
+    scale-aware ones."""
+    data = _synthetic(np.random.default_rng(1), loop_scale_sigma=0.3)
+    errors = {f: _position_rmse(data.truth,
+                                solve_pose_graph(data.problem, f, "lm", PoseGraphConfig()).poses)
+              for f in ("base", "independent", "smoothed")}
+    assert errors["independent"] < 0.5 * errors["base"]
+    assert errors["smoothed"] < 0.5 * errors["base"]
+
+
+def test_independent_scales_absorb_each_loops_scale_error():
+    data = _synthetic(np.random.default_rng(2), loop_scale_sigma=0.3)
+    solution = solve_pose_graph(data.problem, "independent", "lm", PoseGraphConfig())
+    true_scales = []
+    for loop in data.problem.loops:
+        truth = data.truth[loop.robot_a][loop.keyframe_a].between(
+            data.truth[loop.robot_b][loop.keyframe_b])
+        true_scales.append(np.linalg.norm(truth.translation()) / np.linalg.norm(loop.T_ab[:3]))
+    np.testing.assert_allclose(solution.loop_scales, true_scales, rtol=0.05)
+
+
+@pytest.mark.parametrize("formulation", ["base", "independent", "smoothed"])
+@pytest.mark.parametrize("loss", ["tls", "gm"])
+def test_gnc_weights_injected_outliers_near_zero(formulation, loss):
+    data = _synthetic(np.random.default_rng(4), outliers=3)
+    config = PoseGraphConfig(gnc_loss=loss)
+    solution = solve_pose_graph(data.problem, formulation, "gnc", config)
+    inliers, outliers = solution.loop_weights[:-3], solution.loop_weights[-3:]
+    assert np.all(outliers < 0.05), outliers
+    assert np.all(inliers > 0.9), inliers
+    lm = solve_pose_graph(data.problem, formulation, "lm", config)
+    assert _position_rmse(data.truth, solution.poses) < 0.05
+    assert _position_rmse(data.truth, solution.poses) < _position_rmse(data.truth, lm.poses)
+
+
+def test_initialisation_follows_the_loops_most_others_agree_with():
+    data = _synthetic(np.random.default_rng(5), outliers=2, robots=2)
+    poses = initial_poses(data.problem, np.ones(len(data.problem.loops)))
+    error = np.linalg.norm(poses[1][0].translation() - data.truth[1][0].translation())
+    assert error < 0.2
+
+
+def test_connected_components_and_clusters():
+    T = from_pose3(gtsam.Pose3())
+    loops = [LoopClosure(0, k, 1, k + 1, T, 1.0, 1.0, 0.5, 10) for k in (0, 5, 30)]
+    loops.append(LoopClosure(3, 2, 2, 0, T, 1.0, 1.0, 0.5, 10))
+    assert connected_components([0, 1, 2, 3, 4], loops) == [[0, 1], [2, 3], [4]]
+    # Loops 0 and 1 are 5 keyframes apart on both robots, loop 2 is 25 further.
+    assert loop_clusters(loops, window=10) == [[0, 1], [2], [3]]
+    assert loop_clusters(loops, window=5) == [[0], [1], [2], [3]]
+
+
+def test_a_single_loop_between_two_robots_is_well_posed_with_scale_variables():
+    data = _synthetic(np.random.default_rng(6), robots=2)
+    data.problem.loops = data.problem.loops[:1]
+    for formulation in ("independent", "smoothed", "shared"):
+        solution = solve_pose_graph(data.problem, formulation, "lm", PoseGraphConfig())
+        assert np.all(np.isfinite(solution.poses[1]))
+        assert solution.loop_scales[0] == pytest.approx(1.0, abs=0.05)
+
+
+def test_pose_conversions_round_trip():
+    rng = np.random.default_rng(8)
+    pose = _random_pose(rng)
+    T = from_pose3(pose)
+    assert T.shape == (8,) and T[6] >= 0 and T[7] == 1.0
+    assert to_pose3(T).equals(pose, 1e-12)
