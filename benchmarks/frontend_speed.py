@@ -87,15 +87,13 @@ def frontend_row(width: int, height: int, repeats: int) -> dict[str, float]:
 
 
 def mast3r_decode_ms(width: int, height: int, repeats: int) -> float:
-    from como3r.prior.mast3r.config import released_config
-    from como3r.prior.mast3r.model import AsymmetricMASt3R
+    from como3r.prior.mast3r import MASt3RNetwork, parse_model_string
+    from como3r.prior.mast3r.config import RELEASED_MODEL_STRING
     from como3r.prior.mast3r.prior import MASt3RPrior
 
     torch.manual_seed(0)
-    model = AsymmetricMASt3R(released_config()).eval()
-    prior = MASt3RPrior(model)
-    image = torch.rand(1, 3, height, width) * 2 - 1
-    enc = prior.encode(image)
+    prior = MASt3RPrior(MASt3RNetwork(parse_model_string(RELEASED_MODEL_STRING)))
+    enc = prior.encode(torch.rand(1, 3, height, width) * 2 - 1)
     return best_of(repeats, lambda: prior.decode(enc, enc))
 
 

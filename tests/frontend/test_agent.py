@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -72,3 +74,27 @@ def test_frames_follow_their_anchor_keyframe(tracked) -> None:
     # every frame, those anchored on the keyframe missing from the update included, moved
     # with the update's correction
     assert torch.allclose(after, expected, atol=1e-4)
+
+
+def test_lost_frame_is_reported_and_tracking_relocalizes(tmp_path) -> None:
+    synthesize(tmp_path, agents=1, seed=5, overlap=0.2, frames=60, preset="default",
+               width=WIDTH, height=HEIGHT, progress=None)
+    agent = open_agent(tmp_path / "agent_0")
+    config = apply_overrides(Config(), [f"input.long_side={WIDTH}",
+                                        "matching.occlusion_distance=0.5"])
+    prior = SimulatedPrior(config.simulated_prior)
+    frontend = AgentFrontend(prior, config, 0, prior.codebook())
+    outcomes = {}
+    for i in range(0, 8, 2):
+        frame = agent.load_frame(i)
+        view = make_view(frame, 0, WIDTH, agent.calib)
+        if i == 2:  # the camera shows something never seen: the sky
+            view = replace(view, depth=torch.zeros_like(view.depth),
+                           surface=torch.full_like(view.surface, -1.0))
+        outcomes[i] = frontend.process(view, frame.timestamp, _colors(view))
+    assert outcomes[2] == "lost"
+    assert frontend.stats.lost_frames == [2]
+    assert outcomes[4] == "relocalized"
+    assert outcomes[6] in ("tracked", "keyframe")
+    indices, _, _ = frontend.trajectory()
+    assert indices.tolist() == [0, 4, 6]

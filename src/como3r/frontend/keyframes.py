@@ -87,12 +87,9 @@ class KeyframeStore:
 
     Attributes:
         keyframes: keyframes in creation order; ``kf_id`` equals the list index.
-        keep_encodings_on_cpu: move each new keyframe's encoding tensors to the CPU
-            (saves accelerator memory on long sequences at the cost of a copy per pair).
     """
 
     keyframes: list[Keyframe] = field(default_factory=list)
-    keep_encodings_on_cpu: bool = False
 
     def __len__(self) -> int:
         return len(self.keyframes)
