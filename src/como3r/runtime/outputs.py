@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from como3r.config import Config, dump_config
+from como3r.coordination.coordinator import Coordinator
 from como3r.frontend.agent import AgentFrontend
 from como3r.geometry.lie import sim3_act
 from como3r.io.ply import write_ply
@@ -65,22 +66,32 @@ def write_map(out: Path, frontends: Sequence[AgentFrontend], config: Config) -> 
 
 
 def graph_document(frontends: Sequence[AgentFrontend],
-                   extra_edges: Sequence[dict[str, Any]] = (),
-                   components: Sequence[Sequence[int]] | None = None) -> dict[str, Any]:
-    """The keyframe graph as JSON-ready data: keyframes, edges with scores, components."""
-    keyframes, edges = [], []
+                   coordinator: Coordinator | None = None) -> dict[str, Any]:
+    """The keyframe graph as JSON-ready data.
+
+    Keyframes carry the agents' final poses. Edges are the coordinator's global graph
+    (sequential and verified inter-agent edges with their match fractions ``nu_i``, ``nu_j``
+    and retrieval similarity) plus the intra-agent loop edges that stay in the agents'
+    local graphs (C-Sec. A.3); ``candidates`` lists every verified cross-agent candidate,
+    accepted or not, and ``components`` the gauge components.
+    """
+    keyframes, local_loops = [], []
     for fe in frontends:
         for kf in fe.keyframes:
             keyframes.append({"agent": fe.agent, "keyframe": kf.kf_id, "frame": kf.frame_index,
                               "timestamp": kf.timestamp, "T_WC": kf.T_WC.tolist()})
-        for e in fe.edges:
-            edges.append({"type": e.kind, "from": [fe.agent, e.i], "to": [fe.agent, e.j],
-                          "match_fraction": e.matches.match_fraction})
-    edges.extend(extra_edges)
-    if components is None:
-        components = [[fe.agent] for fe in frontends]
-    return {"keyframes": keyframes, "edges": edges,
-            "components": [list(c) for c in components]}
+        local_loops.extend(
+            {"type": e.kind, "from": [fe.agent, e.i], "to": [fe.agent, e.j],
+             "match_fraction": e.matches.match_fraction}
+            for e in fe.edges if e.kind == "loop" or coordinator is None)
+    document: dict[str, Any] = {"keyframes": keyframes, "edges": local_loops,
+                                "components": [[fe.agent] for fe in frontends]}
+    if coordinator is not None:
+        coordinated = coordinator.graph_document()
+        document["edges"] = coordinated["edges"] + local_loops
+        for key in ("candidates", "gauge_events", "components"):
+            document[key] = coordinated[key]
+    return document
 
 
 def write_json(path: Path, document: dict[str, Any]) -> None:

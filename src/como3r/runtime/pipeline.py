@@ -2,8 +2,11 @@
 
 ``run`` opens and validates every agent input first (so bad input fails before any work),
 builds the prior, feeds the agents' frames to their front-ends interleaved by timestamp
-(as concurrent robots would deliver them), writes the output folder atomically and, where
-ground truth exists, evaluates the trajectories.
+(as concurrent robots would deliver them) and, after every frame, hands the agent's new
+keyframes to the coordinator and applies the pose updates it returns to the agents
+(C-Sec. 3.1, A.8). At the end it sends each agent's last fused pointmap, runs the
+coordinator's cleanup passes, writes the output folder atomically and, where ground truth
+exists, evaluates the trajectories (merged ATE only within gauge components).
 """
 
 from __future__ import annotations
@@ -19,10 +22,12 @@ import numpy as np
 import torch
 
 from como3r.config import Config
+from como3r.coordination.coordinator import Coordinator
 from como3r.data.agent import AgentInput, open_agent
 from como3r.data.preprocess import make_view
 from como3r.errors import InputError
 from como3r.frontend.agent import AgentFrontend
+from como3r.frontend.packets import PointmapRefresh, PoseUpdate
 from como3r.io.output import atomic_output_dir
 from como3r.prior.base import Prior, View
 from como3r.runtime import outputs
@@ -119,7 +124,7 @@ def run(
     overwrite: bool = False,
     progress: Callable[[int, str, int, int], None] | None = None,
 ) -> RunSummary:
-    """Run the front-ends of all agents and write the output folder.
+    """Run all agents' front-ends and the coordinator, and write the output folder.
 
     Args:
         agent_paths: one agent input per agent, in agent order.
@@ -133,6 +138,7 @@ def run(
     prior, codebook = build_prior(prior_spec, config)
     needs_K = prior_spec.name == "simulated" or config.calibrated
     frontends = [AgentFrontend(prior, config, a, codebook) for a in range(len(agents))]
+    coordinator = Coordinator(prior, config, codebook, len(agents))
     seconds = [0.0] * len(agents)
     stride = config.input.subsample
     total = sum(len(range(0, a.num_frames, stride)) for a in agents)
@@ -144,23 +150,46 @@ def run(
             start = time.perf_counter()
             outcome = frontends[k].process(view, frame.timestamp, _colors(view))
             seconds[k] += time.perf_counter() - start
+            for packet in frontends[k].drain_new_keyframes():
+                _apply(frontends, coordinator.add_keyframe(packet))
             if progress is not None:
                 progress(k, outcome, done, total)
-        summary = _write(staging, frontends, config, agents, seconds, prior)
+        _finish(frontends, coordinator)
+        summary = _write(staging, frontends, coordinator, config, agents, seconds, prior)
     summary.out = out
     return summary
 
 
-def _write(staging: Path, frontends: list[AgentFrontend], config: Config,
-           agents: list[AgentInput], seconds: list[float], prior: Prior) -> RunSummary:
+def _apply(frontends: Sequence[AgentFrontend], updates: Sequence[PoseUpdate]) -> None:
+    """Hand the coordinator's pose updates to their agents, in order."""
+    for update in updates:
+        frontends[update.agent].apply_pose_update(update)
+
+
+def _finish(frontends: Sequence[AgentFrontend], coordinator: Coordinator) -> None:
+    """Send every agent's last fused pointmap, run the cleanup passes, apply final poses."""
+    for fe in frontends:
+        if len(fe.keyframes):
+            last = fe.keyframes.last
+            coordinator.refresh(fe.agent, PointmapRefresh(last.kf_id, last.X_hat, last.C_hat,
+                                                          last.fused_frames))
+    _apply(frontends, coordinator.finish())
+
+
+def _write(staging: Path, frontends: list[AgentFrontend], coordinator: Coordinator,
+           config: Config, agents: list[AgentInput], seconds: list[float],
+           prior: Prior) -> RunSummary:
     outputs.write_config(staging, config)
     outputs.write_trajectories(staging, frontends)
     points = outputs.write_map(staging, frontends, config)
-    outputs.write_json(staging / "graph.json", outputs.graph_document(frontends))
+    components = coordinator.components()
+    outputs.write_json(staging / "graph.json", outputs.graph_document(frontends, coordinator))
     summary = RunSummary(out=staging)
     metrics: dict[str, object] = {
         "prior": prior.describe(),
         "agents": [outputs.frontend_metrics(fe, s) for fe, s in zip(frontends, seconds)],
+        "coordinator": coordinator.metrics(),
+        "components": components,
         "map_points": points,
     }
     for fe, s in zip(frontends, seconds):
@@ -171,10 +200,19 @@ def _write(staging: Path, frontends: list[AgentFrontend], config: Config,
     if all(a.groundtruth is not None for a in agents):
         from como3r.evaluation.report import evaluate_run
 
-        evaluation = evaluate_run(staging, [a.root for a in agents], staging)
-        metrics["ate"] = evaluation.to_json()
-        summary.evaluation = evaluation
+        try:
+            evaluation = evaluate_run(staging, [a.root for a in agents], staging,
+                                      components=components)
+        except InputError as exc:  # e.g. too few tracked frames: the run itself stands
+            summary.notes.append(f"ATE not computed: {exc}")
+            metrics["ate"] = None
+        else:
+            metrics["ate"] = evaluation.to_json()
+            summary.evaluation = evaluation
     else:
         summary.notes.append("no ground truth for every agent: ATE not computed")
+    if len(components) > 1:
+        summary.notes.append(f"agents form {len(components)} separate gauge components "
+                             f"{components}: no merged ATE across them")
     outputs.write_json(staging / "metrics.json", metrics)
     return summary

@@ -1,0 +1,305 @@
+"""The coordinator's unified multi-agent factor graph and global Sim(3) BA (C-Sec. 3.5, A.3).
+
+Vertices are the keyframes of ALL agents in one flat global index space ``0 .. N-1``
+(arrival order), with a side map ``agent_of[g]`` and, per agent, a local-to-global map
+``local_to_global[a][kf_id]``. Links are
+
+* ``"sequential"``: the intra-agent edge ``(k-1, k)`` each keyframe packet brings
+  (C-Eq. 12, ``alpha``); intra-agent loop closures stay in the agents' local graphs;
+* ``"inter"``: geometrically verified cross-agent edges (C-Eq. 12, ``nu``).
+
+Every link stores both directions of its dense matches, so intra- and inter-agent edges
+give identical ray-and-range residuals on the keyframes' current canonical pointmaps
+(C-Eq. 5, 13; the factors of :func:`~como3r.frontend.graph.make_factors`).
+
+:meth:`GlobalGraph.optimize` solves C-Eq. 5 by Gauss-Newton IRLS (C-Sec. B.2) over the
+keyframes of a set of agents that share one gauge, with one anchor keyframe pinned (the
+first keyframe of the component's lowest agent; for agent 0's component that is the global
+gauge anchor of C-Sec. A.3). Only the keyframes connected to the anchor through links take
+part: a chain cut by a relocalization (no sequential edge) keeps its poses instead of
+floating freely. A divergence guard restores the previous poses when the solver refuses a
+step, produces non-finite poses or moves a keyframe implausibly far.
+:meth:`GlobalGraph.cleanup` runs the terminal passes of C-Sec. A.7 step 1.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from como3r.config import GlobalBAConfig, TrackingConfig
+from como3r.errors import InputError
+from como3r.frontend.graph import Edge, make_factors
+from como3r.frontend.keyframes import Keyframe
+from como3r.frontend.packets import KeyframePacket, PointmapRefresh
+from como3r.frontend.pairs import PairLink, gather_points
+from como3r.optim.factors import Factor
+from como3r.optim.optimizer import gauss_newton_irls
+from como3r.optim.values import PoseValues
+
+logger = logging.getLogger(__name__)
+
+#: A whole solve that moves a keyframe by more than this many extents of the optimized
+#: graph, or changes a scale by more than this factor, has diverged (the per-step guard of
+#: the solver cannot see a slow blow-up over many iterations).
+MAX_DISPLACEMENT_EXTENTS = 10.0
+MAX_SCALE_FACTOR = 10.0
+
+
+@dataclass(frozen=True)
+class GraphLink:
+    """An undirected link between two keyframes, with its matches in both directions.
+
+    Attributes:
+        i: global index of endpoint i.
+        j: global index of endpoint j.
+        kind: ``"sequential"`` or ``"inter"``.
+        link: ``link.ij`` matches every pixel of j in i, ``link.ji`` every pixel of i in j.
+        similarity: retrieval similarity (inter links only).
+    """
+
+    i: int
+    j: int
+    kind: str
+    link: PairLink
+    similarity: float | None = None
+
+    def edges(self) -> tuple[Edge, Edge]:
+        """The two directed factor edges of the link."""
+        return Edge(self.i, self.j, self.link.ij, self.kind), Edge(self.j, self.i, self.link.ji,
+                                                                    self.kind)
+
+
+@dataclass(frozen=True)
+class BAResult:
+    """What one global solve did.
+
+    Attributes:
+        keyframes: global indices of the keyframes that took part (anchor included).
+        iterations: Gauss-Newton iterations run.
+        seconds: wall-clock time of the solve.
+        reason: the solver's stop reason, or ``"no_edges"``.
+        restored: the divergence guard kept the previous poses.
+        max_translation_change: largest camera-centre move of the solve [world units].
+    """
+
+    keyframes: tuple[int, ...]
+    iterations: int
+    seconds: float
+    reason: str
+    restored: bool
+    max_translation_change: float
+
+    @property
+    def moved(self) -> bool:
+        """Whether the solve wrote new poses."""
+        return bool(self.keyframes) and not self.restored and self.iterations > 0
+
+
+class GlobalGraph:
+    """Keyframes of all agents, their links, and the global Sim(3) solve.
+
+    Args:
+        tracking: noise model and Huber breakpoint of the residuals (C-Eq. 7-8).
+        config: the global BA settings (C-Tab. 3).
+    """
+
+    def __init__(self, tracking: TrackingConfig, config: GlobalBAConfig) -> None:
+        self.tracking = tracking
+        self.config = config
+        self.keyframes: list[Keyframe] = []
+        self.agent_of: list[int] = []
+        self.local_to_global: dict[int, list[int]] = {}
+        self.links: list[GraphLink] = []
+
+    def __len__(self) -> int:
+        return len(self.keyframes)
+
+    # ------------------------------------------------------------------ building
+
+    def add_keyframe(self, packet: KeyframePacket) -> int:
+        """Insert a keyframe and its sequential link; returns its global index.
+
+        Raises:
+            InputError: the packet does not carry the agent's next keyframe id.
+        """
+        own = self.local_to_global.setdefault(packet.agent, [])
+        if packet.kf_id != len(own):
+            raise InputError(f"coordinator: agent {packet.agent} sent keyframe {packet.kf_id} "
+                             f"but keyframe {len(own)} was expected (keyframes arrive in order)")
+        if packet.previous is not None:
+            self.refresh(packet.agent, packet.previous)
+        g = len(self.keyframes)
+        self.keyframes.append(Keyframe(
+            kf_id=packet.kf_id, frame_index=packet.frame_index, timestamp=packet.timestamp,
+            encoding=packet.encoding, T_WC=packet.T_WC.clone(), X_hat=packet.X_hat,
+            C_hat=packet.C_hat, X_init=packet.X_hat, C_init=packet.C_hat, colors=packet.colors,
+            retrieval=packet.retrieval,
+        ))
+        self.agent_of.append(packet.agent)
+        own.append(g)
+        if packet.sequential_ij is not None and packet.sequential_ji is not None:
+            self.links.append(GraphLink(own[-2], g, "sequential",
+                                        PairLink(packet.sequential_ij, packet.sequential_ji)))
+        elif packet.kf_id > 0:
+            logger.info("agent %d keyframe %d has no sequential edge (relocalized); its chain "
+                        "is cut in the global graph", packet.agent, packet.kf_id)
+        return g
+
+    def refresh(self, agent: int, refresh: PointmapRefresh) -> None:
+        """Replace a keyframe's canonical pointmap by its newer fused one.
+
+        Raises:
+            InputError: the keyframe was never received.
+        """
+        kf = self.keyframes[self.global_index(agent, refresh.kf_id)]
+        kf.X_hat, kf.C_hat, kf.fused_frames = refresh.X_hat, refresh.C_hat, refresh.fused_frames
+
+    def add_inter_link(self, i: int, j: int, link: PairLink, similarity: float) -> GraphLink:
+        """Insert a verified inter-agent link between global keyframes ``i`` and ``j``."""
+        if self.agent_of[i] == self.agent_of[j]:
+            raise InputError(f"coordinator: an inter-agent link needs two agents, got keyframes "
+                             f"{i} and {j} of agent {self.agent_of[i]}")
+        record = GraphLink(i, j, "inter", link, similarity)
+        self.links.append(record)
+        return record
+
+    # ------------------------------------------------------------------ lookups
+
+    def global_index(self, agent: int, kf_id: int) -> int:
+        """Global index of keyframe ``kf_id`` of ``agent``."""
+        own = self.local_to_global.get(agent, [])
+        if not 0 <= kf_id < len(own):
+            raise InputError(f"coordinator: agent {agent} keyframe {kf_id} was never received")
+        return own[kf_id]
+
+    def agent_keyframes(self, agent: int) -> list[int]:
+        """Global indices of an agent's keyframes in local order."""
+        return list(self.local_to_global.get(agent, []))
+
+    def poses(self, indices: Sequence[int]) -> Tensor:
+        """``(K, 8)`` poses of the given global keyframes."""
+        return torch.stack([self.keyframes[g].T_WC for g in indices])
+
+    def set_poses(self, indices: Sequence[int], T_WC: Tensor) -> None:
+        """Overwrite poses of global keyframes from ``(K, 8)``."""
+        for g, pose in zip(indices, T_WC):
+            self.keyframes[g].T_WC = pose.clone()
+
+    def inter_links(self) -> list[GraphLink]:
+        """The verified inter-agent links, in admission order."""
+        return [link for link in self.links if link.kind == "inter"]
+
+    # ------------------------------------------------------------------ solving
+
+    def connected(self, agents: Sequence[int], anchor: int) -> list[int]:
+        """Keyframes of ``agents`` reachable from ``anchor`` through links, sorted."""
+        members = {g for a in agents for g in self.local_to_global.get(a, [])}
+        neighbours: dict[int, list[int]] = {g: [] for g in members}
+        for link in self.links:
+            if link.i in members and link.j in members:
+                neighbours[link.i].append(link.j)
+                neighbours[link.j].append(link.i)
+        reached, frontier = {anchor}, [anchor]
+        while frontier:
+            for other in neighbours[frontier.pop()]:
+                if other not in reached:
+                    reached.add(other)
+                    frontier.append(other)
+        return sorted(reached)
+
+    def optimize(self, agents: Sequence[int], anchor: int, max_iters: int) -> BAResult:
+        """Global Sim(3) BA (C-Eq. 5) over ``agents``' keyframes with ``anchor`` pinned.
+
+        Args:
+            agents: agents sharing one gauge.
+            anchor: global index of the pinned keyframe (one of ``agents``').
+            max_iters: Gauss-Newton iterations (50 in-stream, 100 per cleanup pass).
+        """
+        nodes = self.connected(agents, anchor)
+        chosen = set(nodes)
+        links = [link for link in self.links if link.i in chosen and link.j in chosen]
+        if not links:
+            return BAResult(tuple(nodes), 0, 0.0, "no_edges", False, 0.0)
+        row = {g: r for r, g in enumerate(nodes)}
+        factors = self._factors([e for link in links for e in link.edges()], row)
+        before = self.poses(nodes)
+        pinned = torch.tensor([g == anchor for g in nodes], device=before.device)
+        solved, report = gauss_newton_irls(factors, PoseValues(before, pinned), self.config,
+                                           max_iters=max_iters)
+        after = solved.poses
+        problem = "solver refused a step" if report.diverged else _implausible(before, after)
+        if problem:
+            logger.warning("global BA over agents %s diverged (%s); previous poses restored",
+                           list(agents), problem)
+            return BAResult(tuple(nodes), report.iterations, report.seconds, report.reason,
+                            True, 0.0)
+        self.set_poses(nodes, after)
+        change = float((after[:, :3] - before[:, :3]).norm(dim=-1).max())
+        logger.debug("global BA over %d keyframes: %d iterations (%s), max move %.4g",
+                     len(nodes), report.iterations, report.reason, change)
+        return BAResult(tuple(nodes), report.iterations, report.seconds, report.reason, False,
+                        change)
+
+    def _factors(self, edges: Sequence[Edge], row: dict[int, int]) -> Factor:
+        """One factor batch over ``edges`` holding their VALID matches only.
+
+        The residuals are those of :func:`~como3r.frontend.graph.build_factors` (invalid
+        matches weigh zero there), but with a third to two thirds of the pixels of a
+        keyframe pair unmatched, dropping them before the solve divides its cost.
+        """
+        X_i, X_j, q = [], [], []
+        for e in edges:
+            valid = e.matches.valid
+            X_i.append(gather_points(self.keyframes[e.i].X_hat, e.matches.idx[valid]))
+            X_j.append(self.keyframes[e.j].X_hat.reshape(-1, 3)[valid])
+            q.append(e.matches.q[valid])
+        P = max(1, max(len(x) for x in q))
+        intrinsics = [self.keyframes[e.i].K for e in edges]
+        K_i = torch.stack(intrinsics) if all(K is not None for K in intrinsics) else None
+        device = edges[0].matches.idx.device
+        return make_factors(
+            torch.tensor([row[e.i] for e in edges], device=device),
+            torch.tensor([row[e.j] for e in edges], device=device),
+            torch.stack([_pad(x, P) for x in X_i]), torch.stack([_pad(x, P) for x in X_j]),
+            torch.stack([_pad(x, P) for x in q]),
+            torch.stack([_pad(torch.ones_like(x, dtype=torch.bool), P) for x in q]),
+            self.tracking, None if K_i is None else K_i.to(X_i[0]))
+
+    def cleanup(self, agents: Sequence[int], anchor: int) -> list[BAResult]:
+        """Terminal pose passes (C-Sec. A.7 step 1): at most ``cleanup_passes`` solves of
+        ``max_iters_cleanup`` iterations, until no camera centre moves by
+        ``cleanup_stop_translation_m`` or more."""
+        results: list[BAResult] = []
+        for _ in range(self.config.cleanup_passes):
+            result = self.optimize(agents, anchor, self.config.max_iters_cleanup)
+            results.append(result)
+            if not result.moved or (
+                    result.max_translation_change < self.config.cleanup_stop_translation_m):
+                break
+        return results
+
+
+def _pad(x: Tensor, size: int) -> Tensor:
+    """``x (n, ...)`` followed by zero rows up to ``size`` rows (zero = invalid match)."""
+    return torch.cat([x, x.new_zeros((size - x.shape[0], *x.shape[1:]))])
+
+
+def _implausible(before: Tensor, after: Tensor) -> str:
+    """Why a solve from poses ``before (K, 8)`` to ``after`` is implausible ('' if it is not)."""
+    if not bool(after.isfinite().all()) or bool((after[:, 7] <= 0).any()):
+        return "non-finite or non-positive-scale poses"
+    centres = before[:, :3].double()
+    extent = float((centres.amax(0) - centres.amin(0)).norm())
+    displacement = float((after[:, :3].double() - centres).norm(dim=-1).max())
+    if extent > 0 and displacement > MAX_DISPLACEMENT_EXTENTS * extent:
+        return f"a keyframe moved {displacement:.3g} in a graph of extent {extent:.3g}"
+    log_ratio = float((after[:, 7].double().log() - before[:, 7].double().log()).abs().max())
+    if log_ratio > math.log(MAX_SCALE_FACTOR):
+        return f"a keyframe scale changed by a factor {math.exp(log_ratio):.3g}"
+    return ""

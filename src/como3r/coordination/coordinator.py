@@ -1,0 +1,468 @@
+"""The coordinator: Level 2 of CoMo3R-SLAM (C-Sec. 3.1, 3.4, 3.5, A.3, A.4, A.8).
+
+It receives every agent's keyframes (:class:`~como3r.frontend.packets.KeyframePacket`) in
+any interleaving, and for each one
+
+1. inserts it and its sequential edge into the unified factor graph
+   (:class:`~como3r.backend.global_graph.GlobalGraph`);
+2. retrieves up to ``k_NN`` keyframes of other agents from the shared ASMK database and
+   verifies each candidate densely (C-Eq. 12; :mod:`.association`);
+3. admits a verified edge between two agents of ONE gauge component straight into the
+   graph, provided its matched points agree with the current poses
+   (``verification.max_residual_ratio``); an edge between two components is held until
+   ``gauge.min_consistent_edges`` such edges agree on one aligning transform, then the
+   higher-rooted component is transported into the lower one's gauge (Umeyama over all
+   their lifted correspondences or rigid snap, C-Eq. 14-15; :mod:`.gauge`) and the edges
+   enter the graph. With 1 and ``inf`` this is the paper's rule (synchronize on the first
+   verified edge); the defaults add the consistency tests because the dense test of
+   C-Eq. 12 alone accepts edges that a prior hallucinates on repeated façades;
+4. once ``trigger_interval_edges`` new inter-agent edges have been admitted, runs the
+   global Sim(3) BA (C-Eq. 5) over every component that received one, with the
+   component's first keyframe pinned (keyframe 0 of agent 0 for the global gauge);
+
+and returns :class:`~como3r.frontend.packets.PoseUpdate` s for the agents whose keyframes
+moved (C-Sec. A.8). :meth:`Coordinator.finish` runs the terminal cleanup passes
+(C-Sec. A.7 step 1) and returns the final poses.
+
+No BA ever runs across components: before their gauges are synchronized, two agents' poses
+live in unrelated frames, and a joint solve would drag one chain across the other.
+
+Poses in a packet are taken to be in the frame of the most recent update the coordinator
+sent to that agent (the single-process runner applies updates before the next frame; a
+multi-process runtime must apply pending updates before exporting a keyframe).
+
+Agents in singleton components (never verified against anyone) get no pose updates: the
+coordinator's copy of their chain lacks the intra-agent loop edges their own front-end
+optimizes, so the front-end's poses are the better ones.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from como3r.backend.global_graph import BAResult, GlobalGraph, GraphLink
+from como3r.config import Config
+from como3r.coordination.association import CrossAgentRetrieval, Verification, verify_candidates
+from como3r.coordination.gauge import (
+    GaugeComponents,
+    GaugeTransform,
+    lift,
+    residual_ratio,
+    solve_gauge_transform,
+    transport,
+)
+from como3r.errors import InputError
+from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
+from como3r.frontend.pairs import DirectedMatches, gather_points
+from como3r.geometry.lie import sim3_act
+from como3r.prior.base import Prior
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class CoordinatorStats:
+    """Counters and timings reported in metrics.json."""
+
+    keyframes: int = 0
+    retrieval_queries: int = 0
+    edges_tried: int = 0
+    edges_verified: int = 0
+    edges_accepted: int = 0
+    edges_inconsistent: int = 0
+    gauge_syncs: int = 0
+    ba_runs: int = 0
+    ba_iterations: int = 0
+    ba_seconds: float = 0.0
+    ba_restored: int = 0
+    cleanup_passes: int = 0
+    cleanup_iterations: int = 0
+    cleanup_seconds: float = 0.0
+    pose_updates: int = 0
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+
+    def add_time(self, stage: str, seconds: float) -> None:
+        """Accumulate wall-clock seconds of a stage."""
+        self.stage_seconds[stage] = self.stage_seconds.get(stage, 0.0) + seconds
+
+
+@dataclass(eq=False)
+class Candidate:
+    """A verified cross-agent candidate edge and what became of it.
+
+    Attributes:
+        verification: the dense verification (C-Eq. 12).
+        i: global index of the candidate keyframe (endpoint i).
+        j: global index of the new keyframe (endpoint j).
+        status: ``"rejected"`` (C-Eq. 12 failed), ``"pending"`` (waiting for agreeing
+            edges between two components), ``"admitted"`` (in the graph) or
+            ``"inconsistent"`` (disagrees with the poses it would constrain).
+        residual_ratio: the consistency measure of the last test (NaN if untested).
+    """
+
+    verification: Verification
+    i: int
+    j: int
+    status: str = "rejected"
+    residual_ratio: float = float("nan")
+
+
+class Coordinator:
+    """Cross-agent association, gauge synchronization and global BA (Level 2).
+
+    Args:
+        prior: the two-view prior (decodes candidate pairs for verification).
+        config: the run's configuration.
+        codebook: ``(K, d)`` ASMK codebook; without one there is no cross-agent retrieval.
+        num_agents: number of agents; agent ids are ``0 .. num_agents - 1``.
+    """
+
+    def __init__(self, prior: Prior, config: Config, codebook: np.ndarray | None,
+                 num_agents: int) -> None:
+        if num_agents < 1:
+            raise InputError(f"coordinator: num_agents must be >= 1, got {num_agents}")
+        self.prior = prior
+        self.config = config
+        self.num_agents = num_agents
+        self.graph = GlobalGraph(config.tracking, config.global_ba)
+        self.gauges = GaugeComponents()
+        for agent in range(num_agents):
+            self.gauges.add(agent)
+        enabled = config.loop_closure and codebook is not None
+        self.retrieval = CrossAgentRetrieval(codebook, config.retrieval) if enabled else None
+        self.stats = CoordinatorStats()
+        self.candidates: list[Candidate] = []
+        self.gauge_events: list[dict[str, Any]] = []
+        self._waiting: list[Candidate] = []  # verified edges between two components
+        self._new_edges = 0
+        self._dirty_roots: set[int] = set()
+
+    # ------------------------------------------------------------------ public API
+
+    def add_keyframe(self, packet: KeyframePacket) -> list[PoseUpdate]:
+        """Insert, associate, synchronize and (maybe) optimize one new keyframe.
+
+        Returns:
+            Pose updates for the agents whose keyframes moved (gauge transports first,
+            then the global BA's), possibly none.
+
+        Raises:
+            InputError: unknown agent id or a keyframe out of order.
+        """
+        if not 0 <= packet.agent < self.num_agents:
+            raise InputError(f"coordinator: agent id {packet.agent} is out of range for "
+                             f"{self.num_agents} agents")
+        g = self.graph.add_keyframe(packet)
+        self.stats.keyframes += 1
+        updates: list[PoseUpdate] = []
+        for candidate in self._associate(packet):
+            updates.extend(self._admit(candidate))
+        if self._new_edges >= self.config.global_ba.trigger_interval_edges:
+            updates.extend(self._global_ba())
+        logger.debug("coordinator: keyframe %d (agent %d, kf %d): %d update(s)",
+                     g, packet.agent, packet.kf_id, len(updates))
+        return self._count(updates)
+
+    def refresh(self, agent: int, refresh: PointmapRefresh) -> None:
+        """Replace the canonical pointmap of a sent keyframe by its newer fused one."""
+        self.graph.refresh(agent, refresh)
+
+    def finish(self) -> list[PoseUpdate]:
+        """Terminal cleanup passes per multi-agent component; their final poses."""
+        start = time.perf_counter()
+        updates: list[PoseUpdate] = []
+        for members in self.components():
+            if len(members) < 2:
+                continue
+            results = self.graph.cleanup(members, self._anchor(members[0]))
+            self.stats.cleanup_passes += len(results)
+            self.stats.cleanup_iterations += sum(r.iterations for r in results)
+            self.stats.cleanup_seconds += sum(r.seconds for r in results)
+            updates.extend(self._updates(members, "cleanup"))
+        self.stats.add_time("cleanup", time.perf_counter() - start)
+        return self._count(updates)
+
+    def components(self) -> list[list[int]]:
+        """Gauge components (sorted agent lists), agent 0's first."""
+        return self.gauges.components()
+
+    def graph_document(self) -> dict[str, Any]:
+        """JSON-ready graph: keyframes, intra/inter edges with scores, candidates, components."""
+        keyframes = [
+            {"global": g, "agent": self.graph.agent_of[g], "keyframe": kf.kf_id,
+             "frame": kf.frame_index, "timestamp": kf.timestamp, "T_WC": kf.T_WC.tolist()}
+            for g, kf in enumerate(self.graph.keyframes)
+        ]
+        return {
+            "keyframes": keyframes,
+            "edges": [self._link_json(link) for link in self.graph.links],
+            "candidates": [self._candidate_json(c) for c in self.candidates],
+            "gauge_events": list(self.gauge_events),
+            "components": self.components(),
+        }
+
+    def metrics(self) -> dict[str, Any]:
+        """Counters, timings and gauge events."""
+        stats = asdict(self.stats)
+        stats["stage_seconds"] = dict(self.stats.stage_seconds)
+        stats["gauge_events"] = list(self.gauge_events)
+        stats["components"] = self.components()
+        stats["cross_agent_retrieval"] = self.retrieval is not None
+        return stats
+
+    # ------------------------------------------------------------------ association
+
+    def _associate(self, packet: KeyframePacket) -> list[Candidate]:
+        """Retrieve candidates of other agents and verify them densely (C-Eq. 12)."""
+        if self.retrieval is None or packet.retrieval is None:
+            return []
+        start = time.perf_counter()
+        hits = self.retrieval.query_and_add(packet.agent, packet.kf_id, packet.retrieval)
+        self.stats.retrieval_queries += 1
+        middle = time.perf_counter()
+        self.stats.add_time("retrieval", middle - start)
+        if not hits:
+            return []
+        candidates = [(h, self.graph.keyframes[self.graph.global_index(h.agent, h.keyframe)]
+                       .encoding) for h in hits]
+        verifications = verify_candidates(
+            self.prior, (packet.agent, packet.kf_id), packet.encoding, candidates,
+            self.config.matching, self.config.tracking.q_min, self.config.verification)
+        self.stats.add_time("verification", time.perf_counter() - middle)
+        self.stats.edges_tried += len(verifications)
+        records = [Candidate(v, self.graph.global_index(*v.candidate),
+                             self.graph.global_index(*v.query)) for v in verifications]
+        self.candidates.extend(records)
+        verified = [c for c in records if c.verification.accepted]
+        self.stats.edges_verified += len(verified)
+        return verified
+
+    def _admit(self, candidate: Candidate) -> list[PoseUpdate]:
+        """Route a verified edge: into its component's graph, or towards a gauge merge."""
+        if self._same_component(candidate):
+            self._admit_within(candidate)
+            return []
+        candidate.status = "pending"
+        self._waiting.append(candidate)
+        return self._try_merge(candidate)
+
+    def _admit_within(self, candidate: Candidate) -> None:
+        """Add an edge between agents sharing a gauge if it agrees with their poses."""
+        x_i, x_j, _ = self._lifted_correspondences(candidate)
+        centre = self.graph.keyframes[candidate.i].T_WC[:3]
+        candidate.residual_ratio = residual_ratio(x_i, x_j, centre)
+        if candidate.residual_ratio > self.config.verification.max_residual_ratio:
+            candidate.status = "inconsistent"
+            self.stats.edges_inconsistent += 1
+            logger.info("coordinator: edge %s-%s disagrees with the poses (ratio %.3f); "
+                        "rejected", candidate.verification.candidate,
+                        candidate.verification.query, candidate.residual_ratio)
+            return
+        self._add_inter_link(candidate)
+
+    def _add_inter_link(self, candidate: Candidate) -> None:
+        candidate.status = "admitted"
+        v = candidate.verification
+        self.graph.add_inter_link(candidate.i, candidate.j, v.link, v.similarity)
+        self.stats.edges_accepted += 1
+        self._new_edges += 1
+        self._dirty_roots.add(self.gauges.find(self.graph.agent_of[candidate.i]))
+
+    # ------------------------------------------------------------------ gauge
+
+    def _try_merge(self, candidate: Candidate) -> list[PoseUpdate]:
+        """Merge the two components of ``candidate`` once enough waiting edges between them
+        agree with its transform; then admit them and re-test the rest."""
+        needed = self.config.gauge.min_consistent_edges
+        supporters = [candidate]
+        if needed > 1:
+            hypothesis = self._gauge_transform([candidate])
+            supporters += [c for c in self._waiting if c is not candidate
+                           and self._roots(c) == self._roots(candidate)
+                           and self._agrees(c, hypothesis)]
+        if len(supporters) < needed:
+            return []
+        start = time.perf_counter()
+        transform = self._gauge_transform(supporters)
+        anchor_root, moved_root = self._roots(candidate)
+        moved_agents = self.gauges.members(moved_root)
+        for agent in moved_agents:
+            indices = self.graph.agent_keyframes(agent)
+            self.graph.set_poses(indices, transport(transform.T, self.graph.poses(indices)))
+        self.gauges.union(anchor_root, moved_root)
+        self._record_gauge_event(transform, anchor_root, moved_agents, supporters)
+        self.stats.gauge_syncs += 1
+        self.stats.add_time("gauge", time.perf_counter() - start)
+        for c in supporters:
+            self._add_inter_link(c)
+        # Other waiting edges now inside one component are tested like any such edge.
+        inside = [c for c in self._waiting if self._same_component(c) and c not in supporters]
+        self._waiting = [c for c in self._waiting if not self._same_component(c)]
+        for c in inside:
+            self._admit_within(c)
+        return self._updates(moved_agents, "gauge")
+
+    def _agrees(self, candidate: Candidate, hypothesis: GaugeTransform) -> bool:
+        """Whether a waiting edge's points agree once the moving side is transported."""
+        x_moving, x_anchor, _ = self._oriented_correspondences(candidate)
+        anchor = candidate.i if self._moving_is_j(candidate) else candidate.j
+        candidate.residual_ratio = residual_ratio(
+            x_anchor, sim3_act(hypothesis.T.to(x_moving)[None], x_moving),
+            self.graph.keyframes[anchor].T_WC[:3])
+        return candidate.residual_ratio <= self.config.verification.max_residual_ratio
+
+    def _gauge_transform(self, candidates: Sequence[Candidate]) -> GaugeTransform:
+        """``T*`` from the lifted correspondences of edges between the same two components
+        (C-Eq. 14); the rigid snap uses the first edge's endpoints."""
+        parts = [self._oriented_correspondences(c) for c in candidates]
+        first = candidates[0]
+        moving, anchor = ((first.j, first.i) if self._moving_is_j(first)
+                          else (first.i, first.j))
+        return solve_gauge_transform(
+            torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts]),
+            torch.cat([p[2] for p in parts]), self.graph.keyframes[moving].T_WC,
+            self.graph.keyframes[anchor].T_WC, self.config.gauge.min_correspondences)
+
+    def _roots(self, candidate: Candidate) -> tuple[int, int]:
+        """``(anchor root, moving root)`` of the components an edge connects."""
+        root_i = self.gauges.find(self.graph.agent_of[candidate.i])
+        root_j = self.gauges.find(self.graph.agent_of[candidate.j])
+        return min(root_i, root_j), max(root_i, root_j)
+
+    def _same_component(self, candidate: Candidate) -> bool:
+        return self.gauges.same(self.graph.agent_of[candidate.i],
+                                self.graph.agent_of[candidate.j])
+
+    def _moving_is_j(self, candidate: Candidate) -> bool:
+        return self.gauges.find(self.graph.agent_of[candidate.j]) == self._roots(candidate)[1]
+
+    def _oriented_correspondences(self, candidate: Candidate) -> tuple[Tensor, Tensor, Tensor]:
+        """``(x_moving, x_anchor, q)``: lifted correspondences of an edge between two
+        components, the moving component's side first."""
+        x_i, x_j, q = self._lifted_correspondences(candidate)
+        return (x_j, x_i, q) if self._moving_is_j(candidate) else (x_i, x_j, q)
+
+    def _lifted_correspondences(self, candidate: Candidate) -> tuple[Tensor, Tensor, Tensor]:
+        """Matched canonical points of both endpoints lifted into their world frames.
+
+        Both match directions contribute their valid matches (``q > Q_min``, the
+        high-confidence matches of C-Sec. A.4), weighted by ``q``.
+
+        Returns:
+            ``x_i (N, 3)``, ``x_j (N, 3)``, ``q (N,)``.
+        """
+        kf_i, kf_j = self.graph.keyframes[candidate.i], self.graph.keyframes[candidate.j]
+        ij, ji = candidate.verification.link.ij, candidate.verification.link.ji
+        x_i_ij, x_j_ij = _matched_points(ij, kf_i.X_hat, kf_j.X_hat)
+        x_j_ji, x_i_ji = _matched_points(ji, kf_j.X_hat, kf_i.X_hat)
+        x_i = lift(kf_i.T_WC, torch.cat([x_i_ij, x_i_ji]))
+        x_j = lift(kf_j.T_WC, torch.cat([x_j_ij, x_j_ji]))
+        return x_i, x_j, torch.cat([ij.q[ij.valid], ji.q[ji.valid]])
+
+    def _record_gauge_event(self, transform: GaugeTransform, kept: int, moved: list[int],
+                            supporters: Sequence[Candidate]) -> None:
+        event = {
+            "keyframes": self.stats.keyframes,
+            "anchor_component": kept,
+            "moved_agents": moved,
+            "edges": [[self._key(c.i), self._key(c.j)] for c in supporters],
+            "method": transform.method,
+            "correspondences": transform.correspondences,
+            "rmse": None if transform.method == "rigid_snap" else transform.rmse,
+            "scale": float(transform.T[7]),
+        }
+        self.gauge_events.append(event)
+        logger.info("gauge: agents %s join component %d by %s over %d edge(s), "
+                    "%d correspondences", moved, kept, transform.method, len(supporters),
+                    transform.correspondences)
+
+    # ------------------------------------------------------------------ global BA
+
+    def _anchor(self, root: int) -> int:
+        """Pinned keyframe of a component: the first keyframe of its lowest agent."""
+        return self.graph.global_index(root, 0)
+
+    def _global_ba(self) -> list[PoseUpdate]:
+        """In-stream BA (C-Eq. 5) of every component that received new inter edges."""
+        start = time.perf_counter()
+        updates: list[PoseUpdate] = []
+        for root in sorted({self.gauges.find(r) for r in self._dirty_roots}):
+            members = self.gauges.members(root)
+            result = self.graph.optimize(members, self._anchor(root),
+                                         self.config.global_ba.max_iters_stream)
+            self._count_ba(result)
+            if result.moved:
+                moved = sorted({self.graph.agent_of[g] for g in result.keyframes})
+                updates.extend(self._updates(moved, "global_ba"))
+        self._new_edges = 0
+        self._dirty_roots.clear()
+        self.stats.add_time("global_ba", time.perf_counter() - start)
+        return updates
+
+    def _count_ba(self, result: BAResult) -> None:
+        self.stats.ba_runs += 1
+        self.stats.ba_iterations += result.iterations
+        self.stats.ba_seconds += result.seconds
+        self.stats.ba_restored += int(result.restored)
+
+    # ------------------------------------------------------------------ helpers
+
+    def _updates(self, agents: Iterable[int], reason: str) -> list[PoseUpdate]:
+        """One update per agent with the current poses of all its keyframes."""
+        updates = []
+        for agent in agents:
+            indices = self.graph.agent_keyframes(agent)
+            if indices:
+                updates.append(PoseUpdate(
+                    agent=agent, kf_ids=torch.arange(len(indices), dtype=torch.int64),
+                    T_WC=self.graph.poses(indices).clone(), reason=reason))
+        return updates
+
+    def _count(self, updates: list[PoseUpdate]) -> list[PoseUpdate]:
+        self.stats.pose_updates += len(updates)
+        return updates
+
+    def _key(self, g: int) -> list[int]:
+        """``[agent, kf_id]`` of global keyframe ``g``."""
+        return [self.graph.agent_of[g], self.graph.keyframes[g].kf_id]
+
+    def _link_json(self, link: GraphLink) -> dict[str, Any]:
+        document: dict[str, Any] = {
+            "type": link.kind, "from": self._key(link.i), "to": self._key(link.j),
+            "global": [link.i, link.j],
+            "nu_i": link.link.ji.match_fraction, "nu_j": link.link.ij.match_fraction,
+        }
+        if link.similarity is not None:
+            document["similarity"] = link.similarity
+        return document
+
+    def _candidate_json(self, c: Candidate) -> dict[str, Any]:
+        v = c.verification
+        return {"from": list(v.candidate), "to": list(v.query), "similarity": v.similarity,
+                "nu_i": v.nu_i, "nu_j": v.nu_j, "covisible_ratio": v.covisible_ratio,
+                "verified": v.accepted, "status": c.status,
+                "residual_ratio": None if c.residual_ratio != c.residual_ratio
+                else c.residual_ratio}
+
+
+def _matched_points(matches: DirectedMatches, X_target: Tensor,
+                    X_source: Tensor) -> tuple[Tensor, Tensor]:
+    """Valid matches of ``matches`` as point pairs ``(X_target[idx[n]], X_source[n])``.
+
+    Args:
+        matches: every pixel ``n`` of the source keyframe looked up in the target.
+        X_target: ``(H, W, 3)`` target canonical pointmap.
+        X_source: ``(H, W, 3)`` source canonical pointmap.
+
+    Returns:
+        ``(M, 3)`` target points and ``(M, 3)`` source points (camera frames).
+    """
+    valid = matches.valid
+    return gather_points(X_target, matches.idx[valid]), X_source.reshape(-1, 3)[valid]

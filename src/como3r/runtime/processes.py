@@ -1,0 +1,828 @@
+"""The local multi-process runtime: one process per agent, the coordinator in the main one
+(C-Sec. B.1, A.8).
+
+Each agent process opens its own input, builds its own prior from the
+:class:`~como3r.runtime.pipeline.PriorSpec`, runs an
+:class:`~como3r.frontend.agent.AgentFrontend` over its frames, sends every new keyframe as
+it appears and applies the pose updates it receives between frames. Agent and coordinator
+exchange only the messages of :mod:`como3r.runtime.messages`, encoded by
+:mod:`como3r.runtime.codec` (no pickle) and carried as raw bytes over two one-way pipes per
+agent (``Connection.send_bytes`` / ``recv_bytes``, size-capped on both ends). A sender
+thread on each side keeps a full pipe from ever blocking computation, so neither side can
+deadlock the other. The only other thing that crosses is what ``spawn`` needs to start a
+process: the agent id and the two pipe ends. (``spawn`` re-imports the caller's main
+module, so a script calling :func:`run_multiprocess` needs an ``if __name__ == "__main__":``
+guard; the ``como3r`` command has one.)
+
+The coordinator runs in the main process: that process would otherwise only wait on the
+pipes, it already needs the prior (to decode candidate pairs) and owns the output folder,
+and a separate coordinator process would add a core's worth of contention on small
+machines and one more serialization hop for every keyframe. While it solves, agents keep
+tracking; their messages wait in the pipes.
+
+Ordering. The coordinator hands keyframes to :class:`Coordinator` in the order the
+single-process runner does, by ``(timestamp, agent)``: a keyframe waits until every other
+running agent has reported a frame at or after it (each agent's ``FrameDone`` is its
+clock), so retrieval and verification see the same database in any run. Agents run free
+and apply updates asynchronously, so a keyframe may be exported before its agent saw the
+latest update; the coordinator then re-anchors it on its predecessor's current pose (the
+relative pose is the agent's). Results therefore match the single-process run up to the
+global solver's convergence. ``RuntimeOptions.lockstep`` additionally makes every agent wait
+for a ``Step`` before each frame, in the single-process schedule, which reproduces
+:func:`como3r.runtime.pipeline.run` (serially: for testing and debugging).
+
+Failures. An agent that raises sends ``AgentFailed``; one that dies (killed, crashed) is
+seen through its process sentinel; one that stays silent longer than
+``agent_timeout_s`` is terminated. Either way the failure is logged, the coordinator keeps
+the keyframes it received, the other agents run to the end, and the failed agent's outputs
+hold its keyframes only; ``metrics.json`` (``runtime``) and ``RunSummary.notes`` say so.
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+import math
+import multiprocessing
+import os
+import queue
+import threading
+import time
+import traceback
+from collections import Counter
+from dataclasses import dataclass, field, replace
+from multiprocessing.connection import Connection, wait
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from como3r.config import Config, config_from_dict, config_to_dict
+from como3r.coordination.coordinator import Coordinator
+from como3r.data.agent import AgentInput, open_agent
+from como3r.data.preprocess import make_view
+from como3r.errors import Como3rError, InputError
+from como3r.frontend.agent import AgentFrontend, FrontendStats
+from como3r.frontend.packets import PointmapRefresh, PoseUpdate
+from como3r.geometry.lie import sim3_compose, sim3_inverse
+from como3r.io.output import atomic_output_dir
+from como3r.runtime import codec, outputs
+from como3r.runtime.messages import (
+    FROM_AGENT,
+    TO_AGENT,
+    AgentFailed,
+    AgentFinished,
+    AgentStarted,
+    AgentTask,
+    EdgeSummary,
+    FrameDone,
+    KeyframeMessage,
+    PoseUpdateMessage,
+    Shutdown,
+    Step,
+)
+from como3r.runtime.pipeline import (
+    PriorSpec,
+    RunSummary,
+    _colors,
+    _frame_schedule,
+    build_prior,
+    open_agents,
+)
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RuntimeOptions:
+    """Knobs of the multi-process runtime.
+
+    Attributes:
+        lockstep: agents take turns in the single-process schedule (reproducible, serial).
+        torch_threads: intra-op torch threads of every process (the main one while running).
+        max_message_bytes: size cap of one message.
+        agent_timeout_s: a running agent silent for longer is terminated as hung.
+        shutdown_grace_s: how long a stopping agent may take before it is terminated.
+    """
+
+    lockstep: bool = False
+    torch_threads: int = 1
+    max_message_bytes: int = codec.DEFAULT_MAX_BYTES
+    agent_timeout_s: float = 900.0
+    shutdown_grace_s: float = 10.0
+
+
+# ------------------------------------------------------------------------------ transport
+
+
+class Channel:
+    """Typed messages over two one-way pipes; sends go through a background thread.
+
+    Args:
+        inbox: the receiving end, or None.
+        outbox: the sending end, or None.
+        max_bytes: size cap of a message in either direction.
+        accepts: message classes :meth:`receive` accepts.
+    """
+
+    def __init__(self, inbox: Connection | None, outbox: Connection | None, max_bytes: int,
+                 accepts: tuple[type, ...]) -> None:
+        self.inbox = inbox
+        self.outbox = outbox
+        self.max_bytes = max_bytes
+        self.accepts = accepts
+        self.bytes_sent: Counter[str] = Counter()
+        self.bytes_received: Counter[str] = Counter()
+        self.messages_sent: Counter[str] = Counter()
+        self.messages_received: Counter[str] = Counter()
+        self.broken = False
+        self._queue: queue.Queue[bytes | None] = queue.Queue()
+        self._sender: threading.Thread | None = None
+        if outbox is not None:
+            self._sender = threading.Thread(target=self._send_loop, daemon=True)
+            self._sender.start()
+
+    def send(self, message: Any) -> None:
+        """Encode ``message`` and queue it; never blocks on the pipe."""
+        data = codec.encode(message, max_bytes=self.max_bytes)
+        name = type(message).__name__
+        self.bytes_sent[name] += len(data)
+        self.messages_sent[name] += 1
+        self._queue.put(data)
+
+    def poll(self, timeout: float = 0.0) -> bool:
+        """Whether a message (or end of stream) is waiting."""
+        return self.inbox is not None and self.inbox.poll(timeout)
+
+    def receive(self) -> Any:
+        """The next message (blocking).
+
+        Raises:
+            EOFError: the other side closed the pipe.
+            codec.MessageError: the bytes are not an acceptable message.
+        """
+        assert self.inbox is not None
+        try:
+            data = self.inbox.recv_bytes(self.max_bytes)
+        except OSError as exc:
+            raise codec.MessageError(
+                f"unreadable message ({exc}); cap {self.max_bytes} bytes") from None
+        message = codec.decode(data, max_bytes=self.max_bytes, expected=self.accepts)
+        name = type(message).__name__
+        self.bytes_received[name] += len(data)
+        self.messages_received[name] += 1
+        return message
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Flush queued messages (up to ``timeout`` seconds) and close both ends."""
+        if self._sender is not None:
+            self._queue.put(None)
+            self._sender.join(timeout)
+        for conn in (self.inbox, self.outbox):
+            if conn is not None:
+                conn.close()
+
+    def _send_loop(self) -> None:
+        assert self.outbox is not None
+        while (data := self._queue.get()) is not None:
+            if self.broken:
+                continue
+            try:
+                self.outbox.send_bytes(data)
+            except OSError:  # the other side is gone; later messages are dropped too
+                self.broken = True
+
+
+# ------------------------------------------------------------------------------ agent side
+
+
+def _agent_main(agent: int, inbox: Connection, outbox: Connection) -> None:
+    """Entry point of an agent process."""
+    channel = Channel(inbox, outbox, codec.DEFAULT_MAX_BYTES, TO_AGENT)
+    worker: _AgentWorker | None = None
+    try:
+        task = channel.receive()
+        if not isinstance(task, AgentTask) or task.agent != agent:
+            raise codec.MessageError(f"agent {agent}: the first message must be its AgentTask")
+        channel.max_bytes = task.max_message_bytes
+        logging.basicConfig(level=task.log_level,
+                            format=f"[agent {agent}] %(levelname)s %(name)s: %(message)s")
+        worker = _AgentWorker(task, channel)
+        worker.run()
+    except (EOFError, KeyboardInterrupt):
+        pass  # the coordinator is gone or the user interrupted: nothing to report to
+    except Exception as exc:
+        details = "" if isinstance(exc, Como3rError) else traceback.format_exc()
+        channel.send(AgentFailed(agent=agent, error=f"{type(exc).__name__}: {exc}",
+                                 details=details,
+                                 frame_index=worker.current_frame if worker is not None else -1))
+    finally:
+        channel.close()
+
+
+class _AgentWorker:
+    """One agent's loop: frames in, keyframes and progress out, pose updates applied."""
+
+    def __init__(self, task: AgentTask, channel: Channel) -> None:
+        torch.set_num_threads(max(1, task.torch_threads))
+        self.task = task
+        self.channel = channel
+        self.config = config_from_dict(Config, task.config)
+        spec = PriorSpec(**{k: (Path(v) if k in _PATH_FIELDS and v is not None else v)
+                            for k, v in task.prior.items()})
+        self.input = open_agent(task.input_path, fps=self.config.input.frame_rate_hz)
+        prior, codebook = build_prior(spec, self.config)
+        self.needs_K = spec.name == "simulated" or self.config.calibrated
+        self.frontend = AgentFrontend(prior, self.config, task.agent, codebook)
+        self.frames = range(0, self.input.num_frames, self.config.input.subsample)
+        self.applied_seq = 0
+        self.seconds = 0.0
+        self.current_frame = -1
+
+    def run(self) -> None:
+        self.channel.send(AgentStarted(agent=self.task.agent, pid=os.getpid(),
+                                       frames=len(self.frames)))
+        for index in self.frames:
+            ready = self._await_step(index) if self.task.lockstep else self._drain_inbox()
+            if not ready:
+                return
+            self._process(index)
+        self.current_frame = -1
+        if self.task.lockstep or self._drain_inbox():
+            self.channel.send(self._finished())
+
+    def _process(self, index: int) -> None:
+        self.current_frame = index
+        frame = self.input.load_frame(index)
+        view = make_view(frame, self.task.agent, self.config.input.long_side,
+                         self.input.calib if self.needs_K else None)
+        start = time.perf_counter()
+        outcome = self.frontend.process(view, frame.timestamp, _colors(view))
+        seconds = time.perf_counter() - start
+        self.seconds += seconds
+        for packet in self.frontend.drain_new_keyframes():
+            previous = (self.frontend.keyframes[packet.kf_id - 1].T_WC.clone()
+                        if packet.kf_id > 0 else None)
+            self.channel.send(KeyframeMessage(packet=packet, applied_seq=self.applied_seq,
+                                              T_WC_previous=previous))
+        self.channel.send(FrameDone(agent=self.task.agent, frame_index=index,
+                                    timestamp=frame.timestamp, outcome=outcome, seconds=seconds))
+
+    def _handle(self, message: Any) -> bool:
+        """Apply one coordinator message; False on Shutdown."""
+        if isinstance(message, Shutdown):
+            logger.info("shutdown requested: %s", message.reason)
+            return False
+        if isinstance(message, PoseUpdateMessage):
+            if message.seq != self.applied_seq + 1 or message.update.agent != self.task.agent:
+                raise codec.MessageError(f"pose update {message.seq} for agent "
+                                         f"{message.update.agent} out of sequence")
+            self.frontend.apply_pose_update(message.update)
+            self.applied_seq = message.seq
+            return True
+        raise codec.MessageError(f"unexpected {type(message).__name__} from the coordinator")
+
+    def _drain_inbox(self) -> bool:
+        """Apply every waiting message without blocking; False on Shutdown."""
+        while self.channel.poll(0.0):
+            if not self._handle(self.channel.receive()):
+                return False
+        return True
+
+    def _await_step(self, index: int) -> bool:
+        """Lockstep: apply messages until the Step for frame ``index``; False on Shutdown."""
+        while True:
+            message = self.channel.receive()
+            if isinstance(message, Step):
+                if message.frame_index != index:
+                    raise codec.MessageError(f"step for frame {message.frame_index}, "
+                                             f"expected frame {index}")
+                return True
+            if not self._handle(message):
+                return False
+
+    def _finished(self) -> AgentFinished:
+        fe = self.frontend
+        records = sorted(fe.records, key=lambda r: r.frame_index)
+        kf_frames, kf_stamps, kf_poses = fe.keyframe_trajectory()
+        final = None
+        if len(fe.keyframes):
+            last = fe.keyframes.last
+            final = PointmapRefresh(last.kf_id, last.X_hat, last.C_hat, last.fused_frames)
+        return AgentFinished(
+            agent=self.task.agent, final=final, stats=fe.stats, seconds=self.seconds,
+            applied_seq=self.applied_seq,
+            frame_indices=np.array([r.frame_index for r in records], dtype=np.int64),
+            timestamps=np.array([r.timestamp for r in records], dtype=np.float64),
+            anchors=np.array([r.anchor for r in records], dtype=np.int64),
+            T_rel=(torch.stack([r.T_rel for r in records]) if records
+                   else torch.zeros(0, 8, dtype=torch.float64)),
+            keyframe_frames=kf_frames.astype(np.int64),
+            keyframe_timestamps=kf_stamps.astype(np.float64), keyframe_T_WC=kf_poses,
+            edges=[EdgeSummary(e.i, e.j, e.kind, e.matches.match_fraction) for e in fe.edges],
+        )
+
+
+_PATH_FIELDS = ("weights", "retrieval_weights", "codebook")
+
+
+def _exit_reason(code: int | None) -> str:
+    return f"killed by signal {-code}" if code is not None and code < 0 else f"exit code {code}"
+
+
+def _prior_fields(spec: PriorSpec) -> dict[str, Any]:
+    return {"name": spec.name, "device": spec.device,
+            **{k: (None if getattr(spec, k) is None else str(getattr(spec, k)))
+               for k in _PATH_FIELDS}}
+
+
+# ------------------------------------------------------------------------------ results
+
+
+@dataclass
+class _KeyframeView:
+    """What the outputs need of a keyframe, as received from its agent."""
+
+    kf_id: int
+    frame_index: int
+    timestamp: float
+    T_WC: Tensor
+    X_hat: Tensor
+    C_hat: Tensor
+    colors: np.ndarray
+    fused_frames: int = 1
+
+    def mean_confidence(self) -> Tensor:
+        """``(H, W)`` confidence per contributing frame (as ``Keyframe.mean_confidence``)."""
+        return self.C_hat / self.fused_frames
+
+
+@dataclass(frozen=True)
+class _MatchFraction:
+    match_fraction: float
+
+
+@dataclass(frozen=True)
+class _EdgeView:
+    i: int
+    j: int
+    kind: str
+    matches: _MatchFraction
+
+
+@dataclass
+class AgentResult:
+    """An agent's results as the coordinator holds them: what :mod:`.outputs` reads of an
+    :class:`~como3r.frontend.agent.AgentFrontend` (``agent``, ``keyframes``, ``edges``,
+    ``stats``, ``trajectory()``, ``keyframe_trajectory()``).
+
+    A finished agent's trajectory is composed from its anchored records (C-Sec. A.8); a
+    failed agent's is its keyframes only.
+    """
+
+    agent: int
+    keyframes: list[_KeyframeView] = field(default_factory=list)
+    edges: list[_EdgeView] = field(default_factory=list)
+    stats: FrontendStats = field(default_factory=FrontendStats)
+    finished: AgentFinished | None = None
+
+    def apply_pose_update(self, update: PoseUpdate) -> None:
+        """Same semantics as :meth:`AgentFrontend.apply_pose_update`: listed keyframes take
+        the new poses, newer ones follow the newest listed keyframe rigidly."""
+        if update.kf_ids.numel() == 0:
+            return
+        newest = int(update.kf_ids.max())
+        T_old = self.keyframes[newest].T_WC
+        for kf_id, pose in zip(update.kf_ids.tolist(), update.T_WC):
+            self.keyframes[kf_id].T_WC = pose.to(T_old).clone()
+        correction = sim3_compose(self.keyframes[newest].T_WC, sim3_inverse(T_old))
+        for kf in self.keyframes[newest + 1:]:
+            kf.T_WC = sim3_compose(correction, kf.T_WC)
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray, Tensor]:
+        """Every tracked frame: ``(frame indices (N,), timestamps (N,), T_WC (N, 8))``."""
+        if self.finished is None:
+            return self.keyframe_trajectory()
+        done = self.finished
+        if len(done.anchors) == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros(0), torch.zeros(0, 8)
+        anchors = torch.stack([self.keyframes[int(a)].T_WC for a in done.anchors])
+        return done.frame_indices, done.timestamps, sim3_compose(anchors, done.T_rel.to(anchors))
+
+    def keyframe_trajectory(self) -> tuple[np.ndarray, np.ndarray, Tensor]:
+        """Keyframes only: ``(frame indices, timestamps, T_WC (K, 8))``."""
+        if not self.keyframes:
+            return np.zeros(0, dtype=np.int64), np.zeros(0), torch.zeros(0, 8)
+        return (np.array([kf.frame_index for kf in self.keyframes]),
+                np.array([kf.timestamp for kf in self.keyframes]),
+                torch.stack([kf.T_WC for kf in self.keyframes]))
+
+
+# ------------------------------------------------------------------------------ coordinator side
+
+_LIVE = ("starting", "running")
+
+
+@dataclass
+class _Slot:
+    """The coordinator's view of one agent process."""
+
+    agent: int
+    process: Any
+    channel: Channel
+    frames_expected: int
+    result: AgentResult
+    status: str = "starting"
+    pid: int | None = None
+    clock: float = -math.inf
+    last_frame: int = -1
+    frames_done: int = 0
+    outcomes: Counter[str] = field(default_factory=Counter)
+    seconds: float = 0.0
+    sent_seq: int = 0
+    updates: list[PoseUpdate] = field(default_factory=list)
+    error: str | None = None
+    inbox_open: bool = True
+    last_heard: float = field(default_factory=time.monotonic)
+    reanchored: int = 0
+
+
+class _Runtime:
+    """Runs the coordinator loop over the agent processes."""
+
+    def __init__(self, inputs: list[AgentInput], config: Config, spec: PriorSpec,
+                 options: RuntimeOptions,
+                 progress: Callable[[int, str, int, int], None] | None) -> None:
+        self.inputs = inputs
+        self.config = config
+        self.options = options
+        self.progress = progress
+        self.prior, codebook = build_prior(spec, config)
+        self.coordinator = Coordinator(self.prior, config, codebook, len(inputs))
+        self.total = sum(len(range(0, a.num_frames, config.input.subsample)) for a in inputs)
+        self.done = 0
+        self.pending: list[tuple[tuple[float, int, int, int], KeyframeMessage]] = []
+        self._arrivals = 0
+        self.slots: list[_Slot] = []
+
+    def start(self, paths: Sequence[Path], spec: PriorSpec) -> None:
+        """Start one process per agent and send each its task."""
+        for agent, path in enumerate(paths):
+            self.slots.append(self._start(agent, Path(path), spec))
+
+    def _start(self, agent: int, path: Path, spec: PriorSpec) -> _Slot:
+        context = multiprocessing.get_context("spawn")
+        to_agent_r, to_agent_w = context.Pipe(duplex=False)
+        from_agent_r, from_agent_w = context.Pipe(duplex=False)
+        process = context.Process(target=_agent_main, args=(agent, to_agent_r, from_agent_w),
+                                  name=f"como3r-agent-{agent}", daemon=True)
+        process.start()
+        to_agent_r.close()  # the child holds its own copies; ours would hide its death
+        from_agent_w.close()
+        channel = Channel(from_agent_r, to_agent_w, self.options.max_message_bytes, FROM_AGENT)
+        channel.send(AgentTask(
+            agent=agent, input_path=str(path), config=config_to_dict(self.config),
+            prior=_prior_fields(spec), torch_threads=self.options.torch_threads,
+            lockstep=self.options.lockstep, max_message_bytes=self.options.max_message_bytes,
+            log_level=logging.getLogger().getEffectiveLevel()))
+        frames = len(range(0, self.inputs[agent].num_frames, self.config.input.subsample))
+        return _Slot(agent, process, channel, frames, AgentResult(agent))
+
+    # ---------------------------------------------------------------- drivers
+
+    def run(self) -> None:
+        """Drive all agents to the end, then run the coordinator's cleanup."""
+        if self.options.lockstep:
+            self._run_lockstep()
+        else:
+            while any(s.status in _LIVE for s in self.slots):
+                self._pump(0.5)
+                self._process_pending()
+                self._check_timeouts([s for s in self.slots if s.status in _LIVE])
+        self._process_pending(force=True)
+        self._finish()
+
+    def _run_lockstep(self) -> None:
+        """Agents take turns in the single-process schedule (by timestamp, then agent)."""
+        self._pump_until(lambda: all(s.status != "starting" for s in self.slots), self.slots)
+        for agent, index in _frame_schedule(self.inputs, self.config.input.subsample):
+            slot = self.slots[agent]
+            if slot.status != "running":
+                continue
+            slot.channel.send(Step(index))
+            slot.last_heard = time.monotonic()
+            self._pump_until(lambda: slot.last_frame >= index or slot.status != "running", [slot])
+            self._process_pending(force=True)
+        self._pump_until(lambda: all(s.status not in _LIVE for s in self.slots), self.slots)
+
+    def _pump_until(self, condition: Callable[[], bool], watched: Sequence[_Slot]) -> None:
+        while not condition():
+            self._pump(0.5)
+            self._check_timeouts([s for s in watched if s.status in _LIVE])
+
+    def _pump(self, timeout: float) -> None:
+        """Wait for messages or process exits, and handle them."""
+        handles: dict[Any, _Slot] = {}
+        for slot in self.slots:
+            if slot.status in _LIVE:
+                handles[slot.process.sentinel] = slot
+                if slot.inbox_open:
+                    handles[slot.channel.inbox] = slot
+        if not handles:
+            return
+        ready = wait(list(handles), timeout)
+        for handle in ready:
+            if handle is handles[handle].channel.inbox:
+                self._drain(handles[handle])
+        for handle in ready:
+            slot = handles[handle]
+            if handle == slot.process.sentinel and slot.status in _LIVE:
+                self._drain(slot)
+                if slot.status in _LIVE:
+                    slot.process.join(5.0)  # the sentinel closes just before the exit status is set
+                    self._fail(slot, f"process died ({_exit_reason(slot.process.exitcode)})")
+
+    def _drain(self, slot: _Slot) -> None:
+        while slot.status in _LIVE and slot.inbox_open:
+            try:
+                if not slot.channel.poll(0.0):
+                    return
+                message = slot.channel.receive()
+            except (EOFError, OSError):
+                slot.inbox_open = False
+                return
+            except codec.MessageError as exc:
+                self._fail(slot, f"protocol error: {exc}")
+                return
+            slot.last_heard = time.monotonic()
+            self._handle(slot, message)
+
+    def _handle(self, slot: _Slot, message: Any) -> None:
+        agent = message.packet.agent if isinstance(message, KeyframeMessage) else message.agent
+        if agent != slot.agent:
+            self._fail(slot, f"protocol error: a {type(message).__name__} for agent {agent}")
+        elif isinstance(message, AgentStarted):
+            slot.status, slot.pid = "running", message.pid
+        elif isinstance(message, KeyframeMessage):
+            packet = message.packet
+            heapq.heappush(self.pending, ((packet.timestamp, slot.agent, packet.kf_id,
+                                           self._arrivals), message))
+            self._arrivals += 1
+        elif isinstance(message, FrameDone):
+            self._frame_done(slot, message)
+        elif isinstance(message, AgentFinished):
+            slot.result.finished = message
+            slot.status, slot.clock = "finished", math.inf
+            logger.info("agent %d finished its stream", slot.agent)
+        elif isinstance(message, AgentFailed):
+            if message.details:
+                logger.error("agent %d traceback:\n%s", slot.agent, message.details)
+            self._fail(slot, message.error)
+
+    def _frame_done(self, slot: _Slot, message: FrameDone) -> None:
+        slot.clock, slot.last_frame = message.timestamp, message.frame_index
+        slot.frames_done += 1
+        slot.outcomes[message.outcome] += 1
+        slot.seconds += message.seconds
+        self.done += 1
+        if self.progress is not None:
+            self.progress(slot.agent, message.outcome, self.done, self.total)
+
+    def _fail(self, slot: _Slot, error: str) -> None:
+        slot.status, slot.error, slot.clock = "failed", error, math.inf
+        logger.error("agent %d failed: %s (the other agents continue)", slot.agent, error)
+        if slot.process.is_alive():
+            slot.process.terminate()
+
+    def _check_timeouts(self, watched: Sequence[_Slot]) -> None:
+        now = time.monotonic()
+        for slot in watched:
+            if now - slot.last_heard > self.options.agent_timeout_s:
+                self._fail(slot, f"no message for {self.options.agent_timeout_s:.0f} s (hung)")
+
+    # ---------------------------------------------------------------- keyframes and updates
+
+    def _process_pending(self, force: bool = False) -> None:
+        """Hand waiting keyframes to the coordinator in ``(timestamp, agent)`` order, each
+        once no running agent can still send an earlier one."""
+        while self.pending:
+            (timestamp, agent, _, _), message = self.pending[0]
+            if not force and not all((s.clock, s.agent) > (timestamp, agent)
+                                     for s in self.slots if s.agent != agent):
+                return
+            heapq.heappop(self.pending)
+            self._add_keyframe(self.slots[agent], message)
+
+    def _add_keyframe(self, slot: _Slot, message: KeyframeMessage) -> None:
+        packet, keyframes = message.packet, slot.result.keyframes
+        if packet.kf_id != len(keyframes):
+            self._fail(slot, f"protocol error: keyframe {packet.kf_id} after {len(keyframes)}")
+            return
+        stale = message.applied_seq < slot.sent_seq
+        if stale and packet.kf_id > 0 and message.T_WC_previous is not None:
+            # exported before the agent applied our latest update: keep the agent's relative
+            # pose to its previous keyframe, on our pose of that keyframe (C-Sec. A.8)
+            T_rel = sim3_compose(sim3_inverse(message.T_WC_previous), packet.T_WC)
+            packet = replace(packet, T_WC=sim3_compose(keyframes[-1].T_WC.to(T_rel), T_rel))
+            slot.reanchored += 1
+        if packet.previous is not None:
+            self._refresh_view(slot, packet.previous)
+        keyframes.append(_KeyframeView(packet.kf_id, packet.frame_index, packet.timestamp,
+                                       packet.T_WC.clone(), packet.X_hat, packet.C_hat,
+                                       packet.colors))
+        for update in self.coordinator.add_keyframe(packet):
+            self._send_update(update)
+
+    @staticmethod
+    def _refresh_view(slot: _Slot, refresh: PointmapRefresh) -> None:
+        view = slot.result.keyframes[refresh.kf_id]
+        view.X_hat, view.C_hat = refresh.X_hat, refresh.C_hat
+        view.fused_frames = refresh.fused_frames
+
+    def _send_update(self, update: PoseUpdate) -> None:
+        slot = self.slots[update.agent]
+        slot.sent_seq += 1
+        slot.updates.append(update)
+        slot.result.apply_pose_update(update)
+        if slot.status in _LIVE:
+            slot.channel.send(PoseUpdateMessage(update=update, seq=slot.sent_seq))
+
+    # ---------------------------------------------------------------- the end
+
+    def _finish(self) -> None:
+        """Final pointmaps to the coordinator, cleanup passes, final poses to the results."""
+        for slot in self.slots:
+            done = slot.result.finished
+            if done is not None and done.final is not None and slot.status == "finished":
+                self._refresh_view(slot, done.final)
+                self.coordinator.refresh(slot.agent, done.final)
+        for update in self.coordinator.finish():
+            self._send_update(update)
+        for slot in self.slots:
+            self._settle(slot)
+
+    def _settle(self, slot: _Slot) -> None:
+        """A finished agent's own keyframe poses plus the updates it never applied."""
+        result, done = slot.result, slot.result.finished
+        if slot.status != "finished" or done is None:
+            result.finished = None
+            result.stats = FrontendStats(
+                frames=slot.frames_done, lost=slot.outcomes["lost"],
+                relocalized=slot.outcomes["relocalized"], keyframes=len(result.keyframes),
+                tracked=slot.frames_done - slot.outcomes["lost"])
+            return
+        if len(done.keyframe_T_WC) != len(result.keyframes):
+            slot.error = (f"reported {len(done.keyframe_T_WC)} keyframes but sent "
+                          f"{len(result.keyframes)}")
+            slot.status, result.finished = "failed", None
+            logger.error("agent %d: %s", slot.agent, slot.error)
+            return
+        for view, pose in zip(result.keyframes, done.keyframe_T_WC):
+            view.T_WC = pose.clone()
+        for update in slot.updates[done.applied_seq:]:
+            result.apply_pose_update(update)
+        result.stats = done.stats
+        result.edges = [_EdgeView(e.i, e.j, e.kind, _MatchFraction(e.match_fraction))
+                        for e in done.edges]
+
+    def stop(self) -> None:
+        """Stop and reap every agent process; close the pipes."""
+        for slot in self.slots:
+            if slot.process.is_alive() and slot.status in _LIVE:
+                slot.channel.send(Shutdown("the coordinator is stopping"))
+        deadline = time.monotonic() + self.options.shutdown_grace_s
+        for slot in self.slots:
+            slot.process.join(max(0.0, deadline - time.monotonic()))
+            if slot.process.is_alive():
+                slot.process.terminate()
+                slot.process.join(self.options.shutdown_grace_s)
+            slot.channel.close(timeout=self.options.shutdown_grace_s)
+
+    def runtime_metrics(self) -> dict[str, Any]:
+        """Per-agent status and bytes exchanged per message type (both directions)."""
+        agents = []
+        by_type: Counter[str] = Counter()
+        for slot in self.slots:
+            channel = slot.channel
+            by_type.update(channel.bytes_sent)
+            by_type.update(channel.bytes_received)
+            agents.append({
+                "agent": slot.agent, "status": slot.status, "error": slot.error,
+                "pid": slot.pid, "exitcode": slot.process.exitcode,
+                "frames_expected": slot.frames_expected, "frames_done": slot.frames_done,
+                "keyframes_received": len(slot.result.keyframes),
+                "pose_updates_sent": slot.sent_seq, "keyframes_reanchored": slot.reanchored,
+                "bytes_to_agent": dict(channel.bytes_sent),
+                "bytes_from_agent": dict(channel.bytes_received),
+                "messages_to_agent": dict(channel.messages_sent),
+                "messages_from_agent": dict(channel.messages_received),
+            })
+        return {"mode": "multiprocess", "lockstep": self.options.lockstep,
+                "torch_threads": self.options.torch_threads,
+                "max_message_bytes": self.options.max_message_bytes,
+                "agents": agents, "bytes_by_type": dict(by_type),
+                "bytes_total": sum(by_type.values()),
+                "failed_agents": [s.agent for s in self.slots if s.status == "failed"]}
+
+
+# ------------------------------------------------------------------------------ entry point
+
+
+def run_multiprocess(
+    agent_paths: Sequence[Path],
+    out: Path,
+    config: Config,
+    prior_spec: PriorSpec,
+    overwrite: bool = False,
+    progress: Callable[[int, str, int, int], None] | None = None,
+    options: RuntimeOptions | None = None,
+) -> RunSummary:
+    """Run every agent in its own process and the coordinator here; write the output folder.
+
+    Same contract as :func:`como3r.runtime.pipeline.run`; ``metrics.json`` gains a
+    ``runtime`` section (per-agent status, bytes per message type and direction).
+
+    Args:
+        agent_paths: one agent input per agent, in agent order.
+        out: output folder (created atomically).
+        config: effective configuration.
+        prior_spec: which prior every process builds.
+        overwrite: replace an existing non-empty output folder.
+        progress: called after every frame with ``(agent, outcome, done, total)``.
+        options: runtime knobs (default :class:`RuntimeOptions`).
+
+    Raises:
+        InputError: bad agent input (checked here before any process starts), or every
+            agent failed.
+    """
+    options = options or RuntimeOptions()
+    inputs = open_agents(agent_paths, config)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(max(1, options.torch_threads))
+    runtime: _Runtime | None = None
+    try:
+        with atomic_output_dir(out, overwrite=overwrite) as staging:
+            runtime = _Runtime(inputs, config, prior_spec, options, progress)
+            runtime.start(agent_paths, prior_spec)
+            runtime.run()
+            runtime.stop()
+            if all(s.status == "failed" for s in runtime.slots):
+                raise InputError("every agent failed: " + "; ".join(
+                    f"agent {s.agent}: {s.error}" for s in runtime.slots))
+            summary = _write(staging, runtime, inputs)
+    finally:
+        if runtime is not None:
+            runtime.stop()
+        torch.set_num_threads(threads)
+    summary.out = out
+    return summary
+
+
+def _write(staging: Path, runtime: _Runtime, inputs: list[AgentInput]) -> RunSummary:
+    """The output folder of :func:`pipeline.run`, from the agents' results."""
+    config, coordinator = runtime.config, runtime.coordinator
+    results = [s.result for s in runtime.slots]
+    seconds = [s.result.finished.seconds if s.result.finished else s.seconds for s in runtime.slots]
+    outputs.write_config(staging, config)
+    outputs.write_trajectories(staging, results)
+    points = outputs.write_map(staging, results, config)
+    components = coordinator.components()
+    outputs.write_json(staging / "graph.json", outputs.graph_document(results, coordinator))
+    summary = RunSummary(out=staging)
+    metrics: dict[str, object] = {
+        "prior": runtime.prior.describe(),
+        "agents": [outputs.frontend_metrics(r, s) for r, s in zip(results, seconds)],
+        "coordinator": coordinator.metrics(),
+        "components": components,
+        "map_points": points,
+        "runtime": runtime.runtime_metrics(),
+    }
+    for slot, s in zip(runtime.slots, seconds):
+        stats = slot.result.stats
+        summary.agents.append({"agent": slot.agent, "status": slot.status,
+                               "frames": stats.frames, "tracked": stats.tracked,
+                               "lost": stats.lost, "keyframes": len(slot.result.keyframes),
+                               "fps": stats.frames / s if s > 0 else 0.0})
+        if slot.status == "failed":
+            summary.notes.append(
+                f"agent {slot.agent} failed: {slot.error}; its outputs hold the "
+                f"{len(slot.result.keyframes)} keyframes the coordinator received")
+    if all(a.groundtruth is not None for a in inputs):
+        from como3r.evaluation.report import evaluate_run
+
+        try:
+            evaluation = evaluate_run(staging, [a.root for a in inputs], staging,
+                                      components=components)
+            metrics["ate"] = evaluation.to_json()
+            summary.evaluation = evaluation
+        except InputError as exc:
+            summary.notes.append(f"ATE not computed: {exc}")
+    else:
+        summary.notes.append("no ground truth for every agent: ATE not computed")
+    if len(components) > 1:
+        summary.notes.append(f"agents form {len(components)} separate gauge components "
+                             f"{components}: no merged ATE across them")
+    outputs.write_json(staging / "metrics.json", metrics)
+    return summary

@@ -1,0 +1,161 @@
+"""The unified multi-agent factor graph and its global Sim(3) BA (C-Sec. 3.5, A.3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import como3r.backend.global_graph as global_graph
+from como3r.backend.global_graph import GlobalGraph
+from como3r.config import GlobalBAConfig, TrackingConfig
+from como3r.errors import InputError
+from como3r.frontend.packets import KeyframePacket
+from como3r.frontend.pairs import DirectedMatches, PairLink
+from como3r.geometry.lie import sim3_act, sim3_compose, sim3_exp, sim3_inverse, sim3_log
+from como3r.optim.optimizer import SolveReport
+from como3r.optim.values import PoseValues
+from como3r.prior.base import Encoding
+
+H, W = 6, 8
+
+
+def _world_points() -> torch.Tensor:
+    g = torch.Generator().manual_seed(0)
+    return torch.randn(H * W, 3, generator=g) * torch.tensor([3.0, 2.0, 1.0]) + torch.tensor(
+        [0.0, 0.0, 8.0])
+
+
+def _identity_matches(valid: bool = True) -> DirectedMatches:
+    """Every pixel of j matched to the same pixel of i (all views see the same points)."""
+    return DirectedMatches(idx=torch.arange(H * W), valid=torch.full((H * W,), valid),
+                           q=torch.full((H * W,), 2.0))
+
+
+def _packet(agent: int, kf_id: int, T_true: torch.Tensor, T_init: torch.Tensor,
+            sequential: bool = True) -> KeyframePacket:
+    X = sim3_act(sim3_inverse(T_true)[None], _world_points()).reshape(H, W, 3)
+    link = _identity_matches() if sequential and kf_id > 0 else None
+    return KeyframePacket(
+        agent=agent, kf_id=kf_id, frame_index=kf_id, timestamp=float(kf_id), T_WC=T_init,
+        X_hat=X, C_hat=torch.full((H, W), 5.0), colors=np.zeros((H, W, 3), np.uint8),
+        encoding=Encoding(agent, kf_id, (H, W)), retrieval=None, sequential_ij=link,
+        sequential_ji=link, previous=None)
+
+
+def _true_pose(agent: int, kf_id: int) -> torch.Tensor:
+    tau = torch.tensor([0.3 * kf_id + agent, 0.1 * agent, 0.0, 0.0, 0.02 * kf_id, 0.0, 0.0])
+    return sim3_exp(tau)
+
+
+def _perturbation(seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return sim3_exp(torch.randn(7, generator=g) * torch.tensor([0.1, 0.1, 0.1, 0.02, 0.02,
+                                                                0.02, 0.02]))
+
+
+@pytest.fixture
+def two_agents() -> tuple[GlobalGraph, dict[tuple[int, int], torch.Tensor]]:
+    """Agents 0 and 1 with three keyframes each, perturbed, and one inter-agent link."""
+    graph = GlobalGraph(TrackingConfig(), GlobalBAConfig())
+    truth = {}
+    for kf_id in range(3):
+        for agent in (0, 1):
+            T = _true_pose(agent, kf_id)
+            truth[(agent, kf_id)] = T
+            noisy = T if (agent, kf_id) == (0, 0) else sim3_compose(
+                _perturbation(10 * agent + kf_id), T)
+            graph.add_keyframe(_packet(agent, kf_id, T, noisy))
+    link = PairLink(_identity_matches(), _identity_matches())
+    graph.add_inter_link(graph.global_index(0, 2), graph.global_index(1, 0), link, 0.1)
+    return graph, truth
+
+
+def _pose_errors(graph: GlobalGraph, truth) -> torch.Tensor:
+    errors = []
+    for g, kf in enumerate(graph.keyframes):
+        T_true = truth[(graph.agent_of[g], kf.kf_id)]
+        errors.append(sim3_log(sim3_compose(kf.T_WC, sim3_inverse(T_true)).double()).norm())
+    return torch.stack(errors)
+
+
+def test_flat_index_side_map_and_local_to_global(two_agents) -> None:
+    graph, _ = two_agents
+    assert len(graph) == 6
+    assert graph.agent_of == [0, 1, 0, 1, 0, 1]
+    assert graph.local_to_global == {0: [0, 2, 4], 1: [1, 3, 5]}
+    kinds = [link.kind for link in graph.links]
+    assert kinds.count("sequential") == 4 and kinds.count("inter") == 1
+    assert [(link.i, link.j) for link in graph.inter_links()] == [(4, 1)]
+
+
+def test_global_ba_reduces_error_with_keyframe_zero_pinned(two_agents) -> None:
+    graph, truth = two_agents
+    anchor_before = graph.keyframes[0].T_WC.clone()
+    before = _pose_errors(graph, truth)
+    result = graph.optimize([0, 1], anchor=0, max_iters=30)
+    after = _pose_errors(graph, truth)
+    assert result.moved and not result.restored
+    assert result.keyframes == tuple(range(6))
+    assert torch.equal(graph.keyframes[0].T_WC, anchor_before)
+    assert float(after.max()) < 1e-3 < float(before.max())
+
+
+def test_only_keyframes_connected_to_the_anchor_move(two_agents) -> None:
+    graph, truth = two_agents
+    T = _true_pose(0, 3)
+    cut = graph.add_keyframe(_packet(0, 3, T, sim3_compose(_perturbation(7), T),
+                                     sequential=False))
+    pose = graph.keyframes[cut].T_WC.clone()
+    result = graph.optimize([0, 1], anchor=0, max_iters=5)
+    assert cut not in result.keyframes
+    assert torch.equal(graph.keyframes[cut].T_WC, pose)
+
+
+def test_divergence_guard_restores_the_previous_poses(two_agents, monkeypatch) -> None:
+    graph, _ = two_agents
+    before = graph.poses(range(6)).clone()
+
+    def blow_up(factors, values, config, max_iters):
+        poses = values.poses.clone()
+        poses[3, 0] = float("nan")
+        return PoseValues(poses, values.pinned), SolveReport(iterations=1)
+
+    monkeypatch.setattr(global_graph, "gauss_newton_irls", blow_up)
+    result = graph.optimize([0, 1], anchor=0, max_iters=5)
+    assert result.restored and not result.moved
+    assert torch.equal(graph.poses(range(6)), before)
+
+
+def test_divergence_guard_rejects_implausible_jumps(two_agents, monkeypatch) -> None:
+    graph, _ = two_agents
+    before = graph.poses(range(6)).clone()
+
+    def jump(factors, values, config, max_iters):
+        poses = values.poses.clone()
+        poses[5, :3] += 1e4
+        return PoseValues(poses, values.pinned), SolveReport(iterations=3)
+
+    monkeypatch.setattr(global_graph, "gauss_newton_irls", jump)
+    assert graph.optimize([0, 1], anchor=0, max_iters=5).restored
+    assert torch.equal(graph.poses(range(6)), before)
+
+
+def test_cleanup_passes_stop_once_nothing_moves(two_agents) -> None:
+    graph, truth = two_agents
+    results = graph.cleanup([0, 1], anchor=0)
+    assert 1 <= len(results) <= GlobalBAConfig().cleanup_passes
+    assert results[-1].max_translation_change < GlobalBAConfig().cleanup_stop_translation_m
+    assert float(_pose_errors(graph, truth).max()) < 1e-3
+
+
+def test_keyframes_must_arrive_in_order() -> None:
+    graph = GlobalGraph(TrackingConfig(), GlobalBAConfig())
+    T = _true_pose(0, 0)
+    graph.add_keyframe(_packet(0, 0, T, T))
+    with pytest.raises(InputError, match="agent 0 sent keyframe 2"):
+        graph.add_keyframe(_packet(0, 2, T, T))
+    with pytest.raises(InputError, match="never received"):
+        graph.global_index(1, 0)
+    with pytest.raises(InputError, match="two agents"):
+        graph.add_inter_link(0, 0, PairLink(_identity_matches(), _identity_matches()), 0.0)

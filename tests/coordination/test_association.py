@@ -1,0 +1,136 @@
+"""Cross-agent retrieval and dense verification (C-Sec. 3.4, C-Eq. 12, co-visibility test)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from como3r.config import Config, apply_overrides
+from como3r.coordination.association import (
+    CrossAgentRetrieval,
+    covisible_fraction,
+    verify_candidates,
+)
+from como3r.data.agent import open_agent
+from como3r.data.preprocess import make_view
+from como3r.data.synth import synthesize
+from como3r.frontend.pairs import DirectedMatches
+from como3r.geometry.lie import quat_conjugate, quat_multiply, sim3_compose, sim3_inverse, so3_log
+from como3r.geometry.umeyama import umeyama_sim3
+from como3r.prior.base import PairPrediction
+from como3r.prior.retrieval import Hit
+from como3r.prior.simulated import SimulatedPrior
+
+WIDTH, HEIGHT, STEP = 96, 72, 4
+
+
+@pytest.fixture(scope="module")
+def facades(tmp_path_factory):
+    """Two agents among identical façades: every 4th frame's encoding, pointmap and pose."""
+    root = tmp_path_factory.mktemp("aliasing")
+    synthesize(root, agents=2, seed=1, overlap=0.2, frames=20, preset="aliasing",
+               width=WIDTH, height=HEIGHT)
+    config = apply_overrides(Config(), [f"input.long_side={WIDTH}",
+                                        "matching.occlusion_distance=0.5"])
+    prior = SimulatedPrior(config.simulated_prior)
+    views = {}
+    for a in range(2):
+        agent = open_agent(root / f"agent_{a}")
+        for index in range(0, agent.num_frames, STEP):
+            enc = prior.encode(make_view(agent.load_frame(index), a, WIDTH, agent.calib))
+            views[(a, index)] = (enc, prior.decode(enc, enc).X_ii,
+                                 agent.groundtruth.T_WC[index].double())
+    return prior, config, views
+
+
+def _is_true_pair(verification, views) -> bool:
+    """Whether the relative pose implied by the matches is the true one (5 deg, 0.3 m)."""
+    _, X_i, T_i = views[verification.candidate]
+    _, X_j, T_j = views[verification.query]
+    matches = verification.link.ij
+    implied = umeyama_sim3(X_j.reshape(-1, 3)[matches.valid].double(),
+                           X_i.reshape(-1, 3)[matches.idx[matches.valid]].double())
+    T_ij = sim3_compose(sim3_inverse(T_i), T_j)
+    angle = float(so3_log(quat_multiply(quat_conjugate(implied[3:7]), T_ij[3:7])).norm())
+    # the pointmaps are metric up to the prior's ~5 % scale error
+    return angle < 5.0 * torch.pi / 180.0 and float((implied[:3] - T_ij[:3]).norm()) < 0.3
+
+
+def _verify_all_pairs(prior, config, views):
+    results = []
+    for query in [k for k in views if k[0] == 1]:
+        candidates = [(Hit(*key, 0.0), views[key][0]) for key in views if key[0] == 0]
+        results += verify_candidates(prior, query, views[query][0], candidates,
+                                     config.matching, config.tracking.q_min,
+                                     config.verification)
+    return results
+
+
+def test_only_true_pairs_pass_among_identical_facades(facades) -> None:
+    prior, config, views = facades
+    results = _verify_all_pairs(prior, config, views)
+    accepted = [v for v in results if v.accepted]
+    assert accepted, "the agents' true meeting was not verified"
+    assert all(_is_true_pair(v, views) for v in accepted)
+    assert all(v.covisible_ratio >= config.verification.min_covisible_ratio for v in accepted)
+    # C-Eq. 12 alone (the paper's test) accepts hallucinated pairs here
+    fooled = [v for v in results
+              if v.link.min_match_fraction >= config.verification.tau_inter and not v.accepted]
+    assert fooled and not any(_is_true_pair(v, views) for v in fooled)
+
+
+def test_verification_reports_both_directions(facades) -> None:
+    prior, config, views = facades
+    (query, candidate) = ((1, 0), (0, 0))
+    [result] = verify_candidates(prior, query, views[query][0],
+                                 [(Hit(*candidate, 0.02), views[candidate][0])],
+                                 config.matching, config.tracking.q_min, config.verification)
+    assert result.candidate == candidate and result.query == query
+    assert result.similarity == 0.02
+    assert result.nu_i == result.link.ji.match_fraction
+    assert result.nu_j == result.link.ij.match_fraction
+    assert 0.0 <= result.covisible_i <= 1.0 and 0.0 <= result.covisible_j <= 1.0
+    assert verify_candidates(prior, query, views[query][0], [], config.matching,
+                             config.tracking.q_min, config.verification) == []
+
+
+def _pinhole_rays(H: int, W: int) -> torch.Tensor:
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32),
+                          torch.arange(W, dtype=torch.float32), indexing="ij")
+    return torch.stack([(u - W / 2) / W, (v - H / 2) / W, torch.ones_like(u)], dim=-1)
+
+
+def test_covisible_fraction_counts_points_inside_the_other_view() -> None:
+    H, W = 40, 50
+    X_ii = 5.0 * _pinhole_rays(H, W)
+    X_ji = X_ii.clone()
+    X_ji[:, W // 2:, 2] *= -1.0  # the right half of view j lies behind camera i
+    ones = torch.ones(H, W)
+    pred = PairPrediction(X_ii, X_ji, 3.0 * ones, 3.0 * ones, torch.zeros(H, W, 4),
+                          torch.zeros(H, W, 4), ones, ones)
+    matches = DirectedMatches(torch.arange(H * W), torch.ones(H * W, dtype=torch.bool),
+                              torch.ones(H * W))
+    full = covisible_fraction(pred, matches, min_confidence=1.5)
+    assert 0.4 <= full <= 0.5  # the left half, less the outermost rays of the box
+    # pixels of i that are not confidently seen do not count
+    dim = PairPrediction(X_ii, X_ji, ones, 3.0 * ones, torch.zeros(H, W, 4),
+                         torch.zeros(H, W, 4), ones, ones)
+    assert covisible_fraction(dim, matches, min_confidence=1.5) == 0.0
+
+
+def test_retrieval_returns_other_agents_only(facades) -> None:
+    prior, config, views = facades
+    retrieval = CrossAgentRetrieval(prior.codebook(), config.retrieval)
+    hits = {}
+    for a, index in sorted(views, key=lambda k: (k[1], k[0])):
+        hits[(a, index)] = retrieval.query_and_add(
+            a, index, prior.retrieval_features(views[(a, index)][0]))
+    assert retrieval.queries == len(views)
+    assert hits[(0, 0)] == []
+    for (a, _), found in hits.items():
+        assert len(found) <= config.retrieval.k_nn
+        assert all(h.agent != a and h.similarity > config.retrieval.min_similarity
+                   for h in found)
+        assert [h.similarity for h in found] == sorted((h.similarity for h in found),
+                                                       reverse=True)
+    assert any(hits.values())

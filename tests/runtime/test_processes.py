@@ -1,0 +1,258 @@
+"""The multi-process runtime against the single-process runner, and under agent failures."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import shutil
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from como3r.config import Config, apply_overrides
+from como3r.data.synth import synthesize
+from como3r.errors import InputError
+from como3r.frontend.agent import AgentFrontend
+from como3r.frontend.keyframes import Keyframe
+from como3r.frontend.packets import PoseUpdate
+from como3r.geometry.lie import sim3_exp
+from como3r.io.tum import read_tum
+from como3r.prior.simulated import SimulatedPrior
+from como3r.runtime import codec
+from como3r.runtime.messages import FrameDone, Step
+from como3r.runtime.pipeline import PriorSpec, RunSummary, run
+from como3r.runtime.processes import (
+    AgentResult,
+    Channel,
+    RuntimeOptions,
+    _KeyframeView,
+    run_multiprocess,
+)
+
+WIDTH, HEIGHT, FRAMES, SHORT = 64, 48, 12, 8
+# small global solves keep the test fast; they do not change what is compared
+OVERRIDES = [f"input.long_side={WIDTH}", "matching.occlusion_distance=0.5",
+             "global_ba.max_iters_stream=5", "global_ba.max_iters_cleanup=10",
+             "global_ba.cleanup_passes=1"]
+
+
+def _truncate(agent_dir: Path, frames: int) -> None:
+    """Keep the first ``frames`` frames of a synthetic agent input."""
+    for sub in ("rgb", "depth", "surface"):
+        for path in sorted((agent_dir / sub).iterdir())[frames:]:
+            path.unlink()
+    stamps = (agent_dir / "timestamps.txt").read_text().splitlines()[:frames]
+    (agent_dir / "timestamps.txt").write_text("\n".join(stamps) + "\n")
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    """Two agents that meet; agent 1's stream is shorter (its process ends first)."""
+    root = tmp_path_factory.mktemp("scene")
+    synthesize(root, agents=2, seed=0, overlap=0.5, frames=FRAMES, preset="default",
+               width=WIDTH, height=HEIGHT)
+    _truncate(root / "agent_1", SHORT)
+    return root
+
+
+@pytest.fixture(scope="module")
+def config() -> Config:
+    return apply_overrides(Config(), OVERRIDES)
+
+
+def _agents(scene: Path) -> list[Path]:
+    return [scene / "agent_0", scene / "agent_1"]
+
+
+@pytest.fixture(scope="module")
+def single(scene, config, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("runs") / "single"
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as in every process of the multi-process run
+    try:
+        run(_agents(scene), out, config, PriorSpec())
+    finally:
+        torch.set_num_threads(threads)
+    return out
+
+
+@pytest.fixture(scope="module")
+def lockstep(scene, config, tmp_path_factory) -> tuple[Path, RunSummary]:
+    out = tmp_path_factory.mktemp("runs") / "lockstep"
+    summary = run_multiprocess(_agents(scene), out, config, PriorSpec(),
+                               options=RuntimeOptions(lockstep=True))
+    return out, summary
+
+
+@pytest.fixture(scope="module")
+def free(scene, config, tmp_path_factory) -> tuple[Path, RunSummary]:
+    out = tmp_path_factory.mktemp("runs") / "free"
+    progress: list[tuple[int, str, int, int]] = []
+    summary = run_multiprocess(_agents(scene), out, config, PriorSpec(),
+                               progress=lambda *args: progress.append(args))
+    assert [p[2] for p in progress] == list(range(1, FRAMES // 2 + SHORT // 2 + 1))
+    assert {p[3] for p in progress} == {FRAMES // 2 + SHORT // 2}
+    return out, summary
+
+
+def _metrics(out: Path) -> dict:
+    return json.loads((out / "metrics.json").read_text())
+
+
+def _max_relative_difference(a: Path, b: Path, kind: str, agent: int) -> float:
+    """Largest pose difference between two runs' TUM files, relative to the path extent."""
+    ta, tb = read_tum(a / kind / f"agent_{agent}.txt"), read_tum(b / kind / f"agent_{agent}.txt")
+    assert np.array_equal(np.asarray(ta.timestamps), np.asarray(tb.timestamps))
+    Ta, Tb = np.asarray(ta.T_WC), np.asarray(tb.T_WC)
+    extent = max(np.ptp(Ta[:, :3], axis=0).max(), 1e-6)
+    dq = np.minimum(np.abs(Ta[:, 3:7] - Tb[:, 3:7]), np.abs(Ta[:, 3:7] + Tb[:, 3:7])).max()
+    return max(np.abs(Ta[:, :3] - Tb[:, :3]).max() / extent, dq)
+
+
+def _assert_same_run(reference: Path, other: Path, tolerance: float) -> None:
+    ref, oth = _metrics(reference), _metrics(other)
+    assert ref["components"] == oth["components"] == [[0, 1]]  # the agents met
+    for key in ("keyframes", "edges_accepted", "gauge_syncs", "ba_runs"):
+        assert ref["coordinator"][key] == oth["coordinator"][key], key
+    for agent in (0, 1):
+        for key in ("frames", "tracked", "lost", "keyframes"):
+            assert ref["agents"][agent][key] == oth["agents"][agent][key], (agent, key)
+        for kind in ("trajectories", "keyframes"):
+            assert _max_relative_difference(reference, other, kind, agent) <= tolerance
+    assert ref["map_points"] == oth["map_points"]
+    graph_ref = json.loads((reference / "graph.json").read_text())
+    graph_oth = json.loads((other / "graph.json").read_text())
+    assert len(graph_ref["edges"]) == len(graph_oth["edges"])
+
+
+def test_lockstep_reproduces_the_single_process_run(single, lockstep) -> None:
+    out, summary = lockstep
+    _assert_same_run(single, out, tolerance=1e-6)
+    assert [a["status"] for a in summary.agents] == ["finished", "finished"]
+
+
+def test_free_running_agents_match_the_single_process_run(single, free) -> None:
+    """Keyframes reach the coordinator in the same order; only the moment an agent applies a
+    pose update differs, which the final global solve absorbs."""
+    out, summary = free
+    _assert_same_run(single, out, tolerance=1e-3)
+    runtime = _metrics(out)["runtime"]
+    assert runtime["lockstep"] is False and runtime["failed_agents"] == []
+    assert [a["frames_done"] for a in runtime["agents"]] == [FRAMES // 2, SHORT // 2]
+
+
+def test_bytes_are_counted_per_message_type_and_agent(free) -> None:
+    out, _ = free
+    metrics = _metrics(out)
+    runtime = metrics["runtime"]
+    for agent, entry in enumerate(runtime["agents"]):
+        assert entry["status"] == "finished" and entry["exitcode"] == 0
+        sent, received = entry["messages_from_agent"], entry["bytes_from_agent"]
+        assert sent["FrameDone"] == entry["frames_done"]
+        assert sent["KeyframeMessage"] == metrics["agents"][agent]["keyframes"]
+        assert sent["AgentStarted"] == sent["AgentFinished"] == 1
+        # a keyframe carries pointmaps, colours, an encoding and matches: kilobytes
+        assert received["KeyframeMessage"] > 1000 * sent["KeyframeMessage"] > 0
+        assert entry["bytes_to_agent"]["AgentTask"] > 0
+        assert entry["pose_updates_sent"] >= entry["messages_to_agent"].get("PoseUpdateMessage", 0)
+    total = sum(runtime["bytes_by_type"].values())
+    assert total == runtime["bytes_total"] == sum(
+        sum(e["bytes_to_agent"].values()) + sum(e["bytes_from_agent"].values())
+        for e in runtime["agents"])
+    assert runtime["bytes_by_type"]["PoseUpdateMessage"] > 0  # the agents met
+
+
+def test_killed_and_crashing_agents_leave_the_others_running(scene, config, tmp_path) -> None:
+    """Agent 1 is SIGKILLed after its first frame, agent 2 fails on a truncated image; the
+    coordinator and agent 0 finish and every output is written."""
+    broken = tmp_path / "broken"
+    shutil.copytree(scene / "agent_1", broken)
+    image = broken / "rgb" / "000002.png"
+    image.write_bytes(image.read_bytes()[:100])
+
+    def kill_agent_1(agent: int, outcome: str, done: int, total: int) -> None:
+        if agent == 1:
+            for child in multiprocessing.active_children():
+                if child.name == "como3r-agent-1" and child.is_alive():
+                    os.kill(child.pid, signal.SIGKILL)
+
+    out = tmp_path / "out"
+    summary = run_multiprocess([*_agents(scene), broken], out, config, PriorSpec(),
+                               progress=kill_agent_1)
+    runtime = _metrics(out)["runtime"]
+    assert [a["status"] for a in runtime["agents"]] == ["finished", "failed", "failed"]
+    assert runtime["failed_agents"] == [1, 2]
+    assert "signal 9" in runtime["agents"][1]["error"]
+    assert "InputError" in runtime["agents"][2]["error"]
+    assert "000002" in runtime["agents"][2]["error"]
+    assert any(n.startswith("agent 1 failed") and "signal 9" in n for n in summary.notes)
+    assert any(n.startswith("agent 2 failed") and "truncated" in n for n in summary.notes)
+    for agent in range(3):
+        assert (out / "trajectories" / f"agent_{agent}.txt").exists()
+    agent_0 = summary.agents[0]
+    assert agent_0["frames"] == FRAMES // 2
+    trajectory = read_tum(out / "trajectories" / "agent_0.txt")
+    assert len(trajectory.timestamps) == agent_0["frames"] - agent_0["lost"]
+    assert (out / "map.ply").exists() and (out / "graph.json").exists()
+    assert not multiprocessing.active_children()
+
+
+def test_a_silent_agent_is_terminated_as_hung(scene, config, tmp_path) -> None:
+    options = RuntimeOptions(agent_timeout_s=0.2, shutdown_grace_s=2.0)
+    with pytest.raises(InputError, match="every agent failed: agent 0: no message for"):
+        run_multiprocess([scene / "agent_0"], tmp_path / "out", config, PriorSpec(),
+                         options=options)
+    assert not (tmp_path / "out").exists()
+    assert not multiprocessing.active_children()
+
+
+def test_bad_input_fails_before_any_process_starts(scene, config, tmp_path) -> None:
+    with pytest.raises(InputError, match="does not exist"):
+        run_multiprocess([scene / "agent_0", tmp_path / "missing"], tmp_path / "out", config,
+                         PriorSpec())
+    assert not multiprocessing.active_children()
+
+
+# ---------------------------------------------------------------------- pieces
+
+
+def test_channel_counts_bytes_and_enforces_the_cap() -> None:
+    reader, writer = multiprocessing.Pipe(duplex=False)
+    sender = Channel(None, writer, max_bytes=10_000, accepts=(Step,))
+    receiver = Channel(reader, None, max_bytes=200, accepts=(Step, FrameDone))
+    sender.send(Step(frame_index=4))
+    assert receiver.poll(5.0) and receiver.receive() == Step(frame_index=4)
+    assert sender.bytes_sent == receiver.bytes_received and sender.bytes_sent["Step"] > 0
+    sender.send(FrameDone(agent=0, frame_index=1, timestamp=0.0, outcome="x" * 500, seconds=0))
+    assert receiver.poll(5.0)
+    with pytest.raises(codec.MessageError, match="cap 200"):
+        receiver.receive()
+    sender.close()
+    receiver.close()
+
+
+def test_agent_result_applies_updates_like_the_frontend() -> None:
+    """Updates an agent never saw are applied for it with the front-end's own semantics."""
+    generator = torch.Generator().manual_seed(0)
+    poses = sim3_exp(0.3 * torch.randn(5, 7, dtype=torch.float64, generator=generator))
+    frontend = AgentFrontend(SimulatedPrior(Config().simulated_prior), Config(), 0, None)
+    result = AgentResult(agent=0)
+    for k, pose in enumerate(poses):
+        frontend.keyframes.add(Keyframe(k, 2 * k, 0.1 * k, None, pose.clone(), torch.zeros(1, 1, 3),
+                                        torch.ones(1, 1), torch.zeros(1, 1, 3), torch.ones(1, 1),
+                                        np.zeros((1, 1, 3), np.uint8)))
+        result.keyframes.append(_KeyframeView(k, 2 * k, 0.1 * k, pose.clone(),
+                                              torch.zeros(1, 1, 3), torch.ones(1, 1),
+                                              np.zeros((1, 1, 3), np.uint8)))
+    for count in (3, 5, 1):
+        new = sim3_exp(0.3 * torch.randn(count, 7, dtype=torch.float64, generator=generator))
+        update = PoseUpdate(agent=0, kf_ids=torch.arange(count), T_WC=new, reason="global_ba")
+        frontend.apply_pose_update(update)
+        result.apply_pose_update(update)
+        assert torch.allclose(frontend.keyframes.poses(), result.keyframe_trajectory()[2],
+                              atol=1e-12)
+    assert not torch.allclose(poses[3:], frontend.keyframes.poses()[3:])
