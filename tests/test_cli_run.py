@@ -74,7 +74,7 @@ def test_mast3r_plumbing_with_a_tiny_random_checkpoint(scene, tmp_path) -> None:
     result = _run("--agent", str(scene / "agent_0"), "--out", str(out), "--prior", "mast3r",
                   "--weights", str(ckpt), "--set", "input.long_side=64")
     assert result.exit_code == 0, result.output
-    for name in ("config.yaml", "map.ply", "graph.json", "metrics.json",
+    for name in ("config.yaml", "map.ply", "graph.json", "metrics.json", "report.html",
                  "trajectories/agent_0.txt", "keyframes/agent_0.txt"):
         assert (out / name).is_file(), name
     metrics = json.loads((out / "metrics.json").read_text())

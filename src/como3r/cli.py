@@ -217,7 +217,6 @@ def demo(
     """Synthesize a scene, run collaborative SLAM with the simulated prior, evaluate, report."""
     from como3r.config import Config, apply_overrides
     from como3r.data.synth import synthesize
-    from como3r.evaluation.html import write_report
     from como3r.io.output import atomic_output_dir
     from como3r.runtime.pipeline import PriorSpec, run as run_pipeline
 
@@ -237,7 +236,6 @@ def demo(
             progress=lambda a, outcome, done, total: bar.update(slam, completed=done, total=total),
         )
         accuracy = summary.evaluation.table_rows() if summary.evaluation is not None else []
-        write_report(staging / "run", summary.agents, accuracy, summary.notes)
     print_rows("agents", summary.agents)
     if accuracy:
         print_rows("ATE RMSE [m] (Sim(3)-aligned)", accuracy)

@@ -230,9 +230,11 @@ class GlobalGraph:
         factors = self._factors([e for link in links for e in link.edges()], row)
         before = self.poses(nodes)
         pinned = torch.tensor([g == anchor for g in nodes], device=before.device)
-        solved, report = gauss_newton_irls(factors, PoseValues(before, pinned), self.config,
-                                           max_iters=max_iters)
-        after = solved.poses
+        # float64 poses: the step tolerance of 1e-8 (C-Sec. B.2) is below float32 resolution,
+        # so a float32 solve would always run to max_iters
+        solved, report = gauss_newton_irls(factors, PoseValues(before.double(), pinned),
+                                           self.config, max_iters=max_iters)
+        after = solved.poses.to(before.dtype)
         problem = "solver refused a step" if report.diverged else _implausible(before, after)
         if problem:
             logger.warning("global BA over agents %s diverged (%s); previous poses restored",

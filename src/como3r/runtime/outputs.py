@@ -118,3 +118,39 @@ def frontend_metrics(fe: AgentFrontend, seconds: float) -> dict[str, Any]:
 def write_config(out: Path, config: Config) -> None:
     """The full effective configuration."""
     dump_config(config, out / "config.yaml")
+
+
+def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
+                        agents: Sequence[Any], components: Sequence[Sequence[int]]) -> None:
+    """Evaluate against ground truth (where every agent has it), then write
+    ``metrics.json`` and ``report.html``; adds what the user should know to ``summary.notes``.
+
+    Args:
+        staging: the run folder being written.
+        summary: the run's summary (``agents``, ``notes``, ``evaluation`` are filled in).
+        metrics: the metrics document; gains ``ate``.
+        agents: the agent inputs (``root``, ``groundtruth``).
+        components: gauge components: merged ATE only within each.
+    """
+    from como3r.errors import InputError
+    from como3r.evaluation.html import write_report
+    from como3r.evaluation.report import evaluate_run
+
+    metrics["ate"] = None
+    if all(a.groundtruth is not None for a in agents):
+        try:
+            evaluation = evaluate_run(staging, [a.root for a in agents], staging,
+                                      components=[list(c) for c in components])
+        except InputError as exc:  # e.g. too few tracked frames: the run itself stands
+            summary.notes.append(f"ATE not computed: {exc}")
+        else:
+            metrics["ate"] = evaluation.to_json()
+            summary.evaluation = evaluation
+    else:
+        summary.notes.append("no ground truth for every agent: ATE not computed")
+    if len(components) > 1:
+        summary.notes.append(f"agents form {len(components)} separate gauge components "
+                             f"{[list(c) for c in components]}: no merged ATE across them")
+    write_json(staging / "metrics.json", metrics)
+    accuracy = summary.evaluation.table_rows() if summary.evaluation is not None else []
+    write_report(staging, summary.agents, accuracy, summary.notes)

@@ -197,22 +197,5 @@ def _write(staging: Path, frontends: list[AgentFrontend], coordinator: Coordinat
                                "tracked": fe.stats.tracked, "lost": fe.stats.lost,
                                "keyframes": len(fe.keyframes),
                                "fps": fe.stats.frames / s if s > 0 else 0.0})
-    if all(a.groundtruth is not None for a in agents):
-        from como3r.evaluation.report import evaluate_run
-
-        try:
-            evaluation = evaluate_run(staging, [a.root for a in agents], staging,
-                                      components=components)
-        except InputError as exc:  # e.g. too few tracked frames: the run itself stands
-            summary.notes.append(f"ATE not computed: {exc}")
-            metrics["ate"] = None
-        else:
-            metrics["ate"] = evaluation.to_json()
-            summary.evaluation = evaluation
-    else:
-        summary.notes.append("no ground truth for every agent: ATE not computed")
-    if len(components) > 1:
-        summary.notes.append(f"agents form {len(components)} separate gauge components "
-                             f"{components}: no merged ATE across them")
-    outputs.write_json(staging / "metrics.json", metrics)
+    outputs.evaluate_and_finish(staging, summary, metrics, agents, components)
     return summary

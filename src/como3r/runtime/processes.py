@@ -809,20 +809,5 @@ def _write(staging: Path, runtime: _Runtime, inputs: list[AgentInput]) -> RunSum
             summary.notes.append(
                 f"agent {slot.agent} failed: {slot.error}; its outputs hold the "
                 f"{len(slot.result.keyframes)} keyframes the coordinator received")
-    if all(a.groundtruth is not None for a in inputs):
-        from como3r.evaluation.report import evaluate_run
-
-        try:
-            evaluation = evaluate_run(staging, [a.root for a in inputs], staging,
-                                      components=components)
-            metrics["ate"] = evaluation.to_json()
-            summary.evaluation = evaluation
-        except InputError as exc:
-            summary.notes.append(f"ATE not computed: {exc}")
-    else:
-        summary.notes.append("no ground truth for every agent: ATE not computed")
-    if len(components) > 1:
-        summary.notes.append(f"agents form {len(components)} separate gauge components "
-                             f"{components}: no merged ATE across them")
-    outputs.write_json(staging / "metrics.json", metrics)
+    outputs.evaluate_and_finish(staging, summary, metrics, inputs, components)
     return summary
