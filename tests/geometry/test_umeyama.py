@@ -165,3 +165,18 @@ def test_rmse_of_known_offset():
     T = sim3_exp(torch.zeros(7, dtype=F64))
     assert umeyama_rmse(T, src, src) == 0.0
     assert abs(umeyama_rmse(T, src, src + torch.tensor([0.0, 3.0, 4.0], dtype=F64)) - 5.0) < 1e-12
+
+
+def test_batched_umeyama_matches_the_single_solver() -> None:
+    from como3r.geometry.lie import quat_to_matrix, sim3_exp
+    from como3r.geometry.umeyama import umeyama_sim3_batched
+
+    g = torch.Generator().manual_seed(3)
+    T = sim3_exp(torch.randn(4, 7, generator=g, dtype=torch.float64) * 0.5)
+    src = torch.randn(4, 5, 3, generator=g, dtype=torch.float64)
+    R_true = quat_to_matrix(T[:, 3:7])
+    dst = T[:, 7, None, None] * (src @ R_true.transpose(1, 2)) + T[:, None, :3]
+    R, t, s = umeyama_sim3_batched(src, dst)
+    assert torch.allclose(R, R_true, atol=1e-10)
+    assert torch.allclose(t, T[:, :3], atol=1e-10)
+    assert torch.allclose(s, T[:, 7], atol=1e-10)

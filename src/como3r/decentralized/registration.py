@@ -25,7 +25,7 @@ from torch import Tensor
 from como3r.decentralized.config import RegistrationConfig
 from como3r.errors import GeometryError
 from como3r.geometry.lie import matrix_to_quat, sim3_act
-from como3r.geometry.umeyama import umeyama_sim3
+from como3r.geometry.umeyama import umeyama_sim3, umeyama_sim3_batched
 from como3r.prior.base import Encoding, PairPrediction, Prior, View
 from como3r.prior.simulated_keys import generator
 
@@ -128,18 +128,8 @@ def reciprocal_matches(D_i: Tensor, D_j: Tensor, Q_i: Tensor, Q_j: Tensor,
 
 
 def _minimal_similarities(src: Tensor, dst: Tensor) -> Tensor:
-    """Closed-form similarities ``(B, 8)`` of ``B`` samples ``(B, 3, 3)`` (float64).
-
-    Degenerate samples give arbitrary transforms, which simply collect few inliers.
-    """
-    mu_src, mu_dst = src.mean(1, keepdim=True), dst.mean(1, keepdim=True)
-    x, y = src - mu_src, dst - mu_dst
-    U, singular, Vh = torch.linalg.svd(y.transpose(1, 2) @ x)
-    sign = torch.ones_like(singular)
-    sign[:, 2] = torch.linalg.det(U @ Vh).sign()
-    R = U @ torch.diag_embed(sign) @ Vh
-    s = (singular * sign).sum(-1) / x.square().sum((1, 2)).clamp_min(1e-12)
-    t = mu_dst[:, 0] - s[:, None] * (R @ mu_src[:, 0, :, None])[..., 0]
+    """Closed-form similarities ``(B, 8)`` of ``B`` samples ``(B, 3, 3)`` (float64)."""
+    R, t, s = umeyama_sim3_batched(src, dst)
     return torch.cat([t, matrix_to_quat(R), s[:, None]], dim=-1)
 
 

@@ -12,7 +12,7 @@ from torch import Tensor
 from como3r.errors import GeometryError
 from como3r.geometry.lie import matrix_to_quat, sim3_act
 
-__all__ = ["umeyama_sim3", "umeyama_rmse"]
+__all__ = ["umeyama_sim3", "umeyama_rmse", "umeyama_sim3_batched"]
 
 # Relative singular-value threshold below which the cross-covariance counts as rank < 2, per
 # input precision. Exactly collinear points stored in float32 (float64) deviate from their
@@ -126,3 +126,26 @@ def umeyama_rmse(T: Tensor, src: Tensor, dst: Tensor, weights: Tensor | None = N
     if weights is None:
         return float(squared.mean().sqrt())
     return float(((weights * squared).sum() / weights.sum()).sqrt())
+
+
+def umeyama_sim3_batched(src: Tensor, dst: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Closed-form similarities of many small samples at once (RANSAC hypotheses, C-Eq. 14).
+
+    Unlike :func:`umeyama_sim3` it never raises: degenerate samples give arbitrary
+    transforms, which simply collect few inliers.
+
+    Args:
+        src, dst: ``(B, k, 3)`` point samples (float64 recommended).
+
+    Returns:
+        ``R (B, 3, 3)``, ``t (B, 3)``, ``s (B,)`` with ``dst ~= s R src + t``.
+    """
+    mu_src, mu_dst = src.mean(1, keepdim=True), dst.mean(1, keepdim=True)
+    x, y = src - mu_src, dst - mu_dst
+    U, singular, Vh = torch.linalg.svd(y.transpose(1, 2) @ x)
+    d = torch.ones_like(singular)
+    d[:, 2] = torch.linalg.det(U @ Vh).sign()  # proper rotation (reflection handling)
+    R = U @ torch.diag_embed(d) @ Vh
+    s = (singular * d).sum(-1) / x.square().sum((1, 2)).clamp_min(1e-12)
+    t = mu_dst[:, 0] - s[:, None] * (R @ mu_src[:, 0, :, None])[..., 0]
+    return R, t, s

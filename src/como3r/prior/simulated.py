@@ -63,7 +63,7 @@ from como3r.config import SimulatedPriorConfig
 from como3r.errors import ConfigError, GeometryError, PriorError
 from como3r.geometry.camera import rays_from_intrinsics, unproject_depth
 from como3r.geometry.lie import matrix_to_quat, quat_to_matrix, sim3_act, so3_exp
-from como3r.geometry.umeyama import umeyama_sim3
+from como3r.geometry.umeyama import umeyama_sim3, umeyama_sim3_batched
 from como3r.prior.base import Encoding, PairPrediction, Prior, View
 from como3r.prior.simulated_keys import (
     KeyMatches,
@@ -200,28 +200,6 @@ def _depth_edges(depth: Tensor, valid: Tensor, log_jump: float) -> Tensor:
         edge.narrow(dim, 0, n).logical_or_(jump)
     dilated = F.max_pool2d(edge[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
     return dilated & valid
-
-
-def _minimal_similarities(src: Tensor, dst: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Batched closed-form similarity of minimal samples (RANSAC hypotheses).
-
-    Degenerate samples give arbitrary transforms, which simply collect few inliers.
-
-    Args:
-        src, dst: ``(B, k, 3)`` float64 point samples.
-
-    Returns:
-        ``R (B, 3, 3)``, ``t (B, 3)``, ``s (B,)`` with ``dst ~= s R src + t``.
-    """
-    mu_src, mu_dst = src.mean(1, keepdim=True), dst.mean(1, keepdim=True)
-    x, y = src - mu_src, dst - mu_dst
-    U, singular, Vh = torch.linalg.svd(y.transpose(1, 2) @ x)
-    d = torch.ones_like(singular)
-    d[:, 2] = torch.linalg.det(U @ Vh).sign()
-    R = U @ torch.diag_embed(d) @ Vh
-    s = (singular * d).sum(-1) / x.square().sum((1, 2)).clamp_min(1e-12)
-    t = mu_dst[:, 0] - s[:, None] * (R @ mu_src[:, 0, :, None])[..., 0]
-    return R, t, s
 
 
 class SimulatedPrior(Prior):
@@ -419,7 +397,7 @@ class SimulatedPrior(Prior):
         # Hypotheses are scored on a subset; the refinement below uses every correspondence.
         scored = slice(0, c.ransac_scored_correspondences)
         samples = torch.randint(0, src.shape[0], (c.ransac_hypotheses, 3), generator=gen)
-        R, t, s = (x.to(torch.float32) for x in _minimal_similarities(src[samples], dst[samples]))
+        R, t, s = (x.to(torch.float32) for x in umeyama_sim3_batched(src[samples], dst[samples]))
         # s R x + t of every scored point under every hypothesis, as one (n, 3) @ (3, 3B) GEMM
         rotated = (src[scored].float() @ R.reshape(-1, 3).T).view(-1, c.ransac_hypotheses, 3)
         residual_sq = (s[None, :, None] * rotated + t[None] - dst[scored, None].float()).square()
