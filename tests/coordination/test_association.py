@@ -6,15 +6,11 @@ import pytest
 import torch
 
 from como3r.config import Config, apply_overrides
-from como3r.coordination.association import (
-    CrossAgentRetrieval,
-    covisible_fraction,
-    verify_candidates,
-)
+from como3r.coordination.association import CrossAgentRetrieval, verify_candidates
 from como3r.data.agent import open_agent
 from como3r.data.preprocess import make_view
 from como3r.data.synth import synthesize
-from como3r.frontend.pairs import DirectedMatches
+from como3r.frontend.pairs import DirectedMatches, covisible_fraction
 from como3r.geometry.lie import quat_conjugate, quat_multiply, sim3_compose, sim3_inverse, so3_log
 from como3r.geometry.umeyama import umeyama_sim3
 from como3r.prior.base import PairPrediction

@@ -33,17 +33,12 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-import torch
 from torch import Tensor
 
 from como3r.config import MatchingConfig, RetrievalConfig, VerificationConfig
-from como3r.frontend.pairs import DirectedMatches, PairLink, directed_matches
-from como3r.prior.base import Encoding, PairPrediction, Prior
+from como3r.frontend.pairs import PairLink, link_pairs
+from como3r.prior.base import Encoding, Prior
 from como3r.prior.retrieval import Hit, RetrievalDatabase
-
-#: Share of view i's rays left out on each side when taking the box of its field of view:
-#: a few stray rays at depth discontinuities must not widen it.
-FIELD_OF_VIEW_QUANTILE = 0.01
 
 
 class CrossAgentRetrieval:
@@ -113,34 +108,7 @@ class Verification:
     @property
     def covisible_ratio(self) -> float:
         """The smaller share, over both directions, of co-visible pixels that match."""
-        return min(_ratio(self.nu_i, self.covisible_i), _ratio(self.nu_j, self.covisible_j))
-
-
-def covisible_fraction(pred: PairPrediction, matches: DirectedMatches,
-                       min_confidence: float) -> float:
-    """Share of view j's pixels that the prediction puts where view i confidently sees.
-
-    A pixel n of j is co-visible when its point ``X_ji[n]`` lies in front of camera i and
-    inside the box that view i's own rays span on the plane ``z = 1``, and the pixel of i
-    it was matched to has confidence ``C_ii >= min_confidence``.
-
-    Args:
-        pred: prediction of the ordered pair (i, j), ``X (H, W, 3)`` in camera i.
-        matches: every pixel of j looked up in i (from the same prediction).
-        min_confidence: confidence a pixel of i needs to count as seen.
-    """
-    X_i, X_j = pred.X_ii.reshape(-1, 3), pred.X_ji.reshape(-1, 3)
-    ahead = X_i[:, 2] > 0
-    if not bool(ahead.any()):
-        return 0.0
-    plane_i = X_i[ahead, :2] / X_i[ahead, 2:]
-    low = torch.quantile(plane_i, FIELD_OF_VIEW_QUANTILE, dim=0)
-    high = torch.quantile(plane_i, 1.0 - FIELD_OF_VIEW_QUANTILE, dim=0)
-    depth_j = X_j[:, 2:]
-    plane_j = X_j[:, :2] / depth_j.clamp_min(torch.finfo(X_j.dtype).tiny)
-    inside = (depth_j[:, 0] > 0) & ((plane_j > low) & (plane_j < high)).all(dim=-1)
-    seen = pred.C_ii.reshape(-1)[matches.idx] >= min_confidence
-    return float((inside & seen).float().mean())
+        return self.link.covisible_ratio
 
 
 def verify_candidates(
@@ -168,21 +136,13 @@ def verify_candidates(
     """
     if not candidates:
         return []
-    predictions = prior.decode_symmetric([(enc, query_encoding) for _, enc in candidates])
+    links = link_pairs(prior, [(enc, query_encoding) for _, enc in candidates], matching, q_min,
+                       verification.covisible_min_confidence)
     results = []
-    for (hit, _), (pred_ij, pred_ji) in zip(candidates, predictions):
-        link = PairLink(ij=directed_matches(pred_ij, matching, q_min),
-                        ji=directed_matches(pred_ji, matching, q_min))
-        cov_j = covisible_fraction(pred_ij, link.ij, verification.covisible_min_confidence)
-        cov_i = covisible_fraction(pred_ji, link.ji, verification.covisible_min_confidence)
+    for (hit, _), link in zip(candidates, links):
         result = Verification((hit.agent, hit.keyframe), query, hit.similarity, link,
-                              cov_i, cov_j, accepted=False)
+                              link.covisible_ji, link.covisible_ij, accepted=False)
         accepted = (link.min_match_fraction >= verification.tau_inter
                     and result.covisible_ratio >= verification.min_covisible_ratio)
         results.append(dataclasses.replace(result, accepted=accepted))
     return results
-
-
-def _ratio(matched: float, covisible: float) -> float:
-    """``matched / covisible``, 0 when nothing is co-visible."""
-    return matched / covisible if covisible > 0 else 0.0

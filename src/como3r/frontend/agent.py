@@ -165,13 +165,19 @@ class AgentFrontend:
         """Sequential edge, verified loop edges, local solve, then index the keyframe."""
         candidates = self._loop_candidates(kf)
         partners = [kf.kf_id - 1, *candidates]
+        verification = self.config.verification
         links = link_pairs(
             self.prior, [(self.keyframes[p].encoding, kf.encoding) for p in partners],
             self.config.matching, self.config.tracking.q_min,
+            verification.covisible_min_confidence,
         )
         for partner, link in zip(partners, links):
             sequential = partner == kf.kf_id - 1
-            if sequential or link.min_match_fraction >= self.config.local_solve.min_match_fraction:
+            # a loop needs matches where the pair's own geometry says both views see: the
+            # match fraction alone accepts repeated structure (the coordinator's same test)
+            loop_ok = (link.min_match_fraction >= self.config.local_solve.min_match_fraction
+                       and link.covisible_ratio >= verification.min_covisible_ratio)
+            if sequential or loop_ok:
                 self._add_edge_pair(partner, kf.kf_id, link, "sequential" if sequential else "loop")
                 self.stats.loop_edges += 0 if sequential else 1
         self._local_solve()

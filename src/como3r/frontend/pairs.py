@@ -25,6 +25,11 @@ from como3r.frontend.matching import match_confidence, match_pointmaps
 from como3r.prior.base import Encoding, PairPrediction, Prior
 
 
+#: Share of view i's rays left out on each side when taking the box of its field of view:
+#: a few stray rays at depth discontinuities must not widen it.
+FIELD_OF_VIEW_QUANTILE = 0.01
+
+
 @dataclass(frozen=True)
 class DirectedMatches:
     """Matches of the ordered pair (i, j): pixel ``idx[n]`` of i for each pixel n of j.
@@ -52,10 +57,23 @@ class PairLink:
     Attributes:
         ij: matches for the edge (i, j) (pixels of j looked up in i).
         ji: matches for the edge (j, i) (pixels of i looked up in j).
+        covisible_ij: share of j's pixels the prediction (i, j) puts where i sees
+            (:func:`covisible_fraction`), None when not computed.
+        covisible_ji: the same for i's pixels in j.
     """
 
     ij: DirectedMatches
     ji: DirectedMatches
+    covisible_ij: float | None = None
+    covisible_ji: float | None = None
+
+    @property
+    def covisible_ratio(self) -> float | None:
+        """The smaller share, over both directions, of co-visible pixels that match."""
+        if self.covisible_ij is None or self.covisible_ji is None:
+            return None
+        return min(_ratio(self.ij.match_fraction, self.covisible_ij),
+                   _ratio(self.ji.match_fraction, self.covisible_ji))
 
     @property
     def min_match_fraction(self) -> float:
@@ -86,15 +104,56 @@ def link_pairs(
     pairs: Sequence[tuple[Encoding, Encoding]],
     matching: MatchingConfig,
     q_min: float,
+    covisible_min_confidence: float | None = None,
 ) -> list[PairLink]:
-    """Decode each pair symmetrically (one batched call) and match both directions."""
+    """Decode each pair symmetrically (one batched call) and match both directions.
+
+    With ``covisible_min_confidence`` the links also carry their co-visible fractions.
+    """
     if not pairs:
         return []
-    predictions = prior.decode_symmetric(pairs)
-    return [
-        PairLink(ij=directed_matches(p_ij, matching, q_min), ji=directed_matches(p_ji, matching, q_min))
-        for p_ij, p_ji in predictions
-    ]
+    links = []
+    for p_ij, p_ji in prior.decode_symmetric(pairs):
+        ij = directed_matches(p_ij, matching, q_min)
+        ji = directed_matches(p_ji, matching, q_min)
+        if covisible_min_confidence is None:
+            links.append(PairLink(ij=ij, ji=ji))
+            continue
+        links.append(PairLink(ij, ji, covisible_fraction(p_ij, ij, covisible_min_confidence),
+                              covisible_fraction(p_ji, ji, covisible_min_confidence)))
+    return links
+
+
+def _ratio(matched: float, covisible: float) -> float:
+    """``matched / covisible``, 0 when nothing is co-visible."""
+    return matched / covisible if covisible > 0 else 0.0
+
+
+def covisible_fraction(pred: PairPrediction, matches: DirectedMatches,
+                       min_confidence: float) -> float:
+    """Share of view j's pixels that the prediction puts where view i confidently sees.
+
+    A pixel n of j is co-visible when its point ``X_ji[n]`` lies in front of camera i and
+    inside the box that view i's own rays span on the plane ``z = 1``, and the pixel of i
+    it was matched to has confidence ``C_ii >= min_confidence``.
+
+    Args:
+        pred: prediction of the ordered pair (i, j), ``X (H, W, 3)`` in camera i.
+        matches: every pixel of j looked up in i (from the same prediction).
+        min_confidence: confidence a pixel of i needs to count as seen.
+    """
+    X_i, X_j = pred.X_ii.reshape(-1, 3), pred.X_ji.reshape(-1, 3)
+    ahead = X_i[:, 2] > 0
+    if not bool(ahead.any()):
+        return 0.0
+    plane_i = X_i[ahead, :2] / X_i[ahead, 2:]
+    low = torch.quantile(plane_i, FIELD_OF_VIEW_QUANTILE, dim=0)
+    high = torch.quantile(plane_i, 1.0 - FIELD_OF_VIEW_QUANTILE, dim=0)
+    depth_j = X_j[:, 2:]
+    plane_j = X_j[:, :2] / depth_j.clamp_min(torch.finfo(X_j.dtype).tiny)
+    inside = (depth_j[:, 0] > 0) & ((plane_j > low) & (plane_j < high)).all(dim=-1)
+    seen = pred.C_ii.reshape(-1)[matches.idx] >= min_confidence
+    return float((inside & seen).float().mean())
 
 
 def gather_points(X: Tensor, idx: Tensor) -> Tensor:
