@@ -429,6 +429,7 @@ def _run_threads(agent_paths: Sequence[str | Path], config: Config,
         target=_run_thread, name=f"como3r-robot-{r}", daemon=True,
         args=(r, str(path), prior, codebook, config, settings, links[r], needs_K, rounds,
               leave.get(r))) for r, path in enumerate(agent_paths)]
+    codec.resolve_all()  # resolve message types once, not concurrently in every robot thread
     for thread in threads:
         thread.start()
     for thread in threads:

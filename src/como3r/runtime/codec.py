@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import math
+import threading
 import types
 import typing
 from dataclasses import dataclass
@@ -99,6 +100,7 @@ REGISTRY: dict[str, MessageType] = {}
 _BY_PATH: dict[str, MessageType] = {}
 _RESOLVED: dict[str, type] = {}
 _HINTS: dict[type, dict[str, Any]] = {}
+_HINTS_LOCK = threading.Lock()
 _CHECKS: dict[str, Callable[[Any], None]] = {}
 
 
@@ -168,10 +170,20 @@ def _check_registrable(cls: type, entry: MessageType) -> None:
                             f"registered as version {entry.version}")
 
 
+def resolve_all() -> None:
+    """Import every registered type and resolve its field types now, e.g. before starting
+    threads that will encode and decode concurrently."""
+    for cls in registered_types().values():
+        _hints(cls)
+
+
 def _hints(cls: type) -> dict[str, Any]:
-    if cls not in _HINTS:
-        _HINTS[cls] = typing.get_type_hints(cls)
-    return _HINTS[cls]
+    with _HINTS_LOCK:
+        # get_type_hints compiles string annotations; CPython 3.11's AST constructor is not
+        # safe when robots (threads) decode their first messages at the same time
+        if cls not in _HINTS:
+            _HINTS[cls] = typing.get_type_hints(cls)
+        return _HINTS[cls]
 
 
 def _init_fields(cls: type) -> list[dataclasses.Field]:
