@@ -159,12 +159,3 @@ def covisible_fraction(pred: PairPrediction, matches: DirectedMatches,
 def gather_points(X: Tensor, idx: Tensor) -> Tensor:
     """Rows ``idx (P,)`` of a pointmap ``X (H, W, 3)`` -> ``(P, 3)``."""
     return X.reshape(-1, 3)[idx]
-
-
-def empty_matches(num_pixels: int, device: torch.device) -> DirectedMatches:
-    """Matches with nothing valid (a placeholder for a failed direction)."""
-    return DirectedMatches(
-        idx=torch.zeros(num_pixels, dtype=torch.long, device=device),
-        valid=torch.zeros(num_pixels, dtype=torch.bool, device=device),
-        q=torch.zeros(num_pixels, device=device),
-    )

@@ -154,3 +154,40 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
     write_json(staging / "metrics.json", metrics)
     accuracy = summary.evaluation.table_rows() if summary.evaluation is not None else []
     write_report(staging, summary.agents, accuracy, summary.notes)
+
+
+def write_run_files(staging: Path, agents: Sequence[Any], coordinator: Any, config: Config,
+                    prior_description: dict[str, Any], seconds: Sequence[float]
+                    ) -> tuple[dict[str, Any], list[list[int]]]:
+    """Write config, trajectories, map and graph of a run; returns the base metrics
+    document and the gauge components.
+
+    Args:
+        agents: front-ends or agent results (``agent``, ``keyframes``, ``edges``, ``stats``,
+            ``trajectory()``, ``keyframe_trajectory()``), in agent order.
+        coordinator: the run's coordinator.
+        config: effective configuration.
+        prior_description: ``prior.describe()``.
+        seconds: processing time per agent.
+    """
+    write_config(staging, config)
+    write_trajectories(staging, agents)
+    points = write_map(staging, agents, config)
+    components = coordinator.components()
+    write_json(staging / "graph.json", graph_document(agents, coordinator))
+    metrics = {
+        "prior": prior_description,
+        "agents": [frontend_metrics(a, s) for a, s in zip(agents, seconds)],
+        "coordinator": coordinator.metrics(),
+        "components": components,
+        "map_points": points,
+    }
+    return metrics, components
+
+
+def agent_row(agent: Any, seconds: float) -> dict[str, Any]:
+    """One agent's line of the final summary table."""
+    stats = agent.stats
+    return {"agent": agent.agent, "frames": stats.frames, "tracked": stats.tracked,
+            "lost": stats.lost, "keyframes": len(agent.keyframes),
+            "fps": stats.frames / seconds if seconds > 0 else 0.0}

@@ -179,23 +179,9 @@ def _finish(frontends: Sequence[AgentFrontend], coordinator: Coordinator) -> Non
 def _write(staging: Path, frontends: list[AgentFrontend], coordinator: Coordinator,
            config: Config, agents: list[AgentInput], seconds: list[float],
            prior: Prior) -> RunSummary:
-    outputs.write_config(staging, config)
-    outputs.write_trajectories(staging, frontends)
-    points = outputs.write_map(staging, frontends, config)
-    components = coordinator.components()
-    outputs.write_json(staging / "graph.json", outputs.graph_document(frontends, coordinator))
+    metrics, components = outputs.write_run_files(staging, frontends, coordinator, config,
+                                                  prior.describe(), seconds)
     summary = RunSummary(out=staging)
-    metrics: dict[str, object] = {
-        "prior": prior.describe(),
-        "agents": [outputs.frontend_metrics(fe, s) for fe, s in zip(frontends, seconds)],
-        "coordinator": coordinator.metrics(),
-        "components": components,
-        "map_points": points,
-    }
-    for fe, s in zip(frontends, seconds):
-        summary.agents.append({"agent": fe.agent, "frames": fe.stats.frames,
-                               "tracked": fe.stats.tracked, "lost": fe.stats.lost,
-                               "keyframes": len(fe.keyframes),
-                               "fps": fe.stats.frames / s if s > 0 else 0.0})
+    summary.agents.extend(outputs.agent_row(fe, s) for fe, s in zip(frontends, seconds))
     outputs.evaluate_and_finish(staging, summary, metrics, agents, components)
     return summary

@@ -785,26 +785,13 @@ def _write(staging: Path, runtime: _Runtime, inputs: list[AgentInput]) -> RunSum
     config, coordinator = runtime.config, runtime.coordinator
     results = [s.result for s in runtime.slots]
     seconds = [s.result.finished.seconds if s.result.finished else s.seconds for s in runtime.slots]
-    outputs.write_config(staging, config)
-    outputs.write_trajectories(staging, results)
-    points = outputs.write_map(staging, results, config)
-    components = coordinator.components()
-    outputs.write_json(staging / "graph.json", outputs.graph_document(results, coordinator))
+    metrics, components = outputs.write_run_files(staging, results, coordinator, config,
+                                                  runtime.prior.describe(), seconds)
+    metrics["runtime"] = runtime.runtime_metrics()
     summary = RunSummary(out=staging)
-    metrics: dict[str, object] = {
-        "prior": runtime.prior.describe(),
-        "agents": [outputs.frontend_metrics(r, s) for r, s in zip(results, seconds)],
-        "coordinator": coordinator.metrics(),
-        "components": components,
-        "map_points": points,
-        "runtime": runtime.runtime_metrics(),
-    }
     for slot, s in zip(runtime.slots, seconds):
-        stats = slot.result.stats
         summary.agents.append({"agent": slot.agent, "status": slot.status,
-                               "frames": stats.frames, "tracked": stats.tracked,
-                               "lost": stats.lost, "keyframes": len(slot.result.keyframes),
-                               "fps": stats.frames / s if s > 0 else 0.0})
+                               **outputs.agent_row(slot.result, s)})
         if slot.status == "failed":
             summary.notes.append(
                 f"agent {slot.agent} failed: {slot.error}; its outputs hold the "
