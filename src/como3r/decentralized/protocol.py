@@ -315,11 +315,11 @@ def _robot(robot: int, agent_path: str, prior: Prior, codebook: np.ndarray | Non
                  recognizer, config, settings, link, needs_K, leave)
 
 
-def _run_thread(robot: int, agent_path: str, prior: Prior, codebook: np.ndarray | None,
-                config: Config, settings: DecentralizedConfig, link: ThreadLink, needs_K: bool,
-                rounds: list[RoundPlan], leave: tuple[int, str] | None) -> None:
+def _run_thread(robot: int, worker: Robot | Exception, link: ThreadLink,
+                rounds: list[RoundPlan]) -> None:
     try:
-        worker = _robot(robot, agent_path, prior, codebook, config, settings, link, needs_K, leave)
+        if isinstance(worker, Exception):
+            raise worker
         link.router.route(codec.encode(worker.run(rounds), max_bytes=link.max_bytes))
     except Exception as exc:  # reported to the driver, which decides what to do
         logger.error("robot %d failed: %s", robot, exc)
@@ -425,11 +425,20 @@ def _run_threads(agent_paths: Sequence[str | Path], config: Config,
     router = Router(schedule, lambda robot, data: links[robot].inbox.put(data), max_bytes,
                     range(len(agent_paths)))
     links.update({r: ThreadLink(router, max_bytes) for r in range(len(agent_paths))})
-    threads = [threading.Thread(
-        target=_run_thread, name=f"como3r-robot-{r}", daemon=True,
-        args=(r, str(path), prior, codebook, config, settings, links[r], needs_K, rounds,
-              leave.get(r))) for r, path in enumerate(agent_paths)]
-    codec.resolve_all()  # resolve message types once, not concurrently in every robot thread
+    # Robots are built (files opened, classes imported) and message types resolved here,
+    # one at a time: CPython 3.11's AST constructor fails when threads compile concurrently
+    # ("AST constructor recursion depth mismatch").
+    workers: list[Robot | Exception] = []
+    for r, path in enumerate(agent_paths):
+        try:
+            workers.append(_robot(r, str(path), prior, codebook, config, settings, links[r],
+                                  needs_K, leave.get(r)))
+        except Exception as exc:  # the robot's thread reports it like any other failure
+            workers.append(exc)
+    codec.resolve_all()
+    threads = [threading.Thread(target=_run_thread, name=f"como3r-robot-{r}", daemon=True,
+                                args=(r, workers[r], links[r], rounds))
+               for r in range(len(agent_paths))]
     for thread in threads:
         thread.start()
     for thread in threads:
