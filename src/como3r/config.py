@@ -166,7 +166,13 @@ class DepthRefinementConfig:
     inner_iters: int = 10
     alternation_rounds: int = 100
     pose_pass_iters: int = 50
-    depth_convergence_tol: float = 1e-3  # max |delta s| that ends the alternation (A.7)
+    depth_convergence_tol: float = 5e-3  # max |delta s| that ends the alternation (A.7)
+    # C-Eq. 19's base pointmap: "insertion" = the keyframe's first prediction (the paper),
+    # "fused" = its fused pointmap (C-Eq. 3) when the cleanup starts; see backend.global_graph
+    refine_from: Literal["fused", "insertion"] = "fused"
+    # a round whose max |delta s| exceeds this fraction of the previous round's has stalled
+    # and ends the alternation (later rounds drift the map; inf disables)
+    depth_stall_ratio: float = 0.5
 
 
 @dataclass(frozen=True)

@@ -47,7 +47,7 @@ def test_terminates_by_convergence():
     report = alternate(solvers.pose_pass, solvers.depth_step, AlternationSettings(),
                        solvers.broadcast)
     assert report.cleanup_translations == [0.5, 0.05, 0.004]
-    # Round r has |ds| = 0.05 * 0.1^r (< 1e-3 from r = 2) and |dt| = 0.02 * 0.1^r (< 5e-3
+    # Round r has |ds| = 0.05 * 0.1^r (< 5e-3 from r = 2) and |dt| = 0.02 * 0.1^r (< 5e-3
     # from r = 1): both below tolerance at r = 2.
     assert len(report.rounds) == 3
     assert report.converged and report.reason == "converged"
@@ -68,7 +68,7 @@ def test_round_order_and_iteration_counts():
 
 def test_respects_pass_and_round_bounds():
     solvers = FakeSolvers(translations=[1.0] * 1000, depth_changes=[1.0] * 1000)
-    settings = AlternationSettings(rounds=7)
+    settings = AlternationSettings(rounds=7, stall_ratio=float("inf"))
     report = alternate(solvers.pose_pass, solvers.depth_step, settings, solvers.broadcast)
     assert len(report.cleanup_translations) == 5
     assert len(report.rounds) == 7
@@ -82,6 +82,24 @@ def test_depth_alone_converged_does_not_stop_while_poses_move():
     report = alternate(solvers.pose_pass, solvers.depth_step, AlternationSettings(rounds=10))
     assert len(report.rounds) == 5
     assert report.converged
+
+
+def test_a_depth_step_that_stops_shrinking_ends_the_rounds():
+    # |ds| halves, then shrinks by only 20 %: the third round has stalled (ratio 0.5).
+    solvers = FakeSolvers(translations=[0.0] + [0.001] * 10,
+                          depth_changes=[0.2, 0.1, 0.08, 0.07, 0.06])
+    report = alternate(solvers.pose_pass, solvers.depth_step, AlternationSettings(rounds=10))
+    assert [r.max_depth_change for r in report.rounds] == [0.2, 0.1, 0.08]
+    assert report.reason == "stalled" and not report.converged
+
+
+def test_frozen_poses_run_depth_steps_only():
+    solvers = FakeSolvers(translations=[], depth_changes=[0.1, 0.01, 0.001])
+    report = alternate(None, solvers.depth_step, AlternationSettings(rounds=10))
+    assert report.cleanup_translations == [] and report.pose_seconds == 0.0
+    assert [r.max_translation for r in report.rounds] == [0.0, 0.0, 0.0]
+    assert report.reason == "converged"
+    assert all(name == "depth" for name, _ in solvers.calls)
 
 
 def test_without_rounds_only_the_pose_passes_run():
@@ -107,8 +125,8 @@ def test_time_is_reported_per_phase(monkeypatch):
     def broadcast() -> None:
         clock[0] += 0.5
 
-    report = alternate(pose_pass, depth_step, AlternationSettings(cleanup_passes=2, rounds=4),
-                       broadcast)
+    settings = AlternationSettings(cleanup_passes=2, rounds=4, stall_ratio=float("inf"))
+    report = alternate(pose_pass, depth_step, settings, broadcast)
     assert report.pose_seconds == pytest.approx(2.0 * (2 + 4))
     assert report.depth_seconds == pytest.approx(3.0 * 4)
     assert report.broadcast_seconds == pytest.approx(0.5 * 4)
@@ -121,7 +139,8 @@ def test_non_finite_step_raises_solver_error():
 
 
 @pytest.mark.parametrize("field, value", [("cleanup_passes", 0), ("rounds", -1),
-                                          ("depth_convergence_tol", -1.0)])
+                                          ("depth_convergence_tol", -1.0),
+                                          ("stall_ratio", -0.5)])
 def test_invalid_settings_raise_config_error(field, value):
     with pytest.raises(ConfigError, match=field):
         AlternationSettings(**{field: value})

@@ -8,7 +8,7 @@ import torch
 
 import como3r.backend.global_graph as global_graph
 from como3r.backend.global_graph import GlobalGraph
-from como3r.config import GlobalBAConfig, TrackingConfig
+from como3r.config import DepthRefinementConfig, GlobalBAConfig, TrackingConfig
 from como3r.errors import InputError
 from como3r.frontend.packets import KeyframePacket
 from como3r.frontend.pairs import DirectedMatches, PairLink
@@ -141,12 +141,26 @@ def test_divergence_guard_rejects_implausible_jumps(two_agents, monkeypatch) -> 
     assert torch.equal(graph.poses(range(6)), before)
 
 
-def test_cleanup_passes_stop_once_nothing_moves(two_agents) -> None:
+def test_depth_step_pulls_a_distorted_keyframe_back_and_keeps_the_anchor(two_agents) -> None:
     graph, truth = two_agents
-    results = graph.cleanup([0, 1], anchor=0)
-    assert 1 <= len(results) <= GlobalBAConfig().cleanup_passes
-    assert results[-1].max_translation_change < GlobalBAConfig().cleanup_stop_translation_m
-    assert float(_pose_errors(graph, truth).max()) < 1e-3
+    for g, kf in enumerate(graph.keyframes):
+        kf.T_WC = truth[(graph.agent_of[g], kf.kf_id)].clone()
+    distorted = graph.global_index(1, 1)
+    X_true = graph.keyframes[distorted].X_hat.clone()
+    graph.keyframes[distorted].X_hat = X_true * 1.05
+    graph.freeze_refinement_base([0, 1])
+    anchor_X = graph.keyframes[0].X_hat
+    config = DepthRefinementConfig(variant="pixel")
+    labels = graph.segment([0, 1], 0, config)
+    assert sorted(labels) == list(range(6))
+
+    for _ in range(5):
+        report = graph.refine_depths([0, 1], 0, config, labels)
+
+    log_error = (graph.keyframes[distorted].X_hat.norm(dim=-1) / X_true.norm(dim=-1)).log()
+    assert float(log_error.abs().max()) < 0.01  # from log(1.05) = 0.049
+    assert report.max_change < 0.01
+    assert graph.keyframes[0].X_hat is anchor_X
 
 
 def test_keyframes_must_arrive_in_order() -> None:

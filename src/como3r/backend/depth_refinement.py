@@ -58,6 +58,7 @@ __all__ = [
     "DepthRefinementReport",
     "refine_depths",
     "refine_keyframes",
+    "keyframe_labels",
 ]
 
 HUBER_K = 1.345
@@ -497,6 +498,13 @@ def refine_depths(
     return X_out, log_scales, report
 
 
+def keyframe_labels(keyframes: Sequence[RefinableKeyframe], config: DepthRefinementConfig
+                    ) -> list[Tensor]:
+    """Label maps of ``config.variant`` for the keyframes' current ``X_hat`` (confidence:
+    ``mean_confidence()``, comparable to one prediction's ``C``)."""
+    return [parameter_labels(kf.X_hat, kf.mean_confidence(), config) for kf in keyframes]
+
+
 def refine_keyframes(
     keyframes: Sequence[RefinableKeyframe],
     poses: Tensor,
@@ -504,20 +512,23 @@ def refine_keyframes(
     key_to_index: Mapping[int, int] | Callable[[int], int],
     config: DepthRefinementConfig,
     pinned: Iterable[int] = (),
+    labels: Sequence[Tensor] | None = None,
 ) -> DepthRefinementReport:
     """One depth step of the alternation (C-Sec. A.7, steps 2a-2c), in place.
 
-    Segments each keyframe's current ``X_hat`` by ``config.variant`` (confidence: the
-    keyframe's ``mean_confidence()``, comparable to one prediction's ``C``), refines the
-    log-scales at the frozen ``poses`` and writes the refined points back into ``X_hat``.
+    Refines the log-scales at the frozen ``poses`` and writes the refined points back into
+    ``X_hat``.
 
     Args:
         keyframes, poses, edges, key_to_index, config, pinned: as for :func:`refine_depths`.
+        labels: the keyframes' label maps; None segments each keyframe's current ``X_hat``
+            by ``config.variant`` (:func:`keyframe_labels`).
 
     Returns:
         The report; ``report.max_change`` is the ``max |ds|`` the alternation tests.
     """
-    labels = [parameter_labels(kf.X_hat, kf.mean_confidence(), config) for kf in keyframes]
+    if labels is None:
+        labels = keyframe_labels(keyframes, config)
     X_new, _, report = refine_depths(keyframes, poses, edges, key_to_index, labels, config,
                                      pinned)
     for kf, X in zip(keyframes, X_new):

@@ -19,7 +19,9 @@ gauge anchor of C-Sec. A.3). Only the keyframes connected to the anchor through 
 part: a chain cut by a relocalization (no sequential edge) keeps its poses instead of
 floating freely. A divergence guard restores the previous poses when the solver refuses a
 step, produces non-finite poses or moves a keyframe implausibly far.
-:meth:`GlobalGraph.cleanup` runs the terminal passes of C-Sec. A.7 step 1.
+:meth:`GlobalGraph.refine_depths` is the depth step of the terminal alternation (C-Sec. A.7),
+which :meth:`~como3r.coordination.coordinator.Coordinator.finish` interleaves with
+:meth:`GlobalGraph.optimize`.
 """
 
 from __future__ import annotations
@@ -32,7 +34,12 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from como3r.config import GlobalBAConfig, TrackingConfig
+from como3r.backend.depth_refinement import (
+    DepthRefinementReport,
+    keyframe_labels,
+    refine_keyframes,
+)
+from como3r.config import DepthRefinementConfig, GlobalBAConfig, TrackingConfig
 from como3r.errors import InputError
 from como3r.frontend.graph import Edge, make_factors
 from como3r.frontend.keyframes import Keyframe
@@ -49,6 +56,9 @@ logger = logging.getLogger(__name__)
 #: the solver cannot see a slow blow-up over many iterations).
 MAX_DISPLACEMENT_EXTENTS = 10.0
 MAX_SCALE_FACTOR = 10.0
+
+#: Edges per factor batch of the global solve (batches pad to their largest edge).
+EDGES_PER_BATCH = 8
 
 
 @dataclass(frozen=True)
@@ -139,7 +149,7 @@ class GlobalGraph:
             kf_id=packet.kf_id, frame_index=packet.frame_index, timestamp=packet.timestamp,
             encoding=packet.encoding, T_WC=packet.T_WC.clone(), X_hat=packet.X_hat,
             C_hat=packet.C_hat, X_init=packet.X_hat, C_init=packet.C_hat, colors=packet.colors,
-            retrieval=packet.retrieval,
+            retrieval=packet.retrieval, K=packet.K,
         ))
         self.agent_of.append(packet.agent)
         own.append(g)
@@ -248,13 +258,20 @@ class GlobalGraph:
         return BAResult(tuple(nodes), report.iterations, report.seconds, report.reason, False,
                         change)
 
-    def _factors(self, edges: Sequence[Edge], row: dict[int, int]) -> Factor:
-        """One factor batch over ``edges`` holding their VALID matches only.
+    def _factors(self, edges: Sequence[Edge], row: dict[int, int]) -> list[Factor]:
+        """Factor batches over ``edges`` holding their VALID matches only.
 
         The residuals are those of :func:`~como3r.frontend.graph.build_factors` (invalid
         matches weigh zero there), but with a third to two thirds of the pixels of a
-        keyframe pair unmatched, dropping them before the solve divides its cost.
+        keyframe pair unmatched, dropping them before the solve divides its cost. A batch
+        pads its edges to its largest one, so edges are batched by match count
+        (:data:`EDGES_PER_BATCH` at a time) to keep the padding small.
         """
+        order = sorted(edges, key=lambda e: int(e.matches.valid.sum()))
+        return [self._factor_batch(order[s:s + EDGES_PER_BATCH], row)
+                for s in range(0, len(order), EDGES_PER_BATCH)]
+
+    def _factor_batch(self, edges: Sequence[Edge], row: dict[int, int]) -> Factor:
         X_i, X_j, q = [], [], []
         for e in edges:
             valid = e.matches.valid
@@ -273,18 +290,44 @@ class GlobalGraph:
             torch.stack([_pad(torch.ones_like(x, dtype=torch.bool), P) for x in q]),
             self.tracking, None if K_i is None else K_i.to(X_i[0]))
 
-    def cleanup(self, agents: Sequence[int], anchor: int) -> list[BAResult]:
-        """Terminal pose passes (C-Sec. A.7 step 1): at most ``cleanup_passes`` solves of
-        ``max_iters_cleanup`` iterations, until no camera centre moves by
-        ``cleanup_stop_translation_m`` or more."""
-        results: list[BAResult] = []
-        for _ in range(self.config.cleanup_passes):
-            result = self.optimize(agents, anchor, self.config.max_iters_cleanup)
-            results.append(result)
-            if not result.moved or (
-                    result.max_translation_change < self.config.cleanup_stop_translation_m):
-                break
-        return results
+    def freeze_refinement_base(self, agents: Sequence[int]) -> None:
+        """Make every keyframe's current fused pointmap the base ``X_init`` of C-Eq. 19.
+
+        C-Eq. 19 rebuilds each refined point from the insertion-time prediction, which
+        throws away what the fusion of C-Eq. 3 averaged in: on the simulated prior's scenes
+        the fused maps carry about two thirds of a single prediction's depth distortion, and
+        per-segment refinement from the insertion snapshot ended with a LARGER map error
+        than it started with (``depth.refine_from``; the closing note of issue 6).
+        """
+        for a in agents:
+            for g in self.local_to_global.get(a, []):
+                self.keyframes[g].X_init = self.keyframes[g].X_hat
+
+    def segment(self, agents: Sequence[int], anchor: int, config: DepthRefinementConfig
+                ) -> dict[int, Tensor]:
+        """Label maps (C-Sec. A.6) of the keyframes reachable from ``anchor``, by global index."""
+        nodes = self.connected(agents, anchor)
+        return dict(zip(nodes, keyframe_labels([self.keyframes[g] for g in nodes], config)))
+
+    def refine_depths(self, agents: Sequence[int], anchor: int, config: DepthRefinementConfig,
+                      labels: dict[int, Tensor]) -> DepthRefinementReport:
+        """One depth step (C-Sec. A.7 step 2b-2c; C-Eq. 19-24) at the current poses.
+
+        The log-scales of the keyframes reachable from ``anchor`` are refined over the
+        links' intra- and inter-agent matches with ``anchor``'s segments fixed, and the
+        refined pointmaps written back into ``X_hat``.
+
+        Args:
+            labels: global index -> label map (:meth:`segment`) of every reachable keyframe.
+        """
+        nodes = self.connected(agents, anchor)
+        chosen = set(nodes)
+        row = {g: r for r, g in enumerate(nodes)}
+        edges = [e for link in self.links if link.i in chosen and link.j in chosen
+                 for e in link.edges()]
+        return refine_keyframes([self.keyframes[g] for g in nodes], self.poses(nodes), edges,
+                                row, config, pinned=[row[anchor]],
+                                labels=[labels[g] for g in nodes])
 
 
 def _pad(x: Tensor, size: int) -> Tensor:

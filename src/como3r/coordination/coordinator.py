@@ -21,8 +21,9 @@ any interleaving, and for each one
    component's first keyframe pinned (keyframe 0 of agent 0 for the global gauge);
 
 and returns :class:`~como3r.frontend.packets.PoseUpdate` s for the agents whose keyframes
-moved (C-Sec. A.8). :meth:`Coordinator.finish` runs the terminal cleanup passes
-(C-Sec. A.7 step 1) and returns the final poses.
+moved (C-Sec. A.8). :meth:`Coordinator.finish` runs the terminal pose-depth alternation
+(C-Sec. A.7; :mod:`como3r.backend.alternation`) and returns the final poses and the refined
+canonical pointmaps.
 
 No BA ever runs across components: before their gauges are synchronized, two agents' poses
 live in unrelated frames, and a joint solve would drag one chain across the other.
@@ -40,15 +41,17 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, field
-from typing import Any, Iterable, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from como3r.backend.alternation import AlternationReport, AlternationSettings, alternate
+from como3r.backend.depth_refinement import DepthRefinementReport
 from como3r.backend.global_graph import BAResult, GlobalGraph, GraphLink
-from como3r.config import Config
+from como3r.config import Config, DepthRefinementConfig
 from como3r.coordination.association import CrossAgentRetrieval, Verification, verify_candidates
 from como3r.coordination.gauge import (
     GaugeComponents,
@@ -59,7 +62,8 @@ from como3r.coordination.gauge import (
     transport,
 )
 from como3r.errors import InputError
-from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
+from como3r.frontend.keyframes import Keyframe
+from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches, gather_points
 from como3r.geometry.lie import sim3_act
 from como3r.prior.base import Prior
@@ -91,6 +95,58 @@ class CoordinatorStats:
     def add_time(self, stage: str, seconds: float) -> None:
         """Accumulate wall-clock seconds of a stage."""
         self.stage_seconds[stage] = self.stage_seconds.get(stage, 0.0) + seconds
+
+
+@dataclass
+class Cleanup:
+    """What the terminal cleanup (C-Sec. A.7) hands back to the agents.
+
+    Attributes:
+        updates: final poses of the agents of multi-agent components.
+        pointmaps: refined canonical pointmaps of every refined agent.
+    """
+
+    updates: list[PoseUpdate] = field(default_factory=list)
+    pointmaps: list[PointmapUpdate] = field(default_factory=list)
+
+
+class _ComponentCleanup:
+    """The two solvers of one component's alternation (C-Sec. A.7) and their records.
+
+    Args:
+        graph: the global graph.
+        members: the component's agents.
+        anchor: global index of its pinned keyframe.
+        depth: the depth-refinement settings.
+    """
+
+    def __init__(self, graph: GlobalGraph, members: Sequence[int], anchor: int,
+                 depth: DepthRefinementConfig) -> None:
+        self.graph, self.members, self.anchor, self.depth = graph, members, anchor, depth
+        self.results: list[BAResult] = []
+        self.depth_reports: list[DepthRefinementReport] = []
+        self.snapshot: dict[int, list[Keyframe]] = {}
+        self.labels: dict[int, Tensor] = {}
+
+    def pose_pass(self, max_iters: int) -> float:
+        """A global pose solve; its largest camera move [m] (0 if it kept the poses)."""
+        result = self.graph.optimize(self.members, self.anchor, max_iters)
+        self.results.append(result)
+        return result.max_translation_change if result.moved else 0.0
+
+    def depth_step(self) -> float:
+        """Segments, log-scale refinement, write-back; its ``max |ds|``."""
+        if not self.snapshot:
+            self.snapshot = {a: [replace(self.graph.keyframes[g],
+                                         T_WC=self.graph.keyframes[g].T_WC.clone())
+                                 for g in self.graph.agent_keyframes(a)]
+                             for a in self.members}
+            if self.depth.refine_from == "fused":
+                self.graph.freeze_refinement_base(self.members)
+            self.labels = self.graph.segment(self.members, self.anchor, self.depth)
+        report = self.graph.refine_depths(self.members, self.anchor, self.depth, self.labels)
+        self.depth_reports.append(report)
+        return report.max_change
 
 
 @dataclass(eq=False)
@@ -143,6 +199,10 @@ class Coordinator:
         self._waiting: list[Candidate] = []  # verified edges between two components
         self._new_edges = 0
         self._dirty_roots: set[int] = set()
+        self.alternation: list[dict[str, Any]] = []
+        #: agent -> its keyframes as they were before the terminal depth refinement
+        #: (pointmaps as streamed, poses after the pose-only cleanup passes)
+        self.pre_refinement: dict[int, list[Keyframe]] = {}
 
     # ------------------------------------------------------------------ public API
 
@@ -174,20 +234,82 @@ class Coordinator:
         """Replace the canonical pointmap of a sent keyframe by its newer fused one."""
         self.graph.refresh(agent, refresh)
 
-    def finish(self) -> list[PoseUpdate]:
-        """Terminal cleanup passes per multi-agent component; their final poses."""
+    def finish(self, agent_poses: Mapping[int, Tensor] | None = None) -> Cleanup:
+        """Terminal cleanup of every component (C-Sec. A.7): the pose-depth alternation.
+
+        A multi-agent component runs the whole schedule (global pose passes, then rounds of
+        depth step + pose pass) and its agents get their final poses. A single-agent
+        component keeps the agent's own poses (its front-end optimised them with intra-agent
+        loop edges the coordinator does not hold) and runs the depth steps alone at them.
+        Every refined keyframe's pointmap is returned. The agents have stopped streaming by
+        now, so the per-round broadcast of step 2e collapses into the final updates.
+
+        Args:
+            agent_poses: each agent's final keyframe poses ``(K_a, 8)`` in keyframe order,
+                for the agents whose front-end outlived the stream; single-agent
+                components adopt them before refining.
+
+        Raises:
+            InputError: an agent's pose count differs from the keyframes it sent.
+        """
         start = time.perf_counter()
-        updates: list[PoseUpdate] = []
+        cleanup = Cleanup()
+        settings = AlternationSettings.from_config(self.config.global_ba, self.config.depth)
         for members in self.components():
-            if len(members) < 2:
+            if not self.graph.agent_keyframes(members[0]):
                 continue
-            results = self.graph.cleanup(members, self._anchor(members[0]))
-            self.stats.cleanup_passes += len(results)
-            self.stats.cleanup_iterations += sum(r.iterations for r in results)
-            self.stats.cleanup_seconds += sum(r.seconds for r in results)
-            updates.extend(self._updates(members, "cleanup"))
+            multi_agent = len(members) > 1
+            if not multi_agent:
+                if settings.rounds == 0:
+                    continue
+                self._adopt(members[0], (agent_poses or {}).get(members[0]))
+            component = _ComponentCleanup(self.graph, members, self._anchor(members[0]),
+                                          self.config.depth)
+            report = alternate(component.pose_pass if multi_agent else None,
+                               component.depth_step, settings)
+            self._record_cleanup(members, component, report)
+            if multi_agent:
+                cleanup.updates.extend(self._updates(members, "cleanup"))
+            if component.depth_reports:
+                cleanup.pointmaps.extend(self._pointmaps(members))
+                self.pre_refinement.update(component.snapshot)
         self.stats.add_time("cleanup", time.perf_counter() - start)
-        return self._count(updates)
+        self._count(cleanup.updates)
+        return cleanup
+
+    def _adopt(self, agent: int, T_WC: Tensor | None) -> None:
+        """Take an agent's own final keyframe poses (single-agent components)."""
+        if T_WC is None:
+            return
+        indices = self.graph.agent_keyframes(agent)
+        if T_WC.shape != (len(indices), 8):
+            raise InputError(f"coordinator: agent {agent} reported final poses of shape "
+                             f"{tuple(T_WC.shape)} for the {len(indices)} keyframes it sent")
+        self.graph.set_poses(indices, T_WC)
+
+    def _record_cleanup(self, members: list[int], component: _ComponentCleanup,
+                        report: AlternationReport) -> None:
+        self.stats.cleanup_passes += len(component.results)
+        self.stats.cleanup_iterations += sum(r.iterations for r in component.results)
+        self.stats.cleanup_seconds += sum(r.seconds for r in component.results)
+        depth = component.depth_reports
+        self.alternation.append({
+            "agents": list(members), **report.to_json(),
+            "depth_variant": self.config.depth.variant,
+            "depth_parameters": depth[-1].num_parameters if depth else 0,
+            "depth_matches": depth[-1].num_matches if depth else 0,
+            "depth_iterations": sum(r.iterations for r in depth),
+        })
+
+    def _pointmaps(self, agents: Iterable[int]) -> list[PointmapUpdate]:
+        """One update per agent with the current pointmaps of all its keyframes."""
+        updates = []
+        for agent in agents:
+            indices = self.graph.agent_keyframes(agent)
+            updates.append(PointmapUpdate(
+                agent=agent, kf_ids=torch.arange(len(indices), dtype=torch.int64),
+                X_hat=torch.stack([self.graph.keyframes[g].X_hat for g in indices])))
+        return updates
 
     def components(self) -> list[list[int]]:
         """Gauge components (sorted agent lists), agent 0's first."""
@@ -215,6 +337,7 @@ class Coordinator:
         stats["gauge_events"] = list(self.gauge_events)
         stats["components"] = self.components()
         stats["cross_agent_retrieval"] = self.retrieval is not None
+        stats["alternation"] = list(self.alternation)
         return stats
 
     # ------------------------------------------------------------------ association

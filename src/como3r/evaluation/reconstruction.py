@@ -46,10 +46,17 @@ __all__ = [
     "keyframe_cloud",
     "cloud_from_depth",
     "ground_truth_cloud",
+    "evaluate_maps",
 ]
 
 DEFAULT_THRESHOLD_M = 0.05
 """Precision / recall distance threshold [m]."""
+
+MAP_VOXEL_M = 0.05
+"""Voxel size [m] both clouds are reduced to before a run's map is compared."""
+
+GT_POINTS_PER_FRAME = 20_000
+"""Roughly how many depth pixels of each ground-truth frame enter the reference cloud."""
 
 
 @dataclass(frozen=True)
@@ -276,3 +283,33 @@ def ground_truth_cloud(
     if not clouds or sum(c.shape[0] for c in clouds) == 0:
         raise InputError("ground_truth_cloud: no frame with ground truth and valid depth")
     return voxel_downsample(np.concatenate(clouds), voxel_size)
+
+
+def evaluate_maps(
+    agents: Sequence[AgentInput],
+    clouds: dict[str, np.ndarray],
+    alignment: Sim3Alignment,
+    threshold: float = DEFAULT_THRESHOLD_M,
+    voxel_size: float = MAP_VOXEL_M,
+) -> dict[str, ReconstructionMetrics]:
+    """Metrics of several estimates of one component's map against one reference cloud.
+
+    The reference is every ground-truth frame of ``agents``, pixel-strided to about
+    :data:`GT_POINTS_PER_FRAME` points per frame; each estimate is mapped into the
+    ground-truth frame by ``alignment`` (the component's trajectory alignment).
+
+    Args:
+        agents: the component's agent inputs (with depth, ground truth and calibration).
+        clouds: name -> ``(N, 3)`` world points in the component's gauge.
+        alignment: estimate -> ground truth.
+        threshold: precision / recall distance [m].
+        voxel_size: both clouds are downsampled to this voxel size [m].
+
+    Raises:
+        InputError: no usable ground truth, or an empty estimate.
+    """
+    height, width = agents[0].image_size[1], agents[0].image_size[0]
+    stride = max(1, math.ceil(math.sqrt(height * width / GT_POINTS_PER_FRAME)))
+    reference = ground_truth_cloud(agents, pixel_stride=stride, voxel_size=voxel_size)
+    return {name: reconstruction_metrics(cloud, reference, threshold, alignment, voxel_size)
+            for name, cloud in clouds.items()}

@@ -24,6 +24,7 @@ from como3r.evaluation.trajectory import (
     RPE_DELTA_FRAMES,
     AgentErrors,
     MergedErrors,
+    Sim3Alignment,
     associate,
     agent_errors,
     merged_errors_by_component,
@@ -105,6 +106,14 @@ class EvalSummary:
         """RMSE of :attr:`merged` [m], or None."""
         merged = self.merged
         return None if merged is None else merged.ate.rmse
+
+    def alignment_of(self, agents: Sequence[int]) -> Sim3Alignment | None:
+        """The Sim(3) mapping the world frame of a gauge component onto ground truth: its
+        merged alignment, or the agent's own for one agent (None if not computed)."""
+        key = tuple(sorted(agents))
+        if len(key) == 1 and 0 <= key[0] < len(self.agents):
+            return self.agents[key[0]].errors.alignment
+        return next((m.alignment for m in self.merged_groups if m.agents == key), None)
 
     def table_rows(self) -> list[dict[str, object]]:
         """One row per agent and one per merged group ("merged" = all agents, one Sim(3))."""

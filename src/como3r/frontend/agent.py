@@ -28,7 +28,7 @@ from torch import Tensor
 from como3r.config import Config
 from como3r.frontend.graph import Edge, build_factors
 from como3r.frontend.keyframes import Keyframe, KeyframeStore
-from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
+from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.frontend.pairs import PairLink, link_pairs
 from como3r.frontend.tracker import FrameTracker, TrackResult
 from como3r.errors import InputError
@@ -288,7 +288,7 @@ class AgentFrontend:
             T_WC=kf.T_WC, X_hat=kf.X_init, C_hat=kf.C_init, colors=kf.colors,
             encoding=kf.encoding, retrieval=kf.retrieval,
             sequential_ij=seq.get((kf_id - 1, kf_id)), sequential_ji=seq.get((kf_id, kf_id - 1)),
-            previous=previous,
+            previous=previous, K=kf.K,
         )
 
     def drain_new_keyframes(self) -> list[KeyframePacket]:
@@ -296,6 +296,11 @@ class AgentFrontend:
         packets = [self.export_keyframe(k) for k in self.new_keyframes]
         self.new_keyframes.clear()
         return packets
+
+    def apply_pointmap_update(self, update: PointmapUpdate) -> None:
+        """Take the coordinator's refined canonical pointmaps (C-Sec. A.7)."""
+        for kf_id, X_hat in zip(update.kf_ids.tolist(), update.X_hat):
+            self.keyframes[kf_id].X_hat = X_hat
 
     def apply_pose_update(self, update: PoseUpdate) -> None:
         """Overwrite keyframe poses with the coordinator's (C-Sec. A.8).

@@ -8,6 +8,8 @@ Two payloads cross the agent/coordinator boundary:
   to the agent's previous keyframe), plus a refresh of the previous keyframe's fused
   canonical pointmap, which kept absorbing frames after it was sent.
 * :class:`PoseUpdate`, coordinator -> agent, after every gauge transport or global solve.
+* :class:`PointmapUpdate`, coordinator -> agent, once at the end: the canonical pointmaps of
+  the terminal depth refinement (C-Sec. A.7).
 
 They are plain dataclasses of tensors; ``como3r.runtime`` encodes them for transport.
 """
@@ -59,6 +61,8 @@ class KeyframePacket:
         sequential_ij: matches of the edge (kf_id - 1, kf_id), None for the first keyframe.
         sequential_ji: matches of the edge (kf_id, kf_id - 1).
         previous: refresh of keyframe ``kf_id - 1`` (None for the first keyframe).
+        K: ``(3, 3)`` intrinsics at the pointmap's resolution in a calibrated run (the
+            global BA then uses the calibrated residual of C-Eq. 17), else None.
     """
 
     agent: int
@@ -74,6 +78,7 @@ class KeyframePacket:
     sequential_ij: DirectedMatches | None
     sequential_ji: DirectedMatches | None
     previous: PointmapRefresh | None
+    K: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -91,3 +96,18 @@ class PoseUpdate:
     kf_ids: Tensor
     T_WC: Tensor
     reason: str
+
+
+@dataclass(frozen=True)
+class PointmapUpdate:
+    """Refined canonical pointmaps of some of an agent's keyframes (C-Eq. 19, C-Sec. A.7).
+
+    Attributes:
+        agent: agent id.
+        kf_ids: ``(K,)`` int64 keyframe ids.
+        X_hat: ``(K, H, W, 3)`` their refined canonical pointmaps (camera frames).
+    """
+
+    agent: int
+    kf_ids: Tensor
+    X_hat: Tensor

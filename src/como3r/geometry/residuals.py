@@ -81,12 +81,19 @@ def ray_range_residual(T_ij: Tensor, X_j: Tensor, X_i: Tensor) -> tuple[Tensor, 
     d_i = _norm(X_i)
     e = torch.cat([r - X_i / d_i[..., None], (d - d_i)[..., None]], dim=-1)
 
-    eye = torch.eye(3, dtype=x.dtype, device=x.device)
-    projector = eye - r[..., :, None] * r[..., None, :]
-    zero_col = x.new_zeros(*x.shape[:-1], 3, 1)
-    J_ray = torch.cat([projector / d[..., None, None], -skew(r), zero_col], dim=-1)
-    J_range = torch.cat([r, x.new_zeros(*x.shape[:-1], 3), d[..., None]], dim=-1)
-    J = torch.cat([J_ray, J_range[..., None, :]], dim=-2)
+    # Written block by block into one buffer: the global BA linearises millions of matches,
+    # and concatenating per-match blocks cost more than the arithmetic.
+    J = x.new_zeros(*x.shape[:-1], 4, 7)
+    r_over_d = r / d[..., None]
+    J[..., :3, :3] = -r_over_d[..., :, None] * r[..., None, :]
+    for k in range(3):
+        J[..., k, k] += 1.0 / d
+    r0, r1, r2 = r.unbind(-1)
+    J[..., 0, 4], J[..., 0, 5] = r2, -r1  # -[r]_x
+    J[..., 1, 3], J[..., 1, 5] = -r2, r0
+    J[..., 2, 3], J[..., 2, 4] = r1, -r0
+    J[..., 3, :3] = r
+    J[..., 3, 6] = d
     return e, J.expand(*e.shape, 7)
 
 

@@ -290,6 +290,9 @@ def _check_packet(p: KeyframePacket) -> None:
         matches = getattr(p, name)
         if matches is not None:
             _shape(matches.idx, (height * width,), f"{name}.idx")
+    if p.K is not None:
+        _shape(p.K, (3, 3), "K")
+        _floating(p.K, "K")
     if p.previous is not None:
         _require(p.previous.kf_id == p.kf_id - 1, "previous must refresh keyframe kf_id - 1")
     if p.retrieval is not None:

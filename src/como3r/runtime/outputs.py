@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -31,21 +31,27 @@ def write_trajectories(out: Path, frontends: Sequence[AgentFrontend]) -> None:
         write_tum(out / "keyframes" / f"agent_{fe.agent}.txt", kf_stamps, kf_T_WC)
 
 
-def fused_map(frontends: Sequence[AgentFrontend], min_confidence: float,
+def fused_map(keyframes: Mapping[int, Iterable[Any]], min_confidence: float,
               voxel_size: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every keyframe's canonical pointmap in the world, above a confidence threshold.
+
+    Args:
+        keyframes: agent id -> its keyframes (``T_WC``, ``X_hat``, ``colors``,
+            ``mean_confidence()``).
+        min_confidence: keep points whose per-frame confidence exceeds this.
+        voxel_size: keep the first point of every voxel of this size; 0 keeps all.
 
     Returns:
         ``xyz (N, 3)`` float32, ``rgb (N, 3)`` uint8 and ``agent_id (N,)`` int32.
     """
     xyz, rgb, agent_ids = [], [], []
-    for fe in frontends:
-        for kf in fe.keyframes:
+    for agent, agent_keyframes in keyframes.items():
+        for kf in agent_keyframes:
             keep = (kf.mean_confidence() > min_confidence).reshape(-1).cpu()
             points = sim3_act(kf.T_WC[None, None, :].to(kf.X_hat), kf.X_hat).reshape(-1, 3).cpu()
             xyz.append(points[keep].numpy().astype(np.float32))
             rgb.append(kf.colors.reshape(-1, 3)[keep.numpy()])
-            agent_ids.append(np.full(int(keep.sum()), fe.agent, dtype=np.int32))
+            agent_ids.append(np.full(int(keep.sum()), agent, dtype=np.int32))
     if not xyz:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros(0, np.int32)
     xyz_all, rgb_all, ids_all = np.concatenate(xyz), np.concatenate(rgb), np.concatenate(agent_ids)
@@ -59,7 +65,8 @@ def fused_map(frontends: Sequence[AgentFrontend], min_confidence: float,
 
 def write_map(out: Path, frontends: Sequence[AgentFrontend], config: Config) -> int:
     """Write ``map.ply``; returns the number of points."""
-    xyz, rgb, ids = fused_map(frontends, config.visualization.map_min_confidence,
+    xyz, rgb, ids = fused_map({fe.agent: fe.keyframes for fe in frontends},
+                              config.visualization.map_min_confidence,
                               config.visualization.voxel_size_m)
     write_ply(out / "map.ply", xyz, rgb, ids)
     return int(xyz.shape[0])
@@ -121,16 +128,20 @@ def write_config(out: Path, config: Config) -> None:
 
 
 def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
-                        agents: Sequence[Any], components: Sequence[Sequence[int]]) -> None:
+                        agents: Sequence[Any], components: Sequence[Sequence[int]],
+                        results: Sequence[Any], coordinator: Any, config: Config) -> None:
     """Evaluate against ground truth (where every agent has it), then write
     ``metrics.json`` and ``report.html``; adds what the user should know to ``summary.notes``.
 
     Args:
         staging: the run folder being written.
         summary: the run's summary (``agents``, ``notes``, ``evaluation`` are filled in).
-        metrics: the metrics document; gains ``ate``.
-        agents: the agent inputs (``root``, ``groundtruth``).
+        metrics: the metrics document; gains ``ate`` and ``map_accuracy``.
+        agents: the agent inputs (``root``, ``groundtruth``, depth and calibration).
         components: gauge components: merged ATE only within each.
+        results: front-ends or agent results (``agent``, ``keyframes``), in agent order.
+        coordinator: the run's coordinator (``pre_refinement`` keyframes).
+        config: effective configuration.
     """
     from como3r.errors import InputError
     from como3r.evaluation.html import write_report
@@ -151,6 +162,8 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
     if len(components) > 1:
         summary.notes.append(f"agents form {len(components)} separate gauge components "
                              f"{[list(c) for c in components]}: no merged ATE across them")
+    metrics["map_accuracy"] = _map_accuracy(summary, agents, components, results, coordinator,
+                                            config)
     write_json(staging / "metrics.json", metrics)
     accuracy = summary.evaluation.table_rows() if summary.evaluation is not None else []
     write_report(staging, summary.agents, accuracy, summary.notes)
@@ -191,3 +204,50 @@ def agent_row(agent: Any, seconds: float) -> dict[str, Any]:
     return {"agent": agent.agent, "frames": stats.frames, "tracked": stats.tracked,
             "lost": stats.lost, "keyframes": len(agent.keyframes),
             "fps": stats.frames / seconds if seconds > 0 else 0.0}
+
+
+def _map_accuracy(summary: Any, agents: Sequence[Any], components: Sequence[Sequence[int]],
+                  results: Sequence[Any], coordinator: Any, config: Config
+                  ) -> list[dict[str, Any]] | None:
+    """Reconstruction metrics of each component's fused map (C-Sec. B.5) after its trajectory
+    alignment: the final map and, where the depth refinement ran, the map before it."""
+    from como3r.errors import InputError
+    from como3r.evaluation.reconstruction import evaluate_maps
+
+    if summary.evaluation is None:
+        return None
+    if not all(a.has_depth and a.calib is not None for a in agents):
+        summary.notes.append("no ground-truth depth and calibration for every agent: map "
+                             "accuracy not computed")
+        return None
+    min_confidence = config.visualization.map_min_confidence
+    entries = []
+    for component in components:
+        alignment = summary.evaluation.alignment_of(component)
+        if alignment is None:
+            continue
+        clouds = {"final": fused_map({a: results[a].keyframes for a in component},
+                                     min_confidence)[0]}
+        if all(a in coordinator.pre_refinement for a in component):
+            clouds["before_refinement"] = fused_map(
+                {a: coordinator.pre_refinement[a] for a in component}, min_confidence)[0]
+        try:
+            scores = evaluate_maps([agents[a] for a in component], clouds, alignment)
+        except InputError as exc:
+            summary.notes.append(f"map accuracy of agents {list(component)} not computed: {exc}")
+            continue
+        entries.append({"agents": list(component),
+                        **{name: m.to_json() for name, m in scores.items()}})
+        summary.notes.append(_map_note(component, scores))
+    return entries
+
+
+def _map_note(component: Sequence[int], scores: dict[str, Any]) -> str:
+    final = scores["final"]
+    text = (f"map of agents {list(component)}: accuracy {final.accuracy:.3f} m, completeness "
+            f"{final.completeness:.3f} m, F-score@{final.threshold:g} m {final.fscore:.3f}")
+    before = scores.get("before_refinement")
+    if before is not None:
+        text += (f" (before depth refinement: accuracy {before.accuracy:.3f} m, F-score "
+                 f"{before.fscore:.3f})")
+    return text

@@ -5,7 +5,7 @@ builds the prior, feeds the agents' frames to their front-ends interleaved by ti
 (as concurrent robots would deliver them) and, after every frame, hands the agent's new
 keyframes to the coordinator and applies the pose updates it returns to the agents
 (C-Sec. 3.1, A.8). At the end it sends each agent's last fused pointmap, runs the
-coordinator's cleanup passes, writes the output folder atomically and, where ground truth
+coordinator's terminal pose-depth alternation, writes the output folder atomically and, where ground truth
 exists, evaluates the trajectories (merged ATE only within gauge components).
 """
 
@@ -167,13 +167,19 @@ def _apply(frontends: Sequence[AgentFrontend], updates: Sequence[PoseUpdate]) ->
 
 
 def _finish(frontends: Sequence[AgentFrontend], coordinator: Coordinator) -> None:
-    """Send every agent's last fused pointmap, run the cleanup passes, apply final poses."""
+    """Send every agent's last fused pointmap, run the terminal alternation, apply the
+    final poses and refined pointmaps."""
+    final_poses = {}
     for fe in frontends:
         if len(fe.keyframes):
             last = fe.keyframes.last
             coordinator.refresh(fe.agent, PointmapRefresh(last.kf_id, last.X_hat, last.C_hat,
                                                           last.fused_frames))
-    _apply(frontends, coordinator.finish())
+            final_poses[fe.agent] = fe.keyframes.poses()
+    cleanup = coordinator.finish(final_poses)
+    _apply(frontends, cleanup.updates)
+    for update in cleanup.pointmaps:
+        frontends[update.agent].apply_pointmap_update(update)
 
 
 def _write(staging: Path, frontends: list[AgentFrontend], coordinator: Coordinator,
@@ -183,5 +189,6 @@ def _write(staging: Path, frontends: list[AgentFrontend], coordinator: Coordinat
                                                   prior.describe(), seconds)
     summary = RunSummary(out=staging)
     summary.agents.extend(outputs.agent_row(fe, s) for fe, s in zip(frontends, seconds))
-    outputs.evaluate_and_finish(staging, summary, metrics, agents, components)
+    outputs.evaluate_and_finish(staging, summary, metrics, agents, components, frontends,
+                                coordinator, config)
     return summary

@@ -65,7 +65,7 @@ from como3r.data.agent import AgentInput, open_agent
 from como3r.data.preprocess import make_view
 from como3r.errors import Como3rError, InputError
 from como3r.frontend.agent import AgentFrontend, FrontendStats
-from como3r.frontend.packets import PointmapRefresh, PoseUpdate
+from como3r.frontend.packets import PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.geometry.lie import sim3_compose, sim3_inverse
 from como3r.io.output import atomic_output_dir
 from como3r.runtime import codec, outputs
@@ -388,6 +388,11 @@ class AgentResult:
     stats: FrontendStats = field(default_factory=FrontendStats)
     finished: AgentFinished | None = None
 
+    def apply_pointmap_update(self, update: PointmapUpdate) -> None:
+        """Take the coordinator's refined canonical pointmaps (C-Sec. A.7)."""
+        for kf_id, X_hat in zip(update.kf_ids.tolist(), update.X_hat):
+            self.keyframes[kf_id].X_hat = X_hat
+
     def apply_pose_update(self, update: PoseUpdate) -> None:
         """Same semantics as :meth:`AgentFrontend.apply_pose_update`: listed keyframes take
         the new poses, newer ones follow the newest listed keyframe rigidly."""
@@ -652,16 +657,24 @@ class _Runtime:
     # ---------------------------------------------------------------- the end
 
     def _finish(self) -> None:
-        """Final pointmaps to the coordinator, cleanup passes, final poses to the results."""
+        """Final pointmaps to the coordinator, the terminal alternation, final poses and
+        refined pointmaps to the results."""
+        final_poses = {}
         for slot in self.slots:
             done = slot.result.finished
-            if done is not None and done.final is not None and slot.status == "finished":
-                self._refresh_view(slot, done.final)
-                self.coordinator.refresh(slot.agent, done.final)
-        for update in self.coordinator.finish():
+            if done is not None and slot.status == "finished":
+                if done.final is not None:
+                    self._refresh_view(slot, done.final)
+                    self.coordinator.refresh(slot.agent, done.final)
+                if len(done.keyframe_T_WC) == len(slot.result.keyframes):
+                    final_poses[slot.agent] = done.keyframe_T_WC
+        cleanup = self.coordinator.finish(final_poses)
+        for update in cleanup.updates:
             self._send_update(update)
         for slot in self.slots:
             self._settle(slot)
+        for update in cleanup.pointmaps:
+            self.slots[update.agent].result.apply_pointmap_update(update)
 
     def _settle(self, slot: _Slot) -> None:
         """A finished agent's own keyframe poses plus the updates it never applied."""
@@ -796,5 +809,6 @@ def _write(staging: Path, runtime: _Runtime, inputs: list[AgentInput]) -> RunSum
             summary.notes.append(
                 f"agent {slot.agent} failed: {slot.error}; its outputs hold the "
                 f"{len(slot.result.keyframes)} keyframes the coordinator received")
-    outputs.evaluate_and_finish(staging, summary, metrics, inputs, components)
+    outputs.evaluate_and_finish(staging, summary, metrics, inputs, components, results,
+                                coordinator, config)
     return summary
