@@ -5,7 +5,9 @@ poses and calibration), then runs the whole system (``como3r run --single-proces
 simulated prior with its low-frequency depth distortion) once per configuration:
 
 * ``poses only``: ``depth.alternation_rounds=0`` (cleanup pose passes, no depth step);
-* ``per-pixel``, ``per-pixel + Laplacian``, ``per-segment``: ``depth.variant`` (C-Tab. 5);
+* ``per-pixel``, ``per-pixel + Laplacian``, ``per-segment``: ``depth.variant`` (C-Tab. 5),
+  the Laplacian also on log-depth as C-Sec. C.1 defines it (``boundary_residual=log_depth``);
+* ``per-segment, C-Eq. 22 as printed``: the boundary residual with ``Delta_ab``;
 * ``per-segment, insertion base``: C-Eq. 19 from the insertion-time prediction as the paper
   writes it (``depth.refine_from=insertion``) instead of the fused pointmap;
 * ``calibrated ...``: the same with ``--calib`` (C-Tab. 6).
@@ -38,7 +40,10 @@ CONFIGURATIONS: list[tuple[str, list[str]]] = [
     ("poses only", ["--set", "depth.alternation_rounds=0"]),
     ("per-pixel", ["--set", "depth.variant=pixel"]),
     ("per-pixel + Laplacian", ["--set", "depth.variant=pixel_laplacian"]),
+    ("per-pixel + log-depth Lapl.", ["--set", "depth.variant=pixel_laplacian",
+                                     "--set", "depth.boundary_residual=log_depth"]),
     ("per-segment", []),
+    ("per-segment, C-Eq. 22 as printed", ["--set", "depth.boundary_residual=log_depth"]),
     ("per-segment, insertion base", ["--set", "depth.refine_from=insertion"]),
     ("calibrated, poses only", ["--calib", "--set", "depth.alternation_rounds=0"]),
     ("calibrated, per-segment", ["--calib"]),

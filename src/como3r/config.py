@@ -170,6 +170,10 @@ class DepthRefinementConfig:
     # C-Eq. 19's base pointmap: "insertion" = the keyframe's first prediction (the paper),
     # "fused" = its fused pointmap (C-Eq. 3) when the cleanup starts; see backend.global_graph
     refine_from: Literal["fused", "insertion"] = "fused"
+    # boundary residual of C-Eq. 22: "jump_change" = (s_a - s_b), the refinement may not
+    # change the prior's depth jump between adjacent segments; "log_depth" = the paper's
+    # (s_a - s_b) + Delta_ab, refined log-depths pulled together (see backend.depth_refinement)
+    boundary_residual: Literal["jump_change", "log_depth"] = "jump_change"
     # a round whose max |delta s| exceeds this fraction of the previous round's has stalled
     # and ends the alternation (later rounds drift the map; inf disables)
     depth_stall_ratio: float = 0.5

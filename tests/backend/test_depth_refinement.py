@@ -227,7 +227,12 @@ def test_boundary_term_pairs_and_log_depth_ratios():
     problem, _, _ = _build_problem([keyframe], torch.tensor([[0.0] * 6 + [1.0, 1.0]]), [],
                                    [0].__getitem__, [labels], CONFIG, set())
     assert problem.bnd_a.tolist() == [0] and problem.bnd_b.tolist() == [1]
-    # Delta_ab = mean over the boundary of log d_a - log d_b (C-Eq. 22).
+    # default: the residual s_a - s_b keeps the prior's depth jump between the segments
+    assert problem.delta.tolist() == [0.0]
+    printed = dataclasses.replace(CONFIG, boundary_residual="log_depth")
+    problem, _, _ = _build_problem([keyframe], torch.tensor([[0.0] * 6 + [1.0, 1.0]]), [],
+                                   [0].__getitem__, [labels], printed, set())
+    # C-Eq. 22 as printed: Delta_ab = mean over the boundary of log d_a - log d_b
     assert problem.delta.tolist() == pytest.approx([-float(torch.log(torch.tensor(2.0)))])
     pixel_config = dataclasses.replace(CONFIG, variant="pixel_laplacian")
     pixels = torch.arange(8).reshape(2, 4)

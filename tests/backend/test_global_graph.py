@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -161,6 +163,30 @@ def test_depth_step_pulls_a_distorted_keyframe_back_and_keeps_the_anchor(two_age
     assert float(log_error.abs().max()) < 0.01  # from log(1.05) = 0.049
     assert report.max_change < 0.01
     assert graph.keyframes[0].X_hat is anchor_X
+
+
+def test_calibrated_keyframes_use_the_pixel_and_log_depth_residual(monkeypatch) -> None:
+    """Packets of a calibrated run carry K: the global BA then solves C-Eq. 17."""
+    K = torch.tensor([[40.0, 0.0, 4.0], [0.0, 40.0, 3.0], [0.0, 0.0, 1.0]])
+    graph = GlobalGraph(TrackingConfig(), GlobalBAConfig())
+    truth = {}
+    for kf_id in range(3):
+        T = _true_pose(0, kf_id)
+        truth[(0, kf_id)] = T
+        noisy = T if kf_id == 0 else sim3_compose(_perturbation(kf_id), T)
+        graph.add_keyframe(dataclasses.replace(_packet(0, kf_id, T, noisy), K=K))
+    assert all(torch.equal(kf.K, K) for kf in graph.keyframes)
+    seen = []
+    solve = global_graph.gauss_newton_irls
+
+    def spy(factors, values, config, max_iters):
+        seen.extend(type(f).__name__ for f in factors)
+        return solve(factors, values, config, max_iters=max_iters)
+
+    monkeypatch.setattr(global_graph, "gauss_newton_irls", spy)
+    result = graph.optimize([0], anchor=0, max_iters=50)
+    assert seen and set(seen) == {"CalibratedFactors"}
+    assert result.moved and float(_pose_errors(graph, truth).max()) < 1e-3
 
 
 def test_keyframes_must_arrive_in_order() -> None:

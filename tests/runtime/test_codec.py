@@ -99,7 +99,8 @@ def _packet(encoding: Any = None) -> KeyframePacket:
         colors=np.random.default_rng(0).integers(0, 256, (H, W, 3), dtype=np.uint8),
         encoding=encoding if encoding is not None else _simulated_encoding(),
         retrieval=(torch.randn(5, 16, generator=g), torch.rand(5, generator=g)),
-        sequential_ij=_matches(6), sequential_ji=_matches(7), previous=_refresh())
+        sequential_ij=_matches(6), sequential_ji=_matches(7), previous=_refresh(),
+        K=torch.tensor([[50.0, 0.0, 4.0], [0.0, 50.0, 3.0], [0.0, 0.0, 1.0]]))
 
 
 def _pose_update() -> PoseUpdate:

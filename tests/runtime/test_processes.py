@@ -124,6 +124,8 @@ def _assert_same_run(reference: Path, other: Path, tolerance: float) -> None:
         for kind in ("trajectories", "keyframes"):
             assert _max_relative_difference(reference, other, kind, agent) <= tolerance
     assert ref["map_points"] == oth["map_points"]
+    rounds = [[r["rounds"] for r in m["coordinator"]["alternation"]] for m in (ref, oth)]
+    assert rounds[0] == rounds[1] and rounds[0][0] >= 1  # the refined pointmaps came back
     graph_ref = json.loads((reference / "graph.json").read_text())
     graph_oth = json.loads((other / "graph.json").read_text())
     assert len(graph_ref["edges"]) == len(graph_oth["edges"])

@@ -120,7 +120,7 @@ def calibrated_residual(T_ij: Tensor, X_j: Tensor, p_i: Tensor, z_i: Tensor,
     """
     x = _transform_matches(T_ij, X_j)
     z = x[..., 2].clamp_min(_MIN_NORM)
-    K_rows = K[..., None, :2, :]
+    K_rows = K[..., None, :2, :].to(x.dtype)  # float64 poses promote x (global BA)
     uv = (K_rows @ x[..., None])[..., 0] / z[..., None]
     log_z_error = z.log() - z_i.clamp_min(_MIN_NORM).log()
     e = torch.cat([uv - p_i, log_z_error[..., None]], dim=-1)
