@@ -79,16 +79,18 @@ def _row(run: Path, seconds: float) -> dict[str, object]:
 
 def _print_table(title: str, rows: dict[str, dict[str, object]]) -> None:
     print(f"\n{title}")
-    header = f"{'configuration':<30}" + "".join(f"{c:>12}" for c in COLUMNS)
+    widths = {c: 16 if c == "stop" else 11 for c in COLUMNS}
+    header = f"{'configuration':<34}" + "".join(f"{c:>{widths[c]}}" for c in COLUMNS)
     print(header)
     print("-" * len(header))
     for name, row in rows.items():
         cells = []
         for column in COLUMNS:
-            value = row[column]
-            cells.append(f"{value:>12.4f}" if column == "F@5cm" else
-                         f"{value:>12.1f}" if isinstance(value, float) else f"{value!s:>12}")
-        print(f"{name:<30}" + "".join(cells))
+            value, width = row[column], widths[column]
+            cells.append(f"{value:>{width}.4f}" if column == "F@5cm" else
+                         f"{value:>{width}.1f}" if isinstance(value, float)
+                         else f"{value!s:>{width}}")
+        print(f"{name:<34}" + "".join(cells))
 
 
 def main() -> None:

@@ -15,7 +15,14 @@ from typing import Callable, List, Optional, TypeVar
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TaskID,
+    TextColumn,
+    TimeElapsedColumn,
+)
 from rich.table import Table
 
 from como3r.errors import Como3rError
@@ -183,9 +190,16 @@ def run(
     with progress_bar() as bar:
         task = bar.add_task("frames", total=None)
         summary = runner(agent, out, config, spec, overwrite=overwrite,
-                         progress=lambda a, outcome, done, total: bar.update(
-                             task, completed=done, total=total))
+                         progress=lambda a, outcome, done, total: _frame_progress(
+                             bar, task, done, total))
     _print_summary(summary, out)
+
+
+def _frame_progress(bar: Progress, task: TaskID, done: int, total: int) -> None:
+    """Frames done; after the last one the coordinator's terminal cleanup (pose-depth
+    alternation, evaluation) runs under the same bar, so it says so."""
+    description = "frames" if done < total else "cleanup: pose-depth alternation, outputs"
+    bar.update(task, completed=done, total=total, description=description)
 
 
 def _print_summary(summary, out: Path) -> None:
@@ -233,12 +247,14 @@ def demo(
         summary = run_pipeline(
             [staging / "scene" / f"agent_{a}" for a in range(agents)], staging / "run", config,
             PriorSpec("simulated"),
-            progress=lambda a, outcome, done, total: bar.update(slam, completed=done, total=total),
+            progress=lambda a, outcome, done, total: _frame_progress(bar, slam, done, total),
         )
         accuracy = summary.evaluation.table_rows() if summary.evaluation is not None else []
     print_rows("agents", summary.agents)
     if accuracy:
         print_rows("ATE RMSE [m] (Sim(3)-aligned)", accuracy)
+    for line in summary.notes:
+        console.print(line)
     console.print(f"scene: {scene}\nrun:   {out / 'run'} (open {out / 'run' / 'report.html'})")
 
 
