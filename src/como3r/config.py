@@ -65,6 +65,9 @@ class TrackingConfig:
     q_min: float = 1.5
     min_match_fraction: float = 0.05  # MASt3R-SLAM: below this the frame is lost
     reloc_match_fraction: float = 0.3  # MASt3R-SLAM relocalization acceptance
+    # C-Eq. 3 on "ranges" along the keyframe's own rays (default) or on 3-D "points" (the
+    # paper); see frontend.keyframes.Keyframe.fuse
+    fusion: Literal["ranges", "points"] = "ranges"
 
 
 @dataclass(frozen=True)

@@ -161,3 +161,27 @@ def test_calibrated_tracking_recovers_known_relative_pose(renderer_and_pose) -> 
     assert float((result.T_kf[:3] - T_true[:3]).norm()) < 1e-3 * float(view_k.depth.max())
     # the frame's own pointmap was put on the calibrated rays (C-Eq. 16)
     assert torch.allclose(result.X_ff, lock_to_rays(result.X_ff, view_k.K), atol=1e-5)
+
+
+def _fusion_keyframe() -> Keyframe:
+    X = torch.tensor([[[0.0, 0.0, 2.0], [1.0, 0.0, 4.0]]])
+    return Keyframe(kf_id=0, frame_index=0, timestamp=0.0, encoding=None, T_WC=sim3_identity(),
+                    X_hat=X, C_hat=torch.ones(1, 2), X_init=X, C_init=torch.ones(1, 2),
+                    colors=np.zeros((1, 2, 3), np.uint8))
+
+
+def test_range_fusion_keeps_the_keyframe_rays_and_averages_ranges() -> None:
+    # the frame predicts the keyframe's points 1.5x farther and rotated off their rays
+    keyframe = _fusion_keyframe()
+    rays = keyframe.X_hat / keyframe.X_hat.norm(dim=-1, keepdim=True)
+    R = torch.tensor(Rotation.from_euler("y", 5, degrees=True).as_matrix(), dtype=torch.float32)
+    X_kf = 1.5 * keyframe.X_hat @ R.T
+    keyframe.fuse(sim3_identity(), X_kf, 3 * torch.ones(1, 2))
+    assert torch.allclose(keyframe.X_hat / keyframe.X_hat.norm(dim=-1, keepdim=True), rays)
+    # (1 * d + 3 * 1.5 d) / 4 = 1.375 d
+    assert torch.allclose(keyframe.X_hat.norm(dim=-1), 1.375 * keyframe.X_init.norm(dim=-1))
+    assert keyframe.fused_frames == 2 and torch.equal(keyframe.C_hat, 4 * torch.ones(1, 2))
+
+    points = _fusion_keyframe()
+    points.fuse(sim3_identity(), X_kf, 3 * torch.ones(1, 2), ranges_only=False)
+    assert torch.allclose(points.X_hat, (points.X_init + 3 * X_kf) / 4)  # C-Eq. 3 as printed

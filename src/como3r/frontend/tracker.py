@@ -102,7 +102,8 @@ class FrameTracker:
             return TrackResult(False, report.reason, T_kf_init, new_keyframe=True, solve=report,
                                **base)
         if fuse:
-            keyframe.fuse(T_kf, pred.X_ji, pred.C_ji)
+            keyframe.fuse(T_kf, pred.X_ji, pred.C_ji,
+                          ranges_only=self.config.tracking.fusion == "ranges")
         new_kf = min(nu, nu_unique) < tracking.keyframe_match_fraction
         return TrackResult(True, "ok", T_kf, new_keyframe=new_kf, solve=report, **base)
 
