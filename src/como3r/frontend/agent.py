@@ -27,13 +27,18 @@ from torch import Tensor
 
 from como3r.config import Config
 from como3r.frontend.graph import Edge, build_factors
-from como3r.frontend.keyframes import Keyframe, KeyframeStore
+from como3r.frontend.keyframes import (
+    Keyframe,
+    KeyframeStore,
+    apply_pointmap_update,
+    apply_pose_update,
+)
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.frontend.pairs import PairLink, link_pairs
 from como3r.frontend.tracker import FrameTracker, TrackResult
 from como3r.errors import InputError
 from como3r.geometry.camera import lock_to_rays
-from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse
+from como3r.geometry.lie import sim3_compose, sim3_identity
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.values import PoseValues
 from como3r.prior.base import Encoding, Prior, View
@@ -299,22 +304,9 @@ class AgentFrontend:
 
     def apply_pointmap_update(self, update: PointmapUpdate) -> None:
         """Take the coordinator's refined canonical pointmaps (C-Sec. A.7)."""
-        for kf_id, X_hat in zip(update.kf_ids.tolist(), update.X_hat):
-            self.keyframes[kf_id].X_hat = X_hat
+        apply_pointmap_update(self.keyframes.keyframes, update)
 
     def apply_pose_update(self, update: PoseUpdate) -> None:
-        """Overwrite keyframe poses with the coordinator's (C-Sec. A.8).
-
-        Keyframes created after the ones in the update (not yet known to the coordinator)
-        follow the newest updated keyframe rigidly, so the agent keeps tracking in the
-        shared frame.
-        """
-        if update.kf_ids.numel() == 0:
-            return
-        newest = int(update.kf_ids.max())
-        T_old = self.keyframes[newest].T_WC
-        for kf_id, pose in zip(update.kf_ids.tolist(), update.T_WC):
-            self.keyframes[kf_id].T_WC = pose.to(T_old).clone()
-        correction = sim3_compose(self.keyframes[newest].T_WC, sim3_inverse(T_old))
-        for kf in self.keyframes.keyframes[newest + 1:]:
-            kf.T_WC = sim3_compose(correction, kf.T_WC)
+        """Overwrite keyframe poses with the coordinator's (C-Sec. A.8; see
+        :func:`~como3r.frontend.keyframes.apply_pose_update`)."""
+        apply_pose_update(self.keyframes.keyframes, update)

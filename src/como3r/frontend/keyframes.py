@@ -10,13 +10,15 @@ the depth refinement of C-Eq. 19 starts from.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any, Sequence
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from como3r.geometry.camera import lock_to_rays
-from como3r.geometry.lie import sim3_act
+from como3r.frontend.packets import PointmapUpdate, PoseUpdate
+from como3r.geometry.lie import sim3_act, sim3_compose, sim3_inverse
 from como3r.geometry.residuals import psi
 from como3r.prior.base import Encoding
 
@@ -137,3 +139,36 @@ class KeyframeStore:
         """Overwrite all keyframe poses from ``(N, 8)``."""
         for kf, pose in zip(self.keyframes, T_WC):
             kf.T_WC = pose.clone()
+
+
+def apply_pose_update(keyframes: Sequence[Any], update: PoseUpdate) -> None:
+    """Overwrite keyframe poses with the coordinator's (C-Sec. A.8).
+
+    Keyframes created after the ones in the update (not yet known to the coordinator)
+    follow the newest updated keyframe rigidly, so an agent keeps tracking in the shared
+    frame.
+
+    Args:
+        keyframes: an agent's keyframes (anything with ``T_WC``) in keyframe-id order.
+        update: the coordinator's update.
+    """
+    if update.kf_ids.numel() == 0:
+        return
+    newest = int(update.kf_ids.max())
+    T_old = keyframes[newest].T_WC
+    for kf_id, pose in zip(update.kf_ids.tolist(), update.T_WC):
+        keyframes[kf_id].T_WC = pose.to(T_old).clone()
+    correction = sim3_compose(keyframes[newest].T_WC, sim3_inverse(T_old))
+    for kf in keyframes[newest + 1:]:
+        kf.T_WC = sim3_compose(correction, kf.T_WC)
+
+
+def apply_pointmap_update(keyframes: Sequence[Any], update: PointmapUpdate) -> None:
+    """Take the coordinator's refined canonical pointmaps (C-Sec. A.7).
+
+    Args:
+        keyframes: an agent's keyframes (anything with ``X_hat``) in keyframe-id order.
+        update: the coordinator's update.
+    """
+    for kf_id, X_hat in zip(update.kf_ids.tolist(), update.X_hat):
+        keyframes[kf_id].X_hat = X_hat

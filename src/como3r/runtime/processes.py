@@ -65,6 +65,7 @@ from como3r.data.agent import AgentInput, open_agent
 from como3r.data.preprocess import make_view
 from como3r.errors import Como3rError, InputError
 from como3r.frontend.agent import AgentFrontend, FrontendStats
+from como3r.frontend.keyframes import apply_pointmap_update, apply_pose_update
 from como3r.frontend.packets import PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.geometry.lie import sim3_compose, sim3_inverse
 from como3r.io.output import atomic_output_dir
@@ -390,21 +391,12 @@ class AgentResult:
 
     def apply_pointmap_update(self, update: PointmapUpdate) -> None:
         """Take the coordinator's refined canonical pointmaps (C-Sec. A.7)."""
-        for kf_id, X_hat in zip(update.kf_ids.tolist(), update.X_hat):
-            self.keyframes[kf_id].X_hat = X_hat
+        apply_pointmap_update(self.keyframes, update)
 
     def apply_pose_update(self, update: PoseUpdate) -> None:
-        """Same semantics as :meth:`AgentFrontend.apply_pose_update`: listed keyframes take
-        the new poses, newer ones follow the newest listed keyframe rigidly."""
-        if update.kf_ids.numel() == 0:
-            return
-        newest = int(update.kf_ids.max())
-        T_old = self.keyframes[newest].T_WC
-        for kf_id, pose in zip(update.kf_ids.tolist(), update.T_WC):
-            self.keyframes[kf_id].T_WC = pose.to(T_old).clone()
-        correction = sim3_compose(self.keyframes[newest].T_WC, sim3_inverse(T_old))
-        for kf in self.keyframes[newest + 1:]:
-            kf.T_WC = sim3_compose(correction, kf.T_WC)
+        """Listed keyframes take the new poses, newer ones follow the newest listed keyframe
+        rigidly (:func:`~como3r.frontend.keyframes.apply_pose_update`)."""
+        apply_pose_update(self.keyframes, update)
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray, Tensor]:
         """Every tracked frame: ``(frame indices (N,), timestamps (N,), T_WC (N, 8))``."""
