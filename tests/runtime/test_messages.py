@@ -171,6 +171,8 @@ def test_malformed_keyframe_packets_are_rejected(frontend: AgentFrontend) -> Non
         (replace(packet, sequential_ij=replace(packet.sequential_ij,
                                                idx=packet.sequential_ij.idx[1:])), "valid has"),
         (replace(packet, retrieval=(packet.retrieval[0], packet.retrieval[1][1:])), "attention"),
+        (replace(packet, K=torch.eye(3)[:2]), "K has shape"),
+        (replace(packet, K=torch.eye(3, dtype=torch.int64)), "K must be floating"),
     ]:
         _reject(replace(message, packet=bad), match)
     _reject(replace(message, T_WC_previous=torch.zeros(3)), "T_WC_previous")
