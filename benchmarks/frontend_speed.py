@@ -58,7 +58,7 @@ def views(width: int, height: int) -> tuple[View, View]:
 
 
 def frontend_row(width: int, height: int, repeats: int) -> dict[str, float]:
-    config = apply_overrides(Config(), ["matching.occlusion_distance=0.5"])
+    config = Config()
     prior = SimulatedPrior(config.simulated_prior)
     view_k, view_f = views(width, height)
     enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)

@@ -27,12 +27,12 @@ def test_defaults_equal_table_3() -> None:
     assert c.verification.tau_inter == 0.1
     assert c.gauge.min_correspondences == 64
     assert (c.global_ba.max_iters_stream, c.global_ba.max_iters_cleanup) == (50, 100)
-    assert (c.global_ba.cleanup_passes, c.global_ba.cleanup_stop_translation_m) == (5, 5e-3)
+    assert (c.global_ba.cleanup_passes, c.global_ba.cleanup_stop_translation) == (5, 5e-3)
     assert (c.depth.slic_segments, c.depth.slic_compactness, c.depth.slic_sigma) == (200, 8.0, 1.0)
     assert (c.depth.sigma_point, c.depth.lambda_smooth, c.depth.lambda_prior) == (0.05, 1.0, 1.0)
     assert (c.depth.lambda_lm, c.depth.step_clip, c.depth.inner_iters) == (0.05, 0.5, 10)
     assert c.depth.alternation_rounds == 100
-    assert (c.matching.max_iters, c.matching.occlusion_distance, c.matching.descriptor_radius) == (
+    assert (c.matching.max_iters, c.matching.occlusion_ratio, c.matching.descriptor_radius) == (
         10, 0.1, 3)
 
 
@@ -51,9 +51,9 @@ def test_partial_yaml_keeps_defaults(tmp_path) -> None:
 
 def test_override_sets_value() -> None:
     c = apply_overrides(Config(), ["tracking.sigma_ray=0.002", "calibrated=true",
-                                   "matching.occlusion_distance=1e9"])
+                                   "matching.occlusion_ratio=1e9"])
     assert c.tracking.sigma_ray == 0.002
-    assert c.matching.occlusion_distance == 1e9
+    assert c.matching.occlusion_ratio == 1e9
     assert c.calibrated is True
 
 

@@ -212,11 +212,8 @@ def _print_summary(summary, out: Path) -> None:
     console.print(f"wrote {out}")
 
 
-#: the demo's scene: small enough for a laptop CPU in a couple of minutes
-DEMO_SIZE = (160, 120)
-#: MASt3R-SLAM's 0.1 m occlusion distance is for indoor scenes; the demo's outdoor scene is
-#: 5-30 m deep, where the simulated prior's per-pointmap depth errors exceed it
-DEMO_OVERRIDES = ("matching.occlusion_distance=0.5",)
+#: the demo renders what a camera gives (640x480) and runs it at the default long side 512
+DEMO_SIZE = (640, 480)
 
 
 @app.command()
@@ -229,7 +226,7 @@ def demo(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
 ) -> None:
     """Synthesize a scene, run collaborative SLAM with the simulated prior, evaluate, report."""
-    from como3r.config import Config, apply_overrides
+    from como3r.config import Config
     from como3r.data.synth import synthesize
     from como3r.io.output import atomic_output_dir
     from como3r.runtime.pipeline import PriorSpec, run as run_pipeline
@@ -242,7 +239,7 @@ def demo(
         synthesize(staging / "scene", agents=agents, seed=seed, overlap=0.2, frames=frames,
                    preset="default", width=width, height=height,
                    progress=lambda: bar.advance(task))
-        config = apply_overrides(Config(), [f"input.long_side={width}", *DEMO_OVERRIDES])
+        config = Config()  # the defaults, nothing overridden: what a user gets
         slam = bar.add_task("SLAM", total=None)
         summary = run_pipeline(
             [staging / "scene" / f"agent_{a}" for a in range(agents)], staging / "run", config,

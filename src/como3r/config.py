@@ -36,12 +36,23 @@ class InputConfig:
 
 @dataclass(frozen=True)
 class MatchingConfig:
-    """Projective matching of C-Eq. 1 (values of MASt3R-SLAM's released configuration)."""
+    """Projective matching of C-Eq. 1 (values of MASt3R-SLAM's released configuration).
+
+    Attributes:
+        occlusion_ratio: a match is occluded when its two 3-D points are further apart than
+            this fraction of the query point's range (unitless). MASt3R-SLAM's 0.1 m at the
+            paper's 1 m reference depth (:mod:`como3r.geometry.units`); as a ratio it holds
+            from a tabletop to a street, where 0.1 m rejected every match of a 3 % depth
+            error at 30 m.
+        descriptor_radius, descriptor_dilation_max: window radius and largest dilation of the
+            descriptor search in pixels of a 512-pixel-long image; scaled with the long side
+            of the pointmaps matched (:func:`como3r.geometry.units.pixels_at`).
+    """
 
     max_iters: int = 10
     lambda_init: float = 1e-8
     convergence_tol: float = 1e-6
-    occlusion_distance: float = 0.1
+    occlusion_ratio: float = 0.1
     descriptor_radius: int = 3
     descriptor_dilation_max: int = 5
 
@@ -50,6 +61,8 @@ class MatchingConfig:
 class TrackingConfig:
     """Frame-to-keyframe tracking, C-Eq. 2 and C-Eq. 17; keyframing (C-Tab. 3)."""
 
+    # sigma_dist: range noise as a fraction of keyframe i's median range (C-Tab. 3's 10 m at
+    # the 1 m reference depth of geometry.units); sigma_ray is an angle and needs no scale
     sigma_ray: float = 3e-3
     sigma_dist: float = 10.0
     sigma_pixel: float = 1.0
@@ -144,7 +157,9 @@ class GlobalBAConfig:
     max_iters_stream: int = 50
     max_iters_cleanup: int = 100
     cleanup_passes: int = 5
-    cleanup_stop_translation_m: float = 5e-3
+    # cleanup stops when no keyframe moved more than this fraction of the component's median
+    # keyframe depth (C-Sec. A.7's 5 mm at the 1 m reference depth of geometry.units)
+    cleanup_stop_translation: float = 5e-3
     step_tol: float = 1e-8
     lm_lambda: float = 0.0
     tikhonov_base: float = 1e-6
@@ -161,6 +176,8 @@ class DepthRefinementConfig:
     slic_sigma: float = 1.0
     slic_min_confidence: float = 1.5
     min_valid_pixels: int = 16
+    # C-Eq. 21 point noise as a fraction of keyframe i's median range (C-Tab. 3's 0.05 m at
+    # the 1 m reference depth of geometry.units)
     sigma_point: float = 0.05
     lambda_smooth: float = 1.0
     lambda_prior: float = 1.0
@@ -193,8 +210,16 @@ class VisualizationConfig:
 
 @dataclass(frozen=True)
 class SimulatedPriorConfig:
-    """Error model of the simulated prior (DESIGN.md, "Simulated prior")."""
+    """Error model of the simulated prior (DESIGN.md, "Simulated prior").
 
+    ``model`` selects it: ``"realistic"`` (default) imitates MASt3R's failure modes,
+    ``"easy"`` is the near-oracle of round 1 for tests that need precision; the keys from
+    ``focal_error`` on are used by the realistic model only. Units and sources of every key:
+    :mod:`como3r.prior.simulated_errors`. Lengths are fractions (of a range, a baseline,
+    the view's median valid depth or the image's long side), never metres.
+    """
+
+    model: Literal["realistic", "easy"] = "realistic"
     scale_sigma: float = 0.05
     depth_distortion_amplitude: float = 0.03
     depth_distortion_wavelength: float = 1.0 / 3.0
@@ -204,6 +229,23 @@ class SimulatedPriorConfig:
     descriptor_dim: int = 24
     descriptor_noise: float = 0.1
     seed: int = 0
+    focal_error: float = 0.08
+    principal_point_error: float = 0.01
+    ray_field_deg: float = 0.3
+    image_distortion_amplitude: float = 0.04
+    scale_drift: float = 0.08
+    scale_drift_frames: float = 60.0
+    pose_noise_growth: float = 0.05
+    translation_floor: float = 0.01
+    pose_tail_dof: int = 3
+    gross_failure_rate: float = 0.03
+    hallucination_rate: float = 0.3
+    flying_pixel_fraction: float = 0.5
+    outlier_fraction: float = 0.005
+    confidence_error_slope: float = 1.0
+    confidence_noise: float = 0.5
+    descriptor_viewpoint_gain: float = 1.5
+    descriptor_ambiguity: float = 1.0
 
 
 @dataclass(frozen=True)

@@ -50,7 +50,7 @@ def _brute_force(X_search: torch.Tensor, X_query: torch.Tensor) -> torch.Tensor:
 
 
 def test_matching_agrees_with_brute_force_nearest_ray() -> None:
-    config = MatchingConfig(descriptor_radius=0, occlusion_distance=1e9)
+    config = MatchingConfig(descriptor_radius=0, occlusion_ratio=1e9)
     agree, total = 0, 0
     for seed in range(4):
         _, X_search, X_query = _two_views(seed)
@@ -99,18 +99,21 @@ def test_descriptor_refinement_recovers_true_pixel_and_validity_follows_it() -> 
     D_query = D_search[:, 4:-4]
     grid_v, grid_u = torch.meshgrid(torch.arange(H), torch.arange(4, W - 4), indexing="ij")
     p_true = torch.stack([grid_u, grid_v], -1).reshape(-1, 2)
-    loose = MatchingConfig(occlusion_distance=10.0)
+    # windows of 3 and 5 pixels at this image size (the config gives them at 512 px)
+    window = dict(descriptor_radius=round(3 * 512 / W), descriptor_dilation_max=round(5 * 512 / W))
+    loose = MatchingConfig(occlusion_ratio=10.0, **window)
     m = match_pointmaps(X_search[None], X_query[None], D_search[None], D_query[None], loose)
     exact = (m.pixel[0] == p_true).all(-1)
     assert exact.float().mean() > 0.95
     unrefined = match_pointmaps(X_search[None], X_query[None], D_search[None], D_query[None],
-                                MatchingConfig(descriptor_radius=0, occlusion_distance=0.05))
+                                MatchingConfig(descriptor_radius=0, occlusion_ratio=0.01))
     assert unrefined.valid.float().mean() > 0.9
     # validity is decided on the refined match, whose 3-D points are two pixels apart
-    strict = MatchingConfig(occlusion_distance=0.05)
+    strict = MatchingConfig(occlusion_ratio=0.01, **window)
     m_strict = match_pointmaps(X_search[None], X_query[None], D_search[None], D_query[None], strict)
     gap = (X_search.reshape(-1, 3)[m_strict.idx[0]] - X_query.reshape(-1, 3)).norm(dim=-1)
-    assert bool((gap[m_strict.valid[0]] < strict.occlusion_distance).all())
+    ranges = X_query.reshape(-1, 3).norm(dim=-1)
+    assert bool((gap[m_strict.valid[0]] < strict.occlusion_ratio * ranges[m_strict.valid[0]]).all())
     assert m_strict.valid.float().mean() < 0.05
 
 
@@ -126,9 +129,9 @@ def test_warm_start_converges_with_fewer_iterations() -> None:
     _, X_search, X_query = _two_views(3)
     D = torch.nn.functional.normalize(torch.ones(1, H, W, 4, dtype=torch.float64), dim=-1)
     cold = match_pointmaps(X_search[None], X_query[None], D, D,
-                           MatchingConfig(descriptor_radius=0, occlusion_distance=1e9))
+                           MatchingConfig(descriptor_radius=0, occlusion_ratio=1e9))
     warm = match_pointmaps(X_search[None], X_query[None], D, D,
-                           MatchingConfig(descriptor_radius=0, occlusion_distance=1e9, max_iters=1),
+                           MatchingConfig(descriptor_radius=0, occlusion_ratio=1e9, max_iters=1),
                            p_init=cold.pixel.double())
     both = cold.valid & warm.valid
     assert both.float().mean() > 0.5

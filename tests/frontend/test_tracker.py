@@ -83,7 +83,7 @@ def test_tracking_recovers_known_relative_sim3(renderer_and_pose, yaw_deg, forwa
     t_rel = np.array([0.3 * forward_frac, 0.0, forward_frac]) * median_depth
     view_f = _view(renderer, R_WC @ R_rel, t_WC + R_WC @ t_rel, K, index=1)
 
-    config = apply_overrides(Config(), ["matching.occlusion_distance=0.5"])
+    config = Config()
     prior = _ScaledPrior(SimulatedPrior(NOISE_FREE), scale)
     enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
     keyframe = _keyframe(prior, enc_k)
@@ -117,7 +117,7 @@ def test_tracking_converges_with_outliers(renderer_and_pose) -> None:
             junk = pred.X_ii * (1.0 + 2.0 * torch.rand(pred.X_ii.shape, generator=g))
             return replace(pred, X_ii=torch.where(bad[..., None], junk, pred.X_ii))
 
-    config = apply_overrides(Config(), ["matching.occlusion_distance=1e9"])
+    config = apply_overrides(Config(), ["matching.occlusion_ratio=1e9"])
     corrupt = Corrupting(prior, 1.0)
     keyframe = _keyframe(corrupt, enc_k)
     result = FrameTracker(corrupt, config).track(enc_f, keyframe, sim3_identity(dtype=torch.float32))
@@ -152,7 +152,7 @@ def test_calibrated_tracking_recovers_known_relative_pose(renderer_and_pose) -> 
     keyframe = _keyframe(prior, enc_k)
     keyframe.K = view_k.K
     keyframe.X_hat = lock_to_rays(keyframe.X_hat, keyframe.K)
-    config = apply_overrides(Config(), ["matching.occlusion_distance=0.5", "calibrated=true"])
+    config = apply_overrides(Config(), ["calibrated=true"])
     result = FrameTracker(prior, config).track(enc_f, keyframe, sim3_identity(dtype=torch.float32))
     assert result.ok, result.reason
     T_true = sim3_compose(sim3_inverse(view_k.T_WC), view_f.T_WC).float()

@@ -35,7 +35,7 @@ from como3r.runtime.processes import (
 
 WIDTH, HEIGHT, FRAMES, SHORT = 64, 48, 12, 8
 # small global solves keep the test fast; they do not change what is compared
-OVERRIDES = [f"input.long_side={WIDTH}", "matching.occlusion_distance=0.5",
+OVERRIDES = [f"input.long_side={WIDTH}",
              "global_ba.max_iters_stream=5", "global_ba.max_iters_cleanup=10",
              "global_ba.cleanup_passes=1"]
 

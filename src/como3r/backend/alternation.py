@@ -5,7 +5,7 @@ coordinate-wise once all agents have stopped:
 
 1. global pose passes (depths frozen) of at most ``cleanup_iters`` iterations, at most
    ``cleanup_passes`` of them, until the largest translation update of a pass is below
-   ``translation_tol`` (5 mm);
+   ``translation_tol`` (a fraction of the scene depth: 5 mm at the 1 m reference depth);
 2. up to R rounds of: a depth step (segments from the current pointmaps, log-scale
    refinement, write-back), a short pose pass so the poses absorb the depth change, and a
    broadcast of the new poses to the agents.
@@ -24,7 +24,7 @@ agent's own loop-closed chain) step 1 is skipped and each round is a depth step 
 
 The solvers enter as callables, so this module knows nothing about graphs or keyframes::
 
-    alternate(pose_pass=lambda iters: ba.run(iters),            # -> max ||delta t|| [m]
+    alternate(pose_pass=lambda iters: ba.run(iters),  # -> max ||delta t|| / scene depth
               depth_step=lambda: refine_keyframes(...).max_change,  # -> max |delta s|
               settings=AlternationSettings.from_config(config.global_ba, config.depth),
               broadcast=coordinator.broadcast_poses)
@@ -56,7 +56,8 @@ class AlternationSettings:
     Attributes:
         cleanup_iters: iterations of each step-1 pose pass.
         cleanup_passes: maximum number of step-1 pose passes.
-        translation_tol: metres; a pose pass whose ``max ||dt||`` is below this has converged.
+        translation_tol: a pose pass whose ``max ||dt||`` is below this fraction of the
+            scene depth has converged (unitless, :mod:`como3r.geometry.units`).
         rounds: maximum number R of step-2 rounds.
         pose_pass_iters: iterations of the pose pass of each round.
         depth_convergence_tol: a depth step whose ``max |ds|`` is below this has converged.
@@ -91,7 +92,7 @@ class AlternationSettings:
         return cls(
             cleanup_iters=global_ba.max_iters_cleanup,
             cleanup_passes=global_ba.cleanup_passes,
-            translation_tol=global_ba.cleanup_stop_translation_m,
+            translation_tol=global_ba.cleanup_stop_translation,
             rounds=depth.alternation_rounds,
             pose_pass_iters=depth.pose_pass_iters,
             depth_convergence_tol=depth.depth_convergence_tol,
@@ -105,7 +106,7 @@ class AlternationRound:
 
     Attributes:
         max_depth_change: ``max |ds|`` of the depth step.
-        max_translation: ``max ||dt||`` [m] of the pose pass.
+        max_translation: ``max ||dt||`` of the pose pass over the scene depth.
     """
 
     max_depth_change: float
@@ -143,10 +144,10 @@ class AlternationReport:
         return {
             "converged": self.converged, "reason": self.reason,
             "cleanup_passes": len(self.cleanup_translations),
-            "cleanup_max_translation_m": list(self.cleanup_translations),
+            "cleanup_max_translation": list(self.cleanup_translations),
             "rounds": len(self.rounds),
             "round_max_depth_change": [r.max_depth_change for r in self.rounds],
-            "round_max_translation_m": [r.max_translation for r in self.rounds],
+            "round_max_translation": [r.max_translation for r in self.rounds],
             "pose_seconds": self.pose_seconds, "depth_seconds": self.depth_seconds,
             "broadcast_seconds": self.broadcast_seconds, "seconds": self.seconds,
         }
@@ -174,7 +175,8 @@ def alternate(
     Args:
         pose_pass: runs the global pose LM-IRLS (C-Eq. 5) for the given number of iterations
             with the depths frozen; returns the largest translation update ``max_i ||dt_i||``
-            of the pass (metres in the world frame). None: poses frozen, depth steps only.
+            of the pass over the scene depth (unitless). None: poses frozen, depth steps
+            only.
         depth_step: builds segments, refines the log-scales at frozen poses and writes the
             pointmaps back (C-Eq. 19-24); returns ``max |ds|``.
         settings: the schedule; default :class:`AlternationSettings`.
@@ -213,7 +215,7 @@ def alternate(
             broadcast()
             report.broadcast_seconds += time.perf_counter() - broadcast_start
         report.rounds.append(AlternationRound(depth_change, translation))
-        logger.debug("alternation round %d: max |ds| = %.3g, max ||dt|| = %.3g m", r + 1,
+        logger.debug("alternation round %d: max |ds| = %.3g, max ||dt|| = %.3g depth", r + 1,
                      depth_change, translation)
         if (depth_change < settings.depth_convergence_tol
                 and translation < settings.translation_tol):

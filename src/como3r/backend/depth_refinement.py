@@ -61,6 +61,7 @@ from como3r.errors import ConfigError, InputError
 from como3r.frontend.graph import Edge
 from como3r.geometry.lie import quat_rotate, sim3_compose, sim3_inverse
 from como3r.geometry.residuals import huber_weight, psi
+from como3r.geometry.units import median_range
 
 logger = logging.getLogger(__name__)
 
@@ -308,10 +309,13 @@ def _flatten_matches(
 
     Returns:
         pixel of i ``(K,)``, pixel of j ``(K,)`` (flat over all keyframes), ``T_ij`` per
-        match ``(K, 8)`` and the whitening ``sqrt(q) / sigma_point`` ``(K,)``.
+        match ``(K, 8)`` and the whitening ``sqrt(q) / (sigma_point d_i)`` ``(K,)``, with
+        ``d_i`` keyframe i's median range: ``sigma_point`` is relative to the scene depth
+        (:mod:`como3r.geometry.units`), the residual is in camera i's units.
     """
     dtype, device = poses.dtype, poses.device
     parts = []
+    depth_of: dict[int, float] = {}
     for edge in edges:
         try:
             ki, kj = index_of(edge.i), index_of(edge.j)
@@ -337,7 +341,9 @@ def _flatten_matches(
         pa, pb = param[a], param[b]
         keep = (pa != -1) & (pb != -1) & ((pa >= 0) | (pb >= 0))
         T_ij = sim3_compose(sim3_inverse(poses[ki]), poses[kj])
-        sqrt_w = m.q.to(device=device, dtype=dtype)[n[keep]].sqrt() / sigma_point
+        if ki not in depth_of:
+            depth_of[ki] = float(median_range(keyframes[ki].X_hat))
+        sqrt_w = m.q.to(device=device, dtype=dtype)[n[keep]].sqrt() / (sigma_point * depth_of[ki])
         parts.append((a[keep], b[keep], T_ij.expand(int(keep.sum()), 8), sqrt_w))
     if not parts:
         empty_i = torch.zeros(0, dtype=torch.int64, device=device)

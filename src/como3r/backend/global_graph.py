@@ -45,6 +45,7 @@ from como3r.frontend.graph import Edge, make_factors
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh
 from como3r.frontend.pairs import PairLink, gather_points
+from como3r.geometry.units import median_range
 from como3r.optim.factors import Factor
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.values import PoseValues
@@ -191,6 +192,14 @@ class GlobalGraph:
     def agent_keyframes(self, agent: int) -> list[int]:
         """Global indices of an agent's keyframes in local order."""
         return list(self.local_to_global.get(agent, []))
+
+    def scene_depth(self, agents: Sequence[int]) -> float:
+        """Median over the agents' keyframes of their median range in world units (scale
+        ``s`` of ``T_WC`` times the canonical pointmap's median range): the length that the
+        relative tolerances of the global solve refer to (:mod:`como3r.geometry.units`)."""
+        depths = [float(self.keyframes[g].T_WC[7]) * float(median_range(self.keyframes[g].X_hat))
+                  for a in agents for g in self.agent_keyframes(a)]
+        return float(torch.tensor(depths).median()) if depths else 1.0
 
     def poses(self, indices: Sequence[int]) -> Tensor:
         """``(K, 8)`` poses of the given global keyframes."""

@@ -129,10 +129,13 @@ class _ComponentCleanup:
         self.labels: dict[int, Tensor] = {}
 
     def pose_pass(self, max_iters: int) -> float:
-        """A global pose solve; its largest camera move [m] (0 if it kept the poses)."""
+        """A global pose solve; its largest camera move over the component's scene depth
+        (0 if it kept the poses)."""
         result = self.graph.optimize(self.members, self.anchor, max_iters)
         self.results.append(result)
-        return result.max_translation_change if result.moved else 0.0
+        if not result.moved:
+            return 0.0
+        return result.max_translation_change / self.graph.scene_depth(self.members)
 
     def depth_step(self) -> float:
         """Segments, log-scale refinement, write-back; its ``max |ds|``."""

@@ -19,6 +19,7 @@ from como3r.config import TrackingConfig
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.pairs import DirectedMatches, gather_points
 from como3r.geometry.camera import project
+from como3r.geometry.units import median_point_range
 from como3r.optim.factors import CalibratedFactors, RayRangeFactors
 
 
@@ -55,8 +56,10 @@ def make_factors(
         K_i: ``(E, 3, 3)`` intrinsics of camera i for a calibrated run.
     """
     if K_i is None:
+        # sigma_dist is relative to the scene: times the median range of i's points (units.py)
         return RayRangeFactors(i, j, X_i, X_j, q, valid, sigma_ray=tracking.sigma_ray,
-                               sigma_dist=tracking.sigma_dist, huber_k=tracking.huber_k)
+                               sigma_dist=tracking.sigma_dist, huber_k=tracking.huber_k,
+                               range_scale=median_point_range(X_i, valid))
     # X_i lies on K_i's rays (C-Eq. 16), so its projection is exactly its pixel
     return CalibratedFactors(i, j, X_j, project(X_i, K_i[:, None]), X_i[..., 2], K_i, q, valid,
                              sigma_pixel=tracking.sigma_pixel, sigma_depth=tracking.sigma_depth,

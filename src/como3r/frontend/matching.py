@@ -9,8 +9,8 @@ solved per pixel by damped Gauss-Newton on the continuous pixel position over th
 image and its spatial gradients, warm-started from the previous frame's matches. The
 match is then refined by descriptor similarity in a dilated window (MASt3R-SLAM's
 coarse-to-fine search, dilation 5 -> 1), and rejected as occluded when the 3-D points at
-the two ends are further apart than ``occlusion_distance``. Validity is decided on the
-final, refined match.
+the two ends are further apart than ``occlusion_ratio`` times the query's range. Validity
+is decided on the final, refined match.
 
 Everything is vectorised PyTorch over a batch of pairs and runs on CPU and GPU.
 """
@@ -24,6 +24,7 @@ from torch import Tensor
 
 from como3r.config import MatchingConfig
 from como3r.geometry.residuals import psi
+from como3r.geometry.units import pixels_at
 
 #: query pixels refined at once: small enough that the gathered (chunk, 49, d) candidate
 #: descriptors stay in cache (measured 2x faster than 16k on CPU), large enough to amortise
@@ -278,13 +279,17 @@ def match_pointmaps(
     )
     pixel = _nearest_ray_pixel(psi(X_search), p, psi(queries))
     if config.descriptor_radius > 0:
+        # the window is given at the paper's 512 px and scales with the image (units.py)
         pixel = refine_with_descriptors(
             D_search, D_query.reshape(B, Hq * Wq, -1), pixel,
-            config.descriptor_radius, config.descriptor_dilation_max,
+            pixels_at(config.descriptor_radius, max(H, W)),
+            pixels_at(config.descriptor_dilation_max, max(H, W)),
         )
     idx = pixel[..., 1] * W + pixel[..., 0]
     matched_points = torch.gather(X_search.reshape(B, H * W, 3), 1, idx[..., None].expand(-1, -1, 3))
-    not_occluded = (matched_points - queries).norm(dim=-1) < config.occlusion_distance
+    # occlusion gap relative to the query's range: the same test at every scene scale
+    gap = (matched_points - queries).norm(dim=-1)
+    not_occluded = gap < config.occlusion_ratio * queries.norm(dim=-1)
     finite = torch.isfinite(queries).all(-1)
     return Matches(idx=idx, pixel=pixel, valid=converged & not_occluded & finite)
 

@@ -70,6 +70,7 @@ class RelativePoseFactors(ABC):
         sigmas: Sequence[float],
         huber_k: float,
         chunk_matches: int,
+        sigma_scale: torch.Tensor | None = None,
     ) -> None:
         name = type(self).__name__
         self.i = _edge_index(i, "i", name).to(q.device)
@@ -95,7 +96,16 @@ class RelativePoseFactors(ABC):
         self.valid = valid & torch.isfinite(q) & (q > 0)
         self.q = torch.where(self.valid, q, torch.zeros_like(q))
         self.huber_k = float(huber_k)
-        self._inv_sigmas = torch.tensor([1.0 / s for s in sigmas], dtype=q.dtype, device=q.device)
+        # (E, 1, C): per edge, so a noise given relative to the scene (sigma_scale) applies
+        inv_sigmas = torch.tensor([1.0 / s for s in sigmas], dtype=q.dtype, device=q.device)
+        self._inv_sigmas = inv_sigmas.expand(num_edges, 1, len(sigmas)).clone()
+        if sigma_scale is not None:
+            if sigma_scale.shape != (num_edges, len(sigmas)):
+                raise InputError(f"{name}: sigma_scale must have shape "
+                                 f"{(num_edges, len(sigmas))}, got {tuple(sigma_scale.shape)}")
+            if not bool((torch.isfinite(sigma_scale) & (sigma_scale > 0)).all()):
+                raise InputError(f"{name}: sigma_scale must be positive and finite")
+            self._inv_sigmas /= sigma_scale.to(q)[:, None, :]
         self._edges_per_chunk = max(1, chunk_matches // max(1, q.shape[1]))
 
     @abstractmethod
@@ -137,7 +147,7 @@ class RelativePoseFactors(ABC):
         # The stored inputs are finite (see _finite_rows), so e and J are finite for finite
         # poses and a zero sqrt_info removes a match from every sum without masking J.
         ok = self.valid[edges] if defined is None else self.valid[edges] & defined
-        sqrt_info = torch.sqrt(self.q[edges])[..., None] * self._inv_sigmas * ok[..., None]
+        sqrt_info = torch.sqrt(self.q[edges])[..., None] * self._inv_sigmas[edges] * ok[..., None]
         return e * sqrt_info, sqrt_info, J, T_WC_i
 
     def linearize(self, poses: torch.Tensor) -> EdgeBlocks:
@@ -213,6 +223,8 @@ class RayRangeFactors(RelativePoseFactors):
         sigma_ray, sigma_dist: ray and range noise (C-Tab. 3).
         huber_k: Huber breakpoint on whitened components.
         chunk_matches: how many matches to linearize at once (memory bound).
+        range_scale: ``(E,)`` optional length that multiplies ``sigma_dist`` per edge
+            (keyframe i's median range when ``sigma_dist`` is relative to the scene).
     """
 
     def __init__(
@@ -227,8 +239,17 @@ class RayRangeFactors(RelativePoseFactors):
         sigma_dist: float = TrackingConfig.sigma_dist,
         huber_k: float = TrackingConfig.huber_k,
         chunk_matches: int = DEFAULT_CHUNK_MATCHES,
+        range_scale: torch.Tensor | None = None,
     ) -> None:
-        super().__init__(i, j, q, valid, (sigma_ray,) * 3 + (sigma_dist,), huber_k, chunk_matches)
+        scale = None
+        if range_scale is not None:
+            if range_scale.shape != q.shape[:1]:
+                raise InputError(f"RayRangeFactors: range_scale must have shape "
+                                 f"({q.shape[0]},), got {tuple(range_scale.shape)}")
+            scale = torch.ones(q.shape[0], 4, dtype=q.dtype, device=q.device)
+            scale[:, 3] = range_scale.to(q)
+        super().__init__(i, j, q, valid, (sigma_ray,) * 3 + (sigma_dist,), huber_k, chunk_matches,
+                         sigma_scale=scale)
         for label, X in (("X_i", X_i), ("X_j", X_j)):
             if X.shape != (*q.shape, 3):
                 raise InputError(f"RayRangeFactors: {label} must have shape "

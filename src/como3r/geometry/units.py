@@ -1,0 +1,62 @@
+"""Scene units: lengths relative to the scene's depth, pixels relative to the image size.
+
+A threshold in metres is right for one kind of scene only: 0.1 m is a generous occlusion
+gap on a tabletop and a fraction of the depth noise of a street. como3r's configuration
+therefore states lengths as fractions of a reference depth (the median valid range of the
+keyframe or view they act on) and pixel quantities at the paper's input size (long side
+512, C-Tab. 3), converted here at the size a run actually uses.
+
+Where a paper value was given in metres for its scenes, the configuration keeps its meaning
+at :data:`PAPER_REFERENCE_DEPTH_M`: MASt3R-SLAM's and CoMo3R-SLAM's indoor sequences (TUM
+RGB-D, 7-Scenes, Tanks and Temples at MASt3R's metric scale) have median depths of about
+1-3 m, so a paper length ``L`` metres becomes the ratio ``L / 1 m``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+#: Reference depth (metres) at which the paper's metric values keep their meaning.
+PAPER_REFERENCE_DEPTH_M = 1.0
+
+#: Input long side (pixels) of the paper's pixel quantities (C-Tab. 3, "Front-end input").
+PAPER_LONG_SIDE = 512
+
+
+def median_point_range(points: Tensor, valid: Tensor | None = None) -> Tensor:
+    """Median distance to the camera centre of finite, non-zero points.
+
+    Args:
+        points: ``(..., N, 3)`` points in a camera frame.
+        valid: optional ``(..., N)`` bool mask of usable points.
+
+    Returns:
+        ``(...)`` median range per set, in the points' unit; 1 for a set without any usable
+        point (so a ratio times it stays finite).
+    """
+    ranges = torch.linalg.vector_norm(points, dim=-1)
+    usable = torch.isfinite(ranges) & (ranges > 0)
+    if valid is not None:
+        usable = usable & valid
+    masked = torch.where(usable, ranges, torch.full_like(ranges, float("nan")))
+    median = torch.nanmedian(masked, dim=-1).values
+    return torch.where(torch.isfinite(median), median, torch.ones_like(median))
+
+
+def median_range(X: Tensor, valid: Tensor | None = None) -> Tensor:
+    """:func:`median_point_range` of pointmaps ``X`` ``(..., H, W, 3)`` (mask
+    ``(..., H, W)``) -> ``(...)``."""
+    flat_valid = None if valid is None else valid.flatten(-2)
+    return median_point_range(X.flatten(-3, -2), flat_valid)
+
+
+def pixels_at(value_at_paper_size: float, long_side: int, minimum: int = 1) -> int:
+    """A pixel count given at the paper's long side (512), scaled to ``long_side``.
+
+    Args:
+        value_at_paper_size: the quantity in pixels of a 512-pixel-long image.
+        long_side: the long side of the images the run processes.
+        minimum: smallest value returned (a window of 0 pixels would switch a search off).
+    """
+    return max(minimum, round(value_at_paper_size * long_side / PAPER_LONG_SIDE))
