@@ -13,27 +13,19 @@ between the depth points of both views whose appearance keys coincide
 true relative pose, aliased views the wrong one, views without common keys a random one with
 low confidence.
 
-Error model (:class:`~como3r.config.SimulatedPriorConfig`; every draw is seeded by
-``(config.seed, agent and index of view i, agent and index of view j)``, so a decode is
-deterministic and (i, j), (j, i) are independent):
-
-* per pair, both pointmaps scaled by ``exp(scale_sigma * n)`` (log-normal scale error);
-* per pointmap, ranges multiplied by ``exp(A g(u, v))``, ``g`` a unit-RMS random Fourier field
-  of wavelength ``depth_distortion_wavelength`` times the image's long side (``A`` =
-  ``depth_distortion_amplitude`` is the RMS relative distortion), and by
-  ``exp(range_noise * n)`` per pixel;
-* the fitted relative pose rotated by ``Exp(omega)`` with ``omega ~ N(0, sigma^2 / 3 I)``
-  (``sigma`` = ``rotation_noise_deg``, the RMS rotation error) and translated by
-  ``delta ~ N(0, (translation_noise |t|)^2 / 3 I)`` (RMS error = ``translation_noise`` of the
-  baseline);
-* sky pixels (no depth) are 50-100 m along their ray with confidence about 1;
-* ``C = 1 + exp(l)``, ``l`` falling with range, at depth discontinuities and where a pixel of
-  view j has no counterpart (no equal key) in view i; ``Q = exp(l')`` with the same cues;
-* ``D`` = unit random features of the appearance key plus noise of RMS norm
-  ``descriptor_noise``.
+Error model (:class:`~como3r.config.SimulatedPriorConfig`, ``model`` key): the
+``realistic`` default or the ``easy`` near-oracle, both documented parameter by parameter,
+with their sources, in :mod:`como3r.prior.simulated_errors`. Draws that belong to one image
+(its intrinsics and ray errors, its range-error field, flying pixels and outliers) are made
+once at :meth:`SimulatedPrior.encode`, seeded by ``(config.seed, agent, index)`` only, so
+every pair of that image shares them; per-pair draws are seeded by ``(config.seed, agent and
+index of view i, agent and index of view j)``, so a decode is deterministic and (i, j),
+(j, i) are independent. Both models place sky pixels (no depth) at 10-20 times the view's
+median valid depth with confidence about 1, and every length is relative to that median.
 
 The remaining shape of the model (confidence curves, sky range, RANSAC and feature-map
-settings) is fixed by :class:`SimulatedConstants` and reported by
+settings) is fixed by :class:`SimulatedConstants` and
+:class:`~como3r.prior.simulated_errors.RealisticConstants` and reported by
 :meth:`SimulatedPrior.describe` with the configuration.
 
 Retrieval features are per 16x16 patch, from an independent random-feature map of the same
@@ -43,7 +35,7 @@ ASMK codebook once by k-means on features of a fixed synthetic sample and caches
 ``~/.cache/como3r/``), the hash covering every parameter it depends on.
 
 A view needs depth and intrinsics ``K``, plus a surface map or a ground-truth pose for its
-keys. Decoding a 320x240 pair takes a few tens of milliseconds on one CPU thread.
+keys. Decoding a 512x384 pair takes about 0.2 s on one CPU thread.
 """
 
 from __future__ import annotations
@@ -60,9 +52,10 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from como3r.config import SimulatedPriorConfig
-from como3r.errors import ConfigError, GeometryError, PriorError
+from como3r.errors import GeometryError, PriorError
 from como3r.geometry.camera import rays_from_intrinsics, unproject_depth
 from como3r.geometry.lie import matrix_to_quat, quat_to_matrix, sim3_act, so3_exp
+from como3r.prior import simulated_errors as errors
 from como3r.geometry.umeyama import umeyama_sim3, umeyama_sim3_batched
 from como3r.prior.base import Encoding, PairPrediction, Prior, View
 from como3r.prior.simulated_keys import (
@@ -94,12 +87,13 @@ CODEBOOK_CACHE_VERSION = 2
 class SimulatedConstants:
     """Fixed constants of the sensor model (reported by :meth:`SimulatedPrior.describe`).
 
-    Logits are natural logs: ``C = 1 + exp(conf_*)``, ``Q = exp(q_*)``; ranges in metres.
+    Logits are natural logs: ``C = 1 + exp(conf_*)``, ``Q = exp(q_*)``; ``sky_range`` and
+    ``conf_range_ref`` are multiples of the view's median valid depth.
     """
 
-    sky_range: tuple[float, float] = (50.0, 100.0)
+    sky_range: tuple[float, float] = (10.0, 20.0)
     conf_base: float = 3.0
-    conf_range_ref: float = 5.0
+    conf_range_ref: float = 1.0
     conf_range_slope: float = 1.0
     conf_edge_drop: float = 2.0
     conf_unmatched_drop: float = 2.5
@@ -143,10 +137,14 @@ class SimulatedConstants:
 
 @dataclass(frozen=True)
 class SimulatedEncoding(Encoding):
-    """Per-view state of the simulated prior (about 90 bytes per pixel). Holds no pose.
+    """Per-view state of the simulated prior (about 110 bytes per pixel). Holds no pose.
 
     Attributes:
         rays: ``(H, W, 3)`` unit rays of the pixels, camera frame.
+        pred_rays: ``(H, W, 3)`` unit rays the prior predicts (``rays`` in the easy model).
+        log_range_error: ``(H, W)`` this image's share of the log-range error (0 in the
+            easy model).
+        median_range: median valid range (the view's length unit).
         ranges: ``(H, W)`` true distance to the camera centre, 0 where ``~valid``.
         valid: ``(H, W)`` bool, pixels with depth (the others are sky).
         edges: ``(H, W)`` bool, valid pixels next to a depth discontinuity or the sky.
@@ -158,6 +156,9 @@ class SimulatedEncoding(Encoding):
     """
 
     rays: Tensor
+    pred_rays: Tensor
+    log_range_error: Tensor
+    median_range: float
     ranges: Tensor
     valid: Tensor
     edges: Tensor
@@ -166,21 +167,6 @@ class SimulatedEncoding(Encoding):
     footprint: Tensor
     median_footprint: float
     descriptors: Tensor
-
-
-def _check_config(config: SimulatedPriorConfig) -> None:
-    """Raise ConfigError naming the first out-of-range simulated_prior key."""
-    non_negative = ("scale_sigma", "depth_distortion_amplitude", "range_noise",
-                    "rotation_noise_deg", "translation_noise", "descriptor_noise")
-    for name in non_negative:
-        if getattr(config, name) < 0:
-            raise ConfigError(f"simulated_prior.{name} must be >= 0, got {getattr(config, name)}")
-    if config.depth_distortion_wavelength <= 0:
-        raise ConfigError("simulated_prior.depth_distortion_wavelength must be > 0, "
-                          f"got {config.depth_distortion_wavelength}")
-    if config.descriptor_dim < 2:
-        raise ConfigError(f"simulated_prior.descriptor_dim must be >= 2, "
-                          f"got {config.descriptor_dim}")
 
 
 def _normalize(x: Tensor) -> Tensor:
@@ -214,12 +200,15 @@ class SimulatedPrior(Prior):
                  constants: SimulatedConstants | None = None) -> None:
         self.config = config or SimulatedPriorConfig()
         self.constants = constants or SimulatedConstants()
-        _check_config(self.config)
+        errors.check_config(self.config)
+        self.realistic = self.config.model == errors.REALISTIC
         self.descriptor_dim = self.config.descriptor_dim
         c = self.constants
+        ambiguity = self.config.descriptor_ambiguity if self.realistic else 0.0
         self._descriptor_map = RandomFeatureMap(
             self.config.descriptor_dim, self.config.seed, *c.descriptor_wavelengths,
-            id_weight=c.descriptor_id_weight, blur=c.footprint_blur, name="descriptor",
+            id_weight=c.descriptor_id_weight + ambiguity, blur=c.footprint_blur,
+            name="descriptor",
         )
         self._retrieval_map = RandomFeatureMap(
             c.retrieval_dim, self.config.seed, *c.retrieval_wavelengths,
@@ -252,8 +241,16 @@ class SimulatedPrior(Prior):
                                   self.constants.footprint_max_ratio)
         keyed = key_ids >= 0
         median_footprint = float(footprint[keyed].median()) if bool(keyed.any()) else 0.0
+        if self.realistic:
+            gen = generator(self.config.seed, "image", view.agent, view.index)
+            pred_rays = errors.predicted_rays(K, H, W, self.config, gen)
+            log_range_error = errors.image_log_range_error(ranges, valid, self.config, gen)
+        else:
+            pred_rays, log_range_error = rays, torch.zeros_like(ranges)
         return SimulatedEncoding(
-            agent=view.agent, index=view.index, shape=(H, W), rays=rays, ranges=ranges,
+            agent=view.agent, index=view.index, shape=(H, W), rays=rays, pred_rays=pred_rays,
+            log_range_error=log_range_error, median_range=errors.median_range(ranges, valid),
+            ranges=ranges,
             valid=valid, edges=_depth_edges(depth, valid, self.constants.edge_log_jump),
             key_ids=key_ids, key_coords=key_coords, footprint=footprint,
             median_footprint=median_footprint,
@@ -285,10 +282,11 @@ class SimulatedPrior(Prior):
         return view.depth.to(torch.float32), view.K.to(torch.float32)
 
     def _base_logits(self, enc: SimulatedEncoding) -> tuple[Tensor, Tensor]:
-        """Pair-independent ``log(C - 1)`` and ``log Q``: falling with range and at edges."""
+        """Pair-independent ``log(C - 1)`` and ``log Q``: falling with range (relative to the
+        median valid range) and at edges."""
         c = self.constants
         ranges, valid, edges = enc.ranges, enc.valid, enc.edges
-        distance = torch.log1p(ranges / c.conf_range_ref)
+        distance = torch.log1p(ranges / (c.conf_range_ref * enc.median_range))
         conf = c.conf_base - c.conf_range_slope * distance - c.conf_edge_drop * edges.float()
         desc_conf = c.q_base - c.q_range_slope * distance - c.q_edge_drop * edges.float()
         conf = torch.where(valid, conf, torch.full_like(conf, c.conf_sky))
@@ -323,15 +321,60 @@ class SimulatedPrior(Prior):
         fitted = self._robust_fit(enc_i, enc_j, matches, gen)
         overlap = fitted is not None
         R, t, s = fitted if overlap else self._random_pose(enc_i, gen)
-        R, t = self._perturb_pose(R, t, gen)
-        X_ii = scale * self._observe(enc_i, gen)
-        X_j = self._observe(enc_j, gen)
+        if self.realistic:
+            return self._decode_realistic(enc_i, enc_j, matches, (R, t, s), overlap, scale, gen)
+        R, t = errors.perturb_pose_easy(R, t, self.config, gen)
+        X_ii, _ = self._observe(enc_i, gen)
+        X_j, _ = self._observe(enc_j, gen)
         X_ji = scale * (s * X_j @ R.T + t)
         C_ii, C_ji, Q_ii, Q_ji = self._confidences(enc_i, enc_j, matches, overlap, gen)
+        noise = self.config.descriptor_noise
         return PairPrediction(
-            X_ii=X_ii, X_ji=X_ji, C_ii=C_ii, C_ji=C_ji,
-            D_ii=self._noisy_descriptors(enc_i, gen), D_ji=self._noisy_descriptors(enc_j, gen),
-            Q_ii=Q_ii, Q_ji=Q_ji,
+            X_ii=scale * X_ii, X_ji=X_ji, C_ii=C_ii, C_ji=C_ji,
+            D_ii=self._noisy_descriptors(enc_i, gen, noise),
+            D_ji=self._noisy_descriptors(enc_j, gen, noise), Q_ii=Q_ii, Q_ji=Q_ji,
+        )
+
+    def _decode_realistic(self, enc_i: SimulatedEncoding, enc_j: SimulatedEncoding,
+                          matches: KeyMatches, pose: tuple[Tensor, Tensor, Tensor],
+                          overlap: bool, scale: float,
+                          gen: torch.Generator) -> PairPrediction:
+        """The realistic model's prediction from the fitted (or random) ``pose``
+        (:mod:`~como3r.prior.simulated_errors`): gross failures and confident hallucinations,
+        heavy-tailed pose error, scale drift, confidence that falls with the injected error
+        and viewpoint-dependent descriptor noise."""
+        cfg = self.config
+        extra = generator(cfg.seed, "realistic pair", enc_i.agent, enc_i.index,
+                          enc_j.agent, enc_j.index)
+        hallucinated = not overlap and float(torch.rand((), generator=extra)) < (
+            cfg.hallucination_rate)
+        failed = overlap and float(torch.rand((), generator=extra)) < cfg.gross_failure_rate
+        R, t, s = pose
+        change = errors.viewpoint_change(R, enc_i.median_range, enc_j.median_range)
+        if failed:
+            R, t, s = self._random_pose(enc_i, extra)
+        R, t = errors.perturb_pose_realistic(R, t, enc_i.median_range, cfg, extra)
+        scale *= math.exp(errors.scale_drift(cfg, enc_i.agent, enc_i.index))
+        X_ii, error_i = self._observe(enc_i, gen)
+        X_j, error_j = self._observe(enc_j, gen)
+        X_ji = scale * (s * X_j @ R.T + t)
+        r = errors.RealisticConstants
+        drop_i = r.weak_unmatched_drop * (~matches.counterpart_i.view(enc_i.shape)).float()
+        drop_j = r.weak_unmatched_drop * (~matches.counterpart_j.view(enc_j.shape)).float()
+        if not (overlap or hallucinated):
+            drop_i, drop_j = drop_i + r.weak_no_overlap_drop, drop_j + r.weak_no_overlap_drop
+        conf_i, desc_conf_i = self._base_logits(enc_i)
+        conf_j, desc_conf_j = self._base_logits(enc_j)
+        noise = cfg.confidence_noise
+        descriptor_noise = cfg.descriptor_noise * (1.0 + cfg.descriptor_viewpoint_gain * change)
+        return PairPrediction(
+            X_ii=scale * X_ii, X_ji=X_ji,
+            C_ii=self._conf(conf_i - errors.error_logit(error_i, cfg), gen, noise),
+            C_ji=self._conf(conf_j - errors.error_logit(error_j, cfg) - drop_j, gen, noise),
+            D_ii=self._noisy_descriptors(enc_i, gen, descriptor_noise),
+            D_ji=self._noisy_descriptors(enc_j, gen, descriptor_noise),
+            Q_ii=self._desc_conf(desc_conf_i - drop_i, gen, noise),
+            Q_ji=self._desc_conf(desc_conf_j - drop_j, gen, noise),
         )
 
     def _confidences(self, enc_i: SimulatedEncoding, enc_j: SimulatedEncoding,
@@ -349,10 +392,12 @@ class SimulatedPrior(Prior):
             unmatched_i, unmatched_j = enc_i.valid, enc_j.valid
             conf_j = torch.full_like(conf_j, c.conf_no_overlap)
         return (
-            self._conf(conf_i, gen),
-            self._conf(conf_j - c.conf_unmatched_drop * unmatched_j.float(), gen),
-            self._desc_conf(desc_conf_i - c.q_unmatched_drop * unmatched_i.float(), gen),
-            self._desc_conf(desc_conf_j - c.q_unmatched_drop * unmatched_j.float(), gen),
+            self._conf(conf_i, gen, c.conf_noise),
+            self._conf(conf_j - c.conf_unmatched_drop * unmatched_j.float(), gen, c.conf_noise),
+            self._desc_conf(desc_conf_i - c.q_unmatched_drop * unmatched_i.float(), gen,
+                            c.q_noise),
+            self._desc_conf(desc_conf_j - c.q_unmatched_drop * unmatched_j.float(), gen,
+                            c.q_noise),
         )
 
     @staticmethod
@@ -476,70 +521,48 @@ class SimulatedPrior(Prior):
         axis = _normalize(torch.randn(3, generator=gen))
         angle = math.radians(c.random_pose_max_angle_deg) * float(torch.rand((), generator=gen))
         direction = _normalize(torch.randn(3, generator=gen))
-        valid_ranges = enc_i.ranges[enc_i.valid]
-        typical = float(valid_ranges.median()) if valid_ranges.numel() else 1.0
         low, high = c.random_pose_distance
-        distance = typical * (low + (high - low) * float(torch.rand((), generator=gen)))
+        distance = enc_i.median_range * (low + (high - low) * float(torch.rand((), generator=gen)))
         device = enc_i.rays.device
         R = quat_to_matrix(so3_exp(axis * angle)).to(device)
         return R, (direction * distance).to(device), torch.ones((), device=device)
 
-    def _perturb_pose(self, R: Tensor, t: Tensor, gen: torch.Generator) -> tuple[Tensor, Tensor]:
-        """Rotation ``Exp(omega) R`` and translation ``t + delta`` (RMS errors as configured)."""
-        sigma_rotation = math.radians(self.config.rotation_noise_deg) / math.sqrt(3.0)
-        omega = sigma_rotation * torch.randn(3, generator=gen, dtype=torch.float64)
-        sigma_translation = self.config.translation_noise * float(t.norm()) / math.sqrt(3.0)
-        delta = sigma_translation * torch.randn(3, generator=gen, dtype=torch.float64)
-        noise = quat_to_matrix(so3_exp(omega)).to(R)
-        return noise @ R, t + delta.to(t)
-
-    def _observe(self, enc: SimulatedEncoding, gen: torch.Generator) -> Tensor:
-        """``(H, W, 3)`` one noisy prediction of the view's own camera-frame pointmap."""
+    def _observe(self, enc: SimulatedEncoding, gen: torch.Generator) -> tuple[Tensor, Tensor]:
+        """One noisy prediction of the view's own camera-frame pointmap ``(H, W, 3)`` along
+        its predicted rays, and its log-range error ``(H, W)`` (0 on sky)."""
         H, W = enc.shape
         device = enc.rays.device
-        field = self._distortion_field(H, W, gen).to(device)
+        field = errors.fourier_field(H, W, self.config.depth_distortion_wavelength * max(H, W),
+                                     self.constants.distortion_modes, gen).to(device)
         noise = torch.randn(H, W, generator=gen).to(device)
         log_factor = (self.config.depth_distortion_amplitude * field
-                      + self.config.range_noise * noise)
+                      + self.config.range_noise * noise + enc.log_range_error)
         low, high = self.constants.sky_range
-        sky = low + (high - low) * torch.rand(H, W, generator=gen).to(device)
+        sky = enc.median_range * (low + (high - low) * torch.rand(H, W, generator=gen).to(device))
         ranges = torch.where(enc.valid, enc.ranges * torch.exp(log_factor), sky)
-        return enc.rays * ranges[..., None]
+        log_error = torch.where(enc.valid, log_factor, torch.zeros_like(log_factor))
+        return enc.pred_rays * ranges[..., None], log_error
 
-    def _distortion_field(self, H: int, W: int, gen: torch.Generator) -> Tensor:
-        """``(H, W)`` unit-RMS random Fourier field of the configured wavelength.
-
-        ``sqrt(2 / M) sum_m cos(a_m u + b_m v + phi_m)`` with ``(a_m, b_m)`` of fixed length
-        in random directions, expanded as ``cos(a u) cos(b v + phi) - sin(a u) sin(b v + phi)``
-        so the field is two ``(H, M) @ (M, W)`` products.
-        """
-        modes = self.constants.distortion_modes
-        wavenumber = 2.0 * math.pi / (self.config.depth_distortion_wavelength * max(H, W))
-        angle = 2.0 * math.pi * torch.rand(modes, generator=gen)
-        phase = 2.0 * math.pi * torch.rand(modes, generator=gen)
-        along_u = wavenumber * torch.arange(W, dtype=torch.float32)[:, None] * torch.cos(angle)
-        along_v = (wavenumber * torch.arange(H, dtype=torch.float32)[:, None] * torch.sin(angle)
-                   + phase)
-        field = torch.cos(along_v) @ torch.cos(along_u).T - torch.sin(along_v) @ torch.sin(
-            along_u).T
-        return math.sqrt(2.0 / modes) * field
-
-    def _conf(self, logit: Tensor, gen: torch.Generator) -> Tensor:
-        """``C = 1 + exp(logit + noise)``."""
+    @staticmethod
+    def _conf(logit: Tensor, gen: torch.Generator, sigma: float) -> Tensor:
+        """``C = 1 + exp(logit + noise)``, noise of RMS ``sigma``."""
         noise = torch.randn(logit.shape, generator=gen).to(logit.device)
-        return 1.0 + torch.exp(logit + self.constants.conf_noise * noise)
+        return 1.0 + torch.exp(logit + sigma * noise)
 
-    def _desc_conf(self, logit: Tensor, gen: torch.Generator) -> Tensor:
-        """``Q = exp(logit + noise)``."""
+    @staticmethod
+    def _desc_conf(logit: Tensor, gen: torch.Generator, sigma: float) -> Tensor:
+        """``Q = exp(logit + noise)``, noise of RMS ``sigma``."""
         noise = torch.randn(logit.shape, generator=gen).to(logit.device)
-        return torch.exp(logit + self.constants.q_noise * noise)
+        return torch.exp(logit + sigma * noise)
 
-    def _noisy_descriptors(self, enc: SimulatedEncoding, gen: torch.Generator) -> Tensor:
-        """``(H, W, d)`` unit descriptors plus noise of RMS norm ``descriptor_noise``."""
+    @staticmethod
+    def _noisy_descriptors(enc: SimulatedEncoding, gen: torch.Generator,
+                           sigma: float) -> Tensor:
+        """``(H, W, d)`` unit descriptors plus noise of RMS norm ``sigma``."""
         d = enc.descriptors.shape[-1]
         noisy = torch.randn(enc.descriptors.shape, generator=gen).to(enc.descriptors.device)
         # in place: these are the largest tensors of a decode
-        noisy.mul_(self.config.descriptor_noise / math.sqrt(d)).add_(enc.descriptors)
+        noisy.mul_(sigma / math.sqrt(d)).add_(enc.descriptors)
         return noisy.div_(noisy.norm(dim=-1, keepdim=True).clamp_min_(1e-12))
 
     # ------------------------------------------------------------------ retrieval
@@ -609,8 +632,11 @@ class SimulatedPrior(Prior):
 
     def describe(self) -> dict[str, object]:
         """Every parameter of the error model (reported with every result)."""
-        return {
+        out = {
             "name": type(self).__name__,
             **dataclasses.asdict(self.config),
             "constants": dataclasses.asdict(self.constants),
         }
+        if self.realistic:
+            out["realistic_constants"] = dataclasses.asdict(errors.RealisticConstants())
+        return out

@@ -1,0 +1,267 @@
+"""Error model of the simulated prior: the ``realistic`` default and the ``easy`` near-oracle.
+
+The ``easy`` model (round 1) corrupts exact geometry with small, independent per-pair errors:
+log-normal pair scale ``scale_sigma``, a smooth per-pair range distortion
+(``depth_distortion_amplitude``, wavelength ``depth_distortion_wavelength`` of the long
+side), per-pixel range noise ``range_noise``, Gaussian pose noise (``rotation_noise_deg``,
+``translation_noise`` of the baseline) and descriptor noise ``descriptor_noise``; its rays are
+the true intrinsics' rays and its confidence is an overlap oracle.
+
+The ``realistic`` model keeps those per-pair terms and adds what makes MASt3R hard
+(:class:`~como3r.config.SimulatedPriorConfig` key, default, source). Where no published
+figure exists the value is OUR ASSUMPTION and says so. Every length is relative (a fraction
+of a range, a baseline or the view's median valid depth ``m``), so a scene scaled by any
+factor gets the same relative errors.
+
+1. Intrinsics, per image (shared by all its pairs): focal ``f exp(focal_error n)``,
+   ``focal_error = 0.08`` (RMS log error); MUSt3R (Cabon et al., CVPR 2025, uncalibrated VO
+   on TUM RGB-D) reports a mean field-of-view error of 4 deg, i.e. about 7-8 % of the focal
+   at a 60 deg field of view, for a network of the same family trained on the same data.
+   Principal point moved by ``principal_point_error = 0.01`` of the long side per axis (our
+   assumption) and ray directions bent by a smooth field of RMS ``ray_field_deg = 0.3`` deg
+   (our assumption; pointmap regression has no exact pinhole). ``X_ii`` lies on these rays,
+   not on the true ``K``'s.
+2. Range error, per image: a smooth unit-RMS field times ``image_distortion_amplitude =
+   0.04`` shared by every pair of the image, on top of the per-pair field
+   (``depth_distortion_amplitude``) and pixel noise. Total RMS about 5 %: MUSt3R (same paper,
+   multi-view depth on KITTI/ScanNet/ETH3D/DTU/T&T) reports 3.7-4.7 % average relative
+   error and calls it close to DUSt3R-512; a two-view pair without multi-view context is
+   worse, so 5 % is our assumption.
+3. Scale: the pair scale ``exp(scale_sigma n)`` times a drift ``exp(scale_drift d(k))``
+   along an agent's frame index ``k``, ``d`` a unit-RMS random Fourier series of wavelength
+   about ``scale_drift_frames = 60`` frames seeded per agent, ``scale_drift = 0.08``. MUSt3R
+   reports a median scale error of 4.6 % (TUM RGB-D VO); the drift amplitude and wavelength
+   are our assumption.
+4. Relative pose: RMS errors grow with the viewpoint change
+   ``v = rotation angle + baseline / m`` (degrees): rotation
+   ``rotation_noise_deg (1 + pose_noise_growth v)``, translation
+   ``translation_noise (1 + pose_noise_growth v) |t| + translation_floor m``
+   (``pose_noise_growth = 0.05`` per degree, ``translation_floor = 0.01``: our assumption),
+   drawn from a multivariate Student-t with ``pose_tail_dof = 3`` degrees of freedom (heavy
+   tail). A fraction ``gross_failure_rate = 0.03`` of overlapping pairs gets a random pose
+   at full confidence: MASt3R on two-view CO3Dv2 pairs reaches RRA@15 94.2 % / RTA@15 86.5 %
+   (as tabulated by Light3R-SfM, Elflein et al., CVPR 2025), i.e. about 6 % of wide-baseline
+   object pairs err by more than 15 deg; SLAM pairs are narrower, hence half of that.
+5. Flying pixels: ``flying_pixel_fraction = 0.5`` of the pixels at a depth discontinuity
+   (relative jump above ``edge_log_jump``) get a range uniformly between the local
+   foreground and background along their ray; ``outlier_fraction = 0.005`` of the pixels get
+   a log-range error of RMS ``outlier_log_sigma``. Our assumption (MASt3R's regression head
+   smooths across discontinuities; no published rate).
+6. Hallucinations: a fraction ``hallucination_rate = 0.3`` of pairs without common keys keeps
+   full confidence on its random pose (our assumption; MASt3R always outputs a pose).
+7. Confidence: ``log(C - 1)`` falls with range (relative to ``m``) and at edges as before,
+   and by ``confidence_error_slope = 1.0`` per ``conf_error_ref`` (5 %) of the pixel's own
+   injected range error, plus noise of RMS ``confidence_noise = 0.5``. The overlap oracle of
+   the easy model survives only as a weak drop (``weak_unmatched_drop``,
+   ``weak_no_overlap_drop``) under the same noise. Our assumption.
+8. Descriptors: noise RMS ``descriptor_noise (1 + descriptor_viewpoint_gain v)`` with ``v``
+   the pair's rotation angle plus ``|log|`` of its scale change (radians, our assumption),
+   and the per-texture embedding weighted up by ``descriptor_ambiguity = 1.0`` so that
+   repeated texture is ambiguous.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from como3r.config import SimulatedPriorConfig
+from como3r.errors import ConfigError
+from como3r.geometry.lie import quat_to_matrix, so3_exp
+from como3r.prior.simulated_keys import generator
+
+REALISTIC = "realistic"
+
+
+@dataclass(frozen=True)
+class RealisticConstants:
+    """Fixed shape of the realistic model (reported by ``describe``)."""
+
+    ray_field_wavelength: float = 1.0
+    edge_log_jump: float = 0.1
+    outlier_log_sigma: float = 0.5
+    conf_error_ref: float = 0.05
+    conf_error_cap: float = 4.0
+    weak_unmatched_drop: float = 0.5
+    weak_no_overlap_drop: float = 1.5
+    drift_modes: int = 4
+    distortion_modes: int = 8
+
+
+def check_config(config: SimulatedPriorConfig) -> None:
+    """Raise ConfigError naming the first out-of-range simulated_prior key."""
+    non_negative = ("scale_sigma", "depth_distortion_amplitude", "range_noise",
+                    "rotation_noise_deg", "translation_noise", "descriptor_noise",
+                    "focal_error", "principal_point_error", "ray_field_deg",
+                    "image_distortion_amplitude", "scale_drift", "pose_noise_growth",
+                    "translation_floor", "confidence_error_slope", "confidence_noise",
+                    "descriptor_viewpoint_gain", "descriptor_ambiguity")
+    for name in non_negative:
+        if getattr(config, name) < 0:
+            raise ConfigError(f"simulated_prior.{name} must be >= 0, got {getattr(config, name)}")
+    for name in ("gross_failure_rate", "hallucination_rate", "flying_pixel_fraction",
+                 "outlier_fraction"):
+        if not 0.0 <= getattr(config, name) <= 1.0:
+            raise ConfigError(f"simulated_prior.{name} must be in [0, 1], "
+                              f"got {getattr(config, name)}")
+    for name in ("depth_distortion_wavelength", "scale_drift_frames"):
+        if getattr(config, name) <= 0:
+            raise ConfigError(f"simulated_prior.{name} must be > 0, got {getattr(config, name)}")
+    if config.pose_tail_dof < 1:
+        raise ConfigError(f"simulated_prior.pose_tail_dof must be >= 1, "
+                          f"got {config.pose_tail_dof}")
+    if config.descriptor_dim < 2:
+        raise ConfigError(f"simulated_prior.descriptor_dim must be >= 2, "
+                          f"got {config.descriptor_dim}")
+
+
+def fourier_field(H: int, W: int, wavelength_px: float, modes: int,
+                  gen: torch.Generator) -> Tensor:
+    """``(H, W)`` unit-RMS random Fourier field of wavelength ``wavelength_px`` pixels.
+
+    ``sqrt(2 / M) sum_m cos(a_m u + b_m v + phi_m)`` with ``(a_m, b_m)`` of fixed length in
+    random directions, expanded as ``cos(a u) cos(b v + phi) - sin(a u) sin(b v + phi)`` so
+    the field is two ``(H, M) @ (M, W)`` products.
+    """
+    wavenumber = 2.0 * math.pi / wavelength_px
+    angle = 2.0 * math.pi * torch.rand(modes, generator=gen)
+    phase = 2.0 * math.pi * torch.rand(modes, generator=gen)
+    along_u = wavenumber * torch.arange(W, dtype=torch.float32)[:, None] * torch.cos(angle)
+    along_v = (wavenumber * torch.arange(H, dtype=torch.float32)[:, None] * torch.sin(angle)
+               + phase)
+    field = torch.cos(along_v) @ torch.cos(along_u).T - torch.sin(along_v) @ torch.sin(
+        along_u).T
+    return math.sqrt(2.0 / modes) * field
+
+
+def median_range(ranges: Tensor, valid: Tensor) -> float:
+    """Median valid range of a view (its length unit); 1 for a view without depth."""
+    return float(ranges[valid].median()) if bool(valid.any()) else 1.0
+
+
+def predicted_rays(K: Tensor, H: int, W: int, config: SimulatedPriorConfig,
+                   gen: torch.Generator) -> Tensor:
+    """``(H, W, 3)`` unit rays the realistic prior believes in for one image.
+
+    Pinhole rays of ``K`` with the focal scaled by ``exp(focal_error n)`` and the principal
+    point moved by ``principal_point_error`` of the long side, bent by a smooth field of RMS
+    ``ray_field_deg`` (added to the normalised image coordinates).
+    """
+    long_side = max(H, W)
+    focal_factor = math.exp(config.focal_error * float(torch.randn((), generator=gen)))
+    shift = config.principal_point_error * long_side * torch.randn(2, generator=gen)
+    fx, fy = float(K[0, 0]) * focal_factor, float(K[1, 1]) * focal_factor
+    cx, cy = float(K[0, 2] + shift[0]), float(K[1, 2] + shift[1])
+    u = torch.arange(W, dtype=torch.float32)[None, :].expand(H, W)
+    v = torch.arange(H, dtype=torch.float32)[:, None].expand(H, W)
+    x, y = (u - cx) / fx, (v - cy) / fy
+    # per-axis RMS ray_field / sqrt(2), so that the 2-D bend has RMS ray_field_deg
+    bend = math.radians(config.ray_field_deg) / math.sqrt(2.0)
+    wavelength = RealisticConstants.ray_field_wavelength * long_side
+    modes = RealisticConstants.distortion_modes
+    x = x + bend * fourier_field(H, W, wavelength, modes, gen)
+    y = y + bend * fourier_field(H, W, wavelength, modes, gen)
+    return F.normalize(torch.stack([x, y, torch.ones_like(x)], dim=-1), dim=-1).to(K.device)
+
+
+def image_log_range_error(ranges: Tensor, valid: Tensor, config: SimulatedPriorConfig,
+                          gen: torch.Generator) -> Tensor:
+    """``(H, W)`` per-image log-range error: shared smooth field, flying pixels, outliers.
+
+    A flying pixel next to a depth discontinuity (relative jump above ``edge_log_jump`` in its
+    3x3 neighbourhood) takes a range uniform between the neighbourhood's nearest and
+    farthest valid range, along its own ray.
+    """
+    H, W = ranges.shape
+    c = RealisticConstants
+    field = fourier_field(H, W, config.depth_distortion_wavelength * max(H, W),
+                          c.distortion_modes, gen).to(ranges.device)
+    log_error = config.image_distortion_amplitude * field
+    far = torch.where(valid, ranges, torch.zeros_like(ranges))
+    near = torch.where(valid, ranges, torch.full_like(ranges, math.inf))
+    far = F.max_pool2d(far[None, None], 3, stride=1, padding=1)[0, 0]
+    near = -F.max_pool2d(-near[None, None], 3, stride=1, padding=1)[0, 0]
+    jump = valid & (torch.log(far.clamp_min(1e-12)) - torch.log(near.clamp_min(1e-12))
+                    > c.edge_log_jump)
+    draw = torch.rand(H, W, generator=gen).to(ranges.device)
+    flying = jump & (draw < config.flying_pixel_fraction)
+    where = torch.rand(H, W, generator=gen).to(ranges.device)
+    flown = near + where * (far - near)
+    log_error = torch.where(flying, torch.log(flown.clamp_min(1e-12) / ranges.clamp_min(1e-12)),
+                            log_error)
+    outlier = valid & (torch.rand(H, W, generator=gen).to(ranges.device)
+                       < config.outlier_fraction)
+    jolt = c.outlier_log_sigma * torch.randn(H, W, generator=gen).to(ranges.device)
+    log_error = torch.where(outlier, log_error + jolt, log_error)
+    return torch.where(valid, log_error, torch.zeros_like(log_error))
+
+
+def scale_drift(config: SimulatedPriorConfig, agent: int, index: int) -> float:
+    """Log scale drift at frame ``index`` of ``agent``: ``scale_drift`` times a unit-RMS
+    random Fourier series of wavelengths log-uniform in ``[1/2, 2] scale_drift_frames``,
+    seeded by ``(seed, agent)`` only."""
+    gen = generator(config.seed, "scale drift", agent)
+    modes = RealisticConstants.drift_modes
+    wavelength = config.scale_drift_frames * torch.exp(
+        math.log(2.0) * (2.0 * torch.rand(modes, generator=gen, dtype=torch.float64) - 1.0))
+    phase = 2.0 * math.pi * torch.rand(modes, generator=gen, dtype=torch.float64)
+    series = torch.cos(2.0 * math.pi * index / wavelength + phase).sum()
+    return config.scale_drift * math.sqrt(2.0 / modes) * float(series)
+
+
+def rotation_angle(R: Tensor) -> float:
+    """Angle of the rotation matrix ``R`` ``(3, 3)`` in radians."""
+    cosine = (float(torch.diagonal(R).sum()) - 1.0) / 2.0
+    return math.acos(max(-1.0, min(1.0, cosine)))
+
+
+def _heavy_tailed(sigma: float, dof: int, gen: torch.Generator) -> Tensor:
+    """``(3,)`` float64 multivariate Student-t vector: ``N(0, sigma^2 / 3 I)`` over
+    ``sqrt(chi2_dof / dof)``."""
+    gaussian = sigma / math.sqrt(3.0) * torch.randn(3, generator=gen, dtype=torch.float64)
+    chi2 = float(torch.randn(dof, generator=gen, dtype=torch.float64).square().sum())
+    return gaussian / math.sqrt(max(chi2, 1e-12) / dof)
+
+
+def perturb_pose_easy(R: Tensor, t: Tensor, config: SimulatedPriorConfig,
+                      gen: torch.Generator) -> tuple[Tensor, Tensor]:
+    """Rotation ``Exp(omega) R`` and translation ``t + delta``, Gaussian (easy model)."""
+    sigma_rotation = math.radians(config.rotation_noise_deg) / math.sqrt(3.0)
+    omega = sigma_rotation * torch.randn(3, generator=gen, dtype=torch.float64)
+    sigma_translation = config.translation_noise * float(t.norm()) / math.sqrt(3.0)
+    delta = sigma_translation * torch.randn(3, generator=gen, dtype=torch.float64)
+    noise = quat_to_matrix(so3_exp(omega)).to(R)
+    return noise @ R, t + delta.to(t)
+
+
+def perturb_pose_realistic(R: Tensor, t: Tensor, unit: float, config: SimulatedPriorConfig,
+                           gen: torch.Generator) -> tuple[Tensor, Tensor]:
+    """Heavy-tailed pose error growing with the viewpoint change (module docstring, 4).
+
+    Args:
+        R: ``(3, 3)`` rotation, t: ``(3,)`` translation of view j in camera i.
+        unit: median valid depth of view i (the length unit of the translation floor).
+    """
+    change_deg = math.degrees(rotation_angle(R) + float(t.norm()) / unit)
+    growth = 1.0 + config.pose_noise_growth * change_deg
+    omega = _heavy_tailed(math.radians(config.rotation_noise_deg) * growth,
+                          config.pose_tail_dof, gen)
+    sigma_t = config.translation_noise * growth * float(t.norm()) + config.translation_floor * unit
+    delta = _heavy_tailed(sigma_t, config.pose_tail_dof, gen)
+    return quat_to_matrix(so3_exp(omega)).to(R) @ R, t + delta.to(t)
+
+
+def viewpoint_change(R: Tensor, unit_i: float, unit_j: float) -> float:
+    """Rotation angle plus ``|log|`` of the scale change between two views (radians)."""
+    return rotation_angle(R) + abs(math.log(max(unit_j, 1e-12) / max(unit_i, 1e-12)))
+
+
+def error_logit(log_error: Tensor, config: SimulatedPriorConfig) -> Tensor:
+    """Confidence-logit drop for a pixel's injected log-range error (module docstring, 7)."""
+    c = RealisticConstants
+    return config.confidence_error_slope * (log_error.abs() / c.conf_error_ref).clamp_max(
+        c.conf_error_cap)
