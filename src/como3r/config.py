@@ -236,7 +236,7 @@ class SimulatedPriorConfig:
     scale_drift: float = 0.08
     scale_drift_frames: float = 60.0
     pose_noise_growth: float = 0.05
-    translation_floor: float = 0.01
+    translation_floor: float = 0.002
     pose_tail_dof: int = 3
     gross_failure_rate: float = 0.03
     hallucination_rate: float = 0.3
@@ -244,8 +244,8 @@ class SimulatedPriorConfig:
     outlier_fraction: float = 0.005
     confidence_error_slope: float = 1.0
     confidence_noise: float = 0.5
-    descriptor_viewpoint_gain: float = 1.5
-    descriptor_ambiguity: float = 1.0
+    descriptor_viewpoint_gain: float = 1.0
+    descriptor_ambiguity: float = 0.5
 
 
 @dataclass(frozen=True)

@@ -1,9 +1,10 @@
 """The simulated prior's easy model (DESIGN.md, "Simulated prior") on tiny synthetic scenes.
 
 These tests pin the precise behaviour of the ``easy`` near-oracle; the realistic default is
-tested in ``test_simulated_realistic.py``. Scenes are rendered once per module with :func:`como3r.data.synth.synthesize` at 96x72
-(network input 96x64). Error statistics are measured against the ground truth of the
-scene, with the other error sources switched off where a statistic must be isolated.
+tested in ``test_simulated_realistic.py``. Scenes are rendered once per module with
+:func:`como3r.data.synth.synthesize` at 96x72 (network input 96x64). Error statistics are
+measured against the ground truth of the scene, with the other error sources switched off
+where a statistic must be isolated.
 """
 
 from __future__ import annotations

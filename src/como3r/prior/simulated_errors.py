@@ -36,7 +36,7 @@ factor gets the same relative errors.
    ``v = rotation angle + baseline / m`` (degrees): rotation
    ``rotation_noise_deg (1 + pose_noise_growth v)``, translation
    ``translation_noise (1 + pose_noise_growth v) |t| + translation_floor m``
-   (``pose_noise_growth = 0.05`` per degree, ``translation_floor = 0.01``: our assumption),
+   (``pose_noise_growth = 0.05`` per degree, ``translation_floor = 0.002``: our assumption),
    drawn from a multivariate Student-t with ``pose_tail_dof = 3`` degrees of freedom (heavy
    tail). A fraction ``gross_failure_rate = 0.03`` of overlapping pairs gets a random pose
    at full confidence: MASt3R on two-view CO3Dv2 pairs reaches RRA@15 94.2 % / RTA@15 86.5 %
@@ -55,9 +55,9 @@ factor gets the same relative errors.
    the easy model survives only as a weak drop (``weak_unmatched_drop``,
    ``weak_no_overlap_drop``) under the same noise. Our assumption.
 8. Descriptors: noise RMS ``descriptor_noise (1 + descriptor_viewpoint_gain v)`` with ``v``
-   the pair's rotation angle plus ``|log|`` of its scale change (radians, our assumption),
-   and the per-texture embedding weighted up by ``descriptor_ambiguity = 1.0`` so that
-   repeated texture is ambiguous.
+   the pair's rotation angle plus ``|log|`` of its scale change (radians;
+   ``descriptor_viewpoint_gain = 1.0``, our assumption), and the per-texture embedding
+   weighted up by ``descriptor_ambiguity = 0.5`` so that repeated texture is ambiguous.
 """
 
 from __future__ import annotations
