@@ -156,3 +156,21 @@ def test_ground_truth_cloud_needs_depth(tmp_path):
     agent = write_agent(tmp_path / "nodepth", with_depth=False)
     with pytest.raises(InputError, match="needs depth/"):
         ground_truth_cloud([agent])
+
+
+def test_map_metrics_are_relative_to_the_median_ground_truth_depth() -> None:
+    from types import SimpleNamespace
+
+    from como3r.evaluation.reconstruction import median_ground_truth_depth
+
+    def agent(scale: float) -> SimpleNamespace:
+        depths = [np.full((4, 5), 2.0 + k, dtype=np.float32) * scale for k in range(10)]
+        depths[3][0, 0] = 0.0  # no depth: ignored
+        return SimpleNamespace(gt_indices=np.arange(10),
+                               load_frame=lambda i: SimpleNamespace(depth=depths[i]))
+
+    base = median_ground_truth_depth([agent(1.0)])
+    assert 2.0 < base < 12.0
+    assert median_ground_truth_depth([agent(20.0)]) == pytest.approx(20.0 * base)
+    with pytest.raises(InputError, match="no frame with a valid"):
+        median_ground_truth_depth([agent(0.0)])

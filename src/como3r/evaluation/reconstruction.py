@@ -47,13 +47,19 @@ __all__ = [
     "cloud_from_depth",
     "ground_truth_cloud",
     "evaluate_maps",
+    "median_ground_truth_depth",
 ]
 
 DEFAULT_THRESHOLD_M = 0.05
-"""Precision / recall distance threshold [m]."""
+"""Precision / recall distance threshold [m] of :func:`reconstruction_metrics`."""
 
-MAP_VOXEL_M = 0.05
-"""Voxel size [m] both clouds are reduced to before a run's map is compared."""
+MAP_THRESHOLD_RATIO = 0.05
+"""A run's map: precision / recall threshold as a fraction of the median ground-truth depth
+(5 cm at the 1 m reference depth of :mod:`como3r.geometry.units`)."""
+
+MAP_VOXEL_RATIO = 0.05
+"""A run's map: both clouds are reduced to voxels of this fraction of the median
+ground-truth depth before they are compared."""
 
 GT_POINTS_PER_FRAME = 20_000
 """Roughly how many depth pixels of each ground-truth frame enter the reference cloud."""
@@ -285,31 +291,55 @@ def ground_truth_cloud(
     return voxel_downsample(np.concatenate(clouds), voxel_size)
 
 
+def median_ground_truth_depth(agents: Sequence[AgentInput], samples: int = 8) -> float:
+    """Median valid ground-truth depth [m] over up to ``samples`` evenly spaced frames of
+    each agent: the length a run's map metrics are relative to.
+
+    Raises:
+        InputError: no sampled frame has a valid depth.
+    """
+    depths = []
+    for agent in agents:
+        frames = np.flatnonzero(agent.gt_indices >= 0)
+        for index in frames[np.linspace(0, len(frames) - 1, min(samples, len(frames))).astype(int)]:
+            depth = np.asarray(agent.load_frame(int(index)).depth, dtype=np.float64)
+            depths.append(depth[np.isfinite(depth) & (depth > 0)])
+    valid = np.concatenate(depths) if depths else np.zeros(0)
+    if valid.size == 0:
+        raise InputError("median_ground_truth_depth: no frame with a valid ground-truth depth")
+    return float(np.median(valid))
+
+
 def evaluate_maps(
     agents: Sequence[AgentInput],
     clouds: dict[str, np.ndarray],
     alignment: Sim3Alignment,
-    threshold: float = DEFAULT_THRESHOLD_M,
-    voxel_size: float = MAP_VOXEL_M,
+    threshold_ratio: float = MAP_THRESHOLD_RATIO,
+    voxel_ratio: float = MAP_VOXEL_RATIO,
 ) -> dict[str, ReconstructionMetrics]:
     """Metrics of several estimates of one component's map against one reference cloud.
 
     The reference is every ground-truth frame of ``agents``, pixel-strided to about
     :data:`GT_POINTS_PER_FRAME` points per frame; each estimate is mapped into the
-    ground-truth frame by ``alignment`` (the component's trajectory alignment).
+    ground-truth frame by ``alignment`` (the component's trajectory alignment). Threshold
+    and voxel size are fractions of the median ground-truth depth
+    (:func:`median_ground_truth_depth`), so a scene scaled by any factor scores the same.
 
     Args:
         agents: the component's agent inputs (with depth, ground truth and calibration).
         clouds: name -> ``(N, 3)`` world points in the component's gauge.
         alignment: estimate -> ground truth.
-        threshold: precision / recall distance [m].
-        voxel_size: both clouds are downsampled to this voxel size [m].
+        threshold_ratio: precision / recall distance over the median depth.
+        voxel_ratio: voxel size over the median depth.
 
     Raises:
         InputError: no usable ground truth, or an empty estimate.
     """
     height, width = agents[0].image_size[1], agents[0].image_size[0]
     stride = max(1, math.ceil(math.sqrt(height * width / GT_POINTS_PER_FRAME)))
+    depth = median_ground_truth_depth(agents)
+    voxel_size = voxel_ratio * depth
     reference = ground_truth_cloud(agents, pixel_stride=stride, voxel_size=voxel_size)
-    return {name: reconstruction_metrics(cloud, reference, threshold, alignment, voxel_size)
+    return {name: reconstruction_metrics(cloud, reference, threshold_ratio * depth, alignment,
+                                         voxel_size)
             for name, cloud in clouds.items()}
