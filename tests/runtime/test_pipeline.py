@@ -122,3 +122,13 @@ def test_agents_that_never_meet_stay_apart(apart) -> None:
     assert metrics["coordinator"]["gauge_syncs"] == 0
     for ate in _agent_ates(metrics):
         assert ate <= 0.01 * length / 2
+
+
+def test_metrics_give_each_agent_its_time_per_stage(meeting) -> None:
+    _, _, result, _ = meeting
+    for agent in result["metrics"]["agents"]:
+        stages = agent["stage_seconds"]
+        assert {"prior_encode", "prior_decode", "matching", "tracking", "fusion",
+                "keyframe", "local_solve", "io", "other"} <= set(stages)
+        assert all(v >= 0.0 for v in stages.values())
+        assert sum(stages.values()) == pytest.approx(agent["seconds"], rel=0.05)

@@ -35,6 +35,7 @@ from como3r.frontend.keyframes import (
 )
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.frontend.pairs import PairLink, link_pairs
+from como3r.frontend.timing import StageTimer, TimedPrior
 from como3r.frontend.tracker import FrameTracker, TrackResult
 from como3r.errors import InputError
 from como3r.geometry.camera import lock_to_rays
@@ -71,6 +72,8 @@ class FrontendStats:
     local_solves: int = 0
     local_solve_seconds: float = 0.0
     lost_frames: list[int] = field(default_factory=list)
+    #: wall seconds per stage (prior_encode, prior_decode, matching, tracking, ...)
+    stage_seconds: dict[str, float] = field(default_factory=dict)
 
 
 class AgentFrontend:
@@ -86,14 +89,15 @@ class AgentFrontend:
 
     def __init__(self, prior: Prior, config: Config, agent: int = 0,
                  codebook: np.ndarray | None = None) -> None:
-        self.prior = prior
         self.config = config
         self.agent = agent
         self.keyframes = KeyframeStore()
         self.edges: list[Edge] = []
         self.records: list[FrameRecord] = []
         self.stats = FrontendStats()
-        self.tracker = FrameTracker(prior, config)
+        self.timer = StageTimer(self.stats.stage_seconds)
+        self.prior = TimedPrior(prior, self.timer)
+        self.tracker = FrameTracker(self.prior, config, self.timer)
         self.database = RetrievalDatabase(codebook, config.retrieval) if codebook is not None else None
         self.new_keyframes: list[int] = []  # keyframes not yet handed to a coordinator
         self._T_kf_prev: Tensor | None = None
@@ -120,12 +124,15 @@ class AgentFrontend:
             self._initialise(enc, view.index, timestamp, colors)
             return "keyframe"
         if self._lost:
-            return self._relocalize(enc, view.index, timestamp, colors)
+            with self.timer.stage("relocalization"):
+                return self._relocalize(enc, view.index, timestamp, colors)
         result = self.tracker.track(enc, self.keyframes.last, self._T_kf_prev)
         if not result.ok:
             self._lost = True
-            return self._relocalize(enc, view.index, timestamp, colors)
-        self._accept(result, self.keyframes.last, view.index, timestamp, enc, colors)
+            with self.timer.stage("relocalization"):
+                return self._relocalize(enc, view.index, timestamp, colors)
+        with self.timer.stage("keyframe"):
+            self._accept(result, self.keyframes.last, view.index, timestamp, enc, colors)
         return "keyframe" if result.new_keyframe else "tracked"
 
     def _initialise(self, enc: Encoding, index: int, timestamp: float, colors: np.ndarray) -> None:
@@ -174,7 +181,7 @@ class AgentFrontend:
         links = link_pairs(
             self.prior, [(self.keyframes[p].encoding, kf.encoding) for p in partners],
             self.config.matching, self.config.tracking.q_min,
-            verification.covisible_min_confidence,
+            verification.covisible_min_confidence, self.timer,
         )
         for partner, link in zip(partners, links):
             sequential = partner == kf.kf_id - 1
@@ -191,7 +198,8 @@ class AgentFrontend:
     def _index(self, kf: Keyframe) -> None:
         """Add the keyframe to the agent's retrieval database (after querying with it)."""
         if self.database is not None and kf.retrieval is not None:
-            self.database.add(self.agent, kf.kf_id, *kf.retrieval)
+            with self.timer.stage("retrieval"):
+                self.database.add(self.agent, kf.kf_id, *kf.retrieval)
 
     def _add_edge_pair(self, i: int, j: int, link: PairLink, kind: str) -> None:
         self.edges.append(Edge(i, j, link.ij, kind))
@@ -201,9 +209,11 @@ class AgentFrontend:
         """Own keyframes most like ``kf`` (not its predecessor), above the threshold."""
         if not self.config.loop_closure or self.database is None or kf.retrieval is None:
             return []
-        hits = self.database.query(
-            kf.retrieval[0], agent=self.agent, exclude_keyframes=[(self.agent, kf.kf_id - 1)],
-        )
+        with self.timer.stage("retrieval"):
+            hits = self.database.query(
+                kf.retrieval[0], agent=self.agent,
+                exclude_keyframes=[(self.agent, kf.kf_id - 1)],
+            )
         self.stats.loop_candidates += len(hits)
         return [h.keyframe for h in hits]
 
@@ -212,10 +222,12 @@ class AgentFrontend:
         if not self.edges:
             return
         solve = self.config.local_solve
-        factors = build_factors(self.edges, self.keyframes.__getitem__, lambda k: k,
-                                self.config.tracking)
-        values = PoseValues.from_poses(self.keyframes.poses(), num_pinned=solve.pinned_keyframes)
-        solved, report = gauss_newton_irls(factors, values, solve)
+        with self.timer.stage("local_solve"):
+            factors = build_factors(self.edges, self.keyframes.__getitem__, lambda k: k,
+                                    self.config.tracking)
+            values = PoseValues.from_poses(self.keyframes.poses(),
+                                           num_pinned=solve.pinned_keyframes)
+            solved, report = gauss_newton_irls(factors, values, solve)
         self.stats.local_solves += 1
         self.stats.local_solve_seconds += report.seconds
         if report.diverged:
@@ -249,7 +261,8 @@ class AgentFrontend:
         T_WC = sim3_compose(keyframe.T_WC, result.T_kf)
         new = self._add_keyframe(enc, index, timestamp, T_WC, result.X_ff, result.C_ff, colors)
         link = link_pairs(self.prior, [(keyframe.encoding, new.encoding)],
-                          self.config.matching, self.config.tracking.q_min)[0]
+                          self.config.matching, self.config.tracking.q_min,
+                          timer=self.timer)[0]
         self._add_edge_pair(keyframe.kf_id, new.kf_id, link, "loop")
         self._local_solve()
         self._index(new)
@@ -260,7 +273,8 @@ class AgentFrontend:
         if self.database is None or len(self.database) == 0:
             return recent
         desc, _ = self.prior.retrieval_features(enc)
-        hits = self.database.query(desc, agent=self.agent)
+        with self.timer.stage("retrieval"):
+            hits = self.database.query(desc, agent=self.agent)
         return list(dict.fromkeys([h.keyframe for h in hits] + recent))
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray, Tensor]:

@@ -22,6 +22,7 @@ from torch import Tensor
 
 from como3r.config import MatchingConfig
 from como3r.frontend.matching import match_confidence, match_pointmaps
+from como3r.frontend.timing import StageTimer
 from como3r.prior.base import Encoding, PairPrediction, Prior
 
 
@@ -105,17 +106,21 @@ def link_pairs(
     matching: MatchingConfig,
     q_min: float,
     covisible_min_confidence: float | None = None,
+    timer: StageTimer | None = None,
 ) -> list[PairLink]:
     """Decode each pair symmetrically (one batched call) and match both directions.
 
-    With ``covisible_min_confidence`` the links also carry their co-visible fractions.
+    With ``covisible_min_confidence`` the links also carry their co-visible fractions;
+    ``timer`` is charged with the stage ``matching``.
     """
     if not pairs:
         return []
+    timer = StageTimer() if timer is None else timer
     links = []
     for p_ij, p_ji in prior.decode_symmetric(pairs):
-        ij = directed_matches(p_ij, matching, q_min)
-        ji = directed_matches(p_ji, matching, q_min)
+        with timer.stage("matching"):
+            ij = directed_matches(p_ij, matching, q_min)
+            ji = directed_matches(p_ji, matching, q_min)
         if covisible_min_confidence is None:
             links.append(PairLink(ij=ij, ji=ji))
             continue

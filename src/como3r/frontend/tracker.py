@@ -24,6 +24,7 @@ from como3r.config import Config
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.graph import make_factors
 from como3r.frontend.pairs import DirectedMatches, directed_matches, gather_points
+from como3r.frontend.timing import StageTimer
 from como3r.geometry.camera import lock_to_rays
 from como3r.geometry.lie import sim3_identity
 from como3r.optim.optimizer import SolveReport, levenberg_marquardt_irls
@@ -65,11 +66,18 @@ class TrackResult:
 
 
 class FrameTracker:
-    """Tracks frames of one agent against its keyframes, warm-starting the matching."""
+    """Tracks frames of one agent against its keyframes, warm-starting the matching.
 
-    def __init__(self, prior: Prior, config: Config) -> None:
+    Args:
+        prior: the two-view prior.
+        config: the run's configuration.
+        timer: charged with the stages ``matching``, ``tracking`` and ``fusion``.
+    """
+
+    def __init__(self, prior: Prior, config: Config, timer: StageTimer | None = None) -> None:
         self.prior = prior
         self.config = config
+        self.timer = StageTimer() if timer is None else timer
         self._warm: tuple[int, Tensor] | None = None  # (keyframe id, (1, P, 2) pixels)
 
     def track(
@@ -86,24 +94,27 @@ class FrameTracker:
         pred = self.prior.decode(enc_f, keyframe.encoding)
         if keyframe.K is not None:  # the frame's own pointmap on the calibrated rays (C-Eq. 16)
             pred = replace(pred, X_ii=lock_to_rays(pred.X_ii, keyframe.K))
-        matches = directed_matches(
-            pred, self.config.matching, self.config.tracking.q_min, self._warm_start(keyframe)
-        )
-        self._remember(keyframe, matches, pred.X_ii.shape[1])
-        nu = matches.match_fraction
-        nu_unique = _unique_fraction(matches)
+        with self.timer.stage("matching"):
+            matches = directed_matches(
+                pred, self.config.matching, self.config.tracking.q_min, self._warm_start(keyframe)
+            )
+            self._remember(keyframe, matches, pred.X_ii.shape[1])
+            nu = matches.match_fraction
+            nu_unique = _unique_fraction(matches)
         tracking = self.config.tracking
         base = dict(match_fraction=nu, unique_fraction=nu_unique, X_ff=pred.X_ii, C_ff=pred.C_ii)
         if nu < tracking.min_match_fraction:
             return TrackResult(False, "too_few_matches", T_kf_init, new_keyframe=True, **base)
-        T_kf, report = self._solve(pred.X_ii, keyframe, matches, T_kf_init)
+        with self.timer.stage("tracking"):
+            T_kf, report = self._solve(pred.X_ii, keyframe, matches, T_kf_init)
         if report.reason in _FAILED_REASONS or not bool(torch.isfinite(T_kf).all()):
             logger.info("tracking failed against keyframe %d: %s", keyframe.kf_id, report.reason)
             return TrackResult(False, report.reason, T_kf_init, new_keyframe=True, solve=report,
                                **base)
         if fuse:
-            keyframe.fuse(T_kf, pred.X_ji, pred.C_ji,
-                          ranges_only=self.config.tracking.fusion == "ranges")
+            with self.timer.stage("fusion"):
+                keyframe.fuse(T_kf, pred.X_ji, pred.C_ji,
+                              ranges_only=self.config.tracking.fusion == "ranges")
         new_kf = min(nu, nu_unique) < tracking.keyframe_match_fraction
         return TrackResult(True, "ok", T_kf, new_keyframe=new_kf, solve=report, **base)
 

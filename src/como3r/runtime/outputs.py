@@ -17,6 +17,7 @@ import torch
 from como3r.config import Config, dump_config
 from como3r.coordination.coordinator import Coordinator
 from como3r.frontend.agent import AgentFrontend
+from como3r.frontend.timing import with_remainder
 from como3r.geometry.lie import sim3_act
 from como3r.io.ply import write_ply
 from como3r.io.tum import write_tum
@@ -118,6 +119,7 @@ def frontend_metrics(fe: AgentFrontend, seconds: float) -> dict[str, Any]:
     """Per-agent counters and rates."""
     stats = asdict(fe.stats)
     stats["seconds"] = seconds
+    stats["stage_seconds"] = with_remainder(fe.stats.stage_seconds, seconds)
     stats["fps"] = fe.stats.frames / seconds if seconds > 0 else None
     return stats
 

@@ -144,11 +144,13 @@ def run(
     total = sum(len(range(0, a.num_frames, stride)) for a in agents)
     with atomic_output_dir(out, overwrite=overwrite) as staging:
         for done, (k, i) in enumerate(_frame_schedule(agents, stride), 1):
-            frame = agents[k].load_frame(i)
-            view = make_view(frame, k, config.input.long_side,
-                             agents[k].calib if needs_K else None)
             start = time.perf_counter()
-            outcome = frontends[k].process(view, frame.timestamp, _colors(view))
+            with frontends[k].timer.stage("io"):  # the agent's wall time includes its input
+                frame = agents[k].load_frame(i)
+                view = make_view(frame, k, config.input.long_side,
+                                 agents[k].calib if needs_K else None)
+                colors = _colors(view)
+            outcome = frontends[k].process(view, frame.timestamp, colors)
             seconds[k] += time.perf_counter() - start
             for packet in frontends[k].drain_new_keyframes():
                 _apply(frontends, coordinator.add_keyframe(packet))

@@ -256,11 +256,13 @@ class _AgentWorker:
 
     def _process(self, index: int) -> None:
         self.current_frame = index
-        frame = self.input.load_frame(index)
-        view = make_view(frame, self.task.agent, self.config.input.long_side,
-                         self.input.calib if self.needs_K else None)
         start = time.perf_counter()
-        outcome = self.frontend.process(view, frame.timestamp, _colors(view))
+        with self.frontend.timer.stage("io"):  # the agent's wall time includes its input
+            frame = self.input.load_frame(index)
+            view = make_view(frame, self.task.agent, self.config.input.long_side,
+                             self.input.calib if self.needs_K else None)
+            colors = _colors(view)
+        outcome = self.frontend.process(view, frame.timestamp, colors)
         seconds = time.perf_counter() - start
         self.seconds += seconds
         for packet in self.frontend.drain_new_keyframes():
