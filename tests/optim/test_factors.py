@@ -242,3 +242,22 @@ def test_non_positive_confidence_means_no_information():
     blocks = RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, q, valid).linearize(poses)
     assert torch.all(blocks.H_ii[0] == 0) and torch.all(blocks.g_j[0] == 0)
     assert torch.any(blocks.H_ii[1] != 0)
+
+
+def test_invalid_padding_changes_nothing_and_is_dropped():
+    """Matches invalid at every pose (unmatched pixels, garbage behind them) weigh zero:
+    appending them leaves the blocks and the cost unchanged, and the batch does not grow."""
+    poses, graph, X_j, valid = _tiny_graph()
+    base = RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, graph.q, valid)
+    E, P = graph.q.shape
+    pad = 30
+    garbage = torch.full((E, pad, 3), float("nan"), dtype=X_j.dtype)
+    padded = RayRangeFactors(
+        graph.i, graph.j, torch.cat([garbage, graph.X_i], 1), torch.cat([garbage, X_j], 1),
+        torch.cat([torch.rand(E, pad, dtype=graph.q.dtype), graph.q], 1),
+        torch.cat([torch.zeros(E, pad, dtype=torch.bool), valid], 1))
+    assert padded.q.shape == base.q.shape
+    a, b = base.linearize(poses), padded.linearize(poses)
+    for name in ("i", "j", "H_ii", "H_jj", "H_ij", "g_i", "g_j"):
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=1e-12, atol=0)
+    torch.testing.assert_close(base.cost(poses), padded.cost(poses), rtol=1e-12, atol=0)

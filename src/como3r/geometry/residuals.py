@@ -17,6 +17,8 @@ from como3r.geometry.lie import sim3_act, sim3_adjoint, sim3_inverse, skew
 __all__ = [
     "psi",
     "point_jacobian",
+    "ray_range_error",
+    "ray_range_terms",
     "ray_range_residual",
     "calibrated_residual",
     "edge_jacobians",
@@ -54,6 +56,36 @@ def _transform_matches(T_ij: Tensor, X_j: Tensor) -> Tensor:
     return sim3_act(T_ij[..., None, :], X_j)
 
 
+def ray_range_error(T_ij: Tensor, X_j: Tensor, X_i: Tensor) -> Tensor:
+    """Ray-and-range residual of C-Eq. 6 without its Jacobian (for cost evaluations).
+
+    Args:
+        T_ij, X_j, X_i: as in :func:`ray_range_residual`.
+
+    Returns:
+        ``e``: ``(..., N, 4)`` = ``[psi(T X_j) - psi(X_i); ||T X_j|| - ||X_i||]``.
+    """
+    return ray_range_terms(T_ij, X_j, X_i)[2]
+
+
+def ray_range_terms(T_ij: Tensor, X_j: Tensor, X_i: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The pieces of C-Eq. 6 its Jacobian is made of (see :func:`ray_range_residual`).
+
+    Args:
+        T_ij, X_j, X_i: as in :func:`ray_range_residual`.
+
+    Returns:
+        ``d = ||T X_j||`` ``(..., N)``, ``r = T X_j / d`` ``(..., N, 3)`` and the residual
+        ``e`` ``(..., N, 4)``.
+    """
+    x = _transform_matches(T_ij, X_j)
+    d = _norm(x)
+    r = x / d[..., None]
+    d_i = _norm(X_i)
+    e = torch.cat([r - X_i / d_i[..., None], (d - d_i)[..., None]], dim=-1)
+    return d, r, e
+
+
 def ray_range_residual(T_ij: Tensor, X_j: Tensor, X_i: Tensor) -> tuple[Tensor, Tensor]:
     """Ray-and-range residual of C-Eq. 6 and its Jacobian (C-Eq. 9-10).
 
@@ -75,15 +107,11 @@ def ray_range_residual(T_ij: Tensor, X_j: Tensor, X_i: Tensor) -> tuple[Tensor, 
         ``e``: ``(..., N, 4)``; ``J``: ``(..., N, 4, 7)`` = ``d e / d tau`` for
         ``T_ij <- Exp(tau) T_ij``.
     """
-    x = _transform_matches(T_ij, X_j)
-    d = _norm(x)
-    r = x / d[..., None]
-    d_i = _norm(X_i)
-    e = torch.cat([r - X_i / d_i[..., None], (d - d_i)[..., None]], dim=-1)
+    d, r, e = ray_range_terms(T_ij, X_j, X_i)
 
     # Written block by block into one buffer: the global BA linearises millions of matches,
     # and concatenating per-match blocks cost more than the arithmetic.
-    J = x.new_zeros(*x.shape[:-1], 4, 7)
+    J = r.new_zeros(*r.shape[:-1], 4, 7)
     r_over_d = r / d[..., None]
     J[..., :3, :3] = -r_over_d[..., :, None] * r[..., None, :]
     for k in range(3):

@@ -26,7 +26,13 @@ import torch
 from como3r.config import TrackingConfig
 from como3r.errors import InputError
 from como3r.geometry.lie import sim3_act, sim3_adjoint, sim3_compose, sim3_inverse
-from como3r.geometry.residuals import calibrated_residual, huber_weight, ray_range_residual
+from como3r.geometry.residuals import (
+    calibrated_residual,
+    huber_weight,
+    ray_range_error,
+    ray_range_residual,
+    ray_range_terms,
+)
 from como3r.optim.linear import EdgeBlocks
 
 # Matches linearized at once: bounds the (chunk, P, C, 7) Jacobian, its weighted copy and
@@ -106,6 +112,7 @@ class RelativePoseFactors(ABC):
             if not bool((torch.isfinite(sigma_scale) & (sigma_scale > 0)).all()):
                 raise InputError(f"{name}: sigma_scale must be positive and finite")
             self._inv_sigmas /= sigma_scale.to(q)[:, None, :]
+        self._chunk_matches = chunk_matches
         self._edges_per_chunk = max(1, chunk_matches // max(1, q.shape[1]))
 
     @abstractmethod
@@ -114,6 +121,38 @@ class RelativePoseFactors(ABC):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """Residual ``(e, P, C)``, Jacobian ``(e, P, C, 7)`` and, where the residual can
         degenerate at some poses, a ``(e, P)`` bool mask of the matches it is defined for."""
+
+    def _error(self, T_ij: torch.Tensor, edges: slice) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Residual ``(e, P, C)`` and definedness mask without the Jacobian (cost evaluation);
+        subclasses override it where the residual alone is cheaper."""
+        e, _, defined = self._residual(T_ij, edges)
+        return e, defined
+
+    def _keep_valid_matches(self, *names: str) -> None:
+        """Drop the matches that are invalid whatever the poses, packing each edge's valid
+        matches to the front and padding to the largest valid count.
+
+        An invalid match has zero square-root information, so it contributes nothing to the
+        cost, the Hessian or the gradient (C-Eq. 5, 7): the problem is unchanged while every
+        linearization touches only matches that count (a keyframe pair typically has a third
+        to two thirds of its pixels unmatched).
+
+        Args:
+            names: the subclass's per-match ``(E, P, ...)`` attributes to compact with
+                ``q`` and ``valid``.
+        """
+        E, P = self.q.shape
+        kept = max(1, int(self.valid.sum(1).max())) if E and P else P
+        if kept == P:
+            return
+        # stable sort: valid matches first, in their original order
+        order = torch.sort((~self.valid).to(torch.uint8), dim=1, stable=True).indices[:, :kept]
+        for name in ("q", "valid", *names):
+            value = getattr(self, name)
+            index = order.reshape(E, kept, *(1,) * (value.ndim - 2)).expand(
+                E, kept, *value.shape[2:])
+            setattr(self, name, torch.gather(value, 1, index))
+        self._edges_per_chunk = max(1, self._chunk_matches // kept)
 
     @property
     def num_edges(self) -> int:
@@ -140,15 +179,24 @@ class RelativePoseFactors(ABC):
             ``(e, 8)``. ``r`` and ``sqrt_info`` are zero for unusable matches (invalid, or
             behind the camera in the calibrated residual).
         """
-        self._check_poses(poses)
-        T_WC_i = poses[self.i[edges]]
-        T_ij = sim3_compose(sim3_inverse(T_WC_i), poses[self.j[edges]])
+        T_WC_i, T_ij = self._relative_poses(poses, edges)
         e, J, defined = self._residual(T_ij, edges)
         # The stored inputs are finite (see _finite_rows), so e and J are finite for finite
         # poses and a zero sqrt_info removes a match from every sum without masking J.
-        ok = self.valid[edges] if defined is None else self.valid[edges] & defined
-        sqrt_info = torch.sqrt(self.q[edges])[..., None] * self._inv_sigmas[edges] * ok[..., None]
+        sqrt_info = self._sqrt_info(edges, defined)
         return e * sqrt_info, sqrt_info, J, T_WC_i
+
+    def _relative_poses(self, poses: torch.Tensor, edges: slice
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``T_WC_i`` ``(e, 8)`` and ``T_ij = T_WC_i^-1 T_WC_j`` ``(e, 8)`` (C-Eq. 13)."""
+        self._check_poses(poses)
+        T_WC_i = poses[self.i[edges]]
+        return T_WC_i, sim3_compose(sim3_inverse(T_WC_i), poses[self.j[edges]])
+
+    def _sqrt_info(self, edges: slice, defined: torch.Tensor | None) -> torch.Tensor:
+        """``Sigma^-1/2`` ``(e, P, C)`` of C-Eq. 7, zero for unusable matches."""
+        ok = self.valid[edges] if defined is None else self.valid[edges] & defined
+        return torch.sqrt(self.q[edges])[..., None] * self._inv_sigmas[edges] * ok[..., None]
 
     def linearize(self, poses: torch.Tensor) -> EdgeBlocks:
         """Per-edge Gauss-Newton blocks with Huber-IRLS weights at ``poses`` ``(N, 8)``.
@@ -172,12 +220,27 @@ class RelativePoseFactors(ABC):
         """
         total = torch.zeros((), dtype=torch.float64, device=poses.device)
         for chunk in self._chunks():
-            r = self.whitened_residual(poses, chunk)[0].abs().to(torch.float64)
+            e, defined = self._error(self._relative_poses(poses, chunk)[1], chunk)
+            r = (e * self._sqrt_info(chunk, defined)).abs()
             k = self.huber_k
-            total = total + torch.where(r <= k, 0.5 * r * r, k * (r - 0.5 * k)).sum()
+            rho = torch.where(r <= k, 0.5 * r * r, k * (r - 0.5 * k))
+            total = total + rho.sum(dtype=torch.float64)  # per-match terms in the data dtype
         return total
 
     def _linearize_chunk(self, poses: torch.Tensor, edges: slice) -> EdgeBlocks:
+        H_rel, g_rel, T_WC_i = self._relative_blocks(poses, edges)
+        Ad = sim3_adjoint(sim3_inverse(T_WC_i))
+        Ad_T = Ad.transpose(1, 2)
+        H_jj = Ad_T @ H_rel @ Ad
+        H_jj = 0.5 * (H_jj + H_jj.transpose(1, 2))  # exactly symmetric, also in float32
+        g_j = (Ad_T @ g_rel[..., None])[..., 0]
+        return EdgeBlocks(self.i[edges], self.j[edges], H_jj, H_jj, -H_jj, -g_j, g_j)
+
+    def _relative_blocks(
+        self, poses: torch.Tensor, edges: slice
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``H = J^T W J`` ``(e, 7, 7)`` and ``g = J^T W e`` ``(e, 7)`` in the tangent of
+        ``T_ij``, and ``T_WC_i`` ``(e, 8)``, for a slice of edges."""
         r, sqrt_info, J, T_WC_i = self.whitened_residual(poses, edges)
         # The IRLS weight is absorbed into the square-root information (C-Sec. A.1): with
         # s = sqrt_info and r = s e, H = J^T (w s^2) J and g = J^T (w s r) = J^T (w s^2) e.
@@ -187,12 +250,7 @@ class RelativePoseFactors(ABC):
         WJ = (weight * sqrt_info).reshape(num, P * C, 1) * J_flat
         H_rel = WJ.transpose(1, 2) @ J_flat
         g_rel = torch.einsum("ekd,ek->ed", J_flat, (weight * r).reshape(num, P * C))
-        Ad = sim3_adjoint(sim3_inverse(T_WC_i))
-        Ad_T = Ad.transpose(1, 2)
-        H_jj = Ad_T @ H_rel @ Ad
-        H_jj = 0.5 * (H_jj + H_jj.transpose(1, 2))  # exactly symmetric, also in float32
-        g_j = (Ad_T @ g_rel[..., None])[..., 0]
-        return EdgeBlocks(self.i[edges], self.j[edges], H_jj, H_jj, -H_jj, -g_j, g_j)
+        return H_rel, g_rel, T_WC_i
 
     def _chunks(self) -> list[slice]:
         step = self._edges_per_chunk
@@ -259,12 +317,90 @@ class RayRangeFactors(RelativePoseFactors):
         self.valid = self.valid & _usable_points(X_i) & _usable_points(X_j)
         self.X_i = _finite_rows(X_i, self.valid)
         self.X_j = _finite_rows(X_j, self.valid)
+        self._keep_valid_matches("X_i", "X_j")
 
     def _residual(
         self, T_ij: torch.Tensor, edges: slice
     ) -> tuple[torch.Tensor, torch.Tensor, None]:
         e, J = ray_range_residual(T_ij, self.X_j[edges], self.X_i[edges])
         return e, J, None
+
+    def _error(self, T_ij: torch.Tensor, edges: slice) -> tuple[torch.Tensor, None]:
+        return ray_range_error(T_ij, self.X_j[edges], self.X_i[edges]), None
+
+    def _relative_blocks(
+        self, poses: torch.Tensor, edges: slice
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``J^T W J`` and ``J^T W e`` of C-Eq. 6 summed in closed form, without ``J``.
+
+        With ``x = T_ij X_j``, ``d = ||x||``, ``r = x / d`` the Jacobian rows are (C-Eq. 9-10,
+        :func:`~como3r.geometry.residuals.ray_range_residual`) ``J_c = [(e_c - r_c r) / d,
+        S_c, 0]`` for the ray components c = 0..2, with ``S = -[r]_x``, and
+        ``J_3 = [r^T, 0, d]`` for the range. With per-component weights ``a_c`` (ray),
+        ``b`` (range) and weighted residuals ``alpha_c``, ``beta`` (IRLS weight times
+        information, C-Sec. A.1) the blocks of ``H = sum_c a_c J_c^T J_c + b J_3^T J_3`` are
+
+            H_tt = diag(sum u) - M - M^T + sum (u . (r*r) + b) r r^T,  u = a / d^2,
+                   M = sum (u * r) r^T
+            H_tw = sum (diag(a) S - r v^T) / d,  v = S^T (a * r)
+            H_ww = sum S^T diag(a) S,  H_ts = sum b d r,  H_ss = sum b d^2,  H_ws = 0
+            g_t = sum ((alpha - (alpha . r) r) / d + beta r),  g_w = sum r x alpha,
+            g_s = sum beta d
+
+        so a match costs a few 3-vectors and 3x3 products instead of a ``(4, 7)`` Jacobian
+        (the same sums as the generic path up to rounding; tests pin both to autograd).
+        """
+        T_WC_i, T_ij = self._relative_poses(poses, edges)
+        d, r, e = ray_range_terms(T_ij, self.X_j[edges], self.X_i[edges])
+        sqrt_info = self._sqrt_info(edges, None)
+        whitened = e * sqrt_info
+        weight = huber_weight(whitened, self.huber_k) * sqrt_info
+        W, G = weight * sqrt_info, weight * whitened  # (e, P, 4): w s^2 and w s^2 e
+        a, b = W[..., :3], W[..., 3]
+        alpha, beta = G[..., :3], G[..., 3]
+        inv_d = 1.0 / d
+        r0, r1, r2 = r.unbind(-1)
+        # products of the two other components of r, indexed by the missing one
+        cross = torch.stack([r1 * r2, r0 * r2, r0 * r1], dim=-1)
+        u = a * (inv_d * inv_d)[..., None]
+        M = torch.einsum("epk,epl->ekl", u * r, r)
+        N = torch.einsum("epk,epl->ekl", ((u * r * r).sum(-1) + b)[..., None] * r, r)
+        H_tt = torch.diag_embed(u.sum(1)) - M - M.transpose(1, 2) + N
+        # v = S^T (a * r): v_l = cross_l (a_{l+2} - a_{l+1}) (indices mod 3)
+        v = cross * (a.roll(-2, dims=-1) - a.roll(-1, dims=-1))
+        A = torch.einsum("epk,epl->ekl", a * inv_d[..., None], r)  # sum a_k r_l / d
+        zero = torch.zeros_like(A[:, 0, 0])
+        # (sum diag(a) S / d)_{kl} = sum a_k S_kl / d with S = -[r]_x
+        aS = torch.stack([
+            torch.stack([zero, A[:, 0, 2], -A[:, 0, 1]], -1),
+            torch.stack([-A[:, 1, 2], zero, A[:, 1, 0]], -1),
+            torch.stack([A[:, 2, 1], -A[:, 2, 0], zero], -1),
+        ], dim=1)
+        H_tw = aS - torch.einsum("epk,epl->ekl", r * inv_d[..., None], v)
+        # S^T diag(a) S: diagonal sum_{c != l != k} a_c r_l^2, off-diagonal -a_m r_k r_l
+        ar2 = torch.einsum("epc,epl->ecl", a, r * r)
+        off = (a * cross).sum(1)
+        H_ww = torch.stack([
+            torch.stack([ar2[:, 1, 2] + ar2[:, 2, 1], -off[:, 2], -off[:, 1]], -1),
+            torch.stack([-off[:, 2], ar2[:, 0, 2] + ar2[:, 2, 0], -off[:, 0]], -1),
+            torch.stack([-off[:, 1], -off[:, 0], ar2[:, 0, 1] + ar2[:, 1, 0]], -1),
+        ], dim=1)
+        bd = b * d
+        H_ts = (bd[..., None] * r).sum(1)
+        num = H_tt.shape[0]
+        H_rel = H_tt.new_zeros(num, 7, 7)
+        H_rel[:, :3, :3] = H_tt
+        H_rel[:, :3, 3:6] = H_tw
+        H_rel[:, 3:6, :3] = H_tw.transpose(1, 2)
+        H_rel[:, 3:6, 3:6] = H_ww
+        H_rel[:, :3, 6] = H_ts
+        H_rel[:, 6, :3] = H_ts
+        H_rel[:, 6, 6] = (bd * d).sum(1)
+        along = (alpha * r).sum(-1, keepdim=True)
+        g_t = ((alpha - along * r) * inv_d[..., None] + beta[..., None] * r).sum(1)
+        g_w = torch.linalg.cross(r, alpha, dim=-1).sum(1)
+        g_rel = torch.cat([g_t, g_w, (beta * d).sum(1, keepdim=True)], dim=-1)
+        return H_rel, g_rel, T_WC_i
 
 
 class CalibratedFactors(RelativePoseFactors):
@@ -318,6 +454,7 @@ class CalibratedFactors(RelativePoseFactors):
         self.p_i = _finite_rows(p_i, self.valid)
         self.z_i = _finite_rows(z_i[..., None], self.valid)[..., 0]
         self.K = K
+        self._keep_valid_matches("X_j", "p_i", "z_i")
 
     def _residual(
         self, T_ij: torch.Tensor, edges: slice
