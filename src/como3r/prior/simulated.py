@@ -52,21 +52,19 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from como3r.config import SimulatedPriorConfig
-from como3r.errors import GeometryError, PriorError
+from como3r.errors import PriorError
 from como3r.geometry.camera import rays_from_intrinsics, unproject_depth
-from como3r.geometry.lie import matrix_to_quat, quat_to_matrix, sim3_act, so3_exp
+from como3r.geometry.lie import quat_to_matrix, so3_exp
 from como3r.prior import simulated_errors as errors
-from como3r.geometry.umeyama import umeyama_sim3, umeyama_sim3_batched
 from como3r.prior.base import Encoding, PairPrediction, Prior, View
+from como3r.prior.simulated_fit import match_keys, robust_fit
 from como3r.prior.simulated_keys import (
     KeyMatches,
     RandomFeatureMap,
     generator,
     key_footprint,
-    key_jacobians,
     keys_from_surface,
     keys_from_world,
-    match_key_cells,
     stable_seed,
 )
 from como3r.prior.simulated_retrieval import (
@@ -317,8 +315,8 @@ class SimulatedPrior(Prior):
         gen = generator(self.config.seed, "pair", enc_i.agent, enc_i.index,
                         enc_j.agent, enc_j.index)
         scale = math.exp(self.config.scale_sigma * float(torch.randn((), generator=gen)))
-        matches = self._match_keys(enc_i, enc_j, gen)
-        fitted = self._robust_fit(enc_i, enc_j, matches, gen)
+        matches = match_keys(enc_i, enc_j, self.constants, gen)
+        fitted = robust_fit(enc_i, enc_j, matches, self.constants, gen)
         overlap = fitted is not None
         R, t, s = fitted if overlap else self._random_pose(enc_i, gen)
         if self.realistic:
@@ -359,8 +357,10 @@ class SimulatedPrior(Prior):
         X_j, error_j = self._observe(enc_j, gen)
         X_ji = scale * (s * X_j @ R.T + t)
         r = errors.RealisticConstants
-        drop_i = r.weak_unmatched_drop * (~matches.counterpart_i.view(enc_i.shape)).float()
-        drop_j = r.weak_unmatched_drop * (~matches.counterpart_j.view(enc_j.shape)).float()
+        unmatched_i = ~matches.counterpart_i.view(enc_i.shape) & enc_i.valid
+        unmatched_j = ~matches.counterpart_j.view(enc_j.shape) & enc_j.valid
+        drop_i = r.weak_unmatched_drop * unmatched_i.float()
+        drop_j = r.weak_unmatched_drop * unmatched_j.float()
         if not (overlap or hallucinated):
             drop_i, drop_j = drop_i + r.weak_no_overlap_drop, drop_j + r.weak_no_overlap_drop
         conf_i, desc_conf_i = self._base_logits(enc_i)
@@ -406,113 +406,6 @@ class SimulatedPrior(Prior):
             raise PriorError(f"simulated prior: cannot decode a {type(enc).__name__} "
                              "(encode the view with the simulated prior)")
         return enc
-
-    def _match_keys(self, enc_i: SimulatedEncoding, enc_j: SimulatedEncoding,
-                    gen: torch.Generator) -> KeyMatches:
-        """Key-cell matches of the pair; the cell is ``cell_per_footprint`` times the coarser
-        of the two median footprints, so both views sample almost every cell they share."""
-        cell = self.constants.cell_per_footprint * max(enc_i.median_footprint,
-                                                       enc_j.median_footprint, 1e-6)
-        return match_key_cells(enc_i.key_ids, enc_i.key_coords, enc_j.key_ids,
-                               enc_j.key_coords, cell, gen)
-
-    def _robust_fit(self, enc_i: SimulatedEncoding, enc_j: SimulatedEncoding,
-                    matches: KeyMatches, gen: torch.Generator
-                    ) -> tuple[Tensor, Tensor, Tensor] | None:
-        """RANSAC similarity ``x_i = s R x_j + t`` from the key matches, None if unsupported.
-
-        Hypotheses are minimal 3-point similarities scored by their inliers (distance below
-        ``ransac_inlier_cells`` key cells). The best is refined by :func:`umeyama_sim3` on its
-        inliers under shrinking thresholds (``refine_inlier_cells``): matches on planar
-        surfaces are exact (:meth:`_point_at_key`), while matches across curved or
-        self-similar surfaces of an object are off by up to a cell and must not bias the fit.
-        The fit is accepted when the final pose explains enough matches within
-        ``ransac_inlier_cells`` cells.
-        """
-        c = self.constants
-        needed = max(c.min_inliers, c.min_overlap_fraction * enc_j.valid.numel())
-        total = matches.pixels_j.numel()
-        if total < needed:
-            return None
-        keep = torch.randperm(total, generator=gen)[: c.ransac_max_correspondences]
-        keep = keep.to(matches.pixels_j.device)
-        pixels_i, pixels_j = matches.pixels_i[keep], matches.pixels_j[keep]
-        src = self._true_points(enc_j).reshape(-1, 3)[pixels_j].double()
-        dst = self._point_at_key(enc_i, pixels_i, enc_j.key_coords.reshape(-1, 3)[pixels_j])
-        # Hypotheses are scored on a subset; the refinement below uses every correspondence.
-        scored = slice(0, c.ransac_scored_correspondences)
-        samples = torch.randint(0, src.shape[0], (c.ransac_hypotheses, 3), generator=gen)
-        R, t, s = (x.to(torch.float32) for x in umeyama_sim3_batched(src[samples], dst[samples]))
-        # s R x + t of every scored point under every hypothesis, as one (n, 3) @ (3, 3B) GEMM
-        rotated = (src[scored].float() @ R.reshape(-1, 3).T).view(-1, c.ransac_hypotheses, 3)
-        residual_sq = (s[None, :, None] * rotated + t[None] - dst[scored, None].float()).square()
-        threshold = c.ransac_inlier_cells * matches.cell
-        support = (residual_sq.sum(-1) < threshold**2).sum(0)
-        best = int(support.argmax())
-        T = torch.cat([t[best], matrix_to_quat(R[best]), s[best, None]]).double()
-        inliers = (sim3_act(T, src) - dst).norm(dim=-1) < threshold
-        for fraction in c.refine_inlier_cells:
-            refined = self._refit(src, dst, inliers, fraction * matches.cell)
-            if refined is None:
-                break
-            T, inliers = refined
-        supported = (sim3_act(T, src) - dst).norm(dim=-1) < threshold
-        if float(supported.float().mean()) * total < needed:
-            return None
-        T = T.to(torch.float32)
-        return quat_to_matrix(T[3:7]), T[:3], T[7]
-
-    def _point_at_key(self, enc: SimulatedEncoding, pixels: Tensor, keys: Tensor) -> Tensor:
-        """``(M, 3)`` float64 points of ``enc`` at exactly ``keys`` ``(M, 3)``, starting from
-        pixels of the same key cell.
-
-        A learned matcher localises correspondences to sub-pixel accuracy; a pixel of the
-        same cell is off by up to a cell, with a bias that depends on the perspective
-        sampling of the two views. Newton steps in the image (``d (u, v) / d key``) move to
-        the pixel of the nearest key, whose point is then corrected to first order
-        (``d point / d key``, :func:`~como3r.prior.simulated_keys.key_jacobians`); on
-        planar surfaces the result is exact.
-        """
-        H, W = enc.shape
-        ids, coords = enc.key_ids.reshape(-1), enc.key_coords.reshape(-1, 3)
-        points = self._true_points(enc)
-        key_to_pixel, jacobian = key_jacobians(enc.key_ids, enc.key_coords, points, pixels)
-        for _ in range(self.constants.newton_steps):
-            offset = (keys - coords[pixels])[:, :, None]
-            step = torch.round((key_to_pixel @ offset)[..., 0]).long()
-            u = (pixels % W + step[:, 0]).clamp(0, W - 1)
-            v = (pixels // W + step[:, 1]).clamp(0, H - 1)
-            candidate = v * W + u
-            candidate_to_pixel, candidate_jacobian = key_jacobians(
-                enc.key_ids, enc.key_coords, points, candidate)
-            better = (ids[candidate] == ids[pixels]) & (
-                candidate_to_pixel.abs().sum((1, 2)) > 0)
-            pixels = torch.where(better, candidate, pixels)
-            key_to_pixel = torch.where(better[:, None, None], candidate_to_pixel, key_to_pixel)
-            jacobian = torch.where(better[:, None, None], candidate_jacobian, jacobian)
-        offset = (keys - coords[pixels]).double()
-        return (points.reshape(-1, 3)[pixels].double()
-                + (jacobian.double() @ offset[:, :, None])[..., 0])
-
-    def _refit(self, src: Tensor, dst: Tensor, inliers: Tensor,
-               threshold: float) -> tuple[Tensor, Tensor] | None:
-        """Umeyama fit on ``inliers`` and its inliers within ``threshold``; None if the fit
-        is degenerate or keeps too few inliers (then the previous fit stands)."""
-        if int(inliers.sum()) < self.constants.min_inliers:
-            return None
-        try:
-            T = umeyama_sim3(src[inliers], dst[inliers])
-        except GeometryError:
-            return None
-        refined = (sim3_act(T, src) - dst).norm(dim=-1) < threshold
-        if int(refined.sum()) < self.constants.min_inliers:
-            return None
-        return T, refined
-
-    @staticmethod
-    def _true_points(enc: SimulatedEncoding) -> Tensor:
-        """``(H, W, 3)`` true camera-frame points (0 where invalid)."""
-        return enc.rays * enc.ranges[..., None]
 
     def _random_pose(self, enc_i: SimulatedEncoding,
                      gen: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
