@@ -34,7 +34,7 @@ from como3r.frontend.keyframes import (
     apply_pose_update,
 )
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
-from como3r.frontend.pairs import PairLink, link_pairs
+from como3r.frontend.pairs import DirectedMatches, PairLink, direction_passes, link_pairs
 from como3r.frontend.timing import StageTimer, TimedPrior
 from como3r.frontend.tracker import FrameTracker, TrackResult
 from como3r.errors import InputError
@@ -178,17 +178,25 @@ class AgentFrontend:
         candidates = self._loop_candidates(kf)
         partners = [kf.kf_id - 1, *candidates]
         verification = self.config.verification
+
+        def loop_test(matches: DirectedMatches, covisible: float | None) -> bool:
+            # a loop needs matches where the pair's own geometry says both views see: the
+            # match fraction alone accepts repeated structure (the coordinator's same test)
+            return direction_passes(matches, covisible, self.config.local_solve.min_match_fraction,
+                                    verification.min_covisible_ratio)
+
+        # partner 0 is the sequential edge (always kept); a loop candidate failing its first
+        # direction cannot pass, so its second matching is skipped
         links = link_pairs(
             self.prior, [(self.keyframes[p].encoding, kf.encoding) for p in partners],
             self.config.matching, self.config.tracking.q_min,
             verification.covisible_min_confidence, self.timer,
+            screen=lambda k, ij, covisible: k == 0 or loop_test(ij, covisible),
         )
         for partner, link in zip(partners, links):
             sequential = partner == kf.kf_id - 1
-            # a loop needs matches where the pair's own geometry says both views see: the
-            # match fraction alone accepts repeated structure (the coordinator's same test)
-            loop_ok = (link.min_match_fraction >= self.config.local_solve.min_match_fraction
-                       and link.covisible_ratio >= verification.min_covisible_ratio)
+            loop_ok = (link is not None and loop_test(link.ij, link.covisible_ij)
+                       and loop_test(link.ji, link.covisible_ji))
             if sequential or loop_ok:
                 self._add_edge_pair(partner, kf.kf_id, link, "sequential" if sequential else "loop")
                 self.stats.loop_edges += 0 if sequential else 1

@@ -15,7 +15,7 @@ threshold of its use (C-Eq. 12: ``tau_inter`` across agents).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -107,26 +107,46 @@ def link_pairs(
     q_min: float,
     covisible_min_confidence: float | None = None,
     timer: StageTimer | None = None,
-) -> list[PairLink]:
+    screen: Callable[[int, DirectedMatches, float | None], bool] | None = None,
+) -> list[PairLink | None]:
     """Decode each pair symmetrically (one batched call) and match both directions.
 
     With ``covisible_min_confidence`` the links also carry their co-visible fractions;
-    ``timer`` is charged with the stage ``matching``.
+    ``timer`` is charged with the stage ``matching``. ``screen(k, ij, covisible_ij)`` is
+    asked after the first direction of pair k: when it returns False the pair cannot pass
+    a test that needs both directions, its second matching is skipped and its link is None.
     """
     if not pairs:
         return []
     timer = StageTimer() if timer is None else timer
-    links = []
-    for p_ij, p_ji in prior.decode_symmetric(pairs):
+    links: list[PairLink | None] = []
+    for k, (p_ij, p_ji) in enumerate(prior.decode_symmetric(pairs)):
         with timer.stage("matching"):
             ij = directed_matches(p_ij, matching, q_min)
-            ji = directed_matches(p_ji, matching, q_min)
-        if covisible_min_confidence is None:
-            links.append(PairLink(ij=ij, ji=ji))
+        cov_ij = (None if covisible_min_confidence is None
+                  else covisible_fraction(p_ij, ij, covisible_min_confidence))
+        if screen is not None and not screen(k, ij, cov_ij):
+            links.append(None)
             continue
-        links.append(PairLink(ij, ji, covisible_fraction(p_ij, ij, covisible_min_confidence),
-                              covisible_fraction(p_ji, ji, covisible_min_confidence)))
+        with timer.stage("matching"):
+            ji = directed_matches(p_ji, matching, q_min)
+        cov_ji = (None if covisible_min_confidence is None
+                  else covisible_fraction(p_ji, ji, covisible_min_confidence))
+        links.append(PairLink(ij, ji, cov_ij, cov_ji))
     return links
+
+
+def direction_passes(matches: DirectedMatches, covisible: float | None,
+                     min_match_fraction: float, min_covisible_ratio: float) -> bool:
+    """One direction of a link has ``nu >= min_match_fraction`` and, where its co-visible
+    fraction is known, matches at least ``min_covisible_ratio`` of its co-visible pixels.
+
+    A link passes ``min(nu_i, nu_j) >= min_match_fraction`` and
+    ``covisible_ratio >= min_covisible_ratio`` exactly when both its directions pass.
+    """
+    if matches.match_fraction < min_match_fraction:
+        return False
+    return covisible is None or _ratio(matches.match_fraction, covisible) >= min_covisible_ratio
 
 
 def _ratio(matched: float, covisible: float) -> float:

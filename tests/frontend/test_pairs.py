@@ -1,0 +1,30 @@
+"""Link tests decided one direction at a time (what lets loop verification stop early)."""
+
+from __future__ import annotations
+
+import itertools
+
+import torch
+
+from como3r.frontend.pairs import DirectedMatches, PairLink, direction_passes
+
+
+def _matches(fraction: float, n: int = 100) -> DirectedMatches:
+    valid = torch.arange(n) < round(fraction * n)
+    return DirectedMatches(idx=torch.arange(n), valid=valid, q=torch.full((n,), 2.0))
+
+
+def test_a_link_passes_exactly_when_both_directions_pass() -> None:
+    fractions = (0.0, 0.05, 0.1, 0.3, 0.8)
+    covisible = (0.0, 0.1, 0.4, 1.0)
+    for nu_ij, nu_ji, c_ij, c_ji in itertools.product(fractions, fractions, covisible, covisible):
+        link = PairLink(_matches(nu_ij), _matches(nu_ji), c_ij, c_ji)
+        whole = link.min_match_fraction >= 0.1 and link.covisible_ratio >= 0.7
+        split = (direction_passes(link.ij, c_ij, 0.1, 0.7)
+                 and direction_passes(link.ji, c_ji, 0.1, 0.7))
+        assert whole == split, (nu_ij, nu_ji, c_ij, c_ji)
+
+
+def test_without_covisibility_only_the_match_fraction_counts() -> None:
+    assert direction_passes(_matches(0.2), None, 0.1, 0.7)
+    assert not direction_passes(_matches(0.05), None, 0.1, 0.7)
