@@ -10,7 +10,8 @@ image and its spatial gradients, warm-started from the previous frame's matches.
 match is then refined by descriptor similarity in a dilated window (MASt3R-SLAM's
 coarse-to-fine search, dilation 5 -> 1), and rejected as occluded when the 3-D points at
 the two ends are further apart than ``occlusion_ratio`` times the query's range. Validity
-is decided on the final, refined match.
+is decided on the final, refined match; only matches that can be valid (the projection
+converged on a finite query point) are refined, the others keep their projected pixel.
 
 Everything is vectorised PyTorch over a batch of pairs and runs on CPU and GPU.
 """
@@ -190,7 +191,8 @@ def _nearest_ray_pixel(rays: Tensor, p: Tensor, target_rays: Tensor) -> Tensor:
 
 
 def refine_with_descriptors(
-    D_search: Tensor, D_query: Tensor, pixel: Tensor, radius: int, dilation_max: int
+    D_search: Tensor, D_query: Tensor, pixel: Tensor, radius: int, dilation_max: int,
+    active: Tensor | None = None,
 ) -> Tensor:
     """Move each match to the best descriptor match in shrinking dilated windows.
 
@@ -204,6 +206,8 @@ def refine_with_descriptors(
         pixel: ``(B, P, 2)`` int64 current matches ``(u, v)``.
         radius: window radius in samples.
         dilation_max: first dilation; it decreases to 1.
+        active: ``(B, P)`` bool, the matches to refine (default all); the others keep
+            ``pixel``.
 
     Returns:
         ``(B, P, 2)`` int64 refined pixels.
@@ -218,25 +222,29 @@ def refine_with_descriptors(
     table = padded.permute(0, 2, 3, 1).reshape(B * Hp * Wp, d).contiguous()
     steps = torch.arange(-radius, radius + 1, device=pixel.device)
     grid_v, grid_u = torch.meshgrid(steps, steps, indexing="ij")
-    grid_u, grid_v = grid_u.reshape(-1), grid_v.reshape(-1)
+    window = torch.stack([grid_u.reshape(-1), grid_v.reshape(-1)], dim=-1)  # (K, 2) (u, v)
+    row_offsets = window[:, 1] * Wp + window[:, 0]  # (K,) flat offsets at dilation 1
     upper = torch.tensor([W - 1, H - 1], device=pixel.device)
-    p = pixel.reshape(B * P, 2).clone()
-    base = torch.arange(B, device=pixel.device).repeat_interleave(P) * (Hp * Wp)
-    query = D_query.reshape(B * P, d)
-    for start in range(0, B * P, _REFINE_CHUNK):
+    refined = pixel.reshape(B * P, 2).clone()
+    rows_of = torch.arange(B * P, device=pixel.device)
+    if active is not None:
+        rows_of = rows_of[active.reshape(-1)]
+    p = refined[rows_of]
+    base = torch.div(rows_of, P, rounding_mode="floor") * (Hp * Wp)
+    query = D_query.reshape(B * P, d)[rows_of]
+    for start in range(0, p.shape[0], _REFINE_CHUNK):
         sl = slice(start, start + _REFINE_CHUNK)
-        q = query[sl]
+        q, pc, bc = query[sl], p[sl], base[sl] + margin * Wp + margin
         for dilation in range(dilation_max, 0, -1):
-            centre = base[sl] + (p[sl, 1] + margin) * Wp + p[sl, 0] + margin
-            offsets = dilation * (grid_v * Wp + grid_u)
-            rows = (centre[:, None] + offsets).reshape(-1)
-            desc = table.index_select(0, rows).reshape(-1, offsets.numel(), d)  # (chunk, K, d)
+            rows = ((bc + pc[:, 1] * Wp + pc[:, 0])[:, None] + dilation * row_offsets).reshape(-1)
+            desc = table.index_select(0, rows).reshape(-1, row_offsets.numel(), d)  # (n, K, d)
             # one batched GEMV per chunk; max(dim).indices (first maximum, as argmax) is
             # twice as fast as argmax over a short last dimension on CPU
             best = torch.bmm(desc, q[:, :, None])[..., 0].max(dim=-1).indices
-            step = torch.stack([grid_u[best], grid_v[best]], dim=-1) * dilation
-            p[sl] = (p[sl] + step).clamp(min=0).minimum(upper)
-    return p.reshape(B, P, 2)
+            pc = (pc + dilation * window[best]).clamp(min=0).minimum(upper)
+        p[sl] = pc
+    refined[rows_of] = p
+    return refined.reshape(B, P, 2)
 
 
 def match_pointmaps(
@@ -280,19 +288,20 @@ def match_pointmaps(
         config.max_iters, config.lambda_init, config.convergence_tol,
     )
     pixel = _nearest_ray_pixel(psi(X_search), p, psi(queries))
+    finite = torch.isfinite(queries).all(-1)
     if config.descriptor_radius > 0:
-        # the window is given at the paper's 512 px and scales with the image (units.py)
+        # the window is given at the paper's 512 px and scales with the image (units.py);
+        # only matches that can be valid (converged, finite query) are refined
         pixel = refine_with_descriptors(
             D_search, D_query.reshape(B, Hq * Wq, -1), pixel,
             pixels_at(config.descriptor_radius, max(H, W)),
-            pixels_at(config.descriptor_dilation_max, max(H, W)),
+            pixels_at(config.descriptor_dilation_max, max(H, W)), active=converged & finite,
         )
     idx = pixel[..., 1] * W + pixel[..., 0]
     matched_points = torch.gather(X_search.reshape(B, H * W, 3), 1, idx[..., None].expand(-1, -1, 3))
     # occlusion gap relative to the query's range: the same test at every scene scale
     gap = (matched_points - queries).norm(dim=-1)
     not_occluded = gap < config.occlusion_ratio * queries.norm(dim=-1)
-    finite = torch.isfinite(queries).all(-1)
     return Matches(idx=idx, pixel=pixel, valid=converged & not_occluded & finite)
 
 
