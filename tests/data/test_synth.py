@@ -42,6 +42,8 @@ def scenes(tmp_path_factory) -> dict[str, tuple[Path, int]]:
         "aliasing": _synth(root / "aliasing", preset="aliasing", frames=40),
         "no-meeting": _synth(root / "no-meeting", preset="no-meeting", frames=8),
         "forward": _synth(root / "forward", preset="forward", frames=8, agents=3),
+        **{preset: _synth(root / preset, preset=preset, frames=10)
+           for preset in ("rotation", "fast", "low-texture", "covered", "revisit")},
     }
 
 

@@ -141,7 +141,7 @@ def test_colour_is_a_function_of_the_key():
 def test_textures_are_rich_and_deterministic():
     table = MaterialTable()
     rng = np.random.default_rng(0)
-    ids = [random_material(table, k, rng) for k in Kind if k != Kind.ROAD]
+    ids = [random_material(table, k, rng) for k in Kind if k not in (Kind.ROAD, Kind.PLAIN)]
     ids.append(table.add(Kind.ROAD, (0.22, 0.22, 0.23), (0.92, 0.92, 0.88), (3.5, 6.0)))
     bank = TextureBank(table)
     s, t = np.meshgrid(np.linspace(0, 4, 80), np.linspace(0, 3, 60))
@@ -155,6 +155,17 @@ def test_textures_are_rich_and_deterministic():
         assert patches.min() > 0.01, Kind(table.kind[tid]).name
     other = bank.albedo(np.full(s.size, ids[0]), s.ravel() + 7.3, t.ravel())
     assert np.abs(other - bank.albedo(np.full(s.size, ids[0]), s.ravel(), t.ravel())).mean() > 0.02
+
+
+def test_plain_texture_is_flat_with_sparse_marks():
+    """The ``low-texture`` paint: almost every 0.5 m patch is flat, a few hold a mark."""
+    table = MaterialTable()
+    tid = random_material(table, Kind.PLAIN, np.random.default_rng(0))
+    s, t = np.meshgrid(np.linspace(0, 20, 800), np.linspace(0, 20, 800))
+    grey = TextureBank(table).albedo(np.full(s.size, tid), s.ravel(), t.ravel()).mean(axis=1)
+    patches = grey.reshape(40, 20, 40, 20).std(axis=(1, 3))
+    assert 0.0 < np.mean(patches > 0.01) < 0.15
+    assert np.median(patches) < 0.003
 
 
 def test_value_noise_is_smooth_and_bounded():

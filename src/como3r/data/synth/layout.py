@@ -39,11 +39,14 @@ class SceneBuilder:
         rng: the scene's random generator (the only source of randomness).
         path_points: ``(M, 2)`` samples of every camera path (for clearance checks).
         clearance: minimal horizontal distance from a camera path to any solid.
+        plain: every texture, ground included, is flat paint with sparse marks
+            (:attr:`Kind.PLAIN`; the ``low-texture`` preset) whatever kind is asked for.
     """
 
     rng: np.random.Generator
     path_points: np.ndarray
     clearance: float
+    plain: bool = False
     materials: MaterialTable = field(default_factory=MaterialTable)
     primitives: list[Primitive] = field(default_factory=list)
     footprints: list[tuple[float, float, float]] = field(default_factory=list)
@@ -52,11 +55,11 @@ class SceneBuilder:
 
     def __post_init__(self) -> None:
         self._path_tree = cKDTree(self.path_points)
-        self.ground_id = random_material(self.materials, Kind.PAVING, self.rng)
+        self.ground_id = self.texture(Kind.PAVING)
 
     def texture(self, kind: Kind) -> int:
-        """A fresh texture id of the given kind."""
-        return random_material(self.materials, kind, self.rng)
+        """A fresh texture id of the given kind (of :attr:`Kind.PLAIN` if ``plain``)."""
+        return random_material(self.materials, Kind.PLAIN if self.plain else kind, self.rng)
 
     def family(self, kind: Kind, count: int) -> list[int]:
         """``count`` ids of one look (same colours, own noise): the faces of one object

@@ -15,6 +15,9 @@
 ``forward``
     Driving: a stadium-shaped ring road lined with buildings, cameras looking straight
     ahead at 12 m/s, little parallax.
+
+The motion and appearance families built on these (``rotation``, ``fast``, ``low-texture``,
+``covered``, ``revisit``) are in :mod:`.families`.
 """
 
 from __future__ import annotations
@@ -39,7 +42,8 @@ from como3r.data.synth.trajectories import (
     stadium_loop,
 )
 
-PRESETS = ("default", "aliasing", "no-meeting", "forward")
+#: the presets of this module; :data:`.families.PRESETS` lists every preset
+BASE_PRESETS = ("default", "aliasing", "no-meeting", "forward")
 
 #: Minimal horizontal distance between a camera and any solid.
 CLEARANCE = 1.2
@@ -60,13 +64,21 @@ class Meeting:
 
 @dataclass(frozen=True)
 class SceneSpec:
-    """A generated scene with its agents' ground-truth paths."""
+    """A generated scene with its agents' ground-truth paths.
+
+    Attributes:
+        loop: the loop the agents ride, when they ride one.
+        covered: first and last frame (inclusive) of every agent during which the lens is
+            covered (the ``covered`` preset): written black, without depth or keys.
+    """
 
     scene: Scene
     paths: list[AgentPath]
     meetings: list[Meeting]
     motion: CameraMotion
     info: dict = field(default_factory=dict)
+    loop: LoopCurve | None = None
+    covered: tuple[int, int] | None = None
 
 
 def _loop_radius(length: float, petals: int) -> tuple[float, float]:
@@ -136,10 +148,12 @@ def _door_walls(builder: SceneBuilder, theta: float, radius: float, tower: float
             break
 
 
-def _rooms(agents: int, frames: int, overlap: float, rng: np.random.Generator,
-           aliasing: bool) -> SceneSpec:
-    """The ``default`` and ``aliasing`` presets (module docstring)."""
-    motion = CameraMotion()
+def rooms(agents: int, frames: int, overlap: float, rng: np.random.Generator,
+          aliasing: bool, motion: CameraMotion = CameraMotion(), plain: bool = False
+          ) -> SceneSpec:
+    """The ``default`` and ``aliasing`` presets (module docstring); with another camera
+    ``motion`` or ``plain`` textures (:class:`SceneBuilder`), the rooms of the families in
+    :mod:`.families`."""
     path_length = motion.speed * (frames - 1)
     plan = plan_ring(agents, path_length, overlap, motion.speed)
     radius, bulge = _loop_radius(plan.loop_length, agents)
@@ -148,7 +162,7 @@ def _rooms(agents: int, frames: int, overlap: float, rng: np.random.Generator,
     offset = min(0.2, 0.1 * radius)
     paths, meetings, shared = _ring_paths(curve, agents, frames, overlap, motion,
                                           _lateral_offsets(agents, offset), rng)
-    builder = SceneBuilder(rng, curve.points, CLEARANCE + offset)
+    builder = SceneBuilder(rng, curve.points, CLEARANCE + offset, plain=plain)
     outer = max(radius + bulge + 7.0, 10.0)
 
     style = ring_style = ModuleStyle()
@@ -178,7 +192,7 @@ def _rooms(agents: int, frames: int, overlap: float, rng: np.random.Generator,
     builder.scatter(sample, int(np.clip(area / 12.0, 8, 300)))
     info = {"loop": "flower", "loop_length_m": curve.length, "waist_radius_m": radius,
             "bulge_m": bulge, "shared_length_m": shared, "aliased_texture_ids": aliased}
-    return SceneSpec(builder.build(), paths, meetings, motion, info)
+    return SceneSpec(builder.build(), paths, meetings, motion, info, loop=curve)
 
 
 def _compounds(agents: int, frames: int, rng: np.random.Generator) -> SceneSpec:
@@ -266,16 +280,17 @@ def _road(agents: int, frames: int, overlap: float, rng: np.random.Generator) ->
     builder.scatter(sample, int(np.clip(curve.length * 0.6, 8, 300)))
     info = {"loop": "stadium", "loop_length_m": curve.length, "lane_radius_m": lane_radius,
             "straight_m": straight, "shared_length_m": shared, "aliased_texture_ids": []}
-    return SceneSpec(builder.build(road), paths, meetings, motion, info)
+    return SceneSpec(builder.build(road), paths, meetings, motion, info, loop=curve)
 
 
-def build_preset(preset: str, agents: int, frames: int, overlap: float, seed: int) -> SceneSpec:
-    """Generate the scene and agent paths of ``preset`` (validated by the caller)."""
-    rng = np.random.default_rng(seed)
+def build_base_preset(preset: str, agents: int, frames: int, overlap: float,
+                      rng: np.random.Generator) -> SceneSpec:
+    """Generate the scene and agent paths of one of :data:`BASE_PRESETS` (validated by the
+    caller) from the scene's random generator."""
     if preset == "default":
-        return _rooms(agents, frames, overlap, rng, aliasing=False)
+        return rooms(agents, frames, overlap, rng, aliasing=False)
     if preset == "aliasing":
-        return _rooms(agents, frames, overlap, rng, aliasing=True)
+        return rooms(agents, frames, overlap, rng, aliasing=True)
     if preset == "no-meeting":
         return _compounds(agents, frames, rng)
     if preset == "forward":

@@ -35,6 +35,7 @@ class Kind(IntEnum):
     BARK = 6
     ROOF = 7
     PAINT = 8
+    PLAIN = 9
 
 
 def _as_u32(x: np.ndarray | int) -> np.ndarray:
@@ -233,6 +234,10 @@ def random_material(table: MaterialTable, kind: Kind, rng: np.random.Generator) 
     if kind == Kind.PAVING:
         return table.add(kind, _jitter(rng, (0.62, 0.58, 0.52), 0.05),
                          _jitter(rng, (0.30, 0.45, 0.18), 0.04), (u(0.45, 0.75),))
+    if kind == Kind.PLAIN:
+        base = _jitter(rng, _WALL_COLOURS[rng.integers(len(_WALL_COLOURS))], 0.08)
+        return table.add(kind, base, tuple(0.45 * c for c in base),
+                         (u(0.8, 1.2), u(0.03, 0.06), u(0.06, 0.1)))
     raise ValueError(f"no random material for {kind!r}")
 
 
@@ -360,10 +365,24 @@ def _paint(seed, s, t, ca, cb, p) -> np.ndarray:
     return out * (1.0 + 0.3 * fbm(s, t, seed, 0.5, 4, 0.7))[:, None]
 
 
+def _plain(seed, s, t, ca, cb, p) -> np.ndarray:
+    """Flat paint (the ``low-texture`` preset): colour ``ca`` with a faint 2 m shading and
+    sparse dark marks of colour ``cb``: on a grid of cells of side p0 metres, a fraction p1
+    of the cells holds one round mark of radius p2 metres at a random place."""
+    cell, share, radius = p[:, 0], p[:, 1], p[:, 2]
+    i, j = np.floor(s / cell).astype(np.int64), np.floor(t / cell).astype(np.int64)
+    marked = hash_unit(i, j, seed) < share
+    cs = (i + 0.2 + 0.6 * hash_unit(i, j, seed + 1)) * cell
+    ct = (j + 0.2 + 0.6 * hash_unit(i, j, seed + 2)) * cell
+    mark = marked & (np.hypot(s - cs, t - ct) < radius)
+    out = ca * (1.0 + 0.03 * fbm(s, t, seed + 3, 2.0, 2))[:, None]
+    return np.where(mark[:, None], cb, out)
+
+
 _KIND_FUNCTIONS = {
     Kind.PAVING: _paving, Kind.ROAD: _road, Kind.FACADE: _facade, Kind.STONE: _stone,
     Kind.CONCRETE: _concrete, Kind.FOLIAGE: _foliage, Kind.BARK: _bark, Kind.ROOF: _roof,
-    Kind.PAINT: _paint,
+    Kind.PAINT: _paint, Kind.PLAIN: _plain,
 }
 
 

@@ -152,14 +152,24 @@ class AgentPath:
     """Poses of one agent, one per frame.
 
     Attributes:
-        arc: ``(K,)`` arc length along the loop of every frame (not wrapped).
+        arc: ``(K,)`` arc length along the loop of every frame (not wrapped), metres.
         positions: ``(K, 3)`` camera centres t_WC.
         rotations: ``(K, 3, 3)`` R_WC.
+        jumps: frames ``j`` whose step from frame ``j - 1`` is a teleport (the ``revisit``
+            preset), not travelled.
     """
 
     arc: np.ndarray
     positions: np.ndarray
     rotations: np.ndarray
+    jumps: tuple[int, ...] = ()
+
+    def length(self) -> float:
+        """Distance travelled along the path in metres: the arc length of every step but
+        the teleports."""
+        steps = np.abs(np.diff(self.arc))
+        steps[[j - 1 for j in self.jumps]] = 0.0
+        return float(steps.sum())
 
     def sim3(self) -> torch.Tensor:
         """``(K, 8)`` float64 poses (t, q_xyzw with w >= 0, s = 1)."""

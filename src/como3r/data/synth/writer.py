@@ -2,9 +2,9 @@
 
 Layout (DESIGN.md, "Command line and files")::
 
-    scene.json                      preset, seed, parameters, intrinsics, meetings
+    scene.json                      preset, seed, scale, parameters, intrinsics, meetings
     agent_<a>/rgb/<stem>.png        8-bit RGB
-    agent_<a>/depth/<stem>.npy      float32 z-depth in metres, 0 for sky
+    agent_<a>/depth/<stem>.npy      float32 z-depth in metres, 0 for sky (and covered frames)
     agent_<a>/surface/<stem>.npy    float32 (H, W, 3) appearance keys (id, s, t), id -1 sky
     agent_<a>/groundtruth.txt       TUM, T_WC (OpenCV camera, world z up)
     agent_<a>/timestamps.txt        one time per line, frame i at i / 30 s
@@ -12,6 +12,12 @@ Layout (DESIGN.md, "Command line and files")::
 
 Everything is a deterministic function of the arguments: the same call writes
 byte-identical files.
+
+``scale`` multiplies the whole scene and the paths (0.1 a tabletop, 1 the rooms of the
+presets, 5 a street, 20 aerial): the scene is generated and rendered at scale 1 and every
+length is multiplied when written (depth, ground-truth translations, the (s, t) metres of the
+surface keys, the lengths in ``scene.json``), so the images are those of scale 1 exactly, as
+a scaled scene with scaled textures looks the same.
 """
 
 from __future__ import annotations
@@ -27,7 +33,8 @@ from typing import Callable
 import numpy as np
 from PIL import Image
 
-from como3r.data.synth.presets import PRESETS, SceneSpec, build_preset
+from como3r.data.synth.families import MIN_FRAMES, PRESETS, build_preset
+from como3r.data.synth.presets import SceneSpec
 from como3r.data.synth.render import Frame, Intrinsics, Renderer
 from como3r.errors import InputError
 from como3r.io.tum import write_tum
@@ -43,13 +50,19 @@ MAX_SIZE = 4096
 
 
 def _validate(staging_dir: Path, agents: int, overlap: float, frames: int, preset: str,
-              width: int, height: int) -> None:
+              width: int, height: int, scale: float) -> None:
     if preset not in PRESETS:
         raise InputError(f"--preset: unknown preset {preset!r} (valid: {', '.join(PRESETS)})")
     if not isinstance(agents, numbers.Integral) or not 1 <= agents <= MAX_AGENTS:
         raise InputError(f"--agents: must be an integer in [1, {MAX_AGENTS}], got {agents!r}")
-    if not isinstance(frames, numbers.Integral) or not 2 <= frames <= MAX_FRAMES:
-        raise InputError(f"--frames: must be an integer in [2, {MAX_FRAMES}], got {frames!r}")
+    least = MIN_FRAMES.get(preset, 2)
+    if not isinstance(frames, numbers.Integral) or not least <= frames <= MAX_FRAMES:
+        raise InputError(f"--frames: must be an integer in [{least}, {MAX_FRAMES}] for preset "
+                         f"{preset!r}, got {frames!r}")
+    if not (isinstance(scale, numbers.Real) and not isinstance(scale, bool)
+            and math.isfinite(scale) and scale > 0):
+        raise InputError(f"--scale: must be a finite number > 0 (1 = the presets' metres), "
+                         f"got {scale!r}")
     if not (isinstance(overlap, numbers.Real) and math.isfinite(overlap) and 0 <= overlap <= 1):
         raise InputError(f"--overlap: must be a number in [0, 1], got {overlap!r}")
     for name, size in (("--width", width), ("--height", height)):
@@ -60,19 +73,33 @@ def _validate(staging_dir: Path, agents: int, overlap: float, frames: int, prese
         raise InputError(f"{staging_dir}: output folder does not exist")
 
 
-def _write_frame(agent_dir: Path, stem: str, frame: Frame) -> None:
+def _write_frame(agent_dir: Path, stem: str, frame: Frame, scale: float) -> None:
+    """Write one rendered frame with its lengths (depth, key s and t) times ``scale``."""
     # Level 1: noisy textures hardly compress, and level 6 costs more than rendering.
     Image.fromarray(frame.rgb).save(agent_dir / "rgb" / f"{stem}.png", compress_level=1)
-    np.save(agent_dir / "depth" / f"{stem}.npy", frame.depth)
-    np.save(agent_dir / "surface" / f"{stem}.npy", frame.surface)
+    surface = frame.surface.copy()
+    surface[..., 1:] *= scale
+    np.save(agent_dir / "depth" / f"{stem}.npy", (frame.depth * scale).astype(np.float32))
+    np.save(agent_dir / "surface" / f"{stem}.npy", surface)
 
 
-def _scene_json(spec: SceneSpec, K: Intrinsics, args: dict) -> dict:
-    """Everything about the scene a consumer may want, JSON-serialisable."""
+def _covered_frame(height: int, width: int, seed: int, agent: int, index: int) -> Frame:
+    """A frame taken with the lens covered: dark sensor noise (0-7 of 255), no depth
+    (0) and no surface (id -1)."""
+    rng = np.random.default_rng([seed % 2**32, agent, index])
+    surface = np.zeros((height, width, 3), dtype=np.float32)
+    surface[..., 0] = -1.0
+    return Frame(rgb=rng.integers(0, 8, (height, width, 3), dtype=np.uint8),
+                 depth=np.zeros((height, width), dtype=np.float32), surface=surface)
+
+
+def _scene_json(spec: SceneSpec, K: Intrinsics, args: dict, scale: float) -> dict:
+    """Everything about the scene a consumer may want, JSON-serialisable, lengths times
+    ``scale``."""
     meetings = [{
         "agents": list(m.agents),
-        "junction_xy": [round(v, 6) for v in m.junction],
-        "shared_length_m": round(m.length, 6),
+        "junction_xy": [round(scale * v, 6) for v in m.junction],
+        "shared_length_m": round(scale * m.length, 6),
         "frames": {str(m.agents[0]): list(m.frames[0]), str(m.agents[1]): list(m.frames[1])},
     } for m in spec.meetings]
     agents = []
@@ -83,18 +110,21 @@ def _scene_json(spec: SceneSpec, K: Intrinsics, args: dict) -> dict:
                 if who == a:
                     shared[first:last + 1] = True
         agents.append({"name": f"agent_{a}", "frames": len(path.arc),
-                       "path_length_m": round(float(path.arc[-1] - path.arc[0]), 6),
+                       "path_length_m": round(scale * path.length(), 6),
+                       "jump_frames": list(path.jumps),
                        "shared_frame_fraction": round(float(shared.mean()), 6)})
-    info = {k: (round(v, 6) if isinstance(v, float) else v) for k, v in spec.info.items()}
+    info = {k: (scale * v if k.endswith("_m") else v) for k, v in spec.info.items()}
+    info = {k: (round(v, 6) if isinstance(v, float) else v) for k, v in info.items()}
     return {
         "format": "como3r-synth",
         "version": 1,
         **args,
         "frame_rate_hz": FRAME_RATE,
-        "speed_m_per_frame": spec.motion.speed,
+        "speed_m_per_frame": scale * spec.motion.speed,
         "camera": {"model": "pinhole", "convention": "OpenCV (x right, y down, z forward)",
                    "hfov_deg": HFOV_DEG, "fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy,
-                   "height_m": spec.motion.height},
+                   "height_m": scale * spec.motion.height},
+        "covered_frames": None if spec.covered is None else list(spec.covered),
         "world": "z up, ground plane z = 0, metres; poses are T_WC",
         "depth": "float32 z-depth in metres, 0 for sky",
         "surface": "float32 (H, W, 3): texture id, s, t in metres; id -1 for sky",
@@ -116,6 +146,7 @@ def synthesize(
     preset: str,
     width: int,
     height: int,
+    scale: float = 1.0,
     progress: Callable[[], None] | None = None,
 ) -> SceneSpec:
     """Generate, render and write a multi-agent synthetic scene into ``staging_dir``.
@@ -129,23 +160,27 @@ def synthesize(
         frames: frames per agent.
         preset: one of :data:`PRESETS`.
         width, height: image size in pixels.
+        scale: factor on every length of the scene and paths, finite and > 0 (module
+            docstring); 1 gives the presets' metres.
         progress: called once after every rendered frame.
 
     Returns:
-        The generated scene and ground-truth paths.
+        The generated scene and ground-truth paths at scale 1 (the files are scaled).
 
     Raises:
         InputError: unknown preset or impossible arguments.
     """
     staging_dir = Path(staging_dir)
-    _validate(staging_dir, agents, overlap, frames, preset, width, height)
+    _validate(staging_dir, agents, overlap, frames, preset, width, height, scale)
+    scale = float(scale)
     spec = build_preset(preset, agents, frames, float(overlap), seed)
     K = Intrinsics.from_hfov(width, height, HFOV_DEG)
     renderer = Renderer(spec.scene, K)
     args = {"preset": preset, "seed": seed, "agents": agents, "frames": frames,
-            "overlap": float(overlap), "width": width, "height": height}
+            "overlap": float(overlap), "width": width, "height": height, "scale": scale}
     (staging_dir / "scene.json").write_text(
-        json.dumps(_scene_json(spec, K, args), indent=2, sort_keys=True) + "\n")
+        json.dumps(_scene_json(spec, K, args, scale), indent=2, sort_keys=True) + "\n")
+    first_covered, last_covered = spec.covered if spec.covered is not None else (frames, -1)
     timestamps = np.arange(frames) / FRAME_RATE
     started = time.perf_counter()
     for a, path in enumerate(spec.paths):
@@ -154,11 +189,16 @@ def synthesize(
             (agent_dir / sub).mkdir(parents=True)
         width_digits = max(6, len(str(frames - 1)))
         for i in range(frames):
-            frame = renderer.render(path.rotations[i], path.positions[i])
-            _write_frame(agent_dir, f"{i:0{width_digits}d}", frame)
+            if first_covered <= i <= last_covered:
+                frame = _covered_frame(height, width, seed, a, i)
+            else:
+                frame = renderer.render(path.rotations[i], path.positions[i])
+            _write_frame(agent_dir, f"{i:0{width_digits}d}", frame, scale)
             if progress is not None:
                 progress()
-        write_tum(agent_dir / "groundtruth.txt", timestamps, path.sim3())
+        poses = path.sim3()
+        poses[:, :3] *= scale
+        write_tum(agent_dir / "groundtruth.txt", timestamps, poses)
         (agent_dir / "timestamps.txt").write_text("".join(f"{t:.6f}\n" for t in timestamps))
         (agent_dir / "calib.txt").write_text(f"{K.fx:.6f} {K.fy:.6f} {K.cx:.6f} {K.cy:.6f}\n")
     logger.info("rendered %d frames in %.1f s", agents * frames, time.perf_counter() - started)
