@@ -39,6 +39,10 @@ EASY = SimulatedPriorConfig(model="easy")
 #: The realistic model without flying pixels and outliers, whose few wild points would
 #: dominate a least-squares pose fit of the whole pointmap.
 NO_OUTLIERS = dataclasses.replace(REALISTIC, flying_pixel_fraction=0.0, outlier_fraction=0.0)
+#: ... and without the intrinsics and range errors, which bias such a fit: the pose error alone.
+POSE_ONLY = dataclasses.replace(NO_OUTLIERS, focal_error=0.0, principal_point_error=0.0,
+                                ray_field_deg=0.0, image_distortion_amplitude=0.0,
+                                depth_distortion_amplitude=0.0, range_noise=0.0)
 
 
 @pytest.fixture(scope="module")
@@ -155,7 +159,7 @@ def test_an_image_error_is_shared_by_its_pairs(views):
 
 
 def test_pose_error_is_heavy_tailed_grows_with_baseline_and_fails_grossly(views):
-    prior = SimulatedPrior(NO_OUTLIERS)
+    prior = SimulatedPrior(POSE_ONLY)
     encodings = [[prior.encode(v) for v in agent] for agent in views]
     rotation = {1: [], 6: []}
     gross = []
@@ -168,14 +172,14 @@ def test_pose_error_is_heavy_tailed_grows_with_baseline_and_fails_grossly(views)
                     rotation[gap].append(angle)
                     gross.append(angle > 10.0 or shift > 0.1)
     small, large = np.asarray(rotation[1]), np.asarray(rotation[6])
-    # measured: median 1.7 deg (gap 1), 2.3 deg (gap 6); easy: 0.5 deg at both gaps
-    assert 0.8 < np.median(small) < 3.5
-    assert np.median(large) > 1.15 * np.median(small)
-    # heavy tail: the 95th percentile is far above twice the median (Gaussian: ~1.7x)
+    # measured: median 0.70 deg (gap 1), 1.40 deg (gap 6); easy: 0.5 deg at both gaps
+    assert 0.35 < np.median(small) < 1.4
+    assert np.median(large) > 1.3 * np.median(small)
+    # heavy tail: 95th percentile / median 3.1 (a 3-D Gaussian error: 1.8)
     inliers = small[small < 10.0]
-    assert np.percentile(inliers, 95) > 2.0 * np.median(inliers)
-    # gross failures at about gross_failure_rate (0.03) of the pairs: measured 0.03
-    assert 0.01 < np.mean(gross) < 0.07
+    assert np.percentile(inliers, 95) > 2.2 * np.median(inliers)
+    # gross failures at about gross_failure_rate (0.03): measured 0.017 (5 of 292 pairs)
+    assert 0.005 < np.mean(gross) < 0.07
 
 
 def test_confidence_tracks_the_error_not_covisibility(views):
@@ -283,6 +287,20 @@ def test_descriptors_degrade_with_viewpoint_change(views):
         accuracy[gap] = np.mean(values)
     # nearest-descriptor matching gets worse as the viewpoint changes
     assert accuracy[8] < accuracy[1] - 0.05
+
+    def same_texture_similarity(config: SimulatedPriorConfig) -> float:
+        """Mean cosine of the clean descriptors of two pixels of one texture far apart."""
+        enc = SimulatedPrior(config).encode(views[0][5])
+        ids, coords = enc.key_ids.reshape(-1), enc.key_coords.reshape(-1, 3)
+        D = enc.descriptors.reshape(ids.numel(), -1).float()
+        gen = torch.Generator().manual_seed(0)
+        a, b = torch.randint(0, ids.numel(), (2, 20_000), generator=gen)
+        keep = (ids[a] == ids[b]) & (ids[a] >= 0) & ((coords[a] - coords[b]).norm(dim=-1) > 1.0)
+        assert int(keep.sum()) > 100
+        return float((D[a[keep]] * D[b[keep]]).sum(-1).mean())
+
+    # repeated texture is more ambiguous than in the easy model: measured cosine 0.80 vs 0.63
+    assert same_texture_similarity(REALISTIC) > same_texture_similarity(EASY) + 0.08
 
 
 @pytest.mark.parametrize("factor", [0.1, 20.0])

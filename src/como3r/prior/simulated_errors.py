@@ -9,9 +9,12 @@ the true intrinsics' rays and its confidence is an overlap oracle.
 
 The ``realistic`` model keeps those per-pair terms and adds what makes MASt3R hard
 (:class:`~como3r.config.SimulatedPriorConfig` key, default, source). Where no published
-figure exists the value is OUR ASSUMPTION and says so. Every length is relative (a fraction
-of a range, a baseline or the view's median valid depth ``m``), so a scene scaled by any
-factor gets the same relative errors.
+figure exists the value is OUR ASSUMPTION and says so. The MUSt3R and Light3R-SfM figures
+below were read from secondary summaries of those papers, not from their tables; DUSt3R's
+own depth and pose tables (DUSt3R paper, Tables 2-3) could not be consulted when this model
+was written and should replace them where they differ. Every length is relative (a
+fraction of a range, a baseline or the view's median valid depth ``m``), so a scene scaled
+by any factor gets the same relative errors.
 
 1. Intrinsics, per image (shared by all its pairs): focal ``f exp(focal_error n)``,
    ``focal_error = 0.08`` (RMS log error); MUSt3R (Cabon et al., CVPR 2025, uncalibrated VO
@@ -40,8 +43,9 @@ factor gets the same relative errors.
    drawn from a multivariate Student-t with ``pose_tail_dof = 3`` degrees of freedom (heavy
    tail). A fraction ``gross_failure_rate = 0.03`` of overlapping pairs gets a random pose
    at full confidence: MASt3R on two-view CO3Dv2 pairs reaches RRA@15 94.2 % / RTA@15 86.5 %
-   (as tabulated by Light3R-SfM, Elflein et al., CVPR 2025), i.e. about 6 % of wide-baseline
-   object pairs err by more than 15 deg; SLAM pairs are narrower, hence half of that.
+   (MASt3R row of the CO3Dv2 table of Light3R-SfM, Elflein et al., CVPR 2025), i.e. about
+   6 % of wide-baseline object pairs err by more than 15 deg in rotation; SLAM pairs are
+   narrower, hence half of that (our assumption).
 5. Flying pixels: ``flying_pixel_fraction = 0.5`` of the pixels at a depth discontinuity
    (relative jump above ``edge_log_jump``) get a range uniformly between the local
    foreground and background along their ray; ``outlier_fraction = 0.005`` of the pixels get
@@ -51,9 +55,10 @@ factor gets the same relative errors.
    full confidence on its random pose (our assumption; MASt3R always outputs a pose).
 7. Confidence: ``log(C - 1)`` falls with range (relative to ``m``) and at edges as before,
    and by ``confidence_error_slope = 1.0`` per ``conf_error_ref`` (5 %) of the pixel's own
-   injected range error, plus noise of RMS ``confidence_noise = 0.5``. The overlap oracle of
-   the easy model survives only as a weak drop (``weak_unmatched_drop``,
-   ``weak_no_overlap_drop``) under the same noise. Our assumption.
+   injected range error, plus noise of RMS ``confidence_noise = 0.5``; the pair's pose error
+   (gross failures included) does not lower it. The overlap oracle of the easy model
+   survives only as a weak drop (``weak_unmatched_drop``, ``weak_no_overlap_drop``) under the
+   same noise. Our assumption.
 8. Descriptors: noise RMS ``descriptor_noise (1 + descriptor_viewpoint_gain v)`` with ``v``
    the pair's rotation angle plus ``|log|`` of its scale change (radians;
    ``descriptor_viewpoint_gain = 1.0``, our assumption), and the per-texture embedding
