@@ -32,6 +32,13 @@ from como3r.geometry.units import pixels_at
 #: the per-chunk overhead
 _REFINE_CHUNK = 1024
 
+#: dtype of the descriptor scores of the window search: half precision, as MASt3R-SLAM's
+#: refine_matches kernel (``D.half()``); it halves the gathered bytes of the memory-bound
+#: search (2x faster on CPU) and changes the choice only between candidates whose scores
+#: agree to fp16 rounding (0.3 % of the refined pixels of a 512x384 image of random unit
+#: descriptors)
+_SCORE_DTYPE = torch.float16
+
 
 @dataclass(frozen=True)
 class Matches:
@@ -198,7 +205,8 @@ def refine_with_descriptors(
 
     At each dilation d (from ``dilation_max`` down to 1) the match moves to the best of
     the ``(2r+1)^2`` pixels ``p + d * (i, j)``, ``|i|, |j| <= r``, by descriptor dot
-    product; window pixels outside the image count as the nearest border pixel.
+    product (in :data:`_SCORE_DTYPE`); window pixels outside the image count as the nearest
+    border pixel.
 
     Args:
         D_search: ``(B, H, W, d)`` descriptors of the searched view.
@@ -219,7 +227,7 @@ def refine_with_descriptors(
     # ``centre + offset`` with no per-candidate clamping (the hot loop is memory bound).
     padded = torch.nn.functional.pad(D_search.permute(0, 3, 1, 2), (margin,) * 4, mode="replicate")
     Wp, Hp = W + 2 * margin, H + 2 * margin
-    table = padded.permute(0, 2, 3, 1).reshape(B * Hp * Wp, d).contiguous()
+    table = padded.permute(0, 2, 3, 1).reshape(B * Hp * Wp, d).to(_SCORE_DTYPE).contiguous()
     steps = torch.arange(-radius, radius + 1, device=pixel.device)
     grid_v, grid_u = torch.meshgrid(steps, steps, indexing="ij")
     window = torch.stack([grid_u.reshape(-1), grid_v.reshape(-1)], dim=-1)  # (K, 2) (u, v)
@@ -231,7 +239,7 @@ def refine_with_descriptors(
         rows_of = rows_of[active.reshape(-1)]
     p = refined[rows_of]
     base = torch.div(rows_of, P, rounding_mode="floor") * (Hp * Wp)
-    query = D_query.reshape(B * P, d)[rows_of]
+    query = D_query.reshape(B * P, d)[rows_of].to(_SCORE_DTYPE)
     for start in range(0, p.shape[0], _REFINE_CHUNK):
         sl = slice(start, start + _REFINE_CHUNK)
         q, pc, bc = query[sl], p[sl], base[sl] + margin * Wp + margin
