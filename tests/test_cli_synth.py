@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 from typer.testing import CliRunner
 
 from como3r.cli import app
@@ -27,3 +29,18 @@ def test_odometry_is_written_per_agent_and_can_be_switched_off(tmp_path) -> None
         odometry = read_tum(with_odometry / f"agent_{agent}" / "odometry.txt")
         assert len(odometry) == 4
         assert not (without / f"agent_{agent}" / "odometry.txt").exists()
+
+
+def test_scale_is_validated_and_recorded(tmp_path) -> None:
+    common = ["--agents", "1", "--frames", "2", "--width", "32", "--height", "24"]
+    bad = tmp_path / "bad"
+    result = CliRunner().invoke(app, ["synth", "--out", str(bad), "--scale", "0", *common])
+    assert result.exit_code == 2
+    errors = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "--scale" in errors[0] and not bad.exists()
+    street = tmp_path / "street"
+    result = CliRunner().invoke(app, ["synth", "--out", str(street), "--scale", "5",
+                                      "--preset", "rotation", *common])
+    assert result.exit_code == 0, result.output
+    meta = json.loads((street / "scene.json").read_text())
+    assert (meta["scale"], meta["preset"]) == (5.0, "rotation")

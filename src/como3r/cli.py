@@ -93,9 +93,13 @@ def synth(
                                   help="Fraction of each path shared with a neighbour."),
     frames: int = typer.Option(100, "--frames", min=2, help="Frames per agent."),
     preset: str = typer.Option("default", "--preset",
-                               help="default | aliasing | no-meeting | forward"),
+                               help="default | aliasing | no-meeting | forward | rotation | "
+                                    "fast | low-texture | covered | revisit"),
     width: int = typer.Option(320, "--width", min=16),
     height: int = typer.Option(240, "--height", min=16),
+    scale: float = typer.Option(1.0, "--scale",
+                                help="Multiply the whole scene and paths (0.1 tabletop, "
+                                     "1 rooms, 5 street, 20 aerial)."),
     odometry: str = typer.Option("vio", "--odometry",
                                  help="Simulated robot odometry written as odometry.txt "
                                       "(decentralized mode): vio, lio or none."),
@@ -114,7 +118,7 @@ def synth(
         task = bar.add_task("rendering", total=agents * frames)
         synthesize(
             staging, agents=agents, seed=seed, overlap=overlap, frames=frames, preset=preset,
-            width=width, height=height, progress=lambda: bar.advance(task),
+            width=width, height=height, scale=scale, progress=lambda: bar.advance(task),
         )
         if odometry != "none":
             for a in range(agents):

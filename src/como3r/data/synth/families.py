@@ -13,7 +13,10 @@ tuned on, for the robustness benchmark (``benchmarks/robustness.py``).
     by ``overlap`` of their sweep (as the arc of a ring plan, :func:`.plan_ring`).
 ``fast``
     The ``default`` rooms driven :data:`FAST_FACTOR` times faster: per frame, the camera
-    moves and turns that many times as far (the wobble is a function of the distance).
+    moves that many times as far and its hand-held wobble (a function of the distance)
+    turns it that many times as fast. The loop's own turn per frame stays that of the
+    ``default`` preset with as many frames (the loop is as many times longer), which
+    dominates short single-agent paths (a small closed loop).
 ``low-texture``
     The ``default`` rooms with every surface, ground included, in flat paint with faint
     shading and sparse dark marks (:attr:`.Kind.PLAIN`): large weakly textured walls.
