@@ -92,8 +92,11 @@ def _bilinear(table: Tensor, H: int, W: int, base: Tensor, p: Tensor) -> Tensor:
     a = (u - u0)[:, None]
     b = (v - v0)[:, None]
     top_row, bottom_row = base + v0 * W, base + v1 * W
-    top = table[top_row + u0] * (1 - a) + table[top_row + u1] * a
-    bottom = table[bottom_row + u0] * (1 - a) + table[bottom_row + u1] * a
+    # the four corners in one gather (index_select is several times faster than indexing)
+    corners = torch.cat([top_row + u0, top_row + u1, bottom_row + u0, bottom_row + u1])
+    t00, t01, t10, t11 = table.index_select(0, corners).view(4, -1, table.shape[1]).unbind(0)
+    top = t00 * (1 - a) + t01 * a
+    bottom = t10 * (1 - a) + t11 * a
     return top * (1 - b) + bottom * b
 
 
