@@ -34,7 +34,13 @@ from como3r.frontend.keyframes import (
     apply_pose_update,
 )
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
-from como3r.frontend.pairs import DirectedMatches, PairLink, direction_passes, link_pairs
+from como3r.frontend.pairs import (
+    DirectedMatches,
+    PairLink,
+    direction_passes,
+    directed_matches,
+    link_pairs,
+)
 from como3r.frontend.timing import StageTimer, TimedPrior
 from como3r.frontend.tracker import FrameTracker, TrackResult
 from como3r.errors import InputError
@@ -153,7 +159,7 @@ class AgentFrontend:
             return
         T_WC = sim3_compose(keyframe.T_WC, result.T_kf)
         new = self._add_keyframe(enc, index, timestamp, T_WC, result.X_ff, result.C_ff, colors)
-        self._link_new_keyframe(new)
+        self._link_new_keyframe(new, result.matches)
         self._T_kf_prev = sim3_identity(dtype=T_WC.dtype, device=T_WC.device)
 
     def _add_keyframe(self, enc: Encoding, index: int, timestamp: float, T_WC: Tensor,
@@ -173,10 +179,19 @@ class AgentFrontend:
         self.tracker.reset_warm_start()
         return kf
 
-    def _link_new_keyframe(self, kf: Keyframe) -> None:
-        """Sequential edge, verified loop edges, local solve, then index the keyframe."""
+    def _link_new_keyframe(self, kf: Keyframe, tracked: DirectedMatches) -> None:
+        """Sequential edge, verified loop edges, local solve, then index the keyframe.
+
+        The sequential edge's direction (kf, kf - 1), every pixel of keyframe kf - 1 looked
+        up in kf, is ``tracked``: the tracking's matches of the frame that became kf, from
+        the same ordered decode (kf, kf - 1). Only (kf - 1, kf) is decoded and matched here.
+        """
         candidates = self._loop_candidates(kf)
-        partners = [kf.kf_id - 1, *candidates]
+        previous = self.keyframes[kf.kf_id - 1]
+        pred = self.prior.decode(previous.encoding, kf.encoding)
+        with self.timer.stage("matching"):
+            ij = directed_matches(pred, self.config.matching, self.config.tracking.q_min)
+        self._add_edge_pair(previous.kf_id, kf.kf_id, PairLink(ij, tracked), "sequential")
         verification = self.config.verification
 
         def loop_test(matches: DirectedMatches, covisible: float | None) -> bool:
@@ -185,21 +200,19 @@ class AgentFrontend:
             return direction_passes(matches, covisible, self.config.local_solve.min_match_fraction,
                                     verification.min_covisible_ratio)
 
-        # partner 0 is the sequential edge (always kept); a loop candidate failing its first
-        # direction cannot pass, so its second matching is skipped
+        # a loop candidate failing its first direction cannot pass: its second matching is
+        # skipped
         links = link_pairs(
-            self.prior, [(self.keyframes[p].encoding, kf.encoding) for p in partners],
+            self.prior, [(self.keyframes[p].encoding, kf.encoding) for p in candidates],
             self.config.matching, self.config.tracking.q_min,
             verification.covisible_min_confidence, self.timer,
-            screen=lambda k, ij, covisible: k == 0 or loop_test(ij, covisible),
+            screen=lambda k, ij, covisible: loop_test(ij, covisible),
         )
-        for partner, link in zip(partners, links):
-            sequential = partner == kf.kf_id - 1
-            loop_ok = (link is not None and loop_test(link.ij, link.covisible_ij)
-                       and loop_test(link.ji, link.covisible_ji))
-            if sequential or loop_ok:
-                self._add_edge_pair(partner, kf.kf_id, link, "sequential" if sequential else "loop")
-                self.stats.loop_edges += 0 if sequential else 1
+        for partner, link in zip(candidates, links):
+            if (link is not None and loop_test(link.ij, link.covisible_ij)
+                    and loop_test(link.ji, link.covisible_ji)):
+                self._add_edge_pair(partner, kf.kf_id, link, "loop")
+                self.stats.loop_edges += 1
         self._local_solve()
         self._index(kf)
 

@@ -52,6 +52,8 @@ class TrackResult:
             keyframe).
         C_ff: ``(H, W)`` confidence of ``X_ff``.
         solve: the solver's report (None when no solve ran).
+        matches: every keyframe pixel looked up in the frame: if the frame becomes a
+            keyframe, the matches of its sequential edge (frame, keyframe).
     """
 
     ok: bool
@@ -63,6 +65,7 @@ class TrackResult:
     X_ff: Tensor
     C_ff: Tensor
     solve: SolveReport | None = None
+    matches: DirectedMatches | None = None
 
 
 class FrameTracker:
@@ -102,7 +105,8 @@ class FrameTracker:
             nu = matches.match_fraction
             nu_unique = _unique_fraction(matches)
         tracking = self.config.tracking
-        base = dict(match_fraction=nu, unique_fraction=nu_unique, X_ff=pred.X_ii, C_ff=pred.C_ii)
+        base = dict(match_fraction=nu, unique_fraction=nu_unique, X_ff=pred.X_ii, C_ff=pred.C_ii,
+                    matches=matches)
         if nu < tracking.min_match_fraction:
             return TrackResult(False, "too_few_matches", T_kf_init, new_keyframe=True, **base)
         with self.timer.stage("tracking"):
