@@ -10,8 +10,10 @@ formulations address.
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from como3r.config import Config, InputConfig, SimulatedPriorConfig
@@ -42,10 +44,11 @@ def main_config() -> Config:
                   simulated_prior=SimulatedPriorConfig(model="easy", scale_sigma=0.25))
 
 
-def flocc_settings(keyframe_distance_m: float = 2.0, timeout_s: float = 60.0,
+def flocc_settings(keyframe_distance_ratio: float = 0.22, timeout_s: float = 60.0,
                    processes: bool = False, table: bool = False) -> DecentralizedConfig:
-    """Decentralized settings for tests: threads, short timeouts, sparse keyframes."""
-    return DecentralizedConfig(keyframe_distance_m=keyframe_distance_m, table=table,
+    """Decentralized settings for tests: threads, short timeouts, sparse keyframes (0.22 of
+    the scene depth: about 2 m at the scene's 7-10 m median depth)."""
+    return DecentralizedConfig(keyframe_distance_ratio=keyframe_distance_ratio, table=table,
                                protocol=ProtocolConfig(processes=processes,
                                                        message_timeout_s=timeout_s))
 
@@ -54,3 +57,41 @@ def flocc_settings(keyframe_distance_m: float = 2.0, timeout_s: float = 60.0,
 def settings_factory():
     """:func:`flocc_settings`, for test modules (which cannot import this file)."""
     return flocc_settings
+
+
+def _scale_tum(path: Path, factor: float) -> None:
+    rows = [line.split() for line in path.read_text().splitlines()]
+    lines = [" ".join(row if not row or row[0].startswith("#") else
+                      [row[0], *(f"{float(v) * factor:.9f}" for v in row[1:4]), *row[4:]])
+             for row in rows]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def scaled_scene(agents: list[Path], target: Path, factor: float) -> list[Path]:
+    """Copies of agent folders with every length multiplied by ``factor``: depth maps, the
+    s and t channels of surface maps, ground-truth and odometry translations (the same
+    world, bigger or smaller).
+
+    Returns:
+        The copied agent folders under ``target``.
+    """
+    copies = []
+    for agent in agents:
+        copy = target / agent.name
+        shutil.copytree(agent, copy)
+        for depth in (copy / "depth").glob("*.npy"):
+            np.save(depth, np.load(depth) * np.float32(factor))
+        for surface in (copy / "surface").glob("*.npy"):
+            keys = np.load(surface)
+            keys[..., 1:3] *= np.float32(factor)
+            np.save(surface, keys)
+        for name in ("groundtruth.txt", "odometry.txt"):
+            _scale_tum(copy / name, factor)
+        copies.append(copy)
+    return copies
+
+
+@pytest.fixture(scope="session")
+def scene_scaler():
+    """:func:`scaled_scene`, for test modules."""
+    return scaled_scene

@@ -38,16 +38,31 @@ def _step_lengths(trajectory: Trajectory) -> np.ndarray:
 def test_vio_scale_is_off_at_the_start_and_converges():
     truth = _straight_line()
     odometry = simulate_odometry(truth, seed=1, noise=OdometryNoise(
-        initial_scale_error=0.3, scale_convergence_m=2.0, scale_drift=0.0,
-        yaw_drift_deg_per_m=0.0, yaw_walk_deg_per_sqrt_m=0.0, translation_walk_m_per_sqrt_m=0.0))
+        initial_scale_error=0.3, scale_convergence_depths=0.3, scale_drift=0.0,
+        yaw_drift_deg_per_depth=0.0, yaw_walk_deg_per_sqrt_depth=0.0,
+        translation_walk_per_sqrt_depth=0.0), scene_depth=6.5)
     ratio = _step_lengths(odometry) / _step_lengths(truth)
     assert abs(ratio[0] - 1.0) == pytest.approx(0.3, abs=0.01)
-    np.testing.assert_allclose(ratio[-50:], 1.0, atol=1e-3)  # 17 m later: converged
+    np.testing.assert_allclose(ratio[-50:], 1.0, atol=1e-3)  # 17 m = 2.6 depths later
+
+
+@pytest.mark.parametrize("factor", [0.1, 20.0])
+def test_odometry_of_a_scaled_scene_is_the_scaled_odometry(factor):
+    """Drift is a fraction of the distance travelled in scene depths: scaling the world
+    scales the odometry and nothing else."""
+    truth = _straight_line(100)
+    scaled = truth.T_WC.clone()
+    scaled[:, :3] *= factor
+    odometry = simulate_odometry(truth, seed=5, scene_depth=6.5)
+    odometry_scaled = simulate_odometry(Trajectory(truth.timestamps, scaled), seed=5,
+                                        scene_depth=6.5 * factor)
+    torch.testing.assert_close(odometry_scaled.T_WC[:, :3], factor * odometry.T_WC[:, :3])
+    torch.testing.assert_close(odometry_scaled.T_WC[:, 3:], odometry.T_WC[:, 3:])
 
 
 def test_odometry_is_in_its_own_gravity_aligned_frame():
     truth = _straight_line()
-    odometry = simulate_odometry(truth, seed=2, noise=ODOMETRY_PRESETS["lio"])
+    odometry = simulate_odometry(truth, seed=2, noise=ODOMETRY_PRESETS["lio"], scene_depth=6.5)
     np.testing.assert_allclose(odometry.T_WC[0, :3].numpy(), 0.0, atol=1e-12)
     # The frame is turned about gravity only: heights and the camera's tilt are preserved.
     np.testing.assert_allclose(odometry.T_WC[:, 2].numpy(), 0.0, atol=0.05)
@@ -59,8 +74,8 @@ def test_odometry_is_in_its_own_gravity_aligned_frame():
 
 def test_odometry_is_seeded():
     truth = _straight_line(50)
-    a, b = simulate_odometry(truth, 3), simulate_odometry(truth, 3)
-    c = simulate_odometry(truth, 4)
+    a, b = simulate_odometry(truth, 3, scene_depth=5.0), simulate_odometry(truth, 3, scene_depth=5.0)
+    c = simulate_odometry(truth, 4, scene_depth=5.0)
     assert torch.equal(a.T_WC, b.T_WC)
     assert not torch.equal(a.T_WC, c.T_WC)
 
@@ -74,13 +89,15 @@ def test_add_odometry_writes_a_file_open_agent_reads(tmp_path):
     for k in range(5):
         Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(folder / "rgb" / f"{k:06d}.png")
     write_tum(folder / "groundtruth.txt", truth.timestamps, truth.T_WC)
-    path = add_odometry(folder, seed=0, params="vio")
+    with pytest.raises(InputError, match="no depth"):
+        add_odometry(folder, seed=0, params="vio")
+    path = add_odometry(folder, seed=0, params="vio", scene_depth=5.0)
     assert path == folder / "odometry.txt"
     agent = open_agent(folder)
     assert agent.odometry is not None and len(agent.odometry) == 5
     assert len(frame_odometry(agent)) == 5
     with pytest.raises(InputError, match="unknown odometry model"):
-        add_odometry(folder, seed=0, params="wheel")
+        add_odometry(folder, seed=0, params="wheel", scene_depth=5.0)
     with pytest.raises(InputError, match="groundtruth.txt"):
         add_odometry(tmp_path, seed=0)
 

@@ -17,6 +17,7 @@ from como3r.decentralized.pose_graph import (
     connected_components,
     from_pose3,
     initial_poses,
+    keyframe_spacing,
     loop_clusters,
     scaled_loop_error,
     scaled_loop_factor,
@@ -116,6 +117,17 @@ def _circle(robot: int, count: int, radius: float = 6.0) -> list[gtsam.Pose3]:
     return poses
 
 
+#: Keyframe spacing of :func:`_circle` (chord of a 12th of a 6 m circle) [m].
+_SPACING = 2 * 6.0 * math.sin(math.pi / 12)
+
+
+def _config(**overrides) -> PoseGraphConfig:
+    """Pose-graph settings whose translation noise is 2 cm (odometry) and 10 cm (loops) at
+    :data:`_SPACING`, the noise the synthetic measurements carry."""
+    return PoseGraphConfig(odom_sigma_trans_ratio=0.02 / _SPACING,
+                           loop_sigma_trans_ratio=0.1 / _SPACING, **overrides)
+
+
 @dataclasses.dataclass
 class _Synthetic:
     truth: dict[int, list[gtsam.Pose3]]
@@ -162,7 +174,7 @@ def _position_rmse(truth: dict[int, list[gtsam.Pose3]], poses: dict[int, np.ndar
 @pytest.mark.parametrize("formulation", FORMULATIONS)
 def test_every_formulation_recovers_a_consistent_graph(formulation):
     data = _synthetic(np.random.default_rng(0))
-    solution = solve_pose_graph(data.problem, formulation, "lm", PoseGraphConfig())
+    solution = solve_pose_graph(data.problem, formulation, "lm", _config())
     assert _position_rmse(data.truth, solution.poses) < 0.05
     np.testing.assert_allclose(solution.loop_scales, 1.0, atol=0.05)
     assert solution.iterations >= 1 and solution.seconds > 0
@@ -173,7 +185,7 @@ def test_independent_and_smoothed_scales_beat_the_base_formulation_on_inconsiste
     scale-aware ones."""
     data = _synthetic(np.random.default_rng(1), loop_scale_sigma=0.3)
     errors = {f: _position_rmse(data.truth,
-                                solve_pose_graph(data.problem, f, "lm", PoseGraphConfig()).poses)
+                                solve_pose_graph(data.problem, f, "lm", _config()).poses)
               for f in ("base", "independent", "smoothed")}
     assert errors["independent"] < 0.5 * errors["base"]
     assert errors["smoothed"] < 0.5 * errors["base"]
@@ -181,7 +193,7 @@ def test_independent_and_smoothed_scales_beat_the_base_formulation_on_inconsiste
 
 def test_independent_scales_absorb_each_loops_scale_error():
     data = _synthetic(np.random.default_rng(2), loop_scale_sigma=0.3)
-    solution = solve_pose_graph(data.problem, "independent", "lm", PoseGraphConfig())
+    solution = solve_pose_graph(data.problem, "independent", "lm", _config())
     true_scales = []
     for loop in data.problem.loops:
         truth = data.truth[loop.robot_a][loop.keyframe_a].between(
@@ -194,7 +206,7 @@ def test_independent_scales_absorb_each_loops_scale_error():
 @pytest.mark.parametrize("loss", ["tls", "gm"])
 def test_gnc_weights_injected_outliers_near_zero(formulation, loss):
     data = _synthetic(np.random.default_rng(4), outliers=3)
-    config = PoseGraphConfig(gnc_loss=loss)
+    config = _config(gnc_loss=loss)
     solution = solve_pose_graph(data.problem, formulation, "gnc", config)
     inliers, outliers = solution.loop_weights[:-3], solution.loop_weights[-3:]
     assert np.all(outliers < 0.05), outliers
@@ -206,7 +218,8 @@ def test_gnc_weights_injected_outliers_near_zero(formulation, loss):
 
 def test_initialisation_follows_the_loops_most_others_agree_with():
     data = _synthetic(np.random.default_rng(5), outliers=2, robots=2)
-    poses = initial_poses(data.problem, np.ones(len(data.problem.loops)))
+    scales = np.ones(len(data.problem.loops))
+    poses = initial_poses(data.problem, scales, keyframe_spacing(data.problem, scales))
     error = np.linalg.norm(poses[1][0].translation() - data.truth[1][0].translation())
     assert error < 0.2
 
@@ -225,7 +238,7 @@ def test_a_single_loop_between_two_robots_is_well_posed_with_scale_variables():
     data = _synthetic(np.random.default_rng(6), robots=2)
     data.problem.loops = data.problem.loops[:1]
     for formulation in ("independent", "smoothed", "shared"):
-        solution = solve_pose_graph(data.problem, formulation, "lm", PoseGraphConfig())
+        solution = solve_pose_graph(data.problem, formulation, "lm", _config())
         assert np.all(np.isfinite(solution.poses[1]))
         assert solution.loop_scales[0] == pytest.approx(1.0, abs=0.05)
 

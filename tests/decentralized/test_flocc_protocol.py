@@ -133,7 +133,7 @@ def _sent(result, robot, kind=None):
 
 def test_robots_out_of_range_exchange_nothing(scene, main_config, settings_factory):
     schedule = Schedule({0: [(0.0, 10.0)], 1: [(0.0, 10.0)]})  # robot 2 is never in range
-    result = _run(scene, main_config, settings_factory, schedule, keyframe_distance_m=4.0)
+    result = _run(scene, main_config, settings_factory, schedule, keyframe_distance_ratio=0.45)
     assert _sent(result, 2) == 0 and sum(result.traffic.received.get(2, {}).values()) == 0
     assert result.traffic.dropped == {}
     assert len(result.reports[2].estimate) == 0 and result.reports[2].frame == 2
@@ -148,7 +148,7 @@ def test_robots_out_of_range_exchange_nothing(scene, main_config, settings_facto
 
 def test_the_smallest_id_in_range_is_elected(scene, main_config, settings_factory):
     schedule = Schedule({1: [(0.0, 10.0)], 2: [(0.0, 10.0)]})  # robot 0 is never in range
-    result = _run(scene, main_config, settings_factory, schedule, keyframe_distance_m=4.0)
+    result = _run(scene, main_config, settings_factory, schedule, keyframe_distance_ratio=0.45)
     assert _sent(result, 1, "PoseEstimate") > 0
     assert _sent(result, 2, "PoseEstimate") == 0 and _sent(result, 0) == 0
     assert result.reports[2].frame == 1 and result.reports[1].frame == 1
@@ -158,7 +158,7 @@ def test_the_smallest_id_in_range_is_elected(scene, main_config, settings_factor
 def test_frames_propagate_over_successive_rendezvous(scene, main_config, settings_factory):
     """Robots 0 and 1 meet first, then 1 and 2: robot 2 joins robot 0's frame through 1."""
     schedule = Schedule({0: [(0.0, 1.9)], 1: [(0.0, 1.9), (1.95, 3.0)], 2: [(1.95, 3.0)]})
-    result = _run(scene, main_config, settings_factory, schedule, keyframe_distance_m=4.0)
+    result = _run(scene, main_config, settings_factory, schedule, keyframe_distance_ratio=0.45)
     assert [(p.time_s, p.group) for p in result.rounds] == [(1.9, (0, 1)), (2.0, (1, 2))]
     assert [result.reports[r].frame for r in range(3)] == [0, 0, 0]
     assert _sent(result, 1, "PoseEstimate") > 0  # elected in the second round
@@ -169,7 +169,7 @@ def test_frames_propagate_over_successive_rendezvous(scene, main_config, setting
 def test_a_leader_leaving_mid_optimisation_does_not_hang_the_others(scene, main_config,
                                                                     settings_factory):
     result = _run(scene, main_config, settings_factory, leave={0: (0, "optimisation")},
-                  keyframe_distance_m=4.0, timeout_s=2.0)
+                  keyframe_distance_ratio=0.45, timeout_s=2.0)
     assert set(result.reports) == {0, 1, 2}
     assert result.reports[0].left
     for robot in (1, 2):
@@ -183,7 +183,7 @@ def test_a_leader_leaving_mid_optimisation_does_not_hang_the_others(scene, main_
 
 def test_a_robot_leaving_before_registration_is_left_out(scene, main_config, settings_factory):
     result = _run(scene, main_config, settings_factory, leave={2: (0, "registration")},
-                  keyframe_distance_m=4.0, timeout_s=2.0)
+                  keyframe_distance_ratio=0.45, timeout_s=2.0)
     assert result.reports[2].left and result.reports[2].stats["loops"] == 0
     assert result.reports[2].stats["decodes"] == 0
     # The others go on without it: robot 0 is elected and aligns robot 1.
@@ -197,8 +197,8 @@ def test_unknown_leave_phase_is_rejected(scene, main_config, settings_factory):
 
 
 def test_robot_processes_match_robot_threads(scene, main_config, settings_factory):
-    threads = _run(scene, main_config, settings_factory, robots=2, keyframe_distance_m=4.0)
-    processes = _run(scene, main_config, settings_factory, robots=2, keyframe_distance_m=4.0,
+    threads = _run(scene, main_config, settings_factory, robots=2, keyframe_distance_ratio=0.45)
+    processes = _run(scene, main_config, settings_factory, robots=2, keyframe_distance_ratio=0.45,
                      processes=True)
     for robot in (0, 1):
         a, b = threads.reports[robot], processes.reports[robot]

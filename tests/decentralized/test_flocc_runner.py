@@ -35,7 +35,7 @@ def test_output_folder(run, scene):
     for name in ("graph.json", "config.yaml", "ate.json", "trajectories.png"):
         assert (out / name).is_file()
     config = yaml.safe_load((out / "config.yaml").read_text())
-    assert config["decentralized"]["keyframe_distance_m"] == 2.0
+    assert config["decentralized"]["keyframe_distance_ratio"] == 0.22
     graph = json.loads((out / "graph.json").read_text())
     accepted = [e for e in graph["edges"] if e["accepted"]]
     rejected = [e for e in graph["edges"] if not e["accepted"]]

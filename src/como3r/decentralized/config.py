@@ -5,6 +5,12 @@ Typed frozen dataclasses like :mod:`como3r.config`, loadable with
 place threshold 0.1, ratio threshold 0.3; "F-Sec. III-C-c": cluster window of ten
 keyframes); the others are documented choices for metric VIO/LIO odometry and the
 simulated prior.
+
+No setting is a length: lengths are ratios of the scene, so one configuration serves
+scenes from a table top to a city block. The keyframe distance is a fraction of the median
+scene depth a robot sees (the prior's pointmap of its first keyframe), and translation
+noise is a fraction of the keyframe spacing that results. The paper's own lengths (GrAco,
+outdoors, median depth of order 15 m) map to these ratios as each docstring says.
 """
 
 from __future__ import annotations
@@ -55,9 +61,17 @@ class PoseGraphConfig:
             F-Sec. III-C-c) or ``shared`` (one scale for all loops).
         solver: ``lm`` (Levenberg-Marquardt) or ``gnc`` (graduated non-convexity over LM).
         scale_init: initial loop scale: ``odometry`` (F-Eq. 6) or ``prior`` (raw prior).
-        odom_sigma_rot_deg, odom_sigma_trans_m: odometry factor noise per keyframe step.
-        loop_sigma_rot_deg, loop_sigma_trans_m: loop factor noise at confidence p = 1; the
+        odom_sigma_rot_deg: odometry factor rotation noise per keyframe step [deg].
+        odom_sigma_trans_ratio: odometry factor translation noise per keyframe step, as a
+            fraction of the keyframe spacing (median odometry distance between consecutive
+            keyframes of the graph, :func:`~.pose_graph.keyframe_spacing`); 0.04: 2 cm at the
+            default 0.5 m spacing of the synthetic scene, 5 cm at a 1.2 m outdoor spacing
+            (the paper states no noise values).
+        loop_sigma_rot_deg: loop factor rotation noise at confidence p = 1 [deg]; the
             information is multiplied by p (F-Eq. 3).
+        loop_sigma_trans_ratio: loop factor translation noise at p = 1, as a fraction of
+            the keyframe spacing; 0.2: 10 cm at a 0.5 m spacing, 24 cm at 1.2 m (the prior's
+            relative-translation error grows with the scene depth, as the spacing does).
         scale_prior_sigma: weak prior on every scale variable, relative to its initial
             value; makes a single loop between two robots well posed.
         scale_smoothing_sigma: noise of the scale-difference factors of F-Sec. III-C-c: the
@@ -76,9 +90,9 @@ class PoseGraphConfig:
     solver: Solver = "lm"
     scale_init: Literal["odometry", "prior"] = "odometry"
     odom_sigma_rot_deg: float = 0.5
-    odom_sigma_trans_m: float = 0.02
+    odom_sigma_trans_ratio: float = 0.04
     loop_sigma_rot_deg: float = 2.0
-    loop_sigma_trans_m: float = 0.1
+    loop_sigma_trans_ratio: float = 0.2
     scale_prior_sigma: float = 1.0
     scale_smoothing_sigma: float = 0.2
     cluster_window: int = 10
@@ -116,7 +130,12 @@ class DecentralizedConfig:
     """Everything the decentralized mode reads.
 
     Attributes:
-        keyframe_distance_m: a new keyframe after this much travelled odometry distance.
+        keyframe_distance_ratio: a new keyframe after the odometry travelled this fraction
+            of the robot's scene depth (median depth of the prior's pointmap of its first
+            keyframe, :meth:`~.registration.Registrar.scene_depth`). 0.08: 0.5 m at the
+            ~6.5 m median depth of the default synthetic scene; the paper's keyframe
+            distances of 0.5-4 m outdoors (F-Fig. 5, GrAco, depth of order 15 m) are
+            0.03-0.27.
         place_method: global place descriptor: ``cosine`` (attention-weighted aggregate of
             the prior's retrieval features, compared by cosine similarity) or ``asmk``.
         place_threshold: minimum similarity of a candidate (F-Sec. IV: permissive 0.1).
@@ -125,7 +144,7 @@ class DecentralizedConfig:
         table: solve every formulation with both solvers for metrics.json (F-Tables II-III).
     """
 
-    keyframe_distance_m: float = 0.5
+    keyframe_distance_ratio: float = 0.08
     place_method: Literal["cosine", "asmk"] = "cosine"
     place_threshold: float = 0.1
     ratio_threshold: float = 0.3
@@ -139,12 +158,12 @@ class DecentralizedConfig:
 def check_config(config: DecentralizedConfig) -> None:
     """Raise :class:`ConfigError` naming the first out-of-range ``decentralized`` key."""
     positive = {
-        "keyframe_distance_m": config.keyframe_distance_m,
+        "keyframe_distance_ratio": config.keyframe_distance_ratio,
         "confidence_k": config.confidence_k,
         "pose_graph.odom_sigma_rot_deg": config.pose_graph.odom_sigma_rot_deg,
-        "pose_graph.odom_sigma_trans_m": config.pose_graph.odom_sigma_trans_m,
+        "pose_graph.odom_sigma_trans_ratio": config.pose_graph.odom_sigma_trans_ratio,
         "pose_graph.loop_sigma_rot_deg": config.pose_graph.loop_sigma_rot_deg,
-        "pose_graph.loop_sigma_trans_m": config.pose_graph.loop_sigma_trans_m,
+        "pose_graph.loop_sigma_trans_ratio": config.pose_graph.loop_sigma_trans_ratio,
         "pose_graph.scale_prior_sigma": config.pose_graph.scale_prior_sigma,
         "pose_graph.scale_smoothing_sigma": config.pose_graph.scale_smoothing_sigma,
         "protocol.message_timeout_s": config.protocol.message_timeout_s,

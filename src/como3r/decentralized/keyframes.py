@@ -3,7 +3,9 @@
 FLOCC-SLAM's pose graph has one node per keyframe (F-Sec. III: ``T_alpha,0 ... T_alpha,n``)
 and sparser keyframes trade accuracy for memory and bandwidth (F-Fig. 5). A frame becomes a
 keyframe when the odometry path length since the previous keyframe reaches the keyframe
-distance; the first frame with odometry is always one.
+distance; the first frame with odometry is always one. The decentralized mode sets that
+distance relative to the scene (``keyframe_distance_ratio`` times the scene depth a robot
+sees), so its keyframes are equally dense at any scene scale.
 """
 
 from __future__ import annotations
@@ -84,12 +86,12 @@ def frame_odometry(agent: AgentInput) -> FrameOdometry:
     return FrameOdometry(frames, agent.timestamps[frames].copy(), T_OC)
 
 
-def select_keyframes(odometry: FrameOdometry, distance_m: float) -> Keyframes:
-    """Keyframes every ``distance_m`` metres of odometry path (module docstring).
+def select_keyframes(odometry: FrameOdometry, distance: float) -> Keyframes:
+    """Keyframes every ``distance`` of odometry path (module docstring).
 
     Args:
         odometry: the robot's frame odometry, ``N >= 1`` frames.
-        distance_m: path length between keyframes, > 0.
+        distance: path length between keyframes in odometry units, >= 0 (0: every frame).
     """
     positions = odometry.T_OC[:, :3].numpy()
     steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
@@ -97,7 +99,7 @@ def select_keyframes(odometry: FrameOdometry, distance_m: float) -> Keyframes:
     since = 0.0
     for k, step in enumerate(steps, start=1):
         since += float(step)
-        if since >= distance_m:
+        if since >= distance:
             rows.append(k)
             since = 0.0
     chosen = np.asarray(rows, dtype=np.int64)

@@ -51,14 +51,17 @@ from como3r.decentralized.config import FORMULATIONS, SOLVERS, PoseGraphConfig
 from como3r.errors import ConfigError, SolverError
 
 
-#: Standard deviation of the gauge prior on the anchor's first keyframe (rad and m).
+#: Standard deviation of the gauge prior on the anchor's first keyframe (rad, and keyframe
+#: spacings for its translation).
 ANCHOR_SIGMA = 1e-6
 #: Smallest GNC weight kept: keeps a robot whose loops are all rejected weakly attached.
 MIN_WEIGHT = 1e-6
 #: GNC stops once every weight is this close to 0 or 1 (TLS).
 WEIGHT_TOLERANCE = 1e-4
-#: Loops agreeing on a robot's alignment within these bounds support each other (init).
-CONSENSUS_TRANSLATION_M = 1.0
+#: Loops agreeing on a robot's alignment within these bounds support each other (init); the
+#: translation bound in keyframe spacings (:func:`keyframe_spacing`; was 1 m at the default
+#: synthetic scene's 0.5 m spacing).
+CONSENSUS_TRANSLATION_SPACINGS = 2.0
 CONSENSUS_ROTATION_RAD = math.radians(10.0)
 _POSE_DIM = 6
 
@@ -206,9 +209,10 @@ def scaled_loop_factor(keys: tuple[int, int, int], R_bar: np.ndarray, t_bar: np.
     return gtsam.CustomFactor(noise, [key_a, key_b, key_s], error)
 
 
-def _pose_noise(sigma_rot_rad: float, sigma_trans_m: float, weight: float) -> gtsam.noiseModel.Base:
-    """Diagonal noise in GTSAM's (rotation, translation) order, information times ``weight``."""
-    sigmas = np.array([sigma_rot_rad] * 3 + [sigma_trans_m] * 3) / math.sqrt(weight)
+def _pose_noise(sigma_rot_rad: float, sigma_trans: float, weight: float) -> gtsam.noiseModel.Base:
+    """Diagonal noise in GTSAM's (rotation, translation) order, information times ``weight``;
+    ``sigma_trans`` in odometry units."""
+    sigmas = np.array([sigma_rot_rad] * 3 + [sigma_trans] * 3) / math.sqrt(weight)
     return gtsam.noiseModel.Diagonal.Sigmas(sigmas)
 
 
@@ -294,14 +298,40 @@ def _extend_by_odometry(estimate: np.ndarray, odometry: np.ndarray) -> list[gtsa
     return poses
 
 
-def _consensus_alignment(candidates: list[tuple[gtsam.Pose3, float]]) -> gtsam.Pose3:
-    """The candidate alignment with the largest confidence-weighted support."""
+def keyframe_spacing(problem: PoseGraphProblem, scales: np.ndarray) -> float:
+    """The problem's length unit, in odometry units: the median odometry distance between
+    consecutive keyframes of all its robots (keyframes are spaced relative to the scene
+    depth, so this follows the scene's scale); without any pair of consecutive keyframes,
+    the median length of the scaled loop translations (F-Eq. 6-7).
+
+    Args:
+        problem: odometry ``(K, 8)`` per robot and the loops.
+        scales: ``(L,)`` loop scales (:func:`initial_scales`).
+
+    Returns:
+        A length > 0 (1 when the problem has neither a keyframe step nor a loop translation).
+    """
+    steps = [np.linalg.norm(np.diff(odometry[:, :3], axis=0), axis=1)
+             for odometry in problem.odometry.values()]
+    lengths = np.concatenate([np.zeros(0), *steps])
+    if not np.any(lengths > 0):
+        lengths = np.array([scale * np.linalg.norm(loop.T_ab[:3])
+                            for loop, scale in zip(problem.loops, scales)])
+    lengths = lengths[np.isfinite(lengths) & (lengths > 0)]
+    return float(np.median(lengths)) if lengths.size else 1.0
+
+
+def _consensus_alignment(candidates: list[tuple[gtsam.Pose3, float]],
+                         translation_tolerance: float) -> gtsam.Pose3:
+    """The candidate alignment with the largest confidence-weighted support: the summed
+    confidence (F-Eq. 2) of the candidates within ``translation_tolerance`` (odometry
+    units) and :data:`CONSENSUS_ROTATION_RAD` of it."""
     best, best_support = candidates[0][0], -1.0
     for pose, _ in candidates:
         support = 0.0
         for other, probability in candidates:
             delta = pose.between(other)
-            if (np.linalg.norm(delta.translation()) < CONSENSUS_TRANSLATION_M
+            if (np.linalg.norm(delta.translation()) < translation_tolerance
                     and np.linalg.norm(gtsam.Rot3.Logmap(delta.rotation())) < CONSENSUS_ROTATION_RAD):
                 support += probability
         if support > best_support:
@@ -309,12 +339,19 @@ def _consensus_alignment(candidates: list[tuple[gtsam.Pose3, float]]) -> gtsam.P
     return best
 
 
-def initial_poses(problem: PoseGraphProblem, scales: np.ndarray) -> dict[int, list[gtsam.Pose3]]:
+def initial_poses(problem: PoseGraphProblem, scales: np.ndarray,
+                  spacing: float) -> dict[int, list[gtsam.Pose3]]:
     """Initial keyframe poses of every robot in the output frame.
 
     The anchor starts at ``anchor_pose``; robots with a current estimate start from it;
     the others are placed breadth-first through the loops to robots already placed, each
-    by the loop-implied alignment that most other loops agree with.
+    by the loop-implied alignment that most other loops agree with (within
+    :data:`CONSENSUS_TRANSLATION_SPACINGS` keyframe spacings).
+
+    Args:
+        problem: the pose graph.
+        scales: ``(L,)`` loop scales.
+        spacing: the problem's keyframe spacing (:func:`keyframe_spacing`).
 
     Raises:
         ValueError: a robot is connected to the anchor neither by loops nor by an estimate.
@@ -343,7 +380,7 @@ def initial_poses(problem: PoseGraphProblem, scales: np.ndarray) -> dict[int, li
             raise ValueError(f"robots {sorted(pending)} are not connected to anchor "
                              f"{problem.anchor} by loop closures")
         for robot, options in sorted(candidates.items()):
-            alignment = _consensus_alignment(options)
+            alignment = _consensus_alignment(options, CONSENSUS_TRANSLATION_SPACINGS * spacing)
             placed[robot] = [alignment.compose(to_pose3(T)) for T in problem.odometry[robot]]
             pending.discard(robot)
     return placed
@@ -380,27 +417,29 @@ def build_graph(problem: PoseGraphProblem, formulation: str,
         raise ConfigError(f"decentralized.pose_graph.formulation: {formulation!r} is not one "
                           f"of {FORMULATIONS}")
     scales = initial_scales(problem.loops, config.scale_init)
-    poses = initial_poses(problem, scales)
+    # Translation noise and the consensus bound follow the scene's scale (keyframe spacing).
+    spacing = keyframe_spacing(problem, scales)
+    poses = initial_poses(problem, scales, spacing)
     fixed = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     odom_rot = math.radians(config.odom_sigma_rot_deg)
     for robot, odometry in sorted(problem.odometry.items()):
         for k, pose in enumerate(poses[robot]):
             values.insert(pose_key(robot, k), pose)
-        noise = _pose_noise(odom_rot, config.odom_sigma_trans_m, 1.0)
+        noise = _pose_noise(odom_rot, config.odom_sigma_trans_ratio * spacing, 1.0)
         for k in range(1, len(odometry)):
             step = to_pose3(odometry[k - 1]).between(to_pose3(odometry[k]))
             fixed.add(gtsam.BetweenFactorPose3(pose_key(robot, k - 1), pose_key(robot, k),
                                                step, noise))
     fixed.add(gtsam.PriorFactorPose3(pose_key(problem.anchor, 0), to_pose3(problem.anchor_pose),
-                                     gtsam.noiseModel.Isotropic.Sigma(_POSE_DIM, ANCHOR_SIGMA)))
+                                     _pose_noise(ANCHOR_SIGMA, ANCHOR_SIGMA * spacing, 1.0)))
 
     loops = problem.loops
     loop_rot = math.radians(config.loop_sigma_rot_deg)
     keys = [(pose_key(l.robot_a, l.keyframe_a), pose_key(l.robot_b, l.keyframe_b)) for l in loops]
 
     def noise(index: int, weight: float) -> gtsam.noiseModel.Base:
-        return _pose_noise(loop_rot, config.loop_sigma_trans_m,
+        return _pose_noise(loop_rot, config.loop_sigma_trans_ratio * spacing,
                            max(weight, MIN_WEIGHT) * loops[index].probability)
 
     if formulation == "base":

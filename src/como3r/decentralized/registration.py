@@ -227,6 +227,32 @@ class Registrar:
             self.stats.encodes += 1
         return self._own[keyframe]
 
+    def scene_depth(self, view: View) -> float:
+        """Median depth of the prior's pointmap of ``view``, which must be keyframe 0's (the
+        first frame with odometry is always keyframe 0); its encoding is kept as keyframe 0's.
+
+        The robot's length unit (``keyframe_distance_ratio``): the prior's pointmaps are
+        metric up to its scale error (MASt3R regresses metric scale), so this is the scene
+        depth in odometry units to that error, which only shifts the keyframe spacing.
+
+        Returns:
+            The median of the pointmap's positive depths (view decoded with itself), > 0.
+
+        Raises:
+            GeometryError: the pointmap has no point in front of the camera.
+        """
+        start = time.perf_counter()
+        encoding = self.prior.encode(view)
+        self.stats.encode_seconds += time.perf_counter() - start
+        self.stats.encodes += 1
+        self._own[0] = encoding
+        depth = self.prior.decode(encoding, encoding).X_ii[..., 2].reshape(-1).float().cpu()
+        depth = depth[torch.isfinite(depth) & (depth > 0)]
+        if depth.numel() == 0:
+            raise GeometryError(f"robot {self.robot}: the prior's pointmap of keyframe 0 has no "
+                                "point in front of the camera")
+        return float(depth.median())
+
     def encoding_for_peer(self, keyframe: int) -> Encoding:
         """The encoding of one of this robot's keyframes, to send to a robot that decodes it."""
         self._mark_used(keyframe)

@@ -119,11 +119,15 @@ class Robot:
         self.settings = settings
         self.link = link
         self.leave = leave
-        self.keyframes = select_keyframes(frame_odometry(agent), settings.keyframe_distance_m)
         self._long_side = config.input.long_side
         self._calib = agent.calib if needs_K else None
         self.recognizer = recognizer
         self.registrar = Registrar(prior, robot, self._view, settings.registration)
+        odometry = frame_odometry(agent)
+        #: Path length between keyframes [odometry units]: a fraction of the scene depth.
+        self.keyframe_distance = settings.keyframe_distance_ratio * self.registrar.scene_depth(
+            self._frame_view(int(odometry.frames[0])))
+        self.keyframes = select_keyframes(odometry, self.keyframe_distance)
         self.odometry = self.keyframes.T_OC.numpy()
         self.estimate = np.zeros((0, 8))
         self.frame = robot
@@ -160,6 +164,7 @@ class Robot:
         """The robot's final state for the driver."""
         stats: dict[str, float] = {**self.registrar.stats.to_json(),
                                    "keyframes": len(self.keyframes),
+                                   "keyframe_distance": self.keyframe_distance,
                                    "candidates": self.candidates,
                                    "loops": len(self.loops), "rejected": len(self.rejected),
                                    "timeouts": self.timeouts}
@@ -240,8 +245,10 @@ class Robot:
             self._estimates[message.round] = message
 
     def _view(self, keyframe: int) -> View:
-        frame = self.agent.load_frame(int(self.keyframes.frames[keyframe]))
-        return make_view(frame, self.robot, self._long_side, self._calib)
+        return self._frame_view(int(self.keyframes.frames[keyframe]))
+
+    def _frame_view(self, frame: int) -> View:
+        return make_view(self.agent.load_frame(frame), self.robot, self._long_side, self._calib)
 
     def _send_descriptors(self, r: int, t: float, peers: list[int], count: int) -> None:
         for k in range(len(self._descriptors), count):

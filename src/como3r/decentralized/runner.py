@@ -58,11 +58,12 @@ from como3r.prior.base import Prior
 
 @dataclasses.dataclass
 class _Robot:
-    """The driver's view of one robot: its input, odometry and keyframes."""
+    """The driver's view of one robot: its input, odometry and (after the mission, from
+    its report) keyframes."""
 
     agent: AgentInput
     odometry: FrameOdometry
-    keyframes: Keyframes
+    keyframes: Keyframes | None = None
 
 
 def run_decentralized(
@@ -105,7 +106,7 @@ def run_decentralized(
     check_config(settings)
     if not agent_paths:
         raise InputError("no --agent given")
-    robots = [_open_robot(path, config, settings) for path in agent_paths]
+    robots = [_open_robot(path, config) for path in agent_paths]
     end_s = max(float(r.odometry.timestamps[-1]) for r in robots)
     started = time.perf_counter()
     result = run_protocol([str(p) for p in agent_paths], config, settings, prior_spec, end_s,
@@ -115,6 +116,8 @@ def run_decentralized(
         raise Como3rError(f"every robot failed; robot 0: {failed[0].splitlines()[0]}")
     summary = RunSummary(out=Path(out))
     summary.notes += [f"robot {r} failed: {error.splitlines()[0]}" for r, error in failed.items()]
+    for r, robot in enumerate(robots):
+        robot.keyframes = _reported_keyframes(robot.odometry, result.reports.get(r))
     with atomic_output_dir(out, overwrite=overwrite) as staging:
         _write(staging, robots, result, config, settings, summary,
                time.perf_counter() - started)
@@ -122,10 +125,17 @@ def run_decentralized(
     return summary
 
 
-def _open_robot(path: str | Path, config: Config, settings: DecentralizedConfig) -> _Robot:
+def _open_robot(path: str | Path, config: Config) -> _Robot:
     agent = open_agent(path, fps=config.input.frame_rate_hz)
-    odometry = frame_odometry(agent)
-    return _Robot(agent, odometry, select_keyframes(odometry, settings.keyframe_distance_m))
+    return _Robot(agent, frame_odometry(agent))
+
+
+def _reported_keyframes(odometry: FrameOdometry, report: RobotReport | None) -> Keyframes:
+    """The keyframes the robot chose: its reported keyframe distance (a fraction of the
+    scene depth it measured with the prior, in odometry units) applied to its odometry;
+    every frame when the robot failed before reporting one."""
+    distance = report.stats.get("keyframe_distance", 0.0) if report is not None else 0.0
+    return select_keyframes(odometry, float(distance))
 
 
 def _frame_groups(reports: dict[int, RobotReport], count: int) -> list[list[int]]:

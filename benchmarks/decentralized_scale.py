@@ -1,0 +1,145 @@
+"""Merged ATE of the decentralized mode (FLOCC-SLAM) against the scale of the scene.
+
+Renders one 3-robot synthetic scene with VIO-like odometry (``como3r synth`` defaults, at
+``--frames`` x ``--width`` x ``--height``), makes a copy of it scaled by every ``--scales``
+factor (depth maps, the s and t channels of the surface maps and the translations of
+``groundtruth.txt`` and ``odometry.txt`` multiplied by the factor: the same world, bigger
+or smaller), runs ``como3r run --mode decentralized`` on each copy with the default
+decentralized configuration (threads instead of processes) and prints the merged ATE RMSE
+as a percentage of the robots' summed ground-truth path length, for the configured
+formulation (``ate.json``) and for every formulation x solver of ``metrics.json``'s table
+(F-Tables II-III). A scale-free system prints the same row at every scale.
+
+Run it against two checkouts to compare them (the scene folder is reused when it exists):
+
+    PYTHONPATH=src python benchmarks/decentralized_scale.py --work /tmp/dscale/bench \\
+        [--scales 0.1 1 5 20] [--long-side 160]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+from como3r.config import Config, InputConfig
+from como3r.decentralized.config import DecentralizedConfig, ProtocolConfig
+from como3r.decentralized.runner import run_decentralized
+from como3r.runtime.pipeline import PriorSpec
+
+ROBOTS = 3
+
+
+def render(scene: Path, frames: int, width: int, height: int, seed: int) -> None:
+    """The 1x scene, as ``como3r synth --agents 3 --odometry vio`` writes it."""
+    from como3r.data.synth import synthesize
+    from como3r.decentralized.odometry_sim import add_odometry
+
+    scene.mkdir(parents=True)
+    synthesize(scene, agents=ROBOTS, seed=seed, overlap=0.2, frames=frames, preset="default",
+               width=width, height=height)
+    for a in range(ROBOTS):
+        add_odometry(scene / f"agent_{a}", seed=seed * 1000 + a, params="vio")
+
+
+def _scale_tum(path: Path, factor: float) -> None:
+    lines = path.read_text().splitlines()
+    out = []
+    for line in lines:
+        if line.startswith("#") or not line.strip():
+            out.append(line)
+            continue
+        values = line.split()
+        values[1:4] = [f"{float(v) * factor:.9f}" for v in values[1:4]]
+        out.append(" ".join(values))
+    path.write_text("\n".join(out) + "\n")
+
+
+def scaled_copy(scene: Path, target: Path, factor: float) -> None:
+    """Copy of ``scene`` with every length multiplied by ``factor`` (module docstring)."""
+    shutil.rmtree(target, ignore_errors=True)
+    shutil.copytree(scene, target)
+    for agent in sorted(target.glob("agent_*")):
+        for depth in (agent / "depth").glob("*.npy"):
+            np.save(depth, np.load(depth) * np.float32(factor))
+        for surface in (agent / "surface").glob("*.npy"):
+            keys = np.load(surface)
+            keys[..., 1:3] *= np.float32(factor)
+            np.save(surface, keys)
+        for name in ("groundtruth.txt", "odometry.txt"):
+            _scale_tum(agent / name, factor)
+
+
+def path_length(agents: list[Path]) -> float:
+    """Summed ground-truth path length of the robots."""
+    total = 0.0
+    for agent in agents:
+        positions = np.loadtxt(agent / "groundtruth.txt")[:, 1:4]
+        total += float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())
+    return total
+
+
+def merged_rmse(metrics: dict) -> tuple[float, bool]:
+    """The merged ATE RMSE and whether all robots ended in one map (else the worst group's
+    of two or more robots; NaN when no robots met)."""
+    ate = metrics["ate"]
+    if ate["merged"] is not None:
+        return float(ate["merged"]["ate"]["rmse"]), True
+    groups = [float(g["ate"]["rmse"]) for g in ate["merged_components"] if g is not None]
+    return (max(groups) if groups else float("nan")), False
+
+
+def run_scale(scene: Path, work: Path, factor: float, long_side: int) -> dict:
+    folder = work / f"scene_x{factor:g}"
+    scaled_copy(scene, folder, factor)
+    agents = [folder / f"agent_{a}" for a in range(ROBOTS)]
+    out = work / f"run_x{factor:g}"
+    config = Config(input=InputConfig(long_side=long_side))
+    settings = DecentralizedConfig(protocol=ProtocolConfig(processes=False))
+    start = time.perf_counter()
+    run_decentralized(agents, out, config, PriorSpec(), settings, overwrite=True)
+    seconds = time.perf_counter() - start
+    metrics = json.loads((out / "metrics.json").read_text())
+    length = path_length(agents)
+    rmse, merged = merged_rmse(metrics)
+    table = {f"{row['formulation']}/{row['solver']}":
+             (100.0 * max(row["merged_ate_rmse"]) / length if row.get("merged_ate_rmse")
+              else float("nan"))
+             for row in metrics.get("table", [])}
+    keyframes = [robot.get("keyframes", 0) for robot in metrics["robots"]]
+    return {"scale": factor, "ate_percent": 100.0 * rmse / length, "merged": merged,
+            "keyframes": keyframes, "loops": metrics["loops"]["accepted"],
+            "seconds": seconds, "table": table}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--work", type=Path, required=True, help="scene and run folders")
+    parser.add_argument("--scales", type=float, nargs="+", default=[0.1, 1.0, 5.0, 20.0])
+    parser.add_argument("--frames", type=int, default=40)
+    parser.add_argument("--width", type=int, default=160)
+    parser.add_argument("--height", type=int, default=120)
+    parser.add_argument("--long-side", type=int, default=160,
+                        help="input.long_side of the run (the default 512 is slow on a CPU)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    scene = args.work / "scene"
+    if not scene.is_dir():
+        render(scene, args.frames, args.width, args.height, args.seed)
+    rows = [run_scale(scene, args.work, factor, args.long_side) for factor in args.scales]
+    columns = sorted({key for row in rows for key in row["table"]})
+    print(f"{'scale':>6} {'merged ATE %':>12} {'one map':>7} {'keyframes':>10} {'loops':>5} "
+          f"{'s':>6} " + " ".join(f"{c:>16}" for c in columns))
+    for row in rows:
+        print(f"{row['scale']:>6g} {row['ate_percent']:>12.3f} {str(row['merged']):>7} "
+              f"{'/'.join(map(str, row['keyframes'])):>10} {row['loops']:>5} "
+              f"{row['seconds']:>6.0f} "
+              + " ".join(f"{row['table'].get(c, float('nan')):>16.3f}" for c in columns))
+
+
+if __name__ == "__main__":
+    main()
