@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from como3r.geometry.lie import sim3_act, sim3_adjoint, sim3_inverse, skew
+from como3r.geometry.lie import quat_to_matrix, sim3_adjoint, sim3_inverse, skew
 
 __all__ = [
     "psi",
@@ -52,8 +52,14 @@ def point_jacobian(x: Tensor) -> Tensor:
 
 
 def _transform_matches(T_ij: Tensor, X_j: Tensor) -> Tensor:
-    """``T_ij X_j`` with ``T_ij``'s batch dims broadcast against ``X_j``'s dims before N."""
-    return sim3_act(T_ij[..., None, :], X_j)
+    """``T_ij X_j`` with ``T_ij``'s batch dims broadcast against ``X_j``'s dims before N.
+
+    One ``s R`` matrix per pose and a matrix product over the N points: the same
+    ``s R x + t`` as :func:`~como3r.geometry.lie.sim3_act`, a few times faster for the many
+    points of a dense edge than rotating each point by the quaternion.
+    """
+    sR = T_ij[..., 7:, None] * quat_to_matrix(T_ij[..., 3:7])
+    return X_j @ sR.transpose(-1, -2) + T_ij[..., None, :3]
 
 
 def ray_range_error(T_ij: Tensor, X_j: Tensor, X_i: Tensor) -> Tensor:
