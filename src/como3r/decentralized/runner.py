@@ -162,8 +162,12 @@ def _write(staging: Path, robots: list[_Robot], result: ProtocolResult, config: 
         write_tum(staging / "keyframes" / f"agent_{r}.txt", robot.keyframes.timestamps,
                   poses[robot.keyframes.rows])
     groups = _frame_groups(reports, len(robots))
-    loops = [loop for r in sorted(reports) for loop in reports[r].loops]
-    rejected = [loop for r in sorted(reports) for loop in reports[r].rejected]
+    # Loops to a robot that failed before reporting its keyframes name keyframes unknown here.
+    known = {r for r, report in reports.items() if "keyframe_distance" in report.stats}
+    loops = [loop for r in sorted(reports) for loop in reports[r].loops
+             if set(loop.robots) <= known]
+    rejected = [loop for r in sorted(reports) for loop in reports[r].rejected
+                if set(loop.robots) <= known]
     metrics: dict[str, Any] = {
         "mode": "decentralized",
         "seconds": seconds,
