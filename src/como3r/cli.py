@@ -100,6 +100,10 @@ def synth(
     scale: float = typer.Option(1.0, "--scale",
                                 help="Multiply the whole scene and paths (0.1 tabletop, "
                                      "1 rooms, 5 street, 20 aerial)."),
+    loop_frames: Optional[int] = typer.Option(
+        None, "--loop-frames",
+        help="Lay the loop out for at least this many frames per agent (default: --frames): "
+             "short paths then turn as little per frame as long ones."),
     odometry: str = typer.Option("vio", "--odometry",
                                  help="Simulated robot odometry written as odometry.txt "
                                       "(decentralized mode): vio, lio or none."),
@@ -118,7 +122,8 @@ def synth(
         task = bar.add_task("rendering", total=agents * frames)
         synthesize(
             staging, agents=agents, seed=seed, overlap=overlap, frames=frames, preset=preset,
-            width=width, height=height, scale=scale, progress=lambda: bar.advance(task),
+            width=width, height=height, scale=scale, loop_frames=loop_frames,
+            progress=lambda: bar.advance(task),
         )
         if odometry != "none":
             for a in range(agents):

@@ -184,3 +184,35 @@ def test_revisit_jumps_back_to_a_mapped_place():
         # The teleport is not distance travelled.
         assert path.length() == pytest.approx(np.delete(steps, jump - 1).sum(), rel=0.08)
         assert path.length() < steps.sum() - 0.5 * steps[jump - 1]
+
+
+@pytest.mark.parametrize("preset", ["default", "forward", "fast", "revisit"])
+def test_loop_frames_makes_a_short_path_turn_like_a_long_one(preset):
+    short = build_preset(preset, 1, 12, 0.2, 1).paths[0]
+    long = build_preset(preset, 1, 100, 0.2, 1).paths[0]
+    opened = build_preset(preset, 1, 12, 0.2, 1, loop_frames=100).paths[0]
+    usual = np.mean(_turns_deg(long.rotations))
+    assert np.mean(_turns_deg(short.rotations)) > 2.0 * usual  # a tight 12-frame loop
+    assert np.mean(_turns_deg(opened.rotations)) < 1.5 * usual
+    np.testing.assert_allclose(np.median(_steps(opened.positions)),
+                               np.median(_steps(long.positions)), rtol=0.1)
+
+
+def test_loop_frames_opens_the_ring_of_meetings():
+    closed = build_preset("default", 3, 20, 0.4, 2)
+    opened = build_preset("default", 3, 20, 0.4, 2, loop_frames=100)
+    assert [m.agents for m in closed.meetings] == [(0, 1), (1, 2), (2, 0)]
+    assert [m.agents for m in opened.meetings] == [(0, 1), (1, 2)]
+    for m in opened.meetings:
+        (a, b), ((a0, _), (b0, _)) = m.agents, m.frames
+        # The first frames of both agents on the stretch are at the same place.
+        gap = opened.paths[a].positions[a0, :2] - opened.paths[b].positions[b0, :2]
+        assert np.linalg.norm(gap) < 0.5
+
+
+def test_loop_frames_is_validated_and_recorded(tmp_path):
+    with pytest.raises(InputError, match="--loop-frames"):
+        synthesize(tmp_path, agents=1, seed=0, overlap=0.2, frames=4, preset="default",
+                   width=32, height=24, loop_frames=1)
+    folder = _synth(tmp_path / "scene", loop_frames=50)
+    assert json.loads((folder / "scene.json").read_text())["loop_frames"] == 50

@@ -32,7 +32,8 @@ tuned on, for the robustness benchmark (``benchmarks/robustness.py``).
     and rides on from there: a discontinuity of the path onto an already mapped place,
     for relocalization. ``overlap`` and the meetings refer to the first part.
 
-Every family is a deterministic function of its arguments and seed.
+Every family is a deterministic function of its arguments and seed; all but ``rotation``
+follow ``loop_frames`` (:mod:`.presets`).
 """
 
 from __future__ import annotations
@@ -126,11 +127,12 @@ def _rotation(agents: int, frames: int, overlap: float, rng: np.random.Generator
     return SceneSpec(builder.build(), paths, [], motion, info)
 
 
-def _revisit(agents: int, frames: int, overlap: float, rng: np.random.Generator) -> SceneSpec:
+def _revisit(agents: int, frames: int, overlap: float, rng: np.random.Generator,
+             loop_frames: int | None) -> SceneSpec:
     """The ``revisit`` preset (module docstring)."""
     jump = math.ceil(REVISIT_SHARE * frames)
     target = frames // 5
-    spec = rooms(agents, jump, overlap, rng, aliasing=False)
+    spec = rooms(agents, jump, overlap, rng, aliasing=False, loop_frames=loop_frames)
     motion = spec.motion
     paths = []
     for first in spec.paths:
@@ -146,7 +148,8 @@ def _revisit(agents: int, frames: int, overlap: float, rng: np.random.Generator)
     return SceneSpec(spec.scene, paths, spec.meetings, motion, info, loop=spec.loop)
 
 
-def build_preset(preset: str, agents: int, frames: int, overlap: float, seed: int) -> SceneSpec:
+def build_preset(preset: str, agents: int, frames: int, overlap: float, seed: int,
+                 loop_frames: int | None = None) -> SceneSpec:
     """Generate the scene and agent paths of ``preset`` (validated by the caller: one of
     :data:`PRESETS`, at least :data:`MIN_FRAMES` frames).
 
@@ -156,6 +159,8 @@ def build_preset(preset: str, agents: int, frames: int, overlap: float, seed: in
         frames: frames per agent.
         overlap: fraction of each agent's path shared with a neighbour.
         seed: random seed of the scene and paths.
+        loop_frames: lay the loop out for at least this many frames of motion per agent
+            (:mod:`.presets`); None: for ``frames``.
 
     Raises:
         ValueError: unknown preset or too few frames for it.
@@ -164,20 +169,21 @@ def build_preset(preset: str, agents: int, frames: int, overlap: float, seed: in
         raise ValueError(f"preset {preset!r} needs at least {MIN_FRAMES[preset]} frames")
     rng = np.random.default_rng(seed)
     if preset in BASE_PRESETS:
-        return build_base_preset(preset, agents, frames, overlap, rng)
+        return build_base_preset(preset, agents, frames, overlap, rng, loop_frames)
     if preset == "rotation":
         return _rotation(agents, frames, overlap, rng)
     if preset == "fast":
-        return rooms(agents, frames, overlap, rng, aliasing=False,
+        return rooms(agents, frames, overlap, rng, aliasing=False, loop_frames=loop_frames,
                      motion=CameraMotion(speed=FAST_FACTOR * CameraMotion().speed))
     if preset == "low-texture":
-        return rooms(agents, frames, overlap, rng, aliasing=False, plain=True)
+        return rooms(agents, frames, overlap, rng, aliasing=False, plain=True,
+                     loop_frames=loop_frames)
     if preset == "covered":
-        spec = rooms(agents, frames, overlap, rng, aliasing=False)
+        spec = rooms(agents, frames, overlap, rng, aliasing=False, loop_frames=loop_frames)
         first, last = covered_frames(frames)
         return SceneSpec(spec.scene, spec.paths, spec.meetings, spec.motion,
                          {**spec.info, "covered_frames": [first, last]}, loop=spec.loop,
                          covered=(first, last))
     if preset == "revisit":
-        return _revisit(agents, frames, overlap, rng)
+        return _revisit(agents, frames, overlap, rng, loop_frames)
     raise ValueError(f"unknown preset {preset!r}")

@@ -16,6 +16,12 @@
     Driving: a stadium-shaped ring road lined with buildings, cameras looking straight
     ahead at 12 m/s, little parallax.
 
+Each preset lays its loop out for the agents' paths, so a short path is a small, tight
+loop (one agent turns 360 degrees over its frames). ``loop_frames`` makes the loop at least
+that many frames of motion long instead: the agents then ride the start of a bigger loop,
+with the turn per frame of a path of ``loop_frames`` frames, and neighbours still meet
+(all but the last and the first).
+
 The motion and appearance families built on these (``rotation``, ``fast``, ``low-texture``,
 ``covered``, ``revisit``) are in :mod:`.families`.
 """
@@ -37,6 +43,7 @@ from como3r.data.synth.trajectories import (
     LoopCurve,
     fit_flower_bulge,
     flower_loop,
+    RingPlan,
     plan_ring,
     ride,
     stadium_loop,
@@ -91,25 +98,32 @@ def _loop_radius(length: float, petals: int) -> tuple[float, float]:
     return radius, fit_flower_bulge(length, radius, petals)
 
 
+def _plan(agents: int, frames: int, overlap: float, motion: CameraMotion,
+          loop_frames: int | None) -> RingPlan:
+    """The ring plan of agents riding ``frames`` at ``motion.speed``, on a loop at least
+    ``loop_frames`` frames of motion long."""
+    return plan_ring(agents, motion.speed * (frames - 1), overlap, motion.speed,
+                     motion.speed * (loop_frames or 0))
+
+
 def _ring_paths(
     curve: LoopCurve,
-    agents: int,
+    plan: RingPlan,
     frames: int,
-    overlap: float,
     motion: CameraMotion,
     lateral: list[float],
     rng: np.random.Generator,
 ) -> tuple[list[AgentPath], list[Meeting], float]:
-    """Every agent's path on ``curve`` (:func:`plan_ring`), the meetings of neighbours and
-    the shared stretch length."""
+    """Every agent's path on ``curve`` as ``plan`` places it, the meetings of neighbours
+    (not of the last and the first on an open plan) and the shared stretch length."""
+    agents = len(plan.starts)
     path_length = motion.speed * (frames - 1)
-    plan = plan_ring(agents, path_length, overlap, motion.speed)
     paths = [ride(curve, float(plan.starts[a]), frames, motion, lateral[a],
                   rng.uniform(0, 2 * np.pi, 4)) for a in range(agents)]
     meetings = []
     if agents > 1:
         eps = 1e-9 + 1e-6 * motion.speed
-        for a in range(agents):
+        for a in range(agents if plan.closed else agents - 1):
             b = (a + 1) % agents
             tail = np.nonzero(paths[a].arc >= plan.starts[a] + path_length - plan.shared - eps)[0]
             head = np.nonzero(paths[b].arc <= plan.starts[b] + plan.shared + eps)[0]
@@ -149,18 +163,17 @@ def _door_walls(builder: SceneBuilder, theta: float, radius: float, tower: float
 
 
 def rooms(agents: int, frames: int, overlap: float, rng: np.random.Generator,
-          aliasing: bool, motion: CameraMotion = CameraMotion(), plain: bool = False
-          ) -> SceneSpec:
+          aliasing: bool, motion: CameraMotion = CameraMotion(), plain: bool = False,
+          loop_frames: int | None = None) -> SceneSpec:
     """The ``default`` and ``aliasing`` presets (module docstring); with another camera
     ``motion`` or ``plain`` textures (:class:`SceneBuilder`), the rooms of the families in
-    :mod:`.families`."""
-    path_length = motion.speed * (frames - 1)
-    plan = plan_ring(agents, path_length, overlap, motion.speed)
+    :mod:`.families`. The loop is at least ``loop_frames`` frames of motion long."""
+    plan = _plan(agents, frames, overlap, motion, loop_frames)
     radius, bulge = _loop_radius(plan.loop_length, agents)
     phase = float(rng.uniform(0, 2 * np.pi))
     curve = flower_loop((0.0, 0.0), radius, bulge, agents, phase)
     offset = min(0.2, 0.1 * radius)
-    paths, meetings, shared = _ring_paths(curve, agents, frames, overlap, motion,
+    paths, meetings, shared = _ring_paths(curve, plan, frames, motion,
                                           _lateral_offsets(agents, offset), rng)
     builder = SceneBuilder(rng, curve.points, CLEARANCE + offset, plain=plain)
     outer = max(radius + bulge + 7.0, 10.0)
@@ -195,10 +208,13 @@ def rooms(agents: int, frames: int, overlap: float, rng: np.random.Generator,
     return SceneSpec(builder.build(), paths, meetings, motion, info, loop=curve)
 
 
-def _compounds(agents: int, frames: int, rng: np.random.Generator) -> SceneSpec:
-    """The ``no-meeting`` preset: one sealed compound and one closed loop per agent."""
+def _compounds(agents: int, frames: int, rng: np.random.Generator,
+               loop_frames: int | None) -> SceneSpec:
+    """The ``no-meeting`` preset: one sealed compound and one closed loop per agent (an
+    open part of a loop ``loop_frames`` frames of motion long, if that is longer)."""
     motion = CameraMotion()
-    loop_length = motion.speed * frames  # L plus one step: a closed loop
+    # L plus one step: a closed loop
+    loop_length = motion.speed * max(frames, loop_frames or 0)
     radius, bulge = _loop_radius(loop_length, 3)
     half = radius + bulge + 6.0
     thickness = 1.0
@@ -233,12 +249,13 @@ def _compounds(agents: int, frames: int, rng: np.random.Generator) -> SceneSpec:
     return SceneSpec(builder.build(), paths, [], motion, info)
 
 
-def _road(agents: int, frames: int, overlap: float, rng: np.random.Generator) -> SceneSpec:
-    """The ``forward`` preset: a ring road; agents drive its outer lane."""
+def _road(agents: int, frames: int, overlap: float, rng: np.random.Generator,
+          loop_frames: int | None) -> SceneSpec:
+    """The ``forward`` preset: a ring road; agents drive its outer lane (at least
+    ``loop_frames`` frames of motion long)."""
     motion = CameraMotion(speed=0.4, yaw_amplitude=0.5, yaw_wavelength=40.0, pitch=-2.0,
                           pitch_amplitude=0.3, roll_amplitude=0.0, bob_amplitude=0.01)
-    path_length = motion.speed * (frames - 1)
-    plan = plan_ring(agents, path_length, overlap, motion.speed)
+    plan = _plan(agents, frames, overlap, motion, loop_frames)
     half_width, lane = 3.5, 1.75
     loop_length = plan.loop_length
     lane_radius = max(0.08 * loop_length, lane + half_width + 0.5)
@@ -249,7 +266,7 @@ def _road(agents: int, frames: int, overlap: float, rng: np.random.Generator) ->
     road_radius = lane_radius - lane
     road = None
     builder_clearance = CLEARANCE + 0.3
-    paths, meetings, shared = _ring_paths(curve, agents, frames, overlap, motion,
+    paths, meetings, shared = _ring_paths(curve, plan, frames, motion,
                                           _lateral_offsets(agents, 0.15), rng)
     builder = SceneBuilder(rng, curve.points, builder_clearance)
     if road_radius > half_width:
@@ -284,15 +301,16 @@ def _road(agents: int, frames: int, overlap: float, rng: np.random.Generator) ->
 
 
 def build_base_preset(preset: str, agents: int, frames: int, overlap: float,
-                      rng: np.random.Generator) -> SceneSpec:
+                      rng: np.random.Generator, loop_frames: int | None = None) -> SceneSpec:
     """Generate the scene and agent paths of one of :data:`BASE_PRESETS` (validated by the
-    caller) from the scene's random generator."""
+    caller) from the scene's random generator; the loop is at least ``loop_frames`` frames
+    of motion long (None: as long as the agents' paths make it)."""
     if preset == "default":
-        return rooms(agents, frames, overlap, rng, aliasing=False)
+        return rooms(agents, frames, overlap, rng, aliasing=False, loop_frames=loop_frames)
     if preset == "aliasing":
-        return rooms(agents, frames, overlap, rng, aliasing=True)
+        return rooms(agents, frames, overlap, rng, aliasing=True, loop_frames=loop_frames)
     if preset == "no-meeting":
-        return _compounds(agents, frames, rng)
+        return _compounds(agents, frames, rng, loop_frames)
     if preset == "forward":
-        return _road(agents, frames, overlap, rng)
+        return _road(agents, frames, overlap, rng, loop_frames)
     raise ValueError(f"unknown preset {preset!r}")

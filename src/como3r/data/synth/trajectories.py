@@ -221,14 +221,18 @@ class RingPlan:
     """Where N agents start on a loop so that neighbours share stretches of length S.
 
     Attributes:
-        loop_length: P = N * (L - S) (for one agent, L plus one step: a closed loop).
+        loop_length: P = N * (L - S) (for one agent, L plus one step: a closed loop), or the
+            longer minimum loop asked for.
         shared: S, length of each shared stretch.
         starts: ``(N,)`` arc length of each agent's first frame.
+        closed: whether the agents' paths close the loop (the last agent meets the first,
+            one agent returns to its start); false on a lengthened loop.
     """
 
     loop_length: float
     shared: float
     starts: np.ndarray
+    closed: bool = True
 
     @property
     def junctions(self) -> np.ndarray:
@@ -236,15 +240,20 @@ class RingPlan:
         return self.starts + 0.5 * self.shared
 
 
-def plan_ring(agents: int, path_length: float, overlap: float, step: float) -> RingPlan:
+def plan_ring(agents: int, path_length: float, overlap: float, step: float,
+              min_loop: float = 0.0) -> RingPlan:
     """Starts of ``agents`` paths of length ``path_length`` on one loop (module docstring).
 
     With one agent the loop is ``path_length + step`` long: the agent goes round once and
-    its last frame lands one step before its first.
+    its last frame lands one step before its first. A longer ``min_loop`` (metres) keeps
+    the starts and lengthens the loop: the agents then ride an open chain on it (each still
+    shares a stretch with the next, the last no longer with the first) and turn less per
+    metre.
     """
     if agents == 1:
-        return RingPlan(path_length + step, 0.0, np.zeros(1))
-    shared = 0.5 * overlap * path_length
-    room = path_length - shared
-    starts = room * np.arange(agents) - 0.5 * shared
-    return RingPlan(room * agents, shared, starts)
+        natural, shared, starts = path_length + step, 0.0, np.zeros(1)
+    else:
+        shared = 0.5 * overlap * path_length
+        room = path_length - shared
+        natural, starts = room * agents, room * np.arange(agents) - 0.5 * shared
+    return RingPlan(max(natural, min_loop), shared, starts, closed=min_loop <= natural)

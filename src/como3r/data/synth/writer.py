@@ -50,7 +50,7 @@ MAX_SIZE = 4096
 
 
 def _validate(staging_dir: Path, agents: int, overlap: float, frames: int, preset: str,
-              width: int, height: int, scale: float) -> None:
+              width: int, height: int, scale: float, loop_frames: int | None) -> None:
     if preset not in PRESETS:
         raise InputError(f"--preset: unknown preset {preset!r} (valid: {', '.join(PRESETS)})")
     if not isinstance(agents, numbers.Integral) or not 1 <= agents <= MAX_AGENTS:
@@ -63,6 +63,10 @@ def _validate(staging_dir: Path, agents: int, overlap: float, frames: int, prese
             and math.isfinite(scale) and scale > 0):
         raise InputError(f"--scale: must be a finite number > 0 (1 = the presets' metres), "
                          f"got {scale!r}")
+    if loop_frames is not None and not (isinstance(loop_frames, numbers.Integral)
+                                        and 2 <= loop_frames <= MAX_FRAMES):
+        raise InputError(f"--loop-frames: must be an integer in [2, {MAX_FRAMES}], "
+                         f"got {loop_frames!r}")
     if not (isinstance(overlap, numbers.Real) and math.isfinite(overlap) and 0 <= overlap <= 1):
         raise InputError(f"--overlap: must be a number in [0, 1], got {overlap!r}")
     for name, size in (("--width", width), ("--height", height)):
@@ -147,6 +151,7 @@ def synthesize(
     width: int,
     height: int,
     scale: float = 1.0,
+    loop_frames: int | None = None,
     progress: Callable[[], None] | None = None,
 ) -> SceneSpec:
     """Generate, render and write a multi-agent synthetic scene into ``staging_dir``.
@@ -162,6 +167,9 @@ def synthesize(
         width, height: image size in pixels.
         scale: factor on every length of the scene and paths, finite and > 0 (module
             docstring); 1 gives the presets' metres.
+        loop_frames: lay the loop out for at least this many frames of motion per agent
+            (:mod:`.presets`): a short path then turns as little per frame as a long one;
+            None lays it out for ``frames``.
         progress: called once after every rendered frame.
 
     Returns:
@@ -171,13 +179,14 @@ def synthesize(
         InputError: unknown preset or impossible arguments.
     """
     staging_dir = Path(staging_dir)
-    _validate(staging_dir, agents, overlap, frames, preset, width, height, scale)
+    _validate(staging_dir, agents, overlap, frames, preset, width, height, scale, loop_frames)
     scale = float(scale)
-    spec = build_preset(preset, agents, frames, float(overlap), seed)
+    spec = build_preset(preset, agents, frames, float(overlap), seed, loop_frames)
     K = Intrinsics.from_hfov(width, height, HFOV_DEG)
     renderer = Renderer(spec.scene, K)
     args = {"preset": preset, "seed": seed, "agents": agents, "frames": frames,
-            "overlap": float(overlap), "width": width, "height": height, "scale": scale}
+            "overlap": float(overlap), "width": width, "height": height, "scale": scale,
+            "loop_frames": loop_frames}
     (staging_dir / "scene.json").write_text(
         json.dumps(_scene_json(spec, K, args, scale), indent=2, sort_keys=True) + "\n")
     first_covered, last_covered = spec.covered if spec.covered is not None else (frames, -1)

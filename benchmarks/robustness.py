@@ -1,0 +1,280 @@
+"""Robustness of the default configuration over scene families and input sizes (not a test).
+
+Our defaults were tuned on one kind of scene; this sweeps the kinds we are measured on.
+Every cell is a whole ``como3r run --single-process`` (the Python API,
+:func:`como3r.runtime.pipeline.run`) with the **default configuration** (``Config()``, no
+overrides: ``input.long_side`` 512, ``input.subsample`` 2) and the default simulated prior,
+on a scene from :func:`como3r.data.synth.synthesize`:
+
+=============  =============================================================
+family         scene
+=============  =============================================================
+tabletop       ``default`` preset at scale 0.1 (``--scale``)
+room           ``default`` preset at scale 1
+street         ``default`` preset at scale 5
+aerial         ``default`` preset at scale 20
+aliasing       ``aliasing`` preset (rows of identical façades)
+forward        ``forward`` preset (driving, little parallax)
+fast           ``fast`` preset (4x the motion per frame)
+rotation       ``rotation`` preset (turning in place)
+low-texture    ``low-texture`` preset (flat paint, sparse marks)
+covered        ``covered`` preset (lens covered mid-path)
+revisit        ``revisit`` preset (the path jumps back to a mapped place)
+=============  =============================================================
+
+crossed with input sizes (``320x240`` is upsampled to the long side 512 by the pipeline,
+``640x480`` and ``1920x1080`` downsampled) and seeds. Per cell it reports, from the run's
+``metrics.json``:
+
+* ``tracked``: tracked / processed frames, over all agents;
+* ``ATE m``: ATE RMSE after Sim(3) alignment, of the merged trajectory with several agents;
+* ``ATE %path``: ``ATE m`` over the mean ground-truth path length of an agent
+  (``scene.json``'s ``path_length_m``: distance travelled, teleports of ``revisit``
+  excluded). For ``rotation`` the path is the few-centimetre circle of the optical centre,
+  so read its ``RPE rot`` instead;
+* ``RPE rot``: RMSE of the relative rotation error in degrees (mean over agents);
+* ``KF/frame``: keyframes per processed frame; ``s/frame``: the agents' processing seconds
+  per processed frame (this machine, shared: see the header line).
+
+**Frames.** The ring presets lay their loop out for the agents' paths: one agent on a
+12-frame path would turn 30 degrees per frame. Every scene here is laid out for
+:data:`REFERENCE_FRAMES` frames (``loop_frames``, ``como3r synth --loop-frames``), so
+``--frames`` only sets how much of it is run: a short smoke run rides the start of the same
+scene with the same motion per frame as a full one.
+
+It writes ``robustness.csv`` (one row per cell) and ``robustness.png`` (heat maps of the
+tracked fraction and ATE %path, mean over seeds, family x size) into ``--out``; scenes are
+kept in ``--out/scenes`` and reused, runs go to ``--out/runs``. A cell whose run fails is a
+result, not a stop: its row says ``error`` and the traceback goes to ``--out/errors.log``.
+
+    OMP_NUM_THREADS=1 python benchmarks/robustness.py --out /tmp/robust \\
+        --families room tabletop --sizes 320x240 --frames 20 --seeds 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import platform
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from rich.console import Console
+from rich.table import Table
+
+from como3r.config import Config
+from como3r.data.synth import synthesize
+from como3r.io.output import atomic_output_dir
+from como3r.runtime.pipeline import PriorSpec, run
+
+
+@dataclass(frozen=True)
+class Family:
+    """A scene family: a ``como3r synth`` preset at a scale."""
+
+    preset: str
+    scale: float = 1.0
+
+
+FAMILIES = {
+    "tabletop": Family("default", 0.1),
+    "room": Family("default", 1.0),
+    "street": Family("default", 5.0),
+    "aerial": Family("default", 20.0),
+    "aliasing": Family("aliasing"),
+    "forward": Family("forward"),
+    "fast": Family("fast"),
+    "rotation": Family("rotation"),
+    "low-texture": Family("low-texture"),
+    "covered": Family("covered"),
+    "revisit": Family("revisit"),
+}
+SIZES = ("320x240", "640x480", "1920x1080")
+#: frames per agent every scene is laid out for (``como3r synth``'s default ``--frames``)
+REFERENCE_FRAMES = 100
+COLUMNS = ("family", "size", "seed", "agents", "frames", "tracked", "ATE m", "ATE %path",
+           "RPE rot", "KF/frame", "s/frame", "status")
+
+
+def _size(text: str) -> tuple[int, int]:
+    """``WxH`` -> (width, height)."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must be WIDTHxHEIGHT, got {text!r}") from None
+    return width, height
+
+
+def _scene(root: Path, family: str, size: str, seed: int, agents: int, frames: int) -> Path:
+    """The cell's synthetic scene (rendered once, reused when it exists)."""
+    folder = root / f"{family}-{size}-a{agents}-f{frames}-s{seed}"
+    info = folder / "scene.json"
+    if not info.is_file() or json.loads(info.read_text()).get("loop_frames") != REFERENCE_FRAMES:
+        width, height = _size(size)
+        spec = FAMILIES[family]
+        with atomic_output_dir(folder, overwrite=True) as staging:
+            synthesize(staging, agents=agents, seed=seed, overlap=0.2, frames=frames,
+                       preset=spec.preset, width=width, height=height, scale=spec.scale,
+                       loop_frames=REFERENCE_FRAMES)
+    return folder
+
+
+def measure(metrics: dict, scene_info: dict) -> dict[str, float]:
+    """The table's numbers of one run.
+
+    Args:
+        metrics: the run's ``metrics.json`` (``agents`` with ``frames``, ``tracked``,
+            ``keyframes``, ``seconds``; ``ate`` from evo or None).
+        scene_info: the scene's ``scene.json`` (``agents_info[*].path_length_m``).
+
+    Returns:
+        ``frames``, ``tracked`` (fraction), ``ATE m``, ``ATE %path``, ``RPE rot``,
+        ``KF/frame``, ``s/frame``; NaN where the run has no ATE.
+    """
+    agents = metrics["agents"]
+    frames = sum(a["frames"] for a in agents)
+    row = {
+        "frames": frames,
+        "tracked": sum(a["tracked"] for a in agents) / frames,
+        "ATE m": math.nan, "ATE %path": math.nan, "RPE rot": math.nan,
+        "KF/frame": sum(a["keyframes"] for a in agents) / frames,
+        "s/frame": sum(a["seconds"] for a in agents) / frames,
+    }
+    ate = metrics.get("ate")
+    if ate:
+        merged = ate["merged"] if len(agents) > 1 and ate.get("merged") else None
+        rmse = merged["ate"]["rmse"] if merged else ate["agents"][0]["ate"]["rmse"]
+        path = float(np.mean([a["path_length_m"] for a in scene_info["agents_info"]]))
+        row["ATE m"] = rmse
+        row["ATE %path"] = 100.0 * rmse / path if path > 0 else math.nan
+        row["RPE rot"] = float(np.mean([a["rpe_rot_deg"]["rmse"] for a in ate["agents"]]))
+    return row
+
+
+def run_cell(out: Path, family: str, size: str, seed: int, agents: int, frames: int) -> dict:
+    """Synthesize (or reuse) the cell's scene, run SLAM with the defaults, measure."""
+    name = f"{family}-{size}-a{agents}-f{frames}-s{seed}"
+    row: dict = {"family": family, "size": size, "seed": seed, "agents": agents}
+    try:
+        scene = _scene(out / "scenes", family, size, seed, agents, frames)
+        run_dir = out / "runs" / name
+        run([scene / f"agent_{a}" for a in range(agents)], run_dir, Config(),
+            PriorSpec("simulated"), overwrite=True)
+        metrics = json.loads((run_dir / "metrics.json").read_text())
+        row.update(measure(metrics, json.loads((scene / "scene.json").read_text())))
+        row["status"] = "ok" if metrics.get("ate") else "no ATE"
+    except Exception as exc:  # a crash on a family is a robustness result: record, go on
+        with (out / "errors.log").open("a") as log:
+            log.write(f"=== {name}\n{traceback.format_exc()}\n")
+        row["status"] = f"error: {type(exc).__name__}"
+    return {column: row.get(column, math.nan) for column in COLUMNS}
+
+
+def _format(value: object) -> str:
+    if isinstance(value, float):
+        return "—" if math.isnan(value) else f"{value:.3g}"
+    return str(value)
+
+
+def print_table(console: Console, rows: list[dict], title: str) -> None:
+    """One line per cell."""
+    table = Table(title=title)
+    for column in COLUMNS:
+        table.add_column(column, justify="left" if column in ("family", "status") else "right")
+    for row in rows:
+        table.add_row(*(_format(row[c]) for c in COLUMNS))
+    console.print(table)
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    """One row per cell, the table's columns."""
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def write_heatmap(path: Path, rows: list[dict], families: list[str], sizes: list[str]) -> None:
+    """Family x size heat maps of the tracked fraction and ATE %path (mean over seeds;
+    grey where no run of the cell has the number)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = (("tracked", "tracked fraction", "RdYlGn", (0.0, 1.0)),
+              ("ATE %path", "ATE RMSE, % of path", "RdYlGn_r", None))
+    fig, axes = plt.subplots(1, 2, figsize=(4.0 + 1.6 * len(sizes), 1.2 + 0.45 * len(families)),
+                             squeeze=False)
+    for ax, (key, label, cmap, limits) in zip(axes[0], panels):
+        grid = np.full((len(families), len(sizes)), np.nan)
+        for i, family in enumerate(families):
+            for j, size in enumerate(sizes):
+                values = [float(r[key]) for r in rows if r["family"] == family
+                          and r["size"] == size and not math.isnan(float(r[key]))]
+                if values:
+                    grid[i, j] = np.mean(values)
+        colours = plt.get_cmap(cmap).copy()
+        colours.set_bad("0.8")
+        lo, hi = limits if limits else (0.0, max(1.0, float(np.nanmax(grid, initial=1.0))))
+        image = ax.imshow(np.ma.masked_invalid(grid), cmap=colours, vmin=lo, vmax=hi,
+                          aspect="auto")
+        for (i, j), value in np.ndenumerate(grid):
+            if not np.isnan(value):
+                ax.text(j, i, f"{value:.2g}", ha="center", va="center", fontsize=8)
+        ax.set_xticks(range(len(sizes)), sizes)
+        ax.set_yticks(range(len(families)), families)
+        ax.set_title(label)
+        fig.colorbar(image, ax=ax)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, required=True,
+                        help="Folder for the CSV, the PNG, scenes and runs.")
+    parser.add_argument("--families", nargs="+", default=list(FAMILIES), choices=list(FAMILIES))
+    parser.add_argument("--sizes", nargs="+", default=list(SIZES), help="WIDTHxHEIGHT each.")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
+    parser.add_argument("--frames", type=int, default=40,
+                        help="Frames per agent (before the default subsample of 2).")
+    parser.add_argument("--agents", type=int, default=1, choices=(1, 2, 3))
+    args = parser.parse_args()
+    for size in args.sizes:
+        try:
+            _size(size)
+        except argparse.ArgumentTypeError as exc:
+            parser.error(f"--sizes: {exc}")
+    args.out.mkdir(parents=True, exist_ok=True)
+
+    console = Console(width=200)
+    header = (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+              f"torch threads {torch.get_num_threads()}, OMP_NUM_THREADS="
+              f"{os.environ.get('OMP_NUM_THREADS', 'unset')}; default Config(), simulated prior; "
+              f"{args.agents} agent(s), {args.frames} frames each")
+    console.print(header)
+    rows = []
+    started = time.perf_counter()
+    for family in args.families:
+        for size in args.sizes:
+            for seed in args.seeds:
+                rows.append(run_cell(args.out, family, size, seed, args.agents, args.frames))
+                console.print(f"[{time.perf_counter() - started:7.0f} s] "
+                              + ", ".join(f"{c}={_format(rows[-1][c])}" for c in COLUMNS))
+    print_table(console, rows, "robustness of the default configuration")
+    write_csv(args.out / "robustness.csv", rows)
+    write_heatmap(args.out / "robustness.png", rows, args.families, args.sizes)
+    console.print(f"wrote {args.out / 'robustness.csv'} and {args.out / 'robustness.png'}")
+
+
+if __name__ == "__main__":
+    main()
