@@ -65,6 +65,7 @@ from como3r.errors import InputError
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches, gather_points
+from como3r.frontend.timing import StageTimer, TimedPrior
 from como3r.geometry.lie import sim3_act
 from como3r.prior.base import Prior
 
@@ -187,7 +188,6 @@ class Coordinator:
                  num_agents: int) -> None:
         if num_agents < 1:
             raise InputError(f"coordinator: num_agents must be >= 1, got {num_agents}")
-        self.prior = prior
         self.config = config
         self.num_agents = num_agents
         self.graph = GlobalGraph(config.tracking, config.global_ba)
@@ -197,6 +197,8 @@ class Coordinator:
         enabled = config.loop_closure and codebook is not None
         self.retrieval = CrossAgentRetrieval(codebook, config.retrieval) if enabled else None
         self.stats = CoordinatorStats()
+        # the prior's decodes (verification) are charged to stage_seconds["prior_decode"]
+        self.prior = TimedPrior(prior, StageTimer(self.stats.stage_seconds))
         self.candidates: list[Candidate] = []
         self.gauge_events: list[dict[str, Any]] = []
         self._waiting: list[Candidate] = []  # verified edges between two components
@@ -358,10 +360,12 @@ class Coordinator:
             return []
         candidates = [(h, self.graph.keyframes[self.graph.global_index(h.agent, h.keyframe)]
                        .encoding) for h in hits]
+        decoded = self.stats.stage_seconds.get("prior_decode", 0.0)
         verifications = verify_candidates(
             self.prior, (packet.agent, packet.kf_id), packet.encoding, candidates,
             self.config.matching, self.config.tracking.q_min, self.config.verification)
-        self.stats.add_time("verification", time.perf_counter() - middle)
+        decoded = self.stats.stage_seconds.get("prior_decode", 0.0) - decoded
+        self.stats.add_time("verification", time.perf_counter() - middle - decoded)
         self.stats.edges_tried += len(verifications)
         records = [Candidate(v, self.graph.global_index(*v.candidate),
                              self.graph.global_index(*v.query)) for v in verifications]

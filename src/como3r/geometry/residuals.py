@@ -58,8 +58,10 @@ def _transform_matches(T_ij: Tensor, X_j: Tensor) -> Tensor:
     ``s R x + t`` as :func:`~como3r.geometry.lie.sim3_act`, a few times faster for the many
     points of a dense edge than rotating each point by the quaternion.
     """
-    sR = T_ij[..., 7:, None] * quat_to_matrix(T_ij[..., 3:7])
-    return X_j @ sR.transpose(-1, -2) + T_ij[..., None, :3]
+    dtype = torch.promote_types(T_ij.dtype, X_j.dtype)  # as sim3_act's broadcasting
+    T = T_ij.to(dtype)
+    sR = T[..., 7:, None] * quat_to_matrix(T[..., 3:7])
+    return X_j.to(dtype) @ sR.transpose(-1, -2) + T[..., None, :3]
 
 
 def ray_range_error(T_ij: Tensor, X_j: Tensor, X_i: Tensor) -> Tensor:
