@@ -1,0 +1,189 @@
+"""SLAM work per frame vs the prior's decode, on a real front-end run (not a test).
+
+Runs one agent's front-end (simulated prior) over the first frames of an agent input at the
+configured network resolution (default long side 512: 640x480 input -> 512x384) and
+attributes the wall time of every ``process`` call to stages by wrapping the functions that
+do the work (the same wrappers on any checkout, so two checkouts compare like for like):
+
+* prior stages: ``prior_encode``, ``prior_decode`` (single and symmetric decodes),
+  ``prior_retrieval``;
+* SLAM stages: ``matching`` (projective matching with descriptor refinement, C-Eq. 1),
+  ``tracking`` (LM-IRLS, C-Eq. 2), ``fusion`` (C-Eq. 3), ``keyframe`` (linking and loop
+  verification around the decodes and matchings), ``local_solve`` (C-Eq. 5 on the agent's
+  keyframe graph), ``other`` (the rest of ``process``).
+
+Nested stages are exclusive (a decode inside linking counts as ``prior_decode`` only). It
+then times one full-size MASt3R decode at the same resolution (random weights: the released
+network's cost) and prints per-stage ms per frame and two ratios: SLAM per frame over one
+decode (the tracking decode every frame needs), and over the decodes the frame actually
+caused (tracking plus both directions of every keyframe link, counted on the run; each
+dense matching comes with one of them). Times are CPU seconds of
+this process (``time.process_time``): with one thread they equal wall time on an idle
+machine and, unlike wall time, do not count the other jobs of a shared one.
+
+    como3r synth --out /tmp/s640 --agents 1 --frames 40 --width 640 --height 480
+    OMP_NUM_THREADS=1 python benchmarks/slam_vs_prior.py --agent /tmp/s640/agent_0 \
+        --frames 12 --threads 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import platform
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+
+from como3r.config import Config, MatchingConfig, apply_overrides
+from como3r.data.agent import open_agent
+from como3r.data.preprocess import make_view
+from como3r.frontend import agent as agent_module
+from como3r.frontend import keyframes as keyframes_module
+from como3r.frontend import pairs as pairs_module
+from como3r.frontend import tracker as tracker_module
+from como3r.runtime.pipeline import PriorSpec, _colors, build_prior
+
+PRIOR_STAGES = ("prior_encode", "prior_decode", "prior_retrieval")
+SLAM_STAGES = ("matching", "tracking", "fusion", "keyframe", "local_solve", "other")
+
+
+class ExclusiveClock:
+    """CPU seconds per stage; entering a nested stage pauses the enclosing one."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._stack: list[str] = []
+        self._mark = 0.0
+
+    def wrap(self, name: str, fn: Callable[..., Any]) -> Callable[..., Any]:
+        """``fn`` with its calls charged to stage ``name``."""
+
+        @functools.wraps(fn)
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            self._switch(name)
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self._switch(None)
+
+        return timed
+
+    def _switch(self, entering: str | None) -> None:
+        now = time.process_time()
+        if self._stack:
+            top = self._stack[-1]
+            self.seconds[top] = self.seconds.get(top, 0.0) + now - self._mark
+        if entering is None:
+            self._stack.pop()
+        else:
+            self._stack.append(entering)
+        self._mark = now
+
+
+def instrument(clock: ExclusiveClock) -> None:
+    """Wrap the front-end's work functions (class and module attributes) with ``clock``."""
+    frontend = agent_module.AgentFrontend
+    frontend.process = clock.wrap("other", frontend.process)
+    frontend._link_new_keyframe = clock.wrap("keyframe", frontend._link_new_keyframe)
+    frontend._local_solve = clock.wrap("local_solve", frontend._local_solve)
+    tracker_module.FrameTracker._solve = clock.wrap("tracking",
+                                                    tracker_module.FrameTracker._solve)
+    keyframes_module.Keyframe.fuse = clock.wrap("fusion", keyframes_module.Keyframe.fuse)
+    pairs_module.match_pointmaps = clock.wrap("matching", pairs_module.match_pointmaps)
+
+
+def instrument_prior(clock: ExclusiveClock, prior: Any, decodes: list[int]) -> None:
+    """Wrap the prior's per-image and per-pair work on the instance; ``decodes[0]`` counts
+    decoded ordered pairs."""
+    decode, decode_symmetric = prior.decode, prior.decode_symmetric
+
+    def counted_decode(*args: Any) -> Any:
+        decodes[0] += 1
+        return decode(*args)
+
+    def counted_symmetric(pairs: Any) -> Any:
+        decodes[0] += 2 * len(pairs)
+        return decode_symmetric(pairs)
+
+    prior.encode = clock.wrap("prior_encode", prior.encode)
+    prior.decode = clock.wrap("prior_decode", counted_decode)
+    prior.decode_symmetric = clock.wrap("prior_decode", counted_symmetric)
+    prior.retrieval_features = clock.wrap("prior_retrieval", prior.retrieval_features)
+
+
+def frontend_run(agent_path: Path, frames: int, overrides: list[str]) -> tuple[dict, dict]:
+    """Stage seconds over the first ``frames`` processed frames and the run's counters."""
+    config = apply_overrides(Config(), overrides)
+    agent = open_agent(agent_path, fps=config.input.frame_rate_hz)
+    prior, codebook = build_prior(PriorSpec(), config)
+    clock = ExclusiveClock()
+    decodes = [0]
+    instrument(clock)
+    instrument_prior(clock, prior, decodes)
+    frontend = agent_module.AgentFrontend(prior, config, 0, codebook)
+    indices = list(range(0, agent.num_frames, config.input.subsample))[:frames]
+    shape = None
+    for index in indices:
+        frame = agent.load_frame(index)
+        view = make_view(frame, 0, config.input.long_side, agent.calib)
+        shape = tuple(view.image.shape[1:])
+        frontend.process(view, frame.timestamp, _colors(view))
+    stats = frontend.stats
+    counters = {"frames": len(indices), "keyframes": stats.keyframes,
+                "local_solves": stats.local_solves, "loop_edges": stats.loop_edges,
+                "loop_candidates": stats.loop_candidates, "decodes": decodes[0],
+                "resolution": f"{shape[1]}x{shape[0]}"}
+    return clock.seconds, counters
+
+
+def mast3r_decode_seconds(width: int, height: int) -> float:
+    """One decode of a pair by the full-size MASt3R network (random weights)."""
+    from como3r.prior.mast3r import MASt3RNetwork, parse_model_string
+    from como3r.prior.mast3r.config import RELEASED_MODEL_STRING
+    from como3r.prior.mast3r.prior import MASt3RPrior
+
+    torch.manual_seed(0)
+    prior = MASt3RPrior(MASt3RNetwork(parse_model_string(RELEASED_MODEL_STRING)))
+    enc = prior.encode(torch.rand(1, 3, height, width) * 2 - 1)
+    start = time.process_time()
+    prior.decode(enc, enc)
+    return time.process_time() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--agent", type=Path, required=True)
+    parser.add_argument("--frames", type=int, default=12)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--decode-ms", type=float, default=None,
+                        help="skip the MASt3R timing and use this decode time")
+    parser.add_argument("--set", action="append", default=[], help="config override")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    overrides = list(args.set)
+    if not overrides and hasattr(MatchingConfig, "occlusion_distance"):
+        overrides.append("matching.occlusion_distance=0.5")  # metres: not every frame a keyframe
+    seconds, counters = frontend_run(args.agent, args.frames, overrides)
+    width, height = (int(v) for v in counters["resolution"].split("x"))
+    decode_ms = (args.decode_ms if args.decode_ms is not None
+                 else 1000.0 * mast3r_decode_seconds(width, height))
+    n = counters["frames"]
+    print(f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
+          f"{args.threads} threads; {counters}; overrides {overrides}")
+    print("stage | ms per frame")
+    for stage in (*PRIOR_STAGES, *SLAM_STAGES):
+        print(f"{stage} | {1000.0 * seconds.get(stage, 0.0) / n:.0f}")
+    slam_ms = 1000.0 * sum(seconds.get(s, 0.0) for s in SLAM_STAGES) / n
+    per_frame_decode_ms = decode_ms * counters["decodes"] / n
+    print(f"SLAM total | {slam_ms:.0f}")
+    print(f"MASt3R decode (one ordered pair, {width}x{height}) | {decode_ms:.0f}")
+    print(f"SLAM / one MASt3R decode | {slam_ms / decode_ms:.3f}")
+    print(f"MASt3R decodes per frame ({counters['decodes']} / {n}) | {per_frame_decode_ms:.0f}")
+    print(f"SLAM / MASt3R decodes of the frame | {slam_ms / per_frame_decode_ms:.3f}")
+
+
+if __name__ == "__main__":
+    main()
