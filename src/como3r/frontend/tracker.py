@@ -103,7 +103,7 @@ class FrameTracker:
             )
             self._remember(keyframe, matches, pred.X_ii.shape[1])
             nu = matches.match_fraction
-            nu_unique = _unique_fraction(matches)
+            nu_unique = _unique_fraction(matches, pred.X_ii.shape[0] * pred.X_ii.shape[1])
         tracking = self.config.tracking
         base = dict(match_fraction=nu, unique_fraction=nu_unique, X_ff=pred.X_ii, C_ff=pred.C_ii,
                     matches=matches)
@@ -157,8 +157,15 @@ class FrameTracker:
         self._warm = (keyframe.kf_id, pixels[None].to(keyframe.X_hat.dtype))
 
 
-def _unique_fraction(matches: DirectedMatches) -> float:
-    """Distinct matched pixels of the searched view per query pixel (``nu_uniq``)."""
+def _unique_fraction(matches: DirectedMatches, searched_pixels: int) -> float:
+    """Distinct matched pixels of the searched view per query pixel (``nu_uniq``).
+
+    Args:
+        matches: the matches, indices into the searched view's ``searched_pixels`` pixels.
+        searched_pixels: pixel count of the searched view.
+    """
     if matches.idx.numel() == 0:
         return 0.0
-    return float(torch.unique(matches.idx[matches.valid]).numel() / matches.idx.numel())
+    hit = torch.zeros(searched_pixels, dtype=torch.bool, device=matches.idx.device)
+    hit[matches.idx[matches.valid]] = True  # a mark per distinct pixel, no sort
+    return float(hit.sum() / matches.idx.numel())
