@@ -41,9 +41,9 @@ from como3r.data.synth.trajectories import (
     AgentPath,
     CameraMotion,
     LoopCurve,
+    RingPlan,
     fit_flower_bulge,
     flower_loop,
-    RingPlan,
     plan_ring,
     ride,
     stadium_loop,
@@ -213,7 +213,7 @@ def _compounds(agents: int, frames: int, rng: np.random.Generator,
     """The ``no-meeting`` preset: one sealed compound and one closed loop per agent (an
     open part of a loop ``loop_frames`` frames of motion long, if that is longer)."""
     motion = CameraMotion()
-    # L plus one step: a closed loop
+    # L plus one step closes the loop; a longer loop_frames leaves it open.
     loop_length = motion.speed * max(frames, loop_frames or 0)
     radius, bulge = _loop_radius(loop_length, 3)
     half = radius + bulge + 6.0
