@@ -10,6 +10,11 @@ as a percentage of the robots' summed ground-truth path length, for the configur
 formulation (``ate.json``) and for every formulation x solver of ``metrics.json``'s table
 (F-Tables II-III). A scale-free system prints the same row at every scale.
 
+The simulated prior's descriptors are built from the surface maps' s, t in metres at fixed
+metric wavelengths, so it matches a grown or shrunk world differently (a learned prior sees
+the same images at any scale). ``--keep-surface-keys`` leaves s, t as rendered, which
+makes the simulated prior scale-free and isolates the decentralized mode's own lengths.
+
 Run it against two checkouts to compare them (the scene folder is reused when it exists):
 
     PYTHONPATH=src python benchmarks/decentralized_scale.py --work /tmp/dscale/bench \\
@@ -59,14 +64,15 @@ def _scale_tum(path: Path, factor: float) -> None:
     path.write_text("\n".join(out) + "\n")
 
 
-def scaled_copy(scene: Path, target: Path, factor: float) -> None:
-    """Copy of ``scene`` with every length multiplied by ``factor`` (module docstring)."""
+def scaled_copy(scene: Path, target: Path, factor: float, keep_keys: bool = False) -> None:
+    """Copy of ``scene`` with every length multiplied by ``factor`` (module docstring); the
+    surface maps' s, t too unless ``keep_keys``."""
     shutil.rmtree(target, ignore_errors=True)
     shutil.copytree(scene, target)
     for agent in sorted(target.glob("agent_*")):
         for depth in (agent / "depth").glob("*.npy"):
             np.save(depth, np.load(depth) * np.float32(factor))
-        for surface in (agent / "surface").glob("*.npy"):
+        for surface in [] if keep_keys else (agent / "surface").glob("*.npy"):
             keys = np.load(surface)
             keys[..., 1:3] *= np.float32(factor)
             np.save(surface, keys)
@@ -93,9 +99,9 @@ def merged_rmse(metrics: dict) -> tuple[float, bool]:
     return (max(groups) if groups else float("nan")), False
 
 
-def run_scale(scene: Path, work: Path, factor: float, long_side: int) -> dict:
+def run_scale(scene: Path, work: Path, factor: float, long_side: int, keep_keys: bool) -> dict:
     folder = work / f"scene_x{factor:g}"
-    scaled_copy(scene, folder, factor)
+    scaled_copy(scene, folder, factor, keep_keys)
     agents = [folder / f"agent_{a}" for a in range(ROBOTS)]
     out = work / f"run_x{factor:g}"
     config = Config(input=InputConfig(long_side=long_side))
@@ -126,11 +132,14 @@ def main() -> None:
     parser.add_argument("--long-side", type=int, default=160,
                         help="input.long_side of the run (the default 512 is slow on a CPU)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--keep-surface-keys", action="store_true",
+                        help="do not scale the surface maps' s, t (module docstring)")
     args = parser.parse_args()
     scene = args.work / "scene"
     if not scene.is_dir():
         render(scene, args.frames, args.width, args.height, args.seed)
-    rows = [run_scale(scene, args.work, factor, args.long_side) for factor in args.scales]
+    rows = [run_scale(scene, args.work, factor, args.long_side, args.keep_surface_keys)
+            for factor in args.scales]
     columns = sorted({key for row in rows for key in row["table"]})
     print(f"{'scale':>6} {'merged ATE %':>12} {'one map':>7} {'keyframes':>10} {'loops':>5} "
           f"{'s':>6} " + " ".join(f"{c:>16}" for c in columns))
