@@ -105,8 +105,11 @@ def instrument_prior(clock: ExclusiveClock, prior: Any, decodes: list[int]) -> N
         return decode(*args)
 
     def counted_symmetric(pairs: Any) -> Any:
-        decodes[0] += 2 * len(pairs)
-        return decode_symmetric(pairs)
+        before = decodes[0]
+        result = decode_symmetric(pairs)
+        if decodes[0] == before:  # a batched decode (not through decode)
+            decodes[0] += 2 * len(pairs)
+        return result
 
     prior.encode = clock.wrap("prior_encode", prior.encode)
     prior.decode = clock.wrap("prior_decode", counted_decode)
