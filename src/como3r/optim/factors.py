@@ -1,8 +1,9 @@
 """Dense relative-pose factors over pointmap correspondences (C-Eq. 2, 5, 17).
 
 One factor batch holds E edges (i, j), each with P matched pixels (padded and masked by
-``valid``). Its residual is a function of the relative pose ``T_ij = T_WC_i^-1 T_WC_j``
-(C-Eq. 13) only, so the same class serves
+``valid``; matches invalid at every pose are dropped when the batch is built). Its
+residual is a function of the relative pose ``T_ij = T_WC_i^-1 T_WC_j`` (C-Eq. 13) only,
+so the same class serves
 
 * tracking (C-Eq. 2): one edge (keyframe 0, frame 1) with the keyframe pinned at the
   identity, so ``T_ij`` is the frame pose ``T_kf``;
