@@ -101,22 +101,23 @@ def _bilinear(table: Tensor, H: int, W: int, base: Tensor, p: Tensor) -> Tensor:
 
 
 def _ray_cost(table: Tensor, H: int, W: int, base: Tensor, p: Tensor,
-              target: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Squared ray error ``(M,)`` at ``p`` with its residual ``(M, 3)`` and Jacobian
-    ``(M, 3, 2)`` w.r.t. the pixel position."""
+              target: Tensor) -> tuple[Tensor, Tensor]:
+    """Squared ray error ``(M,)`` at ``p`` and the linearization ``(M, 9)`` there: the
+    residual (3) and its derivatives w.r.t. u (3) and v (3), kept in one tensor."""
     sample = _bilinear(table, H, W, base, p)
     err = psi(sample[:, 0:3]) - target
-    J = torch.stack([sample[:, 3:6], sample[:, 6:9]], dim=-1)
-    return (err * err).sum(-1), err, J
+    return (err * err).sum(-1), torch.cat([err, sample[:, 3:9]], dim=-1)
 
 
-def _damped_step(J: Tensor, err: Tensor, lam: Tensor) -> Tensor:
-    """Solve the 2x2 system ``(J^T J + lam I) step = -J^T err`` in closed form -> ``(M, 2)``."""
-    a11 = (J[:, :, 0] * J[:, :, 0]).sum(-1) + lam
-    a12 = (J[:, :, 0] * J[:, :, 1]).sum(-1)
-    a22 = (J[:, :, 1] * J[:, :, 1]).sum(-1) + lam
-    b1 = -(J[:, :, 0] * err).sum(-1)
-    b2 = -(J[:, :, 1] * err).sum(-1)
+def _damped_step(lin: Tensor, lam: Tensor) -> Tensor:
+    """Solve the 2x2 system ``(J^T J + lam I) step = -J^T err`` in closed form -> ``(M, 2)``,
+    with ``lin = [err, J_u, J_v]`` ``(M, 9)`` from :func:`_ray_cost`."""
+    err, J_u, J_v = lin[:, 0:3], lin[:, 3:6], lin[:, 6:9]
+    a11 = (J_u * J_u).sum(-1) + lam
+    a12 = (J_u * J_v).sum(-1)
+    a22 = (J_v * J_v).sum(-1) + lam
+    b1 = -(J_u * err).sum(-1)
+    b2 = -(J_v * err).sum(-1)
     det = a11 * a22 - a12 * a12
     return torch.stack([a22 * b1 - a12 * b2, a11 * b2 - a12 * b1], dim=-1) / det[:, None]
 
@@ -153,23 +154,22 @@ def project_iteratively(
     p = p_init.reshape(B * P, 2).clone()
     target = target_rays.reshape(B * P, 3)
     base = torch.arange(B, device=p.device).repeat_interleave(P) * (H * W)
-    cost, err, J = _ray_cost(table, H, W, base, p, target)
+    cost, lin = _ray_cost(table, H, W, base, p, target)
     keep = ~(cost < convergence_tol)
-    active, err, J = keep.nonzero().squeeze(-1), err[keep], J[keep]
+    active, lin = keep.nonzero().squeeze(-1), lin[keep]
     lam = torch.full_like(active, lambda_init, dtype=p.dtype)
     for _ in range(max_iters):
         if active.numel() == 0:
             break
-        candidate = (p[active] + _damped_step(J, err, lam)).clamp(min=0).minimum(upper)
-        new_cost, new_err, new_J = _ray_cost(table, H, W, base[active], candidate, target[active])
+        candidate = (p[active] + _damped_step(lin, lam)).clamp(min=0).minimum(upper)
+        new_cost, new_lin = _ray_cost(table, H, W, base[active], candidate, target[active])
         better = (new_cost < cost[active]) & torch.isfinite(new_cost)
         moved = active[better]
         p[moved], cost[moved] = candidate[better], new_cost[better]
-        err = torch.where(better[:, None], new_err, err)
-        J = torch.where(better[:, None, None], new_J, J)
+        lin = torch.where(better[:, None], new_lin, lin)
         lam = torch.where(better, lam * 0.1, lam * 10.0)
         keep = ~(cost[active] < convergence_tol)
-        active, err, J, lam = active[keep], err[keep], J[keep], lam[keep]
+        active, lin, lam = active[keep], lin[keep], lam[keep]
     return p.reshape(B, P, 2), (cost < convergence_tol).reshape(B, P)
 
 
