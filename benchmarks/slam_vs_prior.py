@@ -55,6 +55,7 @@ class ExclusiveClock:
 
     def __init__(self) -> None:
         self.seconds: dict[str, float] = {}
+        self.calls: dict[str, int] = {}
         self._stack: list[str] = []
         self._mark = 0.0
 
@@ -63,6 +64,7 @@ class ExclusiveClock:
 
         @functools.wraps(fn)
         def timed(*args: Any, **kwargs: Any) -> Any:
+            self.calls[name] = self.calls.get(name, 0) + 1
             self._switch(name)
             try:
                 return fn(*args, **kwargs)
@@ -117,8 +119,9 @@ def instrument_prior(clock: ExclusiveClock, prior: Any, decodes: list[int]) -> N
     prior.retrieval_features = clock.wrap("prior_retrieval", prior.retrieval_features)
 
 
-def frontend_run(agent_path: Path, frames: int, overrides: list[str]) -> tuple[dict, dict]:
-    """Stage seconds over the first ``frames`` processed frames and the run's counters."""
+def frontend_run(agent_path: Path, frames: int, overrides: list[str]
+                 ) -> tuple[ExclusiveClock, dict]:
+    """Stage clock over the first ``frames`` processed frames and the run's counters."""
     config = apply_overrides(Config(), overrides)
     agent = open_agent(agent_path, fps=config.input.frame_rate_hz)
     prior, codebook = build_prior(PriorSpec(), config)
@@ -139,7 +142,7 @@ def frontend_run(agent_path: Path, frames: int, overrides: list[str]) -> tuple[d
                 "local_solves": stats.local_solves, "loop_edges": stats.loop_edges,
                 "loop_candidates": stats.loop_candidates, "decodes": decodes[0],
                 "resolution": f"{shape[1]}x{shape[0]}"}
-    return clock.seconds, counters
+    return clock, counters
 
 
 def mast3r_decode_seconds(width: int, height: int) -> float:
@@ -169,16 +172,19 @@ def main() -> None:
     overrides = list(args.set)
     if not overrides and hasattr(MatchingConfig, "occlusion_distance"):
         overrides.append("matching.occlusion_distance=0.5")  # metres: not every frame a keyframe
-    seconds, counters = frontend_run(args.agent, args.frames, overrides)
+    clock, counters = frontend_run(args.agent, args.frames, overrides)
+    seconds = clock.seconds
     width, height = (int(v) for v in counters["resolution"].split("x"))
     decode_ms = (args.decode_ms if args.decode_ms is not None
                  else 1000.0 * mast3r_decode_seconds(width, height))
     n = counters["frames"]
     print(f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
           f"{args.threads} threads; {counters}; overrides {overrides}")
-    print("stage | ms per frame")
+    print("stage | ms per frame | calls | ms per call")
     for stage in (*PRIOR_STAGES, *SLAM_STAGES):
-        print(f"{stage} | {1000.0 * seconds.get(stage, 0.0) / n:.0f}")
+        ms, calls = 1000.0 * seconds.get(stage, 0.0), clock.calls.get(stage, 0)
+        per_call = f"{ms / calls:.0f}" if calls else "-"
+        print(f"{stage} | {ms / n:.0f} | {calls} | {per_call}")
     slam_ms = 1000.0 * sum(seconds.get(s, 0.0) for s in SLAM_STAGES) / n
     per_frame_decode_ms = decode_ms * counters["decodes"] / n
     print(f"SLAM total | {slam_ms:.0f}")
