@@ -11,7 +11,7 @@ from como3r.errors import ConfigError
 def test_defaults_equal_table_3() -> None:
     c = Config()
     assert c.input.long_side == 512
-    assert (c.tracking.sigma_ray, c.tracking.sigma_dist) == (3e-3, 10.0)
+    assert (c.tracking.sigma_ray, c.tracking.sigma_dist) == (3e-3, 0.1)  # relative, see config
     assert (c.tracking.sigma_pixel, c.tracking.sigma_depth) == (1.0, 10.0)
     assert c.tracking.huber_k == 1.345
     assert (c.tracking.max_iters, c.tracking.rel_cost_tol, c.tracking.step_tol) == (50, 1e-3, 1e-3)

@@ -240,9 +240,9 @@ class SimulatedPrior(Prior):
         keyed = key_ids >= 0
         median_footprint = float(footprint[keyed].median()) if bool(keyed.any()) else 0.0
         if self.realistic:
-            gen = generator(self.config.seed, "image", view.agent, view.index)
-            pred_rays = errors.predicted_rays(K, H, W, self.config, gen)
-            log_range_error = errors.image_log_range_error(ranges, valid, self.config, gen)
+            draws = errors.ImageDraws(self.config, self.config.seed, view.agent, view.index)
+            pred_rays = errors.predicted_rays(K, H, W, self.config, draws)
+            log_range_error = errors.image_log_range_error(ranges, valid, self.config, draws)
         else:
             pred_rays, log_range_error = rays, torch.zeros_like(ranges)
         return SimulatedEncoding(

@@ -30,6 +30,16 @@ by any factor gets the same relative errors.
    multi-view depth on KITTI/ScanNet/ETH3D/DTU/T&T) reports 3.7-4.7 % average relative
    error and calls it close to DUSt3R-512; a two-view pair without multi-view context is
    worse, so 5 % is our assumption.
+   Items 1 and 2 are per image but not independent between images: one camera filming one
+   scene gives the network nearly the same input from frame to frame, so its intrinsics and
+   depth errors change slowly along a sequence. Each per-image draw is
+   ``rho (cos(pi t / 2) a_b + sin(pi t / 2) a_(b+1)) + sqrt(1 - rho^2) e_k`` for frame ``k``,
+   with ``a_b`` drawn once per block of ``image_error_frames = 30`` frames (``b = floor(k /
+   30)``, ``t`` the position in the block), ``e_k`` drawn for the frame alone and
+   ``rho = image_error_correlation = 0.9``: unit variance everywhere, correlation about
+   ``rho^2`` between neighbouring frames and 0 beyond two blocks. Our assumption (no
+   published figure); independent per-image draws made every consecutive frame pair
+   disagree by the full focal error, which a video never shows.
 3. Scale: the pair scale ``exp(scale_sigma n)`` times a drift ``exp(scale_drift d(k))``
    along an agent's frame index ``k``, ``d`` a unit-RMS random Fourier series of wavelength
    about ``scale_drift_frames = 60`` frames seeded per agent, ``scale_drift = 0.08``. MUSt3R
@@ -109,11 +119,11 @@ def check_config(config: SimulatedPriorConfig) -> None:
         if getattr(config, name) < 0:
             raise ConfigError(f"simulated_prior.{name} must be >= 0, got {getattr(config, name)}")
     for name in ("gross_failure_rate", "hallucination_rate", "flying_pixel_fraction",
-                 "outlier_fraction"):
+                 "outlier_fraction", "image_error_correlation"):
         if not 0.0 <= getattr(config, name) <= 1.0:
             raise ConfigError(f"simulated_prior.{name} must be in [0, 1], "
                               f"got {getattr(config, name)}")
-    for name in ("depth_distortion_wavelength", "scale_drift_frames"):
+    for name in ("depth_distortion_wavelength", "scale_drift_frames", "image_error_frames"):
         if getattr(config, name) <= 0:
             raise ConfigError(f"simulated_prior.{name} must be > 0, got {getattr(config, name)}")
     if config.pose_tail_dof < 1:
@@ -148,17 +158,50 @@ def median_range(ranges: Tensor, valid: Tensor) -> float:
     return float(ranges[valid].median()) if bool(valid.any()) else 1.0
 
 
+class ImageDraws:
+    """Standard normal draws and unit-RMS fields of one image, correlated along its sequence.
+
+    Every draw is the weighted sum of the same draw from a few generators whose squared
+    weights add up to 1 (module docstring, "Items 1 and 2"), so each has unit variance and
+    neighbouring frames share most of it. Call the methods in the same order for every
+    image: the generators advance together.
+
+    Args:
+        config: the error model (``image_error_correlation``, ``image_error_frames``).
+        seed, agent, index: which image.
+    """
+
+    def __init__(self, config: SimulatedPriorConfig, seed: int, agent: int, index: int) -> None:
+        rho = config.image_error_correlation
+        position = index / config.image_error_frames
+        block = math.floor(position)
+        angle = 0.5 * math.pi * (position - block)
+        self.jitter = generator(seed, "image", agent, index)
+        self._parts = [(rho * math.cos(angle), generator(seed, "image block", agent, block)),
+                       (rho * math.sin(angle), generator(seed, "image block", agent, block + 1)),
+                       (math.sqrt(max(0.0, 1.0 - rho * rho)), self.jitter)]
+
+    def normal(self, *shape: int) -> Tensor:
+        """Standard normal draws of ``shape``."""
+        return sum(w * torch.randn(shape, generator=g) for w, g in self._parts)
+
+    def field(self, H: int, W: int, wavelength_px: float, modes: int) -> Tensor:
+        """``(H, W)`` unit-RMS random Fourier field (:func:`fourier_field`)."""
+        return sum(w * fourier_field(H, W, wavelength_px, modes, g) for w, g in self._parts)
+
+
 def predicted_rays(K: Tensor, H: int, W: int, config: SimulatedPriorConfig,
-                   gen: torch.Generator) -> Tensor:
+                   draws: ImageDraws) -> Tensor:
     """``(H, W, 3)`` unit rays the realistic prior believes in for one image.
 
     Pinhole rays of ``K`` with the focal scaled by ``exp(focal_error n)`` and the principal
     point moved by ``principal_point_error`` of the long side, bent by a smooth field of RMS
-    ``ray_field_deg`` (added to the normalised image coordinates).
+    ``ray_field_deg`` (added to the normalised image coordinates); ``n`` and the fields come
+    from the image's sequence-correlated ``draws``.
     """
     long_side = max(H, W)
-    focal_factor = math.exp(config.focal_error * float(torch.randn((), generator=gen)))
-    shift = config.principal_point_error * long_side * torch.randn(2, generator=gen)
+    focal_factor = math.exp(config.focal_error * float(draws.normal()))
+    shift = config.principal_point_error * long_side * draws.normal(2)
     fx, fy = float(K[0, 0]) * focal_factor, float(K[1, 1]) * focal_factor
     cx, cy = float(K[0, 2] + shift[0]), float(K[1, 2] + shift[1])
     u = torch.arange(W, dtype=torch.float32)[None, :].expand(H, W)
@@ -168,23 +211,26 @@ def predicted_rays(K: Tensor, H: int, W: int, config: SimulatedPriorConfig,
     bend = math.radians(config.ray_field_deg) / math.sqrt(2.0)
     wavelength = RealisticConstants.ray_field_wavelength * long_side
     modes = RealisticConstants.distortion_modes
-    x = x + bend * fourier_field(H, W, wavelength, modes, gen)
-    y = y + bend * fourier_field(H, W, wavelength, modes, gen)
+    x = x + bend * draws.field(H, W, wavelength, modes)
+    y = y + bend * draws.field(H, W, wavelength, modes)
     return F.normalize(torch.stack([x, y, torch.ones_like(x)], dim=-1), dim=-1).to(K.device)
 
 
 def image_log_range_error(ranges: Tensor, valid: Tensor, config: SimulatedPriorConfig,
-                          gen: torch.Generator) -> Tensor:
+                          draws: ImageDraws) -> Tensor:
     """``(H, W)`` per-image log-range error: shared smooth field, flying pixels, outliers.
 
-    A flying pixel next to a depth discontinuity (relative jump above ``edge_log_jump`` in its
-    3x3 neighbourhood) takes a range uniform between the neighbourhood's nearest and
-    farthest valid range, along its own ray.
+    The smooth field comes from the image's sequence-correlated ``draws``; flying pixels and
+    outliers from its own generator (``draws.jitter``). A flying pixel next to a depth
+    discontinuity (relative jump above ``edge_log_jump`` in its 3x3 neighbourhood) takes a
+    range uniform between the neighbourhood's nearest and farthest valid range, along its
+    own ray.
     """
     H, W = ranges.shape
     c = RealisticConstants
-    field = fourier_field(H, W, config.depth_distortion_wavelength * max(H, W),
-                          c.distortion_modes, gen).to(ranges.device)
+    gen = draws.jitter
+    field = draws.field(H, W, config.depth_distortion_wavelength * max(H, W),
+                        c.distortion_modes).to(ranges.device)
     log_error = config.image_distortion_amplitude * field
     far = torch.where(valid, ranges, torch.zeros_like(ranges))
     near = torch.where(valid, ranges, torch.full_like(ranges, math.inf))
