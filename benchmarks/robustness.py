@@ -26,6 +26,7 @@ crossed with input sizes (``320x240`` is upsampled to the long side 512 by the p
 ``640x480`` and ``1920x1080`` downsampled) and seeds. Per cell it reports, from the run's
 ``metrics.json``:
 
+* ``frames``: processed frames over all agents (every other frame: ``input.subsample``);
 * ``tracked``: tracked / processed frames, over all agents;
 * ``ATE m``: ATE RMSE after Sim(3) alignment, of the merged trajectory with several agents;
 * ``ATE %path``: ``ATE m`` over the mean ground-truth path length of an agent
