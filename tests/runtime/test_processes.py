@@ -139,6 +139,15 @@ def test_lockstep_reproduces_the_single_process_run(single, lockstep) -> None:
     assert [a["status"] for a in summary.agents] == ["finished", "finished"]
 
 
+def test_agent_processes_report_their_time_per_stage(lockstep) -> None:
+    out, _ = lockstep
+    for agent in _metrics(out)["agents"]:
+        stages = agent["stage_seconds"]
+        assert {"prior_encode", "prior_decode", "matching", "tracking", "io", "other"} <= set(stages)
+        assert all(v >= 0.0 for v in stages.values())
+        assert sum(stages.values()) == pytest.approx(agent["seconds"], rel=0.05)
+
+
 def test_free_running_agents_match_the_single_process_run(single, free) -> None:
     """Keyframes reach the coordinator in the same order; only the moment an agent applies a
     pose update differs, which the final global solve absorbs."""
