@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
@@ -21,6 +22,8 @@ from como3r.frontend.timing import with_remainder
 from como3r.geometry.lie import sim3_act
 from como3r.io.ply import write_ply
 from como3r.io.tum import write_tum
+
+logger = logging.getLogger(__name__)
 
 
 def write_trajectories(out: Path, frontends: Sequence[AgentFrontend]) -> None:
@@ -118,10 +121,37 @@ def _jsonable(value: Any) -> Any:
 def frontend_metrics(fe: AgentFrontend, seconds: float) -> dict[str, Any]:
     """Per-agent counters and rates."""
     stats = asdict(fe.stats)
+    stats["tracked_fraction"] = fe.stats.tracked / fe.stats.frames if fe.stats.frames else None
     stats["seconds"] = seconds
     stats["stage_seconds"] = with_remainder(fe.stats.stage_seconds, seconds)
     stats["fps"] = fe.stats.frames / seconds if seconds > 0 else None
     return stats
+
+
+#: an agent tracked on fewer than this share of its processed frames is reported loudly
+MIN_TRACKED_FRACTION = 0.95
+
+
+def tracking_warnings(results: Sequence[Any]) -> list[str]:
+    """One warning per agent tracked on fewer than :data:`MIN_TRACKED_FRACTION` of its
+    processed frames, naming the agent and its lost frames (also logged as warnings).
+
+    Args:
+        results: front-ends or agent results (``agent``, ``stats``), in agent order.
+    """
+    warnings = []
+    for result in results:
+        stats = result.stats
+        if stats.frames == 0 or stats.tracked >= MIN_TRACKED_FRACTION * stats.frames:
+            continue
+        lost = stats.lost_frames
+        shown = ", ".join(str(f) for f in lost[:20]) + (", ..." if len(lost) > 20 else "")
+        text = (f"warning: agent {result.agent} was tracked on {stats.tracked} of "
+                f"{stats.frames} processed frames ({100.0 * stats.tracked / stats.frames:.0f} %); "
+                f"{stats.relocalized} relocalized, lost frames: {shown or 'none'}")
+        logger.warning(text)
+        warnings.append(text)
+    return warnings
 
 
 def write_config(out: Path, config: Config) -> None:
@@ -164,6 +194,7 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
     if len(components) > 1:
         summary.notes.append(f"agents form {len(components)} separate gauge components "
                              f"{[list(c) for c in components]}: no merged ATE across them")
+    summary.notes.extend(tracking_warnings(results))
     metrics["map_accuracy"] = _map_accuracy(summary, agents, components, results, coordinator,
                                             config)
     write_json(staging / "metrics.json", metrics)
@@ -245,9 +276,12 @@ def _map_accuracy(summary: Any, agents: Sequence[Any], components: Sequence[Sequ
 
 
 def _map_note(component: Sequence[int], scores: dict[str, Any]) -> str:
+    from como3r.evaluation.reconstruction import MAP_THRESHOLD_RATIO
+
     final = scores["final"]
     text = (f"map of agents {list(component)}: accuracy {final.accuracy:.3f} m, completeness "
-            f"{final.completeness:.3f} m, F-score@{final.threshold:g} m {final.fscore:.3f}")
+            f"{final.completeness:.3f} m, F-score@{final.threshold:.3g} m "
+            f"({100 * MAP_THRESHOLD_RATIO:g} % of the median depth) {final.fscore:.3f}")
     before = scores.get("before_refinement")
     if before is not None:
         text += (f" (before depth refinement: accuracy {before.accuracy:.3f} m, F-score "

@@ -1,0 +1,31 @@
+"""Run outputs (runtime/outputs.py): loud tracking loss."""
+
+from __future__ import annotations
+
+import logging
+from types import SimpleNamespace
+
+from como3r.frontend.agent import FrontendStats
+from como3r.runtime.outputs import tracking_warnings
+
+
+def _agent(agent: int, frames: int, lost: list[int], relocalized: int = 0) -> SimpleNamespace:
+    stats = FrontendStats(frames=frames, tracked=frames - len(lost), lost=len(lost),
+                          relocalized=relocalized, lost_frames=lost)
+    return SimpleNamespace(agent=agent, stats=stats)
+
+
+def test_an_agent_tracked_on_fewer_than_95_percent_of_frames_is_named(caplog) -> None:
+    agents = [_agent(0, 40, [12]), _agent(1, 40, [10, 12, 14], relocalized=1)]
+    with caplog.at_level(logging.WARNING):
+        warnings = tracking_warnings(agents)
+    assert len(warnings) == 1  # 39 of 40 is 97.5 %, 37 of 40 is 92.5 %
+    assert "agent 1" in warnings[0] and "37 of 40" in warnings[0]
+    assert "10, 12, 14" in warnings[0] and "1 relocalized" in warnings[0]
+    assert "agent 1 was tracked on 37 of 40" in caplog.text
+
+
+def test_long_lists_of_lost_frames_are_shortened() -> None:
+    [warning] = tracking_warnings([_agent(2, 100, list(range(50, 100)))])
+    assert "50 of 100" in warning and warning.endswith("69, ...")
+    assert tracking_warnings([_agent(3, 0, [])]) == []
