@@ -132,10 +132,10 @@ class DecentralizedConfig:
     Attributes:
         keyframe_distance_ratio: a new keyframe after the odometry travelled this fraction
             of the robot's scene depth (median depth of the prior's pointmap of its first
-            keyframe, :meth:`~.registration.Registrar.scene_depth`). 0.08: 0.5 m at the
-            ~6.5 m median depth of the default synthetic scene; the paper's keyframe
-            distances of 0.5-4 m outdoors (F-Fig. 5, GrAco, depth of order 15 m) are
-            0.03-0.27.
+            keyframe, :meth:`~.registration.Registrar.scene_depth`). 0.07: 0.5 m at the
+            ~7 m median depth the prior sees in the default synthetic scene (the former
+            default); the paper's keyframe distances of 0.5-4 m outdoors (F-Fig. 5, GrAco,
+            depth of order 15 m) are 0.03-0.27.
         place_method: global place descriptor: ``cosine`` (attention-weighted aggregate of
             the prior's retrieval features, compared by cosine similarity) or ``asmk``.
         place_threshold: minimum similarity of a candidate (F-Sec. IV: permissive 0.1).
@@ -144,7 +144,7 @@ class DecentralizedConfig:
         table: solve every formulation with both solvers for metrics.json (F-Tables II-III).
     """
 
-    keyframe_distance_ratio: float = 0.08
+    keyframe_distance_ratio: float = 0.07
     place_method: Literal["cosine", "asmk"] = "cosine"
     place_threshold: float = 0.1
     ratio_threshold: float = 0.3
