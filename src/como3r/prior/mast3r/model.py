@@ -7,9 +7,9 @@ released checkpoint loads strictly. The work is split as SLAM uses it (spec §7)
 * :meth:`MASt3RNetwork.decode`: per ordered pair -> the decoder layers the heads read;
 * :meth:`MASt3RNetwork.predict`: the two heads (float32) -> pointmaps, confidences, descriptors.
 
-Precision: with ``compute_dtype=torch.bfloat16`` the encoder and decoders run under bf16
-autocast (weights and the residual stream stay float32; matmuls run in bf16); the heads
-always run in float32 with autocast disabled, as upstream does.
+Precision: with ``compute_dtype=torch.bfloat16`` (or float16, CUDA) the encoder and decoders
+run under that autocast (weights and the residual stream stay float32; matmuls run in the low
+precision); the heads always run in float32 with autocast disabled, as upstream does.
 """
 
 from __future__ import annotations
@@ -79,9 +79,9 @@ class MASt3RNetwork(nn.Module):
         )
 
     def set_compute_dtype(self, dtype: torch.dtype) -> None:
-        """Precision of encoder and decoders: ``torch.float32`` or ``torch.bfloat16``."""
-        if dtype not in (torch.float32, torch.bfloat16):
-            raise ValueError(f"compute dtype must be float32 or bfloat16, got {dtype}")
+        """Precision of encoder and decoders: ``torch.float32``, ``bfloat16`` or ``float16``."""
+        if dtype not in (torch.float32, torch.bfloat16, torch.float16):
+            raise ValueError(f"compute dtype must be float32, bfloat16 or float16, got {dtype}")
         self.compute_dtype = dtype
 
     def _autocast(self, device: torch.device) -> ContextManager[object]:

@@ -26,9 +26,10 @@ from como3r.prior.base import Encoding, PairPrediction, Prior, View
 from como3r.prior.mast3r.heads import HeadOutput
 from como3r.prior.mast3r.loader import load_network
 from como3r.prior.mast3r.model import MASt3RNetwork
+from como3r.prior.mast3r.precision import choose_dtype
 from como3r.prior.mast3r.rope import grid_positions
 
-SUPPORTED_DTYPES = (torch.float32, torch.bfloat16)
+SUPPORTED_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
 #: tolerance on the [-1, 1] input range (rounding of the normalisation)
 _RANGE_TOLERANCE = 1e-3
 
@@ -92,7 +93,8 @@ def resolve_device(device: str | torch.device) -> torch.device:
 
 def _check_dtype(dtype: torch.dtype) -> torch.dtype:
     if dtype not in SUPPORTED_DTYPES:
-        raise PriorError(f"unsupported MASt3R dtype {dtype} (use torch.float32 or torch.bfloat16)")
+        raise PriorError(f"unsupported MASt3R dtype {dtype} (use torch.float32, torch.bfloat16 "
+                         "or, on CUDA, torch.float16)")
     return dtype
 
 
@@ -101,8 +103,10 @@ class MASt3RPrior(Prior):
 
     Args:
         network: the network (its weights define the device it runs on).
-        dtype: ``torch.float32``, or ``torch.bfloat16`` for encoder and decoders (heads are
-            always float32).
+        dtype: ``torch.float32``, or ``torch.bfloat16`` / ``torch.float16`` (CUDA) for encoder
+            and decoders (heads are always float32).
+        precision: the requested setting ``dtype`` was chosen from (``"auto"``, ...), reported
+            by :meth:`describe`; empty when ``dtype`` was given directly.
         source: where the weights came from (reported by :meth:`describe`).
         model_string: the checkpoint's constructor string (reported by :meth:`describe`).
 
@@ -117,6 +121,7 @@ class MASt3RPrior(Prior):
         dtype: torch.dtype = torch.float32,
         source: str = "",
         model_string: str = "",
+        precision: str = "",
     ) -> None:
         # channels-last convolution weights: the DPT's inputs already are (tokens are
         # (B, N, C)), and oneDNN/cuDNN convolutions are faster in that layout
@@ -124,6 +129,7 @@ class MASt3RPrior(Prior):
         self.network.set_compute_dtype(_check_dtype(dtype))
         self.device = next(network.parameters()).device
         self.dtype = dtype
+        self.precision = precision
         self.source = source
         self.model_string = model_string
         self.descriptor_dim = network.config.desc_dim
@@ -308,6 +314,7 @@ class MASt3RPrior(Prior):
             "model": self.model_string,
             "device": str(self.device),
             "dtype": str(self.dtype).removeprefix("torch."),
+            "precision": self.precision or str(self.dtype).removeprefix("torch."),
             "retrieval": self.retrieval is not None,
         }
 
@@ -315,7 +322,7 @@ class MASt3RPrior(Prior):
 def load_mast3r(
     checkpoint_path: str | Path,
     device: str | torch.device = "cpu",
-    dtype: torch.dtype = torch.float32,
+    dtype: torch.dtype | str = torch.float32,
     retrieval_checkpoint: str | Path | None = None,
 ) -> MASt3RPrior:
     """Load the official MASt3R checkpoint (or one in its format) as a :class:`MASt3RPrior`.
@@ -324,19 +331,28 @@ def load_mast3r(
         checkpoint_path: the ``.pth`` file (e.g.
             ``MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth``).
         device: ``"cpu"`` or ``"cuda[:k]"``.
-        dtype: ``torch.float32`` or ``torch.bfloat16`` (encoder and decoders only).
+        dtype: ``torch.float32``, ``torch.bfloat16`` or (CUDA) ``torch.float16`` for the
+            encoder and decoders (heads stay float32), or a precision name ``"auto"``,
+            ``"fp32"``, ``"bf16"``, ``"fp16"`` resolved by
+            :func:`~como3r.prior.mast3r.precision.choose_dtype` (``auto``: bf16 where the
+            hardware multiplies it natively, else fp32).
         retrieval_checkpoint: optional ``..._retrieval_trainingfree.pth``; attaches the
             retrieval head that :meth:`MASt3RPrior.retrieval_features` uses.
 
     Raises:
         PriorError: bad device (e.g. CUDA unavailable) or dtype; checked before reading.
+        ConfigError: unknown precision name, or fp16 on CPU; checked before reading.
         CheckpointError: unreadable, unsafe or mismatching checkpoint (names the file/keys).
     """
     resolved = resolve_device(device)
-    _check_dtype(dtype)
+    precision = dtype if isinstance(dtype, str) else ""
+    compute_dtype = _check_dtype(choose_dtype(resolved, dtype) if precision else dtype)
+    if compute_dtype == torch.float16 and resolved.type == "cpu":
+        raise PriorError("MASt3R dtype torch.float16 is not supported on CPU (use torch.float32 "
+                         "or torch.bfloat16)")
     network, model_string = load_network(checkpoint_path)
-    prior = MASt3RPrior(network.to(resolved), dtype=dtype, source=str(checkpoint_path),
-                        model_string=model_string)
+    prior = MASt3RPrior(network.to(resolved), dtype=compute_dtype, source=str(checkpoint_path),
+                        model_string=model_string, precision=precision)
     if retrieval_checkpoint is not None:
         # imported here: the retrieval head is optional and lives in its own module
         from como3r.prior.mast3r.retrieval import load_retrieval_head
