@@ -172,6 +172,11 @@ def run(
     calib: bool = typer.Option(False, "--calib", help="Use each agent's calib.txt (C-Sec. A.5)."),
     no_loop_closure: bool = typer.Option(False, "--no-loop-closure", help="Ablation (C-Tab. 4)."),
     device: str = typer.Option("cpu", "--device", help="cpu | cuda"),
+    precision: str = typer.Option(
+        "auto", "--precision",
+        help="MASt3R compute precision: auto | fp32 | bf16 | fp16. auto takes bf16 on CUDA "
+             "compute capability >= 8.0 or a CPU with AMX/AVX512-BF16, else fp32; fp16 is "
+             "CUDA-only. The simulated prior ignores it."),
     mode: str = typer.Option("centralized", "--mode", help="centralized | decentralized"),
     single_process: bool = typer.Option(
         False, "--single-process",
@@ -183,7 +188,11 @@ def run(
     from como3r.runtime.pipeline import PriorSpec, run as run_pipeline
 
     config = _load_config(config_file, overrides, calib, no_loop_closure)
-    spec = PriorSpec(prior, weights, retrieval_weights, codebook, device)
+    spec = PriorSpec(prior, weights, retrieval_weights, codebook, device, precision)
+    if prior == "mast3r":
+        from como3r.prior.mast3r.precision import check_precision
+
+        check_precision(device, precision)
     if mode == "decentralized":
         from como3r.decentralized.runner import run_decentralized
 

@@ -47,6 +47,8 @@ class PriorSpec:
         retrieval_weights: MASt3R retrieval checkpoint (``..._retrieval_trainingfree.pth``).
         codebook: ASMK codebook ``.pkl`` for the MASt3R retrieval.
         device: ``"cpu"`` or ``"cuda"``.
+        precision: MASt3R compute precision ``auto|fp32|bf16|fp16`` (the simulated prior
+            ignores it).
     """
 
     name: str = "simulated"
@@ -54,6 +56,7 @@ class PriorSpec:
     retrieval_weights: Path | None = None
     codebook: Path | None = None
     device: str = "cpu"
+    precision: str = "auto"
 
 
 @dataclass
@@ -78,7 +81,7 @@ def build_prior(spec: PriorSpec, config: Config) -> tuple[Prior, np.ndarray | No
 
         if spec.weights is None:
             raise InputError("--prior mast3r needs --weights CHECKPOINT")
-        prior = load_mast3r(spec.weights, device=spec.device)
+        prior = load_mast3r(spec.weights, device=spec.device, dtype=spec.precision)
         if spec.retrieval_weights is None:
             logger.warning("no --retrieval-weights: loop closure and retrieval are disabled")
             return prior, None
