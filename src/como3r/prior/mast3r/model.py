@@ -20,7 +20,7 @@ from typing import ContextManager
 import torch
 from torch import Tensor, nn
 
-from como3r.prior.mast3r.blocks import DecoderBlock, EncoderBlock, layer_norm
+from como3r.prior.mast3r.blocks import DecoderBlock, EncoderBlock, Linear, layer_norm
 from como3r.prior.mast3r.config import MASt3RConfig
 from como3r.prior.mast3r.heads import CatMlpDptHead, HeadOutput
 from como3r.prior.mast3r.rope import RoPE2D
@@ -62,7 +62,7 @@ class MASt3RNetwork(nn.Module):
             for _ in range(config.enc_depth)
         )
         self.enc_norm = layer_norm(config.enc_embed_dim)
-        self.decoder_embed = nn.Linear(config.enc_embed_dim, config.dec_embed_dim)
+        self.decoder_embed = Linear(config.enc_embed_dim, config.dec_embed_dim)
         self.dec_blocks = self._decoder(config)
         self.dec_blocks2 = self._decoder(config)
         self.dec_norm = layer_norm(config.dec_embed_dim)
