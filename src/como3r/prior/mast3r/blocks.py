@@ -7,7 +7,10 @@ Module names equal the official ones so that the checkpoint's keys load directly
 Linear layers (:class:`Linear`) run float32 inference on CPU through oneDNN's
 ``mkldnn._linear_pointwise`` (the kernel torch's inductor uses), which takes 1.3-2x less time
 than ``F.linear``'s BLAS call at the network's shapes, with the MLP's exact GELU fused in;
-results equal ``F.linear`` to float32 rounding (relative 3e-7).
+results equal ``F.linear`` to float32 rounding (relative 3e-7). Under bfloat16 autocast a
+:class:`Linear` given a low-precision copy of its weights (:meth:`Linear.set_low_precision`,
+done by ``MASt3RNetwork.set_compute_dtype`` for the encoder and decoders) multiplies with it
+instead of casting its float32 weights on every call as autocast does.
 """
 
 from __future__ import annotations
@@ -32,24 +35,45 @@ def layer_norm(dim: int) -> nn.LayerNorm:
 _ONEDNN = torch.backends.mkldnn.is_available()
 
 
-def _onednn_applies(x: Tensor) -> bool:
-    """oneDNN's linear serves float32 CPU inference (no autograd, no autocast)."""
-    return (_ONEDNN and x.device.type == "cpu" and x.dtype == torch.float32
-            and not torch.is_grad_enabled() and not torch.is_autocast_enabled("cpu"))
+def _linear(x: Tensor, weight: Tensor, bias: Tensor, gelu: bool) -> Tensor:
+    """``gelu?(x W^T + b)``, through oneDNN for CPU inference (no autograd), else ``F.linear``."""
+    onednn_dtype = x.dtype in (torch.float32, torch.bfloat16) and x.dtype == weight.dtype
+    if _ONEDNN and onednn_dtype and x.device.type == "cpu" and not torch.is_grad_enabled():
+        # attribute "gelu" with algorithm "none" is the erf form
+        activation, algorithm = ("gelu", "none") if gelu else ("none", "")
+        return torch.ops.mkldnn._linear_pointwise(x, weight, bias, activation, [], algorithm)
+    y = F.linear(x, weight, bias)
+    return F.gelu(y) if gelu else y
 
 
 class Linear(nn.Linear):
-    """``nn.Linear`` (same parameters and keys) with the oneDNN path of the module docstring."""
+    """``nn.Linear`` (same parameters and keys) with the fast paths of the module docstring.
+
+    The low-precision copies are non-persistent buffers (not in the state dict; they follow
+    ``.to(device)``).
+    """
+
+    def __init__(self, in_features: int, out_features: int) -> None:
+        super().__init__(in_features, out_features)
+        self.register_buffer("low_weight", None, persistent=False)
+        self.register_buffer("low_bias", None, persistent=False)
+
+    def set_low_precision(self, dtype: torch.dtype | None) -> None:
+        """Keep ``dtype`` copies of weight and bias for autocast to ``dtype``; None drops them."""
+        with torch.no_grad():
+            self.low_weight = None if dtype is None else self.weight.to(dtype)
+            self.low_bias = None if dtype is None else self.bias.to(dtype)
 
     def forward(self, x: Tensor, gelu: bool = False) -> Tensor:
         """``(..., in) -> (..., out)``, followed by the exact (erf) GELU when ``gelu``."""
-        if _onednn_applies(x) and self.weight.dtype == torch.float32:
-            # attribute "gelu" with algorithm "none" is the erf form
-            activation, algorithm = ("gelu", "none") if gelu else ("none", "")
-            return torch.ops.mkldnn._linear_pointwise(x, self.weight, self.bias, activation, [],
-                                                      algorithm)
-        y = super().forward(x)
-        return F.gelu(y) if gelu else y
+        weight, bias, device = self.weight, self.bias, x.device.type
+        if torch.is_autocast_enabled(device):
+            if self.low_weight is None or self.low_weight.dtype != torch.get_autocast_dtype(device):
+                y = F.linear(x, weight, bias)  # autocast casts the weights on every call
+                return F.gelu(y) if gelu else y
+            weight, bias = self.low_weight, self.low_bias
+            x = x.to(weight.dtype)
+        return _linear(x, weight, bias, gelu)
 
 
 class Mlp(nn.Module):

@@ -82,6 +82,14 @@ class MASt3RNetwork(nn.Module):
         """Precision of encoder and decoders: ``torch.float32``, ``bfloat16`` or ``float16``."""
         if dtype not in (torch.float32, torch.bfloat16, torch.float16):
             raise ValueError(f"compute dtype must be float32, bfloat16 or float16, got {dtype}")
+        if dtype != self.compute_dtype:
+            # low-precision weight copies of the encoder's and decoders' linear layers
+            low = None if dtype == torch.float32 else dtype
+            for module in (*self.enc_blocks, self.decoder_embed, *self.dec_blocks,
+                           *self.dec_blocks2):
+                for linear in module.modules():
+                    if isinstance(linear, Linear):
+                        linear.set_low_precision(low)
         self.compute_dtype = dtype
 
     def _autocast(self, device: torch.device) -> ContextManager[object]:
