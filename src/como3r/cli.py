@@ -232,6 +232,9 @@ def _print_summary(summary, out: Path) -> None:
 
 #: the demo renders what a camera gives (640x480) and runs it at the default long side 512
 DEMO_SIZE = (640, 480)
+#: the demo's loop is laid out for this many frames per agent, so a short demo turns at a
+#: hand-held pace (3.6 deg per frame) instead of spinning round its whole loop
+DEMO_LOOP_FRAMES = 100
 
 
 @app.command()
@@ -239,7 +242,7 @@ DEMO_SIZE = (640, 480)
 def demo(
     agents: int = typer.Option(2, "--agents", min=1, help="Number of agents."),
     out: Path = typer.Option(Path("demo_out"), "--out", help="Output folder."),
-    frames: int = typer.Option(60, "--frames", min=4, help="Frames per agent."),
+    frames: int = typer.Option(30, "--frames", min=4, help="Frames per agent."),
     seed: int = typer.Option(0, "--seed", help="Random seed of the scene."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
 ) -> None:
@@ -256,7 +259,7 @@ def demo(
         (staging / "scene").mkdir()
         synthesize(staging / "scene", agents=agents, seed=seed, overlap=0.2, frames=frames,
                    preset="default", width=width, height=height,
-                   progress=lambda: bar.advance(task))
+                   loop_frames=max(frames, DEMO_LOOP_FRAMES), progress=lambda: bar.advance(task))
         config = Config()  # the defaults, nothing overridden: what a user gets
         slam = bar.add_task("SLAM", total=None)
         summary = run_pipeline(

@@ -211,3 +211,33 @@ def test_make_view():
     torch.testing.assert_close(view.K, torch.from_numpy(transform.intrinsics(K)).float())
     bare = make_view(Frame(0, 0.0, "0", random_image(64, 48)), agent=0, long_side=256)
     assert bare.depth is None and bare.surface is None and bare.K is None and bare.T_WC is None
+
+
+def test_enlarged_depth_and_keys_follow_the_surface_not_a_staircase() -> None:
+    """320x240 -> 512x384: a tilted plane's inverse depth is affine in the pixel, so the
+    enlarged map must equal the plane at every output pixel; nearest sampling repeats
+    values in blocks (the simulated prior then finds no key steps and loses track)."""
+    width, height = 320, 240
+    transform = compute_transform(width, height, 512)
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    inverse = 0.2 + 1e-4 * u + 2e-4 * v  # 1 / z of a plane
+    depth = (1.0 / inverse).astype(np.float32)
+    surface = np.stack([np.full_like(u, 7.0), 0.01 * u, 0.02 * v], -1).astype(np.float32)
+    surface[:, :20, 0] = -1.0  # sky: no key, no depth
+    depth[:, :20] = 0.0
+    out_depth, out_surface = transform.apply_geometry(depth, surface)
+    assert out_depth.shape == (384, 512) and out_surface.shape == (384, 512, 3)
+    ov, ou = np.mgrid[0:384, 0:512].astype(np.float64)
+    src_u = (ou + transform.crop_left + 0.5) * transform.scale_w - 0.5
+    src_v = (ov + transform.crop_top + 0.5) * transform.scale_h - 0.5
+    interior = (src_u > 21) & (src_u < width - 1) & (src_v > 0) & (src_v < height - 1)
+    expected = 1.0 / (0.2 + 1e-4 * src_u + 2e-4 * src_v)
+    assert np.abs(out_depth - expected)[interior].max() < 1e-5 * expected.max()
+    assert np.abs(out_surface[..., 1] - 0.01 * src_u)[interior].max() < 1e-5
+    steps = np.diff(out_depth[interior.any(1)][:, 200:300], axis=1)
+    assert (np.abs(steps) > 0).mean() > 0.99  # no repeated values
+    assert (out_depth[:, :10] == 0).all() and (out_surface[:, :10, 0] == -1).all()
+    # shrinking keeps exact input values (nearest sampling)
+    small = compute_transform(width, height, 160)
+    small_depth, _ = small.apply_geometry(depth, surface)
+    assert np.isin(small_depth, depth).all()

@@ -22,7 +22,7 @@ WIDTH, HEIGHT, FRAMES = 128, 96, 24
 
 
 @pytest.fixture(scope="module")
-def tracked(tmp_path_factory):
+def tracked(tmp_path_factory, process_frames):
     root = tmp_path_factory.mktemp("scene")
     synthesize(root, agents=1, seed=5, overlap=0.2, frames=FRAMES, preset="default",
                width=WIDTH, height=HEIGHT, progress=None)
@@ -31,11 +31,8 @@ def tracked(tmp_path_factory):
     config = apply_overrides(Config(), [f"input.long_side={WIDTH}", "simulated_prior.model=easy"])
     prior = SimulatedPrior(config.simulated_prior)
     frontend = AgentFrontend(prior, config, 0, prior.codebook())
-    outcomes = []
-    for i in range(0, agent.num_frames, config.input.subsample):
-        frame = agent.load_frame(i)
-        view = make_view(frame, 0, WIDTH, agent.calib)
-        outcomes.append(frontend.process(view, frame.timestamp, _colors(view)))
+    outcomes = process_frames(frontend, agent, WIDTH,
+                              range(0, agent.num_frames, config.input.subsample))
     return agent, frontend, outcomes
 
 

@@ -6,11 +6,9 @@ import pytest
 
 from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
-from como3r.data.preprocess import make_view
 from como3r.data.synth import synthesize
 from como3r.frontend.agent import AgentFrontend
 from como3r.prior.simulated import SimulatedPrior
-from como3r.runtime.pipeline import _colors
 
 WIDTH, HEIGHT, FRAMES = 96, 72, 16
 
@@ -35,7 +33,7 @@ class CountingPrior:
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
+def run(tmp_path_factory, process_frames):
     root = tmp_path_factory.mktemp("scene")
     synthesize(root, agents=1, seed=5, overlap=0.2, frames=FRAMES, preset="default",
                width=WIDTH, height=HEIGHT, progress=None)
@@ -44,11 +42,7 @@ def run(tmp_path_factory):
                                         "simulated_prior.model=easy"])
     prior = CountingPrior(SimulatedPrior(config.simulated_prior))
     frontend = AgentFrontend(prior, config, 0, prior.codebook())
-    outcomes = []
-    for i in range(agent.num_frames):
-        frame = agent.load_frame(i)
-        view = make_view(frame, 0, WIDTH, agent.calib)
-        outcomes.append(frontend.process(view, frame.timestamp, _colors(view)))
+    outcomes = process_frames(frontend, agent, WIDTH, range(agent.num_frames))
     return frontend, prior, outcomes
 
 

@@ -14,7 +14,6 @@ import pytest
 
 from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
-from como3r.data.preprocess import make_view
 from como3r.data.synth import synthesize
 from como3r.frontend.agent import AgentFrontend
 from como3r.geometry.umeyama import umeyama_rmse, umeyama_sim3
@@ -25,8 +24,8 @@ FRAMES = 40
 
 @pytest.mark.parametrize("scale", [0.1, 1.0])
 @pytest.mark.parametrize("width", [96, 160])
-def test_default_configuration_tracks_on_the_realistic_prior(tmp_path, scale: float,
-                                                             width: int) -> None:
+def test_default_configuration_tracks_on_the_realistic_prior(tmp_path, process_frames,
+                                                             scale: float, width: int) -> None:
     synthesize(tmp_path, agents=1, seed=0, overlap=0.2, frames=FRAMES, preset="default",
                width=width, height=width * 3 // 4, progress=None, scale=scale)
     agent = open_agent(tmp_path / "agent_0")
@@ -34,12 +33,8 @@ def test_default_configuration_tracks_on_the_realistic_prior(tmp_path, scale: fl
     assert config.simulated_prior.model == "realistic"
     prior = SimulatedPrior(config.simulated_prior)
     frontend = AgentFrontend(prior, config, 0, prior.codebook())
-    outcomes = []
-    for index in range(0, agent.num_frames, config.input.subsample):
-        frame = agent.load_frame(index)
-        view = make_view(frame, 0, width, agent.calib)
-        colors = ((view.image.permute(1, 2, 0) + 1) * 127.5).clamp(0, 255).byte().numpy()
-        outcomes.append(frontend.process(view, frame.timestamp, colors))
+    outcomes = process_frames(frontend, agent, width,
+                              range(0, agent.num_frames, config.input.subsample))
     tracked = sum(o != "lost" for o in outcomes)
     assert tracked >= 0.95 * len(outcomes), outcomes
     assert len(frontend.keyframes) < len(outcomes)

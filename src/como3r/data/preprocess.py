@@ -106,6 +106,51 @@ class ImageTransform:
         rows = _nearest_source(self.output[1], self.crop_top, self.scale_h, height)
         return values[rows[:, None], cols[None, :]]
 
+    def apply_geometry(self, depth: np.ndarray, surface: np.ndarray | None
+                       ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Resize and crop a depth map (and its appearance keys) aligned with the image.
+
+        Shrinking samples the nearest input pixel (:meth:`apply_nearest`). Enlarging
+        interpolates where the four input pixels around an output pixel lie on one smooth
+        surface (all with depth, depths within ``exp(0.1)`` of each other and, with keys,
+        one texture id): inverse depth bilinearly (exact on planes) and the keys' (s, t)
+        bilinearly; elsewhere it samples the nearest pixel. Nearest sampling alone repeats
+        each input value over a block of output pixels, a staircase no camera sees.
+
+        Args:
+            depth: ``(H1, W1)`` z-depth, 0 where unknown.
+            surface: ``(H1, W1, 3)`` appearance keys (id, s, t), or None.
+
+        Returns:
+            ``(H_crop, W_crop)`` depth and ``(H_crop, W_crop, 3)`` keys (or None), float32.
+        """
+        nearest_depth = self.apply_nearest(depth).astype(np.float32)
+        nearest_surface = None if surface is None else self.apply_nearest(surface)
+        if self.scale_w >= 1.0 and self.scale_h >= 1.0:
+            return nearest_depth, nearest_surface
+        width, height = self.original
+        c0, c1, a = _linear_source(self.output[0], self.crop_left, self.scale_w, width)
+        r0, r1, b = _linear_source(self.output[1], self.crop_top, self.scale_h, height)
+        corners = [(r0[:, None], c0[None]), (r0[:, None], c1[None]),
+                   (r1[:, None], c0[None]), (r1[:, None], c1[None])]
+        weights = [(1 - b)[:, None] * (1 - a)[None], (1 - b)[:, None] * a[None],
+                   b[:, None] * (1 - a)[None], b[:, None] * a[None]]
+        z = np.stack([depth[rc] for rc in corners]).astype(np.float64)
+        smooth = (z > 0).all(0)
+        smooth &= np.log(np.where(smooth, z.max(0) / np.where(smooth, z.min(0), 1.0), 1.0)) < 0.1
+        if surface is not None:
+            ids = np.stack([surface[rc][..., 0] for rc in corners])
+            smooth &= (ids == ids[0]).all(0) & (ids[0] >= 0)
+        inverse = sum(w / np.where(z[k] > 0, z[k], 1.0) for k, w in enumerate(weights))
+        out_depth = np.where(smooth, 1.0 / inverse, nearest_depth).astype(np.float32)
+        if surface is None:
+            return out_depth, None
+        keys = sum(w[..., None] * surface[rc][..., 1:].astype(np.float64)
+                   for rc, w in zip(corners, weights))
+        out_surface = nearest_surface.astype(np.float32, copy=True)
+        out_surface[..., 1:] = np.where(smooth[..., None], keys, out_surface[..., 1:])
+        return out_depth, out_surface
+
     @staticmethod
     def to_network(image: np.ndarray) -> Tensor:
         """``(H, W, 3)`` uint8 RGB -> ``(3, H, W)`` float32 ``2 * v / 255 - 1`` in [-1, 1].
@@ -204,8 +249,11 @@ def make_view(
     image, transform = resize_crop(frame.image, long_side)
     depth = surface = K = None
     if frame.depth is not None:
-        depth = torch.from_numpy(np.ascontiguousarray(transform.apply_nearest(frame.depth)))
-    if frame.surface is not None:
+        depth_map, surface_map = transform.apply_geometry(frame.depth, frame.surface)
+        depth = torch.from_numpy(np.ascontiguousarray(depth_map))
+        if surface_map is not None:
+            surface = torch.from_numpy(np.ascontiguousarray(surface_map))
+    elif frame.surface is not None:
         surface = torch.from_numpy(np.ascontiguousarray(transform.apply_nearest(frame.surface)))
     if calib is not None:
         fx, fy, cx, cy = calib
@@ -220,6 +268,16 @@ def make_view(
         T_WC=frame.T_WC_gt,
         K=K,
     )
+
+
+def _linear_source(size: int, offset: int, scale: float, limit: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each of ``size`` output pixels: the two input indices around its centre and the
+    weight of the second (pixel-centre convention, clamped at the border)."""
+    position = np.clip((np.arange(size) + offset + 0.5) * scale - 0.5, 0.0, limit - 1.0)
+    first = np.minimum(np.floor(position).astype(np.int64), max(limit - 2, 0))
+    second = np.minimum(first + 1, limit - 1)
+    return first, second, position - first
 
 
 def _nearest_source(size: int, offset: int, scale: float, limit: int) -> np.ndarray:
