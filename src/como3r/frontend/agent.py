@@ -148,6 +148,7 @@ class AgentFrontend:
         kf = self._add_keyframe(enc, index, timestamp, T_WC, X, pred.C_ii, colors)
         self._index(kf)
         self._T_kf_prev = sim3_identity(dtype=pred.X_ii.dtype, device=pred.X_ii.device)
+        self.stats.tracked += 1  # the first frame has its pose (it defines the map's frame)
 
     def _accept(self, result: TrackResult, keyframe: Keyframe, index: int, timestamp: float,
                 enc: Encoding, colors: np.ndarray) -> None:
