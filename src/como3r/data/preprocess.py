@@ -19,6 +19,7 @@ Pixel convention: integer pixel coordinates are pixel centres (OpenCV / TUM ``K`
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -136,8 +137,7 @@ class ImageTransform:
         weights = [(1 - b)[:, None] * (1 - a)[None], (1 - b)[:, None] * a[None],
                    b[:, None] * (1 - a)[None], b[:, None] * a[None]]
         z = np.stack([depth[rc] for rc in corners]).astype(np.float64)
-        smooth = (z > 0).all(0)
-        smooth &= np.log(np.where(smooth, z.max(0) / np.where(smooth, z.min(0), 1.0), 1.0)) < 0.1
+        smooth = (z > 0).all(0) & (z.max(0) < math.exp(0.1) * z.min(0))
         if surface is not None:
             ids = np.stack([surface[rc][..., 0] for rc in corners])
             smooth &= (ids == ids[0]).all(0) & (ids[0] >= 0)

@@ -35,7 +35,12 @@ def median_point_range(points: Tensor, valid: Tensor | None = None) -> Tensor:
         ``(...)`` median range per set, in the points' unit; 1 for a set without any usable
         point (so a ratio times it stays finite).
     """
-    ranges = torch.linalg.vector_norm(points, dim=-1)
+    return median_of_ranges(torch.linalg.vector_norm(points, dim=-1), valid)
+
+
+def median_of_ranges(ranges: Tensor, valid: Tensor | None = None) -> Tensor:
+    """Median of the finite, positive ``ranges`` ``(..., N)`` (where ``valid``, ``(..., N)``)
+    -> ``(...)``; 1 for a set without any, so a ratio times it stays finite."""
     usable = torch.isfinite(ranges) & (ranges > 0)
     if valid is not None:
         usable = usable & valid

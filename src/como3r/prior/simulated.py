@@ -55,6 +55,7 @@ from como3r.config import SimulatedPriorConfig
 from como3r.errors import PriorError
 from como3r.geometry.camera import rays_from_intrinsics, unproject_depth
 from como3r.geometry.lie import quat_to_matrix, so3_exp
+from como3r.geometry.units import median_of_ranges
 from como3r.prior import simulated_errors as errors
 from como3r.prior.base import Encoding, PairPrediction, Prior, View
 from como3r.prior.simulated_fit import match_keys, robust_fit
@@ -247,7 +248,7 @@ class SimulatedPrior(Prior):
             pred_rays, log_range_error = rays, torch.zeros_like(ranges)
         return SimulatedEncoding(
             agent=view.agent, index=view.index, shape=(H, W), rays=rays, pred_rays=pred_rays,
-            log_range_error=log_range_error, median_range=errors.median_range(ranges, valid),
+            log_range_error=log_range_error, median_range=float(median_of_ranges(ranges.flatten(), valid.flatten())),
             ranges=ranges,
             valid=valid, edges=_depth_edges(depth, valid, self.constants.edge_log_jump),
             key_ids=key_ids, key_coords=key_coords, footprint=footprint,

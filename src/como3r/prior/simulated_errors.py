@@ -153,11 +153,6 @@ def fourier_field(H: int, W: int, wavelength_px: float, modes: int,
     return math.sqrt(2.0 / modes) * field
 
 
-def median_range(ranges: Tensor, valid: Tensor) -> float:
-    """Median valid range of a view (its length unit); 1 for a view without depth."""
-    return float(ranges[valid].median()) if bool(valid.any()) else 1.0
-
-
 class ImageDraws:
     """Standard normal draws and unit-RMS fields of one image, correlated along its sequence.
 
