@@ -111,7 +111,8 @@ def test_realistic_is_the_default_and_describe_names_the_model():
     assert SimulatedPrior().describe()["model"] == "realistic"
     assert SimulatedPrior(EASY).describe()["model"] == "easy"
     for key, value in (("gross_failure_rate", 1.5), ("focal_error", -0.1),
-                       ("pose_tail_dof", 0)):
+                       ("pose_tail_dof", 0), ("image_error_correlation", 1.5),
+                       ("image_error_frames", 0.0)):
         with pytest.raises(ConfigError, match=f"simulated_prior.{key}"):
             SimulatedPrior(dataclasses.replace(REALISTIC, **{key: value}))
 
