@@ -2,10 +2,12 @@
 scales and two image sizes (the small in-suite subset of benchmarks/robustness.py).
 
 The only setting chosen here is ``input.long_side``, equal to the rendered width so the
-suite stays within minutes on two CPU cores; every threshold is the default. Measured at
-commit time (tracked / processed frames, ATE % of path): 0.1x 96 px 20/20, 3.1 %; 1x 96 px
-20/20, 3.3 %; 0.1x 160 px 20/20, 3.5 %; 1x 160 px 20/20, 3.6 %. The bounds are about twice
-that; the issue's goal (<= 1 %) is not reached yet.
+suite stays within minutes on two CPU cores; every threshold is the default. The scene
+turns 20 deg per processed frame. Measured at commit time (tracked / processed frames, ATE %
+of path): 0.1x 96 px 20/20, 1.39 %; 1x 96 px 19/20, 1.75 %; 0.1x 160 px 20/20, 1.36 %; 1x
+160 px 19/20, 1.39 % (the paper's uncalibrated mode, ``tracking.self_calibration=false``:
+8.1, 7.1, 8.6, 7.5 %). The bounds are about twice that; the issue's goal (<= 1 %) is met on
+slower motion (3.6 deg per frame: 0.4-1.35 %, frontend.calibration), not yet here.
 """
 
 from __future__ import annotations
@@ -22,25 +24,39 @@ from como3r.prior.simulated import SimulatedPrior
 FRAMES = 40
 
 
-@pytest.mark.parametrize("scale", [0.1, 1.0])
-@pytest.mark.parametrize("width", [96, 160])
-def test_default_configuration_tracks_on_the_realistic_prior(tmp_path, process_frames,
-                                                             scale: float, width: int) -> None:
-    synthesize(tmp_path, agents=1, seed=0, overlap=0.2, frames=FRAMES, preset="default",
+def _track(root, process_frames, scale: float, width: int,
+           overrides: tuple[str, ...] = ()) -> tuple[float, list[str], AgentFrontend]:
+    """One agent's run on a fresh scene: (ATE as a fraction of the path, outcomes, front-end)."""
+    synthesize(root, agents=1, seed=0, overlap=0.2, frames=FRAMES, preset="default",
                width=width, height=width * 3 // 4, progress=None, scale=scale)
-    agent = open_agent(tmp_path / "agent_0")
-    config = apply_overrides(Config(), [f"input.long_side={width}"])
+    agent = open_agent(root / "agent_0")
+    config = apply_overrides(Config(), [f"input.long_side={width}", *overrides])
     assert config.simulated_prior.model == "realistic"
     prior = SimulatedPrior(config.simulated_prior)
     frontend = AgentFrontend(prior, config, 0, prior.codebook())
     outcomes = process_frames(frontend, agent, width,
                               range(0, agent.num_frames, config.input.subsample))
-    tracked = sum(o != "lost" for o in outcomes)
-    assert tracked >= 0.95 * len(outcomes), outcomes
-    assert len(frontend.keyframes) < len(outcomes)
     indices, _, T_WC = frontend.trajectory()
     gt = agent.groundtruth.T_WC[indices, :3]
     est = T_WC[:, :3].double()
     path = float((gt[1:] - gt[:-1]).norm(dim=-1).sum())
-    ate = umeyama_rmse(umeyama_sim3(est, gt), est, gt)
-    assert ate <= 0.07 * path, (ate / path, outcomes)
+    return umeyama_rmse(umeyama_sim3(est, gt), est, gt) / path, outcomes, frontend
+
+
+@pytest.mark.parametrize("scale", [0.1, 1.0])
+@pytest.mark.parametrize("width", [96, 160])
+def test_default_configuration_tracks_on_the_realistic_prior(tmp_path, process_frames,
+                                                             scale: float, width: int) -> None:
+    ate, outcomes, frontend = _track(tmp_path, process_frames, scale, width)
+    tracked = sum(o != "lost" for o in outcomes)
+    assert tracked >= 0.95 * len(outcomes), outcomes
+    assert len(frontend.keyframes) < len(outcomes)
+    assert ate <= 0.035, (ate, outcomes)
+
+
+def test_self_calibration_beats_the_papers_uncalibrated_mode(tmp_path, process_frames) -> None:
+    paper, _, frontend = _track(tmp_path, process_frames, 1.0, 96,
+                                ("tracking.self_calibration=false",))
+    assert frontend.stats.estimated_focal is None
+    # measured: 7.1 % (paper's mode) against 1.75 % (the default, previous test)
+    assert paper > 0.035, paper

@@ -6,6 +6,7 @@ import torch
 
 from como3r.geometry.camera import (
     crop_intrinsics,
+    estimate_focal,
     intrinsics_matrix,
     pixel_grid,
     project,
@@ -101,3 +102,26 @@ def test_crop_intrinsics_shifts_pixels(dtype, device):
     shift = torch.tensor([8.0, 4.0], dtype=dtype, device=device)
     torch.testing.assert_close(project(x, cropped), project(x, K) - shift, **tol(dtype))
     assert float(K[0, 2]) == 31.5  # the input is not modified
+
+
+def test_estimate_focal_recovers_the_pinhole_and_ignores_outliers(dtype, device):
+    K = intrinsics_matrix(180.0, 180.0, 47.5, 35.5, dtype=dtype, device=device)
+    generator = torch.Generator().manual_seed(0)
+    depth = (1.0 + 4.0 * torch.rand(72, 96, generator=generator)).to(dtype=dtype, device=device)
+    X = unproject_depth(depth, K)
+    torch.testing.assert_close(estimate_focal(X), torch.tensor(180.0, dtype=dtype, device=device),
+                               rtol=1e-4, atol=0.0)
+    # a tenth of the points thrown sideways (flying pixels) and some behind the camera
+    wild = torch.rand(72, 96, generator=generator).to(device) < 0.1
+    X_wild = torch.where(wild[..., None], X * torch.tensor([3.0, -2.0, 1.0], dtype=dtype,
+                                                           device=device), X)
+    X_wild[:4, :, 2] = -1.0
+    assert abs(float(estimate_focal(X_wild)) - 180.0) < 0.05 * 180.0
+    # least squares, the Weiszfeld start, is pulled far off by the same outliers
+    assert abs(float(estimate_focal(X_wild, iterations=0)) - 180.0) > 0.2 * 180.0
+
+
+def test_estimate_focal_without_points_in_front_is_nan(dtype, device):
+    X = torch.zeros(8, 8, 3, dtype=dtype, device=device)
+    X[..., 2] = -1.0
+    assert bool(torch.isnan(estimate_focal(X)))

@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from como3r.config import Config
+from como3r.frontend.calibration import estimate_intrinsics
 from como3r.frontend.graph import Edge, build_factors
 from como3r.frontend.keyframes import (
     Keyframe,
@@ -78,6 +79,8 @@ class FrontendStats:
     local_solves: int = 0
     local_solve_seconds: float = 0.0
     lost_frames: list[int] = field(default_factory=list)
+    #: focal length (pixels at network resolution) of the self-calibration, None without
+    estimated_focal: float | None = None
     #: wall seconds per stage (prior_encode, prior_decode, matching, tracking, ...)
     stage_seconds: dict[str, float] = field(default_factory=dict)
 
@@ -143,9 +146,11 @@ class AgentFrontend:
 
     def _initialise(self, enc: Encoding, index: int, timestamp: float, colors: np.ndarray) -> None:
         pred = self.prior.decode(enc, enc)
-        X = pred.X_ii if self._K is None else lock_to_rays(pred.X_ii, self._K.to(pred.X_ii))
+        if not self.config.calibrated and self.config.tracking.self_calibration:
+            self._K = estimate_intrinsics(pred.X_ii, pred.C_ii)
+            self.stats.estimated_focal = float(self._K[0, 0])
         T_WC = sim3_identity(dtype=pred.X_ii.dtype, device=pred.X_ii.device)
-        kf = self._add_keyframe(enc, index, timestamp, T_WC, X, pred.C_ii, colors)
+        kf = self._add_keyframe(enc, index, timestamp, T_WC, pred.X_ii, pred.C_ii, colors)
         self._index(kf)
         self._T_kf_prev = sim3_identity(dtype=pred.X_ii.dtype, device=pred.X_ii.device)
         self.stats.tracked += 1  # the first frame has its pose (it defines the map's frame)
@@ -165,6 +170,10 @@ class AgentFrontend:
 
     def _add_keyframe(self, enc: Encoding, index: int, timestamp: float, T_WC: Tensor,
                       X: Tensor, C: Tensor, colors: np.ndarray) -> Keyframe:
+        """A new keyframe with canonical pointmap ``X`` ``(H, W, 3)``, on the agent's
+        calibrated rays (C-Eq. 16) when it has intrinsics."""
+        if self._K is not None:
+            X = lock_to_rays(X, self._K.to(X))
         kf = Keyframe(
             kf_id=len(self.keyframes), frame_index=index, timestamp=timestamp, encoding=enc,
             T_WC=T_WC, X_hat=X.clone(), C_hat=C.clone(), X_init=X.clone(), C_init=C.clone(),

@@ -49,7 +49,7 @@ class TrackResult:
         unique_fraction: ``nu_uniq``, distinct frame pixels matched per keyframe pixel.
         new_keyframe: ``min(nu, nu_uniq)`` fell below the keyframe threshold.
         X_ff: ``(H, W, 3)`` the frame's own pointmap (its canonical map if it becomes a
-            keyframe).
+            keyframe), on the keyframe's calibrated rays when it has intrinsics.
         C_ff: ``(H, W)`` confidence of ``X_ff``.
         solve: the solver's report (None when no solve ran).
         matches: every keyframe pixel looked up in the frame: if the frame becomes a
@@ -95,8 +95,8 @@ class FrameTracker:
             fuse: update the keyframe's canonical pointmap on success (C-Eq. 3).
         """
         pred = self.prior.decode(enc_f, keyframe.encoding)
-        if keyframe.K is not None:  # the frame's own pointmap on the calibrated rays (C-Eq. 16)
-            pred = replace(pred, X_ii=lock_to_rays(pred.X_ii, keyframe.K))
+        # matching pairs X_ji with X_ii as predicted together (the same believed camera i);
+        # only the pose solve and the fusion see the frame's points on the calibrated rays
         with self.timer.stage("matching"):
             matches = directed_matches(
                 pred, self.config.matching, self.config.tracking.q_min, self._warm_start(keyframe)
@@ -104,6 +104,8 @@ class FrameTracker:
             self._remember(keyframe, matches, pred.X_ii.shape[1])
             nu = matches.match_fraction
             nu_unique = _unique_fraction(matches, pred.X_ii.shape[0] * pred.X_ii.shape[1])
+        if keyframe.K is not None:  # the frame's own pointmap on the calibrated rays (C-Eq. 16)
+            pred = replace(pred, X_ii=lock_to_rays(pred.X_ii, keyframe.K))
         tracking = self.config.tracking
         base = dict(match_fraction=nu, unique_fraction=nu_unique, X_ff=pred.X_ii, C_ff=pred.C_ii,
                     matches=matches)

@@ -23,6 +23,7 @@ __all__ = [
     "scale_intrinsics",
     "crop_intrinsics",
     "lock_to_rays",
+    "estimate_focal",
 ]
 
 # Depths are clamped to this before dividing; points at or behind the camera project far
@@ -127,3 +128,42 @@ def lock_to_rays(X: Tensor, K: Tensor) -> Tensor:
         ``(..., H, W, 3)`` points ``z_p K^-1 [u_p, v_p, 1]^T`` with ``z_p = [X_p]_3``.
     """
     return unproject_depth(X[..., 2], K)
+
+
+def estimate_focal(X: Tensor, weights: Tensor | None = None, iterations: int = 10) -> Tensor:
+    """Focal length of the pinhole camera a pointmap implies, principal point at the image
+    centre (DUSt3R's ``estimate_focal_knowing_depth``, Weiszfeld mode).
+
+    Minimises ``sum_p w_p || (u_p - c) - f (x_p / z_p, y_p / z_p) ||`` over ``f`` by
+    iteratively reweighted least squares (the Weiszfeld iteration of a geometric median):
+    robust to flying pixels and the prior's outliers, which a plain least-squares fit is not.
+
+    Args:
+        X: ``(H, W, 3)`` pointmap in its own camera frame.
+        weights: ``(H, W)`` non-negative weights (e.g. confidences); None gives 1.
+        iterations: Weiszfeld iterations after the least-squares start.
+
+    Returns:
+        ``()`` focal length in pixels (``nan`` when no point lies in front of the camera).
+    """
+    H, W = X.shape[:2]
+    uv = pixel_grid(H, W, dtype=X.dtype, device=X.device)
+    centre = torch.tensor([(W - 1) / 2.0, (H - 1) / 2.0], dtype=X.dtype, device=X.device)
+    offset = (uv - centre).reshape(-1, 2)
+    z = X[..., 2].reshape(-1)
+    usable = torch.isfinite(X).all(-1).reshape(-1) & (z > _MIN_DEPTH)
+    w = torch.ones_like(z) if weights is None else weights.reshape(-1).to(X.dtype)
+    w = torch.where(usable, w, torch.zeros_like(w))
+    xy = X[..., :2].reshape(-1, 2) / torch.where(usable, z, torch.ones_like(z))[:, None]
+    xy = torch.where(usable[:, None], xy, torch.zeros_like(xy))
+    reweight = w
+    focal = torch.tensor(float("nan"), dtype=X.dtype, device=X.device)
+    for _ in range(iterations + 1):
+        numerator = (reweight[:, None] * xy * offset).sum()
+        denominator = (reweight[:, None] * xy * xy).sum()
+        if float(denominator) <= 0:
+            return torch.tensor(float("nan"), dtype=X.dtype, device=X.device)
+        focal = numerator / denominator
+        distance = (offset - focal * xy).norm(dim=-1)
+        reweight = w / distance.clamp_min(1e-8)
+    return focal

@@ -139,6 +139,7 @@ class SimulatedEncoding(Encoding):
     """Per-view state of the simulated prior (about 110 bytes per pixel). Holds no pose.
 
     Attributes:
+        K: ``(3, 3)`` true intrinsics at the view's resolution.
         rays: ``(H, W, 3)`` unit rays of the pixels, camera frame.
         pred_rays: ``(H, W, 3)`` unit rays the prior predicts (``rays`` in the easy model).
         log_range_error: ``(H, W)`` this image's share of the log-range error (0 in the
@@ -154,6 +155,7 @@ class SimulatedEncoding(Encoding):
         descriptors: ``(H, W, d)`` float16 noise-free unit descriptors.
     """
 
+    K: Tensor
     rays: Tensor
     pred_rays: Tensor
     log_range_error: Tensor
@@ -247,7 +249,7 @@ class SimulatedPrior(Prior):
         else:
             pred_rays, log_range_error = rays, torch.zeros_like(ranges)
         return SimulatedEncoding(
-            agent=view.agent, index=view.index, shape=(H, W), rays=rays, pred_rays=pred_rays,
+            agent=view.agent, index=view.index, shape=(H, W), K=K, rays=rays, pred_rays=pred_rays,
             log_range_error=log_range_error, median_range=float(median_of_ranges(ranges.flatten(), valid.flatten())),
             ranges=ranges,
             valid=valid, edges=_depth_edges(depth, valid, self.constants.edge_log_jump),
@@ -356,7 +358,11 @@ class SimulatedPrior(Prior):
         scale *= math.exp(errors.scale_drift(cfg, enc_i.agent, enc_i.index))
         X_ii, error_i = self._observe(enc_i, gen)
         X_j, error_j = self._observe(enc_j, gen)
-        X_ji = scale * (s * X_j @ R.T + t)
+        # view j's observed ranges on its true rays, moved by the pair's (erroneous) pose
+        # into camera i and bent as camera i is believed to be
+        X_j_in_i = s * (enc_j.rays * X_j.norm(dim=-1, keepdim=True)) @ R.T + t
+        X_ji = scale * errors.in_believed_camera(X_j_in_i, enc_i.rays, enc_i.pred_rays,
+                                                 enc_i.K)
         r = errors.RealisticConstants
         unmatched_i = ~matches.counterpart_i.view(enc_i.shape) & enc_i.valid
         unmatched_j = ~matches.counterpart_j.view(enc_j.shape) & enc_j.valid

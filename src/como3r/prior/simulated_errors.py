@@ -23,7 +23,10 @@ by any factor gets the same relative errors.
    Principal point moved by ``principal_point_error = 0.01`` of the long side per axis (our
    assumption) and ray directions bent by a smooth field of RMS ``ray_field_deg = 0.3`` deg
    (our assumption; pointmap regression has no exact pinhole). ``X_ii`` lies on these rays,
-   not on the true ``K``'s.
+   not on the true ``K``'s, and so does ``X_ji``: the pair is regressed in camera i, so view
+   j's points sit on camera i's believed rays where they truly project
+   (:func:`in_believed_camera`); the correspondence the pair implies is wrong only by the
+   pair's pose error, not by the two images' intrinsics errors.
 2. Range error, per image: a smooth unit-RMS field times ``image_distortion_amplitude =
    0.04`` shared by every pair of the image, on top of the per-pair field
    (``depth_distortion_amplitude``) and pixel noise. Total RMS about 5 %: MUSt3R (same paper,
@@ -209,6 +212,51 @@ def predicted_rays(K: Tensor, H: int, W: int, config: SimulatedPriorConfig,
     x = x + bend * draws.field(H, W, wavelength, modes)
     y = y + bend * draws.field(H, W, wavelength, modes)
     return F.normalize(torch.stack([x, y, torch.ones_like(x)], dim=-1), dim=-1).to(K.device)
+
+
+def in_believed_camera(points: Tensor, rays: Tensor, pred_rays: Tensor, K: Tensor) -> Tensor:
+    """Points of camera i moved onto the rays camera i's prediction believes in.
+
+    A network regresses both pointmaps of a pair in camera i's frame, so its belief about
+    camera i (focal, principal point, ray field) bends ``X_ji`` as it bends ``X_ii``: a
+    point of view j lands on the predicted ray of the pixel of i where it truly projects,
+    and the correspondence that ``X_ji`` implies in image i stays right. Drawing view j's
+    own intrinsics error into ``X_ji`` instead makes that correspondence wrong by the
+    difference of two images' focal errors, which MASt3R's jointly regressed pointmaps
+    (the basis of MASt3R-SLAM's projective matching) do not show. Our assumption.
+
+    The bend is taken in normalised image coordinates: an affine fit of the predicted on
+    the true coordinates over the image (exact for the focal and principal-point errors)
+    plus the smooth remainder, sampled at the true pixel (border values outside the image).
+
+    Args:
+        points: ``(..., 3)`` points in camera i (true geometry).
+        rays: ``(H, W, 3)`` true unit rays of image i; pred_rays: ``(H, W, 3)`` predicted.
+        K: ``(3, 3)`` true intrinsics of image i.
+
+    Returns:
+        ``(..., 3)`` the points at their range along the believed rays (points at or behind
+        the camera plane unchanged).
+    """
+    H, W = rays.shape[:2]
+    true_xy = (rays[..., :2] / rays[..., 2:]).reshape(-1, 2)
+    pred_xy = (pred_rays[..., :2] / pred_rays[..., 2:]).reshape(-1, 2)
+    design = torch.cat([true_xy, torch.ones_like(true_xy[:, :1])], dim=1)
+    affine = torch.linalg.lstsq(design, pred_xy).solution  # (3, 2)
+    remainder = (pred_xy - design @ affine).reshape(H, W, 2)
+    z = points[..., 2:]
+    front = z[..., 0] > 1e-9
+    xy = points[..., :2] / torch.where(front[..., None], z, torch.ones_like(z))
+    pixels = xy @ K[:2, :2].T.to(xy) + K[:2, 2].to(xy)
+    grid = torch.stack([2 * pixels[..., 0] / max(W - 1, 1) - 1,
+                        2 * pixels[..., 1] / max(H - 1, 1) - 1], dim=-1)
+    bend = F.grid_sample(remainder.permute(2, 0, 1)[None], grid.reshape(1, 1, -1, 2),
+                         mode="bilinear", padding_mode="border", align_corners=True)
+    believed_xy = (torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1) @ affine
+                   + bend[0, :, 0].T.reshape(xy.shape))
+    direction = F.normalize(torch.cat([believed_xy, torch.ones_like(z)], dim=-1), dim=-1)
+    moved = direction * points.norm(dim=-1, keepdim=True)
+    return torch.where(front[..., None], moved, points)
 
 
 def image_log_range_error(ranges: Tensor, valid: Tensor, config: SimulatedPriorConfig,
