@@ -6,8 +6,10 @@ suite stays within minutes on two CPU cores; every threshold is the default. The
 turns 20 deg per processed frame. Measured at commit time (tracked / processed frames, ATE %
 of path): 0.1x 96 px 20/20, 1.39 %; 1x 96 px 19/20, 1.75 %; 0.1x 160 px 20/20, 1.36 %; 1x
 160 px 19/20, 1.39 % (the paper's uncalibrated mode, ``tracking.self_calibration=false``:
-8.1, 7.1, 8.6, 7.5 %). The bounds are about twice that; the issue's goal (<= 1 %) is met on
-slower motion (3.6 deg per frame: 0.4-1.35 %, frontend.calibration), not yet here.
+8.1, 7.1, 8.6, 7.5 %). The prior's default seed happens to draw a first frame whose focal
+length is nearly right; seeds 1 and 2 give 1.8-3.0 % here. The bounds are about twice the
+default's; the issue's goal (<= 1 %) is met on slower motion (3.6 deg per frame: 0.4-1.35 %
+over three prior seeds, frontend.calibration), not yet here.
 """
 
 from __future__ import annotations
@@ -60,3 +62,14 @@ def test_self_calibration_beats_the_papers_uncalibrated_mode(tmp_path, process_f
     assert frontend.stats.estimated_focal is None
     # measured: 7.1 % (paper's mode) against 1.75 % (the default, previous test)
     assert paper > 0.035, paper
+
+
+def test_a_frame_the_motion_outran_becomes_a_keyframe_late(tmp_path, process_frames) -> None:
+    """With this draw of the prior's errors, frame 2 still overlaps keyframe 0 by 36 % (no
+    keyframe due) and frame 4 by 4 %: without the late promotion of frame 2 the agent lost
+    track at frame 4 and tracked 4 of 20 frames (measured)."""
+    ate, outcomes, frontend = _track(tmp_path, process_frames, 1.0, 96,
+                                     ("simulated_prior.seed=1",))
+    assert frontend.stats.late_keyframes >= 1
+    assert sum(o != "lost" for o in outcomes) >= 0.95 * len(outcomes), outcomes
+    assert ate <= 0.045, ate  # measured 2.2 %

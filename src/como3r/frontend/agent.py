@@ -8,7 +8,10 @@
    links it to its predecessor (sequential edge) and to verified intra-agent loop
    candidates from the agent's own retrieval database, and refines the local keyframe
    graph by LM-IRLS (C-Sec. B.2, pin 1);
-4. when tracking fails, relocalizes: retrieves the agent's keyframes most like the frame,
+4. when tracking fails after a frame that tracked well but stayed above the threshold
+   (the motion outran the keyframe rule), promotes that frame late and tracks against it
+   (not in the paper: at 20 deg per frame one step can go from 36 % overlap to none);
+5. when tracking still fails, relocalizes: retrieves the agent's keyframes most like the frame,
    tracks against each and re-anchors on the first that matches well enough; frames that
    cannot be relocalized are counted as lost, never invented.
 
@@ -65,6 +68,18 @@ class FrameRecord:
     T_rel: Tensor
 
 
+@dataclass(frozen=True)
+class _TrackedFrame:
+    """The last frame tracked without becoming a keyframe: what promoting it late needs."""
+
+    result: TrackResult
+    keyframe: Keyframe
+    index: int
+    timestamp: float
+    encoding: Encoding
+    colors: np.ndarray
+
+
 @dataclass
 class FrontendStats:
     """Counters reported in metrics.json."""
@@ -74,6 +89,8 @@ class FrontendStats:
     lost: int = 0
     relocalized: int = 0
     keyframes: int = 0
+    #: keyframes made of the previous frame when tracking the next one failed
+    late_keyframes: int = 0
     loop_candidates: int = 0
     loop_edges: int = 0
     local_solves: int = 0
@@ -111,6 +128,7 @@ class AgentFrontend:
         self.new_keyframes: list[int] = []  # keyframes not yet handed to a coordinator
         self._T_kf_prev: Tensor | None = None
         self._lost = False
+        self._last_tracked: _TrackedFrame | None = None
         self._K: Tensor | None = None  # intrinsics at network resolution (calibrated runs)
 
     def process(self, view: View, timestamp: float, colors: np.ndarray) -> str:
@@ -136,6 +154,8 @@ class AgentFrontend:
             with self.timer.stage("relocalization"):
                 return self._relocalize(enc, view.index, timestamp, colors)
         result = self.tracker.track(enc, self.keyframes.last, self._T_kf_prev)
+        if not result.ok and self._promote_last_tracked():
+            result = self.tracker.track(enc, self.keyframes.last, self._T_kf_prev)
         if not result.ok:
             self._lost = True
             with self.timer.stage("relocalization"):
@@ -162,11 +182,31 @@ class AgentFrontend:
         if not result.new_keyframe:
             self.records.append(FrameRecord(index, timestamp, keyframe.kf_id, result.T_kf))
             self._T_kf_prev = result.T_kf
+            self._last_tracked = _TrackedFrame(result, keyframe, index, timestamp, enc, colors)
             return
         T_WC = sim3_compose(keyframe.T_WC, result.T_kf)
         new = self._add_keyframe(enc, index, timestamp, T_WC, result.X_ff, result.C_ff, colors)
         self._link_new_keyframe(new, result.matches)
         self._T_kf_prev = sim3_identity(dtype=T_WC.dtype, device=T_WC.device)
+
+    def _promote_last_tracked(self) -> bool:
+        """Make the last tracked frame the keyframe it should have been; False if there is
+        none (it is not the latest frame processed on the current keyframe)."""
+        last, self._last_tracked = self._last_tracked, None
+        if (last is None or last.keyframe is not self.keyframes.last or not self.records
+                or self.records[-1].frame_index != last.index):
+            return False
+        self.records.pop()  # re-recorded as a keyframe, anchored on itself
+        with self.timer.stage("keyframe"):
+            T_WC = sim3_compose(last.keyframe.T_WC, last.result.T_kf)
+            new = self._add_keyframe(last.encoding, last.index, last.timestamp, T_WC,
+                                     last.result.X_ff, last.result.C_ff, last.colors)
+            self._link_new_keyframe(new, last.result.matches)
+        self._T_kf_prev = sim3_identity(dtype=T_WC.dtype, device=T_WC.device)
+        self.stats.late_keyframes += 1
+        logger.info("agent %d: frame %d promoted to keyframe after frame tracking failed",
+                    self.agent, last.index)
+        return True
 
     def _add_keyframe(self, enc: Encoding, index: int, timestamp: float, T_WC: Tensor,
                       X: Tensor, C: Tensor, colors: np.ndarray) -> Keyframe:
@@ -182,6 +222,7 @@ class AgentFrontend:
             K=None if self._K is None else self._K.to(X),
         )
         self.keyframes.add(kf)
+        self._last_tracked = None
         self.records.append(FrameRecord(index, timestamp, kf.kf_id, sim3_identity(
             dtype=T_WC.dtype, device=T_WC.device)))
         self.new_keyframes.append(kf.kf_id)
