@@ -143,6 +143,40 @@ def test_too_few_matches_is_a_detected_failure(renderer_and_pose) -> None:
     assert result.match_fraction < Config().tracking.min_match_fraction
 
 
+class _WrongPosePrior(_ScaledPrior):
+    """Places view j in camera i turned by ``scale`` degrees and moved sideways by half the
+    median range, as the simulated prior's gross failures do: confident and wrong."""
+
+    def decode(self, enc_i, enc_j) -> PairPrediction:
+        pred = self.inner.decode(enc_i, enc_j)
+        if enc_i.index == enc_j.index:
+            return pred
+        R = torch.from_numpy(Rotation.from_euler("y", self.scale, degrees=True).as_matrix())
+        shift = torch.tensor([0.5, 0.0, 0.0]) * pred.X_ii[..., 2].median()
+        return replace(pred, X_ji=pred.X_ji @ R.T.float() + shift)
+
+
+@pytest.mark.parametrize("min_inlier_fraction", [0.0, 0.5])
+def test_a_pose_few_matches_agree_with_is_rejected(renderer_and_pose,
+                                                   min_inlier_fraction: float) -> None:
+    renderer, R_WC, t_WC, K = renderer_and_pose
+    view_k = _view(renderer, R_WC, t_WC, K, index=0)
+    R_rel = Rotation.from_euler("y", 4.0, degrees=True).as_matrix()
+    view_f = _view(renderer, R_WC @ R_rel, t_WC + R_WC @ np.array([0.1, 0.0, 0.3]), K, index=1)
+    prior = _WrongPosePrior(SimulatedPrior(NOISE_FREE), 12.0)
+    enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
+    config = apply_overrides(Config(), [f"tracking.min_inlier_fraction={min_inlier_fraction}"])
+    result = FrameTracker(prior, config).track(enc_f, _keyframe(prior, enc_k),
+                                               sim3_identity(dtype=torch.float32))
+    if min_inlier_fraction == 0.0:  # the paper: the wrong pose passes as tracked
+        assert result.ok
+        T_true = sim3_compose(sim3_inverse(view_k.T_WC), view_f.T_WC).float()
+        error = sim3_log(sim3_compose(sim3_inverse(T_true), result.T_kf))
+        assert math.degrees(float(error[3:6].norm())) > 3.0
+    else:
+        assert not result.ok and result.reason == "inconsistent"
+
+
 def test_calibrated_tracking_recovers_known_relative_pose(renderer_and_pose) -> None:
     renderer, R_WC, t_WC, K = renderer_and_pose
     view_k = _view(renderer, R_WC, t_WC, K, index=0)

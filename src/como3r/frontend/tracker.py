@@ -15,18 +15,20 @@ that could not produce a finite pose give ``ok=False`` with the reason.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, replace
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
-from como3r.config import Config
+from como3r.config import Config, TrackingConfig
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.graph import make_factors
 from como3r.frontend.pairs import DirectedMatches, directed_matches, gather_points
 from como3r.frontend.timing import StageTimer
 from como3r.geometry.camera import lock_to_rays
-from como3r.geometry.lie import sim3_identity
+from como3r.geometry.lie import sim3_act, sim3_identity
 from como3r.optim.optimizer import SolveReport, levenberg_marquardt_irls
 from como3r.optim.values import PoseValues
 from como3r.prior.base import Encoding, Prior
@@ -117,6 +119,12 @@ class FrameTracker:
             logger.info("tracking failed against keyframe %d: %s", keyframe.kf_id, report.reason)
             return TrackResult(False, report.reason, T_kf_init, new_keyframe=True, solve=report,
                                **base)
+        inliers = inlier_fraction(T_kf, pred.X_ii, keyframe.X_hat, matches, tracking)
+        if inliers < tracking.min_inlier_fraction:
+            logger.info("tracking against keyframe %d rejected: %.2f of the matches agree with "
+                        "the pose", keyframe.kf_id, inliers)
+            return TrackResult(False, "inconsistent", T_kf_init, new_keyframe=True, solve=report,
+                               **base)
         if fuse:
             with self.timer.stage("fusion"):
                 keyframe.fuse(T_kf, pred.X_ji, pred.C_ji,
@@ -171,3 +179,28 @@ def _unique_fraction(matches: DirectedMatches, searched_pixels: int) -> float:
     hit = torch.zeros(searched_pixels, dtype=torch.bool, device=matches.idx.device)
     hit[matches.idx[matches.valid]] = True  # a mark per distinct pixel, no sort
     return float(hit.sum() / matches.idx.numel())
+
+
+def inlier_fraction(T_kf: Tensor, X_ff: Tensor, X_hat: Tensor, matches: DirectedMatches,
+                    tracking: TrackingConfig) -> float:
+    """Share of the valid matches that agree with a solved frame pose.
+
+    A match agrees when the frame's point moved by ``T_kf`` lies within
+    ``tracking.inlier_angle_deg`` of the keyframe point's ray and its range within
+    ``tracking.sigma_dist`` (relative) of the keyframe point's range.
+
+    Args:
+        T_kf: ``(8,)`` frame pose in the keyframe's camera.
+        X_ff: ``(H, W, 3)`` the frame's pointmap; X_hat: ``(H, W, 3)`` the keyframe's.
+        matches: keyframe pixels looked up in the frame.
+        tracking: the thresholds.
+    """
+    if not bool(matches.valid.any()):
+        return 0.0
+    X_f = sim3_act(T_kf.to(X_ff.dtype)[None], gather_points(X_ff, matches.idx)[matches.valid])
+    X_k = X_hat.reshape(-1, 3)[matches.valid]
+    cosine = (F.normalize(X_f, dim=-1) * F.normalize(X_k, dim=-1)).sum(-1)
+    close_ray = cosine > math.cos(math.radians(tracking.inlier_angle_deg))
+    range_k = X_k.norm(dim=-1)
+    close_range = (X_f.norm(dim=-1) - range_k).abs() < tracking.sigma_dist * range_k
+    return float((close_ray & close_range).float().mean())
