@@ -162,11 +162,19 @@ def _load_config(config_file: Optional[Path], overrides: List[str], calib: bool,
 def run(
     agent: List[Path] = typer.Option(..., "--agent", help="Agent input folder (repeat per agent)."),
     out: Path = typer.Option(..., "--out", help="Output folder."),
-    prior: str = typer.Option("simulated", "--prior", help="simulated | mast3r"),
-    weights: Optional[Path] = typer.Option(None, "--weights", help="MASt3R checkpoint."),
-    retrieval_weights: Optional[Path] = typer.Option(None, "--retrieval-weights",
-                                                     help="MASt3R retrieval checkpoint."),
-    codebook: Optional[Path] = typer.Option(None, "--codebook", help="ASMK codebook .pkl."),
+    prior: str = typer.Option(
+        "mast3r", "--prior",
+        help="mast3r | simulated (a stand-in made from ground-truth depth, for synthetic "
+             "scenes and tests)."),
+    weights: Optional[Path] = typer.Option(
+        None, "--weights", help="MASt3R checkpoint (default: the weights cache, filled by "
+                                "`como3r weights fetch`)."),
+    retrieval_weights: Optional[Path] = typer.Option(
+        None, "--retrieval-weights", help="MASt3R retrieval checkpoint (default: the weights "
+                                          "cache when --weights is not given)."),
+    codebook: Optional[Path] = typer.Option(
+        None, "--codebook", help="ASMK codebook .pkl (default: beside the retrieval "
+                                 "checkpoint, else the weights cache)."),
     config_file: Optional[Path] = typer.Option(None, "--config", help="YAML configuration."),
     overrides: List[str] = typer.Option([], "--set", help="Override, e.g. tracking.sigma_ray=0.002."),
     calib: bool = typer.Option(False, "--calib", help="Use each agent's calib.txt (C-Sec. A.5)."),
@@ -185,7 +193,7 @@ def run(
 ) -> None:
     """Run collaborative SLAM on one or more agents and write the output folder."""
     from como3r.errors import InputError
-    from como3r.runtime.pipeline import PriorSpec, run as run_pipeline
+    from como3r.runtime.pipeline import PriorSpec, resolve_weights, run as run_pipeline
 
     config = _load_config(config_file, overrides, calib, no_loop_closure)
     spec = PriorSpec(prior, weights, retrieval_weights, codebook, device, precision)
@@ -193,6 +201,7 @@ def run(
         from como3r.prior.mast3r.precision import check_precision
 
         check_precision(device, precision)
+        spec = resolve_weights(spec)
     if mode == "decentralized":
         from como3r.decentralized.runner import run_decentralized
 
@@ -274,6 +283,11 @@ def demo(
     for line in summary.notes:
         console.print(line)
     console.print(f"scene: {scene}\nrun:   {out / 'run'} (open {out / 'run' / 'report.html'})")
+
+
+from como3r.cli_weights import weights_app  # noqa: E402 - it uses the helpers above
+
+app.add_typer(weights_app, name="weights")
 
 
 def main() -> None:

@@ -115,6 +115,10 @@ def run_decentralized(
     if len(failed) == len(robots):
         raise Como3rError(f"every robot failed; robot 0: {failed[0].splitlines()[0]}")
     summary = RunSummary(out=Path(out))
+    if prior_spec.name == "simulated":
+        from como3r.runtime.outputs import SIMULATED_NOTE
+
+        summary.notes.append(SIMULATED_NOTE)
     summary.notes += [f"robot {r} failed: {error.splitlines()[0]}" for r, error in failed.items()]
     for r, robot in enumerate(robots):
         robot.keyframes = _reported_keyframes(robot.odometry, result.reports.get(r))

@@ -25,6 +25,10 @@ from como3r.io.tum import write_tum
 
 logger = logging.getLogger(__name__)
 
+#: the first note of every run on the simulated prior (CLI summary, report.html)
+SIMULATED_NOTE = ("prior: simulated (made from the input's ground-truth depth as a stand-in "
+                  "for MASt3R): these results do not measure MASt3R")
+
 
 def write_trajectories(out: Path, frontends: Sequence[AgentFrontend]) -> None:
     """All-frame and keyframe TUM trajectories per agent."""
@@ -179,6 +183,8 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
     from como3r.evaluation.html import write_report
     from como3r.evaluation.report import evaluate_run
 
+    if metrics["prior"].get("name") == "SimulatedPrior":
+        summary.notes.insert(0, SIMULATED_NOTE)
     metrics["ate"] = None
     if all(a.groundtruth is not None for a in agents):
         try:

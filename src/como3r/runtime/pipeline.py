@@ -11,6 +11,9 @@ exists, evaluates the trajectories (merged ATE only within gauge components).
 
 from __future__ import annotations
 
+import dataclasses
+import contextlib
+import functools
 import heapq
 import logging
 import time
@@ -31,6 +34,7 @@ from como3r.frontend.packets import PointmapRefresh, PoseUpdate
 from como3r.io.output import atomic_output_dir
 from como3r.prior.base import Prior, View
 from como3r.runtime import outputs
+from como3r.runtime.prefetch import prepared_frames
 
 logger = logging.getLogger(__name__)
 
@@ -69,8 +73,38 @@ class RunSummary:
     notes: list[str] = field(default_factory=list)
 
 
+def resolve_weights(spec: PriorSpec) -> PriorSpec:
+    """The spec with every MASt3R file not given taken from the weights cache
+    (:mod:`como3r.prior.weights`).
+
+    Without ``weights`` all three files come from the cache. With ``weights`` given, the
+    retrieval files are only those given (the cached ones belong to the official
+    checkpoint); without them retrieval is off. A codebook not given is the one beside the
+    retrieval checkpoint, as in the official code, else the cached one.
+
+    Raises:
+        InputError: a file missing from the cache (one line naming ``como3r weights fetch``).
+    """
+    if spec.name != "mast3r":
+        return spec
+    from como3r.prior.mast3r.retrieval import codebook_path_for
+    from como3r.prior.weights import cached_file
+
+    weights, retrieval = spec.weights, spec.retrieval_weights
+    if weights is None:
+        weights = cached_file("checkpoint")
+        retrieval = retrieval or cached_file("retrieval")
+    codebook = spec.codebook
+    if codebook is None and retrieval is not None:
+        beside = codebook_path_for(retrieval)
+        codebook = beside if beside.is_file() else cached_file("codebook")
+    return dataclasses.replace(spec, weights=weights, retrieval_weights=retrieval,
+                               codebook=codebook)
+
+
 def build_prior(spec: PriorSpec, config: Config) -> tuple[Prior, np.ndarray | None]:
-    """The prior and its retrieval codebook (None when retrieval is unavailable)."""
+    """The prior and its retrieval codebook (None when retrieval is unavailable); MASt3R
+    files not in ``spec`` come from the weights cache (:func:`resolve_weights`)."""
     if spec.name == "simulated":
         from como3r.prior.simulated import SimulatedPrior
 
@@ -79,18 +113,16 @@ def build_prior(spec: PriorSpec, config: Config) -> tuple[Prior, np.ndarray | No
     if spec.name == "mast3r":
         from como3r.prior.mast3r import load_mast3r
 
-        if spec.weights is None:
-            raise InputError("--prior mast3r needs --weights CHECKPOINT")
+        spec = resolve_weights(spec)
         prior = load_mast3r(spec.weights, device=spec.device, dtype=spec.precision)
         if spec.retrieval_weights is None:
             logger.warning("no --retrieval-weights: loop closure and retrieval are disabled")
             return prior, None
-        from como3r.prior.mast3r.retrieval import codebook_path_for, load_retrieval_head
+        from como3r.prior.mast3r.retrieval import load_retrieval_head
         from como3r.prior.retrieval import load_codebook
 
         prior.retrieval = load_retrieval_head(spec.retrieval_weights, device=spec.device)
-        codebook = spec.codebook or codebook_path_for(spec.retrieval_weights)
-        return prior, load_codebook(codebook)
+        return prior, load_codebook(spec.codebook)
     raise InputError(f"unknown prior {spec.name!r}; choose one of {', '.join(PRIORS)}")
 
 
@@ -111,6 +143,15 @@ def _frame_schedule(agents: Sequence[AgentInput], stride: int) -> Iterator[tuple
         nxt = i + stride
         if nxt < agents[k].num_frames:
             heapq.heappush(heap, (float(agents[k].timestamps[nxt]), k, nxt))
+
+
+def load_frame(agents: Sequence[AgentInput], long_side: int, needs_K: bool, agent: int,
+               index: int) -> tuple[View, float, np.ndarray]:
+    """Frame ``index`` of ``agents[agent]`` pre-processed: ``(view, timestamp, colors)``;
+    the intrinsics go into the view only where ``needs_K`` (simulated prior, calibrated)."""
+    frame = agents[agent].load_frame(index)
+    view = make_view(frame, agent, long_side, agents[agent].calib if needs_K else None)
+    return view, frame.timestamp, _colors(view)
 
 
 def _colors(view: View) -> np.ndarray:
@@ -145,15 +186,18 @@ def run(
     seconds = [0.0] * len(agents)
     stride = config.input.subsample
     total = sum(len(range(0, a.num_frames, stride)) for a in agents)
-    with atomic_output_dir(out, overwrite=overwrite) as staging:
-        for done, (k, i) in enumerate(_frame_schedule(agents, stride), 1):
+    load = functools.partial(load_frame, agents, config.input.long_side, needs_K)
+    frames = prepared_frames(_frame_schedule(agents, stride), load, prior,
+                             config.input.prefetch_frames)
+    with atomic_output_dir(out, overwrite=overwrite) as staging, contextlib.closing(frames):
+        for done in range(1, total + 1):
             start = time.perf_counter()
-            with frontends[k].timer.stage("io"):  # the agent's wall time includes its input
-                frame = agents[k].load_frame(i)
-                view = make_view(frame, k, config.input.long_side,
-                                 agents[k].calib if needs_K else None)
-                colors = _colors(view)
-            outcome = frontends[k].process(view, frame.timestamp, colors)
+            frame = next(frames)
+            k = frame.agent
+            # the agent's wall time includes waiting for its input and encoding
+            frontends[k].timer.charge("prior_encode", time.perf_counter() - start)
+            outcome = frontends[k].process(frame.view, frame.timestamp, frame.colors,
+                                           frame.encoding)
             seconds[k] += time.perf_counter() - start
             for packet in frontends[k].drain_new_keyframes():
                 _apply(frontends, coordinator.add_keyframe(packet))

@@ -1,0 +1,74 @@
+"""``como3r weights``: fetch, list and locate the MASt3R weight files
+(:mod:`como3r.prior.weights`)."""
+
+from __future__ import annotations
+
+import typer
+from rich.progress import (
+    BarColumn,
+    DownloadColumn,
+    Progress,
+    TextColumn,
+    TimeRemainingColumn,
+    TransferSpeedColumn,
+)
+
+from como3r.cli import console, err_console, print_rows, user_errors
+from como3r.prior import weights
+
+weights_app = typer.Typer(no_args_is_help=True,
+                          help="The MASt3R checkpoint, retrieval head and codebook.")
+
+
+@weights_app.command("fetch")
+@user_errors
+def fetch(
+    trust_unverified: bool = typer.Option(
+        False, "--trust-unverified",
+        help="Accept files for which no official SHA-256 is published (today: all three); "
+             "their computed SHA-256 is printed."),
+) -> None:
+    """Download the three files into the weights cache (resumes a broken download)."""
+    weights.check_trust(weights.WEIGHT_FILES, trust_unverified)
+    home, url = weights.weights_home(), weights.base_url()
+    console.print(f"weights cache: {home}\nsource: {url}")
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), DownloadColumn(),
+                  TransferSpeedColumn(), TimeRemainingColumn(), console=err_console) as bar:
+        statuses = []
+        for file in weights.WEIGHT_FILES:
+            task = bar.add_task(file.role, total=None)
+            statuses.append(weights.fetch_file(
+                file, home, url, trust_unverified,
+                progress=lambda done, total, task=task: bar.update(task, completed=done,
+                                                                   total=total)))
+    for status in statuses:
+        console.print(f"{status.file.filename}: {status.state}, sha256 {status.sha256}")
+
+
+@weights_app.command("list")
+@user_errors
+def list_files(
+    check: bool = typer.Option(False, "--check",
+                               help="Recompute every SHA-256 instead of reading the one recorded at fetch."),
+) -> None:
+    """What the weights cache holds: each file's size and whether it is verified."""
+    home = weights.weights_home()
+    rows = [{"file": s.file.role, "size": _size(s.size), "state": s.state,
+             "sha256": f"{s.sha256[:16]}..." if s.sha256 else "-"}
+            for s in (weights.file_status(f, home, rehash=check) for f in weights.WEIGHT_FILES)]
+    console.print(f"weights cache: {home}")
+    print_rows("MASt3R weights", rows)
+
+
+@weights_app.command("path")
+def path() -> None:
+    """Print the weights cache folder (COMO3R_HOME)."""
+    console.print(str(weights.weights_home()), highlight=False, soft_wrap=True)
+
+
+def _size(size: int) -> str:
+    """Bytes in the largest unit that keeps a leading digit (decimal units)."""
+    for unit, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if size >= scale:
+            return f"{size / scale:.1f} {unit}"
+    return f"{size} B"
