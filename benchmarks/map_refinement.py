@@ -106,7 +106,8 @@ def main() -> None:
           f"{platform.processor() or platform.machine()}; scenes: {args.agents} agents x "
           f"{args.frames} frames at {args.width}x{args.height}")
     shutil.rmtree(args.work, ignore_errors=True)
-    common = ["--single-process", "--set", f"input.long_side={max(args.width, args.height)}"]
+    common = ["--prior", "simulated", "--single-process",
+              "--set", f"input.long_side={max(args.width, args.height)}"]
     by_seed: list[dict[str, dict[str, object]]] = []
     for seed in args.seeds:
         scene = args.work / f"scene_{seed}"

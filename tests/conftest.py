@@ -14,6 +14,13 @@ DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 DTYPES = [torch.float32, torch.float64]
 
 
+@pytest.fixture(autouse=True)
+def empty_weights_cache(monkeypatch, tmp_path_factory) -> None:
+    """Every test sees an empty weights cache of its own, never the user's (COMO3R_HOME)."""
+    monkeypatch.setenv("COMO3R_HOME", str(tmp_path_factory.mktemp("como3r_home")))
+    monkeypatch.delenv("COMO3R_WEIGHTS_URL", raising=False)
+
+
 @pytest.fixture(params=DEVICES)
 def device(request) -> torch.device:
     """Every device this machine has (CPU always; CUDA where present)."""

@@ -35,7 +35,7 @@ def _assert_one_error(result, *fragments: str) -> None:
 
 
 @pytest.mark.parametrize("args, fragments", [
-    (["--agent", "{missing}"], ["missing_agent"]),
+    (["--agent", "{missing}", "--prior", "simulated"], ["missing_agent"]),
     (["--agent", "{agent}", "--prior", "bogus"], ["bogus", "simulated"]),
     (["--agent", "{agent}", "--prior", "mast3r"], ["--weights"]),
     (["--agent", "{agent}", "--set", "tracking.sigma_rya=1"], ["tracking.sigma_rya"]),
@@ -63,7 +63,7 @@ def test_existing_output_folder_is_not_overwritten(scene, tmp_path) -> None:
     out = tmp_path / "out"
     out.mkdir()
     (out / "keep.txt").write_text("mine")
-    result = _run("--agent", str(scene / "agent_0"), "--out", str(out))
+    result = _run("--agent", str(scene / "agent_0"), "--out", str(out), "--prior", "simulated")
     _assert_one_error(result, "--overwrite")
     assert (out / "keep.txt").read_text() == "mine"
 

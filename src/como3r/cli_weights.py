@@ -31,7 +31,7 @@ def fetch(
     """Download the three files into the weights cache (resumes a broken download)."""
     weights.check_trust(weights.WEIGHT_FILES, trust_unverified)
     home, url = weights.weights_home(), weights.base_url()
-    console.print(f"weights cache: {home}\nsource: {url}")
+    console.print(f"weights cache: {home}\nsource: {url}", highlight=False, soft_wrap=True)
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), DownloadColumn(),
                   TransferSpeedColumn(), TimeRemainingColumn(), console=err_console) as bar:
         statuses = []
@@ -42,7 +42,8 @@ def fetch(
                 progress=lambda done, total, task=task: bar.update(task, completed=done,
                                                                    total=total)))
     for status in statuses:
-        console.print(f"{status.file.filename}: {status.state}, sha256 {status.sha256}")
+        console.print(f"{status.file.filename}: {status.state}, sha256 {status.sha256}",
+                      highlight=False, soft_wrap=True)
 
 
 @weights_app.command("list")
@@ -56,7 +57,7 @@ def list_files(
     rows = [{"file": s.file.role, "size": _size(s.size), "state": s.state,
              "sha256": f"{s.sha256[:16]}..." if s.sha256 else "-"}
             for s in (weights.file_status(f, home, rehash=check) for f in weights.WEIGHT_FILES)]
-    console.print(f"weights cache: {home}")
+    console.print(f"weights cache: {home}", highlight=False, soft_wrap=True)
     print_rows("MASt3R weights", rows)
 
 
