@@ -83,3 +83,13 @@ def test_mast3r_plumbing_with_a_tiny_random_checkpoint(scene, tmp_path) -> None:
     assert agent["frames"] == 3
     assert agent["tracked"] + agent["lost"] == agent["frames"]
     assert "MASt3R" in json.dumps(metrics["prior"])
+
+
+def test_a_run_on_the_simulated_prior_says_so_everywhere(scene, tmp_path) -> None:
+    out = tmp_path / "run"
+    result = _run("--agent", str(scene / "agent_0"), "--out", str(out), "--prior", "simulated",
+                  "--single-process", "--set", "input.long_side=64")
+    assert result.exit_code == 0, result.output
+    assert "prior: simulated" in result.output
+    assert "prior: simulated" in (out / "report.html").read_text()
+    assert json.loads((out / "metrics.json").read_text())["prior"]["name"] == "SimulatedPrior"
