@@ -32,6 +32,9 @@ class InputConfig:
     long_side: int = 512
     frame_rate_hz: float = 30.0
     subsample: int = 2
+    # frames read and encoded ahead on a worker thread while the front-end works on the
+    # current one (runtime.prefetch); 0 encodes each frame in line
+    prefetch_frames: int = 2
 
 
 @dataclass(frozen=True)

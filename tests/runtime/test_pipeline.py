@@ -129,7 +129,8 @@ def test_metrics_give_each_agent_its_time_per_stage(meeting) -> None:
     _, _, result, _ = meeting
     for agent in result["metrics"]["agents"]:
         stages = agent["stage_seconds"]
+        # prior_encode: waiting for the frame read and encoded ahead (runtime.prefetch)
         assert {"prior_encode", "prior_decode", "matching", "tracking", "fusion",
-                "keyframe", "local_solve", "io", "other"} <= set(stages)
+                "keyframe", "local_solve", "other"} <= set(stages)
         assert all(v >= 0.0 for v in stages.values())
         assert sum(stages.values()) == pytest.approx(agent["seconds"], rel=0.05)

@@ -143,7 +143,7 @@ def test_agent_processes_report_their_time_per_stage(lockstep) -> None:
     out, _ = lockstep
     for agent in _metrics(out)["agents"]:
         stages = agent["stage_seconds"]
-        assert {"prior_encode", "prior_decode", "matching", "tracking", "io", "other"} <= set(stages)
+        assert {"prior_encode", "prior_decode", "matching", "tracking", "other"} <= set(stages)
         assert all(v >= 0.0 for v in stages.values())
         assert sum(stages.values()) == pytest.approx(agent["seconds"], rel=0.05)
 

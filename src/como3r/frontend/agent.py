@@ -131,7 +131,8 @@ class AgentFrontend:
         self._last_tracked: _TrackedFrame | None = None
         self._K: Tensor | None = None  # intrinsics at network resolution (calibrated runs)
 
-    def process(self, view: View, timestamp: float, colors: np.ndarray) -> str:
+    def process(self, view: View, timestamp: float, colors: np.ndarray,
+                encoding: Encoding | None = None) -> str:
         """Process the next frame; returns ``"keyframe"``, ``"tracked"``, ``"relocalized"``
         or ``"lost"``.
 
@@ -139,6 +140,8 @@ class AgentFrontend:
             view: the pre-processed frame.
             timestamp: seconds.
             colors: ``(H, W, 3)`` uint8 image at network resolution.
+            encoding: the prior's encoding of ``view`` when it was made ahead
+                (:mod:`como3r.runtime.prefetch`); None encodes it here.
         """
         self.stats.frames += 1
         if self.config.calibrated:
@@ -146,7 +149,7 @@ class AgentFrontend:
                 raise InputError(f"agent {self.agent}: a calibrated run needs calib.txt "
                                  "(fx fy cx cy) in the agent folder")
             self._K = view.K
-        enc = self.prior.encode(view)
+        enc = self.prior.encode(view) if encoding is None else encoding
         if len(self.keyframes) == 0:
             self._initialise(enc, view.index, timestamp, colors)
             return "keyframe"

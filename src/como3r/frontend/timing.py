@@ -44,6 +44,10 @@ class StageTimer:
         finally:
             self._switch(None)
 
+    def charge(self, name: str, seconds: float) -> None:
+        """Add ``seconds`` measured elsewhere (outside any running stage) to ``name``."""
+        self.seconds[name] = self.seconds.get(name, 0.0) + seconds
+
     def _switch(self, entering: str | None) -> None:
         """Charge the time since the last switch to the running stage, then push or pop."""
         now = time.perf_counter()

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import contextlib
-import functools
 import heapq
 import logging
 import time
@@ -145,12 +144,13 @@ def _frame_schedule(agents: Sequence[AgentInput], stride: int) -> Iterator[tuple
             heapq.heappush(heap, (float(agents[k].timestamps[nxt]), k, nxt))
 
 
-def load_frame(agents: Sequence[AgentInput], long_side: int, needs_K: bool, agent: int,
-               index: int) -> tuple[View, float, np.ndarray]:
-    """Frame ``index`` of ``agents[agent]`` pre-processed: ``(view, timestamp, colors)``;
-    the intrinsics go into the view only where ``needs_K`` (simulated prior, calibrated)."""
-    frame = agents[agent].load_frame(index)
-    view = make_view(frame, agent, long_side, agents[agent].calib if needs_K else None)
+def load_frame(source: AgentInput, agent: int, index: int, long_side: int,
+               needs_K: bool) -> tuple[View, float, np.ndarray]:
+    """Frame ``index`` of agent ``agent``'s input pre-processed: ``(view, timestamp,
+    colors)``; the intrinsics go into the view only where ``needs_K`` (simulated prior,
+    calibrated run)."""
+    frame = source.load_frame(index)
+    view = make_view(frame, agent, long_side, source.calib if needs_K else None)
     return view, frame.timestamp, _colors(view)
 
 
@@ -186,9 +186,10 @@ def run(
     seconds = [0.0] * len(agents)
     stride = config.input.subsample
     total = sum(len(range(0, a.num_frames, stride)) for a in agents)
-    load = functools.partial(load_frame, agents, config.input.long_side, needs_K)
-    frames = prepared_frames(_frame_schedule(agents, stride), load, prior,
-                             config.input.prefetch_frames)
+    frames = prepared_frames(
+        _frame_schedule(agents, stride),
+        lambda k, i: load_frame(agents[k], k, i, config.input.long_side, needs_K), prior,
+        config.input.prefetch_frames)
     with atomic_output_dir(out, overwrite=overwrite) as staging, contextlib.closing(frames):
         for done in range(1, total + 1):
             start = time.perf_counter()

@@ -40,6 +40,7 @@ hold its keyframes only; ``metrics.json`` (``runtime``) and ``RunSummary.notes``
 
 from __future__ import annotations
 
+import contextlib
 import heapq
 import logging
 import math
@@ -53,7 +54,7 @@ from collections import Counter
 from dataclasses import dataclass, field, replace
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -62,7 +63,6 @@ from torch import Tensor
 from como3r.config import Config, config_from_dict, config_to_dict
 from como3r.coordination.coordinator import Coordinator
 from como3r.data.agent import AgentInput, open_agent
-from como3r.data.preprocess import make_view
 from como3r.errors import Como3rError, InputError
 from como3r.frontend.agent import AgentFrontend, FrontendStats
 from como3r.frontend.keyframes import apply_pointmap_update, apply_pose_update
@@ -87,11 +87,12 @@ from como3r.runtime.messages import (
 from como3r.runtime.pipeline import (
     PriorSpec,
     RunSummary,
-    _colors,
     _frame_schedule,
     build_prior,
+    load_frame,
     open_agents,
 )
+from como3r.runtime.prefetch import PreparedFrame, prepared_frames
 
 logger = logging.getLogger(__name__)
 
@@ -234,9 +235,9 @@ class _AgentWorker:
         spec = PriorSpec(**{k: (Path(v) if k in _PATH_FIELDS and v is not None else v)
                             for k, v in task.prior.items()})
         self.input = open_agent(task.input_path, fps=self.config.input.frame_rate_hz)
-        prior, codebook = build_prior(spec, self.config)
+        self.prior, codebook = build_prior(spec, self.config)
         self.needs_K = spec.name == "simulated" or self.config.calibrated
-        self.frontend = AgentFrontend(prior, self.config, task.agent, codebook)
+        self.frontend = AgentFrontend(self.prior, self.config, task.agent, codebook)
         self.frames = range(0, self.input.num_frames, self.config.input.subsample)
         self.applied_seq = 0
         self.seconds = 0.0
@@ -245,24 +246,29 @@ class _AgentWorker:
     def run(self) -> None:
         self.channel.send(AgentStarted(agent=self.task.agent, pid=os.getpid(),
                                        frames=len(self.frames)))
-        for index in self.frames:
-            ready = self._await_step(index) if self.task.lockstep else self._drain_inbox()
-            if not ready:
-                return
-            self._process(index)
+        agent, long_side = self.task.agent, self.config.input.long_side
+        frames = prepared_frames(
+            ((agent, index) for index in self.frames),
+            lambda a, i: load_frame(self.input, a, i, long_side, self.needs_K), self.prior,
+            self.config.input.prefetch_frames)
+        with contextlib.closing(frames):
+            for index in self.frames:
+                ready = self._await_step(index) if self.task.lockstep else self._drain_inbox()
+                if not ready:
+                    return
+                self._process(index, frames)
         self.current_frame = -1
         if self.task.lockstep or self._drain_inbox():
             self.channel.send(self._finished())
 
-    def _process(self, index: int) -> None:
+    def _process(self, index: int, frames: Iterator[PreparedFrame]) -> None:
         self.current_frame = index
         start = time.perf_counter()
-        with self.frontend.timer.stage("io"):  # the agent's wall time includes its input
-            frame = self.input.load_frame(index)
-            view = make_view(frame, self.task.agent, self.config.input.long_side,
-                             self.input.calib if self.needs_K else None)
-            colors = _colors(view)
-        outcome = self.frontend.process(view, frame.timestamp, colors)
+        frame = next(frames)
+        # the agent's wall time includes waiting for its input and encoding
+        self.frontend.timer.charge("prior_encode", time.perf_counter() - start)
+        outcome = self.frontend.process(frame.view, frame.timestamp, frame.colors,
+                                        frame.encoding)
         seconds = time.perf_counter() - start
         self.seconds += seconds
         for packet in self.frontend.drain_new_keyframes():
