@@ -27,7 +27,7 @@ def run(scene, main_config, settings_factory, tmp_path_factory):
 
 
 def test_output_folder(run, scene):
-    out, summary, _ = run
+    out, summary, metrics = run
     for a, agent in enumerate(scene):
         trajectory = read_tum(out / "trajectories" / f"agent_{a}.txt")
         assert len(trajectory) == len(read_tum(agent / "odometry.txt"))
@@ -36,6 +36,9 @@ def test_output_folder(run, scene):
         assert (out / name).is_file()
     config = yaml.safe_load((out / "config.yaml").read_text())
     assert config["decentralized"]["keyframe_distance_ratio"] == 0.22
+    # the simulated prior says so in the metrics and the summary
+    assert metrics["prior"] == {"name": "simulated"}
+    assert summary.notes[0].startswith("prior: simulated")
     graph = json.loads((out / "graph.json").read_text())
     accepted = [e for e in graph["edges"] if e["accepted"]]
     rejected = [e for e in graph["edges"] if not e["accepted"]]

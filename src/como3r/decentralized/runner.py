@@ -124,7 +124,7 @@ def run_decentralized(
         robot.keyframes = _reported_keyframes(robot.odometry, result.reports.get(r))
     with atomic_output_dir(out, overwrite=overwrite) as staging:
         _write(staging, robots, result, config, settings, summary,
-               time.perf_counter() - started)
+               time.perf_counter() - started, prior_spec.name)
     summary.out = Path(out)
     return summary
 
@@ -152,7 +152,7 @@ def _frame_groups(reports: dict[int, RobotReport], count: int) -> list[list[int]
 
 
 def _write(staging: Path, robots: list[_Robot], result: ProtocolResult, config: Config,
-           settings: DecentralizedConfig, summary: Any, seconds: float) -> None:
+           settings: DecentralizedConfig, summary: Any, seconds: float, prior: str) -> None:
     from como3r.runtime.outputs import write_json
 
     reports = result.reports
@@ -174,6 +174,7 @@ def _write(staging: Path, robots: list[_Robot], result: ProtocolResult, config: 
                 if set(loop.robots) <= known]
     metrics: dict[str, Any] = {
         "mode": "decentralized",
+        "prior": {"name": prior},
         "seconds": seconds,
         "protocol_seconds": result.seconds,
         "rounds": [{"round": p.round, "time_s": p.time_s, "group": list(p.group)}
