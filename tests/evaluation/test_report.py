@@ -60,6 +60,8 @@ def test_evaluate_run_writes_json_plot_and_table(tmp_path: Path) -> None:
         assert entry["ate"]["rmse"] == result.errors.ate.rmse
         assert 0.0 < entry["ate"]["rmse"] < 0.1  # noise 0.02 per axis, after alignment
         assert entry["frames"] == FRAMES
+        # named inside the run folder, which is renamed from DIR.partial when complete
+        assert entry["est"] == f"trajectories/agent_{entry['agent']}.txt"
         assert set(entry) >= {"rpe_trans", "rpe_rot_deg", "alignment"}
         assert entry["alignment"]["scale"] > 0.0
     assert report["merged"]["ate"]["rmse"] == summary.merged_ate

@@ -44,7 +44,8 @@ class AgentResult:
 
     Attributes:
         agent: agent index.
-        est_path: the estimated TUM trajectory.
+        est_path: the estimated TUM trajectory (relative to the run folder when it is in
+            one).
         gt_path: the ground-truth TUM trajectory.
         est_poses: number of poses in the estimate (before association).
         errors: ATE / RPE after the agent's own Sim(3) alignment.
@@ -247,8 +248,11 @@ def evaluate_run(
     gts = [read_tum(p) for p in gt_files]
     pairs = [associate(e, g, str(ep), str(gp), max_diff)
              for e, g, ep, gp in zip(ests, gts, est_files, gt_files)]
+    # inside a run folder the estimate is named relative to it: the run is written to
+    # DIR.partial and renamed, so an absolute path would name a folder that no longer exists
+    named = [ep.relative_to(est) if est.is_dir() else ep for ep in est_files]
     results = [AgentResult(a, ep, gp, len(e), agent_errors(pair))
-               for a, (e, ep, gp, pair) in enumerate(zip(ests, est_files, gt_files, pairs))]
+               for a, (e, ep, gp, pair) in enumerate(zip(ests, named, gt_files, pairs))]
     summary = EvalSummary(results, merged_errors_by_component(pairs, components), components,
                           max_diff)
 
