@@ -77,7 +77,8 @@ def server():
     """``(base_url, Served)`` of a server thread on 127.0.0.1."""
     served = Served()
     httpd = ThreadingHTTPServer(("127.0.0.1", 0), _handler(served))
-    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread = threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.02},
+                              daemon=True)
     thread.start()
     yield f"http://127.0.0.1:{httpd.server_address[1]}/MASt3R", served
     httpd.shutdown()
