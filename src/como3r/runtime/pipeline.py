@@ -46,7 +46,8 @@ class PriorSpec:
 
     Attributes:
         name: ``"simulated"`` or ``"mast3r"``.
-        weights: MASt3R checkpoint (``mast3r`` only).
+        weights: MASt3R checkpoint (``mast3r`` only); None takes all three files from the
+            weights cache (:func:`resolve_weights`).
         retrieval_weights: MASt3R retrieval checkpoint (``..._retrieval_trainingfree.pth``).
         codebook: ASMK codebook ``.pkl`` for the MASt3R retrieval.
         device: ``"cpu"`` or ``"cuda"``.
