@@ -32,6 +32,8 @@ class Served:
     cut: dict[str, int] = field(default_factory=dict)
     #: (filename, Range header or None, bytes sent) per request
     log: list[tuple[str, str | None, int]] = field(default_factory=list)
+    #: answer every request with the whole file (200), as servers without Range support do
+    ignore_range: bool = False
 
 
 def _handler(served: Served) -> type[BaseHTTPRequestHandler]:
@@ -42,7 +44,7 @@ def _handler(served: Served) -> type[BaseHTTPRequestHandler]:
             if data is None:
                 self.send_error(404)
                 return
-            asked = self.headers.get("Range")
+            asked = None if served.ignore_range else self.headers.get("Range")
             start = int(re.match(r"bytes=(\d+)-", asked).group(1)) if asked else 0
             body = data[start:start + served.cut.pop(name)] if name in served.cut else data[start:]
             served.log.append((name, asked, len(body)))  # before replying: the client may be fast
@@ -133,6 +135,15 @@ def test_complete_part_file_is_finished_without_new_data(server, tmp_path) -> No
     (tmp_path / "net.pth.part").write_bytes(data)
     assert fetch_file(_file(data), tmp_path, url).state == "verified"
     assert served.log == [("net.pth", f"bytes={SIZE}-", 0)]
+
+
+def test_server_without_range_support_restarts_the_file(server, tmp_path) -> None:
+    url, served = server
+    served.files["net.pth"] = data = _data(6)
+    served.ignore_range = True
+    (tmp_path / "net.pth.part").write_bytes(b"stale bytes of another attempt")
+    assert fetch_file(_file(data), tmp_path, url).state == "verified"
+    assert (tmp_path / "net.pth").read_bytes() == data
 
 
 def test_wrong_checksum_is_refused_and_not_kept(server, tmp_path) -> None:
