@@ -216,7 +216,7 @@ def test_decode_symmetric_matches_both_orders(prior, default_views):
 
 def test_missing_inputs_raise_prior_error(prior, default_views):
     view = default_views[0][0]
-    with pytest.raises(PriorError, match="depth"):
+    with pytest.raises(PriorError, match="lacks a depth map .*images alone take --prior mast3r"):
         prior.encode(dataclasses.replace(view, depth=None))
     with pytest.raises(PriorError, match="intrinsics K"):
         prior.encode(dataclasses.replace(view, K=None))

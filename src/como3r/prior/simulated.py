@@ -269,8 +269,8 @@ class SimulatedPrior(Prior):
         if view.surface is None and view.T_WC is None:
             missing.append("a surface map (surface/) or a ground-truth pose (groundtruth.txt)")
         if missing:
-            raise PriorError(f"{name} has no {' and no '.join(missing)}; the simulated prior "
-                             "needs them")
+            raise PriorError(f"{name} lacks {' and '.join(missing)}, which the simulated "
+                             "prior needs; images alone take --prior mast3r")
         H, W = view.shape
         if tuple(view.depth.shape) != (H, W):
             raise PriorError(f"{name}: depth map of shape {tuple(view.depth.shape)} does not "
