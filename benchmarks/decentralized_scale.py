@@ -119,7 +119,7 @@ def run_scale(scene: Path, work: Path, factor: float, long_side: int, keep_keys:
     config = Config(input=InputConfig(long_side=long_side))
     settings = DecentralizedConfig(protocol=ProtocolConfig(processes=False))
     start = time.perf_counter()
-    run_decentralized(agents, out, config, PriorSpec(), settings, overwrite=True)
+    run_decentralized(agents, out, config, PriorSpec("simulated"), settings, overwrite=True)
     seconds = time.perf_counter() - start
     metrics = json.loads((out / "metrics.json").read_text())
     length = path_length(agents)

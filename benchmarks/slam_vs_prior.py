@@ -124,7 +124,7 @@ def frontend_run(agent_path: Path, frames: int, overrides: list[str]
     """Stage clock over the first ``frames`` processed frames and the run's counters."""
     config = apply_overrides(Config(), overrides)
     agent = open_agent(agent_path, fps=config.input.frame_rate_hz)
-    prior, codebook = build_prior(PriorSpec(), config)
+    prior, codebook = build_prior(PriorSpec("simulated"), config)
     clock = ExclusiveClock()
     decodes = [0]
     instrument(clock)

@@ -31,7 +31,7 @@ def aliased_run(tmp_path_factory, main_config, settings_factory):
     for a, path in enumerate(agents):
         add_odometry(path, seed=120 + a, params="lio")
     out = root / "out"
-    run_decentralized(agents, out, main_config, PriorSpec(),
+    run_decentralized(agents, out, main_config, PriorSpec("simulated"),
                       settings_factory(keyframe_distance_ratio=KEYFRAME_DISTANCE_RATIO, table=True))
     return agents, json.loads((out / "graph.json").read_text()), \
         json.loads((out / "metrics.json").read_text())

@@ -123,7 +123,7 @@ def test_messages_round_trip_through_the_codec():
 def _run(scene, main_config, settings_factory, schedule=None, leave=None, robots=3,
          **settings):
     return run_protocol([str(p) for p in scene[:robots]], main_config, settings_factory(**settings),
-                        PriorSpec(), MISSION_END_S, schedule or Schedule(), leave=leave)
+                        PriorSpec("simulated"), MISSION_END_S, schedule or Schedule(), leave=leave)
 
 
 def _sent(result, robot, kind=None):

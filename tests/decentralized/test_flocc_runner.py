@@ -19,7 +19,7 @@ from como3r.runtime.pipeline import PriorSpec
 @pytest.fixture(scope="module")
 def run(scene, main_config, settings_factory, tmp_path_factory):
     out = tmp_path_factory.mktemp("flocc_run") / "out"
-    summary = run_decentralized(scene, out, main_config, PriorSpec(),
+    summary = run_decentralized(scene, out, main_config, PriorSpec("simulated"),
                                 settings_factory(table=True))
     metrics = json.loads((out / "metrics.json").read_text())
     assert not any(robot["error"] for robot in metrics["robots"]), metrics["robots"]
@@ -101,9 +101,9 @@ def test_bad_input_fails_before_any_work(scene, main_config, tmp_path):
     shutil.copytree(scene[0], agent)
     (agent / "odometry.txt").unlink()
     with pytest.raises(InputError, match="odometry.txt"):
-        run_decentralized([scene[1], agent], tmp_path / "out", main_config, PriorSpec(),
+        run_decentralized([scene[1], agent], tmp_path / "out", main_config, PriorSpec("simulated"),
                           DecentralizedConfig())
     assert not (tmp_path / "out").exists()
     with pytest.raises(ConfigError, match="gnc_mu_step"):
-        run_decentralized(scene, tmp_path / "out", main_config, PriorSpec(),
+        run_decentralized(scene, tmp_path / "out", main_config, PriorSpec("simulated"),
                           DecentralizedConfig(pose_graph=PoseGraphConfig(gnc_mu_step=1.0)))

@@ -54,7 +54,7 @@ def test_merged_accuracy_holds_from_a_tenth_to_ten_times_the_scene(small_scene, 
     for factor in SCALES:
         agents = scene_scaler(small_scene, tmp_path / f"x{factor:g}", factor)
         out = tmp_path / f"run_x{factor:g}"
-        run_decentralized(agents, out, config, PriorSpec(), settings)
+        run_decentralized(agents, out, config, PriorSpec("simulated"), settings)
         percent[factor] = _merged_percent(out, agents)
     for factor, value in percent.items():
         assert value <= 2.0, percent

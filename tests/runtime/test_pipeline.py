@@ -31,7 +31,7 @@ def _scene(root: Path, preset: str, frames: int) -> tuple[list[Path], float]:
 
 def _run(agents: list[Path], out: Path, extra: list[str] = ()) -> dict:
     config = apply_overrides(Config(), [*OVERRIDES, *extra])
-    run(agents, out, config, PriorSpec())
+    run(agents, out, config, PriorSpec("simulated"))
     return {name: json.loads((out / f"{name}.json").read_text())
             for name in ("graph", "metrics")}
 

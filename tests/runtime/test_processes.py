@@ -76,7 +76,7 @@ def single(scene, config, tmp_path_factory) -> Path:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as in every process of the multi-process run
     try:
-        run(_agents(scene), out, config, PriorSpec())
+        run(_agents(scene), out, config, PriorSpec("simulated"))
     finally:
         torch.set_num_threads(threads)
     return out
@@ -85,7 +85,7 @@ def single(scene, config, tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def lockstep(scene, config, tmp_path_factory) -> tuple[Path, RunSummary]:
     out = tmp_path_factory.mktemp("runs") / "lockstep"
-    summary = run_multiprocess(_agents(scene), out, config, PriorSpec(),
+    summary = run_multiprocess(_agents(scene), out, config, PriorSpec("simulated"),
                                options=RuntimeOptions(lockstep=True))
     return out, summary
 
@@ -94,7 +94,7 @@ def lockstep(scene, config, tmp_path_factory) -> tuple[Path, RunSummary]:
 def free(scene, config, tmp_path_factory) -> tuple[Path, RunSummary]:
     out = tmp_path_factory.mktemp("runs") / "free"
     progress: list[tuple[int, str, int, int]] = []
-    summary = run_multiprocess(_agents(scene), out, config, PriorSpec(),
+    summary = run_multiprocess(_agents(scene), out, config, PriorSpec("simulated"),
                                progress=lambda *args: progress.append(args))
     assert [p[2] for p in progress] == list(range(1, FRAMES // 2 + SHORT // 2 + 1))
     assert {p[3] for p in progress} == {FRAMES // 2 + SHORT // 2}
@@ -194,7 +194,7 @@ def test_killed_and_crashing_agents_leave_the_others_running(scene, config, tmp_
                     os.kill(child.pid, signal.SIGKILL)
 
     out = tmp_path / "out"
-    summary = run_multiprocess([*_agents(scene), broken], out, config, PriorSpec(),
+    summary = run_multiprocess([*_agents(scene), broken], out, config, PriorSpec("simulated"),
                                progress=kill_agent_1)
     runtime = _metrics(out)["runtime"]
     assert [a["status"] for a in runtime["agents"]] == ["finished", "failed", "failed"]
@@ -217,7 +217,7 @@ def test_killed_and_crashing_agents_leave_the_others_running(scene, config, tmp_
 def test_a_silent_agent_is_terminated_as_hung(scene, config, tmp_path) -> None:
     options = RuntimeOptions(agent_timeout_s=0.2, shutdown_grace_s=2.0)
     with pytest.raises(InputError, match="every agent failed: agent 0: no message for"):
-        run_multiprocess([scene / "agent_0"], tmp_path / "out", config, PriorSpec(),
+        run_multiprocess([scene / "agent_0"], tmp_path / "out", config, PriorSpec("simulated"),
                          options=options)
     assert not (tmp_path / "out").exists()
     assert not multiprocessing.active_children()
@@ -226,7 +226,7 @@ def test_a_silent_agent_is_terminated_as_hung(scene, config, tmp_path) -> None:
 def test_bad_input_fails_before_any_process_starts(scene, config, tmp_path) -> None:
     with pytest.raises(InputError, match="does not exist"):
         run_multiprocess([scene / "agent_0", tmp_path / "missing"], tmp_path / "out", config,
-                         PriorSpec())
+                         PriorSpec("simulated"))
     assert not multiprocessing.active_children()
 
 

@@ -45,7 +45,7 @@ class PriorSpec:
     """Which prior to build and from which files.
 
     Attributes:
-        name: ``"simulated"`` or ``"mast3r"``.
+        name: ``"mast3r"`` or ``"simulated"`` (no default: the stand-in is chosen explicitly).
         weights: MASt3R checkpoint (``mast3r`` only); None takes all three files from the
             weights cache (:func:`resolve_weights`).
         retrieval_weights: MASt3R retrieval checkpoint (``..._retrieval_trainingfree.pth``).
@@ -55,7 +55,7 @@ class PriorSpec:
             ignores it).
     """
 
-    name: str = "simulated"
+    name: str
     weights: Path | None = None
     retrieval_weights: Path | None = None
     codebook: Path | None = None
