@@ -15,7 +15,7 @@ import pytest
 from typer.testing import CliRunner
 
 from como3r.cli import app
-from como3r.errors import CheckpointError
+from como3r.errors import CheckpointError, InputError
 from como3r.prior import weights
 from como3r.prior.weights import DownloadError, WeightFile, fetch_file, file_status
 from como3r.runtime.pipeline import PriorSpec, resolve_weights
@@ -135,6 +135,21 @@ def test_complete_part_file_is_finished_without_new_data(server, tmp_path) -> No
     (tmp_path / "net.pth.part").write_bytes(data)
     assert fetch_file(_file(data), tmp_path, url).state == "verified"
     assert served.log == [("net.pth", f"bytes={SIZE}-", 0)]
+
+
+def test_part_longer_than_the_file_is_deleted_then_fetched_anew(server, tmp_path) -> None:
+    url, served = server
+    served.files["net.pth"] = data = _data(7)
+    (tmp_path / "net.pth.part").write_bytes(data + b"more than the server has")
+    with pytest.raises(DownloadError, match="longer than the file"):
+        fetch_file(_file(data), tmp_path, url)
+    assert not (tmp_path / "net.pth.part").exists()
+    assert fetch_file(_file(data), tmp_path, url).state == "verified"
+
+
+def test_only_http_urls(tmp_path) -> None:
+    with pytest.raises(InputError, match="COMO3R_WEIGHTS_URL"):
+        fetch_file(_file(b""), tmp_path, "file:///etc")
 
 
 def test_server_without_range_support_restarts_the_file(server, tmp_path) -> None:

@@ -230,6 +230,9 @@ def fetch_file(file: WeightFile, home: Path | None = None, url: str | None = Non
         DownloadError: the transfer failed; the ``.part`` stays and the next call resumes.
     """
     check_trust([file], trust_unverified)
+    url = url or base_url()
+    if not url.startswith(("https://", "http://")):
+        raise InputError(f"{URL_VARIABLE}: {url!r} is not an http(s) URL")
     home = home or weights_home()
     status = file_status(file, home)
     if status.state in ("verified", "unverified"):
@@ -239,8 +242,7 @@ def fetch_file(file: WeightFile, home: Path | None = None, url: str | None = Non
         _accept(file, path, sha256_of(path), "the file in the cache")
         return file_status(file, home)
     home.mkdir(parents=True, exist_ok=True)
-    digest = _download(f"{(url or base_url()).rstrip('/')}/{file.filename}", _part(path),
-                       progress)
+    digest = _download(f"{url.rstrip('/')}/{file.filename}", _part(path), progress)
     _accept(file, _part(path), digest, "the download")
     _part(path).replace(path)
     return file_status(file, home)
@@ -274,10 +276,16 @@ def _download(url: str, part: Path, progress: Progress | None) -> str:
                 done += len(chunk)
     request = urllib.request.Request(url, headers={"Range": f"bytes={done}-"} if done else {})
     try:
-        response = urllib.request.urlopen(request, timeout=TIMEOUT_S)  # noqa: S310 - http(s) only
+        response = urllib.request.urlopen(request, timeout=TIMEOUT_S)  # noqa: S310 - checked
     except urllib.error.HTTPError as exc:
         if exc.code == 416 and _total_of(exc.headers.get("Content-Range")) == done:
+            if progress is not None:
+                progress(done, done)
             return digest.hexdigest()
+        if exc.code == 416:  # longer than the server's file: not a prefix of it
+            part.unlink()
+            raise DownloadError(f"{url}: the partial download was longer than the file on "
+                                "the server and was deleted; run again") from None
         raise DownloadError(f"{url}: HTTP {exc.code} {exc.reason}") from None
     except (urllib.error.URLError, OSError) as exc:
         reason = getattr(exc, "reason", exc)
@@ -294,7 +302,8 @@ def _download(url: str, part: Path, progress: Progress | None) -> str:
 
 def _append(response, part: Path, digest, done: int, total: int | None,
             progress: Progress | None, url: str) -> None:
-    """Stream ``response`` onto ``part`` (truncated to ``done`` bytes), updating ``digest``.
+    """Stream ``response`` onto the end of ``part`` (a new file when ``done`` is 0),
+    updating ``digest``.
 
     Raises:
         DownloadError: the connection broke or ended before ``total`` bytes.
