@@ -1,0 +1,124 @@
+"""scripts/install.sh chooses the torch build: each branch, run against a fake ``python``.
+
+The fake logs every call and answers ``import torch`` as told; PATH holds only it (and,
+for the driver branch, a fake ``nvidia-smi``), so the machine's own torch and driver do
+not leak in.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "install.sh"
+CPU_INDEX = "https://download.pytorch.org/whl/cpu"
+
+FAKE_PYTHON = """#!{bash}
+echo "$*" >> "{log}"
+if [ "$1" = "-c" ]; then
+    case "$2" in
+        *print*) echo 9.9.9; exit 0 ;;
+        *) [ "{torch_installed}" = "1" ]; exit $? ;;
+    esac
+fi
+case "$*" in
+    *"--index-url {cpu_index}"*) [ "{cpu_index_up}" = "1" ]; exit $? ;;
+esac
+exit 0
+"""
+
+
+def _run(tmp_path: Path, *, torch_installed: bool = False, cpu_index_up: bool = True,
+         driver: bool = False, dry_run: bool = True, env: dict[str, str] | None = None,
+         args: tuple[str, ...] = ()) -> tuple[subprocess.CompletedProcess[str], list[str]]:
+    """Run install.sh with a fake python on a PATH of nothing else; (result, python calls)."""
+    bash = shutil.which("bash")
+    assert bash is not None
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    log = tmp_path / "calls.log"
+    log.touch()
+    fake = bin_dir / "python"
+    fake.write_text(FAKE_PYTHON.format(
+        bash=bash, log=log, torch_installed=int(torch_installed), cpu_index=CPU_INDEX,
+        cpu_index_up=int(cpu_index_up)))
+    fake.chmod(0o755)
+    dirname = shutil.which("dirname")
+    assert dirname is not None
+    (bin_dir / "dirname").symlink_to(dirname)
+    if driver:
+        smi = bin_dir / "nvidia-smi"
+        smi.write_text(f"#!{bash}\necho 'GPU 0: fake'\n")
+        smi.chmod(0o755)
+    full_env = {"PATH": str(bin_dir), "HOME": str(tmp_path),
+                "COMO3R_INSTALL_DRY_RUN": "1" if dry_run else "0", **(env or {})}
+    result = subprocess.run([bash, str(SCRIPT), *args], env=full_env, capture_output=True, text=True,
+                            check=False)
+    return result, log.read_text().splitlines()
+
+
+def _pip_calls(calls: list[str]) -> list[str]:
+    return [c for c in calls if c.startswith("-m pip")]
+
+
+def test_installed_torch_is_kept(tmp_path: Path) -> None:
+    result, calls = _run(tmp_path, torch_installed=True)
+    assert result.returncode == 0, result.stderr
+    assert "keeping the installed torch 9.9.9" in result.stdout
+    would_run = [line for line in result.stdout.splitlines() if "would run" in line]
+    assert would_run == ["como3r: would run: python -m pip install -e ."]
+
+
+def test_como3r_torch_chooses_the_requirement(tmp_path: Path) -> None:
+    result, _ = _run(tmp_path, env={"COMO3R_TORCH": "torch==2.5.1"})
+    assert result.returncode == 0, result.stderr
+    assert "would run: python -m pip install torch==2.5.1\n" in result.stdout
+    assert CPU_INDEX not in result.stdout
+
+
+def test_no_driver_takes_the_cpu_index(tmp_path: Path) -> None:
+    result, _ = _run(tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert (f"would run: python -m pip install --index-url {CPU_INDEX} --timeout 10 "
+            "--retries 0 torch==2.13.0") in result.stdout
+
+
+def test_driver_takes_pypi_default_build(tmp_path: Path) -> None:
+    result, _ = _run(tmp_path, driver=True)
+    assert result.returncode == 0, result.stderr
+    assert "would run: python -m pip install torch>=2.4\n" in result.stdout
+    assert CPU_INDEX not in result.stdout
+
+
+def test_como3r_torch_index_replaces_the_cpu_index(tmp_path: Path) -> None:
+    mirror = "https://mirror.example/whl/cpu"
+    result, _ = _run(tmp_path, env={"COMO3R_TORCH_INDEX": mirror})
+    assert result.returncode == 0, result.stderr
+    assert f"would run: python -m pip install --index-url {mirror} torch==2.13.0" in result.stdout
+    assert CPU_INDEX not in result.stdout
+
+
+@pytest.mark.parametrize("cpu_index_up", [True, False])
+def test_unreachable_cpu_index_falls_back_to_pypi_and_says_so(tmp_path: Path,
+                                                              cpu_index_up: bool) -> None:
+    result, calls = _run(tmp_path, cpu_index_up=cpu_index_up, dry_run=False)
+    assert result.returncode == 0, result.stderr
+    pip = _pip_calls(calls)
+    assert pip[0] == (f"-m pip install --index-url {CPU_INDEX} --timeout 10 --retries 0 "
+                      "torch==2.13.0")
+    if cpu_index_up:
+        assert pip[1:] == ["-m pip install -e ."]
+        assert "could not be reached" not in result.stderr
+    else:
+        assert pip[1:] == ["-m pip install torch==2.13.0", "-m pip install -e ."]
+        notes = [line for line in result.stderr.splitlines() if "could not be reached" in line]
+        assert len(notes) == 1 and "falling back to PyPI's torch==2.13.0" in notes[0]
+
+
+def test_test_extras(tmp_path: Path) -> None:
+    result, _ = _run(tmp_path, torch_installed=True, args=("test",))
+    assert result.returncode == 0, result.stderr
+    assert "would run: python -m pip install -e .[test]" in result.stdout
