@@ -7,10 +7,12 @@ progress, prints a summary table, and turns every :class:`Como3rError` into one
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
+import re
 from pathlib import Path
-from typing import Callable, List, Optional, TypeVar
+from typing import Callable, Iterator, List, Optional, TypeVar
 
 import typer
 from rich.console import Console
@@ -24,28 +26,97 @@ from rich.progress import (
     TimeElapsedColumn,
 )
 from rich.table import Table
+from typer.core import TyperGroup
 
-from como3r.errors import Como3rError
+from como3r.errors import Como3rError, InputError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, help="Collaborative monocular dense SLAM with a learned two-view 3D prior.")
+try:  # typer >= 0.26 carries its own copy of click
+    from typer._click import exceptions as click_exceptions
+except ImportError:  # pragma: no cover - older typer on the click package
+    from click import exceptions as click_exceptions  # type: ignore[no-redef]
+
 console = Console()
 err_console = Console(stderr=True)
 
 F = TypeVar("F", bound=Callable[..., None])
 
 EXIT_USER_ERROR = 2
+#: 128 + SIGINT, what a shell reports for a command stopped by Ctrl-C
+EXIT_INTERRUPTED = 130
+
+
+def print_error(message: str) -> None:
+    """``error: message`` as one line on stderr (line breaks in ``message`` become spaces)."""
+    line = " ".join(message.split())
+    err_console.print(f"[bold red]error:[/] {escape(line)}", highlight=False, soft_wrap=True)
+
+
+class _OneLineErrors(TyperGroup):
+    """The command group; a command line click cannot parse (a missing or unknown option, a
+    value of the wrong type, an unknown command) is one ``error:`` line and exit status 2,
+    not click's usage box. ``como3r`` alone still prints the help."""
+
+    def make_context(self, info_name, args, parent=None, **extra):  # type: ignore[no-untyped-def]
+        with _usage_errors_in_one_line():
+            return super().make_context(info_name, args, parent=parent, **extra)
+
+    def invoke(self, ctx):  # type: ignore[no-untyped-def]
+        with _usage_errors_in_one_line():
+            return super().invoke(ctx)
+
+
+@contextlib.contextmanager
+def _usage_errors_in_one_line() -> Iterator[None]:
+    """Turn click's usage errors inside the block into one ``error:`` line and status 2."""
+    try:
+        yield
+    except click_exceptions.ClickException as exc:
+        if isinstance(exc, getattr(click_exceptions, "NoArgsIsHelpError", ())):
+            raise  # click >= 8.2: `como3r` alone prints the help this way
+        hint = ""
+        ctx = getattr(exc, "ctx", None)
+        if ctx is not None:
+            hint = f" (see: {ctx.command_path} --help)"
+        print_error(f"{exc.format_message()}{hint}")
+        raise typer.Exit(EXIT_USER_ERROR) from None
+
+
+app = typer.Typer(cls=_OneLineErrors, add_completion=False, no_args_is_help=True,
+                  help="Collaborative monocular dense SLAM with a learned two-view 3D prior.")
 
 
 def user_errors(func: F) -> F:
-    """Report a :class:`Como3rError` as one line and exit with status 2."""
+    """Report a :class:`Como3rError`, or an operating-system error on a file the user named
+    (a folder that cannot be created, a full disk), as one line and exit with status 2."""
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         try:
             return func(*args, **kwargs)
         except Como3rError as exc:
-            err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+            print_error(str(exc))
             raise typer.Exit(EXIT_USER_ERROR) from None
+        except OSError as exc:
+            where = f"{exc.filename}: " if exc.filename is not None else ""
+            print_error(f"{where}{exc.strerror or exc}")
+            raise typer.Exit(EXIT_USER_ERROR) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def interrupt_leaves_nothing(func: F) -> F:
+    """Ctrl-C in a command that writes ``--out`` through
+    :func:`~como3r.io.output.atomic_output_dir`: one line saying nothing was written (the
+    staging folder is gone, an earlier output untouched) and exit status 130."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        try:
+            return func(*args, **kwargs)
+        except KeyboardInterrupt:
+            err_console.print(f"interrupted: nothing was written to {kwargs['out']}",
+                              markup=False, highlight=False, soft_wrap=True)
+            raise typer.Exit(EXIT_INTERRUPTED) from None
 
     return wrapper  # type: ignore[return-value]
 
@@ -84,6 +155,7 @@ def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Debug log
 
 
 @app.command()
+@interrupt_leaves_nothing
 @user_errors
 def synth(
     out: Path = typer.Option(..., "--out", help="Folder to write the scene to."),
@@ -112,7 +184,6 @@ def synth(
     """Synthesize a multi-agent outdoor scene with ground truth."""
     from como3r.data.synth import synthesize
     from como3r.decentralized.odometry_sim import ODOMETRY_PRESETS, add_odometry
-    from como3r.errors import InputError
     from como3r.io.output import atomic_output_dir
 
     if odometry != "none" and odometry not in ODOMETRY_PRESETS:
@@ -158,6 +229,7 @@ def _load_config(config_file: Optional[Path], overrides: List[str], calib: bool,
 
 
 @app.command()
+@interrupt_leaves_nothing
 @user_errors
 def run(
     agent: List[Path] = typer.Option(..., "--agent", help="Agent input folder (repeat per agent)."),
@@ -192,9 +264,9 @@ def run(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
 ) -> None:
     """Run collaborative SLAM on one or more agents and write the output folder."""
-    from como3r.errors import InputError
     from como3r.runtime.pipeline import PriorSpec, resolve_weights, run as run_pipeline
 
+    _check_device(device)
     config = _load_config(config_file, overrides, calib, no_loop_closure)
     spec = PriorSpec(prior, weights, retrieval_weights, codebook, device, precision)
     if prior == "mast3r":
@@ -222,6 +294,28 @@ def run(
     _print_summary(summary, out)
 
 
+def _check_device(device: str) -> None:
+    """``--device`` is cpu, cuda or cuda:N, and CUDA only where this torch can use it.
+
+    Raises:
+        InputError: another device, or CUDA that torch cannot reach (no silent CPU run).
+    """
+    if device == "cpu":
+        return
+    match = re.fullmatch(r"cuda(?::(\d+))?", device)
+    if match is None:
+        raise InputError(f"unknown --device {device!r}; choose cpu or cuda")
+    import torch
+
+    if not torch.cuda.is_available():
+        why = (f"this torch ({torch.__version__}) is built without CUDA"
+               if torch.version.cuda is None else "torch finds no usable CUDA device")
+        raise InputError(f"--device {device}: {why}; use --device cpu")
+    count = torch.cuda.device_count()
+    if int(match.group(1) or 0) >= count:
+        raise InputError(f"--device {device}: this machine has {count} CUDA device(s)")
+
+
 def _frame_progress(bar: Progress, task: TaskID, done: int, total: int) -> None:
     """Frames done; after the last one the coordinator's terminal cleanup (pose-depth
     alternation, evaluation) runs under the same bar, so it says so."""
@@ -247,6 +341,7 @@ DEMO_LOOP_FRAMES = 100
 
 
 @app.command()
+@interrupt_leaves_nothing
 @user_errors
 def demo(
     agents: int = typer.Option(2, "--agents", min=1, help="Number of agents."),

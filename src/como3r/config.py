@@ -6,8 +6,9 @@ window, relocalization threshold), the MASt3R-SLAM released value is used and ma
 
 A configuration is a tree of frozen dataclasses. ``load_config`` reads YAML,
 ``dump_config`` writes it, ``apply_overrides`` applies dotted ``key=value`` overrides as
-given on the command line (``--set tracking.sigma_ray=0.002``). Unknown keys and values of
-the wrong type are a :class:`~como3r.errors.ConfigError` naming the key.
+given on the command line (``--set tracking.sigma_ray=0.002``). Unknown keys, values of
+the wrong type and values out of range (:func:`validate`, which both run) are a
+:class:`~como3r.errors.ConfigError` naming the key.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from typing import Any, Literal, Mapping, TypeVar, get_args, get_origin
 import yaml
 
 from como3r.decentralized.config import DecentralizedConfig
+from como3r.decentralized.config import check_config as check_decentralized
 from como3r.errors import ConfigError
 
 
@@ -303,6 +305,97 @@ class Config:
 
 C = TypeVar("C")
 
+# Ranges checked by validate(); a key not listed takes any (finite) value of its type, and
+# Literal keys are checked against their choices when read. 0 stays allowed where it means
+# "off" (descriptor_radius, alternation_rounds, prefetch_frames, damping and retries).
+_POSITIVE = (
+    "input.frame_rate_hz",
+    "matching.convergence_tol", "matching.occlusion_ratio",
+    "tracking.sigma_ray", "tracking.sigma_dist", "tracking.sigma_pixel", "tracking.sigma_depth",
+    "tracking.huber_k", "tracking.rel_cost_tol", "tracking.step_tol", "tracking.lambda_max",
+    "tracking.inlier_angle_deg",
+    "local_solve.step_tol",
+    "retrieval.alpha",
+    "verification.max_residual_ratio",
+    "global_ba.cleanup_stop_translation", "global_ba.step_tol",
+    "depth.slic_compactness", "depth.sigma_point", "depth.step_clip",
+    "depth.depth_convergence_tol", "depth.depth_stall_ratio",
+)
+_NON_NEGATIVE = (
+    "input.prefetch_frames",
+    "matching.lambda_init", "matching.descriptor_radius",
+    "tracking.lambda_init", "tracking.tikhonov_floor",
+    "local_solve.pinned_keyframes", "local_solve.tikhonov_base",
+    "local_solve.tikhonov_retries", "local_solve.lm_lambda",
+    "verification.covisible_min_confidence",
+    "global_ba.lm_lambda", "global_ba.tikhonov_base", "global_ba.tikhonov_retries",
+    "depth.slic_sigma", "depth.lambda_smooth", "depth.lambda_prior", "depth.lambda_lm",
+    "depth.alternation_rounds",
+    "visualization.voxel_size_m",
+)
+_AT_LEAST_ONE = (
+    "input.subsample",
+    "matching.max_iters", "matching.descriptor_dilation_max",
+    "tracking.max_iters",
+    "local_solve.max_iters",
+    "retrieval.codebook_size", "retrieval.multiple_assignment_build",
+    "retrieval.multiple_assignment_query", "retrieval.k_nn",
+    "gauge.min_correspondences", "gauge.min_consistent_edges",
+    "global_ba.trigger_interval_edges", "global_ba.max_iters_stream",
+    "global_ba.max_iters_cleanup", "global_ba.cleanup_passes",
+    "depth.slic_segments", "depth.min_valid_pixels", "depth.inner_iters",
+    "depth.pose_pass_iters",
+)
+_FRACTION = (
+    "tracking.keyframe_match_fraction", "tracking.min_match_fraction",
+    "tracking.reloc_match_fraction", "tracking.min_inlier_fraction",
+    "local_solve.min_match_fraction",
+    "verification.tau_inter", "verification.min_covisible_ratio",
+)
+#: MASt3R's patch side: images are cropped to multiples of it (como3r.data.preprocess.PATCH)
+_PATCH = 16
+
+
+def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"section.key": value}`` of a nested configuration dict."""
+    flat: dict[str, Any] = {}
+    for name, value in tree.items():
+        if isinstance(value, Mapping):
+            flat.update(_flatten(value, f"{prefix}{name}."))
+        else:
+            flat[f"{prefix}{name}"] = value
+    return flat
+
+
+def validate(config: Config) -> Config:
+    """Check every value's range; ``load_config`` and ``apply_overrides`` run it.
+
+    Returns:
+        ``config`` unchanged.
+
+    Raises:
+        ConfigError: the first out-of-range key, named with its section
+            (``tracking.sigma_ray must be > 0, got -1.0``).
+    """
+    values = _flatten(config_to_dict(config))
+    rules = ((_POSITIVE, "> 0", lambda v: v > 0), (_NON_NEGATIVE, ">= 0", lambda v: v >= 0),
+             (_AT_LEAST_ONE, ">= 1", lambda v: v >= 1),
+             (_FRACTION, "in [0, 1]", lambda v: 0 <= v <= 1))
+    for keys, rule, holds in rules:
+        for key in keys:
+            if not holds(values[key]):
+                raise ConfigError(f"{key} must be {rule}, got {values[key]}")
+    long_side = config.input.long_side
+    if long_side < _PATCH or long_side % _PATCH:
+        raise ConfigError(f"input.long_side must be a positive multiple of {_PATCH} (MASt3R's "
+                          f"patch size), got {long_side}")
+    check_decentralized(config.decentralized)
+    # the simulated prior owns its error model's ranges; imported here because it needs torch
+    from como3r.prior.simulated_errors import check_config as check_simulated_prior
+
+    check_simulated_prior(config.simulated_prior)
+    return config
+
 
 def config_to_dict(config: Any) -> dict[str, Any]:
     """Plain nested dict of a configuration dataclass (YAML-ready)."""
@@ -366,7 +459,7 @@ def _parse_scalar(text: str) -> Any:
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"cannot parse override value {text!r}: {exc}") from None
+        raise ConfigError(f"cannot parse override value {text!r}: {_yaml_problem(exc)}") from None
 
 
 def apply_overrides(config: Config, overrides: list[str]) -> Config:
@@ -387,7 +480,7 @@ def apply_overrides(config: Config, overrides: list[str]) -> Config:
                 node[part] = _parse_scalar(text.strip())
             else:
                 node = node[part]
-    return config_from_dict(Config, tree)
+    return validate(config_from_dict(Config, tree))
 
 
 def load_config(path: str | Path) -> Config:
@@ -400,15 +493,25 @@ def load_config(path: str | Path) -> Config:
     try:
         values = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML ({exc})") from None
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
+        raise ConfigError(f"{where}: not valid YAML: {_yaml_problem(exc)}") from None
     if values is None:
         values = {}
     if not isinstance(values, Mapping):
         raise ConfigError(f"{path}: expected a mapping of configuration sections")
     try:
-        return config_from_dict(Config, values)
+        return validate(config_from_dict(Config, values))
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
+
+
+def _yaml_problem(exc: yaml.YAMLError) -> str:
+    """A YAML error in one line (PyYAML's own message spans several, with a code excerpt)."""
+    problem = getattr(exc, "problem", None)
+    context = getattr(exc, "context", None)
+    text = "; ".join(str(part) for part in (context, problem) if part) or str(exc)
+    return " ".join(text.split())
 
 
 def dump_config(config: Config, path: str | Path) -> None:

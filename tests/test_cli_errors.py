@@ -1,0 +1,189 @@
+"""Every failure a user can cause is one ``error:`` line and exit status 2; Ctrl-C is one
+``interrupted:`` line and exit status 130, with nothing written."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from como3r.cli import app
+from como3r.config import Config, apply_overrides, load_config, validate
+from como3r.data.synth import synthesize
+from como3r.errors import ConfigError
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("scene")
+    synthesize(root, agents=1, seed=1, overlap=0.2, frames=4, preset="default", width=64,
+               height=48, progress=None)
+    return root
+
+
+def _invoke(*args: str):
+    return CliRunner().invoke(app, list(args), env={"COLUMNS": "80"})
+
+
+def _only_line(result) -> str:
+    """The output's one non-empty line, which must be an ``error:`` line, status 2."""
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2, result.output
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
+    return lines[0]
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["run", "--out", "x"], "Missing option '--agent'"),
+    (["eval", "--est", "x"], "Missing option '--gt'"),
+    (["run", "--agent", "a", "--out", "x", "--bogus"], "No such option: --bogus"),
+    (["synth", "--out", "x", "--agents", "abc"], "Invalid value for '--agents'"),
+    (["synth", "--out", "x", "--agents", "0"], "Invalid value for '--agents'"),
+    (["bogus"], "No such command 'bogus'"),
+    (["--bogus", "run"], "No such option: --bogus"),
+    (["weights", "fetch", "--nope"], "No such option: --nope"),
+])
+def test_option_parsing_errors_are_one_line(args, fragment) -> None:
+    line = _only_line(_invoke(*args))
+    assert fragment in line and "--help" in line
+
+
+def test_no_arguments_still_prints_the_help() -> None:
+    result = _invoke()
+    assert "Usage" in result.output and "error:" not in result.output
+
+
+def test_yaml_syntax_error_is_one_line_naming_file_and_line(scene, tmp_path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("tracking:\n  sigma_ray: [1, 2\n  huber_k: 1\n")
+    out = tmp_path / "out"
+    line = _only_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
+                              "--prior", "simulated", "--config", str(bad)))
+    assert f"{bad}:3:" in line and "not valid YAML" in line
+    assert not out.exists()
+
+
+def test_unparsable_override_is_one_line(scene, tmp_path) -> None:
+    line = _only_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out",
+                              str(tmp_path / "out"), "--prior", "simulated",
+                              "--set", "tracking.sigma_ray=[1"))
+    assert "cannot parse override value '[1'" in line
+
+
+@pytest.mark.parametrize("override, message", [
+    ("tracking.sigma_ray=-1", "tracking.sigma_ray must be > 0, got -1.0"),
+    ("tracking.sigma_depth=0", "tracking.sigma_depth must be > 0"),
+    ("tracking.rel_cost_tol=0", "tracking.rel_cost_tol must be > 0"),
+    ("matching.convergence_tol=-1e-6", "matching.convergence_tol must be > 0"),
+    ("depth.sigma_point=0", "depth.sigma_point must be > 0"),
+    ("tracking.min_inlier_fraction=1.5", "tracking.min_inlier_fraction must be in [0, 1]"),
+    ("tracking.keyframe_match_fraction=-0.1", "tracking.keyframe_match_fraction must be in"),
+    ("verification.min_covisible_ratio=2", "verification.min_covisible_ratio must be in"),
+    ("tracking.inlier_angle_deg=0", "tracking.inlier_angle_deg must be > 0"),
+    ("input.prefetch_frames=-1", "input.prefetch_frames must be >= 0"),
+    ("input.long_side=500", "input.long_side must be a positive multiple of 16"),
+    ("input.long_side=0", "input.long_side must be a positive multiple of 16"),
+    ("input.subsample=0", "input.subsample must be >= 1"),
+    ("tracking.max_iters=0", "tracking.max_iters must be >= 1"),
+    ("global_ba.max_iters_cleanup=0", "global_ba.max_iters_cleanup must be >= 1"),
+    ("depth.inner_iters=0", "depth.inner_iters must be >= 1"),
+    ("decentralized.confidence_k=0", "decentralized.confidence_k must be > 0"),
+    ("simulated_prior.gross_failure_rate=2", "simulated_prior.gross_failure_rate must be in"),
+    ("tracking.fusion=pixels", "tracking.fusion: 'pixels' is not one of"),
+])
+def test_out_of_range_values_are_refused_when_overridden(override, message) -> None:
+    with pytest.raises(ConfigError, match=message.replace("[", r"\[")):
+        apply_overrides(Config(), [override])
+
+
+@pytest.mark.parametrize("override", [
+    "input.prefetch_frames=0", "depth.alternation_rounds=0", "matching.descriptor_radius=0",
+    "tracking.min_inlier_fraction=0", "tracking.min_inlier_fraction=1", "input.long_side=96",
+])
+def test_zero_where_it_means_off_and_range_ends_are_accepted(override) -> None:
+    apply_overrides(Config(), [override])
+
+
+def test_defaults_are_valid() -> None:
+    assert validate(Config()) == Config()
+
+
+def test_out_of_range_value_in_a_file_names_file_and_key(tmp_path) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text("tracking:\n  sigma_ray: -0.001\n")
+    with pytest.raises(ConfigError, match=f"{path}: tracking.sigma_ray must be > 0"):
+        load_config(path)
+
+
+def test_out_of_range_override_at_the_cli_is_one_line_and_no_output(scene, tmp_path) -> None:
+    out = tmp_path / "out"
+    line = _only_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
+                              "--prior", "simulated", "--set", "tracking.sigma_ray=-1"))
+    assert "tracking.sigma_ray must be > 0" in line
+    assert not out.exists()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_device_cuda_without_cuda_is_an_error(scene, tmp_path) -> None:
+    out = tmp_path / "out"
+    line = _only_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
+                              "--prior", "simulated", "--device", "cuda"))
+    assert "--device cuda" in line and "--device cpu" in line
+    assert not out.exists()
+
+
+def test_unknown_device_is_an_error(scene, tmp_path) -> None:
+    line = _only_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out",
+                              str(tmp_path / "out"), "--prior", "simulated", "--device", "tpu"))
+    assert "unknown --device 'tpu'" in line
+
+
+def test_output_folder_that_cannot_be_created_is_one_line(tmp_path) -> None:
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    line = _only_line(_invoke("synth", "--out", str(blocker / "scene"), "--frames", "2"))
+    assert str(blocker) in line
+
+
+def _interrupt(*_args, **_kwargs) -> None:
+    raise KeyboardInterrupt
+
+
+@pytest.mark.parametrize("command", ["synth", "demo", "run"])
+def test_ctrl_c_is_one_line_and_leaves_nothing(command, scene, tmp_path, monkeypatch) -> None:
+    out = tmp_path / "out"
+    if command == "run":
+        monkeypatch.setattr("como3r.runtime.pipeline.load_frame", _interrupt)
+        args = ["run", "--agent", str(scene / "agent_0"), "--prior", "simulated",
+                "--single-process", "--set", "input.prefetch_frames=0"]
+    else:
+        monkeypatch.setattr("como3r.data.synth.synthesize", _interrupt)
+        args = [command, "--frames", "4"]
+    result = _invoke(*args, "--out", str(out))
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 130, result.output
+    assert lines[-1] == f"interrupted: nothing was written to {out}"
+    assert not [line for line in lines if line.startswith(("error", "Traceback"))]
+    assert not out.exists() and not out.with_name("out.partial").exists()
+
+
+def test_sigint_during_synth(tmp_path) -> None:
+    """The real signal, in a child process: waits until the work has started."""
+    out = tmp_path / "scene"
+    child = subprocess.Popen(
+        [sys.executable, "-c", "from como3r.cli import main; main()", "synth", "--out", str(out), "--frames", "2000"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    staging = out.with_name("scene.partial")
+    while not (staging / "agent_0").exists() and child.poll() is None:
+        time.sleep(0.05)
+    child.send_signal(signal.SIGINT)
+    _, stderr = child.communicate(timeout=300)
+    assert child.returncode == 130, stderr
+    assert stderr.splitlines()[-1] == f"interrupted: nothing was written to {out}"
+    assert not out.exists() and not staging.exists()
