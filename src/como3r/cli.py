@@ -264,9 +264,11 @@ def run(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
 ) -> None:
     """Run collaborative SLAM on one or more agents and write the output folder."""
+    from como3r.io.output import check_output_dir
     from como3r.runtime.pipeline import PriorSpec, resolve_weights, run as run_pipeline
 
     _check_device(device)
+    check_output_dir(out, overwrite)  # before the weights load and the agents start
     config = _load_config(config_file, overrides, calib, no_loop_closure)
     spec = PriorSpec(prior, weights, retrieval_weights, codebook, device, precision)
     if prior == "mast3r":

@@ -332,8 +332,8 @@ def test_cli_synth(tmp_path):
                                       "2", "--width", "32", "--height", "24", "--preset",
                                       "forward"])
     assert result.exit_code == 0, result.output
-    assert sorted(p.name for p in out.iterdir()) == ["agent_0", "agent_1", "agent_2",
-                                                      "scene.json"]
+    assert sorted(p.name for p in out.iterdir()) == [".como3r-run", "agent_0", "agent_1",
+                                                      "agent_2", "scene.json"]
     result = CliRunner().invoke(app, ["synth", "--out", str(tmp_path / "bad"), "--preset",
                                       "city"])
     assert result.exit_code == 2 and not (tmp_path / "bad").exists()

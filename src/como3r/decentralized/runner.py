@@ -50,7 +50,7 @@ from como3r.decentralized.pose_graph import (
 )
 from como3r.decentralized.protocol import ProtocolResult, Schedule, run_protocol
 from como3r.errors import Como3rError, InputError
-from como3r.io.output import atomic_output_dir
+from como3r.io.output import atomic_output_dir, check_output_dir
 from como3r.io.tum import Trajectory, write_tum
 from como3r.prior.base import Prior
 
@@ -106,6 +106,7 @@ def run_decentralized(
     check_config(settings)
     if not agent_paths:
         raise InputError("no --agent given")
+    check_output_dir(out, overwrite)  # the folder is written only after the whole mission
     robots = [_open_robot(path, config) for path in agent_paths]
     end_s = max(float(r.odometry.timestamps[-1]) for r in robots)
     started = time.perf_counter()

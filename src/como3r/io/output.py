@@ -1,41 +1,122 @@
-"""Output folders that appear only when complete.
+"""Output folders that appear only when complete, and replace only what como3r wrote.
 
 A run writes into ``<out>.partial`` and renames it to ``<out>`` at the end, so an
-interrupted or failed run never leaves a folder that looks like a result.
+interrupted or failed run never leaves a folder that looks like a result. Every folder
+written this way holds a marker file, :data:`MARKER` (JSON: como3r version, command line,
+time). ``overwrite`` replaces only a folder with that marker; any other non-empty folder is
+refused, so ``--overwrite`` never deletes a user's files. The old folder is swapped out only
+once the new one is complete: ``<out>`` -> ``<out>.old-<pid>``, ``<out>.partial`` ->
+``<out>``, then the old one is deleted; if the swap fails the old folder is put back.
 """
 
 from __future__ import annotations
 
+import datetime
+import json
+import os
+import shlex
 import shutil
+import sys
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
+from como3r import __version__
 from como3r.errors import InputError
+
+#: name of the marker file in every folder como3r writes
+MARKER = ".como3r-run"
+
+
+def is_como3r_output(folder: str | Path) -> bool:
+    """Whether ``folder`` holds the marker of a folder como3r wrote."""
+    return (Path(folder) / MARKER).is_file()
+
+
+def check_output_dir(out: str | Path, overwrite: bool = False) -> None:
+    """Refuse, before any work, an ``out`` that a run could not write.
+
+    Raises:
+        InputError: ``out`` is not a folder; or is a non-empty folder and ``overwrite`` is
+            false; or is a non-empty folder without the como3r marker (never replaced); or
+            a staging folder ``<out>.partial`` without the marker is in the way.
+    """
+    out = Path(out)
+    _check_target(out, overwrite)
+    staging = _staging(out)
+    if (staging.exists() or staging.is_symlink()) and not is_como3r_output(staging):
+        raise InputError(f"{staging}: not written by como3r; refusing to delete it (it has "
+                         f"no {MARKER} file): move it away or choose another --out")
+
+
+def _check_target(out: Path, overwrite: bool) -> None:
+    if out.exists() or out.is_symlink():
+        if out.is_symlink() or not out.is_dir():
+            raise InputError(f"{out}: exists and is not a folder")
+        if any(out.iterdir()):
+            if not overwrite:
+                raise InputError(f"{out}: output folder exists and is not empty (use --overwrite)")
+            if not is_como3r_output(out):
+                raise InputError(f"{out}: not written by como3r; refusing to overwrite (it "
+                                 f"has no {MARKER} file)")
+
+
+def _staging(out: Path) -> Path:
+    return out.with_name(out.name + ".partial")
+
+
+def _write_marker(folder: Path) -> None:
+    marker = {"como3r": __version__, "command": shlex.join([Path(sys.argv[0]).name,
+                                                            *sys.argv[1:]]),
+              "created": datetime.datetime.now(datetime.timezone.utc).isoformat(
+                  timespec="seconds")}
+    (folder / MARKER).write_text(json.dumps(marker) + "\n")
+
+
+def _swap_in(staging: Path, out: Path) -> None:
+    """Make the complete ``staging`` folder ``out``, deleting a previous ``out`` last."""
+    if not out.exists():
+        staging.rename(out)
+        return
+    if not any(out.iterdir()):
+        out.rmdir()
+        staging.rename(out)
+        return
+    old = out.with_name(f"{out.name}.old-{os.getpid()}")
+    out.rename(old)
+    try:
+        staging.rename(out)
+    except BaseException:
+        old.rename(out)
+        raise
+    shutil.rmtree(old)
 
 
 @contextmanager
 def atomic_output_dir(out: str | Path, overwrite: bool = False) -> Iterator[Path]:
     """Yield a staging folder that becomes ``out`` only if the block succeeds.
 
+    The staging folder carries the marker from the start, so a staging folder left by a
+    killed run is recognised (and replaced) by the next one. On failure it is deleted and
+    an existing ``out`` is left as it was.
+
     Raises:
-        InputError: ``out`` exists (and ``overwrite`` is false) or is not a folder.
+        InputError: as :func:`check_output_dir`.
     """
     out = Path(out)
-    if out.exists():
-        if not out.is_dir():
-            raise InputError(f"{out}: exists and is not a folder")
-        if any(out.iterdir()) and not overwrite:
-            raise InputError(f"{out}: output folder exists and is not empty (use --overwrite)")
-    staging = out.with_name(out.name + ".partial")
+    check_output_dir(out, overwrite)
+    staging = _staging(out)
     if staging.exists():
         shutil.rmtree(staging)
     staging.mkdir(parents=True)
     try:
+        _write_marker(staging)
         yield staging
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    if out.exists():
-        shutil.rmtree(out)
-    staging.rename(out)
+    try:
+        _check_target(out, overwrite)  # again: the run may have taken hours
+    except InputError as exc:
+        raise InputError(f"{exc}; the new output is in {staging}") from None
+    _swap_in(staging, out)
