@@ -175,10 +175,19 @@ class GaugeConfig:
     merge once this many verified edges between them agree on the aligning transform
     (each within ``verification.max_residual_ratio`` under it). The default 1 is the
     paper's synchronization on the first verified edge.
+
+    ``align_focal`` (como3r addition, self-calibrated runs only): at a merge the moving
+    component's focal length is corrected to agree with the anchor's on the supporting
+    keyframe pairs (:mod:`como3r.coordination.focal`), searched within
+    ``focal_search`` in log focal. Measured on a two-agent simulated scene (160 px,
+    2 x 30 frames, realistic prior, merged ATE % of mean agent path): agents' estimates
+    +1.2 % and -8.7 % off give 3.8 % without it; both on one focal length 0.72 %.
     """
 
     min_correspondences: int = 64
     min_consistent_edges: int = 1
+    align_focal: bool = True
+    focal_search: float = 0.3
 
 
 @dataclass(frozen=True)
@@ -316,7 +325,7 @@ _POSITIVE = (
     "tracking.inlier_angle_deg",
     "local_solve.step_tol",
     "retrieval.alpha",
-    "verification.max_residual_ratio",
+    "verification.max_residual_ratio", "gauge.focal_search",
     "global_ba.cleanup_stop_translation", "global_ba.step_tol",
     "depth.slic_compactness", "depth.sigma_point", "depth.step_clip",
     "depth.depth_convergence_tol", "depth.depth_stall_ratio",

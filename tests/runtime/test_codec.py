@@ -372,7 +372,7 @@ def _first_array(tree: dict) -> dict:
     (lambda t: t["fields"].update(seq=2.0), "seq: a float does not match"),
     (lambda t: t["fields"].update(seq=0), "seq must be >= 1"),
     (lambda t: t["fields"]["update"]["fields"].update(reason=None), "reason: a NoneType"),
-    (lambda t: t["fields"]["update"].update(type="Step"), "wrong fields for Step"),
+    (lambda t: t["fields"]["update"].update(type="Step", version=1), "wrong fields for Step"),
     (lambda t: _first_array(t).update(dtype="object"), "dtype 'object' is not allowed"),
     (lambda t: _first_array(t).update(dtype="<f8"), "is not allowed"),
     (lambda t: _first_array(t).update(shape=[4, 9]), "do not hold a float64 array"),

@@ -45,6 +45,7 @@ from como3r.frontend.graph import Edge, make_factors
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh
 from como3r.frontend.pairs import PairLink, gather_points
+from como3r.geometry.camera import to_focal
 from como3r.geometry.units import median_range
 from como3r.optim.factors import Factor
 from como3r.optim.optimizer import gauss_newton_irls
@@ -127,6 +128,9 @@ class GlobalGraph:
         self.agent_of: list[int] = []
         self.local_to_global: dict[int, list[int]] = {}
         self.links: list[GraphLink] = []
+        #: agent -> its focal length in the map (``fx``, pixels) once :meth:`rescale_focal`
+        #: moved it; its pointmaps are taken onto it on receipt
+        self.focal: dict[int, float] = {}
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -146,11 +150,12 @@ class GlobalGraph:
         if packet.previous is not None:
             self.refresh(packet.agent, packet.previous)
         g = len(self.keyframes)
+        X_hat, K = self._corrected(packet.agent, packet.X_hat, packet.K)
         self.keyframes.append(Keyframe(
             kf_id=packet.kf_id, frame_index=packet.frame_index, timestamp=packet.timestamp,
-            encoding=packet.encoding, T_WC=packet.T_WC.clone(), X_hat=packet.X_hat,
-            C_hat=packet.C_hat, X_init=packet.X_hat, C_init=packet.C_hat, colors=packet.colors,
-            retrieval=packet.retrieval, K=packet.K,
+            encoding=packet.encoding, T_WC=packet.T_WC.clone(), X_hat=X_hat,
+            C_hat=packet.C_hat, X_init=X_hat, C_init=packet.C_hat, colors=packet.colors,
+            retrieval=packet.retrieval, K=K,
         ))
         self.agent_of.append(packet.agent)
         own.append(g)
@@ -169,7 +174,35 @@ class GlobalGraph:
             InputError: the keyframe was never received.
         """
         kf = self.keyframes[self.global_index(agent, refresh.kf_id)]
-        kf.X_hat, kf.C_hat, kf.fused_frames = refresh.X_hat, refresh.C_hat, refresh.fused_frames
+        X_hat, _ = self._corrected(agent, refresh.X_hat, refresh.K)
+        kf.X_hat, kf.C_hat, kf.fused_frames = X_hat, refresh.C_hat, refresh.fused_frames
+
+    def rescale_focal(self, agent: int, log_focal: float) -> float:
+        """Move an agent's keyframes to the focal length ``f exp(log_focal)``
+        (:mod:`como3r.coordination.focal`); returns the new focal length. Keyframes and
+        refreshes still on the agent's former camera are moved on receipt.
+
+        Raises:
+            InputError: the agent sent no keyframe, or its keyframes carry no intrinsics
+                (not a calibrated or self-calibrated run).
+        """
+        indices = self.agent_keyframes(agent)
+        if not indices or self.keyframes[indices[0]].K is None:
+            raise InputError(f"coordinator: agent {agent} has no keyframe with intrinsics to "
+                             f"rescale")
+        focal = float(self.keyframes[indices[0]].K[0, 0]) * math.exp(log_focal)
+        for g in indices:
+            self.keyframes[g].rescale_focal(focal)
+        self.focal[agent] = focal
+        return focal
+
+    def _corrected(self, agent: int, X_hat: Tensor, K: Tensor | None
+                   ) -> tuple[Tensor, Tensor | None]:
+        """A pointmap of ``agent`` on camera ``K`` taken onto the agent's focal length in
+        the map (unchanged without intrinsics or before any :meth:`rescale_focal`)."""
+        if K is None or agent not in self.focal:
+            return X_hat, K
+        return to_focal(X_hat, K, self.focal[agent])
 
     def add_inter_link(self, i: int, j: int, link: PairLink, similarity: float) -> GraphLink:
         """Insert a verified inter-agent link between global keyframes ``i`` and ``j``."""

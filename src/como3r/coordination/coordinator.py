@@ -40,6 +40,7 @@ optimizes, so the front-end's poses are the better ones.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Iterable, Mapping, Sequence
@@ -53,6 +54,7 @@ from como3r.backend.depth_refinement import DepthRefinementReport
 from como3r.backend.global_graph import BAResult, GlobalGraph, GraphLink
 from como3r.config import Config, DepthRefinementConfig
 from como3r.coordination.association import CrossAgentRetrieval, Verification, verify_candidates
+from como3r.coordination.focal import FocalPair, estimate_log_focal, relative_pose
 from como3r.coordination.gauge import (
     GaugeComponents,
     GaugeTransform,
@@ -426,8 +428,9 @@ class Coordinator:
         for agent in moved_agents:
             indices = self.graph.agent_keyframes(agent)
             self.graph.set_poses(indices, transport(transform.T, self.graph.poses(indices)))
+        log_focal = self._align_focal(supporters, moved_agents)
         self.gauges.union(anchor_root, moved_root)
-        self._record_gauge_event(transform, anchor_root, moved_agents, supporters)
+        self._record_gauge_event(transform, anchor_root, moved_agents, supporters, log_focal)
         self.stats.gauge_syncs += 1
         self.stats.add_time("gauge", time.perf_counter() - start)
         for c in supporters:
@@ -438,6 +441,39 @@ class Coordinator:
         for c in inside:
             self._admit_within(c)
         return self._updates(moved_agents, "gauge")
+
+    def _align_focal(self, supporters: Sequence[Candidate], moved_agents: list[int]
+                     ) -> float | None:
+        """Give the moving component the anchor's focal length (``gauge.align_focal``,
+        self-calibrated runs; :mod:`.focal`); returns the log correction applied, or None."""
+        config = self.config
+        if not (config.gauge.align_focal and config.tracking.self_calibration
+                and not config.calibrated):
+            return None
+        pairs = [self._focal_pair(c) for c in supporters]
+        if any(pair is None for pair in pairs):
+            return None
+        start = time.perf_counter()
+        estimate = estimate_log_focal(pairs, config.tracking, search=config.gauge.focal_search)
+        for agent in moved_agents:
+            self.graph.rescale_focal(agent, estimate.log_focal)
+        self.stats.add_time("focal", time.perf_counter() - start)
+        logger.info("focal: agents %s take the anchor's focal length (x %.4f, %d evaluations)",
+                    moved_agents, math.exp(estimate.log_focal), estimate.evaluations)
+        return estimate.log_focal
+
+    def _focal_pair(self, candidate: Candidate) -> FocalPair | None:
+        """The candidate's keyframe pair, anchor side first (None without intrinsics)."""
+        moving_is_j = self._moving_is_j(candidate)
+        anchor, moving = ((candidate.i, candidate.j) if moving_is_j
+                          else (candidate.j, candidate.i))
+        kf_a, kf_m = self.graph.keyframes[anchor], self.graph.keyframes[moving]
+        if kf_a.K is None or kf_m.K is None:
+            return None
+        link = candidate.verification.link  # ij: every pixel of j looked up in i
+        in_anchor, in_moving = (link.ij, link.ji) if moving_is_j else (link.ji, link.ij)
+        return FocalPair(kf_a.X_hat, kf_m.X_hat, kf_a.K, kf_m.K,
+                         relative_pose(kf_a.T_WC, kf_m.T_WC), in_anchor, in_moving)
 
     def _agrees(self, candidate: Candidate, hypothesis: GaugeTransform) -> bool:
         """Whether a waiting edge's points agree once the moving side is transported."""
@@ -497,7 +533,7 @@ class Coordinator:
         return x_i, x_j, torch.cat([ij.q[ij.valid], ji.q[ji.valid]])
 
     def _record_gauge_event(self, transform: GaugeTransform, kept: int, moved: list[int],
-                            supporters: Sequence[Candidate]) -> None:
+                            supporters: Sequence[Candidate], log_focal: float | None) -> None:
         event = {
             "keyframes": self.stats.keyframes,
             "anchor_component": kept,
@@ -507,6 +543,7 @@ class Coordinator:
             "correspondences": transform.correspondences,
             "rmse": None if transform.method == "rigid_snap" else transform.rmse,
             "scale": float(transform.T[7]),
+            "focal_factor": None if log_focal is None else math.exp(log_focal),
         }
         self.gauge_events.append(event)
         logger.info("gauge: agents %s join component %d by %s over %d edge(s), "
@@ -552,7 +589,8 @@ class Coordinator:
             if indices:
                 updates.append(PoseUpdate(
                     agent=agent, kf_ids=torch.arange(len(indices), dtype=torch.int64),
-                    T_WC=self.graph.poses(indices).clone(), reason=reason))
+                    T_WC=self.graph.poses(indices).clone(), reason=reason,
+                    focal=self.graph.focal.get(agent)))
         return updates
 
     def _count(self, updates: list[PoseUpdate]) -> list[PoseUpdate]:

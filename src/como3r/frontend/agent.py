@@ -376,7 +376,8 @@ class AgentFrontend:
         previous = None
         if kf_id > 0:
             prev = self.keyframes[kf_id - 1]
-            previous = PointmapRefresh(prev.kf_id, prev.X_hat, prev.C_hat, prev.fused_frames)
+            previous = PointmapRefresh(prev.kf_id, prev.X_hat, prev.C_hat, prev.fused_frames,
+                                       prev.K)
         return KeyframePacket(
             agent=self.agent, kf_id=kf_id, frame_index=kf.frame_index, timestamp=kf.timestamp,
             T_WC=kf.T_WC, X_hat=kf.X_init, C_hat=kf.C_init, colors=kf.colors,
@@ -397,5 +398,8 @@ class AgentFrontend:
 
     def apply_pose_update(self, update: PoseUpdate) -> None:
         """Overwrite keyframe poses with the coordinator's (C-Sec. A.8; see
-        :func:`~como3r.frontend.keyframes.apply_pose_update`)."""
+        :func:`~como3r.frontend.keyframes.apply_pose_update`); a focal length in the update
+        becomes the agent's camera for the frames to come, as it became its keyframes'."""
         apply_pose_update(self.keyframes.keyframes, update)
+        if update.focal is not None and self._K is not None and len(self.keyframes):
+            self._K = self.keyframes.last.K.to(self._K)

@@ -16,7 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from como3r.geometry.camera import lock_to_rays
+from como3r.errors import InputError
+from como3r.geometry.camera import lock_to_rays, to_focal
 from como3r.frontend.packets import PointmapUpdate, PoseUpdate
 from como3r.geometry.lie import sim3_act, sim3_compose, sim3_inverse
 from como3r.geometry.residuals import psi
@@ -57,6 +58,18 @@ class Keyframe:
     fused_frames: int = 1
     retrieval: tuple[Tensor, Tensor] | None = None
     K: Tensor | None = None
+
+    def rescale_focal(self, focal: float) -> None:
+        """Move the keyframe to a camera of focal length ``focal`` (``fx``, pixels): its
+        pointmaps keep their depths on the new rays (C-Eq. 16; :func:`to_focal`).
+
+        Raises:
+            InputError: the keyframe has no intrinsics.
+        """
+        if self.K is None:
+            raise InputError(f"keyframe {self.kf_id} has no intrinsics to rescale")
+        self.X_init, _ = to_focal(self.X_init, self.K, focal)
+        self.X_hat, self.K = to_focal(self.X_hat, self.K, focal)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -146,12 +159,17 @@ def apply_pose_update(keyframes: Sequence[Any], update: PoseUpdate) -> None:
 
     Keyframes created after the ones in the update (not yet known to the coordinator)
     follow the newest updated keyframe rigidly, so an agent keeps tracking in the shared
-    frame.
+    frame. An update with a focal length moves every keyframe to it first
+    (:meth:`Keyframe.rescale_focal`).
 
     Args:
-        keyframes: an agent's keyframes (anything with ``T_WC``) in keyframe-id order.
+        keyframes: an agent's keyframes (``T_WC``, and ``rescale_focal`` when the update
+            carries a focal length) in keyframe-id order.
         update: the coordinator's update.
     """
+    if update.focal is not None:
+        for kf in keyframes:
+            kf.rescale_focal(update.focal)
     if update.kf_ids.numel() == 0:
         return
     newest = int(update.kf_ids.max())

@@ -34,12 +34,15 @@ class PointmapRefresh:
         X_hat: ``(H, W, 3)`` float32 canonical pointmap (camera frame).
         C_hat: ``(H, W)`` float32 accumulated confidence.
         fused_frames: frames fused into it.
+        K: ``(3, 3)`` intrinsics whose rays ``X_hat`` lies on (calibrated and
+            self-calibrated runs), None otherwise.
     """
 
     kf_id: int
     X_hat: Tensor
     C_hat: Tensor
     fused_frames: int
+    K: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -90,12 +93,16 @@ class PoseUpdate:
         kf_ids: ``(K,)`` int64 keyframe ids.
         T_WC: ``(K, 8)`` their poses in the shared world frame.
         reason: ``"gauge"``, ``"global_ba"`` or ``"cleanup"``.
+        focal: the agent's focal length (``fx`` at network resolution, pixels) in the
+            shared map (:mod:`como3r.coordination.focal`): keyframes on another focal length
+            are rescaled to it first; None leaves them as they are.
     """
 
     agent: int
     kf_ids: Tensor
     T_WC: Tensor
     reason: str
+    focal: float | None = None
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,8 @@ z forward.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -24,6 +26,8 @@ __all__ = [
     "crop_intrinsics",
     "lock_to_rays",
     "estimate_focal",
+    "rescale_focal",
+    "to_focal",
 ]
 
 # Depths are clamped to this before dividing; points at or behind the camera project far
@@ -167,3 +171,28 @@ def estimate_focal(X: Tensor, weights: Tensor | None = None, iterations: int = 1
         distance = (offset - focal * xy).norm(dim=-1)
         reweight = w / distance.clamp_min(1e-8)
     return focal
+
+
+def rescale_focal(X: Tensor, K: Tensor, log_focal: float) -> tuple[Tensor, Tensor]:
+    """A pointmap and intrinsics moved to the focal length ``f exp(log_focal)``.
+
+    Args:
+        X: ``(..., H, W, 3)`` pointmap on the rays of ``K`` (C-Eq. 16).
+        K: ``(..., 3, 3)`` intrinsics.
+        log_focal: ``delta``.
+
+    Returns:
+        ``X`` with x and y times ``exp(-delta)`` (depths kept, so every point still
+        projects to its pixel) and ``K`` with fx, fy times ``exp(delta)``.
+    """
+    factor = math.exp(log_focal)
+    X = torch.cat([X[..., :2] / factor, X[..., 2:]], dim=-1)
+    K = K.clone()
+    K[..., 0, 0] *= factor
+    K[..., 1, 1] *= factor
+    return X, K
+
+
+def to_focal(X: Tensor, K: Tensor, focal: float) -> tuple[Tensor, Tensor]:
+    """:func:`rescale_focal` to the focal length ``focal`` (``fx``, pixels) from ``K``'s."""
+    return rescale_focal(X, K, math.log(focal / float(K[..., 0, 0].reshape(-1)[0])))

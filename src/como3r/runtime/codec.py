@@ -485,16 +485,16 @@ def registered_types() -> dict[str, type]:
 
 def _register_payloads() -> None:
     """The payloads that cross the agent/coordinator boundary (C-Sec. B.1)."""
-    for path in (
-        "como3r.frontend.packets:KeyframePacket",
-        "como3r.frontend.packets:PointmapRefresh",
-        "como3r.frontend.packets:PoseUpdate",
-        "como3r.frontend.pairs:DirectedMatches",
-        "como3r.frontend.agent:FrontendStats",
-        "como3r.prior.simulated:SimulatedEncoding",
-        "como3r.prior.mast3r.prior:MASt3REncoding",
+    for path, version in (
+        ("como3r.frontend.packets:KeyframePacket", 1),
+        ("como3r.frontend.packets:PointmapRefresh", 2),  # 2: K
+        ("como3r.frontend.packets:PoseUpdate", 2),  # 2: focal
+        ("como3r.frontend.pairs:DirectedMatches", 1),
+        ("como3r.frontend.agent:FrontendStats", 1),
+        ("como3r.prior.simulated:SimulatedEncoding", 1),
+        ("como3r.prior.mast3r.prior:MASt3REncoding", 1),
     ):
-        register(path, version=1)
+        register(path, version=version)
 
 
 _register_payloads()

@@ -256,6 +256,8 @@ def _check_pose_update(u: PoseUpdate) -> None:
              "kf_ids must be non-negative int64")
     _shape(u.T_WC, (u.kf_ids.shape[0], 8), "T_WC")
     _floating(u.T_WC, "T_WC")
+    _require(u.focal is None or (math.isfinite(u.focal) and u.focal > 0),
+             f"focal must be positive and finite, got {u.focal}")
 
 
 def _check_refresh(r: PointmapRefresh) -> None:
@@ -264,6 +266,9 @@ def _check_refresh(r: PointmapRefresh) -> None:
     _shape(r.C_hat, tuple(r.X_hat.shape[:2]), "C_hat")
     _floating(r.X_hat, "X_hat")
     _floating(r.C_hat, "C_hat")
+    if r.K is not None:
+        _shape(r.K, (3, 3), "K")
+        _floating(r.K, "K")
 
 
 def _check_matches(m: DirectedMatches) -> None:

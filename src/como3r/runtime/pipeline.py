@@ -225,7 +225,7 @@ def _finish(frontends: Sequence[AgentFrontend], coordinator: Coordinator) -> Non
         if len(fe.keyframes):
             last = fe.keyframes.last
             coordinator.refresh(fe.agent, PointmapRefresh(last.kf_id, last.X_hat, last.C_hat,
-                                                          last.fused_frames))
+                                                          last.fused_frames, last.K))
             final_poses[fe.agent] = fe.keyframes.poses()
     cleanup = coordinator.finish(final_poses)
     _apply(frontends, cleanup.updates)

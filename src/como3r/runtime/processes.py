@@ -67,6 +67,7 @@ from como3r.errors import Como3rError, InputError
 from como3r.frontend.agent import AgentFrontend, FrontendStats
 from como3r.frontend.keyframes import apply_pointmap_update, apply_pose_update
 from como3r.frontend.packets import PointmapRefresh, PointmapUpdate, PoseUpdate
+from como3r.geometry.camera import to_focal
 from como3r.geometry.lie import sim3_compose, sim3_inverse
 from como3r.io.output import atomic_output_dir
 from como3r.runtime import codec, outputs
@@ -319,7 +320,8 @@ class _AgentWorker:
         final = None
         if len(fe.keyframes):
             last = fe.keyframes.last
-            final = PointmapRefresh(last.kf_id, last.X_hat, last.C_hat, last.fused_frames)
+            final = PointmapRefresh(last.kf_id, last.X_hat, last.C_hat, last.fused_frames,
+                                    last.K)
         return AgentFinished(
             agent=self.task.agent, final=final, stats=fe.stats, seconds=self.seconds,
             applied_seq=self.applied_seq,
@@ -362,6 +364,12 @@ class _KeyframeView:
     C_hat: Tensor
     colors: np.ndarray
     fused_frames: int = 1
+    K: Tensor | None = None
+
+    def rescale_focal(self, focal: float) -> None:
+        """Move the pointmap to the focal length ``focal`` (as ``Keyframe.rescale_focal``)."""
+        if self.K is not None:
+            self.X_hat, self.K = to_focal(self.X_hat, self.K, focal)
 
     def mean_confidence(self) -> Tensor:
         """``(H, W)`` confidence per contributing frame (as ``Keyframe.mean_confidence``)."""
@@ -636,14 +644,14 @@ class _Runtime:
             self._refresh_view(slot, packet.previous)
         keyframes.append(_KeyframeView(packet.kf_id, packet.frame_index, packet.timestamp,
                                        packet.T_WC.clone(), packet.X_hat, packet.C_hat,
-                                       packet.colors))
+                                       packet.colors, K=packet.K))
         for update in self.coordinator.add_keyframe(packet):
             self._send_update(update)
 
     @staticmethod
     def _refresh_view(slot: _Slot, refresh: PointmapRefresh) -> None:
         view = slot.result.keyframes[refresh.kf_id]
-        view.X_hat, view.C_hat = refresh.X_hat, refresh.C_hat
+        view.X_hat, view.C_hat, view.K = refresh.X_hat, refresh.C_hat, refresh.K
         view.fused_frames = refresh.fused_frames
 
     def _send_update(self, update: PoseUpdate) -> None:

@@ -1,0 +1,149 @@
+"""One focal length across agents: the estimate at a merge and the graph's rescaling."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from como3r.backend.global_graph import GlobalGraph
+from como3r.config import GlobalBAConfig, TrackingConfig
+from como3r.coordination.focal import FocalPair, estimate_log_focal, relative_pose
+from como3r.frontend.keyframes import apply_pose_update
+from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
+from como3r.frontend.pairs import DirectedMatches
+from como3r.geometry.camera import intrinsics_matrix, project, rescale_focal, unproject_depth
+from como3r.geometry.lie import sim3_act, sim3_exp, sim3_identity, sim3_inverse
+from como3r.prior.base import Encoding
+
+H, W = 36, 48
+
+
+def _camera() -> torch.Tensor:
+    return intrinsics_matrix(40.0, 40.0, (W - 1) / 2, (H - 1) / 2, dtype=torch.float64)
+
+
+def _depth(shift: float) -> torch.Tensor:
+    """A smooth non-planar surface about 3 units away (depth varies by a third)."""
+    v, u = torch.meshgrid(torch.linspace(-1, 1, H, dtype=torch.float64),
+                          torch.linspace(-1, 1, W, dtype=torch.float64), indexing="ij")
+    return 3.0 + 0.6 * torch.sin(2.0 * u + shift) * torch.cos(1.5 * v) + 0.4 * u
+
+
+def _pair(moving_focal_error: float, anchor_focal_error: float = 0.0) -> FocalPair:
+    """Two views of one surface; each pointmap on the rays of its own wrong focal length.
+
+    The moving keyframe sees a smooth surface; each of its pixels lands on an anchor pixel,
+    which holds that very point (so both match directions are exact up to the pixel
+    rounding, which the calibrated residual does not see): only the focal lengths disagree.
+    """
+    K = _camera()
+    T_am = sim3_exp(torch.tensor([0.4, 0.05, 0.1, 0.02, -0.12, 0.03, 0.0], dtype=torch.float64))
+    X_m = unproject_depth(_depth(0.3), K).reshape(-1, 3)
+    X_m_in_a = sim3_act(T_am, X_m)
+    uv = project(X_m_in_a, K).round().long()
+    landed = ((uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+              & (X_m_in_a[:, 2] > 0))
+    idx = uv[:, 1].clamp(0, H - 1) * W + uv[:, 0].clamp(0, W - 1)
+    owner = torch.full((H * W,), -1, dtype=torch.int64)
+    pixels = torch.nonzero(landed).flatten()
+    owner[idx[pixels]] = pixels  # one moving pixel per anchor pixel
+    X_a = unproject_depth(_depth(0.0), K).reshape(-1, 3).clone()
+    X_a[owner >= 0] = X_m_in_a[owner[owner >= 0]]
+    q = torch.full((H * W,), 2.0, dtype=torch.float64)
+    in_anchor = DirectedMatches(idx=idx, valid=landed & (owner[idx] == torch.arange(H * W)),
+                                q=q)
+    in_moving = DirectedMatches(idx=owner.clamp_min(0), valid=owner >= 0, q=q)
+    X_a_wrong, K_a = rescale_focal(X_a.reshape(H, W, 3), K, anchor_focal_error)
+    X_m_wrong, K_m = rescale_focal(X_m.reshape(H, W, 3), K, moving_focal_error)
+    return FocalPair(X_a_wrong, X_m_wrong, K_a, K_m, T_am, in_anchor, in_moving)
+
+
+def test_rescale_focal_keeps_pixels_and_depths() -> None:
+    K = _camera()
+    X = unproject_depth(_depth(0.0), K)
+    X2, K2 = rescale_focal(X, K, 0.1)
+    assert torch.allclose(project(X2, K2), project(X, K), atol=1e-9)
+    assert torch.equal(X2[..., 2], X[..., 2])
+    assert float(K2[0, 0]) == pytest.approx(40.0 * math.exp(0.1))
+    assert torch.equal(K2[:2, 2], K[:2, 2])
+    X0, K0 = rescale_focal(X, K, 0.0)
+    assert torch.equal(X0, X) and torch.equal(K0, K)
+
+
+@pytest.mark.parametrize("error", [0.08, -0.1])
+def test_estimate_recovers_the_moving_focal_error(error: float) -> None:
+    estimate = estimate_log_focal([_pair(error)], TrackingConfig())
+    # the moving keyframe believes in f exp(error): the correction is -error
+    assert estimate.log_focal == pytest.approx(-error, abs=0.01)
+    assert estimate.energy_gain > 0
+
+
+def test_estimate_is_relative_to_the_anchor() -> None:
+    estimate = estimate_log_focal([_pair(0.05, anchor_focal_error=-0.05)], TrackingConfig())
+    # towards the anchor's focal length (-0.10), not the true one (-0.05); two views on one
+    # wrong focal length are not exactly Sim(3)-consistent, hence the looser bound
+    assert estimate.log_focal == pytest.approx(-0.10, abs=0.025)
+
+
+def test_agreeing_focal_lengths_need_no_correction() -> None:
+    estimate = estimate_log_focal([_pair(0.0)], TrackingConfig())
+    assert abs(estimate.log_focal) < 0.005
+
+
+def _packet(agent: int, kf_id: int, X: torch.Tensor, K: torch.Tensor) -> KeyframePacket:
+    return KeyframePacket(
+        agent=agent, kf_id=kf_id, frame_index=kf_id, timestamp=float(kf_id),
+        encoding=Encoding(agent=agent, index=kf_id, shape=(H, W)),
+        T_WC=sim3_identity(dtype=torch.float64), X_hat=X, C_hat=torch.ones(H, W),
+        colors=torch.zeros(H, W, 3, dtype=torch.uint8).numpy(), retrieval=None,
+        sequential_ij=None, sequential_ji=None, previous=None, K=K)
+
+
+def test_graph_rescales_an_agent_now_and_on_receipt() -> None:
+    K = _camera()
+    X = unproject_depth(_depth(0.0), K)
+    graph = GlobalGraph(TrackingConfig(), GlobalBAConfig())
+    graph.add_keyframe(_packet(0, 0, X, K))
+    graph.add_keyframe(_packet(1, 0, X, K))
+    graph.rescale_focal(1, 0.1)
+    moved, kept = graph.keyframes[1], graph.keyframes[0]
+    assert torch.equal(kept.X_hat, X) and torch.equal(kept.K, K)
+    assert torch.allclose(moved.X_hat[..., 0], X[..., 0] * math.exp(-0.1))
+    assert torch.allclose(moved.X_init, moved.X_hat)
+    assert float(moved.K[0, 0]) == pytest.approx(40.0 * math.exp(0.1))
+    # a later keyframe and a refresh of agent 1 arrive on its own camera
+    graph.add_keyframe(_packet(1, 1, X, K))
+    assert torch.allclose(graph.keyframes[2].X_hat, moved.X_hat)
+    assert float(graph.keyframes[2].K[0, 0]) == pytest.approx(40.0 * math.exp(0.1))
+    # a refresh on the agent's former camera is moved, one on the map's camera is not
+    graph.refresh(1, PointmapRefresh(kf_id=0, X_hat=2 * X, C_hat=torch.ones(H, W),
+                                     fused_frames=2, K=K))
+    assert torch.allclose(graph.keyframes[1].X_hat[..., 1], 2 * X[..., 1] * math.exp(-0.1))
+    graph.refresh(1, PointmapRefresh(kf_id=1, X_hat=3 * X, C_hat=torch.ones(H, W),
+                                     fused_frames=2, K=graph.keyframes[2].K))
+    assert torch.equal(graph.keyframes[2].X_hat, 3 * X)
+    assert graph.focal == {1: pytest.approx(40.0 * math.exp(0.1))}
+
+
+def test_a_pose_update_with_a_focal_length_moves_the_agents_keyframes() -> None:
+    K = _camera()
+    X = unproject_depth(_depth(0.0), K)
+    graph = GlobalGraph(TrackingConfig(), GlobalBAConfig())
+    graph.add_keyframe(_packet(1, 0, X, K))
+    agent_side = graph.keyframes[0]
+    kf = type(agent_side)(**{**agent_side.__dict__, "X_hat": X.clone(), "X_init": X.clone(),
+                             "K": K.clone()})
+    focal = 40.0 * math.exp(-0.05)
+    apply_pose_update([kf], PoseUpdate(agent=1, kf_ids=torch.tensor([0]),
+                                       T_WC=sim3_identity(1, dtype=torch.float64),
+                                       reason="gauge", focal=focal))
+    assert float(kf.K[0, 0]) == pytest.approx(focal)
+    assert torch.allclose(project(kf.X_hat, kf.K), project(X, K), atol=1e-9)
+    assert torch.allclose(kf.X_init, kf.X_hat)
+
+
+def test_relative_pose_of_the_same_pose_is_the_identity() -> None:
+    T = sim3_exp(torch.tensor([0.1, 0.2, 0.3, 0.1, 0.0, -0.1, 0.2], dtype=torch.float64))
+    assert torch.allclose(relative_pose(T, T), sim3_identity(dtype=torch.float64), atol=1e-12)
