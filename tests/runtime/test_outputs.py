@@ -29,3 +29,12 @@ def test_long_lists_of_lost_frames_are_shortened() -> None:
     [warning] = tracking_warnings([_agent(2, 100, list(range(50, 100)))])
     assert "50 of 100" in warning and warning.endswith("69, ...")
     assert tracking_warnings([_agent(3, 0, [])]) == []
+
+
+def test_notes_name_the_final_folder_not_the_staging_one(tmp_path) -> None:
+    from como3r.runtime.outputs import in_final_folder
+
+    staging = tmp_path / "run.partial"
+    text = f"{staging / 'trajectories' / 'agent_0.txt'}: 1 pose, at least 3 needed"
+    assert in_final_folder(text, staging) == (
+        f"{tmp_path / 'run' / 'trajectories' / 'agent_0.txt'}: 1 pose, at least 3 needed")

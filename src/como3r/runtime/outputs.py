@@ -163,6 +163,12 @@ def write_config(out: Path, config: Config) -> None:
     dump_config(config, out / "config.yaml")
 
 
+def in_final_folder(text: str, staging: Path) -> str:
+    """``text`` naming the run folder the user will have instead of the staging folder
+    (``DIR.partial``, :func:`~como3r.io.output.atomic_output_dir`) renamed into it."""
+    return text.replace(str(staging), str(staging.with_name(staging.name.removesuffix(".partial"))))
+
+
 def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
                         agents: Sequence[Any], components: Sequence[Sequence[int]],
                         results: Sequence[Any], coordinator: Any, config: Config) -> None:
@@ -191,7 +197,7 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
             evaluation = evaluate_run(staging, [a.root for a in agents], staging,
                                       components=[list(c) for c in components])
         except InputError as exc:  # e.g. too few tracked frames: the run itself stands
-            summary.notes.append(f"ATE not computed: {exc}")
+            summary.notes.append(f"ATE not computed: {in_final_folder(str(exc), staging)}")
         else:
             metrics["ate"] = evaluation.to_json()
             summary.evaluation = evaluation
