@@ -37,7 +37,7 @@ from typing import Any, Callable
 
 import torch
 
-from como3r.config import Config, MatchingConfig, apply_overrides
+from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
 from como3r.data.preprocess import make_view
 from como3r.frontend import agent as agent_module
@@ -169,10 +169,7 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], help="config override")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    overrides = list(args.set)
-    if not overrides and hasattr(MatchingConfig, "occlusion_distance"):
-        overrides.append("matching.occlusion_distance=0.5")  # metres: not every frame a keyframe
-    clock, counters = frontend_run(args.agent, args.frames, overrides)
+    clock, counters = frontend_run(args.agent, args.frames, list(args.set))
     seconds = clock.seconds
     width, height = (int(v) for v in counters["resolution"].split("x"))
     decode_ms = (args.decode_ms if args.decode_ms is not None

@@ -58,9 +58,21 @@ def test_override_sets_value() -> None:
     assert c.calibrated is True
 
 
+@pytest.mark.parametrize("key", ["verification.max_residual_ratio", "depth.depth_stall_ratio"])
+def test_inf_turns_a_documented_gate_off(key: str, tmp_path) -> None:
+    c = apply_overrides(Config(), [f"{key}=inf"])
+    section, name = key.split(".")
+    assert getattr(getattr(c, section), name) == float("inf")
+    dump_config(c, tmp_path / "c.yaml")
+    assert load_config(tmp_path / "c.yaml") == c
+
+
 @pytest.mark.parametrize(
     "override, message",
     [
+        ("tracking.sigma_ray=inf", "tracking.sigma_ray: expected a finite number"),
+        ("verification.max_residual_ratio=nan", "expected a finite number"),
+        ("depth.depth_stall_ratio=-inf", "expected a finite number"),
         ("tracking.sigma_rya=1", "tracking.sigma_rya"),
         ("trackin.sigma_ray=1", "trackin"),
         ("tracking.max_iters=1.5", "tracking.max_iters"),

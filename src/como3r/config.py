@@ -361,6 +361,8 @@ _FRACTION = (
     "local_solve.min_match_fraction",
     "verification.tau_inter", "verification.min_covisible_ratio",
 )
+#: keys whose ``inf`` means "off" (the paper's behaviour); every other number must be finite
+_MAY_BE_INFINITE = ("verification.max_residual_ratio", "depth.depth_stall_ratio")
 #: MASt3R's patch side: images are cropped to multiples of it (como3r.data.preprocess.PATCH)
 _PATCH = 16
 
@@ -439,7 +441,7 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
                 raise ConfigError(f"{key}: expected a number, got {value!r}") from None
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{key}: expected a number, got {value!r}")
-        if not math.isfinite(float(value)):
+        if math.isnan(value) or (math.isinf(value) and not (value > 0 and key in _MAY_BE_INFINITE)):
             raise ConfigError(f"{key}: expected a finite number, got {value!r}")
         return float(value)
     if annotation is str:
