@@ -32,12 +32,15 @@ from como3r.geometry.units import pixels_at
 #: the per-chunk overhead
 _REFINE_CHUNK = 1024
 
-#: dtype of the descriptor scores of the window search: half precision, as MASt3R-SLAM's
-#: refine_matches kernel (``D.half()``); it halves the gathered bytes of the memory-bound
-#: search (2x faster on CPU) and changes the choice only between candidates whose scores
-#: agree to fp16 rounding (0.3 % of the refined pixels of a 512x384 image of random unit
-#: descriptors)
-_SCORE_DTYPE = torch.float16
+#: dtype of the descriptor scores of the window search. MASt3R-SLAM's refine_matches kernel
+#: scores in half precision (``D.half()``) on the GPU; on CPU, float32 with a fused dot
+#: product (torch.linalg.vecdot) is faster than a half-precision bmm on CPUs without native
+#: fp16 arithmetic: 512x384, radius 3, dilations 5..1, one thread, AMD EPYC (AVX512-BF16,
+#: no AVX512-FP16), busy machine: half-precision bmm 3.1 s, half vecdot 1.9 s, float32 vecdot
+#: 1.0 s (benchmarks/matching_kernel.py; AMX CPUs may differ). float32 changes the choice
+#: only between candidates whose scores agree to fp16 rounding (0.3 % of the refined pixels
+#: of random unit descriptors)
+_SCORE_DTYPE = torch.float32
 
 
 @dataclass(frozen=True)
@@ -249,9 +252,9 @@ def refine_with_descriptors(
         for dilation in range(dilation_max, 0, -1):
             rows = ((bc + pc[:, 1] * Wp + pc[:, 0])[:, None] + dilation * row_offsets).reshape(-1)
             desc = table.index_select(0, rows).reshape(-1, row_offsets.numel(), d)  # (n, K, d)
-            # one batched GEMV per chunk; max(dim).indices (first maximum, as argmax) is
-            # twice as fast as argmax over a short last dimension on CPU
-            best = torch.bmm(desc, q[:, :, None])[..., 0].max(dim=-1).indices
+            # max(dim).indices (first maximum, as argmax) is twice as fast as argmax over a
+            # short last dimension on CPU
+            best = torch.linalg.vecdot(desc, q[:, None, :]).max(dim=-1).indices
             pc = (pc + dilation * window[best]).clamp(min=0).minimum(upper)
         p[sl] = pc
     refined[rows_of] = p
