@@ -156,17 +156,35 @@ def calibrated_residual(T_ij: Tensor, X_j: Tensor, p_i: Tensor, z_i: Tensor,
     """
     x = _transform_matches(T_ij, X_j)
     z = x[..., 2].clamp_min(_MIN_NORM)
-    K_rows = K[..., None, :2, :].to(x.dtype)  # float64 poses promote x (global BA)
-    uv = (K_rows @ x[..., None])[..., 0] / z[..., None]
-    log_z_error = z.log() - z_i.clamp_min(_MIN_NORM).log()
-    e = torch.cat([uv - p_i, log_z_error[..., None]], dim=-1)
+    inv_z = 1.0 / z
+    K = K.to(x.dtype)[..., None, :2, :]  # (..., 1, 2, 3): broadcasts over the N matches;
+    # float64 poses promote x (global BA)
+    fx, k_skew, cx = K[..., 0, 0], K[..., 0, 1], K[..., 0, 2]
+    fy, cy = K[..., 1, 1], K[..., 1, 2]
+    x0, x1 = x[..., 0] * inv_z, x[..., 1] * inv_z  # normalised image coordinates
+    u = fx * x0 + k_skew * x1 + cx
+    v = fy * x1 + cy
+    e = torch.stack([u - p_i[..., 0], v - p_i[..., 1],
+                     z.log() - z_i.clamp_min(_MIN_NORM).log()], dim=-1)
 
-    D_x = point_jacobian(x)
-    e3 = torch.tensor([0.0, 0.0, 1.0], dtype=x.dtype, device=x.device)
-    J_pixel_x = (K_rows - uv[..., :, None] * e3) / z[..., None, None]
-    J_pixel = J_pixel_x @ D_x
-    J_log_z = D_x[..., 2:3, :] / z[..., None, None]
-    J = torch.cat([J_pixel, J_log_z], dim=-2)
+    # Rows j_c of d e_c / d x, composed with C-Eq. 9's [I, -[x]_x, x] into
+    # [j_c, x cross j_c, j_c . x], written block by block into one buffer (the global BA
+    # linearises millions of matches; small per-match matrix products and concatenations
+    # cost more than the arithmetic). j_u = (fx, skew, cx - u) / z, j_v = (0, fy, cy - v) / z,
+    # j_log_z = (0, 0, 1) / z. j_u . x = j_v . x = 0 (a scale change moves a point along its
+    # ray, its pixel stays) and j_log_z . x = 1, exactly for x in front of the camera.
+    J = x.new_empty(*e.shape[:-1], 3, 7)  # every entry is written below (zeroing costs a pass)
+    ju0, ju1, ju2 = fx * inv_z, k_skew * inv_z, (cx - u) * inv_z
+    jv1, jv2 = fy * inv_z, (cy - v) * inv_z
+    J[..., 0, 0], J[..., 0, 1], J[..., 0, 2] = ju0, ju1, ju2
+    J[..., 1, 1], J[..., 1, 2] = jv1, jv2
+    J[..., 2, 2] = inv_z
+    J[..., 0, 6] = J[..., 1, 0] = J[..., 1, 6] = J[..., 2, 0] = J[..., 2, 1] = J[..., 2, 5] = 0.0
+    X, Y, Z = x.unbind(-1)
+    J[..., 0, 3], J[..., 0, 4], J[..., 0, 5] = Y * ju2 - Z * ju1, Z * ju0 - X * ju2, X * ju1 - Y * ju0
+    J[..., 1, 3], J[..., 1, 4], J[..., 1, 5] = Y * jv2 - Z * jv1, -X * jv2, X * jv1
+    J[..., 2, 3], J[..., 2, 4] = x1, -x0
+    J[..., 2, 6] = x[..., 2] * inv_z
     return e, J.expand(*e.shape, 7)
 
 
