@@ -118,7 +118,7 @@ def test_divergence_guard_restores_the_previous_poses(two_agents, monkeypatch) -
     graph, _ = two_agents
     before = graph.poses(range(6)).clone()
 
-    def blow_up(factors, values, config, max_iters):
+    def blow_up(factors, values, config, max_iters, length_scale):
         poses = values.poses.clone()
         poses[3, 0] = float("nan")
         return PoseValues(poses, values.pinned), SolveReport(iterations=1)
@@ -133,7 +133,7 @@ def test_divergence_guard_rejects_implausible_jumps(two_agents, monkeypatch) -> 
     graph, _ = two_agents
     before = graph.poses(range(6)).clone()
 
-    def jump(factors, values, config, max_iters):
+    def jump(factors, values, config, max_iters, length_scale):
         poses = values.poses.clone()
         poses[5, :3] += 1e4
         return PoseValues(poses, values.pinned), SolveReport(iterations=3)
@@ -179,7 +179,7 @@ def test_calibrated_keyframes_use_the_pixel_and_log_depth_residual(monkeypatch) 
     seen = []
     solve = global_graph.gauss_newton_irls
 
-    def spy(factors, values, config, max_iters):
+    def spy(factors, values, config, max_iters, length_scale):
         seen.extend(type(f).__name__ for f in factors)
         return solve(factors, values, config, max_iters=max_iters)
 

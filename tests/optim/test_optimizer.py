@@ -257,3 +257,41 @@ def test_levenberg_marquardt_refuses_non_finite_initial_poses():
     result, report = levenberg_marquardt_irls(factors, PoseValues.from_poses(poses))
     assert report.reason == "non_finite_cost" and not report.converged
     assert report.iterations == 0 and torch.equal(result.poses[0], poses[0])
+
+
+def _scaled_chain_problem(scale: float):
+    """The loop graph of :func:`_loop_graph` with every length times ``scale``, as
+    calibrated factors (pixels and log-depths do not change with the scale), and its noisy
+    initial poses with their translations scaled too."""
+    truth, graph, values = _loop_graph()
+    K = torch.tensor([[400.0, 0, 256], [0, 400, 192], [0, 0, 1]], dtype=torch.float64)
+    pixels = (K @ graph.X_i[..., None])[..., 0]
+    factors = CalibratedFactors(graph.i, graph.j, scale * graph.X_j,
+                                pixels[..., :2] / pixels[..., 2:], scale * graph.X_i[..., 2], K,
+                                graph.q, graph.valid)
+    poses = values.poses.clone()
+    poses[:, :3] *= scale
+    return factors, PoseValues.from_poses(poses, num_pinned=1)
+
+
+def test_step_tolerance_is_relative_to_the_scene_length() -> None:
+    """The same problem at 100x the scale stops after as many iterations when the step's
+    translation is measured in units of the scene length."""
+    reports = []
+    for scale in (1.0, 100.0):
+        factor, values = _scaled_chain_problem(scale)
+        _, report = gauss_newton_irls(factor, values, GlobalBAConfig(), max_iters=50,
+                                      step_tol=1e-6, length_scale=scale)
+        reports.append(report)
+    assert reports[0].converged and reports[1].converged
+    assert reports[0].iterations == reports[1].iterations
+    factor, values = _scaled_chain_problem(100.0)
+    _, absolute = gauss_newton_irls(factor, values, GlobalBAConfig(), max_iters=50,
+                                    step_tol=1e-6)
+    assert absolute.iterations > reports[1].iterations
+
+
+def test_length_scale_must_be_positive() -> None:
+    factor, values = _scaled_chain_problem(1.0)
+    with pytest.raises(InputError, match="length_scale"):
+        gauss_newton_irls(factor, values, length_scale=0.0)

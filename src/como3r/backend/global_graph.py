@@ -282,10 +282,12 @@ class GlobalGraph:
         factors = self._factors([e for link in links for e in link.edges()], row)
         before = self.poses(nodes)
         pinned = torch.tensor([g == anchor for g in nodes], device=before.device)
-        # float64 poses: the step tolerance of 1e-8 (C-Sec. B.2) is below float32 resolution,
-        # so a float32 solve would always run to max_iters
+        # float64 poses: float32 residuals would put a noise floor under the step norm near
+        # GlobalBAConfig.step_tol, and a solve would run to max_iters; the step's translation
+        # is measured in scene depths, so the tolerance holds at every scale
         solved, report = gauss_newton_irls(factors, PoseValues(before.double(), pinned),
-                                           self.config, max_iters=max_iters)
+                                           self.config, max_iters=max_iters,
+                                           length_scale=self.scene_depth(agents))
         after = solved.poses.to(before.dtype)
         problem = "solver refused a step" if report.diverged else _implausible(before, after)
         if problem:

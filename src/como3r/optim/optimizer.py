@@ -92,6 +92,7 @@ def gauss_newton_irls(
     retries: int | None = None,
     lm_lambda: float | None = None,
     backend: Backend = "auto",
+    length_scale: float = 1.0,
 ) -> tuple[PoseValues, SolveReport]:
     """Tikhonov-regularised Gauss-Newton with Huber IRLS (local solve and global BA).
 
@@ -103,11 +104,17 @@ def gauss_newton_irls(
             ``max_iters=config.max_iters_cleanup`` for a cleanup pass).
         max_iters, step_tol, tikhonov_base, retries, lm_lambda: override the config.
         backend: linear-solver backend, see :func:`como3r.optim.linear.solve`.
+        length_scale: the scene's length (e.g. its median depth) in pose units: the step's
+            translation rows are divided by it before ``||tau||_2`` is compared with
+            ``step_tol``, so the tolerance means the same at every scene scale (1 keeps the
+            paper's absolute norm, right at its 1 m reference depth).
 
     Returns:
         The refined poses and a :class:`SolveReport`. On divergence the poses are those of
         the last good iterate.
     """
+    if not length_scale > 0:
+        raise InputError(f"gauss_newton_irls: length_scale must be > 0, got {length_scale}")
     config = LocalSolveConfig() if config is None else config
     default_iters = (
         config.max_iters_stream if isinstance(config, GlobalBAConfig) else config.max_iters
@@ -149,12 +156,21 @@ def gauss_newton_irls(
             report.diverged, report.reason = True, "diverged"
             break
         values = candidate
-        step_norm = float(torch.linalg.vector_norm(tau))
+        step_norm = _relative_step_norm(tau, length_scale)
         logger.debug("GN iteration %d: |tau| = %.3e", iteration, step_norm)
         if step_norm < step_tol:
             report.converged, report.reason = True, "step_tol"
             break
     return values, _finish(report, start)
+
+
+def _relative_step_norm(tau: torch.Tensor, length_scale: float) -> float:
+    """``||tau||_2`` of a ``(N, 7)`` step with its translations ``tau[:, :3]`` in units of
+    ``length_scale`` (rotation and log-scale rows are unitless already)."""
+    if length_scale == 1.0:
+        return float(torch.linalg.vector_norm(tau))
+    return float(torch.linalg.vector_norm(torch.cat([tau[..., :3] / length_scale, tau[..., 3:]],
+                                                    dim=-1)))
 
 
 def levenberg_marquardt_irls(
