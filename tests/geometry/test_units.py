@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from como3r.geometry.units import median_point_range, median_range, pixels_at
+from como3r.geometry.units import median_point_range, median_range, pixels_at, scene_depth
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -32,3 +32,13 @@ def test_median_range_ignores_invalid_points_and_has_a_fallback() -> None:
                          [(3, 512, 3), (5, 512, 5), (3, 1024, 6), (3, 256, 2), (3, 64, 1)])
 def test_pixels_scale_with_the_long_side(value: int, long_side: int, expected: int) -> None:
     assert pixels_at(value, long_side) == expected
+
+
+def test_scene_depth_is_the_median_keyframe_depth_in_world_units() -> None:
+    X = torch.zeros(3, 4, 5, 3)
+    X[..., 2] = torch.tensor([1.0, 2.0, 4.0])[:, None, None]  # median ranges 1, 2, 4
+    T_WC = torch.zeros(3, 8)
+    T_WC[:, 6] = 1.0
+    T_WC[:, 7] = torch.tensor([3.0, 1.0, 0.5])  # world depths 3, 2, 2
+    assert scene_depth(T_WC, X) == pytest.approx(2.0)
+    assert scene_depth([], []) == 1.0

@@ -46,7 +46,7 @@ from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh
 from como3r.frontend.pairs import PairLink, gather_points
 from como3r.geometry.camera import to_focal
-from como3r.geometry.units import median_range
+from como3r.geometry.units import scene_depth
 from como3r.optim.factors import Factor
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.values import PoseValues
@@ -230,9 +230,8 @@ class GlobalGraph:
         """Median over the agents' keyframes of their median range in world units (scale
         ``s`` of ``T_WC`` times the canonical pointmap's median range): the length that the
         relative tolerances of the global solve refer to (:mod:`como3r.geometry.units`)."""
-        depths = [float(self.keyframes[g].T_WC[7]) * float(median_range(self.keyframes[g].X_hat))
-                  for a in agents for g in self.agent_keyframes(a)]
-        return float(torch.tensor(depths).median()) if depths else 1.0
+        members = [self.keyframes[g] for a in agents for g in self.agent_keyframes(a)]
+        return scene_depth([kf.T_WC for kf in members], [kf.X_hat for kf in members])
 
     def poses(self, indices: Sequence[int]) -> Tensor:
         """``(K, 8)`` poses of the given global keyframes."""
@@ -282,9 +281,9 @@ class GlobalGraph:
         factors = self._factors([e for link in links for e in link.edges()], row)
         before = self.poses(nodes)
         pinned = torch.tensor([g == anchor for g in nodes], device=before.device)
-        # float64 poses: float32 residuals would put a noise floor under the step norm near
-        # GlobalBAConfig.step_tol, and a solve would run to max_iters; the step's translation
-        # is measured in scene depths, so the tolerance holds at every scale
+        # float64 poses (composed and retracted in float64; the per-match work runs in the
+        # pointmaps' dtype, see optim.factors); the step's translation is measured in scene
+        # depths, so the tolerance holds at every scale
         solved, report = gauss_newton_irls(factors, PoseValues(before.double(), pinned),
                                            self.config, max_iters=max_iters,
                                            length_scale=self.scene_depth(agents))

@@ -50,6 +50,7 @@ from como3r.frontend.tracker import FrameTracker, TrackResult
 from como3r.errors import InputError
 from como3r.geometry.camera import lock_to_rays
 from como3r.geometry.lie import sim3_compose, sim3_identity
+from como3r.geometry.units import scene_depth
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.values import PoseValues
 from como3r.prior.base import Encoding, Prior, View
@@ -302,7 +303,10 @@ class AgentFrontend:
                                     self.config.tracking)
             values = PoseValues.from_poses(self.keyframes.poses(),
                                            num_pinned=solve.pinned_keyframes)
-            solved, report = gauss_newton_irls(factors, values, solve)
+            # the newest keyframe's depth is the step tolerance's length (O(1) per solve)
+            last = self.keyframes.last
+            solved, report = gauss_newton_irls(
+                factors, values, solve, length_scale=scene_depth([last.T_WC], [last.X_hat]))
         self.stats.local_solves += 1
         self.stats.local_solve_seconds += report.seconds
         if report.diverged:

@@ -14,6 +14,8 @@ RGB-D, 7-Scenes, Tanks and Temples at MASt3R's metric scale) have median depths 
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import torch
 from torch import Tensor
 
@@ -65,3 +67,18 @@ def pixels_at(value_at_paper_size: float, long_side: int, minimum: int = 1) -> i
         minimum: smallest value returned (a window of 0 pixels would switch a search off).
     """
     return max(minimum, round(value_at_paper_size * long_side / PAPER_LONG_SIDE))
+
+
+def scene_depth(T_WC: Sequence[Tensor], X: Sequence[Tensor]) -> float:
+    """The scene's length in world units: the median over keyframes of their pointmap's
+    median range times their pose's scale.
+
+    Args:
+        T_WC: per keyframe its ``(8,)`` Sim(3) pose (scale ``s`` last).
+        X: per keyframe its ``(H, W, 3)`` canonical pointmap in its camera frame.
+
+    Returns:
+        The median, or 1 without keyframes (so a ratio times it stays finite).
+    """
+    depths = [float(T[7]) * float(median_range(points)) for T, points in zip(T_WC, X)]
+    return float(torch.tensor(depths).median()) if depths else 1.0

@@ -189,10 +189,18 @@ class RelativePoseFactors(ABC):
 
     def _relative_poses(self, poses: torch.Tensor, edges: slice
                         ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``T_WC_i`` ``(e, 8)`` and ``T_ij = T_WC_i^-1 T_WC_j`` ``(e, 8)`` (C-Eq. 13)."""
+        """``T_WC_i`` ``(e, 8)`` in the poses' dtype and ``T_ij = T_WC_i^-1 T_WC_j`` ``(e, 8)``
+        (C-Eq. 13) in the matches' dtype.
+
+        float64 poses (the global BA's) are composed in float64, then the per-match work runs
+        in the matches' own precision: promoting millions of float32 matches to float64 doubles
+        the linearization's memory traffic, and the step tolerance (1e-4 of the scene depth)
+        is far above float32's resolution.
+        """
         self._check_poses(poses)
         T_WC_i = poses[self.i[edges]]
-        return T_WC_i, sim3_compose(sim3_inverse(T_WC_i), poses[self.j[edges]])
+        T_ij = sim3_compose(sim3_inverse(T_WC_i), poses[self.j[edges]])
+        return T_WC_i, T_ij.to(self.q.dtype)
 
     def _sqrt_info(self, edges: slice, defined: torch.Tensor | None) -> torch.Tensor:
         """``Sigma^-1/2`` ``(e, P, C)`` of C-Eq. 7, zero for unusable matches."""
@@ -230,6 +238,7 @@ class RelativePoseFactors(ABC):
 
     def _linearize_chunk(self, poses: torch.Tensor, edges: slice) -> EdgeBlocks:
         H_rel, g_rel, T_WC_i = self._relative_blocks(poses, edges)
+        H_rel, g_rel = H_rel.to(T_WC_i.dtype), g_rel.to(T_WC_i.dtype)
         Ad = sim3_adjoint(sim3_inverse(T_WC_i))
         Ad_T = Ad.transpose(1, 2)
         H_jj = Ad_T @ H_rel @ Ad
