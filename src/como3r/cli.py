@@ -356,7 +356,8 @@ def demo(
     from como3r.config import Config
     from como3r.data.synth import synthesize
     from como3r.io.output import atomic_output_dir
-    from como3r.runtime.pipeline import PriorSpec, run as run_pipeline
+    from como3r.runtime.pipeline import PriorSpec
+    from como3r.runtime.processes import run_multiprocess
 
     width, height = DEMO_SIZE
     scene = out / "scene"
@@ -368,7 +369,8 @@ def demo(
                    loop_frames=max(frames, DEMO_LOOP_FRAMES), progress=lambda: bar.advance(task))
         config = Config()  # the defaults, nothing overridden: what a user gets
         slam = bar.add_task("SLAM", total=None)
-        summary = run_pipeline(
+        # one process per agent and the coordinator here, as `como3r run` does by default
+        summary = run_multiprocess(
             [staging / "scene" / f"agent_{a}" for a in range(agents)], staging / "run", config,
             PriorSpec("simulated"),
             progress=lambda a, outcome, done, total: _frame_progress(bar, slam, done, total),
