@@ -187,3 +187,35 @@ def test_sigint_during_synth(tmp_path) -> None:
     assert child.returncode == 130, stderr
     assert stderr.splitlines()[-1] == f"interrupted: nothing was written to {out}"
     assert not out.exists() and not staging.exists()
+
+
+def test_ctrl_c_in_eval_leaves_no_partial_file(scene, tmp_path, monkeypatch) -> None:
+    """Interrupted while writing the plot: ate.json is not left half-updated or alone."""
+    est = tmp_path / "est"
+    (est / "trajectories").mkdir(parents=True)
+    gt = scene / "agent_0" / "groundtruth.txt"
+    (est / "trajectories" / "agent_0.txt").write_text(gt.read_text())
+    monkeypatch.setattr("como3r.evaluation.report._write_plot", _interrupt)
+    result = _invoke("eval", "--est", str(est), "--gt", str(gt))
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 130, result.output
+    assert lines[-1] == f"interrupted: nothing was written to {est}"
+    assert sorted(p.name for p in est.iterdir()) == ["trajectories"]
+
+
+def test_ctrl_c_in_weights_fetch_says_the_download_resumes(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("COMO3R_HOME", str(tmp_path / "cache"))
+    monkeypatch.setattr("como3r.prior.weights.fetch_file", _interrupt)
+    result = _invoke("weights", "fetch", "--trust-unverified")
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 130, result.output
+    assert lines[-1].startswith("interrupted: what was downloaded is kept as <file>.part in ")
+    assert "como3r weights fetch" in lines[-1]
+
+
+def test_python_m_como3r_cli_runs() -> None:
+    """The module entry point imports without a cycle (cli and cli_weights)."""
+    child = subprocess.run([sys.executable, "-m", "como3r.cli", "--help"], capture_output=True,
+                           text=True, timeout=120)
+    assert child.returncode == 0, child.stderr
+    assert "weights" in child.stdout

@@ -7,143 +7,30 @@ progress, prints a summary table, and turns every :class:`Como3rError` into one
 
 from __future__ import annotations
 
-import contextlib
-import functools
 import logging
 import re
 from pathlib import Path
-from typing import Callable, Iterator, List, Optional, TypeVar
+from typing import List, Optional
 
 import typer
-from rich.console import Console
-from rich.markup import escape
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    TaskID,
-    TextColumn,
-    TimeElapsedColumn,
+from rich.progress import Progress, TaskID
+
+from como3r.cli_common import (
+    Command,
+    OneLineErrorsGroup,
+    console,
+    interrupt_leaves_nothing,
+    on_interrupt,
+    print_rows,
+    progress_bar,
+    user_errors,
 )
-from rich.table import Table
-from typer.core import TyperGroup
+from como3r.cli_weights import weights_app
+from como3r.errors import InputError
 
-from como3r.errors import Como3rError, InputError
-
-try:  # typer >= 0.26 carries its own copy of click
-    from typer._click import exceptions as click_exceptions
-except ImportError:  # pragma: no cover - older typer on the click package
-    from click import exceptions as click_exceptions  # type: ignore[no-redef]
-
-console = Console()
-err_console = Console(stderr=True)
-
-F = TypeVar("F", bound=Callable[..., None])
-
-EXIT_USER_ERROR = 2
-#: 128 + SIGINT, what a shell reports for a command stopped by Ctrl-C
-EXIT_INTERRUPTED = 130
-
-
-def print_error(message: str) -> None:
-    """``error: message`` as one line on stderr (line breaks in ``message`` become spaces)."""
-    line = " ".join(message.split())
-    err_console.print(f"[bold red]error:[/] {escape(line)}", highlight=False, soft_wrap=True)
-
-
-class _OneLineErrors(TyperGroup):
-    """The command group; a command line click cannot parse (a missing or unknown option, a
-    value of the wrong type, an unknown command) is one ``error:`` line and exit status 2,
-    not click's usage box. ``como3r`` alone still prints the help."""
-
-    def make_context(self, info_name, args, parent=None, **extra):  # type: ignore[no-untyped-def]
-        with _usage_errors_in_one_line():
-            return super().make_context(info_name, args, parent=parent, **extra)
-
-    def invoke(self, ctx):  # type: ignore[no-untyped-def]
-        with _usage_errors_in_one_line():
-            return super().invoke(ctx)
-
-
-@contextlib.contextmanager
-def _usage_errors_in_one_line() -> Iterator[None]:
-    """Turn click's usage errors inside the block into one ``error:`` line and status 2."""
-    try:
-        yield
-    except click_exceptions.ClickException as exc:
-        if isinstance(exc, getattr(click_exceptions, "NoArgsIsHelpError", ())):
-            raise  # click >= 8.2: `como3r` alone prints the help this way
-        hint = ""
-        ctx = getattr(exc, "ctx", None)
-        if ctx is not None:
-            hint = f" (see: {ctx.command_path} --help)"
-        print_error(f"{exc.format_message()}{hint}")
-        raise typer.Exit(EXIT_USER_ERROR) from None
-
-
-app = typer.Typer(cls=_OneLineErrors, add_completion=False, no_args_is_help=True,
+app = typer.Typer(cls=OneLineErrorsGroup, add_completion=False, no_args_is_help=True,
                   help="Collaborative monocular dense SLAM with a learned two-view 3D prior.")
-
-
-def user_errors(func: F) -> F:
-    """Report a :class:`Como3rError`, or an operating-system error on a file the user named
-    (a folder that cannot be created, a full disk), as one line and exit with status 2."""
-
-    @functools.wraps(func)
-    def wrapper(*args, **kwargs):
-        try:
-            return func(*args, **kwargs)
-        except Como3rError as exc:
-            print_error(str(exc))
-            raise typer.Exit(EXIT_USER_ERROR) from None
-        except OSError as exc:
-            where = f"{exc.filename}: " if exc.filename is not None else ""
-            print_error(f"{where}{exc.strerror or exc}")
-            raise typer.Exit(EXIT_USER_ERROR) from None
-
-    return wrapper  # type: ignore[return-value]
-
-
-def interrupt_leaves_nothing(func: F) -> F:
-    """Ctrl-C in a command that writes ``--out`` through
-    :func:`~como3r.io.output.atomic_output_dir`: one line saying nothing was written (the
-    staging folder is gone, an earlier output untouched) and exit status 130."""
-
-    @functools.wraps(func)
-    def wrapper(*args, **kwargs):
-        try:
-            return func(*args, **kwargs)
-        except KeyboardInterrupt:
-            err_console.print(f"interrupted: nothing was written to {kwargs['out']}",
-                              markup=False, highlight=False, soft_wrap=True)
-            raise typer.Exit(EXIT_INTERRUPTED) from None
-
-    return wrapper  # type: ignore[return-value]
-
-
-def progress_bar() -> Progress:
-    """A rich progress bar for long work (disabled automatically when not a terminal)."""
-    return Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=err_console,
-        transient=False,
-    )
-
-
-def print_rows(title: str, rows: list[dict[str, object]]) -> None:
-    """Print a list of uniform dicts as a rich table."""
-    table = Table(title=escape(title))
-    if not rows:
-        console.print(f"{title}: nothing to show")
-        return
-    for key in rows[0]:
-        table.add_column(str(key), justify="right")
-    for row in rows:
-        table.add_row(*(f"{v:.4f}" if isinstance(v, float) else str(v) for v in row.values()))
-    console.print(table)
+app.add_typer(weights_app, name="weights")
 
 
 @app.callback()
@@ -154,7 +41,7 @@ def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Debug log
     )
 
 
-@app.command()
+@app.command(cls=Command)
 @interrupt_leaves_nothing
 @user_errors
 def synth(
@@ -202,11 +89,15 @@ def synth(
     console.print(f"wrote {agents} agent folder(s) to {out}")
 
 
-@app.command("eval")
+@app.command("eval", cls=Command)
+@on_interrupt(lambda kwargs: "interrupted: nothing was written to "
+              f"{kwargs['out'] if kwargs['out'] is not None else kwargs['est']}")
 @user_errors
 def evaluate(
     est: Path = typer.Option(..., "--est", help="Run output folder (trajectories/agent_<a>.txt)."),
-    gt: List[Path] = typer.Option(..., "--gt", help="Ground truth per agent: TUM file or agent folder."),
+    gt: List[Path] = typer.Option(..., "--gt", metavar="PATH",
+                                  help="Ground truth per agent: TUM file or agent folder "
+                                       "(repeat per agent)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Where to write ate.json and the plot "
                                        "(default: the --est folder)."),
 ) -> None:
@@ -228,11 +119,12 @@ def _load_config(config_file: Optional[Path], overrides: List[str], calib: bool,
     return apply_overrides(config, [*overrides, *extra])
 
 
-@app.command()
+@app.command(cls=Command)
 @interrupt_leaves_nothing
 @user_errors
 def run(
-    agent: List[Path] = typer.Option(..., "--agent", help="Agent input folder (repeat per agent)."),
+    agent: List[Path] = typer.Option(..., "--agent", metavar="PATH",
+                                     help="Agent input folder (repeat per agent)."),
     out: Path = typer.Option(..., "--out", help="Output folder."),
     prior: str = typer.Option(
         "mast3r", "--prior",
@@ -248,7 +140,8 @@ def run(
         None, "--codebook", help="ASMK codebook .pkl (default: beside the retrieval "
                                  "checkpoint, else the weights cache)."),
     config_file: Optional[Path] = typer.Option(None, "--config", help="YAML configuration."),
-    overrides: List[str] = typer.Option([], "--set", help="Override, e.g. tracking.sigma_ray=0.002."),
+    overrides: List[str] = typer.Option([], "--set", metavar="KEY=VALUE",
+                                   help="Override, e.g. tracking.sigma_ray=0.002 (repeat)."),
     calib: bool = typer.Option(False, "--calib", help="Use each agent's calib.txt (C-Sec. A.5)."),
     no_loop_closure: bool = typer.Option(False, "--no-loop-closure", help="Ablation (C-Tab. 4)."),
     device: str = typer.Option("cpu", "--device", help="cpu | cuda"),
@@ -342,7 +235,7 @@ DEMO_SIZE = (640, 480)
 DEMO_LOOP_FRAMES = 100
 
 
-@app.command()
+@app.command(cls=Command)
 @interrupt_leaves_nothing
 @user_errors
 def demo(
@@ -382,11 +275,6 @@ def demo(
     for line in summary.notes:
         console.print(line)
     console.print(f"scene: {scene}\nrun:   {out / 'run'} (open {out / 'run' / 'report.html'})")
-
-
-from como3r.cli_weights import weights_app  # noqa: E402 - it uses the helpers above
-
-app.add_typer(weights_app, name="weights")
 
 
 def main() -> None:

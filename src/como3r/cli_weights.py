@@ -13,14 +13,24 @@ from rich.progress import (
     TransferSpeedColumn,
 )
 
-from como3r.cli import console, err_console, print_rows, user_errors
+from como3r.cli_common import (
+    Command,
+    OneLineErrorsGroup,
+    console,
+    err_console,
+    on_interrupt,
+    print_rows,
+    user_errors,
+)
 from como3r.prior import weights
 
-weights_app = typer.Typer(no_args_is_help=True,
+weights_app = typer.Typer(cls=OneLineErrorsGroup, no_args_is_help=True,
                           help="The MASt3R checkpoint, retrieval head and codebook.")
 
 
-@weights_app.command("fetch")
+@weights_app.command("fetch", cls=Command)
+@on_interrupt(lambda kwargs: "interrupted: what was downloaded is kept as <file>.part in "
+              f"{weights.weights_home()}; `como3r weights fetch` resumes it")
 @user_errors
 def fetch(
     trust_unverified: bool = typer.Option(
@@ -46,7 +56,7 @@ def fetch(
                       highlight=False, soft_wrap=True)
 
 
-@weights_app.command("list")
+@weights_app.command("list", cls=Command)
 @user_errors
 def list_files(
     check: bool = typer.Option(False, "--check",
@@ -61,7 +71,7 @@ def list_files(
     print_rows("MASt3R weights", rows)
 
 
-@weights_app.command("path")
+@weights_app.command("path", cls=Command)
 def path() -> None:
     """Print the weights cache folder (COMO3R_HOME)."""
     console.print(str(weights.weights_home()), highlight=False, soft_wrap=True)

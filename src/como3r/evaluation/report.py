@@ -267,7 +267,16 @@ def evaluate_run(
 
     _prepare_out(out)
     json_path, plot_path = out / JSON_NAME, out / PLOT_NAME
-    json_path.write_text(json.dumps(summary.to_json(), indent=2) + "\n")
-    _write_plot(plot_path, results, ests, gts)
+    # each file is written beside its place and renamed into it: an interrupted evaluation
+    # leaves the previous ate.json / plot, never half of one
+    json_tmp, plot_tmp = json_path.with_suffix(".json.tmp"), plot_path.with_suffix(".png.tmp")
+    try:
+        json_tmp.write_text(json.dumps(summary.to_json(), indent=2) + "\n")
+        _write_plot(plot_tmp, results, ests, gts)
+        json_tmp.replace(json_path)
+        plot_tmp.replace(plot_path)
+    finally:
+        json_tmp.unlink(missing_ok=True)
+        plot_tmp.unlink(missing_ok=True)
     summary.notes += [f"wrote {json_path}", f"wrote {plot_path}"]
     return summary
