@@ -264,7 +264,7 @@ class VisualizationConfig:
 
 @dataclass(frozen=True)
 class SimulatedPriorConfig:
-    """Error model of the simulated prior (DESIGN.md, "Simulated prior").
+    """Error model of the simulated prior (README, "Python API").
 
     ``model`` selects it: ``"realistic"`` (default) imitates MASt3R's failure modes,
     ``"easy"`` is the near-oracle of round 1 for tests that need precision; the keys from

@@ -1,5 +1,5 @@
-"""Agent inputs: one robot's camera stream and its optional side files (DESIGN.md,
-"Command line and files").
+"""Agent inputs: one robot's camera stream and its optional side files (README,
+"Agent input").
 
 An agent input is a folder with ``rgb/`` (images sorted by name) or a video file (the file
 itself, or a folder holding exactly one video and no ``rgb/``), plus optionally:

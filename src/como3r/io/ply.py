@@ -1,4 +1,4 @@
-"""Binary PLY point clouds with colour and a per-point agent id (DESIGN.md, map.ply).
+"""Binary PLY point clouds with colour and a per-point agent id (README, "Run output").
 
 The header declares ``x y z`` (float32), ``red green blue`` (uchar) and ``agent_id``
 (int32), binary little-endian, which Open3D, CloudCompare and MeshLab read.

@@ -1,5 +1,5 @@
-"""The simulated prior: a seeded sensor simulator with MASt3R's outputs (DESIGN.md,
-"Simulated prior").
+"""The simulated prior: a seeded sensor simulator with MASt3R's outputs (README,
+"Python API").
 
 For scenes with metric depth it produces :class:`~como3r.prior.base.PairPrediction` s of
 exactly MASt3R's types, shapes and value ranges from the true geometry, corrupted by a

@@ -1,4 +1,4 @@
-"""The messages of the multi-process runtime (C-Sec. B.1, A.8; DESIGN.md, "Conventions").
+"""The messages of the multi-process runtime (C-Sec. B.1, A.8; docs/architecture.md, "Conventions").
 
 Agents and the coordinator share nothing but these messages. Each is a frozen dataclass
 with a ``version`` field and is registered with :mod:`como3r.runtime.codec`, which encodes

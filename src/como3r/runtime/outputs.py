@@ -1,4 +1,4 @@
-"""Writing a run's output folder (DESIGN.md, "A run output folder").
+"""Writing a run's output folder (README, "Run output").
 
 ``config.yaml``, ``trajectories/agent_<a>.txt`` (every tracked frame), ``keyframes/agent_<a>.txt``,
 ``map.ply`` (fused coloured cloud with agent ids), ``graph.json`` and ``metrics.json``.

@@ -1,7 +1,7 @@
 """Synthetic multi-agent outdoor scenes with exact ground truth (``como3r synth``).
 
-:func:`synthesize` writes one agent input folder per agent (DESIGN.md, "Command line and
-files") plus ``scene.json``; the presets are described in :mod:`.presets` and
+:func:`synthesize` writes one agent input folder per agent (README, "Agent
+input") plus ``scene.json``; the presets are described in :mod:`.presets` and
 :mod:`.families`, the rendering in :mod:`.render` and the appearance keys in
 :mod:`.textures`.
 """
