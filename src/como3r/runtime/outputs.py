@@ -150,11 +150,11 @@ def tracking_warnings(results: Sequence[Any]) -> list[str]:
             continue
         lost = stats.lost_frames
         shown = ", ".join(str(f) for f in lost[:20]) + (", ..." if len(lost) > 20 else "")
-        text = (f"warning: agent {result.agent} was tracked on {stats.tracked} of "
+        text = (f"agent {result.agent} was tracked on {stats.tracked} of "
                 f"{stats.frames} processed frames ({100.0 * stats.tracked / stats.frames:.0f} %); "
                 f"{stats.relocalized} relocalized, lost frames: {shown or 'none'}")
-        logger.warning(text)
-        warnings.append(text)
+        logger.warning(text)  # the log line has its own WARNING level
+        warnings.append(f"warning: {text}")
     return warnings
 
 
