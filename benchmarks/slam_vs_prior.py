@@ -44,6 +44,7 @@ from como3r.frontend import agent as agent_module
 from como3r.frontend import keyframes as keyframes_module
 from como3r.frontend import pairs as pairs_module
 from como3r.frontend import tracker as tracker_module
+from como3r.prior.mast3r.precision import PRECISIONS
 from como3r.runtime.pipeline import PriorSpec, _colors, build_prior
 
 PRIOR_STAGES = ("prior_encode", "prior_decode", "prior_retrieval")
@@ -145,14 +146,17 @@ def frontend_run(agent_path: Path, frames: int, overrides: list[str]
     return clock, counters
 
 
-def mast3r_decode_seconds(width: int, height: int) -> float:
-    """One decode of a pair by the full-size MASt3R network (random weights)."""
+def mast3r_decode_seconds(width: int, height: int, precision: str) -> float:
+    """One decode of a pair by the full-size MASt3R network (random weights) at ``precision``
+    as ``como3r run --precision`` chooses it on the CPU."""
     from como3r.prior.mast3r import MASt3RNetwork, parse_model_string
     from como3r.prior.mast3r.config import RELEASED_MODEL_STRING
+    from como3r.prior.mast3r.precision import choose_dtype
     from como3r.prior.mast3r.prior import MASt3RPrior
 
     torch.manual_seed(0)
-    prior = MASt3RPrior(MASt3RNetwork(parse_model_string(RELEASED_MODEL_STRING)))
+    network = MASt3RNetwork(parse_model_string(RELEASED_MODEL_STRING))
+    prior = MASt3RPrior(network, dtype=choose_dtype(torch.device("cpu"), precision))
     enc = prior.encode(torch.rand(1, 3, height, width) * 2 - 1)
     start = time.process_time()
     prior.decode(enc, enc)
@@ -166,6 +170,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--decode-ms", type=float, default=None,
                         help="skip the MASt3R timing and use this decode time")
+    parser.add_argument("--precision", default="auto", choices=PRECISIONS,
+                        help="MASt3R precision of the timed decode (as como3r run --precision)")
     parser.add_argument("--set", action="append", default=[], help="config override")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -173,10 +179,10 @@ def main() -> None:
     seconds = clock.seconds
     width, height = (int(v) for v in counters["resolution"].split("x"))
     decode_ms = (args.decode_ms if args.decode_ms is not None
-                 else 1000.0 * mast3r_decode_seconds(width, height))
+                 else 1000.0 * mast3r_decode_seconds(width, height, args.precision))
     n = counters["frames"]
     print(f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-          f"{args.threads} threads; {counters}; overrides {overrides}")
+          f"{args.threads} threads; {counters}; overrides {args.set}; precision {args.precision}")
     print("stage | ms per frame | calls | ms per call")
     for stage in (*PRIOR_STAGES, *SLAM_STAGES):
         ms, calls = 1000.0 * seconds.get(stage, 0.0), clock.calls.get(stage, 0)
