@@ -165,36 +165,28 @@ def timed(run: Callable[[], object]) -> tuple[float, float]:
     return (time.perf_counter() - start_wall) * 1e3, (time.process_time() - start_cpu) * 1e3
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--official", type=Path, default=Path("/tmp/official/mast3r"),
-                        help="extracted naver/mast3r with dust3r (and its croco) inside")
-    parser.add_argument("--deps", type=Path, default=Path("/tmp/official/deps"),
-                        help="extra import path for the official code's einops")
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--size", default="512x384", help="W x H, multiples of 16")
-    parser.add_argument("--dtypes", nargs="+", default=["fp32", "bf16"], choices=list(DTYPES))
-    parser.add_argument("--tiny", action="store_true", help="tiny configuration (quick check)")
-    parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+def measure(official_root: Path, deps: Path | None, width: int, height: int,
+            dtypes: list[str], repeats: int, seed: int = 0, tiny: bool = False,
+            log: Callable[[str], None] = print) -> dict[tuple[str, str], tuple[float, ...]]:
+    """Median ms of encode and decode, ours per precision against the official fp32.
 
-    official_cls = import_official(args.official.resolve(), args.deps)
-    config = TINY if args.tiny else MASt3RConfig()
-    official_model, network = build_pair(official_cls, config, args.seed)
+    Returns:
+        ``{(precision, "encode" | "decode"): (ours wall, official wall, ours CPU,
+        official CPU)}`` in ms, median of ``repeats`` interleaved runs.
+
+    Raises:
+        SystemExit: our fp32 outputs differ from the official ones by more than 1e-4.
+    """
+    official_cls = import_official(official_root.resolve(), deps)
+    config = TINY if tiny else MASt3RConfig()
+    official_model, network = build_pair(official_cls, config, seed)
     official = Official(official_model)
-    width, height = (int(v) for v in args.size.lower().split("x"))
     images = torch.rand(2, 3, height, width, generator=torch.Generator().manual_seed(1)) * 2 - 1
-
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
-          f"torch {torch.__version__}, {args.threads} threads, {args.size}, median of "
-          f"{args.repeats} interleaved runs, load average {os.getloadavg()[0]:.1f} at start")
-    print(f"network: {'tiny' if args.tiny else 'full'} configuration, "
-          f"{sum(p.numel() for p in network.parameters()):,} parameters, same random weights")
+    log(f"network: {'tiny' if tiny else 'full'} configuration, "
+        f"{sum(p.numel() for p in network.parameters()):,} parameters, same random weights")
 
     # the priors share one network, whose compute dtype is set by the prior about to run
-    priors = {name: MASt3RPrior(network, dtype=DTYPES[name]) for name in args.dtypes}
+    priors = {name: MASt3RPrior(network, dtype=DTYPES[name]) for name in dtypes}
 
     def use(name: str) -> MASt3RPrior:
         network.set_compute_dtype(DTYPES[name])
@@ -202,8 +194,8 @@ def main() -> None:
 
     for name in priors:
         errors = compare(use(name), official, images)
-        print(f"ours {name} vs official fp32, relative error: "
-              + ", ".join(f"{key} {value:.1e}" for key, value in errors.items()))
+        log(f"ours {name} vs official fp32, relative error: "
+            + ", ".join(f"{key} {value:.1e}" for key, value in errors.items()))
         if name == "fp32" and max(errors.values()) > 1e-4:
             raise SystemExit("fp32 outputs differ from the official ones (> 1e-4)")
 
@@ -219,24 +211,45 @@ def main() -> None:
     for run in runs.values():  # warm-up (allocator, oneDNN primitives, RoPE tables)
         run()
     samples: dict[str, list[tuple[float, float]]] = {key: [] for key in runs}
-    for _ in range(args.repeats):
+    for _ in range(repeats):
         for key, run in runs.items():
             samples[key].append(timed(run))
     median = {key: (statistics.median(w for w, _ in s), statistics.median(c for _, c in s))
               for key, s in samples.items()}
-    print(f"load average {os.getloadavg()[0]:.1f} at the end (other processes share the cores)\n")
+    return {(name, step): (*median[f"ours {name} {step}"][:1], median[f"official {step}"][0],
+                           median[f"ours {name} {step}"][1], median[f"official {step}"][1])
+            for name in priors for step in ("encode", "decode")}
 
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--official", type=Path, default=Path("/tmp/official/mast3r"),
+                        help="extracted naver/mast3r with dust3r (and its croco) inside")
+    parser.add_argument("--deps", type=Path, default=Path("/tmp/official/deps"),
+                        help="extra import path for the official code's einops")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--size", default="512x384", help="W x H, multiples of 16")
+    parser.add_argument("--dtypes", nargs="+", default=["fp32", "bf16"], choices=list(DTYPES))
+    parser.add_argument("--tiny", action="store_true", help="tiny configuration (quick check)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    width, height = (int(v) for v in args.size.lower().split("x"))
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+          f"torch {torch.__version__}, {args.threads} threads, {args.size}, median of "
+          f"{args.repeats} interleaved runs, load average {os.getloadavg()[0]:.1f} at start")
+    results = measure(args.official, args.deps, width, height, args.dtypes, args.repeats,
+                      args.seed, args.tiny)
+    print(f"load average {os.getloadavg()[0]:.1f} at the end (other processes share the cores)\n")
     header = (f"{'ours':>5} {'step':>7} {'ours ms':>9} {'official ms':>12} "
               f"{'ours/official':>14} {'speed-up':>9} {'speed-up (CPU time)':>20}")
     print(header)
     print("-" * len(header))
-    for name in priors:
-        for step in ("encode", "decode"):
-            ours_wall, ours_cpu = median[f"ours {name} {step}"]
-            off_wall, off_cpu = median[f"official {step}"]
-            print(f"{name:>5} {step:>7} {ours_wall:>9.0f} {off_wall:>12.0f} "
-                  f"{ours_wall / off_wall:>14.2f} {off_wall / ours_wall:>8.2f}x "
-                  f"{off_cpu / ours_cpu:>19.2f}x")
+    for (name, step), (ours_wall, off_wall, ours_cpu, off_cpu) in results.items():
+        print(f"{name:>5} {step:>7} {ours_wall:>9.0f} {off_wall:>12.0f} "
+              f"{ours_wall / off_wall:>14.2f} {off_wall / ours_wall:>8.2f}x "
+              f"{off_cpu / ours_cpu:>19.2f}x")
 
 
 if __name__ == "__main__":
