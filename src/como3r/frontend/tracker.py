@@ -112,6 +112,8 @@ class FrameTracker:
         base = dict(match_fraction=nu, unique_fraction=nu_unique, X_ff=pred.X_ii, C_ff=pred.C_ii,
                     matches=matches)
         if nu < tracking.min_match_fraction:
+            logger.info("tracking failed against keyframe %d: %.2f of the pixels matched "
+                        "(minimum %.2f)", keyframe.kf_id, nu, tracking.min_match_fraction)
             return TrackResult(False, "too_few_matches", T_kf_init, new_keyframe=True, **base)
         with self.timer.stage("tracking"):
             T_kf, report = self._solve(pred.X_ii, keyframe, matches, T_kf_init)
