@@ -7,6 +7,8 @@ import multiprocessing
 import os
 import shutil
 import signal
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -246,6 +248,25 @@ def test_channel_counts_bytes_and_enforces_the_cap() -> None:
         receiver.receive()
     sender.close()
     receiver.close()
+
+
+def test_close_waits_until_a_late_reader_has_the_whole_message() -> None:
+    """An agent's last message outlives a busy coordinator: close() returns only once the
+    reader took all of it (it used to give up after 30 s and cut the pipe mid-message)."""
+    reader, writer = multiprocessing.Pipe(duplex=False)
+    sender = Channel(None, writer, max_bytes=10_000_000, accepts=(FrameDone,))
+    receiver = Channel(reader, None, max_bytes=10_000_000, accepts=(FrameDone,))
+    big = FrameDone(agent=0, frame_index=1, timestamp=0.0, outcome="x" * 2_000_000, seconds=0)
+    sender.send(big)  # far beyond the pipe's buffer: the sender thread blocks on it
+    received: list[FrameDone] = []
+    late_reader = threading.Timer(1.0, lambda: received.append(receiver.receive()))
+    late_reader.start()
+    started = time.monotonic()
+    sender.close()
+    waited = time.monotonic() - started
+    late_reader.join()
+    receiver.close()
+    assert waited >= 0.9 and received == [big]
 
 
 def test_agent_result_applies_updates_like_the_frontend() -> None:

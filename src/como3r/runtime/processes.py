@@ -178,8 +178,17 @@ class Channel:
         self.messages_received[name] += 1
         return message
 
-    def close(self, timeout: float = 30.0) -> None:
-        """Flush queued messages (up to ``timeout`` seconds) and close both ends."""
+    def close(self, timeout: float | None = None) -> None:
+        """Flush queued messages and close both ends.
+
+        Args:
+            timeout: seconds to wait for the flush; None waits until the other side has
+                read everything or is gone. An agent closes with None: its last messages
+                (keyframes, the final report) sit in the pipe for as long as the
+                coordinator is busy (a global BA can take minutes), and closing the pipe
+                under a half-sent message made the coordinator read a truncated one and
+                count a finished agent as failed.
+        """
         if self._sender is not None:
             self._queue.put(None)
             self._sender.join(timeout)
