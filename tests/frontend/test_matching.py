@@ -142,3 +142,45 @@ def test_inverse_pose_helper_is_consistent() -> None:
     T = sim3_exp(torch.tensor([0.1, 0.2, 0.3, 0.01, 0.02, 0.03, 0.1], dtype=torch.float64))
     x = torch.randn(5, 3, dtype=torch.float64)
     assert torch.allclose(sim3_act(sim3_inverse(T)[None], sim3_act(T[None], x)), x, atol=1e-12)
+
+
+def test_rays_outside_the_view_leave_the_projection_early(monkeypatch) -> None:
+    """Query rays outside the searched view stop once the border stops them, and every
+    match inside the view is the one the brute force finds."""
+    from como3r.frontend import matching
+
+    K = intrinsics_matrix(30.0, 30.0, (W - 1) / 2, (H - 1) / 2, dtype=torch.float64)
+    X_search = unproject_depth(torch.full((H, W), 5.0, dtype=torch.float64), K)
+    # the query camera is turned by 30 degrees: the rays of about a third of its pixels
+    # miss the searched view
+    turn = sim3_exp(torch.tensor([0.0, 0.0, 0.0, 0.0, math.radians(30), 0.0, 0.0],
+                                 dtype=torch.float64))
+    X_query = sim3_act(turn[None, None], unproject_depth(torch.full((H, W), 5.0,
+                                                                    dtype=torch.float64), K))
+    evaluated = [0]
+    ray_cost = matching._ray_cost
+
+    def counted(*args):
+        evaluated[0] += args[4].shape[0]
+        return ray_cost(*args)
+
+    monkeypatch.setattr(matching, "_ray_cost", counted)
+    config = MatchingConfig(descriptor_radius=0, occlusion_ratio=1e9)
+    D = torch.nn.functional.normalize(torch.ones(1, H, W, 4, dtype=torch.float64), dim=-1)
+    m = match_pointmaps(X_search[None], X_query[None], D, D, config)
+    outside = (_brute_force_outside(X_search, X_query, K)).reshape(-1)
+    assert 0.2 < outside.float().mean() < 0.5
+    assert not m.valid[0][outside].any()
+    assert (m.idx[0] == _brute_force(X_search, X_query))[m.valid[0]].float().mean() >= 0.99
+    assert m.valid[0][~outside].float().mean() > 0.95
+    # 3.1 H W ray evaluations; without the early exit the outside pixels ran all
+    # max_iters iterations (7.2 H W)
+    assert evaluated[0] < 4 * H * W
+
+
+def _brute_force_outside(X_search: torch.Tensor, X_query: torch.Tensor,
+                         K: torch.Tensor) -> torch.Tensor:
+    """``(H, W)`` query points whose projection falls outside the searched image."""
+    uvw = X_query @ K.T
+    u, v = uvw[..., 0] / uvw[..., 2], uvw[..., 1] / uvw[..., 2]
+    return (uvw[..., 2] <= 0) | (u < -0.5) | (u > W - 0.5) | (v < -0.5) | (v > H - 0.5)
