@@ -141,6 +141,13 @@ def test_lockstep_reproduces_the_single_process_run(single, lockstep) -> None:
     assert [a["status"] for a in summary.agents] == ["finished", "finished"]
 
 
+def test_the_coordinator_finishes_on_the_cores_the_agents_freed(lockstep, free) -> None:
+    """Free-running, the terminal refinement gets the caller's threads (it ran on one of
+    two cores); lockstep keeps the serial schedule's single thread."""
+    assert _metrics(free[0])["runtime"]["finish_torch_threads"] == torch.get_num_threads()
+    assert _metrics(lockstep[0])["runtime"]["finish_torch_threads"] == 1
+
+
 def test_agent_processes_report_their_time_per_stage(lockstep) -> None:
     out, _ = lockstep
     for agent in _metrics(out)["agents"]:

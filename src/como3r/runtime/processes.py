@@ -104,7 +104,10 @@ class RuntimeOptions:
 
     Attributes:
         lockstep: agents take turns in the single-process schedule (reproducible, serial).
-        torch_threads: intra-op torch threads of every process (the main one while running).
+        torch_threads: intra-op torch threads of every process (the main one while agents
+            run; when free-running, its terminal work after the last agent stopped gets the
+            caller's threads, the cores the agents no longer use: on 2 cores the demo's
+            terminal refinement ran on one).
         max_message_bytes: size cap of one message.
         agent_timeout_s: a running agent silent for longer is terminated as hung.
         shutdown_grace_s: how long a stopping agent may take before it is terminated.
@@ -488,6 +491,7 @@ class _Runtime:
         self.pending: list[tuple[tuple[float, int, int, int], KeyframeMessage]] = []
         self._arrivals = 0
         self.slots: list[_Slot] = []
+        self.finish_threads = options.torch_threads
 
     def start(self, paths: Sequence[Path], spec: PriorSpec) -> None:
         """Start one process per agent and send each its task."""
@@ -514,8 +518,9 @@ class _Runtime:
 
     # ---------------------------------------------------------------- drivers
 
-    def run(self) -> None:
-        """Drive all agents to the end, then run the coordinator's cleanup."""
+    def run(self, finish_threads: int) -> None:
+        """Drive all agents to the end, then run the coordinator's cleanup; free-running,
+        with ``finish_threads`` torch threads (lockstep keeps the serial schedule's one)."""
         if self.options.lockstep:
             self._run_lockstep()
         else:
@@ -523,6 +528,8 @@ class _Runtime:
                 self._pump(0.5)
                 self._process_pending()
                 self._check_timeouts([s for s in self.slots if s.status in _LIVE])
+            torch.set_num_threads(max(1, finish_threads))
+        self.finish_threads = torch.get_num_threads()
         self._process_pending(force=True)
         self._finish()
 
@@ -751,6 +758,7 @@ class _Runtime:
             })
         return {"mode": "multiprocess", "lockstep": self.options.lockstep,
                 "torch_threads": self.options.torch_threads,
+                "finish_torch_threads": self.finish_threads,
                 "max_message_bytes": self.options.max_message_bytes,
                 "agents": agents, "bytes_by_type": dict(by_type),
                 "bytes_total": sum(by_type.values()),
@@ -796,7 +804,7 @@ def run_multiprocess(
         with atomic_output_dir(out, overwrite=overwrite) as staging:
             runtime = _Runtime(inputs, config, prior_spec, options, progress)
             runtime.start(agent_paths, prior_spec)
-            runtime.run()
+            runtime.run(finish_threads=threads)
             runtime.stop()
             if all(s.status == "failed" for s in runtime.slots):
                 raise InputError("every agent failed: " + "; ".join(
