@@ -1,0 +1,36 @@
+"""Every benchmark script imports, parses its options and is listed in the README.
+
+Benchmarks never gate CI on their numbers; this only keeps them runnable as the package
+changes under them (a renamed function or option otherwise surfaces when somebody needs the
+table).
+"""
+
+from __future__ import annotations
+
+import runpy
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPTS = sorted((ROOT / "benchmarks").glob("*.py"))
+
+
+def test_there_are_benchmarks() -> None:
+    assert len(SCRIPTS) >= 10
+
+
+@pytest.mark.parametrize("script", SCRIPTS, ids=lambda p: p.name)
+def test_benchmark_shows_its_help(script: Path, monkeypatch, capsys) -> None:
+    monkeypatch.setattr(sys, "argv", [str(script), "--help"])
+    monkeypatch.setattr(sys, "path", [str(script.parent), *sys.path])
+    with pytest.raises(SystemExit) as stop:
+        runpy.run_path(str(script), run_name="__main__")
+    assert stop.value.code == 0
+    assert "usage:" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("script", SCRIPTS, ids=lambda p: p.name)
+def test_benchmark_is_in_the_readme(script: Path) -> None:
+    assert f"benchmarks/{script.name}" in (ROOT / "README.md").read_text()
