@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from como3r.config import Config, apply_overrides
+from como3r.config import Config
 from como3r.data.preprocess import ImageTransform
 from como3r.data.synth import Intrinsics, Renderer, build_preset
 from como3r.frontend.keyframes import Keyframe
@@ -28,6 +28,7 @@ from como3r.frontend.pairs import directed_matches
 from como3r.frontend.tracker import FrameTracker
 from como3r.geometry.lie import sim3_identity
 from como3r.prior.base import View
+from como3r.prior.ground_truth import GroundTruth, InMemoryTruth
 from como3r.prior.simulated import SimulatedPrior
 
 
@@ -41,26 +42,28 @@ def best_of(repeats: int, fn: Callable[[], object]) -> float:
     return 1000.0 * min(times)
 
 
-def views(width: int, height: int) -> tuple[View, View]:
+def views(width: int, height: int) -> tuple[View, View, InMemoryTruth]:
+    """Two rendered views 2 degrees and 0.3 m apart, and their ground truth."""
     spec = build_preset("default", 1, 100, 0.2, seed=1)
     intrinsics = Intrinsics.from_hfov(width, height, 75.0)
     renderer = Renderer(spec.scene, intrinsics)
     R, t = spec.paths[0].rotations[20], spec.paths[0].positions[20]
-    out = []
+    out, truth = [], InMemoryTruth()
     for index, (R_WC, t_WC) in enumerate([(R, t), (R @ Rotation.from_euler("y", 2, degrees=True)
                                                    .as_matrix(), t + R @ np.array([0, 0, 0.3]))]):
         frame = renderer.render(R_WC, t_WC)
         quat = Rotation.from_matrix(R_WC).as_quat()
-        out.append(View(ImageTransform.to_network(frame.rgb), 0, index,
-                        torch.from_numpy(frame.depth), torch.from_numpy(frame.surface),
-                        torch.tensor([*t_WC, *quat, 1.0]), torch.from_numpy(intrinsics.matrix()).float()))
-    return out[0], out[1]
+        out.append(View(ImageTransform.to_network(frame.rgb), 0, index))
+        truth.add(0, index, GroundTruth(
+            depth=torch.from_numpy(frame.depth), K=torch.from_numpy(intrinsics.matrix()).float(),
+            surface=torch.from_numpy(frame.surface), T_WC=torch.tensor([*t_WC, *quat, 1.0])))
+    return out[0], out[1], truth
 
 
 def frontend_row(width: int, height: int, repeats: int) -> dict[str, float]:
     config = Config()
-    prior = SimulatedPrior(config.simulated_prior)
-    view_k, view_f = views(width, height)
+    view_k, view_f, truth = views(width, height)
+    prior = SimulatedPrior(config.simulated_prior, truth)
     enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
     self_pred = prior.decode(enc_k, enc_k)
     keyframe = Keyframe(0, 0, 0.0, enc_k, sim3_identity(), self_pred.X_ii.clone(),

@@ -25,6 +25,7 @@ import torch
 
 from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
+from como3r.data.ground_truth import AgentFolderTruth
 from como3r.frontend.agent import AgentFrontend
 from como3r.prior.mast3r import MASt3RConfig, MASt3RNetwork, MASt3RPrior
 from como3r.prior.mast3r.precision import choose_dtype
@@ -68,7 +69,7 @@ def seconds_per_frame(prior: CostlyPrior, agent_path: Path, frames: int, prefetc
     start = time.perf_counter()
     stream = prepared_frames(
         ((0, i) for i in indices),
-        lambda a, i: load_frame(source, a, i, config.input.long_side, True), prior, prefetch)
+        lambda a, i: load_frame(source, a, i, config.input.long_side, False), prior, prefetch)
     with contextlib.closing(stream):
         for frame in stream:
             frontend.process(frame.view, frame.timestamp, frame.colors, frame.encoding)
@@ -87,7 +88,8 @@ def main() -> None:
     torch.manual_seed(0)
     dtype = choose_dtype(torch.device("cpu"), args.precision)
     mast3r = MASt3RPrior(MASt3RNetwork(MASt3RConfig()), dtype=dtype)
-    prior = CostlyPrior(SimulatedPrior(Config().simulated_prior), mast3r)
+    truth = AgentFolderTruth({0: open_agent(args.agent)}, Config().input.long_side)
+    prior = CostlyPrior(SimulatedPrior(Config().simulated_prior, truth), mast3r)
     print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, "
           f"{args.threads} torch thread(s), MASt3R {dtype} (random weights), load average "
           f"{os.getloadavg()[0]:.1f}; {args.frames} frames at long side 512")

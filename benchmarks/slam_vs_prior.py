@@ -125,7 +125,7 @@ def frontend_run(agent_path: Path, frames: int, overrides: list[str]
     """Stage clock over the first ``frames`` processed frames and the run's counters."""
     config = apply_overrides(Config(), overrides)
     agent = open_agent(agent_path, fps=config.input.frame_rate_hz)
-    prior, codebook = build_prior(PriorSpec("simulated"), config)
+    prior, codebook = build_prior(PriorSpec("simulated"), config, {0: agent})
     clock = ExclusiveClock()
     decodes = [0]
     instrument(clock)
@@ -135,7 +135,7 @@ def frontend_run(agent_path: Path, frames: int, overrides: list[str]
     shape = None
     for index in indices:
         frame = agent.load_frame(index)
-        view = make_view(frame, 0, config.input.long_side, agent.calib)
+        view = make_view(frame, 0, config.input.long_side)
         shape = tuple(view.image.shape[1:])
         frontend.process(view, frame.timestamp, _colors(view))
     stats = frontend.stats

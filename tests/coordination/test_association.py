@@ -8,6 +8,7 @@ import torch
 from como3r.config import Config, apply_overrides
 from como3r.coordination.association import CrossAgentRetrieval, verify_candidates
 from como3r.data.agent import open_agent
+from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import make_view
 from como3r.data.synth import synthesize
 from como3r.frontend.pairs import DirectedMatches, covisible_fraction
@@ -28,12 +29,13 @@ def facades(tmp_path_factory):
                width=WIDTH, height=HEIGHT)
     # the easy simulated prior: the façade verification fails under the realistic default
     config = apply_overrides(Config(), [f"input.long_side={WIDTH}", "simulated_prior.model=easy"])
-    prior = SimulatedPrior(config.simulated_prior)
+    prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth(
+        {a: open_agent(root / f"agent_{a}") for a in range(2)}, WIDTH))
     views = {}
     for a in range(2):
         agent = open_agent(root / f"agent_{a}")
         for index in range(0, agent.num_frames, STEP):
-            enc = prior.encode(make_view(agent.load_frame(index), a, WIDTH, agent.calib))
+            enc = prior.encode(make_view(agent.load_frame(index), a, WIDTH))
             views[(a, index)] = (enc, prior.decode(enc, enc).X_ii,
                                  agent.groundtruth.T_WC[index].double())
     return prior, config, views

@@ -17,7 +17,8 @@ import torch
 from como3r.config import Config, apply_overrides
 from como3r.coordination.coordinator import Coordinator
 from como3r.data.agent import open_agent
-from como3r.data.preprocess import make_view
+from como3r.data.ground_truth import AgentFolderTruth
+from como3r.data.preprocess import frame_ground_truth, make_view
 from como3r.data.synth import synthesize
 from como3r.errors import InputError
 from como3r.frontend.packets import KeyframePacket, PoseUpdate
@@ -65,7 +66,8 @@ def _build(root, agents: int, frames: int, preset: str, seed: int, step: int) ->
     synthesize(root, agents=agents, seed=seed, overlap=0.2, frames=frames, preset=preset,
                width=WIDTH, height=HEIGHT)
     config = apply_overrides(Config(), OVERRIDES)
-    prior = SimulatedPrior(config.simulated_prior)
+    prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth(
+        {a: open_agent(root / f"agent_{a}") for a in range(agents)}, WIDTH))
     gauges = [torch.tensor([0, 0, 0, 0, 0, 0, 1, 1.0])] + [
         sim3_exp(torch.tensor([3.0 * a, -2.0, 1.0, 0.4, -0.8 * a, 0.3, 0.3 * (-1) ** a]))
         for a in range(1, agents)]
@@ -77,13 +79,14 @@ def _build(root, agents: int, frames: int, preset: str, seed: int, step: int) ->
         packets[a], previous = [], None
         for kf_id, index in enumerate(range(0, agent.num_frames, step)):
             frame = agent.load_frame(index)
-            view = make_view(frame, a, WIDTH, agent.calib)
+            view = make_view(frame, a, WIDTH)
             enc = prior.encode(view)
             pred = prior.decode(enc, enc)
             # the true pose, its scale matching the prior's pointmap as a front-end's would
             T_true = agent.groundtruth.T_WC[index].clone()
-            seen = view.depth > 0
-            X_true = unproject_depth(view.depth, view.K)
+            true = frame_ground_truth(frame, WIDTH, agent.calib)
+            seen = true.depth > 0
+            X_true = unproject_depth(true.depth, true.K)
             T_true[7] = (X_true[seen].norm(dim=-1) / pred.X_ii[seen].norm(dim=-1)).median()
             truth[(a, kf_id)] = T_true
             points[(a, kf_id)] = (X_true, seen)

@@ -2,13 +2,21 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 from PIL import Image
 
 from como3r.data.agent import Frame
-from como3r.data.preprocess import ImageTransform, compute_transform, make_view, resize_crop
+from como3r.data.preprocess import (
+    ImageTransform,
+    compute_transform,
+    frame_ground_truth,
+    make_view,
+    resize_crop,
+)
 from como3r.errors import InputError
 
 
@@ -192,7 +200,7 @@ def test_to_network_normalisation():
     )
 
 
-def test_make_view():
+def test_make_view_carries_no_ground_truth():
     rng = np.random.default_rng(4)
     depth = rng.uniform(1, 3, (480, 640)).astype(np.float32)
     surface = rng.normal(size=(480, 640, 3)).astype(np.float32)
@@ -200,16 +208,30 @@ def test_make_view():
     frame = Frame(7, 0.5, "0007", random_image(640, 480), depth, surface, T_WC)
     calib = (500.0, 505.0, 320.0, 240.0)
     view = make_view(frame, agent=2, long_side=256, calib=calib)
+    assert {f.name for f in dataclasses.fields(view)} == {"image", "agent", "index", "K"}
     assert view.agent == 2 and view.index == 7 and view.shape == (192, 256)
     image, transform = resize_crop(frame.image, 256)
     torch.testing.assert_close(view.image, ImageTransform.to_network(image))
-    torch.testing.assert_close(view.depth, torch.from_numpy(transform.apply_nearest(depth)))
-    assert view.surface.shape == (192, 256, 3) and view.depth.dtype == torch.float32
-    assert view.T_WC is T_WC
     K = np.array([[500.0, 0, 320.0], [0, 505.0, 240.0], [0, 0, 1]])
     assert view.K.dtype == torch.float32
     torch.testing.assert_close(view.K, torch.from_numpy(transform.intrinsics(K)).float())
-    bare = make_view(Frame(0, 0.0, "0", random_image(64, 48)), agent=0, long_side=256)
+    assert make_view(frame, agent=2, long_side=256).K is None  # uncalibrated: no K at all
+
+
+def test_frame_ground_truth_follows_the_view():
+    rng = np.random.default_rng(4)
+    depth = rng.uniform(1, 3, (480, 640)).astype(np.float32)
+    surface = rng.normal(size=(480, 640, 3)).astype(np.float32)
+    T_WC = torch.tensor([1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0, 1.0], dtype=torch.float64)
+    frame = Frame(7, 0.5, "0007", random_image(640, 480), depth, surface, T_WC)
+    calib = (500.0, 505.0, 320.0, 240.0)
+    truth = frame_ground_truth(frame, long_side=256, calib=calib)
+    _, transform = resize_crop(frame.image, 256)
+    torch.testing.assert_close(truth.depth, torch.from_numpy(transform.apply_nearest(depth)))
+    assert truth.surface.shape == (192, 256, 3) and truth.depth.dtype == torch.float32
+    assert truth.T_WC is T_WC
+    torch.testing.assert_close(truth.K, make_view(frame, 2, 256, calib).K)
+    bare = frame_ground_truth(Frame(0, 0.0, "0", random_image(64, 48)), long_side=256)
     assert bare.depth is None and bare.surface is None and bare.K is None and bare.T_WC is None
 
 

@@ -11,6 +11,7 @@ import torch
 
 from como3r.config import RetrievalConfig
 from como3r.data.agent import open_agent
+from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import make_view
 from como3r.decentralized.config import RegistrationConfig
 from como3r.decentralized.confidence import accept_loop, correspondence_ratio, loop_probability
@@ -134,7 +135,8 @@ def test_odometry_neighbour():
 @pytest.fixture(scope="module")
 def registrars(scene, main_config):
     """Registrars of robots 0 and 1 of the scene, with their keyframes (2 m apart)."""
-    prior = SimulatedPrior(main_config.simulated_prior)
+    prior = SimulatedPrior(main_config.simulated_prior, AgentFolderTruth(
+        {robot: open_agent(scene[robot]) for robot in (0, 1)}, main_config.input.long_side))
     out = []
     for robot in (0, 1):
         agent = open_agent(scene[robot])
@@ -142,7 +144,7 @@ def registrars(scene, main_config):
 
         def view_of(k, agent=agent, keyframes=keyframes, robot=robot):
             frame = agent.load_frame(int(keyframes.frames[k]))
-            return make_view(frame, robot, main_config.input.long_side, agent.calib)
+            return make_view(frame, robot, main_config.input.long_side)
 
         out.append((Registrar(prior, robot, view_of, RegistrationConfig()), keyframes, agent))
     return out

@@ -18,7 +18,8 @@ def _process_frames(frontend: AgentFrontend, agent: AgentInput, long_side: int,
     outcomes = []
     for index in indices:
         frame = agent.load_frame(index)
-        view = make_view(frame, frontend.agent, long_side, agent.calib)
+        view = make_view(frame, frontend.agent, long_side,
+                         agent.calib if frontend.config.calibrated else None)
         outcomes.append(frontend.process(view, frame.timestamp, _colors(view)))
     return outcomes
 

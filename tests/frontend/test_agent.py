@@ -9,12 +9,14 @@ import torch
 
 from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
+from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import make_view
 from como3r.data.synth import synthesize
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.packets import PoseUpdate
 from como3r.geometry.lie import sim3_compose, sim3_exp
 from como3r.geometry.umeyama import umeyama_rmse, umeyama_sim3
+from como3r.prior.ground_truth import GroundTruth
 from como3r.prior.simulated import SimulatedPrior
 from como3r.runtime.pipeline import _colors
 
@@ -29,7 +31,7 @@ def tracked(tmp_path_factory, process_frames):
     agent = open_agent(root / "agent_0")
     # the easy simulated prior: these accuracy bounds fail under the realistic default
     config = apply_overrides(Config(), [f"input.long_side={WIDTH}", "simulated_prior.model=easy"])
-    prior = SimulatedPrior(config.simulated_prior)
+    prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth({0: agent}, config.input.long_side))
     frontend = AgentFrontend(prior, config, 0, prior.codebook())
     outcomes = process_frames(frontend, agent, WIDTH,
                               range(0, agent.num_frames, config.input.subsample))
@@ -73,21 +75,33 @@ def test_frames_follow_their_anchor_keyframe(tracked) -> None:
     assert torch.allclose(after, expected, atol=1e-4)
 
 
+class _SkyAtFrame:
+    """Ground truth in which the camera shows only sky at one frame (never seen before)."""
+
+    def __init__(self, index: int, source: AgentFolderTruth) -> None:
+        self.index, self.source = index, source
+
+    def truth(self, agent: int, index: int) -> GroundTruth:
+        truth = self.source.truth(agent, index)
+        if index != self.index:
+            return truth
+        return replace(truth, depth=torch.zeros_like(truth.depth),
+                       surface=torch.full_like(truth.surface, -1.0))
+
+
 def test_lost_frame_is_reported_and_tracking_relocalizes(tmp_path) -> None:
     synthesize(tmp_path, agents=1, seed=5, overlap=0.2, frames=60, preset="default",
                width=WIDTH, height=HEIGHT, progress=None)
     agent = open_agent(tmp_path / "agent_0")
     # the easy simulated prior: these accuracy bounds fail under the realistic default
     config = apply_overrides(Config(), [f"input.long_side={WIDTH}", "simulated_prior.model=easy"])
-    prior = SimulatedPrior(config.simulated_prior)
+    prior = SimulatedPrior(config.simulated_prior, _SkyAtFrame(2, AgentFolderTruth(
+        {0: agent}, config.input.long_side)))
     frontend = AgentFrontend(prior, config, 0, prior.codebook())
     outcomes = {}
     for i in range(0, 8, 2):
         frame = agent.load_frame(i)
-        view = make_view(frame, 0, WIDTH, agent.calib)
-        if i == 2:  # the camera shows something never seen: the sky
-            view = replace(view, depth=torch.zeros_like(view.depth),
-                           surface=torch.full_like(view.surface, -1.0))
+        view = make_view(frame, 0, WIDTH)
         outcomes[i] = frontend.process(view, frame.timestamp, _colors(view))
     assert outcomes[2] == "lost"
     assert frontend.stats.lost_frames == [2]

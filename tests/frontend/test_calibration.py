@@ -7,6 +7,7 @@ import torch
 
 from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
+from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.synth import synthesize
 from como3r.errors import GeometryError
 from como3r.frontend.agent import AgentFrontend
@@ -34,7 +35,7 @@ def test_an_uncalibrated_agent_locks_every_keyframe_to_one_estimated_camera(
     agent = open_agent(tmp_path / "agent_0")
     config = apply_overrides(Config(), ["input.long_side=96",
                                         f"tracking.self_calibration={self_calibration}"])
-    prior = SimulatedPrior(config.simulated_prior)
+    prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth({0: agent}, config.input.long_side))
     frontend = AgentFrontend(prior, config, 0, prior.codebook())
     process_frames(frontend, agent, 96, range(0, 12, 2))
     assert len(frontend.keyframes) >= 2

@@ -6,6 +6,7 @@ import pytest
 
 from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
+from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.synth import synthesize
 from como3r.frontend.agent import AgentFrontend
 from como3r.prior.simulated import SimulatedPrior
@@ -40,7 +41,7 @@ def run(tmp_path_factory, process_frames):
     agent = open_agent(root / "agent_0")
     config = apply_overrides(Config(), [f"input.long_side={WIDTH}", "input.subsample=1",
                                         "simulated_prior.model=easy"])
-    prior = CountingPrior(SimulatedPrior(config.simulated_prior))
+    prior = CountingPrior(SimulatedPrior(config.simulated_prior, AgentFolderTruth({0: agent}, config.input.long_side)))
     frontend = AgentFrontend(prior, config, 0, prior.codebook())
     outcomes = process_frames(frontend, agent, WIDTH, range(agent.num_frames))
     return frontend, prior, outcomes

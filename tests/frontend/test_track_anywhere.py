@@ -18,6 +18,7 @@ import pytest
 
 from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
+from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.synth import synthesize
 from como3r.frontend.agent import AgentFrontend
 from como3r.geometry.umeyama import umeyama_rmse, umeyama_sim3
@@ -34,7 +35,7 @@ def _track(root, process_frames, scale: float, width: int,
     agent = open_agent(root / "agent_0")
     config = apply_overrides(Config(), [f"input.long_side={width}", *overrides])
     assert config.simulated_prior.model == "realistic"
-    prior = SimulatedPrior(config.simulated_prior)
+    prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth({0: agent}, config.input.long_side))
     frontend = AgentFrontend(prior, config, 0, prior.codebook())
     outcomes = process_frames(frontend, agent, width,
                               range(0, agent.num_frames, config.input.subsample))

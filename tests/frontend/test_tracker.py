@@ -18,6 +18,7 @@ from como3r.frontend.tracker import FrameTracker
 from como3r.geometry.camera import lock_to_rays
 from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse, sim3_log
 from como3r.prior.base import PairPrediction, Prior, View
+from como3r.prior.ground_truth import GroundTruth, InMemoryTruth
 from como3r.prior.simulated import SimulatedPrior
 
 W, H = 128, 96
@@ -36,13 +37,24 @@ def renderer_and_pose() -> tuple[Renderer, np.ndarray, np.ndarray, np.ndarray]:
         intrinsics.matrix()
 
 
+#: ground truth of the views the current test rendered (the simulated prior's source)
+TRUTH = InMemoryTruth()
+
+
 def _view(renderer: Renderer, R_WC: np.ndarray, t_WC: np.ndarray, K: np.ndarray, index: int) -> View:
+    """The view rendered at ``(R_WC, t_WC)``; its ground truth replaces frame ``index``'s in
+    :data:`TRUTH`."""
     frame = renderer.render(R_WC, t_WC)
     quat = Rotation.from_matrix(R_WC).as_quat()
     T_WC = torch.tensor([*t_WC, *quat, 1.0], dtype=torch.float64)
-    return View(image=ImageTransform.to_network(frame.rgb), agent=0, index=index,
-                depth=torch.from_numpy(frame.depth), surface=torch.from_numpy(frame.surface),
-                T_WC=T_WC, K=torch.from_numpy(K).float())
+    K = torch.from_numpy(K).float()
+    TRUTH.add(0, index, GroundTruth(depth=torch.from_numpy(frame.depth), K=K,
+                                    surface=torch.from_numpy(frame.surface), T_WC=T_WC))
+    return View(image=ImageTransform.to_network(frame.rgb), agent=0, index=index, K=K)
+
+
+def gt(view: View) -> GroundTruth:
+    return TRUTH.truth(view.agent, view.index)
 
 
 class _ScaledPrior(Prior):
@@ -79,19 +91,19 @@ def test_tracking_recovers_known_relative_sim3(renderer_and_pose, yaw_deg, forwa
                                                scale) -> None:
     renderer, R_WC, t_WC, K = renderer_and_pose
     view_k = _view(renderer, R_WC, t_WC, K, index=0)
-    median_depth = float(view_k.depth[view_k.depth > 0].median())
+    median_depth = float(gt(view_k).depth[gt(view_k).depth > 0].median())
     R_rel = Rotation.from_euler("y", yaw_deg, degrees=True).as_matrix()
     t_rel = np.array([0.3 * forward_frac, 0.0, forward_frac]) * median_depth
     view_f = _view(renderer, R_WC @ R_rel, t_WC + R_WC @ t_rel, K, index=1)
 
     config = Config()
-    prior = _ScaledPrior(SimulatedPrior(NOISE_FREE), scale)
+    prior = _ScaledPrior(SimulatedPrior(NOISE_FREE, TRUTH), scale)
     enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
     keyframe = _keyframe(prior, enc_k)
     result = FrameTracker(prior, config).track(enc_f, keyframe, sim3_identity(dtype=torch.float32))
 
     assert result.ok, result.reason
-    T_true = sim3_compose(sim3_inverse(view_k.T_WC), view_f.T_WC).float()
+    T_true = sim3_compose(sim3_inverse(gt(view_k).T_WC), gt(view_f).T_WC).float()
     T_true[7] = 1.0 / scale  # frame points are `scale` times too large: x_k = (1/scale) R x_f + t
     error = sim3_log(sim3_compose(sim3_inverse(T_true), result.T_kf))
     baseline = max(float(T_true[:3].norm()), 1e-3 * median_depth)
@@ -105,7 +117,7 @@ def test_tracking_converges_with_outliers(renderer_and_pose) -> None:
     view_k = _view(renderer, R_WC, t_WC, K, index=0)
     R_rel = Rotation.from_euler("y", 4.0, degrees=True).as_matrix()
     view_f = _view(renderer, R_WC @ R_rel, t_WC + R_WC @ np.array([0.1, 0.0, 0.4]), K, index=1)
-    prior = SimulatedPrior(NOISE_FREE)
+    prior = SimulatedPrior(NOISE_FREE, TRUTH)
     enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
 
     class Corrupting(_ScaledPrior):
@@ -123,7 +135,7 @@ def test_tracking_converges_with_outliers(renderer_and_pose) -> None:
     keyframe = _keyframe(corrupt, enc_k)
     result = FrameTracker(corrupt, config).track(enc_f, keyframe, sim3_identity(dtype=torch.float32))
     assert result.ok
-    T_true = sim3_compose(sim3_inverse(view_k.T_WC), view_f.T_WC).float()
+    T_true = sim3_compose(sim3_inverse(gt(view_k).T_WC), gt(view_f).T_WC).float()
     error = sim3_log(sim3_compose(sim3_inverse(T_true), result.T_kf))
     assert float(error[3:6].norm()) < math.radians(0.5)
     assert float((result.T_kf[:3] - T_true[:3]).norm()) < 0.05 * float(T_true[:3].norm()) + 0.02
@@ -134,7 +146,7 @@ def test_too_few_matches_is_a_detected_failure(renderer_and_pose) -> None:
     view_k = _view(renderer, R_WC, t_WC, K, index=0)
     turned = R_WC @ Rotation.from_euler("y", 180.0, degrees=True).as_matrix()
     view_f = _view(renderer, turned, t_WC, K, index=1)  # looking the other way: no overlap
-    prior = SimulatedPrior(NOISE_FREE)
+    prior = SimulatedPrior(NOISE_FREE, TRUTH)
     enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
     keyframe = _keyframe(prior, enc_k)
     result = FrameTracker(prior, Config()).track(enc_f, keyframe, sim3_identity(dtype=torch.float32))
@@ -163,14 +175,14 @@ def test_a_pose_few_matches_agree_with_is_rejected(renderer_and_pose,
     view_k = _view(renderer, R_WC, t_WC, K, index=0)
     R_rel = Rotation.from_euler("y", 4.0, degrees=True).as_matrix()
     view_f = _view(renderer, R_WC @ R_rel, t_WC + R_WC @ np.array([0.1, 0.0, 0.3]), K, index=1)
-    prior = _WrongPosePrior(SimulatedPrior(NOISE_FREE), 12.0)
+    prior = _WrongPosePrior(SimulatedPrior(NOISE_FREE, TRUTH), 12.0)
     enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
     config = apply_overrides(Config(), [f"tracking.min_inlier_fraction={min_inlier_fraction}"])
     result = FrameTracker(prior, config).track(enc_f, _keyframe(prior, enc_k),
                                                sim3_identity(dtype=torch.float32))
     if min_inlier_fraction == 0.0:  # the paper: the wrong pose passes as tracked
         assert result.ok
-        T_true = sim3_compose(sim3_inverse(view_k.T_WC), view_f.T_WC).float()
+        T_true = sim3_compose(sim3_inverse(gt(view_k).T_WC), gt(view_f).T_WC).float()
         error = sim3_log(sim3_compose(sim3_inverse(T_true), result.T_kf))
         assert math.degrees(float(error[3:6].norm())) > 3.0
     else:
@@ -182,7 +194,7 @@ def test_calibrated_tracking_recovers_known_relative_pose(renderer_and_pose) -> 
     view_k = _view(renderer, R_WC, t_WC, K, index=0)
     R_rel = Rotation.from_euler("y", 6.0, degrees=True).as_matrix()
     view_f = _view(renderer, R_WC @ R_rel, t_WC + R_WC @ np.array([0.2, 0.0, 0.5]), K, index=1)
-    prior = SimulatedPrior(NOISE_FREE)
+    prior = SimulatedPrior(NOISE_FREE, TRUTH)
     enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
     keyframe = _keyframe(prior, enc_k)
     keyframe.K = view_k.K
@@ -190,10 +202,10 @@ def test_calibrated_tracking_recovers_known_relative_pose(renderer_and_pose) -> 
     config = apply_overrides(Config(), ["calibrated=true"])
     result = FrameTracker(prior, config).track(enc_f, keyframe, sim3_identity(dtype=torch.float32))
     assert result.ok, result.reason
-    T_true = sim3_compose(sim3_inverse(view_k.T_WC), view_f.T_WC).float()
+    T_true = sim3_compose(sim3_inverse(gt(view_k).T_WC), gt(view_f).T_WC).float()
     error = sim3_log(sim3_compose(sim3_inverse(T_true), result.T_kf))
     assert float(error[3:6].norm()) < 1e-3
-    assert float((result.T_kf[:3] - T_true[:3]).norm()) < 1e-3 * float(view_k.depth.max())
+    assert float((result.T_kf[:3] - T_true[:3]).norm()) < 1e-3 * float(gt(view_k).depth.max())
     # the frame's own pointmap was put on the calibrated rays (C-Eq. 16)
     assert torch.allclose(result.X_ff, lock_to_rays(result.X_ff, view_k.K), atol=1e-5)
 

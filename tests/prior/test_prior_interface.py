@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 from como3r.data.preprocess import ImageTransform
 from como3r.data.synth import Intrinsics, Renderer, build_preset
 from como3r.prior.base import Encoding, PairPrediction, Prior, View
+from como3r.prior.ground_truth import GroundTruth, InMemoryTruth
 from como3r.prior.mast3r.prior import MASt3RPrior
 from como3r.prior.mast3r.retrieval import RetrievalHead
 from como3r.prior.mast3r.testing import tiny_network
@@ -25,7 +26,9 @@ def _tiny_mast3r() -> Prior:
     return prior
 
 
-PRIORS = {"simulated": lambda: SimulatedPrior(), "mast3r-tiny": _tiny_mast3r}
+#: ground truth of the rendered views, the simulated prior's source
+TRUTH = InMemoryTruth()
+PRIORS = {"simulated": lambda: SimulatedPrior(truth=TRUTH), "mast3r-tiny": _tiny_mast3r}
 
 
 @pytest.fixture(scope="module")
@@ -38,11 +41,11 @@ def views() -> list[View]:
         R_WC, t_WC = spec.paths[0].rotations[index], spec.paths[0].positions[index]
         frame = renderer.render(R_WC, t_WC)
         quat = Rotation.from_matrix(R_WC).as_quat()
-        out.append(View(ImageTransform.to_network(frame.rgb), agent=1, index=index,
-                        depth=torch.from_numpy(frame.depth),
-                        surface=torch.from_numpy(frame.surface),
-                        T_WC=torch.tensor([*t_WC, *quat, 1.0], dtype=torch.float64),
-                        K=torch.from_numpy(intrinsics.matrix()).float()))
+        out.append(View(ImageTransform.to_network(frame.rgb), agent=1, index=index))
+        TRUTH.add(1, index, GroundTruth(
+            depth=torch.from_numpy(frame.depth), K=torch.from_numpy(intrinsics.matrix()).float(),
+            surface=torch.from_numpy(frame.surface),
+            T_WC=torch.tensor([*t_WC, *quat, 1.0], dtype=torch.float64)))
     return out
 
 

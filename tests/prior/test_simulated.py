@@ -21,7 +21,7 @@ import torch.nn.functional as F
 
 from como3r.config import RetrievalConfig, SimulatedPriorConfig
 from como3r.data.agent import open_agent
-from como3r.data.preprocess import make_view
+from como3r.data.preprocess import frame_ground_truth, make_view
 from como3r.data.synth import synthesize
 from como3r.errors import ConfigError, PriorError
 from como3r.geometry.camera import project, unproject_depth
@@ -35,6 +35,7 @@ from como3r.geometry.lie import (
 )
 from como3r.geometry.umeyama import umeyama_sim3
 from como3r.prior.base import Encoding, PairPrediction, View
+from como3r.prior.ground_truth import GroundTruth, InMemoryTruth
 from como3r.prior.retrieval import RetrievalDatabase
 from como3r.prior.simulated import SimulatedPrior
 
@@ -51,14 +52,43 @@ NOISE_FREE = dataclasses.replace(POSE_NOISE_ONLY, rotation_noise_deg=0.0, transl
 # ---------------------------------------------------------------------------------- fixtures
 
 
-def _load_views(root: Path, agents: int) -> list[list[View]]:
-    """Views of every frame of every agent, at network resolution, with intrinsics."""
+#: ground truth of every view the fixtures load (the simulated priors' source); scenes use
+#: disjoint agent ids
+TRUTH = InMemoryTruth()
+
+
+def _load_views(root: Path, agents: int, first_agent: int = 0) -> list[list[View]]:
+    """Views of every frame of every agent, at network resolution, with intrinsics; their
+    ground truth goes to :data:`TRUTH`."""
     out = []
     for a in range(agents):
         agent = open_agent(root / f"agent_{a}")
-        out.append([make_view(agent.load_frame(i), a, LONG_SIDE, calib=agent.calib)
-                    for i in range(len(agent))])
+        views = []
+        for i in range(len(agent)):
+            frame = agent.load_frame(i)
+            views.append(make_view(frame, first_agent + a, LONG_SIDE, calib=agent.calib))
+            TRUTH.add(first_agent + a, i, frame_ground_truth(frame, LONG_SIDE, agent.calib))
+        out.append(views)
     return out
+
+
+def gt(view: View) -> GroundTruth:
+    """The ground truth of a fixture's view."""
+    return TRUTH.truth(view.agent, view.index)
+
+
+class _ChangedTruth:
+    """:data:`TRUTH` with ``changes`` to the frames of ``views`` (None: every frame)."""
+
+    def __init__(self, views: list[View] | None, **changes: object) -> None:
+        self.frames = None if views is None else {(v.agent, v.index) for v in views}
+        self.changes = changes
+
+    def truth(self, agent: int, index: int) -> GroundTruth:
+        truth = TRUTH.truth(agent, index)
+        if self.frames is None or (agent, index) in self.frames:
+            return dataclasses.replace(truth, **self.changes)
+        return truth
 
 
 @pytest.fixture(scope="module")
@@ -76,12 +106,12 @@ def aliasing_scene(tmp_path_factory) -> tuple[list[View], list[int]]:
     synthesize(root, agents=3, seed=0, overlap=0.3, frames=FRAMES, preset="aliasing",
                width=WIDTH, height=HEIGHT)
     aliased = json.loads((root / "scene.json").read_text())["layout"]["aliased_texture_ids"]
-    return [v for views in _load_views(root, 3) for v in views], aliased
+    return [v for views in _load_views(root, 3, first_agent=10) for v in views], aliased
 
 
 @pytest.fixture(scope="module")
 def prior() -> SimulatedPrior:
-    return SimulatedPrior(EASY)
+    return SimulatedPrior(EASY, TRUTH)
 
 
 # ---------------------------------------------------------------------------------- helpers
@@ -98,12 +128,12 @@ def _pairs(frames: int, gaps: tuple[int, ...]) -> list[tuple[int, int]]:
 
 def _true_points(view: View) -> tuple[torch.Tensor, torch.Tensor]:
     """``(H, W, 3)`` camera-frame points from depth and ``(H, W)`` validity."""
-    return unproject_depth(view.depth, view.K), view.depth > 0
+    return unproject_depth(gt(view).depth, view.K), gt(view).depth > 0
 
 
 def _relative_gt(view_i: View, view_j: View) -> torch.Tensor:
     """``(8,)`` ground-truth pose of camera j in camera i."""
-    return sim3_compose(sim3_inverse(view_i.T_WC), view_j.T_WC).to(torch.float32)
+    return sim3_compose(sim3_inverse(gt(view_i).T_WC), gt(view_j).T_WC).to(torch.float32)
 
 
 def _pose_of_prediction(view_j: View, X_ji: torch.Tensor) -> torch.Tensor:
@@ -125,7 +155,7 @@ def _covisible(view_i: View, view_j: View) -> tuple[torch.Tensor, torch.Tensor]:
     H, W = view_j.shape
     col, row = uv[..., 0].round().long(), uv[..., 1].round().long()
     inside = (col >= 0) & (col < W) & (row >= 0) & (row < H) & valid & (in_j[..., 2] > 0)
-    seen = view_j.depth[row.clamp(0, H - 1), col.clamp(0, W - 1)]
+    seen = gt(view_j).depth[row.clamp(0, H - 1), col.clamp(0, W - 1)]
     return inside & ((seen - in_j[..., 2]).abs() < 0.02 * in_j[..., 2]), uv
 
 
@@ -138,10 +168,10 @@ def _log_range_ratio(view: View, X: torch.Tensor) -> tuple[torch.Tensor, torch.T
 
 def _depth_edges(view: View) -> torch.Tensor:
     """Pixels next to a relative depth jump of more than 10 % (independent of the prior)."""
-    log_depth = torch.log(view.depth.clamp_min(1e-6))
+    log_depth = torch.log(gt(view).depth.clamp_min(1e-6))
     jump_u = (log_depth[:, 1:] - log_depth[:, :-1]).abs() > 0.1
     jump_v = (log_depth[1:] - log_depth[:-1]).abs() > 0.1
-    edge = torch.zeros_like(view.depth, dtype=torch.bool)
+    edge = torch.zeros_like(gt(view).depth, dtype=torch.bool)
     edge[:, 1:] |= jump_u
     edge[:, :-1] |= jump_u
     edge[1:] |= jump_v
@@ -181,12 +211,12 @@ def test_decode_is_deterministic_and_ordered_pairs_are_independent(prior, defaul
     views = default_views[0]
     enc_a, enc_b = prior.encode(views[3]), prior.encode(views[4])
     first, again = prior.decode(enc_a, enc_b), prior.decode(enc_a, enc_b)
-    fresh = SimulatedPrior(EASY).decode(
+    fresh = SimulatedPrior(EASY, TRUTH).decode(
         prior.encode(views[3]), prior.encode(views[4]))
     for field in dataclasses.fields(first):
         assert torch.equal(getattr(first, field.name), getattr(again, field.name))
         assert torch.equal(getattr(first, field.name), getattr(fresh, field.name))
-    other_seed = SimulatedPrior(dataclasses.replace(EASY, seed=1))
+    other_seed = SimulatedPrior(dataclasses.replace(EASY, seed=1), TRUTH)
     assert not torch.equal(other_seed.decode(other_seed.encode(views[3]),
                                              other_seed.encode(views[4])).X_ii, first.X_ii)
     # The scale draw of (i, j) says nothing about the one of (j, i).
@@ -216,14 +246,22 @@ def test_decode_symmetric_matches_both_orders(prior, default_views):
 
 def test_missing_inputs_raise_prior_error(prior, default_views):
     view = default_views[0][0]
+
+    def encode_with(**changes: object) -> Encoding:
+        return SimulatedPrior(EASY, _ChangedTruth([view], **changes)).encode(view)
+
     with pytest.raises(PriorError, match="lacks a depth map .*images alone take --prior mast3r"):
-        prior.encode(dataclasses.replace(view, depth=None))
+        encode_with(depth=None)
     with pytest.raises(PriorError, match="intrinsics K"):
-        prior.encode(dataclasses.replace(view, K=None))
+        encode_with(K=None)
     with pytest.raises(PriorError, match="surface map .* or a ground-truth pose"):
-        prior.encode(dataclasses.replace(view, surface=None, T_WC=None))
+        encode_with(surface=None, T_WC=None)
     with pytest.raises(PriorError, match="depth map of shape"):
-        prior.encode(dataclasses.replace(view, depth=view.depth[:-1]))
+        encode_with(depth=gt(view).depth[:-1])
+    with pytest.raises(PriorError, match="no ground truth for agent 7, frame 0"):
+        prior.encode(dataclasses.replace(view, agent=7))
+    with pytest.raises(PriorError, match="no ground-truth source"):
+        SimulatedPrior(EASY).encode(view)
     with pytest.raises(PriorError, match="cannot decode"):
         prior.decode(Encoding(0, 0, view.shape), prior.encode(view))
 
@@ -231,7 +269,7 @@ def test_missing_inputs_raise_prior_error(prior, default_views):
 @pytest.mark.parametrize("key", ["scale_sigma", "range_noise", "depth_distortion_wavelength"])
 def test_invalid_configuration_names_the_key(key):
     with pytest.raises(ConfigError, match=f"simulated_prior.{key}"):
-        SimulatedPrior(dataclasses.replace(EASY, **{key: -1.0}))
+        SimulatedPrior(dataclasses.replace(EASY, **{key: -1.0}), TRUTH)
 
 
 # ---------------------------------------------------------------------------------- statistics
@@ -240,7 +278,7 @@ def test_invalid_configuration_names_the_key(key):
 def test_scale_error_spread_matches_scale_sigma(default_views):
     config = dataclasses.replace(EASY, depth_distortion_amplitude=0.0,
                                  range_noise=0.0)
-    prior = SimulatedPrior(config)
+    prior = SimulatedPrior(config, TRUTH)
     views = default_views[0]
     encodings = [prior.encode(v) for v in views]
     log_scales = []
@@ -267,14 +305,14 @@ def test_scale_spread_with_every_error_source_on(prior, default_views):
 def test_range_noise_matches_config(default_views):
     views = default_views[0]
     isolated = SimulatedPrior(dataclasses.replace(
-        EASY, scale_sigma=0.0, depth_distortion_amplitude=0.0))
+        EASY, scale_sigma=0.0, depth_distortion_amplitude=0.0), TRUTH)
     log_ratio, valid = _log_range_ratio(views[5], isolated.decode(
         isolated.encode(views[5]), isolated.encode(views[6])).X_ii)
     assert abs(float(log_ratio[valid].std()) / isolated.config.range_noise - 1.0) < 0.05
 
     # With every error on: a 3x3 high-pass removes the scale and the smooth distortion
     # (wavelength 32 px), leaving the per-pixel noise times sqrt(8 / 9).
-    prior = SimulatedPrior(EASY)
+    prior = SimulatedPrior(EASY, TRUTH)
     residuals = []
     for i in range(0, 20, 4):
         log_ratio, valid = _log_range_ratio(views[i], prior.decode(
@@ -289,7 +327,7 @@ def test_range_noise_matches_config(default_views):
 
 def test_depth_distortion_amplitude_and_wavelength(default_views):
     config = dataclasses.replace(EASY, scale_sigma=0.0, range_noise=0.0)
-    prior = SimulatedPrior(config)
+    prior = SimulatedPrior(config, TRUTH)
     views = default_views[0]
     encodings = [prior.encode(v) for v in views]
     wavelength_px = config.depth_distortion_wavelength * max(views[0].shape)
@@ -313,7 +351,7 @@ def test_depth_distortion_amplitude_and_wavelength(default_views):
 
 
 def test_relative_pose_is_the_true_one_for_overlapping_views(default_views):
-    prior = SimulatedPrior(NOISE_FREE)
+    prior = SimulatedPrior(NOISE_FREE, TRUTH)
     views = default_views[0]
     for i, j in [(0, 2), (10, 14), (25, 20), (33, 30)]:
         prediction = prior.decode(prior.encode(views[i]), prior.encode(views[j]))
@@ -326,7 +364,7 @@ def test_relative_pose_is_the_true_one_for_overlapping_views(default_views):
 
 
 def test_pose_noise_matches_config(default_views):
-    prior = SimulatedPrior(POSE_NOISE_ONLY)
+    prior = SimulatedPrior(POSE_NOISE_ONLY, TRUTH)
     views = default_views[0]
     encodings = [prior.encode(v) for v in views]
     angles, relative_shifts = [], []
@@ -378,7 +416,7 @@ def test_confidence_falls_with_range_edges_and_missing_counterparts(prior, defau
     assert prediction.C_ii[edges].mean() < prediction.C_ii[interior].mean()
     # Pixels of j that i does not see get low confidence in X_ji.
     seen_by_i, _ = _covisible(view_j, view_i)
-    unseen = ~seen_by_i & (view_j.depth > 0)
+    unseen = ~seen_by_i & (gt(view_j).depth > 0)
     assert int(unseen.sum()) > 100 and int(seen_by_i.sum()) > 100
     assert prediction.C_ji[seen_by_i].median() > 2.0 * prediction.C_ji[unseen].median()
     assert prediction.Q_ji[seen_by_i].median() > 1.5 > prediction.Q_ji[unseen].median()
@@ -387,10 +425,11 @@ def test_confidence_falls_with_range_edges_and_missing_counterparts(prior, defau
 def test_pair_without_common_keys_gets_low_confidence(prior, default_views):
     view_i = default_views[0][0]
     view_j = default_views[0][1]
-    surface = view_j.surface.clone()
+    surface = gt(view_j).surface.clone()
     surface[..., 0] += 100_000  # textures view i has never seen
     prediction = prior.decode(prior.encode(view_i),
-                              prior.encode(dataclasses.replace(view_j, surface=surface)))
+                              SimulatedPrior(EASY, _ChangedTruth([view_j], surface=surface))
+                              .encode(view_j))
     assert float(prediction.C_ji.max()) < 1.2
     assert float(prediction.Q_ji.median()) < 1.5
     assert bool(torch.isfinite(prediction.X_ji).all())
@@ -400,10 +439,10 @@ def test_pair_without_common_keys_gets_low_confidence(prior, default_views):
 
 def test_sky_is_far_with_confidence_near_one(prior, default_views):
     view = default_views[0][7]
-    depth, surface = view.depth.clone(), view.surface.clone()
+    depth, surface = gt(view).depth.clone(), gt(view).surface.clone()
     depth[:10], surface[:10, :, 0] = 0.0, -1.0  # the top rows become sky
-    prediction = prior.decode(*[prior.encode(dataclasses.replace(
-        view, depth=depth, surface=surface))] * 2)
+    changed = SimulatedPrior(EASY, _ChangedTruth([view], depth=depth, surface=surface))
+    prediction = prior.decode(*[changed.encode(view)] * 2)
     # sky at 10-20 times the median valid range (scale error removed)
     points, _ = _true_points(view)
     true_ranges = points[10:].norm(dim=-1)
@@ -415,14 +454,15 @@ def test_sky_is_far_with_confidence_near_one(prior, default_views):
 
 
 def test_world_keys_without_surface_maps(prior, default_views):
-    views = [dataclasses.replace(v, surface=None) for v in default_views[0][:6]]
-    prediction = SimulatedPrior(NOISE_FREE).decode(
-        *[SimulatedPrior(NOISE_FREE).encode(v) for v in (views[0], views[3])])
+    views = default_views[0][:6]
+    world_keys = SimulatedPrior(NOISE_FREE, _ChangedTruth(None, surface=None))
+    prediction = world_keys.decode(*[world_keys.encode(v) for v in (views[0], views[3])])
     fitted, truth = _pose_of_prediction(views[3], prediction.X_ji), _relative_gt(
         views[0], views[3])
     assert _angle_deg(quat_to_matrix(fitted[3:7]).float(), quat_to_matrix(truth[3:7])) < 0.02
     assert float((fitted[:3].float() - truth[:3]).norm()) < 2e-3
-    default = prior.decode(prior.encode(views[0]), prior.encode(views[3]))
+    noisy = SimulatedPrior(EASY, _ChangedTruth(None, surface=None))
+    default = noisy.decode(noisy.encode(views[0]), noisy.encode(views[3]))
     assert float(default.C_ji.median()) > 3.0
 
 
@@ -433,7 +473,7 @@ def _aliased_pair(views: list[View], aliased: list[int]) -> tuple[View, View]:
     """Two views of different agents, both mostly showing aliased façades, that share no
     surface point (z-buffer test both ways); the most façade-filled such pair."""
     ids = torch.tensor(aliased)
-    fraction = [float(torch.isin(v.surface[..., 0].long(), ids).float().mean()) for v in views]
+    fraction = [float(torch.isin(gt(v).surface[..., 0].long(), ids).float().mean()) for v in views]
     ranked = sorted(range(len(views)), key=lambda k: -fraction[k])[:24]
     for a in ranked:
         for b in ranked:
@@ -449,8 +489,8 @@ def test_aliased_facades_are_confusable_and_give_a_wrong_pose(prior, aliasing_sc
     views, aliased = aliasing_scene
     view_i, view_j = _aliased_pair(views, aliased)
     prediction = prior.decode(prior.encode(view_i), prior.encode(view_j))
-    facade = torch.isin(view_i.surface[..., 0].long(), torch.tensor(aliased)) & (
-        view_i.depth > 0)
+    facade = torch.isin(gt(view_i).surface[..., 0].long(), torch.tensor(aliased)) & (
+        gt(view_i).depth > 0)
     best = (prediction.D_ii[facade] @ prediction.D_ji.reshape(-1, 24).T).max(-1).values
     assert float(best.median()) > 0.9  # every façade pixel has a near-identical twin in j
     # ... and the prior places j where the twin façade would be: a confident wrong pose.
@@ -460,8 +500,8 @@ def test_aliased_facades_are_confusable_and_give_a_wrong_pose(prior, aliasing_sc
     assert rotation_error > 5.0 or translation_error > 0.5
     assert float(prediction.C_ji[prediction.Q_ji > 1.5].median()) > 3.0
     # Keys from world coordinates cannot alias: the same pair then shares nothing.
-    world_keys = prior.decode(*[prior.encode(dataclasses.replace(v, surface=None))
-                                for v in (view_i, view_j)])
+    without_surface = SimulatedPrior(EASY, _ChangedTruth(None, surface=None))
+    world_keys = prior.decode(*[without_surface.encode(v) for v in (view_i, view_j)])
     assert float(world_keys.C_ji.max()) < 1.2
     best = (world_keys.D_ii[facade] @ world_keys.D_ji.reshape(-1, 24).T).max(-1).values
     assert float(best.median()) < 0.85
@@ -496,21 +536,21 @@ def test_codebook_is_trained_once_and_cached(prior, tmp_path, monkeypatch):
         raise AssertionError("the cached codebook must be reused")
 
     monkeypatch.setattr("como3r.prior.retrieval.train_codebook", no_training)
-    np.testing.assert_array_equal(SimulatedPrior().codebook(size=32, cache_dir=tmp_path), first)
+    np.testing.assert_array_equal(SimulatedPrior(truth=TRUTH).codebook(size=32, cache_dir=tmp_path), first)
     monkeypatch.undo()
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     np.testing.assert_array_equal(prior.codebook(size=32), first)  # deterministic
     assert len(list((tmp_path / "xdg" / "como3r").glob("simulated_codebook_*.npy"))) == 1
-    assert not np.array_equal(SimulatedPrior(dataclasses.replace(EASY, seed=3)).codebook(
+    assert not np.array_equal(SimulatedPrior(dataclasses.replace(EASY, seed=3), TRUTH).codebook(
         size=32, cache_dir=tmp_path), first)
 
 
 def test_describe_reports_every_error_model_parameter():
     config = SimulatedPriorConfig(scale_sigma=0.07, seed=4)
-    description = SimulatedPrior(config).describe()
+    description = SimulatedPrior(config, TRUTH).describe()
     for field in dataclasses.fields(config):
         assert description[field.name] == getattr(config, field.name)
     assert description["name"] == "SimulatedPrior"
     assert description["constants"]["sky_range"] == (10.0, 20.0)
     assert description["model"] == "realistic" and "realistic_constants" in description
-    assert SimulatedPrior(EASY).describe()["model"] == "easy"
+    assert SimulatedPrior(EASY, TRUTH).describe()["model"] == "easy"

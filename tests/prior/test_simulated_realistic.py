@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import pytest
@@ -18,7 +19,7 @@ import torch
 
 from como3r.config import SimulatedPriorConfig
 from como3r.data.agent import open_agent
-from como3r.data.preprocess import make_view
+from como3r.data.preprocess import frame_ground_truth, make_view
 from como3r.data.synth import synthesize
 from como3r.errors import ConfigError
 from como3r.geometry.camera import project, rays_from_intrinsics, unproject_depth
@@ -32,6 +33,7 @@ from como3r.geometry.lie import (
 )
 from como3r.geometry.umeyama import umeyama_sim3
 from como3r.prior.base import View
+from como3r.prior.ground_truth import GroundTruth, InMemoryTruth
 from como3r.prior.simulated import SimulatedPrior
 
 WIDTH, HEIGHT, FRAMES, LONG_SIDE = 96, 72, 40, 96
@@ -54,71 +56,95 @@ def views(tmp_path_factory) -> list[list[View]]:
     out = []
     for a in range(2):
         agent = open_agent(Path(root) / f"agent_{a}")
-        out.append([make_view(agent.load_frame(i), a, LONG_SIDE, calib=agent.calib)
-                    for i in range(len(agent))])
+        views = []
+        for i in range(len(agent)):
+            frame = agent.load_frame(i)
+            views.append(make_view(frame, a, LONG_SIDE, calib=agent.calib))
+            TRUTH.add(a, i, frame_ground_truth(frame, LONG_SIDE, agent.calib))
+        out.append(views)
     return out
 
 
-def _ranges(view: View) -> tuple[torch.Tensor, torch.Tensor]:
+#: ground truth of the fixture's views (the simulated priors' source)
+TRUTH = InMemoryTruth()
+
+
+def gt(view: View) -> GroundTruth:
+    """The ground truth of a fixture's view."""
+    return TRUTH.truth(view.agent, view.index)
+
+
+class _LookupTruth:
+    """A ground-truth source answering every frame with ``lookup(agent, index)``."""
+
+    def __init__(self, lookup: Callable[[int, int], GroundTruth]) -> None:
+        self.lookup = lookup
+
+    def truth(self, agent: int, index: int) -> GroundTruth:
+        return self.lookup(agent, index)
+
+
+def _ranges(truth: GroundTruth) -> tuple[torch.Tensor, torch.Tensor]:
     """``(H, W)`` true ranges and validity."""
-    return unproject_depth(view.depth, view.K).norm(dim=-1), view.depth > 0
+    return unproject_depth(truth.depth, truth.K).norm(dim=-1), truth.depth > 0
 
 
-def _log_error(view: View, X: torch.Tensor) -> torch.Tensor:
+def _log_error(truth: GroundTruth, X: torch.Tensor) -> torch.Tensor:
     """Log range error of the valid pixels of ``X`` with the pair's scale (median) removed."""
-    ranges, valid = _ranges(view)
+    ranges, valid = _ranges(truth)
     error = torch.log(X.norm(dim=-1)[valid] / ranges[valid])
     return error - error.median()
 
 
-def _pose_errors(view_i: View, view_j: View, X_ji: torch.Tensor) -> tuple[float, float]:
-    """Rotation error (degrees) and translation error (fraction of view i's median range) of
-    the similarity taking view j's true points to ``X_ji``."""
-    points, valid = unproject_depth(view_j.depth, view_j.K), view_j.depth > 0
+def _pose_errors(truth_i: GroundTruth, truth_j: GroundTruth, X_ji: torch.Tensor
+                 ) -> tuple[float, float]:
+    """Rotation error (degrees) and translation error (fraction of truth i's median range) of
+    the similarity taking truth j's true points to ``X_ji``."""
+    points, valid = unproject_depth(truth_j.depth, truth_j.K), truth_j.depth > 0
     fitted = umeyama_sim3(points[valid].double(), X_ji[valid].double()).float()
-    truth = sim3_compose(sim3_inverse(view_i.T_WC), view_j.T_WC).float()
-    R = quat_to_matrix(fitted[3:7]) @ quat_to_matrix(truth[3:7]).T
+    T_true = sim3_compose(sim3_inverse(truth_i.T_WC), truth_j.T_WC).float()
+    R = quat_to_matrix(fitted[3:7]) @ quat_to_matrix(T_true[3:7]).T
     angle = math.degrees(float(so3_log(matrix_to_quat(R.double())).norm()))
-    ranges, valid_i = _ranges(view_i)
-    shift = float((fitted[:3] / fitted[7] - truth[:3]).norm()) / float(ranges[valid_i].median())
+    ranges, valid_i = _ranges(truth_i)
+    shift = float((fitted[:3] / fitted[7] - T_true[:3]).norm()) / float(ranges[valid_i].median())
     return angle, shift
 
 
-def _covisible(view_i: View, view_j: View) -> torch.Tensor:
+def _covisible(truth_i: GroundTruth, truth_j: GroundTruth) -> torch.Tensor:
     """``(H, W)`` pixels of i that j sees (z-buffer test on j's depth)."""
-    points, valid = unproject_depth(view_i.depth, view_i.K), view_i.depth > 0
-    in_j = sim3_act(sim3_inverse(sim3_compose(sim3_inverse(view_i.T_WC), view_j.T_WC)),
+    points, valid = unproject_depth(truth_i.depth, truth_i.K), truth_i.depth > 0
+    in_j = sim3_act(sim3_inverse(sim3_compose(sim3_inverse(truth_i.T_WC), truth_j.T_WC)),
                     points)
-    uv = project(in_j, view_j.K)
-    H, W = view_j.shape
+    uv = project(in_j, truth_j.K)
+    H, W = truth_j.depth.shape
     col, row = uv[..., 0].round().long(), uv[..., 1].round().long()
     inside = (col >= 0) & (col < W) & (row >= 0) & (row < H) & valid & (in_j[..., 2] > 0)
-    seen = view_j.depth[row.clamp(0, H - 1), col.clamp(0, W - 1)]
+    seen = truth_j.depth[row.clamp(0, H - 1), col.clamp(0, W - 1)]
     return inside & ((seen - in_j[..., 2]).abs() < 0.02 * in_j[..., 2])
 
 
-def _scaled(view: View, factor: float) -> View:
-    """The same view of the scene scaled by ``factor`` (depth, texture coordinates, pose)."""
-    surface = view.surface.clone()
+def _scaled(truth: GroundTruth, factor: float) -> GroundTruth:
+    """The same frame of the scene scaled by ``factor`` (depth, texture coordinates, pose)."""
+    surface = truth.surface.clone()
     surface[..., 1:3] *= factor
-    T_WC = view.T_WC.clone()
+    T_WC = truth.T_WC.clone()
     T_WC[:3] *= factor
-    return dataclasses.replace(view, depth=view.depth * factor, surface=surface, T_WC=T_WC)
+    return dataclasses.replace(truth, depth=truth.depth * factor, surface=surface, T_WC=T_WC)
 
 
 def test_realistic_is_the_default_and_describe_names_the_model():
     assert SimulatedPriorConfig().model == "realistic"
-    assert SimulatedPrior().describe()["model"] == "realistic"
-    assert SimulatedPrior(EASY).describe()["model"] == "easy"
+    assert SimulatedPrior(truth=TRUTH).describe()["model"] == "realistic"
+    assert SimulatedPrior(EASY, TRUTH).describe()["model"] == "easy"
     for key, value in (("gross_failure_rate", 1.5), ("focal_error", -0.1),
                        ("pose_tail_dof", 0), ("image_error_correlation", 1.5),
                        ("image_error_frames", 0.0)):
         with pytest.raises(ConfigError, match=f"simulated_prior.{key}"):
-            SimulatedPrior(dataclasses.replace(REALISTIC, **{key: value}))
+            SimulatedPrior(dataclasses.replace(REALISTIC, **{key: value}), TRUTH)
 
 
 def test_outputs_keep_mast3r_types_and_ranges(views):
-    prior = SimulatedPrior(REALISTIC)
+    prior = SimulatedPrior(REALISTIC, TRUTH)
     prediction = prior.decode(prior.encode(views[0][0]), prior.encode(views[1][20]))
     for field in dataclasses.fields(prediction):
         value = getattr(prediction, field.name)
@@ -129,12 +155,12 @@ def test_outputs_keep_mast3r_types_and_ranges(views):
 
 
 def test_uncalibrated_rays_are_not_the_true_intrinsics_rays(views):
-    realistic, easy = SimulatedPrior(REALISTIC), SimulatedPrior(EASY)
+    realistic, easy = SimulatedPrior(REALISTIC, TRUTH), SimulatedPrior(EASY, TRUTH)
     angles, easy_angles, log_focal = [], [], []
     for i in range(0, 36, 2):
         view = views[0][i]
         true_rays = rays_from_intrinsics(*view.shape, view.K)
-        valid = view.depth > 0
+        valid = gt(view).depth > 0
         for prior, out in ((realistic, angles), (easy, easy_angles)):
             X = prior.decode(prior.encode(view), prior.encode(views[0][i + 1])).X_ii
             cosine = (torch.nn.functional.normalize(X, dim=-1) * true_rays).sum(-1)
@@ -164,12 +190,12 @@ def test_the_pair_pointmap_implies_the_right_correspondences(views):
     no_pose_error = dataclasses.replace(NO_OUTLIERS, rotation_noise_deg=0.0,
                                         translation_noise=0.0, translation_floor=0.0,
                                         gross_failure_rate=0.0)
-    prior = SimulatedPrior(no_pose_error)
+    prior = SimulatedPrior(no_pose_error, TRUTH)
     view_i, view_j = views[0][10], views[0][11]
     enc_i = prior.encode(view_i)
     X_ji = prior.decode(enc_i, prior.encode(view_j)).X_ji
-    points, valid = unproject_depth(view_j.depth, view_j.K), view_j.depth > 0
-    T_ij = sim3_compose(sim3_inverse(view_i.T_WC), view_j.T_WC).float()
+    points, valid = unproject_depth(gt(view_j).depth, view_j.K), gt(view_j).depth > 0
+    T_ij = sim3_compose(sim3_inverse(gt(view_i).T_WC), gt(view_j).T_WC).float()
     true_pixels = project(sim3_act(T_ij, points), view_i.K)[valid]
     H, W = view_i.shape
     grid = torch.stack([2 * true_pixels[:, 0] / (W - 1) - 1, 2 * true_pixels[:, 1] / (H - 1) - 1],
@@ -193,12 +219,12 @@ def test_the_pair_pointmap_implies_the_right_correspondences(views):
 def test_an_image_error_is_shared_by_its_pairs(views):
     correlations = {}
     for name, config in (("realistic", REALISTIC), ("easy", EASY)):
-        prior = SimulatedPrior(config)
+        prior = SimulatedPrior(config, TRUTH)
         enc = [prior.encode(v) for v in views[1][:24]]
         values = []
         for i in range(0, 20, 2):
-            first = _log_error(views[1][i], prior.decode(enc[i], enc[i + 1]).X_ii)
-            second = _log_error(views[1][i], prior.decode(enc[i], enc[i + 3]).X_ii)
+            first = _log_error(gt(views[1][i]), prior.decode(enc[i], enc[i + 1]).X_ii)
+            second = _log_error(gt(views[1][i]), prior.decode(enc[i], enc[i + 3]).X_ii)
             values.append(float(np.corrcoef(first.numpy(), second.numpy())[0, 1]))
         correlations[name] = np.mean(values)
     # measured: 0.91 (realistic), -0.02 (easy)
@@ -207,7 +233,7 @@ def test_an_image_error_is_shared_by_its_pairs(views):
 
 
 def test_pose_error_is_heavy_tailed_grows_with_baseline_and_fails_grossly(views):
-    prior = SimulatedPrior(POSE_ONLY)
+    prior = SimulatedPrior(POSE_ONLY, TRUTH)
     encodings = [[prior.encode(v) for v in agent] for agent in views]
     rotation = {1: [], 6: []}
     gross = []
@@ -215,7 +241,7 @@ def test_pose_error_is_heavy_tailed_grows_with_baseline_and_fails_grossly(views)
         for gap in (1, 6):
             for i in range(0, FRAMES - gap):
                 for x, y in ((i, i + gap), (i + gap, i)):
-                    angle, shift = _pose_errors(views[a][x], views[a][y], prior.decode(
+                    angle, shift = _pose_errors(gt(views[a][x]), gt(views[a][y]), prior.decode(
                         encodings[a][x], encodings[a][y]).X_ji)
                     rotation[gap].append(angle)
                     gross.append(angle > 10.0 or shift > 0.1)
@@ -231,13 +257,13 @@ def test_pose_error_is_heavy_tailed_grows_with_baseline_and_fails_grossly(views)
 
 
 def test_confidence_tracks_the_error_not_covisibility(views):
-    prior = SimulatedPrior(REALISTIC)
+    prior = SimulatedPrior(REALISTIC, TRUTH)
     enc = [prior.encode(v) for v in views[0][:30]]
     correlations = []
     for i in range(0, 28, 3):
         prediction = prior.decode(enc[i], enc[i + 2])
-        error = _log_error(views[0][i], prediction.X_ii).abs().numpy()
-        confidence = prediction.C_ii[views[0][i].depth > 0].numpy()
+        error = _log_error(gt(views[0][i]), prediction.X_ii).abs().numpy()
+        confidence = prediction.C_ii[gt(views[0][i]).depth > 0].numpy()
         ranks = np.argsort(np.argsort(confidence)), np.argsort(np.argsort(-error))
         correlations.append(np.corrcoef(*ranks)[0, 1])
     # measured Spearman 0.57 between C and -|error|; the easy model's C ignores the error
@@ -245,13 +271,13 @@ def test_confidence_tracks_the_error_not_covisibility(views):
     # covisibility barely shows: median C_ji of the pixels of j that i sees over the others
     ratios = {}
     for name, config in (("realistic", REALISTIC), ("easy", EASY)):
-        model = SimulatedPrior(config)
+        model = SimulatedPrior(config, TRUTH)
         values = []
         for i in range(0, 30, 3):
             view_i, view_j = views[0][i], views[0][i + 4]
             prediction = model.decode(model.encode(view_i), model.encode(view_j))
-            seen = _covisible(view_j, view_i)
-            unseen = ~seen & (view_j.depth > 0)
+            seen = _covisible(gt(view_j), gt(view_i))
+            unseen = ~seen & (gt(view_j).depth > 0)
             if int(seen.sum()) > 50 and int(unseen.sum()) > 50:
                 values.append(float(prediction.C_ji[seen].median()
                                     / prediction.C_ji[unseen].median()))
@@ -259,14 +285,18 @@ def test_confidence_tracks_the_error_not_covisibility(views):
     # measured 1.5 (realistic) vs 5.7 (easy, the overlap oracle)
     assert ratios["realistic"] < 3.0 < ratios["easy"]
     # pairs without common keys: not all low-confidence (confident hallucinations)
+    def unseen_textures(agent: int, index: int) -> GroundTruth:
+        truth = TRUTH.truth(agent, index)
+        surface = truth.surface.clone()
+        surface[..., 0] += 100_000  # textures the other view has never seen
+        return dataclasses.replace(truth, surface=surface)
+
+    elsewhere = SimulatedPrior(prior.config, _LookupTruth(unseen_textures))
     medians = []
     for a in range(2):
         for i in range(0, FRAMES - 1, 2):
-            view_j = views[a][i + 1]
-            surface = view_j.surface.clone()
-            surface[..., 0] += 100_000  # textures view i has never seen
-            prediction = prior.decode(prior.encode(views[a][i]), prior.encode(
-                dataclasses.replace(view_j, surface=surface)))
+            prediction = prior.decode(prior.encode(views[a][i]),
+                                      elsewhere.encode(views[a][i + 1]))
             medians.append(float(prediction.C_ji.median()))
     confident = np.mean(np.asarray(medians) > 3.0)
     # measured 0.24 with hallucination_rate 0.3; the easy model: 0 (C_ji < 1.2 everywhere)
@@ -276,15 +306,15 @@ def test_confidence_tracks_the_error_not_covisibility(views):
 def test_flying_pixels_sit_at_depth_discontinuities(views):
     fractions = {}
     for name, config in (("realistic", REALISTIC), ("easy", EASY)):
-        prior = SimulatedPrior(config)
+        prior = SimulatedPrior(config, TRUTH)
         edge_bad, interior_bad = [], []
         for i in range(0, 30, 3):
             view = views[0][i]
-            ranges, valid = _ranges(view)
+            ranges, valid = _ranges(gt(view))
             X = prior.decode(prior.encode(view), prior.encode(views[0][i + 1])).X_ii
             error = torch.zeros_like(ranges)
-            error[valid] = _log_error(view, X)
-            log_depth = torch.log(view.depth.clamp_min(1e-6))
+            error[valid] = _log_error(gt(view), X)
+            log_depth = torch.log(gt(view).depth.clamp_min(1e-6))
             edge = torch.zeros_like(valid)
             jump_u = (log_depth[:, 1:] - log_depth[:, :-1]).abs() > 0.1
             jump_v = (log_depth[1:] - log_depth[:-1]).abs() > 0.1
@@ -305,16 +335,18 @@ def test_scale_drifts_smoothly_along_each_agent_sequence(views):
     only_drift = dataclasses.replace(
         NO_OUTLIERS, scale_sigma=0.0, depth_distortion_amplitude=0.0, range_noise=0.0,
         image_distortion_amplitude=0.0)
-    prior = SimulatedPrior(only_drift)
+    prior = SimulatedPrior(only_drift, TRUTH)
     log_scales, steps = {}, []
     for a in range(2):
         # one image re-indexed along a 240-frame sequence: only the drift changes
         view_i, view_j = views[a][10], views[a][11]
         enc_j = prior.encode(view_j)
-        ranges, valid = _ranges(view_i)
+        ranges, valid = _ranges(gt(view_i))
+        same_image = SimulatedPrior(only_drift, _LookupTruth(lambda _a, _i, v=view_i: gt(v)))
 
         def log_scale(k: int) -> float:
-            X = prior.decode(prior.encode(dataclasses.replace(view_i, index=k)), enc_j).X_ii
+            X = prior.decode(same_image.encode(dataclasses.replace(view_i, index=k)),
+                             enc_j).X_ii
             return float(torch.log(X.norm(dim=-1)[valid] / ranges[valid]).median())
 
         pairs = np.asarray([(log_scale(k), log_scale(k + 1)) for k in range(0, 240, 8)])
@@ -329,7 +361,7 @@ def test_scale_drifts_smoothly_along_each_agent_sequence(views):
 
 
 def test_descriptors_degrade_with_viewpoint_change(views):
-    prior = SimulatedPrior(REALISTIC)
+    prior = SimulatedPrior(REALISTIC, TRUTH)
     accuracy = {}
     for gap in (1, 8):
         values = []
@@ -338,11 +370,11 @@ def test_descriptors_degrade_with_viewpoint_change(views):
             prediction = prior.decode(prior.encode(view_i), prior.encode(view_j))
             D_i, D_j = prediction.D_ii, prediction.D_ji.reshape(-1, prediction.D_ji.shape[-1])
             # a pixel's true counterpart in j: same surface key in both views (exact twins)
-            flat_i, flat_j = view_i.surface.reshape(-1, 3), view_j.surface.reshape(-1, 3)
+            flat_i, flat_j = gt(view_i).surface.reshape(-1, 3), gt(view_j).surface.reshape(-1, 3)
             sample = torch.arange(0, flat_i.shape[0], 7)
             distance = torch.cdist(flat_i[sample], flat_j)
             best = distance.min(-1)
-            keep = (best.values < 0.02) & (view_i.depth.reshape(-1)[sample] > 0)
+            keep = (best.values < 0.02) & (gt(view_i).depth.reshape(-1)[sample] > 0)
             nearest = (D_i.reshape(-1, D_i.shape[-1])[sample[keep]] @ D_j.T).argmax(-1)
             W = view_j.shape[1]
             offset = torch.maximum((nearest % W - best.indices[keep] % W).abs(),
@@ -354,7 +386,7 @@ def test_descriptors_degrade_with_viewpoint_change(views):
 
     def same_texture_similarity(config: SimulatedPriorConfig) -> float:
         """Mean cosine of the clean descriptors of two pixels of one texture far apart."""
-        enc = SimulatedPrior(config).encode(views[0][5])
+        enc = SimulatedPrior(config, TRUTH).encode(views[0][5])
         ids, coords = enc.key_ids.reshape(-1), enc.key_coords.reshape(-1, 3)
         D = enc.descriptors.reshape(ids.numel(), -1).float()
         gen = torch.Generator().manual_seed(0)
@@ -369,15 +401,18 @@ def test_descriptors_degrade_with_viewpoint_change(views):
 
 @pytest.mark.parametrize("factor", [0.1, 20.0])
 def test_relative_errors_do_not_depend_on_the_scene_scale(views, factor):
-    prior = SimulatedPrior(REALISTIC)
+    prior = SimulatedPrior(REALISTIC, TRUTH)
+    bigger = SimulatedPrior(REALISTIC, _LookupTruth(lambda a, i: _scaled(TRUTH.truth(a, i),
+                                                                         factor)))
     for i, j in ((0, 1), (12, 16), (30, 27)):
         base = [views[0][i], views[0][j]]
-        scaled = [_scaled(v, factor) for v in base]
+        truths = [gt(v) for v in base]
+        scaled = [_scaled(t, factor) for t in truths]
         reference = prior.decode(*[prior.encode(v) for v in base])
-        other = prior.decode(*[prior.encode(v) for v in scaled])
+        other = bigger.decode(*[bigger.encode(v) for v in base])
         torch.testing.assert_close(_log_error(scaled[0], other.X_ii),
-                                   _log_error(base[0], reference.X_ii), atol=2e-3, rtol=0)
-        angle, shift = _pose_errors(*base, reference.X_ji)
+                                   _log_error(truths[0], reference.X_ii), atol=2e-3, rtol=0)
+        angle, shift = _pose_errors(*truths, reference.X_ji)
         angle_scaled, shift_scaled = _pose_errors(*scaled, other.X_ji)
         assert abs(angle - angle_scaled) < 0.05 and abs(shift - shift_scaled) < 1e-3
         torch.testing.assert_close(other.C_ii, reference.C_ii, rtol=1e-3, atol=1e-3)

@@ -12,6 +12,7 @@ import torch
 
 from como3r.config import Config, apply_overrides, config_from_dict, config_to_dict
 from como3r.data.agent import open_agent
+from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import make_view
 from como3r.data.synth import synthesize
 from como3r.frontend.agent import AgentFrontend, FrontendStats
@@ -33,11 +34,11 @@ def frontend(tmp_path_factory) -> AgentFrontend:
     agent = open_agent(root / "agent_0")
     # the easy simulated prior: the realistic default makes a single keyframe here
     config = apply_overrides(Config(), [f"input.long_side={WIDTH}", "simulated_prior.model=easy"])
-    prior = SimulatedPrior(config.simulated_prior)
+    prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth({0: agent}, WIDTH))
     fe = AgentFrontend(prior, config, 0, prior.codebook())
     for i in range(0, agent.num_frames, config.input.subsample):
         frame = agent.load_frame(i)
-        view = make_view(frame, 0, WIDTH, agent.calib)
+        view = make_view(frame, 0, WIDTH)
         fe.process(view, frame.timestamp, _colors(view))
     assert len(fe.keyframes) >= 2
     return fe

@@ -31,6 +31,7 @@ from torch import Tensor
 from como3r.data.agent import Frame
 from como3r.errors import InputError
 from como3r.prior.base import View
+from como3r.prior.ground_truth import GroundTruth
 
 PATCH = 16
 """MASt3R patch size: network input sides must be multiples of it (MAST3R_SPEC.md §2.2)."""
@@ -239,15 +240,37 @@ def make_view(
         frame: decoded frame (original resolution).
         agent: agent id.
         long_side: long side of the resize (512 for MASt3R).
-        calib: ``(fx, fy, cx, cy)`` in original pixels, or None (uncalibrated).
+        calib: ``(fx, fy, cx, cy)`` in original pixels in a calibrated run, else None.
 
     Returns:
-        View with ``image (3, H, W)`` in [-1, 1], ``depth (H, W)`` and ``surface (H, W, 3)``
-        float32 when the frame has them, ``T_WC`` the ground-truth pose if any and
-        ``K (3, 3)`` float32 when ``calib`` is given.
+        View with ``image (3, H, W)`` in [-1, 1] and ``K (3, 3)`` float32 when ``calib`` is
+        given; never ground truth (:func:`frame_ground_truth` is the simulated prior's).
     """
     image, transform = resize_crop(frame.image, long_side)
-    depth = surface = K = None
+    return View(image=ImageTransform.to_network(image), agent=agent, index=frame.index,
+                K=None if calib is None else _network_intrinsics(transform, calib))
+
+
+def frame_ground_truth(
+    frame: Frame,
+    long_side: int = 512,
+    calib: tuple[float, float, float, float] | None = None,
+) -> GroundTruth:
+    """A frame's ground truth at the resolution :func:`make_view` gives its image.
+
+    Args:
+        frame: decoded frame (original resolution).
+        long_side: long side of the resize.
+        calib: the agent's ``(fx, fy, cx, cy)`` in original pixels, or None.
+
+    Returns:
+        ``depth (H, W)`` and ``surface (H, W, 3)`` float32 where the frame has them (resized
+        by :meth:`ImageTransform.apply_geometry`), ``K`` from ``calib`` and the frame's
+        ground-truth pose.
+    """
+    height, width = frame.image.shape[:2]
+    transform = compute_transform(width, height, long_side)
+    depth = surface = None
     if frame.depth is not None:
         depth_map, surface_map = transform.apply_geometry(frame.depth, frame.surface)
         depth = torch.from_numpy(np.ascontiguousarray(depth_map))
@@ -255,19 +278,16 @@ def make_view(
             surface = torch.from_numpy(np.ascontiguousarray(surface_map))
     elif frame.surface is not None:
         surface = torch.from_numpy(np.ascontiguousarray(transform.apply_nearest(frame.surface)))
-    if calib is not None:
-        fx, fy, cx, cy = calib
-        K_original = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        K = torch.from_numpy(transform.intrinsics(K_original)).to(torch.float32)
-    return View(
-        image=ImageTransform.to_network(image),
-        agent=agent,
-        index=frame.index,
-        depth=depth,
-        surface=surface,
-        T_WC=frame.T_WC_gt,
-        K=K,
-    )
+    K = None if calib is None else _network_intrinsics(transform, calib)
+    return GroundTruth(depth=depth, K=K, surface=surface, T_WC=frame.T_WC_gt)
+
+
+def _network_intrinsics(transform: ImageTransform,
+                        calib: tuple[float, float, float, float]) -> Tensor:
+    """``(3, 3)`` float32 intrinsics of the transformed image from ``(fx, fy, cx, cy)``."""
+    fx, fy, cx, cy = calib
+    K_original = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return torch.from_numpy(transform.intrinsics(K_original)).to(torch.float32)
 
 
 def _linear_source(size: int, offset: int, scale: float, limit: int

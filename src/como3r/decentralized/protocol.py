@@ -290,17 +290,18 @@ class ProtocolResult:
     seconds: float
 
 
-def build_prior(spec: Any, config: Config, place_method: str) -> tuple[Prior, np.ndarray | None]:
-    """The prior of a :class:`~como3r.runtime.pipeline.PriorSpec` and, for ASMK place
-    recognition, its retrieval codebook."""
-    if spec.name == "simulated":
-        from como3r.prior.simulated import SimulatedPrior
-
-        prior = SimulatedPrior(config.simulated_prior)
-        return prior, (prior.codebook() if place_method == "asmk" else None)
+def build_prior(spec: Any, config: Config, place_method: str,
+                agent_paths: dict[int, str]) -> tuple[Prior, np.ndarray | None]:
+    """The prior of a :class:`~como3r.runtime.pipeline.PriorSpec` for the robots
+    ``agent_paths`` (robot id -> agent input, where the simulated prior reads its ground
+    truth) and, for ASMK place recognition, its retrieval codebook."""
     from como3r.runtime.pipeline import build_prior as build_pipeline_prior
 
-    prior, codebook = build_pipeline_prior(spec, config)
+    agents = {r: open_agent(path, fps=config.input.frame_rate_hz)
+              for r, path in agent_paths.items()}
+    prior, codebook = build_pipeline_prior(spec, config, agents)
+    if spec.name == "simulated":
+        return prior, (codebook if place_method == "asmk" else None)
     if codebook is None:
         raise InputError("the decentralized mode with --prior mast3r needs --retrieval-weights "
                          "for place recognition")
@@ -308,11 +309,11 @@ def build_prior(spec: Any, config: Config, place_method: str) -> tuple[Prior, np
 
 
 def _robot(robot: int, agent_path: str, prior: Prior, codebook: np.ndarray | None,
-           config: Config, settings: DecentralizedConfig, link: Any, needs_K: bool,
+           config: Config, settings: DecentralizedConfig, link: Any,
            leave: tuple[int, str] | None) -> Robot:
     recognizer = PlaceRecognizer(settings.place_method, codebook, config.retrieval)
     return Robot(robot, open_agent(agent_path, fps=config.input.frame_rate_hz), prior,
-                 recognizer, config, settings, link, needs_K, leave)
+                 recognizer, config, settings, link, leave)
 
 
 def _run_thread(robot: int, worker: Robot | Exception, link: ThreadLink,
@@ -347,10 +348,11 @@ def _robot_process_main(robot: int, inbox: Connection, outbox: Connection) -> No
 
         spec = PriorSpec(**{k: (Path(v) if k in ("weights", "retrieval_weights", "codebook")
                                 and v is not None else v) for k, v in task.prior.items()})
-        prior, codebook = build_prior(spec, config, settings.place_method)
+        prior, codebook = build_prior(spec, config, settings.place_method,
+                                      {robot: task.agent_path})
         rounds = [RoundPlan(r, t, tuple(g)) for r, t, g in task.rounds]
         worker = _robot(robot, task.agent_path, prior, codebook, config, settings, link,
-                        spec.name == "simulated" or config.calibrated, task.leave)
+                        task.leave)
         link.send(worker.run(rounds))
     except Exception as exc:
         link.send(_failure(robot, exc))
@@ -419,8 +421,8 @@ def _run_threads(agent_paths: Sequence[str | Path], config: Config,
                  prior: Prior | None) -> Router:
     codebook = None
     if prior is None or settings.place_method == "asmk":
-        prior, codebook = build_prior(prior_spec, config, settings.place_method)
-    needs_K = prior_spec.name == "simulated" or config.calibrated
+        prior, codebook = build_prior(prior_spec, config, settings.place_method,
+                                      {r: str(path) for r, path in enumerate(agent_paths)})
     links: dict[int, ThreadLink] = {}
     router = Router(schedule, lambda robot, data: links[robot].inbox.put(data), max_bytes,
                     range(len(agent_paths)))
@@ -432,7 +434,7 @@ def _run_threads(agent_paths: Sequence[str | Path], config: Config,
     for r, path in enumerate(agent_paths):
         try:
             workers.append(_robot(r, str(path), prior, codebook, config, settings, links[r],
-                                  needs_K, leave.get(r)))
+                                  leave.get(r)))
         except Exception as exc:  # the robot's thread reports it like any other failure
             workers.append(exc)
     codec.resolve_all()

@@ -33,8 +33,8 @@ import numpy as np
 from como3r.config import Config
 from como3r.data.agent import AgentInput
 from como3r.data.preprocess import make_view
-from como3r.decentralized.config import DecentralizedConfig
 from como3r.decentralized.confidence import accept_loop, correspondence_ratio, loop_probability
+from como3r.decentralized.config import DecentralizedConfig
 from como3r.decentralized.keyframes import frame_odometry, select_keyframes
 from como3r.decentralized.messages import (
     DRIVER,
@@ -107,12 +107,11 @@ class Robot:
         config: main configuration (image size, calibration use).
         settings: decentralized configuration.
         link: radio link to the router.
-        needs_K: pass the agent's intrinsics to the prior (the simulated prior needs them).
         leave: ``(round, phase)`` at which the robot drops out, for failure injection.
     """
 
     def __init__(self, robot: int, agent: AgentInput, prior: Prior, recognizer: PlaceRecognizer,
-                 config: Config, settings: DecentralizedConfig, link: Link, needs_K: bool,
+                 config: Config, settings: DecentralizedConfig, link: Link,
                  leave: tuple[int, str] | None = None) -> None:
         self.robot = robot
         self.agent = agent
@@ -120,7 +119,7 @@ class Robot:
         self.link = link
         self.leave = leave
         self._long_side = config.input.long_side
-        self._calib = agent.calib if needs_K else None
+        self._calib = agent.calib if config.calibrated else None
         self.recognizer = recognizer
         self.registrar = Registrar(prior, robot, self._view, settings.registration)
         odometry = frame_odometry(agent)

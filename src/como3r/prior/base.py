@@ -23,25 +23,20 @@ from torch import Tensor
 class View:
     """One pre-processed frame as handed to a prior.
 
+    It carries no ground truth: the simulated prior looks its own up by ``(agent, index)``
+    (:mod:`como3r.prior.ground_truth`).
+
     Attributes:
         image: ``(3, H, W)`` float32 RGB in [-1, 1] (MAST3R_SPEC.md §2 normalisation).
         agent: agent id the frame belongs to.
         index: frame index within the agent's stream.
-        depth: optional ``(H, W)`` float32 metric depth (z) in metres; 0 where unknown.
-            Used by the simulated prior only.
-        surface: optional ``(H, W, 3)`` float32 appearance keys (texture id, s, t);
-            id < 0 for sky. Used by the simulated prior only.
-        T_WC: optional ``(8,)`` ground-truth camera pose (Sim(3) layout, s = 1).
-            Used by the simulated prior only; never by the SLAM system.
-        K: optional ``(3, 3)`` intrinsics at the resolution of ``image``.
+        K: ``(3, 3)`` the user's intrinsics at the resolution of ``image``, in calibrated
+            runs only (``--calib``); None otherwise.
     """
 
     image: Tensor
     agent: int = 0
     index: int = 0
-    depth: Tensor | None = None
-    surface: Tensor | None = None
-    T_WC: Tensor | None = None
     K: Tensor | None = None
 
     @property

@@ -58,6 +58,7 @@ from como3r.geometry.lie import quat_to_matrix, so3_exp
 from como3r.geometry.units import median_of_ranges
 from como3r.prior import simulated_errors as errors
 from como3r.prior.base import Encoding, PairPrediction, Prior, View
+from como3r.prior.ground_truth import GroundTruth, GroundTruthSource
 from como3r.prior.simulated_fit import match_keys, robust_fit
 from como3r.prior.simulated_keys import (
     KeyMatches,
@@ -194,12 +195,17 @@ class SimulatedPrior(Prior):
 
     Args:
         config: error model (``simulated_prior`` section of the configuration).
+        truth: where :meth:`encode` finds each view's ground truth (depth, intrinsics,
+            surface keys or pose) by its agent and frame index; None for a prior that only
+            decodes encodings made elsewhere (a coordinator).
         constants: fixed constants of the sensor model; the defaults are the documented ones.
     """
 
     def __init__(self, config: SimulatedPriorConfig | None = None,
+                 truth: GroundTruthSource | None = None,
                  constants: SimulatedConstants | None = None) -> None:
         self.config = config or SimulatedPriorConfig()
+        self.truth = truth
         self.constants = constants or SimulatedConstants()
         errors.check_config(self.config)
         self.realistic = self.config.model == errors.REALISTIC
@@ -222,21 +228,22 @@ class SimulatedPrior(Prior):
         """Keys, true camera-frame geometry and noise-free descriptors of ``view``.
 
         Raises:
-            PriorError: the view lacks depth or intrinsics ``K``, or has neither a surface
-                map nor a ground-truth pose ``T_WC`` to make keys from, or its maps do not
-                match the image size.
+            PriorError: the prior has no ground-truth source, or the view's frame lacks
+                depth or intrinsics ``K``, or has neither a surface map nor a ground-truth
+                pose to make keys from, or its maps do not match the image size.
         """
-        depth, K = self._validated_inputs(view)
+        truth = self._truth_of(view)
+        depth, K = self._validated_inputs(view, truth)
         H, W = view.shape
         valid = torch.isfinite(depth) & (depth > 0)
         depth = torch.where(valid, depth, torch.zeros_like(depth))
         points = unproject_depth(depth, K)
         rays = rays_from_intrinsics(H, W, K)
         ranges = points.norm(dim=-1)
-        if view.surface is not None:
-            key_ids, key_coords = keys_from_surface(view.surface, valid)
+        if truth.surface is not None:
+            key_ids, key_coords = keys_from_surface(truth.surface, valid)
         else:
-            key_ids, key_coords = keys_from_world(points, view.T_WC, valid)
+            key_ids, key_coords = keys_from_world(points, truth.T_WC, valid)
         focal = 0.5 * float(K[0, 0] + K[1, 1])
         footprint = key_footprint(key_ids, key_coords, ranges / focal + 1e-9,
                                   self.constants.footprint_max_ratio)
@@ -259,28 +266,34 @@ class SimulatedPrior(Prior):
             descriptors=self._clean_descriptors(key_ids, key_coords, footprint).half(),
         )
 
+    def _truth_of(self, view: View) -> GroundTruth:
+        if self.truth is None:
+            raise PriorError(f"simulated prior: no ground-truth source to encode agent "
+                             f"{view.agent}, frame {view.index} (it was built to decode only)")
+        return self.truth.truth(view.agent, view.index)
+
     @staticmethod
-    def _validated_inputs(view: View) -> tuple[Tensor, Tensor]:
+    def _validated_inputs(view: View, truth: GroundTruth) -> tuple[Tensor, Tensor]:
         """``(depth (H, W), K (3, 3))`` as float32; PriorError naming what is missing."""
         name = f"simulated prior: view (agent {view.agent}, frame {view.index})"
-        missing = [what for what, value in (("a depth map (depth/)", view.depth),
-                                            ("intrinsics K (calib.txt)", view.K))
+        missing = [what for what, value in (("a depth map (depth/)", truth.depth),
+                                            ("intrinsics K (calib.txt)", truth.K))
                    if value is None]
-        if view.surface is None and view.T_WC is None:
+        if truth.surface is None and truth.T_WC is None:
             missing.append("a surface map (surface/) or a ground-truth pose (groundtruth.txt)")
         if missing:
             raise PriorError(f"{name} lacks {' and '.join(missing)}, which the simulated "
                              "prior needs; images alone take --prior mast3r")
         H, W = view.shape
-        if tuple(view.depth.shape) != (H, W):
-            raise PriorError(f"{name}: depth map of shape {tuple(view.depth.shape)} does not "
+        if tuple(truth.depth.shape) != (H, W):
+            raise PriorError(f"{name}: depth map of shape {tuple(truth.depth.shape)} does not "
                              f"match the {W}x{H} image")
-        if view.surface is not None and tuple(view.surface.shape) != (H, W, 3):
-            raise PriorError(f"{name}: surface map of shape {tuple(view.surface.shape)}, "
+        if truth.surface is not None and tuple(truth.surface.shape) != (H, W, 3):
+            raise PriorError(f"{name}: surface map of shape {tuple(truth.surface.shape)}, "
                              f"expected ({H}, {W}, 3)")
-        if tuple(view.K.shape) != (3, 3):
-            raise PriorError(f"{name}: K of shape {tuple(view.K.shape)}, expected (3, 3)")
-        return view.depth.to(torch.float32), view.K.to(torch.float32)
+        if tuple(truth.K.shape) != (3, 3):
+            raise PriorError(f"{name}: K of shape {tuple(truth.K.shape)}, expected (3, 3)")
+        return truth.depth.to(torch.float32), truth.K.to(torch.float32)
 
     def _base_logits(self, enc: SimulatedEncoding) -> tuple[Tensor, Tensor]:
         """Pair-independent ``log(C - 1)`` and ``log Q``: falling with range (relative to the

@@ -11,14 +11,14 @@ exists, evaluates the trajectories (merged ATE only within gauge components).
 
 from __future__ import annotations
 
-import dataclasses
 import contextlib
+import dataclasses
 import heapq
 import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -102,13 +102,23 @@ def resolve_weights(spec: PriorSpec) -> PriorSpec:
                                codebook=codebook)
 
 
-def build_prior(spec: PriorSpec, config: Config) -> tuple[Prior, np.ndarray | None]:
+def build_prior(spec: PriorSpec, config: Config, agents: Mapping[int, AgentInput] | None = None
+                ) -> tuple[Prior, np.ndarray | None]:
     """The prior and its retrieval codebook (None when retrieval is unavailable); MASt3R
-    files not in ``spec`` come from the weights cache (:func:`resolve_weights`)."""
+    files not in ``spec`` come from the weights cache (:func:`resolve_weights`).
+
+    Args:
+        spec: which prior.
+        config: the run's configuration.
+        agents: agent id -> input whose frames this prior encodes; the simulated prior reads
+            its ground truth there (None: it only decodes, as a coordinator's does).
+    """
     if spec.name == "simulated":
+        from como3r.data.ground_truth import AgentFolderTruth
         from como3r.prior.simulated import SimulatedPrior
 
-        prior = SimulatedPrior(config.simulated_prior)
+        truth = None if agents is None else AgentFolderTruth(agents, config.input.long_side)
+        prior = SimulatedPrior(config.simulated_prior, truth)
         return prior, prior.codebook()
     if spec.name == "mast3r":
         from como3r.prior.mast3r import load_mast3r
@@ -146,12 +156,11 @@ def _frame_schedule(agents: Sequence[AgentInput], stride: int) -> Iterator[tuple
 
 
 def load_frame(source: AgentInput, agent: int, index: int, long_side: int,
-               needs_K: bool) -> tuple[View, float, np.ndarray]:
+               calibrated: bool) -> tuple[View, float, np.ndarray]:
     """Frame ``index`` of agent ``agent``'s input pre-processed: ``(view, timestamp,
-    colors)``; the intrinsics go into the view only where ``needs_K`` (simulated prior,
-    calibrated run)."""
+    colors)``; the folder's intrinsics go into the view only in a ``calibrated`` run."""
     frame = source.load_frame(index)
-    view = make_view(frame, agent, long_side, source.calib if needs_K else None)
+    view = make_view(frame, agent, long_side, source.calib if calibrated else None)
     return view, frame.timestamp, _colors(view)
 
 
@@ -180,8 +189,7 @@ def run(
         progress: called after every frame with ``(agent, outcome, done, total)``.
     """
     agents = open_agents(agent_paths, config)
-    prior, codebook = build_prior(prior_spec, config)
-    needs_K = prior_spec.name == "simulated" or config.calibrated
+    prior, codebook = build_prior(prior_spec, config, dict(enumerate(agents)))
     frontends = [AgentFrontend(prior, config, a, codebook) for a in range(len(agents))]
     coordinator = Coordinator(prior, config, codebook, len(agents))
     seconds = [0.0] * len(agents)
@@ -189,7 +197,8 @@ def run(
     total = sum(len(range(0, a.num_frames, stride)) for a in agents)
     frames = prepared_frames(
         _frame_schedule(agents, stride),
-        lambda k, i: load_frame(agents[k], k, i, config.input.long_side, needs_K), prior,
+        lambda k, i: load_frame(agents[k], k, i, config.input.long_side, config.calibrated),
+        prior,
         config.input.prefetch_frames)
     with atomic_output_dir(out, overwrite=overwrite) as staging, contextlib.closing(frames):
         for done in range(1, total + 1):

@@ -248,8 +248,7 @@ class _AgentWorker:
         spec = PriorSpec(**{k: (Path(v) if k in _PATH_FIELDS and v is not None else v)
                             for k, v in task.prior.items()})
         self.input = open_agent(task.input_path, fps=self.config.input.frame_rate_hz)
-        self.prior, codebook = build_prior(spec, self.config)
-        self.needs_K = spec.name == "simulated" or self.config.calibrated
+        self.prior, codebook = build_prior(spec, self.config, {task.agent: self.input})
         self.frontend = AgentFrontend(self.prior, self.config, task.agent, codebook)
         self.frames = range(0, self.input.num_frames, self.config.input.subsample)
         self.applied_seq = 0
@@ -262,7 +261,8 @@ class _AgentWorker:
         agent, long_side = self.task.agent, self.config.input.long_side
         frames = prepared_frames(
             ((agent, index) for index in self.frames),
-            lambda a, i: load_frame(self.input, a, i, long_side, self.needs_K), self.prior,
+            lambda a, i: load_frame(self.input, a, i, long_side, self.config.calibrated),
+            self.prior,
             self.config.input.prefetch_frames)
         with contextlib.closing(frames):
             for index in self.frames:
