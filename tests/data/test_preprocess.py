@@ -200,13 +200,21 @@ def test_to_network_normalisation():
     )
 
 
-def test_make_view_carries_no_ground_truth():
+#: intrinsics of the 640x480 frame of :func:`_frame_with_truth`
+CALIB = (500.0, 505.0, 320.0, 240.0)
+
+
+def _frame_with_truth() -> Frame:
+    """A 640x480 frame with depth, surface keys and a ground-truth pose."""
     rng = np.random.default_rng(4)
     depth = rng.uniform(1, 3, (480, 640)).astype(np.float32)
     surface = rng.normal(size=(480, 640, 3)).astype(np.float32)
     T_WC = torch.tensor([1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0, 1.0], dtype=torch.float64)
-    frame = Frame(7, 0.5, "0007", random_image(640, 480), depth, surface, T_WC)
-    calib = (500.0, 505.0, 320.0, 240.0)
+    return Frame(7, 0.5, "0007", random_image(640, 480), depth, surface, T_WC)
+
+
+def test_make_view_carries_no_ground_truth():
+    frame, calib = _frame_with_truth(), CALIB
     view = make_view(frame, agent=2, long_side=256, calib=calib)
     assert {f.name for f in dataclasses.fields(view)} == {"image", "agent", "index", "K"}
     assert view.agent == 2 and view.index == 7 and view.shape == (192, 256)
@@ -219,17 +227,13 @@ def test_make_view_carries_no_ground_truth():
 
 
 def test_frame_ground_truth_follows_the_view():
-    rng = np.random.default_rng(4)
-    depth = rng.uniform(1, 3, (480, 640)).astype(np.float32)
-    surface = rng.normal(size=(480, 640, 3)).astype(np.float32)
-    T_WC = torch.tensor([1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0, 1.0], dtype=torch.float64)
-    frame = Frame(7, 0.5, "0007", random_image(640, 480), depth, surface, T_WC)
-    calib = (500.0, 505.0, 320.0, 240.0)
+    frame, calib = _frame_with_truth(), CALIB
     truth = frame_ground_truth(frame, long_side=256, calib=calib)
     _, transform = resize_crop(frame.image, 256)
-    torch.testing.assert_close(truth.depth, torch.from_numpy(transform.apply_nearest(depth)))
+    torch.testing.assert_close(truth.depth,
+                               torch.from_numpy(transform.apply_nearest(frame.depth)))
     assert truth.surface.shape == (192, 256, 3) and truth.depth.dtype == torch.float32
-    assert truth.T_WC is T_WC
+    assert truth.T_WC is frame.T_WC_gt
     torch.testing.assert_close(truth.K, make_view(frame, 2, 256, calib).K)
     bare = frame_ground_truth(Frame(0, 0.0, "0", random_image(64, 48)), long_side=256)
     assert bare.depth is None and bare.surface is None and bare.K is None and bare.T_WC is None
