@@ -131,7 +131,7 @@ def main() -> None:
         print(f"{n:6d} {int(t['edges']):6d} {t['linearize']:12.4f} {dense} "
               f"{t['sparse']:15.4f} {dense_total} {t['linearize'] + t['sparse']:17.4f}")
     skipped = [n for n in args.sizes if n > args.dense_max]
-    if skipped:
+    if skipped and any(n <= args.dense_max for n in args.sizes):
         largest = max(n for n in args.sizes if n <= args.dense_max)
         estimate = results[largest]["dense"] * (max(skipped) / largest) ** 3
         print(f"dense skipped for N = {skipped}: a (7N)^2 float64 matrix is "
