@@ -176,8 +176,9 @@ def test_free_running_agents_match_the_single_process_run(single, free) -> None:
     assert [a["frames_done"] for a in runtime["agents"]] == [FRAMES // 2, SHORT // 2]
 
 
-def test_bytes_are_counted_per_message_type_and_agent(free) -> None:
-    out, _ = free
+@pytest.mark.parametrize("schedule", ["free", "lockstep"])
+def test_bytes_are_counted_per_message_type_and_agent(schedule, request) -> None:
+    out, _ = request.getfixturevalue(schedule)
     metrics = _metrics(out)
     runtime = metrics["runtime"]
     for agent, entry in enumerate(runtime["agents"]):
@@ -194,7 +195,9 @@ def test_bytes_are_counted_per_message_type_and_agent(free) -> None:
     assert total == runtime["bytes_total"] == sum(
         sum(e["bytes_to_agent"].values()) + sum(e["bytes_from_agent"].values())
         for e in runtime["agents"])
-    assert runtime["bytes_by_type"]["PoseUpdateMessage"] > 0  # the agents met
+    if schedule == "lockstep":  # the agents met while both ran (free-running, a busy
+        # machine can delay the meeting past the agents' end: then no update is sent)
+        assert runtime["bytes_by_type"]["PoseUpdateMessage"] > 0
 
 
 def test_killed_and_crashing_agents_leave_the_others_running(scene, config, tmp_path) -> None:
