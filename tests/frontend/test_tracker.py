@@ -11,12 +11,12 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from como3r.config import Config, SimulatedPriorConfig, apply_overrides
-from como3r.data.preprocess import ImageTransform
+from como3r.data.preprocess import ImageTransform, upsampling
 from como3r.data.synth import Intrinsics, Renderer, build_preset
 from como3r.frontend.keyframes import Keyframe
-from como3r.frontend.tracker import FrameTracker
+from como3r.frontend.tracker import FrameTracker, inlier_fraction
 from como3r.geometry.camera import lock_to_rays
-from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse, sim3_log
+from como3r.geometry.lie import sim3_compose, sim3_exp, sim3_identity, sim3_inverse, sim3_log
 from como3r.prior.base import PairPrediction, Prior, View
 from como3r.prior.ground_truth import GroundTruth, InMemoryTruth
 from como3r.prior.simulated import SimulatedPrior
@@ -232,3 +232,30 @@ def test_range_fusion_keeps_the_keyframe_rays_and_averages_ranges() -> None:
     points = _fusion_keyframe()
     points.fuse(sim3_identity(), X_kf, 3 * torch.ones(1, 2), ranges_only=False)
     assert torch.allclose(points.X_hat, (points.X_init + 3 * X_kf) / 4)  # C-Eq. 3 as printed
+
+
+def test_the_agreement_angle_follows_the_inputs_own_pixels(renderer_and_pose) -> None:
+    """An input enlarged to the network size cannot place a match finer than its own pixels:
+    the pose-agreement angle grows with the enlargement (and never shrinks)."""
+    assert upsampling((320, 240), 512) == pytest.approx(1.6)
+    assert upsampling((1920, 1080), 512) < 1.0
+    prior, config = SimulatedPrior(NOISE_FREE, TRUTH), Config()
+    angle = config.tracking.inlier_angle_deg
+    assert FrameTracker(prior, config, upsampling=1.6).inlier_angle_deg == pytest.approx(
+        1.6 * angle)
+    assert FrameTracker(prior, config, upsampling=0.5).inlier_angle_deg == angle
+    renderer, R_WC, t_WC, K = renderer_and_pose
+    view_k = _view(renderer, R_WC, t_WC, K, index=0)
+    R_rel = Rotation.from_euler("y", 4.0, degrees=True).as_matrix()
+    view_f = _view(renderer, R_WC @ R_rel, t_WC + R_WC @ np.array([0.1, 0.0, 0.3]), K, index=1)
+    enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
+    keyframe = _keyframe(prior, enc_k)
+    result = FrameTracker(prior, config).track(enc_f, keyframe, sim3_identity(dtype=torch.float32),
+                                               fuse=False)
+    assert result.ok
+    # the solved pose turned by 1.3 degrees: outside 1 degree, inside 1.6
+    turn = sim3_exp(torch.tensor([0.0, 0.0, 0.0, 0.0, math.radians(1.3), 0.0, 0.0]))
+    off = sim3_compose(turn, result.T_kf)
+    agree = [inlier_fraction(off, result.X_ff, keyframe.X_hat, result.matches, config.tracking,
+                             a) for a in (angle, 1.6 * angle)]
+    assert agree[0] < config.tracking.min_inlier_fraction <= agree[1], agree

@@ -228,6 +228,12 @@ def resize_crop(
     return np.array(cropped), transform
 
 
+def upsampling(image_size: tuple[int, int], long_side: int) -> float:
+    """Network pixels per input pixel of a ``(W, H)`` image resized to ``long_side``
+    (> 1: the image is enlarged, so one of its pixels spans several network pixels)."""
+    return long_side / max(image_size)
+
+
 def make_view(
     frame: Frame,
     agent: int,

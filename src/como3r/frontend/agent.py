@@ -112,10 +112,12 @@ class AgentFrontend:
         agent: the agent's id.
         codebook: ``(K, d)`` retrieval codebook; without one there is no intra-agent loop
             closure and relocalization only tries the most recent keyframes.
+        upsampling: network pixels per pixel of the agent's input
+            (:func:`como3r.data.preprocess.upsampling`; see :class:`FrameTracker`).
     """
 
     def __init__(self, prior: Prior, config: Config, agent: int = 0,
-                 codebook: np.ndarray | None = None) -> None:
+                 codebook: np.ndarray | None = None, upsampling: float = 1.0) -> None:
         self.config = config
         self.agent = agent
         self.keyframes = KeyframeStore()
@@ -124,7 +126,7 @@ class AgentFrontend:
         self.stats = FrontendStats()
         self.timer = StageTimer(self.stats.stage_seconds)
         self.prior = TimedPrior(prior, self.timer)
-        self.tracker = FrameTracker(self.prior, config, self.timer)
+        self.tracker = FrameTracker(self.prior, config, self.timer, upsampling)
         self.database = RetrievalDatabase(codebook, config.retrieval) if codebook is not None else None
         self.new_keyframes: list[int] = []  # keyframes not yet handed to a coordinator
         self._T_kf_prev: Tensor | None = None

@@ -77,12 +77,18 @@ class FrameTracker:
         prior: the two-view prior.
         config: the run's configuration.
         timer: charged with the stages ``matching``, ``tracking`` and ``fusion``.
+        upsampling: network pixels per pixel of the agent's input (> 1 when the input was
+            enlarged to ``input.long_side``): the pose-agreement angle
+            ``tracking.inlier_angle_deg`` is given at the input's own resolution and grows
+            with it, as an enlarged image cannot place a match finer than its own pixels.
     """
 
-    def __init__(self, prior: Prior, config: Config, timer: StageTimer | None = None) -> None:
+    def __init__(self, prior: Prior, config: Config, timer: StageTimer | None = None,
+                 upsampling: float = 1.0) -> None:
         self.prior = prior
         self.config = config
         self.timer = StageTimer() if timer is None else timer
+        self.inlier_angle_deg = config.tracking.inlier_angle_deg * max(1.0, upsampling)
         self._warm: tuple[int, Tensor] | None = None  # (keyframe id, (1, P, 2) pixels)
 
     def track(
@@ -121,7 +127,8 @@ class FrameTracker:
             logger.info("tracking failed against keyframe %d: %s", keyframe.kf_id, report.reason)
             return TrackResult(False, report.reason, T_kf_init, new_keyframe=True, solve=report,
                                **base)
-        inliers = inlier_fraction(T_kf, pred.X_ii, keyframe.X_hat, matches, tracking)
+        inliers = inlier_fraction(T_kf, pred.X_ii, keyframe.X_hat, matches, tracking,
+                                  self.inlier_angle_deg)
         if inliers < tracking.min_inlier_fraction:
             logger.info("tracking against keyframe %d rejected: %.2f of the matches agree with "
                         "the pose", keyframe.kf_id, inliers)
@@ -184,25 +191,26 @@ def _unique_fraction(matches: DirectedMatches, searched_pixels: int) -> float:
 
 
 def inlier_fraction(T_kf: Tensor, X_ff: Tensor, X_hat: Tensor, matches: DirectedMatches,
-                    tracking: TrackingConfig) -> float:
+                    tracking: TrackingConfig, angle_deg: float) -> float:
     """Share of the valid matches that agree with a solved frame pose.
 
-    A match agrees when the frame's point moved by ``T_kf`` lies within
-    ``tracking.inlier_angle_deg`` of the keyframe point's ray and its range within
-    ``tracking.sigma_dist`` (relative) of the keyframe point's range.
+    A match agrees when the frame's point moved by ``T_kf`` lies within ``angle_deg`` of the
+    keyframe point's ray and its range within ``tracking.sigma_dist`` (relative) of the
+    keyframe point's range.
 
     Args:
         T_kf: ``(8,)`` frame pose in the keyframe's camera.
         X_ff: ``(H, W, 3)`` the frame's pointmap; X_hat: ``(H, W, 3)`` the keyframe's.
         matches: keyframe pixels looked up in the frame.
-        tracking: the thresholds.
+        tracking: the range threshold.
+        angle_deg: the ray threshold (:attr:`FrameTracker.inlier_angle_deg`).
     """
     if not bool(matches.valid.any()):
         return 0.0
     X_f = sim3_act(T_kf.to(X_ff.dtype)[None], gather_points(X_ff, matches.idx)[matches.valid])
     X_k = X_hat.reshape(-1, 3)[matches.valid]
     cosine = (F.normalize(X_f, dim=-1) * F.normalize(X_k, dim=-1)).sum(-1)
-    close_ray = cosine > math.cos(math.radians(tracking.inlier_angle_deg))
+    close_ray = cosine > math.cos(math.radians(angle_deg))
     range_k = X_k.norm(dim=-1)
     close_range = (X_f.norm(dim=-1) - range_k).abs() < tracking.sigma_dist * range_k
     return float((close_ray & close_range).float().mean())

@@ -26,7 +26,7 @@ import torch
 from como3r.config import Config
 from como3r.coordination.coordinator import Coordinator
 from como3r.data.agent import AgentInput, open_agent
-from como3r.data.preprocess import make_view
+from como3r.data.preprocess import make_view, upsampling
 from como3r.errors import InputError
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.packets import PointmapRefresh, PoseUpdate
@@ -190,7 +190,9 @@ def run(
     """
     agents = open_agents(agent_paths, config)
     prior, codebook = build_prior(prior_spec, config, dict(enumerate(agents)))
-    frontends = [AgentFrontend(prior, config, a, codebook) for a in range(len(agents))]
+    frontends = [AgentFrontend(prior, config, a, codebook,
+                               upsampling(agent.image_size, config.input.long_side))
+                 for a, agent in enumerate(agents)]
     coordinator = Coordinator(prior, config, codebook, len(agents))
     seconds = [0.0] * len(agents)
     stride = config.input.subsample

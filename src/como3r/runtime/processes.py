@@ -63,6 +63,7 @@ from torch import Tensor
 from como3r.config import Config, config_from_dict, config_to_dict
 from como3r.coordination.coordinator import Coordinator
 from como3r.data.agent import AgentInput, open_agent
+from como3r.data.preprocess import upsampling
 from como3r.errors import Como3rError, InputError
 from como3r.frontend.agent import AgentFrontend, FrontendStats
 from como3r.frontend.keyframes import apply_pointmap_update, apply_pose_update
@@ -249,7 +250,9 @@ class _AgentWorker:
                             for k, v in task.prior.items()})
         self.input = open_agent(task.input_path, fps=self.config.input.frame_rate_hz)
         self.prior, codebook = build_prior(spec, self.config, {task.agent: self.input})
-        self.frontend = AgentFrontend(self.prior, self.config, task.agent, codebook)
+        self.frontend = AgentFrontend(
+            self.prior, self.config, task.agent, codebook,
+            upsampling(self.input.image_size, self.config.input.long_side))
         self.frames = range(0, self.input.num_frames, self.config.input.subsample)
         self.applied_seq = 0
         self.seconds = 0.0
