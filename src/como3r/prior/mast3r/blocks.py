@@ -33,11 +33,18 @@ def layer_norm(dim: int) -> nn.LayerNorm:
 
 
 _ONEDNN = torch.backends.mkldnn.is_available()
+#: oneDNN's bf16 inner product needs bf16 instructions (AVX512-BF16/AMX, or its AVX512
+#: emulation); on an AVX2-only CPU it has no primitive and raises, so bf16 takes ``F.linear``
+_ONEDNN_DTYPES = (
+    (torch.float32, torch.bfloat16)
+    if _ONEDNN and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    else (torch.float32,)
+)
 
 
 def _linear(x: Tensor, weight: Tensor, bias: Tensor, gelu: bool) -> Tensor:
     """``gelu?(x W^T + b)``, through oneDNN for CPU inference (no autograd), else ``F.linear``."""
-    onednn_dtype = x.dtype in (torch.float32, torch.bfloat16) and x.dtype == weight.dtype
+    onednn_dtype = x.dtype in _ONEDNN_DTYPES and x.dtype == weight.dtype
     if _ONEDNN and onednn_dtype and x.device.type == "cpu" and not torch.is_grad_enabled():
         # attribute "gelu" with algorithm "none" is the erf form
         activation, algorithm = ("gelu", "none") if gelu else ("none", "")
