@@ -27,6 +27,23 @@ pip_install() {
     fi
 }
 
+# Whether a package index answers within 10 s (any HTTP answer, or a TLS handshake pip may
+# accept with its own certificates, counts). pip alone cannot tell: with find-links or an extra
+# index in the user's pip configuration, an unreachable --index-url is skipped silently.
+index_reachable() {
+    "$PY" -c '
+import ssl, sys, urllib.error, urllib.request
+try:
+    urllib.request.urlopen(sys.argv[1], timeout=10)
+except urllib.error.HTTPError:
+    pass
+except urllib.error.URLError as exc:
+    sys.exit(0 if isinstance(exc.reason, ssl.SSLError) else 1)
+except OSError:
+    sys.exit(1)
+' "$1/torch/" >/dev/null 2>&1
+}
+
 index_args=()
 if [ -n "$INDEX" ]; then index_args=(--index-url "$INDEX"); fi
 
@@ -38,7 +55,8 @@ elif command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; the
     pip_install ${index_args[@]+"${index_args[@]}"} "torch>=2.4"
 elif [ -n "$INDEX" ]; then
     pip_install --index-url "$INDEX" "$TORCH_PIN"
-elif ! pip_install --index-url "$CPU_INDEX" --timeout 10 --retries 0 "$TORCH_PIN"; then
+elif ! index_reachable "$CPU_INDEX" \
+        || ! pip_install --index-url "$CPU_INDEX" --timeout 10 --retries 0 "$TORCH_PIN"; then
     echo "como3r: PyTorch's CPU index $CPU_INDEX could not be reached; falling back to" \
          "PyPI's $TORCH_PIN (on Linux the CUDA build: about 530 MB plus a few GB of NVIDIA" \
          "libraries)" >&2

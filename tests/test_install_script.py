@@ -17,22 +17,24 @@ SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "install.sh"
 CPU_INDEX = "https://download.pytorch.org/whl/cpu"
 
 FAKE_PYTHON = """#!{bash}
-echo "$*" >> "{log}"
+call="$*"
+echo "${{call//$'\\n'/ }}" >> "{log}"
 if [ "$1" = "-c" ]; then
     case "$2" in
         *print*) echo 9.9.9; exit 0 ;;
+        *urlopen*) [ "{cpu_index_up}" = "1" ]; exit $? ;;
         *) [ "{torch_installed}" = "1" ]; exit $? ;;
     esac
 fi
 case "$*" in
-    *"--index-url {cpu_index}"*) [ "{cpu_index_up}" = "1" ]; exit $? ;;
+    *"--index-url {cpu_index}"*) [ "{cpu_index_pip_ok}" = "1" ]; exit $? ;;
 esac
 exit 0
 """
 
 
 def _run(tmp_path: Path, *, torch_installed: bool = False, cpu_index_up: bool = True,
-         driver: bool = False, dry_run: bool = True, env: dict[str, str] | None = None,
+         cpu_index_pip_ok: bool = True, driver: bool = False, dry_run: bool = True, env: dict[str, str] | None = None,
          args: tuple[str, ...] = ()) -> tuple[subprocess.CompletedProcess[str], list[str]]:
     """Run install.sh with a fake python on a PATH of nothing else; (result, python calls)."""
     bash = shutil.which("bash")
@@ -44,7 +46,7 @@ def _run(tmp_path: Path, *, torch_installed: bool = False, cpu_index_up: bool = 
     fake = bin_dir / "python"
     fake.write_text(FAKE_PYTHON.format(
         bash=bash, log=log, torch_installed=int(torch_installed), cpu_index=CPU_INDEX,
-        cpu_index_up=int(cpu_index_up)))
+        cpu_index_up=int(cpu_index_up), cpu_index_pip_ok=int(cpu_index_pip_ok)))
     fake.chmod(0o755)
     dirname = shutil.which("dirname")
     assert dirname is not None
@@ -101,21 +103,48 @@ def test_como3r_torch_index_replaces_the_cpu_index(tmp_path: Path) -> None:
     assert CPU_INDEX not in result.stdout
 
 
-@pytest.mark.parametrize("cpu_index_up", [True, False])
-def test_unreachable_cpu_index_falls_back_to_pypi_and_says_so(tmp_path: Path,
-                                                              cpu_index_up: bool) -> None:
-    result, calls = _run(tmp_path, cpu_index_up=cpu_index_up, dry_run=False)
+@pytest.mark.parametrize("case", ["up", "unreachable", "pip_fails"])
+def test_unreachable_cpu_index_falls_back_to_pypi_and_says_so(tmp_path: Path, case: str) -> None:
+    """The index is probed first (pip with find-links or an extra index in the user's pip
+    configuration skips an unreachable --index-url silently, so only the probe can say it);
+    a pip install from a reachable index that still fails falls back the same way."""
+    result, calls = _run(tmp_path, cpu_index_up=case != "unreachable",
+                         cpu_index_pip_ok=case != "pip_fails", dry_run=False)
     assert result.returncode == 0, result.stderr
+    probes = [c for c in calls if c.startswith("-c") and "urlopen" in c]
+    assert len(probes) == 1 and probes[0].endswith(f"{CPU_INDEX}/torch/")
     pip = _pip_calls(calls)
-    assert pip[0] == (f"-m pip install --index-url {CPU_INDEX} --timeout 10 --retries 0 "
-                      "torch==2.13.0")
-    if cpu_index_up:
-        assert pip[1:] == ["-m pip install -e ."]
-        assert "could not be reached" not in result.stderr
+    from_index = (f"-m pip install --index-url {CPU_INDEX} --timeout 10 --retries 0 "
+                  "torch==2.13.0")
+    notes = [line for line in result.stderr.splitlines() if "could not be reached" in line]
+    if case == "up":
+        assert pip == [from_index, "-m pip install -e ."]
+        assert notes == []
     else:
-        assert pip[1:] == ["-m pip install torch==2.13.0", "-m pip install -e ."]
-        notes = [line for line in result.stderr.splitlines() if "could not be reached" in line]
+        fallback = ["-m pip install torch==2.13.0", "-m pip install -e ."]
+        assert pip == ([from_index] if case == "pip_fails" else []) + fallback
         assert len(notes) == 1 and "falling back to PyPI's torch==2.13.0" in notes[0]
+
+
+def test_probe_answers_within_ten_seconds_for_an_unresolvable_index(tmp_path: Path) -> None:
+    """The real probe (this interpreter, not the fake) on an index that does not resolve
+    fails fast and the script falls back with its one line."""
+    import os
+    import sys
+    import time
+
+    bash = shutil.which("bash")
+    assert bash is not None
+    script = SCRIPT.read_text()
+    probe = script[script.index("index_reachable() {"):script.index("\n}\n", script.index(
+        "index_reachable() {")) + 3]
+    start = time.monotonic()
+    result = subprocess.run(
+        [bash, "-c", f"PY={sys.executable}\n{probe}\nindex_reachable http://nonexistent.invalid"],
+        capture_output=True, text=True, check=False, timeout=30,
+        env={"PATH": os.environ.get("PATH", ""), "HOME": str(tmp_path)})  # no proxy variables
+    assert result.returncode == 1
+    assert time.monotonic() - start < 12
 
 
 def test_test_extras(tmp_path: Path) -> None:
