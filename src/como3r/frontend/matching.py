@@ -244,28 +244,42 @@ def refine_with_descriptors(
     table = padded.permute(0, 2, 3, 1).reshape(B * Hp * Wp, d).to(_SCORE_DTYPE).contiguous()
     steps = torch.arange(-radius, radius + 1, device=pixel.device)
     grid_v, grid_u = torch.meshgrid(steps, steps, indexing="ij")
-    window = torch.stack([grid_u.reshape(-1), grid_v.reshape(-1)], dim=-1)  # (K, 2) (u, v)
-    row_offsets = window[:, 1] * Wp + window[:, 0]  # (K,) flat offsets at dilation 1
-    upper = torch.tensor([W - 1, H - 1], device=pixel.device)
+    window_u, window_v = grid_u.reshape(-1), grid_v.reshape(-1)  # (K,) offsets, row-major
+    K = window_u.numel()
+    dilations = range(dilation_max, 0, -1)
+    # per dilation: flat row offsets of the window and its moves in u and v
+    row_offsets = {dil: dil * (window_v * Wp + window_u) for dil in dilations}
+    move_u = {dil: dil * window_u for dil in dilations}
+    move_v = {dil: dil * window_v for dil in dilations}
     refined = pixel.reshape(B * P, 2).clone()
     rows_of = torch.arange(B * P, device=pixel.device)
     if active is not None:
         rows_of = rows_of[active.reshape(-1)]
-    p = refined[rows_of]
-    base = torch.div(rows_of, P, rounding_mode="floor") * (Hp * Wp)
+    u_all, v_all = refined[rows_of, 0].contiguous(), refined[rows_of, 1].contiguous()
+    # flat row of pixel (0, 0) of each match's padded image
+    origin = torch.div(rows_of, P, rounding_mode="floor") * (Hp * Wp) + margin * Wp + margin
     query = D_query.reshape(B * P, d)[rows_of].to(_SCORE_DTYPE)
-    for start in range(0, p.shape[0], _REFINE_CHUNK):
+    # the dot products as an in-place product and one matrix-vector sum over d: 1.3-1.7x
+    # faster than torch.linalg.vecdot (a product tensor plus a reduction over a short last
+    # dimension), same scores; the gathered candidates reuse one buffer
+    ones = torch.ones(d, 1, dtype=_SCORE_DTYPE, device=pixel.device)
+    buffer = torch.empty(_REFINE_CHUNK * K, d, dtype=_SCORE_DTYPE, device=pixel.device)
+    for start in range(0, u_all.shape[0], _REFINE_CHUNK):
         sl = slice(start, start + _REFINE_CHUNK)
-        q, pc, bc = query[sl], p[sl], base[sl] + margin * Wp + margin
-        for dilation in range(dilation_max, 0, -1):
-            rows = ((bc + pc[:, 1] * Wp + pc[:, 0])[:, None] + dilation * row_offsets).reshape(-1)
-            desc = table.index_select(0, rows).reshape(-1, row_offsets.numel(), d)  # (n, K, d)
+        q, u, v, origin_c = query[sl], u_all[sl], v_all[sl], origin[sl]
+        n = q.shape[0]
+        candidates = buffer[: n * K]
+        for dil in dilations:
+            rows = ((origin_c + v * Wp + u)[:, None] + row_offsets[dil]).reshape(-1)
+            torch.index_select(table, 0, rows, out=candidates)
+            candidates.view(n, K, d).mul_(q[:, None, :])
             # max(dim).indices (first maximum, as argmax) is twice as fast as argmax over a
             # short last dimension on CPU
-            best = torch.linalg.vecdot(desc, q[:, None, :]).max(dim=-1).indices
-            pc = (pc + dilation * window[best]).clamp(min=0).minimum(upper)
-        p[sl] = pc
-    refined[rows_of] = p
+            best = torch.mm(candidates, ones).view(n, K).max(dim=-1).indices
+            u = (u + move_u[dil][best]).clamp_(0, W - 1)
+            v = (v + move_v[dil][best]).clamp_(0, H - 1)
+        u_all[sl], v_all[sl] = u, v
+    refined[rows_of, 0], refined[rows_of, 1] = u_all, v_all
     return refined.reshape(B, P, 2)
 
 
