@@ -3,6 +3,9 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
+import os
 import signal
 import subprocess
 import sys
@@ -11,8 +14,10 @@ from pathlib import Path
 
 import pytest
 import torch
+from rich.console import Console
 from typer.testing import CliRunner
 
+from como3r import cli_common
 from como3r.cli import app
 from como3r.config import Config, apply_overrides, load_config, validate
 from como3r.data.synth import synthesize
@@ -149,6 +154,53 @@ def test_output_folder_that_cannot_be_created_is_one_line(tmp_path) -> None:
     blocker.write_text("")
     line = _only_line(_invoke("synth", "--out", str(blocker / "scene"), "--frames", "2"))
     assert str(blocker) in line
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["--prior", "simulated", "--precision", "fp8"], "unknown --precision 'fp8'"),
+    (["--prior", "bogus"], "unknown --prior 'bogus'"),
+    (["--prior", "simulated", "--mode", "bogus"], "unknown --mode 'bogus'"),
+    (["--weights", "{tmp}/nothere.pth"], "--weights {tmp}/nothere.pth: no such file"),
+])
+def test_run_options_are_checked_before_any_work(args, fragment, scene, tmp_path) -> None:
+    """A malformed --precision is an error even with the simulated prior (which ignores a
+    valid one); these are found before the output folder or a progress bar appears."""
+    out = tmp_path / "out"
+    line = _only_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
+                              *[a.format(tmp=tmp_path) for a in args]))
+    assert fragment.format(tmp=tmp_path) in line
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("args", [
+    ["run", "--agent", "{tmp}/missing_agent", "--prior", "simulated", "--out", "{tmp}/out"],
+    ["synth", "--out", "{tmp}/out", "--height", "5000"],  # found inside the rendering
+])
+def test_stderr_is_only_the_error_line_when_not_a_terminal(args, tmp_path) -> None:
+    """The real command with its stderr in a pipe: no progress bar is printed (it used to
+    print its last state, '0/?', above the error)."""
+    child = subprocess.run(
+        [sys.executable, "-m", "como3r.cli", *[a.format(tmp=tmp_path) for a in args]],
+        capture_output=True, text=True, timeout=300, env={**os.environ, "COLUMNS": "200"})
+    assert child.returncode == 2, child.stderr
+    assert len(child.stderr.splitlines()) == 1 and child.stderr.startswith("error: "), \
+        child.stderr
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("fail", [False, True])
+def test_progress_bar_on_a_terminal_is_erased_by_an_error(fail, monkeypatch) -> None:
+    terminal = io.StringIO()
+    monkeypatch.setattr(cli_common, "err_console",
+                        Console(file=terminal, force_terminal=True, width=60))
+    with contextlib.suppress(RuntimeError):
+        with cli_common.progress_bar() as bar:
+            bar.advance(bar.add_task("work", total=3))
+            if fail:
+                raise RuntimeError
+    assert "1/3" in terminal.getvalue()
+    # the last thing written erases the bar's line when the work failed, else it stays
+    assert terminal.getvalue().endswith("\x1b[1A\x1b[2K") == fail
 
 
 def _interrupt(*_args, **_kwargs) -> None:

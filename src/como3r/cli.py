@@ -69,10 +69,12 @@ def synth(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
 ) -> None:
     """Synthesize a multi-agent outdoor scene with ground truth."""
-    from como3r.data.synth import synthesize
+    from como3r.data.synth import PRESETS, synthesize
     from como3r.decentralized.odometry_sim import ODOMETRY_PRESETS, add_odometry
     from como3r.io.output import atomic_output_dir
 
+    if preset not in PRESETS:  # before the progress bar
+        raise InputError(f"--preset: unknown preset {preset!r} (valid: {', '.join(PRESETS)})")
     if odometry != "none" and odometry not in ODOMETRY_PRESETS:
         raise InputError(f"unknown --odometry {odometry!r}; choose none or one of "
                          f"{', '.join(sorted(ODOMETRY_PRESETS))}")
@@ -158,25 +160,38 @@ def run(
 ) -> None:
     """Run collaborative SLAM on one or more agents and write the output folder."""
     from como3r.io.output import check_output_dir
-    from como3r.runtime.pipeline import PriorSpec, resolve_weights, run as run_pipeline
+    from como3r.prior.mast3r.precision import PRECISIONS, check_precision
+    from como3r.runtime.pipeline import PRIORS, PriorSpec, resolve_weights, run as run_pipeline
 
+    # every option is checked before any work starts (and before a progress bar shows)
     _check_device(device)
+    if prior not in PRIORS:
+        raise InputError(f"unknown --prior {prior!r}; choose one of {', '.join(PRIORS)}")
+    if precision not in PRECISIONS:  # also where the simulated prior would ignore it
+        raise InputError(f"unknown --precision {precision!r}; choose one of "
+                         f"{', '.join(PRECISIONS)}")
+    if mode not in ("centralized", "decentralized"):
+        raise InputError(f"unknown --mode {mode!r}; choose centralized or decentralized")
     check_output_dir(out, overwrite)  # before the weights load and the agents start
     config = _load_config(config_file, overrides, calib, no_loop_closure)
+    for path in agent:
+        if not path.exists():
+            raise InputError(f"{path}: agent input does not exist")
     spec = PriorSpec(prior, weights, retrieval_weights, codebook, device, precision)
     if prior == "mast3r":
-        from como3r.prior.mast3r.precision import check_precision
-
         check_precision(device, precision)
         spec = resolve_weights(spec)
+        for option, path in (("--weights", spec.weights),
+                             ("--retrieval-weights", spec.retrieval_weights),
+                             ("--codebook", spec.codebook)):
+            if path is not None and not path.is_file():
+                raise InputError(f"{option} {path}: no such file")
     if mode == "decentralized":
         from como3r.decentralized.runner import run_decentralized
 
         summary = run_decentralized(agent, out, config, spec, overwrite=overwrite)
         _print_summary(summary, out)
         return
-    if mode != "centralized":
-        raise InputError(f"unknown --mode {mode!r}; choose centralized or decentralized")
     if single_process:
         runner = run_pipeline
     else:

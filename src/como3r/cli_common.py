@@ -140,16 +140,26 @@ interrupt_leaves_nothing = on_interrupt(
     lambda kwargs: f"interrupted: nothing was written to {kwargs['out']}")
 
 
-def progress_bar() -> Progress:
-    """A rich progress bar for long work (disabled automatically when not a terminal)."""
-    return Progress(
+@contextlib.contextmanager
+def progress_bar() -> Iterator[Progress]:
+    """A rich progress bar for long work: shown only on a terminal (a log file or pipe gets
+    no bar), and erased when the work fails or is interrupted, so that the ``error:`` or
+    ``interrupted:`` line is all that remains."""
+    bar = Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
         console=err_console,
         transient=False,
+        disable=not err_console.is_terminal,
     )
+    with bar:
+        try:
+            yield bar
+        except BaseException:
+            bar.live.transient = True
+            raise
 
 
 def print_rows(title: str, rows: list[dict[str, object]]) -> None:
