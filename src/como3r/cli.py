@@ -177,6 +177,11 @@ def run(
     for path in agent:
         if not path.exists():
             raise InputError(f"{path}: agent input does not exist")
+        folder = path if path.is_dir() else path.parent
+        if prior == "simulated" and not (folder / "depth").is_dir():
+            raise InputError(f"{path}: no depth/ folder, which --prior simulated needs (a "
+                             "stand-in made from ground-truth depth); images alone take "
+                             "--prior mast3r")
     spec = PriorSpec(prior, weights, retrieval_weights, codebook, device, precision)
     if prior == "mast3r":
         check_precision(device, precision)

@@ -319,7 +319,10 @@ def _locate_source(path: Path) -> tuple[Path, Path | None]:
         return path, None
     videos = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES)
     if not videos:
-        raise InputError(f"{path}: agent folder has no rgb/ folder and no video file")
+        hint = ""
+        if any(p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES for p in path.iterdir()):
+            hint = f" (its images belong in {path / 'rgb'}/)"
+        raise InputError(f"{path}: agent folder has no rgb/ folder and no video file{hint}")
     if len(videos) > 1:
         names = ", ".join(p.name for p in videos)
         raise InputError(f"{path}: agent folder holds {len(videos)} videos ({names}); expected one")

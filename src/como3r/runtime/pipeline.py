@@ -102,8 +102,8 @@ def resolve_weights(spec: PriorSpec) -> PriorSpec:
                                codebook=codebook)
 
 
-def build_prior(spec: PriorSpec, config: Config, agents: Mapping[int, AgentInput] | None = None
-                ) -> tuple[Prior, np.ndarray | None]:
+def build_prior(spec: PriorSpec, config: Config, agents: Mapping[int, AgentInput] | None = None,
+                quiet: bool = False) -> tuple[Prior, np.ndarray | None]:
     """The prior and its retrieval codebook (None when retrieval is unavailable); MASt3R
     files not in ``spec`` come from the weights cache (:func:`resolve_weights`).
 
@@ -112,6 +112,8 @@ def build_prior(spec: PriorSpec, config: Config, agents: Mapping[int, AgentInput
         config: the run's configuration.
         agents: agent id -> input whose frames this prior encodes; the simulated prior reads
             its ground truth there (None: it only decodes, as a coordinator's does).
+        quiet: do not warn that retrieval is off (an agent process: the coordinator's
+            prior, built from the same spec, warns once for the run).
     """
     if spec.name == "simulated":
         from como3r.data.ground_truth import AgentFolderTruth
@@ -126,7 +128,8 @@ def build_prior(spec: PriorSpec, config: Config, agents: Mapping[int, AgentInput
         spec = resolve_weights(spec)
         prior = load_mast3r(spec.weights, device=spec.device, dtype=spec.precision)
         if spec.retrieval_weights is None:
-            logger.warning("no --retrieval-weights: loop closure and retrieval are disabled")
+            if not quiet:
+                logger.warning("no --retrieval-weights: loop closure and retrieval are disabled")
             return prior, None
         from como3r.prior.mast3r.retrieval import load_retrieval_head
         from como3r.prior.retrieval import load_codebook

@@ -249,7 +249,8 @@ class _AgentWorker:
         spec = PriorSpec(**{k: (Path(v) if k in _PATH_FIELDS and v is not None else v)
                             for k, v in task.prior.items()})
         self.input = open_agent(task.input_path, fps=self.config.input.frame_rate_hz)
-        self.prior, codebook = build_prior(spec, self.config, {task.agent: self.input})
+        self.prior, codebook = build_prior(spec, self.config, {task.agent: self.input},
+                                           quiet=True)  # the coordinator says it once
         self.frontend = AgentFrontend(
             self.prior, self.config, task.agent, codebook,
             upsampling(self.input.image_size, self.config.input.long_side))
@@ -624,7 +625,10 @@ class _Runtime:
 
     def _fail(self, slot: _Slot, error: str) -> None:
         slot.status, slot.error, slot.clock = "failed", error, math.inf
-        logger.error("agent %d failed: %s (the other agents continue)", slot.agent, error)
+        if any(other.status != "failed" for other in self.slots):
+            logger.error("agent %d failed: %s (the other agents continue)", slot.agent, error)
+        else:  # the last one: the run ends in one error line naming every agent's failure
+            logger.info("agent %d failed: %s", slot.agent, error)
         if slot.process.is_alive():
             slot.process.terminate()
 
