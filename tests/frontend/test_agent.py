@@ -109,3 +109,27 @@ def test_lost_frame_is_reported_and_tracking_relocalizes(tmp_path) -> None:
     assert outcomes[6] in ("tracked", "keyframe")
     indices, _, _ = frontend.trajectory()
     assert indices.tolist() == [0, 4, 6]
+
+
+def test_tracking_resumes_on_the_current_keyframe_under_the_relocalization_bar(tmp_path) -> None:
+    # the relocalization bar out of reach: only the current keyframe, on tracking's own
+    # tests, can take the frame after the loss (before, the agent stayed lost)
+    synthesize(tmp_path, agents=1, seed=5, overlap=0.2, frames=60, preset="default",
+               width=WIDTH, height=HEIGHT, progress=None)
+    agent = open_agent(tmp_path / "agent_0")
+    config = apply_overrides(Config(), [f"input.long_side={WIDTH}", "simulated_prior.model=easy",
+                                        "tracking.reloc_match_fraction=1.0"])
+    prior = SimulatedPrior(config.simulated_prior, _SkyAtFrame(2, AgentFolderTruth(
+        {0: agent}, config.input.long_side)))
+    frontend = AgentFrontend(prior, config, 0, prior.codebook())
+    outcomes = {}
+    for i in range(0, 8, 2):
+        frame = agent.load_frame(i)
+        view = make_view(frame, 0, WIDTH)
+        outcomes[i] = frontend.process(view, frame.timestamp, _colors(view))
+    assert outcomes[2] == "lost"
+    assert outcomes[4] == "relocalized"
+    assert frontend.stats.relocalized == 1
+    assert outcomes[6] in ("tracked", "keyframe")
+    assert "loop" not in {e.kind for e in frontend.edges}
+    assert frontend.trajectory()[0].tolist() == [0, 4, 6]
