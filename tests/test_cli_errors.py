@@ -241,6 +241,43 @@ def test_sigint_during_synth(tmp_path) -> None:
     assert not out.exists() and not staging.exists()
 
 
+def _children(pid: int) -> list[int]:
+    path = Path(f"/proc/{pid}/task/{pid}/children")
+    return [int(c) for c in path.read_text().split()] if path.exists() else []
+
+
+@pytest.mark.skipif(not Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children").exists(),
+                    reason="needs Linux /proc children lists")
+def test_ctrl_c_in_a_multiprocess_run_is_one_line(scene, tmp_path) -> None:
+    """Ctrl-C in a terminal signals the whole process group, agent processes included: they
+    leave it to the coordinator (they used to print KeyboardInterrupt tracebacks from
+    wherever they were, often torch's imports), which stops them at once (it used to wait
+    for a shutdown they could not read yet)."""
+    out = tmp_path / "out"
+
+    def default_sigint() -> None:  # a test runner started in the background ignores it
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+    child = subprocess.Popen(
+        [sys.executable, "-m", "como3r.cli", "run", "--agent", str(scene / "agent_0"),
+         "--out", str(out), "--prior", "simulated"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=default_sigint, start_new_session=True)
+    deadline = time.monotonic() + 240
+    # the agent process and multiprocessing's resource tracker
+    while len(_children(child.pid)) < 2 and child.poll() is None:
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    time.sleep(1.0)  # the agent is importing or working
+    os.killpg(child.pid, signal.SIGINT)
+    interrupted = time.monotonic()
+    _, stderr = child.communicate(timeout=120)
+    assert child.returncode == 130, stderr
+    assert stderr.splitlines() == [f"interrupted: nothing was written to {out}"], stderr
+    assert time.monotonic() - interrupted < 8.0
+    assert not out.exists() and not out.with_name("out.partial").exists()
+
+
 def test_ctrl_c_in_eval_leaves_no_partial_file(scene, tmp_path, monkeypatch) -> None:
     """Interrupted while writing the plot: ate.json is not left half-updated or alone."""
     est = tmp_path / "est"

@@ -464,7 +464,10 @@ def _run_processes(agent_paths: Sequence[str | Path], config: Config,
         from_robot_r, from_robot_w = context.Pipe(duplex=False)
         process = context.Process(target=_robot_process_main, name=f"como3r-robot-{robot}",
                                   args=(robot, to_robot_r, from_robot_w), daemon=True)
-        process.start()
+        from como3r.runtime.child_signals import children_ignore_sigint
+
+        with children_ignore_sigint():  # Ctrl-C is the driver's to handle
+            process.start()
         to_robot_r.close()
         from_robot_w.close()
         slot = _ProcessSlot(process, from_robot_r, to_robot_w)

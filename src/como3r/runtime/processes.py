@@ -72,6 +72,7 @@ from como3r.geometry.camera import to_focal
 from como3r.geometry.lie import sim3_compose, sim3_inverse
 from como3r.io.output import atomic_output_dir
 from como3r.runtime import codec, outputs
+from como3r.runtime.child_signals import children_ignore_sigint
 from como3r.runtime.messages import (
     FROM_AGENT,
     TO_AGENT,
@@ -508,7 +509,8 @@ class _Runtime:
         from_agent_r, from_agent_w = context.Pipe(duplex=False)
         process = context.Process(target=_agent_main, args=(agent, to_agent_r, from_agent_w),
                                   name=f"como3r-agent-{agent}", daemon=True)
-        process.start()
+        with children_ignore_sigint():  # Ctrl-C is the coordinator's to handle
+            process.start()
         to_agent_r.close()  # the child holds its own copies; ours would hide its death
         from_agent_w.close()
         channel = Channel(from_agent_r, to_agent_w, self.options.max_message_bytes, FROM_AGENT)
@@ -731,10 +733,14 @@ class _Runtime:
         result.edges = [_EdgeView(e.i, e.j, e.kind, _MatchFraction(e.match_fraction))
                         for e in done.edges]
 
-    def stop(self) -> None:
-        """Stop and reap every agent process; close the pipes."""
+    def stop(self, interrupted: bool = False) -> None:
+        """Stop and reap every agent process; close the pipes. ``interrupted`` (Ctrl-C):
+        terminate at once instead of asking and waiting (an agent still starting up
+        would only read the request after its imports)."""
         for slot in self.slots:
-            if slot.process.is_alive() and slot.status in _LIVE:
+            if slot.process.is_alive() and interrupted:
+                slot.process.terminate()
+            elif slot.process.is_alive() and slot.status in _LIVE:
                 slot.channel.send(Shutdown("the coordinator is stopping"))
         deadline = time.monotonic() + self.options.shutdown_grace_s
         for slot in self.slots:
@@ -817,6 +823,10 @@ def run_multiprocess(
                 raise InputError("every agent failed: " + "; ".join(
                     f"agent {s.agent}: {s.error}" for s in runtime.slots))
             summary = _write(staging, runtime, inputs)
+    except KeyboardInterrupt:
+        if runtime is not None:
+            runtime.stop(interrupted=True)
+        raise
     finally:
         if runtime is not None:
             runtime.stop()
