@@ -133,3 +133,31 @@ def test_tracking_resumes_on_the_current_keyframe_under_the_relocalization_bar(t
     assert outcomes[6] in ("tracked", "keyframe")
     assert "loop" not in {e.kind for e in frontend.edges}
     assert frontend.trajectory()[0].tolist() == [0, 4, 6]
+
+
+def test_a_first_frame_without_geometry_is_lost_and_the_next_starts_the_map(tmp_path) -> None:
+    synthesize(tmp_path, agents=1, seed=5, overlap=0.2, frames=60, preset="default",
+               width=WIDTH, height=HEIGHT, progress=None)
+    agent = open_agent(tmp_path / "agent_0")
+    config = apply_overrides(Config(), [f"input.long_side={WIDTH}", "simulated_prior.model=easy"])
+    prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth({0: agent}, WIDTH))
+    decode = prior.decode
+
+    def behind_the_camera_at_frame_0(enc_i, enc_j):
+        # a prediction with nothing in front of the camera: self-calibration cannot start
+        pred = decode(enc_i, enc_j)
+        if enc_i.index != 0:
+            return pred
+        return replace(pred, X_ii=pred.X_ii * torch.tensor([1.0, 1.0, -1.0]))
+
+    prior.decode = behind_the_camera_at_frame_0
+    frontend = AgentFrontend(prior, config, 0, prior.codebook())
+    outcomes = {}
+    for i in range(0, 6, 2):
+        frame = agent.load_frame(i)
+        view = make_view(frame, 0, WIDTH)
+        outcomes[i] = frontend.process(view, frame.timestamp, _colors(view))
+    assert outcomes == {0: "lost", 2: "keyframe", 4: outcomes[4]}
+    assert outcomes[4] in ("tracked", "keyframe")
+    assert frontend.stats.lost_frames == [0]
+    assert frontend.keyframes[0].frame_index == 2

@@ -47,7 +47,7 @@ from como3r.frontend.pairs import (
 )
 from como3r.frontend.timing import StageTimer, TimedPrior
 from como3r.frontend.tracker import FrameTracker, TrackResult
-from como3r.errors import InputError
+from como3r.errors import GeometryError, InputError
 from como3r.geometry.camera import lock_to_rays
 from como3r.geometry.lie import sim3_compose, sim3_identity
 from como3r.geometry.units import scene_depth
@@ -154,8 +154,7 @@ class AgentFrontend:
             self._K = view.K
         enc = self.prior.encode(view) if encoding is None else encoding
         if len(self.keyframes) == 0:
-            self._initialise(enc, view.index, timestamp, colors)
-            return "keyframe"
+            return self._initialise(enc, view.index, timestamp, colors)
         if self._lost:
             with self.timer.stage("relocalization"):
                 return self._relocalize(enc, view.index, timestamp, colors)
@@ -170,16 +169,28 @@ class AgentFrontend:
             self._accept(result, self.keyframes.last, view.index, timestamp, enc, colors)
         return "keyframe" if result.new_keyframe else "tracked"
 
-    def _initialise(self, enc: Encoding, index: int, timestamp: float, colors: np.ndarray) -> None:
+    def _initialise(self, enc: Encoding, index: int, timestamp: float,
+                    colors: np.ndarray) -> str:
+        """The frame becomes the first keyframe (``"keyframe"``), or, when self-calibration
+        finds nothing in front of the camera (a covered lens, a blank wall), it is lost and
+        the next frame tries again (``"lost"``): one unusable frame must not end the agent."""
         pred = self.prior.decode(enc, enc)
         if not self.config.calibrated and self.config.tracking.self_calibration:
-            self._K = estimate_intrinsics(pred.X_ii, pred.C_ii)
+            try:
+                self._K = estimate_intrinsics(pred.X_ii, pred.C_ii)
+            except GeometryError as exc:
+                logger.warning("agent %d: frame %d cannot start the map: %s", self.agent,
+                               index, exc)
+                self.stats.lost += 1
+                self.stats.lost_frames.append(index)
+                return "lost"
             self.stats.estimated_focal = float(self._K[0, 0])
         T_WC = sim3_identity(dtype=pred.X_ii.dtype, device=pred.X_ii.device)
         kf = self._add_keyframe(enc, index, timestamp, T_WC, pred.X_ii, pred.C_ii, colors)
         self._index(kf)
         self._T_kf_prev = sim3_identity(dtype=pred.X_ii.dtype, device=pred.X_ii.device)
         self.stats.tracked += 1  # the first frame has its pose (it defines the map's frame)
+        return "keyframe"
 
     def _accept(self, result: TrackResult, keyframe: Keyframe, index: int, timestamp: float,
                 enc: Encoding, colors: np.ndarray) -> None:
