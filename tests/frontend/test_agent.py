@@ -89,20 +89,38 @@ class _SkyAtFrame:
                        surface=torch.full_like(truth.surface, -1.0))
 
 
-def test_lost_frame_is_reported_and_tracking_relocalizes(tmp_path) -> None:
-    synthesize(tmp_path, agents=1, seed=5, overlap=0.2, frames=60, preset="default",
+@pytest.fixture(scope="module")
+def long_agent(tmp_path_factory):
+    """A 60-frame agent of the default scene (every test below reads its first frames)."""
+    root = tmp_path_factory.mktemp("long")
+    synthesize(root, agents=1, seed=5, overlap=0.2, frames=60, preset="default",
                width=WIDTH, height=HEIGHT, progress=None)
-    agent = open_agent(tmp_path / "agent_0")
-    # the easy simulated prior: these accuracy bounds fail under the realistic default
-    config = apply_overrides(Config(), [f"input.long_side={WIDTH}", "simulated_prior.model=easy"])
-    prior = SimulatedPrior(config.simulated_prior, _SkyAtFrame(2, AgentFolderTruth(
-        {0: agent}, config.input.long_side)))
+    return open_agent(root / "agent_0")
+
+
+def _run_first_frames(agent, count: int, overrides: list[str] = (), sky_at: int | None = None,
+                      patch_decode=None) -> tuple[AgentFrontend, dict[int, str]]:
+    """Every other one of the first ``count`` frames through a front-end on the easy
+    simulated prior (these tests need its precision), optionally with only sky at frame
+    ``sky_at`` and the prior's decode wrapped by ``patch_decode(decode)``."""
+    config = apply_overrides(Config(), [f"input.long_side={WIDTH}", "simulated_prior.model=easy",
+                                        *overrides])
+    truth = AgentFolderTruth({0: agent}, config.input.long_side)
+    prior = SimulatedPrior(config.simulated_prior,
+                           truth if sky_at is None else _SkyAtFrame(sky_at, truth))
+    if patch_decode is not None:
+        prior.decode = patch_decode(prior.decode)
     frontend = AgentFrontend(prior, config, 0, prior.codebook())
     outcomes = {}
-    for i in range(0, 8, 2):
+    for i in range(0, count, 2):
         frame = agent.load_frame(i)
         view = make_view(frame, 0, WIDTH)
         outcomes[i] = frontend.process(view, frame.timestamp, _colors(view))
+    return frontend, outcomes
+
+
+def test_lost_frame_is_reported_and_tracking_relocalizes(long_agent) -> None:
+    frontend, outcomes = _run_first_frames(long_agent, 8, sky_at=2)
     assert outcomes[2] == "lost"
     assert frontend.stats.lost_frames == [2]
     assert outcomes[4] == "relocalized"
@@ -111,22 +129,11 @@ def test_lost_frame_is_reported_and_tracking_relocalizes(tmp_path) -> None:
     assert indices.tolist() == [0, 4, 6]
 
 
-def test_tracking_resumes_on_the_current_keyframe_under_the_relocalization_bar(tmp_path) -> None:
+def test_tracking_resumes_on_the_current_keyframe_under_the_relocalization_bar(long_agent) -> None:
     # the relocalization bar out of reach: only the current keyframe, on tracking's own
     # tests, can take the frame after the loss (before, the agent stayed lost)
-    synthesize(tmp_path, agents=1, seed=5, overlap=0.2, frames=60, preset="default",
-               width=WIDTH, height=HEIGHT, progress=None)
-    agent = open_agent(tmp_path / "agent_0")
-    config = apply_overrides(Config(), [f"input.long_side={WIDTH}", "simulated_prior.model=easy",
-                                        "tracking.reloc_match_fraction=1.0"])
-    prior = SimulatedPrior(config.simulated_prior, _SkyAtFrame(2, AgentFolderTruth(
-        {0: agent}, config.input.long_side)))
-    frontend = AgentFrontend(prior, config, 0, prior.codebook())
-    outcomes = {}
-    for i in range(0, 8, 2):
-        frame = agent.load_frame(i)
-        view = make_view(frame, 0, WIDTH)
-        outcomes[i] = frontend.process(view, frame.timestamp, _colors(view))
+    frontend, outcomes = _run_first_frames(long_agent, 8, ["tracking.reloc_match_fraction=1.0"],
+                                           sky_at=2)
     assert outcomes[2] == "lost"
     assert outcomes[4] == "relocalized"
     assert frontend.stats.relocalized == 1
@@ -135,29 +142,18 @@ def test_tracking_resumes_on_the_current_keyframe_under_the_relocalization_bar(t
     assert frontend.trajectory()[0].tolist() == [0, 4, 6]
 
 
-def test_a_first_frame_without_geometry_is_lost_and_the_next_starts_the_map(tmp_path) -> None:
-    synthesize(tmp_path, agents=1, seed=5, overlap=0.2, frames=60, preset="default",
-               width=WIDTH, height=HEIGHT, progress=None)
-    agent = open_agent(tmp_path / "agent_0")
-    config = apply_overrides(Config(), [f"input.long_side={WIDTH}", "simulated_prior.model=easy"])
-    prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth({0: agent}, WIDTH))
-    decode = prior.decode
-
-    def behind_the_camera_at_frame_0(enc_i, enc_j):
+def test_a_first_frame_without_geometry_is_lost_and_the_next_starts_the_map(long_agent) -> None:
+    def behind_the_camera_at_frame_0(decode):
         # a prediction with nothing in front of the camera: self-calibration cannot start
-        pred = decode(enc_i, enc_j)
-        if enc_i.index != 0:
-            return pred
-        return replace(pred, X_ii=pred.X_ii * torch.tensor([1.0, 1.0, -1.0]))
+        def patched(enc_i, enc_j):
+            pred = decode(enc_i, enc_j)
+            if enc_i.index != 0:
+                return pred
+            return replace(pred, X_ii=pred.X_ii * torch.tensor([1.0, 1.0, -1.0]))
+        return patched
 
-    prior.decode = behind_the_camera_at_frame_0
-    frontend = AgentFrontend(prior, config, 0, prior.codebook())
-    outcomes = {}
-    for i in range(0, 6, 2):
-        frame = agent.load_frame(i)
-        view = make_view(frame, 0, WIDTH)
-        outcomes[i] = frontend.process(view, frame.timestamp, _colors(view))
-    assert outcomes == {0: "lost", 2: "keyframe", 4: outcomes[4]}
+    frontend, outcomes = _run_first_frames(long_agent, 6, patch_decode=behind_the_camera_at_frame_0)
+    assert outcomes[0] == "lost" and outcomes[2] == "keyframe"
     assert outcomes[4] in ("tracked", "keyframe")
     assert frontend.stats.lost_frames == [0]
     assert frontend.keyframes[0].frame_index == 2
