@@ -107,6 +107,48 @@ def test_local_features_pixel_layout(tiny_network):
                                    token[24 * 256 + i * 16 + j].exp())
 
 
+def _reference_dpt(dpt, layers: list[torch.Tensor], grid: tuple[int, int]) -> torch.Tensor:
+    """The DPT adapter as spec §5.1 writes it: NCHW, one operation at a time."""
+
+    def rcu(unit, z):
+        return z + unit.conv2(F.relu(unit.conv1(F.relu(z))))
+
+    def fusion(block, path, skip=None):
+        if skip is not None:
+            path = path + rcu(block.resConfUnit1, skip)
+        up = F.interpolate(rcu(block.resConfUnit2, path), scale_factor=2, mode="bilinear",
+                           align_corners=True)
+        return block.out_conv(up)
+
+    levels = [post(tokens.transpose(1, 2).unflatten(-1, grid).contiguous())
+              for post, tokens in zip(dpt.act_postprocess, layers)]
+    scratch = dpt.scratch
+    l1, l2, l3, l4 = (getattr(scratch, f"layer{k}_rn")(x) for k, x in enumerate(levels, 1))
+    path = fusion(scratch.refinenet4, l4)[:, :, : l3.shape[2], : l3.shape[3]]
+    path = fusion(scratch.refinenet1, fusion(scratch.refinenet2,
+                                             fusion(scratch.refinenet3, path, l3), l2), l1)
+    conv1, _, conv2, _, conv3 = dpt.head
+    up = F.interpolate(conv1(path), scale_factor=2, mode="bilinear", align_corners=True)
+    return conv3(F.relu(conv2(up)))
+
+
+@pytest.mark.parametrize("grad", [False, True], ids=["inference", "autograd"])
+def test_channels_last_dpt_equals_the_nchw_reference(tiny_network, grad):
+    """Channels-last DPT with fused ReLU/residual convolutions (oneDNN for inference, F.conv2d
+    under autograd) and out_conv before the up-sampling = the plain NCHW formulation."""
+    dpt = tiny_network.downstream_head1.dpt
+    grid = (3, 5)  # odd: the stride-2 level is cropped
+    torch.manual_seed(0)
+    layers = [torch.randn(2, 15, 32) for _ in range(4)]
+    with torch.no_grad():
+        expected = _reference_dpt(dpt, layers, grid)
+    with torch.set_grad_enabled(grad):
+        out = dpt(layers, grid)
+    assert out.shape == (2, 4, 48, 80)
+    assert out.is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(out.detach(), expected, rtol=1e-5, atol=1e-5)
+
+
 def test_postprocessing_formulas(tiny_config):
     head = CatMlpDptHead(tiny_config)
     fmap = torch.randn(2, 4, 5, 29, dtype=torch.float64)

@@ -10,6 +10,12 @@ A head turns one view's decoder layers into per-pixel outputs with two branches:
 The DPT's widths (96/192/384/768 -> 256, last 128) are fixed by the architecture; only its
 input widths follow the encoder/decoder dimensions, so tiny configurations keep them.
 Heads always run in float32.
+
+The DPT runs in the channels-last memory format: the ``(B, h*w, C)`` tokens already are an
+NHWC map (no copy to reshape them), and oneDNN convolves NHWC directly, without converting
+every input and output to and from its blocked layout as it does for NCHW. For float32 CPU
+inference its convolutions go through ``mkldnn._convolution_pointwise`` (the kernel torch's
+inductor uses) with the following ReLU or residual addition fused (:func:`conv2d`).
 """
 
 from __future__ import annotations
@@ -23,6 +29,8 @@ from torch import Tensor, nn
 from como3r.prior.mast3r.blocks import Mlp
 from como3r.prior.mast3r.config import MASt3RConfig
 
+_ONEDNN = torch.backends.mkldnn.is_available()
+
 #: DPT widths (spec §5.1): per-hook layer widths, fused width, width before the last conv
 DPT_LAYER_DIMS = (96, 192, 384, 768)
 DPT_FEATURE_DIM = 256
@@ -34,6 +42,34 @@ LOCAL_HIDDEN_FACTOR = 4.0
 def upsample2(x: Tensor) -> Tensor:
     """Bilinear x2 up-sampling with ``align_corners=True`` (spec §5.1)."""
     return F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=True)
+
+
+def conv2d(conv: nn.Conv2d, x: Tensor, add: Tensor | None = None, relu: bool = False) -> Tensor:
+    """``conv(x)``, then ``+ add`` if given, then ReLU if ``relu``.
+
+    Float32 CPU inference (no autograd) runs the convolution through oneDNN with the addition
+    and the ReLU applied to its output tile in place (passes over memory saved); other
+    devices, dtypes and autograd take ``F.conv2d``. Results are equal to float32 rounding.
+
+    Args:
+        conv: the convolution (zero padding).
+        x: ``(B, C_in, h, w)``, preferably channels-last.
+        add: ``(B, C_out, h', w')``, the shape of the convolution's output.
+        relu: apply ReLU last.
+    """
+    if (_ONEDNN and x.device.type == "cpu" and x.dtype == torch.float32
+            and conv.weight.dtype == torch.float32 and not torch.is_grad_enabled()):
+        args = (conv.weight, conv.bias, list(conv.padding), list(conv.stride),
+                list(conv.dilation), conv.groups)
+        unary = "relu" if relu else None
+        if add is not None:
+            return torch.ops.mkldnn._convolution_pointwise.binary(
+                x, add, *args, "add", None, unary, [], None)
+        return torch.ops.mkldnn._convolution_pointwise(x, *args, unary or "none", [], "")
+    y = conv(x)
+    if add is not None:
+        y = y + add
+    return F.relu(y) if relu else y
 
 
 class Upsample2(nn.Module):
@@ -54,7 +90,8 @@ class ResidualConvUnit(nn.Module):
 
     def forward(self, z: Tensor) -> Tensor:
         """``(B, C, h, w) -> (B, C, h, w)``."""
-        return z + self.conv2(F.relu(self.conv1(F.relu(z))))
+        # relu(z) is a new tensor: z itself is the residual
+        return conv2d(self.conv2, conv2d(self.conv1, F.relu(z), relu=True), add=z)
 
 
 class FusionBlock(nn.Module):
@@ -72,10 +109,16 @@ class FusionBlock(nn.Module):
         self.out_conv = nn.Conv2d(dim, dim, 1)
 
     def forward(self, path: Tensor, skip: Tensor | None = None) -> Tensor:
-        """``(B, C, h, w)`` (+ skip of the same shape) -> ``(B, C, 2h, 2w)``."""
+        """``(B, C, h, w)`` (+ skip of the same shape) -> ``(B, C, 2h, 2w)``.
+
+        ``out_conv`` (1x1) runs before the up-sampling, on 4x fewer pixels: both are linear
+        maps, one across channels and one across pixels, and the bilinear weights of each
+        output pixel sum to 1, so the bias passes through too; the result equals
+        ``out_conv(up2(.))`` to float32 rounding.
+        """
         if skip is not None:
             path = path + self.resConfUnit1(skip)
-        return self.out_conv(upsample2(self.resConfUnit2(path)))
+        return upsample2(conv2d(self.out_conv, self.resConfUnit2(path)))
 
 
 class Scratch(nn.Module):
@@ -90,7 +133,9 @@ class Scratch(nn.Module):
 
     def forward(self, levels: list[Tensor]) -> Tensor:
         """Four maps at ``4x, 2x, 1x, 1/2x`` the token grid -> ``(B, 256, 8h, 8w)``."""
-        l1, l2, l3, l4 = (getattr(self, f"layer{k}_rn")(x) for k, x in enumerate(levels, 1))
+        l1, l2, l3, l4 = (
+            conv2d(getattr(self, f"layer{k}_rn"), x) for k, x in enumerate(levels, 1)
+        )
         path = self.refinenet4(l4)
         # odd grids: the stride-2 level rounds up, so crop back to level 3 (spec §5.1 step 4)
         path = path[:, :, : l3.shape[2], : l3.shape[3]]
@@ -122,18 +167,27 @@ class DPTAdapter(nn.Module):
             nn.Conv2d(DPT_FEATURE_DIM, DPT_LAST_DIM, 3, padding=1),
             Upsample2(),
             nn.Conv2d(DPT_LAST_DIM, DPT_LAST_DIM, 3, padding=1),
-            nn.ReLU(inplace=True),  # its input is a fresh convolution output
+            # parameter-free slots keep the checkpoint's indices; forward fuses this ReLU
+            # into the convolution before it
+            nn.ReLU(inplace=True),
             nn.Conv2d(DPT_LAST_DIM, out_channels, 1),
         )
 
     def forward(self, layers: list[Tensor], grid: tuple[int, int]) -> Tensor:
-        """Four ``(B, h*w, C_j)`` token layers -> ``(B, out_channels, 16h, 16w)``."""
-        h, w = grid
-        levels = [
-            post(tokens.transpose(1, 2).unflatten(-1, (h, w)))
-            for post, tokens in zip(self.act_postprocess, layers)
-        ]
-        return self.head(self.scratch(levels))
+        """Four ``(B, h*w, C_j)`` token layers -> ``(B, out_channels, 16h, 16w)``.
+
+        The output is channels-last (its memory is ``(B, 16h, 16w, out_channels)``).
+        """
+        levels = []
+        for post, tokens in zip(self.act_postprocess, layers):
+            # (B, h*w, C) row-major tokens are the NHWC map: a channels-last view, no copy
+            level = tokens.unflatten(1, grid).permute(0, 3, 1, 2)
+            for layer in post:
+                level = conv2d(layer, level) if isinstance(layer, nn.Conv2d) else layer(level)
+            levels.append(level)
+        conv1, upsample, conv2, _, conv3 = self.head
+        x = upsample(conv2d(conv1, self.scratch(levels)))
+        return conv2d(conv3, conv2d(conv2, x, relu=True))
 
 
 @dataclass(frozen=True)
