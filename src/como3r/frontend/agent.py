@@ -12,8 +12,11 @@
    (the motion outran the keyframe rule), promotes that frame late and tracks against it
    (not in the paper: at 20 deg per frame one step can go from 36 % overlap to none);
 5. when tracking still fails, relocalizes: retrieves the agent's keyframes most like the frame,
-   tracks against each and re-anchors on the first that matches well enough; frames that
-   cannot be relocalized are counted as lost, never invented.
+   tracks against each and re-anchors on the first that matches well enough (the current
+   keyframe on tracking's own tests: the sequence resumes); frames that cannot be
+   relocalized are counted as lost, never invented. A first frame that cannot start the map
+   (self-calibration finds nothing in front of the camera) is lost too, and the next one
+   tries.
 
 Every tracked frame is stored as ``(frame, anchor keyframe, T_rel)`` (C-Sec. A.8), so the
 trajectory written at the end follows every later correction of its anchor keyframe.
