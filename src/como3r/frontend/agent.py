@@ -348,9 +348,9 @@ class AgentFrontend:
             keyframe = self.keyframes[kf_id]
             self.tracker.reset_warm_start()
             result = self.tracker.track(enc, keyframe, identity, fuse=False)
-            resumes = result.ok and keyframe is current
-            if not resumes and not (result.ok and result.match_fraction
-                                    >= self.config.tracking.reloc_match_fraction):
+            resumes = keyframe is current
+            if not result.ok or not resumes and (
+                    result.match_fraction < self.config.tracking.reloc_match_fraction):
                 continue
             self._lost = False
             self.stats.relocalized += 1
