@@ -813,6 +813,7 @@ def run_multiprocess(
     threads = torch.get_num_threads()
     torch.set_num_threads(max(1, options.torch_threads))
     runtime: _Runtime | None = None
+    interrupted = False
     try:
         with atomic_output_dir(out, overwrite=overwrite) as staging:
             runtime = _Runtime(inputs, config, prior_spec, options, progress)
@@ -824,12 +825,11 @@ def run_multiprocess(
                     f"agent {s.agent}: {s.error}" for s in runtime.slots))
             summary = _write(staging, runtime, inputs)
     except KeyboardInterrupt:
-        if runtime is not None:
-            runtime.stop(interrupted=True)
+        interrupted = True
         raise
     finally:
         if runtime is not None:
-            runtime.stop()
+            runtime.stop(interrupted)
         torch.set_num_threads(threads)
     summary.out = out
     return summary
