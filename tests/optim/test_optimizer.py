@@ -127,7 +127,7 @@ def _loop_graph(num_matches: int = 100):
     return truth, graph, PoseValues.from_poses(initial, num_pinned=1)
 
 
-@pytest.mark.parametrize("backend", ["dense", "sparse"])
+@pytest.mark.parametrize("backend", ["dense", "sparse", "pcg"])
 def test_global_ba_converges_to_the_truth(backend):
     truth, graph, values = _loop_graph()
     # Two factor batches (e.g. intra- and inter-agent edges) assembled into one system.

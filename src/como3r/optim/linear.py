@@ -8,7 +8,8 @@ scatter-adds them into the global block system (:class:`BlockSystem`) over N pos
 
 over the free poses with the Tikhonov escalation ``eps_r = eps_0 * 100^r``, r = 0..R-1 of
 C-Sec. B.2, returning a zero step and ``SolveStatus.FAILED`` when every attempt fails.
-Two interchangeable backends: a dense Cholesky in torch and a sparse symmetric LU in scipy.
+Three interchangeable backends: a dense Cholesky in torch, a sparse symmetric LU in scipy,
+and block-Jacobi preconditioned conjugate gradients on the blocks (:mod:`como3r.optim.pcg`).
 The linear algebra always runs in float64: pose Hessians of dense correspondences weigh
 rays by 1/sigma_ray^2 ~ 1e5 and ranges by 1/sigma_dist^2 = 1e-2 (C-Tab. 3), a spread of
 1e7 that is the whole precision of float32.
@@ -27,19 +28,23 @@ import scipy.sparse.linalg
 import torch
 
 from como3r.errors import InputError
+from como3r.optim.pcg import CG_RELATIVE_TOLERANCE, pcg_attempts
 
 logger = logging.getLogger(__name__)
 
 D = 7  # tangent dimension of Sim(3)
 
-Backend = Literal["auto", "dense", "sparse"]
+Backend = Literal["auto", "dense", "sparse", "pcg"]
+BACKENDS: tuple[str, ...] = ("auto", "dense", "sparse", "pcg")
 
 # Crossover of backend="auto", measured with benchmarks/ba_scaling.py (2-core x86-64 CPU
 # shared with other jobs, torch.set_num_threads(1), chain + loop graphs with 2.25 edges per
 # keyframe): assembling the free-pose matrix, factorising and solving take the same time on
 # both backends at N = 55-63 keyframes (~400 unknowns) over three runs. Below it the dense
 # Cholesky wins (0.4 ms vs 0.8-1.7 ms at N = 10: no scipy conversion overhead); above it
-# its O(N^3) cost dominates (N = 500: dense 1.0-1.5 s, sparse 0.045-0.065 s).
+# its O(N^3) cost dominates (N = 500: dense 1.0-1.5 s, sparse 0.045-0.065 s). "auto" never
+# picks "pcg": it only wins on large graphs with many loop closures and loses up to 35x on
+# chain-like ones of the same size (measurements in como3r.optim.pcg).
 DENSE_MAX_FREE_POSES = 60
 
 
@@ -146,9 +151,10 @@ class LinearSolution:
         step: ``(N, 7)`` tangent step (zeros at pinned poses, and everywhere on failure),
             float64, on the device of the system.
         status: see :class:`SolveStatus`.
-        attempts: number of factorisations tried (1..R).
+        attempts: number of attempts tried (1..R): factorisations, or pcg's CG solves.
         epsilon: Tikhonov term of the successful attempt, ``None`` on failure.
-        backend: ``"dense"`` or ``"sparse"``, the backend actually used.
+        backend: ``"dense"``, ``"sparse"`` or ``"pcg"``, the backend actually used.
+        cg_iterations: conjugate-gradient iterations over all attempts (0 unless pcg).
     """
 
     step: torch.Tensor
@@ -156,6 +162,7 @@ class LinearSolution:
     attempts: int
     epsilon: float | None
     backend: str
+    cg_iterations: int = 0
 
     @property
     def escalations(self) -> int:
@@ -173,6 +180,8 @@ def solve(
     tikhonov_base: float = 1e-6,
     retries: int = 6,
     backend: Backend = "auto",
+    cg_tolerance: float = CG_RELATIVE_TOLERANCE,
+    cg_max_iterations: int | None = None,
 ) -> LinearSolution:
     """Solve ``(H + lm_lambda diag(H) + eps_r I) tau = -g`` over the free poses (C-Eq. 25).
 
@@ -182,34 +191,51 @@ def solve(
         lm_lambda: multiplicative Levenberg-Marquardt damping (0 for local/global BA).
         tikhonov_base: eps_0 of the escalation eps_r = eps_0 * 100^r (C-Sec. B.2).
         retries: R, the number of factorisation attempts.
-        backend: ``"dense"``, ``"sparse"`` or ``"auto"`` (dense up to
-            ``DENSE_MAX_FREE_POSES`` free poses).
+        backend: ``"dense"``, ``"sparse"``, ``"pcg"`` or ``"auto"`` (dense up to
+            ``DENSE_MAX_FREE_POSES`` free poses, sparse above; pcg is opt-in, see
+            :mod:`como3r.optim.pcg`).
+        cg_tolerance, cg_max_iterations: pcg's stopping relative residual and iteration
+            cap per attempt (``None``: 7 per free pose, at least 100; see
+            :mod:`como3r.optim.pcg`); ignored by the other backends.
     """
     if free.shape != (system.num_poses,) or free.dtype != torch.bool:
         raise InputError(f"solve: free must be a bool tensor of shape ({system.num_poses},)")
     if retries < 1:
         raise InputError(f"solve: retries must be >= 1, got {retries}")
-    if backend not in ("auto", "dense", "sparse"):
-        raise InputError(f"solve: backend must be auto, dense or sparse, got {backend!r}")
+    if backend not in BACKENDS:
+        raise InputError(f"solve: backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if not (cg_tolerance >= 0 and (cg_max_iterations is None or cg_max_iterations >= 1)):
+        raise InputError(f"solve: cg_tolerance must be >= 0 and cg_max_iterations >= 1, got "
+                         f"{cg_tolerance} and {cg_max_iterations}")
     num_free = int(free.sum())
     if backend == "auto":
         backend = "dense" if num_free <= DENSE_MAX_FREE_POSES else "sparse"
     step = torch.zeros_like(system.g)
     if num_free == 0:
         return LinearSolution(step, SolveStatus.SUCCESS, 0, tikhonov_base, backend)
-    attempt = _dense_attempts if backend == "dense" else _sparse_attempts
-    for r, tau_free in enumerate(attempt(system, free, lm_lambda, tikhonov_base, retries)):
+    if backend == "pcg":
+        outcomes = pcg_attempts(system, free, lm_lambda, tikhonov_base, retries,
+                                cg_tolerance, cg_max_iterations)
+        attempts = ((outcome.x, outcome.iterations) for outcome in outcomes)
+    else:
+        factorise = _dense_attempts if backend == "dense" else _sparse_attempts
+        attempts = ((tau, 0) for tau in factorise(system, free, lm_lambda, tikhonov_base,
+                                                   retries))
+    cg_iterations = 0
+    for r, (tau_free, iterations) in enumerate(attempts):
+        cg_iterations += iterations
         if tau_free is not None:
             step[free] = tau_free
             status = SolveStatus.SUCCESS if r == 0 else SolveStatus.ESCALATED
-            return LinearSolution(step, status, r + 1, tikhonov_base * 100.0**r, backend)
+            return LinearSolution(step, status, r + 1, tikhonov_base * 100.0**r, backend,
+                                  cg_iterations)
     logger.warning(
         "damped normal equations not positive definite after %d Tikhonov attempts "
         "(eps up to %.0e); returning a zero step",
         retries,
         tikhonov_base * 100.0 ** (retries - 1),
     )
-    return LinearSolution(step, SolveStatus.FAILED, retries, None, backend)
+    return LinearSolution(step, SolveStatus.FAILED, retries, None, backend, cg_iterations)
 
 
 def _dense_attempts(system, free, lm_lambda, tikhonov_base, retries):
