@@ -189,6 +189,11 @@ class GaugeConfig:
     ``focal_search`` in log focal. Measured on a two-agent simulated scene (160 px,
     2 x 30 frames, realistic prior, merged ATE % of mean agent path): agents' estimates
     +1.2 % and -8.7 % off give 3.8 % without it; both on one focal length 0.72 %.
+    The terminal cleanup re-aligns every agent of a component on up to four of its
+    admitted edges to the agents settled before it (anchor first,
+    ``Coordinator._refine_focals``): a merge often rests on one pair. Measured on a 3-agent
+    room (320x240 -> 512, 12 processed frames each, seed 0): merged ATE 2.7 -> 1.07 % of
+    path (calibrated: 0.38 %).
     """
 
     min_correspondences: int = 64

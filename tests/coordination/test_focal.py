@@ -3,16 +3,19 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
 
 from como3r.backend.global_graph import GlobalGraph
-from como3r.config import GlobalBAConfig, TrackingConfig
+from como3r.config import Config, GlobalBAConfig, TrackingConfig
+from como3r.coordination.association import Verification
+from como3r.coordination.coordinator import Candidate, Coordinator
 from como3r.coordination.focal import FocalPair, estimate_log_focal, relative_pose
 from como3r.frontend.keyframes import apply_pose_update
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
-from como3r.frontend.pairs import DirectedMatches
+from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.geometry.camera import intrinsics_matrix, project, rescale_focal, unproject_depth
 from como3r.geometry.lie import sim3_act, sim3_exp, sim3_identity, sim3_inverse
 from como3r.prior.base import Encoding
@@ -147,3 +150,39 @@ def test_a_pose_update_with_a_focal_length_moves_the_agents_keyframes() -> None:
 def test_relative_pose_of_the_same_pose_is_the_identity() -> None:
     T = sim3_exp(torch.tensor([0.1, 0.2, 0.3, 0.1, 0.0, -0.1, 0.2], dtype=torch.float64))
     assert torch.allclose(relative_pose(T, T), sim3_identity(dtype=torch.float64), atol=1e-12)
+
+
+def _admitted(coordinator: Coordinator, anchor: tuple[int, int], moving: tuple[int, int],
+              pair: FocalPair, similarity: float) -> None:
+    """Record ``pair`` as an admitted cross-agent edge (anchor = endpoint i)."""
+    graph = coordinator.graph
+    i, j = graph.global_index(*anchor), graph.global_index(*moving)
+    link = PairLink(ij=pair.in_anchor, ji=pair.in_moving)
+    verification = Verification(candidate=anchor, query=moving, similarity=similarity,
+                                link=link, covisible_i=1.0, covisible_j=1.0, accepted=True)
+    coordinator.candidates.append(Candidate(verification, i, j, status="admitted"))
+
+
+def test_terminal_refinement_settles_focal_lengths_outwards_from_the_anchor() -> None:
+    """Agent 1 meets agent 0, agent 2 meets only agent 1, both focal lengths off: the
+    refinement settles agent 1 on its edge to agent 0 first, then agent 2 on its edge to
+    the corrected agent 1, so all three end on agent 0's camera."""
+    error_1, error_2 = 0.08, -0.06
+    to_agent_0 = _pair(error_1)
+    to_agent_1 = _pair(error_2, anchor_focal_error=error_1)
+    coordinator = Coordinator(None, Config(), None, 3)
+    T_am = to_agent_0.T_anchor_moving
+    for agent, kf_id, X, K, T in (
+            (0, 0, to_agent_0.X_anchor, to_agent_0.K_anchor, sim3_identity(dtype=torch.float64)),
+            (1, 0, to_agent_0.X_moving, to_agent_0.K_moving, T_am),
+            (1, 1, to_agent_1.X_anchor, to_agent_1.K_anchor, sim3_identity(dtype=torch.float64)),
+            (2, 0, to_agent_1.X_moving, to_agent_1.K_moving, T_am)):
+        coordinator.graph.add_keyframe(replace(_packet(agent, kf_id, X, K), T_WC=T))
+    _admitted(coordinator, (0, 0), (1, 0), to_agent_0, similarity=0.5)
+    _admitted(coordinator, (1, 1), (2, 0), to_agent_1, similarity=0.4)
+    coordinator._refine_focals([0, 1, 2])
+    focal = coordinator.metrics()["focal_lengths"]
+    assert focal["0"] == pytest.approx(40.0)
+    assert focal["1"] == pytest.approx(40.0, rel=0.01)
+    assert focal["2"] == pytest.approx(40.0, rel=0.02)
+    assert coordinator.stats.focal_refinements == 2

@@ -73,6 +73,10 @@ from como3r.prior.base import Prior
 
 logger = logging.getLogger(__name__)
 
+#: Edges an agent's focal length is re-aligned on at the terminal cleanup (the most similar
+#: ones): each costs one relative solve per evaluation of the golden-section search.
+FOCAL_REFINEMENT_PAIRS = 4
+
 
 @dataclass
 class CoordinatorStats:
@@ -85,6 +89,7 @@ class CoordinatorStats:
     edges_accepted: int = 0
     edges_inconsistent: int = 0
     gauge_syncs: int = 0
+    focal_refinements: int = 0
     ba_runs: int = 0
     ba_iterations: int = 0
     ba_seconds: float = 0.0
@@ -270,6 +275,8 @@ class Coordinator:
                 if settings.rounds == 0:
                     continue
                 self._adopt(members[0], (agent_poses or {}).get(members[0]))
+            if multi_agent:
+                self._refine_focals(members)
             component = _ComponentCleanup(self.graph, members, self._anchor(members[0]),
                                           self.config.depth)
             report = alternate(component.pose_pass if multi_agent else None,
@@ -345,7 +352,17 @@ class Coordinator:
         stats["components"] = self.components()
         stats["cross_agent_retrieval"] = self.retrieval is not None
         stats["alternation"] = list(self.alternation)
+        stats["focal_lengths"] = self._focal_lengths()
         return stats
+
+    def _focal_lengths(self) -> dict[str, float]:
+        """Each self-calibrated or calibrated agent's focal length in the map [px]."""
+        lengths = {}
+        for agent in range(self.num_agents):
+            indices = self.graph.agent_keyframes(agent)
+            if indices and self.graph.keyframes[indices[0]].K is not None:
+                lengths[str(agent)] = float(self.graph.keyframes[indices[0]].K[0, 0])
+        return lengths
 
     # ------------------------------------------------------------------ association
 
@@ -446,25 +463,73 @@ class Coordinator:
                      ) -> float | None:
         """Give the moving component the anchor's focal length (``gauge.align_focal``,
         self-calibrated runs; :mod:`.focal`); returns the log correction applied, or None."""
-        config = self.config
-        if not (config.gauge.align_focal and config.tracking.self_calibration
-                and not config.calibrated):
+        if not self._aligns_focal():
             return None
-        pairs = [self._focal_pair(c) for c in supporters]
+        pairs = [self._focal_pair(c, self._moving_is_j(c)) for c in supporters]
         if any(pair is None for pair in pairs):
             return None
+        return self._apply_focal(moved_agents, pairs, "aligned")
+
+    def _aligns_focal(self) -> bool:
+        config = self.config
+        return (config.gauge.align_focal and config.tracking.self_calibration
+                and not config.calibrated)
+
+    def _apply_focal(self, agents: list[int], pairs: Sequence[FocalPair], how: str
+                     ) -> float | None:
+        """Estimate the moving side's log focal correction on ``pairs`` and give it to
+        ``agents``; returns the correction (None without pairs)."""
+        if not pairs:
+            return None
         start = time.perf_counter()
-        estimate = estimate_log_focal(pairs, config.tracking, search=config.gauge.focal_search)
-        for agent in moved_agents:
+        estimate = estimate_log_focal(pairs, self.config.tracking,
+                                      search=self.config.gauge.focal_search)
+        for agent in agents:
             self.graph.rescale_focal(agent, estimate.log_focal)
         self.stats.add_time("focal", time.perf_counter() - start)
-        logger.info("focal: agents %s take the anchor's focal length (x %.4f, %d evaluations)",
-                    moved_agents, math.exp(estimate.log_focal), estimate.evaluations)
+        logger.info("focal: agents %s %s on %d pair(s) (x %.4f, %d evaluations)", agents, how,
+                    len(pairs), math.exp(estimate.log_focal), estimate.evaluations)
         return estimate.log_focal
 
-    def _focal_pair(self, candidate: Candidate) -> FocalPair | None:
+    def _refine_focals(self, members: list[int]) -> None:
+        """Re-align the agents' focal lengths on every admitted pair (``gauge.align_focal``).
+
+        A merge aligns the moving component's focal length on the few edges that made it
+        (often one pair); by the end of the stream the agents usually share many more.
+        Starting from the anchor agent ``members[0]``, the agent with the most admitted
+        edges to the agents already settled is re-aligned on (at most
+        ``FOCAL_REFINEMENT_PAIRS`` of) those edges, then counts as settled, until every
+        connected agent is. Measured on a 3-agent room (320x240 -> 512, 12 frames each,
+        realistic prior, seed 0; agent 2 merged into agent 1 on one pair, then both into
+        agent 0 on one pair): focal lengths 339 / 337 / 349 px after the merges (true 334),
+        merged ATE 4.97 cm = 2.7 % of path; refined on 4 (or 8) pairs per agent 1.97 cm =
+        1.07 %, for 8 s more of coordinator time. The same run calibrated: 0.70 cm.
+        """
+        if not self._aligns_focal():
+            return
+        settled = {members[0]}
+        admitted = [c for c in self.candidates if c.status == "admitted"]
+        while True:
+            edges = {agent: [c for c in admitted if self._joins(c, agent, settled)]
+                     for agent in members if agent not in settled}
+            agent = max(edges, key=lambda a: len(edges[a]), default=None)
+            if agent is None or not edges[agent]:
+                return
+            chosen = sorted(edges[agent], key=lambda c: -c.verification.similarity)
+            pairs = [self._focal_pair(c, self.graph.agent_of[c.j] == agent)
+                     for c in chosen[:FOCAL_REFINEMENT_PAIRS]]
+            if self._apply_focal([agent], [p for p in pairs if p is not None],
+                                 "refined") is not None:
+                self.stats.focal_refinements += 1
+            settled.add(agent)
+
+    def _joins(self, candidate: Candidate, agent: int, settled: set[int]) -> bool:
+        """Whether an edge links ``agent`` to one of the ``settled`` agents."""
+        ends = {self.graph.agent_of[candidate.i], self.graph.agent_of[candidate.j]}
+        return agent in ends and bool(ends & settled)
+
+    def _focal_pair(self, candidate: Candidate, moving_is_j: bool) -> FocalPair | None:
         """The candidate's keyframe pair, anchor side first (None without intrinsics)."""
-        moving_is_j = self._moving_is_j(candidate)
         anchor, moving = ((candidate.i, candidate.j) if moving_is_j
                           else (candidate.j, candidate.i))
         kf_a, kf_m = self.graph.keyframes[anchor], self.graph.keyframes[moving]
