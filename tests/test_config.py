@@ -82,6 +82,7 @@ def test_inf_turns_a_documented_gate_off(key: str, tmp_path) -> None:
         ("depth.refine_from=bogus", "depth.refine_from"),
         ("depth.boundary_residual=x", "depth.boundary_residual"),
         ("tracking.fusion=y", "tracking.fusion"),
+        ("global_ba.linear_solver=cholmod", "global_ba.linear_solver"),
         ("tracking=1", "section"),
         ("no_equals_sign", "section.key=value"),
     ],

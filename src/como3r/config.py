@@ -226,6 +226,12 @@ class GlobalBAConfig:
     lm_lambda: float = 0.0
     tikhonov_base: float = 1e-6
     tikhonov_retries: int = 6
+    # backend of the C-Eq. 25 solve (como3r.optim.linear.solve): "auto" takes a dense
+    # Cholesky up to 60 free keyframes and SuperLU above; "pcg" (block-Jacobi conjugate
+    # gradients, como3r.optim.pcg) costs linear time per iteration and wins on large graphs
+    # with many loop closures (0.30x SuperLU's solve at 2,000 keyframes with a loop edge
+    # every 4) but loses on chain-like ones (35x at 2,000 with one every 50): opt-in
+    linear_solver: Literal["auto", "dense", "sparse", "pcg"] = "auto"
 
 
 @dataclass(frozen=True)

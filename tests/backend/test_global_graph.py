@@ -91,8 +91,10 @@ def test_flat_index_side_map_and_local_to_global(two_agents) -> None:
     assert [(link.i, link.j) for link in graph.inter_links()] == [(4, 1)]
 
 
-def test_global_ba_reduces_error_with_keyframe_zero_pinned(two_agents) -> None:
+@pytest.mark.parametrize("linear_solver", ["auto", "pcg"])
+def test_global_ba_reduces_error_with_keyframe_zero_pinned(two_agents, linear_solver) -> None:
     graph, truth = two_agents
+    graph.config = GlobalBAConfig(linear_solver=linear_solver)
     anchor_before = graph.keyframes[0].T_WC.clone()
     before = _pose_errors(graph, truth)
     result = graph.optimize([0, 1], anchor=0, max_iters=30)
@@ -118,7 +120,7 @@ def test_divergence_guard_restores_the_previous_poses(two_agents, monkeypatch) -
     graph, _ = two_agents
     before = graph.poses(range(6)).clone()
 
-    def blow_up(factors, values, config, max_iters, length_scale):
+    def blow_up(factors, values, config, max_iters, backend, length_scale):
         poses = values.poses.clone()
         poses[3, 0] = float("nan")
         return PoseValues(poses, values.pinned), SolveReport(iterations=1)
@@ -133,7 +135,7 @@ def test_divergence_guard_rejects_implausible_jumps(two_agents, monkeypatch) -> 
     graph, _ = two_agents
     before = graph.poses(range(6)).clone()
 
-    def jump(factors, values, config, max_iters, length_scale):
+    def jump(factors, values, config, max_iters, backend, length_scale):
         poses = values.poses.clone()
         poses[5, :3] += 1e4
         return PoseValues(poses, values.pinned), SolveReport(iterations=3)
@@ -179,7 +181,7 @@ def test_calibrated_keyframes_use_the_pixel_and_log_depth_residual(monkeypatch) 
     seen = []
     solve = global_graph.gauss_newton_irls
 
-    def spy(factors, values, config, max_iters, length_scale):
+    def spy(factors, values, config, max_iters, backend, length_scale):
         seen.extend(type(f).__name__ for f in factors)
         return solve(factors, values, config, max_iters=max_iters)
 

@@ -286,6 +286,7 @@ class GlobalGraph:
         # depths, so the tolerance holds at every scale
         solved, report = gauss_newton_irls(factors, PoseValues(before.double(), pinned),
                                            self.config, max_iters=max_iters,
+                                           backend=self.config.linear_solver,
                                            length_scale=self.scene_depth(agents))
         after = solved.poses.to(before.dtype)
         problem = "solver refused a step" if report.diverged else _implausible(before, after)
