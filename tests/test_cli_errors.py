@@ -36,14 +36,6 @@ def _invoke(*args: str):
     return CliRunner().invoke(app, list(args), env={"COLUMNS": "80"})
 
 
-def _only_line(result) -> str:
-    """The output's one non-empty line, which must be an ``error:`` line, status 2."""
-    lines = [line for line in result.output.splitlines() if line.strip()]
-    assert result.exit_code == 2, result.output
-    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
-    return lines[0]
-
-
 @pytest.mark.parametrize("args, fragment", [
     (["run", "--out", "x"], "Missing option '--agent'"),
     (["eval", "--est", "x"], "Missing option '--gt'"),
@@ -54,8 +46,8 @@ def _only_line(result) -> str:
     (["--bogus", "run"], "No such option: --bogus"),
     (["weights", "fetch", "--nope"], "No such option: --nope"),
 ])
-def test_option_parsing_errors_are_one_line(args, fragment) -> None:
-    line = _only_line(_invoke(*args))
+def test_option_parsing_errors_are_one_line(args, fragment, only_error_line) -> None:
+    line = only_error_line(_invoke(*args))
     assert fragment in line and "--help" in line
 
 
@@ -64,18 +56,19 @@ def test_no_arguments_still_prints_the_help() -> None:
     assert "Usage" in result.output and "error:" not in result.output
 
 
-def test_yaml_syntax_error_is_one_line_naming_file_and_line(scene, tmp_path) -> None:
+def test_yaml_syntax_error_is_one_line_naming_file_and_line(
+        scene, tmp_path, only_error_line) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text("tracking:\n  sigma_ray: [1, 2\n  huber_k: 1\n")
     out = tmp_path / "out"
-    line = _only_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
+    line = only_error_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
                               "--prior", "simulated", "--config", str(bad)))
     assert f"{bad}:3:" in line and "not valid YAML" in line
     assert not out.exists()
 
 
-def test_unparsable_override_is_one_line(scene, tmp_path) -> None:
-    line = _only_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out",
+def test_unparsable_override_is_one_line(scene, tmp_path, only_error_line) -> None:
+    line = only_error_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out",
                               str(tmp_path / "out"), "--prior", "simulated",
                               "--set", "tracking.sigma_ray=[1"))
     assert "cannot parse override value '[1'" in line
@@ -126,33 +119,34 @@ def test_out_of_range_value_in_a_file_names_file_and_key(tmp_path) -> None:
         load_config(path)
 
 
-def test_out_of_range_override_at_the_cli_is_one_line_and_no_output(scene, tmp_path) -> None:
+def test_out_of_range_override_at_the_cli_is_one_line_and_no_output(
+        scene, tmp_path, only_error_line) -> None:
     out = tmp_path / "out"
-    line = _only_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
+    line = only_error_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
                               "--prior", "simulated", "--set", "tracking.sigma_ray=-1"))
     assert "tracking.sigma_ray must be > 0" in line
     assert not out.exists()
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
-def test_device_cuda_without_cuda_is_an_error(scene, tmp_path) -> None:
+def test_device_cuda_without_cuda_is_an_error(scene, tmp_path, only_error_line) -> None:
     out = tmp_path / "out"
-    line = _only_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
+    line = only_error_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
                               "--prior", "simulated", "--device", "cuda"))
     assert "--device cuda" in line and "--device cpu" in line
     assert not out.exists()
 
 
-def test_unknown_device_is_an_error(scene, tmp_path) -> None:
-    line = _only_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out",
+def test_unknown_device_is_an_error(scene, tmp_path, only_error_line) -> None:
+    line = only_error_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out",
                               str(tmp_path / "out"), "--prior", "simulated", "--device", "tpu"))
     assert "unknown --device 'tpu'" in line
 
 
-def test_output_folder_that_cannot_be_created_is_one_line(tmp_path) -> None:
+def test_output_folder_that_cannot_be_created_is_one_line(tmp_path, only_error_line) -> None:
     blocker = tmp_path / "a_file"
     blocker.write_text("")
-    line = _only_line(_invoke("synth", "--out", str(blocker / "scene"), "--frames", "2"))
+    line = only_error_line(_invoke("synth", "--out", str(blocker / "scene"), "--frames", "2"))
     assert str(blocker) in line
 
 
@@ -162,11 +156,12 @@ def test_output_folder_that_cannot_be_created_is_one_line(tmp_path) -> None:
     (["--prior", "simulated", "--mode", "bogus"], "unknown --mode 'bogus'"),
     (["--weights", "{tmp}/nothere.pth"], "--weights {tmp}/nothere.pth: no such file"),
 ])
-def test_run_options_are_checked_before_any_work(args, fragment, scene, tmp_path) -> None:
+def test_run_options_are_checked_before_any_work(
+        args, fragment, scene, tmp_path, only_error_line) -> None:
     """A malformed --precision is an error even with the simulated prior (which ignores a
     valid one); these are found before the output folder or a progress bar appears."""
     out = tmp_path / "out"
-    line = _only_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
+    line = only_error_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
                               *[a.format(tmp=tmp_path) for a in args]))
     assert fragment.format(tmp=tmp_path) in line
     assert not out.exists()

@@ -36,28 +36,22 @@ def _invoke(*args: str):
     return CliRunner().invoke(app, list(args), env={"COLUMNS": "200"})
 
 
-def _only_error_line(result) -> str:
-    lines = [line for line in result.output.splitlines() if line.strip()]
-    assert result.exit_code == 2, result.output
-    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
-    return lines[0]
-
-
-def test_images_with_the_simulated_prior_name_mast3r_before_any_work(tmp_path) -> None:
+def test_images_with_the_simulated_prior_name_mast3r_before_any_work(
+        tmp_path, only_error_line) -> None:
     """Used to start the agents, log an ERROR line per agent and then fail."""
     agent = _images(tmp_path / "mine")
     out = tmp_path / "out"
-    line = _only_error_line(_invoke("run", "--agent", str(agent), "--out", str(out),
+    line = only_error_line(_invoke("run", "--agent", str(agent), "--out", str(out),
                                     "--prior", "simulated"))
     assert "no depth/ folder" in line and "--prior mast3r" in line
     assert not out.exists()
 
 
-def test_a_flat_folder_of_images_says_where_they_belong(tmp_path) -> None:
+def test_a_flat_folder_of_images_says_where_they_belong(tmp_path, only_error_line) -> None:
     agent = _images(tmp_path / "mine", flat=True)
     ckpt = tmp_path / "x.pth"
     ckpt.write_bytes(b"the folder is read before the checkpoint")
-    line = _only_error_line(_invoke("run", "--agent", str(agent), "--out",
+    line = only_error_line(_invoke("run", "--agent", str(agent), "--out",
                                     str(tmp_path / "out"), "--weights", str(ckpt)))
     assert f"its images belong in {agent / 'rgb'}/" in line
 
