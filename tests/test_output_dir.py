@@ -29,6 +29,17 @@ def test_output_carries_the_marker(tmp_path) -> None:
     assert is_como3r_output(out) and not (tmp_path / "out.partial").exists()
 
 
+@pytest.mark.parametrize("argv0, program", [
+    ("/venv/bin/como3r", "como3r"),
+    ("/src/como3r/cli.py", "python -m como3r.cli"),
+])
+def test_the_marker_gives_the_command_as_typed(tmp_path, monkeypatch, argv0, program) -> None:
+    monkeypatch.setattr("sys.argv", [argv0, "run", "--out", "my out"])
+    _write(tmp_path / "out", "first")
+    marker = json.loads((tmp_path / "out" / MARKER).read_text())
+    assert marker["command"] == f"{program} run --out 'my out'"
+
+
 def test_marked_folder_is_replaced(tmp_path) -> None:
     out = tmp_path / "out"
     _write(out, "first")

@@ -65,9 +65,15 @@ def _staging(out: Path) -> Path:
     return out.with_name(out.name + ".partial")
 
 
+def _program() -> list[str]:
+    """How the running program was started, as a user would type it: ``python -m
+    como3r.cli`` runs the module file, whose name (``cli.py``) nobody types."""
+    name = Path(sys.argv[0]).name
+    return ["python", "-m", "como3r.cli"] if name == "cli.py" else [name]
+
+
 def _write_marker(folder: Path) -> None:
-    marker = {"como3r": __version__, "command": shlex.join([Path(sys.argv[0]).name,
-                                                            *sys.argv[1:]]),
+    marker = {"como3r": __version__, "command": shlex.join([*_program(), *sys.argv[1:]]),
               "created": datetime.datetime.now(datetime.timezone.utc).isoformat(
                   timespec="seconds")}
     (folder / MARKER).write_text(json.dumps(marker) + "\n")
