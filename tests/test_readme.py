@@ -10,6 +10,7 @@ import pytest
 import typer
 
 from como3r.cli import app
+from como3r.data.readers import FORMATS
 from como3r.data.synth import PRESETS
 from como3r.decentralized.odometry_sim import ODOMETRY_PRESETS
 from como3r.prior.mast3r.precision import PRECISIONS
@@ -86,6 +87,7 @@ def test_the_synopsis_lists_exactly_the_options_of(command: str) -> None:
     ("--odometry", {*ODOMETRY_PRESETS, "none"}),
     ("--mode", {"centralized", "decentralized"}),
     ("--device", {"cpu", "cuda"}),
+    ("--format", set(FORMATS)),
 ])
 def test_listed_choices_are_the_accepted_ones(option: str, accepted: set[str]) -> None:
     listed = re.search(rf"{option} ([a-z0-9]+(?:\|[a-z0-9]+)+)", _synopsis())

@@ -91,6 +91,10 @@ def synth(
     console.print(f"wrote {agents} agent folder(s) to {out}")
 
 
+FORMAT_HELP = ("Layout of the input folders: auto (detect) | agent | tum (TUM RGB-D) | "
+               "7scenes.")
+
+
 @app.command("eval", cls=Command)
 @on_interrupt(lambda kwargs: "interrupted: nothing was written to "
               f"{kwargs['out'] if kwargs['out'] is not None else kwargs['est']}")
@@ -98,26 +102,32 @@ def synth(
 def evaluate(
     est: Path = typer.Option(..., "--est", help="Run output folder (trajectories/agent_<a>.txt)."),
     gt: List[Path] = typer.Option(..., "--gt", metavar="PATH",
-                                  help="Ground truth per agent: TUM file or agent folder "
-                                       "(repeat per agent)."),
+                                  help="Ground truth per agent: TUM file, agent folder, TUM "
+                                       "RGB-D or 7-Scenes sequence (repeat per agent)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Where to write ate.json and the plot "
                                        "(default: the --est folder)."),
+    format: str = typer.Option("auto", "--format", help=FORMAT_HELP),
 ) -> None:
     """ATE (and RPE) per agent and merged, through evo."""
+    from como3r.data.readers import FORMATS
     from como3r.evaluation.report import evaluate_run
 
-    summary = evaluate_run(est, gt, out if out is not None else est)
+    if format not in FORMATS:
+        raise InputError(f"unknown --format {format!r}; choose one of {', '.join(FORMATS)}")
+    summary = evaluate_run(est, gt, out if out is not None else est, gt_format=format)
     print_rows("ATE RMSE [m] (Sim(3)-aligned)", summary.table_rows())
     for line in summary.notes:
         console.print(line)
 
 
 def _load_config(config_file: Optional[Path], overrides: List[str], calib: bool,
-                 no_loop_closure: bool):
+                 no_loop_closure: bool, format: Optional[str] = None):
     from como3r.config import Config, apply_overrides, load_config
 
     config = load_config(config_file) if config_file is not None else Config()
     extra = (["calibrated=true"] if calib else []) + (["loop_closure=false"] if no_loop_closure else [])
+    if format is not None:
+        extra.append(f"input.format={format}")
     return apply_overrides(config, [*overrides, *extra])
 
 
@@ -126,7 +136,11 @@ def _load_config(config_file: Optional[Path], overrides: List[str], calib: bool,
 @user_errors
 def run(
     agent: List[Path] = typer.Option(..., "--agent", metavar="PATH",
-                                     help="Agent input folder (repeat per agent)."),
+                                     help="Agent input: agent folder, video, TUM RGB-D or "
+                                          "7-Scenes sequence folder (repeat per agent)."),
+    format: Optional[str] = typer.Option(
+        None, "--format", help=FORMAT_HELP + " Default: the configuration's input.format "
+                                             "(auto)."),
     out: Path = typer.Option(..., "--out", help="Output folder."),
     prior: str = typer.Option(
         "mast3r", "--prior",
@@ -159,6 +173,7 @@ def run(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
 ) -> None:
     """Run collaborative SLAM on one or more agents and write the output folder."""
+    from como3r.data.readers import FORMATS
     from como3r.io.output import check_output_dir
     from como3r.prior.mast3r.precision import PRECISIONS, check_precision
     from como3r.runtime.pipeline import PRIORS, PriorSpec, resolve_weights, run as run_pipeline
@@ -172,16 +187,15 @@ def run(
                          f"{', '.join(PRECISIONS)}")
     if mode not in ("centralized", "decentralized"):
         raise InputError(f"unknown --mode {mode!r}; choose centralized or decentralized")
+    if format is not None and format not in FORMATS:
+        raise InputError(f"unknown --format {format!r}; choose one of {', '.join(FORMATS)}")
     check_output_dir(out, overwrite)  # before the weights load and the agents start
-    config = _load_config(config_file, overrides, calib, no_loop_closure)
+    config = _load_config(config_file, overrides, calib, no_loop_closure, format)
     for path in agent:
         if not path.exists():
             raise InputError(f"{path}: agent input does not exist")
-        folder = path if path.is_dir() else path.parent
-        if prior == "simulated" and not (folder / "depth").is_dir():
-            raise InputError(f"{path}: no depth/ folder, which --prior simulated needs (a "
-                             "stand-in made from ground-truth depth); images alone take "
-                             "--prior mast3r")
+        if prior == "simulated":
+            _check_simulated_input(path, config)
     spec = PriorSpec(prior, weights, retrieval_weights, codebook, device, precision)
     if prior == "mast3r":
         check_precision(device, precision)
@@ -207,6 +221,31 @@ def run(
                          progress=lambda a, outcome, done, total: _frame_progress(
                              bar, task, done, total))
     _print_summary(summary, out)
+
+
+def _check_simulated_input(path: Path, config) -> None:
+    """What ``--prior simulated`` needs of an input, before any work: depth, intrinsics and
+    a ground-truth pose (or appearance keys) for every frame.
+
+    Raises:
+        InputError: naming the input and what it lacks; images alone take --prior mast3r.
+    """
+    from como3r.data.agent import open_agent
+    from como3r.data.readers import DEPTH_SOURCES
+
+    source = open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format)
+    needs = ("which --prior simulated needs (a stand-in made from ground-truth depth); "
+             "images alone take --prior mast3r")
+    if not source.has_depth:
+        raise InputError(f"{path}: no {DEPTH_SOURCES[source.format]}, {needs}")
+    if source.calib is None:
+        raise InputError(f"{path}: no intrinsics (calib.txt 'fx fy cx cy'), {needs}")
+    if not source.has_surface:
+        missing = int((source.gt_indices < 0).sum())
+        if source.groundtruth is None or missing:
+            where = ("no ground truth" if source.groundtruth is None else
+                     f"{missing} of {source.num_frames} frames without a ground-truth pose")
+            raise InputError(f"{path}: {where}, {needs}")
 
 
 def _check_device(device: str) -> None:

@@ -1,8 +1,13 @@
 """Agent inputs: one robot's camera stream and its optional side files (README,
-"Agent input").
+"Agent input"), and :func:`open_agent`, which opens any supported input.
 
-An agent input is a folder with ``rgb/`` (images sorted by name) or a video file (the file
-itself, or a folder holding exactly one video and no ``rgb/``), plus optionally:
+:func:`open_agent` detects the layout of the path it is given (:mod:`como3r.data.readers`):
+a TUM RGB-D sequence folder, a 7-Scenes sequence folder, or como3r's own agent layout
+described here; ``format`` forces one. Every reader returns the same :class:`AgentInput`.
+
+An agent input (the ``agent`` format) is a folder with ``rgb/`` (images sorted by name) or a
+video file (the file itself, or a folder holding exactly one video and no ``rgb/``), plus
+optionally:
 
 * ``timestamps.txt``: one float per line, or ``timestamp filename`` lines as in TUM's
   ``rgb.txt`` (then the file names pair with the images by stem); otherwise
@@ -96,6 +101,10 @@ class AgentInput:
         depth_paths: ``(N,)`` depth files, empty without depth.
         surface_paths: ``(N,)`` surface files, empty without surface maps.
         gt_indices: ``(N,)`` int64 row of ``groundtruth`` associated with each frame, -1 if none.
+        format: the layout the input was read as (``agent``, ``tum``, ``7scenes``).
+        depth_units_per_metre: what a 16-bit depth PNG stores per metre (5000 in TUM and
+            the agent layout, 1000 in 7-Scenes); ``.npy`` depth is in metres.
+        depth_invalid: raw 16-bit depth values that mean "no measurement" (read as 0).
     """
 
     root: Path
@@ -115,6 +124,9 @@ class AgentInput:
     depth_paths: tuple[Path, ...] = field(repr=False)
     surface_paths: tuple[Path, ...] = field(repr=False)
     gt_indices: np.ndarray = field(repr=False)
+    format: str = "agent"
+    depth_units_per_metre: float = DEPTH_PNG_PER_METRE
+    depth_invalid: tuple[int, ...] = (0,)
 
     def __len__(self) -> int:
         return self.num_frames
@@ -173,6 +185,11 @@ class AgentInput:
         rows = torch.from_numpy(self.gt_indices[frames])
         return frames, Trajectory(self.timestamps[frames].copy(), self.groundtruth.T_WC[rows])
 
+    def load_depth(self, i: int) -> np.ndarray:
+        """``(H, W)`` float32 metric depth of frame ``i``, 0 where invalid."""
+        return _load_depth(self.depth_paths[i], self.image_size, self.depth_units_per_metre,
+                           self.depth_invalid)
+
     def _video_image(self, bgr: np.ndarray, i: int) -> np.ndarray:
         height, width = bgr.shape[:2]
         if (width, height) != self.image_size:
@@ -183,7 +200,7 @@ class AgentInput:
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
     def _assemble(self, i: int, image: np.ndarray) -> Frame:
-        depth = _load_depth(self.depth_paths[i], self.image_size) if self.has_depth else None
+        depth = self.load_depth(i) if self.has_depth else None
         surface = (
             _load_surface(self.surface_paths[i], self.image_size) if self.has_surface else None
         )
@@ -194,19 +211,32 @@ class AgentInput:
         return Frame(i, float(self.timestamps[i]), self.stems[i], image, depth, surface, T_WC_gt)
 
 
-def open_agent(path: str | Path, fps: float = 30.0) -> AgentInput:
-    """Open and validate an agent input (folder or video file).
+def open_agent(path: str | Path, fps: float = 30.0, format: str = "auto") -> AgentInput:
+    """Open and validate an input: an agent folder or video, a TUM RGB-D sequence or a
+    7-Scenes sequence (:mod:`como3r.data.readers`).
 
     Args:
-        path: agent folder, or a video file.
-        fps: frame rate for default timestamps (``index / fps``) and the ground-truth
-            association window ``max(0.5 / fps, 1 ms)``. A video without ``timestamps.txt``
-            uses its own frame rate when the container reports one.
+        path: agent folder, video file, or dataset sequence folder.
+        fps: frame rate for default timestamps (``index / fps``; 7-Scenes: frame number /
+            fps) and the agent layout's ground-truth association window
+            ``max(0.5 / fps, 1 ms)``. A video without ``timestamps.txt`` uses its own frame
+            rate when the container reports one.
+        format: ``auto`` (detect from the folder's layout), ``agent``, ``tum`` or
+            ``7scenes``.
 
     Raises:
         InputError: naming the offending file, for any missing, empty, unreadable or
-            inconsistent part of the input.
+            inconsistent part of the input, a folder of no known layout, or a ``format``
+            the folder does not match.
     """
+    from como3r.data.readers import open_input  # the readers build on this module
+
+    return open_input(path, fps=fps, format=format)
+
+
+def open_agent_folder(path: str | Path, fps: float = 30.0) -> AgentInput:
+    """Open and validate an input in como3r's own agent layout (folder or video file);
+    arguments and errors as :func:`open_agent`."""
     if not (math.isfinite(fps) and fps > 0):
         raise InputError(f"fps must be a positive number, got {fps}")
     path = Path(path)
@@ -216,7 +246,7 @@ def open_agent(path: str | Path, fps: float = 30.0) -> AgentInput:
     if video is None:
         image_paths = _list_images(folder / "rgb")
         stems = tuple(p.stem for p in image_paths)
-        image_size = _common_image_size(image_paths)
+        image_size = common_image_size(image_paths)
     else:
         num_frames, image_size, video_fps = _probe_video(video)
         image_paths = ()
@@ -344,11 +374,11 @@ def _list_images(rgb: Path) -> tuple[Path, ...]:
     return tuple(images)
 
 
-def _common_image_size(images: tuple[Path, ...]) -> tuple[int, int]:
+def common_image_size(images: tuple[Path, ...]) -> tuple[int, int]:
     """``(W, H)`` shared by all images, from their headers only."""
-    size = _header(images[0], "image")[0]
+    size = image_header(images[0], "image")[0]
     for image in images[1:]:
-        other = _header(image, "image")[0]
+        other = image_header(image, "image")[0]
         if other != size:
             raise InputError(
                 f"{image}: image is {other[0]}x{other[1]}, but {images[0].name} is "
@@ -357,7 +387,7 @@ def _common_image_size(images: tuple[Path, ...]) -> tuple[int, int]:
     return size
 
 
-def _header(path: Path, kind: str) -> tuple[tuple[int, int], str]:
+def image_header(path: Path, kind: str) -> tuple[tuple[int, int], str]:
     """``((W, H), mode)`` of an image file without decoding its pixels."""
     try:
         with Image.open(path) as image:
@@ -499,15 +529,15 @@ def _pair_maps(
         if stem not in by_stem:
             expected = " or ".join(f"{stem}{s}" for s in suffixes)
             raise InputError(f"{folder / stem}: {kind} map missing for frame {stem!r} ({expected})")
-        _check_map_header(by_stem[stem], image_size, kind)
+        check_map_header(by_stem[stem], image_size, kind)
         paths.append(by_stem[stem])
     return tuple(paths)
 
 
-def _check_map_header(path: Path, image_size: tuple[int, int], kind: str) -> None:
+def check_map_header(path: Path, image_size: tuple[int, int], kind: str) -> None:
     width, height = image_size
     if path.suffix.lower() == ".png":
-        size, mode = _header(path, f"{kind} map")
+        size, mode = image_header(path, f"{kind} map")
         if mode not in DEPTH_PNG_MODES:
             raise InputError(f"{path}: depth PNG must be 16-bit single channel, got mode {mode}")
         if size != image_size:
@@ -531,15 +561,19 @@ def _load_npy(path: Path, kind: str, mmap: bool = False) -> np.ndarray:
         raise InputError(f"{path}: cannot read {kind} map ({exc})") from None
 
 
-def _load_depth(path: Path, image_size: tuple[int, int]) -> np.ndarray:
-    """``(H, W)`` float32 metres; 0 marks invalid pixels (non-finite values become 0)."""
+def _load_depth(path: Path, image_size: tuple[int, int],
+                units_per_metre: float = DEPTH_PNG_PER_METRE,
+                invalid: tuple[int, ...] = (0,)) -> np.ndarray:
+    """``(H, W)`` float32 metres; 0 marks invalid pixels (non-finite values and the PNG
+    values in ``invalid`` become 0)."""
     if path.suffix.lower() == ".png":
         try:
             with Image.open(path) as image:
                 raw = np.asarray(image)
         except (UnidentifiedImageError, OSError, ValueError) as exc:
             raise InputError(f"{path}: cannot decode depth map ({exc})") from None
-        depth = raw.astype(np.float32) / DEPTH_PNG_PER_METRE
+        depth = raw.astype(np.float32) / np.float32(units_per_metre)
+        depth[np.isin(raw, invalid)] = 0.0
     else:
         depth = np.asarray(_load_npy(path, "depth"), dtype=np.float32)
         depth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from como3r.data.agent import MIN_GT_TOLERANCE, AgentInput, open_agent
+from como3r.data.agent import DEPTH_PNG_PER_METRE, MIN_GT_TOLERANCE, AgentInput, open_agent
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory, write_tum
 
@@ -65,12 +65,15 @@ def split_sequence(
     """Write ``out/agent_<a>/`` agent inputs, one per contiguous sub-sequence of ``src``.
 
     Images, depth and surface maps are hard-linked (copied across file systems; a video's
-    frames are written as PNG). Each agent gets a ``timestamps.txt`` of its frames, the
+    frames are written as PNG) under the frame's stem, so they pair up in the agent layout;
+    depth PNGs of another scale than the agent layout's 5000 per metre (7-Scenes) are
+    written as ``.npy`` float32 metres. Each agent gets a ``timestamps.txt`` of its frames, the
     ``groundtruth.txt`` / ``odometry.txt`` rows that fall within its time span (plus the
     association window), and the source's ``calib.txt``.
 
     Args:
-        src: agent input (folder or video) holding the whole sequence.
+        src: input holding the whole sequence (agent folder or video, TUM RGB-D or 7-Scenes
+            sequence: :func:`~como3r.data.agent.open_agent` detects it).
         out: folder to write the agent folders into.
         agents: number of agents N >= 1.
         overlap: fraction in [0, 1) of each chunk shared with the next one.
@@ -120,7 +123,13 @@ def _write_side_files(source: AgentInput, frames: np.ndarray, folder: Path) -> N
         if paths:
             (folder / name).mkdir(exist_ok=True)
             for i in frames:
-                _link_or_copy(paths[i], folder / name / paths[i].name)
+                target = folder / name / f"{source.stems[i]}{paths[i].suffix}"
+                if name == "depth" and paths[i].suffix.lower() == ".png" and (
+                        source.depth_units_per_metre != DEPTH_PNG_PER_METRE
+                        or source.depth_invalid != (0,)):
+                    np.save(target.with_suffix(".npy"), source.load_depth(int(i)))
+                else:
+                    _link_or_copy(paths[i], target)
     tolerance = max(0.5 / source.fps, MIN_GT_TOLERANCE)
     begin, end = stamps[0] - tolerance, stamps[-1] + tolerance
     for name, trajectory in (
@@ -138,7 +147,7 @@ def _write_images(source: AgentInput, selections: list[np.ndarray], folders: lis
         for frames, folder in zip(selections, folders):
             for i in frames:
                 image = source.image_paths[i]
-                _link_or_copy(image, folder / "rgb" / image.name)
+                _link_or_copy(image, folder / "rgb" / f"{source.stems[i]}{image.suffix}")
         return
     targets: dict[int, list[Path]] = {}
     for frames, folder in zip(selections, folders):

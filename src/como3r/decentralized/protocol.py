@@ -297,7 +297,7 @@ def build_prior(spec: Any, config: Config, place_method: str,
     truth) and, for ASMK place recognition, its retrieval codebook."""
     from como3r.runtime.pipeline import build_prior as build_pipeline_prior
 
-    agents = {r: open_agent(path, fps=config.input.frame_rate_hz)
+    agents = {r: open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format)
               for r, path in agent_paths.items()}
     prior, codebook = build_pipeline_prior(spec, config, agents)
     if spec.name == "simulated":
@@ -312,7 +312,8 @@ def _robot(robot: int, agent_path: str, prior: Prior, codebook: np.ndarray | Non
            config: Config, settings: DecentralizedConfig, link: Any,
            leave: tuple[int, str] | None) -> Robot:
     recognizer = PlaceRecognizer(settings.place_method, codebook, config.retrieval)
-    return Robot(robot, open_agent(agent_path, fps=config.input.frame_rate_hz), prior,
+    return Robot(robot, open_agent(agent_path, fps=config.input.frame_rate_hz,
+                                   format=config.input.format), prior,
                  recognizer, config, settings, link, leave)
 
 

@@ -131,7 +131,7 @@ def run_decentralized(
 
 
 def _open_robot(path: str | Path, config: Config) -> _Robot:
-    agent = open_agent(path, fps=config.input.frame_rate_hz)
+    agent = open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format)
     return _Robot(agent, frame_odometry(agent))
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import evo
 
+from como3r.data.readers import read_ground_truth
 from como3r.errors import InputError
 from como3r.evaluation.plot import plot_trajectories
 from como3r.evaluation.trajectory import (
@@ -31,7 +32,6 @@ from como3r.evaluation.trajectory import (
 )
 from como3r.io.tum import Trajectory, read_tum
 
-GT_FILE_NAME = "groundtruth.txt"
 TRAJECTORY_DIR = "trajectories"
 AGENT_FILE = re.compile(r"agent_(\d+)\.txt")
 JSON_NAME = "ate.json"
@@ -46,7 +46,8 @@ class AgentResult:
         agent: agent index.
         est_path: the estimated TUM trajectory (relative to the run folder when it is in
             one).
-        gt_path: the ground-truth TUM trajectory.
+        gt_path: where the ground truth was read: a TUM trajectory file, or a 7-Scenes
+            frames folder (its ``.pose.txt`` files).
         est_poses: number of poses in the estimate (before association).
         errors: ATE / RPE after the agent's own Sim(3) alignment.
     """
@@ -154,20 +155,6 @@ class EvalSummary:
         }
 
 
-def resolve_gt_file(path: Path) -> Path:
-    """The ground-truth TUM file: ``path`` itself, or ``path/groundtruth.txt`` for a folder.
-
-    Raises:
-        InputError: a folder without ``groundtruth.txt``.
-    """
-    if path.is_dir():
-        gt_file = path / GT_FILE_NAME
-        if not gt_file.is_file():
-            raise InputError(f"{path}: agent folder has no {GT_FILE_NAME}")
-        return gt_file
-    return path
-
-
 def resolve_est_files(est: Path, num_gt: int) -> list[Path]:
     """The estimated trajectory of each agent, in agent order.
 
@@ -223,17 +210,22 @@ def evaluate_run(
     out: Path,
     components: list[list[int]] | None = None,
     max_diff: float = MAX_TIME_DIFF,
+    gt_format: str = "auto",
+    fps: float = 30.0,
 ) -> EvalSummary:
     """ATE / RPE of every agent of a run and the merged ATE; writes ate.json and a plot.
 
     Args:
         est: run output folder (``trajectories/agent_<a>.txt``) or, with one ``gt``, a TUM file.
-        gt: ground truth per agent, in agent order: a TUM file or an agent input folder with
-            ``groundtruth.txt``.
+        gt: ground truth per agent, in agent order: a TUM file, or an input folder of any
+            format (:func:`como3r.data.readers.read_ground_truth`: an agent folder's or TUM
+            sequence's ``groundtruth.txt``, a 7-Scenes sequence's ``.pose.txt`` files).
         out: folder to write ``ate.json`` and ``trajectories.png`` to (created if needed).
         components: groups of agents that share one gauge. When given, the merged ATE is
             computed per group with more than one agent instead of over all agents.
         max_diff: timestamp association window [s].
+        gt_format: layout of the ``gt`` folders (``auto`` detects it; as ``--format``).
+        fps: frame rate that stamps 7-Scenes frames (frame number / fps), as in the run.
 
     Raises:
         InputError: missing or malformed files, mismatched counts, too few associated poses
@@ -242,10 +234,11 @@ def evaluate_run(
     est, out = Path(est), Path(out)
     if not gt:
         raise InputError("--gt: at least one ground-truth path is required")
-    gt_files = [resolve_gt_file(Path(g)) for g in gt]
+    ground_truth = [read_ground_truth(Path(g), gt_format, fps) for g in gt]
+    gt_files = [source for source, _ in ground_truth]
     est_files = resolve_est_files(est, len(gt_files))
     ests = [read_tum(p) for p in est_files]
-    gts = [read_tum(p) for p in gt_files]
+    gts = [trajectory for _, trajectory in ground_truth]
     pairs = [associate(e, g, str(ep), str(gp), max_diff)
              for e, g, ep, gp in zip(ests, gts, est_files, gt_files)]
     # inside a run folder the estimate is named relative to it: the run is written to

@@ -195,7 +195,9 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
     if all(a.groundtruth is not None for a in agents):
         try:
             evaluation = evaluate_run(staging, [a.root for a in agents], staging,
-                                      components=[list(c) for c in components])
+                                      components=[list(c) for c in components],
+                                      gt_format=config.input.format,
+                                      fps=config.input.frame_rate_hz)
         except InputError as exc:  # e.g. too few tracked frames: the run itself stands
             summary.notes.append(f"ATE not computed: {in_final_folder(str(exc), staging)}")
         else:

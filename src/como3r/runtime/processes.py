@@ -249,7 +249,8 @@ class _AgentWorker:
         self.config = config_from_dict(Config, task.config)
         spec = PriorSpec(**{k: (Path(v) if k in _PATH_FIELDS and v is not None else v)
                             for k, v in task.prior.items()})
-        self.input = open_agent(task.input_path, fps=self.config.input.frame_rate_hz)
+        self.input = open_agent(task.input_path, fps=self.config.input.frame_rate_hz,
+                                format=self.config.input.format)
         self.prior, codebook = build_prior(spec, self.config, {task.agent: self.input},
                                            quiet=True)  # the coordinator says it once
         self.frontend = AgentFrontend(

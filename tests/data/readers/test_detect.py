@@ -1,0 +1,113 @@
+"""Tests of como3r.data.readers: layout detection, forced formats, the ground truth
+``como3r eval`` reads, and dataset sequences split into agent folders."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from como3r.data.agent import open_agent
+from como3r.data.readers import detect_format, read_ground_truth, resolve_format
+from como3r.data.split import split_sequence
+from como3r.errors import InputError
+
+from ..test_agent import write_agent, write_video
+from .layouts import pixels, write_7scenes, write_tum
+
+
+def _error(match: str, func, *args, **kwargs) -> str:
+    with pytest.raises(InputError) as info:
+        func(*args, **kwargs)
+    message = str(info.value)
+    assert match in message, message
+    assert "\n" not in message
+    return message
+
+
+@pytest.fixture
+def layouts(tmp_path):
+    """One folder of each layout, plus a 7-Scenes sequence one level down."""
+    folders = {
+        "agent": write_agent(tmp_path / "agent", n=3),
+        "tum": tmp_path / "rgbd_dataset_freiburg3_x",
+        "7scenes": tmp_path / "seq-01",
+        "7scenes_below": tmp_path / "excerpt",
+    }
+    write_tum(folders["tum"], n=3)
+    write_7scenes(folders["7scenes"], n=2)
+    write_7scenes(folders["7scenes_below"] / "rgbd-frames", n=2)
+    return folders
+
+
+def test_detection(layouts, tmp_path):
+    assert detect_format(layouts["agent"]) == "agent"
+    assert detect_format(layouts["tum"]) == "tum"  # although it has rgb/ too
+    assert detect_format(layouts["7scenes"]) == "7scenes"
+    assert detect_format(layouts["7scenes_below"]) == "7scenes"
+    write_video(tmp_path / "clip.avi", n=3)
+    assert detect_format(tmp_path / "clip.avi") == "agent"
+
+
+def test_forced_format_is_used_and_checked(layouts):
+    assert resolve_format(layouts["tum"], "tum") == "tum"
+    assert resolve_format(layouts["7scenes_below"], "7scenes") == "7scenes"
+    # the TUM folder read as an agent folder: rgb/ by name, depth/ stems differ
+    _error("depth map missing for frame", open_agent, layouts["tum"], format="agent")
+    _error(f"{layouts['agent']}: not a TUM RGB-D sequence (--format tum): expected rgb.txt",
+           open_agent, layouts["agent"], format="tum")
+    _error(f"{layouts['tum']}: not a 7-Scenes sequence (--format 7scenes): expected "
+           "frame-NNNNNN.color.png|jpg", open_agent, layouts["tum"], format="7scenes")
+    _error("not a TUM RGB-D sequence", open_agent, layouts["7scenes"], format="tum")
+    _error("unknown format 'kitti'; choose one of auto, agent, tum, 7scenes", open_agent,
+           layouts["agent"], format="kitti")
+
+
+def test_a_folder_of_no_known_layout(tmp_path):
+    (tmp_path / "empty").mkdir()
+    message = _error(f"{tmp_path / 'empty'}: not an input of a known layout: expected an agent "
+                     "folder (rgb/ or a video file), a TUM RGB-D sequence (rgb.txt", open_agent,
+                     tmp_path / "empty")
+    assert "7-Scenes sequence (frame-NNNNNN.color.png" in message
+    (tmp_path / "flat").mkdir()
+    Image.fromarray(pixels(0)).save(tmp_path / "flat" / "IMG_0001.jpg")
+    _error(f"its images belong in {tmp_path / 'flat' / 'rgb'}/", open_agent, tmp_path / "flat")
+    _error("input does not exist", open_agent, tmp_path / "nowhere")
+
+
+def test_ground_truth_of_an_agent_folder_a_file_and_a_video(tmp_path):
+    root = write_agent(tmp_path / "agent", n=3, groundtruth=True)
+    source, trajectory = read_ground_truth(root)
+    assert source == root / "groundtruth.txt" and len(trajectory) == 3
+    assert read_ground_truth(root / "groundtruth.txt")[0] == root / "groundtruth.txt"
+    video_dir = write_agent(tmp_path / "v", n=2, groundtruth=True)
+    write_video(video_dir / "clip.avi", n=2)
+    assert read_ground_truth(video_dir / "clip.avi")[0] == video_dir / "groundtruth.txt"
+    _error("agent folder has no groundtruth.txt", read_ground_truth,
+           write_agent(tmp_path / "bare", n=2))
+
+
+@pytest.mark.parametrize("kind", ["tum", "7scenes"])
+def test_a_dataset_sequence_splits_into_agent_folders(layouts, tmp_path, kind):
+    """Images and depth are named by frame stem so they pair up in the agent layout;
+    7-Scenes millimetre depth is written as metres (.npy), TUM depth (5000 per metre, the
+    agent layout's scale) is linked."""
+    if kind == "tum":
+        source_path = tmp_path / "rgbd_dataset_freiburg1_long"
+        write_tum(source_path, n=8)
+    else:
+        source_path = tmp_path / "seq-long"
+        write_7scenes(source_path, n=8, start=40)
+    source = open_agent(source_path)
+    folders = split_sequence(source_path, tmp_path / "split", agents=2, overlap=0.25)
+    first = open_agent(folders[0])
+    assert first.format == "agent" and first.calib == source.calib
+    suffixes = {p.suffix for p in (folders[0] / "depth").iterdir()}
+    assert suffixes == ({".png"} if kind == "tum" else {".npy"})
+    for i in range(first.num_frames):
+        mine, theirs = first.load_frame(i), source.load_frame(i)
+        assert mine.timestamp == theirs.timestamp
+        np.testing.assert_array_equal(mine.image, theirs.image)
+        np.testing.assert_array_equal(mine.depth, theirs.depth)
+        torch.testing.assert_close(mine.T_WC_gt, theirs.T_WC_gt)

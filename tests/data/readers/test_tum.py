@@ -1,0 +1,199 @@
+"""Tests of como3r.data.readers.tum: a TUM RGB-D sequence folder as published."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from como3r.data.agent import open_agent
+from como3r.data.readers import read_ground_truth
+from como3r.data.readers.tum import INTRINSICS, associate, intrinsics_from_name
+from como3r.errors import InputError
+
+from .layouts import HEIGHT, WIDTH, depth_metres, pixels, write_tum
+
+NAME = "rgbd_dataset_freiburg1_desk"
+
+
+def _error(match: str, func, *args, **kwargs) -> str:
+    with pytest.raises(InputError) as info:
+        func(*args, **kwargs)
+    message = str(info.value)
+    assert match in message, message
+    assert "\n" not in message
+    return message
+
+
+def test_sequence_is_read_as_published(tmp_path):
+    root = tmp_path / NAME
+    written = write_tum(root, n=5)
+    agent = open_agent(root)
+    assert agent.format == "tum" and agent.num_frames == 5
+    assert agent.image_size == (WIDTH, HEIGHT) and agent.name == NAME
+    np.testing.assert_allclose(agent.timestamps, np.round(written["rgb"], 6), atol=1e-6)
+    assert agent.calib == INTRINSICS[1] == (517.3, 516.5, 318.6, 255.3)
+    frame = agent.load_frame(3)
+    np.testing.assert_array_equal(frame.image, pixels(3))
+    expected = np.round(depth_metres(3) * 5000) / 5000
+    expected[0, 0] = 0.0  # 0 = no data
+    np.testing.assert_allclose(frame.depth, expected, atol=1e-6)
+    assert frame.depth.dtype == np.float32
+    # ground truth: the 100 Hz pose nearest the frame (within 0.02 s)
+    gt_stamps, rows = written["gt"]
+    row = int(np.argmin(np.abs(gt_stamps - agent.timestamps[3])))
+    torch.testing.assert_close(frame.T_WC_gt[:3], torch.from_numpy(np.round(rows[row, :3], 6)),
+                               atol=1e-6, rtol=0)
+    assert frame.T_WC_gt[7] == 1.0
+
+
+@pytest.mark.parametrize("name, calib", [
+    ("rgbd_dataset_freiburg1_xyz", (517.3, 516.5, 318.6, 255.3)),
+    ("rgbd_dataset_freiburg2_desk", (520.9, 521.0, 325.1, 249.7)),
+    ("rgbd_dataset_freiburg3_long_office_household", (535.4, 539.2, 320.1, 247.6)),
+    ("rgbd_dataset_freiburg12_x", None),
+    ("my_sequence", None),
+])
+def test_intrinsics_from_the_folder_name(name, calib):
+    assert intrinsics_from_name(name) == calib
+
+
+def test_calib_txt_overrides_the_name_and_unknown_names_are_uncalibrated(tmp_path):
+    write_tum(tmp_path / "rgbd_dataset_freiburg2_x", n=3)
+    (tmp_path / "rgbd_dataset_freiburg2_x" / "calib.txt").write_text("100 101 16 12\n")
+    assert open_agent(tmp_path / "rgbd_dataset_freiburg2_x").calib == (100, 101, 16, 12)
+    write_tum(tmp_path / "sequence", n=3)
+    assert open_agent(tmp_path / "sequence").calib is None
+
+
+def test_rgb_without_a_depth_partner_is_left_out(tmp_path, caplog):
+    """associate.py pairs: frame 2's depth was dropped, so frame 2 is not a frame."""
+    root = tmp_path / NAME
+    written = write_tum(root, n=5, drop_depth=(2,))
+    agent = open_agent(root)
+    assert agent.num_frames == 4
+    np.testing.assert_allclose(agent.timestamps, np.round(written["rgb"][[0, 1, 3, 4]], 6),
+                               atol=1e-6)
+    assert "1 of 5 rgb images have no depth image" in caplog.text
+    assert agent.load_frame(2).depth[5, 5] == pytest.approx(depth_metres(3)[5, 5], abs=2e-4)
+
+
+def test_association_is_one_to_one_by_smallest_difference(tmp_path):
+    """A second depth image 0.012 s before frame 1 loses to the one 0.004 s after it."""
+    root = tmp_path / NAME
+    write_tum(root, n=4, extra_depth=True)
+    agent = open_agent(root)
+    assert agent.num_frames == 4
+    assert agent.load_frame(1).depth[5, 5] != pytest.approx(1234 / 5000)
+
+
+def test_associate_matches_tum_associate_py():
+    rng = np.random.default_rng(0)
+    first = np.sort(rng.uniform(0, 1, 40))
+    second = np.sort(rng.uniform(0, 1, 35))
+    # associate.py, literally: every candidate pair, greedily by difference
+    candidates = sorted((abs(a - b), i, j) for (i, a), (j, b)
+                        in itertools.product(enumerate(first), enumerate(second))
+                        if abs(a - b) < 0.02)
+    used_i, used_j, expected = set(), set(), []
+    for _, i, j in candidates:
+        if i not in used_i and j not in used_j:
+            used_i.add(i), used_j.add(j), expected.append((i, j))
+    assert associate(first, second, 0.02) == sorted(expected)
+    assert associate(np.array([0.0]), np.array([0.02])) == []  # strictly closer than 0.02
+
+
+def test_without_depth_or_groundtruth(tmp_path):
+    root = tmp_path / NAME
+    write_tum(root, n=3, depth=False, groundtruth=False)
+    agent = open_agent(root)
+    assert agent.num_frames == 3 and not agent.has_depth and agent.groundtruth is None
+    assert (agent.gt_indices == -1).all()
+    _error("no groundtruth.txt", read_ground_truth, root)
+
+
+def test_frames_outside_the_groundtruth_have_none(tmp_path):
+    root = tmp_path / NAME
+    write_tum(root, n=3)
+    gt = root / "groundtruth.txt"
+    lines = gt.read_text().splitlines()
+    gt.write_text("\n".join(lines[:3] + lines[3 + 10:]) + "\n")  # first 0.1 s gone
+    agent = open_agent(root)
+    assert agent.gt_indices[0] == -1 and (agent.gt_indices[1:] >= 0).all()
+
+
+def test_ground_truth_for_eval_is_the_published_file(tmp_path):
+    root = tmp_path / NAME
+    written = write_tum(root, n=3)
+    source, trajectory = read_ground_truth(root)
+    assert source == root / "groundtruth.txt"
+    assert len(trajectory) == len(written["gt"][0])
+
+
+# ---------------------------------------------------------------------------------- bad inputs
+
+
+def test_listed_image_missing(tmp_path):
+    root = tmp_path / NAME
+    stamps = write_tum(root, n=3)["rgb"]
+    (root / "rgb" / f"{stamps[1]:.6f}.png").unlink()
+    _error(f"rgb/{stamps[1]:.6f}.png: missing (listed in {root / 'rgb.txt'}:5)", open_agent, root)
+
+
+def test_listed_depth_missing(tmp_path):
+    root = tmp_path / NAME
+    write_tum(root, n=3)
+    next((root / "depth").iterdir()).unlink()
+    _error("missing (listed in", open_agent, root)
+
+
+def test_unreadable_image(tmp_path):
+    root = tmp_path / NAME
+    stamps = write_tum(root, n=3)["rgb"]
+    (root / "rgb" / f"{stamps[2]:.6f}.png").write_bytes(b"not a png")
+    _error(f"{stamps[2]:.6f}.png: cannot read image", open_agent, root)
+
+
+def test_depth_that_is_not_16_bit(tmp_path):
+    root = tmp_path / NAME
+    write_tum(root, n=3)
+    path = sorted((root / "depth").iterdir())[1]
+    Image.fromarray(np.zeros((HEIGHT, WIDTH), np.uint8)).save(path)
+    _error("16-bit", open_agent, root)
+
+
+@pytest.mark.parametrize("line, fragment", [
+    ("1305031102.5 rgb/a.png extra", "expected 'timestamp filename'"),
+    ("abc rgb/a.png", "not a timestamp"),
+    ("1305031101.0 rgb/a.png", "timestamps are not strictly increasing"),
+])
+def test_malformed_rgb_txt(tmp_path, line, fragment):
+    root = tmp_path / NAME
+    write_tum(root, n=3)
+    with open(root / "rgb.txt", "a") as f:
+        f.write(line + "\n")
+    _error(f"{root / 'rgb.txt'}:7: {fragment}", open_agent, root)
+
+
+def test_empty_rgb_txt(tmp_path):
+    root = tmp_path / NAME
+    write_tum(root, n=3)
+    (root / "rgb.txt").write_text("# nothing\n")
+    _error("no 'timestamp filename' entries", open_agent, root)
+
+
+def test_depth_far_from_every_image(tmp_path):
+    root = tmp_path / NAME
+    write_tum(root, n=3, depth_offset=0.5)
+    _error("depth.txt: no depth image within 0.02 s", open_agent, root)
+
+
+def test_malformed_groundtruth(tmp_path):
+    root = tmp_path / NAME
+    write_tum(root, n=3)
+    with open(root / "groundtruth.txt", "a") as f:
+        f.write("1 2 3\n")
+    _error("groundtruth.txt:", open_agent, root)
