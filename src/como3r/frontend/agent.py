@@ -61,6 +61,10 @@ from como3r.prior.retrieval import RetrievalDatabase
 
 logger = logging.getLogger(__name__)
 
+#: The most recent keyframes, which relocalization always tries and accepts on tracking's
+#: own tests (any other retrieved keyframe needs ``tracking.reloc_match_fraction``).
+RECENT_KEYFRAMES = 3
+
 
 @dataclass(frozen=True)
 class FrameRecord:
@@ -333,25 +337,30 @@ class AgentFrontend:
     def _relocalize(self, enc: Encoding, index: int, timestamp: float, colors: np.ndarray) -> str:
         """Re-anchor the frame on a retrieved keyframe, or count it as lost.
 
-        On the current keyframe, the one tracking would have used had the agent not been
-        lost, tracking's own tests suffice and the frame resumes the sequence (a keyframe
-        when due); any other keyframe needs ``reloc_match_fraction`` (MASt3R-SLAM's bar
-        against a wrong retrieval) and is joined by a loop edge. Measured on the ``covered``
-        family (lens covered for 5 frames, 9 degrees of turn per frame, 320x240): the first
-        visible frame matched the current keyframe at 0.22, under the 0.3 bar, and the
-        agent stayed lost in new territory for 8 processed frames.
+        On the :data:`RECENT_KEYFRAMES` most recent keyframes, where tracking would be had
+        the agent not been lost, tracking's own tests suffice: on the current keyframe the
+        frame resumes the sequence (a keyframe when due), on an earlier one it becomes a
+        keyframe joined to it by a loop edge. Any other keyframe needs
+        ``reloc_match_fraction`` (MASt3R-SLAM's bar against a wrong retrieval). Measured on
+        the ``covered`` family (lens covered for 5 frames, 9 degrees of turn per frame,
+        320x240): the first visible frame matched the current keyframe at 0.22, under the
+        0.3 bar, and the agent stayed lost in new territory for 8 processed frames. On the
+        room family at 640x480 (seed 0) the prior failed grossly on frame 16 with the current
+        keyframe and with the promoted last frame; it matched the keyframe before at 0.29,
+        and was lost (tracked 11 of 12 frames).
         """
         identity = sim3_identity(dtype=self.keyframes.last.T_WC.dtype,
                                  device=self.keyframes.last.T_WC.device)
         current = self.keyframes.last
+        recent = self._recent_keyframes()
         for kf_id in self._relocalization_candidates(enc):
             keyframe = self.keyframes[kf_id]
             self.tracker.reset_warm_start()
             result = self.tracker.track(enc, keyframe, identity, fuse=False)
-            resumes = keyframe is current
-            if not result.ok or not resumes and (
+            if not result.ok or kf_id not in recent and (
                     result.match_fraction < self.config.tracking.reloc_match_fraction):
                 continue
+            resumes = keyframe is current
             self._lost = False
             self.stats.relocalized += 1
             logger.info("agent %d: frame %d relocalized on keyframe %d",
@@ -380,8 +389,13 @@ class AgentFrontend:
         self._index(new)
         self._T_kf_prev = sim3_identity(dtype=T_WC.dtype, device=T_WC.device)
 
+    def _recent_keyframes(self) -> list[int]:
+        """Ids of the :data:`RECENT_KEYFRAMES` most recent keyframes, newest first."""
+        newest = len(self.keyframes) - 1
+        return list(range(newest, max(-1, newest - RECENT_KEYFRAMES), -1))
+
     def _relocalization_candidates(self, enc: Encoding) -> list[int]:
-        recent = list(range(len(self.keyframes) - 1, max(-1, len(self.keyframes) - 4), -1))
+        recent = self._recent_keyframes()
         if self.database is None or len(self.database) == 0:
             return recent
         desc, _ = self.prior.retrieval_features(enc)
