@@ -6,8 +6,11 @@ import os
 from pathlib import Path
 
 import numpy as np
+import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
+
+from como3r.errors import InputError
 
 WIDTH, HEIGHT = 32, 24
 SEVEN_SCENES_REAL = Path("/work/shared/data/7scenes_redkitchen_tsdf50")
@@ -119,3 +122,13 @@ def link_frames(source: Path, target: Path, count: int) -> Path:
         for path in source.glob(f"{stem}.*"):
             os.symlink(path, target / path.name)
     return target
+
+
+def input_error(match: str, func, *args, **kwargs) -> str:
+    """Call ``func``; it must raise one-line :class:`InputError` containing ``match``."""
+    with pytest.raises(InputError) as info:
+        func(*args, **kwargs)
+    message = str(info.value)
+    assert match in message, message
+    assert "\n" not in message
+    return message

@@ -11,19 +11,9 @@ from PIL import Image
 from como3r.data.agent import open_agent
 from como3r.data.readers import detect_format, read_ground_truth, resolve_format
 from como3r.data.split import split_sequence
-from como3r.errors import InputError
 
 from ..test_agent import write_agent, write_video
-from .layouts import pixels, write_7scenes, write_tum
-
-
-def _error(match: str, func, *args, **kwargs) -> str:
-    with pytest.raises(InputError) as info:
-        func(*args, **kwargs)
-    message = str(info.value)
-    assert match in message, message
-    assert "\n" not in message
-    return message
+from .layouts import input_error, pixels, write_7scenes, write_tum
 
 
 @pytest.fixture
@@ -54,26 +44,26 @@ def test_forced_format_is_used_and_checked(layouts):
     assert resolve_format(layouts["tum"], "tum") == "tum"
     assert resolve_format(layouts["7scenes_below"], "7scenes") == "7scenes"
     # the TUM folder read as an agent folder: rgb/ by name, depth/ stems differ
-    _error("depth map missing for frame", open_agent, layouts["tum"], format="agent")
-    _error(f"{layouts['agent']}: not a TUM RGB-D sequence (--format tum): expected rgb.txt",
+    input_error("depth map missing for frame", open_agent, layouts["tum"], format="agent")
+    input_error(f"{layouts['agent']}: not a TUM RGB-D sequence (--format tum): expected rgb.txt",
            open_agent, layouts["agent"], format="tum")
-    _error(f"{layouts['tum']}: not a 7-Scenes sequence (--format 7scenes): expected "
+    input_error(f"{layouts['tum']}: not a 7-Scenes sequence (--format 7scenes): expected "
            "frame-NNNNNN.color.png|jpg", open_agent, layouts["tum"], format="7scenes")
-    _error("not a TUM RGB-D sequence", open_agent, layouts["7scenes"], format="tum")
-    _error("unknown format 'kitti'; choose one of auto, agent, tum, 7scenes", open_agent,
+    input_error("not a TUM RGB-D sequence", open_agent, layouts["7scenes"], format="tum")
+    input_error("unknown format 'kitti'; choose one of auto, agent, tum, 7scenes", open_agent,
            layouts["agent"], format="kitti")
 
 
 def test_a_folder_of_no_known_layout(tmp_path):
     (tmp_path / "empty").mkdir()
-    message = _error(f"{tmp_path / 'empty'}: not an input of a known layout: expected an agent "
+    message = input_error(f"{tmp_path / 'empty'}: not an input of a known layout: expected an agent "
                      "folder (rgb/ or a video file), a TUM RGB-D sequence (rgb.txt", open_agent,
                      tmp_path / "empty")
     assert "7-Scenes sequence (frame-NNNNNN.color.png" in message
     (tmp_path / "flat").mkdir()
     Image.fromarray(pixels(0)).save(tmp_path / "flat" / "IMG_0001.jpg")
-    _error(f"its images belong in {tmp_path / 'flat' / 'rgb'}/", open_agent, tmp_path / "flat")
-    _error("input does not exist", open_agent, tmp_path / "nowhere")
+    input_error(f"its images belong in {tmp_path / 'flat' / 'rgb'}/", open_agent, tmp_path / "flat")
+    input_error("input does not exist", open_agent, tmp_path / "nowhere")
 
 
 def test_ground_truth_of_an_agent_folder_a_file_and_a_video(tmp_path):
@@ -84,7 +74,7 @@ def test_ground_truth_of_an_agent_folder_a_file_and_a_video(tmp_path):
     video_dir = write_agent(tmp_path / "v", n=2, groundtruth=True)
     write_video(video_dir / "clip.avi", n=2)
     assert read_ground_truth(video_dir / "clip.avi")[0] == video_dir / "groundtruth.txt"
-    _error("agent folder has no groundtruth.txt", read_ground_truth,
+    input_error("agent folder has no groundtruth.txt", read_ground_truth,
            write_agent(tmp_path / "bare", n=2))
 
 

@@ -11,19 +11,10 @@ from PIL import Image
 from como3r.data.agent import open_agent
 from como3r.data.readers import read_ground_truth
 from como3r.data.readers.sevenscenes import DEFAULT_INTRINSICS
-from como3r.errors import InputError
 from como3r.geometry.lie import quat_to_matrix
 
-from .layouts import SEVEN_SCENES_REAL, depth_metres, pixels, write_pose, write_7scenes
-
-
-def _error(match: str, func, *args, **kwargs) -> str:
-    with pytest.raises(InputError) as info:
-        func(*args, **kwargs)
-    message = str(info.value)
-    assert match in message, message
-    assert "\n" not in message
-    return message
+from .layouts import (SEVEN_SCENES_REAL, depth_metres, input_error, pixels, write_7scenes,
+                      write_pose)
 
 
 def _matrices(T_WC: torch.Tensor) -> np.ndarray:
@@ -63,7 +54,7 @@ def test_jpeg_colour_and_no_depth_or_poses(tmp_path):
     agent = open_agent(tmp_path / "seq")
     assert agent.num_frames == 3 and not agent.has_depth and agent.groundtruth is None
     assert (agent.gt_indices == -1).all()
-    _error("has no frame-NNNNNN.pose.txt files", read_ground_truth, tmp_path / "seq")
+    input_error("has no frame-NNNNNN.pose.txt files", read_ground_truth, tmp_path / "seq")
 
 
 def test_frames_in_the_only_subfolder_and_intrinsics_beside_them(tmp_path):
@@ -93,7 +84,7 @@ def test_ground_truth_for_eval(tmp_path):
 def test_a_scene_folder_of_several_sequences(tmp_path):
     write_7scenes(tmp_path / "chess" / "seq-01", n=2)
     write_7scenes(tmp_path / "chess" / "seq-02", n=2)
-    _error("holds 2 7-Scenes sequences (seq-01, seq-02); give one", open_agent,
+    input_error("holds 2 7-Scenes sequences (seq-01, seq-02); give one", open_agent,
            tmp_path / "chess")
 
 
@@ -101,32 +92,32 @@ def test_a_scene_folder_of_several_sequences(tmp_path):
 def test_a_frame_without_its_depth_or_pose(tmp_path, kind):
     write_7scenes(tmp_path / "seq", n=3)
     (tmp_path / "seq" / f"frame-000001.{kind}").unlink()
-    _error(f"frame-000001.{kind}: missing (2 ", open_agent, tmp_path / "seq")
+    input_error(f"frame-000001.{kind}: missing (2 ", open_agent, tmp_path / "seq")
 
 
 def test_depth_without_a_colour_image(tmp_path):
     write_7scenes(tmp_path / "seq", n=3)
     (tmp_path / "seq" / "frame-000002.color.png").unlink()
-    _error("frame-000002.depth.png: no colour image frame-000002.color.png|jpg",
+    input_error("frame-000002.depth.png: no colour image frame-000002.color.png|jpg",
            open_agent, tmp_path / "seq")
 
 
 def test_two_colour_images_of_one_frame(tmp_path):
     write_7scenes(tmp_path / "seq", n=2)
     Image.fromarray(pixels(0)).save(tmp_path / "seq" / "frame-000000.color.jpg")
-    _error("frame 0 has two color files", open_agent, tmp_path / "seq")
+    input_error("frame 0 has two color files", open_agent, tmp_path / "seq")
 
 
 def test_unreadable_colour_image(tmp_path):
     write_7scenes(tmp_path / "seq", n=2)
     (tmp_path / "seq" / "frame-000001.color.png").write_bytes(b"garbage")
-    _error("frame-000001.color.png: cannot read image", open_agent, tmp_path / "seq")
+    input_error("frame-000001.color.png: cannot read image", open_agent, tmp_path / "seq")
 
 
 def test_depth_of_another_size(tmp_path):
     write_7scenes(tmp_path / "seq", n=2)
     Image.fromarray(np.zeros((5, 7), np.uint16)).save(tmp_path / "seq" / "frame-000001.depth.png")
-    _error("frame-000001.depth.png: depth map is 7x5", open_agent, tmp_path / "seq")
+    input_error("frame-000001.depth.png: depth map is 7x5", open_agent, tmp_path / "seq")
 
 
 @pytest.mark.parametrize("text, fragment", [
@@ -137,7 +128,7 @@ def test_depth_of_another_size(tmp_path):
 def test_malformed_pose(tmp_path, text, fragment):
     write_7scenes(tmp_path / "seq", n=2)
     (tmp_path / "seq" / "frame-000001.pose.txt").write_text(text)
-    message = _error(fragment, open_agent, tmp_path / "seq")
+    message = input_error(fragment, open_agent, tmp_path / "seq")
     assert "frame-000001.pose.txt: expected 16" in message
 
 
@@ -149,14 +140,14 @@ def test_pose_that_is_not_rigid(tmp_path, scale, flip):
     if flip:
         T[2, 2] = -1.0  # a reflection
     write_pose(tmp_path / "seq" / "frame-000000.pose.txt", T)
-    _error("frame-000000.pose.txt: not a rigid camera-to-world transform", open_agent,
+    input_error("frame-000000.pose.txt: not a rigid camera-to-world transform", open_agent,
            tmp_path / "seq")
 
 
 def test_bad_intrinsics_file(tmp_path):
     write_7scenes(tmp_path / "seq", n=2)
     (tmp_path / "seq" / "camera-intrinsics.txt").write_text("585 0 320\n0 585 240\n")
-    _error("camera-intrinsics.txt: expected 9 finite numbers", open_agent, tmp_path / "seq")
+    input_error("camera-intrinsics.txt: expected 9 finite numbers", open_agent, tmp_path / "seq")
 
 
 # ------------------------------------------------------------------------ the real excerpt

@@ -12,20 +12,10 @@ from PIL import Image
 from como3r.data.agent import open_agent
 from como3r.data.readers import read_ground_truth
 from como3r.data.readers.tum import INTRINSICS, associate, intrinsics_from_name
-from como3r.errors import InputError
 
-from .layouts import HEIGHT, WIDTH, depth_metres, pixels, write_tum
+from .layouts import HEIGHT, WIDTH, depth_metres, input_error, pixels, write_tum
 
 NAME = "rgbd_dataset_freiburg1_desk"
-
-
-def _error(match: str, func, *args, **kwargs) -> str:
-    with pytest.raises(InputError) as info:
-        func(*args, **kwargs)
-    message = str(info.value)
-    assert match in message, message
-    assert "\n" not in message
-    return message
 
 
 def test_sequence_is_read_as_published(tmp_path):
@@ -112,7 +102,7 @@ def test_without_depth_or_groundtruth(tmp_path):
     agent = open_agent(root)
     assert agent.num_frames == 3 and not agent.has_depth and agent.groundtruth is None
     assert (agent.gt_indices == -1).all()
-    _error("no groundtruth.txt", read_ground_truth, root)
+    input_error("no groundtruth.txt", read_ground_truth, root)
 
 
 def test_frames_outside_the_groundtruth_have_none(tmp_path):
@@ -140,21 +130,21 @@ def test_listed_image_missing(tmp_path):
     root = tmp_path / NAME
     stamps = write_tum(root, n=3)["rgb"]
     (root / "rgb" / f"{stamps[1]:.6f}.png").unlink()
-    _error(f"rgb/{stamps[1]:.6f}.png: missing (listed in {root / 'rgb.txt'}:5)", open_agent, root)
+    input_error(f"rgb/{stamps[1]:.6f}.png: missing (listed in {root / 'rgb.txt'}:5)", open_agent, root)
 
 
 def test_listed_depth_missing(tmp_path):
     root = tmp_path / NAME
     write_tum(root, n=3)
     next((root / "depth").iterdir()).unlink()
-    _error("missing (listed in", open_agent, root)
+    input_error("missing (listed in", open_agent, root)
 
 
 def test_unreadable_image(tmp_path):
     root = tmp_path / NAME
     stamps = write_tum(root, n=3)["rgb"]
     (root / "rgb" / f"{stamps[2]:.6f}.png").write_bytes(b"not a png")
-    _error(f"{stamps[2]:.6f}.png: cannot read image", open_agent, root)
+    input_error(f"{stamps[2]:.6f}.png: cannot read image", open_agent, root)
 
 
 def test_depth_that_is_not_16_bit(tmp_path):
@@ -162,7 +152,7 @@ def test_depth_that_is_not_16_bit(tmp_path):
     write_tum(root, n=3)
     path = sorted((root / "depth").iterdir())[1]
     Image.fromarray(np.zeros((HEIGHT, WIDTH), np.uint8)).save(path)
-    _error("16-bit", open_agent, root)
+    input_error("16-bit", open_agent, root)
 
 
 @pytest.mark.parametrize("line, fragment", [
@@ -175,20 +165,20 @@ def test_malformed_rgb_txt(tmp_path, line, fragment):
     write_tum(root, n=3)
     with open(root / "rgb.txt", "a") as f:
         f.write(line + "\n")
-    _error(f"{root / 'rgb.txt'}:7: {fragment}", open_agent, root)
+    input_error(f"{root / 'rgb.txt'}:7: {fragment}", open_agent, root)
 
 
 def test_empty_rgb_txt(tmp_path):
     root = tmp_path / NAME
     write_tum(root, n=3)
     (root / "rgb.txt").write_text("# nothing\n")
-    _error("no 'timestamp filename' entries", open_agent, root)
+    input_error("no 'timestamp filename' entries", open_agent, root)
 
 
 def test_depth_far_from_every_image(tmp_path):
     root = tmp_path / NAME
     write_tum(root, n=3, depth_offset=0.5)
-    _error("depth.txt: no depth image within 0.02 s", open_agent, root)
+    input_error("depth.txt: no depth image within 0.02 s", open_agent, root)
 
 
 def test_malformed_groundtruth(tmp_path):
@@ -196,4 +186,4 @@ def test_malformed_groundtruth(tmp_path):
     write_tum(root, n=3)
     with open(root / "groundtruth.txt", "a") as f:
         f.write("1 2 3\n")
-    _error("groundtruth.txt:", open_agent, root)
+    input_error("groundtruth.txt:", open_agent, root)
