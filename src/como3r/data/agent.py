@@ -443,6 +443,18 @@ def _probe_video(video: Path) -> tuple[int, tuple[int, int], float | None]:
     return count, (width, height), rate if math.isfinite(rate) and rate > 0 else None
 
 
+def parse_timestamp(token: str, path: Path, line_no: int) -> float:
+    """A finite timestamp [s] from a text file's token, or :class:`InputError` naming the
+    file and line."""
+    try:
+        stamp = float(token)
+    except ValueError:
+        raise InputError(f"{path}:{line_no}: not a timestamp: {token!r}") from None
+    if not math.isfinite(stamp):
+        raise InputError(f"{path}:{line_no}: non-finite timestamp {token!r}")
+    return stamp
+
+
 def _read_timestamps(path: Path, stems: tuple[str, ...], by_name: bool) -> np.ndarray:
     """``(N,)`` timestamps from ``timestamps.txt``, in frame order.
 
@@ -463,12 +475,7 @@ def _read_timestamps(path: Path, stems: tuple[str, ...], by_name: bool) -> np.nd
             raise InputError(
                 f"{path}:{line_no}: expected 'timestamp' or 'timestamp filename', got {text!r}"
             )
-        try:
-            stamp = float(parts[0])
-        except ValueError:
-            raise InputError(f"{path}:{line_no}: not a number: {parts[0]!r}") from None
-        if not math.isfinite(stamp):
-            raise InputError(f"{path}:{line_no}: non-finite timestamp {parts[0]!r}")
+        stamp = parse_timestamp(parts[0], path, line_no)
         rows.append((line_no, stamp, parts[1] if len(parts) == 2 else None))
     if len({name is None for _, _, name in rows}) > 1:
         raise InputError(f"{path}: mixes 'timestamp' and 'timestamp filename' lines")

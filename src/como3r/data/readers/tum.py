@@ -34,7 +34,6 @@ the dataset's "File Formats" page
 from __future__ import annotations
 
 import logging
-import math
 import re
 from pathlib import Path
 
@@ -45,6 +44,7 @@ from como3r.data.agent import (
     associate_timestamps,
     check_map_header,
     common_image_size,
+    parse_timestamp,
     read_calib,
 )
 from como3r.errors import InputError
@@ -95,12 +95,7 @@ def read_file_list(path: Path) -> list[tuple[int, float, str]]:
         parts = text.split()
         if len(parts) != 2:
             raise InputError(f"{path}:{line_no}: expected 'timestamp filename', got {text!r}")
-        try:
-            stamp = float(parts[0])
-        except ValueError:
-            raise InputError(f"{path}:{line_no}: not a timestamp: {parts[0]!r}") from None
-        if not math.isfinite(stamp):
-            raise InputError(f"{path}:{line_no}: non-finite timestamp {parts[0]!r}")
+        stamp = parse_timestamp(parts[0], path, line_no)
         if rows and stamp <= rows[-1][1]:
             raise InputError(f"{path}:{line_no}: timestamps are not strictly increasing "
                              f"({rows[-1][1]!r} then {stamp!r})")
