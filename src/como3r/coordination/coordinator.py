@@ -503,7 +503,9 @@ class Coordinator:
         realistic prior, seed 0; agent 2 merged into agent 1 on one pair, then both into
         agent 0 on one pair): focal lengths 339 / 337 / 349 px after the merges (true 334),
         merged ATE 4.97 cm = 2.7 % of path; refined on 4 (or 8) pairs per agent 1.97 cm =
-        1.07 %, for 8 s more of coordinator time. The same run calibrated: 0.70 cm.
+        1.07 %, for 8 s more of coordinator time. The same run calibrated: 0.70 cm. Seed 1:
+        0.72 -> 0.85 % (focal lengths 329.5 / 330.6 / 330.7 px after, but agents 1 and 2 sit
+        3 % smaller than agent 0, joined by one edge: an offset the focal errors had hidden).
         """
         if not self._aligns_focal():
             return
