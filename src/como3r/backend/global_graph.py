@@ -186,15 +186,23 @@ class GlobalGraph:
             InputError: the agent sent no keyframe, or its keyframes carry no intrinsics
                 (not a calibrated or self-calibrated run).
         """
-        indices = self.agent_keyframes(agent)
-        if not indices or self.keyframes[indices[0]].K is None:
+        current = self.agent_focal(agent)
+        if current is None:
             raise InputError(f"coordinator: agent {agent} has no keyframe with intrinsics to "
                              f"rescale")
-        focal = float(self.keyframes[indices[0]].K[0, 0]) * math.exp(log_focal)
-        for g in indices:
+        focal = current * math.exp(log_focal)
+        for g in self.agent_keyframes(agent):
             self.keyframes[g].rescale_focal(focal)
         self.focal[agent] = focal
         return focal
+
+    def agent_focal(self, agent: int) -> float | None:
+        """The focal length ``fx`` [px] of an agent's keyframes in the map (they share one
+        camera), or None before its first keyframe or without intrinsics."""
+        indices = self.agent_keyframes(agent)
+        if not indices or self.keyframes[indices[0]].K is None:
+            return None
+        return float(self.keyframes[indices[0]].K[0, 0])
 
     def _corrected(self, agent: int, X_hat: Tensor, K: Tensor | None
                    ) -> tuple[Tensor, Tensor | None]:

@@ -357,12 +357,8 @@ class Coordinator:
 
     def _focal_lengths(self) -> dict[str, float]:
         """Each self-calibrated or calibrated agent's focal length in the map [px]."""
-        lengths = {}
-        for agent in range(self.num_agents):
-            indices = self.graph.agent_keyframes(agent)
-            if indices and self.graph.keyframes[indices[0]].K is not None:
-                lengths[str(agent)] = float(self.graph.keyframes[indices[0]].K[0, 0])
-        return lengths
+        focal = {agent: self.graph.agent_focal(agent) for agent in range(self.num_agents)}
+        return {str(agent): f for agent, f in focal.items() if f is not None}
 
     # ------------------------------------------------------------------ association
 
