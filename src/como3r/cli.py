@@ -109,11 +109,9 @@ def evaluate(
     format: str = typer.Option("auto", "--format", help=FORMAT_HELP),
 ) -> None:
     """ATE (and RPE) per agent and merged, through evo."""
-    from como3r.data.readers import FORMATS
     from como3r.evaluation.report import evaluate_run
 
-    if format not in FORMATS:
-        raise InputError(f"unknown --format {format!r}; choose one of {', '.join(FORMATS)}")
+    _check_format(format)
     summary = evaluate_run(est, gt, out if out is not None else est, gt_format=format)
     print_rows("ATE RMSE [m] (Sim(3)-aligned)", summary.table_rows())
     for line in summary.notes:
@@ -173,7 +171,6 @@ def run(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
 ) -> None:
     """Run collaborative SLAM on one or more agents and write the output folder."""
-    from como3r.data.readers import FORMATS
     from como3r.io.output import check_output_dir
     from como3r.prior.mast3r.precision import PRECISIONS, check_precision
     from como3r.runtime.pipeline import PRIORS, PriorSpec, resolve_weights, run as run_pipeline
@@ -187,8 +184,8 @@ def run(
                          f"{', '.join(PRECISIONS)}")
     if mode not in ("centralized", "decentralized"):
         raise InputError(f"unknown --mode {mode!r}; choose centralized or decentralized")
-    if format is not None and format not in FORMATS:
-        raise InputError(f"unknown --format {format!r}; choose one of {', '.join(FORMATS)}")
+    if format is not None:
+        _check_format(format)
     check_output_dir(out, overwrite)  # before the weights load and the agents start
     config = _load_config(config_file, overrides, calib, no_loop_closure, format)
     for path in agent:
@@ -221,6 +218,14 @@ def run(
                          progress=lambda a, outcome, done, total: _frame_progress(
                              bar, task, done, total))
     _print_summary(summary, out)
+
+
+def _check_format(format: str) -> None:
+    """``--format`` names a known input layout (:data:`como3r.data.readers.FORMATS`)."""
+    from como3r.data.readers import FORMATS
+
+    if format not in FORMATS:
+        raise InputError(f"unknown --format {format!r}; choose one of {', '.join(FORMATS)}")
 
 
 def _check_simulated_input(path: Path, config) -> None:
