@@ -67,6 +67,7 @@ from como3r.prior.simulated_keys import (
     key_footprint,
     keys_from_surface,
     keys_from_world,
+    reproducible_matmul,
     stable_seed,
 )
 from como3r.prior.simulated_retrieval import (
@@ -340,7 +341,7 @@ class SimulatedPrior(Prior):
         R, t = errors.perturb_pose_easy(R, t, self.config, gen)
         X_ii, _ = self._observe(enc_i, gen)
         X_j, _ = self._observe(enc_j, gen)
-        X_ji = scale * (s * X_j @ R.T + t)
+        X_ji = scale * (s * reproducible_matmul(X_j, R.T) + t)
         C_ii, C_ji, Q_ii, Q_ji = self._confidences(enc_i, enc_j, matches, overlap, gen)
         noise = self.config.descriptor_noise
         return PairPrediction(
@@ -373,7 +374,8 @@ class SimulatedPrior(Prior):
         X_j, error_j = self._observe(enc_j, gen)
         # view j's observed ranges on its true rays, moved by the pair's (erroneous) pose
         # into camera i and bent as camera i is believed to be
-        X_j_in_i = s * (enc_j.rays * X_j.norm(dim=-1, keepdim=True)) @ R.T + t
+        on_rays_j = enc_j.rays * X_j.norm(dim=-1, keepdim=True)
+        X_j_in_i = s * reproducible_matmul(on_rays_j, R.T) + t
         X_ji = scale * errors.in_believed_camera(X_j_in_i, enc_i.rays, enc_i.pred_rays,
                                                  enc_i.K)
         r = errors.RealisticConstants

@@ -90,7 +90,7 @@ from torch import Tensor
 from como3r.config import SimulatedPriorConfig
 from como3r.errors import ConfigError
 from como3r.geometry.lie import quat_to_matrix, so3_exp
-from como3r.prior.simulated_keys import generator
+from como3r.prior.simulated_keys import generator, reproducible_matmul
 
 REALISTIC = "realistic"
 
@@ -242,21 +242,33 @@ def in_believed_camera(points: Tensor, rays: Tensor, pred_rays: Tensor, K: Tenso
     true_xy = (rays[..., :2] / rays[..., 2:]).reshape(-1, 2)
     pred_xy = (pred_rays[..., :2] / pred_rays[..., 2:]).reshape(-1, 2)
     design = torch.cat([true_xy, torch.ones_like(true_xy[:, :1])], dim=1)
-    affine = torch.linalg.lstsq(design, pred_xy).solution  # (3, 2)
-    remainder = (pred_xy - design @ affine).reshape(H, W, 2)
+    affine = _least_squares(design, pred_xy)  # (3, 2)
+    remainder = (pred_xy - reproducible_matmul(design, affine)).reshape(H, W, 2)
     z = points[..., 2:]
     front = z[..., 0] > 1e-9
     xy = points[..., :2] / torch.where(front[..., None], z, torch.ones_like(z))
-    pixels = xy @ K[:2, :2].T.to(xy) + K[:2, 2].to(xy)
+    pixels = reproducible_matmul(xy, K[:2, :2].T.to(xy)) + K[:2, 2].to(xy)
     grid = torch.stack([2 * pixels[..., 0] / max(W - 1, 1) - 1,
                         2 * pixels[..., 1] / max(H - 1, 1) - 1], dim=-1)
     bend = F.grid_sample(remainder.permute(2, 0, 1)[None], grid.reshape(1, 1, -1, 2),
                          mode="bilinear", padding_mode="border", align_corners=True)
-    believed_xy = (torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1) @ affine
+    believed_xy = (reproducible_matmul(torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1),
+                                       affine)
                    + bend[0, :, 0].T.reshape(xy.shape))
     direction = F.normalize(torch.cat([believed_xy, torch.ones_like(z)], dim=-1), dim=-1)
     moved = direction * points.norm(dim=-1, keepdim=True)
     return torch.where(front[..., None], moved, points)
+
+
+def _least_squares(A: Tensor, B: Tensor) -> Tensor:
+    """``argmin_X |A X - B|`` for ``A`` ``(N, K)`` of full column rank and ``B`` ``(N, M)``,
+    by the normal equations in float64 with fixed summation order: LAPACK's blocked QR
+    (``torch.linalg.lstsq``) rounds differently with the operands' memory alignment, which
+    made the same decode differ between two calls."""
+    A64, B64 = A.double(), B.double()
+    gram = (A64[:, :, None] * A64[:, None, :]).sum(0)
+    rhs = (A64[:, :, None] * B64[:, None, :]).sum(0)
+    return torch.linalg.solve(gram, rhs).to(A.dtype)
 
 
 def image_log_range_error(ranges: Tensor, valid: Tensor, config: SimulatedPriorConfig,

@@ -54,6 +54,17 @@ def generator(*values: int | str) -> torch.Generator:
     return torch.Generator().manual_seed(stable_seed(*values))
 
 
+def reproducible_matmul(a: Tensor, b: Tensor) -> Tensor:
+    """``a @ b`` for a small ``b`` ``(K, N)`` (``a`` ``(..., K)``), bit-identical on every call.
+
+    The simulated prior must give the same prediction for the same pair every time
+    (``tests/prior``), but a BLAS product's rounding can depend on its operands' memory
+    alignment, so the same decode twice differed by an ulp about once in ten runs. An
+    elementwise product summed over ``K`` has one fixed summation order.
+    """
+    return (a[..., :, None] * b).sum(-2)
+
+
 def keys_from_surface(surface: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
     """Keys of a surface map.
 
