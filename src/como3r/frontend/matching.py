@@ -261,7 +261,9 @@ def refine_with_descriptors(
     query = D_query.reshape(B * P, d)[rows_of].to(_SCORE_DTYPE)
     # the dot products as an in-place product and one matrix-vector sum over d: 1.3-1.7x
     # faster than torch.linalg.vecdot (a product tensor plus a reduction over a short last
-    # dimension), same scores; the gathered candidates reuse one buffer
+    # dimension), same scores; the gathered candidates reuse one buffer, laid out window
+    # offset major (K, n, d) so the product with the queries (n, d) is between operands of
+    # one shape, no broadcast inside a row (1.3x over (n, K, d) on one core)
     ones = torch.ones(d, 1, dtype=_SCORE_DTYPE, device=pixel.device)
     buffer = torch.empty(_REFINE_CHUNK * K, d, dtype=_SCORE_DTYPE, device=pixel.device)
     for start in range(0, u_all.shape[0], _REFINE_CHUNK):
@@ -270,12 +272,11 @@ def refine_with_descriptors(
         n = q.shape[0]
         candidates = buffer[: n * K]
         for dil in dilations:
-            rows = ((origin_c + v * Wp + u)[:, None] + row_offsets[dil]).reshape(-1)
+            rows = (row_offsets[dil][:, None] + (origin_c + v * Wp + u)).reshape(-1)
             torch.index_select(table, 0, rows, out=candidates)
-            candidates.view(n, K, d).mul_(q[:, None, :])
-            # max(dim).indices (first maximum, as argmax) is twice as fast as argmax over a
-            # short last dimension on CPU
-            best = torch.mm(candidates, ones).view(n, K).max(dim=-1).indices
+            candidates.view(K, n, d).mul_(q)
+            # max(dim).indices is the first maximum, as argmax, and twice as fast on CPU
+            best = torch.mm(candidates, ones).view(K, n).max(dim=0).indices
             u = (u + move_u[dil][best]).clamp_(0, W - 1)
             v = (v + move_v[dil][best]).clamp_(0, H - 1)
         u_all[sl], v_all[sl] = u, v
