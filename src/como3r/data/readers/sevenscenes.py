@@ -41,8 +41,8 @@ import numpy as np
 import torch
 
 from como3r.data.agent import AgentInput, check_map_header, common_image_size, read_calib
+from como3r.data.readers.common import parse_numbers, rigid_poses
 from como3r.errors import InputError
-from como3r.geometry.lie import matrix_to_quat
 from como3r.io.tum import Trajectory
 
 EXPECTED = "frame-NNNNNN.color.png|jpg files (with .depth.png and .pose.txt)"
@@ -50,8 +50,6 @@ EXPECTED = "frame-NNNNNN.color.png|jpg files (with .depth.png and .pose.txt)"
 DEFAULT_INTRINSICS = (585.0, 585.0, 320.0, 240.0)
 DEPTH_UNITS_PER_METRE = 1000.0
 DEPTH_INVALID = (0, 65535)
-#: largest |R^T R - I| entry and |last row - (0, 0, 0, 1)| of an accepted pose matrix
-RIGID_TOLERANCE = 1e-3
 _FILE = re.compile(r"frame-(\d+)\.(color\.png|color\.jpg|depth\.png|pose\.txt)", re.I)
 _COLOUR = re.compile(r"frame-\d+\.color\.(png|jpg)", re.I)
 
@@ -128,17 +126,7 @@ def read_poses(files: tuple[Path, ...]) -> torch.Tensor:
     Raises:
         InputError: a file that is not 16 finite numbers or not a rigid transform.
     """
-    matrices = np.stack([_read_matrix(f, 4) for f in files])
-    R = matrices[:, :3, :3]
-    error = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
-    error = np.maximum(error, np.abs(matrices[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1))
-    bad = np.flatnonzero((error > RIGID_TOLERANCE) | (np.linalg.det(R) <= 0))
-    if bad.size:
-        raise InputError(f"{files[bad[0]]}: not a rigid camera-to-world transform (a rotation "
-                         f"and a translation, last row 0 0 0 1; off by {error[bad[0]]:.2g})")
-    q = matrix_to_quat(torch.from_numpy(R))
-    t = torch.from_numpy(matrices[:, :3, 3])
-    return torch.cat([t, q, torch.ones(len(files), 1, dtype=torch.float64)], dim=1)
+    return rigid_poses(np.stack([_read_matrix(f, 4) for f in files]), files)
 
 
 def intrinsics(folder: Path) -> tuple[float, float, float, float]:
@@ -170,14 +158,7 @@ def _read_matrix(path: Path, n: int) -> np.ndarray:
         parts = path.read_text().split()
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read ({exc})") from None
-    try:
-        values = np.array([float(p) for p in parts], dtype=np.float64)
-    except ValueError:
-        raise InputError(f"{path}: expected {n * n} numbers ({n}x{n} matrix), found text "
-                         "that is not a number") from None
-    if values.size != n * n or not np.isfinite(values).all():
-        raise InputError(f"{path}: expected {n * n} finite numbers ({n}x{n} matrix), got "
-                         f"{values.size}")
+    values = parse_numbers(parts, n * n, str(path), f"{n}x{n} matrix")
     return values.reshape(n, n)
 
 
