@@ -87,7 +87,8 @@ def test_eval_against_a_7scenes_sequence(tmp_path):
 
 
 @pytest.mark.parametrize("args, fragment", [
-    (["--format", "kitti"], "unknown --format 'kitti'; choose one of auto, agent, tum, 7scenes"),
+    (["--format", "colmap"], "unknown --format 'colmap'; choose one of auto, agent, tum, "
+                                "7scenes, euroc, kitti, tanks"),
     (["--format", "tum"], "not a TUM RGB-D sequence (--format tum): expected rgb.txt"),
 ])
 def test_format_errors_are_one_line(tmp_path, only_error_line, args, fragment):

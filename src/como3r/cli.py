@@ -92,7 +92,8 @@ def synth(
 
 
 FORMAT_HELP = ("Layout of the input folders: auto (detect) | agent | tum (TUM RGB-D) | "
-               "7scenes.")
+               "7scenes | euroc (EuRoC MAV) | kitti (KITTI odometry) | tanks (Tanks and "
+               "Temples).")
 
 
 @app.command("eval", cls=Command)

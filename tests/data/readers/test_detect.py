@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -13,21 +15,29 @@ from como3r.data.readers import detect_format, read_ground_truth, resolve_format
 from como3r.data.split import split_sequence
 
 from ..test_agent import write_agent, write_video
-from .layouts import input_error, pixels, write_7scenes, write_tum
+from .layouts import (input_error, pixels, write_7scenes, write_euroc, write_kitti,
+                      write_tanks, write_tum)
 
 
 @pytest.fixture
 def layouts(tmp_path):
-    """One folder of each layout, plus a 7-Scenes sequence one level down."""
+    """One folder of each layout, plus a 7-Scenes sequence one level down and a EuRoC
+    sequence's mav0 folder."""
     folders = {
         "agent": write_agent(tmp_path / "agent", n=3),
         "tum": tmp_path / "rgbd_dataset_freiburg3_x",
         "7scenes": tmp_path / "seq-01",
         "7scenes_below": tmp_path / "excerpt",
+        "euroc": tmp_path / "MH_01_easy",
+        "euroc_mav0": tmp_path / "MH_01_easy" / "mav0",
+        "kitti": write_kitti(tmp_path / "dataset", n=3)["sequence"],
+        "tanks": tmp_path / "Barn",
     }
     write_tum(folders["tum"], n=3)
     write_7scenes(folders["7scenes"], n=2)
     write_7scenes(folders["7scenes_below"] / "rgbd-frames", n=2)
+    write_euroc(folders["euroc"], n=3)
+    write_tanks(folders["tanks"])
     return folders
 
 
@@ -36,6 +46,9 @@ def test_detection(layouts, tmp_path):
     assert detect_format(layouts["tum"]) == "tum"  # although it has rgb/ too
     assert detect_format(layouts["7scenes"]) == "7scenes"
     assert detect_format(layouts["7scenes_below"]) == "7scenes"
+    for kind in ("euroc", "euroc_mav0", "kitti", "tanks"):
+        assert detect_format(layouts[kind]) == kind.split("_")[0]
+        assert open_agent(layouts[kind]).format == kind.split("_")[0]
     write_video(tmp_path / "clip.avi", n=3)
     assert detect_format(tmp_path / "clip.avi") == "agent"
 
@@ -50,8 +63,17 @@ def test_forced_format_is_used_and_checked(layouts):
     input_error(f"{layouts['tum']}: not a 7-Scenes sequence (--format 7scenes): expected "
            "frame-NNNNNN.color.png|jpg", open_agent, layouts["tum"], format="7scenes")
     input_error("not a TUM RGB-D sequence", open_agent, layouts["7scenes"], format="tum")
-    input_error("unknown format 'kitti'; choose one of auto, agent, tum, 7scenes", open_agent,
-           layouts["agent"], format="kitti")
+    for kind, expected in (("euroc", "not a EuRoC sequence (--format euroc): expected "
+                                     "mav0/cam0/data.csv"),
+                           ("kitti", "not a KITTI odometry sequence (--format kitti): "
+                                     "expected image_2/ and times.txt"),
+                           ("tanks", "not a Tanks and Temples sequence (--format tanks): "
+                                     "expected image/")):
+        assert resolve_format(layouts[kind], kind) == kind
+        input_error(f"{layouts['agent']}: {expected}", open_agent, layouts["agent"],
+                    format=kind)
+    input_error("unknown format 'colmap'; choose one of auto, agent, tum, 7scenes, euroc, "
+                "kitti, tanks", open_agent, layouts["agent"], format="colmap")
 
 
 def test_a_folder_of_no_known_layout(tmp_path):
@@ -60,6 +82,9 @@ def test_a_folder_of_no_known_layout(tmp_path):
                      "folder (rgb/ or a video file), a TUM RGB-D sequence (rgb.txt", open_agent,
                      tmp_path / "empty")
     assert "7-Scenes sequence (frame-NNNNNN.color.png" in message
+    assert "a EuRoC sequence (mav0/cam0/data.csv" in message
+    assert "a KITTI odometry sequence (image_2/, times.txt" in message
+    assert "a Tanks and Temples sequence (image/, gt_traj.txt)" in message
     (tmp_path / "flat").mkdir()
     Image.fromarray(pixels(0)).save(tmp_path / "flat" / "IMG_0001.jpg")
     input_error(f"its images belong in {tmp_path / 'flat' / 'rgb'}/", open_agent, tmp_path / "flat")
@@ -76,6 +101,28 @@ def test_ground_truth_of_an_agent_folder_a_file_and_a_video(tmp_path):
     assert read_ground_truth(video_dir / "clip.avi")[0] == video_dir / "groundtruth.txt"
     input_error("agent folder has no groundtruth.txt", read_ground_truth,
            write_agent(tmp_path / "bare", n=2))
+
+
+def test_ground_truth_of_each_dataset_layout(layouts, tmp_path):
+    """``eval --gt`` takes each dataset folder; ground truth alone is enough for EuRoC
+    (state_groundtruth_estimate0 and sensor.yaml) and Tanks and Temples (gt_traj.txt)."""
+    for kind, name in (("euroc", "data.csv"), ("euroc_mav0", "data.csv"), ("kitti", "05.txt"),
+                       ("tanks", "gt_traj.txt")):
+        source, trajectory = read_ground_truth(layouts[kind])
+        assert source.name == name and len(trajectory) >= 3
+    gt_only = tmp_path / "gt_only"
+    (gt_only / "mav0" / "cam0").mkdir(parents=True)
+    (gt_only / "mav0" / "cam0" / "sensor.yaml").write_bytes(
+        (layouts["euroc_mav0"] / "cam0" / "sensor.yaml").read_bytes())
+    (gt_only / "mav0" / "state_groundtruth_estimate0").mkdir()
+    gt = layouts["euroc_mav0"] / "state_groundtruth_estimate0" / "data.csv"
+    (gt_only / "mav0" / "state_groundtruth_estimate0" / "data.csv").write_bytes(gt.read_bytes())
+    assert len(read_ground_truth(gt_only)[1]) == len(read_ground_truth(layouts["euroc"])[1])
+    (tmp_path / "tanks_gt").mkdir()
+    (tmp_path / "tanks_gt" / "gt_traj.txt").write_bytes(
+        (layouts["tanks"] / "gt_traj.txt").read_bytes())
+    np.testing.assert_allclose(read_ground_truth(tmp_path / "tanks_gt", fps=10.0)[1].timestamps,
+                               [0.1, 0.2, 0.3, 0.5])
 
 
 @pytest.mark.parametrize("kind", ["tum", "7scenes"])
@@ -101,3 +148,32 @@ def test_a_dataset_sequence_splits_into_agent_folders(layouts, tmp_path, kind):
         np.testing.assert_array_equal(mine.image, theirs.image)
         np.testing.assert_array_equal(mine.depth, theirs.depth)
         torch.testing.assert_close(mine.T_WC_gt, theirs.T_WC_gt)
+
+
+@pytest.mark.parametrize("kind, fragment", [
+    ("euroc", "no depth (EuRoC sequences have none), which --prior simulated needs"),
+    ("kitti", "no depth (KITTI odometry sequences have none), which --prior simulated needs"),
+    ("tanks", "no depth (the Tanks and Temples layout has none), which --prior simulated needs"),
+])
+def test_the_cli_takes_each_dataset_folder(layouts, tmp_path, only_error_line, kind, fragment):
+    """``run --format KIND`` passes the configuration's check and stops at the missing depth
+    in one line; ``eval --gt`` of the folder scores its own ground truth at the frames 0."""
+    from typer.testing import CliRunner
+
+    from como3r.cli import app
+    from como3r.io.tum import write_tum
+
+    def invoke(*args: str):
+        return CliRunner().invoke(app, list(args), env={"COLUMNS": "200"})
+
+    folder = layouts[kind]
+    line = only_error_line(invoke("run", "--agent", str(folder), "--out", str(tmp_path / "out"),
+                                  "--prior", "simulated", "--format", kind))
+    assert fragment in line
+    frames, gt = open_agent(folder).gt_for_frames()
+    write_tum(tmp_path / "est.txt", gt.timestamps, gt.T_WC)
+    result = invoke("eval", "--est", str(tmp_path / "est.txt"), "--gt", str(folder),
+                    "--out", str(tmp_path / "eval"))
+    assert result.exit_code == 0, result.output
+    ate = json.loads((tmp_path / "eval" / "ate.json").read_text())["agents"][0]
+    assert ate["frames"] == len(frames) >= 3 and ate["ate"]["rmse"] < 1e-6

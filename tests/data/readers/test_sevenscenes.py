@@ -11,18 +11,9 @@ from PIL import Image
 from como3r.data.agent import open_agent
 from como3r.data.readers import read_ground_truth
 from como3r.data.readers.sevenscenes import DEFAULT_INTRINSICS
-from como3r.geometry.lie import quat_to_matrix
 
-from .layouts import (SEVEN_SCENES_REAL, depth_metres, input_error, pixels, write_7scenes,
-                      write_pose)
-
-
-def _matrices(T_WC: torch.Tensor) -> np.ndarray:
-    """``(N, 4, 4)`` of ``(N, 8)`` poses with s = 1."""
-    M = np.tile(np.eye(4), (len(T_WC), 1, 1))
-    M[:, :3, :3] = quat_to_matrix(T_WC[:, 3:7]).numpy()
-    M[:, :3, 3] = T_WC[:, :3].numpy()
-    return M
+from .layouts import (SEVEN_SCENES_REAL, depth_metres, input_error, pixels, pose_matrices,
+                      write_7scenes, write_pose)
 
 
 @pytest.mark.parametrize("invalid", [65535, 0])
@@ -39,7 +30,7 @@ def test_sequence_is_read_as_published(tmp_path, invalid):
     expected = np.round(depth_metres(2) * 1000) / 1000
     expected[0, :2] = 0.0  # 0 and 65535 are invalid
     np.testing.assert_allclose(frame.depth, expected, atol=1e-6)
-    np.testing.assert_allclose(_matrices(agent.groundtruth.T_WC), T, atol=1e-6)
+    np.testing.assert_allclose(pose_matrices(agent.groundtruth.T_WC), T, atol=1e-6)
     torch.testing.assert_close(frame.T_WC_gt, agent.groundtruth.T_WC[2])
     assert (agent.gt_indices == np.arange(4)).all()
 
@@ -75,7 +66,7 @@ def test_ground_truth_for_eval(tmp_path):
     source, trajectory = read_ground_truth(tmp_path / "seq")
     assert source == tmp_path / "seq"
     np.testing.assert_allclose(trajectory.timestamps, np.arange(10, 13) / 30.0)
-    np.testing.assert_allclose(_matrices(trajectory.T_WC), T, atol=1e-6)
+    np.testing.assert_allclose(pose_matrices(trajectory.T_WC), T, atol=1e-6)
 
 
 # ---------------------------------------------------------------------------------- bad inputs
@@ -179,7 +170,7 @@ def test_the_real_redkitchen_excerpt():
     R = raw[:, :3, :3]  # the files are rigid to the README's 1.6e-4 ...
     assert np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max() < 5e-4
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=5e-4)
-    M = _matrices(agent.groundtruth.T_WC)  # ... and read as those rotations and positions
+    M = pose_matrices(agent.groundtruth.T_WC)  # ... and read as those rotations and positions
     np.testing.assert_allclose(M, raw, atol=5e-4)
     steps = np.linalg.norm(np.diff(M[:, :3, 3], axis=0), axis=1)
     assert 0.15 < steps.sum() < 0.35 and steps.max() < 0.02

@@ -13,11 +13,22 @@ tum        TUM RGB-D: ``rgb.txt``, ``depth.txt``,        :mod:`como3r.data.reade
            ``groundtruth.txt``, ``rgb/``, ``depth/``
 7scenes    7-Scenes: ``frame-NNNNNN.color.png|jpg``,     :mod:`como3r.data.readers.sevenscenes`
            ``.depth.png``, ``.pose.txt``
+euroc      EuRoC MAV: ``mav0/cam0/data.csv``,           :mod:`como3r.data.readers.euroc`
+           ``cam0/data/``, ``cam0/sensor.yaml``,
+           ``state_groundtruth_estimate0/data.csv``
+kitti      KITTI odometry ``sequences/XX``:             :mod:`como3r.data.readers.kitti`
+           ``image_2/``, ``times.txt``, ``calib.txt``;
+           ``../../poses/XX.txt``
+tanks      Tanks and Temples as CoMo3R-SLAM stages      :mod:`como3r.data.readers.tanks`
+           it: ``image/``, ``gt_traj.txt``
 =========  ===========================================  ===================================
 
 Detection (``format="auto"``) looks at the folder only, never at the file contents: a
 folder with ``rgb.txt`` is a TUM sequence; one holding ``frame-*.color.*`` files is a
-7-Scenes sequence; a file, or a folder with ``rgb/`` or a video, is an agent input; a folder
+7-Scenes sequence; one holding ``mav0/cam0/data.csv`` (or the ``mav0`` folder itself, or
+either with EuRoC ground truth only) is a EuRoC sequence; one holding ``times.txt`` and
+``image_2/`` is a KITTI sequence; a file, or a folder with ``rgb/`` or a video, is an agent
+input; a folder with ``image/`` or ``gt_traj.txt`` is a Tanks and Temples sequence; a folder
 whose only sub-folder of frames is a 7-Scenes sequence is that sequence. Anything else is an
 :class:`InputError` saying what each format expects.
 """
@@ -33,28 +44,45 @@ from como3r.data.agent import (
     AgentInput,
     open_agent_folder,
 )
-from como3r.data.readers import sevenscenes, tum
+from como3r.data.readers import euroc, kitti, sevenscenes, tanks, tum
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory, read_tum
 
 #: the values of ``--format`` / ``input.format``
-FORMATS = ("auto", "agent", "tum", "7scenes")
+FORMATS = ("auto", "agent", "tum", "7scenes", "euroc", "kitti", "tanks")
 
 #: what each format's depth is, for messages ("no ... which --prior simulated needs")
 DEPTH_SOURCES = {
     "agent": "depth/ folder",
     "tum": "depth.txt (with depth/)",
     "7scenes": "frame-NNNNNN.depth.png files",
+    # the formats below publish no depth; named so the message says so
+    "euroc": "depth (EuRoC sequences have none)",
+    "kitti": "depth (KITTI odometry sequences have none)",
+    "tanks": "depth (the Tanks and Temples layout has none)",
+}
+
+#: what a forced format expects in the folder, for "not a ... (--format X)" messages
+_FORCED = {
+    "tum": ("a TUM RGB-D sequence", tum.matches, f"{tum.EXPECTED} in it"),
+    "7scenes": ("a 7-Scenes sequence", sevenscenes.matches,
+                f"{sevenscenes.EXPECTED} in it or in one sub-folder"),
+    "euroc": ("a EuRoC sequence", euroc.matches, f"{euroc.EXPECTED} (or the mav0 folder)"),
+    "kitti": ("a KITTI odometry sequence", kitti.matches, f"{kitti.EXPECTED} in it"),
+    "tanks": ("a Tanks and Temples sequence", tanks.matches, f"{tanks.EXPECTED} in it"),
 }
 
 _EXPECTED = ("an agent folder (rgb/ or a video file), a TUM RGB-D sequence (rgb.txt, "
-             "rgb/, depth.txt, depth/, groundtruth.txt) or a 7-Scenes sequence "
-             "(frame-NNNNNN.color.png, .depth.png, .pose.txt)")
+             "rgb/, depth.txt, depth/, groundtruth.txt), a 7-Scenes sequence "
+             "(frame-NNNNNN.color.png, .depth.png, .pose.txt), a EuRoC sequence "
+             "(mav0/cam0/data.csv, mav0/cam0/data/, mav0/cam0/sensor.yaml), a KITTI odometry "
+             "sequence (image_2/, times.txt, calib.txt) or a Tanks and Temples sequence "
+             "(image/, gt_traj.txt)")
 
 
 def detect_format(path: str | Path) -> str:
-    """The format of an existing path's layout (module docstring): ``agent``, ``tum`` or
-    ``7scenes``.
+    """The format of an existing path's layout (module docstring): ``agent``, ``tum``,
+    ``7scenes``, ``euroc``, ``kitti`` or ``tanks``.
 
     Raises:
         InputError: the path does not exist, or its layout is none of the formats.
@@ -68,8 +96,14 @@ def detect_format(path: str | Path) -> str:
         return "tum"
     if sevenscenes.matches(path, subfolders=False):
         return "7scenes"
+    if euroc.matches(path):
+        return "euroc"
+    if kitti.matches(path):
+        return "kitti"
     if (path / "rgb").is_dir() or _has_file(path, VIDEO_SUFFIXES):
         return "agent"
+    if tanks.matches(path):
+        return "tanks"
     if sevenscenes.matches(path, subfolders=True):
         return "7scenes"
     hint = ""
@@ -83,7 +117,7 @@ def resolve_format(path: str | Path, format: str = "auto") -> str:
 
     Raises:
         InputError: an unknown format, a missing path, no known layout (``auto``), or a
-            forced ``tum`` / ``7scenes`` the folder does not match.
+            forced dataset format the folder does not match.
     """
     if format not in FORMATS:
         raise InputError(f"unknown format {format!r}; choose one of {', '.join(FORMATS)}")
@@ -92,12 +126,10 @@ def resolve_format(path: str | Path, format: str = "auto") -> str:
         return detect_format(path)
     if not path.exists():
         raise InputError(f"{path}: input does not exist")
-    if format == "tum" and not tum.matches(path):
-        raise InputError(f"{path}: not a TUM RGB-D sequence (--format tum): expected "
-                         f"{tum.EXPECTED} in it")
-    if format == "7scenes" and not sevenscenes.matches(path, subfolders=True):
-        raise InputError(f"{path}: not a 7-Scenes sequence (--format 7scenes): expected "
-                         f"{sevenscenes.EXPECTED} in it or in one sub-folder")
+    if format in _FORCED:
+        name, matches, expected = _FORCED[format]
+        if not matches(path):
+            raise InputError(f"{path}: not {name} (--format {format}): expected {expected}")
     return format
 
 
@@ -106,11 +138,9 @@ def open_input(path: str | Path, fps: float = 30.0, format: str = "auto") -> Age
     if not (math.isfinite(fps) and fps > 0):
         raise InputError(f"fps must be a positive number, got {fps}")
     kind = resolve_format(path, format)
-    if kind == "tum":
-        return tum.open_sequence(Path(path), fps)
-    if kind == "7scenes":
-        return sevenscenes.open_sequence(Path(path), fps)
-    return open_agent_folder(path, fps)
+    if kind == "agent":
+        return open_agent_folder(path, fps)
+    return _READERS[kind].open_sequence(Path(path), fps)
 
 
 def read_ground_truth(path: str | Path, format: str = "auto",
@@ -118,10 +148,14 @@ def read_ground_truth(path: str | Path, format: str = "auto",
     """The ground-truth trajectory ``como3r eval --gt PATH`` reads.
 
     A file is a TUM trajectory (a video file: its folder's ``groundtruth.txt``); a folder
-    is read in its format (detected as :func:`detect_format` does, but a folder holding
-    only ``groundtruth.txt`` counts as an agent folder): ``groundtruth.txt`` of an agent
-    folder or a TUM sequence, the ``frame-NNNNNN.pose.txt`` files of a 7-Scenes sequence
-    (timestamps = frame number / ``fps``, as :func:`open_input` stamps the frames).
+    is read in its format (detected as :func:`detect_format` does, but ground truth alone is
+    enough: a folder holding only ``groundtruth.txt`` counts as an agent folder, one holding
+    only ``gt_traj.txt`` as Tanks and Temples): ``groundtruth.txt`` of an agent folder or a
+    TUM sequence, the ``frame-NNNNNN.pose.txt`` files of a 7-Scenes sequence (timestamps =
+    frame number / ``fps``, as :func:`open_input` stamps the frames), the camera trajectory
+    of a EuRoC sequence's ``state_groundtruth_estimate0/data.csv`` (``T_WB T_BS``), the
+    ``poses/XX.txt`` beside a KITTI sequence's ``sequences/`` folder (image_2's poses,
+    stamped by ``times.txt``), a Tanks and Temples ``gt_traj.txt`` (frame id / ``fps``).
 
     Returns:
         ``(source, trajectory)``: the file or folder the poses were read from, and them.
@@ -135,18 +169,22 @@ def read_ground_truth(path: str | Path, format: str = "auto",
     elif not path.is_dir():
         return path, read_tum(path)
     if format == "auto":  # ground truth alone is enough: no images needed
-        kind = ("tum" if tum.matches(path) else
-                "7scenes" if sevenscenes.matches(path, subfolders=True) else "agent")
+        kind = next((k for k, (_, matches, _) in _FORCED.items() if matches(path)), "agent")
+        if kind == "tanks" and (path / "rgb").is_dir():
+            kind = "agent"
     else:
         kind = resolve_format(path, format)
-    if kind == "tum":
-        return tum.ground_truth(path)
-    if kind == "7scenes":
-        return sevenscenes.ground_truth(path, fps)
+    if kind in ("tum", "euroc", "kitti"):
+        return _READERS[kind].ground_truth(path)
+    if kind in ("7scenes", "tanks"):
+        return _READERS[kind].ground_truth(path, fps)
     gt_file = path / "groundtruth.txt"
     if not gt_file.is_file():
         raise InputError(f"{path}: agent folder has no groundtruth.txt")
     return gt_file, read_tum(gt_file)
+
+
+_READERS = {"tum": tum, "7scenes": sevenscenes, "euroc": euroc, "kitti": kitti, "tanks": tanks}
 
 
 def _has_file(folder: Path, suffixes: tuple[str, ...]) -> bool:
