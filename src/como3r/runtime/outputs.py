@@ -1,6 +1,7 @@
 """Writing a run's output folder (README, "Run output").
 
-``config.yaml``, ``trajectories/agent_<a>.txt`` (every tracked frame), ``keyframes/agent_<a>.txt``,
+``config.yaml``, ``trajectories/agent_<a>.txt`` (every tracked frame), ``keyframes/agent_<a>.txt``
+and ``keyframes/agent_<a>/`` (:mod:`como3r.io.keyframe_data`),
 ``map.ply`` (fused coloured cloud with agent ids), ``graph.json`` and ``metrics.json``.
 """
 
@@ -20,6 +21,7 @@ from como3r.coordination.coordinator import Coordinator
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.timing import with_remainder
 from como3r.geometry.lie import sim3_act
+from como3r.io.keyframe_data import write_keyframe_data
 from como3r.io.ply import write_ply
 from como3r.io.tum import write_tum
 
@@ -219,8 +221,8 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
 def write_run_files(staging: Path, agents: Sequence[Any], coordinator: Any, config: Config,
                     prior_description: dict[str, Any], seconds: Sequence[float]
                     ) -> tuple[dict[str, Any], list[list[int]]]:
-    """Write config, trajectories, map and graph of a run; returns the base metrics
-    document and the gauge components.
+    """Write config, trajectories, keyframe data, map and graph of a run; returns the base
+    metrics document and the gauge components.
 
     Args:
         agents: front-ends or agent results (``agent``, ``keyframes``, ``edges``, ``stats``,
@@ -232,6 +234,7 @@ def write_run_files(staging: Path, agents: Sequence[Any], coordinator: Any, conf
     """
     write_config(staging, config)
     write_trajectories(staging, agents)
+    write_keyframe_data(staging, agents)  # what `como3r export` reads
     points = write_map(staging, agents, config)
     components = coordinator.components()
     write_json(staging / "graph.json", graph_document(agents, coordinator))
