@@ -63,7 +63,8 @@ def _cli_commands() -> dict[str, set[str]]:
                 walk(command, [*prefix, name])
             else:
                 found[" ".join([*prefix, name])] = {
-                    opt for p in command.params for opt in (*p.opts, *p.secondary_opts)}
+                    opt for p in command.params if p.param_type_name == "option"
+                    for opt in (*p.opts, *p.secondary_opts)}  # not arguments (export's RUN)
 
     walk(root, [])
     return found

@@ -119,6 +119,41 @@ def evaluate(
         console.print(line)
 
 
+@app.command("export", cls=Command)
+@on_interrupt(lambda kwargs: "interrupted: no export was written")
+@user_errors
+def export(
+    run: Path = typer.Argument(..., metavar="RUN", show_default=False,
+                               help="A finished run folder (como3r run --out)."),
+    colmap: Optional[Path] = typer.Option(
+        None, "--colmap", metavar="DIR",
+        help="COLMAP text model: DIR/sparse/0/*.txt and DIR/images."),
+    nerfstudio: Optional[Path] = typer.Option(
+        None, "--nerfstudio", metavar="DIR",
+        help="nerfstudio: DIR/transforms.json, images, depth, sparse_pc.ply."),
+    g2o: Optional[Path] = typer.Option(None, "--g2o", metavar="FILE",
+                                       help="Keyframe pose graph (VERTEX_SE3:QUAT, "
+                                            "EDGE_SE3:QUAT)."),
+    depth: Optional[Path] = typer.Option(
+        None, "--depth", metavar="DIR",
+        help="Per keyframe depth and confidence (.npz) and 16-bit PNG depth (1000 per unit)."),
+    overwrite: bool = typer.Option(False, "--overwrite",
+                                   help="Replace earlier exports of como3r."),
+) -> None:
+    """Export a finished run to COLMAP, nerfstudio, g2o and depth maps (any subset)."""
+    from como3r.io.export import export_run
+
+    with progress_bar() as bar:
+        task = bar.add_task("exporting", total=None)
+        summary = export_run(run, colmap=colmap, nerfstudio=nerfstudio, g2o=g2o,
+                             depth=depth, overwrite=overwrite,
+                             progress=lambda done, total: bar.update(task, completed=done,
+                                                                     total=total))
+    print_rows("exports", summary.rows)
+    for line in summary.notes:
+        console.print(line)
+
+
 def _load_config(config_file: Optional[Path], overrides: List[str], calib: bool,
                  no_loop_closure: bool, format: Optional[str] = None):
     from como3r.config import Config, apply_overrides, load_config
