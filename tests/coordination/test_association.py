@@ -71,20 +71,37 @@ def test_only_true_pairs_pass_among_identical_facades(facades) -> None:
     assert accepted, "the agents' true meeting was not verified"
     assert all(_is_true_pair(v, views) for v in accepted)
     assert all(v.covisible_ratio >= config.verification.min_covisible_ratio for v in accepted)
-    # C-Eq. 12 alone (the paper's test) accepts hallucinated pairs here
-    fooled = [v for v in results
-              if v.link.min_match_fraction >= config.verification.tau_inter and not v.accepted]
+    # C-Eq. 12 alone (the paper's test, no co-visibility ratio) accepts hallucinated pairs here
+    paper = apply_overrides(config, ["verification.min_covisible_ratio=0"])
+    fooled = [v for v, ours in zip(_verify_all_pairs(prior, paper, views), results)
+              if v.accepted and not ours.accepted]
     assert fooled and not any(_is_true_pair(v, views) for v in fooled)
+
+
+def test_a_pair_failing_its_first_direction_is_not_matched_twice(facades) -> None:
+    prior, config, views = facades
+    results = _verify_all_pairs(prior, config, views)
+    screened = [v for v in results if v.link is None]
+    assert screened, "no candidate failed its first direction on this scene"
+    for v in screened:
+        passes_nu = v.nu_j >= config.verification.tau_inter
+        passes_ratio = v.nu_j / v.covisible_j >= config.verification.min_covisible_ratio
+        assert not v.accepted and not (passes_nu and passes_ratio)
+        assert v.nu_i is None and v.covisible_i is None and v.covisible_ratio is None
+    for v in results:
+        if v.link is not None:
+            assert v.nu_j == v.link.ij.match_fraction
 
 
 def test_verification_reports_both_directions(facades) -> None:
     prior, config, views = facades
-    (query, candidate) = ((1, 0), (0, 0))
+    accepted = [v for v in _verify_all_pairs(prior, config, views) if v.accepted]
+    query, candidate = accepted[0].query, accepted[0].candidate
     [result] = verify_candidates(prior, query, views[query][0],
                                  [(Hit(*candidate, 0.02), views[candidate][0])],
                                  config.matching, config.tracking.q_min, config.verification)
     assert result.candidate == candidate and result.query == query
-    assert result.similarity == 0.02
+    assert result.similarity == 0.02 and result.accepted
     assert result.nu_i == result.link.ji.match_fraction
     assert result.nu_j == result.link.ij.match_fraction
     assert 0.0 <= result.covisible_i <= 1.0 and 0.0 <= result.covisible_j <= 1.0

@@ -224,9 +224,12 @@ def test_no_false_edge_among_identical_facades(aliasing) -> None:
     for link in admitted:
         angle, offset = _relative_pose_error(coordinator, aliasing, link)
         assert angle < 5.0 and offset < 0.3, (link.i, link.j, angle, offset)
-    # C-Eq. 12 alone lets hallucinated pairs through; the co-visibility test stops them
-    fooled = [c for c in coordinator.candidates if c.verification.link.min_match_fraction
-              >= aliasing.config.verification.tau_inter and not c.verification.accepted]
+    # C-Eq. 12 alone lets hallucinated pairs through (nu >= tau_inter in every direction
+    # matched); the co-visibility test stops them
+    tau = aliasing.config.verification.tau_inter
+    fooled = [c.verification for c in coordinator.candidates if not c.verification.accepted
+              and c.verification.nu_j >= tau
+              and (c.verification.nu_i is None or c.verification.nu_i >= tau)]
     assert fooled
     assert coordinator.components() == [[0, 1]]
 

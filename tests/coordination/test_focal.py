@@ -159,7 +159,8 @@ def _admitted(coordinator: Coordinator, anchor: tuple[int, int], moving: tuple[i
     i, j = graph.global_index(*anchor), graph.global_index(*moving)
     link = PairLink(ij=pair.in_anchor, ji=pair.in_moving)
     verification = Verification(candidate=anchor, query=moving, similarity=similarity,
-                                link=link, covisible_i=1.0, covisible_j=1.0, accepted=True)
+                                ij=link.ij, link=link, covisible_i=1.0, covisible_j=1.0,
+                                accepted=True)
     coordinator.candidates.append(Candidate(verification, i, j, status="admitted"))
 
 

@@ -9,6 +9,9 @@
    code that builds every intra-agent edge); it is accepted when ``min(nu_i, nu_j) >=
    tau_inter`` (C-Eq. 12), which rejects one-sided matches, AND (como3r addition) when in
    both directions at least ``min_covisible_ratio`` of the co-visible pixels are matched.
+   The query's direction is matched first; a pair it fails cannot pass, so its other
+   direction is not matched (graph.json then records ``nu_i`` and ``covisible_ratio`` as
+   null).
 
 The co-visibility test exists because C-Eq. 12 alone does not reject repeated structure:
 a prior shown two identical façades at different places predicts a pose that aligns them,
@@ -28,7 +31,6 @@ against itself, 0.02-0.1 against overlapping views and below 0.005 against unrel
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -36,7 +38,7 @@ import numpy as np
 from torch import Tensor
 
 from como3r.config import MatchingConfig, RetrievalConfig, VerificationConfig
-from como3r.frontend.pairs import PairLink, link_pairs
+from como3r.frontend.pairs import DirectedMatches, PairLink, direction_passes, link_pairs
 from como3r.prior.base import Encoding, Prior
 from como3r.prior.retrieval import Hit, RetrievalDatabase
 
@@ -74,41 +76,45 @@ class CrossAgentRetrieval:
 class Verification:
     """The dense verification of one candidate pair (C-Eq. 12 and the co-visibility test).
 
-    The pair is ordered (candidate, query): ``link.ij`` holds the edge (candidate, query),
-    i.e. every pixel of the query keyframe looked up in the candidate keyframe.
+    The pair is ordered (candidate, query): ``ij`` is the edge (candidate, query), every
+    pixel of the query keyframe looked up in the candidate keyframe. It is matched first;
+    when it fails its half of the tests the pair cannot be accepted and the other direction
+    is not matched (``link`` and the ``_i`` values are then None).
 
     Attributes:
         candidate: ``(agent, kf_id)`` of the retrieved keyframe (endpoint i).
         query: ``(agent, kf_id)`` of the new keyframe (endpoint j).
         similarity: the retrieval similarity of the pair.
-        link: matches of both directions.
-        covisible_i: share of the candidate's pixels co-visible in the query keyframe.
+        ij: the query's pixels looked up in the candidate.
         covisible_j: share of the query keyframe's pixels co-visible in the candidate.
-        accepted: both tests passed.
+        link: matches of both directions, None when ``ij`` failed.
+        covisible_i: share of the candidate's pixels co-visible in the query keyframe.
+        accepted: both tests passed in both directions.
     """
 
     candidate: tuple[int, int]
     query: tuple[int, int]
     similarity: float
-    link: PairLink
-    covisible_i: float
-    covisible_j: float
+    ij: DirectedMatches
+    covisible_j: float | None
+    link: PairLink | None
+    covisible_i: float | None
     accepted: bool
 
     @property
-    def nu_i(self) -> float:
+    def nu_i(self) -> float | None:
         """Share of the candidate's pixels validly matched in the query keyframe."""
-        return self.link.ji.match_fraction
+        return None if self.link is None else self.link.ji.match_fraction
 
     @property
     def nu_j(self) -> float:
         """Share of the query keyframe's pixels validly matched in the candidate."""
-        return self.link.ij.match_fraction
+        return self.ij.match_fraction
 
     @property
-    def covisible_ratio(self) -> float:
+    def covisible_ratio(self) -> float | None:
         """The smaller share, over both directions, of co-visible pixels that match."""
-        return self.link.covisible_ratio
+        return None if self.link is None else self.link.covisible_ratio
 
 
 def verify_candidates(
@@ -136,13 +142,25 @@ def verify_candidates(
     """
     if not candidates:
         return []
+    first: dict[int, tuple[DirectedMatches, float | None]] = {}
+
+    def passes(matches: DirectedMatches, covisible: float | None) -> bool:
+        return direction_passes(matches, covisible, verification.tau_inter,
+                                verification.min_covisible_ratio)
+
+    def screen(k: int, ij: DirectedMatches, covisible: float | None) -> bool:
+        first[k] = (ij, covisible)
+        return passes(ij, covisible)
+
+    # a pair whose first direction fails cannot pass (C-Eq. 12 takes the minimum over both
+    # directions, the co-visibility test the smaller ratio): its second matching is skipped
     links = link_pairs(prior, [(enc, query_encoding) for _, enc in candidates], matching, q_min,
-                       verification.covisible_min_confidence)
+                       verification.covisible_min_confidence, screen=screen)
     results = []
-    for (hit, _), link in zip(candidates, links):
-        result = Verification((hit.agent, hit.keyframe), query, hit.similarity, link,
-                              link.covisible_ji, link.covisible_ij, accepted=False)
-        accepted = (link.min_match_fraction >= verification.tau_inter
-                    and result.covisible_ratio >= verification.min_covisible_ratio)
-        results.append(dataclasses.replace(result, accepted=accepted))
+    for k, ((hit, _), link) in enumerate(zip(candidates, links)):
+        ij, covisible_j = first[k]
+        results.append(Verification(
+            (hit.agent, hit.keyframe), query, hit.similarity, ij, covisible_j, link,
+            None if link is None else link.covisible_ji,
+            accepted=link is not None and passes(link.ji, link.covisible_ji)))
     return results

@@ -63,10 +63,10 @@ from como3r.coordination.gauge import (
     solve_gauge_transform,
     transport,
 )
-from como3r.errors import InputError
+from como3r.errors import Como3rError, InputError
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
-from como3r.frontend.pairs import DirectedMatches, gather_points
+from como3r.frontend.pairs import DirectedMatches, PairLink, gather_points
 from como3r.frontend.timing import StageTimer, TimedPrior
 from como3r.geometry.lie import sim3_act
 from como3r.prior.base import Prior
@@ -179,6 +179,15 @@ class Candidate:
     j: int
     status: str = "rejected"
     residual_ratio: float = float("nan")
+
+    @property
+    def link(self) -> PairLink:
+        """Both directions' matches; only verified candidates reach the code that asks."""
+        link = self.verification.link
+        if link is None or not self.verification.accepted:
+            raise Como3rError(f"candidate {self.verification.candidate}-"
+                                f"{self.verification.query} was not verified")
+        return link
 
 
 class Coordinator:
@@ -415,7 +424,7 @@ class Coordinator:
     def _add_inter_link(self, candidate: Candidate) -> None:
         candidate.status = "admitted"
         v = candidate.verification
-        self.graph.add_inter_link(candidate.i, candidate.j, v.link, v.similarity)
+        self.graph.add_inter_link(candidate.i, candidate.j, candidate.link, v.similarity)
         self.stats.edges_accepted += 1
         self._new_edges += 1
         self._dirty_roots.add(self.gauges.find(self.graph.agent_of[candidate.i]))
@@ -533,7 +542,7 @@ class Coordinator:
         kf_a, kf_m = self.graph.keyframes[anchor], self.graph.keyframes[moving]
         if kf_a.K is None or kf_m.K is None:
             return None
-        link = candidate.verification.link  # ij: every pixel of j looked up in i
+        link = candidate.link  # ij: every pixel of j looked up in i
         in_anchor, in_moving = (link.ij, link.ji) if moving_is_j else (link.ji, link.ij)
         return FocalPair(kf_a.X_hat, kf_m.X_hat, kf_a.K, kf_m.K,
                          relative_pose(kf_a.T_WC, kf_m.T_WC), in_anchor, in_moving)
@@ -588,7 +597,7 @@ class Coordinator:
             ``x_i (N, 3)``, ``x_j (N, 3)``, ``q (N,)``.
         """
         kf_i, kf_j = self.graph.keyframes[candidate.i], self.graph.keyframes[candidate.j]
-        ij, ji = candidate.verification.link.ij, candidate.verification.link.ji
+        ij, ji = candidate.link.ij, candidate.link.ji
         x_i_ij, x_j_ij = _matched_points(ij, kf_i.X_hat, kf_j.X_hat)
         x_j_ji, x_i_ji = _matched_points(ji, kf_j.X_hat, kf_i.X_hat)
         x_i = lift(kf_i.T_WC, torch.cat([x_i_ij, x_i_ji]))

@@ -90,7 +90,8 @@ def graph_document(frontends: Sequence[AgentFrontend],
     (sequential and verified inter-agent edges with their match fractions ``nu_i``, ``nu_j``
     and retrieval similarity) plus the intra-agent loop edges that stay in the agents'
     local graphs (C-Sec. A.3); ``candidates`` lists every verified cross-agent candidate,
-    accepted or not, and ``components`` the gauge components.
+    accepted or not (``nu_i`` and ``covisible_ratio`` null where its first direction failed
+    and the second was not matched), and ``components`` the gauge components.
     """
     keyframes, local_loops = [], []
     for fe in frontends:
