@@ -32,7 +32,7 @@ def test_output_folder(run, scene):
         trajectory = read_tum(out / "trajectories" / f"agent_{a}.txt")
         assert len(trajectory) == len(read_tum(agent / "odometry.txt"))
         assert len(read_tum(out / "keyframes" / f"agent_{a}.txt")) == summary.agents[a]["keyframes"]
-    for name in ("graph.json", "config.yaml", "ate.json", "trajectories.png"):
+    for name in ("graph.json", "config.yaml", "ate.json", "trajectories.png", "report.html"):
         assert (out / name).is_file()
     config = yaml.safe_load((out / "config.yaml").read_text())
     assert config["decentralized"]["keyframe_distance_ratio"] == 0.22
@@ -107,3 +107,14 @@ def test_bad_input_fails_before_any_work(scene, main_config, tmp_path):
     with pytest.raises(ConfigError, match="gnc_mu_step"):
         run_decentralized(scene, tmp_path / "out", main_config, PriorSpec("simulated"),
                           DecentralizedConfig(pose_graph=PoseGraphConfig(gnc_mu_step=1.0)))
+
+
+def test_report_of_a_decentralized_run(run):
+    out, _, metrics = run
+    page = (out / "report.html").read_text()
+    assert "<b>mode</b> decentralized" in page
+    assert "The decentralized mode writes no fused map." in page
+    assert "<th>round</th>" in page  # the rendezvous rounds on the merge timeline
+    for alt in ("trajectories", "ATE over time", "timing", "bandwidth", "timeline"):
+        assert f"<img alt='{alt}' src='data:image/png;base64," in page, alt
+    assert "Formulations (F-Tables II-III)" in page and metrics["table"]

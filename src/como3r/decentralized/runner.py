@@ -12,7 +12,8 @@ robots (:func:`~como3r.decentralized.protocol.run_protocol`), and writes the out
   has ground truth), and the table of F-Tables II-III: every formulation with LM and GNC
   on the final multi-robot graph (all loops of the mission), with its merged ATE and
   solver time;
-* ``config.yaml`` and, with ground truth, ``ate.json`` and ``trajectories.png``.
+* ``config.yaml``, ``report.html`` and, with ground truth, ``ate.json`` and
+  ``trajectories.png``.
 """
 
 from __future__ import annotations
@@ -208,6 +209,10 @@ def _write(staging: Path, robots: list[_Robot], result: ProtocolResult, config: 
     else:
         summary.notes.append("no ground truth for every agent: ATE not computed")
     write_json(staging / "metrics.json", metrics)
+    from como3r.evaluation.html import write_report
+
+    write_report(staging, summary.notes,
+                 [r.agent.groundtruth for r in robots] if has_gt else None)
 
 
 def _robot_metrics(robot: int, report: RobotReport | None) -> dict[str, Any]:

@@ -58,6 +58,13 @@ class Sim3Alignment:
         """Map ``(N, 3)`` estimated positions into the ground-truth frame."""
         return self.scale * positions @ self.rotation.T + self.translation
 
+    @classmethod
+    def from_json(cls, document: dict[str, object]) -> Sim3Alignment:
+        """The alignment :meth:`to_json` wrote (``ate.json``)."""
+        return cls(np.asarray(document["rotation"], dtype=np.float64),
+                   np.asarray(document["translation"], dtype=np.float64),
+                   float(document["scale"]))  # type: ignore[arg-type]
+
     def to_json(self) -> dict[str, object]:
         return {
             "scale": self.scale,

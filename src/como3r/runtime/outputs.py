@@ -215,8 +215,8 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
     metrics["map_accuracy"] = _map_accuracy(summary, agents, components, results, coordinator,
                                             config)
     write_json(staging / "metrics.json", metrics)
-    accuracy = summary.evaluation.table_rows() if summary.evaluation is not None else []
-    write_report(staging, summary.agents, accuracy, summary.notes)
+    truth = [a.groundtruth for a in agents] if summary.evaluation is not None else None
+    write_report(staging, summary.notes, truth)
 
 
 def write_run_files(staging: Path, agents: Sequence[Any], coordinator: Any, config: Config,
