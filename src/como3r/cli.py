@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
-from rich.progress import Progress, TaskID
 
 from como3r.cli_common import (
     Command,
@@ -25,12 +24,15 @@ from como3r.cli_common import (
     progress_bar,
     user_errors,
 )
+from como3r.cli_progress import run_progress
 from como3r.cli_weights import weights_app
 from como3r.errors import InputError
 
 app = typer.Typer(cls=OneLineErrorsGroup, add_completion=False, no_args_is_help=True,
                   help="Collaborative monocular dense SLAM with a learned two-view 3D prior.")
 app.add_typer(weights_app, name="weights")
+
+QUIET_HELP = "No progress output: only warnings, errors and the final summary."
 
 
 @app.callback()
@@ -67,6 +69,7 @@ def synth(
                                  help="Simulated robot odometry written as odometry.txt "
                                       "(decentralized mode): vio, lio or none."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
 ) -> None:
     """Synthesize a multi-agent outdoor scene with ground truth."""
     from como3r.data.synth import PRESETS, synthesize
@@ -78,12 +81,11 @@ def synth(
     if odometry != "none" and odometry not in ODOMETRY_PRESETS:
         raise InputError(f"unknown --odometry {odometry!r}; choose none or one of "
                          f"{', '.join(sorted(ODOMETRY_PRESETS))}")
-    with atomic_output_dir(out, overwrite=overwrite) as staging, progress_bar() as bar:
-        task = bar.add_task("rendering", total=agents * frames)
+    with atomic_output_dir(out, overwrite=overwrite) as staging, run_progress(quiet) as shown:
         synthesize(
             staging, agents=agents, seed=seed, overlap=overlap, frames=frames, preset=preset,
             width=width, height=height, scale=scale, loop_frames=loop_frames,
-            progress=lambda: bar.advance(task),
+            progress=shown.counter("rendering", agents * frames),
         )
         if odometry != "none":
             for a in range(agents):
@@ -205,6 +207,7 @@ def run(
         False, "--single-process",
         help="Run agents and coordinator in this process (deterministic; for debugging)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
 ) -> None:
     """Run collaborative SLAM on one or more agents and write the output folder."""
     from como3r.io.output import check_output_dir
@@ -248,11 +251,8 @@ def run(
         runner = run_pipeline
     else:
         from como3r.runtime.processes import run_multiprocess as runner
-    with progress_bar() as bar:
-        task = bar.add_task("frames", total=None)
-        summary = runner(agent, out, config, spec, overwrite=overwrite,
-                         progress=lambda a, outcome, done, total: _frame_progress(
-                             bar, task, done, total))
+    with run_progress(quiet) as shown:
+        summary = runner(agent, out, config, spec, overwrite=overwrite, progress=shown)
     _print_summary(summary, out)
 
 
@@ -311,13 +311,6 @@ def _check_device(device: str) -> None:
         raise InputError(f"--device {device}: this machine has {count} CUDA device(s)")
 
 
-def _frame_progress(bar: Progress, task: TaskID, done: int, total: int) -> None:
-    """Frames done; after the last one the coordinator's terminal cleanup (pose-depth
-    alternation, evaluation) runs under the same bar, so it says so."""
-    description = "frames" if done < total else "cleanup: pose-depth alternation, outputs"
-    bar.update(task, completed=done, total=total, description=description)
-
-
 def _print_summary(summary, out: Path) -> None:
     """The final tables of a run."""
     print_rows("agents", summary.agents)
@@ -344,6 +337,7 @@ def demo(
     frames: int = typer.Option(30, "--frames", min=4, help="Frames per agent."),
     seed: int = typer.Option(0, "--seed", help="Random seed of the scene."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
 ) -> None:
     """Synthesize a scene, run collaborative SLAM with the simulated prior, evaluate, report."""
     from como3r.config import Config
@@ -354,20 +348,17 @@ def demo(
 
     width, height = DEMO_SIZE
     scene = out / "scene"
-    with atomic_output_dir(out, overwrite=overwrite) as staging, progress_bar() as bar:
-        task = bar.add_task("rendering", total=agents * frames)
+    with atomic_output_dir(out, overwrite=overwrite) as staging, run_progress(quiet) as shown:
         (staging / "scene").mkdir()
         synthesize(staging / "scene", agents=agents, seed=seed, overlap=0.2, frames=frames,
                    preset="default", width=width, height=height,
-                   loop_frames=max(frames, DEMO_LOOP_FRAMES), progress=lambda: bar.advance(task))
+                   loop_frames=max(frames, DEMO_LOOP_FRAMES),
+                   progress=shown.counter("rendering", agents * frames))
         config = Config()  # the defaults, nothing overridden: what a user gets
-        slam = bar.add_task("SLAM", total=None)
         # one process per agent and the coordinator here, as `como3r run` does by default
         summary = run_multiprocess(
             [staging / "scene" / f"agent_{a}" for a in range(agents)], staging / "run", config,
-            PriorSpec("simulated"),
-            progress=lambda a, outcome, done, total: _frame_progress(bar, slam, done, total),
-        )
+            PriorSpec("simulated"), progress=shown)
         accuracy = summary.evaluation.table_rows() if summary.evaluation is not None else []
     print_rows("agents", summary.agents)
     if accuracy:

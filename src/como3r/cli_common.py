@@ -18,6 +18,7 @@ from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
     Progress,
+    ProgressColumn,
     TextColumn,
     TimeElapsedColumn,
 )
@@ -141,18 +142,21 @@ interrupt_leaves_nothing = on_interrupt(
 
 
 @contextlib.contextmanager
-def progress_bar() -> Iterator[Progress]:
+def progress_bar(*columns: ProgressColumn, shown: bool = True) -> Iterator[Progress]:
     """A rich progress bar for long work: shown only on a terminal (a log file or pipe gets
-    no bar), and erased when the work fails or is interrupted, so that the ``error:`` or
-    ``interrupted:`` line is all that remains."""
+    no bar) and when ``shown``, and erased when the work fails or is interrupted, so that
+    the ``error:`` or ``interrupted:`` line is all that remains.
+
+    Args:
+        columns: the bar's columns (default: description, bar, done/total, elapsed).
+        shown: False hides it on a terminal too (``--quiet``, or plain lines instead).
+    """
     bar = Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
+        *(columns or (TextColumn("[bold]{task.description}"), BarColumn(),
+                      MofNCompleteColumn(), TimeElapsedColumn())),
         console=err_console,
         transient=False,
-        disable=not err_console.is_terminal,
+        disable=not (shown and err_console.is_terminal),
     )
     with bar:
         try:

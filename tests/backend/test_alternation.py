@@ -144,3 +144,20 @@ def test_non_finite_step_raises_solver_error():
 def test_invalid_settings_raise_config_error(field, value):
     with pytest.raises(ConfigError, match=field):
         AlternationSettings(**{field: value})
+
+
+def test_progress_hears_every_pass_and_round_as_it_starts():
+    """One PhaseEvent before each step-1 pass and each step-2 round, numbered from 0, with
+    the previous step's size once there is one (the command line's coordinator line)."""
+    from como3r.progress import PhaseEvent
+
+    solvers = FakeSolvers(translations=[0.5, 0.004, 1.0, 1.0], depth_changes=[1.0, 1.0])
+    events: list[PhaseEvent] = []
+    report = alternate(solvers.pose_pass, solvers.depth_step, AlternationSettings(rounds=2),
+                       progress=events.append)
+    assert [(e.name, e.done, e.total) for e in events] == [
+        ("cleanup pass", 0, 5), ("cleanup pass", 1, 5),
+        ("alternation round", 0, 2), ("alternation round", 1, 2)]
+    assert [e.detail for e in events] == ["", "previous max ||dt||/depth 0.5", "",
+                                          "previous max |ds| 1"]
+    assert len(report.rounds) == 2

@@ -24,6 +24,7 @@ from como3r.frontend.packets import PoseUpdate
 from como3r.geometry.lie import sim3_exp
 from como3r.io.tum import read_tum
 from como3r.prior.simulated import SimulatedPrior
+from como3r.progress import AgentProgress, PhaseEvent, ProgressEvent
 from como3r.runtime import codec
 from como3r.runtime.messages import FrameDone, Step
 from como3r.runtime.pipeline import PriorSpec, RunSummary, run
@@ -99,16 +100,26 @@ def lockstep(scene, config, tmp_path_factory) -> tuple[Path, RunSummary]:
 @pytest.fixture(scope="module")
 def free(scene, config, tmp_path_factory) -> tuple[Path, RunSummary]:
     out = tmp_path_factory.mktemp("runs") / "free"
-    progress: list[tuple[int, str, int, int]] = []
+    progress: list[ProgressEvent] = []
     threads = torch.get_num_threads()
     torch.set_num_threads(FINISH_THREADS)  # the caller's threads, for the terminal work
     try:
         summary = run_multiprocess(_agents(scene), out, config, PriorSpec("simulated"),
-                                   progress=lambda *args: progress.append(args))
+                                   progress=progress.append)
     finally:
         torch.set_num_threads(threads)
-    assert [p[2] for p in progress] == list(range(1, FRAMES // 2 + SHORT // 2 + 1))
-    assert {p[3] for p in progress} == {FRAMES // 2 + SHORT // 2}
+    # every FrameDone is one AgentProgress, counted per agent; the terminal phases follow
+    frames = [e for e in progress if isinstance(e, AgentProgress)]
+    for agent, total in enumerate((FRAMES // 2, SHORT // 2)):
+        mine = [e for e in frames if e.agent == agent]
+        assert [e.frames_done for e in mine] == list(range(1, total + 1))
+        assert {e.frames_total for e in mine} == {total}
+        assert mine[-1].keyframes == summary.agents[agent]["keyframes"]
+        assert mine[-1].lost == summary.agents[agent]["lost"]
+    assert progress[:len(frames)] == frames  # the agents' events, then the terminal work's
+    phases = progress[len(frames):]
+    assert all(isinstance(e, PhaseEvent) for e in phases)
+    assert {"alternation round", "outputs", "report"} <= {e.name for e in phases}
     return out, summary
 
 
@@ -208,8 +219,8 @@ def test_killed_and_crashing_agents_leave_the_others_running(scene, config, tmp_
     image = broken / "rgb" / "000002.png"
     image.write_bytes(image.read_bytes()[:100])
 
-    def kill_agent_1(agent: int, outcome: str, done: int, total: int) -> None:
-        if agent == 1:
+    def kill_agent_1(event: ProgressEvent) -> None:
+        if isinstance(event, AgentProgress) and event.agent == 1:
             for child in multiprocessing.active_children():
                 if child.name == "como3r-agent-1" and child.is_alive():
                     os.kill(child.pid, signal.SIGKILL)

@@ -40,6 +40,7 @@ from typing import Callable
 
 from como3r.config import DepthRefinementConfig, GlobalBAConfig
 from como3r.errors import ConfigError, SolverError
+from como3r.progress import PhaseCallback, report_phase
 
 logger = logging.getLogger(__name__)
 
@@ -164,11 +165,17 @@ def _timed(fn: Callable[..., float], *args: int) -> tuple[float, float]:
     return value, seconds
 
 
+def _previous(label: str, values: list[float]) -> str:
+    """The previous step's size for a progress line (empty before the first step)."""
+    return f"previous {label} {values[-1]:.3g}" if values else ""
+
+
 def alternate(
     pose_pass: Callable[[int], float] | None,
     depth_step: Callable[[], float],
     settings: AlternationSettings | None = None,
     broadcast: Callable[[], None] | None = None,
+    progress: PhaseCallback | None = None,
 ) -> AlternationReport:
     """Run the cleanup schedule of C-Sec. A.7.
 
@@ -181,6 +188,8 @@ def alternate(
             pointmaps back (C-Eq. 19-24); returns ``max |ds|``.
         settings: the schedule; default :class:`AlternationSettings`.
         broadcast: called after every round to push the new poses to the agents (step 2e).
+        progress: called before every pose pass of step 1 (``"cleanup pass"``) and every
+            round of step 2 (``"alternation round"``), with the previous one's step size.
 
     Returns:
         The report.
@@ -192,7 +201,10 @@ def alternate(
     report = AlternationReport()
     start = time.perf_counter()
 
-    for _ in range(settings.cleanup_passes if pose_pass is not None else 0):
+    for k in range(settings.cleanup_passes if pose_pass is not None else 0):
+        report_phase(progress, "cleanup pass",
+                     _previous("max ||dt||/depth", report.cleanup_translations), k,
+                     settings.cleanup_passes)
         translation, seconds = _timed(pose_pass, settings.cleanup_iters)
         report.pose_seconds += seconds
         report.cleanup_translations.append(translation)
@@ -204,6 +216,9 @@ def alternate(
         report.reason = "pose_converged" if report.converged else "max_passes"
 
     for r in range(settings.rounds):
+        report_phase(progress, "alternation round",
+                     _previous("max |ds|", [step.max_depth_change for step in report.rounds]),
+                     r, settings.rounds)
         depth_change, seconds = _timed(depth_step)
         report.depth_seconds += seconds
         translation = 0.0

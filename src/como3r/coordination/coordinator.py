@@ -70,6 +70,7 @@ from como3r.frontend.pairs import DirectedMatches, PairLink, gather_points
 from como3r.frontend.timing import StageTimer, TimedPrior
 from como3r.geometry.lie import sim3_act
 from como3r.prior.base import Prior
+from como3r.progress import PhaseCallback, PhaseEvent, report_phase
 
 logger = logging.getLogger(__name__)
 
@@ -255,7 +256,8 @@ class Coordinator:
         """Replace the canonical pointmap of a sent keyframe by its newer fused one."""
         self.graph.refresh(agent, refresh)
 
-    def finish(self, agent_poses: Mapping[int, Tensor] | None = None) -> Cleanup:
+    def finish(self, agent_poses: Mapping[int, Tensor] | None = None,
+               progress: PhaseCallback | None = None) -> Cleanup:
         """Terminal cleanup of every component (C-Sec. A.7): the pose-depth alternation.
 
         A multi-agent component runs the whole schedule (global pose passes, then rounds of
@@ -269,6 +271,8 @@ class Coordinator:
             agent_poses: each agent's final keyframe poses ``(K_a, 8)`` in keyframe order,
                 for the agents whose front-end outlived the stream; single-agent
                 components adopt them before refining.
+            progress: called as each step starts (focal refinement, cleanup passes,
+                alternation rounds), the component's agents first in its ``detail``.
 
         Raises:
             InputError: an agent's pose count differs from the keyframes it sent.
@@ -284,12 +288,13 @@ class Coordinator:
                 if settings.rounds == 0:
                     continue
                 self._adopt(members[0], (agent_poses or {}).get(members[0]))
+            scoped = _scoped(progress, members)
             if multi_agent:
-                self._refine_focals(members)
+                self._refine_focals(members, scoped)
             component = _ComponentCleanup(self.graph, members, self._anchor(members[0]),
                                           self.config.depth)
             report = alternate(component.pose_pass if multi_agent else None,
-                               component.depth_step, settings)
+                               component.depth_step, settings, progress=scoped)
             self._record_cleanup(members, component, report)
             if multi_agent:
                 cleanup.updates.extend(self._updates(members, "cleanup"))
@@ -496,7 +501,8 @@ class Coordinator:
                     len(pairs), math.exp(estimate.log_focal), estimate.evaluations)
         return estimate.log_focal
 
-    def _refine_focals(self, members: list[int]) -> None:
+    def _refine_focals(self, members: list[int], progress: PhaseCallback | None = None
+                       ) -> None:
         """Re-align the agents' focal lengths on every admitted pair (``gauge.align_focal``).
 
         A merge aligns the moving component's focal length on the few edges that made it
@@ -523,6 +529,9 @@ class Coordinator:
             if agent is None or not edges[agent]:
                 return
             chosen = sorted(edges[agent], key=lambda c: -c.verification.similarity)
+            report_phase(progress, "focal refinement", f"agent {agent} on "
+                         f"{min(len(chosen), FOCAL_REFINEMENT_PAIRS)} pair(s)",
+                         len(settled) - 1, len(members) - 1)
             pairs = [self._focal_pair(c, self.graph.agent_of[c.j] == agent)
                      for c in chosen[:FOCAL_REFINEMENT_PAIRS]]
             if self._apply_focal([agent], [p for p in pairs if p is not None],
@@ -690,6 +699,18 @@ class Coordinator:
                 "verified": v.accepted, "status": c.status,
                 "residual_ratio": None if c.residual_ratio != c.residual_ratio
                 else c.residual_ratio}
+
+
+def _scoped(progress: PhaseCallback | None, members: Sequence[int]) -> PhaseCallback | None:
+    """``progress`` naming a component's agents at the start of every event's detail."""
+    if progress is None:
+        return None
+    agents = ("agents " if len(members) > 1 else "agent ") + ", ".join(map(str, members))
+
+    def report(event: PhaseEvent) -> None:
+        progress(replace(event, detail="; ".join(filter(None, (agents, event.detail)))))
+
+    return report
 
 
 def _matched_points(matches: DirectedMatches, X_target: Tensor,

@@ -24,6 +24,7 @@ from como3r.geometry.lie import sim3_act
 from como3r.io.keyframe_data import write_keyframe_data
 from como3r.io.ply import write_ply
 from como3r.io.tum import write_tum
+from como3r.progress import PhaseCallback, report_phase
 
 logger = logging.getLogger(__name__)
 
@@ -174,7 +175,8 @@ def in_final_folder(text: str, staging: Path) -> str:
 
 def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
                         agents: Sequence[Any], components: Sequence[Sequence[int]],
-                        results: Sequence[Any], coordinator: Any, config: Config) -> None:
+                        results: Sequence[Any], coordinator: Any, config: Config,
+                        progress: PhaseCallback | None = None) -> None:
     """Evaluate against ground truth (where every agent has it), then write
     ``metrics.json`` and ``report.html``; adds what the user should know to ``summary.notes``.
 
@@ -187,6 +189,7 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
         results: front-ends or agent results (``agent``, ``keyframes``), in agent order.
         coordinator: the run's coordinator (``pre_refinement`` keyframes).
         config: effective configuration.
+        progress: called as the evaluation and the report start.
     """
     from como3r.errors import InputError
     from como3r.evaluation.html import write_report
@@ -196,6 +199,7 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
         summary.notes.insert(0, SIMULATED_NOTE)
     metrics["ate"] = None
     if all(a.groundtruth is not None for a in agents):
+        report_phase(progress, "evaluation", "ATE and RPE through evo", 0, 2)
         try:
             evaluation = evaluate_run(staging, [a.root for a in agents], staging,
                                       components=[list(c) for c in components],
@@ -212,15 +216,18 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
         summary.notes.append(f"agents form {len(components)} separate gauge components "
                              f"{[list(c) for c in components]}: no merged ATE across them")
     summary.notes.extend(tracking_warnings(results))
+    report_phase(progress, "evaluation", "map accuracy", 1, 2)
     metrics["map_accuracy"] = _map_accuracy(summary, agents, components, results, coordinator,
                                             config)
     write_json(staging / "metrics.json", metrics)
     truth = [a.groundtruth for a in agents] if summary.evaluation is not None else None
+    report_phase(progress, "report", "report.html")
     write_report(staging, summary.notes, truth)
 
 
 def write_run_files(staging: Path, agents: Sequence[Any], coordinator: Any, config: Config,
-                    prior_description: dict[str, Any], seconds: Sequence[float]
+                    prior_description: dict[str, Any], seconds: Sequence[float],
+                    progress: PhaseCallback | None = None
                     ) -> tuple[dict[str, Any], list[list[int]]]:
     """Write config, trajectories, keyframe data, map and graph of a run; returns the base
     metrics document and the gauge components.
@@ -232,10 +239,14 @@ def write_run_files(staging: Path, agents: Sequence[Any], coordinator: Any, conf
         config: effective configuration.
         prior_description: ``prior.describe()``.
         seconds: processing time per agent.
+        progress: called as each group of files starts.
     """
+    report_phase(progress, "outputs", "config.yaml, trajectories", 0, 3)
     write_config(staging, config)
     write_trajectories(staging, agents)
+    report_phase(progress, "outputs", "keyframe data", 1, 3)
     write_keyframe_data(staging, agents)  # what `como3r export` reads
+    report_phase(progress, "outputs", "map.ply, graph.json", 2, 3)
     points = write_map(staging, agents, config)
     components = coordinator.components()
     write_json(staging / "graph.json", graph_document(agents, coordinator))

@@ -18,7 +18,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator, Mapping, Sequence
+from typing import Iterator, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -32,6 +32,7 @@ from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.packets import PointmapRefresh, PoseUpdate
 from como3r.io.output import atomic_output_dir
 from como3r.prior.base import Prior, View
+from como3r.progress import AgentProgress, PhaseCallback, ProgressCallback, tracking_state
 from como3r.runtime import outputs
 from como3r.runtime.prefetch import prepared_frames
 
@@ -180,7 +181,7 @@ def run(
     config: Config,
     prior_spec: PriorSpec,
     overwrite: bool = False,
-    progress: Callable[[int, str, int, int], None] | None = None,
+    progress: ProgressCallback | None = None,
 ) -> RunSummary:
     """Run all agents' front-ends and the coordinator, and write the output folder.
 
@@ -190,7 +191,9 @@ def run(
         config: effective configuration.
         prior_spec: which prior to use.
         overwrite: replace an existing non-empty output folder.
-        progress: called after every frame with ``(agent, outcome, done, total)``.
+        progress: called with the agent's :class:`~como3r.progress.AgentProgress` after
+            every frame and with a :class:`~como3r.progress.PhaseEvent` as each step of
+            the terminal work starts.
     """
     agents = open_agents(agent_paths, config)
     prior, codebook = build_prior(prior_spec, config, dict(enumerate(agents)))
@@ -200,7 +203,8 @@ def run(
     coordinator = Coordinator(prior, config, codebook, len(agents))
     seconds = [0.0] * len(agents)
     stride = config.input.subsample
-    total = sum(len(range(0, a.num_frames, stride)) for a in agents)
+    totals = [len(range(0, a.num_frames, stride)) for a in agents]
+    total = sum(totals)
     frames = prepared_frames(
         _frame_schedule(agents, stride),
         lambda k, i: load_frame(agents[k], k, i, config.input.long_side, config.calibrated),
@@ -219,9 +223,12 @@ def run(
             for packet in frontends[k].drain_new_keyframes():
                 _apply(frontends, coordinator.add_keyframe(packet))
             if progress is not None:
-                progress(k, outcome, done, total)
-        _finish(frontends, coordinator)
-        summary = _write(staging, frontends, coordinator, config, agents, seconds, prior)
+                stats = frontends[k].stats
+                progress(AgentProgress(k, stats.frames, totals[k], len(frontends[k].keyframes),
+                                       stats.lost, stats.relocalized, tracking_state(outcome)))
+        _finish(frontends, coordinator, progress)
+        summary = _write(staging, frontends, coordinator, config, agents, seconds, prior,
+                         progress)
     summary.out = out
     return summary
 
@@ -232,7 +239,8 @@ def _apply(frontends: Sequence[AgentFrontend], updates: Sequence[PoseUpdate]) ->
         frontends[update.agent].apply_pose_update(update)
 
 
-def _finish(frontends: Sequence[AgentFrontend], coordinator: Coordinator) -> None:
+def _finish(frontends: Sequence[AgentFrontend], coordinator: Coordinator,
+            progress: PhaseCallback | None = None) -> None:
     """Send every agent's last fused pointmap, run the terminal alternation, apply the
     final poses and refined pointmaps."""
     final_poses = {}
@@ -242,7 +250,7 @@ def _finish(frontends: Sequence[AgentFrontend], coordinator: Coordinator) -> Non
             coordinator.refresh(fe.agent, PointmapRefresh(last.kf_id, last.X_hat, last.C_hat,
                                                           last.fused_frames, last.K))
             final_poses[fe.agent] = fe.keyframes.poses()
-    cleanup = coordinator.finish(final_poses)
+    cleanup = coordinator.finish(final_poses, progress)
     _apply(frontends, cleanup.updates)
     for update in cleanup.pointmaps:
         frontends[update.agent].apply_pointmap_update(update)
@@ -250,11 +258,11 @@ def _finish(frontends: Sequence[AgentFrontend], coordinator: Coordinator) -> Non
 
 def _write(staging: Path, frontends: list[AgentFrontend], coordinator: Coordinator,
            config: Config, agents: list[AgentInput], seconds: list[float],
-           prior: Prior) -> RunSummary:
+           prior: Prior, progress: PhaseCallback | None = None) -> RunSummary:
     metrics, components = outputs.write_run_files(staging, frontends, coordinator, config,
-                                                  prior.describe(), seconds)
+                                                  prior.describe(), seconds, progress)
     summary = RunSummary(out=staging)
     summary.agents.extend(outputs.agent_row(fe, s) for fe, s in zip(frontends, seconds))
     outputs.evaluate_and_finish(staging, summary, metrics, agents, components, frontends,
-                                coordinator, config)
+                                coordinator, config, progress)
     return summary

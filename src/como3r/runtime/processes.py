@@ -71,6 +71,13 @@ from como3r.frontend.packets import PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.geometry.camera import to_focal
 from como3r.geometry.lie import sim3_compose, sim3_inverse
 from como3r.io.output import atomic_output_dir
+from como3r.progress import (
+    AgentProgress,
+    PhaseCallback,
+    ProgressCallback,
+    report_phase,
+    tracking_state,
+)
 from como3r.runtime import codec, outputs
 from como3r.runtime.child_signals import children_ignore_sigint
 from como3r.runtime.messages import (
@@ -471,6 +478,7 @@ class _Slot:
     last_frame: int = -1
     frames_done: int = 0
     outcomes: Counter[str] = field(default_factory=Counter)
+    keyframes_received: int = 0
     seconds: float = 0.0
     sent_seq: int = 0
     updates: list[PoseUpdate] = field(default_factory=list)
@@ -484,16 +492,13 @@ class _Runtime:
     """Runs the coordinator loop over the agent processes."""
 
     def __init__(self, inputs: list[AgentInput], config: Config, spec: PriorSpec,
-                 options: RuntimeOptions,
-                 progress: Callable[[int, str, int, int], None] | None) -> None:
+                 options: RuntimeOptions, progress: ProgressCallback | None) -> None:
         self.inputs = inputs
         self.config = config
         self.options = options
         self.progress = progress
         self.prior, codebook = build_prior(spec, config)
         self.coordinator = Coordinator(self.prior, config, codebook, len(inputs))
-        self.total = sum(len(range(0, a.num_frames, config.input.subsample)) for a in inputs)
-        self.done = 0
         self.pending: list[tuple[tuple[float, int, int, int], KeyframeMessage]] = []
         self._arrivals = 0
         self.slots: list[_Slot] = []
@@ -537,7 +542,7 @@ class _Runtime:
                 self._check_timeouts([s for s in self.slots if s.status in _LIVE])
             torch.set_num_threads(max(1, finish_threads))
         self.finish_threads = torch.get_num_threads()
-        self._process_pending(force=True)
+        self._process_pending(force=True, progress=self.progress)
         self._finish()
 
     def _run_lockstep(self) -> None:
@@ -606,6 +611,7 @@ class _Runtime:
             heapq.heappush(self.pending, ((packet.timestamp, slot.agent, packet.kf_id,
                                            self._arrivals), message))
             self._arrivals += 1
+            slot.keyframes_received += 1
         elif isinstance(message, FrameDone):
             self._frame_done(slot, message)
         elif isinstance(message, AgentFinished):
@@ -622,12 +628,18 @@ class _Runtime:
         slot.frames_done += 1
         slot.outcomes[message.outcome] += 1
         slot.seconds += message.seconds
-        self.done += 1
+        self._report(slot, tracking_state(message.outcome))
+
+    def _report(self, slot: _Slot, state: str) -> None:
+        """The agent's progress, from its messages so far, to the progress callback."""
         if self.progress is not None:
-            self.progress(slot.agent, message.outcome, self.done, self.total)
+            self.progress(AgentProgress(slot.agent, slot.frames_done, slot.frames_expected,
+                                        slot.keyframes_received, slot.outcomes["lost"],
+                                        slot.outcomes["relocalized"], state))
 
     def _fail(self, slot: _Slot, error: str) -> None:
         slot.status, slot.error, slot.clock = "failed", error, math.inf
+        self._report(slot, "failed")
         if any(other.status != "failed" for other in self.slots):
             logger.error("agent %d failed: %s (the other agents continue)", slot.agent, error)
         else:  # the last one: the run ends in one error line naming every agent's failure
@@ -643,14 +655,19 @@ class _Runtime:
 
     # ---------------------------------------------------------------- keyframes and updates
 
-    def _process_pending(self, force: bool = False) -> None:
+    def _process_pending(self, force: bool = False,
+                         progress: PhaseCallback | None = None) -> None:
         """Hand waiting keyframes to the coordinator in ``(timestamp, agent)`` order, each
-        once no running agent can still send an earlier one."""
+        once no running agent can still send an earlier one; ``progress`` hears of each
+        (the backlog once the agents stopped: the coordinator may trail them by many)."""
+        queued = len(self.pending)
         while self.pending:
             (timestamp, agent, _, _), message = self.pending[0]
             if not force and not all((s.clock, s.agent) > (timestamp, agent)
                                      for s in self.slots if s.agent != agent):
                 return
+            report_phase(progress, "queued keyframes", "retrieval, verification, global BA",
+                         queued - len(self.pending), queued)
             heapq.heappop(self.pending)
             self._add_keyframe(self.slots[agent], message)
 
@@ -702,7 +719,7 @@ class _Runtime:
                     self.coordinator.refresh(slot.agent, done.final)
                 if len(done.keyframe_T_WC) == len(slot.result.keyframes):
                     final_poses[slot.agent] = done.keyframe_T_WC
-        cleanup = self.coordinator.finish(final_poses)
+        cleanup = self.coordinator.finish(final_poses, self.progress)
         for update in cleanup.updates:
             self._send_update(update)
         for slot in self.slots:
@@ -788,7 +805,7 @@ def run_multiprocess(
     config: Config,
     prior_spec: PriorSpec,
     overwrite: bool = False,
-    progress: Callable[[int, str, int, int], None] | None = None,
+    progress: ProgressCallback | None = None,
     options: RuntimeOptions | None = None,
 ) -> RunSummary:
     """Run every agent in its own process and the coordinator here; write the output folder.
@@ -802,7 +819,9 @@ def run_multiprocess(
         config: effective configuration.
         prior_spec: which prior every process builds.
         overwrite: replace an existing non-empty output folder.
-        progress: called after every frame with ``(agent, outcome, done, total)``.
+        progress: called with an agent's :class:`~como3r.progress.AgentProgress` after its
+            every frame (as its ``FrameDone`` arrives) and when it fails, and with a
+            :class:`~como3r.progress.PhaseEvent` as each step of the terminal work starts.
         options: runtime knobs (default :class:`RuntimeOptions`).
 
     Raises:
@@ -842,7 +861,8 @@ def _write(staging: Path, runtime: _Runtime, inputs: list[AgentInput]) -> RunSum
     results = [s.result for s in runtime.slots]
     seconds = [s.result.finished.seconds if s.result.finished else s.seconds for s in runtime.slots]
     metrics, components = outputs.write_run_files(staging, results, coordinator, config,
-                                                  runtime.prior.describe(), seconds)
+                                                  runtime.prior.describe(), seconds,
+                                                  runtime.progress)
     metrics["runtime"] = runtime.runtime_metrics()
     summary = RunSummary(out=staging)
     for slot, s in zip(runtime.slots, seconds):
@@ -853,5 +873,5 @@ def _write(staging: Path, runtime: _Runtime, inputs: list[AgentInput]) -> RunSum
                 f"agent {slot.agent} failed: {slot.error}; its outputs hold the "
                 f"{len(slot.result.keyframes)} keyframes the coordinator received")
     outputs.evaluate_and_finish(staging, summary, metrics, inputs, components, results,
-                                coordinator, config)
+                                coordinator, config, runtime.progress)
     return summary

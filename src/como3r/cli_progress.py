@@ -1,0 +1,210 @@
+"""What ``como3r run``, ``demo`` and ``synth`` show while they work (README, "Commands").
+
+Progress goes to stderr, as the progress bar always did (stdout keeps the final summary
+tables, so ``como3r run ... > summary.txt`` stays clean), in one of three modes chosen when
+the command starts:
+
+* ``rich``, when stderr is a terminal: a live display with one bar per agent (frames
+  done/total, frames per second, keyframes, lost and relocalized frames, tracking state,
+  time left at the agent's pace) and, once the agents are done, one bar for the
+  coordinator's current phase (:class:`~como3r.progress.PhaseEvent`: queued keyframes,
+  focal refinement, cleanup passes, alternation rounds, outputs, evaluation, report) with
+  the time since that phase started. Erased when the work fails, so the ``error:`` line is
+  all that remains.
+* ``plain``, when stderr is not a terminal (CI logs, ``2>&1 | tee run.log``): plain lines,
+  ``[H:MM:SS] subject: text`` with the time since the command started: per agent at most one
+  every :data:`PLAIN_INTERVAL_S` seconds plus its last frame and its failure; for the
+  coordinator one as each phase starts, and for a further step of the phase (the next
+  alternation round, queued keyframe) one once :data:`PLAIN_INTERVAL_S` seconds have passed
+  since its last line.
+  They are written through the command's stderr console with rich's markup, highlighting
+  and wrapping off, not through :mod:`logging`: they are the command's output, not
+  diagnostics, so they do not depend on ``-v`` or on how a library configured the root
+  logger, and a log shows them in order with the ``error:`` line and the warnings.
+* ``quiet`` (``--quiet``): nothing. Warnings, errors and the final summary still print.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable, Iterator
+
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    ProgressColumn,
+    TaskID,
+    TextColumn,
+    TimeElapsedColumn,
+)
+
+from como3r import cli_common
+from como3r.progress import AgentProgress, PhaseEvent, ProgressEvent
+
+#: plain mode: the least time between two lines of one agent (or of one phase's steps)
+PLAIN_INTERVAL_S = 5.0
+
+MODES = ("rich", "plain", "quiet")
+
+
+def _columns() -> tuple[ProgressColumn, ...]:
+    """The rich display's columns; ``info`` holds an agent's :meth:`_Agent.text` or a
+    phase's detail."""
+    return (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+            TextColumn("{task.fields[info]}", markup=False), TimeElapsedColumn())
+
+
+def progress_mode(quiet: bool) -> str:
+    """``"quiet"`` under ``--quiet``, else ``"rich"`` on a terminal, else ``"plain"``."""
+    if quiet:
+        return "quiet"
+    return "rich" if cli_common.err_console.is_terminal else "plain"
+
+
+def _clock_text(seconds: float) -> str:
+    """``H:MM:SS`` of a non-negative duration."""
+    return str(datetime.timedelta(seconds=int(seconds)))
+
+
+@dataclass
+class _Agent:
+    """One agent as the display knows it: its latest event and its pace.
+
+    Attributes:
+        event: the latest event.
+        started: clock time of its first event.
+        first_done: frames done at its first event (the pace counts the frames after it).
+        printed: clock time of its last plain line.
+        task: its rich task.
+    """
+
+    event: AgentProgress
+    started: float
+    first_done: int
+    printed: float
+    task: TaskID | None = None
+
+    def fps(self, now: float) -> float | None:
+        """Frames per second since its first event (None before a second frame)."""
+        frames, seconds = self.event.frames_done - self.first_done, now - self.started
+        return frames / seconds if frames > 0 and seconds > 0 else None
+
+    def text(self, now: float) -> str:
+        """``2.1 fps, 5 keyframes, 3 lost, 1 relocalized, tracking, 0:00:12 left``."""
+        e, fps = self.event, self.fps(now)
+        parts = [f"{fps:.2f} fps" if fps is not None else "- fps",
+                 f"{e.keyframes} keyframe{'' if e.keyframes == 1 else 's'}", f"{e.lost} lost"]
+        if e.relocalized:
+            parts.append(f"{e.relocalized} relocalized")
+        parts.append(e.state)
+        left = e.frames_total - e.frames_done
+        if fps is not None and left > 0 and e.state != "failed":
+            parts.append(f"{_clock_text(left / fps)} left")
+        return ", ".join(parts)
+
+
+def phase_text(event: PhaseEvent) -> str:
+    """``alternation round 3/100 (agents 0, 1; previous max |ds| 0.0041)``."""
+    step = f" {event.done + 1}/{event.total}" if event.total is not None else ""
+    detail = f" ({event.detail})" if event.detail else ""
+    return f"{event.name}{step}{detail}"
+
+
+class RunProgress:
+    """The progress display of one command; call it with every
+    :class:`~como3r.progress.ProgressEvent` (the ``progress`` callback of a run).
+
+    Args:
+        bar: the rich display (disabled outside ``rich`` mode).
+        mode: one of :data:`MODES`.
+        interval: plain mode's least seconds between two lines of one subject.
+        clock: monotonic seconds (tests pass a fake one).
+    """
+
+    def __init__(self, bar: Progress, mode: str, interval: float = PLAIN_INTERVAL_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if mode not in MODES:
+            raise ValueError(f"progress mode {mode!r} is not one of {MODES}")
+        self.bar, self.mode, self.interval, self.clock = bar, mode, interval, clock
+        self.start = clock()
+        self.agents: dict[int, _Agent] = {}
+        self._phase: PhaseEvent | None = None
+        self._phase_task: TaskID | None = None
+        self._phase_printed = -math.inf
+
+    def __call__(self, event: ProgressEvent) -> None:
+        if isinstance(event, AgentProgress):
+            self.agent(event)
+        else:
+            self.phase(event)
+
+    def agent(self, event: AgentProgress) -> None:
+        """An agent's new state: its bar, or a plain line when one is due."""
+        now = self.clock()
+        agent = self.agents.get(event.agent)
+        if agent is None:
+            agent = self.agents[event.agent] = _Agent(event, now, event.frames_done, self.start)
+        agent.event = event
+        if self.mode == "rich":
+            if agent.task is None:
+                agent.task = self.bar.add_task(f"agent {event.agent}", info="")
+            self.bar.update(agent.task, completed=event.frames_done, total=event.frames_total,
+                            info=agent.text(now))
+        elif self.mode == "plain" and (now - agent.printed >= self.interval
+                                       or event.frames_done >= event.frames_total
+                                       or event.state == "failed"):
+            agent.printed = now
+            self._line(f"agent {event.agent}",
+                       f"{event.frames_done}/{event.frames_total} frames, {agent.text(now)}")
+
+    def phase(self, event: PhaseEvent) -> None:
+        """A coordinator step starts: the coordinator's bar, or a plain line when due."""
+        now, previous = self.clock(), self._phase
+        self._phase = event
+        if self.mode == "rich":
+            task = self._phase_task
+            if task is None or previous is None or previous.name != event.name:
+                if task is not None:  # a new phase: a new bar, with its own elapsed time
+                    self.bar.remove_task(task)
+                task = self._phase_task = self.bar.add_task(event.name, total=event.total,
+                                                            info="")
+            self.bar.update(task, completed=event.done, info=event.detail)
+        elif self.mode == "plain" and (previous is None or previous.name != event.name
+                                       or event.done == 0
+                                       or now - self._phase_printed >= self.interval):
+            self._phase_printed = now
+            self._line("coordinator", phase_text(event))
+
+    def counter(self, name: str, total: int) -> Callable[[], None]:
+        """A plain count of ``total`` steps (rendering frames); call the result after each."""
+        task = self.bar.add_task(name, total=total, info="")
+        done, printed = 0, self.start
+
+        def advance() -> None:
+            nonlocal done, printed
+            self.bar.advance(task)
+            done += 1
+            now = self.clock()
+            if self.mode == "plain" and (now - printed >= self.interval or done >= total):
+                printed = now
+                self._line(name, f"{done}/{total}")
+
+        return advance
+
+    def _line(self, subject: str, text: str) -> None:
+        cli_common.err_console.print(f"[{_clock_text(self.clock() - self.start)}] {subject}: "
+                                     f"{text}", markup=False, highlight=False, soft_wrap=True)
+
+
+@contextlib.contextmanager
+def run_progress(quiet: bool = False) -> Iterator[RunProgress]:
+    """The progress display of a command in the mode :func:`progress_mode` picks; a rich
+    display is erased when the block fails or is interrupted."""
+    mode = progress_mode(quiet)
+    with cli_common.progress_bar(*_columns(), shown=mode == "rich") as bar:
+        yield RunProgress(bar, mode)
