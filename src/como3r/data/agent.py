@@ -212,17 +212,18 @@ class AgentInput:
 
 
 def open_agent(path: str | Path, fps: float = 30.0, format: str = "auto") -> AgentInput:
-    """Open and validate an input: an agent folder or video, a TUM RGB-D sequence or a
-    7-Scenes sequence (:mod:`como3r.data.readers`).
+    """Open and validate an input: an agent folder or video, or a dataset sequence folder
+    (TUM RGB-D, 7-Scenes, EuRoC MAV, KITTI odometry, Tanks and Temples;
+    :mod:`como3r.data.readers`).
 
     Args:
         path: agent folder, video file, or dataset sequence folder.
-        fps: frame rate for default timestamps (``index / fps``; 7-Scenes: frame number /
-            fps) and the agent layout's ground-truth association window
+        fps: frame rate for default timestamps (``index / fps``; 7-Scenes and Tanks and
+            Temples: frame number / fps) and the agent layout's ground-truth association window
             ``max(0.5 / fps, 1 ms)``. A video without ``timestamps.txt`` uses its own frame
             rate when the container reports one.
-        format: ``auto`` (detect from the folder's layout), ``agent``, ``tum`` or
-            ``7scenes``.
+        format: ``auto`` (detect from the folder's layout) or one of
+            :data:`como3r.data.readers.FORMATS`.
 
     Raises:
         InputError: naming the offending file, for any missing, empty, unreadable or
