@@ -5,11 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from como3r.data.agent import open_agent
 from como3r.data.split import MIN_FRAMES_PER_AGENT, chunk_length, chunk_ranges, split_sequence
 from como3r.errors import InputError
 
+from .readers.layouts import write_euroc
 from .test_agent import frame_pixels, write_agent, write_video
 
 
@@ -121,3 +123,29 @@ def test_split_refuses_to_overwrite(tmp_path):
 def test_split_of_a_missing_source(tmp_path):
     with pytest.raises(InputError, match="nowhere"):
         split_sequence(tmp_path / "nowhere", tmp_path / "out", agents=2, overlap=0.1)
+
+
+def test_split_of_a_distorted_sequence_writes_the_undistorted_frames(tmp_path):
+    # EuRoC frames are undistorted as they are read: linking the raw files would pair
+    # distorted images with the calib.txt of the undistorted camera
+    write_euroc(tmp_path / "seq", n=6, distortion=(-0.3, 0.08, 0.001, -0.001))
+    source = open_agent(tmp_path / "seq")
+    assert not source.frames_are_files
+    folders = split_sequence(tmp_path / "seq", tmp_path / "out", agents=2, overlap=0.0)
+    for folder, (start, stop) in zip(folders, chunk_ranges(6, 2, 0.0)):
+        agent = open_agent(folder)
+        assert agent.calib == source.calib
+        for k, frame in enumerate(agent):
+            undistorted = source.load_frame(start + k).image
+            np.testing.assert_array_equal(frame.image, undistorted)
+            raw = np.asarray(Image.open(source.image_paths[start + k]).convert("RGB"))
+            assert np.abs(raw.astype(int) - undistorted).max() > 0
+
+
+def test_split_links_the_files_of_an_undistorted_sequence(tmp_path):
+    write_euroc(tmp_path / "seq", n=4)
+    source = open_agent(tmp_path / "seq")
+    assert source.frames_are_files
+    folders = split_sequence(tmp_path / "seq", tmp_path / "out", agents=2, overlap=0.0)
+    first = open_agent(folders[0]).image_paths[0]
+    assert first.read_bytes() == source.image_paths[0].read_bytes()

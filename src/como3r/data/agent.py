@@ -131,6 +131,13 @@ class AgentInput:
     def __len__(self) -> int:
         return self.num_frames
 
+    @property
+    def frames_are_files(self) -> bool:
+        """The image files hold the frames as :meth:`load_frame` returns them (up to the
+        colour conversion), so a copy of a file is a copy of its frame (:mod:`.split` links
+        them); False for a video, and for readers that change the pixels (EuRoC undistorts)."""
+        return self.video is None
+
     def __iter__(self) -> Iterator[Frame]:
         return self.frames()
 

@@ -65,7 +65,8 @@ def split_sequence(
     """Write ``out/agent_<a>/`` agent inputs, one per contiguous sub-sequence of ``src``.
 
     Images, depth and surface maps are hard-linked (copied across file systems; a video's
-    frames are written as PNG) under the frame's stem, so they pair up in the agent layout;
+    frames, and the frames of a reader that changes the pixels such as EuRoC's undistortion,
+    are written as PNG) under the frame's stem, so they pair up in the agent layout;
     depth PNGs of another scale than the agent layout's 5000 per metre (7-Scenes) are
     written as ``.npy`` float32 metres. Each agent gets a ``timestamps.txt`` of its frames, the
     ``groundtruth.txt`` / ``odometry.txt`` rows that fall within its time span (plus the
@@ -143,11 +144,17 @@ def _write_side_files(source: AgentInput, frames: np.ndarray, folder: Path) -> N
 
 
 def _write_images(source: AgentInput, selections: list[np.ndarray], folders: list[Path]) -> None:
-    if source.video is None:
+    if source.frames_are_files:
         for frames, folder in zip(selections, folders):
             for i in frames:
                 image = source.image_paths[i]
                 _link_or_copy(image, folder / "rgb" / f"{source.stems[i]}{image.suffix}")
+        return
+    if source.video is None:  # the reader changes the pixels (EuRoC undistorts): decode
+        for frames, folder in zip(selections, folders):
+            for i in frames:
+                Image.fromarray(source.load_frame(int(i)).image).save(
+                    folder / "rgb" / f"{source.stems[i]}.png")
         return
     targets: dict[int, list[Path]] = {}
     for frames, folder in zip(selections, folders):

@@ -88,6 +88,11 @@ class UndistortedInput(AgentInput):
 
     distortion: tuple[float, ...] = ()
 
+    @property
+    def frames_are_files(self) -> bool:
+        """The files are the distorted images (see :class:`AgentInput`)."""
+        return super().frames_are_files and not any(self.distortion)
+
     def load_frame(self, i: int) -> Frame:
         frame = super().load_frame(i)
         return dataclasses.replace(frame, image=undistort(frame.image, self.calib,
