@@ -187,7 +187,7 @@ class Candidate:
         link = self.verification.link
         if link is None or not self.verification.accepted:
             raise Como3rError(f"candidate {self.verification.candidate}-"
-                                f"{self.verification.query} was not verified")
+                              f"{self.verification.query} was not verified")
         return link
 
 

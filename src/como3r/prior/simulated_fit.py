@@ -16,7 +16,12 @@ from torch import Tensor
 from como3r.errors import GeometryError
 from como3r.geometry.lie import matrix_to_quat, quat_to_matrix, sim3_act
 from como3r.geometry.umeyama import umeyama_sim3, umeyama_sim3_batched
-from como3r.prior.simulated_keys import KeyMatches, key_jacobians, match_key_cells
+from como3r.prior.simulated_keys import (
+    KeyMatches,
+    key_jacobians,
+    match_key_cells,
+    reproducible_matmul,
+)
 
 if TYPE_CHECKING:
     from como3r.prior.simulated import SimulatedConstants, SimulatedEncoding
@@ -58,11 +63,9 @@ def robust_fit(enc_i: SimulatedEncoding, enc_j: SimulatedEncoding, matches: KeyM
     scored = slice(0, c.ransac_scored_correspondences)
     samples = torch.randint(0, src.shape[0], (c.ransac_hypotheses, 3), generator=gen)
     R, t, s = (x.to(torch.float32) for x in umeyama_sim3_batched(src[samples], dst[samples]))
-    # s R x + t of every scored point under every hypothesis, (n, B, 3), summed elementwise:
-    # a float32 GEMM's rounding can depend on the operands' memory alignment, and a one-ulp
-    # change flips an inlier at the threshold and with it the chosen hypothesis (the same
-    # decode twice differed once in ~10 suite runs)
-    rotated = (R[None] * src[scored, None, None, :].float()).sum(-1)
+    # s R x + t of every scored point under every hypothesis, (n, B, 3), reproducibly: a
+    # one-ulp change flips an inlier at the threshold and with it the chosen hypothesis
+    rotated = reproducible_matmul(src[scored, None, :].float(), R.transpose(1, 2))
     residual_sq = (s[None, :, None] * rotated + t[None] - dst[scored, None].float()).square()
     threshold = c.ransac_inlier_cells * matches.cell
     support = (residual_sq.sum(-1) < threshold**2).sum(0)

@@ -55,7 +55,8 @@ def generator(*values: int | str) -> torch.Generator:
 
 
 def reproducible_matmul(a: Tensor, b: Tensor) -> Tensor:
-    """``a @ b`` for a small ``b`` ``(K, N)`` (``a`` ``(..., K)``), bit-identical on every call.
+    """``a @ b`` for ``a`` ``(..., M, K)`` and a small ``b`` ``(..., K, N)`` (batch dimensions
+    broadcast), bit-identical on every call.
 
     The simulated prior must give the same prediction for the same pair every time
     (``tests/prior``), but a BLAS product's rounding can depend on its operands' memory
