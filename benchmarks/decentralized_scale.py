@@ -15,7 +15,8 @@ metric wavelengths, so it matches a grown or shrunk world differently (a learned
 the same images at any scale). ``--keep-surface-keys`` leaves s, t as rendered, which
 makes the simulated prior scale-free and isolates the decentralized mode's own lengths.
 
-Measured (3 robots x 40 frames at 160x120, long side 160, realistic simulated prior, one
+Measured (3 robots x 40 frames at 160x120, ``--long-side 160`` (the default is the
+configuration's 512, several times slower on a CPU), realistic simulated prior, one
 snapshot of the rest of the tree; merged ATE % of path at 0.1 / 1 / 5 / 20x):
 
     seed 0  before (0.5 m keyframes, metric sigmas)  no map / 1.75 / 2.12 / 2.95
@@ -141,8 +142,9 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=40)
     parser.add_argument("--width", type=int, default=160)
     parser.add_argument("--height", type=int, default=120)
-    parser.add_argument("--long-side", type=int, default=160,
-                        help="input.long_side of the run (the default 512 is slow on a CPU)")
+    parser.add_argument("--long-side", type=int, default=Config().input.long_side,
+                        help="input.long_side of the run (default: the configuration's; the "
+                             "figures in this docstring were taken with --long-side 160)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--keep-surface-keys", action="store_true",
                         help="do not scale the surface maps' s, t (module docstring)")
