@@ -18,6 +18,7 @@ from como3r.io.tum import read_tum, write_tum
 
 from .data.readers.layouts import SEVEN_SCENES_REAL, link_frames, write_7scenes, write_tum as \
     write_tum_layout
+from .data.readers.logs import image_stream, write_log
 
 
 def _invoke(*args: str):
@@ -88,7 +89,7 @@ def test_eval_against_a_7scenes_sequence(tmp_path):
 
 @pytest.mark.parametrize("args, fragment", [
     (["--format", "colmap"], "unknown --format 'colmap'; choose one of auto, agent, tum, "
-                                "7scenes, euroc, kitti, tanks"),
+                                "7scenes, euroc, kitti, tanks, rosbag"),
     (["--format", "tum"], "not a TUM RGB-D sequence (--format tum): expected rgb.txt"),
 ])
 def test_format_errors_are_one_line(tmp_path, only_error_line, args, fragment):
@@ -125,6 +126,22 @@ def test_what_the_simulated_prior_needs_is_one_line(tmp_path, only_error_line, c
     line = only_error_line(_invoke("run", "--agent", str(seq), "--out", str(tmp_path / "out"),
                                    "--prior", "simulated"))
     assert f"{seq}: {fragment}" in line and "--prior mast3r" in line
+
+
+def test_run_takes_a_ros_log_and_its_topic(tmp_path, only_error_line):
+    """--agent reads a ROS log and --topic reaches its reader (the simulated prior then says
+    the log has no depth: a run on images alone takes MASt3R, too slow for this test)."""
+    bag = write_log(tmp_path / "log.bag", "ros1",
+                    image_stream("/left/image_raw", 2) + image_stream("/right/image_raw", 2))
+    args = ["run", "--agent", str(bag), "--out", str(tmp_path / "out"), "--prior", "simulated"]
+    line = only_error_line(_invoke(*args))
+    assert "2 image topics, choose one with --topic: /left/image_raw" in line
+    line = only_error_line(_invoke(*args, "--topic", "/nope"))
+    assert f"{bag}: no topic '/nope'; image topics: /left/image_raw" in line
+    line = only_error_line(_invoke(*args, "--topic", "/right/image_raw"))
+    assert f"{bag}: no depth (the ROS log reader takes images only), which --prior " \
+           "simulated needs" in line
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.skipif(not SEVEN_SCENES_REAL.is_dir(),

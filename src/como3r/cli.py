@@ -95,7 +95,7 @@ def synth(
 
 FORMAT_HELP = ("Layout of the input folders: auto (detect) | agent | tum (TUM RGB-D) | "
                "7scenes | euroc (EuRoC MAV) | kitti (KITTI odometry) | tanks (Tanks and "
-               "Temples).")
+               "Temples) | rosbag (ROS 1 .bag, ROS 2 bag folder).")
 
 
 @app.command("eval", cls=Command)
@@ -157,14 +157,20 @@ def export(
 
 
 def _load_config(config_file: Optional[Path], overrides: List[str], calib: bool,
-                 no_loop_closure: bool, format: Optional[str] = None):
+                 no_loop_closure: bool, format: Optional[str] = None,
+                 topic: Optional[str] = None):
+    import dataclasses
+
     from como3r.config import Config, apply_overrides, load_config
 
     config = load_config(config_file) if config_file is not None else Config()
     extra = (["calibrated=true"] if calib else []) + (["loop_closure=false"] if no_loop_closure else [])
     if format is not None:
         extra.append(f"input.format={format}")
-    return apply_overrides(config, [*overrides, *extra])
+    config = apply_overrides(config, [*overrides, *extra])
+    if topic is not None:  # as given: a topic is any string, not a YAML scalar
+        config = dataclasses.replace(config, input=dataclasses.replace(config.input, topic=topic))
+    return config
 
 
 @app.command(cls=Command)
@@ -172,11 +178,15 @@ def _load_config(config_file: Optional[Path], overrides: List[str], calib: bool,
 @user_errors
 def run(
     agent: List[Path] = typer.Option(..., "--agent", metavar="PATH",
-                                     help="Agent input: agent folder, video, TUM RGB-D or "
-                                          "7-Scenes sequence folder (repeat per agent)."),
+                                     help="Agent input: agent folder, video, dataset "
+                                          "sequence folder or ROS log (repeat per agent)."),
     format: Optional[str] = typer.Option(
         None, "--format", help=FORMAT_HELP + " Default: the configuration's input.format "
                                              "(auto)."),
+    topic: Optional[str] = typer.Option(
+        None, "--topic", metavar="NAME",
+        help="Image topic of the ROS log inputs (default: the configuration's input.topic; "
+             "empty: each log's only image topic)."),
     out: Path = typer.Option(..., "--out", help="Output folder."),
     prior: str = typer.Option(
         "mast3r", "--prior",
@@ -226,7 +236,7 @@ def run(
     if format is not None:
         _check_format(format)
     check_output_dir(out, overwrite)  # before the weights load and the agents start
-    config = _load_config(config_file, overrides, calib, no_loop_closure, format)
+    config = _load_config(config_file, overrides, calib, no_loop_closure, format, topic)
     for path in agent:
         if not path.exists():
             raise InputError(f"{path}: agent input does not exist")
@@ -274,7 +284,8 @@ def _check_simulated_input(path: Path, config) -> None:
     from como3r.data.agent import open_agent
     from como3r.data.readers import DEPTH_SOURCES
 
-    source = open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format)
+    source = open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format,
+                        topic=config.input.topic)
     needs = ("which --prior simulated needs (a stand-in made from ground-truth depth); "
              "images alone take --prior mast3r")
     if not source.has_depth:

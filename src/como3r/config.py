@@ -36,7 +36,10 @@ class InputConfig:
     subsample: int = 2
     # layout of the --agent inputs (como3r addition; `como3r run --format`): auto detects
     # each folder's layout (como3r.data.readers), the others force one
-    format: Literal["auto", "agent", "tum", "7scenes", "euroc", "kitti", "tanks"] = "auto"
+    format: Literal["auto", "agent", "tum", "7scenes", "euroc", "kitti", "tanks",
+                    "rosbag"] = "auto"
+    # image topic of ROS log inputs (`como3r run --topic`); empty: each log's only one
+    topic: str = ""
     # frames read and encoded ahead on a worker thread while the front-end works on the
     # current one (runtime.prefetch); 0 encodes each frame in line
     prefetch_frames: int = 2

@@ -218,28 +218,32 @@ class AgentInput:
         return Frame(i, float(self.timestamps[i]), self.stems[i], image, depth, surface, T_WC_gt)
 
 
-def open_agent(path: str | Path, fps: float = 30.0, format: str = "auto") -> AgentInput:
-    """Open and validate an input: an agent folder or video, or a dataset sequence folder
-    (TUM RGB-D, 7-Scenes, EuRoC MAV, KITTI odometry, Tanks and Temples;
-    :mod:`como3r.data.readers`).
+def open_agent(path: str | Path, fps: float = 30.0, format: str = "auto",
+               topic: str = "") -> AgentInput:
+    """Open and validate an input: an agent folder or video, a dataset sequence folder
+    (TUM RGB-D, 7-Scenes, EuRoC MAV, KITTI odometry, Tanks and Temples) or a ROS log
+    (:mod:`como3r.data.readers`).
 
     Args:
-        path: agent folder, video file, or dataset sequence folder.
+        path: agent folder, video file, dataset sequence folder, ``.bag`` file or ROS 2 bag
+            folder.
         fps: frame rate for default timestamps (``index / fps``; 7-Scenes and Tanks and
             Temples: frame number / fps) and the agent layout's ground-truth association window
             ``max(0.5 / fps, 1 ms)``. A video without ``timestamps.txt`` uses its own frame
             rate when the container reports one.
         format: ``auto`` (detect from the folder's layout) or one of
             :data:`como3r.data.readers.FORMATS`.
+        topic: a ROS log's image topic (:mod:`como3r.data.readers.rosbag`); empty: its
+            only one. Refused for other inputs.
 
     Raises:
         InputError: naming the offending file, for any missing, empty, unreadable or
-            inconsistent part of the input, a folder of no known layout, or a ``format``
-            the folder does not match.
+            inconsistent part of the input, a folder of no known layout, a ``format``
+            the folder does not match, or a ``topic`` that is not a ROS log's image topic.
     """
     from como3r.data.readers import open_input  # the readers build on this module
 
-    return open_input(path, fps=fps, format=format)
+    return open_input(path, fps=fps, format=format, topic=topic)
 
 
 def open_agent_folder(path: str | Path, fps: float = 30.0) -> AgentInput:

@@ -60,25 +60,27 @@ def chunk_ranges(num_frames: int, agents: int, overlap: float) -> list[tuple[int
 
 
 def split_sequence(
-    src: str | Path, out: str | Path, agents: int, overlap: float, stride: int = 1
+    src: str | Path, out: str | Path, agents: int, overlap: float, stride: int = 1,
+    topic: str = "",
 ) -> list[Path]:
     """Write ``out/agent_<a>/`` agent inputs, one per contiguous sub-sequence of ``src``.
 
     Images, depth and surface maps are hard-linked (copied across file systems; a video's
-    frames, and the frames of a reader that changes the pixels such as EuRoC's undistortion,
-    are written as PNG) under the frame's stem, so they pair up in the agent layout;
-    depth PNGs of another scale than the agent layout's 5000 per metre (7-Scenes) are
+    frames, a ROS log's, and the frames of a reader that changes the pixels such as EuRoC's
+    undistortion, are written as PNG) under the frame's stem, so they pair up in the agent
+    layout; depth PNGs of another scale than the agent layout's 5000 per metre (7-Scenes) are
     written as ``.npy`` float32 metres. Each agent gets a ``timestamps.txt`` of its frames, the
     ``groundtruth.txt`` / ``odometry.txt`` rows that fall within its time span (plus the
     association window), and the source's ``calib.txt``.
 
     Args:
-        src: input holding the whole sequence (agent folder or video, TUM RGB-D or 7-Scenes
-            sequence: :func:`~como3r.data.agent.open_agent` detects it).
+        src: input holding the whole sequence (agent folder or video, dataset sequence
+            folder or ROS log: :func:`~como3r.data.agent.open_agent` detects it).
         out: folder to write the agent folders into.
         agents: number of agents N >= 1.
         overlap: fraction in [0, 1) of each chunk shared with the next one.
         stride: keep every ``stride``-th frame of the source before splitting.
+        topic: a ROS log's image topic (empty: its only one).
 
     Returns:
         The N agent folders, in order.
@@ -93,7 +95,7 @@ def split_sequence(
         raise InputError(f"overlap must be a fraction in [0, 1), got {overlap!r}")
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
         raise InputError(f"stride must be an integer >= 1, got {stride!r}")
-    source = open_agent(src)
+    source = open_agent(src, topic=topic)
     kept = np.arange(0, source.num_frames, stride)
     length = chunk_length(len(kept), agents, overlap)
     if length < MIN_FRAMES_PER_AGENT:

@@ -297,8 +297,8 @@ def build_prior(spec: Any, config: Config, place_method: str,
     truth) and, for ASMK place recognition, its retrieval codebook."""
     from como3r.runtime.pipeline import build_prior as build_pipeline_prior
 
-    agents = {r: open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format)
-              for r, path in agent_paths.items()}
+    agents = {r: open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format,
+                            topic=config.input.topic) for r, path in agent_paths.items()}
     prior, codebook = build_pipeline_prior(spec, config, agents)
     if spec.name == "simulated":
         return prior, (codebook if place_method == "asmk" else None)
@@ -313,7 +313,7 @@ def _robot(robot: int, agent_path: str, prior: Prior, codebook: np.ndarray | Non
            leave: tuple[int, str] | None) -> Robot:
     recognizer = PlaceRecognizer(settings.place_method, codebook, config.retrieval)
     return Robot(robot, open_agent(agent_path, fps=config.input.frame_rate_hz,
-                                   format=config.input.format), prior,
+                                   format=config.input.format, topic=config.input.topic), prior,
                  recognizer, config, settings, link, leave)
 
 

@@ -132,7 +132,8 @@ def run_decentralized(
 
 
 def _open_robot(path: str | Path, config: Config) -> _Robot:
-    agent = open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format)
+    agent = open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format,
+                       topic=config.input.topic)
     return _Robot(agent, frame_odometry(agent))
 
 

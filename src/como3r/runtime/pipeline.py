@@ -144,8 +144,8 @@ def open_agents(paths: Sequence[Path], config: Config) -> list[AgentInput]:
     """Open and validate every agent input before any work starts."""
     if not paths:
         raise InputError("no --agent given")
-    return [open_agent(p, fps=config.input.frame_rate_hz, format=config.input.format)
-            for p in paths]
+    return [open_agent(p, fps=config.input.frame_rate_hz, format=config.input.format,
+                       topic=config.input.topic) for p in paths]
 
 
 def _frame_schedule(agents: Sequence[AgentInput], stride: int) -> Iterator[tuple[int, int]]:

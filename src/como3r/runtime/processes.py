@@ -257,7 +257,7 @@ class _AgentWorker:
         spec = PriorSpec(**{k: (Path(v) if k in _PATH_FIELDS and v is not None else v)
                             for k, v in task.prior.items()})
         self.input = open_agent(task.input_path, fps=self.config.input.frame_rate_hz,
-                                format=self.config.input.format)
+                                format=self.config.input.format, topic=self.config.input.topic)
         self.prior, codebook = build_prior(spec, self.config, {task.agent: self.input},
                                            quiet=True)  # the coordinator says it once
         self.frontend = AgentFrontend(

@@ -21,10 +21,14 @@ kitti      KITTI odometry ``sequences/XX``:             :mod:`como3r.data.reader
            ``../../poses/XX.txt``
 tanks      Tanks and Temples as CoMo3R-SLAM stages      :mod:`como3r.data.readers.tanks`
            it: ``image/``, ``gt_traj.txt``
+rosbag     a ROS 1 ``.bag``, a ROS 2 bag folder          :mod:`como3r.data.readers.rosbag`
+           (``metadata.yaml`` with ``.db3`` or
+           ``.mcap`` files); one image topic
 =========  ===========================================  ===================================
 
 Detection (``format="auto"``) looks at the folder only, never at the file contents: a
-folder with ``rgb.txt`` is a TUM sequence; one holding ``frame-*.color.*`` files is a
+``.bag`` or ``.mcap`` file, a folder with ``metadata.yaml`` and a ``.db3`` or ``.mcap`` file,
+or a ``.db3`` file in such a folder, is a ROS log; a folder with ``rgb.txt`` is a TUM sequence; one holding ``frame-*.color.*`` files is a
 7-Scenes sequence; one holding ``mav0/cam0/data.csv`` (or the ``mav0`` folder itself, or
 either with EuRoC ground truth only) is a EuRoC sequence; one holding ``times.txt`` and
 ``image_2/`` is a KITTI sequence; a file, or a folder with ``rgb/`` or a video, is an agent
@@ -44,12 +48,12 @@ from como3r.data.agent import (
     AgentInput,
     open_agent_folder,
 )
-from como3r.data.readers import euroc, kitti, sevenscenes, tanks, tum
+from como3r.data.readers import euroc, kitti, rosbag, sevenscenes, tanks, tum
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory, read_tum
 
 #: the values of ``--format`` / ``input.format``
-FORMATS = ("auto", "agent", "tum", "7scenes", "euroc", "kitti", "tanks")
+FORMATS = ("auto", "agent", "tum", "7scenes", "euroc", "kitti", "tanks", "rosbag")
 
 #: what each format's depth is, for messages ("no ... which --prior simulated needs")
 DEPTH_SOURCES = {
@@ -60,6 +64,7 @@ DEPTH_SOURCES = {
     "euroc": "depth (EuRoC sequences have none)",
     "kitti": "depth (KITTI odometry sequences have none)",
     "tanks": "depth (the Tanks and Temples layout has none)",
+    "rosbag": "depth (the ROS log reader takes images only)",
 }
 
 #: what a forced format expects in the folder, for "not a ... (--format X)" messages
@@ -70,19 +75,21 @@ _FORCED = {
     "euroc": ("a EuRoC sequence", euroc.matches, f"{euroc.EXPECTED} (or the mav0 folder)"),
     "kitti": ("a KITTI odometry sequence", kitti.matches, f"{kitti.EXPECTED} in it"),
     "tanks": ("a Tanks and Temples sequence", tanks.matches, f"{tanks.EXPECTED} in it"),
+    "rosbag": ("a ROS log", rosbag.matches, rosbag.EXPECTED),
 }
 
 _EXPECTED = ("an agent folder (rgb/ or a video file), a TUM RGB-D sequence (rgb.txt, "
              "rgb/, depth.txt, depth/, groundtruth.txt), a 7-Scenes sequence "
              "(frame-NNNNNN.color.png, .depth.png, .pose.txt), a EuRoC sequence "
              "(mav0/cam0/data.csv, mav0/cam0/data/, mav0/cam0/sensor.yaml), a KITTI odometry "
-             "sequence (image_2/, times.txt, calib.txt) or a Tanks and Temples sequence "
-             "(image/, gt_traj.txt)")
+             "sequence (image_2/, times.txt, calib.txt), a Tanks and Temples sequence "
+             "(image/, gt_traj.txt) or a ROS log (a .bag file, a ROS 2 bag folder with "
+             "metadata.yaml)")
 
 
 def detect_format(path: str | Path) -> str:
     """The format of an existing path's layout (module docstring): ``agent``, ``tum``,
-    ``7scenes``, ``euroc``, ``kitti`` or ``tanks``.
+    ``7scenes``, ``euroc``, ``kitti``, ``tanks`` or ``rosbag``.
 
     Raises:
         InputError: the path does not exist, or its layout is none of the formats.
@@ -90,6 +97,8 @@ def detect_format(path: str | Path) -> str:
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: input does not exist")
+    if rosbag.matches(path):
+        return "rosbag"
     if path.is_file():
         return "agent"
     if tum.matches(path):
@@ -133,13 +142,23 @@ def resolve_format(path: str | Path, format: str = "auto") -> str:
     return format
 
 
-def open_input(path: str | Path, fps: float = 30.0, format: str = "auto") -> AgentInput:
-    """Open and validate any supported input (:func:`como3r.data.agent.open_agent`)."""
+def open_input(path: str | Path, fps: float = 30.0, format: str = "auto",
+               topic: str = "") -> AgentInput:
+    """Open and validate any supported input (:func:`como3r.data.agent.open_agent`).
+
+    Raises:
+        InputError: as :func:`como3r.data.agent.open_agent`; also a ``topic`` for an input
+            that is not a ROS log.
+    """
     if not (math.isfinite(fps) and fps > 0):
         raise InputError(f"fps must be a positive number, got {fps}")
     kind = resolve_format(path, format)
+    if topic and kind != "rosbag":
+        raise InputError(f"{path}: --topic {topic} is for ROS logs; this is a {kind} input")
     if kind == "agent":
         return open_agent_folder(path, fps)
+    if kind == "rosbag":
+        return rosbag.open_sequence(Path(path), fps, topic)
     return _READERS[kind].open_sequence(Path(path), fps)
 
 
@@ -155,7 +174,8 @@ def read_ground_truth(path: str | Path, format: str = "auto",
     frame number / ``fps``, as :func:`open_input` stamps the frames), the camera trajectory
     of a EuRoC sequence's ``state_groundtruth_estimate0/data.csv`` (``T_WB T_BS``), the
     ``poses/XX.txt`` beside a KITTI sequence's ``sequences/`` folder (image_2's poses,
-    stamped by ``times.txt``), a Tanks and Temples ``gt_traj.txt`` (frame id / ``fps``).
+    stamped by ``times.txt``), a Tanks and Temples ``gt_traj.txt`` (frame id / ``fps``). A
+    ROS log holds none this reader takes (an :class:`InputError` says so).
 
     Returns:
         ``(source, trajectory)``: the file or folder the poses were read from, and them.
@@ -164,6 +184,8 @@ def read_ground_truth(path: str | Path, format: str = "auto",
         InputError: no ground truth there, or a malformed file (named).
     """
     path = Path(path)
+    if rosbag.matches(path) and format in ("auto", "rosbag"):
+        return rosbag.ground_truth(path)
     if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
         path = path.parent
     elif not path.is_dir():
