@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Install como3r into the active Python environment.
 #   bash scripts/install.sh          the package and the command `como3r`
-#   bash scripts/install.sh test     the same plus the test extras
+#   bash scripts/install.sh test     the same plus the test extras and the viewer extra
+#                                    (tests/viewer reads rerun recordings back)
 # torch, in this order:
 #   an installed torch (for example a CUDA build) is kept;
 #   COMO3R_TORCH="<requirement>" installs that requirement instead of the choice below;
@@ -63,5 +64,5 @@ elif ! index_reachable "$CPU_INDEX" \
     pip_install "$TORCH_PIN"
 fi
 extras=""
-if [ "${1:-}" = "test" ]; then extras="[test]"; fi
+if [ "${1:-}" = "test" ]; then extras="[test,viewer]"; fi
 pip_install -e ".${extras}"

@@ -150,4 +150,4 @@ def test_probe_answers_within_ten_seconds_for_an_unresolvable_index(tmp_path: Pa
 def test_test_extras(tmp_path: Path) -> None:
     result, _ = _run(tmp_path, torch_installed=True, args=("test",))
     assert result.returncode == 0, result.stderr
-    assert "would run: python -m pip install -e .[test]" in result.stdout
+    assert "would run: python -m pip install -e .[test,viewer]" in result.stdout

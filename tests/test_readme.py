@@ -15,6 +15,7 @@ from como3r.data.synth import PRESETS
 from como3r.decentralized.odometry_sim import ODOMETRY_PRESETS
 from como3r.prior.mast3r.precision import PRECISIONS
 from como3r.runtime.pipeline import PRIORS
+from como3r.viewer import MODES as VIEWER_MODES
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 GROUP = "como3r"
@@ -89,6 +90,7 @@ def test_the_synopsis_lists_exactly_the_options_of(command: str) -> None:
     ("--mode", {"centralized", "decentralized"}),
     ("--device", {"cpu", "cuda"}),
     ("--format", set(FORMATS)),
+    ("--viewer", set(VIEWER_MODES)),
 ])
 def test_listed_choices_are_the_accepted_ones(option: str, accepted: set[str]) -> None:
     listed = re.search(rf"{option} ([a-z0-9]+(?:\|[a-z0-9]+)+)", _synopsis())

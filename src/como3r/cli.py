@@ -25,6 +25,7 @@ from como3r.cli_common import (
     user_errors,
 )
 from como3r.cli_progress import run_progress
+from como3r.cli_viewer import VIEWER_HELP, ViewerCommand, check_viewer_option, live_viewer
 from como3r.cli_weights import weights_app
 from como3r.errors import InputError
 
@@ -173,7 +174,7 @@ def _load_config(config_file: Optional[Path], overrides: List[str], calib: bool,
     return config
 
 
-@app.command(cls=Command)
+@app.command(cls=ViewerCommand)
 @interrupt_leaves_nothing
 @user_errors
 def run(
@@ -218,6 +219,8 @@ def run(
         help="Run agents and coordinator in this process (deterministic; for debugging)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
+    viewer: Optional[str] = typer.Option(None, "--viewer", metavar="MODE",
+                                        help=VIEWER_HELP),
 ) -> None:
     """Run collaborative SLAM on one or more agents and write the output folder."""
     from como3r.io.output import check_output_dir
@@ -235,6 +238,9 @@ def run(
         raise InputError(f"unknown --mode {mode!r}; choose centralized or decentralized")
     if format is not None:
         _check_format(format)
+    if viewer is not None and mode == "decentralized":
+        raise InputError("--viewer shows --mode centralized runs only")
+    viewer_spec = check_viewer_option(viewer, out)  # rerun installed?
     check_output_dir(out, overwrite)  # before the weights load and the agents start
     config = _load_config(config_file, overrides, calib, no_loop_closure, format, topic)
     for path in agent:
@@ -261,9 +267,11 @@ def run(
         runner = run_pipeline
     else:
         from como3r.runtime.processes import run_multiprocess as runner
-    with run_progress(quiet) as shown:
-        summary = runner(agent, out, config, spec, overwrite=overwrite, progress=shown)
-    _print_summary(summary, out)
+    with live_viewer(viewer_spec) as live:
+        with run_progress(quiet) as shown:
+            summary = runner(agent, out, config, spec, overwrite=overwrite, progress=shown,
+                             live=live)
+        _print_summary(summary, out)
 
 
 def _check_format(format: str) -> None:
@@ -339,7 +347,7 @@ DEMO_SIZE = (640, 480)
 DEMO_LOOP_FRAMES = 100
 
 
-@app.command(cls=Command)
+@app.command(cls=ViewerCommand)
 @interrupt_leaves_nothing
 @user_errors
 def demo(
@@ -349,6 +357,8 @@ def demo(
     seed: int = typer.Option(0, "--seed", help="Random seed of the scene."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
+    viewer: Optional[str] = typer.Option(None, "--viewer", metavar="MODE",
+                                        help=VIEWER_HELP),
 ) -> None:
     """Synthesize a scene, run collaborative SLAM with the simulated prior, evaluate, report."""
     from como3r.config import Config
@@ -359,24 +369,28 @@ def demo(
 
     width, height = DEMO_SIZE
     scene = out / "scene"
-    with atomic_output_dir(out, overwrite=overwrite) as staging, run_progress(quiet) as shown:
-        (staging / "scene").mkdir()
-        synthesize(staging / "scene", agents=agents, seed=seed, overlap=0.2, frames=frames,
-                   preset="default", width=width, height=height,
-                   loop_frames=max(frames, DEMO_LOOP_FRAMES),
-                   progress=shown.counter("rendering", agents * frames))
-        config = Config()  # the defaults, nothing overridden: what a user gets
-        # one process per agent and the coordinator here, as `como3r run` does by default
-        summary = run_multiprocess(
-            [staging / "scene" / f"agent_{a}" for a in range(agents)], staging / "run", config,
-            PriorSpec("simulated"), progress=shown)
-        accuracy = summary.evaluation.table_rows() if summary.evaluation is not None else []
-    print_rows("agents", summary.agents)
-    if accuracy:
-        print_rows("ATE RMSE [m] (Sim(3)-aligned)", accuracy)
-    for line in summary.notes:
-        console.print(line)
-    console.print(f"scene: {scene}\nrun:   {out / 'run'} (open {out / 'run' / 'report.html'})")
+    viewer_spec = check_viewer_option(viewer, out)  # rerun installed?
+    with live_viewer(viewer_spec) as live:
+        with atomic_output_dir(out, overwrite=overwrite) as staging, \
+                run_progress(quiet) as shown:
+            (staging / "scene").mkdir()
+            synthesize(staging / "scene", agents=agents, seed=seed, overlap=0.2, frames=frames,
+                       preset="default", width=width, height=height,
+                       loop_frames=max(frames, DEMO_LOOP_FRAMES),
+                       progress=shown.counter("rendering", agents * frames))
+            config = Config()  # the defaults, nothing overridden: what a user gets
+            # one process per agent and the coordinator here, as `como3r run` does by default
+            summary = run_multiprocess(
+                [staging / "scene" / f"agent_{a}" for a in range(agents)], staging / "run",
+                config, PriorSpec("simulated"), progress=shown, live=live)
+            accuracy = summary.evaluation.table_rows() if summary.evaluation is not None else []
+        print_rows("agents", summary.agents)
+        if accuracy:
+            print_rows("ATE RMSE [m] (Sim(3)-aligned)", accuracy)
+        for line in summary.notes:
+            console.print(line)
+        console.print(f"scene: {scene}\nrun:   {out / 'run'} "
+                      f"(open {out / 'run' / 'report.html'})")
 
 
 def main() -> None:

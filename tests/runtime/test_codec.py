@@ -20,6 +20,7 @@ from como3r.errors import Como3rError
 from como3r.frontend.agent import FrontendStats
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches
+from como3r.live import FrameEvent
 from como3r.prior.mast3r.prior import MASt3REncoding
 from como3r.prior.simulated import SimulatedEncoding
 from como3r.runtime import codec
@@ -137,6 +138,10 @@ SAMPLES: dict[str, Callable[[], Any]] = {
         T_WC_previous=torch.randn(8, dtype=torch.float64)),
     "FrameDone": lambda: messages.FrameDone(agent=1, frame_index=4, timestamp=0.1333,
                                             outcome="tracked", seconds=0.5),
+    "FrameEvent": lambda: FrameEvent(
+        agent=1, frame_index=4, timestamp=0.1333, state="tracking",
+        T_WC=np.array([0.1, 0.2, 0.3, 0.0, 0.0, 0.0, 1.0, 1.1]), K=np.eye(3),
+        image=np.arange(4 * 6 * 3, dtype=np.uint8).reshape(4, 6, 3), wall_time=1.7e9),
     "AgentFinished": _finished,
     "AgentFailed": lambda: messages.AgentFailed(agent=2, error="InputError: bad frame",
                                                 details="Traceback ...", frame_index=6),

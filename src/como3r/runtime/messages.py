@@ -17,6 +17,8 @@ Agent -> coordinator (one pipe per agent):
 * :class:`AgentStarted` -- the input is open and the prior built;
 * :class:`KeyframeMessage` -- a new keyframe;
 * :class:`FrameDone` -- one frame processed (progress, and the agent's clock);
+* :class:`~como3r.live.FrameEvent` -- the frame's pose, intrinsics and a small image, sent
+  before its ``FrameDone`` only when the task asks (``AgentTask.live``: a viewer watches);
 * :class:`AgentFinished` -- the stream ended: final fused pointmap, statistics and the
   anchored trajectory (C-Sec. A.8) from which the coordinator writes the agent's outputs;
 * :class:`AgentFailed` -- the agent hit an error and is exiting.
@@ -35,6 +37,7 @@ from torch import Tensor
 from como3r.frontend.agent import FrontendStats
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches
+from como3r.live import FrameEvent
 from como3r.runtime import codec
 
 
@@ -53,6 +56,7 @@ class AgentTask:
         lockstep: process a frame only when told by a :class:`Step`.
         max_message_bytes: size cap of every message.
         log_level: the agent's logging level.
+        live: send a :class:`~como3r.live.FrameEvent` after every frame (a viewer watches).
     """
 
     agent: int
@@ -63,7 +67,8 @@ class AgentTask:
     lockstep: bool = False
     max_message_bytes: int = codec.DEFAULT_MAX_BYTES
     log_level: int = 30
-    version: int = 1
+    live: bool = False
+    version: int = 2
 
 
 @dataclass(frozen=True)
@@ -224,7 +229,8 @@ class Shutdown:
 TO_AGENT = (AgentTask, PoseUpdateMessage, Step, Shutdown)
 """Messages an agent accepts."""
 
-FROM_AGENT = (AgentStarted, KeyframeMessage, FrameDone, AgentFinished, AgentFailed)
+FROM_AGENT = (AgentStarted, KeyframeMessage, FrameDone, FrameEvent, AgentFinished,
+              AgentFailed)
 """Messages the coordinator accepts from an agent."""
 
 
@@ -317,6 +323,16 @@ def _check_frame_done(m: FrameDone) -> None:
     _require(math.isfinite(m.timestamp), f"timestamp {m.timestamp} is not finite")
 
 
+def _check_frame_event(m: FrameEvent) -> None:
+    _require(m.frame_index >= 0, "frame_index must be >= 0")
+    _shape(m.image, (None, None, 3), "image")
+    _require(m.image.dtype == np.uint8, f"image must be uint8, got {m.image.dtype}")
+    if m.T_WC is not None:
+        _shape(m.T_WC, (8,), "T_WC")
+    if m.K is not None:
+        _shape(m.K, (3, 3), "K")
+
+
 def _check_finished(m: AgentFinished) -> None:
     frames, keyframes = len(m.frame_indices), len(m.keyframe_frames)
     for name, shape in (("frame_indices", (frames,)), ("timestamps", (frames,)),
@@ -334,12 +350,13 @@ def _check_update_message(m: PoseUpdateMessage) -> None:
 
 
 for _cls in (*TO_AGENT, *FROM_AGENT, EdgeSummary):
-    codec.register(_cls, version=1)
+    codec.register(_cls, version=2 if _cls is AgentTask else 1)  # AgentTask 2: live
 
 for _name, _check in (("PoseUpdate", _check_pose_update), ("PointmapRefresh", _check_refresh),
                       ("DirectedMatches", _check_matches), ("KeyframePacket", _check_packet),
                       ("KeyframeMessage", _check_keyframe_message),
                       ("FrameDone", _check_frame_done),
+                      ("FrameEvent", _check_frame_event),
                       ("AgentFinished", _check_finished),
                       ("PoseUpdateMessage", _check_update_message)):
     codec.add_check(_name, _check)

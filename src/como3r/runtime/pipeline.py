@@ -31,9 +31,11 @@ from como3r.errors import InputError
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.packets import PointmapRefresh, PoseUpdate
 from como3r.io.output import atomic_output_dir
+from como3r.live import LiveCallback
 from como3r.prior.base import Prior, View
 from como3r.progress import AgentProgress, PhaseCallback, ProgressCallback, tracking_state
 from como3r.runtime import outputs
+from como3r.runtime.live import CoordinatorLive, frame_event
 from como3r.runtime.prefetch import prepared_frames
 
 logger = logging.getLogger(__name__)
@@ -182,6 +184,7 @@ def run(
     prior_spec: PriorSpec,
     overwrite: bool = False,
     progress: ProgressCallback | None = None,
+    live: LiveCallback | None = None,
 ) -> RunSummary:
     """Run all agents' front-ends and the coordinator, and write the output folder.
 
@@ -194,6 +197,8 @@ def run(
         progress: called with the agent's :class:`~como3r.progress.AgentProgress` after
             every frame and with a :class:`~como3r.progress.PhaseEvent` as each step of
             the terminal work starts.
+        live: called with the live events of :mod:`como3r.live` (a viewer); they are only
+            built when it is given.
     """
     agents = open_agents(agent_paths, config)
     prior, codebook = build_prior(prior_spec, config, dict(enumerate(agents)))
@@ -201,6 +206,8 @@ def run(
                                upsampling(agent.image_size, config.input.long_side))
                  for a, agent in enumerate(agents)]
     coordinator = Coordinator(prior, config, codebook, len(agents))
+    coordinator_live = (None if live is None else CoordinatorLive(
+        live, coordinator, config.visualization.map_min_confidence))
     seconds = [0.0] * len(agents)
     stride = config.input.subsample
     totals = [len(range(0, a.num_frames, stride)) for a in agents]
@@ -220,13 +227,21 @@ def run(
             outcome = frontends[k].process(frame.view, frame.timestamp, frame.colors,
                                            frame.encoding)
             seconds[k] += time.perf_counter() - start
+            if live is not None:
+                live(frame_event(frontends[k], frame.index, frame.timestamp, outcome,
+                                 frame.colors))
             for packet in frontends[k].drain_new_keyframes():
-                _apply(frontends, coordinator.add_keyframe(packet))
+                updates = coordinator.add_keyframe(packet)
+                _apply(frontends, updates)
+                if coordinator_live is not None:
+                    coordinator_live.keyframe_added(packet, updates)
             if progress is not None:
                 stats = frontends[k].stats
                 progress(AgentProgress(k, stats.frames, totals[k], len(frontends[k].keyframes),
                                        stats.lost, stats.relocalized, tracking_state(outcome)))
         _finish(frontends, coordinator, progress)
+        if coordinator_live is not None:
+            coordinator_live.finish(frontends)
         summary = _write(staging, frontends, coordinator, config, agents, seconds, prior,
                          progress)
     summary.out = out

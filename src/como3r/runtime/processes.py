@@ -71,6 +71,7 @@ from como3r.frontend.packets import PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.geometry.camera import to_focal
 from como3r.geometry.lie import sim3_compose, sim3_inverse
 from como3r.io.output import atomic_output_dir
+from como3r.live import FrameEvent, LiveCallback
 from como3r.progress import (
     AgentProgress,
     PhaseCallback,
@@ -80,6 +81,7 @@ from como3r.progress import (
 )
 from como3r.runtime import codec, outputs
 from como3r.runtime.child_signals import children_ignore_sigint
+from como3r.runtime.live import CoordinatorLive, frame_event
 from como3r.runtime.messages import (
     FROM_AGENT,
     TO_AGENT,
@@ -302,6 +304,9 @@ class _AgentWorker:
                         if packet.kf_id > 0 else None)
             self.channel.send(KeyframeMessage(packet=packet, applied_seq=self.applied_seq,
                                               T_WC_previous=previous))
+        if self.task.live:
+            self.channel.send(frame_event(self.frontend, index, frame.timestamp, outcome,
+                                          frame.colors))
         self.channel.send(FrameDone(agent=self.task.agent, frame_index=index,
                                     timestamp=frame.timestamp, outcome=outcome, seconds=seconds))
 
@@ -492,13 +497,18 @@ class _Runtime:
     """Runs the coordinator loop over the agent processes."""
 
     def __init__(self, inputs: list[AgentInput], config: Config, spec: PriorSpec,
-                 options: RuntimeOptions, progress: ProgressCallback | None) -> None:
+                 options: RuntimeOptions, progress: ProgressCallback | None,
+                 live: LiveCallback | None = None) -> None:
         self.inputs = inputs
         self.config = config
         self.options = options
         self.progress = progress
+        self.live = live
         self.prior, codebook = build_prior(spec, config)
         self.coordinator = Coordinator(self.prior, config, codebook, len(inputs))
+        self.coordinator_live = (
+            None if live is None else
+            CoordinatorLive(live, self.coordinator, config.visualization.map_min_confidence))
         self.pending: list[tuple[tuple[float, int, int, int], KeyframeMessage]] = []
         self._arrivals = 0
         self.slots: list[_Slot] = []
@@ -524,7 +534,7 @@ class _Runtime:
             agent=agent, input_path=str(path), config=config_to_dict(self.config),
             prior=_prior_fields(spec), torch_threads=self.options.torch_threads,
             lockstep=self.options.lockstep, max_message_bytes=self.options.max_message_bytes,
-            log_level=logging.getLogger().getEffectiveLevel()))
+            log_level=logging.getLogger().getEffectiveLevel(), live=self.live is not None))
         frames = len(range(0, self.inputs[agent].num_frames, self.config.input.subsample))
         return _Slot(agent, process, channel, frames, AgentResult(agent))
 
@@ -614,6 +624,9 @@ class _Runtime:
             slot.keyframes_received += 1
         elif isinstance(message, FrameDone):
             self._frame_done(slot, message)
+        elif isinstance(message, FrameEvent):
+            if self.live is not None:
+                self.live(message)
         elif isinstance(message, AgentFinished):
             slot.result.finished = message
             slot.status, slot.clock = "finished", math.inf
@@ -688,8 +701,11 @@ class _Runtime:
         keyframes.append(_KeyframeView(packet.kf_id, packet.frame_index, packet.timestamp,
                                        packet.T_WC.clone(), packet.X_hat, packet.C_hat,
                                        packet.colors, K=packet.K))
-        for update in self.coordinator.add_keyframe(packet):
+        updates = self.coordinator.add_keyframe(packet)
+        for update in updates:
             self._send_update(update)
+        if self.coordinator_live is not None:
+            self.coordinator_live.keyframe_added(packet, updates)
 
     @staticmethod
     def _refresh_view(slot: _Slot, refresh: PointmapRefresh) -> None:
@@ -726,6 +742,8 @@ class _Runtime:
             self._settle(slot)
         for update in cleanup.pointmaps:
             self.slots[update.agent].result.apply_pointmap_update(update)
+        if self.coordinator_live is not None:
+            self.coordinator_live.finish([slot.result for slot in self.slots])
 
     def _settle(self, slot: _Slot) -> None:
         """A finished agent's own keyframe poses plus the updates it never applied."""
@@ -807,6 +825,7 @@ def run_multiprocess(
     overwrite: bool = False,
     progress: ProgressCallback | None = None,
     options: RuntimeOptions | None = None,
+    live: LiveCallback | None = None,
 ) -> RunSummary:
     """Run every agent in its own process and the coordinator here; write the output folder.
 
@@ -823,6 +842,10 @@ def run_multiprocess(
             every frame (as its ``FrameDone`` arrives) and when it fails, and with a
             :class:`~como3r.progress.PhaseEvent` as each step of the terminal work starts.
         options: runtime knobs (default :class:`RuntimeOptions`).
+        live: called with the live events of :mod:`como3r.live` (a viewer): the agents'
+            frame events as their messages arrive, the keyframe and map events from the
+            coordinator here. Only this process calls it; agents send frame events only
+            when it is given.
 
     Raises:
         InputError: bad agent input (checked here before any process starts), or every
@@ -836,7 +859,7 @@ def run_multiprocess(
     interrupted = False
     try:
         with atomic_output_dir(out, overwrite=overwrite) as staging:
-            runtime = _Runtime(inputs, config, prior_spec, options, progress)
+            runtime = _Runtime(inputs, config, prior_spec, options, progress, live)
             runtime.start(agent_paths, prior_spec)
             runtime.run(finish_threads=threads)
             runtime.stop()
