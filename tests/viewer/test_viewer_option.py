@@ -43,6 +43,14 @@ def test_the_recording_goes_outside_the_output_folder(tmp_path) -> None:
         check_viewer(f"save={tmp_path / 'nowhere' / 'run.rrd'}", tmp_path / "out")
 
 
+def test_spawn_needs_a_display_on_linux(tmp_path, monkeypatch) -> None:
+    monkeypatch.setattr(sys, "platform", "linux")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    with pytest.raises(InputError, match="--viewer serve or save FILE.rrd"):
+        check_viewer("spawn", tmp_path / "out")
+
+
 @pytest.mark.parametrize("command", ["run", "demo"])
 def test_without_the_extra_one_error_line_before_any_work(command, tmp_path, monkeypatch,
                                                           only_error_line) -> None:

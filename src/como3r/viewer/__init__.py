@@ -19,6 +19,8 @@ log the map; one owner keeps the agents free of rerun and the three modes alike.
 from __future__ import annotations
 
 import importlib
+import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -88,14 +90,20 @@ def require_rerun() -> None:
 
 
 def check_viewer(value: str, out: Path) -> ViewerSpec:
-    """The viewer a command asked for, checked before any work: a valid mode, a recording
-    file outside the run's output folder ``out`` (written whole at the end) in an existing
-    folder, and rerun importable.
+    """The viewer a command asked for, checked before any work: a valid mode, a display for
+    ``spawn`` (Linux: ``DISPLAY`` or ``WAYLAND_DISPLAY``; rerun's viewer cannot start
+    without one and the run would log into the void), a recording file outside the run's
+    output folder ``out`` (written whole at the end) in an existing folder, and rerun
+    importable.
 
     Raises:
         InputError: naming what is wrong (one line).
     """
     spec = parse_viewer(value)
+    if spec.mode == "spawn" and sys.platform.startswith("linux") and not (
+            os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise InputError("--viewer spawn needs a display (DISPLAY and WAYLAND_DISPLAY are "
+                         "unset); on a headless machine use --viewer serve or save FILE.rrd")
     if spec.path is not None:
         path = spec.path.resolve()
         if path.is_relative_to(out.resolve()):

@@ -174,6 +174,10 @@ class RerunViewer:
 
     def close(self) -> None:
         """Flush what was logged and close the sink: the saved file is complete, the spawned
-        viewer keeps what it received, a server stops."""
-        self.rec.flush()
+        viewer keeps what it received, a server stops. A viewer that went away is a warning:
+        the run's outputs do not depend on it."""
+        try:
+            self.rec.flush()
+        except RuntimeError as exc:  # rerun's "unable to connect" (a closed spawned viewer)
+            logger.warning("viewer: not everything reached the viewer (%s)", exc)
         self.rec.disconnect()
