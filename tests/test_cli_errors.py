@@ -37,7 +37,7 @@ def _invoke(*args: str):
 
 
 @pytest.mark.parametrize("args, fragment", [
-    (["run", "--out", "x"], "Missing option '--agent'"),
+    (["run", "--out", "x"], "no input: give --agent PATH or --camera SOURCE"),
     (["eval", "--est", "x"], "Missing option '--gt'"),
     (["run", "--agent", "a", "--out", "x", "--bogus"], "No such option: --bogus"),
     (["synth", "--out", "x", "--agents", "abc"], "Invalid value for '--agents'"),

@@ -122,6 +122,15 @@ def test_plain_agent_lines_at_most_every_interval_and_the_last_frame(monkeypatch
     assert lines[-1].endswith("10/10 frames, 0.50 fps, 2 keyframes, 2 lost, tracking")
 
 
+def test_plain_lines_of_a_live_input_have_no_total_and_no_time_left(monkeypatch):
+    progress, clock, log = _plain(monkeypatch)
+    for done in range(1, 5):
+        clock.now += 2.0
+        progress(_event(done, frames_total=None))  # a camera without --max-frames
+    assert log.getvalue().splitlines() == [
+        "[0:00:06] agent 0: 3 frames, 0.50 fps, 2 keyframes, 0 lost, tracking"]
+
+
 def test_plain_agent_failure_is_always_printed(monkeypatch):
     progress, clock, log = _plain(monkeypatch)
     progress(_event(1))

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import re
 from pathlib import Path
-from typing import List, Optional
+from typing import TYPE_CHECKING, List, Optional
 
 import typer
 
@@ -28,6 +28,9 @@ from como3r.cli_progress import run_progress
 from como3r.cli_viewer import VIEWER_HELP, ViewerCommand, check_viewer_option, live_viewer
 from como3r.cli_weights import weights_app
 from como3r.errors import InputError
+
+if TYPE_CHECKING:
+    from como3r.data.readers.camera import CameraSource
 
 app = typer.Typer(cls=OneLineErrorsGroup, add_completion=False, no_args_is_help=True,
                   help="Collaborative monocular dense SLAM with a learned two-view 3D prior.")
@@ -178,9 +181,18 @@ def _load_config(config_file: Optional[Path], overrides: List[str], calib: bool,
 @interrupt_leaves_nothing
 @user_errors
 def run(
-    agent: List[Path] = typer.Option(..., "--agent", metavar="PATH",
+    agent: List[Path] = typer.Option([], "--agent", metavar="PATH",
                                      help="Agent input: agent folder, video, dataset "
                                           "sequence folder or ROS log (repeat per agent)."),
+    camera: List[str] = typer.Option(
+        [], "--camera", metavar="SOURCE",
+        help="Live agent input instead of --agent: a camera's device index (0), a stream URL "
+             "(rtsp://..., http://...) or a video file played as if live (repeat per agent). "
+             "Runs in this process; frames arriving while SLAM is busy are dropped (the "
+             "newest is kept) and counted. Ends at the end of the stream, after "
+             "--max-frames, or on Ctrl-C (the outputs are written; twice: abort)."),
+    max_frames: Optional[int] = typer.Option(
+        None, "--max-frames", metavar="N", help="End each --camera stream after N frames."),
     format: Optional[str] = typer.Option(
         None, "--format", help=FORMAT_HELP + " Default: the configuration's input.format "
                                              "(auto)."),
@@ -223,6 +235,7 @@ def run(
                                         help=VIEWER_HELP),
 ) -> None:
     """Run collaborative SLAM on one or more agents and write the output folder."""
+    from como3r.data.readers.camera import is_stream_url
     from como3r.io.output import check_output_dir
     from como3r.prior.mast3r.precision import PRECISIONS, check_precision
     from como3r.runtime.pipeline import PRIORS, PriorSpec, resolve_weights, run as run_pipeline
@@ -238,6 +251,7 @@ def run(
         raise InputError(f"unknown --mode {mode!r}; choose centralized or decentralized")
     if format is not None:
         _check_format(format)
+    sources = _camera_sources(camera, max_frames, agent, prior, mode)
     if viewer is not None and mode == "decentralized":
         raise InputError("--viewer shows --mode centralized runs only")
     viewer_spec = check_viewer_option(viewer, out)  # rerun installed?
@@ -245,7 +259,8 @@ def run(
     config = _load_config(config_file, overrides, calib, no_loop_closure, format, topic)
     for path in agent:
         if not path.exists():
-            raise InputError(f"{path}: agent input does not exist")
+            hint = " (a stream URL goes to --camera)" if is_stream_url(str(path)) else ""
+            raise InputError(f"{path}: agent input does not exist{hint}")
         if prior == "simulated":
             _check_simulated_input(path, config)
     spec = PriorSpec(prior, weights, retrieval_weights, codebook, device, precision)
@@ -263,13 +278,14 @@ def run(
         summary = run_decentralized(agent, out, config, spec, overwrite=overwrite)
         _print_summary(summary, out)
         return
-    if single_process:
+    if single_process or sources:  # live inputs run in this process
         runner = run_pipeline
     else:
         from como3r.runtime.processes import run_multiprocess as runner
     with live_viewer(viewer_spec) as live:
         with run_progress(quiet) as shown:
-            summary = runner(agent, out, config, spec, overwrite=overwrite, progress=shown,
+            summary = runner(agent or sources, out, config, spec, overwrite=overwrite,
+                             progress=shown,
                              live=live)
         _print_summary(summary, out)
 
@@ -280,6 +296,36 @@ def _check_format(format: str) -> None:
 
     if format not in FORMATS:
         raise InputError(f"unknown --format {format!r}; choose one of {', '.join(FORMATS)}")
+
+
+def _camera_sources(camera: List[str], max_frames: Optional[int], agent: List[Path],
+                    prior: str, mode: str) -> list[CameraSource]:
+    """The :class:`~como3r.data.readers.camera.CameraSource` of each ``--camera``, after
+    the checks of what a live input cannot do.
+
+    Raises:
+        InputError: no input at all, --camera beside --agent, --max-frames without
+            --camera, or a live input with the simulated prior or the decentralized mode.
+    """
+    from como3r.data.readers.camera import parse_source
+
+    if not camera:
+        if not agent:
+            raise InputError("no input: give --agent PATH or --camera SOURCE (see: como3r run "
+                             "--help)")
+        if max_frames is not None:
+            raise InputError("--max-frames ends --camera streams; there is none")
+        return []
+    if agent:
+        raise InputError("a run takes recorded inputs (--agent) or live ones (--camera), not "
+                         "both")
+    if prior == "simulated":
+        raise InputError("--camera: a live camera has no depth, which --prior simulated needs "
+                         "(a stand-in made from ground-truth depth); use --prior mast3r")
+    if mode == "decentralized":
+        raise InputError("--camera: --mode decentralized needs each robot's odometry "
+                         "(odometry.txt), which a live camera does not give")
+    return [parse_source(text, max_frames) for text in camera]
 
 
 def _check_simulated_input(path: Path, config) -> None:

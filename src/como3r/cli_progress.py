@@ -102,7 +102,7 @@ class _Agent:
         if e.relocalized:
             parts.append(f"{e.relocalized} relocalized")
         parts.append(e.state)
-        left = e.frames_total - e.frames_done
+        left = e.frames_total - e.frames_done if e.frames_total is not None else 0
         if fps is not None and left > 0 and e.state != "failed":
             parts.append(f"{_clock_text(left / fps)} left")
         return ", ".join(parts)
@@ -156,11 +156,12 @@ class RunProgress:
             self.bar.update(agent.task, completed=event.frames_done, total=event.frames_total,
                             info=agent.text(now))
         elif self.mode == "plain" and (now - agent.printed >= self.interval
-                                       or event.frames_done >= event.frames_total
+                                       or event.frames_done >= (event.frames_total or math.inf)
                                        or event.state == "failed"):
             agent.printed = now
+            total = f"/{event.frames_total}" if event.frames_total is not None else ""
             self._line(f"agent {event.agent}",
-                       f"{event.frames_done}/{event.frames_total} frames, {agent.text(now)}")
+                       f"{event.frames_done}{total} frames, {agent.text(now)}")
 
     def phase(self, event: PhaseEvent) -> None:
         """A coordinator step starts: the coordinator's bar, or a plain line when due."""

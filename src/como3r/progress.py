@@ -39,7 +39,8 @@ class AgentProgress:
     Attributes:
         agent: agent id.
         frames_done: frames the agent has processed.
-        frames_total: frames it will process (its input after ``input.subsample``).
+        frames_total: frames it will process (its input after ``input.subsample``); a live
+            input's ``--max-frames``, or None when its stream's length is not known.
         keyframes: keyframes it has made so far.
         lost: frames it could neither track nor relocalize.
         relocalized: frames on which tracking recovered after being lost.
@@ -49,7 +50,7 @@ class AgentProgress:
 
     agent: int
     frames_done: int
-    frames_total: int
+    frames_total: int | None
     keyframes: int
     lost: int
     relocalized: int

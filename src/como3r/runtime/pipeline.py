@@ -2,11 +2,12 @@
 
 ``run`` opens and validates every agent input first (so bad input fails before any work),
 builds the prior, feeds the agents' frames to their front-ends interleaved by timestamp
-(as concurrent robots would deliver them) and, after every frame, hands the agent's new
-keyframes to the coordinator and applies the pose updates it returns to the agents
-(C-Sec. 3.1, A.8). At the end it sends each agent's last fused pointmap, runs the
-coordinator's terminal pose-depth alternation, writes the output folder atomically and, where ground truth
-exists, evaluates the trajectories (merged ATE only within gauge components).
+(as concurrent robots would deliver them; live inputs' frames as they arrive) and, after
+every frame, hands the agent's new keyframes to the coordinator and applies the pose
+updates it returns to the agents (C-Sec. 3.1, A.8). At the end it sends each agent's last
+fused pointmap, runs the coordinator's terminal pose-depth alternation, writes the output
+folder atomically and, where ground truth exists, evaluates the trajectories (merged ATE
+only within gauge components).
 """
 
 from __future__ import annotations
@@ -26,6 +27,13 @@ import torch
 from como3r.config import Config
 from como3r.coordination.coordinator import Coordinator
 from como3r.data.agent import AgentInput, open_agent
+from como3r.data.readers.camera import (
+    CameraInput,
+    CameraSource,
+    camera_schedule,
+    interrupt_ends_streams,
+    open_camera,
+)
 from como3r.data.preprocess import make_view, upsampling
 from como3r.errors import InputError
 from como3r.frontend.agent import AgentFrontend
@@ -142,12 +150,35 @@ def build_prior(spec: PriorSpec, config: Config, agents: Mapping[int, AgentInput
     raise InputError(f"unknown prior {spec.name!r}; choose one of {', '.join(PRIORS)}")
 
 
-def open_agents(paths: Sequence[Path], config: Config) -> list[AgentInput]:
-    """Open and validate every agent input before any work starts."""
+def open_agents(paths: Sequence[Path | CameraSource], config: Config,
+                cameras: bool = False) -> list[AgentInput] | list[CameraInput]:
+    """Open and validate every agent input before any work starts; with ``cameras``, the
+    live inputs of :mod:`como3r.data.readers.camera` too (they start reading).
+
+    Raises:
+        InputError: a bad input, live inputs mixed with recorded ones, or live inputs
+            without ``cameras`` (they run in one process: ``--single-process``).
+    """
     if not paths:
         raise InputError("no --agent given")
-    return [open_agent(p, fps=config.input.frame_rate_hz, format=config.input.format,
-                       topic=config.input.topic) for p in paths]
+    live = [p for p in paths if isinstance(p, CameraSource)]
+    if not live:
+        return [open_agent(p, fps=config.input.frame_rate_hz, format=config.input.format,
+                           topic=config.input.topic) for p in paths]
+    if not cameras:
+        raise InputError(f"{live[0]}: live inputs run in one process (--single-process)")
+    if len(live) < len(paths):
+        raise InputError("a run takes recorded inputs (--agent) or live ones (--camera), not "
+                         "both")
+    opened: list[CameraInput] = []
+    try:
+        for source in live:
+            opened.append(open_camera(source, config.input.frame_rate_hz))
+    except InputError:
+        for camera in opened:
+            camera.stop()
+        raise
+    return opened
 
 
 def _frame_schedule(agents: Sequence[AgentInput], stride: int) -> Iterator[tuple[int, int]]:
@@ -189,7 +220,9 @@ def run(
     """Run all agents' front-ends and the coordinator, and write the output folder.
 
     Args:
-        agent_paths: one agent input per agent, in agent order.
+        agent_paths: one agent input per agent, in agent order: paths, or live inputs
+            (:class:`~como3r.data.readers.camera.CameraSource`; all of them), whose frames
+            come as they arrive, the newest kept, until every stream ends.
         out: output folder (created atomically).
         config: effective configuration.
         prior_spec: which prior to use.
@@ -200,7 +233,7 @@ def run(
         live: called with the live events of :mod:`como3r.live` (a viewer); they are only
             built when it is given.
     """
-    agents = open_agents(agent_paths, config)
+    agents = open_agents(agent_paths, config, cameras=True)
     prior, codebook = build_prior(prior_spec, config, dict(enumerate(agents)))
     frontends = [AgentFrontend(prior, config, a, codebook,
                                upsampling(agent.image_size, config.input.long_side))
@@ -210,17 +243,25 @@ def run(
         live, coordinator, config.visualization.map_min_confidence))
     seconds = [0.0] * len(agents)
     stride = config.input.subsample
-    totals = [len(range(0, a.num_frames, stride)) for a in agents]
-    total = sum(totals)
+    cameras = [a for a in agents if isinstance(a, CameraInput)]
+    totals = [a.source.max_frames if isinstance(a, CameraInput)
+              else len(range(0, a.num_frames, stride)) for a in agents]
     frames = prepared_frames(
-        _frame_schedule(agents, stride),
+        camera_schedule(cameras) if cameras else _frame_schedule(agents, stride),
         lambda k, i: load_frame(agents[k], k, i, config.input.long_side, config.calibrated),
         prior,
         config.input.prefetch_frames)
-    with atomic_output_dir(out, overwrite=overwrite) as staging, contextlib.closing(frames):
-        for done in range(1, total + 1):
+    with atomic_output_dir(out, overwrite=overwrite) as staging, contextlib.closing(frames), \
+            contextlib.ExitStack() as streams:
+        for camera in cameras:  # the live streams end on an error too
+            streams.callback(camera.stop)
+        if cameras:  # the first Ctrl-C ends them, and the run goes on to its outputs
+            streams.enter_context(interrupt_ends_streams())
+        while True:  # until every input ends (a live stream's length is not known)
             start = time.perf_counter()
-            frame = next(frames)
+            frame = next(frames, None)
+            if frame is None:
+                break
             k = frame.agent
             # the agent's wall time includes waiting for its input and encoding
             frontends[k].timer.charge("prior_encode", time.perf_counter() - start)
@@ -239,12 +280,15 @@ def run(
                 stats = frontends[k].stats
                 progress(AgentProgress(k, stats.frames, totals[k], len(frontends[k].keyframes),
                                        stats.lost, stats.relocalized, tracking_state(outcome)))
+        streams.close()  # the live streams end; Ctrl-C interrupts again
+        notes = [camera.stop() for camera in cameras]  # frames read and dropped
         _finish(frontends, coordinator, progress)
         if coordinator_live is not None:
             coordinator_live.finish(frontends)
         summary = _write(staging, frontends, coordinator, config, agents, seconds, prior,
                          progress)
     summary.out = out
+    summary.notes.extend(notes)
     return summary
 
 

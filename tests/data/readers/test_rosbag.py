@@ -86,7 +86,8 @@ def test_a_zero_stamp_takes_the_log_time(tmp_path):
 @pytest.mark.parametrize("kind", ["ros1", "mcap"])
 def test_several_image_topics_need_topic(tmp_path, kind):
     path = write_log(log_path(tmp_path, kind), kind,
-                     image_stream("/left/image_raw", 2) + image_stream("/right/image_raw", 3, start=5)
+                     image_stream("/left/image_raw", 2)
+                     + image_stream("/right/image_raw", 3, start=5)
                      + [Message("/imu", "sensor_msgs/msg/CameraInfo", 1, camera_info())])
     message = input_error("2 image topics, choose one with --topic: /left/image_raw "
                           "(sensor_msgs/msg/Image, 2 messages), /right/image_raw "
