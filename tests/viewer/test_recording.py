@@ -23,6 +23,7 @@ rerun = pytest.importorskip(
     "rerun", reason='rerun-sdk is not installed (the viewer extra: pip install "como3r[viewer]")')
 from rerun.chunk import RrdReader  # noqa: E402
 
+from como3r import cli_viewer  # noqa: E402
 from como3r.cli import app  # noqa: E402
 from como3r.data.synth import synthesize  # noqa: E402
 from como3r.live import FrameEvent  # noqa: E402
@@ -131,6 +132,26 @@ def test_serve_mode_answers_on_its_ports() -> None:
                 pass
     finally:
         viewer.close()
+
+
+def test_serve_keeps_serving_after_the_run_until_ctrl_c(monkeypatch, capsys) -> None:
+    ports = (_free_port(), _free_port())
+    monkeypatch.setattr(cli_viewer, "open_viewer",
+                        lambda spec: open_viewer(spec, grpc_port=ports[0], web_port=ports[1]))
+    waited = []
+
+    def sleep(seconds: float) -> None:
+        waited.append(seconds)
+        if len(waited) == 3:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli_viewer.time, "sleep", sleep)
+    with cli_viewer.live_viewer(ViewerSpec("serve")) as live:
+        assert live is not None
+    assert len(waited) == 3  # the block's end waited for Ctrl-C, which ended it quietly
+    printed = capsys.readouterr().err
+    assert f"rerun rerun+http://127.0.0.1:{ports[0]}/proxy" in printed
+    assert "still serving the recording (Ctrl-C to stop)" in printed
 
 
 def _free_port() -> int:
