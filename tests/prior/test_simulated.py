@@ -38,6 +38,7 @@ from como3r.prior.base import Encoding, PairPrediction, View
 from como3r.prior.ground_truth import GroundTruth, InMemoryTruth
 from como3r.prior.retrieval import RetrievalDatabase
 from como3r.prior.simulated import SimulatedPrior
+from como3r.frontend.matching import refine_with_descriptors
 
 WIDTH, HEIGHT, FRAMES = 96, 72, 40
 LONG_SIDE = 96
@@ -554,3 +555,41 @@ def test_describe_reports_every_error_model_parameter():
     assert description["constants"]["sky_range"] == (10.0, 20.0)
     assert description["model"] == "realistic" and "realistic_constants" in description
     assert SimulatedPrior(EASY, TRUTH).describe()["model"] == "easy"
+
+
+
+def _refinement_success(scale: float, feature_map) -> float:
+    """Share of pixels that the SLAM's descriptor search (radius 3, dilations 5 to 1) brings
+    back to their true match from 7 pixels away, on a planar texture whose lengths and
+    pixel size are ``scale`` times those of a 1 cm-per-pixel view, each view's descriptors
+    with the prior's 0.1 noise."""
+    side = 128
+    v, u = torch.meshgrid(torch.arange(side), torch.arange(side), indexing="ij")
+    footprint = 0.01 * scale
+    coords = torch.stack([u * footprint + 3.7 * scale, v * footprint + 1.3 * scale,
+                          torch.zeros(side, side)], -1).reshape(-1, 3).float()
+    ids = torch.full((side * side,), 5)
+    clean = feature_map(ids, coords, torch.full((side * side,), footprint))
+    gen = torch.Generator().manual_seed(0)
+
+    def view() -> torch.Tensor:
+        noise = 0.1 / math.sqrt(clean.shape[1]) * torch.randn(clean.shape, generator=gen)
+        return F.normalize(F.normalize(clean, dim=-1) + noise, dim=-1)
+
+    D_search, D_query = view().reshape(1, side, side, -1), view()
+    inner = ((u >= 32) & (u < 96) & (v >= 32) & (v < 96)).reshape(-1)
+    truth = torch.stack([u.reshape(-1), v.reshape(-1)], -1)[inner]
+    start = truth + torch.tensor([7, -7])
+    refined = refine_with_descriptors(D_search, D_query[inner][None], start[None], 3, 5)[0]
+    return float(((refined - truth).abs().amax(-1) <= 1).float().mean())
+
+
+def test_descriptor_search_works_at_every_scene_scale(prior):
+    # `como3r synth --scale s` renders the same images with every length times s: a network
+    # sees the same pixels, so its descriptors must serve the search as well at every scale.
+    # Measured: 0.87-0.97 at every scale below. With one band of wavelengths fixed in metres
+    # (0.05-10 m) it succeeded on 0.93 at 1 cm per pixel but 0.22 at 40 cm (the aerial
+    # family's pixels: 6 of its 12 frames tracked) and 0.12 at 1 mm (a tabletop's)
+    success = {scale: _refinement_success(scale, prior._descriptor_map)
+               for scale in (0.01, 0.1, 1.0, 40.0, 1000.0)}
+    assert min(success.values()) > 0.8, success

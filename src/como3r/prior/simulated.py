@@ -80,7 +80,7 @@ from como3r.prior.simulated_retrieval import (
 
 logger = logging.getLogger(__name__)
 
-CODEBOOK_CACHE_VERSION = 2
+CODEBOOK_CACHE_VERSION = 3
 """Bump when the codebook sample or the retrieval feature map changes."""
 
 
@@ -89,7 +89,11 @@ class SimulatedConstants:
     """Fixed constants of the sensor model (reported by :meth:`SimulatedPrior.describe`).
 
     Logits are natural logs: ``C = 1 + exp(conf_*)``, ``Q = exp(q_*)``; ``sky_range`` and
-    ``conf_range_ref`` are multiples of the view's median valid depth.
+    ``conf_range_ref`` are multiples of the view's median valid depth. ``*_wavelengths`` are
+    the base bands (key units, metres) of the descriptor and retrieval feature maps, tiled
+    over every scale, and ``*_coarse_footprints`` the wavelength in pixel footprints above
+    which texture fades (:class:`~como3r.prior.simulated_keys.RandomFeatureMap`): what a
+    view sees is relative to its pixels, not to the metre.
     """
 
     sky_range: tuple[float, float] = (10.0, 20.0)
@@ -110,6 +114,7 @@ class SimulatedConstants:
     edge_log_jump: float = 0.1
     distortion_modes: int = 8
     descriptor_wavelengths: tuple[float, float] = (0.05, 10.0)
+    descriptor_coarse_footprints: float = 1024.0
     descriptor_id_weight: float = 1.0
     footprint_blur: float = 0.5
     footprint_max_ratio: float = 20.0
@@ -126,6 +131,7 @@ class SimulatedConstants:
     random_pose_distance: tuple[float, float] = (0.2, 1.0)
     retrieval_dim: int = 128
     retrieval_wavelengths: tuple[float, float] = (0.5, 20.0)
+    retrieval_coarse_footprints: float = 1024.0
     retrieval_noise: float = 0.05
     retrieval_patch: int = 16
     retrieval_stride: int = 4
@@ -216,11 +222,12 @@ class SimulatedPrior(Prior):
         self._descriptor_map = RandomFeatureMap(
             self.config.descriptor_dim, self.config.seed, *c.descriptor_wavelengths,
             id_weight=c.descriptor_id_weight + ambiguity, blur=c.footprint_blur,
-            name="descriptor",
+            coarse_footprints=c.descriptor_coarse_footprints, name="descriptor",
         )
         self._retrieval_map = RandomFeatureMap(
             c.retrieval_dim, self.config.seed, *c.retrieval_wavelengths,
-            id_weight=1.0, blur=c.footprint_blur, name="retrieval",
+            id_weight=1.0, blur=c.footprint_blur,
+            coarse_footprints=c.retrieval_coarse_footprints, name="retrieval",
         )
 
     # ------------------------------------------------------------------ encode
