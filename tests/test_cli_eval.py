@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -72,3 +73,38 @@ def test_eval_count_mismatch_exits_2(tmp_path: Path) -> None:
     result = invoke(run, gt_dirs[:1])
     assert result.exit_code == 2
     assert result.stderr.startswith("error:") and "trajectories" in result.stderr
+
+
+def test_eval_writes_the_report_of_the_run_with_its_evaluation(tmp_path: Path) -> None:
+    run, gt_dirs = make_run(tmp_path)
+    out = tmp_path / "eval"
+    result = invoke(run, gt_dirs, "--out", str(out))
+    assert result.exit_code == 0, result.output
+    page = (out / "report.html").read_text()
+    assert f"wrote {out / 'report.html'}" in " ".join(result.stdout.split())
+    assert not (run / "report.html").exists()  # --out keeps the run folder as it was
+    # the estimates drawn against the ground truth after this evaluation's alignment
+    assert "ground truth dashed grey" in page and "<img alt='ATE over time'" in page
+    assert f"evaluated by como3r eval against {gt_dirs[0] / 'groundtruth.txt'}" in page
+    merged = json.loads((out / "ate.json").read_text())["merged"]["ate"]["rmse"]
+    assert f"<b>merged ATE RMSE [m]</b> {merged:.4g}" in page
+
+
+def test_eval_report_option_names_the_page(tmp_path: Path) -> None:
+    run, gt_dirs = make_run(tmp_path)
+    page = tmp_path / "pages" / "evaluated.html"
+    result = invoke(run, gt_dirs, "--report", str(page))
+    assert result.exit_code == 0, result.output
+    assert "<img alt='trajectories'" in page.read_text()
+    assert (run / "ate.json").is_file() and not (run / "report.html").exists()
+
+
+def test_eval_report_needs_a_run_folder(tmp_path: Path) -> None:
+    run, gt_dirs = make_run(tmp_path, agents=1)
+    result = invoke(run / "trajectories" / "agent_0.txt", gt_dirs, "--report",
+                    str(tmp_path / "r.html"))
+    assert result.exit_code == 2
+    assert result.stderr.startswith("error: --report:") and "run folder" in result.stderr
+    plain = invoke(run / "trajectories" / "agent_0.txt", gt_dirs, "--out", str(tmp_path / "e"))
+    assert plain.exit_code == 0, plain.output  # a trajectory file is evaluated, no report
+    assert not (tmp_path / "e" / "report.html").exists()

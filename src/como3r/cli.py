@@ -111,18 +111,37 @@ def evaluate(
     gt: List[Path] = typer.Option(..., "--gt", metavar="PATH",
                                   help="Ground truth per agent: TUM file, agent folder, TUM "
                                        "RGB-D or 7-Scenes sequence (repeat per agent)."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Where to write ate.json and the plot "
-                                       "(default: the --est folder)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Where to write ate.json, the plot "
+                                       "and report.html (default: the --est folder)."),
+    report: Optional[Path] = typer.Option(
+        None, "--report", metavar="PATH",
+        help="Where to write report.html, the run's report with this evaluation (default: "
+             "report.html in the --out folder; a run's own report there is replaced). "
+             "Needs a run folder as --est."),
     format: str = typer.Option("auto", "--format", help=FORMAT_HELP),
 ) -> None:
-    """ATE (and RPE) per agent and merged, through evo."""
+    """ATE (and RPE) per agent and merged, through evo, and the run's report.html."""
+    from como3r.evaluation.html import REPORT_NAME, write_evaluation_report
     from como3r.evaluation.report import evaluate_run
 
     _check_format(format)
-    summary = evaluate_run(est, gt, out if out is not None else est, gt_format=format)
+    folder = out if out is not None else est
+    page = report if report is not None else folder / REPORT_NAME
+    if report is not None and est.is_file():
+        raise InputError(f"--report: {est} is a trajectory file; the report needs a run folder")
+    if report is not None and report.is_dir():
+        raise InputError(f"--report {report}: is a folder; give the page's file name")
+    summary = evaluate_run(est, gt, folder, gt_format=format)
     print_rows("ATE RMSE [m] (Sim(3)-aligned)", summary.table_rows())
     for line in summary.notes:
         console.print(line)
+    if est.is_dir():
+        try:
+            page.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"--report {page}: cannot create its folder ({exc.strerror})"
+                             ) from None
+        console.print(f"wrote {write_evaluation_report(est, summary, page)}")
 
 
 @app.command("export", cls=Command)

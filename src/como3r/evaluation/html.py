@@ -31,6 +31,7 @@ from como3r.evaluation.plot_run import (
     timeline_figure,
     traffic_columns,
 )
+from como3r.evaluation.report import EvalSummary
 from como3r.evaluation.report_data import (
     MergeEvent,
     RunData,
@@ -308,18 +309,47 @@ def render(data: RunData, notes: Sequence[str] = ()) -> str:
 
 
 def write_report(run_dir: Path, notes: Sequence[str] = (),
-                 ground_truth: Sequence[Trajectory | None] | None = None) -> Path:
-    """Write ``run_dir/report.html`` from the run's files; returns its path.
+                 ground_truth: Sequence[Trajectory | None] | None = None,
+                 ate: dict[str, Any] | None = None, path: Path | None = None) -> Path:
+    """Write the report of a run folder; returns its path.
+
+    The page is written beside its place and renamed into it, so an interrupted report
+    leaves the previous one, never half of one.
 
     Args:
         run_dir: the run's output folder (metrics.json, graph.json, trajectories, ...).
         notes: lines for the reader (the run summary's notes and warnings).
         ground_truth: per agent, the ground truth the evaluation used, or None: the
             trajectories and error curves are then drawn without it.
+        ate: the evaluation to show (``EvalSummary.to_json()``); None: the run's own.
+        path: where to write the page; None: ``run_dir/report.html``.
     """
     run_dir = Path(run_dir)
-    page = render(load_run(run_dir, ground_truth), notes)
-    out = run_dir / REPORT_NAME
-    out.write_text(page, encoding="utf-8")
+    page = render(load_run(run_dir, ground_truth, ate), notes)
+    out = Path(path) if path is not None else run_dir / REPORT_NAME
+    tmp = out.with_name(out.name + ".tmp")
+    try:
+        tmp.write_text(page, encoding="utf-8")
+        tmp.replace(out)
+    finally:
+        tmp.unlink(missing_ok=True)
     logger.info("wrote %s", out)
     return out
+
+
+def write_evaluation_report(run_dir: Path, summary: EvalSummary,
+                            path: Path | None = None) -> Path:
+    """The report of a run folder showing the evaluation ``summary`` of ``como3r eval``
+    (which may differ from the run's own: other ground truth, or none at run time) instead
+    of the run's; returns its path.
+
+    Args:
+        run_dir: the evaluated run folder.
+        summary: what :func:`~como3r.evaluation.report.evaluate_run` returned for it.
+        path: where to write the page; None: ``run_dir/report.html``.
+    """
+    truth = ", ".join(str(result.gt_path) for result in summary.agents)
+    notes = [f"evaluated by como3r eval against {truth}"]
+    # the files the evaluation wrote are the command's output, not the report's
+    notes += [note for note in summary.notes if not note.startswith("wrote ")]
+    return write_report(run_dir, notes, summary.ground_truth, summary.to_json(), path)

@@ -89,6 +89,7 @@ class EvalSummary:
         components: the gauge components the caller gave, or None (all agents share one).
         max_diff: the timestamp association window used [s].
         notes: lines for the user (files written, partial association, components).
+        ground_truth: per agent, the ground-truth trajectory it was evaluated against.
     """
 
     agents: list[AgentResult]
@@ -96,6 +97,7 @@ class EvalSummary:
     components: list[list[int]] | None = None
     max_diff: float = MAX_TIME_DIFF
     notes: list[str] = field(default_factory=list)
+    ground_truth: list[Trajectory] = field(default_factory=list, repr=False)
 
     @property
     def merged(self) -> MergedErrors | None:
@@ -247,7 +249,7 @@ def evaluate_run(
     results = [AgentResult(a, ep, gp, len(e), agent_errors(pair))
                for a, (e, ep, gp, pair) in enumerate(zip(ests, named, gt_files, pairs))]
     summary = EvalSummary(results, merged_errors_by_component(pairs, components), components,
-                          max_diff)
+                          max_diff, ground_truth=gts)
 
     for r in results:
         if r.errors.frames < r.est_poses:

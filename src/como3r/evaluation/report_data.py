@@ -209,17 +209,21 @@ def _alignment_text(groups: list[list[int] | None], tracks: list[AgentTrack]) ->
     return text
 
 
-def load_run(run_dir: Path, ground_truth: Sequence[Trajectory | None] | None = None) -> RunData:
+def load_run(run_dir: Path, ground_truth: Sequence[Trajectory | None] | None = None,
+             ate: dict[str, Any] | None = None) -> RunData:
     """Read a run folder for the report.
 
     Args:
         run_dir: the run's output folder.
         ground_truth: per agent, the ground truth the evaluation used (None where an agent
             has none); without it the report draws no ground truth and no error curves.
+        ate: the evaluation to show (``EvalSummary.to_json()``, as ``como3r eval`` computes
+            it later); None takes the run's own (``metrics.json`` ``ate``, else ``ate.json``).
     """
     run_dir = Path(run_dir)
     metrics = _read_json(run_dir / "metrics.json") or {}
-    ate = metrics.get("ate") or _read_json(run_dir / JSON_NAME)
+    if ate is None:
+        ate = metrics.get("ate") or _read_json(run_dir / JSON_NAME)
     config = run_dir / "config.yaml"
     folder = run_dir / TRAJECTORY_DIR
     numbers = sorted(int(m.group(1)) for p in (folder.iterdir() if folder.is_dir() else [])
