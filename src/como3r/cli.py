@@ -21,10 +21,9 @@ from como3r.cli_common import (
     interrupt_leaves_nothing,
     on_interrupt,
     print_rows,
-    progress_bar,
     user_errors,
 )
-from como3r.cli_progress import run_progress
+from como3r.cli_progress import QUIET_HELP, run_progress
 from como3r.cli_viewer import VIEWER_HELP, ViewerCommand, check_viewer_option, live_viewer
 from como3r.cli_weights import weights_app
 from como3r.errors import InputError
@@ -35,8 +34,6 @@ if TYPE_CHECKING:
 app = typer.Typer(cls=OneLineErrorsGroup, add_completion=False, no_args_is_help=True,
                   help="Collaborative monocular dense SLAM with a learned two-view 3D prior.")
 app.add_typer(weights_app, name="weights")
-
-QUIET_HELP = "No progress output: only warnings, errors and the final summary."
 
 
 @app.callback()
@@ -164,16 +161,15 @@ def export(
         help="Per keyframe depth and confidence (.npz) and 16-bit PNG depth (1000 per unit)."),
     overwrite: bool = typer.Option(False, "--overwrite",
                                    help="Replace earlier exports of como3r."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
 ) -> None:
     """Export a finished run to COLMAP, nerfstudio, g2o and depth maps (any subset)."""
     from como3r.io.export import export_run
 
-    with progress_bar() as bar:
-        task = bar.add_task("exporting", total=None)
+    with run_progress(quiet) as shown:
         summary = export_run(run, colmap=colmap, nerfstudio=nerfstudio, g2o=g2o,
                              depth=depth, overwrite=overwrite,
-                             progress=lambda done, total: bar.update(task, completed=done,
-                                                                     total=total))
+                             progress=shown.steps("exporting keyframes"))
     print_rows("exports", summary.rows)
     for line in summary.notes:
         console.print(line)

@@ -1,4 +1,5 @@
-"""What ``como3r run``, ``demo`` and ``synth`` show while they work (README, "Commands").
+"""What ``como3r run``, ``demo``, ``synth``, ``export`` and ``weights fetch`` show while
+they work (README, "Commands").
 
 Progress goes to stderr, as the progress bar always did (stdout keeps the final summary
 tables, so ``como3r run ... > summary.txt`` stays clean), in one of three modes chosen when
@@ -22,6 +23,9 @@ the command starts:
   diagnostics, so they do not depend on ``-v`` or on how a library configured the root
   logger, and a log shows them in order with the ``error:`` line and the warnings.
 * ``quiet`` (``--quiet``): nothing. Warnings, errors and the final summary still print.
+
+``export`` and ``weights fetch`` show counted work the same way (:meth:`RunProgress.steps`:
+keyframes exported, bytes downloaded).
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ import datetime
 import math
 import time
 from dataclasses import dataclass
-from typing import Callable, Iterator
+from typing import Callable, Iterator, Sequence
 
 from rich.progress import (
     BarColumn,
@@ -50,6 +54,9 @@ from como3r.progress import AgentProgress, PhaseEvent, ProgressEvent
 PLAIN_INTERVAL_S = 5.0
 
 MODES = ("rich", "plain", "quiet")
+
+#: the ``--quiet`` option's help, the same for every command that has it
+QUIET_HELP = "No progress output: only warnings, errors and the final summary."
 
 
 def _columns() -> tuple[ProgressColumn, ...]:
@@ -197,15 +204,48 @@ class RunProgress:
 
         return advance
 
+    def steps(self, name: str, unit: Callable[[int], str] = str
+              ) -> Callable[[int, int | None], None]:
+        """A count whose worker reports how far it is (keyframes exported, bytes
+        downloaded): call the result with ``(done, total)``, ``total`` None while unknown.
+        Plain mode prints at most one line every :attr:`interval` and the one that
+        completes it (none for a total of 0).
+
+        Args:
+            name: the bar's description and the plain lines' subject.
+            unit: how plain lines write a count (default: the number).
+        """
+        task = self.bar.add_task(name, total=None, info="")
+        printed, finished = self.start, False
+
+        def update(done: int, total: int | None) -> None:
+            nonlocal printed, finished
+            self.bar.update(task, completed=done, total=total)
+            now, complete = self.clock(), bool(total) and done >= total
+            if self.mode == "plain" and not finished and (now - printed >= self.interval
+                                                          or complete):
+                printed, finished = now, complete
+                of = f"/{unit(total)}" if total is not None else ""
+                self._line(name, f"{unit(done)}{of}")
+
+        return update
+
     def _line(self, subject: str, text: str) -> None:
         cli_common.err_console.print(f"[{_clock_text(self.clock() - self.start)}] {subject}: "
                                      f"{text}", markup=False, highlight=False, soft_wrap=True)
 
 
 @contextlib.contextmanager
-def run_progress(quiet: bool = False) -> Iterator[RunProgress]:
+def run_progress(quiet: bool = False, columns: Sequence[ProgressColumn] = ()
+                 ) -> Iterator[RunProgress]:
     """The progress display of a command in the mode :func:`progress_mode` picks; a rich
-    display is erased when the block fails or is interrupted."""
+    display is erased when the block fails or is interrupted.
+
+    Args:
+        quiet: ``--quiet``.
+        columns: the rich display's columns (default: description, bar, done/total, the
+            agent's or phase's text, elapsed time).
+    """
     mode = progress_mode(quiet)
-    with cli_common.progress_bar(*_columns(), shown=mode == "rich") as bar:
+    with cli_common.progress_bar(*(columns or _columns()), shown=mode == "rich") as bar:
         yield RunProgress(bar, mode)

@@ -7,7 +7,6 @@ import typer
 from rich.progress import (
     BarColumn,
     DownloadColumn,
-    Progress,
     TextColumn,
     TimeRemainingColumn,
     TransferSpeedColumn,
@@ -17,11 +16,11 @@ from como3r.cli_common import (
     Command,
     OneLineErrorsGroup,
     console,
-    err_console,
     on_interrupt,
     print_rows,
     user_errors,
 )
+from como3r.cli_progress import QUIET_HELP, run_progress
 from como3r.prior import weights
 
 weights_app = typer.Typer(cls=OneLineErrorsGroup, no_args_is_help=True,
@@ -37,20 +36,18 @@ def fetch(
         False, "--trust-unverified",
         help="Accept files for which no official SHA-256 is published (today: all three); "
              "their computed SHA-256 is printed."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
 ) -> None:
     """Download the three files into the weights cache (resumes a broken download)."""
     weights.check_trust(weights.WEIGHT_FILES, trust_unverified)
     home, url = weights.weights_home(), weights.base_url()
     console.print(f"weights cache: {home}\nsource: {url}", highlight=False, soft_wrap=True)
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), DownloadColumn(),
-                  TransferSpeedColumn(), TimeRemainingColumn(), console=err_console) as bar:
-        statuses = []
-        for file in weights.WEIGHT_FILES:
-            task = bar.add_task(file.role, total=None)
-            statuses.append(weights.fetch_file(
-                file, home, url, trust_unverified,
-                progress=lambda done, total, task=task: bar.update(task, completed=done,
-                                                                   total=total)))
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(), DownloadColumn(),
+               TransferSpeedColumn(), TimeRemainingColumn())
+    with run_progress(quiet, columns) as shown:
+        statuses = [weights.fetch_file(file, home, url, trust_unverified,
+                                       progress=shown.steps(file.role, unit=_size))
+                    for file in weights.WEIGHT_FILES]
     for status in statuses:
         console.print(f"{status.file.filename}: {status.state}, sha256 {status.sha256}",
                       highlight=False, soft_wrap=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -280,3 +281,18 @@ def test_read_run_graph_rejects_a_malformed_graph(tmp_path) -> None:
          "edges": [{"type": "inter", "from": [0, 0], "to": [1, 3]}]}))
     with pytest.raises(InputError, match="no keyframe 3 of agent 1"):
         read_run_graph(tmp_path)
+
+
+def test_cli_progress_lines_and_quiet(run_dir, tmp_path) -> None:
+    """Not on a terminal: a line when the keyframe count completes (as run's plain
+    progress); --quiet: none, the table of exports still printed."""
+    keyframes = len(_graph(run_dir)["keyframes"])
+    plain = _invoke(str(run_dir), "--depth", str(tmp_path / "a"))
+    assert plain.exit_code == 0, plain.output
+    lines = [line for line in plain.output.splitlines() if re.match(r"^\[\d+:\d\d:\d\d\] ", line)]
+    assert [line.split("] ", 1)[1] for line in lines] == [
+        f"exporting keyframes: {keyframes}/{keyframes}"]
+    quiet = _invoke(str(run_dir), "--depth", str(tmp_path / "b"), "--quiet")
+    assert quiet.exit_code == 0, quiet.output
+    assert not re.search(r"^\[\d+:\d\d:\d\d\] ", quiet.output, re.M), quiet.output
+    assert "exports" in quiet.output and str(tmp_path / "b") in quiet.output

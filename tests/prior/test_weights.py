@@ -257,3 +257,21 @@ def test_run_takes_all_three_files_from_the_cache(official_names) -> None:
         home / f.filename for f in weights.WEIGHT_FILES)
     # an explicit checkpoint does not take the cached retrieval head made for another
     assert resolve_weights(PriorSpec("mast3r", weights=Path("own.pth"))).retrieval_weights is None
+
+
+def test_cli_fetch_progress_lines_and_quiet(official_names, tmp_path, monkeypatch) -> None:
+    """Not on a terminal: one line per file as its download completes (as run's plain
+    progress); --quiet: none, the cache and the files' statuses still printed."""
+    home, _ = official_names
+    plain = _cli("weights", "fetch", "--trust-unverified")
+    assert plain.exit_code == 0, plain.output
+    lines = [line.split("] ", 1)[1] for line in plain.output.splitlines()
+             if re.match(r"^\[\d+:\d\d:\d\d\] ", line)]
+    assert lines == [f"{file.role}: {k + 1}.0 kB/{k + 1}.0 kB"
+                     for k, file in enumerate(weights.WEIGHT_FILES)]
+    monkeypatch.setenv("COMO3R_HOME", str(tmp_path / "other"))
+    quiet = _cli("weights", "fetch", "--trust-unverified", "--quiet")
+    assert quiet.exit_code == 0, quiet.output
+    assert not re.search(r"^\[\d+:\d\d:\d\d\] ", quiet.output, re.M), quiet.output
+    assert quiet.output.startswith(f"weights cache: {tmp_path / 'other'}")
+    assert quiet.output.count(": unverified, sha256 ") == 3
