@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from como3r.config import Config, apply_overrides
+from como3r.coordination.coordinator import Coordinator
 from como3r.data.synth import synthesize
 from como3r.errors import InputError
 from como3r.frontend.agent import AgentFrontend
@@ -47,6 +48,9 @@ OVERRIDES = [f"input.long_side={WIDTH}", "simulated_prior.model=easy",
 
 #: torch threads of the process that starts the free-running run (the suite uses one)
 FINISH_THREADS = 2
+
+#: how long the coordinator of the slow-reader test is busy in one keyframe [s]
+BUSY_S = 12.0
 
 
 def _truncate(agent_dir: Path, frames: int) -> None:
@@ -253,6 +257,31 @@ def test_a_silent_agent_is_terminated_as_hung(scene, config, tmp_path) -> None:
                          options=options)
     assert not (tmp_path / "out").exists()
     assert not multiprocessing.active_children()
+
+
+def test_a_coordinator_slow_to_read_costs_no_message_and_no_agent(scene, config, tmp_path,
+                                                                  monkeypatch) -> None:
+    """The coordinator is busy (a global BA) for longer than the hung-agent timeout while
+    the agent keeps sending: its messages wait, and once the coordinator reads again the
+    agent counts as talking, not as hung (it used to be terminated as hung with its
+    messages unread)."""
+    slow = Coordinator.add_keyframe
+    busy = []
+
+    def busy_coordinator(self, packet):
+        if not busy:
+            busy.append(packet.kf_id)
+            time.sleep(BUSY_S)
+        return slow(self, packet)
+
+    monkeypatch.setattr(Coordinator, "add_keyframe", busy_coordinator)
+    options = RuntimeOptions(agent_timeout_s=BUSY_S - 4.0)
+    summary = run_multiprocess([scene / "agent_0"], tmp_path / "out", config,
+                               PriorSpec("simulated"), options=options)
+    runtime = _metrics(tmp_path / "out")["runtime"]
+    assert busy and runtime["failed_agents"] == [], runtime["agents"][0]["error"]
+    assert summary.agents[0]["frames"] == FRAMES // 2
+    assert runtime["agents"][0]["keyframes_received"] == summary.agents[0]["keyframes"]
 
 
 def test_bad_input_fails_before_any_process_starts(scene, config, tmp_path) -> None:

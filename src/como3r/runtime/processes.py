@@ -33,7 +33,7 @@ for a ``Step`` before each frame, in the single-process schedule, which reproduc
 
 Failures. An agent that raises sends ``AgentFailed``; one that dies (killed, crashed) is
 seen through its process sentinel; one that stays silent longer than
-``agent_timeout_s`` is terminated. Either way the failure is logged, the coordinator keeps
+``agent_timeout_s`` (nothing from it waiting to be read) is terminated. Either way the failure is logged, the coordinator keeps
 the keyframes it received, the other agents run to the end, and the failed agent's outputs
 hold its keyframes only; ``metrics.json`` (``runtime``) and ``RunSummary.notes`` say so.
 """
@@ -661,10 +661,15 @@ class _Runtime:
             slot.process.terminate()
 
     def _check_timeouts(self, watched: Sequence[_Slot]) -> None:
-        now = time.monotonic()
+        """Fail the agents silent for longer than ``agent_timeout_s``. What an agent sent
+        while this process was busy (a global BA can outlast the timeout) is read first:
+        silence is the agent's, not the coordinator's deafness."""
+        limit = self.options.agent_timeout_s
         for slot in watched:
-            if now - slot.last_heard > self.options.agent_timeout_s:
-                self._fail(slot, f"no message for {self.options.agent_timeout_s:.0f} s (hung)")
+            if time.monotonic() - slot.last_heard > limit:
+                self._drain(slot)
+            if slot.status in _LIVE and time.monotonic() - slot.last_heard > limit:
+                self._fail(slot, f"no message for {limit:.0f} s (hung)")
 
     # ---------------------------------------------------------------- keyframes and updates
 
