@@ -47,6 +47,9 @@ def test_a_camera_runs_until_max_frames_and_reports_its_drops(tmp_path):
     assert note.startswith(f"{video}: 3 frames processed, ") and "dropped while SLAM" in note
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["agents"][0]["frames"] == 3
+    # the drops the note counts, per live agent in metrics.json
+    dropped = int(note.split(" frames processed, ")[1].split(" ")[0])
+    assert metrics["agents"][0]["frames_dropped"] == dropped
 
 
 @pytest.mark.parametrize("args, fragment", [

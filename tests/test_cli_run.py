@@ -92,4 +92,6 @@ def test_a_run_on_the_simulated_prior_says_so_everywhere(scene, tmp_path) -> Non
     assert result.exit_code == 0, result.output
     assert "prior: simulated" in result.output
     assert "prior: simulated" in (out / "report.html").read_text()
-    assert json.loads((out / "metrics.json").read_text())["prior"]["name"] == "SimulatedPrior"
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["prior"]["name"] == "SimulatedPrior"
+    assert "frames_dropped" not in metrics["agents"][0]  # a recorded input drops nothing

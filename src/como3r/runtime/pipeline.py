@@ -320,6 +320,9 @@ def _write(staging: Path, frontends: list[AgentFrontend], coordinator: Coordinat
            prior: Prior, progress: PhaseCallback | None = None) -> RunSummary:
     metrics, components = outputs.write_run_files(staging, frontends, coordinator, config,
                                                   prior.describe(), seconds, progress)
+    for entry, agent in zip(metrics["agents"], agents):
+        if isinstance(agent, CameraInput):  # its stream has ended: the count is final
+            entry["frames_dropped"] = agent.dropped
     summary = RunSummary(out=staging)
     summary.agents.extend(outputs.agent_row(fe, s) for fe, s in zip(frontends, seconds))
     outputs.evaluate_and_finish(staging, summary, metrics, agents, components, frontends,
