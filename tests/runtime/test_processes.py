@@ -26,16 +26,10 @@ from como3r.geometry.lie import sim3_exp
 from como3r.io.tum import read_tum
 from como3r.prior.simulated import SimulatedPrior
 from como3r.progress import AgentProgress, PhaseEvent, ProgressEvent
-from como3r.runtime import codec
 from como3r.runtime.messages import FrameDone, Step
 from como3r.runtime.pipeline import PriorSpec, RunSummary, run
-from como3r.runtime.processes import (
-    AgentResult,
-    Channel,
-    RuntimeOptions,
-    _KeyframeView,
-    run_multiprocess,
-)
+from como3r.runtime.processes import AgentResult, RuntimeOptions, _KeyframeView, run_multiprocess
+from como3r.runtime.transport import Channel
 
 WIDTH, HEIGHT, FRAMES, SHORT = 64, 48, 12, 8
 # small global solves keep the test fast; they do not change what is compared
@@ -300,10 +294,11 @@ def test_channel_counts_bytes_and_enforces_the_cap() -> None:
     receiver = Channel(reader, None, max_bytes=200, accepts=(Step, FrameDone))
     sender.send(Step(frame_index=4))
     assert receiver.poll(5.0) and receiver.receive() == Step(frame_index=4)
-    assert sender.bytes_sent == receiver.bytes_received and sender.bytes_sent["Step"] > 0
+    assert sender.traffic.bytes_sent == receiver.traffic.bytes_received
+    assert sender.traffic.bytes_sent["Step"] > 0
     sender.send(FrameDone(agent=0, frame_index=1, timestamp=0.0, outcome="x" * 500, seconds=0))
     assert receiver.poll(5.0)
-    with pytest.raises(codec.MessageError, match="cap 200"):
+    with pytest.raises(OSError, match="bad message length"):  # over the cap: unread
         receiver.receive()
     sender.close()
     receiver.close()

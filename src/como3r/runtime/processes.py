@@ -1,24 +1,20 @@
-"""The local multi-process runtime: one process per agent, the coordinator in the main one
-(C-Sec. B.1, A.8).
+"""The coordinator's loop over agent processes (C-Sec. B.1, A.8), on any transport.
 
-Each agent process opens its own input, builds its own prior from the
-:class:`~como3r.runtime.pipeline.PriorSpec`, runs an
-:class:`~como3r.frontend.agent.AgentFrontend` over its frames, sends every new keyframe as
-it appears and applies the pose updates it receives between frames. Agent and coordinator
-exchange only the messages of :mod:`como3r.runtime.messages`, encoded by
-:mod:`como3r.runtime.codec` (no pickle) and carried as raw bytes over two one-way pipes per
-agent (``Connection.send_bytes`` / ``recv_bytes``, size-capped on both ends). A sender
-thread on each side keeps a full pipe from ever blocking computation, so neither side can
-deadlock the other. The only other thing that crosses is what ``spawn`` needs to start a
-process: the agent id and the two pipe ends. (``spawn`` re-imports the caller's main
-module, so a script calling :func:`run_multiprocess` needs an ``if __name__ == "__main__":``
-guard; the ``como3r`` command has one.)
+Each agent runs :class:`~como3r.runtime.agent_worker.AgentWorker` in its own process; the
+coordinator runs here. They exchange only the messages of :mod:`como3r.runtime.messages`,
+carried by a :class:`~como3r.runtime.transport.Hub`: :func:`run_multiprocess` (``como3r
+run``) starts one process per agent on this machine and talks to it over two one-way pipes
+(:class:`~como3r.runtime.transport.PipeHub`); ``como3r coordinator`` serves agents started
+on other machines over Zenoh (:mod:`como3r.runtime.network`). Both go through
+:func:`coordinate`, so the loop below is the same. (``spawn`` re-imports the caller's main
+module, so a script calling :func:`run_multiprocess` needs an ``if __name__ ==
+"__main__":`` guard; the ``como3r`` command has one.)
 
 The coordinator runs in the main process: that process would otherwise only wait on the
-pipes, it already needs the prior (to decode candidate pairs) and owns the output folder,
+agents, it already needs the prior (to decode candidate pairs) and owns the output folder,
 and a separate coordinator process would add a core's worth of contention on small
 machines and one more serialization hop for every keyframe. While it solves, agents keep
-tracking; their messages wait in the pipes.
+tracking; their messages wait in the transport.
 
 Ordering. The coordinator hands keyframes to :class:`Coordinator` in the order the
 single-process runner does, by ``(timestamp, agent)``: a keyframe waits until every other
@@ -31,41 +27,35 @@ global solver's convergence. ``RuntimeOptions.lockstep`` additionally makes ever
 for a ``Step`` before each frame, in the single-process schedule, which reproduces
 :func:`como3r.runtime.pipeline.run` (serially: for testing and debugging).
 
-Failures. An agent that raises sends ``AgentFailed``; one that dies (killed, crashed) is
-seen through its process sentinel; one that stays silent longer than
-``agent_timeout_s`` (nothing from it waiting to be read) is terminated. Either way the failure is logged, the coordinator keeps
-the keyframes it received, the other agents run to the end, and the failed agent's outputs
-hold its keyframes only; ``metrics.json`` (``runtime``) and ``RunSummary.notes`` say so.
+Failures. An agent that raises sends ``AgentFailed``; one that leaves (killed, crashed, its
+link lost) is seen by the transport (process sentinel, liveliness token); one that stays
+silent longer than ``agent_timeout_s`` (nothing from it waiting to be read) is stopped.
+Either way the failure is logged, the coordinator keeps the keyframes it received, the
+other agents run to the end, and the failed agent's outputs hold its keyframes only;
+``metrics.json`` (``runtime``) and ``RunSummary.notes`` say so. Bytes that are not a valid
+message are logged and dropped.
 """
 
 from __future__ import annotations
 
-import contextlib
 import heapq
 import logging
 import math
-import multiprocessing
-import os
-import queue
-import threading
 import time
-import traceback
 from collections import Counter
 from dataclasses import dataclass, field, replace
-from multiprocessing.connection import Connection, wait
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from como3r.config import Config, config_from_dict, config_to_dict
+from como3r.config import Config, config_to_dict
 from como3r.coordination.coordinator import Coordinator
-from como3r.data.agent import AgentInput, open_agent
-from como3r.data.preprocess import upsampling
-from como3r.errors import Como3rError, InputError
-from como3r.frontend.agent import AgentFrontend, FrontendStats
+from como3r.data.agent import AgentInput
+from como3r.errors import InputError
+from como3r.frontend.agent import FrontendStats
 from como3r.frontend.keyframes import apply_pointmap_update, apply_pose_update
 from como3r.frontend.packets import PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.geometry.camera import to_focal
@@ -80,20 +70,16 @@ from como3r.progress import (
     tracking_state,
 )
 from como3r.runtime import codec, outputs
-from como3r.runtime.child_signals import children_ignore_sigint
-from como3r.runtime.live import CoordinatorLive, frame_event
+from como3r.runtime.agent_worker import agent_process_main, prior_fields
+from como3r.runtime.live import CoordinatorLive
 from como3r.runtime.messages import (
-    FROM_AGENT,
-    TO_AGENT,
     AgentFailed,
     AgentFinished,
     AgentStarted,
     AgentTask,
-    EdgeSummary,
     FrameDone,
     KeyframeMessage,
     PoseUpdateMessage,
-    Shutdown,
     Step,
 )
 from como3r.runtime.pipeline import (
@@ -101,10 +87,9 @@ from como3r.runtime.pipeline import (
     RunSummary,
     _frame_schedule,
     build_prior,
-    load_frame,
     open_agents,
 )
-from como3r.runtime.prefetch import PreparedFrame, prepared_frames
+from como3r.runtime.transport import Hub, Joined, PipeHub, Received, Rejected
 
 logger = logging.getLogger(__name__)
 
@@ -129,254 +114,6 @@ class RuntimeOptions:
     max_message_bytes: int = codec.DEFAULT_MAX_BYTES
     agent_timeout_s: float = 900.0
     shutdown_grace_s: float = 10.0
-
-
-# ------------------------------------------------------------------------------ transport
-
-
-class Channel:
-    """Typed messages over two one-way pipes; sends go through a background thread.
-
-    Args:
-        inbox: the receiving end, or None.
-        outbox: the sending end, or None.
-        max_bytes: size cap of a message in either direction.
-        accepts: message classes :meth:`receive` accepts.
-    """
-
-    def __init__(self, inbox: Connection | None, outbox: Connection | None, max_bytes: int,
-                 accepts: tuple[type, ...]) -> None:
-        self.inbox = inbox
-        self.outbox = outbox
-        self.max_bytes = max_bytes
-        self.accepts = accepts
-        self.bytes_sent: Counter[str] = Counter()
-        self.bytes_received: Counter[str] = Counter()
-        self.messages_sent: Counter[str] = Counter()
-        self.messages_received: Counter[str] = Counter()
-        self.broken = False
-        self._queue: queue.Queue[bytes | None] = queue.Queue()
-        self._sender: threading.Thread | None = None
-        if outbox is not None:
-            self._sender = threading.Thread(target=self._send_loop, daemon=True)
-            self._sender.start()
-
-    def send(self, message: Any) -> None:
-        """Encode ``message`` and queue it; never blocks on the pipe."""
-        data = codec.encode(message, max_bytes=self.max_bytes)
-        name = type(message).__name__
-        self.bytes_sent[name] += len(data)
-        self.messages_sent[name] += 1
-        self._queue.put(data)
-
-    def poll(self, timeout: float = 0.0) -> bool:
-        """Whether a message (or end of stream) is waiting."""
-        return self.inbox is not None and self.inbox.poll(timeout)
-
-    def receive(self) -> Any:
-        """The next message (blocking).
-
-        Raises:
-            EOFError: the other side closed the pipe.
-            codec.MessageError: the bytes are not an acceptable message.
-        """
-        assert self.inbox is not None
-        try:
-            data = self.inbox.recv_bytes(self.max_bytes)
-        except OSError as exc:
-            raise codec.MessageError(
-                f"unreadable message ({exc}); cap {self.max_bytes} bytes") from None
-        message = codec.decode(data, max_bytes=self.max_bytes, expected=self.accepts)
-        name = type(message).__name__
-        self.bytes_received[name] += len(data)
-        self.messages_received[name] += 1
-        return message
-
-    def close(self, timeout: float | None = None) -> None:
-        """Flush queued messages and close both ends.
-
-        Args:
-            timeout: seconds to wait for the flush; None waits until the other side has
-                read everything or is gone. An agent closes with None: its last messages
-                (keyframes, the final report) sit in the pipe for as long as the
-                coordinator is busy (a global BA can take minutes), and closing the pipe
-                under a half-sent message made the coordinator read a truncated one and
-                count a finished agent as failed.
-        """
-        if self._sender is not None:
-            self._queue.put(None)
-            self._sender.join(timeout)
-        for conn in (self.inbox, self.outbox):
-            if conn is not None:
-                conn.close()
-
-    def _send_loop(self) -> None:
-        assert self.outbox is not None
-        while (data := self._queue.get()) is not None:
-            if self.broken:
-                continue
-            try:
-                self.outbox.send_bytes(data)
-            except OSError:  # the other side is gone; later messages are dropped too
-                self.broken = True
-
-
-# ------------------------------------------------------------------------------ agent side
-
-
-def _agent_main(agent: int, inbox: Connection, outbox: Connection) -> None:
-    """Entry point of an agent process."""
-    channel = Channel(inbox, outbox, codec.DEFAULT_MAX_BYTES, TO_AGENT)
-    worker: _AgentWorker | None = None
-    try:
-        task = channel.receive()
-        if not isinstance(task, AgentTask) or task.agent != agent:
-            raise codec.MessageError(f"agent {agent}: the first message must be its AgentTask")
-        channel.max_bytes = task.max_message_bytes
-        logging.basicConfig(level=task.log_level,
-                            format=f"[agent {agent}] %(levelname)s %(name)s: %(message)s")
-        worker = _AgentWorker(task, channel)
-        worker.run()
-    except (EOFError, KeyboardInterrupt):
-        pass  # the coordinator is gone or the user interrupted: nothing to report to
-    except Exception as exc:
-        details = "" if isinstance(exc, Como3rError) else traceback.format_exc()
-        channel.send(AgentFailed(agent=agent, error=f"{type(exc).__name__}: {exc}",
-                                 details=details,
-                                 frame_index=worker.current_frame if worker is not None else -1))
-    finally:
-        channel.close()
-
-
-class _AgentWorker:
-    """One agent's loop: frames in, keyframes and progress out, pose updates applied."""
-
-    def __init__(self, task: AgentTask, channel: Channel) -> None:
-        torch.set_num_threads(max(1, task.torch_threads))
-        self.task = task
-        self.channel = channel
-        self.config = config_from_dict(Config, task.config)
-        spec = PriorSpec(**{k: (Path(v) if k in _PATH_FIELDS and v is not None else v)
-                            for k, v in task.prior.items()})
-        self.input = open_agent(task.input_path, fps=self.config.input.frame_rate_hz,
-                                format=self.config.input.format, topic=self.config.input.topic)
-        self.prior, codebook = build_prior(spec, self.config, {task.agent: self.input},
-                                           quiet=True)  # the coordinator says it once
-        self.frontend = AgentFrontend(
-            self.prior, self.config, task.agent, codebook,
-            upsampling(self.input.image_size, self.config.input.long_side))
-        self.frames = range(0, self.input.num_frames, self.config.input.subsample)
-        self.applied_seq = 0
-        self.seconds = 0.0
-        self.current_frame = -1
-
-    def run(self) -> None:
-        self.channel.send(AgentStarted(agent=self.task.agent, pid=os.getpid(),
-                                       frames=len(self.frames)))
-        agent, long_side = self.task.agent, self.config.input.long_side
-        frames = prepared_frames(
-            ((agent, index) for index in self.frames),
-            lambda a, i: load_frame(self.input, a, i, long_side, self.config.calibrated),
-            self.prior,
-            self.config.input.prefetch_frames)
-        with contextlib.closing(frames):
-            for index in self.frames:
-                ready = self._await_step(index) if self.task.lockstep else self._drain_inbox()
-                if not ready:
-                    return
-                self._process(index, frames)
-        self.current_frame = -1
-        if self.task.lockstep or self._drain_inbox():
-            self.channel.send(self._finished())
-
-    def _process(self, index: int, frames: Iterator[PreparedFrame]) -> None:
-        self.current_frame = index
-        start = time.perf_counter()
-        frame = next(frames)
-        # the agent's wall time includes waiting for its input and encoding
-        self.frontend.timer.charge("prior_encode", time.perf_counter() - start)
-        outcome = self.frontend.process(frame.view, frame.timestamp, frame.colors,
-                                        frame.encoding)
-        seconds = time.perf_counter() - start
-        self.seconds += seconds
-        for packet in self.frontend.drain_new_keyframes():
-            previous = (self.frontend.keyframes[packet.kf_id - 1].T_WC.clone()
-                        if packet.kf_id > 0 else None)
-            self.channel.send(KeyframeMessage(packet=packet, applied_seq=self.applied_seq,
-                                              T_WC_previous=previous))
-        if self.task.live:
-            self.channel.send(frame_event(self.frontend, index, frame.timestamp, outcome,
-                                          frame.colors))
-        self.channel.send(FrameDone(agent=self.task.agent, frame_index=index,
-                                    timestamp=frame.timestamp, outcome=outcome, seconds=seconds))
-
-    def _handle(self, message: Any) -> bool:
-        """Apply one coordinator message; False on Shutdown."""
-        if isinstance(message, Shutdown):
-            logger.info("shutdown requested: %s", message.reason)
-            return False
-        if isinstance(message, PoseUpdateMessage):
-            if message.seq != self.applied_seq + 1 or message.update.agent != self.task.agent:
-                raise codec.MessageError(f"pose update {message.seq} for agent "
-                                         f"{message.update.agent} out of sequence")
-            self.frontend.apply_pose_update(message.update)
-            self.applied_seq = message.seq
-            return True
-        raise codec.MessageError(f"unexpected {type(message).__name__} from the coordinator")
-
-    def _drain_inbox(self) -> bool:
-        """Apply every waiting message without blocking; False on Shutdown."""
-        while self.channel.poll(0.0):
-            if not self._handle(self.channel.receive()):
-                return False
-        return True
-
-    def _await_step(self, index: int) -> bool:
-        """Lockstep: apply messages until the Step for frame ``index``; False on Shutdown."""
-        while True:
-            message = self.channel.receive()
-            if isinstance(message, Step):
-                if message.frame_index != index:
-                    raise codec.MessageError(f"step for frame {message.frame_index}, "
-                                             f"expected frame {index}")
-                return True
-            if not self._handle(message):
-                return False
-
-    def _finished(self) -> AgentFinished:
-        fe = self.frontend
-        records = sorted(fe.records, key=lambda r: r.frame_index)
-        kf_frames, kf_stamps, kf_poses = fe.keyframe_trajectory()
-        final = None
-        if len(fe.keyframes):
-            last = fe.keyframes.last
-            final = PointmapRefresh(last.kf_id, last.X_hat, last.C_hat, last.fused_frames,
-                                    last.K)
-        return AgentFinished(
-            agent=self.task.agent, final=final, stats=fe.stats, seconds=self.seconds,
-            applied_seq=self.applied_seq,
-            frame_indices=np.array([r.frame_index for r in records], dtype=np.int64),
-            timestamps=np.array([r.timestamp for r in records], dtype=np.float64),
-            anchors=np.array([r.anchor for r in records], dtype=np.int64),
-            T_rel=(torch.stack([r.T_rel for r in records]) if records
-                   else torch.zeros(0, 8, dtype=torch.float64)),
-            keyframe_frames=kf_frames.astype(np.int64),
-            keyframe_timestamps=kf_stamps.astype(np.float64), keyframe_T_WC=kf_poses,
-            edges=[EdgeSummary(e.i, e.j, e.kind, e.matches.match_fraction) for e in fe.edges],
-        )
-
-
-_PATH_FIELDS = ("weights", "retrieval_weights", "codebook")
-
-
-def _exit_reason(code: int | None) -> str:
-    return f"killed by signal {-code}" if code is not None and code < 0 else f"exit code {code}"
-
-
-def _prior_fields(spec: PriorSpec) -> dict[str, Any]:
-    return {"name": spec.name, "device": spec.device,
-            **{k: (None if getattr(spec, k) is None else str(getattr(spec, k)))
-               for k in _PATH_FIELDS}}
 
 
 # ------------------------------------------------------------------------------ results
@@ -470,11 +207,9 @@ _LIVE = ("starting", "running")
 
 @dataclass
 class _Slot:
-    """The coordinator's view of one agent process."""
+    """The coordinator's view of one agent."""
 
     agent: int
-    process: Any
-    channel: Channel
     frames_expected: int
     result: AgentResult
     status: str = "starting"
@@ -488,55 +223,50 @@ class _Slot:
     sent_seq: int = 0
     updates: list[PoseUpdate] = field(default_factory=list)
     error: str | None = None
-    inbox_open: bool = True
     last_heard: float = field(default_factory=time.monotonic)
     reanchored: int = 0
 
 
 class _Runtime:
-    """Runs the coordinator loop over the agent processes."""
+    """Runs the coordinator loop over the agents, whatever carries their messages.
 
-    def __init__(self, inputs: list[AgentInput], config: Config, spec: PriorSpec,
+    Args:
+        hub: the transport to the agents.
+        frames: frames each agent ``0 .. N-1`` will process, where known before it starts
+            (its ``AgentStarted`` says it otherwise).
+        inputs: the agent inputs, where this process has them (the lockstep schedule).
+    """
+
+    def __init__(self, hub: Hub, frames: Sequence[int], config: Config, spec: PriorSpec,
                  options: RuntimeOptions, progress: ProgressCallback | None,
-                 live: LiveCallback | None = None) -> None:
+                 live: LiveCallback | None = None,
+                 inputs: Sequence[AgentInput] | None = None) -> None:
+        self.hub = hub
         self.inputs = inputs
         self.config = config
         self.options = options
         self.progress = progress
         self.live = live
         self.prior, codebook = build_prior(spec, config)
-        self.coordinator = Coordinator(self.prior, config, codebook, len(inputs))
+        self.coordinator = Coordinator(self.prior, config, codebook, len(frames))
         self.coordinator_live = (
             None if live is None else
             CoordinatorLive(live, self.coordinator, config.visualization.map_min_confidence))
         self.pending: list[tuple[tuple[float, int, int, int], KeyframeMessage]] = []
         self._arrivals = 0
-        self.slots: list[_Slot] = []
+        self.slots = [_Slot(agent, count, AgentResult(agent)) for agent, count in enumerate(frames)]
         self.finish_threads = options.torch_threads
 
-    def start(self, paths: Sequence[Path], spec: PriorSpec) -> None:
-        """Start one process per agent and send each its task."""
-        for agent, path in enumerate(paths):
-            self.slots.append(self._start(agent, Path(path), spec))
-
-    def _start(self, agent: int, path: Path, spec: PriorSpec) -> _Slot:
-        context = multiprocessing.get_context("spawn")
-        to_agent_r, to_agent_w = context.Pipe(duplex=False)
-        from_agent_r, from_agent_w = context.Pipe(duplex=False)
-        process = context.Process(target=_agent_main, args=(agent, to_agent_r, from_agent_w),
-                                  name=f"como3r-agent-{agent}", daemon=True)
-        with children_ignore_sigint():  # Ctrl-C is the coordinator's to handle
-            process.start()
-        to_agent_r.close()  # the child holds its own copies; ours would hide its death
-        from_agent_w.close()
-        channel = Channel(from_agent_r, to_agent_w, self.options.max_message_bytes, FROM_AGENT)
-        channel.send(AgentTask(
-            agent=agent, input_path=str(path), config=config_to_dict(self.config),
-            prior=_prior_fields(spec), torch_threads=self.options.torch_threads,
-            lockstep=self.options.lockstep, max_message_bytes=self.options.max_message_bytes,
-            log_level=logging.getLogger().getEffectiveLevel(), live=self.live is not None))
-        frames = len(range(0, self.inputs[agent].num_frames, self.config.input.subsample))
-        return _Slot(agent, process, channel, frames, AgentResult(agent))
+    def start(self, paths: Sequence[Path | None], spec: PriorSpec) -> None:
+        """Hand each agent its task: its input (None: the agent brings its own) and the
+        prior it builds."""
+        self.hub.start([AgentTask(
+            agent=agent, input_path="" if path is None else str(path),
+            config=config_to_dict(self.config), prior=prior_fields(spec),
+            torch_threads=self.options.torch_threads, lockstep=self.options.lockstep,
+            max_message_bytes=self.options.max_message_bytes,
+            log_level=logging.getLogger().getEffectiveLevel(), live=self.live is not None)
+            for agent, path in enumerate(paths)])
 
     # ---------------------------------------------------------------- drivers
 
@@ -562,7 +292,7 @@ class _Runtime:
             slot = self.slots[agent]
             if slot.status != "running":
                 continue
-            slot.channel.send(Step(index))
+            self.hub.send(agent, Step(index))
             slot.last_heard = time.monotonic()
             self._pump_until(lambda: slot.last_frame >= index or slot.status != "running", [slot])
             self._process_pending(force=True)
@@ -574,48 +304,30 @@ class _Runtime:
             self._check_timeouts([s for s in watched if s.status in _LIVE])
 
     def _pump(self, timeout: float) -> None:
-        """Wait for messages or process exits, and handle them."""
-        handles: dict[Any, _Slot] = {}
-        for slot in self.slots:
-            if slot.status in _LIVE:
-                handles[slot.process.sentinel] = slot
-                if slot.inbox_open:
-                    handles[slot.channel.inbox] = slot
-        if not handles:
-            return
-        ready = wait(list(handles), timeout)
-        for handle in ready:
-            if handle is handles[handle].channel.inbox:
-                self._drain(handles[handle])
-        for handle in ready:
-            slot = handles[handle]
-            if handle == slot.process.sentinel and slot.status in _LIVE:
-                self._drain(slot)
-                if slot.status in _LIVE:
-                    slot.process.join(5.0)  # the sentinel closes just before the exit status is set
-                    self._fail(slot, f"process died ({_exit_reason(slot.process.exitcode)})")
-
-    def _drain(self, slot: _Slot) -> None:
-        while slot.status in _LIVE and slot.inbox_open:
-            try:
-                if not slot.channel.poll(0.0):
-                    return
-                message = slot.channel.receive()
-            except (EOFError, OSError):
-                slot.inbox_open = False
-                return
-            except codec.MessageError as exc:
-                self._fail(slot, f"protocol error: {exc}")
-                return
-            slot.last_heard = time.monotonic()
-            self._handle(slot, message)
+        """Wait up to ``timeout`` seconds for messages and departures, handle them, and
+        acknowledge what was stored."""
+        for event in self.hub.events(timeout):
+            slot = self.slots[event.agent]
+            if isinstance(event, Received):
+                if slot.status in _LIVE:  # a failed agent's trailing messages are ignored
+                    slot.last_heard = time.monotonic()
+                    self._handle(slot, event.message)
+            elif isinstance(event, Rejected):
+                logger.warning("dropped a message from agent %d: %s", event.agent, event.error)
+            elif isinstance(event, Joined):
+                logger.info("agent %d joined", event.agent)
+            elif slot.status in _LIVE:  # Left before its AgentFinished
+                self._fail(slot, event.reason)
+        self.hub.acknowledge()
 
     def _handle(self, slot: _Slot, message: Any) -> None:
         agent = message.packet.agent if isinstance(message, KeyframeMessage) else message.agent
         if agent != slot.agent:
-            self._fail(slot, f"protocol error: a {type(message).__name__} for agent {agent}")
+            logger.warning("dropped a %s for agent %d from agent %d", type(message).__name__,
+                           agent, slot.agent)
         elif isinstance(message, AgentStarted):
             slot.status, slot.pid = "running", message.pid
+            slot.frames_expected = message.frames
         elif isinstance(message, KeyframeMessage):
             packet = message.packet
             heapq.heappush(self.pending, ((packet.timestamp, slot.agent, packet.kf_id,
@@ -657,17 +369,16 @@ class _Runtime:
             logger.error("agent %d failed: %s (the other agents continue)", slot.agent, error)
         else:  # the last one: the run ends in one error line naming every agent's failure
             logger.info("agent %d failed: %s", slot.agent, error)
-        if slot.process.is_alive():
-            slot.process.terminate()
+        self.hub.drop(slot.agent)
 
     def _check_timeouts(self, watched: Sequence[_Slot]) -> None:
         """Fail the agents silent for longer than ``agent_timeout_s``. What an agent sent
         while this process was busy (a global BA can outlast the timeout) is read first:
         silence is the agent's, not the coordinator's deafness."""
         limit = self.options.agent_timeout_s
+        if any(time.monotonic() - slot.last_heard > limit for slot in watched):
+            self._pump(0.0)
         for slot in watched:
-            if time.monotonic() - slot.last_heard > limit:
-                self._drain(slot)
             if slot.status in _LIVE and time.monotonic() - slot.last_heard > limit:
                 self._fail(slot, f"no message for {limit:.0f} s (hung)")
 
@@ -724,7 +435,7 @@ class _Runtime:
         slot.updates.append(update)
         slot.result.apply_pose_update(update)
         if slot.status in _LIVE:
-            slot.channel.send(PoseUpdateMessage(update=update, seq=slot.sent_seq))
+            self.hub.send(slot.agent, PoseUpdateMessage(update=update, seq=slot.sent_seq))
 
     # ---------------------------------------------------------------- the end
 
@@ -775,33 +486,22 @@ class _Runtime:
                         for e in done.edges]
 
     def stop(self, interrupted: bool = False) -> None:
-        """Stop and reap every agent process; close the pipes. ``interrupted`` (Ctrl-C):
-        terminate at once instead of asking and waiting (an agent still starting up
-        would only read the request after its imports)."""
-        for slot in self.slots:
-            if slot.process.is_alive() and interrupted:
-                slot.process.terminate()
-            elif slot.process.is_alive() and slot.status in _LIVE:
-                slot.channel.send(Shutdown("the coordinator is stopping"))
-        deadline = time.monotonic() + self.options.shutdown_grace_s
-        for slot in self.slots:
-            slot.process.join(max(0.0, deadline - time.monotonic()))
-            if slot.process.is_alive():
-                slot.process.terminate()
-                slot.process.join(self.options.shutdown_grace_s)
-            slot.channel.close(timeout=self.options.shutdown_grace_s)
+        """Stop the agents still running and release the transport. ``interrupted``
+        (Ctrl-C): terminate at once instead of asking and waiting (an agent still starting
+        up would only read the request after its imports)."""
+        self.hub.stop([s.agent for s in self.slots if s.status in _LIVE], interrupted)
 
     def runtime_metrics(self) -> dict[str, Any]:
         """Per-agent status and bytes exchanged per message type (both directions)."""
         agents = []
         by_type: Counter[str] = Counter()
         for slot in self.slots:
-            channel = slot.channel
+            channel = self.hub.traffic(slot.agent)
             by_type.update(channel.bytes_sent)
             by_type.update(channel.bytes_received)
             agents.append({
                 "agent": slot.agent, "status": slot.status, "error": slot.error,
-                "pid": slot.pid, "exitcode": slot.process.exitcode,
+                "pid": slot.pid, "exitcode": self.hub.exitcode(slot.agent),
                 "frames_expected": slot.frames_expected, "frames_done": slot.frames_done,
                 "keyframes_received": len(slot.result.keyframes),
                 "pose_updates_sent": slot.sent_seq, "keyframes_reanchored": slot.reanchored,
@@ -810,7 +510,8 @@ class _Runtime:
                 "messages_to_agent": dict(channel.messages_sent),
                 "messages_from_agent": dict(channel.messages_received),
             })
-        return {"mode": "multiprocess", "lockstep": self.options.lockstep,
+        return {"mode": "multiprocess", "transport": self.hub.name,
+                "lockstep": self.options.lockstep,
                 "torch_threads": self.options.torch_threads,
                 "finish_torch_threads": self.finish_threads,
                 "max_message_bytes": self.options.max_message_bytes,
@@ -858,13 +559,51 @@ def run_multiprocess(
     """
     options = options or RuntimeOptions()
     inputs = open_agents(agent_paths, config)
+    frames = [len(range(0, a.num_frames, config.input.subsample)) for a in inputs]
+    hub = PipeHub(agent_process_main, options.max_message_bytes, options.shutdown_grace_s)
+    return coordinate(hub, list(agent_paths), frames, out, config, prior_spec, options,
+                      inputs=inputs, overwrite=overwrite, progress=progress, live=live)
+
+
+def coordinate(
+    hub: Hub,
+    agent_paths: Sequence[Path | None],
+    frames: Sequence[int],
+    out: Path,
+    config: Config,
+    prior_spec: PriorSpec,
+    options: RuntimeOptions,
+    inputs: Sequence[AgentInput] = (),
+    overwrite: bool = False,
+    progress: ProgressCallback | None = None,
+    live: LiveCallback | None = None,
+) -> RunSummary:
+    """Run the coordinator here over the agents behind ``hub``; write the output folder.
+
+    Args:
+        hub: the transport to agents ``0 .. N-1``.
+        agent_paths: each agent's input as its task names it; None where the agent brings
+            its own (``como3r agent PATH``).
+        frames: frames each agent will process where known (0: its ``AgentStarted`` says).
+        out: output folder (created atomically).
+        config: effective configuration (every agent receives it with its task).
+        prior_spec: the prior of this process and of the agents' tasks.
+        options: runtime knobs.
+        inputs: the agent inputs where this process has them, for the evaluation against
+            their ground truth and the lockstep schedule; empty: no evaluation.
+        overwrite, progress, live: as for :func:`run_multiprocess`.
+
+    Raises:
+        InputError: every agent failed.
+    """
     threads = torch.get_num_threads()
     torch.set_num_threads(max(1, options.torch_threads))
     runtime: _Runtime | None = None
     interrupted = False
     try:
         with atomic_output_dir(out, overwrite=overwrite) as staging:
-            runtime = _Runtime(inputs, config, prior_spec, options, progress, live)
+            runtime = _Runtime(hub, frames, config, prior_spec, options, progress, live,
+                               inputs)
             runtime.start(agent_paths, prior_spec)
             runtime.run(finish_threads=threads)
             runtime.stop()
@@ -883,7 +622,7 @@ def run_multiprocess(
     return summary
 
 
-def _write(staging: Path, runtime: _Runtime, inputs: list[AgentInput]) -> RunSummary:
+def _write(staging: Path, runtime: _Runtime, inputs: Sequence[AgentInput]) -> RunSummary:
     """The output folder of :func:`pipeline.run`, from the agents' results."""
     config, coordinator = runtime.config, runtime.coordinator
     results = [s.result for s in runtime.slots]

@@ -1,0 +1,234 @@
+"""An agent's side of a run: its frame loop over any transport (C-Sec. B.1, A.8).
+
+:class:`AgentWorker` opens the agent's input, builds its own prior from the task's
+:class:`~como3r.runtime.pipeline.PriorSpec` fields, runs an
+:class:`~como3r.frontend.agent.AgentFrontend` over its frames, sends every new keyframe as it
+appears and applies the pose updates it receives between frames. It talks to the coordinator
+through an :class:`~como3r.runtime.transport.AgentLink` only, so the same loop runs in a
+process started by ``como3r run`` (pipes, :func:`agent_process_main`) and in ``como3r
+agent`` on another machine (Zenoh, :mod:`como3r.runtime.network`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import time
+import traceback
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import torch
+
+from como3r.config import Config, config_from_dict
+from como3r.data.agent import open_agent
+from como3r.data.preprocess import upsampling
+from como3r.errors import Como3rError
+from como3r.frontend.agent import AgentFrontend
+from como3r.frontend.packets import PointmapRefresh
+from como3r.runtime import codec
+from como3r.runtime.live import frame_event
+from como3r.runtime.messages import (
+    TO_AGENT,
+    AgentFailed,
+    AgentFinished,
+    AgentStarted,
+    AgentTask,
+    EdgeSummary,
+    FrameDone,
+    KeyframeMessage,
+    PoseUpdateMessage,
+    Shutdown,
+    Step,
+)
+from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame
+from como3r.runtime.prefetch import PreparedFrame, prepared_frames
+from como3r.runtime.transport import AgentLink, Channel
+
+logger = logging.getLogger(__name__)
+
+
+def agent_process_main(agent: int, inbox: Connection, outbox: Connection) -> None:
+    """Entry point of an agent process started by :class:`~.transport.PipeHub`: its task
+    is the first message on its pipe."""
+    channel = Channel(inbox, outbox, codec.DEFAULT_MAX_BYTES, TO_AGENT)
+    try:
+        task = channel.receive()
+        if not isinstance(task, AgentTask) or task.agent != agent:
+            raise codec.MessageError(f"agent {agent}: the first message must be its AgentTask")
+    except (EOFError, KeyboardInterrupt):
+        channel.close()
+        return  # the coordinator is gone or the user interrupted: nothing to report to
+    except Exception as exc:
+        _report_failure(channel, agent, exc, -1)
+        channel.close()
+        return
+    channel.max_bytes = task.max_message_bytes
+    logging.basicConfig(level=task.log_level,
+                        format=f"[agent {agent}] %(levelname)s %(name)s: %(message)s")
+    run_agent(task, channel)
+
+
+def run_agent(task: AgentTask, link: AgentLink) -> bool:
+    """Run one agent's task over ``link``, report a failure to the coordinator, and close
+    the link (which waits until the coordinator holds every message).
+
+    Returns:
+        Whether the agent ran to the end of its stream without an error.
+    """
+    worker: AgentWorker | None = None
+    ok = False
+    try:
+        worker = AgentWorker(task, link)
+        ok = worker.run()
+    except (EOFError, KeyboardInterrupt):
+        pass  # the coordinator is gone or the user interrupted: nothing to report to
+    except Exception as exc:
+        _report_failure(link, task.agent, exc,
+                        worker.current_frame if worker is not None else -1)
+    finally:
+        link.close()
+    return ok
+
+
+def _report_failure(link: AgentLink, agent: int, exc: Exception, frame: int) -> None:
+    details = "" if isinstance(exc, Como3rError) else traceback.format_exc()
+    logger.error("agent %d failed: %s: %s", agent, type(exc).__name__, exc)
+    link.send(AgentFailed(agent=agent, error=f"{type(exc).__name__}: {exc}", details=details,
+                          frame_index=frame))
+
+
+class AgentWorker:
+    """One agent's loop: frames in, keyframes and progress out, pose updates applied."""
+
+    def __init__(self, task: AgentTask, channel: AgentLink) -> None:
+        torch.set_num_threads(max(1, task.torch_threads))
+        self.task = task
+        self.channel = channel
+        self.config = config_from_dict(Config, task.config)
+        spec = PriorSpec(**{k: (Path(v) if k in PATH_FIELDS and v is not None else v)
+                            for k, v in task.prior.items()})
+        self.input = open_agent(task.input_path, fps=self.config.input.frame_rate_hz,
+                                format=self.config.input.format, topic=self.config.input.topic)
+        self.prior, codebook = build_prior(spec, self.config, {task.agent: self.input},
+                                           quiet=True)  # the coordinator says it once
+        self.frontend = AgentFrontend(
+            self.prior, self.config, task.agent, codebook,
+            upsampling(self.input.image_size, self.config.input.long_side))
+        self.frames = range(0, self.input.num_frames, self.config.input.subsample)
+        self.applied_seq = 0
+        self.seconds = 0.0
+        self.current_frame = -1
+
+    def run(self) -> bool:
+        """Process every frame and send the final report; False when stopped early (a
+        :class:`Shutdown`)."""
+        self.channel.send(AgentStarted(agent=self.task.agent, pid=os.getpid(),
+                                       frames=len(self.frames)))
+        agent, long_side = self.task.agent, self.config.input.long_side
+        frames = prepared_frames(
+            ((agent, index) for index in self.frames),
+            lambda a, i: load_frame(self.input, a, i, long_side, self.config.calibrated),
+            self.prior,
+            self.config.input.prefetch_frames)
+        with contextlib.closing(frames):
+            for index in self.frames:
+                ready = self._await_step(index) if self.task.lockstep else self._drain_inbox()
+                if not ready:
+                    return False
+                self._process(index, frames)
+        self.current_frame = -1
+        if not (self.task.lockstep or self._drain_inbox()):
+            return False
+        self.channel.send(self._finished())
+        return True
+
+    def _process(self, index: int, frames: Iterator[PreparedFrame]) -> None:
+        self.current_frame = index
+        start = time.perf_counter()
+        frame = next(frames)
+        # the agent's wall time includes waiting for its input and encoding
+        self.frontend.timer.charge("prior_encode", time.perf_counter() - start)
+        outcome = self.frontend.process(frame.view, frame.timestamp, frame.colors,
+                                        frame.encoding)
+        seconds = time.perf_counter() - start
+        self.seconds += seconds
+        for packet in self.frontend.drain_new_keyframes():
+            previous = (self.frontend.keyframes[packet.kf_id - 1].T_WC.clone()
+                        if packet.kf_id > 0 else None)
+            self.channel.send(KeyframeMessage(packet=packet, applied_seq=self.applied_seq,
+                                              T_WC_previous=previous))
+        if self.task.live:
+            self.channel.send(frame_event(self.frontend, index, frame.timestamp, outcome,
+                                          frame.colors))
+        self.channel.send(FrameDone(agent=self.task.agent, frame_index=index,
+                                    timestamp=frame.timestamp, outcome=outcome, seconds=seconds))
+
+    def _handle(self, message: Any) -> bool:
+        """Apply one coordinator message; False on Shutdown."""
+        if isinstance(message, Shutdown):
+            logger.info("shutdown requested: %s", message.reason)
+            return False
+        if isinstance(message, PoseUpdateMessage):
+            if message.seq != self.applied_seq + 1 or message.update.agent != self.task.agent:
+                raise codec.MessageError(f"pose update {message.seq} for agent "
+                                         f"{message.update.agent} out of sequence")
+            self.frontend.apply_pose_update(message.update)
+            self.applied_seq = message.seq
+            return True
+        raise codec.MessageError(f"unexpected {type(message).__name__} from the coordinator")
+
+    def _drain_inbox(self) -> bool:
+        """Apply every waiting message without blocking; False on Shutdown."""
+        while self.channel.poll(0.0):
+            if not self._handle(self.channel.receive()):
+                return False
+        return True
+
+    def _await_step(self, index: int) -> bool:
+        """Lockstep: apply messages until the Step for frame ``index``; False on Shutdown."""
+        while True:
+            message = self.channel.receive()
+            if isinstance(message, Step):
+                if message.frame_index != index:
+                    raise codec.MessageError(f"step for frame {message.frame_index}, "
+                                             f"expected frame {index}")
+                return True
+            if not self._handle(message):
+                return False
+
+    def _finished(self) -> AgentFinished:
+        fe = self.frontend
+        records = sorted(fe.records, key=lambda r: r.frame_index)
+        kf_frames, kf_stamps, kf_poses = fe.keyframe_trajectory()
+        final = None
+        if len(fe.keyframes):
+            last = fe.keyframes.last
+            final = PointmapRefresh(last.kf_id, last.X_hat, last.C_hat, last.fused_frames,
+                                    last.K)
+        return AgentFinished(
+            agent=self.task.agent, final=final, stats=fe.stats, seconds=self.seconds,
+            applied_seq=self.applied_seq,
+            frame_indices=np.array([r.frame_index for r in records], dtype=np.int64),
+            timestamps=np.array([r.timestamp for r in records], dtype=np.float64),
+            anchors=np.array([r.anchor for r in records], dtype=np.int64),
+            T_rel=(torch.stack([r.T_rel for r in records]) if records
+                   else torch.zeros(0, 8, dtype=torch.float64)),
+            keyframe_frames=kf_frames.astype(np.int64),
+            keyframe_timestamps=kf_stamps.astype(np.float64), keyframe_T_WC=kf_poses,
+            edges=[EdgeSummary(e.i, e.j, e.kind, e.matches.match_fraction) for e in fe.edges],
+        )
+
+
+PATH_FIELDS = ("weights", "retrieval_weights", "codebook")
+
+
+def prior_fields(spec: PriorSpec) -> dict[str, Any]:
+    """``AgentTask.prior`` of a prior specification (paths as strings)."""
+    return {"name": spec.name, "device": spec.device,
+            **{k: (None if getattr(spec, k) is None else str(getattr(spec, k)))
+               for k in PATH_FIELDS}}
+
