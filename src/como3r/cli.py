@@ -290,7 +290,9 @@ def run(
     if mode == "decentralized":
         from como3r.decentralized.runner import run_decentralized
 
-        summary = run_decentralized(agent, out, config, spec, overwrite=overwrite)
+        with run_progress(quiet) as shown:
+            summary = run_decentralized(agent, out, config, spec, overwrite=overwrite,
+                                        progress=shown)
         _print_summary(summary, out)
         return
     if single_process or sources:  # live inputs run in this process

@@ -23,7 +23,9 @@ def test_nested_stages_are_exclusive_and_add_up() -> None:
     assert timer.seconds is seconds
     assert seconds["inner"] == pytest.approx(0.03, abs=0.02)
     assert seconds["outer"] == pytest.approx(0.03, abs=0.02)
-    assert sum(seconds.values()) == pytest.approx(total, rel=1e-3)
+    # every second inside is charged to exactly one stage (double counting would add 30 ms;
+    # the context managers' own overhead is microseconds, more on a loaded machine)
+    assert sum(seconds.values()) == pytest.approx(total, abs=2e-3)
 
 
 def test_a_stage_left_by_an_exception_is_still_charged() -> None:
