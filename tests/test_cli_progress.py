@@ -1,12 +1,15 @@
-"""What ``como3r run`` / ``synth`` print while they work (como3r.cli_progress): plain lines
-when stderr is not a terminal, a rich display on a terminal, nothing under ``--quiet``."""
+"""What ``como3r run`` (centralized and decentralized) / ``synth`` print while they work
+(como3r.cli_progress): plain lines when stderr is not a terminal, a rich display on a
+terminal, nothing under ``--quiet``."""
 
 from __future__ import annotations
 
 import io
 import re
 from pathlib import Path
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 from rich.console import Console
 from rich.progress import Progress
@@ -16,6 +19,9 @@ from como3r import cli_common
 from como3r.cli import app
 from como3r.cli_progress import RunProgress, phase_text, run_progress
 from como3r.data.synth import synthesize
+from como3r.decentralized.messages import DRIVER, RobotProgress, RobotReport
+from como3r.decentralized.odometry_sim import add_odometry
+from como3r.decentralized.runner import _RobotProgress
 from como3r.progress import AgentProgress, PhaseEvent
 
 FRAMES = 16  # 8 processed per agent (input.subsample 2), the lens covered on frames 6 to 8
@@ -175,3 +181,67 @@ def test_rich_display_on_a_terminal(quiet, monkeypatch):
     assert "agent 0" in shown and "4/10" in shown
     assert "3 lost, 1 relocalized, relocalized" in shown
     assert "alternation round" in shown and "2/100" in shown and "agents 0, 1" in shown
+
+
+@pytest.fixture(scope="module")
+def robots(tmp_path_factory) -> Path:
+    """Two robots with simulated VIO odometry (decentralized mode inputs), 8 frames each."""
+    root = tmp_path_factory.mktemp("robots")
+    synthesize(root, agents=2, seed=0, overlap=0.2, frames=8, preset="default", width=64,
+               height=48, progress=None)
+    for a in range(2):
+        add_odometry(root / f"agent_{a}", seed=a, params="vio")
+    return root
+
+
+def _run_decentralized(scene: Path, out: Path, *args: str):
+    return _run(scene, out, "--mode", "decentralized", *args)
+
+
+def test_a_decentralized_run_prints_plain_lines_per_robot_and_phase(robots, tmp_path):
+    """Robot processes (the default): each robot's line from its progress message after its
+    round (here the one at the mission's end), once; then the driver's phases in order."""
+    result = _run_decentralized(robots, tmp_path / "run")
+    assert result.exit_code == 0, result.output
+    lines = _progress_lines(result.output)
+    for agent in (0, 1):
+        mine = [line for line in lines if f" agent {agent}: " in line]
+        assert len(mine) == 1, lines
+        assert re.search(r"8/8 frames, [\d.]+ fps, [1-9]\d* keyframes?, 0 lost, tracking$",
+                         mine[0]), mine
+    names = [line.split(" coordinator: ", 1)[1].split(" (")[0] for line in lines
+             if " coordinator: " in line]
+    assert [n for n in names if n != "formulation table"] == ["outputs", "evaluation", "report"]
+    assert result.output.index("report (report.html)") < result.output.index("wrote ")
+
+
+def test_a_quiet_decentralized_run_prints_only_the_summary(robots, tmp_path):
+    out = tmp_path / "run"
+    result = _run_decentralized(robots, out, "--quiet",
+                                "--set", "decentralized.protocol.processes=false")
+    assert result.exit_code == 0, result.output
+    assert _progress_lines(result.output) == []
+    assert "agents" in result.output
+    assert " ".join(result.output.split()).endswith(f"wrote {out}")
+
+
+def test_robot_messages_become_agent_progress_events():
+    """A robot's progress after a round, a report that adds nothing (no event), a report of
+    a robot that was in no round (every frame done), a failure."""
+    events: list[AgentProgress] = []
+    robots = [SimpleNamespace(odometry=range(n)) for n in (10, 6, 4)]
+    adapter = _RobotProgress(events.append, robots)
+    assert [(e.agent, e.frames_done, e.frames_total) for e in events] == [
+        (0, 0, 10), (1, 0, 6), (2, 0, 4)]
+
+    def report(robot: int, **kwargs) -> RobotReport:
+        return RobotReport(sender=robot, recipient=DRIVER, estimate=np.zeros((0, 8)),
+                           frame=robot, loops=[], rejected=[], **kwargs)
+
+    events.clear()
+    adapter(RobotProgress(sender=0, recipient=DRIVER, round=0, frames_done=10, keyframes=3))
+    adapter(report(0, stats={"keyframes": 3}))
+    adapter(report(1, stats={"keyframes": 2}))
+    adapter(report(2, error="RuntimeError: the robot process died"))
+    assert [(e.agent, e.frames_done, e.keyframes, e.state) for e in events] == [
+        (0, 10, 3, "tracking"), (1, 6, 2, "tracking"), (2, 0, 0, "failed")]

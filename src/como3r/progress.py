@@ -63,7 +63,8 @@ class PhaseEvent:
 
     Attributes:
         name: the phase: ``"queued keyframes"``, ``"focal refinement"``, ``"cleanup pass"``,
-            ``"alternation round"``, ``"outputs"``, ``"evaluation"``, ``"report"``.
+            ``"alternation round"``, ``"outputs"``, ``"evaluation"``, ``"report"``; in the
+            decentralized mode also ``"formulation table"``.
         detail: what the step works on, one short line (agents, last step's change, files).
         done: steps of this phase finished before this one.
         total: steps planned; for passes and rounds the most there can be (the loop stops

@@ -17,6 +17,7 @@ Robot -> robot, in the order of a round:
 Driver <-> robot (simulation control, not radio traffic, not counted):
 
 * :class:`RobotTask` -- process mode only: the robot's whole job, its first message;
+* :class:`RobotProgress` -- after each of the robot's rounds: how far its mission got;
 * :class:`RobotReport` -- the robot's final state when the mission ends.
 """
 
@@ -142,6 +143,25 @@ class RobotTask:
 
 
 @dataclass(frozen=True)
+class RobotProgress:
+    """Robot -> driver, after each round the robot took part in: how far its mission got
+    (what the command line shows; :class:`~como3r.progress.AgentProgress`).
+
+    Attributes:
+        round: the round just finished.
+        frames_done: its frames with odometry up to the round's mission time.
+        keyframes: its keyframes up to that time.
+    """
+
+    sender: int
+    recipient: int
+    round: int
+    frames_done: int
+    keyframes: int
+    version: int = 1
+
+
+@dataclass(frozen=True)
 class RobotReport:
     """Robot -> driver: the robot's state at the end of the mission.
 
@@ -169,6 +189,6 @@ class RobotReport:
 ROBOT_MESSAGES = (PlaceDescriptors, EncodingRequest, EncodingReply, PoseGraphShare, PoseEstimate)
 """Messages robots send each other (counted as radio traffic)."""
 
-for _cls in (*ROBOT_MESSAGES, RobotTask, RobotReport):
+for _cls in (*ROBOT_MESSAGES, RobotTask, RobotProgress, RobotReport):
     codec.register(_cls, version=1)
 codec.register(LoopClosure, version=1)

@@ -15,7 +15,9 @@ smallest id in a group is elected to optimise (Swarm-SLAM, F-[9]; :func:`elect`)
 
 All traffic goes through a :class:`Router` in the driver, which delivers a message only
 when sender and recipient are both in range at the message's round time, and counts the
-bytes of every delivered message per robot and per message type.
+bytes of every delivered message per robot and per message type. The robots' messages to
+the driver (progress after each round, the final report) are not radio traffic: they are
+always delivered and not counted.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from collections import Counter
 from dataclasses import asdict, dataclass, field
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence, Union
 
 import numpy as np
 import torch
@@ -39,7 +41,13 @@ import torch
 from como3r.config import Config, config_from_dict, config_to_dict
 from como3r.data.agent import open_agent
 from como3r.decentralized.config import DecentralizedConfig
-from como3r.decentralized.messages import DRIVER, ROBOT_MESSAGES, RobotReport, RobotTask
+from como3r.decentralized.messages import (
+    DRIVER,
+    ROBOT_MESSAGES,
+    RobotProgress,
+    RobotReport,
+    RobotTask,
+)
 from como3r.decentralized.place_recognition import PlaceRecognizer
 from como3r.decentralized.robot import PHASES, Robot, RoundPlan
 from como3r.errors import Como3rError, ConfigError, InputError
@@ -47,6 +55,9 @@ from como3r.prior.base import Prior
 from como3r.runtime import codec
 
 logger = logging.getLogger(__name__)
+
+MissionProgress = Callable[[Union[RobotProgress, RobotReport]], None]
+"""What the driver calls with the robots' progress messages and final reports."""
 
 
 # ------------------------------------------------------------------------------ schedule
@@ -176,14 +187,19 @@ class Router:
         deliver: ``deliver(recipient, data)`` hands raw bytes to a robot.
         max_bytes: size cap of a message.
         robots: the robot ids; messages to any other id are dropped.
+        progress: called with every :class:`RobotProgress` and :class:`RobotReport`, one at
+            a time (robot threads route concurrently).
     """
 
     def __init__(self, schedule: Schedule, deliver: Any, max_bytes: int,
-                 robots: Sequence[int]) -> None:
+                 robots: Sequence[int],
+                 progress: MissionProgress | None = None
+                 ) -> None:
         self.robots = set(robots)
         self.schedule = schedule
         self.deliver = deliver
         self.max_bytes = max_bytes
+        self.progress = progress
         self.traffic = TrafficCounter()
         self.reports: dict[int, RobotReport] = {}
         self.gone: set[int] = set()
@@ -192,11 +208,14 @@ class Router:
     def route(self, data: bytes) -> None:
         """Validate, check range, count and forward one encoded message."""
         message = codec.decode(data, max_bytes=self.max_bytes,
-                               expected=(*ROBOT_MESSAGES, RobotReport))
+                               expected=(*ROBOT_MESSAGES, RobotProgress, RobotReport))
         with self._lock:
             if isinstance(message, RobotReport):
                 self.reports[message.sender] = message
                 self.gone.add(message.sender)
+            if isinstance(message, (RobotProgress, RobotReport)):
+                if self.progress is not None and message.sender in self.robots:
+                    self.progress(message)
                 return
             kind = type(message).__name__
             sender, recipient, time_s = message.sender, message.recipient, message.time_s
@@ -377,7 +396,9 @@ def _prior_fields(spec: Any) -> dict[str, Any]:
 def run_protocol(agent_paths: Sequence[str | Path], config: Config,
                  settings: DecentralizedConfig, prior_spec: Any, end_s: float,
                  schedule: Schedule | None = None, prior: Prior | None = None,
-                 leave: dict[int, tuple[int, str]] | None = None) -> ProtocolResult:
+                 leave: dict[int, tuple[int, str]] | None = None,
+                 progress: MissionProgress | None = None
+                 ) -> ProtocolResult:
     """Run every robot over the mission and collect their reports.
 
     Args:
@@ -392,6 +413,9 @@ def run_protocol(agent_paths: Sequence[str | Path], config: Config,
         prior: a prior to share between robot threads (single-process mode only).
         leave: robot -> ``(round, phase)`` at which it drops out (failure injection; phases
             in :data:`~como3r.decentralized.robot.PHASES`).
+        progress: called with each robot's :class:`RobotProgress` after every round it took
+            part in and with its :class:`RobotReport` (also the one of a robot process that
+            died), one at a time.
 
     Raises:
         ConfigError: an unknown phase in ``leave``.
@@ -409,24 +433,24 @@ def run_protocol(agent_paths: Sequence[str | Path], config: Config,
     start = time.perf_counter()
     if settings.protocol.processes:
         router = _run_processes(agent_paths, config, settings, prior_spec, schedule, rounds,
-                                leave, max_bytes)
+                                leave, max_bytes, progress)
     else:
         router = _run_threads(agent_paths, config, settings, prior_spec, schedule, rounds,
-                              leave, max_bytes, prior)
+                              leave, max_bytes, prior, progress)
     return ProtocolResult(router.reports, router.traffic, rounds, time.perf_counter() - start)
 
 
 def _run_threads(agent_paths: Sequence[str | Path], config: Config,
                  settings: DecentralizedConfig, prior_spec: Any, schedule: Schedule,
                  rounds: list[RoundPlan], leave: dict[int, tuple[int, str]], max_bytes: int,
-                 prior: Prior | None) -> Router:
+                 prior: Prior | None, progress: MissionProgress | None) -> Router:
     codebook = None
     if prior is None or settings.place_method == "asmk":
         prior, codebook = build_prior(prior_spec, config, settings.place_method,
                                       {r: str(path) for r, path in enumerate(agent_paths)})
     links: dict[int, ThreadLink] = {}
     router = Router(schedule, lambda robot, data: links[robot].inbox.put(data), max_bytes,
-                    range(len(agent_paths)))
+                    range(len(agent_paths)), progress)
     links.update({r: ThreadLink(router, max_bytes) for r in range(len(agent_paths))})
     # Robots are built (files opened, classes imported) and message types resolved here,
     # one at a time: CPython 3.11's AST constructor fails when threads compile concurrently
@@ -452,14 +476,14 @@ def _run_threads(agent_paths: Sequence[str | Path], config: Config,
 def _run_processes(agent_paths: Sequence[str | Path], config: Config,
                    settings: DecentralizedConfig, prior_spec: Any, schedule: Schedule,
                    rounds: list[RoundPlan], leave: dict[int, tuple[int, str]],
-                   max_bytes: int) -> Router:
+                   max_bytes: int, progress: MissionProgress | None) -> Router:
     context = multiprocessing.get_context("spawn")
     slots: dict[int, _ProcessSlot] = {}
 
     def deliver(robot: int, data: bytes) -> None:
         slots[robot].queue.put(data)
 
-    router = Router(schedule, deliver, max_bytes, range(len(agent_paths)))
+    router = Router(schedule, deliver, max_bytes, range(len(agent_paths)), progress)
     for robot, path in enumerate(agent_paths):
         to_robot_r, to_robot_w = context.Pipe(duplex=False)
         from_robot_r, from_robot_w = context.Pipe(duplex=False)
@@ -502,6 +526,8 @@ def _run_processes(agent_paths: Sequence[str | Path], config: Config,
             slot.process.terminate()
         if robot not in router.reports:
             router.reports[robot] = _failure(robot, RuntimeError("the robot process died"))
+            if progress is not None:
+                progress(router.reports[robot])
     return router
 
 

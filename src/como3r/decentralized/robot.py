@@ -43,6 +43,7 @@ from como3r.decentralized.messages import (
     PlaceDescriptors,
     PoseEstimate,
     PoseGraphShare,
+    RobotProgress,
     RobotReport,
 )
 from como3r.decentralized.place_recognition import PlaceRecognizer, candidate_pairs
@@ -123,6 +124,7 @@ class Robot:
         self.recognizer = recognizer
         self.registrar = Registrar(prior, robot, self._view, settings.registration)
         odometry = frame_odometry(agent)
+        self._frame_times = odometry.timestamps
         #: Path length between keyframes [odometry units]: a fraction of the scene depth.
         self.keyframe_distance = settings.keyframe_distance_ratio * self.registrar.scene_depth(
             self._frame_view(int(odometry.frames[0])))
@@ -146,7 +148,8 @@ class Robot:
     # ------------------------------------------------------------------ running
 
     def run(self, rounds: list[RoundPlan]) -> RobotReport:
-        """Take part in ``rounds`` (those whose group holds this robot), then report."""
+        """Take part in ``rounds`` (those whose group holds this robot), telling the driver
+        how far the mission got after each, then report."""
         left = False
         for plan in rounds:
             if self.robot not in plan.group:
@@ -157,6 +160,10 @@ class Robot:
                 logger.info("robot %d leaves during round %d", self.robot, plan.round)
                 left = True
                 break
+            self.link.send(RobotProgress(
+                sender=self.robot, recipient=DRIVER, round=plan.round,
+                frames_done=int(np.searchsorted(self._frame_times, plan.time_s, side="right")),
+                keyframes=self.keyframes.up_to(plan.time_s)))
         return self.report(left)
 
     def report(self, left: bool = False) -> RobotReport:

@@ -14,6 +14,11 @@ robots (:func:`~como3r.decentralized.protocol.run_protocol`), and writes the out
   solver time;
 * ``config.yaml``, ``report.html`` and, with ground truth, ``ate.json`` and
   ``trajectories.png``.
+
+Progress goes to an optional callback as for the centralized mode (:mod:`como3r.progress`):
+per robot, its frames with odometry up to the mission time of its latest round and its
+keyframes (a robot's odometry never loses track: no lost or relocalized frames), then a
+phase event as each step of writing the outputs starts.
 """
 
 from __future__ import annotations
@@ -42,7 +47,7 @@ from como3r.decentralized.keyframes import (
     frame_poses,
     select_keyframes,
 )
-from como3r.decentralized.messages import RobotReport
+from como3r.decentralized.messages import RobotProgress, RobotReport
 from como3r.decentralized.pose_graph import (
     LoopClosure,
     PoseGraphProblem,
@@ -54,7 +59,7 @@ from como3r.errors import Como3rError, InputError
 from como3r.io.output import atomic_output_dir, check_output_dir
 from como3r.io.tum import Trajectory, write_tum
 from como3r.prior.base import Prior
-
+from como3r.progress import AgentProgress, PhaseCallback, ProgressCallback, report_phase
 
 
 @dataclasses.dataclass
@@ -77,6 +82,7 @@ def run_decentralized(
     schedule: Schedule | None = None,
     prior: Prior | None = None,
     leave: dict[int, tuple[int, str]] | None = None,
+    progress: ProgressCallback | None = None,
 ) -> Any:
     """Run the decentralized mode and write the output folder.
 
@@ -92,6 +98,10 @@ def run_decentralized(
         schedule: rendezvous schedule; default from ``protocol.schedule``.
         prior: a prior shared by robot threads (``protocol.processes`` false only).
         leave: robot -> ``(round, phase)`` at which it drops out (failure injection).
+        progress: called with each robot's :class:`~como3r.progress.AgentProgress` as the
+            mission starts, after every round it took part in and when it reports (state
+            ``failed`` if it failed), and with a :class:`~como3r.progress.PhaseEvent` as each
+            step of writing the outputs starts.
 
     Returns:
         A :class:`~como3r.runtime.pipeline.RunSummary` (output folder, per-robot rows,
@@ -112,7 +122,8 @@ def run_decentralized(
     end_s = max(float(r.odometry.timestamps[-1]) for r in robots)
     started = time.perf_counter()
     result = run_protocol([str(p) for p in agent_paths], config, settings, prior_spec, end_s,
-                          schedule, prior, leave)
+                          schedule, prior, leave,
+                          None if progress is None else _RobotProgress(progress, robots))
     failed = {r: report.error for r, report in result.reports.items() if report.error}
     if len(failed) == len(robots):
         raise Como3rError(f"every robot failed; robot 0: {failed[0].splitlines()[0]}")
@@ -126,7 +137,7 @@ def run_decentralized(
         robot.keyframes = _reported_keyframes(robot.odometry, result.reports.get(r))
     with atomic_output_dir(out, overwrite=overwrite) as staging:
         _write(staging, robots, result, config, settings, summary,
-               time.perf_counter() - started, prior_spec.name)
+               time.perf_counter() - started, prior_spec.name, progress)
     summary.out = Path(out)
     return summary
 
@@ -135,6 +146,34 @@ def _open_robot(path: str | Path, config: Config) -> _Robot:
     agent = open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format,
                        topic=config.input.topic)
     return _Robot(agent, frame_odometry(agent))
+
+
+class _RobotProgress:
+    """The robots' progress messages and reports as per-robot
+    :class:`~como3r.progress.AgentProgress` events; the first event of every robot (no
+    frames done) is sent when it is built."""
+
+    def __init__(self, progress: ProgressCallback, robots: list[_Robot]) -> None:
+        self.progress = progress
+        self.latest = [AgentProgress(r, 0, len(robot.odometry), 0, 0, 0)
+                       for r, robot in enumerate(robots)]
+        for event in self.latest:
+            progress(event)
+
+    def __call__(self, message: RobotProgress | RobotReport) -> None:
+        event = self.latest[message.sender]
+        if isinstance(message, RobotProgress):
+            event = dataclasses.replace(event, frames_done=message.frames_done,
+                                        keyframes=message.keyframes)
+        elif message.error:
+            event = dataclasses.replace(event, state="failed")
+        elif not message.left:  # the mission's end: every frame is done
+            event = dataclasses.replace(
+                event, frames_done=event.frames_total,
+                keyframes=int(message.stats.get("keyframes", event.keyframes)))
+        if event != self.latest[message.sender]:  # the last round may have said it all
+            self.latest[message.sender] = event
+            self.progress(event)
 
 
 def _reported_keyframes(odometry: FrameOdometry, report: RobotReport | None) -> Keyframes:
@@ -155,9 +194,11 @@ def _frame_groups(reports: dict[int, RobotReport], count: int) -> list[list[int]
 
 
 def _write(staging: Path, robots: list[_Robot], result: ProtocolResult, config: Config,
-           settings: DecentralizedConfig, summary: Any, seconds: float, prior: str) -> None:
+           settings: DecentralizedConfig, summary: Any, seconds: float, prior: str,
+           progress: PhaseCallback | None = None) -> None:
     from como3r.runtime.outputs import write_json
 
+    report_phase(progress, "outputs", "config.yaml, trajectories, graph.json")
     reports = result.reports
     document = {**config_to_dict(config), "decentralized": dataclasses.asdict(settings)}
     (staging / "config.yaml").write_text(yaml.safe_dump(document, sort_keys=False))
@@ -191,6 +232,8 @@ def _write(staging: Path, robots: list[_Robot], result: ProtocolResult, config: 
     has_gt = all(r.agent.groundtruth is not None for r in robots)
     table_weights: dict[tuple, float] = {}
     if settings.table and has_gt and loops:
+        report_phase(progress, "formulation table",
+                     f"{len(FORMULATIONS)} formulations x {len(SOLVERS)} solvers")
         metrics["table"], table_weights = _formulation_table(robots, loops, settings)
     write_json(staging / "graph.json", _graph_document(robots, estimates, loops, rejected,
                                                        groups, table_weights))
@@ -203,6 +246,7 @@ def _write(staging: Path, robots: list[_Robot], result: ProtocolResult, config: 
     if has_gt:
         from como3r.evaluation.report import evaluate_run
 
+        report_phase(progress, "evaluation", "ATE and RPE through evo")
         evaluation = evaluate_run(staging, [r.agent.root for r in robots], staging,
                                   components=groups if len(groups) > 1 else None)
         metrics["ate"] = evaluation.to_json()
@@ -212,6 +256,7 @@ def _write(staging: Path, robots: list[_Robot], result: ProtocolResult, config: 
     write_json(staging / "metrics.json", metrics)
     from como3r.evaluation.html import write_report
 
+    report_phase(progress, "report", "report.html")
     write_report(staging, summary.notes,
                  [r.agent.groundtruth for r in robots] if has_gt else None)
 
