@@ -262,7 +262,6 @@ def test_run_takes_all_three_files_from_the_cache(official_names) -> None:
 def test_cli_fetch_progress_lines_and_quiet(official_names, tmp_path, monkeypatch) -> None:
     """Not on a terminal: one line per file as its download completes (as run's plain
     progress); --quiet: none, the cache and the files' statuses still printed."""
-    home, _ = official_names
     plain = _cli("weights", "fetch", "--trust-unverified")
     assert plain.exit_code == 0, plain.output
     lines = [line.split("] ", 1)[1] for line in plain.output.splitlines()

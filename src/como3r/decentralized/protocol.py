@@ -33,7 +33,7 @@ from collections import Counter
 from dataclasses import asdict, dataclass, field
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
-from typing import Any, Callable, Sequence, Union
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -56,7 +56,7 @@ from como3r.runtime import codec
 
 logger = logging.getLogger(__name__)
 
-MissionProgress = Callable[[Union[RobotProgress, RobotReport]], None]
+MissionProgress = Callable[[RobotProgress | RobotReport], None]
 """What the driver calls with the robots' progress messages and final reports."""
 
 
