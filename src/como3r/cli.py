@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, List, Optional
 
 import typer
 
+from como3r import cli_network
 from como3r.cli_common import (
     Command,
     OneLineErrorsGroup,
@@ -454,6 +455,10 @@ def demo(
             console.print(line)
         console.print(f"scene: {scene}\nrun:   {out / 'run'} "
                       f"(open {out / 'run' / 'report.html'})")
+
+
+app.command("coordinator", cls=Command)(cli_network.coordinator)
+app.command("agent", cls=Command)(cli_network.agent)
 
 
 def main() -> None:

@@ -184,7 +184,8 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
         staging: the run folder being written.
         summary: the run's summary (``agents``, ``notes``, ``evaluation`` are filled in).
         metrics: the metrics document; gains ``ate`` and ``map_accuracy``.
-        agents: the agent inputs (``root``, ``groundtruth``, depth and calibration).
+        agents: the agent inputs (``root``, ``groundtruth``, depth and calibration);
+            empty where this process has none (a networked coordinator).
         components: gauge components: merged ATE only within each.
         results: front-ends or agent results (``agent``, ``keyframes``), in agent order.
         coordinator: the run's coordinator (``pre_refinement`` keyframes).
@@ -198,7 +199,7 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
     if metrics["prior"].get("name") == "SimulatedPrior":
         summary.notes.insert(0, SIMULATED_NOTE)
     metrics["ate"] = None
-    if all(a.groundtruth is not None for a in agents):
+    if agents and all(a.groundtruth is not None for a in agents):
         report_phase(progress, "evaluation", "ATE and RPE through evo", 0, 2)
         try:
             evaluation = evaluate_run(staging, [a.root for a in agents], staging,

@@ -1,0 +1,154 @@
+"""``como3r coordinator`` and ``como3r agent``: one run across machines over Zenoh
+(:mod:`como3r.runtime.network`; README, "Across machines")."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from como3r.cli_common import console, interrupt_leaves_nothing, on_interrupt, user_errors
+from como3r.cli_progress import QUIET_HELP, run_progress
+from como3r.errors import InputError
+
+DEFAULT_PORT = 7447
+
+SESSION_HELP = "Name of the run in the Zenoh key expressions (several runs on one network)."
+SCOUTING_HELP = ("Find peers by UDP multicast on the local network too (off: only the given "
+                 "endpoints).")
+ZENOH_CONFIG_HELP = ("Zenoh configuration file (JSON5) to start from: TLS, authentication, "
+                     "access control as Zenoh documents them; the options here are set on "
+                     "top of it.")
+PRIOR_HELP = ("mast3r | simulated (a stand-in made from ground-truth depth, for synthetic "
+              "scenes and tests). The same on the coordinator and every agent.")
+
+
+def _network(listen: List[str], connect: List[str], scouting: bool,
+             zenoh_config: Optional[Path], session: str):
+    from como3r.runtime.transport_zenoh import ZenohOptions
+
+    if zenoh_config is not None and not zenoh_config.is_file():
+        raise InputError(f"--zenoh-config {zenoh_config}: no such file")
+    return ZenohOptions(tuple(listen), tuple(connect), scouting, zenoh_config, session)
+
+
+def _prior_spec(prior: str, weights: Optional[Path], retrieval_weights: Optional[Path],
+                codebook: Optional[Path], device: str, precision: str):
+    from como3r.cli import _check_device
+    from como3r.prior.mast3r.precision import PRECISIONS, check_precision
+    from como3r.runtime.pipeline import PRIORS, PriorSpec, resolve_weights
+
+    _check_device(device)
+    if prior not in PRIORS:
+        raise InputError(f"unknown --prior {prior!r}; choose one of {', '.join(PRIORS)}")
+    if precision not in PRECISIONS:
+        raise InputError(f"unknown --precision {precision!r}; choose one of "
+                         f"{', '.join(PRECISIONS)}")
+    spec = PriorSpec(prior, weights, retrieval_weights, codebook, device, precision)
+    if prior == "mast3r":
+        check_precision(device, precision)
+        spec = resolve_weights(spec)
+    return spec
+
+
+@interrupt_leaves_nothing
+@user_errors
+def coordinator(
+    listen: List[str] = typer.Option(
+        [f"tcp/0.0.0.0:{DEFAULT_PORT}"], "--listen", metavar="ENDPOINT",
+        help="Zenoh endpoint the agents connect to (repeat for several)."),
+    connect: List[str] = typer.Option([], "--connect", metavar="ENDPOINT",
+                                      help="Zenoh endpoint to connect to as well (repeat)."),
+    out: Path = typer.Option(..., "--out", help="Output folder."),
+    agents: int = typer.Option(2, "--agents", min=1,
+                               help="Agents taking part, ids 0 to N-1 (como3r agent --id)."),
+    gt: List[Path] = typer.Option([], "--gt", metavar="PATH",
+                                  help="Ground truth per agent to evaluate against, as "
+                                       "como3r eval --gt (repeat per agent, in id order)."),
+    prior: str = typer.Option("mast3r", "--prior", help=PRIOR_HELP),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="MASt3R checkpoint."),
+    retrieval_weights: Optional[Path] = typer.Option(None, "--retrieval-weights",
+                                                     help="MASt3R retrieval checkpoint."),
+    codebook: Optional[Path] = typer.Option(None, "--codebook", help="ASMK codebook .pkl."),
+    device: str = typer.Option("cpu", "--device", help="cpu | cuda"),
+    precision: str = typer.Option("auto", "--precision", help="auto | fp32 | bf16 | fp16"),
+    config_file: Optional[Path] = typer.Option(None, "--config",
+                                               help="YAML configuration (sent to the agents)."),
+    overrides: List[str] = typer.Option([], "--set", metavar="KEY=VALUE",
+                                        help="Override, e.g. tracking.sigma_ray=0.002."),
+    calib: bool = typer.Option(False, "--calib", help="Use each agent's calib.txt."),
+    no_loop_closure: bool = typer.Option(False, "--no-loop-closure", help="Ablation."),
+    agent_timeout: float = typer.Option(
+        900.0, "--agent-timeout", metavar="SECONDS", min=0.1,
+        help="An agent silent for longer (or that never joins) counts as failed."),
+    max_message_mb: float = typer.Option(256.0, "--max-message-mb", min=0.001,
+                                         help="Size cap of one message; larger ones are "
+                                              "dropped."),
+    session: str = typer.Option("como3r", "--session", help=SESSION_HELP),
+    scouting: bool = typer.Option(False, "--scouting", help=SCOUTING_HELP),
+    zenoh_config: Optional[Path] = typer.Option(None, "--zenoh-config", metavar="FILE",
+                                                help=ZENOH_CONFIG_HELP),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
+) -> None:
+    """Coordinate agents on other machines (como3r agent) over Zenoh.
+
+    Writes the output folder once every agent has finished or failed."""
+    import torch
+
+    from como3r.cli import _load_config, _print_summary
+    from como3r.io.output import check_output_dir
+    from como3r.runtime.network import serve
+    from como3r.runtime.processes import RuntimeOptions
+
+    network = _network(listen, connect, scouting, zenoh_config, session)
+    spec = _prior_spec(prior, weights, retrieval_weights, codebook, device, precision)
+    check_output_dir(out, overwrite)
+    config = _load_config(config_file, overrides, calib, no_loop_closure)
+    threads = torch.get_num_threads()  # this machine runs no agent
+    options = RuntimeOptions(torch_threads=threads, max_message_bytes=int(max_message_mb * 2**20),
+                             agent_timeout_s=agent_timeout)
+    with run_progress(quiet) as shown:
+        summary = serve(network, agents, out, config, spec, options, ground_truth=gt,
+                        overwrite=overwrite, progress=shown)
+    _print_summary(summary, out)
+
+
+@on_interrupt(lambda kwargs: f"interrupted: agent {kwargs['agent_id']} stopped")
+@user_errors
+def agent(
+    path: Path = typer.Argument(..., metavar="PATH", show_default=False,
+                                help="This agent's input (as como3r run --agent)."),
+    connect: List[str] = typer.Option(
+        [], "--connect", metavar="ENDPOINT",
+        help=f"The coordinator's Zenoh endpoint, e.g. tcp/HOST:{DEFAULT_PORT} (repeat)."),
+    listen: List[str] = typer.Option([], "--listen", metavar="ENDPOINT",
+                                     help="Zenoh endpoint to listen on as well (repeat)."),
+    agent_id: int = typer.Option(..., "--id", min=0, help="This agent's id (0 to N-1)."),
+    prior: str = typer.Option("mast3r", "--prior", help=PRIOR_HELP),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="MASt3R checkpoint."),
+    retrieval_weights: Optional[Path] = typer.Option(None, "--retrieval-weights",
+                                                     help="MASt3R retrieval checkpoint."),
+    codebook: Optional[Path] = typer.Option(None, "--codebook", help="ASMK codebook .pkl."),
+    device: str = typer.Option("cpu", "--device", help="cpu | cuda"),
+    precision: str = typer.Option("auto", "--precision", help="auto | fp32 | bf16 | fp16"),
+    threads: Optional[int] = typer.Option(None, "--threads", min=1,
+                                          help="Torch threads (default: torch's here)."),
+    session: str = typer.Option("como3r", "--session", help=SESSION_HELP),
+    scouting: bool = typer.Option(False, "--scouting", help=SCOUTING_HELP),
+    zenoh_config: Optional[Path] = typer.Option(None, "--zenoh-config", metavar="FILE",
+                                                help=ZENOH_CONFIG_HELP),
+) -> None:
+    """Track one camera for a coordinator on another machine (como3r coordinator).
+
+    Leaves once the coordinator has stored every message."""
+    from como3r.runtime.network import run_remote_agent
+
+    if not connect and not scouting:
+        raise InputError("give the coordinator's --connect tcp/HOST:PORT (or --scouting)")
+    network = _network(listen, connect, scouting, zenoh_config, session)
+    spec = _prior_spec(prior, weights, retrieval_weights, codebook, device, precision)
+    if not run_remote_agent(network, agent_id, path, spec, threads):
+        raise InputError(f"agent {agent_id} did not finish its input (see the log above)")
+    console.print(f"agent {agent_id}: finished; the coordinator has every message")

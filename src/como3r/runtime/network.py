@@ -1,0 +1,103 @@
+"""A run across machines: ``como3r coordinator`` and ``como3r agent`` (README, "Across
+machines").
+
+The coordinator (:func:`serve`) is the loop of :mod:`como3r.runtime.processes` over a
+:class:`~como3r.runtime.transport_zenoh.ZenohHub`; each agent (:func:`run_remote_agent`)
+is the frame loop of :mod:`como3r.runtime.agent_worker` over a
+:class:`~como3r.runtime.transport_zenoh.ZenohAgentLink`. The coordinator owns the run's
+configuration and sends it with every agent's task; an agent brings its input and its prior
+files (its own paths, its own device).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+from typing import Sequence
+
+import torch
+
+from como3r.config import Config
+from como3r.errors import InputError
+from como3r.progress import ProgressCallback
+from como3r.runtime.agent_worker import prior_fields, run_agent
+from como3r.runtime.pipeline import PriorSpec, RunSummary, open_agents
+from como3r.runtime.processes import RuntimeOptions, coordinate
+from como3r.runtime.transport_zenoh import Keys, ZenohAgentLink, ZenohHub, ZenohOptions, \
+    open_session
+
+logger = logging.getLogger(__name__)
+
+
+def serve(network: ZenohOptions, agents: int, out: Path, config: Config, prior_spec: PriorSpec,
+          options: RuntimeOptions, ground_truth: Sequence[Path] = (), overwrite: bool = False,
+          progress: ProgressCallback | None = None) -> RunSummary:
+    """Coordinate agents ``0 .. agents-1`` joining over Zenoh until each has finished or
+    failed; write the output folder.
+
+    Args:
+        network: where to listen (and connect).
+        agents: how many agents take part.
+        out: output folder (created atomically).
+        config: the run's configuration, sent to every agent.
+        prior_spec: the prior of the coordinator (its name goes to the agents).
+        options: runtime knobs (``agent_timeout_s`` also bounds the wait for an agent that
+            never joins).
+        ground_truth: per agent, an input with ground truth to evaluate against (as
+            ``como3r eval --gt``); empty: no evaluation.
+        overwrite: replace an existing non-empty output folder.
+        progress: as for :func:`~como3r.runtime.processes.run_multiprocess`.
+
+    Raises:
+        InputError: bad ground truth, a network error, or every agent failed.
+    """
+    if ground_truth and len(ground_truth) != agents:
+        raise InputError(f"--gt: {len(ground_truth)} given for {agents} agents")
+    inputs = open_agents(list(ground_truth), config) if ground_truth else []
+    keys = Keys(network.session)
+    session = open_session(network)
+    try:
+        hub = ZenohHub(session, keys, agents, options.max_message_bytes,
+                       options.shutdown_grace_s)
+        logger.info("coordinator of %s listening on %s", keys.root, ", ".join(network.listen))
+        return coordinate(hub, [None] * agents, [0] * agents, out, config, prior_spec, options,
+                          inputs=inputs, overwrite=overwrite, progress=progress)
+    finally:
+        session.close()
+
+
+def run_remote_agent(network: ZenohOptions, agent: int, path: Path, prior_spec: PriorSpec,
+                     threads: int | None = None) -> bool:
+    """Run agent ``agent`` on ``path`` for the coordinator reached through ``network``:
+    wait for it, take its task, track every frame, and leave once the coordinator has
+    stored the last message.
+
+    Args:
+        threads: torch threads of this agent (None: torch's default here).
+
+    Returns:
+        Whether the agent ran to the end of its input without an error.
+
+    Raises:
+        InputError: a missing input, a network error, an id the coordinator does not
+            have, or a prior other than the coordinator's.
+    """
+    if not path.exists():
+        raise InputError(f"{path}: agent input does not exist")
+    session = open_session(network)
+    try:
+        link = ZenohAgentLink(session, Keys(network.session), agent)
+        task = link.fetch_task()
+        if task.prior["name"] != prior_spec.name:
+            link.close()
+            raise InputError(f"--prior {prior_spec.name}: the coordinator runs --prior "
+                             f"{task.prior['name']}")
+        task = dataclasses.replace(
+            task, input_path=str(path), prior=prior_fields(prior_spec),
+            torch_threads=threads if threads is not None else torch.get_num_threads(),
+            log_level=logging.getLogger().getEffectiveLevel())
+        logger.info("agent %d: task received, running %s", agent, path)
+        return run_agent(task, link)
+    finally:
+        session.close()
