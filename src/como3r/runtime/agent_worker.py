@@ -109,8 +109,7 @@ class AgentWorker:
         self.task = task
         self.channel = channel
         self.config = config_from_dict(Config, task.config)
-        spec = PriorSpec(**{k: (Path(v) if k in PATH_FIELDS and v is not None else v)
-                            for k, v in task.prior.items()})
+        spec = prior_spec(task.prior)
         self.input = open_agent(task.input_path, fps=self.config.input.frame_rate_hz,
                                 format=self.config.input.format, topic=self.config.input.topic)
         self.prior, codebook = build_prior(spec, self.config, {task.agent: self.input},
@@ -228,7 +227,14 @@ PATH_FIELDS = ("weights", "retrieval_weights", "codebook")
 
 def prior_fields(spec: PriorSpec) -> dict[str, Any]:
     """``AgentTask.prior`` of a prior specification (paths as strings)."""
-    return {"name": spec.name, "device": spec.device,
+    return {"name": spec.name, "device": spec.device, "precision": spec.precision,
             **{k: (None if getattr(spec, k) is None else str(getattr(spec, k)))
                for k in PATH_FIELDS}}
+
+
+def prior_spec(fields: dict[str, Any]) -> PriorSpec:
+    """The prior specification of ``AgentTask.prior`` (the inverse of :func:`prior_fields`;
+    a task without ``precision`` gets the default)."""
+    return PriorSpec(**{k: (Path(v) if k in PATH_FIELDS and v is not None else v)
+                        for k, v in fields.items()})
 

@@ -51,7 +51,7 @@ class AgentTask:
         config: the effective configuration as a nested mapping
             (:func:`como3r.config.config_to_dict`; the agent re-validates it).
         prior: the prior specification (``name``, ``weights``, ``retrieval_weights``,
-            ``codebook``, ``device``; paths as strings or None).
+            ``codebook``, ``device``, ``precision``; paths as strings or None).
         torch_threads: intra-op threads of the agent's torch.
         lockstep: process a frame only when told by a :class:`Step`.
         max_message_bytes: size cap of every message.

@@ -1,0 +1,49 @@
+"""An agent process builds the prior its task names, precision included."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+import pytest
+
+from como3r.config import Config, apply_overrides
+from como3r.data.synth import synthesize
+from como3r.prior.mast3r.testing import tiny_network, write_checkpoint
+from como3r.runtime.agent_worker import AgentWorker, prior_fields, prior_spec
+from como3r.runtime.codec import decode, encode
+from como3r.runtime.messages import AgentTask
+from como3r.runtime.pipeline import PriorSpec
+from como3r.runtime.processes import RuntimeOptions, _Runtime
+
+
+class _TaskRecorder:
+    """A hub that only keeps the tasks it is given."""
+
+    name = "recorder"
+
+    def start(self, tasks: Sequence[AgentTask], rejoin: Any = None) -> None:
+        self.tasks = list(tasks)
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_the_task_carries_the_precision_to_the_agent_prior(tmp_path, precision) -> None:
+    (tmp_path / "scene").mkdir()
+    synthesize(tmp_path / "scene", agents=1, seed=0, overlap=0.5, frames=4, preset="default",
+               width=64, height=48, progress=None)
+    ckpt = write_checkpoint(tmp_path / "tiny.pth", tiny_network(seed=0))
+    spec = PriorSpec("mast3r", weights=ckpt, precision=precision)
+    assert prior_spec(prior_fields(spec)) == spec
+    config = apply_overrides(Config(), ["input.long_side=64"])
+    hub = _TaskRecorder()
+    runtime = _Runtime(hub, [4], config, spec, RuntimeOptions(), None)
+    runtime.start([tmp_path / "scene" / "agent_0"], spec)
+    task = decode(encode(hub.tasks[0]), expected=AgentTask)  # as it crosses the wire
+    worker = AgentWorker(task, channel=None)
+    assert worker.prior.describe()["precision"] == precision
+    assert runtime.prior.describe()["precision"] == precision  # the coordinator's own
+
+
+def test_a_task_without_precision_gets_the_default() -> None:
+    assert prior_spec({"name": "simulated", "device": "cpu"}) == PriorSpec("simulated")
+    assert isinstance(prior_spec({"name": "mast3r", "weights": "w.pth"}).weights, Path)
