@@ -170,3 +170,26 @@ def test_the_real_7scenes_excerpt_runs_end_to_end(tmp_path):
     ate = json.loads((out / "metrics.json").read_text())["ate"]["agents"][0]
     assert ate["frames"] == 5
     assert np.isfinite(ate["ate"]["rmse"]) and ate["ate"]["rmse"] < 0.002, ate
+
+
+def test_split_makes_overlapping_agents_from_a_dataset_sequence(tmp_path):
+    seq = tum_from_synthetic(tmp_path, frames=20)
+    result = _invoke("split", str(seq), "--agents", "3", "--overlap", "0.2",
+                     "--out", str(tmp_path / "agents"))
+    assert result.exit_code == 0, result.output
+    folders = sorted((tmp_path / "agents").glob("agent_*"))
+    assert [f.name for f in folders] == ["agent_0", "agent_1", "agent_2"]
+    stamps = [np.loadtxt(f / "timestamps.txt", ndmin=1, usecols=0) for f in folders]
+    assert sum(len(s) for s in stamps) > 20  # every frame, and the shared ones twice
+    for earlier, later in zip(stamps, stamps[1:]):
+        assert later[0] <= earlier[-1]  # consecutive agents share a stretch
+    truth = read_tum(folders[1] / "groundtruth.txt")
+    assert truth.timestamps[0] <= stamps[1][0] and stamps[1][-1] <= truth.timestamps[-1]
+
+
+def test_split_fails_without_leaving_a_folder(tmp_path, only_error_line):
+    seq = tum_from_synthetic(tmp_path, frames=4)
+    line = only_error_line(_invoke("split", str(seq), "--agents", "3",
+                                   "--out", str(tmp_path / "agents")))
+    assert "too few for 3 agents" in line
+    assert not (tmp_path / "agents").exists()

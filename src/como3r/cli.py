@@ -95,6 +95,35 @@ def synth(
     console.print(f"wrote {agents} agent folder(s) to {out}")
 
 
+@app.command(cls=Command)
+@interrupt_leaves_nothing
+@user_errors
+def split(
+    sequence: Path = typer.Argument(..., metavar="SEQ", show_default=False,
+                                    help="One sequence: a dataset folder, an agent folder, a "
+                                         "video or a ROS log (layout detected)."),
+    out: Path = typer.Option(..., "--out", help="Folder to write agent_0 ... agent_<K-1> to."),
+    agents: int = typer.Option(..., "--agents", min=1, help="Number of agents K."),
+    overlap: float = typer.Option(0.05, "--overlap", min=0.0, max=0.99,
+                                  help="Fraction of each agent's frames shared with the next "
+                                       "agent (CoMo3R's protocol: a short shared segment)."),
+    stride: int = typer.Option(1, "--stride", min=1,
+                               help="Keep every N-th frame of the sequence before splitting."),
+    format: str = typer.Option("auto", "--format", help="Layout of SEQ (see run --format)."),
+    topic: str = typer.Option("", "--topic", help="A ROS log's image topic."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
+) -> None:
+    """Split one sequence into K overlapping agent inputs, as the CoMo3R paper does."""
+    from como3r.data.split import split_sequence
+    from como3r.io.output import atomic_output_dir
+
+    with atomic_output_dir(out, overwrite=overwrite) as staging:
+        folders = split_sequence(sequence, staging, agents=agents, overlap=overlap,
+                                 stride=stride, topic=topic, format=format)
+    console.print(f"wrote {len(folders)} agent folder(s) to {out}: "
+                  + " ".join(f"{out / f.name}" for f in folders))
+
+
 FORMAT_HELP = ("Layout of the input folders: auto (detect) | agent | tum (TUM RGB-D) | "
                "7scenes | euroc (EuRoC MAV) | kitti (KITTI odometry) | tanks (Tanks and "
                "Temples) | rosbag (ROS 1 .bag, ROS 2 bag folder).")

@@ -61,7 +61,7 @@ def chunk_ranges(num_frames: int, agents: int, overlap: float) -> list[tuple[int
 
 def split_sequence(
     src: str | Path, out: str | Path, agents: int, overlap: float, stride: int = 1,
-    topic: str = "",
+    topic: str = "", format: str = "auto",
 ) -> list[Path]:
     """Write ``out/agent_<a>/`` agent inputs, one per contiguous sub-sequence of ``src``.
 
@@ -81,6 +81,7 @@ def split_sequence(
         overlap: fraction in [0, 1) of each chunk shared with the next one.
         stride: keep every ``stride``-th frame of the source before splitting.
         topic: a ROS log's image topic (empty: its only one).
+        format: the source's layout (``auto``: detected; :func:`open_agent`).
 
     Returns:
         The N agent folders, in order.
@@ -95,7 +96,7 @@ def split_sequence(
         raise InputError(f"overlap must be a fraction in [0, 1), got {overlap!r}")
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
         raise InputError(f"stride must be an integer >= 1, got {stride!r}")
-    source = open_agent(src, topic=topic)
+    source = open_agent(src, format=format, topic=topic)
     kept = np.arange(0, source.num_frames, stride)
     length = chunk_length(len(kept), agents, overlap)
     if length < MIN_FRAMES_PER_AGENT:
