@@ -67,9 +67,10 @@ def split_sequence(
 
     Images, depth and surface maps are hard-linked (copied across file systems; a video's
     frames, a ROS log's, and the frames of a reader that changes the pixels such as EuRoC's
-    undistortion, are written as PNG) under the frame's stem, so they pair up in the agent
-    layout; depth PNGs of another scale than the agent layout's 5000 per metre (7-Scenes) are
-    written as ``.npy`` float32 metres. Each agent gets a ``timestamps.txt`` of its frames, the
+    or TUM freiburg 1/2's undistortion, are written as PNG) under the frame's stem, so they
+    pair up in the agent layout; depth PNGs of another scale than the agent layout's 5000 per
+    metre (7-Scenes) and the depth of an undistorting reader are written as ``.npy`` float32
+    metres. Each agent gets a ``timestamps.txt`` of its frames, the
     ``groundtruth.txt`` / ``odometry.txt`` rows that fall within its time span (plus the
     association window), and the source's ``calib.txt``.
 
@@ -123,14 +124,16 @@ def _write_side_files(source: AgentInput, frames: np.ndarray, folder: Path) -> N
     (folder / "rgb").mkdir(parents=True, exist_ok=True)
     stamps = source.timestamps[frames]
     (folder / "timestamps.txt").write_text("".join(f"{t!r}\n" for t in stamps.tolist()))
+    # a reader that changes the pixels (undistortion) changes its depth maps alike
+    remapped = source.video is None and not source.frames_are_files
     for name, paths in (("depth", source.depth_paths), ("surface", source.surface_paths)):
         if paths:
             (folder / name).mkdir(exist_ok=True)
             for i in frames:
                 target = folder / name / f"{source.stems[i]}{paths[i].suffix}"
-                if name == "depth" and paths[i].suffix.lower() == ".png" and (
+                if name == "depth" and (remapped or paths[i].suffix.lower() == ".png" and (
                         source.depth_units_per_metre != DEPTH_PNG_PER_METRE
-                        or source.depth_invalid != (0,)):
+                        or source.depth_invalid != (0,))):
                     np.save(target.with_suffix(".npy"), source.load_depth(int(i)))
                 else:
                     _link_or_copy(paths[i], target)

@@ -125,13 +125,15 @@ def test_ground_truth_of_each_dataset_layout(layouts, tmp_path):
                                [0.1, 0.2, 0.3, 0.5])
 
 
-@pytest.mark.parametrize("kind", ["tum", "7scenes"])
+@pytest.mark.parametrize("kind", ["tum", "tum-freiburg1", "7scenes"])
 def test_a_dataset_sequence_splits_into_agent_folders(layouts, tmp_path, kind):
     """Images and depth are named by frame stem so they pair up in the agent layout;
     7-Scenes millimetre depth is written as metres (.npy), TUM depth (5000 per metre, the
-    agent layout's scale) is linked."""
-    if kind == "tum":
-        source_path = tmp_path / "rgbd_dataset_freiburg1_long"
+    agent layout's scale) is linked, except where the reader undistorts (freiburg 1): then
+    the undistorted frames and depth maps are written."""
+    if kind.startswith("tum"):
+        kinect = "1" if kind == "tum-freiburg1" else "3"
+        source_path = tmp_path / f"rgbd_dataset_freiburg{kinect}_long"
         write_tum(source_path, n=8)
     else:
         source_path = tmp_path / "seq-long"
@@ -142,6 +144,8 @@ def test_a_dataset_sequence_splits_into_agent_folders(layouts, tmp_path, kind):
     assert first.format == "agent" and first.calib == source.calib
     suffixes = {p.suffix for p in (folders[0] / "depth").iterdir()}
     assert suffixes == ({".png"} if kind == "tum" else {".npy"})
+    assert (folders[0] / "rgb" / f"{source.stems[0]}.png").samefile(source.image_paths[0]) == (
+        kind != "tum-freiburg1")
     for i in range(first.num_frames):
         mine, theirs = first.load_frame(i), source.load_frame(i)
         assert mine.timestamp == theirs.timestamp

@@ -9,7 +9,7 @@ import pytest
 
 from como3r.data.agent import open_agent
 from como3r.data.readers import detect_format, read_ground_truth
-from como3r.data.readers.euroc import undistort
+from como3r.data.readers.undistort import undistort
 from como3r.data.split import split_sequence
 
 from .layouts import HEIGHT, WIDTH, input_error, pixels, write_7scenes

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -11,11 +12,11 @@ from PIL import Image
 
 from como3r.data.agent import open_agent
 from como3r.data.readers import read_ground_truth
-from como3r.data.readers.tum import INTRINSICS, associate, intrinsics_from_name
+from como3r.data.readers.tum import DISTORTION, INTRINSICS, associate, camera_from_name
 
 from .layouts import HEIGHT, WIDTH, depth_metres, input_error, pixels, write_tum
 
-NAME = "rgbd_dataset_freiburg1_desk"
+NAME = "rgbd_dataset_freiburg3_long_office_household"  # fr3: published undistorted
 
 
 def test_sequence_is_read_as_published(tmp_path):
@@ -25,7 +26,7 @@ def test_sequence_is_read_as_published(tmp_path):
     assert agent.format == "tum" and agent.num_frames == 5
     assert agent.image_size == (WIDTH, HEIGHT) and agent.name == NAME
     np.testing.assert_allclose(agent.timestamps, np.round(written["rgb"], 6), atol=1e-6)
-    assert agent.calib == INTRINSICS[1] == (517.3, 516.5, 318.6, 255.3)
+    assert agent.calib == INTRINSICS[3] == (535.4, 539.2, 320.1, 247.6)
     frame = agent.load_frame(3)
     np.testing.assert_array_equal(frame.image, pixels(3))
     expected = np.round(depth_metres(3) * 5000) / 5000
@@ -48,7 +49,42 @@ def test_sequence_is_read_as_published(tmp_path):
     ("my_sequence", None),
 ])
 def test_intrinsics_from_the_folder_name(name, calib):
-    assert intrinsics_from_name(name) == calib
+    assert camera_from_name(name)[0] == calib
+
+
+def _full_size_frames(seq) -> None:
+    """Replace a written sequence's images and depth maps with 640x480 ones (the size the
+    freiburg intrinsics are for): a checkerboard and depth steps of 0.1 m."""
+    v, u = np.mgrid[0:480, 0:640]
+    board = (((u // 20) + (v // 20)) % 2 * 200 + 20).astype(np.uint8)
+    for png in (seq / "rgb").iterdir():
+        Image.fromarray(np.stack([board, board, 255 - board], -1)).save(png)
+    steps = (5000 * (1.0 + 0.1 * ((u // 40) % 7))).astype(np.uint16)
+    for png in (seq / "depth").iterdir():
+        Image.fromarray(steps).save(png)
+
+
+def test_freiburg1_frames_are_undistorted_colour_and_depth_alike(tmp_path):
+    # the raw fr1 images bend straight lines: the reader undoes the published d0-d4
+    seq = tmp_path / "rgbd_dataset_freiburg1_desk"
+    write_tum(seq, n=2)
+    _full_size_frames(seq)
+    source = open_agent(seq)
+    assert source.calib == INTRINSICS[1] and not source.frames_are_files
+    raw = np.asarray(Image.open(source.image_paths[0]).convert("RGB"))
+    fx, fy, cx, cy = INTRINSICS[1]
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    expected = cv2.undistort(raw, K, np.array(DISTORTION[1]))
+    frame = source.load_frame(0)
+    assert np.abs(frame.image.astype(int) - expected.astype(int)).mean() < 2.0
+    assert np.abs(frame.image.astype(int) - raw.astype(int)).mean() > 10.0
+    # depth by nearest neighbour: every value is one of the raw map's, none interpolated
+    raw_depth = np.asarray(Image.open(source.depth_paths[0])).astype(np.float32) / 5000.0
+    assert set(np.unique(frame.depth).tolist()) <= set(np.unique(raw_depth).tolist()) | {0.0}
+    assert not np.array_equal(frame.depth, raw_depth)
+    fr3 = tmp_path / "rgbd_dataset_freiburg3_office"
+    write_tum(fr3, n=2)
+    assert open_agent(fr3).frames_are_files  # fr3 is published undistorted
 
 
 def test_calib_txt_overrides_the_name_and_unknown_names_are_uncalibrated(tmp_path):

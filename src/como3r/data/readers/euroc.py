@@ -30,22 +30,20 @@ The path given may be the sequence folder or its ``mav0`` folder.
 
 from __future__ import annotations
 
-import dataclasses
-import functools
 import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 import yaml
 
-from como3r.data.agent import AgentInput, Frame, associate_timestamps, common_image_size
+from como3r.data.agent import AgentInput, associate_timestamps, common_image_size
 from como3r.data.readers.common import data_lines, parse_numbers, rigid_poses
 from como3r.data.readers.tum import read_file_list
+from como3r.data.readers.undistort import UndistortedInput
 from como3r.errors import InputError
 from como3r.geometry.lie import sim3_compose
 from como3r.io.tum import Trajectory
@@ -76,48 +74,6 @@ class Camera:
     distortion: tuple[float, ...]
     T_BS: torch.Tensor
     resolution: tuple[int, int] | None
-
-
-@dataclass(frozen=True, eq=False)
-class UndistortedInput(AgentInput):
-    """An :class:`AgentInput` whose images are undistorted as they are read (same ``K``).
-
-    Attributes:
-        distortion: OpenCV radial-tangential ``(k1, k2, p1, p2[, k3])`` of ``calib``.
-    """
-
-    distortion: tuple[float, ...] = ()
-
-    @property
-    def frames_are_files(self) -> bool:
-        """The files are the distorted images (see :class:`AgentInput`)."""
-        return super().frames_are_files and not any(self.distortion)
-
-    def load_frame(self, i: int) -> Frame:
-        frame = super().load_frame(i)
-        return dataclasses.replace(frame, image=undistort(frame.image, self.calib,
-                                                          self.distortion))
-
-
-def undistort(image: np.ndarray, calib: tuple[float, float, float, float] | None,
-              distortion: tuple[float, ...]) -> np.ndarray:
-    """``(H, W, C)`` uint8 image of a radial-tangential camera, as seen by the pinhole
-    camera of the same ``calib`` ``(fx, fy, cx, cy)``; unchanged without distortion."""
-    if calib is None or not any(distortion):
-        return image
-    height, width = image.shape[:2]
-    map_x, map_y = _undistort_maps(calib, distortion, (width, height))
-    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-
-
-@functools.lru_cache(maxsize=8)
-def _undistort_maps(calib: tuple[float, float, float, float], distortion: tuple[float, ...],
-                    size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """``(H, W)`` float32 source x and y of each undistorted pixel."""
-    fx, fy, cx, cy = calib
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    return cv2.initUndistortRectifyMap(K, np.array(distortion, dtype=np.float64), None, K,
-                                       size, cv2.CV_32FC1)
 
 
 def locate(path: Path) -> Path | None:

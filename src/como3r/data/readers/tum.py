@@ -25,10 +25,13 @@ the dataset's "File Formats" page
   the dataset's "Intrinsic Camera Calibration of the Kinect" page
   (https://vision.in.tum.de/data/datasets/rgbd-dataset/intrinsic_calibration): fr1 517.3
   516.5 318.6 255.3, fr2 520.9 521.0 325.1 249.7, fr3 535.4 539.2 320.1 247.6 (fx fy cx
-  cy). fr1 and fr2 also have distortion coefficients (d0 = 0.2624 and 0.2312, ...), which
-  this reader does not undo (MASt3R-SLAM lists none for fr3). A folder name without
-  freiburg1/2/3 and without ``calib.txt`` is uncalibrated (``--prior simulated`` and
-  ``--calib`` then need a ``calib.txt``).
+  cy). fr1 and fr2 also publish radial-tangential distortion (``d0 .. d4``, OpenCV's ``k1 k2
+  p1 p2 k3``): with their name-picked intrinsics, colour and depth are undistorted as they
+  are read (:mod:`.undistort`), as MASt3R-SLAM's calibrated TUM runs undistort; fr3's
+  images are published undistorted. A user's ``calib.txt`` has no distortion terms: its
+  frames are read as they are. A folder name without freiburg1/2/3 and without
+  ``calib.txt`` is uncalibrated (``--prior simulated`` and ``--calib`` then need a
+  ``calib.txt``).
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ from como3r.data.agent import (
     parse_timestamp,
     read_calib,
 )
+from como3r.data.readers.undistort import UndistortedInput
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory, read_tum
 
@@ -63,6 +67,12 @@ INTRINSICS = {
     2: (520.9, 521.0, 325.1, 249.7),
     3: (535.4, 539.2, 320.1, 247.6),
 }
+#: their radial-tangential distortion ``(k1, k2, p1, p2, k3)`` (``d0 .. d4`` of the same page)
+DISTORTION = {
+    1: (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
+    2: (0.2312, -0.7849, -0.0033, -0.0001, 0.9172),
+    3: (0.0, 0.0, 0.0, 0.0, 0.0),
+}
 
 
 def matches(path: Path) -> bool:
@@ -70,10 +80,15 @@ def matches(path: Path) -> bool:
     return (path / "rgb.txt").is_file()
 
 
-def intrinsics_from_name(name: str) -> tuple[float, float, float, float] | None:
-    """The freiburg 1/2/3 colour intrinsics for a folder named ``..freiburgK..``, or None."""
+def camera_from_name(name: str) -> tuple[tuple[float, float, float, float] | None,
+                                         tuple[float, ...]]:
+    """The freiburg 1/2/3 colour intrinsics and distortion for a folder named
+    ``..freiburgK..``; ``(None, ())`` for another name."""
     match = re.search(r"freiburg([123])(?!\d)", name)
-    return INTRINSICS[int(match.group(1))] if match else None
+    if match is None:
+        return None, ()
+    kinect = int(match.group(1))
+    return INTRINSICS[kinect], DISTORTION[kinect]
 
 
 def read_file_list(path: Path) -> list[tuple[int, float, str]]:
@@ -177,17 +192,19 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
         gt_indices = associate_timestamps(timestamps, groundtruth.timestamps, MAX_DIFFERENCE)
     calib_file = path / "calib.txt"
     name = path.resolve().name
-    calib = read_calib(calib_file) if calib_file.is_file() else intrinsics_from_name(name)
+    calib, distortion = (read_calib(calib_file), ()) if calib_file.is_file() else \
+        camera_from_name(name)
     if calib is None:
         logger.info("%s: no calib.txt and no freiburg1/2/3 in the folder name: uncalibrated",
                     path)
-    return AgentInput(
+    return UndistortedInput(
         root=path, name=name, num_frames=len(frames), image_size=image_size,
         timestamps=timestamps, calib=calib, groundtruth=groundtruth, odometry=None,
         has_depth=bool(depth_files), has_surface=False, fps=float(fps),
         stems=tuple(p.stem for p in image_paths), image_paths=image_paths, video=None,
         depth_paths=tuple(depth_files), surface_paths=(), gt_indices=gt_indices,
         format="tum", depth_units_per_metre=DEPTH_UNITS_PER_METRE, depth_invalid=(0,),
+        distortion=distortion,
     )
 
 
