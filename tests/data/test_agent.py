@@ -412,3 +412,28 @@ def test_folder_with_two_videos(tmp_path):
 def test_file_that_is_not_a_video(tmp_path):
     (tmp_path / "frame.png").write_bytes(b"x")
     assert_input_error("frame.png", open_agent, tmp_path / "frame.png")
+
+
+@pytest.mark.parametrize("stems, expected", [
+    (["1305031102.175304", "1305031102.211214", "1305031102.243211"],
+     [1305031102.175304, 1305031102.211214, 1305031102.243211]),
+    (["1403636579763555584", "1403636579813555456", "1403636579863555584"],
+     [1403636579.763555584, 1403636579.813555456, 1403636579.863555584]),
+])
+def test_images_named_by_timestamp_give_the_timestamps(tmp_path, stems, expected):
+    agent = open_agent(write_agent(tmp_path / "a", n=3, stems=stems))
+    np.testing.assert_allclose(agent.timestamps, expected, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("stems", [["000001", "000002", "000003"], ["1", "2", "3"],
+                                   ["1305031102.1", "frame", "1305031102.3"]])
+def test_frame_numbers_are_not_timestamps(tmp_path, stems):
+    agent = open_agent(write_agent(tmp_path / "a", n=3, stems=stems), fps=10.0)
+    np.testing.assert_allclose(agent.timestamps, [0.0, 0.1, 0.2])
+
+
+def test_timestamp_names_out_of_time_order_are_refused(tmp_path):
+    # 999999999.5 sorts after 1000000000.0 by name but is earlier
+    folder = write_agent(tmp_path / "a", n=2, stems=["999999999.5", "1000000000.0"])
+    with pytest.raises(InputError, match="do not sort in time"):
+        open_agent(folder)

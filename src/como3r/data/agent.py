@@ -10,8 +10,10 @@ video file (the file itself, or a folder holding exactly one video and no ``rgb/
 optionally:
 
 * ``timestamps.txt``: one float per line, or ``timestamp filename`` lines as in TUM's
-  ``rgb.txt`` (then the file names pair with the images by stem); otherwise
-  ``timestamp = index / fps``;
+  ``rgb.txt`` (then the file names pair with the images by stem); otherwise the image
+  names when every one is a timestamp (:func:`timestamps_from_names`: Unix seconds such as
+  TUM's ``1305031102.175304.png``, or Unix nanoseconds such as EuRoC's and ROS image dumps'
+  ``1403636579763555584.png``); otherwise ``timestamp = index / fps``;
 * ``groundtruth.txt`` and ``odometry.txt``: TUM trajectories (:func:`como3r.io.tum.read_tum`);
 * ``calib.txt``: ``fx fy cx cy`` on one line, in pixels of the original images;
 * ``depth/<stem>.png`` (16-bit, 5000 per metre as in TUM) or ``depth/<stem>.npy``
@@ -31,6 +33,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
@@ -246,6 +249,43 @@ def open_agent(path: str | Path, fps: float = 30.0, format: str = "auto",
     return open_input(path, fps=fps, format=format, topic=topic)
 
 
+_SECONDS_NAME = re.compile(r"[1-9]\d{8,9}(\.\d+)?")
+_NANOSECONDS_NAME = re.compile(r"[1-9]\d{17,18}")
+
+
+def timestamps_from_names(stems: tuple[str, ...], folder: Path) -> np.ndarray | None:
+    """``(N,)`` float64 seconds when every image name is a Unix timestamp, else None.
+
+    A name of 9-10 digits (not starting with 0) with an optional fraction is seconds (TUM:
+    ``1305031102.175304``); one of 18-19 digits is nanoseconds (EuRoC, ROS image dumps:
+    ``1403636579763555584``). Zero-padded frame numbers (``000001``) are neither. All names
+    must be of one kind.
+
+    Raises:
+        InputError: the names are timestamps but two are equal (sorted by name, they must
+            increase strictly).
+    """
+    if not stems:
+        return None
+    if all(_SECONDS_NAME.fullmatch(s) for s in stems):
+        timestamps = np.array([float(s) for s in stems], dtype=np.float64)
+    elif all(_NANOSECONDS_NAME.fullmatch(s) for s in stems):
+        timestamps = np.array([int(s) for s in stems], dtype=np.float64) * 1e-9
+    else:
+        return None
+    order = np.argsort(timestamps, kind="stable")
+    timestamps = timestamps[order]
+    repeated = np.flatnonzero(np.diff(timestamps) <= 0)
+    if repeated.size:
+        first = [stems[order[k]] for k in (repeated[0], repeated[0] + 1)]
+        raise InputError(f"{folder}: images {first[0]} and {first[1]} are named by timestamp "
+                         "but name the same instant")
+    if not np.array_equal(order, np.arange(len(stems))):
+        raise InputError(f"{folder}: images are named by timestamp but their names do not sort "
+                         "in time (pad the names to one number of digits, or add timestamps.txt)")
+    return timestamps
+
+
 def open_agent_folder(path: str | Path, fps: float = 30.0) -> AgentInput:
     """Open and validate an input in como3r's own agent layout (folder or video file);
     arguments and errors as :func:`open_agent`."""
@@ -266,8 +306,11 @@ def open_agent_folder(path: str | Path, fps: float = 30.0) -> AgentInput:
         fps = video_fps or fps
 
     timestamps_file = folder / "timestamps.txt"
+    named = None if video is not None else timestamps_from_names(stems, folder / "rgb")
     if timestamps_file.is_file():
         timestamps = _read_timestamps(timestamps_file, stems, by_name=video is None)
+    elif named is not None:
+        timestamps = named
     else:
         timestamps = np.arange(len(stems), dtype=np.float64) / fps
 
