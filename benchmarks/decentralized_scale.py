@@ -10,10 +10,11 @@ as a percentage of the robots' summed ground-truth path length, for the configur
 formulation (``ate.json``) and for every formulation x solver of ``metrics.json``'s table
 (F-Tables II-III). A scale-free system prints the same row at every scale.
 
-The simulated prior's descriptors are built from the surface maps' s, t in metres at fixed
-metric wavelengths, so it matches a grown or shrunk world differently (a learned prior sees
-the same images at any scale). ``--keep-surface-keys`` leaves s, t as rendered, which
-makes the simulated prior scale-free and isolates the decentralized mode's own lengths.
+The simulated prior's descriptors see texture relative to each pixel's footprint (tiled
+random features, :mod:`como3r.prior.simulated_keys`), so a grown or shrunk world gets
+descriptors as discriminative as at 1x, though not the same values (the tiles' random draws
+differ). ``--keep-surface-keys`` leaves s, t as rendered, which gives the very same
+descriptors at every scale and isolates the decentralized mode's own lengths.
 
 Measured (3 robots x 40 frames at 160x120, ``--long-side 160`` (the default is the
 configuration's 512, several times slower on a CPU), realistic simulated prior, one
@@ -25,8 +26,12 @@ snapshot of the rest of the tree; merged ATE % of path at 0.1 / 1 / 5 / 20x):
             after                                     1.68 / 2.03 / 1.89 / 2.71
 
 Before, at 0.1x every robot has one keyframe (no loop, no merged map) and at 20x every
-frame is a keyframe (5x the time). The remaining spread after comes from the simulated
-prior (seed 1 at 20x: 13 loops instead of 18-20, its metric descriptor wavelengths).
+frame is a keyframe (5x the time). The remaining spread after came from the simulated
+prior (seed 1 at 20x: 13 loops instead of 18-20), whose descriptor wavelengths were then
+fixed in metres. With them relative to the pixel footprint (same command, later tree):
+
+    seed 0  1.64 / 1.60 / 1.61 / 1.66  (loops 19 / 20 / 21 / 20)
+    seed 1  1.69 / 1.57 / 1.87 / 1.88  (loops 21 / 18 / 17 / 15)
 
 Run it against two checkouts to compare them (the scene folder is reused when it exists):
 
