@@ -82,6 +82,10 @@ def coordinator(
     agent_timeout: float = typer.Option(
         900.0, "--agent-timeout", metavar="SECONDS", min=0.1,
         help="An agent silent for longer (or that never joins) counts as failed."),
+    away_timeout: float = typer.Option(
+        120.0, "--away-timeout", metavar="SECONDS", min=0.0,
+        help="An agent whose link is lost (crash, Wi-Fi gap) is away, not failed, for this "
+             "long: it may reconnect, or be restarted with its --id (0: failed at once)."),
     max_message_mb: float = typer.Option(256.0, "--max-message-mb", min=0.001,
                                          help="Size cap of one message; larger ones are "
                                               "dropped."),
@@ -108,7 +112,7 @@ def coordinator(
     config = _load_config(config_file, overrides, calib, no_loop_closure)
     threads = torch.get_num_threads()  # this machine runs no agent
     options = RuntimeOptions(torch_threads=threads, max_message_bytes=int(max_message_mb * 2**20),
-                             agent_timeout_s=agent_timeout)
+                             agent_timeout_s=agent_timeout, away_timeout_s=away_timeout)
     with run_progress(quiet) as shown:
         summary = serve(network, agents, out, config, spec, options, ground_truth=gt,
                         overwrite=overwrite, progress=shown)
@@ -135,6 +139,13 @@ def agent(
     precision: str = typer.Option("auto", "--precision", help="auto | fp32 | bf16 | fp16"),
     threads: Optional[int] = typer.Option(None, "--threads", min=1,
                                           help="Torch threads (default: torch's here)."),
+    queue_memory_mb: float = typer.Option(
+        256.0, "--queue-memory-mb", min=0.0,
+        help="Messages the coordinator has not stored yet (it is away, or slow) kept in "
+             "memory; more are spilled to disk."),
+    spill_dir: Optional[Path] = typer.Option(
+        None, "--spill-dir", metavar="DIR",
+        help="Where to spill them (default: the system's temporary folder)."),
     session: str = typer.Option("como3r", "--session", help=SESSION_HELP),
     scouting: bool = typer.Option(False, "--scouting", help=SCOUTING_HELP),
     zenoh_config: Optional[Path] = typer.Option(None, "--zenoh-config", metavar="FILE",
@@ -142,13 +153,18 @@ def agent(
 ) -> None:
     """Track one camera for a coordinator on another machine (como3r coordinator).
 
-    Leaves once the coordinator has stored every message."""
+    Keeps tracking while the coordinator is away and re-sends on its return; leaves once
+    the coordinator has stored every message. Restarted with the same --id, it takes over
+    after the last frame the coordinator heard of."""
     from como3r.runtime.network import run_remote_agent
 
     if not connect and not scouting:
         raise InputError("give the coordinator's --connect tcp/HOST:PORT (or --scouting)")
     network = _network(listen, connect, scouting, zenoh_config, session)
     spec = _prior_spec(prior, weights, retrieval_weights, codebook, device, precision)
-    if not run_remote_agent(network, agent_id, path, spec, threads):
+    if spill_dir is not None and not spill_dir.is_dir():
+        raise InputError(f"--spill-dir {spill_dir}: no such folder")
+    if not run_remote_agent(network, agent_id, path, spec, threads,
+                            int(queue_memory_mb * 2**20), spill_dir):
         raise InputError(f"agent {agent_id} did not finish its input (see the log above)")
     console.print(f"agent {agent_id}: finished; the coordinator has every message")

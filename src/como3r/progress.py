@@ -23,7 +23,7 @@ __all__ = ["AgentProgress", "PhaseEvent", "ProgressEvent", "ProgressCallback",
            "PhaseCallback", "report_phase", "tracking_state"]
 
 #: tracking states of :attr:`AgentProgress.state`
-STATES = ("tracking", "lost", "relocalized", "failed")
+STATES = ("tracking", "lost", "relocalized", "away", "failed")
 
 
 def tracking_state(outcome: str) -> str:
@@ -44,8 +44,9 @@ class AgentProgress:
         keyframes: keyframes it has made so far.
         lost: frames it could neither track nor relocalize.
         relocalized: frames on which tracking recovered after being lost.
-        state: ``"tracking"``, ``"lost"``, ``"relocalized"`` (the last frame's outcome) or
-            ``"failed"`` (the agent stopped on an error; no more events follow).
+        state: ``"tracking"``, ``"lost"``, ``"relocalized"`` (the last frame's outcome),
+            ``"away"`` (a networked agent's link is lost; it may come back) or ``"failed"``
+            (the agent stopped on an error; no more events follow).
     """
 
     agent: int

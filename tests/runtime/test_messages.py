@@ -69,8 +69,8 @@ def _packet_message(fe: AgentFrontend, kf_id: int) -> messages.KeyframeMessage:
 # ---------------------------------------------------------------------- schema
 
 
-#: messages past their first schema (AgentTask 2: live)
-VERSIONS = {"AgentTask": 2}
+#: messages past their first schema (AgentTask 2: live, 3: resume_after)
+VERSIONS = {"AgentTask": 3}
 
 
 @pytest.mark.parametrize("cls", [*messages.TO_AGENT, *messages.FROM_AGENT, messages.EdgeSummary],

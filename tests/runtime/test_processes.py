@@ -28,7 +28,8 @@ from como3r.prior.simulated import SimulatedPrior
 from como3r.progress import AgentProgress, PhaseEvent, ProgressEvent
 from como3r.runtime.messages import FrameDone, Step
 from como3r.runtime.pipeline import PriorSpec, RunSummary, run
-from como3r.runtime.processes import AgentResult, RuntimeOptions, _KeyframeView, run_multiprocess
+from como3r.runtime.processes import RuntimeOptions, run_multiprocess
+from como3r.runtime.results import AgentResult, KeyframeView
 from como3r.runtime.transport import Channel
 
 WIDTH, HEIGHT, FRAMES, SHORT = 64, 48, 12, 8
@@ -333,9 +334,9 @@ def test_agent_result_applies_updates_like_the_frontend() -> None:
         frontend.keyframes.add(Keyframe(k, 2 * k, 0.1 * k, None, pose.clone(), torch.zeros(1, 1, 3),
                                         torch.ones(1, 1), torch.zeros(1, 1, 3), torch.ones(1, 1),
                                         np.zeros((1, 1, 3), np.uint8)))
-        result.keyframes.append(_KeyframeView(k, 2 * k, 0.1 * k, pose.clone(),
-                                              torch.zeros(1, 1, 3), torch.ones(1, 1),
-                                              np.zeros((1, 1, 3), np.uint8)))
+        result.keyframes.append(KeyframeView(k, 2 * k, 0.1 * k, pose.clone(),
+                                             torch.zeros(1, 1, 3), torch.ones(1, 1),
+                                             np.zeros((1, 1, 3), np.uint8)))
     for count in (3, 5, 1):
         new = sim3_exp(0.3 * torch.randn(count, 7, dtype=torch.float64, generator=generator))
         update = PoseUpdate(agent=0, kf_ids=torch.arange(count), T_WC=new, reason="global_ba")
@@ -344,3 +345,108 @@ def test_agent_result_applies_updates_like_the_frontend() -> None:
         assert torch.allclose(frontend.keyframes.poses(), result.keyframe_trajectory()[2],
                               atol=1e-12)
     assert not torch.allclose(poses[3:], frontend.keyframes.poses()[3:])
+
+
+# ---------------------------------------------------------------------- away, back, rejoin
+
+
+class _ScriptedHub:
+    """A hub whose events the test hands over; it records what the runtime sends."""
+
+    name = "scripted"
+
+    def __init__(self) -> None:
+        self.script: list = []
+        self.sent: list = []
+        self.dropped: list[int] = []
+
+    def start(self, tasks, rejoin) -> None:
+        self.tasks = list(tasks)
+
+    def events(self, timeout: float) -> list:
+        events, self.script = self.script, []
+        return events
+
+    def acknowledge(self) -> None:
+        pass
+
+    def send(self, agent: int, message) -> None:
+        self.sent.append((agent, message))
+
+    def drop(self, agent: int) -> None:
+        self.dropped.append(agent)
+
+
+def _scripted_runtime(away_timeout_s: float, states: list) -> tuple:
+    from como3r.runtime.processes import _Runtime
+
+    hub = _ScriptedHub()
+    runtime = _Runtime(hub, [0, 0], apply_overrides(Config(), OVERRIDES), PriorSpec("simulated"),
+                       RuntimeOptions(away_timeout_s=away_timeout_s),
+                       lambda e: states.append((e.agent, e.state)))
+    runtime.start([None, None], PriorSpec("simulated"))
+    return hub, runtime
+
+
+def _pump(hub: _ScriptedHub, runtime, *events) -> None:
+    hub.script = list(events)
+    runtime._pump(0.0)
+
+
+def test_an_agent_whose_link_is_lost_is_away_then_back_or_failed() -> None:
+    from como3r.runtime.messages import AgentStarted, PoseUpdateMessage
+    from como3r.runtime.transport import Joined, Left, Received
+
+    states: list = []
+    hub, runtime = _scripted_runtime(0.3, states)
+    slot = runtime.slots[0]
+    _pump(hub, runtime, Received(0, AgentStarted(agent=0, pid=1, frames=6)),
+          Left(0, "left (link lost)", may_return=True))
+    assert slot.status == "running" and slot.away_since is not None
+    assert states[-1] == (0, "away")
+    runtime._send_update(PoseUpdate(agent=0, kf_ids=torch.zeros(0, dtype=torch.int64),
+                                    T_WC=torch.zeros(0, 8), reason="global_ba"))
+    assert hub.sent == []  # nobody to send it to: kept for its return
+    _pump(hub, runtime, Joined(0))
+    assert slot.away_since is None and slot.absences == 1
+    [(agent, message)] = hub.sent
+    assert agent == 0 and isinstance(message, PoseUpdateMessage) and message.seq == 1
+    _pump(hub, runtime, Left(0, "left (link lost)", may_return=True))
+    runtime._check_timeouts(runtime.slots)
+    assert slot.status == "running"  # not yet
+    time.sleep(0.35)
+    runtime._check_timeouts(runtime.slots)
+    assert slot.status == "failed" and "did not come back within 0.3 s" in slot.error
+    assert hub.dropped == [0] and states[-1] == (0, "failed")
+
+
+def test_a_process_ending_fails_its_agent_at_once() -> None:
+    from como3r.runtime.transport import Left
+
+    hub, runtime = _scripted_runtime(120.0, [])
+    _pump(hub, runtime, Left(1, "process died (exit code 1)"))  # pipes: it cannot return
+    assert runtime.slots[1].status == "failed" and hub.dropped == [1]
+
+
+def test_a_new_process_taking_over_an_id_starts_a_map_segment_after_the_last_frame() -> None:
+    from como3r.runtime.results import KeyframeView
+    from como3r.runtime.transport import Left
+
+    hub, runtime = _scripted_runtime(120.0, [])
+    slot = runtime.slots[1]
+    slot.status, slot.last_frame = "running", 6
+    runtime.segments[1].result.keyframes.append(KeyframeView(
+        0, 4, 0.1, torch.zeros(8), torch.zeros(1, 1, 3), torch.ones(1, 1),
+        np.zeros((1, 1, 3), np.uint8)))
+    _pump(hub, runtime, Left(1, "left", may_return=True))
+    task = runtime.rejoin(1)
+    assert task.agent == 1 and task.resume_after == 6
+    assert slot.segment.index == 2 == runtime.coordinator.num_agents - 1
+    assert slot.segment.after_frame == 6 and slot.restarts == 1 and slot.away_since is None
+    assert [s.index for s in runtime.segments] == [0, 1, 2]
+    again = runtime.rejoin(1)  # a process that left before making a keyframe: same segment
+    assert again.resume_after == 6 and len(runtime.segments) == 3
+    runtime.slots[0].status = "finished"
+    assert "has finished" in runtime.rejoin(0)
+    runtime._fail(slot, "boom")
+    assert "failed in this run (boom)" in runtime.rejoin(1)

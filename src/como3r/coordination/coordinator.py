@@ -228,6 +228,14 @@ class Coordinator:
 
     # ------------------------------------------------------------------ public API
 
+    def add_agent(self) -> int:
+        """Room for one more agent, in a gauge component of its own; returns its id (the
+        multi-process runtime makes one per restarted agent process: a new map segment)."""
+        agent = self.num_agents
+        self.num_agents += 1
+        self.gauges.add(agent)
+        return agent
+
     def add_keyframe(self, packet: KeyframePacket) -> list[PoseUpdate]:
         """Insert, associate, synchronize and (maybe) optimize one new keyframe.
 

@@ -117,7 +117,9 @@ class AgentWorker:
         self.frontend = AgentFrontend(
             self.prior, self.config, task.agent, codebook,
             upsampling(self.input.image_size, self.config.input.long_side))
-        self.frames = range(0, self.input.num_frames, self.config.input.subsample)
+        step = self.config.input.subsample
+        first = -(-max(0, task.resume_after + 1) // step) * step  # on the subsampling grid
+        self.frames = range(first, self.input.num_frames, step)
         self.applied_seq = 0
         self.seconds = 0.0
         self.current_frame = -1
@@ -172,6 +174,8 @@ class AgentWorker:
             logger.info("shutdown requested: %s", message.reason)
             return False
         if isinstance(message, PoseUpdateMessage):
+            if message.seq <= self.applied_seq and message.update.agent == self.task.agent:
+                return True  # sent again after a reconnect: applied already
             if message.seq != self.applied_seq + 1 or message.update.agent != self.task.agent:
                 raise codec.MessageError(f"pose update {message.seq} for agent "
                                          f"{message.update.agent} out of sequence")

@@ -57,6 +57,8 @@ class AgentTask:
         max_message_bytes: size cap of every message.
         log_level: the agent's logging level.
         live: send a :class:`~como3r.live.FrameEvent` after every frame (a viewer watches).
+        resume_after: process only the frames after this index (a process taking over the
+            id of an agent whose earlier process left; -1: every frame).
     """
 
     agent: int
@@ -68,7 +70,8 @@ class AgentTask:
     max_message_bytes: int = codec.DEFAULT_MAX_BYTES
     log_level: int = 30
     live: bool = False
-    version: int = 2
+    resume_after: int = -1
+    version: int = 3
 
 
 @dataclass(frozen=True)
@@ -350,7 +353,7 @@ def _check_update_message(m: PoseUpdateMessage) -> None:
 
 
 for _cls in (*TO_AGENT, *FROM_AGENT, EdgeSummary):
-    codec.register(_cls, version=2 if _cls is AgentTask else 1)  # AgentTask 2: live
+    codec.register(_cls, version=3 if _cls is AgentTask else 1)  # AgentTask 3: resume_after
 
 for _name, _check in (("PoseUpdate", _check_pose_update), ("PointmapRefresh", _check_refresh),
                       ("DirectedMatches", _check_matches), ("KeyframePacket", _check_packet),

@@ -4,7 +4,7 @@ machines").
 The coordinator (:func:`serve`) is the loop of :mod:`como3r.runtime.processes` over a
 :class:`~como3r.runtime.transport_zenoh.ZenohHub`; each agent (:func:`run_remote_agent`)
 is the frame loop of :mod:`como3r.runtime.agent_worker` over a
-:class:`~como3r.runtime.transport_zenoh.ZenohAgentLink`. The coordinator owns the run's
+:class:`~como3r.runtime.zenoh_agent.ZenohAgentLink`. The coordinator owns the run's
 configuration and sends it with every agent's task; an agent brings its input and its prior
 files (its own paths, its own device).
 """
@@ -24,8 +24,9 @@ from como3r.progress import ProgressCallback
 from como3r.runtime.agent_worker import prior_fields, run_agent
 from como3r.runtime.pipeline import PriorSpec, RunSummary, open_agents
 from como3r.runtime.processes import RuntimeOptions, coordinate
-from como3r.runtime.transport_zenoh import Keys, ZenohAgentLink, ZenohHub, ZenohOptions, \
-    open_session
+from como3r.runtime.spool import DEFAULT_MEMORY_BYTES, Spool
+from como3r.runtime.transport_zenoh import Keys, ZenohHub, ZenohOptions, open_session
+from como3r.runtime.zenoh_agent import ZenohAgentLink
 
 logger = logging.getLogger(__name__)
 
@@ -43,7 +44,8 @@ def serve(network: ZenohOptions, agents: int, out: Path, config: Config, prior_s
         config: the run's configuration, sent to every agent.
         prior_spec: the prior of the coordinator (its name goes to the agents).
         options: runtime knobs (``agent_timeout_s`` also bounds the wait for an agent that
-            never joins).
+            never joins; ``away_timeout_s`` is how long an agent whose link is lost may take
+            to reconnect or be restarted with its id).
         ground_truth: per agent, an input with ground truth to evaluate against (as
             ``como3r eval --gt``); empty: no evaluation.
         overwrite: replace an existing non-empty output folder.
@@ -68,13 +70,20 @@ def serve(network: ZenohOptions, agents: int, out: Path, config: Config, prior_s
 
 
 def run_remote_agent(network: ZenohOptions, agent: int, path: Path, prior_spec: PriorSpec,
-                     threads: int | None = None) -> bool:
+                     threads: int | None = None, queue_memory_bytes: int = DEFAULT_MEMORY_BYTES,
+                     spill_dir: Path | None = None) -> bool:
     """Run agent ``agent`` on ``path`` for the coordinator reached through ``network``:
-    wait for it, take its task, track every frame, and leave once the coordinator has
-    stored the last message.
+    wait for it, take its task, track every frame (on while the coordinator is away), and
+    leave once the coordinator has stored the last message.
+
+    A process started with the id of an agent whose earlier process left (crashed, killed)
+    takes over: the coordinator's task makes it start after the last frame it heard of.
 
     Args:
         threads: torch threads of this agent (None: torch's default here).
+        queue_memory_bytes: messages not yet stored by the coordinator kept in memory; more
+            are spilled to disk.
+        spill_dir: where the spill folder is made (None: the system's temporary folder).
 
     Returns:
         Whether the agent ran to the end of its input without an error.
@@ -87,7 +96,8 @@ def run_remote_agent(network: ZenohOptions, agent: int, path: Path, prior_spec: 
         raise InputError(f"{path}: agent input does not exist")
     session = open_session(network)
     try:
-        link = ZenohAgentLink(session, Keys(network.session), agent)
+        spool = Spool(queue_memory_bytes, spill_dir, label=f"agent-{agent}")
+        link = ZenohAgentLink(session, Keys(network.session), agent, spool)
         task = link.fetch_task()
         if task.prior["name"] != prior_spec.name:
             link.close()
@@ -97,7 +107,8 @@ def run_remote_agent(network: ZenohOptions, agent: int, path: Path, prior_spec: 
             task, input_path=str(path), prior=prior_fields(prior_spec),
             torch_threads=threads if threads is not None else torch.get_num_threads(),
             log_level=logging.getLogger().getEffectiveLevel())
-        logger.info("agent %d: task received, running %s", agent, path)
+        logger.info("agent %d: task received, running %s%s", agent, path,
+                    f" after frame {task.resume_after}" if task.resume_after >= 0 else "")
         return run_agent(task, link)
     finally:
         session.close()

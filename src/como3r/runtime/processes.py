@@ -27,13 +27,28 @@ global solver's convergence. ``RuntimeOptions.lockstep`` additionally makes ever
 for a ``Step`` before each frame, in the single-process schedule, which reproduces
 :func:`como3r.runtime.pipeline.run` (serially: for testing and debugging).
 
-Failures. An agent that raises sends ``AgentFailed``; one that leaves (killed, crashed, its
-link lost) is seen by the transport (process sentinel, liveliness token); one that stays
-silent longer than ``agent_timeout_s`` (nothing from it waiting to be read) is stopped.
-Either way the failure is logged, the coordinator keeps the keyframes it received, the
-other agents run to the end, and the failed agent's outputs hold its keyframes only;
-``metrics.json`` (``runtime``) and ``RunSummary.notes`` say so. Bytes that are not a valid
-message are logged and dropped.
+Failures. An agent that raises sends ``AgentFailed``; a child process that ends before
+finishing is seen by its sentinel; one that stays silent longer than ``agent_timeout_s``
+(nothing from it waiting to be read) is stopped. Each of these fails the agent: the failure
+is logged, the coordinator keeps the keyframes it received, the other agents run to the end,
+and the failed agent's outputs hold its keyframes only; ``metrics.json`` (``runtime``) and
+``RunSummary.notes`` say so. Bytes that are not a valid message are logged and dropped.
+
+Away and back (across machines). A networked agent whose link is lost (its liveliness
+token gone: a crash, a Wi-Fi gap, or this process frozen past the Zenoh lease, which the
+network cannot tell apart) is *away*, not failed: everything it sent is kept, its keyframes
+no longer hold back the others' (the ordering above waits only for agents present), and it
+has ``away_timeout_s`` to come back. The same process reconnecting continues where it was
+(it re-sends what was not acknowledged; pose updates it may have missed are sent again). A
+new process started with the same id takes over (:meth:`_Runtime.rejoin`): it starts after
+the last frame the coordinator heard of, with a fresh map, as a new *map segment*, a
+coordinator agent of its own. Its keyframes are associated with the agent's earlier map and
+the others' by the same retrieval and dense verification as any two agents', and the gauge
+merge puts it in their frame on the first verified edge: this re-localization needs no
+protocol of its own, and a restarted agent that re-localizes nowhere is not forced into a
+frame it cannot be placed in. The outputs join an agent's segments that share a gauge
+component (:mod:`.results`). Past the timeout the agent fails as above; what it sends after
+that is neither taken nor acknowledged.
 """
 
 from __future__ import annotations
@@ -43,22 +58,17 @@ import logging
 import math
 import time
 from collections import Counter
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-import numpy as np
 import torch
-from torch import Tensor
 
 from como3r.config import Config, config_to_dict
 from como3r.coordination.coordinator import Coordinator
 from como3r.data.agent import AgentInput
 from como3r.errors import InputError
-from como3r.frontend.agent import FrontendStats
-from como3r.frontend.keyframes import apply_pointmap_update, apply_pose_update
-from como3r.frontend.packets import PointmapRefresh, PointmapUpdate, PoseUpdate
-from como3r.geometry.camera import to_focal
+from como3r.frontend.packets import PointmapRefresh, PoseUpdate
 from como3r.geometry.lie import sim3_compose, sim3_inverse
 from como3r.io.output import atomic_output_dir
 from como3r.live import FrameEvent, LiveCallback
@@ -89,7 +99,19 @@ from como3r.runtime.pipeline import (
     build_prior,
     open_agents,
 )
-from como3r.runtime.transport import Hub, Joined, PipeHub, Received, Rejected
+from como3r.runtime.results import (
+    AgentResult,
+    AgentSlot,
+    EdgeView,
+    KeyframeView,
+    MapSegment,
+    MatchFraction,
+    SegmentedCoordinator,
+    SegmentPlace,
+    agent_results,
+    left_out,
+)
+from como3r.runtime.transport import Hub, Joined, Left, PipeHub, Received, Rejected
 
 logger = logging.getLogger(__name__)
 
@@ -106,6 +128,8 @@ class RuntimeOptions:
             terminal refinement ran on one).
         max_message_bytes: size cap of one message.
         agent_timeout_s: a running agent silent for longer is terminated as hung.
+        away_timeout_s: how long a networked agent whose link is lost may stay away (to
+            reconnect, or to be restarted with its id) before it counts as failed.
         shutdown_grace_s: how long a stopping agent may take before it is terminated.
     """
 
@@ -113,118 +137,13 @@ class RuntimeOptions:
     torch_threads: int = 1
     max_message_bytes: int = codec.DEFAULT_MAX_BYTES
     agent_timeout_s: float = 900.0
+    away_timeout_s: float = 120.0
     shutdown_grace_s: float = 10.0
-
-
-# ------------------------------------------------------------------------------ results
-
-
-@dataclass
-class _KeyframeView:
-    """What the outputs need of a keyframe, as received from its agent."""
-
-    kf_id: int
-    frame_index: int
-    timestamp: float
-    T_WC: Tensor
-    X_hat: Tensor
-    C_hat: Tensor
-    colors: np.ndarray
-    fused_frames: int = 1
-    K: Tensor | None = None
-
-    def rescale_focal(self, focal: float) -> None:
-        """Move the pointmap to the focal length ``focal`` (as ``Keyframe.rescale_focal``)."""
-        if self.K is not None:
-            self.X_hat, self.K = to_focal(self.X_hat, self.K, focal)
-
-    def mean_confidence(self) -> Tensor:
-        """``(H, W)`` confidence per contributing frame (as ``Keyframe.mean_confidence``)."""
-        return self.C_hat / self.fused_frames
-
-
-@dataclass(frozen=True)
-class _MatchFraction:
-    match_fraction: float
-
-
-@dataclass(frozen=True)
-class _EdgeView:
-    i: int
-    j: int
-    kind: str
-    matches: _MatchFraction
-
-
-@dataclass
-class AgentResult:
-    """An agent's results as the coordinator holds them: what :mod:`.outputs` reads of an
-    :class:`~como3r.frontend.agent.AgentFrontend` (``agent``, ``keyframes``, ``edges``,
-    ``stats``, ``trajectory()``, ``keyframe_trajectory()``).
-
-    A finished agent's trajectory is composed from its anchored records (C-Sec. A.8); a
-    failed agent's is its keyframes only.
-    """
-
-    agent: int
-    keyframes: list[_KeyframeView] = field(default_factory=list)
-    edges: list[_EdgeView] = field(default_factory=list)
-    stats: FrontendStats = field(default_factory=FrontendStats)
-    finished: AgentFinished | None = None
-
-    def apply_pointmap_update(self, update: PointmapUpdate) -> None:
-        """Take the coordinator's refined canonical pointmaps (C-Sec. A.7)."""
-        apply_pointmap_update(self.keyframes, update)
-
-    def apply_pose_update(self, update: PoseUpdate) -> None:
-        """Listed keyframes take the new poses, newer ones follow the newest listed keyframe
-        rigidly (:func:`~como3r.frontend.keyframes.apply_pose_update`)."""
-        apply_pose_update(self.keyframes, update)
-
-    def trajectory(self) -> tuple[np.ndarray, np.ndarray, Tensor]:
-        """Every tracked frame: ``(frame indices (N,), timestamps (N,), T_WC (N, 8))``."""
-        if self.finished is None:
-            return self.keyframe_trajectory()
-        done = self.finished
-        if len(done.anchors) == 0:
-            return np.zeros(0, dtype=np.int64), np.zeros(0), torch.zeros(0, 8)
-        anchors = torch.stack([self.keyframes[int(a)].T_WC for a in done.anchors])
-        return done.frame_indices, done.timestamps, sim3_compose(anchors, done.T_rel.to(anchors))
-
-    def keyframe_trajectory(self) -> tuple[np.ndarray, np.ndarray, Tensor]:
-        """Keyframes only: ``(frame indices, timestamps, T_WC (K, 8))``."""
-        if not self.keyframes:
-            return np.zeros(0, dtype=np.int64), np.zeros(0), torch.zeros(0, 8)
-        return (np.array([kf.frame_index for kf in self.keyframes]),
-                np.array([kf.timestamp for kf in self.keyframes]),
-                torch.stack([kf.T_WC for kf in self.keyframes]))
 
 
 # ------------------------------------------------------------------------------ coordinator side
 
 _LIVE = ("starting", "running")
-
-
-@dataclass
-class _Slot:
-    """The coordinator's view of one agent."""
-
-    agent: int
-    frames_expected: int
-    result: AgentResult
-    status: str = "starting"
-    pid: int | None = None
-    clock: float = -math.inf
-    last_frame: int = -1
-    frames_done: int = 0
-    outcomes: Counter[str] = field(default_factory=Counter)
-    keyframes_received: int = 0
-    seconds: float = 0.0
-    sent_seq: int = 0
-    updates: list[PoseUpdate] = field(default_factory=list)
-    error: str | None = None
-    last_heard: float = field(default_factory=time.monotonic)
-    reanchored: int = 0
 
 
 class _Runtime:
@@ -252,21 +171,56 @@ class _Runtime:
         self.coordinator_live = (
             None if live is None else
             CoordinatorLive(live, self.coordinator, config.visualization.map_min_confidence))
-        self.pending: list[tuple[tuple[float, int, int, int], KeyframeMessage]] = []
+        #: keyframes waiting for their turn: ((timestamp, agent, kf_id, arrival), segment, it)
+        self.pending: list[tuple[tuple[float, int, int, int], MapSegment,
+                                 KeyframeMessage]] = []
         self._arrivals = 0
-        self.slots = [_Slot(agent, count, AgentResult(agent)) for agent, count in enumerate(frames)]
+        self.segments = [MapSegment(agent, agent, AgentResult(agent))
+                         for agent in range(len(frames))]
+        self.slots = [AgentSlot(agent, count, self.segments[agent])
+                      for agent, count in enumerate(frames)]
         self.finish_threads = options.torch_threads
+        self.tasks: list[AgentTask] = []
+        self.places: dict[int, SegmentPlace] = {}
 
     def start(self, paths: Sequence[Path | None], spec: PriorSpec) -> None:
         """Hand each agent its task: its input (None: the agent brings its own) and the
         prior it builds."""
-        self.hub.start([AgentTask(
+        self.tasks = [AgentTask(
             agent=agent, input_path="" if path is None else str(path),
             config=config_to_dict(self.config), prior=prior_fields(spec),
             torch_threads=self.options.torch_threads, lockstep=self.options.lockstep,
             max_message_bytes=self.options.max_message_bytes,
             log_level=logging.getLogger().getEffectiveLevel(), live=self.live is not None)
-            for agent, path in enumerate(paths)])
+            for agent, path in enumerate(paths)]
+        self.hub.start(self.tasks, self.rejoin)
+
+    def rejoin(self, agent: int) -> AgentTask | str:
+        """A new process takes over agent ``agent``'s id (the one before it left): its task,
+        which starts after the last frame this coordinator heard of, on a new map segment
+        (see the module docstring); or why it cannot (the agent finished or failed)."""
+        slot = self.slots[agent]
+        if slot.status == "finished":
+            return f"agent {agent} has finished in this run; it cannot start again"
+        if slot.status == "failed":
+            return f"agent {agent} failed in this run ({slot.error}); it cannot rejoin"
+        old = slot.segment
+        resume_after = max([slot.last_frame] + [kf.frame_index for kf in old.result.keyframes]
+                           + [m.packet.frame_index for _, seg, m in self.pending if seg is old])
+        if old.result.keyframes or any(seg is old for _, seg, _ in self.pending):
+            index = self.coordinator.add_agent()
+            slot.segment = MapSegment(index, agent, AgentResult(index), after_frame=resume_after)
+            self.segments.append(slot.segment)
+        else:  # its map is empty: the new process makes it
+            old.after_frame = resume_after
+        away = "" if slot.away_since is None else \
+            f" after {time.monotonic() - slot.away_since:.1f} s away"
+        logger.warning("agent %d: a new process takes over its id%s; it starts after frame %d "
+                       "on map segment %d (re-localized by cross-agent association)", agent,
+                       away, resume_after, slot.segment.index)
+        slot.away_since, slot.last_heard = None, time.monotonic()
+        slot.restarts += 1
+        return replace(self.tasks[agent], resume_after=resume_after)
 
     # ---------------------------------------------------------------- drivers
 
@@ -298,7 +252,7 @@ class _Runtime:
             self._process_pending(force=True)
         self._pump_until(lambda: all(s.status not in _LIVE for s in self.slots), self.slots)
 
-    def _pump_until(self, condition: Callable[[], bool], watched: Sequence[_Slot]) -> None:
+    def _pump_until(self, condition: Callable[[], bool], watched: Sequence[AgentSlot]) -> None:
         while not condition():
             self._pump(0.5)
             self._check_timeouts([s for s in watched if s.status in _LIVE])
@@ -315,32 +269,56 @@ class _Runtime:
             elif isinstance(event, Rejected):
                 logger.warning("dropped a message from agent %d: %s", event.agent, event.error)
             elif isinstance(event, Joined):
-                logger.info("agent %d joined", event.agent)
+                self._joined(slot)
             elif slot.status in _LIVE:  # Left before its AgentFinished
-                self._fail(slot, event.reason)
+                self._left(slot, event)
         self.hub.acknowledge()
 
-    def _handle(self, slot: _Slot, message: Any) -> None:
+    def _left(self, slot: AgentSlot, event: Left) -> None:
+        if not event.may_return or self.options.away_timeout_s <= 0:
+            self._fail(slot, event.reason)
+            return
+        slot.away_since, slot.away_reason = time.monotonic(), event.reason
+        slot.absences += 1
+        logger.warning("agent %d %s; it is away: kept for %.0f s to reconnect or restart with "
+                       "its id", slot.agent, event.reason, self.options.away_timeout_s)
+        self._report(slot, "away")
+
+    def _joined(self, slot: AgentSlot) -> None:
+        if slot.away_since is None:
+            logger.info("agent %d joined", slot.agent)
+            return
+        logger.warning("agent %d is back after %.1f s away", slot.agent,
+                       time.monotonic() - slot.away_since)
+        slot.away_since, slot.last_heard = None, time.monotonic()
+        segment = slot.segment  # updates sent while it was away may be lost: again
+        for seq in range(segment.confirmed_seq + 1, segment.sent_seq + 1):
+            update = segment.updates[seq - 1]
+            self.hub.send(slot.agent, PoseUpdateMessage(update=replace(update, agent=slot.agent),
+                                                        seq=seq))
+
+    def _handle(self, slot: AgentSlot, message: Any) -> None:
         agent = message.packet.agent if isinstance(message, KeyframeMessage) else message.agent
         if agent != slot.agent:
             logger.warning("dropped a %s for agent %d from agent %d", type(message).__name__,
                            agent, slot.agent)
         elif isinstance(message, AgentStarted):
             slot.status, slot.pid = "running", message.pid
-            slot.frames_expected = message.frames
+            slot.frames_expected = slot.frames_done + message.frames
         elif isinstance(message, KeyframeMessage):
-            packet = message.packet
+            packet, segment = message.packet, slot.segment
             heapq.heappush(self.pending, ((packet.timestamp, slot.agent, packet.kf_id,
-                                           self._arrivals), message))
+                                           self._arrivals), segment, message))
             self._arrivals += 1
             slot.keyframes_received += 1
+            segment.confirmed_seq = max(segment.confirmed_seq, message.applied_seq)
         elif isinstance(message, FrameDone):
             self._frame_done(slot, message)
         elif isinstance(message, FrameEvent):
             if self.live is not None:
                 self.live(message)
         elif isinstance(message, AgentFinished):
-            slot.result.finished = message
+            slot.segment.result.finished = message
             slot.status, slot.clock = "finished", math.inf
             logger.info("agent %d finished its stream", slot.agent)
         elif isinstance(message, AgentFailed):
@@ -348,22 +326,25 @@ class _Runtime:
                 logger.error("agent %d traceback:\n%s", slot.agent, message.details)
             self._fail(slot, message.error)
 
-    def _frame_done(self, slot: _Slot, message: FrameDone) -> None:
+    def _frame_done(self, slot: AgentSlot, message: FrameDone) -> None:
         slot.clock, slot.last_frame = message.timestamp, message.frame_index
         slot.frames_done += 1
         slot.outcomes[message.outcome] += 1
+        if message.outcome == "lost":
+            slot.lost_frames.append(message.frame_index)
         slot.seconds += message.seconds
         self._report(slot, tracking_state(message.outcome))
 
-    def _report(self, slot: _Slot, state: str) -> None:
+    def _report(self, slot: AgentSlot, state: str) -> None:
         """The agent's progress, from its messages so far, to the progress callback."""
         if self.progress is not None:
             self.progress(AgentProgress(slot.agent, slot.frames_done, slot.frames_expected,
                                         slot.keyframes_received, slot.outcomes["lost"],
                                         slot.outcomes["relocalized"], state))
 
-    def _fail(self, slot: _Slot, error: str) -> None:
+    def _fail(self, slot: AgentSlot, error: str) -> None:
         slot.status, slot.error, slot.clock = "failed", error, math.inf
+        slot.away_since = None
         self._report(slot, "failed")
         if any(other.status != "failed" for other in self.slots):
             logger.error("agent %d failed: %s (the other agents continue)", slot.agent, error)
@@ -371,15 +352,23 @@ class _Runtime:
             logger.info("agent %d failed: %s", slot.agent, error)
         self.hub.drop(slot.agent)
 
-    def _check_timeouts(self, watched: Sequence[_Slot]) -> None:
-        """Fail the agents silent for longer than ``agent_timeout_s``. What an agent sent
-        while this process was busy (a global BA can outlast the timeout) is read first:
-        silence is the agent's, not the coordinator's deafness."""
-        limit = self.options.agent_timeout_s
-        if any(time.monotonic() - slot.last_heard > limit for slot in watched):
+    def _check_timeouts(self, watched: Sequence[AgentSlot]) -> None:
+        """Fail the agents away for longer than ``away_timeout_s`` and those silent for
+        longer than ``agent_timeout_s``. What an agent sent while this process was busy (a
+        global BA can outlast the timeout) is read first: silence is the agent's, not the
+        coordinator's deafness."""
+        limit, now = self.options.agent_timeout_s, time.monotonic()
+        if any(now - slot.last_heard > limit for slot in watched):
             self._pump(0.0)
         for slot in watched:
-            if slot.status in _LIVE and time.monotonic() - slot.last_heard > limit:
+            now = time.monotonic()
+            if slot.status not in _LIVE:
+                continue
+            if slot.away_since is not None:
+                if now - slot.away_since > self.options.away_timeout_s:
+                    self._fail(slot, f"{slot.away_reason} and did not come back within "
+                                     f"{self.options.away_timeout_s:g} s")
+            elif now - slot.last_heard > limit:
                 self._fail(slot, f"no message for {limit:.0f} s (hung)")
 
     # ---------------------------------------------------------------- keyframes and updates
@@ -387,36 +376,38 @@ class _Runtime:
     def _process_pending(self, force: bool = False,
                          progress: PhaseCallback | None = None) -> None:
         """Hand waiting keyframes to the coordinator in ``(timestamp, agent)`` order, each
-        once no running agent can still send an earlier one; ``progress`` hears of each
-        (the backlog once the agents stopped: the coordinator may trail them by many)."""
+        once no running agent present can still send an earlier one; ``progress`` hears of
+        each (the backlog once the agents stopped: the coordinator may trail them by many)."""
         queued = len(self.pending)
         while self.pending:
-            (timestamp, agent, _, _), message = self.pending[0]
-            if not force and not all((s.clock, s.agent) > (timestamp, agent)
+            (timestamp, agent, _, _), segment, message = self.pending[0]
+            if not force and not all((s.order_clock(), s.agent) > (timestamp, agent)
                                      for s in self.slots if s.agent != agent):
                 return
             report_phase(progress, "queued keyframes", "retrieval, verification, global BA",
                          queued - len(self.pending), queued)
             heapq.heappop(self.pending)
-            self._add_keyframe(self.slots[agent], message)
+            self._add_keyframe(segment, message)
 
-    def _add_keyframe(self, slot: _Slot, message: KeyframeMessage) -> None:
-        packet, keyframes = message.packet, slot.result.keyframes
+    def _add_keyframe(self, segment: MapSegment, message: KeyframeMessage) -> None:
+        packet, keyframes = message.packet, segment.result.keyframes
         if packet.kf_id != len(keyframes):
-            self._fail(slot, f"protocol error: keyframe {packet.kf_id} after {len(keyframes)}")
+            self._fail(self.slots[segment.agent],
+                       f"protocol error: keyframe {packet.kf_id} after {len(keyframes)}")
             return
-        stale = message.applied_seq < slot.sent_seq
+        packet = replace(packet, agent=segment.index)
+        stale = message.applied_seq < segment.sent_seq
         if stale and packet.kf_id > 0 and message.T_WC_previous is not None:
             # exported before the agent applied our latest update: keep the agent's relative
             # pose to its previous keyframe, on our pose of that keyframe (C-Sec. A.8)
             T_rel = sim3_compose(sim3_inverse(message.T_WC_previous), packet.T_WC)
             packet = replace(packet, T_WC=sim3_compose(keyframes[-1].T_WC.to(T_rel), T_rel))
-            slot.reanchored += 1
+            segment.reanchored += 1
         if packet.previous is not None:
-            self._refresh_view(slot, packet.previous)
-        keyframes.append(_KeyframeView(packet.kf_id, packet.frame_index, packet.timestamp,
-                                       packet.T_WC.clone(), packet.X_hat, packet.C_hat,
-                                       packet.colors, K=packet.K))
+            self._refresh_view(segment.result, packet.previous)
+        keyframes.append(KeyframeView(packet.kf_id, packet.frame_index, packet.timestamp,
+                                      packet.T_WC.clone(), packet.X_hat, packet.C_hat,
+                                      packet.colors, K=packet.K))
         updates = self.coordinator.add_keyframe(packet)
         for update in updates:
             self._send_update(update)
@@ -424,18 +415,23 @@ class _Runtime:
             self.coordinator_live.keyframe_added(packet, updates)
 
     @staticmethod
-    def _refresh_view(slot: _Slot, refresh: PointmapRefresh) -> None:
-        view = slot.result.keyframes[refresh.kf_id]
+    def _refresh_view(result: AgentResult, refresh: PointmapRefresh) -> None:
+        view = result.keyframes[refresh.kf_id]
         view.X_hat, view.C_hat, view.K = refresh.X_hat, refresh.C_hat, refresh.K
         view.fused_frames = refresh.fused_frames
 
     def _send_update(self, update: PoseUpdate) -> None:
-        slot = self.slots[update.agent]
-        slot.sent_seq += 1
-        slot.updates.append(update)
-        slot.result.apply_pose_update(update)
-        if slot.status in _LIVE:
-            self.hub.send(slot.agent, PoseUpdateMessage(update=update, seq=slot.sent_seq))
+        """Record a coordinator update of a segment, apply it to the segment's result and
+        send it to the process running the segment (the agent's id in place of the
+        segment's)."""
+        segment = self.segments[update.agent]
+        slot = self.slots[segment.agent]
+        segment.sent_seq += 1
+        segment.updates.append(update)
+        segment.result.apply_pose_update(update)
+        if slot.segment is segment and slot.status in _LIVE and slot.away_since is None:
+            self.hub.send(slot.agent, PoseUpdateMessage(update=replace(update, agent=slot.agent),
+                                                        seq=segment.sent_seq))
 
     # ---------------------------------------------------------------- the end
 
@@ -444,32 +440,29 @@ class _Runtime:
         refined pointmaps to the results."""
         final_poses = {}
         for slot in self.slots:
-            done = slot.result.finished
+            segment, done = slot.segment, slot.segment.result.finished
             if done is not None and slot.status == "finished":
                 if done.final is not None:
-                    self._refresh_view(slot, done.final)
-                    self.coordinator.refresh(slot.agent, done.final)
-                if len(done.keyframe_T_WC) == len(slot.result.keyframes):
-                    final_poses[slot.agent] = done.keyframe_T_WC
+                    self._refresh_view(segment.result, done.final)
+                    self.coordinator.refresh(segment.index, done.final)
+                if len(done.keyframe_T_WC) == len(segment.result.keyframes):
+                    final_poses[segment.index] = done.keyframe_T_WC
         cleanup = self.coordinator.finish(final_poses, self.progress)
         for update in cleanup.updates:
             self._send_update(update)
         for slot in self.slots:
             self._settle(slot)
         for update in cleanup.pointmaps:
-            self.slots[update.agent].result.apply_pointmap_update(update)
+            self.segments[update.agent].result.apply_pointmap_update(update)
         if self.coordinator_live is not None:
-            self.coordinator_live.finish([slot.result for slot in self.slots])
+            self.coordinator_live.finish([segment.result for segment in self.segments])
 
-    def _settle(self, slot: _Slot) -> None:
+    def _settle(self, slot: AgentSlot) -> None:
         """A finished agent's own keyframe poses plus the updates it never applied."""
-        result, done = slot.result, slot.result.finished
+        segment = slot.segment
+        result, done = segment.result, segment.result.finished
         if slot.status != "finished" or done is None:
             result.finished = None
-            result.stats = FrontendStats(
-                frames=slot.frames_done, lost=slot.outcomes["lost"],
-                relocalized=slot.outcomes["relocalized"], keyframes=len(result.keyframes),
-                tracked=slot.frames_done - slot.outcomes["lost"])
             return
         if len(done.keyframe_T_WC) != len(result.keyframes):
             slot.error = (f"reported {len(done.keyframe_T_WC)} keyframes but sent "
@@ -479,11 +472,14 @@ class _Runtime:
             return
         for view, pose in zip(result.keyframes, done.keyframe_T_WC):
             view.T_WC = pose.clone()
-        for update in slot.updates[done.applied_seq:]:
+        for update in segment.updates[done.applied_seq:]:
             result.apply_pose_update(update)
         result.stats = done.stats
-        result.edges = [_EdgeView(e.i, e.j, e.kind, _MatchFraction(e.match_fraction))
+        result.edges = [EdgeView(e.i, e.j, e.kind, MatchFraction(e.match_fraction))
                         for e in done.edges]
+
+    def _segments_of(self, agent: int) -> list[MapSegment]:
+        return [segment for segment in self.segments if segment.agent == agent]
 
     def stop(self, interrupted: bool = False) -> None:
         """Stop the agents still running and release the transport. ``interrupted``
@@ -499,12 +495,19 @@ class _Runtime:
             channel = self.hub.traffic(slot.agent)
             by_type.update(channel.bytes_sent)
             by_type.update(channel.bytes_received)
+            segments = self._segments_of(slot.agent)
             agents.append({
                 "agent": slot.agent, "status": slot.status, "error": slot.error,
                 "pid": slot.pid, "exitcode": self.hub.exitcode(slot.agent),
                 "frames_expected": slot.frames_expected, "frames_done": slot.frames_done,
-                "keyframes_received": len(slot.result.keyframes),
-                "pose_updates_sent": slot.sent_seq, "keyframes_reanchored": slot.reanchored,
+                "keyframes_received": sum(len(s.result.keyframes) for s in segments),
+                "pose_updates_sent": sum(s.sent_seq for s in segments),
+                "keyframes_reanchored": sum(s.reanchored for s in segments),
+                "times_away": slot.absences, "restarts": slot.restarts,
+                "map_segments": [{"segment": s.index, "after_frame": s.after_frame,
+                                  "keyframes": len(s.result.keyframes),
+                                  "in_outputs": s.index in self.places}
+                                 for s in segments],
                 "bytes_to_agent": dict(channel.bytes_sent),
                 "bytes_from_agent": dict(channel.bytes_received),
                 "messages_to_agent": dict(channel.messages_sent),
@@ -624,9 +627,11 @@ def coordinate(
 
 def _write(staging: Path, runtime: _Runtime, inputs: Sequence[AgentInput]) -> RunSummary:
     """The output folder of :func:`pipeline.run`, from the agents' results."""
-    config, coordinator = runtime.config, runtime.coordinator
-    results = [s.result for s in runtime.slots]
-    seconds = [s.result.finished.seconds if s.result.finished else s.seconds for s in runtime.slots]
+    config = runtime.config
+    results, runtime.places = agent_results(runtime.slots, runtime.segments,
+                                            runtime.coordinator.components())
+    coordinator = SegmentedCoordinator(runtime.coordinator, runtime.places)
+    seconds = [s.seconds for s in runtime.slots]
     metrics, components = outputs.write_run_files(staging, results, coordinator, config,
                                                   runtime.prior.describe(), seconds,
                                                   runtime.progress)
@@ -634,11 +639,12 @@ def _write(staging: Path, runtime: _Runtime, inputs: Sequence[AgentInput]) -> Ru
     summary = RunSummary(out=staging)
     for slot, s in zip(runtime.slots, seconds):
         summary.agents.append({"agent": slot.agent, "status": slot.status,
-                               **outputs.agent_row(slot.result, s)})
+                               **outputs.agent_row(results[slot.agent], s)})
         if slot.status == "failed":
             summary.notes.append(
                 f"agent {slot.agent} failed: {slot.error}; its outputs hold the "
-                f"{len(slot.result.keyframes)} keyframes the coordinator received")
+                f"{len(results[slot.agent].keyframes)} keyframes the coordinator received")
+    summary.notes.extend(left_out(runtime.segments, runtime.places))
     outputs.evaluate_and_finish(staging, summary, metrics, inputs, components, results,
                                 coordinator, config, runtime.progress)
     return summary

@@ -66,13 +66,22 @@ class Joined:
 
 @dataclass(frozen=True)
 class Left:
-    """``agent`` is gone: its process ended or its link was lost (``reason`` says which)."""
+    """``agent`` is gone: its process ended or its link was lost (``reason`` says which).
+
+    ``may_return``: the link was lost, not the process seen ending (a network transport
+    cannot tell a crash from a radio gap): the agent may reconnect, or a new process may
+    take over its id (see :data:`Rejoin`)."""
 
     agent: int
     reason: str
+    may_return: bool = False
 
 
 Event = Union[Received, Rejected, Joined, Left]
+
+Rejoin = Callable[[int], Union[AgentTask, str]]
+"""Asked by a hub when a new process wants agent ``a``'s id after the one that held it left:
+the task the newcomer runs, or why it cannot take over (a reason it is told)."""
 
 
 @dataclass
@@ -124,8 +133,10 @@ class Hub(Protocol):
     name: str
     """What carries the messages (``metrics.json``: ``runtime.transport``)."""
 
-    def start(self, tasks: Sequence[AgentTask]) -> None:
-        """Make each agent's task available to it (pipes: start its process and send it)."""
+    def start(self, tasks: Sequence[AgentTask], rejoin: Rejoin) -> None:
+        """Make each agent's task available to it (pipes: start its process and send it);
+        ``rejoin`` decides on a process taking over the id of an agent that left (only
+        transports whose agents start on their own ask it)."""
 
     def events(self, timeout: float) -> list[Event]:
         """What arrived, waiting up to ``timeout`` seconds for the first event."""
@@ -137,7 +148,8 @@ class Hub(Protocol):
         """Queue ``message`` for ``agent``; never blocks on the network."""
 
     def drop(self, agent: int) -> None:
-        """Stop a failed agent (it may still be running)."""
+        """Stop a failed agent (it may still be running); what it sends from now on is not
+        acknowledged as stored."""
 
     def stop(self, live: Sequence[int], interrupted: bool) -> None:
         """Ask the ``live`` agents to stop (at once when ``interrupted``), release all."""
@@ -255,7 +267,9 @@ class PipeHub:
         self._open: set[int] = set()  # inbox not at end of stream
         self._gone: set[int] = set()  # Left reported
 
-    def start(self, tasks: Sequence[AgentTask]) -> None:
+    def start(self, tasks: Sequence[AgentTask], rejoin: Rejoin) -> None:
+        """Start one process per task and send it its task. ``rejoin`` is never asked: a
+        process this hub started that ends is gone for good."""
         context = multiprocessing.get_context("spawn")
         for task in tasks:
             to_agent_r, to_agent_w = context.Pipe(duplex=False)

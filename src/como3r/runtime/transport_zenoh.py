@@ -4,47 +4,67 @@ The typed msgpack messages of :mod:`como3r.runtime.messages` are the payloads, u
 Key expressions name the session, the agent and the message kind::
 
     como3r/<session>/coordinator              liveliness token of the coordinator
-    como3r/<session>/agent/<a>                liveliness token of agent a (join / leave)
-    como3r/<session>/agent/<a>/task           queryable: agent a's AgentTask (late joiners)
+    como3r/<session>/agent/<a>/alive/<inc>    liveliness token of agent a's process with
+                                              incarnation <inc> (16 hex digits, random per
+                                              process): join / leave
+    como3r/<session>/agent/<a>/task           queryable: agent a's AgentTask; the query's
+                                              attachment <Q: the asking process's incarnation
     como3r/<session>/agent/<a>/up/<Type>      agent -> coordinator; attachment <QQ:
-                                              incarnation (random per agent process), seq
-    como3r/<session>/agent/<a>/down/<Type>    coordinator -> agent
+                                              incarnation, seq
+    como3r/<session>/agent/<a>/down/<Type>    coordinator -> agent; attachment <Q: the
+                                              incarnation it is meant for
     como3r/<session>/agent/<a>/ack            coordinator -> agent <QQ: incarnation, the
                                               last seq stored (every one up to it is)
 
 Delivery is reliable with congestion control ``BLOCK`` (``DROP`` loses messages under a
-slow subscriber), and acknowledged: an agent keeps every message until the coordinator
-has stored it, re-sends the unacknowledged ones when the coordinator's token reappears, and
-leaves (:meth:`ZenohAgentLink.close`) only once the last one is stored. The coordinator
-takes an agent's messages in sequence, drops duplicates of re-sent ones, and logs and drops
-whatever is not a valid message (oversized, malformed, unknown agent, another incarnation).
-Zenoh's callbacks only queue bytes; decoding happens on the coordinator's own thread, and
-sends go through a background thread, so neither side ever blocks Zenoh or its own loop.
+slow subscriber), and acknowledged: an agent keeps every message until the coordinator has
+stored it (:mod:`como3r.runtime.spool`: in memory, on disk past a limit), re-sends the
+unacknowledged ones when the coordinator's token reappears, and leaves
+(:class:`~como3r.runtime.zenoh_agent.ZenohAgentLink`) only once the last one is stored. The
+coordinator takes an agent's messages in sequence, drops duplicates of re-sent ones, and
+logs and drops whatever is not a valid message (oversized, malformed, unknown agent, a
+process that does not hold the agent's id).
+
+Who holds an id. The coordinator hands agent a's task to the first process that asks and
+from then on takes a's messages from that incarnation only. When that process's token goes
+(a crash, a lost link, a frozen coordinator: Zenoh cannot tell them apart), the agent is
+reported as :class:`~como3r.runtime.transport.Left` with ``may_return``; if the same
+process reconnects, its token comes back (:class:`~como3r.runtime.transport.Joined`) and its
+stream continues. A new process asking for a's task while the holder's token is present is
+told to wait (the holder may be dead with its lease not yet expired, or a second process
+started with the same id by mistake); once the holder's token is gone, the runtime's
+:data:`~como3r.runtime.transport.Rejoin` decides, and the newcomer takes over the id with a
+fresh message sequence. Messages to an agent carry the incarnation they are meant for, so a
+superseded process never applies its successor's updates.
+
+Zenoh's callbacks only queue; decoding, answering task queries and admitting processes
+happen on the coordinator's own thread, in arrival order, and sends go through a background
+thread, so neither side ever blocks Zenoh or its own loop.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import math
-import os
 import queue
 import struct
 import threading
-import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
 from como3r.errors import InputError
 from como3r.runtime import codec
-from como3r.runtime.messages import FROM_AGENT, TO_AGENT, AgentTask, KeyframeMessage, Shutdown
-from como3r.runtime.transport import Event, Joined, Left, Received, Rejected, Traffic
+from como3r.runtime.messages import FROM_AGENT, AgentTask, KeyframeMessage, Shutdown
+from como3r.runtime.transport import Event, Joined, Left, Received, Rejected, Rejoin, Traffic
 
 logger = logging.getLogger(__name__)
 
-_SEQ = struct.Struct("<QQ")  # incarnation, sequence number
+SEQ = struct.Struct("<QQ")  # incarnation, sequence number
+INCARNATION = struct.Struct("<Q")
+#: the start of a task query's error that means "ask again later", not "give up"
+WAIT = "wait: "
 
 
 @dataclass(frozen=True)
@@ -118,6 +138,12 @@ class Keys:
     def ack(self, agent: int | str) -> str:
         return f"{self.agent(agent)}/ack"
 
+    def alive(self, agent: int | str, incarnation: int | str) -> str:
+        """The liveliness token of agent ``agent``'s process ``incarnation`` (an int, or
+        ``*`` in a subscription)."""
+        label = f"{incarnation:016x}" if isinstance(incarnation, int) else incarnation
+        return f"{self.agent(agent)}/alive/{label}"
+
     def agent_of(self, key: str) -> str:
         """The agent field of a key under ``agent/`` (as written: not checked)."""
         return key[len(self.root) + len("/agent/"):].split("/", 1)[0]
@@ -153,12 +179,21 @@ class _Sender:
 
 
 @dataclass
-class _Stream:
-    """Where the coordinator is in one agent's message sequence."""
+class _Holder:
+    """The coordinator's view of one agent id: which process holds it, where its message
+    sequence is, and which of its processes are connected."""
 
     incarnation: int | None = None
+    task: bytes = b""  # the holder's task (asked again: the same answer)
     next_seq: int = 0
     ack_due: bool = False
+    dropped: bool = False
+    present: set[int] = field(default_factory=set)  # incarnations with a liveliness token
+    superseded: set[int] = field(default_factory=set)  # earlier holders
+
+    def describe(self) -> str:
+        return ("no process holds it yet" if self.incarnation is None
+                else f"process {self.incarnation:016x} does")
 
 
 class ZenohHub:
@@ -179,13 +214,15 @@ class ZenohHub:
         self.session, self.keys, self.agents = session, keys, agents
         self.max_bytes, self.grace_s = max_bytes, grace_s
         self._traffic = [Traffic() for _ in range(agents)]
-        self._streams = [_Stream() for _ in range(agents)]
+        self._holders = [_Holder() for _ in range(agents)]
         self._tasks: dict[int, bytes] = {}
+        self._rejoin: Rejoin | None = None
         self._inbox: queue.Queue[tuple[Any, ...]] = queue.Queue()
+        self._backlog: deque[tuple[Any, ...]] = deque()
         self._sender = _Sender(session)
         self._declared = [
             session.declare_subscriber(keys.up("*", "*"), self._on_sample),
-            session.liveliness().declare_subscriber(keys.agent("*"), self._on_liveliness,
+            session.liveliness().declare_subscriber(keys.alive("*", "*"), self._on_liveliness,
                                                     history=True),
         ]
         self._stopped = False
@@ -198,111 +235,197 @@ class ZenohHub:
             self._inbox.put(("reject", agent, f"message of {size} bytes exceeds the cap of "
                                               f"{self.max_bytes} bytes"))
             return
-        attachment = sample.attachment.to_bytes() if sample.attachment is not None else b""
-        self._inbox.put(("message", agent, attachment, sample.payload.to_bytes()))
+        self._inbox.put(("message", agent, _attachment(sample), sample.payload.to_bytes()))
 
     def _on_liveliness(self, sample: Any) -> None:
         import zenoh
 
-        self._inbox.put(("alive", self.keys.agent_of(str(sample.key_expr)),
+        key = str(sample.key_expr)
+        self._inbox.put(("alive", self.keys.agent_of(key), key.rsplit("/", 1)[-1],
                          sample.kind == zenoh.SampleKind.PUT))
 
     def _on_query(self, query: Any) -> None:
-        agent = self._agent_id(self.keys.agent_of(str(query.key_expr)))
-        if agent is None:
-            query.reply_err(f"no agent {self.keys.agent_of(str(query.key_expr))} in this run "
-                            f"(agents 0 to {self.agents - 1})".encode())
-        else:
-            query.reply(query.key_expr, self._tasks[agent])
+        self._inbox.put(("query", self.keys.agent_of(str(query.key_expr)), _attachment(query),
+                         query))
 
     # ------------------------------------------------------------ the coordinator's thread
 
-    def start(self, tasks: Sequence[AgentTask]) -> None:
+    def start(self, tasks: Sequence[AgentTask], rejoin: Rejoin) -> None:
         for task in tasks:
             self._tasks[task.agent] = codec.encode(task, max_bytes=self.max_bytes)
+        self._rejoin = rejoin
         # agents get their tasks, then see the coordinator, once it can answer them
         self._declared.append(self.session.declare_queryable(self.keys.task("*"),
                                                              self._on_query))
         self._declared.append(self.session.liveliness().declare_token(self.keys.coordinator()))
 
     def events(self, timeout: float) -> list[Event]:
-        try:
-            items = [self._inbox.get(timeout=timeout) if timeout > 0 else
-                     self._inbox.get_nowait()]
-        except queue.Empty:
-            return []
+        if not self._backlog:
+            try:
+                self._backlog.append(self._inbox.get(timeout=timeout) if timeout > 0 else
+                                     self._inbox.get_nowait())
+            except queue.Empty:
+                return []
         while True:
             try:
-                items.append(self._inbox.get_nowait())
+                self._backlog.append(self._inbox.get_nowait())
             except queue.Empty:
                 break
-        return [event for item in items if (event := self._event(item)) is not None]
+        out: list[Event] = []
+        while self._backlog:
+            if out and self._asks_rejoin(self._backlog[0]):
+                break  # decided once the runtime has handled what came before it
+            out.extend(self._event(self._backlog.popleft()))
+        return out
 
     def _agent_id(self, text: str) -> int | None:
         return int(text) if text.isdigit() and int(text) < self.agents else None
 
-    def _event(self, item: tuple[Any, ...]) -> Event | None:
+    def _event(self, item: tuple[Any, ...]) -> list[Event]:
         kind, name = item[0], item[1]
         agent = self._agent_id(name)
         if agent is None:
-            logger.warning("dropped a message for unknown agent %r (this run has agents 0 to "
-                           "%d)", name, self.agents - 1)
-            return None
+            text = (f"unknown agent {name!r} (this run has agents 0 to {self.agents - 1})")
+            if kind == "query":
+                _reply(item[3], error=f"no agent {name} in this run (agents 0 to "
+                                      f"{self.agents - 1})")
+            elif kind != "alive":
+                logger.warning("dropped a message for %s", text)
+            return []
         if kind == "reject":
-            return Rejected(agent, item[2])
+            return [Rejected(agent, item[2])]
         if kind == "alive":
-            return (Joined(agent) if item[2] else
-                    Left(agent, "left (its liveliness token is gone: the process ended or "
-                                "its link was lost)"))
-        return self._message(agent, item[2], item[3])
+            return self._liveliness(agent, item[2], item[3])
+        if kind == "query":
+            return self._query(agent, item[2], item[3])
+        event = self._message(agent, item[2], item[3])
+        return [] if event is None else [event]
+
+    def _liveliness(self, agent: int, label: str, present: bool) -> list[Event]:
+        try:
+            incarnation = int(label, 16)
+        except ValueError:
+            return []
+        holder = self._holders[agent]
+        (holder.present.add if present else holder.present.discard)(incarnation)
+        if present and incarnation in holder.superseded:  # back after it was replaced
+            self._send(agent, incarnation, Shutdown(f"another process has taken over agent "
+                                                    f"{agent}'s id"))
+        if incarnation != holder.incarnation:
+            return []  # a process not (or no longer) holding the id
+        if not present:
+            return [Left(agent, "left (its liveliness token is gone: the process ended or "
+                                "its link was lost)", may_return=True)]
+        if holder.dropped:  # back after it was counted as failed: it may have missed it
+            self._shutdown(agent)
+        return [Joined(agent)]
+
+    # ------------------------------------------------------------ who holds an id
+
+    def _asks_rejoin(self, item: tuple[Any, ...]) -> bool:
+        if item[0] != "query" or (agent := self._agent_id(item[1])) is None:
+            return False
+        incarnation = _incarnation(item[2])
+        return incarnation is not None and _decision(self._holders[agent], incarnation) == "rejoin"
+
+    def _query(self, agent: int, attachment: bytes, query: Any) -> list[Event]:
+        """Answer a process asking for agent ``agent``'s task."""
+        holder, incarnation = self._holders[agent], _incarnation(attachment)
+        if incarnation is None:
+            _reply(query, error="the task query carries no incarnation (a como3r of another "
+                                "version?)")
+            return []
+        decision = _decision(holder, incarnation)
+        if decision == "again":
+            _reply(query, holder.task)
+            return []
+        if decision == "wait":
+            _reply(query, error=f"{WAIT}another process with id {agent} "
+                                f"({holder.incarnation:016x}) is still connected")
+            return []
+        assert self._rejoin is not None, "start() first"
+        answer = self._tasks[agent] if decision == "first" else self._rejoin(agent)
+        if isinstance(answer, str):
+            _reply(query, error=answer)
+            return []
+        if holder.incarnation is not None:
+            logger.info("agent %d: process %016x takes over the id from %016x", agent,
+                        incarnation, holder.incarnation)
+            holder.superseded.add(holder.incarnation)
+        holder.incarnation, holder.next_seq, holder.ack_due = incarnation, 0, False
+        holder.dropped = False
+        holder.task = answer if isinstance(answer, bytes) else codec.encode(
+            answer, max_bytes=self.max_bytes)
+        _reply(query, holder.task)
+        return [Joined(agent)] if incarnation in holder.present else []
 
     def _message(self, agent: int, attachment: bytes, data: bytes) -> Event | None:
-        if len(attachment) != _SEQ.size:
+        if len(attachment) != SEQ.size:
             return Rejected(agent, "no sequence number attached")
-        incarnation, seq = _SEQ.unpack(attachment)
-        stream = self._streams[agent]
-        if stream.incarnation is not None and incarnation != stream.incarnation:
-            return Rejected(agent, f"from another process with this id (incarnation "
-                                   f"{incarnation:016x}, not {stream.incarnation:016x})")
-        if seq < stream.next_seq:  # re-sent after a reconnect: stored already
-            stream.ack_due = True
+        incarnation, seq = SEQ.unpack(attachment)
+        holder = self._holders[agent]
+        if incarnation != holder.incarnation:
+            _, error = self._decode(agent, data)
+            return Rejected(agent, error or f"from process {incarnation:016x}, which does not "
+                                            f"hold agent {agent}'s id ({holder.describe()})")
+        if holder.dropped:
+            logger.debug("agent %d counts as failed: message %d ignored", agent, seq)
             return None
-        if seq > stream.next_seq:
-            return Rejected(agent, f"message {seq} before {stream.next_seq} (a gap: the agent "
+        if seq < holder.next_seq:  # re-sent after a reconnect: stored already
+            holder.ack_due = True
+            return None
+        if seq > holder.next_seq:
+            return Rejected(agent, f"message {seq} before {holder.next_seq} (a gap: the agent "
                                    f"re-sends)")
-        try:
-            message = codec.decode(data, max_bytes=self.max_bytes, expected=FROM_AGENT)
-        except codec.MessageError as exc:
-            error = str(exc)
-        else:
-            sender = (message.packet.agent if isinstance(message, KeyframeMessage)
-                      else message.agent)
-            error = (None if sender == agent else
-                     f"an {type(message).__name__} of agent {sender} under agent {agent}'s key")
+        holder.next_seq += 1  # the holder's own: taken, or skipped, never waited for
+        holder.ack_due = True
+        message, error = self._decode(agent, data)
         if error is not None:
-            if stream.incarnation is not None:  # the agent's own: skipped, not waited for
-                stream.next_seq += 1
-                stream.ack_due = True
             return Rejected(agent, error)
-        stream.incarnation = incarnation
-        stream.next_seq += 1
-        stream.ack_due = True
         self._traffic[agent].received(message, len(data))
         return Received(agent, message)
 
+    def _decode(self, agent: int, data: bytes) -> tuple[Any, str | None]:
+        """The message of ``data`` sent under agent ``agent``'s key, or why it is not one."""
+        try:
+            message = codec.decode(data, max_bytes=self.max_bytes, expected=FROM_AGENT)
+        except codec.MessageError as exc:
+            return None, str(exc)
+        sender = message.packet.agent if isinstance(message, KeyframeMessage) else message.agent
+        if sender != agent:
+            return None, f"an {type(message).__name__} of agent {sender} under agent {agent}'s key"
+        return message, None
+
+    # ------------------------------------------------------------ to the agents
+
     def acknowledge(self) -> None:
-        for agent, stream in enumerate(self._streams):
-            if stream.ack_due and stream.incarnation is not None:
-                self._sender.put(self.keys.ack(agent),
-                                 _SEQ.pack(stream.incarnation, stream.next_seq - 1))
-                stream.ack_due = False
+        for agent in range(self.agents):
+            self._acknowledge(agent)
+
+    def _acknowledge(self, agent: int) -> None:
+        holder = self._holders[agent]
+        if holder.ack_due and holder.incarnation is not None and not holder.dropped:
+            self._sender.put(self.keys.ack(agent),
+                             SEQ.pack(holder.incarnation, holder.next_seq - 1))
+            holder.ack_due = False
 
     def send(self, agent: int, message: Any) -> None:
+        incarnation = self._holders[agent].incarnation
+        if incarnation is not None:  # else no process has taken the task: nobody to tell
+            self._send(agent, incarnation, message)
+
+    def _send(self, agent: int, incarnation: int, message: Any) -> None:
         data = codec.encode(message, max_bytes=self.max_bytes)
         self._traffic[agent].sent(message, len(data))
-        self._sender.put(self.keys.down(agent, type(message).__name__), data)
+        self._sender.put(self.keys.down(agent, type(message).__name__), data,
+                         INCARNATION.pack(incarnation))
 
     def drop(self, agent: int) -> None:
+        self._acknowledge(agent)  # what was handed over before the failure is stored
+        self._holders[agent].dropped = True
+        self._shutdown(agent)
+
+    def _shutdown(self, agent: int) -> None:
         self.send(agent, Shutdown("the coordinator counts this agent as failed"))
 
     def stop(self, live: Sequence[int], interrupted: bool) -> None:
@@ -323,162 +446,34 @@ class ZenohHub:
         return None
 
 
-class ZenohAgentLink:
-    """An agent's end (:class:`~como3r.runtime.transport.AgentLink`) over Zenoh.
+def _attachment(sample_or_query: Any) -> bytes:
+    attachment = sample_or_query.attachment
+    return attachment.to_bytes() if attachment is not None else b""
 
-    Declares the agent's subscribers, then its liveliness token (the coordinator sees it
-    join). Messages are put only while the coordinator's token is present; each is kept
-    until acknowledged.
 
-    Args:
-        session: an open Zenoh session (the caller closes it).
-        keys: the run's key expressions.
-        agent: this agent's id.
-        wait_log_s: how often :meth:`fetch_task` and :meth:`close` say what they wait for.
-    """
+def _incarnation(attachment: bytes) -> int | None:
+    return INCARNATION.unpack(attachment)[0] if len(attachment) == INCARNATION.size else None
 
-    def __init__(self, session: Any, keys: Keys, agent: int, wait_log_s: float = 30.0) -> None:
-        self.session, self.keys, self.agent = session, keys, agent
-        self.max_bytes = codec.DEFAULT_MAX_BYTES
-        self.wait_log_s = wait_log_s
-        self.traffic = Traffic()
-        self.incarnation = int.from_bytes(os.urandom(8), "little")
-        self._next_seq = 0
-        self._pending: deque[tuple[int, str, bytes]] = deque()  # not put yet
-        self._unacked: dict[int, tuple[str, bytes]] = {}  # put, not stored yet
-        self._present = False
-        self._closed = False
-        self._discard = False  # after a Shutdown: the coordinator takes nothing more
-        self._cond = threading.Condition()
-        self._inbox: queue.Queue[bytes] = queue.Queue()
-        self._peeked: bytes | None = None
-        self._declared = [
-            session.declare_subscriber(keys.down(agent, "*"),
-                                       lambda s: self._inbox.put(s.payload.to_bytes())),
-            session.declare_subscriber(keys.ack(agent), self._on_ack),
-            session.liveliness().declare_subscriber(keys.coordinator(), self._on_coordinator,
-                                                    history=True),
-        ]
-        self._declared.append(session.liveliness().declare_token(keys.agent(agent)))
-        self._sender = threading.Thread(target=self._send_loop, daemon=True)
-        self._sender.start()
 
-    def fetch_task(self) -> AgentTask:
-        """This agent's task from the coordinator, asked until it answers.
+def _decision(holder: _Holder, incarnation: int) -> str:
+    """What a task query of process ``incarnation`` gets: ``again`` (the holder asks
+    again), ``first`` (nobody held the id), ``wait`` (the holder is still connected) or
+    ``rejoin`` (the holder left, or the id failed: the runtime decides)."""
+    if incarnation == holder.incarnation:
+        return "again"
+    if holder.incarnation is None and not holder.dropped:
+        return "first"
+    return "wait" if holder.incarnation in holder.present else "rejoin"
 
-        Raises:
-            InputError: the coordinator has no agent with this id.
-        """
-        said = -math.inf
-        while True:
-            for reply in self.session.get(self.keys.task(self.agent), timeout=5.0):
-                if reply.ok is None:
-                    raise InputError(f"agent {self.agent}: the coordinator says: "
-                                     f"{reply.err.payload.to_string()}")
-                task = codec.decode(reply.ok.payload.to_bytes(), expected=AgentTask)
-                self.max_bytes = task.max_message_bytes
-                return task
-            if time.monotonic() - said > self.wait_log_s:
-                logger.warning("agent %d: waiting for the coordinator (%s)", self.agent,
-                               self.keys.root)
-                said = time.monotonic()
-            time.sleep(0.5)
 
-    # ------------------------------------------------------------ AgentLink
-
-    def send(self, message: Any) -> None:
-        data = codec.encode(message, max_bytes=self.max_bytes)
-        self.traffic.sent(message, len(data))
-        with self._cond:
-            self._pending.append((self._next_seq, self.keys.up(self.agent,
-                                                               type(message).__name__), data))
-            self._next_seq += 1
-            self._cond.notify_all()
-
-    def poll(self, timeout: float = 0.0) -> bool:
-        if self._peeked is None:
-            try:
-                self._peeked = (self._inbox.get(timeout=timeout) if timeout > 0
-                                else self._inbox.get_nowait())
-            except queue.Empty:
-                return False
-        return True
-
-    def receive(self) -> Any:
-        data, self._peeked = (self._peeked if self._peeked is not None
-                              else self._inbox.get()), None
-        message = codec.decode(data, max_bytes=self.max_bytes, expected=TO_AGENT)
-        self.traffic.received(message, len(data))
-        if isinstance(message, Shutdown):
-            with self._cond:
-                self._discard = True
-                self._cond.notify_all()
-        return message
-
-    def close(self) -> None:
-        """Wait until the coordinator has stored every message (or sent a Shutdown), then
-        leave: the liveliness token goes last."""
-        with self._cond:
-            said = time.monotonic()
-            while (self._pending or self._unacked) and not self._discard:
-                self._cond.wait(1.0)
-                if time.monotonic() - said > self.wait_log_s:
-                    logger.warning("agent %d: waiting for the coordinator to store %d "
-                                   "message(s)", self.agent,
-                                   len(self._pending) + len(self._unacked))
-                    said = time.monotonic()
-            self._closed = True
-            self._cond.notify_all()
-        self._sender.join()
-        for entity in reversed(self._declared):
-            entity.undeclare()
-
-    # ------------------------------------------------------------ threads
-
-    def _send_loop(self) -> None:
-        import zenoh
-
-        while True:
-            with self._cond:
-                while not (self._closed or (self._present and self._pending)):
-                    self._cond.wait()
-                if self._closed:
-                    return
-                seq, key, data = self._pending.popleft()
-                self._unacked[seq] = (key, data)
-            try:
-                self.session.put(key, data, attachment=_SEQ.pack(self.incarnation, seq),
-                                 congestion_control=zenoh.CongestionControl.BLOCK)
-            except Exception as exc:  # the session is closing
-                logger.debug("put on %s failed: %s", key, exc)
-
-    def _on_ack(self, sample: Any) -> None:
-        data = sample.payload.to_bytes()
-        if len(data) != _SEQ.size:
-            return
-        incarnation, seq = _SEQ.unpack(data)
-        if incarnation != self.incarnation:
-            return
-        with self._cond:
-            for stored in [s for s in self._unacked if s <= seq]:
-                del self._unacked[stored]
-            while self._pending and self._pending[0][0] <= seq:
-                self._pending.popleft()
-            self._cond.notify_all()
-
-    def _on_coordinator(self, sample: Any) -> None:
-        import zenoh
-
-        present = sample.kind == zenoh.SampleKind.PUT
-        with self._cond:
-            if present and self._unacked:  # it may have lost them: again, in order
-                logger.info("agent %d: the coordinator is back; re-sending %d message(s)",
-                            self.agent, len(self._unacked))
-                self._pending.extendleft(reversed([(s, *v) for s, v in
-                                                   sorted(self._unacked.items())]))
-                self._unacked.clear()
-            elif not present:
-                logger.warning("agent %d: the coordinator is gone; keeping messages until "
-                               "it is back", self.agent)
-            self._present = present
-            self._cond.notify_all()
+def _reply(query: Any, payload: bytes = b"", error: str | None = None) -> None:
+    """Answer a task query (its asker may have given up waiting: then nobody hears it)."""
+    try:
+        if error is None:
+            query.reply(query.key_expr, payload)
+        else:
+            query.reply_err(error.encode())
+    except Exception as exc:  # the session is closing
+        logger.debug("task reply failed: %s", exc)
+    finally:
+        query.drop()

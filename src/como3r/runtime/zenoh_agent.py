@@ -1,0 +1,196 @@
+"""An agent's end of the Zenoh transport (``como3r agent``; the protocol is in
+:mod:`como3r.runtime.transport_zenoh`).
+
+The agent's frame loop never waits on the network: :meth:`ZenohAgentLink.send` puts the
+message in the agent's :class:`~como3r.runtime.spool.Spool` and a background thread puts it
+on the network while the coordinator's liveliness token is present. While the coordinator is
+away the agent keeps tracking and the spool grows (on disk past its memory limit); when the
+coordinator is back, everything it has not acknowledged is put again, oldest first.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import queue
+import threading
+import time
+from typing import Any
+
+from como3r.errors import InputError
+from como3r.runtime import codec
+from como3r.runtime.messages import TO_AGENT, AgentTask, Shutdown
+from como3r.runtime.spool import Spool
+from como3r.runtime.transport import Traffic
+from como3r.runtime.transport_zenoh import INCARNATION, SEQ, WAIT, Keys
+
+logger = logging.getLogger(__name__)
+
+
+class ZenohAgentLink:
+    """An agent's end (:class:`~como3r.runtime.transport.AgentLink`) over Zenoh.
+
+    Declares the agent's subscribers, then the liveliness token of this process (the
+    coordinator sees it join). Messages are put only while the coordinator's token is
+    present; each is kept in the spool until acknowledged.
+
+    Args:
+        session: an open Zenoh session (the caller closes it).
+        keys: the run's key expressions.
+        agent: this agent's id.
+        spool: where unacknowledged messages wait (None: a default one).
+        wait_log_s: how often :meth:`fetch_task` and :meth:`close` say what they wait for.
+    """
+
+    def __init__(self, session: Any, keys: Keys, agent: int, spool: Spool | None = None,
+                 wait_log_s: float = 30.0) -> None:
+        self.session, self.keys, self.agent = session, keys, agent
+        self.max_bytes = codec.DEFAULT_MAX_BYTES
+        self.wait_log_s = wait_log_s
+        self.traffic = Traffic()
+        self.incarnation = int.from_bytes(os.urandom(8), "little")
+        self.spool = spool if spool is not None else Spool(label=f"agent-{agent}")
+        self._mine = INCARNATION.pack(self.incarnation)
+        self._present = False
+        self._gone_at: float | None = None  # when the coordinator's token went
+        self._made_away = 0  # messages made since then
+        self._closed = False
+        self._discard = False  # after a Shutdown: the coordinator takes nothing more
+        self._cond = threading.Condition()
+        self._inbox: queue.Queue[bytes] = queue.Queue()
+        self._peeked: bytes | None = None
+        self._declared = [
+            session.declare_subscriber(keys.down(agent, "*"), self._on_down),
+            session.declare_subscriber(keys.ack(agent), self._on_ack),
+            session.liveliness().declare_subscriber(keys.coordinator(), self._on_coordinator,
+                                                    history=True),
+        ]
+        self._declared.append(session.liveliness().declare_token(
+            keys.alive(agent, self.incarnation)))
+        self._sender = threading.Thread(target=self._send_loop, daemon=True)
+        self._sender.start()
+
+    def fetch_task(self) -> AgentTask:
+        """This agent's task from the coordinator, asked until it answers.
+
+        Raises:
+            InputError: the coordinator refuses (no agent with this id, or one that has
+                failed or finished in this run).
+        """
+        said, waiting = -math.inf, f"the coordinator ({self.keys.root})"
+        while True:
+            for reply in self.session.get(self.keys.task(self.agent), timeout=5.0,
+                                          attachment=self._mine):
+                if reply.ok is not None:
+                    task = codec.decode(reply.ok.payload.to_bytes(), expected=AgentTask)
+                    self.max_bytes = task.max_message_bytes
+                    return task
+                text = reply.err.payload.to_string()
+                if not text.startswith(WAIT):
+                    raise InputError(f"agent {self.agent}: the coordinator says: {text}")
+                waiting = text[len(WAIT):]
+            if time.monotonic() - said > self.wait_log_s:
+                logger.warning("agent %d: waiting: %s", self.agent, waiting)
+                said = time.monotonic()
+            time.sleep(0.5)
+
+    # ------------------------------------------------------------ AgentLink
+
+    def send(self, message: Any) -> None:
+        data = codec.encode(message, max_bytes=self.max_bytes)
+        self.traffic.sent(message, len(data))
+        with self._cond:
+            self.spool.append(self.keys.up(self.agent, type(message).__name__), data)
+            self._made_away += self._gone_at is not None
+            self._cond.notify_all()
+
+    def poll(self, timeout: float = 0.0) -> bool:
+        if self._peeked is None:
+            try:
+                self._peeked = (self._inbox.get(timeout=timeout) if timeout > 0
+                                else self._inbox.get_nowait())
+            except queue.Empty:
+                return False
+        return True
+
+    def receive(self) -> Any:
+        data, self._peeked = (self._peeked if self._peeked is not None
+                              else self._inbox.get()), None
+        message = codec.decode(data, max_bytes=self.max_bytes, expected=TO_AGENT)
+        self.traffic.received(message, len(data))
+        if isinstance(message, Shutdown):
+            with self._cond:
+                self._discard = True
+                self._cond.notify_all()
+        return message
+
+    def close(self) -> None:
+        """Wait until the coordinator has stored every message (or sent a Shutdown), then
+        leave: the liveliness token goes last."""
+        with self._cond:
+            said = time.monotonic()
+            while len(self.spool) and not self._discard:
+                self._cond.wait(1.0)
+                if time.monotonic() - said > self.wait_log_s:
+                    logger.warning("agent %d: waiting for the coordinator to store %d "
+                                   "message(s)", self.agent, len(self.spool))
+                    said = time.monotonic()
+            self._closed = True
+            self._cond.notify_all()
+        self._sender.join()
+        for entity in reversed(self._declared):
+            entity.undeclare()
+        self.spool.close()
+
+    # ------------------------------------------------------------ threads
+
+    def _send_loop(self) -> None:
+        import zenoh
+
+        while True:
+            with self._cond:
+                while not (self._closed or (self._present and self.spool.has_next())):
+                    self._cond.wait()
+                if self._closed:
+                    return
+                seq, key, data = self.spool.take()
+            try:
+                self.session.put(key, data, attachment=SEQ.pack(self.incarnation, seq),
+                                 congestion_control=zenoh.CongestionControl.BLOCK)
+            except Exception as exc:  # the session is closing
+                logger.debug("put on %s failed: %s", key, exc)
+
+    def _on_down(self, sample: Any) -> None:
+        attachment = sample.attachment
+        if attachment is not None and attachment.to_bytes() == self._mine:
+            self._inbox.put(sample.payload.to_bytes())  # else: for another process of this id
+
+    def _on_ack(self, sample: Any) -> None:
+        data = sample.payload.to_bytes()
+        if len(data) != SEQ.size:
+            return
+        incarnation, seq = SEQ.unpack(data)
+        if incarnation != self.incarnation:
+            return
+        with self._cond:
+            self.spool.acknowledge(seq)
+            self._cond.notify_all()
+
+    def _on_coordinator(self, sample: Any) -> None:
+        import zenoh
+
+        present = sample.kind == zenoh.SampleKind.PUT
+        with self._cond:
+            if present and self._gone_at is not None:  # it may have lost some: again, in order
+                logger.warning("agent %d: the coordinator is back after %.1f s; re-sending %d "
+                               "message(s), %d of them made while it was away", self.agent,
+                               time.monotonic() - self._gone_at, self.spool.rewind(),
+                               self._made_away)
+                self._gone_at, self._made_away = None, 0
+            elif not present:
+                logger.warning("agent %d: the coordinator is gone; tracking on and keeping "
+                               "messages until it is back", self.agent)
+                self._gone_at = time.monotonic()
+            self._present = present
+            self._cond.notify_all()

@@ -1,0 +1,131 @@
+"""Who holds an agent id on the Zenoh transport, in one process over loopback TCP: the
+first process to ask gets the task; a second one with the same id waits while the first is
+connected, takes over once it is gone (the runtime deciding its task), and from then on only
+its messages count; messages to an agent reach only the process they are meant for, and a
+replaced process that comes back is told to stop."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import socket
+import struct
+import threading
+import time
+import uuid
+
+import pytest
+
+from como3r.config import Config, config_to_dict
+from como3r.runtime import codec
+from como3r.runtime.messages import AgentStarted, AgentTask, Shutdown, Step
+from como3r.runtime.transport import Joined, Left, Received, Rejected
+from como3r.runtime.transport_zenoh import Keys, ZenohHub, ZenohOptions, open_session
+from como3r.runtime.zenoh_agent import ZenohAgentLink
+
+zenoh = pytest.importorskip("zenoh")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class _Coordinator(threading.Thread):
+    """The coordinator's thread: takes the hub's events and acknowledges, as the runtime."""
+
+    def __init__(self, hub: ZenohHub) -> None:
+        super().__init__(daemon=True)
+        self.hub, self.events, self.running = hub, [], True
+
+    def run(self) -> None:
+        while self.running:
+            self.events.extend(self.hub.events(0.05))
+            self.hub.acknowledge()
+
+    def wait_for(self, condition, what: str, limit: float = 30.0) -> None:
+        deadline = time.monotonic() + limit
+        while not any(condition(e) for e in list(self.events)):
+            assert time.monotonic() < deadline, f"{what}: {self.events}"
+            time.sleep(0.02)
+
+
+def _fetch(link: ZenohAgentLink, out: list) -> threading.Thread:
+    thread = threading.Thread(target=lambda: out.append(link.fetch_task()), daemon=True)
+    thread.start()
+    return thread
+
+
+def test_a_second_process_with_an_id_waits_then_takes_over(caplog) -> None:
+    endpoint, keys = f"tcp/127.0.0.1:{_free_port()}", Keys(f"t{uuid.uuid4().hex[:8]}")
+    coordinator_session = open_session(ZenohOptions(listen=(endpoint,)))
+    hub = ZenohHub(coordinator_session, keys, 1, codec.DEFAULT_MAX_BYTES, 2.0)
+    task = AgentTask(agent=0, input_path="", config=config_to_dict(Config()),
+                     prior={"name": "simulated"})
+    asked: list[int] = []
+
+    def rejoin(agent: int) -> AgentTask:
+        asked.append(agent)
+        return dataclasses.replace(task, resume_after=5)
+
+    hub.start([task], rejoin)
+    loop = _Coordinator(hub)
+    loop.start()
+    sessions = [open_session(ZenohOptions(connect=(endpoint,))) for _ in range(3)]
+    try:
+        first = ZenohAgentLink(sessions[0], keys, 0)
+        assert first.fetch_task().resume_after == -1 and asked == []
+        first.send(AgentStarted(agent=0, pid=1, frames=4))
+        loop.wait_for(lambda e: isinstance(e, Received), "the first process's message")
+        deadline = time.monotonic() + 10
+        while len(first.spool):  # acknowledged: stored
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+
+        second = ZenohAgentLink(sessions[1], keys, 0, wait_log_s=0.2)
+        got: list[AgentTask] = []
+        with caplog.at_level(logging.WARNING):
+            fetching = _fetch(second, got)
+            time.sleep(1.5)
+            assert got == [] and asked == []  # the holder is connected: wait
+            assert "another process with id 0" in caplog.text
+        hub.send(0, Step(3))
+        assert first.poll(5.0) and first.receive() == Step(3)
+        assert not second.poll(0.5)  # not meant for it
+
+        sessions[0].close()  # the holder's process is gone (no goodbye)
+        fetching.join(30)
+        assert [t.resume_after for t in got] == [5] and asked == [0]
+        loop.wait_for(lambda e: isinstance(e, Left) and e.may_return, "the holder leaving")
+        loop.wait_for(lambda e: isinstance(e, Joined), "the newcomer joining")
+
+        stale = struct.pack("<QQ", first.incarnation, 1)  # the old process, late
+        sessions[2].put(keys.up(0, "AgentStarted"),
+                        codec.encode(AgentStarted(agent=0, pid=1, frames=4)), attachment=stale)
+        loop.wait_for(lambda e: isinstance(e, Rejected) and "does not hold" in e.error,
+                      "the old process's message rejected")
+        told: list = []  # the old process reconnecting is told to stop, and only it
+        listener = sessions[2].declare_subscriber(keys.down(0, "*"), lambda sample: told.append(
+            (sample.attachment.to_bytes(), codec.decode(sample.payload.to_bytes()))))
+        token = sessions[2].liveliness().declare_token(keys.alive(0, first.incarnation))
+        deadline = time.monotonic() + 10
+        while not told:
+            assert time.monotonic() < deadline, "the old process was not told"
+            time.sleep(0.02)
+        [(attachment, message)] = told
+        assert attachment == struct.pack("<Q", first.incarnation)
+        assert isinstance(message, Shutdown) and "taken over" in message.reason
+        assert not second.poll(0.2)
+        token.undeclare()
+        listener.undeclare()
+        second.send(AgentStarted(agent=0, pid=2, frames=2))  # a fresh sequence from 0
+        loop.wait_for(lambda e: isinstance(e, Received) and e.message.pid == 2,
+                      "the newcomer's message")
+        second.close()  # returns once stored
+    finally:
+        loop.running = False
+        loop.join(5)
+        hub.stop([], interrupted=False)
+        for session in [*sessions[1:], coordinator_session]:
+            session.close()
