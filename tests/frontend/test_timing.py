@@ -54,6 +54,9 @@ class _Prior:
     def decode(self, enc_i, enc_j):
         return (enc_i, enc_j)
 
+    def decode_pairs(self, pairs):
+        return list(pairs)
+
     def decode_symmetric(self, pairs):
         return [(p, p[::-1]) for p in pairs]
 
@@ -67,6 +70,7 @@ def test_timed_prior_charges_the_prior_stages_and_passes_everything_else() -> No
     enc = prior.encode("view")
     assert prior.decode(enc, enc) == (enc, enc)
     assert prior.decode_symmetric([(1, 2)]) == [((1, 2), (2, 1))]
+    assert prior.decode_pairs([(1, 2), (3, 4)]) == [(1, 2), (3, 4)]
     assert prior.retrieval_features(enc) == enc
     assert prior.name == "stub"
     assert set(timer.seconds) == {"prior_encode", "prior_decode", "prior_retrieval"}

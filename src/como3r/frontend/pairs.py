@@ -109,31 +109,54 @@ def link_pairs(
     timer: StageTimer | None = None,
     screen: Callable[[int, DirectedMatches, float | None], bool] | None = None,
 ) -> list[PairLink | None]:
-    """Decode each pair symmetrically (one batched call) and match both directions.
+    """Decode each pair both ways and match both directions.
 
     With ``covisible_min_confidence`` the links also carry their co-visible fractions;
-    ``timer`` is charged with the stage ``matching``. ``screen(k, ij, covisible_ij)`` is
-    asked after the first direction of pair k: when it returns False the pair cannot pass
-    a test that needs both directions, its second matching is skipped and its link is None.
+    ``timer`` is charged with the stage ``matching``. Without ``screen`` both orders of
+    every pair are decoded in one batched call. With it, the pairs (i, j) are decoded and
+    matched first and ``screen(k, ij, covisible_ij)`` asked for pair k: when it returns False
+    the pair cannot pass a test that needs both directions, and its reverse (j, i) is neither
+    decoded nor matched (its link is None); the survivors' reverses are decoded in a second
+    batched call. A screened-out pair so costs one decode instead of two (MASt3R: a whole
+    decoder and head pass).
     """
     if not pairs:
         return []
     timer = StageTimer() if timer is None else timer
-    links: list[PairLink | None] = []
-    for k, (p_ij, p_ji) in enumerate(prior.decode_symmetric(pairs)):
-        with timer.stage("matching"):
-            ij = directed_matches(p_ij, matching, q_min)
-        cov_ij = (None if covisible_min_confidence is None
-                  else covisible_fraction(p_ij, ij, covisible_min_confidence))
-        if screen is not None and not screen(k, ij, cov_ij):
-            links.append(None)
-            continue
-        with timer.stage("matching"):
-            ji = directed_matches(p_ji, matching, q_min)
-        cov_ji = (None if covisible_min_confidence is None
-                  else covisible_fraction(p_ji, ji, covisible_min_confidence))
-        links.append(PairLink(ij, ji, cov_ij, cov_ji))
+    if screen is None:
+        return [_link(p_ij, p_ji, matching, q_min, covisible_min_confidence, timer)
+                for p_ij, p_ji in prior.decode_symmetric(pairs)]
+    firsts: list[tuple[DirectedMatches, float | None] | None] = []
+    for k, p_ij in enumerate(prior.decode_pairs(pairs)):
+        ij, cov_ij = _direction(p_ij, matching, q_min, covisible_min_confidence, timer)
+        firsts.append((ij, cov_ij) if screen(k, ij, cov_ij) else None)
+    survivors = [k for k, first in enumerate(firsts) if first is not None]
+    reverses = prior.decode_pairs([(pairs[k][1], pairs[k][0]) for k in survivors])
+    links: list[PairLink | None] = [None] * len(pairs)
+    for k, p_ji in zip(survivors, reverses):
+        ij, cov_ij = firsts[k]  # type: ignore[misc]
+        ji, cov_ji = _direction(p_ji, matching, q_min, covisible_min_confidence, timer)
+        links[k] = PairLink(ij, ji, cov_ij, cov_ji)
     return links
+
+
+def _direction(pred: PairPrediction, matching: MatchingConfig, q_min: float,
+               covisible_min_confidence: float | None,
+               timer: StageTimer) -> tuple[DirectedMatches, float | None]:
+    """One direction's matches and (with ``covisible_min_confidence``) co-visible fraction."""
+    with timer.stage("matching"):
+        matches = directed_matches(pred, matching, q_min)
+    covisible = (None if covisible_min_confidence is None
+                 else covisible_fraction(pred, matches, covisible_min_confidence))
+    return matches, covisible
+
+
+def _link(p_ij: PairPrediction, p_ji: PairPrediction, matching: MatchingConfig, q_min: float,
+          covisible_min_confidence: float | None, timer: StageTimer) -> PairLink:
+    """Both directions of a decoded pair."""
+    ij, cov_ij = _direction(p_ij, matching, q_min, covisible_min_confidence, timer)
+    ji, cov_ji = _direction(p_ji, matching, q_min, covisible_min_confidence, timer)
+    return PairLink(ij, ji, cov_ij, cov_ji)
 
 
 def direction_passes(matches: DirectedMatches, covisible: float | None,

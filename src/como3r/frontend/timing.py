@@ -96,6 +96,11 @@ class TimedPrior:
         with self._timer.stage("prior_decode"):
             return self._prior.decode(enc_i, enc_j)
 
+    def decode_pairs(self, pairs: Sequence[tuple[Encoding, Encoding]]) -> list[PairPrediction]:
+        """Every ordered pair (stage ``prior_decode``)."""
+        with self._timer.stage("prior_decode"):
+            return self._prior.decode_pairs(pairs)
+
     def decode_symmetric(
         self, pairs: Sequence[tuple[Encoding, Encoding]]
     ) -> list[tuple[PairPrediction, PairPrediction]]:

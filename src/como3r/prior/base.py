@@ -5,6 +5,7 @@ simulated sensor are interchangeable. A prior turns views into geometry:
 
 * ``encode(view) -> Encoding``: per-image work done once.
 * ``decode(enc_i, enc_j) -> PairPrediction``: both pointmaps in camera i's frame.
+* ``decode_pairs(pairs)``: many ordered pairs (i, j) at once.
 * ``decode_symmetric(pairs)``: (i, j) and (j, i) of many pairs at once.
 * ``retrieval_features(enc) -> (descriptors, attention)``: what ASMK indexes.
 """
@@ -114,6 +115,10 @@ class Prior(abc.ABC):
     @abc.abstractmethod
     def decode(self, enc_i: Encoding, enc_j: Encoding) -> PairPrediction:
         """Predict the ordered pair (i, j): pointmaps of both views in camera i."""
+
+    def decode_pairs(self, pairs: Sequence[tuple[Encoding, Encoding]]) -> list[PairPrediction]:
+        """Decode every ordered pair (i, j); priors override this to batch."""
+        return [self.decode(a, b) for a, b in pairs]
 
     def decode_symmetric(
         self, pairs: Sequence[tuple[Encoding, Encoding]]

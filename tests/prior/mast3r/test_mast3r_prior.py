@@ -128,6 +128,31 @@ def test_decode_symmetric_batches_one_decoder_call_per_size(prior, monkeypatch):
                                            atol=1e-4, rtol=1e-4)
 
 
+def test_decode_pairs_batches_one_decoder_call_per_pair_of_sizes(prior, monkeypatch):
+    encs = prior.encode([View(image(32, 32, s), index=s) for s in range(3)])
+    mixed = prior.encode([View(image(48, 32, 5), index=5), View(image(32, 48, 6), index=6)])
+    pairs = [(encs[0], encs[1]), (mixed[0], mixed[1]), (encs[2], encs[0]), (mixed[1], encs[1])]
+    calls = []
+    decode = prior.network.decode
+
+    def counting_decode(tokens1, grid1, tokens2, grid2):
+        calls.append((tokens1.shape[0], grid1, grid2))
+        return decode(tokens1, grid1, tokens2, grid2)
+
+    monkeypatch.setattr(prior.network, "decode", counting_decode)
+    results = prior.decode_pairs(pairs)
+    assert sorted(calls) == sorted([(2, (2, 2), (2, 2)), (1, (3, 2), (2, 3)),
+                                    (1, (2, 3), (2, 2))])
+    monkeypatch.setattr(prior.network, "decode", decode)
+    assert len(results) == len(pairs)
+    for (a, b), pred in zip(pairs, results):
+        expected = prior.decode(a, b)
+        assert_valid_prediction(pred, a.shape, b.shape)
+        for f in fields(pred):
+            torch.testing.assert_close(getattr(pred, f.name), getattr(expected, f.name),
+                                       atol=1e-4, rtol=1e-4)
+
+
 def test_decode_refuses_foreign_encodings(prior):
     enc = prior.encode(View(image(32, 32, 0)))
     with pytest.raises(PriorError, match="MASt3RPrior.encode"):

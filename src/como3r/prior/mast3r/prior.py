@@ -258,6 +258,24 @@ class MASt3RPrior(Prior):
         out1, out2 = self._run([self._check_encoding(enc_i)], [self._check_encoding(enc_j)])
         return self._prediction(out1, out2, 0)
 
+    def decode_pairs(self, pairs: Sequence[tuple[Encoding, Encoding]]) -> list[PairPrediction]:
+        """Decode every ordered pair (i, j), one decoder call per pair of image sizes.
+
+        Returns:
+            ``[pred_ij, ...]`` in the order of ``pairs``.
+        """
+        checked = [(self._check_encoding(a), self._check_encoding(b)) for a, b in pairs]
+        groups: dict[tuple[tuple[int, int], tuple[int, int]], list[int]] = defaultdict(list)
+        for n, (enc_i, enc_j) in enumerate(checked):
+            groups[(enc_i.grid, enc_j.grid)].append(n)
+        results: list[PairPrediction | None] = [None] * len(checked)
+        for members in groups.values():
+            out1, out2 = self._run([checked[n][0] for n in members],
+                                   [checked[n][1] for n in members])
+            for m, n in enumerate(members):
+                results[n] = self._prediction(out1, out2, m)
+        return results  # type: ignore[return-value]
+
     def decode_symmetric(
         self, pairs: Sequence[tuple[Encoding, Encoding]]
     ) -> list[tuple[PairPrediction, PairPrediction]]:
