@@ -38,3 +38,8 @@ class TrackingError(Como3rError):
 
 class SolverError(Como3rError):
     """A non-linear least-squares solve that failed."""
+
+
+class StoreError(Como3rError):
+    """A session store that cannot be read: not a store, corrupted, inconsistent, or written
+    in a format version this como3r does not read."""

@@ -43,7 +43,7 @@ import logging
 import math
 import time
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Protocol, Sequence
 
 import numpy as np
 import torch
@@ -191,6 +191,16 @@ class Candidate:
         return link
 
 
+class Journal(Protocol):
+    """Where the coordinator's durable state goes as it changes: the session store
+    (:class:`como3r.runtime.store.SessionStore`)."""
+
+    def record(self, coordinator: Coordinator, updates: Sequence[PoseUpdate],
+               finished: bool = False) -> None:
+        """Keep the state after one message's effect (one transaction); ``updates`` are the
+        pose updates it made, ``finished`` says the terminal cleanup ran."""
+
+
 class Coordinator:
     """Cross-agent association, gauge synchronization and global BA (Level 2).
 
@@ -225,6 +235,8 @@ class Coordinator:
         #: agent -> its keyframes as they were before the terminal depth refinement
         #: (pointmaps as streamed, poses after the pose-only cleanup passes)
         self.pre_refinement: dict[int, list[Keyframe]] = {}
+        #: told the state after every keyframe, refresh and the cleanup (None: not kept)
+        self.journal: Journal | None = None
 
     # ------------------------------------------------------------------ public API
 
@@ -258,11 +270,12 @@ class Coordinator:
             updates.extend(self._global_ba())
         logger.debug("coordinator: keyframe %d (agent %d, kf %d): %d update(s)",
                      g, packet.agent, packet.kf_id, len(updates))
-        return self._count(updates)
+        return self._record(self._count(updates))
 
     def refresh(self, agent: int, refresh: PointmapRefresh) -> None:
         """Replace the canonical pointmap of a sent keyframe by its newer fused one."""
         self.graph.refresh(agent, refresh)
+        self._record([])
 
     def finish(self, agent_poses: Mapping[int, Tensor] | None = None,
                progress: PhaseCallback | None = None) -> Cleanup:
@@ -310,8 +323,20 @@ class Coordinator:
                 cleanup.pointmaps.extend(self._pointmaps(members))
                 self.pre_refinement.update(component.snapshot)
         self.stats.add_time("cleanup", time.perf_counter() - start)
-        self._count(cleanup.updates)
+        self._record(self._count(cleanup.updates), finished=True)
         return cleanup
+
+    @property
+    def backlog(self) -> tuple[int, list[int]]:
+        """Inter-agent edges admitted since the last in-stream BA and the roots of the
+        components they touched (what triggers and scopes the next one)."""
+        return self._new_edges, sorted(self._dirty_roots)
+
+    def _record(self, updates: list[PoseUpdate], finished: bool = False) -> list[PoseUpdate]:
+        """Hand the state after one message's effect to the journal; returns ``updates``."""
+        if self.journal is not None:
+            self.journal.record(self, updates, finished)
+        return updates
 
     def _adopt(self, agent: int, T_WC: Tensor | None) -> None:
         """Take an agent's own final keyframe poses (single-agent components)."""

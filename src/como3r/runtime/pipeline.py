@@ -7,7 +7,8 @@ every frame, hands the agent's new keyframes to the coordinator and applies the 
 updates it returns to the agents (C-Sec. 3.1, A.8). At the end it sends each agent's last
 fused pointmap, runs the coordinator's terminal pose-depth alternation, writes the output
 folder atomically and, where ground truth exists, evaluates the trajectories (merged ATE
-only within gauge components).
+only within gauge components). The coordinator's state is kept in the output folder's
+session store as it changes (:mod:`como3r.runtime.store`).
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ from como3r.progress import AgentProgress, PhaseCallback, ProgressCallback, trac
 from como3r.runtime import outputs
 from como3r.runtime.live import CoordinatorLive, frame_event
 from como3r.runtime.prefetch import prepared_frames
+from como3r.runtime.store import STORE_NAME, SessionStore
 
 logger = logging.getLogger(__name__)
 
@@ -251,8 +253,9 @@ def run(
         lambda k, i: load_frame(agents[k], k, i, config.input.long_side, config.calibrated),
         prior,
         config.input.prefetch_frames)
-    with atomic_output_dir(out, overwrite=overwrite) as staging, contextlib.closing(frames), \
-            contextlib.ExitStack() as streams:
+    with atomic_output_dir(out, overwrite=overwrite) as staging, \
+            SessionStore.create(staging / STORE_NAME, config, coordinator), \
+            contextlib.closing(frames), contextlib.ExitStack() as streams:
         for camera in cameras:  # the live streams end on an error too
             streams.callback(camera.stop)
         if cameras:  # the first Ctrl-C ends them, and the run goes on to its outputs

@@ -111,6 +111,7 @@ from como3r.runtime.results import (
     agent_results,
     left_out,
 )
+from como3r.runtime.store import STORE_NAME, SessionStore
 from como3r.runtime.transport import Hub, Joined, Left, PipeHub, Received, Rejected
 
 logger = logging.getLogger(__name__)
@@ -607,8 +608,9 @@ def coordinate(
         with atomic_output_dir(out, overwrite=overwrite) as staging:
             runtime = _Runtime(hub, frames, config, prior_spec, options, progress, live,
                                inputs)
-            runtime.start(agent_paths, prior_spec)
-            runtime.run(finish_threads=threads)
+            with SessionStore.create(staging / STORE_NAME, config, runtime.coordinator):
+                runtime.start(agent_paths, prior_spec)
+                runtime.run(finish_threads=threads)
             runtime.stop()
             if all(s.status == "failed" for s in runtime.slots):
                 raise InputError("every agent failed: " + "; ".join(
