@@ -275,6 +275,11 @@ def run(
         False, "--single-process",
         help="Run agents and coordinator in this process (deterministic; for debugging)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
+    resume: bool = typer.Option(
+        False, "--resume",
+        help="Continue a run that was killed (OUT.partial) from its session store: the same "
+             "command with --resume. The agents start again from the beginning; the "
+             "keyframes the store holds are not processed again."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
     viewer: Optional[str] = typer.Option(None, "--viewer", metavar="MODE",
                                         help=VIEWER_HELP),
@@ -300,8 +305,12 @@ def run(
     if viewer is not None and mode == "decentralized":
         raise InputError("--viewer shows --mode centralized runs only")
     viewer_spec = check_viewer_option(viewer, out)  # rerun installed?
-    check_output_dir(out, overwrite)  # before the weights load and the agents start
+    if resume and (mode == "decentralized" or sources):
+        raise InputError("--resume continues --mode centralized runs of recorded inputs only")
+    check_output_dir(out, overwrite, resume)  # before the weights load and the agents start
     config = _load_config(config_file, overrides, calib, no_loop_closure, format, topic)
+    if resume:
+        _check_resumable(out, config)
     for path in agent:
         if not path.exists():
             hint = " (a stream URL goes to --camera)" if is_stream_url(str(path)) else ""
@@ -332,9 +341,21 @@ def run(
     with live_viewer(viewer_spec) as live:
         with run_progress(quiet) as shown:
             summary = runner(agent or sources, out, config, spec, overwrite=overwrite,
-                             progress=shown,
-                             live=live)
+                             progress=shown, live=live, resume=resume)
         _print_summary(summary, out)
+
+
+def _check_resumable(out: Path, config) -> None:
+    """The killed run in ``out.partial`` has a session store made with ``config``."""
+    from como3r.config import differing_key
+    from como3r.runtime.store import STORE_NAME
+    from como3r.runtime.store_reader import read_config
+
+    store = out.with_name(out.name + ".partial") / STORE_NAME
+    difference = differing_key(read_config(store), config)
+    if difference is not None:
+        raise InputError(f"--resume: the configuration differs from the stored session's "
+                         f"({difference}); give the options of the run that was killed")
 
 
 def _check_format(format: str) -> None:

@@ -447,6 +447,14 @@ def config_to_dict(config: Any) -> dict[str, Any]:
     return dataclasses.asdict(config)
 
 
+def differing_key(a: Config, b: Config) -> str | None:
+    """The first key whose values differ, as ``"section.key: a_value -> b_value"``; None
+    when the configurations are equal."""
+    flat_a, flat_b = _flatten(config_to_dict(a)), _flatten(config_to_dict(b))
+    return next((f"{key}: {value!r} -> {flat_b.get(key)!r}" for key, value in flat_a.items()
+                 if flat_b.get(key) != value), None)
+
+
 def _coerce(value: Any, annotation: Any, key: str) -> Any:
     """Check (and where lossless, convert) ``value`` to the field type ``annotation``."""
     origin = get_origin(annotation)

@@ -251,16 +251,23 @@ class Coordinator:
     def add_keyframe(self, packet: KeyframePacket) -> list[PoseUpdate]:
         """Insert, associate, synchronize and (maybe) optimize one new keyframe.
 
+        A keyframe the coordinator holds already (an agent re-sending after the coordinator
+        resumed from its session store) changes nothing: its agent gets the current poses of
+        its keyframes up to it.
+
         Returns:
             Pose updates for the agents whose keyframes moved (gauge transports first,
             then the global BA's), possibly none.
 
         Raises:
-            InputError: unknown agent id or a keyframe out of order.
+            InputError: unknown agent id, a keyframe out of order, or a re-sent keyframe of
+                another frame than the one held.
         """
         if not 0 <= packet.agent < self.num_agents:
             raise InputError(f"coordinator: agent id {packet.agent} is out of range for "
                              f"{self.num_agents} agents")
+        if packet.kf_id < len(self.graph.agent_keyframes(packet.agent)):
+            return self._count([self._resent(packet)])
         g = self.graph.add_keyframe(packet)
         self.stats.keyframes += 1
         updates: list[PoseUpdate] = []
@@ -325,6 +332,32 @@ class Coordinator:
         self.stats.add_time("cleanup", time.perf_counter() - start)
         self._record(self._count(cleanup.updates), finished=True)
         return cleanup
+
+    def restore(self, graph: GlobalGraph, gauges: GaugeComponents,
+                candidates: list[Candidate], stats: CoordinatorStats,
+                gauge_events: list[dict[str, Any]], backlog: tuple[int, list[int]]) -> None:
+        """Continue from a stored state (:meth:`como3r.runtime.store.SessionStore.open`):
+        the graph, gauge components, candidates (the pending ones wait again), counters,
+        gauge events and the BA backlog. The caller rebuilds the retrieval database."""
+        self.graph, self.gauges, self.candidates = graph, gauges, candidates
+        self._waiting = [c for c in candidates if c.status == "pending"]
+        self._new_edges, self._dirty_roots = backlog[0], set(backlog[1])
+        self.gauge_events = gauge_events
+        seconds = self.stats.stage_seconds  # the prior's timer adds to this very dict
+        seconds.update(stats.stage_seconds)
+        self.stats = replace(stats, stage_seconds=seconds)
+
+    def _resent(self, packet: KeyframePacket) -> PoseUpdate:
+        """The current poses of an agent's keyframes up to a re-sent one."""
+        indices = self.graph.agent_keyframes(packet.agent)[:packet.kf_id + 1]
+        held = self.graph.keyframes[indices[-1]]
+        if held.frame_index != packet.frame_index:
+            raise InputError(f"coordinator: agent {packet.agent} re-sent keyframe "
+                             f"{packet.kf_id} at frame {packet.frame_index}, but the stored "
+                             f"session has it at frame {held.frame_index}")
+        return PoseUpdate(agent=packet.agent, kf_ids=torch.arange(len(indices)),
+                          T_WC=self.graph.poses(indices).clone(), reason="resume",
+                          focal=self.graph.focal.get(packet.agent))
 
     @property
     def backlog(self) -> tuple[int, list[int]]:

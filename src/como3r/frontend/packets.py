@@ -92,7 +92,8 @@ class PoseUpdate:
         agent: agent id.
         kf_ids: ``(K,)`` int64 keyframe ids.
         T_WC: ``(K, 8)`` their poses in the shared world frame.
-        reason: ``"gauge"``, ``"global_ba"`` or ``"cleanup"``.
+        reason: ``"gauge"``, ``"global_ba"``, ``"cleanup"`` or ``"resume"`` (a re-sent
+            keyframe answered by a coordinator that resumed from its session store).
         focal: the agent's focal length (``fx`` at network resolution, pixels) in the
             shared map (:mod:`como3r.coordination.focal`): keyframes on another focal length
             are rescaled to it first; None leaves them as they are.

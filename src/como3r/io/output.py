@@ -7,6 +7,10 @@ time). ``overwrite`` replaces only a folder with that marker; any other non-empt
 refused, so ``--overwrite`` never deletes a user's files. The old folder is swapped out only
 once the new one is complete: ``<out>`` -> ``<out>.old-<pid>``, ``<out>.partial`` ->
 ``<out>``, then the old one is deleted; if the swap fails the old folder is put back.
+
+A killed run leaves ``<out>.partial`` behind; ``resume`` continues in it (``como3r run
+--resume``: its session store) instead of starting afresh, and keeps it if the resumed run
+fails too.
 """
 
 from __future__ import annotations
@@ -33,17 +37,21 @@ def is_como3r_output(folder: str | Path) -> bool:
     return (Path(folder) / MARKER).is_file()
 
 
-def check_output_dir(out: str | Path, overwrite: bool = False) -> None:
+def check_output_dir(out: str | Path, overwrite: bool = False, resume: bool = False) -> None:
     """Refuse, before any work, an ``out`` that a run could not write.
 
     Raises:
         InputError: ``out`` is not a folder; or is a non-empty folder and ``overwrite`` is
             false; or is a non-empty folder without the como3r marker (never replaced); or
-            a staging folder ``<out>.partial`` without the marker is in the way.
+            a staging folder ``<out>.partial`` without the marker is in the way; or
+            (``resume``) there is no staging folder written by como3r to continue in.
     """
     out = Path(out)
     _check_target(out, overwrite)
     staging = _staging(out)
+    if resume and not is_como3r_output(staging):
+        raise InputError(f"{out}: nothing to resume ({staging} does not exist or was not "
+                         f"written by como3r)")
     if (staging.exists() or staging.is_symlink()) and not is_como3r_output(staging):
         raise InputError(f"{staging}: not written by como3r; refusing to delete it (it has "
                          f"no {MARKER} file): move it away or choose another --out")
@@ -99,27 +107,30 @@ def _swap_in(staging: Path, out: Path) -> None:
 
 
 @contextmanager
-def atomic_output_dir(out: str | Path, overwrite: bool = False) -> Iterator[Path]:
+def atomic_output_dir(out: str | Path, overwrite: bool = False,
+                      resume: bool = False) -> Iterator[Path]:
     """Yield a staging folder that becomes ``out`` only if the block succeeds.
 
     The staging folder carries the marker from the start, so a staging folder left by a
-    killed run is recognised (and replaced) by the next one. On failure it is deleted and
-    an existing ``out`` is left as it was.
+    killed run is recognised (and replaced) by the next one, or with ``resume`` continued
+    in. On failure it is deleted (kept when resuming) and an existing ``out`` is left as
+    it was.
 
     Raises:
         InputError: as :func:`check_output_dir`.
     """
     out = Path(out)
-    check_output_dir(out, overwrite)
+    check_output_dir(out, overwrite, resume)
     staging = _staging(out)
-    if staging.exists():
+    if staging.exists() and not resume:
         shutil.rmtree(staging)
-    staging.mkdir(parents=True)
+    staging.mkdir(parents=True, exist_ok=resume)
     try:
         _write_marker(staging)
         yield staging
     except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
+        if not resume:
+            shutil.rmtree(staging, ignore_errors=True)
         raise
     try:
         _check_target(out, overwrite)  # again: the run may have taken hours

@@ -46,7 +46,7 @@ from como3r.progress import AgentProgress, PhaseCallback, ProgressCallback, trac
 from como3r.runtime import outputs
 from como3r.runtime.live import CoordinatorLive, frame_event
 from como3r.runtime.prefetch import prepared_frames
-from como3r.runtime.store import STORE_NAME, SessionStore
+from como3r.runtime.store_resume import open_store
 
 logger = logging.getLogger(__name__)
 
@@ -218,6 +218,7 @@ def run(
     overwrite: bool = False,
     progress: ProgressCallback | None = None,
     live: LiveCallback | None = None,
+    resume: bool = False,
 ) -> RunSummary:
     """Run all agents' front-ends and the coordinator, and write the output folder.
 
@@ -234,6 +235,8 @@ def run(
             the terminal work starts.
         live: called with the live events of :mod:`como3r.live` (a viewer); they are only
             built when it is given.
+        resume: continue the killed run in ``out.partial`` from its session store
+            (:mod:`como3r.runtime.store_resume`; the agents start again from the beginning).
     """
     agents = open_agents(agent_paths, config, cameras=True)
     prior, codebook = build_prior(prior_spec, config, dict(enumerate(agents)))
@@ -253,8 +256,8 @@ def run(
         lambda k, i: load_frame(agents[k], k, i, config.input.long_side, config.calibrated),
         prior,
         config.input.prefetch_frames)
-    with atomic_output_dir(out, overwrite=overwrite) as staging, \
-            SessionStore.create(staging / STORE_NAME, config, coordinator), \
+    with atomic_output_dir(out, overwrite=overwrite, resume=resume) as staging, \
+            open_store(staging, config, coordinator, resume), \
             contextlib.closing(frames), contextlib.ExitStack() as streams:
         for camera in cameras:  # the live streams end on an error too
             streams.callback(camera.stop)

@@ -111,7 +111,7 @@ from como3r.runtime.results import (
     agent_results,
     left_out,
 )
-from como3r.runtime.store import STORE_NAME, SessionStore
+from como3r.runtime.store_resume import open_store
 from como3r.runtime.transport import Hub, Joined, Left, PipeHub, Received, Rejected
 
 logger = logging.getLogger(__name__)
@@ -536,6 +536,7 @@ def run_multiprocess(
     progress: ProgressCallback | None = None,
     options: RuntimeOptions | None = None,
     live: LiveCallback | None = None,
+    resume: bool = False,
 ) -> RunSummary:
     """Run every agent in its own process and the coordinator here; write the output folder.
 
@@ -556,6 +557,8 @@ def run_multiprocess(
             frame events as their messages arrive, the keyframe and map events from the
             coordinator here. Only this process calls it; agents send frame events only
             when it is given.
+        resume: continue the killed run in ``out.partial`` from its session store
+            (:mod:`como3r.runtime.store_resume`; the agents start again from the beginning).
 
     Raises:
         InputError: bad agent input (checked here before any process starts), or every
@@ -566,7 +569,8 @@ def run_multiprocess(
     frames = [len(range(0, a.num_frames, config.input.subsample)) for a in inputs]
     hub = PipeHub(agent_process_main, options.max_message_bytes, options.shutdown_grace_s)
     return coordinate(hub, list(agent_paths), frames, out, config, prior_spec, options,
-                      inputs=inputs, overwrite=overwrite, progress=progress, live=live)
+                      inputs=inputs, overwrite=overwrite, progress=progress, live=live,
+                      resume=resume)
 
 
 def coordinate(
@@ -581,6 +585,7 @@ def coordinate(
     overwrite: bool = False,
     progress: ProgressCallback | None = None,
     live: LiveCallback | None = None,
+    resume: bool = False,
 ) -> RunSummary:
     """Run the coordinator here over the agents behind ``hub``; write the output folder.
 
@@ -595,7 +600,7 @@ def coordinate(
         options: runtime knobs.
         inputs: the agent inputs where this process has them, for the evaluation against
             their ground truth and the lockstep schedule; empty: no evaluation.
-        overwrite, progress, live: as for :func:`run_multiprocess`.
+        overwrite, progress, live, resume: as for :func:`run_multiprocess`.
 
     Raises:
         InputError: every agent failed.
@@ -605,10 +610,10 @@ def coordinate(
     runtime: _Runtime | None = None
     interrupted = False
     try:
-        with atomic_output_dir(out, overwrite=overwrite) as staging:
+        with atomic_output_dir(out, overwrite=overwrite, resume=resume) as staging:
             runtime = _Runtime(hub, frames, config, prior_spec, options, progress, live,
                                inputs)
-            with SessionStore.create(staging / STORE_NAME, config, runtime.coordinator):
+            with open_store(staging, config, runtime.coordinator, resume):
                 runtime.start(agent_paths, prior_spec)
                 runtime.run(finish_threads=threads)
             runtime.stop()

@@ -8,7 +8,8 @@ pointmap refresh; the terminal cleanup) the store takes everything that changed 
 transaction. A process killed at any moment (``kill -9``) therefore leaves a store that
 opens and holds the coordinator's state after some message, complete; a power loss may
 lose the last transactions (``synchronous=NORMAL``) but not the store's consistency.
-:func:`como3r.runtime.store_reader.read_session` loads it back.
+:func:`como3r.runtime.store_reader.read_session` loads it back;
+:mod:`como3r.runtime.store_resume` continues a killed run from it (``--resume``).
 
 Layout (format version :data:`FORMAT_VERSION`; also ``PRAGMA user_version``, and ``PRAGMA
 application_id`` = :data:`APPLICATION_ID` marks the file as a como3r store). Keyframes are
@@ -205,6 +206,50 @@ class SessionStore:
         if coordinator is not None:
             store.attach(coordinator)
         return store
+
+    @classmethod
+    def reopen(cls, path: str | Path, coordinator: Coordinator) -> SessionStore:
+        """The store at ``path`` written on by ``coordinator``, which holds its state already
+        (:func:`como3r.runtime.store_resume.open_store` restored it); a WAL left by a killed
+        writer is recovered on opening.
+
+        Raises:
+            StoreError: the store cannot be opened for writing.
+        """
+        path = Path(path)
+        try:
+            connection = sqlite3.connect(path, isolation_level=None)
+            connection.execute("PRAGMA journal_mode=WAL")
+            connection.execute("PRAGMA synchronous=NORMAL")
+            store = cls(connection, path)
+            store._held(coordinator)
+        except sqlite3.Error as exc:
+            raise StoreError(f"{path}: cannot open the session store ({exc})") from None
+        store._coordinator = coordinator
+        coordinator.journal = store
+        return store
+
+    def _held(self, coordinator: Coordinator) -> None:
+        """Take what the store holds as written: the coordinator's restored tensors with their
+        blob ids, and the rows of the small tables as they are."""
+        graph, db = coordinator.graph, self.connection
+        for g, *ids in db.execute("SELECT g, X_hat, C_hat, X_init, C_init FROM pointmaps "
+                                  "ORDER BY g"):
+            kf = graph.keyframes[g]
+            self._keyframes.append(_Written(_pointmap_arrays(kf), tuple(ids), kf.K,
+                                            kf.fused_frames))
+        if len(graph):
+            self._poses = graph.poses(range(len(graph))).detach().cpu().clone()
+        self._edges = len(graph.links)
+        self._candidates = [(c.status, None if c.residual_ratio != c.residual_ratio
+                             else c.residual_ratio) for c in coordinator.candidates]
+        self._indexed = 0 if coordinator.retrieval is None else len(
+            coordinator.retrieval.database)
+        for table in self._rows:
+            self._rows[table] = {key: tuple(row) for key, *row in db.execute(
+                f"SELECT * FROM {table}")}
+        self._updates = {agent: sent for agent, sent in db.execute(
+            "SELECT agent, updates_sent FROM agents")}
 
     def attach(self, coordinator: Coordinator) -> None:
         """Become ``coordinator``'s journal and store its current state."""

@@ -18,7 +18,7 @@ import logging
 import sqlite3
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, TypeVar
 
 from torch import Tensor
 
@@ -33,6 +33,8 @@ from como3r.runtime.store import APPLICATION_ID, FORMAT_VERSION
 from como3r.runtime.store_blobs import unpack_arrays, unpack_object
 
 logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 STATUSES = ("rejected", "pending", "admitted", "inconsistent")
 KINDS = ("sequential", "inter")
@@ -142,6 +144,22 @@ def read_session(path: str | Path) -> Session:
             corrupted, or inconsistent (one line naming the file and what is wrong).
     """
     path = Path(path)
+    return _read(path, lambda connection: _load(connection, path), check=True)
+
+
+def read_config(path: str | Path) -> Config:
+    """Only the configuration of a session store (without checking the rest of it).
+
+    Raises:
+        StoreError: as :func:`read_session`.
+    """
+    path = Path(path)
+    return _read(path, lambda connection: _meta(connection, path)[1], check=False)
+
+
+def _read(path: Path, load: Callable[[sqlite3.Connection], T], check: bool) -> T:
+    """``load`` on the store at ``path`` opened read-only, in one snapshot, after its header
+    (and with ``check`` its structure) was checked; every error as one StoreError line."""
     if not path.is_file():
         raise StoreError(f"{path}: no session store there")
     try:
@@ -151,11 +169,11 @@ def read_session(path: str | Path) -> Session:
     try:
         connection.execute("BEGIN")  # one snapshot, even while a run still writes
         try:
-            _check_header(connection, path)
+            _check_header(connection, path, check)
         except sqlite3.DatabaseError as exc:
             raise StoreError(f"{path}: not a como3r session store, or corrupted "
                              f"({_one_line(exc)})") from None
-        return _load(connection, path)
+        return load(connection)
     except sqlite3.DatabaseError as exc:
         raise StoreError(f"{path}: corrupted session store ({_one_line(exc)})") from None
     except StoreError as exc:
@@ -172,8 +190,8 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split())
 
 
-def _check_header(connection: sqlite3.Connection, path: Path) -> None:
-    """A como3r store of :data:`FORMAT_VERSION`, structurally intact."""
+def _check_header(connection: sqlite3.Connection, path: Path, check: bool) -> None:
+    """A como3r store of :data:`FORMAT_VERSION`; with ``check``, structurally intact."""
     application, = connection.execute("PRAGMA application_id").fetchone()
     version, = connection.execute("PRAGMA user_version").fetchone()
     if application != APPLICATION_ID:
@@ -184,17 +202,23 @@ def _check_header(connection: sqlite3.Connection, path: Path) -> None:
     if version != FORMAT_VERSION:
         raise StoreError(f"{path}: session store format version {version} is not the one "
                          f"this como3r reads ({FORMAT_VERSION})")
-    problems = [" ".join(row[0].split()) for row in connection.execute("PRAGMA quick_check")]
+    problems = [" ".join(row[0].split()) for row in connection.execute(
+        "PRAGMA quick_check" if check else "SELECT 'ok'")]
     if problems != ["ok"]:
         raise StoreError(f"{path}: corrupted session store ({'; '.join(problems[:3])})")
 
 
-def _load(connection: sqlite3.Connection, path: Path) -> Session:
+def _meta(connection: sqlite3.Connection, path: Path) -> tuple[dict[str, str], Config]:
+    """The meta table (without the configuration) and the configuration."""
     meta = dict(connection.execute("SELECT key, value FROM meta"))
     if meta.get("format_version") != str(FORMAT_VERSION) or "config" not in meta:
         raise StoreError(f"{path}: inconsistent session store (its meta table says format "
                          f"{meta.get('format_version')!r})")
-    config = validate(config_from_dict(Config, json.loads(meta.pop("config"))))
+    return meta, validate(config_from_dict(Config, json.loads(meta.pop("config"))))
+
+
+def _load(connection: sqlite3.Connection, path: Path) -> Session:
+    meta, config = _meta(connection, path)
     state = {key: json.loads(value) for key, value in connection.execute("SELECT * FROM state")}
     graph = GlobalGraph(config.tracking, config.global_ba)
     blobs = _Blobs(connection)

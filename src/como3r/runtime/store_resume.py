@@ -1,0 +1,138 @@
+"""Continuing a run from its session store (issue 14, item 2: ``como3r run --resume``).
+
+A run killed at any moment leaves ``OUT.partial/session.db`` holding the coordinator's state
+after its last complete message (:mod:`como3r.runtime.store`). ``--resume`` starts the same
+run again: :func:`open_store` reads the store, puts its state into the new run's coordinator
+(:func:`restore_coordinator`) and keeps writing the store. The agents process their inputs
+again from the start and send their keyframes again; the coordinator answers each keyframe
+it holds already with the current poses of the agent's keyframes up to it (a ``"resume"``
+pose update, :meth:`~como3r.coordination.coordinator.Coordinator.add_keyframe`), so the
+agent tracks on in the shared frame, and takes the keyframes after them as new.
+
+The coordinator comes back exactly: keyframes with their pointmaps, encodings and poses,
+links with their matches, gauge components, the retrieval database (rebuilt from the stored
+features in their order), pending candidates with their matches, counters and the BA
+backlog. Candidates that were rejected or found inconsistent keep only their figures
+(:class:`StoredVerification`): nothing uses their matches again.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from como3r.config import Config, differing_key
+from como3r.coordination.association import Verification
+from como3r.coordination.coordinator import Candidate, Coordinator, CoordinatorStats
+from como3r.errors import StoreError
+from como3r.frontend.pairs import DirectedMatches
+from como3r.runtime.store import STORE_NAME, SessionStore
+from como3r.runtime.store_reader import Session, StoredCandidate, read_session
+
+logger = logging.getLogger(__name__)
+
+_NO_MATCHES = DirectedMatches(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.bool),
+                              torch.zeros(0))
+
+
+@dataclass(frozen=True)
+class StoredVerification(Verification):
+    """A verification whose matches were not kept (a rejected or inconsistent candidate):
+    its figures as the store holds them.
+
+    Attributes:
+        figures: ``(nu_i, nu_j, covisible_ratio)``.
+    """
+
+    figures: tuple[float | None, float, float | None] = (None, 0.0, None)
+
+    @property
+    def nu_i(self) -> float | None:
+        return self.figures[0]
+
+    @property
+    def nu_j(self) -> float:
+        return self.figures[1]
+
+    @property
+    def covisible_ratio(self) -> float | None:
+        return self.figures[2]
+
+
+def open_store(folder: Path, config: Config, coordinator: Coordinator,
+               resume: bool = False) -> SessionStore:
+    """The session store of a run in ``folder``, journal of ``coordinator``: a new one, or
+    with ``resume`` the one there, whose state ``coordinator`` (new) takes first.
+
+    Raises:
+        StoreError: (resume) no store there, or one that cannot be read, that finished, or
+            that was made with another configuration or number of agents.
+    """
+    path = folder / STORE_NAME
+    if not resume:
+        return SessionStore.create(path, config, coordinator)
+    session = read_session(path)
+    restore_coordinator(session, coordinator)
+    logger.info("resuming from %s: %d keyframes of %d agents, %d edges", path,
+                len(session.graph), len(session.agents), len(session.graph.links))
+    return SessionStore.reopen(path, coordinator)
+
+
+def restore_coordinator(session: Session, coordinator: Coordinator) -> None:
+    """Give a new coordinator a stored session's state.
+
+    Raises:
+        StoreError: the session finished, or its configuration, number of agents or use of
+            cross-agent retrieval differ from the coordinator's.
+    """
+    where = session.path
+    if session.finished:
+        raise StoreError(f"{where}: the stored session finished (its run was stopped while "
+                         f"writing its outputs); run again without --resume")
+    difference = differing_key(session.config, coordinator.config)
+    if difference is not None:
+        raise StoreError(f"{where}: the stored session has another configuration ({difference})")
+    if len(session.agents) != coordinator.num_agents:
+        raise StoreError(f"{where}: the stored session has {len(session.agents)} agents, this "
+                         f"run {coordinator.num_agents}")
+    indexed = sorted((e for e in session.retrieval if e.position is not None),
+                     key=lambda e: e.position)
+    if bool(indexed) != (coordinator.retrieval is not None) and len(session.graph):
+        raise StoreError(f"{where}: the stored session was run "
+                         f"{'with' if indexed else 'without'} cross-agent retrieval, this run "
+                         f"{'without' if indexed else 'with'} (another prior or codebook?)")
+    coordinator.restore(session.graph, session.gauges,
+                        [_candidate(c, session) for c in session.candidates],
+                        CoordinatorStats(**session.stats), session.gauge_events,
+                        session.backlog)
+    for entry in indexed:
+        coordinator.retrieval.database.add(entry.agent, entry.kf_id, entry.descriptors,
+                                           entry.attention)
+
+
+def _candidate(stored: StoredCandidate, session: Session) -> Candidate:
+    """A coordinator candidate from its stored record: admitted ones with their edge's
+    matches, pending ones with theirs, the others with their figures."""
+    graph = session.graph
+    keys = [(graph.agent_of[g], graph.keyframes[g].kf_id) for g in (stored.i, stored.j)]
+    link = stored.link
+    if stored.status == "admitted":
+        link = next((e.link for e in graph.links
+                     if e.kind == "inter" and (e.i, e.j) == (stored.i, stored.j)), None)
+        if link is None:
+            raise StoreError(f"{session.path}: inconsistent session store: admitted candidate "
+                             f"{stored.i}-{stored.j} has no edge")
+    if link is not None:
+        verification: Verification = Verification(
+            keys[0], keys[1], stored.similarity, link.ij, link.covisible_ij, link,
+            link.covisible_ji, stored.accepted)
+    else:
+        verification = StoredVerification(
+            keys[0], keys[1], stored.similarity, _NO_MATCHES, None, None, None,
+            stored.accepted, figures=(stored.nu_i, stored.nu_j, stored.covisible_ratio))
+    ratio = math.nan if stored.residual_ratio is None else stored.residual_ratio
+    return Candidate(verification, stored.i, stored.j, stored.status, ratio)

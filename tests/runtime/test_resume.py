@@ -1,0 +1,137 @@
+"""``como3r run --resume`` (runtime/store_resume.py; issue 14 item 2 for como3r run).
+
+A run killed with SIGKILL once its session store holds some keyframes, then run again with
+``--resume``, ends with the outputs of an uninterrupted run; a store that cannot be resumed
+is one error line.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from como3r.cli import app
+from como3r.data.synth import synthesize
+from como3r.errors import StoreError
+from como3r.runtime.store import FORMAT_VERSION, STORE_NAME
+from como3r.runtime.store_reader import read_session
+
+RUN = ["--prior", "simulated", "--set", "input.long_side=64", "-q"]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("scene")
+    synthesize(root, agents=2, seed=1, overlap=0.2, frames=8, preset="default", width=64,
+               height=48, progress=None)
+    return root
+
+
+def _args(scene: Path, out: Path, *extra: str) -> list[str]:
+    return ["run", "--agent", str(scene / "agent_0"), "--agent", str(scene / "agent_1"),
+            "--out", str(out), *RUN, *extra]
+
+
+def _extra(runtime: str) -> list[str]:
+    return ["--single-process"] if runtime == "single-process" else []
+
+
+@pytest.fixture(scope="module", params=["processes", "single-process"])
+def uninterrupted(request, scene, tmp_path_factory) -> tuple[str, dict]:
+    """A runtime and the metrics of its uninterrupted run (free-running agent processes
+    differ from the single-process schedule: updates reach the agents later)."""
+    out = tmp_path_factory.mktemp("reference") / "run"
+    result = CliRunner().invoke(app, _args(scene, out, *_extra(request.param)))
+    assert result.exit_code == 0, result.output
+    return request.param, json.loads((out / "metrics.json").read_text())
+
+
+def _kill_when_stored(args: list[str], store: Path, keyframes: int) -> int:
+    """Run ``como3r`` with ``args`` in a process and SIGKILL it once ``store`` holds at least
+    ``keyframes`` keyframes; returns how many it holds."""
+    process = subprocess.Popen([sys.executable, "-m", "como3r.cli", *args])
+    deadline = time.monotonic() + 300
+    try:
+        while process.poll() is None and time.monotonic() < deadline:
+            if store.exists():
+                try:
+                    held = len(read_session(store).graph)
+                except StoreError:  # not created yet
+                    held = 0
+                if held >= keyframes:
+                    process.send_signal(signal.SIGKILL)
+                    break
+            time.sleep(0.2)
+    finally:
+        process.kill()
+        process.wait()
+    assert process.returncode == -signal.SIGKILL, "the run ended before it was killed"
+    return len(read_session(store).graph)
+
+
+def _merged_ate(metrics: dict) -> float:
+    [merged] = metrics["ate"]["merged_components"]
+    return merged["ate"]["rmse"]
+
+
+def test_a_killed_run_resumes_to_the_uninterrupted_result(scene, tmp_path,
+                                                          uninterrupted) -> None:
+    runtime, reference = uninterrupted
+    out, extra = tmp_path / "run", _extra(runtime)
+    store = tmp_path / "run.partial" / STORE_NAME
+    total = reference["coordinator"]["keyframes"]
+    held = _kill_when_stored(_args(scene, out, *extra), store, total // 2)
+    assert total // 2 <= held < total and not out.exists()
+    result = CliRunner().invoke(app, _args(scene, out, *extra, "--resume"))
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["coordinator"]["keyframes"] == total  # the stored ones were not re-added
+    assert metrics["components"] == reference["components"] == [[0, 1]]
+    assert [a["frames"] for a in metrics["agents"]] == [a["frames"] for a in
+                                                         reference["agents"]]
+    assert _merged_ate(metrics) == pytest.approx(_merged_ate(reference), rel=0.1)
+    session = read_session(out / STORE_NAME)
+    assert session.finished and len(session.graph) == total
+    print(f"{runtime}: killed with {held} of {total} keyframes stored; merged ATE "
+          f"{_merged_ate(metrics):.4f} m resumed, {_merged_ate(reference):.4f} m "
+          f"uninterrupted")
+
+
+def _partial_store(scene: Path, tmp_path: Path) -> Path:
+    """A finished run's folder moved to ``run.partial`` (as a killed run leaves it) with its
+    store reopened: a store to resume from."""
+    out = tmp_path / "done"
+    result = CliRunner().invoke(app, _args(scene, out, "--single-process",
+                                           "--set", "depth.alternation_rounds=0"))
+    assert result.exit_code == 0, result.output
+    partial = tmp_path / "run.partial"
+    out.rename(partial)
+    return partial / STORE_NAME
+
+
+def test_what_cannot_be_resumed_is_one_error_line(scene, tmp_path, only_error_line) -> None:
+    out = tmp_path / "run"
+    line = only_error_line(CliRunner().invoke(app, _args(scene, out, "--resume")))
+    assert "nothing to resume" in line
+    store = _partial_store(scene, tmp_path)
+    line = only_error_line(CliRunner().invoke(app, _args(scene, out, "--resume")))
+    assert "depth.alternation_rounds" in line  # another configuration than the stored one
+    line = only_error_line(CliRunner().invoke(app, _args(
+        scene, out, "--resume", "--set", "depth.alternation_rounds=0")))
+    assert "finished" in line  # killed while writing its outputs: nothing left to resume
+    with sqlite3.connect(store) as db:
+        db.execute(f"PRAGMA user_version={FORMAT_VERSION + 1}")
+    line = only_error_line(CliRunner().invoke(app, _args(scene, out, "--resume")))
+    assert f"format version {FORMAT_VERSION + 1}" in line and "upgrade como3r" in line
+    store.write_bytes(store.read_bytes()[:4096])
+    line = only_error_line(CliRunner().invoke(app, _args(scene, out, "--resume")))
+    assert str(store) in line
+    assert store.parent.is_dir() and not out.exists()  # a failed resume keeps the store
