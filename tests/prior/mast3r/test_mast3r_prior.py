@@ -101,10 +101,8 @@ def test_portrait_and_differently_sized_pair(prior):
     assert_valid_prediction(prior.decode(landscape, portrait), (32, 48), (48, 32))
 
 
-def test_decode_symmetric_batches_one_decoder_call_per_size(prior, monkeypatch):
-    encs = prior.encode([View(image(32, 32, s), index=s) for s in range(3)])
-    mixed = prior.encode([View(image(48, 32, 5), index=5), View(image(32, 48, 6), index=6)])
-    pairs = [(encs[0], encs[1]), (mixed[0], mixed[1]), (encs[2], encs[0])]
+def _count_decoder_calls(prior, monkeypatch) -> list:
+    """``(batch, grid1, grid2)`` of every decoder call the prior makes from now on."""
     calls = []
     decode = prior.network.decode
 
@@ -113,44 +111,51 @@ def test_decode_symmetric_batches_one_decoder_call_per_size(prior, monkeypatch):
         return decode(tokens1, grid1, tokens2, grid2)
 
     monkeypatch.setattr(prior.network, "decode", counting_decode)
+    return calls
+
+
+def _assert_as_decoded_alone(prior, pred, a, b) -> None:
+    """``pred`` is what ``prior.decode(a, b)`` gives on its own (batching changes nothing)."""
+    expected = prior.decode(a, b)
+    assert_valid_prediction(pred, a.shape, b.shape)
+    for f in fields(pred):
+        torch.testing.assert_close(getattr(pred, f.name), getattr(expected, f.name),
+                                   atol=1e-4, rtol=1e-4)
+
+
+def _encodings(prior):
+    """Three square 32x32 encodings and a landscape/portrait pair."""
+    encs = prior.encode([View(image(32, 32, s), index=s) for s in range(3)])
+    mixed = prior.encode([View(image(48, 32, 5), index=5), View(image(32, 48, 6), index=6)])
+    return encs, mixed
+
+
+def test_decode_symmetric_batches_one_decoder_call_per_size(prior, monkeypatch):
+    encs, mixed = _encodings(prior)
+    pairs = [(encs[0], encs[1]), (mixed[0], mixed[1]), (encs[2], encs[0])]
+    calls = _count_decoder_calls(prior, monkeypatch)
     results = prior.decode_symmetric(pairs)
     # 2 same-size pairs: one call of 4 ordered pairs; the mixed-size pair: one call per order
     assert sorted(calls) == sorted([(4, (2, 2), (2, 2)), (1, (3, 2), (2, 3)),
                                     (1, (2, 3), (3, 2))])
-    monkeypatch.setattr(prior.network, "decode", decode)
+    monkeypatch.undo()
     assert len(results) == len(pairs)
     for (enc_i, enc_j), (forward, backward) in zip(pairs, results):
-        for pred, (a, b) in ((forward, (enc_i, enc_j)), (backward, (enc_j, enc_i))):
-            expected = prior.decode(a, b)
-            assert_valid_prediction(pred, a.shape, b.shape)
-            for f in fields(pred):
-                torch.testing.assert_close(getattr(pred, f.name), getattr(expected, f.name),
-                                           atol=1e-4, rtol=1e-4)
+        _assert_as_decoded_alone(prior, forward, enc_i, enc_j)
+        _assert_as_decoded_alone(prior, backward, enc_j, enc_i)
 
 
 def test_decode_pairs_batches_one_decoder_call_per_pair_of_sizes(prior, monkeypatch):
-    encs = prior.encode([View(image(32, 32, s), index=s) for s in range(3)])
-    mixed = prior.encode([View(image(48, 32, 5), index=5), View(image(32, 48, 6), index=6)])
+    encs, mixed = _encodings(prior)
     pairs = [(encs[0], encs[1]), (mixed[0], mixed[1]), (encs[2], encs[0]), (mixed[1], encs[1])]
-    calls = []
-    decode = prior.network.decode
-
-    def counting_decode(tokens1, grid1, tokens2, grid2):
-        calls.append((tokens1.shape[0], grid1, grid2))
-        return decode(tokens1, grid1, tokens2, grid2)
-
-    monkeypatch.setattr(prior.network, "decode", counting_decode)
+    calls = _count_decoder_calls(prior, monkeypatch)
     results = prior.decode_pairs(pairs)
     assert sorted(calls) == sorted([(2, (2, 2), (2, 2)), (1, (3, 2), (2, 3)),
                                     (1, (2, 3), (2, 2))])
-    monkeypatch.setattr(prior.network, "decode", decode)
+    monkeypatch.undo()
     assert len(results) == len(pairs)
     for (a, b), pred in zip(pairs, results):
-        expected = prior.decode(a, b)
-        assert_valid_prediction(pred, a.shape, b.shape)
-        for f in fields(pred):
-            torch.testing.assert_close(getattr(pred, f.name), getattr(expected, f.name),
-                                       atol=1e-4, rtol=1e-4)
+        _assert_as_decoded_alone(prior, pred, a, b)
 
 
 def test_decode_refuses_foreign_encodings(prior):

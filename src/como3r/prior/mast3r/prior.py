@@ -281,33 +281,16 @@ class MASt3RPrior(Prior):
     ) -> list[tuple[PairPrediction, PairPrediction]]:
         """Decode (i, j) and (j, i) of every pair, batched.
 
-        Pairs whose two images share a size are decoded together with their reverses in one
-        decoder call per size: the first decoder gets ``[i_1..i_B, j_1..j_B]`` and the second
-        ``[j_1..j_B, i_1..i_B]``. Pairs of differently sized images take one call per order.
+        The pairs and their reverses go through :meth:`decode_pairs` together: pairs whose two
+        images share a size are decoded with their reverses in one decoder call per size (the
+        first decoder gets ``[i_1..i_B, j_1..j_B]``, the second ``[j_1..j_B, i_1..i_B]``);
+        pairs of differently sized images take one call per order.
 
         Returns:
             ``[(pred_ij, pred_ji), ...]`` in the order of ``pairs``.
         """
-        checked = [(self._check_encoding(a), self._check_encoding(b)) for a, b in pairs]
-        groups: dict[tuple[tuple[int, int], tuple[int, int]], list[int]] = defaultdict(list)
-        for n, (enc_i, enc_j) in enumerate(checked):
-            groups[(enc_i.grid, enc_j.grid)].append(n)
-        results: list[tuple[PairPrediction, PairPrediction] | None] = [None] * len(checked)
-        for (grid_i, grid_j), members in groups.items():
-            side_i = [checked[n][0] for n in members]
-            side_j = [checked[n][1] for n in members]
-            if grid_i == grid_j:
-                out1, out2 = self._run(side_i + side_j, side_j + side_i)
-                forward, backward = (out1, out2, 0), (out1, out2, len(members))
-            else:
-                forward = (*self._run(side_i, side_j), 0)
-                backward = (*self._run(side_j, side_i), 0)
-            for m, n in enumerate(members):
-                results[n] = (
-                    self._prediction(forward[0], forward[1], forward[2] + m),
-                    self._prediction(backward[0], backward[1], backward[2] + m),
-                )
-        return results  # type: ignore[return-value]
+        both = self.decode_pairs([*pairs, *((b, a) for a, b in pairs)])
+        return list(zip(both[:len(pairs)], both[len(pairs):]))
 
     # --------------------------------------------------------------- retrieval
     def retrieval_features(self, enc: Encoding) -> tuple[Tensor, Tensor]:
