@@ -437,3 +437,9 @@ def test_timestamp_names_out_of_time_order_are_refused(tmp_path):
     folder = write_agent(tmp_path / "a", n=2, stems=["999999999.5", "1000000000.0"])
     with pytest.raises(InputError, match="do not sort in time"):
         open_agent(folder)
+
+
+def test_timestamp_names_of_one_instant_are_refused(tmp_path):
+    folder = write_agent(tmp_path / "a", n=2, stems=["1305031102.1", "1305031102.10"])
+    with pytest.raises(InputError, match="name the same instant"):
+        open_agent(folder)
