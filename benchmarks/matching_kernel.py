@@ -1,9 +1,12 @@
-"""Descriptor-refinement window search (C-Sec. 3.3 matching) per score dtype (not a test).
+"""Dense matching's two per-pixel loops, compiled CPU loop vs vectorised PyTorch (not a test).
 
-Times :func:`como3r.frontend.matching.refine_with_descriptors` on random unit descriptors
-at one resolution, with the window search scoring in each dtype, and prints one table of
-seconds per call, the ratio to float16 (MASt3R-SLAM's choice) and the share of refined
-pixels equal to float16's. The default dtype is ``matching._SCORE_DTYPE``.
+Times the descriptor-refinement window search (:func:`como3r.frontend.matching.
+refine_with_descriptors`, radius 3, dilations 5..1) on random unit descriptors, and the
+iterative ray projection (:func:`~como3r.frontend.matching.project_iteratively`, C-Eq. 1) on
+a smooth surface seen from a moved camera, both at one resolution, through the compiled
+loops of :mod:`como3r.frontend.cpu_kernels` (what CPU tensors take) and the vectorised
+PyTorch path (what CUDA tensors take), and prints seconds per call (best of ``--repeats``,
+after one warm-up call that compiles), the ratio, and the share of equal results.
 
     python benchmarks/matching_kernel.py [--size 512x384] [--threads 1] [--repeats 3]
 """
@@ -11,19 +14,22 @@ pixels equal to float16's. The default dtype is ``matching._SCORE_DTYPE``.
 from __future__ import annotations
 
 import argparse
+import math
 import time
+from collections.abc import Callable
 
 import torch
 
-from como3r.frontend import matching
+from como3r.frontend import cpu_kernels, matching
+from como3r.geometry.camera import intrinsics_matrix, unproject_depth
+from como3r.geometry.lie import sim3_act, sim3_exp
 
-DTYPES = {"float16": torch.float16, "bfloat16": torch.bfloat16, "float32": torch.float32}
 
-
-def problem(width: int, height: int, flow: int = 8, dim: int = 24,
-            seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(D_search (1, H, W, d), D_query (1, H*W, d), pixel (1, H*W, 2))``: unit descriptors,
-    queries near their search pixel, starting points up to ``flow`` pixels off."""
+def descriptor_problem(width: int, height: int, flow: int = 8, dim: int = 24,
+                       seed: int = 0) -> tuple:
+    """``(D_search (1, H, W, d), D_query (1, H*W, d), pixel (1, H*W, 2), radius,
+    dilation_max, active)``: unit descriptors, queries near their search pixel, starting
+    points up to ``flow`` pixels off."""
     gen = torch.Generator().manual_seed(seed)
     D = torch.nn.functional.normalize(torch.randn(1, height, width, dim, generator=gen), dim=-1)
     noise = 0.3 * torch.randn(1, height * width, dim, generator=gen)
@@ -32,21 +38,36 @@ def problem(width: int, height: int, flow: int = 8, dim: int = 24,
     pixel = torch.stack([u.reshape(-1), v.reshape(-1)], -1)[None]
     jitter = torch.randint(-flow, flow + 1, pixel.shape, generator=gen)
     pixel = (pixel + jitter).clamp(min=0).minimum(torch.tensor([width - 1, height - 1]))
-    return D, D_query, pixel
+    return D, D_query, pixel, 3, 5, None
 
 
-def time_dtype(dtype: torch.dtype, inputs: tuple, repeats: int) -> tuple[float, torch.Tensor]:
-    """Best-of-``repeats`` seconds of one refinement scoring in ``dtype``, and its output."""
-    default = matching._SCORE_DTYPE
-    matching._SCORE_DTYPE = dtype
-    try:
-        best, out = float("inf"), None
-        for _ in range(repeats):
-            start = time.perf_counter()
-            out = matching.refine_with_descriptors(*inputs, radius=3, dilation_max=5)
-            best = min(best, time.perf_counter() - start)
-    finally:
-        matching._SCORE_DTYPE = default
+def ray_problem(width: int, height: int) -> tuple:
+    """``(rays_grad (1, H, W, 9), target_rays (1, H*W, 3), p_init (1, H*W, 2), max_iters,
+    lambda_init, convergence_tol)`` float32: a curved surface 4-7 focal lengths away seen
+    by a camera moved by 5 % of its depth and turned by 3 degrees."""
+    focal = 0.8 * width
+    K = intrinsics_matrix(focal, focal, (width - 1) / 2, (height - 1) / 2, dtype=torch.float64)
+    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64),
+                          torch.arange(width, dtype=torch.float64), indexing="ij")
+    depth = 5.0 + u / width + 0.3 * torch.sin(u / (0.2 * width)) * torch.cos(v / (0.15 * height))
+    X = unproject_depth(depth, K)
+    T = sim3_exp(torch.tensor([0.25, -0.1, 0.1, 0.01, math.radians(3.0), 0.0, 0.0],
+                              dtype=torch.float64))
+    X_moved = sim3_act(T[None, None], X)
+    rays_grad = matching.ray_image_with_gradients(X[None].float())
+    target = torch.nn.functional.normalize(X_moved.reshape(1, -1, 3), dim=-1).float()
+    p_init = torch.stack([u, v], -1).reshape(1, -1, 2).float()
+    return rays_grad, target, p_init, 10, 1e-8, 1e-6
+
+
+def best_of(function: Callable, inputs: tuple, repeats: int) -> tuple[float, object]:
+    """Best-of-``repeats`` seconds of ``function(*inputs)`` after one warm-up call."""
+    out = function(*inputs)
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        out = function(*inputs)
+        best = min(best, time.perf_counter() - start)
     return best, out
 
 
@@ -58,15 +79,23 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     width, height = (int(v) for v in args.size.split("x"))
-    inputs = problem(width, height)
-    results = {name: time_dtype(dtype, inputs, args.repeats) for name, dtype in DTYPES.items()}
-    base_seconds, base_out = results["float16"]
-    print(f"refine_with_descriptors at {args.size}, radius 3, dilations 5..1, "
-          f"{args.threads} thread(s); default {matching._SCORE_DTYPE}")
-    print(f"{'dtype':<10} {'seconds':>8} {'fp16 / this':>12} {'same as fp16':>13}")
-    for name, (seconds, out) in results.items():
-        same = (out == base_out).all(-1).float().mean().item()
-        print(f"{name:<10} {seconds:8.3f} {base_seconds / seconds:12.2f} {same:13.4f}")
+    loops = {
+        "descriptor window search": (cpu_kernels.refine_windows, matching._refine_vectorised,
+                                     descriptor_problem(width, height)),
+        "ray projection": (cpu_kernels.project_rays, matching._project_vectorised,
+                           ray_problem(width, height)),
+    }
+    print(f"dense matching loops at {args.size}, {args.threads} thread(s)")
+    print(f"{'loop':<26} {'compiled s':>10} {'PyTorch s':>10} {'ratio':>6} {'equal':>6}")
+    for name, (compiled, vectorised, inputs) in loops.items():
+        compiled_s, compiled_out = best_of(compiled, inputs, args.repeats)
+        vectorised_s, vectorised_out = best_of(vectorised, inputs, args.repeats)
+        if isinstance(compiled_out, tuple):  # projection: pixels within 0.01 px
+            equal = ((compiled_out[0] - vectorised_out[0]).abs() < 1e-2).all(-1)
+        else:
+            equal = (compiled_out == vectorised_out).all(-1)
+        print(f"{name:<26} {compiled_s:10.3f} {vectorised_s:10.3f} "
+              f"{vectorised_s / compiled_s:6.2f} {equal.float().mean().item():6.3f}")
 
 
 if __name__ == "__main__":

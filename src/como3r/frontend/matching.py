@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from como3r.config import MatchingConfig
+from como3r.frontend import cpu_kernels
 from como3r.geometry.residuals import psi
 from como3r.geometry.units import pixels_at
 
@@ -156,6 +157,17 @@ def project_iteratively(
     Returns:
         ``(p (B, P, 2) float, converged (B, P) bool)``.
     """
+    if rays_grad.device.type == "cpu":
+        return cpu_kernels.project_rays(rays_grad, target_rays, p_init, max_iters, lambda_init,
+                                        convergence_tol)
+    return _project_vectorised(rays_grad, target_rays, p_init, max_iters, lambda_init,
+                               convergence_tol)
+
+
+def _project_vectorised(rays_grad: Tensor, target_rays: Tensor, p_init: Tensor, max_iters: int,
+                        lambda_init: float, convergence_tol: float) -> tuple[Tensor, Tensor]:
+    """:func:`project_iteratively` as batched PyTorch over the pixels still moving (any
+    device; on CPU the compiled loop of :mod:`como3r.frontend.cpu_kernels` is faster)."""
     B, H, W, C = rays_grad.shape
     P = target_rays.shape[1]
     table = rays_grad.reshape(B * H * W, C)
@@ -234,6 +246,15 @@ def refine_with_descriptors(
     Returns:
         ``(B, P, 2)`` int64 refined pixels.
     """
+    if D_search.device.type == "cpu":
+        return cpu_kernels.refine_windows(D_search, D_query, pixel, radius, dilation_max, active)
+    return _refine_vectorised(D_search, D_query, pixel, radius, dilation_max, active)
+
+
+def _refine_vectorised(D_search: Tensor, D_query: Tensor, pixel: Tensor, radius: int,
+                       dilation_max: int, active: Tensor | None) -> Tensor:
+    """:func:`refine_with_descriptors` as batched PyTorch (any device; on CPU the compiled
+    loop of :mod:`como3r.frontend.cpu_kernels` is 3x faster)."""
     B, H, W, d = D_search.shape
     P = pixel.shape[1]
     margin = radius * dilation_max
