@@ -7,11 +7,20 @@ import torch
 
 from como3r.errors import InputError
 from como3r.geometry.lie import sim3_act, sim3_compose, sim3_exp, sim3_inverse
-from como3r.optim.factors import CalibratedFactors, RayRangeFactors
+from como3r.optim.factors import CalibratedFactors, RayRangeFactors, RelativePoseFactors
 from como3r.optim.linear import assemble
 from como3r.optim.synthetic import chain_poses, random_sim3, synthetic_graph
 
 HUBER_K = 1.345
+
+
+@pytest.fixture(params=["compiled", "vectorised"])
+def path(request, monkeypatch):
+    """Linearize through the compiled CPU loops (what CPU tensors take) or through PyTorch
+    (what CUDA tensors take, forced here on the CPU)."""
+    if request.param == "vectorised":
+        monkeypatch.setattr(RelativePoseFactors, "_runs_compiled", lambda self, poses: False)
+    return request.param
 
 
 # ---------------------------------------------------------------------------------------------
@@ -111,7 +120,7 @@ def _tiny_graph(dtype=torch.float64):
     return poses.to(dtype), graph, X_j, valid
 
 
-def test_ray_range_linearization_matches_autograd():
+def test_ray_range_linearization_matches_autograd(path):
     poses, graph, X_j, valid = _tiny_graph()
     sigmas = (3e-3,) * 3 + (0.05,)
     factors = RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, graph.q, valid,
@@ -133,7 +142,7 @@ def test_ray_range_linearization_matches_autograd():
     torch.testing.assert_close(factors.cost(poses), cost_ref, rtol=1e-12, atol=0)
 
 
-def test_calibrated_linearization_matches_autograd():
+def test_calibrated_linearization_matches_autograd(path):
     poses, graph, X_j, valid = _tiny_graph()
     K = torch.tensor([[500.0, 0, 320], [0, 480, 240], [0, 0, 1]], dtype=torch.float64)
     K = K.expand(5, 3, 3).clone()
@@ -158,7 +167,7 @@ def test_calibrated_linearization_matches_autograd():
     torch.testing.assert_close(factors.cost(poses), cost_ref, rtol=1e-12, atol=0)
 
 
-def test_calibrated_points_behind_the_camera_get_no_weight():
+def test_calibrated_points_behind_the_camera_get_no_weight(path):
     poses, graph, _, valid = _tiny_graph()
     K = torch.tensor([[500.0, 0, 320], [0, 480, 240], [0, 0, 1]], dtype=torch.float64)
     p_i = torch.zeros(*graph.q.shape, 2, dtype=torch.float64)
@@ -190,7 +199,7 @@ def test_gradient_is_the_gradient_of_the_robust_cost():
     torch.testing.assert_close(tau.grad, g, rtol=1e-8, atol=1e-8 * g.abs().max().item())
 
 
-def test_chunking_does_not_change_the_blocks():
+def test_chunking_does_not_change_the_blocks(path):
     poses, graph, X_j, valid = _tiny_graph()
     whole = RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, graph.q, valid)
     chunked = RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, graph.q, valid,
@@ -261,3 +270,32 @@ def test_invalid_padding_changes_nothing_and_is_dropped():
     for name in ("i", "j", "H_ii", "H_jj", "H_ij", "g_i", "g_j"):
         torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=1e-12, atol=0)
     torch.testing.assert_close(base.cost(poses), padded.cost(poses), rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("factor_type", ["ray_range", "calibrated"])
+def test_compiled_blocks_do_not_depend_on_the_thread_count(factor_type):
+    """The compiled loops add their per-block sums in block order: one thread and two give
+    the same bits (a run is reproducible on any machine's core count)."""
+    poses, graph, X_j, valid = _tiny_graph(torch.float32)
+    P = 3 * 4096 + 17  # several blocks per edge
+    repeat = -(-P // graph.q.shape[1])
+    tiled = [x.repeat_interleave(repeat, dim=1)[:, :P] for x in (graph.X_i, X_j, graph.q, valid)]
+    X_i, X_j, q, valid = tiled[0].float(), tiled[1].float(), tiled[2].float(), tiled[3]
+    if factor_type == "ray_range":
+        factors = RayRangeFactors(graph.i, graph.j, X_i, X_j, q, valid)
+    else:
+        K = torch.tensor([[500.0, 0, 320], [0, 480, 240], [0, 0, 1]])
+        p_i = (K @ X_i[..., None])[..., 0]
+        factors = CalibratedFactors(graph.i, graph.j, X_j, p_i[..., :2] / p_i[..., 2:],
+                                    X_i[..., 2], K, q, valid)
+    before = torch.get_num_threads()
+    try:
+        results = []
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            results.append((factors.linearize(poses.float()), factors.cost(poses.float())))
+    finally:
+        torch.set_num_threads(before)
+    (one, cost_one), (two, cost_two) = results
+    assert torch.equal(one.H_ij, two.H_ij) and torch.equal(one.g_i, two.g_i)
+    assert torch.equal(cost_one, cost_two) and cost_one > 0

@@ -3,7 +3,7 @@
 On a GPU the vectorised PyTorch of :mod:`como3r.frontend.matching` runs the whole batch at
 once; on a CPU it is memory bound: it materialises every candidate of every window (the
 descriptor search gathers 245 rows of ``d`` floats per pixel) and reads them back three
-times. These loops, compiled once per process by numba (cached on disk), keep each pixel's
+times. These loops, compiled by numba (:mod:`como3r.jit`), keep each pixel's
 work in registers, as MASt3R-SLAM's CUDA kernels do per thread, and run the pixels in
 parallel over ``torch.get_num_threads()`` threads. Same equations, same candidate order and
 tie rule as the PyTorch code (tests compare the two).
@@ -17,15 +17,12 @@ AVX2-only EPYC the window search took 0.54 against 1.73 s.
 
 from __future__ import annotations
 
-import functools
-import types
-from collections.abc import Callable
-
-import numba
 import numpy as np
 import torch
 from numba import njit, prange
 from torch import Tensor
+
+from como3r.jit import compiled
 
 #: reassociation lets the 24-term dot products vectorise; no flag that assumes finite values
 _FAST_SUMS = {"reassoc", "contract"}
@@ -73,7 +70,7 @@ def refine_windows(D_search: Tensor, D_query: Tensor, pixel: Tensor, radius: int
     refined = start.copy()
     rows = (np.arange(B * P, dtype=np.int64) if active is None
             else np.flatnonzero(active.detach().reshape(-1).numpy()).astype(np.int64))
-    search = _compiled(_refine_windows, fastmath=_FAST_SUMS)
+    search = compiled(_refine_windows, fastmath=_FAST_SUMS)
     search(table, H, W, query, start, rows, P, radius, dilation_max, refined)
     return torch.from_numpy(refined).reshape(B, P, 2)
 
@@ -149,28 +146,7 @@ def project_rays(rays_grad: Tensor, target_rays: Tensor, p_init: Tensor, max_ite
     target = target_rays.detach().reshape(B * P, 3).to(torch.float64).contiguous().numpy()
     start = p_init.detach().reshape(B * P, 2).to(torch.float64).contiguous().numpy()
     pixel, cost = np.empty_like(start), np.empty(B * P)
-    project = _compiled(_project_rays)
+    project = compiled(_project_rays)
     project(table, H, W, target, start, P, max_iters, lambda_init, convergence_tol, pixel, cost)
     p = torch.from_numpy(pixel).to(p_init.dtype).reshape(B, P, 2)
     return p, torch.from_numpy(cost < convergence_tol).reshape(B, P)
-
-
-@functools.cache
-def _variant(loop: Callable, parallel: bool, fastmath: frozenset) -> Callable:
-    # numba names a cache file after the function, not its options: each variant is a
-    # copy of the function under its own name, so neither loads the other's machine code
-    copy = types.FunctionType(loop.__code__, loop.__globals__, loop.__name__)
-    copy.__qualname__ = f"{loop.__qualname__}_{'parallel' if parallel else 'serial'}"
-    return njit(parallel=parallel, fastmath=set(fastmath) if fastmath else False, cache=True,
-                boundscheck=False)(copy)
-
-
-def _compiled(loop: Callable, fastmath: set[str] | None = None) -> Callable:
-    """``loop`` compiled for this process's PyTorch thread count: serial on one thread (no
-    thread pool: a parallel loop's idle workers spin and would take another process's
-    core), else parallel over ``torch.get_num_threads()`` threads."""
-    threads = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
-    kernel = _variant(loop, threads > 1, frozenset(fastmath or ()))
-    if threads > 1 and numba.get_num_threads() != threads:
-        numba.set_num_threads(threads)
-    return kernel

@@ -34,6 +34,7 @@ from como3r.geometry.residuals import (
     ray_range_residual,
     ray_range_terms,
 )
+from como3r.optim import cpu_kernels
 from como3r.optim.linear import EdgeBlocks
 
 # Matches linearized at once: bounds the (chunk, P, C, 7) Jacobian, its weighted copy and
@@ -123,6 +124,16 @@ class RelativePoseFactors(ABC):
         """Residual ``(e, P, C)``, Jacobian ``(e, P, C, 7)`` and, where the residual can
         degenerate at some poses, a ``(e, P)`` bool mask of the matches it is defined for."""
 
+    @abstractmethod
+    def _compiled_blocks(self, T_ij: torch.Tensor, edges: slice
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``H = J^T W J`` ``(e, 7, 7)`` and ``g = J^T W e`` ``(e, 7)`` float64 in the tangent
+        of ``T_ij`` ``(e, 8)`` by the compiled CPU loop (:mod:`como3r.optim.cpu_kernels`)."""
+
+    @abstractmethod
+    def _compiled_cost(self, T_ij: torch.Tensor, edges: slice) -> torch.Tensor:
+        """Robust energy of a slice of edges by the compiled CPU loop, a float64 scalar."""
+
     def _error(self, T_ij: torch.Tensor, edges: slice) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Residual ``(e, P, C)`` and definedness mask without the Jacobian (cost evaluation);
         subclasses override it where the residual alone is cheaper."""
@@ -181,7 +192,7 @@ class RelativePoseFactors(ABC):
             behind the camera in the calibrated residual).
         """
         T_WC_i, T_ij = self._relative_poses(poses, edges)
-        e, J, defined = self._residual(T_ij, edges)
+        e, J, defined = self._residual(T_ij.to(self.q.dtype), edges)
         # The stored inputs are finite (see _finite_rows), so e and J are finite for finite
         # poses and a zero sqrt_info removes a match from every sum without masking J.
         sqrt_info = self._sqrt_info(edges, defined)
@@ -189,18 +200,21 @@ class RelativePoseFactors(ABC):
 
     def _relative_poses(self, poses: torch.Tensor, edges: slice
                         ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``T_WC_i`` ``(e, 8)`` in the poses' dtype and ``T_ij = T_WC_i^-1 T_WC_j`` ``(e, 8)``
-        (C-Eq. 13) in the matches' dtype.
+        """``T_WC_i`` and ``T_ij = T_WC_i^-1 T_WC_j`` (C-Eq. 13), ``(e, 8)`` each in the poses'
+        dtype.
 
-        float64 poses (the global BA's) are composed in float64, then the per-match work runs
-        in the matches' own precision: promoting millions of float32 matches to float64 doubles
-        the linearization's memory traffic, and the step tolerance (1e-4 of the scene depth)
-        is far above float32's resolution.
+        The PyTorch path then runs the per-match work in the matches' own precision
+        (``T_ij.to(q.dtype)``): promoting millions of float32 matches to float64 doubles the
+        linearization's memory traffic, and the step tolerance (1e-4 of the scene depth) is
+        far above float32's resolution. The compiled CPU loops compute each match in float64.
         """
         self._check_poses(poses)
         T_WC_i = poses[self.i[edges]]
-        T_ij = sim3_compose(sim3_inverse(T_WC_i), poses[self.j[edges]])
-        return T_WC_i, T_ij.to(self.q.dtype)
+        return T_WC_i, sim3_compose(sim3_inverse(T_WC_i), poses[self.j[edges]])
+
+    def _runs_compiled(self, poses: torch.Tensor) -> bool:
+        """CPU factors take the compiled loops, except for poses autograd differentiates."""
+        return self.q.device.type == "cpu" and not poses.requires_grad
 
     def _sqrt_info(self, edges: slice, defined: torch.Tensor | None) -> torch.Tensor:
         """``Sigma^-1/2`` ``(e, P, C)`` of C-Eq. 7, zero for unusable matches."""
@@ -216,7 +230,7 @@ class RelativePoseFactors(ABC):
         edge's matches, so the 7x7 edge blocks are projected once per edge instead of per
         match: ``H_jj = H_ii = Ad^T H Ad = -H_ij``, ``g_j = Ad^T g = -g_i``.
         """
-        parts = [self._linearize_chunk(poses, chunk) for chunk in self._chunks()]
+        parts = [self._linearize_chunk(poses, chunk) for chunk in self._chunks(poses)]
         if not parts:
             return _empty_blocks(poses)
         return EdgeBlocks.cat(parts)
@@ -227,9 +241,14 @@ class RelativePoseFactors(ABC):
         ``rho`` is the Huber kernel with ``rho(r) = r^2/2`` inside the breakpoint, whose
         IRLS weight is exactly ``w(r) = rho'(r)/r = min(1, k/|r|)``.
         """
+        if self._runs_compiled(poses):
+            return sum((self._compiled_cost(self._relative_poses(poses, chunk)[1], chunk)
+                        for chunk in self._chunks(poses)),
+                       torch.zeros((), dtype=torch.float64))
         total = torch.zeros((), dtype=torch.float64, device=poses.device)
-        for chunk in self._chunks():
-            e, defined = self._error(self._relative_poses(poses, chunk)[1], chunk)
+        for chunk in self._chunks(poses):
+            e, defined = self._error(self._relative_poses(poses, chunk)[1].to(self.q.dtype),
+                                     chunk)
             r = (e * self._sqrt_info(chunk, defined)).abs()
             k = self.huber_k
             rho = torch.where(r <= k, 0.5 * r * r, k * (r - 0.5 * k))
@@ -250,7 +269,17 @@ class RelativePoseFactors(ABC):
         self, poses: torch.Tensor, edges: slice
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``H = J^T W J`` ``(e, 7, 7)`` and ``g = J^T W e`` ``(e, 7)`` in the tangent of
-        ``T_ij``, and ``T_WC_i`` ``(e, 8)``, for a slice of edges."""
+        ``T_ij``, and ``T_WC_i`` ``(e, 8)``, for a slice of edges: by the compiled loop on
+        CPU, else by PyTorch."""
+        if self._runs_compiled(poses):
+            T_WC_i, T_ij = self._relative_poses(poses, edges)
+            return (*self._compiled_blocks(T_ij, edges), T_WC_i)
+        return self._vectorised_blocks(poses, edges)
+
+    def _vectorised_blocks(
+        self, poses: torch.Tensor, edges: slice
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`_relative_blocks` in PyTorch from the generic Jacobian (any device)."""
         r, sqrt_info, J, T_WC_i = self.whitened_residual(poses, edges)
         # The IRLS weight is absorbed into the square-root information (C-Sec. A.1): with
         # s = sqrt_info and r = s e, H = J^T (w s^2) J and g = J^T (w s r) = J^T (w s^2) e.
@@ -265,7 +294,11 @@ class RelativePoseFactors(ABC):
         g_rel = torch.bmm(J_T, (weight * r).transpose(1, 2).reshape(num, C * P, 1))[..., 0]
         return H_rel, g_rel, T_WC_i
 
-    def _chunks(self) -> list[slice]:
+    def _chunks(self, poses: torch.Tensor) -> list[slice]:
+        """Slices of edges to linearize at once: all of them for the compiled loops (they
+        hold no per-match temporaries), else ``chunk_matches`` matches' worth."""
+        if self._runs_compiled(poses):
+            return [slice(0, self.num_edges)] if self.num_edges else []
         step = self._edges_per_chunk
         return [slice(s, min(s + step, self.num_edges)) for s in range(0, self.num_edges, step)]
 
@@ -341,7 +374,18 @@ class RayRangeFactors(RelativePoseFactors):
     def _error(self, T_ij: torch.Tensor, edges: slice) -> tuple[torch.Tensor, None]:
         return ray_range_error(T_ij, self.X_j[edges], self.X_i[edges]), None
 
-    def _relative_blocks(
+    def _compiled_blocks(self, T_ij: torch.Tensor, edges: slice
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+        return cpu_kernels.ray_range_blocks(T_ij, self.X_i[edges], self.X_j[edges],
+                                            self.q[edges], self.valid[edges],
+                                            self._inv_sigmas[edges, 0], self.huber_k)
+
+    def _compiled_cost(self, T_ij: torch.Tensor, edges: slice) -> torch.Tensor:
+        return cpu_kernels.ray_range_cost(T_ij, self.X_i[edges], self.X_j[edges],
+                                          self.q[edges], self.valid[edges],
+                                          self._inv_sigmas[edges, 0], self.huber_k)
+
+    def _vectorised_blocks(
         self, poses: torch.Tensor, edges: slice
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``J^T W J`` and ``J^T W e`` of C-Eq. 6 summed in closed form, without ``J``.
@@ -364,7 +408,7 @@ class RayRangeFactors(RelativePoseFactors):
         (the same sums as the generic path up to rounding; tests pin both to autograd).
         """
         T_WC_i, T_ij = self._relative_poses(poses, edges)
-        d, r, e = ray_range_terms(T_ij, self.X_j[edges], self.X_i[edges])
+        d, r, e = ray_range_terms(T_ij.to(self.q.dtype), self.X_j[edges], self.X_i[edges])
         sqrt_info = self._sqrt_info(edges, None)
         whitened = e * sqrt_info
         weight = huber_weight(whitened, self.huber_k) * sqrt_info
@@ -478,6 +522,19 @@ class CalibratedFactors(RelativePoseFactors):
         # mask is recomputed at every iterate from the transformed depth.
         in_front = sim3_act(T_ij[:, None, :], X_j)[..., 2] > 0
         return e, J, in_front
+
+    def _compiled_blocks(self, T_ij: torch.Tensor, edges: slice
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+        return cpu_kernels.calibrated_blocks(T_ij, self.K[edges], self.X_j[edges],
+                                             self.p_i[edges], self.z_i[edges], self.q[edges],
+                                             self.valid[edges], self._inv_sigmas[edges, 0],
+                                             self.huber_k)
+
+    def _compiled_cost(self, T_ij: torch.Tensor, edges: slice) -> torch.Tensor:
+        return cpu_kernels.calibrated_cost(T_ij, self.K[edges], self.X_j[edges],
+                                           self.p_i[edges], self.z_i[edges], self.q[edges],
+                                           self.valid[edges], self._inv_sigmas[edges, 0],
+                                           self.huber_k)
 
 
 def _edge_index(index: torch.Tensor, label: str, name: str) -> torch.Tensor:

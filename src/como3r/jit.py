@@ -1,0 +1,48 @@
+"""Compiled CPU loops: numba compilation for this process's PyTorch thread count.
+
+The per-pixel and per-match loops of como3r's CPU kernels (:mod:`como3r.frontend.
+cpu_kernels`, :mod:`como3r.optim.cpu_kernels`) are plain Python functions written in the
+subset numba compiles, one loop iteration per pixel or per block of matches, with ``prange``
+for the outer loop. :func:`compiled` gives a loop's machine code (compiled once per machine
+and cached on disk): serial on one PyTorch thread, parallel over ``torch.get_num_threads()``
+threads otherwise, so a kernel uses the cores the process was given and no more.
+"""
+
+from __future__ import annotations
+
+import functools
+import types
+from collections.abc import Callable
+
+import numba
+import torch
+from numba import njit
+
+__all__ = ["compiled"]
+
+
+@functools.cache
+def _variant(loop: Callable, parallel: bool, fastmath: frozenset) -> Callable:
+    # numba names a cache file after the function, not its options: each variant is a
+    # copy of the function under its own name, so neither loads the other's machine code
+    copy = types.FunctionType(loop.__code__, loop.__globals__, loop.__name__)
+    copy.__qualname__ = f"{loop.__qualname__}_{'parallel' if parallel else 'serial'}"
+    return njit(parallel=parallel, fastmath=set(fastmath) if fastmath else False, cache=True,
+                boundscheck=False)(copy)
+
+
+def compiled(loop: Callable, fastmath: set[str] | None = None) -> Callable:
+    """``loop`` compiled for this process's PyTorch thread count: serial on one thread (no
+    thread pool: a parallel loop's idle workers spin and would take another process's
+    core), else parallel over ``torch.get_num_threads()`` threads.
+
+    Args:
+        loop: a function numba can compile, its outer loop a ``numba.prange``.
+        fastmath: LLVM fast-math flags (e.g. ``{"reassoc", "contract"}`` to vectorise sums);
+            none by default.
+    """
+    threads = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+    kernel = _variant(loop, threads > 1, frozenset(fastmath or ()))
+    if threads > 1 and numba.get_num_threads() != threads:
+        numba.set_num_threads(threads)
+    return kernel
