@@ -21,7 +21,7 @@ from como3r.cli_progress import RunProgress, phase_text, run_progress
 from como3r.data.synth import synthesize
 from como3r.decentralized.messages import DRIVER, RobotProgress, RobotReport
 from como3r.decentralized.odometry_sim import add_odometry
-from como3r.decentralized.runner import _RobotProgress
+from como3r.decentralized.runner import RobotProgressAdapter
 from como3r.progress import AgentProgress, PhaseEvent
 
 FRAMES = 16  # 8 processed per agent (input.subsample 2), the lens covered on frames 6 to 8
@@ -229,8 +229,8 @@ def test_robot_messages_become_agent_progress_events():
     """A robot's progress after a round, a report that adds nothing (no event), a report of
     a robot that was in no round (every frame done), a failure."""
     events: list[AgentProgress] = []
-    robots = [SimpleNamespace(odometry=range(n)) for n in (10, 6, 4)]
-    adapter = _RobotProgress(events.append, robots)
+    robots = {r: SimpleNamespace(odometry=range(n)) for r, n in enumerate((10, 6, 4))}
+    adapter = RobotProgressAdapter(events.append, robots)
     assert [(e.agent, e.frames_done, e.frames_total) for e in events] == [
         (0, 0, 10), (1, 0, 6), (2, 0, 4)]
 

@@ -509,6 +509,7 @@ def demo(
 
 app.command("coordinator", cls=Command)(cli_network.coordinator)
 app.command("agent", cls=Command)(cli_network.agent)
+app.command("robot", cls=Command)(cli_network.robot)
 
 
 def main() -> None:

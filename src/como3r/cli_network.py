@@ -1,10 +1,11 @@
-"""``como3r coordinator`` and ``como3r agent``: one run across machines over Zenoh
-(:mod:`como3r.runtime.network`; README, "Across machines")."""
+"""``como3r coordinator``, ``como3r agent`` and ``como3r robot``: runs across machines over
+Zenoh (:mod:`como3r.runtime.network`, :mod:`como3r.runtime.robot_node`; README, "Across
+machines")."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Optional
+from typing import Annotated, List, Optional
 
 import typer
 
@@ -14,14 +15,47 @@ from como3r.errors import InputError
 
 DEFAULT_PORT = 7447
 
-SESSION_HELP = "Name of the run in the Zenoh key expressions (several runs on one network)."
-SCOUTING_HELP = ("Find peers by UDP multicast on the local network too (off: only the given "
-                 "endpoints).")
-ZENOH_CONFIG_HELP = ("Zenoh configuration file (JSON5) to start from: TLS, authentication, "
-                     "access control as Zenoh documents them; the options here are set on "
-                     "top of it.")
 PRIOR_HELP = ("mast3r | simulated (a stand-in made from ground-truth depth, for synthetic "
-              "scenes and tests). The same on the coordinator and every agent.")
+              "scenes and tests). The same on every process of the run.")
+
+# ------------------------------------------------------------ options the commands share
+
+ListenOption = Annotated[List[str], typer.Option(
+    "--listen", metavar="ENDPOINT",
+    help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeat for several).")]
+ConnectOption = Annotated[List[str], typer.Option(
+    "--connect", metavar="ENDPOINT",
+    help=f"Zenoh endpoint to connect to, e.g. tcp/HOST:{DEFAULT_PORT} (repeat).")]
+PriorOption = Annotated[str, typer.Option("--prior", help=PRIOR_HELP)]
+WeightsOption = Annotated[Optional[Path], typer.Option("--weights", help="MASt3R checkpoint.")]
+RetrievalOption = Annotated[Optional[Path], typer.Option(
+    "--retrieval-weights", help="MASt3R retrieval checkpoint.")]
+CodebookOption = Annotated[Optional[Path], typer.Option("--codebook",
+                                                        help="ASMK codebook .pkl.")]
+DeviceOption = Annotated[str, typer.Option("--device", help="cpu | cuda")]
+PrecisionOption = Annotated[str, typer.Option("--precision",
+                                              help="auto | fp32 | bf16 | fp16")]
+ConfigOption = Annotated[Optional[Path], typer.Option(
+    "--config", help="YAML configuration (the same on every process that reads one).")]
+SetOption = Annotated[List[str], typer.Option(
+    "--set", metavar="KEY=VALUE", help="Override, e.g. tracking.sigma_ray=0.002.")]
+CalibOption = Annotated[bool, typer.Option("--calib", help="Use each input's calib.txt.")]
+SessionOption = Annotated[str, typer.Option(
+    "--session", help="Name of the run in the Zenoh key expressions (several runs on one "
+                      "network).")]
+ScoutingOption = Annotated[bool, typer.Option(
+    "--scouting", help="Find peers by UDP multicast on the local network too (off: only the "
+                       "given endpoints).")]
+ZenohConfigOption = Annotated[Optional[Path], typer.Option(
+    "--zenoh-config", metavar="FILE",
+    help="Zenoh configuration file (JSON5) to start from: TLS, authentication, access "
+         "control as Zenoh documents them; the options here are set on top of it.")]
+OutOption = Annotated[Path, typer.Option("--out", help="Output folder.")]
+OverwriteOption = Annotated[bool, typer.Option("--overwrite",
+                                               help="Replace an existing folder.")]
+QuietOption = Annotated[bool, typer.Option("--quiet", "-q", help=QUIET_HELP)]
+InputArgument = Annotated[Path, typer.Argument(
+    metavar="PATH", show_default=False, help="This process's input (as como3r run --agent).")]
 
 
 def _network(listen: List[str], connect: List[str], scouting: bool,
@@ -55,29 +89,23 @@ def _prior_spec(prior: str, weights: Optional[Path], retrieval_weights: Optional
 @interrupt_leaves_nothing
 @user_errors
 def coordinator(
-    listen: List[str] = typer.Option(
-        [f"tcp/0.0.0.0:{DEFAULT_PORT}"], "--listen", metavar="ENDPOINT",
-        help="Zenoh endpoint the agents connect to (repeat for several)."),
-    connect: List[str] = typer.Option([], "--connect", metavar="ENDPOINT",
-                                      help="Zenoh endpoint to connect to as well (repeat)."),
-    out: Path = typer.Option(..., "--out", help="Output folder."),
+    out: OutOption,
+    listen: ListenOption = [f"tcp/0.0.0.0:{DEFAULT_PORT}"],
+    connect: ConnectOption = [],
     agents: int = typer.Option(2, "--agents", min=1,
                                help="Agents taking part, ids 0 to N-1 (como3r agent --id)."),
     gt: List[Path] = typer.Option([], "--gt", metavar="PATH",
                                   help="Ground truth per agent to evaluate against, as "
                                        "como3r eval --gt (repeat per agent, in id order)."),
-    prior: str = typer.Option("mast3r", "--prior", help=PRIOR_HELP),
-    weights: Optional[Path] = typer.Option(None, "--weights", help="MASt3R checkpoint."),
-    retrieval_weights: Optional[Path] = typer.Option(None, "--retrieval-weights",
-                                                     help="MASt3R retrieval checkpoint."),
-    codebook: Optional[Path] = typer.Option(None, "--codebook", help="ASMK codebook .pkl."),
-    device: str = typer.Option("cpu", "--device", help="cpu | cuda"),
-    precision: str = typer.Option("auto", "--precision", help="auto | fp32 | bf16 | fp16"),
-    config_file: Optional[Path] = typer.Option(None, "--config",
-                                               help="YAML configuration (sent to the agents)."),
-    overrides: List[str] = typer.Option([], "--set", metavar="KEY=VALUE",
-                                        help="Override, e.g. tracking.sigma_ray=0.002."),
-    calib: bool = typer.Option(False, "--calib", help="Use each agent's calib.txt."),
+    prior: PriorOption = "mast3r",
+    weights: WeightsOption = None,
+    retrieval_weights: RetrievalOption = None,
+    codebook: CodebookOption = None,
+    device: DeviceOption = "cpu",
+    precision: PrecisionOption = "auto",
+    config_file: ConfigOption = None,
+    overrides: SetOption = [],
+    calib: CalibOption = False,
     no_loop_closure: bool = typer.Option(False, "--no-loop-closure", help="Ablation."),
     agent_timeout: float = typer.Option(
         900.0, "--agent-timeout", metavar="SECONDS", min=0.1,
@@ -89,12 +117,11 @@ def coordinator(
     max_message_mb: float = typer.Option(256.0, "--max-message-mb", min=0.001,
                                          help="Size cap of one message; larger ones are "
                                               "dropped."),
-    session: str = typer.Option("como3r", "--session", help=SESSION_HELP),
-    scouting: bool = typer.Option(False, "--scouting", help=SCOUTING_HELP),
-    zenoh_config: Optional[Path] = typer.Option(None, "--zenoh-config", metavar="FILE",
-                                                help=ZENOH_CONFIG_HELP),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
+    session: SessionOption = "como3r",
+    scouting: ScoutingOption = False,
+    zenoh_config: ZenohConfigOption = None,
+    overwrite: OverwriteOption = False,
+    quiet: QuietOption = False,
 ) -> None:
     """Coordinate agents on other machines (como3r agent) over Zenoh.
 
@@ -122,21 +149,16 @@ def coordinator(
 @on_interrupt(lambda kwargs: f"interrupted: agent {kwargs['agent_id']} stopped")
 @user_errors
 def agent(
-    path: Path = typer.Argument(..., metavar="PATH", show_default=False,
-                                help="This agent's input (as como3r run --agent)."),
-    connect: List[str] = typer.Option(
-        [], "--connect", metavar="ENDPOINT",
-        help=f"The coordinator's Zenoh endpoint, e.g. tcp/HOST:{DEFAULT_PORT} (repeat)."),
-    listen: List[str] = typer.Option([], "--listen", metavar="ENDPOINT",
-                                     help="Zenoh endpoint to listen on as well (repeat)."),
+    path: InputArgument,
     agent_id: int = typer.Option(..., "--id", min=0, help="This agent's id (0 to N-1)."),
-    prior: str = typer.Option("mast3r", "--prior", help=PRIOR_HELP),
-    weights: Optional[Path] = typer.Option(None, "--weights", help="MASt3R checkpoint."),
-    retrieval_weights: Optional[Path] = typer.Option(None, "--retrieval-weights",
-                                                     help="MASt3R retrieval checkpoint."),
-    codebook: Optional[Path] = typer.Option(None, "--codebook", help="ASMK codebook .pkl."),
-    device: str = typer.Option("cpu", "--device", help="cpu | cuda"),
-    precision: str = typer.Option("auto", "--precision", help="auto | fp32 | bf16 | fp16"),
+    connect: ConnectOption = [],
+    listen: ListenOption = [],
+    prior: PriorOption = "mast3r",
+    weights: WeightsOption = None,
+    retrieval_weights: RetrievalOption = None,
+    codebook: CodebookOption = None,
+    device: DeviceOption = "cpu",
+    precision: PrecisionOption = "auto",
     threads: Optional[int] = typer.Option(None, "--threads", min=1,
                                           help="Torch threads (default: torch's here)."),
     queue_memory_mb: float = typer.Option(
@@ -146,10 +168,9 @@ def agent(
     spill_dir: Optional[Path] = typer.Option(
         None, "--spill-dir", metavar="DIR",
         help="Where to spill them (default: the system's temporary folder)."),
-    session: str = typer.Option("como3r", "--session", help=SESSION_HELP),
-    scouting: bool = typer.Option(False, "--scouting", help=SCOUTING_HELP),
-    zenoh_config: Optional[Path] = typer.Option(None, "--zenoh-config", metavar="FILE",
-                                                help=ZENOH_CONFIG_HELP),
+    session: SessionOption = "como3r",
+    scouting: ScoutingOption = False,
+    zenoh_config: ZenohConfigOption = None,
 ) -> None:
     """Track one camera for a coordinator on another machine (como3r coordinator).
 
@@ -168,3 +189,59 @@ def agent(
                             int(queue_memory_mb * 2**20), spill_dir):
         raise InputError(f"agent {agent_id} did not finish its input (see the log above)")
     console.print(f"agent {agent_id}: finished; the coordinator has every message")
+
+
+@interrupt_leaves_nothing
+@user_errors
+def robot(
+    path: InputArgument,
+    out: OutOption,
+    robot_id: int = typer.Option(..., "--id", min=0, help="This robot's id (0 to N-1)."),
+    robots: int = typer.Option(..., "--robots", min=1,
+                               help="Robots in the team, ids 0 to N-1 (each runs como3r "
+                                    "robot with its --id)."),
+    listen: ListenOption = [],
+    connect: ConnectOption = [],
+    schedule: Optional[Path] = typer.Option(
+        None, "--schedule", metavar="FILE",
+        help="Rendezvous schedule, the same file on every robot: lines "
+             "robot_id,start_s,end_s[,start_s,end_s...] of mission time in range; a robot "
+             "without a line is never in range (default: the configuration's "
+             "decentralized.protocol.schedule; none: always in range)."),
+    prior: PriorOption = "mast3r",
+    weights: WeightsOption = None,
+    retrieval_weights: RetrievalOption = None,
+    codebook: CodebookOption = None,
+    device: DeviceOption = "cpu",
+    precision: PrecisionOption = "auto",
+    config_file: ConfigOption = None,
+    overrides: SetOption = [],
+    calib: CalibOption = False,
+    session: SessionOption = "como3r",
+    scouting: ScoutingOption = False,
+    zenoh_config: ZenohConfigOption = None,
+    overwrite: OverwriteOption = False,
+    quiet: QuietOption = False,
+) -> None:
+    """One robot of the decentralized mode (FLOCC-SLAM), talking to its peers over Zenoh.
+
+    Waits until the whole team has started, runs the rendezvous rounds of the schedule
+    (messages from robots out of range are dropped here, at the receiver) and writes this
+    robot's output folder."""
+    from como3r.cli import _load_config, _print_summary
+    from como3r.decentralized.protocol import read_schedule
+    from como3r.runtime.robot_node import run_robot
+
+    if robots > 1 and not (listen or connect or scouting):
+        raise InputError("give --listen and/or --connect endpoints (or --scouting) so the "
+                         "robots can find each other")
+    if not path.exists():
+        raise InputError(f"{path}: robot input does not exist")
+    network = _network(listen, connect, scouting, zenoh_config, session)
+    spec = _prior_spec(prior, weights, retrieval_weights, codebook, device, precision)
+    config = _load_config(config_file, overrides, calib, False)
+    plan = read_schedule(schedule) if schedule is not None else None
+    with run_progress(quiet) as shown:
+        summary = run_robot(network, robot_id, robots, path, out, config, spec, plan,
+                            overwrite=overwrite, progress=shown)
+    _print_summary(summary, out)

@@ -14,6 +14,10 @@ Robot -> robot, in the order of a round:
 * :class:`PoseGraphShare` -- to the elected robot: odometry, estimate and loop closures;
 * :class:`PoseEstimate` -- from the elected robot: the optimised keyframe poses.
 
+Robot <-> robot before the mission (``como3r robot``, one process per robot): a
+:class:`RobotHello` answers every peer's start-up query (the team agreeing on one mission
+plan; set-up, not radio traffic, not filtered, not counted).
+
 Driver <-> robot (simulation control, not radio traffic, not counted):
 
 * :class:`RobotTask` -- process mode only: the robot's whole job, its first message;
@@ -186,9 +190,28 @@ class RobotReport:
     version: int = 1
 
 
+@dataclass(frozen=True)
+class RobotHello:
+    """Robot -> robot at start-up (``como3r robot``): who it is and which mission it runs.
+
+    Attributes:
+        robot: the robot's id.
+        end_s: the mission time of its last frame with odometry [s]; the team's mission
+            ends at the latest (its final exchange round).
+        plan: digest of everything the robots must agree on (configuration, rendezvous
+            schedule, team size, prior): robots with different plans would wait for rounds
+            their peers never hold.
+    """
+
+    robot: int
+    end_s: float
+    plan: str
+    version: int = 1
+
+
 ROBOT_MESSAGES = (PlaceDescriptors, EncodingRequest, EncodingReply, PoseGraphShare, PoseEstimate)
 """Messages robots send each other (counted as radio traffic)."""
 
-for _cls in (*ROBOT_MESSAGES, RobotTask, RobotProgress, RobotReport):
+for _cls in (*ROBOT_MESSAGES, RobotTask, RobotProgress, RobotReport, RobotHello):
     codec.register(_cls, version=1)
 codec.register(LoopClosure, version=1)

@@ -79,6 +79,11 @@ class Schedule:
             return True
         return any(start <= time_s <= end for start, end in self.windows.get(robot, ()))
 
+    def hears(self, receiver: int, sender: int, time_s: float) -> bool:
+        """The link filter: whether ``receiver`` hears a message ``sender`` sent at mission
+        time ``time_s`` (both in range of the rendezvous)."""
+        return self.in_range(receiver, time_s) and self.in_range(sender, time_s)
+
     def group(self, robots: Sequence[int], time_s: float) -> tuple[int, ...]:
         """The robots of ``robots`` in range at ``time_s``, sorted."""
         return tuple(sorted(r for r in robots if self.in_range(r, time_s)))
@@ -220,8 +225,7 @@ class Router:
             kind = type(message).__name__
             sender, recipient, time_s = message.sender, message.recipient, message.time_s
             if (recipient not in self.robots or recipient in self.gone
-                    or not self.schedule.in_range(sender, time_s)
-                    or not self.schedule.in_range(recipient, time_s)):
+                    or not self.schedule.hears(recipient, sender, time_s)):
                 self.traffic.dropped[kind] += 1
                 return
             self.traffic.count(sender, recipient, kind, len(data))
@@ -327,9 +331,10 @@ def build_prior(spec: Any, config: Config, place_method: str,
     return prior, codebook
 
 
-def _robot(robot: int, agent_path: str, prior: Prior, codebook: np.ndarray | None,
-           config: Config, settings: DecentralizedConfig, link: Any,
-           leave: tuple[int, str] | None) -> Robot:
+def make_robot(robot: int, agent_path: str, prior: Prior, codebook: np.ndarray | None,
+               config: Config, settings: DecentralizedConfig, link: Any,
+               leave: tuple[int, str] | None) -> Robot:
+    """Robot ``robot`` on its input, with its place recognizer, over ``link``."""
     recognizer = PlaceRecognizer(settings.place_method, codebook, config.retrieval)
     return Robot(robot, open_agent(agent_path, fps=config.input.frame_rate_hz,
                                    format=config.input.format, topic=config.input.topic), prior,
@@ -371,8 +376,8 @@ def _robot_process_main(robot: int, inbox: Connection, outbox: Connection) -> No
         prior, codebook = build_prior(spec, config, settings.place_method,
                                       {robot: task.agent_path})
         rounds = [RoundPlan(r, t, tuple(g)) for r, t, g in task.rounds]
-        worker = _robot(robot, task.agent_path, prior, codebook, config, settings, link,
-                        task.leave)
+        worker = make_robot(robot, task.agent_path, prior, codebook, config, settings, link,
+                            task.leave)
         link.send(worker.run(rounds))
     except Exception as exc:
         link.send(_failure(robot, exc))
@@ -458,8 +463,8 @@ def _run_threads(agent_paths: Sequence[str | Path], config: Config,
     workers: list[Robot | Exception] = []
     for r, path in enumerate(agent_paths):
         try:
-            workers.append(_robot(r, str(path), prior, codebook, config, settings, links[r],
-                                  leave.get(r)))
+            workers.append(make_robot(r, str(path), prior, codebook, config, settings, links[r],
+                                      leave.get(r)))
         except Exception as exc:  # the robot's thread reports it like any other failure
             workers.append(exc)
     codec.resolve_all()

@@ -63,7 +63,7 @@ from como3r.progress import AgentProgress, PhaseCallback, ProgressCallback, repo
 
 
 @dataclasses.dataclass
-class _Robot:
+class RobotData:
     """The driver's view of one robot: its input, odometry and (after the mission, from
     its report) keyframes."""
 
@@ -118,12 +118,13 @@ def run_decentralized(
     if not agent_paths:
         raise InputError("no --agent given")
     check_output_dir(out, overwrite)  # the folder is written only after the whole mission
-    robots = [_open_robot(path, config) for path in agent_paths]
+    robots = [open_robot(path, config) for path in agent_paths]
     end_s = max(float(r.odometry.timestamps[-1]) for r in robots)
     started = time.perf_counter()
     result = run_protocol([str(p) for p in agent_paths], config, settings, prior_spec, end_s,
                           schedule, prior, leave,
-                          None if progress is None else _RobotProgress(progress, robots))
+                          None if progress is None else RobotProgressAdapter(
+                              progress, dict(enumerate(robots))))
     failed = {r: report.error for r, report in result.reports.items() if report.error}
     if len(failed) == len(robots):
         raise Como3rError(f"every robot failed; robot 0: {failed[0].splitlines()[0]}")
@@ -134,7 +135,7 @@ def run_decentralized(
         summary.notes.append(SIMULATED_NOTE)
     summary.notes += [f"robot {r} failed: {error.splitlines()[0]}" for r, error in failed.items()]
     for r, robot in enumerate(robots):
-        robot.keyframes = _reported_keyframes(robot.odometry, result.reports.get(r))
+        robot.keyframes = reported_keyframes(robot.odometry, result.reports.get(r))
     with atomic_output_dir(out, overwrite=overwrite) as staging:
         _write(staging, robots, result, config, settings, summary,
                time.perf_counter() - started, prior_spec.name, progress)
@@ -142,22 +143,27 @@ def run_decentralized(
     return summary
 
 
-def _open_robot(path: str | Path, config: Config) -> _Robot:
+def open_robot(path: str | Path, config: Config) -> RobotData:
     agent = open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format,
                        topic=config.input.topic)
-    return _Robot(agent, frame_odometry(agent))
+    return RobotData(agent, frame_odometry(agent))
 
 
-class _RobotProgress:
+class RobotProgressAdapter:
     """The robots' progress messages and reports as per-robot
     :class:`~como3r.progress.AgentProgress` events; the first event of every robot (no
-    frames done) is sent when it is built."""
+    frames done) is sent when it is built.
 
-    def __init__(self, progress: ProgressCallback, robots: list[_Robot]) -> None:
+    Args:
+        progress: where the events go.
+        robots: robot id -> its data (only ``odometry`` is read).
+    """
+
+    def __init__(self, progress: ProgressCallback, robots: dict[int, RobotData]) -> None:
         self.progress = progress
-        self.latest = [AgentProgress(r, 0, len(robot.odometry), 0, 0, 0)
-                       for r, robot in enumerate(robots)]
-        for event in self.latest:
+        self.latest = {r: AgentProgress(r, 0, len(robot.odometry), 0, 0, 0)
+                       for r, robot in robots.items()}
+        for event in self.latest.values():
             progress(event)
 
     def __call__(self, message: RobotProgress | RobotReport) -> None:
@@ -176,7 +182,7 @@ class _RobotProgress:
             self.progress(event)
 
 
-def _reported_keyframes(odometry: FrameOdometry, report: RobotReport | None) -> Keyframes:
+def reported_keyframes(odometry: FrameOdometry, report: RobotReport | None) -> Keyframes:
     """The keyframes the robot chose: its reported keyframe distance (a fraction of the
     scene depth it measured with the prior, in odometry units) applied to its odometry;
     every frame when the robot failed before reporting one."""
@@ -193,7 +199,7 @@ def _frame_groups(reports: dict[int, RobotReport], count: int) -> list[list[int]
     return sorted(groups.values())
 
 
-def _write(staging: Path, robots: list[_Robot], result: ProtocolResult, config: Config,
+def _write(staging: Path, robots: list[RobotData], result: ProtocolResult, config: Config,
            settings: DecentralizedConfig, summary: Any, seconds: float, prior: str,
            progress: PhaseCallback | None = None) -> None:
     from como3r.runtime.outputs import write_json
@@ -204,11 +210,7 @@ def _write(staging: Path, robots: list[_Robot], result: ProtocolResult, config: 
     (staging / "config.yaml").write_text(yaml.safe_dump(document, sort_keys=False))
     estimates = [reports[r].estimate if r in reports else np.zeros((0, 8))
                  for r in range(len(robots))]
-    for r, (robot, estimate) in enumerate(zip(robots, estimates)):
-        poses = frame_poses(robot.odometry, robot.keyframes, estimate)
-        write_tum(staging / "trajectories" / f"agent_{r}.txt", robot.odometry.timestamps, poses)
-        write_tum(staging / "keyframes" / f"agent_{r}.txt", robot.keyframes.timestamps,
-                  poses[robot.keyframes.rows])
+    write_trajectories(staging, dict(enumerate(robots)), dict(enumerate(estimates)))
     groups = _frame_groups(reports, len(robots))
     # Loops to a robot that failed before reporting its keyframes name keyframes unknown here.
     known = {r for r, report in reports.items() if "keyframe_distance" in report.stats}
@@ -225,9 +227,9 @@ def _write(staging: Path, robots: list[_Robot], result: ProtocolResult, config: 
                    for p in result.rounds],
         "frame_groups": groups,
         "bytes": result.traffic.to_json(range(len(robots))),
-        "robots": [_robot_metrics(r, reports.get(r)) for r in range(len(robots))],
-        "two_stage": _two_stage(reports),
-        "loops": _loop_statistics(loops, rejected),
+        "robots": [robot_metrics(r, reports.get(r)) for r in range(len(robots))],
+        "two_stage": two_stage(reports),
+        "loops": loop_statistics(loops, rejected),
     }
     has_gt = all(r.agent.groundtruth is not None for r in robots)
     table_weights: dict[tuple, float] = {}
@@ -235,8 +237,9 @@ def _write(staging: Path, robots: list[_Robot], result: ProtocolResult, config: 
         report_phase(progress, "formulation table",
                      f"{len(FORMULATIONS)} formulations x {len(SOLVERS)} solvers")
         metrics["table"], table_weights = _formulation_table(robots, loops, settings)
-    write_json(staging / "graph.json", _graph_document(robots, estimates, loops, rejected,
-                                                       groups, table_weights))
+    write_json(staging / "graph.json", graph_document(dict(enumerate(robots)),
+                                                      dict(enumerate(estimates)), loops,
+                                                      rejected, groups, table_weights))
     for r, robot in enumerate(robots):
         stats = reports[r].stats if r in reports else {}
         summary.agents.append({"agent": r, "keyframes": len(robot.keyframes),
@@ -261,14 +264,26 @@ def _write(staging: Path, robots: list[_Robot], result: ProtocolResult, config: 
                  [r.agent.groundtruth for r in robots] if has_gt else None)
 
 
-def _robot_metrics(robot: int, report: RobotReport | None) -> dict[str, Any]:
+def write_trajectories(staging: Path, robots: dict[int, RobotData],
+                       estimates: dict[int, np.ndarray]) -> None:
+    """``trajectories/agent_<r>.txt`` (every frame with odometry) and
+    ``keyframes/agent_<r>.txt`` of each robot ``r``, from its ``(K', 8)`` keyframe estimate
+    (its odometry beyond it)."""
+    for r, robot in robots.items():
+        poses = frame_poses(robot.odometry, robot.keyframes, estimates[r])
+        write_tum(staging / "trajectories" / f"agent_{r}.txt", robot.odometry.timestamps, poses)
+        write_tum(staging / "keyframes" / f"agent_{r}.txt", robot.keyframes.timestamps,
+                  poses[robot.keyframes.rows])
+
+
+def robot_metrics(robot: int, report: RobotReport | None) -> dict[str, Any]:
     if report is None:
         return {"robot": robot, "error": "no report"}
     return {"robot": robot, **report.stats, "frame": report.frame, "left": report.left,
             "error": report.error}
 
 
-def _two_stage(reports: dict[int, RobotReport]) -> dict[str, float]:
+def two_stage(reports: dict[int, RobotReport]) -> dict[str, float]:
     """F-Fig. 4: encodes of the two-stage scheme versus encoding both images of every pair."""
     naive = sum(r.stats.get("naive_encodes", 0) for r in reports.values())
     used = sum(r.stats.get("registration_encodes", 0) for r in reports.values())
@@ -283,14 +298,14 @@ def _two_stage(reports: dict[int, RobotReport]) -> dict[str, float]:
             "all_encodes_including_place_descriptors": encodes}
 
 
-def _loop_statistics(loops: list[LoopClosure], rejected: list[LoopClosure]) -> dict[str, Any]:
+def loop_statistics(loops: list[LoopClosure], rejected: list[LoopClosure]) -> dict[str, Any]:
     ratios = np.array([loop.ratio for loop in loops]) if loops else np.zeros(0)
     return {"accepted": len(loops), "rejected": len(rejected),
             "ratio_median": float(np.median(ratios)) if loops else None,
             "probability_mean": float(np.mean([l.probability for l in loops])) if loops else None}
 
 
-def _formulation_table(robots: list[_Robot], loops: list[LoopClosure],
+def _formulation_table(robots: list[RobotData], loops: list[LoopClosure],
                        settings: DecentralizedConfig) -> tuple[list[dict[str, Any]], dict]:
     """Every formulation x solver on the mission's full graph (F-Tables II-III).
 
@@ -346,12 +361,15 @@ def _loop_key(loop: LoopClosure) -> tuple[int, int, int, int]:
     return loop.robot_a, loop.keyframe_a, loop.robot_b, loop.keyframe_b
 
 
-def _graph_document(robots: list[_Robot], estimates: list[np.ndarray], loops: list[LoopClosure],
-                    rejected: list[LoopClosure], groups: list[list[int]],
-                    weights: dict) -> dict[str, Any]:
+def graph_document(robots: dict[int, RobotData], estimates: dict[int, np.ndarray],
+                   loops: list[LoopClosure], rejected: list[LoopClosure],
+                   groups: list[list[int]], weights: dict) -> dict[str, Any]:
+    """``graph.json``: every keyframe of ``robots`` with its final pose, accepted and
+    rejected loop closures (with their GNC weight where ``weights`` has one) and the
+    groups of robots sharing a frame."""
     keyframes = []
-    for r, (robot, estimate) in enumerate(zip(robots, estimates)):
-        poses = frame_poses(robot.odometry, robot.keyframes, estimate)[robot.keyframes.rows]
+    for r, robot in robots.items():
+        poses = frame_poses(robot.odometry, robot.keyframes, estimates[r])[robot.keyframes.rows]
         for k in range(len(robot.keyframes)):
             keyframes.append({"agent": r, "keyframe": k, "frame": int(robot.keyframes.frames[k]),
                               "timestamp": float(robot.keyframes.timestamps[k]),

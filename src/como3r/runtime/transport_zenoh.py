@@ -149,13 +149,20 @@ class Keys:
         return key[len(self.root) + len("/agent/"):].split("/", 1)[0]
 
 
-class _Sender:
-    """Puts ``(key, payload, attachment)`` on the network from a background thread."""
+class Sender:
+    """Puts ``(key, payload, attachment)`` on the network from a background thread.
 
-    def __init__(self, session: Any) -> None:
+    Args:
+        session: the Zenoh session.
+        publishers: declared publishers by key (declared with congestion control
+            ``BLOCK``); a key without one is put through the session.
+    """
+
+    def __init__(self, session: Any, publishers: dict[str, Any] | None = None) -> None:
         import zenoh
 
         self.session = session
+        self.publishers = publishers if publishers is not None else {}
         self.block = zenoh.CongestionControl.BLOCK
         self.queue: queue.Queue[tuple[str, bytes, bytes | None] | None] = queue.Queue()
         self.thread = threading.Thread(target=self._loop, daemon=True)
@@ -172,8 +179,11 @@ class _Sender:
         while (item := self.queue.get()) is not None:
             key, payload, attachment = item
             try:
-                self.session.put(key, payload, attachment=attachment,
-                                 congestion_control=self.block)
+                if key in self.publishers:
+                    self.publishers[key].put(payload, attachment=attachment)
+                else:
+                    self.session.put(key, payload, attachment=attachment,
+                                     congestion_control=self.block)
             except Exception as exc:  # a closed session: nothing more can be sent
                 logger.debug("put on %s failed: %s", key, exc)
 
@@ -219,7 +229,7 @@ class ZenohHub:
         self._rejoin: Rejoin | None = None
         self._inbox: queue.Queue[tuple[Any, ...]] = queue.Queue()
         self._backlog: deque[tuple[Any, ...]] = deque()
-        self._sender = _Sender(session)
+        self._sender = Sender(session)
         self._declared = [
             session.declare_subscriber(keys.up("*", "*"), self._on_sample),
             session.liveliness().declare_subscriber(keys.alive("*", "*"), self._on_liveliness,
