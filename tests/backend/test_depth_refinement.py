@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import pytest
 import torch
 
+from como3r.backend import cpu_kernels
 from como3r.backend.depth_refinement import (
     _build_problem,
     _Refiner,
@@ -243,3 +244,34 @@ def test_boundary_term_pairs_and_log_depth_ratios():
     problem, _, _ = _build_problem([keyframe], torch.tensor([[0.0] * 6 + [1.0, 1.0]]), [],
                                    [0].__getitem__, [pixels], no_boundary, set())
     assert problem.bnd_a.numel() == 0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_normal_equations_equal_the_pytorch_ones(dtype, monkeypatch):
+    """The compiled CPU loop (every CPU problem) and PyTorch (CUDA, autograd) give the same
+    Hessian, gradient and energy, with one thread or two (the matches cut into blocks)."""
+    monkeypatch.setattr(cpu_kernels, "BLOCK", 256)
+    scene = make_scene(dtype)
+    problem, _, _ = _build_problem(scene.keyframes, scene.poses, scene.edges, {0: 0, 1: 1}.get,
+                                   scene.labels, CONFIG, {0})
+    refiner = _Refiner(problem, CONFIG, huber_k=1.345)
+    s = 0.05 * torch.randn(problem.s_start.shape, generator=torch.Generator().manual_seed(3),
+                           dtype=dtype)
+    before = torch.get_num_threads()
+    try:
+        compiled = []
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            compiled.append((*refiner.normal_equations(s), float(refiner.energy(s))))
+    finally:
+        torch.set_num_threads(before)
+    monkeypatch.setattr(_Refiner, "_runs_compiled", lambda self, s: False)
+    H, g, energy = refiner.normal_equations(s)
+    tolerance = 1e-5 if dtype == torch.float32 else 1e-10
+    for H_c, g_c, energy_c, final_c in compiled:
+        torch.testing.assert_close(H_c, H, rtol=tolerance, atol=0)
+        torch.testing.assert_close(g_c, g, rtol=tolerance, atol=tolerance * g.abs().max())
+        assert energy_c == pytest.approx(energy, rel=tolerance)
+        assert final_c == pytest.approx(float(refiner.energy(s)), rel=tolerance)
+    assert torch.equal(compiled[0][0], compiled[1][0]) and compiled[0][2] == compiled[1][2]
+    assert problem.match_a.numel() > 4 * 256 and (H > CONFIG.lambda_prior).any()

@@ -55,6 +55,7 @@ from typing import Callable, Iterable, Mapping, Protocol, Sequence
 import torch
 from torch import Tensor
 
+from como3r.backend import cpu_kernels
 from como3r.backend.segments import parameter_labels
 from como3r.config import DepthRefinementConfig
 from como3r.errors import ConfigError, InputError
@@ -388,33 +389,58 @@ class _Refiner:
         return r, J_a, J_b
 
     def _energy(self, s: Tensor, r: Tensor, r_bnd: Tensor) -> Tensor:
-        return (_huber_cost(r, self.huber_k)
-                + self.config.lambda_smooth * (r_bnd ** 2).sum()
-                + self.config.lambda_prior * (s ** 2).sum())
+        return _huber_cost(r, self.huber_k) + self._regularisers(s, r_bnd)
 
     def energy(self, s: Tensor) -> Tensor:
-        """Energy of C-Eq. 20 (differentiable in ``s``)."""
+        """Energy of C-Eq. 20 (differentiable in ``s`` when it requires a gradient)."""
         r_bnd = s[self.p.bnd_a] - s[self.p.bnd_b] + self.p.delta
+        if self._runs_compiled(s):
+            data = self._compiled_data(s, with_blocks=False)[2]
+            return data + self._regularisers(s, r_bnd)
         return self._energy(s, self._data(s)[0], r_bnd)
 
     def normal_equations(self, s: Tensor) -> tuple[Tensor, Tensor, float]:
         """Diagonal Hessian ``(M,)``, exact gradient ``(M,)`` (C-Eq. 24) and the energy."""
         p, c = self.p, self.config
-        H = torch.full_like(s, c.lambda_prior)
-        g = c.lambda_prior * s
-        r, J_a, J_b = self._data(s)
-        w = huber_weight(r, self.huber_k)
-        for params, J in ((self.match_param_a, J_a), (self.match_param_b, J_b)):
-            free = params >= 0
-            # Jacobi decoupling: only J_a^T W J_a and J_b^T W J_b; J_a^T W J_b is dropped.
-            H.index_add_(0, params[free], (w * J * J).sum(-1)[free])
-            g.index_add_(0, params[free], (w * J * r).sum(-1)[free])
         r_bnd = s[p.bnd_a] - s[p.bnd_b] + p.delta
+        if self._runs_compiled(s):
+            H, g, data = self._compiled_data(s)
+            H, g = H.to(s) + c.lambda_prior, g.to(s) + c.lambda_prior * s
+            energy = data + float(self._regularisers(s, r_bnd))
+        else:
+            H = torch.full_like(s, c.lambda_prior)
+            g = c.lambda_prior * s
+            r, J_a, J_b = self._data(s)
+            w = huber_weight(r, self.huber_k)
+            for params, J in ((self.match_param_a, J_a), (self.match_param_b, J_b)):
+                free = params >= 0
+                # Jacobi decoupling: only J_a^T W J_a and J_b^T W J_b; J_a^T W J_b is dropped.
+                H.index_add_(0, params[free], (w * J * J).sum(-1)[free])
+                g.index_add_(0, params[free], (w * J * r).sum(-1)[free])
+            energy = float(self._energy(s, r, r_bnd))
         ones = torch.full_like(r_bnd, c.lambda_smooth)
         H.index_add_(0, p.bnd_a, ones).index_add_(0, p.bnd_b, ones)
         g.index_add_(0, p.bnd_a, c.lambda_smooth * r_bnd)
         g.index_add_(0, p.bnd_b, -c.lambda_smooth * r_bnd)
-        return H, g, float(self._energy(s, r, r_bnd))
+        return H, g, energy
+
+    def _runs_compiled(self, s: Tensor) -> bool:
+        """CPU problems take the compiled loop, except for log-scales autograd
+        differentiates."""
+        return s.device.type == "cpu" and not s.requires_grad
+
+    def _compiled_data(self, s: Tensor, with_blocks: bool = True) -> tuple[Tensor, Tensor, float]:
+        """The data term's diagonal Hessian, gradient (float64, ``(M,)``) and cost by
+        :func:`como3r.backend.cpu_kernels.depth_normal_equations`."""
+        p = self.p
+        return cpu_kernels.depth_normal_equations(
+            self.depths(s), p.param, p.match_a, p.match_b, p.rays, p.rays_b_in_a, p.t_ab,
+            p.sqrt_w, s.numel(), self.huber_k, with_blocks)
+
+    def _regularisers(self, s: Tensor, r_bnd: Tensor) -> Tensor:
+        """Boundary (C-Eq. 22) and prior (C-Eq. 23) energies."""
+        return (self.config.lambda_smooth * (r_bnd ** 2).sum()
+                + self.config.lambda_prior * (s ** 2).sum())
 
     def step(self, s: Tensor) -> tuple[Tensor, int, float]:
         """One damped, clipped Newton step.
