@@ -7,7 +7,7 @@ Jacobi-decoupled diagonal Hessian and gradient of both endpoints' log-scales (C-
 PyTorch on a CPU materialises ``(K, 3)`` residuals and Jacobians for millions of matches and
 scatters them with ``index_add_``; this loop keeps one match in registers and adds it to
 per-block partial sums, added in block order afterwards (the result does not depend on the
-thread count). Everything per match runs in float64.
+thread count). Everything per match runs in float64, whatever the problem's dtype.
 
 Same equations as :meth:`~como3r.backend.depth_refinement._Refiner.normal_equations`;
 tests compare both.
@@ -44,14 +44,15 @@ def _depth_sums(depth, param, match_a, match_b, rays, rays_b_in_a, t_ab, sqrt_w,
     for task in prange(cost_out.shape[0]):
         cost = 0.0
         for m in range(task * block, min((task + 1) * block, K)):
-            a, b, w = match_a[m], match_b[m], sqrt_w[m]
-            d_a, d_b = depth[a], depth[b]
+            a, b, w = match_a[m], match_b[m], float(sqrt_w[m])
+            d_a, d_b = float(depth[a]), float(depth[b])
             pa, pb = param[a], param[b]
             Haa = gaa = Hbb = gbb = 0.0
             for c in range(3):
-                J_a = -w * d_a * rays[a, c]
-                J_b = w * d_b * rays_b_in_a[m, c]
-                r = w * (d_b * rays_b_in_a[m, c] + t_ab[m, c]) + J_a
+                ray_b = float(rays_b_in_a[m, c])
+                J_a = -w * d_a * float(rays[a, c])
+                J_b = w * d_b * ray_b
+                r = w * (d_b * ray_b + float(t_ab[m, c])) + J_a
                 weight, rho = _huber_pieces(r, k)
                 cost += rho
                 Haa += weight * J_a * J_a
@@ -94,13 +95,11 @@ def depth_normal_equations(depth: Tensor, param: Tensor, match_a: Tensor, match_
     H_out, g_out = np.zeros((blocks, width)), np.zeros((blocks, width))
     cost_out = np.zeros(blocks)
 
-    def array(x: Tensor, dtype: torch.dtype | None = None) -> np.ndarray:
-        return x.detach().to(dtype or x.dtype).contiguous().numpy()
+    def array(x: Tensor) -> np.ndarray:  # no copy of a contiguous CPU tensor
+        return x.detach().contiguous().numpy()
 
-    compiled(_depth_sums)(array(depth, torch.float64), array(param), array(match_a),
-                          array(match_b), array(rays, torch.float64),
-                          array(rays_b_in_a, torch.float64), array(t_ab, torch.float64),
-                          array(sqrt_w, torch.float64), float(huber_k), block, with_blocks,
-                          H_out, g_out, cost_out)
+    compiled(_depth_sums)(array(depth), array(param), array(match_a), array(match_b),
+                          array(rays), array(rays_b_in_a), array(t_ab), array(sqrt_w),
+                          float(huber_k), block, with_blocks, H_out, g_out, cost_out)
     return (torch.from_numpy(H_out.sum(0)), torch.from_numpy(g_out.sum(0)),
             float(cost_out.sum()))
