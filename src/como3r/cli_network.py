@@ -121,6 +121,11 @@ def coordinator(
     scouting: ScoutingOption = False,
     zenoh_config: ZenohConfigOption = None,
     overwrite: OverwriteOption = False,
+    resume: bool = typer.Option(
+        False, "--resume",
+        help="Continue a coordinator that was killed (OUT.partial) from its session store: "
+             "the same command with --resume. Agents still running re-send what it had not "
+             "stored; agents restarted meanwhile continue after the last frame it stored."),
     quiet: QuietOption = False,
 ) -> None:
     """Coordinate agents on other machines (como3r agent) over Zenoh.
@@ -128,21 +133,23 @@ def coordinator(
     Writes the output folder once every agent has finished or failed."""
     import torch
 
-    from como3r.cli import _load_config, _print_summary
+    from como3r.cli import _check_resumable, _load_config, _print_summary
     from como3r.io.output import check_output_dir
     from como3r.runtime.network import serve
     from como3r.runtime.processes import RuntimeOptions
 
     network = _network(listen, connect, scouting, zenoh_config, session)
     spec = _prior_spec(prior, weights, retrieval_weights, codebook, device, precision)
-    check_output_dir(out, overwrite)
+    check_output_dir(out, overwrite, resume)
     config = _load_config(config_file, overrides, calib, no_loop_closure)
+    if resume:
+        _check_resumable(out, config)
     threads = torch.get_num_threads()  # this machine runs no agent
     options = RuntimeOptions(torch_threads=threads, max_message_bytes=int(max_message_mb * 2**20),
                              agent_timeout_s=agent_timeout, away_timeout_s=away_timeout)
     with run_progress(quiet) as shown:
         summary = serve(network, agents, out, config, spec, options, ground_truth=gt,
-                        overwrite=overwrite, progress=shown)
+                        overwrite=overwrite, progress=shown, resume=resume)
     _print_summary(summary, out)
 
 

@@ -8,13 +8,9 @@ import json
 import os
 import re
 import signal
-import socket
 import struct
-import subprocess
-import sys
 import threading
 import time
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -22,92 +18,31 @@ import pytest
 from typer.testing import CliRunner
 
 from como3r.cli import app
-from como3r.data.synth import synthesize
 from como3r.runtime import codec
 from como3r.runtime.messages import AgentStarted
 from como3r.runtime.transport_zenoh import Keys, ZenohOptions, open_session
 
 zenoh = pytest.importorskip("zenoh")
 
-#: what a user would pass for a tiny run: 64x48 images, 12 frames per agent
+#: what a user would pass for a tiny run: 64x48 images
 SIZE = ["--set", "input.long_side=64"]
 LIMIT_S = 240  # no process of a test outlives this
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    """Two agents that meet (as in test_processes)."""
-    root = tmp_path_factory.mktemp("scene")
-    synthesize(root, agents=2, seed=0, overlap=0.5, frames=12, preset="default", width=64,
-               height=48, progress=None)
-    return root
+def scene(tiny_scene) -> Path:
+    """Two agents that meet (as in test_processes), 12 frames each."""
+    return tiny_scene(frames=12, seed=0, overlap=0.5)
 
 
 @pytest.fixture(scope="module")
-def longer_scene(tmp_path_factory) -> Path:
+def longer_scene(tiny_scene) -> Path:
     """The same kind of scene, 24 frames per agent (12 processed): tracking that outlasts a
     short freeze."""
-    root = tmp_path_factory.mktemp("longer_scene")
-    synthesize(root, agents=2, seed=0, overlap=0.5, frames=24, preset="default", width=64,
-               height=48, progress=None)
-    return root
+    return tiny_scene(frames=24, seed=0, overlap=0.5)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class _Team:
-    """A coordinator and agents as ``python -m como3r.cli`` processes, logs in files."""
-
-    def __init__(self, tmp: Path) -> None:
-        self.tmp, self.port, self.session = tmp, _free_port(), f"t{uuid.uuid4().hex[:12]}"
-        self.endpoint = f"tcp/127.0.0.1:{self.port}"
-        self.processes: dict[str, subprocess.Popen] = {}
-
-    def start(self, name: str, *args: str) -> subprocess.Popen:
-        log = open(self.tmp / f"{name}.log", "w")
-        process = subprocess.Popen([sys.executable, "-m", "como3r.cli", *args,
-                                    "--session", self.session],
-                                   stdout=log, stderr=subprocess.STDOUT)
-        log.close()
-        self.processes[name] = process
-        return process
-
-    def coordinator(self, out: Path, agents: int, *extra: str) -> subprocess.Popen:
-        return self.start("coordinator", "coordinator", "--listen", self.endpoint, "--out",
-                          str(out), "--agents", str(agents), "--prior", "simulated", *SIZE,
-                          *extra)
-
-    def agent(self, agent: int, path: Path) -> subprocess.Popen:
-        return self.start(f"agent{agent}", "agent", "--connect", self.endpoint, "--id",
-                          str(agent), str(path), "--prior", "simulated")
-
-    def log(self, name: str) -> str:
-        return (self.tmp / f"{name}.log").read_text()
-
-    def wait(self, name: str) -> int:
-        code = self.processes[name].wait(LIMIT_S)
-        assert code == 0, self.log(name)
-        return code
-
-    def close(self) -> None:
-        for process in self.processes.values():
-            if process.poll() is None:
-                process.kill()
-                process.wait()
-
-
-@pytest.fixture
-def team(tmp_path):
-    team = _Team(tmp_path)
-    yield team
-    team.close()
-
-
-def _watcher(team: _Team):
+def _watcher(team):
     """A Zenoh session of the test's own on the team's network."""
     return open_session(ZenohOptions(connect=(team.endpoint,), session=team.session))
 
@@ -195,7 +130,7 @@ class _Watch:
     """What the test's own Zenoh session sees of a team: each agent's messages by
     (incarnation, seq) with the time first seen, and liveliness changes with their times."""
 
-    def __init__(self, team: _Team) -> None:
+    def __init__(self, team) -> None:
         self.keys, self.session = Keys(team.session), _watcher(team)
         self.first_seen: dict[tuple[str, int, int, int], float] = {}  # kind, agent, inc., seq
         self.frames: dict[int, list[int]] = {}  # agent -> FrameDone frame indices, in order

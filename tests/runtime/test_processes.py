@@ -367,7 +367,10 @@ class _ScriptedHub:
         events, self.script = self.script, []
         return events
 
-    def acknowledge(self) -> None:
+    def durable(self, held) -> dict:
+        return {}
+
+    def acknowledge(self, held) -> None:
         pass
 
     def send(self, agent: int, message) -> None:

@@ -19,7 +19,6 @@ import pytest
 from typer.testing import CliRunner
 
 from como3r.cli import app
-from como3r.data.synth import synthesize
 from como3r.errors import StoreError
 from como3r.runtime.store import FORMAT_VERSION, STORE_NAME
 from como3r.runtime.store_reader import read_session
@@ -28,11 +27,8 @@ RUN = ["--prior", "simulated", "--set", "input.long_side=64", "-q"]
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("scene")
-    synthesize(root, agents=2, seed=1, overlap=0.2, frames=8, preset="default", width=64,
-               height=48, progress=None)
-    return root
+def scene(tiny_scene) -> Path:
+    return tiny_scene(frames=8, seed=1, overlap=0.2)
 
 
 def _args(scene: Path, out: Path, *extra: str) -> list[str]:
@@ -109,8 +105,7 @@ def _partial_store(scene: Path, tmp_path: Path) -> Path:
     """A finished run's folder moved to ``run.partial`` (as a killed run leaves it) with its
     store reopened: a store to resume from."""
     out = tmp_path / "done"
-    result = CliRunner().invoke(app, _args(scene, out, "--single-process",
-                                           "--set", "depth.alternation_rounds=0"))
+    result = CliRunner().invoke(app, _args(scene, out, "--single-process"))
     assert result.exit_code == 0, result.output
     partial = tmp_path / "run.partial"
     out.rename(partial)
@@ -122,10 +117,11 @@ def test_what_cannot_be_resumed_is_one_error_line(scene, tmp_path, only_error_li
     line = only_error_line(CliRunner().invoke(app, _args(scene, out, "--resume")))
     assert "nothing to resume" in line
     store = _partial_store(scene, tmp_path)
-    line = only_error_line(CliRunner().invoke(app, _args(scene, out, "--resume")))
-    assert "depth.alternation_rounds" in line  # another configuration than the stored one
+    # this --set is the point of the check: a configuration other than the stored one
     line = only_error_line(CliRunner().invoke(app, _args(
-        scene, out, "--resume", "--set", "depth.alternation_rounds=0")))
+        scene, out, "--resume", "--set", "depth.alternation_rounds=1")))
+    assert "depth.alternation_rounds" in line
+    line = only_error_line(CliRunner().invoke(app, _args(scene, out, "--resume")))
     assert "finished" in line  # killed while writing its outputs: nothing left to resume
     with sqlite3.connect(store) as db:
         db.execute(f"PRAGMA user_version={FORMAT_VERSION + 1}")

@@ -31,7 +31,6 @@ from como3r.cli import app
 from como3r.config import Config
 from como3r.coordination.association import Verification
 from como3r.coordination.coordinator import Candidate, Coordinator
-from como3r.data.synth import synthesize
 from como3r.errors import StoreError
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches, PairLink
@@ -49,11 +48,8 @@ HEIGHT, WIDTH = 48, 64  # the scripted session's keyframes
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("scene")
-    synthesize(root, agents=2, seed=1, overlap=0.2, frames=8, preset="default", width=64,
-               height=48, progress=None)
-    return root
+def scene(tiny_scene) -> Path:
+    return tiny_scene(frames=8, seed=1, overlap=0.2)
 
 
 @pytest.mark.parametrize("runtime", ["processes", "single-process"])

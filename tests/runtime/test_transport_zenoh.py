@@ -42,7 +42,7 @@ class _Coordinator(threading.Thread):
     def run(self) -> None:
         while self.running:
             self.events.extend(self.hub.events(0.05))
-            self.hub.acknowledge()
+            self.hub.acknowledge({})
 
     def wait_for(self, condition, what: str, limit: float = 30.0) -> None:
         deadline = time.monotonic() + limit

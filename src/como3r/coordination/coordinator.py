@@ -267,7 +267,7 @@ class Coordinator:
             raise InputError(f"coordinator: agent id {packet.agent} is out of range for "
                              f"{self.num_agents} agents")
         if packet.kf_id < len(self.graph.agent_keyframes(packet.agent)):
-            return self._count([self._resent(packet)])
+            return self._record(self._count([self._resent(packet)]))
         g = self.graph.add_keyframe(packet)
         self.stats.keyframes += 1
         updates: list[PoseUpdate] = []
@@ -358,6 +358,12 @@ class Coordinator:
         return PoseUpdate(agent=packet.agent, kf_ids=torch.arange(len(indices)),
                           T_WC=self.graph.poses(indices).clone(), reason="resume",
                           focal=self.graph.focal.get(packet.agent))
+
+    def current_poses(self, agent: int, reason: str) -> PoseUpdate | None:
+        """An update with the current poses of all of ``agent``'s keyframes (None before
+        its first); made, not sent: it is neither counted nor recorded."""
+        updates = self._updates([agent], reason)
+        return updates[0] if updates else None
 
     @property
     def backlog(self) -> tuple[int, list[int]]:

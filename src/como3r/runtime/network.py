@@ -33,7 +33,7 @@ logger = logging.getLogger(__name__)
 
 def serve(network: ZenohOptions, agents: int, out: Path, config: Config, prior_spec: PriorSpec,
           options: RuntimeOptions, ground_truth: Sequence[Path] = (), overwrite: bool = False,
-          progress: ProgressCallback | None = None) -> RunSummary:
+          progress: ProgressCallback | None = None, resume: bool = False) -> RunSummary:
     """Coordinate agents ``0 .. agents-1`` joining over Zenoh until each has finished or
     failed; write the output folder.
 
@@ -50,9 +50,13 @@ def serve(network: ZenohOptions, agents: int, out: Path, config: Config, prior_s
             ``como3r eval --gt``); empty: no evaluation.
         overwrite: replace an existing non-empty output folder.
         progress: as for :func:`~como3r.runtime.processes.run_multiprocess`.
+        resume: continue the coordinator that was killed (``out.partial``) from its session
+            store; the agents still running re-send what it had not stored
+            (:mod:`como3r.runtime.runtime_state`).
 
     Raises:
         InputError: bad ground truth, a network error, or every agent failed.
+        StoreError: (``resume``) a store that cannot be resumed.
     """
     if ground_truth and len(ground_truth) != agents:
         raise InputError(f"--gt: {len(ground_truth)} given for {agents} agents")
@@ -64,7 +68,8 @@ def serve(network: ZenohOptions, agents: int, out: Path, config: Config, prior_s
                        options.shutdown_grace_s)
         logger.info("coordinator of %s listening on %s", keys.root, ", ".join(network.listen))
         return coordinate(hub, [None] * agents, [0] * agents, out, config, prior_spec, options,
-                          inputs=inputs, overwrite=overwrite, progress=progress)
+                          inputs=inputs, overwrite=overwrite, progress=progress, resume=resume,
+                          continuing=resume)
     finally:
         session.close()
 

@@ -111,6 +111,9 @@ from como3r.runtime.results import (
     agent_results,
     left_out,
 )
+from como3r.runtime.runtime_state import restore_runtime, snapshot
+from como3r.runtime.store import STORE_NAME, SessionStore
+from como3r.runtime.store_reader import read_session
 from como3r.runtime.store_resume import open_store
 from como3r.runtime.transport import Hub, Joined, Left, PipeHub, Received, Rejected
 
@@ -144,6 +147,16 @@ class RuntimeOptions:
 
 # ------------------------------------------------------------------------------ coordinator side
 
+
+@dataclass(frozen=True)
+class _Waiting:
+    """A keyframe waiting for its turn, and its number in its sender's stream (None:
+    pipes)."""
+
+    segment: MapSegment
+    message: KeyframeMessage
+    seq: int | None
+
 _LIVE = ("starting", "running")
 
 
@@ -172,9 +185,12 @@ class _Runtime:
         self.coordinator_live = (
             None if live is None else
             CoordinatorLive(live, self.coordinator, config.visualization.map_min_confidence))
-        #: keyframes waiting for their turn: ((timestamp, agent, kf_id, arrival), segment, it)
-        self.pending: list[tuple[tuple[float, int, int, int], MapSegment,
-                                 KeyframeMessage]] = []
+        #: keyframes waiting for their turn: ((timestamp, agent, kf_id, arrival), it)
+        self.pending: list[tuple[tuple[float, int, int, int], _Waiting]] = []
+        #: where the coordinator's state and this runtime's are kept (set by coordinate())
+        self.store: SessionStore | None = None
+        #: the coordinator's terminal alternation ran (a resumed coordinator's store says so)
+        self.cleaned_up = False
         self._arrivals = 0
         self.segments = [MapSegment(agent, agent, AgentResult(agent))
                          for agent in range(len(frames))]
@@ -207,8 +223,9 @@ class _Runtime:
             return f"agent {agent} failed in this run ({slot.error}); it cannot rejoin"
         old = slot.segment
         resume_after = max([slot.last_frame] + [kf.frame_index for kf in old.result.keyframes]
-                           + [m.packet.frame_index for _, seg, m in self.pending if seg is old])
-        if old.result.keyframes or any(seg is old for _, seg, _ in self.pending):
+                           + [w.message.packet.frame_index for w in self._waiting(old)])
+        slot.handled_seq = -1  # the new process numbers its messages from 0
+        if old.result.keyframes or self._waiting(old):
             index = self.coordinator.add_agent()
             slot.segment = MapSegment(index, agent, AgentResult(index), after_frame=resume_after)
             self.segments.append(slot.segment)
@@ -231,13 +248,14 @@ class _Runtime:
         if self.options.lockstep:
             self._run_lockstep()
         else:
-            while any(s.status in _LIVE for s in self.slots):
+            while any(s.expected() for s in self.slots):
                 self._pump(0.5)
                 self._process_pending()
-                self._check_timeouts([s for s in self.slots if s.status in _LIVE])
+                self._check_timeouts([s for s in self.slots if s.expected()])
             torch.set_num_threads(max(1, finish_threads))
         self.finish_threads = torch.get_num_threads()
         self._process_pending(force=True, progress=self.progress)
+        self._acknowledge()  # every keyframe is stored: finished agents may leave
         self._finish()
 
     def _run_lockstep(self) -> None:
@@ -251,12 +269,12 @@ class _Runtime:
             slot.last_heard = time.monotonic()
             self._pump_until(lambda: slot.last_frame >= index or slot.status != "running", [slot])
             self._process_pending(force=True)
-        self._pump_until(lambda: all(s.status not in _LIVE for s in self.slots), self.slots)
+        self._pump_until(lambda: not any(s.expected() for s in self.slots), self.slots)
 
     def _pump_until(self, condition: Callable[[], bool], watched: Sequence[AgentSlot]) -> None:
         while not condition():
             self._pump(0.5)
-            self._check_timeouts([s for s in watched if s.status in _LIVE])
+            self._check_timeouts([s for s in watched if s.expected()])
 
     def _pump(self, timeout: float) -> None:
         """Wait up to ``timeout`` seconds for messages and departures, handle them, and
@@ -264,16 +282,49 @@ class _Runtime:
         for event in self.hub.events(timeout):
             slot = self.slots[event.agent]
             if isinstance(event, Received):
-                if slot.status in _LIVE:  # a failed agent's trailing messages are ignored
+                if slot.expected():  # a failed agent's trailing messages are ignored
                     slot.last_heard = time.monotonic()
-                    self._handle(slot, event.message)
+                    self._received(slot, event)
             elif isinstance(event, Rejected):
                 logger.warning("dropped a message from agent %d: %s", event.agent, event.error)
             elif isinstance(event, Joined):
                 self._joined(slot)
-            elif slot.status in _LIVE:  # Left before its AgentFinished
+            elif slot.expected():  # Left before its AgentFinished (or its re-sending)
                 self._left(slot, event)
-        self.hub.acknowledge()
+        self._acknowledge()
+
+    def _received(self, slot: AgentSlot, event: Received) -> None:
+        """Handle a message, unless the stored state has it already: a coordinator resumed
+        from its store gets again what it had not acknowledged (:mod:`.runtime_state`), and
+        of that takes only the keyframes it does not hold."""
+        if event.seq is not None and event.seq >= slot.resend_until:
+            slot.resend_until = -1  # caught up
+        if event.seq is None or event.seq > slot.handled_seq:
+            slot.handled_seq = slot.handled_seq if event.seq is None else event.seq
+            self._handle(slot, event.message, event.seq)
+            return
+        message, segment = event.message, slot.segment
+        if isinstance(message, KeyframeMessage) and message.packet.kf_id == (
+                len(segment.result.keyframes) + len(self._waiting(segment))):
+            self._queue(segment, message, event.seq)
+
+    def _waiting(self, segment: MapSegment) -> list[_Waiting]:
+        return [w for _, w in self.pending if w.segment is segment]
+
+    def _acknowledge(self) -> None:
+        """Store this runtime's state, then acknowledge every message whose effect is
+        stored: all handled, but for each agent none from its first keyframe still
+        waiting for its turn on."""
+        held = {}
+        for _, waiting in self.pending:
+            slot = self.slots[waiting.segment.agent]
+            if waiting.segment is slot.segment and waiting.seq is not None:
+                held[slot.agent] = min(held.get(slot.agent, waiting.seq), waiting.seq)
+        if self.store is not None:
+            self.store.record_runtime(snapshot(self, self.hub.durable(held)), {
+                s.index: s.result.finished for s in self.segments
+                if s.result.finished is not None})
+        self.hub.acknowledge(held)
 
     def _left(self, slot: AgentSlot, event: Left) -> None:
         if not event.may_return or self.options.away_timeout_s <= 0:
@@ -298,7 +349,7 @@ class _Runtime:
             self.hub.send(slot.agent, PoseUpdateMessage(update=replace(update, agent=slot.agent),
                                                         seq=seq))
 
-    def _handle(self, slot: AgentSlot, message: Any) -> None:
+    def _handle(self, slot: AgentSlot, message: Any, seq: int | None) -> None:
         agent = message.packet.agent if isinstance(message, KeyframeMessage) else message.agent
         if agent != slot.agent:
             logger.warning("dropped a %s for agent %d from agent %d", type(message).__name__,
@@ -307,12 +358,9 @@ class _Runtime:
             slot.status, slot.pid = "running", message.pid
             slot.frames_expected = slot.frames_done + message.frames
         elif isinstance(message, KeyframeMessage):
-            packet, segment = message.packet, slot.segment
-            heapq.heappush(self.pending, ((packet.timestamp, slot.agent, packet.kf_id,
-                                           self._arrivals), segment, message))
-            self._arrivals += 1
+            self._queue(slot.segment, message, seq)
             slot.keyframes_received += 1
-            segment.confirmed_seq = max(segment.confirmed_seq, message.applied_seq)
+            slot.segment.confirmed_seq = max(slot.segment.confirmed_seq, message.applied_seq)
         elif isinstance(message, FrameDone):
             self._frame_done(slot, message)
         elif isinstance(message, FrameEvent):
@@ -326,6 +374,12 @@ class _Runtime:
             if message.details:
                 logger.error("agent %d traceback:\n%s", slot.agent, message.details)
             self._fail(slot, message.error)
+
+    def _queue(self, segment: MapSegment, message: KeyframeMessage, seq: int | None) -> None:
+        packet = message.packet
+        heapq.heappush(self.pending, ((packet.timestamp, segment.agent, packet.kf_id,
+                                       self._arrivals), _Waiting(segment, message, seq)))
+        self._arrivals += 1
 
     def _frame_done(self, slot: AgentSlot, message: FrameDone) -> None:
         slot.clock, slot.last_frame = message.timestamp, message.frame_index
@@ -345,7 +399,7 @@ class _Runtime:
 
     def _fail(self, slot: AgentSlot, error: str) -> None:
         slot.status, slot.error, slot.clock = "failed", error, math.inf
-        slot.away_since = None
+        slot.away_since, slot.resend_until = None, -1
         self._report(slot, "failed")
         if any(other.status != "failed" for other in self.slots):
             logger.error("agent %d failed: %s (the other agents continue)", slot.agent, error)
@@ -363,7 +417,7 @@ class _Runtime:
             self._pump(0.0)
         for slot in watched:
             now = time.monotonic()
-            if slot.status not in _LIVE:
+            if not slot.expected():
                 continue
             if slot.away_since is not None:
                 if now - slot.away_since > self.options.away_timeout_s:
@@ -381,14 +435,14 @@ class _Runtime:
         each (the backlog once the agents stopped: the coordinator may trail them by many)."""
         queued = len(self.pending)
         while self.pending:
-            (timestamp, agent, _, _), segment, message = self.pending[0]
+            (timestamp, agent, _, _), waiting = self.pending[0]
             if not force and not all((s.order_clock(), s.agent) > (timestamp, agent)
                                      for s in self.slots if s.agent != agent):
                 return
             report_phase(progress, "queued keyframes", "retrieval, verification, global BA",
                          queued - len(self.pending), queued)
             heapq.heappop(self.pending)
-            self._add_keyframe(segment, message)
+            self._add_keyframe(waiting.segment, waiting.message)
 
     def _add_keyframe(self, segment: MapSegment, message: KeyframeMessage) -> None:
         packet, keyframes = message.packet, segment.result.keyframes
@@ -438,16 +492,21 @@ class _Runtime:
 
     def _finish(self) -> None:
         """Final pointmaps to the coordinator, the terminal alternation, final poses and
-        refined pointmaps to the results."""
+        refined pointmaps to the results (a resumed coordinator whose store holds the
+        alternation's results settles the agents only)."""
+        if self.cleaned_up:
+            for slot in self.slots:
+                self._settle(slot)
+            return
         final_poses = {}
         for slot in self.slots:
             segment, done = slot.segment, slot.segment.result.finished
-            if done is not None and slot.status == "finished":
+            if done is not None and slot.status == "finished" and \
+                    len(done.keyframe_T_WC) == len(segment.result.keyframes):  # else failed
                 if done.final is not None:
                     self._refresh_view(segment.result, done.final)
                     self.coordinator.refresh(segment.index, done.final)
-                if len(done.keyframe_T_WC) == len(segment.result.keyframes):
-                    final_poses[segment.index] = done.keyframe_T_WC
+                final_poses[segment.index] = done.keyframe_T_WC
         cleanup = self.coordinator.finish(final_poses, self.progress)
         for update in cleanup.updates:
             self._send_update(update)
@@ -586,6 +645,7 @@ def coordinate(
     progress: ProgressCallback | None = None,
     live: LiveCallback | None = None,
     resume: bool = False,
+    continuing: bool = False,
 ) -> RunSummary:
     """Run the coordinator here over the agents behind ``hub``; write the output folder.
 
@@ -601,9 +661,13 @@ def coordinate(
         inputs: the agent inputs where this process has them, for the evaluation against
             their ground truth and the lockstep schedule; empty: no evaluation.
         overwrite, progress, live, resume: as for :func:`run_multiprocess`.
+        continuing: (with ``resume``) the agents ran on while this coordinator was down:
+            take up the runtime's state from the store too (:mod:`.runtime_state`; ``como3r
+            coordinator --resume``) instead of starting the agents again.
 
     Raises:
         InputError: every agent failed.
+        StoreError: (``resume``) a store that cannot be resumed.
     """
     threads = torch.get_num_threads()
     torch.set_num_threads(max(1, options.torch_threads))
@@ -613,7 +677,14 @@ def coordinate(
         with atomic_output_dir(out, overwrite=overwrite, resume=resume) as staging:
             runtime = _Runtime(hub, frames, config, prior_spec, options, progress, live,
                                inputs)
-            with open_store(staging, config, runtime.coordinator, resume):
+            session = read_session(staging / STORE_NAME) if continuing else None
+            for _ in range(runtime.coordinator.num_agents, len(session.agents) if session
+                           else 0):  # map segments of restarted agents
+                runtime.coordinator.add_agent()
+            with open_store(staging, config, runtime.coordinator, resume, session) as store:
+                runtime.store = store
+                if session is not None:
+                    restore_runtime(runtime, session)
                 runtime.start(agent_paths, prior_spec)
                 runtime.run(finish_threads=threads)
             runtime.stop()

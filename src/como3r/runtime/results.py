@@ -159,6 +159,15 @@ class AgentSlot:
     away_reason: str = ""
     absences: int = 0
     restarts: int = 0
+    handled_seq: int = -1  # the number of its process's last message handled
+    #: (a resumed coordinator) its process re-sends messages up to this number, some of
+    #: them not stored; -1: nothing to wait for
+    resend_until: int = -1
+
+    def expected(self) -> bool:
+        """Whether the coordinator waits for messages of its process: it runs, or it re-sends
+        what a resumed coordinator lacks."""
+        return self.status in ("starting", "running") or self.resend_until >= 0
 
     def order_clock(self) -> float:
         """The clock the keyframe ordering waits for: none while away."""

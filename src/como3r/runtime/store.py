@@ -46,7 +46,13 @@ coordinator's (a restarted agent process that starts a new map segment has its o
                                           length in the map (NULL: not aligned)
     state       key TEXT PK, value JSON   stats, gauge_events, alternation, backlog
                                           (inter edges since the last BA, their component
-                                          roots), finished (the terminal cleanup ran)
+                                          roots), finished (the terminal cleanup ran),
+                                          runtime (the multi-process runtime's view of its
+                                          agents and map segments, and its transport's
+                                          state: :mod:`.runtime_state`)
+    reports     agent PK, message blob    an agent process's final report (AgentFinished,
+                                          codec object) per coordinator agent: its
+                                          trajectory relative to its keyframes, statistics
 
 A reader refuses a file that is not such a store, is corrupted, or has another format
 version, with one :class:`~como3r.errors.StoreError` line. The store is created complete
@@ -65,7 +71,7 @@ import sqlite3
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 import torch
 from torch import Tensor
@@ -77,6 +83,7 @@ from como3r.errors import StoreError
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import PoseUpdate
 from como3r.frontend.pairs import PairLink
+from como3r.runtime.messages import AgentFinished
 from como3r.runtime.store_blobs import pack_arrays, pack_object
 
 logger = logging.getLogger(__name__)
@@ -84,7 +91,7 @@ logger = logging.getLogger(__name__)
 #: the store's file name in an output folder
 STORE_NAME = "session.db"
 #: the layout above; a reader refuses any other
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 #: ``PRAGMA application_id`` of a como3r session store ("C3RS")
 APPLICATION_ID = 0x43335253
 
@@ -120,6 +127,7 @@ CREATE TABLE agents (
     agent INTEGER PRIMARY KEY, keyframes INTEGER NOT NULL,
     last_keyframe_frame INTEGER NOT NULL, updates_sent INTEGER NOT NULL, focal REAL);
 CREATE TABLE state (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE reports (agent INTEGER PRIMARY KEY, message BLOB NOT NULL);
 """
 
 #: the pointmap fields of a keyframe, in the ``pointmaps`` table's column order
@@ -168,6 +176,7 @@ class SessionStore:
         self._indexed = 0
         self._rows: dict[str, dict[Any, tuple]] = {"gauges": {}, "agents": {}, "state": {}}
         self._updates: dict[int, int] = {}
+        self._reports: dict[int, AgentFinished] = {}
 
     @classmethod
     def create(cls, path: str | Path, config: Config,
@@ -250,6 +259,7 @@ class SessionStore:
                 f"SELECT * FROM {table}")}
         self._updates = {agent: sent for agent, sent in db.execute(
             "SELECT agent, updates_sent FROM agents")}
+        self._finished = json.loads(self._rows["state"].get("finished", ("false",))[0])
 
     def attach(self, coordinator: Coordinator) -> None:
         """Become ``coordinator``'s journal and store its current state."""
@@ -307,6 +317,37 @@ class SessionStore:
         except sqlite3.Error as exc:
             self._failed = True
             raise StoreError(f"{self.path}: cannot write the session store ({exc})") from None
+        self.transactions += 1
+
+    def record_runtime(self, state: dict[str, Any], reports: Mapping[int, AgentFinished]
+                       ) -> None:
+        """Store the multi-process runtime's state and the agents' final reports that are
+        new, in one transaction (nothing when neither changed).
+
+        Args:
+            state: JSON-able (:func:`como3r.runtime.runtime_state.snapshot`).
+            reports: each coordinator agent's final report, where it sent one.
+
+        Raises:
+            StoreError: as :meth:`record`.
+        """
+        if self._failed:
+            raise StoreError(f"{self.path}: the session store failed earlier")
+        row = (json.dumps(state),)
+        new = {agent: report for agent, report in reports.items()
+               if self._reports.get(agent) is not report}
+        if not new and self._rows["state"].get("runtime") == row:
+            return
+        try:
+            with _transaction(self.connection):
+                self._upsert("state", {"runtime": row})
+                self.connection.executemany(
+                    "INSERT OR REPLACE INTO reports VALUES (?, ?)",
+                    [(agent, pack_object(report)) for agent, report in new.items()])
+        except sqlite3.Error as exc:
+            self._failed = True
+            raise StoreError(f"{self.path}: cannot write the session store ({exc})") from None
+        self._reports.update(new)
         self.transactions += 1
 
     def _blob(self, data: bytes) -> int:

@@ -29,6 +29,7 @@ from como3r.errors import Como3rError, StoreError
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.prior.base import Encoding
+from como3r.runtime.messages import AgentFinished
 from como3r.runtime.store import APPLICATION_ID, FORMAT_VERSION
 from como3r.runtime.store_blobs import unpack_arrays, unpack_object
 
@@ -119,6 +120,9 @@ class Session:
         gauge_events, alternation: as in metrics.json.
         backlog: ``(inter edges since the last in-stream BA, their component roots)``.
         finished: the terminal cleanup ran.
+        runtime: the multi-process runtime's state (:mod:`.runtime_state`), None if no
+            such runtime wrote the store.
+        reports: each coordinator agent's final report, where its process sent one.
     """
 
     path: Path
@@ -134,6 +138,8 @@ class Session:
     alternation: list[dict[str, Any]] = field(default_factory=list)
     backlog: tuple[int, list[int]] = (0, [])
     finished: bool = False
+    runtime: dict[str, Any] | None = None
+    reports: dict[int, AgentFinished] = field(default_factory=dict)
 
 
 def read_session(path: str | Path) -> Session:
@@ -239,7 +245,9 @@ def _load(connection: sqlite3.Connection, path: Path) -> Session:
         alternation=state.get("alternation", []),
         backlog=(state.get("backlog", {}).get("new_edges", 0),
                  state.get("backlog", {}).get("roots", [])),
-        finished=bool(state.get("finished", False)))
+        finished=bool(state.get("finished", False)), runtime=state.get("runtime"),
+        reports={agent: unpack_object(blob, AgentFinished, f"agent {agent}'s final report")
+                 for agent, blob in connection.execute("SELECT * FROM reports")})
     _check_agents(session)
     return session
 
@@ -355,7 +363,8 @@ def _check_agents(session: Session) -> None:
     """Per-agent progress agrees with the keyframes stored."""
     graph = session.graph
     if [a.agent for a in session.agents] != list(range(len(session.agents))) or \
-            any(agent >= len(session.agents) for agent in graph.local_to_global):
+            any(agent >= len(session.agents) for agent in [*graph.local_to_global,
+                                                           *session.reports]):
         raise StoreError("inconsistent session store: the agents table")
     for a in session.agents:
         own = graph.agent_keyframes(a.agent)

@@ -64,9 +64,14 @@ class StoredVerification(Verification):
 
 
 def open_store(folder: Path, config: Config, coordinator: Coordinator,
-               resume: bool = False) -> SessionStore:
+               resume: bool = False, session: Session | None = None) -> SessionStore:
     """The session store of a run in ``folder``, journal of ``coordinator``: a new one, or
     with ``resume`` the one there, whose state ``coordinator`` (new) takes first.
+
+    Args:
+        session: (resume) the store's contents, where the caller read them already; a
+            session given may have finished (its agents' processes ran on: the outputs are
+            still to be written), one read here may not.
 
     Raises:
         StoreError: (resume) no store there, or one that cannot be read, that finished, or
@@ -75,7 +80,11 @@ def open_store(folder: Path, config: Config, coordinator: Coordinator,
     path = folder / STORE_NAME
     if not resume:
         return SessionStore.create(path, config, coordinator)
-    session = read_session(path)
+    if session is None:
+        session = read_session(path)
+        if session.finished:
+            raise StoreError(f"{path}: the stored session finished (its run was stopped "
+                             f"while writing its outputs); run again without --resume")
     restore_coordinator(session, coordinator)
     logger.info("resuming from %s: %d keyframes of %d agents, %d edges", path,
                 len(session.graph), len(session.agents), len(session.graph.links))
@@ -86,13 +95,10 @@ def restore_coordinator(session: Session, coordinator: Coordinator) -> None:
     """Give a new coordinator a stored session's state.
 
     Raises:
-        StoreError: the session finished, or its configuration, number of agents or use of
-            cross-agent retrieval differ from the coordinator's.
+        StoreError: its configuration, number of agents or use of cross-agent retrieval
+            differ from the coordinator's.
     """
     where = session.path
-    if session.finished:
-        raise StoreError(f"{where}: the stored session finished (its run was stopped while "
-                         f"writing its outputs); run again without --resume")
     difference = differing_key(session.config, coordinator.config)
     if difference is not None:
         raise StoreError(f"{where}: the stored session has another configuration ({difference})")

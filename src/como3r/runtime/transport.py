@@ -9,8 +9,8 @@ Both ends exchange the typed messages of :mod:`como3r.runtime.messages`, encoded
   message the agent sent (or is gone for good), so a slow coordinator never costs a message;
 * the coordinator holds a :class:`Hub` over all agents: :meth:`Hub.events` hands over what
   arrived as :class:`Received`, :class:`Rejected`, :class:`Joined` and :class:`Left`
-  events, in arrival order per agent, and :meth:`Hub.acknowledge` says that everything
-  handed over so far is stored.
+  events, in arrival order per agent, and :meth:`Hub.acknowledge` says which of them are
+  stored (the runtime may still hold some back: keyframes waiting for their turn).
 
 Two transports implement it: pipes to child processes (:class:`PipeHub`, :class:`Channel`;
 ``como3r run``) and Zenoh across machines (:mod:`como3r.runtime.transport_zenoh`;
@@ -28,7 +28,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection, wait
-from typing import Any, Callable, Protocol, Sequence, Union
+from typing import Any, Callable, Mapping, Protocol, Sequence, Union
 
 from como3r.runtime import codec
 from como3r.runtime.child_signals import children_ignore_sigint
@@ -42,10 +42,12 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Received:
-    """A valid message from ``agent``."""
+    """A valid message from ``agent``; ``seq`` is its number in the sending process's
+    stream where the transport numbers messages (None: pipes, which lose nothing)."""
 
     agent: int
     message: Any
+    seq: int | None = None
 
 
 @dataclass(frozen=True)
@@ -141,8 +143,19 @@ class Hub(Protocol):
     def events(self, timeout: float) -> list[Event]:
         """What arrived, waiting up to ``timeout`` seconds for the first event."""
 
-    def acknowledge(self) -> None:
-        """Every message handed over by :meth:`events` so far is stored."""
+    def durable(self, held: Mapping[int, int]) -> dict[str, Any]:
+        """What this hub needs to continue after the coordinator restarts (JSON-able; see
+        :meth:`resume`), once the messages :meth:`acknowledge` with ``held`` would
+        acknowledge are stored."""
+
+    def acknowledge(self, held: Mapping[int, int]) -> None:
+        """Every message handed over by :meth:`events` so far is stored, except agent
+        ``a``'s from its number ``held[a]`` on (what the runtime still holds back)."""
+
+    def resume(self, state: Mapping[str, Any]) -> dict[int, int]:
+        """Continue from :meth:`durable`'s state (a coordinator resumed from its store),
+        before :meth:`start`; returns per agent the number of the last message of its
+        process's stream that is stored (its process re-sends the later ones)."""
 
     def send(self, agent: int, message: Any) -> None:
         """Queue ``message`` for ``agent``; never blocks on the network."""
@@ -331,8 +344,16 @@ class PipeHub:
                 out.append(Received(agent, message))
         return out
 
-    def acknowledge(self) -> None:
+    def durable(self, held: Mapping[int, int]) -> dict[str, Any]:
+        """Nothing: agents on pipes end with the coordinator."""
+        return {}
+
+    def acknowledge(self, held: Mapping[int, int]) -> None:
         """Nothing to do: a pipe's writer is done once its reader took the bytes."""
+
+    def resume(self, state: Mapping[str, Any]) -> dict[int, int]:
+        """Nothing to continue: a resumed run starts its agents' processes afresh."""
+        return {}
 
     def send(self, agent: int, message: Any) -> None:
         self.channels[agent].send(message)

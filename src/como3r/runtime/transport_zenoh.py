@@ -23,7 +23,12 @@ unacknowledged ones when the coordinator's token reappears, and leaves
 (:class:`~como3r.runtime.zenoh_agent.ZenohAgentLink`) only once the last one is stored. The
 coordinator takes an agent's messages in sequence, drops duplicates of re-sent ones, and
 logs and drops whatever is not a valid message (oversized, malformed, unknown agent, a
-process that does not hold the agent's id).
+process that does not hold the agent's id). "Stored" means in the session store: the
+runtime acknowledges a message once its effect is committed there (a keyframe waiting for
+its turn is not, nor is anything after it), and the hub's own state (who holds each id,
+where its stream is) goes into the same store first (:meth:`ZenohHub.durable`), so a
+coordinator restarted with ``--resume`` (:meth:`ZenohHub.resume`) takes each agent's stream
+up where the store has it and the agents' re-sent messages fill in the rest.
 
 Who holds an id. The coordinator hands agent a's task to the first process that asks and
 from then on takes a's messages from that incarnation only. When that process's token goes
@@ -52,7 +57,7 @@ import threading
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 from como3r.errors import InputError
 from como3r.runtime import codec
@@ -196,7 +201,8 @@ class _Holder:
     incarnation: int | None = None
     task: bytes = b""  # the holder's task (asked again: the same answer)
     next_seq: int = 0
-    ack_due: bool = False
+    acked: int = -1  # the last seq acknowledged (every one up to it is stored)
+    ack_due: bool = False  # a duplicate came: acknowledge again
     dropped: bool = False
     present: set[int] = field(default_factory=set)  # incarnations with a liveliness token
     superseded: set[int] = field(default_factory=set)  # earlier holders
@@ -263,6 +269,9 @@ class ZenohHub:
     def start(self, tasks: Sequence[AgentTask], rejoin: Rejoin) -> None:
         for task in tasks:
             self._tasks[task.agent] = codec.encode(task, max_bytes=self.max_bytes)
+            holder = self._holders[task.agent]
+            if holder.incarnation is not None and not holder.task:  # resumed
+                holder.task = self._tasks[task.agent]
         self._rejoin = rejoin
         # agents get their tasks, then see the coordinator, once it can answer them
         self._declared.append(self.session.declare_queryable(self.keys.task("*"),
@@ -362,8 +371,8 @@ class ZenohHub:
             logger.info("agent %d: process %016x takes over the id from %016x", agent,
                         incarnation, holder.incarnation)
             holder.superseded.add(holder.incarnation)
-        holder.incarnation, holder.next_seq, holder.ack_due = incarnation, 0, False
-        holder.dropped = False
+        holder.incarnation, holder.next_seq, holder.acked = incarnation, 0, -1
+        holder.ack_due, holder.dropped = False, False
         holder.task = answer if isinstance(answer, bytes) else codec.encode(
             answer, max_bytes=self.max_bytes)
         _reply(query, holder.task)
@@ -388,12 +397,11 @@ class ZenohHub:
             return Rejected(agent, f"message {seq} before {holder.next_seq} (a gap: the agent "
                                    f"re-sends)")
         holder.next_seq += 1  # the holder's own: taken, or skipped, never waited for
-        holder.ack_due = True
         message, error = self._decode(agent, data)
         if error is not None:
             return Rejected(agent, error)
         self._traffic[agent].received(message, len(data))
-        return Received(agent, message)
+        return Received(agent, message, seq)
 
     def _decode(self, agent: int, data: bytes) -> tuple[Any, str | None]:
         """The message of ``data`` sent under agent ``agent``'s key, or why it is not one."""
@@ -408,16 +416,40 @@ class ZenohHub:
 
     # ------------------------------------------------------------ to the agents
 
-    def acknowledge(self) -> None:
-        for agent in range(self.agents):
-            self._acknowledge(agent)
+    def durable(self, held: Mapping[int, int]) -> dict[str, Any]:
+        return {"holders": [
+            {"incarnation": h.incarnation, "next_seq": self._storable(agent, held) + 1,
+             "superseded": sorted(h.superseded), "dropped": h.dropped}
+            for agent, h in enumerate(self._holders)]}
 
-    def _acknowledge(self, agent: int) -> None:
-        holder = self._holders[agent]
-        if holder.ack_due and holder.incarnation is not None and not holder.dropped:
-            self._sender.put(self.keys.ack(agent),
-                             SEQ.pack(holder.incarnation, holder.next_seq - 1))
-            holder.ack_due = False
+    def acknowledge(self, held: Mapping[int, int]) -> None:
+        for agent, holder in enumerate(self._holders):
+            upto = self._storable(agent, held)
+            if holder.incarnation is None or holder.dropped or upto < 0 or not (
+                    holder.ack_due or upto > holder.acked):
+                continue
+            self._sender.put(self.keys.ack(agent), SEQ.pack(holder.incarnation, upto))
+            holder.acked, holder.ack_due = max(holder.acked, upto), False
+
+    def _storable(self, agent: int, held: Mapping[int, int]) -> int:
+        """The last seq of ``agent``'s holder that is stored: every one handed over, up to
+        the first the runtime holds back."""
+        next_seq = self._holders[agent].next_seq
+        return min(next_seq, held.get(agent, next_seq)) - 1
+
+    def resume(self, state: Mapping[str, Any]) -> dict[int, int]:
+        holders = state.get("holders", [])
+        if len(holders) != self.agents:
+            raise InputError(f"the stored session has {len(holders)} agents, this "
+                             f"coordinator {self.agents} (--agents)")
+        for holder, saved in zip(self._holders, holders):
+            holder.incarnation = saved["incarnation"]
+            holder.next_seq = saved["next_seq"]
+            holder.acked = saved["next_seq"] - 1
+            holder.superseded = set(saved["superseded"])
+            holder.dropped = saved["dropped"]
+        return {agent: h.acked for agent, h in enumerate(self._holders)
+                if h.incarnation is not None}
 
     def send(self, agent: int, message: Any) -> None:
         incarnation = self._holders[agent].incarnation
@@ -431,7 +463,6 @@ class ZenohHub:
                          INCARNATION.pack(incarnation))
 
     def drop(self, agent: int) -> None:
-        self._acknowledge(agent)  # what was handed over before the failure is stored
         self._holders[agent].dropped = True
         self._shutdown(agent)
 
@@ -444,7 +475,6 @@ class ZenohHub:
         self._stopped = True
         for agent in live:
             self.send(agent, Shutdown("the coordinator is stopping"))
-        self.acknowledge()
         self._sender.close(self.grace_s)
         for entity in reversed(self._declared):
             entity.undeclare()
