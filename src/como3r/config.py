@@ -120,6 +120,9 @@ class TrackingConfig:
     # do (C-Eq. 16-17); False: the paper's uncalibrated mode (C-Eq. 2 on each canonical
     # pointmap's own rays). See frontend.calibration
     self_calibration: bool = True
+    # keyframes whose pairs re-estimate the self-calibrated camera (frontend.calibration
+    # refine_focal); they wait for it before they are sent. 0 keeps the first frame's estimate
+    self_calibration_keyframes: int = 4
 
 
 @dataclass(frozen=True)
@@ -191,7 +194,7 @@ class GaugeConfig:
 
     ``align_focal`` (como3r addition, self-calibrated runs only): at a merge the moving
     component's focal length is corrected to agree with the anchor's on the supporting
-    keyframe pairs (:mod:`como3r.coordination.focal`), searched within
+    keyframe pairs (:mod:`como3r.frontend.focal`), searched within
     ``focal_search`` in log focal. Measured on a two-agent simulated scene (160 px,
     2 x 30 frames, realistic prior, merged ATE % of mean agent path): agents' estimates
     +1.2 % and -8.7 % off give 3.8 % without it; both on one focal length 0.72 %.
@@ -367,7 +370,7 @@ _POSITIVE = (
 _NON_NEGATIVE = (
     "input.prefetch_frames",
     "matching.lambda_init", "matching.descriptor_radius",
-    "tracking.lambda_init", "tracking.tikhonov_floor",
+    "tracking.lambda_init", "tracking.tikhonov_floor", "tracking.self_calibration_keyframes",
     "local_solve.pinned_keyframes", "local_solve.tikhonov_base",
     "local_solve.tikhonov_retries", "local_solve.lm_lambda",
     "verification.covisible_min_confidence",

@@ -61,9 +61,9 @@ def test_keyframe_count_is_sensible(tracked) -> None:
 def test_frames_follow_their_anchor_keyframe(tracked) -> None:
     _, frontend, _ = tracked
     _, _, before = frontend.trajectory()
-    packets = frontend.drain_new_keyframes()
+    packets = list(frontend.drain_new_keyframes())
     assert [p.kf_id for p in packets] == list(range(len(frontend.keyframes)))
-    assert frontend.drain_new_keyframes() == []
+    assert list(frontend.drain_new_keyframes()) == []
     shift = sim3_exp(torch.tensor([0.5, -0.2, 0.1, 0.0, 0.05, 0.0, 0.1]))
     last = len(frontend.keyframes) - 1
     moved = sim3_compose(shift[None], frontend.keyframes.poses()[:last])

@@ -12,7 +12,7 @@ from como3r.backend.global_graph import GlobalGraph
 from como3r.config import Config, GlobalBAConfig, TrackingConfig
 from como3r.coordination.association import Verification
 from como3r.coordination.coordinator import Candidate, Coordinator
-from como3r.coordination.focal import FocalPair, estimate_log_focal, relative_pose
+from como3r.frontend.focal import FocalPair, estimate_log_focal, relative_pose
 from como3r.frontend.keyframes import apply_pose_update
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches, PairLink
@@ -88,6 +88,20 @@ def test_estimate_is_relative_to_the_anchor() -> None:
     # towards the anchor's focal length (-0.10), not the true one (-0.05); two views on one
     # wrong focal length are not exactly Sim(3)-consistent, hence the looser bound
     assert estimate.log_focal == pytest.approx(-0.10, abs=0.025)
+
+
+@pytest.mark.parametrize("error", [0.1, -0.12])
+def test_one_camera_pair_recovers_the_shared_focal_error(error: float) -> None:
+    """An agent's own pair (both keyframes on one wrong camera) observes the true focal
+    length: the rotation between the views turns the stretch of one into a misfit of the
+    other."""
+    pair = replace(_pair(error, anchor_focal_error=error), shared=True)
+    estimate = estimate_log_focal([pair], TrackingConfig())
+    assert estimate.log_focal == pytest.approx(-error, abs=0.02)
+    # the merge's reading of the same pair (the moving side alone) sees two cameras that
+    # nearly agree: what it corrects is a fraction of the shared error
+    merge = estimate_log_focal([replace(pair, shared=False)], TrackingConfig())
+    assert abs(merge.log_focal) < 0.4 * abs(error)
 
 
 def test_agreeing_focal_lengths_need_no_correction() -> None:

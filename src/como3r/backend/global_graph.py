@@ -179,7 +179,7 @@ class GlobalGraph:
 
     def rescale_focal(self, agent: int, log_focal: float) -> float:
         """Move an agent's keyframes to the focal length ``f exp(log_focal)``
-        (:mod:`como3r.coordination.focal`); returns the new focal length. Keyframes and
+        (:mod:`como3r.frontend.focal`); returns the new focal length. Keyframes and
         refreshes still on the agent's former camera are moved on receipt.
 
         Raises:

@@ -54,7 +54,7 @@ from como3r.backend.depth_refinement import DepthRefinementReport
 from como3r.backend.global_graph import BAResult, GlobalGraph, GraphLink
 from como3r.config import Config, DepthRefinementConfig
 from como3r.coordination.association import CrossAgentRetrieval, Verification, verify_candidates
-from como3r.coordination.focal import FocalPair, estimate_log_focal, relative_pose
+from como3r.frontend.focal import FocalPair, estimate_log_focal, relative_pose
 from como3r.coordination.gauge import (
     GaugeComponents,
     GaugeTransform,
@@ -544,7 +544,8 @@ class Coordinator:
     def _align_focal(self, supporters: Sequence[Candidate], moved_agents: list[int]
                      ) -> float | None:
         """Give the moving component the anchor's focal length (``gauge.align_focal``,
-        self-calibrated runs; :mod:`.focal`); returns the log correction applied, or None."""
+        self-calibrated runs; :mod:`como3r.frontend.focal`); returns the log correction
+        applied, or None."""
         if not self._aligns_focal():
             return None
         pairs = [self._focal_pair(c, self._moving_is_j(c)) for c in supporters]

@@ -25,6 +25,8 @@ trajectory written at the end follows every later correction of its anchor keyfr
 from __future__ import annotations
 
 import logging
+import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,7 +34,7 @@ import torch
 from torch import Tensor
 
 from como3r.config import Config
-from como3r.frontend.calibration import estimate_intrinsics
+from como3r.frontend.calibration import estimate_intrinsics, refine_focal
 from como3r.frontend.graph import Edge, build_factors
 from como3r.frontend.keyframes import (
     Keyframe,
@@ -106,6 +108,8 @@ class FrontendStats:
     lost_frames: list[int] = field(default_factory=list)
     #: focal length (pixels at network resolution) of the self-calibration, None without
     estimated_focal: float | None = None
+    #: the first frame's estimate, before the keyframes' pairs refined it
+    first_frame_focal: float | None = None
     #: wall seconds per stage (prior_encode, prior_decode, matching, tracking, ...)
     stage_seconds: dict[str, float] = field(default_factory=dict)
 
@@ -140,6 +144,11 @@ class AgentFrontend:
         self._lost = False
         self._last_tracked: _TrackedFrame | None = None
         self._K: Tensor | None = None  # intrinsics at network resolution (calibrated runs)
+        tracking = config.tracking
+        # a self-calibrated camera is re-estimated on the first keyframes' pairs before they
+        # leave the agent (frontend.calibration)
+        self._camera_settled = (config.calibrated or not tracking.self_calibration
+                                or tracking.self_calibration_keyframes == 0)
 
     def process(self, view: View, timestamp: float, colors: np.ndarray,
                 encoding: Encoding | None = None) -> str:
@@ -191,7 +200,7 @@ class AgentFrontend:
                 self.stats.lost += 1
                 self.stats.lost_frames.append(index)
                 return "lost"
-            self.stats.estimated_focal = float(self._K[0, 0])
+            self.stats.estimated_focal = self.stats.first_frame_focal = float(self._K[0, 0])
         T_WC = sim3_identity(dtype=pred.X_ii.dtype, device=pred.X_ii.device)
         kf = self._add_keyframe(enc, index, timestamp, T_WC, pred.X_ii, pred.C_ii, colors)
         self._index(kf)
@@ -290,6 +299,7 @@ class AgentFrontend:
                 self.stats.loop_edges += 1
         self._local_solve()
         self._index(kf)
+        self._settle_camera_when_due()
 
     def _index(self, kf: Keyframe) -> None:
         """Add the keyframe to the agent's retrieval database (after querying with it)."""
@@ -333,6 +343,35 @@ class AgentFrontend:
             logger.warning("agent %d: local solve diverged; poses kept", self.agent)
             return
         self.keyframes.set_poses(solved.poses)
+
+    def _settle_camera_when_due(self) -> None:
+        if len(self.keyframes) >= self.config.tracking.self_calibration_keyframes:
+            self.settle_camera()
+
+    def settle_camera(self) -> None:
+        """Fix the agent's self-calibrated camera (once): the focal length that best aligns
+        its keyframe pairs (:func:`~como3r.frontend.calibration.refine_focal`), to which
+        every keyframe moves before a local solve; from then on keyframes are sent.
+
+        Called when the agent has ``tracking.self_calibration_keyframes`` keyframes, and by
+        the runtimes at the end of an agent's stream (a short one settles on what it has).
+        """
+        if self._camera_settled:
+            return
+        self._camera_settled = True
+        with self.timer.stage("calibration"):
+            estimate = refine_focal(self.keyframes.keyframes, self.edges, self.config.tracking,
+                                    self.config.gauge.focal_search)
+            if estimate is None or estimate.log_focal == 0.0:
+                return
+            focal = float(self._K[0, 0]) * math.exp(estimate.log_focal)
+            for kf in self.keyframes.keyframes:
+                kf.rescale_focal(focal)
+            self._K = self.keyframes.last.K.to(self._K)
+        self.stats.estimated_focal = focal
+        logger.info("agent %d: camera settled on %d keyframes: focal %.1f px (first frame %.1f)",
+                    self.agent, len(self.keyframes), focal, self.stats.first_frame_focal)
+        self._local_solve()
 
     def _relocalize(self, enc: Encoding, index: int, timestamp: float, colors: np.ndarray) -> str:
         """Re-anchor the frame on a retrieved keyframe, or count it as lost.
@@ -387,6 +426,7 @@ class AgentFrontend:
         self._add_edge_pair(keyframe.kf_id, new.kf_id, link, "loop")
         self._local_solve()
         self._index(new)
+        self._settle_camera_when_due()
         self._T_kf_prev = sim3_identity(dtype=T_WC.dtype, device=T_WC.device)
 
     def _recent_keyframes(self) -> list[int]:
@@ -437,11 +477,16 @@ class AgentFrontend:
             previous=previous, K=kf.K,
         )
 
-    def drain_new_keyframes(self) -> list[KeyframePacket]:
-        """Packets of the keyframes created since the last call, oldest first."""
-        packets = [self.export_keyframe(k) for k in self.new_keyframes]
-        self.new_keyframes.clear()
-        return packets
+    def drain_new_keyframes(self) -> Iterator[KeyframePacket]:
+        """Packets of the keyframes created since the last call, oldest first; none while
+        a self-calibrated camera waits for its keyframes (:meth:`settle_camera`).
+
+        Each packet is made when it is taken: the pose updates its predecessor caused
+        (a merge moves the agent into another gauge) are in it. Packets made all at once
+        would carry the poses of the gauge the agent has just left.
+        """
+        while self._camera_settled and self.new_keyframes:
+            yield self.export_keyframe(self.new_keyframes.pop(0))
 
     def apply_pointmap_update(self, update: PointmapUpdate) -> None:
         """Take the coordinator's refined canonical pointmaps (C-Sec. A.7)."""

@@ -1,22 +1,27 @@
-"""One focal length across agents: the moving component's focal at a gauge merge.
+"""Focal lengths from keyframe pairs: the energy of a trial focal correction and its search.
 
-A self-calibrated agent (:mod:`como3r.frontend.calibration`) locks every keyframe to the
-one camera it estimated from its first frame (C-Eq. 16), and a learned prior gets that
-field of view wrong by several percent per agent (MUSt3R: 4 deg mean field-of-view error).
-A canonical pointmap on the rays of a focal length ``f exp(delta)`` instead of ``f`` is
-``X' = (x exp(-delta), y exp(-delta), z)``: the same depths, stretched across the image.
-Two agents whose focal lengths disagree see one surface stretched differently, which no
-Sim(3) aligns, and the global BA (C-Eq. 5) spreads the disagreement over both trajectories.
+A self-calibrated agent (:mod:`como3r.frontend.calibration`) locks every keyframe to one
+pinhole camera (C-Eq. 16), and a learned prior gets that field of view wrong by several
+percent per image (MUSt3R: 4 deg mean field-of-view error). A canonical pointmap on the rays
+of a focal length ``f exp(delta)`` instead of ``f`` is ``X' = (x exp(-delta), y exp(-delta),
+z)``: the same depths, stretched across the image. Two keyframes that see one surface
+stretched differently, or stretched alike but through cameras turned against each other,
+disagree in a way no Sim(3) aligns.
 
-At a merge (C-Sec. A.3) the keyframe pairs of the supporting edges observe the relative
-focal length: for a trial ``delta`` the moving keyframe's pointmap and intrinsics are
-rescaled, the pair's relative Sim(3) is solved on the calibrated factors of the global BA
-(C-Eq. 17, both directions, anchor keyframe pinned), and the summed robust energy (C-Eq. 5)
-plus a weak prior ``(delta / prior_sigma)^2 / 2`` is minimised over ``delta`` by
-golden-section search. The whole moving component takes the correction
-(:meth:`~como3r.backend.global_graph.GlobalGraph.rescale_focal`), so every agent of a
-component shares the anchor agent's focal length (a como3r addition; the paper's agents are
-calibrated or take each prediction's own rays).
+So a verified keyframe pair observes the focal length: for a trial ``delta`` the pair's
+pointmaps and intrinsics are rescaled, its relative Sim(3) is solved on the calibrated
+factors (C-Eq. 17, both directions, the first keyframe pinned), and the summed robust energy
+(C-Eq. 5) plus a weak prior ``(delta / prior_sigma)^2 / 2`` is minimised over ``delta`` by
+golden-section search. Two uses:
+
+* an agent's own pairs (:attr:`FocalPair.shared`: one camera, both keyframes take the
+  correction): the agent's camera from its first keyframes' multi-view geometry
+  (:func:`como3r.frontend.calibration.refine_focal`);
+* at a merge (C-Sec. A.3), pairs between the anchor and the moving component: only the
+  moving keyframe takes the correction, and the whole moving component then shares the
+  anchor agent's focal length (:meth:`~como3r.backend.global_graph.GlobalGraph.
+  rescale_focal`; a como3r addition: the paper's agents are calibrated or take each
+  prediction's own rays).
 """
 
 from __future__ import annotations
@@ -42,7 +47,7 @@ _INV_PHI = (math.sqrt(5.0) - 1.0) / 2.0
 
 @dataclass(frozen=True)
 class FocalPair:
-    """A verified keyframe pair between the anchor and the moving component.
+    """A verified keyframe pair: an anchor keyframe and a moving one.
 
     Attributes:
         X_anchor, X_moving: ``(H, W, 3)`` canonical pointmaps on their cameras' rays.
@@ -51,6 +56,8 @@ class FocalPair:
             (the start of each relative solve).
         in_anchor: every pixel of the moving keyframe looked up in the anchor keyframe.
         in_moving: every pixel of the anchor keyframe looked up in the moving keyframe.
+        shared: both keyframes are one camera (an agent's own pair) and take the correction
+            together; False: the moving keyframe alone (a merge).
     """
 
     X_anchor: Tensor
@@ -60,11 +67,12 @@ class FocalPair:
     T_anchor_moving: Tensor
     in_anchor: DirectedMatches
     in_moving: DirectedMatches
+    shared: bool = False
 
 
 @dataclass(frozen=True)
 class FocalEstimate:
-    """The moving component's log focal correction and how it was found.
+    """A log focal correction and how it was found.
 
     Attributes:
         log_focal: ``delta``; the moving focal lengths are multiplied by ``exp(delta)``.
@@ -86,10 +94,10 @@ def estimate_log_focal(
     max_matches: int = 4096,
     max_iters: int = 10,
 ) -> FocalEstimate:
-    """The log focal correction of the moving keyframes that best fits ``pairs``.
+    """The log focal correction of the moving (or shared) keyframes that best fits ``pairs``.
 
     Args:
-        pairs: verified keyframe pairs between the two components (at least one).
+        pairs: verified keyframe pairs (at least one).
         tracking: noise model and Huber breakpoint of the factors (C-Eq. 7-8, 17).
         search: the correction is searched in ``[-search, search]``.
         prior_sigma: RMS of the weak zero-mean prior on the correction (two agents' focal
@@ -142,17 +150,19 @@ class _PairEnergy:
 
     def _pair(self, pair: FocalPair, log_focal: float) -> float:
         X_m, K_m = rescale_focal(pair.X_moving, pair.K_moving, log_focal)
+        X_a, K_a = ((rescale_focal(pair.X_anchor, pair.K_anchor, log_focal)) if pair.shared
+                    else (pair.X_anchor, pair.K_anchor))
         # node 0: the anchor keyframe (pinned at the identity), node 1: the moving one
         factors = [
-            _directed_factor(0, 1, pair.X_anchor, X_m, pair.K_anchor, pair.in_anchor,
-                             self.tracking, self.max_matches),
-            _directed_factor(1, 0, X_m, pair.X_anchor, K_m, pair.in_moving, self.tracking,
+            _directed_factor(0, 1, X_a, X_m, K_a, pair.in_anchor, self.tracking,
+                             self.max_matches),
+            _directed_factor(1, 0, X_m, X_a, K_m, pair.in_moving, self.tracking,
                              self.max_matches),
         ]
         start = torch.stack([sim3_identity(dtype=torch.float64), pair.T_anchor_moving.double()])
         values = PoseValues(start, torch.tensor([True, False]))
         solved, _ = gauss_newton_irls(factors, values, GlobalBAConfig(), max_iters=self.max_iters)
-        return sum(float(f.cost(solved.poses.to(pair.X_anchor.dtype))) for f in factors)
+        return sum(float(f.cost(solved.poses.to(X_a.dtype))) for f in factors)
 
 
 def _directed_factor(i: int, j: int, X_i: Tensor, X_j: Tensor, K_i: Tensor,

@@ -95,7 +95,7 @@ class PoseUpdate:
         reason: ``"gauge"``, ``"global_ba"``, ``"cleanup"`` or ``"resume"`` (a re-sent
             keyframe answered by a coordinator that resumed from its session store).
         focal: the agent's focal length (``fx`` at network resolution, pixels) in the
-            shared map (:mod:`como3r.coordination.focal`): keyframes on another focal length
+            shared map (:mod:`como3r.frontend.focal`): keyframes on another focal length
             are rescaled to it first; None leaves them as they are.
     """
 

@@ -144,6 +144,8 @@ class AgentWorker:
         self.current_frame = -1
         if not (self.task.lockstep or self._drain_inbox()):
             return False
+        self.frontend.settle_camera()  # a short stream's camera settles at its end
+        self._send_new_keyframes()
         self.channel.send(self._finished())
         return True
 
@@ -157,16 +159,19 @@ class AgentWorker:
                                         frame.encoding)
         seconds = time.perf_counter() - start
         self.seconds += seconds
-        for packet in self.frontend.drain_new_keyframes():
-            previous = (self.frontend.keyframes[packet.kf_id - 1].T_WC.clone()
-                        if packet.kf_id > 0 else None)
-            self.channel.send(KeyframeMessage(packet=packet, applied_seq=self.applied_seq,
-                                              T_WC_previous=previous))
+        self._send_new_keyframes()
         if self.task.live:
             self.channel.send(frame_event(self.frontend, index, frame.timestamp, outcome,
                                           frame.colors))
         self.channel.send(FrameDone(agent=self.task.agent, frame_index=index,
                                     timestamp=frame.timestamp, outcome=outcome, seconds=seconds))
+
+    def _send_new_keyframes(self) -> None:
+        for packet in self.frontend.drain_new_keyframes():
+            previous = (self.frontend.keyframes[packet.kf_id - 1].T_WC.clone()
+                        if packet.kf_id > 0 else None)
+            self.channel.send(KeyframeMessage(packet=packet, applied_seq=self.applied_seq,
+                                              T_WC_previous=previous))
 
     def _handle(self, message: Any) -> bool:
         """Apply one coordinator message; False on Shutdown."""

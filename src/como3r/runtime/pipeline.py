@@ -277,17 +277,16 @@ def run(
             if live is not None:
                 live(frame_event(frontends[k], frame.index, frame.timestamp, outcome,
                                  frame.colors))
-            for packet in frontends[k].drain_new_keyframes():
-                updates = coordinator.add_keyframe(packet)
-                _apply(frontends, updates)
-                if coordinator_live is not None:
-                    coordinator_live.keyframe_added(packet, updates)
+            _hand_over(frontends, k, coordinator, coordinator_live)
             if progress is not None:
                 stats = frontends[k].stats
                 progress(AgentProgress(k, stats.frames, totals[k], len(frontends[k].keyframes),
                                        stats.lost, stats.relocalized, tracking_state(outcome)))
         streams.close()  # the live streams end; Ctrl-C interrupts again
         notes = [camera.stop() for camera in cameras]  # frames read and dropped
+        for k, frontend in enumerate(frontends):  # a short stream's camera settles at its end
+            frontend.settle_camera()
+            _hand_over(frontends, k, coordinator, coordinator_live)
         _finish(frontends, coordinator, progress)
         if coordinator_live is not None:
             coordinator_live.finish(frontends)
@@ -296,6 +295,16 @@ def run(
     summary.out = out
     summary.notes.extend(notes)
     return summary
+
+
+def _hand_over(frontends: Sequence[AgentFrontend], k: int, coordinator: Coordinator,
+               coordinator_live: CoordinatorLive | None) -> None:
+    """Give agent ``k``'s new keyframes to the coordinator and its updates to the agents."""
+    for packet in frontends[k].drain_new_keyframes():
+        updates = coordinator.add_keyframe(packet)
+        _apply(frontends, updates)
+        if coordinator_live is not None:
+            coordinator_live.keyframe_added(packet, updates)
 
 
 def _apply(frontends: Sequence[AgentFrontend], updates: Sequence[PoseUpdate]) -> None:
