@@ -13,7 +13,7 @@ Runs, on this machine and in one process (ratios, not absolute seconds, are the 
    the CPU has AMX or AVX512-BF16) against the official code in fp32. Needs an extracted copy
    of the official code (``--official``, see that script); without it the rows say so.
 3. **Frames per second per agent** for 1-4 agents: whole multi-process runs
-   (:func:`como3r.runtime.processes.run_multiprocess`, as ``como3r run``) of synthetic scenes
+   (:func:`como3r.runtime.multiprocess.run_multiprocess`, as ``como3r run``) of synthetic scenes
    with ``--frames`` processed frames per agent on the simulated prior: the SLAM system's
    own rate on this CPU (a MASt3R run adds its encodes and decodes, table 1).
 4. **Global BA scaling** (:mod:`ba_scaling`): seconds per Gauss-Newton iteration (linearise +
@@ -50,7 +50,7 @@ from como3r.config import Config  # noqa: E402
 from como3r.data.synth.writer import synthesize  # noqa: E402
 from como3r.prior.mast3r.precision import PRECISIONS, choose_dtype  # noqa: E402
 from como3r.runtime.pipeline import PriorSpec  # noqa: E402
-from como3r.runtime.processes import run_multiprocess  # noqa: E402
+from como3r.runtime.multiprocess import run_multiprocess  # noqa: E402
 
 #: input size of every scene (the demo's): 640x480, processed at the default long side 512
 WIDTH, HEIGHT = 640, 480

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, List, Optional
 
 import typer
 
-from como3r import cli_network
+from como3r import cli_network, cli_sessions
 from como3r.cli_common import (
     Command,
     OneLineErrorsGroup,
@@ -280,6 +280,15 @@ def run(
         help="Continue a run that was killed (OUT.partial) from its session store: the same "
              "command with --resume. The agents start again from the beginning; the "
              "keyframes the store holds are not processed again."),
+    map_folder: Optional[Path] = typer.Option(
+        None, "--map", metavar="DIR",
+        help="Start on the map of a finished run (its output folder, made with the same "
+             "configuration): its agents keep their ids and are in this run's outputs too, "
+             "the new agents are numbered after them and join its frame where they see the "
+             "same places."),
+    freeze_map: bool = typer.Option(
+        False, "--freeze-map",
+        help="Hold the --map keyframes fixed (poses and depths): only the new agents move."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
     viewer: Optional[str] = typer.Option(None, "--viewer", metavar="MODE",
                                         help=VIEWER_HELP),
@@ -307,10 +316,19 @@ def run(
     viewer_spec = check_viewer_option(viewer, out)  # rerun installed?
     if resume and (mode == "decentralized" or sources):
         raise InputError("--resume continues --mode centralized runs of recorded inputs only")
+    if freeze_map and map_folder is None:
+        raise InputError("--freeze-map holds the keyframes of a --map fixed; give --map DIR")
+    if map_folder is not None and mode == "decentralized":
+        raise InputError("--map starts a --mode centralized run on a saved map")
     check_output_dir(out, overwrite, resume)  # before the weights load and the agents start
     config = _load_config(config_file, overrides, calib, no_loop_closure, format, topic)
     if resume:
         _check_resumable(out, config)
+    saved_map = None
+    if map_folder is not None:
+        from como3r.runtime.map_session import open_map
+
+        saved_map = open_map(map_folder, config, freeze_map)
     for path in agent:
         if not path.exists():
             hint = " (a stream URL goes to --camera)" if is_stream_url(str(path)) else ""
@@ -337,11 +355,11 @@ def run(
     if single_process or sources:  # live inputs run in this process
         runner = run_pipeline
     else:
-        from como3r.runtime.processes import run_multiprocess as runner
+        from como3r.runtime.multiprocess import run_multiprocess as runner
     with live_viewer(viewer_spec) as live:
         with run_progress(quiet) as shown:
             summary = runner(agent or sources, out, config, spec, overwrite=overwrite,
-                             progress=shown, live=live, resume=resume)
+                             progress=shown, live=live, resume=resume, saved_map=saved_map)
         _print_summary(summary, out)
 
 
@@ -479,7 +497,7 @@ def demo(
     from como3r.data.synth import synthesize
     from como3r.io.output import atomic_output_dir
     from como3r.runtime.pipeline import PriorSpec
-    from como3r.runtime.processes import run_multiprocess
+    from como3r.runtime.multiprocess import run_multiprocess
 
     width, height = DEMO_SIZE
     scene = out / "scene"
@@ -507,6 +525,7 @@ def demo(
                       f"(open {out / 'run' / 'report.html'})")
 
 
+app.command("merge", cls=Command)(cli_sessions.merge)
 app.command("coordinator", cls=Command)(cli_network.coordinator)
 app.command("agent", cls=Command)(cli_network.agent)
 app.command("robot", cls=Command)(cli_network.robot)

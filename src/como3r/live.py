@@ -2,7 +2,7 @@
 
 They flow like the progress events of :mod:`como3r.progress`: small frozen dataclasses
 handed to one optional callback (``live``) of :func:`como3r.runtime.pipeline.run` and
-:func:`como3r.runtime.processes.run_multiprocess`, built only when a sink is attached. The
+:func:`como3r.runtime.multiprocess.run_multiprocess`, built only when a sink is attached. The
 live viewer (:mod:`como3r.viewer`, README "Live viewer") is the sink that exists; it never
 reaches into SLAM state, only into these events.
 

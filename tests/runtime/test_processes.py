@@ -28,7 +28,8 @@ from como3r.prior.simulated import SimulatedPrior
 from como3r.progress import AgentProgress, PhaseEvent, ProgressEvent
 from como3r.runtime.messages import FrameDone, Step
 from como3r.runtime.pipeline import PriorSpec, RunSummary, run
-from como3r.runtime.processes import RuntimeOptions, run_multiprocess
+from como3r.runtime.multiprocess import run_multiprocess
+from como3r.runtime.processes import RuntimeOptions
 from como3r.runtime.results import AgentResult, KeyframeView
 from como3r.runtime.transport import Channel
 

@@ -131,6 +131,9 @@ class GlobalGraph:
         #: agent -> its focal length in the map (``fx``, pixels) once :meth:`rescale_focal`
         #: moved it; its pointmaps are taken onto it on receipt
         self.focal: dict[int, float] = {}
+        #: global indices of keyframes held fixed, like the anchor, by every solve (a saved
+        #: map's keyframes under ``--freeze-map``)
+        self.fixed: set[int] = set()
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -273,7 +276,8 @@ class GlobalGraph:
         return sorted(reached)
 
     def optimize(self, agents: Sequence[int], anchor: int, max_iters: int) -> BAResult:
-        """Global Sim(3) BA (C-Eq. 5) over ``agents``' keyframes with ``anchor`` pinned.
+        """Global Sim(3) BA (C-Eq. 5) over ``agents``' keyframes with ``anchor`` (and the
+        :attr:`fixed` keyframes) pinned.
 
         Args:
             agents: agents sharing one gauge.
@@ -288,7 +292,8 @@ class GlobalGraph:
         row = {g: r for r, g in enumerate(nodes)}
         factors = self._factors([e for link in links for e in link.edges()], row)
         before = self.poses(nodes)
-        pinned = torch.tensor([g == anchor for g in nodes], device=before.device)
+        pinned = torch.tensor([g == anchor or g in self.fixed for g in nodes],
+                              device=before.device)
         # float64 poses (composed and retracted in float64; the per-match work runs in the
         # pointmaps' dtype, see optim.factors); the step's translation is measured in scene
         # depths, so the tolerance holds at every scale
@@ -366,8 +371,8 @@ class GlobalGraph:
         """One depth step (C-Sec. A.7 step 2b-2c; C-Eq. 19-24) at the current poses.
 
         The log-scales of the keyframes reachable from ``anchor`` are refined over the
-        links' intra- and inter-agent matches with ``anchor``'s segments fixed, and the
-        refined pointmaps written back into ``X_hat``.
+        links' intra- and inter-agent matches with ``anchor``'s segments (and the
+        :attr:`fixed` keyframes') fixed, and the refined pointmaps written back into ``X_hat``.
 
         Args:
             labels: global index -> label map (:meth:`segment`) of every reachable keyframe.
@@ -377,8 +382,9 @@ class GlobalGraph:
         row = {g: r for r, g in enumerate(nodes)}
         edges = [e for link in self.links if link.i in chosen and link.j in chosen
                  for e in link.edges()]
+        pinned = [row[g] for g in nodes if g == anchor or g in self.fixed]
         return refine_keyframes([self.keyframes[g] for g in nodes], self.poses(nodes), edges,
-                                row, config, pinned=[row[anchor]],
+                                row, config, pinned=pinned,
                                 labels=[labels[g] for g in nodes])
 
 

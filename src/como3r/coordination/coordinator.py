@@ -237,6 +237,9 @@ class Coordinator:
         self.pre_refinement: dict[int, list[Keyframe]] = {}
         #: told the state after every keyframe, refresh and the cleanup (None: not kept)
         self.journal: Journal | None = None
+        #: agent sets refined by an earlier session (a saved map's components): the
+        #: terminal cleanup leaves a component alone that no other agent joined
+        self.refined: list[set[int]] = []
 
     # ------------------------------------------------------------------ public API
 
@@ -309,7 +312,8 @@ class Coordinator:
         cleanup = Cleanup()
         settings = AlternationSettings.from_config(self.config.global_ba, self.config.depth)
         for members in self.components():
-            if not self.graph.agent_keyframes(members[0]):
+            if not self.graph.agent_keyframes(members[0]) or any(
+                    set(members) <= done for done in self.refined):
                 continue
             multi_agent = len(members) > 1
             if not multi_agent:
@@ -546,7 +550,7 @@ class Coordinator:
         """Give the moving component the anchor's focal length (``gauge.align_focal``,
         self-calibrated runs; :mod:`como3r.frontend.focal`); returns the log correction
         applied, or None."""
-        if not self._aligns_focal():
+        if not self._aligns_focal() or any(self._frozen(a) for a in moved_agents):
             return None
         pairs = [self._focal_pair(c, self._moving_is_j(c)) for c in supporters]
         if any(pair is None for pair in pairs):
@@ -593,7 +597,7 @@ class Coordinator:
         """
         if not self._aligns_focal():
             return
-        settled = {members[0]}
+        settled = {members[0]} | {agent for agent in members if self._frozen(agent)}
         admitted = [c for c in self.candidates if c.status == "admitted"]
         while True:
             edges = {agent: [c for c in admitted if self._joins(c, agent, settled)]
@@ -611,6 +615,10 @@ class Coordinator:
                                  "refined") is not None:
                 self.stats.focal_refinements += 1
             settled.add(agent)
+
+    def _frozen(self, agent: int) -> bool:
+        """Whether an agent's keyframes are held fixed (a saved map under --freeze-map)."""
+        return any(g in self.graph.fixed for g in self.graph.agent_keyframes(agent))
 
     def _joins(self, candidate: Candidate, agent: int, settled: set[int]) -> bool:
         """Whether an edge links ``agent`` to one of the ``settled`` agents."""

@@ -20,7 +20,6 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Iterator
 
-import numpy as np
 import torch
 
 from como3r.config import Config, config_from_dict
@@ -28,7 +27,6 @@ from como3r.data.agent import open_agent
 from como3r.data.preprocess import upsampling
 from como3r.errors import Como3rError
 from como3r.frontend.agent import AgentFrontend
-from como3r.frontend.packets import PointmapRefresh
 from como3r.runtime import codec
 from como3r.runtime.live import frame_event
 from como3r.runtime.messages import (
@@ -37,7 +35,6 @@ from como3r.runtime.messages import (
     AgentFinished,
     AgentStarted,
     AgentTask,
-    EdgeSummary,
     FrameDone,
     KeyframeMessage,
     PoseUpdateMessage,
@@ -46,6 +43,7 @@ from como3r.runtime.messages import (
 )
 from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame
 from como3r.runtime.prefetch import PreparedFrame, prepared_frames
+from como3r.runtime.results import final_report
 from como3r.runtime.transport import AgentLink, Channel
 
 logger = logging.getLogger(__name__)
@@ -209,26 +207,7 @@ class AgentWorker:
                 return False
 
     def _finished(self) -> AgentFinished:
-        fe = self.frontend
-        records = sorted(fe.records, key=lambda r: r.frame_index)
-        kf_frames, kf_stamps, kf_poses = fe.keyframe_trajectory()
-        final = None
-        if len(fe.keyframes):
-            last = fe.keyframes.last
-            final = PointmapRefresh(last.kf_id, last.X_hat, last.C_hat, last.fused_frames,
-                                    last.K)
-        return AgentFinished(
-            agent=self.task.agent, final=final, stats=fe.stats, seconds=self.seconds,
-            applied_seq=self.applied_seq,
-            frame_indices=np.array([r.frame_index for r in records], dtype=np.int64),
-            timestamps=np.array([r.timestamp for r in records], dtype=np.float64),
-            anchors=np.array([r.anchor for r in records], dtype=np.int64),
-            T_rel=(torch.stack([r.T_rel for r in records]) if records
-                   else torch.zeros(0, 8, dtype=torch.float64)),
-            keyframe_frames=kf_frames.astype(np.int64),
-            keyframe_timestamps=kf_stamps.astype(np.float64), keyframe_T_WC=kf_poses,
-            edges=[EdgeSummary(e.i, e.j, e.kind, e.matches.match_fraction) for e in fe.edges],
-        )
+        return final_report(self.frontend, self.seconds, self.applied_seq)
 
 
 PATH_FIELDS = ("weights", "retrieval_weights", "codebook")

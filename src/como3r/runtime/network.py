@@ -23,7 +23,8 @@ from como3r.errors import InputError
 from como3r.progress import ProgressCallback
 from como3r.runtime.agent_worker import prior_fields, run_agent
 from como3r.runtime.pipeline import PriorSpec, RunSummary, open_agents
-from como3r.runtime.processes import RuntimeOptions, coordinate
+from como3r.runtime.multiprocess import coordinate
+from como3r.runtime.processes import RuntimeOptions
 from como3r.runtime.spool import DEFAULT_MEMORY_BYTES, Spool
 from como3r.runtime.transport_zenoh import Keys, ZenohHub, ZenohOptions, open_session
 from como3r.runtime.zenoh_agent import ZenohAgentLink
@@ -49,7 +50,7 @@ def serve(network: ZenohOptions, agents: int, out: Path, config: Config, prior_s
         ground_truth: per agent, an input with ground truth to evaluate against (as
             ``como3r eval --gt``); empty: no evaluation.
         overwrite: replace an existing non-empty output folder.
-        progress: as for :func:`~como3r.runtime.processes.run_multiprocess`.
+        progress: as for :func:`~como3r.runtime.multiprocess.run_multiprocess`.
         resume: continue the coordinator that was killed (``out.partial``) from its session
             store; the agents still running re-send what it had not stored
             (:mod:`como3r.runtime.runtime_state`).

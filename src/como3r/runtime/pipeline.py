@@ -45,7 +45,9 @@ from como3r.prior.base import Prior, View
 from como3r.progress import AgentProgress, PhaseCallback, ProgressCallback, tracking_state
 from como3r.runtime import outputs
 from como3r.runtime.live import CoordinatorLive, frame_event
+from como3r.runtime.map_session import SavedMap, hold_map, map_results, seed_map
 from como3r.runtime.prefetch import prepared_frames
+from como3r.runtime.results import AgentResult, final_report
 from como3r.runtime.store_resume import open_store
 
 logger = logging.getLogger(__name__)
@@ -219,6 +221,7 @@ def run(
     progress: ProgressCallback | None = None,
     live: LiveCallback | None = None,
     resume: bool = False,
+    saved_map: SavedMap | None = None,
 ) -> RunSummary:
     """Run all agents' front-ends and the coordinator, and write the output folder.
 
@@ -237,28 +240,41 @@ def run(
             built when it is given.
         resume: continue the killed run in ``out.partial`` from its session store
             (:mod:`como3r.runtime.store_resume`; the agents start again from the beginning).
+        saved_map: a finished run's map to start from (``--map``, :mod:`.map_session`): its
+            agents keep their ids, the new ones are numbered after them, the outputs hold
+            them all; without ground truth for the saved agents, nothing is evaluated.
     """
     agents = open_agents(agent_paths, config, cameras=True)
-    prior, codebook = build_prior(prior_spec, config, dict(enumerate(agents)))
-    frontends = [AgentFrontend(prior, config, a, codebook,
+    first = 0 if saved_map is None else saved_map.agents  # the id of the first new agent
+    prior, codebook = build_prior(prior_spec, config,
+                                  {first + k: agent for k, agent in enumerate(agents)})
+    frontends = [AgentFrontend(prior, config, first + k, codebook,
                                upsampling(agent.image_size, config.input.long_side))
-                 for a, agent in enumerate(agents)]
-    coordinator = Coordinator(prior, config, codebook, len(agents))
+                 for k, agent in enumerate(agents)]
+    coordinator = Coordinator(prior, config, codebook, first + len(agents))
+    saved = [] if saved_map is None else map_results(saved_map)
+    if saved_map is not None and not resume:
+        seed_map(coordinator, saved_map)
+    results = [*saved, *frontends]  # by agent id
     coordinator_live = (None if live is None else CoordinatorLive(
         live, coordinator, config.visualization.map_min_confidence))
-    seconds = [0.0] * len(agents)
+    seconds = [r.finished.seconds if r.finished else 0.0 for r in saved] + [0.0] * len(agents)
     stride = config.input.subsample
     cameras = [a for a in agents if isinstance(a, CameraInput)]
     totals = [a.source.max_frames if isinstance(a, CameraInput)
               else len(range(0, a.num_frames, stride)) for a in agents]
     frames = prepared_frames(
         camera_schedule(cameras) if cameras else _frame_schedule(agents, stride),
-        lambda k, i: load_frame(agents[k], k, i, config.input.long_side, config.calibrated),
+        lambda k, i: load_frame(agents[k], first + k, i, config.input.long_side,
+                                config.calibrated),
         prior,
         config.input.prefetch_frames)
     with atomic_output_dir(out, overwrite=overwrite, resume=resume) as staging, \
-            open_store(staging, config, coordinator, resume), \
+            open_store(staging, config, coordinator, resume) as store, \
             contextlib.closing(frames), contextlib.ExitStack() as streams:
+        if saved_map is not None:
+            hold_map(coordinator, saved_map)
+            store.record_runtime(None, {r.agent: r.finished for r in saved if r.finished})
         for camera in cameras:  # the live streams end on an error too
             streams.callback(camera.stop)
         if cameras:  # the first Ctrl-C ends them, and the run goes on to its outputs
@@ -273,24 +289,27 @@ def run(
             frontends[k].timer.charge("prior_encode", time.perf_counter() - start)
             outcome = frontends[k].process(frame.view, frame.timestamp, frame.colors,
                                            frame.encoding)
-            seconds[k] += time.perf_counter() - start
+            seconds[first + k] += time.perf_counter() - start
             if live is not None:
                 live(frame_event(frontends[k], frame.index, frame.timestamp, outcome,
                                  frame.colors))
-            _hand_over(frontends, k, coordinator, coordinator_live)
+            _hand_over(results, first + k, coordinator, coordinator_live)
             if progress is not None:
                 stats = frontends[k].stats
-                progress(AgentProgress(k, stats.frames, totals[k], len(frontends[k].keyframes),
-                                       stats.lost, stats.relocalized, tracking_state(outcome)))
+                progress(AgentProgress(first + k, stats.frames, totals[k],
+                                       len(frontends[k].keyframes), stats.lost,
+                                       stats.relocalized, tracking_state(outcome)))
         streams.close()  # the live streams end; Ctrl-C interrupts again
         notes = [camera.stop() for camera in cameras]  # frames read and dropped
         for k, frontend in enumerate(frontends):  # a short stream's camera settles at its end
             frontend.settle_camera()
-            _hand_over(frontends, k, coordinator, coordinator_live)
-        _finish(frontends, coordinator, progress)
+            _hand_over(results, first + k, coordinator, coordinator_live)
+        _finish(frontends, results, coordinator, progress)
+        store.record_runtime(None, {fe.agent: final_report(fe, seconds[fe.agent], 0)
+                                    for fe in frontends})
         if coordinator_live is not None:
-            coordinator_live.finish(frontends)
-        summary = _write(staging, frontends, coordinator, config, agents, seconds, prior,
+            coordinator_live.finish(results)
+        summary = _write(staging, results, coordinator, config, agents, seconds, prior,
                          progress)
     summary.out = out
     summary.notes.extend(notes)
@@ -313,10 +332,10 @@ def _apply(frontends: Sequence[AgentFrontend], updates: Sequence[PoseUpdate]) ->
         frontends[update.agent].apply_pose_update(update)
 
 
-def _finish(frontends: Sequence[AgentFrontend], coordinator: Coordinator,
-            progress: PhaseCallback | None = None) -> None:
-    """Send every agent's last fused pointmap, run the terminal alternation, apply the
-    final poses and refined pointmaps."""
+def _finish(frontends: Sequence[AgentFrontend], results: Sequence[AgentFrontend | AgentResult],
+            coordinator: Coordinator, progress: PhaseCallback | None = None) -> None:
+    """Send every front-end's last fused pointmap, run the terminal alternation, apply the
+    final poses and refined pointmaps to every agent's ``results`` (by agent id)."""
     final_poses = {}
     for fe in frontends:
         if len(fe.keyframes):
@@ -325,21 +344,24 @@ def _finish(frontends: Sequence[AgentFrontend], coordinator: Coordinator,
                                                           last.fused_frames, last.K))
             final_poses[fe.agent] = fe.keyframes.poses()
     cleanup = coordinator.finish(final_poses, progress)
-    _apply(frontends, cleanup.updates)
+    _apply(results, cleanup.updates)
     for update in cleanup.pointmaps:
-        frontends[update.agent].apply_pointmap_update(update)
+        results[update.agent].apply_pointmap_update(update)
 
 
-def _write(staging: Path, frontends: list[AgentFrontend], coordinator: Coordinator,
+def _write(staging: Path, results: list[AgentFrontend | AgentResult], coordinator: Coordinator,
            config: Config, agents: list[AgentInput], seconds: list[float],
            prior: Prior, progress: PhaseCallback | None = None) -> RunSummary:
-    metrics, components = outputs.write_run_files(staging, frontends, coordinator, config,
+    """The output folder; ``agents`` are the inputs of the last ``len(agents)`` results
+    (the others came with a saved map: then nothing is evaluated)."""
+    metrics, components = outputs.write_run_files(staging, results, coordinator, config,
                                                   prior.describe(), seconds, progress)
-    for entry, agent in zip(metrics["agents"], agents):
+    first = len(results) - len(agents)
+    for entry, agent in zip(metrics["agents"][first:], agents):
         if isinstance(agent, CameraInput):  # its stream has ended: the count is final
             entry["frames_dropped"] = agent.dropped
     summary = RunSummary(out=staging)
-    summary.agents.extend(outputs.agent_row(fe, s) for fe, s in zip(frontends, seconds))
-    outputs.evaluate_and_finish(staging, summary, metrics, agents, components, frontends,
-                                coordinator, config, progress)
+    summary.agents.extend(outputs.agent_row(r, s) for r, s in zip(results, seconds))
+    outputs.evaluate_and_finish(staging, summary, metrics, [] if first else agents, components,
+                                results, coordinator, config, progress)
     return summary

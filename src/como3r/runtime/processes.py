@@ -2,13 +2,14 @@
 
 Each agent runs :class:`~como3r.runtime.agent_worker.AgentWorker` in its own process; the
 coordinator runs here. They exchange only the messages of :mod:`como3r.runtime.messages`,
-carried by a :class:`~como3r.runtime.transport.Hub`: :func:`run_multiprocess` (``como3r
-run``) starts one process per agent on this machine and talks to it over two one-way pipes
+carried by a :class:`~como3r.runtime.transport.Hub`:
+:func:`~como3r.runtime.multiprocess.run_multiprocess` (``como3r run``) starts one process
+per agent on this machine and talks to it over two one-way pipes
 (:class:`~como3r.runtime.transport.PipeHub`); ``como3r coordinator`` serves agents started
 on other machines over Zenoh (:mod:`como3r.runtime.network`). Both go through
-:func:`coordinate`, so the loop below is the same. (``spawn`` re-imports the caller's main
-module, so a script calling :func:`run_multiprocess` needs an ``if __name__ ==
-"__main__":`` guard; the ``como3r`` command has one.)
+:func:`~como3r.runtime.multiprocess.coordinate`, so the loop below is the same. (``spawn``
+re-imports the caller's main module, so a script calling ``run_multiprocess`` needs an
+``if __name__ == "__main__":`` guard; the ``como3r`` command has one.)
 
 The coordinator runs in the main process: that process would otherwise only wait on the
 agents, it already needs the prior (to decode candidate pairs) and owns the output folder,
@@ -67,10 +68,8 @@ import torch
 from como3r.config import Config, config_to_dict
 from como3r.coordination.coordinator import Coordinator
 from como3r.data.agent import AgentInput
-from como3r.errors import InputError
 from como3r.frontend.packets import PointmapRefresh, PoseUpdate
 from como3r.geometry.lie import sim3_compose, sim3_inverse
-from como3r.io.output import atomic_output_dir
 from como3r.live import FrameEvent, LiveCallback
 from como3r.progress import (
     AgentProgress,
@@ -79,8 +78,8 @@ from como3r.progress import (
     report_phase,
     tracking_state,
 )
-from como3r.runtime import codec, outputs
-from como3r.runtime.agent_worker import agent_process_main, prior_fields
+from como3r.runtime import codec
+from como3r.runtime.agent_worker import prior_fields
 from como3r.runtime.live import CoordinatorLive
 from como3r.runtime.messages import (
     AgentFailed,
@@ -94,10 +93,8 @@ from como3r.runtime.messages import (
 )
 from como3r.runtime.pipeline import (
     PriorSpec,
-    RunSummary,
     _frame_schedule,
     build_prior,
-    open_agents,
 )
 from como3r.runtime.results import (
     AgentResult,
@@ -106,16 +103,12 @@ from como3r.runtime.results import (
     KeyframeView,
     MapSegment,
     MatchFraction,
-    SegmentedCoordinator,
     SegmentPlace,
-    agent_results,
-    left_out,
 )
-from como3r.runtime.runtime_state import restore_runtime, snapshot
-from como3r.runtime.store import STORE_NAME, SessionStore
-from como3r.runtime.store_reader import read_session
-from como3r.runtime.store_resume import open_store
-from como3r.runtime.transport import Hub, Joined, Left, PipeHub, Received, Rejected
+from como3r.runtime.map_session import SavedMap, map_results
+from como3r.runtime.runtime_state import snapshot
+from como3r.runtime.store import SessionStore
+from como3r.runtime.transport import Hub, Joined, Left, Received, Rejected, Traffic
 
 logger = logging.getLogger(__name__)
 
@@ -168,12 +161,15 @@ class _Runtime:
         frames: frames each agent ``0 .. N-1`` will process, where known before it starts
             (its ``AgentStarted`` says it otherwise).
         inputs: the agent inputs, where this process has them (the lockstep schedule).
+        saved_map: a finished run's map the agents start on (``--map``): its agents are
+            ``0 .. M-1`` (status ``"map"``: no process), the ones with processes follow.
     """
 
     def __init__(self, hub: Hub, frames: Sequence[int], config: Config, spec: PriorSpec,
                  options: RuntimeOptions, progress: ProgressCallback | None,
                  live: LiveCallback | None = None,
-                 inputs: Sequence[AgentInput] | None = None) -> None:
+                 inputs: Sequence[AgentInput] | None = None,
+                 saved_map: SavedMap | None = None) -> None:
         self.hub = hub
         self.inputs = inputs
         self.config = config
@@ -181,7 +177,9 @@ class _Runtime:
         self.progress = progress
         self.live = live
         self.prior, codebook = build_prior(spec, config)
-        self.coordinator = Coordinator(self.prior, config, codebook, len(frames))
+        #: the id of the first agent with a process (the saved map's agents come first)
+        self.first = 0 if saved_map is None else saved_map.agents
+        self.coordinator = Coordinator(self.prior, config, codebook, self.first + len(frames))
         self.coordinator_live = (
             None if live is None else
             CoordinatorLive(live, self.coordinator, config.visualization.map_min_confidence))
@@ -192,32 +190,37 @@ class _Runtime:
         #: the coordinator's terminal alternation ran (a resumed coordinator's store says so)
         self.cleaned_up = False
         self._arrivals = 0
-        self.segments = [MapSegment(agent, agent, AgentResult(agent))
-                         for agent in range(len(frames))]
-        self.slots = [AgentSlot(agent, count, self.segments[agent])
-                      for agent, count in enumerate(frames)]
+        saved = [] if saved_map is None else map_results(saved_map)
+        self.segments = [MapSegment(r.agent, r.agent, r) for r in saved] + [
+            MapSegment(agent, agent, AgentResult(agent))
+            for agent in range(self.first, self.first + len(frames))]
+        self.slots = [AgentSlot(r.agent, 0, self.segments[r.agent], status="map",
+                                clock=math.inf, seconds=r.finished.seconds if r.finished else 0.0)
+                      for r in saved]
+        self.slots += [AgentSlot(self.first + k, count, self.segments[self.first + k])
+                       for k, count in enumerate(frames)]
         self.finish_threads = options.torch_threads
-        self.tasks: list[AgentTask] = []
+        self.tasks: dict[int, AgentTask] = {}
         self.places: dict[int, SegmentPlace] = {}
 
     def start(self, paths: Sequence[Path | None], spec: PriorSpec) -> None:
         """Hand each agent its task: its input (None: the agent brings its own) and the
         prior it builds."""
-        self.tasks = [AgentTask(
-            agent=agent, input_path="" if path is None else str(path),
+        self.tasks = {self.first + k: AgentTask(
+            agent=self.first + k, input_path="" if path is None else str(path),
             config=config_to_dict(self.config), prior=prior_fields(spec),
             torch_threads=self.options.torch_threads, lockstep=self.options.lockstep,
             max_message_bytes=self.options.max_message_bytes,
             log_level=logging.getLogger().getEffectiveLevel(), live=self.live is not None)
-            for agent, path in enumerate(paths)]
-        self.hub.start(self.tasks, self.rejoin)
+            for k, path in enumerate(paths)}
+        self.hub.start(list(self.tasks.values()), self.rejoin)
 
     def rejoin(self, agent: int) -> AgentTask | str:
         """A new process takes over agent ``agent``'s id (the one before it left): its task,
         which starts after the last frame this coordinator heard of, on a new map segment
         (see the module docstring); or why it cannot (the agent finished or failed)."""
         slot = self.slots[agent]
-        if slot.status == "finished":
+        if slot.status in ("finished", "map"):
             return f"agent {agent} has finished in this run; it cannot start again"
         if slot.status == "failed":
             return f"agent {agent} failed in this run ({slot.error}); it cannot rejoin"
@@ -261,11 +264,11 @@ class _Runtime:
     def _run_lockstep(self) -> None:
         """Agents take turns in the single-process schedule (by timestamp, then agent)."""
         self._pump_until(lambda: all(s.status != "starting" for s in self.slots), self.slots)
-        for agent, index in _frame_schedule(self.inputs, self.config.input.subsample):
-            slot = self.slots[agent]
+        for k, index in _frame_schedule(self.inputs, self.config.input.subsample):
+            slot = self.slots[self.first + k]
             if slot.status != "running":
                 continue
-            self.hub.send(agent, Step(index))
+            self.hub.send(slot.agent, Step(index))
             slot.last_heard = time.monotonic()
             self._pump_until(lambda: slot.last_frame >= index or slot.status != "running", [slot])
             self._process_pending(force=True)
@@ -521,6 +524,8 @@ class _Runtime:
         """A finished agent's own keyframe poses plus the updates it never applied."""
         segment = slot.segment
         result, done = segment.result, segment.result.finished
+        if slot.status == "map":  # as the saved map holds it, with the updates it got
+            return
         if slot.status != "finished" or done is None:
             result.finished = None
             return
@@ -552,13 +557,14 @@ class _Runtime:
         agents = []
         by_type: Counter[str] = Counter()
         for slot in self.slots:
-            channel = self.hub.traffic(slot.agent)
+            channel = Traffic() if slot.status == "map" else self.hub.traffic(slot.agent)
             by_type.update(channel.bytes_sent)
             by_type.update(channel.bytes_received)
             segments = self._segments_of(slot.agent)
             agents.append({
                 "agent": slot.agent, "status": slot.status, "error": slot.error,
-                "pid": slot.pid, "exitcode": self.hub.exitcode(slot.agent),
+                "pid": slot.pid,
+                "exitcode": None if slot.status == "map" else self.hub.exitcode(slot.agent),
                 "frames_expected": slot.frames_expected, "frames_done": slot.frames_done,
                 "keyframes_received": sum(len(s.result.keyframes) for s in segments),
                 "pose_updates_sent": sum(s.sent_seq for s in segments),
@@ -581,148 +587,3 @@ class _Runtime:
                 "agents": agents, "bytes_by_type": dict(by_type),
                 "bytes_total": sum(by_type.values()),
                 "failed_agents": [s.agent for s in self.slots if s.status == "failed"]}
-
-
-# ------------------------------------------------------------------------------ entry point
-
-
-def run_multiprocess(
-    agent_paths: Sequence[Path],
-    out: Path,
-    config: Config,
-    prior_spec: PriorSpec,
-    overwrite: bool = False,
-    progress: ProgressCallback | None = None,
-    options: RuntimeOptions | None = None,
-    live: LiveCallback | None = None,
-    resume: bool = False,
-) -> RunSummary:
-    """Run every agent in its own process and the coordinator here; write the output folder.
-
-    Same contract as :func:`como3r.runtime.pipeline.run`; ``metrics.json`` gains a
-    ``runtime`` section (per-agent status, bytes per message type and direction).
-
-    Args:
-        agent_paths: one agent input per agent, in agent order.
-        out: output folder (created atomically).
-        config: effective configuration.
-        prior_spec: which prior every process builds.
-        overwrite: replace an existing non-empty output folder.
-        progress: called with an agent's :class:`~como3r.progress.AgentProgress` after its
-            every frame (as its ``FrameDone`` arrives) and when it fails, and with a
-            :class:`~como3r.progress.PhaseEvent` as each step of the terminal work starts.
-        options: runtime knobs (default :class:`RuntimeOptions`).
-        live: called with the live events of :mod:`como3r.live` (a viewer): the agents'
-            frame events as their messages arrive, the keyframe and map events from the
-            coordinator here. Only this process calls it; agents send frame events only
-            when it is given.
-        resume: continue the killed run in ``out.partial`` from its session store
-            (:mod:`como3r.runtime.store_resume`; the agents start again from the beginning).
-
-    Raises:
-        InputError: bad agent input (checked here before any process starts), or every
-            agent failed.
-    """
-    options = options or RuntimeOptions()
-    inputs = open_agents(agent_paths, config)
-    frames = [len(range(0, a.num_frames, config.input.subsample)) for a in inputs]
-    hub = PipeHub(agent_process_main, options.max_message_bytes, options.shutdown_grace_s)
-    return coordinate(hub, list(agent_paths), frames, out, config, prior_spec, options,
-                      inputs=inputs, overwrite=overwrite, progress=progress, live=live,
-                      resume=resume)
-
-
-def coordinate(
-    hub: Hub,
-    agent_paths: Sequence[Path | None],
-    frames: Sequence[int],
-    out: Path,
-    config: Config,
-    prior_spec: PriorSpec,
-    options: RuntimeOptions,
-    inputs: Sequence[AgentInput] = (),
-    overwrite: bool = False,
-    progress: ProgressCallback | None = None,
-    live: LiveCallback | None = None,
-    resume: bool = False,
-    continuing: bool = False,
-) -> RunSummary:
-    """Run the coordinator here over the agents behind ``hub``; write the output folder.
-
-    Args:
-        hub: the transport to agents ``0 .. N-1``.
-        agent_paths: each agent's input as its task names it; None where the agent brings
-            its own (``como3r agent PATH``).
-        frames: frames each agent will process where known (0: its ``AgentStarted`` says).
-        out: output folder (created atomically).
-        config: effective configuration (every agent receives it with its task).
-        prior_spec: the prior of this process and of the agents' tasks.
-        options: runtime knobs.
-        inputs: the agent inputs where this process has them, for the evaluation against
-            their ground truth and the lockstep schedule; empty: no evaluation.
-        overwrite, progress, live, resume: as for :func:`run_multiprocess`.
-        continuing: (with ``resume``) the agents ran on while this coordinator was down:
-            take up the runtime's state from the store too (:mod:`.runtime_state`; ``como3r
-            coordinator --resume``) instead of starting the agents again.
-
-    Raises:
-        InputError: every agent failed.
-        StoreError: (``resume``) a store that cannot be resumed.
-    """
-    threads = torch.get_num_threads()
-    torch.set_num_threads(max(1, options.torch_threads))
-    runtime: _Runtime | None = None
-    interrupted = False
-    try:
-        with atomic_output_dir(out, overwrite=overwrite, resume=resume) as staging:
-            runtime = _Runtime(hub, frames, config, prior_spec, options, progress, live,
-                               inputs)
-            session = read_session(staging / STORE_NAME) if continuing else None
-            for _ in range(runtime.coordinator.num_agents, len(session.agents) if session
-                           else 0):  # map segments of restarted agents
-                runtime.coordinator.add_agent()
-            with open_store(staging, config, runtime.coordinator, resume, session) as store:
-                runtime.store = store
-                if session is not None:
-                    restore_runtime(runtime, session)
-                runtime.start(agent_paths, prior_spec)
-                runtime.run(finish_threads=threads)
-            runtime.stop()
-            if all(s.status == "failed" for s in runtime.slots):
-                raise InputError("every agent failed: " + "; ".join(
-                    f"agent {s.agent}: {s.error}" for s in runtime.slots))
-            summary = _write(staging, runtime, inputs)
-    except KeyboardInterrupt:
-        interrupted = True
-        raise
-    finally:
-        if runtime is not None:
-            runtime.stop(interrupted)
-        torch.set_num_threads(threads)
-    summary.out = out
-    return summary
-
-
-def _write(staging: Path, runtime: _Runtime, inputs: Sequence[AgentInput]) -> RunSummary:
-    """The output folder of :func:`pipeline.run`, from the agents' results."""
-    config = runtime.config
-    results, runtime.places = agent_results(runtime.slots, runtime.segments,
-                                            runtime.coordinator.components())
-    coordinator = SegmentedCoordinator(runtime.coordinator, runtime.places)
-    seconds = [s.seconds for s in runtime.slots]
-    metrics, components = outputs.write_run_files(staging, results, coordinator, config,
-                                                  runtime.prior.describe(), seconds,
-                                                  runtime.progress)
-    metrics["runtime"] = runtime.runtime_metrics()
-    summary = RunSummary(out=staging)
-    for slot, s in zip(runtime.slots, seconds):
-        summary.agents.append({"agent": slot.agent, "status": slot.status,
-                               **outputs.agent_row(results[slot.agent], s)})
-        if slot.status == "failed":
-            summary.notes.append(
-                f"agent {slot.agent} failed: {slot.error}; its outputs hold the "
-                f"{len(results[slot.agent].keyframes)} keyframes the coordinator received")
-    summary.notes.extend(left_out(runtime.segments, runtime.places))
-    outputs.evaluate_and_finish(staging, summary, metrics, inputs, components, results,
-                                coordinator, config, runtime.progress)
-    return summary

@@ -24,13 +24,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from como3r.backend.global_graph import GlobalGraph
 from como3r.coordination.coordinator import Coordinator
-from como3r.frontend.agent import FrontendStats
+from como3r.frontend.agent import AgentFrontend, FrontendStats
 from como3r.frontend.keyframes import apply_pointmap_update, apply_pose_update
-from como3r.frontend.packets import PointmapUpdate, PoseUpdate
+from como3r.frontend.packets import PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.geometry.camera import to_focal
 from como3r.geometry.lie import sim3_compose
-from como3r.runtime.messages import AgentFinished
+from como3r.runtime.messages import AgentFinished, EdgeSummary
 
 
 @dataclass
@@ -55,6 +56,43 @@ class KeyframeView:
     def mean_confidence(self) -> Tensor:
         """``(H, W)`` confidence per contributing frame (as ``Keyframe.mean_confidence``)."""
         return self.C_hat / self.fused_frames
+
+
+def stored_views(graph: GlobalGraph, agent: int) -> list[KeyframeView]:
+    """``agent``'s keyframes as a coordinator's graph holds them (a session store read back),
+    in keyframe order."""
+    return [KeyframeView(kf.kf_id, kf.frame_index, kf.timestamp, kf.T_WC.clone(), kf.X_hat,
+                         kf.C_hat, kf.colors, kf.fused_frames, kf.K)
+            for kf in (graph.keyframes[g] for g in graph.agent_keyframes(agent))]
+
+
+def final_report(frontend: AgentFrontend, seconds: float, applied_seq: int) -> AgentFinished:
+    """An agent front-end's final report: its last fused pointmap, statistics, every tracked
+    frame anchored on its keyframe (C-Sec. A.8), its keyframes' poses and edges.
+
+    Args:
+        frontend: the agent's front-end at the end of its stream.
+        seconds: its processing time.
+        applied_seq: pose updates it applied.
+    """
+    records = sorted(frontend.records, key=lambda r: r.frame_index)
+    kf_frames, kf_stamps, kf_poses = frontend.keyframe_trajectory()
+    final = None
+    if len(frontend.keyframes):
+        last = frontend.keyframes.last
+        final = PointmapRefresh(last.kf_id, last.X_hat, last.C_hat, last.fused_frames, last.K)
+    return AgentFinished(
+        agent=frontend.agent, final=final, stats=frontend.stats, seconds=seconds,
+        applied_seq=applied_seq,
+        frame_indices=np.array([r.frame_index for r in records], dtype=np.int64),
+        timestamps=np.array([r.timestamp for r in records], dtype=np.float64),
+        anchors=np.array([r.anchor for r in records], dtype=np.int64),
+        T_rel=(torch.stack([r.T_rel for r in records]) if records
+               else torch.zeros(0, 8, dtype=torch.float64)),
+        keyframe_frames=kf_frames.astype(np.int64),
+        keyframe_timestamps=kf_stamps.astype(np.float64), keyframe_T_WC=kf_poses,
+        edges=[EdgeSummary(e.i, e.j, e.kind, e.matches.match_fraction)
+               for e in frontend.edges])
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ from collections import Counter
 from typing import TYPE_CHECKING, Any
 
 from como3r.errors import StoreError
-from como3r.runtime.results import AgentResult, KeyframeView, MapSegment
+from como3r.runtime.results import AgentResult, MapSegment, stored_views
 from como3r.runtime.store_reader import Session
 
 if TYPE_CHECKING:
@@ -104,13 +104,10 @@ def restore_runtime(runtime: _Runtime, session: Session) -> None:
 def _segment(saved: dict[str, Any], runtime: _Runtime, session: Session) -> MapSegment:
     """A map segment with its keyframes as the store holds them and its pose updates."""
     index = saved["index"]
-    graph = session.graph
-    views = [KeyframeView(kf.kf_id, kf.frame_index, kf.timestamp, kf.T_WC.clone(), kf.X_hat,
-                         kf.C_hat, kf.colors, kf.fused_frames, kf.K)
-             for kf in (graph.keyframes[g] for g in graph.agent_keyframes(index))]
     report = session.reports.get(index)
-    segment = MapSegment(index, saved["agent"], AgentResult(index, views, finished=report),
-                         sent_seq=session.agents[index].updates_sent)
+    segment = MapSegment(index, saved["agent"], AgentResult(
+        index, stored_views(session.graph, index), finished=report),
+        sent_seq=session.agents[index].updates_sent)
     for name in SEGMENT_FIELDS:
         setattr(segment, name, saved[name])
     if segment.sent_seq:  # the ones applied are never sent or applied again

@@ -319,28 +319,29 @@ class SessionStore:
             raise StoreError(f"{self.path}: cannot write the session store ({exc})") from None
         self.transactions += 1
 
-    def record_runtime(self, state: dict[str, Any], reports: Mapping[int, AgentFinished]
-                       ) -> None:
+    def record_runtime(self, state: dict[str, Any] | None,
+                       reports: Mapping[int, AgentFinished]) -> None:
         """Store the multi-process runtime's state and the agents' final reports that are
         new, in one transaction (nothing when neither changed).
 
         Args:
-            state: JSON-able (:func:`como3r.runtime.runtime_state.snapshot`).
-            reports: each coordinator agent's final report, where it sent one.
+            state: JSON-able (:func:`como3r.runtime.runtime_state.snapshot`); None: no
+                runtime state (the single-process runtime keeps none).
+            reports: each coordinator agent's final report, where it has one.
 
         Raises:
             StoreError: as :meth:`record`.
         """
         if self._failed:
             raise StoreError(f"{self.path}: the session store failed earlier")
-        row = (json.dumps(state),)
+        rows = {} if state is None else {"runtime": (json.dumps(state),)}
         new = {agent: report for agent, report in reports.items()
                if self._reports.get(agent) is not report}
-        if not new and self._rows["state"].get("runtime") == row:
+        if not new and all(self._rows["state"].get(k) == row for k, row in rows.items()):
             return
         try:
             with _transaction(self.connection):
-                self._upsert("state", {"runtime": row})
+                self._upsert("state", rows)
                 self.connection.executemany(
                     "INSERT OR REPLACE INTO reports VALUES (?, ?)",
                     [(agent, pack_object(report)) for agent, report in new.items()])

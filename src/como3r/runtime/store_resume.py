@@ -22,6 +22,7 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import torch
 
@@ -31,7 +32,7 @@ from como3r.coordination.coordinator import Candidate, Coordinator, CoordinatorS
 from como3r.errors import StoreError
 from como3r.frontend.pairs import DirectedMatches
 from como3r.runtime.store import STORE_NAME, SessionStore
-from como3r.runtime.store_reader import Session, StoredCandidate, read_session
+from como3r.runtime.store_reader import RetrievalEntry, Session, StoredCandidate, read_session
 
 logger = logging.getLogger(__name__)
 
@@ -111,13 +112,27 @@ def restore_coordinator(session: Session, coordinator: Coordinator) -> None:
         raise StoreError(f"{where}: the stored session was run "
                          f"{'with' if indexed else 'without'} cross-agent retrieval, this run "
                          f"{'without' if indexed else 'with'} (another prior or codebook?)")
-    coordinator.restore(session.graph, session.gauges,
-                        [_candidate(c, session) for c in session.candidates],
-                        CoordinatorStats(**session.stats), session.gauge_events,
-                        session.backlog)
-    for entry in indexed:
-        coordinator.retrieval.database.add(entry.agent, entry.kf_id, entry.descriptors,
-                                           entry.attention)
+    load_state(session, coordinator, CoordinatorStats(**session.stats), session.backlog,
+               indexed)
+
+
+def load_state(session: Session, coordinator: Coordinator, stats: CoordinatorStats,
+               backlog: tuple[int, list[int]], indexed: Sequence[RetrievalEntry]) -> None:
+    """Put a stored session's keyframes, links, gauge components (its agents are the
+    coordinator's first ones; the others stay in components of their own), candidates and
+    gauge events into ``coordinator``, with ``stats`` and the BA ``backlog``, and the
+    ``indexed`` retrieval entries, in that order, into its retrieval database (if it has
+    one)."""
+    gauges = session.gauges
+    for agent in range(len(session.agents), coordinator.num_agents):
+        gauges.add(agent)
+    coordinator.restore(session.graph, gauges,
+                        [_candidate(c, session) for c in session.candidates], stats,
+                        session.gauge_events, backlog)
+    if coordinator.retrieval is not None:
+        for entry in indexed:
+            coordinator.retrieval.database.add(entry.agent, entry.kf_id, entry.descriptors,
+                                               entry.attention)
 
 
 def _candidate(stored: StoredCandidate, session: Session) -> Candidate:
