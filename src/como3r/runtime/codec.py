@@ -490,7 +490,7 @@ def _register_payloads() -> None:
         ("como3r.frontend.packets:PointmapRefresh", 2),  # 2: K
         ("como3r.frontend.packets:PoseUpdate", 2),  # 2: focal
         ("como3r.frontend.pairs:DirectedMatches", 1),
-        ("como3r.frontend.agent:FrontendStats", 1),
+        ("como3r.frontend.agent:FrontendStats", 2),  # 2: first_frame_focal
         ("como3r.prior.simulated:SimulatedEncoding", 1),
         ("como3r.prior.mast3r.prior:MASt3REncoding", 1),
     ):
