@@ -89,19 +89,23 @@ def test_ray_projection_equals_the_vectorised_path(threads, turn_deg) -> None:
     PyTorch path's (the loop accumulates in float64)."""
     rays_grad, target, p_init = _ray_problem(torch.float64, turn_deg)
     args = (rays_grad, target, p_init, 10, 1e-8, 1e-6)
-    p, converged = cpu_kernels.project_rays(*args)
+    p, pixel, converged = cpu_kernels.project_rays(*args)
     p_ref, converged_ref = matching._project_vectorised(*args)
     assert p.dtype == p_init.dtype and p.shape == p_init.shape
     assert converged.float().mean() > 0.4
     assert torch.equal(converged, converged_ref)
     assert torch.allclose(p[converged], p_ref[converged], atol=1e-6)
+    nearest = matching._nearest_ray_pixel(rays_grad[..., :3], p_ref, target)
+    assert pixel.dtype == torch.int64 and torch.equal(pixel[converged], nearest[converged])
 
 
 def test_ray_projection_of_float32_pointmaps_matches_to_a_hundredth_of_a_pixel() -> None:
     rays_grad, target, p_init = _ray_problem(torch.float32, 2.0)
     args = (rays_grad, target, p_init, 10, 1e-8, 1e-6)
-    p, converged = cpu_kernels.project_rays(*args)
+    p, pixel, converged = cpu_kernels.project_rays(*args)
     p_ref, converged_ref = matching._project_vectorised(*args)
     both = converged & converged_ref
     assert both.float().mean() > 0.9 * converged_ref.float().mean()
     assert (p[both] - p_ref[both]).abs().max() < 1e-2
+    nearest = matching._nearest_ray_pixel(rays_grad[..., :3], p_ref, target)
+    assert (pixel[both] == nearest[both]).all(-1).float().mean() > 0.99

@@ -167,7 +167,11 @@ def test_rays_outside_the_view_leave_the_projection_early(monkeypatch) -> None:
     monkeypatch.setattr(matching, "_ray_cost", counted)
     # the PyTorch path, whose ray evaluations can be counted; the compiled CPU loop follows
     # the same exit rule and gives the same pixels (tests/frontend/test_cpu_kernels.py)
-    monkeypatch.setattr(matching.cpu_kernels, "project_rays", matching._project_vectorised)
+    def vectorised(rays_grad, target, *rest):
+        p, converged = matching._project_vectorised(rays_grad, target, *rest)
+        return p, matching._nearest_ray_pixel(rays_grad[..., :3], p, target), converged
+
+    monkeypatch.setattr(matching.cpu_kernels, "project_rays", vectorised)
     config = MatchingConfig(descriptor_radius=0, occlusion_ratio=1e9)
     D = torch.nn.functional.normalize(torch.ones(1, H, W, 4, dtype=torch.float64), dim=-1)
     m = match_pointmaps(X_search[None], X_query[None], D, D, config)

@@ -79,34 +79,58 @@ def refine_windows(D_search: Tensor, D_query: Tensor, pixel: Tensor, radius: int
 def _ray_sample(table: np.ndarray, first: int, height: int, width: int, u: float, v: float,
                 target: np.ndarray) -> tuple:  # pragma: no cover (compiled)
     """Bilinear ray and gradients at (u, v), clamped into the image, as
-    ``matching._bilinear``; returns ``(cost, err (3,), d/du (3,), d/dv (3,))``."""
+    ``matching._bilinear``; returns ``(cost, err (3,), d/du (3,), d/dv (3,))`` as scalars
+    (a tuple, no array allocated per sample)."""
     u = min(max(u, 0.0), width - 1.0)
     v = min(max(v, 0.0), height - 1.0)
     u0 = min(int(np.floor(u)), max(width - 2, 0))
     v0 = min(int(np.floor(v)), max(height - 2, 0))
     u1, v1 = min(u0 + 1, width - 1), min(v0 + 1, height - 1)
     a, b = u - u0, v - v0
-    top, bottom = first + v0 * width, first + v1 * width
-    s = np.empty(9)
-    for c in range(9):
-        upper = table[top + u0, c] * (1 - a) + table[top + u1, c] * a
-        lower = table[bottom + u0, c] * (1 - a) + table[bottom + u1, c] * a
-        s[c] = upper * (1 - b) + lower * b
-    norm = max(np.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2]), 1e-12)
-    err = np.empty(3)
-    for c in range(3):
-        err[c] = s[c] / norm - target[c]
-    return (err[0] * err[0] + err[1] * err[1] + err[2] * err[2]), err, s[3:6], s[6:9]
+    w00, w01, w10, w11 = (1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b
+    p00, p01 = table[first + v0 * width + u0], table[first + v0 * width + u1]
+    p10, p11 = table[first + v1 * width + u0], table[first + v1 * width + u1]
+
+    def mix(c: int) -> float:
+        return (float(p00[c]) * w00 + float(p01[c]) * w01 + float(p10[c]) * w10
+                + float(p11[c]) * w11)
+
+    r0, r1, r2 = mix(0), mix(1), mix(2)
+    norm = max(np.sqrt(r0 * r0 + r1 * r1 + r2 * r2), 1e-12)
+    e0, e1, e2 = r0 / norm - target[0], r1 / norm - target[1], r2 / norm - target[2]
+    return (e0 * e0 + e1 * e1 + e2 * e2, (e0, e1, e2), (mix(3), mix(4), mix(5)),
+            (mix(6), mix(7), mix(8)))
+
+
+@njit(cache=True, boundscheck=False)
+def _nearest_pixel(table: np.ndarray, first: int, height: int, width: int, u: float, v: float,
+                   target: np.ndarray) -> tuple:  # pragma: no cover (compiled)
+    """Of the four pixel centres around (u, v), the one whose ray is closest to the target
+    (the first of equals in the order (0, 0), (1, 0), (0, 1), (1, 1)), as
+    ``matching._nearest_ray_pixel``."""
+    best, best_u, best_v = np.inf, 0, 0
+    base_u, base_v = int(np.floor(u)), int(np.floor(v))
+    for du, dv in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        cu = min(max(base_u + du, 0), width - 1)
+        cv = min(max(base_v + dv, 0), height - 1)
+        ray = table[first + cv * width + cu]
+        err = 0.0
+        for c in range(3):
+            diff = float(ray[c]) - target[c]
+            err += diff * diff
+        if err < best:
+            best, best_u, best_v = err, cu, cv
+    return best_u, best_v
 
 
 def _project_rays(table: np.ndarray, height: int, width: int, target: np.ndarray,
                   start: np.ndarray, per_image: int, max_iters: int, lambda_init: float,
-                  tol: float, pixel: np.ndarray, cost_out: np.ndarray
+                  tol: float, pixel: np.ndarray, nearest: np.ndarray, cost_out: np.ndarray
                   ) -> None:  # pragma: no cover (compiled)
     for row in prange(start.shape[0]):
         first = (row // per_image) * height * width
         t = target[row]
-        u, v = start[row, 0], start[row, 1]
+        u, v = float(start[row, 0]), float(start[row, 1])
         cost, err, J_u, J_v = _ray_sample(table, first, height, width, u, v, t)
         lam = lambda_init
         for _ in range(max_iters if not cost < tol else 0):
@@ -133,20 +157,31 @@ def _project_rays(table: np.ndarray, height: int, width: int, target: np.ndarray
             if cost < tol or (not better and (cand_u != step_u or cand_v != step_v)):
                 break  # converged, or pushed against the border without improving
         pixel[row, 0], pixel[row, 1] = u, v
+        nearest[row, 0], nearest[row, 1] = _nearest_pixel(table, first, height, width, u, v, t)
         cost_out[row] = cost
 
 
 def project_rays(rays_grad: Tensor, target_rays: Tensor, p_init: Tensor, max_iters: int,
-                 lambda_init: float, convergence_tol: float) -> tuple[Tensor, Tensor]:
+                 lambda_init: float, convergence_tol: float
+                 ) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`como3r.frontend.matching.project_iteratively` on CPU tensors, per pixel in
-    float64 (the PyTorch path computes in the pointmap's dtype). Shapes as there."""
+    float64 (the PyTorch path computes in the pointmap's dtype), followed by
+    ``matching._nearest_ray_pixel``. Shapes as there.
+
+    Returns:
+        ``(p (B, P, 2) float, pixel (B, P, 2) int64, converged (B, P) bool)``: the continuous
+        optimum, its nearest pixel centre by ray, and whether it converged.
+    """
     B, H, W, C = rays_grad.shape
     P = target_rays.shape[1]
-    table = rays_grad.detach().reshape(B * H * W, C).to(torch.float64).contiguous().numpy()
+    table = rays_grad.detach().reshape(B * H * W, C).contiguous().numpy()
     target = target_rays.detach().reshape(B * P, 3).to(torch.float64).contiguous().numpy()
-    start = p_init.detach().reshape(B * P, 2).to(torch.float64).contiguous().numpy()
-    pixel, cost = np.empty_like(start), np.empty(B * P)
+    start = p_init.detach().reshape(B * P, 2).contiguous().numpy()
+    pixel, cost = np.empty((B * P, 2)), np.empty(B * P)
+    nearest = np.empty((B * P, 2), dtype=np.int64)
     project = compiled(_project_rays)
-    project(table, H, W, target, start, P, max_iters, lambda_init, convergence_tol, pixel, cost)
+    project(table, H, W, target, start, P, max_iters, lambda_init, convergence_tol, pixel,
+            nearest, cost)
     p = torch.from_numpy(pixel).to(p_init.dtype).reshape(B, P, 2)
-    return p, torch.from_numpy(cost < convergence_tol).reshape(B, P)
+    return (p, torch.from_numpy(nearest).reshape(B, P, 2),
+            torch.from_numpy(cost < convergence_tol).reshape(B, P))

@@ -158,10 +158,27 @@ def project_iteratively(
         ``(p (B, P, 2) float, converged (B, P) bool)``.
     """
     if rays_grad.device.type == "cpu":
-        return cpu_kernels.project_rays(rays_grad, target_rays, p_init, max_iters, lambda_init,
-                                        convergence_tol)
+        p, _, converged = cpu_kernels.project_rays(rays_grad, target_rays, p_init, max_iters,
+                                                   lambda_init, convergence_tol)
+        return p, converged
     return _project_vectorised(rays_grad, target_rays, p_init, max_iters, lambda_init,
                                convergence_tol)
+
+
+def project_to_pixels(rays_grad: Tensor, target_rays: Tensor, p_init: Tensor, max_iters: int,
+                      lambda_init: float, convergence_tol: float) -> tuple[Tensor, Tensor]:
+    """:func:`project_iteratively`, then the pixel centre whose ray is nearest the target
+    (:func:`_nearest_ray_pixel`): ``(pixel (B, P, 2) int64, converged (B, P) bool)``.
+
+    On CPU one compiled loop does both per pixel (:mod:`como3r.frontend.cpu_kernels`).
+    """
+    if rays_grad.device.type == "cpu":
+        _, pixel, converged = cpu_kernels.project_rays(rays_grad, target_rays, p_init,
+                                                       max_iters, lambda_init, convergence_tol)
+        return pixel, converged
+    p, converged = _project_vectorised(rays_grad, target_rays, p_init, max_iters, lambda_init,
+                                       convergence_tol)
+    return _nearest_ray_pixel(rays_grad[..., :3], p, target_rays), converged
 
 
 def _project_vectorised(rays_grad: Tensor, target_rays: Tensor, p_init: Tensor, max_iters: int,
@@ -341,11 +358,10 @@ def match_pointmaps(
         grid = torch.stack([u.reshape(-1), v.reshape(-1)], dim=-1).to(X_query.dtype)
         upper = torch.tensor([W - 1, H - 1], dtype=X_query.dtype, device=X_query.device)
         p_init = grid.minimum(upper).expand(B, -1, -1)
-    p, converged = project_iteratively(
+    pixel, converged = project_to_pixels(
         ray_image_with_gradients(X_search), psi(queries), p_init.to(X_query.dtype),
         config.max_iters, config.lambda_init, config.convergence_tol,
     )
-    pixel = _nearest_ray_pixel(psi(X_search), p, psi(queries))
     finite = torch.isfinite(queries).all(-1)
     if config.descriptor_radius > 0:
         # the window is given at the paper's 512 px and scales with the image (units.py);
