@@ -98,6 +98,9 @@ def test_robot_processes_give_the_one_process_result(mission, scene):
         keyframes = read_tum(tmp / f"out{robot}" / "keyframes" / f"agent_{robot}.txt")
         np.testing.assert_allclose(keyframes.T_WC[:len(report.estimate)].numpy(),
                                    report.estimate, atol=1e-4)
+        [bandwidth] = m["bandwidth"]
+        assert bandwidth["bytes_sent"] == m["bytes"]["sent_total"]
+        assert bandwidth["keyframes"] == len(keyframes) and bandwidth["image_bytes"] == 3 * 64 * 96
         trajectory = read_tum(tmp / f"out{robot}" / "trajectories" / f"agent_{robot}.txt")
         assert len(trajectory) == len(read_tum(scene[robot] / "odometry.txt"))
     assert sum(len(r.loops) for r in reference.reports.values()) > 0

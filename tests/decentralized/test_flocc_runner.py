@@ -62,6 +62,18 @@ def test_metrics_count_bytes_per_robot_and_message_type(run):
     # The encodings that travel dominate, place descriptors are compact (F-Sec. III-A/B).
     assert traffic["bytes_by_type"]["EncodingReply"] > 10 * traffic["bytes_by_type"][
         "PlaceDescriptors"]
+    assert traffic["bytes_per_message"]["EncodingReply"] == (
+        traffic["bytes_by_type"]["EncodingReply"] / traffic["messages_by_type"]["EncodingReply"])
+
+
+def test_metrics_give_bytes_per_keyframe_against_the_raw_image(run):
+    _, summary, metrics = run
+    for row, robot in zip(metrics["bandwidth"], summary.agents):
+        assert row["image_bytes"] == 3 * 64 * 96  # 96x72 views cropped to multiples of 16
+        assert row["keyframes"] == robot["keyframes"] > 0
+        sent = metrics["bytes"]["per_robot"][str(row["robot"])]["sent_total"]
+        assert row["bytes_sent"] == sent
+        assert row["per_keyframe_over_image"] == sent / robot["keyframes"] / (3 * 64 * 96)
 
 
 def test_two_stage_registration_saves_encodes(run):

@@ -40,6 +40,18 @@ class Probe:
 codec.register(Probe, version=1, name="tests.Probe")
 
 
+@dataclass(frozen=True)
+class HalfProbe:
+    """A test-only message whose ``value`` travels in half precision."""
+
+    value: Any
+    exact: Any = None
+    version: int = 1
+
+
+codec.register(HalfProbe, version=1, name="tests.HalfProbe", half=("value",))
+
+
 def _gen(seed: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed)
 
@@ -150,6 +162,7 @@ SAMPLES: dict[str, Callable[[], Any]] = {
     "Shutdown": lambda: messages.Shutdown(reason="test"),
     "EdgeSummary": lambda: messages.EdgeSummary(i=1, j=2, kind="loop", match_fraction=0.4),
     "tests.Probe": lambda: Probe(value=(None, [1, 2.5], {"a": True})),
+    "tests.HalfProbe": lambda: HalfProbe(value=[1.5], exact=torch.ones(2)),
 }
 
 
@@ -203,6 +216,24 @@ def test_round_trip_is_bit_exact(name: str) -> None:
     assert_identical(message, decode(encode(message)))
 
 
+@pytest.mark.parametrize("name", sorted(SAMPLES))
+def test_lossy_round_trip_is_bit_exact_but_for_half_precision_fields(name: str) -> None:
+    message = SAMPLES[name]()
+    assert_identical(codec.as_received(message), decode(encode(message, lossy=True)))
+
+
+def test_pointmaps_and_match_confidences_travel_in_half_precision_across_machines() -> None:
+    packet = SAMPLES["KeyframePacket"]()
+    back = decode(encode(packet, lossy=True))
+    for name in ("X_hat", "C_hat"):
+        original, received = getattr(packet, name), getattr(back, name)
+        assert received.dtype == torch.float32 and not torch.equal(original, received)
+        torch.testing.assert_close(received, original, rtol=2**-11, atol=2**-24)
+    assert_identical(packet.T_WC, back.T_WC)  # poses stay exact
+    assert_identical(packet.encoding, back.encoding)  # encodings too (not measured in fp16)
+    assert not torch.equal(packet.sequential_ij.q, back.sequential_ij.q)
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.int64, torch.bool,
                                    torch.uint8, torch.int32, torch.float16, torch.bfloat16])
 def test_tensor_dtypes_round_trip(dtype: torch.dtype) -> None:
@@ -221,6 +252,94 @@ def test_numpy_arrays_round_trip(dtype: type) -> None:
                            "scalar": np.asarray(array[1, 1, 1])})
     back = decode(encode(message)).value
     assert_identical({k: v.copy(order="C") for k, v in message.value.items()}, back)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.int64, torch.bool,
+                                   torch.uint8, torch.float16, torch.bfloat16])
+def test_large_arrays_travel_compressed_and_come_back_bit_exact(dtype: torch.dtype) -> None:
+    smooth = torch.linspace(-3, 3, 192 * 96).reshape(192, 96)
+    tensor = (smooth > 0) if dtype == torch.bool else (smooth * 40).to(dtype)
+    array = torch.randn(64, 96, generator=_gen(3)).to(torch.float32).numpy()  # noisy floats
+    message = Probe(value=[tensor, tensor[:, ::3], array])
+    data = encode(message)
+    wire = msgpack.unpackb(data, raw=False)["fields"]["value"]
+    assert all("zstd" in item and "data" not in item for item in wire)
+    assert len(data) < sum(t.numel() * t.element_size() for t in (tensor, tensor[:, ::3])) \
+        + array.nbytes
+    assert_identical(message, decode(data))
+
+
+def _zeros_message(nbytes: int) -> bytes:
+    return encode(Probe(np.zeros(nbytes, np.uint8)))
+
+
+def test_compressed_arrays_may_not_decompress_past_the_budget() -> None:
+    data = _zeros_message(10 * 2**20)  # 10 MiB of zeros: a few hundred bytes on the wire
+    with pytest.raises(MessageError, match="more than 8 times the message size cap"):
+        decode(data, max_bytes=len(data))
+    assert decode(data, max_bytes=2 * 2**20).value.nbytes == 10 * 2**20
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda a: a.update(zstd=b"not zstd at all"), "compressed array data is not valid"),
+    (lambda a: a.update(shape=[a["shape"][0] + 1]), "does not decompress to the"),
+    (lambda a: a.update(shape=[a["shape"][0] - 1]), "does not decompress to the"),
+    (lambda a: a.update(data=b""), "has keys"),
+    (lambda a: a.update(zstd=a["zstd"] + a["zstd"]), "does not decompress to the"),
+])
+def test_tampered_compressed_arrays_are_rejected(edit: Callable[[dict], None],
+                                                  match: str) -> None:
+    data = tamper(_zeros_message(8192), lambda tree: edit(tree["fields"]["value"]))
+    with pytest.raises(MessageError, match=match):
+        decode(data)
+
+
+def test_mutated_compressed_arrays_never_escape_as_other_errors() -> None:
+    rng = np.random.default_rng(1)
+    original = encode(Probe(torch.linspace(0, 1, 4096)))
+    for _ in range(200):
+        data = bytearray(original)
+        for pos in rng.integers(0, len(data), size=rng.integers(1, 4)):
+            data[pos] = int(rng.integers(256))
+        try:
+            decode(bytes(data))
+        except MessageError:
+            pass
+
+
+def test_half_fields_travel_as_float16_and_come_back_as_float32() -> None:
+    tensor = torch.randn(64, 96, generator=_gen(5)) * 30
+    array = tensor.numpy() + np.float32(1e4)
+    for value in (tensor, array):
+        data = encode(HalfProbe(value, exact=value), lossy=True)
+        assert_identical(decode(encode(HalfProbe(value))).value, value)  # not lossy: exact
+        wire = msgpack.unpackb(data, raw=False)["fields"]
+        assert wire["value"]["dtype"] == "float16" and wire["value"]["as"] == "float32"
+        assert wire["exact"]["dtype"] == "float32"  # not a half field
+        back = decode(data)
+        assert type(back.value) is type(value) and back.value.dtype == value.dtype
+        assert np.array_equal(np.asarray(back.value), np.asarray(value).astype(np.float16)
+                              .astype(np.float32))
+        assert_identical(back.exact, value)
+
+
+def test_half_fields_that_float16_cannot_hold_travel_in_float32() -> None:
+    value = torch.tensor([1.0, 7e4, math.inf, math.nan])  # 7e4 would become inf
+    wire = msgpack.unpackb(encode(HalfProbe(value), lossy=True), raw=False)["fields"]["value"]
+    assert wire["dtype"] == "float32" and "as" not in wire
+    for other in (torch.arange(4), torch.zeros(3, dtype=torch.float64), [1.5]):
+        assert_identical(decode(encode(HalfProbe(other), lossy=True)).value, other)
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda a: a.update({"as": "float64"}), "cannot travel as 'float64'"),
+    (lambda a: a.update(dtype="int16"), "a int16 array cannot travel as 'float32'"),
+])
+def test_tampered_widening_is_rejected(edit: Callable[[dict], None], match: str) -> None:
+    data = tamper(encode(HalfProbe(torch.ones(4)), lossy=True),
+                  lambda t: edit(t["fields"]["value"]))
+    with pytest.raises(MessageError, match=match):
+        decode(data)
 
 
 def test_big_endian_arrays_keep_their_values() -> None:

@@ -1,9 +1,11 @@
-"""Run outputs (runtime/outputs.py): loud tracking loss."""
+"""Run outputs (runtime/outputs.py): loud tracking loss, bandwidth per keyframe."""
 
 from __future__ import annotations
 
 import logging
 from types import SimpleNamespace
+
+import numpy as np
 
 from como3r.frontend.agent import FrontendStats
 from como3r.runtime.outputs import tracking_warnings
@@ -38,3 +40,31 @@ def test_notes_name_the_final_folder_not_the_staging_one(tmp_path) -> None:
     text = f"{staging / 'trajectories' / 'agent_0.txt'}: 1 pose, at least 3 needed"
     assert in_final_folder(text, staging) == (
         f"{tmp_path / 'run' / 'trajectories' / 'agent_0.txt'}: 1 pose, at least 3 needed")
+
+
+def test_bandwidth_is_per_keyframe_against_the_raw_image() -> None:
+    from como3r.runtime.outputs import bandwidth
+
+    row = bandwidth({"KeyframeMessage": 9000, "FrameDone": 600}, 3, (40, 50))
+    assert row["image_bytes"] == 6000 and row["bytes_sent"] == 9600
+    assert row["bytes_per_keyframe"] == 3200 and row["per_keyframe_over_image"] == 3200 / 6000
+    assert row["bytes_per_keyframe_by_type"] == {"FrameDone": 200, "KeyframeMessage": 3000}
+    empty = bandwidth({}, 0, (40, 50))
+    assert empty["bytes_per_keyframe"] is None and empty["per_keyframe_over_image"] is None
+
+
+def test_keyframe_bandwidth_reads_what_each_agent_sent_the_coordinator() -> None:
+    from como3r.runtime.outputs import keyframe_bandwidth
+
+    keyframe = SimpleNamespace(colors=np.zeros((6, 8, 3), np.uint8))
+    runtime = {"agents": [
+        {"agent": 0, "bytes_from_agent": {"KeyframeMessage": 1440}, "keyframes_received": 2},
+        {"agent": 1, "bytes_from_agent": {"AgentFailed": 50}, "keyframes_received": 0}]}
+    results = [SimpleNamespace(agent=0, keyframes=[keyframe, keyframe]),
+               SimpleNamespace(agent=0, keyframes=[]),  # a later map segment of agent 0
+               SimpleNamespace(agent=1, keyframes=[])]
+    rows = keyframe_bandwidth(runtime, results)
+    assert [r["agent"] for r in rows] == [0, 1]
+    assert rows[0]["per_keyframe_over_image"] == 720 / 144
+    assert rows[1]["bytes_per_keyframe"] is None
+    assert keyframe_bandwidth(None, results) is None

@@ -180,6 +180,8 @@ class TrafficCounter:
                      for r in robots}
         return {"per_robot": per_robot, "bytes_by_type": dict(self.bytes_by_type),
                 "messages_by_type": dict(self.messages),
+                "bytes_per_message": {k: v / self.messages[k]
+                                      for k, v in self.bytes_by_type.items()},
                 "total_bytes": sum(self.bytes_by_type.values()),
                 "dropped": dict(self.dropped)}
 

@@ -34,6 +34,7 @@ import yaml
 
 from como3r.config import Config, config_to_dict
 from como3r.data.agent import AgentInput, open_agent
+from como3r.data.preprocess import make_view
 from como3r.decentralized.config import (
     FORMULATIONS,
     SOLVERS,
@@ -202,7 +203,7 @@ def _frame_groups(reports: dict[int, RobotReport], count: int) -> list[list[int]
 def _write(staging: Path, robots: list[RobotData], result: ProtocolResult, config: Config,
            settings: DecentralizedConfig, summary: Any, seconds: float, prior: str,
            progress: PhaseCallback | None = None) -> None:
-    from como3r.runtime.outputs import write_json
+    from como3r.runtime.outputs import bandwidth, write_json
 
     report_phase(progress, "outputs", "config.yaml, trajectories, graph.json")
     reports = result.reports
@@ -228,6 +229,9 @@ def _write(staging: Path, robots: list[RobotData], result: ProtocolResult, confi
         "frame_groups": groups,
         "bytes": result.traffic.to_json(range(len(robots))),
         "robots": [robot_metrics(r, reports.get(r)) for r in range(len(robots))],
+        "bandwidth": [{"robot": r, **bandwidth(result.traffic.sent.get(r, {}),
+                                                len(robot.keyframes), image_shape(robot, config))}
+                      for r, robot in enumerate(robots)],
         "two_stage": two_stage(reports),
         "loops": loop_statistics(loops, rejected),
     }
@@ -274,6 +278,13 @@ def write_trajectories(staging: Path, robots: dict[int, RobotData],
         write_tum(staging / "trajectories" / f"agent_{r}.txt", robot.odometry.timestamps, poses)
         write_tum(staging / "keyframes" / f"agent_{r}.txt", robot.keyframes.timestamps,
                   poses[robot.keyframes.rows])
+
+
+def image_shape(robot: RobotData, config: Config) -> tuple[int, int]:
+    """``(H, W)`` of the robot's images at network resolution (``input.long_side``)."""
+    frame = robot.agent.load_frame(int(robot.odometry.frames[0]))
+    height, width = make_view(frame, 0, config.input.long_side).image.shape[-2:]
+    return int(height), int(width)
 
 
 def robot_metrics(robot: int, report: RobotReport | None) -> dict[str, Any]:

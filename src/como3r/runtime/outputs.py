@@ -162,6 +162,49 @@ def tracking_warnings(results: Sequence[Any]) -> list[str]:
     return warnings
 
 
+def bandwidth(sent: Mapping[str, int], keyframes: int,
+              image_shape: tuple[int, int]) -> dict[str, Any]:
+    """What one agent (or robot) sent, per keyframe, against the raw bytes of an image.
+
+    Args:
+        sent: bytes sent per message type, as they went on the wire.
+        keyframes: its keyframes.
+        image_shape: ``(H, W)`` of its images at network resolution (``input.long_side``),
+            whose raw RGB bytes (``3 H W``) are the yardstick.
+
+    Returns:
+        ``metrics.json``'s ``bandwidth`` entry: totals, bytes per keyframe (all and per
+        message type) and their ratio to the raw image bytes (None without keyframes).
+    """
+    image = 3 * int(image_shape[0]) * int(image_shape[1])
+    total = int(sum(sent.values()))
+    per_keyframe = total / keyframes if keyframes else None
+    return {"keyframes": keyframes, "bytes_sent": total, "bytes_per_keyframe": per_keyframe,
+            "image_bytes": image,
+            "per_keyframe_over_image": per_keyframe / image if per_keyframe else None,
+            "bytes_per_keyframe_by_type": ({k: v / keyframes for k, v in sorted(sent.items())}
+                                           if keyframes else {})}
+
+
+def keyframe_bandwidth(runtime: Mapping[str, Any] | None,
+                       results: Sequence[Any]) -> list[dict[str, Any]] | None:
+    """Per agent of a multi-process run, :func:`bandwidth` of what it sent the coordinator
+    (None without a ``runtime`` section: nothing travelled)."""
+    if not runtime:
+        return None
+    by_agent: dict[int, Any] = {}
+    for result in results:
+        by_agent.setdefault(result.agent, result)
+    rows = []
+    for entry in runtime["agents"]:
+        result = by_agent.get(entry["agent"])
+        keyframes = list(result.keyframes) if result is not None else []
+        shape = tuple(keyframes[0].colors.shape[:2]) if keyframes else (0, 0)
+        rows.append({"agent": entry["agent"], **bandwidth(entry["bytes_from_agent"],
+                                                           entry["keyframes_received"], shape)})
+    return rows
+
+
 def write_config(out: Path, config: Config) -> None:
     """The full effective configuration."""
     dump_config(config, out / "config.yaml")
@@ -220,6 +263,7 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
     report_phase(progress, "evaluation", "map accuracy", 1, 2)
     metrics["map_accuracy"] = _map_accuracy(summary, agents, components, results, coordinator,
                                             config)
+    metrics["bandwidth"] = keyframe_bandwidth(metrics.get("runtime"), results)
     write_json(staging / "metrics.json", metrics)
     truth = [a.groundtruth for a in agents] if summary.evaluation is not None else None
     report_phase(progress, "report", "report.html")

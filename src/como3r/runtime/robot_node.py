@@ -42,6 +42,7 @@ from como3r.decentralized.runner import (
     RobotData,
     RobotProgressAdapter,
     graph_document,
+    image_shape,
     loop_statistics,
     open_robot,
     reported_keyframes,
@@ -52,10 +53,16 @@ from como3r.decentralized.runner import (
 from como3r.errors import InputError
 from como3r.io.output import atomic_output_dir, check_output_dir
 from como3r.progress import ProgressCallback
-from como3r.runtime.outputs import SIMULATED_NOTE, write_json
+from como3r.runtime.outputs import SIMULATED_NOTE, bandwidth, write_json
 from como3r.runtime.pipeline import PriorSpec, RunSummary
 from como3r.runtime.transport_zenoh import ZenohOptions, open_session
-from como3r.runtime.zenoh_robot import RobotKeys, RobotTraffic, ZenohRobotLink, finish_timeout
+from como3r.runtime.zenoh_robot import (
+    RobotKeys,
+    RobotTraffic,
+    ZenohRobotLink,
+    by_type,
+    finish_timeout,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -155,6 +162,8 @@ def _write(staging: Path, robot: int, data: RobotData, report: RobotReport,
         "rounds": [{"round": p.round, "time_s": p.time_s, "group": list(p.group)}
                    for p in rounds],
         "bytes": traffic.to_json(),
+        "bandwidth": [{"robot": robot, **bandwidth(by_type(traffic.sent), len(data.keyframes),
+                                                    image_shape(data, config))}],
         "robots": [robot_metrics(robot, report)],
         "two_stage": two_stage({robot: report}),
         "loops": loop_statistics(report.loops, report.rejected),

@@ -6,6 +6,8 @@ message in the agent's :class:`~como3r.runtime.spool.Spool` and a background thr
 on the network while the coordinator's liveliness token is present. While the coordinator is
 away the agent keeps tracking and the spool grows (on disk past its memory limit); when the
 coordinator is back, everything it has not acknowledged is put again, oldest first.
+Messages are encoded ``lossy`` (:func:`~como3r.runtime.codec.encode`): keyframe pointmaps
+and confidences travel in half precision.
 """
 
 from __future__ import annotations
@@ -98,7 +100,7 @@ class ZenohAgentLink:
     # ------------------------------------------------------------ AgentLink
 
     def send(self, message: Any) -> None:
-        data = codec.encode(message, max_bytes=self.max_bytes)
+        data = codec.encode(message, max_bytes=self.max_bytes, lossy=True)
         self.traffic.sent(message, len(data))
         with self._cond:
             self.spool.append(self.keys.up(self.agent, type(message).__name__), data)
