@@ -287,6 +287,22 @@ class VisualizationConfig:
 
 
 @dataclass(frozen=True)
+class SessionConfig:
+    """The coordinator's memory and its session store (not in C-Tab. 3; README, "Run
+    output").
+
+    ``resident_keyframes``: per agent, how many of its newest keyframes the coordinator keeps
+    whole in memory (a count). The others' encodings, images and pointmaps, and the matches
+    of the sequential edges between them, are paged out to the session store after every
+    message and read back while a verification or a solve needs them
+    (:mod:`como3r.runtime.store_paging`), so the coordinator's memory does not grow with
+    the sequence. The results are the same for every value.
+    """
+
+    resident_keyframes: int = 8
+
+
+@dataclass(frozen=True)
 class SimulatedPriorConfig:
     """Error model of the simulated prior (README, "Python API").
 
@@ -342,6 +358,7 @@ class Config:
     global_ba: GlobalBAConfig = field(default_factory=GlobalBAConfig)
     depth: DepthRefinementConfig = field(default_factory=DepthRefinementConfig)
     visualization: VisualizationConfig = field(default_factory=VisualizationConfig)
+    session: SessionConfig = field(default_factory=SessionConfig)
     simulated_prior: SimulatedPriorConfig = field(default_factory=SimulatedPriorConfig)
     decentralized: DecentralizedConfig = field(default_factory=DecentralizedConfig)
     calibrated: bool = False
@@ -377,7 +394,7 @@ _NON_NEGATIVE = (
     "global_ba.lm_lambda", "global_ba.tikhonov_base", "global_ba.tikhonov_retries",
     "depth.slic_sigma", "depth.lambda_smooth", "depth.lambda_prior", "depth.lambda_lm",
     "depth.alternation_rounds",
-    "visualization.voxel_size_m",
+    "visualization.voxel_size_m", "session.resident_keyframes",
 )
 _AT_LEAST_ONE = (
     "input.subsample",

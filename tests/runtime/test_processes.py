@@ -335,9 +335,8 @@ def test_agent_result_applies_updates_like_the_frontend() -> None:
         frontend.keyframes.add(Keyframe(k, 2 * k, 0.1 * k, None, pose.clone(), torch.zeros(1, 1, 3),
                                         torch.ones(1, 1), torch.zeros(1, 1, 3), torch.ones(1, 1),
                                         np.zeros((1, 1, 3), np.uint8)))
-        result.keyframes.append(KeyframeView(k, 2 * k, 0.1 * k, pose.clone(),
-                                             torch.zeros(1, 1, 3), torch.ones(1, 1),
-                                             np.zeros((1, 1, 3), np.uint8)))
+        result.keyframes.append(KeyframeView(k, 2 * k, 0.1 * k, pose.clone(), graph=None,
+                                             agent=0, graph_kf_id=k))  # poses only
     for count in (3, 5, 1):
         new = sim3_exp(0.3 * torch.randn(count, 7, dtype=torch.float64, generator=generator))
         update = PoseUpdate(agent=0, kf_ids=torch.arange(count), T_WC=new, reason="global_ba")
@@ -440,8 +439,7 @@ def test_a_new_process_taking_over_an_id_starts_a_map_segment_after_the_last_fra
     slot = runtime.slots[1]
     slot.status, slot.last_frame = "running", 6
     runtime.segments[1].result.keyframes.append(KeyframeView(
-        0, 4, 0.1, torch.zeros(8), torch.zeros(1, 1, 3), torch.ones(1, 1),
-        np.zeros((1, 1, 3), np.uint8)))
+        0, 4, 0.1, torch.zeros(8), graph=None, agent=1, graph_kf_id=0))  # frames only
     _pump(hub, runtime, Left(1, "left", may_return=True))
     task = runtime.rejoin(1)
     assert task.agent == 1 and task.resume_after == 6

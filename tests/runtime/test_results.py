@@ -3,7 +3,6 @@ numbered, and the coordinator's graph stated in agent ids."""
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from como3r.frontend.agent import FrontendStats
@@ -24,8 +23,8 @@ def _result(agent: int, frames: list[int]) -> AgentResult:
     for k, frame in enumerate(frames):
         pose = torch.zeros(8, dtype=torch.float64)
         pose[0], pose[6], pose[7] = frame, 1.0, 1.0
-        result.keyframes.append(KeyframeView(k, frame, 0.1 * frame, pose, torch.zeros(1, 1, 3),
-                                             torch.ones(1, 1), np.zeros((1, 1, 3), np.uint8)))
+        result.keyframes.append(KeyframeView(k, frame, 0.1 * frame, pose, graph=None,
+                                             agent=agent, graph_kf_id=k))  # poses only
     result.edges = [EdgeView(k - 1, k, "sequential", MatchFraction(0.5))
                     for k in range(1, len(frames))]
     return result

@@ -25,6 +25,7 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
+from como3r.backend.global_graph import GlobalGraph
 from como3r.config import Config, differing_key
 from como3r.coordination.coordinator import Coordinator, CoordinatorStats
 from como3r.errors import InputError
@@ -102,15 +103,18 @@ def hold_map(coordinator: Coordinator, saved: SavedMap) -> None:
         coordinator.graph.fixed = set(range(len(saved.session.graph)))
 
 
-def map_results(saved: SavedMap, offset: int = 0) -> list[AgentResult]:
+def map_results(saved: SavedMap, offset: int = 0,
+                graph: GlobalGraph | None = None) -> list[AgentResult]:
     """The saved agents' results as the outputs read them (keyframes from the map, their
     trajectories and statistics from their reports), by agent id, the ids moved by
-    ``offset``."""
+    ``offset``; their keyframes' arrays are read from ``graph`` (the coordinator's, under
+    the moved ids) where given, else from the saved map's."""
     results = []
     for agent in range(saved.agents):
         report = saved.session.reports.get(agent)
-        result = AgentResult(offset + agent, stored_views(saved.session.graph, agent),
-                             finished=report)
+        views = stored_views(saved.session.graph, agent, graph,
+                             None if graph is None else offset + agent)
+        result = AgentResult(offset + agent, views, finished=report)
         if report is not None:
             if len(report.keyframe_T_WC) != len(result.keyframes):
                 result.finished = None  # a failed agent's: its keyframes only

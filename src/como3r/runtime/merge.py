@@ -26,7 +26,8 @@ from typing import Sequence
 
 from como3r.coordination.coordinator import Coordinator
 from como3r.errors import InputError
-from como3r.frontend.packets import KeyframePacket
+from como3r.frontend.keyframes import Keyframe
+from como3r.frontend.packets import KeyframePacket, PointmapRefresh
 from como3r.io.output import atomic_output_dir
 from como3r.progress import PhaseCallback, report_phase
 from como3r.runtime import outputs
@@ -64,18 +65,16 @@ def merge_runs(first: Path, second: Path, out: Path, prior_spec: PriorSpec,
     seed_map(coordinator, kept)
     coordinator.refined += [{kept.agents + a for a in members}
                             for members in moved.session.gauges.components()]
-    results = map_results(kept) + map_results(moved, offset=kept.agents)
+    results = map_results(kept) + map_results(moved, kept.agents, coordinator.graph)
     with atomic_output_dir(out, overwrite=overwrite) as staging:
         with SessionStore.create(staging / STORE_NAME, config, coordinator) as store:
             store.record_runtime(None, {r.agent: r.finished for r in results if r.finished})
             _replay(moved, kept.agents, coordinator, results, progress)
             _check_meeting(first, second, coordinator, kept.agents)
             cleanup = coordinator.finish(None, progress)
-        for update in cleanup.updates:
-            results[update.agent].apply_pose_update(update)
-        for update in cleanup.pointmaps:
-            results[update.agent].apply_pointmap_update(update)
-        summary = _write(staging, results, coordinator, prior.describe(), progress)
+            for update in cleanup.updates:
+                results[update.agent].apply_pose_update(update)
+            summary = _write(staging, results, coordinator, prior.describe(), progress)
     summary.out = out
     return summary
 
@@ -83,22 +82,35 @@ def merge_runs(first: Path, second: Path, out: Path, prior_spec: PriorSpec,
 def _replay(moved: SavedMap, offset: int, coordinator: Coordinator,
             results: Sequence[AgentResult], progress: PhaseCallback | None) -> None:
     """Hand the moved session's keyframes to the coordinator in their stored order, each in
-    its agent's current frame; apply the coordinator's updates to the results."""
+    its agent's current frame (its pose in ``results``; the coordinator takes its pointmap
+    onto the agent's focal length in the merged map); apply the coordinator's updates to
+    the results."""
     graph = moved.session.graph
     sequential = {link.j: link.link for link in graph.links if link.kind == "sequential"}
     for g, kf in enumerate(graph.keyframes):
         report_phase(progress, "merging", f"keyframe {g + 1} of {len(graph)}", g, len(graph))
         agent = offset + graph.agent_of[g]
-        view = results[agent].keyframes[kf.kf_id]
         link = sequential.get(g)
+        previous = (None if kf.kf_id == 0 else _refresh(
+            graph.keyframes[graph.global_index(graph.agent_of[g], kf.kf_id - 1)]))
         packet = KeyframePacket(
             agent=agent, kf_id=kf.kf_id, frame_index=kf.frame_index, timestamp=kf.timestamp,
-            T_WC=view.T_WC.clone(), X_hat=view.X_hat, C_hat=view.C_hat, colors=kf.colors,
-            encoding=kf.encoding, retrieval=kf.retrieval,
+            T_WC=results[agent].keyframes[kf.kf_id].T_WC.clone(), X_hat=kf.X_hat,
+            C_hat=kf.C_hat, colors=kf.colors, encoding=kf.encoding, retrieval=kf.retrieval,
             sequential_ij=None if link is None else link.ij,
-            sequential_ji=None if link is None else link.ji, previous=None, K=view.K)
+            sequential_ji=None if link is None else link.ji, previous=previous, K=kf.K)
         for update in coordinator.add_keyframe(packet):
             results[update.agent].apply_pose_update(update)
+    for agent in range(moved.agents):  # as an agent's last keyframe comes with its report
+        own = graph.agent_keyframes(agent)
+        if own:
+            coordinator.refresh(offset + agent, _refresh(graph.keyframes[own[-1]]))
+
+
+def _refresh(kf: Keyframe) -> PointmapRefresh:
+    """A stored keyframe's fused pointmap as its agent would send it (with the keyframe
+    after it, or at its end)."""
+    return PointmapRefresh(kf.kf_id, kf.X_hat, kf.C_hat, kf.fused_frames, kf.K)
 
 
 def _check_meeting(first: Path, second: Path, coordinator: Coordinator, split: int) -> None:

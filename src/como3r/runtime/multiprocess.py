@@ -129,7 +129,7 @@ def coordinate(
                                inputs, saved_map)
             if saved_map is not None and not resume:
                 seed_map(runtime.coordinator, saved_map)
-            session = read_session(staging / STORE_NAME) if continuing else None
+            session = read_session(staging / STORE_NAME, paged=True) if continuing else None
             for _ in range(runtime.coordinator.num_agents, len(session.agents) if session
                            else 0):  # map segments of restarted agents
                 runtime.coordinator.add_agent()
@@ -141,11 +141,11 @@ def coordinate(
                     restore_runtime(runtime, session)
                 runtime.start(agent_paths, prior_spec)
                 runtime.run(finish_threads=threads)
-            runtime.stop()
-            if all(s.status == "failed" for s in runtime.slots):
-                raise InputError("every agent failed: " + "; ".join(
-                    f"agent {s.agent}: {s.error}" for s in runtime.slots))
-            summary = _write(staging, runtime, inputs)
+                runtime.stop()
+                if all(s.status == "failed" for s in runtime.slots):
+                    raise InputError("every agent failed: " + "; ".join(
+                        f"agent {s.agent}: {s.error}" for s in runtime.slots))
+                summary = _write(staging, runtime, inputs)  # reads paged-out keyframes
     except KeyboardInterrupt:
         interrupted = True
         raise

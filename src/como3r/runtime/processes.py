@@ -68,7 +68,7 @@ import torch
 from como3r.config import Config, config_to_dict
 from como3r.coordination.coordinator import Coordinator
 from como3r.data.agent import AgentInput
-from como3r.frontend.packets import PointmapRefresh, PoseUpdate
+from como3r.frontend.packets import PoseUpdate
 from como3r.geometry.lie import sim3_compose, sim3_inverse
 from como3r.live import FrameEvent, LiveCallback
 from como3r.progress import (
@@ -100,10 +100,10 @@ from como3r.runtime.results import (
     AgentResult,
     AgentSlot,
     EdgeView,
-    KeyframeView,
     MapSegment,
     MatchFraction,
     SegmentPlace,
+    graph_view,
 )
 from como3r.runtime.map_session import SavedMap, map_results
 from como3r.runtime.runtime_state import snapshot
@@ -461,22 +461,13 @@ class _Runtime:
             T_rel = sim3_compose(sim3_inverse(message.T_WC_previous), packet.T_WC)
             packet = replace(packet, T_WC=sim3_compose(keyframes[-1].T_WC.to(T_rel), T_rel))
             segment.reanchored += 1
-        if packet.previous is not None:
-            self._refresh_view(segment.result, packet.previous)
-        keyframes.append(KeyframeView(packet.kf_id, packet.frame_index, packet.timestamp,
-                                      packet.T_WC.clone(), packet.X_hat, packet.C_hat,
-                                      packet.colors, K=packet.K))
+        keyframes.append(graph_view(self.coordinator.graph, segment.index, packet.kf_id,
+                                    packet.frame_index, packet.timestamp, packet.T_WC.clone()))
         updates = self.coordinator.add_keyframe(packet)
         for update in updates:
             self._send_update(update)
         if self.coordinator_live is not None:
             self.coordinator_live.keyframe_added(packet, updates)
-
-    @staticmethod
-    def _refresh_view(result: AgentResult, refresh: PointmapRefresh) -> None:
-        view = result.keyframes[refresh.kf_id]
-        view.X_hat, view.C_hat, view.K = refresh.X_hat, refresh.C_hat, refresh.K
-        view.fused_frames = refresh.fused_frames
 
     def _send_update(self, update: PoseUpdate) -> None:
         """Record a coordinator update of a segment, apply it to the segment's result and
@@ -507,16 +498,13 @@ class _Runtime:
             if done is not None and slot.status == "finished" and \
                     len(done.keyframe_T_WC) == len(segment.result.keyframes):  # else failed
                 if done.final is not None:
-                    self._refresh_view(segment.result, done.final)
                     self.coordinator.refresh(segment.index, done.final)
                 final_poses[segment.index] = done.keyframe_T_WC
         cleanup = self.coordinator.finish(final_poses, self.progress)
         for update in cleanup.updates:
             self._send_update(update)
         for slot in self.slots:
-            self._settle(slot)
-        for update in cleanup.pointmaps:
-            self.segments[update.agent].result.apply_pointmap_update(update)
+            self._settle(slot)  # the refined pointmaps are the graph's, which views read
         if self.coordinator_live is not None:
             self.coordinator_live.finish([segment.result for segment in self.segments])
 

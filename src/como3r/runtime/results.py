@@ -27,42 +27,75 @@ from torch import Tensor
 from como3r.backend.global_graph import GlobalGraph
 from como3r.coordination.coordinator import Coordinator
 from como3r.frontend.agent import AgentFrontend, FrontendStats
-from como3r.frontend.keyframes import apply_pointmap_update, apply_pose_update
+from como3r.frontend.keyframes import Keyframe, apply_pose_update
 from como3r.frontend.packets import PointmapRefresh, PointmapUpdate, PoseUpdate
-from como3r.geometry.camera import to_focal
 from como3r.geometry.lie import sim3_compose
 from como3r.runtime.messages import AgentFinished, EdgeSummary
 
 
 @dataclass
 class KeyframeView:
-    """What the outputs need of a keyframe, as received from its agent."""
+    """What the outputs need of a keyframe, its pose the agent's and the rest read from
+    the coordinator's graph, which holds (or pages in) the pointmaps: a view keeps no large
+    array, so the coordinator's memory stays bounded (:mod:`.store_paging`).
+
+    The graph gets every change a view is told of before or as the view does (a refreshed
+    pointmap, a focal length, a refined pointmap), so a view only reads them: writing one
+    of them is ignored.
+
+    Attributes:
+        kf_id: the keyframe's id in its agent's outputs.
+        frame_index: its frame in the agent's stream.
+        timestamp: seconds.
+        T_WC: ``(8,)`` its pose, as its agent has it.
+        graph: the coordinator's graph.
+        agent: the keyframe's agent in ``graph`` (its coordinator id).
+        graph_kf_id: its keyframe id there (``kf_id`` is renumbered when an agent's map
+            segments are joined).
+    """
 
     kf_id: int
     frame_index: int
     timestamp: float
     T_WC: Tensor
-    X_hat: Tensor
-    C_hat: Tensor
-    colors: np.ndarray
-    fused_frames: int = 1
-    K: Tensor | None = None
+    graph: GlobalGraph
+    agent: int
+    graph_kf_id: int
+
+    @property
+    def keyframe(self) -> Keyframe:
+        """The graph's keyframe."""
+        return self.graph.keyframes[self.graph.global_index(self.agent, self.graph_kf_id)]
+
+    X_hat = property(lambda self: self.keyframe.X_hat, lambda self, value: None)
+    C_hat = property(lambda self: self.keyframe.C_hat, lambda self, value: None)
+    colors = property(lambda self: self.keyframe.colors, lambda self, value: None)
+    K = property(lambda self: self.keyframe.K, lambda self, value: None)
+    fused_frames = property(lambda self: self.keyframe.fused_frames, lambda self, value: None)
 
     def rescale_focal(self, focal: float) -> None:
-        """Move the pointmap to the focal length ``focal`` (as ``Keyframe.rescale_focal``)."""
-        if self.K is not None:
-            self.X_hat, self.K = to_focal(self.X_hat, self.K, focal)
+        """Nothing: the graph has moved the keyframe to the focal length already."""
 
     def mean_confidence(self) -> Tensor:
-        """``(H, W)`` confidence per contributing frame (as ``Keyframe.mean_confidence``)."""
-        return self.C_hat / self.fused_frames
+        """``(H, W)`` confidence per contributing frame."""
+        kf = self.keyframe
+        return kf.C_hat / kf.fused_frames
 
 
-def stored_views(graph: GlobalGraph, agent: int) -> list[KeyframeView]:
-    """``agent``'s keyframes as a coordinator's graph holds them (a session store read back),
-    in keyframe order."""
-    return [KeyframeView(kf.kf_id, kf.frame_index, kf.timestamp, kf.T_WC.clone(), kf.X_hat,
-                         kf.C_hat, kf.colors, kf.fused_frames, kf.K)
+def graph_view(graph: GlobalGraph, agent: int, kf_id: int, frame_index: int, timestamp: float,
+               T_WC: Tensor) -> KeyframeView:
+    """The view of keyframe ``kf_id`` of ``agent`` in ``graph`` with pose ``T_WC``."""
+    return KeyframeView(kf_id, frame_index, timestamp, T_WC, graph, agent, kf_id)
+
+
+def stored_views(graph: GlobalGraph, agent: int, source: GlobalGraph | None = None,
+                 as_agent: int | None = None) -> list[KeyframeView]:
+    """``agent``'s keyframes as ``graph`` holds them (a session store read back), in keyframe
+    order, with their current poses; their arrays read from ``source`` (default ``graph``)
+    as agent ``as_agent`` (default ``agent``) there."""
+    return [graph_view(graph if source is None else source,
+                       agent if as_agent is None else as_agent, kf.kf_id, kf.frame_index,
+                       kf.timestamp, kf.T_WC.clone())
             for kf in (graph.keyframes[g] for g in graph.agent_keyframes(agent))]
 
 
@@ -130,8 +163,9 @@ class AgentResult:
     finished: AgentFinished | None = None
 
     def apply_pointmap_update(self, update: PointmapUpdate) -> None:
-        """Take the coordinator's refined canonical pointmaps (C-Sec. A.7)."""
-        apply_pointmap_update(self.keyframes, update)
+        """Nothing to take: the views read the coordinator's refined canonical pointmaps
+        (C-Sec. A.7) from its graph (as a front-end's ``apply_pointmap_update`` is called,
+        the single-process runtime calls this for a saved map's agents)."""
 
     def apply_pose_update(self, update: PoseUpdate) -> None:
         """Listed keyframes take the new poses, newer ones follow the newest listed keyframe

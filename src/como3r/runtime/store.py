@@ -68,6 +68,7 @@ import datetime
 import json
 import logging
 import sqlite3
+import weakref
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -82,9 +83,11 @@ from como3r.coordination.coordinator import Candidate, Coordinator
 from como3r.errors import StoreError
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import PoseUpdate
-from como3r.frontend.pairs import PairLink
+from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.runtime.messages import AgentFinished
-from como3r.runtime.store_blobs import pack_arrays, pack_object
+from como3r.prior.base import Encoding
+from como3r.runtime.store_blobs import pack_arrays, pack_object, unpack_arrays, unpack_object
+from como3r.runtime.store_paging import POINTMAP_FIELDS, PagedKeyframe, PagedLink, page_out
 
 logger = logging.getLogger(__name__)
 
@@ -130,8 +133,6 @@ CREATE TABLE state (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE reports (agent INTEGER PRIMARY KEY, message BLOB NOT NULL);
 """
 
-#: the pointmap fields of a keyframe, in the ``pointmaps`` table's column order
-POINTMAP_FIELDS = ("X_hat", "C_hat", "X_init", "C_init")
 
 
 def pack_link(link: PairLink) -> bytes:
@@ -142,13 +143,18 @@ def pack_link(link: PairLink) -> bytes:
 
 @dataclass
 class _Written:
-    """What the store holds of one keyframe: the very tensors (compared by identity, so a
-    replaced pointmap is seen without comparing its values) and their blob ids."""
+    """What the store holds of one keyframe's pointmaps: the very tensors (weakly: compared
+    by identity, so a replaced pointmap is seen without comparing its values, and a
+    paged-out one is not kept alive) and their blob ids."""
 
-    arrays: tuple[Tensor, ...]
+    arrays: tuple[weakref.ref, ...]
     blobs: tuple[int, ...]
     K: Tensor | None
     fused_frames: int
+
+    def holds(self, array: Tensor) -> int | None:
+        """The blob id of ``array`` if it is one of these tensors."""
+        return next((b for a, b in zip(self.arrays, self.blobs) if a() is array), None)
 
 
 class SessionStore:
@@ -245,8 +251,15 @@ class SessionStore:
         for g, *ids in db.execute("SELECT g, X_hat, C_hat, X_init, C_init FROM pointmaps "
                                   "ORDER BY g"):
             kf = graph.keyframes[g]
-            self._keyframes.append(_Written(_pointmap_arrays(kf), tuple(ids), kf.K,
-                                            kf.fused_frames))
+            if isinstance(kf, PagedKeyframe) and not kf.resident("pointmaps"):
+                kf.evict(self, g)  # read back as paged: this store serves it
+                arrays: tuple[weakref.ref, ...] = ()
+            else:
+                arrays = _refs(_pointmap_arrays(kf))
+            self._keyframes.append(_Written(arrays, tuple(ids), kf.K, kf.fused_frames))
+        for link in graph.links:
+            if isinstance(link.link, PagedLink):
+                link.link.serve(self)
         if len(graph):
             self._poses = graph.poses(range(len(graph))).detach().cpu().clone()
         self._edges = len(graph.links)
@@ -318,6 +331,59 @@ class SessionStore:
             self._failed = True
             raise StoreError(f"{self.path}: cannot write the session store ({exc})") from None
         self.transactions += 1
+        page_out(coordinator, self)
+
+    # ------------------------------------------------------------------ paging
+
+    def load_keyframe(self, g: int, group: str) -> dict[str, Any]:
+        """The current arrays of ``group`` (:data:`.store_paging.GROUPS`) of keyframe
+        ``g``, read back from the store (a paged-out keyframe's).
+
+        Raises:
+            StoreError: the store cannot be read.
+        """
+        try:
+            if group == "pointmaps":
+                return self._load_pointmaps(g)
+            blob_id, = self.connection.execute(f"SELECT {group} FROM keyframes WHERE g = ?",
+                                               (g,)).fetchone()
+            data, what = self._read_blob(blob_id), f"keyframe {g} {group}"
+        except sqlite3.Error as exc:
+            raise StoreError(f"{self.path}: cannot read the session store ({exc})") from None
+        if group == "encoding":
+            return {group: unpack_object(data, Encoding, what)}
+        return {group: unpack_arrays(data, what)[0].numpy()}
+
+    def _load_pointmaps(self, g: int) -> dict[str, Any]:
+        """A keyframe's pointmaps from the blobs last written (one tensor per blob), which
+        the store then holds as written."""
+        written = self._keyframes[g]
+        arrays: dict[int, Tensor] = {}
+        for blob_id in written.blobs:
+            if blob_id not in arrays:
+                arrays[blob_id], = unpack_arrays(self._read_blob(blob_id), f"keyframe {g}")
+        values = tuple(arrays[b] for b in written.blobs)
+        written.arrays = _refs(values)
+        return dict(zip(POINTMAP_FIELDS, values))
+
+    def load_matches(self, n: int) -> tuple[DirectedMatches, DirectedMatches]:
+        """Both directions' matches of edge ``n``, read back from the store.
+
+        Raises:
+            StoreError: the store cannot be read.
+        """
+        try:
+            blob, = self.connection.execute("SELECT matches FROM edges WHERE n = ?",
+                                            (n,)).fetchone()
+        except sqlite3.Error as exc:
+            raise StoreError(f"{self.path}: cannot read the session store ({exc})") from None
+        arrays = unpack_arrays(blob, f"edge {n} matches")
+        return DirectedMatches(*arrays[:3]), DirectedMatches(*arrays[3:])
+
+    def _read_blob(self, blob_id: int) -> bytes:
+        data, = self.connection.execute("SELECT data FROM blobs WHERE id = ?",
+                                        (blob_id,)).fetchone()
+        return data
 
     def record_runtime(self, state: dict[str, Any] | None,
                        reports: Mapping[int, AgentFinished]) -> None:
@@ -360,7 +426,9 @@ class SessionStore:
         graph = coordinator.graph
         for g, kf in enumerate(graph.keyframes[:len(self._keyframes)]):
             written = self._keyframes[g]
-            if (any(a is not b for a, b in zip(_pointmap_arrays(kf), written.arrays))
+            if isinstance(kf, PagedKeyframe) and not kf.resident("pointmaps"):
+                continue  # as written: a pointmap that changes is read back first
+            if (any(b() is not a for a, b in zip(_pointmap_arrays(kf), written.arrays))
                     or kf.K is not written.K or kf.fused_frames != written.fused_frames):
                 self._keyframes[g] = self._write_pointmaps(g, kf, written)
         for g in range(len(self._keyframes), len(graph.keyframes)):
@@ -382,8 +450,7 @@ class SessionStore:
         ids: list[int] = []
         for k, array in enumerate(arrays):
             same = next((ids[m] for m in range(k) if arrays[m] is array), None)
-            kept = None if before is None else next(
-                (b for a, b in zip(before.arrays, before.blobs) if a is array), None)
+            kept = None if before is None else before.holds(array)
             ids.append(same if same is not None else kept if kept is not None
                        else self._blob(pack_arrays(array)))
         K = None if kf.K is None else pack_arrays(kf.K)
@@ -392,7 +459,7 @@ class SessionStore:
         if before is not None:
             self.connection.executemany("DELETE FROM blobs WHERE id = ?",
                                         [(b,) for b in set(before.blobs) - set(ids)])
-        return _Written(arrays, tuple(ids), kf.K, kf.fused_frames)
+        return _Written(_refs(arrays), tuple(ids), kf.K, kf.fused_frames)
 
     def _record_poses(self, coordinator: Coordinator) -> None:
         graph = coordinator.graph
@@ -482,6 +549,10 @@ class SessionStore:
 
 def _pointmap_arrays(kf: Keyframe) -> tuple[Tensor, ...]:
     return tuple(getattr(kf, name) for name in POINTMAP_FIELDS)
+
+
+def _refs(arrays: Sequence[Tensor]) -> tuple[weakref.ref, ...]:
+    return tuple(weakref.ref(a) for a in arrays)
 
 
 @contextmanager

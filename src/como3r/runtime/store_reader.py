@@ -32,12 +32,15 @@ from como3r.prior.base import Encoding
 from como3r.runtime.messages import AgentFinished
 from como3r.runtime.store import APPLICATION_ID, FORMAT_VERSION
 from como3r.runtime.store_blobs import unpack_arrays, unpack_object
+from como3r.runtime.store_paging import PagedKeyframe, PagedLink
 
 logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
 STATUSES = ("rejected", "pending", "admitted", "inconsistent")
+#: the edges' matches read when their session is read paged: the inter-agent edges' only
+PAGED_MATCHES = "CASE kind WHEN 'inter' THEN matches END"
 KINDS = ("sequential", "inter")
 
 
@@ -142,15 +145,22 @@ class Session:
     reports: dict[int, AgentFinished] = field(default_factory=dict)
 
 
-def read_session(path: str | Path) -> Session:
+def read_session(path: str | Path, paged: bool = False) -> Session:
     """Load a session store.
+
+    Args:
+        paged: leave the keyframes' encodings, images and pointmaps and the sequential
+            edges' matches in the store (:class:`~.store_paging.PagedKeyframe`,
+            :class:`~.store_paging.PagedLink`; they read nothing until the store that
+            continues the session, :meth:`~.store.SessionStore.reopen`, serves them): a
+            resumed session takes the memory of its working set, not of its whole map.
 
     Raises:
         StoreError: no file, not a como3r session store, another format version,
             corrupted, or inconsistent (one line naming the file and what is wrong).
     """
     path = Path(path)
-    return _read(path, lambda connection: _load(connection, path), check=True)
+    return _read(path, lambda connection: _load(connection, path, paged), check=True)
 
 
 def read_config(path: str | Path) -> Config:
@@ -223,18 +233,22 @@ def _meta(connection: sqlite3.Connection, path: Path) -> tuple[dict[str, str], C
     return meta, validate(config_from_dict(Config, json.loads(meta.pop("config"))))
 
 
-def _load(connection: sqlite3.Connection, path: Path) -> Session:
+def _load(connection: sqlite3.Connection, path: Path, paged: bool) -> Session:
     meta, config = _meta(connection, path)
     state = {key: json.loads(value) for key, value in connection.execute("SELECT * FROM state")}
     graph = GlobalGraph(config.tracking, config.global_ba)
     blobs = _Blobs(connection)
-    _load_keyframes(connection, graph, blobs)
+    if paged:
+        _page_keyframes(connection, graph)
+    else:
+        _load_keyframes(connection, graph, blobs)
     agents = [AgentRecord(*row) for row in connection.execute(
         "SELECT * FROM agents ORDER BY agent")]
     graph.focal = {a.agent: a.focal for a in agents if a.focal is not None}
-    graph.links = [_link(row, len(graph)) for row in connection.execute(
-        "SELECT i, j, kind, similarity, covisible_ij, covisible_ji, matches, n FROM edges "
-        "ORDER BY n")]
+    graph.links = [_link(row, len(graph), paged) for row in connection.execute(
+        "SELECT i, j, kind, similarity, covisible_ij, covisible_ji, "
+        f"{PAGED_MATCHES if paged else 'matches'}, "
+        "n FROM edges ORDER BY n")]
     session = Session(
         path=path, config=config, meta=meta, graph=graph,
         gauges=_gauges(connection, len(agents)), agents=agents,
@@ -280,26 +294,63 @@ def _load_keyframes(connection: sqlite3.Connection, graph: GlobalGraph, blobs: _
         "ORDER BY k.g")
     for (g, agent, kf_id, frame, timestamp, colors, encoding, fused, X_hat, C_hat, X_init,
          C_init, K, T_WC) in rows:
-        what = f"keyframe {g} (agent {agent}, kf {kf_id})"
-        own = graph.local_to_global.setdefault(agent, [])
-        if g != len(graph) or kf_id != len(own):
-            raise StoreError(f"inconsistent session store: {what} out of order")
-        if fused is None or T_WC is None:
-            raise StoreError(f"inconsistent session store: {what} has no "
-                             f"{'pointmaps' if fused is None else 'pose'}")
+        what = _check_keyframe(graph, g, agent, kf_id, fused, T_WC)
         maps = {}
         for name, blob_id in (("X_hat", X_hat), ("C_hat", C_hat), ("X_init", X_init),
                               ("C_init", C_init)):  # one tensor per blob, as written
             maps.setdefault(blob_id, blobs.array(blob_id, f"{what} {name}"))
         pose, = unpack_arrays(T_WC, f"{what} T_WC")
-        graph.keyframes.append(Keyframe(
+        _append(graph, Keyframe(
             kf_id=kf_id, frame_index=frame, timestamp=timestamp,
             encoding=unpack_object(blobs.get(encoding, what), Encoding, f"{what} encoding"),
             T_WC=pose, X_hat=maps[X_hat], C_hat=maps[C_hat], X_init=maps[X_init],
             C_init=maps[C_init], colors=blobs.array(colors, f"{what} colors").numpy(),
-            fused_frames=fused, K=None if K is None else unpack_arrays(K, f"{what} K")[0]))
-        graph.agent_of.append(agent)
-        own.append(g)
+            fused_frames=fused, K=None if K is None else unpack_arrays(K, f"{what} K")[0]),
+            agent)
+
+
+def _check_keyframe(graph: GlobalGraph, g: int, agent: int, kf_id: int, fused: int | None,
+                    T_WC: bytes | None) -> str:
+    """Keyframe ``g`` comes next, with its pointmaps and pose; returns how errors name it."""
+    what = f"keyframe {g} (agent {agent}, kf {kf_id})"
+    if g != len(graph) or kf_id != len(graph.local_to_global.get(agent, [])):
+        raise StoreError(f"inconsistent session store: {what} out of order")
+    if fused is None or T_WC is None:
+        raise StoreError(f"inconsistent session store: {what} has no "
+                         f"{'pointmaps' if fused is None else 'pose'}")
+    return what
+
+
+def _append(graph: GlobalGraph, kf: Keyframe, agent: int) -> None:
+    graph.local_to_global.setdefault(agent, []).append(len(graph))
+    graph.keyframes.append(kf)
+    graph.agent_of.append(agent)
+
+
+def _page_keyframes(connection: sqlite3.Connection, graph: GlobalGraph) -> None:
+    """The keyframes without their large arrays (:class:`~.store_paging.PagedKeyframe`),
+    after checking that every blob they refer to is there."""
+    missing, = connection.execute(
+        "SELECT COUNT(*) FROM (SELECT colors AS id FROM keyframes UNION SELECT encoding FROM "
+        "keyframes UNION SELECT X_hat FROM pointmaps UNION SELECT C_hat FROM pointmaps UNION "
+        "SELECT X_init FROM pointmaps UNION SELECT C_init FROM pointmaps) "
+        "WHERE id NOT IN (SELECT id FROM blobs)").fetchone()
+    if missing:
+        raise StoreError(f"inconsistent session store: {missing} keyframe arrays refer to "
+                         f"missing blobs")
+    rows = connection.execute(
+        "SELECT k.g, k.agent, k.kf_id, k.frame_index, k.timestamp, m.fused_frames, m.K, "
+        "p.T_WC FROM keyframes k LEFT JOIN pointmaps m USING (g) LEFT JOIN poses p USING (g) "
+        "ORDER BY k.g")
+    for g, agent, kf_id, frame, timestamp, fused, K, T_WC in rows:
+        what = _check_keyframe(graph, g, agent, kf_id, fused, T_WC)
+        pose, = unpack_arrays(T_WC, f"{what} T_WC")
+        kf = PagedKeyframe(kf_id=kf_id, frame_index=frame, timestamp=timestamp, encoding=None,
+                           T_WC=pose, X_hat=None, C_hat=None, X_init=None, C_init=None,
+                           colors=None, fused_frames=fused,
+                           K=None if K is None else unpack_arrays(K, f"{what} K")[0])
+        kf.evict(None, g)
+        _append(graph, kf, agent)
 
 
 def _retrieval(connection: sqlite3.Connection, graph: GlobalGraph) -> list[RetrievalEntry]:
@@ -325,10 +376,13 @@ def _matches(blob: bytes, what: str) -> tuple[DirectedMatches, DirectedMatches]:
     return DirectedMatches(*arrays[:3]), DirectedMatches(*arrays[3:])
 
 
-def _link(row: tuple, keyframes: int) -> GraphLink:
+def _link(row: tuple, keyframes: int, paged: bool) -> GraphLink:
     i, j, kind, similarity, covisible_ij, covisible_ji, blob, n = row
     if kind not in KINDS or not (0 <= i < keyframes and 0 <= j < keyframes):
         raise StoreError(f"inconsistent session store: edge {n} ({kind} {i}-{j})")
+    if paged and kind == "sequential":
+        return GraphLink(i, j, kind, PagedLink(None, n, covisible_ij, covisible_ji),
+                         similarity)
     ij, ji = _matches(blob, f"edge {n} matches")
     return GraphLink(i, j, kind, PairLink(ij, ji, covisible_ij, covisible_ji), similarity)
 

@@ -20,49 +20,19 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-import torch
 
 from como3r.config import Config, differing_key
 from como3r.coordination.association import Verification
 from como3r.coordination.coordinator import Candidate, Coordinator, CoordinatorStats
 from como3r.errors import StoreError
-from como3r.frontend.pairs import DirectedMatches
 from como3r.runtime.store import STORE_NAME, SessionStore
+from como3r.runtime.store_paging import NO_MATCHES, StoredVerification
 from como3r.runtime.store_reader import RetrievalEntry, Session, StoredCandidate, read_session
 
 logger = logging.getLogger(__name__)
-
-_NO_MATCHES = DirectedMatches(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.bool),
-                              torch.zeros(0))
-
-
-@dataclass(frozen=True)
-class StoredVerification(Verification):
-    """A verification whose matches were not kept (a rejected or inconsistent candidate):
-    its figures as the store holds them.
-
-    Attributes:
-        figures: ``(nu_i, nu_j, covisible_ratio)``.
-    """
-
-    figures: tuple[float | None, float, float | None] = (None, 0.0, None)
-
-    @property
-    def nu_i(self) -> float | None:
-        return self.figures[0]
-
-    @property
-    def nu_j(self) -> float:
-        return self.figures[1]
-
-    @property
-    def covisible_ratio(self) -> float | None:
-        return self.figures[2]
-
 
 def open_store(folder: Path, config: Config, coordinator: Coordinator,
                resume: bool = False, session: Session | None = None) -> SessionStore:
@@ -82,7 +52,7 @@ def open_store(folder: Path, config: Config, coordinator: Coordinator,
     if not resume:
         return SessionStore.create(path, config, coordinator)
     if session is None:
-        session = read_session(path)
+        session = read_session(path, paged=True)
         if session.finished:
             raise StoreError(f"{path}: the stored session finished (its run was stopped "
                              f"while writing its outputs); run again without --resume")
@@ -153,7 +123,7 @@ def _candidate(stored: StoredCandidate, session: Session) -> Candidate:
             link.covisible_ji, stored.accepted)
     else:
         verification = StoredVerification(
-            keys[0], keys[1], stored.similarity, _NO_MATCHES, None, None, None,
+            keys[0], keys[1], stored.similarity, NO_MATCHES, None, None, None,
             stored.accepted, figures=(stored.nu_i, stored.nu_j, stored.covisible_ratio))
     ratio = math.nan if stored.residual_ratio is None else stored.residual_ratio
     return Candidate(verification, stored.i, stored.j, stored.status, ratio)

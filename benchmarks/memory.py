@@ -1,0 +1,127 @@
+"""Resident memory against sequence length, with the coordinator's keyframes paged out to the
+session store and without (issue 14, bounded memory; a script, not a test).
+
+One agent on a long synthetic loop runs in the default multi-process runtime (``como3r
+run``): the coordinator in the measuring process, the agent in its own. Every ``--every``
+processed frames both processes' resident set size (``VmRSS``) and the coordinator's peak
+(``VmHWM``) are read from ``/proc`` (Linux only), with the keyframes the coordinator holds;
+the last row is the end of the run (terminal refinement and outputs included). Each
+``--resident`` value (``session.resident_keyframes``: the keyframes per agent kept whole in
+memory; the default configuration's first) runs in a process of its own, so peaks do not
+carry over.
+
+    como3r synth --out /tmp/long --agents 1 --frames 5000 --width 64 --height 48
+    python benchmarks/memory.py --agent /tmp/long/agent_0 --every 250 --long-side 64
+
+``--long-side`` defaults to the configuration's (512); the figures in the closing note of
+issue 14 were taken with ``--long-side 64`` (the scene's own size) to fit 5,000 frames into
+an hour on a 2-core machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from como3r.config import Config, apply_overrides
+from como3r.progress import AgentProgress
+from como3r.runtime.multiprocess import run_multiprocess
+from como3r.runtime.pipeline import PriorSpec
+
+
+def _status(pid: int | str) -> dict[str, float]:
+    """``VmRSS`` and ``VmHWM`` of a process [MB] (zeros if it is gone)."""
+    try:
+        lines = Path(f"/proc/{pid}/status").read_text().splitlines()
+    except OSError:
+        return {"VmRSS": 0.0, "VmHWM": 0.0}
+    fields = dict(line.split(":", 1) for line in lines if ":" in line)
+    return {key: int(fields[key].split()[0]) / 1024 for key in ("VmRSS", "VmHWM")}
+
+
+def _agent_pids() -> list[int]:
+    """This process's agent processes (multiprocessing spawn children, not its resource
+    tracker)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            command = (entry / "cmdline").read_bytes().replace(b"\0", b" ")
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == os.getpid() and b"spawn_main" in command and b"resource_tracker" not in command:
+            pids.append(int(entry.name))
+    return pids
+
+
+def measure(agent: Path, out: Path, resident: int, every: int, long_side: int | None) -> None:
+    """One run; prints one JSON line per sample."""
+    overrides = [f"session.resident_keyframes={resident}"]
+    if long_side is not None:
+        overrides.append(f"input.long_side={long_side}")
+    config = apply_overrides(Config(), overrides)
+    start = time.perf_counter()
+
+    def sample(frames: int, keyframes: int) -> None:
+        own = _status("self")
+        agents = sum(_status(pid)["VmRSS"] for pid in _agent_pids())
+        print(json.dumps({"frames": frames, "keyframes": keyframes,
+                          "coordinator_rss": own["VmRSS"], "coordinator_peak": own["VmHWM"],
+                          "agent_rss": agents, "seconds": time.perf_counter() - start}),
+              flush=True)
+
+    def progress(event: object) -> None:
+        if isinstance(event, AgentProgress) and event.frames_done % every == 0 \
+                and event.frames_done:
+            sample(event.frames_done, event.keyframes)
+
+    summary = run_multiprocess([agent], out, config, PriorSpec("simulated"), overwrite=True,
+                               progress=progress)
+    sample(summary.agents[0]["frames"], summary.agents[0]["keyframes"])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--agent", type=Path, required=True, help="a long agent input")
+    parser.add_argument("--out", type=Path, default=Path("/tmp/como3r_memory"),
+                        help="scratch folder for the runs' outputs")
+    parser.add_argument("--every", type=int, default=250, help="sample every N frames")
+    parser.add_argument("--resident", type=int, nargs="+",
+                        default=[Config().session.resident_keyframes, 10**9],
+                        help="session.resident_keyframes values to compare (10**9: never "
+                             "paged)")
+    parser.add_argument("--long-side", type=int, default=None,
+                        help="input.long_side (default: the configuration's)")
+    parser.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.one is not None:
+        measure(args.agent, args.out / f"resident_{args.one}", args.one, args.every,
+                args.long_side)
+        return
+    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
+          f"{args.agent}; RSS in MB")
+    print(f"{'resident':>9} {'frames':>6} {'keyframes':>9} {'coord RSS':>9} {'coord peak':>10} "
+          f"{'agent RSS':>9} {'seconds':>8}")
+    for resident in args.resident:
+        command = [sys.executable, __file__, "--agent", str(args.agent), "--out",
+                   str(args.out), "--every", str(args.every), "--one", str(resident)]
+        if args.long_side is not None:
+            command += ["--long-side", str(args.long_side)]
+        lines = subprocess.run(command, check=True, capture_output=True, text=True).stdout
+        for line in lines.splitlines():
+            row = json.loads(line)
+            print(f"{resident:>9} {row['frames']:>6} {row['keyframes']:>9} "
+                  f"{row['coordinator_rss']:>9.0f} {row['coordinator_peak']:>10.0f} "
+                  f"{row['agent_rss']:>9.0f} {row['seconds']:>8.0f}")
+
+
+if __name__ == "__main__":
+    main()

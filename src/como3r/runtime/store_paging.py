@@ -1,0 +1,198 @@
+"""Bounded memory: the coordinator's large arrays paged out to its session store (issue 14).
+
+Every keyframe the coordinator holds carries its encoding (the simulated prior's is 15.5 MB
+at 512x384, MASt3R's 3 MB), its image and four pointmaps, and every sequential edge both
+directions' dense matches (5 MB at 512x384): kept in memory, they grow with the sequence.
+The session store holds all of them already (:mod:`.store`), so after every message's
+transaction :func:`page_out` lets go of what is outside the *working set*, the newest
+``session.resident_keyframes`` keyframes of each agent:
+
+* a keyframe outside it becomes a :class:`PagedKeyframe`: its light fields (pose, ids,
+  intrinsics, retrieval features) stay, its encoding, image and pointmaps are read back
+  from the store the first time something needs them (a verification decodes its
+  encoding; a global BA, a gauge merge or the depth refinement reads its pointmap) and
+  kept until the next page-out;
+* a sequential edge between two such keyframes becomes a :class:`PagedLink`, whose matches
+  are read from the store each time they are asked for (a solve builds its factors once);
+* a verified candidate that was rejected or found inconsistent keeps its figures only
+  (:class:`StoredVerification`): nothing reads its matches again.
+
+What a message needs is read while it is handled, so the results do not depend on the
+working set; only memory and time do. Inter-agent edges and admitted or pending candidates
+stay in memory: they grow with the places agents share, not with the sequence. The agents'
+front-ends keep their own keyframes (:mod:`como3r.frontend`); this pages the coordinator.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, fields, replace
+from typing import Any, Protocol
+
+import torch
+
+from como3r.coordination.association import Verification
+from como3r.coordination.coordinator import Coordinator
+from como3r.frontend.keyframes import Keyframe
+from como3r.frontend.pairs import DirectedMatches, PairLink
+
+logger = logging.getLogger(__name__)
+
+#: the pointmap fields of a keyframe, in the store's ``pointmaps`` table's column order
+POINTMAP_FIELDS = ("X_hat", "C_hat", "X_init", "C_init")
+#: the arrays of a keyframe read back together, by group
+GROUPS = {"encoding": ("encoding",), "colors": ("colors",), "pointmaps": POINTMAP_FIELDS}
+_GROUP_OF = {name: group for group, names in GROUPS.items() for name in names}
+
+
+class Pages(Protocol):
+    """Where paged-out arrays are read back from (the session store)."""
+
+    def load_keyframe(self, g: int, group: str) -> dict[str, Any]:
+        """The current arrays of ``group`` of keyframe ``g``, by field name."""
+
+    def load_matches(self, n: int) -> tuple[DirectedMatches, DirectedMatches]:
+        """Both directions' matches of edge ``n``."""
+
+
+class _Paged:
+    """A large keyframe field: in the keyframe while resident, else read back on access."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name, self.group = name, _GROUP_OF[name]
+
+    def __get__(self, kf: PagedKeyframe | None, owner: type | None = None) -> Any:
+        if kf is None:
+            return self
+        if self.name not in kf._resident:  # fields set since the eviction stay as set
+            for name, value in kf._pages.load_keyframe(kf._g, self.group).items():
+                kf._resident.setdefault(name, value)
+        return kf._resident[self.name]
+
+    def __set__(self, kf: PagedKeyframe, value: Any) -> None:
+        kf._resident[self.name] = value
+
+
+class PagedKeyframe(Keyframe):
+    """A coordinator keyframe whose encoding, image and pointmaps may live in the session
+    store only (see the module docstring); it reads and writes like a :class:`Keyframe`."""
+
+    encoding = _Paged()
+    colors = _Paged()
+    X_hat = _Paged()
+    C_hat = _Paged()
+    X_init = _Paged()
+    C_init = _Paged()
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        object.__setattr__(self, "_resident", {})
+        object.__setattr__(self, "_pages", None)
+        object.__setattr__(self, "_g", -1)
+        super().__init__(*args, **kwargs)
+
+    @classmethod
+    def of(cls, kf: Keyframe) -> PagedKeyframe:
+        """A paged keyframe holding what ``kf`` holds (the same arrays)."""
+        return cls(**{f.name: getattr(kf, f.name) for f in fields(Keyframe)})
+
+    def resident(self, group: str) -> bool:
+        """Whether some array of ``group`` is in memory (read back, or set)."""
+        return any(name in self._resident for name in GROUPS[group])
+
+    def evict(self, pages: Pages | None, g: int) -> None:
+        """Let go of the large arrays; ``pages`` reads them back as keyframe ``g`` (None:
+        the store to read them from is yet to be given)."""
+        self._pages, self._g = pages, g
+        self._resident.clear()
+
+
+class PagedLink(PairLink):
+    """A link whose matches are read from the session store whenever they are asked for
+    (their match fractions are kept)."""
+
+    def __init__(self, pages: Pages | None, n: int, covisible_ij: float | None,
+                 covisible_ji: float | None) -> None:
+        for name, value in (("_pages", pages), ("_n", n), ("covisible_ij", covisible_ij),
+                            ("covisible_ji", covisible_ji)):
+            object.__setattr__(self, name, value)
+
+    def serve(self, pages: Pages) -> None:
+        """Read from ``pages`` from now on (a store read back)."""
+        object.__setattr__(self, "_pages", pages)
+
+    @property  # type: ignore[override]
+    def ij(self) -> DirectedMatches:
+        return self._pages.load_matches(self._n)[0]
+
+    @property  # type: ignore[override]
+    def ji(self) -> DirectedMatches:
+        return self._pages.load_matches(self._n)[1]
+
+
+@dataclass(frozen=True)
+class StoredVerification(Verification):
+    """A verification whose matches were let go (a rejected or inconsistent candidate, or
+    one read back from a store): its figures only.
+
+    Attributes:
+        figures: ``(nu_i, nu_j, covisible_ratio)``.
+    """
+
+    figures: tuple[float | None, float, float | None] = (None, 0.0, None)
+
+    @property
+    def nu_i(self) -> float | None:
+        return self.figures[0]
+
+    @property
+    def nu_j(self) -> float:
+        return self.figures[1]
+
+    @property
+    def covisible_ratio(self) -> float | None:
+        return self.figures[2]
+
+
+#: the matches of a verification that keeps its figures only
+NO_MATCHES = DirectedMatches(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.bool),
+                             torch.zeros(0))
+
+
+def figures_only(v: Verification) -> StoredVerification:
+    """``v`` without its matches."""
+    return StoredVerification(v.candidate, v.query, v.similarity, NO_MATCHES, None, None, None,
+                              v.accepted, figures=(v.nu_i, v.nu_j, v.covisible_ratio))
+
+
+def working_set(coordinator: Coordinator) -> set[int]:
+    """Global indices of each agent's newest ``session.resident_keyframes`` keyframes."""
+    keep = coordinator.config.session.resident_keyframes
+    graph = coordinator.graph
+    return {g for own in graph.local_to_global.values() for g in own[len(own) - keep:]
+            if keep > 0}
+
+
+def page_out(coordinator: Coordinator, pages: Pages) -> None:
+    """Let go of what is outside the working set (the module docstring); every keyframe
+    and link must be in the store already.
+
+    Args:
+        coordinator: the coordinator whose graph and candidates are paged.
+        pages: where they are read back from.
+    """
+    graph, kept = coordinator.graph, working_set(coordinator)
+    for g, kf in enumerate(graph.keyframes):
+        if g in kept or (isinstance(kf, PagedKeyframe) and not kf._resident):
+            continue
+        if not isinstance(kf, PagedKeyframe):
+            kf = graph.keyframes[g] = PagedKeyframe.of(kf)
+        kf.evict(pages, g)
+    for n, link in enumerate(graph.links):
+        if (link.kind == "sequential" and not isinstance(link.link, PagedLink)
+                and link.i not in kept and link.j not in kept):
+            graph.links[n] = replace(link, link=PagedLink(pages, n, link.link.covisible_ij,
+                                                          link.link.covisible_ji))
+    for candidate in coordinator.candidates:
+        if candidate.status in ("rejected", "inconsistent") and not isinstance(
+                candidate.verification, StoredVerification):
+            candidate.verification = figures_only(candidate.verification)

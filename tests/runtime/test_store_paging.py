@@ -1,0 +1,160 @@
+"""Keyframes outside the working set paged out to the session store (runtime/store_paging.py;
+issue 14 item 4): what is paged out is let go of (nothing keeps it alive), reads back exactly
+as written, changes made to it are stored; a run that pages everything out has the outputs of
+one that pages nothing."""
+
+from __future__ import annotations
+
+import gc
+import json
+import weakref
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from como3r.cli import app
+from como3r.config import Config, apply_overrides
+from como3r.coordination.association import Verification
+from como3r.coordination.coordinator import Candidate, Coordinator, CoordinatorStats
+from como3r.frontend.packets import KeyframePacket
+from como3r.frontend.pairs import DirectedMatches
+from como3r.prior.mast3r.prior import MASt3REncoding
+from como3r.runtime.store import STORE_NAME, SessionStore
+from como3r.runtime.store_paging import PagedKeyframe, PagedLink, StoredVerification
+from como3r.runtime.store_reader import read_session
+
+H, W = 6, 8
+
+
+def _packet(agent: int, kf_id: int, gen: torch.Generator) -> KeyframePacket:
+    def matches() -> DirectedMatches:
+        return DirectedMatches(torch.randint(H * W, (H * W,), generator=gen),
+                               torch.rand(H * W, generator=gen) > 0.3,
+                               torch.rand(H * W, generator=gen))
+
+    first = kf_id == 0
+    return KeyframePacket(
+        agent=agent, kf_id=kf_id, frame_index=2 * kf_id, timestamp=float(kf_id),
+        T_WC=torch.rand(8, generator=gen), X_hat=torch.rand(H, W, 3, generator=gen),
+        C_hat=1 + torch.rand(H, W, generator=gen),
+        colors=torch.randint(256, (H, W, 3), generator=gen, dtype=torch.uint8).numpy(),
+        encoding=MASt3REncoding(agent, 2 * kf_id, (H, W), torch.rand(12, 16, generator=gen),
+                                torch.zeros(12, 2, dtype=torch.int64), (3, 4)),
+        retrieval=None, sequential_ij=None if first else matches(),
+        sequential_ji=None if first else matches(), previous=None)
+
+
+def test_keyframes_outside_the_working_set_are_let_go_and_read_back(tmp_path) -> None:
+    # this setting is the point of the test: the newest 2 keyframes of each agent resident
+    config = apply_overrides(Config(), ["session.resident_keyframes=2"])
+    coordinator = Coordinator(None, config, None, 2)  # no prior: nothing is decoded
+    gen, written, alive = torch.Generator().manual_seed(0), {}, {}
+    with SessionStore.create(tmp_path / STORE_NAME, config, coordinator) as store:
+        for step in range(10):
+            packet = _packet(step % 2, step // 2, gen)
+            g = coordinator.graph.add_keyframe(packet)
+            coordinator.stats.keyframes += 1
+            written[g] = (packet.X_hat.clone(), packet.colors.copy(), packet.encoding.tokens)
+            alive[g] = weakref.ref(packet.X_hat)
+            del packet
+            store.record(coordinator, [])
+        graph = coordinator.graph
+        kept = {g for own in graph.local_to_global.values() for g in own[-2:]}
+        assert kept == {6, 7, 8, 9}
+        gc.collect()
+        for g, kf in enumerate(graph.keyframes):
+            assert isinstance(kf, PagedKeyframe) == (g not in kept)
+            assert (alive[g]() is None) == (g not in kept)  # nothing keeps it alive
+        links = [link for link in graph.links if link.i not in kept and link.j not in kept]
+        assert links and all(isinstance(link.link, PagedLink) for link in links)
+        assert all(isinstance(link.link, PagedLink) == (link in links) for link in graph.links)
+
+        paged = graph.keyframes[2]
+        assert not paged.resident("pointmaps") and not paged.resident("encoding")
+        assert torch.equal(paged.X_hat, written[2][0]) and paged.X_init is paged.X_hat
+        assert np.array_equal(paged.colors, written[2][1])
+        assert torch.equal(paged.encoding.tokens, written[2][2])
+        assert paged.resident("pointmaps") and paged.resident("colors")
+        link = graph.links[1]  # keyframes 0 and 2 of agent 0, as stored
+        assert torch.equal(link.link.ij.idx, read_session(store.path).graph.links[1].link.ij.idx)
+
+        changed = paged.X_hat + 1  # a change to a paged-out keyframe is stored
+        paged.X_hat = changed
+        coordinator.candidates.append(Candidate(Verification(
+            (1, 0), (0, 4), 0.2, link.link.ij, 0.5, None, None, False), 1, 8))
+        store.record(coordinator, [])
+        assert not paged.resident("pointmaps")
+        assert isinstance(coordinator.candidates[0].verification, StoredVerification)
+        assert coordinator.candidates[0].verification.nu_j == pytest.approx(
+            link.link.ij.match_fraction)
+        assert torch.equal(paged.X_hat, changed) and not torch.equal(paged.X_init, changed)
+        store.record(coordinator, [])
+        confidence = paged.C_hat + 1  # set while paged out: reading the rest keeps it
+        paged.C_hat = confidence
+        assert torch.equal(paged.X_hat, changed) and paged.C_hat is confidence
+        store.record(coordinator, [])
+    stored = read_session(tmp_path / STORE_NAME)
+    assert torch.equal(stored.graph.keyframes[2].C_hat, confidence)
+    assert torch.equal(stored.graph.keyframes[2].X_hat, changed)
+    assert torch.equal(stored.graph.keyframes[2].X_init, written[2][0])
+
+
+@pytest.fixture(scope="module")
+def scene(tiny_scene) -> Path:
+    return tiny_scene(frames=16, seed=1, overlap=0.2)
+
+
+def _run(scene: Path, out: Path, resident: int) -> Path:
+    # the setting compared is the point of the test: everything paged out, or nothing
+    result = CliRunner().invoke(app, [
+        "run", "--agent", str(scene / "agent_0"), "--agent", str(scene / "agent_1"), "--out",
+        str(out), "--prior", "simulated", "--set", "input.long_side=64", "--single-process",
+        "-q", "--set", f"session.resident_keyframes={resident}"])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_paging_everything_out_changes_no_output(scene, tmp_path) -> None:
+    paged, resident = _run(scene, tmp_path / "paged", 0), _run(scene, tmp_path / "resident", 1000)
+    for name in ("trajectories/agent_0.txt", "trajectories/agent_1.txt", "graph.json"):
+        assert (paged / name).read_text() == (resident / name).read_text(), name
+    keyframes = sorted(p.relative_to(resident) for p in resident.glob("keyframes/*/*.npz"))
+    assert len(keyframes) >= 8
+    for name in keyframes:
+        a, b = np.load(paged / name), np.load(resident / name)
+        assert all(np.array_equal(a[key], b[key]) for key in b.files), name
+    metrics = [json.loads((run / "metrics.json").read_text()) for run in (paged, resident)]
+    assert metrics[0]["components"] == metrics[1]["components"] == [[0, 1]]
+    assert metrics[0]["coordinator"]["ba_runs"] == metrics[1]["coordinator"]["ba_runs"] >= 1
+    assert metrics[0]["map_points"] == metrics[1]["map_points"]
+
+
+def test_a_session_read_paged_reads_nothing_until_its_store_serves_it(tmp_path) -> None:
+    config = Config()
+    coordinator = Coordinator(None, config, None, 2)
+    gen = torch.Generator().manual_seed(1)
+    with SessionStore.create(tmp_path / STORE_NAME, config, coordinator) as store:
+        for step in range(6):
+            coordinator.graph.add_keyframe(_packet(step % 2, step // 2, gen))
+            coordinator.stats.keyframes += 1
+            store.record(coordinator, [])
+    eager = read_session(tmp_path / STORE_NAME)
+    paged = read_session(tmp_path / STORE_NAME, paged=True)
+    assert all(isinstance(kf, PagedKeyframe) and not kf.resident("pointmaps")
+               and not kf.resident("encoding") for kf in paged.graph.keyframes)
+    assert [type(link.link) for link in paged.graph.links] == [PagedLink] * 4
+    resumed = Coordinator(None, config, None, 2)
+    resumed.restore(paged.graph, paged.gauges, [], CoordinatorStats(keyframes=6), [], (0, []))
+    with SessionStore.reopen(tmp_path / STORE_NAME, resumed) as store:
+        for want, kf in zip(eager.graph.keyframes, resumed.graph.keyframes, strict=True):
+            assert torch.equal(kf.X_hat, want.X_hat) and torch.equal(kf.C_init, want.C_init)
+            assert np.array_equal(kf.colors, want.colors)
+        for want, link in zip(eager.graph.links, resumed.graph.links, strict=True):
+            assert torch.equal(link.link.ji.q, want.link.ji.q)
+        resumed.graph.keyframes[0].X_hat = resumed.graph.keyframes[0].X_hat * 2
+        store.record(resumed, [])
+    assert torch.equal(read_session(tmp_path / STORE_NAME).graph.keyframes[0].X_hat,
+                       2 * eager.graph.keyframes[0].X_hat)
