@@ -3,6 +3,7 @@ registration.py, confidence.py; F-Sec. III-A, III-B, F-Eq. 1-2)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -25,6 +26,7 @@ from como3r.decentralized.registration import (
 )
 from como3r.errors import ConfigError
 from como3r.geometry.lie import quat_to_matrix, sim3_act, sim3_compose, sim3_inverse, so3_exp
+from como3r.prior.mast3r.prior import MASt3REncoding
 from como3r.prior.simulated import SimulatedPrior
 from como3r.prior.simulated_keys import generator
 
@@ -203,3 +205,18 @@ def test_two_stage_encoding_encodes_each_keyframe_once(registrars):
     assert reg_a.stats.naive_encodes == naive + 2  # a naive pipeline encodes both again
     assert again.correspondences > 0
     assert reg_b.stats.registration_encodes <= reg_b.stats.encodes
+
+
+def test_an_encoding_this_prior_cannot_decode_is_refused(registrars, caplog):
+    (reg_a, _, _), (reg_b, _, _) = registrars
+    theirs = reg_b.encoding_for_peer(2)
+    foreign = MASt3REncoding(agent=1, index=0, shape=(16, 16), tokens=torch.zeros(1, 8),
+                             pos=torch.zeros(1, 2, dtype=torch.int64), grid=(1, 1))
+    reg_a.add_foreign(1, 5, foreign)
+    reg_a.add_foreign(1, 6, dataclasses.replace(theirs, ranges=theirs.ranges[None]))
+    for keyframe in (5, 6):
+        assert reg_a.answered(1, keyframe) and not reg_a.has_foreign(1, keyframe)
+    assert "a MASt3REncoding, where this prior makes SimulatedEncoding" in caplog.text
+    assert "ranges is not a 2-d torch.float32 tensor" in caplog.text
+    reg_a.add_foreign(1, 2, theirs)
+    assert reg_a.has_foreign(1, 2) and reg_a.answered(1, 2)

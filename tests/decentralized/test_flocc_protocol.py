@@ -10,8 +10,11 @@ import pytest
 
 from como3r.decentralized.messages import (
     DRIVER,
+    EncodingReply,
     EncodingRequest,
     PlaceDescriptors,
+    PoseEstimate,
+    PoseGraphShare,
     RobotReport,
     RobotTask,
 )
@@ -115,6 +118,34 @@ def test_messages_round_trip_through_the_codec():
     decoded = codec.decode(codec.encode(loop))
     assert math.isnan(decoded.odometry_scale) and np.array_equal(decoded.T_ab, loop.T_ab)
     assert codec.decode(codec.encode(task)).rounds == [(0, 1.5, [0, 1])]
+
+
+def _share(**changes) -> PoseGraphShare:
+    loop = LoopClosure(0, 3, 1, 4, np.arange(8, dtype=np.float64), math.nan, 0.7, 0.2, 120)
+    fields = dict(sender=1, recipient=0, round=0, time_s=1.0, odometry=np.zeros((3, 8)),
+                  estimate=np.zeros((0, 8)), frame=1, loops=[loop])
+    return PoseGraphShare(**{**fields, **changes})
+
+
+@pytest.mark.parametrize("message, match", [
+    (_share(odometry=np.full((3, 8), np.nan)), "odometry must be finite float64"),
+    (_share(odometry=np.zeros((3, 7))), "odometry has shape"),
+    (_share(estimate=np.zeros((4, 8))), "estimate must not outnumber odometry"),
+    (_share(loops=[LoopClosure(0, 3, 1, 4, np.zeros(8), 1.0, 0.7, 2.0, 120)]),
+     "probability in \\[0, 1\\]"),
+    (_share(time_s=math.inf), "time_s finite"),
+    (PoseEstimate(sender=0, recipient=1, round=0, time_s=1.0, poses=np.zeros((2, 8), np.float32),
+                  frame=0), "poses must be finite float64"),
+    (EncodingRequest(sender=0, recipient=1, round=0, time_s=0.5, keyframes=[2, 2]), "distinct"),
+    (EncodingReply(sender=0, recipient=1, round=0, time_s=0.5, keyframe=1, encoding=[1.0]),
+     "encoding must be a prior's Encoding"),
+    (PlaceDescriptors(sender=0, recipient=1, round=0, time_s=0.5, first=0,
+                      descriptors=[np.ones(4, np.float32), np.ones(5, np.float32)]),
+     "share one shape kind and width"),
+])
+def test_malformed_robot_messages_are_refused_on_decode(message, match):
+    with pytest.raises(codec.MessageError, match=match):
+        codec.decode(codec.encode(message))
 
 
 # ----------------------------------------------------------------------------- robots

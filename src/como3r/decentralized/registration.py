@@ -15,8 +15,9 @@ units of view i's pointmap (the prior's scale, resolved later by F-Eq. 6-8).
 
 from __future__ import annotations
 
+import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Callable
 
 import torch
@@ -28,6 +29,8 @@ from como3r.geometry.lie import matrix_to_quat, sim3_act
 from como3r.geometry.umeyama import umeyama_sim3, umeyama_sim3_batched
 from como3r.prior.base import Encoding, PairPrediction, Prior, View
 from como3r.prior.simulated_keys import generator
+
+logger = logging.getLogger(__name__)
 
 #: Query pixels processed at once by the nearest-neighbour search (bounds peak memory).
 _CHUNK = 256
@@ -216,6 +219,7 @@ class Registrar:
     _foreign: dict[tuple[int, int], Encoding] = field(default_factory=dict)
     _consecutive: dict[int, Registration] = field(default_factory=dict)
     _used: set[int] = field(default_factory=set)
+    _refused: set[tuple[int, int]] = field(default_factory=set)
 
     def own_encoding(self, keyframe: int) -> Encoding:
         """The encoding of one of this robot's keyframes, computed once."""
@@ -267,9 +271,22 @@ class Registrar:
         """Whether the encoding of ``robot``'s ``keyframe`` has been received."""
         return (robot, keyframe) in self._foreign
 
+    def answered(self, robot: int, keyframe: int) -> bool:
+        """Whether the encoding of ``robot``'s ``keyframe`` came (accepted or refused)."""
+        return (robot, keyframe) in self._foreign or (robot, keyframe) in self._refused
+
     def add_foreign(self, robot: int, keyframe: int, encoding: Encoding) -> None:
-        """Cache an encoding received from another robot."""
-        self._foreign[(robot, keyframe)] = encoding
+        """Cache an encoding received from another robot, or refuse (and log) one that this
+        robot's prior cannot decode with its own: another encoding type, or a tensor field
+        of another dtype or number of dimensions."""
+        own = self.own_encoding(0)
+        why = _mismatch(own, encoding)
+        if why is None:
+            self._foreign[(robot, keyframe)] = encoding
+            return
+        logger.warning("robot %d: refused robot %d's encoding of keyframe %d: %s", self.robot,
+                       robot, keyframe, why)
+        self._refused.add((robot, keyframe))
 
     def register(self, keyframe: int, robot: int, other: int) -> Registration:
         """Register this robot's ``keyframe`` (i) with ``robot``'s keyframe ``other`` (j).
@@ -308,6 +325,18 @@ class Registrar:
         self.stats.decode_seconds += time.perf_counter() - start
         self.stats.decodes += 1
         return result
+
+
+def _mismatch(own: Encoding, other: Encoding) -> str | None:
+    """Why ``other`` cannot be decoded together with ``own`` (None: it can)."""
+    if type(other) is not type(own):
+        return f"a {type(other).__name__}, where this prior makes {type(own).__name__}"
+    for f in fields(own):
+        mine, theirs = getattr(own, f.name), getattr(other, f.name)
+        if isinstance(mine, Tensor) and (not isinstance(theirs, Tensor)
+                                         or (mine.dtype, mine.ndim) != (theirs.dtype, theirs.ndim)):
+            return f"{f.name} is not a {mine.ndim}-d {mine.dtype} tensor"
+    return None
 
 
 def odometry_neighbour(keyframe: int, count: int) -> int:

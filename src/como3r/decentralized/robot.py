@@ -55,7 +55,7 @@ from como3r.decentralized.pose_graph import (
 )
 from como3r.decentralized.registration import Registrar
 from como3r.errors import SolverError
-from como3r.prior.base import Encoding, Prior, View
+from como3r.prior.base import Prior, View
 
 logger = logging.getLogger(__name__)
 
@@ -191,7 +191,7 @@ class Robot:
         tasks = self._candidates(present, count)
         self._request_encodings(r, t, tasks, present)
         self._wait(lambda: all((r, p) in self._got_requests for p in present)
-                   and all(self.registrar.has_foreign(k.peer, k.other) for k in tasks))
+                   and all(self.registrar.answered(k.peer, k.other) for k in tasks))
         self._register(tasks, count)
         # A peer whose request never came is gone for this round: nobody waits for it again.
         present = [p for p in present if (r, p) in self._got_requests or p == leader]
@@ -243,8 +243,7 @@ class Robot:
                         encoding=self.registrar.encoding_for_peer(keyframe)))
             self._got_requests.add((message.round, sender))
         elif isinstance(message, EncodingReply):
-            if isinstance(message.encoding, Encoding):
-                self.registrar.add_foreign(sender, message.keyframe, message.encoding)
+            self.registrar.add_foreign(sender, message.keyframe, message.encoding)
         elif isinstance(message, PoseGraphShare):
             self._shares[message.round][sender] = message
         elif isinstance(message, PoseEstimate):

@@ -613,6 +613,21 @@ def _hint_name(hint: Any) -> str:
     return getattr(hint, "__name__", None) or repr(hint).replace("typing.", "")
 
 
+def require(ok: bool, what: str) -> None:
+    """For the per-type checks of :func:`add_check`: raise :class:`MessageError` ``what``
+    unless ``ok``."""
+    if not ok:
+        raise MessageError(what)
+
+
+def require_shape(x: Tensor | np.ndarray, shape: tuple[int | None, ...], name: str) -> None:
+    """For the per-type checks: ``x.shape`` matches ``shape`` (None matches any size)."""
+    matches = len(x.shape) == len(shape) and all(s is None or s == n
+                                                 for s, n in zip(shape, x.shape))
+    require(matches, f"{name} has shape {tuple(x.shape)}, expected "
+            f"({', '.join('*' if s is None else str(s) for s in shape)})")
+
+
 def registered_types() -> dict[str, type]:
     """Every registered type that can be imported here, by wire name."""
     out = {}

@@ -39,6 +39,8 @@ from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches
 from como3r.live import FrameEvent
 from como3r.runtime import codec
+from como3r.runtime.codec import require as _require
+from como3r.runtime.codec import require_shape as _shape
 
 
 @dataclass(frozen=True)
@@ -240,19 +242,6 @@ FROM_AGENT = (AgentStarted, KeyframeMessage, FrameDone, FrameEvent, AgentFinishe
 # ------------------------------------------------------------------ checks on decode
 # The codec checks types; these check the shapes and ranges the receiver relies on, so a
 # malformed message fails at the boundary with a clear error instead of deep in torch.
-
-
-def _require(ok: bool, what: str) -> None:
-    if not ok:
-        raise codec.MessageError(what)
-
-
-def _shape(x: Tensor | np.ndarray, shape: tuple[int | None, ...], name: str) -> None:
-    """``x.shape`` matches ``shape`` (None matches any size)."""
-    matches = len(x.shape) == len(shape) and all(s is None or s == n
-                                                 for s, n in zip(shape, x.shape))
-    _require(matches, f"{name} has shape {tuple(x.shape)}, expected "
-             f"({', '.join('*' if s is None else str(s) for s in shape)})")
 
 
 def _floating(x: Tensor, name: str) -> None:
