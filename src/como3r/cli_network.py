@@ -4,8 +4,10 @@ machines")."""
 
 from __future__ import annotations
 
+import functools
+import inspect
 from pathlib import Path
-from typing import Annotated, List, Optional
+from typing import Annotated, Any, Callable, List, Optional, TypeVar
 
 import typer
 
@@ -86,8 +88,42 @@ def _prior_spec(prior: str, weights: Optional[Path], retrieval_weights: Optional
     return spec
 
 
+#: the options that choose the prior, as (parameter, annotated type, default)
+PRIOR_PARAMETERS = (("prior", PriorOption, "mast3r"), ("weights", WeightsOption, None),
+                    ("retrieval_weights", RetrievalOption, None),
+                    ("codebook", CodebookOption, None), ("device", DeviceOption, "cpu"),
+                    ("precision", PrecisionOption, "auto"))
+
+F = TypeVar("F", bound=Callable[..., None])
+
+
+def with_prior(command: F) -> F:
+    """Give a command the options of :data:`PRIOR_PARAMETERS` in place of its ``prior_spec``
+    parameter, which receives them checked as one
+    :class:`~como3r.runtime.pipeline.PriorSpec` (bad values: an ``error:`` line through
+    :func:`~como3r.cli_common.user_errors`, applied outside this decorator)."""
+    parameters = []
+    for parameter in inspect.signature(command, eval_str=True).parameters.values():
+        if parameter.name == "prior_spec":
+            parameters += [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY,
+                                             default=default, annotation=annotation)
+                           for name, annotation, default in PRIOR_PARAMETERS]
+        else:
+            parameters.append(parameter.replace(kind=inspect.Parameter.KEYWORD_ONLY))
+
+    @functools.wraps(command)
+    def wrapper(**kwargs: Any) -> None:
+        spec = _prior_spec(*(kwargs.pop(name) for name, _, _ in PRIOR_PARAMETERS))
+        command(prior_spec=spec, **kwargs)
+
+    wrapper.__signature__ = inspect.Signature(parameters)  # type: ignore[attr-defined]
+    wrapper.__annotations__ = {p.name: p.annotation for p in parameters}
+    return wrapper  # type: ignore[return-value]
+
+
 @interrupt_leaves_nothing
 @user_errors
+@with_prior
 def coordinator(
     out: OutOption,
     listen: ListenOption = [f"tcp/0.0.0.0:{DEFAULT_PORT}"],
@@ -97,12 +133,7 @@ def coordinator(
     gt: List[Path] = typer.Option([], "--gt", metavar="PATH",
                                   help="Ground truth per agent to evaluate against, as "
                                        "como3r eval --gt (repeat per agent, in id order)."),
-    prior: PriorOption = "mast3r",
-    weights: WeightsOption = None,
-    retrieval_weights: RetrievalOption = None,
-    codebook: CodebookOption = None,
-    device: DeviceOption = "cpu",
-    precision: PrecisionOption = "auto",
+    prior_spec: Any = None,
     config_file: ConfigOption = None,
     overrides: SetOption = [],
     calib: CalibOption = False,
@@ -139,7 +170,6 @@ def coordinator(
     from como3r.runtime.processes import RuntimeOptions
 
     network = _network(listen, connect, scouting, zenoh_config, session)
-    spec = _prior_spec(prior, weights, retrieval_weights, codebook, device, precision)
     check_output_dir(out, overwrite, resume)
     config = _load_config(config_file, overrides, calib, no_loop_closure)
     if resume:
@@ -148,24 +178,20 @@ def coordinator(
     options = RuntimeOptions(torch_threads=threads, max_message_bytes=int(max_message_mb * 2**20),
                              agent_timeout_s=agent_timeout, away_timeout_s=away_timeout)
     with run_progress(quiet) as shown:
-        summary = serve(network, agents, out, config, spec, options, ground_truth=gt,
+        summary = serve(network, agents, out, config, prior_spec, options, ground_truth=gt,
                         overwrite=overwrite, progress=shown, resume=resume)
     _print_summary(summary, out)
 
 
 @on_interrupt(lambda kwargs: f"interrupted: agent {kwargs['agent_id']} stopped")
 @user_errors
+@with_prior
 def agent(
     path: InputArgument,
     agent_id: int = typer.Option(..., "--id", min=0, help="This agent's id (0 to N-1)."),
     connect: ConnectOption = [],
     listen: ListenOption = [],
-    prior: PriorOption = "mast3r",
-    weights: WeightsOption = None,
-    retrieval_weights: RetrievalOption = None,
-    codebook: CodebookOption = None,
-    device: DeviceOption = "cpu",
-    precision: PrecisionOption = "auto",
+    prior_spec: Any = None,
     threads: Optional[int] = typer.Option(None, "--threads", min=1,
                                           help="Torch threads (default: torch's here)."),
     queue_memory_mb: float = typer.Option(
@@ -189,10 +215,9 @@ def agent(
     if not connect and not scouting:
         raise InputError("give the coordinator's --connect tcp/HOST:PORT (or --scouting)")
     network = _network(listen, connect, scouting, zenoh_config, session)
-    spec = _prior_spec(prior, weights, retrieval_weights, codebook, device, precision)
     if spill_dir is not None and not spill_dir.is_dir():
         raise InputError(f"--spill-dir {spill_dir}: no such folder")
-    if not run_remote_agent(network, agent_id, path, spec, threads,
+    if not run_remote_agent(network, agent_id, path, prior_spec, threads,
                             int(queue_memory_mb * 2**20), spill_dir):
         raise InputError(f"agent {agent_id} did not finish its input (see the log above)")
     console.print(f"agent {agent_id}: finished; the coordinator has every message")
@@ -200,6 +225,7 @@ def agent(
 
 @interrupt_leaves_nothing
 @user_errors
+@with_prior
 def robot(
     path: InputArgument,
     out: OutOption,
@@ -215,12 +241,7 @@ def robot(
              "robot_id,start_s,end_s[,start_s,end_s...] of mission time in range; a robot "
              "without a line is never in range (default: the configuration's "
              "decentralized.protocol.schedule; none: always in range)."),
-    prior: PriorOption = "mast3r",
-    weights: WeightsOption = None,
-    retrieval_weights: RetrievalOption = None,
-    codebook: CodebookOption = None,
-    device: DeviceOption = "cpu",
-    precision: PrecisionOption = "auto",
+    prior_spec: Any = None,
     config_file: ConfigOption = None,
     overrides: SetOption = [],
     calib: CalibOption = False,
@@ -245,10 +266,9 @@ def robot(
     if not path.exists():
         raise InputError(f"{path}: robot input does not exist")
     network = _network(listen, connect, scouting, zenoh_config, session)
-    spec = _prior_spec(prior, weights, retrieval_weights, codebook, device, precision)
     config = _load_config(config_file, overrides, calib, False)
     plan = read_schedule(schedule) if schedule is not None else None
     with run_progress(quiet) as shown:
-        summary = run_robot(network, robot_id, robots, path, out, config, spec, plan,
+        summary = run_robot(network, robot_id, robots, path, out, config, prior_spec, plan,
                             overwrite=overwrite, progress=shown)
     _print_summary(summary, out)
