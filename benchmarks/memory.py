@@ -12,6 +12,8 @@ carry over.
 
     como3r synth --out /tmp/long --agents 1 --frames 5000 --width 64 --height 48
     python benchmarks/memory.py --agent /tmp/long/agent_0 --every 250 --long-side 64
+    python benchmarks/memory.py --agent /tmp/long/agent_0 --every 250 --long-side 64 \
+        --frames 1000 --resident 1000000000     # the first 1,000 frames, never paged
 
 ``--long-side`` defaults to the configuration's (512); the figures in the closing note of
 issue 14 were taken with ``--long-side 64`` (the scene's own size) to fit 5,000 frames into
@@ -62,6 +64,26 @@ def _agent_pids() -> list[int]:
     return pids
 
 
+def first_frames(agent: Path, frames: int, folder: Path) -> Path:
+    """An agent folder of the first ``frames`` frames of ``agent`` (links to its files)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for entry in agent.iterdir():
+        target = folder / entry.name
+        if entry.is_dir():
+            target.mkdir(exist_ok=True)
+            for file in sorted(entry.iterdir())[:frames]:
+                if not (target / file.name).exists():
+                    (target / file.name).symlink_to(file)
+        elif entry.name in ("timestamps.txt", "groundtruth.txt", "odometry.txt"):
+            lines = entry.read_text().splitlines(keepends=True)
+            header = [line for line in lines if line.startswith("#")]
+            target.write_text("".join(header + [line for line in lines
+                                                if not line.startswith("#")][:frames]))
+        elif not target.exists():
+            target.symlink_to(entry)
+    return folder
+
+
 def measure(agent: Path, out: Path, resident: int, every: int, long_side: int | None) -> None:
     """One run; prints one JSON line per sample."""
     overrides = [f"session.resident_keyframes={resident}"]
@@ -100,8 +122,12 @@ def main() -> None:
                              "paged)")
     parser.add_argument("--long-side", type=int, default=None,
                         help="input.long_side (default: the configuration's)")
+    parser.add_argument("--frames", type=int, default=None,
+                        help="only the first N frames of the input (default: all)")
     parser.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.frames is not None and args.one is None:
+        args.agent = first_frames(args.agent, args.frames, args.out / f"first_{args.frames}")
     if args.one is not None:
         measure(args.agent, args.out / f"resident_{args.one}", args.one, args.every,
                 args.long_side)

@@ -38,13 +38,24 @@ def _until(condition, what: str) -> None:
         time.sleep(0.05)
 
 
+def _start(team, out: Path, agents: list[Path]) -> list:
+    """Coordinator and agents; returns the processes, the coordinator's first."""
+    args = [a for path in agents for a in ("--gt", str(path))]
+    return [team.coordinator(out, 2, *args)] + [team.agent(a, path)
+                                                  for a, path in enumerate(agents)]
+
+
+def _wait(team) -> None:
+    for name in ("agent0", "agent1", "coordinator"):
+        team.wait(name)
+
+
 def _run(team, out: Path, agents: list[Path], kills: list[int | str]) -> list[float]:
     """Coordinator and agents; at each kill point (keyframes stored, or ``"left"``: both
     agents have left) kill -9 the coordinator and start it again with ``--resume``.
     Returns the seconds from each restart until the coordinator had restored its state."""
     args = [a for path in agents for a in ("--gt", str(path))]
-    coordinator = team.coordinator(out, 2, *args)
-    processes = [team.agent(a, path) for a, path in enumerate(agents)]
+    coordinator, *processes = _start(team, out, agents)
     store = out.with_name(out.name + ".partial") / STORE_NAME
     seconds = []
     for kill in kills:
@@ -60,8 +71,7 @@ def _run(team, out: Path, agents: list[Path], kills: list[int | str]) -> list[fl
         _until(lambda: team.log("coordinator").count(RESUMED) > count,
                "the coordinator never resumed: " + team.log("coordinator"))
         seconds.append(time.monotonic() - restarted)
-    for name in ("agent0", "agent1", "coordinator"):
-        team.wait(name)
+    _wait(team)
     return seconds
 
 
@@ -69,9 +79,11 @@ def test_a_coordinator_killed_at_several_points_resumes_to_the_uninterrupted_res
         tiny_scene, new_team, tmp_path) -> None:
     scene = tiny_scene(frames=12, seed=0, overlap=0.5)  # 6 processed frames per agent
     agents = [scene / "agent_0", scene / "agent_1"]
-    _run(new_team("reference"), tmp_path / "reference.out", agents, [])
+    uninterrupted = new_team("reference")  # runs beside the killed one
+    _start(uninterrupted, tmp_path / "reference.out", agents)
     team = new_team("killed")
     seconds = _run(team, tmp_path / "killed.out", agents, [2, 5, "left"])
+    _wait(uninterrupted)
     reference, metrics = (json.loads((tmp_path / f"{name}.out" / "metrics.json").read_text())
                           for name in ("reference", "killed"))
     assert team.log("coordinator").count(RESUMED) == 3
