@@ -139,8 +139,8 @@ def run_robot(network: ZenohOptions, robot: int, team: int, path: Path, out: Pat
     summary.agents.append({"agent": robot, "keyframes": len(data.keyframes),
                            "loops": len(report.loops), "rejected": len(report.rejected),
                            "frame": report.frame,
-                           "sent [B]": sum(link.traffic.to_json()["sent"].values()),
-                           "received [B]": sum(link.traffic.to_json()["received"].values())})
+                           "sent [B]": sum(by_type(link.traffic.sent).values()),
+                           "received [B]": sum(by_type(link.traffic.received).values())})
     with atomic_output_dir(out, overwrite=overwrite) as staging:
         _write(staging, robot, data, report, link.traffic, rounds, config,
                time.perf_counter() - started, prior_spec.name)
