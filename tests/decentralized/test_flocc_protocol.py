@@ -22,11 +22,14 @@ from como3r.decentralized.pose_graph import LoopClosure
 from como3r.decentralized.protocol import (
     Router,
     Schedule,
+    build_prior,
     elect,
+    make_robot,
     plan_rounds,
     read_schedule,
     run_protocol,
 )
+from como3r.decentralized.robot import PeerLeft, RoundPlan
 from como3r.errors import ConfigError, InputError
 from como3r.runtime import codec
 from como3r.runtime.pipeline import PriorSpec
@@ -220,6 +223,35 @@ def test_a_robot_leaving_before_registration_is_left_out(scene, main_config, set
     # The others go on without it: robot 0 is elected and aligns robot 1.
     assert result.reports[1].frame == 0 and len(result.reports[1].estimate) > 0
     assert _sent(result, 2, "PoseGraphShare") == 0
+
+
+class _PeerLeaves:
+    """A link on which robot 1 is heard leaving as soon as robot 0 first sends it anything
+    (as ``como3r robot``'s link reports a peer whose process ended)."""
+
+    def __init__(self) -> None:
+        self.sent: list = []
+        self.inbox: list = []
+
+    def send(self, message) -> None:
+        if message.recipient == 1 and not self.sent:
+            self.inbox.append(PeerLeft(1))
+        self.sent.append(message)
+
+    def receive(self, timeout: float):
+        return self.inbox.pop(0) if self.inbox else None
+
+
+def test_a_robot_stops_waiting_for_a_peer_reported_gone(scene, main_config, settings_factory):
+    settings = settings_factory(keyframe_distance_ratio=0.45, timeout_s=600.0)
+    prior, codebook = build_prior(PriorSpec("simulated"), main_config, settings.place_method,
+                                  {0: str(scene[0])})
+    link = _PeerLeaves()
+    robot = make_robot(0, str(scene[0]), prior, codebook, main_config, settings, link, None)
+    report = robot.run([RoundPlan(0, MISSION_END_S, (0, 1))])
+    assert report.error == "" and report.stats["timeouts"] == 0  # no 600 s wait for robot 1
+    assert report.stats["candidates"] == 0 and len(report.estimate) == 0
+    assert [type(m).__name__ for m in link.sent] == ["PlaceDescriptors", "RobotProgress"]
 
 
 def test_unknown_leave_phase_is_rejected(scene, main_config, settings_factory):

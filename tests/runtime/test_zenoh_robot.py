@@ -12,6 +12,7 @@ import pytest
 
 from como3r.decentralized.messages import DRIVER, EncodingRequest, RobotHello, RobotProgress
 from como3r.decentralized.protocol import Schedule
+from como3r.decentralized.robot import PeerLeft
 from como3r.errors import InputError
 from como3r.runtime import codec
 from como3r.runtime.transport_zenoh import ZenohOptions, open_session
@@ -116,6 +117,15 @@ def test_invalid_messages_are_logged_and_dropped(network, caplog):
     assert links[0].traffic.invalid == 4
     assert "exceeds the cap" in caplog.text and "malformed msgpack" in caplog.text
     _finish(links, [0, 1])
+
+
+def test_a_peer_whose_process_ends_is_reported_gone(network):
+    (first, second), keys = network
+    links = [_link(first, keys, 0), _link(second, keys, 1)]
+    _meet(links)
+    second.close()  # robot 1's process ends: its liveliness token goes with its session
+    assert links[0].receive(30.0) == PeerLeft(1)
+    links[0].finish([0, 1], timeout=30.0)  # robot 1 is gone: nobody to wait for
 
 
 def test_robots_with_different_plans_refuse_each_other(network):

@@ -16,8 +16,9 @@ A round at mission time ``t`` with the group ``G`` of robots in range (F-Sec. II
 Every wait is bounded by ``protocol.message_timeout_s`` (twice that for the elected robot's
 answer, which may itself wait one timeout for a slow peer): a peer that does not answer (it
 left, or crashed) is left out of the rest of the round, and a robot whose elected robot
-disappears keeps its previous estimate. Requests are served whenever the robot waits, in
-any phase.
+disappears keeps its previous estimate. A link that sees a peer's process end (a
+:class:`PeerLeft` from ``como3r robot``'s Zenoh link) ends those waits at once. Requests are
+served whenever the robot waits, in any phase.
 """
 
 from __future__ import annotations
@@ -73,6 +74,14 @@ class Link(Protocol):
 
     def receive(self, timeout: float) -> Any | None:
         """The next message, or None after ``timeout`` seconds without one."""
+
+
+@dataclass(frozen=True)
+class PeerLeft:
+    """What a link that sees its peers' processes (``como3r robot``'s, by Zenoh liveliness)
+    hands its robot when a peer is gone for good: nobody waits for it any more."""
+
+    robot: int
 
 
 @dataclass(frozen=True)
@@ -144,6 +153,7 @@ class Robot:
         self._got_requests: set[tuple[int, int]] = set()
         self._shares: dict[int, dict[int, PoseGraphShare]] = defaultdict(dict)
         self._estimates: dict[int, PoseEstimate] = {}
+        self._gone: set[int] = set()
 
     # ------------------------------------------------------------------ running
 
@@ -184,20 +194,23 @@ class Robot:
         count = self.keyframes.up_to(t)
         self._check_leave(r, "descriptors")
         self._send_descriptors(r, t, peers, count)
-        self._wait(lambda: all((r, p) in self._got_descriptors for p in peers))
-        present = [p for p in peers if (r, p) in self._got_descriptors]
+        self._wait(lambda: all((r, p) in self._got_descriptors or p in self._gone
+                               for p in peers))
+        present = [p for p in peers if (r, p) in self._got_descriptors and p not in self._gone]
         leader = min([self.robot, *present])
         self._check_leave(r, "registration")
         tasks = self._candidates(present, count)
         self._request_encodings(r, t, tasks, present)
-        self._wait(lambda: all((r, p) in self._got_requests for p in present)
-                   and all(self.registrar.answered(k.peer, k.other) for k in tasks))
+        self._wait(lambda: all((r, p) in self._got_requests or p in self._gone for p in present)
+                   and all(self.registrar.answered(k.peer, k.other) or k.peer in self._gone
+                           for k in tasks))
         self._register(tasks, count)
         # A peer whose request never came is gone for this round: nobody waits for it again.
-        present = [p for p in present if (r, p) in self._got_requests or p == leader]
+        present = [p for p in present if ((r, p) in self._got_requests or p == leader)
+                   and p not in self._gone]
         participants = sorted([self.robot, *present])
         if self.robot == leader:
-            self._wait(lambda: all(p in self._shares[r] for p in present))
+            self._wait(lambda: all(p in self._shares[r] or p in self._gone for p in present))
             self._check_leave(r, "optimisation")
             self._solve_and_broadcast(r, t, present, self._share(r, t, leader, participants,
                                                                  count))
@@ -205,7 +218,8 @@ class Robot:
             self._check_leave(r, "optimisation")
             self.link.send(self._share(r, t, leader, participants, count))
             # The elected robot may itself wait up to one timeout for a slower peer's share.
-            if self._wait(lambda: r in self._estimates, timeouts=2):
+            self._wait(lambda: r in self._estimates or leader in self._gone, timeouts=2)
+            if r in self._estimates:
                 self._apply(self._estimates[r])
 
     def _check_leave(self, r: int, phase: str) -> None:
@@ -229,6 +243,10 @@ class Robot:
         return True
 
     def _handle(self, message: Any) -> None:
+        if isinstance(message, PeerLeft):
+            logger.warning("robot %d: robot %d is gone", self.robot, message.robot)
+            self._gone.add(message.robot)
+            return
         sender = message.sender
         if isinstance(message, PlaceDescriptors):
             for k, descriptor in enumerate(message.descriptors, start=message.first):

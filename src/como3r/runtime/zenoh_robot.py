@@ -25,7 +25,10 @@ its key names, and applies the **link filter**: a message its sender sent at mis
 (:meth:`~como3r.decentralized.protocol.Schedule.hears`), as radio range would drop it.
 Drops and invalid messages are logged and counted, never fatal.
 
-At the end (:meth:`ZenohRobotLink.finish`) a robot declares its ``done`` token and keeps
+A peer whose liveliness token goes (its process ended, or its link was lost for longer than
+the Zenoh lease) is reported to the robot as a
+:class:`~como3r.decentralized.robot.PeerLeft`, so it stops waiting for it. At the end
+(:meth:`ZenohRobotLink.finish`) a robot declares its ``done`` token and keeps
 its session open until every peer it met is done or gone, so its last messages (the
 elected robot's estimates) reach their recipients before it leaves.
 """
@@ -40,6 +43,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable
 
 from como3r.decentralized.messages import DRIVER, ROBOT_MESSAGES, RobotHello
+from como3r.decentralized.robot import PeerLeft
 from como3r.errors import InputError
 from como3r.runtime import codec
 from como3r.runtime.transport_zenoh import Sender
@@ -139,13 +143,14 @@ class ZenohRobotLink:
         self.traffic = RobotTraffic()
         self._hello = codec.encode(hello, max_bytes=max_bytes)
         self._plan = hello.plan
-        self._inbox: queue.Queue[tuple[str, bytes | int]] = queue.Queue()
+        self._inbox: queue.Queue[tuple[str, bytes | int | None]] = queue.Queue()
         self._publishers = {keys.messages(peer, robot): _publisher(session, keys.messages(
             peer, robot)) for peer in range(team) if peer != robot}
         self._sender = Sender(session, self._publishers)
         self._declared = [
             session.declare_subscriber(keys.messages(robot, "*"), self._on_message),
             session.declare_queryable(keys.hello(robot), self._on_hello),
+            session.liveliness().declare_subscriber(keys.alive("*"), self._on_alive),
             *self._publishers.values(),
         ]
         self._declared.append(session.liveliness().declare_token(keys.alive(robot)))
@@ -157,6 +162,12 @@ class ZenohRobotLink:
         key = str(sample.key_expr)
         # an oversized payload is not even copied
         self._inbox.put((key, size if size > self.max_bytes else sample.payload.to_bytes()))
+
+    def _on_alive(self, sample: Any) -> None:
+        import zenoh
+
+        if sample.kind == zenoh.SampleKind.DELETE:  # a peer's process is gone
+            self._inbox.put((str(sample.key_expr), None))
 
     def _on_hello(self, query: Any) -> None:
         try:
@@ -181,8 +192,9 @@ class ZenohRobotLink:
         self._sender.put(self.keys.messages(message.recipient, self.robot), data)
 
     def receive(self, timeout: float) -> Any | None:
-        """The next message that passes validation and the link filter, or None after
-        ``timeout`` seconds without one."""
+        """The next message that passes validation and the link filter (or a
+        :class:`~como3r.decentralized.robot.PeerLeft` when a peer's process is gone), or
+        None after ``timeout`` seconds without one."""
         deadline = time.monotonic() + max(timeout, 0.0)
         while True:
             try:
@@ -193,7 +205,10 @@ class ZenohRobotLink:
             if message is not None:
                 return message
 
-    def _accept(self, key: str, data: bytes | int) -> Any | None:
+    def _accept(self, key: str, data: bytes | int | None) -> Any | None:
+        if data is None:
+            gone = self.keys.robot_of(key)
+            return PeerLeft(int(gone)) if gone.isdigit() and int(gone) != self.robot else None
         claimed = self.keys.robot_of(key, 2)
         if isinstance(data, int):
             self._invalid(claimed, f"message of {data} bytes exceeds the cap of "
