@@ -247,7 +247,7 @@ class ZenohRobotLink:
         Raises:
             InputError: a peer runs another mission plan.
         """
-        known: dict[int, RobotHello] = {}
+        known = {self.robot: codec.decode(self._hello, expected=RobotHello)}  # its own
         said = time.monotonic()
         while len(known) < self.team:
             for reply in self.session.get(self.keys.hello("*"), timeout=2.0):
