@@ -248,7 +248,8 @@ def test_a_killed_agent_restarted_with_its_id_rejoins(longer_scene, team, tmp_pa
     try:
         team.agent(0, agents[0])
         victim = team.agent(1, agents[1])
-        watch.until(lambda: watch.count("FrameDone", 1) >= 3, "agent 1 never got going")
+        # its first keyframes leave it once its camera has settled on their pairs
+        watch.until(lambda: watch.count("KeyframeMessage", 1) >= 1, "agent 1 never got going")
         os.kill(victim.pid, signal.SIGKILL)
         killed = time.monotonic()
         left = watch.until(lambda: watch.token_change(killed, "agent/1/alive", False),

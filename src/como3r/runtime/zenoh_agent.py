@@ -27,6 +27,9 @@ from como3r.runtime.spool import Spool
 from como3r.runtime.transport import Traffic
 from como3r.runtime.transport_zenoh import INCARNATION, SEQ, WAIT, Keys
 
+#: the error reply Zenoh itself gives a query no queryable answered in time
+ZENOH_QUERY_TIMEOUT = "Timeout"
+
 logger = logging.getLogger(__name__)
 
 
@@ -89,6 +92,9 @@ class ZenohAgentLink:
                     self.max_bytes = task.max_message_bytes
                     return task
                 text = reply.err.payload.to_string()
+                if text == ZENOH_QUERY_TIMEOUT:  # a busy coordinator (a global BA): ask again
+                    waiting = f"the coordinator ({self.keys.root}), busy: no answer within 5 s"
+                    continue
                 if not text.startswith(WAIT):
                     raise InputError(f"agent {self.agent}: the coordinator says: {text}")
                 waiting = text[len(WAIT):]
