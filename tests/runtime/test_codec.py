@@ -149,7 +149,7 @@ SAMPLES: dict[str, Callable[[], Any]] = {
         packet=_packet(_mast3r_encoding()), applied_seq=2,
         T_WC_previous=torch.randn(8, dtype=torch.float64)),
     "FrameDone": lambda: messages.FrameDone(agent=1, frame_index=4, timestamp=0.1333,
-                                            outcome="tracked", seconds=0.5),
+                                            outcome="tracked", seconds=0.5, keyframes_waiting=1),
     "FrameEvent": lambda: FrameEvent(
         agent=1, frame_index=4, timestamp=0.1333, state="tracking",
         T_WC=np.array([0.1, 0.2, 0.3, 0.0, 0.0, 0.0, 1.0, 1.1]), K=np.eye(3),

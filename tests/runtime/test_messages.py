@@ -70,7 +70,7 @@ def _packet_message(fe: AgentFrontend, kf_id: int) -> messages.KeyframeMessage:
 
 
 #: messages past their first schema (AgentTask 2: live, 3: resume_after)
-VERSIONS = {"AgentTask": 3}
+VERSIONS = {"AgentTask": 3, "FrameDone": 2}
 
 
 @pytest.mark.parametrize("cls", [*messages.TO_AGENT, *messages.FROM_AGENT, messages.EdgeSummary],
@@ -185,7 +185,8 @@ def test_malformed_keyframe_packets_are_rejected(frontend: AgentFrontend) -> Non
 
 
 def test_malformed_frame_done_is_rejected() -> None:
-    good = messages.FrameDone(agent=0, frame_index=2, timestamp=0.5, outcome="lost", seconds=1)
+    good = messages.FrameDone(agent=0, frame_index=2, timestamp=0.5, outcome="lost", seconds=1,
+                                keyframes_waiting=2)
     assert decode(encode(good)) == good
     _reject(replace(good, timestamp=float("inf")), "not finite")
     _reject(replace(good, frame_index=-2), ">= 0")

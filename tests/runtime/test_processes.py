@@ -298,7 +298,8 @@ def test_channel_counts_bytes_and_enforces_the_cap() -> None:
     assert receiver.poll(5.0) and receiver.receive() == Step(frame_index=4)
     assert sender.traffic.bytes_sent == receiver.traffic.bytes_received
     assert sender.traffic.bytes_sent["Step"] > 0
-    sender.send(FrameDone(agent=0, frame_index=1, timestamp=0.0, outcome="x" * 500, seconds=0))
+    sender.send(FrameDone(agent=0, frame_index=1, timestamp=0.0, outcome="x" * 500, seconds=0,
+                          keyframes_waiting=0))
     assert receiver.poll(5.0)
     with pytest.raises(OSError, match="bad message length"):  # over the cap: unread
         receiver.receive()
@@ -312,7 +313,8 @@ def test_close_waits_until_a_late_reader_has_the_whole_message() -> None:
     reader, writer = multiprocessing.Pipe(duplex=False)
     sender = Channel(None, writer, max_bytes=10_000_000, accepts=(FrameDone,))
     receiver = Channel(reader, None, max_bytes=10_000_000, accepts=(FrameDone,))
-    big = FrameDone(agent=0, frame_index=1, timestamp=0.0, outcome="x" * 2_000_000, seconds=0)
+    big = FrameDone(agent=0, frame_index=1, timestamp=0.0, outcome="x" * 2_000_000, seconds=0,
+                    keyframes_waiting=0)
     sender.send(big)  # far beyond the pipe's buffer: the sender thread blocks on it
     received: list[FrameDone] = []
     late_reader = threading.Timer(1.0, lambda: received.append(receiver.receive()))

@@ -162,7 +162,8 @@ class AgentWorker:
             self.channel.send(frame_event(self.frontend, index, frame.timestamp, outcome,
                                           frame.colors))
         self.channel.send(FrameDone(agent=self.task.agent, frame_index=index,
-                                    timestamp=frame.timestamp, outcome=outcome, seconds=seconds))
+                                    timestamp=frame.timestamp, outcome=outcome, seconds=seconds,
+                                    keyframes_waiting=len(self.frontend.new_keyframes)))
 
     def _send_new_keyframes(self) -> None:
         for packet in self.frontend.drain_new_keyframes():

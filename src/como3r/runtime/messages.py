@@ -113,7 +113,9 @@ class KeyframeMessage:
 
 @dataclass(frozen=True)
 class FrameDone:
-    """Agent -> coordinator: a frame was processed; every keyframe it created was sent.
+    """Agent -> coordinator: a frame was processed; every keyframe it released was sent
+    (a self-calibrated agent's first keyframes wait for its camera:
+    :meth:`~como3r.frontend.agent.AgentFrontend.settle_camera`).
 
     Attributes:
         agent: agent id.
@@ -121,6 +123,8 @@ class FrameDone:
         timestamp: the frame's timestamp (the agent's clock for ordering keyframes).
         outcome: ``"keyframe"``, ``"tracked"``, ``"relocalized"`` or ``"lost"``.
         seconds: front-end wall-clock time of the frame.
+        keyframes_waiting: keyframes the agent made but has not sent yet (they wait for its
+            camera); its progress counts them.
     """
 
     agent: int
@@ -128,7 +132,8 @@ class FrameDone:
     timestamp: float
     outcome: str
     seconds: float
-    version: int = 1
+    keyframes_waiting: int
+    version: int = 2
 
 
 @dataclass(frozen=True)
@@ -311,7 +316,8 @@ def _check_keyframe_message(m: KeyframeMessage) -> None:
 
 
 def _check_frame_done(m: FrameDone) -> None:
-    _require(m.frame_index >= 0 and m.seconds >= 0, "frame_index and seconds must be >= 0")
+    _require(m.frame_index >= 0 and m.seconds >= 0 and m.keyframes_waiting >= 0,
+             "frame_index, seconds and keyframes_waiting must be >= 0")
     _require(math.isfinite(m.timestamp), f"timestamp {m.timestamp} is not finite")
 
 
@@ -342,7 +348,8 @@ def _check_update_message(m: PoseUpdateMessage) -> None:
 
 
 for _cls in (*TO_AGENT, *FROM_AGENT, EdgeSummary):
-    codec.register(_cls, version=3 if _cls is AgentTask else 1)  # AgentTask 3: resume_after
+    # AgentTask 3: resume_after; FrameDone 2: keyframes_waiting
+    codec.register(_cls, version={AgentTask: 3, FrameDone: 2}.get(_cls, 1))
 
 for _name, _check in (("PoseUpdate", _check_pose_update), ("PointmapRefresh", _check_refresh),
                       ("DirectedMatches", _check_matches), ("KeyframePacket", _check_packet),

@@ -391,13 +391,15 @@ class _Runtime:
         if message.outcome == "lost":
             slot.lost_frames.append(message.frame_index)
         slot.seconds += message.seconds
+        slot.keyframes_waiting = message.keyframes_waiting
         self._report(slot, tracking_state(message.outcome))
 
     def _report(self, slot: AgentSlot, state: str) -> None:
         """The agent's progress, from its messages so far, to the progress callback."""
         if self.progress is not None:
             self.progress(AgentProgress(slot.agent, slot.frames_done, slot.frames_expected,
-                                        slot.keyframes_received, slot.outcomes["lost"],
+                                        slot.keyframes_received + slot.keyframes_waiting,
+                                        slot.outcomes["lost"],
                                         slot.outcomes["relocalized"], state))
 
     def _fail(self, slot: AgentSlot, error: str) -> None:

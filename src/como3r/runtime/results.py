@@ -224,6 +224,7 @@ class AgentSlot:
     outcomes: Counter[str] = field(default_factory=Counter)
     lost_frames: list[int] = field(default_factory=list)
     keyframes_received: int = 0
+    keyframes_waiting: int = 0  # made by its process, not sent yet (its last FrameDone)
     seconds: float = 0.0
     error: str | None = None
     last_heard: float = field(default_factory=time.monotonic)
