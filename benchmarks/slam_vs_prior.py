@@ -10,7 +10,8 @@ do the work (the same wrappers on any checkout, so two checkouts compare like fo
 * SLAM stages: ``matching`` (projective matching with descriptor refinement, C-Eq. 1),
   ``tracking`` (LM-IRLS, C-Eq. 2), ``fusion`` (C-Eq. 3), ``keyframe`` (linking and loop
   verification around the decodes and matchings), ``local_solve`` (C-Eq. 5 on the agent's
-  keyframe graph), ``other`` (the rest of ``process``).
+  keyframe graph), ``calibration`` (once per agent: its camera settled on its first
+  keyframes' pairs), ``other`` (the rest of ``process``).
 
 Nested stages are exclusive (a decode inside linking counts as ``prior_decode`` only). It
 then times one full-size MASt3R decode at the same resolution (random weights: the released
@@ -21,9 +22,13 @@ dense matching comes with one of them). Times are CPU seconds of
 this process (``time.process_time``): with one thread they equal wall time on an idle
 machine and, unlike wall time, do not count the other jobs of a shared one.
 
-    como3r synth --out /tmp/s640 --agents 1 --frames 40 --width 640 --height 480
+The scene below turns at the demo's hand-held pace (its loop laid out for 100 frames, 7 deg
+per processed frame); ``--frames 40`` alone lays the loop out for 40 frames (16 deg per
+processed frame), which makes about twice as many keyframes.
+
+    como3r synth --out /tmp/s640 --agents 1 --frames 30 --loop-frames 100 --width 640 --height 480
     OMP_NUM_THREADS=1 python benchmarks/slam_vs_prior.py --agent /tmp/s640/agent_0 \
-        --frames 12 --threads 1
+        --frames 15 --threads 1
 """
 
 from __future__ import annotations
@@ -48,7 +53,8 @@ from como3r.prior.mast3r.precision import PRECISIONS
 from como3r.runtime.pipeline import PriorSpec, _colors, build_prior
 
 PRIOR_STAGES = ("prior_encode", "prior_decode", "prior_retrieval")
-SLAM_STAGES = ("matching", "tracking", "fusion", "keyframe", "local_solve", "other")
+SLAM_STAGES = ("matching", "tracking", "fusion", "keyframe", "local_solve", "calibration",
+               "other")
 
 
 class ExclusiveClock:
@@ -92,6 +98,7 @@ def instrument(clock: ExclusiveClock) -> None:
     frontend.process = clock.wrap("other", frontend.process)
     frontend._link_new_keyframe = clock.wrap("keyframe", frontend._link_new_keyframe)
     frontend._local_solve = clock.wrap("local_solve", frontend._local_solve)
+    frontend.settle_camera = clock.wrap("calibration", frontend.settle_camera)
     tracker_module.FrameTracker._solve = clock.wrap("tracking",
                                                     tracker_module.FrameTracker._solve)
     keyframes_module.Keyframe.fuse = clock.wrap("fusion", keyframes_module.Keyframe.fuse)
