@@ -36,7 +36,6 @@ from torch import Tensor
 from como3r.config import GlobalBAConfig, TrackingConfig
 from como3r.frontend.graph import make_factors
 from como3r.frontend.pairs import DirectedMatches, gather_points
-from como3r.geometry.camera import rescale_focal
 from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.values import PoseValues
@@ -130,52 +129,97 @@ def estimate_log_focal(
     return FocalEstimate(best, energy.evaluations, f_zero - f_best)
 
 
+@dataclass(frozen=True)
+class _Direction:
+    """One matched direction of a pair, subsampled: pixels of node ``j`` looked up in node
+    ``i``, with the points it compares (C-Eq. 17) and which side takes the correction."""
+
+    i: int
+    j: int
+    X_i: Tensor  # (n, 3) points of i at the matched pixels
+    X_j: Tensor  # (n, 3) points of j
+    q: Tensor  # (n,)
+    K_i: Tensor  # (3, 3)
+    rescales_i: bool
+    rescales_j: bool
+
+
 class _PairEnergy:
-    """Summed robust energy of the pairs' relative solves at a trial correction."""
+    """Summed robust energy of the pairs' relative solves at a trial correction.
+
+    Every pair is two nodes (its anchor, pinned at the identity, and its moving keyframe)
+    of one batch, so one Gauss-Newton loop solves all pairs (their blocks are independent);
+    each evaluation starts from the poses the previous one found (the golden-section
+    search's trial corrections are close to each other).
+    """
 
     def __init__(self, pairs: Sequence[FocalPair], tracking: TrackingConfig, max_matches: int,
                  max_iters: int) -> None:
-        self.pairs = list(pairs)
         self.tracking = tracking
-        self.max_matches = max_matches
         self.max_iters = max_iters
         self.evaluations = 0
+        self.directions: list[_Direction] = []
+        for k, pair in enumerate(pairs):
+            anchor, moving = 2 * k, 2 * k + 1
+            self.directions += [
+                _direction(anchor, moving, pair.X_anchor, pair.X_moving, pair.K_anchor,
+                           pair.in_anchor, max_matches, pair.shared, True),
+                _direction(moving, anchor, pair.X_moving, pair.X_anchor, pair.K_moving,
+                           pair.in_moving, max_matches, True, pair.shared),
+            ]
+        identity = sim3_identity(dtype=torch.float64)
+        self.poses = torch.stack([T for pair in pairs
+                                  for T in (identity, pair.T_anchor_moving.double())])
+        self.pinned = torch.arange(2 * len(pairs)) % 2 == 0
 
     def __call__(self, log_focal: float, prior_sigma: float) -> float:
         self.evaluations += 1
-        total = 0.5 * (log_focal / prior_sigma) ** 2
-        for pair in self.pairs:
-            total += self._pair(pair, log_focal)
-        return total
+        factors = self._factors(math.exp(log_focal))
+        solved, _ = gauss_newton_irls(factors, PoseValues(self.poses, self.pinned),
+                                      GlobalBAConfig(), max_iters=self.max_iters)
+        self.poses = solved.poses
+        data = float(factors.cost(solved.poses.to(factors.q.dtype)))
+        return 0.5 * (log_focal / prior_sigma) ** 2 + data
 
-    def _pair(self, pair: FocalPair, log_focal: float) -> float:
-        X_m, K_m = rescale_focal(pair.X_moving, pair.K_moving, log_focal)
-        X_a, K_a = ((rescale_focal(pair.X_anchor, pair.K_anchor, log_focal)) if pair.shared
-                    else (pair.X_anchor, pair.K_anchor))
-        # node 0: the anchor keyframe (pinned at the identity), node 1: the moving one
-        factors = [
-            _directed_factor(0, 1, X_a, X_m, K_a, pair.in_anchor, self.tracking,
-                             self.max_matches),
-            _directed_factor(1, 0, X_m, X_a, K_m, pair.in_moving, self.tracking,
-                             self.max_matches),
-        ]
-        start = torch.stack([sim3_identity(dtype=torch.float64), pair.T_anchor_moving.double()])
-        values = PoseValues(start, torch.tensor([True, False]))
-        solved, _ = gauss_newton_irls(factors, values, GlobalBAConfig(), max_iters=self.max_iters)
-        return sum(float(f.cost(solved.poses.to(X_a.dtype))) for f in factors)
+    def _factors(self, factor: float):
+        """The calibrated factors of every direction with the rescaled sides moved to the
+        focal length times ``factor`` (x and y of their points over ``factor``, C-Eq. 16)."""
+        n = max(d.q.numel() for d in self.directions)
+        shrink = torch.tensor([1.0 / factor, 1.0 / factor, 1.0])
+        X_i, X_j, q, valid, K = [], [], [], [], []
+        for d in self.directions:
+            pad = n - d.q.numel()
+            X_i.append(_padded(d.X_i * shrink.to(d.X_i) if d.rescales_i else d.X_i, pad))
+            X_j.append(_padded(d.X_j * shrink.to(d.X_j) if d.rescales_j else d.X_j, pad))
+            q.append(_padded(d.q, pad))
+            valid.append(torch.arange(n) < d.q.numel())
+            K_i = d.K_i.clone()
+            if d.rescales_i:  # as geometry.camera.rescale_focal
+                K_i[0, 0] *= factor
+                K_i[1, 1] *= factor
+            K.append(K_i)
+        X_i_t = torch.stack(X_i)
+        return make_factors(torch.tensor([d.i for d in self.directions]),
+                            torch.tensor([d.j for d in self.directions]), X_i_t,
+                            torch.stack(X_j), torch.stack(q), torch.stack(valid), self.tracking,
+                            torch.stack(K).to(X_i_t))
 
 
-def _directed_factor(i: int, j: int, X_i: Tensor, X_j: Tensor, K_i: Tensor,
-                     matches: DirectedMatches, tracking: TrackingConfig, max_matches: int):
-    """The calibrated factor of one edge (i, j): pixels of j looked up in i (C-Eq. 17)."""
+def _direction(i: int, j: int, X_i: Tensor, X_j: Tensor, K_i: Tensor,
+               matches: DirectedMatches, max_matches: int, rescales_i: bool,
+               rescales_j: bool) -> _Direction:
+    """The edge (i, j) of a pair, its valid matches evenly subsampled to ``max_matches``."""
     pixels = torch.nonzero(matches.valid).flatten()
     if pixels.numel() > max_matches:
         pixels = pixels[torch.linspace(0, pixels.numel() - 1, max_matches).long()]
-    X_i_m = gather_points(X_i, matches.idx[pixels])[None]
-    X_j_m = X_j.reshape(-1, 3)[pixels][None]
-    q = matches.q[pixels][None]
-    return make_factors(torch.tensor([i]), torch.tensor([j]), X_i_m, X_j_m, q,
-                        torch.ones_like(q, dtype=torch.bool), tracking, K_i[None].to(X_i_m))
+    return _Direction(i, j, gather_points(X_i, matches.idx[pixels]),
+                      X_j.reshape(-1, 3)[pixels], matches.q[pixels], K_i, rescales_i,
+                      rescales_j)
+
+
+def _padded(x: Tensor, pad: int) -> Tensor:
+    """``x (n, ...)`` with ``pad`` zero rows appended (invalid matches)."""
+    return torch.cat([x, x.new_zeros((pad, *x.shape[1:]))]) if pad else x
 
 
 def relative_pose(T_WC_anchor: Tensor, T_WC_moving: Tensor) -> Tensor:
