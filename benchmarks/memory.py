@@ -141,12 +141,14 @@ def main() -> None:
                    str(args.out), "--every", str(args.every), "--one", str(resident)]
         if args.long_side is not None:
             command += ["--long-side", str(args.long_side)]
-        lines = subprocess.run(command, check=True, capture_output=True, text=True).stdout
-        for line in lines.splitlines():
-            row = json.loads(line)
-            print(f"{resident:>9} {row['frames']:>6} {row['keyframes']:>9} "
-                  f"{row['coordinator_rss']:>9.0f} {row['coordinator_peak']:>10.0f} "
-                  f"{row['agent_rss']:>9.0f} {row['seconds']:>8.0f}")
+        with subprocess.Popen(command, stdout=subprocess.PIPE, text=True) as run:
+            for line in run.stdout:  # as they come: a long run shows its curve as it goes
+                row = json.loads(line)
+                print(f"{resident:>9} {row['frames']:>6} {row['keyframes']:>9} "
+                      f"{row['coordinator_rss']:>9.0f} {row['coordinator_peak']:>10.0f} "
+                      f"{row['agent_rss']:>9.0f} {row['seconds']:>8.0f}", flush=True)
+        if run.returncode:
+            raise SystemExit(f"the run with --resident {resident} failed")
 
 
 if __name__ == "__main__":
