@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
-import pytest
-import torch
+import os
+
+from como3r.cli import OMP_WAIT_POLICY
+
+# as the como3r command sets it, before torch loads OpenMP; the CLI's subprocesses inherit it
+os.environ.setdefault("OMP_WAIT_POLICY", OMP_WAIT_POLICY)
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 # One intra-op thread per test process: with more threads than free cores (CI's 2 cores
 # shared with subprocess tests) torch's spinning workers slow the dense front-end tests

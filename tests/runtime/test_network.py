@@ -248,8 +248,11 @@ def test_a_killed_agent_restarted_with_its_id_rejoins(longer_scene, team, tmp_pa
     try:
         team.agent(0, agents[0])
         victim = team.agent(1, agents[1])
-        # its first keyframes leave it once its camera has settled on their pairs
+        # its first keyframes leave it once its camera has settled on their pairs; killed
+        # after the frame that sent them has reported (the coordinator resumes after it)
         watch.until(lambda: watch.count("KeyframeMessage", 1) >= 1, "agent 1 never got going")
+        reported = watch.count("FrameDone", 1)
+        watch.until(lambda: watch.count("FrameDone", 1) > reported, "agent 1 stopped")
         os.kill(victim.pid, signal.SIGKILL)
         killed = time.monotonic()
         left = watch.until(lambda: watch.token_change(killed, "agent/1/alive", False),
