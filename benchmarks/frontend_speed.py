@@ -72,7 +72,7 @@ def frontend_row(width: int, height: int, repeats: int) -> dict[str, float]:
     tracker = FrameTracker(prior, config)
     pred = prior.decode(enc_f, enc_k)
     matches = directed_matches(pred, config.matching, config.tracking.q_min)
-    T_kf, _ = tracker._solve(pred.X_ii, keyframe, matches, sim3_identity())
+    T_kf, _ = tracker.solve(pred.X_ii, keyframe, matches, sim3_identity())
     X_hat, C_hat = keyframe.X_hat.clone(), keyframe.C_hat.clone()
 
     def fuse() -> None:
@@ -82,7 +82,7 @@ def frontend_row(width: int, height: int, repeats: int) -> dict[str, float]:
     return {
         "matching": best_of(repeats, lambda: directed_matches(pred, config.matching,
                                                               config.tracking.q_min)),
-        "tracking": best_of(repeats, lambda: tracker._solve(pred.X_ii, keyframe, matches,
+        "tracking": best_of(repeats, lambda: tracker.solve(pred.X_ii, keyframe, matches,
                                                             sim3_identity())),
         "fusion": best_of(repeats, fuse),
         "simulated decode": best_of(repeats, lambda: prior.decode(enc_f, enc_k)),

@@ -99,8 +99,8 @@ def instrument(clock: ExclusiveClock) -> None:
     frontend._link_new_keyframe = clock.wrap("keyframe", frontend._link_new_keyframe)
     frontend._local_solve = clock.wrap("local_solve", frontend._local_solve)
     frontend.settle_camera = clock.wrap("calibration", frontend.settle_camera)
-    tracker_module.FrameTracker._solve = clock.wrap("tracking",
-                                                    tracker_module.FrameTracker._solve)
+    tracker_module.FrameTracker.solve = clock.wrap("tracking",
+                                                   tracker_module.FrameTracker.solve)
     keyframes_module.Keyframe.fuse = clock.wrap("fusion", keyframes_module.Keyframe.fuse)
     pairs_module.match_pointmaps = clock.wrap("matching", pairs_module.match_pointmaps)
 

@@ -18,6 +18,7 @@ from como3r.frontend.calibration import estimate_intrinsics
 from como3r.frontend.packets import PoseUpdate
 from como3r.geometry.camera import intrinsics_matrix, rescale_focal, unproject_depth
 from como3r.geometry.lie import sim3_compose, sim3_exp
+from como3r.geometry.umeyama import umeyama_rmse, umeyama_sim3
 from como3r.prior.simulated import SimulatedPrior
 
 
@@ -99,6 +100,19 @@ def test_keyframes_wait_for_the_camera_settled_on_their_pairs(miscalibrated) -> 
     for packet in packets:
         assert float(packet.K[0, 0]) == pytest.approx(stats.estimated_focal, rel=1e-5)
     assert "calibration" in stats.stage_seconds
+
+
+def test_frames_tracked_before_the_camera_settled_are_solved_again_on_it(miscalibrated) -> None:
+    """Their poses were solved on the 12 % short camera; solved again from their pointmaps
+    and matches on the settled one, the whole trajectory is within 1.1 % of the path
+    (measured 0.57 %; 2.6 % when they keep their first solutions)."""
+    agent, frontend, _ = miscalibrated
+    indices, _, T_WC = frontend.trajectory()
+    assert len(indices) == 12 and frontend.keyframes[2].frame_index > 2  # some were early
+    gt = agent.groundtruth.T_WC[indices, :3]
+    est = T_WC[:, :3].double()
+    path = float((gt[1:] - gt[:-1]).norm(dim=-1).sum())
+    assert umeyama_rmse(umeyama_sim3(est, gt), est, gt) <= 0.011 * path
 
 
 def test_each_packet_carries_the_updates_applied_before_it_was_taken(miscalibrated) -> None:

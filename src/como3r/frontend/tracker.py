@@ -122,8 +122,8 @@ class FrameTracker:
                         "(minimum %.2f)", keyframe.kf_id, nu, tracking.min_match_fraction)
             return TrackResult(False, "too_few_matches", T_kf_init, new_keyframe=True, **base)
         with self.timer.stage("tracking"):
-            T_kf, report = self._solve(pred.X_ii, keyframe, matches, T_kf_init)
-        if report.reason in _FAILED_REASONS or not bool(torch.isfinite(T_kf).all()):
+            T_kf, report = self.solve(pred.X_ii, keyframe, matches, T_kf_init)
+        if not solved(T_kf, report):
             logger.info("tracking failed against keyframe %d: %s", keyframe.kf_id, report.reason)
             return TrackResult(False, report.reason, T_kf_init, new_keyframe=True, solve=report,
                                **base)
@@ -145,7 +145,7 @@ class FrameTracker:
         """Forget the previous matches (after relocalization)."""
         self._warm = None
 
-    def _solve(
+    def solve(
         self, X_ff: Tensor, keyframe: Keyframe, matches: DirectedMatches, T_kf_init: Tensor
     ) -> tuple[Tensor, SolveReport]:
         """LM-IRLS on C-Eq. 2 (C-Eq. 17 when calibrated), keyframe pinned at the identity.
@@ -174,6 +174,11 @@ class FrameTracker:
     def _remember(self, keyframe: Keyframe, matches: DirectedMatches, width: int) -> None:
         pixels = torch.stack([matches.idx % width, matches.idx // width], dim=-1)
         self._warm = (keyframe.kf_id, pixels[None].to(keyframe.X_hat.dtype))
+
+
+def solved(T_kf: Tensor, report: SolveReport) -> bool:
+    """Whether a tracking solve gave a usable pose ``T_kf`` ``(8,)``."""
+    return report.reason not in _FAILED_REASONS and bool(torch.isfinite(T_kf).all())
 
 
 def _unique_fraction(matches: DirectedMatches, searched_pixels: int) -> float:
