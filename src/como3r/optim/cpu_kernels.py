@@ -51,6 +51,16 @@ def _add_row(acc: np.ndarray, row: np.ndarray, weight: float,
 
 
 @njit(cache=True, inline="always")
+def _add_component(acc: np.ndarray, row: np.ndarray, error: float, info: float,
+                   k: float) -> None:  # pragma: no cover (compiled)
+    """One residual component with Jacobian ``row (7,)``: whitened by ``info`` (C-Eq. 7),
+    weighted by its Huber IRLS weight (C-Sec. A.1), added to ``acc`` (:func:`_add_row`)."""
+    whitened = error * info
+    w = _huber(whitened, k) * info
+    _add_row(acc, row, w * info, w * whitened)
+
+
+@njit(cache=True, inline="always")
 def _huber(whitened: float, k: float) -> float:  # pragma: no cover (compiled)
     """IRLS weight ``min(1, k / |r|)`` of the Huber kernel (C-Sec. A.1)."""
     return k / max(abs(whitened), k)
@@ -118,17 +128,11 @@ def _ray_range_blocks(sR, t, X_i, X_j, q, valid, inv_sigma, k, block,
                 row[0], row[1], row[2] = -r_c * r0 / d, -r_c * r1 / d, -r_c * r2 / d
                 row[c] += 1.0 / d
                 row[3], row[4], row[5], row[6] = s0, s1, s2, 0.0
-                info = s * inv_sigma[edge, c]
-                whitened = e[c] * info
-                w = _huber(whitened, k) * info
-                _add_row(acc, row, w * info, w * whitened)
+                _add_component(acc, row, e[c], s * inv_sigma[edge, c], k)
             # range row: [r^T, 0, d]
             row[0], row[1], row[2] = r0, r1, r2
             row[3], row[4], row[5], row[6] = 0.0, 0.0, 0.0, d
-            info = s * inv_sigma[edge, 3]
-            whitened = e[3] * info
-            w = _huber(whitened, k) * info
-            _add_row(acc, row, w * info, w * whitened)
+            _add_component(acc, row, e[3], s * inv_sigma[edge, 3], k)
         out[task] = acc
 
 
@@ -160,10 +164,7 @@ def _calibrated_blocks(sR, t, K, X_j, p_i, z_i, q, valid, inv_sigma, k, block,
                 row[4] = x2 * j0 - x0 * j2
                 row[5] = x0 * j1 - x1 * j0
                 row[6] = x2 * inv_z if c == 2 else 0.0
-                info = s * inv_sigma[edge, c]
-                whitened = e[c] * info
-                w = _huber(whitened, k) * info
-                _add_row(acc, row, w * info, w * whitened)
+                _add_component(acc, row, e[c], s * inv_sigma[edge, c], k)
         out[task] = acc
 
 
