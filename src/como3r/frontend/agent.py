@@ -399,8 +399,8 @@ class AgentFrontend:
         position = {record.frame_index: k for k, record in enumerate(self.records)}
         for frame in frames:
             k = position.get(frame.frame_index)
-            if k is None:  # promoted to a keyframe since
-                continue
+            if k is None or self.records[k].anchor != frame.keyframe:
+                continue  # promoted to a keyframe since: its record is anchored on itself
             X_ff, _ = to_focal(frame.X_ff, first_K.to(frame.X_ff), focal)
             T_kf, report = self.tracker.solve(X_ff, self.keyframes[frame.keyframe],
                                               frame.matches, self.records[k].T_rel)
