@@ -28,7 +28,9 @@ crossed with input sizes (``320x240`` is upsampled to the long side 512 by the p
 ``metrics.json``:
 
 * ``frames``: processed frames over all agents (every other frame: ``input.subsample``);
-* ``tracked``: tracked / processed frames, over all agents;
+* ``tracked``: tracked / processed frames, over all agents, of the frames the camera sees
+  (the ``covered`` family's frames behind the lens cover, listed in ``scene.json``, can only
+  be lost: they count neither way);
 * ``ATE m``: ATE RMSE after Sim(3) alignment, of the merged trajectory with several agents;
 * ``ATE %path``: ``ATE m`` over the mean ground-truth path length of an agent
   (``scene.json``'s ``path_length_m``: distance travelled, teleports of ``revisit``
@@ -142,9 +144,10 @@ def measure(metrics: dict, scene_info: dict) -> dict[str, float]:
     """
     agents = metrics["agents"]
     frames = sum(a["frames"] for a in agents)
+    hidden = _covered_processed(scene_info, len(agents))
     row = {
         "frames": frames,
-        "tracked": sum(a["tracked"] for a in agents) / frames,
+        "tracked": sum(a["tracked"] for a in agents) / (frames - hidden),
         "ATE m": math.nan, "ATE %path": math.nan, "RPE rot": math.nan,
         "KF/frame": sum(a["keyframes"] for a in agents) / frames,
         "s/frame": sum(a["seconds"] for a in agents) / frames,
@@ -158,6 +161,17 @@ def measure(metrics: dict, scene_info: dict) -> dict[str, float]:
         row["ATE %path"] = 100.0 * rmse / path if path > 0 else math.nan
         row["RPE rot"] = float(np.mean([a["rpe_rot_deg"]["rmse"] for a in ate["agents"]]))
     return row
+
+
+def _covered_processed(scene_info: dict, agents: int) -> int:
+    """Processed frames (every ``input.subsample``-th) taken with the lens covered, over
+    all agents: ``scene.json``'s ``covered_frames`` (first, last inclusive) or none."""
+    covered = scene_info.get("covered_frames")
+    if not covered:
+        return 0
+    step = Config().input.subsample
+    first, last = covered
+    return agents * sum(1 for k in range(first, last + 1) if k % step == 0)
 
 
 def run_cell(out: Path, family: str, size: str, seed: int, agents: int, frames: int) -> dict:
