@@ -24,6 +24,7 @@ from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import PoseUpdate
 from como3r.geometry.lie import sim3_exp
 from como3r.io.tum import read_tum
+from como3r.live import FrameEvent
 from como3r.prior.simulated import SimulatedPrior
 from como3r.progress import AgentProgress, PhaseEvent, ProgressEvent
 from como3r.runtime.messages import FrameDone, Step
@@ -78,21 +79,31 @@ def _agents(scene: Path) -> list[Path]:
 
 
 @pytest.fixture(scope="module")
-def single(scene, config, tmp_path_factory) -> Path:
+def heard() -> dict[str, list[object]]:
+    """What the module's runs told their ``progress`` and ``live`` callbacks, by run."""
+    return {}
+
+
+@pytest.fixture(scope="module")
+def single(scene, config, tmp_path_factory, heard) -> Path:
     out = tmp_path_factory.mktemp("runs") / "single"
+    events = heard.setdefault("single", [])
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as in every process of the multi-process run
     try:
-        run(_agents(scene), out, config, PriorSpec("simulated"))
+        run(_agents(scene), out, config, PriorSpec("simulated"), progress=events.append,
+            live=events.append)
     finally:
         torch.set_num_threads(threads)
     return out
 
 
 @pytest.fixture(scope="module")
-def lockstep(scene, config, tmp_path_factory) -> tuple[Path, RunSummary]:
+def lockstep(scene, config, tmp_path_factory, heard) -> tuple[Path, RunSummary]:
     out = tmp_path_factory.mktemp("runs") / "lockstep"
+    events = heard.setdefault("lockstep", [])
     summary = run_multiprocess(_agents(scene), out, config, PriorSpec("simulated"),
+                               progress=events.append, live=events.append,
                                options=RuntimeOptions(lockstep=True))
     return out, summary
 
@@ -159,6 +170,28 @@ def test_lockstep_reproduces_the_single_process_run(single, lockstep) -> None:
     out, summary = lockstep
     _assert_same_run(single, out, tolerance=1e-6)
     assert [a["status"] for a in summary.agents] == ["finished", "finished"]
+
+
+def test_lockstep_agents_report_each_frame_as_in_one_process(single, lockstep, heard) -> None:
+    """Both runtimes run an agent's frames through one loop (``AgentLoop``): on the same
+    schedule, every frame's progress (outcome, keyframes made) and live event (pose, image)
+    are the same and come in the same order."""
+    one, many = ([e for e in heard[name] if isinstance(e, (AgentProgress, FrameEvent))]
+                 for name in ("single", "lockstep"))
+    assert len(one) == 2 * (FRAMES // 2 + SHORT // 2)  # a live event and a progress a frame
+    assert sum(isinstance(e, FrameEvent) and e.T_WC is not None for e in one) > FRAMES // 2
+    for a, b in zip(one, many, strict=True):
+        assert type(a) is type(b)
+        if isinstance(a, AgentProgress):
+            assert a == b
+            continue
+        assert (a.agent, a.frame_index, a.timestamp, a.state) == \
+            (b.agent, b.frame_index, b.timestamp, b.state)
+        assert np.array_equal(a.image, b.image)
+        for mine, theirs in ((a.T_WC, b.T_WC), (a.K, b.K)):
+            assert (mine is None) == (theirs is None)
+            if mine is not None:
+                np.testing.assert_allclose(mine, theirs, rtol=1e-6, atol=1e-6)
 
 
 def test_the_coordinator_finishes_on_the_cores_the_agents_freed(lockstep, free) -> None:

@@ -1,12 +1,13 @@
-"""An agent's side of a run: its frame loop over any transport (C-Sec. B.1, A.8).
+"""An agent's side of a run over any transport (C-Sec. B.1, A.8).
 
 :class:`AgentWorker` opens the agent's input, builds its own prior from the task's
-:class:`~como3r.runtime.pipeline.PriorSpec` fields, runs an
-:class:`~como3r.frontend.agent.AgentFrontend` over its frames, sends every new keyframe as it
-appears and applies the pose updates it receives between frames. It talks to the coordinator
-through an :class:`~como3r.runtime.transport.AgentLink` only, so the same loop runs in a
-process started by ``como3r run`` (pipes, :func:`agent_process_main`) and in ``como3r
-agent`` on another machine (Zenoh, :mod:`como3r.runtime.network`).
+:class:`~como3r.runtime.pipeline.PriorSpec` fields, runs the agent's frame loop
+(:class:`~como3r.runtime.agent_loop.AgentLoop`, the single-process runtime's too) over its
+frames, sends every new keyframe as it appears and applies the pose updates it receives
+between frames. It talks to the coordinator through an
+:class:`~como3r.runtime.transport.AgentLink` only, so the same loop runs in a process
+started by ``como3r run`` (pipes, :func:`agent_process_main`) and in ``como3r agent`` on
+another machine (Zenoh, :mod:`como3r.runtime.network`).
 """
 
 from __future__ import annotations
@@ -27,12 +28,12 @@ from como3r.data.agent import open_agent
 from como3r.data.preprocess import upsampling
 from como3r.errors import Como3rError
 from como3r.frontend.agent import AgentFrontend
+from como3r.frontend.packets import KeyframePacket
 from como3r.runtime import codec
-from como3r.runtime.live import frame_event
+from como3r.runtime.agent_loop import AgentLoop
 from como3r.runtime.messages import (
     TO_AGENT,
     AgentFailed,
-    AgentFinished,
     AgentStarted,
     AgentTask,
     FrameDone,
@@ -43,7 +44,6 @@ from como3r.runtime.messages import (
 )
 from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame
 from como3r.runtime.prefetch import PreparedFrame, prepared_frames
-from como3r.runtime.results import final_report
 from como3r.runtime.transport import AgentLink, Channel
 
 logger = logging.getLogger(__name__)
@@ -115,11 +115,12 @@ class AgentWorker:
         self.frontend = AgentFrontend(
             self.prior, self.config, task.agent, codebook,
             upsampling(self.input.image_size, self.config.input.long_side))
+        self.loop = AgentLoop(self.frontend, self._send_keyframe,
+                              self.channel.send if task.live else None)
         step = self.config.input.subsample
         first = -(-max(0, task.resume_after + 1) // step) * step  # on the subsampling grid
         self.frames = range(first, self.input.num_frames, step)
         self.applied_seq = 0
-        self.seconds = 0.0
         self.current_frame = -1
 
     def run(self) -> bool:
@@ -142,35 +143,29 @@ class AgentWorker:
         self.current_frame = -1
         if not (self.task.lockstep or self._drain_inbox()):
             return False
-        self.frontend.settle_camera()  # a short stream's camera settles at its end
-        self._send_new_keyframes()
-        self.channel.send(self._finished())
+        self.loop.end()
+        self.channel.send(self.loop.report(self.applied_seq))
         return True
 
     def _process(self, index: int, frames: Iterator[PreparedFrame]) -> None:
+        """Frame ``index``: its live event and keyframes leave as the loop hands them out,
+        then its ``FrameDone``, the agent's clock, by which the coordinator orders the
+        keyframes (so it follows them)."""
         self.current_frame = index
         start = time.perf_counter()
-        frame = next(frames)
-        # the agent's wall time includes waiting for its input and encoding
-        self.frontend.timer.charge("prior_encode", time.perf_counter() - start)
-        outcome = self.frontend.process(frame.view, frame.timestamp, frame.colors,
-                                        frame.encoding)
-        seconds = time.perf_counter() - start
-        self.seconds += seconds
-        self._send_new_keyframes()
-        if self.task.live:
-            self.channel.send(frame_event(self.frontend, index, frame.timestamp, outcome,
-                                          frame.colors))
-        self.channel.send(FrameDone(agent=self.task.agent, frame_index=index,
-                                    timestamp=frame.timestamp, outcome=outcome, seconds=seconds,
+        step = self.loop.step(next(frames), start)
+        self.channel.send(FrameDone(agent=self.task.agent, frame_index=step.index,
+                                    timestamp=step.timestamp, outcome=step.outcome,
+                                    seconds=step.seconds,
                                     keyframes_waiting=len(self.frontend.new_keyframes)))
 
-    def _send_new_keyframes(self) -> None:
-        for packet in self.frontend.drain_new_keyframes():
-            previous = (self.frontend.keyframes[packet.kf_id - 1].T_WC.clone()
-                        if packet.kf_id > 0 else None)
-            self.channel.send(KeyframeMessage(packet=packet, applied_seq=self.applied_seq,
-                                              T_WC_previous=previous))
+    def _send_keyframe(self, packet: KeyframePacket) -> None:
+        """Send a keyframe with the pose its predecessor had here: the coordinator
+        re-anchors one exported before an update reached this agent on it (C-Sec. A.8)."""
+        previous = (self.frontend.keyframes[packet.kf_id - 1].T_WC.clone()
+                    if packet.kf_id > 0 else None)
+        self.channel.send(KeyframeMessage(packet=packet, applied_seq=self.applied_seq,
+                                          T_WC_previous=previous))
 
     def _handle(self, message: Any) -> bool:
         """Apply one coordinator message; False on Shutdown."""
@@ -206,9 +201,6 @@ class AgentWorker:
                 return True
             if not self._handle(message):
                 return False
-
-    def _finished(self) -> AgentFinished:
-        return final_report(self.frontend, self.seconds, self.applied_seq)
 
 
 PATH_FIELDS = ("weights", "retrieval_weights", "codebook")

@@ -1,20 +1,22 @@
 """Running como3r on agent inputs, end to end, in one process.
 
 ``run`` opens and validates every agent input first (so bad input fails before any work),
-builds the prior, feeds the agents' frames to their front-ends interleaved by timestamp
-(as concurrent robots would deliver them; live inputs' frames as they arrive) and, after
-every frame, hands the agent's new keyframes to the coordinator and applies the pose
-updates it returns to the agents (C-Sec. 3.1, A.8). At the end it sends each agent's last
-fused pointmap, runs the coordinator's terminal pose-depth alternation, writes the output
-folder atomically and, where ground truth exists, evaluates the trajectories (merged ATE
-only within gauge components). The coordinator's state is kept in the output folder's
-session store as it changes (:mod:`como3r.runtime.store`).
+builds the prior, feeds the agents' frames to their frame loops
+(:class:`~como3r.runtime.agent_loop.AgentLoop`, an agent process's too) interleaved by
+timestamp (as concurrent robots would deliver them; live inputs' frames as they arrive)
+and, as a loop hands out an agent's new keyframe, gives it to the coordinator and applies
+the pose updates it returns to the agents (C-Sec. 3.1, A.8). At the end it sends each
+agent's last fused pointmap, runs the coordinator's terminal pose-depth alternation, writes
+the output folder atomically and, where ground truth exists, evaluates the trajectories
+(merged ATE only within gauge components). The coordinator's state is kept in the output
+folder's session store as it changes (:mod:`como3r.runtime.store`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import heapq
 import logging
 import time
@@ -38,16 +40,17 @@ from como3r.data.readers.camera import (
 from como3r.data.preprocess import make_view, upsampling
 from como3r.errors import InputError
 from como3r.frontend.agent import AgentFrontend
-from como3r.frontend.packets import PointmapRefresh, PoseUpdate
+from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.io.output import atomic_output_dir
 from como3r.live import LiveCallback
 from como3r.prior.base import Prior, View
 from como3r.progress import AgentProgress, PhaseCallback, ProgressCallback, tracking_state
 from como3r.runtime import outputs
-from como3r.runtime.live import CoordinatorLive, frame_event
+from como3r.runtime.agent_loop import AgentLoop
+from como3r.runtime.live import CoordinatorLive
 from como3r.runtime.map_session import SavedMap, hold_map, map_results, seed_map
 from como3r.runtime.prefetch import prepared_frames
-from como3r.runtime.results import AgentResult, final_report
+from como3r.runtime.results import AgentResult
 from como3r.runtime.store_resume import open_store
 
 logger = logging.getLogger(__name__)
@@ -258,7 +261,8 @@ def run(
     results = [*saved, *frontends]  # by agent id
     coordinator_live = (None if live is None else CoordinatorLive(
         live, coordinator, config.visualization.map_min_confidence))
-    seconds = [r.finished.seconds if r.finished else 0.0 for r in saved] + [0.0] * len(agents)
+    hand_over = functools.partial(_hand_over, results, coordinator, coordinator_live)
+    loops = [AgentLoop(frontend, hand_over, live) for frontend in frontends]
     stride = config.input.subsample
     cameras = [a for a in agents if isinstance(a, CameraInput)]
     totals = [a.source.max_frames if isinstance(a, CameraInput)
@@ -285,30 +289,22 @@ def run(
             if frame is None:
                 break
             k = frame.agent
-            # the agent's wall time includes waiting for its input and encoding
-            frontends[k].timer.charge("prior_encode", time.perf_counter() - start)
-            outcome = frontends[k].process(frame.view, frame.timestamp, frame.colors,
-                                           frame.encoding)
-            seconds[first + k] += time.perf_counter() - start
-            if live is not None:
-                live(frame_event(frontends[k], frame.index, frame.timestamp, outcome,
-                                 frame.colors))
-            _hand_over(results, first + k, coordinator, coordinator_live)
+            step = loops[k].step(frame, start)
             if progress is not None:
                 stats = frontends[k].stats
                 progress(AgentProgress(first + k, stats.frames, totals[k],
                                        len(frontends[k].keyframes), stats.lost,
-                                       stats.relocalized, tracking_state(outcome)))
+                                       stats.relocalized, tracking_state(step.outcome)))
         streams.close()  # the live streams end; Ctrl-C interrupts again
         notes = [camera.stop() for camera in cameras]  # frames read and dropped
-        for k, frontend in enumerate(frontends):  # a short stream's camera settles at its end
-            frontend.settle_camera()
-            _hand_over(results, first + k, coordinator, coordinator_live)
+        for loop in loops:
+            loop.end()
         _finish(frontends, results, coordinator, progress)
-        store.record_runtime(None, {fe.agent: final_report(fe, seconds[fe.agent], 0)
-                                    for fe in frontends})
+        store.record_runtime(None, {loop.frontend.agent: loop.report(0) for loop in loops})
         if coordinator_live is not None:
             coordinator_live.finish(results)
+        seconds = [r.finished.seconds if r.finished else 0.0 for r in saved] + [
+            loop.seconds for loop in loops]
         summary = _write(staging, results, coordinator, config, agents, seconds, prior,
                          progress)
     summary.out = out
@@ -316,14 +312,14 @@ def run(
     return summary
 
 
-def _hand_over(frontends: Sequence[AgentFrontend], k: int, coordinator: Coordinator,
-               coordinator_live: CoordinatorLive | None) -> None:
-    """Give agent ``k``'s new keyframes to the coordinator and its updates to the agents."""
-    for packet in frontends[k].drain_new_keyframes():
-        updates = coordinator.add_keyframe(packet)
-        _apply(frontends, updates)
-        if coordinator_live is not None:
-            coordinator_live.keyframe_added(packet, updates)
+def _hand_over(results: Sequence[AgentFrontend | AgentResult], coordinator: Coordinator,
+               coordinator_live: CoordinatorLive | None, packet: KeyframePacket) -> None:
+    """Give an agent's keyframe to the coordinator and the pose updates it returns to the
+    agents (``results``: by agent id)."""
+    updates = coordinator.add_keyframe(packet)
+    _apply(results, updates)
+    if coordinator_live is not None:
+        coordinator_live.keyframe_added(packet, updates)
 
 
 def _apply(frontends: Sequence[AgentFrontend], updates: Sequence[PoseUpdate]) -> None:
