@@ -300,10 +300,17 @@ class SessionConfig:
     of the sequential edges between them, are paged out to the session store after every
     message and read back while a verification or a solve needs them
     (:mod:`como3r.runtime.store_paging`), so the coordinator's memory does not grow with
-    the sequence. The results are the same for every value.
+    the sequence. Each agent's front-end keeps as many of its own keyframes whole and pages
+    the others, and the matches of the edges between them, out to a private spill folder
+    after every frame (:class:`como3r.frontend.paging.AgentPaging`). The results are the
+    same for every value.
+
+    ``spill_dir``: the folder in which each agent makes its spill folder (removed when the
+    agent ends); empty: the system's temporary folder.
     """
 
     resident_keyframes: int = 8
+    spill_dir: str = ""
 
 
 @dataclass(frozen=True)

@@ -20,10 +20,11 @@ from como3r.config import Config, apply_overrides
 from como3r.coordination.association import Verification
 from como3r.coordination.coordinator import Candidate, Coordinator, CoordinatorStats
 from como3r.frontend.packets import KeyframePacket
+from como3r.frontend.paging import PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches
 from como3r.prior.mast3r.prior import MASt3REncoding
 from como3r.runtime.store import STORE_NAME, SessionStore
-from como3r.runtime.store_paging import PagedKeyframe, PagedLink, StoredVerification
+from como3r.runtime.store_paging import PagedLink, StoredVerification
 from como3r.runtime.store_reader import read_session
 
 H, W = 6, 8

@@ -20,6 +20,11 @@
 
 Every tracked frame is stored as ``(frame, anchor keyframe, T_rel)`` (C-Sec. A.8), so the
 trajectory written at the end follows every later correction of its anchor keyframe.
+
+Keyframes outside the newest ``session.resident_keyframes``, and the matches of the edges
+between them, are paged out to a private spill folder after every frame and every update,
+and read back while a step needs them (:class:`~como3r.frontend.paging.AgentPaging`): the
+agent's memory does not grow with its keyframes' arrays, its results do not change.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ import logging
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -43,6 +49,7 @@ from como3r.frontend.keyframes import (
     apply_pose_update,
 )
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
+from como3r.frontend.paging import AgentPaging, PagedKeyframe, plain_matches
 from como3r.frontend.pairs import (
     DirectedMatches,
     PairLink,
@@ -143,6 +150,9 @@ class AgentFrontend:
         self.config = config
         self.agent = agent
         self.keyframes = KeyframeStore()
+        session = config.session
+        self.paging = AgentPaging(session.resident_keyframes,
+                                  Path(session.spill_dir) if session.spill_dir else None)
         self.edges: list[Edge] = []
         self.records: list[FrameRecord] = []
         self.stats = FrontendStats()
@@ -174,6 +184,17 @@ class AgentFrontend:
             encoding: the prior's encoding of ``view`` when it was made ahead
                 (:mod:`como3r.runtime.prefetch`); None encodes it here.
         """
+        outcome = self._process(view, timestamp, colors, encoding)
+        self.page_out()
+        return outcome
+
+    def page_out(self) -> None:
+        """Let go of the arrays of the keyframes and edges outside the working set
+        (:class:`~como3r.frontend.paging.AgentPaging`); done after every frame and update."""
+        self.paging.page_out(self.keyframes.keyframes, self.edges)
+
+    def _process(self, view: View, timestamp: float, colors: np.ndarray,
+                 encoding: Encoding | None) -> str:
         self.stats.frames += 1
         if self.config.calibrated:
             if view.K is None:
@@ -262,7 +283,7 @@ class AgentFrontend:
         calibrated rays (C-Eq. 16) when it has intrinsics."""
         if self._K is not None:
             X = lock_to_rays(X, self._K.to(X))
-        kf = Keyframe(
+        kf = PagedKeyframe(
             kf_id=len(self.keyframes), frame_index=index, timestamp=timestamp, encoding=enc,
             T_WC=T_WC, X_hat=X.clone(), C_hat=C.clone(), X_init=X.clone(), C_init=C.clone(),
             colors=colors,
@@ -344,8 +365,9 @@ class AgentFrontend:
             return
         solve = self.config.local_solve
         with self.timer.stage("local_solve"):
-            factors = build_factors(self.edges, self.keyframes.__getitem__, lambda k: k,
-                                    self.config.tracking)
+            # every edge is solved: paged-out pointmaps are read back for this solve only
+            points = self.paging.solve_points(self.keyframes.__getitem__)
+            factors = build_factors(self.edges, points, lambda k: k, self.config.tracking)
             values = PoseValues.from_poses(self.keyframes.poses(),
                                            num_pinned=solve.pinned_keyframes)
             # the newest keyframe's depth is the step tolerance's length (O(1) per solve)
@@ -390,6 +412,7 @@ class AgentFrontend:
         self._local_solve()
         with self.timer.stage("tracking"):
             self._track_again(unsettled, first_K, focal)
+        self.page_out()  # the focal search and the rescale read every keyframe's pointmaps
 
     def _track_again(self, frames: list[_UnsettledFrame], first_K: Tensor, focal: float) -> None:
         """Solve the poses of ``frames`` (tracked on the first frame's camera ``first_K``)
@@ -507,7 +530,8 @@ class AgentFrontend:
             agent=self.agent, kf_id=kf_id, frame_index=kf.frame_index, timestamp=kf.timestamp,
             T_WC=kf.T_WC, X_hat=kf.X_init, C_hat=kf.C_init, colors=kf.colors,
             encoding=kf.encoding, retrieval=kf.retrieval,
-            sequential_ij=seq.get((kf_id - 1, kf_id)), sequential_ji=seq.get((kf_id, kf_id - 1)),
+            sequential_ij=plain_matches(seq.get((kf_id - 1, kf_id))),
+            sequential_ji=plain_matches(seq.get((kf_id, kf_id - 1))),
             previous=previous, K=kf.K,
         )
 
@@ -521,10 +545,12 @@ class AgentFrontend:
         """
         while self._camera_settled and self.new_keyframes:
             yield self.export_keyframe(self.new_keyframes.pop(0))
+            self.page_out()
 
     def apply_pointmap_update(self, update: PointmapUpdate) -> None:
         """Take the coordinator's refined canonical pointmaps (C-Sec. A.7)."""
         apply_pointmap_update(self.keyframes.keyframes, update)
+        self.page_out()
 
     def apply_pose_update(self, update: PoseUpdate) -> None:
         """Overwrite keyframe poses with the coordinator's (C-Sec. A.8; see
@@ -533,3 +559,4 @@ class AgentFrontend:
         apply_pose_update(self.keyframes.keyframes, update)
         if update.focal is not None and self._K is not None and len(self.keyframes):
             self._K = self.keyframes.last.K.to(self._K)
+        self.page_out()  # a focal length read every keyframe's pointmaps

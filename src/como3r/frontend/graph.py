@@ -10,13 +10,12 @@ and the coordinator's global bundle adjustment build their problems with the sam
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable, Protocol, Sequence
 
 import torch
 from torch import Tensor
 
 from como3r.config import TrackingConfig
-from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.pairs import DirectedMatches, gather_points
 from como3r.geometry.camera import project
 from como3r.geometry.units import median_point_range
@@ -66,9 +65,21 @@ def make_factors(
                              huber_k=tracking.huber_k)
 
 
+class Pointmap(Protocol):
+    """What a solve reads of a keyframe (a :class:`~.keyframes.Keyframe` has both)."""
+
+    @property
+    def X_hat(self) -> Tensor:
+        """``(H, W, 3)`` canonical pointmap in the keyframe's camera frame."""
+
+    @property
+    def K(self) -> Tensor | None:
+        """``(3, 3)`` intrinsics of a calibrated run, else None."""
+
+
 def build_factors(
     edges: Sequence[Edge],
-    keyframe: Callable[[int], Keyframe],
+    keyframe: Callable[[int], Pointmap],
     pose_index: Callable[[int], int],
     tracking: TrackingConfig,
 ) -> RayRangeFactors | CalibratedFactors:
@@ -78,7 +89,7 @@ def build_factors(
 
     Args:
         edges: the graph's edges.
-        keyframe: maps an edge endpoint key to its keyframe.
+        keyframe: maps an edge endpoint key to its keyframe (or what a solve reads of it).
         pose_index: maps an edge endpoint key to its row in the pose tensor.
         tracking: noise model and Huber breakpoint (C-Eq. 7-8).
 

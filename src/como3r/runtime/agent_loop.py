@@ -11,6 +11,7 @@ only where its outputs go differs.
 
 from __future__ import annotations
 
+import ctypes
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -22,6 +23,21 @@ from como3r.runtime.live import frame_event
 from como3r.runtime.messages import AgentFinished
 from como3r.runtime.prefetch import PreparedFrame
 from como3r.runtime.results import final_report
+
+def _malloc_trim() -> Callable[[int], int] | None:
+    """glibc's ``malloc_trim`` (None where the C library has none)."""
+    try:
+        return getattr(ctypes.CDLL("libc.so.6"), "malloc_trim", None)
+    except OSError:
+        return None
+
+
+#: hands the heap's free pages back to the system after every frame (glibc only). The
+#: front-end pages its old keyframes out (:mod:`como3r.frontend.paging`), but every local
+#: solve reads their pointmaps and matches back and lets go of them, and glibc keeps such
+#: freed small blocks in the heap. One agent at 64x48 over 125 processed frames (95
+#: keyframes) stayed at 433-438 MB with the trim and rose from 439 MB to 513-590 MB without.
+MALLOC_TRIM = _malloc_trim()
 
 #: takes one keyframe packet as it leaves the agent
 KeyframeSink = Callable[[KeyframePacket], None]
@@ -89,6 +105,8 @@ class AgentLoop:
             self.live(frame_event(self.frontend, frame.index, frame.timestamp, outcome,
                                   frame.colors))
         self._hand_out()
+        if MALLOC_TRIM is not None:
+            MALLOC_TRIM(0)
         return FrameStep(frame.index, frame.timestamp, outcome, seconds)
 
     def end(self) -> None:

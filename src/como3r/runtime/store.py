@@ -83,11 +83,12 @@ from como3r.coordination.coordinator import Candidate, Coordinator
 from como3r.errors import StoreError
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import PoseUpdate
+from como3r.frontend.paging import POINTMAP_FIELDS, PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.runtime.messages import AgentFinished
 from como3r.prior.base import Encoding
 from como3r.runtime.store_blobs import pack_arrays, pack_object, unpack_arrays, unpack_object
-from como3r.runtime.store_paging import POINTMAP_FIELDS, PagedKeyframe, PagedLink, page_out
+from como3r.runtime.store_paging import PagedLink, page_out
 
 logger = logging.getLogger(__name__)
 
@@ -336,7 +337,7 @@ class SessionStore:
     # ------------------------------------------------------------------ paging
 
     def load_keyframe(self, g: int, group: str) -> dict[str, Any]:
-        """The current arrays of ``group`` (:data:`.store_paging.GROUPS`) of keyframe
+        """The current arrays of ``group`` (:data:`como3r.frontend.paging.GROUPS`) of keyframe
         ``g``, read back from the store (a paged-out keyframe's).
 
         Raises:

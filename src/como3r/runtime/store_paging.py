@@ -7,11 +7,11 @@ The session store holds all of them already (:mod:`.store`), so after every mess
 transaction :func:`page_out` lets go of what is outside the *working set*, the newest
 ``session.resident_keyframes`` keyframes of each agent:
 
-* a keyframe outside it becomes a :class:`PagedKeyframe`: its light fields (pose, ids,
-  intrinsics, retrieval features) stay, its encoding, image and pointmaps are read back
-  from the store the first time something needs them (a verification decodes its
-  encoding; a global BA, a gauge merge or the depth refinement reads its pointmap) and
-  kept until the next page-out;
+* a keyframe outside it becomes a :class:`~como3r.frontend.paging.PagedKeyframe`: its
+  light fields (pose, ids, intrinsics, retrieval features) stay, its encoding, image and
+  pointmaps are read back from the store the first time something needs them (a
+  verification decodes its encoding; a global BA, a gauge merge or the depth refinement
+  reads its pointmap) and kept until the next page-out;
 * a sequential edge between two such keyframes becomes a :class:`PagedLink`, whose matches
   are read from the store each time they are asked for (a solve builds its factors once);
 * a verified candidate that was rejected or found inconsistent keeps its figures only
@@ -20,90 +20,31 @@ transaction :func:`page_out` lets go of what is outside the *working set*, the n
 What a message needs is read while it is handled, so the results do not depend on the
 working set; only memory and time do. Inter-agent edges and admitted or pending candidates
 stay in memory: they grow with the places agents share, not with the sequence. The agents'
-front-ends keep their own keyframes (:mod:`como3r.frontend`); this pages the coordinator.
+front-ends page their own keyframes to spill folders of their own
+(:mod:`como3r.frontend.paging`); this pages the coordinator.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, fields, replace
-from typing import Any, Protocol
+from dataclasses import dataclass, replace
+from typing import Protocol
 
 import torch
 
 from como3r.coordination.association import Verification
 from como3r.coordination.coordinator import Coordinator
-from como3r.frontend.keyframes import Keyframe
+from como3r.frontend.paging import KeyframePages, PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches, PairLink
 
 logger = logging.getLogger(__name__)
 
-#: the pointmap fields of a keyframe, in the store's ``pointmaps`` table's column order
-POINTMAP_FIELDS = ("X_hat", "C_hat", "X_init", "C_init")
-#: the arrays of a keyframe read back together, by group
-GROUPS = {"encoding": ("encoding",), "colors": ("colors",), "pointmaps": POINTMAP_FIELDS}
-_GROUP_OF = {name: group for group, names in GROUPS.items() for name in names}
 
-
-class Pages(Protocol):
+class Pages(KeyframePages, Protocol):
     """Where paged-out arrays are read back from (the session store)."""
-
-    def load_keyframe(self, g: int, group: str) -> dict[str, Any]:
-        """The current arrays of ``group`` of keyframe ``g``, by field name."""
 
     def load_matches(self, n: int) -> tuple[DirectedMatches, DirectedMatches]:
         """Both directions' matches of edge ``n``."""
-
-
-class _Paged:
-    """A large keyframe field: in the keyframe while resident, else read back on access."""
-
-    def __set_name__(self, owner: type, name: str) -> None:
-        self.name, self.group = name, _GROUP_OF[name]
-
-    def __get__(self, kf: PagedKeyframe | None, owner: type | None = None) -> Any:
-        if kf is None:
-            return self
-        if self.name not in kf._resident:  # fields set since the eviction stay as set
-            for name, value in kf._pages.load_keyframe(kf._g, self.group).items():
-                kf._resident.setdefault(name, value)
-        return kf._resident[self.name]
-
-    def __set__(self, kf: PagedKeyframe, value: Any) -> None:
-        kf._resident[self.name] = value
-
-
-class PagedKeyframe(Keyframe):
-    """A coordinator keyframe whose encoding, image and pointmaps may live in the session
-    store only (see the module docstring); it reads and writes like a :class:`Keyframe`."""
-
-    encoding = _Paged()
-    colors = _Paged()
-    X_hat = _Paged()
-    C_hat = _Paged()
-    X_init = _Paged()
-    C_init = _Paged()
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        object.__setattr__(self, "_resident", {})
-        object.__setattr__(self, "_pages", None)
-        object.__setattr__(self, "_g", -1)
-        super().__init__(*args, **kwargs)
-
-    @classmethod
-    def of(cls, kf: Keyframe) -> PagedKeyframe:
-        """A paged keyframe holding what ``kf`` holds (the same arrays)."""
-        return cls(**{f.name: getattr(kf, f.name) for f in fields(Keyframe)})
-
-    def resident(self, group: str) -> bool:
-        """Whether some array of ``group`` is in memory (read back, or set)."""
-        return any(name in self._resident for name in GROUPS[group])
-
-    def evict(self, pages: Pages | None, g: int) -> None:
-        """Let go of the large arrays; ``pages`` reads them back as keyframe ``g`` (None:
-        the store to read them from is yet to be given)."""
-        self._pages, self._g = pages, g
-        self._resident.clear()
 
 
 class PagedLink(PairLink):

@@ -27,12 +27,13 @@ from como3r.config import Config, config_from_dict, validate
 from como3r.coordination.gauge import GaugeComponents
 from como3r.errors import Como3rError, StoreError
 from como3r.frontend.keyframes import Keyframe
+from como3r.frontend.paging import PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.prior.base import Encoding
 from como3r.runtime.messages import AgentFinished
 from como3r.runtime.store import APPLICATION_ID, FORMAT_VERSION
 from como3r.runtime.store_blobs import unpack_arrays, unpack_object
-from como3r.runtime.store_paging import PagedKeyframe, PagedLink
+from como3r.runtime.store_paging import PagedLink
 
 logger = logging.getLogger(__name__)
 
@@ -150,7 +151,7 @@ def read_session(path: str | Path, paged: bool = False) -> Session:
 
     Args:
         paged: leave the keyframes' encodings, images and pointmaps and the sequential
-            edges' matches in the store (:class:`~.store_paging.PagedKeyframe`,
+            edges' matches in the store (:class:`~como3r.frontend.paging.PagedKeyframe`,
             :class:`~.store_paging.PagedLink`; they read nothing until the store that
             continues the session, :meth:`~.store.SessionStore.reopen`, serves them): a
             resumed session takes the memory of its working set, not of its whole map.
@@ -328,7 +329,7 @@ def _append(graph: GlobalGraph, kf: Keyframe, agent: int) -> None:
 
 
 def _page_keyframes(connection: sqlite3.Connection, graph: GlobalGraph) -> None:
-    """The keyframes without their large arrays (:class:`~.store_paging.PagedKeyframe`),
+    """The keyframes without their large arrays (:class:`~como3r.frontend.paging.PagedKeyframe`),
     after checking that every blob they refer to is there."""
     missing, = connection.execute(
         "SELECT COUNT(*) FROM (SELECT colors AS id FROM keyframes UNION SELECT encoding FROM "
