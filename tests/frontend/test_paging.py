@@ -4,6 +4,10 @@
 from __future__ import annotations
 
 import gc
+import os
+import socket
+import subprocess
+import sys
 from dataclasses import dataclass
 
 import pytest
@@ -15,7 +19,7 @@ from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.synth import synthesize
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.packets import PointmapUpdate, PoseUpdate
-from como3r.frontend.paging import KeyframeSpill, PagedKeyframe, PagedMatches
+from como3r.frontend.paging import SPILL_PREFIX, KeyframeSpill, PagedKeyframe, PagedMatches
 from como3r.geometry.lie import sim3_compose, sim3_exp
 from como3r.prior.base import Encoding
 from como3r.prior.simulated import SimulatedPrior
@@ -149,3 +153,20 @@ def test_the_spill_gives_back_what_it_was_given(tmp_path) -> None:
     assert kf.changed() == ["encoding", "colors", "pointmaps"]
     kf.evict(spill, 4)
     assert kf.changed() == [] and not kf.resident("pointmaps")
+
+
+def test_a_new_spill_removes_the_folders_of_processes_that_are_gone(tmp_path) -> None:
+    """A killed agent's spill stays behind; the next spill in the same folder removes it
+    (and keeps those of running processes)."""
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()  # its id is free now (a new process may take it: then it is kept)
+    host = socket.gethostname()
+    orphan = tmp_path / f"{SPILL_PREFIX}{gone.pid}@{host}-abc"
+    running = tmp_path / f"{SPILL_PREFIX}{os.getppid()}@{host}-def"
+    elsewhere = tmp_path / f"{SPILL_PREFIX}{gone.pid}@another-host-ghi"  # a shared folder
+    for folder in (orphan, running, elsewhere):
+        folder.mkdir()
+        (folder / "kf0_pointmaps.npz").write_bytes(b"x")
+    spill = KeyframeSpill(tmp_path)
+    assert not orphan.exists() and running.exists() and elsewhere.exists()
+    assert spill.folder.name.startswith(f"{SPILL_PREFIX}{os.getpid()}@{host}-")

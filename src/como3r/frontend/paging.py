@@ -17,7 +17,9 @@ Two processes page this way: the coordinator reads back from its session store
 from __future__ import annotations
 
 import logging
+import os
 import shutil
+import socket
 import tempfile
 import weakref
 from collections.abc import Callable, Sequence
@@ -169,6 +171,42 @@ def plain_matches(matches: DirectedMatches | None) -> DirectedMatches | None:
     return matches
 
 
+#: a spill folder's name: this prefix, ``pid@host`` of the owning process, a dash and a
+#: random suffix (:func:`tempfile.mkdtemp`'s, without dashes)
+SPILL_PREFIX = "como3r-spill-"
+
+
+def _owner() -> str:
+    """``pid@host`` of this process (the host name without path separators)."""
+    return f"{os.getpid()}@{socket.gethostname().replace(os.sep, '_')}"
+
+
+def _process_is_gone(pid: int) -> bool:
+    """Whether no process ``pid`` runs on this host (one of another user's counts as
+    running)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False
+    return False
+
+
+def _remove_orphans(parent: Path) -> None:
+    """Remove the spill folders in ``parent`` of this host's processes that are gone: a
+    process killed with ``kill -9`` never removes its own. Another host's folders (a shared
+    ``session.spill_dir``) are left alone, and so is a folder whose process id was taken
+    again: the safe side."""
+    host = _owner().split("@", 1)[1]
+    for folder in parent.glob(f"{SPILL_PREFIX}*@*-*"):
+        pid, _, rest = folder.name[len(SPILL_PREFIX):].partition("@")
+        if (folder.is_dir() and pid.isdigit() and rest.rsplit("-", 1)[0] == host
+                and _process_is_gone(int(pid))):
+            logger.info("removing the spill folder of a process that is gone: %s", folder)
+            shutil.rmtree(folder, ignore_errors=True)
+
+
 class KeyframeSpill:
     """A process's private folder of compressed numpy arrays (no pickle): keyframe groups
     and edge matches written when they are paged out, read back on demand, removed when
@@ -185,7 +223,9 @@ class KeyframeSpill:
     def __init__(self, parent: Path | None = None) -> None:
         if parent is not None:
             parent.mkdir(parents=True, exist_ok=True)
-        self.folder = Path(tempfile.mkdtemp(prefix="como3r-spill-", dir=parent))
+        parent = Path(tempfile.gettempdir()) if parent is None else parent
+        _remove_orphans(parent)
+        self.folder = Path(tempfile.mkdtemp(prefix=f"{SPILL_PREFIX}{_owner()}-", dir=parent))
         # removed with the front-end that owns it, or at the process's exit
         weakref.finalize(self, shutil.rmtree, self.folder, True)
         # per file: how to rebuild each value (kind, dtype or class, device, other fields)
