@@ -24,6 +24,7 @@ from como3r.runtime.messages import AgentFinished
 from como3r.runtime.prefetch import PreparedFrame
 from como3r.runtime.results import final_report
 
+
 def _malloc_trim() -> Callable[[int], int] | None:
     """glibc's ``malloc_trim`` (None where the C library has none)."""
     try:
