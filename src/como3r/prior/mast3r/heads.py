@@ -15,7 +15,9 @@ The DPT runs in the channels-last memory format: the ``(B, h*w, C)`` tokens alre
 NHWC map (no copy to reshape them), and oneDNN convolves NHWC directly, without converting
 every input and output to and from its blocked layout as it does for NCHW. For float32 CPU
 inference its convolutions go through ``mkldnn._convolution_pointwise`` (the kernel torch's
-inductor uses) with the following ReLU or residual addition fused (:func:`conv2d`).
+inductor uses) with the following ReLU or residual addition fused (:func:`conv2d`), except
+its 3x3 convolutions (:class:`Conv3x3`), which run by Winograd's F(4x4, 3x3)
+(:mod:`como3r.prior.mast3r.winograd`) where both sides of the map are multiples of 4.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from torch import Tensor, nn
 
 from como3r.prior.mast3r.blocks import Mlp
 from como3r.prior.mast3r.config import MASt3RConfig
+from como3r.prior.mast3r.winograd import TILE, filter_transform, winograd_conv3x3
 
 _ONEDNN = torch.backends.mkldnn.is_available()
 
@@ -44,12 +47,32 @@ def upsample2(x: Tensor) -> Tensor:
     return F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=True)
 
 
+class Conv3x3(nn.Conv2d):
+    """3x3 convolution, stride 1, zero padding 1 (keys ``weight``, ``bias``), which keeps the
+    Winograd transform of its weights for :func:`conv2d` (computed on first use, again when
+    the weights change)."""
+
+    def __init__(self, in_channels: int, out_channels: int, bias: bool = True) -> None:
+        super().__init__(in_channels, out_channels, 3, padding=1, bias=bias)
+        self._winograd: tuple[tuple[int, int], Tensor] | None = None
+
+    def winograd_weight(self) -> Tensor:
+        """``(36, C_out, C_in)``: :func:`~como3r.prior.mast3r.winograd.filter_transform`."""
+        key = (self.weight.data_ptr(), self.weight._version)
+        if self._winograd is None or self._winograd[0] != key:
+            with torch.no_grad():
+                self._winograd = key, filter_transform(self.weight)
+        return self._winograd[1]
+
+
 def conv2d(conv: nn.Conv2d, x: Tensor, add: Tensor | None = None, relu: bool = False) -> Tensor:
     """``conv(x)``, then ``+ add`` if given, then ReLU if ``relu``.
 
-    Float32 CPU inference (no autograd) runs the convolution through oneDNN with the addition
-    and the ReLU applied to its output tile in place (passes over memory saved); other
-    devices, dtypes and autograd take ``F.conv2d``. Results are equal to float32 rounding.
+    Float32 CPU inference (no autograd) runs a :class:`Conv3x3` on a map whose sides are
+    multiples of 4 by Winograd's F(4x4, 3x3) (relative difference about 2e-6), any other
+    convolution through oneDNN, both with the addition and the ReLU applied to the output
+    tiles as they are written (passes over memory saved); other devices, dtypes and autograd
+    take ``F.conv2d``. oneDNN's results equal ``F.conv2d``'s to float32 rounding.
 
     Args:
         conv: the convolution (zero padding).
@@ -59,6 +82,8 @@ def conv2d(conv: nn.Conv2d, x: Tensor, add: Tensor | None = None, relu: bool = F
     """
     if (_ONEDNN and x.device.type == "cpu" and x.dtype == torch.float32
             and conv.weight.dtype == torch.float32 and not torch.is_grad_enabled()):
+        if isinstance(conv, Conv3x3) and x.shape[2] % TILE == 0 and x.shape[3] % TILE == 0:
+            return winograd_conv3x3(x, conv.winograd_weight(), conv.bias, add, relu)
         args = (conv.weight, conv.bias, list(conv.padding), list(conv.stride),
                 list(conv.dilation), conv.groups)
         unary = "relu" if relu else None
@@ -85,8 +110,8 @@ class ResidualConvUnit(nn.Module):
 
     def __init__(self, dim: int) -> None:
         super().__init__()
-        self.conv1 = nn.Conv2d(dim, dim, 3, padding=1)
-        self.conv2 = nn.Conv2d(dim, dim, 3, padding=1)
+        self.conv1 = Conv3x3(dim, dim)
+        self.conv2 = Conv3x3(dim, dim)
 
     def forward(self, z: Tensor) -> Tensor:
         """``(B, C, h, w) -> (B, C, h, w)``."""
@@ -127,7 +152,7 @@ class Scratch(nn.Module):
     def __init__(self) -> None:
         super().__init__()
         for level, in_dim in enumerate(DPT_LAYER_DIMS, start=1):
-            conv = nn.Conv2d(in_dim, DPT_FEATURE_DIM, 3, padding=1, bias=False)
+            conv = Conv3x3(in_dim, DPT_FEATURE_DIM, bias=False)
             self.add_module(f"layer{level}_rn", conv)
             self.add_module(f"refinenet{level}", FusionBlock(DPT_FEATURE_DIM, has_skip=level < 4))
 
@@ -164,9 +189,9 @@ class DPTAdapter(nn.Module):
         ])
         self.scratch = Scratch()
         self.head = nn.Sequential(
-            nn.Conv2d(DPT_FEATURE_DIM, DPT_LAST_DIM, 3, padding=1),
+            Conv3x3(DPT_FEATURE_DIM, DPT_LAST_DIM),
             Upsample2(),
-            nn.Conv2d(DPT_LAST_DIM, DPT_LAST_DIM, 3, padding=1),
+            Conv3x3(DPT_LAST_DIM, DPT_LAST_DIM),
             # parameter-free slots keep the checkpoint's indices; forward fuses this ReLU
             # into the convolution before it
             nn.ReLU(inplace=True),
