@@ -107,7 +107,9 @@ class TrackingConfig:
     # sigma_dist of the keyframe's). The prior's gross failures (a confident wrong pair pose)
     # otherwise pass as tracked and become keyframes. Measured on the realistic prior:
     # accepted tracks 0.63-0.99 (96-512 px, rotation errors up to 4 deg), a gross failure
-    # 0.26 (14.7 deg rotation error, which cost the low-texture family 19 % ATE)
+    # 0.26 (14.7 deg rotation error, which cost the low-texture family 19 % ATE). A new
+    # keyframe's sequential edge direction (kf - 1, kf), decoded apart from tracking, takes
+    # the same test (frontend.agent AgentFrontend._checked_direction)
     min_inlier_fraction: float = 0.5
     # at the input's own resolution: an input enlarged by s to input.long_side gets s times
     # the angle (frontend.tracker.FrameTracker). 320x240 aerial input at 512: agreement of

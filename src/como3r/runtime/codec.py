@@ -656,7 +656,8 @@ def _register_payloads() -> None:
         ("como3r.frontend.packets:PointmapRefresh", 2, _POINTMAP),  # 2: K
         ("como3r.frontend.packets:PoseUpdate", 2, ()),  # 2: focal
         ("como3r.frontend.pairs:DirectedMatches", 1, ("q",)),
-        ("como3r.frontend.agent:FrontendStats", 2, ()),  # 2: first_frame_focal
+        # 2: first_frame_focal, 3: rejected_directions
+        ("como3r.frontend.agent:FrontendStats", 3, ()),
         ("como3r.prior.simulated:SimulatedEncoding", 1, ()),
         ("como3r.prior.mast3r.prior:MASt3REncoding", 1, ()),
     ):
