@@ -243,11 +243,13 @@ class GlobalBAConfig:
     tikhonov_base: float = 1e-6
     tikhonov_retries: int = 6
     # backend of the C-Eq. 25 solve (como3r.optim.linear.solve): "auto" takes a dense
-    # Cholesky up to 60 free keyframes and SuperLU above; "pcg" (block-Jacobi conjugate
-    # gradients, como3r.optim.pcg) costs linear time per iteration and wins on large graphs
-    # with many loop closures (0.30x SuperLU's solve at 2,000 keyframes with a loop edge
-    # every 4) but loses on chain-like ones (35x at 2,000 with one every 50): opt-in
-    linear_solver: Literal["auto", "dense", "sparse", "pcg"] = "auto"
+    # Cholesky up to 60 free keyframes and above it "band" (conjugate gradients with a band
+    # + coarse two-level preconditioner, como3r.optim.band), whose cost grows about linearly
+    # with and without many loop closures: at 2,000 keyframes 0.25x SuperLU's solve time
+    # with a loop edge every 4 keyframes, 0.9-1.6x with one every 50. "sparse" (SuperLU)
+    # and "pcg" (block-Jacobi conjugate gradients, 40x SuperLU on chain-like graphs) stay
+    # selectable
+    linear_solver: Literal["auto", "dense", "sparse", "pcg", "band"] = "auto"
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,5 @@
-"""Tests of como3r.optim.pcg: the block-Jacobi PCG backend of ``linear.solve``."""
+"""Tests of como3r.optim.pcg: the block-Jacobi PCG backend of ``linear.solve`` (and, where
+marked, the CG loop's band-preconditioned variant, como3r.optim.band)."""
 
 from __future__ import annotations
 
@@ -117,43 +118,55 @@ def _smallest_free_eigenvalue(system: BlockSystem, free: torch.Tensor) -> float:
     return float(torch.linalg.eigvalsh(H)[0])
 
 
+# the CG backends and their preconditioners: block-Jacobi, band + coarse (optim.band)
+CG_BACKENDS = {"pcg": "jacobi", "band": "band"}
+
+
+@pytest.mark.parametrize("backend", CG_BACKENDS)
 @pytest.mark.parametrize("device", DEVICES)
-def test_non_positive_definite_system_escalates_like_the_factorisations(device):
+def test_non_positive_definite_system_escalates_like_the_factorisations(device, backend):
     free = _free(device)
     lowest = _smallest_free_eigenvalue(_system(False, device), free)
     # shifted to lambda_min = -5e-5: not PD at eps = 1e-6, PD from eps = 1e-4 on
     system = _indefinite_system(device, lowest + 5e-5)
     outcomes = {}
-    for backend in ("dense", "sparse", "pcg"):
-        target = system if backend == "pcg" else _cpu(system)
-        outcomes[backend] = solve(target, free if backend == "pcg" else free.cpu(),
-                                  backend=backend, cg_tolerance=1e-10)
+    for name in ("dense", "sparse", backend):
+        target = system if name == backend else _cpu(system)
+        outcomes[name] = solve(target, free if name == backend else free.cpu(),
+                               backend=name, cg_tolerance=1e-10)
     for solution in outcomes.values():
         assert solution.status is SolveStatus.ESCALATED
         assert solution.attempts == 2 and solution.epsilon == pytest.approx(1e-4)
-    assert _relative_error(outcomes["pcg"].step, outcomes["dense"].step) < 1e-9  # 6e-11
-    # pcg's first attempt stopped on a direction of negative curvature
-    first, second = pcg.pcg_attempts(system, free, 0.0, 1e-6, 2, 1e-10)
+    # measured 6e-11 (pcg), 2e-12 (band)
+    assert _relative_error(outcomes[backend].step, outcomes["dense"].step) < 1e-9
+    # the first attempt stopped on a direction of negative curvature (after 14 / 9
+    # iterations: the band level keeps this H's band positive definite)
+    first, second = pcg.pcg_attempts(system, free, 0.0, 1e-6, 2, 1e-10,
+                                     preconditioner=CG_BACKENDS[backend])
     assert first.x is None and first.reason == "negative_curvature" and first.iterations > 0
     assert second.reason == "converged"
-    assert outcomes["pcg"].cg_iterations == first.iterations + second.iterations
+    assert outcomes[backend].cg_iterations == first.iterations + second.iterations
 
 
+@pytest.mark.parametrize("backend", CG_BACKENDS)
 @pytest.mark.parametrize("device", DEVICES)
-def test_indefinite_diagonal_block_and_nan_fail_every_attempt(device, caplog):
+def test_indefinite_diagonal_block_and_nan_fail_every_attempt(device, backend, caplog):
     free = _free(device)
     # a diagonal block with a negative eigenvalue below -eps_5 = -1e4: no CG iteration runs
     system = _indefinite_system(device, 1e6)
     with caplog.at_level(logging.WARNING, logger="como3r.optim.linear"):
-        solution = solve(system, free, backend="pcg", retries=6)
+        solution = solve(system, free, backend=backend, retries=6)
     assert solution.status is SolveStatus.FAILED and solution.attempts == 6
     assert solution.cg_iterations == 0 and torch.all(solution.step == 0)
     assert "zero step" in caplog.text
+    reasons = {outcome.reason for outcome in pcg.pcg_attempts(
+        system, free, 0.0, 1e-6, 3, preconditioner=CG_BACKENDS[backend])}
+    assert reasons == {"indefinite_block"}
     H_off = system.H_off.clone()
     H_off[3, 2, 5] = float("nan")
     broken = BlockSystem(_system(False, device).H_diag, system.off_i, system.off_j, H_off,
                          system.g)
-    solution = solve(broken, free, backend="pcg", retries=3)
+    solution = solve(broken, free, backend=backend, retries=3)
     assert solution.status is SolveStatus.FAILED and torch.all(solution.step == 0)
 
 

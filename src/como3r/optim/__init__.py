@@ -4,7 +4,9 @@
 * :mod:`~como3r.optim.factors` — ``RayRangeFactors`` (C-Eq. 6) and ``CalibratedFactors``
   (C-Eq. 17): dense relative-pose factor batches that linearize into 7x7 edge blocks;
 * :mod:`~como3r.optim.linear` — block assembly and the damped solve of C-Eq. 25 (dense,
-  sparse or, opt-in, :mod:`~como3r.optim.pcg` conjugate gradients; Tikhonov escalation);
+  sparse, or :mod:`~como3r.optim.pcg` conjugate gradients with a block-Jacobi or the
+  :mod:`~como3r.optim.band` two-level preconditioner, the default on large graphs;
+  Tikhonov escalation);
 * :mod:`~como3r.optim.optimizer` — ``levenberg_marquardt_irls`` (tracking, C-Eq. 2) and
   ``gauss_newton_irls`` (local solve and global BA, C-Eq. 5).
 """

@@ -8,8 +8,10 @@ scatter-adds them into the global block system (:class:`BlockSystem`) over N pos
 
 over the free poses with the Tikhonov escalation ``eps_r = eps_0 * 100^r``, r = 0..R-1 of
 C-Sec. B.2, returning a zero step and ``SolveStatus.FAILED`` when every attempt fails.
-Three interchangeable backends: a dense Cholesky in torch, a sparse symmetric LU in scipy,
-and block-Jacobi preconditioned conjugate gradients on the blocks (:mod:`como3r.optim.pcg`).
+Four interchangeable backends: a dense Cholesky in torch, a sparse symmetric LU in scipy,
+and preconditioned conjugate gradients on the blocks (:mod:`como3r.optim.pcg`) with a
+block-Jacobi (``"pcg"``) or a band + coarse two-level (``"band"``, :mod:`como3r.optim.band`)
+preconditioner. ``"auto"`` takes the dense Cholesky on small systems and ``"band"`` above.
 The linear algebra always runs in float64: pose Hessians of dense correspondences weigh
 rays by 1/sigma_ray^2 ~ 1e5 and ranges by 1/sigma_dist^2 = 1e-2 (C-Tab. 3), a spread of
 1e7 that is the whole precision of float32.
@@ -34,17 +36,26 @@ logger = logging.getLogger(__name__)
 
 D = 7  # tangent dimension of Sim(3)
 
-Backend = Literal["auto", "dense", "sparse", "pcg"]
-BACKENDS: tuple[str, ...] = ("auto", "dense", "sparse", "pcg")
+Backend = Literal["auto", "dense", "sparse", "pcg", "band"]
+BACKENDS: tuple[str, ...] = ("auto", "dense", "sparse", "pcg", "band")
 
-# Crossover of backend="auto", measured with benchmarks/ba_scaling.py (2-core x86-64 CPU
-# shared with other jobs, torch.set_num_threads(1), chain + loop graphs with 2.25 edges per
-# keyframe): assembling the free-pose matrix, factorising and solving take the same time on
-# both backends at N = 55-63 keyframes (~400 unknowns) over three runs. Below it the dense
-# Cholesky wins (0.4 ms vs 0.8-1.7 ms at N = 10: no scipy conversion overhead); above it
-# its O(N^3) cost dominates (N = 500: dense 1.0-1.5 s, sparse 0.045-0.065 s). "auto" never
-# picks "pcg": it only wins on large graphs with many loop closures and loses up to 35x on
-# chain-like ones of the same size (measurements in como3r.optim.pcg).
+# backend="auto" (:func:`auto_backend`): a dense Cholesky up to DENSE_MAX_FREE_POSES free
+# poses, the band-preconditioned CG above. Measured with benchmarks/ba_scaling.py (2-core
+# x86-64 CPU shared with other jobs, torch.set_num_threads(1), chain + loop graphs):
+# * dense vs the rest: assembling the free-pose matrix, factorising and solving take the
+#   same time as SuperLU at N = 55-63 keyframes (~400 unknowns) over three runs, and as
+#   band at N = 56 and 67 (two runs). Below it the dense Cholesky wins (0.4 ms vs 0.8-1.7 ms
+#   for SuperLU and ~2 ms for band at N = 10: no scipy conversion or set-up); above it its
+#   O(N^3) cost dominates (N = 500: dense 1.0-2.3 s, sparse 0.045-0.065 s).
+# * above it, band is the backend whose cost grows about linearly on both graph families
+#   of the benchmark (numbers in como3r.optim.band): with a loop edge every 4 keyframes
+#   SuperLU's fill grows (solve time log-log slope 1.7-1.8; band / sparse 0.24-0.25 at
+#   N = 2000), with one every 50 (nearly a chain) SuperLU is linear and band stays within
+#   0.9-1.9x of it at N = 500-2000 (block-Jacobi "pcg": 24-42x). SuperLU is still up to
+#   ~2x faster on chain-like graphs and on loop-rich ones up to ~500 keyframes (3x at
+#   N = 100, a few milliseconds); but the one rule that keeps the cost per GN iteration
+#   about linear on both families is band above the dense crossover (slopes in
+#   como3r.optim.band), and SuperLU's loss on the loop-rich graphs grows with N.
 DENSE_MAX_FREE_POSES = 60
 
 
@@ -151,10 +162,12 @@ class LinearSolution:
         step: ``(N, 7)`` tangent step (zeros at pinned poses, and everywhere on failure),
             float64, on the device of the system.
         status: see :class:`SolveStatus`.
-        attempts: number of attempts tried (1..R): factorisations, or pcg's CG solves.
+        attempts: number of attempts tried (1..R): factorisations, or CG solves.
         epsilon: Tikhonov term of the successful attempt, ``None`` on failure.
-        backend: ``"dense"``, ``"sparse"`` or ``"pcg"``, the backend actually used.
-        cg_iterations: conjugate-gradient iterations over all attempts (0 unless pcg).
+        backend: ``"dense"``, ``"sparse"``, ``"pcg"`` or ``"band"``, the backend actually
+            used.
+        cg_iterations: conjugate-gradient iterations over all attempts (0 unless pcg or
+            band).
     """
 
     step: torch.Tensor
@@ -170,6 +183,11 @@ class LinearSolution:
         if self.status is SolveStatus.FAILED:
             return self.attempts
         return max(self.attempts - 1, 0)
+
+
+def auto_backend(num_free: int) -> str:
+    """The backend ``"auto"`` takes for ``num_free`` free poses (see DENSE_MAX_FREE_POSES)."""
+    return "dense" if num_free <= DENSE_MAX_FREE_POSES else "band"
 
 
 def solve(
@@ -191,12 +209,12 @@ def solve(
         lm_lambda: multiplicative Levenberg-Marquardt damping (0 for local/global BA).
         tikhonov_base: eps_0 of the escalation eps_r = eps_0 * 100^r (C-Sec. B.2).
         retries: R, the number of factorisation attempts.
-        backend: ``"dense"``, ``"sparse"``, ``"pcg"`` or ``"auto"`` (dense up to
-            ``DENSE_MAX_FREE_POSES`` free poses, sparse above; pcg is opt-in, see
-            :mod:`como3r.optim.pcg`).
-        cg_tolerance, cg_max_iterations: pcg's stopping relative residual and iteration
-            cap per attempt (``None``: 7 per free pose, at least 100; see
-            :mod:`como3r.optim.pcg`); ignored by the other backends.
+        backend: ``"dense"``, ``"sparse"``, ``"pcg"``, ``"band"`` or ``"auto"`` (dense up
+            to ``DENSE_MAX_FREE_POSES`` free poses, band above; see :mod:`como3r.optim.pcg`
+            and :mod:`como3r.optim.band`).
+        cg_tolerance, cg_max_iterations: the CG backends' stopping relative residual and
+            iteration cap per attempt (``None``: 7 per free pose, at least 100; see
+            :mod:`como3r.optim.pcg`); ignored by the factorisations.
     """
     if free.shape != (system.num_poses,) or free.dtype != torch.bool:
         raise InputError(f"solve: free must be a bool tensor of shape ({system.num_poses},)")
@@ -209,13 +227,14 @@ def solve(
                          f"{cg_tolerance} and {cg_max_iterations}")
     num_free = int(free.sum())
     if backend == "auto":
-        backend = "dense" if num_free <= DENSE_MAX_FREE_POSES else "sparse"
+        backend = auto_backend(num_free)
     step = torch.zeros_like(system.g)
     if num_free == 0:
         return LinearSolution(step, SolveStatus.SUCCESS, 0, tikhonov_base, backend)
-    if backend == "pcg":
+    if backend in ("pcg", "band"):
         outcomes = pcg_attempts(system, free, lm_lambda, tikhonov_base, retries,
-                                cg_tolerance, cg_max_iterations)
+                                cg_tolerance, cg_max_iterations,
+                                "jacobi" if backend == "pcg" else "band")
         attempts = ((outcome.x, outcome.iterations) for outcome in outcomes)
     else:
         factorise = _dense_attempts if backend == "dense" else _sparse_attempts

@@ -1,23 +1,27 @@
-"""Block-Jacobi preconditioned conjugate gradients for the damped normal equations (C-Eq. 25).
+"""Preconditioned conjugate gradients for the damped normal equations (C-Eq. 25).
 
-The ``"pcg"`` backend of :func:`como3r.optim.linear.solve`. It never forms a matrix: the
-product ``A x`` of the free-pose system ``A = H + lambda diag(H) + eps_r I`` is computed
-blockwise from the 7x7 blocks of the :class:`~como3r.optim.linear.BlockSystem` (one gather,
-batched multiply-adds, one ``index_add_``, float64, on the system's device), and the
-preconditioner is the inverse of A's 7x7 diagonal blocks (batched Cholesky). Its cost per
-CG iteration is linear in poses + edges, with no fill-in, and it runs on CUDA unchanged.
-Its iteration count is not: block-Jacobi leaves the long-wavelength modes of the pose graph
-(the smooth drift of a chain away from its pinned anchor) to CG, and the preconditioned
-condition number grows about as N^2 on a chain (measured 460 / 2600 / 11200 at N = 50 / 100
-/ 200 on benchmarks/ba_scaling.py's graphs), so CG needs O(N) iterations where loop
-closures do not shorten the graph. That is why ``backend="auto"`` never picks it: pcg /
-sparse solve time of the first GN iteration (benchmarks/ba_scaling.py, one thread) is
-3.1 / 1.9 / 1.3 / 0.63 / 0.30 at N = 500 / 750 / 1000 / 1500 / 2000 with a loop edge every
-4 keyframes to a random earlier one (SuperLU's fill grows, CG's ~400 iterations do not),
-but 6.6 / 32 / 35 at N = 100 / 500 / 2000 with one every 50 (no fill, and CG's iterations
-grow as N); the number of poses alone cannot tell the two apart. Whole GN solves: N = 2000,
-loops 1/4, pcg 71 s vs sparse 151 s (100 iterations each, mean 358 CG iterations per
-solve); N = 500, loops 1/4, 1.8 vs 1.1 s; N = 500, loops 1/50, 5.6 vs 1.0 s.
+The ``"pcg"`` backend of :func:`como3r.optim.linear.solve` (block-Jacobi preconditioner),
+and the CG loop and positive-definiteness tests that its ``"band"`` backend (band + coarse
+two-level preconditioner, :mod:`como3r.optim.band`, what ``backend="auto"`` takes above
+the dense crossover) shares. pcg never forms a matrix: the product ``A x`` of the
+free-pose system ``A = H + lambda diag(H) + eps_r I`` is computed blockwise from the 7x7
+blocks of the :class:`~como3r.optim.linear.BlockSystem` (one gather, batched multiply-adds,
+one ``index_add_``, float64, on the system's device), and the preconditioner is the
+inverse of A's 7x7 diagonal blocks (batched Cholesky). Its cost per CG iteration is linear
+in poses + edges, with no fill-in, and it runs on CUDA unchanged. Its iteration count is
+not: block-Jacobi leaves the long-wavelength modes of the pose graph (the smooth drift of
+a chain away from its pinned anchor) to CG, and the preconditioned condition number grows
+about as N^2 on a chain (measured 460 / 2600 / 11200 at N = 50 / 100 / 200 on
+benchmarks/ba_scaling.py's graphs), so CG needs O(N) iterations where loop closures do not
+shorten the graph. That is why ``backend="auto"`` does not pick it: pcg / sparse solve time
+of the first GN iteration (benchmarks/ba_scaling.py, one thread) is 3.1 / 1.9 / 1.3 / 0.63
+/ 0.30 at N = 500 / 750 / 1000 / 1500 / 2000 with a loop edge every 4 keyframes to a random
+earlier one (SuperLU's fill grows, CG's ~400 iterations do not), but 6.6 / 32 / 35 at N =
+100 / 500 / 2000 with one every 50 (no fill, and CG's iterations grow as N); the number of
+poses alone cannot tell the two apart (the band backend's coarse level removes those modes,
+:mod:`como3r.optim.band`). Whole GN solves: N = 2000, loops 1/4, pcg 71 s vs sparse 151 s
+(100 iterations each, mean 358 CG iterations per solve); N = 500, loops 1/4, 1.8 vs 1.1 s;
+N = 500, loops 1/50, 5.6 vs 1.0 s.
 
 Positive definiteness (the success test of C-Sec. B.2's Tikhonov escalation) is checked
 where CG can see it: a diagonal block that is not positive definite, or a search direction
@@ -52,15 +56,20 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterator
+from typing import TYPE_CHECKING, Literal
 
 import torch
+
+from como3r.optim import band
 
 if TYPE_CHECKING:
     from como3r.optim.linear import BlockSystem
 
 logger = logging.getLogger(__name__)
+
+Preconditioner = Literal["jacobi", "band"]
 
 # Stopping test: sqrt(r^T M^-1 r / b^T M^-1 b) <= CG_RELATIVE_TOLERANCE, the residual in
 # the preconditioner's inverse norm. It is invariant to a per-pose rescaling of the unknowns
@@ -180,6 +189,7 @@ def pcg_attempts(
     retries: int,
     tolerance: float = CG_RELATIVE_TOLERANCE,
     max_iterations: int | None = None,
+    preconditioner: Preconditioner = "jacobi",
 ) -> Iterator[CGOutcome]:
     """Yield one :class:`CGOutcome` per Tikhonov attempt ``eps_r = eps_0 100^r`` (C-Sec. B.2).
 
@@ -192,12 +202,20 @@ def pcg_attempts(
         tolerance: stopping preconditioned relative residual.
         max_iterations: CG iteration cap per attempt (``None``: max(CG_MIN_ITERATION_CAP,
             7F) for F free poses).
+        preconditioner: ``"jacobi"`` (block-Jacobi, this module) or ``"band"`` (band +
+            coarse two-level, :mod:`como3r.optim.band`).
     """
     operator = _FreeOperator(system, free)
     if max_iterations is None:
         max_iterations = max(CG_MIN_ITERATION_CAP, operator.rhs.numel())
+    ordered = None
+    if preconditioner == "band":
+        ordered = band.OrderedSystem(operator.i, operator.j, operator.upper, operator.rhs)
     for r in range(retries):
         diag = operator.damped_diagonal(lm_lambda, tikhonov_base * 100.0**r)
+        if ordered is not None:
+            yield _band_attempt(ordered, diag, tolerance, max_iterations)
+            continue
         L, info = torch.linalg.cholesky_ex(diag)
         if bool((info != 0).any()) or not bool(L.isfinite().all()):
             # a principal submatrix of a positive definite matrix is positive definite
@@ -211,20 +229,41 @@ def pcg_attempts(
         yield outcome
 
 
-def _cg(
-    operator: _ScaledOperator, b: torch.Tensor, tolerance: float, max_iterations: int
+def _band_attempt(
+    ordered: band.OrderedSystem, diag: torch.Tensor, tolerance: float, max_iterations: int
 ) -> CGOutcome:
-    """Conjugate gradients from x = 0 on the scaled system ``A_hat x = b``, b ``(7, F)``;
-    the outcome's x is ``(7, F)`` too."""
+    """One attempt of the band-preconditioned CG, damped diagonal blocks ``diag``."""
+    attempt, reason = ordered.attempt(diag)
+    if attempt is None:
+        return CGOutcome(None, 0, math.inf, reason)
+    outcome = _cg(attempt, ordered.rhs, tolerance, max_iterations, attempt)
+    if outcome.x is None:
+        return outcome
+    return CGOutcome(ordered.unorder(outcome.x), outcome.iterations, outcome.residual,
+                     outcome.reason)
+
+
+def _cg(
+    operator: _ScaledOperator | band.TwoLevelAttempt,
+    b: torch.Tensor,
+    tolerance: float,
+    max_iterations: int,
+    precondition: Callable[[torch.Tensor], torch.Tensor] | None = None,
+) -> CGOutcome:
+    """Preconditioned conjugate gradients from x = 0 on ``A x = b`` (``operator.apply``),
+    b ``(7, F)`` (pcg) or ``(7F,)`` (band); the outcome's x has b's shape. Without
+    ``precondition`` (M = I) this is plain CG, which on the scaled system is block-Jacobi
+    PCG."""
     x = torch.zeros_like(b)
     r = b.clone()
-    rr = float(torch.dot(r.reshape(-1), r.reshape(-1)))
-    if not math.isfinite(rr):
+    z = r if precondition is None else precondition(r)
+    rz = float(torch.dot(r.reshape(-1), z.reshape(-1)))
+    if not math.isfinite(rz):
         return CGOutcome(None, 0, math.inf, "non_finite")
-    if rr == 0.0:  # zero gradient: the step is zero
+    if rz == 0.0:  # zero gradient: the step is zero
         return CGOutcome(x, 0, 0.0, "converged")
-    rr_initial, stop = rr, tolerance**2 * rr
-    p = r.clone()
+    rz_initial, stop = rz, tolerance**2 * rz
+    p = z.clone()
     residual, iterations = 1.0, 0
     while iterations < max_iterations:
         iterations += 1
@@ -234,15 +273,18 @@ def _cg(
             return CGOutcome(None, iterations, math.inf, "non_finite")
         if curvature <= 0.0:
             return CGOutcome(None, iterations, math.inf, "negative_curvature")
-        alpha = rr / curvature
+        alpha = rz / curvature
         x.add_(p, alpha=alpha)
         r.sub_(Ap, alpha=alpha)
-        rr_next = float(torch.dot(r.reshape(-1), r.reshape(-1)))
-        residual = math.sqrt(rr_next / rr_initial)
-        if rr_next <= stop:
+        z = r if precondition is None else precondition(r)
+        rz_next = float(torch.dot(r.reshape(-1), z.reshape(-1)))
+        if not math.isfinite(rz_next):
+            return CGOutcome(None, iterations, math.inf, "non_finite")
+        residual = math.sqrt(max(rz_next, 0.0) / rz_initial)
+        if rz_next <= stop:
             return CGOutcome(x, iterations, residual, "converged")
-        p.mul_(rr_next / rr).add_(r)
-        rr = rr_next
+        p.mul_(rz_next / rz).add_(z)
+        rz = rz_next
     logger.debug("PCG: relative residual %.2e at the cap of %d iterations; last iterate kept",
                  residual, iterations)
     return CGOutcome(x, iterations, residual, "capped")
