@@ -91,7 +91,7 @@ def test_flat_index_side_map_and_local_to_global(two_agents) -> None:
     assert [(link.i, link.j) for link in graph.inter_links()] == [(4, 1)]
 
 
-@pytest.mark.parametrize("linear_solver", ["auto", "pcg"])
+@pytest.mark.parametrize("linear_solver", ["auto", "pcg", "band"])
 def test_global_ba_reduces_error_with_keyframe_zero_pinned(two_agents, linear_solver) -> None:
     graph, truth = two_agents
     graph.config = GlobalBAConfig(linear_solver=linear_solver)
