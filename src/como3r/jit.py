@@ -24,8 +24,11 @@ __all__ = ["compiled"]
 @functools.cache
 def _variant(loop: Callable, parallel: bool, fastmath: frozenset) -> Callable:
     # numba names a cache file after the function, not its options: each variant is a
-    # copy of the function under its own name, so neither loads the other's machine code
-    copy = types.FunctionType(loop.__code__, loop.__globals__, loop.__name__)
+    # copy of the function under its own name, so neither loads the other's machine code.
+    # A closure keeps its cells: numba compiles their values as constants (and keys its
+    # cache on them), so a loop made by a factory is specialised to the factory's arguments
+    copy = types.FunctionType(loop.__code__, loop.__globals__, loop.__name__,
+                              loop.__defaults__, loop.__closure__)
     copy.__qualname__ = f"{loop.__qualname__}_{'parallel' if parallel else 'serial'}"
     return njit(parallel=parallel, fastmath=set(fastmath) if fastmath else False, cache=True,
                 boundscheck=False)(copy)
@@ -37,7 +40,8 @@ def compiled(loop: Callable, fastmath: set[str] | None = None) -> Callable:
     core), else parallel over ``torch.get_num_threads()`` threads.
 
     Args:
-        loop: a function numba can compile, its outer loop a ``numba.prange``.
+        loop: a function numba can compile, its outer loop a ``numba.prange``; a closure's
+            variables are compile-time constants.
         fastmath: LLVM fast-math flags (e.g. ``{"reassoc", "contract"}`` to vectorise sums);
             none by default.
     """

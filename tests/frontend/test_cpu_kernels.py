@@ -49,6 +49,33 @@ def test_descriptor_window_search_equals_the_vectorised_path(threads, size) -> N
     assert moved > 0.5  # the search did work: most starts were off
 
 
+@pytest.mark.parametrize("dim, radius, dilation_max", [(12, 3, 5), (24, 4, 2), (5, 1, 3)],
+                         ids=["dim-12", "two-lane-groups", "dim-5-radius-1"])
+def test_descriptor_window_search_of_any_width_and_radius(threads, dim, radius,
+                                                          dilation_max) -> None:
+    """Descriptors whose width is not a multiple of 8 (zero-padded), windows wider than the
+    8 lanes of one group of candidates (radius 4: 9 columns) and the smallest window."""
+    D, D_query, pixel = _descriptor_problem(2, 18, 26, dim=dim, flow=5, seed=dim + radius)
+    compiled = cpu_kernels.refine_windows(D, D_query, pixel, radius, dilation_max, None)
+    vectorised = matching._refine_vectorised(D, D_query, pixel, radius, dilation_max, None)
+    assert torch.equal(compiled, vectorised)
+    assert (compiled != pixel).any(-1).float().mean() > 0.3
+
+
+def test_descriptor_window_search_breaks_ties_by_window_order(threads) -> None:
+    """Descriptors drawn from three vectors: most windows hold exactly equal best scores,
+    and the first in row-major window order wins, as in the PyTorch path."""
+    B, H, W = 1, 16, 21
+    gen = torch.Generator().manual_seed(3)
+    palette = torch.nn.functional.normalize(torch.randn(3, 24, generator=gen), dim=-1)
+    D = palette[torch.randint(0, 3, (B, H, W), generator=gen)]
+    D_query = palette[torch.randint(0, 3, (B, H * W), generator=gen)]
+    v, u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    pixel = torch.stack([u.reshape(-1), v.reshape(-1)], -1)[None]
+    compiled = cpu_kernels.refine_windows(D, D_query, pixel, 3, 3, None)
+    assert torch.equal(compiled, matching._refine_vectorised(D, D_query, pixel, 3, 3, None))
+
+
 def test_descriptor_window_search_leaves_inactive_matches(threads) -> None:
     D, D_query, pixel = _descriptor_problem(2, 20, 30, dim=16, flow=4, seed=5)
     active = torch.rand(pixel.shape[:2], generator=torch.Generator().manual_seed(1)) < 0.5
