@@ -22,7 +22,7 @@ __all__ = ["compiled"]
 
 
 @functools.cache
-def _variant(loop: Callable, parallel: bool, fastmath: frozenset) -> Callable:
+def _variant(loop: Callable, parallel: bool, fastmath: frozenset, error_model: str) -> Callable:
     # numba names a cache file after the function, not its options: each variant is a
     # copy of the function under its own name, so neither loads the other's machine code.
     # A closure keeps its cells: numba compiles their values as constants (and keys its
@@ -31,10 +31,11 @@ def _variant(loop: Callable, parallel: bool, fastmath: frozenset) -> Callable:
                               loop.__defaults__, loop.__closure__)
     copy.__qualname__ = f"{loop.__qualname__}_{'parallel' if parallel else 'serial'}"
     return njit(parallel=parallel, fastmath=set(fastmath) if fastmath else False, cache=True,
-                boundscheck=False)(copy)
+                boundscheck=False, error_model=error_model)(copy)
 
 
-def compiled(loop: Callable, fastmath: set[str] | None = None) -> Callable:
+def compiled(loop: Callable, fastmath: set[str] | None = None,
+             error_model: str = "python") -> Callable:
     """``loop`` compiled for this process's PyTorch thread count: serial on one thread (no
     thread pool: a parallel loop's idle workers spin and would take another process's
     core), else parallel over ``torch.get_num_threads()`` threads.
@@ -44,9 +45,12 @@ def compiled(loop: Callable, fastmath: set[str] | None = None) -> Callable:
             variables are compile-time constants.
         fastmath: LLVM fast-math flags (e.g. ``{"reassoc", "contract"}`` to vectorise sums);
             none by default.
+        error_model: ``"python"`` (a float division by zero raises) or ``"numpy"`` (it gives
+            inf or nan, as numpy does): a loop that divides vectorises only without the
+            Python model's check of every divisor.
     """
     threads = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
-    kernel = _variant(loop, threads > 1, frozenset(fastmath or ()))
+    kernel = _variant(loop, threads > 1, frozenset(fastmath or ()), error_model)
     if threads > 1 and numba.get_num_threads() != threads:
         numba.set_num_threads(threads)
     return kernel
