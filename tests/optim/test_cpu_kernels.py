@@ -93,3 +93,42 @@ def test_calibrated_blocks_are_float64_sums_of_the_inputs(dtype) -> None:
     torch.testing.assert_close(g, g_ref, rtol=0, atol=1e-12 * g_ref.abs().max().item())
     torch.testing.assert_close(cpu_kernels.calibrated_cost(*args, HUBER_K), cost_ref,
                                rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_factor_batch_preparation_equals_pytorch(dtype) -> None:
+    """The compiled validity tests and valid-first order give PyTorch's masks and indices:
+    non-finite points, the camera centre, tiny points (whose float32 squares underflow)."""
+    gen = torch.Generator().manual_seed(1)
+    X = torch.randn(3, 500, 3, generator=gen).to(dtype)
+    X[0, :5] = 0.0
+    X[0, 5, 1] = float("nan")
+    X[1, 7, 2] = float("inf")
+    X[1, 8] = torch.tensor([1e-30, 0.0, 0.0], dtype=dtype)  # float32: norm 0
+    X[1, 9] = torch.tensor([3e-23, 0.0, 0.0], dtype=dtype)  # float32: a subnormal norm
+    X[2, 9] = torch.tensor([0.0, -0.0, 1e-170], dtype=dtype)
+    usable = torch.isfinite(X).all(-1) & (torch.linalg.vector_norm(X, dim=-1) > 0)
+    assert torch.equal(cpu_kernels.usable_points(X), usable)
+    assert cpu_kernels.all_finite(X[2]) and not cpu_kernels.all_finite(X)
+    q = X[..., 0].clone()
+    q[2, :3] = torch.tensor([float("nan"), 0.0, float("-inf")])
+    valid_in = torch.rand(3, 500, generator=gen) < 0.7
+    confident = valid_in & torch.isfinite(q) & (q > 0)
+    valid_out, q_out = cpu_kernels.confident(valid_in, q)
+    assert torch.equal(valid_out, confident)
+    assert torch.equal(q_out, torch.where(confident, q, torch.zeros_like(q)))
+    z = X[..., 2].abs()
+    z[1, :4] = torch.tensor([0.0, float("nan"), float("inf"), -1.0])
+    assert torch.equal(cpu_kernels.observed(X[..., :2], z),
+                       torch.isfinite(X[..., :2]).all(-1) & torch.isfinite(z) & (z > 0))
+    valid = torch.rand(3, 500, generator=gen) < torch.tensor([[0.2], [0.9], [0.5]])
+    order = torch.sort((~valid).to(torch.uint8), dim=1, stable=True).indices
+    compiled_order, most = cpu_kernels.valid_first(valid)
+    assert torch.equal(compiled_order, order) and most == int(valid.sum(1).max())
+    for kept in (500, most, 1):
+        for values in (X, valid, X[..., 2]):
+            index = order[:, :kept].reshape(3, kept, *(1,) * (values.ndim - 2)).expand(
+                3, kept, *values.shape[2:])
+            torch.testing.assert_close(cpu_kernels.take_matches(values, order, kept),
+                                       torch.gather(values, 1, index), rtol=0, atol=0,
+                                       equal_nan=True)

@@ -430,3 +430,125 @@ def calibrated_cost(T_ij: Tensor, K: Tensor, X_j: Tensor, p_i: Tensor, z_i: Tens
     per_edge = _sums(_calibrated_cost, T_ij, (K64, X_j, p_i, z_i), q, valid, inv_sigma,
                      huber_k, 1, error_model="numpy")
     return torch.tensor(float(per_edge.sum()), dtype=torch.float64)
+
+
+# ---------------------------------------------------------------------------------------------
+# Preparing a factor batch (optim.factors): validity of the matched points and the
+# valid-first order of each edge's matches, one pass over memory each and no temporary
+# (PyTorch made a bool tensor per test and sorted the validity to partition it: 75 ms per
+# frame of a 512x384 front-end run, the local solve's and tracking's factor batches)
+# ---------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, boundscheck=False)
+def _confident(valid: np.ndarray, q: np.ndarray, valid_out: np.ndarray,
+               q_out: np.ndarray) -> None:  # pragma: no cover (compiled)
+    for m in range(q.shape[0]):
+        ok = valid[m] and np.isfinite(q[m]) and q[m] > 0
+        valid_out[m] = ok
+        q_out[m] = q[m] if ok else 0
+
+
+def confident(valid: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
+    """``(valid & isfinite(q) & (q > 0), q there and 0 elsewhere)`` for CPU tensors."""
+    valid_out, q_out = np.empty(q.shape, dtype=np.bool_), np.empty(q.shape, dtype=_array(q).dtype)
+    _confident(_array(valid).reshape(-1), _array(q).reshape(-1), valid_out.reshape(-1),
+               q_out.reshape(-1))
+    return torch.from_numpy(valid_out), torch.from_numpy(q_out)
+
+
+@njit(cache=True, boundscheck=False)
+def _observed(p: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    for m in range(z.shape[0]):
+        out[m] = np.isfinite(p[m, 0]) and np.isfinite(p[m, 1]) and np.isfinite(z[m]) and z[m] > 0
+
+
+def observed(p_i: Tensor, z_i: Tensor) -> Tensor:
+    """``isfinite(p_i).all(-1) & isfinite(z_i) & (z_i > 0)`` for CPU ``p_i`` ``(..., 2)`` and
+    ``z_i`` ``(...)``."""
+    out = np.empty(z_i.shape, dtype=np.bool_)
+    _observed(_array(p_i).reshape(-1, 2), _array(z_i).reshape(-1), out.reshape(-1))
+    return torch.from_numpy(out)
+
+
+@njit(cache=True, boundscheck=False)
+def _usable_rows(X: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover (compiled)
+    for m in range(X.shape[0]):
+        x0, x1, x2 = X[m, 0], X[m, 1], X[m, 2]
+        finite = np.isfinite(x0) and np.isfinite(x1) and np.isfinite(x2)
+        out[m] = finite and (x0 * x0 > 0 or x1 * x1 > 0 or x2 * x2 > 0)  # in X's dtype
+
+
+def usable_points(X: Tensor) -> Tensor:
+    """``(...)`` bool: rows of ``X`` ``(..., 3)`` (CPU) that are finite and not the camera
+    centre, as ``isfinite(X).all(-1) & (norm(X, dim=-1) > 0)``: PyTorch sums the squares in
+    X's dtype, so a float32 point within 1e-23 of the origin has norm 0."""
+    out = np.empty(X.shape[:-1], dtype=np.bool_)
+    _usable_rows(_array(X).reshape(-1, 3), out.reshape(-1))
+    return torch.from_numpy(out)
+
+
+@njit(cache=True, boundscheck=False)
+def _all_finite(values: np.ndarray) -> bool:  # pragma: no cover (compiled)
+    for k in range(values.shape[0]):
+        if not np.isfinite(values[k]):
+            return False
+    return True
+
+
+def all_finite(values: Tensor) -> bool:
+    """``bool(isfinite(values).all())`` for a CPU tensor, without the bool tensor."""
+    return bool(_all_finite(_array(values).reshape(-1)))
+
+
+@njit(cache=True, boundscheck=False)
+def _valid_first(valid: np.ndarray, out: np.ndarray) -> int:  # pragma: no cover (compiled)
+    E, P = valid.shape
+    flags = valid.view(np.uint8)
+    kept = 0
+    for e in range(E):
+        count = 0
+        for m in range(P):
+            count += flags[e, m]
+        kept = max(kept, count)
+        front, back = 0, count  # branch-free: every index goes to one of the two cursors
+        for m in range(P):
+            ok = flags[e, m]
+            out[e, front if ok else back] = m
+            front += ok
+            back += 1 - ok
+    return kept
+
+
+def valid_first(valid: Tensor) -> tuple[Tensor, int]:
+    """Per edge the indices of its valid matches, then of its invalid ones, each in their
+    order (``sort(~valid, stable=True).indices`` for a CPU ``valid`` ``(E, P)`` bool), and
+    the largest valid count: ``(order (E, P) int64, kept)``."""
+    out = np.empty(valid.shape, dtype=np.int64)
+    kept = _valid_first(_array(valid), out)
+    return torch.from_numpy(out), int(kept)
+
+
+@njit(cache=True, boundscheck=False)
+def _take_matches(values: np.ndarray, order: np.ndarray, kept: int,
+                  out: np.ndarray) -> None:  # pragma: no cover (compiled)
+    width = values.shape[2]
+    for e in range(order.shape[0]):
+        if width == 1:
+            for k in range(kept):
+                out[e, k, 0] = values[e, order[e, k], 0]
+        else:
+            for k in range(kept):
+                m = order[e, k]
+                for c in range(width):
+                    out[e, k, c] = values[e, m, c]
+
+
+def take_matches(values: Tensor, order: Tensor, kept: int) -> Tensor:
+    """``values`` ``(E, P, ...)`` (CPU) at each edge's first ``kept`` matches of ``order``
+    ``(E, >= kept)``: ``gather(values, 1, order[:, :kept] expanded)``."""
+    E = order.shape[0]
+    flat = _array(values).reshape(E, values.shape[1], -1)
+    out = np.empty((E, kept, flat.shape[2]), dtype=flat.dtype)
+    _take_matches(flat, _array(order), kept, out)
+    return torch.from_numpy(out).reshape(E, kept, *values.shape[2:])

@@ -101,8 +101,11 @@ class RelativePoseFactors(ABC):
         if chunk_matches < 1:
             raise InputError(f"{name}: chunk_matches must be >= 1, got {chunk_matches}")
         # A match with a non-finite or non-positive confidence carries no information.
-        self.valid = valid & torch.isfinite(q) & (q > 0)
-        self.q = torch.where(self.valid, q, torch.zeros_like(q))
+        if q.device.type == "cpu":
+            self.valid, self.q = cpu_kernels.confident(valid, q)
+        else:
+            self.valid = valid & torch.isfinite(q) & (q > 0)
+            self.q = torch.where(self.valid, q, torch.zeros_like(q))
         self.huber_k = float(huber_k)
         # (E, 1, C): per edge, so a noise given relative to the scene (sigma_scale) applies
         inv_sigmas = torch.tensor([1.0 / s for s in sigmas], dtype=q.dtype, device=q.device)
@@ -154,16 +157,22 @@ class RelativePoseFactors(ABC):
                 ``q`` and ``valid``.
         """
         E, P = self.q.shape
-        kept = max(1, int(self.valid.sum(1).max())) if E and P else P
+        if not (E and P):
+            return
+        # stable sort: valid matches first, in their original order (on CPU one compiled
+        # pass instead of the count, the sort and the gathers)
+        if self.valid.device.type == "cpu":
+            order, kept = cpu_kernels.valid_first(self.valid)
+            take = cpu_kernels.take_matches
+        else:
+            kept = int(self.valid.sum(1).max())
+            order = torch.sort((~self.valid).to(torch.uint8), dim=1, stable=True).indices
+            take = _take_matches
+        kept = max(1, kept)
         if kept == P:
             return
-        # stable sort: valid matches first, in their original order
-        order = torch.sort((~self.valid).to(torch.uint8), dim=1, stable=True).indices[:, :kept]
         for name in ("q", "valid", *names):
-            value = getattr(self, name)
-            index = order.reshape(E, kept, *(1,) * (value.ndim - 2)).expand(
-                E, kept, *value.shape[2:])
-            setattr(self, name, torch.gather(value, 1, index))
+            setattr(self, name, take(getattr(self, name), order, kept))
         self._edges_per_chunk = max(1, self._chunk_matches // kept)
 
     @property
@@ -505,7 +514,10 @@ class CalibratedFactors(RelativePoseFactors):
         if K.shape != (q.shape[0], 3, 3):
             raise InputError(f"CalibratedFactors: K must have shape (3, 3) or "
                              f"({q.shape[0]}, 3, 3), got {tuple(K.shape)}")
-        observed = torch.isfinite(p_i).all(-1) & torch.isfinite(z_i) & (z_i > 0)
+        if z_i.device.type == "cpu":
+            observed = cpu_kernels.observed(p_i, z_i)
+        else:
+            observed = torch.isfinite(p_i).all(-1) & torch.isfinite(z_i) & (z_i > 0)
         self.valid = self.valid & observed & _usable_points(X_j)
         self.X_j = _finite_rows(X_j, self.valid)
         self.p_i = _finite_rows(p_i, self.valid)
@@ -548,8 +560,17 @@ def _edge_index(index: torch.Tensor, label: str, name: str) -> torch.Tensor:
     return index.to(torch.int64)
 
 
+def _take_matches(value: torch.Tensor, order: torch.Tensor, kept: int) -> torch.Tensor:
+    """``value`` ``(E, P, ...)`` at each edge's first ``kept`` matches of ``order``."""
+    E = order.shape[0]
+    index = order[:, :kept].reshape(E, kept, *(1,) * (value.ndim - 2))
+    return torch.gather(value, 1, index.expand(E, kept, *value.shape[2:]))
+
+
 def _usable_points(X: torch.Tensor) -> torch.Tensor:
     """``(E, P)`` bool: finite points away from the camera centre."""
+    if X.device.type == "cpu":
+        return cpu_kernels.usable_points(X)
     return torch.isfinite(X).all(-1) & (torch.linalg.vector_norm(X, dim=-1) > 0)
 
 
@@ -557,7 +578,8 @@ def _finite_rows(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """``values`` ``(E, P, k)`` with the rows of invalid matches set to 1 if any of them is
     not finite: garbage behind the mask (NaN pointmap pixels) must not turn a zero weight
     into NaN. Without such garbage the input is kept as is (no copy)."""
-    if bool(torch.isfinite(values).all()):
+    if (cpu_kernels.all_finite(values) if values.device.type == "cpu"
+            else bool(torch.isfinite(values).all())):
         return values
     return torch.where(valid[..., None], values, torch.ones_like(values))
 
