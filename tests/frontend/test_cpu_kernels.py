@@ -136,3 +136,41 @@ def test_ray_projection_of_float32_pointmaps_matches_to_a_hundredth_of_a_pixel()
     assert (p[both] - p_ref[both]).abs().max() < 1e-2
     nearest = matching._nearest_ray_pixel(rays_grad[..., :3], p_ref, target)
     assert (pixel[both] == nearest[both]).all(-1).float().mean() > 0.99
+
+
+def test_ray_image_with_gradients_equals_pytorch_to_an_ulp(threads) -> None:
+    """One compiled pass gives the rays and their central differences (one-sided at the
+    border) of the PyTorch expression, to float32 rounding of the norm."""
+    gen = torch.Generator().manual_seed(4)
+    X = torch.randn(2, 13, 17, 3, generator=gen) + torch.tensor([0.0, 0.0, 4.0])
+    X[0, 3, 5] = 0.0  # the camera centre: a zero ray, as psi's clamped norm gives
+    rays = torch.nn.functional.normalize(X, dim=-1, eps=1e-12)
+    reference = torch.cat([rays, torch.gradient(rays, dim=2)[0], torch.gradient(rays, dim=1)[0]],
+                          dim=-1)
+    image = cpu_kernels.ray_image_with_gradients(X)
+    assert image.shape == (2, 13, 17, 9) and image.dtype == torch.float32
+    torch.testing.assert_close(image, reference, rtol=0, atol=3e-7)
+    assert torch.equal(image[0, 3, 5, :3], torch.zeros(3))
+
+
+def test_match_validity_equals_pytorch(threads) -> None:
+    """Converged, finite and not occluded: the end of match_pointmaps in one pass."""
+    gen = torch.Generator().manual_seed(5)
+    B, H, W = 2, 12, 16
+    X_search = torch.randn(B, H, W, 3, generator=gen) + torch.tensor([0.0, 0.0, 3.0])
+    queries = X_search.reshape(B, -1, 3) + 0.6 * torch.randn(B, H * W, 3, generator=gen)
+    queries[0, :4] = float("nan")
+    queries[1, 4] = float("inf")
+    v, u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    own = torch.stack([u.reshape(-1), v.reshape(-1)], -1).expand(B, -1, -1)
+    elsewhere = torch.stack([torch.randint(0, W, (B, H * W), generator=gen),
+                             torch.randint(0, H, (B, H * W), generator=gen)], -1)
+    pixel = torch.where(torch.rand(B, H * W, 1, generator=gen) < 0.5, own, elsewhere)
+    converged = torch.rand(B, H * W, generator=gen) < 0.8
+    idx, valid = cpu_kernels.match_validity(X_search, queries, pixel, converged, 0.3)
+    assert torch.equal(idx, pixel[..., 1] * W + pixel[..., 0])
+    matched = torch.gather(X_search.reshape(B, -1, 3), 1, idx[..., None].expand(-1, -1, 3))
+    reference = (converged & ((matched - queries).norm(dim=-1) < 0.3 * queries.norm(dim=-1))
+                 & torch.isfinite(queries).all(-1))
+    assert torch.equal(valid, reference)
+    assert 0.2 < valid.float().mean() < 0.8

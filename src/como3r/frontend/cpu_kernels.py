@@ -15,11 +15,13 @@ remainder and summed it horizontally, about 14 cycles per candidate; the pixels 
 compute bound (the same speed with all of them reading one cached descriptor).
 
 Measured at 512x384 (``benchmarks/matching_kernel.py``, AMD EPYC with AVX-512, one thread,
-one run on a loaded machine): the window search 0.156 s against 1.72 s for the PyTorch path
-and 0.455 s for the previous compiled loop (one dot product at a time); the ray projection
-0.043 / 0.294 s. In a whole front-end run (``benchmarks/slam_vs_prior.py``, 15 frames of the
-640x480 scene of its docstring, one thread, loaded machine) matching took 128-141 ms per
-call, 241-267 with the previous window search (595 with the PyTorch path, 12 frames).
+one run on a shared machine): the window search 0.094 s against 0.858 s for the PyTorch path
+(9.1x; the previous compiled loop, one dot product at a time, was 4.8x faster than it: 0.455
+/ 2.19 s in a busier run), the ray projection 0.024 / 0.189 s. In a whole front-end run
+(``benchmarks/slam_vs_prior.py``, 15 frames of the 640x480 scene of its docstring, one
+thread) matching took 103-104 ms per call against 186-196 before the window search and these
+changes (09379f6, same machine, alternating runs); the projection 74 instead of 88 ms per
+frame once its samples were inlined, the ray image 7 instead of 12.
 """
 
 from __future__ import annotations
@@ -224,12 +226,14 @@ def refine_windows(D_search: Tensor, D_query: Tensor, pixel: Tensor, radius: int
     return torch.from_numpy(refined).reshape(B, P, 2)
 
 
-@njit(cache=True, boundscheck=False)
+@njit(cache=True, boundscheck=False, inline="always")
 def _ray_sample(table: np.ndarray, first: int, height: int, width: int, u: float, v: float,
-                target: np.ndarray) -> tuple:  # pragma: no cover (compiled)
+                target: tuple) -> tuple:  # pragma: no cover (compiled)
     """Bilinear ray and gradients at (u, v), clamped into the image, as
     ``matching._bilinear``; returns ``(cost, err (3,), d/du (3,), d/dv (3,))`` as scalars
-    (a tuple, no array allocated per sample)."""
+    (a tuple, no array allocated per sample). Inlined, the target ray ``(3,)`` a tuple and
+    the table read by index: a row view passed or made per sample counts references
+    (atomically), and the call was not inlined: 13-16 % of the projection's time."""
     u = min(max(u, 0.0), width - 1.0)
     v = min(max(v, 0.0), height - 1.0)
     u0 = min(int(np.floor(u)), max(width - 2, 0))
@@ -237,12 +241,12 @@ def _ray_sample(table: np.ndarray, first: int, height: int, width: int, u: float
     u1, v1 = min(u0 + 1, width - 1), min(v0 + 1, height - 1)
     a, b = u - u0, v - v0
     w00, w01, w10, w11 = (1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b
-    p00, p01 = table[first + v0 * width + u0], table[first + v0 * width + u1]
-    p10, p11 = table[first + v1 * width + u0], table[first + v1 * width + u1]
+    i00, i01 = first + v0 * width + u0, first + v0 * width + u1
+    i10, i11 = first + v1 * width + u0, first + v1 * width + u1
 
     def mix(c: int) -> float:
-        return (float(p00[c]) * w00 + float(p01[c]) * w01 + float(p10[c]) * w10
-                + float(p11[c]) * w11)
+        return (float(table[i00, c]) * w00 + float(table[i01, c]) * w01
+                + float(table[i10, c]) * w10 + float(table[i11, c]) * w11)
 
     r0, r1, r2 = mix(0), mix(1), mix(2)
     norm = max(np.sqrt(r0 * r0 + r1 * r1 + r2 * r2), 1e-12)
@@ -251,9 +255,9 @@ def _ray_sample(table: np.ndarray, first: int, height: int, width: int, u: float
             (mix(6), mix(7), mix(8)))
 
 
-@njit(cache=True, boundscheck=False)
+@njit(cache=True, boundscheck=False, inline="always")
 def _nearest_pixel(table: np.ndarray, first: int, height: int, width: int, u: float, v: float,
-                   target: np.ndarray) -> tuple:  # pragma: no cover (compiled)
+                   target: tuple) -> tuple:  # pragma: no cover (compiled)
     """Of the four pixel centres around (u, v), the one whose ray is closest to the target
     (the first of equals in the order (0, 0), (1, 0), (0, 1), (1, 1)), as
     ``matching._nearest_ray_pixel``."""
@@ -262,23 +266,26 @@ def _nearest_pixel(table: np.ndarray, first: int, height: int, width: int, u: fl
     for du, dv in ((0, 0), (1, 0), (0, 1), (1, 1)):
         cu = min(max(base_u + du, 0), width - 1)
         cv = min(max(base_v + dv, 0), height - 1)
-        ray = table[first + cv * width + cu]
+        index = first + cv * width + cu
         err = 0.0
         for c in range(3):
-            diff = float(ray[c]) - target[c]
+            diff = float(table[index, c]) - target[c]
             err += diff * diff
         if err < best:
             best, best_u, best_v = err, cu, cv
     return best_u, best_v
 
 
-def _project_rays(table: np.ndarray, height: int, width: int, target: np.ndarray,
-                  start: np.ndarray, per_image: int, max_iters: int, lambda_init: float,
-                  tol: float, pixel: np.ndarray, nearest: np.ndarray, cost_out: np.ndarray
-                  ) -> None:  # pragma: no cover (compiled)
-    for row in prange(start.shape[0]):
+@njit(cache=True, boundscheck=False)
+def _project_pixels(table: np.ndarray, height: int, width: int, target: np.ndarray,
+                    start: np.ndarray, per_image: int, max_iters: int, lambda_init: float,
+                    tol: float, pixel: np.ndarray, nearest: np.ndarray, cost_out: np.ndarray,
+                    first_row: int, end_row: int) -> None:  # pragma: no cover (compiled)
+    """The projection of pixels ``first_row`` to ``end_row`` (a serial loop: numba's
+    parallel analysis does not take the inlined samples)."""
+    for row in range(first_row, end_row):
         first = (row // per_image) * height * width
-        t = target[row]
+        t = (target[row, 0], target[row, 1], target[row, 2])
         u, v = float(start[row, 0]), float(start[row, 1])
         cost, err, J_u, J_v = _ray_sample(table, first, height, width, u, v, t)
         lam = lambda_init
@@ -310,6 +317,21 @@ def _project_rays(table: np.ndarray, height: int, width: int, target: np.ndarray
         cost_out[row] = cost
 
 
+#: pixels per parallel task of the ray projection
+_PROJECT_BLOCK = 1024
+
+
+def _project_rays(table: np.ndarray, height: int, width: int, target: np.ndarray,
+                  start: np.ndarray, per_image: int, max_iters: int, lambda_init: float,
+                  tol: float, pixel: np.ndarray, nearest: np.ndarray, cost_out: np.ndarray
+                  ) -> None:  # pragma: no cover (compiled)
+    P = start.shape[0]
+    for block in prange((P + _PROJECT_BLOCK - 1) // _PROJECT_BLOCK):
+        _project_pixels(table, height, width, target, start, per_image, max_iters,
+                        lambda_init, tol, pixel, nearest, cost_out, block * _PROJECT_BLOCK,
+                        min((block + 1) * _PROJECT_BLOCK, P))
+
+
 def project_rays(rays_grad: Tensor, target_rays: Tensor, p_init: Tensor, max_iters: int,
                  lambda_init: float, convergence_tol: float
                  ) -> tuple[Tensor, Tensor, Tensor]:
@@ -334,3 +356,66 @@ def project_rays(rays_grad: Tensor, target_rays: Tensor, p_init: Tensor, max_ite
     p = torch.from_numpy(pixel).to(p_init.dtype).reshape(B, P, 2)
     return (p, torch.from_numpy(nearest).reshape(B, P, 2),
             torch.from_numpy(cost < convergence_tol).reshape(B, P))
+
+
+def _ray_image(X: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover (compiled)
+    B, H, W, _ = X.shape
+    for b in prange(B):
+        for y in range(H):
+            for x in range(W):
+                x0, x1, x2 = X[b, y, x, 0], X[b, y, x, 1], X[b, y, x, 2]
+                norm = max(np.sqrt(x2 * x2 + (x1 * x1 + x0 * x0)), 1e-12)
+                out[b, y, x, 0], out[b, y, x, 1], out[b, y, x, 2] = x0 / norm, x1 / norm, x2 / norm
+        for y in range(H):  # central differences, one-sided at the border (torch.gradient)
+            below, above = max(y - 1, 0), min(y + 1, H - 1)
+            v_scale = 1.0 if y == 0 or y == H - 1 else 0.5  # exact: halving is a division
+            for x in range(W):
+                left, right = max(x - 1, 0), min(x + 1, W - 1)
+                u_scale = 1.0 if x == 0 or x == W - 1 else 0.5
+                for c in range(3):
+                    out[b, y, x, 3 + c] = (out[b, y, right, c] - out[b, y, left, c]) * u_scale
+                    out[b, y, x, 6 + c] = (out[b, above, x, c] - out[b, below, x, c]) * v_scale
+
+
+def ray_image_with_gradients(X: Tensor) -> Tensor:
+    """:func:`como3r.frontend.matching.ray_image_with_gradients` of a CPU pointmap ``X``
+    ``(B, H, W, 3)`` -> ``(B, H, W, 9)`` in one pass (PyTorch made 6 temporaries of the image):
+    the norm summed as PyTorch's float32 norm does here, within an ulp of it."""
+    image = X.detach().contiguous().numpy()
+    out = np.empty((*image.shape[:3], 9), dtype=image.dtype)
+    compiled(_ray_image, fastmath={"contract"})(image, out)
+    return torch.from_numpy(out)
+
+
+def _match_validity(X_search: np.ndarray, width: int, queries: np.ndarray, pixel: np.ndarray,
+                    converged: np.ndarray, ratio: float, idx: np.ndarray,
+                    valid: np.ndarray) -> None:  # pragma: no cover (compiled)
+    B, P = converged.shape
+    for b in prange(B):
+        for m in range(P):
+            n = pixel[b, m, 1] * width + pixel[b, m, 0]
+            idx[b, m] = n
+            q0, q1, q2 = queries[b, m, 0], queries[b, m, 1], queries[b, m, 2]
+            g0, g1, g2 = X_search[b, n, 0] - q0, X_search[b, n, 1] - q1, X_search[b, n, 2] - q2
+            gap = np.sqrt(g2 * g2 + (g1 * g1 + g0 * g0))
+            reach = ratio * np.sqrt(q2 * q2 + (q1 * q1 + q0 * q0))
+            finite = np.isfinite(q0) and np.isfinite(q1) and np.isfinite(q2)
+            valid[b, m] = converged[b, m] and gap < reach and finite
+
+
+def match_validity(X_search: Tensor, queries: Tensor, pixel: Tensor, converged: Tensor,
+                   occlusion_ratio: float) -> tuple[Tensor, Tensor]:
+    """The end of :func:`como3r.frontend.matching.match_pointmaps` on CPU tensors, one pass:
+    ``(idx (B, P) int64, valid (B, P) bool)``, a match valid when converged, its query finite
+    and not occluded (``||X_search[idx] - query|| < occlusion_ratio * ||query||``).
+    ``X_search`` ``(B, H, W, 3)``, ``queries`` ``(B, P, 3)``, ``pixel`` ``(B, P, 2)``."""
+    B, H, W, _ = X_search.shape
+    P = queries.shape[1]
+    points = X_search.detach().reshape(B, H * W, 3).contiguous().numpy()
+    idx, valid = np.empty((B, P), dtype=np.int64), np.empty((B, P), dtype=np.bool_)
+    compiled(_match_validity, fastmath={"contract"})(
+        points, W, queries.detach().to(X_search.dtype).contiguous().numpy(),
+        pixel.detach().contiguous().numpy(), converged.detach().contiguous().numpy(),
+        np.float32(occlusion_ratio) if points.dtype == np.float32 else occlusion_ratio, idx,
+        valid)
+    return torch.from_numpy(idx), torch.from_numpy(valid)

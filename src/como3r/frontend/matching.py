@@ -13,7 +13,9 @@ the two ends are further apart than ``occlusion_ratio`` times the query's range.
 is decided on the final, refined match; only matches that can be valid (the projection
 converged on a finite query point) are refined, the others keep their projected pixel.
 
-Everything is vectorised PyTorch over a batch of pairs and runs on CPU and GPU.
+Everything is vectorised PyTorch over a batch of pairs and runs on CPU and GPU; on CPU the
+per-pixel work (ray image, projection, window search, validity) runs as compiled loops
+(:mod:`como3r.frontend.cpu_kernels`).
 """
 
 from __future__ import annotations
@@ -70,6 +72,8 @@ def ray_image_with_gradients(X: Tensor) -> Tensor:
         ``(B, H, W, 9)``: ray ``psi(X)``, ``d ray / du``, ``d ray / dv`` (central
         differences, one-sided at the border).
     """
+    if X.device.type == "cpu" and not X.requires_grad:  # one compiled pass
+        return cpu_kernels.ray_image_with_gradients(X)
     rays = psi(X)
     grad_u = torch.gradient(rays, dim=2)[0]
     grad_v = torch.gradient(rays, dim=1)[0]
@@ -271,7 +275,7 @@ def refine_with_descriptors(
 def _refine_vectorised(D_search: Tensor, D_query: Tensor, pixel: Tensor, radius: int,
                        dilation_max: int, active: Tensor | None) -> Tensor:
     """:func:`refine_with_descriptors` as batched PyTorch (any device; on CPU the compiled
-    loop of :mod:`como3r.frontend.cpu_kernels` is 3x faster)."""
+    loop of :mod:`como3r.frontend.cpu_kernels` is 9x faster)."""
     B, H, W, d = D_search.shape
     P = pixel.shape[1]
     margin = radius * dilation_max
@@ -371,6 +375,10 @@ def match_pointmaps(
             pixels_at(config.descriptor_radius, max(H, W)),
             pixels_at(config.descriptor_dilation_max, max(H, W)), active=converged & finite,
         )
+    if X_search.device.type == "cpu":  # the same test in one compiled pass
+        idx, valid = cpu_kernels.match_validity(X_search, queries, pixel, converged,
+                                                config.occlusion_ratio)
+        return Matches(idx=idx, pixel=pixel, valid=valid)
     idx = pixel[..., 1] * W + pixel[..., 0]
     matched_points = torch.gather(X_search.reshape(B, H * W, 3), 1, idx[..., None].expand(-1, -1, 3))
     # occlusion gap relative to the query's range: the same test at every scene scale
