@@ -176,6 +176,27 @@ def _in_camera_i(c: tuple, ok: bool, X0: float, X1: float, X2: float, p_u: float
     return x0, x1, x2, inv_z, u, v, e_u, e_v, ratio, s
 
 
+@njit(cache=True, error_model="numpy", fastmath=_FAST_SUMS)
+def _calibrated_block(sR, t, K, X_j, p_i, z_i, q, valid, edge, first,
+                      n):  # pragma: no cover (compiled)
+    """Matches ``first`` to ``first + n`` of ``edge`` (C-Eq. 17): their inputs as flat 1-D
+    views (numba indexes a 3-D array by its runtime shape, which LLVM vectorises only for a
+    unit stride), the edge's :func:`_edge_constants` and the log-depth residuals
+    ``log(z / z_i)`` ``(n,)``. Called, not inlined: numba's parallel analysis does not take
+    the inlined arrays."""
+    m0 = edge * q.shape[1] + first
+    X = X_j.reshape(-1)[3 * m0:3 * (m0 + n)]
+    p = p_i.reshape(-1)[2 * m0:2 * (m0 + n)]
+    z, qs, ok = z_i.reshape(-1)[m0:m0 + n], q.reshape(-1)[m0:m0 + n], valid.reshape(-1)[m0:m0 + n]
+    c = _edge_constants(sR, t, K, edge)
+    ratios, log_ratio = np.empty(n), np.empty(n)
+    for a in range(n):
+        ratios[a] = _in_camera_i(c, ok[a], X[3 * a], X[3 * a + 1], X[3 * a + 2], p[2 * a],
+                                 p[2 * a + 1], z[a], qs[a])[8]
+    _log(ratios, log_ratio, n)
+    return X, p, z, qs, ok, c, log_ratio
+
+
 def _ray_range_blocks(sR, t, X_i, X_j, q, valid, inv_sigma, k, block,
                       out):  # pragma: no cover (compiled)
     E, P = q.shape
@@ -208,22 +229,13 @@ def _calibrated_blocks(sR, t, K, X_j, p_i, z_i, q, valid, inv_sigma, k, block,
                        out):  # pragma: no cover (compiled)
     E, P = q.shape
     blocks = (P + block - 1) // block
-    X_all, p_all, z_all = X_j.reshape(-1), p_i.reshape(-1), z_i.reshape(-1)
-    q_all, valid_all = q.reshape(-1), valid.reshape(-1)
     for task in prange(E * blocks):
         edge, first = task // blocks, (task % blocks) * block
         n = min(block, P - first)
-        m0 = edge * P + first  # the block's matches as flat 1-D views: their loops vectorise
-        X, p, z = X_all[3 * m0:3 * (m0 + n)], p_all[2 * m0:2 * (m0 + n)], z_all[m0:m0 + n]
-        qs, ok = q_all[m0:m0 + n], valid_all[m0:m0 + n]
-        c = _edge_constants(sR, t, K, edge)
+        X, p, z, qs, ok, c, log_ratio = _calibrated_block(sR, t, K, X_j, p_i, z_i, q, valid,
+                                                          edge, first, n)
         fx, skew, cx, fy, cy = c[12:]
         info_u, info_v, info_z = inv_sigma[edge, 0], inv_sigma[edge, 1], inv_sigma[edge, 2]
-        ratios, log_ratio = np.empty(n), np.empty(n)
-        for a in range(n):
-            ratios[a] = _in_camera_i(c, ok[a], X[3 * a], X[3 * a + 1], X[3 * a + 2], p[2 * a],
-                                     p[2 * a + 1], z[a], qs[a])[8]
-        _log(ratios, log_ratio, n)  # C-Eq. 17's third residual, log(z / z_i)
         # Each component's Jacobian row [j, x cross j, dz] (C-Sec. A.5) scaled by the square
         # root of its whitened Huber weight w: H += row row^T, g += (w e) row. Summed over
         # the three components, H has 25 entries that can be non-zero (upper triangle)
@@ -311,21 +323,12 @@ def _calibrated_cost(sR, t, K, X_j, p_i, z_i, q, valid, inv_sigma, k, block,
                      out):  # pragma: no cover (compiled)
     E, P = q.shape
     blocks = (P + block - 1) // block
-    X_all, p_all, z_all = X_j.reshape(-1), p_i.reshape(-1), z_i.reshape(-1)
-    q_all, valid_all = q.reshape(-1), valid.reshape(-1)
     for task in prange(E * blocks):
         edge, first = task // blocks, (task % blocks) * block
         n = min(block, P - first)
-        m0 = edge * P + first
-        X, p, z = X_all[3 * m0:3 * (m0 + n)], p_all[2 * m0:2 * (m0 + n)], z_all[m0:m0 + n]
-        qs, ok = q_all[m0:m0 + n], valid_all[m0:m0 + n]
-        c = _edge_constants(sR, t, K, edge)
+        X, p, z, qs, ok, c, log_ratio = _calibrated_block(sR, t, K, X_j, p_i, z_i, q, valid,
+                                                          edge, first, n)
         info_u, info_v, info_z = inv_sigma[edge, 0], inv_sigma[edge, 1], inv_sigma[edge, 2]
-        ratios, log_ratio = np.empty(n), np.empty(n)
-        for a in range(n):
-            ratios[a] = _in_camera_i(c, ok[a], X[3 * a], X[3 * a + 1], X[3 * a + 2], p[2 * a],
-                                     p[2 * a + 1], z[a], qs[a])[8]
-        _log(ratios, log_ratio, n)  # C-Eq. 17's third residual, log(z / z_i)
         total = 0.0
         for a in range(n):
             _, _, _, _, _, _, e_u, e_v, _, s = _in_camera_i(
