@@ -91,3 +91,16 @@ def test_conv3x3_transform_follows_new_weights():
         conv.load_state_dict({"weight": torch.randn(4, 4, 3, 3), "bias": torch.zeros(4)})
         out = conv2d(conv, x)
     assert _relative(out, _reference(x, conv.weight, conv.bias, None, False)) < 1e-5
+
+
+def test_zero_padding_does_not_depend_on_what_memory_held():
+    """The padded input is allocated uninitialised: its border must be written, not assumed
+    zero (freed NaN-filled blocks of the same size are what the allocator hands back)."""
+    x = torch.randn(1, 8, 8, 12).contiguous(memory_format=torch.channels_last)
+    weight = torch.randn(5, 8, 3, 3)
+    for _ in range(3):
+        poison = torch.full((1, 10, 14, 8), float("nan"))
+        del poison
+    out = winograd.winograd_conv3x3(x, winograd.filter_transform(weight), None)
+    assert torch.isfinite(out).all()
+    assert _relative(out, _reference(x, weight, None, None, False)) < 1e-5

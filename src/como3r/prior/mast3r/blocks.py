@@ -56,9 +56,15 @@ def _linear(x: Tensor, weight: Tensor, bias: Tensor, gelu: bool,
         # attribute "gelu" with algorithm "none" is the erf form
         activation, algorithm = ("gelu", "none") if gelu else ("none", "")
         y = torch.ops.mkldnn._linear_pointwise(x, weight, bias, activation, [], algorithm)
-    else:
-        y = F.linear(x, weight, bias)
-        y = F.gelu(y) if gelu else y
+        return y if residual is None else residual + y
+    return _plain_linear(x, weight, bias, gelu, residual)
+
+
+def _plain_linear(x: Tensor, weight: Tensor, bias: Tensor, gelu: bool,
+                  residual: Tensor | None) -> Tensor:
+    """``gelu?(F.linear(x, W, b)) (+ residual)``: any device, dtype, autocast or autograd."""
+    y = F.linear(x, weight, bias)
+    y = F.gelu(y) if gelu else y
     return y if residual is None else residual + y
 
 
@@ -86,9 +92,8 @@ class Linear(nn.Linear):
         weight, bias, device = self.weight, self.bias, x.device.type
         if torch.is_autocast_enabled(device):
             if self.low_weight is None or self.low_weight.dtype != torch.get_autocast_dtype(device):
-                y = F.linear(x, weight, bias)  # autocast casts the weights on every call
-                y = F.gelu(y) if gelu else y
-                return y if residual is None else residual + y
+                # autocast casts the weights on every call
+                return _plain_linear(x, weight, bias, gelu, residual)
             weight, bias = self.low_weight, self.low_bias
             x = x.to(weight.dtype)
         return _linear(x, weight, bias, gelu, residual)

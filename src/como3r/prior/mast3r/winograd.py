@@ -135,11 +135,11 @@ def _output_tiles(m: np.ndarray, bias: np.ndarray, add: np.ndarray, relu: bool, 
 def winograd_conv3x3(
     x: Tensor, U: Tensor, bias: Tensor | None, add: Tensor | None = None, relu: bool = False
 ) -> Tensor:
-    """3x3 convolution, stride 1, zero padding 1, by Winograd F(m x m, 3x3), float32 on CPU.
+    """3x3 convolution, stride 1, zero padding 1, by Winograd F(4x4, 3x3), float32 on CPU.
 
     Args:
-        x: ``(B, C_in, H, W)`` float32, H and W multiples of ``m``, preferably channels-last.
-        U: ``(a * a, C_out, C_in)`` from :func:`filter_transform` (``a = m + 2``).
+        x: ``(B, C_in, H, W)`` float32, H and W multiples of 4, preferably channels-last.
+        U: ``(36, C_out, C_in)`` from :func:`filter_transform`.
         bias: ``(C_out,)`` or None.
         add: ``(B, C_out, H, W)`` added after the bias, or None.
         relu: apply ReLU last.
@@ -148,30 +148,32 @@ def winograd_conv3x3(
         ``(B, C_out, H, W)``, channels-last.
     """
     batch, channels, height, width = x.shape
-    size, tile = SIZE, TILE
-    if height % tile or width % tile:
+    if height % TILE or width % TILE:
         raise ValueError(f"Winograd F(4x4, 3x3) needs H and W multiples of 4, got {height}x{width}")
     out_channels = U.shape[1]
-    width_tiles = width // tile
-    padded = x.new_zeros(batch, height + 2, width + 2, channels)
+    width_tiles = width // TILE
+    # the input with a zero border, written once: the interior copied, the border zeroed
+    padded = x.new_empty(batch, height + 2, width + 2, channels)
     padded[:, 1:-1, 1:-1] = x.permute(0, 2, 3, 1)
+    for border in (padded[:, 0], padded[:, -1], padded[:, :, 0], padded[:, :, -1]):
+        border.zero_()
     out = x.new_empty(batch, height, width, out_channels)
     add_nhwc = None if add is None else add.permute(0, 2, 3, 1).contiguous()
     bias_np = (bias if bias is not None else x.new_zeros(out_channels)).detach().numpy()
     band = max(1, BAND_ELEMENTS // (width_tiles * max(channels, out_channels)))
-    V = x.new_empty(size * size, band, width_tiles, channels)
-    M = x.new_empty(size * size, band * width_tiles, out_channels)
+    V = x.new_empty(SIZE * SIZE, band, width_tiles, channels)
+    M = x.new_empty(SIZE * SIZE, band * width_tiles, out_channels)
     inputs, outputs = compiled(_input_tiles), compiled(_output_tiles)
     none = np.zeros((0, 0, 0), np.float32)
     for b in range(batch):
         padded_np, out_np = padded[b].numpy(), out[b].numpy()
         add_np = none if add_nhwc is None else add_nhwc[b].numpy()
-        for t0 in range(0, height // tile, band):
-            n = min(band, height // tile - t0)
+        for t0 in range(0, height // TILE, band):
+            n = min(band, height // TILE - t0)
             v = V[:, :n]
             inputs(padded_np, t0, v.numpy())
             m = M[:, : n * width_tiles]
-            torch.bmm(v.reshape(size * size, -1, channels), U.transpose(1, 2), out=m)
+            torch.bmm(v.reshape(SIZE * SIZE, -1, channels), U.transpose(1, 2), out=m)
             outputs(m.view(-1, n, width_tiles, out_channels).numpy(), bias_np, add_np, relu, t0,
                     out_np)
     return out.permute(0, 3, 1, 2)
