@@ -18,7 +18,7 @@ from como3r.runtime import codec
 from como3r.runtime.transport_zenoh import ZenohOptions, open_session
 from como3r.runtime.zenoh_robot import RobotKeys, ZenohRobotLink
 
-pytest.importorskip("zenoh")
+zenoh = pytest.importorskip("zenoh")
 
 #: robot 0 is in range until 1 s, robot 1 until 2 s
 SCHEDULE = Schedule({0: [(0.0, 1.0)], 1: [(0.0, 2.0)]})
@@ -108,11 +108,16 @@ def test_invalid_messages_are_logged_and_dropped(network, caplog):
     links = [_link(first, keys, 0), _link(second, keys, 1)]
     _meet(links)
     to_robot_0 = keys.messages(0, 1)
-    second.put(to_robot_0, b"\x80\x04not msgpack")
-    second.put(to_robot_0, codec.encode(_request(0, 0, 0.5)))  # names robot 0 as sender
-    second.put(keys.messages(0, 5), codec.encode(_request(5, 0, 0.5)))  # no robot 5
-    second.put(to_robot_0, np.zeros(MAX_BYTES + 1, np.uint8).tobytes())
-    second.put(to_robot_0, codec.encode(_request(1, 0, 0.5)))
+    for key, payload in [
+        (to_robot_0, b"\x80\x04not msgpack"),
+        (to_robot_0, codec.encode(_request(0, 0, 0.5))),  # names robot 0 as sender
+        (keys.messages(0, 5), codec.encode(_request(5, 0, 0.5))),  # no robot 5
+        (to_robot_0, np.zeros(MAX_BYTES + 1, np.uint8).tobytes()),
+        (to_robot_0, codec.encode(_request(1, 0, 0.5))),
+    ]:
+        # BLOCK as the transport does: the default (DROP) loses puts behind the large one
+        # when the machine is busy
+        second.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
     assert links[0].receive(30.0) == _request(1, 0, 0.5)
     assert links[0].traffic.invalid == 4
     assert "exceeds the cap" in caplog.text and "malformed msgpack" in caplog.text
