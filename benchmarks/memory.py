@@ -3,7 +3,7 @@ session store and without (issue 14, bounded memory; a script, not a test).
 
 One agent on a long synthetic loop runs in the default multi-process runtime (``como3r
 run``): the coordinator in the measuring process, the agent in its own. Every ``--every``
-processed frames both processes' resident set size (``VmRSS``) and the coordinator's peak
+processed frames both processes' resident set size (``VmRSS``) and peak
 (``VmHWM``) are read from ``/proc`` (Linux only), with the keyframes the coordinator holds;
 the last row is the end of the run (terminal refinement and outputs included). Each
 ``--resident`` value (``session.resident_keyframes``: the keyframes per agent kept whole in
@@ -94,10 +94,12 @@ def measure(agent: Path, out: Path, resident: int, every: int, long_side: int | 
 
     def sample(frames: int, keyframes: int) -> None:
         own = _status("self")
-        agents = sum(_status(pid)["VmRSS"] for pid in _agent_pids())
+        agents = [_status(pid) for pid in _agent_pids()]
         print(json.dumps({"frames": frames, "keyframes": keyframes,
                           "coordinator_rss": own["VmRSS"], "coordinator_peak": own["VmHWM"],
-                          "agent_rss": agents, "seconds": time.perf_counter() - start}),
+                          "agent_rss": sum(a["VmRSS"] for a in agents),
+                          "agent_peak": sum(a["VmHWM"] for a in agents),
+                          "seconds": time.perf_counter() - start}),
               flush=True)
 
     def progress(event: object) -> None:
@@ -135,7 +137,7 @@ def main() -> None:
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
           f"{args.agent}; RSS in MB")
     print(f"{'resident':>9} {'frames':>6} {'keyframes':>9} {'coord RSS':>9} {'coord peak':>10} "
-          f"{'agent RSS':>9} {'seconds':>8}")
+          f"{'agent RSS':>9} {'agent peak':>10} {'seconds':>8}")
     for resident in args.resident:
         command = [sys.executable, __file__, "--agent", str(args.agent), "--out",
                    str(args.out), "--every", str(args.every), "--one", str(resident)]
@@ -146,7 +148,8 @@ def main() -> None:
                 row = json.loads(line)
                 print(f"{resident:>9} {row['frames']:>6} {row['keyframes']:>9} "
                       f"{row['coordinator_rss']:>9.0f} {row['coordinator_peak']:>10.0f} "
-                      f"{row['agent_rss']:>9.0f} {row['seconds']:>8.0f}", flush=True)
+                      f"{row['agent_rss']:>9.0f} {row['agent_peak']:>10.0f} "
+                      f"{row['seconds']:>8.0f}", flush=True)
         if run.returncode:
             raise SystemExit(f"the run with --resident {resident} failed")
 

@@ -146,6 +146,13 @@ class LocalSolveConfig:
     tikhonov_retries: int = 6
     lm_lambda: float = 0.0
     min_match_fraction: float = 0.1  # MASt3R-SLAM: intra-agent loop-closure acceptance
+    # not in the paper (bounded memory, issue 14): the solve keeps every edge, but an edge
+    # with both keyframes older than the newest dense_keyframes enters by the quadratic model
+    # of its dense energy in its relative pose (optim.factors.QuadraticEdges), made again
+    # when an endpoint's pointmap changes or its relative pose moves more than
+    # relinearize_tol (radians, nepers, keyframe i's median range)
+    dense_keyframes: int = 8
+    relinearize_tol: float = 1e-3
 
 
 @dataclass(frozen=True)
@@ -392,7 +399,7 @@ _POSITIVE = (
     "tracking.sigma_ray", "tracking.sigma_dist", "tracking.sigma_pixel", "tracking.sigma_depth",
     "tracking.huber_k", "tracking.rel_cost_tol", "tracking.step_tol", "tracking.lambda_max",
     "tracking.inlier_angle_deg",
-    "local_solve.step_tol",
+    "local_solve.step_tol", "local_solve.relinearize_tol",
     "retrieval.alpha",
     "verification.max_residual_ratio", "gauge.focal_search",
     "global_ba.cleanup_stop_translation", "global_ba.step_tol",
@@ -415,7 +422,7 @@ _AT_LEAST_ONE = (
     "input.subsample",
     "matching.max_iters", "matching.descriptor_dilation_max",
     "tracking.max_iters",
-    "local_solve.max_iters",
+    "local_solve.max_iters", "local_solve.dense_keyframes",
     "retrieval.codebook_size", "retrieval.multiple_assignment_build",
     "retrieval.multiple_assignment_query", "retrieval.k_nn",
     "gauge.min_correspondences", "gauge.min_consistent_edges",

@@ -41,7 +41,7 @@ from torch import Tensor
 
 from como3r.config import Config
 from como3r.frontend.calibration import estimate_intrinsics, refine_focal
-from como3r.frontend.graph import Edge, build_factors
+from como3r.frontend.graph import Edge, QuadraticEdgeCache, build_factors
 from como3r.frontend.keyframes import (
     Keyframe,
     KeyframeStore,
@@ -63,6 +63,7 @@ from como3r.errors import GeometryError, InputError
 from como3r.geometry.camera import lock_to_rays, to_focal
 from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse
 from como3r.geometry.units import scene_depth
+from como3r.optim.factors import Factor
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.values import PoseValues
 from como3r.prior.base import Encoding, Prior, View
@@ -157,6 +158,7 @@ class AgentFrontend:
         self.paging = AgentPaging(session.resident_keyframes,
                                   Path(session.spill_dir) if session.spill_dir else None)
         self.edges: list[Edge] = []
+        self._quadratic = QuadraticEdgeCache()  # models of the edges far from the newest
         self.records: list[FrameRecord] = []
         self.stats = FrontendStats()
         self.timer = StageTimer(self.stats.stage_seconds)
@@ -416,11 +418,9 @@ class AgentFrontend:
             return
         solve = self.config.local_solve
         with self.timer.stage("local_solve"):
-            # every edge is solved: paged-out pointmaps are read back for this solve only
-            points = self.paging.solve_points(self.keyframes.__getitem__)
-            factors = build_factors(self.edges, points, lambda k: k, self.config.tracking)
             values = PoseValues.from_poses(self.keyframes.poses(),
                                            num_pinned=solve.pinned_keyframes)
+            factors = self._solve_factors()
             # the newest keyframe's depth is the step tolerance's length (O(1) per solve)
             last = self.keyframes.last
             solved, report = gauss_newton_irls(
@@ -431,6 +431,26 @@ class AgentFrontend:
             logger.warning("agent %d: local solve diverged; poses kept", self.agent)
             return
         self.keyframes.set_poses(solved.poses)
+
+    def _solve_factors(self) -> list[Factor]:
+        """Every edge of the graph (C-Sec. 3.3): dense factors for those touching the newest
+        ``local_solve.dense_keyframes`` keyframes, quadratic models for the others
+        (:class:`~.graph.QuadraticEdgeCache`), so a solve's memory does not grow with the
+        graph. Paged-out pointmaps are read back for the solve only."""
+        solve = self.config.local_solve
+        first_dense = len(self.keyframes) - solve.dense_keyframes
+        old = [n for n, e in enumerate(self.edges) if max(e.i, e.j) < first_dense]
+        dense = [e for e in self.edges if max(e.i, e.j) >= first_dense]
+        factors: list[Factor] = []
+        if dense:
+            points = self.paging.solve_points(self.keyframes.__getitem__)
+            factors.append(build_factors(dense, points, lambda k: k, self.config.tracking))
+        if old:
+            factors.append(self._quadratic.factor(
+                self.edges, old, lambda: self.paging.solve_points(self.keyframes.__getitem__),
+                lambda k: self.keyframes[k].version("pointmaps"), self.config.tracking,
+                solve.relinearize_tol))
+        return factors
 
     def _settle_camera_when_due(self) -> None:
         if len(self.keyframes) >= self.config.tracking.self_calibration_keyframes:

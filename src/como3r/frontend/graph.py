@@ -5,6 +5,9 @@ confidences: :class:`~como3r.frontend.pairs.DirectedMatches`); :func:`build_fact
 turns a list of edges into one batch of factors (ray-and-range, or pixel and log-depth
 when calibrated) on the keyframes' current canonical pointmaps, padding edges of different pixel counts, so the per-agent local solve
 and the coordinator's global bundle adjustment build their problems with the same code.
+An agent's local solve takes its old edges (both keyframes outside the newest few) as the
+quadratic models a :class:`QuadraticEdgeCache` keeps of them, so its memory and time do not
+grow with the graph (issue 14, bounded memory).
 """
 
 from __future__ import annotations
@@ -18,8 +21,12 @@ from torch import Tensor
 from como3r.config import TrackingConfig
 from como3r.frontend.pairs import DirectedMatches, gather_points
 from como3r.geometry.camera import project
-from como3r.geometry.units import median_point_range
-from como3r.optim.factors import CalibratedFactors, RayRangeFactors
+from como3r.geometry.units import median_point_range, median_range
+from como3r.optim.factors import CalibratedFactors, QuadraticEdges, RayRangeFactors
+from como3r.optim.linear import EdgeBlocks
+
+#: edges linearized at once when their quadratic models are made (bounds the dense factors)
+QUADRATIC_CHUNK_EDGES = 64
 
 
 @dataclass(frozen=True)
@@ -120,3 +127,125 @@ def _pad(x: Tensor, pad: int) -> Tensor:
     if pad == 0:
         return x
     return torch.cat([x, x.new_zeros((pad, *x.shape[1:]))])
+
+
+class QuadraticEdgeCache:
+    """Quadratic models (:class:`~como3r.optim.factors.QuadraticEdges`) of a graph's old
+    edges, kept between solves, so a solve over every edge holds dense factors only for the
+    edges near the newest keyframes (bounded memory, issue 14).
+
+    A model is made again, from the edge's dense factors, whenever it is linearized while
+    either endpoint's pointmap changed since it was made (``version``), or while the edge's
+    relative pose is more than ``tol`` from the model's: rotation and log-scale in radians
+    and nepers, translation in units of keyframe i's median range. With ``tol`` -> 0 a
+    solve is the all-dense one. Rows are indexed by the edge's position in the graph's
+    append-only edge list.
+    """
+
+    def __init__(self) -> None:
+        self._T0 = torch.zeros(0, 8, dtype=torch.float64)
+        self._H = torch.zeros(0, 7, 7, dtype=torch.float64)
+        self._g = torch.zeros(0, 7, dtype=torch.float64)
+        self._c = torch.zeros(0, dtype=torch.float64)
+        self._length = torch.ones(0, dtype=torch.float64)  # keyframe i's median range
+        self._versions = torch.full((0, 2), -1, dtype=torch.int64)  # -1: no model
+        self.remade = 0  # models made, over the cache's life
+
+    def factor(self, edges: Sequence[Edge], old: Sequence[int],
+               points: Callable[[], Callable[[int], Pointmap]], version: Callable[[int], int],
+               tracking: TrackingConfig, tol: float) -> ModeledEdges:
+        """The edges ``old`` (positions in ``edges``) as one factor of a solve whose pose
+        index is the keyframe key.
+
+        Args:
+            edges: the graph's edges.
+            old: positions of the edges to model.
+            points: makes a fresh reader of what a solve reads of a keyframe (one per chunk
+                of edges linearized, so read-backs are let go chunk by chunk).
+            version: the current version of a keyframe's pointmaps.
+            tracking: noise model and Huber breakpoint (C-Eq. 7-8).
+            tol: relinearization tolerance (class docstring).
+        """
+        self._grow(len(edges))
+        ij = torch.tensor([(edges[n].i, edges[n].j) for n in old], dtype=torch.int64)
+        versions = torch.tensor([(version(i), version(j)) for i, j in ij.tolist()],
+                                dtype=torch.int64)
+        return ModeledEdges(self, edges, torch.tensor(list(old), dtype=torch.int64),
+                            ij.reshape(-1, 2), versions.reshape(-1, 2), points, tracking, tol)
+
+    def models(self, factor: ModeledEdges, poses: Tensor) -> QuadraticEdges:
+        """The models of ``factor``'s edges at ``poses`` ``(N, 8)``, stale ones made again."""
+        rows = factor.rows
+        stale = (self._versions[rows] != factor.versions).any(1)
+        moved = self._model(rows, factor.ij).motion(poses).abs()
+        moved[:, :3] /= self._length[rows, None]
+        stale |= (moved > factor.tol).any(1)
+        for start in range(0, int(stale.sum()), QUADRATIC_CHUNK_EDGES):
+            chunk = rows[stale][start:start + QUADRATIC_CHUNK_EDGES]
+            self._remake(chunk, [factor.edges[n] for n in chunk.tolist()], factor.points(),
+                         poses, factor.tracking)
+        self._versions[rows] = factor.versions
+        return self._model(rows, factor.ij)
+
+    def _model(self, rows: Tensor, ij: Tensor) -> QuadraticEdges:
+        return QuadraticEdges(ij[:, 0], ij[:, 1], self._T0[rows], self._H[rows],
+                              self._g[rows], self._c[rows])
+
+    def _remake(self, rows: Tensor, edges: list[Edge], keyframe: Callable[[int], Pointmap],
+                poses: Tensor, tracking: TrackingConfig) -> None:
+        model = build_factors(edges, keyframe, lambda k: k, tracking).quadratic_model(poses)
+        self._T0[rows], self._H[rows], self._g[rows], self._c[rows] = (
+            model.T0, model.H, model.g, model.c)
+        self._length[rows] = torch.stack(
+            [median_range(keyframe(e.i).X_hat) for e in edges]).to(torch.float64)
+        self.remade += len(edges)
+
+    def _grow(self, size: int) -> None:
+        """Room for ``size`` rows (capacity doubles)."""
+        have = self._T0.shape[0]
+        if size <= have:
+            return
+        extra = max(size, 2 * have) - have
+        self._T0 = torch.cat([self._T0, self._T0.new_zeros(extra, 8)])
+        self._T0[have:, 6:] = 1.0  # identity poses, so an unused row's motion is finite
+        self._H = torch.cat([self._H, self._H.new_zeros(extra, 7, 7)])
+        self._g = torch.cat([self._g, self._g.new_zeros(extra, 7)])
+        self._c = torch.cat([self._c, self._c.new_zeros(extra)])
+        self._length = torch.cat([self._length, self._length.new_ones(extra)])
+        self._versions = torch.cat([self._versions, self._versions.new_full((extra, 2), -1)])
+
+
+@dataclass(frozen=True, eq=False)
+class ModeledEdges:
+    """Old edges entering a solve by their quadratic models (a Factor), made again where
+    stale at every linearization (:class:`QuadraticEdgeCache`).
+
+    Attributes:
+        cache: where the models are kept.
+        edges: the graph's edges; rows: ``(E,)`` positions of the modeled ones.
+        ij: ``(E, 2)`` their endpoints (pose indices); versions: ``(E, 2)`` the endpoints'
+            pointmap versions.
+        points, tracking, tol: as in :meth:`QuadraticEdgeCache.factor`.
+    """
+
+    cache: QuadraticEdgeCache
+    edges: Sequence[Edge]
+    rows: Tensor
+    ij: Tensor
+    versions: Tensor
+    points: Callable[[], Callable[[int], Pointmap]]
+    tracking: TrackingConfig
+    tol: float
+
+    @property
+    def max_pose_index(self) -> int:
+        """The largest pose index any edge refers to."""
+        return int(self.ij.max()) if self.ij.numel() else -1
+
+    def linearize(self, poses: Tensor) -> EdgeBlocks:
+        """Per-edge Gauss-Newton blocks at ``poses`` ``(N, 8)``."""
+        return self.cache.models(self, poses).linearize(poses)
+
+    def cost(self, poses: Tensor) -> Tensor:
+        """The models' energy at ``poses`` ``(N, 8)``, a float64 scalar."""
+        return self.cache.models(self, poses).cost(poses)

@@ -76,6 +76,7 @@ class _Paged:
     def __set__(self, kf: PagedKeyframe, value: Any) -> None:
         kf._resident[self.name] = value
         kf._changed.add(self.group)
+        kf._versions[self.group] = kf._versions.get(self.group, 0) + 1
 
 
 class PagedKeyframe(Keyframe):
@@ -92,6 +93,7 @@ class PagedKeyframe(Keyframe):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         object.__setattr__(self, "_resident", {})
         object.__setattr__(self, "_changed", set())  # groups set since the last eviction
+        object.__setattr__(self, "_versions", {})  # per group: how many times it was set
         object.__setattr__(self, "_pages", None)
         object.__setattr__(self, "_key", -1)
         super().__init__(*args, **kwargs)
@@ -104,6 +106,11 @@ class PagedKeyframe(Keyframe):
     def resident(self, group: str) -> bool:
         """Whether some array of ``group`` is in memory (read back, or set)."""
         return any(name in self._resident for name in GROUPS[group])
+
+    def version(self, group: str) -> int:
+        """How many times some field of ``group`` was set (the pointmaps' version tells a
+        solve's cached linearizations they are stale)."""
+        return self._versions.get(group, 0)
 
     def changed(self) -> list[str]:
         """The groups some field of which was set since the last eviction (or creation)."""

@@ -26,7 +26,13 @@ import torch
 
 from como3r.config import TrackingConfig
 from como3r.errors import InputError
-from como3r.geometry.lie import sim3_act, sim3_adjoint, sim3_compose, sim3_inverse
+from como3r.geometry.lie import (
+    sim3_act,
+    sim3_adjoint,
+    sim3_compose,
+    sim3_inverse,
+    sim3_log,
+)
 from como3r.geometry.residuals import (
     calibrated_residual,
     huber_weight,
@@ -250,29 +256,37 @@ class RelativePoseFactors(ABC):
         ``rho`` is the Huber kernel with ``rho(r) = r^2/2`` inside the breakpoint, whose
         IRLS weight is exactly ``w(r) = rho'(r)/r = min(1, k/|r|)``.
         """
-        if self._runs_compiled(poses):
-            return sum((self._compiled_cost(self._relative_poses(poses, chunk)[1], chunk)
-                        for chunk in self._chunks(poses)),
-                       torch.zeros((), dtype=torch.float64))
-        total = torch.zeros((), dtype=torch.float64, device=poses.device)
+        return sum((self._slice_cost(poses, chunk) for chunk in self._chunks(poses)),
+                   torch.zeros((), dtype=torch.float64, device=poses.device))
+
+    def quadratic_model(self, poses: torch.Tensor) -> QuadraticEdges:
+        """Each edge's robust energy as a quadratic in its relative pose at ``poses``
+        ``(N, 8)``: the Gauss-Newton blocks of :meth:`linearize` before they are projected
+        onto the endpoints, and each edge's energy (see :class:`QuadraticEdges`)."""
+        H_rel, g_rel, T_ij = [], [], []
         for chunk in self._chunks(poses):
-            e, defined = self._error(self._relative_poses(poses, chunk)[1].to(self.q.dtype),
-                                     chunk)
-            r = (e * self._sqrt_info(chunk, defined)).abs()
-            k = self.huber_k
-            rho = torch.where(r <= k, 0.5 * r * r, k * (r - 0.5 * k))
-            total = total + rho.sum(dtype=torch.float64)  # per-match terms in the data dtype
-        return total
+            H, g, _ = self._relative_blocks(poses, chunk)
+            H_rel.append(H.to(torch.float64))
+            g_rel.append(g.to(torch.float64))
+            T_ij.append(self._relative_poses(poses, chunk)[1].to(torch.float64))
+        costs = torch.stack([self._slice_cost(poses, slice(k, k + 1))
+                             for k in range(self.num_edges)])
+        return QuadraticEdges(self.i, self.j, torch.cat(T_ij), torch.cat(H_rel),
+                              torch.cat(g_rel), costs.to(torch.float64))
+
+    def _slice_cost(self, poses: torch.Tensor, edges: slice) -> torch.Tensor:
+        """Robust energy of a slice of edges, a float64 scalar."""
+        if self._runs_compiled(poses):
+            return self._compiled_cost(self._relative_poses(poses, edges)[1], edges)
+        e, defined = self._error(self._relative_poses(poses, edges)[1].to(self.q.dtype), edges)
+        r = (e * self._sqrt_info(edges, defined)).abs()
+        k = self.huber_k
+        rho = torch.where(r <= k, 0.5 * r * r, k * (r - 0.5 * k))
+        return rho.sum(dtype=torch.float64)  # per-match terms in the data dtype
 
     def _linearize_chunk(self, poses: torch.Tensor, edges: slice) -> EdgeBlocks:
         H_rel, g_rel, T_WC_i = self._relative_blocks(poses, edges)
-        H_rel, g_rel = H_rel.to(T_WC_i.dtype), g_rel.to(T_WC_i.dtype)
-        Ad = sim3_adjoint(sim3_inverse(T_WC_i))
-        Ad_T = Ad.transpose(1, 2)
-        H_jj = Ad_T @ H_rel @ Ad
-        H_jj = 0.5 * (H_jj + H_jj.transpose(1, 2))  # exactly symmetric, also in float32
-        g_j = (Ad_T @ g_rel[..., None])[..., 0]
-        return EdgeBlocks(self.i[edges], self.j[edges], H_jj, H_jj, -H_jj, -g_j, g_j)
+        return endpoint_blocks(self.i[edges], self.j[edges], H_rel, g_rel, T_WC_i)
 
     def _relative_blocks(
         self, poses: torch.Tensor, edges: slice
@@ -320,6 +334,76 @@ class RelativePoseFactors(ABC):
                 f"{type(self).__name__}: an edge refers to pose {self.max_pose_index} but only "
                 f"{poses.shape[0]} poses are given"
             )
+
+
+def endpoint_blocks(i: torch.Tensor, j: torch.Tensor, H_rel: torch.Tensor, g_rel: torch.Tensor,
+                    T_WC_i: torch.Tensor) -> EdgeBlocks:
+    """Endpoint blocks of edges from their blocks in the tangent of ``T_ij`` (C-Eq. 11).
+
+    ``J_i = -J Ad`` and ``J_j = J Ad`` with ``Ad = Ad(T_WC_i^-1)``, constant over an edge's
+    matches, so ``H_jj = H_ii = Ad^T H Ad = -H_ij`` and ``g_j = Ad^T g = -g_i``.
+
+    Args:
+        i, j: ``(E,)`` pose indices.
+        H_rel: ``(E, 7, 7)``; g_rel: ``(E, 7)``: the blocks in the tangent of ``T_ij``.
+        T_WC_i: ``(E, 8)`` poses of the edges' i endpoints (their dtype is the blocks').
+    """
+    H_rel, g_rel = H_rel.to(T_WC_i.dtype), g_rel.to(T_WC_i.dtype)
+    Ad = sim3_adjoint(sim3_inverse(T_WC_i))
+    Ad_T = Ad.transpose(1, 2)
+    H_jj = Ad_T @ H_rel @ Ad
+    H_jj = 0.5 * (H_jj + H_jj.transpose(1, 2))  # exactly symmetric, also in float32
+    g_j = (Ad_T @ g_rel[..., None])[..., 0]
+    return EdgeBlocks(i, j, H_jj, H_jj, -H_jj, -g_j, g_j)
+
+
+class QuadraticEdges:
+    """Edges whose robust energy is a quadratic in their relative pose (a Factor).
+
+    Edge k was linearized at the relative pose ``T0_k``; at ``T_ij = Exp(delta) T0_k``
+    (left perturbation, C-Sec. 3.2) its energy is taken as
+    ``c_k + g_k^T delta + delta^T H_k delta / 2``, with the Gauss-Newton ``H_k = J^T W J``
+    and ``g_k = J^T W e`` of its dense residuals (C-Eq. 5-8) at ``T0_k``, and the IRLS
+    weights held at theirs. Its blocks at other poses are ``H_k`` and ``g_k + H_k delta``
+    in the tangent of ``T_ij`` (the left Jacobian of ``delta`` taken as the identity: exact
+    to first order in ``delta``), projected onto the endpoints as the dense edges' are.
+    An edge costs 65 floats whatever its matches.
+
+    Args:
+        i, j: ``(E,)`` pose indices.
+        T0: ``(E, 8)`` relative poses ``T_WC_i^-1 T_WC_j`` of the linearization.
+        H: ``(E, 7, 7)``; g: ``(E, 7)``; c: ``(E,)`` float64 energies at ``T0``.
+    """
+
+    def __init__(self, i: torch.Tensor, j: torch.Tensor, T0: torch.Tensor, H: torch.Tensor,
+                 g: torch.Tensor, c: torch.Tensor) -> None:
+        self.i = _edge_index(i, "i", "QuadraticEdges")
+        self.j = _edge_index(j, "j", "QuadraticEdges")
+        self.T0, self.H, self.g, self.c = T0, H, g, c
+        self._max_pose_index = int(torch.maximum(self.i, self.j).max()) if len(self.i) else -1
+
+    @property
+    def max_pose_index(self) -> int:
+        """The largest pose index any edge refers to (-1 for none)."""
+        return self._max_pose_index
+
+    def motion(self, poses: torch.Tensor) -> torch.Tensor:
+        """``delta`` ``(E, 7)`` = ``Log(T_ij T0^-1)`` at ``poses`` ``(N, 8)``, float64."""
+        poses = poses.to(torch.float64)
+        T_ij = sim3_compose(sim3_inverse(poses[self.i]), poses[self.j])
+        return sim3_log(sim3_compose(T_ij, sim3_inverse(self.T0)))
+
+    def linearize(self, poses: torch.Tensor) -> EdgeBlocks:
+        """Per-edge blocks at ``poses`` ``(N, 8)`` (see the class docstring)."""
+        delta = self.motion(poses)
+        g_rel = self.g + (self.H @ delta[..., None])[..., 0]
+        return endpoint_blocks(self.i, self.j, self.H, g_rel, poses[self.i])
+
+    def cost(self, poses: torch.Tensor) -> torch.Tensor:
+        """The quadratic energies' sum at ``poses`` ``(N, 8)``, a float64 scalar."""
+        delta = self.motion(poses)
+        quadratic = 0.5 * (delta[:, None, :] @ self.H @ delta[..., None])[:, 0, 0]
+        return (self.c + (self.g * delta).sum(-1) + quadratic).sum()
 
 
 class RayRangeFactors(RelativePoseFactors):
