@@ -14,8 +14,8 @@ from como3r.config import RetrievalConfig
 from como3r.data.agent import open_agent
 from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import make_view
-from como3r.decentralized.config import RegistrationConfig
 from como3r.decentralized.confidence import accept_loop, correspondence_ratio, loop_probability
+from como3r.decentralized.config import DecentralizedConfig, RegistrationConfig, check_config
 from como3r.decentralized.keyframes import frame_odometry, select_keyframes
 from como3r.decentralized.place_recognition import PlaceRecognizer, candidate_pairs
 from como3r.decentralized.registration import (
@@ -109,6 +109,40 @@ def test_ransac_similarity_gives_up_without_support():
     src = torch.randn(8, 3)
     assert ransac_similarity(src, src, RegistrationConfig(min_inliers=12),
                              generator(0)) is None
+
+
+def _room_points(count: int, gen: torch.Generator) -> torch.Tensor:
+    """``(count, 3)`` points a camera sees in a room: back wall at depth 6, side walls at
+    x = -3, 3 (depth 4-8), 4 high."""
+    u = torch.rand(count, 2, generator=gen) * 2 - 1
+    wall = torch.randint(0, 3, (count,), generator=gen)
+    x = torch.where(wall == 0, 3 * u[:, 0], torch.where(wall == 1, -3.0, 3.0))
+    z = torch.where(wall == 0, 6.0, 6 + 2 * u[:, 0])
+    return torch.stack([x, 2 * u[:, 1], z], dim=-1)
+
+
+def test_ransac_similarity_refuses_unrelated_matches_whatever_their_number():
+    # Chance support grows with the number of matches: the best of 256 hypotheses explains
+    # 16-38 of 3000 unrelated matches (44-48 of a real unrelated 512x384 pair's ~3000),
+    # above min_inliers, so the consensus test is also a fraction of the matches.
+    config = RegistrationConfig()
+    for count in (300, 3000):
+        gen = torch.Generator().manual_seed(count)
+        src, dst = _room_points(count, gen), _room_points(count, gen)
+        assert ransac_similarity(src, dst, config, generator(0, count)) is None
+    # The same 3000 matches with 40 % of them true are registered.
+    T = torch.cat([torch.tensor([0.4, 0.1, -0.3]), so3_exp(torch.tensor([0.05, 0.3, 0.0])),
+                   torch.tensor([0.8])]).double()
+    dst[:1200] = sim3_act(T, src[:1200].double()).float()
+    fit = ransac_similarity(src, dst, config, generator(0, "true"))
+    assert fit is not None
+    torch.testing.assert_close(fit[0], T, atol=1e-4, rtol=1e-4)
+    assert int(fit[1][:1200].sum()) == 1200 and int(fit[1][1200:].sum()) < 60
+
+
+def test_min_inlier_fraction_is_checked():
+    with pytest.raises(ConfigError, match="min_inlier_fraction"):
+        check_config(DecentralizedConfig(registration=RegistrationConfig(min_inlier_fraction=1.0)))
 
 
 def test_reciprocal_matches_find_the_permutation():

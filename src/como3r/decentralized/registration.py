@@ -5,7 +5,9 @@ candidate (I_i^alpha, I_j^beta) the encoding of I_j^beta travels to robot alpha,
 decodes the pair, matches the two views' descriptors (reciprocal nearest neighbours,
 :func:`reciprocal_matches`) and estimates the relative pose robustly from the matched 3-D
 points (:func:`ransac_similarity`: minimal 3-point similarities, then Umeyama on the
-inliers). Encodings are cached, so a keyframe in several candidates is encoded (and sent)
+inliers; a pose explaining fewer than :func:`required_inliers` of the matches is a failed
+registration, a test relative to the number of matches so that it holds at any image size).
+Encodings are cached, so a keyframe in several candidates is encoded (and sent)
 once; :class:`RegistrationStats` counts what a naive pipeline that encodes both images of
 every pair would have encoded.
 
@@ -16,6 +18,7 @@ units of view i's pointmap (the prior's scale, resolved later by F-Eq. 6-8).
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, field, fields
 from typing import Callable
@@ -148,10 +151,11 @@ def ransac_similarity(src: Tensor, dst: Tensor, config: RegistrationConfig,
 
     Returns:
         ``T (8,)`` float64 and the ``(M,)`` bool inlier mask, or None when fewer than
-        ``min_inliers`` correspondences support the best hypothesis.
+        :func:`required_inliers` correspondences support the best hypothesis.
     """
     count = src.shape[0]
-    if count < max(3, config.min_inliers):
+    needed = required_inliers(count, config)
+    if count < max(3, needed):
         return None
     src, dst = src.double(), dst.double()
     threshold = config.ransac_inlier_ratio * dst.norm(dim=-1)
@@ -163,7 +167,7 @@ def ransac_similarity(src: Tensor, dst: Tensor, config: RegistrationConfig,
     best = hypotheses[int(torch.argmax(support))]
     inliers = (sim3_act(best, src) - dst).norm(dim=-1) < threshold
     for _ in range(2):
-        if int(inliers.sum()) < config.min_inliers:
+        if int(inliers.sum()) < needed:
             return None
         try:
             refined = umeyama_sim3(src[inliers], dst[inliers])
@@ -173,9 +177,16 @@ def ransac_similarity(src: Tensor, dst: Tensor, config: RegistrationConfig,
         if int(refined_inliers.sum()) < int(inliers.sum()):
             break
         best, inliers = refined, refined_inliers
-    if int(inliers.sum()) < config.min_inliers:
+    if int(inliers.sum()) < needed:
         return None
     return best, inliers
+
+
+def required_inliers(count: int, config: RegistrationConfig) -> int:
+    """Inliers a fit of ``count`` putative correspondences needs: ``min_inliers``, and
+    ``min_inlier_fraction`` of ``count`` (chance support grows with the number of matches,
+    hence with the image size; the fraction keeps the test resolution-free)."""
+    return max(config.min_inliers, math.ceil(config.min_inlier_fraction * count))
 
 
 def register_predictions(pred_ij: PairPrediction, pred_ji: PairPrediction,
