@@ -119,6 +119,36 @@ class Cleanup:
     pointmaps: list[PointmapUpdate] = field(default_factory=list)
 
 
+@dataclass(frozen=True)
+class MapSnapshot:
+    """What a fused map reads of a keyframe (:func:`como3r.runtime.outputs.fused_map`), as
+    it was before the terminal depth refinement; not its encoding, first prediction or
+    retrieval features, which a copy of the keyframe would read back from a paged-out
+    graph and hold for the whole map (~0.5 MB per keyframe at 64x48, 326 KB of it the
+    simulated prior's encoding).
+
+    Attributes:
+        T_WC: ``(8,)`` pose; X_hat: ``(H, W, 3)`` fused pointmap; C_hat: ``(H, W)`` its
+            accumulated confidence; colors: ``(H, W, 3)`` uint8 image; fused_frames: how
+            many frames contributed.
+    """
+
+    T_WC: Tensor
+    X_hat: Tensor
+    C_hat: Tensor
+    colors: np.ndarray
+    fused_frames: int
+
+    @classmethod
+    def of(cls, kf: Keyframe) -> MapSnapshot:
+        """The snapshot of ``kf`` now (its pose copied: the cleanup moves it in place)."""
+        return cls(kf.T_WC.clone(), kf.X_hat, kf.C_hat, kf.colors, kf.fused_frames)
+
+    def mean_confidence(self) -> Tensor:
+        """``(H, W)`` confidence per contributing frame (:meth:`Keyframe.mean_confidence`)."""
+        return self.C_hat / self.fused_frames
+
+
 class _ComponentCleanup:
     """The two solvers of one component's alternation (C-Sec. A.7) and their records.
 
@@ -134,7 +164,7 @@ class _ComponentCleanup:
         self.graph, self.members, self.anchor, self.depth = graph, members, anchor, depth
         self.results: list[BAResult] = []
         self.depth_reports: list[DepthRefinementReport] = []
-        self.snapshot: dict[int, list[Keyframe]] = {}
+        self.snapshot: dict[int, list[MapSnapshot]] = {}
         self.labels: dict[int, Tensor] = {}
 
     def pose_pass(self, max_iters: int) -> float:
@@ -149,8 +179,7 @@ class _ComponentCleanup:
     def depth_step(self) -> float:
         """Segments, log-scale refinement, write-back; its ``max |ds|``."""
         if not self.snapshot:
-            self.snapshot = {a: [replace(self.graph.keyframes[g],
-                                         T_WC=self.graph.keyframes[g].T_WC.clone())
+            self.snapshot = {a: [MapSnapshot.of(self.graph.keyframes[g])
                                  for g in self.graph.agent_keyframes(a)]
                              for a in self.members}
             if self.depth.refine_from == "fused":
@@ -234,7 +263,7 @@ class Coordinator:
         self.alternation: list[dict[str, Any]] = []
         #: agent -> its keyframes as they were before the terminal depth refinement
         #: (pointmaps as streamed, poses after the pose-only cleanup passes)
-        self.pre_refinement: dict[int, list[Keyframe]] = {}
+        self.pre_refinement: dict[int, list[MapSnapshot]] = {}
         #: told the state after every keyframe, refresh and the cleanup (None: not kept)
         self.journal: Journal | None = None
         #: agent sets refined by an earlier session (a saved map's components): the
