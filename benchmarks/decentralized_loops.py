@@ -29,7 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -97,9 +97,12 @@ def _rotation_error_deg(R: np.ndarray, R_true: np.ndarray) -> float:
 class Reregistration:
     """The prior and the agents of a run, to register keyframe pairs as its robots did."""
 
-    def __init__(self, agents: list[Path], long_side: int) -> None:
+    def __init__(self, agents: list[Path], long_side: int,
+                 min_inlier_fraction: float | None = None) -> None:
         self.config = Config(input=InputConfig(long_side=long_side))
         self.settings = DecentralizedConfig().registration
+        if min_inlier_fraction is not None:
+            self.settings = replace(self.settings, min_inlier_fraction=min_inlier_fraction)
         self.agents = [open_agent(p) for p in agents]
         self.prior: Prior = build_prior(PriorSpec("simulated"), self.config,
                                         dict(enumerate(self.agents)))[0]
@@ -151,12 +154,16 @@ def main() -> None:
     parser.add_argument("--accepted-only", action="store_true")
     parser.add_argument("--only", default="", help="'a,ka,b,kb;...': these loops only")
     parser.add_argument("--json", type=Path, help="also write the rows here")
+    parser.add_argument("--min-inlier-fraction", type=float,
+                        help="registration.min_inlier_fraction (0: the inliers of fits the "
+                             "default refuses)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     graph = json.loads((args.run / "graph.json").read_text())
     frames = {(k["agent"], k["keyframe"]): k["frame"] for k in graph["keyframes"]}
     robots = 1 + max(agent for agent, _ in frames)
-    tool = Reregistration([args.scene / f"agent_{a}" for a in range(robots)], args.long_side)
+    tool = Reregistration([args.scene / f"agent_{a}" for a in range(robots)], args.long_side,
+                          args.min_inlier_fraction)
     spacing = float(np.median([r["keyframe_distance"] for r in
                                json.loads((args.run / "metrics.json").read_text())["robots"]]))
     print(f"{'loop':>11} {'acc':>3} {'ratio':>6} {'gnc':>4} {'corr':>6} {'inl':>5} "

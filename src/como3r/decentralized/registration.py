@@ -177,7 +177,8 @@ def ransac_similarity(src: Tensor, dst: Tensor, config: RegistrationConfig,
     best = hypotheses[int(torch.argmax(support))]
     inliers = (sim3_act(best, src) - dst).norm(dim=-1) < threshold
     for _ in range(2):
-        if int(inliers.sum()) < needed:
+        # the floor only: the fraction judges the refined fit, which may gain support
+        if int(inliers.sum()) < config.min_inliers:
             return None
         try:
             refined = umeyama_sim3(src[inliers], dst[inliers])
