@@ -80,6 +80,21 @@ def test_evaluate_run_writes_json_plot_and_table(tmp_path: Path) -> None:
     assert len(colours) > 10  # lines in several colours, not a blank canvas
 
 
+def test_ground_truth_staged_with_the_run_is_named_relative_to_it(tmp_path: Path) -> None:
+    # como3r demo writes scene and run into OUT.partial and renames it: an absolute path into
+    # the staging folder would name a folder that no longer exists
+    staging = tmp_path / "demo.partial"
+    run, gt_dirs = make_run(staging)
+    outside = tmp_path / "elsewhere" / "agent1"
+    outside.mkdir(parents=True)
+    (outside / "groundtruth.txt").write_text((gt_dirs[1] / "groundtruth.txt").read_text())
+    evaluate_run(run, [gt_dirs[0], outside], run)
+    entries = json.loads((run / "ate.json").read_text())["agents"]
+    assert entries[0]["gt"] == "../agent0/groundtruth.txt"
+    assert entries[1]["gt"] == str(outside / "groundtruth.txt")
+    staging.rename(tmp_path / "demo")
+    assert (tmp_path / "demo" / "run" / entries[0]["gt"]).is_file()
+
 def test_ground_truth_files_and_folders_agree(tmp_path: Path) -> None:
     run, gt_dirs = make_run(tmp_path)
     by_folder = evaluate_run(run, gt_dirs, tmp_path / "a")

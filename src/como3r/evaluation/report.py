@@ -10,6 +10,7 @@ ATE / RPE per agent and the merged ATE (:mod:`como3r.evaluation.trajectory`), an
 from __future__ import annotations
 
 import json
+import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -206,6 +207,19 @@ def _write_plot(path: Path, results: Sequence[AgentResult], ests: Sequence[Traje
     plot_trajectories(path, [g.positions for g in gts], aligned)
 
 
+def _name_ground_truth(gt_path: Path, est: Path) -> Path:
+    """How ``ate.json`` names a ground truth: relative to the run folder ``est`` when both lie
+    in one staging folder (``como3r demo`` writes scene and run in ``OUT.partial`` and renames
+    it, so the absolute path would name a folder that no longer exists), else as given."""
+    if not est.is_dir():
+        return gt_path
+    gt_abs, est_abs = gt_path.resolve(), est.resolve()
+    for staging in est_abs.parents:
+        if staging.name.endswith(".partial") and gt_abs.is_relative_to(staging):
+            return Path(os.path.relpath(gt_abs, est_abs))
+    return gt_path
+
+
 def evaluate_run(
     est: Path,
     gt: Sequence[Path],
@@ -246,8 +260,9 @@ def evaluate_run(
     # inside a run folder the estimate is named relative to it: the run is written to
     # DIR.partial and renamed, so an absolute path would name a folder that no longer exists
     named = [ep.relative_to(est) if est.is_dir() else ep for ep in est_files]
+    gt_named = [_name_ground_truth(gp, est) for gp in gt_files]
     results = [AgentResult(a, ep, gp, len(e), agent_errors(pair))
-               for a, (e, ep, gp, pair) in enumerate(zip(ests, named, gt_files, pairs))]
+               for a, (e, ep, gp, pair) in enumerate(zip(ests, named, gt_named, pairs))]
     summary = EvalSummary(results, merged_errors_by_component(pairs, components), components,
                           max_diff, ground_truth=gts)
 
