@@ -65,10 +65,10 @@ def _calibrated_problem(dtype: torch.dtype, seed: int = 0):
 def _reference(T_ij, K, X_j, p_i, z_i, q, valid, inv_sigma):
     """H, g and the robust cost from the PyTorch residual (geometry.residuals) in float64 of
     the same values: Huber-weighted whitened components (C-Sec. A.1), matches behind camera i
-    and invalid ones weightless."""
+    or nearer it than MIN_DEPTH_RATIO of their observed depth and invalid ones weightless."""
     X_j, p_i, z_i, q = (x.to(torch.float64) for x in (X_j, p_i, z_i, q))
     e, J = calibrated_residual(T_ij, X_j, p_i, z_i, K)
-    in_front = sim3_act(T_ij[:, None, :], X_j)[..., 2] > 0
+    in_front = sim3_act(T_ij[:, None, :], X_j)[..., 2] > cpu_kernels.MIN_DEPTH_RATIO * z_i
     info = q.sqrt()[..., None] * inv_sigma[:, None, :] * (valid & in_front)[..., None]
     whitened = e * info
     w = HUBER_K / whitened.abs().clamp_min(HUBER_K) * info

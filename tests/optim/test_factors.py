@@ -7,6 +7,7 @@ import torch
 
 from como3r.errors import InputError
 from como3r.geometry.lie import sim3_act, sim3_compose, sim3_exp, sim3_inverse, sim3_log
+from como3r.optim.cpu_kernels import MIN_DEPTH_RATIO
 from como3r.optim.factors import CalibratedFactors, RayRangeFactors, RelativePoseFactors
 from como3r.optim.linear import assemble
 from como3r.optim.synthetic import chain_poses, random_sim3, synthetic_graph
@@ -167,25 +168,46 @@ def test_calibrated_linearization_matches_autograd(path):
     torch.testing.assert_close(factors.cost(poses), cost_ref, rtol=1e-12, atol=0)
 
 
-def test_calibrated_points_behind_the_camera_get_no_weight(path):
+@pytest.mark.parametrize("depth_ratio", [-1.0, 1e-6, 0.2])
+def test_calibrated_points_near_or_behind_camera_i_get_no_weight(path, depth_ratio):
+    """A match that T_ij brings behind camera i, or nearer it than MIN_DEPTH_RATIO of its
+    observed depth, counts nothing, in both linearisation paths: its pixel Jacobian grows as
+    1 / z^2 there (on a 5,000-frame loop such loop-edge matches left every later local solve
+    numerically indefinite). Fails with the former mask (depth > 0) at 1e-6 and 0.2."""
+    assert depth_ratio < MIN_DEPTH_RATIO
     poses, graph, _, valid = _tiny_graph()
     K = torch.tensor([[500.0, 0, 320], [0, 480, 240], [0, 0, 1]], dtype=torch.float64)
     p_i = torch.zeros(*graph.q.shape, 2, dtype=torch.float64)
     z_i = graph.X_i[..., 2]
     X_j = graph.X_j.clone()
-    factors = CalibratedFactors(graph.i, graph.j, X_j, p_i, z_i, K, graph.q, valid)
-    before = factors.linearize(poses)
-    # Move one match of edge 0 behind camera i: T_ij X_j = -X_i has negative depth.
+    # Move one match of edge 0 along its ray to depth_ratio times its observed depth in i.
     T_ij = sim3_compose(sim3_inverse(poses[0]), poses[1])
-    X_j[0, 0] = sim3_act(sim3_inverse(T_ij), -graph.X_i[0, 0])
+    X_j[0, 0] = sim3_act(sim3_inverse(T_ij), depth_ratio * graph.X_i[0, 0])
     moved = CalibratedFactors(graph.i, graph.j, X_j, p_i, z_i, K, graph.q, valid)
     r = moved.whitened_residual(poses, slice(0, 1))[0]
     assert torch.all(r[0, 0] == 0) and torch.all(r[0, 1] != 0)
     blocks = moved.linearize(poses)
-    assert torch.isfinite(blocks.H_ii).all()
-    # Only edge 0 changed, and only by dropping that match.
-    torch.testing.assert_close(blocks.H_jj[1:], before.H_jj[1:])
-    assert not torch.allclose(blocks.H_jj[0], before.H_jj[0])
+    # Exactly as if the match were invalid: only edge 0 changed, and only by dropping it.
+    without = valid.clone()
+    without[0, 0] = False
+    dropped = CalibratedFactors(graph.i, graph.j, X_j, p_i, z_i, K, graph.q, without)
+    reference = dropped.linearize(poses)
+    for name in ("H_ii", "H_ij", "H_jj", "g_i", "g_j"):
+        torch.testing.assert_close(getattr(blocks, name), getattr(reference, name))
+    torch.testing.assert_close(moved.cost(poses), dropped.cost(poses))
+
+
+def test_calibrated_points_beyond_the_depth_ratio_keep_their_weight(path):
+    """Just above MIN_DEPTH_RATIO of its observed depth a match still counts."""
+    poses, graph, _, valid = _tiny_graph()
+    K = torch.tensor([[500.0, 0, 320], [0, 480, 240], [0, 0, 1]], dtype=torch.float64)
+    p_i = torch.zeros(*graph.q.shape, 2, dtype=torch.float64)
+    X_j = graph.X_j.clone()
+    T_ij = sim3_compose(sim3_inverse(poses[0]), poses[1])
+    X_j[0, 0] = sim3_act(sim3_inverse(T_ij), 1.2 * MIN_DEPTH_RATIO * graph.X_i[0, 0])
+    factors = CalibratedFactors(graph.i, graph.j, X_j, p_i, graph.X_i[..., 2], K, graph.q,
+                                valid)
+    assert torch.all(factors.whitened_residual(poses, slice(0, 1))[0][0, 0] != 0)
 
 
 def test_gradient_is_the_gradient_of_the_robust_cost():

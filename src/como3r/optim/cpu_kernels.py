@@ -50,6 +50,19 @@ _SQRT2 = 1.4142135623730951
 #: the upper triangle of a 7x7 block, row by row: the 28 accumulated Hessian entries
 _TRIU = np.triu_indices(7)
 
+#: The calibrated residual (C-Eq. 17) counts a match only where ``T_ij`` brings its point of
+#: keyframe j to at least this fraction of the depth observed in camera i. Nearer points make
+#: the pixel Jacobian grow as ``1 / z^2`` (C-Eq. 18): on a 5,000-frame 64x48 loop a keyframe
+#: placed 2.3 m off brought loop-edge points to just in front of its camera, their Hessian
+#: entries reached 4e13 (7.8e19 assembled), no Tikhonov term made the system numerically
+#: positive definite, and every later local solve returned a zero step. A quarter of the
+#: observed depth is a log-depth residual of -1.39 (14 sigma at the default
+#: ``tracking.sigma_depth`` of 0.1): an outlier already, and its Jacobian rows stay within
+#: 16 times those of a match at its observed depth.
+#: (The PyTorch path, optim.factors, reads it from here: numba bakes a global into the
+#: machine code and keys its disk cache on this file only.)
+MIN_DEPTH_RATIO = 0.25
+
 
 @njit(cache=True, inline="always")
 def _add_row(acc: np.ndarray, row: np.ndarray, weight: float,
@@ -157,8 +170,9 @@ def _in_camera_i(c: tuple, ok: bool, X0: float, X1: float, X2: float, p_u: float
     """One match of C-Eq. 17 (the edge's :func:`_edge_constants` ``c``, the match's point in
     camera j, observed pixel and depth in camera i and confidence, as read from their arrays):
     ``(x0, x1, x2, 1 / z, u, v, e_u, e_v, z / z_i, sqrt q)`` with ``x = T X_j`` (z clamped),
-    its pixel and residuals. An invalid match (``ok`` False), or one behind camera i, reads
-    as a harmless point with ``sqrt q = 0``: no branch, so the loops over matches vectorise,
+    its pixel and residuals. An invalid match (``ok`` False), or one ``T`` brings nearer camera
+    i than ``MIN_DEPTH_RATIO`` of its observed depth (behind it included), reads as a harmless
+    point with ``sqrt q = 0``: no branch, so the loops over matches vectorise,
     and no garbage behind a mask reaches a sum. Scalars only: an array argument of an inlined
     function costs two reference counts per call."""
     X0, X1, X2 = (X0, X1, X2) if ok else (0.0, 0.0, 1.0)
@@ -172,7 +186,8 @@ def _in_camera_i(c: tuple, ok: bool, X0: float, X1: float, X2: float, p_u: float
     e_v = v - p_v if ok else 0.0
     ratio = max(x2, _MIN_NORM) / max(z_i if ok else 1.0, _MIN_NORM)
     q = q if ok else 0.0
-    s = math.sqrt(q) if x2 > 0 else 0.0  # Pi_K and log z exist only in front of camera i
+    # Pi_K and log z exist only in front of camera i and their Jacobian grows as 1 / z^2 near it
+    s = math.sqrt(q) if x2 > MIN_DEPTH_RATIO * (z_i if ok else 1.0) else 0.0
     return x0, x1, x2, inv_z, u, v, e_u, e_v, ratio, s
 
 
@@ -403,8 +418,9 @@ def ray_range_blocks(T_ij: Tensor, X_i: Tensor, X_j: Tensor, q: Tensor, valid: T
 def calibrated_blocks(T_ij: Tensor, K: Tensor, X_j: Tensor, p_i: Tensor, z_i: Tensor,
                       q: Tensor, valid: Tensor, inv_sigma: Tensor,
                       huber_k: float) -> tuple[Tensor, Tensor]:
-    """``H`` ``(e, 7, 7)`` and ``g`` ``(e, 7)`` float64 of C-Eq. 17 per edge; matches behind
-    camera i at ``T_ij`` count nothing.
+    """``H`` ``(e, 7, 7)`` and ``g`` ``(e, 7)`` float64 of C-Eq. 17 per edge; matches that
+    ``T_ij`` brings nearer camera i than ``MIN_DEPTH_RATIO`` of their observed depth (behind
+    it included) count nothing.
 
     Args:
         T_ij: ``(e, 8)``; K: ``(e, 3, 3)`` intrinsics of camera i; X_j: ``(e, P, 3)``;

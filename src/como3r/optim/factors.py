@@ -203,8 +203,9 @@ class RelativePoseFactors(ABC):
         Returns:
             ``r = Sigma^-1/2 e`` ``(e, P, C)``, ``sqrt_info`` ``(e, P, C)``, the raw Jacobian
             ``J`` ``(e, P, C, 7)`` w.r.t. a left perturbation of ``T_ij``, and ``T_WC_i``
-            ``(e, 8)``. ``r`` and ``sqrt_info`` are zero for unusable matches (invalid, or
-            behind the camera in the calibrated residual).
+            ``(e, 8)``. ``r`` and ``sqrt_info`` are zero for unusable matches (invalid, or in
+            the calibrated residual brought nearer camera i than
+            ``cpu_kernels.MIN_DEPTH_RATIO`` of their observed depth, behind it included).
         """
         T_WC_i, T_ij = self._relative_poses(poses, edges)
         e, J, defined = self._residual(T_ij.to(self.q.dtype), edges)
@@ -614,10 +615,11 @@ class CalibratedFactors(RelativePoseFactors):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         X_j = self.X_j[edges]
         e, J = calibrated_residual(T_ij, X_j, self.p_i[edges], self.z_i[edges], self.K[edges])
-        # Pi_K and log z exist only in front of camera i; the geometry clamps z there, so the
-        # mask is recomputed at every iterate from the transformed depth.
-        in_front = sim3_act(T_ij[:, None, :], X_j)[..., 2] > 0
-        return e, J, in_front
+        # Pi_K and log z exist only in front of camera i, and their Jacobian grows as 1 / z^2
+        # near it: a match counts where the transformed depth is at least MIN_DEPTH_RATIO of
+        # the observed one (C-Eq. 17-18), recomputed at every iterate.
+        z = sim3_act(T_ij[:, None, :], X_j)[..., 2]
+        return e, J, z > cpu_kernels.MIN_DEPTH_RATIO * self.z_i[edges].to(z.dtype)
 
     def _compiled_blocks(self, T_ij: torch.Tensor, edges: slice
                          ) -> tuple[torch.Tensor, torch.Tensor]:
