@@ -39,6 +39,7 @@ independent/GNC) and the accepted loops:
 
     scale  before (RANSAC needs min_inliers = 12)   after (and min_inlier_fraction = 0.1)
     0.1    2.218 (1.494, 1.475)  23 loops           1.509 (1.509, 1.475)  21 loops
+    1      1.42 (an older tree)                   1.492 (1.492, 1.417)  19 loops
     20     2.341 (1.565, 1.497)  22 loops           1.571 (1.571, 1.497)  20 loops *
 
     * measured with min_inlier_fraction 0.12 also applied to the unrefined hypothesis
