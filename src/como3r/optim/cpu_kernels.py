@@ -433,22 +433,21 @@ def calibrated_blocks(T_ij: Tensor, K: Tensor, X_j: Tensor, p_i: Tensor, z_i: Te
     return _blocks(H_and_g)
 
 
-def ray_range_cost(T_ij: Tensor, X_i: Tensor, X_j: Tensor, q: Tensor, valid: Tensor,
-                   inv_sigma: Tensor, huber_k: float) -> Tensor:
-    """Robust energy ``sum rho(r)`` of C-Eq. 6 over the edges, a float64 scalar (arguments
+def ray_range_costs(T_ij: Tensor, X_i: Tensor, X_j: Tensor, q: Tensor, valid: Tensor,
+                    inv_sigma: Tensor, huber_k: float) -> Tensor:
+    """Robust energy ``sum rho(r)`` of C-Eq. 6 of each edge, ``(e,)`` float64 (arguments
     as in :func:`ray_range_blocks`)."""
-    per_edge = _sums(_ray_range_cost, T_ij, (X_i, X_j), q, valid, inv_sigma, huber_k, 1)
-    return torch.tensor(float(per_edge.sum()), dtype=torch.float64)
+    return torch.from_numpy(
+        _sums(_ray_range_cost, T_ij, (X_i, X_j), q, valid, inv_sigma, huber_k, 1)[:, 0])
 
 
-def calibrated_cost(T_ij: Tensor, K: Tensor, X_j: Tensor, p_i: Tensor, z_i: Tensor,
-                    q: Tensor, valid: Tensor, inv_sigma: Tensor, huber_k: float) -> Tensor:
-    """Robust energy of C-Eq. 17 over the edges, a float64 scalar (arguments as in
+def calibrated_costs(T_ij: Tensor, K: Tensor, X_j: Tensor, p_i: Tensor, z_i: Tensor,
+                     q: Tensor, valid: Tensor, inv_sigma: Tensor, huber_k: float) -> Tensor:
+    """Robust energy of C-Eq. 17 of each edge, ``(e,)`` float64 (arguments as in
     :func:`calibrated_blocks`)."""
     K64 = K.detach().to(torch.float64)
-    per_edge = _sums(_calibrated_cost, T_ij, (K64, X_j, p_i, z_i), q, valid, inv_sigma,
-                     huber_k, 1, error_model="numpy")
-    return torch.tensor(float(per_edge.sum()), dtype=torch.float64)
+    return torch.from_numpy(_sums(_calibrated_cost, T_ij, (K64, X_j, p_i, z_i), q, valid,
+                                  inv_sigma, huber_k, 1, error_model="numpy")[:, 0])
 
 
 # ---------------------------------------------------------------------------------------------

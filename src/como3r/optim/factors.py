@@ -140,8 +140,8 @@ class RelativePoseFactors(ABC):
         of ``T_ij`` ``(e, 8)`` by the compiled CPU loop (:mod:`como3r.optim.cpu_kernels`)."""
 
     @abstractmethod
-    def _compiled_cost(self, T_ij: torch.Tensor, edges: slice) -> torch.Tensor:
-        """Robust energy of a slice of edges by the compiled CPU loop, a float64 scalar."""
+    def _compiled_costs(self, T_ij: torch.Tensor, edges: slice) -> torch.Tensor:
+        """Robust energy of each edge of a slice by the compiled CPU loop, ``(e,)`` float64."""
 
     def _error(self, T_ij: torch.Tensor, edges: slice) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Residual ``(e, P, C)`` and definedness mask without the Jacobian (cost evaluation);
@@ -257,33 +257,33 @@ class RelativePoseFactors(ABC):
         ``rho`` is the Huber kernel with ``rho(r) = r^2/2`` inside the breakpoint, whose
         IRLS weight is exactly ``w(r) = rho'(r)/r = min(1, k/|r|)``.
         """
-        return sum((self._slice_cost(poses, chunk) for chunk in self._chunks(poses)),
+        return sum((self._edge_costs(poses, chunk).sum() for chunk in self._chunks(poses)),
                    torch.zeros((), dtype=torch.float64, device=poses.device))
 
     def quadratic_model(self, poses: torch.Tensor) -> QuadraticEdges:
         """Each edge's robust energy as a quadratic in its relative pose at ``poses``
         ``(N, 8)``: the Gauss-Newton blocks of :meth:`linearize` before they are projected
         onto the endpoints, and each edge's energy (see :class:`QuadraticEdges`)."""
-        H_rel, g_rel, T_ij = [], [], []
+        H_rel, g_rel, T_ij, costs = [], [], [], []
         for chunk in self._chunks(poses):
             H, g, _ = self._relative_blocks(poses, chunk)
             H_rel.append(H.to(torch.float64))
             g_rel.append(g.to(torch.float64))
             T_ij.append(self._relative_poses(poses, chunk)[1].to(torch.float64))
-        costs = torch.stack([self._slice_cost(poses, slice(k, k + 1))
-                             for k in range(self.num_edges)])
+            costs.append(self._edge_costs(poses, chunk))
         return QuadraticEdges(self.i, self.j, torch.cat(T_ij), torch.cat(H_rel),
-                              torch.cat(g_rel), costs.to(torch.float64))
+                              torch.cat(g_rel), torch.cat(costs))
 
-    def _slice_cost(self, poses: torch.Tensor, edges: slice) -> torch.Tensor:
-        """Robust energy of a slice of edges, a float64 scalar."""
+    def _edge_costs(self, poses: torch.Tensor, edges: slice) -> torch.Tensor:
+        """Robust energy of each edge of a slice, ``(e,)`` float64."""
         if self._runs_compiled(poses):
-            return self._compiled_cost(self._relative_poses(poses, edges)[1], edges)
+            return self._compiled_costs(self._relative_poses(poses, edges)[1], edges)
         e, defined = self._error(self._relative_poses(poses, edges)[1].to(self.q.dtype), edges)
         r = (e * self._sqrt_info(edges, defined)).abs()
         k = self.huber_k
         rho = torch.where(r <= k, 0.5 * r * r, k * (r - 0.5 * k))
-        return rho.sum(dtype=torch.float64)  # per-match terms in the data dtype
+        # per-match terms in the data dtype, summed in float64
+        return rho.flatten(1).sum(1, dtype=torch.float64)
 
     def _linearize_chunk(self, poses: torch.Tensor, edges: slice) -> EdgeBlocks:
         H_rel, g_rel, T_WC_i = self._relative_blocks(poses, edges)
@@ -474,8 +474,8 @@ class RayRangeFactors(RelativePoseFactors):
                                             self.q[edges], self.valid[edges],
                                             self._inv_sigmas[edges, 0], self.huber_k)
 
-    def _compiled_cost(self, T_ij: torch.Tensor, edges: slice) -> torch.Tensor:
-        return cpu_kernels.ray_range_cost(T_ij, self.X_i[edges], self.X_j[edges],
+    def _compiled_costs(self, T_ij: torch.Tensor, edges: slice) -> torch.Tensor:
+        return cpu_kernels.ray_range_costs(T_ij, self.X_i[edges], self.X_j[edges],
                                           self.q[edges], self.valid[edges],
                                           self._inv_sigmas[edges, 0], self.huber_k)
 
@@ -628,8 +628,8 @@ class CalibratedFactors(RelativePoseFactors):
                                              self.valid[edges], self._inv_sigmas[edges, 0],
                                              self.huber_k)
 
-    def _compiled_cost(self, T_ij: torch.Tensor, edges: slice) -> torch.Tensor:
-        return cpu_kernels.calibrated_cost(T_ij, self.K[edges], self.X_j[edges],
+    def _compiled_costs(self, T_ij: torch.Tensor, edges: slice) -> torch.Tensor:
+        return cpu_kernels.calibrated_costs(T_ij, self.K[edges], self.X_j[edges],
                                            self.p_i[edges], self.z_i[edges], self.q[edges],
                                            self.valid[edges], self._inv_sigmas[edges, 0],
                                            self.huber_k)
