@@ -97,7 +97,7 @@ def _nearest(queries: Tensor, database: Tensor) -> Tensor:
         out = scores[: chunk.shape[0]]
         torch.mm(chunk, database_T, out=out)
         best.append(torch.argmax(out, dim=1))
-    return torch.cat(best) if best else torch.zeros(0, dtype=torch.long, device=queries.device)
+    return torch.cat(best)
 
 
 def reciprocal_matches(D_i: Tensor, D_j: Tensor, Q_i: Tensor, Q_j: Tensor,
