@@ -91,6 +91,8 @@ def test_unparsable_override_is_one_line(scene, tmp_path, only_error_line) -> No
     ("tracking.max_iters=0", "tracking.max_iters must be >= 1"),
     ("global_ba.max_iters_cleanup=0", "global_ba.max_iters_cleanup must be >= 1"),
     ("depth.inner_iters=0", "depth.inner_iters must be >= 1"),
+    ("local_solve.dense_keyframes=0", "local_solve.dense_keyframes must be >= 1"),
+    ("local_solve.relinearize_tol=0", "local_solve.relinearize_tol must be > 0"),
     ("decentralized.confidence_k=0", "decentralized.confidence_k must be > 0"),
     ("simulated_prior.gross_failure_rate=2", "simulated_prior.gross_failure_rate must be in"),
     ("tracking.fusion=pixels", "tracking.fusion: 'pixels' is not one of"),
