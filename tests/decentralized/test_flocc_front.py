@@ -17,12 +17,12 @@ from como3r.data.preprocess import make_view
 from como3r.decentralized.confidence import accept_loop, correspondence_ratio, loop_probability
 from como3r.decentralized.config import DecentralizedConfig, RegistrationConfig, check_config
 from como3r.decentralized.keyframes import frame_odometry, select_keyframes
+from como3r.decentralized.matching import reciprocal_matches
 from como3r.decentralized.place_recognition import PlaceRecognizer, candidate_pairs
 from como3r.decentralized.registration import (
     Registrar,
     odometry_neighbour,
     ransac_similarity,
-    reciprocal_matches,
 )
 from como3r.errors import ConfigError
 from como3r.geometry.lie import quat_to_matrix, sim3_act, sim3_compose, sim3_inverse, so3_exp

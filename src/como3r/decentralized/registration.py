@@ -3,8 +3,8 @@
 Each robot encodes its own keyframes once (:meth:`Registrar.own_encoding`); for a loop
 candidate (I_i^alpha, I_j^beta) the encoding of I_j^beta travels to robot alpha, which
 decodes the pair, matches the two views' descriptors (reciprocal nearest neighbours,
-:func:`reciprocal_matches`) and estimates the relative pose robustly from the matched 3-D
-points (:func:`ransac_similarity`: minimal 3-point similarities, then Umeyama on the
+:func:`~.matching.reciprocal_matches`) and estimates the relative pose robustly from the matched
+3-D points (:func:`ransac_similarity`: minimal 3-point similarities, then Umeyama on the
 inliers; a pose explaining fewer than :func:`required_inliers` of the matches is a failed
 registration, a test relative to the number of matches so that it holds at any image size).
 Encodings are cached, so a keyframe in several candidates is encoded (and sent)
@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from como3r.decentralized.config import RegistrationConfig
+from como3r.decentralized.matching import reciprocal_matches
 from como3r.errors import GeometryError
 from como3r.geometry.lie import matrix_to_quat, sim3_act
 from como3r.geometry.umeyama import umeyama_sim3, umeyama_sim3_batched
@@ -34,10 +35,6 @@ from como3r.prior.base import Encoding, PairPrediction, Prior, View
 from como3r.prior.simulated_keys import generator
 
 logger = logging.getLogger(__name__)
-
-#: Query pixels processed at once by the nearest-neighbour search (bounds peak memory).
-_CHUNK = 256
-
 
 @dataclass(frozen=True)
 class Registration:
@@ -63,7 +60,9 @@ class RegistrationStats:
         encodes: images encoded (each keyframe at most once; place descriptors included).
         encode_seconds: time spent encoding.
         decodes: pairs decoded (both directions count as one symmetric decode).
-        decode_seconds: time spent decoding, matching and fitting.
+        decode_seconds: time spent in the prior's decoder.
+        match_seconds: time spent matching the decoded pairs' descriptors.
+        fit_seconds: time spent fitting their relative poses (RANSAC).
         naive_encodes: encodes of a pipeline that encodes both images of every decoded pair.
         registration_encodes: this robot's keyframes whose encoding some decode used (here or
             at another robot): what the two-stage scheme encodes for registration.
@@ -73,74 +72,17 @@ class RegistrationStats:
     encode_seconds: float = 0.0
     decodes: int = 0
     decode_seconds: float = 0.0
+    match_seconds: float = 0.0
+    fit_seconds: float = 0.0
     naive_encodes: int = 0
     registration_encodes: int = 0
 
     def to_json(self) -> dict[str, float]:
         return {"encodes": self.encodes, "encode_seconds": self.encode_seconds,
                 "decodes": self.decodes, "decode_seconds": self.decode_seconds,
+                "match_seconds": self.match_seconds, "fit_seconds": self.fit_seconds,
                 "naive_encodes": self.naive_encodes,
                 "registration_encodes": self.registration_encodes}
-
-
-def _nearest(queries: Tensor, database: Tensor) -> Tensor:
-    """Index of the most similar database row for each query row (dot product).
-
-    The ``(_CHUNK, N)`` scores go to one buffer reused by every chunk: a new one per chunk
-    (200 MB at 512x384) cost a third of the search in page faults (kernel time).
-    """
-    database_T = database.T.contiguous()
-    scores = torch.empty((min(_CHUNK, queries.shape[0]), database.shape[0]),
-                         dtype=torch.result_type(queries, database_T), device=queries.device)
-    best = []
-    for chunk in queries.split(_CHUNK):
-        out = scores[: chunk.shape[0]]
-        torch.mm(chunk, database_T, out=out)
-        best.append(torch.argmax(out, dim=1))
-    return torch.cat(best)
-
-
-def reciprocal_matches(D_i: Tensor, D_j: Tensor, Q_i: Tensor, Q_j: Tensor,
-                       config: RegistrationConfig) -> tuple[Tensor, Tensor]:
-    """Reciprocal nearest neighbours between the confident descriptors of two views.
-
-    Only pixels with descriptor confidence ``Q > min_descriptor_confidence`` take part.
-    Queries start on a grid of view i; each iteration maps them to their nearest neighbour
-    in j and back to i, and a query whose round trip returns to itself is a match
-    (MASt3R's fast reciprocal matching).
-
-    Args:
-        D_i, D_j: ``(H, W, d)`` unit descriptors of views i and j (one decode).
-        Q_i, Q_j: ``(H, W)`` descriptor confidences.
-        config: matching parameters.
-
-    Returns:
-        ``(M,)`` int64 flat pixel indices of view i and ``(M,)`` of view j, unique pairs.
-    """
-    H, W, d = D_i.shape
-    q_min = config.min_descriptor_confidence
-    pixels_i = torch.nonzero(Q_i.reshape(-1) > q_min)[:, 0]
-    pixels_j = torch.nonzero(Q_j.reshape(-1) > q_min)[:, 0]
-    none = torch.zeros(0, dtype=torch.long)
-    if pixels_i.numel() == 0 or pixels_j.numel() == 0:
-        return none, none
-    flat_i = D_i.reshape(-1, d)[pixels_i].float()
-    flat_j = D_j.reshape(-1, d)[pixels_j].float()
-    stride = config.match_stride
-    on_grid = ((pixels_i // W) % stride == stride // 2) & ((pixels_i % W) % stride == stride // 2)
-    query = torch.nonzero(on_grid)[:, 0]
-    found_i, found_j = [none], [none]
-    for _ in range(config.match_iterations):
-        if query.numel() == 0:
-            break
-        in_j = _nearest(flat_i[query], flat_j)
-        back = _nearest(flat_j[in_j], flat_i)
-        converged = back == query
-        found_i.append(query[converged])
-        found_j.append(in_j[converged])
-        query = torch.unique(back[~converged])
-    pairs = torch.unique(torch.stack([torch.cat(found_i), torch.cat(found_j)], dim=1), dim=0)
-    return pixels_i[pairs[:, 0]], pixels_j[pairs[:, 1]]
 
 
 def _minimal_similarities(src: Tensor, dst: Tensor) -> Tensor:
@@ -201,7 +143,8 @@ def required_inliers(count: int, config: RegistrationConfig) -> int:
 
 
 def register_predictions(pred_ij: PairPrediction, pred_ji: PairPrediction,
-                         config: RegistrationConfig, gen: torch.Generator) -> Registration:
+                         config: RegistrationConfig, gen: torch.Generator,
+                         stats: RegistrationStats | None = None) -> Registration:
     """Match a decoded pair and estimate the relative pose (module docstring).
 
     Args:
@@ -210,11 +153,17 @@ def register_predictions(pred_ij: PairPrediction, pred_ji: PairPrediction,
         pred_ji: decode of (j, i): ``X_ii`` is view j's pointmap in camera j.
         config: registration parameters.
         gen: RANSAC generator.
+        stats: when given, the matching and fitting seconds are added to it.
     """
+    start = time.perf_counter()
     p_i, p_j = reciprocal_matches(pred_ij.D_ii, pred_ij.D_ji, pred_ij.Q_ii, pred_ij.Q_ji, config)
+    matched = time.perf_counter()
     dst = pred_ij.X_ii.reshape(-1, 3)[p_i]
     src = pred_ji.X_ii.reshape(-1, 3)[p_j]
     fit = ransac_similarity(src, dst, config, gen)
+    if stats is not None:
+        stats.match_seconds += matched - start
+        stats.fit_seconds += time.perf_counter() - matched
     if fit is None:
         return Registration(int(p_i.numel()), 0, None)
     T, inliers = fit
@@ -342,11 +291,11 @@ class Registrar:
     def _decode(self, enc_i: Encoding, enc_j: Encoding, name: tuple) -> Registration:
         start = time.perf_counter()
         pred_ij, pred_ji = self.prior.decode_symmetric([(enc_i, enc_j)])[0]
-        result = register_predictions(pred_ij.to("cpu"), pred_ji.to("cpu"), self.config,
-                                      generator(self.config.seed, *name))
+        pred_ij, pred_ji = pred_ij.to("cpu"), pred_ji.to("cpu")
         self.stats.decode_seconds += time.perf_counter() - start
         self.stats.decodes += 1
-        return result
+        return register_predictions(pred_ij, pred_ji, self.config,
+                                    generator(self.config.seed, *name), self.stats)
 
 
 def _mismatch(own: Encoding, other: Encoding) -> str | None:

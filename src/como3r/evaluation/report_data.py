@@ -280,14 +280,16 @@ def agent_rows(data: RunData) -> list[dict[str, Any]]:
 def stage_seconds(data: RunData) -> dict[str, dict[str, float]]:
     """Wall seconds per stage, by column (``agent <a>``, ``coordinator``).
 
-    Centralized runs record every stage; decentralized runs only the prior's encoder and
-    decoder time per robot.
+    Centralized runs record every stage; decentralized runs per robot the prior's encoder and
+    decoder time and the registration's descriptor matching and pose fitting.
     """
     columns: dict[str, dict[str, float]] = {}
     if data.decentralized:
         for a, robot in enumerate(data.metrics.get("robots") or []):
             times = {"prior_encode": robot.get("encode_seconds"),
-                     "prior_decode": robot.get("decode_seconds")}
+                     "prior_decode": robot.get("decode_seconds"),
+                     "matching": robot.get("match_seconds"),
+                     "registration_fit": robot.get("fit_seconds")}
             if any(v is not None for v in times.values()):
                 columns[f"agent {a}"] = {k: float(v) for k, v in times.items() if v is not None}
         return columns
