@@ -154,7 +154,7 @@ def test_reciprocal_matches_find_the_permutation():
     Q = torch.full((H, W), 5.0)
     Q_low = Q.clone()
     Q_low[:6] = 1.0  # the top half of view i is not confident
-    config = RegistrationConfig(match_stride=2)
+    config = RegistrationConfig(match_stride_ratio=2 / 16)
     p_i, p_j = reciprocal_matches(D_i, D_j, Q, Q, config)
     assert p_i.numel() == (H // 2) * (W // 2)
     torch.testing.assert_close(permutation[p_j], p_i)

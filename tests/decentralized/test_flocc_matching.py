@@ -3,11 +3,13 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
-from como3r.decentralized.config import RegistrationConfig
+from como3r.decentralized.config import DecentralizedConfig, RegistrationConfig, check_config
 from como3r.decentralized.matching import query_grid, reciprocal_matches
+from como3r.errors import ConfigError
 
 
 def _views(seed: int, H: int, W: int, d: int = 24, noise: float = 0.3):
@@ -31,7 +33,7 @@ def _brute_force(D_i, D_j, Q_i, Q_j, config: RegistrationConfig):
     scores = D_i.reshape(-1, d)[pixels_i].double() @ D_j.reshape(-1, d)[pixels_j].double().T
     i_to_j, j_to_i = scores.argmax(dim=1), scores.argmax(dim=0)
     row_of = {int(p): r for r, p in enumerate(pixels_i)}
-    query = torch.tensor([row_of[int(p)] for p in query_grid(H, W, config.match_stride)
+    query = torch.tensor([row_of[int(p)] for p in query_grid(H, W, config.match_stride_ratio)
                           if int(p) in row_of])
     pairs = set()
     for _ in range(config.match_iterations):
@@ -49,7 +51,7 @@ def _brute_force(D_i, D_j, Q_i, Q_j, config: RegistrationConfig):
 @pytest.mark.parametrize("iterations", [1, 3])
 def test_matches_equal_brute_force(seed, iterations):
     D_i, D_j, Q_i, Q_j = _views(seed, 30, 40)
-    config = RegistrationConfig(match_stride=3, match_iterations=iterations)
+    config = RegistrationConfig(match_stride_ratio=3 / 40, match_iterations=iterations)
     p_i, p_j = reciprocal_matches(D_i, D_j, Q_i, Q_j, config)
     expected = _brute_force(D_i, D_j, Q_i, Q_j, config)
     assert len(expected) > 20
@@ -58,7 +60,7 @@ def test_matches_equal_brute_force(seed, iterations):
 
 def test_matches_are_mutual_nearest_neighbours_of_confident_pixels():
     D_i, D_j, Q_i, Q_j = _views(3, 24, 32, noise=0.5)
-    config = RegistrationConfig(match_stride=2)
+    config = RegistrationConfig(match_stride_ratio=2 / 32)
     p_i, p_j = reciprocal_matches(D_i, D_j, Q_i, Q_j, config)
     assert p_i.numel() > 0
     q = config.min_descriptor_confidence
@@ -71,6 +73,45 @@ def test_matches_are_mutual_nearest_neighbours_of_confident_pixels():
 
 
 def test_no_confident_pixel_gives_no_match():
-    D_i, D_j, Q_i, Q_j = _views(4, 8, 8)
+    D_i, D_j, _, Q_j = _views(4, 8, 8)
     p_i, p_j = reciprocal_matches(D_i, D_j, torch.ones(8, 8), Q_j, RegistrationConfig())
     assert p_i.numel() == 0 and p_j.numel() == 0 and p_i.dtype == torch.long
+
+
+def test_query_grid_at_512_is_the_official_subsampling_by_8():
+    rows, cols = np.mgrid[4:384:8, 4:512:8].reshape(2, -1)
+    grid = query_grid(384, 512, RegistrationConfig().match_stride_ratio)
+    assert grid.tolist() == (rows * 512 + cols).tolist()
+
+
+@pytest.mark.parametrize(("height", "width"), [(120, 160), (72, 96), (300, 400)])
+def test_query_grid_is_the_same_at_every_resolution(height, width):
+    """The default grid has 64 x 48 queries whatever the image size, at the places of the
+    512x384 grid scaled to the image, to within one of its pixels."""
+    ratio = RegistrationConfig().match_stride_ratio
+    grid, at_512 = query_grid(height, width, ratio), query_grid(384, 512, ratio)
+    assert grid.numel() == at_512.numel() == 64 * 48
+    spacing = width / 64
+    for got, reference in ((grid // width, at_512 // 512), (grid % width, at_512 % 512)):
+        assert float((got / spacing - reference / 8).abs().max()) < 1 / spacing
+    assert query_grid(width, height, ratio).numel() == 64 * 48  # portrait
+
+
+def test_query_grid_is_at_least_one_pixel_and_one_query():
+    assert query_grid(24, 32, 1 / 64).tolist() == list(range(24 * 32))  # 0.5 px -> every pixel
+    assert query_grid(10, 512, 1.0).tolist() == [9 * 512 + 256]  # one query, inside the view
+
+
+@pytest.mark.parametrize("value", [0.0, -0.1, 1.5, float("nan")])
+def test_bad_match_stride_ratio_is_one_clear_error(value):
+    config = DecentralizedConfig(registration=RegistrationConfig(match_stride_ratio=value))
+    with pytest.raises(ConfigError, match=r"^decentralized\.registration\.match_stride_ratio "
+                                          r"must be in \(0, 1\], got"):
+        check_config(config)
+
+
+def test_bad_match_iterations_is_one_clear_error():
+    config = DecentralizedConfig(registration=RegistrationConfig(match_iterations=0))
+    with pytest.raises(ConfigError, match=r"^decentralized\.registration\.match_iterations must "
+                                          r"be >= 1, got 0$"):
+        check_config(config)

@@ -31,8 +31,10 @@ class RegistrationConfig:
     """Two-view registration of a keyframe pair (F-Sec. III-B).
 
     Attributes:
-        match_stride: query pixels of view i on a grid of this stride (MASt3R's
-            subsampled reciprocal matching).
+        match_stride_ratio: spacing of the grid of query pixels of view i (MASt3R's
+            subsampled reciprocal matching), as a fraction of the image's long side (at least
+            one pixel). 1/64: 8 px at 512, the official ``fast_reciprocal_NNs`` subsampling at
+            MASt3R's resolution; about 64 x 48 queries at any resolution of a 4:3 image.
         match_iterations: fixed-point iterations of the reciprocal nearest-neighbour search.
         min_descriptor_confidence: matches need ``Q > this`` on both sides (CoMo3R's q_min).
         ransac_hypotheses: minimal 3-point similarity hypotheses.
@@ -42,17 +44,17 @@ class RegistrationConfig:
             floor of a meaningful fit, whatever the resolution).
         min_inlier_fraction: fewer RANSAC inliers than this fraction of the pair's
             correspondences and the pair is not registered: the consensus test relative to
-            the number of matches, which grows with the image size (queries on a
-            ``match_stride`` grid). An absolute count alone is not resolution-free: among the
-            ~3000 wrong matches of an unrelated 512x384 pair the best of 256 hypotheses
-            explains 44-123 by chance (1.6-4.3 %; 5.7-8.7 % of the ~250 of a 160x120 pair),
-            far above ``min_inliers``, while true loops keep 12-47 % (measured with
+            the number of matches. An absolute count alone is not resolution-free: with queries
+            on a fixed 4-pixel grid, among the ~3000 wrong matches of an unrelated 512x384
+            pair the best of 256 hypotheses explains 44-123 by chance (1.6-4.3 %; 5.7-8.7 % of
+            the ~250 of a 160x120 pair), far above ``min_inliers``, while true loops keep
+            12-47 % (measured with
             ``benchmarks/decentralized_loops.py``, default synthetic scene at 160 and 512 long
             side, 0.1x and 20x).
         seed: seed of the RANSAC sampling (combined with the pair's ids).
     """
 
-    match_stride: int = 4
+    match_stride_ratio: float = 1 / 64
     match_iterations: int = 3
     min_descriptor_confidence: float = 1.5
     ransac_hypotheses: int = 256
@@ -185,7 +187,6 @@ def check_config(config: DecentralizedConfig) -> None:
         if not value > 0:
             raise ConfigError(f"decentralized.{key} must be > 0, got {value}")
     at_least_one = {
-        "registration.match_stride": config.registration.match_stride,
         "registration.match_iterations": config.registration.match_iterations,
         "registration.ransac_hypotheses": config.registration.ransac_hypotheses,
         "registration.min_inliers": config.registration.min_inliers,
@@ -196,6 +197,9 @@ def check_config(config: DecentralizedConfig) -> None:
     for key, value in at_least_one.items():
         if value < 1:
             raise ConfigError(f"decentralized.{key} must be >= 1, got {value}")
+    if not 0 < config.registration.match_stride_ratio <= 1:
+        raise ConfigError("decentralized.registration.match_stride_ratio must be in (0, 1], "
+                          f"got {config.registration.match_stride_ratio}")
     if not 0 <= config.registration.min_inlier_fraction < 1:
         raise ConfigError("decentralized.registration.min_inlier_fraction must be in [0, 1), "
                           f"got {config.registration.min_inlier_fraction}")

@@ -14,6 +14,7 @@ queries meet on the same pixels, and later iterations start where earlier ones e
 from __future__ import annotations
 
 import logging
+import math
 
 import faiss
 import numpy as np
@@ -53,11 +54,24 @@ class _NearestCache:
         return int((self._nearest >= 0).sum())
 
 
-def query_grid(height: int, width: int, stride: int) -> Tensor:
-    """Flat indices ``(G,)`` int64 of the query grid: pixels ``(stride // 2 + k stride)`` in
-    both directions, as the official code's subsampling."""
-    rows = torch.arange(stride // 2, height, stride)
-    cols = torch.arange(stride // 2, width, stride)
+def _grid_axis(size: int, spacing: float) -> Tensor:
+    """Pixel centres ``floor((k + 1/2) spacing)`` along an axis of ``size`` pixels (at least
+    one), int64."""
+    count = max(1, math.ceil(size / spacing - 0.5))
+    positions = torch.floor((torch.arange(count, dtype=torch.float64) + 0.5) * spacing)
+    return torch.unique(positions.long().clamp(max=size - 1))
+
+
+def query_grid(height: int, width: int, stride_ratio: float) -> Tensor:
+    """Flat indices ``(G,)`` int64 of the query pixels of a ``height`` x ``width`` view.
+
+    The grid's spacing is ``stride_ratio`` times the view's long side (at least one pixel),
+    so a view sees the same grid at any resolution: about ``1 / stride_ratio`` queries along
+    the long side. With an integer spacing ``S`` in pixels the pixels are the official
+    code's ``S // 2 + k S`` (``fast_reciprocal_NNs(subsample_or_initxy1=S)``).
+    """
+    spacing = max(1.0, stride_ratio * max(height, width))
+    rows, cols = _grid_axis(height, spacing), _grid_axis(width, spacing)
     return (rows[:, None] * width + cols[None, :]).reshape(-1)
 
 
@@ -91,7 +105,7 @@ def reciprocal_matches(D_i: Tensor, D_j: Tensor, Q_i: Tensor, Q_j: Tensor,
     # row of each pixel in flat_i (-1: not confident), to start from the grid's pixels
     row_of = torch.full((H * W,), -1, dtype=torch.long)
     row_of[pixels_i] = torch.arange(pixels_i.numel())
-    query = row_of[query_grid(H, W, config.match_stride)]
+    query = row_of[query_grid(H, W, config.match_stride_ratio)]
     query = query[query >= 0].numpy()
     found_i, found_j = [], []
     for _ in range(config.match_iterations):
