@@ -8,6 +8,7 @@ from __future__ import annotations
 import gc
 import json
 import weakref
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -159,3 +160,97 @@ def test_a_session_read_paged_reads_nothing_until_its_store_serves_it(tmp_path) 
         store.record(resumed, [])
     assert torch.equal(read_session(tmp_path / STORE_NAME).graph.keyframes[0].X_hat,
                        2 * eager.graph.keyframes[0].X_hat)
+
+
+def _refined_coordinator(tmp_path: Path, resident: int) -> tuple[Coordinator, Path]:
+    """Two agents of 8 keyframes each, joined by an inter-agent link, in one store: the
+    terminal cleanup runs pose passes and depth steps (per-pixel parameters: these 6x8
+    pointmaps are too small for segments)."""
+    # the settings are the point: the working set, and a refinement with parameters
+    config = apply_overrides(Config(), [f"session.resident_keyframes={resident}",
+                                        "depth.variant=pixel", "depth.alternation_rounds=2",
+                                        f"session.spill_dir={tmp_path / 'spill'}"])
+    coordinator = Coordinator(None, config, None, 2)
+    gen = torch.Generator().manual_seed(2)
+    tmp_path.mkdir(exist_ok=True)
+    store = SessionStore.create(tmp_path / STORE_NAME, config, coordinator)
+    for step in range(16):
+        packet = _packet(step % 2, step // 2, gen)
+        pose = torch.cat([0.1 * torch.rand(3, generator=gen), torch.tensor([0, 0, 0, 1, 1.0])])
+        coordinator.graph.add_keyframe(replace(packet, T_WC=pose))
+        coordinator.stats.keyframes += 1
+        store.record(coordinator, [])
+    first, second = (coordinator.graph.global_index(a, 3) for a in (0, 1))
+    link = coordinator.graph.links[0].link
+    coordinator.graph.add_inter_link(first, second, link, 0.5)
+    coordinator.gauges.union(0, 1)
+    store.record(coordinator, [])
+    return coordinator, tmp_path / STORE_NAME
+
+
+def test_the_terminal_refinement_keeps_the_working_set_and_pages_the_rest(
+        tmp_path, monkeypatch) -> None:
+    """While the terminal cleanup's depth steps run, no keyframe outside the working set
+    holds its pointmaps in memory whenever the store is read (its own residency counters);
+    a pose pass, which solves over every pointmap, lets go of them after it; what the
+    cleanup changed is parked, then stored at its end."""
+    coordinator, path = _refined_coordinator(tmp_path, 2)
+    graph = coordinator.graph
+    kept = {g for own in graph.local_to_global.values() for g in own[-2:]}
+    in_memory: list[set[int]] = []  # at every store read outside a pose solve
+    solving = []
+    load, optimize = SessionStore.load_keyframe, graph.optimize
+
+    def spy(store: SessionStore, g: int, group: str) -> dict:
+        if not solving:
+            in_memory.append({k for k, kf in enumerate(graph.keyframes) if not isinstance(
+                kf, PagedKeyframe) or kf.resident("pointmaps")})
+        return load(store, g, group)
+
+    def solve(*args, **kwargs):
+        solving.append(True)
+        try:
+            return optimize(*args, **kwargs)
+        finally:
+            solving.pop()
+
+    monkeypatch.setattr(SessionStore, "load_keyframe", spy)
+    monkeypatch.setattr(graph, "optimize", solve)
+    coordinator.finish()
+    monkeypatch.undo()
+    alternation = coordinator.alternation[0]
+    assert alternation["rounds"] >= 1 and alternation["cleanup_passes"] >= 1
+    assert alternation["depth_parameters"] > 0
+    assert len(in_memory) > 16 and all(resident <= kept for resident in in_memory)
+    assert all(isinstance(kf, PagedKeyframe) and kf.served_by(coordinator.journal)
+               for g, kf in enumerate(graph.keyframes) if g not in kept)
+    refined = [(kf.X_hat, kf.X_init) for kf in graph.keyframes]
+    coordinator.journal.close()
+    for kf, (X_hat, X_init) in zip(read_session(path).graph.keyframes, refined, strict=True):
+        assert torch.equal(kf.X_hat, X_hat) and torch.equal(kf.X_init, X_init)
+
+
+def test_a_paged_terminal_refinement_equals_an_unpaged_one(tmp_path) -> None:
+    paged, _ = _refined_coordinator(tmp_path / "paged", 2)
+    unpaged, _ = _refined_coordinator(tmp_path / "unpaged", 10**9)
+    assert not any(isinstance(kf, PagedKeyframe) for kf in unpaged.graph.keyframes)
+    cleanups = [c.finish() for c in (paged, unpaged)]
+    changed = 0
+    for a, b in zip(paged.graph.keyframes, unpaged.graph.keyframes, strict=True):
+        assert torch.equal(a.T_WC, b.T_WC)
+        assert torch.equal(a.X_hat, b.X_hat) and torch.equal(a.X_init, b.X_init)
+        changed += not torch.equal(a.X_hat, a.X_init)
+    assert changed > 0  # the refinement moved pointmaps
+    reports = [c.alternation[0] for c in (paged, unpaged)]
+    for key in ("rounds", "round_max_depth_change", "cleanup_max_translation",
+                "depth_matches", "depth_parameters"):
+        assert reports[0][key] == reports[1][key], key
+    for a, b in zip(*(list(c.pointmaps) for c in cleanups), strict=True):
+        assert a.agent == b.agent and torch.equal(a.X_hat, b.X_hat)
+    for agent in (0, 1):
+        for a, b in zip(paged.pre_refinement[agent], unpaged.pre_refinement[agent],
+                        strict=True):
+            assert torch.equal(a.X_hat, b.X_hat) and torch.equal(a.C_hat, b.C_hat)
+            assert np.array_equal(a.colors, b.colors) and torch.equal(a.T_WC, b.T_WC)
+    for c in (paged, unpaged):
+        c.journal.close()

@@ -94,6 +94,16 @@ class RefinableKeyframe(Protocol):
     X_hat: Tensor
     X_init: Tensor
 
+
+class SegmentableKeyframe(Protocol):
+    """What the segmentation needs of a keyframe.
+
+    Attributes:
+        X_hat: ``(H, W, 3)`` current canonical pointmap in the keyframe's camera frame.
+    """
+
+    X_hat: Tensor
+
     def mean_confidence(self) -> Tensor:
         """``(H, W)`` per-frame confidence of ``X_hat``."""
 
@@ -243,8 +253,12 @@ def _build_problem(
     labels: Sequence[Tensor],
     config: DepthRefinementConfig,
     pinned: set[int],
+    data_only: bool = False,
 ) -> tuple[_Problem, list[int], list[int]]:
     """Flatten keyframes, matches and boundary pairs.
+
+    ``data_only`` leaves the warm start and the boundary pairs out (empty): what a chunk of
+    the data term needs (:mod:`como3r.backend.paged_refinement`).
 
     Returns:
         the problem, the first pixel of each keyframe, the first log-scale of each keyframe.
@@ -269,8 +283,9 @@ def _build_problem(
             param.append(torch.where(lab >= 0, -2, -1))
         else:
             param.append(torch.where(lab >= 0, lab + num_params, -1))
-            s_start.append(_mean_log_ratio(kf.X_hat.to(dtype), d, lab.reshape(-1), count))
-            if config.variant != "pixel":
+            if not data_only:
+                s_start.append(_mean_log_ratio(kf.X_hat.to(dtype), d, lab.reshape(-1), count))
+            if config.variant != "pixel" and not data_only:
                 lp, lq, diff = _adjacent_pairs(lab.reshape(kf.X_hat.shape[:2]),
                                                d.clamp_min(_MIN_RANGE).log())
                 bnd.append((lp + num_params, lq + num_params, diff))
@@ -389,40 +404,37 @@ class _Refiner:
         return r, J_a, J_b
 
     def _energy(self, s: Tensor, r: Tensor, r_bnd: Tensor) -> Tensor:
-        return _huber_cost(r, self.huber_k) + self._regularisers(s, r_bnd)
+        return _huber_cost(r, self.huber_k) + _regularisers(s, r_bnd, self.config)
 
     def energy(self, s: Tensor) -> Tensor:
         """Energy of C-Eq. 20 (differentiable in ``s`` when it requires a gradient)."""
         r_bnd = s[self.p.bnd_a] - s[self.p.bnd_b] + self.p.delta
         if self._runs_compiled(s):
             data = self._compiled_data(s, with_blocks=False)[2]
-            return data + self._regularisers(s, r_bnd)
+            return data + _regularisers(s, r_bnd, self.config)
         return self._energy(s, self._data(s)[0], r_bnd)
 
-    def normal_equations(self, s: Tensor) -> tuple[Tensor, Tensor, float]:
-        """Diagonal Hessian ``(M,)``, exact gradient ``(M,)`` (C-Eq. 24) and the energy."""
-        p, c = self.p, self.config
-        r_bnd = s[p.bnd_a] - s[p.bnd_b] + p.delta
+    def data_terms(self, s: Tensor, with_blocks: bool = True) -> tuple[Tensor, Tensor, float]:
+        """The data term of C-Eq. 21: its diagonal Hessian ``(M,)``, exact gradient ``(M,)``
+        (Jacobi-decoupled, C-Eq. 24; float64 from the compiled loop, else ``s``'s dtype) and
+        its cost; ``with_blocks=False`` computes the cost alone (``H`` and ``g`` are zero)."""
         if self._runs_compiled(s):
-            H, g, data = self._compiled_data(s)
-            H, g = H.to(s) + c.lambda_prior, g.to(s) + c.lambda_prior * s
-            energy = data + float(self._regularisers(s, r_bnd))
-        else:
-            H = torch.full_like(s, c.lambda_prior)
-            g = c.lambda_prior * s
-            r, J_a, J_b = self._data(s)
+            return self._compiled_data(s, with_blocks)
+        H, g = torch.zeros_like(s), torch.zeros_like(s)
+        r, J_a, J_b = self._data(s)
+        if with_blocks:
             w = huber_weight(r, self.huber_k)
             for params, J in ((self.match_param_a, J_a), (self.match_param_b, J_b)):
                 free = params >= 0
                 # Jacobi decoupling: only J_a^T W J_a and J_b^T W J_b; J_a^T W J_b is dropped.
                 H.index_add_(0, params[free], (w * J * J).sum(-1)[free])
                 g.index_add_(0, params[free], (w * J * r).sum(-1)[free])
-            energy = float(self._energy(s, r, r_bnd))
-        ones = torch.full_like(r_bnd, c.lambda_smooth)
-        H.index_add_(0, p.bnd_a, ones).index_add_(0, p.bnd_b, ones)
-        g.index_add_(0, p.bnd_a, c.lambda_smooth * r_bnd)
-        g.index_add_(0, p.bnd_b, -c.lambda_smooth * r_bnd)
-        return H, g, energy
+        return H, g, float(_huber_cost(r, self.huber_k))
+
+    def normal_equations(self, s: Tensor) -> tuple[Tensor, Tensor, float]:
+        """Diagonal Hessian ``(M,)``, exact gradient ``(M,)`` (C-Eq. 24) and the energy."""
+        p = self.p
+        return regularised(*self.data_terms(s), s, p.bnd_a, p.bnd_b, p.delta, self.config)
 
     def _runs_compiled(self, s: Tensor) -> bool:
         """CPU problems take the compiled loop, except for log-scales autograd
@@ -437,11 +449,6 @@ class _Refiner:
             self.depths(s), p.param, p.match_a, p.match_b, p.rays, p.rays_b_in_a, p.t_ab,
             p.sqrt_w, s.numel(), self.huber_k, with_blocks)
 
-    def _regularisers(self, s: Tensor, r_bnd: Tensor) -> Tensor:
-        """Boundary (C-Eq. 22) and prior (C-Eq. 23) energies."""
-        return (self.config.lambda_smooth * (r_bnd ** 2).sum()
-                + self.config.lambda_prior * (s ** 2).sum())
-
     def step(self, s: Tensor) -> tuple[Tensor, int, float]:
         """One damped, clipped Newton step.
 
@@ -449,12 +456,49 @@ class _Refiner:
             ``ds (M,)``, how many entries the clip limited, and the energy at ``s``.
         """
         H, g, energy = self.normal_equations(s)
-        damped = H * (1.0 + self.config.lambda_lm)
-        ds = torch.where(damped > 0, -g / damped.clamp_min(torch.finfo(s.dtype).tiny),
-                         torch.zeros_like(g))
-        clip = self.config.step_clip
-        clipped = int((ds.abs() > clip).sum())
-        return ds.clamp(-clip, clip), clipped, energy
+        return (*damped_step(H, g, s, self.config), energy)
+
+
+def _regularisers(s: Tensor, r_bnd: Tensor, config: DepthRefinementConfig) -> Tensor:
+    """Boundary (C-Eq. 22) and prior (C-Eq. 23) energies."""
+    return config.lambda_smooth * (r_bnd ** 2).sum() + config.lambda_prior * (s ** 2).sum()
+
+
+def regularised(H: Tensor, g: Tensor, data_cost: float, s: Tensor, bnd_a: Tensor,
+                bnd_b: Tensor, delta: Tensor, config: DepthRefinementConfig
+                ) -> tuple[Tensor, Tensor, float]:
+    """The data term's normal equations with the boundary (C-Eq. 22) and prior (C-Eq. 23)
+    terms added: the Hessian diagonal ``(M,)``, gradient ``(M,)`` (in ``s``'s dtype) and the
+    energy of C-Eq. 20.
+
+    Args:
+        H, g: ``(M,)`` the data term's diagonal Hessian and gradient; data_cost: its cost.
+        s: ``(M,)`` the log-scales.
+        bnd_a, bnd_b: ``(B,)`` int64 adjacent log-scale pairs; delta: ``(B,)`` their
+            ``Delta_ab``.
+        config: ``lambda_smooth``, ``lambda_prior``.
+    """
+    r_bnd = s[bnd_a] - s[bnd_b] + delta
+    H, g = H.to(s) + config.lambda_prior, g.to(s) + config.lambda_prior * s
+    energy = data_cost + float(_regularisers(s, r_bnd, config))
+    ones = torch.full_like(r_bnd, config.lambda_smooth)
+    H.index_add_(0, bnd_a, ones).index_add_(0, bnd_b, ones)
+    g.index_add_(0, bnd_a, config.lambda_smooth * r_bnd)
+    g.index_add_(0, bnd_b, -config.lambda_smooth * r_bnd)
+    return H, g, energy
+
+
+def damped_step(H: Tensor, g: Tensor, s: Tensor, config: DepthRefinementConfig
+                ) -> tuple[Tensor, int]:
+    """The damped, clipped 1x1 Newton step of C-Eq. 24 from the diagonal Hessian ``H (M,)``
+    and gradient ``g (M,)`` at ``s (M,)``: ``ds (M,)`` and how many entries the clip
+    limited."""
+    damped = H * (1.0 + config.lambda_lm)
+    ds = torch.where(damped > 0, -g / damped.clamp_min(torch.finfo(s.dtype).tiny),
+                     torch.zeros_like(g))
+    clip = config.step_clip
+    clipped = int((ds.abs() > clip).sum())
+    return ds.clamp(-clip, clip), clipped
 
 
 def refine_depths(
@@ -530,11 +574,8 @@ def refine_depths(
                                               lab.to(kf.X_hat.device), count))
             continue
         rows = slice(pixel_offsets[k], pixel_offsets[k] + H * W)
-        free = problem.param[rows] >= 0
-        points = depths[rows, None] * problem.rays[rows]
-        X_new = kf.X_hat.reshape(-1, 3).clone()
-        X_new[free] = points[free].to(X_new.dtype)
-        X_out.append(X_new.reshape(H, W, 3))
+        X_out.append(written_back(kf.X_hat, depths[rows], problem.rays[rows],
+                                  problem.param[rows]))
         log_scales.append(s[param_offsets[k]:param_offsets[k] + count])
     report.seconds = time.perf_counter() - start
     logger.debug("depth refinement (%s): %d params, %d matches, cost %.4g -> %.4g, max |ds| "
@@ -543,7 +584,18 @@ def refine_depths(
     return X_out, log_scales, report
 
 
-def keyframe_labels(keyframes: Sequence[RefinableKeyframe], config: DepthRefinementConfig
+def written_back(X_hat: Tensor, depths: Tensor, rays: Tensor, param: Tensor) -> Tensor:
+    """A keyframe's refined pointmap (C-Eq. 19): ``X_hat (H, W, 3)`` with every pixel that
+    has a free log-scale (``param (H W,) >= 0``) moved to ``depths (H W,)`` times its unit
+    ray ``rays (H W, 3)``; the other pixels keep their ``X_hat``. A new tensor."""
+    free = param >= 0
+    points = depths[:, None] * rays
+    X_new = X_hat.reshape(-1, 3).clone()
+    X_new[free] = points[free].to(X_new.dtype)
+    return X_new.reshape(X_hat.shape)
+
+
+def keyframe_labels(keyframes: Sequence[SegmentableKeyframe], config: DepthRefinementConfig
                     ) -> list[Tensor]:
     """Label maps of ``config.variant`` for the keyframes' current ``X_hat`` (confidence:
     ``mean_confidence()``, comparable to one prediction's ``C``)."""

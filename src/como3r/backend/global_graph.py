@@ -29,21 +29,25 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import torch
 from torch import Tensor
 
-from como3r.backend.depth_refinement import (
-    DepthRefinementReport,
-    keyframe_labels,
-    refine_keyframes,
+from como3r.backend.depth_refinement import DepthRefinementReport
+from como3r.backend.paged_refinement import (
+    LabelMaps,
+    Pointmaps,
+    chunk_edges,
+    refine_in_chunks,
 )
+from como3r.backend.segments import parameter_labels
 from como3r.config import DepthRefinementConfig, GlobalBAConfig, TrackingConfig
 from como3r.errors import InputError
 from como3r.frontend.graph import Edge, make_factors
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh
+from como3r.frontend.paging import KeyframeParking, paged_out, read_fields
 from como3r.frontend.pairs import PairLink, gather_points
 from como3r.geometry.camera import to_focal
 from como3r.geometry.units import scene_depth
@@ -347,7 +351,8 @@ class GlobalGraph:
             torch.stack([_pad(torch.ones_like(x, dtype=torch.bool), P) for x in q]),
             self.tracking, None if K_i is None else K_i.to(X_i[0]))
 
-    def freeze_refinement_base(self, agents: Sequence[int]) -> None:
+    def freeze_refinement_base(self, agents: Sequence[int],
+                               parking: KeyframeParking | None = None) -> None:
         """Make every keyframe's current fused pointmap the base ``X_init`` of C-Eq. 19.
 
         C-Eq. 19 rebuilds each refined point from the insertion-time prediction, which
@@ -355,37 +360,73 @@ class GlobalGraph:
         the fused maps carry about two thirds of a single prediction's depth distortion, and
         per-segment refinement from the insertion snapshot ended with a LARGER map error
         than it started with (``depth.refine_from``; the closing note of issue 6).
+
+        Args:
+            parking: where paged-out keyframes' new base goes (None: into the keyframes).
         """
         for a in agents:
             for g in self.local_to_global.get(a, []):
-                self.keyframes[g].X_init = self.keyframes[g].X_hat
+                kf = self.keyframes[g]
+                self._set_pointmaps(g, {"X_init": read_fields(kf, "X_hat")}, parking)
 
-    def segment(self, agents: Sequence[int], anchor: int, config: DepthRefinementConfig
-                ) -> dict[int, Tensor]:
-        """Label maps (C-Sec. A.6) of the keyframes reachable from ``anchor``, by global index."""
-        nodes = self.connected(agents, anchor)
-        return dict(zip(nodes, keyframe_labels([self.keyframes[g] for g in nodes], config)))
+    def segment(self, agents: Sequence[int], anchor: int, config: DepthRefinementConfig,
+                parking: KeyframeParking | None = None) -> LabelMaps:
+        """Label maps (C-Sec. A.6) of the keyframes reachable from ``anchor``, by global
+        index; a paged-out keyframe's kept in ``parking`` (None: all in memory)."""
+        labels = LabelMaps(parking)
+        for g in self.connected(agents, anchor):
+            kf = self.keyframes[g]
+            X_hat, C_hat = read_fields(kf, "X_hat", "C_hat")
+            labels.keep(g, parameter_labels(X_hat, C_hat / kf.fused_frames, config),
+                        parked=paged_out(kf))
+        return labels
 
     def refine_depths(self, agents: Sequence[int], anchor: int, config: DepthRefinementConfig,
-                      labels: dict[int, Tensor]) -> DepthRefinementReport:
+                      labels: Mapping[int, Tensor], parking: KeyframeParking | None = None
+                      ) -> DepthRefinementReport:
         """One depth step (C-Sec. A.7 step 2b-2c; C-Eq. 19-24) at the current poses.
 
         The log-scales of the keyframes reachable from ``anchor`` are refined over the
         links' intra- and inter-agent matches with ``anchor``'s segments (and the
-        :attr:`fixed` keyframes') fixed, and the refined pointmaps written back into ``X_hat``.
+        :attr:`fixed` keyframes') fixed, and the refined pointmaps written back into
+        ``X_hat``. The data term is summed over working sets of keyframes
+        (:mod:`.paged_refinement`): a paged-out keyframe is read back when its working set
+        is, and its refined pointmap parked (with ``parking``), so the step holds a working
+        set of pointmaps and matches at a time, not the map.
 
         Args:
             labels: global index -> label map (:meth:`segment`) of every reachable keyframe.
+            parking: where paged-out keyframes' refined pointmaps go (None: into the
+                keyframes).
         """
         nodes = self.connected(agents, anchor)
-        chosen = set(nodes)
         row = {g: r for r, g in enumerate(nodes)}
-        edges = [e for link in self.links if link.i in chosen and link.j in chosen
-                 for e in link.edges()]
-        pinned = [row[g] for g in nodes if g == anchor or g in self.fixed]
-        return refine_keyframes([self.keyframes[g] for g in nodes], self.poses(nodes), edges,
-                                row, config, pinned=pinned,
-                                labels=[labels[g] for g in nodes])
+        links = [link for link in self.links if link.i in row and link.j in row]
+
+        def edges(chosen: Sequence[int]) -> list[Edge]:
+            return [Edge(row[e.i], row[e.j], e.matches, e.kind)
+                    for n in chosen for e in links[n].edges()]
+
+        def read(r: int) -> Pointmaps:
+            return Pointmaps(*read_fields(self.keyframes[nodes[r]], "X_hat", "X_init"))
+
+        return refine_in_chunks(
+            len(nodes), read, self.poses(nodes),
+            chunk_edges([(row[link.i], row[link.j]) for link in links], edges),
+            lambda r: labels[nodes[r]], config,
+            lambda r, X: self._set_pointmaps(nodes[r], {"X_hat": X}, parking),
+            pinned=[row[g] for g in nodes if g == anchor or g in self.fixed])
+
+    def _set_pointmaps(self, g: int, values: dict[str, Tensor],
+                       parking: KeyframeParking | None) -> None:
+        """Set pointmap fields of keyframe ``g``: parked if it is paged out and a parking is
+        given, else in the keyframe."""
+        kf = self.keyframes[g]
+        if parking is not None and paged_out(kf):
+            parking.park(kf, values)
+            return
+        for name, value in values.items():
+            setattr(kf, name, value)
 
 
 def _pad(x: Tensor, size: int) -> Tensor:

@@ -43,7 +43,8 @@ import logging
 import math
 import time
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any, Iterable, Mapping, Protocol, Sequence
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, Mapping, Protocol, Sequence
 
 import numpy as np
 import torch
@@ -66,6 +67,7 @@ from como3r.coordination.gauge import (
 from como3r.errors import Como3rError, InputError
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
+from como3r.frontend.paging import KeyframeParking, paged_out, read_fields
 from como3r.frontend.pairs import DirectedMatches, PairLink, gather_points
 from como3r.frontend.timing import StageTimer, TimedPrior
 from como3r.geometry.lie import sim3_act
@@ -112,11 +114,19 @@ class Cleanup:
 
     Attributes:
         updates: final poses of the agents of multi-agent components.
-        pointmaps: refined canonical pointmaps of every refined agent.
+        refined: the agents whose pointmaps the depth refinement refined.
+        pointmap_update: an agent's refined pointmaps, read when asked for (a whole map of
+            them would not fit a bounded memory).
     """
 
     updates: list[PoseUpdate] = field(default_factory=list)
-    pointmaps: list[PointmapUpdate] = field(default_factory=list)
+    refined: list[int] = field(default_factory=list)
+    pointmap_update: Callable[[int], PointmapUpdate] | None = None
+
+    @property
+    def pointmaps(self) -> Iterator[PointmapUpdate]:
+        """Refined canonical pointmaps of every refined agent, one update at a time."""
+        return (self.pointmap_update(agent) for agent in self.refined)
 
 
 @dataclass(frozen=True)
@@ -125,24 +135,49 @@ class MapSnapshot:
     it was before the terminal depth refinement; not its encoding, first prediction or
     retrieval features, which a copy of the keyframe would read back from a paged-out
     graph and hold for the whole map (~0.5 MB per keyframe at 64x48, 326 KB of it the
-    simulated prior's encoding).
+    simulated prior's encoding). A paged-out keyframe's arrays are kept in the cleanup's
+    parking and read back when asked for.
 
     Attributes:
-        T_WC: ``(8,)`` pose; X_hat: ``(H, W, 3)`` fused pointmap; C_hat: ``(H, W)`` its
-            accumulated confidence; colors: ``(H, W, 3)`` uint8 image; fused_frames: how
-            many frames contributed.
+        T_WC: ``(8,)`` pose; fused_frames: how many frames contributed.
+        arrays: ``(X_hat (H, W, 3), C_hat (H, W), colors (H, W, 3) uint8)``: the fused
+            pointmap, its accumulated confidence and the image; None: in ``parking``.
+        parking: where the arrays are kept when ``arrays`` is None, as keyframe ``key``.
     """
 
     T_WC: Tensor
-    X_hat: Tensor
-    C_hat: Tensor
-    colors: np.ndarray
     fused_frames: int
+    arrays: tuple[Tensor, Tensor, np.ndarray] | None
+    parking: KeyframeParking | None = None
+    key: int = -1
 
     @classmethod
-    def of(cls, kf: Keyframe) -> MapSnapshot:
-        """The snapshot of ``kf`` now (its pose copied: the cleanup moves it in place)."""
-        return cls(kf.T_WC.clone(), kf.X_hat, kf.C_hat, kf.colors, kf.fused_frames)
+    def of(cls, kf: Keyframe, parking: KeyframeParking, key: int) -> MapSnapshot:
+        """The snapshot of ``kf`` (global index ``key``) now, its pose copied (the cleanup
+        moves it in place); a paged-out keyframe's arrays go to ``parking``."""
+        if not paged_out(kf):
+            return cls(kf.T_WC.clone(), kf.fused_frames, (kf.X_hat, kf.C_hat, kf.colors))
+        X_hat, C_hat, colors = read_fields(kf, "X_hat", "C_hat", "colors")
+        parking.put(key, "snapshot", {"X_hat": X_hat, "C_hat": C_hat, "colors": colors})
+        return cls(kf.T_WC.clone(), kf.fused_frames, None, parking, key)
+
+    def _arrays(self) -> tuple[Tensor, Tensor, np.ndarray]:
+        if self.arrays is not None:
+            return self.arrays
+        kept = self.parking.get(self.key, "snapshot")
+        return kept["X_hat"], kept["C_hat"], kept["colors"]
+
+    @property
+    def X_hat(self) -> Tensor:
+        return self._arrays()[0]
+
+    @property
+    def C_hat(self) -> Tensor:
+        return self._arrays()[1]
+
+    @property
+    def colors(self) -> np.ndarray:
+        return self._arrays()[2]
 
     def mean_confidence(self) -> Tensor:
         """``(H, W)`` confidence per contributing frame (:meth:`Keyframe.mean_confidence`)."""
@@ -152,40 +187,53 @@ class MapSnapshot:
 class _ComponentCleanup:
     """The two solvers of one component's alternation (C-Sec. A.7) and their records.
 
+    Keyframes paged out when the cleanup starts stay paged out (issue 14, bounded memory):
+    the depth steps read them a working set at a time and park what they change
+    (:class:`~como3r.frontend.paging.KeyframeParking`), which the session store takes at
+    the end; a pose pass, which reads every pointmap of the component, lets go of them
+    after it.
+
     Args:
         graph: the global graph.
         members: the component's agents.
         anchor: global index of its pinned keyframe.
         depth: the depth-refinement settings.
+        parking: where paged-out keyframes' changed pointmaps, labels and snapshots go.
     """
 
     def __init__(self, graph: GlobalGraph, members: Sequence[int], anchor: int,
-                 depth: DepthRefinementConfig) -> None:
+                 depth: DepthRefinementConfig, parking: KeyframeParking) -> None:
         self.graph, self.members, self.anchor, self.depth = graph, members, anchor, depth
+        self.parking = parking
         self.results: list[BAResult] = []
         self.depth_reports: list[DepthRefinementReport] = []
         self.snapshot: dict[int, list[MapSnapshot]] = {}
-        self.labels: dict[int, Tensor] = {}
+        self.labels: Mapping[int, Tensor] = {}
+        self.paged = [graph.keyframes[g] for a in members for g in graph.agent_keyframes(a)
+                      if paged_out(graph.keyframes[g])]
 
     def pose_pass(self, max_iters: int) -> float:
         """A global pose solve; its largest camera move over the component's scene depth
         (0 if it kept the poses)."""
         result = self.graph.optimize(self.members, self.anchor, max_iters)
         self.results.append(result)
-        if not result.moved:
-            return 0.0
-        return result.max_translation_change / self.graph.scene_depth(self.members)
+        change = (result.max_translation_change / self.graph.scene_depth(self.members)
+                  if result.moved else 0.0)
+        for kf in self.paged:
+            kf.release()
+        return change
 
     def depth_step(self) -> float:
         """Segments, log-scale refinement, write-back; its ``max |ds|``."""
+        graph, parking = self.graph, self.parking
         if not self.snapshot:
-            self.snapshot = {a: [MapSnapshot.of(self.graph.keyframes[g])
-                                 for g in self.graph.agent_keyframes(a)]
-                             for a in self.members}
+            self.snapshot = {a: [MapSnapshot.of(graph.keyframes[g], parking, g)
+                                 for g in graph.agent_keyframes(a)] for a in self.members}
             if self.depth.refine_from == "fused":
-                self.graph.freeze_refinement_base(self.members)
-            self.labels = self.graph.segment(self.members, self.anchor, self.depth)
-        report = self.graph.refine_depths(self.members, self.anchor, self.depth, self.labels)
+                graph.freeze_refinement_base(self.members, parking)
+            self.labels = graph.segment(self.members, self.anchor, self.depth, parking)
+        report = graph.refine_depths(self.members, self.anchor, self.depth, self.labels,
+                                     parking)
         self.depth_reports.append(report)
         return report.max_change
 
@@ -338,7 +386,9 @@ class Coordinator:
             InputError: an agent's pose count differs from the keyframes it sent.
         """
         start = time.perf_counter()
-        cleanup = Cleanup()
+        cleanup = Cleanup(pointmap_update=self._pointmaps)
+        spill = self.config.session.spill_dir
+        parking = KeyframeParking(Path(spill) if spill else None)
         settings = AlternationSettings.from_config(self.config.global_ba, self.config.depth)
         for members in self.components():
             if not self.graph.agent_keyframes(members[0]) or any(
@@ -353,14 +403,14 @@ class Coordinator:
             if multi_agent:
                 self._refine_focals(members, scoped)
             component = _ComponentCleanup(self.graph, members, self._anchor(members[0]),
-                                          self.config.depth)
+                                          self.config.depth, parking)
             report = alternate(component.pose_pass if multi_agent else None,
                                component.depth_step, settings, progress=scoped)
             self._record_cleanup(members, component, report)
             if multi_agent:
                 cleanup.updates.extend(self._updates(members, "cleanup"))
             if component.depth_reports:
-                cleanup.pointmaps.extend(self._pointmaps(members))
+                cleanup.refined.extend(members)
                 self.pre_refinement.update(component.snapshot)
         self.stats.add_time("cleanup", time.perf_counter() - start)
         self._record(self._count(cleanup.updates), finished=True)
@@ -434,15 +484,12 @@ class Coordinator:
             "depth_iterations": sum(r.iterations for r in depth),
         })
 
-    def _pointmaps(self, agents: Iterable[int]) -> list[PointmapUpdate]:
-        """One update per agent with the current pointmaps of all its keyframes."""
-        updates = []
-        for agent in agents:
-            indices = self.graph.agent_keyframes(agent)
-            updates.append(PointmapUpdate(
-                agent=agent, kf_ids=torch.arange(len(indices), dtype=torch.int64),
-                X_hat=torch.stack([self.graph.keyframes[g].X_hat for g in indices])))
-        return updates
+    def _pointmaps(self, agent: int) -> PointmapUpdate:
+        """An update with the current pointmaps of all of ``agent``'s keyframes."""
+        indices = self.graph.agent_keyframes(agent)
+        return PointmapUpdate(
+            agent=agent, kf_ids=torch.arange(len(indices), dtype=torch.int64),
+            X_hat=torch.stack([read_fields(self.graph.keyframes[g], "X_hat") for g in indices]))
 
     def components(self) -> list[list[int]]:
         """Gauge components (sorted agent lists), agent 0's first."""

@@ -116,12 +116,31 @@ class PagedKeyframe(Keyframe):
         """The groups some field of which was set since the last eviction (or creation)."""
         return [group for group in GROUPS if group in self._changed]
 
-    def peek(self, name: str) -> Any:
-        """Field ``name``; read from the pages without keeping it when it is not in memory
-        (a solve over every keyframe must not make them all resident)."""
-        if name in self._resident:
-            return self._resident[name]
-        return self._pages.load_keyframe(self._key, _GROUP_OF[name])[name]
+    def peek(self, *names: str) -> Any:
+        """Fields ``names`` (one value for one name, else a tuple); read from the pages
+        without keeping them when they are not in memory (a solve over every keyframe must
+        not make them all resident), each group read once."""
+        groups: dict[str, dict[str, Any]] = {}
+        values = []
+        for name in names:
+            if name in self._resident:
+                values.append(self._resident[name])
+                continue
+            group = _GROUP_OF[name]
+            if group not in groups:
+                groups[group] = self._pages.load_keyframe(self._key, group)
+            values.append(groups[group][name])
+        return values[0] if len(names) == 1 else tuple(values)
+
+    def served_by(self, pages: KeyframePages) -> bool:
+        """Whether ``pages`` reads this keyframe's paged-out arrays back."""
+        return self._pages is pages
+
+    def release(self) -> None:
+        """Let go of the arrays read back from the pages; groups set since the eviction
+        stay in memory."""
+        for name in [n for n in self._resident if _GROUP_OF[n] not in self._changed]:
+            del self._resident[name]
 
     def evict(self, pages: KeyframePages | None, key: int) -> None:
         """Let go of the large arrays; ``pages`` reads them back as keyframe ``key`` (None:
@@ -168,6 +187,79 @@ class PagedMatches(DirectedMatches):
     def evict(self) -> None:
         """Let go of the matches."""
         object.__setattr__(self, "_resident", None)
+
+
+def read_fields(kf: Keyframe, *names: str) -> Any:
+    """Fields ``names`` of ``kf`` (one value for one name, else a tuple); a paged keyframe's
+    read back without making it resident (:meth:`PagedKeyframe.peek`)."""
+    if isinstance(kf, PagedKeyframe):
+        return kf.peek(*names)
+    values = tuple(getattr(kf, name) for name in names)
+    return values[0] if len(names) == 1 else values
+
+
+def paged_out(kf: Keyframe) -> bool:
+    """Whether ``kf``'s pointmaps live in its pages only (set ones are in memory)."""
+    return isinstance(kf, PagedKeyframe) and not kf.resident("pointmaps")
+
+
+class KeyframeParking:
+    """Arrays of paged-out keyframes that their pages cannot take yet, in a private
+    :class:`KeyframeSpill` (the coordinator's terminal refinement: the session store takes
+    its results in one transaction at its end, so that a store never holds half a cleanup).
+
+    :meth:`park` sets pointmap fields of a paged-out keyframe without making it resident:
+    the keyframe is then served by the parking, which reads the parked fields from its spill
+    and every other array from the keyframe's former pages. :meth:`put` and :meth:`get` keep
+    other per-keyframe arrays (segment labels, snapshots) for the parking's owner.
+
+    Args:
+        folder: where the spill folder is made (None: the system's temporary folder).
+    """
+
+    def __init__(self, folder: Path | None = None) -> None:
+        self._folder = folder
+        self._spill: KeyframeSpill | None = None  # made when something is first parked
+        self._base: dict[int, KeyframePages] = {}  # key -> the pages it was served by
+        self._parked: dict[int, set[str]] = {}  # key -> its parked pointmap fields
+        #: arrays written to the spill (parked fields and :meth:`put`), a counter for tests
+        self.writes = 0
+
+    def park(self, kf: PagedKeyframe, values: dict[str, Tensor]) -> None:
+        """Set pointmap fields of a paged-out keyframe (:func:`paged_out`), which stays
+        paged out.
+
+        Args:
+            kf: the keyframe; read back from this parking from now on.
+            values: ``(H, W, 3)`` or ``(H, W)`` arrays by field name (:data:`POINTMAP_FIELDS`).
+        """
+        key = kf._key
+        if not kf.served_by(self):
+            self._base[key], self._parked[key] = kf._pages, set()
+        for name, value in values.items():
+            self.put(key, name, {name: value})
+            self._parked[key].add(name)
+        kf.evict(self, key)
+
+    def put(self, key: int, name: str, values: dict[str, Any]) -> None:
+        """Keep the arrays ``values`` as ``name`` of keyframe ``key``."""
+        if self._spill is None:
+            self._spill = KeyframeSpill(self._folder)
+            logger.debug("parking keyframe arrays in %s", self._spill.folder)
+        self._spill.save_keyframe(key, name, values)
+        self.writes += len(values)
+
+    def get(self, key: int, name: str) -> dict[str, Any]:
+        """The arrays kept as ``name`` of keyframe ``key``."""
+        return self._spill.load_keyframe(key, name)
+
+    def load_keyframe(self, key: int, group: str) -> dict[str, Any]:
+        """The arrays of ``group`` of a parked keyframe: its parked fields, the rest from
+        its former pages (:class:`KeyframePages`)."""
+        values = self._base[key].load_keyframe(key, group)
+        for name in self._parked[key] & set(GROUPS[group]):
+            values[name] = self.get(key, name)[name]
+        return values
 
 
 def plain_matches(matches: DirectedMatches | None) -> DirectedMatches | None:

@@ -29,6 +29,7 @@ from como3r.coordination.coordinator import Coordinator
 from como3r.frontend.agent import AgentFrontend, FrontendStats
 from como3r.frontend.keyframes import Keyframe, apply_pose_update
 from como3r.frontend.packets import PointmapRefresh, PointmapUpdate, PoseUpdate
+from como3r.frontend.paging import read_fields
 from como3r.geometry.lie import sim3_compose
 from como3r.runtime.messages import AgentFinished, EdgeSummary
 
@@ -67,9 +68,12 @@ class KeyframeView:
         """The graph's keyframe."""
         return self.graph.keyframes[self.graph.global_index(self.agent, self.graph_kf_id)]
 
-    X_hat = property(lambda self: self.keyframe.X_hat, lambda self, value: None)
-    C_hat = property(lambda self: self.keyframe.C_hat, lambda self, value: None)
-    colors = property(lambda self: self.keyframe.colors, lambda self, value: None)
+    # read back without keeping a paged-out keyframe's arrays: writing the outputs reads
+    # every keyframe once
+    X_hat = property(lambda self: read_fields(self.keyframe, "X_hat"), lambda self, value: None)
+    C_hat = property(lambda self: read_fields(self.keyframe, "C_hat"), lambda self, value: None)
+    colors = property(lambda self: read_fields(self.keyframe, "colors"),
+                      lambda self, value: None)
     K = property(lambda self: self.keyframe.K, lambda self, value: None)
     fused_frames = property(lambda self: self.keyframe.fused_frames, lambda self, value: None)
 
@@ -79,7 +83,7 @@ class KeyframeView:
     def mean_confidence(self) -> Tensor:
         """``(H, W)`` confidence per contributing frame."""
         kf = self.keyframe
-        return kf.C_hat / kf.fused_frames
+        return read_fields(kf, "C_hat") / kf.fused_frames
 
 
 def graph_view(graph: GlobalGraph, agent: int, kf_id: int, frame_index: int, timestamp: float,

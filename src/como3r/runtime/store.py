@@ -428,7 +428,13 @@ class SessionStore:
         for g, kf in enumerate(graph.keyframes[:len(self._keyframes)]):
             written = self._keyframes[g]
             if isinstance(kf, PagedKeyframe) and not kf.resident("pointmaps"):
-                continue  # as written: a pointmap that changes is read back first
+                if not kf.served_by(self):
+                    # parked by the terminal cleanup (KeyframeParking): the pointmaps it
+                    # changed are read back (the others from this store, as written) and
+                    # written, one keyframe in memory at a time
+                    self._keyframes[g] = self._write_pointmaps(g, kf, written)
+                    kf.evict(self, g)
+                continue  # else as written: a pointmap that changes is read back first
             if (any(b() is not a for a, b in zip(_pointmap_arrays(kf), written.arrays))
                     or kf.K is not written.K or kf.fused_frames != written.fused_frames):
                 self._keyframes[g] = self._write_pointmaps(g, kf, written)

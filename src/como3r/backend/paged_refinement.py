@@ -1,0 +1,237 @@
+"""The depth step of the terminal alternation over working sets of keyframes (issue 14,
+bounded memory; C-Sec. A.7 steps 2b-2c, C-Eq. 19-24).
+
+:func:`~como3r.backend.depth_refinement.refine_depths` flattens every keyframe's pixels and
+every match of a map into one problem: about 0.6 MB per keyframe at 64x48, most of it the
+matches, and a hundred times that at 512x384, all at once. The Newton step of C-Eq. 24 does
+not need that problem whole. Its Hessian is diagonal (Jacobi decoupling) and its gradient
+exact, so both are sums over matches, and the boundary (C-Eq. 22) and prior (C-Eq. 23)
+terms stay inside each keyframe. :func:`refine_in_chunks` runs the same iterations as
+``refine_depths`` and adds up the data term of C-Eq. 21 one :class:`Chunk` of edges at a
+time. A chunk's keyframes and matches are read when the chunk is built and let go after it:
+a paged-out keyframe is read back from the session store (or the cleanup's parking,
+:class:`~como3r.frontend.paging.KeyframeParking`) and not kept. Only the log-scales
+``s (M,)``, their warm start and the boundary pairs stay in memory for the whole step. Each
+keyframe holds a few hundred of them.
+
+A keyframe's refined pointmap goes to a ``write`` callback (an unpaged keyframe takes it in
+memory, a paged-out one is parked). Reads happen before writes: the data passes read the
+pointmaps as they were when the step started, as the whole problem does.
+
+The results equal ``refine_depths``'s up to the order in which the data term is summed
+(float rounding). The chunks depend on the graph only (:data:`KEYFRAMES_PER_CHUNK`
+consecutive keyframes by their largest endpoint), not on what is in memory, so a paged run
+and an unpaged run give identical results.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from como3r.backend.depth_refinement import (
+    HUBER_K,
+    DepthRefinementReport,
+    _build_problem,
+    _check_inputs,
+    _Refiner,
+    damped_step,
+    regularised,
+    written_back,
+)
+from como3r.config import DepthRefinementConfig
+from como3r.frontend.graph import Edge
+from como3r.frontend.paging import KeyframeParking
+
+logger = logging.getLogger(__name__)
+
+#: Keyframes per working set of the depth step: a chunk holds the edges whose later endpoint
+#: is one of this many consecutive keyframes (the session's default resident count).
+KEYFRAMES_PER_CHUNK = 8
+
+
+@dataclass(frozen=True)
+class Pointmaps:
+    """What the depth step reads of a keyframe (:class:`~.depth_refinement.RefinableKeyframe`).
+
+    Attributes:
+        X_hat: ``(H, W, 3)`` current canonical pointmap.
+        X_init: ``(H, W, 3)`` the frozen base of C-Eq. 19.
+    """
+
+    X_hat: Tensor
+    X_init: Tensor
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """The edges of one working set.
+
+    Attributes:
+        rows: the keyframes its edges touch (positions in the refined set), sorted.
+        edges: makes its directed edges, their endpoints as rows. Called once per pass, so
+            paged-out matches are read back then.
+    """
+
+    rows: tuple[int, ...]
+    edges: Callable[[], list[Edge]]
+
+
+def chunk_edges(ends: Sequence[tuple[int, int]], make: Callable[[Sequence[int]], list[Edge]]
+                ) -> list[Chunk]:
+    """Links grouped into chunks by their later endpoint, :data:`KEYFRAMES_PER_CHUNK`
+    keyframes per chunk.
+
+    Args:
+        ends: each link's endpoint rows.
+        make: the directed edges (endpoints as rows) of the links at the given positions
+            in ``ends``.
+    """
+    groups: dict[int, list[int]] = {}
+    for n, (i, j) in enumerate(ends):
+        groups.setdefault(max(i, j) // KEYFRAMES_PER_CHUNK, []).append(n)
+    return [Chunk(tuple(sorted({r for n in links for r in ends[n]})),
+                  lambda links=links: make(links))
+            for _, links in sorted(groups.items())]
+
+
+class LabelMaps(Mapping[int, Tensor]):
+    """Label maps (C-Sec. A.6) by keyframe key: in memory, or those of paged-out keyframes
+    kept in a :class:`~como3r.frontend.paging.KeyframeParking` (read back when asked for).
+
+    Args:
+        park: where parked label maps go (None: all in memory).
+    """
+
+    def __init__(self, park: KeyframeParking | None = None) -> None:
+        self._park = park
+        self._labels: dict[int, Tensor | None] = {}  # None: in the park
+
+    def keep(self, key: int, labels: Tensor, parked: bool) -> None:
+        """Keep ``labels (H, W)`` of keyframe ``key``, in the park if ``parked``."""
+        if parked and self._park is not None:
+            self._park.put(key, "labels", {"labels": labels})
+            self._labels[key] = None
+        else:
+            self._labels[key] = labels
+
+    def __getitem__(self, key: int) -> Tensor:
+        labels = self._labels[key]
+        return self._park.get(key, "labels")["labels"] if labels is None else labels
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._labels)
+
+    def __len__(self) -> int:
+        return len(self._labels)
+
+
+def refine_in_chunks(
+    count: int,
+    read: Callable[[int], Pointmaps],
+    poses: Tensor,
+    chunks: Sequence[Chunk],
+    labels: Callable[[int], Tensor],
+    config: DepthRefinementConfig,
+    write: Callable[[int, Tensor], None],
+    pinned: Iterable[int] = (),
+    huber_k: float = HUBER_K,
+) -> DepthRefinementReport:
+    """One depth step (C-Eq. 19-24) at frozen poses, its data term summed chunk by chunk.
+
+    Args:
+        count: N, the keyframes refined (rows ``0 .. N-1``).
+        read: a row's pointmaps, read when needed and not kept.
+        poses: ``(N, 8)`` Sim(3) ``T_WC``, frozen.
+        chunks: the edges in working sets (:func:`chunk_edges`); every edge in one.
+        labels: a row's ``(H, W)`` int64 label map (``-1``: excluded).
+        config: as for :func:`~.depth_refinement.refine_depths`.
+        write: takes a free row's refined ``(H, W, 3)`` pointmap once every pass has read
+            what it needs (pinned rows keep theirs and are not written).
+        pinned: rows held fixed (the gauge anchor, a frozen map).
+        huber_k: Huber breakpoint of the data term.
+
+    Returns:
+        The report, as :func:`~.depth_refinement.refine_depths` makes it.
+
+    Raises:
+        InputError: inconsistent shapes, or an edge naming an unknown row.
+        ConfigError: an unknown variant.
+    """
+    start = time.perf_counter()
+    report = DepthRefinementReport(variant=config.variant)
+    if count == 0:
+        return report
+    pinned_rows = {int(r) for r in pinned}
+    # per row: its first log-scale and how many it has (pinned rows: none)
+    offsets, sizes, s_parts, bnd_parts = [], [], [], []
+    num_params = 0
+    for r in range(count):
+        kf, lab = read(r), labels(r)
+        _check_inputs([kf], poses[r:r + 1], [lab], config)
+        alone, _, _ = _build_problem([kf], poses[r:r + 1], [], {}.__getitem__, [lab], config,
+                                     {0} if r in pinned_rows else set())
+        offsets.append(num_params)
+        sizes.append(alone.s_start.numel())
+        s_parts.append(alone.s_start)
+        bnd_parts.append((alone.bnd_a + num_params, alone.bnd_b + num_params, alone.delta))
+        num_params += sizes[-1]
+    s_start = torch.cat(s_parts)
+    bnd_a, bnd_b, delta = (torch.cat(parts) for parts in zip(*bnd_parts))
+
+    def data_term(s: Tensor, with_blocks: bool) -> tuple[Tensor, Tensor, float]:
+        """C-Eq. 21 summed over the chunks: ``H (M,)``, ``g (M,)`` float64 and the cost."""
+        H = torch.zeros(num_params, dtype=torch.float64, device=s.device)
+        g = torch.zeros_like(H)
+        cost, report.num_matches = 0.0, 0
+        for chunk in chunks:
+            position = {r: n for n, r in enumerate(chunk.rows)}
+            problem, _, _ = _build_problem(
+                [read(r) for r in chunk.rows], poses[list(chunk.rows)], chunk.edges(),
+                position.__getitem__, [labels(r) for r in chunk.rows], config,
+                {position[r] for r in chunk.rows if r in pinned_rows}, data_only=True)
+            report.num_matches += problem.match_a.numel()
+            index = torch.cat([torch.arange(offsets[r], offsets[r] + sizes[r],
+                                            device=s.device) for r in chunk.rows])
+            H_c, g_c, cost_c = _Refiner(problem, config, huber_k).data_terms(s[index],
+                                                                             with_blocks)
+            if with_blocks:
+                H.index_add_(0, index, H_c.to(H))
+                g.index_add_(0, index, g_c.to(g))
+            cost += cost_c
+        return H, g, cost
+
+    s = s_start.clone()
+    report.num_parameters = num_params
+    report.num_boundary_pairs = bnd_a.numel()
+    if num_params:
+        for _ in range(config.inner_iters):
+            H, g, energy = regularised(*data_term(s, True), s, bnd_a, bnd_b, delta, config)
+            ds, clipped = damped_step(H, g, s, config)
+            report.cost_history.append(energy)
+            s = s + ds
+            report.iterations += 1
+            report.clipped_steps += clipped
+            report.max_step = float(ds.abs().max())
+        report.max_change = float((s - s_start).abs().max())
+    H, g, cost = data_term(s, False)
+    report.cost_history.append(regularised(H, g, cost, s, bnd_a, bnd_b, delta, config)[2])
+
+    for r in range(count):
+        if r in pinned_rows:
+            continue
+        kf = read(r)
+        alone, _, _ = _build_problem([kf], poses[r:r + 1], [], {}.__getitem__, [labels(r)],
+                                     config, set(), data_only=True)
+        depths = _Refiner(alone, config, huber_k).depths(s[offsets[r]:offsets[r] + sizes[r]])
+        write(r, written_back(kf.X_hat, depths, alone.rays, alone.param))
+    report.seconds = time.perf_counter() - start
+    logger.debug("depth refinement (%s) in %d chunk(s): %d params, %d matches, cost %.4g -> "
+                 "%.4g, max |ds| %.3g", report.variant, len(chunks), report.num_parameters,
+                 report.num_matches, report.initial_cost, report.final_cost, report.max_change)
+    return report
