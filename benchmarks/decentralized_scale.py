@@ -53,6 +53,28 @@ absolute count, where a 160 pair's ~250 gave 14-17 (``decentralized_loops.py``).
 with 15 inliers). A 512 run takes 65-70 min on 2 shared cores, nearly all of it the
 reciprocal matching's brute-force search (12k queries x 192k descriptors, three passes).
 
+Exact faiss search, queries on a grid of 1/64 of the long side (``match_stride_ratio``: 8 px
+at 512 as the official code, 64 x 48 queries at every resolution, where the fixed 4 px gave
+12k at 512 and 1.2k at 160) and ``ransac_hypotheses`` 1024 (was 256), merged ATE % of path,
+smoothed/LM (in brackets smoothed/GNC, independent/GNC), loops accepted:
+
+    long side  scale  before (4 px, 256)            after
+    512        0.1    1.509 (1.509, 1.475)  21      1.396 (1.396, 1.383)  21   1085 s
+    512        20     1.571 (1.571, 1.497)  20      1.489 (1.489, 1.429)  20   1095 s
+    160        0.1    1.638                 -       1.526 (1.526, 1.456)  19
+    160        1      1.601 (1.531, 1.517)  20      1.594 (1.594, 1.539)  20
+    160        20     1.566                 -       1.501 (1.501, 1.513)  19
+
+The 512 runs were 2953 s (0.1x) before on the same machine under other load; the robots'
+``match_seconds`` are now 12x their simulated ``decode_seconds`` (each ~3.5 s per pair wall;
+``decentralized_matching.py`` has the per-pair figures against a MASt3R decode). The grid with
+256 hypotheses gave 1.422 (512, 0.1x) and 1.560 / 1.714 / 1.564 (160): at 160, 1x one true
+loop (1,2)-(2,0) took an aliased 72 deg pose of 103 inliers over the true one's 132-138, which
+256 hypotheses miss 42 % of the time at its 15-20 % inliers (``decentralized_loops.py``).
+Accepted loops that are wrong (rotation > 10 deg) after, all between views ~2.4-3.6 keyframe
+spacings apart, as before: 160 0.1x (2,3)-(1,5) 14.7 deg; 1x (2,3)-(1,4) 20 deg (25 deg
+before) and (2,3)-(0,0) 16 deg; 20x (2,3)-(0,0) 12.5 deg.
+
 Run it against two checkouts to compare them (the scene folder is reused when it exists):
 
     PYTHONPATH=src python benchmarks/decentralized_scale.py --work /tmp/dscale/bench \\
