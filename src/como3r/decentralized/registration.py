@@ -85,12 +85,6 @@ class RegistrationStats:
                 "registration_encodes": self.registration_encodes}
 
 
-def _minimal_similarities(src: Tensor, dst: Tensor) -> Tensor:
-    """Closed-form similarities ``(B, 8)`` of ``B`` samples ``(B, 3, 3)`` (float64)."""
-    R, t, s = umeyama_sim3_batched(src, dst)
-    return torch.cat([t, matrix_to_quat(R), s[:, None]], dim=-1)
-
-
 def ransac_similarity(src: Tensor, dst: Tensor, config: RegistrationConfig,
                       gen: torch.Generator) -> tuple[Tensor, Tensor] | None:
     """Robust similarity ``dst ~= s R src + t`` from putative 3-D correspondences.
@@ -113,10 +107,12 @@ def ransac_similarity(src: Tensor, dst: Tensor, config: RegistrationConfig,
     threshold = config.ransac_inlier_ratio * dst.norm(dim=-1)
     samples = torch.stack([torch.randperm(count, generator=gen)[:3]
                            for _ in range(config.ransac_hypotheses)])
-    hypotheses = _minimal_similarities(src[samples], dst[samples])
-    residual = (sim3_act(hypotheses[:, None, :], src[None]) - dst[None]).norm(dim=-1)
-    support = (residual < threshold).sum(dim=1)
-    best = hypotheses[int(torch.argmax(support))]
+    # closed-form similarities of the minimal samples, scored as matrices (B, M, 3)
+    R, t, s = umeyama_sim3_batched(src[samples], dst[samples])
+    moved = s[:, None, None] * torch.matmul(src[None], R.transpose(1, 2)) + t[:, None]
+    support = ((moved - dst[None]).norm(dim=-1) < threshold).sum(dim=1)
+    k = int(torch.argmax(support))
+    best = torch.cat([t[k], matrix_to_quat(R[k]), s[k:k + 1]])
     inliers = (sim3_act(best, src) - dst).norm(dim=-1) < threshold
     for _ in range(2):
         # the floor only: the fraction judges the refined fit, which may gain support
