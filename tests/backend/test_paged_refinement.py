@@ -14,7 +14,7 @@ from como3r.frontend.graph import Edge
 from como3r.frontend.paging import KeyframeParking
 from como3r.geometry.lie import sim3_act, sim3_exp, sim3_identity, sim3_inverse
 
-from .test_depth_refinement import CONFIG, SHIFT, W, FakeKeyframe, scene_points, shifted_matches
+from .test_depth_refinement import CONFIG, SHIFT, FakeKeyframe, W, scene_points, shifted_matches
 
 KEYFRAMES = 6
 
