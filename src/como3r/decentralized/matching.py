@@ -99,6 +99,9 @@ def reciprocal_matches(D_i: Tensor, D_j: Tensor, Q_i: Tensor, Q_j: Tensor,
     none = torch.zeros(0, dtype=torch.long)
     if pixels_i.numel() == 0 or pixels_j.numel() == 0:
         return none, none
+    # faiss parallelises over OpenMP's own thread count (every core): give it this
+    # process's PyTorch threads, as the compiled kernels take them (como3r.jit)
+    faiss.omp_set_num_threads(torch.get_num_threads())
     flat_i = D_i.reshape(-1, d)[pixels_i].float().contiguous().numpy()
     flat_j = D_j.reshape(-1, d)[pixels_j].float().contiguous().numpy()
     i_to_j, j_to_i = _NearestCache(flat_i, flat_j), _NearestCache(flat_j, flat_i)
