@@ -5,7 +5,9 @@ One agent on a long synthetic loop runs in the default multi-process runtime (``
 run``): the coordinator in the measuring process, the agent in its own. Every ``--every``
 processed frames both processes' resident set size (``VmRSS``) and peak
 (``VmHWM``) are read from ``/proc`` (Linux only), with the keyframes the coordinator holds;
-the last row is the end of the run (terminal refinement and outputs included). Each
+the last row is the end of the run (terminal refinement and outputs included); with
+``--phases`` also as each step of the end starts (a cleanup pass, an alternation round, the
+outputs, the evaluation, the report: which step makes the peak). Each
 ``--resident`` value (``session.resident_keyframes``: the keyframes per agent kept whole in
 memory; the default configuration's first) runs in a process of its own, so peaks do not
 carry over.
@@ -32,7 +34,7 @@ import time
 from pathlib import Path
 
 from como3r.config import Config, apply_overrides
-from como3r.progress import AgentProgress
+from como3r.progress import AgentProgress, PhaseEvent
 from como3r.runtime.multiprocess import run_multiprocess
 from como3r.runtime.pipeline import PriorSpec
 
@@ -84,15 +86,18 @@ def first_frames(agent: Path, frames: int, folder: Path) -> Path:
     return folder
 
 
-def measure(agent: Path, out: Path, resident: int, every: int, long_side: int | None) -> None:
-    """One run; prints one JSON line per sample."""
+def measure(agent: Path, out: Path, resident: int, every: int, long_side: int | None,
+            phases: bool = False) -> None:
+    """One run; prints one JSON line per sample (with ``phases`` also one as each step of
+    the end starts: the first six letters of its phase in ``frames``, its number in
+    ``keyframes``)."""
     overrides = [f"session.resident_keyframes={resident}"]
     if long_side is not None:
         overrides.append(f"input.long_side={long_side}")
     config = apply_overrides(Config(), overrides)
     start = time.perf_counter()
 
-    def sample(frames: int, keyframes: int) -> None:
+    def sample(frames: int | str, keyframes: int | str) -> None:
         own = _status("self")
         agents = [_status(pid) for pid in _agent_pids()]
         print(json.dumps({"frames": frames, "keyframes": keyframes,
@@ -106,6 +111,8 @@ def measure(agent: Path, out: Path, resident: int, every: int, long_side: int | 
         if isinstance(event, AgentProgress) and event.frames_done % every == 0 \
                 and event.frames_done:
             sample(event.frames_done, event.keyframes)
+        elif isinstance(event, PhaseEvent) and phases:  # as the step starts
+            sample(event.name[:6], event.done)
 
     summary = run_multiprocess([agent], out, config, PriorSpec("simulated"), overwrite=True,
                                progress=progress)
@@ -126,13 +133,16 @@ def main() -> None:
                         help="input.long_side (default: the configuration's)")
     parser.add_argument("--frames", type=int, default=None,
                         help="only the first N frames of the input (default: all)")
+    parser.add_argument("--phases", action="store_true",
+                        help="also sample as each step of the end starts (cleanup passes, "
+                             "alternation rounds, outputs, evaluation, report)")
     parser.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.frames is not None and args.one is None:
         args.agent = first_frames(args.agent, args.frames, args.out / f"first_{args.frames}")
     if args.one is not None:
         measure(args.agent, args.out / f"resident_{args.one}", args.one, args.every,
-                args.long_side)
+                args.long_side, args.phases)
         return
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
           f"{args.agent}; RSS in MB")
@@ -143,6 +153,8 @@ def main() -> None:
                    str(args.out), "--every", str(args.every), "--one", str(resident)]
         if args.long_side is not None:
             command += ["--long-side", str(args.long_side)]
+        if args.phases:
+            command.append("--phases")
         with subprocess.Popen(command, stdout=subprocess.PIPE, text=True) as run:
             for line in run.stdout:  # as they come: a long run shows its curve as it goes
                 row = json.loads(line)
