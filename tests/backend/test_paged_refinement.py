@@ -43,7 +43,7 @@ def chain(dtype: torch.dtype = torch.float32):
     return keyframes, torch.stack(poses).to(dtype), edges, labels
 
 
-def chunked(keyframes, poses, edges, labels, reads=None):
+def chunked(keyframes, poses, edges, labels, reads=None, keep=lambda rows: False):
     """:func:`refine_in_chunks` over the chain; returns the written pointmaps and report."""
     ends = [(edges[n].i, edges[n].j) for n in range(0, len(edges), 2)]
 
@@ -56,7 +56,7 @@ def chunked(keyframes, poses, edges, labels, reads=None):
     report = refine_in_chunks(
         len(keyframes), read, poses,
         chunk_edges(ends, lambda links: [e for n in links for e in edges[2 * n:2 * n + 2]]),
-        labels.__getitem__, CONFIG, written.__setitem__, pinned=[0])
+        labels.__getitem__, CONFIG, written.__setitem__, pinned=[0], keep=keep)
     return written, report
 
 
@@ -97,6 +97,26 @@ def test_a_chunk_reads_only_its_keyframes(monkeypatch) -> None:
     chunk_reads = [(0, 1), (1, 2, 3), (3, 4, 5)]
     setup, writes = list(range(KEYFRAMES)), list(range(1, KEYFRAMES))
     assert reads == setup + [r for _ in range(passes) for c in chunk_reads for r in c] + writes
+
+
+def test_kept_chunks_are_read_once_per_step_with_the_same_result(monkeypatch) -> None:
+    """A chunk allowed to keep its problem (its keyframes resident) is read at the first pass
+    only; the chunk of keyframe 5 may not, and is read at every pass."""
+    monkeypatch.setattr(paged_refinement, "KEYFRAMES_PER_CHUNK", 2)
+    keyframes, poses, edges, labels = chain()
+    every_pass: list[int] = []
+    reference, reference_report = chunked(keyframes, poses, edges, labels, every_pass)
+    reads: list[int] = []
+    written, report = chunked(keyframes, poses, edges, labels, reads,
+                              keep=lambda rows: 5 not in rows)
+    passes = CONFIG.inner_iters + 1
+    setup, writes = list(range(KEYFRAMES)), list(range(1, KEYFRAMES))
+    assert reads == setup + [0, 1, 1, 2, 3] + [3, 4, 5] * passes + writes
+    assert len(every_pass) == len(setup) + passes * 8 + len(writes)
+    for k in writes:
+        assert torch.equal(written[k], reference[k])
+    assert report.cost_history == reference_report.cost_history
+    assert report.num_matches == reference_report.num_matches
 
 
 def test_label_maps_of_paged_keyframes_live_in_the_parking(tmp_path) -> None:

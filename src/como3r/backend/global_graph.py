@@ -415,7 +415,10 @@ class GlobalGraph:
             chunk_edges([(row[link.i], row[link.j]) for link in links], edges),
             lambda r: labels[nodes[r]], config,
             lambda r, X: self._set_pointmaps(nodes[r], {"X_hat": X}, parking),
-            pinned=[row[g] for g in nodes if g == anchor or g in self.fixed])
+            pinned=[row[g] for g in nodes if g == anchor or g in self.fixed],
+            # a chunk of resident keyframes keeps its problem: only paged-out ones are
+            # read again at every pass
+            keep=lambda rows: not any(paged_out(self.keyframes[nodes[r]]) for r in rows))
 
     def _set_pointmaps(self, g: int, values: dict[str, Tensor],
                        parking: KeyframeParking | None) -> None:

@@ -10,7 +10,9 @@ terms stay inside each keyframe. :func:`refine_in_chunks` runs the same iteratio
 ``refine_depths`` and adds up the data term of C-Eq. 21 one :class:`Chunk` of edges at a
 time. A chunk's keyframes and matches are read when the chunk is built and let go after it:
 a paged-out keyframe is read back from the session store (or the cleanup's parking,
-:class:`~como3r.frontend.paging.KeyframeParking`) and not kept. Only the log-scales
+:class:`~como3r.frontend.paging.KeyframeParking`) and not kept. A chunk whose keyframes are
+all in memory anyway keeps its flattened problem for the step (``keep``): building it again
+at every pass made a 14-keyframe map's depth steps 3.8x slower. Only the log-scales
 ``s (M,)``, their warm start and the boundary pairs stay in memory for the whole step. Each
 keyframe holds a few hundred of them.
 
@@ -141,6 +143,7 @@ def refine_in_chunks(
     write: Callable[[int, Tensor], None],
     pinned: Iterable[int] = (),
     huber_k: float = HUBER_K,
+    keep: Callable[[Sequence[int]], bool] = lambda rows: False,
 ) -> DepthRefinementReport:
     """One depth step (C-Eq. 19-24) at frozen poses, its data term summed chunk by chunk.
 
@@ -155,6 +158,9 @@ def refine_in_chunks(
             what it needs (pinned rows keep theirs and are not written).
         pinned: rows held fixed (the gauge anchor, a frozen map).
         huber_k: Huber breakpoint of the data term.
+        keep: whether a chunk of these rows may keep its flattened problem for the whole
+            step (its keyframes stay in memory anyway) instead of reading and flattening it
+            again at each of the step's ``inner_iters + 1`` passes; default: none may.
 
     Returns:
         The report, as :func:`~.depth_refinement.refine_depths` makes it.
@@ -184,22 +190,34 @@ def refine_in_chunks(
     s_start = torch.cat(s_parts)
     bnd_a, bnd_b, delta = (torch.cat(parts) for parts in zip(*bnd_parts))
 
+    kept: dict[int, _Refiner] = {}
+
+    def chunk_refiner(n: int, chunk: Chunk) -> _Refiner:
+        """Chunk ``n``'s flattened data problem: kept for the step where ``keep`` allows,
+        else read and built again at every pass (the working set of a paged map)."""
+        if n in kept:
+            return kept[n]
+        position = {r: k for k, r in enumerate(chunk.rows)}
+        problem, _, _ = _build_problem(
+            [read(r) for r in chunk.rows], poses[list(chunk.rows)], chunk.edges(),
+            position.__getitem__, [labels(r) for r in chunk.rows], config,
+            {position[r] for r in chunk.rows if r in pinned_rows}, data_only=True)
+        refiner = _Refiner(problem, config, huber_k)
+        if keep(chunk.rows):
+            kept[n] = refiner
+        return refiner
+
     def data_term(s: Tensor, with_blocks: bool) -> tuple[Tensor, Tensor, float]:
         """C-Eq. 21 summed over the chunks: ``H (M,)``, ``g (M,)`` float64 and the cost."""
         H = torch.zeros(num_params, dtype=torch.float64, device=s.device)
         g = torch.zeros_like(H)
         cost, report.num_matches = 0.0, 0
-        for chunk in chunks:
-            position = {r: n for n, r in enumerate(chunk.rows)}
-            problem, _, _ = _build_problem(
-                [read(r) for r in chunk.rows], poses[list(chunk.rows)], chunk.edges(),
-                position.__getitem__, [labels(r) for r in chunk.rows], config,
-                {position[r] for r in chunk.rows if r in pinned_rows}, data_only=True)
-            report.num_matches += problem.match_a.numel()
+        for n, chunk in enumerate(chunks):
+            refiner = chunk_refiner(n, chunk)
+            report.num_matches += refiner.p.match_a.numel()
             index = torch.cat([torch.arange(offsets[r], offsets[r] + sizes[r],
                                             device=s.device) for r in chunk.rows])
-            H_c, g_c, cost_c = _Refiner(problem, config, huber_k).data_terms(s[index],
-                                                                             with_blocks)
+            H_c, g_c, cost_c = refiner.data_terms(s[index], with_blocks)
             if with_blocks:
                 H.index_add_(0, index, H_c.to(H))
                 g.index_add_(0, index, g_c.to(g))
