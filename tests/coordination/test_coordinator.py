@@ -324,3 +324,23 @@ def test_bad_packets_are_refused(ring) -> None:
         coordinator.add_keyframe(ring.packets[0][1])
     with pytest.raises(InputError, match="num_agents"):
         Coordinator(ring.prior, ring.config, None, num_agents=0)
+
+
+def test_re_sent_keyframes_are_answered_once_the_last_held_one_comes_again(ring) -> None:
+    """An agent re-running its frames after the coordinator resumed from its store: the
+    keyframes held already change nothing and get no update until the last held one, which
+    gets the held poses of all the agent's keyframes (answering each one made the re-run
+    agent remake every old edge's quadratic model after each answer)."""
+    coordinator = Coordinator(ring.prior, ring.config, None, num_agents=1)
+    packets = ring.packets[0][:3]
+    for packet in packets:
+        coordinator.add_keyframe(packet)
+    held = coordinator.graph.poses(coordinator.graph.agent_keyframes(0)).clone()
+    stats = dataclasses.replace(coordinator.stats)
+    assert [coordinator.add_keyframe(p) for p in packets[:2]] == [[], []]
+    [update] = coordinator.add_keyframe(packets[2])
+    assert update.reason == "resume" and update.kf_ids.tolist() == [0, 1, 2]
+    torch.testing.assert_close(update.T_WC, held, rtol=0, atol=0)
+    assert len(coordinator.graph) == 3 and coordinator.stats.keyframes == stats.keyframes
+    with pytest.raises(InputError, match="re-sent keyframe 1 at frame"):
+        coordinator.add_keyframe(dataclasses.replace(packets[1], frame_index=999))

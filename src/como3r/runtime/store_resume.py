@@ -4,10 +4,11 @@ A run killed at any moment leaves ``OUT.partial/session.db`` holding the coordin
 after its last complete message (:mod:`como3r.runtime.store`). ``--resume`` starts the same
 run again: :func:`open_store` reads the store, puts its state into the new run's coordinator
 (:func:`restore_coordinator`) and keeps writing the store. The agents process their inputs
-again from the start and send their keyframes again; the coordinator answers each keyframe
-it holds already with the current poses of the agent's keyframes up to it (a ``"resume"``
-pose update, :meth:`~como3r.coordination.coordinator.Coordinator.add_keyframe`), so the
-agent tracks on in the shared frame, and takes the keyframes after them as new.
+again from the start and send their keyframes again; the coordinator ignores the keyframes
+it holds already and answers the last of them with the current poses of all the agent's
+keyframes (a ``"resume"`` pose update,
+:meth:`~como3r.coordination.coordinator.Coordinator.add_keyframe`), so the agent tracks on
+in the shared frame, and takes the keyframes after them as new.
 
 The coordinator comes back exactly: keyframes with their pointmaps, encodings and poses,
 links with their matches, gauge components, the retrieval database (rebuilt from the stored
