@@ -25,7 +25,7 @@ from como3r.frontend.paging import PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches
 from como3r.prior.mast3r.prior import MASt3REncoding
 from como3r.runtime.store import STORE_NAME, SessionStore
-from como3r.runtime.store_paging import PagedLink, StoredVerification
+from como3r.runtime.store_paging import PagedLink, StoredVerification, working_set
 from como3r.runtime.store_reader import read_session
 
 H, W = 6, 8
@@ -102,6 +102,27 @@ def test_keyframes_outside_the_working_set_are_let_go_and_read_back(tmp_path) ->
     assert torch.equal(stored.graph.keyframes[2].C_hat, confidence)
     assert torch.equal(stored.graph.keyframes[2].X_hat, changed)
     assert torch.equal(stored.graph.keyframes[2].X_init, written[2][0])
+
+
+def test_an_agent_with_fewer_keyframes_than_the_working_set_keeps_them_all(tmp_path) -> None:
+    """6 keyframes of agent 0 and 3 of agent 1 under 4 resident each: agent 0's newest 4 and
+    all of agent 1's stay in memory (a slice from ``len - resident`` counted 6 - 8 = -2 from
+    the end and paged out 6 of the demo scene's 14 keyframes before its terminal cleanup)."""
+    # the setting is the point of the test: more resident keyframes than agent 1 has
+    config = apply_overrides(Config(), ["session.resident_keyframes=4"])
+    coordinator = Coordinator(None, config, None, 2)
+    gen = torch.Generator().manual_seed(3)
+    with SessionStore.create(tmp_path / STORE_NAME, config, coordinator) as store:
+        for agent, kf_id in [(0, k) for k in range(3)] + [(1, k) for k in range(3)] + [
+                (0, k) for k in range(3, 6)]:
+            coordinator.graph.add_keyframe(_packet(agent, kf_id, gen))
+            coordinator.stats.keyframes += 1
+            store.record(coordinator, [])
+        graph = coordinator.graph
+        kept = set(graph.agent_keyframes(0)[2:]) | set(graph.agent_keyframes(1))
+        assert working_set(coordinator) == kept
+        assert {g for g, kf in enumerate(graph.keyframes)
+                if not isinstance(kf, PagedKeyframe)} == kept
 
 
 @pytest.fixture(scope="module")

@@ -109,7 +109,9 @@ def working_set(coordinator: Coordinator) -> set[int]:
     """Global indices of each agent's newest ``session.resident_keyframes`` keyframes."""
     keep = coordinator.config.session.resident_keyframes
     graph = coordinator.graph
-    return {g for own in graph.local_to_global.values() for g in own[len(own) - keep:]
+    # max(0, ...): an agent with fewer keyframes keeps all of them (a negative start would
+    # count from the end and keep only its last keep - len(own))
+    return {g for own in graph.local_to_global.values() for g in own[max(0, len(own) - keep):]
             if keep > 0}
 
 
