@@ -12,7 +12,9 @@ from scipy.spatial.transform import Rotation
 
 from como3r.errors import InputError
 from como3r.evaluation.reconstruction import (
+    VoxelCentroids,
     cloud_from_depth,
+    evaluate_maps,
     ground_truth_cloud,
     keyframe_cloud,
     reconstruction_metrics,
@@ -79,6 +81,18 @@ def test_voxel_downsample_averages_each_voxel():
     expected = {(-0.2, 0.0, 0.0), (0.2, 0.1, 0.1), (1.5, 0.2, 0.2)}
     assert {tuple(np.round(p, 9)) for p in down} == expected
     np.testing.assert_array_equal(voxel_downsample(points, 0.0), points)
+
+
+def test_voxel_centroids_given_in_pieces_equal_the_whole_cloud_downsampled():
+    points = np.random.default_rng(1).normal(size=(5000, 3)) * [4.0, 2.0, 1.0]
+    voxels = VoxelCentroids(0.5, buffer_points=700)  # merges 7 times, across voxels
+    for piece in np.array_split(points, 13):
+        voxels.add(piece)
+    whole = voxel_downsample(points, 0.5)
+    np.testing.assert_allclose(voxels.centroids(), whole, rtol=0, atol=1e-12)
+    assert voxels._counts.sum() == 5000 and len(voxels._pending) == 0
+    with pytest.raises(InputError, match="voxel size must be positive"):
+        VoxelCentroids(0.0)
 
 
 def test_voxel_size_evens_out_density():
@@ -150,6 +164,30 @@ def test_ground_truth_cloud_from_agent_folders(tmp_path):
     assert strided.shape == (2 * 12, 3)
     voxels = ground_truth_cloud([agent], voxel_size=10.0)
     assert voxels.shape[0] == len(np.unique(np.floor(cloud / 10.0), axis=0))
+
+
+def test_map_metrics_of_an_estimate_in_pieces_equal_those_of_the_whole(tmp_path):
+    """evaluate_maps reduces each estimate to voxels piece by piece (a long run's map is
+    never held whole): the metrics are those of the whole cloud aligned and downsampled."""
+    from como3r.data.agent import open_agent
+    from como3r.evaluation.reconstruction import MAP_THRESHOLD_RATIO, MAP_VOXEL_RATIO
+
+    agent = open_agent(write_agent(tmp_path / "a", n=3))
+    alignment = Sim3Alignment(Rotation.from_rotvec([0.1, 0.2, -0.3]).as_matrix(),
+                              np.array([0.5, -1.0, 0.2]), 1.7)
+    truth = ground_truth_cloud([agent])
+    rng = np.random.default_rng(0)
+    estimate = (truth + rng.normal(scale=0.01, size=truth.shape) - alignment.translation
+                ) @ alignment.rotation / alignment.scale
+    estimate[5] = np.nan  # dropped
+    scores = evaluate_maps([agent], {"whole": [estimate],
+                                     "pieces": np.array_split(estimate, 7)}, alignment)
+    assert scores["pieces"] == scores["whole"]
+    reference = reconstruction_metrics(estimate, truth, MAP_THRESHOLD_RATIO * 2.0, alignment,
+                                       MAP_VOXEL_RATIO * 2.0)  # median depth: 2 m
+    assert scores["whole"].num_estimated == reference.num_estimated
+    assert scores["whole"].accuracy == pytest.approx(reference.accuracy, rel=1e-9)
+    assert scores["whole"].fscore == pytest.approx(reference.fscore, rel=1e-9)
 
 
 def test_ground_truth_cloud_needs_depth(tmp_path):

@@ -23,7 +23,7 @@ import logging
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -40,6 +40,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "ReconstructionMetrics",
+    "VoxelCentroids",
     "reconstruction_metrics",
     "nearest_distances",
     "voxel_downsample",
@@ -111,6 +112,60 @@ def _as_points(points: np.ndarray | Tensor, name: str) -> np.ndarray:
     return points
 
 
+class VoxelCentroids:
+    """Centroid of the points in each occupied voxel of an axis-aligned grid, over points
+    given in any number of pieces: memory grows with the occupied voxels and one buffer of
+    ``buffer_points`` points, not with the points given (a long run's reference cloud
+    visits the same voxels from thousands of frames, issue 14).
+
+    Args:
+        voxel_size: edge length [m], positive.
+        buffer_points: points held before they are merged into the voxels' sums.
+    """
+
+    def __init__(self, voxel_size: float, buffer_points: int = 1 << 18) -> None:
+        if not voxel_size > 0:
+            raise InputError(f"VoxelCentroids: voxel size must be positive, got {voxel_size}")
+        self.voxel_size = voxel_size
+        self.buffer_points = buffer_points
+        self._cells = np.zeros((0, 3), dtype=np.int64)
+        self._sums = np.zeros((0, 3))
+        self._counts = np.zeros(0, dtype=np.int64)
+        self._pending: list[np.ndarray] = []
+        self._pending_points = 0
+
+    def add(self, points: np.ndarray) -> None:
+        """Take ``(N, 3)`` more points."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        self._pending.append(points)
+        self._pending_points += points.shape[0]
+        if self._pending_points >= self.buffer_points:
+            self._merge()
+
+    def centroids(self) -> np.ndarray:
+        """``(M, 3)`` float64 centroids of the occupied voxels, ordered by voxel index."""
+        self._merge()
+        return self._sums / self._counts[:, None]
+
+    def _merge(self) -> None:
+        if not self._pending:
+            return
+        points = np.concatenate(self._pending)
+        self._pending, self._pending_points = [], 0
+        cells = np.concatenate([self._cells,
+                                np.floor(points / self.voxel_size).astype(np.int64)])
+        self._cells, inverse = np.unique(cells, axis=0, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        old = self._counts.size
+        sums = np.zeros((self._cells.shape[0], 3))
+        np.add.at(sums, inverse[:old], self._sums)
+        np.add.at(sums, inverse[old:], points)
+        self._sums = sums
+        self._counts = np.bincount(inverse, weights=np.concatenate(
+            [self._counts, np.ones(points.shape[0], dtype=np.int64)]),
+            minlength=self._cells.shape[0]).astype(np.int64)
+
+
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """Centroid of the points in each occupied voxel of an axis-aligned grid.
 
@@ -124,12 +179,9 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     points = np.asarray(points, dtype=np.float64)
     if voxel_size <= 0 or points.shape[0] == 0:
         return points
-    cells = np.floor(points / voxel_size).astype(np.int64)
-    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    sums = np.zeros((counts.size, 3))
-    np.add.at(sums, inverse, points)
-    return sums / counts[:, None]
+    voxels = VoxelCentroids(voxel_size, buffer_points=points.shape[0])
+    voxels.add(points)
+    return voxels.centroids()
 
 
 def nearest_distances(source: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -260,7 +312,9 @@ def ground_truth_cloud(
             ``calib.txt``.
         frame_stride, pixel_stride: subsampling of frames and of pixels.
         max_depth: drop depths beyond this [m].
-        voxel_size: downsample each frame's points and the result to this voxel size [m].
+        voxel_size: downsample each frame's points and the result to this voxel size [m]
+            (the result's memory is then that of the occupied voxels, whatever the number
+            of frames).
 
     Returns:
         ``(M, 3)`` float64 points in the ground-truth frame.
@@ -271,7 +325,8 @@ def ground_truth_cloud(
     if frame_stride < 1 or pixel_stride < 1:
         raise InputError(f"ground_truth_cloud: strides must be >= 1, got frame_stride="
                          f"{frame_stride}, pixel_stride={pixel_stride}")
-    clouds = []
+    clouds: list[np.ndarray] = []
+    voxels = VoxelCentroids(voxel_size) if voxel_size > 0 else None
     for agent in agents:
         agent = agent if isinstance(agent, AgentInput) else open_agent(agent)
         missing = [name for name, present in (("depth/", agent.has_depth),
@@ -285,10 +340,17 @@ def ground_truth_cloud(
         for index in frames:
             frame = agent.load_frame(int(index))
             points = cloud_from_depth(frame.depth, K, frame.T_WC_gt, pixel_stride, max_depth)
-            clouds.append(voxel_downsample(points, voxel_size))
-    if not clouds or sum(c.shape[0] for c in clouds) == 0:
+            if voxels is None:
+                clouds.append(points)
+            else:
+                voxels.add(voxel_downsample(points, voxel_size))
+    if voxels is not None:
+        cloud = voxels.centroids()
+    else:
+        cloud = np.concatenate(clouds) if clouds else np.zeros((0, 3))
+    if cloud.shape[0] == 0:
         raise InputError("ground_truth_cloud: no frame with ground truth and valid depth")
-    return voxel_downsample(np.concatenate(clouds), voxel_size)
+    return cloud
 
 
 def median_ground_truth_depth(agents: Sequence[AgentInput], samples: int = 8) -> float:
@@ -312,7 +374,7 @@ def median_ground_truth_depth(agents: Sequence[AgentInput], samples: int = 8) ->
 
 def evaluate_maps(
     agents: Sequence[AgentInput],
-    clouds: dict[str, np.ndarray],
+    clouds: Mapping[str, Iterable[np.ndarray]],
     alignment: Sim3Alignment,
     threshold_ratio: float = MAP_THRESHOLD_RATIO,
     voxel_ratio: float = MAP_VOXEL_RATIO,
@@ -324,10 +386,13 @@ def evaluate_maps(
     ground-truth frame by ``alignment`` (the component's trajectory alignment). Threshold
     and voxel size are fractions of the median ground-truth depth
     (:func:`median_ground_truth_depth`), so a scene scaled by any factor scores the same.
+    Both clouds are reduced to voxels as they are read (:class:`VoxelCentroids`): memory
+    follows the map's extent, not the number of frames and keyframes.
 
     Args:
         agents: the component's agent inputs (with depth, ground truth and calibration).
-        clouds: name -> ``(N, 3)`` world points in the component's gauge.
+        clouds: name -> the estimate's points in the component's gauge, in pieces
+            ``(N_k, 3)`` (one per keyframe, say); non-finite points are dropped.
         alignment: estimate -> ground truth.
         threshold_ratio: precision / recall distance over the median depth.
         voxel_ratio: voxel size over the median depth.
@@ -340,6 +405,12 @@ def evaluate_maps(
     depth = median_ground_truth_depth(agents)
     voxel_size = voxel_ratio * depth
     reference = ground_truth_cloud(agents, pixel_stride=stride, voxel_size=voxel_size)
-    return {name: reconstruction_metrics(cloud, reference, threshold_ratio * depth, alignment,
-                                         voxel_size)
-            for name, cloud in clouds.items()}
+    scores = {}
+    for name, pieces in clouds.items():
+        voxels = VoxelCentroids(voxel_size)
+        for piece in pieces:
+            piece = np.asarray(piece, dtype=np.float64).reshape(-1, 3)
+            voxels.add(alignment.apply(piece[np.isfinite(piece).all(axis=1)]))
+        scores[name] = reconstruction_metrics(voxels.centroids(), reference,
+                                              threshold_ratio * depth)
+    return scores

@@ -11,7 +11,7 @@ import json
 import logging
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -58,10 +58,9 @@ def fused_map(keyframes: Mapping[int, Iterable[Any]], min_confidence: float,
     xyz, rgb, agent_ids = [], [], []
     for agent, agent_keyframes in keyframes.items():
         for kf in agent_keyframes:
-            keep = (kf.mean_confidence() > min_confidence).reshape(-1).cpu()
-            points = sim3_act(kf.T_WC[None, None, :].to(kf.X_hat), kf.X_hat).reshape(-1, 3).cpu()
-            xyz.append(points[keep].numpy().astype(np.float32))
-            rgb.append(kf.colors.reshape(-1, 3)[keep.numpy()])
+            points, keep = _world_points(kf, min_confidence)
+            xyz.append(points)
+            rgb.append(kf.colors.reshape(-1, 3)[keep])
             agent_ids.append(np.full(int(keep.sum()), agent, dtype=np.int32))
     if not xyz:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros(0, np.int32)
@@ -72,6 +71,23 @@ def fused_map(keyframes: Mapping[int, Iterable[Any]], min_confidence: float,
         first.sort()
         xyz_all, rgb_all, ids_all = xyz_all[first], rgb_all[first], ids_all[first]
     return xyz_all, rgb_all, ids_all
+
+
+def _world_points(kf: Any, min_confidence: float) -> tuple[np.ndarray, np.ndarray]:
+    """A keyframe's canonical points in the world above a confidence: ``(N, 3)`` float32
+    and the ``(H*W,)`` bool mask of the pixels kept."""
+    keep = (kf.mean_confidence() > min_confidence).reshape(-1).cpu()
+    points = sim3_act(kf.T_WC[None, None, :].to(kf.X_hat), kf.X_hat).reshape(-1, 3).cpu()
+    return points[keep].numpy().astype(np.float32), keep.numpy()
+
+
+def fused_points(keyframes: Mapping[int, Iterable[Any]], min_confidence: float
+                 ) -> Iterator[np.ndarray]:
+    """:func:`fused_map`'s points, one ``(N_k, 3)`` float32 piece per keyframe, made as
+    they are taken (a long run's map is never held whole)."""
+    for agent_keyframes in keyframes.values():
+        for kf in agent_keyframes:
+            yield _world_points(kf, min_confidence)[0]
 
 
 def write_map(out: Path, frontends: Sequence[AgentFrontend], config: Config) -> int:
@@ -333,11 +349,11 @@ def _map_accuracy(summary: Any, agents: Sequence[Any], components: Sequence[Sequ
         alignment = summary.evaluation.alignment_of(component)
         if alignment is None:
             continue
-        clouds = {"final": fused_map({a: results[a].keyframes for a in component},
-                                     min_confidence)[0]}
+        clouds = {"final": fused_points({a: results[a].keyframes for a in component},
+                                        min_confidence)}
         if all(a in coordinator.pre_refinement for a in component):
-            clouds["before_refinement"] = fused_map(
-                {a: coordinator.pre_refinement[a] for a in component}, min_confidence)[0]
+            clouds["before_refinement"] = fused_points(
+                {a: coordinator.pre_refinement[a] for a in component}, min_confidence)
         try:
             scores = evaluate_maps([agents[a] for a in component], clouds, alignment)
         except InputError as exc:
