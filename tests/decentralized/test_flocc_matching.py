@@ -47,29 +47,55 @@ def _brute_force(D_i, D_j, Q_i, Q_j, config: RegistrationConfig):
     return sorted((int(pixels_i[a]), int(pixels_j[b])) for a, b in pairs)
 
 
+def _shifted_views(seed: int, H: int, W: int, shift: tuple[int, int], d: int = 24):
+    """Two views of one smooth descriptor field (random at an eighth of the resolution,
+    bilinearly upsampled), view j seeing it moved by ``shift`` = (dy, dx) pixels: pixel
+    (y, x) of view i is pixel (y - dy, x - dx) of view j. Confidences exclude a few pixels."""
+    gen = torch.Generator().manual_seed(seed)
+    dy, dx = shift
+    coarse = torch.randn(1, d, (H + dy) // 8 + 2, (W + dx) // 8 + 2, generator=gen)
+    field = torch.nn.functional.interpolate(coarse, size=(H + dy, W + dx), mode="bilinear",
+                                            align_corners=False)[0].permute(1, 2, 0)
+    field = torch.nn.functional.normalize(field, dim=-1)
+    D_i, D_j = field[:H, :W].contiguous(), field[dy:, dx:].contiguous()
+    Q_i = 1.0 + 4.0 * torch.rand(H, W, generator=gen)
+    Q_j = 1.0 + 4.0 * torch.rand(H, W, generator=gen)
+    return D_i, D_j, Q_i, Q_j
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("iterations", [1, 3])
-def test_matches_equal_brute_force(seed, iterations):
+def test_one_pixel_grid_matches_equal_exact_brute_force(seed, iterations):
+    """With a grid of one pixel the coarse level is every pixel: the search is exact."""
     D_i, D_j, Q_i, Q_j = _views(seed, 30, 40)
-    config = RegistrationConfig(match_stride_ratio=3 / 40, match_iterations=iterations)
+    config = RegistrationConfig(match_stride_ratio=1 / 40, match_iterations=iterations)
     p_i, p_j = reciprocal_matches(D_i, D_j, Q_i, Q_j, config)
     expected = _brute_force(D_i, D_j, Q_i, Q_j, config)
     assert len(expected) > 20
     assert list(zip(p_i.tolist(), p_j.tolist())) == expected
 
 
-def test_matches_are_mutual_nearest_neighbours_of_confident_pixels():
-    D_i, D_j, Q_i, Q_j = _views(3, 24, 32, noise=0.5)
-    config = RegistrationConfig(match_stride_ratio=2 / 32)
+@pytest.mark.parametrize("seed", [0, 1])
+def test_coarse_to_fine_finds_the_true_pixels_off_the_grid(seed):
+    """A smooth field seen moved by (3, 5) px, off the 4 px grid: the coarse level only
+    holds grid pixels, the full-resolution refinement lands on the true ones."""
+    H, W, shift = 48, 64, (3, 5)
+    D_i, D_j, Q_i, Q_j = _shifted_views(seed, H, W, shift)
+    config = RegistrationConfig(match_stride_ratio=4 / 64)
     p_i, p_j = reciprocal_matches(D_i, D_j, Q_i, Q_j, config)
-    assert p_i.numel() > 0
     q = config.min_descriptor_confidence
     assert bool((Q_i.reshape(-1)[p_i] > q).all()) and bool((Q_j.reshape(-1)[p_j] > q).all())
-    flat_i, flat_j = D_i.reshape(-1, 24), D_j.reshape(-1, 24)
-    masked_j = torch.where((Q_j.reshape(-1) > q)[None], flat_i[p_i] @ flat_j.T, -2.0)
-    masked_i = torch.where((Q_i.reshape(-1) > q)[None], flat_j[p_j] @ flat_i.T, -2.0)
-    assert torch.equal(masked_j.argmax(dim=1), p_j)
-    assert torch.equal(masked_i.argmax(dim=1), p_i)
+    y, x = p_i // W - shift[0], p_i % W - shift[1]
+    true = (p_j // W == y) & (p_j % W == x)
+    assert float(true.float().mean()) > 0.9
+    # queries on view i's grid whose true pixel is in view j and confident
+    grid = query_grid(H, W, config.match_stride_ratio)
+    gy, gx = grid // W - shift[0], grid % W - shift[1]
+    seen = (gy >= 0) & (gx >= 0) & (Q_i.reshape(-1)[grid] > q)
+    seen[seen.clone()] &= Q_j.reshape(-1)[gy[seen] * W + gx[seen]] > q
+    assert int(true.sum()) >= 0.8 * int(seen.sum())
+    on_grid_j = torch.isin(p_j[true], grid)
+    assert float(on_grid_j.float().mean()) < 0.5
 
 
 def test_no_confident_pixel_gives_no_match():
@@ -107,6 +133,13 @@ def test_bad_match_stride_ratio_is_one_clear_error(value):
     config = DecentralizedConfig(registration=RegistrationConfig(match_stride_ratio=value))
     with pytest.raises(ConfigError, match=r"^decentralized\.registration\.match_stride_ratio "
                                           r"must be in \(0, 1\], got"):
+        check_config(config)
+
+
+def test_bad_match_coarse_candidates_is_one_clear_error():
+    config = DecentralizedConfig(registration=RegistrationConfig(match_coarse_candidates=0))
+    with pytest.raises(ConfigError, match=r"^decentralized\.registration\.match_coarse_candidates "
+                                          r"must be >= 1, got 0$"):
         check_config(config)
 
 
