@@ -15,7 +15,7 @@ Layout (format version :data:`FORMAT_VERSION`; also ``PRAGMA user_version``, and
 application_id`` = :data:`APPLICATION_ID` marks the file as a como3r store). Keyframes are
 numbered by their global index ``g`` (arrival order at the coordinator); agent ids are the
 coordinator's (a restarted agent process that starts a new map segment has its own).
-``blob`` columns hold :mod:`.store_blobs` blobs (typed arrays or codec objects, zlib)::
+``blob`` columns hold :mod:`.store_blobs` blobs (typed arrays or codec objects, Zstandard)::
 
     meta        key TEXT PK, value TEXT   format_version, como3r_version, created (UTC),
                                           config (JSON of the effective configuration)
@@ -95,7 +95,7 @@ logger = logging.getLogger(__name__)
 #: the store's file name in an output folder
 STORE_NAME = "session.db"
 #: the layout above; a reader refuses any other
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 #: ``PRAGMA application_id`` of a como3r session store ("C3RS")
 APPLICATION_ID = 0x43335253
 
