@@ -174,6 +174,29 @@ def test_the_map_sample_is_deterministic_and_bounded(real_run) -> None:
     assert sample_map(real_run / "missing.ply") is None
 
 
+def test_the_map_sample_read_in_chunks_is_the_one_of_the_whole_file(tmp_path,
+                                                                      monkeypatch) -> None:
+    """sample_map reads map.ply a chunk at a time (bounded memory): across chunk boundaries
+    and non-finite points it draws what a draw over the whole file's finite points does."""
+    from como3r.evaluation import plot_map
+    from como3r.io.ply import write_ply
+
+    rng = np.random.default_rng(4)
+    xyz = rng.normal(size=(3000, 3)).astype(np.float32)
+    xyz[rng.choice(3000, 40, replace=False), rng.integers(0, 3, 40)] = np.nan
+    rgb = rng.integers(0, 255, size=(3000, 3)).astype(np.uint8)
+    write_ply(tmp_path / "map.ply", xyz, rgb, np.zeros(3000, np.int32))
+    finite = np.flatnonzero(np.isfinite(xyz).all(axis=1))
+    drawn = np.sort(np.random.default_rng(0).choice(finite, 500, replace=False))
+    monkeypatch.setattr(plot_map, "_CHUNK", 7)
+    sample = sample_map(tmp_path / "map.ply", 500)
+    np.testing.assert_array_equal(sample.xyz, xyz[drawn].astype(np.float64))
+    np.testing.assert_array_equal(sample.rgb, rgb[drawn])
+    assert sample.total == 3000
+    whole = sample_map(tmp_path / "map.ply", 5000)  # fewer finite points than asked
+    np.testing.assert_array_equal(whole.xyz, xyz[finite].astype(np.float64))
+
+
 def test_without_ground_truth_the_report_says_so(real_run, tmp_path) -> None:
     copy = _copy(real_run, tmp_path)
     metrics = json.loads((copy / "metrics.json").read_text())

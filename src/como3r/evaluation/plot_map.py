@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 from como3r.errors import InputError
 from como3r.evaluation.plot import agent_colour, new_figure
 from como3r.evaluation.report_data import AgentTrack
-from como3r.io.ply import read_ply
+from como3r.io.ply import iter_ply
 
 logger = logging.getLogger(__name__)
 
@@ -49,24 +49,43 @@ class MapSample:
     total: int
 
 
+#: vertices read at a time
+_CHUNK = 1 << 20
+
+
 def sample_map(path: Path, max_points: int = MAX_MAP_POINTS, seed: int = 0) -> MapSample | None:
     """At most ``max_points`` finite points of ``map.ply``, the same ones every time, in
-    file order; None without a readable, non-empty map."""
+    file order; None without a readable, non-empty map. Two passes over the file, a chunk
+    at a time (a long run's map is never read whole): count the finite points, then take
+    the drawn ones."""
     if not path.is_file():
         return None
     try:
-        vertices = read_ply(path)
+        finite = [int(_finite(chunk).sum()) for chunk in iter_ply(path, _CHUNK)]
     except InputError as exc:
         logger.warning("report: %s; the map is not rendered", exc)
         return None
-    xyz = np.stack([vertices[k] for k in "xyz"], axis=1).astype(np.float64)
-    rgb = np.stack([vertices[k] for k in ("red", "green", "blue")], axis=1)
-    keep = np.flatnonzero(np.isfinite(xyz).all(axis=1))
-    if len(keep) > max_points:
-        keep = np.sort(np.random.default_rng(seed).choice(keep, max_points, replace=False))
-    if not len(keep):
+    total_finite = sum(finite)
+    if not total_finite:
         return None
-    return MapSample(xyz[keep], rgb[keep], int(len(vertices)))
+    ranks = np.arange(total_finite)  # k-th finite vertex of the file
+    if total_finite > max_points:
+        ranks = np.sort(np.random.default_rng(seed).choice(total_finite, max_points,
+                                                           replace=False))
+    samples, first, total = [], 0, 0
+    for chunk, count in zip(iter_ply(path, _CHUNK), finite):
+        mine = ranks[(ranks >= first) & (ranks < first + count)] - first
+        samples.append(chunk[np.flatnonzero(_finite(chunk))[mine]])
+        first, total = first + count, total + len(chunk)
+    sample = np.concatenate(samples)
+    xyz = np.stack([sample[k] for k in "xyz"], axis=1).astype(np.float64)
+    rgb = np.stack([sample[k] for k in ("red", "green", "blue")], axis=1)
+    return MapSample(xyz, rgb, total)
+
+
+def _finite(vertices: np.ndarray) -> np.ndarray:
+    """``(N,)`` whether each vertex's position is finite."""
+    return np.isfinite(vertices["x"]) & np.isfinite(vertices["y"]) & np.isfinite(vertices["z"])
 
 
 def up_basis(orientations: Sequence[np.ndarray]) -> np.ndarray:

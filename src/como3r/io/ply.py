@@ -7,6 +7,7 @@ The header declares ``x y z`` (float32), ``red green blue`` (uchar) and ``agent_
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -14,6 +15,8 @@ from como3r.errors import InputError
 
 _VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
                     ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("agent_id", "<i4")])
+#: the header :func:`write_ply` writes is about 250 bytes
+_MAX_HEADER = 4096
 
 
 def write_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray, agent_id: np.ndarray) -> None:
@@ -42,17 +45,41 @@ def write_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray, agent_id: np.n
 
 def read_ply(path: str | Path) -> np.ndarray:
     """Read a PLY written by :func:`write_ply` as a structured array."""
-    data = Path(path).read_bytes()
+    count, offset = _layout(path)
+    with open(path, "rb") as f:
+        f.seek(offset)
+        return np.fromfile(f, dtype=_VERTEX, count=count)
+
+
+def iter_ply(path: str | Path, chunk: int = 1 << 20) -> Iterator[np.ndarray]:
+    """The vertices of a PLY written by :func:`write_ply`, ``chunk`` at a time, in file
+    order (a map of any size is read in constant memory)."""
+    count, offset = _layout(path)
+    with open(path, "rb") as f:
+        f.seek(offset)
+        for start in range(0, count, chunk):
+            yield np.fromfile(f, dtype=_VERTEX, count=min(chunk, count - start))
+
+
+def _layout(path: str | Path) -> tuple[int, int]:
+    """``(vertex count, byte offset of the first vertex)`` of a :func:`write_ply` file.
+
+    Raises:
+        InputError: not such a file, or one whose size disagrees with its header.
+    """
+    with open(path, "rb") as f:
+        head = f.read(_MAX_HEADER)
     marker = b"end_header\n"
-    end = data.find(marker)
-    if not data.startswith(b"ply\n") or end < 0:
+    end = head.find(marker)
+    if not head.startswith(b"ply\n") or end < 0:
         raise InputError(f"{path}: not a PLY file")
-    header = data[:end].decode("ascii", errors="replace").splitlines()
+    header = head[:end].decode("ascii", errors="replace").splitlines()
     count = next((int(line.split()[2]) for line in header if line.startswith("element vertex")),
                  None)
     if count is None or "format binary_little_endian 1.0" not in header:
         raise InputError(f"{path}: not a binary little-endian PLY with vertices")
-    body = data[end + len(marker):]
-    if len(body) != count * _VERTEX.itemsize:
-        raise InputError(f"{path}: truncated PLY ({len(body)} bytes for {count} vertices)")
-    return np.frombuffer(body, dtype=_VERTEX)
+    offset = end + len(marker)
+    size = Path(path).stat().st_size - offset
+    if size != count * _VERTEX.itemsize:
+        raise InputError(f"{path}: truncated PLY ({size} bytes for {count} vertices)")
+    return count, offset
