@@ -3,12 +3,20 @@ the whole problem's (C-Eq. 19-24)."""
 
 from __future__ import annotations
 
+from dataclasses import fields, replace
+
 import pytest
 import torch
 
 from como3r.backend import paged_refinement
-from como3r.backend.depth_refinement import refine_depths
-from como3r.backend.paged_refinement import LabelMaps, Pointmaps, chunk_edges, refine_in_chunks
+from como3r.backend.depth_refinement import _build_problem, refine_depths
+from como3r.backend.paged_refinement import (
+    LabelMaps,
+    Pointmaps,
+    ProblemSpill,
+    chunk_edges,
+    refine_in_chunks,
+)
 from como3r.backend.segments import segment_keyframe
 from como3r.frontend.graph import Edge
 from como3r.frontend.paging import KeyframeParking
@@ -86,37 +94,68 @@ def test_chunks_group_links_by_their_later_endpoint(monkeypatch) -> None:
     assert [c.edges() for c in chunks] == [[0], [1, 2, 3], [4]]
 
 
-def test_a_chunk_reads_only_its_keyframes(monkeypatch) -> None:
-    """Every pass reads the keyframes chunk by chunk: never more than a chunk's rows between
-    two chunks (the working set), whatever the map's size."""
+def test_a_chunk_reads_only_its_keyframes_once_per_step(monkeypatch) -> None:
+    """The first pass reads the keyframes chunk by chunk: never more than a chunk's rows
+    between two chunks (the working set), whatever the map's size; the later passes read
+    the chunks' problems back from the spill, not the keyframes."""
     monkeypatch.setattr(paged_refinement, "KEYFRAMES_PER_CHUNK", 2)
     keyframes, poses, edges, labels = chain()
     reads: list[int] = []
     chunked(keyframes, poses, edges, labels, reads)
-    passes = CONFIG.inner_iters + 1
-    chunk_reads = [(0, 1), (1, 2, 3), (3, 4, 5)]
     setup, writes = list(range(KEYFRAMES)), list(range(1, KEYFRAMES))
-    assert reads == setup + [r for _ in range(passes) for c in chunk_reads for r in c] + writes
+    assert reads == setup + [0, 1, 1, 2, 3, 3, 4, 5] + writes
 
 
-def test_kept_chunks_are_read_once_per_step_with_the_same_result(monkeypatch) -> None:
-    """A chunk allowed to keep its problem (its keyframes resident) is read at the first pass
-    only; the chunk of keyframe 5 may not, and is read at every pass."""
+@pytest.mark.parametrize("kept", [(), (0, 1), (0, 1, 2)])
+def test_kept_and_spilled_chunks_give_the_same_result(monkeypatch, kept) -> None:
+    """A chunk allowed to keep its problem (its keyframes resident) stays in memory, any
+    other is written to the spill once and read back at every later pass: the same
+    pointmaps, costs and match counts bit for bit, whichever chunks are kept."""
     monkeypatch.setattr(paged_refinement, "KEYFRAMES_PER_CHUNK", 2)
     keyframes, poses, edges, labels = chain()
-    every_pass: list[int] = []
-    reference, reference_report = chunked(keyframes, poses, edges, labels, every_pass)
-    reads: list[int] = []
-    written, report = chunked(keyframes, poses, edges, labels, reads,
-                              keep=lambda rows: 5 not in rows)
-    passes = CONFIG.inner_iters + 1
-    setup, writes = list(range(KEYFRAMES)), list(range(1, KEYFRAMES))
-    assert reads == setup + [0, 1, 1, 2, 3] + [3, 4, 5] * passes + writes
-    assert len(every_pass) == len(setup) + passes * 8 + len(writes)
-    for k in writes:
+    reference, reference_report = chunked(keyframes, poses, edges, labels,
+                                          keep=lambda rows: True)
+    saved, loaded = [], []
+    save, load = ProblemSpill.save, ProblemSpill.load
+    monkeypatch.setattr(ProblemSpill, "save", lambda spill, n, p: (saved.append(n),
+                                                                   save(spill, n, p))[1])
+    monkeypatch.setattr(ProblemSpill, "load", lambda spill, n: (loaded.append(n),
+                                                                load(spill, n))[1])
+    rows = [(0, 1), (1, 2, 3), (3, 4, 5)]
+    written, report = chunked(keyframes, poses, edges, labels,
+                              keep=lambda chunk: rows.index(tuple(chunk)) in kept)
+    spilled = [n for n in range(3) if n not in kept]
+    assert saved == spilled and loaded == spilled * CONFIG.inner_iters
+    for k in range(1, KEYFRAMES):
         assert torch.equal(written[k], reference[k])
     assert report.cost_history == reference_report.cost_history
     assert report.num_matches == reference_report.num_matches
+
+
+def test_a_spilled_problem_reads_back_bit_for_bit(tmp_path) -> None:
+    """int64 indices go to the file as int32 and come back as int64; one beyond int32 stays
+    int64; floats keep their dtype; the files are deleted with the spill."""
+    keyframes, poses, edges, labels = chain(torch.float64)
+    problem, _, _ = _build_problem(keyframes, poses, edges, lambda k: k, labels, CONFIG, {0},
+                                   data_only=True)
+    spill = ProblemSpill(tmp_path)
+    spill.save(0, problem)
+    wide = replace(problem, match_b=problem.match_b + 2**40)
+    spill.save(1, wide)
+    int32 = sum(getattr(problem, f.name).numel() for f in fields(problem)
+                if getattr(problem, f.name).dtype == torch.int64)
+    floats = sum(getattr(problem, f.name).nbytes for f in fields(problem)
+                 if getattr(problem, f.name).is_floating_point())
+    assert spill.bytes == 2 * (4 * int32 + floats) + 4 * problem.match_b.numel()
+    for n, want in ((0, problem), (1, wide)):
+        back = spill.load(n)
+        for f in fields(want):
+            a, b = getattr(back, f.name), getattr(want, f.name)
+            assert a.dtype == b.dtype and torch.equal(a, b), f.name
+    assert problem.match_a.numel() > 100 and int(problem.param.min()) == -1
+    assert list(tmp_path.glob("*/chunk*.bin"))
+    spill.close()
+    assert not list(tmp_path.glob("*/chunk*.bin")) and 0 not in spill
 
 
 def test_label_maps_of_paged_keyframes_live_in_the_parking(tmp_path) -> None:

@@ -29,6 +29,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Mapping, Sequence
 
 import torch
@@ -382,8 +383,8 @@ class GlobalGraph:
         return labels
 
     def refine_depths(self, agents: Sequence[int], anchor: int, config: DepthRefinementConfig,
-                      labels: Mapping[int, Tensor], parking: KeyframeParking | None = None
-                      ) -> DepthRefinementReport:
+                      labels: Mapping[int, Tensor], parking: KeyframeParking | None = None,
+                      spill_dir: Path | None = None) -> DepthRefinementReport:
         """One depth step (C-Sec. A.7 step 2b-2c; C-Eq. 19-24) at the current poses.
 
         The log-scales of the keyframes reachable from ``anchor`` are refined over the
@@ -391,13 +392,15 @@ class GlobalGraph:
         :attr:`fixed` keyframes') fixed, and the refined pointmaps written back into
         ``X_hat``. The data term is summed over working sets of keyframes
         (:mod:`.paged_refinement`): a paged-out keyframe is read back when its working set
-        is, and its refined pointmap parked (with ``parking``), so the step holds a working
-        set of pointmaps and matches at a time, not the map.
+        is built (once per step), and its refined pointmap parked (with ``parking``), so the
+        step holds a working set of pointmaps and matches at a time, not the map.
 
         Args:
             labels: global index -> label map (:meth:`segment`) of every reachable keyframe.
             parking: where paged-out keyframes' refined pointmaps go (None: into the
                 keyframes).
+            spill_dir: where the flattened problems of working sets with paged-out
+                keyframes are spilled during the step (None: the system's temporary folder).
         """
         nodes = self.connected(agents, anchor)
         row = {g: r for r, g in enumerate(nodes)}
@@ -416,9 +419,10 @@ class GlobalGraph:
             lambda r: labels[nodes[r]], config,
             lambda r, X: self._set_pointmaps(nodes[r], {"X_hat": X}, parking),
             pinned=[row[g] for g in nodes if g == anchor or g in self.fixed],
-            # a chunk of resident keyframes keeps its problem: only paged-out ones are
-            # read again at every pass
-            keep=lambda rows: not any(paged_out(self.keyframes[nodes[r]]) for r in rows))
+            # a chunk of resident keyframes keeps its problem in memory; one with paged-out
+            # keyframes is spilled, or the step would hold the whole map's problem
+            keep=lambda rows: not any(paged_out(self.keyframes[nodes[r]]) for r in rows),
+            spill_dir=spill_dir)
 
     def _set_pointmaps(self, g: int, values: dict[str, Tensor],
                        parking: KeyframeParking | None) -> None:

@@ -10,9 +10,14 @@ terms stay inside each keyframe. :func:`refine_in_chunks` runs the same iteratio
 ``refine_depths`` and adds up the data term of C-Eq. 21 one :class:`Chunk` of edges at a
 time. A chunk's keyframes and matches are read when the chunk is built and let go after it:
 a paged-out keyframe is read back from the session store (or the cleanup's parking,
-:class:`~como3r.frontend.paging.KeyframeParking`) and not kept. A chunk whose keyframes are
-all in memory anyway keeps its flattened problem for the step (``keep``): building it again
-at every pass made a 14-keyframe map's depth steps 3.8x slower. Only the log-scales
+:class:`~como3r.frontend.paging.KeyframeParking`) and not kept. Nothing a chunk's problem
+holds changes during the step (poses frozen, reads before writes), and building it costs
+about ten times the pass's sums over it (store reads and zlib, norms, rays, match gathers,
+median ranges): rebuilding every chunk at each of the step's ``inner_iters + 1`` passes made
+a 14-keyframe map's depth steps 3.8x slower. So each chunk is built once per step, at the
+first pass: one whose keyframes are all in memory anyway keeps its problem for the step
+(``keep``), any other is written raw to a :class:`ProblemSpill` and read back whole at the
+later passes, so that memory holds one such problem at a time. Only the log-scales
 ``s (M,)``, their warm start and the boundary pairs stay in memory for the whole step. Each
 keyframe holds a few hundred of them.
 
@@ -29,10 +34,13 @@ and an unpaged run give identical results.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from pathlib import Path
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -41,6 +49,7 @@ from como3r.backend.depth_refinement import (
     DepthRefinementReport,
     _build_problem,
     _check_inputs,
+    _Problem,
     _Refiner,
     damped_step,
     regularised,
@@ -48,7 +57,7 @@ from como3r.backend.depth_refinement import (
 )
 from como3r.config import DepthRefinementConfig
 from como3r.frontend.graph import Edge
-from como3r.frontend.paging import KeyframeParking
+from como3r.frontend.paging import KeyframeParking, KeyframeSpill
 
 logger = logging.getLogger(__name__)
 
@@ -102,6 +111,70 @@ def chunk_edges(ends: Sequence[tuple[int, int]], make: Callable[[Sequence[int]],
             for _, links in sorted(groups.items())]
 
 
+class ProblemSpill:
+    """Flattened chunk problems of one depth step (:class:`~.depth_refinement._Problem`, data
+    term only) in files, one per chunk, raw: no compression, int64 indices (pixels, matches,
+    log-scales; all below 2**31) as int32, what halves them. A problem read back has the
+    tensors it was saved with, bit for bit (same dtypes and devices).
+
+    The files live in a :class:`~como3r.frontend.paging.KeyframeSpill` folder (removed with
+    it, or by a later spill when its process is gone) and are deleted by :meth:`close`.
+
+    Args:
+        parent: where the folder is made (None: the system's temporary folder).
+    """
+
+    def __init__(self, parent: Path | None = None) -> None:
+        self._parent = parent
+        self._spill: KeyframeSpill | None = None  # made when something is first saved
+        # per chunk: (field, dtype, device, shape, stored numpy dtype) in file order
+        self._layout: dict[int, list[tuple[str, torch.dtype, torch.device, tuple[int, ...],
+                                           np.dtype]]] = {}
+        #: bytes written by the step (its disk use), a figure for the log and tests
+        self.bytes = 0
+
+    def __contains__(self, n: int) -> bool:
+        return n in self._layout
+
+    def save(self, n: int, problem: _Problem) -> None:
+        """Write chunk ``n``'s problem."""
+        if self._spill is None:
+            self._spill = KeyframeSpill(self._parent)
+        layout = []
+        with open(self._path(n), "wb") as file:
+            for f in fields(problem):
+                tensor: Tensor = getattr(problem, f.name)
+                array = tensor.detach().cpu().contiguous().numpy()
+                if tensor.dtype == torch.int64 and (not tensor.numel() or (
+                        int(tensor.min()) >= -2**31 and int(tensor.max()) < 2**31)):
+                    array = array.astype(np.int32)
+                array.tofile(file)
+                self.bytes += array.nbytes
+                layout.append((f.name, tensor.dtype, tensor.device, tuple(tensor.shape),
+                               array.dtype))
+        self._layout[n] = layout
+
+    def load(self, n: int) -> _Problem:
+        """Chunk ``n``'s problem as it was saved."""
+        values = {}
+        with open(self._path(n), "rb") as file:
+            for name, dtype, device, shape, stored in self._layout[n]:
+                array = np.fromfile(file, dtype=stored, count=math.prod(shape))
+                values[name] = torch.from_numpy(array).reshape(shape).to(dtype=dtype,
+                                                                         device=device)
+        return _Problem(**values)
+
+    def close(self) -> None:
+        """Delete the files (the folder goes with the spill)."""
+        for n in self._layout:
+            self._path(n).unlink(missing_ok=True)
+        self._layout.clear()
+        self._spill = None
+
+    def _path(self, n: int) -> Path:
+        return self._spill.folder / f"chunk{n}.bin"
+
+
 class LabelMaps(Mapping[int, Tensor]):
     """Label maps (C-Sec. A.6) by keyframe key: in memory, or those of paged-out keyframes
     kept in a :class:`~como3r.frontend.paging.KeyframeParking` (read back when asked for).
@@ -144,6 +217,7 @@ def refine_in_chunks(
     pinned: Iterable[int] = (),
     huber_k: float = HUBER_K,
     keep: Callable[[Sequence[int]], bool] = lambda rows: False,
+    spill_dir: Path | None = None,
 ) -> DepthRefinementReport:
     """One depth step (C-Eq. 19-24) at frozen poses, its data term summed chunk by chunk.
 
@@ -158,9 +232,12 @@ def refine_in_chunks(
             what it needs (pinned rows keep theirs and are not written).
         pinned: rows held fixed (the gauge anchor, a frozen map).
         huber_k: Huber breakpoint of the data term.
-        keep: whether a chunk of these rows may keep its flattened problem for the whole
-            step (its keyframes stay in memory anyway) instead of reading and flattening it
-            again at each of the step's ``inner_iters + 1`` passes; default: none may.
+        keep: whether a chunk of these rows may keep its flattened problem in memory for
+            the whole step (its keyframes stay in memory anyway); default: none may. The
+            others are built at the first pass and read back from a :class:`ProblemSpill`
+            at the later ones.
+        spill_dir: where the spill's folder is made (None: the system's temporary folder);
+            it takes about 20 bytes per pixel and 36 per match of the chunks not kept.
 
     Returns:
         The report, as :func:`~.depth_refinement.refine_depths` makes it.
@@ -191,12 +268,15 @@ def refine_in_chunks(
     bnd_a, bnd_b, delta = (torch.cat(parts) for parts in zip(*bnd_parts))
 
     kept: dict[int, _Refiner] = {}
+    spill = ProblemSpill(spill_dir)
 
     def chunk_refiner(n: int, chunk: Chunk) -> _Refiner:
-        """Chunk ``n``'s flattened data problem: kept for the step where ``keep`` allows,
-        else read and built again at every pass (the working set of a paged map)."""
+        """Chunk ``n``'s flattened data problem: built at the first pass, then kept where
+        ``keep`` allows, else read back from the spill (the working set of a paged map)."""
         if n in kept:
             return kept[n]
+        if n in spill:
+            return _Refiner(spill.load(n), config, huber_k)
         position = {r: k for k, r in enumerate(chunk.rows)}
         problem, _, _ = _build_problem(
             [read(r) for r in chunk.rows], poses[list(chunk.rows)], chunk.edges(),
@@ -205,6 +285,8 @@ def refine_in_chunks(
         refiner = _Refiner(problem, config, huber_k)
         if keep(chunk.rows):
             kept[n] = refiner
+        elif config.inner_iters > 0:  # a later pass will need it
+            spill.save(n, problem)
         return refiner
 
     def data_term(s: Tensor, with_blocks: bool) -> tuple[Tensor, Tensor, float]:
@@ -227,17 +309,22 @@ def refine_in_chunks(
     s = s_start.clone()
     report.num_parameters = num_params
     report.num_boundary_pairs = bnd_a.numel()
-    if num_params:
-        for _ in range(config.inner_iters):
-            H, g, energy = regularised(*data_term(s, True), s, bnd_a, bnd_b, delta, config)
-            ds, clipped = damped_step(H, g, s, config)
-            report.cost_history.append(energy)
-            s = s + ds
-            report.iterations += 1
-            report.clipped_steps += clipped
-            report.max_step = float(ds.abs().max())
-        report.max_change = float((s - s_start).abs().max())
-    H, g, cost = data_term(s, False)
+    try:
+        if num_params:
+            for _ in range(config.inner_iters):
+                H, g, energy = regularised(*data_term(s, True), s, bnd_a, bnd_b, delta, config)
+                ds, clipped = damped_step(H, g, s, config)
+                report.cost_history.append(energy)
+                s = s + ds
+                report.iterations += 1
+                report.clipped_steps += clipped
+                report.max_step = float(ds.abs().max())
+            report.max_change = float((s - s_start).abs().max())
+        H, g, cost = data_term(s, False)
+    finally:
+        spilled, kept_count = spill.bytes, len(kept)
+        kept.clear()  # the write-back below reads keyframe by keyframe: let go first
+        spill.close()
     report.cost_history.append(regularised(H, g, cost, s, bnd_a, bnd_b, delta, config)[2])
 
     for r in range(count):
@@ -249,7 +336,8 @@ def refine_in_chunks(
         depths = _Refiner(alone, config, huber_k).depths(s[offsets[r]:offsets[r] + sizes[r]])
         write(r, written_back(kf.X_hat, depths, alone.rays, alone.param))
     report.seconds = time.perf_counter() - start
-    logger.debug("depth refinement (%s) in %d chunk(s): %d params, %d matches, cost %.4g -> "
-                 "%.4g, max |ds| %.3g", report.variant, len(chunks), report.num_parameters,
-                 report.num_matches, report.initial_cost, report.final_cost, report.max_change)
+    logger.debug("depth refinement (%s) in %d chunk(s), %d kept, %.1f MB spilled: %d params, "
+                 "%d matches, cost %.4g -> %.4g, max |ds| %.3g", report.variant, len(chunks),
+                 kept_count, spilled / 2**20, report.num_parameters, report.num_matches,
+                 report.initial_cost, report.final_cost, report.max_change)
     return report
