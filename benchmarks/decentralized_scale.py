@@ -78,6 +78,34 @@ before) and (2,3)-(0,0) 16 deg; 20x (2,3)-(0,0) 12.5 deg; 512 0.1x none (all 21 
 5.7 deg and 0.82 spacings); 512 20x (2,3)-(0,0) 20 deg (13 % inliers, translation 0.76
 spacings off). Runs with ``OMP_NUM_THREADS=1 nice -n 19`` on 2 cores shared with other jobs.
 
+Coarse-to-fine nearest neighbours (issue 16; ``match_coarse_candidates`` 3: each neighbour
+searched among the other view's grid pixels, then at full resolution within half a grid
+spacing of the 3 most similar; 0.013x of a MASt3R decode per pair at 512 where the exact
+search took 0.35-0.43x, ``decentralized_matching.py``), same table; before = the exact search
+above (160 re-run with it on the same day: the same numbers):
+
+    long side  scale  before                        after
+    512        0.1    1.396 (1.396, 1.383)  21      1.379 (1.379, 1.392)  20   266 s
+    512        1      1.389 (1.389, 1.386)  19      1.430 (1.430, 1.433)  19   401 s
+    512        20     1.489 (1.489, 1.429)  20      1.445 (1.445, 1.385)  20   394 s
+    160        0.1    1.526 (1.526, 1.456)  19      1.503 (1.503, 1.456)  17
+    160        1      1.594 (1.594, 1.539)  20      1.463 (1.463, 1.433)  18
+    160        20     1.501 (1.501, 1.513)  19      1.600 (1.600, 1.550)  18
+
+Mean over the six 1.483 before, 1.470 after. The 512 runs took 266-401 s instead of
+948-1095 s (wall, under a load of about 9 on 2 cores both times). Accepted loops that are
+wrong (rotation > 10 deg, ``decentralized_loops.py --accepted-only``), after: 512 0.1x and
+20x none (all within 6 deg and 0.9 spacings; 20x had (2,3)-(0,0) 20 deg before, now 6.0);
+512 1x (2,3)-(0,0) 16 deg (4.3 deg when the exact search re-registers the 19 loops of an
+older 512 1x run: none wrong); 160 0.1x (2,3)-(1,5) 11 deg (15 before); 1x (2,3)-(1,4)
+28 deg (before 20 deg, and (2,3)-(0,0) 16 deg, now rejected); 20x (2,3)-(1,5) 16 deg (2 deg
+before; before (2,3)-(0,0) 12.5 deg, now rejected). Four wrong loops in the six runs where
+the exact search accepted five, all again from keyframe (2,3) of robot 2, 2.4-3.6 spacings
+from its partner, whose registration flips between a right and a wrong pose with any change
+of the matches, not with their number (re-registered with 1, 2, 3, 4, 5 and 8 coarse
+candidates: 160 20x (2,3)-(1,5) 17 / 17 / 16 / 18 / 17 / 2 deg, 512 1x (2,3)-(0,0) 3 / 3.5 /
+16 / 10 / 18 / 6 deg).
+
 Run it against two checkouts to compare them (the scene folder is reused when it exists):
 
     PYTHONPATH=src python benchmarks/decentralized_scale.py --work /tmp/dscale/bench \\
