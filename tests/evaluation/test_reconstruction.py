@@ -97,12 +97,12 @@ def test_voxel_centroids_given_in_pieces_equal_the_whole_cloud_downsampled():
 
 @pytest.mark.parametrize("extent", ["small", "beyond one int64 key"])
 def test_unique_voxel_rows_are_those_of_the_row_wise_sort(extent):
-    from como3r.evaluation.reconstruction import _unique_rows
+    from como3r.evaluation.reconstruction import unique_rows
 
     cells = np.random.default_rng(2).integers(-5, 5, size=(2000, 3))
     if extent != "small":
         cells[0] = [2**40, -2**40, 2**40]
-    unique, inverse = _unique_rows(cells)
+    unique, inverse = unique_rows(cells)
     expected, expected_inverse = np.unique(cells, axis=0, return_inverse=True)
     np.testing.assert_array_equal(unique, expected)
     np.testing.assert_array_equal(inverse, expected_inverse.reshape(-1))

@@ -68,3 +68,40 @@ def test_keyframe_bandwidth_reads_what_each_agent_sent_the_coordinator() -> None
     assert rows[0]["per_keyframe_over_image"] == 720 / 144
     assert rows[1]["bytes_per_keyframe"] is None
     assert keyframe_bandwidth(None, results) is None
+
+
+def _keyframes(count: int, seed: int) -> list[SimpleNamespace]:
+    """Keyframes of 6x8 random pointmaps near the origin (overlapping voxels), a few
+    pixels under the confidence threshold."""
+    import torch
+
+    gen = torch.Generator().manual_seed(seed)
+    keyframes = []
+    for _ in range(count):
+        confidence = 1.0 + 2.0 * torch.rand(6, 8, generator=gen)
+        keyframes.append(SimpleNamespace(
+            T_WC=torch.tensor([0.1, 0.0, 0.2, 0.0, 0.0, 0.0, 1.0, 1.0]),
+            X_hat=torch.rand(6, 8, 3, generator=gen), colors=np.full((6, 8, 3), seed, np.uint8),
+            mean_confidence=lambda c=confidence: c))
+    return keyframes
+
+
+def test_the_map_is_written_a_keyframe_at_a_time_as_it_was_whole(tmp_path) -> None:
+    """fused_map yields a keyframe at a time and write_ply_pieces streams them (bounded
+    memory): with a voxel size, the first point of each voxel over all keyframes is kept,
+    as one pass over the whole map did."""
+    from como3r.io.ply import read_ply, write_ply_pieces
+    from como3r.runtime.outputs import fused_map
+
+    keyframes = {0: _keyframes(5, 0), 1: _keyframes(4, 1)}
+    whole = [np.concatenate(parts) for parts in zip(*fused_map(keyframes, 1.5))]
+    assert whole[0].shape[0] < 9 * 48 and set(whole[2]) == {0, 1}
+    _, first = np.unique(np.floor(whole[0] / 0.25).astype(np.int64), axis=0, return_index=True)
+    first.sort()
+    assert 0 < len(first) < whole[0].shape[0] // 3  # most voxels are met again
+    count = write_ply_pieces(tmp_path / "map.ply", fused_map(keyframes, 1.5, voxel_size=0.25))
+    vertices = read_ply(tmp_path / "map.ply")
+    assert count == len(vertices) == len(first)
+    np.testing.assert_array_equal(np.stack([vertices[k] for k in "xyz"], 1), whole[0][first])
+    np.testing.assert_array_equal(vertices["agent_id"], whole[2][first])
+    assert not (tmp_path / "map.ply.body").exists()

@@ -44,6 +44,7 @@ __all__ = [
     "reconstruction_metrics",
     "nearest_distances",
     "voxel_downsample",
+    "unique_rows",
     "keyframe_cloud",
     "cloud_from_depth",
     "ground_truth_cloud",
@@ -154,7 +155,7 @@ class VoxelCentroids:
         self._pending, self._pending_points = [], 0
         cells = np.concatenate([self._cells,
                                 np.floor(points / self.voxel_size).astype(np.int64)])
-        self._cells, inverse = _unique_rows(cells)
+        self._cells, inverse = unique_rows(cells)
         old = self._counts.size
         sums = np.zeros((self._cells.shape[0], 3))
         np.add.at(sums, inverse[:old], self._sums)
@@ -165,7 +166,7 @@ class VoxelCentroids:
             minlength=self._cells.shape[0]).astype(np.int64)
 
 
-def _unique_rows(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def unique_rows(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The distinct rows of ``cells (N, 3)`` int64 in lexicographic order and each row's
     index among them, as ``np.unique(cells, axis=0, return_inverse=True)`` gives, through
     one int64 key per row: 3x (19,200 points) to 5x (10^6) faster than the row-wise

@@ -6,8 +6,9 @@ The header declares ``x y z`` (float32), ``red green blue`` (uchar) and ``agent_
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
-from typing import Iterator
+from typing import Iterable, Iterator
 
 import numpy as np
 
@@ -21,6 +22,40 @@ _MAX_HEADER = 4096
 
 def write_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray, agent_id: np.ndarray) -> None:
     """Write ``xyz (N, 3)`` float, ``rgb (N, 3)`` uint8 and ``agent_id (N,)`` int."""
+    write_ply_pieces(path, [(xyz, rgb, agent_id)])
+
+
+def write_ply_pieces(path: str | Path,
+                     pieces: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> int:
+    """Write the vertices of ``pieces`` (each ``xyz (N_k, 3)``, ``rgb (N_k, 3)``,
+    ``agent_id (N_k,)`` as in :func:`write_ply`) one after the other, each let go once
+    written: a map of any size is written in the memory of its largest piece. The vertices
+    go to a temporary file next to ``path`` first (the header holds their count). Returns
+    the number of vertices."""
+    path = Path(path)
+    body = path.with_name(path.name + ".body")
+    count = 0
+    try:
+        with open(body, "wb") as f:
+            for xyz, rgb, agent_id in pieces:
+                f.write(_vertices(xyz, rgb, agent_id).tobytes())
+                count += xyz.shape[0]
+        header = (
+            "ply\nformat binary_little_endian 1.0\n"
+            f"element vertex {count}\n"
+            "property float x\nproperty float y\nproperty float z\n"
+            "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+            "property int agent_id\nend_header\n"
+        )
+        with open(path, "wb") as f, open(body, "rb") as vertices:
+            f.write(header.encode("ascii"))
+            shutil.copyfileobj(vertices, f)
+    finally:
+        body.unlink(missing_ok=True)
+    return count
+
+
+def _vertices(xyz: np.ndarray, rgb: np.ndarray, agent_id: np.ndarray) -> np.ndarray:
     n = xyz.shape[0]
     if xyz.shape != (n, 3) or rgb.shape != (n, 3) or agent_id.shape != (n,):
         raise ValueError(f"write_ply: shapes {xyz.shape}, {rgb.shape}, {agent_id.shape} "
@@ -31,16 +66,7 @@ def write_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray, agent_id: np.n
     for channel, name in enumerate(("red", "green", "blue")):
         vertices[name] = rgb[:, channel]
     vertices["agent_id"] = agent_id
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        f"element vertex {n}\n"
-        "property float x\nproperty float y\nproperty float z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-        "property int agent_id\nend_header\n"
-    )
-    with open(path, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(vertices.tobytes())
+    return vertices
 
 
 def read_ply(path: str | Path) -> np.ndarray:

@@ -22,7 +22,7 @@ from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.timing import with_remainder
 from como3r.geometry.lie import sim3_act
 from como3r.io.keyframe_data import write_keyframe_data
-from como3r.io.ply import write_ply
+from como3r.io.ply import write_ply_pieces
 from como3r.io.tum import write_tum
 from como3r.progress import PhaseCallback, report_phase
 
@@ -43,8 +43,9 @@ def write_trajectories(out: Path, frontends: Sequence[AgentFrontend]) -> None:
 
 
 def fused_map(keyframes: Mapping[int, Iterable[Any]], min_confidence: float,
-              voxel_size: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every keyframe's canonical pointmap in the world, above a confidence threshold.
+              voxel_size: float = 0.0) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Every keyframe's canonical pointmap in the world, above a confidence threshold, one
+    keyframe at a time (a long run's map is never held whole, issue 14).
 
     Args:
         keyframes: agent id -> its keyframes (``T_WC``, ``X_hat``, ``colors``,
@@ -52,25 +53,41 @@ def fused_map(keyframes: Mapping[int, Iterable[Any]], min_confidence: float,
         min_confidence: keep points whose per-frame confidence exceeds this.
         voxel_size: keep the first point of every voxel of this size; 0 keeps all.
 
-    Returns:
-        ``xyz (N, 3)`` float32, ``rgb (N, 3)`` uint8 and ``agent_id (N,)`` int32.
+    Yields:
+        per keyframe ``xyz (N, 3)`` float32, ``rgb (N, 3)`` uint8 and ``agent_id (N,)``
+        int32.
     """
-    xyz, rgb, agent_ids = [], [], []
+    voxels = _FirstPerVoxel(voxel_size) if voxel_size > 0 else None
     for agent, agent_keyframes in keyframes.items():
         for kf in agent_keyframes:
             points, keep = _world_points(kf, min_confidence)
-            xyz.append(points)
-            rgb.append(kf.colors.reshape(-1, 3)[keep])
-            agent_ids.append(np.full(int(keep.sum()), agent, dtype=np.int32))
-    if not xyz:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros(0, np.int32)
-    xyz_all, rgb_all, ids_all = np.concatenate(xyz), np.concatenate(rgb), np.concatenate(agent_ids)
-    if voxel_size > 0 and len(xyz_all):
-        _, first = np.unique(np.floor(xyz_all / voxel_size).astype(np.int64), axis=0,
-                             return_index=True)
-        first.sort()
-        xyz_all, rgb_all, ids_all = xyz_all[first], rgb_all[first], ids_all[first]
-    return xyz_all, rgb_all, ids_all
+            rgb = kf.colors.reshape(-1, 3)[keep]
+            if voxels is not None:
+                first = voxels.new_points(points)
+                points, rgb = points[first], rgb[first]
+            yield points, rgb, np.full(points.shape[0], agent, dtype=np.int32)
+
+
+class _FirstPerVoxel:
+    """The voxels of a grid seen so far, to keep the first point of each over pieces."""
+
+    def __init__(self, voxel_size: float) -> None:
+        self.voxel_size = voxel_size
+        self._seen = np.zeros((0, 3), dtype=np.int64)
+
+    def new_points(self, points: np.ndarray) -> np.ndarray:
+        """Indices (ascending) of the points of ``points (N, 3)`` that are the first in a
+        voxel not seen before; their voxels are seen from now on."""
+        from como3r.evaluation.reconstruction import unique_rows
+
+        seen = self._seen.shape[0]
+        cells = np.floor(points / self.voxel_size).astype(np.int64)
+        self._seen, inverse = unique_rows(np.concatenate([self._seen, cells]))
+        seen_before = np.zeros(self._seen.shape[0], dtype=bool)
+        seen_before[inverse[:seen]] = True
+        voxel = inverse[seen:]
+        _, first = np.unique(voxel, return_index=True)
+        return np.sort(first[~seen_before[voxel[first]]])
 
 
 def _world_points(kf: Any, min_confidence: float) -> tuple[np.ndarray, np.ndarray]:
@@ -83,20 +100,16 @@ def _world_points(kf: Any, min_confidence: float) -> tuple[np.ndarray, np.ndarra
 
 def fused_points(keyframes: Mapping[int, Iterable[Any]], min_confidence: float
                  ) -> Iterator[np.ndarray]:
-    """:func:`fused_map`'s points, one ``(N_k, 3)`` float32 piece per keyframe, made as
-    they are taken (a long run's map is never held whole)."""
-    for agent_keyframes in keyframes.values():
-        for kf in agent_keyframes:
-            yield _world_points(kf, min_confidence)[0]
+    """:func:`fused_map`'s points, one ``(N_k, 3)`` float32 piece per keyframe."""
+    for xyz, _, _ in fused_map(keyframes, min_confidence):
+        yield xyz
 
 
 def write_map(out: Path, frontends: Sequence[AgentFrontend], config: Config) -> int:
-    """Write ``map.ply``; returns the number of points."""
-    xyz, rgb, ids = fused_map({fe.agent: fe.keyframes for fe in frontends},
-                              config.visualization.map_min_confidence,
-                              config.visualization.voxel_size_m)
-    write_ply(out / "map.ply", xyz, rgb, ids)
-    return int(xyz.shape[0])
+    """Write ``map.ply`` a keyframe at a time; returns the number of points."""
+    return write_ply_pieces(out / "map.ply", fused_map(
+        {fe.agent: fe.keyframes for fe in frontends},
+        config.visualization.map_min_confidence, config.visualization.voxel_size_m))
 
 
 def graph_document(frontends: Sequence[AgentFrontend],
