@@ -278,6 +278,10 @@ class DepthRefinementConfig:
     step_clip: float = 0.5
     inner_iters: int = 10
     alternation_rounds: int = 100
+    # what the poses do in the rounds of C-Sec. A.7 step 2 in a multi-agent component:
+    # "frozen" = depth steps at the poses of step 1's passes (departs from the paper, see
+    # backend.alternation), "pose_pass" = the paper's short pose pass after each depth step
+    round_poses: Literal["frozen", "pose_pass"] = "frozen"
     pose_pass_iters: int = 50
     depth_convergence_tol: float = 5e-3  # max |delta s| that ends the alternation (A.7)
     # C-Eq. 19's base pointmap: "insertion" = the keyframe's first prediction (the paper),

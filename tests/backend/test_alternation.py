@@ -36,6 +36,9 @@ def test_defaults_follow_table_3():
     assert settings.cleanup_iters == 100 and settings.cleanup_passes == 5
     assert settings.translation_tol == 5e-3
     assert (settings.rounds, settings.pose_pass_iters) == (100, 50)
+    assert not settings.round_pose_pass  # departs from C-Sec. A.7 step 2d (alternation.py)
+    paper = DepthRefinementConfig(round_poses="pose_pass")
+    assert AlternationSettings.from_config(GlobalBAConfig(), paper).round_pose_pass
 
 
 def test_terminates_by_convergence():
@@ -44,8 +47,8 @@ def test_terminates_by_convergence():
         translations=[0.5, 0.05, 0.004] + [0.02 * 0.1 ** r for r in range(20)],
         depth_changes=[0.05 * 0.1 ** r for r in range(20)],
     )
-    report = alternate(solvers.pose_pass, solvers.depth_step, AlternationSettings(),
-                       solvers.broadcast)
+    report = alternate(solvers.pose_pass, solvers.depth_step,
+                       AlternationSettings(round_pose_pass=True), solvers.broadcast)
     assert report.cleanup_translations == [0.5, 0.05, 0.004]
     # Round r has |ds| = 0.05 * 0.1^r (< 5e-3 from r = 2) and |dt| = 0.02 * 0.1^r (< 5e-3
     # from r = 1): both below tolerance at r = 2.
@@ -57,7 +60,7 @@ def test_terminates_by_convergence():
 
 def test_round_order_and_iteration_counts():
     solvers = FakeSolvers(translations=[0.0, 1.0, 1.0], depth_changes=[1.0, 1.0])
-    settings = AlternationSettings(rounds=2)
+    settings = AlternationSettings(rounds=2, round_pose_pass=True)
     alternate(solvers.pose_pass, solvers.depth_step, settings, solvers.broadcast)
     assert solvers.calls == [
         ("pose", 100),
@@ -66,9 +69,22 @@ def test_round_order_and_iteration_counts():
     ]
 
 
+def test_by_default_the_rounds_keep_the_poses_of_step_1():
+    solvers = FakeSolvers(translations=[1.0, 0.001], depth_changes=[0.1, 0.01, 0.001])
+    report = alternate(solvers.pose_pass, solvers.depth_step, AlternationSettings(),
+                       solvers.broadcast)
+    assert solvers.calls == [
+        ("pose", 100), ("pose", 100),
+        ("depth", 0), ("broadcast", 0), ("depth", 0), ("broadcast", 0),
+        ("depth", 0), ("broadcast", 0),
+    ]
+    assert [r.max_translation for r in report.rounds] == [0.0, 0.0, 0.0]
+    assert report.reason == "converged"
+
+
 def test_respects_pass_and_round_bounds():
     solvers = FakeSolvers(translations=[1.0] * 1000, depth_changes=[1.0] * 1000)
-    settings = AlternationSettings(rounds=7, stall_ratio=float("inf"))
+    settings = AlternationSettings(rounds=7, round_pose_pass=True, stall_ratio=float("inf"))
     report = alternate(solvers.pose_pass, solvers.depth_step, settings, solvers.broadcast)
     assert len(report.cleanup_translations) == 5
     assert len(report.rounds) == 7
@@ -79,7 +95,8 @@ def test_respects_pass_and_round_bounds():
 
 def test_depth_alone_converged_does_not_stop_while_poses_move():
     solvers = FakeSolvers(translations=[0.0] + [0.01] * 4 + [0.0], depth_changes=[0.0] * 10)
-    report = alternate(solvers.pose_pass, solvers.depth_step, AlternationSettings(rounds=10))
+    report = alternate(solvers.pose_pass, solvers.depth_step,
+                       AlternationSettings(rounds=10, round_pose_pass=True))
     assert len(report.rounds) == 5
     assert report.converged
 
@@ -125,7 +142,8 @@ def test_time_is_reported_per_phase(monkeypatch):
     def broadcast() -> None:
         clock[0] += 0.5
 
-    settings = AlternationSettings(cleanup_passes=2, rounds=4, stall_ratio=float("inf"))
+    settings = AlternationSettings(cleanup_passes=2, rounds=4, round_pose_pass=True,
+                                   stall_ratio=float("inf"))
     report = alternate(pose_pass, depth_step, settings, broadcast)
     assert report.pose_seconds == pytest.approx(2.0 * (2 + 4))
     assert report.depth_seconds == pytest.approx(3.0 * 4)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Sequence
 
 import pytest
 import torch
@@ -62,10 +63,11 @@ class Scene:
     config: Config
 
 
-def _build(root, agents: int, frames: int, preset: str, seed: int, step: int) -> Scene:
+def _build(root, agents: int, frames: int, preset: str, seed: int, step: int,
+           overrides: Sequence[str] = OVERRIDES) -> Scene:
     synthesize(root, agents=agents, seed=seed, overlap=0.2, frames=frames, preset=preset,
                width=WIDTH, height=HEIGHT)
-    config = apply_overrides(Config(), OVERRIDES)
+    config = apply_overrides(Config(), list(overrides))
     prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth(
         {a: open_agent(root / f"agent_{a}") for a in range(agents)}, WIDTH))
     gauges = [torch.tensor([0, 0, 0, 0, 0, 0, 1, 1.0])] + [
@@ -278,6 +280,27 @@ def test_finish_alternates_poses_and_depths_until_converged(ring) -> None:
     assert after < 0.9 * before
     assert torch.equal(graph.keyframes[0].X_hat, ring.packets[0][0].X_hat)  # the anchor
     assert _merged_keyframe_ate(coordinator, ring) < 0.01 * ring.path_length
+
+
+def test_terminal_rounds_keep_the_multi_agent_trajectory(tmp_path) -> None:
+    """Two agents, the realistic prior (the default): the depth steps of the terminal rounds
+    must not worsen the trajectories that the cleanup's pose passes left (C-Sec. A.7 step 1;
+    backend.alternation: a pose pass after each depth step took over the depth step's fit of
+    the pose error and stretched the loop further). On this scene the paper's schedule
+    (``depth.round_poses=pose_pass``) ends 6.2 % above the step-1 ATE (192.7 vs 181.5 mm of
+    keyframe ATE); frozen poses keep it (0 %)."""
+    scene = _build(tmp_path, agents=2, frames=16, preset="default", seed=3, step=4,
+                   overrides=[o for o in OVERRIDES if o != "simulated_prior.model=easy"])
+    config = apply_overrides(scene.config, ["depth.alternation_rounds=100"])
+    coordinator, _ = _run(scene, _interleave(scene, [0, 1]), config, agents=2)
+    record = coordinator.metrics()["alternation"]
+    assert record[0]["rounds"] >= 1 and record[0]["depth_parameters"] > 0
+    graph = coordinator.graph
+    after = _merged_keyframe_ate(coordinator, scene)
+    for a, snapshots in coordinator.pre_refinement.items():  # poses after step 1
+        graph.set_poses(graph.agent_keyframes(a), torch.stack([s.T_WC for s in snapshots]))
+    before = _merged_keyframe_ate(coordinator, scene)
+    assert after <= 1.02 * before
 
 
 def test_finish_returns_the_refined_pointmaps(ring) -> None:
