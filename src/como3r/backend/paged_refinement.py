@@ -285,7 +285,7 @@ def refine_in_chunks(
         refiner = _Refiner(problem, config, huber_k)
         if keep(chunk.rows):
             kept[n] = refiner
-        elif config.inner_iters > 0:  # a later pass will need it
+        elif num_params and config.inner_iters > 0:  # a later pass will need it
             spill.save(n, problem)
         return refiner
 
