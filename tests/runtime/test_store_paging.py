@@ -21,6 +21,7 @@ from como3r.config import Config, apply_overrides
 from como3r.coordination.association import Verification
 from como3r.coordination.coordinator import Candidate, Coordinator, CoordinatorStats
 from como3r.frontend.packets import KeyframePacket
+from como3r.backend.paged_refinement import ProblemSpill
 from como3r.frontend.paging import PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches
 from como3r.prior.mast3r.prior import MASt3REncoding
@@ -235,10 +236,19 @@ def test_the_terminal_refinement_keeps_the_working_set_and_pages_the_rest(
         finally:
             solving.pop()
 
+    spills: list[Path | None] = []  # where each depth step spills its chunk problems
+    spill_init = ProblemSpill.__init__
+
+    def spill(self, parent=None) -> None:
+        spills.append(parent)
+        spill_init(self, parent)
+
     monkeypatch.setattr(SessionStore, "load_keyframe", spy)
     monkeypatch.setattr(graph, "optimize", solve)
+    monkeypatch.setattr(ProblemSpill, "__init__", spill)
     coordinator.finish()
     monkeypatch.undo()
+    assert spills and all(parent == tmp_path / "spill" for parent in spills)
     alternation = coordinator.alternation[0]
     assert alternation["rounds"] >= 1 and alternation["cleanup_passes"] >= 1
     assert alternation["depth_parameters"] > 0

@@ -199,12 +199,15 @@ class _ComponentCleanup:
         anchor: global index of its pinned keyframe.
         depth: the depth-refinement settings.
         parking: where paged-out keyframes' changed pointmaps, labels and snapshots go.
+        spill_dir: where the depth steps spill the problems of working sets with paged-out
+            keyframes (``session.spill_dir``; None: the system's temporary folder).
     """
 
     def __init__(self, graph: GlobalGraph, members: Sequence[int], anchor: int,
-                 depth: DepthRefinementConfig, parking: KeyframeParking) -> None:
+                 depth: DepthRefinementConfig, parking: KeyframeParking,
+                 spill_dir: Path | None = None) -> None:
         self.graph, self.members, self.anchor, self.depth = graph, members, anchor, depth
-        self.parking = parking
+        self.parking, self.spill_dir = parking, spill_dir
         self.results: list[BAResult] = []
         self.depth_reports: list[DepthRefinementReport] = []
         self.snapshot: dict[int, list[MapSnapshot]] = {}
@@ -233,7 +236,7 @@ class _ComponentCleanup:
                 graph.freeze_refinement_base(self.members, parking)
             self.labels = graph.segment(self.members, self.anchor, self.depth, parking)
         report = graph.refine_depths(self.members, self.anchor, self.depth, self.labels,
-                                     parking)
+                                     parking, spill_dir=self.spill_dir)
         self.depth_reports.append(report)
         return report.max_change
 
@@ -388,8 +391,8 @@ class Coordinator:
         """
         start = time.perf_counter()
         cleanup = Cleanup(pointmap_update=self._pointmaps)
-        spill = self.config.session.spill_dir
-        parking = KeyframeParking(Path(spill) if spill else None)
+        spill = Path(self.config.session.spill_dir) if self.config.session.spill_dir else None
+        parking = KeyframeParking(spill)
         settings = AlternationSettings.from_config(self.config.global_ba, self.config.depth)
         for members in self.components():
             if not self.graph.agent_keyframes(members[0]) or any(
@@ -404,7 +407,7 @@ class Coordinator:
             if multi_agent:
                 self._refine_focals(members, scoped)
             component = _ComponentCleanup(self.graph, members, self._anchor(members[0]),
-                                          self.config.depth, parking)
+                                          self.config.depth, parking, spill)
             report = alternate(component.pose_pass if multi_agent else None,
                                component.depth_step, settings, progress=scoped)
             self._record_cleanup(members, component, report)
