@@ -12,7 +12,7 @@ time. A chunk's keyframes and matches are read when the chunk is built and let g
 a paged-out keyframe is read back from the session store (or the cleanup's parking,
 :class:`~como3r.frontend.paging.KeyframeParking`) and not kept. Nothing a chunk's problem
 holds changes during the step (poses frozen, reads before writes), and building it costs
-about ten times the pass's sums over it (store reads and zlib, norms, rays, match gathers,
+about ten times the pass's sums over it (store reads and decompression, norms, rays, match gathers,
 median ranges): rebuilding every chunk at each of the step's ``inner_iters + 1`` passes made
 a 14-keyframe map's depth steps 3.8x slower. So each chunk is built once per step, at the
 first pass: one whose keyframes are all in memory anyway keeps its problem for the step
