@@ -357,15 +357,16 @@ def _ndarray_bytes(value: np.ndarray, path: str) -> tuple[str, list[int], bytes]
 def _array_to_wire(kind: str, dtype: str, shape: list[int], data: bytes) -> dict[str, Any]:
     if len(data) < COMPRESS_MIN_BYTES:
         return {TAG: kind, "dtype": dtype, "shape": shape, "data": data}
-    packed = zstd.compress(_byte_planes(data, _itemsize(dtype)), level=ZSTD_LEVEL)
+    packed = zstd.compress(byte_planes(data, itemsize(dtype)), level=ZSTD_LEVEL)
     return {TAG: kind, "dtype": dtype, "shape": shape, "zstd": packed}
 
 
-def _itemsize(dtype: str) -> int:
+def itemsize(dtype: str) -> int:
+    """Bytes per element of wire dtype ``dtype`` (a key of :data:`ARRAY_DTYPES`)."""
     return torch.empty(0, dtype=ARRAY_DTYPES[dtype][1]).element_size()
 
 
-def _byte_planes(raw: bytes, itemsize: int, inverse: bool = False) -> bytes:
+def byte_planes(raw: bytes, itemsize: int, inverse: bool = False) -> bytes:
     """``raw`` as byte planes: every element's first byte, then every second byte, ...
     (``inverse``: planes back to elements)."""
     if itemsize == 1 or not raw:
@@ -477,10 +478,10 @@ def _array_from_wire(value: dict, kind: str, path: str,
     data = value[body]
     if not isinstance(data, bytes):
         raise MessageError(f"{path}: array data is not bytes")
-    size = math.prod(shape) * _itemsize(name)
+    size = math.prod(shape) * itemsize(name)
     if body == "zstd":
         budget.take(size, path)
-        data = _inflate(data, size, _itemsize(name), path)
+        data = _inflate(data, size, itemsize(name), path)
     if size != len(data):
         raise MessageError(f"{path}: {len(data)} bytes do not hold a {name} array of shape "
                            f"{tuple(shape)} ({size} bytes)")
@@ -525,7 +526,7 @@ def _inflate(packed: bytes, size: int, itemsize: int, path: str) -> bytes:
     if len(planes) != size or not inflater.eof or inflater.unused_data:
         raise MessageError(f"{path}: compressed array data does not decompress to the "
                            f"{size} bytes of its shape")
-    return _byte_planes(planes, itemsize, inverse=True)
+    return byte_planes(planes, itemsize, inverse=True)
 
 
 def _object_from_wire(value: dict, path: str, depth: int, budget: _Budget) -> Any:

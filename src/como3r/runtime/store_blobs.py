@@ -39,7 +39,7 @@ from torch import Tensor
 
 from como3r.errors import StoreError
 from como3r.runtime import codec
-from como3r.runtime.codec import ZSTD_LEVEL, zstd
+from como3r.runtime.codec import ZSTD_LEVEL, byte_planes, itemsize, zstd
 
 ARRAYS_MAGIC = b"C3RA"
 OBJECT_MAGIC = b"C3RO"
@@ -74,7 +74,7 @@ def pack_arrays(*arrays: Tensor | np.ndarray) -> bytes:
         name, shape, raw = _raw(array)
         header.append(_ARRAY.pack(_CODE[name], len(shape)))
         header.extend(_DIM.pack(n) for n in shape)
-        chunks.append(body.compress(_shuffle(raw, _itemsize(name))))
+        chunks.append(body.compress(byte_planes(raw, itemsize(name))))
     chunks.append(body.flush())
     return b"".join(header + chunks)
 
@@ -106,14 +106,14 @@ def unpack_arrays(blob: bytes, what: str) -> list[Tensor]:
         shape = [_DIM.unpack_from(data, offset + k * _DIM.size)[0] for k in range(ndim)]
         offset += ndim * _DIM.size
         specs.append((DTYPES[code], shape))
-    sizes = [math.prod(shape) * _itemsize(name) for name, shape in specs]
+    sizes = [math.prod(shape) * itemsize(name) for name, shape in specs]
     if sum(sizes) > MAX_BYTES:
         raise StoreError(f"{what}: claims {sum(sizes)} bytes")
     payload = _inflate(data[offset:], sum(sizes), what)
     arrays, start = [], 0
     for (name, shape), size in zip(specs, sizes):
-        arrays.append(_array(name, shape, _unshuffle(payload[start:start + size],
-                                                     _itemsize(name)), what))
+        arrays.append(_array(name, shape, byte_planes(payload[start:start + size],
+                                                      itemsize(name), inverse=True), what))
         start += size
     return arrays
 
@@ -142,10 +142,6 @@ def unpack_object(blob: bytes, expected: type, what: str) -> Any:
 # ------------------------------------------------------------------------------ helpers
 
 
-def _itemsize(name: str) -> int:
-    return torch.empty(0, dtype=codec.ARRAY_DTYPES[name][1]).element_size()
-
-
 def _raw(array: Tensor | np.ndarray) -> tuple[str, Sequence[int], bytes]:
     """Wire dtype name, shape and little-endian bytes of an array."""
     if isinstance(array, Tensor):
@@ -160,18 +156,6 @@ def _raw(array: Tensor | np.ndarray) -> tuple[str, Sequence[int], bytes]:
         if np_dtype is not None and array.dtype.newbyteorder("=") == np_dtype.newbyteorder("="):
             return name, array.shape, np.ascontiguousarray(array, dtype=np_dtype).tobytes()
     raise ValueError(f"array dtype {array.dtype} cannot be stored")
-
-
-def _shuffle(raw: bytes, itemsize: int) -> bytes:
-    if itemsize == 1 or not raw:
-        return raw
-    return np.frombuffer(raw, np.uint8).reshape(-1, itemsize).T.tobytes()
-
-
-def _unshuffle(raw: bytes, itemsize: int) -> bytes:
-    if itemsize == 1 or not raw:
-        return raw
-    return np.frombuffer(raw, np.uint8).reshape(itemsize, -1).T.tobytes()
 
 
 def _inflate(data: memoryview, size: int | None, what: str) -> bytes:
