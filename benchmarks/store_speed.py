@@ -1,0 +1,102 @@
+"""Session store and evaluation kernels: blob compression and voxel grouping (a script, not
+a test; issue 14 / 16 speed claims).
+
+Prints two tables of CPU milliseconds (``time.process_time``, one thread, median of
+``--repeats``), ratios within one run:
+
+1. one keyframe blob as the session store writes it (a 512x384 float32 pointmap, its
+   confidence and int64 match indices): its byte planes compressed and decompressed with
+   Zstandard at level 1 with the content checksum (the store's, format version 3) and
+   with zlib at level 1 (format version 2), with the compressed size over the raw; and
+   the store's whole :func:`~como3r.runtime.store_blobs.pack_arrays` / ``unpack_arrays``;
+2. the distinct voxels of a cloud and each point's voxel
+   (:func:`como3r.evaluation.reconstruction.unique_rows`, one int64 key per cell) against
+   ``np.unique(axis=0)``, for a 640x480 ground-truth frame at stride 4 and for 10^6 points.
+
+    python benchmarks/store_speed.py [--repeats 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+import zlib
+from typing import Callable
+
+import numpy as np
+import torch
+
+from como3r.evaluation.reconstruction import unique_rows
+from como3r.runtime.codec import byte_planes, zstd
+from como3r.runtime.store_blobs import ZSTD_OPTIONS, pack_arrays, unpack_arrays
+
+HEIGHT, WIDTH = 384, 512
+
+
+def _cpu_ms(work: Callable[[], object], repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        start = time.process_time()
+        work()
+        times.append(1000.0 * (time.process_time() - start))
+    return statistics.median(times)
+
+
+def keyframe_arrays(seed: int = 0) -> list[np.ndarray]:
+    """A smooth 512x384 pointmap with range noise, its confidence and match indices."""
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:HEIGHT, 0:WIDTH].astype(np.float32)
+    z = 2 + 0.3 * np.sin(u / 40) + 0.2 * np.cos(v / 30) + rng.normal(0, 0.002, (HEIGHT, WIDTH))
+    X = np.stack([(u - WIDTH / 2) / 400 * z, (v - HEIGHT / 2) / 400 * z, z], -1)
+    C = 1 + rng.gamma(2.0, 1.0, (HEIGHT, WIDTH))
+    matches = rng.integers(0, HEIGHT * WIDTH, HEIGHT * WIDTH)
+    return [X.astype(np.float32), C.astype(np.float32), matches.astype(np.int64)]
+
+
+def blob_table(repeats: int) -> None:
+    arrays = keyframe_arrays()
+    tensors = [torch.from_numpy(a) for a in arrays]
+    payload = b"".join(byte_planes(a.tobytes(), a.itemsize) for a in arrays)
+    blob = pack_arrays(*tensors)
+    assert all(np.array_equal(a, b.numpy()) for a, b in
+               zip(arrays, unpack_arrays(blob, "benchmark")))
+    zstd_packed = zstd.compress(payload, options=ZSTD_OPTIONS)
+    zlib_packed = zlib.compress(payload, 1)
+    print(f"1. one keyframe blob ({len(payload) / 2**20:.1f} MB raw), CPU ms, median of "
+          f"{repeats}")
+    print(f"{'step':<40} {'pack':>8} {'unpack':>8} {'size / raw':>11}")
+    rows = [("byte planes, Zstandard 1 + checksum", lambda: zstd.compress(
+                payload, options=ZSTD_OPTIONS), lambda: zstd.decompress(zstd_packed),
+             len(zstd_packed)),
+            ("byte planes, zlib 1 (format 2)", lambda: zlib.compress(payload, 1),
+             lambda: zlib.decompress(zlib_packed), len(zlib_packed)),
+            ("the store's whole blob (Zstandard)", lambda: pack_arrays(*tensors),
+             lambda: unpack_arrays(blob, "benchmark"), len(blob))]
+    for name, pack, unpack, size in rows:
+        print(f"{name:<40} {_cpu_ms(pack, repeats):>8.1f} {_cpu_ms(unpack, repeats):>8.1f} "
+              f"{size / len(payload):>11.3f}")
+
+
+def voxel_table(repeats: int) -> None:
+    rng = np.random.default_rng(1)
+    print(f"\n2. distinct voxels of a cloud, CPU ms, median of {repeats}")
+    print(f"{'points':>9} {'unique_rows':>12} {'np.unique axis 0':>17} {'ratio':>6}")
+    for points in (19_200, 1_000_000):
+        cells = np.floor(rng.normal(size=(points, 3)) * [3, 1, 5] / 0.05).astype(np.int64)
+        ours = _cpu_ms(lambda: unique_rows(cells), repeats)
+        numpy = _cpu_ms(lambda: np.unique(cells, axis=0, return_inverse=True), repeats)
+        print(f"{points:>9} {ours:>12.1f} {numpy:>17.1f} {numpy / ours:>6.1f}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=10)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    blob_table(args.repeats)
+    voxel_table(args.repeats)
+
+
+if __name__ == "__main__":
+    main()
