@@ -15,6 +15,8 @@ tests compare both.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 from numba import njit, prange
@@ -38,19 +40,20 @@ def _huber_pieces(r: float, k: float) -> tuple:  # pragma: no cover (compiled)
     return k / a, 2.0 * k * a - k * k
 
 
-def _depth_sums(depth, param, match_a, match_b, rays, rays_b_in_a, t_ab, sqrt_w, k, block,
-                with_blocks, H_out, g_out, cost_out):  # pragma: no cover (compiled)
-    K = match_a.shape[0]
+def _depth_sums(scale, d0_a, d0_b, param_a, param_b, ray_a, rays_b_in_a, t_ab, sqrt_w, k,
+                block, with_blocks, H_out, g_out, cost_out):  # pragma: no cover (compiled)
+    K = d0_a.shape[0]
     for task in prange(cost_out.shape[0]):
         cost = 0.0
         for m in range(task * block, min((task + 1) * block, K)):
-            a, b, w = match_a[m], match_b[m], float(sqrt_w[m])
-            d_a, d_b = float(depth[a]), float(depth[b])
-            pa, pb = param[a], param[b]
+            pa, pb, w = param_a[m], param_b[m], float(sqrt_w[m])
+            # C-Eq. 19: d = ||X_init|| exp(s_g); a pixel without a log-scale keeps ||X_init||
+            d_a = float(d0_a[m]) * (scale[pa] if pa >= 0 else 1.0)
+            d_b = float(d0_b[m]) * (scale[pb] if pb >= 0 else 1.0)
             Haa = gaa = Hbb = gbb = 0.0
             for c in range(3):
                 ray_b = float(rays_b_in_a[m, c])
-                J_a = -w * d_a * float(rays[a, c])
+                J_a = -w * d_a * float(ray_a[m, c])
                 J_b = w * d_b * ray_b
                 r = w * (d_b * ray_b + float(t_ab[m, c])) + J_a
                 weight, rho = _huber_pieces(r, k)
@@ -69,37 +72,66 @@ def _depth_sums(depth, param, match_a, match_b, rays, rays_b_in_a, t_ab, sqrt_w,
         cost_out[task] = cost
 
 
-def depth_normal_equations(depth: Tensor, param: Tensor, match_a: Tensor, match_b: Tensor,
-                           rays: Tensor, rays_b_in_a: Tensor, t_ab: Tensor, sqrt_w: Tensor,
-                           num_params: int, huber_k: float, with_blocks: bool = True
-                           ) -> tuple[Tensor, Tensor, float]:
+@dataclass(frozen=True)
+class MatchStreams:
+    """A depth problem's matches laid out match by match, so the loop reads them in order
+    and looks up only the ``M`` log-scales at random (gathering each endpoint's range,
+    log-scale index and ray from the ``P`` pixels at every Newton step cost twice the step).
+
+    Attributes:
+        d0_a, d0_b: ``(K,)`` ranges ``||X_init||`` of each match's pixels in keyframes i, j.
+        param_a, param_b: ``(K,)`` int64 their log-scales (-1: none, the pixel is fixed).
+        ray_a: ``(K, 3)`` unit ray of the pixel of i; rays_b_in_a: ``(K, 3)`` j's ray rotated
+            and scaled into frame i; t_ab: ``(K, 3)`` translation of ``T_ij``; sqrt_w:
+            ``(K,)`` whitening. numpy arrays; the gathered ones are copies.
+    """
+
+    d0_a: np.ndarray
+    d0_b: np.ndarray
+    param_a: np.ndarray
+    param_b: np.ndarray
+    ray_a: np.ndarray
+    rays_b_in_a: np.ndarray
+    t_ab: np.ndarray
+    sqrt_w: np.ndarray
+
+    @classmethod
+    def of(cls, depth0: Tensor, rays: Tensor, match_a: Tensor, match_b: Tensor,
+           param_a: Tensor, param_b: Tensor, rays_b_in_a: Tensor, t_ab: Tensor,
+           sqrt_w: Tensor) -> "MatchStreams":
+        """Gather the per-pixel ``depth0 (P,)`` and ``rays (P, 3)`` at the matches' pixels
+        ``match_a, match_b (K,)``; the per-match arrays (``param_a = param[match_a]`` …)
+        are taken as they are, without a copy."""
+        def array(x: Tensor) -> np.ndarray:  # no copy of a contiguous CPU tensor
+            return x.detach().contiguous().numpy()
+
+        return cls(array(depth0[match_a]), array(depth0[match_b]), array(param_a),
+                   array(param_b), array(rays[match_a]), array(rays_b_in_a), array(t_ab),
+                   array(sqrt_w))
+
+
+def depth_normal_equations(s: Tensor, streams: MatchStreams, huber_k: float,
+                           with_blocks: bool = True) -> tuple[Tensor, Tensor, float]:
     """Data term of C-Eq. 20-24: diagonal Hessian and gradient of the log-scales, and cost.
 
     Args:
-        depth: ``(P,)`` current ranges of every pixel (C-Eq. 19).
-        param: ``(P,)`` int64 log-scale of each pixel, -1 for none.
-        match_a, match_b: ``(K,)`` int64 pixels of each match in keyframes i and j.
-        rays: ``(P, 3)`` unit rays; rays_b_in_a: ``(K, 3)`` j's ray rotated and scaled into
-            frame i; t_ab: ``(K, 3)`` translation of ``T_ij``; sqrt_w: ``(K,)`` whitening.
-        num_params: ``M``, the number of log-scales.
+        s: ``(M,)`` the log-scales (C-Eq. 19).
+        streams: the problem's matches (:meth:`MatchStreams.of`).
         huber_k: Huber breakpoint of the data term.
         with_blocks: False computes the cost alone (``H`` and ``g`` are then zero).
 
     Returns:
         ``(H (M,), g (M,))`` float64 and the robust cost ``sum rho(r)``.
     """
-    K = match_a.shape[0]
+    K, num_params = streams.d0_a.shape[0], s.numel()
     blocks = max(1, min(MAX_BLOCKS, -(-K // BLOCK)))
     block = max(1, -(-K // blocks))
     width = num_params if with_blocks else 0
     H_out, g_out = np.zeros((blocks, width)), np.zeros((blocks, width))
     cost_out = np.zeros(blocks)
-
-    def array(x: Tensor) -> np.ndarray:  # no copy of a contiguous CPU tensor
-        return x.detach().contiguous().numpy()
-
-    compiled(_depth_sums)(array(depth), array(param), array(match_a), array(match_b),
-                          array(rays), array(rays_b_in_a), array(t_ab), array(sqrt_w),
+    scale = np.exp(s.detach().double().numpy())
+    compiled(_depth_sums)(scale, streams.d0_a, streams.d0_b, streams.param_a, streams.param_b,
+                          streams.ray_a, streams.rays_b_in_a, streams.t_ab, streams.sqrt_w,
                           float(huber_k), block, with_blocks, H_out, g_out, cost_out)
     return (torch.from_numpy(H_out.sum(0)), torch.from_numpy(g_out.sum(0)),
             float(cost_out.sum()))

@@ -385,6 +385,7 @@ class _Refiner:
         self.free_pixels = torch.nonzero(problem.param >= 0).squeeze(-1)
         self.match_param_a = problem.param[problem.match_a]
         self.match_param_b = problem.param[problem.match_b]
+        self._streams: cpu_kernels.MatchStreams | None = None
 
     def depths(self, s: Tensor) -> Tensor:
         """``(P,)`` ranges ``d0 exp(s_g)`` (C-Eq. 19); fixed pixels keep ``d0``."""
@@ -443,11 +444,14 @@ class _Refiner:
 
     def _compiled_data(self, s: Tensor, with_blocks: bool = True) -> tuple[Tensor, Tensor, float]:
         """The data term's diagonal Hessian, gradient (float64, ``(M,)``) and cost by
-        :func:`como3r.backend.cpu_kernels.depth_normal_equations`."""
-        p = self.p
-        return cpu_kernels.depth_normal_equations(
-            self.depths(s), p.param, p.match_a, p.match_b, p.rays, p.rays_b_in_a, p.t_ab,
-            p.sqrt_w, s.numel(), self.huber_k, with_blocks)
+        :func:`como3r.backend.cpu_kernels.depth_normal_equations` (its matches laid out
+        match by match at the first call)."""
+        if self._streams is None:
+            p = self.p
+            self._streams = cpu_kernels.MatchStreams.of(
+                p.depth0, p.rays, p.match_a, p.match_b, self.match_param_a,
+                self.match_param_b, p.rays_b_in_a, p.t_ab, p.sqrt_w)
+        return cpu_kernels.depth_normal_equations(s, self._streams, self.huber_k, with_blocks)
 
     def step(self, s: Tensor) -> tuple[Tensor, int, float]:
         """One damped, clipped Newton step.
