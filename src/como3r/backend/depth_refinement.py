@@ -60,7 +60,7 @@ from como3r.backend.segments import parameter_labels
 from como3r.config import DepthRefinementConfig
 from como3r.errors import ConfigError, InputError
 from como3r.frontend.graph import Edge
-from como3r.geometry.lie import quat_rotate, sim3_compose, sim3_inverse
+from como3r.geometry.lie import quat_to_matrix, sim3_compose, sim3_inverse
 from como3r.geometry.residuals import huber_weight, psi
 from como3r.geometry.units import median_range
 
@@ -293,11 +293,9 @@ def _build_problem(
         num_pixels += lab.numel()
 
     depth0_t, rays_t, param_t = torch.cat(depth0), torch.cat(rays), torch.cat(param)
-    match_a, match_b, T_ab, sqrt_w = _flatten_matches(
-        keyframes, poses.to(dtype), edges, index_of, pixel_offsets, param_t, config.sigma_point)
-    # The data Jacobian of j's endpoint is d_j s_ij R_ij psi_j (C-Sec. A.6); the rotated ray
-    # is constant at frozen poses.
-    rays_b_in_a = T_ab[:, 7:] * quat_rotate(T_ab[:, 3:7], rays_t[match_b])
+    match_a, match_b, rays_b_in_a, t_ab, sqrt_w = _flatten_matches(
+        keyframes, poses.to(dtype), edges, index_of, pixel_offsets, param_t, rays_t,
+        config.sigma_point)
     if bnd:
         bnd_a, bnd_b, delta = _boundary_terms(*(torch.cat(p) for p in zip(*bnd)),
                                               max(num_params, 1))
@@ -308,7 +306,7 @@ def _build_problem(
         delta = torch.zeros(0, dtype=dtype, device=device)
     s0 = torch.cat(s_start) if s_start else torch.zeros(0, dtype=dtype, device=device)
     problem = _Problem(depth0_t, rays_t, param_t.clamp_min(-1), match_a, match_b, rays_b_in_a,
-                       T_ab[:, :3], sqrt_w, bnd_a, bnd_b, delta, s0)
+                       t_ab, sqrt_w, bnd_a, bnd_b, delta, s0)
     return problem, pixel_offsets, param_offsets
 
 
@@ -319,14 +317,21 @@ def _flatten_matches(
     index_of: Callable[[int], int],
     pixel_offsets: list[int],
     param: Tensor,
+    rays: Tensor,
     sigma_point: float,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Matches of all edges whose endpoints are valid and at least one is free.
 
+    Args:
+        param: ``(P,)`` every pixel's log-scale (-1: invalid, -2: valid and fixed).
+        rays: ``(P, 3)`` every pixel's unit ray.
+
     Returns:
-        pixel of i ``(K,)``, pixel of j ``(K,)`` (flat over all keyframes), ``T_ij`` per
-        match ``(K, 8)`` and the whitening ``sqrt(q) / (sigma_point d_i)`` ``(K,)``, with
-        ``d_i`` keyframe i's median range: ``sigma_point`` is relative to the scene depth
+        pixel of i ``(K,)``, pixel of j ``(K,)`` (flat over all keyframes), j's ray in frame
+        i ``s_ij R_ij psi_j`` ``(K, 3)`` (the data Jacobian of j's endpoint over d_j,
+        C-Sec. A.6; constant at frozen poses), the translation of ``T_ij`` per match
+        ``(K, 3)`` and the whitening ``sqrt(q) / (sigma_point d_i)`` ``(K,)``, with ``d_i``
+        keyframe i's median range: ``sigma_point`` is relative to the scene depth
         (:mod:`como3r.geometry.units`), the residual is in camera i's units.
     """
     dtype, device = poses.dtype, poses.device
@@ -356,17 +361,21 @@ def _flatten_matches(
         a, b = idx + pixel_offsets[ki], n + pixel_offsets[kj]
         pa, pb = param[a], param[b]
         keep = (pa != -1) & (pb != -1) & ((pa >= 0) | (pb >= 0))
+        a, b = a[keep], b[keep]
         T_ij = sim3_compose(sim3_inverse(poses[ki]), poses[kj])
+        # one rotation per edge, applied as a product (a quaternion per match cost a third
+        # of the problem's construction)
+        ray_b_in_a = T_ij[7] * (rays[b] @ quat_to_matrix(T_ij[3:7]).T)
         if ki not in depth_of:
             depth_of[ki] = float(median_range(keyframes[ki].X_hat))
         sqrt_w = m.q.to(device=device, dtype=dtype)[n[keep]].sqrt() / (sigma_point * depth_of[ki])
-        parts.append((a[keep], b[keep], T_ij.expand(int(keep.sum()), 8), sqrt_w))
+        parts.append((a, b, ray_b_in_a, T_ij[:3].expand(a.numel(), 3), sqrt_w))
     if not parts:
         empty_i = torch.zeros(0, dtype=torch.int64, device=device)
         empty_f = torch.zeros(0, dtype=dtype, device=device)
-        return empty_i, empty_i, empty_f.reshape(0, 8), empty_f
-    match_a, match_b, T, sqrt_w = (torch.cat(p) for p in zip(*parts))
-    return match_a, match_b, T, sqrt_w
+        return empty_i, empty_i, empty_f.reshape(0, 3), empty_f.reshape(0, 3), empty_f
+    match_a, match_b, rays_b_in_a, t_ab, sqrt_w = (torch.cat(p) for p in zip(*parts))
+    return match_a, match_b, rays_b_in_a, t_ab, sqrt_w
 
 
 def _huber_cost(r: Tensor, k: float) -> Tensor:
