@@ -163,7 +163,10 @@ class _Problem:
     match_b: Tensor  # (K,) pixel n of keyframe j
     rays_b_in_a: Tensor  # (K, 3) s_ij R_ij psi_j,n: ray of j's pixel rotated into frame i
     t_ab: Tensor  # (K, 3) translation of T_ij
-    sqrt_w: Tensor  # (K,) sqrt(q_mn) / sigma_point (C-Eq. 21 whitening)
+    sqrt_w: Tensor  # (K,) sqrt(q_mn) / (sigma_point d_i) (C-Eq. 21 whitening)
+    # (E, 3) int64 per edge: first and end match, and the keyframe i (position) whose median
+    # range d_i whitens them
+    edge_spans: Tensor
     bnd_a: Tensor  # (B,) log-scale a of each unique adjacent pair, a < b
     bnd_b: Tensor  # (B,)
     delta: Tensor  # (B,) Delta_ab of C-Eq. 22
@@ -293,7 +296,7 @@ def _build_problem(
         num_pixels += lab.numel()
 
     depth0_t, rays_t, param_t = torch.cat(depth0), torch.cat(rays), torch.cat(param)
-    match_a, match_b, rays_b_in_a, t_ab, sqrt_w = _flatten_matches(
+    match_a, match_b, rays_b_in_a, t_ab, sqrt_w, edge_spans = _flatten_matches(
         keyframes, poses.to(dtype), edges, index_of, pixel_offsets, param_t, rays_t,
         config.sigma_point)
     if bnd:
@@ -306,7 +309,7 @@ def _build_problem(
         delta = torch.zeros(0, dtype=dtype, device=device)
     s0 = torch.cat(s_start) if s_start else torch.zeros(0, dtype=dtype, device=device)
     problem = _Problem(depth0_t, rays_t, param_t.clamp_min(-1), match_a, match_b, rays_b_in_a,
-                       t_ab, sqrt_w, bnd_a, bnd_b, delta, s0)
+                       t_ab, sqrt_w, edge_spans, bnd_a, bnd_b, delta, s0)
     return problem, pixel_offsets, param_offsets
 
 
@@ -319,7 +322,7 @@ def _flatten_matches(
     param: Tensor,
     rays: Tensor,
     sigma_point: float,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Matches of all edges whose endpoints are valid and at least one is free.
 
     Args:
@@ -332,10 +335,11 @@ def _flatten_matches(
         C-Sec. A.6; constant at frozen poses), the translation of ``T_ij`` per match
         ``(K, 3)`` and the whitening ``sqrt(q) / (sigma_point d_i)`` ``(K,)``, with ``d_i``
         keyframe i's median range: ``sigma_point`` is relative to the scene depth
-        (:mod:`como3r.geometry.units`), the residual is in camera i's units.
+        (:mod:`como3r.geometry.units`), the residual is in camera i's units; and the
+        ``(E, 3)`` spans of :attr:`_Problem.edge_spans`.
     """
     dtype, device = poses.dtype, poses.device
-    parts = []
+    parts, spans, count = [], [], 0
     depth_of: dict[int, float] = {}
     for edge in edges:
         try:
@@ -370,12 +374,16 @@ def _flatten_matches(
             depth_of[ki] = float(median_range(keyframes[ki].X_hat))
         sqrt_w = m.q.to(device=device, dtype=dtype)[n[keep]].sqrt() / (sigma_point * depth_of[ki])
         parts.append((a, b, ray_b_in_a, T_ij[:3].expand(a.numel(), 3), sqrt_w))
+        spans.append((count, count + a.numel(), ki))
+        count += a.numel()
+    edge_spans = torch.tensor(spans, dtype=torch.int64, device=device).reshape(-1, 3)
     if not parts:
         empty_i = torch.zeros(0, dtype=torch.int64, device=device)
         empty_f = torch.zeros(0, dtype=dtype, device=device)
-        return empty_i, empty_i, empty_f.reshape(0, 3), empty_f.reshape(0, 3), empty_f
+        return (empty_i, empty_i, empty_f.reshape(0, 3), empty_f.reshape(0, 3), empty_f,
+                edge_spans)
     match_a, match_b, rays_b_in_a, t_ab, sqrt_w = (torch.cat(p) for p in zip(*parts))
-    return match_a, match_b, rays_b_in_a, t_ab, sqrt_w
+    return match_a, match_b, rays_b_in_a, t_ab, sqrt_w, edge_spans
 
 
 def _huber_cost(r: Tensor, k: float) -> Tensor:

@@ -19,7 +19,9 @@ first pass: one whose keyframes are all in memory anyway keeps its problem for t
 (``keep``), any other is written raw to a :class:`ProblemSpill` and read back whole at the
 later passes, so that memory holds one such problem at a time. Only the log-scales
 ``s (M,)``, their warm start and the boundary pairs stay in memory for the whole step. Each
-keyframe holds a few hundred of them.
+keyframe holds a few hundred of them. The rounds of one alternation at frozen poses use the
+same problems again (:class:`ChunkProblems`, their whitening rescaled): a chunk is then
+built once per alternation.
 
 A keyframe's refined pointmap goes to a ``write`` callback (an unpaged keyframe takes it in
 memory, a paged-out one is parked). Reads happen before writes: the data passes read the
@@ -37,7 +39,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +57,7 @@ from como3r.backend.depth_refinement import (
     regularised,
     written_back,
 )
+from como3r.geometry.units import median_range
 from como3r.config import DepthRefinementConfig
 from como3r.frontend.graph import Edge
 from como3r.frontend.paging import KeyframeParking, KeyframeSpill
@@ -175,6 +178,59 @@ class ProblemSpill:
         return self._spill.folder / f"chunk{n}.bin"
 
 
+class ChunkProblems:
+    """The chunks' flattened problems of one depth step, kept for the next ones while the
+    poses stay as they were: the rounds of C-Sec. A.7 step 2 at frozen poses
+    (``depth.round_poses = "frozen"``), where rebuilding them was a third of each step.
+
+    A chunk's problem depends on the poses, the base pointmaps ``X_init``, the label maps and
+    the links, which one alternation does not change between its depth steps (the poses are
+    checked; a change rebuilds everything), and on each keyframe i's median range, which
+    whitens C-Eq. 21 and which the depth steps do change: a kept problem's whitening is
+    rescaled to the current ranges (:meth:`rewhitened`). Problems stay where the first step
+    put them (memory for chunks of resident keyframes, else the spill) until :meth:`close`.
+
+    Args:
+        spill_dir: where the spill's folder is made (None: the system's temporary folder).
+    """
+
+    def __init__(self, spill_dir: Path | None = None) -> None:
+        self.spill = ProblemSpill(spill_dir)
+        self.kept: dict[int, _Problem] = {}
+        self._poses: Tensor | None = None
+        self._rows: list[tuple[int, ...]] = []
+        self._ranges = torch.zeros(0, dtype=torch.float64)  # per row, at the build
+
+    def usable(self, poses: Tensor, chunks: Sequence[Chunk], ranges: Tensor) -> None:
+        """Make the problems those of ``poses (N, 8)`` and ``chunks``: kept if they were
+        built for both, else let go; ``ranges (N,)`` are the rows' median ranges now."""
+        rows = [chunk.rows for chunk in chunks]
+        if (self._poses is not None and rows == self._rows and self._poses.shape == poses.shape
+                and torch.equal(self._poses, poses)):
+            return
+        self.close()
+        self._poses, self._rows, self._ranges = poses.clone(), rows, ranges.clone()
+
+    def rewhitened(self, problem: _Problem, rows: Sequence[int], ranges: Tensor) -> _Problem:
+        """``problem`` of the chunk of ``rows`` with its whitening ``sqrt(q) / (sigma d_i)``
+        at the rows' median ``ranges (N,)`` instead of those it was built at."""
+        spans = problem.edge_spans
+        if not spans.numel():
+            return problem
+        position = torch.tensor(rows, dtype=torch.int64)[spans[:, 2].cpu()]
+        factor = self._ranges[position] / ranges[position]
+        if bool((factor == 1.0).all()):
+            return problem
+        per_match = torch.repeat_interleave(factor.to(problem.sqrt_w), (spans[:, 1] - spans[:, 0]))
+        return replace(problem, sqrt_w=problem.sqrt_w * per_match)
+
+    def close(self) -> None:
+        """Let go of the problems (the spill's files deleted)."""
+        self.kept.clear()
+        self.spill.close()
+        self._poses, self._rows = None, []
+
+
 class LabelMaps(Mapping[int, Tensor]):
     """Label maps (C-Sec. A.6) by keyframe key: in memory, or those of paged-out keyframes
     kept in a :class:`~como3r.frontend.paging.KeyframeParking` (read back when asked for).
@@ -218,6 +274,7 @@ def refine_in_chunks(
     huber_k: float = HUBER_K,
     keep: Callable[[Sequence[int]], bool] = lambda rows: False,
     spill_dir: Path | None = None,
+    problems: ChunkProblems | None = None,
 ) -> DepthRefinementReport:
     """One depth step (C-Eq. 19-24) at frozen poses, its data term summed chunk by chunk.
 
@@ -238,6 +295,9 @@ def refine_in_chunks(
             at the later ones.
         spill_dir: where the spill's folder is made (None: the system's temporary folder);
             it takes about 20 bytes per pixel and 36 per match of the chunks not kept.
+        problems: the chunks' problems of an earlier step, used again if it had the same
+            poses and chunks, and left to the caller (who closes it) for later steps; None:
+            built for this step and let go at its end.
 
     Returns:
         The report, as :func:`~.depth_refinement.refine_depths` makes it.
@@ -254,8 +314,10 @@ def refine_in_chunks(
     # per row: its first log-scale and how many it has (pinned rows: none)
     offsets, sizes, s_parts, bnd_parts = [], [], [], []
     num_params = 0
+    ranges = torch.zeros(count, dtype=torch.float64)
     for r in range(count):
         kf, lab = read(r), labels(r)
+        ranges[r] = float(median_range(kf.X_hat))  # as _flatten_matches whitens with
         _check_inputs([kf], poses[r:r + 1], [lab], config)
         alone, _, _ = _build_problem([kf], poses[r:r + 1], [], {}.__getitem__, [lab], config,
                                      {0} if r in pinned_rows else set())
@@ -267,26 +329,36 @@ def refine_in_chunks(
     s_start = torch.cat(s_parts)
     bnd_a, bnd_b, delta = (torch.cat(parts) for parts in zip(*bnd_parts))
 
-    kept: dict[int, _Refiner] = {}
-    spill = ProblemSpill(spill_dir)
+    step_problems = ChunkProblems(spill_dir) if problems is None else problems
+    step_problems.usable(poses, chunks, ranges)
+    kept: dict[int, _Refiner] = {}  # this step's refiners of the problems kept in memory
 
     def chunk_refiner(n: int, chunk: Chunk) -> _Refiner:
-        """Chunk ``n``'s flattened data problem: built at the first pass, then kept where
+        """Chunk ``n``'s flattened data problem: built at its first pass, then kept where
         ``keep`` allows, else read back from the spill (the working set of a paged map)."""
         if n in kept:
             return kept[n]
-        if n in spill:
-            return _Refiner(spill.load(n), config, huber_k)
+        if n in step_problems.kept or n in step_problems.spill:
+            problem = (step_problems.kept[n] if n in step_problems.kept
+                       else step_problems.spill.load(n))
+            refiner = _Refiner(step_problems.rewhitened(problem, chunk.rows, ranges), config,
+                               huber_k)
+            if n in step_problems.kept:
+                kept[n] = refiner
+            return refiner
         position = {r: k for k, r in enumerate(chunk.rows)}
         problem, _, _ = _build_problem(
             [read(r) for r in chunk.rows], poses[list(chunk.rows)], chunk.edges(),
             position.__getitem__, [labels(r) for r in chunk.rows], config,
             {position[r] for r in chunk.rows if r in pinned_rows}, data_only=True)
+        # built at the rows' current ranges; kept or spilled only when the problems were
+        # (re)started this step, so that they were too (ChunkProblems.usable)
         refiner = _Refiner(problem, config, huber_k)
         if keep(chunk.rows):
+            step_problems.kept[n] = problem
             kept[n] = refiner
-        elif num_params and config.inner_iters > 0:  # a later pass will need it
-            spill.save(n, problem)
+        elif num_params and (config.inner_iters > 0 or problems is not None):
+            step_problems.spill.save(n, problem)  # a later pass or step will need it
         return refiner
 
     def data_term(s: Tensor, with_blocks: bool) -> tuple[Tensor, Tensor, float]:
@@ -322,9 +394,10 @@ def refine_in_chunks(
             report.max_change = float((s - s_start).abs().max())
         H, g, cost = data_term(s, False)
     finally:
-        spilled, kept_count = spill.bytes, len(kept)
+        spilled, kept_count = step_problems.spill.bytes, len(kept)
         kept.clear()  # the write-back below reads keyframe by keyframe: let go first
-        spill.close()
+        if problems is None:
+            step_problems.close()
     report.cost_history.append(regularised(H, g, cost, s, bnd_a, bnd_b, delta, config)[2])
 
     for r in range(count):

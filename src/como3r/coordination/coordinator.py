@@ -53,6 +53,7 @@ from torch import Tensor
 from como3r.backend.alternation import AlternationReport, AlternationSettings, alternate
 from como3r.backend.depth_refinement import DepthRefinementReport
 from como3r.backend.global_graph import BAResult, GlobalGraph, GraphLink
+from como3r.backend.paged_refinement import ChunkProblems
 from como3r.config import Config, DepthRefinementConfig
 from como3r.coordination.association import CrossAgentRetrieval, Verification, verify_candidates
 from como3r.frontend.focal import FocalPair, estimate_log_focal, relative_pose
@@ -208,6 +209,9 @@ class _ComponentCleanup:
                  spill_dir: Path | None = None) -> None:
         self.graph, self.members, self.anchor, self.depth = graph, members, anchor, depth
         self.parking, self.spill_dir = parking, spill_dir
+        # the depth steps' working-set problems, used again while the poses stay (frozen
+        # rounds); closed by close()
+        self.problems = ChunkProblems(spill_dir)
         self.results: list[BAResult] = []
         self.depth_reports: list[DepthRefinementReport] = []
         self.snapshot: dict[int, list[MapSnapshot]] = {}
@@ -215,9 +219,14 @@ class _ComponentCleanup:
         self.paged = [graph.keyframes[g] for a in members for g in graph.agent_keyframes(a)
                       if paged_out(graph.keyframes[g])]
 
+    def close(self) -> None:
+        """Let go of the depth steps' kept problems (memory and spill files)."""
+        self.problems.close()
+
     def pose_pass(self, max_iters: int) -> float:
         """A global pose solve; its largest camera move over the component's scene depth
         (0 if it kept the poses)."""
+        self.problems.close()  # built at the poses this pass changes
         result = self.graph.optimize(self.members, self.anchor, max_iters)
         self.results.append(result)
         change = (result.max_translation_change / self.graph.scene_depth(self.members)
@@ -236,7 +245,8 @@ class _ComponentCleanup:
                 graph.freeze_refinement_base(self.members, parking)
             self.labels = graph.segment(self.members, self.anchor, self.depth, parking)
         report = graph.refine_depths(self.members, self.anchor, self.depth, self.labels,
-                                     parking, spill_dir=self.spill_dir)
+                                     parking, spill_dir=self.spill_dir,
+                                     problems=self.problems)
         self.depth_reports.append(report)
         return report.max_change
 
@@ -408,8 +418,11 @@ class Coordinator:
                 self._refine_focals(members, scoped)
             component = _ComponentCleanup(self.graph, members, self._anchor(members[0]),
                                           self.config.depth, parking, spill)
-            report = alternate(component.pose_pass if multi_agent else None,
-                               component.depth_step, settings, progress=scoped)
+            try:
+                report = alternate(component.pose_pass if multi_agent else None,
+                                   component.depth_step, settings, progress=scoped)
+            finally:
+                component.close()
             self._record_cleanup(members, component, report)
             if multi_agent:
                 cleanup.updates.extend(self._updates(members, "cleanup"))
