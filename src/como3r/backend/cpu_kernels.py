@@ -98,7 +98,7 @@ class MatchStreams:
     @classmethod
     def of(cls, depth0: Tensor, rays: Tensor, match_a: Tensor, match_b: Tensor,
            param_a: Tensor, param_b: Tensor, rays_b_in_a: Tensor, t_ab: Tensor,
-           sqrt_w: Tensor) -> "MatchStreams":
+           sqrt_w: Tensor) -> MatchStreams:
         """Gather the per-pixel ``depth0 (P,)`` and ``rays (P, 3)`` at the matches' pixels
         ``match_a, match_b (K,)``; the per-match arrays (``param_a = param[match_a]`` …)
         are taken as they are, without a copy."""

@@ -57,10 +57,10 @@ from como3r.backend.depth_refinement import (
     regularised,
     written_back,
 )
-from como3r.geometry.units import median_range
 from como3r.config import DepthRefinementConfig
 from como3r.frontend.graph import Edge
 from como3r.frontend.paging import KeyframeParking, KeyframeSpill
+from como3r.geometry.units import median_range
 
 logger = logging.getLogger(__name__)
 

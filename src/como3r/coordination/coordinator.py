@@ -56,7 +56,6 @@ from como3r.backend.global_graph import BAResult, GlobalGraph, GraphLink
 from como3r.backend.paged_refinement import ChunkProblems
 from como3r.config import Config, DepthRefinementConfig
 from como3r.coordination.association import CrossAgentRetrieval, Verification, verify_candidates
-from como3r.frontend.focal import FocalPair, estimate_log_focal, relative_pose
 from como3r.coordination.gauge import (
     GaugeComponents,
     GaugeTransform,
@@ -66,6 +65,7 @@ from como3r.coordination.gauge import (
     transport,
 )
 from como3r.errors import Como3rError, InputError
+from como3r.frontend.focal import FocalPair, estimate_log_focal, relative_pose
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.frontend.paging import KeyframeParking, paged_out, read_fields

@@ -26,7 +26,6 @@ from como3r.frontend.matching import match_confidence, match_pointmaps
 from como3r.frontend.timing import StageTimer
 from como3r.prior.base import Encoding, PairPrediction, Prior
 
-
 #: Share of view i's rays left out on each side when taking the box of its field of view:
 #: a few stray rays at depth discontinuities must not widen it.
 FIELD_OF_VIEW_QUANTILE = 0.01
