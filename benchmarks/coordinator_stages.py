@@ -13,8 +13,9 @@ same stages in multi-process runs, where they share the cores with the agents.
 Two checkouts compare like for like by running this file of either on the same scene
 (``PYTHONPATH=<checkout>/src``).
 
-    python benchmarks/report.py ...   # or: como3r synth --out /tmp/s4 --agents 4 --frames 16
-    OMP_NUM_THREADS=1 python benchmarks/coordinator_stages.py --scene /tmp/perf/scene_4x8 \\
+    como3r synth --out /tmp/s4 --agents 4 --frames 16 --loop-frames 100 --width 640 \\
+        --height 480 --overlap 0.5   # the dashboard's 4-agent scene (report.py makes it too)
+    OMP_NUM_THREADS=1 python benchmarks/coordinator_stages.py --scene /tmp/s4 \\
         --out /tmp/coordinator_run
 """
 
