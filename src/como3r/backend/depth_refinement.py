@@ -367,8 +367,7 @@ def _flatten_matches(
         keep = (pa != -1) & (pb != -1) & ((pa >= 0) | (pb >= 0))
         a, b = a[keep], b[keep]
         T_ij = sim3_compose(sim3_inverse(poses[ki]), poses[kj])
-        # one rotation per edge, applied as a product (a quaternion per match cost a third
-        # of the problem's construction)
+        # one rotation matrix per edge, applied as a product, not a quaternion per match
         ray_b_in_a = T_ij[7] * (rays[b] @ quat_to_matrix(T_ij[3:7]).T)
         if ki not in depth_of:
             depth_of[ki] = float(median_range(keyframes[ki].X_hat))
