@@ -105,3 +105,22 @@ def test_the_map_is_written_a_keyframe_at_a_time_as_it_was_whole(tmp_path) -> No
     np.testing.assert_array_equal(np.stack([vertices[k] for k in "xyz"], 1), whole[0][first])
     np.testing.assert_array_equal(vertices["agent_id"], whole[2][first])
     assert not (tmp_path / "map.ply.body").exists()
+
+
+def test_first_point_per_voxel_over_pieces_of_any_extent() -> None:
+    """_FirstPerVoxel over pieces (some empty, cells millions of voxels from the origin)
+    keeps exactly the first point of every voxel of the whole cloud."""
+    from como3r.runtime.outputs import _FirstPerVoxel
+
+    rng = np.random.default_rng(1)
+    pieces = [rng.normal(size=(int(rng.integers(0, 300)), 3)) * [1.0, 1.0, 1e6 if k % 3 else 1]
+              for k in range(30)]
+    pieces.insert(5, np.zeros((0, 3)))
+    voxels, kept, offset = _FirstPerVoxel(0.25), [], 0
+    for piece in pieces:
+        kept.append(voxels.new_points(piece) + offset)
+        offset += len(piece)
+    cloud = np.concatenate(pieces)
+    _, first = np.unique(np.floor(cloud / 0.25).astype(np.int64), axis=0, return_index=True)
+    np.testing.assert_array_equal(np.concatenate(kept), np.sort(first))
+    assert 0 < len(first) < len(cloud)

@@ -69,25 +69,27 @@ def fused_map(keyframes: Mapping[int, Iterable[Any]], min_confidence: float,
 
 
 class _FirstPerVoxel:
-    """The voxels of a grid seen so far, to keep the first point of each over pieces."""
+    """The voxels of a grid seen so far, to keep the first point of each over pieces.
+
+    Seen voxels are kept sorted, each cell's three int64 as one 24-byte key (any extent): a
+    piece costs a sort of its own cells and an insertion into the seen ones, not a sort of
+    every voxel seen (which made writing the map quadratic in keyframes).
+    """
 
     def __init__(self, voxel_size: float) -> None:
         self.voxel_size = voxel_size
-        self._seen = np.zeros((0, 3), dtype=np.int64)
+        self._seen = np.zeros(0, dtype="V24")
 
     def new_points(self, points: np.ndarray) -> np.ndarray:
         """Indices (ascending) of the points of ``points (N, 3)`` that are the first in a
         voxel not seen before; their voxels are seen from now on."""
-        from como3r.evaluation.reconstruction import unique_rows
-
-        seen = self._seen.shape[0]
-        cells = np.floor(points / self.voxel_size).astype(np.int64)
-        self._seen, inverse = unique_rows(np.concatenate([self._seen, cells]))
-        seen_before = np.zeros(self._seen.shape[0], dtype=bool)
-        seen_before[inverse[:seen]] = True
-        voxel = inverse[seen:]
-        _, first = np.unique(voxel, return_index=True)
-        return np.sort(first[~seen_before[voxel[first]]])
+        cells = np.ascontiguousarray(np.floor(points / self.voxel_size).astype(np.int64))
+        voxels, first = np.unique(cells.view("V24").reshape(-1), return_index=True)
+        at = np.searchsorted(self._seen, voxels)
+        seen = at < self._seen.size
+        seen[seen] = self._seen[at[seen]] == voxels[seen]
+        self._seen = np.insert(self._seen, at[~seen], voxels[~seen])
+        return np.sort(first[~seen])
 
 
 def _world_points(kf: Any, min_confidence: float) -> tuple[np.ndarray, np.ndarray]:
