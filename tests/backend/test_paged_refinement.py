@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from como3r.backend import paged_refinement
-from como3r.backend.depth_refinement import _build_problem, refine_depths
+from como3r.backend.cpu_kernels import MatchStreams
+from como3r.backend.depth_refinement import _build_problem, match_streams, refine_depths
 from como3r.backend.paged_refinement import (
     ChunkProblems,
     LabelMaps,
@@ -181,7 +182,8 @@ def test_steps_at_unchanged_poses_use_the_chunks_problems_again(monkeypatch, tmp
 
 def test_a_spilled_problem_reads_back_bit_for_bit(tmp_path) -> None:
     """int64 indices go to the file as int32 and come back as int64; one beyond int32 stays
-    int64; floats keep their dtype; the files are deleted with the spill."""
+    int64; floats keep their dtype; a CPU chunk's match streams come back as such; the files
+    are deleted with the spill."""
     keyframes, poses, edges, labels = chain(torch.float64)
     problem, _, _ = _build_problem(keyframes, poses, edges, lambda k: k, labels, CONFIG, {0},
                                    data_only=True)
@@ -200,6 +202,13 @@ def test_a_spilled_problem_reads_back_bit_for_bit(tmp_path) -> None:
             a, b = getattr(back, f.name), getattr(want, f.name)
             assert a.dtype == b.dtype and torch.equal(a, b), f.name
     assert problem.match_a.numel() > 100 and int(problem.param.min()) == -1
+    streams = match_streams(problem)  # what a CPU chunk spills: comes back as its type
+    spill.save(2, streams)
+    back = spill.load(2)
+    assert isinstance(back, MatchStreams)
+    for f in fields(streams):
+        a, b = getattr(back, f.name), getattr(streams, f.name)
+        assert a.dtype == b.dtype and torch.equal(a, b), f.name
     assert list(tmp_path.glob("*/chunk*.bin"))
     spill.close()
     assert not list(tmp_path.glob("*/chunk*.bin")) and 0 not in spill

@@ -15,7 +15,7 @@ tests compare both.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -84,17 +84,17 @@ class MatchStreams:
         param_a, param_b: ``(K,)`` int64 their log-scales (-1: none, the pixel is fixed).
         ray_a: ``(K, 3)`` unit ray of the pixel of i; rays_b_in_a: ``(K, 3)`` j's ray rotated
             and scaled into frame i; t_ab: ``(K, 3)`` translation of ``T_ij``; sqrt_w:
-            ``(K,)`` whitening. numpy arrays; the gathered ones are copies.
+            ``(K,)`` whitening. Contiguous CPU tensors; the gathered ones are copies.
     """
 
-    d0_a: np.ndarray
-    d0_b: np.ndarray
-    param_a: np.ndarray
-    param_b: np.ndarray
-    ray_a: np.ndarray
-    rays_b_in_a: np.ndarray
-    t_ab: np.ndarray
-    sqrt_w: np.ndarray
+    d0_a: Tensor
+    d0_b: Tensor
+    param_a: Tensor
+    param_b: Tensor
+    ray_a: Tensor
+    rays_b_in_a: Tensor
+    t_ab: Tensor
+    sqrt_w: Tensor
 
     @classmethod
     def of(cls, depth0: Tensor, rays: Tensor, match_a: Tensor, match_b: Tensor,
@@ -102,13 +102,12 @@ class MatchStreams:
            sqrt_w: Tensor) -> MatchStreams:
         """Gather the per-pixel ``depth0 (P,)`` and ``rays (P, 3)`` at the matches' pixels
         ``match_a, match_b (K,)``; the per-match arrays (``param_a = param[match_a]`` …)
-        are taken as they are, without a copy."""
-        def array(x: Tensor) -> np.ndarray:  # no copy of a contiguous CPU tensor
-            return x.detach().contiguous().numpy()
+        are taken as they are (a copy only if not contiguous)."""
+        def flat(x: Tensor) -> Tensor:
+            return x.detach().contiguous()
 
-        return cls(array(depth0[match_a]), array(depth0[match_b]), array(param_a),
-                   array(param_b), array(rays[match_a]), array(rays_b_in_a), array(t_ab),
-                   array(sqrt_w))
+        return cls(flat(depth0[match_a]), flat(depth0[match_b]), flat(param_a), flat(param_b),
+                   flat(rays[match_a]), flat(rays_b_in_a), flat(t_ab), flat(sqrt_w))
 
 
 def depth_normal_equations(s: Tensor, streams: MatchStreams, huber_k: float,
@@ -125,14 +124,14 @@ def depth_normal_equations(s: Tensor, streams: MatchStreams, huber_k: float,
         ``(H (M,), g (M,))`` float64 and the robust cost ``sum rho(r)``.
     """
     K, num_params = streams.d0_a.shape[0], s.numel()
+    arrays = [getattr(streams, f.name).numpy() for f in fields(streams)]  # no copies
     blocks = max(1, min(MAX_BLOCKS, -(-K // BLOCK)))
     block = max(1, -(-K // blocks))
     width = num_params if with_blocks else 0
     H_out, g_out = np.zeros((blocks, width)), np.zeros((blocks, width))
     cost_out = np.zeros(blocks)
     scale = np.exp(s.detach().double().numpy())
-    compiled(_depth_sums)(scale, streams.d0_a, streams.d0_b, streams.param_a, streams.param_b,
-                          streams.ray_a, streams.rays_b_in_a, streams.t_ab, streams.sqrt_w,
-                          float(huber_k), block, with_blocks, H_out, g_out, cost_out)
+    compiled(_depth_sums)(scale, *arrays, float(huber_k), block, with_blocks, H_out, g_out,
+                          cost_out)
     return (torch.from_numpy(H_out.sum(0)), torch.from_numpy(g_out.sum(0)),
             float(cost_out.sum()))

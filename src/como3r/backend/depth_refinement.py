@@ -463,10 +463,7 @@ class _Refiner:
         :func:`como3r.backend.cpu_kernels.depth_normal_equations` (its matches laid out
         match by match at the first call)."""
         if self._streams is None:
-            p = self.p
-            self._streams = cpu_kernels.MatchStreams.of(
-                p.depth0, p.rays, p.match_a, p.match_b, self.match_param_a,
-                self.match_param_b, p.rays_b_in_a, p.t_ab, p.sqrt_w)
+            self._streams = match_streams(self.p, self.match_param_a, self.match_param_b)
         return cpu_kernels.depth_normal_equations(s, self._streams, self.huber_k, with_blocks)
 
     def step(self, s: Tensor) -> tuple[Tensor, int, float]:
@@ -477,6 +474,18 @@ class _Refiner:
         """
         H, g, energy = self.normal_equations(s)
         return (*damped_step(H, g, s, self.config), energy)
+
+
+def match_streams(problem: _Problem, param_a: Tensor | None = None,
+                  param_b: Tensor | None = None) -> cpu_kernels.MatchStreams:
+    """A CPU problem's matches laid out for the compiled data term
+    (:class:`~como3r.backend.cpu_kernels.MatchStreams`); ``param_a, param_b (K,)``, the
+    matches' log-scales, when already gathered."""
+    p = problem
+    return cpu_kernels.MatchStreams.of(
+        p.depth0, p.rays, p.match_a, p.match_b,
+        p.param[p.match_a] if param_a is None else param_a,
+        p.param[p.match_b] if param_b is None else param_b, p.rays_b_in_a, p.t_ab, p.sqrt_w)
 
 
 def _regularisers(s: Tensor, r_bnd: Tensor, config: DepthRefinementConfig) -> Tensor:

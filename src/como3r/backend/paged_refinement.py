@@ -40,12 +40,14 @@ import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from como3r.backend.cpu_kernels import MatchStreams, depth_normal_equations
 from como3r.backend.depth_refinement import (
     HUBER_K,
     DepthRefinementReport,
@@ -54,6 +56,7 @@ from como3r.backend.depth_refinement import (
     _Problem,
     _Refiner,
     damped_step,
+    match_streams,
     regularised,
     written_back,
 )
@@ -114,11 +117,24 @@ def chunk_edges(ends: Sequence[tuple[int, int]], make: Callable[[Sequence[int]],
             for _, links in sorted(groups.items())]
 
 
+#: a chunk's flattened data problem as kept: the problem, or on CPU the match streams
+ChunkData = _Problem | MatchStreams
+#: a chunk's data term: ``(s, with_blocks) -> (H (M,), g (M,), cost)``
+DataTerm = Callable[[Tensor, bool], tuple[Tensor, Tensor, float]]
+
+
+def _stream_terms(s: Tensor, with_blocks: bool, streams: MatchStreams, huber_k: float
+                  ) -> tuple[Tensor, Tensor, float]:
+    return depth_normal_equations(s, streams, huber_k, with_blocks)
+
+
 class ProblemSpill:
-    """Flattened chunk problems of one depth step (:class:`~.depth_refinement._Problem`, data
-    term only) in files, one per chunk, raw: no compression, int64 indices (pixels, matches,
-    log-scales; all below 2**31) as int32, what halves them. A problem read back has the
-    tensors it was saved with, bit for bit (same dtypes and devices).
+    """Flattened chunk problems of a depth step in files, one per chunk: a
+    :class:`~.depth_refinement._Problem` (data term only) or, on CPU, the
+    :class:`~como3r.backend.cpu_kernels.MatchStreams` the compiled data term reads. Raw: no
+    compression, int64 indices (pixels, matches, log-scales; all below 2**31) as int32, what
+    halves them. What is read back has the type and the tensors it was saved with, bit for
+    bit (same dtypes and devices).
 
     The files live in a :class:`~como3r.frontend.paging.KeyframeSpill` folder (removed with
     it, or by a later spill when its process is gone) and are deleted by :meth:`close`.
@@ -130,17 +146,18 @@ class ProblemSpill:
     def __init__(self, parent: Path | None = None) -> None:
         self._parent = parent
         self._spill: KeyframeSpill | None = None  # made when something is first saved
-        # per chunk: (field, dtype, device, shape, stored numpy dtype) in file order
-        self._layout: dict[int, list[tuple[str, torch.dtype, torch.device, tuple[int, ...],
-                                           np.dtype]]] = {}
+        # per chunk: its type, and (field, dtype, device, shape, stored numpy dtype) in file
+        # order
+        self._layout: dict[int, tuple[type, list[tuple[str, torch.dtype, torch.device,
+                                                        tuple[int, ...], np.dtype]]]] = {}
         #: bytes written by the step (its disk use), a figure for the log and tests
         self.bytes = 0
 
     def __contains__(self, n: int) -> bool:
         return n in self._layout
 
-    def save(self, n: int, problem: _Problem) -> None:
-        """Write chunk ``n``'s problem."""
+    def save(self, n: int, problem: ChunkData) -> None:
+        """Write chunk ``n``'s problem (a dataclass of tensors)."""
         if self._spill is None:
             self._spill = KeyframeSpill(self._parent)
         layout = []
@@ -155,17 +172,18 @@ class ProblemSpill:
                 self.bytes += array.nbytes
                 layout.append((f.name, tensor.dtype, tensor.device, tuple(tensor.shape),
                                array.dtype))
-        self._layout[n] = layout
+        self._layout[n] = (type(problem), layout)
 
-    def load(self, n: int) -> _Problem:
+    def load(self, n: int) -> ChunkData:
         """Chunk ``n``'s problem as it was saved."""
+        kind, layout = self._layout[n]
         values = {}
         with open(self._path(n), "rb") as file:
-            for name, dtype, device, shape, stored in self._layout[n]:
+            for name, dtype, device, shape, stored in layout:
                 array = np.fromfile(file, dtype=stored, count=math.prod(shape))
                 values[name] = torch.from_numpy(array).reshape(shape).to(dtype=dtype,
                                                                          device=device)
-        return _Problem(**values)
+        return kind(**values)
 
     def close(self) -> None:
         """Delete the files (the folder goes with the spill)."""
@@ -196,7 +214,8 @@ class ChunkProblems:
 
     def __init__(self, spill_dir: Path | None = None) -> None:
         self.spill = ProblemSpill(spill_dir)
-        self.kept: dict[int, _Problem] = {}
+        self.kept: dict[int, ChunkData] = {}
+        self.spans: dict[int, Tensor] = {}  # per built chunk: _Problem.edge_spans
         self._poses: Tensor | None = None
         self._rows: list[tuple[int, ...]] = []
         self._ranges = torch.zeros(0, dtype=torch.float64)  # per row, at the build
@@ -211,22 +230,37 @@ class ChunkProblems:
         self.close()
         self._poses, self._rows, self._ranges = poses.clone(), rows, ranges.clone()
 
-    def rewhitened(self, problem: _Problem, rows: Sequence[int], ranges: Tensor) -> _Problem:
-        """``problem`` of the chunk of ``rows`` with its whitening ``sqrt(q) / (sigma d_i)``
-        at the rows' median ``ranges (N,)`` instead of those it was built at."""
-        spans = problem.edge_spans
+    def add(self, n: int, data: ChunkData, spans: Tensor, kept: bool) -> None:
+        """Keep chunk ``n``'s built problem, in memory if ``kept`` else in the spill."""
+        self.spans[n] = spans
+        if kept:
+            self.kept[n] = data
+        else:
+            self.spill.save(n, data)
+
+    def get(self, n: int, rows: Sequence[int], ranges: Tensor) -> ChunkData | None:
+        """Chunk ``n``'s problem (None if not built), whitened at the ``rows``' median
+        ``ranges (N,)`` instead of those it was built at."""
+        if n in self.kept:
+            data = self.kept[n]
+        elif n in self.spill:
+            data = self.spill.load(n)
+        else:
+            return None
+        spans = self.spans[n]
         if not spans.numel():
-            return problem
+            return data
         position = torch.tensor(rows, dtype=torch.int64)[spans[:, 2].cpu()]
         factor = self._ranges[position] / ranges[position]
         if bool((factor == 1.0).all()):
-            return problem
-        per_match = torch.repeat_interleave(factor.to(problem.sqrt_w), (spans[:, 1] - spans[:, 0]))
-        return replace(problem, sqrt_w=problem.sqrt_w * per_match)
+            return data
+        per_match = torch.repeat_interleave(factor.to(data.sqrt_w), spans[:, 1] - spans[:, 0])
+        return replace(data, sqrt_w=data.sqrt_w * per_match)
 
     def close(self) -> None:
         """Let go of the problems (the spill's files deleted)."""
         self.kept.clear()
+        self.spans.clear()
         self.spill.close()
         self._poses, self._rows = None, []
 
@@ -294,7 +328,8 @@ def refine_in_chunks(
             others are built at the first pass and read back from a :class:`ProblemSpill`
             at the later ones.
         spill_dir: where the spill's folder is made (None: the system's temporary folder);
-            it takes about 20 bytes per pixel and 36 per match of the chunks not kept.
+            it takes about 56 bytes per match of the chunks not kept on CPU (their match
+            streams), 20 per pixel and 36 per match elsewhere (their problems).
         problems: the chunks' problems of an earlier step, used again if it had the same
             poses and chunks, and left to the caller (who closes it) for later steps; None:
             built for this step and let go at its end.
@@ -331,35 +366,36 @@ def refine_in_chunks(
 
     step_problems = ChunkProblems(spill_dir) if problems is None else problems
     step_problems.usable(poses, chunks, ranges)
-    kept: dict[int, _Refiner] = {}  # this step's refiners of the problems kept in memory
+    ready: dict[int, tuple[DataTerm, int]] = {}  # the kept chunks', this step
 
-    def chunk_refiner(n: int, chunk: Chunk) -> _Refiner:
-        """Chunk ``n``'s flattened data problem: built at its first pass, then kept where
-        ``keep`` allows, else read back from the spill (the working set of a paged map)."""
-        if n in kept:
-            return kept[n]
-        if n in step_problems.kept or n in step_problems.spill:
-            problem = (step_problems.kept[n] if n in step_problems.kept
-                       else step_problems.spill.load(n))
-            refiner = _Refiner(step_problems.rewhitened(problem, chunk.rows, ranges), config,
-                               huber_k)
-            if n in step_problems.kept:
-                kept[n] = refiner
-            return refiner
-        position = {r: k for k, r in enumerate(chunk.rows)}
-        problem, _, _ = _build_problem(
-            [read(r) for r in chunk.rows], poses[list(chunk.rows)], chunk.edges(),
-            position.__getitem__, [labels(r) for r in chunk.rows], config,
-            {position[r] for r in chunk.rows if r in pinned_rows}, data_only=True)
-        # built at the rows' current ranges; kept or spilled only when the problems were
-        # (re)started this step, so that they were too (ChunkProblems.usable)
-        refiner = _Refiner(problem, config, huber_k)
-        if keep(chunk.rows):
-            step_problems.kept[n] = problem
-            kept[n] = refiner
-        elif num_params and (config.inner_iters > 0 or problems is not None):
-            step_problems.spill.save(n, problem)  # a later pass or step will need it
-        return refiner
+    def chunk_terms(n: int, chunk: Chunk) -> tuple[DataTerm, int]:
+        """Chunk ``n``'s data term ``(s, with_blocks) -> (H, g, cost)`` and its number of
+        matches: its problem built at
+        its first pass, then kept where ``keep`` allows, else read back from the spill (the
+        working set of a paged map); on CPU as the compiled loop's match streams."""
+        if n in ready:
+            return ready[n]
+        data = step_problems.get(n, chunk.rows, ranges)
+        if data is None:
+            position = {r: k for k, r in enumerate(chunk.rows)}
+            problem, _, _ = _build_problem(
+                [read(r) for r in chunk.rows], poses[list(chunk.rows)], chunk.edges(),
+                position.__getitem__, [labels(r) for r in chunk.rows], config,
+                {position[r] for r in chunk.rows if r in pinned_rows}, data_only=True)
+            # built at the rows' current ranges; kept or spilled only when the problems were
+            # (re)started this step, so that they were too (ChunkProblems.usable)
+            data = match_streams(problem) if problem.match_a.device.type == "cpu" else problem
+            if keep(chunk.rows) or (num_params and (config.inner_iters > 0
+                                                    or problems is not None)):
+                step_problems.add(n, data, problem.edge_spans, kept=keep(chunk.rows))
+        if isinstance(data, MatchStreams):
+            terms = (partial(_stream_terms, streams=data, huber_k=huber_k),
+                     data.sqrt_w.numel())
+        else:
+            terms = (_Refiner(data, config, huber_k).data_terms, data.match_a.numel())
+        if n in step_problems.kept:
+            ready[n] = terms
+        return terms
 
     def data_term(s: Tensor, with_blocks: bool) -> tuple[Tensor, Tensor, float]:
         """C-Eq. 21 summed over the chunks: ``H (M,)``, ``g (M,)`` float64 and the cost."""
@@ -367,11 +403,11 @@ def refine_in_chunks(
         g = torch.zeros_like(H)
         cost, report.num_matches = 0.0, 0
         for n, chunk in enumerate(chunks):
-            refiner = chunk_refiner(n, chunk)
-            report.num_matches += refiner.p.match_a.numel()
+            terms, matches = chunk_terms(n, chunk)
+            report.num_matches += matches
             index = torch.cat([torch.arange(offsets[r], offsets[r] + sizes[r],
                                             device=s.device) for r in chunk.rows])
-            H_c, g_c, cost_c = refiner.data_terms(s[index], with_blocks)
+            H_c, g_c, cost_c = terms(s[index], with_blocks)
             if with_blocks:
                 H.index_add_(0, index, H_c.to(H))
                 g.index_add_(0, index, g_c.to(g))
@@ -394,8 +430,8 @@ def refine_in_chunks(
             report.max_change = float((s - s_start).abs().max())
         H, g, cost = data_term(s, False)
     finally:
-        spilled, kept_count = step_problems.spill.bytes, len(kept)
-        kept.clear()  # the write-back below reads keyframe by keyframe: let go first
+        spilled, kept_count = step_problems.spill.bytes, len(ready)
+        ready.clear()  # the write-back below reads keyframe by keyframe: let go first
         if problems is None:
             step_problems.close()
     report.cost_history.append(regularised(H, g, cost, s, bnd_a, bnd_b, delta, config)[2])
