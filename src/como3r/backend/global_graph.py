@@ -335,23 +335,27 @@ class GlobalGraph:
                 for s in range(0, len(order), EDGES_PER_BATCH)]
 
     def _factor_batch(self, edges: Sequence[Edge], row: dict[int, int]) -> Factor:
-        X_i, X_j, q = [], [], []
-        for e in edges:
-            valid = e.matches.valid
-            X_i.append(gather_points(self.keyframes[e.i].X_hat, e.matches.idx[valid]))
-            X_j.append(self.keyframes[e.j].X_hat.reshape(-1, 3)[valid])
-            q.append(e.matches.q[valid])
-        P = max(1, max(len(x) for x in q))
+        pixels = [torch.nonzero(e.matches.valid).squeeze(-1) for e in edges]  # of j, valid
+        P = max(1, max(n.numel() for n in pixels))
+        first = self.keyframes[edges[0].i].X_hat
+        # written straight into the padded batch (zero = invalid match)
+        X_i = first.new_zeros((len(edges), P, 3))
+        X_j = torch.zeros_like(X_i)
+        q = edges[0].matches.q.new_zeros((len(edges), P))
+        valid = torch.zeros((len(edges), P), dtype=torch.bool, device=first.device)
+        for k, (e, n) in enumerate(zip(edges, pixels)):
+            count = n.numel()
+            X_i[k, :count] = gather_points(self.keyframes[e.i].X_hat, e.matches.idx[n])
+            X_j[k, :count] = self.keyframes[e.j].X_hat.reshape(-1, 3)[n]
+            q[k, :count] = e.matches.q[n]
+            valid[k, :count] = True
         intrinsics = [self.keyframes[e.i].K for e in edges]
         K_i = torch.stack(intrinsics) if all(K is not None for K in intrinsics) else None
         device = edges[0].matches.idx.device
         return make_factors(
             torch.tensor([row[e.i] for e in edges], device=device),
             torch.tensor([row[e.j] for e in edges], device=device),
-            torch.stack([_pad(x, P) for x in X_i]), torch.stack([_pad(x, P) for x in X_j]),
-            torch.stack([_pad(x, P) for x in q]),
-            torch.stack([_pad(torch.ones_like(x, dtype=torch.bool), P) for x in q]),
-            self.tracking, None if K_i is None else K_i.to(X_i[0]))
+            X_i, X_j, q, valid, self.tracking, None if K_i is None else K_i.to(X_i))
 
     def freeze_refinement_base(self, agents: Sequence[int],
                                parking: KeyframeParking | None = None) -> None:
@@ -439,11 +443,6 @@ class GlobalGraph:
             return
         for name, value in values.items():
             setattr(kf, name, value)
-
-
-def _pad(x: Tensor, size: int) -> Tensor:
-    """``x (n, ...)`` followed by zero rows up to ``size`` rows (zero = invalid match)."""
-    return torch.cat([x, x.new_zeros((size - x.shape[0], *x.shape[1:]))])
 
 
 def _implausible(before: Tensor, after: Tensor) -> str:
