@@ -257,9 +257,12 @@ def _build_problem(
     config: DepthRefinementConfig,
     pinned: set[int],
     data_only: bool = False,
+    ranges: Sequence[float] | None = None,
 ) -> tuple[_Problem, list[int], list[int]]:
     """Flatten keyframes, matches and boundary pairs.
 
+    ``ranges`` are the keyframes' median ranges (:func:`median_range` of ``X_hat``) that
+    whiten C-Eq. 21, when the caller has them; None computes them.
     ``data_only`` leaves the warm start and the boundary pairs out (empty): what a chunk of
     the data term needs (:mod:`como3r.backend.paged_refinement`).
 
@@ -298,7 +301,7 @@ def _build_problem(
     depth0_t, rays_t, param_t = torch.cat(depth0), torch.cat(rays), torch.cat(param)
     match_a, match_b, rays_b_in_a, t_ab, sqrt_w, edge_spans = _flatten_matches(
         keyframes, poses.to(dtype), edges, index_of, pixel_offsets, param_t, rays_t,
-        config.sigma_point)
+        config.sigma_point, ranges)
     if bnd:
         bnd_a, bnd_b, delta = _boundary_terms(*(torch.cat(p) for p in zip(*bnd)),
                                               max(num_params, 1))
@@ -322,12 +325,14 @@ def _flatten_matches(
     param: Tensor,
     rays: Tensor,
     sigma_point: float,
+    ranges: Sequence[float] | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Matches of all edges whose endpoints are valid and at least one is free.
 
     Args:
         param: ``(P,)`` every pixel's log-scale (-1: invalid, -2: valid and fixed).
         rays: ``(P, 3)`` every pixel's unit ray.
+        ranges: each keyframe's median range ``d_i`` (None: computed here).
 
     Returns:
         pixel of i ``(K,)``, pixel of j ``(K,)`` (flat over all keyframes), j's ray in frame
@@ -370,7 +375,8 @@ def _flatten_matches(
         # one rotation matrix per edge, applied as a product, not a quaternion per match
         ray_b_in_a = T_ij[7] * (rays[b] @ quat_to_matrix(T_ij[3:7]).T)
         if ki not in depth_of:
-            depth_of[ki] = float(median_range(keyframes[ki].X_hat))
+            depth_of[ki] = (float(median_range(keyframes[ki].X_hat)) if ranges is None
+                            else ranges[ki])
         sqrt_w = m.q.to(device=device, dtype=dtype)[n[keep]].sqrt() / (sigma_point * depth_of[ki])
         parts.append((a, b, ray_b_in_a, T_ij[:3].expand(a.numel(), 3), sqrt_w))
         spans.append((count, count + a.numel(), ki))

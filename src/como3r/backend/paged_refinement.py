@@ -205,7 +205,7 @@ class ChunkProblems:
     the links, which one alternation does not change between its depth steps (the poses are
     checked; a change rebuilds everything), and on each keyframe i's median range, which
     whitens C-Eq. 21 and which the depth steps do change: a kept problem's whitening is
-    rescaled to the current ranges (:meth:`rewhitened`). Problems stay where the first step
+    rescaled to the current ranges (:meth:`get`). Problems stay where the first step
     put them (memory for chunks of resident keyframes, else the spill) until :meth:`close`.
 
     Args:
@@ -352,7 +352,7 @@ def refine_in_chunks(
     ranges = torch.zeros(count, dtype=torch.float64)
     for r in range(count):
         kf, lab = read(r), labels(r)
-        ranges[r] = float(median_range(kf.X_hat))  # as _flatten_matches whitens with
+        ranges[r] = float(median_range(kf.X_hat))  # whitens C-Eq. 21 (edges out of r)
         _check_inputs([kf], poses[r:r + 1], [lab], config)
         alone, _, _ = _build_problem([kf], poses[r:r + 1], [], {}.__getitem__, [lab], config,
                                      {0} if r in pinned_rows else set())
@@ -370,9 +370,9 @@ def refine_in_chunks(
 
     def chunk_terms(n: int, chunk: Chunk) -> tuple[DataTerm, int]:
         """Chunk ``n``'s data term ``(s, with_blocks) -> (H, g, cost)`` and its number of
-        matches: its problem built at
-        its first pass, then kept where ``keep`` allows, else read back from the spill (the
-        working set of a paged map); on CPU as the compiled loop's match streams."""
+        matches: its problem built at its first pass, then kept where ``keep`` allows, else
+        read back from the spill (the working set of a paged map); on CPU as the compiled
+        loop's match streams."""
         if n in ready:
             return ready[n]
         data = step_problems.get(n, chunk.rows, ranges)
@@ -381,13 +381,14 @@ def refine_in_chunks(
             problem, _, _ = _build_problem(
                 [read(r) for r in chunk.rows], poses[list(chunk.rows)], chunk.edges(),
                 position.__getitem__, [labels(r) for r in chunk.rows], config,
-                {position[r] for r in chunk.rows if r in pinned_rows}, data_only=True)
+                {position[r] for r in chunk.rows if r in pinned_rows}, data_only=True,
+                ranges=[float(ranges[r]) for r in chunk.rows])
             # built at the rows' current ranges; kept or spilled only when the problems were
             # (re)started this step, so that they were too (ChunkProblems.usable)
             data = match_streams(problem) if problem.match_a.device.type == "cpu" else problem
-            if keep(chunk.rows) or (num_params and (config.inner_iters > 0
-                                                    or problems is not None)):
-                step_problems.add(n, data, problem.edge_spans, kept=keep(chunk.rows))
+            in_memory = keep(chunk.rows)
+            if in_memory or (num_params and (config.inner_iters > 0 or problems is not None)):
+                step_problems.add(n, data, problem.edge_spans, kept=in_memory)
         if isinstance(data, MatchStreams):
             terms = (partial(_stream_terms, streams=data, huber_k=huber_k),
                      data.sqrt_w.numel())
