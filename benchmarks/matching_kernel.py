@@ -1,4 +1,4 @@
-"""Dense matching's two per-pixel loops, compiled CPU loop vs vectorised PyTorch (not a test).
+"""Dense matching's per-pixel work, its CPU path vs the PyTorch one (not a test).
 
 Times the descriptor-refinement window search (:func:`como3r.frontend.matching.
 refine_with_descriptors`, radius 3, dilations 5..1) on random unit descriptors, and the
@@ -6,8 +6,11 @@ iterative ray projection (:func:`~como3r.frontend.matching.project_iteratively`,
 a smooth surface seen from a moved camera with the nearest pixel centre of each optimum, both
 at one resolution, through the compiled
 loops of :mod:`como3r.frontend.cpu_kernels` (what CPU tensors take) and the vectorised
-PyTorch path (what CUDA tensors take), and prints seconds per call (best of ``--repeats``,
-after one warm-up call that compiles), the ratio, and the share of equal results.
+PyTorch path (what CUDA tensors take); and the field-of-view bounds of a pair's
+co-visibility test (:func:`como3r.frontend.pairs.covisible_fraction`: the 1 % and 99 %
+quantiles of a view's rays on ``z = 1``) by numpy's selection (CPU) vs ``torch.quantile``.
+Prints seconds per call (best of ``--repeats``, after one warm-up call that compiles), the
+ratio, and the share of equal results (quantiles: equal to float rounding).
 
     python benchmarks/matching_kernel.py [--size 512x384] [--threads 1] [--repeats 3]
 """
@@ -21,7 +24,7 @@ from collections.abc import Callable
 
 import torch
 
-from como3r.frontend import cpu_kernels, matching
+from como3r.frontend import cpu_kernels, matching, pairs
 from como3r.geometry.camera import intrinsics_matrix, unproject_depth
 from como3r.geometry.lie import sim3_act, sim3_exp
 
@@ -61,6 +64,18 @@ def ray_problem(width: int, height: int) -> tuple:
     return rays_grad, target, p_init, 10, 1e-8, 1e-6
 
 
+def plane_problem(width: int, height: int) -> tuple:
+    """A view's rays on the plane ``z = 1`` ``(H W, 2)`` and the two bounds' quantiles."""
+    rays, _ = ray_problem(width, height)[:2]
+    plane = rays[0, ..., :2].reshape(-1, 2) / rays[0, ..., 2:3].reshape(-1, 1)
+    return plane, (pairs.FIELD_OF_VIEW_QUANTILE, 1.0 - pairs.FIELD_OF_VIEW_QUANTILE)
+
+
+def sorted_quantiles(x: torch.Tensor, qs: tuple[float, ...]) -> torch.Tensor:
+    """What covisible_fraction did before: one torch.quantile (a sort) per bound."""
+    return torch.stack([torch.quantile(x, q, dim=0) for q in qs])
+
+
 def vectorised_projection(rays_grad: torch.Tensor, target: torch.Tensor, *rest) -> tuple:
     """The PyTorch path of what the compiled projection does: the iterative projection, then
     the nearest pixel centre by ray."""
@@ -92,14 +107,18 @@ def main() -> None:
                                      descriptor_problem(width, height)),
         "ray projection": (cpu_kernels.project_rays, vectorised_projection,
                            ray_problem(width, height)),
+        "field-of-view bounds": (pairs._quantiles, sorted_quantiles,
+                                 plane_problem(width, height)),
     }
     print(f"dense matching loops at {args.size}, {args.threads} thread(s)")
-    print(f"{'loop':<26} {'compiled s':>10} {'PyTorch s':>10} {'ratio':>6} {'equal':>6}")
+    print(f"{'loop':<26} {'CPU path s':>10} {'PyTorch s':>10} {'ratio':>6} {'equal':>6}")
     for name, (compiled, vectorised, inputs) in loops.items():
         compiled_s, compiled_out = best_of(compiled, inputs, args.repeats)
         vectorised_s, vectorised_out = best_of(vectorised, inputs, args.repeats)
         if isinstance(compiled_out, tuple):  # projection: the same nearest pixel
             equal = (compiled_out[1] == vectorised_out[1]).all(-1)
+        elif compiled_out.is_floating_point():  # quantiles: interpolated in other orders
+            equal = torch.isclose(compiled_out, vectorised_out, rtol=1e-6, atol=0.0).all(-1)
         else:
             equal = (compiled_out == vectorised_out).all(-1)
         print(f"{name:<26} {compiled_s:10.3f} {vectorised_s:10.3f} "

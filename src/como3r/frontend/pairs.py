@@ -206,8 +206,9 @@ def covisible_fraction(pred: PairPrediction, matches: DirectedMatches,
 def _quantiles(x: Tensor, qs: tuple[float, ...]) -> Tensor:
     """``(len(qs), D)`` quantiles of ``x (N, D)`` along its rows, linearly interpolated as
     :func:`torch.quantile`'s. On CPU by numpy's selection (O(N); torch.quantile sorts every
-    column once per call: 79 vs 5 ms for both bounds of a 512x384 view, and the front-end
-    and the coordinator's verification ask once per decoded direction)."""
+    column once per call: 13x slower for both bounds of a 512x384 view,
+    ``benchmarks/matching_kernel.py``; the front-end and the coordinator's verification ask
+    once per decoded direction)."""
     if x.device.type != "cpu":
         return torch.quantile(x, torch.tensor(qs, dtype=x.dtype, device=x.device), dim=0)
     return torch.from_numpy(np.quantile(x.numpy(), qs, axis=0)).to(x.dtype)
