@@ -12,7 +12,7 @@ So a verified keyframe pair observes the focal length: for a trial ``delta`` the
 pointmaps and intrinsics are rescaled, its relative Sim(3) is solved on the calibrated
 factors (C-Eq. 17, both directions, the first keyframe pinned), and the summed robust energy
 (C-Eq. 5) plus a weak prior ``(delta / prior_sigma)^2 / 2`` is minimised over ``delta`` by
-golden-section search. Two uses:
+Brent's bounded search (scipy). Two uses:
 
 * an agent's own pairs (:attr:`FocalPair.shared`: one camera, both keyframes take the
   correction): the agent's camera from its first keyframes' multi-view geometry
@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import torch
+from scipy.optimize import minimize_scalar
 from torch import Tensor
 
 from como3r.config import GlobalBAConfig, TrackingConfig
@@ -39,10 +40,6 @@ from como3r.frontend.pairs import DirectedMatches, gather_points
 from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.values import PoseValues
-
-#: Golden-section ratio of the search.
-_INV_PHI = (math.sqrt(5.0) - 1.0) / 2.0
-
 
 @dataclass(frozen=True)
 class FocalPair:
@@ -101,7 +98,7 @@ def estimate_log_focal(
         search: the correction is searched in ``[-search, search]``.
         prior_sigma: RMS of the weak zero-mean prior on the correction (two agents' focal
             estimates, each about 8 % off, differ by about 0.1 in log).
-        tolerance: width of the final bracket.
+        tolerance: the search's absolute tolerance on ``delta`` (scipy's ``xatol``).
         max_matches: matches per direction and pair (evenly subsampled).
         max_iters: Gauss-Newton iterations of each relative solve.
 
@@ -109,20 +106,12 @@ def estimate_log_focal(
         The correction with the smallest energy.
     """
     energy = _PairEnergy(pairs, tracking, max_matches, max_iters)
-    low, high = -search, search
-    a = high - _INV_PHI * (high - low)
-    b = low + _INV_PHI * (high - low)
-    f_a, f_b = energy(a, prior_sigma), energy(b, prior_sigma)
-    while high - low > tolerance:
-        if f_a <= f_b:
-            high, b, f_b = b, a, f_a
-            a = high - _INV_PHI * (high - low)
-            f_a = energy(a, prior_sigma)
-        else:
-            low, a, f_a = a, b, f_b
-            b = low + _INV_PHI * (high - low)
-            f_b = energy(b, prior_sigma)
-    best, f_best = (a, f_a) if f_a <= f_b else (b, f_b)
+    # Brent's bounded search (golden sections and parabolic steps): on the pairs of
+    # tests/frontend/test_focal.py 7-10 relative solves where a golden-section search took
+    # 17 (the estimates within 2e-4 of its)
+    found = minimize_scalar(energy, bounds=(-search, search), args=(prior_sigma,),
+                            method="bounded", options={"xatol": tolerance})
+    best, f_best = float(found.x), float(found.fun)
     f_zero = energy(0.0, prior_sigma)
     if f_zero <= f_best:
         best, f_best = 0.0, f_zero
@@ -149,8 +138,8 @@ class _PairEnergy:
 
     Every pair is two nodes (its anchor, pinned at the identity, and its moving keyframe)
     of one batch, so one Gauss-Newton loop solves all pairs (their blocks are independent);
-    each evaluation starts from the poses the previous one found (the golden-section
-    search's trial corrections are close to each other).
+    each evaluation starts from the poses the previous one found (the search's trial
+    corrections are close to each other).
     """
 
     def __init__(self, pairs: Sequence[FocalPair], tracking: TrackingConfig, max_matches: int,
