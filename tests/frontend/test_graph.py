@@ -11,7 +11,7 @@ from como3r.data.agent import open_agent
 from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.synth import synthesize
 from como3r.frontend.agent import AgentFrontend
-from como3r.frontend.graph import Edge, QuadraticEdgeCache, make_factors
+from como3r.frontend.graph import Edge, QuadraticEdgeCache, make_factors, packed_matches
 from como3r.frontend.paging import SolvePoints
 from como3r.frontend.pairs import DirectedMatches
 from como3r.geometry.lie import sim3_act, sim3_exp, sim3_identity, sim3_inverse
@@ -49,6 +49,37 @@ def test_ray_range_whitening_is_the_same_at_every_scene_scale(dtype: torch.dtype
     assert float(whitened[0][..., 3].abs().max()) > 1e-4  # the range term is not empty
     for other in whitened[1:]:
         assert torch.allclose(other, whitened[0], atol=tol, rtol=1e-3)
+
+
+class _Points:
+    def __init__(self, X_hat: torch.Tensor) -> None:
+        self.X_hat, self.K = X_hat, None
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_packed_matches_are_each_edges_valid_matches_in_pixel_order(dtype) -> None:
+    g = torch.Generator().manual_seed(5)
+    H, W = 6, 7
+    keyframes = {k: _Points(torch.randn(H, W, 3, generator=g, dtype=dtype)) for k in range(3)}
+    keyframes[1].X_hat[0, 0] = float("nan")  # garbage behind an invalid match stays out
+    edges = []
+    for i, j, valid_share in ((0, 1, 0.5), (2, 0, 0.9), (1, 2, 0.0)):
+        idx = torch.randint(0, H * W, (H * W,), generator=g)
+        valid = torch.rand(H * W, generator=g) < valid_share
+        valid[0] = False
+        q = torch.rand(H * W, generator=g, dtype=dtype) + 1.0
+        edges.append(Edge(i, j, DirectedMatches(idx=idx, valid=valid, q=q)))
+    X_i, X_j, q, valid = packed_matches(edges, keyframes.__getitem__)
+    counts = [int(e.matches.valid.sum()) for e in edges]
+    assert X_i.shape == (3, max(counts), 3) and X_i.dtype == dtype and counts[2] == 0
+    for k, e in enumerate(edges):
+        n = torch.nonzero(e.matches.valid).squeeze(-1)
+        points_i = keyframes[e.i].X_hat.reshape(-1, 3)
+        assert torch.equal(X_i[k, :counts[k]], points_i[e.matches.idx[n]])
+        assert torch.equal(X_j[k, :counts[k]], keyframes[e.j].X_hat.reshape(-1, 3)[n])
+        assert torch.equal(q[k, :counts[k]], e.matches.q[n])
+        assert bool(valid[k, :counts[k]].all()) and not bool(valid[k, counts[k]:].any())
+        assert not bool(X_i[k, counts[k]:].any()) and not bool(q[k, counts[k]:].any())
 
 
 @pytest.fixture(scope="module")

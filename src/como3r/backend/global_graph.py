@@ -10,7 +10,7 @@ Vertices are the keyframes of ALL agents in one flat global index space ``0 .. N
 
 Every link stores both directions of its dense matches, so intra- and inter-agent edges
 give identical ray-and-range residuals on the keyframes' current canonical pointmaps
-(C-Eq. 5, 13; the factors of :func:`~como3r.frontend.graph.make_factors`).
+(C-Eq. 5, 13; the factors of :func:`~como3r.frontend.graph.build_factors`).
 
 :meth:`GlobalGraph.optimize` solves C-Eq. 5 by Gauss-Newton IRLS (C-Sec. B.2) over the
 keyframes of a set of agents that share one gauge, with one anchor keyframe pinned (the
@@ -46,11 +46,11 @@ from como3r.backend.paged_refinement import (
 from como3r.backend.segments import parameter_labels
 from como3r.config import DepthRefinementConfig, GlobalBAConfig, TrackingConfig
 from como3r.errors import InputError
-from como3r.frontend.graph import Edge, make_factors
+from como3r.frontend.graph import Edge, build_factors
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh
 from como3r.frontend.paging import KeyframeParking, paged_out, read_fields
-from como3r.frontend.pairs import PairLink, gather_points
+from como3r.frontend.pairs import PairLink
 from como3r.geometry.camera import to_focal
 from como3r.geometry.units import scene_depth
 from como3r.optim.factors import Factor
@@ -322,40 +322,14 @@ class GlobalGraph:
                         change)
 
     def _factors(self, edges: Sequence[Edge], row: dict[int, int]) -> list[Factor]:
-        """Factor batches over ``edges`` holding their VALID matches only.
-
-        The residuals are those of :func:`~como3r.frontend.graph.build_factors` (invalid
-        matches weigh zero there), but with a third to two thirds of the pixels of a
-        keyframe pair unmatched, dropping them before the solve divides its cost. A batch
-        pads its edges to its largest one, so edges are batched by match count
-        (:data:`EDGES_PER_BATCH` at a time) to keep the padding small.
-        """
+        """Factor batches over ``edges`` (:func:`~como3r.frontend.graph.build_factors`: their
+        valid matches only). A batch pads its edges to its largest match count, so edges
+        are batched by match count (:data:`EDGES_PER_BATCH` at a time) to keep the padding
+        small."""
         order = sorted(edges, key=lambda e: int(e.matches.valid.sum()))
-        return [self._factor_batch(order[s:s + EDGES_PER_BATCH], row)
+        return [build_factors(order[s:s + EDGES_PER_BATCH], self.keyframes.__getitem__,
+                              row.__getitem__, self.tracking)
                 for s in range(0, len(order), EDGES_PER_BATCH)]
-
-    def _factor_batch(self, edges: Sequence[Edge], row: dict[int, int]) -> Factor:
-        pixels = [torch.nonzero(e.matches.valid).squeeze(-1) for e in edges]  # of j, valid
-        P = max(1, max(n.numel() for n in pixels))
-        first = self.keyframes[edges[0].i].X_hat
-        # written straight into the padded batch (zero = invalid match)
-        X_i = first.new_zeros((len(edges), P, 3))
-        X_j = torch.zeros_like(X_i)
-        q = edges[0].matches.q.new_zeros((len(edges), P))
-        valid = torch.zeros((len(edges), P), dtype=torch.bool, device=first.device)
-        for k, (e, n) in enumerate(zip(edges, pixels)):
-            count = n.numel()
-            X_i[k, :count] = gather_points(self.keyframes[e.i].X_hat, e.matches.idx[n])
-            X_j[k, :count] = self.keyframes[e.j].X_hat.reshape(-1, 3)[n]
-            q[k, :count] = e.matches.q[n]
-            valid[k, :count] = True
-        intrinsics = [self.keyframes[e.i].K for e in edges]
-        K_i = torch.stack(intrinsics) if all(K is not None for K in intrinsics) else None
-        device = edges[0].matches.idx.device
-        return make_factors(
-            torch.tensor([row[e.i] for e in edges], device=device),
-            torch.tensor([row[e.j] for e in edges], device=device),
-            X_i, X_j, q, valid, self.tracking, None if K_i is None else K_i.to(X_i))
 
     def freeze_refinement_base(self, agents: Sequence[int],
                                parking: KeyframeParking | None = None) -> None:

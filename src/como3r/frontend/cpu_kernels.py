@@ -419,3 +419,32 @@ def match_validity(X_search: Tensor, queries: Tensor, pixel: Tensor, converged: 
         np.float32(occlusion_ratio) if points.dtype == np.float32 else occlusion_ratio, idx,
         valid)
     return torch.from_numpy(idx), torch.from_numpy(valid)
+
+
+@njit(cache=True, boundscheck=False)
+def _pack_valid(X_i: np.ndarray, X_j: np.ndarray, idx: np.ndarray, valid: np.ndarray,
+                q: np.ndarray, X_i_out: np.ndarray, X_j_out: np.ndarray, q_out: np.ndarray,
+                valid_out: np.ndarray) -> None:  # pragma: no cover (compiled)
+    k = 0
+    for n in range(valid.shape[0]):
+        if valid[n]:
+            m = idx[n]
+            for c in range(3):
+                X_i_out[k, c] = X_i[m, c]
+                X_j_out[k, c] = X_j[n, c]
+            q_out[k] = q[n]
+            valid_out[k] = True
+            k += 1
+
+
+def pack_valid(X_i: Tensor, X_j: Tensor, idx: Tensor, valid: Tensor, q: Tensor,
+               X_i_out: Tensor, X_j_out: Tensor, q_out: Tensor, valid_out: Tensor) -> None:
+    """An edge's valid matches written to the front of its rows of a factor batch, in pixel
+    order, in one pass (PyTorch: a nonzero, three gathers and three copies): for each pixel
+    ``n`` of j with ``valid[n]``, ``X_i[idx[n]]`` and ``X_j[n]`` of the flat ``(HW, 3)``
+    pointmaps, ``q[n]`` and True. The outputs are CPU rows of the batch ``(P', 3)``,
+    ``(P', 3)``, ``(P',)``, ``(P',)`` with ``P' >= valid.sum()``, contiguous, in the inputs'
+    dtypes; their other rows are left as they are."""
+    _pack_valid(X_i.contiguous().numpy(), X_j.contiguous().numpy(), idx.contiguous().numpy(),
+                valid.contiguous().numpy(), q.contiguous().numpy(), X_i_out.numpy(),
+                X_j_out.numpy(), q_out.numpy(), valid_out.numpy())

@@ -3,8 +3,10 @@
 A graph edge (i, j) stores only what the pair's decode produced (matches, validity,
 confidences: :class:`~como3r.frontend.pairs.DirectedMatches`); :func:`build_factors`
 turns a list of edges into one batch of factors (ray-and-range, or pixel and log-depth
-when calibrated) on the keyframes' current canonical pointmaps, padding edges of different pixel counts, so the per-agent local solve
-and the coordinator's global bundle adjustment build their problems with the same code.
+when calibrated) on the keyframes' current canonical pointmaps, each edge's valid matches
+packed and padded to the batch's largest count (:func:`packed_matches`), so the per-agent
+local solve and the coordinator's global bundle adjustment build their problems with the
+same code.
 An agent's local solve takes its old edges (both keyframes outside the newest few) as the
 quadratic models a :class:`QuadraticEdgeCache` keeps of them, so its memory and time do not
 grow with the graph (issue 14, bounded memory).
@@ -19,7 +21,8 @@ import torch
 from torch import Tensor
 
 from como3r.config import TrackingConfig
-from como3r.frontend.pairs import DirectedMatches, gather_points
+from como3r.frontend import cpu_kernels
+from como3r.frontend.pairs import DirectedMatches
 from como3r.geometry.camera import project
 from como3r.geometry.units import median_point_range, median_range
 from como3r.optim.factors import CalibratedFactors, QuadraticEdges, RayRangeFactors
@@ -103,30 +106,50 @@ def build_factors(
     Returns:
         A factor batch with ``E = len(edges)`` and ``P`` the largest pixel count.
     """
-    P = max(e.matches.idx.numel() for e in edges)
-    X_i, X_j, q, valid = [], [], [], []
-    for e in edges:
-        kf_i, kf_j = keyframe(e.i), keyframe(e.j)
-        pad = P - e.matches.idx.numel()
-        X_i.append(_pad(gather_points(kf_i.X_hat, e.matches.idx), pad))
-        X_j.append(_pad(kf_j.X_hat.reshape(-1, 3), pad))
-        q.append(_pad(e.matches.q, pad))
-        valid.append(_pad(e.matches.valid, pad))
+    X_i, X_j, q, valid = packed_matches(edges, keyframe)
     device = edges[0].matches.idx.device
     intrinsics = [keyframe(e.i).K for e in edges]
-    K_i = torch.stack(intrinsics).to(X_i[0]) if all(K is not None for K in intrinsics) else None
+    K_i = torch.stack(intrinsics).to(X_i) if all(K is not None for K in intrinsics) else None
     return make_factors(
         torch.tensor([pose_index(e.i) for e in edges], device=device),
         torch.tensor([pose_index(e.j) for e in edges], device=device),
-        torch.stack(X_i), torch.stack(X_j), torch.stack(q), torch.stack(valid), tracking, K_i,
+        X_i, X_j, q, valid, tracking, K_i,
     )
 
 
-def _pad(x: Tensor, pad: int) -> Tensor:
-    """Append ``pad`` zero rows (invalid matches) to ``x (P, ...)``."""
-    if pad == 0:
-        return x
-    return torch.cat([x, x.new_zeros((pad, *x.shape[1:]))])
+def packed_matches(edges: Sequence[Edge], keyframe: Callable[[int], Pointmap]
+                   ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The edges' valid matches, each edge's packed to the front of its row in pixel order
+    and padded with invalid ones to the largest count ``P`` (at least 1).
+
+    The factors drop invalid matches anyway (they weigh nothing: C-Eq. 5, 7), and with a
+    third to two thirds of a pair's pixels unmatched, packing before the batch is made
+    spares the batch those rows.
+
+    Returns:
+        ``X_i (E, P, 3)`` points of keyframe i at the matched pixels, ``X_j (E, P, 3)``
+        points of keyframe j, ``q (E, P)`` confidences, ``valid (E, P)`` bool.
+    """
+    counts = [int(e.matches.valid.sum()) for e in edges]
+    P = max(1, *counts)
+    first = keyframe(edges[0].i).X_hat
+    X_i = first.new_zeros((len(edges), P, 3))
+    X_j = torch.zeros_like(X_i)
+    q = edges[0].matches.q.new_zeros((len(edges), P))
+    valid = torch.zeros((len(edges), P), dtype=torch.bool, device=first.device)
+    for k, e in enumerate(edges):
+        X_hat_i, X_hat_j = keyframe(e.i).X_hat.reshape(-1, 3), keyframe(e.j).X_hat.reshape(-1, 3)
+        if first.device.type == "cpu":
+            cpu_kernels.pack_valid(X_hat_i.to(X_i), X_hat_j.to(X_j), e.matches.idx,
+                                   e.matches.valid, e.matches.q.to(q), X_i[k], X_j[k], q[k],
+                                   valid[k])
+            continue
+        n = torch.nonzero(e.matches.valid).squeeze(-1)
+        X_i[k, :counts[k]] = X_hat_i[e.matches.idx[n]]
+        X_j[k, :counts[k]] = X_hat_j[n]
+        q[k, :counts[k]] = e.matches.q[n]
+        valid[k, :counts[k]] = True
+    return X_i, X_j, q, valid
 
 
 class QuadraticEdgeCache:
