@@ -246,6 +246,12 @@ class GlobalBAConfig:
     # 4.179 / 4.175 cm, map accuracy 33.42 cm and F-score 0.5735 in all four. 1e-4 of the
     # scene depth (4.6e-4 there) keeps a margin; 1e-8 restores the paper at 1 m.
     step_tol: float = 1e-4
+    # not in the paper: an edge's matches are linearized again only when its relative pose
+    # moved more than this (radians, nepers, the component's median keyframe depth) since
+    # they last were; in between, its blocks come from the quadratic model of that
+    # linearization (optim.relinearization; iSAM2's relinearization threshold). 0: every
+    # edge at every iteration, as the paper
+    relinearize_tol: float = 1e-3
     lm_lambda: float = 0.0
     tikhonov_base: float = 1e-6
     tikhonov_retries: int = 6
@@ -418,6 +424,7 @@ _NON_NEGATIVE = (
     "local_solve.tikhonov_retries", "local_solve.lm_lambda",
     "verification.covisible_min_confidence",
     "global_ba.lm_lambda", "global_ba.tikhonov_base", "global_ba.tikhonov_retries",
+    "global_ba.relinearize_tol",
     "depth.slic_sigma", "depth.lambda_smooth", "depth.lambda_prior", "depth.lambda_lm",
     "depth.alternation_rounds",
     "visualization.voxel_size_m", "session.resident_keyframes",

@@ -54,6 +54,7 @@ from como3r.frontend.pairs import PairLink
 from como3r.geometry.camera import to_focal
 from como3r.geometry.units import scene_depth
 from como3r.optim.factors import Factor
+from como3r.optim.relinearization import ThresholdRelinearized
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.values import PoseValues
 
@@ -296,7 +297,9 @@ class GlobalGraph:
         if not links:
             return BAResult(tuple(nodes), 0, 0.0, "no_edges", False, 0.0)
         row = {g: r for r, g in enumerate(nodes)}
-        factors = self._factors([e for link in links for e in link.edges()], row)
+        depth = self.scene_depth(agents)
+        factors = [ThresholdRelinearized(batch, self.config.relinearize_tol, depth)
+                   for batch in self._factors([e for link in links for e in link.edges()], row)]
         before = self.poses(nodes)
         pinned = torch.tensor([g == anchor or g in self.fixed for g in nodes],
                               device=before.device)
@@ -306,7 +309,7 @@ class GlobalGraph:
         solved, report = gauss_newton_irls(factors, PoseValues(before.double(), pinned),
                                            self.config, max_iters=max_iters,
                                            backend=self.config.linear_solver,
-                                           length_scale=self.scene_depth(agents))
+                                           length_scale=depth)
         after = solved.poses.to(before.dtype)
         problem = "solver refused a step" if report.diverged else _implausible(before, after)
         if problem:
@@ -316,8 +319,10 @@ class GlobalGraph:
                             True, 0.0)
         self.set_poses(nodes, after)
         change = float((after[:, :3] - before[:, :3]).norm(dim=-1).max())
-        logger.debug("global BA over %d keyframes: %d iterations (%s), max move %.4g",
-                     len(nodes), report.iterations, report.reason, change)
+        logger.debug("global BA over %d keyframes: %d iterations (%s), %d of %d edge "
+                     "linearizations over the matches, max move %.4g", len(nodes),
+                     report.iterations, report.reason, sum(f.linearized for f in factors),
+                     sum(f.factors.num_edges for f in factors) * report.iterations, change)
         return BAResult(tuple(nodes), report.iterations, report.seconds, report.reason, False,
                         change)
 

@@ -246,7 +246,7 @@ class RelativePoseFactors(ABC):
         edge's matches, so the 7x7 edge blocks are projected once per edge instead of per
         match: ``H_jj = H_ii = Ad^T H Ad = -H_ij``, ``g_j = Ad^T g = -g_i``.
         """
-        parts = [self._linearize_chunk(poses, chunk) for chunk in self._chunks(poses)]
+        parts = [self._linearize_chunk(poses, chunk) for chunk in self.chunks(poses)]
         if not parts:
             return _empty_blocks(poses)
         return EdgeBlocks.cat(parts)
@@ -257,22 +257,29 @@ class RelativePoseFactors(ABC):
         ``rho`` is the Huber kernel with ``rho(r) = r^2/2`` inside the breakpoint, whose
         IRLS weight is exactly ``w(r) = rho'(r)/r = min(1, k/|r|)``.
         """
-        return sum((self._edge_costs(poses, chunk).sum() for chunk in self._chunks(poses)),
+        return sum((self._edge_costs(poses, chunk).sum() for chunk in self.chunks(poses)),
                    torch.zeros((), dtype=torch.float64, device=poses.device))
 
     def quadratic_model(self, poses: torch.Tensor) -> QuadraticEdges:
         """Each edge's robust energy as a quadratic in its relative pose at ``poses``
         ``(N, 8)``: the Gauss-Newton blocks of :meth:`linearize` before they are projected
         onto the endpoints, and each edge's energy (see :class:`QuadraticEdges`)."""
-        H_rel, g_rel, T_ij, costs = [], [], [], []
-        for chunk in self._chunks(poses):
-            H, g, _ = self._relative_blocks(poses, chunk)
-            H_rel.append(H.to(torch.float64))
-            g_rel.append(g.to(torch.float64))
-            T_ij.append(self._relative_poses(poses, chunk)[1].to(torch.float64))
+        T_ij, H_rel, g_rel, costs = [], [], [], []
+        for chunk in self.chunks(poses):
+            for part, value in zip((T_ij, H_rel, g_rel), self.relative_blocks(poses, chunk)):
+                part.append(value)
             costs.append(self._edge_costs(poses, chunk))
         return QuadraticEdges(self.i, self.j, torch.cat(T_ij), torch.cat(H_rel),
                               torch.cat(g_rel), torch.cat(costs))
+
+    def relative_blocks(self, poses: torch.Tensor, edges: slice
+                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """A slice of edges (at most a :meth:`chunks` slice) linearized in the tangent of
+        their relative poses at ``poses`` ``(N, 8)``, before the projection onto the
+        endpoints: ``T_ij`` ``(e, 8)``, ``H`` ``(e, 7, 7)`` and ``g`` ``(e, 7)``, float64."""
+        H, g, _ = self._relative_blocks(poses, edges)
+        T_ij = self._relative_poses(poses, edges)[1]
+        return T_ij.to(torch.float64), H.to(torch.float64), g.to(torch.float64)
 
     def _edge_costs(self, poses: torch.Tensor, edges: slice) -> torch.Tensor:
         """Robust energy of each edge of a slice, ``(e,)`` float64."""
@@ -318,7 +325,7 @@ class RelativePoseFactors(ABC):
         g_rel = torch.bmm(J_T, (weight * r).transpose(1, 2).reshape(num, C * P, 1))[..., 0]
         return H_rel, g_rel, T_WC_i
 
-    def _chunks(self, poses: torch.Tensor) -> list[slice]:
+    def chunks(self, poses: torch.Tensor) -> list[slice]:
         """Slices of edges to linearize at once: all of them for the compiled loops (they
         hold no per-match temporaries), else ``chunk_matches`` matches' worth."""
         if self._runs_compiled(poses):
