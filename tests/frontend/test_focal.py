@@ -12,12 +12,13 @@ from como3r.backend.global_graph import GlobalGraph
 from como3r.config import Config, GlobalBAConfig, TrackingConfig
 from como3r.coordination.association import Verification
 from como3r.coordination.coordinator import Candidate, Coordinator
+from como3r.frontend import focal as focal_module
 from como3r.frontend.focal import FocalPair, estimate_log_focal, relative_pose
 from como3r.frontend.keyframes import apply_pose_update
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.geometry.camera import intrinsics_matrix, project, rescale_focal, unproject_depth
-from como3r.geometry.lie import sim3_act, sim3_exp, sim3_identity, sim3_inverse
+from como3r.geometry.lie import sim3_act, sim3_exp, sim3_identity
 from como3r.prior.base import Encoding
 
 H, W = 36, 48
@@ -84,6 +85,36 @@ def test_estimate_recovers_the_moving_focal_error(error: float) -> None:
     # Brent's search: 8 relative solves here (the zero correction's included); a
     # golden-section search to the same tolerance takes 17
     assert estimate.evaluations <= 12
+
+
+def _scaled(pair: FocalPair, scale: float) -> FocalPair:
+    """The same pair in a scene ``scale`` times as large."""
+    T = pair.T_anchor_moving.clone()
+    T[:3] *= scale
+    return replace(pair, X_anchor=scale * pair.X_anchor, X_moving=scale * pair.X_moving,
+                   T_anchor_moving=T)
+
+
+@pytest.mark.parametrize("scale", [0.001, 1000.0])
+def test_estimate_is_the_same_at_every_scene_scale(scale: float, monkeypatch) -> None:
+    """The relative solves stop at a step measured in the pairs' depths: the same
+    Gauss-Newton iterations at every scale (an absolute tolerance took 2-5 per solve at
+    1000 times the scene, 2-4 at 1)."""
+    iterations: list[int] = []
+    solve = focal_module.gauss_newton_irls
+
+    def counted(*args, **kwargs):
+        result = solve(*args, **kwargs)
+        iterations.append(result[1].iterations)
+        return result
+
+    monkeypatch.setattr(focal_module, "gauss_newton_irls", counted)
+    pair = _pair(0.08)
+    reference = estimate_log_focal([pair], TrackingConfig())
+    reference_iterations, iterations[:] = list(iterations), []
+    estimate = estimate_log_focal([_scaled(pair, scale)], TrackingConfig())
+    assert estimate.log_focal == pytest.approx(reference.log_focal, abs=1e-4)
+    assert iterations == reference_iterations
 
 
 def test_estimate_is_relative_to_the_anchor() -> None:

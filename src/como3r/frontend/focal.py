@@ -38,6 +38,7 @@ from como3r.config import GlobalBAConfig, TrackingConfig
 from como3r.frontend.graph import make_factors
 from como3r.frontend.pairs import DirectedMatches, gather_points
 from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse
+from como3r.geometry.units import median_point_range
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.values import PoseValues
 
@@ -160,12 +161,15 @@ class _PairEnergy:
         self.poses = torch.stack([T for pair in pairs
                                   for T in (identity, pair.T_anchor_moving.double())])
         self.pinned = torch.arange(2 * len(pairs)) % 2 == 0
+        # the solves' step tolerance in the pairs' own length (geometry.units)
+        self.length = float(median_point_range(torch.cat([d.X_i for d in self.directions])))
 
     def __call__(self, log_focal: float, prior_sigma: float) -> float:
         self.evaluations += 1
         factors = self._factors(math.exp(log_focal))
         solved, _ = gauss_newton_irls(factors, PoseValues(self.poses, self.pinned),
-                                      GlobalBAConfig(), max_iters=self.max_iters)
+                                      GlobalBAConfig(), max_iters=self.max_iters,
+                                      length_scale=self.length)
         self.poses = solved.poses
         data = float(factors.cost(solved.poses.to(factors.q.dtype)))
         return 0.5 * (log_focal / prior_sigma) ** 2 + data
