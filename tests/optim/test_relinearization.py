@@ -10,7 +10,7 @@ from como3r.errors import InputError
 from como3r.geometry.lie import sim3_compose, sim3_exp
 from como3r.optim.factors import RayRangeFactors
 from como3r.optim.optimizer import gauss_newton_irls
-from como3r.optim.relinearization import ThresholdRelinearized
+from como3r.optim.relinearization import EdgeModels, ThresholdRelinearized
 from como3r.optim.synthetic import chain_poses, random_sim3, synthetic_graph
 from como3r.optim.values import PoseValues
 
@@ -33,6 +33,24 @@ def _problem(dtype: torch.dtype = torch.float32):
     return truth, factors, PoseValues.from_poses(initial, num_pinned=1)
 
 
+def _lazy(factors: RayRangeFactors, tol: float, models: EdgeModels | None = None,
+          stamps: list | None = None) -> ThresholdRelinearized:
+    """The batch's edges through a relinearization threshold, built from ``factors``
+    (edge positions = their rows), keyed by position."""
+    E = factors.num_edges
+    built = []
+
+    def build(positions):
+        built.append(list(positions))
+        return [(factors, list(range(E)))]
+
+    lazy = ThresholdRelinearized(factors.i, factors.j, list(range(E)), stamps or [0] * E,
+                                 EdgeModels() if models is None else models, build, tol,
+                                 SCENE)
+    lazy.built = built
+    return lazy
+
+
 def _moved(poses: torch.Tensor, rows: list[int], size: float) -> torch.Tensor:
     """``poses`` with ``rows`` moved by a rotation of ``size`` radians."""
     moved = poses.clone()
@@ -43,7 +61,7 @@ def _moved(poses: torch.Tensor, rows: list[int], size: float) -> torch.Tensor:
 
 def test_without_a_threshold_the_blocks_are_the_dense_ones() -> None:
     _, factors, values = _problem(torch.float64)
-    lazy = ThresholdRelinearized(factors, 0.0, SCENE)
+    lazy = _lazy(factors, 0.0)
     for poses in (values.poses, _moved(values.poses, [2], 1e-6), _moved(values.poses, [3], 0.1)):
         blocks, dense = lazy.linearize(poses), factors.linearize(poses)
         for name in ("H_ii", "H_jj", "H_ij", "g_i", "g_j"):
@@ -53,7 +71,7 @@ def test_without_a_threshold_the_blocks_are_the_dense_ones() -> None:
 
 def test_only_edges_that_moved_past_the_threshold_are_linearized_again() -> None:
     _, factors, values = _problem()
-    lazy = ThresholdRelinearized(factors, 1e-3, SCENE)
+    lazy = _lazy(factors, 1e-3)
     lazy.linearize(values.poses)
     assert lazy.linearized == factors.num_edges
     # pose 3 turned by 1e-4 rad: its edges' relative poses stay within the threshold
@@ -71,7 +89,7 @@ def test_only_edges_that_moved_past_the_threshold_are_linearized_again() -> None
 
 def test_the_energy_is_the_dense_one() -> None:
     _, factors, values = _problem()
-    lazy = ThresholdRelinearized(factors, 1e-3, SCENE)
+    lazy = _lazy(factors, 1e-3)
     lazy.linearize(values.poses)
     moved = _moved(values.poses, [4], 1e-4)
     assert torch.equal(lazy.cost(moved), factors.cost(moved))
@@ -81,7 +99,7 @@ def test_a_solve_with_the_threshold_ends_where_the_dense_one_does() -> None:
     truth, factors, values = _problem()
     dense, dense_report = gauss_newton_irls([factors], values, GlobalBAConfig(),
                                             length_scale=SCENE)
-    lazy = ThresholdRelinearized(factors, GlobalBAConfig().relinearize_tol, SCENE)
+    lazy = _lazy(factors, GlobalBAConfig().relinearize_tol)
     solved, report = gauss_newton_irls([lazy], values, GlobalBAConfig(), length_scale=SCENE)
     assert report.converged and dense_report.converged
     # 21 edge linearizations over the matches where the dense solve made 7 x 7
@@ -91,8 +109,27 @@ def test_a_solve_with_the_threshold_ends_where_the_dense_one_does() -> None:
     assert float((solved.poses[:, :3] - truth[:, :3]).norm(dim=-1).max()) < 2.2e-3 * SCENE
 
 
+def test_models_are_kept_between_solves_while_their_stamps_hold() -> None:
+    _, factors, values = _problem()
+    models = EdgeModels()
+    first = _lazy(factors, 1e-3, models)
+    first.linearize(values.poses)
+    assert len(models) == factors.num_edges and first.built == [list(range(7))]
+    # a later solve at the same poses: every edge from its model, no dense factors built
+    again = _lazy(factors, 1e-3, models)
+    blocks = again.linearize(values.poses)
+    assert again.reused == factors.num_edges and again.linearized == 0 and again.built == []
+    assert torch.equal(blocks.H_jj, factors.linearize(values.poses).H_jj)
+    # edge 2's pointmaps changed (its stamp): only it is built and linearized again
+    stamps = [0, 0, 1, 0, 0, 0, 0]
+    changed = _lazy(factors, 1e-3, models, stamps)
+    changed.linearize(values.poses)
+    assert changed.reused == 6 and changed.linearized == 1 and changed.built == [[2]]
+
+
 @pytest.mark.parametrize("tol, length", [(-1e-3, 1.0), (1e-3, 0.0)])
 def test_a_bad_threshold_is_refused(tol: float, length: float) -> None:
     _, factors, _ = _problem()
     with pytest.raises(InputError, match="ThresholdRelinearized"):
-        ThresholdRelinearized(factors, tol, length)
+        ThresholdRelinearized(factors.i, factors.j, [0] * 7, [0] * 7, EdgeModels(),
+                              lambda p: [], tol, length)

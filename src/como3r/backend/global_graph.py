@@ -54,7 +54,7 @@ from como3r.frontend.pairs import PairLink
 from como3r.geometry.camera import to_focal
 from como3r.geometry.units import scene_depth
 from como3r.optim.factors import Factor
-from como3r.optim.relinearization import ThresholdRelinearized
+from como3r.optim.relinearization import EdgeModels, ThresholdRelinearized
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.values import PoseValues
 
@@ -141,6 +141,12 @@ class GlobalGraph:
         #: global indices of keyframes held fixed, like the anchor, by every solve (a saved
         #: map's keyframes under ``--freeze-map``)
         self.fixed: set[int] = set()
+        #: per keyframe, how many times its pointmap or camera changed (a new pointmap,
+        #: refresh, focal rescaling or refinement): what stamps the edge models
+        self.versions: list[int] = []
+        #: the quadratic models of the links' directed edges, kept between solves
+        #: (optim.relinearization), by ``(link position, direction)``
+        self.edge_models = EdgeModels()
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -159,22 +165,29 @@ class GlobalGraph:
                              f"but keyframe {len(own)} was expected (keyframes arrive in order)")
         if packet.previous is not None:
             self.refresh(packet.agent, packet.previous)
-        g = len(self.keyframes)
         X_hat, K = self._corrected(packet.agent, packet.X_hat, packet.K)
-        self.keyframes.append(Keyframe(
+        g = self.append(Keyframe(
             kf_id=packet.kf_id, frame_index=packet.frame_index, timestamp=packet.timestamp,
             encoding=packet.encoding, T_WC=packet.T_WC.clone(), X_hat=X_hat,
             C_hat=packet.C_hat, X_init=X_hat, C_init=packet.C_hat, colors=packet.colors,
             retrieval=packet.retrieval, K=K,
-        ))
-        self.agent_of.append(packet.agent)
-        own.append(g)
+        ), packet.agent)
         if packet.sequential_ij is not None and packet.sequential_ji is not None:
             self.links.append(GraphLink(own[-2], g, "sequential",
                                         PairLink(packet.sequential_ij, packet.sequential_ji)))
         elif packet.kf_id > 0:
             logger.info("agent %d keyframe %d has no sequential edge (relocalized); its chain "
                         "is cut in the global graph", packet.agent, packet.kf_id)
+        return g
+
+    def append(self, kf: Keyframe, agent: int) -> int:
+        """Add ``kf`` as ``agent``'s next keyframe (no link; a stored session's keyframes
+        are read back this way); returns its global index."""
+        g = len(self.keyframes)
+        self.local_to_global.setdefault(agent, []).append(g)
+        self.keyframes.append(kf)
+        self.agent_of.append(agent)
+        self.versions.append(0)
         return g
 
     def refresh(self, agent: int, refresh: PointmapRefresh) -> None:
@@ -186,6 +199,7 @@ class GlobalGraph:
         kf = self.keyframes[self.global_index(agent, refresh.kf_id)]
         X_hat, _ = self._corrected(agent, refresh.X_hat, refresh.K)
         kf.X_hat, kf.C_hat, kf.fused_frames = X_hat, refresh.C_hat, refresh.fused_frames
+        self.versions[self.global_index(agent, refresh.kf_id)] += 1
 
     def rescale_focal(self, agent: int, log_focal: float) -> float:
         """Move an agent's keyframes to the focal length ``f exp(log_focal)``
@@ -203,6 +217,7 @@ class GlobalGraph:
         focal = current * math.exp(log_focal)
         for g in self.agent_keyframes(agent):
             self.keyframes[g].rescale_focal(focal)
+            self.versions[g] += 1
         self.focal[agent] = focal
         return focal
 
@@ -293,13 +308,13 @@ class GlobalGraph:
         """
         nodes = self.connected(agents, anchor)
         chosen = set(nodes)
-        links = [link for link in self.links if link.i in chosen and link.j in chosen]
+        links = [(n, link) for n, link in enumerate(self.links)
+                 if link.i in chosen and link.j in chosen]
         if not links:
             return BAResult(tuple(nodes), 0, 0.0, "no_edges", False, 0.0)
         row = {g: r for r, g in enumerate(nodes)}
         depth = self.scene_depth(agents)
-        factors = [ThresholdRelinearized(batch, self.config.relinearize_tol, depth)
-                   for batch in self._factors([e for link in links for e in link.edges()], row)]
+        factors = [self._relinearized(links, row, depth)]
         before = self.poses(nodes)
         pinned = torch.tensor([g == anchor or g in self.fixed for g in nodes],
                               device=before.device)
@@ -319,21 +334,39 @@ class GlobalGraph:
                             True, 0.0)
         self.set_poses(nodes, after)
         change = float((after[:, :3] - before[:, :3]).norm(dim=-1).max())
-        logger.debug("global BA over %d keyframes: %d iterations (%s), %d of %d edge "
-                     "linearizations over the matches, max move %.4g", len(nodes),
-                     report.iterations, report.reason, sum(f.linearized for f in factors),
-                     sum(f.factors.num_edges for f in factors) * report.iterations, change)
+        logger.debug("global BA over %d keyframes: %d iterations (%s), %d edges with a "
+                     "model, %d of %d edge linearizations over the matches, max move %.4g",
+                     len(nodes), report.iterations, report.reason, factors[0].reused,
+                     factors[0].linearized, factors[0].num_edges * report.iterations, change)
         return BAResult(tuple(nodes), report.iterations, report.seconds, report.reason, False,
                         change)
 
-    def _factors(self, edges: Sequence[Edge], row: dict[int, int]) -> list[Factor]:
-        """Factor batches over ``edges`` (:func:`~como3r.frontend.graph.build_factors`: their
-        valid matches only). A batch pads its edges to its largest match count, so edges
-        are batched by match count (:data:`EDGES_PER_BATCH` at a time) to keep the padding
-        small."""
-        order = sorted(edges, key=lambda e: int(e.matches.valid.sum()))
-        return [build_factors(order[s:s + EDGES_PER_BATCH], self.keyframes.__getitem__,
-                              row.__getitem__, self.tracking)
+    def _relinearized(self, links: Sequence[tuple[int, GraphLink]], row: dict[int, int],
+                      depth: float) -> ThresholdRelinearized:
+        """The solve's factor over the directed edges of ``links`` (by position in
+        :attr:`links`): each edge's model kept from earlier solves while its endpoints'
+        pointmaps stay (:attr:`versions`), its dense factors built when it needs them."""
+        edges = [e for _, link in links for e in link.edges()]
+        keys = [(n, d) for n, _ in links for d in (0, 1)]
+        stamps = [(self.versions[e.i], self.versions[e.j]) for e in edges]
+        device = edges[0].matches.idx.device
+        return ThresholdRelinearized(
+            torch.tensor([row[e.i] for e in edges], device=device),
+            torch.tensor([row[e.j] for e in edges], device=device), keys, stamps,
+            self.edge_models, lambda positions: self._factors(edges, positions, row),
+            self.config.relinearize_tol, depth)
+
+    def _factors(self, edges: Sequence[Edge], positions: Sequence[int], row: dict[int, int]
+                 ) -> list[tuple[Factor, list[int]]]:
+        """Factor batches over the ``edges`` at ``positions``
+        (:func:`~como3r.frontend.graph.build_factors`: their valid matches only), each with
+        the positions of its edges. A batch pads its edges to its largest match count, so
+        edges are batched by match count (:data:`EDGES_PER_BATCH` at a time) to keep the
+        padding small."""
+        order = sorted(positions, key=lambda p: int(edges[p].matches.valid.sum()))
+        return [(build_factors([edges[p] for p in order[s:s + EDGES_PER_BATCH]],
+                               self.keyframes.__getitem__, row.__getitem__, self.tracking),
+                 order[s:s + EDGES_PER_BATCH])
                 for s in range(0, len(order), EDGES_PER_BATCH)]
 
     def freeze_refinement_base(self, agents: Sequence[int],
@@ -417,6 +450,8 @@ class GlobalGraph:
         """Set pointmap fields of keyframe ``g``: parked if it is paged out and a parking is
         given, else in the keyframe."""
         kf = self.keyframes[g]
+        if "X_hat" in values:
+            self.versions[g] += 1
         if parking is not None and paged_out(kf):
             parking.park(kf, values)
             return

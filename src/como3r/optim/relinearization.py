@@ -2,17 +2,25 @@
 threshold, as iSAM2's; Kaess et al., IJRR 2012, Sec. 5).
 
 A Gauss-Newton solve over dense pointmap edges (C-Eq. 5) linearizes every match of every
-edge at every iteration, while most edges' relative poses hardly move between iterations:
-on the dashboard's 4-agent scene two thirds of the global BA's edge linearizations were at
-a relative pose within 1e-3 (radians, nepers, scene depths) of the edge's previous one.
-:class:`ThresholdRelinearized` keeps, per edge, the Gauss-Newton blocks of its last dense
+edge at every iteration, and the coordinator solves its whole graph again after every new
+inter-agent edge, while most edges' relative poses hardly move: on the dashboard's
+4-agent scene two thirds of the global BA's edge linearizations within one solve were at a
+relative pose within 1e-3 (radians, nepers, scene depths) of the edge's previous one.
+
+:class:`EdgeModels` keeps, per edge, the Gauss-Newton blocks of its last dense
 linearization as a quadratic model in its relative pose
 (:class:`~como3r.optim.factors.QuadraticEdges`: IRLS weights held, gradient moved by ``H
-delta``) and linearizes an edge's matches again only when its relative pose is more than
-``tol`` from the model's. Not in the paper; ``tol = 0`` is its dense solve.
+delta``), stamped with the versions of the endpoints' pointmaps it was made from, between
+solves. A solve's :class:`ThresholdRelinearized` factor takes an edge's blocks from its
+model while the stamp holds and the relative pose is within ``tol`` of the model's, and
+otherwise builds the edge's dense factors (once per solve, for the edges that need them)
+and linearizes its matches again. Not in the paper; ``tol = 0`` is its dense solve.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable, Hashable, Sequence
+from dataclasses import dataclass
 
 import torch
 
@@ -20,44 +28,116 @@ from como3r.errors import InputError
 from como3r.optim.factors import QuadraticEdges, RelativePoseFactors, endpoint_blocks
 from como3r.optim.linear import EdgeBlocks
 
+#: builds the dense factors of some of a solve's edges (positions in its edge list) as
+#: factor batches, each with the positions of its edges in batch order; each batch's pose
+#: indices are the solve's rows
+DenseBuilder = Callable[[Sequence[int]], Sequence[tuple[RelativePoseFactors, Sequence[int]]]]
+
+
+@dataclass(frozen=True)
+class _Model:
+    """One edge's blocks in the tangent of its relative pose ``T0`` (float64)."""
+
+    T0: torch.Tensor  # (8,)
+    H: torch.Tensor  # (7, 7)
+    g: torch.Tensor  # (7,)
+    stamp: Hashable  # the endpoints' pointmap versions it was made from
+
+
+class EdgeModels:
+    """Quadratic models of edges kept between solves, by the caller's edge key (65 floats
+    per edge, whatever its matches)."""
+
+    def __init__(self) -> None:
+        self._models: dict[Hashable, _Model] = {}
+
+    def __len__(self) -> int:
+        return len(self._models)
+
+    def get(self, key: Hashable, stamp: Hashable) -> _Model | None:
+        """The model of edge ``key`` if it was made at ``stamp``."""
+        model = self._models.get(key)
+        return model if model is not None and model.stamp == stamp else None
+
+    def put(self, key: Hashable, model: _Model) -> None:
+        self._models[key] = model
+
+    def clear(self) -> None:
+        """Forget every model (the pointmaps changed in ways the stamps do not tell)."""
+        self._models.clear()
+
 
 class ThresholdRelinearized:
-    """A dense factor batch whose edges are linearized again only past a motion threshold
+    """A solve's dense edges, linearized over their matches only past a motion threshold
     (a Factor).
 
     Args:
-        factors: the dense edges.
+        i, j: ``(E,)`` pose indices (rows of the solve) of the edges.
+        keys: the edges' keys in ``models``; stamps: their endpoints' pointmap versions.
+        models: the kept models (updated as edges are linearized again).
+        build: makes the dense factors of edges by position (:data:`DenseBuilder`).
         tol: an edge is linearized again when its relative pose ``T_ij`` is more than this
-            from the one of its model: rotation and log-scale in radians and nepers,
-            translation in units of ``length``; 0 linearizes every edge that moved.
+            from its model's: rotation and log-scale in radians and nepers, translation in
+            units of ``length``; 0 linearizes every edge that moved.
         length: the scene's length unit (e.g. its median keyframe depth), so the
             threshold holds at every scale.
     """
 
-    def __init__(self, factors: RelativePoseFactors, tol: float, length: float) -> None:
+    def __init__(self, i: torch.Tensor, j: torch.Tensor, keys: Sequence[Hashable],
+                 stamps: Sequence[Hashable], models: EdgeModels, build: DenseBuilder,
+                 tol: float, length: float) -> None:
         if not (tol >= 0 and length > 0):
             raise InputError(f"ThresholdRelinearized: tol ({tol}) must be >= 0 and length "
                              f"({length}) positive")
-        self.factors, self.tol, self.length = factors, float(tol), float(length)
-        self._model: QuadraticEdges | None = None
+        if not (len(i) == len(j) == len(keys) == len(stamps)):
+            raise InputError("ThresholdRelinearized: i, j, keys and stamps must have one "
+                             "entry per edge")
+        self.keys, self.stamps, self.models, self.build = list(keys), list(stamps), models, build
+        self.tol, self.length = float(tol), float(length)
+        E = len(self.keys)
+        kept = [models.get(k, s) for k, s in zip(self.keys, self.stamps)]
+        self._known = torch.tensor([m is not None for m in kept], dtype=torch.bool)
+        self._quadratic = QuadraticEdges(
+            i.to(torch.int64), j.to(torch.int64),
+            torch.stack([m.T0 if m else _IDENTITY for m in kept]) if E else _IDENTITY[:0],
+            torch.stack([m.H if m else torch.zeros(7, 7, dtype=torch.float64)
+                         for m in kept]) if E else torch.zeros(0, 7, 7, dtype=torch.float64),
+            torch.stack([m.g if m else torch.zeros(7, dtype=torch.float64)
+                         for m in kept]) if E else torch.zeros(0, 7, dtype=torch.float64),
+            torch.zeros(E, dtype=torch.float64))
+        # edge position -> (its dense batch, its row there); built when first needed
+        self._dense: dict[int, tuple[RelativePoseFactors, int]] = {}
         self.linearized = 0  # edge linearizations over the matches, so far
+        self.reused = int(self._known.sum())  # edges that came with a model
 
     @property
     def max_pose_index(self) -> int:
         """The largest pose index any edge refers to."""
-        return self.factors.max_pose_index
+        return self._quadratic.max_pose_index
+
+    @property
+    def num_edges(self) -> int:
+        """E, the number of edges."""
+        return len(self.keys)
 
     def linearize(self, poses: torch.Tensor) -> EdgeBlocks:
-        """Per-edge blocks at ``poses`` ``(N, 8)``: the matches' for the edges that moved
-        past the threshold (their models made again), the models' for the others."""
-        stale = self._stale(poses)
-        model = self._model
-        for chunk in self.factors.chunks(poses):
-            for run in _runs(stale[chunk]):
-                edges = slice(chunk.start + run.start, chunk.start + run.stop)
-                model.T0[edges], model.H[edges], model.g[edges] = (
-                    self.factors.relative_blocks(poses, edges))
-                self.linearized += edges.stop - edges.start
+        """Per-edge blocks at ``poses`` ``(N, 8)``: the matches' for the edges without a
+        model or moved past the threshold (their models made again), the models' for the
+        others."""
+        model = self._quadratic
+        moved = model.motion(poses).abs()
+        moved[:, :3] /= self.length
+        stale = ~self._known | (moved > self.tol).any(1)
+        for batch, rows, positions in self._batches(torch.nonzero(stale).flatten().tolist()):
+            for first, last in _runs(rows, batch.chunks(poses)):
+                edges = slice(rows[first], rows[last - 1] + 1)
+                at = positions[first:last]
+                model.T0[at], model.H[at], model.g[at] = batch.relative_blocks(poses, edges)
+            for p in positions:
+                self.models.put(self.keys[p], _Model(model.T0[p].clone(), model.H[p].clone(),
+                                                     model.g[p].clone(), self.stamps[p]))
+            self.linearized += len(positions)
+        self._known[stale] = True
         delta = model.motion(poses)
         delta[stale] = 0.0  # just linearized there: the dense blocks exactly
         g_rel = model.g + (model.H @ delta[..., None])[..., 0]
@@ -65,30 +145,41 @@ class ThresholdRelinearized:
 
     def cost(self, poses: torch.Tensor) -> torch.Tensor:
         """The dense edges' robust energy at ``poses`` ``(N, 8)`` (no model), float64."""
-        return self.factors.cost(poses)
+        batches = {id(b): b for b, _, _ in self._batches(list(range(self.num_edges)))}
+        return sum((b.cost(poses) for b in batches.values()),
+                   torch.zeros((), dtype=torch.float64, device=poses.device))
 
-    def _stale(self, poses: torch.Tensor) -> torch.Tensor:
-        """``(E,)`` bool: the edges to linearize again at ``poses`` (all, at the first call)."""
-        E = self.factors.num_edges
-        if self._model is None:
-            zeros = torch.zeros(E, dtype=torch.float64, device=poses.device)
-            self._model = QuadraticEdges(
-                self.factors.i, self.factors.j, zeros.new_zeros(E, 8), zeros.new_zeros(E, 7, 7),
-                zeros.new_zeros(E, 7), zeros)
-            return torch.ones(E, dtype=torch.bool, device=poses.device)
-        moved = self._model.motion(poses).abs()
-        moved[:, :3] /= self.length
-        return (moved > self.tol).any(1)
+    def _batches(self, positions: list[int]
+                 ) -> list[tuple[RelativePoseFactors, list[int], list[int]]]:
+        """``positions`` grouped by dense batch (built for those that have none), each
+        group's rows in its batch ascending: ``(batch, rows, positions)``."""
+        missing = [p for p in positions if p not in self._dense]
+        if missing:
+            for batch, built in self.build(missing):
+                for row, p in enumerate(built):
+                    self._dense[p] = (batch, row)
+        groups: dict[int, tuple[RelativePoseFactors, list[tuple[int, int]]]] = {}
+        for p in positions:
+            batch, row = self._dense[p]
+            groups.setdefault(id(batch), (batch, []))[1].append((row, p))
+        result = []
+        for batch, pairs in groups.values():
+            pairs.sort()
+            result.append((batch, [r for r, _ in pairs], [p for _, p in pairs]))
+        return result
 
 
-def _runs(mask: torch.Tensor) -> list[slice]:
-    """The maximal runs of True in a 1-D bool ``mask``, as slices."""
-    flags = mask.tolist()
-    runs, start = [], None
-    for k, flag in enumerate(flags + [False]):
-        if flag and start is None:
-            start = k
-        elif not flag and start is not None:
-            runs.append(slice(start, k))
-            start = None
+_IDENTITY = torch.tensor([0, 0, 0, 0, 0, 0, 1, 1], dtype=torch.float64)
+
+
+def _runs(rows: list[int], chunks: list[slice]) -> list[tuple[int, int]]:
+    """Ascending ``rows`` cut into runs of consecutive rows within one of ``chunks``, as
+    ``(first, last)`` index ranges into ``rows``."""
+    chunk_of = {r: n for n, c in enumerate(chunks) for r in range(c.start, c.stop)}
+    runs: list[tuple[int, int]] = []
+    for k, r in enumerate(rows):
+        if runs and rows[k - 1] == r - 1 and chunk_of[r] == chunk_of[r - 1]:
+            runs[-1] = (runs[-1][0], k + 1)
+        else:
+            runs.append((k, k + 1))
     return runs

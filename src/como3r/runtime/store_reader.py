@@ -301,7 +301,7 @@ def _load_keyframes(connection: sqlite3.Connection, graph: GlobalGraph, blobs: _
                               ("C_init", C_init)):  # one tensor per blob, as written
             maps.setdefault(blob_id, blobs.array(blob_id, f"{what} {name}"))
         pose, = unpack_arrays(T_WC, f"{what} T_WC")
-        _append(graph, Keyframe(
+        graph.append(Keyframe(
             kf_id=kf_id, frame_index=frame, timestamp=timestamp,
             encoding=unpack_object(blobs.get(encoding, what), Encoding, f"{what} encoding"),
             T_WC=pose, X_hat=maps[X_hat], C_hat=maps[C_hat], X_init=maps[X_init],
@@ -320,12 +320,6 @@ def _check_keyframe(graph: GlobalGraph, g: int, agent: int, kf_id: int, fused: i
         raise StoreError(f"inconsistent session store: {what} has no "
                          f"{'pointmaps' if fused is None else 'pose'}")
     return what
-
-
-def _append(graph: GlobalGraph, kf: Keyframe, agent: int) -> None:
-    graph.local_to_global.setdefault(agent, []).append(len(graph))
-    graph.keyframes.append(kf)
-    graph.agent_of.append(agent)
 
 
 def _page_keyframes(connection: sqlite3.Connection, graph: GlobalGraph) -> None:
@@ -351,7 +345,7 @@ def _page_keyframes(connection: sqlite3.Connection, graph: GlobalGraph) -> None:
                            colors=None, fused_frames=fused,
                            K=None if K is None else unpack_arrays(K, f"{what} K")[0])
         kf.evict(None, g)
-        _append(graph, kf, agent)
+        graph.append(kf, agent)
 
 
 def _retrieval(connection: sqlite3.Connection, graph: GlobalGraph) -> list[RetrievalEntry]:
