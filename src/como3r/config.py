@@ -248,9 +248,10 @@ class GlobalBAConfig:
     step_tol: float = 1e-4
     # not in the paper: an edge's matches are linearized again only when its relative pose
     # moved more than this (radians, nepers, the component's median keyframe depth) since
-    # they last were; in between, its blocks come from the quadratic model of that
-    # linearization (optim.relinearization; iSAM2's relinearization threshold). 0: every
-    # edge at every iteration, as the paper
+    # they last were, in this solve or an earlier one, or an endpoint's pointmap changed;
+    # in between, its blocks come from the quadratic model of that linearization
+    # (optim.relinearization; iSAM2's relinearization threshold). 0: every edge at every
+    # iteration, as the paper
     relinearize_tol: float = 1e-3
     lm_lambda: float = 0.0
     tikhonov_base: float = 1e-6
