@@ -17,7 +17,7 @@ from como3r.optim.values import PoseValues
 SCENE = 12.5  # the synthetic points are 5-20 units in front of their cameras
 
 
-def _problem(dtype: torch.dtype = torch.float32):
+def _problem(dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu"):
     """A 6-pose chain with a loop and a chord; noisy initial poses, the first pinned."""
     generator = torch.Generator().manual_seed(11)
     truth = chain_poses(6, generator)
@@ -26,11 +26,12 @@ def _problem(dtype: torch.dtype = torch.float32):
     graph = synthetic_graph(truth, i, j, 300, generator)
     # a little noise on the points of j, so the solution has residuals and Huber weights < 1
     X_j = graph.X_j + 0.05 * torch.randn(graph.X_j.shape, generator=generator, dtype=torch.float64)
-    factors = RayRangeFactors(graph.i, graph.j, graph.X_i.to(dtype), X_j.to(dtype),
-                              graph.q.to(dtype), graph.valid)
+    factors = RayRangeFactors(graph.i.to(device), graph.j.to(device),
+                              graph.X_i.to(device, dtype), X_j.to(device, dtype),
+                              graph.q.to(device, dtype), graph.valid.to(device))
     initial = sim3_compose(random_sim3(6, 3.0, 0.3, 0.05, generator), truth)
     initial[0] = truth[0]
-    return truth, factors, PoseValues.from_poses(initial, num_pinned=1)
+    return truth, factors, PoseValues.from_poses(initial.to(device), num_pinned=1)
 
 
 def _lazy(factors: RayRangeFactors, tol: float, models: EdgeModels | None = None,
@@ -109,8 +110,8 @@ def test_a_solve_with_the_threshold_ends_where_the_dense_one_does() -> None:
     assert float((solved.poses[:, :3] - truth[:, :3]).norm(dim=-1).max()) < 2.2e-3 * SCENE
 
 
-def test_models_are_kept_between_solves_while_their_stamps_hold() -> None:
-    _, factors, values = _problem()
+def test_models_are_kept_between_solves_while_their_stamps_hold(device) -> None:
+    _, factors, values = _problem(device=device)
     models = EdgeModels()
     first = _lazy(factors, 1e-3, models)
     first.linearize(values.poses)

@@ -94,17 +94,20 @@ class ThresholdRelinearized:
                              "entry per edge")
         self.keys, self.stamps, self.models, self.build = list(keys), list(stamps), models, build
         self.tol, self.length = float(tol), float(length)
-        E = len(self.keys)
+        E, device = len(self.keys), i.device
         kept = [models.get(k, s) for k, s in zip(self.keys, self.stamps)]
-        self._known = torch.tensor([m is not None for m in kept], dtype=torch.bool)
+        self._known = torch.tensor([m is not None for m in kept], dtype=torch.bool,
+                                   device=device)
+
+        def stacked(name: str, empty: torch.Tensor) -> torch.Tensor:
+            rows = [(getattr(m, name) if m is not None else empty).to(device) for m in kept]
+            return torch.stack(rows) if rows else empty[None][:0].to(device)
+
         self._quadratic = QuadraticEdges(
-            i.to(torch.int64), j.to(torch.int64),
-            torch.stack([m.T0 if m else _IDENTITY for m in kept]) if E else _IDENTITY[:0],
-            torch.stack([m.H if m else torch.zeros(7, 7, dtype=torch.float64)
-                         for m in kept]) if E else torch.zeros(0, 7, 7, dtype=torch.float64),
-            torch.stack([m.g if m else torch.zeros(7, dtype=torch.float64)
-                         for m in kept]) if E else torch.zeros(0, 7, dtype=torch.float64),
-            torch.zeros(E, dtype=torch.float64))
+            i.to(torch.int64), j.to(torch.int64), stacked("T0", _IDENTITY),
+            stacked("H", torch.zeros(7, 7, dtype=torch.float64)),
+            stacked("g", torch.zeros(7, dtype=torch.float64)),
+            torch.zeros(E, dtype=torch.float64, device=device))
         # edge position -> (its dense batch, its row there); built when first needed
         self._dense: dict[int, tuple[RelativePoseFactors, int]] = {}
         self.linearized = 0  # edge linearizations over the matches, so far
