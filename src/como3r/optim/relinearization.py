@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 
 from como3r.errors import InputError
+from como3r.geometry.lie import sim3_identity
 from como3r.optim.factors import QuadraticEdges, RelativePoseFactors, endpoint_blocks
 from como3r.optim.linear import EdgeBlocks
 
@@ -61,10 +62,6 @@ class EdgeModels:
 
     def put(self, key: Hashable, model: _Model) -> None:
         self._models[key] = model
-
-    def clear(self) -> None:
-        """Forget every model (the pointmaps changed in ways the stamps do not tell)."""
-        self._models.clear()
 
 
 class ThresholdRelinearized:
@@ -104,7 +101,7 @@ class ThresholdRelinearized:
             return torch.stack(rows) if rows else empty[None][:0].to(device)
 
         self._quadratic = QuadraticEdges(
-            i.to(torch.int64), j.to(torch.int64), stacked("T0", _IDENTITY),
+            i.to(torch.int64), j.to(torch.int64), stacked("T0", sim3_identity(dtype=torch.float64)),
             stacked("H", torch.zeros(7, 7, dtype=torch.float64)),
             stacked("g", torch.zeros(7, dtype=torch.float64)),
             torch.zeros(E, dtype=torch.float64, device=device))
@@ -128,7 +125,8 @@ class ThresholdRelinearized:
         model or moved past the threshold (their models made again), the models' for the
         others."""
         model = self._quadratic
-        moved = model.motion(poses).abs()
+        delta = model.motion(poses)
+        moved = delta.abs()
         moved[:, :3] /= self.length
         stale = ~self._known | (moved > self.tol).any(1)
         for batch, rows, positions in self._batches(torch.nonzero(stale).flatten().tolist()):
@@ -141,8 +139,9 @@ class ThresholdRelinearized:
                                                      model.g[p].clone(), self.stamps[p]))
             self.linearized += len(positions)
         self._known[stale] = True
-        delta = model.motion(poses)
-        delta[stale] = 0.0  # just linearized there: the dense blocks exactly
+        # the others kept their T0, so their motion is still delta; the stale ones were
+        # just linearized at these poses: the dense blocks exactly
+        delta[stale] = 0.0
         g_rel = model.g + (model.H @ delta[..., None])[..., 0]
         return endpoint_blocks(model.i, model.j, model.H, g_rel, poses[model.i])
 
@@ -170,9 +169,6 @@ class ThresholdRelinearized:
             pairs.sort()
             result.append((batch, [r for r, _ in pairs], [p for _, p in pairs]))
         return result
-
-
-_IDENTITY = torch.tensor([0, 0, 0, 0, 0, 0, 1, 1], dtype=torch.float64)
 
 
 def _runs(rows: list[int], chunks: list[slice]) -> list[tuple[int, int]]:
