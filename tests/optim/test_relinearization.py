@@ -134,3 +134,10 @@ def test_a_bad_threshold_is_refused(tol: float, length: float) -> None:
     with pytest.raises(InputError, match="ThresholdRelinearized"):
         ThresholdRelinearized(factors.i, factors.j, [0] * 7, [0] * 7, EdgeModels(),
                               lambda p: [], tol, length)
+
+
+def test_edges_without_a_key_or_stamp_each_are_refused() -> None:
+    _, factors, _ = _problem()
+    with pytest.raises(InputError, match="one entry per edge"):
+        ThresholdRelinearized(factors.i, factors.j, [0] * 6, [0] * 7, EdgeModels(),
+                              lambda p: [], 1e-3, 1.0)
