@@ -11,15 +11,23 @@ thread count). Everything per match runs in float64, whatever the problem's dtyp
 
 Same equations as :meth:`~como3r.backend.depth_refinement._Refiner.normal_equations`;
 tests compare both.
+
+The loop runs in two parts per :data:`VECTOR_BLOCK` matches: the per-match sums in a loop
+that LLVM vectorises (the matches' values read row by row from :class:`MatchStreams`, no
+scatter and no running sum in it), then their scatter onto the log-scales and the cost, in
+match order. One loop doing both ran scalar: 30 ns a match against 8 on a 6-million-match
+map (``benchmarks/coordinator_stages.py``'s scene). The vectorised loop indexes the streams
+with unsigned integers: a signed index makes numba wrap negative indices around, which LLVM
+reads as a non-affine address and turns every load into a gather.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 import torch
-from numba import njit, prange
+from numba import njit, prange, uint64
 from torch import Tensor
 
 from como3r.jit import compiled
@@ -28,47 +36,76 @@ from como3r.jit import compiled
 #: partial Hessian and gradient over all log-scales)
 BLOCK = 1 << 16
 MAX_BLOCKS = 64
+#: matches whose per-match sums the vectorised loop writes before they are scattered (the
+#: five sums of a block stay in the first-level cache)
+VECTOR_BLOCK = 512
+
+# rows of MatchStreams.values
+_D0_A, _D0_B, _RAY_A, _RAY_B, _T_AB = 0, 1, 2, 5, 8
 
 
-@njit(cache=True, inline="always")
-def _huber_pieces(r: float, k: float) -> tuple:  # pragma: no cover (compiled)
-    """IRLS weight ``min(1, k / |r|)`` and ``rho(r)``: ``r^2`` inside ``k``, ``2 k |r| - k^2``
-    outside (the depth refinement's convention, twice C-Eq. 8's)."""
-    a = abs(r)
-    if a <= k:
-        return 1.0, a * a
-    return k / a, 2.0 * k * a - k * k
+@njit(cache=True, inline="always", error_model="numpy")
+def _vector_block(values, sqrt_w, first, count, scale_a, scale_b, k, out):  # pragma: no cover
+    """Per-match sums of matches ``first .. first + count - 1`` into ``out (5, count)``:
+    ``J_a^T W J_a``, ``J_a^T W r``, ``J_b^T W J_b``, ``J_b^T W r`` and ``sum_c rho(r_c)``,
+    with ``scale_a, scale_b (count,)`` the endpoints' ``exp(s)`` (1: no log-scale).
+
+    ``r = w (d_b R psi_b + t) - w d_a psi_a`` (C-Eq. 21), ``d = ||X_init|| exp(s)``
+    (C-Eq. 19); the Huber IRLS weight ``min(1, k / |r|)`` and ``rho = min(|r|, k) (2 |r| -
+    min(|r|, k))``, which is ``r^2`` inside ``k`` and ``2 k |r| - k^2`` outside (the depth
+    refinement's convention, twice C-Eq. 8's), written without branches."""
+    base = uint64(first)
+    for i in range(count):
+        m = base + uint64(i)
+        w = float(sqrt_w[m])
+        d_a = float(values[_D0_A, m]) * scale_a[i]
+        d_b = float(values[_D0_B, m]) * scale_b[i]
+        Haa = gaa = Hbb = gbb = cost = 0.0
+        for c in range(3):
+            ray_b = float(values[_RAY_B + c, m])
+            J_a = -w * d_a * float(values[_RAY_A + c, m])
+            J_b = w * d_b * ray_b
+            r = w * (d_b * ray_b + float(values[_T_AB + c, m])) + J_a
+            a = abs(r)
+            clipped = min(a, k)
+            weight = clipped / a if a > 0.0 else 1.0
+            cost += clipped * (2.0 * a - clipped)
+            Haa += weight * J_a * J_a
+            gaa += weight * J_a * r
+            Hbb += weight * J_b * J_b
+            gbb += weight * J_b * r
+        out[0, i] = Haa
+        out[1, i] = gaa
+        out[2, i] = Hbb
+        out[3, i] = gbb
+        out[4, i] = cost
 
 
-def _depth_sums(scale, d0_a, d0_b, param_a, param_b, ray_a, rays_b_in_a, t_ab, sqrt_w, k,
-                block, with_blocks, H_out, g_out, cost_out):  # pragma: no cover (compiled)
-    K = d0_a.shape[0]
+def _depth_sums(scale, values, sqrt_w, param_a, param_b, k, block, with_blocks, H_out, g_out,
+                cost_out):  # pragma: no cover (compiled)
+    K = values.shape[1]
     for task in prange(cost_out.shape[0]):
+        sums = np.empty((5, VECTOR_BLOCK))
+        scale_a, scale_b = np.empty(VECTOR_BLOCK), np.empty(VECTOR_BLOCK)
         cost = 0.0
-        for m in range(task * block, min((task + 1) * block, K)):
-            pa, pb, w = param_a[m], param_b[m], float(sqrt_w[m])
-            # C-Eq. 19: d = ||X_init|| exp(s_g); a pixel without a log-scale keeps ||X_init||
-            d_a = float(d0_a[m]) * (scale[pa] if pa >= 0 else 1.0)
-            d_b = float(d0_b[m]) * (scale[pb] if pb >= 0 else 1.0)
-            Haa = gaa = Hbb = gbb = 0.0
-            for c in range(3):
-                ray_b = float(rays_b_in_a[m, c])
-                J_a = -w * d_a * float(ray_a[m, c])
-                J_b = w * d_b * ray_b
-                r = w * (d_b * ray_b + float(t_ab[m, c])) + J_a
-                weight, rho = _huber_pieces(r, k)
-                cost += rho
-                Haa += weight * J_a * J_a
-                gaa += weight * J_a * r
-                Hbb += weight * J_b * J_b
-                gbb += weight * J_b * r
-            if with_blocks:
-                if pa >= 0:  # Jacobi decoupling: J_a^T W J_b is dropped (C-Eq. 24)
-                    H_out[task, pa] += Haa
-                    g_out[task, pa] += gaa
-                if pb >= 0:
-                    H_out[task, pb] += Hbb
-                    g_out[task, pb] += gbb
+        for first in range(task * block, min((task + 1) * block, K), VECTOR_BLOCK):
+            count = min(VECTOR_BLOCK, min((task + 1) * block, K) - first)
+            for i in range(count):
+                pa, pb = param_a[first + i], param_b[first + i]
+                # C-Eq. 19: a pixel without a log-scale keeps ||X_init||
+                scale_a[i] = scale[pa] if pa >= 0 else 1.0
+                scale_b[i] = scale[pb] if pb >= 0 else 1.0
+            _vector_block(values, sqrt_w, first, count, scale_a, scale_b, k, sums)
+            for i in range(count):
+                cost += sums[4, i]
+                if with_blocks:
+                    pa, pb = param_a[first + i], param_b[first + i]
+                    if pa >= 0:  # Jacobi decoupling: J_a^T W J_b is dropped (C-Eq. 24)
+                        H_out[task, pa] += sums[0, i]
+                        g_out[task, pa] += sums[1, i]
+                    if pb >= 0:
+                        H_out[task, pb] += sums[2, i]
+                        g_out[task, pb] += sums[3, i]
         cost_out[task] = cost
 
 
@@ -77,37 +114,44 @@ class MatchStreams:
     """A depth problem's matches laid out match by match, so the loop reads them in order
     and looks up only the ``M`` log-scales at random (the data term gathering each
     endpoint's range, log-scale index and ray from the ``P`` pixels at every Newton step took
-    2.4 times as long on a 15-keyframe, 6-million-match map at 512x384).
+    2.4 times as long on a 15-keyframe, 6-million-match map at 512x384), one row per
+    quantity so that the vectorised loop reads each with vector loads.
 
     Attributes:
-        d0_a, d0_b: ``(K,)`` ranges ``||X_init||`` of each match's pixels in keyframes i, j.
-        param_a, param_b: ``(K,)`` int64 their log-scales (-1: none, the pixel is fixed).
-        ray_a: ``(K, 3)`` unit ray of the pixel of i; rays_b_in_a: ``(K, 3)`` j's ray rotated
-            and scaled into frame i; t_ab: ``(K, 3)`` translation of ``T_ij``; sqrt_w:
-            ``(K,)`` whitening. Contiguous CPU tensors; the gathered ones are copies.
+        values: ``(11, K)`` in the problem's dtype, rows: ``d0_a, d0_b`` the ranges
+            ``||X_init||`` of each match's pixels in keyframes i, j; ``ray_a`` (3 rows) the
+            unit ray of the pixel of i; ``rays_b_in_a`` (3 rows) j's ray rotated and scaled
+            into frame i; ``t_ab`` (3 rows) the translation of ``T_ij``.
+        sqrt_w: ``(K,)`` the whitening ``sqrt(q) / (sigma_point d_i)``, apart: the rounds of
+            an alternation rescale it (:meth:`rewhitened`).
+        param_a, param_b: ``(K,)`` int64 the matches' log-scales (-1: none, the pixel is
+            fixed).
     """
 
-    d0_a: Tensor
-    d0_b: Tensor
+    values: Tensor
+    sqrt_w: Tensor
     param_a: Tensor
     param_b: Tensor
-    ray_a: Tensor
-    rays_b_in_a: Tensor
-    t_ab: Tensor
-    sqrt_w: Tensor
 
     @classmethod
     def of(cls, depth0: Tensor, rays: Tensor, match_a: Tensor, match_b: Tensor,
            param_a: Tensor, param_b: Tensor, rays_b_in_a: Tensor, t_ab: Tensor,
            sqrt_w: Tensor) -> MatchStreams:
         """Gather the per-pixel ``depth0 (P,)`` and ``rays (P, 3)`` at the matches' pixels
-        ``match_a, match_b (K,)``; the per-match arrays (``param_a = param[match_a]`` …)
-        are taken as they are (a copy only if not contiguous)."""
-        def flat(x: Tensor) -> Tensor:
-            return x.detach().contiguous()
+        ``match_a, match_b (K,)``; the per-match ``param_a = param[match_a]``, ``param_b``
+        ``(K,)``, ``rays_b_in_a, t_ab (K, 3)`` and ``sqrt_w (K,)`` are laid out as rows."""
+        values = torch.cat([depth0[match_a][None], depth0[match_b][None], rays[match_a].T,
+                            rays_b_in_a.T, t_ab.T])
+        return cls(*(x.detach().contiguous() for x in (values, sqrt_w, param_a, param_b)))
 
-        return cls(flat(depth0[match_a]), flat(depth0[match_b]), flat(param_a), flat(param_b),
-                   flat(rays[match_a]), flat(rays_b_in_a), flat(t_ab), flat(sqrt_w))
+    @property
+    def num_matches(self) -> int:
+        """K."""
+        return self.values.shape[1]
+
+    def rewhitened(self, factor: Tensor) -> MatchStreams:
+        """The same matches with their whitening multiplied by ``factor (K,)``."""
+        return replace(self, sqrt_w=self.sqrt_w * factor.to(self.sqrt_w))
 
 
 def depth_normal_equations(s: Tensor, streams: MatchStreams, huber_k: float,
@@ -123,7 +167,7 @@ def depth_normal_equations(s: Tensor, streams: MatchStreams, huber_k: float,
     Returns:
         ``(H (M,), g (M,))`` float64 and the robust cost ``sum rho(r)``.
     """
-    K, num_params = streams.d0_a.shape[0], s.numel()
+    K, num_params = streams.num_matches, s.numel()
     arrays = [getattr(streams, f.name).numpy() for f in fields(streams)]  # no copies
     blocks = max(1, min(MAX_BLOCKS, -(-K // BLOCK)))
     block = max(1, -(-K // blocks))
@@ -131,7 +175,7 @@ def depth_normal_equations(s: Tensor, streams: MatchStreams, huber_k: float,
     H_out, g_out = np.zeros((blocks, width)), np.zeros((blocks, width))
     cost_out = np.zeros(blocks)
     scale = np.exp(s.detach().double().numpy())
-    compiled(_depth_sums)(scale, *arrays, float(huber_k), block, with_blocks, H_out, g_out,
-                          cost_out)
+    compiled(_depth_sums, error_model="numpy")(scale, *arrays, float(huber_k), block,
+                                               with_blocks, H_out, g_out, cost_out)
     return (torch.from_numpy(H_out.sum(0)), torch.from_numpy(g_out.sum(0)),
             float(cost_out.sum()))

@@ -255,6 +255,8 @@ class ChunkProblems:
         if bool((factor == 1.0).all()):
             return data
         per_match = torch.repeat_interleave(factor.to(data.sqrt_w), spans[:, 1] - spans[:, 0])
+        if isinstance(data, MatchStreams):
+            return data.rewhitened(per_match)
         return replace(data, sqrt_w=data.sqrt_w * per_match)
 
     def close(self) -> None:
@@ -390,8 +392,7 @@ def refine_in_chunks(
             if in_memory or (num_params and (config.inner_iters > 0 or problems is not None)):
                 step_problems.add(n, data, problem.edge_spans, kept=in_memory)
         if isinstance(data, MatchStreams):
-            terms = (partial(_stream_terms, streams=data, huber_k=huber_k),
-                     data.sqrt_w.numel())
+            terms = (partial(_stream_terms, streams=data, huber_k=huber_k), data.num_matches)
         else:
             terms = (_Refiner(data, config, huber_k).data_terms, data.match_a.numel())
         if n in step_problems.kept:
