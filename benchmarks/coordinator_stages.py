@@ -3,8 +3,8 @@
 Runs ``como3r run --single-process`` (the pipeline of :mod:`como3r.runtime.pipeline`, default
 configuration, simulated prior) on a synthetic multi-agent scene (``como3r synth``) and
 prints the coordinator's ``stage_seconds`` from ``metrics.json`` (retrieval, verification,
-gauge, focal, global BA, the terminal cleanup and refinement; the prior's decodes apart) per
-keyframe, and over one full-size MASt3R decode at the run's resolution
+gauge, focal, global BA, the terminal cleanup and refinement, the session store's writes;
+the prior's decodes apart) per keyframe, and over one full-size MASt3R decode at the run's resolution
 (``slam_vs_prior.mast3r_decode_seconds``).
 Agents and coordinator take turns in one process, so with one thread on an idle machine the
 coordinator's wall seconds are its CPU seconds; the dashboard (``report.py``) measures the

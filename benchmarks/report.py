@@ -17,8 +17,10 @@ Runs, on this machine and in one process (ratios, not absolute seconds, are the 
    with ``--frames`` processed frames per agent on the simulated prior: the SLAM system's
    own rate on this CPU (a MASt3R run adds its encodes and decodes, table 1); and the
    coordinator's SLAM work per keyframe (every stage of its ``stage_seconds`` but the
-   prior's: retrieval, verification, gauge, global BA, the terminal refinement) over one
-   decode. Those are wall seconds of the coordinator process while the agents' processes
+   prior's: retrieval, verification, gauge, global BA, the terminal refinement, the session
+   store's writes) over one decode. The simulated prior's per-view state that the store keeps
+   is about 110 bytes a pixel (13 MB a keyframe compressed at 512x384), MASt3R's encoder
+   tokens about 3 MB, so the ``journal`` stage here is larger than in a MASt3R run. Those are wall seconds of the coordinator process while the agents' processes
    share the same cores: an upper bound of its own cost.
 4. **Global BA scaling** (:mod:`ba_scaling`): seconds per Gauss-Newton iteration (linearise +
    the default backend's solve) on synthetic keyframe graphs and the log-log slope against the

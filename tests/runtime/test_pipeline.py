@@ -134,3 +134,10 @@ def test_metrics_give_each_agent_its_time_per_stage(meeting) -> None:
                 "keyframe", "local_solve", "other"} <= set(stages)
         assert all(v >= 0.0 for v in stages.values())
         assert sum(stages.values()) == pytest.approx(agent["seconds"], rel=0.05)
+
+
+def test_coordinator_time_includes_its_session_store_writes(meeting) -> None:
+    _, _, result, _ = meeting
+    stages = result["metrics"]["coordinator"]["stage_seconds"]
+    assert {"verification", "global_ba", "cleanup", "journal"} <= set(stages)
+    assert stages["journal"] > 0.0

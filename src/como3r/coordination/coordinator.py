@@ -482,9 +482,12 @@ class Coordinator:
         return self._new_edges, sorted(self._dirty_roots)
 
     def _record(self, updates: list[PoseUpdate], finished: bool = False) -> list[PoseUpdate]:
-        """Hand the state after one message's effect to the journal; returns ``updates``."""
+        """Hand the state after one message's effect to the journal (its time is the stage
+        ``journal``: the session store's compression and writes); returns ``updates``."""
         if self.journal is not None:
+            start = time.perf_counter()
             self.journal.record(self, updates, finished)
+            self.stats.add_time("journal", time.perf_counter() - start)
         return updates
 
     def _adopt(self, agent: int, T_WC: Tensor | None) -> None:
