@@ -36,7 +36,7 @@ from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.io.tum import read_tum
 from como3r.prior.mast3r.prior import MASt3REncoding
-from como3r.runtime.store import FORMAT_VERSION, STORE_NAME, SessionStore
+from como3r.runtime.store import FORMAT_VERSION, PAGE_SIZE, STORE_NAME, SessionStore
 from como3r.runtime.store_blobs import pack_arrays, unpack_arrays
 from como3r.runtime.store_reader import Session, read_session
 
@@ -234,6 +234,7 @@ def test_the_store_holds_the_state_after_every_transaction(tmp_path) -> None:
             "SELECT C_hat FROM pointmaps UNION ALL SELECT X_init FROM pointmaps UNION ALL "
             "SELECT C_init FROM pointmaps)").fetchone()[0]
         assert db.execute("SELECT COUNT(*) FROM blobs").fetchone()[0] == referenced
+        assert db.execute("PRAGMA page_size").fetchone()[0] == PAGE_SIZE  # set before WAL
 
 
 def test_a_writer_killed_at_random_moments_leaves_a_consistent_store(tmp_path) -> None:
