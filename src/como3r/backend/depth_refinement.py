@@ -623,11 +623,8 @@ def written_back(X_hat: Tensor, depths: Tensor, rays: Tensor, param: Tensor) -> 
     """A keyframe's refined pointmap (C-Eq. 19): ``X_hat (H, W, 3)`` with every pixel that
     has a free log-scale (``param (H W,) >= 0``) moved to ``depths (H W,)`` times its unit
     ray ``rays (H W, 3)``; the other pixels keep their ``X_hat``. A new tensor."""
-    free = param >= 0
-    points = depths[:, None] * rays
-    X_new = X_hat.reshape(-1, 3).clone()
-    X_new[free] = points[free].to(X_new.dtype)
-    return X_new.reshape(X_hat.shape)
+    points = (depths[:, None] * rays).to(X_hat.dtype)
+    return torch.where((param >= 0)[:, None], points, X_hat.reshape(-1, 3)).reshape(X_hat.shape)
 
 
 def keyframe_labels(keyframes: Sequence[SegmentableKeyframe], config: DepthRefinementConfig
