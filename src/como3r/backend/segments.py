@@ -106,13 +106,15 @@ def geometry_features(X: Tensor) -> np.ndarray:
 
 
 def _drop_and_relabel(labels: np.ndarray, valid: np.ndarray, min_pixels: int) -> np.ndarray:
-    """Invalid pixels -> -1, segments below ``min_pixels`` valid pixels -> -1, relabel 0..M-1."""
+    """Invalid pixels -> -1, segments below ``min_pixels`` valid pixels -> -1, relabel 0..M-1
+    in the order of the labels (SLIC's are ``0 .. n - 1``: counted with a bincount, not a
+    sort)."""
     labels = np.where(valid, labels, -1)
-    ids, inverse, counts = np.unique(labels, return_inverse=True, return_counts=True)
-    keep = (ids >= 0) & (counts >= min_pixels)
-    new_ids = np.full(ids.shape, -1, dtype=np.int64)
-    new_ids[keep] = np.arange(int(keep.sum()))
-    return new_ids[inverse.reshape(labels.shape)]
+    counts = np.bincount(labels[labels >= 0])
+    keep = counts >= min_pixels
+    new_ids = np.full(counts.shape[0] + 1, -1, dtype=np.int64)  # the last entry: label -1
+    new_ids[:-1][keep] = np.arange(int(keep.sum()))
+    return new_ids[labels]
 
 
 def segment_keyframe(X: Tensor, C: Tensor, config: DepthRefinementConfig) -> Tensor:
