@@ -94,6 +94,10 @@ class TrackingConfig:
     huber_k: float = 1.345
     max_iters: int = 50
     rel_cost_tol: float = 1e-3
+    # ||tau||_2 that ends the solve, its translation in units of the keyframe's median range
+    # (geometry.units: C-Tab. 3's 1e-3 at the 1 m reference depth). Absolute, it stopped 14
+    # of 25 solves at 1/100 of a room's scale and none at 100 times (3 of 24 at 1); relative
+    # 14-16 at all three, ATE within 0.0002 of the path length of the absolute stop's
     step_tol: float = 1e-3
     lambda_init: float = 1e-6
     lambda_max: float = 1e3

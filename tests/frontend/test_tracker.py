@@ -259,3 +259,32 @@ def test_the_agreement_angle_follows_the_inputs_own_pixels(renderer_and_pose) ->
     agree = [inlier_fraction(off, result.X_ff, keyframe.X_hat, result.matches, config.tracking,
                              a) for a in (angle, 1.6 * angle)]
     assert agree[0] < config.tracking.min_inlier_fraction <= agree[1], agree
+
+
+class _UniformlyScaledPrior(_ScaledPrior):
+    """Every pointmap ``scale`` times larger: the same scene in other units."""
+
+    def decode(self, enc_i, enc_j) -> PairPrediction:
+        pred = self.inner.decode(enc_i, enc_j)
+        return replace(pred, X_ii=pred.X_ii * self.scale, X_ji=pred.X_ji * self.scale)
+
+
+def test_the_tracker_stops_alike_at_every_scene_scale(renderer_and_pose) -> None:
+    """tracking.step_tol is a fraction of the keyframe's depth: the same frame in a scene
+    1000 times smaller or larger takes as many iterations and stops for the same reason (an
+    absolute tolerance stopped the small scene's solve at its first step)."""
+    renderer, R_WC, t_WC, K = renderer_and_pose
+    view_k = _view(renderer, R_WC, t_WC, K, index=0)
+    median_depth = float(gt(view_k).depth[gt(view_k).depth > 0].median())
+    R_rel = Rotation.from_euler("y", 4.0, degrees=True).as_matrix()
+    view_f = _view(renderer, R_WC @ R_rel, t_WC + R_WC @ np.array([0.02, 0.0, 0.05]) * median_depth,
+                   K, index=1)
+    stops = []
+    for scale in (1e-3, 1.0, 1e3):
+        prior = _UniformlyScaledPrior(SimulatedPrior(SimulatedPriorConfig(), TRUTH), scale)
+        enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
+        result = FrameTracker(prior, Config()).track(enc_f, _keyframe(prior, enc_k),
+                                                     sim3_identity(dtype=torch.float32))
+        assert result.ok, result.reason
+        stops.append((result.solve.iterations, result.solve.reason))
+    assert stops[0] == stops[1] == stops[2] and stops[1][0] > 1, stops

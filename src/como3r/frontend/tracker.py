@@ -29,11 +29,16 @@ from como3r.frontend.pairs import DirectedMatches, directed_matches, gather_poin
 from como3r.frontend.timing import StageTimer
 from como3r.geometry.camera import lock_to_rays
 from como3r.geometry.lie import sim3_act, sim3_identity
+from como3r.geometry.units import median_range
 from como3r.optim.optimizer import SolveReport, levenberg_marquardt_irls
 from como3r.optim.values import PoseValues
 from como3r.prior.base import Encoding, Prior
 
 logger = logging.getLogger(__name__)
+
+#: the keyframe pixels (every n-th row and column) whose median range scales the tracker's
+#: step tolerance
+_RANGE_STRIDE = 4
 
 #: solver exits that mean no usable pose was found
 _FAILED_REASONS = frozenset({"solve_failed", "non_finite_cost", "diverged"})
@@ -162,8 +167,11 @@ class FrameTracker:
         identity = sim3_identity(dtype=T_kf_init.dtype, device=T_kf_init.device)
         values = PoseValues(torch.stack([identity, T_kf_init]),
                             torch.tensor([True, False], device=T_kf_init.device))
+        # tracking.step_tol is a fraction of the scene depth (geometry.units): the keyframe's
+        # median range, read off every 4th pixel (1.7 ms at 512x384 instead of 5)
+        depth = float(median_range(keyframe.X_hat[::_RANGE_STRIDE, ::_RANGE_STRIDE]))
         solved, report = levenberg_marquardt_irls(factors, values, self.config.tracking,
-                                                  backend="dense")
+                                                  backend="dense", length_scale=depth)
         return solved.poses[1], report
 
     def _warm_start(self, keyframe: Keyframe) -> Tensor | None:

@@ -186,6 +186,7 @@ def levenberg_marquardt_irls(
     tikhonov_floor: float | None = None,
     retries: int = TRACKER_TIKHONOV_RETRIES,
     backend: Backend = "auto",
+    length_scale: float = 1.0,
 ) -> tuple[PoseValues, SolveReport]:
     """Levenberg-Marquardt with Huber IRLS and cost-based acceptance (the tracker, C-Eq. 2).
 
@@ -197,11 +198,16 @@ def levenberg_marquardt_irls(
             override the config (C-Tab. 3: 50 / 1e-3 / 1e-3 / 1e-6 / 1e3 / 1e-9).
         retries: Tikhonov attempts per linear solve, starting at ``tikhonov_floor``.
         backend: linear-solver backend.
+        length_scale: the scene's length in pose units (the tracker: the keyframe's median
+            range), as for :func:`gauss_newton_irls`: ``step_tol`` is then a fraction of it.
 
     Returns:
         The refined poses (the last accepted iterate) and a :class:`SolveReport` whose
         ``cost_history`` holds the robust cost of every accepted iterate.
     """
+    if not length_scale > 0:
+        raise InputError(f"levenberg_marquardt_irls: length_scale must be > 0, got "
+                         f"{length_scale}")
     config = TrackingConfig() if config is None else config
     max_iters = _pick(max_iters, config.max_iters)
     rel_cost_tol = _pick(rel_cost_tol, config.rel_cost_tol)
@@ -235,7 +241,7 @@ def levenberg_marquardt_irls(
             backend=backend,
         )
         report.tikhonov_retries += solution.escalations
-        step_norm = float(torch.linalg.vector_norm(solution.step))
+        step_norm = _relative_step_norm(solution.step, length_scale)
         accepted, new_cost = False, math.inf
         if solution.status is SolveStatus.FAILED:
             report.failed_solves += 1
