@@ -10,6 +10,7 @@ import torch
 
 from como3r.backend.segments import (
     geometry_features,
+    labels_in_order,
     parameter_labels,
     pixel_labels,
     segment_keyframe,
@@ -128,3 +129,25 @@ def test_bad_shapes_raise_input_error():
         segment_keyframe(torch.zeros(4, 4), torch.ones(4, 4), DepthRefinementConfig())
     with pytest.raises(InputError, match="confidence"):
         segment_keyframe(torch.zeros(4, 4, 3), torch.ones(4, 5), DepthRefinementConfig())
+
+
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_label_maps_come_in_order_from_any_number_of_threads(workers):
+    """Five keyframes segmented on ``workers`` threads: each its own label map, in the order
+    given, and never more than ``workers`` pointmaps read ahead of the labels handed out."""
+    config = DepthRefinementConfig()
+    keyframes = [two_planes(torch.float32, noise=0.002, seed=seed) for seed in range(5)]
+    C = torch.full((H, W), 3.0)
+    read = []
+
+    def pointmaps():
+        for key, X in zip("abcde", keyframes):
+            read.append(key)
+            yield key, X, C
+
+    handed_out = []
+    for key, labels in labels_in_order(pointmaps(), config, workers):
+        assert len(read) - len(handed_out) <= workers
+        handed_out.append(key)
+        assert torch.equal(labels, segment_keyframe(keyframes["abcde".index(key)], C, config))
+    assert handed_out == list("abcde")

@@ -56,7 +56,7 @@ import torch
 from torch import Tensor
 
 from como3r.backend import cpu_kernels
-from como3r.backend.segments import parameter_labels
+from como3r.backend.segments import labels_in_order
 from como3r.config import DepthRefinementConfig
 from como3r.errors import ConfigError, InputError
 from como3r.frontend.graph import Edge
@@ -631,7 +631,8 @@ def keyframe_labels(keyframes: Sequence[SegmentableKeyframe], config: DepthRefin
                     ) -> list[Tensor]:
     """Label maps of ``config.variant`` for the keyframes' current ``X_hat`` (confidence:
     ``mean_confidence()``, comparable to one prediction's ``C``)."""
-    return [parameter_labels(kf.X_hat, kf.mean_confidence(), config) for kf in keyframes]
+    pointmaps = ((k, kf.X_hat, kf.mean_confidence()) for k, kf in enumerate(keyframes))
+    return [labels for _, labels in labels_in_order(pointmaps, config)]
 
 
 def refine_keyframes(

@@ -30,7 +30,7 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Iterator, Mapping, Sequence
 
 import torch
 from torch import Tensor
@@ -43,7 +43,7 @@ from como3r.backend.paged_refinement import (
     chunk_edges,
     refine_in_chunks,
 )
-from como3r.backend.segments import parameter_labels
+from como3r.backend.segments import labels_in_order
 from como3r.config import DepthRefinementConfig, GlobalBAConfig, TrackingConfig
 from como3r.errors import InputError
 from como3r.frontend.graph import Edge, build_factors
@@ -391,12 +391,15 @@ class GlobalGraph:
                 parking: KeyframeParking | None = None) -> LabelMaps:
         """Label maps (C-Sec. A.6) of the keyframes reachable from ``anchor``, by global
         index; a paged-out keyframe's kept in ``parking`` (None: all in memory)."""
+        def pointmaps() -> Iterator[tuple[int, Tensor, Tensor]]:
+            for g in self.connected(agents, anchor):
+                kf = self.keyframes[g]
+                X_hat, C_hat = read_fields(kf, "X_hat", "C_hat")
+                yield g, X_hat, C_hat / kf.fused_frames
+
         labels = LabelMaps(parking)
-        for g in self.connected(agents, anchor):
-            kf = self.keyframes[g]
-            X_hat, C_hat = read_fields(kf, "X_hat", "C_hat")
-            labels.keep(g, parameter_labels(X_hat, C_hat / kf.fused_frames, config),
-                        parked=paged_out(kf))
+        for g, label_map in labels_in_order(pointmaps(), config):  # on this process's threads
+            labels.keep(g, label_map, parked=paged_out(self.keyframes[g]))
         return labels
 
     def refine_depths(self, agents: Sequence[int], anchor: int, config: DepthRefinementConfig,
