@@ -9,12 +9,8 @@ import pytest
 import torch
 
 from como3r.backend import cpu_kernels
-from como3r.backend.depth_refinement import (
-    _build_problem,
-    _Refiner,
-    refine_depths,
-    refine_keyframes,
-)
+from como3r.backend.depth_problem import build_problem, chunk_streams, match_streams
+from como3r.backend.depth_refinement import _Refiner, refine_depths, refine_keyframes
 from como3r.backend.segments import parameter_labels, segment_keyframe
 from como3r.config import DepthRefinementConfig
 from como3r.errors import ConfigError, InputError
@@ -164,7 +160,7 @@ def test_per_pixel_is_noisier_than_per_segment_under_noise():
 def test_gradient_is_exact_and_hessian_is_positive():
     scene = make_scene(torch.float64)
     config = CONFIG
-    problem, _, _ = _build_problem(scene.keyframes, scene.poses, scene.edges, {0: 0, 1: 1}.get,
+    problem, _, _ = build_problem(scene.keyframes, scene.poses, scene.edges, {0: 0, 1: 1}.get,
                                    scene.labels, config, {0})
     refiner = _Refiner(problem, config, huber_k=1.345)
     generator = torch.Generator().manual_seed(0)
@@ -225,23 +221,23 @@ def test_boundary_term_pairs_and_log_depth_ratios():
     X[..., 2] = torch.tensor([[1.0, 1.0, 2.0, 2.0], [1.0, 1.0, 2.0, 2.0]])
     keyframe = FakeKeyframe(X, X.clone(), torch.full((2, 4), 3.0))
     labels = torch.tensor([[0, 0, 1, 1], [0, 0, 1, 1]])
-    problem, _, _ = _build_problem([keyframe], torch.tensor([[0.0] * 6 + [1.0, 1.0]]), [],
+    problem, _, _ = build_problem([keyframe], torch.tensor([[0.0] * 6 + [1.0, 1.0]]), [],
                                    [0].__getitem__, [labels], CONFIG, set())
     assert problem.bnd_a.tolist() == [0] and problem.bnd_b.tolist() == [1]
     # default: the residual s_a - s_b keeps the prior's depth jump between the segments
     assert problem.delta.tolist() == [0.0]
     printed = dataclasses.replace(CONFIG, boundary_residual="log_depth")
-    problem, _, _ = _build_problem([keyframe], torch.tensor([[0.0] * 6 + [1.0, 1.0]]), [],
+    problem, _, _ = build_problem([keyframe], torch.tensor([[0.0] * 6 + [1.0, 1.0]]), [],
                                    [0].__getitem__, [labels], printed, set())
     # C-Eq. 22 as printed: Delta_ab = mean over the boundary of log d_a - log d_b
     assert problem.delta.tolist() == pytest.approx([-float(torch.log(torch.tensor(2.0)))])
     pixel_config = dataclasses.replace(CONFIG, variant="pixel_laplacian")
     pixels = torch.arange(8).reshape(2, 4)
-    problem, _, _ = _build_problem([keyframe], torch.tensor([[0.0] * 6 + [1.0, 1.0]]), [],
+    problem, _, _ = build_problem([keyframe], torch.tensor([[0.0] * 6 + [1.0, 1.0]]), [],
                                    [0].__getitem__, [pixels], pixel_config, set())
     assert problem.bnd_a.numel() == 2 * 3 + 4  # every 4-neighbour pair once
     no_boundary = dataclasses.replace(CONFIG, variant="pixel")
-    problem, _, _ = _build_problem([keyframe], torch.tensor([[0.0] * 6 + [1.0, 1.0]]), [],
+    problem, _, _ = build_problem([keyframe], torch.tensor([[0.0] * 6 + [1.0, 1.0]]), [],
                                    [0].__getitem__, [pixels], no_boundary, set())
     assert problem.bnd_a.numel() == 0
 
@@ -252,7 +248,7 @@ def test_compiled_normal_equations_equal_the_pytorch_ones(dtype, monkeypatch):
     Hessian, gradient and energy, with one thread or two (the matches cut into blocks)."""
     monkeypatch.setattr(cpu_kernels, "BLOCK", 256)
     scene = make_scene(dtype)
-    problem, _, _ = _build_problem(scene.keyframes, scene.poses, scene.edges, {0: 0, 1: 1}.get,
+    problem, _, _ = build_problem(scene.keyframes, scene.poses, scene.edges, {0: 0, 1: 1}.get,
                                    scene.labels, CONFIG, {0})
     refiner = _Refiner(problem, CONFIG, huber_k=1.345)
     s = 0.05 * torch.randn(problem.s_start.shape, generator=torch.Generator().manual_seed(3),
@@ -275,3 +271,35 @@ def test_compiled_normal_equations_equal_the_pytorch_ones(dtype, monkeypatch):
         assert final_c == pytest.approx(float(refiner.energy(s)), rel=tolerance)
     assert torch.equal(compiled[0][0], compiled[1][0]) and compiled[0][2] == compiled[1][2]
     assert problem.match_a.numel() > 4 * 256 and (H > CONFIG.lambda_prior).any()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_chunk_streams_are_the_flattened_problems_streams(dtype):
+    """The compiled packing writes the matches the flattened problem keeps (valid, finite
+    q > 0, both pixels usable, one free), in its order, with its values: the data terms of
+    both are the same."""
+    scene = make_scene(dtype)
+    edges = list(scene.edges)
+    m = edges[0].matches  # a non-finite, a zero and a negative confidence, and an invalid match
+    q = m.q.clone()
+    valid_pixels = torch.nonzero(m.valid).flatten()
+    q[valid_pixels[:3]] = torch.tensor([float("nan"), 0.0, -1.0])
+    edges[0] = Edge(0, 1, DirectedMatches(m.idx, m.valid, q))
+    args = (scene.keyframes, scene.poses, edges, {0: 0, 1: 1}.get, scene.labels, CONFIG, {0})
+    problem, _, _ = build_problem(*args, data_only=True, ranges=[2.0, 3.0])
+    reference = match_streams(problem)
+    streams, spans = chunk_streams(*args, ranges=[2.0, 3.0])
+    assert torch.equal(spans, problem.edge_spans) and streams.num_matches > 1000
+    assert torch.equal(streams.param_a, reference.param_a)
+    assert torch.equal(streams.param_b, reference.param_b)
+    tolerance = 1e-6 if dtype == torch.float32 else 1e-14
+    torch.testing.assert_close(streams.values, reference.values, rtol=tolerance, atol=tolerance)
+    torch.testing.assert_close(streams.sqrt_w, reference.sqrt_w, rtol=tolerance, atol=0)
+
+    m = edges[1].matches
+    outside = m.idx.clone()
+    outside[torch.nonzero(m.valid).flatten()[0]] = m.idx.numel()
+    edges[1] = Edge(1, 0, DirectedMatches(outside, m.valid, m.q))
+    with pytest.raises(InputError, match="outside"):
+        chunk_streams(scene.keyframes, scene.poses, edges, {0: 0, 1: 1}.get, scene.labels,
+                      CONFIG, {0})

@@ -10,7 +10,8 @@ import torch
 
 from como3r.backend import paged_refinement
 from como3r.backend.cpu_kernels import MatchStreams
-from como3r.backend.depth_refinement import _build_problem, match_streams, refine_depths
+from como3r.backend.depth_problem import build_problem, match_streams
+from como3r.backend.depth_refinement import refine_depths
 from como3r.backend.paged_refinement import (
     ChunkProblems,
     LabelMaps,
@@ -185,7 +186,7 @@ def test_a_spilled_problem_reads_back_bit_for_bit(tmp_path) -> None:
     int64; floats keep their dtype; a CPU chunk's match streams come back as such; the files
     are deleted with the spill."""
     keyframes, poses, edges, labels = chain(torch.float64)
-    problem, _, _ = _build_problem(keyframes, poses, edges, lambda k: k, labels, CONFIG, {0},
+    problem, _, _ = build_problem(keyframes, poses, edges, lambda k: k, labels, CONFIG, {0},
                                    data_only=True)
     spill = ProblemSpill(tmp_path)
     spill.save(0, problem)

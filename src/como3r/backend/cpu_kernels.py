@@ -41,7 +41,7 @@ MAX_BLOCKS = 64
 VECTOR_BLOCK = 512
 
 # rows of MatchStreams.values
-_D0_A, _D0_B, _RAY_A, _RAY_B, _T_AB = 0, 1, 2, 5, 8
+_D0_A, _D0_B, _RAY_A, _RAY_B, _T_AB, _ROWS = 0, 1, 2, 5, 8, 11
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -149,6 +149,12 @@ class MatchStreams:
         """K."""
         return self.values.shape[1]
 
+    @classmethod
+    def empty(cls, K: int, dtype: torch.dtype) -> MatchStreams:
+        """Streams of ``K`` matches to be filled (:func:`pack_kept`), values in ``dtype``."""
+        return cls(torch.empty(_ROWS, K, dtype=dtype), torch.empty(K, dtype=dtype),
+                   torch.empty(K, dtype=torch.int64), torch.empty(K, dtype=torch.int64))
+
     def rewhitened(self, factor: Tensor) -> MatchStreams:
         """The same matches with their whitening multiplied by ``factor (K,)``."""
         return replace(self, sqrt_w=self.sqrt_w * factor.to(self.sqrt_w))
@@ -179,3 +185,79 @@ def depth_normal_equations(s: Tensor, streams: MatchStreams, huber_k: float,
                                                with_blocks, H_out, g_out, cost_out)
     return (torch.from_numpy(H_out.sum(0)), torch.from_numpy(g_out.sum(0)),
             float(cost_out.sum()))
+
+
+@njit(cache=True, boundscheck=False, inline="always")
+def _usable(valid, q, n) -> bool:  # pragma: no cover (compiled)
+    """Match ``n`` is valid with a finite confidence ``q > 0``."""
+    return valid[n] and q[n] > 0.0 and np.isfinite(q[n])
+
+
+@njit(cache=True, inline="always")
+def _enters(pa, pb) -> bool:  # pragma: no cover (compiled)
+    """A match whose pixels have log-scales ``pa, pb`` enters the depth problem: both
+    pixels usable (not -1) and at least one free (>= 0; -2 is valid and fixed)."""
+    return pa != -1 and pb != -1 and (pa >= 0 or pb >= 0)
+
+
+@njit(cache=True, boundscheck=False)
+def _count_kept(idx, valid, q, param, offset_i, offset_j, pixels_i):  # pragma: no cover
+    count = 0
+    for n in range(idx.shape[0]):
+        if _usable(valid, q, n):
+            m = idx[n]
+            if m < 0 or m >= pixels_i:
+                return -1
+            count += _enters(param[offset_i + m], param[offset_j + n])
+    return count
+
+
+@njit(cache=True, boundscheck=False)
+def _pack_kept(idx, valid, q, depth0, rays, param, offset_i, offset_j, R, scale, t,
+               whitening, first, values, sqrt_w, param_a, param_b):  # pragma: no cover
+    k = first
+    for n in range(idx.shape[0]):
+        if not _usable(valid, q, n):
+            continue
+        a, b = offset_i + idx[n], offset_j + n
+        pa, pb = param[a], param[b]
+        if not _enters(pa, pb):
+            continue
+        values[_D0_A, k] = depth0[a]
+        values[_D0_B, k] = depth0[b]
+        for c in range(3):
+            values[_RAY_A + c, k] = rays[a, c]
+            # s_ij R_ij psi_j: j's ray in frame i (C-Sec. A.6)
+            values[_RAY_B + c, k] = scale * (rays[b, 0] * R[c, 0] + rays[b, 1] * R[c, 1]
+                                             + rays[b, 2] * R[c, 2])  # R: float64
+            values[_T_AB + c, k] = t[c]
+        sqrt_w[k] = np.sqrt(np.float64(q[n])) * whitening  # float(): float32 stays float32
+        param_a[k], param_b[k] = max(pa, -1), max(pb, -1)  # fixed: no log-scale
+        k += 1
+
+
+def _match_arrays(matches) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return (matches.idx.contiguous().numpy(), matches.valid.contiguous().numpy(),
+            matches.q.contiguous().numpy())
+
+
+def count_kept(matches, param: Tensor, offset_i: int, offset_j: int, pixels_i: int) -> int:
+    """How many of an edge's matches (``idx, valid, q (P_j,)``) enter the depth problem
+    (valid, finite ``q > 0``, both pixels usable in ``param (P,)`` (-1: not, -2: fixed) and
+    one free), keyframes i and j starting at pixels ``offset_i``, ``offset_j``; -1 if a
+    valid match names a pixel outside keyframe i's ``pixels_i``."""
+    return int(_count_kept(*_match_arrays(matches), param.numpy(), offset_i, offset_j,
+                           pixels_i))
+
+
+def pack_kept(matches, depth0: Tensor, rays: Tensor, param: Tensor, offset_i: int,
+              offset_j: int, R: Tensor, T_ij: Tensor, whitening: float, first: int,
+              streams: MatchStreams) -> None:
+    """Write the matches :func:`count_kept` counts, in pixel order, into ``streams`` from
+    match ``first`` on: the ranges ``depth0 (P,)`` and rays ``rays (P, 3)`` of both pixels
+    (j's rotated by ``R (3, 3)`` and scaled by ``T_ij[7]``), ``T_ij[:3]``, ``sqrt(q)`` times
+    ``whitening`` (``1 / (sigma_point d_i)``) and both log-scales."""
+    _pack_kept(*_match_arrays(matches), depth0.numpy(), rays.numpy(), param.numpy(),
+               offset_i, offset_j, R.double().numpy(), float(T_ij[7]),
+               T_ij[:3].double().numpy(), float(whitening), first, streams.values.numpy(),
+               streams.sqrt_w.numpy(), streams.param_a.numpy(), streams.param_b.numpy())

@@ -56,18 +56,22 @@ import torch
 from torch import Tensor
 
 from como3r.backend import cpu_kernels
+from como3r.backend.depth_problem import (
+    Problem,
+    RefinableKeyframe,
+    build_problem,
+    match_streams,
+    mean_log_ratio,
+)
 from como3r.backend.segments import labels_in_order
 from como3r.config import DepthRefinementConfig
 from como3r.errors import ConfigError, InputError
 from como3r.frontend.graph import Edge
-from como3r.geometry.lie import quat_to_matrix, sim3_compose, sim3_inverse
-from como3r.geometry.residuals import huber_weight, psi
-from como3r.geometry.units import median_range
+from como3r.geometry.residuals import huber_weight
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "RefinableKeyframe",
     "DepthRefinementReport",
     "refine_depths",
     "refine_keyframes",
@@ -78,21 +82,6 @@ HUBER_K = 1.345
 """Huber breakpoint of the data term (C-Tab. 3, the same kernel as the pose solve)."""
 
 VARIANTS = ("segment", "pixel", "pixel_laplacian")
-
-# Ranges below this have no usable ray; the pixel is left out of the problem.
-_MIN_RANGE = 1e-6
-
-
-class RefinableKeyframe(Protocol):
-    """What the refinement needs of a keyframe (:class:`~como3r.frontend.keyframes.Keyframe`).
-
-    Attributes:
-        X_hat: ``(H, W, 3)`` current canonical pointmap in the keyframe's camera frame.
-        X_init: ``(H, W, 3)`` frozen snapshot of C-Eq. 19.
-    """
-
-    X_hat: Tensor
-    X_init: Tensor
 
 
 class SegmentableKeyframe(Protocol):
@@ -148,79 +137,10 @@ class DepthRefinementReport:
         return self.cost_history[-1] if self.cost_history else 0.0
 
 
-@dataclass
-class _Problem:
-    """The refinement problem on flat pixel arrays over all keyframes.
-
-    ``P`` pixels (every keyframe's ``H W`` pixels, concatenated), ``M`` free log-scales,
-    ``K`` matches, ``B`` boundary pairs.
-    """
-
-    depth0: Tensor  # (P,) range the log-scale multiplies: ||X_init|| (free) or ||X_hat|| (pinned)
-    rays: Tensor  # (P, 3) unit rays psi(X_init) (free) or psi(X_hat) (pinned)
-    param: Tensor  # (P,) int64 free log-scale of the pixel, -1 for none (pinned or invalid)
-    match_a: Tensor  # (K,) pixel m of keyframe i (frame of the residual)
-    match_b: Tensor  # (K,) pixel n of keyframe j
-    rays_b_in_a: Tensor  # (K, 3) s_ij R_ij psi_j,n: ray of j's pixel rotated into frame i
-    t_ab: Tensor  # (K, 3) translation of T_ij
-    sqrt_w: Tensor  # (K,) sqrt(q_mn) / (sigma_point d_i) (C-Eq. 21 whitening)
-    # (E, 3) int64 per edge: first and end match, and the keyframe i (position) whose median
-    # range d_i whitens them
-    edge_spans: Tensor
-    bnd_a: Tensor  # (B,) log-scale a of each unique adjacent pair, a < b
-    bnd_b: Tensor  # (B,)
-    delta: Tensor  # (B,) Delta_ab of C-Eq. 22
-    s_start: Tensor  # (M,) warm start
-
-
 def _index_fn(key_to_index: Mapping[int, int] | Callable[[int], int]) -> Callable[[int], int]:
     if callable(key_to_index):
         return key_to_index
     return key_to_index.__getitem__
-
-
-def _mean_log_ratio(X_hat: Tensor, d_init: Tensor, labels: Tensor, count: int) -> Tensor:
-    """``(count,)`` mean over each label's pixels of ``log(||X_hat|| / d_init)`` (0 if none)."""
-    d_hat = X_hat.reshape(-1, 3).norm(dim=-1)
-    flat = labels.reshape(-1)
-    ok = (flat >= 0) & torch.isfinite(d_hat) & (d_hat > _MIN_RANGE) & (d_init > _MIN_RANGE)
-    ratio = torch.log(d_hat[ok] / d_init[ok])
-    sums = torch.zeros(count, dtype=ratio.dtype, device=ratio.device).index_add_(0, flat[ok], ratio)
-    counts = torch.zeros(count, dtype=ratio.dtype, device=ratio.device).index_add_(
-        0, flat[ok], torch.ones_like(ratio))
-    return sums / counts.clamp_min(1.0)
-
-
-def _adjacent_pairs(labels: Tensor, log_depth: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """4-adjacent pixel pairs with different valid labels.
-
-    Returns:
-        ``(label_p, label_q, log d_p - log d_q)`` over all such pairs, each ``(B_pix,)``.
-    """
-    log_depth = log_depth.reshape(labels.shape)
-    pairs = []
-    for lp, lq, dp, dq in (
-        (labels[:, :-1], labels[:, 1:], log_depth[:, :-1], log_depth[:, 1:]),
-        (labels[:-1, :], labels[1:, :], log_depth[:-1, :], log_depth[1:, :]),
-    ):
-        cut = (lp >= 0) & (lq >= 0) & (lp != lq)
-        pairs.append((lp[cut], lq[cut], dp[cut] - dq[cut]))
-    return tuple(torch.cat(parts) for parts in zip(*pairs))
-
-
-def _boundary_terms(label_p: Tensor, label_q: Tensor, diff: Tensor, num_params: int
-                    ) -> tuple[Tensor, Tensor, Tensor]:
-    """Unique unordered pairs ``(a, b)``, ``a < b``, with ``Delta_ab`` averaged over the
-    shared boundary pixels (C-Eq. 22)."""
-    swap = label_p > label_q
-    a = torch.where(swap, label_q, label_p)
-    b = torch.where(swap, label_p, label_q)
-    diff = torch.where(swap, -diff, diff)
-    keys, inverse = torch.unique(a * num_params + b, return_inverse=True)
-    sums = torch.zeros(keys.numel(), dtype=diff.dtype, device=diff.device).index_add_(
-        0, inverse, diff)
-    counts = torch.zeros_like(sums).index_add_(0, inverse, torch.ones_like(diff))
-    return keys // num_params, keys % num_params, sums / counts
 
 
 def _check_inputs(keyframes: Sequence[RefinableKeyframe], poses: Tensor,
@@ -248,149 +168,6 @@ def _check_inputs(keyframes: Sequence[RefinableKeyframe], poses: Tensor,
                              f"{tuple(kf.X_hat.shape[:2])}")
 
 
-def _build_problem(
-    keyframes: Sequence[RefinableKeyframe],
-    poses: Tensor,
-    edges: Sequence[Edge],
-    index_of: Callable[[int], int],
-    labels: Sequence[Tensor],
-    config: DepthRefinementConfig,
-    pinned: set[int],
-    data_only: bool = False,
-    ranges: Sequence[float] | None = None,
-) -> tuple[_Problem, list[int], list[int]]:
-    """Flatten keyframes, matches and boundary pairs.
-
-    ``ranges`` are the keyframes' median ranges (:func:`median_range` of ``X_hat``) that
-    whiten C-Eq. 21, when the caller has them; None computes them.
-    ``data_only`` leaves the warm start and the boundary pairs out (empty): what a chunk of
-    the data term needs (:mod:`como3r.backend.paged_refinement`).
-
-    Returns:
-        the problem, the first pixel of each keyframe, the first log-scale of each keyframe.
-    """
-    dtype, device = keyframes[0].X_init.dtype, keyframes[0].X_init.device
-    depth0, rays, param, s_start = [], [], [], []
-    bnd = []
-    pixel_offsets, param_offsets = [], []
-    num_pixels = num_params = 0
-    for k, (kf, lab) in enumerate(zip(keyframes, labels)):
-        lab = lab.to(device=device, dtype=torch.int64).reshape(-1)
-        count = int(lab.max()) + 1 if lab.numel() else 0
-        X_base = (kf.X_hat if k in pinned else kf.X_init).to(dtype).reshape(-1, 3)
-        d = torch.nan_to_num(X_base, nan=0.0, posinf=0.0, neginf=0.0).norm(dim=-1)
-        lab = torch.where(torch.isfinite(X_base).all(-1) & (d > _MIN_RANGE), lab, -1)
-        pixel_offsets.append(num_pixels)
-        param_offsets.append(num_params)
-        depth0.append(d)
-        rays.append(psi(torch.nan_to_num(X_base)))
-        if k in pinned:
-            # Constant points: usable (label >= 0) but no unknown; -2 marks "valid, fixed".
-            param.append(torch.where(lab >= 0, -2, -1))
-        else:
-            param.append(torch.where(lab >= 0, lab + num_params, -1))
-            if not data_only:
-                s_start.append(_mean_log_ratio(kf.X_hat.to(dtype), d, lab.reshape(-1), count))
-            if config.variant != "pixel" and not data_only:
-                lp, lq, diff = _adjacent_pairs(lab.reshape(kf.X_hat.shape[:2]),
-                                               d.clamp_min(_MIN_RANGE).log())
-                bnd.append((lp + num_params, lq + num_params, diff))
-            num_params += count
-        num_pixels += lab.numel()
-
-    depth0_t, rays_t, param_t = torch.cat(depth0), torch.cat(rays), torch.cat(param)
-    match_a, match_b, rays_b_in_a, t_ab, sqrt_w, edge_spans = _flatten_matches(
-        keyframes, poses.to(dtype), edges, index_of, pixel_offsets, param_t, rays_t,
-        config.sigma_point, ranges)
-    if bnd:
-        bnd_a, bnd_b, delta = _boundary_terms(*(torch.cat(p) for p in zip(*bnd)),
-                                              max(num_params, 1))
-        if config.boundary_residual == "jump_change":
-            delta = torch.zeros_like(delta)
-    else:
-        bnd_a = bnd_b = torch.zeros(0, dtype=torch.int64, device=device)
-        delta = torch.zeros(0, dtype=dtype, device=device)
-    s0 = torch.cat(s_start) if s_start else torch.zeros(0, dtype=dtype, device=device)
-    problem = _Problem(depth0_t, rays_t, param_t.clamp_min(-1), match_a, match_b, rays_b_in_a,
-                       t_ab, sqrt_w, edge_spans, bnd_a, bnd_b, delta, s0)
-    return problem, pixel_offsets, param_offsets
-
-
-def _flatten_matches(
-    keyframes: Sequence[RefinableKeyframe],
-    poses: Tensor,
-    edges: Sequence[Edge],
-    index_of: Callable[[int], int],
-    pixel_offsets: list[int],
-    param: Tensor,
-    rays: Tensor,
-    sigma_point: float,
-    ranges: Sequence[float] | None = None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Matches of all edges whose endpoints are valid and at least one is free.
-
-    Args:
-        param: ``(P,)`` every pixel's log-scale (-1: invalid, -2: valid and fixed).
-        rays: ``(P, 3)`` every pixel's unit ray.
-        ranges: each keyframe's median range ``d_i`` (None: computed here).
-
-    Returns:
-        pixel of i ``(K,)``, pixel of j ``(K,)`` (flat over all keyframes), j's ray in frame
-        i ``s_ij R_ij psi_j`` ``(K, 3)`` (the data Jacobian of j's endpoint over d_j,
-        C-Sec. A.6; constant at frozen poses), the translation of ``T_ij`` per match
-        ``(K, 3)`` and the whitening ``sqrt(q) / (sigma_point d_i)`` ``(K,)``, with ``d_i``
-        keyframe i's median range: ``sigma_point`` is relative to the scene depth
-        (:mod:`como3r.geometry.units`), the residual is in camera i's units; and the
-        ``(E, 3)`` spans of :attr:`_Problem.edge_spans`.
-    """
-    dtype, device = poses.dtype, poses.device
-    parts, spans, count = [], [], 0
-    depth_of: dict[int, float] = {}
-    for edge in edges:
-        try:
-            ki, kj = index_of(edge.i), index_of(edge.j)
-        except (KeyError, IndexError):
-            raise InputError(f"refine_depths: edge ({edge.i}, {edge.j}) names a keyframe key "
-                             f"that is not in key_to_index") from None
-        if not (0 <= ki < len(keyframes) and 0 <= kj < len(keyframes)):
-            raise InputError(f"refine_depths: edge ({edge.i}, {edge.j}) maps to keyframe "
-                             f"indices ({ki}, {kj}) outside 0..{len(keyframes) - 1}")
-        m = edge.matches
-        P_i = keyframes[ki].X_hat.shape[0] * keyframes[ki].X_hat.shape[1]
-        P_j = keyframes[kj].X_hat.shape[0] * keyframes[kj].X_hat.shape[1]
-        if m.idx.numel() != P_j or m.valid.numel() != P_j or m.q.numel() != P_j:
-            raise InputError(f"refine_depths: edge ({edge.i}, {edge.j}) has {m.idx.numel()} "
-                             f"matches for a keyframe j of {P_j} pixels")
-        n = torch.nonzero(m.valid.to(device) & torch.isfinite(m.q.to(device))
-                          & (m.q.to(device) > 0)).squeeze(-1)
-        idx = m.idx.to(device)[n]
-        if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= P_i):
-            raise InputError(f"refine_depths: edge ({edge.i}, {edge.j}) matches pixel "
-                             f"indices outside keyframe i's {P_i} pixels")
-        a, b = idx + pixel_offsets[ki], n + pixel_offsets[kj]
-        pa, pb = param[a], param[b]
-        keep = (pa != -1) & (pb != -1) & ((pa >= 0) | (pb >= 0))
-        a, b = a[keep], b[keep]
-        T_ij = sim3_compose(sim3_inverse(poses[ki]), poses[kj])
-        # one rotation matrix per edge, applied as a product, not a quaternion per match
-        ray_b_in_a = T_ij[7] * (rays[b] @ quat_to_matrix(T_ij[3:7]).T)
-        if ki not in depth_of:
-            depth_of[ki] = (float(median_range(keyframes[ki].X_hat)) if ranges is None
-                            else ranges[ki])
-        sqrt_w = m.q.to(device=device, dtype=dtype)[n[keep]].sqrt() / (sigma_point * depth_of[ki])
-        parts.append((a, b, ray_b_in_a, T_ij[:3].expand(a.numel(), 3), sqrt_w))
-        spans.append((count, count + a.numel(), ki))
-        count += a.numel()
-    edge_spans = torch.tensor(spans, dtype=torch.int64, device=device).reshape(-1, 3)
-    if not parts:
-        empty_i = torch.zeros(0, dtype=torch.int64, device=device)
-        empty_f = torch.zeros(0, dtype=dtype, device=device)
-        return (empty_i, empty_i, empty_f.reshape(0, 3), empty_f.reshape(0, 3), empty_f,
-                edge_spans)
-    match_a, match_b, rays_b_in_a, t_ab, sqrt_w = (torch.cat(p) for p in zip(*parts))
-    return match_a, match_b, rays_b_in_a, t_ab, sqrt_w, edge_spans
-
-
 def _huber_cost(r: Tensor, k: float) -> Tensor:
     """``sum rho(r)`` with ``rho(r) = r^2`` inside ``k`` and ``2 k |r| - k^2`` outside."""
     a = r.abs()
@@ -400,7 +177,7 @@ def _huber_cost(r: Tensor, k: float) -> Tensor:
 class _Refiner:
     """Newton iterations of C-Eq. 24 on a flattened problem."""
 
-    def __init__(self, problem: _Problem, config: DepthRefinementConfig, huber_k: float):
+    def __init__(self, problem: Problem, config: DepthRefinementConfig, huber_k: float):
         self.p = problem
         self.config = config
         self.huber_k = huber_k
@@ -480,18 +257,6 @@ class _Refiner:
         """
         H, g, energy = self.normal_equations(s)
         return (*damped_step(H, g, s, self.config), energy)
-
-
-def match_streams(problem: _Problem, param_a: Tensor | None = None,
-                  param_b: Tensor | None = None) -> cpu_kernels.MatchStreams:
-    """A CPU problem's matches laid out for the compiled data term
-    (:class:`~como3r.backend.cpu_kernels.MatchStreams`); ``param_a, param_b (K,)``, the
-    matches' log-scales, when already gathered."""
-    p = problem
-    return cpu_kernels.MatchStreams.of(
-        p.depth0, p.rays, p.match_a, p.match_b,
-        p.param[p.match_a] if param_a is None else param_a,
-        p.param[p.match_b] if param_b is None else param_b, p.rays_b_in_a, p.t_ab, p.sqrt_w)
 
 
 def _regularisers(s: Tensor, r_bnd: Tensor, config: DepthRefinementConfig) -> Tensor:
@@ -579,7 +344,7 @@ def refine_depths(
     if not keyframes:
         return [], [], report
     pinned_set = {int(k) for k in pinned}
-    problem, pixel_offsets, param_offsets = _build_problem(
+    problem, pixel_offsets, param_offsets = build_problem(
         keyframes, poses, edges, _index_fn(key_to_index), labels, config, pinned_set)
     refiner = _Refiner(problem, config, huber_k)
     s = problem.s_start.clone()
@@ -605,7 +370,7 @@ def refine_depths(
         count = int(lab.max()) + 1 if lab.numel() else 0
         if k in pinned_set:
             X_out.append(kf.X_hat)
-            log_scales.append(_mean_log_ratio(kf.X_hat, kf.X_init.reshape(-1, 3).norm(dim=-1),
+            log_scales.append(mean_log_ratio(kf.X_hat, kf.X_init.reshape(-1, 3).norm(dim=-1),
                                               lab.to(kf.X_hat.device), count))
             continue
         rows = slice(pixel_offsets[k], pixel_offsets[k] + H * W)

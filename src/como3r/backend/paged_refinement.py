@@ -48,15 +48,13 @@ import torch
 from torch import Tensor
 
 from como3r.backend.cpu_kernels import MatchStreams, depth_normal_equations
+from como3r.backend.depth_problem import Problem, build_problem, chunk_streams
 from como3r.backend.depth_refinement import (
     HUBER_K,
     DepthRefinementReport,
-    _build_problem,
     _check_inputs,
-    _Problem,
     _Refiner,
     damped_step,
-    match_streams,
     regularised,
     written_back,
 )
@@ -74,7 +72,7 @@ KEYFRAMES_PER_CHUNK = 8
 
 @dataclass(frozen=True)
 class Pointmaps:
-    """What the depth step reads of a keyframe (:class:`~.depth_refinement.RefinableKeyframe`).
+    """What the depth step reads of a keyframe (:class:`~.depth_problem.RefinableKeyframe`).
 
     Attributes:
         X_hat: ``(H, W, 3)`` current canonical pointmap.
@@ -118,9 +116,16 @@ def chunk_edges(ends: Sequence[tuple[int, int]], make: Callable[[Sequence[int]],
 
 
 #: a chunk's flattened data problem as kept: the problem, or on CPU the match streams
-ChunkData = _Problem | MatchStreams
+ChunkData = Problem | MatchStreams
 #: a chunk's data term: ``(s, with_blocks) -> (H (M,), g (M,), cost)``
 DataTerm = Callable[[Tensor, bool], tuple[Tensor, Tensor, float]]
+
+
+def _data_problem(*args: object, **kwargs: object) -> tuple[Problem, Tensor]:
+    """A chunk's data problem (not on a CPU: PyTorch's data term reads it) and its edge
+    spans; arguments as for :func:`~.depth_problem.chunk_streams`."""
+    problem, _, _ = build_problem(*args, data_only=True, **kwargs)
+    return problem, problem.edge_spans
 
 
 def _stream_terms(s: Tensor, with_blocks: bool, streams: MatchStreams, huber_k: float
@@ -130,7 +135,7 @@ def _stream_terms(s: Tensor, with_blocks: bool, streams: MatchStreams, huber_k: 
 
 class ProblemSpill:
     """Flattened chunk problems of a depth step in files, one per chunk: a
-    :class:`~.depth_refinement._Problem` (data term only) or, on CPU, the
+    :class:`~.depth_problem.Problem` (data term only) or, on CPU, the
     :class:`~como3r.backend.cpu_kernels.MatchStreams` the compiled data term reads. Raw: no
     compression, int64 indices (pixels, matches, log-scales; all below 2**31) as int32, what
     halves them. What is read back has the type and the tensors it was saved with, bit for
@@ -215,7 +220,7 @@ class ChunkProblems:
     def __init__(self, spill_dir: Path | None = None) -> None:
         self.spill = ProblemSpill(spill_dir)
         self.kept: dict[int, ChunkData] = {}
-        self.spans: dict[int, Tensor] = {}  # per built chunk: _Problem.edge_spans
+        self.spans: dict[int, Tensor] = {}  # per built chunk: Problem.edge_spans
         self._poses: Tensor | None = None
         self._rows: list[tuple[int, ...]] = []
         self._ranges = torch.zeros(0, dtype=torch.float64)  # per row, at the build
@@ -356,7 +361,7 @@ def refine_in_chunks(
         kf, lab = read(r), labels(r)
         ranges[r] = float(median_range(kf.X_hat))  # whitens C-Eq. 21 (edges out of r)
         _check_inputs([kf], poses[r:r + 1], [lab], config)
-        alone, _, _ = _build_problem([kf], poses[r:r + 1], [], {}.__getitem__, [lab], config,
+        alone, _, _ = build_problem([kf], poses[r:r + 1], [], {}.__getitem__, [lab], config,
                                      {0} if r in pinned_rows else set())
         offsets.append(num_params)
         sizes.append(alone.s_start.numel())
@@ -380,17 +385,18 @@ def refine_in_chunks(
         data = step_problems.get(n, chunk.rows, ranges)
         if data is None:
             position = {r: k for k, r in enumerate(chunk.rows)}
-            problem, _, _ = _build_problem(
-                [read(r) for r in chunk.rows], poses[list(chunk.rows)], chunk.edges(),
-                position.__getitem__, [labels(r) for r in chunk.rows], config,
-                {position[r] for r in chunk.rows if r in pinned_rows}, data_only=True,
+            keyframes = [read(r) for r in chunk.rows]
+            build = chunk_streams if keyframes[0].X_init.device.type == "cpu" else _data_problem
+            data, spans = build(
+                keyframes, poses[list(chunk.rows)], chunk.edges(), position.__getitem__,
+                [labels(r) for r in chunk.rows], config,
+                {position[r] for r in chunk.rows if r in pinned_rows},
                 ranges=[float(ranges[r]) for r in chunk.rows])
             # built at the rows' current ranges; kept or spilled only when the problems were
             # (re)started this step, so that they were too (ChunkProblems.usable)
-            data = match_streams(problem) if problem.match_a.device.type == "cpu" else problem
             in_memory = keep(chunk.rows)
             if in_memory or (num_params and (config.inner_iters > 0 or problems is not None)):
-                step_problems.add(n, data, problem.edge_spans, kept=in_memory)
+                step_problems.add(n, data, spans, kept=in_memory)
         if isinstance(data, MatchStreams):
             terms = (partial(_stream_terms, streams=data, huber_k=huber_k), data.num_matches)
         else:
@@ -442,7 +448,7 @@ def refine_in_chunks(
         if r in pinned_rows:
             continue
         kf = read(r)
-        alone, _, _ = _build_problem([kf], poses[r:r + 1], [], {}.__getitem__, [labels(r)],
+        alone, _, _ = build_problem([kf], poses[r:r + 1], [], {}.__getitem__, [labels(r)],
                                      config, set(), data_only=True)
         depths = _Refiner(alone, config, huber_k).depths(s[offsets[r]:offsets[r] + sizes[r]])
         write(r, written_back(kf.X_hat, depths, alone.rays, alone.param))
