@@ -295,3 +295,5 @@ def test_length_scale_must_be_positive() -> None:
     factor, values = _scaled_chain_problem(1.0)
     with pytest.raises(InputError, match="length_scale"):
         gauss_newton_irls(factor, values, length_scale=0.0)
+    with pytest.raises(InputError, match="length_scale"):
+        levenberg_marquardt_irls(factor, values, length_scale=-1.0)
