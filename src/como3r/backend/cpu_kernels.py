@@ -23,7 +23,7 @@ reads as a non-affine address and turns every load into a gather.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -123,7 +123,7 @@ class MatchStreams:
             unit ray of the pixel of i; ``rays_b_in_a`` (3 rows) j's ray rotated and scaled
             into frame i; ``t_ab`` (3 rows) the translation of ``T_ij``.
         sqrt_w: ``(K,)`` the whitening ``sqrt(q) / (sigma_point d_i)``, apart: the rounds of
-            an alternation rescale it (:meth:`rewhitened`).
+            an alternation rescale it (``paged_refinement.ChunkProblems.get``).
         param_a, param_b: ``(K,)`` int64 the matches' log-scales (-1: none, the pixel is
             fixed).
     """
@@ -154,10 +154,6 @@ class MatchStreams:
         """Streams of ``K`` matches to be filled (:func:`pack_kept`), values in ``dtype``."""
         return cls(torch.empty(_ROWS, K, dtype=dtype), torch.empty(K, dtype=dtype),
                    torch.empty(K, dtype=torch.int64), torch.empty(K, dtype=torch.int64))
-
-    def rewhitened(self, factor: Tensor) -> MatchStreams:
-        """The same matches with their whitening multiplied by ``factor (K,)``."""
-        return replace(self, sqrt_w=self.sqrt_w * factor.to(self.sqrt_w))
 
 
 def depth_normal_equations(s: Tensor, streams: MatchStreams, huber_k: float,

@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from como3r.backend import cpu_kernels
+from como3r.backend.segments import MIN_RANGE
 from como3r.config import DepthRefinementConfig
 from como3r.errors import InputError
 from como3r.frontend.graph import Edge
@@ -34,9 +35,6 @@ __all__ = [
     "match_streams",
     "mean_log_ratio",
 ]
-
-# Ranges below this have no usable ray; the pixel is left out of the problem.
-MIN_RANGE = 1e-6
 
 
 class RefinableKeyframe(Protocol):

@@ -260,9 +260,7 @@ class ChunkProblems:
         if bool((factor == 1.0).all()):
             return data
         per_match = torch.repeat_interleave(factor.to(data.sqrt_w), spans[:, 1] - spans[:, 0])
-        if isinstance(data, MatchStreams):
-            return data.rewhitened(per_match)
-        return replace(data, sqrt_w=data.sqrt_w * per_match)
+        return replace(data, sqrt_w=data.sqrt_w * per_match)  # a Problem or MatchStreams
 
     def close(self) -> None:
         """Let go of the problems (the spill's files deleted)."""

@@ -37,8 +37,9 @@ __all__ = [
 
 Key = TypeVar("Key")
 
-# Pointmap pixels closer than this to the camera centre have no usable ray (C-Eq. 19).
-_MIN_RANGE = 1e-6
+#: Pointmap pixels closer than this to the camera centre have no usable ray (C-Eq. 19): the
+#: segmentation's mask and the depth problem's (:mod:`.depth_problem`) both leave them out.
+MIN_RANGE = 1e-6
 
 # SLIC's compactness weighs spatial distance against feature distance. skimage rescales a
 # non-colour feature image to [0, 1] before clustering, while the compactness of SLIC (and of
@@ -67,7 +68,7 @@ def valid_pixels(X: Tensor, C: Tensor, min_confidence: float) -> Tensor:
     """
     _check_inputs(X, C)
     finite = torch.isfinite(X).all(dim=-1) & torch.isfinite(C)
-    in_front = torch.nan_to_num(X).norm(dim=-1) > _MIN_RANGE
+    in_front = torch.nan_to_num(X).norm(dim=-1) > MIN_RANGE
     return finite & in_front & (C >= min_confidence)
 
 
@@ -99,7 +100,7 @@ def geometry_features(X: Tensor) -> np.ndarray:
     normals = np.where(facing_away, -normals, normals)
 
     distance = np.linalg.norm(points, axis=-1)
-    usable = finite & (distance > _MIN_RANGE)
+    usable = finite & (distance > MIN_RANGE)
     log_range = np.zeros(distance.shape, np.float32)
     if usable.any():
         log_range[usable] = np.log(distance[usable])
