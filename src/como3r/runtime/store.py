@@ -99,8 +99,8 @@ FORMAT_VERSION = 3
 #: SQLite page size of a new store, the largest: a keyframe writes megabytes of blobs
 #: (13 MB of simulated-prior state, 2 MB per pointmap at 512x384) as chains of overflow
 #: pages, and 15 transactions of 13 + 4 x 1.8 MB took 0.68 s at 64 KiB pages against 1.65 s
-#: at SQLite's default 4 KiB (WAL, synchronous=NORMAL). Stores made with other page sizes
-#: open as they are.
+#: at SQLite's default 4 KiB (WAL, synchronous=NORMAL; 0.76 s against 1.37 s in another run
+#: of ``benchmarks/depth_step_speed.py``). Stores made with other page sizes open as they are.
 PAGE_SIZE = 65536
 
 #: ``PRAGMA application_id`` of a como3r session store ("C3RS")
