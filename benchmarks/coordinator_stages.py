@@ -4,8 +4,9 @@ Runs ``como3r run --single-process`` (the pipeline of :mod:`como3r.runtime.pipel
 configuration, simulated prior) on a synthetic multi-agent scene (``como3r synth``) and
 prints the coordinator's ``stage_seconds`` from ``metrics.json`` (retrieval, verification,
 gauge, focal, global BA, the terminal cleanup and refinement, the session store's writes;
-the prior's decodes apart) per keyframe, and over one full-size MASt3R decode at the run's resolution
-(``slam_vs_prior.mast3r_decode_seconds``).
+the prior's decodes apart) per keyframe, over one full-size MASt3R decode at the run's
+resolution (``slam_vs_prior.mast3r_decode_seconds``), and over the decodes the keyframes
+caused (``prior_decodes``: the ordered pairs verification had decoded).
 Agents and coordinator take turns in one process, so with one thread on an idle machine the
 coordinator's wall seconds are its CPU seconds; the dashboard (``report.py``) measures the
 same stages in multi-process runs, where they share the cores with the agents.
@@ -67,12 +68,15 @@ def main() -> None:
         decode_ms = 1000.0 * slam_vs_prior.mast3r_decode_seconds(width, height, args.precision)
     else:
         decode_ms = args.decode_ms
+    decodes = coordinator["prior_decodes"] / keyframes
     print(f"{len(agents)} agents, {keyframes} keyframes, run {process_seconds:.1f} s CPU; "
-          f"one decode {decode_ms:.0f} ms\n")
-    print("| stage | s | ms per keyframe | / one decode |\n|---|---|---|---|")
+          f"one decode {decode_ms:.0f} ms; {decodes:.2f} decodes per keyframe "
+          "(verification's ordered pairs)\n")
+    print("| stage | s | ms per keyframe | / one decode | / its decodes |\n|---|---|---|---|---|")
     for stage, seconds in [*sorted(stages.items()), ("total", sum(stages.values()))]:
         ms = 1000.0 * seconds / keyframes
-        print(f"| {stage} | {seconds:.2f} | {ms:.0f} | {ms / decode_ms:.3f} |")
+        caused = f"{ms / (decodes * decode_ms):.3f}" if decodes else "-"
+        print(f"| {stage} | {seconds:.2f} | {ms:.0f} | {ms / decode_ms:.3f} | {caused} |")
 
 
 if __name__ == "__main__":

@@ -249,6 +249,8 @@ def test_graph_document_and_metrics(ring) -> None:
     assert metrics["edges_accepted"] == len(inter)
     assert metrics["retrieval_queries"] == len(coordinator.graph)
     assert metrics["gauge_syncs"] == 1 and metrics["components"] == [[0, 1]]
+    # a tried candidate decodes one order, and the other unless the first fails its test
+    assert 0 < metrics["edges_tried"] <= metrics["prior_decodes"] <= 2 * metrics["edges_tried"]
     assert {"retrieval", "verification", "gauge", "global_ba", "cleanup"} <= set(
         metrics["stage_seconds"])
 

@@ -74,3 +74,13 @@ def test_timed_prior_charges_the_prior_stages_and_passes_everything_else() -> No
     assert prior.retrieval_features(enc) == enc
     assert prior.name == "stub"
     assert set(timer.seconds) == {"prior_encode", "prior_decode", "prior_retrieval"}
+
+
+def test_timed_prior_counts_the_ordered_pairs_it_decodes() -> None:
+    counted: list[int] = []
+    prior = TimedPrior(_Prior(), StageTimer(), counted.append)
+    prior.decode(1, 2)
+    prior.decode_pairs([(1, 2), (3, 4), (5, 6)])
+    prior.decode_symmetric([(1, 2), (3, 4)])
+    prior.encode("view")
+    assert counted == [1, 3, 4]

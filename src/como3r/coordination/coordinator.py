@@ -102,6 +102,9 @@ class CoordinatorStats:
     cleanup_iterations: int = 0
     cleanup_seconds: float = 0.0
     pose_updates: int = 0
+    # ordered pairs the prior decoded for the coordinator (verification): the prior's work
+    # its keyframes caused, as the agents' decodes are theirs (benchmarks/report.py)
+    prior_decodes: int = 0
     stage_seconds: dict[str, float] = field(default_factory=dict)
 
     def add_time(self, stage: str, seconds: float) -> None:
@@ -315,7 +318,7 @@ class Coordinator:
         self.retrieval = CrossAgentRetrieval(codebook, config.retrieval) if enabled else None
         self.stats = CoordinatorStats()
         # the prior's decodes (verification) are charged to stage_seconds["prior_decode"]
-        self.prior = TimedPrior(prior, StageTimer(self.stats.stage_seconds))
+        self.prior = TimedPrior(prior, StageTimer(self.stats.stage_seconds), self._decoded)
         self.candidates: list[Candidate] = []
         self.gauge_events: list[dict[str, Any]] = []
         self._waiting: list[Candidate] = []  # verified edges between two components
@@ -480,6 +483,9 @@ class Coordinator:
         """Inter-agent edges admitted since the last in-stream BA and the roots of the
         components they touched (what triggers and scopes the next one)."""
         return self._new_edges, sorted(self._dirty_roots)
+
+    def _decoded(self, pairs: int) -> None:
+        self.stats.prior_decodes += pairs
 
     def _record(self, updates: list[PoseUpdate], finished: bool = False) -> list[PoseUpdate]:
         """Hand the state after one message's effect to the journal (its time is the stage

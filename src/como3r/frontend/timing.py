@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 from como3r.prior.base import Encoding, PairPrediction, Prior, View
 
@@ -77,11 +77,14 @@ class TimedPrior:
     Args:
         prior: the prior to wrap.
         timer: the timer to charge.
+        decoded: told how many ordered pairs each decode call decoded (None: nobody).
     """
 
-    def __init__(self, prior: Prior, timer: StageTimer) -> None:
+    def __init__(self, prior: Prior, timer: StageTimer,
+                 decoded: Callable[[int], None] | None = None) -> None:
         self._prior = prior
         self._timer = timer
+        self._decoded = decoded or (lambda pairs: None)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._prior, name)
@@ -93,11 +96,13 @@ class TimedPrior:
 
     def decode(self, enc_i: Encoding, enc_j: Encoding) -> PairPrediction:
         """The prior's per-pair work (stage ``prior_decode``)."""
+        self._decoded(1)
         with self._timer.stage("prior_decode"):
             return self._prior.decode(enc_i, enc_j)
 
     def decode_pairs(self, pairs: Sequence[tuple[Encoding, Encoding]]) -> list[PairPrediction]:
         """Every ordered pair (stage ``prior_decode``)."""
+        self._decoded(len(pairs))
         with self._timer.stage("prior_decode"):
             return self._prior.decode_pairs(pairs)
 
@@ -105,6 +110,7 @@ class TimedPrior:
         self, pairs: Sequence[tuple[Encoding, Encoding]]
     ) -> list[tuple[PairPrediction, PairPrediction]]:
         """Both orders of every pair (stage ``prior_decode``)."""
+        self._decoded(2 * len(pairs))
         with self._timer.stage("prior_decode"):
             return self._prior.decode_symmetric(pairs)
 
