@@ -106,7 +106,7 @@ def streams_table(repeats: int) -> tuple[float, float, int]:
     fused = _wall_ms(lambda: chunk_streams(*args, ranges=ranges), repeats)
     flattened = _wall_ms(
         lambda: match_streams(build_problem(*args, data_only=True, ranges=ranges)[0]), repeats)
-    return fused, flattened, chunk_streams(*args, ranges=ranges)[0].num_matches
+    return fused, flattened, chunk_streams(*args, ranges=ranges).num_matches
 
 
 def segmentation(threads: int, repeats: int) -> float:

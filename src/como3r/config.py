@@ -290,8 +290,9 @@ class DepthRefinementConfig:
     inner_iters: int = 10
     alternation_rounds: int = 100
     # what the poses do in the rounds of C-Sec. A.7 step 2 in a multi-agent component:
-    # "frozen" = depth steps at the poses of step 1's passes (departs from the paper, see
-    # backend.alternation), "pose_pass" = the paper's short pose pass after each depth step
+    # "frozen" = one depth step at the poses of step 1's passes (departs from the paper, see
+    # backend.alternation; alternation_rounds then only allows or, at 0, skips it),
+    # "pose_pass" = the paper's rounds, a short pose pass after each depth step
     round_poses: Literal["frozen", "pose_pass"] = "frozen"
     pose_pass_iters: int = 50
     depth_convergence_tol: float = 5e-3  # max |delta s| that ends the alternation (A.7)

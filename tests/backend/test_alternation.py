@@ -69,17 +69,20 @@ def test_round_order_and_iteration_counts():
     ]
 
 
-def test_by_default_the_rounds_keep_the_poses_of_step_1():
+def test_by_default_one_depth_step_at_the_poses_of_step_1():
+    # a second round at the same poses would repeat the depth solve: one step, not converged
     solvers = FakeSolvers(translations=[1.0, 0.001], depth_changes=[0.1, 0.01, 0.001])
     report = alternate(solvers.pose_pass, solvers.depth_step, AlternationSettings(),
                        solvers.broadcast)
-    assert solvers.calls == [
-        ("pose", 100), ("pose", 100),
-        ("depth", 0), ("broadcast", 0), ("depth", 0), ("broadcast", 0),
-        ("depth", 0), ("broadcast", 0),
-    ]
-    assert [r.max_translation for r in report.rounds] == [0.0, 0.0, 0.0]
-    assert report.reason == "converged"
+    assert solvers.calls == [("pose", 100), ("pose", 100), ("depth", 0), ("broadcast", 0)]
+    assert [r.max_translation for r in report.rounds] == [0.0]
+    assert report.reason == "poses_frozen" and not report.converged
+
+
+def test_a_converged_depth_step_at_frozen_poses_is_converged():
+    solvers = FakeSolvers(translations=[0.001], depth_changes=[0.001])
+    report = alternate(solvers.pose_pass, solvers.depth_step, AlternationSettings())
+    assert len(report.rounds) == 1 and report.converged and report.reason == "converged"
 
 
 def test_respects_pass_and_round_bounds():
@@ -105,18 +108,21 @@ def test_a_depth_step_that_stops_shrinking_ends_the_rounds():
     # |ds| halves, then shrinks by only 20 %: the third round has stalled (ratio 0.5).
     solvers = FakeSolvers(translations=[0.0] + [0.001] * 10,
                           depth_changes=[0.2, 0.1, 0.08, 0.07, 0.06])
-    report = alternate(solvers.pose_pass, solvers.depth_step, AlternationSettings(rounds=10))
+    report = alternate(solvers.pose_pass, solvers.depth_step,
+                       AlternationSettings(rounds=10, round_pose_pass=True))
     assert [r.max_depth_change for r in report.rounds] == [0.2, 0.1, 0.08]
     assert report.reason == "stalled" and not report.converged
 
 
-def test_frozen_poses_run_depth_steps_only():
+@pytest.mark.parametrize("round_pose_pass", [False, True])
+def test_without_a_pose_solver_one_depth_step_runs(round_pose_pass):
     solvers = FakeSolvers(translations=[], depth_changes=[0.1, 0.01, 0.001])
-    report = alternate(None, solvers.depth_step, AlternationSettings(rounds=10))
+    report = alternate(None, solvers.depth_step,
+                       AlternationSettings(rounds=10, round_pose_pass=round_pose_pass))
     assert report.cleanup_translations == [] and report.pose_seconds == 0.0
-    assert [r.max_translation for r in report.rounds] == [0.0, 0.0, 0.0]
-    assert report.reason == "converged"
-    assert all(name == "depth" for name, _ in solvers.calls)
+    assert [r.max_translation for r in report.rounds] == [0.0]
+    assert report.reason == "poses_frozen"
+    assert solvers.calls == [("depth", 0)]
 
 
 def test_without_rounds_only_the_pose_passes_run():
@@ -171,7 +177,8 @@ def test_progress_hears_every_pass_and_round_as_it_starts():
 
     solvers = FakeSolvers(translations=[0.5, 0.004, 1.0, 1.0], depth_changes=[1.0, 1.0])
     events: list[PhaseEvent] = []
-    report = alternate(solvers.pose_pass, solvers.depth_step, AlternationSettings(rounds=2),
+    report = alternate(solvers.pose_pass, solvers.depth_step,
+                       AlternationSettings(rounds=2, round_pose_pass=True),
                        progress=events.append)
     assert [(e.name, e.done, e.total) for e in events] == [
         ("cleanup pass", 0, 5), ("cleanup pass", 1, 5),
@@ -179,3 +186,13 @@ def test_progress_hears_every_pass_and_round_as_it_starts():
     assert [e.detail for e in events] == ["", "previous max ||dt||/depth 0.5", "",
                                           "previous max |ds| 1"]
     assert len(report.rounds) == 2
+
+
+def test_progress_counts_one_round_at_frozen_poses():
+    from como3r.progress import PhaseEvent
+
+    solvers = FakeSolvers(translations=[0.001], depth_changes=[1.0])
+    events: list[PhaseEvent] = []
+    alternate(solvers.pose_pass, solvers.depth_step, AlternationSettings(), progress=events.append)
+    assert [(e.name, e.done, e.total) for e in events] == [
+        ("cleanup pass", 0, 5), ("alternation round", 0, 1)]

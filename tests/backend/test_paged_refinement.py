@@ -13,7 +13,6 @@ from como3r.backend.cpu_kernels import MatchStreams
 from como3r.backend.depth_problem import build_problem, match_streams
 from como3r.backend.depth_refinement import refine_depths
 from como3r.backend.paged_refinement import (
-    ChunkProblems,
     LabelMaps,
     Pointmaps,
     ProblemSpill,
@@ -54,8 +53,7 @@ def chain(dtype: torch.dtype = torch.float32):
     return keyframes, torch.stack(poses).to(dtype), edges, labels
 
 
-def chunked(keyframes, poses, edges, labels, reads=None, keep=lambda rows: False,
-            problems=None):
+def chunked(keyframes, poses, edges, labels, reads=None, keep=lambda rows: False):
     """:func:`refine_in_chunks` over the chain; returns the written pointmaps and report."""
     ends = [(edges[n].i, edges[n].j) for n in range(0, len(edges), 2)]
 
@@ -68,8 +66,7 @@ def chunked(keyframes, poses, edges, labels, reads=None, keep=lambda rows: False
     report = refine_in_chunks(
         len(keyframes), read, poses,
         chunk_edges(ends, lambda links: [e for n in links for e in edges[2 * n:2 * n + 2]]),
-        labels.__getitem__, CONFIG, written.__setitem__, pinned=[0], keep=keep,
-        problems=problems)
+        labels.__getitem__, CONFIG, written.__setitem__, pinned=[0], keep=keep)
     return written, report
 
 
@@ -135,50 +132,6 @@ def test_kept_and_spilled_chunks_give_the_same_result(monkeypatch, kept) -> None
         assert torch.equal(written[k], reference[k])
     assert report.cost_history == reference_report.cost_history
     assert report.num_matches == reference_report.num_matches
-
-
-def two_steps(keyframes, poses, edges, labels, reads=None, keep=lambda rows: False,
-              problems=None):
-    """Two depth steps in a row, the second from the first's pointmaps (an alternation's
-    rounds at frozen poses); returns the second's pointmaps and report."""
-    written, _ = chunked(keyframes, poses, edges, labels, keep=keep, problems=problems)
-    for k, X in written.items():
-        keyframes[k] = replace(keyframes[k], X_hat=X)
-    return chunked(keyframes, poses, edges, labels, reads, keep=keep, problems=problems)
-
-
-@pytest.mark.parametrize("kept", [(), (0, 1, 2)])
-def test_steps_at_unchanged_poses_use_the_chunks_problems_again(monkeypatch, tmp_path,
-                                                                 kept) -> None:
-    """Chunk problems kept from one step for the next (in memory or in the spill) give the
-    second step's pointmaps as rebuilt ones do, their whitening rescaled to the keyframes'
-    new median ranges: the second step reads the keyframes only for its set-up and the
-    write-back. New poses rebuild them."""
-    monkeypatch.setattr(paged_refinement, "KEYFRAMES_PER_CHUNK", 2)
-    rows = [(0, 1), (1, 2, 3), (3, 4, 5)]
-
-    def keep(chunk):
-        return rows.index(tuple(chunk)) in kept
-
-    keyframes, poses, edges, labels = chain()
-    rebuilt, rebuilt_report = two_steps(list(keyframes), poses, edges, labels, keep=keep)
-    problems = ChunkProblems(tmp_path)
-    reads: list[int] = []
-    reused, report = two_steps(list(keyframes), poses, edges, labels, reads, keep, problems)
-    setup, writes = list(range(KEYFRAMES)), list(range(1, KEYFRAMES))
-    assert reads == setup + writes
-    for k in range(1, KEYFRAMES):
-        torch.testing.assert_close(reused[k], rebuilt[k], rtol=1e-6, atol=1e-7)
-    assert report.cost_history == pytest.approx(rebuilt_report.cost_history, rel=1e-6)
-    assert report.max_change > 1e-4  # the second step still moved the depths
-
-    moved = poses.clone()
-    moved[1:, 0] += 0.01
-    reads.clear()
-    chunked(list(keyframes), moved, edges, labels, reads, keep=keep, problems=problems)
-    assert reads == setup + [0, 1, 1, 2, 3, 3, 4, 5] + writes
-    problems.close()
-    assert not list(tmp_path.rglob("chunk*.bin"))
 
 
 def test_a_spilled_problem_reads_back_bit_for_bit(tmp_path) -> None:

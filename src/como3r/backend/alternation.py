@@ -10,9 +10,8 @@ coordinate-wise once all agents have stopped:
    refinement, write-back), in the paper a short pose pass so the poses absorb the depth
    change, and a broadcast of the new poses to the agents.
 
-By default (``round_pose_pass=False``, config ``depth.round_poses = "frozen"``) the rounds
-of step 2 are depth steps alone at the poses step 1 left: this departs from C-Sec. A.7's
-step 2d. The depth step (C-Eq. 21) fits the segments' depths to the poses it is given,
+By default (``round_pose_pass=False``, config ``depth.round_poses = "frozen"``) step 2 is
+one depth step at the poses step 1 left: this departs from C-Sec. A.7's step 2d. The depth step (C-Eq. 21) fits the segments' depths to the poses it is given,
 including their error, and the pose pass after it then meets less resistance from the
 intra-agent edges where a multi-agent loop pulls the trajectory (with the realistic
 simulated prior the inter-agent edges are biased: range errors shared by an image's pairs
@@ -30,18 +29,29 @@ one coordinator state: 320x240 2 x 50 frames seed 0 42.1 -> 20.9 mm, 0.283 -> 0.
 2 x 60 seed 1 12.7 -> 10.6 mm, 0.276 -> 0.269 m; seed 2 10.8 -> 11.5 mm, 0.266 -> 0.266 m;
 the demo scene (640x480, 2 x 30) 8.5 -> 7.2 mm, 0.289 -> 0.283 m.
 
+With the poses frozen, step 2 is one depth step ("poses_frozen"): a second round would
+solve the same problem (the same poses, matches, segments and base pointmaps ``X_init``;
+its warm start the first one's log-scales) for 10 more inner iterations, which C-Sec. A.6
+does not ask for. Those rounds (stopped as "stalled" below, after three) took a quarter to a
+third of the cleanup and did not make the map better: fused-map F-score at 1 / 3 frozen
+rounds (``como3r run --single-process --prior simulated --set depth.alternation_rounds=...``
+on ``como3r synth`` scenes, 640x480 unless said): 2 agents x 24 frames seeds 1-3 0.744 /
+0.745, 0.723 / 0.722, 0.757 / 0.755; 4 agents x 16 (``benchmarks/coordinator_stages.py``)
+0.704 / 0.701; 2 x 30 at 320x240 and ``--scale 10`` 0.700 / 0.697; 3 x 20 at 512x384 and
+``--scale 0.1`` 0.645 / 0.644; the same merged ATE in all.
+
 The paper runs step 2 for R rounds and notes that it "converges within a handful of rounds";
-here a round ends the loop early once both the depth step's ``max |ds|`` and the pose pass's
-``max ||dt||`` are below their tolerances ("converged"), or once the depth step has stalled:
-its ``max |ds|`` shrank by less than ``stall_ratio`` from the previous round ("stalled").
-Measured on the simulated prior's scenes, the first rounds remove a sixth of the prior's
-depth distortion, after which ``max |ds|`` levels off near 0.5 % per round while pose and
-depth keep sliding together and the error grows again, round after round, so the rounds
-after the stall only cost time and accuracy.
+with its pose passes a round ends the loop early once both the depth step's ``max |ds|`` and
+the pose pass's ``max ||dt||`` are below their tolerances ("converged"), or once the depth
+step has stalled: its ``max |ds|`` shrank by less than ``stall_ratio`` from the previous
+round ("stalled"). Measured on the simulated prior's scenes, the first rounds remove a sixth
+of the prior's depth distortion, after which ``max |ds|`` levels off near 0.5 % per round
+while pose and depth keep sliding together and the error grows again, round after round, so
+the rounds after the stall only cost time and accuracy.
 
 Without a pose solver (``pose_pass=None``: poses that the caller must not move, e.g. an
-agent's own loop-closed chain) step 1 is skipped and each round is a depth step alone
-whatever ``round_pose_pass`` says.
+agent's own loop-closed chain) step 1 is skipped and step 2 is one depth step whatever
+``round_pose_pass`` says.
 
 The solvers enter as callables, so this module knows nothing about graphs or keyframes::
 
@@ -80,9 +90,9 @@ class AlternationSettings:
         cleanup_passes: maximum number of step-1 pose passes.
         translation_tol: a pose pass whose ``max ||dt||`` is below this fraction of the
             scene depth has converged (unitless, :mod:`como3r.geometry.units`).
-        rounds: maximum number R of step-2 rounds.
+        rounds: maximum number R of step-2 rounds (0: no depth step).
         round_pose_pass: each round of step 2 ends with a pose pass (C-Sec. A.7 step 2d);
-            False (the default) keeps step 1's poses through the rounds (module docstring).
+            False (the default) keeps step 1's poses: one depth step (module docstring).
         pose_pass_iters: iterations of the pose pass of each round.
         depth_convergence_tol: a depth step whose ``max |ds|`` is below this has converged.
         stall_ratio: a depth step whose ``max |ds|`` exceeds this fraction of the previous
@@ -149,8 +159,9 @@ class AlternationReport:
         rounds: every step-2 round.
         converged: the last round met both tolerances (step 2), or, with ``rounds = 0``,
             the last step-1 pass met the translation tolerance.
-        reason: ``"converged"``, ``"stalled"``, ``"max_rounds"`` or, with ``rounds = 0``,
-            ``"pose_converged"`` / ``"max_passes"``.
+        reason: ``"converged"``, ``"stalled"``, ``"max_rounds"``, ``"poses_frozen"`` (one
+            depth step at frozen poses) or, with ``rounds = 0``, ``"pose_converged"`` /
+            ``"max_passes"``.
         pose_seconds: time in pose passes (both steps).
         depth_seconds: time in depth steps.
         broadcast_seconds: time in the broadcast callback.
@@ -241,14 +252,16 @@ def alternate(
                             or report.cleanup_translations[-1] < settings.translation_tol)
         report.reason = "pose_converged" if report.converged else "max_passes"
 
-    for r in range(settings.rounds):
+    alternating = pose_pass is not None and settings.round_pose_pass
+    rounds = settings.rounds if alternating else min(settings.rounds, 1)
+    for r in range(rounds):
         report_phase(progress, "alternation round",
                      _previous("max |ds|", [step.max_depth_change for step in report.rounds]),
-                     r, settings.rounds)
+                     r, rounds)
         depth_change, seconds = _timed(depth_step)
         report.depth_seconds += seconds
         translation = 0.0
-        if pose_pass is not None and settings.round_pose_pass:
+        if alternating:
             translation, seconds = _timed(pose_pass, settings.pose_pass_iters)
             report.pose_seconds += seconds
         if broadcast is not None:
@@ -261,6 +274,9 @@ def alternate(
         if (depth_change < settings.depth_convergence_tol
                 and translation < settings.translation_tol):
             report.converged, report.reason = True, "converged"
+            break
+        if not alternating:
+            report.reason = "poses_frozen"  # a next round would repeat this depth solve
             break
         if r > 0 and depth_change > settings.stall_ratio * report.rounds[-2].max_depth_change:
             report.reason = "stalled"

@@ -122,8 +122,7 @@ class MatchStreams:
             ``||X_init||`` of each match's pixels in keyframes i, j; ``ray_a`` (3 rows) the
             unit ray of the pixel of i; ``rays_b_in_a`` (3 rows) j's ray rotated and scaled
             into frame i; ``t_ab`` (3 rows) the translation of ``T_ij``.
-        sqrt_w: ``(K,)`` the whitening ``sqrt(q) / (sigma_point d_i)``, apart: the rounds of
-            an alternation rescale it (``paged_refinement.ChunkProblems.get``).
+        sqrt_w: ``(K,)`` the whitening ``sqrt(q) / (sigma_point d_i)``.
         param_a, param_b: ``(K,)`` int64 the matches' log-scales (-1: none, the pixel is
             fixed).
     """

@@ -65,9 +65,6 @@ class Problem:
     rays_b_in_a: Tensor  # (K, 3) s_ij R_ij psi_j,n: ray of j's pixel rotated into frame i
     t_ab: Tensor  # (K, 3) translation of T_ij
     sqrt_w: Tensor  # (K,) sqrt(q_mn) / (sigma_point d_i) (C-Eq. 21 whitening)
-    # (E, 3) int64 per edge: first and end match, and the keyframe i (position) whose median
-    # range d_i whitens them
-    edge_spans: Tensor
     bnd_a: Tensor  # (B,) log-scale a of each unique adjacent pair, a < b
     bnd_b: Tensor  # (B,)
     delta: Tensor  # (B,) Delta_ab of C-Eq. 22
@@ -201,7 +198,7 @@ def build_problem(
     """
     dtype, device = keyframes[0].X_init.dtype, keyframes[0].X_init.device
     px = _pixels(keyframes, labels, config, pinned, data_only)
-    match_a, match_b, rays_b_in_a, t_ab, sqrt_w, edge_spans = _flatten_matches(
+    match_a, match_b, rays_b_in_a, t_ab, sqrt_w = _flatten_matches(
         keyframes, poses.to(dtype), edges, index_of, px.pixel_offsets, px.param, px.rays,
         config.sigma_point, ranges)
     num_params = sum(int(s.numel()) for s in px.s_start) if not data_only else 0
@@ -215,7 +212,7 @@ def build_problem(
         delta = torch.zeros(0, dtype=dtype, device=device)
     s0 = torch.cat(px.s_start) if px.s_start else torch.zeros(0, dtype=dtype, device=device)
     problem = Problem(px.depth0, px.rays, px.param.clamp_min(-1), match_a, match_b,
-                       rays_b_in_a, t_ab, sqrt_w, edge_spans, bnd_a, bnd_b, delta, s0)
+                       rays_b_in_a, t_ab, sqrt_w, bnd_a, bnd_b, delta, s0)
     return problem, px.pixel_offsets, px.param_offsets
 
 
@@ -265,7 +262,7 @@ def _flatten_matches(
     rays: Tensor,
     sigma_point: float,
     ranges: Sequence[float] | None = None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Matches of all edges whose endpoints are valid and at least one is free.
 
     Args:
@@ -279,11 +276,10 @@ def _flatten_matches(
         C-Sec. A.6; constant at frozen poses), the translation of ``T_ij`` per match
         ``(K, 3)`` and the whitening ``sqrt(q) / (sigma_point d_i)`` ``(K,)``, with ``d_i``
         keyframe i's median range: ``sigma_point`` is relative to the scene depth
-        (:mod:`como3r.geometry.units`), the residual is in camera i's units; and the
-        ``(E, 3)`` spans of :attr:`Problem.edge_spans`.
+        (:mod:`como3r.geometry.units`), the residual is in camera i's units.
     """
     dtype, device = poses.dtype, poses.device
-    parts, spans, count = [], [], 0
+    parts = []
     depth_of = _RangeCache(keyframes, ranges)
     for edge in edges:
         ki, kj, P_i = _edge_rows(edge, index_of, keyframes)
@@ -303,16 +299,12 @@ def _flatten_matches(
         sqrt_w = m.q.to(device=device, dtype=dtype)[n[keep]].sqrt() / (sigma_point
                                                                          * depth_of[ki])
         parts.append((a, b, ray_b_in_a, T_ij[:3].expand(a.numel(), 3), sqrt_w))
-        spans.append((count, count + a.numel(), ki))
-        count += a.numel()
-    edge_spans = torch.tensor(spans, dtype=torch.int64, device=device).reshape(-1, 3)
     if not parts:
         empty_i = torch.zeros(0, dtype=torch.int64, device=device)
         empty_f = torch.zeros(0, dtype=dtype, device=device)
-        return (empty_i, empty_i, empty_f.reshape(0, 3), empty_f.reshape(0, 3), empty_f,
-                edge_spans)
+        return empty_i, empty_i, empty_f.reshape(0, 3), empty_f.reshape(0, 3), empty_f
     match_a, match_b, rays_b_in_a, t_ab, sqrt_w = (torch.cat(p) for p in zip(*parts))
-    return match_a, match_b, rays_b_in_a, t_ab, sqrt_w, edge_spans
+    return match_a, match_b, rays_b_in_a, t_ab, sqrt_w
 
 
 class _RangeCache(dict):
@@ -338,12 +330,12 @@ def chunk_streams(
     config: DepthRefinementConfig,
     pinned: set[int],
     ranges: Sequence[float] | None = None,
-) -> tuple[cpu_kernels.MatchStreams, Tensor]:
+) -> cpu_kernels.MatchStreams:
     """The data term of CPU keyframes as the compiled loop reads it: what
     ``match_streams(build_problem(..., data_only=True))`` gives, each edge's kept matches
     written straight into the streams by one compiled pass (the flattened problem's
-    per-match arrays, concatenations and gathers took 10 times as long on 3 M matches), and
-    the problem's ``(E, 3)`` edge spans. Arguments as for :func:`build_problem`.
+    per-match arrays, concatenations and gathers took 10 times as long on 3 M matches).
+    Arguments as for :func:`build_problem`.
 
     Raises:
         InputError: an edge naming an unknown keyframe, or matching pixels outside one.
@@ -360,16 +352,15 @@ def chunk_streams(
             raise _outside_error(edge, P_i)
         counts.append(count)
     streams = cpu_kernels.MatchStreams.empty(sum(counts), dtype)
-    spans, first = [], 0
+    first = 0
     for edge, (ki, kj, _), count in zip(edges, rows, counts):
         T_ij = _relative_pose(poses, ki, kj)
         cpu_kernels.pack_kept(edge.matches, px.depth0, px.rays, px.param,
                               px.pixel_offsets[ki], px.pixel_offsets[kj],
                               quat_to_matrix(T_ij[3:7]), T_ij,
                               1.0 / (config.sigma_point * depth_of[ki]), first, streams)
-        spans.append((first, first + count, ki))
         first += count
-    return streams, torch.tensor(spans, dtype=torch.int64).reshape(-1, 3)
+    return streams
 
 
 def match_streams(problem: Problem, param_a: Tensor | None = None,

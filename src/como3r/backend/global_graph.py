@@ -37,7 +37,6 @@ from torch import Tensor
 
 from como3r.backend.depth_refinement import DepthRefinementReport
 from como3r.backend.paged_refinement import (
-    ChunkProblems,
     LabelMaps,
     Pointmaps,
     chunk_edges,
@@ -404,8 +403,7 @@ class GlobalGraph:
 
     def refine_depths(self, agents: Sequence[int], anchor: int, config: DepthRefinementConfig,
                       labels: Mapping[int, Tensor], parking: KeyframeParking | None = None,
-                      spill_dir: Path | None = None, problems: ChunkProblems | None = None
-                      ) -> DepthRefinementReport:
+                      spill_dir: Path | None = None) -> DepthRefinementReport:
         """One depth step (C-Sec. A.7 step 2b-2c; C-Eq. 19-24) at the current poses.
 
         The log-scales of the keyframes reachable from ``anchor`` are refined over the
@@ -422,9 +420,6 @@ class GlobalGraph:
                 keyframes).
             spill_dir: where the flattened problems of working sets with paged-out
                 keyframes are spilled during the step (None: the system's temporary folder).
-            problems: the working sets' problems kept between the steps of one alternation
-                (used again while the poses stay the same; the caller closes it); None: made
-                and let go within the step.
         """
         nodes = self.connected(agents, anchor)
         row = {g: r for r, g in enumerate(nodes)}
@@ -446,7 +441,7 @@ class GlobalGraph:
             # a chunk of resident keyframes keeps its problem in memory; one with paged-out
             # keyframes is spilled, or the step would hold the whole map's problem
             keep=lambda rows: not any(paged_out(self.keyframes[nodes[r]]) for r in rows),
-            spill_dir=spill_dir, problems=problems)
+            spill_dir=spill_dir)
 
     def _set_pointmaps(self, g: int, values: dict[str, Tensor],
                        parking: KeyframeParking | None) -> None:

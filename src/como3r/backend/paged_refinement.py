@@ -19,9 +19,7 @@ first pass: one whose keyframes are all in memory anyway keeps its problem for t
 (``keep``), any other is written raw to a :class:`ProblemSpill` and read back whole at the
 later passes, so that memory holds one such problem at a time. Only the log-scales
 ``s (M,)``, their warm start and the boundary pairs stay in memory for the whole step. Each
-keyframe holds a few hundred of them. The rounds of one alternation at frozen poses use the
-same problems again (:class:`ChunkProblems`, their whitening rescaled): a chunk is then
-built once per alternation.
+keyframe holds a few hundred of them (:class:`ChunkProblems` holds the step's problems).
 
 A keyframe's refined pointmap goes to a ``write`` callback (an unpaged keyframe takes it in
 memory, a paged-out one is parked). Reads happen before writes: the data passes read the
@@ -39,7 +37,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 from functools import partial
 from pathlib import Path
 
@@ -121,11 +119,10 @@ ChunkData = Problem | MatchStreams
 DataTerm = Callable[[Tensor, bool], tuple[Tensor, Tensor, float]]
 
 
-def _data_problem(*args: object, **kwargs: object) -> tuple[Problem, Tensor]:
-    """A chunk's data problem (not on a CPU: PyTorch's data term reads it) and its edge
-    spans; arguments as for :func:`~.depth_problem.chunk_streams`."""
-    problem, _, _ = build_problem(*args, data_only=True, **kwargs)
-    return problem, problem.edge_spans
+def _data_problem(*args: object, **kwargs: object) -> Problem:
+    """A chunk's data problem (not on a CPU: PyTorch's data term reads it); arguments as for
+    :func:`~.depth_problem.chunk_streams`."""
+    return build_problem(*args, data_only=True, **kwargs)[0]
 
 
 def _stream_terms(s: Tensor, with_blocks: bool, streams: MatchStreams, huber_k: float
@@ -202,16 +199,8 @@ class ProblemSpill:
 
 
 class ChunkProblems:
-    """The chunks' flattened problems of one depth step, kept for the next ones while the
-    poses stay as they were: the rounds of C-Sec. A.7 step 2 at frozen poses
-    (``depth.round_poses = "frozen"``), where rebuilding them was a third of each step.
-
-    A chunk's problem depends on the poses, the base pointmaps ``X_init``, the label maps and
-    the links, which one alternation does not change between its depth steps (the poses are
-    checked; a change rebuilds everything), and on each keyframe i's median range, which
-    whitens C-Eq. 21 and which the depth steps do change: a kept problem's whitening is
-    rescaled to the current ranges (:meth:`get`). Problems stay where the first step
-    put them (memory for chunks of resident keyframes, else the spill) until :meth:`close`.
+    """The chunks' flattened problems of one depth step, built at its first pass: in memory
+    for chunks of resident keyframes, else in the spill, until :meth:`close`.
 
     Args:
         spill_dir: where the spill's folder is made (None: the system's temporary folder).
@@ -220,54 +209,24 @@ class ChunkProblems:
     def __init__(self, spill_dir: Path | None = None) -> None:
         self.spill = ProblemSpill(spill_dir)
         self.kept: dict[int, ChunkData] = {}
-        self.spans: dict[int, Tensor] = {}  # per built chunk: Problem.edge_spans
-        self._poses: Tensor | None = None
-        self._rows: list[tuple[int, ...]] = []
-        self._ranges = torch.zeros(0, dtype=torch.float64)  # per row, at the build
 
-    def usable(self, poses: Tensor, chunks: Sequence[Chunk], ranges: Tensor) -> None:
-        """Make the problems those of ``poses (N, 8)`` and ``chunks``: kept if they were
-        built for both, else let go; ``ranges (N,)`` are the rows' median ranges now."""
-        rows = [chunk.rows for chunk in chunks]
-        if (self._poses is not None and rows == self._rows and self._poses.shape == poses.shape
-                and torch.equal(self._poses, poses)):
-            return
-        self.close()
-        self._poses, self._rows, self._ranges = poses.clone(), rows, ranges.clone()
-
-    def add(self, n: int, data: ChunkData, spans: Tensor, kept: bool) -> None:
+    def add(self, n: int, data: ChunkData, kept: bool) -> None:
         """Keep chunk ``n``'s built problem, in memory if ``kept`` else in the spill."""
-        self.spans[n] = spans
         if kept:
             self.kept[n] = data
         else:
             self.spill.save(n, data)
 
-    def get(self, n: int, rows: Sequence[int], ranges: Tensor) -> ChunkData | None:
-        """Chunk ``n``'s problem (None if not built), whitened at the ``rows``' median
-        ``ranges (N,)`` instead of those it was built at."""
+    def get(self, n: int) -> ChunkData | None:
+        """Chunk ``n``'s problem (None if not built)."""
         if n in self.kept:
-            data = self.kept[n]
-        elif n in self.spill:
-            data = self.spill.load(n)
-        else:
-            return None
-        spans = self.spans[n]
-        if not spans.numel():
-            return data
-        position = torch.tensor(rows, dtype=torch.int64)[spans[:, 2].cpu()]
-        factor = self._ranges[position] / ranges[position]
-        if bool((factor == 1.0).all()):
-            return data
-        per_match = torch.repeat_interleave(factor.to(data.sqrt_w), spans[:, 1] - spans[:, 0])
-        return replace(data, sqrt_w=data.sqrt_w * per_match)  # a Problem or MatchStreams
+            return self.kept[n]
+        return self.spill.load(n) if n in self.spill else None
 
     def close(self) -> None:
         """Let go of the problems (the spill's files deleted)."""
         self.kept.clear()
-        self.spans.clear()
         self.spill.close()
-        self._poses, self._rows = None, []
 
 
 class LabelMaps(Mapping[int, Tensor]):
@@ -313,7 +272,6 @@ def refine_in_chunks(
     huber_k: float = HUBER_K,
     keep: Callable[[Sequence[int]], bool] = lambda rows: False,
     spill_dir: Path | None = None,
-    problems: ChunkProblems | None = None,
 ) -> DepthRefinementReport:
     """One depth step (C-Eq. 19-24) at frozen poses, its data term summed chunk by chunk.
 
@@ -335,9 +293,6 @@ def refine_in_chunks(
         spill_dir: where the spill's folder is made (None: the system's temporary folder);
             it takes about 56 bytes per match of the chunks not kept on CPU (their match
             streams), 20 per pixel and 36 per match elsewhere (their problems).
-        problems: the chunks' problems of an earlier step, used again if it had the same
-            poses and chunks, and left to the caller (who closes it) for later steps; None:
-            built for this step and let go at its end.
 
     Returns:
         The report, as :func:`~.depth_refinement.refine_depths` makes it.
@@ -369,8 +324,7 @@ def refine_in_chunks(
     s_start = torch.cat(s_parts)
     bnd_a, bnd_b, delta = (torch.cat(parts) for parts in zip(*bnd_parts))
 
-    step_problems = ChunkProblems(spill_dir) if problems is None else problems
-    step_problems.usable(poses, chunks, ranges)
+    step_problems = ChunkProblems(spill_dir)
     ready: dict[int, tuple[DataTerm, int]] = {}  # the kept chunks', this step
 
     def chunk_terms(n: int, chunk: Chunk) -> tuple[DataTerm, int]:
@@ -380,21 +334,19 @@ def refine_in_chunks(
         loop's match streams."""
         if n in ready:
             return ready[n]
-        data = step_problems.get(n, chunk.rows, ranges)
+        data = step_problems.get(n)
         if data is None:
             position = {r: k for k, r in enumerate(chunk.rows)}
             keyframes = [read(r) for r in chunk.rows]
             build = chunk_streams if keyframes[0].X_init.device.type == "cpu" else _data_problem
-            data, spans = build(
+            data = build(
                 keyframes, poses[list(chunk.rows)], chunk.edges(), position.__getitem__,
                 [labels(r) for r in chunk.rows], config,
                 {position[r] for r in chunk.rows if r in pinned_rows},
                 ranges=[float(ranges[r]) for r in chunk.rows])
-            # built at the rows' current ranges; kept or spilled only when the problems were
-            # (re)started this step, so that they were too (ChunkProblems.usable)
             in_memory = keep(chunk.rows)
-            if in_memory or (num_params and (config.inner_iters > 0 or problems is not None)):
-                step_problems.add(n, data, spans, kept=in_memory)
+            if in_memory or (num_params and config.inner_iters > 0):  # read again later
+                step_problems.add(n, data, kept=in_memory)
         if isinstance(data, MatchStreams):
             terms = (partial(_stream_terms, streams=data, huber_k=huber_k), data.num_matches)
         else:
@@ -438,8 +390,7 @@ def refine_in_chunks(
     finally:
         spilled, kept_count = step_problems.spill.bytes, len(ready)
         ready.clear()  # the write-back below reads keyframe by keyframe: let go first
-        if problems is None:
-            step_problems.close()
+        step_problems.close()
     report.cost_history.append(regularised(H, g, cost, s, bnd_a, bnd_b, delta, config)[2])
 
     for r in range(count):

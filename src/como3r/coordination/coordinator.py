@@ -53,7 +53,6 @@ from torch import Tensor
 from como3r.backend.alternation import AlternationReport, AlternationSettings, alternate
 from como3r.backend.depth_refinement import DepthRefinementReport
 from como3r.backend.global_graph import BAResult, GlobalGraph, GraphLink
-from como3r.backend.paged_refinement import ChunkProblems
 from como3r.config import Config, DepthRefinementConfig
 from como3r.coordination.association import CrossAgentRetrieval, Verification, verify_candidates
 from como3r.coordination.gauge import (
@@ -212,9 +211,6 @@ class _ComponentCleanup:
                  spill_dir: Path | None = None) -> None:
         self.graph, self.members, self.anchor, self.depth = graph, members, anchor, depth
         self.parking, self.spill_dir = parking, spill_dir
-        # the depth steps' working-set problems, used again while the poses stay (frozen
-        # rounds); closed by close()
-        self.problems = ChunkProblems(spill_dir)
         self.results: list[BAResult] = []
         self.depth_reports: list[DepthRefinementReport] = []
         self.snapshot: dict[int, list[MapSnapshot]] = {}
@@ -222,14 +218,9 @@ class _ComponentCleanup:
         self.paged = [graph.keyframes[g] for a in members for g in graph.agent_keyframes(a)
                       if paged_out(graph.keyframes[g])]
 
-    def close(self) -> None:
-        """Let go of the depth steps' kept problems (memory and spill files)."""
-        self.problems.close()
-
     def pose_pass(self, max_iters: int) -> float:
         """A global pose solve; its largest camera move over the component's scene depth
         (0 if it kept the poses)."""
-        self.problems.close()  # built at the poses this pass changes
         result = self.graph.optimize(self.members, self.anchor, max_iters)
         self.results.append(result)
         change = (result.max_translation_change / self.graph.scene_depth(self.members)
@@ -248,8 +239,7 @@ class _ComponentCleanup:
                 graph.freeze_refinement_base(self.members, parking)
             self.labels = graph.segment(self.members, self.anchor, self.depth, parking)
         report = graph.refine_depths(self.members, self.anchor, self.depth, self.labels,
-                                     parking, spill_dir=self.spill_dir,
-                                     problems=self.problems)
+                                     parking, spill_dir=self.spill_dir)
         self.depth_reports.append(report)
         return report.max_change
 
@@ -421,11 +411,8 @@ class Coordinator:
                 self._refine_focals(members, scoped)
             component = _ComponentCleanup(self.graph, members, self._anchor(members[0]),
                                           self.config.depth, parking, spill)
-            try:
-                report = alternate(component.pose_pass if multi_agent else None,
-                                   component.depth_step, settings, progress=scoped)
-            finally:
-                component.close()
+            report = alternate(component.pose_pass if multi_agent else None,
+                               component.depth_step, settings, progress=scoped)
             self._record_cleanup(members, component, report)
             if multi_agent:
                 cleanup.updates.extend(self._updates(members, "cleanup"))
