@@ -78,7 +78,7 @@ logger = logging.getLogger(__name__)
 __all__ = ["AlternationSettings", "AlternationRound", "AlternationReport", "alternate"]
 
 DEPTH_CONVERGENCE_TOL = DepthRefinementConfig.depth_convergence_tol
-"""Default ``max |ds|`` below which a depth step counts as converged (0.1 % in depth)."""
+"""Default ``max |ds|`` below which a depth step counts as converged (0.5 % in depth)."""
 
 
 @dataclass(frozen=True)
