@@ -11,7 +11,8 @@ coordinate-wise once all agents have stopped:
    change, and a broadcast of the new poses to the agents.
 
 By default (``round_pose_pass=False``, config ``depth.round_poses = "frozen"``) step 2 is
-one depth step at the poses step 1 left: this departs from C-Sec. A.7's step 2d. The depth step (C-Eq. 21) fits the segments' depths to the poses it is given,
+one depth step at the poses step 1 left: this departs from C-Sec. A.7's step 2d. The depth
+step (C-Eq. 21) fits the segments' depths to the poses it is given,
 including their error, and the pose pass after it then meets less resistance from the
 intra-agent edges where a multi-agent loop pulls the trajectory (with the realistic
 simulated prior the inter-agent edges are biased: range errors shared by an image's pairs
