@@ -19,9 +19,10 @@ Runs, on this machine and in one process (ratios, not absolute seconds, are the 
    coordinator's SLAM work per keyframe (every stage of its ``stage_seconds`` but the
    prior's: retrieval, verification, gauge, global BA, the terminal refinement, the session
    store's writes) over one decode, and over the decodes its keyframes caused (its
-   ``prior_decodes``, the ordered pairs verification had decoded), as table 1 has both. The simulated prior's per-view state that the store keeps
-   is about 110 bytes a pixel (13 MB a keyframe compressed at 512x384), MASt3R's encoder
-   tokens about 3 MB, so the ``journal`` stage here is larger than in a MASt3R run. An
+   ``prior_decodes``, the ordered pairs verification had decoded), as table 1 has both.
+   The simulated prior's per-view state that the store keeps is about 110 bytes a pixel
+   (13 MB a keyframe compressed at 512x384), MASt3R's encoder tokens about 3 MB, so the
+   ``journal`` stage here is larger than in a MASt3R run. An
    untimed 2-agent run goes first (numba's kernels compiled and cached). Those are wall
    seconds of the coordinator process while the agents' processes share the same cores: an
    upper bound of its own cost.

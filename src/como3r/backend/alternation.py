@@ -23,7 +23,8 @@ was 21.0 mm after step 1 and 31.6, 41.1 and 49.7 mm after the pose passes of rou
 the depth steps' ``max |ds|`` fell from 0.125 to 0.009; agent 0's middle grew by 5 %
 against the rest of both agents and the rounds ended as "stalled". It is not a keyframe's
 overall depth scale (the mean of its C-Eq. 19 log-scales) that slides: no keyframe's
-median depth moved by more than 1.7 % over the three steps, and mostly down. Single-agent components never had the pose pass.
+median depth moved by more than 1.7 % over the three steps, and mostly down. Single-agent
+components never had the pose pass.
 With the poses frozen the trajectories are step 1's and the depth steps still refine the
 map. Merged ATE and map accuracy (metrics.json), paper's rounds -> frozen, each pair from
 one coordinator state: 320x240 2 x 50 frames seed 0 42.1 -> 20.9 mm, 0.283 -> 0.261 m;
