@@ -22,6 +22,7 @@ from como3r.config import RetrievalConfig
 from como3r.errors import CheckpointError, ConfigError, InputError
 from como3r.prior.retrieval import (
     Hit,
+    Quantized,
     RetrievalDatabase,
     load_codebook,
     train_codebook,
@@ -220,6 +221,45 @@ def test_query_and_add_equals_query_then_add():
     np.testing.assert_allclose(combined.scores(frames[0][2]), separate.scores(frames[0][2]))
     own = combined.query_and_add(1, 99, _view(bases[0], rng), k=5, min_similarity=-1.0, scope="own")
     assert own and all(h.agent == 1 for h in own)
+
+
+@pytest.mark.parametrize("name", list(CONFIGS))
+def test_quantized_once_equals_quantized_per_call(name):
+    """Descriptors quantised once (query's and build's words from one search) score, query
+    and index as descriptors quantised by each call; the nearest-first words are the
+    independent reference's."""
+    config = CONFIGS[name]
+    rng = np.random.default_rng(12)
+    centroids, bases = _places(32, 3, seed=13)
+    once, per_call = (RetrievalDatabase(centroids, config) for _ in range(2))
+    for i in range(6):
+        x = _view(bases[i % 3], rng)
+        quantized = once.quantize(torch.from_numpy(x))
+        ma = max(config.multiple_assignment_query, config.multiple_assignment_build)
+        np.testing.assert_array_equal(quantized.words, _ref_words(x, centroids, ma))
+        np.testing.assert_array_equal(once.scores(quantized), per_call.scores(x))
+        assert (once.query(quantized, k=3, min_similarity=-1.0)
+                == per_call.query(x, k=3, min_similarity=-1.0))
+        once.add(0, i, quantized, np.ones(len(x)))
+        per_call.add(0, i, x)
+    np.testing.assert_array_equal(once.scores(bases[0]), per_call.scores(bases[0]))
+    assert once.query_and_add(1, 0, once.quantize(bases[1])) == per_call.query_and_add(1, 0,
+                                                                                      bases[1])
+
+
+def test_quantized_words_too_few_or_mismatched_rejected(team_db):
+    db, bases, rng = team_db
+    x = _view(bases[0], rng)
+    words = db.quantize(x).words
+    with pytest.raises(InputError, match="expected"):
+        db.scores(Quantized(x, words[:, :2]))  # the query needs 5 words per descriptor
+    with pytest.raises(InputError, match="expected"):
+        db.add(7, 0, Quantized(x[:-1], words))
+    with pytest.raises(InputError, match="attention"):
+        db.add(7, 0, db.quantize(x), np.ones(len(x) + 1))
+    with pytest.raises(InputError, match="d = 31"):
+        db.add(7, 0, Quantized(np.zeros((5, 31), np.float32), words[:5]))
+    assert len(db) == 9
 
 
 def test_torch_inputs_and_attention_accepted(team_db):

@@ -67,7 +67,7 @@ from como3r.optim.factors import Factor
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.values import PoseValues
 from como3r.prior.base import Encoding, Prior, View
-from como3r.prior.retrieval import RetrievalDatabase
+from como3r.prior.retrieval import Quantized, RetrievalDatabase
 
 logger = logging.getLogger(__name__)
 
@@ -311,7 +311,8 @@ class AgentFrontend:
         up in kf, is ``tracked``: the tracking's matches of the frame that became kf, from
         the same ordered decode (kf, kf - 1). Only (kf - 1, kf) is decoded and matched here.
         """
-        candidates = self._loop_candidates(kf)
+        quantized = self._quantized(kf)
+        candidates = self._loop_candidates(kf, quantized)
         previous = self.keyframes[kf.kf_id - 1]
         pred = self.prior.decode(previous.encoding, kf.encoding)
         with self.timer.stage("matching"):
@@ -341,7 +342,7 @@ class AgentFrontend:
                 self._add_edge_pair(partner, kf.kf_id, link, "loop")
                 self.stats.loop_edges += 1
         self._local_solve()
-        self._index(kf)
+        self._index(kf, quantized)
         self._settle_camera_when_due()
 
     def _checked_direction(self, ij: DirectedMatches, previous: Keyframe,
@@ -390,23 +391,36 @@ class AgentFrontend:
                     agreement, tracking.min_inlier_fraction)
         return replace(ij, valid=torch.zeros_like(ij.valid))
 
-    def _index(self, kf: Keyframe) -> None:
-        """Add the keyframe to the agent's retrieval database (after querying with it)."""
+    def _quantized(self, kf: Keyframe) -> Quantized | None:
+        """``kf``'s retrieval descriptors with their visual words, for its loop query and its
+        indexing (one nearest-centroid search, the bulk of both at the released codebook's
+        size); None without a database."""
+        if self.database is None or kf.retrieval is None:
+            return None
+        with self.timer.stage("retrieval"):
+            return self.database.quantize(kf.retrieval[0])
+
+    def _index(self, kf: Keyframe, quantized: Quantized | None = None) -> None:
+        """Add the keyframe to the agent's retrieval database (after querying with it), by
+        its :meth:`_quantized` descriptors where given."""
         if self.database is not None and kf.retrieval is not None:
+            descriptors, attention = kf.retrieval
             with self.timer.stage("retrieval"):
-                self.database.add(self.agent, kf.kf_id, *kf.retrieval)
+                self.database.add(self.agent, kf.kf_id,
+                                  descriptors if quantized is None else quantized, attention)
 
     def _add_edge_pair(self, i: int, j: int, link: PairLink, kind: str) -> None:
         self.edges.append(Edge(i, j, link.ij, kind))
         self.edges.append(Edge(j, i, link.ji, kind))
 
-    def _loop_candidates(self, kf: Keyframe) -> list[int]:
-        """Own keyframes most like ``kf`` (not its predecessor), above the threshold."""
-        if not self.config.loop_closure or self.database is None or kf.retrieval is None:
+    def _loop_candidates(self, kf: Keyframe, quantized: Quantized | None) -> list[int]:
+        """Own keyframes most like ``kf`` (not its predecessor), above the threshold, by its
+        :meth:`_quantized` descriptors."""
+        if not self.config.loop_closure or self.database is None or quantized is None:
             return []
         with self.timer.stage("retrieval"):
             hits = self.database.query(
-                kf.retrieval[0], agent=self.agent,
+                quantized, agent=self.agent,
                 exclude_keyframes=[(self.agent, kf.kf_id - 1)],
             )
         self.stats.loop_candidates += len(hits)
