@@ -25,6 +25,7 @@ from como3r.prior.retrieval import (
     Quantized,
     RetrievalDatabase,
     load_codebook,
+    nearest_words,
     train_codebook,
 )
 
@@ -245,6 +246,28 @@ def test_quantized_once_equals_quantized_per_call(name):
     np.testing.assert_array_equal(once.scores(bases[0]), per_call.scores(bases[0]))
     assert once.query_and_add(1, 0, once.quantize(bases[1])) == per_call.query_and_add(1, 0,
                                                                                       bases[1])
+
+
+@pytest.mark.parametrize("ma", [1, 5])
+def test_nearest_words_are_the_nearest_centroids_in_order(device, ma):
+    """The device-side search (MASt3R-SLAM's GPU quantisation), on every device here."""
+    rng = np.random.default_rng(14)
+    centroids, bases = _places(64, 2, seed=15, k_words=256, n_desc=40)
+    x = np.concatenate([_view(b, rng) for b in bases])
+    words = nearest_words(torch.from_numpy(x).to(device), torch.from_numpy(centroids).to(device),
+                          ma)
+    assert words.device.type == device.type and words.dtype == torch.int64
+    np.testing.assert_array_equal(words.cpu().numpy(), _ref_words(x, centroids, ma))
+
+
+def test_quantize_on_the_descriptors_device(device):
+    """Descriptors on a device are quantised there (faiss on the CPU): the same words."""
+    centroids, bases = _places(32, 1, seed=16, k_words=64)
+    db = RetrievalDatabase(centroids, RetrievalConfig())
+    x = _view(bases[0], np.random.default_rng(17))
+    quantized = db.quantize(torch.from_numpy(x).to(device))
+    np.testing.assert_array_equal(quantized.words, db.quantize(x).words)
+    np.testing.assert_array_equal(quantized.descriptors, x)
 
 
 def test_quantized_words_too_few_or_mismatched_rejected(team_db):
