@@ -12,6 +12,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Sequence
 
+import numpy as np
 import pytest
 import torch
 
@@ -34,6 +35,7 @@ from como3r.geometry.lie import (
     so3_log,
 )
 from como3r.geometry.umeyama import umeyama_rmse, umeyama_sim3
+from como3r.prior.retrieval import RetrievalDatabase
 from como3r.prior.simulated import SimulatedPrior
 from como3r.runtime.pipeline import _colors
 
@@ -340,6 +342,37 @@ def test_single_agent_components_adopt_the_agents_poses_and_refine_depth_only(ri
     assert all(r["cleanup_passes"] == 0 and r["rounds"] == 1 for r in record)
     with pytest.raises(InputError, match="final poses of shape"):
         coordinator.finish({0: own[0][:2]})
+
+
+def _retrieval_hits(scene: Scene, order: list[KeyframePacket], monkeypatch) -> tuple[list, int]:
+    """The cross-agent retrieval's hits per packet and its codebook searches, adding the
+    packets in ``order`` to a new coordinator."""
+    hits, searches = [], []
+    query_and_add, assign = RetrievalDatabase.query_and_add, RetrievalDatabase._assign
+    monkeypatch.setattr(RetrievalDatabase, "query_and_add",
+                        lambda *a, **k: hits.append(query_and_add(*a, **k)) or hits[-1])
+    monkeypatch.setattr(RetrievalDatabase, "_assign",
+                        lambda *a, **k: searches.append(1) or assign(*a, **k))
+    coordinator = Coordinator(scene.prior, scene.config, scene.prior.codebook(), 4)
+    for packet in order:
+        coordinator.add_keyframe(packet)
+    monkeypatch.undo()
+    return hits, len(searches)
+
+
+def test_the_agents_retrieval_words_spare_the_coordinators_search(ring, monkeypatch) -> None:
+    """Words quantised by an agent with the same codebook are taken, not searched again,
+    with the same hits; another codebook's are not."""
+    order = _interleave(ring, [0, 1])
+    agents_database = RetrievalDatabase(ring.prior.codebook(), ring.config.retrieval)
+    with_words = [dataclasses.replace(
+        p, retrieval_words=agents_database.quantize(p.retrieval[0]).words.astype(np.int32),
+        codebook_id=agents_database.codebook_id) for p in order]
+    hits, searches = _retrieval_hits(ring, order, monkeypatch)
+    assert searches == len(order) and any(hits)
+    assert _retrieval_hits(ring, with_words, monkeypatch) == (hits, 0)
+    other = [dataclasses.replace(p, codebook_id="0" * 32) for p in with_words]
+    assert _retrieval_hits(ring, other, monkeypatch) == (hits, len(order))
 
 
 def test_bad_packets_are_refused(ring) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 
@@ -126,15 +127,22 @@ def test_a_keyframe_is_quantised_once(long_agent, monkeypatch) -> None:
     searched = []
     assign = RetrievalDatabase._assign
 
-    def counted(self, descriptors, multiple_assignment):
+    def counted(self, descriptors, multiple_assignment, *device):
         searched.append(multiple_assignment)
-        return assign(self, descriptors, multiple_assignment)
+        return assign(self, descriptors, multiple_assignment, *device)
 
     monkeypatch.setattr(RetrievalDatabase, "_assign", counted)
     frontend, outcomes = _run_first_frames(long_agent, 16)
     assert "lost" not in outcomes.values() and frontend.config.loop_closure
     assert len(frontend.keyframes) >= 3
+    packets = list(frontend.drain_new_keyframes())
     assert len(searched) == len(frontend.keyframes)  # one search each (two before)
+    database = frontend.database
+    for packet in packets:  # their words travel to the coordinator
+        assert packet.codebook_id == database.codebook_id
+        assert packet.retrieval_words.dtype == np.int32
+        np.testing.assert_array_equal(packet.retrieval_words,
+                                      database.quantize(packet.retrieval[0]).words)
 
 
 def test_lost_frame_is_reported_and_tracking_relocalizes(long_agent) -> None:

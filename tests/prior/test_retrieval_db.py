@@ -280,6 +280,8 @@ def test_quantized_words_too_few_or_mismatched_rejected(team_db):
         db.add(7, 0, Quantized(x[:-1], words))
     with pytest.raises(InputError, match="attention"):
         db.add(7, 0, db.quantize(x), np.ones(len(x) + 1))
+    with pytest.raises(InputError, match=r"integers in \[0, 64\)"):
+        db.add(7, 0, Quantized(x, words + 64))  # another codebook's words
     with pytest.raises(InputError, match="d = 31"):
         db.add(7, 0, Quantized(np.zeros((5, 31), np.float32), words[:5]))
     assert len(db) == 9

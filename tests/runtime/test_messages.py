@@ -16,7 +16,7 @@ from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import make_view
 from como3r.data.synth import synthesize
 from como3r.frontend.agent import AgentFrontend, FrontendStats
-from como3r.frontend.packets import PoseUpdate
+from como3r.frontend.packets import KeyframePacket, PoseUpdate
 from como3r.prior.simulated import SimulatedPrior
 from como3r.runtime import codec, messages
 from como3r.runtime.codec import MessageError, decode, encode
@@ -162,9 +162,23 @@ def test_malformed_pose_updates_are_rejected() -> None:
                                        1), "floating")
 
 
+def _with_words(fe: AgentFrontend, packet: KeyframePacket) -> KeyframePacket:
+    """``packet`` with the retrieval words its agent sends once (the first export)."""
+    words = fe.database.quantize(packet.retrieval[0]).words.astype(np.int32)
+    return replace(packet, retrieval_words=words, codebook_id=fe.database.codebook_id)
+
+
+def test_retrieval_words_round_trip_bit_exactly(frontend: AgentFrontend) -> None:
+    message = _packet_message(frontend, 1)
+    message = replace(message, packet=_with_words(frontend, message.packet))
+    assert identical(message, decode(encode(message), expected=messages.KeyframeMessage))
+
+
 def test_malformed_keyframe_packets_are_rejected(frontend: AgentFrontend) -> None:
     message = _packet_message(frontend, 1)
     packet = message.packet
+    with_words = _with_words(frontend, packet)
+    words = with_words.retrieval_words
     for bad, match in [
         (replace(packet, T_WC=torch.zeros(7)), r"T_WC has shape"),
         (replace(packet, C_hat=packet.C_hat[1:]), r"C_hat has shape"),
@@ -179,6 +193,9 @@ def test_malformed_keyframe_packets_are_rejected(frontend: AgentFrontend) -> Non
         (replace(packet, retrieval=(packet.retrieval[0], packet.retrieval[1][1:])), "attention"),
         (replace(packet, K=torch.eye(3)[:2]), "K has shape"),
         (replace(packet, K=torch.eye(3, dtype=torch.int64)), "K must be floating"),
+        (replace(with_words, codebook_id=None), "need retrieval and codebook_id"),
+        (replace(with_words, retrieval_words=words[1:]), "retrieval_words has shape"),
+        (replace(with_words, retrieval_words=words.astype(np.float32)), "must be integers"),
     ]:
         _reject(replace(message, packet=bad), match)
     _reject(replace(message, T_WC_previous=torch.zeros(3)), "T_WC_previous")

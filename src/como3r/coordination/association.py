@@ -40,7 +40,7 @@ from torch import Tensor
 from como3r.config import MatchingConfig, RetrievalConfig, VerificationConfig
 from como3r.frontend.pairs import DirectedMatches, PairLink, direction_passes, link_pairs
 from como3r.prior.base import Encoding, Prior
-from como3r.prior.retrieval import Hit, RetrievalDatabase
+from como3r.prior.retrieval import Hit, Quantized, RetrievalDatabase
 
 
 class CrossAgentRetrieval:
@@ -56,13 +56,14 @@ class CrossAgentRetrieval:
         self.queries = 0
 
     def query_and_add(self, agent: int, kf_id: int,
-                      retrieval: tuple[Tensor, Tensor]) -> list[Hit]:
+                      retrieval: tuple[Tensor | Quantized, Tensor]) -> list[Hit]:
         """Candidates of OTHER agents for keyframe ``(agent, kf_id)``, then index it.
 
         Args:
             agent: the keyframe's agent.
             kf_id: its id within the agent.
-            retrieval: ``(descriptors (N, d), attention (N,))`` of the keyframe.
+            retrieval: ``(descriptors (N, d), attention (N,))`` of the keyframe, the
+                descriptors perhaps already quantised (:class:`Quantized`).
 
         Returns:
             At most ``k_nn`` hits above the similarity threshold, best first.

@@ -72,6 +72,7 @@ from como3r.frontend.pairs import DirectedMatches, PairLink, gather_points
 from como3r.frontend.timing import StageTimer, TimedPrior
 from como3r.geometry.lie import sim3_act
 from como3r.prior.base import Prior
+from como3r.prior.retrieval import Quantized
 from como3r.progress import PhaseCallback, PhaseEvent, report_phase
 
 logger = logging.getLogger(__name__)
@@ -556,7 +557,11 @@ class Coordinator:
         if self.retrieval is None or packet.retrieval is None:
             return []
         start = time.perf_counter()
-        hits = self.retrieval.query_and_add(packet.agent, packet.kf_id, packet.retrieval)
+        descriptors, attention = packet.retrieval
+        if (packet.retrieval_words is not None
+                and packet.codebook_id == self.retrieval.database.codebook_id):
+            descriptors = Quantized(descriptors, packet.retrieval_words)  # the agent's search
+        hits = self.retrieval.query_and_add(packet.agent, packet.kf_id, (descriptors, attention))
         self.stats.retrieval_queries += 1
         middle = time.perf_counter()
         self.stats.add_time("retrieval", middle - start)

@@ -166,6 +166,7 @@ class AgentFrontend:
         self.tracker = FrameTracker(self.prior, config, self.timer, upsampling)
         self.database = RetrievalDatabase(codebook, config.retrieval) if codebook is not None else None
         self.new_keyframes: list[int] = []  # keyframes not yet handed to a coordinator
+        self._unsent_words: dict[int, np.ndarray] = {}  # their retrieval words, by kf_id
         self._T_kf_prev: Tensor | None = None
         self._lost = False
         self._last_tracked: _TrackedFrame | None = None
@@ -401,13 +402,15 @@ class AgentFrontend:
             return self.database.quantize(kf.retrieval[0])
 
     def _index(self, kf: Keyframe, quantized: Quantized | None = None) -> None:
-        """Add the keyframe to the agent's retrieval database (after querying with it), by
-        its :meth:`_quantized` descriptors where given."""
+        """Add the keyframe to the agent's retrieval database (after querying with it) by
+        its :meth:`_quantized` descriptors (made here where not given), whose words then
+        wait for the keyframe's packet (a coordinator with the same codebook takes them)."""
         if self.database is not None and kf.retrieval is not None:
-            descriptors, attention = kf.retrieval
+            if quantized is None:
+                quantized = self._quantized(kf)
             with self.timer.stage("retrieval"):
-                self.database.add(self.agent, kf.kf_id,
-                                  descriptors if quantized is None else quantized, attention)
+                self.database.add(self.agent, kf.kf_id, quantized, kf.retrieval[1])
+            self._unsent_words[kf.kf_id] = quantized.words.astype(np.int32)
 
     def _add_edge_pair(self, i: int, j: int, link: PairLink, kind: str) -> None:
         self.edges.append(Edge(i, j, link.ij, kind))
@@ -605,6 +608,7 @@ class AgentFrontend:
     def export_keyframe(self, kf_id: int) -> KeyframePacket:
         """The packet announcing keyframe ``kf_id`` to a coordinator (C-Sec. B.1)."""
         kf = self.keyframes[kf_id]
+        words = self._unsent_words.pop(kf_id, None)
         seq = {(e.i, e.j): e.matches for e in self.edges if e.kind == "sequential"}
         previous = None
         if kf_id > 0:
@@ -617,7 +621,8 @@ class AgentFrontend:
             encoding=kf.encoding, retrieval=kf.retrieval,
             sequential_ij=plain_matches(seq.get((kf_id - 1, kf_id))),
             sequential_ji=plain_matches(seq.get((kf_id, kf_id - 1))),
-            previous=previous, K=kf.K,
+            previous=previous, K=kf.K, retrieval_words=words,
+            codebook_id=None if words is None else self.database.codebook_id,
         )
 
     def drain_new_keyframes(self) -> Iterator[KeyframePacket]:

@@ -653,7 +653,7 @@ def _register_payloads() -> None:
     """The payloads that cross the agent/coordinator boundary (C-Sec. B.1); pointmaps,
     their confidences and match confidences in half precision (:data:`_POINTMAP`)."""
     for path, version, half in (
-        ("como3r.frontend.packets:KeyframePacket", 1, _POINTMAP),
+        ("como3r.frontend.packets:KeyframePacket", 2, _POINTMAP),  # 2: retrieval_words
         ("como3r.frontend.packets:PointmapRefresh", 2, _POINTMAP),  # 2: K
         ("como3r.frontend.packets:PoseUpdate", 2, ()),  # 2: focal
         ("como3r.frontend.pairs:DirectedMatches", 1, ("q",)),

@@ -307,6 +307,12 @@ def _check_packet(p: KeyframePacket) -> None:
         descriptors, attention = p.retrieval
         _shape(descriptors, (None, None), "retrieval descriptors")
         _shape(attention, (descriptors.shape[0],), "retrieval attention")
+    if p.retrieval_words is not None:
+        _require(p.retrieval is not None and p.codebook_id is not None,
+                 "retrieval_words need retrieval and codebook_id")
+        _shape(p.retrieval_words, (p.retrieval[0].shape[0], None), "retrieval_words")
+        _require(p.retrieval_words.dtype.kind in "iu",
+                 f"retrieval_words must be integers, got {p.retrieval_words.dtype}")
 
 
 def _check_keyframe_message(m: KeyframeMessage) -> None:
