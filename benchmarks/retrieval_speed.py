@@ -9,7 +9,8 @@ for any values), per keyframe as an agent and the coordinator use it (issue 16, 
 flat as the map grows):
 
 * ``quantise``: the nearest-centroid search, once per keyframe
-  (:meth:`~como3r.prior.retrieval.RetrievalDatabase.quantize`), for the query and the add;
+  (:meth:`~como3r.prior.retrieval.RetrievalDatabase.quantize`), for the query and the add,
+  in the agent (the coordinator takes its words from the keyframe's packet);
 * ``query``: the inverted-file search over the stored keyframes and the top-k;
 * ``add``: aggregation and indexing of the keyframe;
 
