@@ -27,6 +27,7 @@ from como3r.decentralized.registration import (
 from como3r.errors import ConfigError
 from como3r.geometry.lie import quat_to_matrix, sim3_act, sim3_compose, sim3_inverse, so3_exp
 from como3r.prior.mast3r.prior import MASt3REncoding
+from como3r.prior.retrieval import RetrievalDatabase
 from como3r.prior.simulated import SimulatedPrior
 from como3r.prior.simulated_keys import generator
 
@@ -73,6 +74,30 @@ def test_asmk_similarity_ranks_the_same_place_first():
     similarity = recognizer.similarity(noisy, places)
     assert similarity.shape == (3, 3)
     np.testing.assert_array_equal(np.argmax(similarity, axis=1), [0, 1, 2])
+
+
+def test_asmk_searches_each_keyframe_once_over_rounds(monkeypatch):
+    """Every round compares all keyframes again; their codebook search is made once."""
+    rng = np.random.default_rng(1)
+    codebook = rng.normal(size=(64, 32)).astype(np.float32)
+    places = [rng.normal(size=(40, 32)).astype(np.float32) for _ in range(4)]
+
+    def searched_per_call(rows, cols):
+        database = RetrievalDatabase(codebook, RetrievalConfig())
+        for k, descriptors in enumerate(cols):
+            database.add(1, k, descriptors)
+        return np.stack([database.scores(descriptors) for descriptors in rows])
+
+    expected = [searched_per_call(places[:2], places[2:3]),
+                searched_per_call(places[:2], places[2:])]
+    searches = []
+    assign = RetrievalDatabase._assign
+    monkeypatch.setattr(RetrievalDatabase, "_assign",
+                        lambda *a, **k: searches.append(1) or assign(*a, **k))
+    recognizer = PlaceRecognizer("asmk", codebook, RetrievalConfig())
+    np.testing.assert_array_equal(recognizer.similarity(places[:2], places[2:3]), expected[0])
+    np.testing.assert_array_equal(recognizer.similarity(places[:2], places[2:]), expected[1])
+    assert len(searches) == 4  # 3 keyframes, then the new one (7 before)
 
 
 def test_candidates_are_best_matches_above_threshold_from_both_sides():

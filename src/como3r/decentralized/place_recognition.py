@@ -27,7 +27,7 @@ from torch import Tensor
 
 from como3r.config import RetrievalConfig
 from como3r.errors import ConfigError
-from como3r.prior.retrieval import RetrievalDatabase
+from como3r.prior.retrieval import Quantized, RetrievalDatabase
 
 METHODS = ("cosine", "asmk")
 
@@ -71,6 +71,11 @@ class PlaceRecognizer:
         self.method = method
         self._codebook = codebook
         self._retrieval = retrieval or RetrievalConfig()
+        # asmk: each keyframe's descriptors quantised once, by identity (the array is kept,
+        # so its id is not reused): a round's similarity re-indexes every keyframe, and at
+        # the released codebook's size the search is 0.3 s a keyframe
+        self._quantizer: RetrievalDatabase | None = None
+        self._quantized: dict[int, tuple[np.ndarray, Quantized]] = {}
 
     def describe(self, features: Tensor, attention: Tensor) -> np.ndarray:
         """The place descriptor of one keyframe.
@@ -104,8 +109,18 @@ class PlaceRecognizer:
             return np.stack(rows).astype(np.float64) @ np.stack(cols).astype(np.float64).T
         database = RetrievalDatabase(self._codebook, self._retrieval)
         for k, descriptors in enumerate(cols):
-            database.add(1, k, descriptors)
-        return np.stack([database.scores(descriptors) for descriptors in rows])
+            database.add(1, k, self._quantize(descriptors))
+        return np.stack([database.scores(self._quantize(descriptors)) for descriptors in rows])
+
+    def _quantize(self, descriptors: np.ndarray) -> Quantized:
+        """``descriptors`` (one keyframe's, ``asmk``) with their words, searched once."""
+        known = self._quantized.get(id(descriptors))
+        if known is None or known[0] is not descriptors:
+            if self._quantizer is None:
+                self._quantizer = RetrievalDatabase(self._codebook, self._retrieval)
+            known = (descriptors, self._quantizer.quantize(descriptors))
+            self._quantized[id(descriptors)] = known
+        return known[1]
 
 
 def candidate_pairs(similarity: np.ndarray, threshold: float,
