@@ -19,7 +19,7 @@ first pass: one whose keyframes are all in memory anyway keeps its problem for t
 (``keep``), any other is written raw to a :class:`ProblemSpill` and read back whole at the
 later passes, so that memory holds one such problem at a time. Only the log-scales
 ``s (M,)``, their warm start and the boundary pairs stay in memory for the whole step. Each
-keyframe holds a few hundred of them (:class:`ChunkProblems` holds the step's problems).
+keyframe holds a few hundred of them.
 
 A keyframe's refined pointmap goes to a ``write`` callback (an unpaged keyframe takes it in
 memory, a paged-out one is parked). Reads happen before writes: the data passes read the
@@ -198,37 +198,6 @@ class ProblemSpill:
         return self._spill.folder / f"chunk{n}.bin"
 
 
-class ChunkProblems:
-    """The chunks' flattened problems of one depth step, built at its first pass: in memory
-    for chunks of resident keyframes, else in the spill, until :meth:`close`.
-
-    Args:
-        spill_dir: where the spill's folder is made (None: the system's temporary folder).
-    """
-
-    def __init__(self, spill_dir: Path | None = None) -> None:
-        self.spill = ProblemSpill(spill_dir)
-        self.kept: dict[int, ChunkData] = {}
-
-    def add(self, n: int, data: ChunkData, kept: bool) -> None:
-        """Keep chunk ``n``'s built problem, in memory if ``kept`` else in the spill."""
-        if kept:
-            self.kept[n] = data
-        else:
-            self.spill.save(n, data)
-
-    def get(self, n: int) -> ChunkData | None:
-        """Chunk ``n``'s problem (None if not built)."""
-        if n in self.kept:
-            return self.kept[n]
-        return self.spill.load(n) if n in self.spill else None
-
-    def close(self) -> None:
-        """Let go of the problems (the spill's files deleted)."""
-        self.kept.clear()
-        self.spill.close()
-
-
 class LabelMaps(Mapping[int, Tensor]):
     """Label maps (C-Sec. A.6) by keyframe key: in memory, or those of paged-out keyframes
     kept in a :class:`~como3r.frontend.paging.KeyframeParking` (read back when asked for).
@@ -324,8 +293,8 @@ def refine_in_chunks(
     s_start = torch.cat(s_parts)
     bnd_a, bnd_b, delta = (torch.cat(parts) for parts in zip(*bnd_parts))
 
-    step_problems = ChunkProblems(spill_dir)
-    ready: dict[int, tuple[DataTerm, int]] = {}  # the kept chunks', this step
+    spill = ProblemSpill(spill_dir)
+    ready: dict[int, tuple[DataTerm, int]] = {}  # the kept chunks' terms, this step
 
     def chunk_terms(n: int, chunk: Chunk) -> tuple[DataTerm, int]:
         """Chunk ``n``'s data term ``(s, with_blocks) -> (H, g, cost)`` and its number of
@@ -334,8 +303,10 @@ def refine_in_chunks(
         loop's match streams."""
         if n in ready:
             return ready[n]
-        data = step_problems.get(n)
-        if data is None:
+        in_memory = False
+        if n in spill:
+            data = spill.load(n)
+        else:
             position = {r: k for k, r in enumerate(chunk.rows)}
             keyframes = [read(r) for r in chunk.rows]
             build = chunk_streams if keyframes[0].X_init.device.type == "cpu" else _data_problem
@@ -345,13 +316,13 @@ def refine_in_chunks(
                 {position[r] for r in chunk.rows if r in pinned_rows},
                 ranges=[float(ranges[r]) for r in chunk.rows])
             in_memory = keep(chunk.rows)
-            if in_memory or (num_params and config.inner_iters > 0):  # read again later
-                step_problems.add(n, data, kept=in_memory)
+            if not in_memory and num_params and config.inner_iters > 0:  # read again later
+                spill.save(n, data)
         if isinstance(data, MatchStreams):
             terms = (partial(_stream_terms, streams=data, huber_k=huber_k), data.num_matches)
         else:
             terms = (_Refiner(data, config, huber_k).data_terms, data.match_a.numel())
-        if n in step_problems.kept:
+        if in_memory:
             ready[n] = terms
         return terms
 
@@ -388,9 +359,9 @@ def refine_in_chunks(
             report.max_change = float((s - s_start).abs().max())
         H, g, cost = data_term(s, False)
     finally:
-        spilled, kept_count = step_problems.spill.bytes, len(ready)
+        spilled, kept_count = spill.bytes, len(ready)
         ready.clear()  # the write-back below reads keyframe by keyframe: let go first
-        step_problems.close()
+        spill.close()
     report.cost_history.append(regularised(H, g, cost, s, bnd_a, bnd_b, delta, config)[2])
 
     for r in range(count):
