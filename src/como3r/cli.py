@@ -190,16 +190,21 @@ def export(
     depth: Optional[Path] = typer.Option(
         None, "--depth", metavar="DIR",
         help="Per keyframe depth and confidence (.npz) and 16-bit PNG depth (1000 per unit)."),
+    ros2_bag: Optional[Path] = typer.Option(
+        None, "--ros2-bag", metavar="DIR",
+        help="ROS 2 bag (MCAP): /tf, per agent odometry, keyframe path, images and camera "
+             "info, the map as PointCloud2."),
     overwrite: bool = typer.Option(False, "--overwrite",
                                    help="Replace earlier exports of como3r."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
 ) -> None:
-    """Export a finished run to COLMAP, nerfstudio, g2o and depth maps (any subset)."""
+    """Export a finished run to COLMAP, nerfstudio, g2o, depth maps and a ROS 2 bag (any
+    subset)."""
     from como3r.io.export import export_run
 
     with run_progress(quiet) as shown:
         summary = export_run(run, colmap=colmap, nerfstudio=nerfstudio, g2o=g2o,
-                             depth=depth, overwrite=overwrite,
+                             depth=depth, ros2_bag=ros2_bag, overwrite=overwrite,
                              progress=shown.steps("exporting keyframes"))
     print_rows("exports", summary.rows)
     for line in summary.notes:

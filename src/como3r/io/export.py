@@ -1,5 +1,5 @@
-"""Exports of a finished run folder (README, "Exporting a run"): COLMAP, nerfstudio, g2o and
-per-keyframe depth maps.
+"""Exports of a finished run folder (README, "Exporting a run"): COLMAP, nerfstudio, g2o,
+per-keyframe depth maps and a ROS 2 bag (:mod:`como3r.io.ros2_bag`).
 
 What is read: ``graph.json`` (keyframes with their final ``T_WC``, graph edges, gauge
 components), ``map.ply`` (the fused cloud) and the keyframe data of
@@ -231,8 +231,8 @@ def depth_png(depth: np.ndarray) -> np.ndarray:
 
 def export_run(run: str | Path, colmap: str | Path | None = None,
                nerfstudio: str | Path | None = None, g2o: str | Path | None = None,
-               depth: str | Path | None = None, overwrite: bool = False,
-               max_points: int = DEFAULT_MAX_POINTS,
+               depth: str | Path | None = None, ros2_bag: str | Path | None = None,
+               overwrite: bool = False, max_points: int = DEFAULT_MAX_POINTS,
                progress: Callable[[int, int], None] | None = None) -> ExportSummary:
     """Export a finished run; every output appears only once all of them are complete.
 
@@ -242,6 +242,7 @@ def export_run(run: str | Path, colmap: str | Path | None = None,
         nerfstudio: folder for nerfstudio's ``transforms.json`` (:func:`write_nerfstudio`).
         g2o: file for the pose graph (:func:`write_g2o`).
         depth: folder for the depth maps (:func:`write_depth`).
+        ros2_bag: folder for the ROS 2 bag (:func:`como3r.io.ros2_bag.write_ros2_bag`).
         overwrite: replace earlier exports of como3r (never other files).
         max_points: at most this many map points in the COLMAP and nerfstudio clouds.
         progress: called with ``(done, total)`` keyframe steps, first with ``done = 0``.
@@ -251,10 +252,11 @@ def export_run(run: str | Path, colmap: str | Path | None = None,
             a requested export needs; an output that may not be replaced.
     """
     folders = {name: Path(p) for name, p in
-               (("colmap", colmap), ("nerfstudio", nerfstudio), ("depth", depth)) if p is not None}
+               (("colmap", colmap), ("nerfstudio", nerfstudio), ("depth", depth),
+                ("ros2_bag", ros2_bag)) if p is not None}
     if not folders and g2o is None:
         raise InputError("nothing to export: give at least one of --colmap DIR, --nerfstudio "
-                         "DIR, --g2o FILE, --depth DIR")
+                         "DIR, --g2o FILE, --depth DIR, --ros2-bag DIR")
     run = Path(run)
     graph = read_run_graph(run)
     _check_inputs(run, graph, folders)
@@ -277,9 +279,14 @@ def export_run(run: str | Path, colmap: str | Path | None = None,
 
     if progress is not None:
         progress(0, total)
+    # imported here: the bag writer builds on this module's graph reading, and rosbags
+    # loads only when a bag is asked for
+    from como3r.io.ros2_bag import write_ros2_bag
+
     writers = {"colmap": lambda out: write_colmap(run, graph, out, max_points, step),
                "nerfstudio": lambda out: write_nerfstudio(run, graph, out, max_points, step),
-               "depth": lambda out: write_depth(run, graph, out, step)}
+               "depth": lambda out: write_depth(run, graph, out, step),
+               "ros2_bag": lambda out: write_ros2_bag(run, graph, out, step)}
     summary = ExportSummary()
     with contextlib.ExitStack() as stack:  # every staging folder is renamed in at the end
         for name, target in folders.items():
@@ -296,9 +303,14 @@ def export_run(run: str | Path, colmap: str | Path | None = None,
 
 def _check_inputs(run: Path, graph: RunGraph, folders: dict[str, Path]) -> None:
     """What the requested exports read is there, before any is written."""
-    if ("colmap" in folders or "nerfstudio" in folders) and not (run / "map.ply").is_file():
-        raise InputError(f"{run}: no map.ply (the COLMAP and nerfstudio exports take their "
-                         f"points from it)")
+    if folders.keys() & {"colmap", "nerfstudio", "ros2_bag"} and not (run / "map.ply").is_file():
+        raise InputError(f"{run}: no map.ply (the COLMAP, nerfstudio and ROS 2 bag exports take "
+                         f"their points from it)")
+    if "ros2_bag" in folders:
+        for agent in sorted({k.agent for k in graph.keyframes}):
+            if not (run / "trajectories" / f"agent_{agent}.txt").is_file():
+                raise InputError(f"{run}: no trajectories/agent_{agent}.txt (the ROS 2 bag's "
+                                 f"/tf and odometry come from it)")
     if folders:
         missing = [k for k in graph.keyframes
                    if not keyframe_data_path(run, k.agent, k.kf_id, ".npz").is_file()]
