@@ -254,8 +254,9 @@ def run(
     out: Path = typer.Option(..., "--out", help="Output folder."),
     prior: str = typer.Option(
         "mast3r", "--prior",
-        help="mast3r | simulated (a stand-in made from ground-truth depth, for synthetic "
-             "scenes and tests)."),
+        help="mast3r | simulated (a stand-in built from the input's depth and ground-truth "
+             "poses, for synthetic scenes and RGB-D datasets with ground truth; it does not "
+             "measure MASt3R)."),
     weights: Optional[Path] = typer.Option(
         None, "--weights", help="MASt3R checkpoint (default: the weights cache, filled by "
                                 "`como3r weights fetch`)."),

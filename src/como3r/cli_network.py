@@ -17,8 +17,9 @@ from como3r.errors import InputError
 
 DEFAULT_PORT = 7447
 
-PRIOR_HELP = ("mast3r | simulated (a stand-in made from ground-truth depth, for synthetic "
-              "scenes and tests). The same on every process of the run.")
+PRIOR_HELP = ("mast3r | simulated (a stand-in built from the input's depth and ground-truth "
+              "poses, for synthetic scenes and RGB-D datasets with ground truth; it does not "
+              "measure MASt3R). The same on every process of the run.")
 
 # ------------------------------------------------------------ options the commands share
 

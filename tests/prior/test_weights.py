@@ -245,7 +245,8 @@ def test_cli_list_of_an_empty_cache(official_names) -> None:
 def test_run_with_an_empty_cache_names_weights_fetch(official_names, tmp_path, prior) -> None:
     out = tmp_path / "out"
     result = _cli("run", "--agent", str(tmp_path), "--out", str(out), *prior)
-    _one_error_line(result, "como3r weights fetch")
+    _one_error_line(result, "como3r weights fetch --trust-unverified")
+    _one_error_line(result, "--prior simulated")
     assert not out.exists() and not out.with_name("out.partial").exists()
 
 

@@ -106,13 +106,20 @@ def cached_file(role: str, home: Path | None = None) -> Path:
     """The accepted file with this role in the cache.
 
     Raises:
-        InputError: not there (one line naming ``como3r weights fetch`` and the option).
+        InputError: not there (one line naming ``como3r weights fetch``, with
+            ``--trust-unverified`` while no official SHA-256 of the release is published, the
+            option that names the file, and ``--prior simulated`` for inputs with depth).
     """
     file = weight_file(role)
     path = (home or weights_home()) / file.filename
     if not path.is_file():
-        raise InputError(f"--prior mast3r: no {file.filename} in {path.parent}; run "
-                         f"`como3r weights fetch` or pass {file.option} FILE")
+        fetch = ("`como3r weights fetch`" if all(f.sha256 for f in WEIGHT_FILES) else
+                 "`como3r weights fetch --trust-unverified` (no official SHA-256 is published "
+                 "for the release)")
+        raise InputError(f"--prior mast3r: no {file.filename} in {path.parent}; run {fetch} "
+                         f"or pass {file.option} FILE. Inputs with metric depth and ground-truth "
+                         f"poses (synthetic scenes, RGB-D datasets) also run with --prior "
+                         f"simulated, a stand-in built from them that does not measure MASt3R")
     return path
 
 
