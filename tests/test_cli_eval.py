@@ -16,11 +16,14 @@ from como3r.io.tum import write_tum
 FRAMES = 80
 
 
-def make_run(tmp_path: Path, agents: int = 2) -> tuple[Path, list[Path]]:
-    """A run folder whose estimates are noisy, per-agent rotated/scaled copies of the GT."""
+def make_run(tmp_path: Path, agents: int = 2, one_frame: bool = False
+             ) -> tuple[Path, list[Path]]:
+    """A run folder whose estimates are noisy, per-agent rotated/scaled copies of the GT
+    (``one_frame``: all rotated and scaled alike, as agents whose maps merged)."""
     rng = np.random.default_rng(0)
     run, stamps, gt_dirs = tmp_path / "run", 0.1 * np.arange(FRAMES), []
     s = np.linspace(0.0, 1.0, FRAMES)[:, None, None]
+    shared = Rotation.random(random_state=rng)
     for a in range(agents):
         freq, phase = rng.uniform(0.3, 1.5, (1, 3, 3)), rng.uniform(0, 2 * np.pi, (1, 3, 3))
         positions = (3.0 * np.sin(2 * np.pi * freq * s + phase)).sum(-1)
@@ -28,7 +31,7 @@ def make_run(tmp_path: Path, agents: int = 2) -> tuple[Path, list[Path]]:
         gt_dirs.append(tmp_path / f"agent{a}")
         write_tum(gt_dirs[-1] / "groundtruth.txt", stamps,
                   torch.from_numpy(np.concatenate([positions, quat.as_quat()], axis=1)))
-        rotation = Rotation.random(random_state=rng)
+        rotation = shared if one_frame else Rotation.random(random_state=rng)
         noisy = 1.5 * rotation.apply(positions) + rng.normal(0, 0.02, positions.shape)
         est = np.concatenate([noisy, (rotation * quat).as_quat()], axis=1)
         write_tum(run / "trajectories" / f"agent_{a}.txt", stamps, torch.from_numpy(est))
@@ -108,3 +111,27 @@ def test_eval_report_needs_a_run_folder(tmp_path: Path) -> None:
     plain = invoke(run / "trajectories" / "agent_0.txt", gt_dirs, "--out", str(tmp_path / "e"))
     assert plain.exit_code == 0, plain.output  # a trajectory file is evaluated, no report
     assert not (tmp_path / "e" / "report.html").exists()
+
+
+def test_eval_warns_once_when_the_ground_truths_are_in_another_order(tmp_path: Path) -> None:
+    run, gt_dirs = make_run(tmp_path, agents=3, one_frame=True)
+    in_order = invoke(run, gt_dirs, "--out", str(tmp_path / "in_order"))
+    assert in_order.exit_code == 0, in_order.output
+    assert "warning" not in in_order.output
+    # agent 0's ground truth given third, agent 1's first, agent 2's second
+    result = invoke(run, [gt_dirs[1], gt_dirs[2], gt_dirs[0]], "--out", str(tmp_path / "out"))
+    assert result.exit_code == 0, result.output
+    assert result.output.count("warning") == 1
+    assert "taking --gt #3, #1, #2 for agents 0, 1, 2" in result.output
+    assert "Is --gt in agent order" in result.output
+
+
+def test_eval_does_not_compare_orders_of_agents_in_separate_frames(tmp_path: Path) -> None:
+    """Agents never merged (several gauge components): no merged ATE to compare orders by."""
+    run, gt_dirs = make_run(tmp_path, agents=2, one_frame=True)
+    swapped = invoke(run, gt_dirs[::-1], "--out", str(tmp_path / "swapped"))
+    assert "taking --gt #2, #1 for agents 0, 1" in swapped.output
+    (run / "graph.json").write_text(json.dumps({"keyframes": [], "components": [[0], [1]]}))
+    result = invoke(run, gt_dirs[::-1], "--out", str(tmp_path / "out"))
+    assert result.exit_code == 0, result.output
+    assert "warning" not in result.output

@@ -159,7 +159,7 @@ def evaluate(
         raise InputError(f"--report: {est} is a trajectory file; the report needs a run folder")
     if report is not None and report.is_dir():
         raise InputError(f"--report {report}: is a folder; give the page's file name")
-    summary = evaluate_run(est, gt, folder, gt_format=format)
+    summary = evaluate_run(est, gt, folder, gt_format=format, check_gt_order=True)
     print_rows("ATE RMSE [m] (Sim(3)-aligned)", summary.table_rows())
     for line in summary.notes:
         console.print(line)

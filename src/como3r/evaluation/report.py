@@ -20,6 +20,7 @@ import evo
 
 from como3r.data.readers import read_ground_truth
 from como3r.errors import InputError
+from como3r.evaluation.gt_order import ground_truth_order_warning, in_one_frame
 from como3r.evaluation.plot import plot_trajectories
 from como3r.evaluation.trajectory import (
     MAX_TIME_DIFF,
@@ -228,6 +229,7 @@ def evaluate_run(
     max_diff: float = MAX_TIME_DIFF,
     gt_format: str = "auto",
     fps: float = 30.0,
+    check_gt_order: bool = False,
 ) -> EvalSummary:
     """ATE / RPE of every agent of a run and the merged ATE; writes ate.json and a plot.
 
@@ -242,6 +244,10 @@ def evaluate_run(
         max_diff: timestamp association window [s].
         gt_format: layout of the ``gt`` folders (``auto`` detects it; as ``--format``).
         fps: frame rate that stamps 7-Scenes frames (frame number / fps), as in the run.
+        check_gt_order: note a warning (once, first of the notes) when the ground truths fit
+            the agents much better in another order (:mod:`como3r.evaluation.gt_order`;
+            agents in one world frame): for ``gt`` given by a user, not by a run that pairs
+            each agent with its own input.
 
     Raises:
         InputError: missing or malformed files, mismatched counts, too few associated poses
@@ -270,6 +276,11 @@ def evaluate_run(
         if r.errors.frames < r.est_poses:
             summary.notes.append(f"agent {r.agent}: {r.errors.frames} of {r.est_poses} estimated "
                                  f"poses matched a ground-truth timestamp")
+    if check_gt_order and (components is None or len(components) == 1) and (
+            not est.is_dir() or in_one_frame(est)):
+        warning = ground_truth_order_warning(ests, gts, max_diff)
+        if warning is not None:
+            summary.notes.insert(0, warning)
     if summary.merged is None:
         summary.notes.append(
             f"agents form separate gauge components {components}: merged ATE "
