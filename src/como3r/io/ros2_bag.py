@@ -1,7 +1,8 @@
 """ROS 2 bag export of a finished run folder (README, "Exporting a run").
 
-The bag is a rosbag2 folder (``metadata.yaml`` version 8 and one MCAP file, CDR messages of
-the ROS 2 Humble definitions, which Jazzy's are equal to) written with ``rosbags``, so it
+The bag is a rosbag2 folder (``metadata.yaml`` version 8 and one MCAP file with
+zstd-compressed chunks, CDR messages of the ROS 2 Humble definitions, which Jazzy's are equal
+to) written with ``rosbags``, so it
 plays with ``ros2 bag play DIR`` and opens in Foxglove without a ROS installation here. It
 reads what the other exports read (:mod:`como3r.io.export`) plus the full-rate
 ``trajectories/agent_<a>.txt``; nothing of a live run is touched.
@@ -99,7 +100,7 @@ def write_ros2_bag(run: Path, graph: RunGraph, out: Path,
     Returns:
         counts: ``messages``, ``frames`` (tracked, all agents), ``keyframes``, ``points``.
     """
-    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
     store = get_typestore(Stores.ROS2_HUMBLE)
@@ -137,7 +138,11 @@ def write_ros2_bag(run: Path, graph: RunGraph, out: Path,
 
     bag = out / out.name.removesuffix(".partial")
     latched = _latched_qos()
-    with Writer(bag, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP) as writer:
+    writer = Writer(bag, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP)
+    # zstd inside the MCAP file's chunks (rosbag2's own MCAP presets do the same; players and
+    # Foxglove read it as an uncompressed bag)
+    writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    with writer:
         connections = {topic: writer.add_connection(
             topic, msgtype, typestore=store,
             offered_qos_profiles=latched if topic == "/map" else ())
