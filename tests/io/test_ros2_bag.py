@@ -18,11 +18,11 @@ from como3r.config import Config, apply_overrides
 from como3r.data.synth import synthesize
 from como3r.errors import InputError
 from como3r.geometry.lie import se3_compose, se3_exp
-from como3r.io.export import export_run
+from como3r.io.export import RunKeyframe, export_run
 from como3r.io.keyframe_data import read_keyframe_data
 from como3r.io.ply import read_ply
-from como3r.io.ros2_bag import MAP_FRAME, agent_topics, camera_frame
-from como3r.io.tum import read_tum
+from como3r.io.ros2_bag import MAP_FRAME, agent_topics, camera_frame, keyframe_stamps
+from como3r.io.tum import Trajectory, read_tum
 from como3r.runtime.pipeline import PriorSpec, run
 
 mcap_reader = pytest.importorskip("mcap.reader", reason="the mcap package (test extra) reads "
@@ -158,10 +158,16 @@ def test_keyframe_path_images_and_camera_info(run_dir, messages) -> None:
         np.testing.assert_allclose(final, kf_tum.T_WC[:, :7].numpy(), atol=2e-9)
         images = [m for topic, _, m in messages if topic == topics["image"]]
         infos = [m for topic, _, m in messages if topic == topics["camera_info"]]
+        tf_stamps = {(m.transforms[0].header.stamp.sec, m.transforms[0].header.stamp.nanosec)
+                     for topic, _, m in messages if topic == "/tf"
+                     and m.transforms[0].child_frame_id == camera_frame(agent)}
         for kf, image, info in zip(keyframes, images, infos):
             data = read_keyframe_data(run_dir, agent, kf["keyframe"])
             assert image.header.frame_id == info.header.frame_id == camera_frame(agent)
-            assert _stamp(image.header) == pytest.approx(kf["timestamp"], abs=1e-9)
+            assert _stamp(image.header) == pytest.approx(kf["timestamp"], abs=1e-6)
+            # exactly a stamp of the camera's transform: no tf extrapolation at the last frame
+            assert (image.header.stamp.sec, image.header.stamp.nanosec) in tf_stamps
+            assert info.header.stamp == image.header.stamp
             assert image.format == "png"
             decoded = np.asarray(Image.open(io.BytesIO(image.data.tobytes())).convert("RGB"))
             np.testing.assert_array_equal(decoded, data.image())
@@ -236,3 +242,13 @@ def test_bag_needs_the_trajectories(run_dir, tmp_path, only_error_line) -> None:
     result = CliRunner().invoke(app, ["export", str(copy), "--ros2-bag", str(tmp_path / "bag")])
     assert "no trajectories/agent_0.txt" in only_error_line(result)
     assert not (tmp_path / "bag").exists() and not (tmp_path / "bag.partial").exists()
+
+
+def test_a_keyframe_without_a_tracked_frame_is_named(tmp_path) -> None:
+    trajectory = Trajectory(np.array([0.0, 0.1, 0.2]), torch.zeros(3, 8, dtype=torch.float64))
+    keyframe = RunKeyframe(0, 1, 4, 9, 0.35, np.array([0.0] * 6 + [1.0, 1.0]))
+    with pytest.raises(InputError, match="keyframe 4 of agent 1 .* no pose in trajectories/"
+                                         "agent_1.txt"):
+        keyframe_stamps([keyframe], trajectory, tmp_path)
+    near = RunKeyframe(0, 1, 4, 2, 0.2000004, keyframe.T_WC)
+    assert keyframe_stamps([near], trajectory, tmp_path) == [0.2]

@@ -35,8 +35,8 @@ reads what the other exports read (:mod:`como3r.io.export`) plus the full-rate
   (float32 holding ``0x00RRGGBB``, the PCL convention RViz and Foxglove read) and
   ``agent_id`` uint32.
 
-**Stamps** are the input's timestamps (the TUM files' and ``graph.json``'s seconds); each
-message is logged at its stamp. Agents recorded with separate clocks keep their own time bases.
+**Stamps** are the input's timestamps as the TUM files hold them (a keyframe's: its frame's,
+:func:`keyframe_stamps`); each message is logged at its stamp. Agents recorded with separate clocks keep their own time bases.
 """
 
 from __future__ import annotations
@@ -59,6 +59,9 @@ from como3r.io.tum import Trajectory, read_tum
 MAP_FRAME = "map"
 #: rosbag2 metadata version written (8: read by rosbag2 since Iron; 9 only since Jazzy)
 BAG_VERSION = 8
+#: a keyframe's time in graph.json and its frame's in the TUM file (rounded to the
+#: microsecond) agree to this many seconds
+STAMP_TOLERANCE = 1e-5
 
 
 def camera_frame(agent: int) -> str:
@@ -127,11 +130,13 @@ def write_ros2_bag(run: Path, graph: RunGraph, out: Path,
             add(stamp, names["odometry"],
                 lambda s=stamp, a=agent, p=pose, v=twists[i]: _odometry(store, s, a, p, v))
         keyframes = [k for k in graph.keyframes if k.agent == agent]
-        for n, kf in enumerate(keyframes):
-            add(kf.timestamp, names["keyframes"],
-                lambda s=kf.timestamp, ks=keyframes[:n + 1]: _path(store, s, ks))
-            add(kf.timestamp, names["image"], lambda k=kf: _image(store, run, k))
-            add(kf.timestamp, names["camera_info"], lambda k=kf: _camera_info(store, run, k))
+        stamps = keyframe_stamps(keyframes, trajectory, run)
+        for n, (kf, stamp) in enumerate(zip(keyframes, stamps)):
+            add(stamp, names["keyframes"], lambda s=stamp, ks=keyframes[:n + 1],
+                ss=stamps[:n + 1]: _path(store, s, ks, ss))
+            add(stamp, names["image"], lambda k=kf, s=stamp: _image(store, run, k, s))
+            add(stamp, names["camera_info"],
+                lambda k=kf, s=stamp: _camera_info(store, run, k, s))
     first = min(m[0] for m in messages) * 1e-9
     add(first, "/map", lambda: _cloud(store, first, cloud))
     messages.sort(key=lambda m: m[:2])
@@ -156,6 +161,29 @@ def write_ros2_bag(run: Path, graph: RunGraph, out: Path,
     bag.rmdir()
     return {"messages": len(messages), "frames": sum(len(t) for t in trajectories.values()),
             "keyframes": len(graph.keyframes), "points": len(cloud)}
+
+
+def keyframe_stamps(keyframes: list[RunKeyframe], trajectory: Trajectory, run: Path
+                    ) -> list[float]:
+    """Each keyframe's stamp: the timestamp of its frame in the agent's trajectory file.
+
+    ``graph.json`` keeps a keyframe's time unrounded, the TUM file to the microsecond; taking
+    the file's, an image's stamp is exactly one of ``/tf``'s, so a viewer looking its camera up
+    in ``/tf`` at the last frame does not extrapolate past the last transform.
+
+    Raises:
+        InputError: a keyframe without a tracked frame within :data:`STAMP_TOLERANCE`.
+    """
+    times = trajectory.timestamps
+    stamps = []
+    for kf in keyframes:
+        i = int(np.argmin(np.abs(times - kf.timestamp)))
+        if abs(times[i] - kf.timestamp) > STAMP_TOLERANCE:
+            raise InputError(f"{run}: keyframe {kf.kf_id} of agent {kf.agent} "
+                             f"({kf.timestamp!r} s) has no pose in trajectories/"
+                             f"agent_{kf.agent}.txt")
+        stamps.append(float(times[i]))
+    return stamps
 
 
 def _nanoseconds(stamp: float) -> int:
@@ -230,29 +258,29 @@ def _odometry(store: Any, stamp: float, agent: int, T: np.ndarray, twist: np.nda
             covariance=zero))
 
 
-def _path(store: Any, stamp: float, keyframes: list[RunKeyframe]) -> Any:
+def _path(store: Any, stamp: float, keyframes: list[RunKeyframe], stamps: list[float]) -> Any:
     types = store.types
     poses = [types["geometry_msgs/msg/PoseStamped"](
-        header=_header(store, k.timestamp, MAP_FRAME), pose=_pose(store, k.T_WC[:7]))
-        for k in keyframes]
+        header=_header(store, s, MAP_FRAME), pose=_pose(store, k.T_WC[:7]))
+        for k, s in zip(keyframes, stamps)]
     return types["nav_msgs/msg/Path"](header=_header(store, stamp, MAP_FRAME), poses=poses)
 
 
-def _image(store: Any, run: Path, kf: RunKeyframe) -> Any:
+def _image(store: Any, run: Path, kf: RunKeyframe, stamp: float) -> Any:
     data = read_keyframe_data(run, kf.agent, kf.kf_id)
     data.image()  # readable and of the pointmap's size, else a clear InputError
     return store.types["sensor_msgs/msg/CompressedImage"](
-        header=_header(store, kf.timestamp, camera_frame(kf.agent)), format="png",
+        header=_header(store, stamp, camera_frame(kf.agent)), format="png",
         data=np.frombuffer(data.image_path.read_bytes(), dtype=np.uint8))
 
 
-def _camera_info(store: Any, run: Path, kf: RunKeyframe) -> Any:
+def _camera_info(store: Any, run: Path, kf: RunKeyframe, stamp: float) -> Any:
     pin = keyframe_intrinsics(read_keyframe_data(run, kf.agent, kf.kf_id))
     K = np.array([pin.fx, 0.0, pin.cx, 0.0, pin.fy, pin.cy, 0.0, 0.0, 1.0])
     P = np.array([pin.fx, 0.0, pin.cx, 0.0, 0.0, pin.fy, pin.cy, 0.0, 0.0, 0.0, 1.0, 0.0])
     types = store.types
     return types["sensor_msgs/msg/CameraInfo"](
-        header=_header(store, kf.timestamp, camera_frame(kf.agent)), height=pin.height,
+        header=_header(store, stamp, camera_frame(kf.agent)), height=pin.height,
         width=pin.width, distortion_model="plumb_bob", d=np.zeros(5), k=K, r=np.eye(3).ravel(),
         p=P, binning_x=0, binning_y=0,
         roi=types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
