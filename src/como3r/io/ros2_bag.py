@@ -2,10 +2,10 @@
 
 The bag is a rosbag2 folder (``metadata.yaml`` version 8 and one MCAP file with
 zstd-compressed chunks, CDR messages of the ROS 2 Humble definitions, which Jazzy's are equal
-to) written with ``rosbags``, so it
-plays with ``ros2 bag play DIR`` and opens in Foxglove without a ROS installation here. It
-reads what the other exports read (:mod:`como3r.io.export`) plus the full-rate
-``trajectories/agent_<a>.txt``; nothing of a live run is touched.
+to) written with ``rosbags``, so it plays with ``ros2 bag play DIR`` and opens in Foxglove,
+and no ROS installation is needed to write it. It reads what the other exports read
+(:mod:`como3r.io.export`) plus the full-rate ``trajectories/agent_<a>.txt``; nothing of a live
+run is touched.
 
 **Frames** (REP-103/105 names):
 
@@ -36,7 +36,8 @@ reads what the other exports read (:mod:`como3r.io.export`) plus the full-rate
   ``agent_id`` uint32.
 
 **Stamps** are the input's timestamps as the TUM files hold them (a keyframe's: its frame's,
-:func:`keyframe_stamps`); each message is logged at its stamp. Agents recorded with separate clocks keep their own time bases.
+:func:`keyframe_stamps`); each message is logged at its stamp. Agents recorded with separate
+clocks keep their own time bases.
 """
 
 from __future__ import annotations
@@ -167,7 +168,7 @@ def keyframe_stamps(keyframes: list[RunKeyframe], trajectory: Trajectory, run: P
                     ) -> list[float]:
     """Each keyframe's stamp: the timestamp of its frame in the agent's trajectory file.
 
-    ``graph.json`` keeps a keyframe's time unrounded, the TUM file to the microsecond; taking
+    ``graph.json`` keeps a keyframe's time as read, the TUM file to the microsecond; taking
     the file's, an image's stamp is exactly one of ``/tf``'s, so a viewer looking its camera up
     in ``/tf`` at the last frame does not extrapolate past the last transform.
 
