@@ -428,7 +428,7 @@ def robot_rights(peer: int, robot: int | None) -> list[tuple[list[str], list[str
 
 class LinkWatch:
     """Logs each peer that connects to a team member's session, by its certificate name,
-    and warns of one whose name has no rights here (revoked, or not a peer of this run).
+    and warns of a revoked one (it has no rights here, as a peer not of this run).
     Called with the session once it is open (``ZenohOptions.on_open``).
 
     Args:
@@ -453,9 +453,9 @@ class LinkWatch:
         if name in self.member.revoked:
             logger.warning("%s: refusing every message of %s (%s): its certificate is revoked",
                            self.member.name, name, event.link.dst)
-        elif name not in self.admitted:
-            logger.warning("%s: refusing every message of %s (%s): not a peer of this run",
-                           self.member.name, name, event.link.dst)
+        elif name not in self.admitted:  # e.g. another agent, found by gossip: no threat
+            logger.info("%s: refusing every message of %s (%s): not a peer of this run",
+                        self.member.name, name, event.link.dst)
         else:
             logger.info("%s: %s connected (%s)", self.member.name, name, event.link.dst)
 
@@ -471,7 +471,9 @@ def network_options(member: Member, listen: Iterable[str], connect: Iterable[str
     listen, connect = team_endpoints(listen), team_endpoints(connect)
     settings = zenoh_settings(member, peers)
     if not listen:  # Zenoh's default is a plain TCP port, which a team does not speak
-        settings["listen/endpoints"] = []
+        # robots: a TLS port of the system's choosing, which gossip tells their peers of so
+        # that they connect directly, as without a team; an agent needs only its coordinator
+        settings["listen/endpoints"] = ["tls/[::]:0"] if member.role == "robot" else []
     return ZenohOptions(listen, connect, scouting, config_file, session,
                         tuple((path, json.dumps(value)) for path, value in settings.items()),
                         member.name, LinkWatch(member, admitted(settings)))
