@@ -82,7 +82,8 @@ def _network(listen: List[str], connect: List[str], scouting: bool,
     """The Zenoh options of a networked command: a team member's (``team``: its folder,
     checked to hold a certificate of ``role`` and ``member_id``; ``peers`` agents or robots)
     or, with one warning line, an open network's."""
-    from como3r.runtime import team as teams
+    from como3r.runtime.team import check_role, load_member
+    from como3r.runtime.team_access import network_options
     from como3r.runtime.transport_zenoh import ZenohOptions
 
     if zenoh_config is not None and not zenoh_config.is_file():
@@ -90,10 +91,9 @@ def _network(listen: List[str], connect: List[str], scouting: bool,
     if team is None:
         err_console.print(OPEN_NETWORK, style="yellow", highlight=False, soft_wrap=True)
         return ZenohOptions(tuple(listen), tuple(connect), scouting, zenoh_config, session)
-    member = teams.load_member(team)
-    teams.check_role(member, role, member_id)
-    return teams.network_options(member, listen, connect, scouting, zenoh_config, session,
-                                 peers)
+    member = load_member(team)
+    check_role(member, role, member_id)
+    return network_options(member, listen, connect, scouting, zenoh_config, session, peers)
 
 
 def _prior_spec(prior: str, weights: Optional[Path], retrieval_weights: Optional[Path],

@@ -1,8 +1,9 @@
-"""A team that admits only the team (runtime/team.py, ``como3r team``, ``--team``): the
-authority and member folders, then on loopback TLS: members are admitted; a peer without a
-certificate, with another team's, with an expired or a revoked one changes nothing; a valid
-member writing under another member's id changes nothing and is logged; a team run merges
-as before; without --team a networked command says once that the network is open."""
+"""A team that admits only the team (runtime/team.py, team_access.py, ``como3r team``,
+``--team``): the authority and member folders, then on loopback TLS: members are admitted;
+a peer without a certificate, with another team's, with an expired or a revoked one changes
+nothing; a valid member writing under another member's id changes nothing and is logged; a
+team run merges as before; without --team a networked command says once that the network
+is open."""
 
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ from como3r.decentralized.protocol import Schedule
 from como3r.errors import InputError
 from como3r.runtime import codec
 from como3r.runtime import team as teams
+from como3r.runtime import team_access as access
 from como3r.runtime.messages import AgentStarted, AgentTask
 from como3r.runtime.transport import Received, Rejected
 from como3r.runtime.transport_zenoh import Keys, ZenohHub, ZenohOptions, open_session
@@ -105,8 +107,8 @@ def test_bad_team_requests_are_clear_errors(crew, tmp_path):
     with pytest.raises(InputError, match="this command runs agent-1"):
         teams.check_role(teams.load_member(crew / "cam0"), "agent", 1)
     with pytest.raises(InputError, match="only TLS"):
-        teams.team_endpoints(["udp/127.0.0.1:7447"])
-    assert teams.team_endpoints(["tcp/10.0.0.1:7447", "tls/h:1"]) == ("tls/10.0.0.1:7447",
+        access.team_endpoints(["udp/127.0.0.1:7447"])
+    assert access.team_endpoints(["tcp/10.0.0.1:7447", "tls/h:1"]) == ("tls/10.0.0.1:7447",
                                                                       "tls/h:1")
 
 
@@ -120,7 +122,7 @@ def test_revoking_a_member_updates_the_team_and_its_member_folders(tmp_path):
     assert teams.load_member(root / "base").revoked == {"agent-0"}
     with pytest.raises(InputError, match="revoked"):
         teams.load_member(root / "cam0")
-    rules = teams.access_control(teams.load_member(root / "base"), peers=2)
+    rules = access.access_control(teams.load_member(root / "base"), peers=2)
     assert [s["cert_common_names"] for s in rules["subjects"]] == [["agent-1"]]
 
 
@@ -148,7 +150,7 @@ class _Hub:
         port, self.name = free_port(), f"t{uuid.uuid4().hex[:8]}"
         self.endpoint = f"tls/127.0.0.1:{port}"
         member = teams.load_member(folder or crew / "base")
-        self.session = open_session(teams.network_options(member, [self.endpoint], [], False,
+        self.session = open_session(access.network_options(member, [self.endpoint], [], False,
                                                           None, self.name, peers=2))
         self.hub = ZenohHub(self.session, Keys(self.name), 2, codec.DEFAULT_MAX_BYTES, 2.0,
                             certified=True)
@@ -174,7 +176,7 @@ class _Hub:
     def join(self, folder: Path, check_validity: bool = True):
         """A session of the member in ``folder`` connected to this hub."""
         member = teams.load_member(folder, check_validity)
-        return member, open_session(teams.network_options(member, [], [self.endpoint], False,
+        return member, open_session(access.network_options(member, [], [self.endpoint], False,
                                                           None, self.name))
 
     def close(self) -> None:
@@ -203,7 +205,7 @@ def test_members_are_admitted_and_a_member_writing_under_another_id_changes_noth
     hub = _Hub(crew)
     sessions = []
     try:
-        with caplog.at_level(logging.INFO, logger="como3r.runtime.team"):
+        with caplog.at_level(logging.INFO, logger="como3r.runtime.team_access"):
             member, session = hub.join(crew / "cam0")
             sessions.append(session)
             link = ZenohAgentLink(session, Keys(hub.name, member.name), 0)
@@ -248,7 +250,7 @@ def test_peers_without_a_valid_certificate_change_nothing(crew, strangers, tmp_p
         plain = open_session(ZenohOptions(connect=(hub.endpoint.replace("tls/", "tcp/"),),
                                           session=hub.name))
         sessions.append(plain)
-        with caplog.at_level(logging.WARNING, logger="como3r.runtime.team"):
+        with caplog.at_level(logging.WARNING, logger="como3r.runtime.team_access"):
             for folder, check in [(strangers / "cam0", True), (crew / "late", False),
                                   (crew / "cam1", True)]:
                 sessions.append(hub.join(folder, check)[1])
@@ -274,9 +276,9 @@ def test_a_robot_writing_under_another_robots_id_changes_nothing_and_is_logged(c
     port, name = free_port(), f"t{uuid.uuid4().hex[:8]}"
     endpoint = f"tls/127.0.0.1:{port}"
     members = [teams.load_member(crew / f"r{robot}") for robot in range(3)]
-    sessions = [open_session(teams.network_options(members[0], [endpoint], [], False, None,
+    sessions = [open_session(access.network_options(members[0], [endpoint], [], False, None,
                                                    name, peers=3))]
-    sessions += [open_session(teams.network_options(member, [], [endpoint], False, None, name,
+    sessions += [open_session(access.network_options(member, [], [endpoint], False, None, name,
                                                     peers=3)) for member in members[1:]]
     schedule = Schedule()
     links = [ZenohRobotLink(sessions[r], RobotKeys(name, members[r].name), r, 2,
@@ -340,7 +342,7 @@ def test_a_team_run_merges_as_before_and_logs_what_it_refused(tiny_scene, crew, 
     plain = open_session(ZenohOptions(connect=(team.endpoint,), session=team.session))
     member, forger = teams.load_member(crew / "cam0"), None
     try:
-        forger = open_session(teams.network_options(member, [], [endpoint], False, None,
+        forger = open_session(access.network_options(member, [], [endpoint], False, None,
                                                     team.session))
         deadline = time.monotonic() + 240
         while not any(r.ok is not None for r in forger.liveliness().get(

@@ -89,11 +89,12 @@ class ZenohOptions:
             top of it.
         session: the run's name in every key expression (several runs on one network).
         settings: Zenoh configuration entries ``(path, JSON value)`` set last: a team
-            member's mutual TLS and access control (:func:`como3r.runtime.team.zenoh_settings`).
+            member's mutual TLS and access control
+            (:func:`como3r.runtime.team_access.zenoh_settings`).
         member: a team member's certificate name (its message keys end in it); None: an
             open network.
         on_open: called with the session once it is open (a team member's watch on who
-            connects, :class:`como3r.runtime.team.LinkWatch`).
+            connects, :class:`como3r.runtime.team_access.LinkWatch`).
     """
 
     listen: tuple[str, ...] = ()
@@ -253,7 +254,7 @@ class ZenohHub:
         grace_s: how long :meth:`stop` waits for its last sends.
         certified: a team run: a message counts only if its key ends in the certificate
             name of the agent it claims to come from (Zenoh's access control makes that
-            name its sender's, :mod:`como3r.runtime.team`).
+            name its sender's, :mod:`como3r.runtime.team_access`).
     """
 
     name = "zenoh"

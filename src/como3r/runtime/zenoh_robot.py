@@ -23,10 +23,10 @@ congestion control ``BLOCK``, from a background thread, so the robot never waits
 network). The receiver decodes it (size-capped and validated by
 :mod:`como3r.runtime.codec`), checks that it names this robot as recipient and the sender
 its key names (in a team run, also the certificate name the key ends in, which Zenoh's
-access control makes the sender's: :mod:`como3r.runtime.team`), and applies the **link
-filter**: a message its sender sent at mission time
-``t`` is dropped unless the receiver hears the sender at ``t``
-(:meth:`~como3r.decentralized.protocol.Schedule.hears`), as radio range would drop it.
+access control makes the sender's: :mod:`como3r.runtime.team_access`), and applies the
+**link filter**: a message its sender sent at mission time ``t`` is dropped unless the
+receiver hears the sender at ``t`` (:meth:`~como3r.decentralized.protocol.Schedule.hears`),
+as radio range would drop it.
 Drops and invalid messages are logged and counted, never fatal.
 
 A peer whose liveliness token goes (its process ended, or its link was lost for longer than
