@@ -44,8 +44,10 @@ def add(
     valid_days: float = typer.Option(365.0, "--valid-days", min=0.001,
                                      help="How long its certificate is valid."),
 ) -> None:
-    """Write the member folder TEAM/NAME: its key, its certificate (role and id), the
-    authority's certificate and the revocation list; copy it to the member's machine."""
+    """Write the member folder TEAM/NAME, all one machine needs.
+
+    Its key, its certificate (role and id), the authority's certificate and the revocation
+    list, readable by their owner only; copy the folder to the member's machine."""
     from como3r.runtime.team import add_member, load_member
 
     folder = add_member(team, name, role, member_id, valid_days)
@@ -62,9 +64,9 @@ def revoke(
     name: str = typer.Argument(..., metavar="NAME", show_default=False,
                                help="The member to revoke."),
 ) -> None:
-    """Revoke member NAME: its role and id get no rights in the team any more. Copy the
-    updated revoked.txt to the other members' machines (their folders under TEAM are
-    updated)."""
+    """Revoke member NAME: its role and id get no rights in the team any more.
+
+    The member folders under TEAM get the new revoked.txt; copy it to their machines."""
     from como3r.runtime.team import revoke_member
 
     updated = revoke_member(team, name)
