@@ -238,7 +238,8 @@ def test_members_are_admitted_and_a_member_writing_under_another_id_changes_noth
         hub.close()
 
 
-def test_peers_without_a_valid_certificate_change_nothing(crew, strangers, tmp_path, caplog):
+def test_peers_without_a_valid_certificate_change_nothing(crew, strangers, tmp_path, caplog,
+                                                          capfd):
     revoking = tmp_path / "base"  # the coordinator's folder with agent 1 revoked
     revoking.mkdir()
     for file in teams.MEMBER_FILES:
@@ -250,6 +251,13 @@ def test_peers_without_a_valid_certificate_change_nothing(crew, strangers, tmp_p
         plain = open_session(ZenohOptions(connect=(hub.endpoint.replace("tls/", "tcp/"),),
                                           session=hub.name))
         sessions.append(plain)
+        # TLS that trusts the team's authority but shows no certificate of its own
+        anonymous = {"transport/link/protocols": ["tls"], "listen/endpoints": [],
+                     "transport/link/tls": {"root_ca_certificate": str(crew / teams.CA_CERT),
+                                            "verify_name_on_connect": False}}
+        sessions.append(open_session(ZenohOptions(
+            connect=(hub.endpoint,), session=hub.name,
+            settings=tuple((k, json.dumps(v)) for k, v in anonymous.items()))))
         with caplog.at_level(logging.WARNING, logger="como3r.runtime.team_access"):
             for folder, check in [(strangers / "cam0", True), (crew / "late", False),
                                   (crew / "cam1", True)]:
@@ -266,6 +274,10 @@ def test_peers_without_a_valid_certificate_change_nothing(crew, strangers, tmp_p
         # the TLS handshake refused all but the revoked member, whom access control refuses
         connected = {link.auth_identifier for link in hub.session.info.links()}
         assert connected == {"agent-1"}
+        logged = capfd.readouterr().out  # Zenoh's own log (its TLS layer's warnings)
+        for refusal in ("received corrupt message", "peer sent no certificates",
+                        "UnknownCA", "certificate expired"):
+            assert refusal in logged, refusal
     finally:
         for session in sessions:
             session.close()
