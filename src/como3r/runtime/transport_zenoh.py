@@ -282,10 +282,10 @@ class ZenohHub:
 
     def _on_sample(self, sample: Any) -> None:
         key, size = str(sample.key_expr), len(sample.payload)
-        agent = self.keys.agent_of(key)
-        if self.certified and self.keys.sender_of(key) != f"agent-{agent}":
+        agent, sender = self.keys.agent_of(key), self.keys.sender_of(key)
+        if self.certified and sender != f"agent-{agent}":
             self._inbox.put(("reject", agent, f"sent under agent {agent}'s id by the holder "
-                                              f"of certificate {self.keys.sender_of(key)}"))
+                                              f"of certificate {sender}"))
             return
         if size > self.max_bytes:  # not even copied
             self._inbox.put(("reject", agent, f"message of {size} bytes exceeds the cap of "

@@ -92,7 +92,8 @@ class RobotKeys:
         return f"{self.robot(recipient)}/from/**"
 
     def robot_of(self, key: str, field_index: int = 0) -> str:
-        """Field ``field_index`` after the root (0: the robot; 2: a message's sender)."""
+        """Field ``field_index`` after the root (0: the robot; 2: a message's sender; 3: its
+        certificate name in a team run)."""
         parts = key[len(self.root) + 1:].split("/")
         return parts[field_index] if len(parts) > field_index else ""
 
@@ -224,10 +225,9 @@ class ZenohRobotLink:
         if data is None:
             gone = self.keys.robot_of(key)
             return PeerLeft(int(gone)) if gone.isdigit() and int(gone) != self.robot else None
-        claimed = self.keys.robot_of(key, 2)
-        if self.certified and self.keys.robot_of(key, 3) != f"robot-{claimed}":
-            self._invalid(claimed, f"sent by the holder of certificate "
-                                   f"{self.keys.robot_of(key, 3) or '(none)'}")
+        claimed, certificate = self.keys.robot_of(key, 2), self.keys.robot_of(key, 3)
+        if self.certified and certificate != f"robot-{claimed}":
+            self._invalid(claimed, f"sent by the holder of certificate {certificate or '(none)'}")
             return None
         if isinstance(data, int):
             self._invalid(claimed, f"message of {data} bytes exceeds the cap of "
