@@ -284,32 +284,44 @@ def test_peers_without_a_valid_certificate_change_nothing(crew, strangers, tmp_p
         hub.close()
 
 
+def _each(links: list[ZenohRobotLink], call) -> list:
+    """``call(link)`` for every link, concurrently; what each returned."""
+    results: list = [None] * len(links)
+
+    def run(k: int) -> None:
+        results[k] = call(links[k])
+
+    threads = [threading.Thread(target=run, args=(k,), daemon=True) for k in range(len(links))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(WAIT_S)
+    return results
+
+
 def test_a_robot_writing_under_another_robots_id_changes_nothing_and_is_logged(crew, caplog):
     port, name = free_port(), f"t{uuid.uuid4().hex[:8]}"
     endpoint = f"tls/127.0.0.1:{port}"
     members = [teams.load_member(crew / f"r{robot}") for robot in range(3)]
-    sessions = [open_session(access.network_options(members[0], [endpoint], [], False, None,
-                                                   name, peers=3))]
-    sessions += [open_session(access.network_options(member, [], [endpoint], False, None, name,
-                                                    peers=3)) for member in members[1:]]
+    # robots 1 and 2 give only robot 0's endpoint: they meet each other through gossip, on
+    # a TLS port of the system's choosing, as they do without a team
+    sessions = [open_session(access.network_options(
+        member, [endpoint] if member.member_id == 0 else [],
+        [] if member.member_id == 0 else [endpoint], False, None, name, peers=3))
+        for member in members]
     schedule = Schedule()
-    links = [ZenohRobotLink(sessions[r], RobotKeys(name, members[r].name), r, 2,
+    links = [ZenohRobotLink(sessions[r], RobotKeys(name, members[r].name), r, 3,
                             RobotHello(robot=r, end_s=2.0, plan="p"), schedule.hears, 2**16,
-                            certified=True) for r in (0, 1)]
+                            certified=True) for r in range(3)]
     try:
-        # robots 1 and 2 gave no endpoint to listen on, yet connect directly (on a TLS port
-        # of the system's choosing, which gossip tells them of), as they do without a team
-        deadline = time.monotonic() + WAIT_S
-        while "robot-2" not in {link.auth_identifier for link in sessions[1].info.links()}:
-            assert time.monotonic() < deadline, "robots 1 and 2 never connected"
-            time.sleep(0.05)
+        hellos = _each(links, lambda link: link.meet_team(wait_log_s=5.0))
+        assert [sorted(h) for h in hellos] == [[0, 1, 2]] * 3
         with caplog.at_level(logging.WARNING):
             # robot 2 (valid, but not robot 1) sends robot 0 a message as robot 1: first with
             # its own name at the end of the key (dropped and logged by robot 0), then with
             # robot 1's (dropped by robot 0's access control)
             forged = codec.encode(EncodingRequest(sender=1, recipient=0, round=0, time_s=0.5,
                                                   keyframes=[3]))
-            time.sleep(QUIET_S)
             for sender in ("robot-2", "robot-1"):
                 sessions[2].put(RobotKeys(name, sender).messages(0, 1), forged,
                                 congestion_control=zenoh.CongestionControl.BLOCK)
@@ -320,6 +332,11 @@ def test_a_robot_writing_under_another_robots_id_changes_nothing_and_is_logged(c
         assert links[0].traffic.invalid == 1
         assert "robot 0: dropped a message under robot '1''s key: sent by the holder of " \
                "certificate robot-2" in caplog.text
+        between = EncodingRequest(sender=2, recipient=1, round=0, time_s=0.5, keyframes=[5])
+        links[2].send(between)  # robots 1 and 2 talk directly
+        assert links[1].receive(WAIT_S) == between
+        _each(links, lambda link: link.finish([0, 1, 2], timeout=WAIT_S))
+        assert "leaving before" not in caplog.text  # each saw the others' done tokens
     finally:
         for session in sessions:
             session.close()
