@@ -26,6 +26,7 @@ from como3r.cli_common import (
     user_errors,
 )
 from como3r.cli_progress import QUIET_HELP, run_progress
+from como3r.cli_team import team_app
 from como3r.cli_viewer import VIEWER_HELP, ViewerCommand, check_viewer_option, live_viewer
 from como3r.cli_weights import weights_app
 from como3r.errors import InputError
@@ -36,6 +37,7 @@ if TYPE_CHECKING:
 app = typer.Typer(cls=OneLineErrorsGroup, add_completion=False, no_args_is_help=True,
                   help="Collaborative monocular dense SLAM with a learned two-view 3D prior.")
 app.add_typer(weights_app, name="weights")
+app.add_typer(team_app, name="team")
 
 
 @app.callback()

@@ -11,7 +11,13 @@ from typing import Annotated, Any, Callable, List, Optional, TypeVar
 
 import typer
 
-from como3r.cli_common import console, interrupt_leaves_nothing, on_interrupt, user_errors
+from como3r.cli_common import (
+    console,
+    err_console,
+    interrupt_leaves_nothing,
+    on_interrupt,
+    user_errors,
+)
 from como3r.cli_progress import QUIET_HELP, run_progress
 from como3r.errors import InputError
 
@@ -53,6 +59,11 @@ ZenohConfigOption = Annotated[Optional[Path], typer.Option(
     "--zenoh-config", metavar="FILE",
     help="Zenoh configuration file (JSON5) to start from: TLS, authentication, access "
          "control as Zenoh documents them; the options here are set on top of it.")]
+TeamOption = Annotated[Optional[Path], typer.Option(
+    "--team", metavar="TEAM/NAME",
+    help="This machine's member folder (como3r team add): speak only mutual TLS with the "
+         "team's certificates, under access control from them (tcp/ endpoints are taken "
+         "as tls/). Without it the network is open to anyone who can reach it.")]
 OutOption = Annotated[Path, typer.Option("--out", help="Output folder.")]
 OverwriteOption = Annotated[bool, typer.Option("--overwrite",
                                                help="Replace an existing folder.")]
@@ -61,13 +72,29 @@ InputArgument = Annotated[Path, typer.Argument(
     metavar="PATH", show_default=False, help="This process's input (as como3r run --agent).")]
 
 
+#: the one line a networked command prints without --team
+OPEN_NETWORK = ("warning: open network: anyone who can reach these endpoints can join this "
+                "run and write into its map (make a team: como3r team init / add, then --team)")
+
+
 def _network(listen: List[str], connect: List[str], scouting: bool,
-             zenoh_config: Optional[Path], session: str):
+             zenoh_config: Optional[Path], session: str, team: Optional[Path] = None,
+             role: str = "", member_id: Optional[int] = None, peers: Optional[int] = None):
+    """The Zenoh options of a networked command: a team member's (``team``: its folder,
+    checked to hold a certificate of ``role`` and ``member_id``; ``peers`` agents or robots)
+    or, with one warning line, an open network's."""
+    from como3r.runtime.team import check_role, load_member
+    from como3r.runtime.team_access import network_options
     from como3r.runtime.transport_zenoh import ZenohOptions
 
     if zenoh_config is not None and not zenoh_config.is_file():
         raise InputError(f"--zenoh-config {zenoh_config}: no such file")
-    return ZenohOptions(tuple(listen), tuple(connect), scouting, zenoh_config, session)
+    if team is None:
+        err_console.print(OPEN_NETWORK, style="yellow", highlight=False, soft_wrap=True)
+        return ZenohOptions(tuple(listen), tuple(connect), scouting, zenoh_config, session)
+    member = load_member(team)
+    check_role(member, role, member_id)
+    return network_options(member, listen, connect, scouting, zenoh_config, session, peers)
 
 
 def _prior_spec(prior: str, weights: Optional[Path], retrieval_weights: Optional[Path],
@@ -152,6 +179,7 @@ def coordinator(
     session: SessionOption = "como3r",
     scouting: ScoutingOption = False,
     zenoh_config: ZenohConfigOption = None,
+    team: TeamOption = None,
     overwrite: OverwriteOption = False,
     resume: bool = typer.Option(
         False, "--resume",
@@ -170,7 +198,8 @@ def coordinator(
     from como3r.runtime.network import serve
     from como3r.runtime.processes import RuntimeOptions
 
-    network = _network(listen, connect, scouting, zenoh_config, session)
+    network = _network(listen, connect, scouting, zenoh_config, session, team, "coordinator",
+                       peers=agents)
     check_output_dir(out, overwrite, resume)
     config = _load_config(config_file, overrides, calib, no_loop_closure)
     if resume:
@@ -205,6 +234,7 @@ def agent(
     session: SessionOption = "como3r",
     scouting: ScoutingOption = False,
     zenoh_config: ZenohConfigOption = None,
+    team: TeamOption = None,
 ) -> None:
     """Track one camera for a coordinator on another machine (como3r coordinator).
 
@@ -215,7 +245,8 @@ def agent(
 
     if not connect and not scouting:
         raise InputError("give the coordinator's --connect tcp/HOST:PORT (or --scouting)")
-    network = _network(listen, connect, scouting, zenoh_config, session)
+    network = _network(listen, connect, scouting, zenoh_config, session, team, "agent",
+                       agent_id)
     if spill_dir is not None and not spill_dir.is_dir():
         raise InputError(f"--spill-dir {spill_dir}: no such folder")
     if not run_remote_agent(network, agent_id, path, prior_spec, threads,
@@ -249,6 +280,7 @@ def robot(
     session: SessionOption = "como3r",
     scouting: ScoutingOption = False,
     zenoh_config: ZenohConfigOption = None,
+    team: TeamOption = None,
     overwrite: OverwriteOption = False,
     quiet: QuietOption = False,
 ) -> None:
@@ -266,7 +298,8 @@ def robot(
                          "robots can find each other")
     if not path.exists():
         raise InputError(f"{path}: robot input does not exist")
-    network = _network(listen, connect, scouting, zenoh_config, session)
+    network = _network(listen, connect, scouting, zenoh_config, session, team, "robot",
+                       robot_id, robots)
     config = _load_config(config_file, overrides, calib, False)
     plan = read_schedule(schedule) if schedule is not None else None
     with run_progress(quiet) as shown:

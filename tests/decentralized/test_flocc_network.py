@@ -10,6 +10,7 @@ import socket
 import subprocess
 import sys
 import uuid
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,6 +21,7 @@ from como3r.decentralized.protocol import read_schedule, run_protocol
 from como3r.decentralized.runner import open_robot
 from como3r.io.tum import read_tum
 from como3r.runtime.pipeline import PriorSpec
+from como3r.runtime.team import add_member, init_team
 
 pytest.importorskip("zenoh")
 
@@ -34,19 +36,17 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-@pytest.fixture(scope="module")
-def mission(scene, main_config, settings_factory, tmp_path_factory):
-    """Three robot processes on the shared scene with :data:`SCHEDULE`; their output folders
-    and metrics, and the one-process run of the same mission."""
-    tmp = tmp_path_factory.mktemp("robots")
-    config = dataclasses.replace(main_config,
-                                 decentralized=settings_factory(keyframe_distance_ratio=0.45))
+def _run_robots(scene, config, tmp, team: Path | None = None) -> list[dict]:
+    """Three robot processes on ``scene`` with :data:`SCHEDULE` (``team``: each with its
+    member folder ``team/r<K>``); their metrics."""
     (tmp / "config.yaml").write_text(yaml.safe_dump(config_to_dict(config)))
     (tmp / "schedule.csv").write_text(SCHEDULE)
     endpoint, session = f"tcp/127.0.0.1:{_free_port()}", f"t{uuid.uuid4().hex[:12]}"
     processes = []
     for robot in range(3):
         network = ["--listen", endpoint] if robot == 0 else ["--connect", endpoint]
+        if team is not None:
+            network += ["--team", str(team / f"r{robot}")]
         log = open(tmp / f"robot{robot}.log", "w")
         processes.append(subprocess.Popen(
             [sys.executable, "-m", "como3r.cli", "robot", str(scene[robot]), "--id", str(robot),
@@ -63,7 +63,21 @@ def mission(scene, main_config, settings_factory, tmp_path_factory):
                 p.kill()
     for robot, code in enumerate(codes):
         assert code == 0, (tmp / f"robot{robot}.log").read_text()
-    metrics = [json.loads((tmp / f"out{r}" / "metrics.json").read_text()) for r in range(3)]
+    return [json.loads((tmp / f"out{r}" / "metrics.json").read_text()) for r in range(3)]
+
+
+def _config(main_config, settings_factory):
+    return dataclasses.replace(main_config,
+                               decentralized=settings_factory(keyframe_distance_ratio=0.45))
+
+
+@pytest.fixture(scope="module")
+def mission(scene, main_config, settings_factory, tmp_path_factory):
+    """Three robot processes on the shared scene with :data:`SCHEDULE`; their output folders
+    and metrics, and the one-process run of the same mission."""
+    tmp = tmp_path_factory.mktemp("robots")
+    config = _config(main_config, settings_factory)
+    metrics = _run_robots(scene, config, tmp)
     end_s = max(float(open_robot(p, config).odometry.timestamps[-1]) for p in scene)
     reference = run_protocol([str(p) for p in scene], config, config.decentralized,
                              PriorSpec("simulated"), end_s, read_schedule(tmp / "schedule.csv"))
@@ -104,3 +118,25 @@ def test_robot_processes_give_the_one_process_result(mission, scene):
         trajectory = read_tum(tmp / f"out{robot}" / "trajectories" / f"agent_{robot}.txt")
         assert len(trajectory) == len(read_tum(scene[robot] / "odometry.txt"))
     assert sum(len(r.loops) for r in reference.reports.values()) > 0
+
+
+def test_a_team_of_robots_gives_the_open_networks_result(mission, scene, main_config,
+                                                         settings_factory, tmp_path_factory):
+    """The same mission with --team (mutual TLS, access control, robots 1 and 2 meeting
+    through gossip on TLS ports): the same loops, frames and bytes."""
+    tmp = tmp_path_factory.mktemp("team_robots")
+    init_team(tmp / "team")
+    for robot in range(3):
+        add_member(tmp / "team", f"r{robot}", "robot", robot)
+    metrics = _run_robots(scene, _config(main_config, settings_factory), tmp, tmp / "team")
+    open_tmp, open_metrics, _ = mission
+    for robot, (m, reference) in enumerate(zip(metrics, open_metrics)):
+        assert m["frame"] == reference["frame"] and m["rounds"] == reference["rounds"]
+        assert m["bytes"]["sent"] == reference["bytes"]["sent"]
+        assert m["bytes"]["received"] == reference["bytes"]["received"]
+        assert m["bytes"]["invalid"] == 0
+        graphs = [json.loads((folder / f"out{robot}" / "graph.json").read_text())
+                  for folder in (tmp, open_tmp)]
+        team_loops, open_loops = ([e for e in g["edges"] if e["accepted"]] for g in graphs)
+        assert team_loops == open_loops
+        assert "open network" not in (tmp / f"robot{robot}.log").read_text()

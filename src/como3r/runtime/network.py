@@ -66,7 +66,7 @@ def serve(network: ZenohOptions, agents: int, out: Path, config: Config, prior_s
     session = open_session(network)
     try:
         hub = ZenohHub(session, keys, agents, options.max_message_bytes,
-                       options.shutdown_grace_s)
+                       options.shutdown_grace_s, certified=network.member is not None)
         logger.info("coordinator of %s listening on %s", keys.root, ", ".join(network.listen))
         return coordinate(hub, [None] * agents, [0] * agents, out, config, prior_spec, options,
                           inputs=inputs, overwrite=overwrite, progress=progress, resume=resume,
@@ -103,7 +103,7 @@ def run_remote_agent(network: ZenohOptions, agent: int, path: Path, prior_spec: 
     session = open_session(network)
     try:
         spool = Spool(queue_memory_bytes, spill_dir, label=f"agent-{agent}")
-        link = ZenohAgentLink(session, Keys(network.session), agent, spool)
+        link = ZenohAgentLink(session, Keys(network.session, network.member), agent, spool)
         task = link.fetch_task()
         if task.prior["name"] != prior_spec.name:
             link.close()

@@ -116,9 +116,10 @@ def run_robot(network: ZenohOptions, robot: int, team: int, path: Path, out: Pat
     started = time.perf_counter()
     session = open_session(network)
     try:
-        link = ZenohRobotLink(session, RobotKeys(network.session), robot, team, hello,
-                              schedule.hears, int(settings.protocol.max_message_mb * 2**20),
-                              adapter)
+        link = ZenohRobotLink(session, RobotKeys(network.session, network.member), robot, team,
+                              hello, schedule.hears,
+                              int(settings.protocol.max_message_mb * 2**20), adapter,
+                              certified=network.member is not None)
         worker = make_robot(robot, str(path), prior, codebook, config, settings, link, None)
         end_s = max(h.end_s for h in link.meet_team().values())
         rounds = [plan for plan in plan_rounds(schedule, range(team), end_s,

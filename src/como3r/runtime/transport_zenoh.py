@@ -10,7 +10,8 @@ Key expressions name the session, the agent and the message kind::
     como3r/<session>/agent/<a>/task           queryable: agent a's AgentTask; the query's
                                               attachment <Q: the asking process's incarnation
     como3r/<session>/agent/<a>/up/<Type>      agent -> coordinator; attachment <QQ:
-                                              incarnation, seq
+                                              incarnation, seq; in a team run the key
+                                              ends in /<sender's certificate name>
     como3r/<session>/agent/<a>/down/<Type>    coordinator -> agent; attachment <Q: the
                                               incarnation it is meant for
     como3r/<session>/agent/<a>/ack            coordinator -> agent <QQ: incarnation, the
@@ -57,7 +58,7 @@ import threading
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from como3r.errors import InputError
 from como3r.runtime import codec
@@ -70,6 +71,8 @@ SEQ = struct.Struct("<QQ")  # incarnation, sequence number
 INCARNATION = struct.Struct("<Q")
 #: the start of a task query's error that means "ask again later", not "give up"
 WAIT = "wait: "
+#: Zenoh's own log in a team run: its TLS layer's refusals (not its name-check notice)
+ZENOH_TEAM_LOG = "error,zenoh_link_tls=warn,zenoh_link_tls::utils=error"
 
 
 @dataclass(frozen=True)
@@ -85,6 +88,13 @@ class ZenohOptions:
             control, authentication as Zenoh documents them. The options above are set on
             top of it.
         session: the run's name in every key expression (several runs on one network).
+        settings: Zenoh configuration entries ``(path, JSON value)`` set last: a team
+            member's mutual TLS and access control
+            (:func:`como3r.runtime.team_access.zenoh_settings`).
+        member: a team member's certificate name (its message keys end in it); None: an
+            open network.
+        on_open: called with the session once it is open (a team member's watch on who
+            connects, :class:`como3r.runtime.team_access.LinkWatch`).
     """
 
     listen: tuple[str, ...] = ()
@@ -92,6 +102,9 @@ class ZenohOptions:
     scouting: bool = False
     config_file: Path | None = None
     session: str = "como3r"
+    settings: tuple[tuple[str, str], ...] = ()
+    member: str | None = None
+    on_open: Callable[[Any], None] | None = field(default=None, compare=False)
 
 
 def open_session(options: ZenohOptions) -> Any:
@@ -111,19 +124,27 @@ def open_session(options: ZenohOptions) -> Any:
             config.insert_json5("listen/endpoints", json.dumps(list(options.listen)))
         if options.connect:
             config.insert_json5("connect/endpoints", json.dumps(list(options.connect)))
-        return zenoh.open(config)
+        for path, value in options.settings:
+            config.insert_json5(path, value)
+        if options.settings:  # Zenoh logs the peers its TLS handshake refuses, and why
+            zenoh.init_log_from_env_or(ZENOH_TEAM_LOG)
+        session = zenoh.open(config)
     except zenoh.ZError as exc:
         where = f" ({options.config_file})" if options.config_file is not None else ""
         raise InputError(f"zenoh{where}: {' '.join(str(exc).split())}") from None
+    if options.on_open is not None:
+        options.on_open(session)
+    return session
 
 
 class Keys:
     """The key expressions of one session (see the module docstring)."""
 
-    def __init__(self, session: str) -> None:
+    def __init__(self, session: str, member: str | None = None) -> None:
         if not session or any(c in session for c in "/*$?#"):
             raise InputError(f"session name {session!r}: use letters, digits, - and _")
         self.root = f"como3r/{session}"
+        self.member = member  # this process's certificate name in a team run
 
     def coordinator(self) -> str:
         return f"{self.root}/coordinator"
@@ -135,7 +156,17 @@ class Keys:
         return f"{self.agent(agent)}/task"
 
     def up(self, agent: int | str, kind: str) -> str:
-        return f"{self.agent(agent)}/up/{kind}"
+        key = f"{self.agent(agent)}/up/{kind}"
+        return key if self.member is None else f"{key}/{self.member}"
+
+    def up_all(self) -> str:
+        """Every agent's messages to the coordinator, team run or not."""
+        return f"{self.agent('*')}/up/**"
+
+    def sender_of(self, key: str) -> str | None:
+        """The certificate name a message key under ``up/`` ends in (None: none)."""
+        parts = key[len(self.root) + len("/agent/"):].split("/")
+        return parts[3] if len(parts) > 3 else None
 
     def down(self, agent: int | str, kind: str) -> str:
         return f"{self.agent(agent)}/down/{kind}"
@@ -221,13 +252,17 @@ class ZenohHub:
         agents: agent ids ``0 .. agents-1`` take part; others are logged and dropped.
         max_bytes: size cap of one message.
         grace_s: how long :meth:`stop` waits for its last sends.
+        certified: a team run: a message counts only if its key ends in the certificate
+            name of the agent it claims to come from (Zenoh's access control makes that
+            name its sender's, :mod:`como3r.runtime.team_access`).
     """
 
     name = "zenoh"
 
     def __init__(self, session: Any, keys: Keys, agents: int, max_bytes: int,
-                 grace_s: float) -> None:
+                 grace_s: float, certified: bool = False) -> None:
         self.session, self.keys, self.agents = session, keys, agents
+        self.certified = certified
         self.max_bytes, self.grace_s = max_bytes, grace_s
         self._traffic = [Traffic() for _ in range(agents)]
         self._holders = [_Holder() for _ in range(agents)]
@@ -237,7 +272,7 @@ class ZenohHub:
         self._backlog: deque[tuple[Any, ...]] = deque()
         self._sender = Sender(session)
         self._declared = [
-            session.declare_subscriber(keys.up("*", "*"), self._on_sample),
+            session.declare_subscriber(keys.up_all(), self._on_sample),
             session.liveliness().declare_subscriber(keys.alive("*", "*"), self._on_liveliness,
                                                     history=True),
         ]
@@ -246,7 +281,12 @@ class ZenohHub:
     # ------------------------------------------------------------ Zenoh's threads
 
     def _on_sample(self, sample: Any) -> None:
-        agent, size = self.keys.agent_of(str(sample.key_expr)), len(sample.payload)
+        key, size = str(sample.key_expr), len(sample.payload)
+        agent, sender = self.keys.agent_of(key), self.keys.sender_of(key)
+        if self.certified and sender != f"agent-{agent}":
+            self._inbox.put(("reject", agent, f"sent under agent {agent}'s id by the holder "
+                                              f"of certificate {sender}"))
+            return
         if size > self.max_bytes:  # not even copied
             self._inbox.put(("reject", agent, f"message of {size} bytes exceeds the cap of "
                                               f"{self.max_bytes} bytes"))

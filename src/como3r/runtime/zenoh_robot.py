@@ -6,7 +6,9 @@ Key expressions of a session ``S``::
     como3r/S/robot/<r>/alive                liveliness token of robot r's process
     como3r/S/robot/<r>/hello                queryable: robot r's RobotHello (start-up)
     como3r/S/robot/<r>/done                 liveliness token: robot r's mission is over
-    como3r/S/robot/<to>/from/<from>         the mission messages of robot <from> to <to>
+    como3r/S/robot/<to>/from/<from>         the mission messages of robot <from> to <to>;
+                                            in a team run the key ends in
+                                            /<sender's certificate name>
 
 Start-up (:meth:`ZenohRobotLink.meet_team`): every robot answers hello queries and asks
 for its peers' until the whole team has answered; robots whose plans differ (configuration,
@@ -20,9 +22,11 @@ During the mission a robot puts each message under its recipient's key (reliable
 congestion control ``BLOCK``, from a background thread, so the robot never waits on the
 network). The receiver decodes it (size-capped and validated by
 :mod:`como3r.runtime.codec`), checks that it names this robot as recipient and the sender
-its key names, and applies the **link filter**: a message its sender sent at mission time
-``t`` is dropped unless the receiver hears the sender at ``t``
-(:meth:`~como3r.decentralized.protocol.Schedule.hears`), as radio range would drop it.
+its key names (in a team run, also the certificate name the key ends in, which Zenoh's
+access control makes the sender's: :mod:`como3r.runtime.team_access`), and applies the
+**link filter**: a message its sender sent at mission time ``t`` is dropped unless the
+receiver hears the sender at ``t`` (:meth:`~como3r.decentralized.protocol.Schedule.hears`),
+as radio range would drop it.
 Drops and invalid messages are logged and counted, never fatal.
 
 A peer whose liveliness token goes (its process ended, or its link was lost for longer than
@@ -58,12 +62,14 @@ Hears = Callable[[int, int, float], bool]
 
 
 class RobotKeys:
-    """The robot key expressions of one session (module docstring)."""
+    """The robot key expressions of one session (module docstring); ``member``: this
+    process's certificate name in a team run (the keys of its messages end in it)."""
 
-    def __init__(self, session: str) -> None:
+    def __init__(self, session: str, member: str | None = None) -> None:
         if not session or any(c in session for c in "/*$?#"):
             raise InputError(f"session name {session!r}: use letters, digits, - and _")
         self.root = f"como3r/{session}/robot"
+        self.member = member
 
     def robot(self, robot: int | str) -> str:
         return f"{self.root}/{robot}"
@@ -78,10 +84,16 @@ class RobotKeys:
         return f"{self.robot(robot)}/done"
 
     def messages(self, recipient: int | str, sender: int | str) -> str:
-        return f"{self.robot(recipient)}/from/{sender}"
+        key = f"{self.robot(recipient)}/from/{sender}"
+        return key if self.member is None else f"{key}/{self.member}"
+
+    def inbox(self, recipient: int | str) -> str:
+        """Every message to ``recipient``, team run or not."""
+        return f"{self.robot(recipient)}/from/**"
 
     def robot_of(self, key: str, field_index: int = 0) -> str:
-        """Field ``field_index`` after the root (0: the robot; 2: a message's sender)."""
+        """Field ``field_index`` after the root (0: the robot; 2: a message's sender; 3: its
+        certificate name in a team run)."""
         parts = key[len(self.root) + 1:].split("/")
         return parts[field_index] if len(parts) > field_index else ""
 
@@ -133,12 +145,16 @@ class ZenohRobotLink:
         hears: the link filter.
         max_bytes: size cap of one message.
         progress: called with the robot's messages to the driver (progress, report).
+        certified: a team run: a message counts only if its key ends in the certificate
+            name of the robot it claims to come from.
     """
 
     def __init__(self, session: Any, keys: RobotKeys, robot: int, team: int,
                  hello: RobotHello, hears: Hears, max_bytes: int,
-                 progress: Callable[[Any], None] | None = None) -> None:
+                 progress: Callable[[Any], None] | None = None,
+                 certified: bool = False) -> None:
         self.session, self.keys, self.robot, self.team = session, keys, robot, team
+        self.certified = certified
         self.hears, self.max_bytes, self.progress = hears, max_bytes, progress
         self.traffic = RobotTraffic()
         self._hello = codec.encode(hello, max_bytes=max_bytes)
@@ -148,7 +164,7 @@ class ZenohRobotLink:
             peer, robot)) for peer in range(team) if peer != robot}
         self._sender = Sender(session, self._publishers)
         self._declared = [
-            session.declare_subscriber(keys.messages(robot, "*"), self._on_message),
+            session.declare_subscriber(keys.inbox(robot), self._on_message),
             session.declare_queryable(keys.hello(robot), self._on_hello),
             session.liveliness().declare_subscriber(keys.alive("*"), self._on_alive),
             *self._publishers.values(),
@@ -209,7 +225,10 @@ class ZenohRobotLink:
         if data is None:
             gone = self.keys.robot_of(key)
             return PeerLeft(int(gone)) if gone.isdigit() and int(gone) != self.robot else None
-        claimed = self.keys.robot_of(key, 2)
+        claimed, certificate = self.keys.robot_of(key, 2), self.keys.robot_of(key, 3)
+        if self.certified and certificate != f"robot-{claimed}":
+            self._invalid(claimed, f"sent by the holder of certificate {certificate or '(none)'}")
+            return None
         if isinstance(data, int):
             self._invalid(claimed, f"message of {data} bytes exceeds the cap of "
                                    f"{self.max_bytes} bytes")
