@@ -111,6 +111,13 @@ class PoseGraphConfig:
         gnc_inlier_probability: chi-square quantile (6 dof) of the inlier threshold.
         gnc_mu_step: factor of the GNC control parameter per outer iteration.
         gnc_max_iterations: GNC outer iterations.
+        consistency: ``pcm``: before a solve, keep the largest set of pairwise-consistent
+            loops of each robot pair (:mod:`~.consistency`); ``none``: every loop.
+        consistency_probability: chi-square quantile (6 dof) under which two loops'
+            odometry cycle counts as consistent.
+        scale_alarm_log: a solve that changes a robot's scale (its path length over its
+            metric odometry's) or the merged map's (solved over measured loop lengths) by
+            more than this in ``|log|`` is held back and reported (scale-collapse alarm).
     """
 
     formulation: Formulation = "smoothed"
@@ -128,6 +135,9 @@ class PoseGraphConfig:
     gnc_inlier_probability: float = 0.99
     gnc_mu_step: float = 1.4
     gnc_max_iterations: int = 100
+    consistency: Literal["pcm", "none"] = "pcm"
+    consistency_probability: float = 0.99
+    scale_alarm_log: float = 0.2
 
 
 @dataclass(frozen=True)
@@ -196,6 +206,7 @@ def check_config(config: DecentralizedConfig) -> None:
         "protocol.message_timeout_s": config.protocol.message_timeout_s,
         "protocol.max_message_mb": config.protocol.max_message_mb,
         "registration.ransac_inlier_ratio": config.registration.ransac_inlier_ratio,
+        "pose_graph.scale_alarm_log": config.pose_graph.scale_alarm_log,
     }
     for key, value in positive.items():
         if not value > 0:
@@ -227,6 +238,12 @@ def check_config(config: DecentralizedConfig) -> None:
     if not 0 < config.pose_graph.gnc_inlier_probability < 1:
         raise ConfigError("decentralized.pose_graph.gnc_inlier_probability must be in (0, 1), "
                           f"got {config.pose_graph.gnc_inlier_probability}")
+    if not 0 < config.pose_graph.consistency_probability < 1:
+        raise ConfigError("decentralized.pose_graph.consistency_probability must be in (0, 1), "
+                          f"got {config.pose_graph.consistency_probability}")
+    if config.pose_graph.consistency not in ("pcm", "none"):
+        raise ConfigError("decentralized.pose_graph.consistency must be 'pcm' or 'none', "
+                          f"got {config.pose_graph.consistency!r}")
     if not config.pose_graph.gnc_mu_step > 1:
         raise ConfigError(f"decentralized.pose_graph.gnc_mu_step must be > 1, got "
                           f"{config.pose_graph.gnc_mu_step}")
