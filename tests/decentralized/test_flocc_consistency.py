@@ -133,7 +133,30 @@ def test_the_scale_alarm_reports_a_loop_set_that_changes_a_robots_scale(caplog):
     truth = dataclasses.replace(stretched, poses={r: np.stack([from_pose3(p) for p in ps])
                                                   for r, ps in data.truth.items()})
     calm = check_solution(problem, truth, np.ones(count, dtype=bool), [0, 1, 2], config)
-    assert not calm.alarm and abs(calm.merged_scale_log) < 0.05
+    assert not calm.alarm and math.isnan(calm.merged_scale_log)
+
+
+def test_the_scale_alarm_compares_the_merged_map_with_the_previous_one():
+    data = _data(4)
+    config = _config()
+    truth = {r: np.stack([from_pose3(p) for p in ps]) for r, ps in data.truth.items()}
+    problem = data.problem
+    count = len(problem.loops)
+    # The merged map 1.5x larger than before (about its centre).
+    centre = np.concatenate([poses[:, :3] for poses in truth.values()]).mean(0)
+    moved = {r: poses.copy() for r, poses in truth.items()}
+    for poses in moved.values():
+        poses[:, :3] = centre + 1.5 * (poses[:, :3] - centre)
+    solution = PoseGraphSolution(moved, np.ones(count), np.ones(count), np.zeros(count),
+                                 0.0, 1, 0.0)
+    check = check_solution(problem, solution, np.ones(count, dtype=bool), [0, 1, 2], config,
+                           reference=truth)
+    assert check.merged_scale_log == pytest.approx(math.log(1.5), abs=1e-9)
+    assert check.alarm
+    same = dataclasses.replace(solution, poses=truth)
+    calm = check_solution(problem, same, np.ones(count, dtype=bool), [0, 1, 2], config,
+                          reference=truth)
+    assert abs(calm.merged_scale_log) < 1e-9 and not calm.alarm
 
 
 def _shares(problem: PoseGraphProblem) -> dict[int, PoseGraphShare]:
