@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from como3r.decentralized.config import DecentralizedConfig, PoseGraphConfig, check_config
+from como3r.decentralized import consistency
 from como3r.decentralized.consistency import check_solution, consistent_loops, solve_checked
 from como3r.decentralized.messages import PoseGraphShare
 from como3r.decentralized.pose_graph import (
@@ -93,6 +94,14 @@ def _rmse(truth: dict[int, list[gtsam.Pose3]], poses: dict[int, np.ndarray]) -> 
 
 
 def test_pairwise_consistency_keeps_true_loops_and_holds_back_wrong_ones():
+    data = _data(0, look_alike=4, wrong_scale=4)
+    keep = consistent_loops(data.problem, _config())
+    assert keep[:data.true_loops].all()
+    assert not keep[data.true_loops:].any(), keep[data.true_loops:]
+
+
+def test_the_greedy_clique_of_many_loops_holds_back_the_wrong_ones(monkeypatch):
+    monkeypatch.setattr(consistency, "MAX_EXACT_LOOPS", 2)
     data = _data(0, look_alike=4, wrong_scale=4)
     keep = consistent_loops(data.problem, _config())
     assert keep[:data.true_loops].all()

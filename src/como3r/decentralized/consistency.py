@@ -59,6 +59,9 @@ from como3r.decentralized.pose_graph import (
 logger = logging.getLogger(__name__)
 
 _DOF = 6
+#: Loops of one robot pair up to which the clique is searched exactly: the exact search
+#: took 0.3 s (CPU) on 100 loops and 4.7 s on 200 (a fifth of them wrong); beyond, greedy.
+MAX_EXACT_LOOPS = 120
 
 
 @dataclass
@@ -147,12 +150,14 @@ def pair_chi2(first: tuple, second: tuple, p_first: float, p_second: float,
 
 
 def consistent_loops(problem: PoseGraphProblem, config: PoseGraphConfig) -> np.ndarray:
-    """``(L,)`` bool: the loops of the largest pairwise-consistent set of each robot pair.
+    """``(L,)`` bool: the loops of the most confident pairwise-consistent set of each robot
+    pair.
 
     Loops are grouped by their (unordered) pair of robots; two loops of a pair are
     consistent when :func:`pair_chi2` is below the ``consistency_probability`` quantile of
     chi-square (6 dof); the kept set is the clique of that graph with the largest summed
-    confidence (F-Eq. 2; exact, networkx).
+    confidence (F-Eq. 2): exact (networkx) up to :data:`MAX_EXACT_LOOPS` loops per pair,
+    greedy beyond (:func:`_greedy_clique`).
     """
     loops = problem.loops
     keep = np.zeros(len(loops), dtype=bool)
@@ -179,9 +184,24 @@ def consistent_loops(problem: PoseGraphProblem, config: PoseGraphConfig) -> np.n
                              loops[j].probability, problem.odometry, spacing,
                              config) < threshold:
                     graph.add_edge(i, j)
-        clique, _ = nx.max_weight_clique(graph, weight="w")
+        if len(members) <= MAX_EXACT_LOOPS:
+            clique, _ = nx.max_weight_clique(graph, weight="w")
+        else:
+            clique = _greedy_clique(graph)
         keep[list(clique)] = True
     return keep
+
+
+def _greedy_clique(graph: nx.Graph) -> list[int]:
+    """A heavy clique of ``graph`` (node weights ``w``): nodes by decreasing weight of their
+    closed neighbourhood, each kept if it is consistent with all kept before it."""
+    support = {n: graph.nodes[n]["w"] + sum(graph.nodes[m]["w"] for m in graph[n])
+               for n in graph}
+    clique: list[int] = []
+    for node in sorted(graph, key=lambda n: (-support[n], n)):
+        if all(graph.has_edge(node, other) for other in clique):
+            clique.append(node)
+    return clique
 
 
 def similarity_scale(source: np.ndarray, target: np.ndarray) -> float:
