@@ -221,12 +221,21 @@ class GaugeConfig:
     room (320x240 -> 512, 12 processed frames each, seed 0): merged ATE 2.7 -> 1.07 % of
     path (calibrated: 0.38 %); seed 1: 0.72 -> 0.85 % (one focal length, but the single
     edge between agents 0 and 1 leaves a 3 % scale offset the focal errors had hidden).
+
+    ``scale_alarm_log`` (como3r addition): the scale watch of wrong links. An edge between
+    agents that already share a gauge whose own similarity (Umeyama on its lifted points)
+    would rescale the map by more than this in ``|log s|`` is held back (status
+    ``inconsistent``, counted in ``edges_scale_inconsistent`` and logged); at a merge over
+    several agreeing edges, an edge whose own ``T*`` scale differs from the joint one by
+    more than this does not count as support (``gauge_scale_held``). A single first edge
+    has nothing to be compared with: ``min_consistent_edges`` > 1 makes the merge watch it.
     """
 
     min_correspondences: int = 64
     min_consistent_edges: int = 1
     align_focal: bool = True
     focal_search: float = 0.3
+    scale_alarm_log: float = 0.2
 
 
 @dataclass(frozen=True)
@@ -417,7 +426,7 @@ _POSITIVE = (
     "tracking.inlier_angle_deg",
     "local_solve.step_tol", "local_solve.relinearize_tol",
     "retrieval.alpha",
-    "verification.max_residual_ratio", "gauge.focal_search",
+    "verification.max_residual_ratio", "gauge.focal_search", "gauge.scale_alarm_log",
     "global_ba.cleanup_stop_translation", "global_ba.step_tol",
     "depth.slic_compactness", "depth.sigma_point", "depth.step_clip",
     "depth.depth_convergence_tol", "depth.depth_stall_ratio",
@@ -455,7 +464,8 @@ _FRACTION = (
     "verification.tau_inter", "verification.min_covisible_ratio",
 )
 #: keys whose ``inf`` means "off" (the paper's behaviour); every other number must be finite
-_MAY_BE_INFINITE = ("verification.max_residual_ratio", "depth.depth_stall_ratio")
+_MAY_BE_INFINITE = ("verification.max_residual_ratio", "depth.depth_stall_ratio",
+                    "gauge.scale_alarm_log")
 #: MASt3R's patch side: images are cropped to multiples of it (como3r.data.preprocess.PATCH)
 _PATCH = 16
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Sequence
 
 import numpy as np
@@ -18,6 +19,7 @@ import torch
 
 from como3r.config import Config, apply_overrides
 from como3r.coordination.coordinator import Coordinator
+from como3r.coordination.gauge import GaugeTransform, edge_log_scale
 from como3r.data.agent import open_agent
 from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import frame_ground_truth, make_view
@@ -255,6 +257,42 @@ def test_graph_document_and_metrics(ring) -> None:
     assert 0 < metrics["edges_tried"] <= metrics["prior_decodes"] <= 2 * metrics["edges_tried"]
     assert {"retrieval", "verification", "gauge", "global_ba", "cleanup"} <= set(
         metrics["stage_seconds"])
+
+
+def test_a_link_that_would_rescale_the_map_is_held_back(ring) -> None:
+    """gauge.scale_alarm_log: inside one gauge the clean ring's admitted links agree with
+    the map's scale; the same link with its points 1.5x as far apart is held back."""
+    coordinator, _ = _run(ring, _interleave(ring, [0, 1]), agents=2)
+    admitted = [c for c in coordinator.candidates if c.status == "admitted"]
+    assert admitted and coordinator.metrics()["edges_scale_inconsistent"] == 0
+    limit = ring.config.gauge.scale_alarm_log
+    for c in admitted:
+        x_i, x_j, q = coordinator._lifted_correspondences(c)
+        assert abs(edge_log_scale(x_j, x_i, q, ring.config.gauge.min_correspondences)) < limit / 2
+    link = admitted[-1]
+    x_i, x_j, q = coordinator._lifted_correspondences(link)
+    centre = x_j.mean(0)
+    assert coordinator._scale_agrees(link, x_j, x_i, q)
+    assert not coordinator._scale_agrees(link, centre + 1.5 * (x_j - centre), x_i, q)
+    assert link.status == "inconsistent"
+    assert coordinator.stats.edges_scale_inconsistent == 1
+
+
+def test_a_merge_does_not_count_an_edge_of_another_scale_as_support(ring, monkeypatch) -> None:
+    coordinator = Coordinator(ring.prior, ring.config, ring.prior.codebook(), 2)
+    scales = {"a": 1.0, "b": 1.05, "c": 1.6}
+    edges = [SimpleNamespace(name=n, verification=SimpleNamespace(candidate=(0, 1), query=(1, 1)))
+             for n in scales]
+
+    def transform(candidates):
+        log_scale = float(np.mean([np.log(scales[c.name]) for c in candidates]))
+        T = torch.tensor([0, 0, 0, 0, 0, 0, 1, float(np.exp(log_scale))])
+        return GaugeTransform(T=T, method="umeyama", correspondences=100, rmse=0.0)
+
+    monkeypatch.setattr(coordinator, "_gauge_transform", transform)
+    kept = coordinator._scale_supporters(edges)
+    assert [c.name for c in kept] == ["a", "b"]
+    assert coordinator.stats.gauge_scale_held == 1
 
 
 def _depth_shape_error(scene: Scene, keyframes) -> float:

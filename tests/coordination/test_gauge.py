@@ -10,6 +10,7 @@ import torch
 
 from como3r.coordination.gauge import (
     GaugeComponents,
+    edge_log_scale,
     residual_ratio,
     solve_gauge_transform,
     transport,
@@ -106,3 +107,15 @@ def test_residual_ratio_measures_relative_disagreement(dtype) -> None:
     ratio = residual_ratio(x, sim3_act(rotation, x), centre)
     assert 0.05 < ratio < 0.1001
     assert math.isinf(residual_ratio(x[:0], x[:0], centre))
+
+
+def test_edge_log_scale_measures_how_much_a_link_would_rescale_the_map() -> None:
+    generator = torch.Generator().manual_seed(5)
+    x = torch.randn(200, 3, generator=generator, dtype=torch.float64) * 2.0
+    weights = torch.ones(200, dtype=torch.float64)
+    T = sim3_exp(torch.tensor([0.5, -1.0, 2.0, 0.1, 0.2, -0.3, math.log(1.3)],
+                              dtype=torch.float64))
+    assert edge_log_scale(x, sim3_act(T[None], x), weights, 64) == pytest.approx(
+        math.log(1.3), abs=1e-6)
+    assert edge_log_scale(x, x + 0.5, weights, 64) == pytest.approx(0.0, abs=1e-9)
+    assert math.isnan(edge_log_scale(x[:10], x[:10], weights[:10], 64))

@@ -4,6 +4,7 @@ F-Tables II-III)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -57,8 +58,29 @@ def test_gnc_rejects_the_loops_aliasing_fooled_the_prior_into(aliased_run):
     assert sum(w > 0.5 for w in genuine) >= 0.5 * len(genuine)
 
 
-def test_gnc_recovers_the_map_that_aliased_loops_break_for_lm(aliased_run):
+def test_pairwise_consistency_keeps_aliased_loops_from_bending_the_map(aliased_run):
+    """Before pairwise consistency (pose_graph.consistency: none) LM kept every aliased
+    loop and its merged ATE was 0.87-0.92 m against GNC's 0.02-0.15 m; with it (the
+    default) both solvers land on the true map."""
     _, _, metrics = aliased_run
+    ate = {(r["formulation"], r["solver"]): r["merged_ate_rmse"][0] for r in metrics["table"]}
+    for formulation in ("base", "independent", "smoothed", "shared"):
+        for solver in ("lm", "gnc"):
+            assert ate[(formulation, solver)] < 0.15  # metres, over 3 robots x 5.5 m
+    assert all(row["held_back_loops"] > 0 for row in metrics["table"])
+    assert metrics["loop_check"][0]["held_back"] > 0
+    assert not metrics["loop_check"][0]["scale_alarm"]
+
+
+def test_gnc_recovers_the_map_that_aliased_loops_break_for_lm(aliased_run, tmp_path,
+                                                              main_config, settings_factory):
+    """Without pairwise consistency, GNC alone still rejects what LM cannot."""
+    paths, _, _ = aliased_run
+    settings = settings_factory(keyframe_distance_ratio=KEYFRAME_DISTANCE_RATIO, table=True)
+    settings = dataclasses.replace(settings, pose_graph=dataclasses.replace(
+        settings.pose_graph, consistency="none"))
+    run_decentralized(paths, tmp_path / "out", main_config, PriorSpec("simulated"), settings)
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     ate = {(r["formulation"], r["solver"]): r["merged_ate_rmse"][0] for r in metrics["table"]}
     for formulation in ("base", "independent", "smoothed", "shared"):
         assert ate[(formulation, "gnc")] < ate[(formulation, "lm")] / 3

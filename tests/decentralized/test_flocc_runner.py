@@ -110,11 +110,13 @@ def test_scale_aware_formulations_beat_the_base_graph(run):
 
 
 def test_protocol_result_is_the_configured_solve_and_is_accurate(run):
-    """Everyone met at the end: the robots' final poses are the smoothed-LM solve of the
-    table (same graph, same anchor)."""
+    """Everyone met at the end: the robots' final poses are the configured (smoothed, GNC)
+    solve of the table (same graph, same anchor)."""
     _, summary, metrics = run
     merged = metrics["ate"]["merged"]["ate"]["rmse"]
-    row = next(r for r in metrics["table"] if (r["formulation"], r["solver"]) == ("smoothed", "lm"))
+    configured = PoseGraphConfig()
+    row = next(r for r in metrics["table"]
+               if (r["formulation"], r["solver"]) == (configured.formulation, configured.solver))
     assert merged == pytest.approx(row["merged_ate_rmse"][0], rel=1e-6)
     assert merged < 0.15  # metres, over 3 robots x 24 m
     assert summary.evaluation is not None and summary.evaluation.merged_ate == merged

@@ -58,6 +58,7 @@ from como3r.coordination.association import CrossAgentRetrieval, Verification, v
 from como3r.coordination.gauge import (
     GaugeComponents,
     GaugeTransform,
+    edge_log_scale,
     lift,
     residual_ratio,
     solve_gauge_transform,
@@ -92,6 +93,10 @@ class CoordinatorStats:
     edges_verified: int = 0
     edges_accepted: int = 0
     edges_inconsistent: int = 0
+    # of those, edges whose own similarity would rescale the map (gauge.scale_alarm_log)
+    edges_scale_inconsistent: int = 0
+    # edges a merge did not count as support: their T* scale disagreed with the joint one
+    gauge_scale_held: int = 0
     gauge_syncs: int = 0
     focal_refinements: int = 0
     ba_runs: int = 0
@@ -594,7 +599,7 @@ class Coordinator:
 
     def _admit_within(self, candidate: Candidate) -> None:
         """Add an edge between agents sharing a gauge if it agrees with their poses."""
-        x_i, x_j, _ = self._lifted_correspondences(candidate)
+        x_i, x_j, q = self._lifted_correspondences(candidate)
         centre = self.graph.keyframes[candidate.i].T_WC[:3]
         candidate.residual_ratio = residual_ratio(x_i, x_j, centre)
         if candidate.residual_ratio > self.config.verification.max_residual_ratio:
@@ -604,7 +609,25 @@ class Coordinator:
                         "rejected", candidate.verification.candidate,
                         candidate.verification.query, candidate.residual_ratio)
             return
+        if not self._scale_agrees(candidate, x_j, x_i, q):
+            return
         self._add_inter_link(candidate)
+
+    def _scale_agrees(self, candidate: Candidate, x_j: Tensor, x_i: Tensor, q: Tensor) -> bool:
+        """The scale watch of an edge inside one gauge (``gauge.scale_alarm_log``): its own
+        similarity from endpoint j's lifted points to endpoint i's must not rescale the map;
+        otherwise it is held back as inconsistent and reported."""
+        log_scale = edge_log_scale(x_j, x_i, q, self.config.gauge.min_correspondences)
+        if not abs(log_scale) > self.config.gauge.scale_alarm_log:
+            return True
+        candidate.status = "inconsistent"
+        self.stats.edges_inconsistent += 1
+        self.stats.edges_scale_inconsistent += 1
+        logger.warning("coordinator: scale alarm: edge %s-%s would rescale the map by %.3f "
+                       "(threshold exp(%.3f)); held back", candidate.verification.candidate,
+                       candidate.verification.query, math.exp(log_scale),
+                       self.config.gauge.scale_alarm_log)
+        return False
 
     def _add_inter_link(self, candidate: Candidate) -> None:
         candidate.status = "admitted"
@@ -626,6 +649,7 @@ class Coordinator:
             supporters += [c for c in self._waiting if c is not candidate
                            and self._roots(c) == self._roots(candidate)
                            and self._agrees(c, hypothesis)]
+            supporters = self._scale_supporters(supporters)
         if len(supporters) < needed:
             return []
         start = time.perf_counter()
@@ -648,6 +672,26 @@ class Coordinator:
         for c in inside:
             self._admit_within(c)
         return self._updates(moved_agents, "gauge")
+
+    def _scale_supporters(self, supporters: list[Candidate]) -> list[Candidate]:
+        """The supporters whose own ``T*`` scale agrees with the joint one within
+        ``gauge.scale_alarm_log`` (a wrong link must not set the gauge's scale); the others
+        are logged and counted (``gauge_scale_held``) and wait on."""
+        if len(supporters) < 2:
+            return supporters
+        joint = math.log(float(self._gauge_transform(supporters).T[7]))
+        kept = []
+        for c in supporters:
+            own = math.log(float(self._gauge_transform([c]).T[7]))
+            if abs(own - joint) > self.config.gauge.scale_alarm_log:
+                self.stats.gauge_scale_held += 1
+                logger.warning("coordinator: scale alarm: edge %s-%s would merge at scale "
+                               "x%.3f, the others at x%.3f; not counted as support",
+                               c.verification.candidate, c.verification.query,
+                               math.exp(own), math.exp(joint))
+            else:
+                kept.append(c)
+        return kept
 
     def _align_focal(self, supporters: Sequence[Candidate], moved_agents: list[int]
                      ) -> float | None:

@@ -20,6 +20,7 @@ them into one:
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import torch
@@ -153,6 +154,22 @@ def _umeyama_transport(x_moving: Tensor, x_anchor: Tensor, weights: Tensor,
     rmse = umeyama_rmse(T, src, dst, w)
     return GaugeTransform(T=T.to(x_anchor.dtype), method="umeyama",
                           correspondences=int(src.shape[0]), rmse=rmse)
+
+
+def edge_log_scale(x_source: Tensor, x_target: Tensor, weights: Tensor,
+                   min_correspondences: int) -> float:
+    """Log scale of the similarity (Umeyama, refit without outliers as for ``T*``) taking
+    an edge's lifted points ``x_source (N, 3)`` onto their matches ``x_target (N, 3)``
+    (weights ``(N,)``): 0 for an edge that agrees with the map's scale, ``log s`` for one
+    whose points are ``s`` times as far apart. NaN with fewer than ``min_correspondences``
+    pairs or a degenerate fit (no scale to test)."""
+    if x_source.shape[0] < min_correspondences:
+        return float("nan")
+    try:
+        scale = float(_umeyama_transport(x_source, x_target, weights, min_correspondences).T[7])
+    except GeometryError:
+        return float("nan")
+    return math.log(scale) if scale > 0 else float("nan")
 
 
 def residual_ratio(x_i: Tensor, x_j: Tensor, centre_i: Tensor) -> float:

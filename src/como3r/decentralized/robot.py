@@ -35,6 +35,7 @@ from como3r.config import Config
 from como3r.data.agent import AgentInput
 from como3r.data.preprocess import make_view
 from como3r.decentralized.confidence import accept_loop, correspondence_ratio, loop_probability
+from como3r.decentralized.consistency import LoopCheck, solve_checked
 from como3r.decentralized.config import DecentralizedConfig
 from como3r.decentralized.keyframes import frame_odometry, select_keyframes
 from como3r.decentralized.messages import (
@@ -52,7 +53,6 @@ from como3r.decentralized.pose_graph import (
     LoopClosure,
     PoseGraphProblem,
     connected_components,
-    solve_pose_graph,
 )
 from como3r.decentralized.registration import Registrar
 from como3r.errors import SolverError
@@ -145,6 +145,9 @@ class Robot:
         self.rejected: list[LoopClosure] = []
         self.candidates = 0
         self.timeouts = 0
+        # Safeguards of the solves this robot led (:mod:`~.consistency`).
+        self.scale_alarms = 0
+        self.loops_held_back = 0
         self._descriptors: list[np.ndarray] = []
         self._peer_descriptors: dict[int, dict[int, np.ndarray]] = defaultdict(dict)
         self._sent: dict[int, int] = defaultdict(int)
@@ -183,7 +186,9 @@ class Robot:
                                    "keyframe_distance": self.keyframe_distance,
                                    "candidates": self.candidates,
                                    "loops": len(self.loops), "rejected": len(self.rejected),
-                                   "timeouts": self.timeouts}
+                                   "timeouts": self.timeouts,
+                                   "scale_alarms": self.scale_alarms,
+                                   "loops_held_back": self.loops_held_back}
         return RobotReport(sender=self.robot, recipient=DRIVER, estimate=self.estimate,
                            frame=self.frame, loops=list(self.loops),
                            rejected=list(self.rejected), stats=stats, left=left)
@@ -366,7 +371,11 @@ class Robot:
         """The elected robot's step: solve every connected group, answer every robot."""
         shares = {self.robot: own, **{p: self._shares[r][p] for p in present
                                       if p in self._shares[r]}}
-        updates = solve_shares(shares, self.settings)
+        checks: list[LoopCheck] = []
+        updates = solve_shares(shares, self.settings, checks=checks)
+        self.scale_alarms += sum(check.alarm for check in checks)
+        # The last solve's count: every solve sees all loops found so far.
+        self.loops_held_back = sum(check.loops - int(check.consistent.sum()) for check in checks)
         # Every robot present gets an answer, empty when it has no update, so none waits.
         for robot in sorted([self.robot, *present]):
             poses, frame = updates.get(robot, (np.zeros((0, 8)), -1))
@@ -385,19 +394,24 @@ class Robot:
 
 def solve_shares(shares: dict[int, PoseGraphShare], settings: DecentralizedConfig,
                  formulation: str | None = None,
-                 solver: str | None = None) -> dict[int, tuple[np.ndarray, int]]:
+                 solver: str | None = None, checks: list[LoopCheck] | None = None
+                 ) -> dict[int, tuple[np.ndarray, int]]:
     """Solve the pose graph of every group of robots connected by loops.
 
     Each group is anchored on its smallest robot id, at that robot's current estimate (or
-    odometry) of its first keyframe, so the group joins the anchor's frame.
+    odometry) of its first keyframe, so the group joins the anchor's frame. Only pairwise
+    consistent loops enter a solve, and a group whose solve raises the scale-collapse alarm
+    keeps its estimates (:func:`~.consistency.solve_checked`).
 
     Args:
         shares: every participating robot's share, by robot id.
         settings: decentralized configuration (its formulation and solver by default).
         formulation, solver: override the configured ones.
+        checks: if given, receives each group's :class:`~.consistency.LoopCheck`.
 
     Returns:
-        robot -> (``(K, 8)`` poses, frame id) for every robot in a group of two or more.
+        robot -> (``(K, 8)`` poses, frame id) for every robot in a group of two or more
+        whose solve was not held back.
     """
     graph_config = settings.pose_graph
     loops = [loop for share in shares.values() for loop in share.loops
@@ -416,10 +430,14 @@ def solve_shares(shares: dict[int, PoseGraphShare], settings: DecentralizedConfi
             initial={r: shares[r].estimate for r in component
                      if shares[r].frame == frame and len(shares[r].estimate)})
         try:
-            solution = solve_pose_graph(problem, formulation or graph_config.formulation,
-                                        solver or graph_config.solver, graph_config)
+            solution, check = solve_checked(problem, formulation or graph_config.formulation,
+                                            solver or graph_config.solver, graph_config)
         except SolverError as exc:
             logger.warning("robots %s: %s; estimates unchanged", component, exc)
+            continue
+        if checks is not None:
+            checks.append(check)
+        if check.alarm:
             continue
         for robot in component:
             updates[robot] = (solution.poses[robot], frame)

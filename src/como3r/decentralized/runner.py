@@ -8,10 +8,13 @@ robots (:func:`~como3r.decentralized.protocol.run_protocol`), and writes the out
   in the frame the robot ended in (robots that met share one);
 * ``graph.json``: keyframes, accepted and rejected loop closures, frame groups;
 * ``metrics.json``: bytes per robot and message type, encode/decode counts and the
-  two-stage saving (F-Fig. 4), loop statistics, ATE per robot and merged (when every agent
-  has ground truth), and the table of F-Tables II-III: every formulation with LM and GNC
-  on the final multi-robot graph (all loops of the mission), with its merged ATE and
-  solver time;
+  two-stage saving (F-Fig. 4), loop statistics, ``loop_check`` (the loops pairwise
+  consistency held back and the scale changes and scale-collapse alarm of the configured
+  solve, :mod:`~.consistency`; each robot's ``scale_alarms`` and ``loops_held_back`` count
+  the solves it led), ATE per robot and merged (when every agent has ground truth), and
+  the table of F-Tables II-III: every formulation with LM and GNC on the final
+  multi-robot graph (all loops of the mission, behind the same safeguards), with its
+  merged ATE and solver time;
 * ``config.yaml``, ``report.html`` and, with ground truth, ``ate.json`` and
   ``trajectories.png``.
 
@@ -48,12 +51,12 @@ from como3r.decentralized.keyframes import (
     frame_poses,
     select_keyframes,
 )
+from como3r.decentralized.consistency import solve_checked
 from como3r.decentralized.messages import RobotProgress, RobotReport
 from como3r.decentralized.pose_graph import (
     LoopClosure,
     PoseGraphProblem,
     connected_components,
-    solve_pose_graph,
 )
 from como3r.decentralized.protocol import ProtocolResult, Schedule, run_protocol
 from como3r.errors import Como3rError, InputError
@@ -234,6 +237,7 @@ def _write(staging: Path, robots: list[RobotData], result: ProtocolResult, confi
                       for r, robot in enumerate(robots)],
         "two_stage": two_stage(reports),
         "loops": loop_statistics(loops, rejected),
+        "loop_check": final_loop_check(robots, loops, settings),
     }
     has_gt = all(r.agent.groundtruth is not None for r in robots)
     table_weights: dict[tuple, float] = {}
@@ -316,6 +320,31 @@ def loop_statistics(loops: list[LoopClosure], rejected: list[LoopClosure]) -> di
             "probability_mean": float(np.mean([l.probability for l in loops])) if loops else None}
 
 
+def _component_problems(robots: list[RobotData], loops: list[LoopClosure]
+                        ) -> list[PoseGraphProblem]:
+    """One pose graph per group of robots connected by loops, anchored on its smallest id
+    at its odometry origin."""
+    components = [c for c in connected_components(list(range(len(robots))), loops) if len(c) > 1]
+    return [PoseGraphProblem(odometry={r: robots[r].keyframes.T_OC.numpy() for r in component},
+                             loops=[l for l in loops if l.robot_a in component],
+                             anchor=component[0],
+                             anchor_pose=robots[component[0]].keyframes.T_OC[0].numpy())
+            for component in components]
+
+
+def final_loop_check(robots: list[RobotData], loops: list[LoopClosure],
+                     settings: DecentralizedConfig) -> list[dict[str, Any]]:
+    """``metrics.json`` ``loop_check``: for every group of robots, the mission's loops
+    that pairwise consistency held back and the scale changes (and alarm) of the configured
+    solve of all of them (:mod:`~.consistency`); ``[{"error": ...}]`` if a solve failed."""
+    graph = settings.pose_graph
+    try:
+        return [solve_checked(problem, graph.formulation, graph.solver, graph)[1].to_json()
+                for problem in _component_problems(robots, loops)]
+    except Como3rError as exc:
+        return [{"error": str(exc)}]
+
+
 def _formulation_table(robots: list[RobotData], loops: list[LoopClosure],
                        settings: DecentralizedConfig) -> tuple[list[dict[str, Any]], dict]:
     """Every formulation x solver on the mission's full graph (F-Tables II-III).
@@ -330,27 +359,28 @@ def _formulation_table(robots: list[RobotData], loops: list[LoopClosure],
     """
     from como3r.evaluation.trajectory import associate, merged_errors_by_component
 
-    components = [c for c in connected_components(list(range(len(robots))), loops) if len(c) > 1]
+    problems = _component_problems(robots, loops)
+    components = [sorted(problem.odometry) for problem in problems]
     rows, weights = [], {}
     for formulation in FORMULATIONS:
         for solver in SOLVERS:
             estimates = [np.zeros((0, 8)) for _ in robots]
-            seconds, inliers = 0.0, 0
+            seconds, inliers, held_back, alarms = 0.0, 0, 0, 0
             try:
-                for component in components:
-                    problem = PoseGraphProblem(
-                        odometry={r: robots[r].keyframes.T_OC.numpy() for r in component},
-                        loops=[l for l in loops if l.robot_a in component],
-                        anchor=component[0],
-                        anchor_pose=robots[component[0]].keyframes.T_OC[0].numpy())
-                    solution = solve_pose_graph(problem, formulation, solver, settings.pose_graph)
+                for problem in problems:
+                    solution, check = solve_checked(problem, formulation, solver,
+                                                    settings.pose_graph)
                     seconds += solution.seconds
                     inliers += int((solution.loop_weights > 0.5).sum())
-                    for r in component:
+                    held_back += int((~check.consistent).sum())
+                    alarms += int(check.alarm)
+                    for r in problem.odometry:
                         estimates[r] = solution.poses[r]
                     if (formulation, solver) == (settings.pose_graph.formulation, "gnc"):
-                        weights.update({_loop_key(l): float(w) for l, w in
-                                        zip(problem.loops, solution.loop_weights)})
+                        kept = iter(solution.loop_weights)
+                        # A loop pairwise consistency held back has weight 0.
+                        weights.update({_loop_key(l): float(next(kept)) if c else 0.0
+                                        for l, c in zip(problem.loops, check.consistent)})
             except Como3rError as exc:
                 rows.append({"formulation": formulation, "solver": solver, "error": str(exc)})
                 continue
@@ -364,7 +394,8 @@ def _formulation_table(robots: list[RobotData], loops: list[LoopClosure],
                          "merged_ate_mean": [m.ate.mean for m in merged],
                          "merged_ate_std": [m.ate.std for m in merged],
                          "groups": [list(m.agents) for m in merged],
-                         "seconds": seconds, "loops": len(loops), "inlier_loops": inliers})
+                         "seconds": seconds, "loops": len(loops), "inlier_loops": inliers,
+                         "held_back_loops": held_back, "scale_alarms": alarms})
     return rows, weights
 
 
