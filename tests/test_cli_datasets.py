@@ -80,6 +80,31 @@ def test_a_tum_sequence_runs_with_the_simulated_prior_and_evaluates(tmp_path):
     assert "ground truth dashed grey" in (evaluated / "report.html").read_text()
 
 
+@pytest.mark.parametrize("runtime", [["--single-process"], []])
+def test_frames_in_a_ground_truth_gap_are_skipped_with_one_warning(tmp_path, caplog, runtime):
+    """Ground truth with a hole wider than 0.1 s (frames 5-8 of a 30 Hz sequence): the run
+    goes on without the frames in it (frame indices and timestamps of the rest kept), says
+    so once, and evaluates the rest; in one process and in the default agent processes."""
+    seq = tum_from_synthetic(tmp_path, frames=16)
+    lines = (seq / "groundtruth.txt").read_text().splitlines()
+    rows = [line for line in lines if not line.startswith("#")]
+    stamps = np.array([float(line.split()[0]) for line in rows])
+    (seq / "groundtruth.txt").write_text("\n".join(rows[:5] + rows[9:]) + "\n")
+    out = tmp_path / "out"
+    with caplog.at_level("WARNING"):
+        result = _invoke("run", "--agent", str(seq), "--out", str(out), "--prior", "simulated",
+                         "--set", "input.long_side=64", *runtime)
+    assert result.exit_code == 0, result.output
+    warnings = [r.getMessage() for r in caplog.records if "ground-truth pose" in r.getMessage()]
+    assert warnings == [f"{seq}: 4 of 16 frames have no ground-truth pose (4 in gaps wider "
+                        "than 0.1 s); --prior simulated skips them"]
+    trajectory = read_tum(out / "trajectories" / "agent_0.txt")
+    np.testing.assert_allclose(trajectory.timestamps, stamps[[0, 2, 4, 10, 12, 14]], atol=1e-6)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["agents"][0]["frames"] == 6
+    assert metrics["ate"]["agents"][0]["frames"] == 6
+
+
 def test_eval_against_a_7scenes_sequence(tmp_path):
     """A trajectory equal to the sequence's poses has no error; --format is honoured."""
     seq = tmp_path / "seq-01"
@@ -122,15 +147,16 @@ def test_a_folder_of_no_known_layout_is_one_line(tmp_path, only_error_line):
     ("no depth", "no depth.txt (with depth/), which --prior simulated needs"),
     ("no calib", "no intrinsics (calib.txt 'fx fy cx cy'), which --prior simulated needs"),
     ("no groundtruth", "no ground truth, which --prior simulated needs"),
-    ("gt gap", "1 of 3 frames without a ground-truth pose, which --prior simulated needs"),
+    ("gt after", "no frame has a ground-truth pose within 0.1 s, which --prior simulated "
+                 "needs"),
 ])
 def test_what_the_simulated_prior_needs_is_one_line(tmp_path, only_error_line, case, fragment):
     name = "my_sequence" if case == "no calib" else "rgbd_dataset_freiburg1_x"
     seq = tmp_path / name
     write_tum_layout(seq, n=3, depth=case != "no depth", groundtruth=case != "no groundtruth")
-    if case == "gt gap":
+    if case == "gt after":  # one pose, 50 ms after the last frame
         lines = (seq / "groundtruth.txt").read_text().splitlines()
-        (seq / "groundtruth.txt").write_text("\n".join(lines[:3] + lines[3 + 10:]) + "\n")
+        (seq / "groundtruth.txt").write_text("\n".join(lines[:3] + lines[-1:]) + "\n")
     line = only_error_line(_invoke("run", "--agent", str(seq), "--out", str(tmp_path / "out"),
                                    "--prior", "simulated"))
     assert f"{seq}: {fragment}" in line and "--prior mast3r" in line

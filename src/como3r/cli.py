@@ -417,12 +417,15 @@ def _camera_sources(camera: List[str], max_frames: Optional[int], agent: List[Pa
 
 def _check_simulated_input(path: Path, config) -> None:
     """What ``--prior simulated`` needs of an input, before any work: depth, intrinsics and
-    a ground-truth pose (or appearance keys) for every frame.
+    ground-truth poses (or appearance keys); frames without a pose (before the first, after
+    the last, in a gap wider than :data:`como3r.data.poses.MAX_GAP`) are skipped by the run,
+    with one warning, so at least one frame must have one.
 
     Raises:
         InputError: naming the input and what it lacks; images alone take --prior mast3r.
     """
     from como3r.data.agent import open_agent
+    from como3r.data.poses import MAX_GAP
     from como3r.data.readers import DEPTH_SOURCES
 
     source = open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format,
@@ -434,11 +437,11 @@ def _check_simulated_input(path: Path, config) -> None:
     if source.calib is None:
         raise InputError(f"{path}: no intrinsics (calib.txt 'fx fy cx cy'), {needs}")
     if not source.has_surface:
-        missing = int((source.gt_indices < 0).sum())
-        if source.groundtruth is None or missing:
-            where = ("no ground truth" if source.groundtruth is None else
-                     f"{missing} of {source.num_frames} frames without a ground-truth pose")
-            raise InputError(f"{path}: {where}, {needs}")
+        if source.groundtruth is None:
+            raise InputError(f"{path}: no ground truth, {needs}")
+        if not source.has_gt_pose.any():
+            raise InputError(f"{path}: no frame has a ground-truth pose within "
+                             f"{MAX_GAP:g} s, {needs}")
 
 
 def _check_device(device: str) -> None:

@@ -21,7 +21,7 @@ def test_sequence_is_read_as_published(tmp_path):
     np.testing.assert_allclose(agent.timestamps, info["times"], rtol=1e-6)
     assert agent.calib == (718.856, 718.856, 607.1928, 185.2157)  # P2's K
     np.testing.assert_array_equal(agent.load_frame(3).image, pixels(3))
-    np.testing.assert_array_equal(agent.gt_indices, [0, 1, 2, 3])
+    assert agent.has_gt_pose.all()
     torch.testing.assert_close(agent.load_frame(1).T_WC_gt, agent.groundtruth.T_WC[1])
 
 
@@ -49,7 +49,7 @@ def test_a_subset_of_the_frames_keeps_their_times_and_poses(tmp_path):
     agent = open_agent(info["sequence"])
     assert agent.stems == ("000000", "000002", "000004")
     np.testing.assert_allclose(agent.timestamps, info["times"][[0, 2, 4]], rtol=1e-6)
-    np.testing.assert_array_equal(agent.gt_indices, [0, 2, 4])
+    assert agent.has_gt_pose.all()
     frames, trajectory = agent.gt_for_frames()
     np.testing.assert_array_equal(frames, [0, 1, 2])
     torch.testing.assert_close(trajectory.T_WC, agent.groundtruth.T_WC[[0, 2, 4]])
@@ -58,7 +58,7 @@ def test_a_subset_of_the_frames_keeps_their_times_and_poses(tmp_path):
 def test_a_test_sequence_without_poses(tmp_path):
     info = write_kitti(tmp_path / "dataset", name="11", n=2, poses=False)
     agent = open_agent(info["sequence"])
-    assert agent.groundtruth is None and (agent.gt_indices == -1).all()
+    assert agent.groundtruth is None and not agent.has_gt_pose.any()
     input_error(f"no ground truth for KITTI sequence 11: expected "
                 f"{tmp_path / 'dataset' / 'poses' / '11.txt'} (KITTI publishes poses for "
                 "sequences 00-10 only)", read_ground_truth, info["sequence"])

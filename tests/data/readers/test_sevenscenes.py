@@ -32,7 +32,7 @@ def test_sequence_is_read_as_published(tmp_path, invalid):
     np.testing.assert_allclose(frame.depth, expected, atol=1e-6)
     np.testing.assert_allclose(pose_matrices(agent.groundtruth.T_WC), T, atol=1e-6)
     torch.testing.assert_close(frame.T_WC_gt, agent.groundtruth.T_WC[2])
-    assert (agent.gt_indices == np.arange(4)).all()
+    assert agent.has_gt_pose.all()
 
 
 def test_timestamps_follow_the_frame_rate(tmp_path):
@@ -44,7 +44,7 @@ def test_jpeg_colour_and_no_depth_or_poses(tmp_path):
     write_7scenes(tmp_path / "seq", n=3, colour="jpg", depth=False, poses=False)
     agent = open_agent(tmp_path / "seq")
     assert agent.num_frames == 3 and not agent.has_depth and agent.groundtruth is None
-    assert (agent.gt_indices == -1).all()
+    assert not agent.has_gt_pose.any()
     input_error("has no frame-NNNNNN.pose.txt files", read_ground_truth, tmp_path / "seq")
 
 

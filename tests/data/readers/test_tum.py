@@ -137,7 +137,7 @@ def test_without_depth_or_groundtruth(tmp_path):
     write_tum(root, n=3, depth=False, groundtruth=False)
     agent = open_agent(root)
     assert agent.num_frames == 3 and not agent.has_depth and agent.groundtruth is None
-    assert (agent.gt_indices == -1).all()
+    assert not agent.has_gt_pose.any()
     input_error("no groundtruth.txt", read_ground_truth, root)
 
 
@@ -147,8 +147,8 @@ def test_frames_outside_the_groundtruth_have_none(tmp_path):
     gt = root / "groundtruth.txt"
     lines = gt.read_text().splitlines()
     gt.write_text("\n".join(lines[:3] + lines[3 + 10:]) + "\n")  # first 0.1 s gone
-    agent = open_agent(root)
-    assert agent.gt_indices[0] == -1 and (agent.gt_indices[1:] >= 0).all()
+    agent = open_agent(root)  # poses from +0.05 s: frames 0 and 1 (33 ms) come before them
+    np.testing.assert_array_equal(agent.has_gt_pose, [False, False, True])
 
 
 def test_ground_truth_for_eval_is_the_published_file(tmp_path):

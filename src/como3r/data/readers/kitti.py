@@ -73,11 +73,9 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
                          f"{path / 'times.txt'} ({len(times)} lines)")
     calib, offset = read_calib(path / "calib.txt")
     groundtruth = None
-    gt_indices = np.full(len(images), -1, dtype=np.int64)
     gt_file = poses_file(path)
     if gt_file.is_file():
         groundtruth = camera_trajectory(gt_file, times, offset)
-        gt_indices = numbers.copy()
     else:
         logger.info("%s: no %s: no ground truth", path, gt_file)
     return AgentInput(
@@ -85,7 +83,7 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
         image_size=common_image_size(images), timestamps=times[numbers], calib=calib,
         groundtruth=groundtruth, odometry=None, has_depth=False, has_surface=False,
         fps=float(fps), stems=tuple(p.stem for p in images), image_paths=images, video=None,
-        depth_paths=(), surface_paths=(), gt_indices=gt_indices, format="kitti",
+        depth_paths=(), surface_paths=(), format="kitti",
     )
 
 

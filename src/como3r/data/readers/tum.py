@@ -18,7 +18,10 @@ the dataset's "File Formats" page
 * depth: 16-bit PNG "scaled by a factor of 5000" (5000 = 1 m), 0 = no data; registered to
   the colour image by the OpenNI driver (1:1 pixel correspondence).
 * ground truth: ``groundtruth.txt`` (optional: the benchmark's validation sequences publish
-  none), its pose nearest each frame within 0.02 s.
+  none), the 100 Hz motion capture as published; each frame's pose is interpolated at its
+  timestamp (:mod:`como3r.data.poses`: between samples at most 0.1 s apart; the capture
+  usually starts a fraction of a second after the camera, and drops samples now and then:
+  such frames have no pose).
 * intrinsics: ``calib.txt`` (``fx fy cx cy``, the agent layout's file) in the folder if the
   user puts one there; otherwise the colour camera's calibration picked from the folder
   name (``rgbd_dataset_freiburg1_*`` etc.) as MASt3R-SLAM's ``TUMDataset`` does, values of
@@ -44,7 +47,6 @@ import numpy as np
 
 from como3r.data.agent import (
     AgentInput,
-    associate_timestamps,
     check_map_header,
     common_image_size,
     parse_timestamp,
@@ -185,11 +187,8 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
         check_map_header(depth_file, image_size, "depth")
     timestamps = np.array([rgb[i][1] for i in frames], dtype=np.float64)
 
-    groundtruth = None
-    gt_indices = np.full(len(frames), -1, dtype=np.int64)
-    if (path / "groundtruth.txt").is_file():
-        groundtruth = read_tum(path / "groundtruth.txt")
-        gt_indices = associate_timestamps(timestamps, groundtruth.timestamps, MAX_DIFFERENCE)
+    groundtruth = read_tum(path / "groundtruth.txt") if (path / "groundtruth.txt").is_file() \
+        else None
     calib_file = path / "calib.txt"
     name = path.resolve().name
     calib, distortion = (read_calib(calib_file), ()) if calib_file.is_file() else \
@@ -202,7 +201,7 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
         timestamps=timestamps, calib=calib, groundtruth=groundtruth, odometry=None,
         has_depth=bool(depth_files), has_surface=False, fps=float(fps),
         stems=tuple(p.stem for p in image_paths), image_paths=image_paths, video=None,
-        depth_paths=tuple(depth_files), surface_paths=(), gt_indices=gt_indices,
+        depth_paths=tuple(depth_files), surface_paths=(),
         format="tum", depth_units_per_metre=DEPTH_UNITS_PER_METRE, depth_invalid=(0,),
         distortion=distortion,
     )
