@@ -334,8 +334,7 @@ def run(
         if not path.exists():
             hint = " (a stream URL goes to --camera)" if is_stream_url(str(path)) else ""
             raise InputError(f"{path}: agent input does not exist{hint}")
-        if prior == "simulated":
-            _check_simulated_input(path, config)
+        _check_input(path, config, prior)  # input problems before weights are looked for
     spec = PriorSpec(prior, weights, retrieval_weights, codebook, device, precision)
     if prior == "mast3r":
         check_precision(device, precision)
@@ -415,14 +414,17 @@ def _camera_sources(camera: List[str], max_frames: Optional[int], agent: List[Pa
     return [parse_source(text, max_frames) for text in camera]
 
 
-def _check_simulated_input(path: Path, config) -> None:
-    """What ``--prior simulated`` needs of an input, before any work: depth, intrinsics and
-    ground-truth poses (or appearance keys); frames without a pose (before the first, after
-    the last, in a gap wider than :data:`como3r.data.poses.MAX_GAP`) are skipped by the run,
-    with one warning, so at least one frame must have one.
+def _check_input(path: Path, config, prior: str) -> None:
+    """An input opened before any work and before MASt3R's weights are looked for (its
+    layout, files and image headers: :func:`como3r.data.agent.open_agent`), and what
+    ``--prior simulated`` needs of it: depth, intrinsics and ground-truth poses (or
+    appearance keys); frames without a pose (before the first, after the last, in a gap
+    wider than :data:`como3r.data.poses.MAX_GAP`) are skipped by the run, with one warning,
+    so at least one frame must have one.
 
     Raises:
-        InputError: naming the input and what it lacks; images alone take --prior mast3r.
+        InputError: naming the input and what is wrong with it or what it lacks; images
+            alone take --prior mast3r.
     """
     from como3r.data.agent import open_agent
     from como3r.data.poses import MAX_GAP
@@ -430,6 +432,8 @@ def _check_simulated_input(path: Path, config) -> None:
 
     source = open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format,
                         topic=config.input.topic)
+    if prior != "simulated":
+        return
     needs = ("which --prior simulated needs (a stand-in made from ground-truth depth); "
              "images alone take --prior mast3r")
     if not source.has_depth:
