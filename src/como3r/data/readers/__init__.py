@@ -29,11 +29,11 @@ rosbag     a ROS 1 ``.bag``, a ROS 2 bag folder          :mod:`como3r.data.reade
 
 Detection (``format="auto"``) looks at the folder only, never at the file contents: a
 ``.bag`` or ``.mcap`` file, a folder with ``metadata.yaml`` and a ``.db3`` or ``.mcap`` file,
-or a ``.db3`` file in such a folder, is a ROS log; a folder with ``rgb.txt`` is a TUM
-sequence; one holding ``frame-*.color.*`` files is a 7-Scenes sequence; one holding
-``mav0/cam0/data.csv`` (or the ``mav0`` folder itself, or either with EuRoC ground truth
-only) is a EuRoC sequence; one holding ``times.txt`` and ``image_2/`` or ``image_0/`` is a KITTI sequence; a
-file, or a folder with ``rgb/`` or a video, is an agent input; a folder with ``image/`` or
+or a ``.db3`` file in such a folder, is a ROS log; a folder with ``rgb.txt`` or
+``associations.txt`` is a TUM sequence; one holding ``frame-*.color.*`` files is a 7-Scenes
+sequence; one holding ``mav0/cam0/data.csv`` (or the ``mav0`` folder itself, or either with
+EuRoC ground truth only) is a EuRoC sequence; one holding ``times.txt`` and ``image_2/`` or
+``image_0/`` is a KITTI sequence; a file, or a folder with ``rgb/`` or a video, is an agent input; a folder with ``image/`` or
 ``gt_traj.txt`` is a Tanks and Temples sequence; a folder whose only sub-folder of frames is
 a 7-Scenes sequence is that sequence. Anything else is an :class:`InputError` saying what
 each format expects.

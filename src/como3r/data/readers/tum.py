@@ -15,6 +15,12 @@ the dataset's "File Formats" page
   synchronised and drop frames, so with ``depth.txt`` present the frames are the associated
   pairs (rgb images without a depth partner are left out, with a warning); without
   ``depth.txt`` every ``rgb.txt`` image is a frame. Timestamps are the rgb ones.
+* ``associations.txt`` (optional; not in the archives, but many users write one with
+  ``associate.py rgb.txt depth.txt > associations.txt``, as ORB-SLAM's TUM examples ask,
+  and some copies of the dataset carry one): lines ``rgb_timestamp rgb_file
+  depth_timestamp depth_file`` (or depth first, told by the files' ``depth/`` folder). When
+  present, its pairs are the frames, as the user associated them, and ``rgb.txt`` /
+  ``depth.txt`` are not needed.
 * depth: 16-bit PNG "scaled by a factor of 5000" (5000 = 1 m), 0 = no data; registered to
   the colour image by the OpenNI driver (1:1 pixel correspondence).
 * ground truth: ``groundtruth.txt`` (optional: the benchmark's validation sequences publish
@@ -58,7 +64,9 @@ from como3r.io.tum import Trajectory, read_tum
 
 logger = logging.getLogger(__name__)
 
-EXPECTED = "rgb.txt (with rgb/), optionally depth.txt (with depth/) and groundtruth.txt"
+EXPECTED = ("rgb.txt (with rgb/) or associations.txt, optionally depth.txt (with depth/) and "
+            "groundtruth.txt")
+ASSOCIATIONS = "associations.txt"
 #: TUM associate.py's default ``--max_difference`` [s]
 MAX_DIFFERENCE = 0.02
 #: "The depth images are scaled by a factor of 5000"; 0 means missing value
@@ -78,8 +86,8 @@ DISTORTION = {
 
 
 def matches(path: Path) -> bool:
-    """A folder holding ``rgb.txt`` is a TUM sequence."""
-    return (path / "rgb.txt").is_file()
+    """A folder holding ``rgb.txt`` or ``associations.txt`` is a TUM sequence."""
+    return (path / "rgb.txt").is_file() or (path / ASSOCIATIONS).is_file()
 
 
 def camera_from_name(name: str) -> tuple[tuple[float, float, float, float] | None,
@@ -161,26 +169,14 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
             different sizes, depth that is not 16-bit or not the image size, no rgb image
             with a depth partner, or a malformed ``groundtruth.txt`` / ``calib.txt``.
     """
-    rgb_list = path / "rgb.txt"
-    rgb = read_file_list(rgb_list)
-    _check_listed(path, rgb_list, rgb)
-    frames = list(range(len(rgb)))
-    depth_files: list[Path] = []
-    depth_list = path / "depth.txt"
-    if depth_list.is_file():
-        depth = read_file_list(depth_list)
-        pairs = associate(np.array([s for _, s, _ in rgb]), np.array([s for _, s, _ in depth]))
-        if not pairs:
-            raise InputError(f"{depth_list}: no depth image within {MAX_DIFFERENCE} s of any "
-                             f"image of {rgb_list.name}")
-        if len(pairs) < len(rgb):
-            logger.warning("%s: %d of %d rgb images have no depth image within %g s "
-                           "(TUM associate.py); they are left out", path, len(rgb) - len(pairs),
-                           len(rgb), MAX_DIFFERENCE)
-        frames = [i for i, _ in pairs]
-        depth_rows = [depth[j] for _, j in pairs]
-        _check_listed(path, depth_list, depth_rows)
+    if (path / ASSOCIATIONS).is_file():
+        rgb, depth_rows = read_associations(path / ASSOCIATIONS)
+        _check_listed(path, path / ASSOCIATIONS, rgb)
+        _check_listed(path, path / ASSOCIATIONS, depth_rows)
+        frames = list(range(len(rgb)))
         depth_files = [path / name for _, _, name in depth_rows]
+    else:
+        rgb, frames, depth_files = _associate_lists(path)
     image_paths = tuple(path / rgb[i][2] for i in frames)
     image_size = common_image_size(image_paths)
     for depth_file in depth_files:
@@ -205,6 +201,70 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
         format="tum", depth_units_per_metre=DEPTH_UNITS_PER_METRE, depth_invalid=(0,),
         distortion=distortion,
     )
+
+
+def read_associations(path: Path) -> tuple[list[tuple[int, float, str]],
+                                           list[tuple[int, float, str]]]:
+    """The rgb and depth entries ``(line number, timestamp, file name)`` of an
+    ``associations.txt``, pair by pair in rgb-time order.
+
+    Raises:
+        InputError: an unreadable file, a line that is not ``timestamp file timestamp
+            file``, non-increasing rgb timestamps or no entries; the message names the line.
+    """
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read associations ({exc})") from None
+    rgb: list[tuple[int, float, str]] = []
+    depth: list[tuple[int, float, str]] = []
+    for line_no, line in enumerate(lines, 1):
+        text = line.split("#", 1)[0].replace(",", " ").replace("\t", " ").strip()
+        if not text:
+            continue
+        parts = text.split()
+        if len(parts) != 4:
+            raise InputError(f"{path}:{line_no}: expected 'rgb_timestamp rgb_file "
+                             f"depth_timestamp depth_file', got {text!r}")
+        first = (line_no, parse_timestamp(parts[0], path, line_no), parts[1])
+        second = (line_no, parse_timestamp(parts[2], path, line_no), parts[3])
+        if parts[1].startswith("depth") and not parts[3].startswith("depth"):
+            first, second = second, first  # written as associate.py depth.txt rgb.txt
+        if rgb and first[1] <= rgb[-1][1]:
+            raise InputError(f"{path}:{line_no}: rgb timestamps are not strictly increasing "
+                             f"({rgb[-1][1]!r} then {first[1]!r})")
+        rgb.append(first)
+        depth.append(second)
+    if not rgb:
+        raise InputError(f"{path}: no 'rgb_timestamp rgb_file depth_timestamp depth_file' "
+                         "entries")
+    return rgb, depth
+
+
+def _associate_lists(path: Path) -> tuple[list[tuple[int, float, str]], list[int], list[Path]]:
+    """``rgb.txt``'s entries, the indices of those that are frames and their depth files
+    (empty without ``depth.txt``), paired as TUM's ``associate.py`` pairs them."""
+    rgb_list = path / "rgb.txt"
+    rgb = read_file_list(rgb_list)
+    _check_listed(path, rgb_list, rgb)
+    frames = list(range(len(rgb)))
+    depth_files: list[Path] = []
+    depth_list = path / "depth.txt"
+    if depth_list.is_file():
+        depth = read_file_list(depth_list)
+        pairs = associate(np.array([s for _, s, _ in rgb]), np.array([s for _, s, _ in depth]))
+        if not pairs:
+            raise InputError(f"{depth_list}: no depth image within {MAX_DIFFERENCE} s of any "
+                             f"image of {rgb_list.name}")
+        if len(pairs) < len(rgb):
+            logger.warning("%s: %d of %d rgb images have no depth image within %g s "
+                           "(TUM associate.py); they are left out", path, len(rgb) - len(pairs),
+                           len(rgb), MAX_DIFFERENCE)
+        frames = [i for i, _ in pairs]
+        depth_rows = [depth[j] for _, j in pairs]
+        _check_listed(path, depth_list, depth_rows)
+        depth_files = [path / name for _, _, name in depth_rows]
+    return rgb, frames, depth_files
 
 
 def ground_truth(path: Path) -> tuple[Path, Trajectory]:
