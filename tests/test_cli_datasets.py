@@ -107,6 +107,21 @@ def test_frames_in_a_ground_truth_gap_are_skipped_with_one_warning(tmp_path, cap
     assert metrics["ate"]["agents"][0]["frames"] == 6
 
 
+def test_the_check_before_the_run_does_not_repeat_reader_warnings(tmp_path, caplog):
+    """The command line opens the input to check it before the run opens it: a reader's
+    warning (an rgb image without depth) is said once in one process."""
+    seq = tum_from_synthetic(tmp_path, frames=6)
+    lines = (seq / "depth.txt").read_text().splitlines()
+    (seq / "depth.txt").write_text("\n".join(lines[:3] + lines[4:]) + "\n")
+    with caplog.at_level("WARNING"):
+        result = _invoke("run", "--agent", str(seq), "--out", str(tmp_path / "out"),
+                         "--prior", "simulated", "--set", "input.long_side=64",
+                         "--single-process")
+    assert result.exit_code == 0, result.output
+    said = [r.getMessage() for r in caplog.records if "no depth image" in r.getMessage()]
+    assert len(said) == 1, said
+
+
 def test_eval_against_a_7scenes_sequence(tmp_path):
     """A trajectory equal to the sequence's poses has no error; --format is honoured."""
     seq = tmp_path / "seq-01"

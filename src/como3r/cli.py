@@ -426,12 +426,13 @@ def _check_input(path: Path, config, prior: str) -> None:
         InputError: naming the input and what is wrong with it or what it lacks; images
             alone take --prior mast3r.
     """
-    from como3r.data.agent import open_agent
+    from como3r.data.agent import open_agent, quiet_reading
     from como3r.data.poses import MAX_GAP
     from como3r.data.readers import DEPTH_SOURCES
 
-    source = open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format,
-                        topic=config.input.topic)
+    with quiet_reading():  # the run opens it again and says the readers' warnings once
+        source = open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format,
+                            topic=config.input.topic)
     if prior != "simulated":
         return
     needs = ("which --prior simulated needs (a stand-in made from ground-truth depth); "

@@ -30,6 +30,7 @@ by :meth:`AgentInput.load_frame` and :meth:`AgentInput.frames`, which check them
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -268,6 +269,20 @@ def open_agent(path: str | Path, fps: float = 30.0, format: str = "auto",
     from como3r.data.readers import open_input  # the readers build on this module
 
     return open_input(path, fps=fps, format=format, topic=topic)
+
+
+@contextlib.contextmanager
+def quiet_reading() -> Iterator[None]:
+    """Open inputs without the readers' warnings (frames left out, ...): for a second
+    opening of an input whose first opening in the run says them (the command line's check,
+    an agent process), so each is said once."""
+    data_logger = logging.getLogger("como3r.data")
+    level = data_logger.level
+    data_logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        data_logger.setLevel(level)
 
 
 _SECONDS_NAME = re.compile(r"[1-9]\d{8,9}(\.\d+)?")
