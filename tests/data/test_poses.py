@@ -50,6 +50,17 @@ def test_frames_outside_the_samples_or_in_wide_gaps_have_no_pose():
     assert not torch.isfinite(poses_at(frames, None)).any()
 
 
+def test_the_freiburg1_dropout_of_the_issue_is_bridged():
+    """A real freiburg1 sequence: a 40 ms mocap dropout leaves frames whose nearest poses
+    are 41 ms and 34 ms away (75 ms apart): interpolated, not refused."""
+    gt = _trajectory(np.array([10.0 - 0.041, 10.0 + 0.034]))
+    pose = poses_at(np.array([10.0]), gt)[0]
+    assert torch.isfinite(pose).all()
+    alpha = 0.041 / 0.075
+    rows = gt.T_WC.numpy()
+    np.testing.assert_allclose(pose[:3].numpy(), (1 - alpha) * rows[0, :3] + alpha * rows[1, :3])
+
+
 def test_slerp_takes_the_shorter_arc():
     q0 = np.array([[0.0, 0.0, 0.0, 1.0]])
     q1 = -Rotation.from_euler("z", 90, degrees=True).as_quat()[None]  # the same rotation as +q

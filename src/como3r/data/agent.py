@@ -240,7 +240,8 @@ class AgentInput:
             _load_surface(self.surface_paths[i], self.image_size) if self.has_surface else None
         )
         assert self.gt_poses is not None
-        T_WC_gt = self.gt_poses[i].clone() if bool(self.has_gt_pose[i]) else None
+        row = self.gt_poses[i]
+        T_WC_gt = row.clone() if bool(torch.isfinite(row).all()) else None
         return Frame(i, float(self.timestamps[i]), self.stems[i], image, depth, surface, T_WC_gt)
 
 
