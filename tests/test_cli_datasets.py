@@ -123,6 +123,22 @@ def test_the_check_before_the_run_does_not_repeat_reader_warnings(tmp_path, capl
     assert len(said) == 1, said
 
 
+def test_decentralized_robots_need_a_pose_for_every_frame(tmp_path, only_error_line):
+    """--mode decentralized picks keyframes by odometry and skips no frame: a ground-truth
+    gap is still refused there, in one line, before any work."""
+    from .data.test_agent import write_agent
+
+    robots = [write_agent(tmp_path / f"robot_{k}", n=8, depth="npy", calib="20 20 16 12",
+                          groundtruth=True, odometry=True) for k in range(2)]
+    rows = (robots[1] / "groundtruth.txt").read_text().splitlines()
+    (robots[1] / "groundtruth.txt").write_text("\n".join(rows[:2] + rows[6:]) + "\n")
+    args = [a for r in robots for a in ("--agent", str(r))]
+    line = only_error_line(_invoke("run", *args, "--out", str(tmp_path / "out"), "--prior",
+                                   "simulated", "--mode", "decentralized"))
+    assert f"{robots[1]}: 4 of 8 frames have no ground-truth pose within 0.1 s" in line
+    assert "--mode decentralized" in line and not (tmp_path / "out").exists()
+
+
 def test_eval_against_a_7scenes_sequence(tmp_path):
     """A trajectory equal to the sequence's poses has no error; --format is honoured."""
     seq = tmp_path / "seq-01"

@@ -334,7 +334,8 @@ def run(
         if not path.exists():
             hint = " (a stream URL goes to --camera)" if is_stream_url(str(path)) else ""
             raise InputError(f"{path}: agent input does not exist{hint}")
-        _check_input(path, config, prior)  # input problems before weights are looked for
+        # input problems before weights are looked for
+        _check_input(path, config, prior, every_pose=mode == "decentralized")
     spec = PriorSpec(prior, weights, retrieval_weights, codebook, device, precision)
     if prior == "mast3r":
         check_precision(device, precision)
@@ -414,13 +415,14 @@ def _camera_sources(camera: List[str], max_frames: Optional[int], agent: List[Pa
     return [parse_source(text, max_frames) for text in camera]
 
 
-def _check_input(path: Path, config, prior: str) -> None:
+def _check_input(path: Path, config, prior: str, every_pose: bool = False) -> None:
     """An input opened before any work and before MASt3R's weights are looked for (its
     layout, files and image headers: :func:`como3r.data.agent.open_agent`), and what
     ``--prior simulated`` needs of it: depth, intrinsics and ground-truth poses (or
     appearance keys); frames without a pose (before the first, after the last, in a gap
     wider than :data:`como3r.data.poses.MAX_GAP`) are skipped by the run, with one warning,
-    so at least one frame must have one.
+    so at least one frame must have one; ``every_pose``: every frame must (decentralized
+    robots pick their keyframes by odometry and do not skip frames).
 
     Raises:
         InputError: naming the input and what is wrong with it or what it lacks; images
@@ -444,9 +446,14 @@ def _check_input(path: Path, config, prior: str) -> None:
     if not source.has_surface:
         if source.groundtruth is None:
             raise InputError(f"{path}: no ground truth, {needs}")
-        if not source.has_gt_pose.any():
+        has = source.has_gt_pose
+        if not has.any():
             raise InputError(f"{path}: no frame has a ground-truth pose within "
                              f"{MAX_GAP:g} s, {needs}")
+        if every_pose and not has.all():
+            raise InputError(f"{path}: {int((~has).sum())} of {source.num_frames} frames have "
+                             f"no ground-truth pose within {MAX_GAP:g} s, which --prior "
+                             "simulated needs for every frame in --mode decentralized")
 
 
 def _check_device(device: str) -> None:
