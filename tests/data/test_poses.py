@@ -123,3 +123,29 @@ def test_a_wider_hole_leaves_its_frames_out(tmp_path):
     np.testing.assert_array_equal(agent.has_gt_pose, (agent.timestamps >= gt[0]) & ~hole)
     assert f"(5 before the first ground-truth pose, {int(hole.sum())} in gaps wider than " \
            "0.1 s)" in agent.missing_gt_warning()
+
+
+def test_encodable_frames_of_the_simulated_prior(tmp_path):
+    """Frames without a pose are left out unless surface maps key them; without any ground
+    truth nothing is left out here (the prior says what is missing)."""
+    from como3r.data.ground_truth import encodable, skipped_warning
+
+    from .test_agent import write_agent
+
+    stamps = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
+    for name, surface in (("plain", False), ("keys", True)):
+        root = write_agent(tmp_path / name, n=6, timestamps=stamps, surface=surface,
+                           groundtruth=True)
+        rows = (root / "groundtruth.txt").read_text().splitlines()
+        (root / "groundtruth.txt").write_text("\n".join(rows[-4:]) + "\n")  # from 0.2 s
+        agent = open_agent(root)
+        if surface:
+            assert encodable(agent).all() and skipped_warning(agent) is None
+        else:
+            np.testing.assert_array_equal(encodable(agent), [False, False, True, True, True,
+                                                             True])
+            assert skipped_warning(agent).endswith(
+                "2 of 6 frames have no ground-truth pose (2 before the first ground-truth "
+                "pose); --prior simulated skips them")
+    bare = open_agent(write_agent(tmp_path / "bare", n=3))
+    assert encodable(bare).all() and skipped_warning(bare) is None

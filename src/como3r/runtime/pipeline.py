@@ -191,25 +191,28 @@ def open_agents(paths: Sequence[Path | CameraSource], config: Config,
 def run_frames(source: AgentInput, stride: int, prior: str, start: int = 0) -> np.ndarray:
     """``(M,)`` int64 indices of the frames an agent's loop is fed: every ``stride``-th
     frame counted from frame 0, from ``start`` on; with the simulated prior, only those it
-    can encode: a frame without a ground-truth pose (:attr:`AgentInput.has_gt_pose`:
-    before the first, after the last, or in a gap of the ground truth) is skipped unless the
-    input has surface maps. The frames keep their indices and timestamps."""
+    can encode (:func:`como3r.data.ground_truth.encodable`). The frames keep their indices
+    and timestamps."""
     frames = np.arange(0, source.num_frames, stride, dtype=np.int64)
     frames = frames[frames >= start]
-    if prior == "simulated" and not source.has_surface and source.groundtruth is not None:
-        frames = frames[source.has_gt_pose[frames]]
+    if prior == "simulated":
+        from como3r.data.ground_truth import encodable
+
+        frames = frames[encodable(source)[frames]]
     return frames
 
 
 def warn_skipped_frames(agents: Sequence[AgentInput], prior: str) -> None:
-    """One warning per input whose frames without a ground-truth pose the simulated prior
-    skips (:func:`run_frames`), counting them."""
+    """One warning per input some of whose frames the simulated prior cannot encode and
+    :func:`run_frames` skips, counting them."""
     if prior != "simulated":
         return
+    from como3r.data.ground_truth import skipped_warning
+
     for agent in agents:
-        line = None if agent.has_surface else agent.missing_gt_warning()
+        line = skipped_warning(agent)
         if line is not None:
-            logger.warning("%s; --prior simulated skips them", line)
+            logger.warning("%s", line)
 
 
 def _frame_schedule(agents: Sequence[AgentInput], frames: Sequence[np.ndarray]
