@@ -3,11 +3,15 @@
 Only :class:`como3r.prior.simulated.SimulatedPrior` holds one of these: the runtime builds
 it with the run's agent inputs and hands it to the prior, so depth maps, surface maps,
 ground-truth poses and the true intrinsics never travel with a frame through the system.
+The runtime asks :func:`encodable` which frames the prior can encode (a frame without a
+ground-truth pose is skipped, :func:`skipped_warning` counts them once).
 """
 
 from __future__ import annotations
 
 from typing import Mapping
+
+import numpy as np
 
 from como3r.data.agent import AgentInput
 from como3r.data.preprocess import frame_ground_truth
@@ -34,3 +38,20 @@ class AgentFolderTruth:
         if source is None:
             raise PriorError(f"simulated prior: no input folder for agent {agent}")
         return frame_ground_truth(source.load_frame(index), self.long_side, source.calib)
+
+
+def encodable(source: AgentInput) -> np.ndarray:
+    """``(N,)`` bool: the frames the simulated prior can encode. Every frame with surface
+    maps (appearance keys) or without any ground truth (the prior then says what is
+    missing); otherwise those with a ground-truth pose
+    (:attr:`~como3r.data.agent.AgentInput.has_gt_pose`: not before the first sample, after
+    the last or in a gap wider than :data:`como3r.data.poses.MAX_GAP`)."""
+    if source.has_surface or source.groundtruth is None:
+        return np.ones(source.num_frames, dtype=bool)
+    return source.has_gt_pose
+
+
+def skipped_warning(source: AgentInput) -> str | None:
+    """The one warning line for the frames :func:`encodable` leaves out, or None."""
+    line = None if source.has_surface else source.missing_gt_warning()
+    return None if line is None else f"{line}; --prior simulated skips them"
