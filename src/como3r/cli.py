@@ -20,6 +20,7 @@ from como3r.cli_common import (
     Command,
     OneLineErrorsGroup,
     console,
+    interrupt_keeps_the_store,
     interrupt_leaves_nothing,
     on_interrupt,
     print_rows,
@@ -224,7 +225,7 @@ def _load_config(config_file: Optional[Path], overrides: List[str], calib: bool,
 
 
 @app.command(cls=ViewerCommand)
-@interrupt_leaves_nothing
+@interrupt_keeps_the_store
 @user_errors
 def run(
     agent: List[Path] = typer.Option([], "--agent", metavar="PATH",
@@ -299,6 +300,7 @@ def run(
     from como3r.io.output import check_output_dir
     from como3r.prior.mast3r.precision import PRECISIONS, check_precision
     from como3r.runtime.pipeline import PRIORS, PriorSpec, resolve_weights, run as run_pipeline
+    from como3r.runtime.store_reader import holds_keyframes
 
     # every option is checked before any work starts (and before a progress bar shows)
     _check_device(device)
@@ -321,7 +323,8 @@ def run(
         raise InputError("--freeze-map holds the keyframes of a --map fixed; give --map DIR")
     if map_folder is not None and mode == "decentralized":
         raise InputError("--map starts a --mode centralized run on a saved map")
-    check_output_dir(out, overwrite, resume)  # before the weights load and the agents start
+    check_output_dir(out, overwrite, resume,  # before the weights load and the agents start
+                     holds_keyframes if mode == "centralized" and not sources else None)
     config = _load_config(config_file, overrides, calib, no_loop_closure, format, topic)
     if resume:
         _check_resumable(out, config)

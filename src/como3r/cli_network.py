@@ -11,7 +11,13 @@ from typing import Annotated, Any, Callable, List, Optional, TypeVar
 
 import typer
 
-from como3r.cli_common import console, interrupt_leaves_nothing, on_interrupt, user_errors
+from como3r.cli_common import (
+    console,
+    interrupt_keeps_the_store,
+    interrupt_leaves_nothing,
+    on_interrupt,
+    user_errors,
+)
 from como3r.cli_progress import QUIET_HELP, run_progress
 from como3r.errors import InputError
 
@@ -121,7 +127,7 @@ def with_prior(command: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
-@interrupt_leaves_nothing
+@interrupt_keeps_the_store
 @user_errors
 @with_prior
 def coordinator(
@@ -168,9 +174,10 @@ def coordinator(
     from como3r.io.output import check_output_dir
     from como3r.runtime.network import serve
     from como3r.runtime.processes import RuntimeOptions
+    from como3r.runtime.store_reader import holds_keyframes
 
     network = _network(listen, connect, scouting, zenoh_config, session)
-    check_output_dir(out, overwrite, resume)
+    check_output_dir(out, overwrite, resume, holds_keyframes)
     config = _load_config(config_file, overrides, calib, no_loop_closure)
     if resume:
         _check_resumable(out, config)

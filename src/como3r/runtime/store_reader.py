@@ -31,7 +31,7 @@ from como3r.frontend.paging import PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.prior.base import Encoding
 from como3r.runtime.messages import AgentFinished
-from como3r.runtime.store import APPLICATION_ID, FORMAT_VERSION
+from como3r.runtime.store import APPLICATION_ID, FORMAT_VERSION, STORE_NAME
 from como3r.runtime.store_blobs import unpack_arrays, unpack_object
 from como3r.runtime.store_paging import PagedLink
 
@@ -172,6 +172,19 @@ def read_config(path: str | Path) -> Config:
     """
     path = Path(path)
     return _read(path, lambda connection: _meta(connection, path)[1], check=False)
+
+
+def holds_keyframes(folder: str | Path) -> bool:
+    """Whether ``folder`` has a session store holding work: at least one keyframe, or a store
+    that cannot be read (only ``--overwrite`` deletes it; ``--resume`` says what is wrong)."""
+    path = Path(folder) / STORE_NAME
+    if not path.is_file():
+        return False
+    try:
+        return _read(path, lambda connection: connection.execute(
+            "SELECT EXISTS (SELECT 1 FROM keyframes)").fetchone()[0] == 1, check=False)
+    except StoreError:
+        return True
 
 
 def _read(path: Path, load: Callable[[sqlite3.Connection], T], check: bool) -> T:
