@@ -279,9 +279,9 @@ def run(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
     resume: bool = typer.Option(
         False, "--resume",
-        help="Continue a run that was killed (OUT.partial) from its session store: the same "
-             "command with --resume. The agents start again from the beginning; the "
-             "keyframes the store holds are not processed again."),
+        help="Continue a run that was killed or interrupted (OUT.partial) from its session "
+             "store: the same command with --resume. The agents start again from the "
+             "beginning; the keyframes the store holds are not processed again."),
     map_folder: Optional[Path] = typer.Option(
         None, "--map", metavar="DIR",
         help="Start on the map of a finished run (its output folder, made with the same "
