@@ -107,11 +107,11 @@ def user_errors(func: F) -> F:
         try:
             return func(*args, **kwargs)
         except Como3rError as exc:
-            print_error(str(exc))
+            print_error(str(exc) + _kept_on_full_disk(exc, kwargs))
             raise typer.Exit(EXIT_USER_ERROR) from None
         except OSError as exc:
             where = f"{exc.filename}: " if exc.filename is not None else ""
-            print_error(f"{where}{exc.strerror or exc}")
+            print_error(f"{where}{exc.strerror or exc}" + _kept_on_full_disk(exc, kwargs))
             raise typer.Exit(EXIT_USER_ERROR) from None
 
     return wrapper  # type: ignore[return-value]
@@ -142,6 +142,22 @@ def on_interrupt(message: Callable[[dict[str, Any]], str]) -> Callable[[F], F]:
 #: the staging folder is gone and an earlier output untouched
 interrupt_leaves_nothing = on_interrupt(
     lambda kwargs: f"interrupted: nothing was written to {kwargs['out']}")
+
+
+def _kept_on_full_disk(exc: BaseException, kwargs: dict[str, Any]) -> str:
+    """For a run stopped by a full disk that kept its session store: how to continue it."""
+    from como3r.io.output import command_line, is_disk_full, staging_dir
+
+    if kwargs.get("out") is None or not is_disk_full(exc):
+        return ""
+    from como3r.runtime.store import STORE_NAME
+
+    staging = staging_dir(kwargs["out"])
+    if not (staging / STORE_NAME).is_file():
+        return ""
+    resume = () if kwargs.get("resume") else ("--resume",)
+    return (f"; the session store in {staging} is kept: free some space and continue "
+            f"with: {command_line(*resume)}")
 
 
 def _store_kept_or_nothing(kwargs: dict[str, Any]) -> str:

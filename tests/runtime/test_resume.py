@@ -230,3 +230,40 @@ def test_overwrite_replaces_an_interrupted_runs_store(scene, tmp_path, monkeypat
     result = CliRunner().invoke(app, [*args, "--overwrite"])
     assert result.exit_code == 0, result.output
     assert (out / "metrics.json").is_file() and not (tmp_path / "run.partial").exists()
+
+
+def test_a_full_disk_keeps_the_store_and_resumes_to_the_uninterrupted_result(
+        scene, tmp_path, uninterrupted, monkeypatch) -> None:
+    """SQLite's own "database or disk is full" (the store may not grow past its size at the
+    run's half: ``max_page_count``) ends a run as an interrupt does, with one error line
+    naming the command that continues it once space is freed."""
+    from como3r.runtime.store import SessionStore
+
+    runtime, reference = uninterrupted
+    out, total = tmp_path / "run", reference["coordinator"]["keyframes"]
+    args = _args(scene, out, *_extra(runtime))
+    monkeypatch.setattr(sys, "argv", ["como3r", *args])
+    record, calls = SessionStore.record, []
+
+    def record_until_full(self, *rest, **kwargs):
+        calls.append(None)
+        if len(calls) == total // 2:
+            pages = self.connection.execute("PRAGMA page_count").fetchone()[0]
+            self.connection.execute(f"PRAGMA max_page_count={pages}")
+        return record(self, *rest, **kwargs)
+
+    with monkeypatch.context() as patched:
+        patched.setattr(SessionStore, "record", record_until_full)
+        result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2, result.output
+    partial = tmp_path / "run.partial"
+    [line] = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert "database or disk is full" in line
+    assert line.endswith(f"; the session store in {partial} is kept: free some space and "
+                         f"continue with: {shlex.join(['como3r', *args, '--resume'])}")
+    assert 0 < len(read_session(partial / STORE_NAME).graph) < total
+    result = CliRunner().invoke(app, [*args, "--resume"])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["coordinator"]["keyframes"] == total
+    assert _merged_ate(metrics) == pytest.approx(_merged_ate(reference), rel=1e-3)

@@ -10,14 +10,15 @@ once the new one is complete: ``<out>`` -> ``<out>.old-<pid>``, ``<out>.partial`
 
 A killed run leaves ``<out>.partial`` behind; ``resume`` continues in it (``como3r run
 --resume``: its session store) instead of starting afresh, and keeps it if the resumed run
-fails too. An interrupted run (Ctrl-C, SIGTERM) keeps it too where it holds work that only
-``--overwrite`` may delete (``kept``: a session store with keyframes), and a new run without
-``resume`` or ``overwrite`` refuses to replace such a folder.
+fails too. An interrupted run (Ctrl-C, SIGTERM, a full disk) keeps it too where it holds work
+that only ``--overwrite`` may delete (``kept``: a session store with keyframes), and a new
+run without ``resume`` or ``overwrite`` refuses to replace such a folder.
 """
 
 from __future__ import annotations
 
 import datetime
+import errno
 import json
 import os
 import shlex
@@ -46,6 +47,24 @@ Kept = Callable[[Path], bool]
 def staging_dir(out: str | Path) -> Path:
     """The staging folder ``<out>.partial`` of an output folder ``out``."""
     return _staging(Path(out))
+
+
+#: ``sqlite3.SQLITE_FULL``: an insert failed because the disk is full
+_SQLITE_FULL = 13
+
+
+def is_disk_full(exc: BaseException | None) -> bool:
+    """Whether ``exc``, or an error it was raised from or while handling, is a full disk or
+    quota: ``ENOSPC``/``EDQUOT``, or SQLite's ``SQLITE_FULL`` (a session store's write)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        if getattr(exc, "sqlite_errorcode", None) == _SQLITE_FULL:
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def check_output_dir(out: str | Path, overwrite: bool = False, resume: bool = False,
@@ -157,7 +176,8 @@ def atomic_output_dir(out: str | Path, overwrite: bool = False,
         _write_marker(staging)
         yield staging
     except BaseException as exc:
-        interrupted = isinstance(exc, KeyboardInterrupt)
+        # interrupts and a full disk end a run alike: what it did is kept, resumable
+        interrupted = isinstance(exc, KeyboardInterrupt) or is_disk_full(exc)
         if not (resume or (interrupted and kept is not None and kept(staging))):
             shutil.rmtree(staging, ignore_errors=True)
         raise
