@@ -300,7 +300,7 @@ def run(
     from como3r.io.output import check_output_dir
     from como3r.prior.mast3r.precision import PRECISIONS, check_precision
     from como3r.runtime.pipeline import PRIORS, PriorSpec, resolve_weights, run as run_pipeline
-    from como3r.runtime.store_reader import holds_keyframes
+    from como3r.runtime.store_reader import resumable
 
     # every option is checked before any work starts (and before a progress bar shows)
     _check_device(device)
@@ -324,7 +324,7 @@ def run(
     if map_folder is not None and mode == "decentralized":
         raise InputError("--map starts a --mode centralized run on a saved map")
     check_output_dir(out, overwrite, resume,  # before the weights load and the agents start
-                     holds_keyframes if mode == "centralized" and not sources else None)
+                     resumable if mode == "centralized" and not sources else None)
     config = _load_config(config_file, overrides, calib, no_loop_closure, format, topic)
     if resume:
         _check_resumable(out, config)

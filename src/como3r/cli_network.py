@@ -174,10 +174,11 @@ def coordinator(
     from como3r.io.output import check_output_dir
     from como3r.runtime.network import serve
     from como3r.runtime.processes import RuntimeOptions
-    from como3r.runtime.store_reader import holds_keyframes
+    from como3r.runtime.store_reader import resumable
 
     network = _network(listen, connect, scouting, zenoh_config, session)
-    check_output_dir(out, overwrite, resume, holds_keyframes)
+    check_output_dir(out, overwrite, resume,  # a finished store resumes here too
+                     lambda staging: resumable(staging, finished=True))
     config = _load_config(config_file, overrides, calib, no_loop_closure)
     if resume:
         _check_resumable(out, config)

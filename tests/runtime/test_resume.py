@@ -8,6 +8,7 @@ line.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shlex
@@ -267,3 +268,26 @@ def test_a_full_disk_keeps_the_store_and_resumes_to_the_uninterrupted_result(
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["coordinator"]["keyframes"] == total
     assert _merged_ate(metrics) == pytest.approx(_merged_ate(reference), rel=1e-3)
+
+
+@pytest.mark.parametrize("error", [KeyboardInterrupt(),
+                                   OSError(errno.ENOSPC, "No space left on device")],
+                         ids=["ctrl-c twice", "full disk"])
+def test_a_run_stopped_while_writing_its_outputs_leaves_nothing(scene, tmp_path, error,
+                                                                monkeypatch) -> None:
+    """Its store took the terminal refinement, which ``run --resume`` does not continue:
+    nothing is kept, nothing said to be resumable (as before interrupts were checkpoints)."""
+    def stop(*_args, **_kwargs):
+        raise error
+
+    monkeypatch.setattr("como3r.runtime.outputs.write_run_files", stop)
+    out = tmp_path / "run"
+    result = CliRunner().invoke(app, _args(scene, out, "--single-process"))
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    if isinstance(error, KeyboardInterrupt):
+        assert result.exit_code == 130
+        assert lines[-1] == f"interrupted: nothing was written to {out}"
+    else:
+        assert result.exit_code == 2
+        assert lines[-1] == "error: No space left on device"
+    assert not out.exists() and not (tmp_path / "run.partial").exists()

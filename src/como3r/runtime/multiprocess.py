@@ -31,7 +31,7 @@ from como3r.runtime.processes import RuntimeOptions, _Runtime
 from como3r.runtime.results import SegmentedCoordinator, agent_results, left_out
 from como3r.runtime.runtime_state import restore_runtime
 from como3r.runtime.store import STORE_NAME
-from como3r.runtime.store_reader import holds_keyframes, read_session
+from como3r.runtime.store_reader import read_session, resumable
 from como3r.runtime.store_resume import open_store
 from como3r.runtime.transport import Hub, PipeHub
 
@@ -128,8 +128,11 @@ def coordinate(
     runtime: _Runtime | None = None
     interrupted = False
     try:
+        # a finished store resumes with agents across machines only (como3r coordinator)
+        finished = not isinstance(hub, PipeHub)
         with interrupts_are_checkpoints(), atomic_output_dir(
-                out, overwrite=overwrite, resume=resume, kept=holds_keyframes) as staging:
+                out, overwrite=overwrite, resume=resume,
+                kept=lambda folder: resumable(folder, finished)) as staging:
             runtime = _Runtime(hub, frames, config, prior_spec, options, progress, live,
                                inputs, saved_map)
             if saved_map is not None and not resume:

@@ -55,7 +55,7 @@ from como3r.runtime.live import CoordinatorLive
 from como3r.runtime.map_session import SavedMap, hold_map, map_results, seed_map
 from como3r.runtime.prefetch import prepared_frames
 from como3r.runtime.results import AgentResult
-from como3r.runtime.store_reader import holds_keyframes
+from como3r.runtime.store_reader import resumable
 from como3r.runtime.store_resume import open_store
 
 logger = logging.getLogger(__name__)
@@ -281,7 +281,7 @@ def run(
     # recorded inputs: the first Ctrl-C or SIGTERM stops the run between two frames, and
     # OUT.partial is kept for --resume; a live run's store cannot be resumed
     checkpoints = contextlib.nullcontext() if cameras else interrupts_are_checkpoints()
-    kept = None if cameras else holds_keyframes
+    kept = None if cameras else resumable
     with checkpoints, \
             atomic_output_dir(out, overwrite=overwrite, resume=resume, kept=kept) as staging, \
             open_store(staging, config, coordinator, resume) as store, \

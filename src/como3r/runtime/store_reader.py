@@ -174,15 +174,22 @@ def read_config(path: str | Path) -> Config:
     return _read(path, lambda connection: _meta(connection, path)[1], check=False)
 
 
-def holds_keyframes(folder: str | Path) -> bool:
-    """Whether ``folder`` has a session store holding work: at least one keyframe, or a store
-    that cannot be read (only ``--overwrite`` deletes it; ``--resume`` says what is wrong)."""
+def resumable(folder: str | Path, finished: bool = False) -> bool:
+    """Whether ``folder`` has a session store a run can be resumed from, work that only
+    ``--overwrite`` deletes: one holding a keyframe, whose terminal cleanup has not run
+    (with ``finished``, whose has too: ``como3r coordinator --resume`` writes its outputs),
+    or one that cannot be read (``--resume`` then says what is wrong)."""
     path = Path(folder) / STORE_NAME
     if not path.is_file():
         return False
+
+    def load(connection: sqlite3.Connection) -> bool:
+        done = connection.execute("SELECT value FROM state WHERE key = 'finished'").fetchone()
+        held = connection.execute("SELECT EXISTS (SELECT 1 FROM keyframes)").fetchone()[0]
+        return held == 1 and (finished or done is None or not json.loads(done[0]))
+
     try:
-        return _read(path, lambda connection: connection.execute(
-            "SELECT EXISTS (SELECT 1 FROM keyframes)").fetchone()[0] == 1, check=False)
+        return _read(path, load, check=False)
     except StoreError:
         return True
 

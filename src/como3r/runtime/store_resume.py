@@ -56,8 +56,7 @@ def open_store(folder: Path, config: Config, coordinator: Coordinator,
         session = read_session(path, paged=True)
         if session.finished:
             raise StoreError(f"{path}: the stored session finished (its run was stopped "
-                             f"while writing its outputs); run again with --overwrite instead "
-                             f"of --resume")
+                             f"while writing its outputs); run again without --resume")
     restore_coordinator(session, coordinator)
     logger.info("resuming from %s: %d keyframes of %d agents, %d edges", path,
                 len(session.graph), len(session.agents), len(session.graph.links))
