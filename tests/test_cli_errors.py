@@ -1,11 +1,13 @@
 """Every failure a user can cause is one ``error:`` line and exit status 2; Ctrl-C is one
-``interrupted:`` line and exit status 130, with nothing written."""
+``interrupted:`` line and exit status 130, with nothing written (a run interrupted
+once its session store holds work keeps it, and says how to continue it)."""
 
 from __future__ import annotations
 
 import contextlib
 import io
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -21,7 +23,9 @@ from como3r import cli_common
 from como3r.cli import app
 from como3r.config import Config, apply_overrides, load_config, validate
 from como3r.data.synth import synthesize
-from como3r.errors import ConfigError
+from como3r.errors import ConfigError, StoreError
+from como3r.runtime.store import STORE_NAME
+from como3r.runtime.store_reader import read_session
 
 
 @pytest.fixture(scope="module")
@@ -243,36 +247,65 @@ def _children(pid: int) -> list[int]:
     return [int(c) for c in path.read_text().split()] if path.exists() else []
 
 
+@pytest.fixture(scope="module")
+def longer_scene(tmp_path_factory) -> Path:
+    """Two agents with frames enough to be interrupted halfway (the scene above, 4 frames,
+    may be finished before a keyframe is stored)."""
+    root = tmp_path_factory.mktemp("longer_scene")
+    synthesize(root, agents=2, seed=1, overlap=0.2, frames=24, preset="default", width=64,
+               height=48, progress=None)
+    return root
+
+
 @pytest.mark.skipif(not Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children").exists(),
                     reason="needs Linux /proc children lists")
-def test_ctrl_c_in_a_multiprocess_run_is_one_line(scene, tmp_path) -> None:
-    """Ctrl-C in a terminal signals the whole process group, agent processes included: they
-    leave it to the coordinator (they used to print KeyboardInterrupt tracebacks from
-    wherever they were, often torch's imports), which stops them at once (it used to wait
-    for a shutdown they could not read yet)."""
-    out = tmp_path / "out"
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_an_interrupted_multiprocess_run_keeps_its_store(longer_scene, tmp_path,
+                                                         signum) -> None:
+    """The real signals, in a child process. Ctrl-C in a terminal signals the whole process
+    group, agent processes included: they leave it to the coordinator (they used to print
+    KeyboardInterrupt tracebacks from wherever they were, often torch's imports). SIGTERM
+    (``kill PID``, a service manager stopping it) reaches the main process only. Either way
+    the coordinator stops at its next checkpoint, stops the agents, keeps ``OUT.partial``
+    with its session store and ends on one line giving the exact command that continues
+    it, which finishes the run."""
+    out, partial = tmp_path / "out", tmp_path / "out.partial"
+    args = ["run", "--agent", str(longer_scene / "agent_0"), "--agent",
+            str(longer_scene / "agent_1"), "--out", str(out), "--prior", "simulated",
+            "--set", "input.long_side=64", "-q"]
 
     def default_sigint() -> None:  # a test runner started in the background ignores it
         signal.signal(signal.SIGINT, signal.SIG_DFL)
 
     child = subprocess.Popen(
-        [sys.executable, "-m", "como3r.cli", "run", "--agent", str(scene / "agent_0"),
-         "--out", str(out), "--prior", "simulated"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        preexec_fn=default_sigint, start_new_session=True)
-    deadline = time.monotonic() + 240
-    # the agent process and multiprocessing's resource tracker
-    while len(_children(child.pid)) < 2 and child.poll() is None:
+        [sys.executable, "-m", "como3r.cli", *args], stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint, start_new_session=True)
+    deadline = time.monotonic() + 300
+    while not _stored(partial / STORE_NAME) and child.poll() is None:
         assert time.monotonic() < deadline
-        time.sleep(0.05)
-    time.sleep(1.0)  # the agent is importing or working
-    os.killpg(child.pid, signal.SIGINT)
-    interrupted = time.monotonic()
-    _, stderr = child.communicate(timeout=120)
-    assert child.returncode == 130, stderr
-    assert stderr.splitlines() == [f"interrupted: nothing was written to {out}"], stderr
-    assert time.monotonic() - interrupted < 8.0
-    assert not out.exists() and not out.with_name("out.partial").exists()
+        time.sleep(0.1)
+    assert len(_children(child.pid)) >= 2  # the agent processes are still working
+    if signum == signal.SIGINT:
+        os.killpg(child.pid, signum)
+    else:
+        child.send_signal(signum)
+    _, stderr = child.communicate(timeout=300)
+    assert child.returncode == 128 + signum, stderr
+    command = shlex.join(["python", "-m", "como3r.cli", *args, "--resume"])
+    assert stderr.splitlines()[-1] == (f"interrupted: the session store in {partial} is "
+                                       f"kept; continue with: {command}"), stderr
+    assert "Traceback" not in stderr and not out.exists()
+    result = _invoke(*args, "--resume")
+    assert result.exit_code == 0, result.output
+    assert (out / "metrics.json").is_file() and not partial.exists()
+
+
+def _stored(store: Path) -> bool:
+    """Whether ``store`` exists and holds a keyframe."""
+    try:
+        return store.is_file() and len(read_session(store).graph) > 0
+    except StoreError:  # being created
+        return False
 
 
 def test_ctrl_c_in_eval_leaves_no_partial_file(scene, tmp_path, monkeypatch) -> None:

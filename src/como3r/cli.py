@@ -20,6 +20,7 @@ from como3r.cli_common import (
     Command,
     OneLineErrorsGroup,
     console,
+    interrupt_keeps_the_store,
     interrupt_leaves_nothing,
     on_interrupt,
     print_rows,
@@ -231,7 +232,7 @@ def _load_config(config_file: Optional[Path], overrides: List[str], calib: bool,
 
 
 @app.command(cls=ViewerCommand)
-@interrupt_leaves_nothing
+@interrupt_keeps_the_store
 @user_errors
 def run(
     agent: List[Path] = typer.Option([], "--agent", metavar="PATH",
@@ -286,9 +287,9 @@ def run(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
     resume: bool = typer.Option(
         False, "--resume",
-        help="Continue a run that was killed (OUT.partial) from its session store: the same "
-             "command with --resume. The agents start again from the beginning; the "
-             "keyframes the store holds are not processed again."),
+        help="Continue a run that was killed or interrupted (OUT.partial) from its session "
+             "store: the same command with --resume. The agents start again from the "
+             "beginning; the keyframes the store holds are not processed again."),
     map_folder: Optional[Path] = typer.Option(
         None, "--map", metavar="DIR",
         help="Start on the map of a finished run (its output folder, made with the same "
@@ -307,6 +308,7 @@ def run(
     from como3r.io.output import check_output_dir
     from como3r.prior.mast3r.precision import PRECISIONS, check_precision
     from como3r.runtime.pipeline import PRIORS, PriorSpec, resolve_weights, run as run_pipeline
+    from como3r.runtime.store_reader import resumable
 
     # every option is checked before any work starts (and before a progress bar shows)
     _check_device(device)
@@ -329,7 +331,8 @@ def run(
         raise InputError("--freeze-map holds the keyframes of a --map fixed; give --map DIR")
     if map_folder is not None and mode == "decentralized":
         raise InputError("--map starts a --mode centralized run on a saved map")
-    check_output_dir(out, overwrite, resume)  # before the weights load and the agents start
+    check_output_dir(out, overwrite, resume,  # before the weights load and the agents start
+                     resumable if mode == "centralized" and not sources else None)
     config = _load_config(config_file, overrides, calib, no_loop_closure, format, topic)
     if resume:
         _check_resumable(out, config)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import signal
 from typing import Any, Callable, Iterator, TypeVar
 
 import typer
@@ -106,11 +107,11 @@ def user_errors(func: F) -> F:
         try:
             return func(*args, **kwargs)
         except Como3rError as exc:
-            print_error(str(exc))
+            print_error(str(exc) + _kept_on_full_disk(exc, kwargs))
             raise typer.Exit(EXIT_USER_ERROR) from None
         except OSError as exc:
             where = f"{exc.filename}: " if exc.filename is not None else ""
-            print_error(f"{where}{exc.strerror or exc}")
+            print_error(f"{where}{exc.strerror or exc}" + _kept_on_full_disk(exc, kwargs))
             raise typer.Exit(EXIT_USER_ERROR) from None
 
     return wrapper  # type: ignore[return-value]
@@ -118,17 +119,19 @@ def user_errors(func: F) -> F:
 
 def on_interrupt(message: Callable[[dict[str, Any]], str]) -> Callable[[F], F]:
     """Ctrl-C in the decorated command prints ``message(kwargs)`` as one line (what was and
-    was not written) and exits with status 130."""
+    was not written) and exits with status 130 (143 for a run stopped by SIGTERM at a
+    checkpoint, :class:`~como3r.runtime.interrupts.RunInterrupted`)."""
 
     def decorate(func: F) -> F:
         @functools.wraps(func)
         def wrapper(*args, **kwargs):
             try:
                 return func(*args, **kwargs)
-            except KeyboardInterrupt:
+            except KeyboardInterrupt as exc:
                 err_console.print(message(kwargs), markup=False, highlight=False,
                                   soft_wrap=True)
-                raise typer.Exit(EXIT_INTERRUPTED) from None
+                signum = getattr(exc, "signum", signal.SIGINT)
+                raise typer.Exit(128 + signum) from None
 
         return wrapper  # type: ignore[return-value]
 
@@ -139,6 +142,41 @@ def on_interrupt(message: Callable[[dict[str, Any]], str]) -> Callable[[F], F]:
 #: the staging folder is gone and an earlier output untouched
 interrupt_leaves_nothing = on_interrupt(
     lambda kwargs: f"interrupted: nothing was written to {kwargs['out']}")
+
+
+def _kept_on_full_disk(exc: BaseException, kwargs: dict[str, Any]) -> str:
+    """For a run stopped by a full disk that kept its session store: how to continue it."""
+    from como3r.io.output import command_line, is_disk_full, staging_dir
+
+    if kwargs.get("out") is None or not is_disk_full(exc):
+        return ""
+    from como3r.runtime.store import STORE_NAME
+
+    staging = staging_dir(kwargs["out"])
+    if not (staging / STORE_NAME).is_file():
+        return ""
+    resume = () if kwargs.get("resume") else ("--resume",)
+    return (f"; the session store in {staging} is kept: free some space and continue "
+            f"with: {command_line(*resume)}")
+
+
+def _store_kept_or_nothing(kwargs: dict[str, Any]) -> str:
+    """What an interrupted ``run`` or ``coordinator`` left: its session store in
+    ``OUT.partial`` and the exact command that continues it, or nothing."""
+    from como3r.io.output import command_line, staging_dir
+    from como3r.runtime.store import STORE_NAME
+
+    staging = staging_dir(kwargs["out"])
+    if not (staging / STORE_NAME).is_file():
+        return f"interrupted: nothing was written to {kwargs['out']}"
+    resume = () if kwargs.get("resume") else ("--resume",)
+    return (f"interrupted: the session store in {staging} is kept; continue with: "
+            f"{command_line(*resume)}")
+
+
+#: for ``run`` and ``coordinator``: an interrupted run keeps ``OUT.partial`` with its
+#: session store where it holds work (:mod:`como3r.runtime.interrupts`)
+interrupt_keeps_the_store = on_interrupt(_store_kept_or_nothing)
 
 
 @contextlib.contextmanager

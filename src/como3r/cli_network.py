@@ -14,6 +14,7 @@ import typer
 from como3r.cli_common import (
     console,
     err_console,
+    interrupt_keeps_the_store,
     interrupt_leaves_nothing,
     on_interrupt,
     user_errors,
@@ -149,7 +150,7 @@ def with_prior(command: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
-@interrupt_leaves_nothing
+@interrupt_keeps_the_store
 @user_errors
 @with_prior
 def coordinator(
@@ -197,10 +198,12 @@ def coordinator(
     from como3r.io.output import check_output_dir
     from como3r.runtime.network import serve
     from como3r.runtime.processes import RuntimeOptions
+    from como3r.runtime.store_reader import resumable
 
     network = _network(listen, connect, scouting, zenoh_config, session, team, "coordinator",
                        peers=agents)
-    check_output_dir(out, overwrite, resume)
+    check_output_dir(out, overwrite, resume,  # a finished store resumes here too
+                     lambda staging: resumable(staging, finished=True))
     config = _load_config(config_file, overrides, calib, no_loop_closure)
     if resume:
         _check_resumable(out, config)

@@ -1,13 +1,17 @@
 """``como3r run --resume`` (runtime/store_resume.py; issue 14 item 2 for como3r run).
 
-A run killed with SIGKILL once its session store holds some keyframes, then run again with
-``--resume``, ends with the outputs of an uninterrupted run; a store that cannot be resumed
-is one error line.
+A run killed with SIGKILL once its session store holds some keyframes, or interrupted by
+Ctrl-C (once or twice) or SIGTERM (runtime/interrupts.py), then run again with ``--resume``,
+ends with the outputs of an uninterrupted run; a store that cannot be resumed is one error
+line.
 """
 
 from __future__ import annotations
 
+import errno
 import json
+import os
+import shlex
 import signal
 import sqlite3
 import subprocess
@@ -131,3 +135,159 @@ def test_what_cannot_be_resumed_is_one_error_line(scene, tmp_path, only_error_li
     line = only_error_line(CliRunner().invoke(app, _args(scene, out, "--resume")))
     assert str(store) in line
     assert store.parent.is_dir() and not out.exists()  # a failed resume keeps the store
+
+
+# ------------------------------------------------------------------ interrupts are checkpoints
+
+
+def _signal_at(monkeypatch, call: int, signals: tuple[signal.Signals, ...]) -> None:
+    """Send this process ``signals`` as the coordinator is handed its ``call``-th keyframe
+    (1-based), before it handles it: a first Ctrl-C or SIGTERM lets it finish that keyframe,
+    a second aborts at once, inside it (the store has the keyframes before it)."""
+    from como3r.coordination.coordinator import Coordinator
+
+    add_keyframe, calls = Coordinator.add_keyframe, []
+
+    def add_and_signal(self, packet):
+        calls.append(packet)
+        if len(calls) == call:
+            for signum in signals:
+                os.kill(os.getpid(), signum)
+                time.sleep(0.05)  # let the handler run before the next signal
+        return add_keyframe(self, packet)
+
+    monkeypatch.setattr(Coordinator, "add_keyframe", add_and_signal)
+
+
+@pytest.mark.parametrize("signals", [(signal.SIGINT,), (signal.SIGINT, signal.SIGINT),
+                                     (signal.SIGTERM,)], ids=["ctrl-c", "twice", "sigterm"])
+def test_an_interrupted_run_keeps_its_store_and_resumes_to_the_uninterrupted_result(
+        scene, tmp_path, uninterrupted, signals, monkeypatch) -> None:
+    """Ctrl-C (once or twice) or SIGTERM in the middle of a run leaves ``OUT.partial`` with
+    its session store and one line giving the exact command that continues it; that
+    command ends with the uninterrupted run's outputs."""
+    runtime, reference = uninterrupted
+    out, total = tmp_path / "run", reference["coordinator"]["keyframes"]
+    args = _args(scene, out, *_extra(runtime))
+    monkeypatch.setattr(sys, "argv", ["como3r", *args])  # the command line as typed
+    with monkeypatch.context() as patched:
+        _signal_at(patched, total // 2, signals)
+        result = CliRunner().invoke(app, args)
+    assert result.exit_code == 128 + signals[-1], result.output
+    partial = tmp_path / "run.partial"
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert lines[-1] == (f"interrupted: the session store in {partial} is kept; continue "
+                         f"with: {shlex.join(['como3r', *args, '--resume'])}")
+    assert "Traceback" not in result.output and not out.exists()
+    held = len(read_session(partial / STORE_NAME).graph)
+    # a first signal lets the run finish the frame (or message) at hand, which may hand
+    # over several keyframes; a second aborts inside the keyframe at hand
+    if len(signals) == 2:
+        assert held == total // 2 - 1
+    else:
+        assert total // 2 <= held < total
+    line = CliRunner().invoke(app, args).output  # a plain re-run does not delete it
+    assert "continue it with --resume" in line and (partial / STORE_NAME).is_file()
+    result = CliRunner().invoke(app, [*args, "--resume"])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["coordinator"]["keyframes"] == total
+    assert metrics["components"] == reference["components"]
+    assert [a["frames"] for a in metrics["agents"]] == [a["frames"] for a in
+                                                         reference["agents"]]
+    assert _merged_ate(metrics) == pytest.approx(_merged_ate(reference), rel=1e-3)
+    print(f"{runtime}, {'+'.join(s.name for s in signals)} after {held} of {total} "
+          f"keyframes: merged ATE {_merged_ate(metrics):.6f} m resumed, "
+          f"{_merged_ate(reference):.6f} m uninterrupted")
+
+
+def test_a_first_ctrl_c_after_the_input_lets_the_outputs_be_written(scene, tmp_path,
+                                                                   monkeypatch) -> None:
+    """Once every frame is read, what is left is the terminal work: a first Ctrl-C lets it
+    finish and the outputs are written."""
+    from como3r.coordination.coordinator import Coordinator
+
+    finish = Coordinator.finish
+
+    def signal_and_finish(self, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        return finish(self, *args, **kwargs)
+
+    monkeypatch.setattr(Coordinator, "finish", signal_and_finish)
+    out = tmp_path / "run"
+    result = CliRunner().invoke(app, _args(scene, out, "--single-process"))
+    assert result.exit_code == 0, result.output
+    assert (out / "metrics.json").is_file() and not (tmp_path / "run.partial").exists()
+
+
+def test_overwrite_replaces_an_interrupted_runs_store(scene, tmp_path, monkeypatch) -> None:
+    out = tmp_path / "run"
+    args = _args(scene, out, "--single-process")
+    with monkeypatch.context() as patched:
+        _signal_at(patched, 3, (signal.SIGINT,))
+        assert CliRunner().invoke(app, args).exit_code == 130
+    assert (tmp_path / "run.partial" / STORE_NAME).is_file()
+    result = CliRunner().invoke(app, [*args, "--overwrite"])
+    assert result.exit_code == 0, result.output
+    assert (out / "metrics.json").is_file() and not (tmp_path / "run.partial").exists()
+
+
+def test_a_full_disk_keeps_the_store_and_resumes_to_the_uninterrupted_result(
+        scene, tmp_path, uninterrupted, monkeypatch) -> None:
+    """SQLite's own "database or disk is full" (the store may not grow past its size at the
+    run's half: ``max_page_count``) ends a run as an interrupt does, with one error line
+    naming the command that continues it once space is freed."""
+    from como3r.runtime.store import SessionStore
+
+    runtime, reference = uninterrupted
+    out, total = tmp_path / "run", reference["coordinator"]["keyframes"]
+    args = _args(scene, out, *_extra(runtime))
+    monkeypatch.setattr(sys, "argv", ["como3r", *args])
+    record, calls = SessionStore.record, []
+
+    def record_until_full(self, *rest, **kwargs):
+        calls.append(None)
+        if len(calls) == total // 2:
+            pages = self.connection.execute("PRAGMA page_count").fetchone()[0]
+            self.connection.execute(f"PRAGMA max_page_count={pages}")
+        return record(self, *rest, **kwargs)
+
+    with monkeypatch.context() as patched:
+        patched.setattr(SessionStore, "record", record_until_full)
+        result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2, result.output
+    partial = tmp_path / "run.partial"
+    [line] = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert "database or disk is full" in line
+    assert line.endswith(f"; the session store in {partial} is kept: free some space and "
+                         f"continue with: {shlex.join(['como3r', *args, '--resume'])}")
+    assert 0 < len(read_session(partial / STORE_NAME).graph) < total
+    result = CliRunner().invoke(app, [*args, "--resume"])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["coordinator"]["keyframes"] == total
+    assert _merged_ate(metrics) == pytest.approx(_merged_ate(reference), rel=1e-3)
+
+
+@pytest.mark.parametrize("error", [KeyboardInterrupt(),
+                                   OSError(errno.ENOSPC, "No space left on device")],
+                         ids=["ctrl-c twice", "full disk"])
+def test_a_run_stopped_while_writing_its_outputs_leaves_nothing(scene, tmp_path, error,
+                                                                monkeypatch) -> None:
+    """Its store took the terminal refinement, which ``run --resume`` does not continue:
+    nothing is kept, nothing said to be resumable (as before interrupts were checkpoints)."""
+    def stop(*_args, **_kwargs):
+        raise error
+
+    monkeypatch.setattr("como3r.runtime.outputs.write_run_files", stop)
+    out = tmp_path / "run"
+    result = CliRunner().invoke(app, _args(scene, out, "--single-process"))
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    if isinstance(error, KeyboardInterrupt):
+        assert result.exit_code == 130
+        assert lines[-1] == f"interrupted: nothing was written to {out}"
+    else:
+        assert result.exit_code == 2
+        assert lines[-1] == "error: No space left on device"
+    assert not out.exists() and not (tmp_path / "run.partial").exists()

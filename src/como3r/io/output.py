@@ -10,12 +10,15 @@ once the new one is complete: ``<out>`` -> ``<out>.old-<pid>``, ``<out>.partial`
 
 A killed run leaves ``<out>.partial`` behind; ``resume`` continues in it (``como3r run
 --resume``: its session store) instead of starting afresh, and keeps it if the resumed run
-fails too.
+fails too. An interrupted run (Ctrl-C, SIGTERM, a full disk) keeps it too where it holds work
+that only ``--overwrite`` may delete (``kept``: a session store with keyframes), and a new
+run without ``resume`` or ``overwrite`` refuses to replace such a folder.
 """
 
 from __future__ import annotations
 
 import datetime
+import errno
 import json
 import os
 import shlex
@@ -23,7 +26,7 @@ import shutil
 import sys
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 from como3r import __version__
 from como3r.errors import InputError
@@ -37,14 +40,47 @@ def is_como3r_output(folder: str | Path) -> bool:
     return (Path(folder) / MARKER).is_file()
 
 
-def check_output_dir(out: str | Path, overwrite: bool = False, resume: bool = False) -> None:
+#: whether a staging folder holds work that only ``--overwrite`` deletes
+Kept = Callable[[Path], bool]
+
+
+def staging_dir(out: str | Path) -> Path:
+    """The staging folder ``<out>.partial`` of an output folder ``out``."""
+    return _staging(Path(out))
+
+
+#: ``sqlite3.SQLITE_FULL``: an insert failed because the disk is full
+_SQLITE_FULL = 13
+
+
+def is_disk_full(exc: BaseException | None) -> bool:
+    """Whether ``exc``, or an error it was raised from or while handling, is a full disk or
+    quota: ``ENOSPC``/``EDQUOT``, or SQLite's ``SQLITE_FULL`` (a session store's write)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        if getattr(exc, "sqlite_errorcode", None) == _SQLITE_FULL:
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def check_output_dir(out: str | Path, overwrite: bool = False, resume: bool = False,
+                     kept: Kept | None = None) -> None:
     """Refuse, before any work, an ``out`` that a run could not write.
+
+    Args:
+        kept: whether a staging folder holds work (an interrupted run's session store)
+            that a new run replaces only with ``overwrite``.
 
     Raises:
         InputError: ``out`` is not a folder; or is a non-empty folder and ``overwrite`` is
             false; or is a non-empty folder without the como3r marker (never replaced); or
             a staging folder ``<out>.partial`` without the marker is in the way; or
-            (``resume``) there is no staging folder written by como3r to continue in.
+            (``resume``) there is no staging folder written by como3r to continue in; or
+            (neither ``resume`` nor ``overwrite``) one that ``kept`` says holds work.
     """
     out = Path(out)
     _check_target(out, overwrite)
@@ -55,6 +91,10 @@ def check_output_dir(out: str | Path, overwrite: bool = False, resume: bool = Fa
     if (staging.exists() or staging.is_symlink()) and not is_como3r_output(staging):
         raise InputError(f"{staging}: not written by como3r; refusing to delete it (it has "
                          f"no {MARKER} file): move it away or choose another --out")
+    if not (resume or overwrite) and kept is not None and staging.is_dir() and kept(staging):
+        raise InputError(f"{staging}: holds the session store of an interrupted run: continue "
+                         f"it with --resume, or start afresh with --overwrite (which deletes "
+                         f"it)")
 
 
 def _check_target(out: Path, overwrite: bool) -> None:
@@ -73,6 +113,12 @@ def _staging(out: Path) -> Path:
     return out.with_name(out.name + ".partial")
 
 
+def command_line(*extra: str) -> str:
+    """The running command line as a user would type it, shell-quoted, with ``extra``
+    arguments after it."""
+    return shlex.join([*_program(), *sys.argv[1:], *extra])
+
+
 def _program() -> list[str]:
     """How the running program was started, as a user would type it: ``python -m
     como3r.cli`` runs the module file, whose name (``cli.py``) nobody types."""
@@ -81,7 +127,7 @@ def _program() -> list[str]:
 
 
 def _write_marker(folder: Path) -> None:
-    marker = {"como3r": __version__, "command": shlex.join([*_program(), *sys.argv[1:]]),
+    marker = {"como3r": __version__, "command": command_line(),
               "created": datetime.datetime.now(datetime.timezone.utc).isoformat(
                   timespec="seconds")}
     (folder / MARKER).write_text(json.dumps(marker) + "\n")
@@ -108,19 +154,20 @@ def _swap_in(staging: Path, out: Path) -> None:
 
 @contextmanager
 def atomic_output_dir(out: str | Path, overwrite: bool = False,
-                      resume: bool = False) -> Iterator[Path]:
+                      resume: bool = False, kept: Kept | None = None) -> Iterator[Path]:
     """Yield a staging folder that becomes ``out`` only if the block succeeds.
 
     The staging folder carries the marker from the start, so a staging folder left by a
     killed run is recognised (and replaced) by the next one, or with ``resume`` continued
-    in. On failure it is deleted (kept when resuming) and an existing ``out`` is left as
-    it was.
+    in. On failure it is deleted (kept when resuming, and when the block was interrupted
+    by a ``KeyboardInterrupt`` and ``kept`` says it holds work) and an existing ``out`` is
+    left as it was.
 
     Raises:
         InputError: as :func:`check_output_dir`.
     """
     out = Path(out)
-    check_output_dir(out, overwrite, resume)
+    check_output_dir(out, overwrite, resume, kept)
     staging = _staging(out)
     if staging.exists() and not resume:
         shutil.rmtree(staging)
@@ -128,8 +175,10 @@ def atomic_output_dir(out: str | Path, overwrite: bool = False,
     try:
         _write_marker(staging)
         yield staging
-    except BaseException:
-        if not resume:
+    except BaseException as exc:
+        # interrupts and a full disk end a run alike: what it did is kept, resumable
+        interrupted = isinstance(exc, KeyboardInterrupt) or is_disk_full(exc)
+        if not (resume or (interrupted and kept is not None and kept(staging))):
             shutil.rmtree(staging, ignore_errors=True)
         raise
     try:

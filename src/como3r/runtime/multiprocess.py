@@ -3,7 +3,10 @@
 ``como3r coordinator``); the coordinator's loop is :mod:`.processes`. The output folder is
 written atomically, the session store kept in it as the run goes, and a run is resumed
 (``--resume``), continued by a restarted coordinator, or started on a saved map (``--map``)
-here.
+here. A first Ctrl-C or SIGTERM stops the coordinator between two messages while agents
+still run (:mod:`.interrupts`): the agents are stopped, the store is closed and
+``OUT.partial`` is kept for ``--resume``; once every agent has ended and the keyframes are
+handled, the outputs are written.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from como3r.live import LiveCallback
 from como3r.progress import ProgressCallback
 from como3r.runtime import outputs
 from como3r.runtime.agent_worker import agent_process_main
+from como3r.runtime.interrupts import interrupts_are_checkpoints
 from como3r.runtime.map_session import SavedMap, hold_map, seed_map
 from como3r.runtime.pipeline import (PriorSpec, RunSummary, open_agents, run_frames,
                                       warn_skipped_frames)
@@ -28,7 +32,7 @@ from como3r.runtime.processes import RuntimeOptions, _Runtime
 from como3r.runtime.results import SegmentedCoordinator, agent_results, left_out
 from como3r.runtime.runtime_state import restore_runtime
 from como3r.runtime.store import STORE_NAME
-from como3r.runtime.store_reader import read_session
+from como3r.runtime.store_reader import read_session, resumable
 from como3r.runtime.store_resume import open_store
 from como3r.runtime.transport import Hub, PipeHub
 
@@ -126,7 +130,11 @@ def coordinate(
     runtime: _Runtime | None = None
     interrupted = False
     try:
-        with atomic_output_dir(out, overwrite=overwrite, resume=resume) as staging:
+        # a finished store resumes with agents across machines only (como3r coordinator)
+        finished = not isinstance(hub, PipeHub)
+        with interrupts_are_checkpoints(), atomic_output_dir(
+                out, overwrite=overwrite, resume=resume,
+                kept=lambda folder: resumable(folder, finished)) as staging:
             runtime = _Runtime(hub, frames, config, prior_spec, options, progress, live,
                                inputs, saved_map)
             if saved_map is not None and not resume:

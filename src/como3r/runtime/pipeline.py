@@ -9,7 +9,10 @@ the pose updates it returns to the agents (C-Sec. 3.1, A.8). At the end it sends
 agent's last fused pointmap, runs the coordinator's terminal pose-depth alternation, writes
 the output folder atomically and, where ground truth exists, evaluates the trajectories
 (merged ATE only within gauge components). The coordinator's state is kept in the output
-folder's session store as it changes (:mod:`como3r.runtime.store`).
+folder's session store as it changes (:mod:`como3r.runtime.store`). A first Ctrl-C or
+SIGTERM stops reading recorded inputs after the frame at hand and keeps ``OUT.partial`` for
+``--resume`` (:mod:`.interrupts`); on live inputs it ends the streams and the outputs are
+written.
 """
 
 from __future__ import annotations
@@ -47,10 +50,12 @@ from como3r.prior.base import Prior, View
 from como3r.progress import AgentProgress, PhaseCallback, ProgressCallback, tracking_state
 from como3r.runtime import outputs
 from como3r.runtime.agent_loop import AgentLoop
+from como3r.runtime.interrupts import checkpoint, finishing, interrupts_are_checkpoints
 from como3r.runtime.live import CoordinatorLive
 from como3r.runtime.map_session import SavedMap, hold_map, map_results, seed_map
 from como3r.runtime.prefetch import prepared_frames
 from como3r.runtime.results import AgentResult
+from como3r.runtime.store_reader import resumable
 from como3r.runtime.store_resume import open_store
 
 logger = logging.getLogger(__name__)
@@ -305,7 +310,12 @@ def run(
                                 config.calibrated),
         prior,
         config.input.prefetch_frames)
-    with atomic_output_dir(out, overwrite=overwrite, resume=resume) as staging, \
+    # recorded inputs: the first Ctrl-C or SIGTERM stops the run between two frames, and
+    # OUT.partial is kept for --resume; a live run's store cannot be resumed
+    checkpoints = contextlib.nullcontext() if cameras else interrupts_are_checkpoints()
+    kept = None if cameras else resumable
+    with checkpoints, \
+            atomic_output_dir(out, overwrite=overwrite, resume=resume, kept=kept) as staging, \
             open_store(staging, config, coordinator, resume) as store, \
             contextlib.closing(frames), contextlib.ExitStack() as streams:
         if saved_map is not None:
@@ -316,6 +326,7 @@ def run(
         if cameras:  # the first Ctrl-C ends them, and the run goes on to its outputs
             streams.enter_context(interrupt_ends_streams())
         while True:  # until every input ends (a live stream's length is not known)
+            checkpoint()  # the store holds every keyframe handed over so far
             start = time.perf_counter()
             frame = next(frames, None)
             if frame is None:
@@ -327,6 +338,7 @@ def run(
                 progress(AgentProgress(first + k, stats.frames, totals[k],
                                        len(frontends[k].keyframes), stats.lost,
                                        stats.relocalized, tracking_state(step.outcome)))
+        finishing()  # every frame was read: a first Ctrl-C now lets the outputs be written
         streams.close()  # the live streams end; Ctrl-C interrupts again
         notes = [camera.stop() for camera in cameras]  # frames read and dropped
         for loop in loops:

@@ -80,6 +80,7 @@ from como3r.progress import (
 )
 from como3r.runtime import codec
 from como3r.runtime.agent_worker import prior_fields
+from como3r.runtime.interrupts import checkpoint, finishing
 from como3r.runtime.live import CoordinatorLive
 from como3r.runtime.messages import (
     AgentFailed,
@@ -260,6 +261,7 @@ class _Runtime:
             torch.set_num_threads(max(1, finish_threads))
         self.finish_threads = torch.get_num_threads()
         self._process_pending(force=True, progress=self.progress)
+        finishing()  # every keyframe is handled: a first Ctrl-C now lets the outputs be written
         self._acknowledge()  # every keyframe is stored: finished agents may leave
         self._finish()
 
@@ -286,6 +288,7 @@ class _Runtime:
     def _pump(self, timeout: float) -> None:
         """Wait up to ``timeout`` seconds for messages and departures, handle them, and
         acknowledge what was stored."""
+        checkpoint()  # a first Ctrl-C or SIGTERM stops here: the store holds what was handled
         for event in self.hub.events(timeout):
             slot = self.slots[event.agent]
             if isinstance(event, Received):
@@ -448,6 +451,7 @@ class _Runtime:
             if not force and not all((s.order_clock(), s.agent) > (timestamp, agent)
                                      for s in self.slots if s.agent != agent):
                 return
+            checkpoint()  # between keyframes: a backlog can take long
             report_phase(progress, "queued keyframes", "retrieval, verification, global BA",
                          queued - len(self.pending), queued)
             heapq.heappop(self.pending)

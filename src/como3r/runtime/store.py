@@ -578,6 +578,7 @@ def _transaction(connection: sqlite3.Connection) -> Iterator[None]:
     try:
         yield
     except BaseException:
-        connection.execute("ROLLBACK")
+        if connection.in_transaction:  # SQLite rolled back already on a full disk
+            connection.execute("ROLLBACK")
         raise
     connection.execute("COMMIT")

@@ -31,7 +31,7 @@ from como3r.frontend.paging import PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.prior.base import Encoding
 from como3r.runtime.messages import AgentFinished
-from como3r.runtime.store import APPLICATION_ID, FORMAT_VERSION
+from como3r.runtime.store import APPLICATION_ID, FORMAT_VERSION, STORE_NAME
 from como3r.runtime.store_blobs import unpack_arrays, unpack_object
 from como3r.runtime.store_paging import PagedLink
 
@@ -172,6 +172,26 @@ def read_config(path: str | Path) -> Config:
     """
     path = Path(path)
     return _read(path, lambda connection: _meta(connection, path)[1], check=False)
+
+
+def resumable(folder: str | Path, finished: bool = False) -> bool:
+    """Whether ``folder`` has a session store a run can be resumed from, work that only
+    ``--overwrite`` deletes: one holding a keyframe, whose terminal cleanup has not run
+    (with ``finished``, whose has too: ``como3r coordinator --resume`` writes its outputs),
+    or one that cannot be read (``--resume`` then says what is wrong)."""
+    path = Path(folder) / STORE_NAME
+    if not path.is_file():
+        return False
+
+    def load(connection: sqlite3.Connection) -> bool:
+        done = connection.execute("SELECT value FROM state WHERE key = 'finished'").fetchone()
+        held = connection.execute("SELECT EXISTS (SELECT 1 FROM keyframes)").fetchone()[0]
+        return held == 1 and (finished or done is None or not json.loads(done[0]))
+
+    try:
+        return _read(path, load, check=False)
+    except StoreError:
+        return True
 
 
 def _read(path: Path, load: Callable[[sqlite3.Connection], T], check: bool) -> T:

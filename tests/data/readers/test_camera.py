@@ -144,11 +144,13 @@ def test_stop_ends_a_stream_that_never_ends():
     assert camera.take() is None and list(camera.frames()) == []
 
 
-def test_the_first_ctrl_c_ends_the_streams_and_the_second_interrupts():
+@pytest.mark.parametrize("first", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_the_first_ctrl_c_ends_the_streams_and_the_second_interrupts(first):
     camera, capture = scripted(n=None)
+    terminate = signal.getsignal(signal.SIGTERM)
     with interrupt_ends_streams():
         assert camera.take() is True
-        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), first)
         capture.release_frames(2)
         assert camera.take() is None  # ended, not interrupted
         with pytest.raises(KeyboardInterrupt):
@@ -156,6 +158,7 @@ def test_the_first_ctrl_c_ends_the_streams_and_the_second_interrupts():
             time.sleep(1)  # the signal arrives between two bytecodes
     camera.stop()
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.getsignal(signal.SIGTERM) is terminate
     other, _ = scripted(n=None)  # the next run's streams are not ended by this one's Ctrl-C
     assert other.take() is True
     other.stop()

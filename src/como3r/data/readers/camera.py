@@ -296,26 +296,31 @@ def camera_schedule(cameras: list[CameraInput]) -> Iterator[tuple[int, int]]:
 
 @contextlib.contextmanager
 def interrupt_ends_streams() -> Iterator[None]:
-    """Within the block the first Ctrl-C ends every live stream (the run then finishes and
-    writes its outputs); a second one interrupts as usual. Outside the main thread, where
-    Python delivers no signal, it does nothing."""
+    """Within the block the first Ctrl-C or SIGTERM ends every live stream (the run then
+    finishes and writes its outputs); a second one interrupts as usual. A signal ignored
+    when the block starts (SIGINT of a command started in the background) stays ignored.
+    Outside the main thread, where Python delivers no signal, it does nothing."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.getsignal(signal.SIGINT)
+    previous = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
 
     def on_interrupt(signum: int, frame: Any) -> None:
         if _INTERRUPTED.is_set():
             raise KeyboardInterrupt
         _INTERRUPTED.set()
-        logger.warning("Ctrl-C: ending the live streams; the run finishes and writes its "
-                       "outputs (Ctrl-C again to abort)")
+        name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+        logger.warning("%s: ending the live streams; the run finishes and writes its "
+                       "outputs (Ctrl-C again to abort)", name)
 
-    signal.signal(signal.SIGINT, on_interrupt)
+    for signum, handler in previous.items():
+        if handler is not signal.SIG_IGN:
+            signal.signal(signum, on_interrupt)
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
         _INTERRUPTED.clear()
 
 
