@@ -5,6 +5,8 @@ with the simulated prior; --format and what the simulated prior needs are one er
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -121,6 +123,21 @@ def test_the_check_before_the_run_does_not_repeat_reader_warnings(tmp_path, capl
     assert result.exit_code == 0, result.output
     said = [r.getMessage() for r in caplog.records if "no depth image" in r.getMessage()]
     assert len(said) == 1, said
+
+
+def test_agent_processes_do_not_repeat_reader_warnings(tmp_path):
+    """In the default agent processes the main process opens the input (and says a reader's
+    warning) before each agent process opens it again: still said once."""
+    seq = tum_from_synthetic(tmp_path, frames=6)
+    lines = (seq / "depth.txt").read_text().splitlines()
+    (seq / "depth.txt").write_text("\n".join(lines[:3] + lines[4:]) + "\n")
+    run = subprocess.run([sys.executable, "-m", "como3r.cli", "run", "--agent", str(seq),
+                          "--out", str(tmp_path / "out"), "--prior", "simulated", "--set",
+                          "input.long_side=64", "--quiet"],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    output = run.stdout + run.stderr
+    assert output.count("no depth image") == 1, output
 
 
 def test_decentralized_robots_need_a_pose_for_every_frame(tmp_path, only_error_line):

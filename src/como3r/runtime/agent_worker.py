@@ -24,7 +24,7 @@ from typing import Any, Iterator
 import torch
 
 from como3r.config import Config, config_from_dict
-from como3r.data.agent import open_agent
+from como3r.data.agent import open_agent, quiet_reading
 from como3r.data.preprocess import upsampling
 from como3r.errors import Como3rError
 from como3r.frontend.agent import AgentFrontend
@@ -67,12 +67,16 @@ def agent_process_main(agent: int, inbox: Connection, outbox: Connection) -> Non
     channel.max_bytes = task.max_message_bytes
     logging.basicConfig(level=task.log_level,
                         format=f"[agent {agent}] %(levelname)s %(name)s: %(message)s")
-    run_agent(task, channel)
+    run_agent(task, channel, input_checked=True)
 
 
-def run_agent(task: AgentTask, link: AgentLink) -> bool:
+def run_agent(task: AgentTask, link: AgentLink, input_checked: bool = False) -> bool:
     """Run one agent's task over ``link``, report a failure to the coordinator, and close
     the link (which waits until the coordinator holds every message).
+
+    Args:
+        input_checked: the run's main process opened the same input and said its readers'
+            warnings (a local agent process): they are not said again here.
 
     Returns:
         Whether the agent ran to the end of its stream without an error.
@@ -80,7 +84,7 @@ def run_agent(task: AgentTask, link: AgentLink) -> bool:
     worker: AgentWorker | None = None
     ok = False
     try:
-        worker = AgentWorker(task, link)
+        worker = AgentWorker(task, link, input_checked)
         ok = worker.run()
     except (EOFError, KeyboardInterrupt):
         pass  # the coordinator is gone or the user interrupted: nothing to report to
@@ -102,14 +106,16 @@ def _report_failure(link: AgentLink, agent: int, exc: Exception, frame: int) -> 
 class AgentWorker:
     """One agent's loop: frames in, keyframes and progress out, pose updates applied."""
 
-    def __init__(self, task: AgentTask, channel: AgentLink) -> None:
+    def __init__(self, task: AgentTask, channel: AgentLink, input_checked: bool = False) -> None:
         torch.set_num_threads(max(1, task.torch_threads))
         self.task = task
         self.channel = channel
         self.config = config_from_dict(Config, task.config)
         spec = prior_spec(task.prior)
-        self.input = open_agent(task.input_path, fps=self.config.input.frame_rate_hz,
-                                format=self.config.input.format, topic=self.config.input.topic)
+        with quiet_reading() if input_checked else contextlib.nullcontext():
+            self.input = open_agent(task.input_path, fps=self.config.input.frame_rate_hz,
+                                    format=self.config.input.format,
+                                    topic=self.config.input.topic)
         self.prior, codebook = build_prior(spec, self.config, {task.agent: self.input},
                                            quiet=True)  # the coordinator says it once
         self.frontend = AgentFrontend(
