@@ -78,8 +78,7 @@ def _matrix(T: np.ndarray) -> np.ndarray:
 def _true_relative(agents: list[AgentInput], a: int, fa: int, b: int, fb: int) -> np.ndarray:
     """``(4, 4)`` true pose of camera b (frame fb) in camera a (frame fa)."""
     def world(agent: AgentInput, frame: int) -> np.ndarray:
-        row = int(agent.gt_indices[frame])
-        return _matrix(agent.groundtruth.T_WC[row].double().numpy())
+        return _matrix(agent.gt_poses[frame].double().numpy())
     return np.linalg.inv(world(agents[a], fa)) @ world(agents[b], fb)
 
 

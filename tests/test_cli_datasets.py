@@ -15,9 +15,12 @@ from typer.testing import CliRunner
 from como3r.cli import app
 from como3r.data.synth import synthesize
 from como3r.io.tum import read_tum, write_tum
+from como3r.prior.mast3r.testing import tiny_network, write_checkpoint
 
 from .data.readers.layouts import SEVEN_SCENES_REAL, link_frames, write_7scenes, write_tum as \
     write_tum_layout
+from .data.readers.test_kitti import KITTI_GREY_REAL
+from .data.test_poses import TEDDY
 from .data.readers.logs import image_stream, write_log
 
 
@@ -80,6 +83,46 @@ def test_a_tum_sequence_runs_with_the_simulated_prior_and_evaluates(tmp_path):
     assert "ground truth dashed grey" in (evaluated / "report.html").read_text()
 
 
+@pytest.mark.parametrize("runtime", [["--single-process"], []])
+def test_frames_in_a_ground_truth_gap_are_skipped_with_one_warning(tmp_path, caplog, runtime):
+    """Ground truth with a hole wider than 0.1 s (frames 5-8 of a 30 Hz sequence): the run
+    goes on without the frames in it (frame indices and timestamps of the rest kept), says
+    so once, and evaluates the rest; in one process and in the default agent processes."""
+    seq = tum_from_synthetic(tmp_path, frames=16)
+    lines = (seq / "groundtruth.txt").read_text().splitlines()
+    rows = [line for line in lines if not line.startswith("#")]
+    stamps = np.array([float(line.split()[0]) for line in rows])
+    (seq / "groundtruth.txt").write_text("\n".join(rows[:5] + rows[9:]) + "\n")
+    out = tmp_path / "out"
+    with caplog.at_level("WARNING"):
+        result = _invoke("run", "--agent", str(seq), "--out", str(out), "--prior", "simulated",
+                         "--set", "input.long_side=64", *runtime)
+    assert result.exit_code == 0, result.output
+    warnings = [r.getMessage() for r in caplog.records if "ground-truth pose" in r.getMessage()]
+    assert warnings == [f"{seq}: 4 of 16 frames have no ground-truth pose (4 in gaps wider "
+                        "than 0.1 s); --prior simulated skips them"]
+    trajectory = read_tum(out / "trajectories" / "agent_0.txt")
+    np.testing.assert_allclose(trajectory.timestamps, stamps[[0, 2, 4, 10, 12, 14]], atol=1e-6)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["agents"][0]["frames"] == 6
+    assert metrics["ate"]["agents"][0]["frames"] == 6
+
+
+def test_the_check_before_the_run_does_not_repeat_reader_warnings(tmp_path, caplog):
+    """The command line opens the input to check it before the run opens it: a reader's
+    warning (an rgb image without depth) is said once in one process."""
+    seq = tum_from_synthetic(tmp_path, frames=6)
+    lines = (seq / "depth.txt").read_text().splitlines()
+    (seq / "depth.txt").write_text("\n".join(lines[:3] + lines[4:]) + "\n")
+    with caplog.at_level("WARNING"):
+        result = _invoke("run", "--agent", str(seq), "--out", str(tmp_path / "out"),
+                         "--prior", "simulated", "--set", "input.long_side=64",
+                         "--single-process")
+    assert result.exit_code == 0, result.output
+    said = [r.getMessage() for r in caplog.records if "no depth image" in r.getMessage()]
+    assert len(said) == 1, said
+
+
 def test_eval_against_a_7scenes_sequence(tmp_path):
     """A trajectory equal to the sequence's poses has no error; --format is honoured."""
     seq = tmp_path / "seq-01"
@@ -122,15 +165,16 @@ def test_a_folder_of_no_known_layout_is_one_line(tmp_path, only_error_line):
     ("no depth", "no depth.txt (with depth/), which --prior simulated needs"),
     ("no calib", "no intrinsics (calib.txt 'fx fy cx cy'), which --prior simulated needs"),
     ("no groundtruth", "no ground truth, which --prior simulated needs"),
-    ("gt gap", "1 of 3 frames without a ground-truth pose, which --prior simulated needs"),
+    ("gt after", "no frame has a ground-truth pose within 0.1 s, which --prior simulated "
+                 "needs"),
 ])
 def test_what_the_simulated_prior_needs_is_one_line(tmp_path, only_error_line, case, fragment):
     name = "my_sequence" if case == "no calib" else "rgbd_dataset_freiburg1_x"
     seq = tmp_path / name
     write_tum_layout(seq, n=3, depth=case != "no depth", groundtruth=case != "no groundtruth")
-    if case == "gt gap":
+    if case == "gt after":  # one pose, 50 ms after the last frame
         lines = (seq / "groundtruth.txt").read_text().splitlines()
-        (seq / "groundtruth.txt").write_text("\n".join(lines[:3] + lines[3 + 10:]) + "\n")
+        (seq / "groundtruth.txt").write_text("\n".join(lines[:3] + lines[-1:]) + "\n")
     line = only_error_line(_invoke("run", "--agent", str(seq), "--out", str(tmp_path / "out"),
                                    "--prior", "simulated"))
     assert f"{seq}: {fragment}" in line and "--prior mast3r" in line
@@ -193,3 +237,100 @@ def test_split_fails_without_leaving_a_folder(tmp_path, only_error_line):
                                    "--out", str(tmp_path / "agents")))
     assert "too few for 3 agents" in line
     assert not (tmp_path / "agents").exists()
+
+
+def test_input_problems_come_before_missing_weights(tmp_path, only_error_line):
+    """--prior mast3r (the default) with an empty weights cache: a folder of no known layout
+    is said first; a good input gets past the layout check and only then the weights are
+    missing."""
+    (tmp_path / "nothing").mkdir()
+    (tmp_path / "nothing" / "notes.txt").write_text("x")
+    line = only_error_line(_invoke("run", "--agent", str(tmp_path / "nothing"), "--out",
+                                   str(tmp_path / "out")))
+    assert "not an input of a known layout" in line and "weights" not in line
+    seq = tum_from_synthetic(tmp_path, frames=4)
+    (seq / "rgb" / sorted((seq / "rgb").iterdir())[1].name).write_bytes(b"not a png")
+    line = only_error_line(_invoke("run", "--agent", str(seq), "--out", str(tmp_path / "out")))
+    assert "cannot read image" in line and "weights" not in line
+
+
+def link_kitti(source: Path, target: Path, count: int) -> Path:
+    """``target/sequences/00`` of symbolic links to the first ``count`` images of a KITTI
+    sequence's ``image_0/``, its times.txt and calib.txt, and ``target/poses/00.txt``."""
+    sequence = target / "sequences" / source.name
+    (sequence / "image_0").mkdir(parents=True)
+    for image in sorted((source / "image_0").iterdir())[:count]:
+        (sequence / "image_0" / image.name).symlink_to(image)
+    for name in ("times.txt", "calib.txt"):
+        (sequence / name).symlink_to(source / name)
+    (target / "poses").mkdir()
+    (target / "poses" / f"{source.name}.txt").symlink_to(
+        source.parent.parent / "poses" / f"{source.name}.txt")
+    return sequence
+
+
+@pytest.mark.skipif(not KITTI_GREY_REAL.is_dir(),
+                    reason=f"KITTI grey excerpt not found at {KITTI_GREY_REAL}")
+def test_the_real_kitti_grey_excerpt_takes_mast3r(tmp_path, only_error_line):
+    """data_odometry_gray.zip as downloaded: without weights the run gets past the layout
+    check and only then asks for them; with a tiny random checkpoint the grey frames reach
+    the network as three channels and the run goes through (a random network tracks
+    nothing: only the plumbing is tested)."""
+    line = only_error_line(_invoke("run", "--agent", str(KITTI_GREY_REAL), "--out",
+                                   str(tmp_path / "none"), "--prior", "mast3r"))
+    assert "como3r weights fetch" in line and "layout" not in line
+    seq = link_kitti(KITTI_GREY_REAL, tmp_path / "dataset", 6)
+    ckpt = write_checkpoint(tmp_path / "tiny.pth", tiny_network(seed=0))
+    out = tmp_path / "out"
+    result = _invoke("run", "--agent", str(seq), "--out", str(out), "--prior", "mast3r",
+                     "--weights", str(ckpt), "--set", "input.long_side=64", "--single-process")
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["agents"][0]["frames"] == 3
+    assert metrics["prior"]["name"] != "SimulatedPrior"
+
+
+def cut_tum(source: Path, target: Path, frames: int, hole: tuple[float, float]) -> Path:
+    """A TUM sequence folder of links to ``source``'s images, its lists cut to the first
+    ``frames`` entries and its ground truth without the samples ``hole[0] .. hole[0] +
+    hole[1]`` seconds after its first one."""
+    target.mkdir(parents=True)
+    for name in ("rgb", "depth"):
+        (target / name).symlink_to(source / name)
+    for name in ("rgb.txt", "depth.txt"):
+        lines = (source / name).read_text().splitlines()
+        comments = [line for line in lines if line.startswith("#")]
+        (target / name).write_text("\n".join(comments + lines[len(comments):][:frames]) + "\n")
+    lines = (source / "groundtruth.txt").read_text().splitlines()
+    first = read_tum(source / "groundtruth.txt").timestamps[0]
+    kept = [line for line in lines if line.startswith("#")
+            or not hole[0] <= float(line.split()[0]) - first < hole[0] + hole[1]]
+    (target / "groundtruth.txt").write_text("\n".join(kept) + "\n")
+    return target
+
+
+@pytest.mark.skipif(not TEDDY.is_dir(), reason=f"TUM excerpt not found at {TEDDY}")
+def test_the_real_tum_excerpt_with_a_motion_capture_dropout_runs(tmp_path, caplog):
+    """The real freiburg3_teddy excerpt's first 30 frames, as published but for a 40 ms hole
+    cut into the motion capture 0.3 s after it starts: with default settings (long side 128
+    to keep it short) the run skips the 5 frames before the capture starts with one warning,
+    bridges the hole, and evaluates every frame it processed."""
+    seq = cut_tum(TEDDY, tmp_path / TEDDY.name, 30, (0.3, 0.04))
+    out = tmp_path / "out"
+    with caplog.at_level("WARNING"):
+        result = _invoke("run", "--agent", str(seq), "--out", str(out), "--prior", "simulated",
+                         "--set", "input.long_side=128", "--single-process")
+    assert result.exit_code == 0, result.output
+    said = [r.getMessage() for r in caplog.records if "ground-truth pose" in r.getMessage()]
+    assert said == [f"{seq}: 5 of 30 frames have no ground-truth pose (5 before the first "
+                    "ground-truth pose); --prior simulated skips them"]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["agents"][0]["frames"] == 12  # 6, 8, ..., 28
+    # evaluation associates as evo does (a sample within 10 ms): a frame inside the hole
+    # took an interpolated pose for the prior but has no sample that close
+    estimate = read_tum(out / "trajectories" / "agent_0.txt").timestamps
+    samples = read_tum(seq / "groundtruth.txt").timestamps
+    near = np.abs(estimate[:, None] - samples[None]).min(axis=1) <= 0.01
+    assert 10 <= near.sum() < 12
+    assert metrics["ate"]["agents"][0]["frames"] == near.sum()
+    assert metrics["ate"]["agents"][0]["ate"]["rmse"] < 0.05

@@ -187,22 +187,26 @@ def test_surface(tmp_path):
 def test_groundtruth_and_odometry_association(tmp_path):
     stamps = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
     root = write_agent(tmp_path / "a", n=6, odometry=True, timestamps=stamps)
-    # GT poses near frames 0, 2 (4 ms late) and 5 only; one far from every frame.
+    # GT poses at frames 0 and 5, and around frame 2 (54 ms apart: bridged); frames 1, 3
+    # and 4 lie in gaps wider than 0.1 s.
     gt_stamps = np.array([0.0, 0.15, 0.204, 0.5])
     gt = poses(4, seed=3)
     write_tum(root / "groundtruth.txt", gt_stamps, gt)
-    agent = open_agent(root, fps=100.0)  # window max(0.5 / 100, 1 ms) = 5 ms
+    agent = open_agent(root, fps=100.0)
     assert len(agent.odometry) == 6 and len(agent.groundtruth) == 4
     frames = list(agent)
     assert [f.T_WC_gt is not None for f in frames] == [True, False, True, False, False, True]
-    torch.testing.assert_close(frames[2].T_WC_gt, gt[2], atol=1e-6, rtol=0)
+    alpha = (0.2 - 0.15) / (0.204 - 0.15)
+    torch.testing.assert_close(frames[2].T_WC_gt[:3], (1 - alpha) * gt[1, :3] + alpha * gt[2, :3],
+                               atol=1e-6, rtol=0)
     assert frames[2].T_WC_gt.shape == (8,) and frames[2].T_WC_gt.dtype == torch.float64
+    torch.testing.assert_close(frames[5].T_WC_gt, gt[3], atol=1e-6, rtol=0)
     indices, trajectory = agent.gt_for_frames()
     np.testing.assert_array_equal(indices, [0, 2, 5])
     np.testing.assert_allclose(trajectory.timestamps, [0.0, 0.2, 0.5])
-    torch.testing.assert_close(trajectory.T_WC, gt[[0, 2, 3]], atol=1e-6, rtol=0)
-    # With a 30 fps window (16.7 ms) the 0.15 pose is still 50 ms from every frame.
-    assert open_agent(root, fps=30.0).gt_indices.tolist() == [0, -1, 2, -1, -1, 3]
+    torch.testing.assert_close(trajectory.T_WC[[0, 2]], gt[[0, 3]], atol=1e-6, rtol=0)
+    assert agent.missing_gt_warning().endswith("3 of 6 frames have no ground-truth pose "
+                                               "(3 in gaps wider than 0.1 s)")
 
 
 def test_associate_timestamps_nearest_within_tolerance():

@@ -217,7 +217,7 @@ def test_map_metrics_are_relative_to_the_median_ground_truth_depth() -> None:
     def agent(scale: float) -> SimpleNamespace:
         depths = [np.full((4, 5), 2.0 + k, dtype=np.float32) * scale for k in range(10)]
         depths[3][0, 0] = 0.0  # no depth: ignored
-        return SimpleNamespace(gt_indices=np.arange(10),
+        return SimpleNamespace(has_gt_pose=np.ones(10, dtype=bool),
                                load_frame=lambda i: SimpleNamespace(depth=depths[i]))
 
     base = median_ground_truth_depth([agent(1.0)])

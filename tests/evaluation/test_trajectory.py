@@ -201,3 +201,23 @@ def test_invalid_components(components: list[list[int]]) -> None:
     pairs = [associate(g, g, f"est{a}", f"gt{a}") for a, g in enumerate(gts)]
     with pytest.raises(InputError, match="components"):
         merged_errors_by_component(pairs, components)
+
+
+def test_association_leaves_frames_in_a_ground_truth_gap_out() -> None:
+    """30 Hz frames against 100 Hz ground truth with a 150 ms hole and a late start: each
+    frame takes the nearest sample within evo's 10 ms, so exactly the frames with no sample
+    that close drop out, as ``evo_ape --t_max_diff 0.01`` drops them."""
+    rng = np.random.default_rng(7)
+    gt_full = smooth_path(rng, frames=400)
+    stamps = 100.0 + 0.01 * np.arange(400)
+    keep = ~((stamps >= 101.0) & (stamps < 101.15)) & (stamps >= 100.14)
+    gt = Trajectory(stamps[keep], gt_full.T_WC[torch.from_numpy(keep)])
+    frames = 100.003 + np.arange(110) / 30.0
+    est = Trajectory(frames, torch.zeros(110, 8, dtype=torch.float64))
+    est.T_WC[:, 6] = 1.0
+    pair = associate(est, gt, "est.txt", "gt.txt")
+    nearest = np.abs(frames[:, None] - gt.timestamps[None]).min(axis=1)
+    expected = frames[nearest <= 0.01]
+    np.testing.assert_allclose(pair.est.timestamps, expected)
+    assert len(pair) <= 110 - 4 - 3  # the late start and the hole both cost frames
+    assert np.abs(pair.gt.timestamps - pair.est.timestamps).max() <= 0.01

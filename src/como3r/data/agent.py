@@ -30,6 +30,7 @@ by :meth:`AgentInput.load_frame` and :meth:`AgentInput.frames`, which check them
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -44,6 +45,7 @@ import torch
 from PIL import Image, UnidentifiedImageError
 from torch import Tensor
 
+from como3r.data.poses import missing_pose_summary, poses_at
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory, read_tum
 
@@ -54,8 +56,6 @@ VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpe
 DEPTH_PNG_PER_METRE = 5000.0
 """TUM RGB-D convention: a 16-bit depth PNG stores 5000 units per metre."""
 DEPTH_PNG_MODES = ("I;16", "I;16B", "I;16L", "I")
-MIN_GT_TOLERANCE = 1e-3
-"""Seconds; lower bound of the frame <-> ground-truth association window."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -69,8 +69,9 @@ class Frame:
         image: ``(H, W, 3)`` uint8 RGB at the original resolution.
         depth: ``(H, W)`` float32 metric depth (z) in metres, 0 = invalid; or None.
         surface: ``(H, W, 3)`` float32 appearance keys; or None.
-        T_WC_gt: ``(8,)`` float64 ground-truth pose (t, q_xyzw, s = 1) associated by
-            timestamp; None when the agent has no ground truth or none near this frame.
+        T_WC_gt: ``(8,)`` float64 ground-truth pose (t, q_xyzw, s = 1) at the frame's
+            timestamp (:func:`como3r.data.poses.poses_at`); None when the agent has no
+            ground truth or none within the gap rule.
     """
 
     index: int
@@ -93,21 +94,25 @@ class AgentInput:
         image_size: ``(W, H)`` of the original images.
         timestamps: ``(N,)`` float64 seconds, strictly increasing.
         calib: ``(fx, fy, cx, cy)`` in original pixels, or None (uncalibrated).
-        groundtruth: ground-truth trajectory, or None.
+        groundtruth: ground-truth trajectory at its own rate (as the dataset publishes it:
+            100 Hz motion capture in TUM RGB-D, one pose per frame in KITTI), or None.
         odometry: metric odometry (decentralized mode), or None.
         has_depth: every frame has a depth map.
         has_surface: every frame has a surface (appearance key) map.
-        fps: frame rate used for default timestamps and the ground-truth window.
+        fps: frame rate used for default timestamps.
         stems: ``(N,)`` frame stems.
         image_paths: ``(N,)`` image files; empty for a video.
         video: the video file, or None for an image folder.
         depth_paths: ``(N,)`` depth files, empty without depth.
         surface_paths: ``(N,)`` surface files, empty without surface maps.
-        gt_indices: ``(N,)`` int64 row of ``groundtruth`` associated with each frame, -1 if none.
         format: the layout the input was read as (``agent``, ``tum``, ``7scenes``).
         depth_units_per_metre: what a 16-bit depth PNG stores per metre (5000 in TUM and
             the agent layout, 1000 in 7-Scenes); ``.npy`` depth is in metres.
         depth_invalid: raw 16-bit depth values that mean "no measurement" (read as 0).
+        gt_poses: ``(N, 8)`` float64 ground-truth pose at each frame's timestamp, a NaN row
+            for a frame without one (:func:`como3r.data.poses.poses_at`: interpolated
+            between samples at most :data:`como3r.data.poses.MAX_GAP` apart); computed
+            from ``groundtruth`` when not given.
     """
 
     root: Path
@@ -126,10 +131,31 @@ class AgentInput:
     video: Path | None = field(repr=False)
     depth_paths: tuple[Path, ...] = field(repr=False)
     surface_paths: tuple[Path, ...] = field(repr=False)
-    gt_indices: np.ndarray = field(repr=False)
     format: str = "agent"
     depth_units_per_metre: float = DEPTH_PNG_PER_METRE
     depth_invalid: tuple[int, ...] = (0,)
+    gt_poses: Tensor | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.gt_poses is None:  # frozen: set once, here
+            object.__setattr__(self, "gt_poses", poses_at(self.timestamps, self.groundtruth))
+
+    @property
+    def has_gt_pose(self) -> np.ndarray:
+        """``(N,)`` bool: the frame has a ground-truth pose (:attr:`gt_poses`)."""
+        assert self.gt_poses is not None
+        return torch.isfinite(self.gt_poses).all(dim=1).numpy()
+
+    def missing_gt_warning(self) -> str | None:
+        """One line counting the frames without a ground-truth pose and where they are
+        (before the first sample, after the last, in gaps), or None when every frame has
+        one or there is no ground truth at all."""
+        has = self.has_gt_pose
+        if self.groundtruth is None or has.all():
+            return None
+        where = missing_pose_summary(self.timestamps, self.groundtruth, has)
+        return (f"{self.root}: {int((~has).sum())} of {self.num_frames} frames have no "
+                f"ground-truth pose ({where})")
 
     def __len__(self) -> int:
         return self.num_frames
@@ -189,11 +215,10 @@ class AgentInput:
             trajectory of those M poses stamped with the frames' timestamps (so it lines
             up with an estimated trajectory written per frame). Empty without ground truth.
         """
-        frames = np.flatnonzero(self.gt_indices >= 0).astype(np.int64)
-        if self.groundtruth is None or frames.size == 0:
-            return frames, Trajectory(np.zeros(0), torch.zeros(0, 8, dtype=torch.float64))
-        rows = torch.from_numpy(self.gt_indices[frames])
-        return frames, Trajectory(self.timestamps[frames].copy(), self.groundtruth.T_WC[rows])
+        frames = np.flatnonzero(self.has_gt_pose).astype(np.int64)
+        assert self.gt_poses is not None
+        return frames, Trajectory(self.timestamps[frames].copy(),
+                                  self.gt_poses[torch.from_numpy(frames)].clone())
 
     def load_depth(self, i: int) -> np.ndarray:
         """``(H, W)`` float32 metric depth of frame ``i``, 0 where invalid."""
@@ -214,10 +239,8 @@ class AgentInput:
         surface = (
             _load_surface(self.surface_paths[i], self.image_size) if self.has_surface else None
         )
-        gt_row = int(self.gt_indices[i])
-        T_WC_gt = None
-        if self.groundtruth is not None and gt_row >= 0:
-            T_WC_gt = self.groundtruth.T_WC[gt_row].clone()
+        assert self.gt_poses is not None
+        T_WC_gt = self.gt_poses[i].clone() if bool(self.has_gt_pose[i]) else None
         return Frame(i, float(self.timestamps[i]), self.stems[i], image, depth, surface, T_WC_gt)
 
 
@@ -231,8 +254,7 @@ def open_agent(path: str | Path, fps: float = 30.0, format: str = "auto",
         path: agent folder, video file, dataset sequence folder, ``.bag`` file or ROS 2 bag
             folder.
         fps: frame rate for default timestamps (``index / fps``; 7-Scenes and Tanks and
-            Temples: frame number / fps) and the agent layout's ground-truth association window
-            ``max(0.5 / fps, 1 ms)``. A video without ``timestamps.txt`` uses its own frame
+            Temples: frame number / fps). A video without ``timestamps.txt`` uses its own frame
             rate when the container reports one.
         format: ``auto`` (detect from the folder's layout) or one of
             :data:`como3r.data.readers.FORMATS`.
@@ -247,6 +269,20 @@ def open_agent(path: str | Path, fps: float = 30.0, format: str = "auto",
     from como3r.data.readers import open_input  # the readers build on this module
 
     return open_input(path, fps=fps, format=format, topic=topic)
+
+
+@contextlib.contextmanager
+def quiet_reading() -> Iterator[None]:
+    """Open inputs without the readers' warnings (frames left out, ...): for a second
+    opening of an input whose first opening in the run says them (the command line's check,
+    an agent process), so each is said once."""
+    data_logger = logging.getLogger("como3r.data")
+    level = data_logger.level
+    data_logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        data_logger.setLevel(level)
 
 
 _SECONDS_NAME = re.compile(r"[1-9]\d{8,9}(\.\d+)?")
@@ -315,10 +351,6 @@ def open_agent_folder(path: str | Path, fps: float = 30.0) -> AgentInput:
         timestamps = np.arange(len(stems), dtype=np.float64) / fps
 
     groundtruth = _optional_trajectory(folder / "groundtruth.txt")
-    gt_indices = np.full(len(stems), -1, dtype=np.int64)
-    if groundtruth is not None:
-        tolerance = max(0.5 / fps, MIN_GT_TOLERANCE)
-        gt_indices = associate_timestamps(timestamps, groundtruth.timestamps, tolerance)
 
     depth_paths = _pair_maps(folder / "depth", stems, (".png", ".npy"), image_size, "depth")
     surface_paths = _pair_maps(folder / "surface", stems, (".npy",), image_size, "surface")
@@ -340,7 +372,6 @@ def open_agent_folder(path: str | Path, fps: float = 30.0) -> AgentInput:
         video=video,
         depth_paths=depth_paths,
         surface_paths=surface_paths,
-        gt_indices=gt_indices,
     )
 
 

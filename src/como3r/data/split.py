@@ -22,11 +22,16 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from como3r.data.agent import DEPTH_PNG_PER_METRE, MIN_GT_TOLERANCE, AgentInput, open_agent
+from como3r.data.agent import DEPTH_PNG_PER_METRE, AgentInput, open_agent
+from como3r.data.poses import MAX_GAP
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory, write_tum
 
 logger = logging.getLogger(__name__)
+
+ODOMETRY_MIN_TOLERANCE = 1e-3
+"""Seconds; lower bound of the frame <-> odometry association window
+(:data:`como3r.decentralized.keyframes.MIN_TOLERANCE_S`: data may not import it)."""
 
 MIN_FRAMES_PER_AGENT = 2
 """An agent needs at least two frames to track anything."""
@@ -71,8 +76,9 @@ def split_sequence(
     pair up in the agent layout; depth PNGs of another scale than the agent layout's 5000 per
     metre (7-Scenes) and the depth of an undistorting reader are written as ``.npy`` float32
     metres. Each agent gets a ``timestamps.txt`` of its frames, the
-    ``groundtruth.txt`` / ``odometry.txt`` rows that fall within its time span (plus the
-    association window), and the source's ``calib.txt``.
+    ``groundtruth.txt`` / ``odometry.txt`` rows that fall within its time span (plus
+    :data:`~como3r.data.poses.MAX_GAP` either side, the samples its end frames interpolate
+    between), and the source's ``calib.txt``.
 
     Args:
         src: input holding the whole sequence (agent folder or video, dataset sequence
@@ -137,14 +143,16 @@ def _write_side_files(source: AgentInput, frames: np.ndarray, folder: Path) -> N
                     np.save(target.with_suffix(".npy"), source.load_depth(int(i)))
                 else:
                     _link_or_copy(paths[i], target)
-    tolerance = max(0.5 / source.fps, MIN_GT_TOLERANCE)
-    begin, end = stamps[0] - tolerance, stamps[-1] + tolerance
-    for name, trajectory in (
-        ("groundtruth.txt", source.groundtruth),
-        ("odometry.txt", source.odometry),
+    # ground truth: the samples a chunk's end frames interpolate between (como3r.data.poses);
+    # odometry: the association window of como3r.decentralized.keyframes
+    odometry_window = max(0.5 / source.fps, ODOMETRY_MIN_TOLERANCE)
+    for name, trajectory, window in (
+        ("groundtruth.txt", source.groundtruth, MAX_GAP),
+        ("odometry.txt", source.odometry, odometry_window),
     ):
         if trajectory is not None:
-            _write_time_slice(trajectory, begin, end, folder / name)
+            _write_time_slice(trajectory, stamps[0] - window, stamps[-1] + window,
+                              folder / name)
     if source.calib is not None:
         (folder / "calib.txt").write_text(" ".join(repr(v) for v in source.calib) + "\n")
 

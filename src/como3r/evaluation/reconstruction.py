@@ -355,7 +355,7 @@ def ground_truth_cloud(
         if missing:
             raise InputError(f"{agent.root}: a ground-truth cloud needs {', '.join(missing)}")
         K = intrinsics_matrix(*agent.calib, dtype=torch.float64)
-        frames = np.flatnonzero(agent.gt_indices >= 0)[::frame_stride]
+        frames = np.flatnonzero(agent.has_gt_pose)[::frame_stride]
         for index in frames:
             frame = agent.load_frame(int(index))
             points = cloud_from_depth(frame.depth, K, frame.T_WC_gt, pixel_stride, max_depth)
@@ -381,7 +381,7 @@ def median_ground_truth_depth(agents: Sequence[AgentInput], samples: int = 8) ->
     """
     depths = []
     for agent in agents:
-        frames = np.flatnonzero(agent.gt_indices >= 0)
+        frames = np.flatnonzero(agent.has_gt_pose)
         for index in frames[np.linspace(0, len(frames) - 1, min(samples, len(frames))).astype(int)]:
             depth = np.asarray(agent.load_frame(int(index)).depth, dtype=np.float64)
             depths.append(depth[np.isfinite(depth) & (depth > 0)])

@@ -42,7 +42,7 @@ from como3r.runtime.messages import (
     Shutdown,
     Step,
 )
-from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame
+from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame, run_frames
 from como3r.runtime.prefetch import PreparedFrame, prepared_frames
 from como3r.runtime.transport import AgentLink, Channel
 
@@ -117,9 +117,8 @@ class AgentWorker:
             upsampling(self.input.image_size, self.config.input.long_side))
         self.loop = AgentLoop(self.frontend, self._send_keyframe,
                               self.channel.send if task.live else None)
-        step = self.config.input.subsample
-        first = -(-max(0, task.resume_after + 1) // step) * step  # on the subsampling grid
-        self.frames = range(first, self.input.num_frames, step)
+        self.frames = [int(i) for i in run_frames(self.input, self.config.input.subsample,
+                                                  spec.name, start=task.resume_after + 1)]
         self.applied_seq = 0
         self.current_frame = -1
 

@@ -22,7 +22,8 @@ from como3r.progress import ProgressCallback
 from como3r.runtime import outputs
 from como3r.runtime.agent_worker import agent_process_main
 from como3r.runtime.map_session import SavedMap, hold_map, seed_map
-from como3r.runtime.pipeline import PriorSpec, RunSummary, open_agents
+from como3r.runtime.pipeline import (PriorSpec, RunSummary, open_agents, run_frames,
+                                      warn_skipped_frames)
 from como3r.runtime.processes import RuntimeOptions, _Runtime
 from como3r.runtime.results import SegmentedCoordinator, agent_results, left_out
 from como3r.runtime.runtime_state import restore_runtime
@@ -73,7 +74,8 @@ def run_multiprocess(
     """
     options = options or RuntimeOptions()
     inputs = open_agents(agent_paths, config)
-    frames = [len(range(0, a.num_frames, config.input.subsample)) for a in inputs]
+    warn_skipped_frames(inputs, prior_spec.name)
+    frames = [len(run_frames(a, config.input.subsample, prior_spec.name)) for a in inputs]
     hub = PipeHub(agent_process_main, options.max_message_bytes, options.shutdown_grace_s)
     return coordinate(hub, list(agent_paths), frames, out, config, prior_spec, options,
                       inputs=inputs, overwrite=overwrite, progress=progress, live=live,

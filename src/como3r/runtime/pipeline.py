@@ -188,16 +188,42 @@ def open_agents(paths: Sequence[Path | CameraSource], config: Config,
     return opened
 
 
-def _frame_schedule(agents: Sequence[AgentInput], stride: int) -> Iterator[tuple[int, int]]:
-    """``(agent, frame index)`` of every agent's every ``stride``-th frame, by timestamp."""
-    heap = [(float(a.timestamps[0]), k, 0) for k, a in enumerate(agents) if a.num_frames]
+def run_frames(source: AgentInput, stride: int, prior: str, start: int = 0) -> np.ndarray:
+    """``(M,)`` int64 indices of the frames an agent's loop is fed: every ``stride``-th
+    frame counted from frame 0, from ``start`` on; with the simulated prior, only those it
+    can encode: a frame without a ground-truth pose (:attr:`AgentInput.has_gt_pose`:
+    before the first, after the last, or in a gap of the ground truth) is skipped unless the
+    input has surface maps. The frames keep their indices and timestamps."""
+    frames = np.arange(0, source.num_frames, stride, dtype=np.int64)
+    frames = frames[frames >= start]
+    if prior == "simulated" and not source.has_surface and source.groundtruth is not None:
+        frames = frames[source.has_gt_pose[frames]]
+    return frames
+
+
+def warn_skipped_frames(agents: Sequence[AgentInput], prior: str) -> None:
+    """One warning per input whose frames without a ground-truth pose the simulated prior
+    skips (:func:`run_frames`), counting them."""
+    if prior != "simulated":
+        return
+    for agent in agents:
+        line = None if agent.has_surface else agent.missing_gt_warning()
+        if line is not None:
+            logger.warning("%s; --prior simulated skips them", line)
+
+
+def _frame_schedule(agents: Sequence[AgentInput], frames: Sequence[np.ndarray]
+                    ) -> Iterator[tuple[int, int]]:
+    """``(agent, frame index)`` of every agent's ``frames`` (:func:`run_frames`), by
+    timestamp."""
+    heap = [(float(a.timestamps[f[0]]), k, 0) for k, (a, f) in enumerate(zip(agents, frames))
+            if len(f)]
     heapq.heapify(heap)
     while heap:
-        _, k, i = heapq.heappop(heap)
-        yield k, i
-        nxt = i + stride
-        if nxt < agents[k].num_frames:
-            heapq.heappush(heap, (float(agents[k].timestamps[nxt]), k, nxt))
+        _, k, n = heapq.heappop(heap)
+        yield k, int(frames[k][n])
+        if n + 1 < len(frames[k]):
+            heapq.heappush(heap, (float(agents[k].timestamps[frames[k][n + 1]]), k, n + 1))
 
 
 def load_frame(source: AgentInput, agent: int, index: int, long_side: int,
@@ -263,12 +289,15 @@ def run(
         live, coordinator, config.visualization.map_min_confidence))
     hand_over = functools.partial(_hand_over, results, coordinator, coordinator_live)
     loops = [AgentLoop(frontend, hand_over, live) for frontend in frontends]
-    stride = config.input.subsample
     cameras = [a for a in agents if isinstance(a, CameraInput)]
-    totals = [a.source.max_frames if isinstance(a, CameraInput)
-              else len(range(0, a.num_frames, stride)) for a in agents]
+    selected = [] if cameras else [run_frames(a, config.input.subsample, prior_spec.name)
+                                   for a in agents]
+    if not cameras:
+        warn_skipped_frames(agents, prior_spec.name)
+    totals = ([a.source.max_frames for a in cameras] if cameras
+              else [len(f) for f in selected])
     frames = prepared_frames(
-        camera_schedule(cameras) if cameras else _frame_schedule(agents, stride),
+        camera_schedule(cameras) if cameras else _frame_schedule(agents, selected),
         lambda k, i: load_frame(agents[k], first + k, i, config.input.long_side,
                                 config.calibrated),
         prior,

@@ -95,6 +95,7 @@ from como3r.runtime.pipeline import (
     PriorSpec,
     _frame_schedule,
     build_prior,
+    run_frames,
 )
 from como3r.runtime.results import (
     AgentResult,
@@ -176,6 +177,7 @@ class _Runtime:
         self.options = options
         self.progress = progress
         self.live = live
+        self.prior_name = spec.name
         self.prior, codebook = build_prior(spec, config)
         #: the id of the first agent with a process (the saved map's agents come first)
         self.first = 0 if saved_map is None else saved_map.agents
@@ -264,7 +266,9 @@ class _Runtime:
     def _run_lockstep(self) -> None:
         """Agents take turns in the single-process schedule (by timestamp, then agent)."""
         self._pump_until(lambda: all(s.status != "starting" for s in self.slots), self.slots)
-        for k, index in _frame_schedule(self.inputs, self.config.input.subsample):
+        selected = [run_frames(a, self.config.input.subsample, self.prior_name)
+                    for a in self.inputs]
+        for k, index in _frame_schedule(self.inputs, selected):
             slot = self.slots[self.first + k]
             if slot.status != "running":
                 continue

@@ -215,18 +215,24 @@ KITTI_P2 = np.array([[718.856, 0.0, 607.1928, 45.38225],
 
 
 def write_kitti(root: Path, name: str = "05", n: int = 4, *, poses: bool = True,
-                frames: tuple[int, ...] | None = None) -> dict:
-    """A KITTI odometry dataset root ``root/sequences/<name>`` (``image_2/`` colour PNGs of
-    ``frames``, default all ``n``; ``times.txt`` of ``n`` lines at about 10 Hz; ``calib.txt``
-    with P0-P3 and Tr) and ``root/poses/<name>.txt`` (``n`` rigid 3x4 cam0 poses).
+                frames: tuple[int, ...] | None = None,
+                folders: tuple[str, ...] = ("image_2",)) -> dict:
+    """A KITTI odometry dataset root ``root/sequences/<name>`` (in each of ``folders``,
+    ``image_2/`` colour PNGs (:func:`pixels`) or ``image_0/`` grey ones (channel 0 of
+    :func:`pixels`) of ``frames``, default all ``n``; ``times.txt`` of ``n`` lines at about
+    10 Hz; ``calib.txt`` with P0-P3 and Tr) and ``root/poses/<name>.txt`` (``n`` rigid 3x4
+    cam0 poses).
 
     Returns:
         ``sequence`` folder, ``times`` (n,), ``cam0`` (n, 4, 4) poses.
     """
     sequence = root / "sequences" / name
-    (sequence / "image_2").mkdir(parents=True)
-    for k in (range(n) if frames is None else frames):
-        Image.fromarray(pixels(k)).save(sequence / "image_2" / f"{k:06d}.png")
+    sequence.mkdir(parents=True)
+    for folder in folders:
+        (sequence / folder).mkdir()
+        for k in (range(n) if frames is None else frames):
+            image = pixels(k) if folder == "image_2" else pixels(k)[..., 0]
+            Image.fromarray(image).save(sequence / folder / f"{k:06d}.png")
     times = np.arange(n) * 0.1036224 + np.arange(n) ** 2 * 1e-4
     (sequence / "times.txt").write_text("".join(f"{t:e}\n" for t in times))
     P0 = KITTI_P2.copy()

@@ -31,6 +31,8 @@ def layouts(tmp_path):
         "euroc": tmp_path / "MH_01_easy",
         "euroc_mav0": tmp_path / "MH_01_easy" / "mav0",
         "kitti": write_kitti(tmp_path / "dataset", n=3)["sequence"],
+        "kitti_grey": write_kitti(tmp_path / "grey", n=3,
+                                  folders=("image_0", "image_1"))["sequence"],
         "tanks": tmp_path / "Barn",
     }
     write_tum(folders["tum"], n=3)
@@ -46,7 +48,7 @@ def test_detection(layouts, tmp_path):
     assert detect_format(layouts["tum"]) == "tum"  # although it has rgb/ too
     assert detect_format(layouts["7scenes"]) == "7scenes"
     assert detect_format(layouts["7scenes_below"]) == "7scenes"
-    for kind in ("euroc", "euroc_mav0", "kitti", "tanks"):
+    for kind in ("euroc", "euroc_mav0", "kitti", "kitti_grey", "tanks"):
         assert detect_format(layouts[kind]) == kind.split("_")[0]
         assert open_agent(layouts[kind]).format == kind.split("_")[0]
     write_video(tmp_path / "clip.avi", n=3)
@@ -66,7 +68,8 @@ def test_forced_format_is_used_and_checked(layouts):
     for kind, expected in (("euroc", "not a EuRoC sequence (--format euroc): expected "
                                      "mav0/cam0/data.csv"),
                            ("kitti", "not a KITTI odometry sequence (--format kitti): "
-                                     "expected image_2/ and times.txt"),
+                                     "expected image_2/ (colour) or image_0/ (grey) and "
+                                     "times.txt"),
                            ("tanks", "not a Tanks and Temples sequence (--format tanks): "
                                      "expected image/")):
         assert resolve_format(layouts[kind], kind) == kind
@@ -83,7 +86,7 @@ def test_a_folder_of_no_known_layout(tmp_path):
                      tmp_path / "empty")
     assert "7-Scenes sequence (frame-NNNNNN.color.png" in message
     assert "a EuRoC sequence (mav0/cam0/data.csv" in message
-    assert "a KITTI odometry sequence (image_2/, times.txt" in message
+    assert "a KITTI odometry sequence (image_2/ or image_0/, times.txt" in message
     assert "a Tanks and Temples sequence (image/, gt_traj.txt)" in message
     (tmp_path / "flat").mkdir()
     Image.fromarray(pixels(0)).save(tmp_path / "flat" / "IMG_0001.jpg")
@@ -107,7 +110,7 @@ def test_ground_truth_of_each_dataset_layout(layouts, tmp_path):
     """``eval --gt`` takes each dataset folder; ground truth alone is enough for EuRoC
     (state_groundtruth_estimate0 and sensor.yaml) and Tanks and Temples (gt_traj.txt)."""
     for kind, name in (("euroc", "data.csv"), ("euroc_mav0", "data.csv"), ("kitti", "05.txt"),
-                       ("tanks", "gt_traj.txt")):
+                       ("kitti_grey", "05.txt"), ("tanks", "gt_traj.txt")):
         source, trajectory = read_ground_truth(layouts[kind])
         assert source.name == name and len(trajectory) >= 3
     gt_only = tmp_path / "gt_only"

@@ -11,7 +11,6 @@ from scipy.spatial.transform import Rotation
 
 from como3r.data.agent import open_agent
 from como3r.data.readers import read_ground_truth
-from como3r.data.readers.euroc import MAX_DIFFERENCE
 
 from .layouts import (EUROC_CALIB, EUROC_T_BS, euroc_sensor_yaml, input_error, pixels,
                       pose_matrices, write_euroc)
@@ -39,8 +38,8 @@ def test_sequence_is_read_as_published(tmp_path, sub):
     for channel in range(3):
         np.testing.assert_array_equal(frame.image[..., channel], pixels(2)[..., 0])
     assert [f.index for f in agent.frames()] == [0, 1, 2, 3]
-    # each frame takes the ground-truth sample nearest it (200 Hz from 20 ms before)
-    np.testing.assert_array_equal(agent.gt_indices, [4, 14, 24, 34])
+    # each frame's ground truth is a 200 Hz sample (from 20 ms before) at its time
+    assert agent.has_gt_pose.all()
     torch.testing.assert_close(frame.T_WC_gt, agent.groundtruth.T_WC[24])
 
 
@@ -96,7 +95,7 @@ def test_undistortion_moves_a_known_point_back(tmp_path):
 def test_without_ground_truth(tmp_path):
     write_euroc(tmp_path / "seq", n=2, groundtruth=False)
     agent = open_agent(tmp_path / "seq")
-    assert agent.groundtruth is None and (agent.gt_indices == -1).all()
+    assert agent.groundtruth is None and not agent.has_gt_pose.any()
     input_error("EuRoC sequence has no mav0/state_groundtruth_estimate0/data.csv",
                 read_ground_truth, tmp_path / "seq")
 
@@ -107,8 +106,7 @@ def test_frames_far_from_ground_truth_have_none(tmp_path):
     lines = gt.read_text().splitlines()
     gt.write_text("\n".join(lines[:10]) + "\n")  # 45 ms: frame 0 only
     agent = open_agent(tmp_path / "seq")
-    np.testing.assert_array_equal(agent.gt_indices, [4, -1, -1])
-    assert MAX_DIFFERENCE == 0.01
+    np.testing.assert_array_equal(agent.has_gt_pose, [True, False, False])
 
 
 # ---------------------------------------------------------------------------------- bad inputs

@@ -1,7 +1,10 @@
 """Tests of como3r.data.readers.kitti: a KITTI odometry ``dataset/sequences/XX`` folder, its
-P2 intrinsics and ``dataset/poses/XX.txt`` moved to the colour camera image_2."""
+P2 intrinsics and ``dataset/poses/XX.txt`` moved to the colour camera image_2; the grey
+download (image_0, P0, cam0's poses as they are), synthetic and the real excerpt."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +15,8 @@ from como3r.data.readers import read_ground_truth
 
 from .layouts import KITTI_P2, input_error, pixels, pose_matrices, write_kitti
 
+KITTI_GREY_REAL = Path("/work/shared/data/kitti_odometry_00_gray_60/dataset/sequences/00")
+
 
 def test_sequence_is_read_as_published(tmp_path):
     info = write_kitti(tmp_path / "dataset", name="05", n=4)
@@ -21,7 +26,7 @@ def test_sequence_is_read_as_published(tmp_path):
     np.testing.assert_allclose(agent.timestamps, info["times"], rtol=1e-6)
     assert agent.calib == (718.856, 718.856, 607.1928, 185.2157)  # P2's K
     np.testing.assert_array_equal(agent.load_frame(3).image, pixels(3))
-    np.testing.assert_array_equal(agent.gt_indices, [0, 1, 2, 3])
+    assert agent.has_gt_pose.all()
     torch.testing.assert_close(agent.load_frame(1).T_WC_gt, agent.groundtruth.T_WC[1])
 
 
@@ -49,7 +54,7 @@ def test_a_subset_of_the_frames_keeps_their_times_and_poses(tmp_path):
     agent = open_agent(info["sequence"])
     assert agent.stems == ("000000", "000002", "000004")
     np.testing.assert_allclose(agent.timestamps, info["times"][[0, 2, 4]], rtol=1e-6)
-    np.testing.assert_array_equal(agent.gt_indices, [0, 2, 4])
+    assert agent.has_gt_pose.all()
     frames, trajectory = agent.gt_for_frames()
     np.testing.assert_array_equal(frames, [0, 1, 2])
     torch.testing.assert_close(trajectory.T_WC, agent.groundtruth.T_WC[[0, 2, 4]])
@@ -58,10 +63,59 @@ def test_a_subset_of_the_frames_keeps_their_times_and_poses(tmp_path):
 def test_a_test_sequence_without_poses(tmp_path):
     info = write_kitti(tmp_path / "dataset", name="11", n=2, poses=False)
     agent = open_agent(info["sequence"])
-    assert agent.groundtruth is None and (agent.gt_indices == -1).all()
+    assert agent.groundtruth is None and not agent.has_gt_pose.any()
     input_error(f"no ground truth for KITTI sequence 11: expected "
                 f"{tmp_path / 'dataset' / 'poses' / '11.txt'} (KITTI publishes poses for "
                 "sequences 00-10 only)", read_ground_truth, info["sequence"])
+
+
+def test_the_grey_download_is_read_from_image_0(tmp_path):
+    """data_odometry_gray.zip: image_0/ and image_1/, no image_2/; cam0's intrinsics (P0) and
+    poses as published (cam0 is the poses' camera), frames as three equal channels."""
+    info = write_kitti(tmp_path / "dataset", n=3, folders=("image_0", "image_1"))
+    agent = open_agent(info["sequence"])
+    assert agent.format == "kitti" and agent.num_frames == 3
+    assert agent.image_paths[0].parent.name == "image_0"
+    assert agent.calib == (718.856, 718.856, 607.1928, 185.2157)  # P0's K
+    frame = agent.load_frame(2)
+    assert frame.image.shape == (24, 32, 3) and frame.image.dtype == np.uint8
+    for channel in range(3):
+        np.testing.assert_array_equal(frame.image[..., channel], pixels(2)[..., 0])
+    np.testing.assert_allclose(pose_matrices(agent.groundtruth.T_WC), info["cam0"], atol=1e-5)
+    _, trajectory = read_ground_truth(info["sequence"])
+    np.testing.assert_allclose(pose_matrices(trajectory.T_WC), info["cam0"], atol=1e-5)
+
+
+def test_colour_is_taken_first_when_both_downloads_are_there(tmp_path):
+    info = write_kitti(tmp_path / "dataset", n=2, folders=("image_0", "image_2"))
+    agent = open_agent(info["sequence"])
+    assert agent.image_paths[0].parent.name == "image_2"
+    np.testing.assert_array_equal(agent.load_frame(1).image, pixels(1))
+
+
+def test_a_grey_sequence_without_p0_names_it(tmp_path):
+    info = write_kitti(tmp_path / "dataset", n=2, folders=("image_0",))
+    _edit_line(info["sequence"] / "calib.txt", 1, None)
+    input_error("calib.txt: no 'P0:' line (the left grey camera's 3x4 projection matrix)",
+                open_agent, info["sequence"])
+
+
+@pytest.mark.skipif(not KITTI_GREY_REAL.is_dir(),
+                    reason=f"KITTI grey excerpt not found at {KITTI_GREY_REAL}")
+def test_the_real_grey_excerpt():
+    """Sequence 00's first 60 frames as data_odometry_gray.zip extracts them: 1241x376 grey,
+    P0, the poses file's rows as the frames' poses."""
+    agent = open_agent(KITTI_GREY_REAL)
+    assert agent.format == "kitti" and agent.num_frames == 60 and agent.image_size == (1241, 376)
+    assert agent.calib == (718.856, 718.856, 607.1928, 185.2157)
+    assert agent.has_gt_pose.all()
+    frame = agent.load_frame(59)
+    assert frame.image.shape == (376, 1241, 3)
+    assert (frame.image[..., 0] == frame.image[..., 1]).all()
+    assert (frame.image[..., 0] == frame.image[..., 2]).all() and frame.image.std() > 10
+    rows = (KITTI_GREY_REAL.parent.parent / "poses" / "00.txt").read_text().splitlines()
+    M = np.array(rows[59].split(), dtype=np.float64).reshape(3, 4)
+    np.testing.assert_allclose(pose_matrices(frame.T_WC_gt[None])[0, :3], M, atol=1e-6)
 
 
 # ---------------------------------------------------------------------------------- bad inputs

@@ -32,7 +32,7 @@ def test_sequence_is_read_as_published(tmp_path, invalid):
     np.testing.assert_allclose(frame.depth, expected, atol=1e-6)
     np.testing.assert_allclose(pose_matrices(agent.groundtruth.T_WC), T, atol=1e-6)
     torch.testing.assert_close(frame.T_WC_gt, agent.groundtruth.T_WC[2])
-    assert (agent.gt_indices == np.arange(4)).all()
+    assert agent.has_gt_pose.all()
 
 
 def test_timestamps_follow_the_frame_rate(tmp_path):
@@ -44,8 +44,23 @@ def test_jpeg_colour_and_no_depth_or_poses(tmp_path):
     write_7scenes(tmp_path / "seq", n=3, colour="jpg", depth=False, poses=False)
     agent = open_agent(tmp_path / "seq")
     assert agent.num_frames == 3 and not agent.has_depth and agent.groundtruth is None
-    assert (agent.gt_indices == -1).all()
+    assert not agent.has_gt_pose.any()
     input_error("has no frame-NNNNNN.pose.txt files", read_ground_truth, tmp_path / "seq")
+
+
+def test_a_seq_folder_of_jpeg_colour_with_depth_and_poses(tmp_path):
+    """``scene/seq-01/`` as its zip extracts, colour as JPEG (as some copies ship it): every
+    part pairs up as with PNG colour, the simulated prior has what it needs."""
+    T = write_7scenes(tmp_path / "chess" / "seq-01", n=3, colour="jpg")
+    agent = open_agent(tmp_path / "chess" / "seq-01")
+    assert agent.format == "7scenes" and agent.num_frames == 3 and agent.has_depth
+    assert agent.image_paths[0].name == "frame-000000.color.jpg"
+    assert agent.has_gt_pose.all() and agent.calib is not None
+    frame = agent.load_frame(1)
+    assert frame.image.shape == (24, 32, 3)
+    np.testing.assert_array_equal(frame.image, np.asarray(Image.open(agent.image_paths[1])))
+    np.testing.assert_allclose(pose_matrices(frame.T_WC_gt[None])[0], T[1], atol=1e-6)
+    assert frame.depth is not None and frame.depth.shape == (24, 32)
 
 
 def test_frames_in_the_only_subfolder_and_intrinsics_beside_them(tmp_path):

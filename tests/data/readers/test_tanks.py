@@ -22,7 +22,7 @@ def test_sequence_is_read_in_frame_id_order(tmp_path):
     np.testing.assert_allclose(agent.timestamps, np.array([1, 2, 3, 5]) / 30.0)  # id / 30 Hz
     assert agent.calib is None and not agent.has_depth  # uncalibrated, as CoMo3R runs it
     np.testing.assert_array_equal(agent.load_frame(3).image, pixels(5))
-    np.testing.assert_array_equal(agent.gt_indices, [0, 1, 2, 3])
+    assert agent.has_gt_pose.all()
     torch.testing.assert_close(agent.groundtruth.T_WC[:, :7], torch.from_numpy(rows))
     torch.testing.assert_close(agent.load_frame(3).T_WC_gt, agent.groundtruth.T_WC[3])
 
@@ -42,7 +42,7 @@ def test_ids_are_numbers_not_names(tmp_path):
     agent = open_agent(tmp_path / "seq")
     assert agent.stems == ("frame_9", "frame_10", "frame_11")
     assert agent.load_frame(0).image.shape == (24, 32, 3)
-    assert agent.groundtruth is None and (agent.gt_indices == -1).all()
+    assert agent.groundtruth is None and not agent.has_gt_pose.any()
     input_error("Tanks and Temples sequence has no gt_traj.txt", read_ground_truth,
                 tmp_path / "seq")
 
@@ -50,10 +50,12 @@ def test_ids_are_numbers_not_names(tmp_path):
 def test_frames_without_a_ground_truth_line(tmp_path):
     write_tanks(tmp_path / "seq", ids=(1, 2, 3, 4), groundtruth=(2, 4, 6))
     agent = open_agent(tmp_path / "seq")
-    np.testing.assert_array_equal(agent.gt_indices, [-1, 0, -1, 1])
+    # frame 1 is before the first pose; frame 3 lies between poses 67 ms apart: interpolated
+    np.testing.assert_array_equal(agent.has_gt_pose, [False, True, True, True])
     frames, trajectory = agent.gt_for_frames()
-    np.testing.assert_array_equal(frames, [1, 3])
-    np.testing.assert_allclose(trajectory.timestamps, [2 / 30, 4 / 30])
+    np.testing.assert_array_equal(frames, [1, 2, 3])
+    np.testing.assert_allclose(trajectory.timestamps, [2 / 30, 3 / 30, 4 / 30])
+    torch.testing.assert_close(trajectory.T_WC[1, :3], agent.groundtruth.T_WC[:2, :3].mean(0))
 
 
 def test_calib_txt_is_the_calibration(tmp_path):

@@ -33,7 +33,7 @@ def test_sequence_is_read_as_published(tmp_path):
     expected[0, 0] = 0.0  # 0 = no data
     np.testing.assert_allclose(frame.depth, expected, atol=1e-6)
     assert frame.depth.dtype == np.float32
-    # ground truth: the 100 Hz pose nearest the frame (within 0.02 s)
+    # ground truth: the 100 Hz sample at the frame's time (within 1 ms)
     gt_stamps, rows = written["gt"]
     row = int(np.argmin(np.abs(gt_stamps - agent.timestamps[3])))
     torch.testing.assert_close(frame.T_WC_gt[:3], torch.from_numpy(np.round(rows[row, :3], 6)),
@@ -137,7 +137,7 @@ def test_without_depth_or_groundtruth(tmp_path):
     write_tum(root, n=3, depth=False, groundtruth=False)
     agent = open_agent(root)
     assert agent.num_frames == 3 and not agent.has_depth and agent.groundtruth is None
-    assert (agent.gt_indices == -1).all()
+    assert not agent.has_gt_pose.any()
     input_error("no groundtruth.txt", read_ground_truth, root)
 
 
@@ -147,8 +147,8 @@ def test_frames_outside_the_groundtruth_have_none(tmp_path):
     gt = root / "groundtruth.txt"
     lines = gt.read_text().splitlines()
     gt.write_text("\n".join(lines[:3] + lines[3 + 10:]) + "\n")  # first 0.1 s gone
-    agent = open_agent(root)
-    assert agent.gt_indices[0] == -1 and (agent.gt_indices[1:] >= 0).all()
+    agent = open_agent(root)  # poses from +0.05 s: frames 0 and 1 (33 ms) come before them
+    np.testing.assert_array_equal(agent.has_gt_pose, [False, False, True])
 
 
 def test_ground_truth_for_eval_is_the_published_file(tmp_path):
@@ -223,3 +223,53 @@ def test_malformed_groundtruth(tmp_path):
     with open(root / "groundtruth.txt", "a") as f:
         f.write("1 2 3\n")
     input_error("groundtruth.txt:", open_agent, root)
+
+
+def _associations(root, frames, depth_first=False):
+    """``associations.txt`` of the given frames of a :func:`write_tum` folder, as
+    ``associate.py rgb.txt depth.txt`` writes it (``depth_first``: the other way round)."""
+    def entries(name):
+        rows = [line.split() for line in (root / name).read_text().splitlines()
+                if not line.startswith("#")]
+        return [rows[i] for i in frames]
+    pairs = zip(entries("rgb.txt"), entries("depth.txt"))
+    lines = [" ".join(d + r if depth_first else r + d) for r, d in pairs]
+    (root / "associations.txt").write_text("\n".join(lines) + "\n")
+
+
+def test_associations_txt_gives_the_frames(tmp_path):
+    """A user's associate.py output (ORB-SLAM's TUM examples ask for one) is taken as the
+    pairing, beside the lists or without them, in either column order."""
+    root = tmp_path / NAME
+    write_tum(root, n=5)
+    _associations(root, [0, 2, 3])
+    agent = open_agent(root)
+    assert agent.format == "tum" and agent.num_frames == 3 and agent.has_depth
+    full = tmp_path / "full" / NAME
+    write_tum(full, n=5)
+    expected = open_agent(full)
+    assert [p.name for p in agent.depth_paths] == [
+        expected.depth_paths[i].name for i in (0, 2, 3)]
+    np.testing.assert_allclose(agent.timestamps, expected.timestamps[[0, 2, 3]])
+    np.testing.assert_array_equal(agent.load_frame(1).depth, expected.load_frame(2).depth)
+    np.testing.assert_array_equal(agent.load_frame(1).image, pixels(2))
+    _associations(root, [1, 4], depth_first=True)
+    (root / "rgb.txt").unlink()
+    (root / "depth.txt").unlink()
+    agent = open_agent(root)
+    np.testing.assert_allclose(agent.timestamps, expected.timestamps[[1, 4]])
+    np.testing.assert_array_equal(agent.load_frame(1).depth, expected.load_frame(4).depth)
+    assert agent.has_gt_pose.all()
+
+
+@pytest.mark.parametrize("line, fragment", [
+    ("1305031102.0 rgb/a.png 1305031102.0", "associations.txt:1: expected 'rgb_timestamp "
+                                            "rgb_file depth_timestamp depth_file'"),
+    ("1305031102.0 rgb/a.png 1305031102.0 depth/a.png", "rgb/a.png: missing (listed in"),
+    ("x rgb/a.png 1305031102.0 depth/a.png", "associations.txt:1: not a timestamp: 'x'"),
+])
+def test_malformed_associations(tmp_path, line, fragment):
+    root = tmp_path / NAME
+    write_tum(root, n=2)
+    (root / "associations.txt").write_text(line + "\n")
+    input_error(fragment, open_agent, root)

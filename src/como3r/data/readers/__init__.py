@@ -17,7 +17,8 @@ euroc      EuRoC MAV: ``mav0/cam0/data.csv``,           :mod:`como3r.data.reader
            ``cam0/data/``, ``cam0/sensor.yaml``,
            ``state_groundtruth_estimate0/data.csv``
 kitti      KITTI odometry ``sequences/XX``:             :mod:`como3r.data.readers.kitti`
-           ``image_2/``, ``times.txt``, ``calib.txt``;
+           ``image_2/`` or ``image_0/``,
+           ``times.txt``, ``calib.txt``;
            ``../../poses/XX.txt``
 tanks      Tanks and Temples as CoMo3R-SLAM stages      :mod:`como3r.data.readers.tanks`
            it: ``image/``, ``gt_traj.txt``
@@ -28,11 +29,11 @@ rosbag     a ROS 1 ``.bag``, a ROS 2 bag folder          :mod:`como3r.data.reade
 
 Detection (``format="auto"``) looks at the folder only, never at the file contents: a
 ``.bag`` or ``.mcap`` file, a folder with ``metadata.yaml`` and a ``.db3`` or ``.mcap`` file,
-or a ``.db3`` file in such a folder, is a ROS log; a folder with ``rgb.txt`` is a TUM
-sequence; one holding ``frame-*.color.*`` files is a 7-Scenes sequence; one holding
-``mav0/cam0/data.csv`` (or the ``mav0`` folder itself, or either with EuRoC ground truth
-only) is a EuRoC sequence; one holding ``times.txt`` and ``image_2/`` is a KITTI sequence; a
-file, or a folder with ``rgb/`` or a video, is an agent input; a folder with ``image/`` or
+or a ``.db3`` file in such a folder, is a ROS log; a folder with ``rgb.txt`` or
+``associations.txt`` is a TUM sequence; one holding ``frame-*.color.*`` files is a 7-Scenes
+sequence; one holding ``mav0/cam0/data.csv`` (or the ``mav0`` folder itself, or either with
+EuRoC ground truth only) is a EuRoC sequence; one holding ``times.txt`` and ``image_2/`` or
+``image_0/`` is a KITTI sequence; a file, or a folder with ``rgb/`` or a video, is an agent input; a folder with ``image/`` or
 ``gt_traj.txt`` is a Tanks and Temples sequence; a folder whose only sub-folder of frames is
 a 7-Scenes sequence is that sequence. Anything else is an :class:`InputError` saying what
 each format expects.
@@ -86,7 +87,7 @@ _EXPECTED = ("an agent folder (rgb/ or a video file), a TUM RGB-D sequence (rgb.
              "rgb/, depth.txt, depth/, groundtruth.txt), a 7-Scenes sequence "
              "(frame-NNNNNN.color.png, .depth.png, .pose.txt), a EuRoC sequence "
              "(mav0/cam0/data.csv, mav0/cam0/data/, mav0/cam0/sensor.yaml), a KITTI odometry "
-             "sequence (image_2/, times.txt, calib.txt), a Tanks and Temples sequence "
+             "sequence (image_2/ or image_0/, times.txt, calib.txt), a Tanks and Temples sequence "
              "(image/, gt_traj.txt) or a ROS log (a .bag file, a ROS 2 bag folder with "
              "metadata.yaml)")
 
@@ -177,7 +178,7 @@ def read_ground_truth(path: str | Path, format: str = "auto",
     TUM sequence, the ``frame-NNNNNN.pose.txt`` files of a 7-Scenes sequence (timestamps =
     frame number / ``fps``, as :func:`open_input` stamps the frames), the camera trajectory
     of a EuRoC sequence's ``state_groundtruth_estimate0/data.csv`` (``T_WB T_BS``), the
-    ``poses/XX.txt`` beside a KITTI sequence's ``sequences/`` folder (image_2's poses,
+    ``poses/XX.txt`` beside a KITTI sequence's ``sequences/`` folder (the read camera's poses,
     stamped by ``times.txt``), a Tanks and Temples ``gt_traj.txt`` (frame id / ``fps``). A
     ROS log holds none this reader takes (an :class:`InputError` says so).
 

@@ -1,7 +1,7 @@
 """What several dataset readers share: text files' data lines, rigid transforms as datasets publish them (matrices of
 printed numbers: 7-Scenes pose files, KITTI ``poses/XX.txt``, EuRoC ``T_BS``) checked and
 turned into como3r poses, numbers parsed with the file and line in the message, and folders
-of images named by frame number (KITTI ``image_2/``, Tanks and Temples ``image/``)."""
+of images named by frame number (KITTI ``image_2/`` or ``image_0/``, Tanks and Temples ``image/``)."""
 
 from __future__ import annotations
 

@@ -20,9 +20,9 @@ folder per sensor. What this reader takes (the left camera, ``cam0``, only):
   ``timestamp [ns], p_RS_R x y z [m], q_RS w x y z, ...`` (velocities and biases follow and
   are ignored), the pose of the body frame B (the IMU) in the world frame R at 200 Hz. The
   camera's pose is ``T_WC = T_WB T_BS`` with ``T_BS`` of ``cam0/sensor.yaml``: the camera's
-  pose in the body frame (it maps camera coordinates to body coordinates). Each frame takes
-  the nearest ground-truth sample within :data:`MAX_DIFFERENCE`; ``como3r eval`` reads the
-  whole 200 Hz camera trajectory. The Vicon / Leica raw measurements (``vicon0``,
+  pose in the body frame (it maps camera coordinates to body coordinates). Each frame's pose is
+  interpolated at its timestamp (:mod:`como3r.data.poses`); ``como3r eval`` reads the whole
+  200 Hz camera trajectory. The Vicon / Leica raw measurements (``vicon0``,
   ``leica0``) are not read.
 
 The path given may be the sequence folder or its ``mav0`` folder.
@@ -40,7 +40,7 @@ import numpy as np
 import torch
 import yaml
 
-from como3r.data.agent import AgentInput, associate_timestamps, common_image_size
+from como3r.data.agent import AgentInput, common_image_size
 from como3r.data.readers.common import data_lines, parse_numbers, rigid_poses
 from como3r.data.readers.tum import read_file_list
 from como3r.data.readers.undistort import UndistortedInput
@@ -52,8 +52,6 @@ logger = logging.getLogger(__name__)
 
 EXPECTED = "mav0/cam0/data.csv (with mav0/cam0/data/ and mav0/cam0/sensor.yaml)"
 GROUNDTRUTH = Path("state_groundtruth_estimate0") / "data.csv"
-#: frame <-> ground-truth association window [s]: two periods of the 200 Hz estimate
-MAX_DIFFERENCE = 0.01
 #: a ground-truth quaternion whose norm is further than this from 1 is refused
 QUATERNION_TOLERANCE = 1e-2
 _GT_COLUMNS = "timestamp [ns], p_RS_R x y z, q_RS w x y z"
@@ -114,16 +112,14 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
                          f"the images are {image_size[0]}x{image_size[1]}")
     timestamps = np.array([stamp for _, stamp, _ in rows], dtype=np.float64) * 1e-9
     groundtruth = None
-    gt_indices = np.full(len(rows), -1, dtype=np.int64)
     if (mav0 / GROUNDTRUTH).is_file():
         groundtruth = camera_trajectory(mav0 / GROUNDTRUTH, camera.T_BS)
-        gt_indices = associate_timestamps(timestamps, groundtruth.timestamps, MAX_DIFFERENCE)
     return UndistortedInput(
         root=path, name=_name(path, mav0), num_frames=len(rows), image_size=image_size,
         timestamps=timestamps, calib=camera.calib, groundtruth=groundtruth, odometry=None,
         has_depth=False, has_surface=False, fps=float(fps),
         stems=tuple(p.stem for p in image_paths), image_paths=image_paths, video=None,
-        depth_paths=(), surface_paths=(), gt_indices=gt_indices, format="euroc",
+        depth_paths=(), surface_paths=(), format="euroc",
         distortion=camera.distortion,
     )
 

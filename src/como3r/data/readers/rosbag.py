@@ -192,7 +192,7 @@ def open_sequence(path: Path, fps: float, topic: str = "") -> RosbagInput:
         calib=calib, groundtruth=None, odometry=None, has_depth=False, has_surface=False,
         fps=float(fps), stems=tuple(str(ns) for ns in nanoseconds.tolist()), image_paths=(),
         video=None, depth_paths=(), surface_paths=(),
-        gt_indices=np.full(len(times), -1, dtype=np.int64), format="rosbag", bag=bag,
+        format="rosbag", bag=bag,
         topic=topic, log_times=times, ranks=ranks, distortion=distortion)
 
 

@@ -103,10 +103,7 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
         timestamps=timestamps, calib=intrinsics(folder), groundtruth=groundtruth,
         odometry=None, has_depth=bool(depth), has_surface=False, fps=float(fps),
         stems=tuple(_stem(p) for p in colour), image_paths=colour, video=None,
-        depth_paths=depth, surface_paths=(),
-        gt_indices=np.arange(len(numbers), dtype=np.int64) if pose
-        else np.full(len(numbers), -1, dtype=np.int64),
-        format="7scenes", depth_units_per_metre=DEPTH_UNITS_PER_METRE,
+        depth_paths=depth, surface_paths=(), format="7scenes", depth_units_per_metre=DEPTH_UNITS_PER_METRE,
         depth_invalid=DEPTH_INVALID,
     )
 

@@ -62,11 +62,8 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
     images, ids = numbered_images(folder, _ID, "000001")
     timestamps = ids.astype(np.float64) / fps
     groundtruth = None
-    gt_indices = np.full(len(images), -1, dtype=np.int64)
     if (path / GROUNDTRUTH).is_file():
-        gt_ids, groundtruth = read_groundtruth(path / GROUNDTRUTH, fps)
-        row = {int(i): k for k, i in enumerate(gt_ids)}
-        gt_indices = np.array([row.get(int(i), -1) for i in ids], dtype=np.int64)
+        groundtruth = read_groundtruth(path / GROUNDTRUTH, fps)[1]
     calib_file = path / "calib.txt"
     return AgentInput(
         root=path, name=path.resolve().name, num_frames=len(images),
@@ -74,7 +71,7 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
         calib=read_calib(calib_file) if calib_file.is_file() else None,
         groundtruth=groundtruth, odometry=None, has_depth=False, has_surface=False,
         fps=float(fps), stems=tuple(p.stem for p in images), image_paths=images, video=None,
-        depth_paths=(), surface_paths=(), gt_indices=gt_indices, format="tanks",
+        depth_paths=(), surface_paths=(), format="tanks",
     )
 
 

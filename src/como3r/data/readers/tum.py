@@ -15,10 +15,19 @@ the dataset's "File Formats" page
   synchronised and drop frames, so with ``depth.txt`` present the frames are the associated
   pairs (rgb images without a depth partner are left out, with a warning); without
   ``depth.txt`` every ``rgb.txt`` image is a frame. Timestamps are the rgb ones.
+* ``associations.txt`` (optional; not in the archives, but many users write one with
+  ``associate.py rgb.txt depth.txt > associations.txt``, as ORB-SLAM's TUM examples ask,
+  and some copies of the dataset carry one): lines ``rgb_timestamp rgb_file
+  depth_timestamp depth_file`` (or depth first, told by the files' ``depth/`` folder). When
+  present, its pairs are the frames, as the user associated them, and ``rgb.txt`` /
+  ``depth.txt`` are not needed.
 * depth: 16-bit PNG "scaled by a factor of 5000" (5000 = 1 m), 0 = no data; registered to
   the colour image by the OpenNI driver (1:1 pixel correspondence).
 * ground truth: ``groundtruth.txt`` (optional: the benchmark's validation sequences publish
-  none), its pose nearest each frame within 0.02 s.
+  none), the 100 Hz motion capture as published; each frame's pose is interpolated at its
+  timestamp (:mod:`como3r.data.poses`: between samples at most 0.1 s apart; the capture
+  usually starts a fraction of a second after the camera, and drops samples now and then:
+  such frames have no pose).
 * intrinsics: ``calib.txt`` (``fx fy cx cy``, the agent layout's file) in the folder if the
   user puts one there; otherwise the colour camera's calibration picked from the folder
   name (``rgbd_dataset_freiburg1_*`` etc.) as MASt3R-SLAM's ``TUMDataset`` does, values of
@@ -44,7 +53,6 @@ import numpy as np
 
 from como3r.data.agent import (
     AgentInput,
-    associate_timestamps,
     check_map_header,
     common_image_size,
     parse_timestamp,
@@ -56,7 +64,9 @@ from como3r.io.tum import Trajectory, read_tum
 
 logger = logging.getLogger(__name__)
 
-EXPECTED = "rgb.txt (with rgb/), optionally depth.txt (with depth/) and groundtruth.txt"
+EXPECTED = ("rgb.txt (with rgb/) or associations.txt, optionally depth.txt (with depth/) and "
+            "groundtruth.txt")
+ASSOCIATIONS = "associations.txt"
 #: TUM associate.py's default ``--max_difference`` [s]
 MAX_DIFFERENCE = 0.02
 #: "The depth images are scaled by a factor of 5000"; 0 means missing value
@@ -76,8 +86,8 @@ DISTORTION = {
 
 
 def matches(path: Path) -> bool:
-    """A folder holding ``rgb.txt`` is a TUM sequence."""
-    return (path / "rgb.txt").is_file()
+    """A folder holding ``rgb.txt`` or ``associations.txt`` is a TUM sequence."""
+    return (path / "rgb.txt").is_file() or (path / ASSOCIATIONS).is_file()
 
 
 def camera_from_name(name: str) -> tuple[tuple[float, float, float, float] | None,
@@ -159,6 +169,81 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
             different sizes, depth that is not 16-bit or not the image size, no rgb image
             with a depth partner, or a malformed ``groundtruth.txt`` / ``calib.txt``.
     """
+    if (path / ASSOCIATIONS).is_file():
+        rgb, depth_rows = read_associations(path / ASSOCIATIONS)
+        _check_listed(path, path / ASSOCIATIONS, rgb)
+        _check_listed(path, path / ASSOCIATIONS, depth_rows)
+        frames = list(range(len(rgb)))
+        depth_files = [path / name for _, _, name in depth_rows]
+    else:
+        rgb, frames, depth_files = _associate_lists(path)
+    image_paths = tuple(path / rgb[i][2] for i in frames)
+    image_size = common_image_size(image_paths)
+    for depth_file in depth_files:
+        check_map_header(depth_file, image_size, "depth")
+    timestamps = np.array([rgb[i][1] for i in frames], dtype=np.float64)
+
+    groundtruth = read_tum(path / "groundtruth.txt") if (path / "groundtruth.txt").is_file() \
+        else None
+    calib_file = path / "calib.txt"
+    name = path.resolve().name
+    calib, distortion = (read_calib(calib_file), ()) if calib_file.is_file() else \
+        camera_from_name(name)
+    if calib is None:
+        logger.info("%s: no calib.txt and no freiburg1/2/3 in the folder name: uncalibrated",
+                    path)
+    return UndistortedInput(
+        root=path, name=name, num_frames=len(frames), image_size=image_size,
+        timestamps=timestamps, calib=calib, groundtruth=groundtruth, odometry=None,
+        has_depth=bool(depth_files), has_surface=False, fps=float(fps),
+        stems=tuple(p.stem for p in image_paths), image_paths=image_paths, video=None,
+        depth_paths=tuple(depth_files), surface_paths=(),
+        format="tum", depth_units_per_metre=DEPTH_UNITS_PER_METRE, depth_invalid=(0,),
+        distortion=distortion,
+    )
+
+
+def read_associations(path: Path) -> tuple[list[tuple[int, float, str]],
+                                           list[tuple[int, float, str]]]:
+    """The rgb and depth entries ``(line number, timestamp, file name)`` of an
+    ``associations.txt``, pair by pair in rgb-time order.
+
+    Raises:
+        InputError: an unreadable file, a line that is not ``timestamp file timestamp
+            file``, non-increasing rgb timestamps or no entries; the message names the line.
+    """
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read associations ({exc})") from None
+    rgb: list[tuple[int, float, str]] = []
+    depth: list[tuple[int, float, str]] = []
+    for line_no, line in enumerate(lines, 1):
+        text = line.split("#", 1)[0].replace(",", " ").replace("\t", " ").strip()
+        if not text:
+            continue
+        parts = text.split()
+        if len(parts) != 4:
+            raise InputError(f"{path}:{line_no}: expected 'rgb_timestamp rgb_file "
+                             f"depth_timestamp depth_file', got {text!r}")
+        first = (line_no, parse_timestamp(parts[0], path, line_no), parts[1])
+        second = (line_no, parse_timestamp(parts[2], path, line_no), parts[3])
+        if parts[1].startswith("depth") and not parts[3].startswith("depth"):
+            first, second = second, first  # written as associate.py depth.txt rgb.txt
+        if rgb and first[1] <= rgb[-1][1]:
+            raise InputError(f"{path}:{line_no}: rgb timestamps are not strictly increasing "
+                             f"({rgb[-1][1]!r} then {first[1]!r})")
+        rgb.append(first)
+        depth.append(second)
+    if not rgb:
+        raise InputError(f"{path}: no 'rgb_timestamp rgb_file depth_timestamp depth_file' "
+                         "entries")
+    return rgb, depth
+
+
+def _associate_lists(path: Path) -> tuple[list[tuple[int, float, str]], list[int], list[Path]]:
+    """``rgb.txt``'s entries, the indices of those that are frames and their depth files
+    (empty without ``depth.txt``), paired as TUM's ``associate.py`` pairs them."""
     rgb_list = path / "rgb.txt"
     rgb = read_file_list(rgb_list)
     _check_listed(path, rgb_list, rgb)
@@ -179,33 +264,7 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
         depth_rows = [depth[j] for _, j in pairs]
         _check_listed(path, depth_list, depth_rows)
         depth_files = [path / name for _, _, name in depth_rows]
-    image_paths = tuple(path / rgb[i][2] for i in frames)
-    image_size = common_image_size(image_paths)
-    for depth_file in depth_files:
-        check_map_header(depth_file, image_size, "depth")
-    timestamps = np.array([rgb[i][1] for i in frames], dtype=np.float64)
-
-    groundtruth = None
-    gt_indices = np.full(len(frames), -1, dtype=np.int64)
-    if (path / "groundtruth.txt").is_file():
-        groundtruth = read_tum(path / "groundtruth.txt")
-        gt_indices = associate_timestamps(timestamps, groundtruth.timestamps, MAX_DIFFERENCE)
-    calib_file = path / "calib.txt"
-    name = path.resolve().name
-    calib, distortion = (read_calib(calib_file), ()) if calib_file.is_file() else \
-        camera_from_name(name)
-    if calib is None:
-        logger.info("%s: no calib.txt and no freiburg1/2/3 in the folder name: uncalibrated",
-                    path)
-    return UndistortedInput(
-        root=path, name=name, num_frames=len(frames), image_size=image_size,
-        timestamps=timestamps, calib=calib, groundtruth=groundtruth, odometry=None,
-        has_depth=bool(depth_files), has_surface=False, fps=float(fps),
-        stems=tuple(p.stem for p in image_paths), image_paths=image_paths, video=None,
-        depth_paths=tuple(depth_files), surface_paths=(), gt_indices=gt_indices,
-        format="tum", depth_units_per_metre=DEPTH_UNITS_PER_METRE, depth_invalid=(0,),
-        distortion=distortion,
-    )
+    return rgb, frames, depth_files
 
 
 def ground_truth(path: Path) -> tuple[Path, Trajectory]:
