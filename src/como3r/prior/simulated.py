@@ -230,12 +230,14 @@ def fill_depth_holes(depth: Tensor, valid: Tensor) -> Tensor:
         valid: ``(H, W)`` bool, at least one True.
     """
     levels = [torch.where(valid, depth, torch.zeros_like(depth))[None, None]]
-    while bool((levels[-1] <= 0).any()) and min(levels[-1].shape[-2:]) > 1:
-        levels.append(F.max_pool2d(levels[-1], 2, ceil_mode=True))
+    factors = []  # per level, the block's (rows, columns): 1 along a side already 1 long
+    while bool((levels[-1] <= 0).any()) and max(levels[-1].shape[-2:]) > 1:
+        factors.append(tuple(min(2, n) for n in levels[-1].shape[-2:]))
+        levels.append(F.max_pool2d(levels[-1], factors[-1], ceil_mode=True))
     filled = levels[-1]
-    for level in reversed(levels[:-1]):
+    for level, (rows, cols) in zip(reversed(levels[:-1]), reversed(factors)):
         H, W = level.shape[-2:]
-        coarse = filled.repeat_interleave(2, -2).repeat_interleave(2, -1)[..., :H, :W]
+        coarse = filled.repeat_interleave(rows, -2).repeat_interleave(cols, -1)[..., :H, :W]
         filled = torch.where(level > 0, level, coarse)
     return filled[0, 0]
 
