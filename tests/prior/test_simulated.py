@@ -37,7 +37,7 @@ from como3r.geometry.umeyama import umeyama_sim3
 from como3r.prior.base import Encoding, PairPrediction, View
 from como3r.prior.ground_truth import GroundTruth, InMemoryTruth
 from como3r.prior.retrieval import RetrievalDatabase
-from como3r.prior.simulated import SimulatedPrior
+from como3r.prior.simulated import SimulatedPrior, fill_depth_holes
 from como3r.frontend.matching import refine_with_descriptors
 
 WIDTH, HEIGHT, FRAMES = 96, 72, 40
@@ -452,6 +452,40 @@ def test_sky_is_far_with_confidence_near_one(prior, default_views):
     assert float(sky_ranges.min()) > 8.0 and float(sky_ranges.max()) < 26.0
     assert float(prediction.C_ii[:10].max()) < 1.1
     assert float(prediction.C_ii[12:].median()) > 3.0
+
+
+def test_a_depth_sensors_holes_are_filled_matchable_and_unconfident(prior, default_views):
+    """Without a surface map, pixels without depth are a sensor's holes, not sky: filled
+    with the surface behind them (the farthest valid depth nearby), matchable (ordinary Q),
+    with the sky's geometric confidence."""
+    view = default_views[0][7]
+    depth = gt(view).depth.clone()
+    hole = (slice(20, 30), slice(40, 52))
+    depth[hole] = 0.0
+    sensor = SimulatedPrior(EASY, _ChangedTruth([view], depth=depth, surface=None))
+    enc = sensor.encode(view)
+    assert bool(enc.valid.all()) and bool(enc.filled[hole].all())
+    assert int(enc.filled.sum()) == int((depth <= 0).sum())
+    around = gt(view).depth[18:32, 38:54]
+    filled_z = unproject_depth(fill_depth_holes(depth, depth > 0), view.K)[..., 2][hole]
+    assert float(filled_z.min()) >= float(around[around > 0].min()) - 1e-4
+    assert float(filled_z.max()) <= float(around.max()) + 1e-4
+    prediction = sensor.decode(enc, enc)
+    assert float(prediction.C_ii[hole].max()) < 1.1
+    assert float(prediction.Q_ii[hole].median()) > 1.5
+    # with a surface map, the same pixels are sky
+    assert not bool(prior.encode(view).filled.any())
+
+
+def test_fill_depth_holes_takes_the_farthest_depth_of_the_smallest_block():
+    """A hole pixel takes the farthest valid depth of the smallest aligned 2^k block around
+    it that has one (the surface behind, where near and far meet); valid depth is kept."""
+    depth = torch.tensor([[1.0, 0.0, 0.0, 3.0, 0.0, 0.0, 0.0, 0.0],
+                          [0.0, 2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    filled = fill_depth_holes(depth, depth > 0)
+    expected = torch.tensor([[1.0, 2.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0],
+                             [2.0, 2.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0]])
+    assert torch.equal(filled, expected)
 
 
 def test_world_keys_without_surface_maps(prior, default_views):

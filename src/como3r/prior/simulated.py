@@ -23,6 +23,21 @@ index of view i, agent and index of view j)``, so a decode is deterministic and 
 (j, i) are independent. Both models place sky pixels (no depth) at 10-20 times the view's
 median valid depth with confidence about 1, and every length is relative to that median.
 
+Sky is what a surface map says it is (texture id < 0). A view without a surface map has its
+depth from a sensor (the Kinect of TUM RGB-D and 7-Scenes), whose holes are not the scene's
+sky: the Kinect loses its structured light in the shadow a foreground edge casts on the
+background, on dark, shiny or slanted surfaces and beyond its range, but a learned prior sees
+a surface there in the colour image. :func:`fill_depth_holes` fills such holes with the
+surface behind them. Their appearance is no worse than elsewhere (the hole is the depth
+sensor's, not the image's), so their descriptors and ``Q`` are those of any pixel and they
+are matched; their geometry is the simulator's guess, not a measurement, so its confidence
+``C`` stays the sky's (about 1): tracking, fusion and the map weigh them down as before.
+Depth edges are found on the measured depth alone. Treated as sky, the 28 %
+of a TUM freiburg3_teddy frame without depth (12 % of 7-Scenes redkitchen) could never be
+matched: the match fraction ``nu`` of tracking (C-Sec. 3.3) was capped at the measured
+share, so a new keyframe came at ``nu < 0.333`` once 1 - 0.333 / 0.72 = 54 % of the
+*visible* overlap was gone, not 67 %, and more of them on more holes.
+
 The remaining shape of the model (confidence curves, sky range, RANSAC and feature-map
 settings) is fixed by :class:`SimulatedConstants` and
 :class:`~como3r.prior.simulated_errors.RealisticConstants` and reported by
@@ -152,9 +167,11 @@ class SimulatedEncoding(Encoding):
         pred_rays: ``(H, W, 3)`` unit rays the prior predicts (``rays`` in the easy model).
         log_range_error: ``(H, W)`` this image's share of the log-range error (0 in the
             easy model).
-        median_range: median valid range (the view's length unit).
+        median_range: median measured (valid, not filled) range (the view's length unit).
         ranges: ``(H, W)`` true distance to the camera centre, 0 where ``~valid``.
-        valid: ``(H, W)`` bool, pixels with depth (the others are sky).
+        valid: ``(H, W)`` bool, pixels with depth, measured or filled (the others are sky).
+        filled: ``(H, W)`` bool, valid pixels whose depth was filled into a sensor's hole
+            (:func:`fill_depth_holes`).
         edges: ``(H, W)`` bool, valid pixels next to a depth discontinuity or the sky.
         key_ids: ``(H, W)`` int64 appearance-key ids, -1 where none.
         key_coords: ``(H, W, 3)`` float32 key coordinates (metres).
@@ -170,6 +187,7 @@ class SimulatedEncoding(Encoding):
     median_range: float
     ranges: Tensor
     valid: Tensor
+    filled: Tensor
     edges: Tensor
     key_ids: Tensor
     key_coords: Tensor
@@ -195,6 +213,33 @@ def _depth_edges(depth: Tensor, valid: Tensor, log_jump: float) -> Tensor:
         edge.narrow(dim, 0, n).logical_or_(jump)
     dilated = F.max_pool2d(edge[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
     return dilated & valid
+
+
+def fill_depth_holes(depth: Tensor, valid: Tensor) -> Tensor:
+    """``(H, W)`` depth with every hole (``~valid``) filled by the surface behind it.
+
+    Pull-push over a pyramid of 2x2 maxima of the valid depth: a hole pixel takes the
+    farthest valid depth of the smallest aligned block around it that has any (a block
+    twice the hole's radius at most). The farthest, because a depth sensor's holes are
+    mostly the background it could not see: the shadow beside a foreground edge and surfaces
+    beyond its range; an average would float points between the two surfaces, as the
+    flying pixels a learned prior is penalised for.
+
+    Args:
+        depth: ``(H, W)`` z-depth, anything where ``~valid``.
+        valid: ``(H, W)`` bool, at least one True.
+    """
+    levels = [torch.where(valid, depth, torch.zeros_like(depth))[None, None]]
+    factors = []  # per level, the block's (rows, columns): 1 along a side already 1 long
+    while bool((levels[-1] <= 0).any()) and max(levels[-1].shape[-2:]) > 1:
+        factors.append(tuple(min(2, n) for n in levels[-1].shape[-2:]))
+        levels.append(F.max_pool2d(levels[-1], factors[-1], ceil_mode=True))
+    filled = levels[-1]
+    for level, (rows, cols) in zip(reversed(levels[:-1]), reversed(factors)):
+        H, W = level.shape[-2:]
+        coarse = filled.repeat_interleave(rows, -2).repeat_interleave(cols, -1)[..., :H, :W]
+        filled = torch.where(level > 0, level, coarse)
+    return filled[0, 0]
 
 
 class SimulatedPrior(Prior):
@@ -245,6 +290,10 @@ class SimulatedPrior(Prior):
         H, W = view.shape
         valid = torch.isfinite(depth) & (depth > 0)
         depth = torch.where(valid, depth, torch.zeros_like(depth))
+        filled = torch.zeros_like(valid)
+        if truth.surface is None and bool(valid.any()):  # a sensor's holes (module docstring)
+            depth, filled = fill_depth_holes(depth, valid), ~valid
+            valid = torch.ones_like(valid)
         points = unproject_depth(depth, K)
         rays = rays_from_intrinsics(H, W, K)
         ranges = points.norm(dim=-1)
@@ -265,9 +314,11 @@ class SimulatedPrior(Prior):
             pred_rays, log_range_error = rays, torch.zeros_like(ranges)
         return SimulatedEncoding(
             agent=view.agent, index=view.index, shape=(H, W), K=K, rays=rays, pred_rays=pred_rays,
-            log_range_error=log_range_error, median_range=float(median_of_ranges(ranges.flatten(), valid.flatten())),
+            log_range_error=log_range_error,
+            median_range=float(median_of_ranges(ranges.flatten(), (valid & ~filled).flatten())),
             ranges=ranges,
-            valid=valid, edges=_depth_edges(depth, valid, self.constants.edge_log_jump),
+            valid=valid, filled=filled,
+            edges=_depth_edges(depth, valid & ~filled, self.constants.edge_log_jump),
             key_ids=key_ids, key_coords=key_coords, footprint=footprint,
             median_footprint=median_footprint,
             # float16 as MASt3R-SLAM's matching kernels use them; far below the noise
@@ -305,13 +356,13 @@ class SimulatedPrior(Prior):
 
     def _base_logits(self, enc: SimulatedEncoding) -> tuple[Tensor, Tensor]:
         """Pair-independent ``log(C - 1)`` and ``log Q``: falling with range (relative to the
-        median valid range) and at edges."""
+        median valid range) and at edges; ``C`` of filled holes is the sky's."""
         c = self.constants
         ranges, valid, edges = enc.ranges, enc.valid, enc.edges
         distance = torch.log1p(ranges / (c.conf_range_ref * enc.median_range))
         conf = c.conf_base - c.conf_range_slope * distance - c.conf_edge_drop * edges.float()
         desc_conf = c.q_base - c.q_range_slope * distance - c.q_edge_drop * edges.float()
-        conf = torch.where(valid, conf, torch.full_like(conf, c.conf_sky))
+        conf = torch.where(valid & ~enc.filled, conf, torch.full_like(conf, c.conf_sky))
         desc_conf = torch.where(valid, desc_conf, torch.full_like(desc_conf, c.q_sky))
         return conf, desc_conf
 
