@@ -93,7 +93,8 @@ EXCERPTS = {
     "7scenes": Path("7scenes_redkitchen_tsdf50"),
     "tum": Path("tum_freiburg3_teddy_100/rgbd_dataset_freiburg3_teddy"),
 }
-SHARED_DATA = Path("/work/shared/data")
+#: the project's shared folder beside the checkout (``--data`` names another)
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 #: ``como3r split --overlap``'s default
 SPLIT_OVERLAP = 0.05
 COLUMNS = ("excerpt", "agents", "frames", "tracked", "KF/frame", "ATE m", "ATE %path",

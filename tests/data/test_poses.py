@@ -14,8 +14,9 @@ from scipy.spatial.transform import Rotation, Slerp
 from como3r.data.agent import open_agent
 from como3r.data.poses import MAX_GAP, poses_at, slerp
 from como3r.io.tum import Trajectory, read_tum
+from .shared_data import SHARED_DATA
 
-TEDDY = Path("/work/shared/data/tum_freiburg3_teddy_100/rgbd_dataset_freiburg3_teddy")
+TEDDY = SHARED_DATA / "tum_freiburg3_teddy_100/rgbd_dataset_freiburg3_teddy"
 needs_teddy = pytest.mark.skipif(not TEDDY.is_dir(), reason=f"TUM excerpt not found at {TEDDY}")
 
 

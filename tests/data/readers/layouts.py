@@ -13,9 +13,10 @@ from scipy.spatial.transform import Rotation
 
 from como3r.errors import InputError
 from como3r.geometry.lie import quat_to_matrix
+from ..shared_data import SHARED_DATA
 
 WIDTH, HEIGHT = 32, 24
-SEVEN_SCENES_REAL = Path("/work/shared/data/7scenes_redkitchen_tsdf50")
+SEVEN_SCENES_REAL = SHARED_DATA / "7scenes_redkitchen_tsdf50"
 
 
 def pixels(i: int) -> np.ndarray:

@@ -14,8 +14,9 @@ from como3r.data.agent import open_agent
 from como3r.data.readers import read_ground_truth
 
 from .layouts import KITTI_P2, input_error, pixels, pose_matrices, write_kitti
+from ..shared_data import SHARED_DATA
 
-KITTI_GREY_REAL = Path("/work/shared/data/kitti_odometry_00_gray_60/dataset/sequences/00")
+KITTI_GREY_REAL = SHARED_DATA / "kitti_odometry_00_gray_60/dataset/sequences/00"
 
 
 def test_sequence_is_read_as_published(tmp_path):
