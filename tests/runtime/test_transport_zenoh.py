@@ -129,3 +129,73 @@ def test_a_second_process_with_an_id_waits_then_takes_over(caplog) -> None:
         hub.stop([], interrupted=False)
         for session in [*sessions[1:], coordinator_session]:
             session.close()
+
+
+class _Entity:
+    def undeclare(self) -> None:
+        pass
+
+
+class _NoCoordinator:
+    """A session on which no coordinator answers; its second query ends the wait."""
+
+    class Stop(Exception):
+        pass
+
+    def __init__(self) -> None:
+        self.queries = 0
+
+    def declare_subscriber(self, *args, **kwargs) -> _Entity:
+        return _Entity()
+
+    def declare_token(self, *args, **kwargs) -> _Entity:
+        return _Entity()
+
+    def liveliness(self) -> _NoCoordinator:
+        return self
+
+    def get(self, *args, **kwargs) -> list:
+        self.queries += 1
+        if self.queries > 1:
+            raise self.Stop
+        return []
+
+
+def test_a_waiting_agent_names_the_endpoints_and_the_session(caplog) -> None:
+    options = ZenohOptions(connect=("tcp/10.0.0.2:7447",), listen=("tcp/0.0.0.0:7448",),
+                           session="lab")
+    session = _NoCoordinator()
+    link = ZenohAgentLink(session, Keys("lab"), 3, where=options.where())
+    try:
+        with caplog.at_level(logging.WARNING), pytest.raises(_NoCoordinator.Stop):
+            link.fetch_task()
+    finally:
+        link.close()
+    [line] = [r.getMessage() for r in caplog.records if "waiting" in r.getMessage()]
+    assert line == ("agent 3: waiting: the coordinator (session 'lab', connecting to "
+                    "tcp/10.0.0.2:7447, listening on tcp/0.0.0.0:7448)")
+
+
+def test_where_names_scouting_and_the_configuration_file(tmp_path) -> None:
+    where = ZenohOptions(scouting=True, config_file=tmp_path / "z.json5").where()
+    assert where == (f"session 'como3r', scouting by UDP multicast, Zenoh configuration "
+                     f"{tmp_path / 'z.json5'}")
+
+
+def test_the_coordinator_names_where_the_agents_find_it(tmp_path, monkeypatch) -> None:
+    from typer.testing import CliRunner
+
+    from como3r.cli import app
+    from como3r.errors import InputError
+    from como3r.runtime import network
+
+    def serve(options, agents, *args, **kwargs):
+        raise InputError("stopped before serving")
+
+    monkeypatch.setattr(network, "serve", serve)
+    result = CliRunner().invoke(app, ["coordinator", "--out", str(tmp_path / "out"),
+                                      "--prior", "simulated", "--agents", "3",
+                                      "--session", "lab"], env={"COLUMNS": "300"})
+    assert result.exit_code == 2, result.output
+    assert ("coordinator: waiting for 3 agent(s) (session 'lab', listening on "
+            "tcp/0.0.0.0:7447)") in result.output
