@@ -305,6 +305,9 @@ def robot(
                        robot_id, robots)
     config = _load_config(config_file, overrides, calib, False)
     plan = read_schedule(schedule) if schedule is not None else None
+    if robots > 1 and not quiet:  # it waits for the whole team: say where it looks
+        err_console.print(f"robot {robot_id}: waiting for the team of {robots} robot(s) "
+                          f"({network.where()})", markup=False, highlight=False, soft_wrap=True)
     with run_progress(quiet) as shown:
         summary = run_robot(network, robot_id, robots, path, out, config, prior_spec, plan,
                             overwrite=overwrite, progress=shown)

@@ -182,20 +182,29 @@ def test_where_names_scouting_and_the_configuration_file(tmp_path) -> None:
                      f"{tmp_path / 'z.json5'}")
 
 
-def test_the_coordinator_names_where_the_agents_find_it(tmp_path, monkeypatch) -> None:
+@pytest.mark.parametrize("command, module, function, said", [
+    (["coordinator", "--agents", "3"], "como3r.runtime.network", "serve",
+     "coordinator: waiting for 3 agent(s) (session 'lab', listening on tcp/0.0.0.0:7447)"),
+    (["robot", "{tmp}", "--id", "0", "--robots", "2", "--connect", "tcp/10.0.0.2:7447"],
+     "como3r.runtime.robot_node", "run_robot",
+     "robot 0: waiting for the team of 2 robot(s) (session 'lab', connecting to "
+     "tcp/10.0.0.2:7447)"),
+])
+def test_a_networked_command_says_where_it_waits(tmp_path, monkeypatch, command, module,
+                                                 function, said) -> None:
+    import importlib
+
     from typer.testing import CliRunner
 
     from como3r.cli import app
     from como3r.errors import InputError
-    from como3r.runtime import network
 
-    def serve(options, agents, *args, **kwargs):
-        raise InputError("stopped before serving")
+    def stop(*args, **kwargs):
+        raise InputError("stopped before the network")
 
-    monkeypatch.setattr(network, "serve", serve)
-    result = CliRunner().invoke(app, ["coordinator", "--out", str(tmp_path / "out"),
-                                      "--prior", "simulated", "--agents", "3",
-                                      "--session", "lab"], env={"COLUMNS": "300"})
+    monkeypatch.setattr(importlib.import_module(module), function, stop)
+    args = [a.replace("{tmp}", str(tmp_path)) for a in command]
+    result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "out"), "--prior",
+                                      "simulated", "--session", "lab"], env={"COLUMNS": "300"})
     assert result.exit_code == 2, result.output
-    assert ("coordinator: waiting for 3 agent(s) (session 'lab', listening on "
-            "tcp/0.0.0.0:7447)") in result.output
+    assert said in result.output
