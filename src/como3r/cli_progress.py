@@ -8,10 +8,10 @@ the command starts:
 * ``rich``, when stderr is a terminal: a live display with one bar per agent (frames
   done/total, frames per second, keyframes, lost and relocalized frames, tracking state,
   time left at the agent's pace after its warm-up, :data:`PACE_FRAMES`) and, once the
-  agents are done, one bar for the coordinator's current phase (:class:`~como3r.progress.PhaseEvent`: queued keyframes,
-  focal refinement, cleanup passes, alternation rounds, outputs, evaluation, report) with
-  the time since that phase started. Erased when the work fails, so the ``error:`` line is
-  all that remains.
+  agents are done, one bar for the coordinator's current phase
+  (:class:`~como3r.progress.PhaseEvent`: queued keyframes, focal refinement, cleanup
+  passes, alternation rounds, outputs, evaluation, report) with the time since that phase
+  started. Erased when the work fails, so the ``error:`` line is all that remains.
 * ``plain``, when stderr is not a terminal (CI logs, ``2>&1 | tee run.log``): plain lines,
   ``[H:MM:SS] subject: text`` with the time since the command started: per agent at most one
   every :data:`PLAIN_INTERVAL_S` seconds plus its last frame and its failure; for the
@@ -127,11 +127,6 @@ class _Agent:
         if mark is None or now <= mark[1]:  # the count went back, or no time passed
             return None
         return (done - mark[0]) / (now - mark[1]), done - mark[0]
-
-    def fps(self, now: float) -> float | None:
-        """Frames per second of its :meth:`pace` (None before a second frame)."""
-        pace = self.pace(now)
-        return pace[0] if pace is not None else None
 
     def text(self, now: float) -> str:
         """``2.1 fps, 5 keyframes, 3 lost, 1 relocalized, tracking, 0:00:12 left``."""
