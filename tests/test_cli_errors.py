@@ -42,6 +42,8 @@ def _invoke(*args: str):
 
 @pytest.mark.parametrize("args, fragment", [
     (["run", "--out", "x"], "no input: give --agent PATH or --camera SOURCE"),
+    (["run"], "no input: give --agent PATH or --camera SOURCE"),  # the input first, then --out
+    (["run", "--agent", "a"], "missing option --out"),
     (["eval", "--est", "x"], "Missing option '--gt'"),
     (["run", "--agent", "a", "--out", "x", "--bogus"], "No such option: --bogus"),
     (["synth", "--out", "x", "--agents", "abc"], "Invalid value for '--agents'"),

@@ -124,8 +124,33 @@ def test_plain_agent_lines_at_most_every_interval_and_the_last_frame(monkeypatch
     assert [line.split(": ", 1)[1].split(" frames")[0] for line in lines] == [
         "3/10", "6/10", "9/10", "10/10"]
     assert lines[0] == ("[0:00:06] agent 0: 3/10 frames, 0.50 fps, 2 keyframes, 0 lost, "
-                        "tracking, 0:00:14 left")
+                        "tracking")  # too early for a time left: the pace spans 1 frame
+    assert lines[2] == ("[0:00:18] agent 0: 9/10 frames, 0.50 fps, 2 keyframes, 2 lost, "
+                        "tracking, 0:00:02 left")
     assert lines[-1].endswith("10/10 frames, 0.50 fps, 2 keyframes, 2 lost, tracking")
+
+
+def _left(line: str) -> float | None:
+    """The time left a line gives, in seconds (None: none)."""
+    match = re.search(r"(\d+):(\d\d):(\d\d) left$", line)
+    return None if match is None else 3600 * int(match[1]) + 60 * int(match[2]) + int(match[3])
+
+
+def test_the_time_left_is_the_pace_after_the_warm_up(monkeypatch):
+    """As the demo: 60 frames, the first three slow (compilation, the first keyframes),
+    then one a second; the time left, once shown, is the time the rest takes."""
+    progress, clock, log = _plain(monkeypatch)
+    progress.interval = 0.0  # a line per frame
+    progress(_event(0, frames_total=60))
+    for done in range(1, 61):
+        clock.now += 20.0 if done <= 3 else 1.0
+        progress(_event(done, frames_total=60))
+    lines = log.getvalue().splitlines()[1:]  # after the first event's
+    estimates = {done: _left(line) for done, line in enumerate(lines, start=1)}
+    assert all(estimates[done] is None for done in range(1, 6))  # too early to tell
+    shown = {done: left for done, left in estimates.items() if left is not None}
+    # the pace since the start would say 5:35 at frame 10 (50 frames at 10/67 fps)
+    assert shown == {done: 60 - done for done in range(6, 60)}
 
 
 def test_plain_lines_of_a_live_input_have_no_total_and_no_time_left(monkeypatch):

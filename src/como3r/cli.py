@@ -254,7 +254,8 @@ def run(
         None, "--topic", metavar="NAME",
         help="Image topic of the ROS log inputs (default: the configuration's input.topic; "
              "empty: each log's only image topic)."),
-    out: Path = typer.Option(..., "--out", help="Output folder."),
+    out: Optional[Path] = typer.Option(  # checked after the input, which a user gives first
+        None, "--out", help="Output folder (required)."),
     prior: str = typer.Option(
         "mast3r", "--prior",
         help="mast3r | simulated (a stand-in built from the input's depth and ground-truth "
@@ -322,6 +323,8 @@ def run(
     if format is not None:
         _check_format(format)
     sources = _camera_sources(camera, max_frames, agent, prior, mode)
+    if out is None:
+        raise InputError("missing option --out: the output folder (see: como3r run --help)")
     if viewer is not None and mode == "decentralized":
         raise InputError("--viewer shows --mode centralized runs only")
     viewer_spec = check_viewer_option(viewer, out)  # rerun installed?

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import re
 import signal
 from typing import Any, Callable, Iterator, TypeVar
 
@@ -75,11 +76,20 @@ def _without_flag_metavars(params: list[Any]) -> list[Any]:
 
 
 class Command(TyperCommand):
-    """A command whose flags show no metavar in ``--help``."""
+    """A command whose flags show no metavar in ``--help``, and whose usage line names its
+    positional arguments as a user types them (``merge [OPTIONS] A B``, not typer's
+    ``{A} {B}``)."""
 
     def get_params(self, ctx):  # type: ignore[no-untyped-def]
         return _without_flag_metavars(super().get_params(ctx))
 
+    def collect_usage_pieces(self, ctx):  # type: ignore[no-untyped-def]
+        return [_REQUIRED_BRACES.sub(r"\1", piece)
+                for piece in super().collect_usage_pieces(ctx)]
+
+
+#: typer's usage piece of a required argument, ``{NAME}`` (``{NAME}...`` for several)
+_REQUIRED_BRACES = re.compile(r"^\{(.*)\}(?=(?:\.\.\.)?$)")
 
 
 @contextlib.contextmanager

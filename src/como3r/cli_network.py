@@ -210,6 +210,9 @@ def coordinator(
     threads = torch.get_num_threads()  # this machine runs no agent
     options = RuntimeOptions(torch_threads=threads, max_message_bytes=int(max_message_mb * 2**20),
                              agent_timeout_s=agent_timeout, away_timeout_s=away_timeout)
+    if not quiet:  # who starts the agents needs these endpoints and the session
+        err_console.print(f"coordinator: waiting for {agents} agent(s) ({network.where()})",
+                          markup=False, highlight=False, soft_wrap=True)
     with run_progress(quiet) as shown:
         summary = serve(network, agents, out, config, prior_spec, options, ground_truth=gt,
                         overwrite=overwrite, progress=shown, resume=resume)
@@ -305,6 +308,9 @@ def robot(
                        robot_id, robots)
     config = _load_config(config_file, overrides, calib, False)
     plan = read_schedule(schedule) if schedule is not None else None
+    if robots > 1 and not quiet:  # it waits for the whole team: say where it looks
+        err_console.print(f"robot {robot_id}: waiting for the team of {robots} robot(s) "
+                          f"({network.where()})", markup=False, highlight=False, soft_wrap=True)
     with run_progress(quiet) as shown:
         summary = run_robot(network, robot_id, robots, path, out, config, prior_spec, plan,
                             overwrite=overwrite, progress=shown)

@@ -7,11 +7,11 @@ the command starts:
 
 * ``rich``, when stderr is a terminal: a live display with one bar per agent (frames
   done/total, frames per second, keyframes, lost and relocalized frames, tracking state,
-  time left at the agent's pace) and, once the agents are done, one bar for the
-  coordinator's current phase (:class:`~como3r.progress.PhaseEvent`: queued keyframes,
-  focal refinement, cleanup passes, alternation rounds, outputs, evaluation, report) with
-  the time since that phase started. Erased when the work fails, so the ``error:`` line is
-  all that remains.
+  time left at the agent's pace after its warm-up, :data:`PACE_FRAMES`) and, once the
+  agents are done, one bar for the coordinator's current phase
+  (:class:`~como3r.progress.PhaseEvent`: queued keyframes, focal refinement, cleanup
+  passes, alternation rounds, outputs, evaluation, report) with the time since that phase
+  started. Erased when the work fails, so the ``error:`` line is all that remains.
 * ``plain``, when stderr is not a terminal (CI logs, ``2>&1 | tee run.log``): plain lines,
   ``[H:MM:SS] subject: text`` with the time since the command started: per agent at most one
   every :data:`PLAIN_INTERVAL_S` seconds plus its last frame and its failure; for the
@@ -34,7 +34,8 @@ import contextlib
 import datetime
 import math
 import time
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
 from typing import Callable, Iterator, Sequence
 
 from rich.progress import (
@@ -78,40 +79,67 @@ def _clock_text(seconds: float) -> str:
     return str(datetime.timedelta(seconds=int(seconds)))
 
 
+#: an agent's pace (its fps and time left) spans the later half of the frames it has done,
+#: at most this many: the warm-up (compilation, the first keyframes) is slower than the run
+#: and stays in the earlier half; a demo's first estimate from the pace since the start was
+#: 4:42 for a 1-minute run
+PACE_FRAMES = 30
+#: no time left is shown before the pace spans this many frames
+MIN_PACE_FRAMES = 3
+
+
 @dataclass
 class _Agent:
     """One agent as the display knows it: its latest event and its pace.
 
     Attributes:
         event: the latest event.
-        started: clock time of its first event.
         first_done: frames done at its first event (the pace counts the frames after it).
         printed: clock time of its last plain line.
         task: its rich task.
+        marks: ``(frames done, clock time)`` when the count went up, first event included,
+            back to :data:`PACE_FRAMES` frames before the latest.
     """
 
     event: AgentProgress
-    started: float
     first_done: int
     printed: float
     task: TaskID | None = None
+    marks: deque[tuple[int, float]] = field(default_factory=deque)
 
-    def fps(self, now: float) -> float | None:
-        """Frames per second since its first event (None before a second frame)."""
-        frames, seconds = self.event.frames_done - self.first_done, now - self.started
-        return frames / seconds if frames > 0 and seconds > 0 else None
+    def update(self, event: AgentProgress, now: float) -> None:
+        """Take the agent's new event, seen at clock time ``now``."""
+        self.event = event
+        if not self.marks or event.frames_done > self.marks[-1][0]:
+            self.marks.append((event.frames_done, now))
+        while len(self.marks) > 1 and self.marks[1][0] <= event.frames_done - PACE_FRAMES:
+            self.marks.popleft()
+
+    def pace(self, now: float) -> tuple[float, int] | None:
+        """Frames per second over the later half of the frames done since its first event
+        (at most the last :data:`PACE_FRAMES`), and how many frames that is; None before
+        a second frame."""
+        done = self.event.frames_done
+        span = min(PACE_FRAMES, (done - self.first_done) // 2)
+        if span < 1:
+            return None
+        mark = next(((f, t) for f, t in reversed(self.marks) if f <= done - span), None)
+        if mark is None or now <= mark[1]:  # the count went back, or no time passed
+            return None
+        return (done - mark[0]) / (now - mark[1]), done - mark[0]
 
     def text(self, now: float) -> str:
         """``2.1 fps, 5 keyframes, 3 lost, 1 relocalized, tracking, 0:00:12 left``."""
-        e, fps = self.event, self.fps(now)
+        e, pace = self.event, self.pace(now)
+        fps = pace[0] if pace is not None else None
         parts = [f"{fps:.2f} fps" if fps is not None else "- fps",
                  f"{e.keyframes} keyframe{'' if e.keyframes == 1 else 's'}", f"{e.lost} lost"]
         if e.relocalized:
             parts.append(f"{e.relocalized} relocalized")
         parts.append(e.state)
         left = e.frames_total - e.frames_done if e.frames_total is not None else 0
-        if fps is not None and left > 0 and e.state != "failed":
-            parts.append(f"{_clock_text(left / fps)} left")
+        if pace is not None and pace[1] >= MIN_PACE_FRAMES and left > 0 and e.state != "failed":
+            parts.append(f"{_clock_text(left / pace[0])} left")
         return ", ".join(parts)
 
 
@@ -155,8 +183,8 @@ class RunProgress:
         now = self.clock()
         agent = self.agents.get(event.agent)
         if agent is None:
-            agent = self.agents[event.agent] = _Agent(event, now, event.frames_done, self.start)
-        agent.event = event
+            agent = self.agents[event.agent] = _Agent(event, event.frames_done, self.start)
+        agent.update(event, now)
         if self.mode == "rich":
             if agent.task is None:
                 agent.task = self.bar.add_task(f"agent {event.agent}", info="")

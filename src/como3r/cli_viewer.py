@@ -17,7 +17,8 @@ from como3r.cli_common import Command, err_console
 from como3r.live import LiveCallback
 from como3r.viewer import ViewerSpec, check_viewer, open_viewer
 
-VIEWER_HELP = ('Live 3D viewer (needs: pip install "como3r[viewer]"): spawn (open rerun\'s '
+#: help texts are rich markup: the escaped bracket keeps `[viewer]` from being read as a tag
+VIEWER_HELP = ('Live 3D viewer (needs: pip install "como3r\\[viewer]"): spawn (open rerun\'s '
                'viewer), serve (for a viewer on another machine; prints the URL) or save '
                'FILE.rrd (a recording to open with `rerun FILE.rrd`).')
 

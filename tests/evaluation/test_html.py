@@ -21,7 +21,7 @@ from PIL import Image
 from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
 from como3r.data.synth import synthesize
-from como3r.evaluation.html import REPORT_NAME, SECTIONS, write_report
+from como3r.evaluation.html import REPORT_NAME, SECTIONS, run_label, write_report
 from como3r.evaluation.plot import GT_STYLE, ate_figure, trajectory_figure
 from como3r.evaluation.plot_map import map_figure, sample_map
 from como3r.evaluation.plot_run import timeline_figure
@@ -81,6 +81,10 @@ def _images(page: str) -> dict[str, bytes]:
 
 def test_the_report_of_a_run_has_every_section_and_embeds_its_images(real_run) -> None:
     page = (real_run / REPORT_NAME).read_text()
+    # named by its folder and the one above (the run was written in run.partial)
+    label = f"{real_run.parent.name}/run"
+    assert f"<title>{label} - como3r report</title>" in page
+    assert f"<h1>como3r report <span class='name'>{label}</span></h1>" in page
     for ident, heading in SECTIONS:
         assert f"<section id='{ident}'><h2>{heading}</h2>" in page, ident
     # self-contained: no script, no external resource, every image a data URI
@@ -266,3 +270,12 @@ def test_the_report_renders_in_headless_chromium(real_run, tmp_path) -> None:
     assert ink.mean() > 0.02  # text and plots, not a blank page
     colourful = np.ptp(pixels.astype(int), axis=2) > 60  # the agents' coloured lines
     assert colourful.sum() > 500
+
+
+@pytest.mark.parametrize("run_dir, label", [
+    ("/tmp/demo_out.partial/run", "demo_out/run"),  # the demo's run, still being written
+    ("/data/results/tum_desk", "results/tum_desk"),
+    ("/run", "run"),
+])
+def test_the_report_title_names_the_run_by_its_last_two_folders(run_dir, label) -> None:
+    assert run_label(Path(run_dir)) == label

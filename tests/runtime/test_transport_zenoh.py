@@ -129,3 +129,82 @@ def test_a_second_process_with_an_id_waits_then_takes_over(caplog) -> None:
         hub.stop([], interrupted=False)
         for session in [*sessions[1:], coordinator_session]:
             session.close()
+
+
+class _Entity:
+    def undeclare(self) -> None:
+        pass
+
+
+class _NoCoordinator:
+    """A session on which no coordinator answers; its second query ends the wait."""
+
+    class Stop(Exception):
+        pass
+
+    def __init__(self) -> None:
+        self.queries = 0
+
+    def declare_subscriber(self, *args, **kwargs) -> _Entity:
+        return _Entity()
+
+    def declare_token(self, *args, **kwargs) -> _Entity:
+        return _Entity()
+
+    def liveliness(self) -> _NoCoordinator:
+        return self
+
+    def get(self, *args, **kwargs) -> list:
+        self.queries += 1
+        if self.queries > 1:
+            raise self.Stop
+        return []
+
+
+def test_a_waiting_agent_names_the_endpoints_and_the_session(caplog) -> None:
+    options = ZenohOptions(connect=("tcp/10.0.0.2:7447",), listen=("tcp/0.0.0.0:7448",),
+                           session="lab")
+    session = _NoCoordinator()
+    link = ZenohAgentLink(session, Keys("lab"), 3, where=options.where())
+    try:
+        with caplog.at_level(logging.WARNING), pytest.raises(_NoCoordinator.Stop):
+            link.fetch_task()
+    finally:
+        link.close()
+    [line] = [r.getMessage() for r in caplog.records if "waiting" in r.getMessage()]
+    assert line == ("agent 3: waiting: the coordinator (session 'lab', connecting to "
+                    "tcp/10.0.0.2:7447, listening on tcp/0.0.0.0:7448)")
+
+
+def test_where_names_scouting_and_the_configuration_file(tmp_path) -> None:
+    where = ZenohOptions(scouting=True, config_file=tmp_path / "z.json5").where()
+    assert where == (f"session 'como3r', scouting by UDP multicast, Zenoh configuration "
+                     f"{tmp_path / 'z.json5'}")
+
+
+@pytest.mark.parametrize("command, module, function, said", [
+    (["coordinator", "--agents", "3"], "como3r.runtime.network", "serve",
+     "coordinator: waiting for 3 agent(s) (session 'lab', listening on tcp/0.0.0.0:7447)"),
+    (["robot", "{tmp}", "--id", "0", "--robots", "2", "--connect", "tcp/10.0.0.2:7447"],
+     "como3r.runtime.robot_node", "run_robot",
+     "robot 0: waiting for the team of 2 robot(s) (session 'lab', connecting to "
+     "tcp/10.0.0.2:7447)"),
+])
+def test_a_networked_command_says_where_it_waits(tmp_path, monkeypatch, command, module,
+                                                 function, said) -> None:
+    import importlib
+
+    from typer.testing import CliRunner
+
+    from como3r.cli import app
+    from como3r.errors import InputError
+
+    def stop(*args, **kwargs):
+        raise InputError("stopped before the network")
+
+    monkeypatch.setattr(importlib.import_module(module), function, stop)
+    args = [a.replace("{tmp}", str(tmp_path)) for a in command]
+    result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "out"), "--prior",
+                                      "simulated", "--session", "lab"], env={"COLUMNS": "300"})
+    assert result.exit_code == 2, result.output
+    assert said in result.output

@@ -295,16 +295,24 @@ def _appendix(data: RunData) -> str:
     return "".join(parts) or _missing("Nothing to add.")
 
 
+def run_label(run_dir: Path) -> str:
+    """The run's name in the report's title: its folder and the one above it
+    (``demo_out/run``, not a bare ``run``), without the ``.partial`` of a run still being
+    written (:mod:`como3r.io.output`)."""
+    parts = Path(run_dir).resolve().parts[-2:]
+    return "/".join(p.removesuffix(".partial") for p in parts if p != Path(p).anchor)
+
+
 def render(data: RunData, notes: Sequence[str] = ()) -> str:
     """The HTML page of a loaded run."""
-    name = html.escape(data.run_dir.name.removesuffix(".partial"))
+    name = html.escape(run_label(data.run_dir))
     builders = {"trajectories": _trajectories, "error": _error, "agents": _agents,
                 "timing": _timing, "bandwidth": _bandwidth, "merges": _merges, "map": _map,
                 "appendix": _appendix}
     body = "".join(section(i, h, builders[i](data)) for i, h in SECTIONS)
     return (f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
-            f"<title>como3r run {name}</title><style>{STYLE}</style></head><body>"
-            f"<h1>como3r run <span class='name'>{name}</span></h1>"
+            f"<title>{name} - como3r report</title><style>{STYLE}</style></head><body>"
+            f"<h1>como3r report <span class='name'>{name}</span></h1>"
             f"{_summary(data, notes)}{body}</body></html>\n")
 
 

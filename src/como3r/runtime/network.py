@@ -67,7 +67,7 @@ def serve(network: ZenohOptions, agents: int, out: Path, config: Config, prior_s
     try:
         hub = ZenohHub(session, keys, agents, options.max_message_bytes,
                        options.shutdown_grace_s, certified=network.member is not None)
-        logger.info("coordinator of %s listening on %s", keys.root, ", ".join(network.listen))
+        logger.info("coordinator of %s: %s", keys.root, network.where())
         return coordinate(hub, [None] * agents, [0] * agents, out, config, prior_spec, options,
                           inputs=inputs, overwrite=overwrite, progress=progress, resume=resume,
                           continuing=resume)
@@ -103,7 +103,8 @@ def run_remote_agent(network: ZenohOptions, agent: int, path: Path, prior_spec: 
     session = open_session(network)
     try:
         spool = Spool(queue_memory_bytes, spill_dir, label=f"agent-{agent}")
-        link = ZenohAgentLink(session, Keys(network.session, network.member), agent, spool)
+        link = ZenohAgentLink(session, Keys(network.session, network.member), agent, spool,
+                              where=network.where())
         task = link.fetch_task()
         if task.prior["name"] != prior_spec.name:
             link.close()

@@ -106,6 +106,20 @@ class ZenohOptions:
     member: str | None = None
     on_open: Callable[[Any], None] | None = field(default=None, compare=False)
 
+    def where(self) -> str:
+        """Where this process looks for its peers, for a person (``session 'como3r',
+        connecting to tcp/10.0.0.2:7447``): what to check when nobody answers."""
+        parts = [f"session {self.session!r}"]
+        if self.connect:
+            parts.append(f"connecting to {', '.join(self.connect)}")
+        if self.listen:
+            parts.append(f"listening on {', '.join(self.listen)}")
+        if self.scouting:
+            parts.append("scouting by UDP multicast")
+        if self.config_file is not None:
+            parts.append(f"Zenoh configuration {self.config_file}")
+        return ", ".join(parts)
+
 
 def open_session(options: ZenohOptions) -> Any:
     """A Zenoh session in peer mode on ``options``.

@@ -46,11 +46,15 @@ class ZenohAgentLink:
         agent: this agent's id.
         spool: where unacknowledged messages wait (None: a default one).
         wait_log_s: how often :meth:`fetch_task` and :meth:`close` say what they wait for.
+        where: where the session looks for the coordinator
+            (:meth:`~como3r.runtime.transport_zenoh.ZenohOptions.where`), named while it
+            waits; empty: the run's key expressions.
     """
 
     def __init__(self, session: Any, keys: Keys, agent: int, spool: Spool | None = None,
-                 wait_log_s: float = 30.0) -> None:
+                 wait_log_s: float = 30.0, where: str = "") -> None:
         self.session, self.keys, self.agent = session, keys, agent
+        self.where = where or keys.root
         self.max_bytes = codec.DEFAULT_MAX_BYTES
         self.wait_log_s = wait_log_s
         self.traffic = Traffic()
@@ -83,7 +87,7 @@ class ZenohAgentLink:
             InputError: the coordinator refuses (no agent with this id, or one that has
                 failed or finished in this run).
         """
-        said, waiting = -math.inf, f"the coordinator ({self.keys.root})"
+        said, waiting = -math.inf, f"the coordinator ({self.where})"
         while True:
             for reply in self.session.get(self.keys.task(self.agent), timeout=5.0,
                                           attachment=self._mine):
@@ -93,7 +97,7 @@ class ZenohAgentLink:
                     return task
                 text = reply.err.payload.to_string()
                 if text == ZENOH_QUERY_TIMEOUT:  # a busy coordinator (a global BA): ask again
-                    waiting = f"the coordinator ({self.keys.root}), busy: no answer within 5 s"
+                    waiting = f"the coordinator ({self.where}), busy: no answer within 5 s"
                     continue
                 if not text.startswith(WAIT):
                     raise InputError(f"agent {self.agent}: the coordinator says: {text}")
