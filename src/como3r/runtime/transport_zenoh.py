@@ -42,6 +42,14 @@ started with the same id by mistake); once the holder's token is gone, the runti
 fresh message sequence. Messages to an agent carry the incarnation they are meant for, so a
 superseded process never applies its successor's updates.
 
+Priorities. Zenoh queues each link's messages by priority and sends the higher first, so
+what the coordinator sends (acknowledgements, pose updates, ``Shutdown``: small, and what
+lets an agent free its spool and correct its map) goes at ``INTERACTIVE_HIGH`` and
+``express`` (not held back to fill a batch), ahead of bulk on the same link: a capped radio
+link busy with keyframes still carries them at once (``benchmarks/links.py``). An agent's
+own messages go at ``DATA``, all of them: they form one sequence, which the coordinator
+takes in order, and Zenoh keeps order only within a priority.
+
 Zenoh's callbacks only queue; decoding, answering task queries and admitting processes
 happen on the coordinator's own thread, in arrival order, and sends go through a background
 thread, so neither side ever blocks Zenoh or its own loop.
@@ -154,6 +162,12 @@ class Keys:
         return key[len(self.root) + len("/agent/"):].split("/", 1)[0]
 
 
+#: Zenoh priority of what the coordinator sends (acknowledgements, pose updates, Shutdown)
+CONTROL_PRIORITY = "INTERACTIVE_HIGH"
+#: Zenoh priority of an agent's messages (keyframes and the rest of its ordered stream)
+STREAM_PRIORITY = "DATA"
+
+
 class Sender:
     """Puts ``(key, payload, attachment)`` on the network from a background thread.
 
@@ -161,14 +175,19 @@ class Sender:
         session: the Zenoh session.
         publishers: declared publishers by key (declared with congestion control
             ``BLOCK``); a key without one is put through the session.
+        priority: the Zenoh priority (a ``zenoh.Priority`` name) of the session's puts.
+        express: send each put at once instead of batching it with the next.
     """
 
-    def __init__(self, session: Any, publishers: dict[str, Any] | None = None) -> None:
+    def __init__(self, session: Any, publishers: dict[str, Any] | None = None,
+                 priority: str = STREAM_PRIORITY, express: bool = False) -> None:
         import zenoh
 
         self.session = session
         self.publishers = publishers if publishers is not None else {}
         self.block = zenoh.CongestionControl.BLOCK
+        self.priority = getattr(zenoh.Priority, priority)
+        self.express = express
         self.queue: queue.Queue[tuple[str, bytes, bytes | None] | None] = queue.Queue()
         self.thread = threading.Thread(target=self._loop, daemon=True)
         self.thread.start()
@@ -188,7 +207,8 @@ class Sender:
                     self.publishers[key].put(payload, attachment=attachment)
                 else:
                     self.session.put(key, payload, attachment=attachment,
-                                     congestion_control=self.block)
+                                     congestion_control=self.block, priority=self.priority,
+                                     express=self.express)
             except Exception as exc:  # a closed session: nothing more can be sent
                 logger.debug("put on %s failed: %s", key, exc)
 
@@ -235,7 +255,7 @@ class ZenohHub:
         self._rejoin: Rejoin | None = None
         self._inbox: queue.Queue[tuple[Any, ...]] = queue.Queue()
         self._backlog: deque[tuple[Any, ...]] = deque()
-        self._sender = Sender(session)
+        self._sender = Sender(session, priority=CONTROL_PRIORITY, express=True)
         self._declared = [
             session.declare_subscriber(keys.up("*", "*"), self._on_sample),
             session.liveliness().declare_subscriber(keys.alive("*", "*"), self._on_liveliness,

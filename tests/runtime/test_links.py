@@ -1,0 +1,71 @@
+"""``como3r coordinator`` and two ``como3r agent`` processes in network namespaces of their
+own, on veth links capped at 5 Mbit/s, agent 0's cut for 10 s mid-run (the short variant of
+``benchmarks/links.py``): nothing lost, the single-process run's merged ATE."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from como3r.cli import app
+
+pytest.importorskip("zenoh")
+
+ROOT = Path(__file__).resolve().parents[2]
+SIZE = ["--set", "input.long_side=64"]
+
+
+def _links():
+    spec = importlib.util.spec_from_file_location("links", ROOT / "benchmarks" / "links.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["links"] = module  # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+links = _links()
+UNAVAILABLE = links.namespaces_unavailable()
+
+
+@pytest.fixture(scope="module")
+def scene(tiny_scene) -> Path:
+    """Two agents that meet, 16 frames each (8 processed)."""
+    return tiny_scene(frames=16, seed=0, overlap=0.5)
+
+
+@pytest.mark.skipif(UNAVAILABLE is not None, reason=f"no network namespaces here: {UNAVAILABLE}")
+def test_a_capped_link_cut_for_10_s_loses_nothing(scene, tmp_path) -> None:
+    run = links.run_team("cut", scene, tmp_path, 64, 2, cap_mbit=5.0, cut_s=10.0,
+                         loopback=False)
+    assert run.cut_at is not None and run.up_at is not None  # the link was cut, mid-run
+    row = links.summarize(run, 2)
+    metrics = json.loads((run.out / "metrics.json").read_text())
+    print(f"cut 10 s at 5 Mbit/s: up {row.up_kb} kB, stall {row.stall_s:.1f} s, caught up "
+          f"{row.caught_up_s} s after link-up, longest acknowledgement {row.ack_ms:.0f} ms "
+          f"({row.acks} seen), merged ATE {row.ate_mm:.2f} mm")
+    assert row.lost_frames == 0 and row.lost_keyframes == 0
+    for a, entry in enumerate(metrics["runtime"]["agents"]):
+        assert entry["status"] == "finished", entry
+        assert entry["frames_done"] == entry["frames_expected"] == 8
+        assert entry["keyframes_received"] == metrics["agents"][a]["keyframes"] >= 2
+        # the messages crossed the link (not Zenoh's shared memory beside it)
+        assert row.up_kb[a] * 1e3 >= sum(entry["bytes_from_agent"].values())
+    assert metrics["components"] == [[0, 1]]
+    agent0 = "\n".join(line for _, line in run.processes["agent0"].lines)
+    if "the coordinator is gone" in agent0:  # the cut outlasted the lease: it re-sent
+        assert "caught up" in agent0, agent0
+        assert row.caught_up_s is not None and row.caught_up_s >= 0
+    assert row.acks >= 2  # acknowledgements reached both ends' probes
+
+    single = tmp_path / "single"
+    result = CliRunner().invoke(app, ["run", "--agent", str(scene / "agent_0"), "--agent",
+                                      str(scene / "agent_1"), "--out", str(single), "--prior",
+                                      "simulated", *SIZE, "--single-process", "--quiet"])
+    assert result.exit_code == 0, result.output
+    reference = json.loads((single / "metrics.json").read_text())["ate"]["merged"]["ate"]["rmse"]
+    assert abs(row.ate_mm / 1e3 - reference) <= 0.1 * reference, (row.ate_mm, reference)
