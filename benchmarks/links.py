@@ -14,7 +14,7 @@ Per run it prints, from the tbf counters of each agent's link (sampled every 0.5
 and TCP's overhead included) and the run's ``metrics.json``:
 
 * ``up kB``/``down kB``: bytes each robot sent to / got from the coordinator (agent 0, 1);
-* ``peak up/cap``: the highest one-second up rate of a robot over the cap;
+* ``peak/cap``: the highest up rate of a robot over 2 s, over the cap;
 * ``stall s``: the longest time between two acknowledgements the coordinator sent a robot,
   from its first to its last (what a cut costs, and any wait behind other traffic);
 * ``caught up s``: link up to the cut agent logging that the coordinator has stored every
@@ -41,6 +41,7 @@ import json
 import math
 import os
 import shutil
+import signal
 import struct
 import subprocess
 import sys
@@ -330,7 +331,7 @@ def summarize(run: Run, agents: int) -> Row:
     peak = None
     if run.cap_mbit is not None and run.samples:
         rates = []
-        for (t0, b0), (t1, b1) in zip(run.samples, run.samples[2:]):  # ~1 s windows
+        for (t0, b0), (t1, b1) in zip(run.samples, run.samples[4:]):  # ~2 s windows
             rates += [(b1[a][0] - b0[a][0]) * 8 / (t1 - t0) for a in range(agents)]
         peak = max(rates, default=0.0) / (run.cap_mbit * 1e6)
     acks = {a: _acks(run, a) for a in range(agents)}
@@ -386,6 +387,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work", type=Path, default=None,
                         help="folder for scenes, runs and logs (default: a temporary one)")
     args = parser.parse_args(argv)
+    # a kill (timeout) unwinds like Ctrl-C: the namespaces and processes go with it
+    signal.signal(signal.SIGTERM, _interrupt)
     why = namespaces_unavailable()
     if why is not None:
         print(f"skipped: {why}")
@@ -410,6 +413,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: done", flush=True)
     _print(rows)
     return 0
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
 
 
 def _print(rows: list[Row]) -> None:

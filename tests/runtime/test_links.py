@@ -13,6 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from como3r.cli import app
+from como3r.runtime.transport_zenoh import PIECE, SEQ, Pieces
 
 pytest.importorskip("zenoh")
 
@@ -36,6 +37,27 @@ UNAVAILABLE = links.namespaces_unavailable()
 def scene(tiny_scene) -> Path:
     """Two agents that meet, 16 frames each (8 processed)."""
     return tiny_scene(frames=16, seed=0, overlap=0.5)
+
+
+def test_pieces_join_in_order_and_a_broken_message_is_dropped() -> None:
+    pieces = Pieces(max_bytes=100)
+    one = [PIECE.pack(7, 3, i, 3) for i in range(3)]
+    assert pieces.add("0", one[0], b"ab") is None
+    assert pieces.add("1", PIECE.pack(9, 0, 0, 2), b"xy") is None  # agents apart
+    assert pieces.add("0", one[1], b"cd") is None
+    assert pieces.add("0", one[2], b"e") == (SEQ.pack(7, 3), b"abcde")
+    # a link lost mid-message: its pieces then the message again, whole, from its start
+    assert pieces.add("0", PIECE.pack(7, 4, 0, 2), b"fg") is None
+    assert pieces.add("0", PIECE.pack(7, 5, 1, 2), b"zz") is None  # out of order: dropped
+    assert pieces.add("0", PIECE.pack(7, 4, 1, 2), b"hi") is None  # its message is gone
+    assert pieces.add("0", PIECE.pack(7, 4, 0, 2), b"fg") is None
+    assert pieces.add("0", PIECE.pack(7, 4, 1, 2), b"hi") == (SEQ.pack(7, 4), b"fghi")
+    assert pieces.add("1", PIECE.pack(9, 0, 1, 2), b"zw") == (SEQ.pack(9, 0), b"xyzw")
+    # over the cap: rejected once, the rest of it dropped
+    big = [PIECE.pack(7, 6, i, 3) for i in range(3)]
+    assert pieces.add("0", big[0], b"x" * 60) is None
+    assert "exceeds the cap of 100 bytes" in pieces.add("0", big[1], b"x" * 60)
+    assert pieces.add("0", big[2], b"x") is None
 
 
 @pytest.mark.skipif(UNAVAILABLE is not None, reason=f"no network namespaces here: {UNAVAILABLE}")

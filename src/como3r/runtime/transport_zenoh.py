@@ -10,7 +10,9 @@ Key expressions name the session, the agent and the message kind::
     como3r/<session>/agent/<a>/task           queryable: agent a's AgentTask; the query's
                                               attachment <Q: the asking process's incarnation
     como3r/<session>/agent/<a>/up/<Type>      agent -> coordinator; attachment <QQ:
-                                              incarnation, seq
+                                              incarnation, seq; or, for each piece of a
+                                              message over PIECE_BYTES, <QQII:
+                                              incarnation, seq, piece, pieces
     como3r/<session>/agent/<a>/down/<Type>    coordinator -> agent; attachment <Q: the
                                               incarnation it is meant for
     como3r/<session>/agent/<a>/ack            coordinator -> agent <QQ: incarnation, the
@@ -41,6 +43,14 @@ started with the same id by mistake); once the holder's token is gone, the runti
 :data:`~como3r.runtime.transport.Rejoin` decides, and the newcomer takes over the id with a
 fresh message sequence. Messages to an agent carry the incarnation they are meant for, so a
 superseded process never applies its successor's updates.
+
+Pieces. Zenoh gives one put 5 s (``block/wait_before_close``) to enter the link's queue
+and closes the link when it cannot: a keyframe of a megabyte put whole on a 1 Mbit/s link
+closed it, and the agent's re-sending closed it again, for ever. An agent therefore puts a
+message larger than :data:`PIECE_BYTES` in pieces, in order; the coordinator joins them
+(:class:`Pieces`) and takes the message once its last piece is in. A piece out of order
+(its message's start was lost with a link) is dropped with its message, which the agent
+re-sends whole when the coordinator is back.
 
 Priorities. Zenoh queues each link's messages by priority and sends the higher first, so
 what the coordinator sends (acknowledgements, pose updates, ``Shutdown``: small, and what
@@ -75,6 +85,10 @@ from como3r.runtime.transport import Event, Joined, Left, Received, Rejected, Re
 logger = logging.getLogger(__name__)
 
 SEQ = struct.Struct("<QQ")  # incarnation, sequence number
+PIECE = struct.Struct("<QQII")  # incarnation, sequence number, piece index, pieces
+#: the largest piece of a message an agent puts at once (see "Pieces" above): 1 s of a
+#: 1 Mbit/s link
+PIECE_BYTES = 128 * 1024
 INCARNATION = struct.Struct("<Q")
 #: the start of a task query's error that means "ask again later", not "give up"
 WAIT = "wait: "
@@ -213,6 +227,52 @@ class Sender:
                 logger.debug("put on %s failed: %s", key, exc)
 
 
+class Pieces:
+    """Joins the pieces of the agents' messages (one message at a time per agent, its pieces
+    in order).
+
+    Args:
+        max_bytes: size cap of one whole message.
+    """
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
+        self._open: dict[str, tuple[tuple[int, int, int], list[bytes], int]] = {}
+        self._lock = threading.Lock()  # Zenoh may call back from several threads
+
+    def add(self, agent: str, attachment: bytes, data: bytes) -> tuple[bytes, bytes] | str | None:
+        """Take one piece (``attachment`` of :data:`PIECE`) of agent ``agent``'s message.
+
+        Returns:
+            ``(attachment, payload)`` of the whole message (its attachment a :data:`SEQ`)
+            once its last piece is in; a reason to reject it once it exceeds the cap; None
+            while it is incomplete, and for a piece out of order (dropped, with what came
+            of its message).
+        """
+        incarnation, seq, index, count = PIECE.unpack(attachment)
+        which = (incarnation, seq, count)
+        with self._lock:
+            if index == 0:
+                self._open[agent] = (which, [], 0)
+            current = self._open.get(agent)
+            if current is None or current[0] != which or len(current[1]) != index:
+                self._open.pop(agent, None)
+                logger.debug("agent %s: piece %d of message %d out of order: dropped", agent,
+                             index, seq)
+                return None
+            _, parts, size = current
+            size += len(data)
+            if size > self.max_bytes:
+                del self._open[agent]
+                return f"message of over {size} bytes exceeds the cap of {self.max_bytes} bytes"
+            parts.append(data)
+            if index + 1 < count:
+                self._open[agent] = (which, parts, size)
+                return None
+            del self._open[agent]
+            return SEQ.pack(incarnation, seq), b"".join(parts)
+
+
 @dataclass
 class _Holder:
     """The coordinator's view of one agent id: which process holds it, where its message
@@ -256,6 +316,7 @@ class ZenohHub:
         self._inbox: queue.Queue[tuple[Any, ...]] = queue.Queue()
         self._backlog: deque[tuple[Any, ...]] = deque()
         self._sender = Sender(session, priority=CONTROL_PRIORITY, express=True)
+        self._pieces = Pieces(max_bytes)
         self._declared = [
             session.declare_subscriber(keys.up("*", "*"), self._on_sample),
             session.liveliness().declare_subscriber(keys.alive("*", "*"), self._on_liveliness,
@@ -271,7 +332,15 @@ class ZenohHub:
             self._inbox.put(("reject", agent, f"message of {size} bytes exceeds the cap of "
                                               f"{self.max_bytes} bytes"))
             return
-        self._inbox.put(("message", agent, _attachment(sample), sample.payload.to_bytes()))
+        attachment, data = _attachment(sample), sample.payload.to_bytes()
+        if len(attachment) == PIECE.size and self._agent_id(agent) is not None:
+            whole = self._pieces.add(agent, attachment, data)
+            if isinstance(whole, str):
+                self._inbox.put(("reject", agent, whole))
+            if not isinstance(whole, tuple):
+                return
+            attachment, data = whole
+        self._inbox.put(("message", agent, attachment, data))
 
     def _on_liveliness(self, sample: Any) -> None:
         import zenoh

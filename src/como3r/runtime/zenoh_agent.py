@@ -25,7 +25,8 @@ from como3r.runtime import codec
 from como3r.runtime.messages import TO_AGENT, AgentTask, Shutdown
 from como3r.runtime.spool import Spool
 from como3r.runtime.transport import Traffic
-from como3r.runtime.transport_zenoh import INCARNATION, SEQ, STREAM_PRIORITY, WAIT, Keys
+from como3r.runtime.transport_zenoh import (INCARNATION, PIECE, PIECE_BYTES, SEQ,
+                                            STREAM_PRIORITY, WAIT, Keys)
 
 #: the error reply Zenoh itself gives a query no queryable answered in time
 ZENOH_QUERY_TIMEOUT = "Timeout"
@@ -158,6 +159,7 @@ class ZenohAgentLink:
     def _send_loop(self) -> None:
         import zenoh
 
+        priority = getattr(zenoh.Priority, STREAM_PRIORITY)
         while True:
             with self._cond:
                 while not (self._closed or (self._present and self.spool.has_next())):
@@ -165,10 +167,14 @@ class ZenohAgentLink:
                 if self._closed:
                     return
                 seq, key, data = self.spool.take()
+            pieces = max(1, math.ceil(len(data) / PIECE_BYTES))  # see transport_zenoh
             try:
-                self.session.put(key, data, attachment=SEQ.pack(self.incarnation, seq),
-                                 congestion_control=zenoh.CongestionControl.BLOCK,
-                                 priority=getattr(zenoh.Priority, STREAM_PRIORITY))
+                for index in range(pieces):
+                    self.session.put(
+                        key, data[index * PIECE_BYTES:(index + 1) * PIECE_BYTES],
+                        attachment=(SEQ.pack(self.incarnation, seq) if pieces == 1 else
+                                    PIECE.pack(self.incarnation, seq, index, pieces)),
+                        congestion_control=zenoh.CongestionControl.BLOCK, priority=priority)
             except Exception as exc:  # the session is closing
                 logger.debug("put on %s failed: %s", key, exc)
 
