@@ -4,8 +4,9 @@ Each agent and the coordinator run as ``como3r agent`` / ``como3r coordinator`` 
 network namespaces of their own, each agent joined to the coordinator by a veth pair
 (``10.77.N.4a+1`` on the coordinator's side, ``.4a+2`` on the agent's, a /30 per agent),
 both ends shaped by ``tc``'s token bucket (``tbf``: a cap in each direction, as a
-full-duplex radio link). A *cut* takes agent 0's link down (``ip link set down``) once it
-has sent its first keyframe, for the given seconds, and up again. The reference is the
+full-duplex radio link). A *cut* takes agent 0's link down (``ip link set down``) once the
+coordinator has acknowledged its first message (the agent is tracking), for the given
+seconds, and up again. The reference is the
 same team on loopback in the root namespace (no cap). Everything made here (namespaces,
 veths, named ``c3l<tag>...``) is deleted at the end, whatever happens; traffic goes only
 over them or loopback.
@@ -19,6 +20,7 @@ and TCP's overhead included) and the run's ``metrics.json``:
   from its first to its last (what a cut costs, and any wait behind other traffic);
 * ``caught up s``: link up to the cut agent logging that the coordinator has stored every
   message it made before the coordinator came back (``-``: no cut);
+* ``away``: messages the cut agent made while it saw no coordinator (tracking on);
 * ``lost F/KF``: frames processed by an agent but not reported to the coordinator, and
   keyframes an agent made that are not in the outputs (goal: 0/0);
 * ``ack ms``: the longest an acknowledgement took from the coordinator's namespace to a
@@ -40,6 +42,7 @@ import argparse
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import struct
@@ -280,14 +283,14 @@ def run_team(name: str, scene: Path, work: Path, side: int, agents: int,
 
 
 def _watch(run: Run, radio: Radio | None, agents: int) -> None:
-    """Sample the links until the coordinator ends; cut agent 0's link once it has sent
-    its first keyframe (more than 20 kB up)."""
+    """Sample the links until the coordinator ends; cut agent 0's link once the
+    coordinator has acknowledged its first message (it has its task and is tracking)."""
     coordinator, deadline = run.processes["coordinator"], time.monotonic() + LIMIT_S
     while coordinator.popen.poll() is None and time.monotonic() < deadline:
         now = time.monotonic()
         if radio is not None:
             run.samples.append((now, [radio.sent_bytes(a) for a in range(agents)]))
-            if run.cut_s is not None and run.cut_at is None and run.samples[-1][1][0][0] > 20e3:
+            if run.cut_s is not None and run.cut_at is None and _acks(run, 0):
                 radio.link(0, up=False)
                 run.cut_at = time.monotonic()
             if run.cut_at is not None and run.up_at is None and now - run.cut_at >= run.cut_s:
@@ -312,6 +315,7 @@ class Row:
     peak_over_cap: float | None
     stall_s: float
     caught_up_s: float | None
+    made_away: int
     lost_frames: int
     lost_keyframes: int
     ate_mm: float
@@ -326,7 +330,7 @@ def summarize(run: Run, agents: int) -> Row:
     lost_frames = sum(e["frames_expected"] - e["frames_done"] for e in entries)
     lost_keyframes = sum(max(0, metrics["agents"][a]["keyframes"] - e["keyframes_received"])
                          for a, e in enumerate(entries))
-    up = [s[1][a][0] / 1e3 for a in range(agents) for s in run.samples[-1:]]
+    up = [s[1][a][0] / 1e3 for a in range(agents) for s in run.samples[-1:]]  # [] on loopback
     down = [s[1][a][1] / 1e3 for a in range(agents) for s in run.samples[-1:]]
     peak = None
     if run.cap_mbit is not None and run.samples:
@@ -338,12 +342,14 @@ def summarize(run: Run, agents: int) -> Row:
     stall = max((max((t1 - t0 for (t0, _), (t1, _) in zip(times, times[1:])), default=0.0)
                  for times in acks.values()), default=0.0)
     delays = [d for a in range(agents) for d in _ack_delays(run, a)]
+    made_away = sum(int(n) for _, line in run.processes["agent0"].lines
+                    for n in re.findall(r"(\d+) of them made while it was away", line))
     caught = None
     if run.up_at is not None:
         done = run.processes["agent0"].first("caught up", after=run.up_at)
         caught = done - run.up_at if done is not None else float("nan")
-    return Row(run.name, up or [0.0] * agents, down or [0.0] * agents, peak,
-               stall, caught, lost_frames, lost_keyframes,
+    return Row(run.name, up, down, peak,
+               stall, caught, made_away, lost_frames, lost_keyframes,
                metrics["ate"]["merged"]["ate"]["rmse"] * 1e3,
                max(delays) * 1e3 if delays else float("nan"), len(delays))
 
@@ -410,6 +416,7 @@ def main(argv: list[str] | None = None) -> int:
         run = run_team(name.replace(" ", "_").replace("@", ""), scene, work, args.side,
                        args.agents, cap, cut, loopback)
         rows.append(summarize(run, args.agents))
+        rows[-1].name = name
         print(f"{name}: done", flush=True)
     _print(rows)
     return 0
@@ -422,15 +429,16 @@ def _interrupt(signum: int, frame: object) -> None:
 def _print(rows: list[Row]) -> None:
     reference = rows[0].ate_mm
     head = (f"{'run':<14} {'up kB':>14} {'down kB':>12} {'peak/cap':>8} {'stall s':>7} "
-            f"{'caught s':>8} {'ack ms':>6} {'lost F/KF':>9} {'ATE mm':>7} {'vs loop':>7}")
+            f"{'caught s':>8} {'away':>4} {'ack ms':>6} {'lost F/KF':>9} {'ATE mm':>7} {'vs loop':>7}")
     print(head)
     for r in rows:
         peak = f"{r.peak_over_cap:.2f}" if r.peak_over_cap is not None else "-"
         caught = f"{r.caught_up_s:.1f}" if r.caught_up_s is not None else "-"
         change = (r.ate_mm - reference) / reference * 100
-        print(f"{r.name:<14} {'/'.join(f'{x:.0f}' for x in r.up_kb):>14} "
-              f"{'/'.join(f'{x:.0f}' for x in r.down_kb):>12} {peak:>8} {r.stall_s:>7.1f} "
-              f"{caught:>8} {r.ack_ms:>6.0f} {f'{r.lost_frames}/{r.lost_keyframes}':>9} "
+        print(f"{r.name:<14} {'/'.join(f'{x:.0f}' for x in r.up_kb) or '-':>14} "
+              f"{'/'.join(f'{x:.0f}' for x in r.down_kb) or '-':>12} {peak:>8} "
+              f"{r.stall_s:>7.1f} {caught:>8} {r.made_away:>4} {r.ack_ms:>6.1f} "
+              f"{f'{r.lost_frames}/{r.lost_keyframes}':>9} "
               f"{r.ate_mm:>7.2f} "
               f"{change:>+6.1f}%")
 
