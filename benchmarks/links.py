@@ -16,8 +16,9 @@ and TCP's overhead included) and the run's ``metrics.json``:
 
 * ``up kB``/``down kB``: bytes each robot sent to / got from the coordinator (agent 0, 1);
 * ``peak/cap``: the highest up rate of a robot over 2 s, over the cap;
-* ``stall s``: the longest time between two acknowledgements the coordinator sent a robot,
-  from its first to its last (what a cut costs, and any wait behind other traffic);
+* ``stall s``: per robot, the longest time between two acknowledgements the coordinator
+  sent it, from its first to its last (what a cut costs, and any wait behind other traffic
+  or for another robot's keyframes);
 * ``caught up s``: link up to the cut agent logging that the coordinator has stored every
   message it made before the coordinator came back (``-``: no cut);
 * ``away``: messages the cut agent made while it saw no coordinator (tracking on);
@@ -39,6 +40,7 @@ Needs root, ``ip`` and ``tc`` (``netem`` is not needed). Run::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -204,7 +206,7 @@ def on_ack(sample):
     print(f"ack {time.monotonic():.4f} {agent} {seq}", flush=True)
 sub = session.declare_subscriber(sys.argv[2], on_ack)
 print("probe ready", flush=True)
-sys.stdin.read()
+time.sleep(float(sys.argv[3]))  # killed once the run is over, else gone by itself
 """
 
 
@@ -255,13 +257,14 @@ def run_team(name: str, scene: Path, work: Path, side: int, agents: int,
         # each agent): their delay across the link
         run.processes["probe"] = Process(inside(coord_ns, [
             sys.executable, "-c", PROBE, f"tcp/127.0.0.1:{port}",
-            f"como3r/{session}/agent/*/ack"]), logs / "probe.log")
+            f"como3r/{session}/agent/*/ack", str(LIMIT_S)]), logs / "probe.log")
         for a in range(agents):
             ns = radio.agents[a] if radio is not None else None
             where = radio.coord_addr(a) if radio is not None else "127.0.0.1"
             endpoint = f"tcp/{where}:{port}"
             run.processes[f"probe{a}"] = Process(inside(ns, [
-                sys.executable, "-c", PROBE, endpoint, f"como3r/{session}/agent/{a}/ack"]),
+                sys.executable, "-c", PROBE, endpoint, f"como3r/{session}/agent/{a}/ack",
+                str(LIMIT_S)]),
                 logs / f"probe{a}.log")
             run.processes[f"agent{a}"] = Process(inside(ns, _como3r(
                 "agent", "--connect", endpoint, "--id", str(a), str(scene / f"agent_{a}"),
@@ -313,7 +316,7 @@ class Row:
     up_kb: list[float]
     down_kb: list[float]
     peak_over_cap: float | None
-    stall_s: float
+    stall_s: list[float]
     caught_up_s: float | None
     made_away: int
     lost_frames: int
@@ -339,8 +342,8 @@ def summarize(run: Run, agents: int) -> Row:
             rates += [(b1[a][0] - b0[a][0]) * 8 / (t1 - t0) for a in range(agents)]
         peak = max(rates, default=0.0) / (run.cap_mbit * 1e6)
     acks = {a: _acks(run, a) for a in range(agents)}
-    stall = max((max((t1 - t0 for (t0, _), (t1, _) in zip(times, times[1:])), default=0.0)
-                 for times in acks.values()), default=0.0)
+    stall = [max((t1 - t0 for (t0, _), (t1, _) in zip(times, times[1:])), default=0.0)
+             for times in acks.values()]
     delays = [d for a in range(agents) for d in _ack_delays(run, a)]
     made_away = sum(int(n) for _, line in run.processes["agent0"].lines
                     for n in re.findall(r"(\d+) of them made while it was away", line))
@@ -417,6 +420,8 @@ def main(argv: list[str] | None = None) -> int:
                        args.agents, cap, cut, loopback)
         rows.append(summarize(run, args.agents))
         rows[-1].name = name
+        (work / "links.json").write_text(json.dumps([dataclasses.asdict(r) for r in rows],
+                                                    indent=1))
         print(f"{name}: done", flush=True)
     _print(rows)
     return 0
@@ -428,7 +433,7 @@ def _interrupt(signum: int, frame: object) -> None:
 
 def _print(rows: list[Row]) -> None:
     reference = rows[0].ate_mm
-    head = (f"{'run':<14} {'up kB':>14} {'down kB':>12} {'peak/cap':>8} {'stall s':>7} "
+    head = (f"{'run':<14} {'up kB':>14} {'down kB':>12} {'peak/cap':>8} {'stall s':>11} "
             f"{'caught s':>8} {'away':>4} {'ack ms':>6} {'lost F/KF':>9} {'ATE mm':>7} {'vs loop':>7}")
     print(head)
     for r in rows:
@@ -437,7 +442,7 @@ def _print(rows: list[Row]) -> None:
         change = (r.ate_mm - reference) / reference * 100
         print(f"{r.name:<14} {'/'.join(f'{x:.0f}' for x in r.up_kb) or '-':>14} "
               f"{'/'.join(f'{x:.0f}' for x in r.down_kb) or '-':>12} {peak:>8} "
-              f"{r.stall_s:>7.1f} {caught:>8} {r.made_away:>4} {r.ack_ms:>6.1f} "
+              f"{'/'.join(f'{x:.1f}' for x in r.stall_s):>11} {caught:>8} {r.made_away:>4} {r.ack_ms:>6.1f} "
               f"{f'{r.lost_frames}/{r.lost_keyframes}':>9} "
               f"{r.ate_mm:>7.2f} "
               f"{change:>+6.1f}%")
