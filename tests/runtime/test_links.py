@@ -65,6 +65,14 @@ def test_pieces_join_in_order_and_a_broken_message_is_dropped() -> None:
     assert pieces.add("0", big[2], b"x") is None
 
 
+def test_why_namespaces_cannot_be_made_is_said(monkeypatch) -> None:
+    monkeypatch.setattr(links.os, "geteuid", lambda: 1000)
+    assert links.namespaces_unavailable() == "network namespaces need root"
+    monkeypatch.setattr(links.os, "geteuid", lambda: 0)
+    monkeypatch.setattr(links.shutil, "which", lambda tool: None if tool == "ip" else tool)
+    assert links.namespaces_unavailable() == "no `ip` command"
+
+
 @pytest.mark.skipif(UNAVAILABLE is not None, reason=f"no network namespaces here: {UNAVAILABLE}")
 def test_a_capped_link_cut_for_10_s_loses_nothing(scene, tmp_path) -> None:
     run = links.run_team("cut", scene, tmp_path, SIDE, 2, cap_mbit=5.0, cut_s=10.0,
