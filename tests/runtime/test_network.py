@@ -150,7 +150,12 @@ class _Watch:
     def _on_message(self, sample) -> None:
         key = str(sample.key_expr)
         kind, agent = key.rsplit("/", 1)[-1], int(self.keys.agent_of(key))
-        incarnation, seq = struct.unpack("<QQ", sample.attachment.to_bytes())
+        attachment = sample.attachment.to_bytes()
+        incarnation, seq = struct.unpack("<QQ", attachment[:16])
+        if len(attachment) > 16:  # a piece of a large message: counted at its last
+            index, pieces = struct.unpack("<II", attachment[16:])
+            if index + 1 < pieces:
+                return
         with self.lock:
             if (kind, agent, incarnation, seq) in self.first_seen:
                 return  # sent again after a reconnect

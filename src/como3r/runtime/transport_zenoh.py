@@ -10,8 +10,11 @@ Key expressions name the session, the agent and the message kind::
     como3r/<session>/agent/<a>/task           queryable: agent a's AgentTask; the query's
                                               attachment <Q: the asking process's incarnation
     como3r/<session>/agent/<a>/up/<Type>      agent -> coordinator; attachment <QQ:
-                                              incarnation, seq; in a team run the key
-                                              ends in /<sender's certificate name>
+                                              incarnation, seq; or, for each piece of a
+                                              message over PIECE_BYTES, <QQII:
+                                              incarnation, seq, piece, pieces; in a team
+                                              run the key ends in /<sender's certificate
+                                              name>
     como3r/<session>/agent/<a>/down/<Type>    coordinator -> agent; attachment <Q: the
                                               incarnation it is meant for
     como3r/<session>/agent/<a>/ack            coordinator -> agent <QQ: incarnation, the
@@ -43,6 +46,22 @@ started with the same id by mistake); once the holder's token is gone, the runti
 fresh message sequence. Messages to an agent carry the incarnation they are meant for, so a
 superseded process never applies its successor's updates.
 
+Pieces. Zenoh gives one put 5 s (``block/wait_before_close``) to enter the link's queue
+and closes the link when it cannot: a keyframe of a megabyte put whole on a 1 Mbit/s link
+closed it, and the agent's re-sending closed it again, for ever. An agent therefore puts a
+message larger than :data:`PIECE_BYTES` in pieces, in order; the coordinator joins them
+(:class:`Pieces`) and takes the message once its last piece is in. A piece out of order
+(its message's start was lost with a link) is dropped with its message, which the agent
+re-sends whole when the coordinator is back.
+
+Priorities. Zenoh queues each link's messages by priority and sends the higher first, so
+what the coordinator sends (acknowledgements, pose updates, ``Shutdown``: small, and what
+lets an agent free its spool and correct its map) goes at ``INTERACTIVE_HIGH`` and
+``express`` (not held back to fill a batch), ahead of bulk on the same link: a capped radio
+link busy with keyframes still carries them at once (``benchmarks/links.py``). An agent's
+own messages go at ``DATA``, all of them: they form one sequence, which the coordinator
+takes in order, and Zenoh keeps order only within a priority.
+
 Zenoh's callbacks only queue; decoding, answering task queries and admitting processes
 happen on the coordinator's own thread, in arrival order, and sends go through a background
 thread, so neither side ever blocks Zenoh or its own loop.
@@ -68,6 +87,10 @@ from como3r.runtime.transport import Event, Joined, Left, Received, Rejected, Re
 logger = logging.getLogger(__name__)
 
 SEQ = struct.Struct("<QQ")  # incarnation, sequence number
+PIECE = struct.Struct("<QQII")  # incarnation, sequence number, piece index, pieces
+#: the largest piece of a message an agent puts at once (see "Pieces" above): 1 s of a
+#: 1 Mbit/s link
+PIECE_BYTES = 128 * 1024
 INCARNATION = struct.Struct("<Q")
 #: the start of a task query's error that means "ask again later", not "give up"
 WAIT = "wait: "
@@ -199,6 +222,12 @@ class Keys:
         return key[len(self.root) + len("/agent/"):].split("/", 1)[0]
 
 
+#: Zenoh priority of what the coordinator sends (acknowledgements, pose updates, Shutdown)
+CONTROL_PRIORITY = "INTERACTIVE_HIGH"
+#: Zenoh priority of an agent's messages (keyframes and the rest of its ordered stream)
+STREAM_PRIORITY = "DATA"
+
+
 class Sender:
     """Puts ``(key, payload, attachment)`` on the network from a background thread.
 
@@ -206,14 +235,19 @@ class Sender:
         session: the Zenoh session.
         publishers: declared publishers by key (declared with congestion control
             ``BLOCK``); a key without one is put through the session.
+        priority: the Zenoh priority (a ``zenoh.Priority`` name) of the session's puts.
+        express: send each put at once instead of batching it with the next.
     """
 
-    def __init__(self, session: Any, publishers: dict[str, Any] | None = None) -> None:
+    def __init__(self, session: Any, publishers: dict[str, Any] | None = None,
+                 priority: str = STREAM_PRIORITY, express: bool = False) -> None:
         import zenoh
 
         self.session = session
         self.publishers = publishers if publishers is not None else {}
         self.block = zenoh.CongestionControl.BLOCK
+        self.priority = getattr(zenoh.Priority, priority)
+        self.express = express
         self.queue: queue.Queue[tuple[str, bytes, bytes | None] | None] = queue.Queue()
         self.thread = threading.Thread(target=self._loop, daemon=True)
         self.thread.start()
@@ -233,9 +267,56 @@ class Sender:
                     self.publishers[key].put(payload, attachment=attachment)
                 else:
                     self.session.put(key, payload, attachment=attachment,
-                                     congestion_control=self.block)
+                                     congestion_control=self.block, priority=self.priority,
+                                     express=self.express)
             except Exception as exc:  # a closed session: nothing more can be sent
                 logger.debug("put on %s failed: %s", key, exc)
+
+
+class Pieces:
+    """Joins the pieces of the agents' messages (one message at a time per agent, its pieces
+    in order).
+
+    Args:
+        max_bytes: size cap of one whole message.
+    """
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
+        self._open: dict[str, tuple[tuple[int, int, int], list[bytes], int]] = {}
+        self._lock = threading.Lock()  # Zenoh may call back from several threads
+
+    def add(self, agent: str, attachment: bytes, data: bytes) -> tuple[bytes, bytes] | str | None:
+        """Take one piece (``attachment`` of :data:`PIECE`) of agent ``agent``'s message.
+
+        Returns:
+            ``(attachment, payload)`` of the whole message (its attachment a :data:`SEQ`)
+            once its last piece is in; a reason to reject it once it exceeds the cap; None
+            while it is incomplete, and for a piece out of order (dropped, with what came
+            of its message).
+        """
+        incarnation, seq, index, count = PIECE.unpack(attachment)
+        which = (incarnation, seq, count)
+        with self._lock:
+            if index == 0:
+                self._open[agent] = (which, [], 0)
+            current = self._open.get(agent)
+            if current is None or current[0] != which or len(current[1]) != index:
+                self._open.pop(agent, None)
+                logger.debug("agent %s: piece %d of message %d out of order: dropped", agent,
+                             index, seq)
+                return None
+            _, parts, size = current
+            size += len(data)
+            if size > self.max_bytes:
+                del self._open[agent]
+                return f"message of over {size} bytes exceeds the cap of {self.max_bytes} bytes"
+            parts.append(data)
+            if index + 1 < count:
+                self._open[agent] = (which, parts, size)
+                return None
+            del self._open[agent]
+            return SEQ.pack(incarnation, seq), b"".join(parts)
 
 
 @dataclass
@@ -284,7 +365,8 @@ class ZenohHub:
         self._rejoin: Rejoin | None = None
         self._inbox: queue.Queue[tuple[Any, ...]] = queue.Queue()
         self._backlog: deque[tuple[Any, ...]] = deque()
-        self._sender = Sender(session)
+        self._sender = Sender(session, priority=CONTROL_PRIORITY, express=True)
+        self._pieces = Pieces(max_bytes)
         self._declared = [
             session.declare_subscriber(keys.up_all(), self._on_sample),
             session.liveliness().declare_subscriber(keys.alive("*", "*"), self._on_liveliness,
@@ -305,7 +387,15 @@ class ZenohHub:
             self._inbox.put(("reject", agent, f"message of {size} bytes exceeds the cap of "
                                               f"{self.max_bytes} bytes"))
             return
-        self._inbox.put(("message", agent, _attachment(sample), sample.payload.to_bytes()))
+        attachment, data = _attachment(sample), sample.payload.to_bytes()
+        if len(attachment) == PIECE.size and self._agent_id(agent) is not None:
+            whole = self._pieces.add(agent, attachment, data)
+            if isinstance(whole, str):
+                self._inbox.put(("reject", agent, whole))
+            if not isinstance(whole, tuple):
+                return
+            attachment, data = whole
+        self._inbox.put(("message", agent, attachment, data))
 
     def _on_liveliness(self, sample: Any) -> None:
         import zenoh

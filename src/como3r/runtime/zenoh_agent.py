@@ -25,7 +25,8 @@ from como3r.runtime import codec
 from como3r.runtime.messages import TO_AGENT, AgentTask, Shutdown
 from como3r.runtime.spool import Spool
 from como3r.runtime.transport import Traffic
-from como3r.runtime.transport_zenoh import INCARNATION, SEQ, WAIT, Keys
+from como3r.runtime.transport_zenoh import (INCARNATION, PIECE, PIECE_BYTES, SEQ,
+                                            STREAM_PRIORITY, WAIT, Keys)
 
 #: the error reply Zenoh itself gives a query no queryable answered in time
 ZENOH_QUERY_TIMEOUT = "Timeout"
@@ -64,6 +65,8 @@ class ZenohAgentLink:
         self._present = False
         self._gone_at: float | None = None  # when the coordinator's token went
         self._made_away = 0  # messages made since then
+        self._back_at: float | None = None  # when it came back, until it has caught up
+        self._catch_up_to = -1  # the last message made before it came back
         self._closed = False
         self._discard = False  # after a Shutdown: the coordinator takes nothing more
         self._cond = threading.Condition()
@@ -160,6 +163,7 @@ class ZenohAgentLink:
     def _send_loop(self) -> None:
         import zenoh
 
+        priority = getattr(zenoh.Priority, STREAM_PRIORITY)
         while True:
             with self._cond:
                 while not (self._closed or (self._present and self.spool.has_next())):
@@ -167,9 +171,14 @@ class ZenohAgentLink:
                 if self._closed:
                     return
                 seq, key, data = self.spool.take()
+            pieces = max(1, math.ceil(len(data) / PIECE_BYTES))  # see transport_zenoh
             try:
-                self.session.put(key, data, attachment=SEQ.pack(self.incarnation, seq),
-                                 congestion_control=zenoh.CongestionControl.BLOCK)
+                for index in range(pieces):
+                    self.session.put(
+                        key, data[index * PIECE_BYTES:(index + 1) * PIECE_BYTES],
+                        attachment=(SEQ.pack(self.incarnation, seq) if pieces == 1 else
+                                    PIECE.pack(self.incarnation, seq, index, pieces)),
+                        congestion_control=zenoh.CongestionControl.BLOCK, priority=priority)
             except Exception as exc:  # the session is closing
                 logger.debug("put on %s failed: %s", key, exc)
 
@@ -187,6 +196,11 @@ class ZenohAgentLink:
             return
         with self._cond:
             self.spool.acknowledge(seq)
+            if self._back_at is not None and seq >= self._catch_up_to:
+                logger.warning("agent %d: caught up %.1f s after the coordinator came back: "
+                               "it has stored every message made before", self.agent,
+                               time.monotonic() - self._back_at)
+                self._back_at = None
             self._cond.notify_all()
 
     def _on_coordinator(self, sample: Any) -> None:
@@ -200,6 +214,8 @@ class ZenohAgentLink:
                                time.monotonic() - self._gone_at, self.spool.rewind(),
                                self._made_away)
                 self._gone_at, self._made_away = None, 0
+                if len(self.spool):  # else nothing to catch up on
+                    self._back_at, self._catch_up_to = time.monotonic(), self.spool.next_seq - 1
             elif not present:
                 logger.warning("agent %d: the coordinator is gone; tracking on and keeping "
                                "messages until it is back", self.agent)

@@ -1,0 +1,103 @@
+"""``como3r coordinator`` and two ``como3r agent`` processes in network namespaces of their
+own, on veth links capped at 5 Mbit/s, agent 0's cut for 10 s mid-run (the short variant of
+``benchmarks/links.py``): nothing lost, the loopback run's merged ATE; and the pieces a large
+message travels in."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from como3r.data.synth import synthesize
+from como3r.runtime.transport_zenoh import PIECE, SEQ, Pieces
+
+pytest.importorskip("zenoh")
+
+ROOT = Path(__file__).resolve().parents[2]
+SIDE = 128
+
+
+def _links():
+    spec = importlib.util.spec_from_file_location("links", ROOT / "benchmarks" / "links.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["links"] = module  # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+links = _links()
+UNAVAILABLE = links.namespaces_unavailable()
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    """Two agents that meet, 12 frames each (6 processed) at 128x96: at 64x48 the merged
+    ATE depends on the order in which the agents' keyframes arrive (17 % apart when one
+    agent's come after the other's), which a cut changes."""
+    root = tmp_path_factory.mktemp("links_scene")
+    synthesize(root, agents=2, seed=0, overlap=0.5, frames=12, preset="default", width=SIDE,
+               height=SIDE * 3 // 4, progress=None)
+    return root
+
+
+def test_pieces_join_in_order_and_a_broken_message_is_dropped() -> None:
+    pieces = Pieces(max_bytes=100)
+    one = [PIECE.pack(7, 3, i, 3) for i in range(3)]
+    assert pieces.add("0", one[0], b"ab") is None
+    assert pieces.add("1", PIECE.pack(9, 0, 0, 2), b"xy") is None  # agents apart
+    assert pieces.add("0", one[1], b"cd") is None
+    assert pieces.add("0", one[2], b"e") == (SEQ.pack(7, 3), b"abcde")
+    # a link lost mid-message: its pieces then the message again, whole, from its start
+    assert pieces.add("0", PIECE.pack(7, 4, 0, 2), b"fg") is None
+    assert pieces.add("0", PIECE.pack(7, 5, 1, 2), b"zz") is None  # out of order: dropped
+    assert pieces.add("0", PIECE.pack(7, 4, 1, 2), b"hi") is None  # its message is gone
+    assert pieces.add("0", PIECE.pack(7, 4, 0, 2), b"fg") is None
+    assert pieces.add("0", PIECE.pack(7, 4, 1, 2), b"hi") == (SEQ.pack(7, 4), b"fghi")
+    assert pieces.add("1", PIECE.pack(9, 0, 1, 2), b"zw") == (SEQ.pack(9, 0), b"xyzw")
+    # over the cap: rejected once, the rest of it dropped
+    big = [PIECE.pack(7, 6, i, 3) for i in range(3)]
+    assert pieces.add("0", big[0], b"x" * 60) is None
+    assert "exceeds the cap of 100 bytes" in pieces.add("0", big[1], b"x" * 60)
+    assert pieces.add("0", big[2], b"x") is None
+
+
+def test_why_namespaces_cannot_be_made_is_said(monkeypatch) -> None:
+    monkeypatch.setattr(links.os, "geteuid", lambda: 1000)
+    assert links.namespaces_unavailable() == "network namespaces need root"
+    monkeypatch.setattr(links.os, "geteuid", lambda: 0)
+    monkeypatch.setattr(links.shutil, "which", lambda tool: None if tool == "ip" else tool)
+    assert links.namespaces_unavailable() == "no `ip` command"
+
+
+@pytest.mark.skipif(UNAVAILABLE is not None, reason=f"no network namespaces here: {UNAVAILABLE}")
+def test_a_capped_link_cut_for_10_s_loses_nothing(scene, tmp_path) -> None:
+    run = links.run_team("cut", scene, tmp_path, SIDE, 2, cap_mbit=5.0, cut_s=10.0,
+                         loopback=False)
+    assert run.cut_at is not None and run.up_at is not None  # the link was cut, mid-run
+    row = links.summarize(run, 2)
+    metrics = json.loads((run.out / "metrics.json").read_text())
+    print(f"cut 10 s at 5 Mbit/s: up {row.up_kb} kB, stall {row.stall_s} s, caught up "
+          f"{row.caught_up_s} s after link-up, longest acknowledgement {row.ack_ms:.0f} ms "
+          f"({row.acks} seen), merged ATE {row.ate_mm:.2f} mm")
+    assert row.lost_frames == 0 and row.lost_keyframes == 0
+    for a, entry in enumerate(metrics["runtime"]["agents"]):
+        assert entry["status"] == "finished", entry
+        assert entry["frames_done"] == entry["frames_expected"] == 6
+        assert entry["keyframes_received"] == metrics["agents"][a]["keyframes"] >= 2
+        # the messages crossed the link (not Zenoh's shared memory beside it)
+        assert row.up_kb[a] * 1e3 >= sum(entry["bytes_from_agent"].values())
+    assert metrics["components"] == [[0, 1]]
+    agent0 = "\n".join(line for _, line in run.processes["agent0"].lines)
+    if "the coordinator is gone" in agent0:  # the cut outlasted the lease: it re-sent
+        assert "caught up" in agent0, agent0
+        assert row.caught_up_s is not None and row.caught_up_s >= 0
+    assert row.acks >= 2  # acknowledgements reached both ends' probes
+
+    # the same team on loopback (keyframes travel in half precision either way)
+    loopback = links.summarize(links.run_team("loopback", scene, tmp_path, SIDE, 2,
+                                              cap_mbit=None, cut_s=None, loopback=True), 2)
+    assert abs(row.ate_mm - loopback.ate_mm) <= 0.1 * loopback.ate_mm, (row, loopback)
