@@ -348,12 +348,20 @@ def run(
         if not path.exists():
             hint = " (a stream URL goes to --camera)" if is_stream_url(str(path)) else ""
             raise InputError(f"{path}: agent input does not exist{hint}")
-        # input problems before weights are looked for
-        _check_input(path, config, prior, every_pose=mode == "decentralized")
+    # input problems before weights are looked for
+    simulatable = [_check_input(path, config, prior, every_pose=mode == "decentralized")
+                   for path in agent]
     spec = PriorSpec(prior, weights, retrieval_weights, codebook, device, precision)
     if prior == "mast3r":
         check_precision(device, precision)
-        spec = resolve_weights(spec)
+        try:
+            spec = resolve_weights(spec)
+        except InputError as exc:
+            if not (simulatable and all(simulatable)):
+                raise
+            raise InputError(f"{exc}. These inputs have metric depth and ground-truth poses: "
+                             "they also run with --prior simulated, a stand-in built from "
+                             "them that does not measure MASt3R") from None
         for option, path in (("--weights", spec.weights),
                              ("--retrieval-weights", spec.retrieval_weights),
                              ("--codebook", spec.codebook)):
@@ -429,7 +437,7 @@ def _camera_sources(camera: List[str], max_frames: Optional[int], agent: List[Pa
     return [parse_source(text, max_frames) for text in camera]
 
 
-def _check_input(path: Path, config, prior: str, every_pose: bool = False) -> None:
+def _check_input(path: Path, config, prior: str, every_pose: bool = False) -> bool:
     """An input opened before any work and before MASt3R's weights are looked for (its
     layout, files and image headers: :func:`como3r.data.agent.open_agent`), and what
     ``--prior simulated`` needs of it: depth, intrinsics and ground-truth poses (or
@@ -437,6 +445,10 @@ def _check_input(path: Path, config, prior: str, every_pose: bool = False) -> No
     wider than :data:`como3r.data.poses.MAX_GAP`) are skipped by the run, with one warning,
     so at least one frame must have one; ``every_pose``: every frame must (decentralized
     robots pick their keyframes by odometry and do not skip frames).
+
+    Returns:
+        Whether ``--prior simulated`` could run the input (depth, intrinsics, and appearance
+        keys or a ground-truth pose for some frame).
 
     Raises:
         InputError: naming the input and what is wrong with it or what it lacks; images
@@ -450,7 +462,9 @@ def _check_input(path: Path, config, prior: str, every_pose: bool = False) -> No
         source = open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format,
                             topic=config.input.topic)
     if prior != "simulated":
-        return
+        return bool(source.has_depth and source.calib is not None and (
+            source.has_surface or (source.groundtruth is not None
+                                   and source.has_gt_pose.any())))
     needs = ("which --prior simulated needs (a stand-in made from ground-truth depth); "
              "images alone take --prior mast3r")
     if not source.has_depth:
@@ -468,6 +482,7 @@ def _check_input(path: Path, config, prior: str, every_pose: bool = False) -> No
             raise InputError(f"{path}: {int((~has).sum())} of {source.num_frames} frames have "
                              f"no ground-truth pose within {MAX_GAP:g} s, which --prior "
                              "simulated needs for every frame in --mode decentralized")
+    return True
 
 
 def _check_device(device: str) -> None:

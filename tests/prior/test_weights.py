@@ -20,6 +20,8 @@ from como3r.prior import weights
 from como3r.prior.weights import DownloadError, WeightFile, fetch_file, file_status
 from como3r.runtime.pipeline import PriorSpec, resolve_weights
 
+from ..data.test_agent import write_agent
+
 SIZE = 300_000
 
 
@@ -243,11 +245,30 @@ def test_cli_list_of_an_empty_cache(official_names) -> None:
 
 @pytest.mark.parametrize("prior", [[], ["--prior", "mast3r"]], ids=["default", "mast3r"])
 def test_run_with_an_empty_cache_names_weights_fetch(official_names, tmp_path, prior) -> None:
+    """Images alone: the error names the fetch (and its --trust-unverified) only."""
     out = tmp_path / "out"
-    result = _cli("run", "--agent", str(tmp_path), "--out", str(out), *prior)
+    images = write_agent(tmp_path / "images", n=2)
+    result = _cli("run", "--agent", str(images), "--out", str(out), *prior)
     _one_error_line(result, "como3r weights fetch --trust-unverified")
-    _one_error_line(result, "--prior simulated")
+    assert "--prior simulated" not in result.output
     assert not out.exists() and not out.with_name("out.partial").exists()
+
+
+def test_missing_weights_name_the_simulated_prior_for_rgbd_inputs(official_names,
+                                                                  tmp_path) -> None:
+    """Every input has metric depth, intrinsics and ground-truth poses: the error says they
+    also run with --prior simulated, and what that is."""
+    rgbd = [write_agent(tmp_path / f"agent_{k}", n=2, depth="npy", calib="20 20 16 12",
+                        groundtruth=True) for k in range(2)]
+    result = _cli("run", "--agent", str(rgbd[0]), "--agent", str(rgbd[1]), "--out",
+                  str(tmp_path / "out"))
+    _one_error_line(result, "como3r weights fetch --trust-unverified")
+    _one_error_line(result, "also run with --prior simulated")
+    assert "does not measure MASt3R" in result.output
+    mixed = _cli("run", "--agent", str(rgbd[0]), "--agent",
+                 str(write_agent(tmp_path / "images", n=2)), "--out", str(tmp_path / "out"))
+    _one_error_line(mixed, "--trust-unverified")
+    assert "--prior simulated" not in mixed.output
 
 
 def test_run_takes_all_three_files_from_the_cache(official_names) -> None:

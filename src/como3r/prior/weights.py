@@ -108,7 +108,8 @@ def cached_file(role: str, home: Path | None = None) -> Path:
     Raises:
         InputError: not there (one line naming ``como3r weights fetch``, with
             ``--trust-unverified`` while no official SHA-256 of the release is published, the
-            option that names the file, and ``--prior simulated`` for inputs with depth).
+            option that names the file; ``como3r run`` adds ``--prior simulated`` where every
+            input could run with it).
     """
     file = weight_file(role)
     path = (home or weights_home()) / file.filename
@@ -117,9 +118,7 @@ def cached_file(role: str, home: Path | None = None) -> Path:
                  "`como3r weights fetch --trust-unverified` (no official SHA-256 is published "
                  "for the release)")
         raise InputError(f"--prior mast3r: no {file.filename} in {path.parent}; run {fetch} "
-                         f"or pass {file.option} FILE. Inputs with metric depth and ground-truth "
-                         f"poses (synthetic scenes, RGB-D datasets) also run with --prior "
-                         f"simulated, a stand-in built from them that does not measure MASt3R")
+                         f"or pass {file.option} FILE")
     return path
 
 
