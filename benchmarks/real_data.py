@@ -83,7 +83,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from como3r.config import Config
+from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
 from como3r.data.split import split_sequence
 from como3r.runtime.pipeline import PriorSpec, run
@@ -97,7 +97,7 @@ EXCERPTS = {
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 #: ``como3r split --overlap``'s default
 SPLIT_OVERLAP = 0.05
-COLUMNS = ("excerpt", "agents", "frames", "tracked", "KF/frame", "ATE m", "ATE %path",
+COLUMNS = ("excerpt", "agents", "seed", "frames", "tracked", "KF/frame", "ATE m", "ATE %path",
            "map acc m", "merged", "s/frame", "status")
 
 
@@ -145,10 +145,11 @@ def measure(metrics: dict, paths: list[float]) -> dict[str, object]:
     return row
 
 
-def run_excerpt(out: Path, data: Path, excerpt: str, agents: int) -> dict:
-    """Run the excerpt as one agent or split in ``agents``, with the defaults; measure."""
-    row: dict = {"excerpt": excerpt, "agents": agents}
-    name = f"{excerpt}-a{agents}"
+def run_excerpt(out: Path, data: Path, excerpt: str, agents: int, seed: int = 0) -> dict:
+    """Run the excerpt as one agent or split in ``agents``, with the defaults (the simulated
+    prior's ``seed`` apart: its noise draws); measure."""
+    row: dict = {"excerpt": excerpt, "agents": agents, "seed": seed}
+    name = f"{excerpt}-a{agents}-s{seed}"
     try:
         sequence = data / EXCERPTS[excerpt]
         if agents == 1:
@@ -159,7 +160,8 @@ def run_excerpt(out: Path, data: Path, excerpt: str, agents: int) -> dict:
                 shutil.rmtree(folder)  # the benchmark's own split of a shared excerpt
             inputs = split_sequence(sequence, folder, agents, overlap=SPLIT_OVERLAP)
         run_dir = out / "runs" / name
-        run(inputs, run_dir, Config(), PriorSpec("simulated"), overwrite=True)
+        config = apply_overrides(Config(), [f"simulated_prior.seed={seed}"])
+        run(inputs, run_dir, config, PriorSpec("simulated"), overwrite=True)
         metrics = json.loads((run_dir / "metrics.json").read_text())
         row.update(measure(metrics, [path_length(p) for p in inputs]))
         row["status"] = "ok" if metrics.get("ate") else "no ATE"
@@ -202,6 +204,9 @@ def main() -> None:
     parser.add_argument("--excerpts", nargs="+", default=list(EXCERPTS), choices=list(EXCERPTS))
     parser.add_argument("--setups", nargs="+", type=int, default=[1, 2], choices=(1, 2),
                         help="Agents per run: 1 (the whole excerpt), 2 (como3r split).")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0],
+                        help="Simulated-prior seeds (simulated_prior.seed; 0 is the default): "
+                             "one run per seed, for a range rather than one draw.")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     console = Console(width=160)
@@ -215,7 +220,8 @@ def main() -> None:
     started = time.perf_counter()
     for excerpt in present:
         for agents in args.setups:
-            rows.append(run_excerpt(args.out, args.data, excerpt, agents))
+            for seed in args.seeds:
+                rows.append(run_excerpt(args.out, args.data, excerpt, agents, seed))
             console.print(f"[{time.perf_counter() - started:7.0f} s] "
                           + ", ".join(f"{c}={_format(rows[-1][c])}" for c in COLUMNS))
     print_table(console, rows, "real RGB-D excerpts, default configuration, simulated prior")
