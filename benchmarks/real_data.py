@@ -69,7 +69,6 @@ pixels onto fewer frame pixels (teddy, 2 frames apart: ``nu_uniq`` 0.79 without 
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import os
@@ -81,7 +80,8 @@ from pathlib import Path
 
 import numpy as np
 from rich.console import Console
-from rich.table import Table
+
+from _tables import format_value, print_table, write_csv
 
 from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
@@ -172,30 +172,6 @@ def run_excerpt(out: Path, data: Path, excerpt: str, agents: int, seed: int = 0)
     return {column: row.get(column, math.nan) for column in COLUMNS}
 
 
-def _format(value: object) -> str:
-    if isinstance(value, float):
-        return "—" if math.isnan(value) else f"{value:.3g}"
-    return str(value)
-
-
-def print_table(console: Console, rows: list[dict], title: str) -> None:
-    """One line per run."""
-    table = Table(title=title)
-    for column in COLUMNS:
-        table.add_column(column, justify="left" if column in ("excerpt", "status") else "right")
-    for row in rows:
-        table.add_row(*(_format(row[c]) for c in COLUMNS))
-    console.print(table)
-
-
-def write_csv(path: Path, rows: list[dict]) -> None:
-    """One row per run, the table's columns."""
-    with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True, help="Folder for the CSV and runs.")
@@ -223,9 +199,9 @@ def main() -> None:
             for seed in args.seeds:
                 rows.append(run_excerpt(args.out, args.data, excerpt, agents, seed))
             console.print(f"[{time.perf_counter() - started:7.0f} s] "
-                          + ", ".join(f"{c}={_format(rows[-1][c])}" for c in COLUMNS))
-    print_table(console, rows, "real RGB-D excerpts, default configuration, simulated prior")
-    write_csv(args.out / "real_data.csv", rows)
+                          + ", ".join(f"{c}={format_value(rows[-1][c])}" for c in COLUMNS))
+    print_table(console, rows, COLUMNS, "real RGB-D excerpts, default configuration, simulated prior", left=("excerpt", "status"))
+    write_csv(args.out / "real_data.csv", rows, COLUMNS)
     console.print(f"wrote {args.out / 'real_data.csv'}")
 
 

@@ -58,7 +58,6 @@ result, not a stop: its row says ``error`` and the traceback goes to ``--out/err
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import os
@@ -71,7 +70,8 @@ from pathlib import Path
 import numpy as np
 import torch
 from rich.console import Console
-from rich.table import Table
+
+from _tables import format_value, print_table, write_csv
 
 from como3r.config import Config
 from como3r.data.synth import synthesize
@@ -196,30 +196,6 @@ def run_cell(out: Path, family: str, size: str, seed: int, agents: int, frames: 
     return {column: row.get(column, math.nan) for column in COLUMNS}
 
 
-def _format(value: object) -> str:
-    if isinstance(value, float):
-        return "—" if math.isnan(value) else f"{value:.3g}"
-    return str(value)
-
-
-def print_table(console: Console, rows: list[dict], title: str) -> None:
-    """One line per cell."""
-    table = Table(title=title)
-    for column in COLUMNS:
-        table.add_column(column, justify="left" if column in ("family", "status") else "right")
-    for row in rows:
-        table.add_row(*(_format(row[c]) for c in COLUMNS))
-    console.print(table)
-
-
-def write_csv(path: Path, rows: list[dict]) -> None:
-    """One row per cell, the table's columns."""
-    with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
-
-
 def write_heatmap(path: Path, rows: list[dict], families: list[str], sizes: list[str]) -> None:
     """Family x size heat maps of the tracked fraction and ATE %path (mean over seeds;
     grey where no run of the cell has the number)."""
@@ -288,9 +264,9 @@ def main() -> None:
             for seed in args.seeds:
                 rows.append(run_cell(args.out, family, size, seed, args.agents, args.frames))
                 console.print(f"[{time.perf_counter() - started:7.0f} s] "
-                              + ", ".join(f"{c}={_format(rows[-1][c])}" for c in COLUMNS))
-    print_table(console, rows, "robustness of the default configuration")
-    write_csv(args.out / "robustness.csv", rows)
+                              + ", ".join(f"{c}={format_value(rows[-1][c])}" for c in COLUMNS))
+    print_table(console, rows, COLUMNS, "robustness of the default configuration", left=("family", "status"))
+    write_csv(args.out / "robustness.csv", rows, COLUMNS)
     write_heatmap(args.out / "robustness.png", rows, args.families, args.sizes)
     console.print(f"wrote {args.out / 'robustness.csv'} and {args.out / 'robustness.png'}")
 

@@ -14,8 +14,6 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from como3r.cli import app
-from como3r.config import Config, apply_overrides
-from como3r.data.synth import synthesize
 from como3r.errors import InputError
 from como3r.geometry.camera import intrinsics_matrix, project, unproject_depth
 from como3r.geometry.lie import quat_to_matrix, sim3_act, sim3_inverse
@@ -30,26 +28,15 @@ from como3r.io.export import (
 )
 from como3r.io.keyframe_data import KeyframeData, read_keyframe_data
 from como3r.io.ply import read_ply
-from como3r.runtime.pipeline import PriorSpec, run
 
-WIDTH, HEIGHT, FRAMES = 64, 48, 12
-# short global solves keep the run fast (as tests/runtime/test_processes.py); the easy
-# simulated prior makes the two agents meet, so the graph has inter-agent edges
-OVERRIDES = [f"input.long_side={WIDTH}", "simulated_prior.model=easy",
-             "global_ba.max_iters_stream=5", "global_ba.max_iters_cleanup=10",
-             "global_ba.cleanup_passes=1"]
+from .tiny_run import HEIGHT, OVERRIDES, WIDTH, tiny_run
+
 
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory) -> Path:
     """A finished two-agent run of the real pipeline on a tiny synthetic scene."""
-    root = tmp_path_factory.mktemp("export")
-    (root / "scene").mkdir()
-    synthesize(root / "scene", agents=2, seed=0, overlap=0.5, frames=FRAMES, preset="default",
-               width=WIDTH, height=HEIGHT)
-    run([root / "scene" / "agent_0", root / "scene" / "agent_1"], root / "run",
-        apply_overrides(Config(), OVERRIDES), PriorSpec("simulated"))
-    return root / "run"
+    return tiny_run(tmp_path_factory.mktemp("export"), OVERRIDES)
 
 
 @pytest.fixture(scope="module")

@@ -14,8 +14,6 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from como3r.cli import app
-from como3r.config import Config, apply_overrides
-from como3r.data.synth import synthesize
 from como3r.errors import InputError
 from como3r.geometry.lie import se3_compose, se3_exp
 from como3r.io.export import RunKeyframe, export_run
@@ -23,30 +21,23 @@ from como3r.io.keyframe_data import read_keyframe_data
 from como3r.io.ply import read_ply
 from como3r.io.ros2_bag import MAP_FRAME, agent_topics, camera_frame, keyframe_stamps
 from como3r.io.tum import Trajectory, read_tum
-from como3r.runtime.pipeline import PriorSpec, run
+
+from .tiny_run import HEIGHT, WIDTH, tiny_run
+from .tiny_run import OVERRIDES as EXPORT_OVERRIDES
 
 mcap_reader = pytest.importorskip("mcap.reader", reason="the mcap package (test extra) reads "
                                   "the bag's MCAP file independently of rosbags")
 rosbags_highlevel = pytest.importorskip("rosbags.highlevel")
 
-WIDTH, HEIGHT, FRAMES = 64, 48, 12
 # as tests/io/test_export.py, with a lower keyframe threshold so that not every tracked frame
 # is a keyframe (the bag's full-rate and keyframe topics then differ in count)
-OVERRIDES = [f"input.long_side={WIDTH}", "simulated_prior.model=easy",
-             "global_ba.max_iters_stream=5", "global_ba.max_iters_cleanup=10",
-             "global_ba.cleanup_passes=1", "tracking.keyframe_match_fraction=0.1"]
+OVERRIDES = [*EXPORT_OVERRIDES, "tracking.keyframe_match_fraction=0.1"]
 
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory) -> Path:
     """A finished two-agent run of the real pipeline on a tiny synthetic scene."""
-    root = tmp_path_factory.mktemp("ros2")
-    (root / "scene").mkdir()
-    synthesize(root / "scene", agents=2, seed=0, overlap=0.5, frames=FRAMES, preset="default",
-               width=WIDTH, height=HEIGHT)
-    run([root / "scene" / "agent_0", root / "scene" / "agent_1"], root / "run",
-        apply_overrides(Config(), OVERRIDES), PriorSpec("simulated"))
-    return root / "run"
+    return tiny_run(tmp_path_factory.mktemp("ros2"), OVERRIDES)
 
 
 @pytest.fixture(scope="module")
