@@ -234,6 +234,29 @@ def test_pointmaps_and_match_confidences_travel_in_half_precision_across_machine
     assert not torch.equal(packet.sequential_ij.q, back.sequential_ij.q)
 
 
+@pytest.mark.parametrize("lossy", [False, True])
+def test_part_sizes_add_up_to_the_encoding_and_break_down_nested_messages(lossy: bool) -> None:
+    packet = SAMPLES["KeyframePacket"]()
+    message = messages.KeyframeMessage(packet, 3, None)
+    sizes = codec.part_sizes(message, lossy=lossy)
+    total = len(encode(message, lossy=lossy))
+    assert "packet.X_hat" in sizes and "packet.previous.C_hat" in sizes
+    assert any(key.startswith("packet.encoding.") for key in sizes)
+    assert "packet.previous" not in sizes  # a nested message is its fields
+    # only field names and the dataclasses' tags, type names and versions lie outside
+    assert 0 < total - sum(sizes.values()) < 40 * len(sizes)
+    alone = len(msgpack.packb(msgpack.unpackb(encode(message, lossy=lossy), raw=False)
+                              ["fields"]["packet"]["fields"]["X_hat"], use_bin_type=True))
+    assert sizes["packet.X_hat"] == alone
+
+
+def test_part_sizes_of_a_received_message_are_the_senders() -> None:
+    packet = SAMPLES["KeyframePacket"]()
+    sent = codec.part_sizes(packet, lossy=True)
+    assert codec.part_sizes(decode(encode(packet, lossy=True)), lossy=True) == sent
+    assert sent["X_hat"] < codec.part_sizes(packet)["X_hat"]  # float16 on the wire
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.int64, torch.bool,
                                    torch.uint8, torch.int32, torch.float16, torch.bfloat16])
 def test_tensor_dtypes_round_trip(dtype: torch.dtype) -> None:
