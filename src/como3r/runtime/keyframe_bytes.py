@@ -1,4 +1,4 @@
-"""What a keyframe weighs, per part: on the wire (a keyframe message) and in the session store.
+"""What a keyframe message weighs on the wire, per part.
 
 A keyframe message (:class:`~como3r.runtime.messages.KeyframeMessage` around a
 :class:`~como3r.frontend.packets.KeyframePacket`) is measured field by field with
@@ -6,7 +6,9 @@ A keyframe message (:class:`~como3r.runtime.messages.KeyframeMessage` around a
 that :data:`PARTS` names, the ones a decision about what travels is made on (the prior's
 encoding split into MASt3R's encoder tokens and the rest, the pointmap, its confidences,
 the colours, the retrieval descriptors and words, the sequential edge's matches, the refresh
-of the previous keyframe). What no part names (ids, pose, intrinsics) is ``"other"``. :class:`PartCounter` adds them up over a run for ``metrics.json``.
+of the previous keyframe). What no part names (ids, pose, intrinsics) is ``"other"``.
+:class:`PartCounter` adds them up over a run for ``metrics.json``; the session store counts
+what it writes itself (:meth:`~como3r.runtime.store.SessionStore.written_metrics`).
 """
 
 from __future__ import annotations
@@ -31,6 +33,10 @@ PARTS: dict[str, tuple[str, ...]] = {
 }
 
 _PACKET = "packet."
+
+#: transports (``Hub.name``) whose agents encode ``lossy`` (:mod:`.zenoh_agent`); the
+#: others (pipes) send exact encodings
+LOSSY_TRANSPORTS = frozenset({"zenoh"})
 
 
 def part_of(path: str) -> str:
