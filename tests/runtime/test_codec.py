@@ -230,7 +230,7 @@ def test_pointmaps_and_match_confidences_travel_in_half_precision_across_machine
         assert received.dtype == torch.float32 and not torch.equal(original, received)
         torch.testing.assert_close(received, original, rtol=2**-11, atol=2**-24)
     assert_identical(packet.T_WC, back.T_WC)  # poses stay exact
-    assert_identical(packet.encoding, back.encoding)  # encodings too (not measured in fp16)
+    assert_identical(packet.encoding, back.encoding)  # the simulated prior's encodings too
     assert not torch.equal(packet.sequential_ij.q, back.sequential_ij.q)
 
 

@@ -50,9 +50,11 @@ def test_wire_parts_add_up_to_the_message_less_its_framing() -> None:
         assert list(parts) == [*PARTS, "other"]
         total = len(codec.encode(message, lossy=lossy))
         assert 0 < total - sum(parts.values()) < 1000
-        assert parts["tokens"] > tokens.numel() * 4  # float32 random tokens, uncompressed
+        # random tokens do not compress: float32 exact, float16 across machines
+        assert parts["tokens"] > tokens.numel() * (2 if lossy else 4)
         assert all(parts[name] > 0 for name in PARTS)
-    assert wire_parts(message, lossy=True)["pointmap"] < wire_parts(message)["pointmap"]
+    for part in ("pointmap", "tokens"):
+        assert wire_parts(message, lossy=True)[part] < wire_parts(message)[part]
 
 
 def test_part_counter_averages_per_keyframe() -> None:

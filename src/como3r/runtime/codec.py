@@ -680,14 +680,23 @@ def registered_types() -> dict[str, type]:
 #: encodes): on the demo scene (2 agents x 30 frames, 512x384, lockstep so that nothing
 #: else differs) the merged ATE was 16.30 mm with them in float32 and 16.51 mm in float16,
 #: on its seed-1 twin 13.667 and 13.661 mm (no systematic direction, within 1.3 %), for
-#: 16 % fewer bytes per keyframe with the simulated prior. Encodings (MASt3R's encoder
-#: tokens) stay float32: not measured (no released weights where this was measured).
+#: 16 % fewer bytes per keyframe with the simulated prior.
 _POINTMAP = ("X_hat", "C_hat")
+
+#: MASt3R's encoder tokens travel in half precision across machines too (the receiver
+#: decodes pairs from them). With the full-size network of seeded random weights at 512x384
+#: (``benchmarks/token_precision.py``) the pair decoded from float16 tokens differs from the
+#: float32 tokens' by 7e-6 (median) and 1.7e-5 (99th percentile) relative in the pointmaps,
+#: 1.6e-6 / 8.8e-5 in the confidences: 30 times less than the float16 rounding the
+#: pointmaps themselves travel with (4.9e-4). The released weights' sensitivity and the
+#: merged ATE with MASt3R are not measured (no released weights where this was measured).
+_TOKENS = ("tokens",)
 
 
 def _register_payloads() -> None:
     """The payloads that cross the agent/coordinator boundary (C-Sec. B.1); pointmaps,
-    their confidences and match confidences in half precision (:data:`_POINTMAP`)."""
+    their confidences, match confidences (:data:`_POINTMAP`) and MASt3R's encoder tokens
+    (:data:`_TOKENS`) in half precision."""
     for path, version, half in (
         ("como3r.frontend.packets:KeyframePacket", 2, _POINTMAP),  # 2: retrieval_words
         ("como3r.frontend.packets:PointmapRefresh", 2, _POINTMAP),  # 2: K
@@ -696,7 +705,7 @@ def _register_payloads() -> None:
         # 2: first_frame_focal, 3: rejected_directions
         ("como3r.frontend.agent:FrontendStats", 3, ()),
         ("como3r.prior.simulated:SimulatedEncoding", 1, ()),
-        ("como3r.prior.mast3r.prior:MASt3REncoding", 1, ()),
+        ("como3r.prior.mast3r.prior:MASt3REncoding", 1, _TOKENS),
     ):
         register(path, version=version, half=half)
 
