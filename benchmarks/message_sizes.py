@@ -66,6 +66,7 @@ from como3r.runtime.codec import zstd
 from como3r.runtime.keyframe_bytes import PARTS, wire_parts
 from como3r.runtime.messages import FrameDone, KeyframeMessage, PoseUpdateMessage
 from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame
+from como3r.runtime.store_blobs import pack_arrays, pack_object
 from como3r.runtime.results import final_report
 from como3r.data.preprocess import upsampling
 
@@ -134,13 +135,34 @@ def _mean_parts(messages: list[Any], lossy: bool) -> dict[str, float]:
     return {name: sum(r[name] for r in rows) / len(rows) for name in rows[0]}
 
 
+def _stored_parts(messages: list[KeyframeMessage]) -> dict[str, float]:
+    """Mean bytes per keyframe of the blobs the session store writes as a keyframe arrives
+    (:mod:`como3r.runtime.store`: colours, encoding, pointmap and confidence, retrieval
+    features, the sequential edge's matches), rewrites of later refreshes left out."""
+    rows = []
+    for message in messages:
+        packet = message.packet
+        edge = [getattr(m, k) for m in (packet.sequential_ij, packet.sequential_ji)
+                for k in ("idx", "valid", "q")]
+        rows.append({
+            "colours": len(pack_arrays(packet.colors)),
+            "encoding": len(pack_object(packet.encoding)),
+            "pointmaps": len(pack_arrays(packet.X_hat)) + len(pack_arrays(packet.C_hat)),
+            "retrieval": len(pack_arrays(*packet.retrieval)) if packet.retrieval else 0,
+            "edges": len(pack_arrays(*edge)),
+        })
+    mean = {name: sum(r[name] for r in rows) / len(rows) for name in rows[0]}
+    mean["total"] = sum(mean.values())
+    return mean
+
+
 def part0(agent_paths: list[Path], frames: int) -> None:
     config = Config()
     network = seeded_network(parse_model_string(RELEASED_MODEL_STRING), 0).eval()
     torch.manual_seed(0)
     head = RetrievalHead(network.config.enc_embed_dim, hdims=(1024,),
                          nfeat=DEFAULT_NFEAT).eval()
-    columns, finals = {}, {}
+    columns, finals, stored = {}, {}, {}
     for path in agent_paths:
         messages, views, final, (height, width) = _keyframe_messages(path, frames)
         shaped = [_mast3r_shaped(m, v, network, head, config) for m, v in zip(messages, views)]
@@ -150,11 +172,17 @@ def part0(agent_paths: list[Path], frames: int) -> None:
                 label = f"{prior} {size} {'lossy' if lossy else 'exact'}"
                 columns[label] = _mean_parts(batch, lossy)
         finals[size] = {lossy: len(codec.encode(final, lossy=lossy)) for lossy in (False, True)}
+        stored[f"MASt3R {size}"], stored[f"simulated {size}"] = (_stored_parts(shaped),
+                                                                 _stored_parts(messages))
         print(f"{path}: {len(messages)} keyframe messages measured ({size})")
     print("\nbytes per keyframe message per part [kB] (exact: pipes; lossy: zenoh)")
     print(" | ".join(["part", *columns]))
     for name in [*PARTS, "other", "framing", "total"]:
         print(" | ".join([name, *(f"{c[name] / 1e3:.1f}" for c in columns.values())]))
+    print("\nsession store: bytes per keyframe written as it arrives [kB]")
+    print(" | ".join(["part", *stored]))
+    for name in next(iter(stored.values())):
+        print(" | ".join([name, *(f"{c[name] / 1e3:.1f}" for c in stored.values())]))
     for size, nbytes in finals.items():
         print(f"agent's final message at {size}: {nbytes[False] / 1e3:.1f} kB exact, "
               f"{nbytes[True] / 1e3:.1f} kB lossy")
