@@ -143,13 +143,13 @@ def _stored_parts(messages: list[KeyframeMessage]) -> dict[str, float]:
     for message in messages:
         packet = message.packet
         edge = [getattr(m, k) for m in (packet.sequential_ij, packet.sequential_ji)
-                for k in ("idx", "valid", "q")]
+                if m is not None for k in ("idx", "valid", "q")]
         rows.append({
             "colours": len(pack_arrays(packet.colors)),
             "encoding": len(pack_object(packet.encoding)),
             "pointmaps": len(pack_arrays(packet.X_hat)) + len(pack_arrays(packet.C_hat)),
             "retrieval": len(pack_arrays(*packet.retrieval)) if packet.retrieval else 0,
-            "edges": len(pack_arrays(*edge)),
+            "edges": len(pack_arrays(*edge)) if edge else 0,
         })
     mean = {name: sum(r[name] for r in rows) / len(rows) for name in rows[0]}
     mean["total"] = sum(mean.values())
