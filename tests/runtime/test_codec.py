@@ -346,6 +346,19 @@ def test_half_fields_travel_as_float16_and_come_back_as_float32() -> None:
         assert_identical(back.exact, value)
 
 
+def test_a_half_field_that_is_a_tuple_narrows_its_float32_arrays() -> None:
+    value = (torch.randn(8, 4, generator=_gen(6)), torch.arange(3),
+             torch.rand(8, generator=_gen(7)))
+    data = encode(HalfProbe(value), lossy=True)
+    items = msgpack.unpackb(data, raw=False)["fields"]["value"]["items"]
+    assert [item["dtype"] for item in items] == ["float16", "int64", "float16"]
+    back = decode(data).value
+    assert isinstance(back, tuple) and [v.dtype for v in back] == [v.dtype for v in value]
+    assert_identical(back, codec.as_received(HalfProbe(value)).value)
+    assert torch.equal(back[1], value[1]) and not torch.equal(back[0], value[0])
+    assert_identical(decode(encode(HalfProbe(value))).value, value)  # not lossy: exact
+
+
 def test_half_fields_that_float16_cannot_hold_travel_in_float32() -> None:
     value = torch.tensor([1.0, 7e4, math.inf, math.nan])  # 7e4 would become inf
     wire = msgpack.unpackb(encode(HalfProbe(value), lossy=True), raw=False)["fields"]["value"]

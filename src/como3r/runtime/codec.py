@@ -139,8 +139,9 @@ def register(target: type | str, *, version: int = 1, name: str | None = None,
             optional dependency such as the MASt3R prior costs nothing until used).
         version: schema version; a class with a ``version`` field must default it to this.
         name: wire name (default: the class name).
-        half: fields whose float32 arrays travel as float16 in a ``lossy`` :func:`encode`
-            and are decoded back to float32 (only where the loss was measured negligible);
+        half: fields whose float32 arrays (also those in a tuple that is the field) travel
+            as float16 in a ``lossy`` :func:`encode` and are decoded back to float32 (only
+            where the loss was measured negligible);
             an array float16 cannot hold (a finite value beyond +-65504) travels in float32.
 
     Raises:
@@ -331,7 +332,11 @@ def _object_to_wire(value: Any, path: str, depth: int, lossy: bool) -> dict[str,
 
 
 def _field_to_wire(value: Any, half: bool, path: str, depth: int, lossy: bool) -> Any:
-    """A field's wire form; a float32 array of a ``half`` field as float16 where it fits."""
+    """A field's wire form; a float32 array of a ``half`` field (or in a tuple that is the
+    field) as float16 where it fits."""
+    if half and isinstance(value, tuple):
+        return {TAG: "tuple", "items": [_field_to_wire(v, True, f"{path}[{i}]", depth + 1, lossy)
+                                        for i, v in enumerate(value)]}
     narrow = _as_half(value) if half else None
     if narrow is None:
         return _to_wire(value, path, depth, lossy)
@@ -352,9 +357,17 @@ def as_received(value: Any) -> Any:
     changes = {}
     for f in _init_fields(type(value)):
         field_value = getattr(value, f.name)
-        narrow = _as_half(field_value) if f.name in half else None
-        changes[f.name] = as_received(field_value) if narrow is None else _widen(narrow)
+        changes[f.name] = (_half_received(field_value) if f.name in half
+                           else as_received(field_value))
     return dataclasses.replace(value, **changes)
+
+
+def _half_received(value: Any) -> Any:
+    """A ``half`` field's value as :func:`decode` gives it back after a ``lossy`` encode."""
+    if isinstance(value, tuple):
+        return tuple(_half_received(v) for v in value)
+    narrow = _as_half(value)
+    return as_received(value) if narrow is None else _widen(narrow)
 
 
 def _widen(narrow: Tensor | np.ndarray) -> Tensor | np.ndarray:
