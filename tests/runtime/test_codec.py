@@ -222,7 +222,7 @@ def test_lossy_round_trip_is_bit_exact_but_for_half_precision_fields(name: str) 
     assert_identical(codec.as_received(message), decode(encode(message, lossy=True)))
 
 
-def test_pointmaps_and_match_confidences_travel_in_half_precision_across_machines() -> None:
+def test_pointmaps_matches_and_retrieval_features_travel_in_float16_across_machines() -> None:
     packet = SAMPLES["KeyframePacket"]()
     back = decode(encode(packet, lossy=True))
     for name in ("X_hat", "C_hat"):
@@ -231,6 +231,9 @@ def test_pointmaps_and_match_confidences_travel_in_half_precision_across_machine
         torch.testing.assert_close(received, original, rtol=2**-11, atol=2**-24)
     assert_identical(packet.T_WC, back.T_WC)  # poses stay exact
     assert_identical(packet.encoding, back.encoding)  # the simulated prior's encodings too
+    for original, received in zip(packet.retrieval, back.retrieval):  # retrieval features
+        assert received.dtype == torch.float32 and not torch.equal(original, received)
+        torch.testing.assert_close(received, original, rtol=2**-11, atol=2**-24)
     assert not torch.equal(packet.sequential_ij.q, back.sequential_ij.q)
 
 

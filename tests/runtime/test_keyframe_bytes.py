@@ -53,7 +53,7 @@ def test_wire_parts_add_up_to_the_message_less_its_framing() -> None:
         # random tokens do not compress: float32 exact, float16 across machines
         assert parts["tokens"] > tokens.numel() * (2 if lossy else 4)
         assert all(parts[name] > 0 for name in PARTS)
-    for part in ("pointmap", "tokens"):
+    for part in ("pointmap", "tokens", "retrieval_descriptors"):
         assert wire_parts(message, lossy=True)[part] < wire_parts(message)[part]
 
 
