@@ -16,7 +16,7 @@ agent's final message (``AgentFinished``) is measured once per run. No message c
 thumbnails. Then the blobs the session store writes as each keyframe arrives.
 
 Measured (12-frame synthetic sequences, 11 keyframe messages each; kB per keyframe; exact:
-pipes, lossy: across machines, with float16 encoder tokens)::
+pipes, lossy: across machines, with float16 encoder tokens and retrieval features)::
 
     part                   MASt3R 512x384     simulated 512x384   MASt3R 512x288
                            exact    lossy     exact    lossy      exact    lossy
@@ -25,16 +25,16 @@ pipes, lossy: across machines, with float16 encoder tokens)::
     pointmap               1758.8    644.1    1758.8    644.1     1323.2    485.2
     confidences             631.1    307.4     631.1    307.4      474.3    228.2
     colours                 399.9    399.9     399.9    399.9      305.2    305.2
-    retrieval_descriptors   979.2    979.2     137.5    137.5      979.6    979.6
+    retrieval_descriptors   979.2    508.1     137.5     71.0      979.6    507.6
     retrieval_words           3.1      3.1       1.4      1.4        3.1      3.1
     sequential_matches     1534.9    927.9    1534.9    927.9     1141.7    679.0
     previous_refresh       2380.7    948.2    2380.7    948.2     1792.2    712.2
     other + framing           0.9      0.9       1.0      1.0        0.9      0.9
-    total                 10184.7   5465.7   20471.7  16993.8     7906.6   4351.9
+    total                 10184.7   4994.5   20471.7  16927.3     7906.6   3879.8
 
-(float32 tokens across machines: 2495.1 kB, total 6706.9 at 512x384, 5279.9 at 512x288.)
-The agent's final message: 2396.8 kB exact, 958.4 lossy at 512x384. Session store, blobs
-written as a keyframe arrives (MASt3R 512x384 / simulated 512x384 / MASt3R 512x288):
+(with float32 tokens and retrieval features across machines: total 6706.9 at 512x384,
+5279.9 at 512x288.) The agent's final message: 2396.8 kB exact, 958.4 lossy at 512x384.
+Session store, blobs written as a keyframe arrives (MASt3R 512x384 / simulated 512x384 / MASt3R 512x288):
 colours 400 / 400 / 305, encoding 2493 / 13444 / 1885, pointmaps 2389 / 2389 / 1797,
 retrieval 979 / 136 / 979, edges 1530 / 1530 / 1139, total 7791 / 17898 / 6105.
 
