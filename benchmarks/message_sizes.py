@@ -35,8 +35,9 @@ pipes, lossy: across machines, with float16 encoder tokens and retrieval feature
 (with float32 tokens and retrieval features across machines: total 6706.9 at 512x384,
 5279.9 at 512x288.) The agent's final message: 2396.8 kB exact, 958.4 lossy at 512x384.
 Session store, blobs written as a keyframe arrives (MASt3R 512x384 / simulated 512x384 /
-MASt3R 512x288): colours 400 / 400 / 305, encoding 2493 / 13444 / 1885, pointmaps 2389 / 2389 / 1797,
-retrieval 979 / 136 / 979, edges 1530 / 1530 / 1139, total 7791 / 17898 / 6105.
+MASt3R 512x288): colours 400 / 400 / 305, encoding 2493 / 13444 / 1885, pointmaps
+2389 / 2389 / 1797, retrieval 979 / 136 / 979, edges 1530 / 1530 / 1139, total 7791 /
+17898 / 6105.
 
 Part 1, payloads at 512x384 (the default ``input.long_side``): the arrays of a simulated
 encoding and of a decoded pair (as the simulated prior makes them from a synthetic view),
