@@ -1,5 +1,44 @@
 """What the messages weigh and what the codec costs, on this machine (a script, not a test).
 
+Part 0, bytes per keyframe on the wire per message part, for each ``--agent`` (its
+resolution at ``input.long_side``): an agent front-end with the simulated prior runs over the
+agent's first ``--frames`` frames; every keyframe message after the first (which has no
+sequential edge and no refresh) is measured with :func:`como3r.runtime.codec.part_sizes`,
+exact (pipes on one machine) and lossy (zenoh, across machines), and averaged. Then the same
+messages with MASt3R's shapes: the encoding replaced by the full-size network's (ViT-L, the
+released checkpoint's configuration, seeded random weights: sizes, not values, are what
+they say; trained tokens may compress differently), the retrieval features by a released-
+size retrieval head's (300 descriptors of 1024 dimensions, seeded random weights) and the
+retrieval words by 300 x ``multiple_assignment_query`` random word ids of the released
+codebook's size (incompressible: an upper bound). Pointmaps, confidences, colours and
+matches are the simulated front-end's (MASt3R's have the same shapes and dtypes). The
+agent's final message (``AgentFinished``) is measured once per run. No message carries
+thumbnails. Then the blobs the session store writes as each keyframe arrives.
+
+Measured (12-frame synthetic sequences, 11 keyframe messages each; kB per keyframe; exact:
+pipes, lossy: across machines, with float16 encoder tokens and retrieval features)::
+
+    part                   MASt3R 512x384     simulated 512x384   MASt3R 512x288
+                           exact    lossy     exact    lossy      exact    lossy
+    tokens                 2495.1   1253.9        -        -      1885.7    957.7
+    encoding_rest             1.1      1.1   13626.4  13626.4        0.8      0.8
+    pointmap               1758.8    644.1    1758.8    644.1     1323.2    485.2
+    confidences             631.1    307.4     631.1    307.4      474.3    228.2
+    colours                 399.9    399.9     399.9    399.9      305.2    305.2
+    retrieval_descriptors   979.2    508.1     137.5     71.0      979.6    507.6
+    retrieval_words           3.1      3.1       1.4      1.4        3.1      3.1
+    sequential_matches     1534.9    927.9    1534.9    927.9     1141.7    679.0
+    previous_refresh       2380.7    948.2    2380.7    948.2     1792.2    712.2
+    other + framing           0.9      0.9       1.0      1.0        0.9      0.9
+    total                 10184.7   4994.5   20471.7  16927.3     7906.6   3879.8
+
+(with float32 tokens and retrieval features across machines: total 6706.9 at 512x384,
+5279.9 at 512x288.) The agent's final message: 2396.8 kB exact, 958.4 lossy at 512x384.
+Session store, blobs written as a keyframe arrives (MASt3R 512x384 / simulated 512x384 /
+MASt3R 512x288): colours 400 / 400 / 305, encoding 2493 / 13444 / 1885, pointmaps
+2389 / 2389 / 1797, retrieval 979 / 136 / 979, edges 1530 / 1530 / 1139, total 7791 /
+17898 / 6105.
+
 Part 1, payloads at 512x384 (the default ``input.long_side``): the arrays of a simulated
 encoding and of a decoded pair (as the simulated prior makes them from a synthetic view),
 and MASt3R's encoder tokens (the full-size ViT-L network of the released checkpoint's
@@ -15,12 +54,17 @@ keyframes, a frame-done note) and a large one (MASt3R encoder tokens in a regist
 reply), our codec (validation, compression) against a msgspec Struct mirror of the same
 fields (arrays as raw bytes plus dtype and shape, no compression).
 
-    como3r synth --out /tmp/s640 --agents 1 --frames 4 --width 640 --height 480
-    python benchmarks/message_sizes.py --agent /tmp/s640/agent_0
+    como3r synth --out /tmp/s384 --agents 1 --frames 12 --width 640 --height 480
+    como3r synth --out /tmp/s288 --agents 1 --frames 12 --width 640 --height 360
+    python benchmarks/message_sizes.py --agent /tmp/s384/agent_0 --agent /tmp/s288/agent_0
+
+(``--parts-only``: part 0 alone, 5-6 minutes on one shared core, mostly the full-size
+network's construction and encoder.)
 """
 
 
 import argparse
+import dataclasses
 import platform
 import time
 import zlib
@@ -36,14 +80,22 @@ from como3r.data.agent import open_agent
 from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import make_view
 from como3r.decentralized.messages import EncodingReply
-from como3r.frontend.packets import PoseUpdate
+from como3r.frontend.agent import AgentFrontend
+from como3r.frontend.packets import KeyframePacket, PoseUpdate
 from como3r.prior.mast3r import MASt3REncoding, MASt3RPrior
 from como3r.prior.mast3r.config import RELEASED_MODEL_STRING, parse_model_string
+from como3r.prior.mast3r.model import MASt3RNetwork
+from como3r.prior.mast3r.retrieval import DEFAULT_NFEAT, RetrievalHead
 from como3r.prior.mast3r.testing import seeded_network
 from como3r.prior.simulated import SimulatedPrior
 from como3r.runtime import codec
 from como3r.runtime.codec import zstd
-from como3r.runtime.messages import FrameDone, PoseUpdateMessage
+from como3r.runtime.keyframe_bytes import PARTS, wire_parts
+from como3r.runtime.messages import FrameDone, KeyframeMessage, PoseUpdateMessage
+from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame
+from como3r.runtime.store_blobs import pack_arrays, pack_object
+from como3r.runtime.results import final_report
+from como3r.data.preprocess import upsampling
 
 COMPRESSORS: dict[str, tuple[Callable[[bytes], bytes], Callable[[bytes], bytes]]] = {
     "zlib-1": (lambda b: zlib.compress(b, 1), zlib.decompress),
@@ -57,6 +109,110 @@ def _planes(raw: bytes, itemsize: int) -> bytes:
     if itemsize == 1:
         return raw
     return np.frombuffer(raw, np.uint8).reshape(-1, itemsize).T.tobytes()
+
+
+def _keyframe_messages(agent_path: Path, frames: int
+                       ) -> tuple[list[KeyframeMessage], list[Any], Any, tuple[int, int]]:
+    """The simulated front-end's keyframe messages over the first ``frames`` frames (the
+    first keyframe's left out), the views they were made from, the agent's final message
+    and the network resolution ``(H, W)``."""
+    config = Config()
+    agent = open_agent(agent_path)
+    prior, codebook = build_prior(PriorSpec("simulated"), config, {0: agent})
+    frontend = AgentFrontend(prior, config, 0, codebook,
+                             upsampling(agent.image_size, config.input.long_side))
+    messages, views = [], []
+    for index in range(min(frames, agent.num_frames)):
+        view, timestamp, colors = load_frame(agent, 0, index, config.input.long_side, False)
+        frontend.process(view, timestamp, colors)
+        for packet in frontend.drain_new_keyframes():
+            if packet.kf_id > 0:
+                previous = frontend.keyframes[packet.kf_id - 1].T_WC
+                messages.append(KeyframeMessage(packet, 0, previous))
+                views.append(view)
+    if not messages:
+        raise SystemExit(f"{agent_path}: fewer than 2 keyframes in {frames} frames")
+    shape = tuple(messages[0].packet.colors.shape[:2])
+    return messages, views, final_report(frontend, 1.0, 0), shape
+
+
+def _mast3r_shaped(message: KeyframeMessage, view: Any, network: MASt3RNetwork,
+                   head: RetrievalHead, config: Config) -> KeyframeMessage:
+    """``message`` with MASt3R's encoding, retrieval features and words (module docstring)."""
+    encoding = MASt3RPrior(network).encode(view)
+    descriptors, attention = head.features(encoding.tokens)
+    generator = np.random.default_rng(message.packet.kf_id)
+    words = generator.integers(0, config.retrieval.codebook_size,
+                               (len(descriptors), config.retrieval.multiple_assignment_query),
+                               dtype=np.int32)
+    packet = dataclasses.replace(message.packet, encoding=encoding,
+                                 retrieval=(descriptors, attention), retrieval_words=words)
+    return dataclasses.replace(message, packet=packet)
+
+
+def _mean_parts(messages: list[Any], lossy: bool) -> dict[str, float]:
+    """Mean bytes per part of ``messages`` (:func:`wire_parts`), ``framing`` and ``total``."""
+    rows = []
+    for message in messages:
+        parts: dict[str, float] = dict(wire_parts(message, lossy=lossy))
+        total = len(codec.encode(message, lossy=lossy))
+        parts["framing"] = total - sum(parts.values())
+        parts["total"] = total
+        rows.append(parts)
+    return {name: sum(r[name] for r in rows) / len(rows) for name in rows[0]}
+
+
+def _stored_parts(messages: list[KeyframeMessage]) -> dict[str, float]:
+    """Mean bytes per keyframe of the blobs the session store writes as a keyframe arrives
+    (:mod:`como3r.runtime.store`: colours, encoding, pointmap and confidence, retrieval
+    features, the sequential edge's matches), rewrites of later refreshes left out."""
+    rows = []
+    for message in messages:
+        packet = message.packet
+        edge = [getattr(m, k) for m in (packet.sequential_ij, packet.sequential_ji)
+                if m is not None for k in ("idx", "valid", "q")]
+        rows.append({
+            "colours": len(pack_arrays(packet.colors)),
+            "encoding": len(pack_object(packet.encoding)),
+            "pointmaps": len(pack_arrays(packet.X_hat)) + len(pack_arrays(packet.C_hat)),
+            "retrieval": len(pack_arrays(*packet.retrieval)) if packet.retrieval else 0,
+            "edges": len(pack_arrays(*edge)) if edge else 0,
+        })
+    mean = {name: sum(r[name] for r in rows) / len(rows) for name in rows[0]}
+    mean["total"] = sum(mean.values())
+    return mean
+
+
+def part0(agent_paths: list[Path], frames: int) -> None:
+    config = Config()
+    network = seeded_network(parse_model_string(RELEASED_MODEL_STRING), 0).eval()
+    torch.manual_seed(0)
+    head = RetrievalHead(network.config.enc_embed_dim, hdims=(1024,),
+                         nfeat=DEFAULT_NFEAT).eval()
+    columns, finals, stored = {}, {}, {}
+    for path in agent_paths:
+        messages, views, final, (height, width) = _keyframe_messages(path, frames)
+        shaped = [_mast3r_shaped(m, v, network, head, config) for m, v in zip(messages, views)]
+        size = f"{width}x{height}"
+        for prior, batch in (("MASt3R", shaped), ("simulated", messages)):
+            for lossy in (False, True):
+                label = f"{prior} {size} {'lossy' if lossy else 'exact'}"
+                columns[label] = _mean_parts(batch, lossy)
+        finals[size] = {lossy: len(codec.encode(final, lossy=lossy)) for lossy in (False, True)}
+        stored[f"MASt3R {size}"], stored[f"simulated {size}"] = (_stored_parts(shaped),
+                                                                 _stored_parts(messages))
+        print(f"{path}: {len(messages)} keyframe messages measured ({size})")
+    print("\nbytes per keyframe message per part [kB] (exact: pipes; lossy: zenoh)")
+    print(" | ".join(["part", *columns]))
+    for name in [*PARTS, "other", "framing", "total"]:
+        print(" | ".join([name, *(f"{c[name] / 1e3:.1f}" for c in columns.values())]))
+    print("\nsession store: bytes per keyframe written as it arrives [kB]")
+    print(" | ".join(["part", *stored]))
+    for name in next(iter(stored.values())):
+        print(" | ".join([name, *(f"{c[name] / 1e3:.1f}" for c in stored.values())]))
+    for size, nbytes in finals.items():
+        print(f"agent's final message at {size}: {nbytes[False] / 1e3:.1f} kB exact, "
+              f"{nbytes[True] / 1e3:.1f} kB lossy")
 
 
 def _payloads(agent_path: Path) -> dict[str, np.ndarray]:
@@ -199,12 +355,19 @@ def part2(tokens: np.ndarray) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--agent", type=Path, required=True,
-                        help="an agent folder with depth/ (como3r synth)")
+    parser.add_argument("--agent", type=Path, required=True, action="append",
+                        help="an agent folder with depth/ (como3r synth); repeat for more "
+                             "resolutions (part 1 and 2 use the first)")
+    parser.add_argument("--frames", type=int, default=12,
+                        help="frames of each agent the front-end runs over (part 0)")
+    parser.add_argument("--parts-only", action="store_true", help="part 0 only")
     args = parser.parse_args()
     torch.set_num_threads(1)
     print(f"machine: {platform.processor() or platform.machine()}, torch threads 1")
-    arrays = part1(args.agent)
+    part0(args.agent, args.frames)
+    if args.parts_only:
+        return
+    arrays = part1(args.agent[0])
     part2(arrays["MASt3R tokens float32"])
 
 

@@ -222,7 +222,7 @@ def test_lossy_round_trip_is_bit_exact_but_for_half_precision_fields(name: str) 
     assert_identical(codec.as_received(message), decode(encode(message, lossy=True)))
 
 
-def test_pointmaps_and_match_confidences_travel_in_half_precision_across_machines() -> None:
+def test_pointmaps_matches_and_retrieval_features_travel_in_float16_across_machines() -> None:
     packet = SAMPLES["KeyframePacket"]()
     back = decode(encode(packet, lossy=True))
     for name in ("X_hat", "C_hat"):
@@ -230,8 +230,34 @@ def test_pointmaps_and_match_confidences_travel_in_half_precision_across_machine
         assert received.dtype == torch.float32 and not torch.equal(original, received)
         torch.testing.assert_close(received, original, rtol=2**-11, atol=2**-24)
     assert_identical(packet.T_WC, back.T_WC)  # poses stay exact
-    assert_identical(packet.encoding, back.encoding)  # encodings too (not measured in fp16)
+    assert_identical(packet.encoding, back.encoding)  # the simulated prior's encodings too
+    for original, received in zip(packet.retrieval, back.retrieval):  # retrieval features
+        assert received.dtype == torch.float32 and not torch.equal(original, received)
+        torch.testing.assert_close(received, original, rtol=2**-11, atol=2**-24)
     assert not torch.equal(packet.sequential_ij.q, back.sequential_ij.q)
+
+
+@pytest.mark.parametrize("lossy", [False, True])
+def test_part_sizes_add_up_to_the_encoding_and_break_down_nested_messages(lossy: bool) -> None:
+    packet = SAMPLES["KeyframePacket"]()
+    message = messages.KeyframeMessage(packet, 3, None)
+    sizes = codec.part_sizes(message, lossy=lossy)
+    total = len(encode(message, lossy=lossy))
+    assert "packet.X_hat" in sizes and "packet.previous.C_hat" in sizes
+    assert any(key.startswith("packet.encoding.") for key in sizes)
+    assert "packet.previous" not in sizes  # a nested message is its fields
+    # only field names and the dataclasses' tags, type names and versions lie outside
+    assert 0 < total - sum(sizes.values()) < 40 * len(sizes)
+    alone = len(msgpack.packb(msgpack.unpackb(encode(message, lossy=lossy), raw=False)
+                              ["fields"]["packet"]["fields"]["X_hat"], use_bin_type=True))
+    assert sizes["packet.X_hat"] == alone
+
+
+def test_part_sizes_of_a_received_message_are_the_senders() -> None:
+    packet = SAMPLES["KeyframePacket"]()
+    sent = codec.part_sizes(packet, lossy=True)
+    assert codec.part_sizes(decode(encode(packet, lossy=True)), lossy=True) == sent
+    assert sent["X_hat"] < codec.part_sizes(packet)["X_hat"]  # float16 on the wire
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.int64, torch.bool,
@@ -321,6 +347,19 @@ def test_half_fields_travel_as_float16_and_come_back_as_float32() -> None:
         assert np.array_equal(np.asarray(back.value), np.asarray(value).astype(np.float16)
                               .astype(np.float32))
         assert_identical(back.exact, value)
+
+
+def test_a_half_field_that_is_a_tuple_narrows_its_float32_arrays() -> None:
+    value = (torch.randn(8, 4, generator=_gen(6)), torch.arange(3),
+             torch.rand(8, generator=_gen(7)))
+    data = encode(HalfProbe(value), lossy=True)
+    items = msgpack.unpackb(data, raw=False)["fields"]["value"]["items"]
+    assert [item["dtype"] for item in items] == ["float16", "int64", "float16"]
+    back = decode(data).value
+    assert isinstance(back, tuple) and [v.dtype for v in back] == [v.dtype for v in value]
+    assert_identical(back, codec.as_received(HalfProbe(value)).value)
+    assert torch.equal(back[1], value[1]) and not torch.equal(back[0], value[0])
+    assert_identical(decode(encode(HalfProbe(value))).value, value)  # not lossy: exact
 
 
 def test_half_fields_that_float16_cannot_hold_travel_in_float32() -> None:

@@ -77,9 +77,14 @@ def test_coordinator_and_two_agents_over_tcp_match_the_single_process_run(scene,
     runtime = metrics["runtime"]
     assert runtime["transport"] == "zenoh" and runtime["failed_agents"] == []
     assert metrics["components"] == [[0, 1]]  # the agents met
-    for entry in runtime["agents"]:
+    for entry, row in zip(runtime["agents"], metrics["bandwidth"]):
         assert entry["status"] == "finished"
         assert entry["bytes_from_agent"]["KeyframeMessage"] > 0
+        # the parts are measured as they travelled (float16 pointmaps): they add up to the
+        # keyframe messages' bytes less their framing
+        per_message = (entry["bytes_from_agent"]["KeyframeMessage"]
+                       / entry["messages_from_agent"]["KeyframeMessage"])
+        assert 0 < per_message - sum(row["keyframe_message_bytes_by_part"].values()) < 1000
     reference, networked = _merged_ate(single), _merged_ate(tmp_path / "net")
     assert abs(networked - reference) <= 0.1 * reference, (networked, reference)
 

@@ -49,6 +49,9 @@ def test_bandwidth_is_per_keyframe_against_the_raw_image() -> None:
     assert row["image_bytes"] == 6000 and row["bytes_sent"] == 9600
     assert row["bytes_per_keyframe"] == 3200 and row["per_keyframe_over_image"] == 3200 / 6000
     assert row["bytes_per_keyframe_by_type"] == {"FrameDone": 200, "KeyframeMessage": 3000}
+    assert row["keyframe_message_bytes_by_part"] is None  # not measured
+    parts = bandwidth({"KeyframeMessage": 9000}, 3, (40, 50), {"tokens": 2000.0})
+    assert parts["keyframe_message_bytes_by_part"] == {"tokens": 2000.0}
     empty = bandwidth({}, 0, (40, 50))
     assert empty["bytes_per_keyframe"] is None and empty["per_keyframe_over_image"] is None
 

@@ -235,6 +235,11 @@ def test_bytes_are_counted_per_message_type_and_agent(schedule, request) -> None
         assert received["KeyframeMessage"] > 1000 * sent["KeyframeMessage"] > 0
         assert entry["bytes_to_agent"]["AgentTask"] > 0
         assert entry["pose_updates_sent"] >= entry["messages_to_agent"].get("PoseUpdateMessage", 0)
+        # the parts of the keyframe messages (pipes: exact) add up to nearly their bytes
+        parts = metrics["bandwidth"][agent]["keyframe_message_bytes_by_part"]
+        per_message = received["KeyframeMessage"] / sent["KeyframeMessage"]
+        assert parts["pointmap"] > 0 and parts["colours"] > 0 and parts["encoding_rest"] > 0
+        assert 0 < per_message - sum(parts.values()) < 1000
     total = sum(runtime["bytes_by_type"].values())
     assert total == runtime["bytes_total"] == sum(
         sum(e["bytes_to_agent"].values()) + sum(e["bytes_from_agent"].values())

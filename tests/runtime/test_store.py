@@ -95,6 +95,17 @@ def test_a_run_keeps_its_coordinator_state_in_the_store(scene, tmp_path, runtime
     for record in session.agents:
         assert record.keyframes == len(graph.agent_keyframes(record.agent))
         assert record.updates_sent >= 1  # the gauge merge or the cleanup moved it
+    written = metrics["store"]  # the bytes written, per part: colours and encodings once
+    with sqlite3.connect(out / STORE_NAME) as db:
+        for column, part in (("colors", "colours"), ("encoding", "encoding")):
+            held, = db.execute(f"SELECT sum(length(b.data)) FROM keyframes k "
+                               f"JOIN blobs b ON b.id = k.{column}").fetchone()
+            assert written["bytes_written_per_keyframe_by_part"][part] * len(graph) == (
+                pytest.approx(held))
+    assert written["keyframes"] == len(graph) and written["file_bytes"] > 0
+    assert written["bytes_written"] == pytest.approx(
+        written["bytes_written_per_keyframe"] * len(graph))
+    assert written["bytes_written_per_keyframe_by_part"]["pointmaps"] > 0
     print(f"{runtime}: {len(graph)} keyframes, store "
           f"{(out / STORE_NAME).stat().st_size / len(graph) / 1024:.0f} kB per keyframe")
 

@@ -139,8 +139,9 @@ def register(target: type | str, *, version: int = 1, name: str | None = None,
             optional dependency such as the MASt3R prior costs nothing until used).
         version: schema version; a class with a ``version`` field must default it to this.
         name: wire name (default: the class name).
-        half: fields whose float32 arrays travel as float16 in a ``lossy`` :func:`encode`
-            and are decoded back to float32 (only where the loss was measured negligible);
+        half: fields whose float32 arrays (also those in a tuple that is the field) travel
+            as float16 in a ``lossy`` :func:`encode` and are decoded back to float32 (only
+            where the loss was measured negligible);
             an array float16 cannot hold (a finite value beyond +-65504) travels in float32.
 
     Raises:
@@ -276,6 +277,42 @@ def _to_wire(value: Any, path: str, depth: int, lossy: bool) -> Any:
     raise MessageError(f"{path}: cannot encode a {type(value).__name__}")
 
 
+def part_sizes(message: Any, *, lossy: bool = False) -> dict[str, int]:
+    """Bytes of each field of ``message`` on the wire, as :func:`encode` writes them.
+
+    A field holding a registered dataclass is broken down into its own fields; every other
+    field is one part, keyed by its dotted path (``"packet.encoding.tokens"``), its size the
+    msgpack encoding of its wire form (compressed arrays included). The parts add up to the
+    encoding's length less the few bytes of tags, names and versions around them.
+
+    Args:
+        message: a registered dataclass instance.
+        lossy: as in :func:`encode` (a decoded message re-measured with the ``lossy`` its
+            sender used gives the sender's sizes: float16-rounded values narrow exactly).
+
+    Raises:
+        MessageError: as :func:`encode`.
+    """
+    sizes: dict[str, int] = {}
+    _part_sizes(message, "", lossy, sizes)
+    return sizes
+
+
+def _part_sizes(value: Any, prefix: str, lossy: bool, sizes: dict[str, int]) -> None:
+    cls = type(value)
+    entry = _BY_PATH.get(f"{cls.__module__}:{cls.__qualname__}")
+    if entry is None:
+        raise MessageError(f"{prefix or cls.__qualname__}: type {cls.__qualname__} is not a "
+                           "registered message type")
+    for f in _init_fields(cls):
+        field_value, path = getattr(value, f.name), f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(field_value) and not isinstance(field_value, type):
+            _part_sizes(field_value, f"{path}.", lossy, sizes)
+            continue
+        tree = _field_to_wire(field_value, lossy and f.name in entry.half, path, 1, lossy)
+        sizes[path] = len(msgpack.packb(tree, use_bin_type=True))
+
+
 def _dict_key(key: Any, path: str) -> str | int:
     if isinstance(key, bool) or not isinstance(key, (str, int)):
         raise MessageError(f"{path}: dict keys must be str or int, got {type(key).__name__}")
@@ -295,7 +332,11 @@ def _object_to_wire(value: Any, path: str, depth: int, lossy: bool) -> dict[str,
 
 
 def _field_to_wire(value: Any, half: bool, path: str, depth: int, lossy: bool) -> Any:
-    """A field's wire form; a float32 array of a ``half`` field as float16 where it fits."""
+    """A field's wire form; a float32 array of a ``half`` field (or in a tuple that is the
+    field) as float16 where it fits."""
+    if half and isinstance(value, tuple):
+        return {TAG: "tuple", "items": [_field_to_wire(v, True, f"{path}[{i}]", depth + 1, lossy)
+                                        for i, v in enumerate(value)]}
     narrow = _as_half(value) if half else None
     if narrow is None:
         return _to_wire(value, path, depth, lossy)
@@ -316,9 +357,17 @@ def as_received(value: Any) -> Any:
     changes = {}
     for f in _init_fields(type(value)):
         field_value = getattr(value, f.name)
-        narrow = _as_half(field_value) if f.name in half else None
-        changes[f.name] = as_received(field_value) if narrow is None else _widen(narrow)
+        changes[f.name] = (_half_received(field_value) if f.name in half
+                           else as_received(field_value))
     return dataclasses.replace(value, **changes)
+
+
+def _half_received(value: Any) -> Any:
+    """A ``half`` field's value as :func:`decode` gives it back after a ``lossy`` encode."""
+    if isinstance(value, tuple):
+        return tuple(_half_received(v) for v in value)
+    narrow = _as_half(value)
+    return as_received(value) if narrow is None else _widen(narrow)
 
 
 def _widen(narrow: Tensor | np.ndarray) -> Tensor | np.ndarray:
@@ -644,23 +693,41 @@ def registered_types() -> dict[str, type]:
 #: encodes): on the demo scene (2 agents x 30 frames, 512x384, lockstep so that nothing
 #: else differs) the merged ATE was 16.30 mm with them in float32 and 16.51 mm in float16,
 #: on its seed-1 twin 13.667 and 13.661 mm (no systematic direction, within 1.3 %), for
-#: 16 % fewer bytes per keyframe with the simulated prior. Encodings (MASt3R's encoder
-#: tokens) stay float32: not measured (no released weights where this was measured).
+#: 16 % fewer bytes per keyframe with the simulated prior.
 _POINTMAP = ("X_hat", "C_hat")
+
+#: MASt3R's encoder tokens travel in half precision across machines too (the receiver
+#: decodes pairs from them). With the full-size network of seeded random weights at 512x384
+#: (``benchmarks/token_precision.py``) the pair decoded from float16 tokens differs from the
+#: float32 tokens' by 7e-6 (median) and 1.7e-5 (99th percentile) relative in the pointmaps,
+#: 1.6e-6 / 8.8e-5 in the confidences: 30 times less than the float16 rounding the
+#: pointmaps themselves travel with (4.9e-4). The released weights' sensitivity and the
+#: merged ATE with MASt3R are not measured (no released weights where this was measured).
+_TOKENS = ("tokens",)
+
+#: A keyframe's retrieval features (descriptors and attention) travel in half precision
+#: too: the coordinator's binary ASMK aggregates and binarises their residuals. On 17
+#: keyframes of 2 agents (synthetic, simulated prior, 300 x 128 descriptors) every query's
+#: hits and similarities were identical with float16 and float32 features, with the agents'
+#: visual words and with the coordinator quantising itself; MASt3R's 300 x 1024 features
+#: weigh 979 -> about 490 kB per keyframe (their released values are not measured).
+_RETRIEVAL = ("retrieval",)
 
 
 def _register_payloads() -> None:
     """The payloads that cross the agent/coordinator boundary (C-Sec. B.1); pointmaps,
-    their confidences and match confidences in half precision (:data:`_POINTMAP`)."""
+    their confidences, match confidences (:data:`_POINTMAP`), MASt3R's encoder tokens
+    (:data:`_TOKENS`) and retrieval features (:data:`_RETRIEVAL`) in half precision."""
     for path, version, half in (
-        ("como3r.frontend.packets:KeyframePacket", 2, _POINTMAP),  # 2: retrieval_words
+        # 2: retrieval_words
+        ("como3r.frontend.packets:KeyframePacket", 2, (*_POINTMAP, *_RETRIEVAL)),
         ("como3r.frontend.packets:PointmapRefresh", 2, _POINTMAP),  # 2: K
         ("como3r.frontend.packets:PoseUpdate", 2, ()),  # 2: focal
         ("como3r.frontend.pairs:DirectedMatches", 1, ("q",)),
         # 2: first_frame_focal, 3: rejected_directions
         ("como3r.frontend.agent:FrontendStats", 3, ()),
         ("como3r.prior.simulated:SimulatedEncoding", 2, ()),  # 2: filled
-        ("como3r.prior.mast3r.prior:MASt3REncoding", 1, ()),
+        ("como3r.prior.mast3r.prior:MASt3REncoding", 1, _TOKENS),
     ):
         register(path, version=version, half=half)
 

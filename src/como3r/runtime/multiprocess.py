@@ -178,6 +178,7 @@ def _write(staging: Path, runtime: _Runtime, inputs: Sequence[AgentInput]) -> Ru
                                                   runtime.prior.describe(), seconds,
                                                   runtime.progress)
     metrics["runtime"] = runtime.runtime_metrics()
+    metrics["store"] = None if runtime.store is None else runtime.store.written_metrics()
     summary = RunSummary(out=staging)
     for slot, s in zip(runtime.slots, seconds):
         summary.agents.append({"agent": slot.agent, "status": slot.status,

@@ -193,8 +193,8 @@ def tracking_warnings(results: Sequence[Any]) -> list[str]:
     return warnings
 
 
-def bandwidth(sent: Mapping[str, int], keyframes: int,
-              image_shape: tuple[int, int]) -> dict[str, Any]:
+def bandwidth(sent: Mapping[str, int], keyframes: int, image_shape: tuple[int, int],
+              by_part: Mapping[str, float] | None = None) -> dict[str, Any]:
     """What one agent (or robot) sent, per keyframe, against the raw bytes of an image.
 
     Args:
@@ -202,10 +202,13 @@ def bandwidth(sent: Mapping[str, int], keyframes: int,
         keyframes: its keyframes.
         image_shape: ``(H, W)`` of its images at network resolution (``input.long_side``),
             whose raw RGB bytes (``3 H W``) are the yardstick.
+        by_part: mean bytes per keyframe message of each of its parts
+            (:mod:`.keyframe_bytes`), where they were measured.
 
     Returns:
-        ``metrics.json``'s ``bandwidth`` entry: totals, bytes per keyframe (all and per
-        message type) and their ratio to the raw image bytes (None without keyframes).
+        ``metrics.json``'s ``bandwidth`` entry: totals, bytes per keyframe (all, per
+        message type and, given ``by_part``, per part of the keyframe message) and their
+        ratio to the raw image bytes (None without keyframes).
     """
     image = 3 * int(image_shape[0]) * int(image_shape[1])
     total = int(sum(sent.values()))
@@ -214,7 +217,8 @@ def bandwidth(sent: Mapping[str, int], keyframes: int,
             "image_bytes": image,
             "per_keyframe_over_image": per_keyframe / image if per_keyframe else None,
             "bytes_per_keyframe_by_type": ({k: v / keyframes for k, v in sorted(sent.items())}
-                                           if keyframes else {})}
+                                           if keyframes else {}),
+            "keyframe_message_bytes_by_part": dict(by_part) if by_part else None}
 
 
 def keyframe_bandwidth(runtime: Mapping[str, Any] | None,
@@ -231,8 +235,9 @@ def keyframe_bandwidth(runtime: Mapping[str, Any] | None,
         result = by_agent.get(entry["agent"])
         keyframes = list(result.keyframes) if result is not None else []
         shape = tuple(keyframes[0].colors.shape[:2]) if keyframes else (0, 0)
-        rows.append({"agent": entry["agent"], **bandwidth(entry["bytes_from_agent"],
-                                                           entry["keyframes_received"], shape)})
+        rows.append({"agent": entry["agent"], **bandwidth(
+            entry["bytes_from_agent"], entry["keyframes_received"], shape,
+            entry.get("keyframe_bytes_by_part"))})
     return rows
 
 

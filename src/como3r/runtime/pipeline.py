@@ -55,6 +55,7 @@ from como3r.runtime.live import CoordinatorLive
 from como3r.runtime.map_session import SavedMap, hold_map, map_results, seed_map
 from como3r.runtime.prefetch import prepared_frames
 from como3r.runtime.results import AgentResult
+from como3r.runtime.store import SessionStore
 from como3r.runtime.store_reader import resumable
 from como3r.runtime.store_resume import open_store
 
@@ -350,7 +351,7 @@ def run(
         seconds = [r.finished.seconds if r.finished else 0.0 for r in saved] + [
             loop.seconds for loop in loops]
         summary = _write(staging, results, coordinator, config, agents, seconds, prior,
-                         progress)
+                         store, progress)
     summary.out = out
     summary.notes.extend(notes)
     return summary
@@ -391,11 +392,14 @@ def _finish(frontends: Sequence[AgentFrontend], results: Sequence[AgentFrontend 
 
 def _write(staging: Path, results: list[AgentFrontend | AgentResult], coordinator: Coordinator,
            config: Config, agents: list[AgentInput], seconds: list[float],
-           prior: Prior, progress: PhaseCallback | None = None) -> RunSummary:
+           prior: Prior, store: SessionStore, progress: PhaseCallback | None = None
+           ) -> RunSummary:
     """The output folder; ``agents`` are the inputs of the last ``len(agents)`` results
-    (the others came with a saved map: then nothing is evaluated)."""
+    (the others came with a saved map: then nothing is evaluated); ``store``: the run's
+    session store (``metrics.json``: the bytes written to it)."""
     metrics, components = outputs.write_run_files(staging, results, coordinator, config,
                                                   prior.describe(), seconds, progress)
+    metrics["store"] = store.written_metrics()
     first = len(results) - len(agents)
     for entry, agent in zip(metrics["agents"][first:], agents):
         if isinstance(agent, CameraInput):  # its stream has ended: the count is final

@@ -107,6 +107,7 @@ from como3r.runtime.results import (
     SegmentPlace,
     graph_view,
 )
+from como3r.runtime.keyframe_bytes import LOSSY_TRANSPORTS, PartCounter, wire_parts
 from como3r.runtime.map_session import SavedMap, map_results
 from como3r.runtime.runtime_state import snapshot
 from como3r.runtime.store import SessionStore
@@ -193,6 +194,8 @@ class _Runtime:
         #: the coordinator's terminal alternation ran (a resumed coordinator's store says so)
         self.cleaned_up = False
         self._arrivals = 0
+        #: bytes per part of the keyframe messages received, per agent (metrics.json)
+        self.keyframe_parts: dict[int, PartCounter] = {}
         saved = [] if saved_map is None else map_results(saved_map)
         self.segments = [MapSegment(r.agent, r.agent, r) for r in saved] + [
             MapSegment(agent, agent, AgentResult(agent))
@@ -370,6 +373,8 @@ class _Runtime:
         elif isinstance(message, KeyframeMessage):
             self._queue(slot.segment, message, seq)
             slot.keyframes_received += 1
+            self.keyframe_parts.setdefault(slot.agent, PartCounter()).add(
+                wire_parts(message, lossy=self.hub.name in LOSSY_TRANSPORTS))
             slot.segment.confirmed_seq = max(slot.segment.confirmed_seq, message.applied_seq)
         elif isinstance(message, FrameDone):
             self._frame_done(slot, message)
@@ -576,6 +581,8 @@ class _Runtime:
                 "bytes_from_agent": dict(channel.bytes_received),
                 "messages_to_agent": dict(channel.messages_sent),
                 "messages_from_agent": dict(channel.messages_received),
+                "keyframe_bytes_by_part": self.keyframe_parts.get(
+                    slot.agent, PartCounter()).per_keyframe(),
             })
         return {"mode": "multiprocess", "transport": self.hub.name,
                 "lockstep": self.options.lockstep,

@@ -69,6 +69,7 @@ import json
 import logging
 import sqlite3
 import weakref
+from collections import Counter
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -191,6 +192,8 @@ class SessionStore:
         self._rows: dict[str, dict[Any, tuple]] = {"gauges": {}, "agents": {}, "state": {}}
         self._updates: dict[int, int] = {}
         self._reports: dict[int, AgentFinished] = {}
+        #: bytes of blobs and text written, per part (:meth:`written_metrics`)
+        self.written: Counter[str] = Counter()
 
     @classmethod
     def create(cls, path: str | Path, config: Config,
@@ -420,16 +423,41 @@ class SessionStore:
                 self._upsert("state", rows)
                 self.connection.executemany(
                     "INSERT OR REPLACE INTO reports VALUES (?, ?)",
-                    [(agent, pack_object(report)) for agent, report in new.items()])
+                    [(agent, self._count("reports", pack_object(report)))
+                     for agent, report in new.items()])
         except sqlite3.Error as exc:
             self._failed = True
             raise StoreError(f"{self.path}: cannot write the session store ({exc})") from None
         self._reports.update(new)
         self.transactions += 1
 
-    def _blob(self, data: bytes) -> int:
-        return int(self.connection.execute("INSERT INTO blobs (data) VALUES (?)", (data,))
-                   .lastrowid)
+    def _blob(self, data: bytes, part: str) -> int:
+        return int(self.connection.execute("INSERT INTO blobs (data) VALUES (?)",
+                                           (self._count(part, data),)).lastrowid)
+
+    def _count(self, part: str, data: bytes) -> bytes:
+        """``data``, counted as written for ``part``."""
+        self.written[part] += len(data)
+        return data
+
+    def written_metrics(self) -> dict[str, Any]:
+        """``metrics.json``'s ``store`` entry: the bytes of blobs and text written so far
+        (rewrites included; SQLite's pages and WAL add to them), in all, per keyframe and per
+        part (``colours``, ``encoding``, ``pointmaps`` (the canonical pointmaps, their
+        confidences and intrinsics, written again when they change), ``retrieval``,
+        ``poses`` (rewritten when they move), ``edges``, ``candidates``, ``reports``,
+        ``state``), and the bytes the store's files hold now (``session.db`` and its WAL)."""
+        keyframes = len(self._keyframes)
+        total = sum(self.written.values())
+        files = sum(p.stat().st_size for p in (self.path, self.path.with_name(
+            self.path.name + "-wal")) if p.is_file())
+        return {"keyframes": keyframes, "bytes_written": total,
+                "bytes_written_per_keyframe": total / keyframes if keyframes else None,
+                "bytes_written_per_keyframe_by_part": (
+                    {k: v / keyframes for k, v in sorted(self.written.items())}
+                    if keyframes else {}),
+                "file_bytes": files,
+                "file_bytes_per_keyframe": files / keyframes if keyframes else None}
 
     def _record_keyframes(self, coordinator: Coordinator) -> None:
         """New keyframes, and the pointmaps of known ones that were replaced."""
@@ -452,12 +480,14 @@ class SessionStore:
             self.connection.execute(
                 "INSERT INTO keyframes VALUES (?, ?, ?, ?, ?, ?, ?)",
                 (g, graph.agent_of[g], kf.kf_id, kf.frame_index, kf.timestamp,
-                 self._blob(pack_arrays(kf.colors)), self._blob(pack_object(kf.encoding))))
+                 self._blob(pack_arrays(kf.colors), "colours"),
+                 self._blob(pack_object(kf.encoding), "encoding")))
             self._keyframes.append(self._write_pointmaps(g, kf, None))
             if kf.retrieval is not None:
                 self.connection.execute(
                     "INSERT INTO retrieval VALUES (?, ?, ?, NULL, ?)",
-                    (g, graph.agent_of[g], kf.kf_id, pack_arrays(*kf.retrieval)))
+                    (g, graph.agent_of[g], kf.kf_id,
+                     self._count("retrieval", pack_arrays(*kf.retrieval))))
 
     def _write_pointmaps(self, g: int, kf: Keyframe, before: _Written | None) -> _Written:
         """Write a keyframe's pointmaps row: a blob per distinct array (one for ``X_init``
@@ -468,8 +498,8 @@ class SessionStore:
             same = next((ids[m] for m in range(k) if arrays[m] is array), None)
             kept = None if before is None else before.holds(array)
             ids.append(same if same is not None else kept if kept is not None
-                       else self._blob(pack_arrays(array)))
-        K = None if kf.K is None else pack_arrays(kf.K)
+                       else self._blob(pack_arrays(array), "pointmaps"))
+        K = None if kf.K is None else self._count("pointmaps", pack_arrays(kf.K))
         self.connection.execute("INSERT OR REPLACE INTO pointmaps VALUES (?, ?, ?, ?, ?, ?, ?)",
                                 (g, kf.fused_frames, *ids, K))
         if before is not None:
@@ -486,7 +516,8 @@ class SessionStore:
         moved = (poses[:known] != self._poses[:known].to(poses)).any(dim=1).nonzero()
         changed = [int(g) for g in moved[:, 0]] + list(range(known, len(poses)))
         self.connection.executemany("INSERT OR REPLACE INTO poses VALUES (?, ?)",
-                                    [(g, pack_arrays(poses[g])) for g in changed])
+                                    [(g, self._count("poses", pack_arrays(poses[g])))
+                                     for g in changed])
         self._poses = poses.clone()
 
     def _record_retrieval(self, coordinator: Coordinator) -> None:
@@ -505,7 +536,7 @@ class SessionStore:
         self.connection.executemany(
             "INSERT INTO edges VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
             [(n, link.i, link.j, link.kind, link.similarity, link.link.covisible_ij,
-              link.link.covisible_ji, pack_link(link.link))
+              link.link.covisible_ji, self._count("edges", pack_link(link.link)))
              for n, link in enumerate(links[self._edges:], self._edges)])
         self._edges = len(links)
 
@@ -523,7 +554,7 @@ class SessionStore:
                 (n, c.i, c.j, c.status, ratio, v.similarity, v.nu_i, v.nu_j, v.covisible_ratio,
                  int(v.accepted), None if v.link is None else v.link.covisible_ij,
                  None if v.link is None else v.link.covisible_ji,
-                 None if link is None else pack_link(link)))
+                 None if link is None else self._count("candidates", pack_link(link))))
             if n < len(self._candidates):
                 self._candidates[n] = (c.status, ratio)
             else:
@@ -557,6 +588,9 @@ class SessionStore:
         known = self._rows[table]
         changed = [(key, *row) for key, row in rows.items() if known.get(key) != row]
         if changed:
+            text = sum(len(v) for row in changed for v in row[1:] if isinstance(v, (str, bytes)))
+            if text:
+                self.written[table] += text
             marks = ", ".join("?" * len(changed[0]))
             self.connection.executemany(f"INSERT OR REPLACE INTO {table} VALUES ({marks})",
                                         changed)

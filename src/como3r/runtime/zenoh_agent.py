@@ -6,8 +6,8 @@ message in the agent's :class:`~como3r.runtime.spool.Spool` and a background thr
 on the network while the coordinator's liveliness token is present. While the coordinator is
 away the agent keeps tracking and the spool grows (on disk past its memory limit); when the
 coordinator is back, everything it has not acknowledged is put again, oldest first.
-Messages are encoded ``lossy`` (:func:`~como3r.runtime.codec.encode`): keyframe pointmaps
-and confidences travel in half precision.
+Messages are encoded ``lossy`` (:func:`~como3r.runtime.codec.encode`): keyframe pointmaps,
+their confidences and MASt3R's encoder tokens travel in half precision.
 """
 
 from __future__ import annotations

@@ -1,0 +1,65 @@
+"""Bytes of a keyframe message per part (runtime/keyframe_bytes.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from como3r.frontend.packets import KeyframePacket, PointmapRefresh
+from como3r.frontend.pairs import DirectedMatches
+from como3r.prior.mast3r.prior import MASt3REncoding
+from como3r.runtime import codec
+from como3r.runtime.keyframe_bytes import PARTS, PartCounter, part_of, wire_parts
+from como3r.runtime.messages import KeyframeMessage
+
+H, W = 24, 32
+
+
+def _packet(tokens: torch.Tensor) -> KeyframePacket:
+    g = torch.Generator().manual_seed(0)
+    encoding = MASt3REncoding(agent=0, index=1, shape=(H, W), tokens=tokens,
+                              pos=torch.zeros(len(tokens), 2, dtype=torch.int64), grid=(3, 4))
+    matches = DirectedMatches(torch.arange(H * W), torch.ones(H * W, dtype=torch.bool),
+                              torch.rand(H * W, generator=g))
+    return KeyframePacket(
+        agent=0, kf_id=1, frame_index=4, timestamp=0.2, T_WC=torch.zeros(8, dtype=torch.float64),
+        X_hat=torch.randn(H, W, 3, generator=g), C_hat=1 + torch.rand(H, W, generator=g),
+        colors=np.zeros((H, W, 3), np.uint8), encoding=encoding,
+        retrieval=(torch.randn(5, 16, generator=g), torch.rand(5, generator=g)),
+        sequential_ij=matches, sequential_ji=matches,
+        previous=PointmapRefresh(0, torch.randn(H, W, 3, generator=g), torch.ones(H, W), 2),
+        retrieval_words=np.zeros((5, 3), np.int32), codebook_id="c")
+
+
+def test_field_paths_fall_into_their_parts() -> None:
+    assert part_of("packet.encoding.tokens") == "tokens"
+    assert part_of("packet.encoding.pos") == "encoding_rest"
+    assert part_of("X_hat") == part_of("packet.X_hat") == "pointmap"
+    assert part_of("packet.retrieval") == "retrieval_descriptors"
+    assert part_of("packet.retrieval_words") == "retrieval_words"
+    assert part_of("packet.sequential_ji.idx") == "sequential_matches"
+    assert part_of("packet.previous.X_hat") == "previous_refresh"
+    assert part_of("packet.T_WC") == part_of("applied_seq") == "other"
+
+
+def test_wire_parts_add_up_to_the_message_less_its_framing() -> None:
+    tokens = torch.randn(12, 16)
+    message = KeyframeMessage(_packet(tokens), 2, None)
+    for lossy in (False, True):
+        parts = wire_parts(message, lossy=lossy)
+        assert list(parts) == [*PARTS, "other"]
+        total = len(codec.encode(message, lossy=lossy))
+        assert 0 < total - sum(parts.values()) < 1000
+        # random tokens do not compress: float32 exact, float16 across machines
+        assert parts["tokens"] > tokens.numel() * (2 if lossy else 4)
+        assert all(parts[name] > 0 for name in PARTS)
+    for part in ("pointmap", "tokens", "retrieval_descriptors"):
+        assert wire_parts(message, lossy=True)[part] < wire_parts(message)[part]
+
+
+def test_part_counter_averages_per_keyframe() -> None:
+    counter = PartCounter()
+    assert counter.per_keyframe() is None
+    counter.add({"tokens": 10, "pointmap": 4})
+    counter.add({"tokens": 30, "pointmap": 0})
+    assert counter.per_keyframe() == {"tokens": 20.0, "pointmap": 2.0}
