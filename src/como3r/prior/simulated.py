@@ -15,8 +15,9 @@ low confidence.
 
 Error model (:class:`~como3r.config.SimulatedPriorConfig`, ``model`` key): the
 ``realistic`` default, the ``easy`` near-oracle or ``v2`` (the realistic model with
-descriptors that depend on the image's local contrast, in progress), documented parameter
-by parameter, with their sources, in :mod:`como3r.prior.simulated_errors`. Draws that
+descriptors and confidence that depend on the image's local contrast and a confidence
+blind to the low-frequency error, in progress), documented parameter by parameter, with
+their sources, in :mod:`como3r.prior.simulated_errors`. Draws that
 belong to one image (its intrinsics and ray errors, its range-error field, flying pixels
 and outliers) are made once at :meth:`SimulatedPrior.encode`, seeded by ``(config.seed,
 agent, index)`` only, so every pair of that image shares them; per-pair draws are seeded
@@ -470,16 +471,21 @@ class SimulatedPrior(Prior):
         noise = cfg.confidence_noise
         descriptor_noise = cfg.descriptor_noise * (1.0 + cfg.descriptor_viewpoint_gain * change)
         noise_i = noise_j = descriptor_noise
-        if enc_i.texture is not None and enc_j.texture is not None:  # v2 (errors, item 9)
+        known_i, known_j = error_i, error_j
+        if enc_i.texture is not None and enc_j.texture is not None:  # v2 (errors, 9 and 11)
             a = errors.AppearanceConstants
             noise_i = descriptor_noise * (1.0 + a.contrast_noise_gain * (1.0 - enc_i.texture))
             noise_j = descriptor_noise * (1.0 + a.contrast_noise_gain * (1.0 - enc_j.texture))
             desc_conf_i = desc_conf_i - a.contrast_q_drop * (1.0 - enc_i.texture)
             desc_conf_j = desc_conf_j - a.contrast_q_drop * (1.0 - enc_j.texture)
+            known_i = errors.local_error(error_i, enc_i.valid)
+            known_j = errors.local_error(error_j, enc_j.valid)
+            conf_i = conf_i - a.conf_texture_drop * (1.0 - enc_i.texture)
+            conf_j = conf_j - a.conf_texture_drop * (1.0 - enc_j.texture)
         return PairPrediction(
             X_ii=scale * X_ii, X_ji=X_ji,
-            C_ii=self._conf(conf_i - errors.error_logit(error_i, cfg), gen, noise),
-            C_ji=self._conf(conf_j - errors.error_logit(error_j, cfg) - drop_j, gen, noise),
+            C_ii=self._conf(conf_i - errors.error_logit(known_i, cfg), gen, noise),
+            C_ji=self._conf(conf_j - errors.error_logit(known_j, cfg) - drop_j, gen, noise),
             D_ii=self._noisy_descriptors(enc_i, gen, noise_i),
             D_ji=self._noisy_descriptors(enc_j, gen, noise_j),
             Q_ii=self._desc_conf(desc_conf_i - drop_i, gen, noise),

@@ -105,6 +105,15 @@ realistic model plus what the image the prior sees can and cannot reveal
     ``retrieval_stride`` cells, before the per-view noise, so places of one flat paint look
     alike to retrieval too. The ``v2`` codebook is trained on the synthetic key patches
     mixed so with random smooth colour patches (:func:`random_patch_appearance`).
+11. Confidence does not know the low-frequency error. In ``realistic`` ``C`` falls with the
+    pixel's whole injected error, its smooth per-image and per-pair distortion included
+    (Spearman rho between ``log(C - 1)`` and ``|error|`` -0.58 for the smooth part alone on
+    our scenes): a network that knew its low-frequency bias would correct it. Here item 7
+    sees only the error minus its mean over a window of ``local_error_window = 1/8`` of the
+    long side (:func:`local_error`): flying pixels, outliers and pixel noise, which differ
+    from their neighbours. And ``log(C - 1)`` falls by ``conf_texture_drop (1 - w)``
+    (``conf_texture_drop = 1.0``, ``w`` of item 9): where the image shows nothing, depth
+    is a guess from context.
 """
 
 from __future__ import annotations
@@ -158,12 +167,33 @@ class AppearanceConstants:
     appearance_bandwidth: float = 0.1
     contrast_noise_gain: float = 3.0
     contrast_q_drop: float = 1.5
+    local_error_window: float = 1.0 / 8.0
+    conf_texture_drop: float = 1.0
 
 
 def _box_mean(x: Tensor, size: int) -> Tensor:
     """``(H, W)`` mean of ``x`` over a ``size x size`` window (odd), borders renormalised."""
     return F.avg_pool2d(x[None, None], size, stride=1, padding=size // 2,
                         count_include_pad=False)[0, 0]
+
+
+def _box_sum(x: Tensor, size: int) -> Tensor:
+    """``(H, W)`` float64 sum of ``x`` over a ``size x size`` window (odd; zeros outside), by
+    an integral image: cost independent of ``size``."""
+    pad = size // 2
+    integral = F.pad(x.double(), (pad + 1, pad, pad + 1, pad)).cumsum(0).cumsum(1)
+    return (integral[size:, size:] - integral[:-size, size:] - integral[size:, :-size]
+            + integral[:-size, :-size])
+
+
+def local_error(log_error: Tensor, valid: Tensor) -> Tensor:
+    """``(H, W)`` ``log_error`` minus its mean over the valid pixels of a window of
+    ``local_error_window`` of the long side (0 where ``~valid``): the part of a pixel's
+    error that the ``v2`` confidence sees (module docstring, 11)."""
+    size = max(3, round(AppearanceConstants.local_error_window * max(log_error.shape)) | 1)
+    weight = valid.to(log_error.dtype)
+    mean = _box_sum(log_error * weight, size) / _box_sum(weight, size).clamp_min(1.0)
+    return torch.where(valid, log_error - mean.to(log_error), torch.zeros_like(log_error))
 
 
 def texture_weight(image: Tensor) -> Tensor:
