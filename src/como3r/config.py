@@ -357,8 +357,8 @@ class SimulatedPriorConfig:
     ``"easy"`` is the near-oracle of round 1 for tests that need precision, ``"v2"`` (in
     progress, not yet the default) adds to the realistic model what the image reveals
     (descriptors, retrieval and confidence from local contrast; a confidence blind to the
-    low-frequency error); the keys from ``focal_error`` on are used by the realistic and v2
-    models only. Units and sources of every key:
+    low-frequency error; per-pair rays); the keys from ``focal_error`` on are used by the
+    realistic and v2 models only. Units and sources of every key:
     :mod:`como3r.prior.simulated_errors`. Lengths are fractions (of a range, a baseline,
     the view's median valid depth or the image's long side), never metres.
     """

@@ -15,9 +15,9 @@ low confidence.
 
 Error model (:class:`~como3r.config.SimulatedPriorConfig`, ``model`` key): the
 ``realistic`` default, the ``easy`` near-oracle or ``v2`` (the realistic model with
-descriptors and confidence that depend on the image's local contrast and a confidence
-blind to the low-frequency error, in progress), documented parameter by parameter, with
-their sources, in :mod:`como3r.prior.simulated_errors`. Draws that
+descriptors and confidence that depend on the image's local contrast, a confidence blind
+to the low-frequency error and per-pair ray errors, in progress), documented parameter by
+parameter, with their sources, in :mod:`como3r.prior.simulated_errors`. Draws that
 belong to one image (its intrinsics and ray errors, its range-error field, flying pixels
 and outliers) are made once at :meth:`SimulatedPrior.encode`, seeded by ``(config.seed,
 agent, index)`` only, so every pair of that image shares them; per-pair draws are seeded
@@ -459,6 +459,11 @@ class SimulatedPrior(Prior):
         X_j_in_i = s * reproducible_matmul(on_rays_j, R.T) + t
         X_ji = scale * errors.in_believed_camera(X_j_in_i, enc_i.rays, enc_i.pred_rays,
                                                  enc_i.K)
+        if self.appearance:  # v2: per-pair rays, the two heads apart (errors, item 12)
+            heads = generator(cfg.seed, "v2 pair rays", enc_i.agent, enc_i.index,
+                              enc_j.agent, enc_j.index)
+            X_ii = errors.jitter_rays(X_ii, enc_i.K, cfg, heads)
+            X_ji = errors.jitter_rays(X_ji, enc_i.K, cfg, heads)
         r = errors.RealisticConstants
         unmatched_i = ~matches.counterpart_i.view(enc_i.shape) & enc_i.valid
         unmatched_j = ~matches.counterpart_j.view(enc_j.shape) & enc_j.valid

@@ -114,6 +114,16 @@ realistic model plus what the image the prior sees can and cannot reveal
     from their neighbours. And ``log(C - 1)`` falls by ``conf_texture_drop (1 - w)``
     (``conf_texture_drop = 1.0``, ``w`` of item 9): where the image shows nothing, depth
     is a guess from context.
+12. Intrinsics errors reach the correspondences. In ``realistic`` both pointmaps of a pair
+    lie on one set of believed rays of camera i drawn once per image (item 1), so the
+    correspondence ``X_ji`` implies is wrong by the pose error alone. MASt3R's ``X_ii``
+    changes with the partner image and its two heads disagree; here each pair moves the
+    normalised image coordinates of ``X_ii`` and, independently, of ``X_ji`` by a focal
+    factor ``exp(pair_intrinsics_share focal_error n)`` and a principal-point shift of
+    ``pair_intrinsics_share principal_point_error`` of the long side per axis
+    (``pair_intrinsics_share = 0.25``: 2 % focal wobble between partners for an 8 % error
+    per image), ranges kept (:func:`jitter_rays`). Zero when the image's intrinsics errors
+    are zero.
 """
 
 from __future__ import annotations
@@ -169,12 +179,34 @@ class AppearanceConstants:
     contrast_q_drop: float = 1.5
     local_error_window: float = 1.0 / 8.0
     conf_texture_drop: float = 1.0
+    pair_intrinsics_share: float = 0.25
 
 
 def _box_mean(x: Tensor, size: int) -> Tensor:
     """``(H, W)`` mean of ``x`` over a ``size x size`` window (odd), borders renormalised."""
     return F.avg_pool2d(x[None, None], size, stride=1, padding=size // 2,
                         count_include_pad=False)[0, 0]
+
+
+def jitter_rays(points: Tensor, K: Tensor, config: SimulatedPriorConfig,
+                gen: torch.Generator) -> Tensor:
+    """``points`` ``(H, W, 3)`` of camera i with their normalised image coordinates
+    ``x / z, y / z`` scaled by ``exp(-share focal_error n)`` and shifted by
+    ``share principal_point_error`` of the long side (in pixels of ``K``'s focal) per axis,
+    ranges kept; points at or behind the camera plane unchanged (module docstring, 12)."""
+    share = AppearanceConstants.pair_intrinsics_share
+    draws = torch.randn(3, generator=gen, dtype=torch.float64)
+    factor = math.exp(-share * config.focal_error * float(draws[0]))
+    focal = 0.5 * float(K[0, 0] + K[1, 1])
+    long_side = max(points.shape[0], points.shape[1])
+    shift = (share * config.principal_point_error * long_side / focal) * draws[1:].float()
+    z = points[..., 2:]
+    front = z[..., 0] > 1e-9
+    xy = points[..., :2] / torch.where(front[..., None], z, torch.ones_like(z))
+    xy = factor * xy + shift.to(xy)
+    direction = F.normalize(torch.cat([xy, torch.ones_like(z)], dim=-1), dim=-1)
+    moved = direction * points.norm(dim=-1, keepdim=True)
+    return torch.where(front[..., None], moved, points)
 
 
 def _box_sum(x: Tensor, size: int) -> Tensor:
