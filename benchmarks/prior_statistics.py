@@ -20,7 +20,9 @@ item 1) for each ``--model`` on two synthetic scenes (``--presets``: a textured 
   (the pixel whose ``X_ii`` ray is nearest to the ray of ``X_ji``, MASt3R-SLAM's projective
   matching solved exactly) and the true one, with the model's intrinsics and ray errors and
   with them set to 0 (``no-ray``). Equal values mean the intrinsics errors never reach the
-  correspondences.
+  correspondences. ``|pose0``: the same without the pair's pose error (no rotation and
+  translation noise, no gross failures), which otherwise dominates: what is left is the
+  rays' and the ranges' share.
 * ``C ovl`` / ``C none``: median ``C_ji`` of pairs across the agents that overlap (true
   covisibility above 0.3) and of pairs that do not (below 0.01); ``AUC``: how well the
   pair's median ``C_ji`` separates the two (0.5: it does not know, 1: it knows the truth);
@@ -238,12 +240,20 @@ def measure(scene: Scene, config: SimulatedPriorConfig, gap: int, max_pairs: int
             ) -> dict[str, float]:
     """Every statistic of one model on one scene (module docstring)."""
     prior = SimulatedPrior(config, scene.truth)
-    no_ray = SimulatedPrior(dataclasses.replace(
-        config, focal_error=0.0, principal_point_error=0.0, ray_field_deg=0.0), scene.truth)
+    no_ray_config = dataclasses.replace(config, focal_error=0.0, principal_point_error=0.0,
+                                        ray_field_deg=0.0)
+    exact_pose = dict(rotation_noise_deg=0.0, translation_noise=0.0, translation_floor=0.0,
+                      gross_failure_rate=0.0)
+    variants = {  # the ray-matching error of these models besides the model itself
+        "ray_none": SimulatedPrior(no_ray_config, scene.truth),
+        "ray_pose0": SimulatedPrior(dataclasses.replace(config, **exact_pose), scene.truth),
+        "ray_none_pose0": SimulatedPrior(dataclasses.replace(no_ray_config, **exact_pose),
+                                         scene.truth),
+    }
     encodings = [[prior.encode(v) for v in row] for row in scene.views]
     frames = len(scene.views[0])
     out: dict[str, list[float]] = {key: [] for key in (
-        "nn", "rho", "rho_smooth", "rho_pixel", "ray", "ray_none", "depth", "focal", "pose")}
+        "nn", "rho", "rho_smooth", "rho_pixel", "ray", *variants, "depth", "focal", "pose")}
     for k in range(0, frames - gap, max(1, (frames - gap) // max_pairs))[:max_pairs]:
         view_i, view_j = scene.views[0][k], scene.views[0][k + gap]
         gt_i, gt_j = scene.gt(view_i), scene.gt(view_j)
@@ -257,10 +267,11 @@ def measure(scene: Scene, config: SimulatedPriorConfig, gap: int, max_pairs: int
         for key, value in zip(("depth", "focal", "pose"),
                               depth_focal_pose(pred, view_i, gt_i, gt_j)):
             out[key].append(value)
-        plain = no_ray.decode(no_ray.encode(view_i), no_ray.encode(view_j))
-        value = ray_matching_px(plain, gt_i, gt_j, k)
-        if value is not None:
-            out["ray_none"].append(value)
+        for key, variant in variants.items():
+            value = ray_matching_px(variant.decode(variant.encode(view_i),
+                                                   variant.encode(view_j)), gt_i, gt_j, k)
+            if value is not None:
+                out[key].append(value)
     covis = np.asarray([[covisibility(scene.gt(a), scene.gt(b)) for b in scene.views[1]]
                         for a in scene.views[0]])
     ranks = retrieval_ranks(prior, encodings, covis)
@@ -299,7 +310,8 @@ COLUMNS = (  # (key, header, format)
     ("nn", "NN<=2px", "{:.1%}"), ("r1", "R@1", "{:.0%}"), ("rank", "rank", "{:.1f}"),
     ("rho", "rho", "{:+.2f}"), ("rho_smooth", "rho smooth", "{:+.2f}"),
     ("rho_pixel", "rho pixel", "{:+.2f}"), ("ray", "ray px", "{:.2f}"),
-    ("ray_none", "no-ray px", "{:.2f}"), ("c_overlap", "C ovl", "{:.2f}"),
+    ("ray_none", "no-ray px", "{:.2f}"), ("ray_pose0", "ray|pose0", "{:.2f}"),
+    ("ray_none_pose0", "no-ray|pose0", "{:.2f}"), ("c_overlap", "C ovl", "{:.2f}"),
     ("c_none", "C none", "{:.2f}"), ("auc", "AUC", "{:.2f}"), ("covis", "covis", "{:.2f}"),
     ("depth", "depth %", "{:.1%}"), ("focal", "focal %", "{:.1%}"),
     ("pose", "pose deg", "{:.2f}"),
