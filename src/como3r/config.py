@@ -354,13 +354,16 @@ class SimulatedPriorConfig:
     """Error model of the simulated prior (README, "Python API").
 
     ``model`` selects it: ``"realistic"`` (default) imitates MASt3R's failure modes,
-    ``"easy"`` is the near-oracle of round 1 for tests that need precision; the keys from
-    ``focal_error`` on are used by the realistic model only. Units and sources of every key:
+    ``"easy"`` is the near-oracle of round 1 for tests that need precision, ``"v2"`` (in
+    progress, not yet the default) adds to the realistic model what the image reveals
+    (descriptors, retrieval and confidence from local contrast; a confidence blind to the
+    low-frequency error; per-pair rays); the keys from ``focal_error`` on are used by the
+    realistic and v2 models only. Units and sources of every key:
     :mod:`como3r.prior.simulated_errors`. Lengths are fractions (of a range, a baseline,
     the view's median valid depth or the image's long side), never metres.
     """
 
-    model: Literal["realistic", "easy"] = "realistic"
+    model: Literal["realistic", "easy", "v2"] = "realistic"
     scale_sigma: float = 0.05
     depth_distortion_amplitude: float = 0.03
     depth_distortion_wavelength: float = 1.0 / 3.0

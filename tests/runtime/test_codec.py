@@ -78,7 +78,7 @@ def _from_hints(cls: type, seed: int, **given: Any) -> Any:
         hint = hints[f.name]
         if f.name in given:
             values[f.name] = given[f.name]
-        elif hint is torch.Tensor:
+        elif hint is torch.Tensor or typing.get_args(hint) == (torch.Tensor, type(None)):
             values[f.name] = makers[i % len(makers)]()
         elif hint in scalars:
             values[f.name] = scalars[hint]

@@ -14,14 +14,17 @@ true relative pose, aliased views the wrong one, views without common keys a ran
 low confidence.
 
 Error model (:class:`~como3r.config.SimulatedPriorConfig`, ``model`` key): the
-``realistic`` default or the ``easy`` near-oracle, both documented parameter by parameter,
-with their sources, in :mod:`como3r.prior.simulated_errors`. Draws that belong to one image
-(its intrinsics and ray errors, its range-error field, flying pixels and outliers) are made
-once at :meth:`SimulatedPrior.encode`, seeded by ``(config.seed, agent, index)`` only, so
-every pair of that image shares them; per-pair draws are seeded by ``(config.seed, agent and
-index of view i, agent and index of view j)``, so a decode is deterministic and (i, j),
-(j, i) are independent. Both models place sky pixels (no depth) at 10-20 times the view's
-median valid depth with confidence about 1, and every length is relative to that median.
+``realistic`` default, the ``easy`` near-oracle or ``v2`` (the realistic model with
+descriptors and confidence that depend on the image's local contrast, a confidence blind
+to the low-frequency error and per-pair ray errors, in progress), documented parameter by
+parameter, with their sources, in :mod:`como3r.prior.simulated_errors`. Draws that
+belong to one image (its intrinsics and ray errors, its range-error field, flying pixels
+and outliers) are made once at :meth:`SimulatedPrior.encode`, seeded by ``(config.seed,
+agent, index)`` only, so every pair of that image shares them; per-pair draws are seeded
+by ``(config.seed, agent and index of view i, agent and index of view j)``, so a decode is
+deterministic and (i, j), (j, i) are independent. Every model places sky pixels (no
+depth) at 10-20 times the view's median valid depth with confidence about 1, and every
+length is relative to that median.
 
 Sky is what a surface map says it is (texture id < 0). A view without a surface map has its
 depth from a sensor (the Kinect of TUM RGB-D and 7-Scenes), whose holes are not the scene's
@@ -88,6 +91,7 @@ from como3r.prior.simulated_keys import (
 from como3r.prior.simulated_retrieval import (
     cached_array,
     default_cache_dir,
+    mix_appearance,
     patch_features,
     select_patches,
     synthetic_patch_features,
@@ -178,6 +182,12 @@ class SimulatedEncoding(Encoding):
         footprint: ``(H, W)`` key-space pixel size (metres).
         median_footprint: median of ``footprint`` over keyed pixels (metres).
         descriptors: ``(H, W, d)`` float16 noise-free unit descriptors.
+        texture: ``(H, W)`` float32 weight of the key in each descriptor, from the image's
+            local contrast (:func:`~como3r.prior.simulated_errors.texture_weight`); None in
+            the models that ignore the image (all but ``v2``).
+        colours: ``(H // s, W // s, 3)`` float32 mean image colour of each ``s x s`` cell,
+            ``s = retrieval_stride`` (:func:`~como3r.prior.simulated_errors.cell_colours`);
+            None as ``texture``.
     """
 
     K: Tensor
@@ -194,6 +204,8 @@ class SimulatedEncoding(Encoding):
     footprint: Tensor
     median_footprint: float
     descriptors: Tensor
+    texture: Tensor | None = None
+    colours: Tensor | None = None
 
 
 def _normalize(x: Tensor) -> Tensor:
@@ -260,7 +272,8 @@ class SimulatedPrior(Prior):
         self.truth = truth
         self.constants = constants or SimulatedConstants()
         errors.check_config(self.config)
-        self.realistic = self.config.model == errors.REALISTIC
+        self.realistic = self.config.model in errors.REALISTIC_MODELS
+        self.appearance = self.config.model == errors.V2
         self.descriptor_dim = self.config.descriptor_dim
         c = self.constants
         ambiguity = self.config.descriptor_ambiguity if self.realistic else 0.0
@@ -312,6 +325,16 @@ class SimulatedPrior(Prior):
             log_range_error = errors.image_log_range_error(ranges, valid, self.config, draws)
         else:
             pred_rays, log_range_error = rays, torch.zeros_like(ranges)
+        descriptors = self._clean_descriptors(key_ids, key_coords, footprint)
+        texture = colours = None
+        if self.appearance:
+            image = view.image.to(descriptors.device)
+            texture = errors.texture_weight(image)
+            appearance = errors.appearance_descriptors(image, self.descriptor_dim,
+                                                       self.config.seed)
+            descriptors = _normalize(texture[..., None] * descriptors
+                                     + (1.0 - texture[..., None]) * appearance)
+            colours = errors.cell_colours(image, self.constants.retrieval_stride)
         return SimulatedEncoding(
             agent=view.agent, index=view.index, shape=(H, W), K=K, rays=rays, pred_rays=pred_rays,
             log_range_error=log_range_error,
@@ -322,7 +345,7 @@ class SimulatedPrior(Prior):
             key_ids=key_ids, key_coords=key_coords, footprint=footprint,
             median_footprint=median_footprint,
             # float16 as MASt3R-SLAM's matching kernels use them; far below the noise
-            descriptors=self._clean_descriptors(key_ids, key_coords, footprint).half(),
+            descriptors=descriptors.half(), texture=texture, colours=colours,
         )
 
     def _truth_of(self, view: View) -> GroundTruth:
@@ -436,6 +459,11 @@ class SimulatedPrior(Prior):
         X_j_in_i = s * reproducible_matmul(on_rays_j, R.T) + t
         X_ji = scale * errors.in_believed_camera(X_j_in_i, enc_i.rays, enc_i.pred_rays,
                                                  enc_i.K)
+        if self.appearance:  # v2: per-pair rays, the two heads apart (errors, item 12)
+            heads = generator(cfg.seed, "v2 pair rays", enc_i.agent, enc_i.index,
+                              enc_j.agent, enc_j.index)
+            X_ii = errors.jitter_rays(X_ii, enc_i.K, cfg, heads)
+            X_ji = errors.jitter_rays(X_ji, enc_i.K, cfg, heads)
         r = errors.RealisticConstants
         unmatched_i = ~matches.counterpart_i.view(enc_i.shape) & enc_i.valid
         unmatched_j = ~matches.counterpart_j.view(enc_j.shape) & enc_j.valid
@@ -447,12 +475,24 @@ class SimulatedPrior(Prior):
         conf_j, desc_conf_j = self._base_logits(enc_j)
         noise = cfg.confidence_noise
         descriptor_noise = cfg.descriptor_noise * (1.0 + cfg.descriptor_viewpoint_gain * change)
+        noise_i = noise_j = descriptor_noise
+        known_i, known_j = error_i, error_j
+        if enc_i.texture is not None and enc_j.texture is not None:  # v2 (errors, 9 and 11)
+            a = errors.AppearanceConstants
+            noise_i = descriptor_noise * (1.0 + a.contrast_noise_gain * (1.0 - enc_i.texture))
+            noise_j = descriptor_noise * (1.0 + a.contrast_noise_gain * (1.0 - enc_j.texture))
+            desc_conf_i = desc_conf_i - a.contrast_q_drop * (1.0 - enc_i.texture)
+            desc_conf_j = desc_conf_j - a.contrast_q_drop * (1.0 - enc_j.texture)
+            known_i = errors.local_error(error_i, enc_i.valid)
+            known_j = errors.local_error(error_j, enc_j.valid)
+            conf_i = conf_i - a.conf_texture_drop * (1.0 - enc_i.texture)
+            conf_j = conf_j - a.conf_texture_drop * (1.0 - enc_j.texture)
         return PairPrediction(
             X_ii=scale * X_ii, X_ji=X_ji,
-            C_ii=self._conf(conf_i - errors.error_logit(error_i, cfg), gen, noise),
-            C_ji=self._conf(conf_j - errors.error_logit(error_j, cfg) - drop_j, gen, noise),
-            D_ii=self._noisy_descriptors(enc_i, gen, descriptor_noise),
-            D_ji=self._noisy_descriptors(enc_j, gen, descriptor_noise),
+            C_ii=self._conf(conf_i - errors.error_logit(known_i, cfg), gen, noise),
+            C_ji=self._conf(conf_j - errors.error_logit(known_j, cfg) - drop_j, gen, noise),
+            D_ii=self._noisy_descriptors(enc_i, gen, noise_i),
+            D_ji=self._noisy_descriptors(enc_j, gen, noise_j),
             Q_ii=self._desc_conf(desc_conf_i - drop_i, gen, noise),
             Q_ji=self._desc_conf(desc_conf_j - drop_j, gen, noise),
         )
@@ -530,12 +570,16 @@ class SimulatedPrior(Prior):
 
     @staticmethod
     def _noisy_descriptors(enc: SimulatedEncoding, gen: torch.Generator,
-                           sigma: float) -> Tensor:
-        """``(H, W, d)`` unit descriptors plus noise of RMS norm ``sigma``."""
+                           sigma: float | Tensor) -> Tensor:
+        """``(H, W, d)`` unit descriptors plus noise of RMS norm ``sigma`` (a number or an
+        ``(H, W)`` map)."""
         d = enc.descriptors.shape[-1]
         noisy = torch.randn(enc.descriptors.shape, generator=gen).to(enc.descriptors.device)
         # in place: these are the largest tensors of a decode
-        noisy.mul_(sigma / math.sqrt(d)).add_(enc.descriptors)
+        if isinstance(sigma, Tensor):
+            noisy.mul_(sigma[..., None].to(noisy) / math.sqrt(d)).add_(enc.descriptors)
+        else:
+            noisy.mul_(sigma / math.sqrt(d)).add_(enc.descriptors)
         return noisy.div_(noisy.norm(dim=-1, keepdim=True).clamp_min_(1e-12))
 
     # ------------------------------------------------------------------ retrieval
@@ -559,9 +603,14 @@ class SimulatedPrior(Prior):
             raise PriorError(f"simulated prior: a {enc.shape[1]}x{enc.shape[0]} view has no "
                              f"{c.retrieval_patch}x{c.retrieval_patch} patch for retrieval")
         gen = generator(self.config.seed, "retrieval", enc.agent, enc.index)
+        appearance = None
+        if enc.texture is not None and enc.colours is not None:  # v2 (errors, item 10)
+            appearance = errors.patch_appearance(enc.colours, enc.texture, c.retrieval_patch,
+                                                 c.retrieval_stride, c.retrieval_dim,
+                                                 self.config.seed)
         descriptors, attention = patch_features(
             self._retrieval_map, enc.key_ids, enc.key_coords, enc.footprint,
-            c.retrieval_patch, c.retrieval_stride, c.retrieval_noise, gen)
+            c.retrieval_patch, c.retrieval_stride, c.retrieval_noise, gen, appearance)
         return select_patches(descriptors, attention, c.retrieval_max_features,
                               c.retrieval_min_valid)
 
@@ -587,15 +636,22 @@ class SimulatedPrior(Prior):
         c = self.constants
         size = size or c.codebook_size
         directory = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+        v2 = (repr(dataclasses.astuple(errors.AppearanceConstants())),) if self.appearance else ()
         digest = stable_seed(CODEBOOK_CACHE_VERSION, size, self.config.seed,
-                             repr(dataclasses.astuple(c)))
+                             repr(dataclasses.astuple(c)), *v2)
 
         def train() -> np.ndarray:
             logger.info("training the simulated prior's %d-word codebook (once)", size)
+            count = size * c.codebook_samples_per_word
+            gen = generator(self.config.seed, "codebook sample")
             sample = synthetic_patch_features(
-                self._retrieval_map, size * c.codebook_samples_per_word, c.retrieval_patch,
-                c.retrieval_stride, c.retrieval_noise, c.codebook_world_fraction,
-                generator(self.config.seed, "codebook sample"))
+                self._retrieval_map, count, c.retrieval_patch, c.retrieval_stride,
+                c.retrieval_noise, c.codebook_world_fraction, gen)
+            if self.appearance:  # v2: key patches mixed with image appearance (errors, 10)
+                mixed = mix_appearance(sample, *errors.random_patch_appearance(
+                    count, c.retrieval_patch, c.retrieval_stride, c.retrieval_dim,
+                    self.config.seed, gen))
+                sample = _normalize(mixed)
             return train_codebook(sample.numpy(), size, self.config.seed)
 
         return cached_array(directory / f"simulated_codebook_{digest:016x}.npy",
@@ -612,4 +668,6 @@ class SimulatedPrior(Prior):
         }
         if self.realistic:
             out["realistic_constants"] = dataclasses.asdict(errors.RealisticConstants())
+        if self.appearance:
+            out["appearance_constants"] = dataclasses.asdict(errors.AppearanceConstants())
         return out

@@ -37,7 +37,8 @@ def _noisy_unit(mean: Tensor, noise: float, gen: torch.Generator) -> Tensor:
 
 def patch_features(feature_map: RandomFeatureMap, key_ids: Tensor, key_coords: Tensor,
                    footprint: Tensor, patch: int, stride: int, noise: float,
-                   gen: torch.Generator) -> tuple[Tensor, Tensor]:
+                   gen: torch.Generator, appearance: tuple[Tensor, Tensor] | None = None
+                   ) -> tuple[Tensor, Tensor]:
     """Descriptor and keyed fraction of every whole ``patch x patch`` patch of a view.
 
     Keys are sampled every ``stride`` pixels and their features blurred by that footprint.
@@ -51,6 +52,10 @@ def patch_features(feature_map: RandomFeatureMap, key_ids: Tensor, key_coords: T
         stride: sampling step in pixels.
         noise: RMS norm of the per-view noise added to each unit descriptor.
         gen: generator of the noise.
+        appearance: ``(P, d)`` unit appearance features and ``(P,)`` weights ``w`` of the
+            keys (:func:`~como3r.prior.simulated_errors.patch_appearance`): the noise is
+            added to ``w`` times the unit key mean plus ``1 - w`` times the appearance;
+            None: the key mean alone.
 
     Returns:
         ``(P, d)`` unit descriptors and ``(P,)`` fractions of keyed samples, patches in
@@ -67,7 +72,16 @@ def patch_features(feature_map: RandomFeatureMap, key_ids: Tensor, key_coords: T
     summed = features.reshape(rows, per, cols, per, -1).sum((1, 3)).reshape(rows * cols, -1)
     count = keyed.float().reshape(rows, per, cols, per).sum((1, 3)).reshape(-1)
     mean = summed / count.clamp_min(1.0)[:, None]
+    if appearance is not None:
+        mean = mix_appearance(mean, *appearance)
     return _noisy_unit(mean, noise, gen), count / (per * per)
+
+
+def mix_appearance(keys: Tensor, appearance: Tensor, weight: Tensor) -> Tensor:
+    """``w`` times the unit ``keys`` ``(P, d)`` plus ``1 - w`` times the unit ``appearance``
+    ``(P, d)``, ``w`` = ``weight`` ``(P,)`` (not normalised)."""
+    w = weight[:, None].to(keys)
+    return w * F.normalize(keys, dim=-1) + (1.0 - w) * appearance.to(keys)
 
 
 def select_patches(descriptors: Tensor, attention: Tensor, max_features: int,
