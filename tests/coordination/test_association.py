@@ -6,8 +6,13 @@ import pytest
 import torch
 
 from como3r.config import Config, apply_overrides
-from como3r.coordination.association import CrossAgentRetrieval, verify_candidates
+from como3r.coordination.association import (
+    CrossAgentRetrieval,
+    budget_candidates,
+    verify_candidates,
+)
 from como3r.data.agent import open_agent
+from como3r.errors import ConfigError
 from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import make_view
 from como3r.data.synth import synthesize
@@ -149,3 +154,66 @@ def test_retrieval_returns_other_agents_only(facades) -> None:
         assert [h.similarity for h in found] == sorted((h.similarity for h in found),
                                                        reverse=True)
     assert any(hits.values())
+
+
+class _CountingPrior:
+    """A prior that counts the ordered pairs it decodes."""
+
+    def __init__(self, prior) -> None:
+        self.prior, self.decodes = prior, 0
+
+    def decode_pairs(self, pairs):
+        self.decodes += len(pairs)
+        return self.prior.decode_pairs(pairs)
+
+    def decode_symmetric(self, pairs):
+        self.decodes += 2 * len(pairs)
+        return self.prior.decode_symmetric(pairs)
+
+
+@pytest.mark.parametrize("agents", [8, 16])
+@pytest.mark.parametrize("budget", [2, 6])
+def test_a_keyframes_decodes_stay_within_the_budget_whatever_the_team(facades, agents,
+                                                                      budget) -> None:
+    prior, config, views = facades
+    config = apply_overrides(config, [f"verification.max_decodes_per_keyframe={budget}"])
+    [query] = [k for k in views if k[0] == 1][1:2]
+    # every other agent offers candidates (agent 0's keyframes under other agents' names);
+    # the lower half of the team already shares the query's gauge component
+    keys = [k for k in views if k[0] == 0]
+    hits = [Hit(agent, keyframe, 0.1 - 0.001 * n)
+            for n, (agent, (_, keyframe)) in enumerate(
+                (a, keys[(a + i) % len(keys)]) for i in range(3)
+                for a in range(agents) if a != 1)]
+    merged = lambda agent: agent < agents // 2  # noqa: E731
+    chosen = budget_candidates(hits, merged, config.verification)
+    counting = _CountingPrior(prior)
+    results = verify_candidates(counting, query, views[query][0],
+                                [(h, views[(0, h.keyframe)][0]) for h in chosen],
+                                config.matching, config.tracking.q_min, config.verification)
+    assert len(results) == len(chosen) == budget // 2 < len(hits)
+    assert 0 < counting.decodes <= budget
+    assert sum(merged(h.agent) for h in chosen) <= config.verification.max_within_component
+    # best first: a hit is left out only for a better one or for its merged agent
+    best_unmerged = sorted((h for h in hits if not merged(h.agent)),
+                           key=lambda h: -h.similarity)
+    assert [h for h in chosen if not merged(h.agent)] == best_unmerged[:len(
+        [h for h in chosen if not merged(h.agent)])]
+    assert chosen[0] == max(hits, key=lambda h: h.similarity)
+
+
+def test_the_budget_skips_merged_agents_past_their_share() -> None:
+    verification = Config().verification
+    hits = [Hit(2, 0, 0.09), Hit(3, 0, 0.08), Hit(4, 0, 0.07), Hit(5, 0, 0.06)]
+    merged = lambda agent: agent in (2, 3)  # noqa: E731
+    assert budget_candidates(hits, merged, verification) == [hits[0], hits[2], hits[3]]
+    assert budget_candidates(hits, lambda agent: False, verification) == hits[:3]
+    none_within = apply_overrides(Config(), ["verification.max_within_component=0"])
+    assert budget_candidates(hits, merged, none_within.verification) == hits[2:]
+    # unordered hits are ranked by similarity first
+    assert budget_candidates(hits[::-1], lambda agent: False, verification) == hits[:3]
+
+
+def test_a_budget_below_one_candidate_is_refused() -> None:
+    with pytest.raises(ConfigError, match="max_decodes_per_keyframe"):
+        apply_overrides(Config(), ["verification.max_decodes_per_keyframe=1"])

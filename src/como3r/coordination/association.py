@@ -4,6 +4,10 @@
    tagged by agent (:class:`CrossAgentRetrieval`). A new keyframe first queries it for the
    top ``k_NN`` keyframes of OTHER agents and keeps those whose similarity exceeds the
    threshold (C-Tab. 3: 3 and ``5e-3``), then is added to it.
+   **Budget** (como3r addition, :func:`budget_candidates`): of those hits, at most
+   ``verification.max_within_component`` whose agent already shares the keyframe's gauge
+   component, and no more than ``verification.max_decodes_per_keyframe`` decodes' worth in
+   all, are verified, best first: the work a keyframe causes is bounded whatever the team.
 2. **Verification.** Each candidate pair is decoded symmetrically by the prior and matched
    densely in both directions (:func:`~como3r.frontend.pairs.directed_matches`, the same
    code that builds every intra-agent edge); it is accepted when ``min(nu_i, nu_j) >=
@@ -32,7 +36,7 @@ against itself, 0.02-0.1 against overlapping views and below 0.005 against unrel
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 from torch import Tensor
@@ -71,6 +75,38 @@ class CrossAgentRetrieval:
         self.queries += 1
         descriptors, attention = retrieval
         return self.database.query_and_add(agent, kf_id, descriptors, attention, scope="others")
+
+
+#: prior decodes one candidate's verification costs at most (C-Eq. 12 decodes both orders)
+DECODES_PER_CANDIDATE = 2
+
+
+def budget_candidates(hits: Sequence[Hit], merged: Callable[[int], bool],
+                      verification: VerificationConfig) -> list[Hit]:
+    """The retrieval hits one keyframe verifies, best first, within its decode budget.
+
+    Args:
+        hits: the keyframe's retrieval hits over all other agents.
+        merged: whether an agent already shares the keyframe's gauge component.
+        verification: ``max_decodes_per_keyframe`` and ``max_within_component``.
+
+    Returns:
+        The hits by decreasing similarity (ties keep their order), skipping those of merged
+        agents past ``max_within_component``, as many as fit ``max_decodes_per_keyframe``
+        at two decodes each.
+    """
+    limit = verification.max_decodes_per_keyframe // DECODES_PER_CANDIDATE
+    chosen: list[Hit] = []
+    within = 0
+    for hit in sorted(hits, key=lambda h: -h.similarity):
+        if len(chosen) == limit:
+            break
+        if merged(hit.agent):
+            if within == verification.max_within_component:
+                continue
+            within += 1
+        chosen.append(hit)
+    return chosen
 
 
 @dataclass(frozen=True)

@@ -54,7 +54,8 @@ from como3r.backend.alternation import AlternationReport, AlternationSettings, a
 from como3r.backend.depth_refinement import DepthRefinementReport
 from como3r.backend.global_graph import BAResult, GlobalGraph, GraphLink
 from como3r.config import Config, DepthRefinementConfig
-from como3r.coordination.association import CrossAgentRetrieval, Verification, verify_candidates
+from como3r.coordination.association import (CrossAgentRetrieval, Verification,
+                                             budget_candidates, verify_candidates)
 from como3r.coordination.gauge import (
     GaugeComponents,
     GaugeTransform,
@@ -570,6 +571,9 @@ class Coordinator:
         self.stats.retrieval_queries += 1
         middle = time.perf_counter()
         self.stats.add_time("retrieval", middle - start)
+        root = self.gauges.find(packet.agent)
+        hits = budget_candidates(hits, lambda agent: self.gauges.find(agent) == root,
+                                 self.config.verification)
         if not hits:
             return []
         candidates = [(h, self.graph.keyframes[self.graph.global_index(h.agent, h.keyframe)]
