@@ -213,6 +213,20 @@ def test_consensus_merges_only_on_agreeing_edges(ring) -> None:
     assert _merged_keyframe_ate(coordinator, ring) <= 0.01 * ring.path_length
 
 
+def test_agents_already_merged_are_verified_less(ring) -> None:
+    order = _interleave(ring, [0, 1, 2, 3])
+    runs = {share: _run(ring, order, apply_overrides(
+        ring.config, [f"verification.max_within_component={share}"]))[0] for share in (0, 3)}
+    for coordinator in runs.values():
+        assert coordinator.components() == [[0, 1, 2, 3]]
+        metrics = coordinator.metrics()
+        budget = coordinator.config.verification.max_decodes_per_keyframe
+        assert metrics["prior_decodes"] <= budget * metrics["retrieval_queries"]
+    # 3 = k_nn: every hit verified, as the paper; 0: only hits of other components
+    assert runs[0].metrics()["edges_tried"] < runs[3].metrics()["edges_tried"]
+    assert runs[0].metrics()["prior_decodes"] < runs[3].metrics()["prior_decodes"]
+
+
 def test_without_loop_closure_agents_stay_apart(ring) -> None:
     config = apply_overrides(ring.config, ["loop_closure=false"])
     coordinator, updates = _run(ring, _interleave(ring, [0, 1]), config, agents=2)
