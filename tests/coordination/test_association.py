@@ -176,7 +176,8 @@ class _CountingPrior:
 def test_a_keyframes_decodes_stay_within_the_budget_whatever_the_team(facades, agents,
                                                                       budget) -> None:
     prior, config, views = facades
-    config = apply_overrides(config, [f"verification.max_decodes_per_keyframe={budget}"])
+    config = apply_overrides(config, [f"verification.max_decodes_per_keyframe={budget}",
+                                      "verification.max_within_component=1"])
     [query] = [k for k in views if k[0] == 1][1:2]
     # every other agent offers candidates (agent 0's keyframes under other agents' names);
     # the lower half of the team already shares the query's gauge component
@@ -203,7 +204,7 @@ def test_a_keyframes_decodes_stay_within_the_budget_whatever_the_team(facades, a
 
 
 def test_the_budget_skips_merged_agents_past_their_share() -> None:
-    verification = Config().verification
+    verification = apply_overrides(Config(), ["verification.max_within_component=1"]).verification
     hits = [Hit(2, 0, 0.09), Hit(3, 0, 0.08), Hit(4, 0, 0.07), Hit(5, 0, 0.06)]
     merged = lambda agent: agent in (2, 3)  # noqa: E731
     assert budget_candidates(hits, merged, verification) == [hits[0], hits[2], hits[3]]
@@ -212,6 +213,8 @@ def test_the_budget_skips_merged_agents_past_their_share() -> None:
     assert budget_candidates(hits, merged, none_within.verification) == hits[2:]
     # unordered hits are ranked by similarity first
     assert budget_candidates(hits[::-1], lambda agent: False, verification) == hits[:3]
+    # the defaults verify every one of the paper's k_NN = 3 hits
+    assert budget_candidates(hits[:3], merged, Config().verification) == hits[:3]
 
 
 def test_a_budget_below_one_candidate_is_refused() -> None:
