@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from rich.console import Console
 from rich.table import Table
@@ -19,8 +19,9 @@ def format_value(value: object) -> str:
     return str(value)
 
 
-def print_table(console: Console, rows: list[dict], columns: Sequence[str], title: str,
-                left: Sequence[str] = ()) -> None:
+def print_table(
+    console: Console, rows: list[dict], columns: Sequence[str], title: str, left: Sequence[str] = ()
+) -> None:
     """One line per row; the ``left`` columns left-aligned, the others right-aligned."""
     table = Table(title=title)
     for column in columns:

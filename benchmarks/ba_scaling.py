@@ -67,8 +67,9 @@ def build_problem(
     graph = synthetic_graph(truth, i, j, POINTS_PER_EDGE, generator)
     initial = sim3_compose(random_sim3(num_poses, 2.0, 0.2, 0.03, generator), truth)
     initial[0] = truth[0]
-    factors = RayRangeFactors(graph.i, graph.j, graph.X_i.float(), graph.X_j.float(),
-                              graph.q.float(), graph.valid)
+    factors = RayRangeFactors(
+        graph.i, graph.j, graph.X_i.float(), graph.X_j.float(), graph.q.float(), graph.valid
+    )
     return factors, PoseValues.from_poses(initial.float(), num_pinned=1)
 
 
@@ -111,7 +112,8 @@ def time_iteration(
     for backend in CG_BACKENDS:
         if backend in steps and "sparse" in steps:
             timings[f"{backend}_step_diff"] = float(
-                (steps[backend] - steps["sparse"]).norm() / steps["sparse"].norm())
+                (steps[backend] - steps["sparse"]).norm() / steps["sparse"].norm()
+            )
     return timings
 
 
@@ -143,9 +145,11 @@ def family(args: argparse.Namespace, loop_every: int) -> dict[int, dict[str, flo
     """Time every size of one graph family (a loop edge every ``loop_every`` keyframes),
     print its tables and slopes, and return the timings by N."""
     print(f"--- a loop edge every {loop_every} keyframes ---")
-    header = (f"{'N':>6} {'edges':>6} {'linearize s':>12} {'dense s':>9} {'sparse s':>9} "
-              f"{'pcg s':>8} {'band s':>8} {'auto':>6} {'GN iter auto s':>15} "
-              f"{'GN iter sparse s':>17} {'band/sparse':>12} {'pcg/sparse':>11}")
+    header = (
+        f"{'N':>6} {'edges':>6} {'linearize s':>12} {'dense s':>9} {'sparse s':>9} "
+        f"{'pcg s':>8} {'band s':>8} {'auto':>6} {'GN iter auto s':>15} "
+        f"{'GN iter sparse s':>17} {'band/sparse':>12} {'pcg/sparse':>11}"
+    )
     print(header)
     print("-" * len(header))
     results = {}
@@ -154,23 +158,31 @@ def family(args: argparse.Namespace, loop_every: int) -> dict[int, dict[str, flo
         t = time_iteration(n, backends, args.repeats, loop_every)
         results[n] = t
         dense = f"{t['dense']:9.4f}" if "dense" in t else f"{'skipped':>9}"
-        print(f"{n:6d} {int(t['edges']):6d} {t['linearize']:12.4f} {dense} {t['sparse']:9.4f} "
-              f"{t['pcg']:8.4f} {t['band']:8.4f} {t['auto']:>6} "
-              f"{t['linearize'] + t[t['auto']]:15.4f} {t['linearize'] + t['sparse']:17.4f} "
-              f"{t['band'] / t['sparse']:12.2f} {t['pcg'] / t['sparse']:11.2f}")
+        print(
+            f"{n:6d} {int(t['edges']):6d} {t['linearize']:12.4f} {dense} {t['sparse']:9.4f} "
+            f"{t['pcg']:8.4f} {t['band']:8.4f} {t['auto']:>6} "
+            f"{t['linearize'] + t[t['auto']]:15.4f} {t['linearize'] + t['sparse']:17.4f} "
+            f"{t['band'] / t['sparse']:12.2f} {t['pcg'] / t['sparse']:11.2f}"
+        )
     print()
-    print(f"{'N':>6} {'pcg CG iters':>13} {'|pcg-sparse|/|sparse|':>22} {'band CG iters':>14} "
-          f"{'|band-sparse|/|sparse|':>23}")
+    print(
+        f"{'N':>6} {'pcg CG iters':>13} {'|pcg-sparse|/|sparse|':>22} {'band CG iters':>14} "
+        f"{'|band-sparse|/|sparse|':>23}"
+    )
     for n, t in results.items():
-        print(f"{n:6d} {int(t['pcg_iterations']):13d} {t['pcg_step_diff']:22.1e} "
-              f"{int(t['band_iterations']):14d} {t['band_step_diff']:23.1e}")
+        print(
+            f"{n:6d} {int(t['pcg_iterations']):13d} {t['pcg_step_diff']:22.1e} "
+            f"{int(t['band_iterations']):14d} {t['band_step_diff']:23.1e}"
+        )
     skipped = [n for n in args.sizes if n > args.dense_max]
     if skipped and any(n <= args.dense_max for n in args.sizes):
         largest = max(n for n in args.sizes if n <= args.dense_max)
         estimate = results[largest]["dense"] * (max(skipped) / largest) ** 3
-        print(f"dense skipped for N = {skipped}: a (7N)^2 float64 matrix is "
-              f"{8 * (7 * max(skipped)) ** 2 / 1e9:.1f} GB (x3 while factorising) and the "
-              f"O(N^3) Cholesky would take ~{estimate:.0f} s (extrapolated from N = {largest})")
+        print(
+            f"dense skipped for N = {skipped}: a (7N)^2 float64 matrix is "
+            f"{8 * (7 * max(skipped)) ** 2 / 1e9:.1f} GB (x3 while factorising) and the "
+            f"O(N^3) Cholesky would take ~{estimate:.0f} s (extrapolated from N = {largest})"
+        )
     diffs = [t["max_step_diff"] for t in results.values() if "max_step_diff" in t]
     if diffs:
         print(f"max |dense step - sparse step| = {max(diffs):.2e}")
@@ -178,10 +190,14 @@ def family(args: argparse.Namespace, loop_every: int) -> dict[int, dict[str, flo
     sizes = list(results)
     if len(sizes) < 2:
         return results
-    for key, label in (("linearize", "linearize time"), ("sparse", "sparse solve time"),
-                       ("pcg", "pcg solve time"), ("band", "band solve time"),
-                       ("pcg_iterations", "pcg CG iteration count"),
-                       ("band_iterations", "band CG iteration count")):
+    for key, label in (
+        ("linearize", "linearize time"),
+        ("sparse", "sparse solve time"),
+        ("pcg", "pcg solve time"),
+        ("band", "band solve time"),
+        ("pcg_iterations", "pcg CG iteration count"),
+        ("band_iterations", "band CG iteration count"),
+    ):
         fitted = slope(sizes, [results[n][key] for n in sizes])
         print(f"log-log slope of {label} vs N: {fitted:.2f}")
     for backend in ("sparse", "pcg", "band"):
@@ -193,8 +209,10 @@ def family(args: argparse.Namespace, loop_every: int) -> dict[int, dict[str, flo
         print(f"log-log slope of dense solve time vs N: {slope(dense_sizes, dense_times):.2f}")
     total = [results[n]["linearize"] + results[n][results[n]["auto"]] for n in sizes]
     picked = sorted({results[n]["auto"] for n in sizes})
-    print(f"log-log slope of a DEFAULT (backend=\"auto\": {'/'.join(picked)}) GN iteration "
-          f"vs N: {slope(sizes, total):.2f}")
+    print(
+        f'log-log slope of a DEFAULT (backend="auto": {"/".join(picked)}) GN iteration '
+        f"vs N: {slope(sizes, total):.2f}"
+    )
     print()
     return results
 
@@ -202,20 +220,32 @@ def family(args: argparse.Namespace, loop_every: int) -> dict[int, dict[str, flo
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[100, 500, 2000])
-    parser.add_argument("--sweep", type=int, nargs="*",
-                        default=[10, 20, 30, 40, 60, 80, 120, 160, 240],
-                        help="sizes of the dense/auto crossover sweep (none: skip it)")
-    parser.add_argument("--dense-max", type=int, default=1000,
-                        help="largest N for which the dense backend is timed")
+    parser.add_argument(
+        "--sweep",
+        type=int,
+        nargs="*",
+        default=[10, 20, 30, 40, 60, 80, 120, 160, 240],
+        help="sizes of the dense/auto crossover sweep (none: skip it)",
+    )
+    parser.add_argument(
+        "--dense-max", type=int, default=1000, help="largest N for which the dense backend is timed"
+    )
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--loop-every", type=int, nargs="+", default=[LOOP_EVERY, 50],
-                        help="graph families: one loop edge every this many keyframes")
+    parser.add_argument(
+        "--loop-every",
+        type=int,
+        nargs="+",
+        default=[LOOP_EVERY, 50],
+        help="graph families: one loop edge every this many keyframes",
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    print(f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-          f"{args.threads} thread(s); P = {POINTS_PER_EDGE} matches per edge, float32 factors, "
-          f"float64 solves; best of {args.repeats}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
+        f"{args.threads} thread(s); P = {POINTS_PER_EDGE} matches per edge, float32 factors, "
+        f"float64 solves; best of {args.repeats}"
+    )
     print()
     for loop_every in args.loop_every:
         family(args, loop_every)
@@ -226,8 +256,10 @@ def main() -> None:
     print(f"{'N':>6} {'dense solve s':>14} {large + ' solve s':>14} {'dense/' + large:>13}")
     for n, d, s in rows:
         print(f"{n:6d} {d:14.5f} {s:14.5f} {d / s:13.2f}")
-    print(f"dense/{large} crossover: N = {n_cross:.0f} keyframes ({7 * n_cross:.0f} unknowns; "
-          f"auto switches above DENSE_MAX_FREE_POSES = {DENSE_MAX_FREE_POSES} free poses)")
+    print(
+        f"dense/{large} crossover: N = {n_cross:.0f} keyframes ({7 * n_cross:.0f} unknowns; "
+        f"auto switches above DENSE_MAX_FREE_POSES = {DENSE_MAX_FREE_POSES} free poses)"
+    )
 
 
 if __name__ == "__main__":

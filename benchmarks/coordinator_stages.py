@@ -46,8 +46,12 @@ def main() -> None:
     parser.add_argument("--scene", type=Path, required=True, help="folder of agent_* inputs")
     parser.add_argument("--out", type=Path, required=True, help="output folder (replaced)")
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--decode-ms", type=float, default=None,
-                        help="skip the MASt3R timing and use this decode time")
+    parser.add_argument(
+        "--decode-ms",
+        type=float,
+        default=None,
+        help="skip the MASt3R timing and use this decode time",
+    )
     parser.add_argument("--precision", default="auto", choices=PRECISIONS)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -60,8 +64,11 @@ def main() -> None:
     metrics = json.loads((Path(summary.out) / "metrics.json").read_text())
     coordinator = metrics["coordinator"]
     keyframes = max(1, coordinator["keyframes"])
-    stages = {stage: seconds for stage, seconds in coordinator["stage_seconds"].items()
-              if not stage.startswith("prior_")}
+    stages = {
+        stage: seconds
+        for stage, seconds in coordinator["stage_seconds"].items()
+        if not stage.startswith("prior_")
+    }
     if args.decode_ms is None:
         with Image.open(next((agents[0] / "rgb").iterdir())) as image:
             width, height = compute_transform(*image.size, Config().input.long_side).output
@@ -69,9 +76,11 @@ def main() -> None:
     else:
         decode_ms = args.decode_ms
     decodes = coordinator["prior_decodes"] / keyframes
-    print(f"{len(agents)} agents, {keyframes} keyframes, run {process_seconds:.1f} s CPU; "
-          f"one decode {decode_ms:.0f} ms; {decodes:.2f} decodes per keyframe "
-          "(verification's ordered pairs)\n")
+    print(
+        f"{len(agents)} agents, {keyframes} keyframes, run {process_seconds:.1f} s CPU; "
+        f"one decode {decode_ms:.0f} ms; {decodes:.2f} decodes per keyframe "
+        "(verification's ordered pairs)\n"
+    )
     print("| stage | s | ms per keyframe | / one decode | / its decodes |\n|---|---|---|---|---|")
     for stage, seconds in [*sorted(stages.items()), ("total", sum(stages.values()))]:
         ms = 1000.0 * seconds / keyframes

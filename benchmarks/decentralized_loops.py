@@ -77,8 +77,10 @@ def _matrix(T: np.ndarray) -> np.ndarray:
 
 def _true_relative(agents: list[AgentInput], a: int, fa: int, b: int, fb: int) -> np.ndarray:
     """``(4, 4)`` true pose of camera b (frame fb) in camera a (frame fa)."""
+
     def world(agent: AgentInput, frame: int) -> np.ndarray:
         return _matrix(agent.gt_poses[frame].double().numpy())
+
     return np.linalg.inv(world(agents[a], fa)) @ world(agents[b], fb)
 
 
@@ -96,22 +98,25 @@ def _rotation_error_deg(R: np.ndarray, R_true: np.ndarray) -> float:
 class Reregistration:
     """The prior and the agents of a run, to register keyframe pairs as its robots did."""
 
-    def __init__(self, agents: list[Path], long_side: int,
-                 min_inlier_fraction: float | None = None) -> None:
+    def __init__(
+        self, agents: list[Path], long_side: int, min_inlier_fraction: float | None = None
+    ) -> None:
         self.config = Config(input=InputConfig(long_side=long_side))
         self.settings = DecentralizedConfig().registration
         if min_inlier_fraction is not None:
             self.settings = replace(self.settings, min_inlier_fraction=min_inlier_fraction)
         self.agents = [open_agent(p) for p in agents]
-        self.prior: Prior = build_prior(PriorSpec("simulated"), self.config,
-                                        dict(enumerate(self.agents)))[0]
+        self.prior: Prior = build_prior(
+            PriorSpec("simulated"), self.config, dict(enumerate(self.agents))
+        )[0]
         self._encodings: dict[tuple[int, int], Encoding] = {}
 
     def encoding(self, agent: int, frame: int) -> Encoding:
         key = (agent, frame)
         if key not in self._encodings:
-            view = make_view(self.agents[agent].load_frame(frame), agent,
-                             self.config.input.long_side)
+            view = make_view(
+                self.agents[agent].load_frame(frame), agent, self.config.input.long_side
+            )
             self._encodings[key] = self.prior.encode(view)
         return self._encodings[key]
 
@@ -121,24 +126,41 @@ class Reregistration:
         (a, ka), (b, kb) = edge["from"], edge["to"]
         fa, fb = frames[(a, ka)], frames[(b, kb)]
         pred_ij, pred_ji = self.prior.decode_symmetric(
-            [(self.encoding(a, fa), self.encoding(b, fb))])[0]
-        reg = register_predictions(pred_ij.to("cpu"), pred_ji.to("cpu"), self.settings,
-                                   generator(self.settings.seed, "loop", a, ka, b, kb))
+            [(self.encoding(a, fa), self.encoding(b, fb))]
+        )[0]
+        reg = register_predictions(
+            pred_ij.to("cpu"),
+            pred_ji.to("cpu"),
+            self.settings,
+            generator(self.settings.seed, "loop", a, ka, b, kb),
+        )
         true = _true_relative(self.agents, a, fa, b, fb)
         rot = translation = float("nan")
         if reg.T_ij is not None:
             T = _matrix(reg.T_ij.double().numpy())
             rot = _rotation_error_deg(T[:3, :3], true[:3, :3])
             translation = _scaled_translation_error(T[:3, 3], true[:3, 3]) / spacing
-        return LoopRow(a, ka, b, kb, bool(edge["accepted"]), float(edge["ratio"]),
-                       edge.get("gnc_weight"), reg.correspondences, reg.inliers,
-                       reg.inliers / max(reg.correspondences, 1), rot, translation,
-                       float(np.linalg.norm(true[:3, 3])) / spacing)
+        return LoopRow(
+            a,
+            ka,
+            b,
+            kb,
+            bool(edge["accepted"]),
+            float(edge["ratio"]),
+            edge.get("gnc_weight"),
+            reg.correspondences,
+            reg.inliers,
+            reg.inliers / max(reg.correspondences, 1),
+            rot,
+            translation,
+            float(np.linalg.norm(true[:3, 3])) / spacing,
+        )
 
 
 def _edges(graph: dict, accepted_only: bool, only: str) -> list[dict]:
-    edges = [e for e in graph["edges"] if e["type"] == "inter"
-             and (e["accepted"] or not accepted_only)]
+    edges = [
+        e for e in graph["edges"] if e["type"] == "inter" and (e["accepted"] or not accepted_only)
+    ]
     if only:
         wanted = {tuple(int(v) for v in item.split(",")) for item in only.split(";")}
         edges = [e for e in edges if (*e["from"], *e["to"]) in wanted]
@@ -153,29 +175,43 @@ def main() -> None:
     parser.add_argument("--accepted-only", action="store_true")
     parser.add_argument("--only", default="", help="'a,ka,b,kb;...': these loops only")
     parser.add_argument("--json", type=Path, help="also write the rows here")
-    parser.add_argument("--min-inlier-fraction", type=float,
-                        help="registration.min_inlier_fraction (0: the inliers of fits the "
-                             "default refuses)")
+    parser.add_argument(
+        "--min-inlier-fraction",
+        type=float,
+        help="registration.min_inlier_fraction (0: the inliers of fits the default refuses)",
+    )
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     graph = json.loads((args.run / "graph.json").read_text())
     frames = {(k["agent"], k["keyframe"]): k["frame"] for k in graph["keyframes"]}
     robots = 1 + max(agent for agent, _ in frames)
-    tool = Reregistration([args.scene / f"agent_{a}" for a in range(robots)], args.long_side,
-                          args.min_inlier_fraction)
-    spacing = float(np.median([r["keyframe_distance"] for r in
-                               json.loads((args.run / "metrics.json").read_text())["robots"]]))
-    print(f"{'loop':>11} {'acc':>3} {'ratio':>6} {'gnc':>4} {'corr':>6} {'inl':>5} "
-          f"{'inl %':>6} {'rot deg':>8} {'t err/kf':>8} {'dist/kf':>7}")
+    tool = Reregistration(
+        [args.scene / f"agent_{a}" for a in range(robots)], args.long_side, args.min_inlier_fraction
+    )
+    spacing = float(
+        np.median(
+            [
+                r["keyframe_distance"]
+                for r in json.loads((args.run / "metrics.json").read_text())["robots"]
+            ]
+        )
+    )
+    print(
+        f"{'loop':>11} {'acc':>3} {'ratio':>6} {'gnc':>4} {'corr':>6} {'inl':>5} "
+        f"{'inl %':>6} {'rot deg':>8} {'t err/kf':>8} {'dist/kf':>7}"
+    )
     rows = []
     for edge in _edges(graph, args.accepted_only, args.only):
         row = tool.row(edge, frames, spacing)
         rows.append(row)
         gnc = "-" if row.gnc_weight is None else f"{row.gnc_weight:.1f}"
-        print(f"{row.a},{row.ka}-{row.b},{row.kb:<5} {'y' if row.accepted else 'n':>3} "
-              f"{row.ratio:>6.3f} {gnc:>4} {row.correspondences:>6} {row.inliers:>5} "
-              f"{100 * row.inlier_fraction:>6.1f} {row.rotation_error_deg:>8.2f} "
-              f"{row.translation_error:>8.2f} {row.distance:>7.2f}", flush=True)
+        print(
+            f"{row.a},{row.ka}-{row.b},{row.kb:<5} {'y' if row.accepted else 'n':>3} "
+            f"{row.ratio:>6.3f} {gnc:>4} {row.correspondences:>6} {row.inliers:>5} "
+            f"{100 * row.inlier_fraction:>6.1f} {row.rotation_error_deg:>8.2f} "
+            f"{row.translation_error:>8.2f} {row.distance:>7.2f}",
+            flush=True,
+        )
     if args.json:
         args.json.write_text(json.dumps([asdict(r) for r in rows], indent=1))
 

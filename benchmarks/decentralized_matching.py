@@ -73,6 +73,7 @@ from como3r.runtime.pipeline import PriorSpec, build_prior
 
 logger = logging.getLogger(__name__)
 
+
 class _ExactNearest:
     """Exact nearest neighbours of one view's pixels among every pixel of the other, each
     searched once: the former search.
@@ -121,13 +122,13 @@ def exact_matches(pred: PairPrediction, config: RegistrationConfig) -> tuple[Ten
         found_i.append(query[converged])
         found_j.append(in_j[converged])
         query = np.unique(back[~converged])
-    pairs = np.unique(np.stack([np.concatenate(found_i), np.concatenate(found_j)], axis=1),
-                      axis=0)
+    pairs = np.unique(np.stack([np.concatenate(found_i), np.concatenate(found_j)], axis=1), axis=0)
     return pixels_i[torch.from_numpy(pairs[:, 0])], pixels_j[torch.from_numpy(pairs[:, 1])]
 
 
-def _agreement(found: tuple[Tensor, Tensor], exact: tuple[Tensor, Tensor],
-               pixels: int) -> tuple[int, int]:
+def _agreement(
+    found: tuple[Tensor, Tensor], exact: tuple[Tensor, Tensor], pixels: int
+) -> tuple[int, int]:
     """Matches of ``found`` whose view-i pixel ``exact`` matches too, and those of them that
     ``exact`` matches to the same view-j pixel."""
     common = torch.isin(found[0], exact[0])
@@ -147,8 +148,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", type=Path, help="como3r synth scene (default: render one)")
     parser.add_argument("--long-side", type=int, default=Config().input.long_side)
-    parser.add_argument("--pairs", default="0,17,1,0;0,23,1,0;0,0,1,29",
-                        help="'agent,frame,agent,frame;...': the pairs decoded")
+    parser.add_argument(
+        "--pairs",
+        default="0,17,1,0;0,23,1,0;0,0,1,29",
+        help="'agent,frame,agent,frame;...': the pairs decoded",
+    )
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -156,24 +160,35 @@ def main() -> None:
     scene = args.scene or _render(Path(tempfile.mkdtemp(prefix="como3r_matching_")))
     config = Config(input=InputConfig(long_side=args.long_side))
     pairs = [tuple(int(v) for v in item.split(",")) for item in args.pairs.split(";")]
-    agents = {a: open_agent(scene / f"agent_{a}") for a in sorted({p[0] for p in pairs}
-                                                                   | {p[2] for p in pairs})}
+    agents = {
+        a: open_agent(scene / f"agent_{a}")
+        for a in sorted({p[0] for p in pairs} | {p[2] for p in pairs})
+    }
     prior = build_prior(PriorSpec("simulated"), config, agents)[0]
     registration = RegistrationConfig()
-    methods = {"exact": lambda pred: exact_matches(pred, registration),
-               "coarse to fine, 1": lambda pred: reciprocal_matches(
-                   pred.D_ii, pred.D_ji, pred.Q_ii, pred.Q_ji,
-                   replace(registration, match_coarse_candidates=1)),
-               "coarse to fine": lambda pred: reciprocal_matches(
-                   pred.D_ii, pred.D_ji, pred.Q_ii, pred.Q_ji, registration)}
+    methods = {
+        "exact": lambda pred: exact_matches(pred, registration),
+        "coarse to fine, 1": lambda pred: reciprocal_matches(
+            pred.D_ii,
+            pred.D_ji,
+            pred.Q_ii,
+            pred.Q_ji,
+            replace(registration, match_coarse_candidates=1),
+        ),
+        "coarse to fine": lambda pred: reciprocal_matches(
+            pred.D_ii, pred.D_ji, pred.Q_ii, pred.Q_ji, registration
+        ),
+    }
     seconds = {name: 0.0 for name in methods}
     matches: dict[str, list[int]] = {name: [] for name in methods}
     common = {name: 0 for name in methods}
     same = {name: 0 for name in methods}
     simulated_decode = 0.0
     for a, fa, b, fb in pairs:
-        views = [make_view(agents[agent].load_frame(frame), agent, args.long_side)
-                 for agent, frame in ((a, fa), (b, fb))]
+        views = [
+            make_view(agents[agent].load_frame(frame), agent, args.long_side)
+            for agent, frame in ((a, fa), (b, fb))
+        ]
         encodings = [prior.encode(view) for view in views]
         start = time.process_time()
         pred = prior.decode_symmetric([tuple(encodings)])[0][0]
@@ -192,16 +207,21 @@ def main() -> None:
 
     decode = mast3r_decode_seconds(shape[1], shape[0], "fp32")
     n = len(pairs)
-    print(f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-          f"faiss {faiss.__version__}, {args.threads} thread(s); {shape[1]}x{shape[0]}; "
-          f"{n} pairs; MASt3R decode {decode:.2f} s (fp32, CPU time); simulated prior "
-          f"decode {simulated_decode / n:.2f} s per pair")
-    print(f"{'method':<18} | {'s per pair':>10} | {'/ decode':>8} | {'same j':>6} "
-          f"| matches per pair")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
+        f"faiss {faiss.__version__}, {args.threads} thread(s); {shape[1]}x{shape[0]}; "
+        f"{n} pairs; MASt3R decode {decode:.2f} s (fp32, CPU time); simulated prior "
+        f"decode {simulated_decode / n:.2f} s per pair"
+    )
+    print(
+        f"{'method':<18} | {'s per pair':>10} | {'/ decode':>8} | {'same j':>6} | matches per pair"
+    )
     for name in methods:
-        print(f"{name:<18} | {seconds[name] / n:>10.3f} | {seconds[name] / n / decode:>8.3f} "
-              f"| {100 * same[name] / max(common[name], 1):>5.1f}% "
-              f"| {' '.join(map(str, matches[name]))}")
+        print(
+            f"{name:<18} | {seconds[name] / n:>10.3f} | {seconds[name] / n / decode:>8.3f} "
+            f"| {100 * same[name] / max(common[name], 1):>5.1f}% "
+            f"| {' '.join(map(str, matches[name]))}"
+        )
 
 
 if __name__ == "__main__":

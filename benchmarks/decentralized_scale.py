@@ -136,8 +136,16 @@ def render(scene: Path, frames: int, width: int, height: int, seed: int) -> None
     from como3r.decentralized.odometry_sim import add_odometry
 
     scene.mkdir(parents=True)
-    synthesize(scene, agents=ROBOTS, seed=seed, overlap=0.2, frames=frames, preset="default",
-               width=width, height=height)
+    synthesize(
+        scene,
+        agents=ROBOTS,
+        seed=seed,
+        overlap=0.2,
+        frames=frames,
+        preset="default",
+        width=width,
+        height=height,
+    )
     for a in range(ROBOTS):
         add_odometry(scene / f"agent_{a}", seed=seed * 1000 + a, params="vio")
 
@@ -203,14 +211,24 @@ def run_scale(scene: Path, work: Path, factor: float, long_side: int, keep_keys:
     metrics = json.loads((out / "metrics.json").read_text())
     length = path_length(agents)
     rmse, merged = merged_rmse(metrics)
-    table = {f"{row['formulation']}/{row['solver']}":
-             (100.0 * max(row["merged_ate_rmse"]) / length if row.get("merged_ate_rmse")
-              else float("nan"))
-             for row in metrics.get("table", [])}
+    table = {
+        f"{row['formulation']}/{row['solver']}": (
+            100.0 * max(row["merged_ate_rmse"]) / length
+            if row.get("merged_ate_rmse")
+            else float("nan")
+        )
+        for row in metrics.get("table", [])
+    }
     keyframes = [robot.get("keyframes", 0) for robot in metrics["robots"]]
-    return {"scale": factor, "ate_percent": 100.0 * rmse / length, "merged": merged,
-            "keyframes": keyframes, "loops": metrics["loops"]["accepted"],
-            "seconds": seconds, "table": table}
+    return {
+        "scale": factor,
+        "ate_percent": 100.0 * rmse / length,
+        "merged": merged,
+        "keyframes": keyframes,
+        "loops": metrics["loops"]["accepted"],
+        "seconds": seconds,
+        "table": table,
+    }
 
 
 def main() -> None:
@@ -220,26 +238,39 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=40)
     parser.add_argument("--width", type=int, default=160)
     parser.add_argument("--height", type=int, default=120)
-    parser.add_argument("--long-side", type=int, default=Config().input.long_side,
-                        help="input.long_side of the run (default: the configuration's; the "
-                             "figures in this docstring were taken with --long-side 160)")
+    parser.add_argument(
+        "--long-side",
+        type=int,
+        default=Config().input.long_side,
+        help="input.long_side of the run (default: the configuration's; the "
+        "figures in this docstring were taken with --long-side 160)",
+    )
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--keep-surface-keys", action="store_true",
-                        help="do not scale the surface maps' s, t (module docstring)")
+    parser.add_argument(
+        "--keep-surface-keys",
+        action="store_true",
+        help="do not scale the surface maps' s, t (module docstring)",
+    )
     args = parser.parse_args()
     scene = args.work / "scene"
     if not scene.is_dir():
         render(scene, args.frames, args.width, args.height, args.seed)
-    rows = [run_scale(scene, args.work, factor, args.long_side, args.keep_surface_keys)
-            for factor in args.scales]
+    rows = [
+        run_scale(scene, args.work, factor, args.long_side, args.keep_surface_keys)
+        for factor in args.scales
+    ]
     columns = sorted({key for row in rows for key in row["table"]})
-    print(f"{'scale':>6} {'merged ATE %':>12} {'one map':>7} {'keyframes':>10} {'loops':>5} "
-          f"{'s':>6} " + " ".join(f"{c:>16}" for c in columns))
+    print(
+        f"{'scale':>6} {'merged ATE %':>12} {'one map':>7} {'keyframes':>10} {'loops':>5} "
+        f"{'s':>6} " + " ".join(f"{c:>16}" for c in columns)
+    )
     for row in rows:
-        print(f"{row['scale']:>6g} {row['ate_percent']:>12.3f} {str(row['merged']):>7} "
-              f"{'/'.join(map(str, row['keyframes'])):>10} {row['loops']:>5} "
-              f"{row['seconds']:>6.0f} "
-              + " ".join(f"{row['table'].get(c, float('nan')):>16.3f}" for c in columns))
+        print(
+            f"{row['scale']:>6g} {row['ate_percent']:>12.3f} {str(row['merged']):>7} "
+            f"{'/'.join(map(str, row['keyframes'])):>10} {row['loops']:>5} "
+            f"{row['seconds']:>6.0f} "
+            + " ".join(f"{row['table'].get(c, float('nan')):>16.3f}" for c in columns)
+        )
 
 
 if __name__ == "__main__":

@@ -78,10 +78,12 @@ class SyntheticKeyframe:
 
 def camera_rays() -> torch.Tensor:
     """``(H, W, 3)`` unit rays of a pinhole camera."""
-    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64),
-                          torch.arange(W, dtype=torch.float64), indexing="ij")
-    rays = torch.stack([(u - W / 2 + 0.5) / FOCAL, (v - H / 2 + 0.5) / FOCAL,
-                        torch.ones_like(u)], -1)
+    v, u = torch.meshgrid(
+        torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij"
+    )
+    rays = torch.stack(
+        [(u - W / 2 + 0.5) / FOCAL, (v - H / 2 + 0.5) / FOCAL, torch.ones_like(u)], -1
+    )
     return rays / rays.norm(dim=-1, keepdim=True)
 
 
@@ -115,12 +117,15 @@ def keyframe_poses(n: int) -> torch.Tensor:
 def smooth_field(generator: torch.Generator, terms: int = 4) -> torch.Tensor:
     """``(H, W)`` sum of random plane waves with wavelengths around a third of the image,
     normalised to a maximum magnitude of 1."""
-    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64) / W,
-                          torch.arange(W, dtype=torch.float64) / W, indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(H, dtype=torch.float64) / W,
+        torch.arange(W, dtype=torch.float64) / W,
+        indexing="ij",
+    )
     field = torch.zeros(H, W, dtype=torch.float64)
     for _ in range(terms):
         angle, phase = 2 * math.pi * torch.rand(2, generator=generator, dtype=torch.float64)
-        wavelength = (0.25 + 0.2 * torch.rand(1, generator=generator, dtype=torch.float64))
+        wavelength = 0.25 + 0.2 * torch.rand(1, generator=generator, dtype=torch.float64)
         k = 2 * math.pi / wavelength
         field += torch.cos(k * (u * torch.cos(angle) + v * torch.sin(angle)) + phase)
     return field / field.abs().max()
@@ -155,8 +160,9 @@ def build_problem(num_keyframes: int, amplitude: float, noise: float, seed: int)
         log_error = amplitude * smooth_field(generator)
         log_error = log_error + noise * torch.randn(H, W, generator=generator, dtype=torch.float64)
         X_prior = (X * log_error.exp()[..., None]).float()
-        keyframes.append(SyntheticKeyframe(X_prior.clone(), X_prior,
-                                           torch.full((H, W), CONFIDENCE)))
+        keyframes.append(
+            SyntheticKeyframe(X_prior.clone(), X_prior, torch.full((H, W), CONFIDENCE))
+        )
     edges = []
     for i in range(num_keyframes):
         for j in (i + 1, i + 2):
@@ -170,8 +176,12 @@ def build_problem(num_keyframes: int, amplitude: float, noise: float, seed: int)
 
 def depth_error(keyframes, truth) -> tuple[float, float]:
     """Mean and 90th percentile of ``|log(d / d_true)|`` over the free keyframes."""
-    errors = torch.cat([(kf.X_hat.norm(dim=-1) / X.norm(dim=-1)).log().abs().reshape(-1)
-                        for kf, X in zip(keyframes[1:], truth[1:])])
+    errors = torch.cat(
+        [
+            (kf.X_hat.norm(dim=-1) / X.norm(dim=-1)).log().abs().reshape(-1)
+            for kf, X in zip(keyframes[1:], truth[1:])
+        ]
+    )
     errors = errors[torch.isfinite(errors)]
     return float(errors.mean()), float(errors.quantile(0.9))
 
@@ -184,34 +194,43 @@ def match_rms(keyframes, poses, edges) -> float:
         x_j = sim3_act(T_ij[None], keyframes[e.j].X_hat.reshape(-1, 3))
         x_i = keyframes[e.i].X_hat.reshape(-1, 3)[e.matches.idx]
         d = (x_j - x_i)[e.matches.valid]
-        squared += float((d ** 2).sum())
+        squared += float((d**2).sum())
         count += d.shape[0]
     return math.sqrt(squared / max(count, 1))
 
 
-VARIANTS = (("pixel", "per-pixel"), ("pixel_laplacian", "per-pixel + Laplacian"),
-            ("segment", "per-segment (SLIC)"))
+VARIANTS = (
+    ("pixel", "per-pixel"),
+    ("pixel_laplacian", "per-pixel + Laplacian"),
+    ("segment", "per-segment (SLIC)"),
+)
 
 
 def run_scenario(args: argparse.Namespace, exact_anchor: bool) -> None:
     """Print one table: the prior's error, then each variant after 1 and after R steps."""
+
     def problem():
-        keyframes, poses, edges, truth = build_problem(args.keyframes, args.amplitude,
-                                                       args.noise, args.seed)
+        keyframes, poses, edges, truth = build_problem(
+            args.keyframes, args.amplitude, args.noise, args.seed
+        )
         if exact_anchor:
             keyframes[0].X_hat, keyframes[0].X_init = truth[0].clone(), truth[0].clone()
         return keyframes, poses, edges, truth
 
     anchor = "exact" if exact_anchor else "distorted like the others"
     print(f"\nkeyframe 0 (pinned): {anchor}")
-    header = (f"{'variant':<22}{'unknowns':>9}{'err@1':>8}{f'err@{args.rounds}':>8}"
-              f"{'p90':>8}{'match rms':>11}{'s/step':>8}")
+    header = (
+        f"{'variant':<22}{'unknowns':>9}{'err@1':>8}{f'err@{args.rounds}':>8}"
+        f"{'p90':>8}{'match rms':>11}{'s/step':>8}"
+    )
     print(header)
     print("-" * len(header))
     keyframes, poses, edges, truth = problem()
     mean, p90 = depth_error(keyframes, truth)
-    print(f"{'prior (before)':<22}{'-':>9}{mean:>8.4f}{mean:>8.4f}{p90:>8.4f}"
-          f"{match_rms(keyframes, poses, edges):>11.4f}{'-':>8}")
+    print(
+        f"{'prior (before)':<22}{'-':>9}{mean:>8.4f}{mean:>8.4f}{p90:>8.4f}"
+        f"{match_rms(keyframes, poses, edges):>11.4f}{'-':>8}"
+    )
     for variant, name in VARIANTS:
         config = dataclasses.replace(DepthRefinementConfig(), variant=variant)
         keyframes, poses, edges, truth = problem()
@@ -224,35 +243,47 @@ def run_scenario(args: argparse.Namespace, exact_anchor: bool) -> None:
             if step == 0:
                 after_one = depth_error(keyframes, truth)[0]
         mean, p90 = depth_error(keyframes, truth)
-        print(f"{name:<22}{report.num_parameters:>9d}{after_one:>8.4f}{mean:>8.4f}{p90:>8.4f}"
-              f"{match_rms(keyframes, poses, edges):>11.4f}{seconds / args.rounds:>8.3f}")
+        print(
+            f"{name:<22}{report.num_parameters:>9d}{after_one:>8.4f}{mean:>8.4f}{p90:>8.4f}"
+            f"{match_rms(keyframes, poses, edges):>11.4f}{seconds / args.rounds:>8.3f}"
+        )
 
 
 def run_joint(args: argparse.Namespace) -> None:
     """The alternation of C-Sec. A.7 from perturbed poses: pose error and depth error."""
-    print(f"\njoint alternation (C-Sec. A.7) from perturbed poses (3 cm, 0.6 deg, 2 % scale); "
-          f"cleanup passes of {args.cleanup_iters} iterations, {args.joint_rounds} rounds with "
-          f"{args.pose_pass_iters}-iteration pose passes")
-    header = (f"{'variant':<22}{'pos err':>9}{'depth err':>11}{'rounds':>8}"
-              f"{'pose s':>8}{'depth s':>9}")
+    print(
+        f"\njoint alternation (C-Sec. A.7) from perturbed poses (3 cm, 0.6 deg, 2 % scale); "
+        f"cleanup passes of {args.cleanup_iters} iterations, {args.joint_rounds} rounds with "
+        f"{args.pose_pass_iters}-iteration pose passes"
+    )
+    header = (
+        f"{'variant':<22}{'pos err':>9}{'depth err':>11}{'rounds':>8}{'pose s':>8}{'depth s':>9}"
+    )
     print(header)
     print("-" * len(header))
     tracking = TrackingConfig()
     for variant, name in ((None, "poses only"), *VARIANTS):
-        keyframes, true_poses, edges, truth = build_problem(args.keyframes, args.amplitude,
-                                                            args.noise, args.seed)
+        keyframes, true_poses, edges, truth = build_problem(
+            args.keyframes, args.amplitude, args.noise, args.seed
+        )
         generator = torch.Generator().manual_seed(args.seed + 1)
-        tau = torch.cat([0.03 * torch.randn(len(keyframes), 3, generator=generator),
-                         0.01 * torch.randn(len(keyframes), 3, generator=generator),
-                         0.02 * torch.randn(len(keyframes), 1, generator=generator)], dim=1)
+        tau = torch.cat(
+            [
+                0.03 * torch.randn(len(keyframes), 3, generator=generator),
+                0.01 * torch.randn(len(keyframes), 3, generator=generator),
+                0.02 * torch.randn(len(keyframes), 1, generator=generator),
+            ],
+            dim=1,
+        )
         tau[0] = 0.0
         state = {"poses": sim3_compose(sim3_exp(tau), true_poses)}
         key_to_index = {k: k for k in range(len(keyframes))}
 
         def pose_pass(iters: int) -> float:
             factors = build_factors(edges, keyframes.__getitem__, int, tracking)
-            values, _ = gauss_newton_irls(factors, PoseValues.from_poses(state["poses"], 1),
-                                          GlobalBAConfig(), max_iters=iters)
+            values, _ = gauss_newton_irls(
+                factors, PoseValues.from_poses(state["poses"], 1), GlobalBAConfig(), max_iters=iters
+            )
             step = (values.poses[:, :3] - state["poses"][:, :3]).norm(dim=-1).max()
             state["poses"] = values.poses
             return float(step)
@@ -260,16 +291,21 @@ def run_joint(args: argparse.Namespace) -> None:
         config = dataclasses.replace(DepthRefinementConfig(), variant=variant or "segment")
 
         def depth_step() -> float:
-            return refine_keyframes(keyframes, state["poses"], edges, key_to_index, config,
-                                    pinned=[0]).max_change
+            return refine_keyframes(
+                keyframes, state["poses"], edges, key_to_index, config, pinned=[0]
+            ).max_change
 
-        settings = AlternationSettings(cleanup_iters=args.cleanup_iters,
-                                       rounds=0 if variant is None else args.joint_rounds,
-                                       pose_pass_iters=args.pose_pass_iters)
+        settings = AlternationSettings(
+            cleanup_iters=args.cleanup_iters,
+            rounds=0 if variant is None else args.joint_rounds,
+            pose_pass_iters=args.pose_pass_iters,
+        )
         report = alternate(pose_pass, depth_step, settings)
         position_error = (state["poses"][:, :3] - true_poses[:, :3]).norm(dim=-1).mean()
-        print(f"{name:<22}{float(position_error):>9.4f}{depth_error(keyframes, truth)[0]:>11.4f}"
-              f"{len(report.rounds):>8d}{report.pose_seconds:>8.1f}{report.depth_seconds:>9.1f}")
+        print(
+            f"{name:<22}{float(position_error):>9.4f}{depth_error(keyframes, truth)[0]:>11.4f}"
+            f"{len(report.rounds):>8d}{report.pose_seconds:>8.1f}{report.depth_seconds:>9.1f}"
+        )
 
 
 def main() -> None:
@@ -287,11 +323,15 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
-    print(f"machine: {platform.processor() or platform.machine()}, torch "
-          f"{torch.__version__}, {args.threads} thread(s); {args.keyframes} keyframes "
-          f"{W}x{H}, amplitude {args.amplitude:.1%}, noise {args.noise:.1%}, exact poses")
-    print("err@k: mean |log(d / d_true)| over the free keyframes after k depth steps "
-          "(10 Newton iterations each); p90 and match rms [m] after the last step")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, torch "
+        f"{torch.__version__}, {args.threads} thread(s); {args.keyframes} keyframes "
+        f"{W}x{H}, amplitude {args.amplitude:.1%}, noise {args.noise:.1%}, exact poses"
+    )
+    print(
+        "err@k: mean |log(d / d_true)| over the free keyframes after k depth steps "
+        "(10 Newton iterations each); p90 and match rms [m] after the last step"
+    )
     for exact_anchor in (False, True):
         run_scenario(args, exact_anchor)
     if not args.skip_joint:

@@ -25,9 +25,9 @@ import sqlite3
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -62,13 +62,20 @@ def data_pass(matches: int, repeats: int) -> tuple[float, float]:
     rays = rng.normal(size=(matches, 3)).astype(np.float32)
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     streams = cpu_kernels.MatchStreams(
-        torch.from_numpy(np.concatenate([
-            rng.uniform(1, 3, (2, matches)), rays.T,
-            (rays + rng.normal(scale=0.01, size=rays.shape)).T,
-            rng.normal(scale=0.1, size=(3, matches))]).astype(np.float32)),
+        torch.from_numpy(
+            np.concatenate(
+                [
+                    rng.uniform(1, 3, (2, matches)),
+                    rays.T,
+                    (rays + rng.normal(scale=0.01, size=rays.shape)).T,
+                    rng.normal(scale=0.1, size=(3, matches)),
+                ]
+            ).astype(np.float32)
+        ),
         torch.from_numpy(rng.uniform(1, 20, matches).astype(np.float32)),
         torch.from_numpy(runs.astype(np.int64)),
-        torch.from_numpy(np.roll(runs, matches // 3).astype(np.int64)))
+        torch.from_numpy(np.roll(runs, matches // 3).astype(np.int64)),
+    )
     s = torch.from_numpy(rng.normal(scale=0.01, size=params))
     ms = _wall_ms(lambda: cpu_kernels.depth_normal_equations(s, streams, 1.345), repeats)
     return ms, 1e6 * ms / matches
@@ -80,8 +87,9 @@ class _Keyframe:
     X_init: torch.Tensor
 
 
-def working_set(seed: int = 0) -> tuple[list[_Keyframe], torch.Tensor, list[Edge],
-                                        list[torch.Tensor]]:
+def working_set(
+    seed: int = 0,
+) -> tuple[list[_Keyframe], torch.Tensor, list[Edge], list[torch.Tensor]]:
     """8 keyframes, their poses, edges between keyframes at most 2 apart, label maps."""
     g = torch.Generator().manual_seed(seed)
     keyframes = []
@@ -90,22 +98,40 @@ def working_set(seed: int = 0) -> tuple[list[_Keyframe], torch.Tensor, list[Edge
         keyframes.append(_Keyframe(X, X.clone()))
     labels = [torch.randint(0, 200, (HEIGHT, WIDTH), generator=g) for _ in range(KEYFRAMES)]
     pixels = HEIGHT * WIDTH
-    edges = [Edge(i, j, DirectedMatches(idx=torch.randint(0, pixels, (pixels,), generator=g),
-                                        valid=torch.rand(pixels, generator=g) < 0.6,
-                                        q=torch.rand(pixels, generator=g) + 0.5))
-             for i in range(KEYFRAMES) for j in range(KEYFRAMES) if i != j and abs(i - j) <= 2]
+    edges = [
+        Edge(
+            i,
+            j,
+            DirectedMatches(
+                idx=torch.randint(0, pixels, (pixels,), generator=g),
+                valid=torch.rand(pixels, generator=g) < 0.6,
+                q=torch.rand(pixels, generator=g) + 0.5,
+            ),
+        )
+        for i in range(KEYFRAMES)
+        for j in range(KEYFRAMES)
+        if i != j and abs(i - j) <= 2
+    ]
     poses = torch.tensor([[0.1 * k, 0, 0, 0, 0, 0, 1, 1] for k in range(KEYFRAMES)])
     return keyframes, poses, edges, labels
 
 
 def streams_table(repeats: int) -> tuple[float, float, int]:
     keyframes, poses, edges, labels = working_set()
-    args = (keyframes, poses, edges, list(range(KEYFRAMES)).__getitem__, labels,
-            DepthRefinementConfig(), {0})
+    args = (
+        keyframes,
+        poses,
+        edges,
+        list(range(KEYFRAMES)).__getitem__,
+        labels,
+        DepthRefinementConfig(),
+        {0},
+    )
     ranges = [2.5] * KEYFRAMES
     fused = _wall_ms(lambda: chunk_streams(*args, ranges=ranges), repeats)
     flattened = _wall_ms(
-        lambda: match_streams(build_problem(*args, data_only=True, ranges=ranges)[0]), repeats)
+        lambda: match_streams(build_problem(*args, data_only=True, ranges=ranges)[0]), repeats
+    )
     return fused, flattened, chunk_streams(*args, ranges=ranges).num_matches
 
 
@@ -116,9 +142,12 @@ def segmentation(threads: int, repeats: int) -> float:
     X = torch.stack([(u - WIDTH / 2) / 400 * depth, (v - HEIGHT / 2) / 400 * depth, depth], -1)
     C = torch.full((HEIGHT, WIDTH), 3.0)
     config = DepthRefinementConfig()
-    return _wall_ms(lambda: list(labels_in_order(((k, X * (1 + 0.01 * k), C)
-                                                  for k in range(6)), config, threads)),
-                    repeats)
+    return _wall_ms(
+        lambda: list(
+            labels_in_order(((k, X * (1 + 0.01 * k), C) for k in range(6)), config, threads)
+        ),
+        repeats,
+    )
 
 
 def store_pages(page_size: int, repeats: int) -> float:
@@ -148,21 +177,27 @@ def main() -> None:
     parser.add_argument("--matches", type=int, default=6_000_000)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    print(f"{os.cpu_count()} CPUs, torch {torch.__version__}, {args.threads} torch "
-          f"thread(s), median of {args.repeats}\n")
+    print(
+        f"{os.cpu_count()} CPUs, torch {torch.__version__}, {args.threads} torch "
+        f"thread(s), median of {args.repeats}\n"
+    )
     print("| step | ms | |\n|---|---|---|")
     ms, ns = data_pass(args.matches, args.repeats)
     print(f"| 1. depth data pass, {args.matches:,} matches | {ms:.1f} | {ns:.1f} ns a match |")
     fused, flattened, matches = streams_table(args.repeats)
-    print(f"| 2. working-set streams, {matches:,} matches: chunk_streams | {fused:.0f} | "
-          f"{flattened / fused:.2f}x faster |")
+    print(
+        f"| 2. working-set streams, {matches:,} matches: chunk_streams | {fused:.0f} | "
+        f"{flattened / fused:.2f}x faster |"
+    )
     print(f"| 2. ... match_streams(build_problem(...)) | {flattened:.0f} | |")
     one, two = segmentation(1, args.repeats), segmentation(2, args.repeats)
     print(f"| 3. SLIC labels of 6 keyframes, 2 threads | {two:.0f} | {one / two:.2f}x faster |")
     print(f"| 3. ... 1 thread | {one:.0f} | |")
     default, store = store_pages(4096, args.repeats), store_pages(PAGE_SIZE, args.repeats)
-    print(f"| 4. 15 store transactions, {PAGE_SIZE // 1024} KiB pages | {store:.0f} | "
-          f"{default / store:.2f}x faster |")
+    print(
+        f"| 4. 15 store transactions, {PAGE_SIZE // 1024} KiB pages | {store:.0f} | "
+        f"{default / store:.2f}x faster |"
+    )
     print(f"| 4. ... 4 KiB pages (SQLite's default) | {default:.0f} | |")
 
 

@@ -49,14 +49,28 @@ def views(width: int, height: int) -> tuple[View, View, InMemoryTruth]:
     renderer = Renderer(spec.scene, intrinsics)
     R, t = spec.paths[0].rotations[20], spec.paths[0].positions[20]
     out, truth = [], InMemoryTruth()
-    for index, (R_WC, t_WC) in enumerate([(R, t), (R @ Rotation.from_euler("y", 2, degrees=True)
-                                                   .as_matrix(), t + R @ np.array([0, 0, 0.3]))]):
+    for index, (R_WC, t_WC) in enumerate(
+        [
+            (R, t),
+            (
+                R @ Rotation.from_euler("y", 2, degrees=True).as_matrix(),
+                t + R @ np.array([0, 0, 0.3]),
+            ),
+        ]
+    ):
         frame = renderer.render(R_WC, t_WC)
         quat = Rotation.from_matrix(R_WC).as_quat()
         out.append(View(ImageTransform.to_network(frame.rgb), 0, index))
-        truth.add(0, index, GroundTruth(
-            depth=torch.from_numpy(frame.depth), K=torch.from_numpy(intrinsics.matrix()).float(),
-            surface=torch.from_numpy(frame.surface), T_WC=torch.tensor([*t_WC, *quat, 1.0])))
+        truth.add(
+            0,
+            index,
+            GroundTruth(
+                depth=torch.from_numpy(frame.depth),
+                K=torch.from_numpy(intrinsics.matrix()).float(),
+                surface=torch.from_numpy(frame.surface),
+                T_WC=torch.tensor([*t_WC, *quat, 1.0]),
+            ),
+        )
     return out[0], out[1], truth
 
 
@@ -66,9 +80,18 @@ def frontend_row(width: int, height: int, repeats: int) -> dict[str, float]:
     prior = SimulatedPrior(config.simulated_prior, truth)
     enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
     self_pred = prior.decode(enc_k, enc_k)
-    keyframe = Keyframe(0, 0, 0.0, enc_k, sim3_identity(), self_pred.X_ii.clone(),
-                        self_pred.C_ii.clone(), self_pred.X_ii.clone(), self_pred.C_ii.clone(),
-                        np.zeros((height, width, 3), np.uint8))
+    keyframe = Keyframe(
+        0,
+        0,
+        0.0,
+        enc_k,
+        sim3_identity(),
+        self_pred.X_ii.clone(),
+        self_pred.C_ii.clone(),
+        self_pred.X_ii.clone(),
+        self_pred.C_ii.clone(),
+        np.zeros((height, width, 3), np.uint8),
+    )
     tracker = FrameTracker(prior, config)
     pred = prior.decode(enc_f, enc_k)
     matches = directed_matches(pred, config.matching, config.tracking.q_min)
@@ -80,10 +103,12 @@ def frontend_row(width: int, height: int, repeats: int) -> dict[str, float]:
         keyframe.fuse(T_kf, pred.X_ji, pred.C_ji)
 
     return {
-        "matching": best_of(repeats, lambda: directed_matches(pred, config.matching,
-                                                              config.tracking.q_min)),
-        "tracking": best_of(repeats, lambda: tracker.solve(pred.X_ii, keyframe, matches,
-                                                            sim3_identity())),
+        "matching": best_of(
+            repeats, lambda: directed_matches(pred, config.matching, config.tracking.q_min)
+        ),
+        "tracking": best_of(
+            repeats, lambda: tracker.solve(pred.X_ii, keyframe, matches, sim3_identity())
+        ),
         "fusion": best_of(repeats, fuse),
         "simulated decode": best_of(repeats, lambda: prior.decode(enc_f, enc_k)),
     }
@@ -107,20 +132,37 @@ def main() -> None:
     parser.add_argument("--skip-mast3r", action="store_true")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    print(f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-          f"{args.threads} threads, best of {args.repeats}")
-    header = ("resolution", "matching ms", "tracking ms", "fusion ms", "front-end ms",
-              "sim decode ms", "front-end/sim", "MASt3R decode ms", "front-end/MASt3R")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
+        f"{args.threads} threads, best of {args.repeats}"
+    )
+    header = (
+        "resolution",
+        "matching ms",
+        "tracking ms",
+        "fusion ms",
+        "front-end ms",
+        "sim decode ms",
+        "front-end/sim",
+        "MASt3R decode ms",
+        "front-end/MASt3R",
+    )
     print(" | ".join(header))
     for width, height in ((256, 192), (512, 384)):
         row = frontend_row(width, height, args.repeats)
         total = row["matching"] + row["tracking"] + row["fusion"]
         mast3r = None if args.skip_mast3r else mast3r_decode_ms(width, height, 1)
-        cells = [f"{width}x{height}", f"{row['matching']:.0f}", f"{row['tracking']:.0f}",
-                 f"{row['fusion']:.1f}", f"{total:.0f}", f"{row['simulated decode']:.0f}",
-                 f"{total / row['simulated decode']:.2f}",
-                 "-" if mast3r is None else f"{mast3r:.0f}",
-                 "-" if mast3r is None else f"{total / mast3r:.2f}"]
+        cells = [
+            f"{width}x{height}",
+            f"{row['matching']:.0f}",
+            f"{row['tracking']:.0f}",
+            f"{row['fusion']:.1f}",
+            f"{total:.0f}",
+            f"{row['simulated decode']:.0f}",
+            f"{total / row['simulated decode']:.2f}",
+            "-" if mast3r is None else f"{mast3r:.0f}",
+            "-" if mast3r is None else f"{total / mast3r:.2f}",
+        ]
         print(" | ".join(cells), flush=True)
 
 

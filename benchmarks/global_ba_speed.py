@@ -30,8 +30,11 @@ from como3r.prior.base import Encoding
 
 def _matches(pixels: int, gen: torch.Generator) -> DirectedMatches:
     share = 0.3 + 0.7 * float(torch.rand(1, generator=gen))
-    return DirectedMatches(idx=torch.arange(pixels), valid=torch.rand(pixels, generator=gen) < share,
-                           q=1.5 + torch.rand(pixels, generator=gen) * 10)
+    return DirectedMatches(
+        idx=torch.arange(pixels),
+        valid=torch.rand(pixels, generator=gen) < share,
+        q=1.5 + torch.rand(pixels, generator=gen) * 10,
+    )
 
 
 def build_graph(keyframes: int, height: int, width: int) -> GlobalGraph:
@@ -42,22 +45,39 @@ def build_graph(keyframes: int, height: int, width: int) -> GlobalGraph:
     for kf_id in range(keyframes):
         for agent in (0, 1):
             T = sim3_exp(torch.tensor([0.2 * kf_id, 0.3 * agent, 0.0, 0.0, 0.01 * kf_id, 0.0, 0.0]))
-            noisy = T if (agent, kf_id) == (0, 0) else sim3_compose(
-                sim3_exp(torch.randn(7, generator=gen) * 0.01), T)
+            noisy = (
+                T
+                if (agent, kf_id) == (0, 0)
+                else sim3_compose(sim3_exp(torch.randn(7, generator=gen) * 0.01), T)
+            )
             X = sim3_act(sim3_inverse(T)[None], world).reshape(height, width, 3)
-            link = None if kf_id == 0 else PairLink(_matches(height * width, gen),
-                                                    _matches(height * width, gen))
-            graph.add_keyframe(KeyframePacket(
-                agent=agent, kf_id=kf_id, frame_index=kf_id, timestamp=float(kf_id), T_WC=noisy,
-                X_hat=X, C_hat=torch.full((height, width), 5.0),
-                colors=np.zeros((height, width, 3), np.uint8),
-                encoding=Encoding(agent, kf_id, (height, width)), retrieval=None,
-                sequential_ij=None if link is None else link.ij,
-                sequential_ji=None if link is None else link.ji, previous=None))
+            link = (
+                None
+                if kf_id == 0
+                else PairLink(_matches(height * width, gen), _matches(height * width, gen))
+            )
+            graph.add_keyframe(
+                KeyframePacket(
+                    agent=agent,
+                    kf_id=kf_id,
+                    frame_index=kf_id,
+                    timestamp=float(kf_id),
+                    T_WC=noisy,
+                    X_hat=X,
+                    C_hat=torch.full((height, width), 5.0),
+                    colors=np.zeros((height, width, 3), np.uint8),
+                    encoding=Encoding(agent, kf_id, (height, width)),
+                    retrieval=None,
+                    sequential_ij=None if link is None else link.ij,
+                    sequential_ji=None if link is None else link.ji,
+                    previous=None,
+                )
+            )
         if kf_id % 4 == 0:
             link = PairLink(_matches(height * width, gen), _matches(height * width, gen))
-            graph.add_inter_link(graph.global_index(0, kf_id), graph.global_index(1, kf_id),
-                                 link, 0.1)
+            graph.add_inter_link(
+                graph.global_index(0, kf_id), graph.global_index(1, kf_id), link, 0.1
+            )
     return graph
 
 
@@ -77,9 +97,11 @@ def main() -> None:
         start = time.perf_counter()
         result = graph.optimize([0, 1], anchor=0, max_iters=args.iters)
         times.append((time.perf_counter() - start) / max(1, result.iterations))
-    print(f"{platform.machine()}, torch {torch.__version__}, {args.threads} thread(s); "
-          f"{2 * args.keyframes} keyframes at {args.width}x{args.height}, "
-          f"{len(graph.links)} links, {result.iterations} iterations")
+    print(
+        f"{platform.machine()}, torch {torch.__version__}, {args.threads} thread(s); "
+        f"{2 * args.keyframes} keyframes at {args.width}x{args.height}, "
+        f"{len(graph.links)} links, {result.iterations} iterations"
+    )
     print(f"{'seconds per GN iteration (best of ' + str(args.repeats) + ')':<44}{min(times):.4f}")
 
 

@@ -47,7 +47,6 @@ import os
 import re
 import shutil
 import signal
-import struct
 import subprocess
 import sys
 import tempfile
@@ -112,8 +111,20 @@ class Radio:
                 _ip("-n", ns, "link", "set", "lo", "up")
             for a, ns in enumerate(self.agents):
                 here, there = self.coord_dev(a), self.agent_dev(a)
-                _ip("-n", self.coord, "link", "add", here, "type", "veth", "peer", "name",
-                    there, "netns", ns)
+                _ip(
+                    "-n",
+                    self.coord,
+                    "link",
+                    "add",
+                    here,
+                    "type",
+                    "veth",
+                    "peer",
+                    "name",
+                    there,
+                    "netns",
+                    ns,
+                )
                 _ip("-n", self.coord, "addr", "add", f"{self.coord_addr(a)}/30", "dev", here)
                 _ip("-n", ns, "addr", "add", f"{self.agent_addr(a)}/30", "dev", there)
                 for name, dev in ((self.coord, here), (ns, there)):
@@ -121,8 +132,22 @@ class Radio:
                     if cap_mbit is not None:
                         rate = int(cap_mbit * 1e6)
                         burst = max(4 * 1514, rate // 8 // 50)  # 20 ms at the cap
-                        _tc("-n", name, "qdisc", "add", "dev", dev, "root", "tbf", "rate",
-                            f"{rate}bit", "burst", str(burst), "latency", f"{LATENCY_MS}ms")
+                        _tc(
+                            "-n",
+                            name,
+                            "qdisc",
+                            "add",
+                            "dev",
+                            dev,
+                            "root",
+                            "tbf",
+                            "rate",
+                            f"{rate}bit",
+                            "burst",
+                            str(burst),
+                            "latency",
+                            f"{LATENCY_MS}ms",
+                        )
         except BaseException:
             self.close()
             raise
@@ -144,10 +169,15 @@ class Radio:
 
     def sent_bytes(self, a: int) -> tuple[int, int]:
         """Bytes agent ``a`` has sent up and the coordinator down its link so far."""
+
         def tx(ns: str, dev: str) -> int:
-            out = subprocess.run(["ip", "-n", ns, "-s", "-j", "link", "show", "dev", dev],
-                                 capture_output=True, text=True).stdout
+            out = subprocess.run(
+                ["ip", "-n", ns, "-s", "-j", "link", "show", "dev", dev],
+                capture_output=True,
+                text=True,
+            ).stdout
             return int(json.loads(out)[0]["stats64"]["tx"]["bytes"]) if out else 0
+
         return tx(self.agents[a], self.agent_dev(a)), tx(self.coord, self.coord_dev(a))
 
     def close(self) -> None:
@@ -163,8 +193,9 @@ class Process:
     def __init__(self, argv: list[str], log: Path) -> None:
         self.log = log
         self.lines: list[tuple[float, str]] = []
-        self.popen = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                      text=True, env=os.environ.copy())
+        self.popen = subprocess.Popen(
+            argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=os.environ.copy()
+        )
         self.reader = threading.Thread(target=self._read, daemon=True)
         self.reader.start()
 
@@ -177,8 +208,7 @@ class Process:
                 log.flush()
 
     def first(self, fragment: str, after: float = 0.0) -> float | None:
-        return next((t for t, line in list(self.lines) if t >= after and fragment in line),
-                    None)
+        return next((t for t, line in list(self.lines) if t >= after and fragment in line), None)
 
     def wait(self, timeout: float) -> int:
         code = self.popen.wait(timeout)
@@ -228,8 +258,16 @@ def _como3r(*args: str) -> list[str]:
     return [sys.executable, "-m", "como3r.cli", *args]
 
 
-def run_team(name: str, scene: Path, work: Path, side: int, agents: int,
-             cap_mbit: float | None, cut_s: float | None, loopback: bool) -> Run:
+def run_team(
+    name: str,
+    scene: Path,
+    work: Path,
+    side: int,
+    agents: int,
+    cap_mbit: float | None,
+    cut_s: float | None,
+    loopback: bool,
+) -> Run:
     """One run of a coordinator and ``agents`` agents on ``scene``; in namespaces unless
     ``loopback``."""
     run = Run(name, cap_mbit, cut_s, work / name)
@@ -242,35 +280,96 @@ def run_team(name: str, scene: Path, work: Path, side: int, agents: int,
     zenoh_config.write_text("{ transport: { shared_memory: { enabled: false } } }")
     radio = None if loopback else Radio(agents, cap_mbit)
     try:
+
         def inside(ns: str | None, argv: list[str]) -> list[str]:
             return argv if ns is None else ["ip", "netns", "exec", ns, *argv]
 
         port = PORT if radio is not None else _free_port()
         coord_ns = radio.coord if radio is not None else None
         gts = [arg for a in range(agents) for arg in ("--gt", str(scene / f"agent_{a}"))]
-        run.processes["coordinator"] = Process(inside(coord_ns, _como3r(
-            "coordinator", "--listen", f"tcp/0.0.0.0:{port}", "--out", str(run.out),
-            "--agents", str(agents), "--prior", "simulated", "--set",
-            f"input.long_side={side}", "--session", session, "--away-timeout", "600",
-            "--zenoh-config", str(zenoh_config), "--quiet", *gts)), logs / "coordinator.log")
+        run.processes["coordinator"] = Process(
+            inside(
+                coord_ns,
+                _como3r(
+                    "coordinator",
+                    "--listen",
+                    f"tcp/0.0.0.0:{port}",
+                    "--out",
+                    str(run.out),
+                    "--agents",
+                    str(agents),
+                    "--prior",
+                    "simulated",
+                    "--set",
+                    f"input.long_side={side}",
+                    "--session",
+                    session,
+                    "--away-timeout",
+                    "600",
+                    "--zenoh-config",
+                    str(zenoh_config),
+                    "--quiet",
+                    *gts,
+                ),
+            ),
+            logs / "coordinator.log",
+        )
         # the acknowledgements as sent (beside the coordinator) and as they arrive (beside
         # each agent): their delay across the link
-        run.processes["probe"] = Process(inside(coord_ns, [
-            sys.executable, "-c", PROBE, f"tcp/127.0.0.1:{port}",
-            f"como3r/{session}/agent/*/ack", str(LIMIT_S)]), logs / "probe.log")
+        run.processes["probe"] = Process(
+            inside(
+                coord_ns,
+                [
+                    sys.executable,
+                    "-c",
+                    PROBE,
+                    f"tcp/127.0.0.1:{port}",
+                    f"como3r/{session}/agent/*/ack",
+                    str(LIMIT_S),
+                ],
+            ),
+            logs / "probe.log",
+        )
         for a in range(agents):
             ns = radio.agents[a] if radio is not None else None
             where = radio.coord_addr(a) if radio is not None else "127.0.0.1"
             endpoint = f"tcp/{where}:{port}"
-            run.processes[f"probe{a}"] = Process(inside(ns, [
-                sys.executable, "-c", PROBE, endpoint, f"como3r/{session}/agent/{a}/ack",
-                str(LIMIT_S)]),
-                logs / f"probe{a}.log")
-            run.processes[f"agent{a}"] = Process(inside(ns, _como3r(
-                "agent", "--connect", endpoint, "--id", str(a), str(scene / f"agent_{a}"),
-                "--prior", "simulated", "--threads", "1", "--session", session,
-                "--zenoh-config", str(zenoh_config))),
-                logs / f"agent{a}.log")
+            run.processes[f"probe{a}"] = Process(
+                inside(
+                    ns,
+                    [
+                        sys.executable,
+                        "-c",
+                        PROBE,
+                        endpoint,
+                        f"como3r/{session}/agent/{a}/ack",
+                        str(LIMIT_S),
+                    ],
+                ),
+                logs / f"probe{a}.log",
+            )
+            run.processes[f"agent{a}"] = Process(
+                inside(
+                    ns,
+                    _como3r(
+                        "agent",
+                        "--connect",
+                        endpoint,
+                        "--id",
+                        str(a),
+                        str(scene / f"agent_{a}"),
+                        "--prior",
+                        "simulated",
+                        "--threads",
+                        "1",
+                        "--session",
+                        session,
+                        "--zenoh-config",
+                        str(zenoh_config),
+                    ),
+                ),
+                logs / f"agent{a}.log",
+            )
         _watch(run, radio, agents)
         code = run.processes["coordinator"].wait(LIMIT_S)
         for a in range(agents):
@@ -331,8 +430,10 @@ def summarize(run: Run, agents: int) -> Row:
     metrics = json.loads((run.out / "metrics.json").read_text())
     entries = metrics["runtime"]["agents"]
     lost_frames = sum(e["frames_expected"] - e["frames_done"] for e in entries)
-    lost_keyframes = sum(max(0, metrics["agents"][a]["keyframes"] - e["keyframes_received"])
-                         for a, e in enumerate(entries))
+    lost_keyframes = sum(
+        max(0, metrics["agents"][a]["keyframes"] - e["keyframes_received"])
+        for a, e in enumerate(entries)
+    )
     up = [s[1][a][0] / 1e3 for a in range(agents) for s in run.samples[-1:]]  # [] on loopback
     down = [s[1][a][1] / 1e3 for a in range(agents) for s in run.samples[-1:]]
     peak = None
@@ -342,19 +443,34 @@ def summarize(run: Run, agents: int) -> Row:
             rates += [(b1[a][0] - b0[a][0]) * 8 / (t1 - t0) for a in range(agents)]
         peak = max(rates, default=0.0) / (run.cap_mbit * 1e6)
     acks = {a: _acks(run, a) for a in range(agents)}
-    stall = [max((t1 - t0 for (t0, _), (t1, _) in zip(times, times[1:])), default=0.0)
-             for times in acks.values()]
+    stall = [
+        max((t1 - t0 for (t0, _), (t1, _) in zip(times, times[1:])), default=0.0)
+        for times in acks.values()
+    ]
     delays = [d for a in range(agents) for d in _ack_delays(run, a)]
-    made_away = sum(int(n) for _, line in run.processes["agent0"].lines
-                    for n in re.findall(r"(\d+) of them made while it was away", line))
+    made_away = sum(
+        int(n)
+        for _, line in run.processes["agent0"].lines
+        for n in re.findall(r"(\d+) of them made while it was away", line)
+    )
     caught = None
     if run.up_at is not None:
         done = run.processes["agent0"].first("caught up", after=run.up_at)
         caught = done - run.up_at if done is not None else float("nan")
-    return Row(run.name, up, down, peak,
-               stall, caught, made_away, lost_frames, lost_keyframes,
-               metrics["ate"]["merged"]["ate"]["rmse"] * 1e3,
-               max(delays) * 1e3 if delays else float("nan"), len(delays))
+    return Row(
+        run.name,
+        up,
+        down,
+        peak,
+        stall,
+        caught,
+        made_away,
+        lost_frames,
+        lost_keyframes,
+        metrics["ate"]["merged"]["ate"]["rmse"] * 1e3,
+        max(delays) * 1e3 if delays else float("nan"),
+        len(delays),
+    )
 
 
 def _acks(run: Run, a: int, probe: str | None = None) -> list[tuple[float, int]]:
@@ -379,8 +495,11 @@ def _ack_delays(run: Run, a: int) -> list[float]:
     for t, seq in _acks(run, a):
         arrived.setdefault(seq, t)
     cut = (run.cut_at, run.up_at) if a == 0 and run.cut_at is not None else None
-    return [arrived[seq] - t for seq, t in sent.items() if seq in arrived and not (
-        cut is not None and cut[0] <= t <= (cut[1] or math.inf))]  # sent into the cut
+    return [
+        arrived[seq] - t
+        for seq, t in sent.items()
+        if seq in arrived and not (cut is not None and cut[0] <= t <= (cut[1] or math.inf))
+    ]  # sent into the cut
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -388,13 +507,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=16, help="frames per agent")
     parser.add_argument("--side", type=int, default=128, help="image long side (pixels)")
     parser.add_argument("--agents", type=int, default=2)
-    parser.add_argument("--caps", type=float, nargs="*", default=[1, 5, 20],
-                        help="link caps to run, Mbit/s")
-    parser.add_argument("--cuts", type=float, nargs="*", default=[10, 120],
-                        help="cuts of agent 0's link to run, seconds (each at --cut-cap)")
+    parser.add_argument(
+        "--caps", type=float, nargs="*", default=[1, 5, 20], help="link caps to run, Mbit/s"
+    )
+    parser.add_argument(
+        "--cuts",
+        type=float,
+        nargs="*",
+        default=[10, 120],
+        help="cuts of agent 0's link to run, seconds (each at --cut-cap)",
+    )
     parser.add_argument("--cut-cap", type=float, default=5, help="the cap of the cut runs")
-    parser.add_argument("--work", type=Path, default=None,
-                        help="folder for scenes, runs and logs (default: a temporary one)")
+    parser.add_argument(
+        "--work",
+        type=Path,
+        default=None,
+        help="folder for scenes, runs and logs (default: a temporary one)",
+    )
     args = parser.parse_args(argv)
     # a kill (timeout) unwinds like Ctrl-C: the namespaces and processes go with it
     signal.signal(signal.SIGTERM, _interrupt)
@@ -409,19 +538,37 @@ def main(argv: list[str] | None = None) -> int:
     scene = work / "scene"
     if not (scene / "agent_0").exists():
         scene.mkdir(exist_ok=True)
-        synthesize(scene, agents=args.agents, seed=0, overlap=0.5, frames=args.frames,
-                   preset="default", width=args.side, height=args.side * 3 // 4, progress=None)
+        synthesize(
+            scene,
+            agents=args.agents,
+            seed=0,
+            overlap=0.5,
+            frames=args.frames,
+            preset="default",
+            width=args.side,
+            height=args.side * 3 // 4,
+            progress=None,
+        )
     cases = [("loopback", None, None, True)]
     cases += [(f"cap {c:g}", c, None, False) for c in args.caps]
     cases += [(f"cut {s:g}s @{args.cut_cap:g}", args.cut_cap, s, False) for s in args.cuts]
     rows = []
     for name, cap, cut, loopback in cases:
-        run = run_team(name.replace(" ", "_").replace("@", ""), scene, work, args.side,
-                       args.agents, cap, cut, loopback)
+        run = run_team(
+            name.replace(" ", "_").replace("@", ""),
+            scene,
+            work,
+            args.side,
+            args.agents,
+            cap,
+            cut,
+            loopback,
+        )
         rows.append(summarize(run, args.agents))
         rows[-1].name = name
-        (work / "links.json").write_text(json.dumps([dataclasses.asdict(r) for r in rows],
-                                                    indent=1))
+        (work / "links.json").write_text(
+            json.dumps([dataclasses.asdict(r) for r in rows], indent=1)
+        )
         print(f"{name}: done", flush=True)
     _print(rows)
     return 0
@@ -433,19 +580,23 @@ def _interrupt(signum: int, frame: object) -> None:
 
 def _print(rows: list[Row]) -> None:
     reference = rows[0].ate_mm
-    head = (f"{'run':<14} {'up kB':>14} {'down kB':>12} {'peak/cap':>8} {'stall s':>11} "
-            f"{'caught s':>8} {'away':>4} {'ack ms':>6} {'lost F/KF':>9} {'ATE mm':>7} {'vs loop':>7}")
+    head = (
+        f"{'run':<14} {'up kB':>14} {'down kB':>12} {'peak/cap':>8} {'stall s':>11} "
+        f"{'caught s':>8} {'away':>4} {'ack ms':>6} {'lost F/KF':>9} {'ATE mm':>7} {'vs loop':>7}"
+    )
     print(head)
     for r in rows:
         peak = f"{r.peak_over_cap:.2f}" if r.peak_over_cap is not None else "-"
         caught = f"{r.caught_up_s:.1f}" if r.caught_up_s is not None else "-"
         change = (r.ate_mm - reference) / reference * 100
-        print(f"{r.name:<14} {'/'.join(f'{x:.0f}' for x in r.up_kb) or '-':>14} "
-              f"{'/'.join(f'{x:.0f}' for x in r.down_kb) or '-':>12} {peak:>8} "
-              f"{'/'.join(f'{x:.1f}' for x in r.stall_s):>11} {caught:>8} {r.made_away:>4} {r.ack_ms:>6.1f} "
-              f"{f'{r.lost_frames}/{r.lost_keyframes}':>9} "
-              f"{r.ate_mm:>7.2f} "
-              f"{change:>+6.1f}%")
+        print(
+            f"{r.name:<14} {'/'.join(f'{x:.0f}' for x in r.up_kb) or '-':>14} "
+            f"{'/'.join(f'{x:.0f}' for x in r.down_kb) or '-':>12} {peak:>8} "
+            f"{'/'.join(f'{x:.1f}' for x in r.stall_s):>11} {caught:>8} {r.made_away:>4} {r.ack_ms:>6.1f} "
+            f"{f'{r.lost_frames}/{r.lost_keyframes}':>9} "
+            f"{r.ate_mm:>7.2f} "
+            f"{change:>+6.1f}%"
+        )
 
 
 if __name__ == "__main__":

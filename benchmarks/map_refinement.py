@@ -43,21 +43,34 @@ CONFIGURATIONS: list[tuple[str, list[str]]] = [
     ("poses only", ["--set", "depth.alternation_rounds=0"]),
     ("per-pixel", ["--set", "depth.variant=pixel"]),
     ("per-pixel + Laplacian", ["--set", "depth.variant=pixel_laplacian"]),
-    ("per-pixel + log-depth Lapl.", ["--set", "depth.variant=pixel_laplacian",
-                                     "--set", "depth.boundary_residual=log_depth"]),
+    (
+        "per-pixel + log-depth Lapl.",
+        ["--set", "depth.variant=pixel_laplacian", "--set", "depth.boundary_residual=log_depth"],
+    ),
     ("per-segment", []),
     ("per-segment, C-Eq. 22 as printed", ["--set", "depth.boundary_residual=log_depth"]),
     ("per-segment, insertion base", ["--set", "depth.refine_from=insertion"]),
     ("calibrated, poses only", ["--calib", "--set", "depth.alternation_rounds=0"]),
     ("calibrated, per-segment", ["--calib"]),
 ]
-COLUMNS = ("ATE mm", "acc mm", "acc before", "compl mm", "chamfer mm", "F@5cm", "rounds",
-           "stop", "alt s", "run s")
+COLUMNS = (
+    "ATE mm",
+    "acc mm",
+    "acc before",
+    "compl mm",
+    "chamfer mm",
+    "F@5cm",
+    "rounds",
+    "stop",
+    "alt s",
+    "run s",
+)
 
 
 def _como3r(*args: str) -> None:
-    subprocess.run([sys.executable, "-m", "como3r.cli", *args], check=True,
-                   stdout=subprocess.DEVNULL)
+    subprocess.run(
+        [sys.executable, "-m", "como3r.cli", *args], check=True, stdout=subprocess.DEVNULL
+    )
 
 
 def _row(run: Path, seconds: float) -> dict[str, object]:
@@ -90,9 +103,13 @@ def _print_table(title: str, rows: dict[str, dict[str, object]]) -> None:
         cells = []
         for column in COLUMNS:
             value, width = row[column], widths[column]
-            cells.append(f"{value:>{width}.4f}" if column == "F@5cm" else
-                         f"{value:>{width}.1f}" if isinstance(value, float)
-                         else f"{value!s:>{width}}")
+            cells.append(
+                f"{value:>{width}.4f}"
+                if column == "F@5cm"
+                else f"{value:>{width}.1f}"
+                if isinstance(value, float)
+                else f"{value!s:>{width}}"
+            )
         print(f"{name:<34}" + "".join(cells))
 
 
@@ -105,17 +122,31 @@ def main() -> None:
     parser.add_argument("--height", type=int, default=120)
     parser.add_argument("--work", type=Path, default=Path("/tmp/como3r_map_refinement"))
     args = parser.parse_args()
-    print(f"python {platform.python_version()}, torch {torch.__version__}, "
-          f"{platform.processor() or platform.machine()}; scenes: {args.agents} agents x "
-          f"{args.frames} frames at {args.width}x{args.height}")
+    print(
+        f"python {platform.python_version()}, torch {torch.__version__}, "
+        f"{platform.processor() or platform.machine()}; scenes: {args.agents} agents x "
+        f"{args.frames} frames at {args.width}x{args.height}"
+    )
     shutil.rmtree(args.work, ignore_errors=True)
     common = ["--prior", "simulated", "--single-process"]
     by_seed: list[dict[str, dict[str, object]]] = []
     for seed in args.seeds:
         scene = args.work / f"scene_{seed}"
-        _como3r("synth", "--out", str(scene), "--agents", str(args.agents), "--seed", str(seed),
-                "--frames", str(args.frames), "--width", str(args.width),
-                "--height", str(args.height))
+        _como3r(
+            "synth",
+            "--out",
+            str(scene),
+            "--agents",
+            str(args.agents),
+            "--seed",
+            str(seed),
+            "--frames",
+            str(args.frames),
+            "--width",
+            str(args.width),
+            "--height",
+            str(args.height),
+        )
         agent_args = [a for k in range(args.agents) for a in ("--agent", str(scene / f"agent_{k}"))]
         rows = {}
         for index, (name, extra) in enumerate(CONFIGURATIONS):
@@ -125,9 +156,17 @@ def main() -> None:
             rows[name] = _row(run, time.perf_counter() - start)
         by_seed.append(rows)
         _print_table(f"seed {seed}", rows)
-    means = {name: {c: (mean(float(r[name][c]) for r in by_seed) if c != "stop" else
-                        "/".join(sorted({str(r[name][c]) for r in by_seed})))
-                    for c in COLUMNS} for name, _ in CONFIGURATIONS}
+    means = {
+        name: {
+            c: (
+                mean(float(r[name][c]) for r in by_seed)
+                if c != "stop"
+                else "/".join(sorted({str(r[name][c]) for r in by_seed}))
+            )
+            for c in COLUMNS
+        }
+        for name, _ in CONFIGURATIONS
+    }
     _print_table(f"mean over seeds {args.seeds}", means)
 
 

@@ -29,8 +29,9 @@ from como3r.geometry.camera import intrinsics_matrix, unproject_depth
 from como3r.geometry.lie import sim3_act, sim3_exp
 
 
-def descriptor_problem(width: int, height: int, flow: int = 8, dim: int = 24,
-                       seed: int = 0) -> tuple:
+def descriptor_problem(
+    width: int, height: int, flow: int = 8, dim: int = 24, seed: int = 0
+) -> tuple:
     """``(D_search (1, H, W, d), D_query (1, H*W, d), pixel (1, H*W, 2), radius,
     dilation_max, active)``: unit descriptors, queries near their search pixel, starting
     points up to ``flow`` pixels off."""
@@ -51,12 +52,16 @@ def ray_problem(width: int, height: int) -> tuple:
     by a camera moved by 5 % of its depth and turned by 3 degrees."""
     focal = 0.8 * width
     K = intrinsics_matrix(focal, focal, (width - 1) / 2, (height - 1) / 2, dtype=torch.float64)
-    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64),
-                          torch.arange(width, dtype=torch.float64), indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=torch.float64),
+        torch.arange(width, dtype=torch.float64),
+        indexing="ij",
+    )
     depth = 5.0 + u / width + 0.3 * torch.sin(u / (0.2 * width)) * torch.cos(v / (0.15 * height))
     X = unproject_depth(depth, K)
-    T = sim3_exp(torch.tensor([0.25, -0.1, 0.1, 0.01, math.radians(3.0), 0.0, 0.0],
-                              dtype=torch.float64))
+    T = sim3_exp(
+        torch.tensor([0.25, -0.1, 0.1, 0.01, math.radians(3.0), 0.0, 0.0], dtype=torch.float64)
+    )
     X_moved = sim3_act(T[None, None], X)
     rays_grad = matching.ray_image_with_gradients(X[None].float())
     target = torch.nn.functional.normalize(X_moved.reshape(1, -1, 3), dim=-1).float()
@@ -103,12 +108,17 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     width, height = (int(v) for v in args.size.split("x"))
     loops = {
-        "descriptor window search": (cpu_kernels.refine_windows, matching._refine_vectorised,
-                                     descriptor_problem(width, height)),
-        "ray projection": (cpu_kernels.project_rays, vectorised_projection,
-                           ray_problem(width, height)),
-        "field-of-view bounds": (pairs._quantiles, sorted_quantiles,
-                                 plane_problem(width, height)),
+        "descriptor window search": (
+            cpu_kernels.refine_windows,
+            matching._refine_vectorised,
+            descriptor_problem(width, height),
+        ),
+        "ray projection": (
+            cpu_kernels.project_rays,
+            vectorised_projection,
+            ray_problem(width, height),
+        ),
+        "field-of-view bounds": (pairs._quantiles, sorted_quantiles, plane_problem(width, height)),
     }
     print(f"dense matching loops at {args.size}, {args.threads} thread(s)")
     print(f"{'loop':<26} {'CPU path s':>10} {'PyTorch s':>10} {'ratio':>6} {'equal':>6}")
@@ -121,8 +131,10 @@ def main() -> None:
             equal = torch.isclose(compiled_out, vectorised_out, rtol=1e-6, atol=0.0).all(-1)
         else:
             equal = (compiled_out == vectorised_out).all(-1)
-        print(f"{name:<26} {compiled_s:10.3f} {vectorised_s:10.3f} "
-              f"{vectorised_s / compiled_s:6.2f} {equal.float().mean().item():6.3f}")
+        print(
+            f"{name:<26} {compiled_s:10.3f} {vectorised_s:10.3f} "
+            f"{vectorised_s / compiled_s:6.2f} {equal.float().mean().item():6.3f}"
+        )
 
 
 if __name__ == "__main__":

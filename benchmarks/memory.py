@@ -79,15 +79,17 @@ def first_frames(agent: Path, frames: int, folder: Path) -> Path:
         elif entry.name in ("timestamps.txt", "groundtruth.txt", "odometry.txt"):
             lines = entry.read_text().splitlines(keepends=True)
             header = [line for line in lines if line.startswith("#")]
-            target.write_text("".join(header + [line for line in lines
-                                                if not line.startswith("#")][:frames]))
+            target.write_text(
+                "".join(header + [line for line in lines if not line.startswith("#")][:frames])
+            )
         elif not target.exists():
             target.symlink_to(entry)
     return folder
 
 
-def measure(agent: Path, out: Path, resident: int, every: int, long_side: int | None,
-            phases: bool = False) -> None:
+def measure(
+    agent: Path, out: Path, resident: int, every: int, long_side: int | None, phases: bool = False
+) -> None:
     """One run; prints one JSON line per sample (with ``phases`` also one as each step of
     the end starts: the first six letters of its phase in ``frames``, its number in
     ``keyframes``)."""
@@ -100,57 +102,104 @@ def measure(agent: Path, out: Path, resident: int, every: int, long_side: int | 
     def sample(frames: int | str, keyframes: int | str) -> None:
         own = _status("self")
         agents = [_status(pid) for pid in _agent_pids()]
-        print(json.dumps({"frames": frames, "keyframes": keyframes,
-                          "coordinator_rss": own["VmRSS"], "coordinator_peak": own["VmHWM"],
-                          "agent_rss": sum(a["VmRSS"] for a in agents),
-                          "agent_peak": sum(a["VmHWM"] for a in agents),
-                          "seconds": time.perf_counter() - start}),
-              flush=True)
+        print(
+            json.dumps(
+                {
+                    "frames": frames,
+                    "keyframes": keyframes,
+                    "coordinator_rss": own["VmRSS"],
+                    "coordinator_peak": own["VmHWM"],
+                    "agent_rss": sum(a["VmRSS"] for a in agents),
+                    "agent_peak": sum(a["VmHWM"] for a in agents),
+                    "seconds": time.perf_counter() - start,
+                }
+            ),
+            flush=True,
+        )
 
     def progress(event: object) -> None:
-        if isinstance(event, AgentProgress) and event.frames_done % every == 0 \
-                and event.frames_done:
+        if (
+            isinstance(event, AgentProgress)
+            and event.frames_done % every == 0
+            and event.frames_done
+        ):
             sample(event.frames_done, event.keyframes)
         elif isinstance(event, PhaseEvent) and phases:  # as the step starts
             sample(event.name[:6], event.done)
 
-    summary = run_multiprocess([agent], out, config, PriorSpec("simulated"), overwrite=True,
-                               progress=progress)
+    summary = run_multiprocess(
+        [agent], out, config, PriorSpec("simulated"), overwrite=True, progress=progress
+    )
     sample(summary.agents[0]["frames"], summary.agents[0]["keyframes"])
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--agent", type=Path, required=True, help="a long agent input")
-    parser.add_argument("--out", type=Path, default=Path("/tmp/como3r_memory"),
-                        help="scratch folder for the runs' outputs")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("/tmp/como3r_memory"),
+        help="scratch folder for the runs' outputs",
+    )
     parser.add_argument("--every", type=int, default=250, help="sample every N frames")
-    parser.add_argument("--resident", type=int, nargs="+",
-                        default=[Config().session.resident_keyframes, 10**9],
-                        help="session.resident_keyframes values to compare (10**9: never "
-                             "paged)")
-    parser.add_argument("--long-side", type=int, default=None,
-                        help="input.long_side (default: the configuration's)")
-    parser.add_argument("--frames", type=int, default=None,
-                        help="only the first N frames of the input (default: all)")
-    parser.add_argument("--phases", action="store_true",
-                        help="also sample as each step of the end starts (cleanup passes, "
-                             "alternation rounds, outputs, evaluation, report)")
+    parser.add_argument(
+        "--resident",
+        type=int,
+        nargs="+",
+        default=[Config().session.resident_keyframes, 10**9],
+        help="session.resident_keyframes values to compare (10**9: never paged)",
+    )
+    parser.add_argument(
+        "--long-side", type=int, default=None, help="input.long_side (default: the configuration's)"
+    )
+    parser.add_argument(
+        "--frames",
+        type=int,
+        default=None,
+        help="only the first N frames of the input (default: all)",
+    )
+    parser.add_argument(
+        "--phases",
+        action="store_true",
+        help="also sample as each step of the end starts (cleanup passes, "
+        "alternation rounds, outputs, evaluation, report)",
+    )
     parser.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.frames is not None and args.one is None:
         args.agent = first_frames(args.agent, args.frames, args.out / f"first_{args.frames}")
     if args.one is not None:
-        measure(args.agent, args.out / f"resident_{args.one}", args.one, args.every,
-                args.long_side, args.phases)
+        measure(
+            args.agent,
+            args.out / f"resident_{args.one}",
+            args.one,
+            args.every,
+            args.long_side,
+            args.phases,
+        )
         return
-    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
-          f"{args.agent}; RSS in MB")
-    print(f"{'resident':>9} {'frames':>6} {'keyframes':>9} {'coord RSS':>9} {'coord peak':>10} "
-          f"{'agent RSS':>9} {'agent peak':>10} {'seconds':>8}")
+    print(
+        f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
+        f"{args.agent}; RSS in MB"
+    )
+    print(
+        f"{'resident':>9} {'frames':>6} {'keyframes':>9} {'coord RSS':>9} {'coord peak':>10} "
+        f"{'agent RSS':>9} {'agent peak':>10} {'seconds':>8}"
+    )
     for resident in args.resident:
-        command = [sys.executable, __file__, "--agent", str(args.agent), "--out",
-                   str(args.out), "--every", str(args.every), "--one", str(resident)]
+        command = [
+            sys.executable,
+            __file__,
+            "--agent",
+            str(args.agent),
+            "--out",
+            str(args.out),
+            "--every",
+            str(args.every),
+            "--one",
+            str(resident),
+        ]
         if args.long_side is not None:
             command += ["--long-side", str(args.long_side)]
         if args.phases:
@@ -158,10 +207,13 @@ def main() -> None:
         with subprocess.Popen(command, stdout=subprocess.PIPE, text=True) as run:
             for line in run.stdout:  # as they come: a long run shows its curve as it goes
                 row = json.loads(line)
-                print(f"{resident:>9} {row['frames']:>6} {row['keyframes']:>9} "
-                      f"{row['coordinator_rss']:>9.0f} {row['coordinator_peak']:>10.0f} "
-                      f"{row['agent_rss']:>9.0f} {row['agent_peak']:>10.0f} "
-                      f"{row['seconds']:>8.0f}", flush=True)
+                print(
+                    f"{resident:>9} {row['frames']:>6} {row['keyframes']:>9} "
+                    f"{row['coordinator_rss']:>9.0f} {row['coordinator_peak']:>10.0f} "
+                    f"{row['agent_rss']:>9.0f} {row['agent_peak']:>10.0f} "
+                    f"{row['seconds']:>8.0f}",
+                    flush=True,
+                )
         if run.returncode:
             raise SystemExit(f"the run with --resident {resident} failed")
 

@@ -62,14 +62,14 @@ fields (arrays as raw bytes plus dtype and shape, no compression).
 network's construction and encoder.)
 """
 
-
 import argparse
 import dataclasses
 import platform
 import time
 import zlib
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import lz4.frame
 import numpy as np
@@ -78,10 +78,10 @@ import torch
 from como3r.config import Config
 from como3r.data.agent import open_agent
 from como3r.data.ground_truth import AgentFolderTruth
-from como3r.data.preprocess import make_view
+from como3r.data.preprocess import make_view, upsampling
 from como3r.decentralized.messages import EncodingReply
 from como3r.frontend.agent import AgentFrontend
-from como3r.frontend.packets import KeyframePacket, PoseUpdate
+from como3r.frontend.packets import PoseUpdate
 from como3r.prior.mast3r import MASt3REncoding, MASt3RPrior
 from como3r.prior.mast3r.config import RELEASED_MODEL_STRING, parse_model_string
 from como3r.prior.mast3r.model import MASt3RNetwork
@@ -93,9 +93,8 @@ from como3r.runtime.codec import zstd
 from como3r.runtime.keyframe_bytes import PARTS, wire_parts
 from como3r.runtime.messages import FrameDone, KeyframeMessage, PoseUpdateMessage
 from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame
-from como3r.runtime.store_blobs import pack_arrays, pack_object
 from como3r.runtime.results import final_report
-from como3r.data.preprocess import upsampling
+from como3r.runtime.store_blobs import pack_arrays, pack_object
 
 COMPRESSORS: dict[str, tuple[Callable[[bytes], bytes], Callable[[bytes], bytes]]] = {
     "zlib-1": (lambda b: zlib.compress(b, 1), zlib.decompress),
@@ -111,16 +110,18 @@ def _planes(raw: bytes, itemsize: int) -> bytes:
     return np.frombuffer(raw, np.uint8).reshape(-1, itemsize).T.tobytes()
 
 
-def _keyframe_messages(agent_path: Path, frames: int
-                       ) -> tuple[list[KeyframeMessage], list[Any], Any, tuple[int, int]]:
+def _keyframe_messages(
+    agent_path: Path, frames: int
+) -> tuple[list[KeyframeMessage], list[Any], Any, tuple[int, int]]:
     """The simulated front-end's keyframe messages over the first ``frames`` frames (the
     first keyframe's left out), the views they were made from, the agent's final message
     and the network resolution ``(H, W)``."""
     config = Config()
     agent = open_agent(agent_path)
     prior, codebook = build_prior(PriorSpec("simulated"), config, {0: agent})
-    frontend = AgentFrontend(prior, config, 0, codebook,
-                             upsampling(agent.image_size, config.input.long_side))
+    frontend = AgentFrontend(
+        prior, config, 0, codebook, upsampling(agent.image_size, config.input.long_side)
+    )
     messages, views = [], []
     for index in range(min(frames, agent.num_frames)):
         view, timestamp, colors = load_frame(agent, 0, index, config.input.long_side, False)
@@ -136,17 +137,22 @@ def _keyframe_messages(agent_path: Path, frames: int
     return messages, views, final_report(frontend, 1.0, 0), shape
 
 
-def _mast3r_shaped(message: KeyframeMessage, view: Any, network: MASt3RNetwork,
-                   head: RetrievalHead, config: Config) -> KeyframeMessage:
+def _mast3r_shaped(
+    message: KeyframeMessage, view: Any, network: MASt3RNetwork, head: RetrievalHead, config: Config
+) -> KeyframeMessage:
     """``message`` with MASt3R's encoding, retrieval features and words (module docstring)."""
     encoding = MASt3RPrior(network).encode(view)
     descriptors, attention = head.features(encoding.tokens)
     generator = np.random.default_rng(message.packet.kf_id)
-    words = generator.integers(0, config.retrieval.codebook_size,
-                               (len(descriptors), config.retrieval.multiple_assignment_query),
-                               dtype=np.int32)
-    packet = dataclasses.replace(message.packet, encoding=encoding,
-                                 retrieval=(descriptors, attention), retrieval_words=words)
+    words = generator.integers(
+        0,
+        config.retrieval.codebook_size,
+        (len(descriptors), config.retrieval.multiple_assignment_query),
+        dtype=np.int32,
+    )
+    packet = dataclasses.replace(
+        message.packet, encoding=encoding, retrieval=(descriptors, attention), retrieval_words=words
+    )
     return dataclasses.replace(message, packet=packet)
 
 
@@ -169,15 +175,21 @@ def _stored_parts(messages: list[KeyframeMessage]) -> dict[str, float]:
     rows = []
     for message in messages:
         packet = message.packet
-        edge = [getattr(m, k) for m in (packet.sequential_ij, packet.sequential_ji)
-                if m is not None for k in ("idx", "valid", "q")]
-        rows.append({
-            "colours": len(pack_arrays(packet.colors)),
-            "encoding": len(pack_object(packet.encoding)),
-            "pointmaps": len(pack_arrays(packet.X_hat)) + len(pack_arrays(packet.C_hat)),
-            "retrieval": len(pack_arrays(*packet.retrieval)) if packet.retrieval else 0,
-            "edges": len(pack_arrays(*edge)) if edge else 0,
-        })
+        edge = [
+            getattr(m, k)
+            for m in (packet.sequential_ij, packet.sequential_ji)
+            if m is not None
+            for k in ("idx", "valid", "q")
+        ]
+        rows.append(
+            {
+                "colours": len(pack_arrays(packet.colors)),
+                "encoding": len(pack_object(packet.encoding)),
+                "pointmaps": len(pack_arrays(packet.X_hat)) + len(pack_arrays(packet.C_hat)),
+                "retrieval": len(pack_arrays(*packet.retrieval)) if packet.retrieval else 0,
+                "edges": len(pack_arrays(*edge)) if edge else 0,
+            }
+        )
     mean = {name: sum(r[name] for r in rows) / len(rows) for name in rows[0]}
     mean["total"] = sum(mean.values())
     return mean
@@ -187,8 +199,7 @@ def part0(agent_paths: list[Path], frames: int) -> None:
     config = Config()
     network = seeded_network(parse_model_string(RELEASED_MODEL_STRING), 0).eval()
     torch.manual_seed(0)
-    head = RetrievalHead(network.config.enc_embed_dim, hdims=(1024,),
-                         nfeat=DEFAULT_NFEAT).eval()
+    head = RetrievalHead(network.config.enc_embed_dim, hdims=(1024,), nfeat=DEFAULT_NFEAT).eval()
     columns, finals, stored = {}, {}, {}
     for path in agent_paths:
         messages, views, final, (height, width) = _keyframe_messages(path, frames)
@@ -199,8 +210,10 @@ def part0(agent_paths: list[Path], frames: int) -> None:
                 label = f"{prior} {size} {'lossy' if lossy else 'exact'}"
                 columns[label] = _mean_parts(batch, lossy)
         finals[size] = {lossy: len(codec.encode(final, lossy=lossy)) for lossy in (False, True)}
-        stored[f"MASt3R {size}"], stored[f"simulated {size}"] = (_stored_parts(shaped),
-                                                                 _stored_parts(messages))
+        stored[f"MASt3R {size}"], stored[f"simulated {size}"] = (
+            _stored_parts(shaped),
+            _stored_parts(messages),
+        )
         print(f"{path}: {len(messages)} keyframe messages measured ({size})")
     print("\nbytes per keyframe message per part [kB] (exact: pipes; lossy: zenoh)")
     print(" | ".join(["part", *columns]))
@@ -211,16 +224,19 @@ def part0(agent_paths: list[Path], frames: int) -> None:
     for name in next(iter(stored.values())):
         print(" | ".join([name, *(f"{c[name] / 1e3:.1f}" for c in stored.values())]))
     for size, nbytes in finals.items():
-        print(f"agent's final message at {size}: {nbytes[False] / 1e3:.1f} kB exact, "
-              f"{nbytes[True] / 1e3:.1f} kB lossy")
+        print(
+            f"agent's final message at {size}: {nbytes[False] / 1e3:.1f} kB exact, "
+            f"{nbytes[True] / 1e3:.1f} kB lossy"
+        )
 
 
 def _payloads(agent_path: Path) -> dict[str, np.ndarray]:
     """Named arrays of the three payload kinds (module docstring)."""
     config = Config()
     agent = open_agent(agent_path)
-    prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth({0: agent},
-                                                                    config.input.long_side))
+    prior = SimulatedPrior(
+        config.simulated_prior, AgentFolderTruth({0: agent}, config.input.long_side)
+    )
     views = [make_view(agent.load_frame(i), 0, config.input.long_side, None) for i in (0, 1)]
     encodings = [prior.encode(view) for view in views]
     pair = prior.decode(*encodings)
@@ -246,8 +262,10 @@ def _ratio_row(name: str, array: np.ndarray) -> tuple[str, list[str]]:
             middle = time.perf_counter()
             decompress(packed)
             end = time.perf_counter()
-            cells.append(f"{len(packed) / len(raw):.2f} {len(raw) / (middle - start) / 1e6:.0f}/"
-                         f"{len(raw) / (end - middle) / 1e6:.0f}")
+            cells.append(
+                f"{len(packed) / len(raw):.2f} {len(raw) / (middle - start) / 1e6:.0f}/"
+                f"{len(raw) / (end - middle) / 1e6:.0f}"
+            )
     return f"{name} ({array.dtype}, {len(raw) / 1e6:.2f} MB)", cells
 
 
@@ -322,16 +340,32 @@ def part2(tokens: np.ndarray) -> None:
     ours = {
         "pose update (50 keyframes)": PoseUpdateMessage(PoseUpdate(0, kf_ids, poses, "gauge"), 3),
         "frame done": FrameDone(0, 7, 0.25, "tracked", 0.1),
-        "registration reply (MASt3R tokens)": EncodingReply(0, 1, 2, 1.5, 4, MASt3REncoding(
-            agent=1, index=4, shape=(384, 512), tokens=torch.from_numpy(tokens),
-            pos=torch.from_numpy(pos), grid=(24, 32))),
+        "registration reply (MASt3R tokens)": EncodingReply(
+            0,
+            1,
+            2,
+            1.5,
+            4,
+            MASt3REncoding(
+                agent=1,
+                index=4,
+                shape=(384, 512),
+                tokens=torch.from_numpy(tokens),
+                pos=torch.from_numpy(pos),
+                grid=(24, 32),
+            ),
+        ),
     }
     mirrors = {
-        "pose update (50 keyframes)": (PoseUpdateS(0, array(kf_ids.numpy()), array(poses.numpy()),
-                                                   "gauge", None, 3, 1), PoseUpdateS),
+        "pose update (50 keyframes)": (
+            PoseUpdateS(0, array(kf_ids.numpy()), array(poses.numpy()), "gauge", None, 3, 1),
+            PoseUpdateS,
+        ),
         "frame done": (FrameDoneS(0, 7, 0.25, "tracked", 0.1, 1), FrameDoneS),
-        "registration reply (MASt3R tokens)": (ReplyS(0, 1, 2, 1.5, 4, array(tokens), array(pos),
-                                                      1), ReplyS),
+        "registration reply (MASt3R tokens)": (
+            ReplyS(0, 1, 2, 1.5, 4, array(tokens), array(pos), 1),
+            ReplyS,
+        ),
     }
     print("\nmicroseconds to encode + decode (best of 3), and bytes on the wire")
     print("message | como3r codec us | bytes | msgspec struct us | bytes")
@@ -355,11 +389,20 @@ def part2(tokens: np.ndarray) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--agent", type=Path, required=True, action="append",
-                        help="an agent folder with depth/ (como3r synth); repeat for more "
-                             "resolutions (part 1 and 2 use the first)")
-    parser.add_argument("--frames", type=int, default=12,
-                        help="frames of each agent the front-end runs over (part 0)")
+    parser.add_argument(
+        "--agent",
+        type=Path,
+        required=True,
+        action="append",
+        help="an agent folder with depth/ (como3r synth); repeat for more "
+        "resolutions (part 1 and 2 use the first)",
+    )
+    parser.add_argument(
+        "--frames",
+        type=int,
+        default=12,
+        help="frames of each agent the front-end runs over (part 0)",
+    )
     parser.add_argument("--parts-only", action="store_true", help="part 0 only")
     args = parser.parse_args()
     torch.set_num_threads(1)

@@ -49,14 +49,21 @@ class CostlyPrior:
         return self.simulated.encode(view)
 
     def decode(self, enc_i, enc_j):
-        self.mast3r.decode(self._images[(enc_i.agent, enc_i.index)],
-                           self._images[(enc_j.agent, enc_j.index)])
+        self.mast3r.decode(
+            self._images[(enc_i.agent, enc_i.index)], self._images[(enc_j.agent, enc_j.index)]
+        )
         return self.simulated.decode(enc_i, enc_j)
 
     def decode_symmetric(self, pairs):
         for enc_i, enc_j in pairs:
-            self.mast3r.decode_symmetric([(self._images[(enc_i.agent, enc_i.index)],
-                                           self._images[(enc_j.agent, enc_j.index)])])
+            self.mast3r.decode_symmetric(
+                [
+                    (
+                        self._images[(enc_i.agent, enc_i.index)],
+                        self._images[(enc_j.agent, enc_j.index)],
+                    )
+                ]
+            )
         return self.simulated.decode_symmetric(pairs)
 
 
@@ -69,7 +76,10 @@ def seconds_per_frame(prior: CostlyPrior, agent_path: Path, frames: int, prefetc
     start = time.perf_counter()
     stream = prepared_frames(
         ((0, i) for i in indices),
-        lambda a, i: load_frame(source, a, i, config.input.long_side, False), prior, prefetch)
+        lambda a, i: load_frame(source, a, i, config.input.long_side, False),
+        prior,
+        prefetch,
+    )
     with contextlib.closing(stream):
         for frame in stream:
             frontend.process(frame.view, frame.timestamp, frame.colors, frame.encoding)
@@ -90,9 +100,11 @@ def main() -> None:
     mast3r = MASt3RPrior(MASt3RNetwork(MASt3RConfig()), dtype=dtype)
     truth = AgentFolderTruth({0: open_agent(args.agent)}, Config().input.long_side)
     prior = CostlyPrior(SimulatedPrior(Config().simulated_prior, truth), mast3r)
-    print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, "
-          f"{args.threads} torch thread(s), MASt3R {dtype} (random weights), load average "
-          f"{os.getloadavg()[0]:.1f}; {args.frames} frames at long side 512")
+    print(
+        f"machine: {platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, "
+        f"{args.threads} torch thread(s), MASt3R {dtype} (random weights), load average "
+        f"{os.getloadavg()[0]:.1f}; {args.frames} frames at long side 512"
+    )
     results: dict[int, list[float]] = {0: [], 2: []}
     for _ in range(args.rounds):
         for prefetch in results:

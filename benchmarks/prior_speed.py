@@ -28,9 +28,9 @@ import os
 import platform
 import statistics
 import time
+from collections.abc import Callable
 from dataclasses import fields
 from pathlib import Path
-from typing import Callable
 
 import torch
 
@@ -54,10 +54,13 @@ def interleaved(runs: dict[str, Callable[[], object]], repeats: int) -> dict[str
         for key, run in runs.items():
             start_wall, start_cpu = time.perf_counter(), time.process_time()
             run()
-            samples[key].append(((time.perf_counter() - start_wall) * 1e3,
-                                 (time.process_time() - start_cpu) * 1e3))
-    return {key: (statistics.median(w for w, _ in s), statistics.median(c for _, c in s))
-            for key, s in samples.items()}
+            samples[key].append(
+                ((time.perf_counter() - start_wall) * 1e3, (time.process_time() - start_cpu) * 1e3)
+            )
+    return {
+        key: (statistics.median(w for w, _ in s), statistics.median(c for _, c in s))
+        for key, s in samples.items()
+    }
 
 
 def relative_error(value: torch.Tensor, reference: torch.Tensor) -> float:
@@ -76,8 +79,9 @@ def errors_vs_fp32(network: MASt3RNetwork, images: torch.Tensor) -> str:
     (tokens32, pred32), (tokens16, pred16) = outputs[torch.float32], outputs[torch.bfloat16]
     parts = [f"tokens {relative_error(tokens16, tokens32):.1e}"]
     for f in fields(pred32):
-        parts.append(f"{f.name} "
-                     f"{relative_error(getattr(pred16, f.name), getattr(pred32, f.name)):.1e}")
+        parts.append(
+            f"{f.name} {relative_error(getattr(pred16, f.name), getattr(pred32, f.name)):.1e}"
+        )
     return ", ".join(parts)
 
 
@@ -85,13 +89,25 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--sizes", nargs="+", default=["512x384", "512x288"],
-                        help="W x H image sizes, multiples of 16")
-    parser.add_argument("--dtypes", nargs="+", choices=list(DTYPES),
-                        help="default: fp32, and bf16 on a CPU with AMX/AVX512-BF16")
+    parser.add_argument(
+        "--sizes",
+        nargs="+",
+        default=["512x384", "512x288"],
+        help="W x H image sizes, multiples of 16",
+    )
+    parser.add_argument(
+        "--dtypes",
+        nargs="+",
+        choices=list(DTYPES),
+        help="default: fp32, and bf16 on a CPU with AMX/AVX512-BF16",
+    )
     parser.add_argument("--official", type=Path, help="extracted naver/mast3r (optional)")
-    parser.add_argument("--deps", type=Path, default=Path("/tmp/official/deps"),
-                        help="extra import path for the official code's einops")
+    parser.add_argument(
+        "--deps",
+        type=Path,
+        default=Path("/tmp/official/deps"),
+        help="extra import path for the official code's einops",
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -106,16 +122,21 @@ def main() -> None:
         from prior_vs_official import Official, build_pair, import_official
 
         official_model, network = build_pair(
-            import_official(args.official.resolve(), args.deps), MASt3RConfig(), seed=0)
+            import_official(args.official.resolve(), args.deps), MASt3RConfig(), seed=0
+        )
         official = Official(official_model)
     build_s = time.perf_counter() - start
     parameters = sum(p.numel() for p in network.parameters())
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
-          f"torch {torch.__version__}, {args.threads} threads, median of {args.repeats} "
-          f"interleaved runs, load average {os.getloadavg()[0]:.1f} (other processes share "
-          f"the cores), bf16 instructions: {'yes' if cpu_supports_bf16() else 'no'}")
-    print(f"network: full configuration, {parameters:,} parameters, random weights "
-          f"(built in {build_s:.1f} s){', official code on the same weights' if official else ''}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+        f"torch {torch.__version__}, {args.threads} threads, median of {args.repeats} "
+        f"interleaved runs, load average {os.getloadavg()[0]:.1f} (other processes share "
+        f"the cores), bf16 instructions: {'yes' if cpu_supports_bf16() else 'no'}"
+    )
+    print(
+        f"network: full configuration, {parameters:,} parameters, random weights "
+        f"(built in {build_s:.1f} s){', official code on the same weights' if official else ''}"
+    )
 
     # the priors share one network, whose compute dtype is set by the prior about to run
     priors = {name: MASt3RPrior(network, dtype=DTYPES[name]) for name in dtypes}
@@ -135,8 +156,9 @@ def main() -> None:
             encodings = use(name).encode(images)
             runs[f"{name} encode"] = lambda n=name: use(n).encode(images[:1])
             runs[f"{name} decode"] = lambda n=name, e=encodings: use(n).decode(*e)
-            runs[f"{name} symmetric"] = (
-                lambda n=name, e=encodings: use(n).decode_symmetric([tuple(e)]))
+            runs[f"{name} symmetric"] = lambda n=name, e=encodings: use(n).decode_symmetric(
+                [tuple(e)]
+            )
         if official is not None:
             off_enc = [official.encode(images[b : b + 1]) for b in range(2)]
             runs["official encode"] = lambda: official.encode(images[:1])
@@ -147,20 +169,28 @@ def main() -> None:
         print(f"measured {size} (load average {os.getloadavg()[0]:.1f})", flush=True)
 
     for name in dtypes:
-        header = (f"{'W x H':>8} {'encode ms':>15} {'decode ms':>15} {'sym. pair ms':>15}"
-                  + (f" {'enc. ours/off.':>15} {'dec. ours/off.':>15}" if official else ""))
-        print(f"\n{name}: wall-clock ms (process CPU time over all threads)"
-              + ("; ours / official float32 time (CPU-time ratio)" if official else ""))
+        header = f"{'W x H':>8} {'encode ms':>15} {'decode ms':>15} {'sym. pair ms':>15}" + (
+            f" {'enc. ours/off.':>15} {'dec. ours/off.':>15}" if official else ""
+        )
+        print(
+            f"\n{name}: wall-clock ms (process CPU time over all threads)"
+            + ("; ours / official float32 time (CPU-time ratio)" if official else "")
+        )
         print(header)
         print("-" * len(header))
         for size, timing in results.items():
-            columns = " ".join(f"{f'{wall:.0f} ({cpu:.0f})':>15}" for wall, cpu in
-                               (timing[f"{name} {step}"]
-                                for step in ("encode", "decode", "symmetric")))
+            columns = " ".join(
+                f"{f'{wall:.0f} ({cpu:.0f})':>15}"
+                for wall, cpu in (
+                    timing[f"{name} {step}"] for step in ("encode", "decode", "symmetric")
+                )
+            )
             if official is not None:
                 for step in ("encode", "decode"):
-                    (ours_w, ours_c), (off_w, off_c) = (timing[f"{name} {step}"],
-                                                        timing[f"official {step}"])
+                    (ours_w, ours_c), (off_w, off_c) = (
+                        timing[f"{name} {step}"],
+                        timing[f"official {step}"],
+                    )
                     columns += f" {f'{ours_w / off_w:.2f} ({ours_c / off_c:.2f})':>15}"
             print(f"{size:>8} {columns}")
     for size, note in notes.items():

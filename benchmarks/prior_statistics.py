@@ -70,7 +70,7 @@ from como3r.geometry.lie import (
 from como3r.geometry.umeyama import umeyama_sim3
 from como3r.prior.base import View
 from como3r.prior.ground_truth import GroundTruth, InMemoryTruth
-from como3r.prior.simulated import SimulatedPrior, SimulatedEncoding
+from como3r.prior.simulated import SimulatedEncoding, SimulatedPrior
 
 MODELS = typing.get_args(typing.get_type_hints(SimulatedPriorConfig)["model"])
 OVERLAP, NO_OVERLAP = 0.3, 0.01
@@ -90,8 +90,16 @@ class Scene:
 
 def load_scene(root: Path, preset: str, frames: int, width: int, height: int) -> Scene:
     """Synthesize two agents of ``preset`` into ``root`` and load them at full size."""
-    synthesize(root, agents=2, seed=0, overlap=0.5, frames=frames, preset=preset, width=width,
-               height=height)
+    synthesize(
+        root,
+        agents=2,
+        seed=0,
+        overlap=0.5,
+        frames=frames,
+        preset=preset,
+        width=width,
+        height=height,
+    )
     truth, views = InMemoryTruth(), []
     for a in range(2):
         agent = open_agent(root / f"agent_{a}")
@@ -178,8 +186,9 @@ def confidence_rhos(pred, gt: GroundTruth) -> tuple[float, float, float]:
     error, valid = log_range_error(gt, pred.X_ii)
     smooth = smooth_part(error, valid)
     logit = torch.log((pred.C_ii - 1).clamp_min(1e-12))[valid].numpy()
-    return tuple(spearman(logit, part[valid].abs().numpy())
-                 for part in (error, smooth, error - smooth))
+    return tuple(
+        spearman(logit, part[valid].abs().numpy()) for part in (error, smooth, error - smooth)
+    )
 
 
 def ray_matching_px(pred, gt_i: GroundTruth, gt_j: GroundTruth, seed: int) -> float | None:
@@ -197,8 +206,9 @@ def ray_matching_px(pred, gt_i: GroundTruth, gt_j: GroundTruth, seed: int) -> fl
     return float((found - uv.reshape(-1, 2)[queries]).norm(dim=-1).median())
 
 
-def depth_focal_pose(pred, view: View, gt_i: GroundTruth, gt_j: GroundTruth
-                     ) -> tuple[float, float, float]:
+def depth_focal_pose(
+    pred, view: View, gt_i: GroundTruth, gt_j: GroundTruth
+) -> tuple[float, float, float]:
     """Median relative depth error, relative focal error, pose rotation error (deg)."""
     error, valid = log_range_error(gt_i, pred.X_ii)
     depth = float((torch.exp(error[valid]) - 1).abs().median())
@@ -214,16 +224,16 @@ def depth_focal_pose(pred, view: View, gt_i: GroundTruth, gt_j: GroundTruth
     return depth, focal_error, angle
 
 
-def retrieval_ranks(prior: SimulatedPrior, encodings: list[list[SimulatedEncoding]],
-                    covis: np.ndarray) -> list[int]:
+def retrieval_ranks(
+    prior: SimulatedPrior, encodings: list[list[SimulatedEncoding]], covis: np.ndarray
+) -> list[int]:
     """Rank (1 = first) of the most covisible agent-1 frame for each agent-0 query."""
     features = [[prior.retrieval_features(e)[0] for e in row] for row in encodings]
     ranks = []
     for q, query in enumerate(features[0]):
         if covis[q].max() < OVERLAP:
             continue
-        scores = np.asarray([float((query @ base.T).max(-1).values.mean())
-                             for base in features[1]])
+        scores = np.asarray([float((query @ base.T).max(-1).values.mean()) for base in features[1]])
         ranks.append(1 + int((scores > scores[int(covis[q].argmax())]).sum()))
     return ranks
 
@@ -236,48 +246,69 @@ def auc(positive: list[float], negative: list[float]) -> float:
     return float(np.mean((p > n) + 0.5 * (p == n)))
 
 
-def measure(scene: Scene, config: SimulatedPriorConfig, gap: int, max_pairs: int
-            ) -> dict[str, float]:
+def measure(
+    scene: Scene, config: SimulatedPriorConfig, gap: int, max_pairs: int
+) -> dict[str, float]:
     """Every statistic of one model on one scene (module docstring)."""
     prior = SimulatedPrior(config, scene.truth)
-    no_ray_config = dataclasses.replace(config, focal_error=0.0, principal_point_error=0.0,
-                                        ray_field_deg=0.0)
-    exact_pose = dict(rotation_noise_deg=0.0, translation_noise=0.0, translation_floor=0.0,
-                      gross_failure_rate=0.0)
+    no_ray_config = dataclasses.replace(
+        config, focal_error=0.0, principal_point_error=0.0, ray_field_deg=0.0
+    )
+    exact_pose = dict(
+        rotation_noise_deg=0.0, translation_noise=0.0, translation_floor=0.0, gross_failure_rate=0.0
+    )
     variants = {  # the ray-matching error of these models besides the model itself
         "ray_none": SimulatedPrior(no_ray_config, scene.truth),
         "ray_pose0": SimulatedPrior(dataclasses.replace(config, **exact_pose), scene.truth),
-        "ray_none_pose0": SimulatedPrior(dataclasses.replace(no_ray_config, **exact_pose),
-                                         scene.truth),
+        "ray_none_pose0": SimulatedPrior(
+            dataclasses.replace(no_ray_config, **exact_pose), scene.truth
+        ),
     }
     encodings = [[prior.encode(v) for v in row] for row in scene.views]
     frames = len(scene.views[0])
-    out: dict[str, list[float]] = {key: [] for key in (
-        "nn", "rho", "rho_smooth", "rho_pixel", "ray", *variants, "depth", "focal", "pose")}
+    out: dict[str, list[float]] = {
+        key: []
+        for key in (
+            "nn",
+            "rho",
+            "rho_smooth",
+            "rho_pixel",
+            "ray",
+            *variants,
+            "depth",
+            "focal",
+            "pose",
+        )
+    }
     for k in range(0, frames - gap, max(1, (frames - gap) // max_pairs))[:max_pairs]:
         view_i, view_j = scene.views[0][k], scene.views[0][k + gap]
         gt_i, gt_j = scene.gt(view_i), scene.gt(view_j)
         pred = prior.decode(encodings[0][k], encodings[0][k + gap])
-        for key, value in (("nn", nn_within_2px(pred, gt_i, gt_j, k)),
-                           ("ray", ray_matching_px(pred, gt_i, gt_j, k))):
+        for key, value in (
+            ("nn", nn_within_2px(pred, gt_i, gt_j, k)),
+            ("ray", ray_matching_px(pred, gt_i, gt_j, k)),
+        ):
             if value is not None:
                 out[key].append(value)
         for key, value in zip(("rho", "rho_smooth", "rho_pixel"), confidence_rhos(pred, gt_i)):
             out[key].append(value)
-        for key, value in zip(("depth", "focal", "pose"),
-                              depth_focal_pose(pred, view_i, gt_i, gt_j)):
+        for key, value in zip(
+            ("depth", "focal", "pose"), depth_focal_pose(pred, view_i, gt_i, gt_j)
+        ):
             out[key].append(value)
         for key, variant in variants.items():
-            value = ray_matching_px(variant.decode(variant.encode(view_i),
-                                                   variant.encode(view_j)), gt_i, gt_j, k)
+            value = ray_matching_px(
+                variant.decode(variant.encode(view_i), variant.encode(view_j)), gt_i, gt_j, k
+            )
             if value is not None:
                 out[key].append(value)
-    covis = np.asarray([[covisibility(scene.gt(a), scene.gt(b)) for b in scene.views[1]]
-                        for a in scene.views[0]])
+    covis = np.asarray(
+        [[covisibility(scene.gt(a), scene.gt(b)) for b in scene.views[1]] for a in scene.views[0]]
+    )
     ranks = retrieval_ranks(prior, encodings, covis)
     overlapping = list(zip(*np.nonzero(covis > OVERLAP)))[:max_pairs]
     apart = list(zip(*np.nonzero(covis < NO_OVERLAP)))
-    apart = apart[::max(1, len(apart) // max_pairs)][:max_pairs]
+    apart = apart[:: max(1, len(apart) // max_pairs)][:max_pairs]
     medians: dict[bool, list[float]] = {True: [], False: []}
     covis_ratio = []
     for is_overlap, pairs in ((True, overlapping), (False, apart)):
@@ -290,30 +321,45 @@ def measure(scene: Scene, config: SimulatedPriorConfig, gap: int, max_pairs: int
                 unseen = valid_j & ~seen
                 if int(seen.sum()) > 50 and int(unseen.sum()) > 50:
                     covis_ratio.append(float(pred.C_ji[seen].median() / pred.C_ji[unseen].median()))
-    result = {key: float(np.mean(values)) if key.startswith("rho") else float(np.median(values))
-              for key, values in out.items() if values}
-    result.update({
-        "r1": float(np.mean(np.asarray(ranks) == 1)) if ranks else float("nan"),
-        "rank": float(np.median(ranks)) if ranks else float("nan"),
-        "queries": float(len(ranks)),
-        "c_overlap": float(np.median(medians[True])) if medians[True] else float("nan"),
-        "c_none": float(np.median(medians[False])) if medians[False] else float("nan"),
-        "auc": auc(medians[True], medians[False]),
-        "covis": float(np.median(covis_ratio)) if covis_ratio else float("nan"),
-        "pairs": float(len(out["depth"])), "overlap_pairs": float(len(medians[True])),
-        "apart_pairs": float(len(medians[False])),
-    })
+    result = {
+        key: float(np.mean(values)) if key.startswith("rho") else float(np.median(values))
+        for key, values in out.items()
+        if values
+    }
+    result.update(
+        {
+            "r1": float(np.mean(np.asarray(ranks) == 1)) if ranks else float("nan"),
+            "rank": float(np.median(ranks)) if ranks else float("nan"),
+            "queries": float(len(ranks)),
+            "c_overlap": float(np.median(medians[True])) if medians[True] else float("nan"),
+            "c_none": float(np.median(medians[False])) if medians[False] else float("nan"),
+            "auc": auc(medians[True], medians[False]),
+            "covis": float(np.median(covis_ratio)) if covis_ratio else float("nan"),
+            "pairs": float(len(out["depth"])),
+            "overlap_pairs": float(len(medians[True])),
+            "apart_pairs": float(len(medians[False])),
+        }
+    )
     return result
 
 
 COLUMNS = (  # (key, header, format)
-    ("nn", "NN<=2px", "{:.1%}"), ("r1", "R@1", "{:.0%}"), ("rank", "rank", "{:.1f}"),
-    ("rho", "rho", "{:+.2f}"), ("rho_smooth", "rho smooth", "{:+.2f}"),
-    ("rho_pixel", "rho pixel", "{:+.2f}"), ("ray", "ray px", "{:.2f}"),
-    ("ray_none", "no-ray px", "{:.2f}"), ("ray_pose0", "ray|pose0", "{:.2f}"),
-    ("ray_none_pose0", "no-ray|pose0", "{:.2f}"), ("c_overlap", "C ovl", "{:.2f}"),
-    ("c_none", "C none", "{:.2f}"), ("auc", "AUC", "{:.2f}"), ("covis", "covis", "{:.2f}"),
-    ("depth", "depth %", "{:.1%}"), ("focal", "focal %", "{:.1%}"),
+    ("nn", "NN<=2px", "{:.1%}"),
+    ("r1", "R@1", "{:.0%}"),
+    ("rank", "rank", "{:.1f}"),
+    ("rho", "rho", "{:+.2f}"),
+    ("rho_smooth", "rho smooth", "{:+.2f}"),
+    ("rho_pixel", "rho pixel", "{:+.2f}"),
+    ("ray", "ray px", "{:.2f}"),
+    ("ray_none", "no-ray px", "{:.2f}"),
+    ("ray_pose0", "ray|pose0", "{:.2f}"),
+    ("ray_none_pose0", "no-ray|pose0", "{:.2f}"),
+    ("c_overlap", "C ovl", "{:.2f}"),
+    ("c_none", "C none", "{:.2f}"),
+    ("auc", "AUC", "{:.2f}"),
+    ("covis", "covis", "{:.2f}"),
+    ("depth", "depth %", "{:.1%}"),
+    ("focal", "focal %", "{:.1%}"),
     ("pose", "pose deg", "{:.2f}"),
 )
 
@@ -321,9 +367,14 @@ COLUMNS = (  # (key, header, format)
 def print_table(rows: list[tuple[str, str, dict[str, float]]]) -> None:
     """One row per (preset, model), fixed-width columns."""
     headers = ["preset", "model"] + [h for _, h, _ in COLUMNS]
-    cells = [[preset, model] + [
-        fmt.format(stats[key]) if key in stats and not math.isnan(stats[key]) else "-"
-        for key, _, fmt in COLUMNS] for preset, model, stats in rows]
+    cells = [
+        [preset, model]
+        + [
+            fmt.format(stats[key]) if key in stats and not math.isnan(stats[key]) else "-"
+            for key, _, fmt in COLUMNS
+        ]
+        for preset, model, stats in rows
+    ]
     widths = [max(len(h), *(len(r[c]) for r in cells)) for c, h in enumerate(headers)]
     print("  ".join(h.rjust(w) for h, w in zip(headers, widths)))
     for row in cells:
@@ -332,8 +383,13 @@ def print_table(rows: list[tuple[str, str, dict[str, float]]]) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", nargs="+", choices=MODELS, default=["realistic"],
-                        help="simulated_prior.model values to measure")
+    parser.add_argument(
+        "--model",
+        nargs="+",
+        choices=MODELS,
+        default=["realistic"],
+        help="simulated_prior.model values to measure",
+    )
     parser.add_argument("--presets", nargs="+", default=["default", "low-texture"])
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=240)
@@ -353,12 +409,17 @@ def main() -> None:
             for model in args.model:
                 stats = measure(scene, SimulatedPriorConfig(model=model), args.gap, args.pairs)
                 rows.append((preset, model, stats))
-                print(f"{preset} / {model}: {stats['pairs']:.0f} pairs (gap {args.gap}), "
-                      f"{stats['queries']:.0f} retrieval queries, "
-                      f"{stats['overlap_pairs']:.0f} overlapping and "
-                      f"{stats['apart_pairs']:.0f} non-overlapping pairs", flush=True)
-    print(f"\n{args.width}x{args.height}, 2 agents x {args.frames} frames, seed 0, "
-          f"{time.perf_counter() - start:.0f} s")
+                print(
+                    f"{preset} / {model}: {stats['pairs']:.0f} pairs (gap {args.gap}), "
+                    f"{stats['queries']:.0f} retrieval queries, "
+                    f"{stats['overlap_pairs']:.0f} overlapping and "
+                    f"{stats['apart_pairs']:.0f} non-overlapping pairs",
+                    flush=True,
+                )
+    print(
+        f"\n{args.width}x{args.height}, 2 agents x {args.frames} frames, seed 0, "
+        f"{time.perf_counter() - start:.0f} s"
+    )
     print_table(rows)
 
 

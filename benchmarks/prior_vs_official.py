@@ -54,8 +54,8 @@ import statistics
 import sys
 import time
 import types
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import torch
 from torch import nn
@@ -66,8 +66,9 @@ from como3r.prior.mast3r.loader import select_state_dict
 DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
 #: head outputs compared: ours (HeadOutput field) -> official result key
 #: a small configuration the official head accepts (it asserts dec_depth > 9)
-TINY = MASt3RConfig(enc_embed_dim=64, enc_depth=2, enc_num_heads=2, dec_embed_dim=64,
-                    dec_depth=10, dec_num_heads=2)
+TINY = MASt3RConfig(
+    enc_embed_dim=64, enc_depth=2, enc_num_heads=2, dec_embed_dim=64, dec_depth=10, dec_num_heads=2
+)
 OUTPUTS = {"pts3d": "pts3d", "conf": "conf", "desc": "desc", "desc_conf": "desc_conf"}
 
 
@@ -96,20 +97,27 @@ def import_official(root: Path, deps: Path | None) -> type[nn.Module]:
 def official_kwargs(config: MASt3RConfig) -> dict[str, object]:
     """Constructor arguments of the official model for ``config`` (the released string's)."""
     return dict(
-        pos_embed=f"RoPE{config.rope_base:g}", patch_embed_cls="ManyAR_PatchEmbed",
-        img_size=(512, 512), head_type="catmlp+dpt", output_mode=f"pts3d+desc{config.desc_dim}",
+        pos_embed=f"RoPE{config.rope_base:g}",
+        patch_embed_cls="ManyAR_PatchEmbed",
+        img_size=(512, 512),
+        head_type="catmlp+dpt",
+        output_mode=f"pts3d+desc{config.desc_dim}",
         depth_mode=("exp", -math.inf, math.inf),
         conf_mode=("exp", config.conf_min, config.conf_max),
-        enc_embed_dim=config.enc_embed_dim, enc_depth=config.enc_depth,
-        enc_num_heads=config.enc_num_heads, dec_embed_dim=config.dec_embed_dim,
-        dec_depth=config.dec_depth, dec_num_heads=config.dec_num_heads,
+        enc_embed_dim=config.enc_embed_dim,
+        enc_depth=config.enc_depth,
+        enc_num_heads=config.enc_num_heads,
+        dec_embed_dim=config.dec_embed_dim,
+        dec_depth=config.dec_depth,
+        dec_num_heads=config.dec_num_heads,
         two_confs=config.two_confs,
         desc_conf_mode=("exp", config.desc_conf_min, config.desc_conf_max),
     )
 
 
-def build_pair(official_cls: type[nn.Module], config: MASt3RConfig,
-               seed: int) -> tuple[nn.Module, MASt3RNetwork]:
+def build_pair(
+    official_cls: type[nn.Module], config: MASt3RConfig, seed: int
+) -> tuple[nn.Module, MASt3RNetwork]:
     """The official model (random weights) and our network holding the same tensors."""
     torch.manual_seed(seed)
     official = official_cls(**official_kwargs(config)).eval().requires_grad_(False)
@@ -123,8 +131,9 @@ def build_pair(official_cls: type[nn.Module], config: MASt3RConfig,
     with torch.device("meta"):
         ours = MASt3RNetwork(config)
     expected = {key: value.shape for key, value in ours.state_dict().items()}
-    ours.load_state_dict(select_state_dict(expected, state, "official model"), strict=True,
-                         assign=True)
+    ours.load_state_dict(
+        select_state_dict(expected, state, "official model"), strict=True, assign=True
+    )
     return official, ours.requires_grad_(False)
 
 
@@ -178,9 +187,17 @@ def timed(run: Callable[[], object]) -> tuple[float, float]:
     return (time.perf_counter() - start_wall) * 1e3, (time.process_time() - start_cpu) * 1e3
 
 
-def measure(official_root: Path, deps: Path | None, width: int, height: int,
-            dtypes: list[str], repeats: int, seed: int = 0, tiny: bool = False,
-            log: Callable[[str], None] = print) -> dict[tuple[str, str], tuple[float, ...]]:
+def measure(
+    official_root: Path,
+    deps: Path | None,
+    width: int,
+    height: int,
+    dtypes: list[str],
+    repeats: int,
+    seed: int = 0,
+    tiny: bool = False,
+    log: Callable[[str], None] = print,
+) -> dict[tuple[str, str], tuple[float, ...]]:
     """Median ms of encode and decode, ours per precision against the official fp32.
 
     Returns:
@@ -195,8 +212,10 @@ def measure(official_root: Path, deps: Path | None, width: int, height: int,
     official_model, network = build_pair(official_cls, config, seed)
     official = Official(official_model)
     images = torch.rand(2, 3, height, width, generator=torch.Generator().manual_seed(1)) * 2 - 1
-    log(f"network: {'tiny' if tiny else 'full'} configuration, "
-        f"{sum(p.numel() for p in network.parameters()):,} parameters, same random weights")
+    log(
+        f"network: {'tiny' if tiny else 'full'} configuration, "
+        f"{sum(p.numel() for p in network.parameters()):,} parameters, same random weights"
+    )
 
     # the priors share one network, whose compute dtype is set by the prior about to run
     priors = {name: MASt3RPrior(network, dtype=DTYPES[name]) for name in dtypes}
@@ -207,8 +226,10 @@ def measure(official_root: Path, deps: Path | None, width: int, height: int,
 
     for name in priors:
         errors = compare(use(name), official, images)
-        log(f"ours {name} vs official fp32, relative error: "
-            + ", ".join(f"{key} {value:.1e}" for key, value in errors.items()))
+        log(
+            f"ours {name} vs official fp32, relative error: "
+            + ", ".join(f"{key} {value:.1e}" for key, value in errors.items())
+        )
         if name == "fp32" and max(errors.values()) > 1e-4:
             raise SystemExit("fp32 outputs differ from the official ones (> 1e-4)")
 
@@ -227,19 +248,36 @@ def measure(official_root: Path, deps: Path | None, width: int, height: int,
     for _ in range(repeats):
         for key, run in runs.items():
             samples[key].append(timed(run))
-    median = {key: (statistics.median(w for w, _ in s), statistics.median(c for _, c in s))
-              for key, s in samples.items()}
-    return {(name, step): (*median[f"ours {name} {step}"][:1], median[f"official {step}"][0],
-                           median[f"ours {name} {step}"][1], median[f"official {step}"][1])
-            for name in priors for step in ("encode", "decode")}
+    median = {
+        key: (statistics.median(w for w, _ in s), statistics.median(c for _, c in s))
+        for key, s in samples.items()
+    }
+    return {
+        (name, step): (
+            *median[f"ours {name} {step}"][:1],
+            median[f"official {step}"][0],
+            median[f"ours {name} {step}"][1],
+            median[f"official {step}"][1],
+        )
+        for name in priors
+        for step in ("encode", "decode")
+    }
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--official", type=Path, default=Path("/tmp/official/mast3r"),
-                        help="extracted naver/mast3r with dust3r (and its croco) inside")
-    parser.add_argument("--deps", type=Path, default=Path("/tmp/official/deps"),
-                        help="extra import path for the official code's einops")
+    parser.add_argument(
+        "--official",
+        type=Path,
+        default=Path("/tmp/official/mast3r"),
+        help="extracted naver/mast3r with dust3r (and its croco) inside",
+    )
+    parser.add_argument(
+        "--deps",
+        type=Path,
+        default=Path("/tmp/official/deps"),
+        help="extra import path for the official code's einops",
+    )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--size", default="512x384", help="W x H, multiples of 16")
@@ -249,20 +287,27 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     width, height = (int(v) for v in args.size.lower().split("x"))
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
-          f"torch {torch.__version__}, {args.threads} threads, {args.size}, median of "
-          f"{args.repeats} interleaved runs, load average {os.getloadavg()[0]:.1f} at start")
-    results = measure(args.official, args.deps, width, height, args.dtypes, args.repeats,
-                      args.seed, args.tiny)
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+        f"torch {torch.__version__}, {args.threads} threads, {args.size}, median of "
+        f"{args.repeats} interleaved runs, load average {os.getloadavg()[0]:.1f} at start"
+    )
+    results = measure(
+        args.official, args.deps, width, height, args.dtypes, args.repeats, args.seed, args.tiny
+    )
     print(f"load average {os.getloadavg()[0]:.1f} at the end (other processes share the cores)\n")
-    header = (f"{'ours':>5} {'step':>7} {'ours ms':>9} {'official ms':>12} "
-              f"{'ours/official':>14} {'speed-up':>9} {'speed-up (CPU time)':>20}")
+    header = (
+        f"{'ours':>5} {'step':>7} {'ours ms':>9} {'official ms':>12} "
+        f"{'ours/official':>14} {'speed-up':>9} {'speed-up (CPU time)':>20}"
+    )
     print(header)
     print("-" * len(header))
     for (name, step), (ours_wall, off_wall, ours_cpu, off_cpu) in results.items():
-        print(f"{name:>5} {step:>7} {ours_wall:>9.0f} {off_wall:>12.0f} "
-              f"{ours_wall / off_wall:>14.2f} {off_wall / ours_wall:>8.2f}x "
-              f"{off_cpu / ours_cpu:>19.2f}x")
+        print(
+            f"{name:>5} {step:>7} {ours_wall:>9.0f} {off_wall:>12.0f} "
+            f"{ours_wall / off_wall:>14.2f} {off_wall / ours_wall:>8.2f}x "
+            f"{off_cpu / ours_cpu:>19.2f}x"
+        )
 
 
 if __name__ == "__main__":

@@ -79,9 +79,8 @@ import traceback
 from pathlib import Path
 
 import numpy as np
-from rich.console import Console
-
 from _tables import format_value, print_table, write_csv
+from rich.console import Console
 
 from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
@@ -97,8 +96,20 @@ EXCERPTS = {
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 #: ``como3r split --overlap``'s default
 SPLIT_OVERLAP = 0.05
-COLUMNS = ("excerpt", "agents", "seed", "frames", "tracked", "KF/frame", "ATE m", "ATE %path",
-           "map acc m", "merged", "s/frame", "status")
+COLUMNS = (
+    "excerpt",
+    "agents",
+    "seed",
+    "frames",
+    "tracked",
+    "KF/frame",
+    "ATE m",
+    "ATE %path",
+    "map acc m",
+    "merged",
+    "s/frame",
+    "status",
+)
 
 
 def path_length(sequence: Path) -> float:
@@ -127,7 +138,9 @@ def measure(metrics: dict, paths: list[float]) -> dict[str, object]:
         "frames": frames,
         "tracked": sum(a["tracked"] for a in agents) / frames,
         "KF/frame": sum(a["keyframes"] for a in agents) / frames,
-        "ATE m": math.nan, "ATE %path": math.nan, "map acc m": math.nan,
+        "ATE m": math.nan,
+        "ATE %path": math.nan,
+        "map acc m": math.nan,
         "merged": "yes" if merged else "no",
         "s/frame": sum(a["seconds"] for a in agents) / frames,
     }
@@ -175,32 +188,57 @@ def run_excerpt(out: Path, data: Path, excerpt: str, agents: int, seed: int = 0)
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True, help="Folder for the CSV and runs.")
-    parser.add_argument("--data", type=Path, default=SHARED_DATA,
-                        help="Folder holding the excerpts (default: %(default)s).")
+    parser.add_argument(
+        "--data",
+        type=Path,
+        default=SHARED_DATA,
+        help="Folder holding the excerpts (default: %(default)s).",
+    )
     parser.add_argument("--excerpts", nargs="+", default=list(EXCERPTS), choices=list(EXCERPTS))
-    parser.add_argument("--setups", nargs="+", type=int, default=[1, 2], choices=(1, 2),
-                        help="Agents per run: 1 (the whole excerpt), 2 (como3r split).")
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0],
-                        help="Simulated-prior seeds (simulated_prior.seed; 0 is the default): "
-                             "one run per seed, for a range rather than one draw.")
+    parser.add_argument(
+        "--setups",
+        nargs="+",
+        type=int,
+        default=[1, 2],
+        choices=(1, 2),
+        help="Agents per run: 1 (the whole excerpt), 2 (como3r split).",
+    )
+    parser.add_argument(
+        "--seeds",
+        nargs="+",
+        type=int,
+        default=[0],
+        help="Simulated-prior seeds (simulated_prior.seed; 0 is the default): "
+        "one run per seed, for a range rather than one draw.",
+    )
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     console = Console(width=160)
     present = [e for e in args.excerpts if (args.data / EXCERPTS[e]).is_dir()]
     for missing in sorted(set(args.excerpts) - set(present)):
         console.print(f"skipped {missing}: {args.data / EXCERPTS[missing]} not found")
-    console.print(f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-                  f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; default "
-                  "Config(), simulated prior")
+    console.print(
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; default "
+        "Config(), simulated prior"
+    )
     rows = []
     started = time.perf_counter()
     for excerpt in present:
         for agents in args.setups:
             for seed in args.seeds:
                 rows.append(run_excerpt(args.out, args.data, excerpt, agents, seed))
-            console.print(f"[{time.perf_counter() - started:7.0f} s] "
-                          + ", ".join(f"{c}={format_value(rows[-1][c])}" for c in COLUMNS))
-    print_table(console, rows, COLUMNS, "real RGB-D excerpts, default configuration, simulated prior", left=("excerpt", "status"))
+            console.print(
+                f"[{time.perf_counter() - started:7.0f} s] "
+                + ", ".join(f"{c}={format_value(rows[-1][c])}" for c in COLUMNS)
+            )
+    print_table(
+        console,
+        rows,
+        COLUMNS,
+        "real RGB-D excerpts, default configuration, simulated prior",
+        left=("excerpt", "status"),
+    )
     write_csv(args.out / "real_data.csv", rows, COLUMNS)
     console.print(f"wrote {args.out / 'real_data.csv'}")
 

@@ -70,11 +70,11 @@ import retrieval_speed  # noqa: E402
 import slam_vs_prior  # noqa: E402
 
 from como3r.config import Config  # noqa: E402
-from como3r.optim.linear import auto_backend  # noqa: E402
 from como3r.data.synth.writer import synthesize  # noqa: E402
+from como3r.optim.linear import auto_backend  # noqa: E402
 from como3r.prior.mast3r.precision import PRECISIONS, choose_dtype  # noqa: E402
-from como3r.runtime.pipeline import PriorSpec  # noqa: E402
 from como3r.runtime.multiprocess import run_multiprocess  # noqa: E402
+from como3r.runtime.pipeline import PriorSpec  # noqa: E402
 
 #: input size of every scene (the demo's): 640x480, processed at the default long side 512
 WIDTH, HEIGHT = 640, 480
@@ -113,8 +113,17 @@ def scene(root: Path, agents: int, frames: int) -> Path:
     folder = root / f"scene_{agents}x{frames}"
     if not (folder / "scene.json").exists():
         staging = Path(tempfile.mkdtemp(dir=root))
-        synthesize(staging, agents=agents, seed=0, overlap=0.5, frames=2 * frames,
-                   preset="default", width=WIDTH, height=HEIGHT, loop_frames=100)
+        synthesize(
+            staging,
+            agents=agents,
+            seed=0,
+            overlap=0.5,
+            frames=2 * frames,
+            preset="default",
+            width=WIDTH,
+            height=HEIGHT,
+            loop_frames=100,
+        )
         staging.rename(folder)
     return folder
 
@@ -124,8 +133,9 @@ def measure_slam(report: Report, root: Path, frames: int, precision: str) -> Non
     agent = scene(root, 1, frames) / "agent_0"
     clock, counters = slam_vs_prior.frontend_run(agent, frames, [])
     n = counters["frames"]
-    report.slam_ms = {stage: 1000.0 * clock.seconds.get(stage, 0.0) / n
-                      for stage in slam_vs_prior.SLAM_STAGES}
+    report.slam_ms = {
+        stage: 1000.0 * clock.seconds.get(stage, 0.0) / n for stage in slam_vs_prior.SLAM_STAGES
+    }
     width, height = (int(v) for v in counters["resolution"].split("x"))
     report.decode_ms = 1000.0 * slam_vs_prior.mast3r_decode_seconds(width, height, precision)
     report.decodes_per_frame = counters["decodes"] / n
@@ -135,22 +145,30 @@ def measure_slam(report: Report, root: Path, frames: int, precision: str) -> Non
 def measure_mast3r(report: Report, official: Path | None, repeats: int) -> None:
     """Table 2: ours / official per precision, or the reason it was not measured."""
     if official is None or not (official / "mast3r" / "model.py").exists():
-        report.mast3r_note = (f"not measured: no official code at {official} (--official; "
-                              "benchmarks/prior_vs_official.py says how to extract it)")
+        report.mast3r_note = (
+            f"not measured: no official code at {official} (--official; "
+            "benchmarks/prior_vs_official.py says how to extract it)"
+        )
         return
     dtypes = ["fp32"]
     if choose_dtype(torch.device("cpu"), "auto") == torch.bfloat16:
         dtypes.append("bf16")
     deps = official.parent / "deps"
-    report.mast3r = prior_vs_official.measure(official, deps if deps.exists() else None,
-                                              512, 384, dtypes, repeats, log=lambda _: None)
+    report.mast3r = prior_vs_official.measure(
+        official, deps if deps.exists() else None, 512, 384, dtypes, repeats, log=lambda _: None
+    )
 
 
 def multiprocess_run(root: Path, agents: int, frames: int, out: Path) -> Path:
     """``como3r run`` of the ``agents``-agent scene into ``out``; its output folder."""
     folder = scene(root, agents, frames)
-    summary = run_multiprocess([folder / f"agent_{k}" for k in range(agents)], out, Config(),
-                               PriorSpec("simulated"), overwrite=True)
+    summary = run_multiprocess(
+        [folder / f"agent_{k}" for k in range(agents)],
+        out,
+        Config(),
+        PriorSpec("simulated"),
+        overwrite=True,
+    )
     return Path(summary.out)
 
 
@@ -171,7 +189,8 @@ def measure_fps(report: Report, root: Path, agent_counts: list[int], frames: int
         report.coordinator_ms[n] = {
             stage: 1000.0 * seconds / keyframes
             for stage, seconds in coordinator["stage_seconds"].items()
-            if not stage.startswith("prior_")}
+            if not stage.startswith("prior_")
+        }
         report.coordinator_decodes[n] = coordinator["prior_decodes"] / keyframes
 
 
@@ -206,85 +225,127 @@ def markdown(report: Report) -> str:
     """The dashboard as Markdown: goals first, then one table per measurement."""
     slam_total = sum(report.slam_ms.values())
     frame_decodes_ms = report.decode_ms * report.decodes_per_frame
-    lines = [f"# como3r performance dashboard\n\n{report.header}\n", "## Goals (issue 16)\n",
-             "| goal | measured | |", "|---|---|---|",
-             f"| SLAM <= {GOAL_SLAM_SHARE:.0%} of the decodes a frame causes (512x384) | "
-             f"{slam_total / frame_decodes_ms:.3f} | "
-             f"{verdict(slam_total <= GOAL_SLAM_SHARE * frame_decodes_ms)} |",
-             f"| SLAM <= {GOAL_SLAM_SHARE:.0%} of one decode per frame | "
-             f"{slam_total / report.decode_ms:.3f} | "
-             f"{verdict(slam_total <= GOAL_SLAM_SHARE * report.decode_ms)} |"]
+    lines = [
+        f"# como3r performance dashboard\n\n{report.header}\n",
+        "## Goals (issue 16)\n",
+        "| goal | measured | |",
+        "|---|---|---|",
+        f"| SLAM <= {GOAL_SLAM_SHARE:.0%} of the decodes a frame causes (512x384) | "
+        f"{slam_total / frame_decodes_ms:.3f} | "
+        f"{verdict(slam_total <= GOAL_SLAM_SHARE * frame_decodes_ms)} |",
+        f"| SLAM <= {GOAL_SLAM_SHARE:.0%} of one decode per frame | "
+        f"{slam_total / report.decode_ms:.3f} | "
+        f"{verdict(slam_total <= GOAL_SLAM_SHARE * report.decode_ms)} |",
+    ]
     for (name, step), (ours, official, *_) in report.mast3r.items():
-        lines.append(f"| MASt3R {name} {step} >= {GOAL_SPEEDUP}x official fp32 | "
-                     f"{official / ours:.2f}x | {verdict(official / ours >= GOAL_SPEEDUP)} |")
+        lines.append(
+            f"| MASt3R {name} {step} >= {GOAL_SPEEDUP}x official fp32 | "
+            f"{official / ours:.2f}x | {verdict(official / ours >= GOAL_SPEEDUP)} |"
+        )
     if report.coordinator_ms:
         agents = max(report.coordinator_ms)
         total = sum(report.coordinator_ms[agents].values())
         caused = report.decode_ms * report.coordinator_decodes[agents]
         share = total / caused if caused else float("inf")
-        lines.append(f"| coordinator SLAM per keyframe <= {GOAL_SLAM_SHARE:.0%} of the decodes "
-                     f"a keyframe causes ({agents} agents) | {share:.3f} | "
-                     f"{verdict(share <= GOAL_SLAM_SHARE)} |")
-    lines += [f"| global BA iteration slope <= {GOAL_SLOPE} | {report.ba_slope:.2f} | "
-              f"{verdict(report.ba_slope <= GOAL_SLOPE)} |"]
+        lines.append(
+            f"| coordinator SLAM per keyframe <= {GOAL_SLAM_SHARE:.0%} of the decodes "
+            f"a keyframe causes ({agents} agents) | {share:.3f} | "
+            f"{verdict(share <= GOAL_SLAM_SHARE)} |"
+        )
+    lines += [
+        f"| global BA iteration slope <= {GOAL_SLOPE} | {report.ba_slope:.2f} | "
+        f"{verdict(report.ba_slope <= GOAL_SLOPE)} |"
+    ]
     if report.retrieval_ms:
-        lines.append(f"| retrieval per keyframe slope <= {GOAL_RETRIEVAL_SLOPE} (flat) | "
-                     f"{report.retrieval_slope:.2f} | "
-                     f"{verdict(report.retrieval_slope <= GOAL_RETRIEVAL_SLOPE)} |")
+        lines.append(
+            f"| retrieval per keyframe slope <= {GOAL_RETRIEVAL_SLOPE} (flat) | "
+            f"{report.retrieval_slope:.2f} | "
+            f"{verdict(report.retrieval_slope <= GOAL_RETRIEVAL_SLOPE)} |"
+        )
     lines.append("")
     if report.coordinator_ms:
-        shares = ", ".join(f"{sum(ms.values()) / report.decode_ms:.3f} with {n}"
-                           for n, ms in report.coordinator_ms.items())
-        lines += [f"Coordinator SLAM per keyframe over ONE decode: {shares} agents; not a "
-                  "goal: it grows with the team (one agent's keyframes cause no verification, "
-                  "gauge, focal or global BA work; with more agents a keyframe causes more "
-                  "verifications, table 3's decodes, each with its own matching).\n"]
-    lines += ["## 1. SLAM work / MASt3R decode, per stage\n",
-              f"{report.slam_counters}; one decode {report.decode_ms:.0f} ms, "
-              f"{report.decodes_per_frame:.2f} decodes per frame\n",
-              "| stage | ms per frame | / one decode | / decodes of the frame |",
-              "|---|---|---|---|"]
+        shares = ", ".join(
+            f"{sum(ms.values()) / report.decode_ms:.3f} with {n}"
+            for n, ms in report.coordinator_ms.items()
+        )
+        lines += [
+            f"Coordinator SLAM per keyframe over ONE decode: {shares} agents; not a "
+            "goal: it grows with the team (one agent's keyframes cause no verification, "
+            "gauge, focal or global BA work; with more agents a keyframe causes more "
+            "verifications, table 3's decodes, each with its own matching).\n"
+        ]
+    lines += [
+        "## 1. SLAM work / MASt3R decode, per stage\n",
+        f"{report.slam_counters}; one decode {report.decode_ms:.0f} ms, "
+        f"{report.decodes_per_frame:.2f} decodes per frame\n",
+        "| stage | ms per frame | / one decode | / decodes of the frame |",
+        "|---|---|---|---|",
+    ]
     for stage, ms in [*report.slam_ms.items(), ("SLAM total", slam_total)]:
-        lines.append(f"| {stage} | {ms:.0f} | {ms / report.decode_ms:.3f} | "
-                     f"{ms / frame_decodes_ms:.3f} |")
+        lines.append(
+            f"| {stage} | {ms:.0f} | {ms / report.decode_ms:.3f} | {ms / frame_decodes_ms:.3f} |"
+        )
     lines += ["", "## 2. MASt3R, ours / official (512x384, median ms)\n"]
     if report.mast3r:
-        lines += ["| ours | step | ours ms | official fp32 ms | speed-up |", "|---|---|---|---|---|"]
+        lines += [
+            "| ours | step | ours ms | official fp32 ms | speed-up |",
+            "|---|---|---|---|---|",
+        ]
         for (name, step), (ours, official, *_) in report.mast3r.items():
-            lines.append(f"| {name} | {step} | {ours:.0f} | {official:.0f} | "
-                         f"{official / ours:.2f}x |")
+            lines.append(
+                f"| {name} | {step} | {ours:.0f} | {official:.0f} | {official / ours:.2f}x |"
+            )
     else:
         lines.append(report.mast3r_note)
-    lines += ["", "## 3. Frames per second per agent (multi-process run, simulated prior)\n",
-              "| agents | fps per agent | slowest agent s |", "|---|---|---|"]
+    lines += [
+        "",
+        "## 3. Frames per second per agent (multi-process run, simulated prior)\n",
+        "| agents | fps per agent | slowest agent s |",
+        "|---|---|---|",
+    ]
     lines += [f"| {n} | {fps:.3f} | {wall:.0f} |" for n, (fps, wall) in report.fps.items()]
     stages = sorted({stage for ms in report.coordinator_ms.values() for stage in ms})
-    lines += ["", "Coordinator, ms per keyframe (wall, beside the agents; retrieval from table "
-              "5 where measured) / one decode, and "
-              "the ordered pairs it had decoded (verification) per keyframe:\n",
-              "| agents | " + " | ".join(stages) + " | total | / one decode | decodes | "
-              "/ its decodes |", "|---" * (len(stages) + 5) + "|"]
+    lines += [
+        "",
+        "Coordinator, ms per keyframe (wall, beside the agents; retrieval from table "
+        "5 where measured) / one decode, and "
+        "the ordered pairs it had decoded (verification) per keyframe:\n",
+        "| agents | " + " | ".join(stages) + " | total | / one decode | decodes | / its decodes |",
+        "|---" * (len(stages) + 5) + "|",
+    ]
     for n, ms in report.coordinator_ms.items():
         total, decodes = sum(ms.values()), report.coordinator_decodes[n]
         caused = f"{total / (decodes * report.decode_ms):.3f}" if decodes else "-"
-        lines.append(f"| {n} | " + " | ".join(f"{ms.get(s, 0.0):.0f}" for s in stages)
-                     + f" | {total:.0f} | {total / report.decode_ms:.3f} | {decodes:.2f} | "
-                     f"{caused} |")
-    lines += ["", "## 4. Global BA: seconds per Gauss-Newton iteration\n",
-              "| keyframes | s per iteration |", "|---|---|"]
+        lines.append(
+            f"| {n} | "
+            + " | ".join(f"{ms.get(s, 0.0):.0f}" for s in stages)
+            + f" | {total:.0f} | {total / report.decode_ms:.3f} | {decodes:.2f} | "
+            f"{caused} |"
+        )
+    lines += [
+        "",
+        "## 4. Global BA: seconds per Gauss-Newton iteration\n",
+        "| keyframes | s per iteration |",
+        "|---|---|",
+    ]
     lines += [f"| {n} | {s:.3f} |" for n, s in report.ba_seconds.items()]
     lines.append(f"\nlog-log slope {report.ba_slope:.2f}\n")
     if report.retrieval_ms:
         steps = list(retrieval_speed.STEPS)
-        lines += [f"## 5. Retrieval at the released codebook's size "
-                  f"({retrieval_speed.WORDS} x {retrieval_speed.DIM}, "
-                  f"{retrieval_speed.FEATURES} features), ms per keyframe\n",
-                  "| keyframes stored | " + " | ".join(steps) + " | total | / one decode |",
-                  "|---" * (len(steps) + 3) + "|"]
+        lines += [
+            f"## 5. Retrieval at the released codebook's size "
+            f"({retrieval_speed.WORDS} x {retrieval_speed.DIM}, "
+            f"{retrieval_speed.FEATURES} features), ms per keyframe\n",
+            "| keyframes stored | " + " | ".join(steps) + " | total | / one decode |",
+            "|---" * (len(steps) + 3) + "|",
+        ]
         for n, ms in report.retrieval_ms.items():
             total = sum(ms.values())
-            lines.append(f"| {n} | " + " | ".join(f"{ms[s]:.1f}" for s in steps)
-                         + f" | {total:.1f} | {total / report.decode_ms:.3f} |")
+            lines.append(
+                f"| {n} | "
+                + " | ".join(f"{ms[s]:.1f}" for s in steps)
+                + f" | {total:.1f} | {total / report.decode_ms:.3f} |"
+            )
         lines.append(f"\nlog-log slope {report.retrieval_slope:.2f}\n")
     return "\n".join(lines)
 
@@ -306,8 +367,9 @@ def plot(report: Report, path: Path) -> None:
     labels = [f"{name} {step}" for name, step in report.mast3r]
     axes[0, 1].bar(labels, [o / u for u, o, *_ in report.mast3r.values()])
     axes[0, 1].axhline(GOAL_SPEEDUP, color="red", linestyle="--")
-    axes[0, 1].set_title("MASt3R speed-up over official fp32"
-                         + ("" if report.mast3r else " (not measured)"))
+    axes[0, 1].set_title(
+        "MASt3R speed-up over official fp32" + ("" if report.mast3r else " (not measured)")
+    )
     counts = list(report.fps)
     axes[1, 0].plot(counts, [report.fps[n][0] for n in counts], marker="o")
     axes[1, 0].set_xticks(counts)
@@ -325,25 +387,41 @@ def plot(report: Report, path: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, required=True, help="folder for the report, "
-                        "scenes and runs (reused between calls)")
-    parser.add_argument("--official", type=Path, default=None,
-                        help="extracted official naver/mast3r (see prior_vs_official.py)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="folder for the report, scenes and runs (reused between calls)",
+    )
+    parser.add_argument(
+        "--official",
+        type=Path,
+        default=None,
+        help="extracted official naver/mast3r (see prior_vs_official.py)",
+    )
     parser.add_argument("--frames", type=int, default=8, help="processed frames per agent")
     parser.add_argument("--agents", type=int, nargs="+", default=[1, 2, 3, 4])
     parser.add_argument("--ba-sizes", type=int, nargs="+", default=[100, 500, 2000])
-    parser.add_argument("--retrieval-sizes", type=int, nargs="+", default=[100, 500, 2000],
-                        help="keyframes stored in table 5's retrieval databases")
+    parser.add_argument(
+        "--retrieval-sizes",
+        type=int,
+        nargs="+",
+        default=[100, 500, 2000],
+        help="keyframes stored in table 5's retrieval databases",
+    )
     parser.add_argument("--precision", default="auto", choices=PRECISIONS)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
-    report = Report(header=(
-        f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, torch "
-        f"{torch.__version__}, {args.threads} torch thread(s) in this process, MASt3R "
-        f"precision {args.precision} -> {choose_dtype(torch.device('cpu'), args.precision)}"))
+    report = Report(
+        header=(
+            f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, torch "
+            f"{torch.__version__}, {args.threads} torch thread(s) in this process, MASt3R "
+            f"precision {args.precision} -> {choose_dtype(torch.device('cpu'), args.precision)}"
+        )
+    )
     measure_slam(report, args.out, args.frames, args.precision)
     measure_mast3r(report, args.official, args.repeats)
     measure_fps(report, args.out, args.agents, args.frames)

@@ -40,8 +40,9 @@ def main() -> None:
     prior, codebook = build_prior(PriorSpec("simulated"), config, agents)
     packets = []
     for k, agent in agents.items():
-        frontend = AgentFrontend(prior, config, k, codebook,
-                                 upsampling(agent.image_size, config.input.long_side))
+        frontend = AgentFrontend(
+            prior, config, k, codebook, upsampling(agent.image_size, config.input.long_side)
+        )
         for i in range(agent.num_frames):
             frontend.process(*load_frame(agent, k, i, config.input.long_side, False))
             packets.extend(frontend.drain_new_keyframes())
@@ -61,12 +62,15 @@ def main() -> None:
                 hits.append(database.query_and_add(p.agent, p.kf_id, (descriptors, attention)))
             runs[half] = hits
         same = sum([h[:2] for h in a] == [h[:2] for h in b] for a, b in zip(*runs.values()))
-        diffs = [abs(x.similarity - y.similarity) for a, b in zip(*runs.values())
-                 for x, y in zip(a, b)]
-        print(f"{'agents words' if words else 'coordinator quantises'}: identical hit lists "
-              f"{same}/{len(packets)}, hits {sum(map(len, runs[False]))} vs "
-              f"{sum(map(len, runs[True]))}, largest similarity difference "
-              f"{max(diffs, default=0.0):.2e}")
+        diffs = [
+            abs(x.similarity - y.similarity) for a, b in zip(*runs.values()) for x, y in zip(a, b)
+        ]
+        print(
+            f"{'agents words' if words else 'coordinator quantises'}: identical hit lists "
+            f"{same}/{len(packets)}, hits {sum(map(len, runs[False]))} vs "
+            f"{sum(map(len, runs[True]))}, largest similarity difference "
+            f"{max(diffs, default=0.0):.2e}"
+        )
 
 
 if __name__ == "__main__":

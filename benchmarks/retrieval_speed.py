@@ -63,9 +63,12 @@ class Places:
     def __init__(self, codebook: np.ndarray, count: int, rng: np.random.Generator) -> None:
         self.rng = rng
         self.features = [
-            _unit(codebook[rng.choice(len(codebook), FEATURES, replace=False)]
-                  + 0.3 / np.sqrt(DIM) * rng.standard_normal((FEATURES, DIM)))
-            for _ in range(count)]
+            _unit(
+                codebook[rng.choice(len(codebook), FEATURES, replace=False)]
+                + 0.3 / np.sqrt(DIM) * rng.standard_normal((FEATURES, DIM))
+            )
+            for _ in range(count)
+        ]
         self.words: list[np.ndarray] = []
 
     def view(self, place: int) -> tuple[np.ndarray, np.ndarray]:
@@ -79,8 +82,9 @@ def _ms(start: float) -> float:
     return 1000.0 * (time.perf_counter() - start)
 
 
-def time_keyframe(database: RetrievalDatabase, features: np.ndarray, agent: int,
-                  kf_id: int) -> dict[str, float]:
+def time_keyframe(
+    database: RetrievalDatabase, features: np.ndarray, agent: int, kf_id: int
+) -> dict[str, float]:
     """ms of each of :data:`STEPS` for one new keyframe, as the coordinator handles it."""
     start = time.perf_counter()
     quantized = database.quantize(features)
@@ -110,45 +114,64 @@ def measure(sizes: list[int], places: int, timed: int, seed: int) -> dict[int, d
         while len(database) < size:
             place = len(database) % places
             features, rows = scene.view(place)
-            database.add(len(database) % 4, len(database), Quantized(features,
-                                                                    scene.words[place][rows]))
-        times = [time_keyframe(database, scene.view(k % places)[0], 99, size + k)
-                 for k in range(timed)]
+            database.add(
+                len(database) % 4, len(database), Quantized(features, scene.words[place][rows])
+            )
+        times = [
+            time_keyframe(database, scene.view(k % places)[0], 99, size + k) for k in range(timed)
+        ]
         results[size] = {step: float(np.median([t[step] for t in times])) for step in STEPS}
-        print(f"{size} keyframes: " + ", ".join(f"{s} {results[size][s]:.1f} ms" for s in STEPS),
-              flush=True)
+        print(
+            f"{size} keyframes: " + ", ".join(f"{s} {results[size][s]:.1f} ms" for s in STEPS),
+            flush=True,
+        )
     return results
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[100, 500, 2000],
-                        help="keyframes in the database")
+    parser.add_argument(
+        "--sizes", type=int, nargs="+", default=[100, 500, 2000], help="keyframes in the database"
+    )
     parser.add_argument("--places", type=int, default=50)
     parser.add_argument("--timed", type=int, default=5, help="keyframes timed per size")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--decode-ms", type=float, default=None,
-                        help="skip the MASt3R timing and use this decode time")
+    parser.add_argument(
+        "--decode-ms",
+        type=float,
+        default=None,
+        help="skip the MASt3R timing and use this decode time",
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     results = measure(args.sizes, args.places, args.timed, args.seed)
-    decode_ms = (args.decode_ms if args.decode_ms is not None
-                 else 1000.0 * slam_vs_prior.mast3r_decode_seconds(512, 384, "auto"))
-    print(f"\ncodebook {WORDS} x {DIM}, {FEATURES} features per keyframe, {args.threads} "
-          f"thread(s); one decode {decode_ms:.0f} ms\n")
+    decode_ms = (
+        args.decode_ms
+        if args.decode_ms is not None
+        else 1000.0 * slam_vs_prior.mast3r_decode_seconds(512, 384, "auto")
+    )
+    print(
+        f"\ncodebook {WORDS} x {DIM}, {FEATURES} features per keyframe, {args.threads} "
+        f"thread(s); one decode {decode_ms:.0f} ms\n"
+    )
     print("| keyframes | " + " | ".join(f"{s} ms" for s in STEPS) + " | total ms | / one decode |")
     print("|---" * (len(STEPS) + 3) + "|")
     for size, ms in results.items():
         total = sum(ms.values())
-        print(f"| {size} | " + " | ".join(f"{ms[s]:.1f}" for s in STEPS)
-              + f" | {total:.1f} | {total / decode_ms:.3f} |")
+        print(
+            f"| {size} | "
+            + " | ".join(f"{ms[s]:.1f}" for s in STEPS)
+            + f" | {total:.1f} | {total / decode_ms:.3f} |"
+        )
     sizes = list(results)
     if len(sizes) > 1:
         totals = [sum(results[n].values()) for n in sizes]
         queries = [results[n]["query"] + results[n]["add"] for n in sizes]
-        print(f"\nlog-log slope against the map's size: total {ba_scaling.slope(sizes, totals):.2f}, "
-              f"query + add {ba_scaling.slope(sizes, queries):.2f}")
+        print(
+            f"\nlog-log slope against the map's size: total {ba_scaling.slope(sizes, totals):.2f}, "
+            f"query + add {ba_scaling.slope(sizes, queries):.2f}"
+        )
 
 
 if __name__ == "__main__":

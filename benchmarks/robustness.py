@@ -69,9 +69,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from rich.console import Console
-
 from _tables import format_value, print_table, write_csv
+from rich.console import Console
 
 from como3r.config import Config
 from como3r.data.synth import synthesize
@@ -103,8 +102,20 @@ FAMILIES = {
 SIZES = ("320x240", "640x480", "1920x1080")
 #: frames per agent every scene is laid out for (``como3r synth``'s default ``--frames``)
 REFERENCE_FRAMES = 100
-COLUMNS = ("family", "size", "seed", "agents", "frames", "tracked", "ATE m", "ATE %path",
-           "RPE rot", "KF/frame", "s/frame", "status")
+COLUMNS = (
+    "family",
+    "size",
+    "seed",
+    "agents",
+    "frames",
+    "tracked",
+    "ATE m",
+    "ATE %path",
+    "RPE rot",
+    "KF/frame",
+    "s/frame",
+    "status",
+)
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -124,9 +135,18 @@ def _scene(root: Path, family: str, size: str, seed: int, agents: int, frames: i
         width, height = _size(size)
         spec = FAMILIES[family]
         with atomic_output_dir(folder, overwrite=True) as staging:
-            synthesize(staging, agents=agents, seed=seed, overlap=0.2, frames=frames,
-                       preset=spec.preset, width=width, height=height, scale=spec.scale,
-                       loop_frames=REFERENCE_FRAMES)
+            synthesize(
+                staging,
+                agents=agents,
+                seed=seed,
+                overlap=0.2,
+                frames=frames,
+                preset=spec.preset,
+                width=width,
+                height=height,
+                scale=spec.scale,
+                loop_frames=REFERENCE_FRAMES,
+            )
     return folder
 
 
@@ -148,7 +168,9 @@ def measure(metrics: dict, scene_info: dict) -> dict[str, float]:
     row = {
         "frames": frames,
         "tracked": sum(a["tracked"] for a in agents) / (frames - hidden),
-        "ATE m": math.nan, "ATE %path": math.nan, "RPE rot": math.nan,
+        "ATE m": math.nan,
+        "ATE %path": math.nan,
+        "RPE rot": math.nan,
         "KF/frame": sum(a["keyframes"] for a in agents) / frames,
         "s/frame": sum(a["seconds"] for a in agents) / frames,
     }
@@ -184,8 +206,13 @@ def run_cell(out: Path, family: str, size: str, seed: int, agents: int, frames: 
         # the seed draws the scene and the simulated sensor's errors alike: with the prior's
         # default seed every scene's frame k would get the same focal error
         config = replace(Config(), simulated_prior=replace(Config().simulated_prior, seed=seed))
-        run([scene / f"agent_{a}" for a in range(agents)], run_dir, config,
-            PriorSpec("simulated"), overwrite=True)
+        run(
+            [scene / f"agent_{a}" for a in range(agents)],
+            run_dir,
+            config,
+            PriorSpec("simulated"),
+            overwrite=True,
+        )
         metrics = json.loads((run_dir / "metrics.json").read_text())
         row.update(measure(metrics, json.loads((scene / "scene.json").read_text())))
         row["status"] = "ok" if metrics.get("ate") else "no ATE"
@@ -204,23 +231,28 @@ def write_heatmap(path: Path, rows: list[dict], families: list[str], sizes: list
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = (("tracked", "tracked fraction", "RdYlGn", (0.0, 1.0)),
-              ("ATE %path", "ATE RMSE, % of path", "RdYlGn_r", None))
-    fig, axes = plt.subplots(1, 2, figsize=(4.0 + 1.6 * len(sizes), 1.2 + 0.45 * len(families)),
-                             squeeze=False)
+    panels = (
+        ("tracked", "tracked fraction", "RdYlGn", (0.0, 1.0)),
+        ("ATE %path", "ATE RMSE, % of path", "RdYlGn_r", None),
+    )
+    fig, axes = plt.subplots(
+        1, 2, figsize=(4.0 + 1.6 * len(sizes), 1.2 + 0.45 * len(families)), squeeze=False
+    )
     for ax, (key, label, cmap, limits) in zip(axes[0], panels):
         grid = np.full((len(families), len(sizes)), np.nan)
         for i, family in enumerate(families):
             for j, size in enumerate(sizes):
-                values = [float(r[key]) for r in rows if r["family"] == family
-                          and r["size"] == size and not math.isnan(float(r[key]))]
+                values = [
+                    float(r[key])
+                    for r in rows
+                    if r["family"] == family and r["size"] == size and not math.isnan(float(r[key]))
+                ]
                 if values:
                     grid[i, j] = np.mean(values)
         colours = plt.get_cmap(cmap).copy()
         colours.set_bad("0.8")
         lo, hi = limits if limits else (0.0, max(1.0, float(np.nanmax(grid, initial=1.0))))
-        image = ax.imshow(np.ma.masked_invalid(grid), cmap=colours, vmin=lo, vmax=hi,
-                          aspect="auto")
+        image = ax.imshow(np.ma.masked_invalid(grid), cmap=colours, vmin=lo, vmax=hi, aspect="auto")
         for (i, j), value in np.ndenumerate(grid):
             if not np.isnan(value):
                 ax.text(j, i, f"{value:.2g}", ha="center", va="center", fontsize=8)
@@ -235,13 +267,18 @@ def write_heatmap(path: Path, rows: list[dict], families: list[str], sizes: list
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, required=True,
-                        help="Folder for the CSV, the PNG, scenes and runs.")
+    parser.add_argument(
+        "--out", type=Path, required=True, help="Folder for the CSV, the PNG, scenes and runs."
+    )
     parser.add_argument("--families", nargs="+", default=list(FAMILIES), choices=list(FAMILIES))
     parser.add_argument("--sizes", nargs="+", default=list(SIZES), help="WIDTHxHEIGHT each.")
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
-    parser.add_argument("--frames", type=int, default=40,
-                        help="Frames per agent (before the default subsample of 2).")
+    parser.add_argument(
+        "--frames",
+        type=int,
+        default=40,
+        help="Frames per agent (before the default subsample of 2).",
+    )
     parser.add_argument("--agents", type=int, default=1, choices=(1, 2, 3))
     args = parser.parse_args()
     for size in args.sizes:
@@ -252,10 +289,12 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
 
     console = Console(width=200)
-    header = (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-              f"torch threads {torch.get_num_threads()}, OMP_NUM_THREADS="
-              f"{os.environ.get('OMP_NUM_THREADS', 'unset')}; default Config(), simulated prior; "
-              f"{args.agents} agent(s), {args.frames} frames each")
+    header = (
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"torch threads {torch.get_num_threads()}, OMP_NUM_THREADS="
+        f"{os.environ.get('OMP_NUM_THREADS', 'unset')}; default Config(), simulated prior; "
+        f"{args.agents} agent(s), {args.frames} frames each"
+    )
     console.print(header)
     rows = []
     started = time.perf_counter()
@@ -263,9 +302,13 @@ def main() -> None:
         for size in args.sizes:
             for seed in args.seeds:
                 rows.append(run_cell(args.out, family, size, seed, args.agents, args.frames))
-                console.print(f"[{time.perf_counter() - started:7.0f} s] "
-                              + ", ".join(f"{c}={format_value(rows[-1][c])}" for c in COLUMNS))
-    print_table(console, rows, COLUMNS, "robustness of the default configuration", left=("family", "status"))
+                console.print(
+                    f"[{time.perf_counter() - started:7.0f} s] "
+                    + ", ".join(f"{c}={format_value(rows[-1][c])}" for c in COLUMNS)
+                )
+    print_table(
+        console, rows, COLUMNS, "robustness of the default configuration", left=("family", "status")
+    )
     write_csv(args.out / "robustness.csv", rows, COLUMNS)
     write_heatmap(args.out / "robustness.png", rows, args.families, args.sizes)
     console.print(f"wrote {args.out / 'robustness.csv'} and {args.out / 'robustness.png'}")

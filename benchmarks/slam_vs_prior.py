@@ -38,8 +38,9 @@ import argparse
 import functools
 import platform
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch
 
@@ -54,8 +55,7 @@ from como3r.prior.mast3r.precision import PRECISIONS
 from como3r.runtime.pipeline import PriorSpec, _colors, build_prior
 
 PRIOR_STAGES = ("prior_encode", "prior_decode", "prior_retrieval")
-SLAM_STAGES = ("matching", "tracking", "fusion", "keyframe", "local_solve", "calibration",
-               "other")
+SLAM_STAGES = ("matching", "tracking", "fusion", "keyframe", "local_solve", "calibration", "other")
 
 
 class ExclusiveClock:
@@ -100,8 +100,7 @@ def instrument(clock: ExclusiveClock) -> None:
     frontend._link_new_keyframe = clock.wrap("keyframe", frontend._link_new_keyframe)
     frontend._local_solve = clock.wrap("local_solve", frontend._local_solve)
     frontend.settle_camera = clock.wrap("calibration", frontend.settle_camera)
-    tracker_module.FrameTracker.solve = clock.wrap("tracking",
-                                                   tracker_module.FrameTracker.solve)
+    tracker_module.FrameTracker.solve = clock.wrap("tracking", tracker_module.FrameTracker.solve)
     keyframes_module.Keyframe.fuse = clock.wrap("fusion", keyframes_module.Keyframe.fuse)
     pairs_module.match_pointmaps = clock.wrap("matching", pairs_module.match_pointmaps)
 
@@ -128,8 +127,9 @@ def instrument_prior(clock: ExclusiveClock, prior: Any, decodes: list[int]) -> N
     prior.retrieval_features = clock.wrap("prior_retrieval", prior.retrieval_features)
 
 
-def frontend_run(agent_path: Path, frames: int, overrides: list[str]
-                 ) -> tuple[ExclusiveClock, dict]:
+def frontend_run(
+    agent_path: Path, frames: int, overrides: list[str]
+) -> tuple[ExclusiveClock, dict]:
     """Stage clock over the first ``frames`` processed frames and the run's counters, after
     an untimed run over the same frames (numba compiles its kernels at their first call and
     caches them beside the sources: a new checkout's first run compiled for seconds, more
@@ -139,8 +139,9 @@ def frontend_run(agent_path: Path, frames: int, overrides: list[str]
     return clock, _frontend_pass(agent_path, frames, overrides, clock)
 
 
-def _frontend_pass(agent_path: Path, frames: int, overrides: list[str],
-                   clock: ExclusiveClock | None) -> dict:
+def _frontend_pass(
+    agent_path: Path, frames: int, overrides: list[str], clock: ExclusiveClock | None
+) -> dict:
     """One front-end over the first ``frames`` processed frames, its stages on ``clock``
     (None: not timed); returns the run's counters."""
     config = apply_overrides(Config(), overrides)
@@ -159,10 +160,15 @@ def _frontend_pass(agent_path: Path, frames: int, overrides: list[str],
         shape = tuple(view.image.shape[1:])
         frontend.process(view, frame.timestamp, _colors(view))
     stats = frontend.stats
-    counters = {"frames": len(indices), "keyframes": stats.keyframes,
-                "local_solves": stats.local_solves, "loop_edges": stats.loop_edges,
-                "loop_candidates": stats.loop_candidates, "decodes": decodes[0],
-                "resolution": f"{shape[1]}x{shape[0]}"}
+    counters = {
+        "frames": len(indices),
+        "keyframes": stats.keyframes,
+        "local_solves": stats.local_solves,
+        "loop_edges": stats.loop_edges,
+        "loop_candidates": stats.loop_candidates,
+        "decodes": decodes[0],
+        "resolution": f"{shape[1]}x{shape[0]}",
+    }
     return counters
 
 
@@ -190,21 +196,34 @@ def main() -> None:
     parser.add_argument("--agent", type=Path, required=True)
     parser.add_argument("--frames", type=int, default=12)
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--decode-ms", type=float, default=None,
-                        help="skip the MASt3R timing and use this decode time")
-    parser.add_argument("--precision", default="auto", choices=PRECISIONS,
-                        help="MASt3R precision of the timed decode (as como3r run --precision)")
+    parser.add_argument(
+        "--decode-ms",
+        type=float,
+        default=None,
+        help="skip the MASt3R timing and use this decode time",
+    )
+    parser.add_argument(
+        "--precision",
+        default="auto",
+        choices=PRECISIONS,
+        help="MASt3R precision of the timed decode (as como3r run --precision)",
+    )
     parser.add_argument("--set", action="append", default=[], help="config override")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     clock, counters = frontend_run(args.agent, args.frames, list(args.set))
     seconds = clock.seconds
     width, height = (int(v) for v in counters["resolution"].split("x"))
-    decode_ms = (args.decode_ms if args.decode_ms is not None
-                 else 1000.0 * mast3r_decode_seconds(width, height, args.precision))
+    decode_ms = (
+        args.decode_ms
+        if args.decode_ms is not None
+        else 1000.0 * mast3r_decode_seconds(width, height, args.precision)
+    )
     n = counters["frames"]
-    print(f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-          f"{args.threads} threads; {counters}; overrides {args.set}; precision {args.precision}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
+        f"{args.threads} threads; {counters}; overrides {args.set}; precision {args.precision}"
+    )
     print("stage | ms per frame | calls | ms per call")
     for stage in (*PRIOR_STAGES, *SLAM_STAGES):
         ms, calls = 1000.0 * seconds.get(stage, 0.0), clock.calls.get(stage, 0)

@@ -22,7 +22,7 @@ import argparse
 import statistics
 import time
 import zlib
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -59,23 +59,38 @@ def blob_table(repeats: int) -> None:
     tensors = [torch.from_numpy(a) for a in arrays]
     payload = b"".join(byte_planes(a.tobytes(), a.itemsize) for a in arrays)
     blob = pack_arrays(*tensors)
-    assert all(np.array_equal(a, b.numpy()) for a, b in
-               zip(arrays, unpack_arrays(blob, "benchmark")))
+    assert all(
+        np.array_equal(a, b.numpy()) for a, b in zip(arrays, unpack_arrays(blob, "benchmark"))
+    )
     zstd_packed = zstd.compress(payload, options=ZSTD_OPTIONS)
     zlib_packed = zlib.compress(payload, 1)
-    print(f"1. one keyframe blob ({len(payload) / 2**20:.1f} MB raw), CPU ms, median of "
-          f"{repeats}")
+    print(f"1. one keyframe blob ({len(payload) / 2**20:.1f} MB raw), CPU ms, median of {repeats}")
     print(f"{'step':<40} {'pack':>8} {'unpack':>8} {'size / raw':>11}")
-    rows = [("byte planes, Zstandard 1 + checksum", lambda: zstd.compress(
-                payload, options=ZSTD_OPTIONS), lambda: zstd.decompress(zstd_packed),
-             len(zstd_packed)),
-            ("byte planes, zlib 1 (format 2)", lambda: zlib.compress(payload, 1),
-             lambda: zlib.decompress(zlib_packed), len(zlib_packed)),
-            ("the store's whole blob (Zstandard)", lambda: pack_arrays(*tensors),
-             lambda: unpack_arrays(blob, "benchmark"), len(blob))]
+    rows = [
+        (
+            "byte planes, Zstandard 1 + checksum",
+            lambda: zstd.compress(payload, options=ZSTD_OPTIONS),
+            lambda: zstd.decompress(zstd_packed),
+            len(zstd_packed),
+        ),
+        (
+            "byte planes, zlib 1 (format 2)",
+            lambda: zlib.compress(payload, 1),
+            lambda: zlib.decompress(zlib_packed),
+            len(zlib_packed),
+        ),
+        (
+            "the store's whole blob (Zstandard)",
+            lambda: pack_arrays(*tensors),
+            lambda: unpack_arrays(blob, "benchmark"),
+            len(blob),
+        ),
+    ]
     for name, pack, unpack, size in rows:
-        print(f"{name:<40} {_cpu_ms(pack, repeats):>8.1f} {_cpu_ms(unpack, repeats):>8.1f} "
-              f"{size / len(payload):>11.3f}")
+        print(
+            f"{name:<40} {_cpu_ms(pack, repeats):>8.1f} {_cpu_ms(unpack, repeats):>8.1f} "
+            f"{size / len(payload):>11.3f}"
+        )
 
 
 def voxel_table(repeats: int) -> None:

@@ -32,15 +32,16 @@ from como3r.runtime.pipeline import load_frame
 
 
 def _quantiles(x: torch.Tensor) -> str:
-    q = torch.quantile(x.flatten().double()[:2**24], torch.tensor([0.5, 0.99], dtype=torch.double))
+    q = torch.quantile(x.flatten().double()[: 2**24], torch.tensor([0.5, 0.99], dtype=torch.double))
     return f"{q[0]:.2e} / {q[1]:.2e}"
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--agent", required=True, help="an agent folder (como3r synth)")
-    parser.add_argument("--frames", type=int, nargs=2, default=(0, 3),
-                        help="the two frames of the pair")
+    parser.add_argument(
+        "--frames", type=int, nargs=2, default=(0, 3), help="the two frames of the pair"
+    )
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -50,11 +51,14 @@ def main() -> None:
     views = [load_frame(agent, 0, i, config.input.long_side, False)[0] for i in args.frames]
     exact = [prior.encode(view) for view in views]
     rounded = [dataclasses.replace(e, tokens=e.tokens.half().float()) for e in exact]
-    token_error = ((rounded[0].tokens - exact[0].tokens).abs() / exact[0].tokens.abs()
-                   .clamp_min(1e-12))
-    print(f"pair of frames {args.frames} at {tuple(views[0].image.shape[1:])}, tokens "
-          f"{tuple(exact[0].tokens.shape)}: relative rounding median / p99 "
-          f"{_quantiles(token_error)}")
+    token_error = (rounded[0].tokens - exact[0].tokens).abs() / exact[0].tokens.abs().clamp_min(
+        1e-12
+    )
+    print(
+        f"pair of frames {args.frames} at {tuple(views[0].image.shape[1:])}, tokens "
+        f"{tuple(exact[0].tokens.shape)}: relative rounding median / p99 "
+        f"{_quantiles(token_error)}"
+    )
     a, b = prior.decode(*exact), prior.decode(*rounded)
     print("output | median / p99 relative difference")
     for name in ("X_ii", "X_ji"):
@@ -68,20 +72,28 @@ def main() -> None:
         cosine = (x * y).sum(-1) / (x.norm(dim=-1) * y.norm(dim=-1))
         print(f"{name} (1 - cos) | {_quantiles(1 - cosine)}")
     generator = torch.Generator().manual_seed(0)
-    jittered = [dataclasses.replace(e, tokens=e.tokens * (1 + 2**-20 * torch.randn(
-        e.tokens.shape, generator=generator))) for e in exact]
+    jittered = [
+        dataclasses.replace(
+            e, tokens=e.tokens * (1 + 2**-20 * torch.randn(e.tokens.shape, generator=generator))
+        )
+        for e in exact
+    ]
     m_a = directed_matches(a, config.matching, config.tracking.q_min)
     width = views[0].image.shape[-1]
-    for label, pred in (("float16 tokens", b), ("control: tokens x (1 + 2^-20 N(0, 1))",
-                                                prior.decode(*jittered))):
+    for label, pred in (
+        ("float16 tokens", b),
+        ("control: tokens x (1 + 2^-20 N(0, 1))", prior.decode(*jittered)),
+    ):
         m_b = directed_matches(pred, config.matching, config.tracking.q_min)
         moved = m_a.idx != m_b.idx
         shift = torch.stack([(m_a.idx - m_b.idx) // width, (m_a.idx - m_b.idx) % width], -1)
         distance = shift[moved].float().norm(dim=-1)
-        print(f"matches, {label}: same pixel {1 - moved.float().mean():.4f}, same validity "
-              f"{(m_a.valid == m_b.valid).float().mean():.4f}, moved ones by median "
-              f"{distance.median() if len(distance) else 0:.1f} px; valid "
-              f"{m_a.valid.float().mean():.4f} exact, {m_b.valid.float().mean():.4f} here")
+        print(
+            f"matches, {label}: same pixel {1 - moved.float().mean():.4f}, same validity "
+            f"{(m_a.valid == m_b.valid).float().mean():.4f}, moved ones by median "
+            f"{distance.median() if len(distance) else 0:.1f} px; valid "
+            f"{m_a.valid.float().mean():.4f} exact, {m_b.valid.float().mean():.4f} here"
+        )
 
 
 if __name__ == "__main__":

@@ -91,19 +91,28 @@ def _trajectory(robot: int) -> list[gtsam.Pose3]:
 
 
 def _noise(rng: np.random.Generator, rot: float, trans: float) -> gtsam.Pose3:
-    return gtsam.Pose3.Expmap(np.concatenate([rot * rng.normal(size=3),
-                                              trans * rng.normal(size=3)]))
+    return gtsam.Pose3.Expmap(
+        np.concatenate([rot * rng.normal(size=3), trans * rng.normal(size=3)])
+    )
 
 
-def _loop(a: int, ka: int, b: int, kb: int, relative: gtsam.Pose3, scene_scale: float,
-          rng: np.random.Generator) -> LoopClosure:
+def _loop(
+    a: int,
+    ka: int,
+    b: int,
+    kb: int,
+    relative: gtsam.Pose3,
+    scene_scale: float,
+    rng: np.random.Generator,
+) -> LoopClosure:
     """A loop measured by a prior whose scale is the scene's within 15 %; F-Eq. 6 recovers
     it within 10 %."""
     prior_scale = scene_scale * math.exp(rng.normal(0.0, 0.15))
     T = from_pose3(gtsam.Pose3(relative.rotation(), relative.translation() / prior_scale))
     probability = float(rng.uniform(0.6, 0.95))
-    return LoopClosure(a, ka, b, kb, T, prior_scale * math.exp(rng.normal(0.0, 0.1)),
-                       0.5, probability, 300)
+    return LoopClosure(
+        a, ka, b, kb, T, prior_scale * math.exp(rng.normal(0.0, 0.1)), 0.5, probability, 300
+    )
 
 
 def scenario(seed: int) -> Scenario:
@@ -118,8 +127,7 @@ def scenario(seed: int) -> Scenario:
         rows = [from_pose3(current)]
         for k in range(1, KEYFRAMES):
             step = poses[k - 1].between(poses[k])
-            current = current.compose(step).compose(
-                _noise(rng, math.radians(0.3), 0.02 * spacing))
+            current = current.compose(step).compose(_noise(rng, math.radians(0.3), 0.02 * spacing))
             rows.append(from_pose3(current))
         odometry[r] = np.stack(rows)
     loops = []
@@ -129,8 +137,11 @@ def scenario(seed: int) -> Scenario:
                 for kb in range(KEYFRAMES):
                     relative = truth[a][ka].between(truth[b][kb])
                     angle = np.linalg.norm(gtsam.Rot3.Logmap(relative.rotation()))
-                    if (np.linalg.norm(relative.translation()) < 1.5 * spacing
-                            and angle < math.radians(30) and rng.random() < 0.5):
+                    if (
+                        np.linalg.norm(relative.translation()) < 1.5 * spacing
+                        and angle < math.radians(30)
+                        and rng.random() < 0.5
+                    ):
                         noisy = relative.compose(_noise(rng, math.radians(1.0), 0.04))
                         loops.append(_loop(a, ka, b, kb, noisy, scene_scale, rng))
     return Scenario(truth, odometry, loops, spacing, scene_scale)
@@ -146,8 +157,10 @@ def wrong_loops(data: Scenario, count: int, rng: np.random.Generator) -> list[Lo
             true = data.truth[a][ka].between(data.truth[b][kb])
             if np.linalg.norm(true.translation()) < 4 * data.spacing:
                 continue
-            claimed = gtsam.Pose3(gtsam.Rot3.Ypr(*rng.uniform(-0.25, 0.25, 3)),
-                                  rng.uniform(-0.7, 0.7, 3) * data.spacing)
+            claimed = gtsam.Pose3(
+                gtsam.Rot3.Ypr(*rng.uniform(-0.25, 0.25, 3)),
+                rng.uniform(-0.7, 0.7, 3) * data.spacing,
+            )
             wrong.append(_loop(a, ka, b, kb, claimed, data.scene_scale, rng))
         else:
             base = data.true_loops[int(rng.integers(len(data.true_loops)))]
@@ -158,8 +171,9 @@ def wrong_loops(data: Scenario, count: int, rng: np.random.Generator) -> list[Lo
     return wrong
 
 
-def merged_errors(truth: dict[int, list[gtsam.Pose3]], poses: dict[int, np.ndarray]
-                  ) -> tuple[float, float]:
+def merged_errors(
+    truth: dict[int, list[gtsam.Pose3]], poses: dict[int, np.ndarray]
+) -> tuple[float, float]:
     """``(ATE RMSE in % of the path, |scale - 1|)`` after one Sim(3) alignment (Umeyama)."""
     est = np.concatenate([poses[r][:, :3] for r in sorted(truth)])
     gt = np.concatenate([np.stack([p.translation() for p in truth[r]]) for r in sorted(truth)])
@@ -170,11 +184,13 @@ def merged_errors(truth: dict[int, list[gtsam.Pose3]], poses: dict[int, np.ndarr
     if np.linalg.det(U) * np.linalg.det(Vt) < 0:
         S[2, 2] = -1
     R = U @ S @ Vt
-    scale = float(np.trace(np.diag(D) @ S) / (E ** 2).sum(1).mean())
+    scale = float(np.trace(np.diag(D) @ S) / (E**2).sum(1).mean())
     aligned = scale * E @ R.T + mu_g
     rmse = float(np.sqrt(((aligned - gt) ** 2).sum(1).mean()))
-    path = sum(np.linalg.norm(np.diff(np.stack([p.translation() for p in truth[r]]), axis=0),
-                              axis=1).sum() for r in truth)
+    path = sum(
+        np.linalg.norm(np.diff(np.stack([p.translation() for p in truth[r]]), axis=0), axis=1).sum()
+        for r in truth
+    )
     return 100 * rmse / path, abs(scale - 1.0)
 
 
@@ -208,29 +224,43 @@ class Mission:
     wrong_kept: int
 
 
-def _shares(odometry: dict[int, np.ndarray], loops: list[LoopClosure],
-            estimates: dict[int, tuple[np.ndarray, int]]) -> dict[int, PoseGraphShare]:
-    return {r: PoseGraphShare(sender=r, recipient=0, round=0, time_s=0.0, odometry=o,
-                              estimate=estimates.get(r, (np.zeros((0, 8)), r))[0],
-                              frame=estimates.get(r, (None, r))[1],
-                              loops=[l for l in loops if l.robot_a == r])
-            for r, o in odometry.items()}
+def _shares(
+    odometry: dict[int, np.ndarray],
+    loops: list[LoopClosure],
+    estimates: dict[int, tuple[np.ndarray, int]],
+) -> dict[int, PoseGraphShare]:
+    return {
+        r: PoseGraphShare(
+            sender=r,
+            recipient=0,
+            round=0,
+            time_s=0.0,
+            odometry=o,
+            estimate=estimates.get(r, (np.zeros((0, 8)), r))[0],
+            frame=estimates.get(r, (None, r))[1],
+            loops=[l for l in loops if l.robot_a == r],
+        )
+        for r, o in odometry.items()
+    }
 
 
-def mission(data: Scenario, wrong: list[LoopClosure], solver: str,
-            config: PoseGraphConfig) -> Mission:
+def mission(
+    data: Scenario, wrong: list[LoopClosure], solver: str, config: PoseGraphConfig
+) -> Mission:
     """Round 1: the first half of every robot's keyframes and the loops among them; round
     2: everything, from round 1's estimates; both solved as the elected robot does
     (:func:`~como3r.decentralized.robot.solve_shares`). A solve the alarm holds back leaves
     the robots with their previous estimates (extended by odometry), or their odometry."""
-    settings = DecentralizedConfig(pose_graph=replace(config, solver=solver,
-                                                      formulation="smoothed"))
+    settings = DecentralizedConfig(
+        pose_graph=replace(config, solver=solver, formulation="smoothed")
+    )
     half = KEYFRAMES // 2
     loops = data.true_loops + wrong
     early = [l for l in loops if l.keyframe_a < half and l.keyframe_b < half]
     first: list[LoopCheck] = []
-    estimates = solve_shares(_shares({r: o[:half] for r, o in data.odometry.items()}, early,
-                                     {}), settings, checks=first)
+    estimates = solve_shares(
+        _shares({r: o[:half] for r, o in data.odometry.items()}, early, {}), settings, checks=first
+    )
     final: list[LoopCheck] = []
     updates = solve_shares(_shares(data.odometry, loops, estimates), settings, checks=final)
     poses = {}
@@ -246,19 +276,28 @@ def mission(data: Scenario, wrong: list[LoopClosure], solver: str,
     ordered = [l for r in sorted(data.odometry) for l in loops if l.robot_a == r]
     wrong_ids = {id(l) for l in wrong}
     wrong_kept = sum(bool(c) for l, c in zip(ordered, check.consistent) if id(l) in wrong_ids)
-    return Mission(poses, sum(c.alarm for c in first + final), check.merged_scale_log,
-                   len(loops), int(check.consistent.sum()), wrong_kept)
+    return Mission(
+        poses,
+        sum(c.alarm for c in first + final),
+        check.merged_scale_log,
+        len(loops),
+        int(check.consistent.sum()),
+        wrong_kept,
+    )
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=3)
-    parser.add_argument("--settings", default=",".join(SETTINGS),
-                        help="comma-separated subset of the settings")
+    parser.add_argument(
+        "--settings", default=",".join(SETTINGS), help="comma-separated subset of the settings"
+    )
     args = parser.parse_args()
     chosen = [s.strip() for s in args.settings.split(",")]
-    print(f"{'setting':<28} {'wrong %':>7} {'loops':>5} {'kept':>5} {'wrong kept':>10} "
-          f"{'ATE % path':>10} {'scale err %':>11} {'merged log':>10} {'alarms':>6}")
+    print(
+        f"{'setting':<28} {'wrong %':>7} {'loops':>5} {'kept':>5} {'wrong kept':>10} "
+        f"{'ATE % path':>10} {'scale err %':>11} {'merged log':>10} {'alarms':>6}"
+    )
     for name in chosen:
         solver, consistency, alarm = SETTINGS[name]
         config = PoseGraphConfig(solver=solver, consistency=consistency, scale_alarm_log=alarm)
@@ -271,14 +310,17 @@ def main() -> None:
                 run = mission(data, wrong, solver, config)
                 runs.append((run, *merged_errors(data.truth, run.poses)))
             merged = [abs(run.merged_log) for run, _, _ in runs]
-            print(f"{name:<28} {100 * rate:>7.0f} "
-                  f"{np.mean([r.loops for r, _, _ in runs]):>5.0f} "
-                  f"{np.mean([r.kept for r, _, _ in runs]):>5.0f} "
-                  f"{np.mean([r.wrong_kept for r, _, _ in runs]):>10.1f} "
-                  f"{np.mean([a for _, a, _ in runs]):>10.3f} "
-                  f"{100 * np.mean([s for _, _, s in runs]):>11.2f} "
-                  f"{np.nanmax(merged) if not np.isnan(merged).all() else float('nan'):>10.3f} "
-                  f"{sum(r.alarms for r, _, _ in runs):>6}", flush=True)
+            print(
+                f"{name:<28} {100 * rate:>7.0f} "
+                f"{np.mean([r.loops for r, _, _ in runs]):>5.0f} "
+                f"{np.mean([r.kept for r, _, _ in runs]):>5.0f} "
+                f"{np.mean([r.wrong_kept for r, _, _ in runs]):>10.1f} "
+                f"{np.mean([a for _, a, _ in runs]):>10.3f} "
+                f"{100 * np.mean([s for _, _, s in runs]):>11.2f} "
+                f"{np.nanmax(merged) if not np.isnan(merged).all() else float('nan'):>10.3f} "
+                f"{sum(r.alarms for r, _, _ in runs):>6}",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -44,9 +44,11 @@ def dtype(request) -> torch.dtype:
 def only_error_line():
     """A check of a CLI result: its one non-empty output line, which must be an ``error:``
     line, with exit status 2; returns that line."""
+
     def check(result) -> str:
         lines = [line for line in result.output.splitlines() if line.strip()]
         assert result.exit_code == 2, result.output
         assert len(lines) == 1 and lines[0].startswith("error: "), result.output
         return lines[0]
+
     return check

@@ -39,13 +39,30 @@ def test_benchmark_is_in_the_readme(script: Path) -> None:
 
 def test_prior_statistics_measures_a_tiny_scene(monkeypatch, capsys) -> None:
     script = ROOT / "benchmarks" / "prior_statistics.py"
-    monkeypatch.setattr(sys, "argv", [str(script), "--model", "easy", "--presets", "default",
-                                      "--width", "96", "--height", "72", "--frames", "8",
-                                      "--pairs", "2", "--gap", "1"])
+    monkeypatch.setattr(
+        sys,
+        "argv",
+        [
+            str(script),
+            "--model",
+            "easy",
+            "--presets",
+            "default",
+            "--width",
+            "96",
+            "--height",
+            "72",
+            "--frames",
+            "8",
+            "--pairs",
+            "2",
+            "--gap",
+            "1",
+        ],
+    )
     runpy.run_path(str(script), run_name="__main__")
     out = capsys.readouterr().out
     assert "NN<=2px" in out and "no-ray px" in out
-    row = next(line.split() for line in out.splitlines() if line.split()[:2] == ["default",
-                                                                                 "easy"])
+    row = next(line.split() for line in out.splitlines() if line.split()[:2] == ["default", "easy"])
     # the easy model's descriptors are a near-oracle: most matches land within 2 px
     assert row[2].endswith("%") and float(row[2].rstrip("%")) > 50.0

@@ -19,11 +19,17 @@ from como3r.data.synth import synthesize
 from como3r.io.tum import read_tum, write_tum
 from como3r.prior.mast3r.testing import tiny_network, write_checkpoint
 
-from .data.readers.layouts import SEVEN_SCENES_REAL, link_frames, write_7scenes, write_tum as \
-    write_tum_layout
+from .data.readers.layouts import (
+    SEVEN_SCENES_REAL,
+    link_frames,
+    write_7scenes,
+)
+from .data.readers.layouts import (
+    write_tum as write_tum_layout,
+)
+from .data.readers.logs import image_stream, write_log
 from .data.readers.test_kitti import KITTI_GREY_REAL
 from .data.test_poses import TEDDY
-from .data.readers.logs import image_stream, write_log
 
 
 def _invoke(*args: str):
@@ -36,8 +42,19 @@ def tum_from_synthetic(root: Path, frames: int = 8) -> Path:
     scene's own intrinsics in calib.txt (they are not freiburg 1's)."""
     scene = root / "scene"
     scene.mkdir()
-    synthesize(scene, agents=1, seed=1, overlap=0.2, frames=frames, preset="default", width=64,
-               height=48, scale=0.3, loop_frames=100, progress=None)
+    synthesize(
+        scene,
+        agents=1,
+        seed=1,
+        overlap=0.2,
+        frames=frames,
+        preset="default",
+        width=64,
+        height=48,
+        scale=0.3,
+        loop_frames=100,
+        progress=None,
+    )
     agent = scene / "agent_0"
     seq = root / "rgbd_dataset_freiburg1_synthetic"
     (seq / "rgb").mkdir(parents=True)
@@ -66,8 +83,17 @@ def test_a_tum_sequence_runs_with_the_simulated_prior_and_evaluates(tmp_path):
     and eval's report.html drawn against the ground truth."""
     seq = tum_from_synthetic(tmp_path, frames=16)
     out = tmp_path / "out"
-    result = _invoke("run", "--agent", str(seq), "--out", str(out), "--prior", "simulated",
-                     "--set", "input.long_side=64")
+    result = _invoke(
+        "run",
+        "--agent",
+        str(seq),
+        "--out",
+        str(out),
+        "--prior",
+        "simulated",
+        "--set",
+        "input.long_side=64",
+    )
     assert result.exit_code == 0, result.output
     metrics = json.loads((out / "metrics.json").read_text())
     agent = metrics["agents"][0]
@@ -97,12 +123,24 @@ def test_frames_in_a_ground_truth_gap_are_skipped_with_one_warning(tmp_path, cap
     (seq / "groundtruth.txt").write_text("\n".join(rows[:5] + rows[9:]) + "\n")
     out = tmp_path / "out"
     with caplog.at_level("WARNING"):
-        result = _invoke("run", "--agent", str(seq), "--out", str(out), "--prior", "simulated",
-                         "--set", "input.long_side=64", *runtime)
+        result = _invoke(
+            "run",
+            "--agent",
+            str(seq),
+            "--out",
+            str(out),
+            "--prior",
+            "simulated",
+            "--set",
+            "input.long_side=64",
+            *runtime,
+        )
     assert result.exit_code == 0, result.output
     warnings = [r.getMessage() for r in caplog.records if "ground-truth pose" in r.getMessage()]
-    assert warnings == [f"{seq}: 4 of 16 frames have no ground-truth pose (4 in gaps wider "
-                        "than 0.1 s); --prior simulated skips them"]
+    assert warnings == [
+        f"{seq}: 4 of 16 frames have no ground-truth pose (4 in gaps wider "
+        "than 0.1 s); --prior simulated skips them"
+    ]
     trajectory = read_tum(out / "trajectories" / "agent_0.txt")
     np.testing.assert_allclose(trajectory.timestamps, stamps[[0, 2, 4, 10, 12, 14]], atol=1e-6)
     metrics = json.loads((out / "metrics.json").read_text())
@@ -117,9 +155,18 @@ def test_the_check_before_the_run_does_not_repeat_reader_warnings(tmp_path, capl
     lines = (seq / "depth.txt").read_text().splitlines()
     (seq / "depth.txt").write_text("\n".join(lines[:3] + lines[4:]) + "\n")
     with caplog.at_level("WARNING"):
-        result = _invoke("run", "--agent", str(seq), "--out", str(tmp_path / "out"),
-                         "--prior", "simulated", "--set", "input.long_side=64",
-                         "--single-process")
+        result = _invoke(
+            "run",
+            "--agent",
+            str(seq),
+            "--out",
+            str(tmp_path / "out"),
+            "--prior",
+            "simulated",
+            "--set",
+            "input.long_side=64",
+            "--single-process",
+        )
     assert result.exit_code == 0, result.output
     said = [r.getMessage() for r in caplog.records if "no depth image" in r.getMessage()]
     assert len(said) == 1, said
@@ -131,10 +178,26 @@ def test_agent_processes_do_not_repeat_reader_warnings(tmp_path):
     seq = tum_from_synthetic(tmp_path, frames=6)
     lines = (seq / "depth.txt").read_text().splitlines()
     (seq / "depth.txt").write_text("\n".join(lines[:3] + lines[4:]) + "\n")
-    run = subprocess.run([sys.executable, "-m", "como3r.cli", "run", "--agent", str(seq),
-                          "--out", str(tmp_path / "out"), "--prior", "simulated", "--set",
-                          "input.long_side=64", "--quiet"],
-                         capture_output=True, text=True, timeout=600)
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "como3r.cli",
+            "run",
+            "--agent",
+            str(seq),
+            "--out",
+            str(tmp_path / "out"),
+            "--prior",
+            "simulated",
+            "--set",
+            "input.long_side=64",
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert run.returncode == 0, run.stderr
     output = run.stdout + run.stderr
     assert output.count("no depth image") == 1, output
@@ -145,13 +208,32 @@ def test_decentralized_robots_need_a_pose_for_every_frame(tmp_path, only_error_l
     gap is still refused there, in one line, before any work."""
     from .data.test_agent import write_agent
 
-    robots = [write_agent(tmp_path / f"robot_{k}", n=8, depth="npy", calib="20 20 16 12",
-                          groundtruth=True, odometry=True) for k in range(2)]
+    robots = [
+        write_agent(
+            tmp_path / f"robot_{k}",
+            n=8,
+            depth="npy",
+            calib="20 20 16 12",
+            groundtruth=True,
+            odometry=True,
+        )
+        for k in range(2)
+    ]
     rows = (robots[1] / "groundtruth.txt").read_text().splitlines()
     (robots[1] / "groundtruth.txt").write_text("\n".join(rows[:2] + rows[6:]) + "\n")
     args = [a for r in robots for a in ("--agent", str(r))]
-    line = only_error_line(_invoke("run", *args, "--out", str(tmp_path / "out"), "--prior",
-                                   "simulated", "--mode", "decentralized"))
+    line = only_error_line(
+        _invoke(
+            "run",
+            *args,
+            "--out",
+            str(tmp_path / "out"),
+            "--prior",
+            "simulated",
+            "--mode",
+            "decentralized",
+        )
+    )
     assert f"{robots[1]}: 4 of 8 frames have no ground-truth pose within 0.1 s" in line
     assert "--mode decentralized" in line and not (tmp_path / "out").exists()
 
@@ -164,23 +246,46 @@ def test_eval_against_a_7scenes_sequence(tmp_path):
 
     _, gt = read_ground_truth(seq)
     write_tum(tmp_path / "est.txt", gt.timestamps, gt.T_WC)
-    result = _invoke("eval", "--est", str(tmp_path / "est.txt"), "--gt", str(seq),
-                     "--out", str(tmp_path / "eval"))
+    result = _invoke(
+        "eval",
+        "--est",
+        str(tmp_path / "est.txt"),
+        "--gt",
+        str(seq),
+        "--out",
+        str(tmp_path / "eval"),
+    )
     assert result.exit_code == 0, result.output
     ate = json.loads((tmp_path / "eval" / "ate.json").read_text())["agents"][0]
     assert ate["frames"] == 5 and ate["ate"]["rmse"] < 1e-6
 
 
-@pytest.mark.parametrize("args, fragment", [
-    (["--format", "colmap"], "unknown --format 'colmap'; choose one of auto, agent, tum, "
-                                "7scenes, euroc, kitti, tanks, rosbag"),
-    (["--format", "tum"], "not a TUM RGB-D sequence (--format tum): expected rgb.txt"),
-])
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (
+            ["--format", "colmap"],
+            "unknown --format 'colmap'; choose one of auto, agent, tum, "
+            "7scenes, euroc, kitti, tanks, rosbag",
+        ),
+        (["--format", "tum"], "not a TUM RGB-D sequence (--format tum): expected rgb.txt"),
+    ],
+)
 def test_format_errors_are_one_line(tmp_path, only_error_line, args, fragment):
     seq = tmp_path / "seq-01"
     write_7scenes(seq, n=2)
-    line = only_error_line(_invoke("run", "--agent", str(seq), "--out", str(tmp_path / "out"),
-                                   "--prior", "simulated", *args))
+    line = only_error_line(
+        _invoke(
+            "run",
+            "--agent",
+            str(seq),
+            "--out",
+            str(tmp_path / "out"),
+            "--prior",
+            "simulated",
+            *args,
+        )
+    )
     assert fragment in line
     line = only_error_line(_invoke("eval", "--est", str(tmp_path), "--gt", str(seq), *args))
     assert fragment in line
@@ -189,18 +294,32 @@ def test_format_errors_are_one_line(tmp_path, only_error_line, args, fragment):
 
 def test_a_folder_of_no_known_layout_is_one_line(tmp_path, only_error_line):
     (tmp_path / "nothing").mkdir()
-    line = only_error_line(_invoke("run", "--agent", str(tmp_path / "nothing"), "--out",
-                                   str(tmp_path / "out"), "--prior", "simulated"))
+    line = only_error_line(
+        _invoke(
+            "run",
+            "--agent",
+            str(tmp_path / "nothing"),
+            "--out",
+            str(tmp_path / "out"),
+            "--prior",
+            "simulated",
+        )
+    )
     assert "nothing: not an input of a known layout: expected an agent folder" in line
 
 
-@pytest.mark.parametrize("case, fragment", [
-    ("no depth", "no depth.txt (with depth/), which --prior simulated needs"),
-    ("no calib", "no intrinsics (calib.txt 'fx fy cx cy'), which --prior simulated needs"),
-    ("no groundtruth", "no ground truth, which --prior simulated needs"),
-    ("gt after", "no frame has a ground-truth pose within 0.1 s, which --prior simulated "
-                 "needs"),
-])
+@pytest.mark.parametrize(
+    "case, fragment",
+    [
+        ("no depth", "no depth.txt (with depth/), which --prior simulated needs"),
+        ("no calib", "no intrinsics (calib.txt 'fx fy cx cy'), which --prior simulated needs"),
+        ("no groundtruth", "no ground truth, which --prior simulated needs"),
+        (
+            "gt after",
+            "no frame has a ground-truth pose within 0.1 s, which --prior simulated needs",
+        ),
+    ],
+)
 def test_what_the_simulated_prior_needs_is_one_line(tmp_path, only_error_line, case, fragment):
     name = "my_sequence" if case == "no calib" else "rgbd_dataset_freiburg1_x"
     seq = tmp_path / name
@@ -208,29 +327,36 @@ def test_what_the_simulated_prior_needs_is_one_line(tmp_path, only_error_line, c
     if case == "gt after":  # one pose, 50 ms after the last frame
         lines = (seq / "groundtruth.txt").read_text().splitlines()
         (seq / "groundtruth.txt").write_text("\n".join(lines[:3] + lines[-1:]) + "\n")
-    line = only_error_line(_invoke("run", "--agent", str(seq), "--out", str(tmp_path / "out"),
-                                   "--prior", "simulated"))
+    line = only_error_line(
+        _invoke("run", "--agent", str(seq), "--out", str(tmp_path / "out"), "--prior", "simulated")
+    )
     assert f"{seq}: {fragment}" in line and "--prior mast3r" in line
 
 
 def test_run_takes_a_ros_log_and_its_topic(tmp_path, only_error_line):
     """--agent reads a ROS log and --topic reaches its reader (the simulated prior then says
     the log has no depth: a run on images alone takes MASt3R, too slow for this test)."""
-    bag = write_log(tmp_path / "log.bag", "ros1",
-                    image_stream("/left/image_raw", 2) + image_stream("/right/image_raw", 2))
+    bag = write_log(
+        tmp_path / "log.bag",
+        "ros1",
+        image_stream("/left/image_raw", 2) + image_stream("/right/image_raw", 2),
+    )
     args = ["run", "--agent", str(bag), "--out", str(tmp_path / "out"), "--prior", "simulated"]
     line = only_error_line(_invoke(*args))
     assert "2 image topics, choose one with --topic: /left/image_raw" in line
     line = only_error_line(_invoke(*args, "--topic", "/nope"))
     assert f"{bag}: no topic '/nope'; image topics: /left/image_raw" in line
     line = only_error_line(_invoke(*args, "--topic", "/right/image_raw"))
-    assert f"{bag}: no depth (the ROS log reader takes images only), which --prior " \
-           "simulated needs" in line
+    assert (
+        f"{bag}: no depth (the ROS log reader takes images only), which --prior "
+        "simulated needs" in line
+    )
     assert not (tmp_path / "out").exists()
 
 
-@pytest.mark.skipif(not SEVEN_SCENES_REAL.is_dir(),
-                    reason=f"7-Scenes excerpt not found at {SEVEN_SCENES_REAL}")
+@pytest.mark.skipif(
+    not SEVEN_SCENES_REAL.is_dir(), reason=f"7-Scenes excerpt not found at {SEVEN_SCENES_REAL}"
+)
 def test_the_real_7scenes_excerpt_runs_end_to_end(tmp_path):
     """The first 10 real Kinect frames (symbolic links, nothing copied; every second one
     processed, the default), simulated prior from their depth with 12 % holes, default
@@ -238,8 +364,18 @@ def test_the_real_7scenes_excerpt_runs_end_to_end(tmp_path):
     0.94 mm on the 3.7 cm path of the processed frames, 4 s (at the default 512: 0.59 mm)."""
     seq = link_frames(SEVEN_SCENES_REAL / "rgbd-frames", tmp_path / "seq", 10)
     out = tmp_path / "out"
-    result = _invoke("run", "--agent", str(seq), "--out", str(out), "--prior", "simulated",
-                     "--single-process", "--set", "input.long_side=256")
+    result = _invoke(
+        "run",
+        "--agent",
+        str(seq),
+        "--out",
+        str(out),
+        "--prior",
+        "simulated",
+        "--single-process",
+        "--set",
+        "input.long_side=256",
+    )
     assert result.exit_code == 0, result.output
     trajectory = read_tum(out / "trajectories" / "agent_0.txt")
     assert len(trajectory) == 5
@@ -251,8 +387,9 @@ def test_the_real_7scenes_excerpt_runs_end_to_end(tmp_path):
 
 def test_split_makes_overlapping_agents_from_a_dataset_sequence(tmp_path):
     seq = tum_from_synthetic(tmp_path, frames=20)
-    result = _invoke("split", str(seq), "--agents", "3", "--overlap", "0.2",
-                     "--out", str(tmp_path / "agents"))
+    result = _invoke(
+        "split", str(seq), "--agents", "3", "--overlap", "0.2", "--out", str(tmp_path / "agents")
+    )
     assert result.exit_code == 0, result.output
     folders = sorted((tmp_path / "agents").glob("agent_*"))
     assert [f.name for f in folders] == ["agent_0", "agent_1", "agent_2"]
@@ -266,8 +403,9 @@ def test_split_makes_overlapping_agents_from_a_dataset_sequence(tmp_path):
 
 def test_split_fails_without_leaving_a_folder(tmp_path, only_error_line):
     seq = tum_from_synthetic(tmp_path, frames=4)
-    line = only_error_line(_invoke("split", str(seq), "--agents", "3",
-                                   "--out", str(tmp_path / "agents")))
+    line = only_error_line(
+        _invoke("split", str(seq), "--agents", "3", "--out", str(tmp_path / "agents"))
+    )
     assert "too few for 3 agents" in line
     assert not (tmp_path / "agents").exists()
 
@@ -278,8 +416,9 @@ def test_input_problems_come_before_missing_weights(tmp_path, only_error_line):
     missing."""
     (tmp_path / "nothing").mkdir()
     (tmp_path / "nothing" / "notes.txt").write_text("x")
-    line = only_error_line(_invoke("run", "--agent", str(tmp_path / "nothing"), "--out",
-                                   str(tmp_path / "out")))
+    line = only_error_line(
+        _invoke("run", "--agent", str(tmp_path / "nothing"), "--out", str(tmp_path / "out"))
+    )
     assert "not an input of a known layout" in line and "weights" not in line
     seq = tum_from_synthetic(tmp_path, frames=4)
     (seq / "rgb" / sorted((seq / "rgb").iterdir())[1].name).write_bytes(b"not a png")
@@ -298,25 +437,48 @@ def link_kitti(source: Path, target: Path, count: int) -> Path:
         (sequence / name).symlink_to(source / name)
     (target / "poses").mkdir()
     (target / "poses" / f"{source.name}.txt").symlink_to(
-        source.parent.parent / "poses" / f"{source.name}.txt")
+        source.parent.parent / "poses" / f"{source.name}.txt"
+    )
     return sequence
 
 
-@pytest.mark.skipif(not KITTI_GREY_REAL.is_dir(),
-                    reason=f"KITTI grey excerpt not found at {KITTI_GREY_REAL}")
+@pytest.mark.skipif(
+    not KITTI_GREY_REAL.is_dir(), reason=f"KITTI grey excerpt not found at {KITTI_GREY_REAL}"
+)
 def test_the_real_kitti_grey_excerpt_takes_mast3r(tmp_path, only_error_line):
     """data_odometry_gray.zip as downloaded: without weights the run gets past the layout
     check and only then asks for them; with a tiny random checkpoint the grey frames reach
     the network as three channels and the run goes through (a random network tracks
     nothing: only the plumbing is tested)."""
-    line = only_error_line(_invoke("run", "--agent", str(KITTI_GREY_REAL), "--out",
-                                   str(tmp_path / "none"), "--prior", "mast3r"))
+    line = only_error_line(
+        _invoke(
+            "run",
+            "--agent",
+            str(KITTI_GREY_REAL),
+            "--out",
+            str(tmp_path / "none"),
+            "--prior",
+            "mast3r",
+        )
+    )
     assert "como3r weights fetch" in line and "layout" not in line
     seq = link_kitti(KITTI_GREY_REAL, tmp_path / "dataset", 6)
     ckpt = write_checkpoint(tmp_path / "tiny.pth", tiny_network(seed=0))
     out = tmp_path / "out"
-    result = _invoke("run", "--agent", str(seq), "--out", str(out), "--prior", "mast3r",
-                     "--weights", str(ckpt), "--set", "input.long_side=64", "--single-process")
+    result = _invoke(
+        "run",
+        "--agent",
+        str(seq),
+        "--out",
+        str(out),
+        "--prior",
+        "mast3r",
+        "--weights",
+        str(ckpt),
+        "--set",
+        "input.long_side=64",
+        "--single-process",
+    )
     assert result.exit_code == 0, result.output
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["agents"][0]["frames"] == 3
@@ -333,11 +495,14 @@ def cut_tum(source: Path, target: Path, frames: int, hole: tuple[float, float]) 
     for name in ("rgb.txt", "depth.txt"):
         lines = (source / name).read_text().splitlines()
         comments = [line for line in lines if line.startswith("#")]
-        (target / name).write_text("\n".join(comments + lines[len(comments):][:frames]) + "\n")
+        (target / name).write_text("\n".join(comments + lines[len(comments) :][:frames]) + "\n")
     lines = (source / "groundtruth.txt").read_text().splitlines()
     first = read_tum(source / "groundtruth.txt").timestamps[0]
-    kept = [line for line in lines if line.startswith("#")
-            or not hole[0] <= float(line.split()[0]) - first < hole[0] + hole[1]]
+    kept = [
+        line
+        for line in lines
+        if line.startswith("#") or not hole[0] <= float(line.split()[0]) - first < hole[0] + hole[1]
+    ]
     (target / "groundtruth.txt").write_text("\n".join(kept) + "\n")
     return target
 
@@ -351,12 +516,24 @@ def test_the_real_tum_excerpt_with_a_motion_capture_dropout_runs(tmp_path, caplo
     seq = cut_tum(TEDDY, tmp_path / TEDDY.name, 30, (0.3, 0.04))
     out = tmp_path / "out"
     with caplog.at_level("WARNING"):
-        result = _invoke("run", "--agent", str(seq), "--out", str(out), "--prior", "simulated",
-                         "--set", "input.long_side=128", "--single-process")
+        result = _invoke(
+            "run",
+            "--agent",
+            str(seq),
+            "--out",
+            str(out),
+            "--prior",
+            "simulated",
+            "--set",
+            "input.long_side=128",
+            "--single-process",
+        )
     assert result.exit_code == 0, result.output
     said = [r.getMessage() for r in caplog.records if "ground-truth pose" in r.getMessage()]
-    assert said == [f"{seq}: 5 of 30 frames have no ground-truth pose (5 before the first "
-                    "ground-truth pose); --prior simulated skips them"]
+    assert said == [
+        f"{seq}: 5 of 30 frames have no ground-truth pose (5 before the first "
+        "ground-truth pose); --prior simulated skips them"
+    ]
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["agents"][0]["frames"] == 12  # 6, 8, ..., 28
     # evaluation associates as evo does (a sample within 10 ms): a frame inside the hole

@@ -31,8 +31,17 @@ from como3r.runtime.store_reader import read_session
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("scene")
-    synthesize(root, agents=1, seed=1, overlap=0.2, frames=4, preset="default", width=64,
-               height=48, progress=None)
+    synthesize(
+        root,
+        agents=1,
+        seed=1,
+        overlap=0.2,
+        frames=4,
+        preset="default",
+        width=64,
+        height=48,
+        progress=None,
+    )
     return root
 
 
@@ -40,18 +49,21 @@ def _invoke(*args: str):
     return CliRunner().invoke(app, list(args), env={"COLUMNS": "80"})
 
 
-@pytest.mark.parametrize("args, fragment", [
-    (["run", "--out", "x"], "no input: give --agent PATH or --camera SOURCE"),
-    (["run"], "no input: give --agent PATH or --camera SOURCE"),  # the input first, then --out
-    (["run", "--agent", "a"], "missing option --out"),
-    (["eval", "--est", "x"], "Missing option '--gt'"),
-    (["run", "--agent", "a", "--out", "x", "--bogus"], "No such option: --bogus"),
-    (["synth", "--out", "x", "--agents", "abc"], "Invalid value for '--agents'"),
-    (["synth", "--out", "x", "--agents", "0"], "Invalid value for '--agents'"),
-    (["bogus"], "No such command 'bogus'"),
-    (["--bogus", "run"], "No such option: --bogus"),
-    (["weights", "fetch", "--nope"], "No such option: --nope"),
-])
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["run", "--out", "x"], "no input: give --agent PATH or --camera SOURCE"),
+        (["run"], "no input: give --agent PATH or --camera SOURCE"),  # the input first, then --out
+        (["run", "--agent", "a"], "missing option --out"),
+        (["eval", "--est", "x"], "Missing option '--gt'"),
+        (["run", "--agent", "a", "--out", "x", "--bogus"], "No such option: --bogus"),
+        (["synth", "--out", "x", "--agents", "abc"], "Invalid value for '--agents'"),
+        (["synth", "--out", "x", "--agents", "0"], "Invalid value for '--agents'"),
+        (["bogus"], "No such command 'bogus'"),
+        (["--bogus", "run"], "No such option: --bogus"),
+        (["weights", "fetch", "--nope"], "No such option: --nope"),
+    ],
+)
 def test_option_parsing_errors_are_one_line(args, fragment, only_error_line) -> None:
     line = only_error_line(_invoke(*args))
     assert fragment in line and "--help" in line
@@ -63,55 +75,87 @@ def test_no_arguments_still_prints_the_help() -> None:
 
 
 def test_yaml_syntax_error_is_one_line_naming_file_and_line(
-        scene, tmp_path, only_error_line) -> None:
+    scene, tmp_path, only_error_line
+) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text("tracking:\n  sigma_ray: [1, 2\n  huber_k: 1\n")
     out = tmp_path / "out"
-    line = only_error_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
-                              "--prior", "simulated", "--config", str(bad)))
+    line = only_error_line(
+        _invoke(
+            "run",
+            "--agent",
+            str(scene / "agent_0"),
+            "--out",
+            str(out),
+            "--prior",
+            "simulated",
+            "--config",
+            str(bad),
+        )
+    )
     assert f"{bad}:3:" in line and "not valid YAML" in line
     assert not out.exists()
 
 
 def test_unparsable_override_is_one_line(scene, tmp_path, only_error_line) -> None:
-    line = only_error_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out",
-                              str(tmp_path / "out"), "--prior", "simulated",
-                              "--set", "tracking.sigma_ray=[1"))
+    line = only_error_line(
+        _invoke(
+            "run",
+            "--agent",
+            str(scene / "agent_0"),
+            "--out",
+            str(tmp_path / "out"),
+            "--prior",
+            "simulated",
+            "--set",
+            "tracking.sigma_ray=[1",
+        )
+    )
     assert "cannot parse override value '[1'" in line
 
 
-@pytest.mark.parametrize("override, message", [
-    ("tracking.sigma_ray=-1", "tracking.sigma_ray must be > 0, got -1.0"),
-    ("tracking.sigma_depth=0", "tracking.sigma_depth must be > 0"),
-    ("tracking.rel_cost_tol=0", "tracking.rel_cost_tol must be > 0"),
-    ("matching.convergence_tol=-1e-6", "matching.convergence_tol must be > 0"),
-    ("depth.sigma_point=0", "depth.sigma_point must be > 0"),
-    ("tracking.min_inlier_fraction=1.5", "tracking.min_inlier_fraction must be in [0, 1]"),
-    ("tracking.keyframe_match_fraction=-0.1", "tracking.keyframe_match_fraction must be in"),
-    ("verification.min_covisible_ratio=2", "verification.min_covisible_ratio must be in"),
-    ("tracking.inlier_angle_deg=0", "tracking.inlier_angle_deg must be > 0"),
-    ("input.prefetch_frames=-1", "input.prefetch_frames must be >= 0"),
-    ("input.long_side=500", "input.long_side must be a positive multiple of 16"),
-    ("input.long_side=0", "input.long_side must be a positive multiple of 16"),
-    ("input.subsample=0", "input.subsample must be >= 1"),
-    ("tracking.max_iters=0", "tracking.max_iters must be >= 1"),
-    ("global_ba.max_iters_cleanup=0", "global_ba.max_iters_cleanup must be >= 1"),
-    ("depth.inner_iters=0", "depth.inner_iters must be >= 1"),
-    ("local_solve.dense_keyframes=0", "local_solve.dense_keyframes must be >= 1"),
-    ("local_solve.relinearize_tol=0", "local_solve.relinearize_tol must be > 0"),
-    ("decentralized.confidence_k=0", "decentralized.confidence_k must be > 0"),
-    ("simulated_prior.gross_failure_rate=2", "simulated_prior.gross_failure_rate must be in"),
-    ("tracking.fusion=pixels", "tracking.fusion: 'pixels' is not one of"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("tracking.sigma_ray=-1", "tracking.sigma_ray must be > 0, got -1.0"),
+        ("tracking.sigma_depth=0", "tracking.sigma_depth must be > 0"),
+        ("tracking.rel_cost_tol=0", "tracking.rel_cost_tol must be > 0"),
+        ("matching.convergence_tol=-1e-6", "matching.convergence_tol must be > 0"),
+        ("depth.sigma_point=0", "depth.sigma_point must be > 0"),
+        ("tracking.min_inlier_fraction=1.5", "tracking.min_inlier_fraction must be in [0, 1]"),
+        ("tracking.keyframe_match_fraction=-0.1", "tracking.keyframe_match_fraction must be in"),
+        ("verification.min_covisible_ratio=2", "verification.min_covisible_ratio must be in"),
+        ("tracking.inlier_angle_deg=0", "tracking.inlier_angle_deg must be > 0"),
+        ("input.prefetch_frames=-1", "input.prefetch_frames must be >= 0"),
+        ("input.long_side=500", "input.long_side must be a positive multiple of 16"),
+        ("input.long_side=0", "input.long_side must be a positive multiple of 16"),
+        ("input.subsample=0", "input.subsample must be >= 1"),
+        ("tracking.max_iters=0", "tracking.max_iters must be >= 1"),
+        ("global_ba.max_iters_cleanup=0", "global_ba.max_iters_cleanup must be >= 1"),
+        ("depth.inner_iters=0", "depth.inner_iters must be >= 1"),
+        ("local_solve.dense_keyframes=0", "local_solve.dense_keyframes must be >= 1"),
+        ("local_solve.relinearize_tol=0", "local_solve.relinearize_tol must be > 0"),
+        ("decentralized.confidence_k=0", "decentralized.confidence_k must be > 0"),
+        ("simulated_prior.gross_failure_rate=2", "simulated_prior.gross_failure_rate must be in"),
+        ("tracking.fusion=pixels", "tracking.fusion: 'pixels' is not one of"),
+    ],
+)
 def test_out_of_range_values_are_refused_when_overridden(override, message) -> None:
     with pytest.raises(ConfigError, match=message.replace("[", r"\[")):
         apply_overrides(Config(), [override])
 
 
-@pytest.mark.parametrize("override", [
-    "input.prefetch_frames=0", "depth.alternation_rounds=0", "matching.descriptor_radius=0",
-    "tracking.min_inlier_fraction=0", "tracking.min_inlier_fraction=1", "input.long_side=96",
-])
+@pytest.mark.parametrize(
+    "override",
+    [
+        "input.prefetch_frames=0",
+        "depth.alternation_rounds=0",
+        "matching.descriptor_radius=0",
+        "tracking.min_inlier_fraction=0",
+        "tracking.min_inlier_fraction=1",
+        "input.long_side=96",
+    ],
+)
 def test_zero_where_it_means_off_and_range_ends_are_accepted(override) -> None:
     apply_overrides(Config(), [override])
 
@@ -128,10 +172,22 @@ def test_out_of_range_value_in_a_file_names_file_and_key(tmp_path) -> None:
 
 
 def test_out_of_range_override_at_the_cli_is_one_line_and_no_output(
-        scene, tmp_path, only_error_line) -> None:
+    scene, tmp_path, only_error_line
+) -> None:
     out = tmp_path / "out"
-    line = only_error_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
-                              "--prior", "simulated", "--set", "tracking.sigma_ray=-1"))
+    line = only_error_line(
+        _invoke(
+            "run",
+            "--agent",
+            str(scene / "agent_0"),
+            "--out",
+            str(out),
+            "--prior",
+            "simulated",
+            "--set",
+            "tracking.sigma_ray=-1",
+        )
+    )
     assert "tracking.sigma_ray must be > 0" in line
     assert not out.exists()
 
@@ -139,15 +195,37 @@ def test_out_of_range_override_at_the_cli_is_one_line_and_no_output(
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
 def test_device_cuda_without_cuda_is_an_error(scene, tmp_path, only_error_line) -> None:
     out = tmp_path / "out"
-    line = only_error_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
-                              "--prior", "simulated", "--device", "cuda"))
+    line = only_error_line(
+        _invoke(
+            "run",
+            "--agent",
+            str(scene / "agent_0"),
+            "--out",
+            str(out),
+            "--prior",
+            "simulated",
+            "--device",
+            "cuda",
+        )
+    )
     assert "--device cuda" in line and "--device cpu" in line
     assert not out.exists()
 
 
 def test_unknown_device_is_an_error(scene, tmp_path, only_error_line) -> None:
-    line = only_error_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out",
-                              str(tmp_path / "out"), "--prior", "simulated", "--device", "tpu"))
+    line = only_error_line(
+        _invoke(
+            "run",
+            "--agent",
+            str(scene / "agent_0"),
+            "--out",
+            str(tmp_path / "out"),
+            "--prior",
+            "simulated",
+            "--device",
+            "tpu",
+        )
+    )
     assert "unknown --device 'tpu'" in line
 
 
@@ -158,44 +236,63 @@ def test_output_folder_that_cannot_be_created_is_one_line(tmp_path, only_error_l
     assert str(blocker) in line
 
 
-@pytest.mark.parametrize("args, fragment", [
-    (["--prior", "simulated", "--precision", "fp8"], "unknown --precision 'fp8'"),
-    (["--prior", "bogus"], "unknown --prior 'bogus'"),
-    (["--prior", "simulated", "--mode", "bogus"], "unknown --mode 'bogus'"),
-    (["--weights", "{tmp}/nothere.pth"], "--weights {tmp}/nothere.pth: no such file"),
-])
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["--prior", "simulated", "--precision", "fp8"], "unknown --precision 'fp8'"),
+        (["--prior", "bogus"], "unknown --prior 'bogus'"),
+        (["--prior", "simulated", "--mode", "bogus"], "unknown --mode 'bogus'"),
+        (["--weights", "{tmp}/nothere.pth"], "--weights {tmp}/nothere.pth: no such file"),
+    ],
+)
 def test_run_options_are_checked_before_any_work(
-        args, fragment, scene, tmp_path, only_error_line) -> None:
+    args, fragment, scene, tmp_path, only_error_line
+) -> None:
     """A malformed --precision is an error even with the simulated prior (which ignores a
     valid one); these are found before the output folder or a progress bar appears."""
     out = tmp_path / "out"
-    line = only_error_line(_invoke("run", "--agent", str(scene / "agent_0"), "--out", str(out),
-                              *[a.format(tmp=tmp_path) for a in args]))
+    line = only_error_line(
+        _invoke(
+            "run",
+            "--agent",
+            str(scene / "agent_0"),
+            "--out",
+            str(out),
+            *[a.format(tmp=tmp_path) for a in args],
+        )
+    )
     assert fragment.format(tmp=tmp_path) in line
     assert not out.exists()
 
 
-@pytest.mark.parametrize("args", [
-    ["run", "--agent", "{tmp}/missing_agent", "--prior", "simulated", "--out", "{tmp}/out"],
-    ["synth", "--out", "{tmp}/out", "--height", "5000"],  # found inside the rendering
-])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["run", "--agent", "{tmp}/missing_agent", "--prior", "simulated", "--out", "{tmp}/out"],
+        ["synth", "--out", "{tmp}/out", "--height", "5000"],  # found inside the rendering
+    ],
+)
 def test_stderr_is_only_the_error_line_when_not_a_terminal(args, tmp_path) -> None:
     """The real command with its stderr in a pipe: no progress bar is printed (it used to
     print its last state, '0/?', above the error)."""
     child = subprocess.run(
         [sys.executable, "-m", "como3r.cli", *[a.format(tmp=tmp_path) for a in args]],
-        capture_output=True, text=True, timeout=300, env={**os.environ, "COLUMNS": "200"})
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "COLUMNS": "200"},
+    )
     assert child.returncode == 2, child.stderr
-    assert len(child.stderr.splitlines()) == 1 and child.stderr.startswith("error: "), \
-        child.stderr
+    assert len(child.stderr.splitlines()) == 1 and child.stderr.startswith("error: "), child.stderr
     assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.parametrize("fail", [False, True])
 def test_progress_bar_on_a_terminal_is_erased_by_an_error(fail, monkeypatch) -> None:
     terminal = io.StringIO()
-    monkeypatch.setattr(cli_common, "err_console",
-                        Console(file=terminal, force_terminal=True, width=60))
+    monkeypatch.setattr(
+        cli_common, "err_console", Console(file=terminal, force_terminal=True, width=60)
+    )
     with contextlib.suppress(RuntimeError):
         with cli_common.progress_bar() as bar:
             bar.advance(bar.add_task("work", total=3))
@@ -215,8 +312,16 @@ def test_ctrl_c_is_one_line_and_leaves_nothing(command, scene, tmp_path, monkeyp
     out = tmp_path / "out"
     if command == "run":
         monkeypatch.setattr("como3r.runtime.pipeline.load_frame", _interrupt)
-        args = ["run", "--agent", str(scene / "agent_0"), "--prior", "simulated",
-                "--single-process", "--set", "input.prefetch_frames=0"]
+        args = [
+            "run",
+            "--agent",
+            str(scene / "agent_0"),
+            "--prior",
+            "simulated",
+            "--single-process",
+            "--set",
+            "input.prefetch_frames=0",
+        ]
     else:
         monkeypatch.setattr("como3r.data.synth.synthesize", _interrupt)
         args = [command, "--frames", "4"]
@@ -232,8 +337,20 @@ def test_sigint_during_synth(tmp_path) -> None:
     """The real signal, in a child process: waits until the work has started."""
     out = tmp_path / "scene"
     child = subprocess.Popen(
-        [sys.executable, "-c", "from como3r.cli import main; main()", "synth", "--out", str(out), "--frames", "2000"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        [
+            sys.executable,
+            "-c",
+            "from como3r.cli import main; main()",
+            "synth",
+            "--out",
+            str(out),
+            "--frames",
+            "2000",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     staging = out.with_name("scene.partial")
     while not (staging / "agent_0").exists() and child.poll() is None:
         time.sleep(0.05)
@@ -254,16 +371,26 @@ def longer_scene(tmp_path_factory) -> Path:
     """Two agents with frames enough to be interrupted halfway (the scene above, 4 frames,
     may be finished before a keyframe is stored)."""
     root = tmp_path_factory.mktemp("longer_scene")
-    synthesize(root, agents=2, seed=1, overlap=0.2, frames=24, preset="default", width=64,
-               height=48, progress=None)
+    synthesize(
+        root,
+        agents=2,
+        seed=1,
+        overlap=0.2,
+        frames=24,
+        preset="default",
+        width=64,
+        height=48,
+        progress=None,
+    )
     return root
 
 
-@pytest.mark.skipif(not Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children").exists(),
-                    reason="needs Linux /proc children lists")
+@pytest.mark.skipif(
+    not Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children").exists(),
+    reason="needs Linux /proc children lists",
+)
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
-def test_an_interrupted_multiprocess_run_keeps_its_store(longer_scene, tmp_path,
-                                                         signum) -> None:
+def test_an_interrupted_multiprocess_run_keeps_its_store(longer_scene, tmp_path, signum) -> None:
     """The real signals, in a child process. Ctrl-C in a terminal signals the whole process
     group, agent processes included: they leave it to the coordinator (they used to print
     KeyboardInterrupt tracebacks from wherever they were, often torch's imports). SIGTERM
@@ -272,16 +399,32 @@ def test_an_interrupted_multiprocess_run_keeps_its_store(longer_scene, tmp_path,
     with its session store and ends on one line giving the exact command that continues
     it, which finishes the run."""
     out, partial = tmp_path / "out", tmp_path / "out.partial"
-    args = ["run", "--agent", str(longer_scene / "agent_0"), "--agent",
-            str(longer_scene / "agent_1"), "--out", str(out), "--prior", "simulated",
-            "--set", "input.long_side=64", "-q"]
+    args = [
+        "run",
+        "--agent",
+        str(longer_scene / "agent_0"),
+        "--agent",
+        str(longer_scene / "agent_1"),
+        "--out",
+        str(out),
+        "--prior",
+        "simulated",
+        "--set",
+        "input.long_side=64",
+        "-q",
+    ]
 
     def default_sigint() -> None:  # a test runner started in the background ignores it
         signal.signal(signal.SIGINT, signal.SIG_DFL)
 
     child = subprocess.Popen(
-        [sys.executable, "-m", "como3r.cli", *args], stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint, start_new_session=True)
+        [sys.executable, "-m", "como3r.cli", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=default_sigint,
+        start_new_session=True,
+    )
     deadline = time.monotonic() + 300
     while not _stored(partial / STORE_NAME) and child.poll() is None:
         assert time.monotonic() < deadline
@@ -294,8 +437,9 @@ def test_an_interrupted_multiprocess_run_keeps_its_store(longer_scene, tmp_path,
     _, stderr = child.communicate(timeout=300)
     assert child.returncode == 128 + signum, stderr
     command = shlex.join(["python", "-m", "como3r.cli", *args, "--resume"])
-    assert stderr.splitlines()[-1] == (f"interrupted: the session store in {partial} is "
-                                       f"kept; continue with: {command}"), stderr
+    assert stderr.splitlines()[-1] == (
+        f"interrupted: the session store in {partial} is kept; continue with: {command}"
+    ), stderr
     assert "Traceback" not in stderr and not out.exists()
     result = _invoke(*args, "--resume")
     assert result.exit_code == 0, result.output
@@ -336,7 +480,8 @@ def test_ctrl_c_in_weights_fetch_says_the_download_resumes(tmp_path, monkeypatch
 
 def test_python_m_como3r_cli_runs() -> None:
     """The module entry point imports without a cycle (cli and cli_weights)."""
-    child = subprocess.run([sys.executable, "-m", "como3r.cli", "--help"], capture_output=True,
-                           text=True, timeout=120)
+    child = subprocess.run(
+        [sys.executable, "-m", "como3r.cli", "--help"], capture_output=True, text=True, timeout=120
+    )
     assert child.returncode == 0, child.stderr
     assert "weights" in child.stdout

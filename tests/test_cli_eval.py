@@ -16,8 +16,7 @@ from como3r.io.tum import write_tum
 FRAMES = 80
 
 
-def make_run(tmp_path: Path, agents: int = 2, one_frame: bool = False
-             ) -> tuple[Path, list[Path]]:
+def make_run(tmp_path: Path, agents: int = 2, one_frame: bool = False) -> tuple[Path, list[Path]]:
     """A run folder whose estimates are noisy, per-agent rotated/scaled copies of the GT
     (``one_frame``: all rotated and scaled alike, as agents whose maps merged)."""
     rng = np.random.default_rng(0)
@@ -29,8 +28,11 @@ def make_run(tmp_path: Path, agents: int = 2, one_frame: bool = False
         positions = (3.0 * np.sin(2 * np.pi * freq * s + phase)).sum(-1)
         quat = Rotation.from_rotvec((0.4 * np.sin(2 * np.pi * freq * s + phase)).sum(-1))
         gt_dirs.append(tmp_path / f"agent{a}")
-        write_tum(gt_dirs[-1] / "groundtruth.txt", stamps,
-                  torch.from_numpy(np.concatenate([positions, quat.as_quat()], axis=1)))
+        write_tum(
+            gt_dirs[-1] / "groundtruth.txt",
+            stamps,
+            torch.from_numpy(np.concatenate([positions, quat.as_quat()], axis=1)),
+        )
         rotation = shared if one_frame else Rotation.random(random_state=rng)
         noisy = 1.5 * rotation.apply(positions) + rng.normal(0, 0.02, positions.shape)
         est = np.concatenate([noisy, (rotation * quat).as_quat()], axis=1)
@@ -104,8 +106,9 @@ def test_eval_report_option_names_the_page(tmp_path: Path) -> None:
 
 def test_eval_report_needs_a_run_folder(tmp_path: Path) -> None:
     run, gt_dirs = make_run(tmp_path, agents=1)
-    result = invoke(run / "trajectories" / "agent_0.txt", gt_dirs, "--report",
-                    str(tmp_path / "r.html"))
+    result = invoke(
+        run / "trajectories" / "agent_0.txt", gt_dirs, "--report", str(tmp_path / "r.html")
+    )
     assert result.exit_code == 2
     assert result.stderr.startswith("error: --report:") and "run folder" in result.stderr
     plain = invoke(run / "trajectories" / "agent_0.txt", gt_dirs, "--out", str(tmp_path / "e"))

@@ -23,8 +23,17 @@ def _images(agent: Path, count: int = 4, flat: bool = False) -> Path:
     give), without its depth, calibration or ground truth."""
     scene = agent.with_name(f"{agent.name}_scene")
     scene.mkdir(parents=True)
-    synthesize(scene, agents=1, seed=1, overlap=0.2, frames=count, preset="default", width=64,
-               height=48, progress=None)
+    synthesize(
+        scene,
+        agents=1,
+        seed=1,
+        overlap=0.2,
+        frames=count,
+        preset="default",
+        width=64,
+        height=48,
+        progress=None,
+    )
     folder = agent if flat else agent / "rgb"
     folder.mkdir(parents=True)
     for i, png in enumerate(sorted((scene / "agent_0" / "rgb").iterdir())):
@@ -37,12 +46,14 @@ def _invoke(*args: str):
 
 
 def test_images_with_the_simulated_prior_name_mast3r_before_any_work(
-        tmp_path, only_error_line) -> None:
+    tmp_path, only_error_line
+) -> None:
     """Used to start the agents, log an ERROR line per agent and then fail."""
     agent = _images(tmp_path / "mine")
     out = tmp_path / "out"
-    line = only_error_line(_invoke("run", "--agent", str(agent), "--out", str(out),
-                                    "--prior", "simulated"))
+    line = only_error_line(
+        _invoke("run", "--agent", str(agent), "--out", str(out), "--prior", "simulated")
+    )
     assert "no depth/ folder" in line and "--prior mast3r" in line
     assert not out.exists()
 
@@ -51,8 +62,11 @@ def test_a_flat_folder_of_images_says_where_they_belong(tmp_path, only_error_lin
     agent = _images(tmp_path / "mine", flat=True)
     ckpt = tmp_path / "x.pth"
     ckpt.write_bytes(b"the folder is read before the checkpoint")
-    line = only_error_line(_invoke("run", "--agent", str(agent), "--out",
-                                    str(tmp_path / "out"), "--weights", str(ckpt)))
+    line = only_error_line(
+        _invoke(
+            "run", "--agent", str(agent), "--out", str(tmp_path / "out"), "--weights", str(ckpt)
+        )
+    )
     assert f"its images belong in {agent / 'rgb'}/" in line
 
 
@@ -65,8 +79,17 @@ def test_own_jpegs_with_a_local_checkpoint_run_and_warn_once(tmp_path, caplog) -
     ckpt = write_checkpoint(tmp_path / "tiny.pth", tiny_network(seed=0))
     out = tmp_path / "out"
     with caplog.at_level(logging.WARNING):
-        result = _invoke("run", "--agent", str(agent), "--out", str(out), "--weights",
-                         str(ckpt), "--set", "input.long_side=64")
+        result = _invoke(
+            "run",
+            "--agent",
+            str(agent),
+            "--out",
+            str(out),
+            "--weights",
+            str(ckpt),
+            "--set",
+            "input.long_side=64",
+        )
     assert result.exit_code == 0, result.output
     for name in ("map.ply", "metrics.json", "report.html", "trajectories/agent_0.txt"):
         assert (out / name).is_file(), name
@@ -75,8 +98,13 @@ def test_own_jpegs_with_a_local_checkpoint_run_and_warn_once(tmp_path, caplog) -
 
 
 def _slot(agent: int) -> SimpleNamespace:
-    return SimpleNamespace(agent=agent, status="running", error=None, clock=0.0,
-                           process=SimpleNamespace(is_alive=lambda: False))
+    return SimpleNamespace(
+        agent=agent,
+        status="running",
+        error=None,
+        clock=0.0,
+        process=SimpleNamespace(is_alive=lambda: False),
+    )
 
 
 def test_the_last_agent_failing_is_not_logged_besides_the_error_line(caplog) -> None:

@@ -32,15 +32,39 @@ LINE = re.compile(r"^\[\d+:\d\d:\d\d\] ")
 def covered(tmp_path_factory) -> Path:
     """Two agents whose lenses are covered for a few frames: lost, then relocalized."""
     root = tmp_path_factory.mktemp("covered")
-    synthesize(root, agents=2, seed=0, overlap=0.2, frames=FRAMES, preset="covered", width=64,
-               height=48, loop_frames=100, progress=None)
+    synthesize(
+        root,
+        agents=2,
+        seed=0,
+        overlap=0.2,
+        frames=FRAMES,
+        preset="covered",
+        width=64,
+        height=48,
+        loop_frames=100,
+        progress=None,
+    )
     return root
 
 
 def _run(scene: Path, out: Path, *args: str):
-    return CliRunner().invoke(app, [
-        "run", "--agent", str(scene / "agent_0"), "--agent", str(scene / "agent_1"),
-        "--prior", "simulated", "--out", str(out), "--set", "input.long_side=64", *args])
+    return CliRunner().invoke(
+        app,
+        [
+            "run",
+            "--agent",
+            str(scene / "agent_0"),
+            "--agent",
+            str(scene / "agent_1"),
+            "--prior",
+            "simulated",
+            "--out",
+            str(out),
+            "--set",
+            "input.long_side=64",
+            *args,
+        ],
+    )
 
 
 def _progress_lines(output: str) -> list[str]:
@@ -57,8 +81,11 @@ def test_a_run_not_on_a_terminal_prints_plain_lines_per_agent_and_phase(covered,
     for agent in (0, 1):
         last = [line for line in lines if f" agent {agent}: " in line][-1]
         # frames done/total, fps, keyframes, lost frames, tracking state
-        match = re.search(r"8/8 frames, [\d.]+ fps, (\d+) keyframes?, (\d+) lost, "
-                          r"(?:\d+ relocalized, )?(tracking|lost|relocalized)$", last)
+        match = re.search(
+            r"8/8 frames, [\d.]+ fps, (\d+) keyframes?, (\d+) lost, "
+            r"(?:\d+ relocalized, )?(tracking|lost|relocalized)$",
+            last,
+        )
         assert match is not None, last
         assert int(match.group(1)) >= 1 and int(match.group(2)) >= 1, last
     phases = [line.split(" coordinator: ", 1)[1] for line in lines if " coordinator: " in line]
@@ -86,8 +113,7 @@ def test_synth_plain_and_quiet(tmp_path):
     args = ["synth", "--agents", "1", "--frames", "3", "--width", "32", "--height", "24"]
     plain = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "a")])
     assert plain.exit_code == 0, plain.output
-    assert [line.split("] ", 1)[1] for line in _progress_lines(plain.output)] == [
-        "rendering: 3/3"]
+    assert [line.split("] ", 1)[1] for line in _progress_lines(plain.output)] == ["rendering: 3/3"]
     quiet = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "b"), "-q"])
     assert quiet.exit_code == 0, quiet.output
     assert " ".join(quiet.output.split()) == f"wrote 1 agent folder(s) to {tmp_path / 'b'}"
@@ -110,8 +136,17 @@ def _plain(monkeypatch) -> tuple[RunProgress, FakeClock, io.StringIO]:
 
 
 def _event(frames_done: int, **kwargs) -> AgentProgress:
-    return AgentProgress(**{"agent": 0, "frames_done": frames_done, "frames_total": 10,
-                            "keyframes": 2, "lost": 0, "relocalized": 0, **kwargs})
+    return AgentProgress(
+        **{
+            "agent": 0,
+            "frames_done": frames_done,
+            "frames_total": 10,
+            "keyframes": 2,
+            "lost": 0,
+            "relocalized": 0,
+            **kwargs,
+        }
+    )
 
 
 def test_plain_agent_lines_at_most_every_interval_and_the_last_frame(monkeypatch):
@@ -122,11 +157,17 @@ def test_plain_agent_lines_at_most_every_interval_and_the_last_frame(monkeypatch
     lines = log.getvalue().splitlines()
     # at 6 s (frame 3), 12 s (frame 6), 18 s (frame 9), and frame 10, the last
     assert [line.split(": ", 1)[1].split(" frames")[0] for line in lines] == [
-        "3/10", "6/10", "9/10", "10/10"]
-    assert lines[0] == ("[0:00:06] agent 0: 3/10 frames, 0.50 fps, 2 keyframes, 0 lost, "
-                        "tracking")  # too early for a time left: the pace spans 1 frame
-    assert lines[2] == ("[0:00:18] agent 0: 9/10 frames, 0.50 fps, 2 keyframes, 2 lost, "
-                        "tracking, 0:00:02 left")
+        "3/10",
+        "6/10",
+        "9/10",
+        "10/10",
+    ]
+    assert lines[0] == (
+        "[0:00:06] agent 0: 3/10 frames, 0.50 fps, 2 keyframes, 0 lost, tracking"
+    )  # too early for a time left: the pace spans 1 frame
+    assert lines[2] == (
+        "[0:00:18] agent 0: 9/10 frames, 0.50 fps, 2 keyframes, 2 lost, tracking, 0:00:02 left"
+    )
     assert lines[-1].endswith("10/10 frames, 0.50 fps, 2 keyframes, 2 lost, tracking")
 
 
@@ -159,7 +200,8 @@ def test_plain_lines_of_a_live_input_have_no_total_and_no_time_left(monkeypatch)
         clock.now += 2.0
         progress(_event(done, frames_total=None))  # a camera without --max-frames
     assert log.getvalue().splitlines() == [
-        "[0:00:06] agent 0: 3 frames, 0.50 fps, 2 keyframes, 0 lost, tracking"]
+        "[0:00:06] agent 0: 3 frames, 0.50 fps, 2 keyframes, 0 lost, tracking"
+    ]
 
 
 def test_plain_agent_failure_is_always_printed(monkeypatch):
@@ -168,21 +210,30 @@ def test_plain_agent_failure_is_always_printed(monkeypatch):
     clock.now += 1.0
     progress(_event(1, state="failed"))
     assert log.getvalue().splitlines() == [
-        "[0:00:01] agent 0: 1/10 frames, - fps, 2 keyframes, 0 lost, failed"]
+        "[0:00:01] agent 0: 1/10 frames, - fps, 2 keyframes, 0 lost, failed"
+    ]
 
 
 def test_plain_phase_lines_one_per_phase_and_slow_steps(monkeypatch):
     progress, clock, log = _plain(monkeypatch)
-    steps = [("queued keyframes", 0, 3, 0.1), ("queued keyframes", 1, 3, 0.1),
-             ("queued keyframes", 2, 3, 0.1), ("alternation round", 0, 100, 6.0),
-             ("alternation round", 1, 100, 1.0), ("alternation round", 2, 100, 1.0),
-             ("outputs", 0, 3, 0.0)]
+    steps = [
+        ("queued keyframes", 0, 3, 0.1),
+        ("queued keyframes", 1, 3, 0.1),
+        ("queued keyframes", 2, 3, 0.1),
+        ("alternation round", 0, 100, 6.0),
+        ("alternation round", 1, 100, 1.0),
+        ("alternation round", 2, 100, 1.0),
+        ("outputs", 0, 3, 0.0),
+    ]
     for name, done, total, seconds in steps:
         progress(PhaseEvent(name, "agents 0, 1", done, total))
         clock.now += seconds
     assert [line.split("coordinator: ", 1)[1] for line in log.getvalue().splitlines()] == [
-        "queued keyframes 1/3 (agents 0, 1)", "alternation round 1/100 (agents 0, 1)",
-        "alternation round 2/100 (agents 0, 1)", "outputs 1/3 (agents 0, 1)"]
+        "queued keyframes 1/3 (agents 0, 1)",
+        "alternation round 1/100 (agents 0, 1)",
+        "alternation round 2/100 (agents 0, 1)",
+        "outputs 1/3 (agents 0, 1)",
+    ]
 
 
 def test_phase_text():
@@ -193,8 +244,9 @@ def test_phase_text():
 @pytest.mark.parametrize("quiet", [False, True])
 def test_rich_display_on_a_terminal(quiet, monkeypatch):
     terminal = io.StringIO()
-    monkeypatch.setattr(cli_common, "err_console",
-                        Console(file=terminal, force_terminal=True, width=150))
+    monkeypatch.setattr(
+        cli_common, "err_console", Console(file=terminal, force_terminal=True, width=150)
+    )
     with run_progress(quiet) as progress:
         assert progress.mode == ("quiet" if quiet else "rich")
         progress(_event(4, lost=3, relocalized=1, state="relocalized"))
@@ -212,8 +264,17 @@ def test_rich_display_on_a_terminal(quiet, monkeypatch):
 def robots(tmp_path_factory) -> Path:
     """Two robots with simulated VIO odometry (decentralized mode inputs), 8 frames each."""
     root = tmp_path_factory.mktemp("robots")
-    synthesize(root, agents=2, seed=0, overlap=0.2, frames=8, preset="default", width=64,
-               height=48, progress=None)
+    synthesize(
+        root,
+        agents=2,
+        seed=0,
+        overlap=0.2,
+        frames=8,
+        preset="default",
+        width=64,
+        height=48,
+        progress=None,
+    )
     for a in range(2):
         add_odometry(root / f"agent_{a}", seed=a, params="vio")
     return root
@@ -232,18 +293,23 @@ def test_a_decentralized_run_prints_plain_lines_per_robot_and_phase(robots, tmp_
     for agent in (0, 1):
         mine = [line for line in lines if f" agent {agent}: " in line]
         assert len(mine) == 1, lines
-        assert re.search(r"8/8 frames, [\d.]+ fps, [1-9]\d* keyframes?, 0 lost, tracking$",
-                         mine[0]), mine
-    names = [line.split(" coordinator: ", 1)[1].split(" (")[0] for line in lines
-             if " coordinator: " in line]
+        assert re.search(
+            r"8/8 frames, [\d.]+ fps, [1-9]\d* keyframes?, 0 lost, tracking$", mine[0]
+        ), mine
+    names = [
+        line.split(" coordinator: ", 1)[1].split(" (")[0]
+        for line in lines
+        if " coordinator: " in line
+    ]
     assert [n for n in names if n != "formulation table"] == ["outputs", "evaluation", "report"]
     assert result.output.index("report (report.html)") < result.output.index("wrote ")
 
 
 def test_a_quiet_decentralized_run_prints_only_the_summary(robots, tmp_path):
     out = tmp_path / "run"
-    result = _run_decentralized(robots, out, "--quiet",
-                                "--set", "decentralized.protocol.processes=false")
+    result = _run_decentralized(
+        robots, out, "--quiet", "--set", "decentralized.protocol.processes=false"
+    )
     assert result.exit_code == 0, result.output
     assert _progress_lines(result.output) == []
     assert "agents" in result.output
@@ -257,11 +323,21 @@ def test_robot_messages_become_agent_progress_events():
     robots = {r: SimpleNamespace(odometry=range(n)) for r, n in enumerate((10, 6, 4))}
     adapter = RobotProgressAdapter(events.append, robots)
     assert [(e.agent, e.frames_done, e.frames_total) for e in events] == [
-        (0, 0, 10), (1, 0, 6), (2, 0, 4)]
+        (0, 0, 10),
+        (1, 0, 6),
+        (2, 0, 4),
+    ]
 
     def report(robot: int, **kwargs) -> RobotReport:
-        return RobotReport(sender=robot, recipient=DRIVER, estimate=np.zeros((0, 8)),
-                           frame=robot, loops=[], rejected=[], **kwargs)
+        return RobotReport(
+            sender=robot,
+            recipient=DRIVER,
+            estimate=np.zeros((0, 8)),
+            frame=robot,
+            loops=[],
+            rejected=[],
+            **kwargs,
+        )
 
     events.clear()
     adapter(RobotProgress(sender=0, recipient=DRIVER, round=0, frames_done=10, keyframes=3))
@@ -269,4 +345,7 @@ def test_robot_messages_become_agent_progress_events():
     adapter(report(1, stats={"keyframes": 2}))
     adapter(report(2, error="RuntimeError: the robot process died"))
     assert [(e.agent, e.frames_done, e.keyframes, e.state) for e in events] == [
-        (0, 10, 3, "tracking"), (1, 6, 2, "tracking"), (2, 0, 0, "failed")]
+        (0, 10, 3, "tracking"),
+        (1, 6, 2, "tracking"),
+        (2, 0, 0, "failed"),
+    ]

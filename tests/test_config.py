@@ -18,12 +18,18 @@ def test_defaults_equal_table_3() -> None:
     assert (c.tracking.max_iters, c.tracking.rel_cost_tol, c.tracking.step_tol) == (50, 1e-3, 1e-3)
     assert (c.tracking.keyframe_match_fraction, c.tracking.q_min) == (0.333, 1.5)
     assert (c.tracking.lambda_init, c.tracking.lambda_max, c.tracking.tikhonov_floor) == (
-        1e-6, 1e3, 1e-9)
+        1e-6,
+        1e3,
+        1e-9,
+    )
     assert (c.local_solve.max_iters, c.local_solve.pinned_keyframes) == (10, 1)
     # both step tolerances depart from C-Sec. B.2's 1e-8 (measured in config.GlobalBAConfig)
     assert (c.local_solve.step_tol, c.global_ba.step_tol) == (1e-4, 1e-4)
     assert (c.global_ba.tikhonov_base, c.global_ba.tikhonov_retries, c.global_ba.lm_lambda) == (
-        1e-6, 6, 0.0)
+        1e-6,
+        6,
+        0.0,
+    )
     assert (c.retrieval.k_nn, c.retrieval.min_similarity, c.retrieval.alpha) == (3, 5e-3, 3.0)
     assert (c.retrieval.multiple_assignment_build, c.retrieval.multiple_assignment_query) == (1, 5)
     assert c.verification.tau_inter == 0.1
@@ -35,7 +41,10 @@ def test_defaults_equal_table_3() -> None:
     assert (c.depth.lambda_lm, c.depth.step_clip, c.depth.inner_iters) == (0.05, 0.5, 10)
     assert c.depth.alternation_rounds == 100
     assert (c.matching.max_iters, c.matching.occlusion_ratio, c.matching.descriptor_radius) == (
-        10, 0.1, 3)
+        10,
+        0.1,
+        3,
+    )
 
 
 def test_yaml_round_trip(tmp_path) -> None:
@@ -52,8 +61,9 @@ def test_partial_yaml_keeps_defaults(tmp_path) -> None:
 
 
 def test_override_sets_value() -> None:
-    c = apply_overrides(Config(), ["tracking.sigma_ray=0.002", "calibrated=true",
-                                   "matching.occlusion_ratio=1e9"])
+    c = apply_overrides(
+        Config(), ["tracking.sigma_ray=0.002", "calibrated=true", "matching.occlusion_ratio=1e9"]
+    )
     assert c.tracking.sigma_ray == 0.002
     assert c.matching.occlusion_ratio == 1e9
     assert c.calibrated is True

@@ -21,8 +21,9 @@ def test_relative_links_resolve(document: Path) -> None:
 
 def test_the_architecture_document_names_every_package() -> None:
     text = (ROOT / "docs" / "architecture.md").read_text()
-    packages = sorted(p.name for p in (ROOT / "src" / "como3r").iterdir()
-                      if (p / "__init__.py").exists())
+    packages = sorted(
+        p.name for p in (ROOT / "src" / "como3r").iterdir() if (p / "__init__.py").exists()
+    )
     assert packages, "no sub-packages found under src/como3r"
     assert [p for p in packages if f"`{p}/`" not in text] == []
 

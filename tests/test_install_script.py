@@ -33,9 +33,17 @@ exit 0
 """
 
 
-def _run(tmp_path: Path, *, torch_installed: bool = False, cpu_index_up: bool = True,
-         cpu_index_pip_ok: bool = True, driver: bool = False, dry_run: bool = True, env: dict[str, str] | None = None,
-         args: tuple[str, ...] = ()) -> tuple[subprocess.CompletedProcess[str], list[str]]:
+def _run(
+    tmp_path: Path,
+    *,
+    torch_installed: bool = False,
+    cpu_index_up: bool = True,
+    cpu_index_pip_ok: bool = True,
+    driver: bool = False,
+    dry_run: bool = True,
+    env: dict[str, str] | None = None,
+    args: tuple[str, ...] = (),
+) -> tuple[subprocess.CompletedProcess[str], list[str]]:
     """Run install.sh with a fake python on a PATH of nothing else; (result, python calls)."""
     bash = shutil.which("bash")
     assert bash is not None
@@ -44,9 +52,16 @@ def _run(tmp_path: Path, *, torch_installed: bool = False, cpu_index_up: bool = 
     log = tmp_path / "calls.log"
     log.touch()
     fake = bin_dir / "python"
-    fake.write_text(FAKE_PYTHON.format(
-        bash=bash, log=log, torch_installed=int(torch_installed), cpu_index=CPU_INDEX,
-        cpu_index_up=int(cpu_index_up), cpu_index_pip_ok=int(cpu_index_pip_ok)))
+    fake.write_text(
+        FAKE_PYTHON.format(
+            bash=bash,
+            log=log,
+            torch_installed=int(torch_installed),
+            cpu_index=CPU_INDEX,
+            cpu_index_up=int(cpu_index_up),
+            cpu_index_pip_ok=int(cpu_index_pip_ok),
+        )
+    )
     fake.chmod(0o755)
     dirname = shutil.which("dirname")
     assert dirname is not None
@@ -55,10 +70,15 @@ def _run(tmp_path: Path, *, torch_installed: bool = False, cpu_index_up: bool = 
         smi = bin_dir / "nvidia-smi"
         smi.write_text(f"#!{bash}\necho 'GPU 0: fake'\n")
         smi.chmod(0o755)
-    full_env = {"PATH": str(bin_dir), "HOME": str(tmp_path),
-                "COMO3R_INSTALL_DRY_RUN": "1" if dry_run else "0", **(env or {})}
-    result = subprocess.run([bash, str(SCRIPT), *args], env=full_env, capture_output=True, text=True,
-                            check=False)
+    full_env = {
+        "PATH": str(bin_dir),
+        "HOME": str(tmp_path),
+        "COMO3R_INSTALL_DRY_RUN": "1" if dry_run else "0",
+        **(env or {}),
+    }
+    result = subprocess.run(
+        [bash, str(SCRIPT), *args], env=full_env, capture_output=True, text=True, check=False
+    )
     return result, log.read_text().splitlines()
 
 
@@ -84,8 +104,10 @@ def test_como3r_torch_chooses_the_requirement(tmp_path: Path) -> None:
 def test_no_driver_takes_the_cpu_index(tmp_path: Path) -> None:
     result, _ = _run(tmp_path)
     assert result.returncode == 0, result.stderr
-    assert (f"would run: python -m pip install --index-url {CPU_INDEX} --timeout 10 "
-            "--retries 0 torch==2.13.0") in result.stdout
+    assert (
+        f"would run: python -m pip install --index-url {CPU_INDEX} --timeout 10 "
+        "--retries 0 torch==2.13.0"
+    ) in result.stdout
 
 
 def test_driver_takes_pypi_default_build(tmp_path: Path) -> None:
@@ -108,14 +130,17 @@ def test_unreachable_cpu_index_falls_back_to_pypi_and_says_so(tmp_path: Path, ca
     """The index is probed first (pip with find-links or an extra index in the user's pip
     configuration skips an unreachable --index-url silently, so only the probe can say it);
     a pip install from a reachable index that still fails falls back the same way."""
-    result, calls = _run(tmp_path, cpu_index_up=case != "unreachable",
-                         cpu_index_pip_ok=case != "pip_fails", dry_run=False)
+    result, calls = _run(
+        tmp_path,
+        cpu_index_up=case != "unreachable",
+        cpu_index_pip_ok=case != "pip_fails",
+        dry_run=False,
+    )
     assert result.returncode == 0, result.stderr
     probes = [c for c in calls if c.startswith("-c") and "urlopen" in c]
     assert len(probes) == 1 and probes[0].endswith(f"{CPU_INDEX}/torch/")
     pip = _pip_calls(calls)
-    from_index = (f"-m pip install --index-url {CPU_INDEX} --timeout 10 --retries 0 "
-                  "torch==2.13.0")
+    from_index = f"-m pip install --index-url {CPU_INDEX} --timeout 10 --retries 0 torch==2.13.0"
     notes = [line for line in result.stderr.splitlines() if "could not be reached" in line]
     if case == "up":
         assert pip == [from_index, "-m pip install -e ."]
@@ -136,13 +161,21 @@ def test_probe_answers_within_ten_seconds_for_an_unresolvable_index(tmp_path: Pa
     bash = shutil.which("bash")
     assert bash is not None
     script = SCRIPT.read_text()
-    probe = script[script.index("index_reachable() {"):script.index("\n}\n", script.index(
-        "index_reachable() {")) + 3]
+    probe = script[
+        script.index("index_reachable() {") : script.index(
+            "\n}\n", script.index("index_reachable() {")
+        )
+        + 3
+    ]
     start = time.monotonic()
     result = subprocess.run(
         [bash, "-c", f"PY={sys.executable}\n{probe}\nindex_reachable http://nonexistent.invalid"],
-        capture_output=True, text=True, check=False, timeout=30,
-        env={"PATH": os.environ.get("PATH", ""), "HOME": str(tmp_path)})  # no proxy variables
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=30,
+        env={"PATH": os.environ.get("PATH", ""), "HOME": str(tmp_path)},
+    )  # no proxy variables
     assert result.returncode == 1
     assert time.monotonic() - start < 12
 

@@ -29,10 +29,13 @@ def test_output_carries_the_marker(tmp_path) -> None:
     assert is_como3r_output(out) and not (tmp_path / "out.partial").exists()
 
 
-@pytest.mark.parametrize("argv0, program", [
-    ("/venv/bin/como3r", "como3r"),
-    ("/src/como3r/cli.py", "python -m como3r.cli"),
-])
+@pytest.mark.parametrize(
+    "argv0, program",
+    [
+        ("/venv/bin/como3r", "como3r"),
+        ("/src/como3r/cli.py", "python -m como3r.cli"),
+    ],
+)
 def test_the_marker_gives_the_command_as_typed(tmp_path, monkeypatch, argv0, program) -> None:
     monkeypatch.setattr("sys.argv", [argv0, "run", "--out", "my out"])
     _write(tmp_path / "out", "first")
@@ -122,8 +125,9 @@ def test_cli_overwrite_refuses_an_unrelated_folder(tmp_path) -> None:
     result = CliRunner().invoke(app, [*SYNTH, "--out", str(out), "--overwrite"])
     assert result.exit_code == 2, result.output
     errors = [line for line in result.output.splitlines() if line.startswith("error:")]
-    assert errors == [f"error: {out}: not written by como3r; refusing to overwrite (it has "
-                      f"no {MARKER} file)"]
+    assert errors == [
+        f"error: {out}: not written by como3r; refusing to overwrite (it has no {MARKER} file)"
+    ]
     assert (out / "my_notes.txt").read_text() == "precious"
 
 
@@ -141,8 +145,19 @@ def test_cli_run_refuses_before_any_work(tmp_path) -> None:
     out = tmp_path / "out"
     out.mkdir()
     (out / "my_notes.txt").write_text("precious")
-    result = CliRunner().invoke(app, ["run", "--agent", str(tmp_path / "no_such_agent"),
-                                      "--out", str(out), "--prior", "simulated", "--overwrite"])
+    result = CliRunner().invoke(
+        app,
+        [
+            "run",
+            "--agent",
+            str(tmp_path / "no_such_agent"),
+            "--out",
+            str(out),
+            "--prior",
+            "simulated",
+            "--overwrite",
+        ],
+    )
     assert result.exit_code == 2
     assert "refusing to overwrite" in result.output and "no_such_agent" not in result.output
     assert (out / "my_notes.txt").read_text() == "precious"

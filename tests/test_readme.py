@@ -64,8 +64,11 @@ def _cli_commands() -> dict[str, set[str]]:
                 walk(command, [*prefix, name])
             else:
                 found[" ".join([*prefix, name])] = {
-                    opt for p in command.params if p.param_type_name == "option"
-                    for opt in (*p.opts, *p.secondary_opts)}  # not arguments (export's RUN)
+                    opt
+                    for p in command.params
+                    if p.param_type_name == "option"
+                    for opt in (*p.opts, *p.secondary_opts)
+                }  # not arguments (export's RUN)
 
     walk(root, [])
     return found
@@ -80,18 +83,22 @@ def test_the_synopsis_lists_exactly_the_options_of(command: str) -> None:
     documented = _options(_readme_commands().get(command, ""))
     assert documented == _cli_commands()[command], (
         f"README synopsis of {command!r}: missing {sorted(_cli_commands()[command] - documented)}"
-        f", not in the CLI {sorted(documented - _cli_commands()[command])}")
+        f", not in the CLI {sorted(documented - _cli_commands()[command])}"
+    )
 
 
-@pytest.mark.parametrize("option, accepted", [
-    ("--prior", set(PRIORS)),
-    ("--precision", set(PRECISIONS)),
-    ("--odometry", {*ODOMETRY_PRESETS, "none"}),
-    ("--mode", {"centralized", "decentralized"}),
-    ("--device", {"cpu", "cuda"}),
-    ("--format", set(FORMATS)),
-    ("--viewer", set(VIEWER_MODES)),
-])
+@pytest.mark.parametrize(
+    "option, accepted",
+    [
+        ("--prior", set(PRIORS)),
+        ("--precision", set(PRECISIONS)),
+        ("--odometry", {*ODOMETRY_PRESETS, "none"}),
+        ("--mode", {"centralized", "decentralized"}),
+        ("--device", {"cpu", "cuda"}),
+        ("--format", set(FORMATS)),
+        ("--viewer", set(VIEWER_MODES)),
+    ],
+)
 def test_listed_choices_are_the_accepted_ones(option: str, accepted: set[str]) -> None:
     listed = re.search(rf"{option} ([a-z0-9]+(?:\|[a-z0-9]+)+)", _synopsis())
     assert listed is not None, f"{option} lists no choices in the README synopsis"

@@ -17,8 +17,9 @@ from como3r.data.agent import open_agent
 from .data.readers.layouts import SEVEN_SCENES_REAL, link_frames
 from .test_cli_datasets import TEDDY, cut_tum
 
-seven_scenes = pytest.mark.skipif(not SEVEN_SCENES_REAL.is_dir(),
-                                  reason=f"7-Scenes excerpt not found at {SEVEN_SCENES_REAL}")
+seven_scenes = pytest.mark.skipif(
+    not SEVEN_SCENES_REAL.is_dir(), reason=f"7-Scenes excerpt not found at {SEVEN_SCENES_REAL}"
+)
 tum = pytest.mark.skipif(not TEDDY.is_dir(), reason=f"TUM excerpt not found at {TEDDY}")
 
 #: a short run: the default configuration at half MASt3R's resolution
@@ -73,8 +74,9 @@ def test_tum_tracks_every_frame_with_few_keyframes(tmp_path):
 def test_a_split_of_the_7scenes_excerpt_merges(tmp_path):
     """Two agents made by ``como3r split`` of 24 frames end in one map component."""
     seq = link_frames(SEVEN_SCENES_REAL / "rgbd-frames", tmp_path / "seq", 24)
-    result = CliRunner().invoke(app, ["split", str(seq), "--agents", "2",
-                                      "--out", str(tmp_path / "agents")])
+    result = CliRunner().invoke(
+        app, ["split", str(seq), "--agents", "2", "--out", str(tmp_path / "agents")]
+    )
     assert result.exit_code == 0, result.output
     metrics = _run(sorted((tmp_path / "agents").glob("agent_*")), tmp_path / "out")
     assert [0, 1] in metrics["components"], metrics["components"]

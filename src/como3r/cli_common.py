@@ -11,7 +11,8 @@ import contextlib
 import functools
 import re
 import signal
-from typing import Any, Callable, Iterator, TypeVar
+from collections.abc import Callable, Iterator
+from typing import Any, TypeVar
 
 import typer
 from rich.console import Console
@@ -84,8 +85,7 @@ class Command(TyperCommand):
         return _without_flag_metavars(super().get_params(ctx))
 
     def collect_usage_pieces(self, ctx):  # type: ignore[no-untyped-def]
-        return [_REQUIRED_BRACES.sub(r"\1", piece)
-                for piece in super().collect_usage_pieces(ctx)]
+        return [_REQUIRED_BRACES.sub(r"\1", piece) for piece in super().collect_usage_pieces(ctx)]
 
 
 #: typer's usage piece of a required argument, ``{NAME}`` (``{NAME}...`` for several)
@@ -138,8 +138,7 @@ def on_interrupt(message: Callable[[dict[str, Any]], str]) -> Callable[[F], F]:
             try:
                 return func(*args, **kwargs)
             except KeyboardInterrupt as exc:
-                err_console.print(message(kwargs), markup=False, highlight=False,
-                                  soft_wrap=True)
+                err_console.print(message(kwargs), markup=False, highlight=False, soft_wrap=True)
                 signum = getattr(exc, "signum", signal.SIGINT)
                 raise typer.Exit(128 + signum) from None
 
@@ -151,7 +150,8 @@ def on_interrupt(message: Callable[[dict[str, Any]], str]) -> Callable[[F], F]:
 #: for a command that writes ``--out`` through :func:`~como3r.io.output.atomic_output_dir`:
 #: the staging folder is gone and an earlier output untouched
 interrupt_leaves_nothing = on_interrupt(
-    lambda kwargs: f"interrupted: nothing was written to {kwargs['out']}")
+    lambda kwargs: f"interrupted: nothing was written to {kwargs['out']}"
+)
 
 
 def _kept_on_full_disk(exc: BaseException, kwargs: dict[str, Any]) -> str:
@@ -166,8 +166,10 @@ def _kept_on_full_disk(exc: BaseException, kwargs: dict[str, Any]) -> str:
     if not (staging / STORE_NAME).is_file():
         return ""
     resume = () if kwargs.get("resume") else ("--resume",)
-    return (f"; the session store in {staging} is kept: free some space and continue "
-            f"with: {command_line(*resume)}")
+    return (
+        f"; the session store in {staging} is kept: free some space and continue "
+        f"with: {command_line(*resume)}"
+    )
 
 
 def _store_kept_or_nothing(kwargs: dict[str, Any]) -> str:
@@ -180,8 +182,10 @@ def _store_kept_or_nothing(kwargs: dict[str, Any]) -> str:
     if not (staging / STORE_NAME).is_file():
         return f"interrupted: nothing was written to {kwargs['out']}"
     resume = () if kwargs.get("resume") else ("--resume",)
-    return (f"interrupted: the session store in {staging} is kept; continue with: "
-            f"{command_line(*resume)}")
+    return (
+        f"interrupted: the session store in {staging} is kept; continue with: "
+        f"{command_line(*resume)}"
+    )
 
 
 #: for ``run`` and ``coordinator``: an interrupted run keeps ``OUT.partial`` with its
@@ -200,8 +204,15 @@ def progress_bar(*columns: ProgressColumn, shown: bool = True) -> Iterator[Progr
         shown: False hides it on a terminal too (``--quiet``, or plain lines instead).
     """
     bar = Progress(
-        *(columns or (TextColumn("[bold]{task.description}"), BarColumn(),
-                      MofNCompleteColumn(), TimeElapsedColumn())),
+        *(
+            columns
+            or (
+                TextColumn("[bold]{task.description}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TimeElapsedColumn(),
+            )
+        ),
         console=err_console,
         transient=False,
         disable=not (shown and err_console.is_terminal),

@@ -35,8 +35,8 @@ import datetime
 import math
 import time
 from collections import deque
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Iterator, Sequence
 
 from rich.progress import (
     BarColumn,
@@ -63,8 +63,13 @@ QUIET_HELP = "No progress output: only warnings, errors and the final summary."
 def _columns() -> tuple[ProgressColumn, ...]:
     """The rich display's columns; ``info`` holds an agent's :meth:`_Agent.text` or a
     phase's detail."""
-    return (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-            TextColumn("{task.fields[info]}", markup=False), TimeElapsedColumn())
+    return (
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[info]}", markup=False),
+        TimeElapsedColumn(),
+    )
 
 
 def progress_mode(quiet: bool) -> str:
@@ -132,8 +137,11 @@ class _Agent:
         """``2.1 fps, 5 keyframes, 3 lost, 1 relocalized, tracking, 0:00:12 left``."""
         e, pace = self.event, self.pace(now)
         fps = pace[0] if pace is not None else None
-        parts = [f"{fps:.2f} fps" if fps is not None else "- fps",
-                 f"{e.keyframes} keyframe{'' if e.keyframes == 1 else 's'}", f"{e.lost} lost"]
+        parts = [
+            f"{fps:.2f} fps" if fps is not None else "- fps",
+            f"{e.keyframes} keyframe{'' if e.keyframes == 1 else 's'}",
+            f"{e.lost} lost",
+        ]
         if e.relocalized:
             parts.append(f"{e.relocalized} relocalized")
         parts.append(e.state)
@@ -161,8 +169,13 @@ class RunProgress:
         clock: monotonic seconds (tests pass a fake one).
     """
 
-    def __init__(self, bar: Progress, mode: str, interval: float = PLAIN_INTERVAL_S,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        bar: Progress,
+        mode: str,
+        interval: float = PLAIN_INTERVAL_S,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         if mode not in MODES:
             raise ValueError(f"progress mode {mode!r} is not one of {MODES}")
         self.bar, self.mode, self.interval, self.clock = bar, mode, interval, clock
@@ -188,15 +201,22 @@ class RunProgress:
         if self.mode == "rich":
             if agent.task is None:
                 agent.task = self.bar.add_task(f"agent {event.agent}", info="")
-            self.bar.update(agent.task, completed=event.frames_done, total=event.frames_total,
-                            info=agent.text(now))
-        elif self.mode == "plain" and (now - agent.printed >= self.interval
-                                       or event.frames_done >= (event.frames_total or math.inf)
-                                       or event.state == "failed"):
+            self.bar.update(
+                agent.task,
+                completed=event.frames_done,
+                total=event.frames_total,
+                info=agent.text(now),
+            )
+        elif self.mode == "plain" and (
+            now - agent.printed >= self.interval
+            or event.frames_done >= (event.frames_total or math.inf)
+            or event.state == "failed"
+        ):
             agent.printed = now
             total = f"/{event.frames_total}" if event.frames_total is not None else ""
-            self._line(f"agent {event.agent}",
-                       f"{event.frames_done}{total} frames, {agent.text(now)}")
+            self._line(
+                f"agent {event.agent}", f"{event.frames_done}{total} frames, {agent.text(now)}"
+            )
 
     def phase(self, event: PhaseEvent) -> None:
         """A coordinator step starts: the coordinator's bar, or a plain line when due."""
@@ -207,12 +227,14 @@ class RunProgress:
             if task is None or previous is None or previous.name != event.name:
                 if task is not None:  # a new phase: a new bar, with its own elapsed time
                     self.bar.remove_task(task)
-                task = self._phase_task = self.bar.add_task(event.name, total=event.total,
-                                                            info="")
+                task = self._phase_task = self.bar.add_task(event.name, total=event.total, info="")
             self.bar.update(task, completed=event.done, info=event.detail)
-        elif self.mode == "plain" and (previous is None or previous.name != event.name
-                                       or event.done == 0
-                                       or now - self._phase_printed >= self.interval):
+        elif self.mode == "plain" and (
+            previous is None
+            or previous.name != event.name
+            or event.done == 0
+            or now - self._phase_printed >= self.interval
+        ):
             self._phase_printed = now
             self._line("coordinator", phase_text(event))
 
@@ -232,8 +254,9 @@ class RunProgress:
 
         return advance
 
-    def steps(self, name: str, unit: Callable[[int], str] = str
-              ) -> Callable[[int, int | None], None]:
+    def steps(
+        self, name: str, unit: Callable[[int], str] = str
+    ) -> Callable[[int, int | None], None]:
         """A count whose worker reports how far it is (keyframes exported, bytes
         downloaded): call the result with ``(done, total)``, ``total`` None while unknown.
         Plain mode prints at most one line every :attr:`interval` and the one that
@@ -250,8 +273,11 @@ class RunProgress:
             nonlocal printed, finished
             self.bar.update(task, completed=done, total=total)
             now, complete = self.clock(), bool(total) and done >= total
-            if self.mode == "plain" and not finished and (now - printed >= self.interval
-                                                          or complete):
+            if (
+                self.mode == "plain"
+                and not finished
+                and (now - printed >= self.interval or complete)
+            ):
                 printed, finished = now, complete
                 of = f"/{unit(total)}" if total is not None else ""
                 self._line(name, f"{unit(done)}{of}")
@@ -259,13 +285,18 @@ class RunProgress:
         return update
 
     def _line(self, subject: str, text: str) -> None:
-        cli_common.err_console.print(f"[{_clock_text(self.clock() - self.start)}] {subject}: "
-                                     f"{text}", markup=False, highlight=False, soft_wrap=True)
+        cli_common.err_console.print(
+            f"[{_clock_text(self.clock() - self.start)}] {subject}: {text}",
+            markup=False,
+            highlight=False,
+            soft_wrap=True,
+        )
 
 
 @contextlib.contextmanager
-def run_progress(quiet: bool = False, columns: Sequence[ProgressColumn] = ()
-                 ) -> Iterator[RunProgress]:
+def run_progress(
+    quiet: bool = False, columns: Sequence[ProgressColumn] = ()
+) -> Iterator[RunProgress]:
     """The progress display of a command in the mode :func:`progress_mode` picks; a rich
     display is erased when the block fails or is interrupted.
 

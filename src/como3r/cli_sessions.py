@@ -27,12 +27,19 @@ from como3r.cli_progress import run_progress
 @interrupt_leaves_nothing
 @user_errors
 def merge(
-    first: Path = typer.Argument(..., metavar="A", show_default=False,
-                                 help="A finished run's folder: its agents keep their ids "
-                                      "and its frame is kept."),
-    second: Path = typer.Argument(..., metavar="B", show_default=False,
-                                  help="Another finished run's folder, made with the same "
-                                       "configuration: its agents follow A's."),
+    first: Path = typer.Argument(
+        ...,
+        metavar="A",
+        show_default=False,
+        help="A finished run's folder: its agents keep their ids and its frame is kept.",
+    ),
+    second: Path = typer.Argument(
+        ...,
+        metavar="B",
+        show_default=False,
+        help="Another finished run's folder, made with the same "
+        "configuration: its agents follow A's.",
+    ),
     out: OutOption = ...,
     prior: PriorOption = "mast3r",
     weights: WeightsOption = None,

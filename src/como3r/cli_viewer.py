@@ -10,17 +10,19 @@ from __future__ import annotations
 
 import contextlib
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator, Optional
 
 from como3r.cli_common import Command, err_console
 from como3r.live import LiveCallback
 from como3r.viewer import ViewerSpec, check_viewer, open_viewer
 
 #: help texts are rich markup: the escaped bracket keeps `[viewer]` from being read as a tag
-VIEWER_HELP = ('Live 3D viewer (needs: pip install "como3r\\[viewer]"): spawn (open rerun\'s '
-               'viewer), serve (for a viewer on another machine; prints the URL) or save '
-               'FILE.rrd (a recording to open with `rerun FILE.rrd`).')
+VIEWER_HELP = (
+    'Live 3D viewer (needs: pip install "como3r\\[viewer]"): spawn (open rerun\'s '
+    "viewer), serve (for a viewer on another machine; prints the URL) or save "
+    "FILE.rrd (a recording to open with `rerun FILE.rrd`)."
+)
 
 
 def join_save_file(args: list[str]) -> list[str]:
@@ -52,7 +54,7 @@ class ViewerCommand(Command):
         return super().parse_args(ctx, join_save_file(list(args)))
 
 
-def check_viewer_option(viewer: Optional[str], out: Path) -> Optional[ViewerSpec]:
+def check_viewer_option(viewer: str | None, out: Path) -> ViewerSpec | None:
     """The checked ``--viewer`` (None without one), before any work.
 
     Raises:
@@ -62,7 +64,7 @@ def check_viewer_option(viewer: Optional[str], out: Path) -> Optional[ViewerSpec
 
 
 @contextlib.contextmanager
-def live_viewer(spec: Optional[ViewerSpec]) -> Iterator[Optional[LiveCallback]]:
+def live_viewer(spec: ViewerSpec | None) -> Iterator[LiveCallback | None]:
     """The live-event sink of ``spec`` (None without a viewer) for the block. ``serve``
     prints where to connect; when the block succeeds it keeps serving until Ctrl-C, so a
     viewer can still connect to a finished run."""
@@ -73,9 +75,11 @@ def live_viewer(spec: Optional[ViewerSpec]) -> Iterator[Optional[LiveCallback]]:
     try:
         if viewer.urls is not None:
             grpc, web = viewer.urls
-            _say(f"viewer: serving the run; connect with `rerun {grpc}` or a browser at {web} "
-                 "(localhost: this machine; from another, its address or an SSH tunnel of "
-                 "both ports)")
+            _say(
+                f"viewer: serving the run; connect with `rerun {grpc}` or a browser at {web} "
+                "(localhost: this machine; from another, its address or an SSH tunnel of "
+                "both ports)"
+            )
         yield viewer
         if viewer.urls is not None:
             _say("viewer: the run is done; still serving the recording (Ctrl-C to stop)")

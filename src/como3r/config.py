@@ -16,9 +16,10 @@ from __future__ import annotations
 import dataclasses
 import math
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Mapping, TypeVar, get_args, get_origin
+from typing import Any, Literal, TypeVar, get_args, get_origin
 
 import yaml
 
@@ -36,8 +37,7 @@ class InputConfig:
     subsample: int = 2
     # layout of the --agent inputs (como3r addition; `como3r run --format`): auto detects
     # each folder's layout (como3r.data.readers), the others force one
-    format: Literal["auto", "agent", "tum", "7scenes", "euroc", "kitti", "tanks",
-                    "rosbag"] = "auto"
+    format: Literal["auto", "agent", "tum", "7scenes", "euroc", "kitti", "tanks", "rosbag"] = "auto"
     # image topic of ROS log inputs (`como3r run --topic`); empty: each log's only one
     topic: str = ""
     # frames read and encoded ahead on a worker thread while the front-end works on the
@@ -445,52 +445,93 @@ C = TypeVar("C")
 # "off" (descriptor_radius, alternation_rounds, prefetch_frames, damping and retries).
 _POSITIVE = (
     "input.frame_rate_hz",
-    "matching.convergence_tol", "matching.occlusion_ratio",
-    "tracking.sigma_ray", "tracking.sigma_dist", "tracking.sigma_pixel", "tracking.sigma_depth",
-    "tracking.huber_k", "tracking.rel_cost_tol", "tracking.step_tol", "tracking.lambda_max",
+    "matching.convergence_tol",
+    "matching.occlusion_ratio",
+    "tracking.sigma_ray",
+    "tracking.sigma_dist",
+    "tracking.sigma_pixel",
+    "tracking.sigma_depth",
+    "tracking.huber_k",
+    "tracking.rel_cost_tol",
+    "tracking.step_tol",
+    "tracking.lambda_max",
     "tracking.inlier_angle_deg",
-    "local_solve.step_tol", "local_solve.relinearize_tol",
+    "local_solve.step_tol",
+    "local_solve.relinearize_tol",
     "retrieval.alpha",
-    "verification.max_residual_ratio", "gauge.focal_search", "gauge.scale_alarm_log",
-    "global_ba.cleanup_stop_translation", "global_ba.step_tol",
-    "depth.slic_compactness", "depth.sigma_point", "depth.step_clip",
-    "depth.depth_convergence_tol", "depth.depth_stall_ratio",
+    "verification.max_residual_ratio",
+    "gauge.focal_search",
+    "gauge.scale_alarm_log",
+    "global_ba.cleanup_stop_translation",
+    "global_ba.step_tol",
+    "depth.slic_compactness",
+    "depth.sigma_point",
+    "depth.step_clip",
+    "depth.depth_convergence_tol",
+    "depth.depth_stall_ratio",
 )
 _NON_NEGATIVE = (
     "input.prefetch_frames",
-    "matching.lambda_init", "matching.descriptor_radius",
-    "tracking.lambda_init", "tracking.tikhonov_floor", "tracking.self_calibration_keyframes",
-    "local_solve.pinned_keyframes", "local_solve.tikhonov_base",
-    "local_solve.tikhonov_retries", "local_solve.lm_lambda",
-    "verification.covisible_min_confidence", "verification.max_within_component",
-    "global_ba.lm_lambda", "global_ba.tikhonov_base", "global_ba.tikhonov_retries",
+    "matching.lambda_init",
+    "matching.descriptor_radius",
+    "tracking.lambda_init",
+    "tracking.tikhonov_floor",
+    "tracking.self_calibration_keyframes",
+    "local_solve.pinned_keyframes",
+    "local_solve.tikhonov_base",
+    "local_solve.tikhonov_retries",
+    "local_solve.lm_lambda",
+    "verification.covisible_min_confidence",
+    "verification.max_within_component",
+    "global_ba.lm_lambda",
+    "global_ba.tikhonov_base",
+    "global_ba.tikhonov_retries",
     "global_ba.relinearize_tol",
-    "depth.slic_sigma", "depth.lambda_smooth", "depth.lambda_prior", "depth.lambda_lm",
+    "depth.slic_sigma",
+    "depth.lambda_smooth",
+    "depth.lambda_prior",
+    "depth.lambda_lm",
     "depth.alternation_rounds",
-    "visualization.voxel_size_m", "session.resident_keyframes",
+    "visualization.voxel_size_m",
+    "session.resident_keyframes",
 )
 _AT_LEAST_ONE = (
     "input.subsample",
-    "matching.max_iters", "matching.descriptor_dilation_max",
+    "matching.max_iters",
+    "matching.descriptor_dilation_max",
     "tracking.max_iters",
-    "local_solve.max_iters", "local_solve.dense_keyframes",
-    "retrieval.codebook_size", "retrieval.multiple_assignment_build",
-    "retrieval.multiple_assignment_query", "retrieval.k_nn",
-    "gauge.min_correspondences", "gauge.min_consistent_edges",
-    "global_ba.trigger_interval_edges", "global_ba.max_iters_stream",
-    "global_ba.max_iters_cleanup", "global_ba.cleanup_passes",
-    "depth.slic_segments", "depth.min_valid_pixels", "depth.inner_iters",
+    "local_solve.max_iters",
+    "local_solve.dense_keyframes",
+    "retrieval.codebook_size",
+    "retrieval.multiple_assignment_build",
+    "retrieval.multiple_assignment_query",
+    "retrieval.k_nn",
+    "gauge.min_correspondences",
+    "gauge.min_consistent_edges",
+    "global_ba.trigger_interval_edges",
+    "global_ba.max_iters_stream",
+    "global_ba.max_iters_cleanup",
+    "global_ba.cleanup_passes",
+    "depth.slic_segments",
+    "depth.min_valid_pixels",
+    "depth.inner_iters",
     "depth.pose_pass_iters",
 )
 _FRACTION = (
-    "tracking.keyframe_match_fraction", "tracking.min_match_fraction",
-    "tracking.reloc_match_fraction", "tracking.min_inlier_fraction",
+    "tracking.keyframe_match_fraction",
+    "tracking.min_match_fraction",
+    "tracking.reloc_match_fraction",
+    "tracking.min_inlier_fraction",
     "local_solve.min_match_fraction",
-    "verification.tau_inter", "verification.min_covisible_ratio",
+    "verification.tau_inter",
+    "verification.min_covisible_ratio",
 )
 #: keys whose ``inf`` means "off" (the paper's behaviour); every other number must be finite
-_MAY_BE_INFINITE = ("verification.max_residual_ratio", "depth.depth_stall_ratio",
-                    "gauge.scale_alarm_log")
+_MAY_BE_INFINITE = (
+    "verification.max_residual_ratio",
+    "depth.depth_stall_ratio",
+    "gauge.scale_alarm_log",
+)
 #: MASt3R's patch side: images are cropped to multiples of it (como3r.data.preprocess.PATCH)
 _PATCH = 16
 
@@ -517,20 +558,27 @@ def validate(config: Config) -> Config:
             (``tracking.sigma_ray must be > 0, got -1.0``).
     """
     values = _flatten(config_to_dict(config))
-    rules = ((_POSITIVE, "> 0", lambda v: v > 0), (_NON_NEGATIVE, ">= 0", lambda v: v >= 0),
-             (_AT_LEAST_ONE, ">= 1", lambda v: v >= 1),
-             (_FRACTION, "in [0, 1]", lambda v: 0 <= v <= 1))
+    rules = (
+        (_POSITIVE, "> 0", lambda v: v > 0),
+        (_NON_NEGATIVE, ">= 0", lambda v: v >= 0),
+        (_AT_LEAST_ONE, ">= 1", lambda v: v >= 1),
+        (_FRACTION, "in [0, 1]", lambda v: 0 <= v <= 1),
+    )
     for keys, rule, holds in rules:
         for key in keys:
             if not holds(values[key]):
                 raise ConfigError(f"{key} must be {rule}, got {values[key]}")
     if config.verification.max_decodes_per_keyframe < 2:
-        raise ConfigError("verification.max_decodes_per_keyframe must be >= 2 (one candidate's "
-                          f"two decodes), got {config.verification.max_decodes_per_keyframe}")
+        raise ConfigError(
+            "verification.max_decodes_per_keyframe must be >= 2 (one candidate's "
+            f"two decodes), got {config.verification.max_decodes_per_keyframe}"
+        )
     long_side = config.input.long_side
     if long_side < _PATCH or long_side % _PATCH:
-        raise ConfigError(f"input.long_side must be a positive multiple of {_PATCH} (MASt3R's "
-                          f"patch size), got {long_side}")
+        raise ConfigError(
+            f"input.long_side must be a positive multiple of {_PATCH} (MASt3R's "
+            f"patch size), got {long_side}"
+        )
     check_decentralized(config.decentralized)
     # the simulated prior owns its error model's ranges; imported here because it needs torch
     from como3r.prior.simulated_errors import check_config as check_simulated_prior
@@ -548,8 +596,14 @@ def differing_key(a: Config, b: Config) -> str | None:
     """The first key whose values differ, as ``"section.key: a_value -> b_value"``; None
     when the configurations are equal."""
     flat_a, flat_b = _flatten(config_to_dict(a)), _flatten(config_to_dict(b))
-    return next((f"{key}: {value!r} -> {flat_b.get(key)!r}" for key, value in flat_a.items()
-                 if flat_b.get(key) != value), None)
+    return next(
+        (
+            f"{key}: {value!r} -> {flat_b.get(key)!r}"
+            for key, value in flat_a.items()
+            if flat_b.get(key) != value
+        ),
+        None,
+    )
 
 
 def _coerce(value: Any, annotation: Any, key: str) -> Any:
@@ -667,4 +721,3 @@ def _yaml_problem(exc: yaml.YAMLError) -> str:
 def dump_config(config: Config, path: str | Path) -> None:
     """Write the full effective configuration as YAML."""
     Path(path).write_text(yaml.safe_dump(config_to_dict(config), sort_keys=False))
-

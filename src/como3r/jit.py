@@ -27,15 +27,22 @@ def _variant(loop: Callable, parallel: bool, fastmath: frozenset, error_model: s
     # copy of the function under its own name, so neither loads the other's machine code.
     # A closure keeps its cells: numba compiles their values as constants (and keys its
     # cache on them), so a loop made by a factory is specialised to the factory's arguments
-    copy = types.FunctionType(loop.__code__, loop.__globals__, loop.__name__,
-                              loop.__defaults__, loop.__closure__)
+    copy = types.FunctionType(
+        loop.__code__, loop.__globals__, loop.__name__, loop.__defaults__, loop.__closure__
+    )
     copy.__qualname__ = f"{loop.__qualname__}_{'parallel' if parallel else 'serial'}"
-    return njit(parallel=parallel, fastmath=set(fastmath) if fastmath else False, cache=True,
-                boundscheck=False, error_model=error_model)(copy)
+    return njit(
+        parallel=parallel,
+        fastmath=set(fastmath) if fastmath else False,
+        cache=True,
+        boundscheck=False,
+        error_model=error_model,
+    )(copy)
 
 
-def compiled(loop: Callable, fastmath: set[str] | None = None,
-             error_model: str = "python") -> Callable:
+def compiled(
+    loop: Callable, fastmath: set[str] | None = None, error_model: str = "python"
+) -> Callable:
     """``loop`` compiled for this process's PyTorch thread count: serial on one thread (no
     thread pool: a parallel loop's idle workers spin and would take another process's
     core), else parallel over ``torch.get_num_threads()`` threads.

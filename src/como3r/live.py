@@ -26,13 +26,21 @@ layer may build events.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Union
 
 import numpy as np
 
-__all__ = ["FrameEvent", "KeyframeEvent", "MapEvent", "TrajectoryEvent", "LiveEvent",
-           "LiveCallback", "FRAME_IMAGE_LONG_SIDE", "KEYFRAME_POINTS"]
+__all__ = [
+    "FrameEvent",
+    "KeyframeEvent",
+    "MapEvent",
+    "TrajectoryEvent",
+    "LiveEvent",
+    "LiveCallback",
+    "FRAME_IMAGE_LONG_SIDE",
+    "KEYFRAME_POINTS",
+]
 
 #: a frame event's image is the network input subsampled to at most this long side
 FRAME_IMAGE_LONG_SIDE = 256
@@ -140,7 +148,7 @@ class TrajectoryEvent:
     wall_time: float
 
 
-LiveEvent = Union[FrameEvent, KeyframeEvent, MapEvent, TrajectoryEvent]
+LiveEvent = FrameEvent | KeyframeEvent | MapEvent | TrajectoryEvent
 
 LiveCallback = Callable[[LiveEvent], None]
 """What a run calls with every live event."""

@@ -16,11 +16,18 @@ from its front-ends. This module imports nothing of como3r: every layer may emit
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Union
 
-__all__ = ["AgentProgress", "PhaseEvent", "ProgressEvent", "ProgressCallback",
-           "PhaseCallback", "report_phase", "tracking_state"]
+__all__ = [
+    "AgentProgress",
+    "PhaseEvent",
+    "ProgressEvent",
+    "ProgressCallback",
+    "PhaseCallback",
+    "report_phase",
+    "tracking_state",
+]
 
 #: tracking states of :attr:`AgentProgress.state`
 STATES = ("tracking", "lost", "relocalized", "away", "failed")
@@ -78,7 +85,7 @@ class PhaseEvent:
     total: int | None = None
 
 
-ProgressEvent = Union[AgentProgress, PhaseEvent]
+ProgressEvent = AgentProgress | PhaseEvent
 
 ProgressCallback = Callable[[ProgressEvent], None]
 """What a run calls with every progress event."""
@@ -87,8 +94,13 @@ PhaseCallback = Callable[[PhaseEvent], None]
 """What the coordinator's terminal stages call with their phase events."""
 
 
-def report_phase(progress: PhaseCallback | None, name: str, detail: str = "", done: int = 0,
-                 total: int | None = None) -> None:
+def report_phase(
+    progress: PhaseCallback | None,
+    name: str,
+    detail: str = "",
+    done: int = 0,
+    total: int | None = None,
+) -> None:
     """Tell ``progress`` (if any) that step ``done + 1`` of phase ``name`` starts."""
     if progress is not None:
         progress(PhaseEvent(name, detail, done, total))

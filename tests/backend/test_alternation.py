@@ -44,11 +44,15 @@ def test_defaults_follow_table_3():
 def test_terminates_by_convergence():
     # Step 1: 3 passes until below 5 mm; step 2: both step sizes shrink by 10x per round.
     solvers = FakeSolvers(
-        translations=[0.5, 0.05, 0.004] + [0.02 * 0.1 ** r for r in range(20)],
-        depth_changes=[0.05 * 0.1 ** r for r in range(20)],
+        translations=[0.5, 0.05, 0.004] + [0.02 * 0.1**r for r in range(20)],
+        depth_changes=[0.05 * 0.1**r for r in range(20)],
     )
-    report = alternate(solvers.pose_pass, solvers.depth_step,
-                       AlternationSettings(round_pose_pass=True), solvers.broadcast)
+    report = alternate(
+        solvers.pose_pass,
+        solvers.depth_step,
+        AlternationSettings(round_pose_pass=True),
+        solvers.broadcast,
+    )
     assert report.cleanup_translations == [0.5, 0.05, 0.004]
     # Round r has |ds| = 0.05 * 0.1^r (< 5e-3 from r = 2) and |dt| = 0.02 * 0.1^r (< 5e-3
     # from r = 1): both below tolerance at r = 2.
@@ -64,16 +68,21 @@ def test_round_order_and_iteration_counts():
     alternate(solvers.pose_pass, solvers.depth_step, settings, solvers.broadcast)
     assert solvers.calls == [
         ("pose", 100),
-        ("depth", 0), ("pose", 50), ("broadcast", 0),
-        ("depth", 0), ("pose", 50), ("broadcast", 0),
+        ("depth", 0),
+        ("pose", 50),
+        ("broadcast", 0),
+        ("depth", 0),
+        ("pose", 50),
+        ("broadcast", 0),
     ]
 
 
 def test_by_default_one_depth_step_at_the_poses_of_step_1():
     # a second round at the same poses would repeat the depth solve: one step, not converged
     solvers = FakeSolvers(translations=[1.0, 0.001], depth_changes=[0.1, 0.01, 0.001])
-    report = alternate(solvers.pose_pass, solvers.depth_step, AlternationSettings(),
-                       solvers.broadcast)
+    report = alternate(
+        solvers.pose_pass, solvers.depth_step, AlternationSettings(), solvers.broadcast
+    )
     assert solvers.calls == [("pose", 100), ("pose", 100), ("depth", 0), ("broadcast", 0)]
     assert [r.max_translation for r in report.rounds] == [0.0]
     assert report.reason == "poses_frozen" and not report.converged
@@ -98,18 +107,21 @@ def test_respects_pass_and_round_bounds():
 
 def test_depth_alone_converged_does_not_stop_while_poses_move():
     solvers = FakeSolvers(translations=[0.0] + [0.01] * 4 + [0.0], depth_changes=[0.0] * 10)
-    report = alternate(solvers.pose_pass, solvers.depth_step,
-                       AlternationSettings(rounds=10, round_pose_pass=True))
+    report = alternate(
+        solvers.pose_pass, solvers.depth_step, AlternationSettings(rounds=10, round_pose_pass=True)
+    )
     assert len(report.rounds) == 5
     assert report.converged
 
 
 def test_a_depth_step_that_stops_shrinking_ends_the_rounds():
     # |ds| halves, then shrinks by only 20 %: the third round has stalled (ratio 0.5).
-    solvers = FakeSolvers(translations=[0.0] + [0.001] * 10,
-                          depth_changes=[0.2, 0.1, 0.08, 0.07, 0.06])
-    report = alternate(solvers.pose_pass, solvers.depth_step,
-                       AlternationSettings(rounds=10, round_pose_pass=True))
+    solvers = FakeSolvers(
+        translations=[0.0] + [0.001] * 10, depth_changes=[0.2, 0.1, 0.08, 0.07, 0.06]
+    )
+    report = alternate(
+        solvers.pose_pass, solvers.depth_step, AlternationSettings(rounds=10, round_pose_pass=True)
+    )
     assert [r.max_depth_change for r in report.rounds] == [0.2, 0.1, 0.08]
     assert report.reason == "stalled" and not report.converged
 
@@ -117,8 +129,9 @@ def test_a_depth_step_that_stops_shrinking_ends_the_rounds():
 @pytest.mark.parametrize("round_pose_pass", [False, True])
 def test_without_a_pose_solver_one_depth_step_runs(round_pose_pass):
     solvers = FakeSolvers(translations=[], depth_changes=[0.1, 0.01, 0.001])
-    report = alternate(None, solvers.depth_step,
-                       AlternationSettings(rounds=10, round_pose_pass=round_pose_pass))
+    report = alternate(
+        None, solvers.depth_step, AlternationSettings(rounds=10, round_pose_pass=round_pose_pass)
+    )
     assert report.cleanup_translations == [] and report.pose_seconds == 0.0
     assert [r.max_translation for r in report.rounds] == [0.0]
     assert report.reason == "poses_frozen"
@@ -148,8 +161,9 @@ def test_time_is_reported_per_phase(monkeypatch):
     def broadcast() -> None:
         clock[0] += 0.5
 
-    settings = AlternationSettings(cleanup_passes=2, rounds=4, round_pose_pass=True,
-                                   stall_ratio=float("inf"))
+    settings = AlternationSettings(
+        cleanup_passes=2, rounds=4, round_pose_pass=True, stall_ratio=float("inf")
+    )
     report = alternate(pose_pass, depth_step, settings, broadcast)
     assert report.pose_seconds == pytest.approx(2.0 * (2 + 4))
     assert report.depth_seconds == pytest.approx(3.0 * 4)
@@ -162,9 +176,10 @@ def test_non_finite_step_raises_solver_error():
         alternate(lambda iters: float("nan"), lambda: 0.0)
 
 
-@pytest.mark.parametrize("field, value", [("cleanup_passes", 0), ("rounds", -1),
-                                          ("depth_convergence_tol", -1.0),
-                                          ("stall_ratio", -0.5)])
+@pytest.mark.parametrize(
+    "field, value",
+    [("cleanup_passes", 0), ("rounds", -1), ("depth_convergence_tol", -1.0), ("stall_ratio", -0.5)],
+)
 def test_invalid_settings_raise_config_error(field, value):
     with pytest.raises(ConfigError, match=field):
         AlternationSettings(**{field: value})
@@ -177,14 +192,24 @@ def test_progress_hears_every_pass_and_round_as_it_starts():
 
     solvers = FakeSolvers(translations=[0.5, 0.004, 1.0, 1.0], depth_changes=[1.0, 1.0])
     events: list[PhaseEvent] = []
-    report = alternate(solvers.pose_pass, solvers.depth_step,
-                       AlternationSettings(rounds=2, round_pose_pass=True),
-                       progress=events.append)
+    report = alternate(
+        solvers.pose_pass,
+        solvers.depth_step,
+        AlternationSettings(rounds=2, round_pose_pass=True),
+        progress=events.append,
+    )
     assert [(e.name, e.done, e.total) for e in events] == [
-        ("cleanup pass", 0, 5), ("cleanup pass", 1, 5),
-        ("alternation round", 0, 2), ("alternation round", 1, 2)]
-    assert [e.detail for e in events] == ["", "previous max ||dt||/depth 0.5", "",
-                                          "previous max |ds| 1"]
+        ("cleanup pass", 0, 5),
+        ("cleanup pass", 1, 5),
+        ("alternation round", 0, 2),
+        ("alternation round", 1, 2),
+    ]
+    assert [e.detail for e in events] == [
+        "",
+        "previous max ||dt||/depth 0.5",
+        "",
+        "previous max |ds| 1",
+    ]
     assert len(report.rounds) == 2
 
 
@@ -195,4 +220,6 @@ def test_progress_counts_one_round_at_frozen_poses():
     events: list[PhaseEvent] = []
     alternate(solvers.pose_pass, solvers.depth_step, AlternationSettings(), progress=events.append)
     assert [(e.name, e.done, e.total) for e in events] == [
-        ("cleanup pass", 0, 5), ("alternation round", 0, 1)]
+        ("cleanup pass", 0, 5),
+        ("alternation round", 0, 1),
+    ]

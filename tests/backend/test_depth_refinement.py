@@ -47,8 +47,9 @@ class Scene:
 
 def scene_points(width: int, dtype: torch.dtype) -> torch.Tensor:
     """A slanted floor-like plane with a box in front, seen by a pinhole camera."""
-    v, u = torch.meshgrid(torch.arange(H, dtype=dtype), torch.arange(width, dtype=dtype),
-                          indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(H, dtype=dtype), torch.arange(width, dtype=dtype), indexing="ij"
+    )
     rays = torch.stack([(u - W / 2) / F, (v - H / 2) / F, torch.ones_like(u)], dim=-1)
     z = 3.0 - 0.02 * v + 0.005 * u
     box = (u >= 14) & (u < 30) & (v >= 10) & (v < 26)
@@ -63,8 +64,9 @@ def shifted_matches(valid_columns: torch.Tensor, shift: int, q: float) -> Direct
     return DirectedMatches(idx=idx, valid=valid, q=torch.full((H * W,), q))
 
 
-def make_scene(dtype: torch.dtype, segment_error: float = 0.1, ref_noise: float = 0.0,
-               seed: int = 0) -> Scene:
+def make_scene(
+    dtype: torch.dtype, segment_error: float = 0.1, ref_noise: float = 0.0, seed: int = 0
+) -> Scene:
     """Keyframe 0 (pinned, identity pose) and keyframe 1 whose ``X_init`` carries a
     multiplicative error that is constant on each of its segments; exact correspondences."""
     generator = torch.Generator().manual_seed(seed)
@@ -75,13 +77,15 @@ def make_scene(dtype: torch.dtype, segment_error: float = 0.1, ref_noise: float 
     X1 = sim3_act(sim3_inverse(T_WC1), wide[:, SHIFT:])
     C = torch.full((H, W), 3.0, dtype=dtype)
     labels1 = segment_keyframe(X1.to(dtype), C, CONFIG)
-    errors = segment_error * (2 * torch.rand(int(labels1.max()) + 1, generator=generator,
-                                             dtype=torch.float64) - 1)
+    errors = segment_error * (
+        2 * torch.rand(int(labels1.max()) + 1, generator=generator, dtype=torch.float64) - 1
+    )
     X1_init = X1 * torch.where(labels1 >= 0, errors[labels1.clamp_min(0)], 0.0).exp()[..., None]
-    X0_obs = X0 * (1 + ref_noise * torch.randn(H, W, 1, generator=generator,
-                                               dtype=torch.float64))
-    keyframes = [FakeKeyframe(X0_obs.to(dtype), X0_obs.to(dtype), C),
-                 FakeKeyframe(X1_init.to(dtype), X1_init.to(dtype), C)]
+    X0_obs = X0 * (1 + ref_noise * torch.randn(H, W, 1, generator=generator, dtype=torch.float64))
+    keyframes = [
+        FakeKeyframe(X0_obs.to(dtype), X0_obs.to(dtype), C),
+        FakeKeyframe(X1_init.to(dtype), X1_init.to(dtype), C),
+    ]
     edges = [
         Edge(0, 1, shifted_matches(lambda u: u + SHIFT < W, SHIFT, 2.0)),
         Edge(1, 0, shifted_matches(lambda u: u >= SHIFT, -SHIFT, 2.0)),
@@ -97,8 +101,15 @@ def log_depth_error(X: torch.Tensor, truth: torch.Tensor, labels: torch.Tensor) 
 
 
 def refine(scene: Scene, config: DepthRefinementConfig, labels=None):
-    return refine_depths(scene.keyframes, scene.poses, scene.edges, {0: 0, 1: 1},
-                         scene.labels if labels is None else labels, config, pinned=[0])
+    return refine_depths(
+        scene.keyframes,
+        scene.poses,
+        scene.edges,
+        {0: 0, 1: 1},
+        scene.labels if labels is None else labels,
+        config,
+        pinned=[0],
+    )
 
 
 def test_segment_refinement_removes_most_of_a_per_segment_error(dtype):
@@ -160,12 +171,14 @@ def test_per_pixel_is_noisier_than_per_segment_under_noise():
 def test_gradient_is_exact_and_hessian_is_positive():
     scene = make_scene(torch.float64)
     config = CONFIG
-    problem, _, _ = build_problem(scene.keyframes, scene.poses, scene.edges, {0: 0, 1: 1}.get,
-                                   scene.labels, config, {0})
+    problem, _, _ = build_problem(
+        scene.keyframes, scene.poses, scene.edges, {0: 0, 1: 1}.get, scene.labels, config, {0}
+    )
     refiner = _Refiner(problem, config, huber_k=1.345)
     generator = torch.Generator().manual_seed(0)
-    s = (0.05 * torch.randn(problem.s_start.shape, generator=generator,
-                            dtype=torch.float64)).requires_grad_()
+    s = (
+        0.05 * torch.randn(problem.s_start.shape, generator=generator, dtype=torch.float64)
+    ).requires_grad_()
     H, g, _ = refiner.normal_equations(s.detach())
     refiner.energy(s).backward()
     # The energies carry no 1/2 prefactor (C-Sec. A.6): g is half the energy's gradient.
@@ -178,8 +191,14 @@ def test_without_edges_the_prior_pulls_to_the_snapshot():
     # X_hat twice as far as the snapshot: the warm start is log 2, the prior pulls to 0.
     scene.keyframes[1].X_hat = 2.0 * scene.keyframes[1].X_init
     X_new, log_scales, report = refine_depths(
-        scene.keyframes, scene.poses, [], {0: 0, 1: 1}, scene.labels,
-        dataclasses.replace(CONFIG, lambda_smooth=0.0), pinned=[0])
+        scene.keyframes,
+        scene.poses,
+        [],
+        {0: 0, 1: 1},
+        scene.labels,
+        dataclasses.replace(CONFIG, lambda_smooth=0.0),
+        pinned=[0],
+    )
     assert report.num_matches == 0
     assert float(log_scales[1].abs().max()) < 0.05 * torch.log(torch.tensor(2.0))
     assert report.max_change == pytest.approx(float(torch.log(torch.tensor(2.0))), rel=0.05)
@@ -190,8 +209,9 @@ def test_refine_keyframes_segments_refines_and_writes_back_in_place():
     labels = [segment_keyframe(kf.X_hat, kf.C, CONFIG) for kf in scene.keyframes]
     expected, _, _ = refine(scene, CONFIG, labels)
     before = log_depth_error(scene.keyframes[1].X_hat, scene.truth[1], scene.labels[1])
-    report = refine_keyframes(scene.keyframes, scene.poses, scene.edges, {0: 0, 1: 1},
-                              CONFIG, pinned=[0])
+    report = refine_keyframes(
+        scene.keyframes, scene.poses, scene.edges, {0: 0, 1: 1}, CONFIG, pinned=[0]
+    )
     assert torch.equal(scene.keyframes[1].X_hat, expected[1])
     # Segments of the corrupted pointmap only roughly follow the error's segments.
     after = log_depth_error(scene.keyframes[1].X_hat, scene.truth[1], scene.labels[1])
@@ -202,17 +222,29 @@ def test_refine_keyframes_segments_refines_and_writes_back_in_place():
 def test_bad_inputs_raise_clear_errors():
     scene = make_scene(torch.float32)
     with pytest.raises(InputError, match="not in key_to_index"):
-        refine_depths(scene.keyframes, scene.poses, scene.edges, {0: 0}, scene.labels,
-                      CONFIG)
+        refine_depths(scene.keyframes, scene.poses, scene.edges, {0: 0}, scene.labels, CONFIG)
     with pytest.raises(InputError, match="poses"):
-        refine_depths(scene.keyframes, scene.poses[:1], scene.edges, {0: 0, 1: 1},
-                      scene.labels, CONFIG)
+        refine_depths(
+            scene.keyframes, scene.poses[:1], scene.edges, {0: 0, 1: 1}, scene.labels, CONFIG
+        )
     with pytest.raises(InputError, match="label map"):
-        refine_depths(scene.keyframes, scene.poses, scene.edges, {0: 0, 1: 1},
-                      [scene.labels[0], scene.labels[1][:-1]], CONFIG)
+        refine_depths(
+            scene.keyframes,
+            scene.poses,
+            scene.edges,
+            {0: 0, 1: 1},
+            [scene.labels[0], scene.labels[1][:-1]],
+            CONFIG,
+        )
     with pytest.raises(ConfigError, match="variant"):
-        refine_depths(scene.keyframes, scene.poses, scene.edges, {0: 0, 1: 1}, scene.labels,
-                      dataclasses.replace(CONFIG, variant="voxel"))
+        refine_depths(
+            scene.keyframes,
+            scene.poses,
+            scene.edges,
+            {0: 0, 1: 1},
+            scene.labels,
+            dataclasses.replace(CONFIG, variant="voxel"),
+        )
 
 
 def test_boundary_term_pairs_and_log_depth_ratios():
@@ -221,24 +253,52 @@ def test_boundary_term_pairs_and_log_depth_ratios():
     X[..., 2] = torch.tensor([[1.0, 1.0, 2.0, 2.0], [1.0, 1.0, 2.0, 2.0]])
     keyframe = FakeKeyframe(X, X.clone(), torch.full((2, 4), 3.0))
     labels = torch.tensor([[0, 0, 1, 1], [0, 0, 1, 1]])
-    problem, _, _ = build_problem([keyframe], torch.tensor([[0.0] * 6 + [1.0, 1.0]]), [],
-                                   [0].__getitem__, [labels], CONFIG, set())
+    problem, _, _ = build_problem(
+        [keyframe],
+        torch.tensor([[0.0] * 6 + [1.0, 1.0]]),
+        [],
+        [0].__getitem__,
+        [labels],
+        CONFIG,
+        set(),
+    )
     assert problem.bnd_a.tolist() == [0] and problem.bnd_b.tolist() == [1]
     # default: the residual s_a - s_b keeps the prior's depth jump between the segments
     assert problem.delta.tolist() == [0.0]
     printed = dataclasses.replace(CONFIG, boundary_residual="log_depth")
-    problem, _, _ = build_problem([keyframe], torch.tensor([[0.0] * 6 + [1.0, 1.0]]), [],
-                                   [0].__getitem__, [labels], printed, set())
+    problem, _, _ = build_problem(
+        [keyframe],
+        torch.tensor([[0.0] * 6 + [1.0, 1.0]]),
+        [],
+        [0].__getitem__,
+        [labels],
+        printed,
+        set(),
+    )
     # C-Eq. 22 as printed: Delta_ab = mean over the boundary of log d_a - log d_b
     assert problem.delta.tolist() == pytest.approx([-float(torch.log(torch.tensor(2.0)))])
     pixel_config = dataclasses.replace(CONFIG, variant="pixel_laplacian")
     pixels = torch.arange(8).reshape(2, 4)
-    problem, _, _ = build_problem([keyframe], torch.tensor([[0.0] * 6 + [1.0, 1.0]]), [],
-                                   [0].__getitem__, [pixels], pixel_config, set())
+    problem, _, _ = build_problem(
+        [keyframe],
+        torch.tensor([[0.0] * 6 + [1.0, 1.0]]),
+        [],
+        [0].__getitem__,
+        [pixels],
+        pixel_config,
+        set(),
+    )
     assert problem.bnd_a.numel() == 2 * 3 + 4  # every 4-neighbour pair once
     no_boundary = dataclasses.replace(CONFIG, variant="pixel")
-    problem, _, _ = build_problem([keyframe], torch.tensor([[0.0] * 6 + [1.0, 1.0]]), [],
-                                   [0].__getitem__, [pixels], no_boundary, set())
+    problem, _, _ = build_problem(
+        [keyframe],
+        torch.tensor([[0.0] * 6 + [1.0, 1.0]]),
+        [],
+        [0].__getitem__,
+        [pixels],
+        no_boundary,
+        set(),
+    )
     assert problem.bnd_a.numel() == 0
 
 
@@ -248,11 +308,13 @@ def test_compiled_normal_equations_equal_the_pytorch_ones(dtype, monkeypatch):
     Hessian, gradient and energy, with one thread or two (the matches cut into blocks)."""
     monkeypatch.setattr(cpu_kernels, "BLOCK", 256)
     scene = make_scene(dtype)
-    problem, _, _ = build_problem(scene.keyframes, scene.poses, scene.edges, {0: 0, 1: 1}.get,
-                                   scene.labels, CONFIG, {0})
+    problem, _, _ = build_problem(
+        scene.keyframes, scene.poses, scene.edges, {0: 0, 1: 1}.get, scene.labels, CONFIG, {0}
+    )
     refiner = _Refiner(problem, CONFIG, huber_k=1.345)
-    s = 0.05 * torch.randn(problem.s_start.shape, generator=torch.Generator().manual_seed(3),
-                           dtype=dtype)
+    s = 0.05 * torch.randn(
+        problem.s_start.shape, generator=torch.Generator().manual_seed(3), dtype=dtype
+    )
     before = torch.get_num_threads()
     try:
         compiled = []
@@ -301,5 +363,6 @@ def test_chunk_streams_are_the_flattened_problems_streams(dtype):
     outside[torch.nonzero(m.valid).flatten()[0]] = m.idx.numel()
     edges[1] = Edge(1, 0, DirectedMatches(outside, m.valid, m.q))
     with pytest.raises(InputError, match="outside"):
-        chunk_streams(scene.keyframes, scene.poses, edges, {0: 0, 1: 1}.get, scene.labels,
-                      CONFIG, {0})
+        chunk_streams(
+            scene.keyframes, scene.poses, edges, {0: 0, 1: 1}.get, scene.labels, CONFIG, {0}
+        )

@@ -25,24 +25,37 @@ H, W = 6, 8
 def _world_points() -> torch.Tensor:
     g = torch.Generator().manual_seed(0)
     return torch.randn(H * W, 3, generator=g) * torch.tensor([3.0, 2.0, 1.0]) + torch.tensor(
-        [0.0, 0.0, 8.0])
+        [0.0, 0.0, 8.0]
+    )
 
 
 def _identity_matches(valid: bool = True) -> DirectedMatches:
     """Every pixel of j matched to the same pixel of i (all views see the same points)."""
-    return DirectedMatches(idx=torch.arange(H * W), valid=torch.full((H * W,), valid),
-                           q=torch.full((H * W,), 2.0))
+    return DirectedMatches(
+        idx=torch.arange(H * W), valid=torch.full((H * W,), valid), q=torch.full((H * W,), 2.0)
+    )
 
 
-def _packet(agent: int, kf_id: int, T_true: torch.Tensor, T_init: torch.Tensor,
-            sequential: bool = True) -> KeyframePacket:
+def _packet(
+    agent: int, kf_id: int, T_true: torch.Tensor, T_init: torch.Tensor, sequential: bool = True
+) -> KeyframePacket:
     X = sim3_act(sim3_inverse(T_true)[None], _world_points()).reshape(H, W, 3)
     link = _identity_matches() if sequential and kf_id > 0 else None
     return KeyframePacket(
-        agent=agent, kf_id=kf_id, frame_index=kf_id, timestamp=float(kf_id), T_WC=T_init,
-        X_hat=X, C_hat=torch.full((H, W), 5.0), colors=np.zeros((H, W, 3), np.uint8),
-        encoding=Encoding(agent, kf_id, (H, W)), retrieval=None, sequential_ij=link,
-        sequential_ji=link, previous=None)
+        agent=agent,
+        kf_id=kf_id,
+        frame_index=kf_id,
+        timestamp=float(kf_id),
+        T_WC=T_init,
+        X_hat=X,
+        C_hat=torch.full((H, W), 5.0),
+        colors=np.zeros((H, W, 3), np.uint8),
+        encoding=Encoding(agent, kf_id, (H, W)),
+        retrieval=None,
+        sequential_ij=link,
+        sequential_ji=link,
+        previous=None,
+    )
 
 
 def _true_pose(agent: int, kf_id: int) -> torch.Tensor:
@@ -52,8 +65,9 @@ def _true_pose(agent: int, kf_id: int) -> torch.Tensor:
 
 def _perturbation(seed: int) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
-    return sim3_exp(torch.randn(7, generator=g) * torch.tensor([0.1, 0.1, 0.1, 0.02, 0.02,
-                                                                0.02, 0.02]))
+    return sim3_exp(
+        torch.randn(7, generator=g) * torch.tensor([0.1, 0.1, 0.1, 0.02, 0.02, 0.02, 0.02])
+    )
 
 
 @pytest.fixture
@@ -65,8 +79,11 @@ def two_agents() -> tuple[GlobalGraph, dict[tuple[int, int], torch.Tensor]]:
         for agent in (0, 1):
             T = _true_pose(agent, kf_id)
             truth[(agent, kf_id)] = T
-            noisy = T if (agent, kf_id) == (0, 0) else sim3_compose(
-                _perturbation(10 * agent + kf_id), T)
+            noisy = (
+                T
+                if (agent, kf_id) == (0, 0)
+                else sim3_compose(_perturbation(10 * agent + kf_id), T)
+            )
             graph.add_keyframe(_packet(agent, kf_id, T, noisy))
     link = PairLink(_identity_matches(), _identity_matches())
     graph.add_inter_link(graph.global_index(0, 2), graph.global_index(1, 0), link, 0.1)
@@ -108,8 +125,7 @@ def test_global_ba_reduces_error_with_keyframe_zero_pinned(two_agents, linear_so
 def test_only_keyframes_connected_to_the_anchor_move(two_agents) -> None:
     graph, truth = two_agents
     T = _true_pose(0, 3)
-    cut = graph.add_keyframe(_packet(0, 3, T, sim3_compose(_perturbation(7), T),
-                                     sequential=False))
+    cut = graph.add_keyframe(_packet(0, 3, T, sim3_compose(_perturbation(7), T), sequential=False))
     pose = graph.keyframes[cut].T_WC.clone()
     result = graph.optimize([0, 1], anchor=0, max_iters=5)
     assert cut not in result.keyframes

@@ -36,20 +36,33 @@ def chain(dtype: torch.dtype = torch.float32):
     wide = scene_points(W + SHIFT * KEYFRAMES, torch.float64)
     keyframes, poses, labels = [], [], []
     for k in range(KEYFRAMES):
-        T_WC = (sim3_identity(dtype=torch.float64) if k == 0 else sim3_exp(torch.tensor(
-            [0.05 * k, 0.0, 0.01 * k, 0.0, 0.01 * k, 0.0, 0.0], dtype=torch.float64)))
-        X = sim3_act(sim3_inverse(T_WC), wide[:, SHIFT * k:SHIFT * k + W])
+        T_WC = (
+            sim3_identity(dtype=torch.float64)
+            if k == 0
+            else sim3_exp(
+                torch.tensor(
+                    [0.05 * k, 0.0, 0.01 * k, 0.0, 0.01 * k, 0.0, 0.0], dtype=torch.float64
+                )
+            )
+        )
+        X = sim3_act(sim3_inverse(T_WC), wide[:, SHIFT * k : SHIFT * k + W])
         C = torch.full(X.shape[:2], 3.0, dtype=dtype)
         lab = segment_keyframe(X.to(dtype), C, CONFIG)
-        errors = 0.1 * (2 * torch.rand(int(lab.max()) + 1, generator=generator,
-                                       dtype=torch.float64) - 1)
+        errors = 0.1 * (
+            2 * torch.rand(int(lab.max()) + 1, generator=generator, dtype=torch.float64) - 1
+        )
         X_init = X * torch.where(lab >= 0, errors[lab.clamp_min(0)], 0.0).exp()[..., None]
         keyframes.append(FakeKeyframe(X_init.to(dtype), X_init.to(dtype), C))
         poses.append(T_WC)
         labels.append(lab)
-    edges = [e for k in range(1, KEYFRAMES) for e in (
-        Edge(k - 1, k, shifted_matches(lambda u: u + SHIFT < W, SHIFT, 2.0)),
-        Edge(k, k - 1, shifted_matches(lambda u: u >= SHIFT, -SHIFT, 2.0)))]
+    edges = [
+        e
+        for k in range(1, KEYFRAMES)
+        for e in (
+            Edge(k - 1, k, shifted_matches(lambda u: u + SHIFT < W, SHIFT, 2.0)),
+            Edge(k, k - 1, shifted_matches(lambda u: u >= SHIFT, -SHIFT, 2.0)),
+        )
+    ]
     return keyframes, torch.stack(poses).to(dtype), edges, labels
 
 
@@ -64,9 +77,16 @@ def chunked(keyframes, poses, edges, labels, reads=None, keep=lambda rows: False
 
     written = {}
     report = refine_in_chunks(
-        len(keyframes), read, poses,
-        chunk_edges(ends, lambda links: [e for n in links for e in edges[2 * n:2 * n + 2]]),
-        labels.__getitem__, CONFIG, written.__setitem__, pinned=[0], keep=keep)
+        len(keyframes),
+        read,
+        poses,
+        chunk_edges(ends, lambda links: [e for n in links for e in edges[2 * n : 2 * n + 2]]),
+        labels.__getitem__,
+        CONFIG,
+        written.__setitem__,
+        pinned=[0],
+        keep=keep,
+    )
     return written, report
 
 
@@ -74,15 +94,21 @@ def chunked(keyframes, poses, edges, labels, reads=None, keep=lambda rows: False
 def test_chunked_depth_step_equals_the_whole_problem(monkeypatch, per_chunk) -> None:
     monkeypatch.setattr(paged_refinement, "KEYFRAMES_PER_CHUNK", per_chunk)
     keyframes, poses, edges, labels = chain()
-    X_whole, _, whole = refine_depths(keyframes, poses, edges, list(range(KEYFRAMES)), labels,
-                                      CONFIG, pinned=[0])
+    X_whole, _, whole = refine_depths(
+        keyframes, poses, edges, list(range(KEYFRAMES)), labels, CONFIG, pinned=[0]
+    )
     written, report = chunked(keyframes, poses, edges, labels)
     assert sorted(written) == list(range(1, KEYFRAMES))  # the pinned keyframe is not written
     for k in range(1, KEYFRAMES):
         torch.testing.assert_close(written[k], X_whole[k], rtol=1e-5, atol=1e-6)
     assert whole.max_change > 0.03  # the step did move the depths
-    for name in ("num_parameters", "num_matches", "num_boundary_pairs", "iterations",
-                 "clipped_steps"):
+    for name in (
+        "num_parameters",
+        "num_matches",
+        "num_boundary_pairs",
+        "iterations",
+        "clipped_steps",
+    ):
         assert getattr(report, name) == getattr(whole, name), name
     assert report.max_change == pytest.approx(whole.max_change, rel=1e-4)
     assert report.cost_history == pytest.approx(whole.cost_history, rel=1e-5)
@@ -90,8 +116,7 @@ def test_chunked_depth_step_equals_the_whole_problem(monkeypatch, per_chunk) -> 
 
 def test_chunks_group_links_by_their_later_endpoint(monkeypatch) -> None:
     monkeypatch.setattr(paged_refinement, "KEYFRAMES_PER_CHUNK", 2)
-    chunks = chunk_edges([(0, 1), (1, 2), (2, 3), (0, 3), (3, 4)],
-                         lambda links: list(links))
+    chunks = chunk_edges([(0, 1), (1, 2), (2, 3), (0, 3), (3, 4)], lambda links: list(links))
     assert [c.rows for c in chunks] == [(0, 1), (0, 1, 2, 3), (3, 4)]
     assert [c.edges() for c in chunks] == [[0], [1, 2, 3], [4]]
 
@@ -115,17 +140,19 @@ def test_kept_and_spilled_chunks_give_the_same_result(monkeypatch, kept) -> None
     pointmaps, costs and match counts bit for bit, whichever chunks are kept."""
     monkeypatch.setattr(paged_refinement, "KEYFRAMES_PER_CHUNK", 2)
     keyframes, poses, edges, labels = chain()
-    reference, reference_report = chunked(keyframes, poses, edges, labels,
-                                          keep=lambda rows: True)
+    reference, reference_report = chunked(keyframes, poses, edges, labels, keep=lambda rows: True)
     saved, loaded = [], []
     save, load = ProblemSpill.save, ProblemSpill.load
-    monkeypatch.setattr(ProblemSpill, "save", lambda spill, n, p: (saved.append(n),
-                                                                   save(spill, n, p))[1])
-    monkeypatch.setattr(ProblemSpill, "load", lambda spill, n: (loaded.append(n),
-                                                                load(spill, n))[1])
+    monkeypatch.setattr(
+        ProblemSpill, "save", lambda spill, n, p: (saved.append(n), save(spill, n, p))[1]
+    )
+    monkeypatch.setattr(
+        ProblemSpill, "load", lambda spill, n: (loaded.append(n), load(spill, n))[1]
+    )
     rows = [(0, 1), (1, 2, 3), (3, 4, 5)]
-    written, report = chunked(keyframes, poses, edges, labels,
-                              keep=lambda chunk: rows.index(tuple(chunk)) in kept)
+    written, report = chunked(
+        keyframes, poses, edges, labels, keep=lambda chunk: rows.index(tuple(chunk)) in kept
+    )
     spilled = [n for n in range(3) if n not in kept]
     assert saved == spilled and loaded == spilled * CONFIG.inner_iters
     for k in range(1, KEYFRAMES):
@@ -139,16 +166,23 @@ def test_a_spilled_problem_reads_back_bit_for_bit(tmp_path) -> None:
     int64; floats keep their dtype; a CPU chunk's match streams come back as such; the files
     are deleted with the spill."""
     keyframes, poses, edges, labels = chain(torch.float64)
-    problem, _, _ = build_problem(keyframes, poses, edges, lambda k: k, labels, CONFIG, {0},
-                                   data_only=True)
+    problem, _, _ = build_problem(
+        keyframes, poses, edges, lambda k: k, labels, CONFIG, {0}, data_only=True
+    )
     spill = ProblemSpill(tmp_path)
     spill.save(0, problem)
     wide = replace(problem, match_b=problem.match_b + 2**40)
     spill.save(1, wide)
-    int32 = sum(getattr(problem, f.name).numel() for f in fields(problem)
-                if getattr(problem, f.name).dtype == torch.int64)
-    floats = sum(getattr(problem, f.name).nbytes for f in fields(problem)
-                 if getattr(problem, f.name).is_floating_point())
+    int32 = sum(
+        getattr(problem, f.name).numel()
+        for f in fields(problem)
+        if getattr(problem, f.name).dtype == torch.int64
+    )
+    floats = sum(
+        getattr(problem, f.name).nbytes
+        for f in fields(problem)
+        if getattr(problem, f.name).is_floating_point()
+    )
     assert spill.bytes == 2 * (4 * int32 + floats) + 4 * problem.match_b.numel()
     for n, want in ((0, problem), (1, wide)):
         back = spill.load(n)

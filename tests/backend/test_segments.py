@@ -24,8 +24,7 @@ STEP_COLUMN = 45
 
 def pinhole_rays(dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """``(H, W, 3)`` rays with unit z of a pinhole camera."""
-    v, u = torch.meshgrid(torch.arange(H, dtype=dtype), torch.arange(W, dtype=dtype),
-                          indexing="ij")
+    v, u = torch.meshgrid(torch.arange(H, dtype=dtype), torch.arange(W, dtype=dtype), indexing="ij")
     return torch.stack([(u - W / 2) / F, (v - H / 2) / F, torch.ones_like(u)], dim=-1)
 
 
@@ -49,7 +48,7 @@ def test_features_normals_and_log_range(dtype):
     np.testing.assert_allclose(features[10, -5, :3], [0, 0, -1], atol=1e-6)
     log_range = features[..., 3]
     assert log_range.min() == pytest.approx(0.0) and log_range.max() == pytest.approx(1.0)
-    assert (log_range[:, STEP_COLUMN + 1:].min() > log_range[:, :STEP_COLUMN - 1].max())
+    assert log_range[:, STEP_COLUMN + 1 :].min() > log_range[:, : STEP_COLUMN - 1].max()
 
 
 def test_features_of_non_finite_points_are_zero():

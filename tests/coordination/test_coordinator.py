@@ -9,9 +9,9 @@ the meetings, undo the gauges and optimize; the front-end itself is tested elsew
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 from types import SimpleNamespace
-from typing import Sequence
 
 import numpy as np
 import pytest
@@ -48,10 +48,15 @@ WIDTH, HEIGHT = 96, 72
 # test turns it on.
 # the easy simulated prior: merge, consensus and refinement bounds fail under the realistic
 # default
-OVERRIDES = [f"input.long_side={WIDTH}", "simulated_prior.model=easy",
-             "global_ba.step_tol=1e-5", "global_ba.trigger_interval_edges=3",
-             "global_ba.max_iters_stream=10", "global_ba.max_iters_cleanup=30",
-             "depth.alternation_rounds=0"]
+OVERRIDES = [
+    f"input.long_side={WIDTH}",
+    "simulated_prior.model=easy",
+    "global_ba.step_tol=1e-5",
+    "global_ba.trigger_interval_edges=3",
+    "global_ba.max_iters_stream=10",
+    "global_ba.max_iters_cleanup=30",
+    "depth.alternation_rounds=0",
+]
 
 
 @dataclass
@@ -67,16 +72,34 @@ class Scene:
     config: Config
 
 
-def _build(root, agents: int, frames: int, preset: str, seed: int, step: int,
-           overrides: Sequence[str] = OVERRIDES) -> Scene:
-    synthesize(root, agents=agents, seed=seed, overlap=0.2, frames=frames, preset=preset,
-               width=WIDTH, height=HEIGHT)
+def _build(
+    root,
+    agents: int,
+    frames: int,
+    preset: str,
+    seed: int,
+    step: int,
+    overrides: Sequence[str] = OVERRIDES,
+) -> Scene:
+    synthesize(
+        root,
+        agents=agents,
+        seed=seed,
+        overlap=0.2,
+        frames=frames,
+        preset=preset,
+        width=WIDTH,
+        height=HEIGHT,
+    )
     config = apply_overrides(Config(), list(overrides))
-    prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth(
-        {a: open_agent(root / f"agent_{a}") for a in range(agents)}, WIDTH))
+    prior = SimulatedPrior(
+        config.simulated_prior,
+        AgentFolderTruth({a: open_agent(root / f"agent_{a}") for a in range(agents)}, WIDTH),
+    )
     gauges = [torch.tensor([0, 0, 0, 0, 0, 0, 1, 1.0])] + [
         sim3_exp(torch.tensor([3.0 * a, -2.0, 1.0, 0.4, -0.8 * a, 0.3, 0.3 * (-1) ** a]))
-        for a in range(1, agents)]
+        for a in range(1, agents)
+    ]
     packets, truth, points, length = {}, {}, {}, 0.0
     for a in range(agents):
         agent = open_agent(root / f"agent_{a}")
@@ -96,31 +119,51 @@ def _build(root, agents: int, frames: int, preset: str, seed: int, step: int,
             T_true[7] = (X_true[seen].norm(dim=-1) / pred.X_ii[seen].norm(dim=-1)).median()
             truth[(a, kf_id)] = T_true
             points[(a, kf_id)] = (X_true, seen)
-            link = None if previous is None else link_pairs(
-                prior, [(previous, enc)], config.matching, config.tracking.q_min)[0]
-            packets[a].append(KeyframePacket(
-                agent=a, kf_id=kf_id, frame_index=index, timestamp=frame.timestamp,
-                T_WC=sim3_compose(gauges[a], T_true), X_hat=pred.X_ii, C_hat=pred.C_ii,
-                colors=_colors(view), encoding=enc, retrieval=prior.retrieval_features(enc),
-                sequential_ij=None if link is None else link.ij,
-                sequential_ji=None if link is None else link.ji, previous=None))
+            link = (
+                None
+                if previous is None
+                else link_pairs(prior, [(previous, enc)], config.matching, config.tracking.q_min)[0]
+            )
+            packets[a].append(
+                KeyframePacket(
+                    agent=a,
+                    kf_id=kf_id,
+                    frame_index=index,
+                    timestamp=frame.timestamp,
+                    T_WC=sim3_compose(gauges[a], T_true),
+                    X_hat=pred.X_ii,
+                    C_hat=pred.C_ii,
+                    colors=_colors(view),
+                    encoding=enc,
+                    retrieval=prior.retrieval_features(enc),
+                    sequential_ij=None if link is None else link.ij,
+                    sequential_ji=None if link is None else link.ji,
+                    previous=None,
+                )
+            )
             previous = enc
     return Scene(packets, truth, points, length, prior, config)
 
 
 def _interleave(scene: Scene, agents: list[int]) -> list[KeyframePacket]:
     longest = max(len(scene.packets[a]) for a in agents)
-    return [scene.packets[a][k] for k in range(longest) for a in agents
-            if k < len(scene.packets[a])]
+    return [
+        scene.packets[a][k] for k in range(longest) for a in agents if k < len(scene.packets[a])
+    ]
 
 
-def _run(scene: Scene, order: list[KeyframePacket], config: Config | None = None,
-         agents: int | None = None) -> tuple[Coordinator, list[PoseUpdate]]:
+def _run(
+    scene: Scene,
+    order: list[KeyframePacket],
+    config: Config | None = None,
+    agents: int | None = None,
+) -> tuple[Coordinator, list[PoseUpdate]]:
     """Feed packets in ``order`` as agents would: each agent applies the updates it gets,
     so its later keyframes arrive in the corrected frame (AgentFrontend.apply_pose_update:
     keyframes after the newest updated one follow it rigidly)."""
-    coordinator = Coordinator(scene.prior, config or scene.config, scene.prior.codebook(),
-                              agents or len(scene.packets))
+    coordinator = Coordinator(
+        scene.prior, config or scene.config, scene.prior.codebook(), agents or len(scene.packets)
+    )
     correction = {a: torch.tensor([0, 0, 0, 0, 0, 0, 1, 1.0]) for a in scene.packets}
     updates = []
     for packet in order:
@@ -138,8 +181,9 @@ def _run(scene: Scene, order: list[KeyframePacket], config: Config | None = None
 def _merged_keyframe_ate(coordinator: Coordinator, scene: Scene) -> float:
     graph = coordinator.graph
     est = graph.poses(range(len(graph)))[:, :3].double()
-    gt = torch.stack([scene.truth[(graph.agent_of[g], kf.kf_id)][:3]
-                      for g, kf in enumerate(graph.keyframes)]).double()
+    gt = torch.stack(
+        [scene.truth[(graph.agent_of[g], kf.kf_id)][:3] for g, kf in enumerate(graph.keyframes)]
+    ).double()
     return umeyama_rmse(umeyama_sim3(est, gt), est, gt)
 
 
@@ -150,8 +194,10 @@ def _relative_pose_error(coordinator: Coordinator, scene: Scene, link) -> tuple[
     graph = coordinator.graph
     kf_i, kf_j = graph.keyframes[link.i], graph.keyframes[link.j]
     valid = link.link.ij.valid
-    implied = umeyama_sim3(kf_j.X_hat.reshape(-1, 3)[valid].double(),
-                           kf_i.X_hat.reshape(-1, 3)[link.link.ij.idx[valid]].double())
+    implied = umeyama_sim3(
+        kf_j.X_hat.reshape(-1, 3)[valid].double(),
+        kf_i.X_hat.reshape(-1, 3)[link.link.ij.idx[valid]].double(),
+    )
     T_i = scene.truth[(graph.agent_of[link.i], kf_i.kf_id)].double()
     T_j = scene.truth[(graph.agent_of[link.j], kf_j.kf_id)].double()
     T_ij = sim3_compose(sim3_inverse(T_i), T_j)
@@ -162,8 +208,9 @@ def _relative_pose_error(coordinator: Coordinator, scene: Scene, link) -> tuple[
 @pytest.fixture(scope="module")
 def ring(tmp_path_factory) -> Scene:
     """Four agents on the default ring; neighbours meet at the ends of their paths."""
-    return _build(tmp_path_factory.mktemp("ring"), agents=4, frames=16, preset="default",
-                  seed=3, step=4)
+    return _build(
+        tmp_path_factory.mktemp("ring"), agents=4, frames=16, preset="default", seed=3, step=4
+    )
 
 
 @pytest.fixture(scope="module")
@@ -171,8 +218,9 @@ def aliasing(tmp_path_factory) -> Scene:
     """Two agents among identical façades. (The prior also hallucinates some SEQUENTIAL
     pairs there, so the trajectory accuracy on this preset is the front-end's problem and
     not asserted here.)"""
-    return _build(tmp_path_factory.mktemp("aliasing"), agents=2, frames=20,
-                  preset="aliasing", seed=1, step=4)
+    return _build(
+        tmp_path_factory.mktemp("aliasing"), agents=2, frames=20, preset="aliasing", seed=1, step=4
+    )
 
 
 def test_agents_two_and_three_meet_first_then_join_agent_zero(ring) -> None:
@@ -215,8 +263,14 @@ def test_consensus_merges_only_on_agreeing_edges(ring) -> None:
 
 def test_agents_already_merged_are_verified_less(ring) -> None:
     order = _interleave(ring, [0, 1, 2, 3])
-    runs = {share: _run(ring, order, apply_overrides(
-        ring.config, [f"verification.max_within_component={share}"]))[0] for share in (0, 3)}
+    runs = {
+        share: _run(
+            ring,
+            order,
+            apply_overrides(ring.config, [f"verification.max_within_component={share}"]),
+        )[0]
+        for share in (0, 3)
+    }
     for coordinator in runs.values():
         assert coordinator.components() == [[0, 1, 2, 3]]
         metrics = coordinator.metrics()
@@ -247,9 +301,13 @@ def test_no_false_edge_among_identical_facades(aliasing) -> None:
     # C-Eq. 12 alone lets hallucinated pairs through (nu >= tau_inter in every direction
     # matched); the co-visibility test stops them
     tau = aliasing.config.verification.tau_inter
-    fooled = [c.verification for c in coordinator.candidates if not c.verification.accepted
-              and c.verification.nu_j >= tau
-              and (c.verification.nu_i is None or c.verification.nu_i >= tau)]
+    fooled = [
+        c.verification
+        for c in coordinator.candidates
+        if not c.verification.accepted
+        and c.verification.nu_j >= tau
+        and (c.verification.nu_i is None or c.verification.nu_i >= tau)
+    ]
     assert fooled
     assert coordinator.components() == [[0, 1]]
 
@@ -262,7 +320,11 @@ def test_graph_document_and_metrics(ring) -> None:
     assert all(e["from"][0] != e["to"][0] for e in inter)
     assert len(document["keyframes"]) == len(coordinator.graph)
     assert {c["status"] for c in document["candidates"]} <= {
-        "rejected", "pending", "admitted", "inconsistent"}
+        "rejected",
+        "pending",
+        "admitted",
+        "inconsistent",
+    }
     metrics = coordinator.metrics()
     assert metrics["edges_accepted"] == len(inter)
     assert metrics["retrieval_queries"] == len(coordinator.graph)
@@ -270,7 +332,8 @@ def test_graph_document_and_metrics(ring) -> None:
     # a tried candidate decodes one order, and the other unless the first fails its test
     assert 0 < metrics["edges_tried"] <= metrics["prior_decodes"] <= 2 * metrics["edges_tried"]
     assert {"retrieval", "verification", "gauge", "global_ba", "cleanup"} <= set(
-        metrics["stage_seconds"])
+        metrics["stage_seconds"]
+    )
 
 
 def test_a_link_that_would_rescale_the_map_is_held_back(ring) -> None:
@@ -295,8 +358,10 @@ def test_a_link_that_would_rescale_the_map_is_held_back(ring) -> None:
 def test_a_merge_does_not_count_an_edge_of_another_scale_as_support(ring, monkeypatch) -> None:
     coordinator = Coordinator(ring.prior, ring.config, ring.prior.codebook(), 2)
     scales = {"a": 1.0, "b": 1.05, "c": 1.6}
-    edges = [SimpleNamespace(name=n, verification=SimpleNamespace(candidate=(0, 1), query=(1, 1)))
-             for n in scales]
+    edges = [
+        SimpleNamespace(name=n, verification=SimpleNamespace(candidate=(0, 1), query=(1, 1)))
+        for n in scales
+    ]
 
     def transform(candidates):
         log_scale = float(np.mean([np.log(scales[c.name]) for c in candidates]))
@@ -332,8 +397,9 @@ def test_finish_runs_pose_passes_then_one_depth_step(ring) -> None:
     assert record[0]["seconds"] > 0 and record[0]["depth_parameters"] > 0
 
     before = _depth_shape_error(ring, [(p.agent, p) for p in order])
-    after = _depth_shape_error(ring, [(graph.agent_of[g], kf)
-                                      for g, kf in enumerate(graph.keyframes)])
+    after = _depth_shape_error(
+        ring, [(graph.agent_of[g], kf) for g, kf in enumerate(graph.keyframes)]
+    )
     assert after < 0.9 * before
     assert torch.equal(graph.keyframes[0].X_hat, ring.packets[0][0].X_hat)  # the anchor
     assert _merged_keyframe_ate(coordinator, ring) < 0.01 * ring.path_length
@@ -346,8 +412,15 @@ def test_terminal_rounds_keep_the_multi_agent_trajectory(tmp_path) -> None:
     the pose error and stretched the loop further). On this scene the paper's schedule
     (``depth.round_poses=pose_pass``) ends 6.2 % above the step-1 ATE (192.7 vs 181.5 mm of
     keyframe ATE); frozen poses keep it (0 %)."""
-    scene = _build(tmp_path, agents=2, frames=16, preset="default", seed=3, step=4,
-                   overrides=[o for o in OVERRIDES if o != "simulated_prior.model=easy"])
+    scene = _build(
+        tmp_path,
+        agents=2,
+        frames=16,
+        preset="default",
+        seed=3,
+        step=4,
+        overrides=[o for o in OVERRIDES if o != "simulated_prior.model=easy"],
+    )
     config = apply_overrides(scene.config, ["depth.alternation_rounds=100"])
     coordinator, _ = _run(scene, _interleave(scene, [0, 1]), config, agents=2)
     record = coordinator.metrics()["alternation"]
@@ -381,14 +454,15 @@ def test_single_agent_components_adopt_the_agents_poses_and_refine_depth_only(ri
     for packet in _interleave(ring, [0, 1]):
         coordinator.add_keyframe(packet)
     own = {a: torch.stack([p.T_WC for p in ring.packets[a]]) + 0.01 for a in (0, 1)}
-    own = {a: torch.cat([T[:, :7], ring.packets[a][0].T_WC[7:].expand(len(T), 1)], 1)
-           for a, T in own.items()}
+    own = {
+        a: torch.cat([T[:, :7], ring.packets[a][0].T_WC[7:].expand(len(T), 1)], 1)
+        for a, T in own.items()
+    }
     cleanup = coordinator.finish(own)
     assert cleanup.updates == []  # the agents keep their own poses
     assert sorted(u.agent for u in cleanup.pointmaps) == [0, 1]
     for a in (0, 1):
-        assert torch.equal(coordinator.graph.poses(coordinator.graph.agent_keyframes(a)),
-                           own[a])
+        assert torch.equal(coordinator.graph.poses(coordinator.graph.agent_keyframes(a)), own[a])
     record = coordinator.metrics()["alternation"]
     assert [r["agents"] for r in record] == [[0], [1]]
     assert all(r["cleanup_passes"] == 0 and r["rounds"] == 1 for r in record)
@@ -401,10 +475,14 @@ def _retrieval_hits(scene: Scene, order: list[KeyframePacket], monkeypatch) -> t
     packets in ``order`` to a new coordinator."""
     hits, searches = [], []
     query_and_add, assign = RetrievalDatabase.query_and_add, RetrievalDatabase._assign
-    monkeypatch.setattr(RetrievalDatabase, "query_and_add",
-                        lambda *a, **k: hits.append(query_and_add(*a, **k)) or hits[-1])
-    monkeypatch.setattr(RetrievalDatabase, "_assign",
-                        lambda *a, **k: searches.append(1) or assign(*a, **k))
+    monkeypatch.setattr(
+        RetrievalDatabase,
+        "query_and_add",
+        lambda *a, **k: hits.append(query_and_add(*a, **k)) or hits[-1],
+    )
+    monkeypatch.setattr(
+        RetrievalDatabase, "_assign", lambda *a, **k: searches.append(1) or assign(*a, **k)
+    )
     coordinator = Coordinator(scene.prior, scene.config, scene.prior.codebook(), 4)
     for packet in order:
         coordinator.add_keyframe(packet)
@@ -417,9 +495,14 @@ def test_the_agents_retrieval_words_spare_the_coordinators_search(ring, monkeypa
     with the same hits; another codebook's are not."""
     order = _interleave(ring, [0, 1])
     agents_database = RetrievalDatabase(ring.prior.codebook(), ring.config.retrieval)
-    with_words = [dataclasses.replace(
-        p, retrieval_words=agents_database.quantize(p.retrieval[0]).words.astype(np.int32),
-        codebook_id=agents_database.codebook_id) for p in order]
+    with_words = [
+        dataclasses.replace(
+            p,
+            retrieval_words=agents_database.quantize(p.retrieval[0]).words.astype(np.int32),
+            codebook_id=agents_database.codebook_id,
+        )
+        for p in order
+    ]
     hits, searches = _retrieval_hits(ring, order, monkeypatch)
     assert searches == len(order) and any(hits)
     assert _retrieval_hits(ring, with_words, monkeypatch) == (hits, 0)

@@ -54,8 +54,9 @@ def test_umeyama_transport_recovers_a_known_sim3(dtype) -> None:
     T_true = sim3_exp(torch.tensor([1.0, -2.0, 0.5, 0.3, -0.2, 0.9, 0.4], dtype=dtype))
     x_moving = _points(500, dtype)
     x_anchor = sim3_act(T_true, x_moving)
-    x_anchor = x_anchor + 0.01 * torch.randn(x_anchor.shape, generator=torch.Generator()
-                                             .manual_seed(1)).to(dtype)
+    x_anchor = x_anchor + 0.01 * torch.randn(
+        x_anchor.shape, generator=torch.Generator().manual_seed(1)
+    ).to(dtype)
     x_anchor[:40] += 5.0  # occluded / mismatched pixels
     weights = torch.ones(500, dtype=dtype)
     identity = torch.tensor([0, 0, 0, 0, 0, 0, 1, 1], dtype=dtype)
@@ -73,8 +74,9 @@ def test_rigid_snap_below_the_minimum_correspondences(dtype) -> None:
     T_anchor = sim3_exp(torch.tensor([0.5, 0.1, 2.0, 0.0, 0.3, 0.0, 0.2], dtype=dtype))
     T_moving = sim3_exp(torch.tensor([-1.0, 0.0, 0.3, 0.1, 0.0, -0.4, -0.1], dtype=dtype))
     x = _points(63, dtype)
-    transform = solve_gauge_transform(x, x + 1.0, torch.ones(63, dtype=dtype), T_moving,
-                                      T_anchor, min_correspondences=64)
+    transform = solve_gauge_transform(
+        x, x + 1.0, torch.ones(63, dtype=dtype), T_moving, T_anchor, min_correspondences=64
+    )
     assert transform.method == "rigid_snap"
     assert math.isnan(transform.rmse)
     # the moving endpoint lands exactly on the anchor endpoint (C-Sec. A.4)
@@ -95,8 +97,7 @@ def test_transport_left_multiplies_every_pose(dtype) -> None:
     moved = transport(T, poses)
     point = torch.tensor([0.3, -0.2, 1.0], dtype=dtype)
     for pose, new in zip(poses, moved):
-        assert torch.allclose(sim3_act(new, point), sim3_act(T, sim3_act(pose, point)),
-                              atol=1e-5)
+        assert torch.allclose(sim3_act(new, point), sim3_act(T, sim3_act(pose, point)), atol=1e-5)
 
 
 def test_residual_ratio_measures_relative_disagreement(dtype) -> None:
@@ -113,9 +114,9 @@ def test_edge_log_scale_measures_how_much_a_link_would_rescale_the_map() -> None
     generator = torch.Generator().manual_seed(5)
     x = torch.randn(200, 3, generator=generator, dtype=torch.float64) * 2.0
     weights = torch.ones(200, dtype=torch.float64)
-    T = sim3_exp(torch.tensor([0.5, -1.0, 2.0, 0.1, 0.2, -0.3, math.log(1.3)],
-                              dtype=torch.float64))
+    T = sim3_exp(torch.tensor([0.5, -1.0, 2.0, 0.1, 0.2, -0.3, math.log(1.3)], dtype=torch.float64))
     assert edge_log_scale(x, sim3_act(T[None], x), weights, 64) == pytest.approx(
-        math.log(1.3), abs=1e-6)
+        math.log(1.3), abs=1e-6
+    )
     assert edge_log_scale(x, x + 0.5, weights, 64) == pytest.approx(0.0, abs=1e-9)
     assert math.isnan(edge_log_scale(x[:10], x[:10], weights[:10], 64))

@@ -12,10 +12,13 @@ from pathlib import Path
 
 
 def _shared_data() -> Path:
-    candidates = [Path(os.environ["COMO3R_SHARED_DATA"])] if "COMO3R_SHARED_DATA" in os.environ \
-        else []
-    candidates += [Path(__file__).resolve().parents[3] / "shared" / "data",
-                   Path("/work/shared/data")]
+    candidates = (
+        [Path(os.environ["COMO3R_SHARED_DATA"])] if "COMO3R_SHARED_DATA" in os.environ else []
+    )
+    candidates += [
+        Path(__file__).resolve().parents[3] / "shared" / "data",
+        Path("/work/shared/data"),
+    ]
     return next((path for path in candidates if path.is_dir()), candidates[0])
 
 

@@ -197,16 +197,18 @@ def test_groundtruth_and_odometry_association(tmp_path):
     frames = list(agent)
     assert [f.T_WC_gt is not None for f in frames] == [True, False, True, False, False, True]
     alpha = (0.2 - 0.15) / (0.204 - 0.15)
-    torch.testing.assert_close(frames[2].T_WC_gt[:3], (1 - alpha) * gt[1, :3] + alpha * gt[2, :3],
-                               atol=1e-6, rtol=0)
+    torch.testing.assert_close(
+        frames[2].T_WC_gt[:3], (1 - alpha) * gt[1, :3] + alpha * gt[2, :3], atol=1e-6, rtol=0
+    )
     assert frames[2].T_WC_gt.shape == (8,) and frames[2].T_WC_gt.dtype == torch.float64
     torch.testing.assert_close(frames[5].T_WC_gt, gt[3], atol=1e-6, rtol=0)
     indices, trajectory = agent.gt_for_frames()
     np.testing.assert_array_equal(indices, [0, 2, 5])
     np.testing.assert_allclose(trajectory.timestamps, [0.0, 0.2, 0.5])
     torch.testing.assert_close(trajectory.T_WC[[0, 2]], gt[[0, 3]], atol=1e-6, rtol=0)
-    assert agent.missing_gt_warning().endswith("3 of 6 frames have no ground-truth pose "
-                                               "(3 in gaps wider than 0.1 s)")
+    assert agent.missing_gt_warning().endswith(
+        "3 of 6 frames have no ground-truth pose (3 in gaps wider than 0.1 s)"
+    )
 
 
 def test_associate_timestamps_nearest_within_tolerance():
@@ -315,8 +317,14 @@ def test_timestamps_count_mismatch(tmp_path):
 
 @pytest.mark.parametrize(
     "text",
-    ["0.0\n0.1\n0.1\n0.3\n", "0.0\n0.2\n0.1\n0.3\n", "0.0\nabc\n0.2\n0.3\n", "0 a b\n1\n2\n3\n",
-     "0.0\n0.1 rgb/0001.png\n0.2\n0.3\n", "0.0\nnan\n0.2\n0.3\n"],
+    [
+        "0.0\n0.1\n0.1\n0.3\n",
+        "0.0\n0.2\n0.1\n0.3\n",
+        "0.0\nabc\n0.2\n0.3\n",
+        "0 a b\n1\n2\n3\n",
+        "0.0\n0.1 rgb/0001.png\n0.2\n0.3\n",
+        "0.0\nnan\n0.2\n0.3\n",
+    ],
     ids=["repeated", "decreasing", "not-a-number", "three-fields", "mixed", "nan"],
 )
 def test_bad_timestamps(tmp_path, text):
@@ -333,8 +341,16 @@ def test_tum_timestamps_missing_an_image(tmp_path):
 
 @pytest.mark.parametrize(
     "text",
-    ["500 500 16\n", "500 500 16 12 0.1\n", "500 x 16 12\n", "-500 500 16 12\n", "500 0 16 12\n",
-     "500 500 nan 12\n", "500 500 16 12\n500 500 16 12\n", ""],
+    [
+        "500 500 16\n",
+        "500 500 16 12 0.1\n",
+        "500 x 16 12\n",
+        "-500 500 16 12\n",
+        "500 0 16 12\n",
+        "500 500 nan 12\n",
+        "500 500 16 12\n500 500 16 12\n",
+        "",
+    ],
     ids=["three", "five", "word", "negative-fx", "zero-fy", "nan", "two-lines", "empty"],
 )
 def test_bad_calib(tmp_path, text):
@@ -418,19 +434,28 @@ def test_file_that_is_not_a_video(tmp_path):
     assert_input_error("frame.png", open_agent, tmp_path / "frame.png")
 
 
-@pytest.mark.parametrize("stems, expected", [
-    (["1305031102.175304", "1305031102.211214", "1305031102.243211"],
-     [1305031102.175304, 1305031102.211214, 1305031102.243211]),
-    (["1403636579763555584", "1403636579813555456", "1403636579863555584"],
-     [1403636579.763555584, 1403636579.813555456, 1403636579.863555584]),
-])
+@pytest.mark.parametrize(
+    "stems, expected",
+    [
+        (
+            ["1305031102.175304", "1305031102.211214", "1305031102.243211"],
+            [1305031102.175304, 1305031102.211214, 1305031102.243211],
+        ),
+        (
+            ["1403636579763555584", "1403636579813555456", "1403636579863555584"],
+            [1403636579.763555584, 1403636579.813555456, 1403636579.863555584],
+        ),
+    ],
+)
 def test_images_named_by_timestamp_give_the_timestamps(tmp_path, stems, expected):
     agent = open_agent(write_agent(tmp_path / "a", n=3, stems=stems))
     np.testing.assert_allclose(agent.timestamps, expected, rtol=0, atol=1e-6)
 
 
-@pytest.mark.parametrize("stems", [["000001", "000002", "000003"], ["1", "2", "3"],
-                                   ["1305031102.1", "frame", "1305031102.3"]])
+@pytest.mark.parametrize(
+    "stems",
+    [["000001", "000002", "000003"], ["1", "2", "3"], ["1305031102.1", "frame", "1305031102.3"]],
+)
 def test_frame_numbers_are_not_timestamps(tmp_path, stems):
     agent = open_agent(write_agent(tmp_path / "a", n=3, stems=stems), fps=10.0)
     np.testing.assert_allclose(agent.timestamps, [0.0, 0.1, 0.2])

@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from como3r.data.agent import open_agent
 from como3r.data.poses import MAX_GAP, poses_at, slerp
 from como3r.io.tum import Trajectory, read_tum
+
 from .shared_data import SHARED_DATA
 
 TEDDY = SHARED_DATA / "tum_freiburg3_teddy_100/rgbd_dataset_freiburg3_teddy"
@@ -77,7 +78,8 @@ def test_the_real_tum_excerpt_has_poses_after_its_motion_capture_starts():
     assert agent.num_frames == 100 and has.sum() == 95
     np.testing.assert_array_equal(has, agent.timestamps >= first_pose)
     assert agent.missing_gt_warning().endswith(
-        "5 of 100 frames have no ground-truth pose (5 before the first ground-truth pose)")
+        "5 of 100 frames have no ground-truth pose (5 before the first ground-truth pose)"
+    )
     frame = agent.load_frame(50)
     t = agent.timestamps[50]
     gt = agent.groundtruth
@@ -95,8 +97,11 @@ def cut_hole(source: Path, target: Path, start: float, seconds: float) -> Path:
         (target / name).symlink_to(source / name)
     lines = (source / "groundtruth.txt").read_text().splitlines()
     first = read_tum(source / "groundtruth.txt").timestamps[0]
-    kept = [line for line in lines if line.startswith("#")
-            or not start <= float(line.split()[0]) - first < start + seconds]
+    kept = [
+        line
+        for line in lines
+        if line.startswith("#") or not start <= float(line.split()[0]) - first < start + seconds
+    ]
     (target / "groundtruth.txt").write_text("\n".join(kept) + "\n")
     return target
 
@@ -122,8 +127,10 @@ def test_a_wider_hole_leaves_its_frames_out(tmp_path):
     hole = (agent.timestamps > gt[0] + 0.99) & (agent.timestamps < gt[0] + 1.3)
     assert 8 <= hole.sum() <= 10
     np.testing.assert_array_equal(agent.has_gt_pose, (agent.timestamps >= gt[0]) & ~hole)
-    assert f"(5 before the first ground-truth pose, {int(hole.sum())} in gaps wider than " \
-           "0.1 s)" in agent.missing_gt_warning()
+    assert (
+        f"(5 before the first ground-truth pose, {int(hole.sum())} in gaps wider than "
+        "0.1 s)" in agent.missing_gt_warning()
+    )
 
 
 def test_encodable_frames_of_the_simulated_prior(tmp_path):
@@ -135,18 +142,19 @@ def test_encodable_frames_of_the_simulated_prior(tmp_path):
 
     stamps = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
     for name, surface in (("plain", False), ("keys", True)):
-        root = write_agent(tmp_path / name, n=6, timestamps=stamps, surface=surface,
-                           groundtruth=True)
+        root = write_agent(
+            tmp_path / name, n=6, timestamps=stamps, surface=surface, groundtruth=True
+        )
         rows = (root / "groundtruth.txt").read_text().splitlines()
         (root / "groundtruth.txt").write_text("\n".join(rows[-4:]) + "\n")  # from 0.2 s
         agent = open_agent(root)
         if surface:
             assert encodable(agent).all() and skipped_warning(agent) is None
         else:
-            np.testing.assert_array_equal(encodable(agent), [False, False, True, True, True,
-                                                             True])
+            np.testing.assert_array_equal(encodable(agent), [False, False, True, True, True, True])
             assert skipped_warning(agent).endswith(
                 "2 of 6 frames have no ground-truth pose (2 before the first ground-truth "
-                "pose); --prior simulated skips them")
+                "pose); --prior simulated skips them"
+            )
     bare = open_agent(write_agent(tmp_path / "bare", n=3))
     assert encodable(bare).all() and skipped_warning(bare) is None

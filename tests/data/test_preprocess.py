@@ -230,8 +230,7 @@ def test_frame_ground_truth_follows_the_view():
     frame, calib = _frame_with_truth(), CALIB
     truth = frame_ground_truth(frame, long_side=256, calib=calib)
     _, transform = resize_crop(frame.image, 256)
-    torch.testing.assert_close(truth.depth,
-                               torch.from_numpy(transform.apply_nearest(frame.depth)))
+    torch.testing.assert_close(truth.depth, torch.from_numpy(transform.apply_nearest(frame.depth)))
     assert truth.surface.shape == (192, 256, 3) and truth.depth.dtype == torch.float32
     assert truth.T_WC is frame.T_WC_gt
     torch.testing.assert_close(truth.K, make_view(frame, 2, 256, calib).K)

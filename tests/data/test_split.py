@@ -48,8 +48,14 @@ def test_chunks_are_long_enough_whenever_the_ideal_length_is(agents):
 def test_split_images_with_every_side_file(tmp_path):
     stamps = [0.1 * i for i in range(20)]
     src = write_agent(
-        tmp_path / "seq", n=20, depth="png", surface=True, calib="500 500 16 12\n",
-        timestamps=stamps, groundtruth=True, odometry=True,
+        tmp_path / "seq",
+        n=20,
+        depth="png",
+        surface=True,
+        calib="500 500 16 12\n",
+        timestamps=stamps,
+        groundtruth=True,
+        odometry=True,
     )
     source = open_agent(src)
     folders = split_sequence(src, tmp_path / "out", agents=3, overlap=0.2)
@@ -101,9 +107,15 @@ def test_split_video(tmp_path):
 
 @pytest.mark.parametrize(
     "kwargs, match",
-    [({"agents": 0}, "agents"), ({"agents": 2.0}, "agents"), ({"overlap": 1.0}, "overlap"),
-     ({"overlap": -0.1}, "overlap"), ({"stride": 0}, "stride"), ({"agents": 4}, "too few"),
-     ({"agents": 2, "stride": 5}, "too few")],
+    [
+        ({"agents": 0}, "agents"),
+        ({"agents": 2.0}, "agents"),
+        ({"overlap": 1.0}, "overlap"),
+        ({"overlap": -0.1}, "overlap"),
+        ({"stride": 0}, "stride"),
+        ({"agents": 4}, "too few"),
+        ({"agents": 2, "stride": 5}, "too few"),
+    ],
 )
 def test_split_rejects_bad_arguments(tmp_path, kwargs, match):
     src = write_agent(tmp_path / "seq", n=6)
@@ -132,7 +144,7 @@ def test_split_of_a_distorted_sequence_writes_the_undistorted_frames(tmp_path):
     source = open_agent(tmp_path / "seq")
     assert not source.frames_are_files
     folders = split_sequence(tmp_path / "seq", tmp_path / "out", agents=2, overlap=0.0)
-    for folder, (start, stop) in zip(folders, chunk_ranges(6, 2, 0.0)):
+    for folder, (start, _stop) in zip(folders, chunk_ranges(6, 2, 0.0)):
         agent = open_agent(folder)
         assert agent.calib == source.calib
         for k, frame in enumerate(agent):

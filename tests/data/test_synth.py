@@ -25,8 +25,7 @@ FRAMES = 12
 
 def _synth(out: Path, **overrides) -> tuple[Path, int]:
     """Synthesize into ``out``; returns the folder and how often progress was called."""
-    args = dict(agents=2, seed=3, overlap=0.5, frames=FRAMES, preset="default", width=W,
-                height=H)
+    args = dict(agents=2, seed=3, overlap=0.5, frames=FRAMES, preset="default", width=W, height=H)
     args.update(overrides)
     out.mkdir(parents=True)
     calls = []
@@ -42,8 +41,10 @@ def scenes(tmp_path_factory) -> dict[str, tuple[Path, int]]:
         "aliasing": _synth(root / "aliasing", preset="aliasing", frames=40),
         "no-meeting": _synth(root / "no-meeting", preset="no-meeting", frames=8),
         "forward": _synth(root / "forward", preset="forward", frames=8, agents=3),
-        **{preset: _synth(root / preset, preset=preset, frames=10)
-           for preset in ("rotation", "fast", "low-texture", "covered", "revisit")},
+        **{
+            preset: _synth(root / preset, preset=preset, frames=10)
+            for preset in ("rotation", "fast", "low-texture", "covered", "revisit")
+        },
     }
 
 
@@ -69,9 +70,10 @@ class AgentData:
     def world_points(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """World points ``(H, W, 3)`` of frame i and the mask of pixels with depth."""
         depth = self.depth(i)
-        v, u = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
-        X_C = np.stack([(u - self.cx) / self.fx * depth, (v - self.cy) / self.fy * depth,
-                        depth], axis=-1)
+        v, u = np.mgrid[0 : depth.shape[0], 0 : depth.shape[1]]
+        X_C = np.stack(
+            [(u - self.cx) / self.fx * depth, (v - self.cy) / self.fy * depth, depth], axis=-1
+        )
         R, t = self.pose(i)
         return X_C @ R.T + t, depth > 0
 
@@ -104,8 +106,14 @@ def test_files_and_formats(scenes):
         agent = AgentData(folder / f"agent_{a}")
         assert agent.stems == [f"{i:06d}" for i in range(FRAMES)]
         assert (agent.fx, agent.fy, agent.cx, agent.cy) == pytest.approx(
-            (meta["camera"]["fx"], meta["camera"]["fy"], meta["camera"]["cx"],
-             meta["camera"]["cy"]), abs=1e-5)
+            (
+                meta["camera"]["fx"],
+                meta["camera"]["fy"],
+                meta["camera"]["cx"],
+                meta["camera"]["cy"],
+            ),
+            abs=1e-5,
+        )
         stamps = np.loadtxt(agent.folder / "timestamps.txt")
         np.testing.assert_allclose(stamps, np.arange(FRAMES) / 30.0, atol=1e-6)
         np.testing.assert_allclose(agent.trajectory.timestamps, stamps, atol=1e-9)
@@ -142,8 +150,9 @@ def test_ground_depth_is_metric(scenes, preset):
         assert agent.depth(i)[valid].min() > 0.5
 
 
-@pytest.mark.parametrize("preset,pairs", [("default", [(0, 2), (5, 6), (9, 11)]),
-                                          ("forward", [(1, 2), (5, 6)])])
+@pytest.mark.parametrize(
+    "preset,pairs", [("default", [(0, 2), (5, 6), (9, 11)]), ("forward", [(1, 2), (5, 6)])]
+)
 def test_reprojection_lands_on_the_same_surface_point(scenes, preset, pairs):
     """Unproject frame i with depth, K and the GT pose and project into frame j: where the
     point is visible in j, the landing pixel shows the same texture, and its key differs
@@ -195,8 +204,9 @@ def test_meeting_region_is_seen_by_both_agents(scenes):
         fa, fb = m["frames"][str(a)], m["frames"][str(b)]
         assert fa[1] == FRAMES - 1 and fb[0] == 0  # a ends on the stretch, b starts on it
         # a's first frame on the stretch and b's first frame are at the same place.
-        pa, pb = _common_key_points(_agent(scenes, "default", a), fa[0],
-                                    _agent(scenes, "default", b), fb[0], tol=0.03)
+        pa, pb = _common_key_points(
+            _agent(scenes, "default", a), fa[0], _agent(scenes, "default", b), fb[0], tol=0.03
+        )
         assert len(pa) > 0.05 * H * W
         # Same key means same place: both agents' ground truth agrees on the world point.
         assert np.median(np.linalg.norm(pa - pb, axis=1)) < 0.05
@@ -247,8 +257,7 @@ def test_default_scene_keys_are_unique(scenes):
 
 
 def test_deterministic(tmp_path):
-    args = dict(agents=2, seed=11, overlap=0.3, frames=3, preset="aliasing", width=32,
-                height=24)
+    args = dict(agents=2, seed=11, overlap=0.3, frames=3, preset="aliasing", width=32, height=24)
     first, _ = _synth(tmp_path / "a", **args)
     second, _ = _synth(tmp_path / "b", **args)
     other, _ = _synth(tmp_path / "c", **{**args, "seed": 12})
@@ -257,19 +266,38 @@ def test_deterministic(tmp_path):
     for rel in files:
         assert (first / rel).read_bytes() == (second / rel).read_bytes(), rel
     assert (first / "agent_0/rgb/000000.png").read_bytes() != (
-        other / "agent_0/rgb/000000.png").read_bytes()
+        other / "agent_0/rgb/000000.png"
+    ).read_bytes()
 
 
 def test_unknown_preset_lists_valid_ones(tmp_path):
     with pytest.raises(InputError, match="no-meeting") as info:
-        synthesize(tmp_path, agents=2, seed=0, overlap=0.2, frames=4, preset="urban",
-                   width=32, height=24, progress=None)
+        synthesize(
+            tmp_path,
+            agents=2,
+            seed=0,
+            overlap=0.2,
+            frames=4,
+            preset="urban",
+            width=32,
+            height=24,
+            progress=None,
+        )
     assert "urban" in str(info.value) and all(p in str(info.value) for p in PRESETS)
     assert not any(tmp_path.iterdir())
 
 
-@pytest.mark.parametrize("bad", [dict(agents=0), dict(frames=1), dict(overlap=1.5),
-                                 dict(overlap=float("nan")), dict(width=2), dict(agents=2.5)])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        dict(agents=0),
+        dict(frames=1),
+        dict(overlap=1.5),
+        dict(overlap=float("nan")),
+        dict(width=2),
+        dict(agents=2.5),
+    ],
+)
 def test_impossible_arguments(tmp_path, bad):
     args = dict(agents=2, seed=0, overlap=0.2, frames=4, preset="default", width=32, height=24)
     with pytest.raises(InputError):
@@ -278,8 +306,16 @@ def test_impossible_arguments(tmp_path, bad):
 
 def test_missing_output_folder(tmp_path):
     with pytest.raises(InputError, match="does not exist"):
-        synthesize(tmp_path / "nope", agents=1, seed=0, overlap=0.0, frames=2,
-                   preset="default", width=32, height=24)
+        synthesize(
+            tmp_path / "nope",
+            agents=1,
+            seed=0,
+            overlap=0.0,
+            frames=2,
+            preset="default",
+            width=32,
+            height=24,
+        )
 
 
 def _densify(points: np.ndarray, factor: int) -> np.ndarray:
@@ -298,8 +334,9 @@ def test_overlap_is_the_shared_fraction_of_each_path(preset, agents, overlap):
     reach = 0.5 if preset != "forward" else 0.35
     for a, path in enumerate(spec.paths):
         # Other paths densified to 1/8 of a step, so distances are to the polylines.
-        others = np.concatenate([_densify(p.positions[:, :2], 8)
-                                 for b, p in enumerate(spec.paths) if b != a])
+        others = np.concatenate(
+            [_densify(p.positions[:, :2], 8) for b, p in enumerate(spec.paths) if b != a]
+        )
         near = cKDTree(others).query(path.positions[:, :2])[0] < reach
         # Sampling of the other paths and the lateral offsets blur the stretch ends.
         assert abs(near.mean() - overlap) < 0.06
@@ -328,12 +365,31 @@ def test_cli_synth(tmp_path):
     from como3r.cli import app
 
     out = tmp_path / "scene"
-    result = CliRunner().invoke(app, ["synth", "--out", str(out), "--agents", "3", "--frames",
-                                      "2", "--width", "32", "--height", "24", "--preset",
-                                      "forward"])
+    result = CliRunner().invoke(
+        app,
+        [
+            "synth",
+            "--out",
+            str(out),
+            "--agents",
+            "3",
+            "--frames",
+            "2",
+            "--width",
+            "32",
+            "--height",
+            "24",
+            "--preset",
+            "forward",
+        ],
+    )
     assert result.exit_code == 0, result.output
-    assert sorted(p.name for p in out.iterdir()) == [".como3r-run", "agent_0", "agent_1",
-                                                      "agent_2", "scene.json"]
-    result = CliRunner().invoke(app, ["synth", "--out", str(tmp_path / "bad"), "--preset",
-                                      "city"])
+    assert sorted(p.name for p in out.iterdir()) == [
+        ".como3r-run",
+        "agent_0",
+        "agent_1",
+        "agent_2",
+        "scene.json",
+    ]
+    result = CliRunner().invoke(app, ["synth", "--out", str(tmp_path / "bad"), "--preset", "city"])
     assert result.exit_code == 2 and not (tmp_path / "bad").exists()

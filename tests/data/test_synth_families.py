@@ -54,45 +54,63 @@ def test_scale_multiplies_every_length_and_keeps_the_images(tmp_path):
     for i in range(4):
         stem = f"{i:06d}"
         assert (one / "rgb" / f"{stem}.png").read_bytes() == (
-            tenth / "rgb" / f"{stem}.png").read_bytes()
+            tenth / "rgb" / f"{stem}.png"
+        ).read_bytes()
         depth = np.load(one / "depth" / f"{stem}.npy")
         assert (depth > 0).mean() > 0.5
-        np.testing.assert_allclose(np.load(tenth / "depth" / f"{stem}.npy"), 0.1 * depth,
-                                   rtol=1e-6)
+        np.testing.assert_allclose(np.load(tenth / "depth" / f"{stem}.npy"), 0.1 * depth, rtol=1e-6)
         keys, keys_tenth = (np.load(f / "surface" / f"{stem}.npy") for f in (one, tenth))
         np.testing.assert_array_equal(keys_tenth[..., 0], keys[..., 0])
         assert np.abs(keys[..., 1:]).max() > 1.0
-        np.testing.assert_allclose(keys_tenth[..., 1:], 0.1 * keys[..., 1:], rtol=1e-6,
-                                   atol=1e-6)
+        np.testing.assert_allclose(keys_tenth[..., 1:], 0.1 * keys[..., 1:], rtol=1e-6, atol=1e-6)
     gt, gt_tenth = read_tum(one / "groundtruth.txt"), read_tum(tenth / "groundtruth.txt")
     assert np.ptp(gt.T_WC[:, :3].numpy(), axis=0).max() > 0.05
     np.testing.assert_allclose(gt_tenth.T_WC[:, :3], 0.1 * gt.T_WC[:, :3], rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(gt_tenth.T_WC[:, 3:], gt.T_WC[:, 3:], atol=1e-9)
     meta, meta_tenth = (json.loads((f.parent / "scene.json").read_text()) for f in (one, tenth))
     assert (meta["scale"], meta_tenth["scale"]) == (1.0, 0.1)
-    for get in (lambda m: m["speed_m_per_frame"], lambda m: m["camera"]["height_m"],
-                lambda m: m["agents_info"][0]["path_length_m"],
-                lambda m: m["layout"]["loop_length_m"]):
+    for get in (
+        lambda m: m["speed_m_per_frame"],
+        lambda m: m["camera"]["height_m"],
+        lambda m: m["agents_info"][0]["path_length_m"],
+        lambda m: m["layout"]["loop_length_m"],
+    ):
         assert get(meta_tenth) == pytest.approx(0.1 * get(meta), rel=1e-5)
     # The odometry's noise is relative to the scene depth: the same odometry, scaled.
     odometry = [read_tum(add_odometry(f, seed=7)).T_WC for f in (one, tenth)]
-    np.testing.assert_allclose(odometry[1][:, :3], 0.1 * odometry[0][:, :3], rtol=1e-5,
-                               atol=1e-7)
+    np.testing.assert_allclose(odometry[1][:, :3], 0.1 * odometry[0][:, :3], rtol=1e-5, atol=1e-7)
 
 
 @pytest.mark.parametrize("scale", [0.0, -1.0, float("nan"), float("inf"), "2", True])
 def test_scale_must_be_a_finite_positive_number(tmp_path, scale):
     with pytest.raises(InputError, match="--scale"):
-        synthesize(tmp_path, agents=1, seed=0, overlap=0.2, frames=2, preset="default",
-                   width=32, height=24, scale=scale)
+        synthesize(
+            tmp_path,
+            agents=1,
+            seed=0,
+            overlap=0.2,
+            frames=2,
+            preset="default",
+            width=32,
+            height=24,
+            scale=scale,
+        )
     assert not any(tmp_path.iterdir())
 
 
 @pytest.mark.parametrize("preset", sorted(MIN_FRAMES))
 def test_presets_that_need_more_frames_say_so(tmp_path, preset):
     with pytest.raises(InputError, match=f"\\[{MIN_FRAMES[preset]}, .*{preset}"):
-        synthesize(tmp_path, agents=1, seed=0, overlap=0.2, frames=MIN_FRAMES[preset] - 1,
-                   preset=preset, width=32, height=24)
+        synthesize(
+            tmp_path,
+            agents=1,
+            seed=0,
+            overlap=0.2,
+            frames=MIN_FRAMES[preset] - 1,
+            preset=preset,
+            width=32,
+            height=24,
+        )
 
 
 @pytest.mark.parametrize("preset", FAMILY_PRESETS)
@@ -115,7 +133,8 @@ def test_rotation_turns_in_place():
         assert _steps(path.positions).max() < 0.05 * default_step
         # ... while the camera pans through more than 45 degrees.
         turned = Rotation.from_matrix(path.rotations[0]).inv() * Rotation.from_matrix(
-            path.rotations[-1])
+            path.rotations[-1]
+        )
         assert np.degrees(turned.magnitude()) > 45.0
     # The agents stand at different places and share part of their headings.
     assert np.linalg.norm(spec.paths[0].positions[0] - spec.paths[1].positions[0]) > 1.0
@@ -141,8 +160,9 @@ def test_low_texture_has_far_less_image_gradient(tmp_path):
         return float(np.mean(energy))
 
     default = gradient_energy(_synth(tmp_path / "default", frames=3, width=128, height=96))
-    plain = gradient_energy(_synth(tmp_path / "plain", frames=3, width=128, height=96,
-                                   preset="low-texture"))
+    plain = gradient_energy(
+        _synth(tmp_path / "plain", frames=3, width=128, height=96, preset="low-texture")
+    )
     assert plain < 0.3 * default
 
 
@@ -154,8 +174,10 @@ def test_covered_frames_are_dark_and_show_nothing(tmp_path):
         agent = folder / f"agent_{a}"
         for i in range(12):
             stem = f"{i:06d}"
-            depth, keys = np.load(agent / "depth" / f"{stem}.npy"), np.load(
-                agent / "surface" / f"{stem}.npy")
+            depth, keys = (
+                np.load(agent / "depth" / f"{stem}.npy"),
+                np.load(agent / "surface" / f"{stem}.npy"),
+            )
             if first <= i <= last:
                 assert _grey(agent, stem).max() < 10.0
                 assert not np.any(depth > 0) and np.all(keys[..., 0] == -1)
@@ -175,11 +197,12 @@ def test_revisit_jumps_back_to_a_mapped_place():
         assert steps[jump - 1] > 5.0 * usual
         assert np.all(np.delete(steps, jump - 1) < 1.5 * usual)
         # The camera lands next to a pose it held well before the jump, looking the same way.
-        earlier = np.linalg.norm(path.positions[:jump - 5] - path.positions[jump], axis=1)
+        earlier = np.linalg.norm(path.positions[: jump - 5] - path.positions[jump], axis=1)
         k = int(np.argmin(earlier))
         assert earlier[k] < 0.3
         turned = Rotation.from_matrix(path.rotations[k]).inv() * Rotation.from_matrix(
-            path.rotations[jump])
+            path.rotations[jump]
+        )
         assert np.degrees(turned.magnitude()) < 25.0
         # The teleport is not distance travelled.
         assert path.length() == pytest.approx(np.delete(steps, jump - 1).sum(), rel=0.08)
@@ -194,8 +217,9 @@ def test_loop_frames_makes_a_short_path_turn_like_a_long_one(preset):
     usual = np.mean(_turns_deg(long.rotations))
     assert np.mean(_turns_deg(short.rotations)) > 2.0 * usual  # a tight 12-frame loop
     assert np.mean(_turns_deg(opened.rotations)) < 1.5 * usual
-    np.testing.assert_allclose(np.median(_steps(opened.positions)),
-                               np.median(_steps(long.positions)), rtol=0.1)
+    np.testing.assert_allclose(
+        np.median(_steps(opened.positions)), np.median(_steps(long.positions)), rtol=0.1
+    )
 
 
 def test_loop_frames_opens_the_ring_of_meetings():
@@ -212,7 +236,16 @@ def test_loop_frames_opens_the_ring_of_meetings():
 
 def test_loop_frames_is_validated_and_recorded(tmp_path):
     with pytest.raises(InputError, match="--loop-frames"):
-        synthesize(tmp_path, agents=1, seed=0, overlap=0.2, frames=4, preset="default",
-                   width=32, height=24, loop_frames=1)
+        synthesize(
+            tmp_path,
+            agents=1,
+            seed=0,
+            overlap=0.2,
+            frames=4,
+            preset="default",
+            width=32,
+            height=24,
+            loop_frames=1,
+        )
     folder = _synth(tmp_path / "scene", loop_frames=50)
     assert json.loads((folder / "scene.json").read_text())["loop_frames"] == 50

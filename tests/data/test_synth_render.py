@@ -83,7 +83,7 @@ def test_cylinder_and_cone_hits():
     # At z = 1.5 the cone's radius is 0.25: x = 3.75; descending, 4 - x = (2 - z) / 2.
     np.testing.assert_allclose(lam, [3.75, 3.75 / 1.05, np.inf])
     ids, s, t, nz = cone.surface(tuple((o + lam[0] * np.array([1.0, 0, 0]))[:, None]))
-    assert ids[0] == 9 and t[0] == pytest.approx(1.5) and nz[0] == pytest.approx(1 / 5 ** 0.5)
+    assert ids[0] == 9 and t[0] == pytest.approx(1.5) and nz[0] == pytest.approx(1 / 5**0.5)
 
 
 def test_cap_seen_from_below_is_the_base():
@@ -131,8 +131,9 @@ def test_colour_is_a_function_of_the_key():
         ids = keys[:, 0].astype(int)
         for kind, normal_z in ((Kind.FACADE, 0.0), (Kind.PAVING, 1.0)):
             sel = np.nonzero((ids >= 0) & (kinds[np.maximum(ids, 0)] == kind))[0]
-            expected = shade(bank.albedo(ids[sel], keys[sel, 1], keys[sel, 2]),
-                             np.full(sel.size, normal_z))
+            expected = shade(
+                bank.albedo(ids[sel], keys[sel, 1], keys[sel, 2]), np.full(sel.size, normal_z)
+            )
             np.testing.assert_allclose(rgb[sel], np.round(expected * 255), atol=1)
             checked += sel.size
     assert checked > 96 * 72
@@ -193,8 +194,9 @@ def test_stadium_road_coordinates_follow_the_loop():
 def test_camera_rotations_follow_opencv():
     yaw = np.array([0.0, 1.0, -2.5])
     R = camera_rotations(yaw, np.array([0.0, 0.2, -0.1]), np.array([0.0, 0.05, 0.0]))
-    np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-12
+    )
     np.testing.assert_allclose(np.linalg.det(R), 1.0)
     # Level camera heading along +x: z forward = +x, x right = -y, y down = -z.
     np.testing.assert_allclose(R[0], [[0, 0, 1], [-1, 0, 0], [0, -1, 0]], atol=1e-12)

@@ -28,8 +28,9 @@ ROBOTS = 3
 def scene(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     """Agent folders of a 3-robot synthetic scene with ``odometry.txt``."""
     root = tmp_path_factory.mktemp("flocc_scene")
-    synthesize(root, agents=ROBOTS, seed=6, overlap=0.6, frames=60, preset="forward",
-               width=96, height=72)
+    synthesize(
+        root, agents=ROBOTS, seed=6, overlap=0.6, frames=60, preset="forward", width=96, height=72
+    )
     paths = [root / f"agent_{a}" for a in range(ROBOTS)]
     for a, path in enumerate(paths):
         add_odometry(path, seed=60 + a, params="lio")
@@ -40,17 +41,25 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
 def main_config() -> Config:
     """Network resolution of the scene; MASt3R-like scale inconsistency of the prior, on the
     easy simulated prior (registration and accuracy bounds fail under the realistic one)."""
-    return Config(input=InputConfig(long_side=96),
-                  simulated_prior=SimulatedPriorConfig(model="easy", scale_sigma=0.25))
+    return Config(
+        input=InputConfig(long_side=96),
+        simulated_prior=SimulatedPriorConfig(model="easy", scale_sigma=0.25),
+    )
 
 
-def flocc_settings(keyframe_distance_ratio: float = 0.22, timeout_s: float = 60.0,
-                   processes: bool = False, table: bool = False) -> DecentralizedConfig:
+def flocc_settings(
+    keyframe_distance_ratio: float = 0.22,
+    timeout_s: float = 60.0,
+    processes: bool = False,
+    table: bool = False,
+) -> DecentralizedConfig:
     """Decentralized settings for tests: threads, short timeouts, sparse keyframes (0.22 of
     the scene depth: about 2 m at the scene's 7-10 m median depth)."""
-    return DecentralizedConfig(keyframe_distance_ratio=keyframe_distance_ratio, table=table,
-                               protocol=ProtocolConfig(processes=processes,
-                                                       message_timeout_s=timeout_s))
+    return DecentralizedConfig(
+        keyframe_distance_ratio=keyframe_distance_ratio,
+        table=table,
+        protocol=ProtocolConfig(processes=processes, message_timeout_s=timeout_s),
+    )
 
 
 @pytest.fixture(scope="session")
@@ -61,9 +70,14 @@ def settings_factory():
 
 def _scale_tum(path: Path, factor: float) -> None:
     rows = [line.split() for line in path.read_text().splitlines()]
-    lines = [" ".join(row if not row or row[0].startswith("#") else
-                      [row[0], *(f"{float(v) * factor:.9f}" for v in row[1:4]), *row[4:]])
-             for row in rows]
+    lines = [
+        " ".join(
+            row
+            if not row or row[0].startswith("#")
+            else [row[0], *(f"{float(v) * factor:.9f}" for v in row[1:4]), *row[4:]]
+        )
+        for row in rows
+    ]
     path.write_text("\n".join(lines) + "\n")
 
 

@@ -26,16 +26,25 @@ ALIASED_DISTANCE_M = 3.0
 @pytest.fixture(scope="module")
 def aliased_run(tmp_path_factory, main_config, settings_factory):
     root = tmp_path_factory.mktemp("flocc_aliasing")
-    synthesize(root, agents=3, seed=12, overlap=0.5, frames=70, preset="aliasing",
-               width=96, height=72)
+    synthesize(
+        root, agents=3, seed=12, overlap=0.5, frames=70, preset="aliasing", width=96, height=72
+    )
     agents = [root / f"agent_{a}" for a in range(3)]
     for a, path in enumerate(agents):
         add_odometry(path, seed=120 + a, params="lio")
     out = root / "out"
-    run_decentralized(agents, out, main_config, PriorSpec("simulated"),
-                      settings_factory(keyframe_distance_ratio=KEYFRAME_DISTANCE_RATIO, table=True))
-    return agents, json.loads((out / "graph.json").read_text()), \
-        json.loads((out / "metrics.json").read_text())
+    run_decentralized(
+        agents,
+        out,
+        main_config,
+        PriorSpec("simulated"),
+        settings_factory(keyframe_distance_ratio=KEYFRAME_DISTANCE_RATIO, table=True),
+    )
+    return (
+        agents,
+        json.loads((out / "graph.json").read_text()),
+        json.loads((out / "metrics.json").read_text()),
+    )
 
 
 def _true_distance(agents, frames, a, i, b, j) -> float:
@@ -72,13 +81,15 @@ def test_pairwise_consistency_keeps_aliased_loops_from_bending_the_map(aliased_r
     assert not metrics["loop_check"][0]["scale_alarm"]
 
 
-def test_gnc_recovers_the_map_that_aliased_loops_break_for_lm(aliased_run, tmp_path,
-                                                              main_config, settings_factory):
+def test_gnc_recovers_the_map_that_aliased_loops_break_for_lm(
+    aliased_run, tmp_path, main_config, settings_factory
+):
     """Without pairwise consistency, GNC alone still rejects what LM cannot."""
     paths, _, _ = aliased_run
     settings = settings_factory(keyframe_distance_ratio=KEYFRAME_DISTANCE_RATIO, table=True)
-    settings = dataclasses.replace(settings, pose_graph=dataclasses.replace(
-        settings.pose_graph, consistency="none"))
+    settings = dataclasses.replace(
+        settings, pose_graph=dataclasses.replace(settings.pose_graph, consistency="none")
+    )
     run_decentralized(paths, tmp_path / "out", main_config, PriorSpec("simulated"), settings)
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     ate = {(r["formulation"], r["solver"]): r["merged_ate_rmse"][0] for r in metrics["table"]}

@@ -11,8 +11,8 @@ import gtsam
 import numpy as np
 import pytest
 
-from como3r.decentralized.config import DecentralizedConfig, PoseGraphConfig, check_config
 from como3r.decentralized import consistency
+from como3r.decentralized.config import DecentralizedConfig, PoseGraphConfig, check_config
 from como3r.decentralized.consistency import check_solution, consistent_loops, solve_checked
 from como3r.decentralized.messages import PoseGraphShare
 from como3r.decentralized.pose_graph import (
@@ -41,8 +41,9 @@ def _circle(robot: int) -> list[gtsam.Pose3]:
 
 def _config(**overrides) -> PoseGraphConfig:
     """Noise models matching the measurements: 2 cm odometry, 10 cm loops."""
-    return PoseGraphConfig(odom_sigma_trans_ratio=0.02 / SPACING,
-                           loop_sigma_trans_ratio=0.1 / SPACING, **overrides)
+    return PoseGraphConfig(
+        odom_sigma_trans_ratio=0.02 / SPACING, loop_sigma_trans_ratio=0.1 / SPACING, **overrides
+    )
 
 
 @dataclasses.dataclass
@@ -67,16 +68,20 @@ def _data(seed: int, look_alike: int = 0, wrong_scale: int = 0) -> _Data:
         for b in range(a + 1, 3):
             for i in range(0, COUNT, 3):
                 relative = truth[a][i].between(truth[b][i])
-                noisy = relative.compose(gtsam.Pose3.Expmap(np.concatenate(
-                    [0.005 * rng.normal(size=3), 0.02 * rng.normal(size=3)])))
+                noisy = relative.compose(
+                    gtsam.Pose3.Expmap(
+                        np.concatenate([0.005 * rng.normal(size=3), 0.02 * rng.normal(size=3)])
+                    )
+                )
                 loops.append(LoopClosure(a, i, b, i, from_pose3(noisy), 1.0, 1.0, 0.9, 500))
     true_loops = len(loops)
     for n in range(look_alike):
         a, b = (0, 1) if n % 2 == 0 else (1, 2)
         i = int(rng.integers(COUNT))
         j = (i + COUNT // 2 + int(rng.integers(-3, 4))) % COUNT
-        claimed = gtsam.Pose3(gtsam.Rot3.Ypr(*rng.uniform(-0.2, 0.2, 3)),
-                              rng.uniform(-0.5, 0.5, 3) * SPACING)
+        claimed = gtsam.Pose3(
+            gtsam.Rot3.Ypr(*rng.uniform(-0.2, 0.2, 3)), rng.uniform(-0.5, 0.5, 3) * SPACING
+        )
         loops.append(LoopClosure(a, i, b, j, from_pose3(claimed), 1.0, 1.0, 0.9, 500))
     for n in range(wrong_scale):
         loop = loops[(5 * n + 1) % true_loops]
@@ -88,32 +93,36 @@ def _data(seed: int, look_alike: int = 0, wrong_scale: int = 0) -> _Data:
 
 
 def _rmse(truth: dict[int, list[gtsam.Pose3]], poses: dict[int, np.ndarray]) -> float:
-    errors = [np.linalg.norm(poses[r][k, :3] - p.translation())
-              for r, ps in truth.items() for k, p in enumerate(ps)]
+    errors = [
+        np.linalg.norm(poses[r][k, :3] - p.translation())
+        for r, ps in truth.items()
+        for k, p in enumerate(ps)
+    ]
     return float(np.sqrt(np.mean(np.square(errors))))
 
 
 def test_pairwise_consistency_keeps_true_loops_and_holds_back_wrong_ones():
     data = _data(0, look_alike=4, wrong_scale=4)
     keep = consistent_loops(data.problem, _config())
-    assert keep[:data.true_loops].all()
-    assert not keep[data.true_loops:].any(), keep[data.true_loops:]
+    assert keep[: data.true_loops].all()
+    assert not keep[data.true_loops :].any(), keep[data.true_loops :]
 
 
 def test_the_greedy_clique_of_many_loops_holds_back_the_wrong_ones(monkeypatch):
     monkeypatch.setattr(consistency, "MAX_EXACT_LOOPS", 2)
     data = _data(0, look_alike=4, wrong_scale=4)
     keep = consistent_loops(data.problem, _config())
-    assert keep[:data.true_loops].all()
-    assert not keep[data.true_loops:].any(), keep[data.true_loops:]
+    assert keep[: data.true_loops].all()
+    assert not keep[data.true_loops :].any(), keep[data.true_loops :]
 
 
 def test_a_graph_with_injected_wrong_loops_keeps_its_true_solution():
     """About 25 % wrong loops: the default solve behind pairwise consistency lands on the
     clean solution, the same solve without it is bent."""
     data = _data(1, look_alike=3, wrong_scale=3)
-    clean = PoseGraphProblem(data.problem.odometry, data.problem.loops[:data.true_loops], 0,
-                             data.problem.anchor_pose)
+    clean = PoseGraphProblem(
+        data.problem.odometry, data.problem.loops[: data.true_loops], 0, data.problem.anchor_pose
+    )
     reference = _rmse(data.truth, solve_pose_graph(clean, "smoothed", "lm", _config()).poses)
     solution, check = solve_checked(data.problem, "smoothed", "lm", _config())
     assert not check.alarm
@@ -129,18 +138,19 @@ def test_the_scale_alarm_reports_a_loop_set_that_changes_a_robots_scale(caplog):
     poses = {r: np.stack([from_pose3(p) for p in ps]) for r, ps in data.truth.items()}
     poses[1][:, :3] = 1.5 * poses[1][:, :3]
     count = len(problem.loops)
-    stretched = PoseGraphSolution(poses, np.ones(count), np.ones(count), np.zeros(count),
-                                  0.0, 1, 0.0)
+    stretched = PoseGraphSolution(
+        poses, np.ones(count), np.ones(count), np.zeros(count), 0.0, 1, 0.0
+    )
     with caplog.at_level(logging.WARNING):
-        check = check_solution(problem, stretched, np.ones(count, dtype=bool), [0, 1, 2],
-                               config)
+        check = check_solution(problem, stretched, np.ones(count, dtype=bool), [0, 1, 2], config)
     assert check.alarm
     assert check.robot_scale_log[1] == pytest.approx(math.log(1.5), abs=1e-6)
     assert "scale-collapse alarm" in caplog.text
     assert check.to_json()["scale_alarm"] is True
     # The true solution raises nothing.
-    truth = dataclasses.replace(stretched, poses={r: np.stack([from_pose3(p) for p in ps])
-                                                  for r, ps in data.truth.items()})
+    truth = dataclasses.replace(
+        stretched, poses={r: np.stack([from_pose3(p) for p in ps]) for r, ps in data.truth.items()}
+    )
     calm = check_solution(problem, truth, np.ones(count, dtype=bool), [0, 1, 2], config)
     assert not calm.alarm and math.isnan(calm.merged_scale_log)
 
@@ -156,23 +166,35 @@ def test_the_scale_alarm_compares_the_merged_map_with_the_previous_one():
     moved = {r: poses.copy() for r, poses in truth.items()}
     for poses in moved.values():
         poses[:, :3] = centre + 1.5 * (poses[:, :3] - centre)
-    solution = PoseGraphSolution(moved, np.ones(count), np.ones(count), np.zeros(count),
-                                 0.0, 1, 0.0)
-    check = check_solution(problem, solution, np.ones(count, dtype=bool), [0, 1, 2], config,
-                           reference=truth)
+    solution = PoseGraphSolution(
+        moved, np.ones(count), np.ones(count), np.zeros(count), 0.0, 1, 0.0
+    )
+    check = check_solution(
+        problem, solution, np.ones(count, dtype=bool), [0, 1, 2], config, reference=truth
+    )
     assert check.merged_scale_log == pytest.approx(math.log(1.5), abs=1e-9)
     assert check.alarm
     same = dataclasses.replace(solution, poses=truth)
-    calm = check_solution(problem, same, np.ones(count, dtype=bool), [0, 1, 2], config,
-                          reference=truth)
+    calm = check_solution(
+        problem, same, np.ones(count, dtype=bool), [0, 1, 2], config, reference=truth
+    )
     assert abs(calm.merged_scale_log) < 1e-9 and not calm.alarm
 
 
 def _shares(problem: PoseGraphProblem) -> dict[int, PoseGraphShare]:
-    return {r: PoseGraphShare(sender=r, recipient=0, round=0, time_s=0.0, odometry=odometry,
-                              estimate=np.zeros((0, 8)), frame=r,
-                              loops=[l for l in problem.loops if l.robot_a == r])
-            for r, odometry in problem.odometry.items()}
+    return {
+        r: PoseGraphShare(
+            sender=r,
+            recipient=0,
+            round=0,
+            time_s=0.0,
+            odometry=odometry,
+            estimate=np.zeros((0, 8)),
+            frame=r,
+            loops=[l for l in problem.loops if l.robot_a == r],
+        )
+        for r, odometry in problem.odometry.items()
+    }
 
 
 def test_a_group_whose_solve_raises_the_alarm_keeps_its_estimates():

@@ -88,12 +88,15 @@ def test_asmk_searches_each_keyframe_once_over_rounds(monkeypatch):
             database.add(1, k, descriptors)
         return np.stack([database.scores(descriptors) for descriptors in rows])
 
-    expected = [searched_per_call(places[:2], places[2:3]),
-                searched_per_call(places[:2], places[2:])]
+    expected = [
+        searched_per_call(places[:2], places[2:3]),
+        searched_per_call(places[:2], places[2:]),
+    ]
     searches = []
     assign = RetrievalDatabase._assign
-    monkeypatch.setattr(RetrievalDatabase, "_assign",
-                        lambda *a, **k: searches.append(1) or assign(*a, **k))
+    monkeypatch.setattr(
+        RetrievalDatabase, "_assign", lambda *a, **k: searches.append(1) or assign(*a, **k)
+    )
     recognizer = PlaceRecognizer("asmk", codebook, RetrievalConfig())
     np.testing.assert_array_equal(recognizer.similarity(places[:2], places[2:3]), expected[0])
     np.testing.assert_array_equal(recognizer.similarity(places[:2], places[2:]), expected[1])
@@ -101,12 +104,13 @@ def test_asmk_searches_each_keyframe_once_over_rounds(monkeypatch):
 
 
 def test_candidates_are_best_matches_above_threshold_from_both_sides():
-    similarity = np.array([[0.9, 0.2, 0.0],
-                           [0.8, 0.3, 0.05],
-                           [0.0, 0.05, 0.08]])
+    similarity = np.array([[0.9, 0.2, 0.0], [0.8, 0.3, 0.05], [0.0, 0.05, 0.08]])
     found = candidate_pairs(similarity, 0.1)
     assert [(c.row, c.col, c.by_row, c.by_col) for c in found] == [
-        (0, 0, True, True), (1, 0, True, False), (1, 1, False, True)]
+        (0, 0, True, True),
+        (1, 0, True, False),
+        (1, 1, False, True),
+    ]
     # Column 2's best (row 1, 0.05) and row 2's best (col 2, 0.08) are below the threshold.
     assert [(c.row, c.col) for c in candidate_pairs(similarity, 0.1, {(0, 0)})] == [(1, 0), (1, 1)]
 
@@ -116,10 +120,16 @@ def test_candidates_are_best_matches_above_threshold_from_both_sides():
 
 def test_ransac_similarity_recovers_the_transform_despite_outliers(dtype):
     gen = torch.Generator().manual_seed(0)
-    src = torch.randn(200, 3, generator=gen, dtype=dtype) * 2 + torch.tensor([0, 0, 6.0],
-                                                                              dtype=dtype)
-    T = torch.cat([torch.tensor([0.3, -0.2, 0.5]), so3_exp(torch.tensor([0.1, 0.2, -0.1])),
-                   torch.tensor([1.3])]).to(dtype)
+    src = torch.randn(200, 3, generator=gen, dtype=dtype) * 2 + torch.tensor(
+        [0, 0, 6.0], dtype=dtype
+    )
+    T = torch.cat(
+        [
+            torch.tensor([0.3, -0.2, 0.5]),
+            so3_exp(torch.tensor([0.1, 0.2, -0.1])),
+            torch.tensor([1.3]),
+        ]
+    ).to(dtype)
     dst = sim3_act(T, src)
     dst[:60] += torch.randn(60, 3, generator=gen, dtype=dtype) * 3  # 30 % outliers
     fit = ransac_similarity(src, dst, RegistrationConfig(), generator(0, "test"))
@@ -132,8 +142,7 @@ def test_ransac_similarity_recovers_the_transform_despite_outliers(dtype):
 
 def test_ransac_similarity_gives_up_without_support():
     src = torch.randn(8, 3)
-    assert ransac_similarity(src, src, RegistrationConfig(min_inliers=12),
-                             generator(0)) is None
+    assert ransac_similarity(src, src, RegistrationConfig(min_inliers=12), generator(0)) is None
 
 
 def _room_points(count: int, gen: torch.Generator) -> torch.Tensor:
@@ -156,8 +165,13 @@ def test_ransac_similarity_refuses_unrelated_matches_whatever_their_number():
         src, dst = _room_points(count, gen), _room_points(count, gen)
         assert ransac_similarity(src, dst, config, generator(0, count)) is None
     # The same 3000 matches with 40 % of them true are registered.
-    T = torch.cat([torch.tensor([0.4, 0.1, -0.3]), so3_exp(torch.tensor([0.05, 0.3, 0.0])),
-                   torch.tensor([0.8])]).double()
+    T = torch.cat(
+        [
+            torch.tensor([0.4, 0.1, -0.3]),
+            so3_exp(torch.tensor([0.05, 0.3, 0.0])),
+            torch.tensor([0.8]),
+        ]
+    ).double()
     dst[:1200] = sim3_act(T, src[:1200].double()).float()
     fit = ransac_similarity(src, dst, config, generator(0, "true"))
     assert fit is not None
@@ -198,8 +212,12 @@ def test_odometry_neighbour():
 @pytest.fixture(scope="module")
 def registrars(scene, main_config):
     """Registrars of robots 0 and 1 of the scene, with their keyframes (2 m apart)."""
-    prior = SimulatedPrior(main_config.simulated_prior, AgentFolderTruth(
-        {robot: open_agent(scene[robot]) for robot in (0, 1)}, main_config.input.long_side))
+    prior = SimulatedPrior(
+        main_config.simulated_prior,
+        AgentFolderTruth(
+            {robot: open_agent(scene[robot]) for robot in (0, 1)}, main_config.input.long_side
+        ),
+    )
     out = []
     for robot in (0, 1):
         agent = open_agent(scene[robot])
@@ -214,15 +232,17 @@ def registrars(scene, main_config):
 
 
 def _true_relative(agent_a, frame_a, agent_b, frame_b):
-    return sim3_compose(sim3_inverse(agent_a.groundtruth.T_WC[frame_a]),
-                        agent_b.groundtruth.T_WC[frame_b])
+    return sim3_compose(
+        sim3_inverse(agent_a.groundtruth.T_WC[frame_a]), agent_b.groundtruth.T_WC[frame_b]
+    )
 
 
 def _nearest_keyframe(agent_a, frame_a, agent_b, keyframes_b) -> int:
     """Keyframe of robot b whose true camera centre is nearest to robot a's frame."""
     centre = agent_a.groundtruth.T_WC[frame_a, :3]
-    distances = (agent_b.groundtruth.T_WC[torch.from_numpy(keyframes_b.frames), :3]
-                 - centre).norm(dim=1)
+    distances = (agent_b.groundtruth.T_WC[torch.from_numpy(keyframes_b.frames), :3] - centre).norm(
+        dim=1
+    )
     return int(torch.argmin(distances))
 
 
@@ -271,8 +291,14 @@ def test_two_stage_encoding_encodes_each_keyframe_once(registrars):
 def test_an_encoding_this_prior_cannot_decode_is_refused(registrars, caplog):
     (reg_a, _, _), (reg_b, _, _) = registrars
     theirs = reg_b.encoding_for_peer(2)
-    foreign = MASt3REncoding(agent=1, index=0, shape=(16, 16), tokens=torch.zeros(1, 8),
-                             pos=torch.zeros(1, 2, dtype=torch.int64), grid=(1, 1))
+    foreign = MASt3REncoding(
+        agent=1,
+        index=0,
+        shape=(16, 16),
+        tokens=torch.zeros(1, 8),
+        pos=torch.zeros(1, 2, dtype=torch.int64),
+        grid=(1, 1),
+    )
     reg_a.add_foreign(1, 5, foreign)
     reg_a.add_foreign(1, 6, dataclasses.replace(theirs, ranges=theirs.ranges[None]))
     for keyframe in (5, 6):

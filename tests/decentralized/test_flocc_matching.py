@@ -19,7 +19,8 @@ def _views(seed: int, H: int, W: int, d: int = 24, noise: float = 0.3):
     D_i = torch.nn.functional.normalize(torch.randn(H, W, d, generator=gen), dim=-1)
     shuffled = D_i.reshape(-1, d)[torch.randperm(H * W, generator=gen)]
     D_j = torch.nn.functional.normalize(
-        shuffled + noise * torch.randn(H * W, d, generator=gen), dim=-1).reshape(H, W, d)
+        shuffled + noise * torch.randn(H * W, d, generator=gen), dim=-1
+    ).reshape(H, W, d)
     Q_i = 1.0 + 4.0 * torch.rand(H, W, generator=gen)
     Q_j = 1.0 + 4.0 * torch.rand(H, W, generator=gen)
     return D_i, D_j, Q_i, Q_j
@@ -33,8 +34,9 @@ def _brute_force(D_i, D_j, Q_i, Q_j, config: RegistrationConfig):
     scores = D_i.reshape(-1, d)[pixels_i].double() @ D_j.reshape(-1, d)[pixels_j].double().T
     i_to_j, j_to_i = scores.argmax(dim=1), scores.argmax(dim=0)
     row_of = {int(p): r for r, p in enumerate(pixels_i)}
-    query = torch.tensor([row_of[int(p)] for p in query_grid(H, W, config.match_stride_ratio)
-                          if int(p) in row_of])
+    query = torch.tensor(
+        [row_of[int(p)] for p in query_grid(H, W, config.match_stride_ratio) if int(p) in row_of]
+    )
     pairs = set()
     for _ in range(config.match_iterations):
         if query.numel() == 0:
@@ -54,8 +56,9 @@ def _shifted_views(seed: int, H: int, W: int, shift: tuple[int, int], d: int = 2
     gen = torch.Generator().manual_seed(seed)
     dy, dx = shift
     coarse = torch.randn(1, d, (H + dy) // 8 + 2, (W + dx) // 8 + 2, generator=gen)
-    field = torch.nn.functional.interpolate(coarse, size=(H + dy, W + dx), mode="bilinear",
-                                            align_corners=False)[0].permute(1, 2, 0)
+    field = torch.nn.functional.interpolate(
+        coarse, size=(H + dy, W + dx), mode="bilinear", align_corners=False
+    )[0].permute(1, 2, 0)
     field = torch.nn.functional.normalize(field, dim=-1)
     D_i, D_j = field[:H, :W].contiguous(), field[dy:, dx:].contiguous()
     Q_i = 1.0 + 4.0 * torch.rand(H, W, generator=gen)
@@ -131,20 +134,29 @@ def test_query_grid_is_at_least_one_pixel_and_one_query():
 @pytest.mark.parametrize("value", [0.0, -0.1, 1.5, float("nan")])
 def test_bad_match_stride_ratio_is_one_clear_error(value):
     config = DecentralizedConfig(registration=RegistrationConfig(match_stride_ratio=value))
-    with pytest.raises(ConfigError, match=r"^decentralized\.registration\.match_stride_ratio "
-                                          r"must be in \(0, 1\], got"):
+    with pytest.raises(
+        ConfigError,
+        match=r"^decentralized\.registration\.match_stride_ratio "
+        r"must be in \(0, 1\], got",
+    ):
         check_config(config)
 
 
 def test_bad_match_coarse_candidates_is_one_clear_error():
     config = DecentralizedConfig(registration=RegistrationConfig(match_coarse_candidates=0))
-    with pytest.raises(ConfigError, match=r"^decentralized\.registration\.match_coarse_candidates "
-                                          r"must be >= 1, got 0$"):
+    with pytest.raises(
+        ConfigError,
+        match=r"^decentralized\.registration\.match_coarse_candidates "
+        r"must be >= 1, got 0$",
+    ):
         check_config(config)
 
 
 def test_bad_match_iterations_is_one_clear_error():
     config = DecentralizedConfig(registration=RegistrationConfig(match_iterations=0))
-    with pytest.raises(ConfigError, match=r"^decentralized\.registration\.match_iterations must "
-                                          r"be >= 1, got 0$"):
+    with pytest.raises(
+        ConfigError,
+        match=r"^decentralized\.registration\.match_iterations must "
+        r"be >= 1, got 0$",
+    ):
         check_config(config)

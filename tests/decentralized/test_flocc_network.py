@@ -48,12 +48,35 @@ def _run_robots(scene, config, tmp, team: Path | None = None) -> list[dict]:
         if team is not None:
             network += ["--team", str(team / f"r{robot}")]
         log = open(tmp / f"robot{robot}.log", "w")
-        processes.append(subprocess.Popen(
-            [sys.executable, "-m", "como3r.cli", "robot", str(scene[robot]), "--id", str(robot),
-             "--robots", "3", *network, "--out", str(tmp / f"out{robot}"), "--prior",
-             "simulated", "--config", str(tmp / "config.yaml"), "--schedule",
-             str(tmp / "schedule.csv"), "--session", session, "--quiet"],
-            stdout=log, stderr=subprocess.STDOUT))
+        processes.append(
+            subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "como3r.cli",
+                    "robot",
+                    str(scene[robot]),
+                    "--id",
+                    str(robot),
+                    "--robots",
+                    "3",
+                    *network,
+                    "--out",
+                    str(tmp / f"out{robot}"),
+                    "--prior",
+                    "simulated",
+                    "--config",
+                    str(tmp / "config.yaml"),
+                    "--schedule",
+                    str(tmp / "schedule.csv"),
+                    "--session",
+                    session,
+                    "--quiet",
+                ],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
+        )
         log.close()
     try:
         codes = [p.wait(LIMIT_S) for p in processes]
@@ -67,8 +90,9 @@ def _run_robots(scene, config, tmp, team: Path | None = None) -> list[dict]:
 
 
 def _config(main_config, settings_factory):
-    return dataclasses.replace(main_config,
-                               decentralized=settings_factory(keyframe_distance_ratio=0.45))
+    return dataclasses.replace(
+        main_config, decentralized=settings_factory(keyframe_distance_ratio=0.45)
+    )
 
 
 @pytest.fixture(scope="module")
@@ -79,8 +103,14 @@ def mission(scene, main_config, settings_factory, tmp_path_factory):
     config = _config(main_config, settings_factory)
     metrics = _run_robots(scene, config, tmp)
     end_s = max(float(open_robot(p, config).odometry.timestamps[-1]) for p in scene)
-    reference = run_protocol([str(p) for p in scene], config, config.decentralized,
-                             PriorSpec("simulated"), end_s, read_schedule(tmp / "schedule.csv"))
+    reference = run_protocol(
+        [str(p) for p in scene],
+        config,
+        config.decentralized,
+        PriorSpec("simulated"),
+        end_s,
+        read_schedule(tmp / "schedule.csv"),
+    )
     return tmp, metrics, reference
 
 
@@ -89,12 +119,15 @@ def test_robots_that_never_meet_exchange_nothing_and_join_one_frame_through_a_th
     end = {"round": 1, "time_s": 1.966667, "group": [1, 2]}  # the mission's end
     assert [m["rounds"] for m in metrics] == [
         [{"round": 0, "time_s": 1.9, "group": [0, 1]}],
-        [{"round": 0, "time_s": 1.9, "group": [0, 1]}, end], [end]]
+        [{"round": 0, "time_s": 1.9, "group": [0, 1]}, end],
+        [end],
+    ]
     peers = [m["bytes"]["by_peer"] for m in metrics]
     assert set(peers[0]) == {"1"} and set(peers[2]) == {"1"} and set(peers[1]) == {"0", "2"}
     assert [m["frame"] for m in metrics] == [0, 0, 0]  # robot 2 through robot 1
-    assert all(m["bytes"]["dropped_by_link_filter"] == {} and m["bytes"]["invalid"] == 0
-               for m in metrics)
+    assert all(
+        m["bytes"]["dropped_by_link_filter"] == {} and m["bytes"]["invalid"] == 0 for m in metrics
+    )
 
 
 def test_robot_processes_give_the_one_process_result(mission, scene):
@@ -104,14 +137,16 @@ def test_robot_processes_give_the_one_process_result(mission, scene):
         assert m["robots"][0]["error"] == "" and m["frame"] == report.frame
         graph = json.loads((tmp / f"out{robot}" / "graph.json").read_text())
         accepted = [(e["from"], e["to"]) for e in graph["edges"] if e["accepted"]]
-        assert accepted == [([l.robot_a, l.keyframe_a], [l.robot_b, l.keyframe_b])
-                            for l in report.loops]
+        assert accepted == [
+            ([l.robot_a, l.keyframe_a], [l.robot_b, l.keyframe_b]) for l in report.loops
+        ]
         # the bytes each robot counted are the ones the router delivered
         assert m["bytes"]["sent"] == dict(reference.traffic.sent.get(robot, {}))
         assert m["bytes"]["received"] == dict(reference.traffic.received.get(robot, {}))
         keyframes = read_tum(tmp / f"out{robot}" / "keyframes" / f"agent_{robot}.txt")
-        np.testing.assert_allclose(keyframes.T_WC[:len(report.estimate)].numpy(),
-                                   report.estimate, atol=1e-4)
+        np.testing.assert_allclose(
+            keyframes.T_WC[: len(report.estimate)].numpy(), report.estimate, atol=1e-4
+        )
         [bandwidth] = m["bandwidth"]
         assert bandwidth["bytes_sent"] == m["bytes"]["sent_total"]
         assert bandwidth["keyframes"] == len(keyframes) and bandwidth["image_bytes"] == 3 * 64 * 96
@@ -120,8 +155,9 @@ def test_robot_processes_give_the_one_process_result(mission, scene):
     assert sum(len(r.loops) for r in reference.reports.values()) > 0
 
 
-def test_a_team_of_robots_gives_the_open_networks_result(mission, scene, main_config,
-                                                         settings_factory, tmp_path_factory):
+def test_a_team_of_robots_gives_the_open_networks_result(
+    mission, scene, main_config, settings_factory, tmp_path_factory
+):
     """The same mission with --team (mutual TLS, access control, robots 1 and 2 meeting
     through gossip on TLS ports): the same loops, frames and bytes."""
     tmp = tmp_path_factory.mktemp("team_robots")
@@ -135,8 +171,10 @@ def test_a_team_of_robots_gives_the_open_networks_result(mission, scene, main_co
         assert m["bytes"]["sent"] == reference["bytes"]["sent"]
         assert m["bytes"]["received"] == reference["bytes"]["received"]
         assert m["bytes"]["invalid"] == 0
-        graphs = [json.loads((folder / f"out{robot}" / "graph.json").read_text())
-                  for folder in (tmp, open_tmp)]
+        graphs = [
+            json.loads((folder / f"out{robot}" / "graph.json").read_text())
+            for folder in (tmp, open_tmp)
+        ]
         team_loops, open_loops = ([e for e in g["edges"] if e["accepted"]] for g in graphs)
         assert team_loops == open_loops
         assert "open network" not in (tmp / f"robot{robot}.log").read_text()

@@ -37,10 +37,19 @@ def _step_lengths(trajectory: Trajectory) -> np.ndarray:
 
 def test_vio_scale_is_off_at_the_start_and_converges():
     truth = _straight_line()
-    odometry = simulate_odometry(truth, seed=1, noise=OdometryNoise(
-        initial_scale_error=0.3, scale_convergence_depths=0.3, scale_drift=0.0,
-        yaw_drift_deg_per_depth=0.0, yaw_walk_deg_per_sqrt_depth=0.0,
-        translation_walk_per_sqrt_depth=0.0), scene_depth=6.5)
+    odometry = simulate_odometry(
+        truth,
+        seed=1,
+        noise=OdometryNoise(
+            initial_scale_error=0.3,
+            scale_convergence_depths=0.3,
+            scale_drift=0.0,
+            yaw_drift_deg_per_depth=0.0,
+            yaw_walk_deg_per_sqrt_depth=0.0,
+            translation_walk_per_sqrt_depth=0.0,
+        ),
+        scene_depth=6.5,
+    )
     ratio = _step_lengths(odometry) / _step_lengths(truth)
     assert abs(ratio[0] - 1.0) == pytest.approx(0.3, abs=0.01)
     np.testing.assert_allclose(ratio[-50:], 1.0, atol=1e-3)  # 17 m = 2.6 depths later
@@ -54,8 +63,9 @@ def test_odometry_of_a_scaled_scene_is_the_scaled_odometry(factor):
     scaled = truth.T_WC.clone()
     scaled[:, :3] *= factor
     odometry = simulate_odometry(truth, seed=5, scene_depth=6.5)
-    odometry_scaled = simulate_odometry(Trajectory(truth.timestamps, scaled), seed=5,
-                                        scene_depth=6.5 * factor)
+    odometry_scaled = simulate_odometry(
+        Trajectory(truth.timestamps, scaled), seed=5, scene_depth=6.5 * factor
+    )
     torch.testing.assert_close(odometry_scaled.T_WC[:, :3], factor * odometry.T_WC[:, :3])
     torch.testing.assert_close(odometry_scaled.T_WC[:, 3:], odometry.T_WC[:, 3:])
 
@@ -74,7 +84,10 @@ def test_odometry_is_in_its_own_gravity_aligned_frame():
 
 def test_odometry_is_seeded():
     truth = _straight_line(50)
-    a, b = simulate_odometry(truth, 3, scene_depth=5.0), simulate_odometry(truth, 3, scene_depth=5.0)
+    a, b = (
+        simulate_odometry(truth, 3, scene_depth=5.0),
+        simulate_odometry(truth, 3, scene_depth=5.0),
+    )
     c = simulate_odometry(truth, 4, scene_depth=5.0)
     assert torch.equal(a.T_WC, b.T_WC)
     assert not torch.equal(a.T_WC, c.T_WC)
@@ -135,8 +148,9 @@ def test_frame_poses_follow_the_keyframe_estimates_and_the_odometry():
     estimate = keyframes.T_OC[:2].numpy().copy()
     estimate[:, 2] += 1.0
     poses = frame_poses(odometry, keyframes, estimate)
-    np.testing.assert_allclose((poses[:, :3] - odometry.T_OC[:, :3]).numpy(),
-                               np.tile([0.0, 0.0, 1.0], (41, 1)), atol=1e-9)
+    np.testing.assert_allclose(
+        (poses[:, :3] - odometry.T_OC[:, :3]).numpy(), np.tile([0.0, 0.0, 1.0], (41, 1)), atol=1e-9
+    )
     assert math.isclose(float(poses[:, 3:7].norm(dim=1).max()), 1.0, abs_tol=1e-12)
 
 

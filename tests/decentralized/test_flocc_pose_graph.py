@@ -32,6 +32,7 @@ def _random_pose(rng: np.random.Generator, spread: float = 3.0) -> gtsam.Pose3:
 
 def _numerical_jacobians(R_bar, t_bar, T_a, T_b, s, h=1e-6):
     """Central differences of the error under GTSAM's retraction (what LM linearises)."""
+
     def error(a, b, scale):
         return scaled_loop_error(R_bar, t_bar, a, b, scale)[0]
 
@@ -69,8 +70,9 @@ def test_scaled_loop_jacobians_reduce_to_the_paper_at_zero_residual():
     # F-Sec. III-C-b: H_Ta = -Adj(inv(T_a^-1 T_b)), H_Tb = I, H_s = [0, -t_bar] (in camera b).
     np.testing.assert_allclose(H_a, -relative.inverse().AdjointMap(), atol=1e-12)
     np.testing.assert_allclose(H_b, np.eye(6), atol=1e-12)
-    np.testing.assert_allclose(H_s[:, 0], np.concatenate([np.zeros(3), -R_bar.T @ t_bar]),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        H_s[:, 0], np.concatenate([np.zeros(3), -R_bar.T @ t_bar]), atol=1e-12
+    )
 
 
 def test_custom_factor_linearizes_to_the_analytic_jacobians():
@@ -124,8 +126,9 @@ _SPACING = 2 * 6.0 * math.sin(math.pi / 12)
 def _config(**overrides) -> PoseGraphConfig:
     """Pose-graph settings whose translation noise is 2 cm (odometry) and 10 cm (loops) at
     :data:`_SPACING`, the noise the synthetic measurements carry."""
-    return PoseGraphConfig(odom_sigma_trans_ratio=0.02 / _SPACING,
-                           loop_sigma_trans_ratio=0.1 / _SPACING, **overrides)
+    return PoseGraphConfig(
+        odom_sigma_trans_ratio=0.02 / _SPACING, loop_sigma_trans_ratio=0.1 / _SPACING, **overrides
+    )
 
 
 @dataclasses.dataclass
@@ -134,8 +137,13 @@ class _Synthetic:
     problem: PoseGraphProblem
 
 
-def _synthetic(rng: np.random.Generator, loop_scale_sigma: float = 0.0,
-               outliers: int = 0, robots: int = 3, count: int = 12) -> _Synthetic:
+def _synthetic(
+    rng: np.random.Generator,
+    loop_scale_sigma: float = 0.0,
+    outliers: int = 0,
+    robots: int = 3,
+    count: int = 12,
+) -> _Synthetic:
     """Robots on circles, odometry in their own frames, loops between close keyframes.
 
     Loop translations are multiplied by ``exp(N(0, loop_scale_sigma))`` (the prior's scale
@@ -152,8 +160,11 @@ def _synthetic(rng: np.random.Generator, loop_scale_sigma: float = 0.0,
             for i in range(0, count, 2):
                 j = (i + 1) % count
                 relative = truth[a][i].between(truth[b][j])
-                noisy = relative.compose(gtsam.Pose3.Expmap(
-                    np.concatenate([0.005 * rng.normal(size=3), 0.02 * rng.normal(size=3)])))
+                noisy = relative.compose(
+                    gtsam.Pose3.Expmap(
+                        np.concatenate([0.005 * rng.normal(size=3), 0.02 * rng.normal(size=3)])
+                    )
+                )
                 scale = math.exp(loop_scale_sigma * rng.normal())
                 T_ab = from_pose3(gtsam.Pose3(noisy.rotation(), scale * noisy.translation()))
                 loops.append(LoopClosure(a, i, b, j, T_ab, 1.0, 1.0, 0.9, 500))
@@ -166,8 +177,11 @@ def _synthetic(rng: np.random.Generator, loop_scale_sigma: float = 0.0,
 
 
 def _position_rmse(truth: dict[int, list[gtsam.Pose3]], poses: dict[int, np.ndarray]) -> float:
-    errors = [np.linalg.norm(poses[r][k, :3] - p.translation())
-              for r, ps in truth.items() for k, p in enumerate(ps)]
+    errors = [
+        np.linalg.norm(poses[r][k, :3] - p.translation())
+        for r, ps in truth.items()
+        for k, p in enumerate(ps)
+    ]
     return float(np.sqrt(np.mean(np.square(errors))))
 
 
@@ -184,9 +198,10 @@ def test_independent_and_smoothed_scales_beat_the_base_formulation_on_inconsiste
     """F-Sec. III-C: loops whose prior scale is wrong hurt the base graph, not the
     scale-aware ones."""
     data = _synthetic(np.random.default_rng(1), loop_scale_sigma=0.3)
-    errors = {f: _position_rmse(data.truth,
-                                solve_pose_graph(data.problem, f, "lm", _config()).poses)
-              for f in ("base", "independent", "smoothed")}
+    errors = {
+        f: _position_rmse(data.truth, solve_pose_graph(data.problem, f, "lm", _config()).poses)
+        for f in ("base", "independent", "smoothed")
+    }
     assert errors["independent"] < 0.5 * errors["base"]
     assert errors["smoothed"] < 0.5 * errors["base"]
 
@@ -197,7 +212,8 @@ def test_independent_scales_absorb_each_loops_scale_error():
     true_scales = []
     for loop in data.problem.loops:
         truth = data.truth[loop.robot_a][loop.keyframe_a].between(
-            data.truth[loop.robot_b][loop.keyframe_b])
+            data.truth[loop.robot_b][loop.keyframe_b]
+        )
         true_scales.append(np.linalg.norm(truth.translation()) / np.linalg.norm(loop.T_ab[:3]))
     np.testing.assert_allclose(solution.loop_scales, true_scales, rtol=0.05)
 

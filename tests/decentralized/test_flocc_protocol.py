@@ -52,13 +52,16 @@ def test_read_schedule(tmp_path):
     assert Schedule().in_range(7, 1e9)
 
 
-@pytest.mark.parametrize("text, message", [
-    ("0,1.0\n", "expected robot_id"),
-    ("0,1.0,2.0,3.0\n", "expected robot_id"),
-    ("x,1,2\n", "not a number"),
-    ("0,2,1\n", "start_s <= end_s"),
-    ("0,1,2\n0,3,4\n", "listed twice"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("0,1.0\n", "expected robot_id"),
+        ("0,1.0,2.0,3.0\n", "expected robot_id"),
+        ("x,1,2\n", "not a number"),
+        ("0,2,1\n", "start_s <= end_s"),
+        ("0,1,2\n0,3,4\n", "listed twice"),
+    ],
+)
 def test_bad_schedules_name_the_line(tmp_path, text, message):
     path = tmp_path / "bad.csv"
     path.write_text(text)
@@ -81,28 +84,34 @@ def test_rounds_need_two_robots_in_range_and_election_takes_the_smallest_id():
 def test_router_delivers_only_in_range_and_counts_bytes():
     schedule = Schedule({0: [(0.0, 1.0)], 1: [(0.0, 2.0)]})
     delivered = []
-    router = Router(schedule, lambda robot, data: delivered.append((robot, data)), 2**20,
-                    robots=[0, 1])
-    inside = codec.encode(EncodingRequest(sender=0, recipient=1, round=0, time_s=0.5,
-                                          keyframes=[1, 2]))
-    outside = codec.encode(EncodingRequest(sender=1, recipient=0, round=1, time_s=1.5,
-                                           keyframes=[]))
+    router = Router(
+        schedule, lambda robot, data: delivered.append((robot, data)), 2**20, robots=[0, 1]
+    )
+    inside = codec.encode(
+        EncodingRequest(sender=0, recipient=1, round=0, time_s=0.5, keyframes=[1, 2])
+    )
+    outside = codec.encode(
+        EncodingRequest(sender=1, recipient=0, round=1, time_s=1.5, keyframes=[])
+    )
     router.route(inside)
     router.route(outside)
-    router.route(codec.encode(EncodingRequest(sender=0, recipient=7, round=0, time_s=0.5,
-                                              keyframes=[])))  # no such robot
+    router.route(
+        codec.encode(EncodingRequest(sender=0, recipient=7, round=0, time_s=0.5, keyframes=[]))
+    )  # no such robot
     assert delivered == [(1, inside)]
     traffic = router.traffic.to_json([0, 1])
     assert traffic["per_robot"]["0"]["sent"] == {"EncodingRequest": len(inside)}
     assert traffic["per_robot"]["1"]["received_total"] == len(inside)
     assert traffic["per_robot"]["1"]["sent_total"] == 0
     assert traffic["dropped"] == {"EncodingRequest": 2}
-    report = RobotReport(sender=1, recipient=DRIVER, estimate=np.zeros((0, 8)), frame=1,
-                         loops=[], rejected=[])
+    report = RobotReport(
+        sender=1, recipient=DRIVER, estimate=np.zeros((0, 8)), frame=1, loops=[], rejected=[]
+    )
     router.route(codec.encode(report))
     assert 1 in router.reports and 1 in router.gone
-    router.route(codec.encode(EncodingRequest(sender=0, recipient=1, round=0, time_s=0.5,
-                                              keyframes=[])))
+    router.route(
+        codec.encode(EncodingRequest(sender=0, recipient=1, round=0, time_s=0.5, keyframes=[]))
+    )
     assert len(delivered) == 1  # robot 1 is gone
     with pytest.raises(codec.MessageError):
         router.route(b"\x80\x04not msgpack")  # e.g. pickle bytes
@@ -110,11 +119,18 @@ def test_router_delivers_only_in_range_and_counts_bytes():
 
 def test_messages_round_trip_through_the_codec():
     loop = LoopClosure(0, 3, 1, 4, np.arange(8, dtype=np.float64), math.nan, 0.7, 0.2, 120)
-    task = RobotTask(robot=1, agent_path="/x", config={"seed": 0}, decentralized={},
-                     prior={"name": "simulated", "weights": None}, rounds=[(0, 1.5, [0, 1])],
-                     leave=(0, "optimisation"))
-    descriptors = PlaceDescriptors(sender=0, recipient=1, round=2, time_s=1.0, first=3,
-                                   descriptors=[np.ones(4, np.float32)])
+    task = RobotTask(
+        robot=1,
+        agent_path="/x",
+        config={"seed": 0},
+        decentralized={},
+        prior={"name": "simulated", "weights": None},
+        rounds=[(0, 1.5, [0, 1])],
+        leave=(0, "optimisation"),
+    )
+    descriptors = PlaceDescriptors(
+        sender=0, recipient=1, round=2, time_s=1.0, first=3, descriptors=[np.ones(4, np.float32)]
+    )
     for message in (loop, task, descriptors):
         decoded = codec.decode(codec.encode(message))
         assert type(decoded) is type(message)
@@ -125,27 +141,59 @@ def test_messages_round_trip_through_the_codec():
 
 def _share(**changes) -> PoseGraphShare:
     loop = LoopClosure(0, 3, 1, 4, np.arange(8, dtype=np.float64), math.nan, 0.7, 0.2, 120)
-    fields = dict(sender=1, recipient=0, round=0, time_s=1.0, odometry=np.zeros((3, 8)),
-                  estimate=np.zeros((0, 8)), frame=1, loops=[loop])
+    fields = dict(
+        sender=1,
+        recipient=0,
+        round=0,
+        time_s=1.0,
+        odometry=np.zeros((3, 8)),
+        estimate=np.zeros((0, 8)),
+        frame=1,
+        loops=[loop],
+    )
     return PoseGraphShare(**{**fields, **changes})
 
 
-@pytest.mark.parametrize("message, match", [
-    (_share(odometry=np.full((3, 8), np.nan)), "odometry must be finite float64"),
-    (_share(odometry=np.zeros((3, 7))), "odometry has shape"),
-    (_share(estimate=np.zeros((4, 8))), "estimate must not outnumber odometry"),
-    (_share(loops=[LoopClosure(0, 3, 1, 4, np.zeros(8), 1.0, 0.7, 2.0, 120)]),
-     "probability in \\[0, 1\\]"),
-    (_share(time_s=math.inf), "time_s finite"),
-    (PoseEstimate(sender=0, recipient=1, round=0, time_s=1.0, poses=np.zeros((2, 8), np.float32),
-                  frame=0), "poses must be finite float64"),
-    (EncodingRequest(sender=0, recipient=1, round=0, time_s=0.5, keyframes=[2, 2]), "distinct"),
-    (EncodingReply(sender=0, recipient=1, round=0, time_s=0.5, keyframe=1, encoding=[1.0]),
-     "encoding must be a prior's Encoding"),
-    (PlaceDescriptors(sender=0, recipient=1, round=0, time_s=0.5, first=0,
-                      descriptors=[np.ones(4, np.float32), np.ones(5, np.float32)]),
-     "share one shape kind and width"),
-])
+@pytest.mark.parametrize(
+    "message, match",
+    [
+        (_share(odometry=np.full((3, 8), np.nan)), "odometry must be finite float64"),
+        (_share(odometry=np.zeros((3, 7))), "odometry has shape"),
+        (_share(estimate=np.zeros((4, 8))), "estimate must not outnumber odometry"),
+        (
+            _share(loops=[LoopClosure(0, 3, 1, 4, np.zeros(8), 1.0, 0.7, 2.0, 120)]),
+            "probability in \\[0, 1\\]",
+        ),
+        (_share(time_s=math.inf), "time_s finite"),
+        (
+            PoseEstimate(
+                sender=0,
+                recipient=1,
+                round=0,
+                time_s=1.0,
+                poses=np.zeros((2, 8), np.float32),
+                frame=0,
+            ),
+            "poses must be finite float64",
+        ),
+        (EncodingRequest(sender=0, recipient=1, round=0, time_s=0.5, keyframes=[2, 2]), "distinct"),
+        (
+            EncodingReply(sender=0, recipient=1, round=0, time_s=0.5, keyframe=1, encoding=[1.0]),
+            "encoding must be a prior's Encoding",
+        ),
+        (
+            PlaceDescriptors(
+                sender=0,
+                recipient=1,
+                round=0,
+                time_s=0.5,
+                first=0,
+                descriptors=[np.ones(4, np.float32), np.ones(5, np.float32)],
+            ),
+            "share one shape kind and width",
+        ),
+    ],
+)
 def test_malformed_robot_messages_are_refused_on_decode(message, match):
     with pytest.raises(codec.MessageError, match=match):
         codec.decode(codec.encode(message))
@@ -154,10 +202,16 @@ def test_malformed_robot_messages_are_refused_on_decode(message, match):
 # ----------------------------------------------------------------------------- robots
 
 
-def _run(scene, main_config, settings_factory, schedule=None, leave=None, robots=3,
-         **settings):
-    return run_protocol([str(p) for p in scene[:robots]], main_config, settings_factory(**settings),
-                        PriorSpec("simulated"), MISSION_END_S, schedule or Schedule(), leave=leave)
+def _run(scene, main_config, settings_factory, schedule=None, leave=None, robots=3, **settings):
+    return run_protocol(
+        [str(p) for p in scene[:robots]],
+        main_config,
+        settings_factory(**settings),
+        PriorSpec("simulated"),
+        MISSION_END_S,
+        schedule or Schedule(),
+        leave=leave,
+    )
 
 
 def _sent(result, robot, kind=None):
@@ -196,14 +250,23 @@ def test_frames_propagate_over_successive_rendezvous(scene, main_config, setting
     assert [(p.time_s, p.group) for p in result.rounds] == [(1.9, (0, 1)), (2.0, (1, 2))]
     assert [result.reports[r].frame for r in range(3)] == [0, 0, 0]
     assert _sent(result, 1, "PoseEstimate") > 0  # elected in the second round
-    assert result.traffic.sent[0]["PlaceDescriptors"] > 0 and "PoseGraphShare" not in \
-        result.traffic.sent[0]
+    assert (
+        result.traffic.sent[0]["PlaceDescriptors"] > 0
+        and "PoseGraphShare" not in result.traffic.sent[0]
+    )
 
 
-def test_a_leader_leaving_mid_optimisation_does_not_hang_the_others(scene, main_config,
-                                                                    settings_factory):
-    result = _run(scene, main_config, settings_factory, leave={0: (0, "optimisation")},
-                  keyframe_distance_ratio=0.45, timeout_s=5.0)
+def test_a_leader_leaving_mid_optimisation_does_not_hang_the_others(
+    scene, main_config, settings_factory
+):
+    result = _run(
+        scene,
+        main_config,
+        settings_factory,
+        leave={0: (0, "optimisation")},
+        keyframe_distance_ratio=0.45,
+        timeout_s=5.0,
+    )
     assert set(result.reports) == {0, 1, 2}
     assert result.reports[0].left
     for robot in (1, 2):
@@ -216,8 +279,14 @@ def test_a_leader_leaving_mid_optimisation_does_not_hang_the_others(scene, main_
 
 
 def test_a_robot_leaving_before_registration_is_left_out(scene, main_config, settings_factory):
-    result = _run(scene, main_config, settings_factory, leave={2: (0, "registration")},
-                  keyframe_distance_ratio=0.45, timeout_s=5.0)
+    result = _run(
+        scene,
+        main_config,
+        settings_factory,
+        leave={2: (0, "registration")},
+        keyframe_distance_ratio=0.45,
+        timeout_s=5.0,
+    )
     assert result.reports[2].left and result.reports[2].stats["loops"] == 0
     assert result.reports[2].stats["decodes"] == 0
     # The others go on without it: robot 0 is elected and aligns robot 1.
@@ -244,8 +313,9 @@ class _PeerLeaves:
 
 def test_a_robot_stops_waiting_for_a_peer_reported_gone(scene, main_config, settings_factory):
     settings = settings_factory(keyframe_distance_ratio=0.45, timeout_s=600.0)
-    prior, codebook = build_prior(PriorSpec("simulated"), main_config, settings.place_method,
-                                  {0: str(scene[0])})
+    prior, codebook = build_prior(
+        PriorSpec("simulated"), main_config, settings.place_method, {0: str(scene[0])}
+    )
     link = _PeerLeaves()
     robot = make_robot(0, str(scene[0]), prior, codebook, main_config, settings, link, None)
     report = robot.run([RoundPlan(0, MISSION_END_S, (0, 1))])
@@ -261,14 +331,15 @@ def test_unknown_leave_phase_is_rejected(scene, main_config, settings_factory):
 
 def test_robot_processes_match_robot_threads(scene, main_config, settings_factory):
     threads = _run(scene, main_config, settings_factory, robots=2, keyframe_distance_ratio=0.45)
-    processes = _run(scene, main_config, settings_factory, robots=2, keyframe_distance_ratio=0.45,
-                     processes=True)
+    processes = _run(
+        scene, main_config, settings_factory, robots=2, keyframe_distance_ratio=0.45, processes=True
+    )
     for robot in (0, 1):
         a, b = threads.reports[robot], processes.reports[robot]
         assert b.error == "" and a.frame == b.frame == 0
-        assert [(l.keyframe_a, l.keyframe_b) for l in a.loops] == \
-            [(l.keyframe_a, l.keyframe_b) for l in b.loops]
+        assert [(l.keyframe_a, l.keyframe_b) for l in a.loops] == [
+            (l.keyframe_a, l.keyframe_b) for l in b.loops
+        ]
         np.testing.assert_allclose(a.estimate, b.estimate, atol=1e-4)
     assert threads.traffic.bytes_by_type == processes.traffic.bytes_by_type
     assert isinstance(processes.reports[1], RobotReport)
-

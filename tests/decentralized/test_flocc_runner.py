@@ -16,7 +16,6 @@ from como3r.errors import ConfigError, InputError
 from como3r.io.tum import read_tum
 from como3r.runtime.pipeline import PriorSpec
 
-
 #: query grid of this module's runs: 4 px at the scene's 96 px, about what the default 1/64
 #: gives at MASt3R's 512 (8 px) in pixels of texture. The default packs the 96 px views' queries
 #: 1.5 px apart, which here admits one wrong loop (37 deg, ratio 0.389) and then base/LM
@@ -30,8 +29,12 @@ QUERY_GRID_RATIO = 1 / 24
 def run(scene, main_config, settings_factory, tmp_path_factory):
     out = tmp_path_factory.mktemp("flocc_run") / "out"
     settings = settings_factory(table=True)
-    settings = dataclasses.replace(settings, registration=dataclasses.replace(
-        settings.registration, match_stride_ratio=QUERY_GRID_RATIO))
+    settings = dataclasses.replace(
+        settings,
+        registration=dataclasses.replace(
+            settings.registration, match_stride_ratio=QUERY_GRID_RATIO
+        ),
+    )
     summary = run_decentralized(scene, out, main_config, PriorSpec("simulated"), settings)
     metrics = json.loads((out / "metrics.json").read_text())
     assert not any(robot["error"] for robot in metrics["robots"]), metrics["robots"]
@@ -67,15 +70,23 @@ def test_metrics_count_bytes_per_robot_and_message_type(run):
     for robot in traffic["per_robot"].values():
         assert robot["sent"]["PlaceDescriptors"] > 0
         assert robot["sent_total"] == sum(robot["sent"].values())
-    kinds = {"PlaceDescriptors", "EncodingRequest", "EncodingReply", "PoseGraphShare",
-             "PoseEstimate"}
+    kinds = {
+        "PlaceDescriptors",
+        "EncodingRequest",
+        "EncodingReply",
+        "PoseGraphShare",
+        "PoseEstimate",
+    }
     assert set(traffic["bytes_by_type"]) == kinds
     assert traffic["total_bytes"] == sum(r["sent_total"] for r in traffic["per_robot"].values())
     # The encodings that travel dominate, place descriptors are compact (F-Sec. III-A/B).
-    assert traffic["bytes_by_type"]["EncodingReply"] > 10 * traffic["bytes_by_type"][
-        "PlaceDescriptors"]
+    assert (
+        traffic["bytes_by_type"]["EncodingReply"]
+        > 10 * traffic["bytes_by_type"]["PlaceDescriptors"]
+    )
     assert traffic["bytes_per_message"]["EncodingReply"] == (
-        traffic["bytes_by_type"]["EncodingReply"] / traffic["messages_by_type"]["EncodingReply"])
+        traffic["bytes_by_type"]["EncodingReply"] / traffic["messages_by_type"]["EncodingReply"]
+    )
 
 
 def test_metrics_give_bytes_per_keyframe_against_the_raw_image(run):
@@ -94,7 +105,8 @@ def test_two_stage_registration_saves_encodes(run):
     assert 0 < two_stage["two_stage_encodes"] < two_stage["naive_encodes"]
     assert two_stage["saved_fraction"] > 0.5
     assert two_stage["all_encodes_including_place_descriptors"] == sum(
-        r["keyframes"] for r in metrics["robots"])
+        r["keyframes"] for r in metrics["robots"]
+    )
 
 
 def test_scale_aware_formulations_beat_the_base_graph(run):
@@ -115,8 +127,11 @@ def test_protocol_result_is_the_configured_solve_and_is_accurate(run):
     _, summary, metrics = run
     merged = metrics["ate"]["merged"]["ate"]["rmse"]
     configured = PoseGraphConfig()
-    row = next(r for r in metrics["table"]
-               if (r["formulation"], r["solver"]) == (configured.formulation, configured.solver))
+    row = next(
+        r
+        for r in metrics["table"]
+        if (r["formulation"], r["solver"]) == (configured.formulation, configured.solver)
+    )
     assert merged == pytest.approx(row["merged_ate_rmse"][0], rel=1e-6)
     assert merged < 0.15  # metres, over 3 robots x 24 m
     assert summary.evaluation is not None and summary.evaluation.merged_ate == merged
@@ -127,12 +142,22 @@ def test_bad_input_fails_before_any_work(scene, main_config, tmp_path):
     shutil.copytree(scene[0], agent)
     (agent / "odometry.txt").unlink()
     with pytest.raises(InputError, match="odometry.txt"):
-        run_decentralized([scene[1], agent], tmp_path / "out", main_config, PriorSpec("simulated"),
-                          DecentralizedConfig())
+        run_decentralized(
+            [scene[1], agent],
+            tmp_path / "out",
+            main_config,
+            PriorSpec("simulated"),
+            DecentralizedConfig(),
+        )
     assert not (tmp_path / "out").exists()
     with pytest.raises(ConfigError, match="gnc_mu_step"):
-        run_decentralized(scene, tmp_path / "out", main_config, PriorSpec("simulated"),
-                          DecentralizedConfig(pose_graph=PoseGraphConfig(gnc_mu_step=1.0)))
+        run_decentralized(
+            scene,
+            tmp_path / "out",
+            main_config,
+            PriorSpec("simulated"),
+            DecentralizedConfig(pose_graph=PoseGraphConfig(gnc_mu_step=1.0)),
+        )
 
 
 def test_report_of_a_decentralized_run(run):

@@ -28,8 +28,12 @@ MEASURED_PERCENT = 1.3
 def _merged_percent(out, agents) -> float:
     metrics = json.loads((out / "metrics.json").read_text())
     rmse = metrics["ate"]["merged"]["ate"]["rmse"]
-    length = sum(float(np.linalg.norm(np.diff(np.loadtxt(a / "groundtruth.txt")[:, 1:4], axis=0),
-                                      axis=1).sum()) for a in agents)
+    length = sum(
+        float(
+            np.linalg.norm(np.diff(np.loadtxt(a / "groundtruth.txt")[:, 1:4], axis=0), axis=1).sum()
+        )
+        for a in agents
+    )
     return 100.0 * rmse / length
 
 
@@ -37,18 +41,21 @@ def _merged_percent(out, agents) -> float:
 def small_scene(tmp_path_factory):
     """Three robots of 40 frames at 96x72 in the default scene, VIO-like odometry."""
     root = tmp_path_factory.mktemp("flocc_scale")
-    synthesize(root, agents=ROBOTS, seed=0, overlap=0.2, frames=40, preset="default",
-               width=96, height=72)
+    synthesize(
+        root, agents=ROBOTS, seed=0, overlap=0.2, frames=40, preset="default", width=96, height=72
+    )
     agents = [root / f"agent_{a}" for a in range(ROBOTS)]
     for a, agent in enumerate(agents):
         add_odometry(agent, seed=a, params="vio")
     return agents
 
 
-def test_merged_accuracy_holds_from_a_tenth_to_ten_times_the_scene(small_scene, scene_scaler,
-                                                                     tmp_path):
-    config = Config(input=InputConfig(long_side=96),
-                    simulated_prior=SimulatedPriorConfig(model="easy"))
+def test_merged_accuracy_holds_from_a_tenth_to_ten_times_the_scene(
+    small_scene, scene_scaler, tmp_path
+):
+    config = Config(
+        input=InputConfig(long_side=96), simulated_prior=SimulatedPriorConfig(model="easy")
+    )
     settings = DecentralizedConfig(table=False, protocol=ProtocolConfig(processes=False))
     percent = {}
     for factor in SCALES:
@@ -56,6 +63,6 @@ def test_merged_accuracy_holds_from_a_tenth_to_ten_times_the_scene(small_scene, 
         out = tmp_path / f"run_x{factor:g}"
         run_decentralized(agents, out, config, PriorSpec("simulated"), settings)
         percent[factor] = _merged_percent(out, agents)
-    for factor, value in percent.items():
+    for value in percent.values():
         assert value <= 2.0, percent
         assert MEASURED_PERCENT / 2 <= value <= 2 * MEASURED_PERCENT, percent

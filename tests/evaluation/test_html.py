@@ -30,9 +30,13 @@ from como3r.io.tum import Trajectory
 from como3r.runtime.pipeline import PriorSpec, run
 
 AGENTS = 2
-OVERRIDES = ["input.long_side=64", "simulated_prior.model=easy",
-             "global_ba.max_iters_stream=5", "global_ba.max_iters_cleanup=10",
-             "global_ba.cleanup_passes=1"]
+OVERRIDES = [
+    "input.long_side=64",
+    "simulated_prior.model=easy",
+    "global_ba.max_iters_stream=5",
+    "global_ba.max_iters_cleanup=10",
+    "global_ba.cleanup_passes=1",
+]
 IMAGE = re.compile(r"<img alt='([^']*)' src='([^']*)'")
 
 
@@ -40,8 +44,9 @@ IMAGE = re.compile(r"<img alt='([^']*)' src='([^']*)'")
 def scene(tmp_path_factory) -> Path:
     """Two agents that meet, 12 frames each at 64x48."""
     root = tmp_path_factory.mktemp("scene")
-    synthesize(root, agents=AGENTS, seed=0, overlap=0.5, frames=12, preset="default",
-               width=64, height=48)
+    synthesize(
+        root, agents=AGENTS, seed=0, overlap=0.5, frames=12, preset="default", width=64, height=48
+    )
     return root
 
 
@@ -58,8 +63,12 @@ def real_run(scene, tmp_path_factory) -> Path:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        run([scene / f"agent_{a}" for a in range(AGENTS)], out,
-            apply_overrides(Config(), OVERRIDES), PriorSpec("simulated"))
+        run(
+            [scene / f"agent_{a}" for a in range(AGENTS)],
+            out,
+            apply_overrides(Config(), OVERRIDES),
+            PriorSpec("simulated"),
+        )
     finally:
         torch.set_num_threads(threads)
     return out
@@ -97,23 +106,34 @@ def test_the_report_of_a_run_has_every_section_and_embeds_its_images(real_run) -
             assert png.format == "PNG" and png.width > 300
     # the run's notes, the per-agent table, the merge events, the folded appendix
     assert "prior: simulated" in page
-    for column in ("frames", "tracked", "lost", "relocalized", "keyframes", "ATE RMSE [m]",
-                   "RPE trans [m]", "RPE rot [deg]", "fps"):
+    for column in (
+        "frames",
+        "tracked",
+        "lost",
+        "relocalized",
+        "keyframes",
+        "ATE RMSE [m]",
+        "RPE trans [m]",
+        "RPE rot [deg]",
+        "fps",
+    ):
         assert f"<th>{column}</th>" in page, column
     assert "<th>moved agents</th>" in page
     assert "single-process run" in page.lower()  # bandwidth: nothing was sent
-    appendix = page[page.index("<section id='appendix'>"):]
+    appendix = page[page.index("<section id='appendix'>") :]
     assert "<details><summary>Configuration (config.yaml)</summary>" in appendix
     assert "<details><summary>Prior: SimulatedPrior</summary>" in appendix
-    assert "conf_base" in appendix and "conf_base" not in page[:page.index("id='appendix'")]
+    assert "conf_base" in appendix and "conf_base" not in page[: page.index("id='appendix'")]
 
 
 def test_ground_truth_and_estimates_are_drawn_differently_after_the_alignment(
-        real_run, ground_truth) -> None:
+    real_run, ground_truth
+) -> None:
     data = load_run(real_run, ground_truth)
     assert data.has_ground_truth and "one Sim(3) per gauge component" in data.alignment_text
-    figure, (u, v) = trajectory_figure([t.aligned for t in data.tracks],
-                                       [t.gt for t in data.tracks])
+    figure, (u, v) = trajectory_figure(
+        [t.aligned for t in data.tracks], [t.gt for t in data.tracks]
+    )
     lines = [line for line in figure.axes[0].lines if line.get_linestyle() != "None"]
     gt_lines = [line for line in lines if line.get_color() == GT_STYLE["color"]]
     est_lines = [line for line in lines if line not in gt_lines]
@@ -151,7 +171,10 @@ def test_ate_over_time_is_the_evaluated_error(real_run, ground_truth) -> None:
     metrics = json.loads((real_run / "metrics.json").read_text())
     for row, agent in zip(rows, metrics["agents"]):
         assert (row["frames"], row["tracked"], row["keyframes"]) == (
-            agent["frames"], agent["tracked"], agent["keyframes"])
+            agent["frames"],
+            agent["tracked"],
+            agent["keyframes"],
+        )
 
 
 def test_the_timeline_holds_the_candidates_and_gauge_events(real_run) -> None:
@@ -178,8 +201,7 @@ def test_the_map_sample_is_deterministic_and_bounded(real_run) -> None:
     assert sample_map(real_run / "missing.ply") is None
 
 
-def test_the_map_sample_read_in_chunks_is_the_one_of_the_whole_file(tmp_path,
-                                                                      monkeypatch) -> None:
+def test_the_map_sample_read_in_chunks_is_the_one_of_the_whole_file(tmp_path, monkeypatch) -> None:
     """sample_map reads map.ply a chunk at a time (bounded memory): across chunk boundaries
     and non-finite points it draws what a draw over the whole file's finite points does."""
     from como3r.evaluation import plot_map
@@ -235,10 +257,14 @@ def test_missing_map_and_multiprocess_bandwidth(real_run, tmp_path) -> None:
     (copy / "map.ply").unlink()
     metrics = json.loads((copy / "metrics.json").read_text())
     sent = [{"KeyframeMessage": 4_000_000 + a, "FrameDone": 1200} for a in range(AGENTS)]
-    metrics["runtime"] = {"mode": "multiprocess", "bytes_by_type": {"KeyframeMessage": 8_000_001},
-                          "agents": [{"agent": a, "bytes_from_agent": sent[a],
-                                      "bytes_to_agent": {"PoseUpdateMessage": 700}}
-                                     for a in range(AGENTS)]}
+    metrics["runtime"] = {
+        "mode": "multiprocess",
+        "bytes_by_type": {"KeyframeMessage": 8_000_001},
+        "agents": [
+            {"agent": a, "bytes_from_agent": sent[a], "bytes_to_agent": {"PoseUpdateMessage": 700}}
+            for a in range(AGENTS)
+        ],
+    }
     (copy / "metrics.json").write_text(json.dumps(metrics))
     page = write_report(copy).read_text()
     assert "No map.ply in this run" in page and "map" not in _images(page)
@@ -253,15 +279,28 @@ def _browser() -> str | None:
     return shutil.which("chromium") or shutil.which("chromium-browser")
 
 
-@pytest.mark.skipif(_browser() is None, reason="chromium is not installed: the report is "
-                    "not opened in a browser (apt-get install chromium to run this test)")
+@pytest.mark.skipif(
+    _browser() is None,
+    reason="chromium is not installed: the report is "
+    "not opened in a browser (apt-get install chromium to run this test)",
+)
 def test_the_report_renders_in_headless_chromium(real_run, tmp_path) -> None:
     shot = tmp_path / "shot.png"
     result = subprocess.run(
-        [_browser(), "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
-         "--window-size=1000,2400", f"--screenshot={shot}",
-         (real_run / REPORT_NAME).resolve().as_uri()],
-        capture_output=True, text=True, timeout=120)
+        [
+            _browser(),
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--hide-scrollbars",
+            "--window-size=1000,2400",
+            f"--screenshot={shot}",
+            (real_run / REPORT_NAME).resolve().as_uri(),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert shot.is_file(), result.stderr[-2000:]
     with Image.open(shot) as image:
         pixels = np.asarray(image.convert("RGB"))
@@ -272,10 +311,13 @@ def test_the_report_renders_in_headless_chromium(real_run, tmp_path) -> None:
     assert colourful.sum() > 500
 
 
-@pytest.mark.parametrize("run_dir, label", [
-    ("/tmp/demo_out.partial/run", "demo_out/run"),  # the demo's run, still being written
-    ("/data/results/tum_desk", "results/tum_desk"),
-    ("/run", "run"),
-])
+@pytest.mark.parametrize(
+    "run_dir, label",
+    [
+        ("/tmp/demo_out.partial/run", "demo_out/run"),  # the demo's run, still being written
+        ("/data/results/tum_desk", "results/tum_desk"),
+        ("/run", "run"),
+    ],
+)
 def test_the_report_title_names_the_run_by_its_last_two_folders(run_dir, label) -> None:
     assert run_label(Path(run_dir)) == label

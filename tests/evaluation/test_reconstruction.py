@@ -101,7 +101,7 @@ def test_unique_voxel_rows_are_those_of_the_row_wise_sort(extent):
 
     cells = np.random.default_rng(2).integers(-5, 5, size=(2000, 3))
     if extent != "small":
-        cells[0] = [2**40, -2**40, 2**40]
+        cells[0] = [2**40, -(2**40), 2**40]
     unique, inverse = unique_rows(cells)
     expected, expected_inverse = np.unique(cells, axis=0, return_inverse=True)
     np.testing.assert_array_equal(unique, expected)
@@ -186,18 +186,24 @@ def test_map_metrics_of_an_estimate_in_pieces_equal_those_of_the_whole(tmp_path)
     from como3r.evaluation.reconstruction import MAP_THRESHOLD_RATIO, MAP_VOXEL_RATIO
 
     agent = open_agent(write_agent(tmp_path / "a", n=3))
-    alignment = Sim3Alignment(Rotation.from_rotvec([0.1, 0.2, -0.3]).as_matrix(),
-                              np.array([0.5, -1.0, 0.2]), 1.7)
+    alignment = Sim3Alignment(
+        Rotation.from_rotvec([0.1, 0.2, -0.3]).as_matrix(), np.array([0.5, -1.0, 0.2]), 1.7
+    )
     truth = ground_truth_cloud([agent])
     rng = np.random.default_rng(0)
-    estimate = (truth + rng.normal(scale=0.01, size=truth.shape) - alignment.translation
-                ) @ alignment.rotation / alignment.scale
+    estimate = (
+        (truth + rng.normal(scale=0.01, size=truth.shape) - alignment.translation)
+        @ alignment.rotation
+        / alignment.scale
+    )
     estimate[5] = np.nan  # dropped
-    scores = evaluate_maps([agent], {"whole": [estimate],
-                                     "pieces": np.array_split(estimate, 7)}, alignment)
+    scores = evaluate_maps(
+        [agent], {"whole": [estimate], "pieces": np.array_split(estimate, 7)}, alignment
+    )
     assert scores["pieces"] == scores["whole"]
-    reference = reconstruction_metrics(estimate, truth, MAP_THRESHOLD_RATIO * 2.0, alignment,
-                                       MAP_VOXEL_RATIO * 2.0)  # median depth: 2 m
+    reference = reconstruction_metrics(
+        estimate, truth, MAP_THRESHOLD_RATIO * 2.0, alignment, MAP_VOXEL_RATIO * 2.0
+    )  # median depth: 2 m
     assert scores["whole"].num_estimated == reference.num_estimated
     assert scores["whole"].accuracy == pytest.approx(reference.accuracy, rel=1e-9)
     assert scores["whole"].fscore == pytest.approx(reference.fscore, rel=1e-9)
@@ -217,8 +223,10 @@ def test_map_metrics_are_relative_to_the_median_ground_truth_depth() -> None:
     def agent(scale: float) -> SimpleNamespace:
         depths = [np.full((4, 5), 2.0 + k, dtype=np.float32) * scale for k in range(10)]
         depths[3][0, 0] = 0.0  # no depth: ignored
-        return SimpleNamespace(has_gt_pose=np.ones(10, dtype=bool),
-                               load_frame=lambda i: SimpleNamespace(depth=depths[i]))
+        return SimpleNamespace(
+            has_gt_pose=np.ones(10, dtype=bool),
+            load_frame=lambda i: SimpleNamespace(depth=depths[i]),
+        )
 
     base = median_ground_truth_depth([agent(1.0)])
     assert 2.0 < base < 12.0

@@ -43,8 +43,13 @@ def make_run(tmp_path: Path, agents: int = 2, seed: int = 0) -> tuple[Path, list
         gt_dirs.append(tmp_path / f"agent{a}")
         write_poses(gt_dirs[-1] / "groundtruth.txt", stamps, gt)
         rotation, scale = Rotation.random(random_state=rng), rng.uniform(0.5, 2.0)
-        est = np.concatenate([scale * rotation.apply(gt[:, :3]) + rng.normal(0, 0.02, (FRAMES, 3)),
-                              (rotation * Rotation.from_quat(gt[:, 3:])).as_quat()], axis=1)
+        est = np.concatenate(
+            [
+                scale * rotation.apply(gt[:, :3]) + rng.normal(0, 0.02, (FRAMES, 3)),
+                (rotation * Rotation.from_quat(gt[:, 3:])).as_quat(),
+            ],
+            axis=1,
+        )
         write_poses(run / "trajectories" / f"agent_{a}.txt", stamps, est)
     return run, gt_dirs
 
@@ -94,6 +99,7 @@ def test_ground_truth_staged_with_the_run_is_named_relative_to_it(tmp_path: Path
     assert entries[1]["gt"] == str(outside / "groundtruth.txt")
     staging.rename(tmp_path / "demo")
     assert (tmp_path / "demo" / "run" / entries[0]["gt"]).is_file()
+
 
 def test_ground_truth_files_and_folders_agree(tmp_path: Path) -> None:
     run, gt_dirs = make_run(tmp_path)
@@ -171,10 +177,20 @@ def _collinear_estimate(run: Path, gts: list[Path]) -> tuple[Path, list[Path], P
     return run, gts, est
 
 
-@pytest.mark.parametrize("break_input", [
-    _missing_est, _no_trajectories_dir, _gap_in_agents, _count_mismatch, _gt_folder_without_file,
-    _missing_gt_file, _file_with_two_gts, _no_common_stamps, _collinear_estimate,
-])
+@pytest.mark.parametrize(
+    "break_input",
+    [
+        _missing_est,
+        _no_trajectories_dir,
+        _gap_in_agents,
+        _count_mismatch,
+        _gt_folder_without_file,
+        _missing_gt_file,
+        _file_with_two_gts,
+        _no_common_stamps,
+        _collinear_estimate,
+    ],
+)
 def test_bad_input_names_the_file(tmp_path: Path, break_input) -> None:
     run, gt_dirs = make_run(tmp_path)
     est, gts, culprit = break_input(run, gt_dirs)

@@ -41,8 +41,14 @@ def random_sim3(rng: np.random.Generator) -> tuple[Rotation, np.ndarray, float]:
     return Rotation.random(random_state=rng), rng.uniform(-10, 10, 3), float(rng.uniform(0.5, 2.0))
 
 
-def transformed(traj: Trajectory, rotation: Rotation, translation: np.ndarray, scale: float,
-                noise: float = 0.0, rng: np.random.Generator | None = None) -> Trajectory:
+def transformed(
+    traj: Trajectory,
+    rotation: Rotation,
+    translation: np.ndarray,
+    scale: float,
+    noise: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> Trajectory:
     """``traj`` mapped by x -> s R x + t (orientations rotated by R), optionally noisy."""
     poses = traj.T_WC.numpy()
     positions = scale * rotation.apply(poses[:, :3]) + translation
@@ -124,8 +130,12 @@ def run_evo(tool: str, args: list[str], tmp_path: Path) -> dict[str, float]:
     exe = shutil.which(tool)
     assert exe is not None, f"{tool} not found: evo is a declared dependency of como3r"
     results = tmp_path / f"{tool}.zip"
-    subprocess.run([exe, *args, "--save_results", str(results), "--no_warnings"],
-                   check=True, capture_output=True, timeout=60)
+    subprocess.run(
+        [exe, *args, "--save_results", str(results), "--no_warnings"],
+        check=True,
+        capture_output=True,
+        timeout=60,
+    )
     with zipfile.ZipFile(results) as archive:
         return json.loads(archive.read("stats.json"))
 
@@ -140,13 +150,24 @@ def test_ate_equals_evo_ape_cli(tmp_path: Path) -> None:
         assert getattr(errors.ate, name) == pytest.approx(stats[name], abs=1e-9)
 
 
-@pytest.mark.parametrize(("relation", "field"), [("trans_part", "rpe_trans"),
-                                                 ("angle_deg", "rpe_rot_deg")])
+@pytest.mark.parametrize(
+    ("relation", "field"), [("trans_part", "rpe_trans"), ("angle_deg", "rpe_rot_deg")]
+)
 def test_rpe_equals_evo_rpe_cli(tmp_path: Path, relation: str, field: str) -> None:
     gt_path, est_path = write_noisy_pair(tmp_path, seed=4)
     errors = agent_errors(associate(read_tum(est_path), read_tum(gt_path), "est", "gt"))
-    args = ["tum", str(gt_path), str(est_path), "-as", "--delta", "1", "--delta_unit", "f",
-            "-r", relation]
+    args = [
+        "tum",
+        str(gt_path),
+        str(est_path),
+        "-as",
+        "--delta",
+        "1",
+        "--delta_unit",
+        "f",
+        "-r",
+        relation,
+    ]
     stats = run_evo("evo_rpe", args, tmp_path)
     assert getattr(errors, field).rmse == pytest.approx(stats["rmse"], abs=1e-9)
     assert getattr(errors, field).rmse > 0.0
@@ -164,9 +185,10 @@ def test_too_few_associated_poses_names_both(overlap: int) -> None:
     assert "run/agent_0.txt" in str(info.value) and "seq/groundtruth.txt" in str(info.value)
 
 
-@pytest.mark.parametrize(("shape", "which"), [("constant", "estimated"),
-                                              ("collinear", "estimated"),
-                                              ("collinear", "ground-truth")])
+@pytest.mark.parametrize(
+    ("shape", "which"),
+    [("constant", "estimated"), ("collinear", "estimated"), ("collinear", "ground-truth")],
+)
 def test_degenerate_alignment_is_an_input_error(shape: str, which: str) -> None:
     rng = np.random.default_rng(6)
     gt = smooth_path(rng)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Callable, Iterable
+from collections.abc import Callable, Iterable
 
 import pytest
 
@@ -12,14 +12,16 @@ from como3r.frontend.agent import AgentFrontend
 from como3r.runtime.pipeline import _colors
 
 
-def _process_frames(frontend: AgentFrontend, agent: AgentInput, long_side: int,
-                    indices: Iterable[int]) -> list[str]:
+def _process_frames(
+    frontend: AgentFrontend, agent: AgentInput, long_side: int, indices: Iterable[int]
+) -> list[str]:
     """Feed the agent's frames ``indices`` to ``frontend``; their outcomes in order."""
     outcomes = []
     for index in indices:
         frame = agent.load_frame(index)
-        view = make_view(frame, frontend.agent, long_side,
-                         agent.calib if frontend.config.calibrated else None)
+        view = make_view(
+            frame, frontend.agent, long_side, agent.calib if frontend.config.calibrated else None
+        )
         outcomes.append(frontend.process(view, frame.timestamp, _colors(view)))
     return outcomes
 

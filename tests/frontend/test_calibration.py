@@ -35,13 +35,26 @@ def test_estimate_intrinsics_takes_the_focal_and_the_image_centre():
 
 @pytest.mark.parametrize("self_calibration", [True, False])
 def test_an_uncalibrated_agent_locks_every_keyframe_to_one_estimated_camera(
-        tmp_path, process_frames, self_calibration: bool) -> None:
-    synthesize(tmp_path, agents=1, seed=0, overlap=0.2, frames=12, preset="default",
-               width=96, height=72, progress=None)
+    tmp_path, process_frames, self_calibration: bool
+) -> None:
+    synthesize(
+        tmp_path,
+        agents=1,
+        seed=0,
+        overlap=0.2,
+        frames=12,
+        preset="default",
+        width=96,
+        height=72,
+        progress=None,
+    )
     agent = open_agent(tmp_path / "agent_0")
-    config = apply_overrides(Config(), ["input.long_side=96",
-                                        f"tracking.self_calibration={self_calibration}"])
-    prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth({0: agent}, config.input.long_side))
+    config = apply_overrides(
+        Config(), ["input.long_side=96", f"tracking.self_calibration={self_calibration}"]
+    )
+    prior = SimulatedPrior(
+        config.simulated_prior, AgentFolderTruth({0: agent}, config.input.long_side)
+    )
     frontend = AgentFrontend(prior, config, 0, prior.codebook())
     process_frames(frontend, agent, 96, range(0, 12, 2))
     assert len(frontend.keyframes) >= 2
@@ -65,16 +78,29 @@ def miscalibrated(tmp_path_factory, process_frames):
     prior's draws reach 14 %), on the easy prior (exact pointmaps otherwise), until its
     camera settles on its first keyframes' pairs."""
     root = tmp_path_factory.mktemp("scene")
-    synthesize(root, agents=1, seed=1, overlap=0.2, frames=24, preset="default",
-               width=128, height=96, progress=None)
+    synthesize(
+        root,
+        agents=1,
+        seed=1,
+        overlap=0.2,
+        frames=24,
+        preset="default",
+        width=128,
+        height=96,
+        progress=None,
+    )
     agent = open_agent(root / "agent_0")
     config = apply_overrides(Config(), ["input.long_side=128", "simulated_prior.model=easy"])
-    prior = SimulatedPrior(config.simulated_prior,
-                           AgentFolderTruth({0: agent}, config.input.long_side))
+    prior = SimulatedPrior(
+        config.simulated_prior, AgentFolderTruth({0: agent}, config.input.long_side)
+    )
     frontend = AgentFrontend(prior, config, 0, prior.codebook())
     short = pytest.MonkeyPatch()
-    short.setattr(agent_module, "estimate_intrinsics",
-                  lambda X, C: rescale_focal(X, estimate_intrinsics(X, C), -0.12)[1])
+    short.setattr(
+        agent_module,
+        "estimate_intrinsics",
+        lambda X, C: rescale_focal(X, estimate_intrinsics(X, C), -0.12)[1],
+    )
     waited = []
     try:
         for index in range(0, agent.num_frames, 2):
@@ -125,8 +151,9 @@ def test_each_packet_carries_the_updates_applied_before_it_was_taken(miscalibrat
     first = next(packets)
     before = frontend.keyframes[1].T_WC.clone()
     shift = sim3_exp(torch.tensor([1.0, -0.5, 0.2, 0.0, 0.3, 0.0, 0.2])).to(first.T_WC)
-    frontend.apply_pose_update(PoseUpdate(0, torch.tensor([0]),
-                                          sim3_compose(shift, first.T_WC)[None], "gauge"))
+    frontend.apply_pose_update(
+        PoseUpdate(0, torch.tensor([0]), sim3_compose(shift, first.T_WC)[None], "gauge")
+    )
     second = next(packets)
     assert torch.allclose(second.T_WC, sim3_compose(shift, before), atol=1e-5)
     assert not torch.allclose(second.T_WC, before, atol=1e-2)

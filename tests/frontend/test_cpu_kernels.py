@@ -49,10 +49,14 @@ def test_descriptor_window_search_equals_the_vectorised_path(threads, size) -> N
     assert moved > 0.5  # the search did work: most starts were off
 
 
-@pytest.mark.parametrize("dim, radius, dilation_max", [(12, 3, 5), (24, 4, 2), (5, 1, 3)],
-                         ids=["dim-12", "two-lane-groups", "dim-5-radius-1"])
-def test_descriptor_window_search_of_any_width_and_radius(threads, dim, radius,
-                                                          dilation_max) -> None:
+@pytest.mark.parametrize(
+    "dim, radius, dilation_max",
+    [(12, 3, 5), (24, 4, 2), (5, 1, 3)],
+    ids=["dim-12", "two-lane-groups", "dim-5-radius-1"],
+)
+def test_descriptor_window_search_of_any_width_and_radius(
+    threads, dim, radius, dilation_max
+) -> None:
     """Descriptors whose width is not a multiple of 8 (zero-padded), windows wider than the
     8 lanes of one group of candidates (radius 4: 9 columns) and the smallest window."""
     D, D_query, pixel = _descriptor_problem(2, 18, 26, dim=dim, flow=5, seed=dim + radius)
@@ -88,8 +92,10 @@ def test_descriptor_window_search_takes_half_precision_descriptors() -> None:
     """bf16 descriptors (a bf16 prior) are scored in float32, as the PyTorch path does."""
     D, D_query, pixel = _descriptor_problem(1, 16, 20, dim=24, flow=4, seed=2)
     D, D_query = D.to(torch.bfloat16), D_query.to(torch.bfloat16)
-    assert torch.equal(cpu_kernels.refine_windows(D, D_query, pixel, 3, 2, None),
-                       matching._refine_vectorised(D, D_query, pixel, 3, 2, None))
+    assert torch.equal(
+        cpu_kernels.refine_windows(D, D_query, pixel, 3, 2, None),
+        matching._refine_vectorised(D, D_query, pixel, 3, 2, None),
+    )
 
 
 def _ray_problem(dtype: torch.dtype, turn_deg: float):
@@ -97,12 +103,14 @@ def _ray_problem(dtype: torch.dtype, turn_deg: float):
     camera B's points in A ``(1, P, 3)`` (B turned by ``turn_deg``) and start pixels."""
     H, W = 30, 40
     K = intrinsics_matrix(30.0, 30.0, (W - 1) / 2, (H - 1) / 2, dtype=torch.float64)
-    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64),
-                          torch.arange(W, dtype=torch.float64), indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij"
+    )
     depth = 5.0 + 0.03 * u + 0.3 * torch.sin(u / 9) * torch.cos(v / 7)
     X_A = unproject_depth(depth, K)
-    T_AB = sim3_exp(torch.tensor([0.1, -0.05, 0.1, 0.01, math.radians(turn_deg), 0.0, 0.0],
-                                 dtype=torch.float64))
+    T_AB = sim3_exp(
+        torch.tensor([0.1, -0.05, 0.1, 0.01, math.radians(turn_deg), 0.0, 0.0], dtype=torch.float64)
+    )
     X_B_in_A = sim3_act(T_AB[None, None], unproject_depth(depth.flip(1), K))
     rays_grad = matching.ray_image_with_gradients(X_A[None].to(dtype))
     target = torch.nn.functional.normalize(X_B_in_A.reshape(1, -1, 3), dim=-1).to(dtype)
@@ -145,8 +153,9 @@ def test_ray_image_with_gradients_equals_pytorch_to_an_ulp(threads) -> None:
     X = torch.randn(2, 13, 17, 3, generator=gen) + torch.tensor([0.0, 0.0, 4.0])
     X[0, 3, 5] = 0.0  # the camera centre: a zero ray, as psi's clamped norm gives
     rays = torch.nn.functional.normalize(X, dim=-1, eps=1e-12)
-    reference = torch.cat([rays, torch.gradient(rays, dim=2)[0], torch.gradient(rays, dim=1)[0]],
-                          dim=-1)
+    reference = torch.cat(
+        [rays, torch.gradient(rays, dim=2)[0], torch.gradient(rays, dim=1)[0]], dim=-1
+    )
     image = cpu_kernels.ray_image_with_gradients(X)
     assert image.shape == (2, 13, 17, 9) and image.dtype == torch.float32
     torch.testing.assert_close(image, reference, rtol=0, atol=3e-7)
@@ -163,14 +172,22 @@ def test_match_validity_equals_pytorch(threads) -> None:
     queries[1, 4] = float("inf")
     v, u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
     own = torch.stack([u.reshape(-1), v.reshape(-1)], -1).expand(B, -1, -1)
-    elsewhere = torch.stack([torch.randint(0, W, (B, H * W), generator=gen),
-                             torch.randint(0, H, (B, H * W), generator=gen)], -1)
+    elsewhere = torch.stack(
+        [
+            torch.randint(0, W, (B, H * W), generator=gen),
+            torch.randint(0, H, (B, H * W), generator=gen),
+        ],
+        -1,
+    )
     pixel = torch.where(torch.rand(B, H * W, 1, generator=gen) < 0.5, own, elsewhere)
     converged = torch.rand(B, H * W, generator=gen) < 0.8
     idx, valid = cpu_kernels.match_validity(X_search, queries, pixel, converged, 0.3)
     assert torch.equal(idx, pixel[..., 1] * W + pixel[..., 0])
     matched = torch.gather(X_search.reshape(B, -1, 3), 1, idx[..., None].expand(-1, -1, 3))
-    reference = (converged & ((matched - queries).norm(dim=-1) < 0.3 * queries.norm(dim=-1))
-                 & torch.isfinite(queries).all(-1))
+    reference = (
+        converged
+        & ((matched - queries).norm(dim=-1) < 0.3 * queries.norm(dim=-1))
+        & torch.isfinite(queries).all(-1)
+    )
     assert torch.equal(valid, reference)
     assert 0.2 < valid.float().mean() < 0.8

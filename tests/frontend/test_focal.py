@@ -30,8 +30,11 @@ def _camera() -> torch.Tensor:
 
 def _depth(shift: float) -> torch.Tensor:
     """A smooth non-planar surface about 3 units away (depth varies by a third)."""
-    v, u = torch.meshgrid(torch.linspace(-1, 1, H, dtype=torch.float64),
-                          torch.linspace(-1, 1, W, dtype=torch.float64), indexing="ij")
+    v, u = torch.meshgrid(
+        torch.linspace(-1, 1, H, dtype=torch.float64),
+        torch.linspace(-1, 1, W, dtype=torch.float64),
+        indexing="ij",
+    )
     return 3.0 + 0.6 * torch.sin(2.0 * u + shift) * torch.cos(1.5 * v) + 0.4 * u
 
 
@@ -47,8 +50,9 @@ def _pair(moving_focal_error: float, anchor_focal_error: float = 0.0) -> FocalPa
     X_m = unproject_depth(_depth(0.3), K).reshape(-1, 3)
     X_m_in_a = sim3_act(T_am, X_m)
     uv = project(X_m_in_a, K).round().long()
-    landed = ((uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
-              & (X_m_in_a[:, 2] > 0))
+    landed = (
+        (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H) & (X_m_in_a[:, 2] > 0)
+    )
     idx = uv[:, 1].clamp(0, H - 1) * W + uv[:, 0].clamp(0, W - 1)
     owner = torch.full((H * W,), -1, dtype=torch.int64)
     pixels = torch.nonzero(landed).flatten()
@@ -56,8 +60,7 @@ def _pair(moving_focal_error: float, anchor_focal_error: float = 0.0) -> FocalPa
     X_a = unproject_depth(_depth(0.0), K).reshape(-1, 3).clone()
     X_a[owner >= 0] = X_m_in_a[owner[owner >= 0]]
     q = torch.full((H * W,), 2.0, dtype=torch.float64)
-    in_anchor = DirectedMatches(idx=idx, valid=landed & (owner[idx] == torch.arange(H * W)),
-                                q=q)
+    in_anchor = DirectedMatches(idx=idx, valid=landed & (owner[idx] == torch.arange(H * W)), q=q)
     in_moving = DirectedMatches(idx=owner.clamp_min(0), valid=owner >= 0, q=q)
     X_a_wrong, K_a = rescale_focal(X_a.reshape(H, W, 3), K, anchor_focal_error)
     X_m_wrong, K_m = rescale_focal(X_m.reshape(H, W, 3), K, moving_focal_error)
@@ -91,8 +94,9 @@ def _scaled(pair: FocalPair, scale: float) -> FocalPair:
     """The same pair in a scene ``scale`` times as large."""
     T = pair.T_anchor_moving.clone()
     T[:3] *= scale
-    return replace(pair, X_anchor=scale * pair.X_anchor, X_moving=scale * pair.X_moving,
-                   T_anchor_moving=T)
+    return replace(
+        pair, X_anchor=scale * pair.X_anchor, X_moving=scale * pair.X_moving, T_anchor_moving=T
+    )
 
 
 @pytest.mark.parametrize("scale", [0.001, 1000.0])
@@ -145,11 +149,21 @@ def test_agreeing_focal_lengths_need_no_correction() -> None:
 
 def _packet(agent: int, kf_id: int, X: torch.Tensor, K: torch.Tensor) -> KeyframePacket:
     return KeyframePacket(
-        agent=agent, kf_id=kf_id, frame_index=kf_id, timestamp=float(kf_id),
+        agent=agent,
+        kf_id=kf_id,
+        frame_index=kf_id,
+        timestamp=float(kf_id),
         encoding=Encoding(agent=agent, index=kf_id, shape=(H, W)),
-        T_WC=sim3_identity(dtype=torch.float64), X_hat=X, C_hat=torch.ones(H, W),
-        colors=torch.zeros(H, W, 3, dtype=torch.uint8).numpy(), retrieval=None,
-        sequential_ij=None, sequential_ji=None, previous=None, K=K)
+        T_WC=sim3_identity(dtype=torch.float64),
+        X_hat=X,
+        C_hat=torch.ones(H, W),
+        colors=torch.zeros(H, W, 3, dtype=torch.uint8).numpy(),
+        retrieval=None,
+        sequential_ij=None,
+        sequential_ji=None,
+        previous=None,
+        K=K,
+    )
 
 
 def test_graph_rescales_an_agent_now_and_on_receipt() -> None:
@@ -169,11 +183,16 @@ def test_graph_rescales_an_agent_now_and_on_receipt() -> None:
     assert torch.allclose(graph.keyframes[2].X_hat, moved.X_hat)
     assert float(graph.keyframes[2].K[0, 0]) == pytest.approx(40.0 * math.exp(0.1))
     # a refresh on the agent's former camera is moved, one on the map's camera is not
-    graph.refresh(1, PointmapRefresh(kf_id=0, X_hat=2 * X, C_hat=torch.ones(H, W),
-                                     fused_frames=2, K=K))
+    graph.refresh(
+        1, PointmapRefresh(kf_id=0, X_hat=2 * X, C_hat=torch.ones(H, W), fused_frames=2, K=K)
+    )
     assert torch.allclose(graph.keyframes[1].X_hat[..., 1], 2 * X[..., 1] * math.exp(-0.1))
-    graph.refresh(1, PointmapRefresh(kf_id=1, X_hat=3 * X, C_hat=torch.ones(H, W),
-                                     fused_frames=2, K=graph.keyframes[2].K))
+    graph.refresh(
+        1,
+        PointmapRefresh(
+            kf_id=1, X_hat=3 * X, C_hat=torch.ones(H, W), fused_frames=2, K=graph.keyframes[2].K
+        ),
+    )
     assert torch.equal(graph.keyframes[2].X_hat, 3 * X)
     assert graph.focal == {1: pytest.approx(40.0 * math.exp(0.1))}
 
@@ -184,12 +203,20 @@ def test_a_pose_update_with_a_focal_length_moves_the_agents_keyframes() -> None:
     graph = GlobalGraph(TrackingConfig(), GlobalBAConfig())
     graph.add_keyframe(_packet(1, 0, X, K))
     agent_side = graph.keyframes[0]
-    kf = type(agent_side)(**{**agent_side.__dict__, "X_hat": X.clone(), "X_init": X.clone(),
-                             "K": K.clone()})
+    kf = type(agent_side)(
+        **{**agent_side.__dict__, "X_hat": X.clone(), "X_init": X.clone(), "K": K.clone()}
+    )
     focal = 40.0 * math.exp(-0.05)
-    apply_pose_update([kf], PoseUpdate(agent=1, kf_ids=torch.tensor([0]),
-                                       T_WC=sim3_identity(1, dtype=torch.float64),
-                                       reason="gauge", focal=focal))
+    apply_pose_update(
+        [kf],
+        PoseUpdate(
+            agent=1,
+            kf_ids=torch.tensor([0]),
+            T_WC=sim3_identity(1, dtype=torch.float64),
+            reason="gauge",
+            focal=focal,
+        ),
+    )
     assert float(kf.K[0, 0]) == pytest.approx(focal)
     assert torch.allclose(project(kf.X_hat, kf.K), project(X, K), atol=1e-9)
     assert torch.allclose(kf.X_init, kf.X_hat)
@@ -200,15 +227,27 @@ def test_relative_pose_of_the_same_pose_is_the_identity() -> None:
     assert torch.allclose(relative_pose(T, T), sim3_identity(dtype=torch.float64), atol=1e-12)
 
 
-def _admitted(coordinator: Coordinator, anchor: tuple[int, int], moving: tuple[int, int],
-              pair: FocalPair, similarity: float) -> None:
+def _admitted(
+    coordinator: Coordinator,
+    anchor: tuple[int, int],
+    moving: tuple[int, int],
+    pair: FocalPair,
+    similarity: float,
+) -> None:
     """Record ``pair`` as an admitted cross-agent edge (anchor = endpoint i)."""
     graph = coordinator.graph
     i, j = graph.global_index(*anchor), graph.global_index(*moving)
     link = PairLink(ij=pair.in_anchor, ji=pair.in_moving)
-    verification = Verification(candidate=anchor, query=moving, similarity=similarity,
-                                ij=link.ij, link=link, covisible_i=1.0, covisible_j=1.0,
-                                accepted=True)
+    verification = Verification(
+        candidate=anchor,
+        query=moving,
+        similarity=similarity,
+        ij=link.ij,
+        link=link,
+        covisible_i=1.0,
+        covisible_j=1.0,
+        accepted=True,
+    )
     coordinator.candidates.append(Candidate(verification, i, j, status="admitted"))
 
 
@@ -222,10 +261,11 @@ def test_terminal_refinement_settles_focal_lengths_outwards_from_the_anchor() ->
     coordinator = Coordinator(None, Config(), None, 3)
     T_am = to_agent_0.T_anchor_moving
     for agent, kf_id, X, K, T in (
-            (0, 0, to_agent_0.X_anchor, to_agent_0.K_anchor, sim3_identity(dtype=torch.float64)),
-            (1, 0, to_agent_0.X_moving, to_agent_0.K_moving, T_am),
-            (1, 1, to_agent_1.X_anchor, to_agent_1.K_anchor, sim3_identity(dtype=torch.float64)),
-            (2, 0, to_agent_1.X_moving, to_agent_1.K_moving, T_am)):
+        (0, 0, to_agent_0.X_anchor, to_agent_0.K_anchor, sim3_identity(dtype=torch.float64)),
+        (1, 0, to_agent_0.X_moving, to_agent_0.K_moving, T_am),
+        (1, 1, to_agent_1.X_anchor, to_agent_1.K_anchor, sim3_identity(dtype=torch.float64)),
+        (2, 0, to_agent_1.X_moving, to_agent_1.K_moving, T_am),
+    ):
         coordinator.graph.add_keyframe(replace(_packet(agent, kf_id, X, K), T_WC=T))
     _admitted(coordinator, (0, 0), (1, 0), to_agent_0, similarity=0.5)
     _admitted(coordinator, (1, 1), (2, 0), to_agent_1, similarity=0.4)

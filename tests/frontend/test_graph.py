@@ -42,8 +42,9 @@ def test_ray_range_whitening_is_the_same_at_every_scene_scale(dtype: torch.dtype
         X_i, X_j, poses = _problem(scale, dtype)
         q = torch.ones(1, 200, dtype=dtype)
         valid = torch.ones(1, 200, dtype=torch.bool)
-        factors = make_factors(torch.tensor([0]), torch.tensor([1]), X_i, X_j, q, valid,
-                               TrackingConfig())
+        factors = make_factors(
+            torch.tensor([0]), torch.tensor([1]), X_i, X_j, q, valid, TrackingConfig()
+        )
         whitened.append(factors.whitened_residual(poses)[0])
     tol = 1e-4 if dtype == torch.float32 else 1e-9
     assert float(whitened[0][..., 3].abs().max()) > 1e-4  # the range term is not empty
@@ -75,11 +76,11 @@ def test_packed_matches_are_each_edges_valid_matches_in_pixel_order(dtype) -> No
     for k, e in enumerate(edges):
         n = torch.nonzero(e.matches.valid).squeeze(-1)
         points_i = keyframes[e.i].X_hat.reshape(-1, 3)
-        assert torch.equal(X_i[k, :counts[k]], points_i[e.matches.idx[n]])
-        assert torch.equal(X_j[k, :counts[k]], keyframes[e.j].X_hat.reshape(-1, 3)[n])
-        assert torch.equal(q[k, :counts[k]], e.matches.q[n])
-        assert bool(valid[k, :counts[k]].all()) and not bool(valid[k, counts[k]:].any())
-        assert not bool(X_i[k, counts[k]:].any()) and not bool(q[k, counts[k]:].any())
+        assert torch.equal(X_i[k, : counts[k]], points_i[e.matches.idx[n]])
+        assert torch.equal(X_j[k, : counts[k]], keyframes[e.j].X_hat.reshape(-1, 3)[n])
+        assert torch.equal(q[k, : counts[k]], e.matches.q[n])
+        assert bool(valid[k, : counts[k]].all()) and not bool(valid[k, counts[k] :].any())
+        assert not bool(X_i[k, counts[k] :].any()) and not bool(q[k, counts[k] :].any())
 
 
 @pytest.fixture(scope="module")
@@ -88,13 +89,24 @@ def solved_both_ways(tmp_path_factory, process_frames):
     for the newest 2 keyframes' edges (quadratic models for the others) and through one
     holding them all."""
     root = tmp_path_factory.mktemp("scene")
-    synthesize(root, agents=1, seed=3, overlap=0.2, frames=60, preset="default", width=64,
-               height=48, progress=None)
+    synthesize(
+        root,
+        agents=1,
+        seed=3,
+        overlap=0.2,
+        frames=60,
+        preset="default",
+        width=64,
+        height=48,
+        progress=None,
+    )
     agent = open_agent(root / "agent_0")
     runs = {}
     for dense in (2, 10**9):
-        config = apply_overrides(Config(), ["input.long_side=64", "input.subsample=1",
-                                            f"local_solve.dense_keyframes={dense}"])
+        config = apply_overrides(
+            Config(),
+            ["input.long_side=64", "input.subsample=1", f"local_solve.dense_keyframes={dense}"],
+        )
         prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth({0: agent}, 64))
         frontend = AgentFrontend(prior, config, 0, prior.codebook())
         process_frames(frontend, agent, 64, range(60))
@@ -128,18 +140,30 @@ def test_quadratic_models_are_made_again_when_stale() -> None:
     """A model is made again when an endpoint's pointmap changes or its relative pose moves
     beyond the tolerance, and only then."""
     g = torch.Generator().manual_seed(0)
-    X = [torch.randn(6, 8, 3, generator=g, dtype=torch.float64)
-         + torch.tensor([0.0, 0.0, 5.0], dtype=torch.float64) for _ in range(3)]
-    matches = DirectedMatches(torch.randperm(48, generator=g), torch.ones(48, dtype=torch.bool),
-                              torch.ones(48, dtype=torch.float64))
+    X = [
+        torch.randn(6, 8, 3, generator=g, dtype=torch.float64)
+        + torch.tensor([0.0, 0.0, 5.0], dtype=torch.float64)
+        for _ in range(3)
+    ]
+    matches = DirectedMatches(
+        torch.randperm(48, generator=g),
+        torch.ones(48, dtype=torch.bool),
+        torch.ones(48, dtype=torch.float64),
+    )
     edges = [Edge(0, 1, matches), Edge(1, 2, matches)]
     versions = {0: 0, 1: 0, 2: 0}
     cache = QuadraticEdgeCache()
 
     def made(poses: torch.Tensor) -> int:
         before = cache.remade
-        factor = cache.factor(edges, [0, 1], lambda: lambda k: SolvePoints(X[k], None),
-                              versions.__getitem__, TrackingConfig(), 1e-3)
+        factor = cache.factor(
+            edges,
+            [0, 1],
+            lambda: lambda k: SolvePoints(X[k], None),
+            versions.__getitem__,
+            TrackingConfig(),
+            1e-3,
+        )
         factor.linearize(poses)
         return cache.remade - before
 

@@ -42,12 +42,24 @@ class CountingPrior:
 @pytest.fixture(scope="module")
 def run(tmp_path_factory, process_frames):
     root = tmp_path_factory.mktemp("scene")
-    synthesize(root, agents=1, seed=5, overlap=0.2, frames=FRAMES, preset="default",
-               width=WIDTH, height=HEIGHT, progress=None)
+    synthesize(
+        root,
+        agents=1,
+        seed=5,
+        overlap=0.2,
+        frames=FRAMES,
+        preset="default",
+        width=WIDTH,
+        height=HEIGHT,
+        progress=None,
+    )
     agent = open_agent(root / "agent_0")
-    config = apply_overrides(Config(), [f"input.long_side={WIDTH}", "input.subsample=1",
-                                        "simulated_prior.model=easy"])
-    prior = CountingPrior(SimulatedPrior(config.simulated_prior, AgentFolderTruth({0: agent}, config.input.long_side)))
+    config = apply_overrides(
+        Config(), [f"input.long_side={WIDTH}", "input.subsample=1", "simulated_prior.model=easy"]
+    )
+    prior = CountingPrior(
+        SimulatedPrior(config.simulated_prior, AgentFolderTruth({0: agent}, config.input.long_side))
+    )
     frontend = AgentFrontend(prior, config, 0, prior.codebook())
     outcomes = process_frames(frontend, agent, WIDTH, range(agent.num_frames))
     return frontend, prior, outcomes

@@ -17,8 +17,9 @@ H, W = 30, 40
 
 def _smooth_depth(generator: torch.Generator) -> torch.Tensor:
     """A tilted, gently curved surface 4-7 m away: ``(H, W)`` metres."""
-    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
-                          indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij"
+    )
     phase = torch.rand(2, generator=generator, dtype=torch.float64) * 2 * math.pi
     return 5.0 + 0.03 * u + 0.3 * torch.sin(u / 9 + phase[0]) * torch.cos(v / 7 + phase[1])
 
@@ -105,8 +106,13 @@ def test_descriptor_refinement_recovers_true_pixel_and_validity_follows_it() -> 
     m = match_pointmaps(X_search[None], X_query[None], D_search[None], D_query[None], loose)
     exact = (m.pixel[0] == p_true).all(-1)
     assert exact.float().mean() > 0.95
-    unrefined = match_pointmaps(X_search[None], X_query[None], D_search[None], D_query[None],
-                                MatchingConfig(descriptor_radius=0, occlusion_ratio=0.01))
+    unrefined = match_pointmaps(
+        X_search[None],
+        X_query[None],
+        D_search[None],
+        D_query[None],
+        MatchingConfig(descriptor_radius=0, occlusion_ratio=0.01),
+    )
     assert unrefined.valid.float().mean() > 0.9
     # validity is decided on the refined match, whose 3-D points are two pixels apart
     strict = MatchingConfig(occlusion_ratio=0.01, **window)
@@ -128,11 +134,21 @@ def test_match_confidence_is_geometric_mean() -> None:
 def test_warm_start_converges_with_fewer_iterations() -> None:
     _, X_search, X_query = _two_views(3)
     D = torch.nn.functional.normalize(torch.ones(1, H, W, 4, dtype=torch.float64), dim=-1)
-    cold = match_pointmaps(X_search[None], X_query[None], D, D,
-                           MatchingConfig(descriptor_radius=0, occlusion_ratio=1e9))
-    warm = match_pointmaps(X_search[None], X_query[None], D, D,
-                           MatchingConfig(descriptor_radius=0, occlusion_ratio=1e9, max_iters=1),
-                           p_init=cold.pixel.double())
+    cold = match_pointmaps(
+        X_search[None],
+        X_query[None],
+        D,
+        D,
+        MatchingConfig(descriptor_radius=0, occlusion_ratio=1e9),
+    )
+    warm = match_pointmaps(
+        X_search[None],
+        X_query[None],
+        D,
+        D,
+        MatchingConfig(descriptor_radius=0, occlusion_ratio=1e9, max_iters=1),
+        p_init=cold.pixel.double(),
+    )
     both = cold.valid & warm.valid
     assert both.float().mean() > 0.5
     assert torch.equal(cold.idx[both], warm.idx[both])
@@ -153,10 +169,12 @@ def test_rays_outside_the_view_leave_the_projection_early(monkeypatch) -> None:
     X_search = unproject_depth(torch.full((H, W), 5.0, dtype=torch.float64), K)
     # the query camera is turned by 30 degrees: the rays of about a third of its pixels
     # miss the searched view
-    turn = sim3_exp(torch.tensor([0.0, 0.0, 0.0, 0.0, math.radians(30), 0.0, 0.0],
-                                 dtype=torch.float64))
-    X_query = sim3_act(turn[None, None], unproject_depth(torch.full((H, W), 5.0,
-                                                                    dtype=torch.float64), K))
+    turn = sim3_exp(
+        torch.tensor([0.0, 0.0, 0.0, 0.0, math.radians(30), 0.0, 0.0], dtype=torch.float64)
+    )
+    X_query = sim3_act(
+        turn[None, None], unproject_depth(torch.full((H, W), 5.0, dtype=torch.float64), K)
+    )
     evaluated = [0]
     ray_cost = matching._ray_cost
 
@@ -165,6 +183,7 @@ def test_rays_outside_the_view_leave_the_projection_early(monkeypatch) -> None:
         return ray_cost(*args)
 
     monkeypatch.setattr(matching, "_ray_cost", counted)
+
     # the PyTorch path, whose ray evaluations can be counted; the compiled CPU loop follows
     # the same exit rule and gives the same pixels (tests/frontend/test_cpu_kernels.py)
     def vectorised(rays_grad, target, *rest):
@@ -185,8 +204,9 @@ def test_rays_outside_the_view_leave_the_projection_early(monkeypatch) -> None:
     assert H * W < evaluated[0] < 4 * H * W
 
 
-def _brute_force_outside(X_search: torch.Tensor, X_query: torch.Tensor,
-                         K: torch.Tensor) -> torch.Tensor:
+def _brute_force_outside(
+    X_search: torch.Tensor, X_query: torch.Tensor, K: torch.Tensor
+) -> torch.Tensor:
     """``(H, W)`` query points whose projection falls outside the searched image."""
     uvw = X_query @ K.T
     u, v = uvw[..., 0] / uvw[..., 2], uvw[..., 1] / uvw[..., 2]

@@ -31,8 +31,17 @@ ARRAYS = ("X_hat", "C_hat", "X_init", "C_init")
 @pytest.fixture(scope="module")
 def agent(tmp_path_factory):
     root = tmp_path_factory.mktemp("scene")
-    synthesize(root, agents=1, seed=3, overlap=0.2, frames=FRAMES, preset="default",
-               width=WIDTH, height=HEIGHT, progress=None)
+    synthesize(
+        root,
+        agents=1,
+        seed=3,
+        overlap=0.2,
+        frames=FRAMES,
+        preset="default",
+        width=WIDTH,
+        height=HEIGHT,
+        progress=None,
+    )
     return open_agent(root / "agent_0")
 
 
@@ -40,22 +49,39 @@ def _run(agent, process_frames, tmp_path, resident: int) -> tuple[AgentFrontend,
     """Every frame through a front-end keeping ``resident`` keyframes whole, with a
     coordinator's pose update (a new focal length) and pointmap update half-way; its
     outcomes and the packets it handed out."""
-    config = apply_overrides(Config(), [
-        f"input.long_side={WIDTH}", "input.subsample=1",
-        f"session.resident_keyframes={resident}", f"session.spill_dir={tmp_path}"])
-    prior = SimulatedPrior(config.simulated_prior,
-                           AgentFolderTruth({0: agent}, config.input.long_side))
+    config = apply_overrides(
+        Config(),
+        [
+            f"input.long_side={WIDTH}",
+            "input.subsample=1",
+            f"session.resident_keyframes={resident}",
+            f"session.spill_dir={tmp_path}",
+        ],
+    )
+    prior = SimulatedPrior(
+        config.simulated_prior, AgentFolderTruth({0: agent}, config.input.long_side)
+    )
     frontend = AgentFrontend(prior, config, 0, prior.codebook())
     outcomes = process_frames(frontend, agent, WIDTH, range(FRAMES // 2))
     packets = list(frontend.drain_new_keyframes())
     old = torch.arange(len(frontend.keyframes) - 2)  # all but the newest two
     nudge = sim3_exp(torch.tensor([0.01, 0.0, 0.0, 0.0, 0.02, 0.0, 0.0], dtype=torch.float64))
-    frontend.apply_pose_update(PoseUpdate(
-        agent=0, kf_ids=old, reason="test",
-        T_WC=torch.stack([sim3_compose(nudge, frontend.keyframes[k].T_WC) for k in old.tolist()]),
-        focal=float(frontend.keyframes.last.K[0, 0]) * 1.01))
-    frontend.apply_pointmap_update(PointmapUpdate(
-        agent=0, kf_ids=torch.tensor([1]), X_hat=frontend.keyframes[1].X_hat[None] * 1.001))
+    frontend.apply_pose_update(
+        PoseUpdate(
+            agent=0,
+            kf_ids=old,
+            reason="test",
+            T_WC=torch.stack(
+                [sim3_compose(nudge, frontend.keyframes[k].T_WC) for k in old.tolist()]
+            ),
+            focal=float(frontend.keyframes.last.K[0, 0]) * 1.01,
+        )
+    )
+    frontend.apply_pointmap_update(
+        PointmapUpdate(
+            agent=0, kf_ids=torch.tensor([1]), X_hat=frontend.keyframes[1].X_hat[None] * 1.001
+        )
+    )
     outcomes += process_frames(frontend, agent, WIDTH, range(FRAMES // 2, FRAMES))
     frontend.settle_camera()
     packets += list(frontend.drain_new_keyframes())
@@ -64,9 +90,10 @@ def _run(agent, process_frames, tmp_path, resident: int) -> tuple[AgentFrontend,
 
 @pytest.fixture(scope="module")
 def runs(agent, process_frames, tmp_path_factory):
-    return {resident: _run(agent, process_frames, tmp_path_factory.mktemp(f"spill{resident}"),
-                           resident)
-            for resident in (0, 1000)}
+    return {
+        resident: _run(agent, process_frames, tmp_path_factory.mktemp(f"spill{resident}"), resident)
+        for resident in (0, 1000)
+    }
 
 
 def _same(a, b) -> bool:
@@ -75,8 +102,9 @@ def _same(a, b) -> bool:
     if isinstance(a, (tuple, list)):
         return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
     if hasattr(a, "__dataclass_fields__"):
-        return type(a) is type(b) and all(_same(getattr(a, f), getattr(b, f))
-                                          for f in a.__dataclass_fields__)
+        return type(a) is type(b) and all(
+            _same(getattr(a, f), getattr(b, f)) for f in a.__dataclass_fields__
+        )
     if hasattr(a, "shape"):  # numpy
         return (a == b).all()
     return a == b
@@ -89,8 +117,10 @@ def test_paging_everything_out_changes_nothing(runs) -> None:
     # the run pages: everything but what the last step read is in the spill only
     assert not any(kf.resident("encoding") for kf in paged.keyframes.keyframes[:-2])
     assert all(isinstance(e.matches, PagedMatches) for e in paged.edges)
-    for a, b in zip(paged.trajectory() + paged.keyframe_trajectory(),
-                    whole.trajectory() + whole.keyframe_trajectory()):
+    for a, b in zip(
+        paged.trajectory() + paged.keyframe_trajectory(),
+        whole.trajectory() + whole.keyframe_trajectory(),
+    ):
         assert _same(a, b)
     for kf_a, kf_b in zip(paged.keyframes, whole.keyframes, strict=True):
         for name in (*ARRAYS, "colors", "encoding", "T_WC", "K", "fused_frames", "retrieval"):
@@ -98,23 +128,32 @@ def test_paging_everything_out_changes_nothing(runs) -> None:
     for e_a, e_b in zip(paged.edges, whole.edges, strict=True):
         assert (e_a.i, e_a.j, e_a.kind) == (e_b.i, e_b.j, e_b.kind)
         assert e_a.matches.match_fraction == e_b.matches.match_fraction
-        assert all(_same(getattr(e_a.matches, f), getattr(e_b.matches, f))
-                   for f in ("idx", "valid", "q"))
+        assert all(
+            _same(getattr(e_a.matches, f), getattr(e_b.matches, f)) for f in ("idx", "valid", "q")
+        )
     assert len(paged_packets) == len(packets) == len(whole.keyframes)
     for a, b in zip(paged_packets, packets):
         assert _same(a, b), a.kf_id
-    stats = [{k: v for k, v in vars(f.stats).items()
-              if k not in ("stage_seconds", "local_solve_seconds")} for f in (paged, whole)]
+    stats = [
+        {
+            k: v
+            for k, v in vars(f.stats).items()
+            if k not in ("stage_seconds", "local_solve_seconds")
+        }
+        for f in (paged, whole)
+    ]
     assert stats[0] == stats[1]
 
 
-def test_at_most_the_resident_keyframes_hold_their_arrays(agent, process_frames,
-                                                          tmp_path) -> None:
+def test_at_most_the_resident_keyframes_hold_their_arrays(agent, process_frames, tmp_path) -> None:
     frontend, _, _ = _run(agent, process_frames, tmp_path, 3)
     keyframes = frontend.keyframes.keyframes
     assert len(keyframes) >= 12
-    held = [kf.kf_id for kf in keyframes
-            if any(kf.resident(group) for group in ("encoding", "colors", "pointmaps"))]
+    held = [
+        kf.kf_id
+        for kf in keyframes
+        if any(kf.resident(group) for group in ("encoding", "colors", "pointmaps"))
+    ]
     assert held == [kf.kf_id for kf in keyframes[-3:]]
     old = len(keyframes) - 3
     for edge in frontend.edges:
@@ -141,15 +180,25 @@ class _Encoding(Encoding):
 
 def test_the_spill_gives_back_what_it_was_given(tmp_path) -> None:
     spill = KeyframeSpill(tmp_path)
-    encoding = _Encoding(agent=2, index=7, shape=(3, 4),
-                         tokens=torch.randn(5, 6).to(torch.bfloat16), scale=0.5)
+    encoding = _Encoding(
+        agent=2, index=7, shape=(3, 4), tokens=torch.randn(5, 6).to(torch.bfloat16), scale=0.5
+    )
     values = {"encoding": encoding, "X": torch.randn(3, 4, 3, dtype=torch.float64)}
     spill.save_keyframe(4, "mixed", values)
     back = spill.load_keyframe(4, "mixed")
     assert _same(back["encoding"], encoding) and _same(back["X"], values["X"])
-    kf = PagedKeyframe(kf_id=4, frame_index=9, timestamp=1.0, encoding=encoding,
-                       T_WC=torch.zeros(8), X_hat=values["X"], C_hat=torch.ones(3, 4),
-                       X_init=values["X"], C_init=torch.ones(3, 4), colors=None)
+    kf = PagedKeyframe(
+        kf_id=4,
+        frame_index=9,
+        timestamp=1.0,
+        encoding=encoding,
+        T_WC=torch.zeros(8),
+        X_hat=values["X"],
+        C_hat=torch.ones(3, 4),
+        X_init=values["X"],
+        C_init=torch.ones(3, 4),
+        colors=None,
+    )
     assert kf.changed() == ["encoding", "colors", "pointmaps"]
     kf.evict(spill, 4)
     assert kf.changed() == [] and not kf.resident("pointmaps")

@@ -21,8 +21,9 @@ def test_a_link_passes_exactly_when_both_directions_pass() -> None:
     for nu_ij, nu_ji, c_ij, c_ji in itertools.product(fractions, fractions, covisible, covisible):
         link = PairLink(_matches(nu_ij), _matches(nu_ji), c_ij, c_ji)
         whole = link.min_match_fraction >= 0.1 and link.covisible_ratio >= 0.7
-        split = (direction_passes(link.ij, c_ij, 0.1, 0.7)
-                 and direction_passes(link.ji, c_ji, 0.1, 0.7))
+        split = direction_passes(link.ij, c_ij, 0.1, 0.7) and direction_passes(
+            link.ji, c_ji, 0.1, 0.7
+        )
         assert whole == split, (nu_ij, nu_ji, c_ij, c_ji)
 
 

@@ -28,21 +28,41 @@ from como3r.prior.simulated import SimulatedPrior
 FRAMES = 40
 
 
-def _track(root, process_frames, scale: float, width: int,
-           overrides: tuple[str, ...] = (), preset: str = "default", scene_seed: int = 0,
-           frames: int = FRAMES,
-           loop_frames: int | None = None) -> tuple[float, list[str], AgentFrontend]:
+def _track(
+    root,
+    process_frames,
+    scale: float,
+    width: int,
+    overrides: tuple[str, ...] = (),
+    preset: str = "default",
+    scene_seed: int = 0,
+    frames: int = FRAMES,
+    loop_frames: int | None = None,
+) -> tuple[float, list[str], AgentFrontend]:
     """One agent's run on a fresh scene: (ATE as a fraction of the path, outcomes, front-end)."""
-    synthesize(root, agents=1, seed=scene_seed, overlap=0.2, frames=frames, preset=preset,
-               width=width, height=width * 3 // 4, progress=None, scale=scale,
-               loop_frames=loop_frames)
+    synthesize(
+        root,
+        agents=1,
+        seed=scene_seed,
+        overlap=0.2,
+        frames=frames,
+        preset=preset,
+        width=width,
+        height=width * 3 // 4,
+        progress=None,
+        scale=scale,
+        loop_frames=loop_frames,
+    )
     agent = open_agent(root / "agent_0")
     config = apply_overrides(Config(), [f"input.long_side={width}", *overrides])
     assert config.simulated_prior.model == "realistic"
-    prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth({0: agent}, config.input.long_side))
+    prior = SimulatedPrior(
+        config.simulated_prior, AgentFolderTruth({0: agent}, config.input.long_side)
+    )
     frontend = AgentFrontend(prior, config, 0, prior.codebook())
-    outcomes = process_frames(frontend, agent, width,
-                              range(0, agent.num_frames, config.input.subsample))
+    outcomes = process_frames(
+        frontend, agent, width, range(0, agent.num_frames, config.input.subsample)
+    )
     indices, _, T_WC = frontend.trajectory()
     gt = agent.groundtruth.T_WC[indices, :3]
     est = T_WC[:, :3].double()
@@ -52,8 +72,9 @@ def _track(root, process_frames, scale: float, width: int,
 
 @pytest.mark.parametrize("scale", [0.1, 1.0])
 @pytest.mark.parametrize("width", [96, 160])
-def test_default_configuration_tracks_on_the_realistic_prior(tmp_path, process_frames,
-                                                             scale: float, width: int) -> None:
+def test_default_configuration_tracks_on_the_realistic_prior(
+    tmp_path, process_frames, scale: float, width: int
+) -> None:
     ate, outcomes, frontend = _track(tmp_path, process_frames, scale, width)
     tracked = sum(o != "lost" for o in outcomes)
     assert tracked >= 0.95 * len(outcomes), outcomes
@@ -62,8 +83,9 @@ def test_default_configuration_tracks_on_the_realistic_prior(tmp_path, process_f
 
 
 def test_self_calibration_beats_the_papers_uncalibrated_mode(tmp_path, process_frames) -> None:
-    paper, _, frontend = _track(tmp_path, process_frames, 1.0, 96,
-                                ("tracking.self_calibration=false",))
+    paper, _, frontend = _track(
+        tmp_path, process_frames, 1.0, 96, ("tracking.self_calibration=false",)
+    )
     assert frontend.stats.estimated_focal is None
     # measured: 7.2 % (paper's mode) against 1.6-2.0 % (the default, previous test)
     assert paper > 0.035, paper
@@ -73,8 +95,7 @@ def test_a_frame_the_motion_outran_becomes_a_keyframe_late(tmp_path, process_fra
     """With this draw of the prior's errors, frame 2 still overlaps keyframe 0 by 36 % (no
     keyframe due) and frame 4 by 4 %: without the late promotion of frame 2 the agent lost
     track at frame 4 and tracked 4 of 20 frames (measured)."""
-    ate, outcomes, frontend = _track(tmp_path, process_frames, 1.0, 96,
-                                     ("simulated_prior.seed=1",))
+    ate, outcomes, frontend = _track(tmp_path, process_frames, 1.0, 96, ("simulated_prior.seed=1",))
     assert frontend.stats.late_keyframes >= 1
     # a promoted frame is where its keyframe is (it was tracked before the camera settled:
     # its first solution, relative to the previous keyframe, must not come back)
@@ -87,7 +108,8 @@ def test_a_frame_the_motion_outran_becomes_a_keyframe_late(tmp_path, process_fra
 
 
 def test_a_new_keyframe_is_not_pulled_off_by_a_failed_decode_of_its_edge(
-        tmp_path, process_frames) -> None:
+    tmp_path, process_frames
+) -> None:
     """The fast family of benchmarks/robustness.py (scene and prior seed 1, 24 frames of a
     loop laid out for 100) at 160x120. Frame 22 turns 16 deg from keyframe 14 and becomes a
     keyframe; tracking puts it 0.12 deg off, but the prior's decode (14, 22), the new
@@ -95,9 +117,17 @@ def test_a_new_keyframe_is_not_pulled_off_by_a_failed_decode_of_its_edge(
     pose at 0.23 (good directions here 0.67-0.84). Without the test of that direction
     (AgentFrontend._checked_direction) the local solve pulled keyframe 22 off and the ATE
     was 1.99 % of the path (1.18 % at 640x480 in the benchmark); with it 0.22 % (measured)."""
-    ate, outcomes, frontend = _track(tmp_path, process_frames, 1.0, 160,
-                                     ("simulated_prior.seed=1",), preset="fast", scene_seed=1,
-                                     frames=24, loop_frames=100)
+    ate, outcomes, frontend = _track(
+        tmp_path,
+        process_frames,
+        1.0,
+        160,
+        ("simulated_prior.seed=1",),
+        preset="fast",
+        scene_seed=1,
+        frames=24,
+        loop_frames=100,
+    )
     assert "lost" not in outcomes, outcomes
     assert [kf.frame_index for kf in frontend.keyframes][-2:] == [14, 22]
     assert ate <= 0.0045, ate

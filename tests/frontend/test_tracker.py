@@ -23,9 +23,15 @@ from como3r.prior.simulated import SimulatedPrior
 
 W, H = 128, 96
 # the easy simulated prior with its noise off (the realistic default fails these bounds)
-NOISE_FREE = SimulatedPriorConfig(model="easy", scale_sigma=0.0, depth_distortion_amplitude=0.0,
-                                  range_noise=0.0, rotation_noise_deg=0.0, translation_noise=0.0,
-                                  descriptor_noise=0.0)
+NOISE_FREE = SimulatedPriorConfig(
+    model="easy",
+    scale_sigma=0.0,
+    depth_distortion_amplitude=0.0,
+    range_noise=0.0,
+    rotation_noise_deg=0.0,
+    translation_noise=0.0,
+    descriptor_noise=0.0,
+)
 
 
 @pytest.fixture(scope="module")
@@ -33,23 +39,37 @@ def renderer_and_pose() -> tuple[Renderer, np.ndarray, np.ndarray, np.ndarray]:
     spec = build_preset("default", 1, 30, 0.2, seed=3)
     intrinsics = Intrinsics.from_hfov(W, H, 75.0)
     path = spec.paths[0]
-    return Renderer(spec.scene, intrinsics), path.rotations[10], path.positions[10], \
-        intrinsics.matrix()
+    return (
+        Renderer(spec.scene, intrinsics),
+        path.rotations[10],
+        path.positions[10],
+        intrinsics.matrix(),
+    )
 
 
 #: ground truth of the views the current test rendered (the simulated prior's source)
 TRUTH = InMemoryTruth()
 
 
-def _view(renderer: Renderer, R_WC: np.ndarray, t_WC: np.ndarray, K: np.ndarray, index: int) -> View:
+def _view(
+    renderer: Renderer, R_WC: np.ndarray, t_WC: np.ndarray, K: np.ndarray, index: int
+) -> View:
     """The view rendered at ``(R_WC, t_WC)``; its ground truth replaces frame ``index``'s in
     :data:`TRUTH`."""
     frame = renderer.render(R_WC, t_WC)
     quat = Rotation.from_matrix(R_WC).as_quat()
     T_WC = torch.tensor([*t_WC, *quat, 1.0], dtype=torch.float64)
     K = torch.from_numpy(K).float()
-    TRUTH.add(0, index, GroundTruth(depth=torch.from_numpy(frame.depth), K=K,
-                                    surface=torch.from_numpy(frame.surface), T_WC=T_WC))
+    TRUTH.add(
+        0,
+        index,
+        GroundTruth(
+            depth=torch.from_numpy(frame.depth),
+            K=K,
+            surface=torch.from_numpy(frame.surface),
+            T_WC=T_WC,
+        ),
+    )
     return View(image=ImageTransform.to_network(frame.rgb), agent=0, index=index, K=K)
 
 
@@ -78,17 +98,33 @@ class _ScaledPrior(Prior):
 
 def _keyframe(prior: Prior, enc) -> Keyframe:
     pred = prior.decode(enc, enc)
-    return Keyframe(kf_id=0, frame_index=0, timestamp=0.0, encoding=enc,
-                    T_WC=sim3_identity(dtype=torch.float32), X_hat=pred.X_ii.clone(),
-                    C_hat=pred.C_ii.clone(), X_init=pred.X_ii.clone(), C_init=pred.C_ii.clone(),
-                    colors=np.zeros((H, W, 3), np.uint8))
+    return Keyframe(
+        kf_id=0,
+        frame_index=0,
+        timestamp=0.0,
+        encoding=enc,
+        T_WC=sim3_identity(dtype=torch.float32),
+        X_hat=pred.X_ii.clone(),
+        C_hat=pred.C_ii.clone(),
+        X_init=pred.X_ii.clone(),
+        C_init=pred.C_ii.clone(),
+        colors=np.zeros((H, W, 3), np.uint8),
+    )
 
 
-@pytest.mark.parametrize("yaw_deg, forward_frac, scale", [
-    (0.0, 0.0, 1.0), (10.0, 0.0, 1.0), (3.0, 0.2, 1.0), (5.0, 0.1, 1.2), (-8.0, 0.15, 0.8),
-])
-def test_tracking_recovers_known_relative_sim3(renderer_and_pose, yaw_deg, forward_frac,
-                                               scale) -> None:
+@pytest.mark.parametrize(
+    "yaw_deg, forward_frac, scale",
+    [
+        (0.0, 0.0, 1.0),
+        (10.0, 0.0, 1.0),
+        (3.0, 0.2, 1.0),
+        (5.0, 0.1, 1.2),
+        (-8.0, 0.15, 0.8),
+    ],
+)
+def test_tracking_recovers_known_relative_sim3(
+    renderer_and_pose, yaw_deg, forward_frac, scale
+) -> None:
     renderer, R_WC, t_WC, K = renderer_and_pose
     view_k = _view(renderer, R_WC, t_WC, K, index=0)
     median_depth = float(gt(view_k).depth[gt(view_k).depth > 0].median())
@@ -133,7 +169,9 @@ def test_tracking_converges_with_outliers(renderer_and_pose) -> None:
     config = apply_overrides(Config(), ["matching.occlusion_ratio=1e9"])
     corrupt = Corrupting(prior, 1.0)
     keyframe = _keyframe(corrupt, enc_k)
-    result = FrameTracker(corrupt, config).track(enc_f, keyframe, sim3_identity(dtype=torch.float32))
+    result = FrameTracker(corrupt, config).track(
+        enc_f, keyframe, sim3_identity(dtype=torch.float32)
+    )
     assert result.ok
     T_true = sim3_compose(sim3_inverse(gt(view_k).T_WC), gt(view_f).T_WC).float()
     error = sim3_log(sim3_compose(sim3_inverse(T_true), result.T_kf))
@@ -149,7 +187,9 @@ def test_too_few_matches_is_a_detected_failure(renderer_and_pose) -> None:
     prior = SimulatedPrior(NOISE_FREE, TRUTH)
     enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
     keyframe = _keyframe(prior, enc_k)
-    result = FrameTracker(prior, Config()).track(enc_f, keyframe, sim3_identity(dtype=torch.float32))
+    result = FrameTracker(prior, Config()).track(
+        enc_f, keyframe, sim3_identity(dtype=torch.float32)
+    )
     assert not result.ok
     assert result.reason == "too_few_matches"
     assert result.match_fraction < Config().tracking.min_match_fraction
@@ -169,8 +209,9 @@ class _WrongPosePrior(_ScaledPrior):
 
 
 @pytest.mark.parametrize("min_inlier_fraction", [0.0, 0.5])
-def test_a_pose_few_matches_agree_with_is_rejected(renderer_and_pose,
-                                                   min_inlier_fraction: float) -> None:
+def test_a_pose_few_matches_agree_with_is_rejected(
+    renderer_and_pose, min_inlier_fraction: float
+) -> None:
     renderer, R_WC, t_WC, K = renderer_and_pose
     view_k = _view(renderer, R_WC, t_WC, K, index=0)
     R_rel = Rotation.from_euler("y", 4.0, degrees=True).as_matrix()
@@ -178,8 +219,9 @@ def test_a_pose_few_matches_agree_with_is_rejected(renderer_and_pose,
     prior = _WrongPosePrior(SimulatedPrior(NOISE_FREE, TRUTH), 12.0)
     enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
     config = apply_overrides(Config(), [f"tracking.min_inlier_fraction={min_inlier_fraction}"])
-    result = FrameTracker(prior, config).track(enc_f, _keyframe(prior, enc_k),
-                                               sim3_identity(dtype=torch.float32))
+    result = FrameTracker(prior, config).track(
+        enc_f, _keyframe(prior, enc_k), sim3_identity(dtype=torch.float32)
+    )
     if min_inlier_fraction == 0.0:  # the paper: the wrong pose passes as tracked
         assert result.ok
         T_true = sim3_compose(sim3_inverse(gt(view_k).T_WC), gt(view_f).T_WC).float()
@@ -212,9 +254,18 @@ def test_calibrated_tracking_recovers_known_relative_pose(renderer_and_pose) -> 
 
 def _fusion_keyframe() -> Keyframe:
     X = torch.tensor([[[0.0, 0.0, 2.0], [1.0, 0.0, 4.0]]])
-    return Keyframe(kf_id=0, frame_index=0, timestamp=0.0, encoding=None, T_WC=sim3_identity(),
-                    X_hat=X, C_hat=torch.ones(1, 2), X_init=X, C_init=torch.ones(1, 2),
-                    colors=np.zeros((1, 2, 3), np.uint8))
+    return Keyframe(
+        kf_id=0,
+        frame_index=0,
+        timestamp=0.0,
+        encoding=None,
+        T_WC=sim3_identity(),
+        X_hat=X,
+        C_hat=torch.ones(1, 2),
+        X_init=X,
+        C_init=torch.ones(1, 2),
+        colors=np.zeros((1, 2, 3), np.uint8),
+    )
 
 
 def test_range_fusion_keeps_the_keyframe_rays_and_averages_ranges() -> None:
@@ -242,7 +293,8 @@ def test_the_agreement_angle_follows_the_inputs_own_pixels(renderer_and_pose) ->
     prior, config = SimulatedPrior(NOISE_FREE, TRUTH), Config()
     angle = config.tracking.inlier_angle_deg
     assert FrameTracker(prior, config, upsampling=1.6).inlier_angle_deg == pytest.approx(
-        1.6 * angle)
+        1.6 * angle
+    )
     assert FrameTracker(prior, config, upsampling=0.5).inlier_angle_deg == angle
     renderer, R_WC, t_WC, K = renderer_and_pose
     view_k = _view(renderer, R_WC, t_WC, K, index=0)
@@ -250,14 +302,17 @@ def test_the_agreement_angle_follows_the_inputs_own_pixels(renderer_and_pose) ->
     view_f = _view(renderer, R_WC @ R_rel, t_WC + R_WC @ np.array([0.1, 0.0, 0.3]), K, index=1)
     enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
     keyframe = _keyframe(prior, enc_k)
-    result = FrameTracker(prior, config).track(enc_f, keyframe, sim3_identity(dtype=torch.float32),
-                                               fuse=False)
+    result = FrameTracker(prior, config).track(
+        enc_f, keyframe, sim3_identity(dtype=torch.float32), fuse=False
+    )
     assert result.ok
     # the solved pose turned by 1.3 degrees: outside 1 degree, inside 1.6
     turn = sim3_exp(torch.tensor([0.0, 0.0, 0.0, 0.0, math.radians(1.3), 0.0, 0.0]))
     off = sim3_compose(turn, result.T_kf)
-    agree = [inlier_fraction(off, result.X_ff, keyframe.X_hat, result.matches, config.tracking,
-                             a) for a in (angle, 1.6 * angle)]
+    agree = [
+        inlier_fraction(off, result.X_ff, keyframe.X_hat, result.matches, config.tracking, a)
+        for a in (angle, 1.6 * angle)
+    ]
     assert agree[0] < config.tracking.min_inlier_fraction <= agree[1], agree
 
 
@@ -277,14 +332,16 @@ def test_the_tracker_stops_alike_at_every_scene_scale(renderer_and_pose) -> None
     view_k = _view(renderer, R_WC, t_WC, K, index=0)
     median_depth = float(gt(view_k).depth[gt(view_k).depth > 0].median())
     R_rel = Rotation.from_euler("y", 4.0, degrees=True).as_matrix()
-    view_f = _view(renderer, R_WC @ R_rel, t_WC + R_WC @ np.array([0.02, 0.0, 0.05]) * median_depth,
-                   K, index=1)
+    view_f = _view(
+        renderer, R_WC @ R_rel, t_WC + R_WC @ np.array([0.02, 0.0, 0.05]) * median_depth, K, index=1
+    )
     stops = []
     for scale in (1e-3, 1.0, 1e3):
         prior = _UniformlyScaledPrior(SimulatedPrior(SimulatedPriorConfig(), TRUTH), scale)
         enc_k, enc_f = prior.encode(view_k), prior.encode(view_f)
-        result = FrameTracker(prior, Config()).track(enc_f, _keyframe(prior, enc_k),
-                                                     sim3_identity(dtype=torch.float32))
+        result = FrameTracker(prior, Config()).track(
+            enc_f, _keyframe(prior, enc_k), sim3_identity(dtype=torch.float32)
+        )
         assert result.ok, result.reason
         stops.append((result.solve.iterations, result.solve.reason))
     assert stops[0] == stops[1] == stops[2] and stops[1][0] > 1, stops

@@ -122,12 +122,16 @@ def test_quaternion_algebra_matches_matrices(dtype, device, gen):
     R1, R2 = quat_to_matrix(q1), quat_to_matrix(q2)
     eye = torch.eye(3, dtype=dtype, device=device).expand(100, 3, 3)
     torch.testing.assert_close(R1 @ R1.transpose(-1, -2), eye, **tol(dtype))
-    torch.testing.assert_close(torch.linalg.det(R1), torch.ones(100, dtype=dtype, device=device),
-                               **tol(dtype))
+    torch.testing.assert_close(
+        torch.linalg.det(R1), torch.ones(100, dtype=dtype, device=device), **tol(dtype)
+    )
     torch.testing.assert_close(quat_to_matrix(quat_multiply(q1, q2)), R1 @ R2, **tol(dtype))
     torch.testing.assert_close(quat_rotate(q1, x), (R1 @ x[..., None])[..., 0], **tol(dtype))
-    torch.testing.assert_close(quat_multiply(q1, quat_conjugate(q1)),
-                               quat_identity(100, dtype=dtype, device=device), **tol(dtype))
+    torch.testing.assert_close(
+        quat_multiply(q1, quat_conjugate(q1)),
+        quat_identity(100, dtype=dtype, device=device),
+        **tol(dtype),
+    )
 
 
 def test_matrix_to_quat_round_trip(dtype, device, gen):
@@ -150,8 +154,9 @@ def test_matrix_to_quat_half_turns(axis, dtype, device):
 
 def test_so3_exp_matches_matrix_exponential(gen):
     phi = random_unit(200, gen) * (math.pi * torch.rand(200, 1, dtype=F64, generator=gen))
-    torch.testing.assert_close(quat_to_matrix(so3_exp(phi)), torch.linalg.matrix_exp(skew(phi)),
-                               rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(
+        quat_to_matrix(so3_exp(phi)), torch.linalg.matrix_exp(skew(phi)), rtol=1e-12, atol=1e-13
+    )
 
 
 @pytest.mark.parametrize("angle", [0.0, *TINY_MAGNITUDES, 0.5, 2.0, math.pi - 1e-6, math.pi - 1e-9])
@@ -163,8 +168,12 @@ def test_so3_log_exp_round_trip(angle, dtype, device, gen):
         torch.testing.assert_close(so3_log(so3_exp(phi)), phi, rtol=1e-5, atol=1e-6)
     else:
         # float32 rounds pi - 1e-9 to just above pi, where log rightly returns the other side.
-        torch.testing.assert_close(quat_to_matrix(so3_exp(so3_log(so3_exp(phi)))),
-                                   quat_to_matrix(so3_exp(phi)), rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(
+            quat_to_matrix(so3_exp(so3_log(so3_exp(phi)))),
+            quat_to_matrix(so3_exp(phi)),
+            rtol=1e-5,
+            atol=1e-5,
+        )
 
 
 def test_so3_log_is_sign_invariant_with_angle_in_zero_pi(dtype, device, gen):
@@ -177,19 +186,22 @@ def test_so3_log_is_sign_invariant_with_angle_in_zero_pi(dtype, device, gen):
 
 
 def test_so3_exp_log_at_exactly_pi(dtype, device):
-    phi = torch.tensor([[math.pi, 0, 0], [0, math.pi, 0], [0, 0, -math.pi]], dtype=dtype,
-                       device=device)
+    phi = torch.tensor(
+        [[math.pi, 0, 0], [0, math.pi, 0], [0, 0, -math.pi]], dtype=dtype, device=device
+    )
     phi_back = so3_log(so3_exp(phi))
     torch.testing.assert_close(phi_back.norm(dim=-1), phi.norm(dim=-1), **tol(dtype))
-    torch.testing.assert_close(quat_to_matrix(so3_exp(phi_back)), quat_to_matrix(so3_exp(phi)),
-                               **tol(dtype))
+    torch.testing.assert_close(
+        quat_to_matrix(so3_exp(phi_back)), quat_to_matrix(so3_exp(phi)), **tol(dtype)
+    )
 
 
 def test_so3_maps_have_exact_gradients_at_identity():
     phi = torch.zeros(3, dtype=F64)
     J_exp = torch.autograd.functional.jacobian(so3_exp, phi)
-    torch.testing.assert_close(J_exp, torch.cat([0.5 * torch.eye(3, dtype=F64),
-                                                 torch.zeros(1, 3, dtype=F64)]))
+    torch.testing.assert_close(
+        J_exp, torch.cat([0.5 * torch.eye(3, dtype=F64), torch.zeros(1, 3, dtype=F64)])
+    )
     J_log = torch.autograd.functional.jacobian(so3_log, quat_identity(dtype=F64))
     torch.testing.assert_close(J_log[:, :3], 2.0 * torch.eye(3, dtype=F64))
 
@@ -218,11 +230,13 @@ def test_se3_group_operations(dtype, device, gen):
     M_A, M_B = se3_to_matrix(A), se3_to_matrix(B)
     torch.testing.assert_close(se3_to_matrix(se3_compose(A, B)), M_A @ M_B, **tol(dtype))
     torch.testing.assert_close(se3_to_matrix(se3_inverse(A)), torch.linalg.inv(M_A), **tol(dtype))
-    torch.testing.assert_close(se3_act(A, x), (M_A[:, :3, :3] @ x[..., None])[..., 0] + A[:, :3],
-                               **tol(dtype))
+    torch.testing.assert_close(
+        se3_act(A, x), (M_A[:, :3, :3] @ x[..., None])[..., 0] + A[:, :3], **tol(dtype)
+    )
     identity = se3_to_matrix(se3_identity(50, dtype=dtype, device=device))
-    torch.testing.assert_close(se3_to_matrix(se3_compose(A, se3_inverse(A))), identity,
-                               **tol(dtype))
+    torch.testing.assert_close(
+        se3_to_matrix(se3_compose(A, se3_inverse(A))), identity, **tol(dtype)
+    )
 
 
 def test_se3_adjoint_identity(gen):
@@ -280,14 +294,19 @@ def test_sim3_log_exp_round_trip_near_pi(gap, dtype, device, gen):
         torch.testing.assert_close(sim3_log(sim3_exp(tau)), tau, rtol=1e-8, atol=1e-9)
     else:
         # In float32 the angle is resolved to ~1e-7 near pi, so compare as group elements.
-        torch.testing.assert_close(sim3_to_matrix(sim3_exp(sim3_log(sim3_exp(tau)))),
-                                   sim3_to_matrix(sim3_exp(tau)), rtol=1e-4, atol=1e-4)
+        torch.testing.assert_close(
+            sim3_to_matrix(sim3_exp(sim3_log(sim3_exp(tau)))),
+            sim3_to_matrix(sim3_exp(tau)),
+            rtol=1e-4,
+            atol=1e-4,
+        )
 
 
 def test_sim3_exp_log_round_trip(dtype, device, gen):
     T = random_sim3(300, gen)
-    T[:5, 3:7] = torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, -1],
-                               [0.6, 0, 0.8, 0]], dtype=F64)  # half turns and -identity
+    T[:5, 3:7] = torch.tensor(
+        [[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, -1], [0.6, 0, 0.8, 0]], dtype=F64
+    )  # half turns and -identity
     T = T.to(dtype=dtype, device=device)
     back = sim3_exp(sim3_log(T))
     torch.testing.assert_close(sim3_to_matrix(back), sim3_to_matrix(T), **tol(dtype))
@@ -319,10 +338,14 @@ def test_sim3_compose_inverse_identities(dtype, device, gen):
     torch.testing.assert_close(M(sim3_compose(A, sim3_inverse(A))), M(identity), **tol(dtype))
     torch.testing.assert_close(M(sim3_compose(sim3_inverse(A), A)), M(identity), **tol(dtype))
     torch.testing.assert_close(M(sim3_compose(A, identity)), M(A), **tol(dtype))
-    torch.testing.assert_close(M(sim3_compose(sim3_compose(A, B), C)),
-                               M(sim3_compose(A, sim3_compose(B, C))), **tol(dtype))
-    torch.testing.assert_close(M(sim3_inverse(sim3_compose(A, B))),
-                               M(sim3_compose(sim3_inverse(B), sim3_inverse(A))), **tol(dtype))
+    torch.testing.assert_close(
+        M(sim3_compose(sim3_compose(A, B), C)), M(sim3_compose(A, sim3_compose(B, C))), **tol(dtype)
+    )
+    torch.testing.assert_close(
+        M(sim3_inverse(sim3_compose(A, B))),
+        M(sim3_compose(sim3_inverse(B), sim3_inverse(A))),
+        **tol(dtype),
+    )
     torch.testing.assert_close(M(sim3_compose(A, B)), M(A) @ M(B), **tol(dtype))
     torch.testing.assert_close(M(sim3_inverse(A)), torch.linalg.inv(M(A)), **tol(dtype))
 
@@ -334,8 +357,9 @@ def test_sim3_act_matches_homogeneous_matrices_and_broadcasts(dtype, device, gen
     expected = (M[:, None, :3, :3] @ X[..., None])[..., 0] + M[:, None, :3, 3]
     torch.testing.assert_close(sim3_act(T[:, None, :], X), expected, **tol(dtype))
     A, B = T[0], T[1]
-    torch.testing.assert_close(sim3_act(sim3_compose(A, B), X),
-                               sim3_act(A, sim3_act(B, X)), **tol(dtype))
+    torch.testing.assert_close(
+        sim3_act(sim3_compose(A, B), X), sim3_act(A, sim3_act(B, X)), **tol(dtype)
+    )
 
 
 def test_sim3_matrix_round_trip(dtype, device, gen):
@@ -364,14 +388,18 @@ def test_sim3_from_se3_and_normalize(dtype, device, gen):
     x = torch.randn(10, 3, dtype=F64, generator=gen).to(dtype=dtype, device=device)
     torch.testing.assert_close(sim3_act(sim3_from_se3(T7), x), se3_act(T7, x), **tol(dtype))
     scale = torch.full((10,), 2.5, dtype=dtype, device=device)
-    torch.testing.assert_close(sim3_act(sim3_from_se3(T7, scale), x),
-                               2.5 * quat_rotate(T7[:, 3:], x) + T7[:, :3], **tol(dtype))
+    torch.testing.assert_close(
+        sim3_act(sim3_from_se3(T7, scale), x),
+        2.5 * quat_rotate(T7[:, 3:], x) + T7[:, :3],
+        **tol(dtype),
+    )
     assert bool((sim3_from_se3(T7, 3.0)[:, 7] == 3.0).all())
     drifted = sim3_from_se3(T7).clone()
     drifted[:, 3:7] *= 1.01
     normalized = sim3_normalize(drifted)
-    torch.testing.assert_close(normalized[:, 3:7].norm(dim=-1),
-                               torch.ones(10, dtype=dtype, device=device), **tol(dtype))
+    torch.testing.assert_close(
+        normalized[:, 3:7].norm(dim=-1), torch.ones(10, dtype=dtype, device=device), **tol(dtype)
+    )
     torch.testing.assert_close(normalized, sim3_from_se3(T7), **tol(dtype))
 
 
@@ -379,8 +407,10 @@ def test_identities_have_expected_layout(dtype, device):
     identity = sim3_identity(2, 3, dtype=dtype, device=device)
     assert identity.shape == (2, 3, 8) and identity.dtype == dtype
     torch.testing.assert_close(sim3_log(identity), identity.new_zeros(2, 3, 7))
-    torch.testing.assert_close(se3_log(se3_identity(5, dtype=dtype, device=device)),
-                               torch.zeros(5, 6, dtype=dtype, device=device))
+    torch.testing.assert_close(
+        se3_log(se3_identity(5, dtype=dtype, device=device)),
+        torch.zeros(5, 6, dtype=dtype, device=device),
+    )
 
 
 def test_shape_errors_name_the_argument():

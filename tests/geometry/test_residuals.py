@@ -42,8 +42,7 @@ def relative_error(J: torch.Tensor, J_ref: torch.Tensor) -> float:
 def tangent_jacobian(residual, T: torch.Tensor) -> torch.Tensor:
     """Autograd ``d residual(Exp(tau) T) / d tau`` at ``tau = 0``, shaped ``(..., rows, 7)``."""
     batch = T.shape[:-1]
-    J = jacobian(lambda tau: residual(sim3_retract(tau, T)), T.new_zeros(*batch, 7),
-                 vectorize=True)
+    J = jacobian(lambda tau: residual(sim3_retract(tau, T)), T.new_zeros(*batch, 7), vectorize=True)
     # jacobian returns (*out_shape, *batch, 7); keep only the diagonal of the batch dims.
     out = J.shape[: J.ndim - len(batch) - 1]
     J = J.reshape(*out, batch.numel(), 7)
@@ -76,8 +75,9 @@ def test_ray_range_residual_value(dtype, device, gen):
     e, J = ray_range_residual(T, X_j, X_i)
     x = sim3_act(T, X_j)
     assert e.shape == (50, 4) and J.shape == (50, 4, 7)
-    torch.testing.assert_close(e[:, :3], x / x.norm(dim=-1, keepdim=True)
-                               - X_i / X_i.norm(dim=-1, keepdim=True))
+    torch.testing.assert_close(
+        e[:, :3], x / x.norm(dim=-1, keepdim=True) - X_i / X_i.norm(dim=-1, keepdim=True)
+    )
     torch.testing.assert_close(e[:, 3], x.norm(dim=-1) - X_i.norm(dim=-1))
     e_match, _ = ray_range_residual(T, X_j, x)
     assert float(e_match.abs().max()) < (1e-12 if dtype == F64 else 1e-5)
@@ -138,14 +138,17 @@ def test_calibrated_residual_value_and_zero_at_truth(dtype, device, gen):
     assert e.shape == (60, 3) and J.shape == (60, 3, 7)
     assert float(e.abs().max()) < (1e-9 if dtype == F64 else 1e-3)
     e_shifted, _ = calibrated_residual(T, X_j, p_i + 2.0, 0.5 * x[:, 2], K)
-    torch.testing.assert_close(e_shifted[:, :2], torch.full_like(p_i, -2.0),
-                               rtol=1e-5, atol=1e-3)
+    torch.testing.assert_close(e_shifted[:, :2], torch.full_like(p_i, -2.0), rtol=1e-5, atol=1e-3)
     torch.testing.assert_close(e_shifted[:, 2], torch.full_like(x[:, 2], 0.6931471805599453))
 
 
 def test_calibrated_jacobian_matches_autograd_batched_intrinsics(gen):
-    K = torch.stack([intrinsics_matrix(500.0, 480.0, 320.0, 240.0, dtype=F64),
-                     intrinsics_matrix(300.0, 310.0, 160.0, 120.0, dtype=F64)])
+    K = torch.stack(
+        [
+            intrinsics_matrix(500.0, 480.0, 320.0, 240.0, dtype=F64),
+            intrinsics_matrix(300.0, 310.0, 160.0, 120.0, dtype=F64),
+        ]
+    )
     K[1, 0, 1] = 2.0  # a skew term is handled by the general form of C-Eq. 18
     T = random_sim3(2, gen)
     X_j = random_points((2, 25), gen)
@@ -170,10 +173,12 @@ def test_edge_jacobians_are_left_perturbation_derivatives(gen):
     _, J_rel = ray_range_residual(T_ij, X_j, X_i)
     J_i, J_j = edge_jacobians(T_i, J_rel.reshape(-1, 7))
     zero = torch.zeros(7, dtype=F64)
-    J_i_ref = jacobian(lambda tau: edge_residual(sim3_retract(tau, T_i), T_j, X_j, X_i), zero,
-                       vectorize=True)
-    J_j_ref = jacobian(lambda tau: edge_residual(T_i, sim3_retract(tau, T_j), X_j, X_i), zero,
-                       vectorize=True)
+    J_i_ref = jacobian(
+        lambda tau: edge_residual(sim3_retract(tau, T_i), T_j, X_j, X_i), zero, vectorize=True
+    )
+    J_j_ref = jacobian(
+        lambda tau: edge_residual(T_i, sim3_retract(tau, T_j), X_j, X_i), zero, vectorize=True
+    )
     assert relative_error(J_i, J_i_ref) < 1e-6
     assert relative_error(J_j, J_j_ref) < 1e-6
 

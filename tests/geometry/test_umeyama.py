@@ -33,8 +33,9 @@ def test_recovers_random_sim3_exactly(dtype, device, gen):
         T_fit = umeyama_sim3(src.to(dtype=dtype, device=device), dst.to(dtype=dtype, device=device))
         assert T_fit.shape == (8,) and T_fit.dtype == dtype and T_fit.device.type == device.type
         atol = 1e-10 if dtype == F64 else 1e-4
-        torch.testing.assert_close(sim3_to_matrix(T_fit.double().cpu()), sim3_to_matrix(T),
-                                   rtol=0.0, atol=atol)
+        torch.testing.assert_close(
+            sim3_to_matrix(T_fit.double().cpu()), sim3_to_matrix(T), rtol=0.0, atol=atol
+        )
 
 
 def test_rigid_fit_keeps_unit_scale(gen):
@@ -78,8 +79,9 @@ def test_zero_weight_outliers_are_ignored(dtype, gen):
     weights[:20] = 0.0
     T_fit = umeyama_sim3(src.to(dtype), dst.to(dtype), weights.to(dtype))
     atol = 1e-10 if dtype == F64 else 1e-4
-    torch.testing.assert_close(sim3_to_matrix(T_fit.double()), sim3_to_matrix(T), rtol=0.0,
-                               atol=atol)
+    torch.testing.assert_close(
+        sim3_to_matrix(T_fit.double()), sim3_to_matrix(T), rtol=0.0, atol=atol
+    )
     assert umeyama_rmse(T_fit, src.to(dtype), dst.to(dtype), weights.to(dtype)) < 10 * atol
     assert umeyama_rmse(T_fit, src.to(dtype), dst.to(dtype)) > 1.0
 

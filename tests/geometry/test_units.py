@@ -11,8 +11,9 @@ from como3r.geometry.units import median_point_range, median_range, pixels_at, s
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_median_range_scales_with_the_scene(dtype: torch.dtype) -> None:
     g = torch.Generator().manual_seed(0)
-    X = torch.randn(2, 6, 8, 3, generator=g, dtype=dtype) + torch.tensor([0.0, 0.0, 5.0],
-                                                                         dtype=dtype)
+    X = torch.randn(2, 6, 8, 3, generator=g, dtype=dtype) + torch.tensor(
+        [0.0, 0.0, 5.0], dtype=dtype
+    )
     base = median_range(X)
     assert base.shape == (2,)
     assert torch.allclose(median_range(20.0 * X), 20.0 * base)
@@ -28,8 +29,10 @@ def test_median_range_ignores_invalid_points_and_has_a_fallback() -> None:
     assert float(median_range(X, torch.zeros_like(valid))[0]) == 1.0
 
 
-@pytest.mark.parametrize(("value", "long_side", "expected"),
-                         [(3, 512, 3), (5, 512, 5), (3, 1024, 6), (3, 256, 2), (3, 64, 1)])
+@pytest.mark.parametrize(
+    ("value", "long_side", "expected"),
+    [(3, 512, 3), (5, 512, 5), (3, 1024, 6), (3, 256, 2), (3, 64, 1)],
+)
 def test_pixels_scale_with_the_long_side(value: int, long_side: int, expected: int) -> None:
     assert pixels_at(value, long_side) == expected
 

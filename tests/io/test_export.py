@@ -32,7 +32,6 @@ from como3r.io.ply import read_ply
 from .tiny_run import HEIGHT, OVERRIDES, WIDTH, tiny_run
 
 
-
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory) -> Path:
     """A finished two-agent run of the real pipeline on a tiny synthetic scene."""
@@ -43,10 +42,22 @@ def run_dir(tmp_path_factory) -> Path:
 def exported(run_dir, tmp_path_factory) -> Path:
     """All four exports of the run, through the command line."""
     out = tmp_path_factory.mktemp("exported")
-    result = CliRunner().invoke(app, ["export", str(run_dir), "--colmap", str(out / "colmap"),
-                                      "--nerfstudio", str(out / "ns"), "--g2o",
-                                      str(out / "graph.g2o"), "--depth", str(out / "depth")],
-                                env={"COLUMNS": "120"})
+    result = CliRunner().invoke(
+        app,
+        [
+            "export",
+            str(run_dir),
+            "--colmap",
+            str(out / "colmap"),
+            "--nerfstudio",
+            str(out / "ns"),
+            "--g2o",
+            str(out / "graph.g2o"),
+            "--depth",
+            str(out / "depth"),
+        ],
+        env={"COLUMNS": "120"},
+    )
     assert result.exit_code == 0, result.output
     assert "colmap" in result.output and "g2o" in result.output
     return out
@@ -84,8 +95,9 @@ def test_colmap_model_reads_back_in_pycolmap(run_dir, exported) -> None:
     model = pycolmap.Reconstruction(str(exported / "colmap" / "sparse" / "0"))
     assert model.num_images() == len(graph["keyframes"])
     assert model.num_cameras() == 2  # one per agent
-    assert model.num_points3D() == min(len(read_ply(run_dir / "map.ply")),
-                                       export_module.DEFAULT_MAX_POINTS)
+    assert model.num_points3D() == min(
+        len(read_ply(run_dir / "map.ply")), export_module.DEFAULT_MAX_POINTS
+    )
     images = {im.name: im for im in model.images.values()}
     for kf, M in zip(graph["keyframes"], _rigid_matrices(graph)):
         name = f"agent{kf['agent']}_kf{kf['keyframe']:06d}.png"
@@ -97,8 +109,9 @@ def test_colmap_model_reads_back_in_pycolmap(run_dir, exported) -> None:
         K = read_keyframe_data(run_dir, kf["agent"], kf["keyframe"]).K
         camera = model.cameras[image.camera_id]
         assert (camera.model_name, camera.width, camera.height) == ("PINHOLE", WIDTH, HEIGHT)
-        np.testing.assert_allclose(camera.params, [K[0, 0], K[1, 1], K[0, 2] + 0.5,
-                                                   K[1, 2] + 0.5], rtol=1e-6)
+        np.testing.assert_allclose(
+            camera.params, [K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5], rtol=1e-6
+        )
         assert image.num_points3D > 0
     # every 2-D point is where COLMAP itself projects its 3-D point (pixel and pose conventions)
     assert model.compute_num_observations() > model.num_points3D()
@@ -109,7 +122,9 @@ def test_colmap_model_reads_back_in_pycolmap(run_dir, exported) -> None:
 def test_nerfstudio_matrix_and_intrinsics_project_as_the_run(run_dir, exported) -> None:
     graph = _graph(run_dir)
     document = json.loads((exported / "ns" / "transforms.json").read_text())
-    assert document["camera_model"] == "OPENCV" and len(document["frames"]) == len(graph["keyframes"])
+    assert document["camera_model"] == "OPENCV" and len(document["frames"]) == len(
+        graph["keyframes"]
+    )
     cloud = read_ply(exported / "ns" / document["ply_file_path"])
     points = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1).astype(np.float64)
     for kf, frame in zip(graph["keyframes"], document["frames"]):
@@ -141,8 +156,9 @@ def test_g2o_lines_and_poses(run_dir, exported) -> None:
     vertices = [line.split() for line in lines if line.startswith("VERTEX_SE3:QUAT ")]
     edges = [line.split() for line in lines if line.startswith("EDGE_SE3:QUAT ")]
     fixed = [line.split() for line in lines if line.startswith("FIX ")]
-    assert all(line.startswith(("#", "VERTEX_SE3:QUAT ", "EDGE_SE3:QUAT ", "FIX "))
-               for line in lines)
+    assert all(
+        line.startswith(("#", "VERTEX_SE3:QUAT ", "EDGE_SE3:QUAT ", "FIX ")) for line in lines
+    )
     assert [int(v[1]) for v in vertices] == list(range(len(graph["keyframes"])))
     assert all(len(v) == 9 for v in vertices) and all(len(e) == 3 + 7 + 21 for e in edges)
     assert len(edges) == len(graph["edges"]) and fixed == [["FIX", "0"]]  # one component
@@ -155,8 +171,11 @@ def test_g2o_lines_and_poses(run_dir, exported) -> None:
     for edge, entry in zip(edges, graph["edges"]):
         information = np.zeros((6, 6))
         information[np.triu_indices(6)] = np.asarray(edge[10:], dtype=np.float64)
-        weight = min(entry["nu_i"], entry["nu_j"]) if "nu_i" in entry else entry.get(
-            "match_fraction", 1.0)
+        weight = (
+            min(entry["nu_i"], entry["nu_j"])
+            if "nu_i" in entry
+            else entry.get("match_fraction", 1.0)
+        )
         np.testing.assert_allclose(information, weight * np.eye(6), atol=1e-12)
 
     gtsam = pytest.importorskip("gtsam")
@@ -174,8 +193,9 @@ def test_depth_npz_and_png_scale(run_dir, exported) -> None:
         with np.load(exported / "depth" / f"{name}.npz") as data:
             depth, confidence = data["depth"], data["confidence"]
             assert depth.dtype == confidence.dtype == np.float32
-            np.testing.assert_allclose(data["T_WC"], _rigid_matrices({"keyframes": [kf]})[0],
-                                       atol=1e-6)
+            np.testing.assert_allclose(
+                data["T_WC"], _rigid_matrices({"keyframes": [kf]})[0], atol=1e-6
+            )
         source = read_keyframe_data(run_dir, kf["agent"], kf["keyframe"])
         expected_depth = kf["T_WC"][7] * source.X[..., 2].astype(np.float64)
         expected_depth[~(expected_depth > 0)] = 0.0  # invalid: 0
@@ -197,8 +217,9 @@ def test_depth_png_fixed_scale_and_invalid_zero() -> None:
 def test_focal_from_the_pointmap_without_intrinsics(tmp_path) -> None:
     K = intrinsics_matrix(50.0, 50.0, 15.5, 11.5, dtype=torch.float64)
     X = unproject_depth(torch.full((24, 32), 2.0, dtype=torch.float64), K).float().numpy()
-    camera = keyframe_intrinsics(KeyframeData(X, np.ones((24, 32), np.float32), None,
-                                              tmp_path / "x.png"))
+    camera = keyframe_intrinsics(
+        KeyframeData(X, np.ones((24, 32), np.float32), None, tmp_path / "x.png")
+    )
     assert camera.fx == pytest.approx(50.0, rel=1e-4) and camera.fy == camera.fx
     assert (camera.cx, camera.cy, camera.width, camera.height) == (15.5, 11.5, 32, 24)
 
@@ -244,8 +265,7 @@ def test_cli_needs_an_export_option(run_dir, only_error_line) -> None:
     assert "nothing to export" in only_error_line(_invoke(str(run_dir)))
 
 
-def test_cli_names_what_an_unfinished_or_old_run_lacks(run_dir, tmp_path,
-                                                        only_error_line) -> None:
+def test_cli_names_what_an_unfinished_or_old_run_lacks(run_dir, tmp_path, only_error_line) -> None:
     partial = tmp_path / "run.partial"
     partial.mkdir()
     assert "unfinished run" in only_error_line(_invoke(str(partial), "--g2o", "x.g2o"))
@@ -262,10 +282,22 @@ def test_cli_names_what_an_unfinished_or_old_run_lacks(run_dir, tmp_path,
 
 
 def test_read_run_graph_rejects_a_malformed_graph(tmp_path) -> None:
-    (tmp_path / "graph.json").write_text(json.dumps(
-        {"keyframes": [{"agent": 0, "keyframe": 0, "frame": 0, "timestamp": 0.0,
-                        "T_WC": [0, 0, 0, 0, 0, 0, 1, 1]}],
-         "edges": [{"type": "inter", "from": [0, 0], "to": [1, 3]}]}))
+    (tmp_path / "graph.json").write_text(
+        json.dumps(
+            {
+                "keyframes": [
+                    {
+                        "agent": 0,
+                        "keyframe": 0,
+                        "frame": 0,
+                        "timestamp": 0.0,
+                        "T_WC": [0, 0, 0, 0, 0, 0, 1, 1],
+                    }
+                ],
+                "edges": [{"type": "inter", "from": [0, 0], "to": [1, 3]}],
+            }
+        )
+    )
     with pytest.raises(InputError, match="no keyframe 3 of agent 1"):
         read_run_graph(tmp_path)
 
@@ -278,7 +310,8 @@ def test_cli_progress_lines_and_quiet(run_dir, tmp_path) -> None:
     assert plain.exit_code == 0, plain.output
     lines = [line for line in plain.output.splitlines() if re.match(r"^\[\d+:\d\d:\d\d\] ", line)]
     assert [line.split("] ", 1)[1] for line in lines] == [
-        f"exporting keyframes: {keyframes}/{keyframes}"]
+        f"exporting keyframes: {keyframes}/{keyframes}"
+    ]
     quiet = _invoke(str(run_dir), "--depth", str(tmp_path / "b"), "--quiet")
     assert quiet.exit_code == 0, quiet.output
     assert not re.search(r"^\[\d+:\d\d:\d\d\] ", quiet.output, re.M), quiet.output

@@ -25,8 +25,10 @@ from como3r.io.tum import Trajectory, read_tum
 from .tiny_run import HEIGHT, WIDTH, tiny_run
 from .tiny_run import OVERRIDES as EXPORT_OVERRIDES
 
-mcap_reader = pytest.importorskip("mcap.reader", reason="the mcap package (test extra) reads "
-                                  "the bag's MCAP file independently of rosbags")
+mcap_reader = pytest.importorskip(
+    "mcap.reader",
+    reason="the mcap package (test extra) reads the bag's MCAP file independently of rosbags",
+)
 rosbags_highlevel = pytest.importorskip("rosbags.highlevel")
 
 # as tests/io/test_export.py, with a lower keyframe threshold so that not every tracked frame
@@ -44,8 +46,9 @@ def run_dir(tmp_path_factory) -> Path:
 def bag(run_dir, tmp_path_factory) -> Path:
     """The run's bag, through the command line."""
     out = tmp_path_factory.mktemp("bag") / "run_bag"
-    result = CliRunner().invoke(app, ["export", str(run_dir), "--ros2-bag", str(out)],
-                                env={"COLUMNS": "120"})
+    result = CliRunner().invoke(
+        app, ["export", str(run_dir), "--ros2-bag", str(out)], env={"COLUMNS": "120"}
+    )
     assert result.exit_code == 0, result.output
     assert "ros2_bag" in result.output
     return out
@@ -56,18 +59,21 @@ def messages(bag) -> list[tuple[str, int, object]]:
     """Every message as ``(topic, log time ns, message)``, read with rosbags (types from the
     bag's own message definitions)."""
     with rosbags_highlevel.AnyReader([bag]) as reader:
-        return [(c.topic, t, reader.deserialize(raw, c.msgtype))
-                for c, t, raw in reader.messages()]
+        return [(c.topic, t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages()]
 
 
 def _agents(run_dir: Path) -> list[int]:
-    return sorted({k["agent"] for k in json.loads((run_dir / "graph.json").read_text())
-                   ["keyframes"]})
+    return sorted(
+        {k["agent"] for k in json.loads((run_dir / "graph.json").read_text())["keyframes"]}
+    )
 
 
 def _keyframes(run_dir: Path, agent: int) -> list[dict]:
-    return [k for k in json.loads((run_dir / "graph.json").read_text())["keyframes"]
-            if k["agent"] == agent]
+    return [
+        k
+        for k in json.loads((run_dir / "graph.json").read_text())["keyframes"]
+        if k["agent"] == agent
+    ]
 
 
 def _stamp(header) -> float:
@@ -94,8 +100,12 @@ def test_message_counts_and_types(run_dir, bag) -> None:
     expected = {"/tf": sum(frames.values()), "/map": 1}
     for a in agents:
         topics = agent_topics(a)
-        expected |= {topics["odometry"]: frames[a], topics["keyframes"]: keyframes[a],
-                     topics["image"]: keyframes[a], topics["camera_info"]: keyframes[a]}
+        expected |= {
+            topics["odometry"]: frames[a],
+            topics["keyframes"]: keyframes[a],
+            topics["image"]: keyframes[a],
+            topics["camera_info"]: keyframes[a],
+        }
     with rosbags_highlevel.AnyReader([bag]) as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
         types = {c.topic: c.msgtype for c in reader.connections}
@@ -109,8 +119,11 @@ def test_message_counts_and_types(run_dir, bag) -> None:
 def test_tf_and_odometry_are_the_tum_trajectory(run_dir, messages) -> None:
     for agent in _agents(run_dir):
         tum = read_tum(run_dir / "trajectories" / f"agent_{agent}.txt")
-        tf = [m.transforms[0] for topic, _, m in messages if topic == "/tf"
-              and m.transforms[0].child_frame_id == camera_frame(agent)]
+        tf = [
+            m.transforms[0]
+            for topic, _, m in messages
+            if topic == "/tf" and m.transforms[0].child_frame_id == camera_frame(agent)
+        ]
         odometry = [(t, m) for topic, t, m in messages if topic == agent_topics(agent)["odometry"]]
         assert len(tf) == len(odometry) == len(tum)
         for k, (transform, (log_time, odo)) in enumerate(zip(tf, odometry)):
@@ -118,8 +131,9 @@ def test_tf_and_odometry_are_the_tum_trajectory(run_dir, messages) -> None:
             assert transform.header.frame_id == odo.header.frame_id == MAP_FRAME
             assert odo.child_frame_id == camera_frame(agent)
             tr, rot = transform.transform.translation, transform.transform.rotation
-            np.testing.assert_allclose([tr.x, tr.y, tr.z, rot.x, rot.y, rot.z, rot.w],
-                                       expected, atol=1e-9)
+            np.testing.assert_allclose(
+                [tr.x, tr.y, tr.z, rot.x, rot.y, rot.z, rot.w], expected, atol=1e-9
+            )
             np.testing.assert_allclose(_pose(odo.pose.pose), expected, atol=1e-9)
             assert _stamp(odo.header) == pytest.approx(tum.timestamps[k], abs=1e-9)
             assert log_time == round(tum.timestamps[k] * 1e9)
@@ -130,8 +144,17 @@ def test_odometry_twist_carries_each_frame_to_the_next(run_dir, messages) -> Non
     odometry = [m for topic, _, m in messages if topic == agent_topics(1)["odometry"]]
     for k in range(len(tum) - 1):
         twist = odometry[k].twist.twist
-        xi = torch.tensor([twist.linear.x, twist.linear.y, twist.linear.z, twist.angular.x,
-                           twist.angular.y, twist.angular.z], dtype=torch.float64)
+        xi = torch.tensor(
+            [
+                twist.linear.x,
+                twist.linear.y,
+                twist.linear.z,
+                twist.angular.x,
+                twist.angular.y,
+                twist.angular.z,
+            ],
+            dtype=torch.float64,
+        )
         dt = tum.timestamps[k + 1] - tum.timestamps[k]
         moved = se3_compose(tum.T_WC[k, :7], se3_exp(xi * dt))
         np.testing.assert_allclose(moved[:3].numpy(), tum.T_WC[k + 1, :3].numpy(), atol=1e-6)
@@ -149,9 +172,11 @@ def test_keyframe_path_images_and_camera_info(run_dir, messages) -> None:
         np.testing.assert_allclose(final, kf_tum.T_WC[:, :7].numpy(), atol=2e-9)
         images = [m for topic, _, m in messages if topic == topics["image"]]
         infos = [m for topic, _, m in messages if topic == topics["camera_info"]]
-        tf_stamps = {(m.transforms[0].header.stamp.sec, m.transforms[0].header.stamp.nanosec)
-                     for topic, _, m in messages if topic == "/tf"
-                     and m.transforms[0].child_frame_id == camera_frame(agent)}
+        tf_stamps = {
+            (m.transforms[0].header.stamp.sec, m.transforms[0].header.stamp.nanosec)
+            for topic, _, m in messages
+            if topic == "/tf" and m.transforms[0].child_frame_id == camera_frame(agent)
+        }
         for kf, image, info in zip(keyframes, images, infos):
             data = read_keyframe_data(run_dir, agent, kf["keyframe"])
             assert image.header.frame_id == info.header.frame_id == camera_frame(agent)
@@ -173,9 +198,14 @@ def test_map_cloud_is_map_ply(run_dir, messages) -> None:
     assert cloud.header.frame_id == MAP_FRAME and cloud.width == len(ply) and cloud.height == 1
     fields = {f.name: (f.offset, f.datatype) for f in cloud.fields}
     assert list(fields) == ["x", "y", "z", "rgb", "agent_id"]
-    dtype = np.dtype({"names": list(fields), "offsets": [o for o, _ in fields.values()],
-                      "formats": ["<f4", "<f4", "<f4", "<u4", "<u4"],
-                      "itemsize": cloud.point_step})
+    dtype = np.dtype(
+        {
+            "names": list(fields),
+            "offsets": [o for o, _ in fields.values()],
+            "formats": ["<f4", "<f4", "<f4", "<u4", "<u4"],
+            "itemsize": cloud.point_step,
+        }
+    )
     points = np.frombuffer(cloud.data.tobytes(), dtype=dtype)
     for axis in "xyz":
         np.testing.assert_array_equal(points[axis], ply[axis])
@@ -194,10 +224,14 @@ def test_mcap_reader_sees_the_same_bag(run_dir, bag) -> None:
         summary = reader.get_summary()
         channels = {c.topic: c for c in summary.channels.values()}
         schemas = {c.topic: summary.schemas[c.schema_id] for c in channels.values()}
-        counts = {channels_by_id.topic: summary.statistics.channel_message_counts[i]
-                  for i, channels_by_id in summary.channels.items()}
-        odometry = [(message.log_time, message.data) for _, channel, message in
-                    reader.iter_messages(topics=[agent_topics(0)["odometry"]])]
+        counts = {
+            channels_by_id.topic: summary.statistics.channel_message_counts[i]
+            for i, channels_by_id in summary.channels.items()
+        }
+        odometry = [
+            (message.log_time, message.data)
+            for _, channel, message in reader.iter_messages(topics=[agent_topics(0)["odometry"]])
+        ]
     assert {c.compression for c in summary.chunk_indexes} == {"zstd"}
     assert all(c.message_encoding == "cdr" for c in channels.values())
     assert {s.encoding for s in schemas.values()} == {"ros2msg"}
@@ -219,8 +253,7 @@ def test_bag_is_replaced_only_with_overwrite(run_dir, bag, tmp_path) -> None:
         export_run(run_dir, ros2_bag=target)
     summary = export_run(run_dir, ros2_bag=target, overwrite=True)
     assert summary.rows[0]["export"] == "ros2_bag"
-    assert sorted(p.name for p in target.iterdir()) == [".como3r-run", "bag.mcap",
-                                                        "metadata.yaml"]
+    assert sorted(p.name for p in target.iterdir()) == [".como3r-run", "bag.mcap", "metadata.yaml"]
     assert [p.name for p in tmp_path.iterdir()] == ["bag"]  # no staging or old folder left
 
 
@@ -238,8 +271,9 @@ def test_bag_needs_the_trajectories(run_dir, tmp_path, only_error_line) -> None:
 def test_a_keyframe_without_a_tracked_frame_is_named(tmp_path) -> None:
     trajectory = Trajectory(np.array([0.0, 0.1, 0.2]), torch.zeros(3, 8, dtype=torch.float64))
     keyframe = RunKeyframe(0, 1, 4, 9, 0.35, np.array([0.0] * 6 + [1.0, 1.0]))
-    with pytest.raises(InputError, match="keyframe 4 of agent 1 .* no pose in trajectories/"
-                                         "agent_1.txt"):
+    with pytest.raises(
+        InputError, match="keyframe 4 of agent 1 .* no pose in trajectories/agent_1.txt"
+    ):
         keyframe_stamps([keyframe], trajectory, tmp_path)
     near = RunKeyframe(0, 1, 4, 2, 0.2000004, keyframe.T_WC)
     assert keyframe_stamps([near], trajectory, tmp_path) == [0.2]

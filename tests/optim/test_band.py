@@ -15,8 +15,12 @@ from como3r.optim.values import PoseValues
 
 DEVICES = [
     "cpu",
-    pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
-                                                  reason="no CUDA device on this machine")),
+    pytest.param(
+        "cuda",
+        marks=pytest.mark.skipif(
+            not torch.cuda.is_available(), reason="no CUDA device on this machine"
+        ),
+    ),
 ]
 DTYPES = [torch.float32, torch.float64]
 
@@ -25,9 +29,15 @@ def _relative_error(step: torch.Tensor, reference: torch.Tensor) -> float:
     return float((step.cpu() - reference.cpu()).norm() / reference.cpu().norm())
 
 
-def _ray_range_problem(num_poses: int, loop_every: int, dtype: torch.dtype, points: int = 16,
-                       seed: int = 0, i: torch.Tensor | None = None,
-                       j: torch.Tensor | None = None) -> tuple[BlockSystem, torch.Tensor]:
+def _ray_range_problem(
+    num_poses: int,
+    loop_every: int,
+    dtype: torch.dtype,
+    points: int = 16,
+    seed: int = 0,
+    i: torch.Tensor | None = None,
+    j: torch.Tensor | None = None,
+) -> tuple[BlockSystem, torch.Tensor]:
     """The first Gauss-Newton system of a synthetic chain + loop graph (as
     benchmarks/ba_scaling.py builds, with fewer matches), factors in ``dtype``, pose 0
     pinned; edges ``(i, j)`` if given."""
@@ -38,8 +48,9 @@ def _ray_range_problem(num_poses: int, loop_every: int, dtype: torch.dtype, poin
     graph = synthetic_graph(truth, i, j, points, generator)
     initial = sim3_compose(random_sim3(num_poses, 2.0, 0.2, 0.03, generator), truth)
     initial[0] = truth[0]
-    factors = RayRangeFactors(graph.i, graph.j, graph.X_i.to(dtype), graph.X_j.to(dtype),
-                              graph.q.to(dtype), graph.valid)
+    factors = RayRangeFactors(
+        graph.i, graph.j, graph.X_i.to(dtype), graph.X_j.to(dtype), graph.q.to(dtype), graph.valid
+    )
     values = PoseValues.from_poses(initial, num_pinned=1)
     return assemble(num_poses, [factors.linearize(values.poses)]), values.free
 
@@ -105,10 +116,17 @@ def _agent_problem(agents: int, interleaved: bool) -> tuple[BlockSystem, torch.T
     after agent or renumbered by arrival (agent a's k-th keyframe is number agents k + a):
     one problem in two numberings."""
     length = 40
-    edges = [(length * a + k, length * a + k + step) for a in range(agents) for step in (1, 2)
-             for k in range(length - step)]
-    edges += [(length * a + k, length * ((a + 1) % agents) + k - 10) for a in range(agents)
-              for k in range(15, length, 8)]
+    edges = [
+        (length * a + k, length * a + k + step)
+        for a in range(agents)
+        for step in (1, 2)
+        for k in range(length - step)
+    ]
+    edges += [
+        (length * a + k, length * ((a + 1) % agents) + k - 10)
+        for a in range(agents)
+        for k in range(15, length, 8)
+    ]
     i = torch.tensor([e[0] for e in edges])
     j = torch.tensor([e[1] for e in edges])
     system, free = _ray_range_problem(agents * length, 0, torch.float32, i=i, j=j)
@@ -118,8 +136,10 @@ def _agent_problem(agents: int, interleaved: bool) -> tuple[BlockSystem, torch.T
     number = agents * (pose % length) + pose // length
     H_diag, g, renumbered_free = (torch.empty_like(t) for t in (system.H_diag, system.g, free))
     H_diag[number], g[number], renumbered_free[number] = system.H_diag, system.g, free
-    return (BlockSystem(H_diag, number[system.off_i], number[system.off_j], system.H_off, g),
-            renumbered_free)
+    return (
+        BlockSystem(H_diag, number[system.off_i], number[system.off_j], system.H_off, g),
+        renumbered_free,
+    )
 
 
 @pytest.mark.parametrize("agents", [3, 4])
@@ -152,8 +172,9 @@ def _random_system(num_poses: int, edges: list[tuple[int, int]], seed: int) -> B
     g = (J.mT @ e[..., None])[..., 0]
     i = torch.tensor([a for a, _ in edges])
     j = torch.tensor([b for _, b in edges])
-    return assemble(num_poses, [EdgeBlocks(i, j, H[:, :7, :7], H[:, 7:, 7:], H[:, :7, 7:],
-                                           g[:, :7], g[:, 7:])])
+    return assemble(
+        num_poses, [EdgeBlocks(i, j, H[:, :7, :7], H[:, 7:, 7:], H[:, :7, 7:], g[:, :7], g[:, 7:])]
+    )
 
 
 def test_each_level_is_exactly_its_equation():
@@ -170,40 +191,55 @@ def test_each_level_is_exactly_its_equation():
     index = (7 * pose[:, None] + torch.arange(7)).reshape(-1)
     A = (system.to_dense() + 1e-3 * torch.eye(7 * num, dtype=torch.float64))[index][:, index]
     r = torch.randn(7 * num, generator=generator, dtype=torch.float64)
-    ordered = band.OrderedSystem(system.off_i, system.off_j, system.H_off, system.g,
-                                 position=position, band_blocks=num, group_size=5)
+    ordered = band.OrderedSystem(
+        system.off_i,
+        system.off_j,
+        system.H_off,
+        system.g,
+        position=position,
+        band_blocks=num,
+        group_size=5,
+    )
     torch.testing.assert_close(ordered.rhs, system.g[pose].reshape(-1))
     torch.testing.assert_close(ordered.unorder(ordered.rhs), system.g)
     exact, reason = ordered.attempt(diag)
     assert reason == "" and exact.fine == "band"
     torch.testing.assert_close(exact.apply(r), A @ r, rtol=1e-12, atol=1e-12)
-    torch.testing.assert_close(exact.fine_solve(r), torch.linalg.solve(A, r), rtol=1e-10,
-                               atol=1e-12)
+    torch.testing.assert_close(
+        exact.fine_solve(r), torch.linalg.solve(A, r), rtol=1e-10, atol=1e-12
+    )
     P = torch.zeros(7 * num, 7 * 3, dtype=torch.float64)
     for p in range(num):
-        P[7 * p:7 * p + 7, 7 * (p // 5):7 * (p // 5) + 7] = torch.eye(7)
+        P[7 * p : 7 * p + 7, 7 * (p // 5) : 7 * (p // 5) + 7] = torch.eye(7)
     coarse = P @ torch.linalg.solve(P.T @ A @ P, P.T @ r)
     torch.testing.assert_close(exact.coarse_solve(r), coarse, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(exact(r), exact.fine_solve(r) + coarse)
     # b = 1 in the numbering: (0, 7) and (3, 11) leave B, (5, 5) is on its diagonal
-    narrow, _ = band.OrderedSystem(system.off_i, system.off_j, system.H_off, system.g,
-                                   position=torch.arange(num), band_blocks=1).attempt(diag)
+    narrow, _ = band.OrderedSystem(
+        system.off_i,
+        system.off_j,
+        system.H_off,
+        system.g,
+        position=torch.arange(num),
+        band_blocks=1,
+    ).attempt(diag)
     B = system.to_dense() + 1e-3 * torch.eye(7 * num, dtype=torch.float64)
     for a, b in [(0, 7), (3, 11)]:
-        B[7 * a:7 * a + 7, 7 * b:7 * b + 7] = 0
-        B[7 * b:7 * b + 7, 7 * a:7 * a + 7] = 0
-    torch.testing.assert_close(narrow.fine_solve(r), torch.linalg.solve(B, r), rtol=1e-10,
-                               atol=1e-12)
+        B[7 * a : 7 * a + 7, 7 * b : 7 * b + 7] = 0
+        B[7 * b : 7 * b + 7, 7 * a : 7 * a + 7] = 0
+    torch.testing.assert_close(
+        narrow.fine_solve(r), torch.linalg.solve(B, r), rtol=1e-10, atol=1e-12
+    )
 
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_band_step_on_the_system_device_with_damping_and_inner_pins(device):
     system, free = _ray_range_problem(90, 6, torch.float32)
     free[[0, 17, 55]] = False
-    moved = BlockSystem(*(t.to(device) for t in (system.H_diag, system.off_i, system.off_j,
-                                                 system.H_off, system.g)))
-    solution = solve(moved, free.to(device), backend="band", lm_lambda=1e-2,
-                     cg_tolerance=1e-10)
+    moved = BlockSystem(
+        *(t.to(device) for t in (system.H_diag, system.off_i, system.off_j, system.H_off, system.g))
+    )
+    solution = solve(moved, free.to(device), backend="band", lm_lambda=1e-2, cg_tolerance=1e-10)
     assert solution.step.device.type == device and solution.step.dtype == torch.float64
     assert torch.all(solution.step[~free.to(device)] == 0)
     dense = solve(system, free, backend="dense", lm_lambda=1e-2).step
@@ -216,10 +252,18 @@ def test_indefinite_coarse_level_fails_the_attempt():
     either; the fine level falls back to the diagonal blocks). Escalation, indefinite
     diagonal blocks and NaNs: test_pcg.py, for both CG backends."""
     eye = torch.eye(7, dtype=torch.float64)
-    system = BlockSystem(torch.stack([eye, eye]), torch.tensor([0]), torch.tensor([1]),
-                         -1.5 * eye[None], torch.ones(2, 7, dtype=torch.float64))
-    outcomes = list(pcg.pcg_attempts(system, torch.ones(2, dtype=torch.bool), 0.0, 1e-6, 2,
-                                     preconditioner="band"))
+    system = BlockSystem(
+        torch.stack([eye, eye]),
+        torch.tensor([0]),
+        torch.tensor([1]),
+        -1.5 * eye[None],
+        torch.ones(2, 7, dtype=torch.float64),
+    )
+    outcomes = list(
+        pcg.pcg_attempts(
+            system, torch.ones(2, dtype=torch.bool), 0.0, 1e-6, 2, preconditioner="band"
+        )
+    )
     assert [o.reason for o in outcomes] == ["indefinite_coarse"] * 2
 
 
@@ -258,8 +302,12 @@ def test_a_pose_no_factor_touches_gets_a_negligible_step():
 
 def test_auto_takes_dense_up_to_the_crossover_and_band_above():
     dense_max = linear.DENSE_MAX_FREE_POSES
-    assert [linear.auto_backend(n) for n in (1, dense_max, dense_max + 1, 100 * dense_max)] \
-        == ["dense", "dense", "band", "band"]
+    assert [linear.auto_backend(n) for n in (1, dense_max, dense_max + 1, 100 * dense_max)] == [
+        "dense",
+        "dense",
+        "band",
+        "band",
+    ]
     system, free = _ray_range_problem(dense_max + 2, 10, torch.float32)
     free[0] = False  # exactly DENSE_MAX_FREE_POSES + 1 free poses
     above = solve(system, free)
@@ -279,13 +327,15 @@ def test_gauss_newton_with_the_band_backend_matches_sparse():
     graph = synthetic_graph(truth, i, j, 24, generator)
     initial = sim3_compose(random_sim3(120, 2.0, 0.2, 0.03, generator), truth)
     initial[0] = truth[0]
-    factors = RayRangeFactors(graph.i, graph.j, graph.X_i.float(), graph.X_j.float(),
-                              graph.q.float(), graph.valid)
+    factors = RayRangeFactors(
+        graph.i, graph.j, graph.X_i.float(), graph.X_j.float(), graph.q.float(), graph.valid
+    )
     values = PoseValues.from_poses(initial, num_pinned=1)
     results = {}
     for backend in ("band", "sparse"):
-        solved, report = gauss_newton_irls(factors, values, max_iters=30, step_tol=1e-6,
-                                           backend=backend, length_scale=12.5)
+        solved, report = gauss_newton_irls(
+            factors, values, max_iters=30, step_tol=1e-6, backend=backend, length_scale=12.5
+        )
         assert report.converged
         results[backend] = (solved.poses, report.iterations)
     # measured: 5 iterations each, max position error 4.9e-7 m, poses equal to 1.2e-13

@@ -26,12 +26,16 @@ def _logs(values: np.ndarray) -> np.ndarray:
 
 def test_vectorisable_log_is_within_two_ulp_of_the_c_library() -> None:
     rng = np.random.default_rng(0)
-    values = np.concatenate([
-        np.exp(rng.uniform(-700, 700, 200_000)),  # the whole normal range
-        1 + rng.normal(0, 1e-3, 100_000), 1 + rng.normal(0, 1e-12, 10_000),  # log near 0
-        np.sqrt(2) * (1 + rng.normal(0, 1e-13, 10_000)),  # where the mantissa is halved
-        2.0 ** np.arange(-1022, 1024).astype(float), [1.0, np.nextafter(1.0, 2), 0.5],
-    ])
+    values = np.concatenate(
+        [
+            np.exp(rng.uniform(-700, 700, 200_000)),  # the whole normal range
+            1 + rng.normal(0, 1e-3, 100_000),
+            1 + rng.normal(0, 1e-12, 10_000),  # log near 0
+            np.sqrt(2) * (1 + rng.normal(0, 1e-13, 10_000)),  # where the mantissa is halved
+            2.0 ** np.arange(-1022, 1024).astype(float),
+            [1.0, np.nextafter(1.0, 2), 0.5],
+        ]
+    )
     reference = np.array([math.log(v) for v in values])
     ulp = np.abs(_logs(values) - reference) / np.spacing(np.abs(reference))
     assert ulp.max() <= 2.0
@@ -42,8 +46,9 @@ def _calibrated_problem(dtype: torch.dtype, seed: int = 0):
     Huber breakpoint): ``(T_ij, K, X_j, p_i, z_i, q, valid, inv_sigma)``."""
     gen = torch.Generator().manual_seed(seed)
     E, P = 2, 5000
-    K = torch.tensor([[[420.0, 0.3, 255.5], [0.0, 410.0, 191.5], [0.0, 0.0, 1.0]]] * E,
-                     dtype=torch.float64)
+    K = torch.tensor(
+        [[[420.0, 0.3, 255.5], [0.0, 410.0, 191.5], [0.0, 0.0, 1.0]]] * E, dtype=torch.float64
+    )
     K[1, 0, 0] = 380.0
     T_ij = sim3_exp(0.05 * torch.randn(E, 7, generator=gen, dtype=torch.float64))
     X_j = torch.randn(E, P, 3, generator=gen, dtype=torch.float64)
@@ -52,14 +57,12 @@ def _calibrated_problem(dtype: torch.dtype, seed: int = 0):
     x = sim3_act(T_ij[:, None, :], X_j)
     p_i = (K[:, None, :2, :] @ x[..., None])[..., 0] / x[..., 2:]
     p_i = p_i + 2.0 * torch.randn(E, P, 2, generator=gen, dtype=torch.float64)
-    z_i = x[..., 2].abs() * torch.exp(0.01 * torch.randn(E, P, generator=gen,
-                                                         dtype=torch.float64))
+    z_i = x[..., 2].abs() * torch.exp(0.01 * torch.randn(E, P, generator=gen, dtype=torch.float64))
     q = torch.rand(E, P, generator=gen, dtype=torch.float64) + 0.5
     valid = torch.rand(E, P, generator=gen) > 0.1
     q = torch.where(valid, q, torch.zeros_like(q))
     inv_sigma = torch.tensor([[1.0, 1.0, 100.0]] * E, dtype=torch.float64)
-    return (T_ij, K, X_j.to(dtype), p_i.to(dtype), z_i.to(dtype), q.to(dtype), valid,
-            inv_sigma)
+    return (T_ij, K, X_j.to(dtype), p_i.to(dtype), z_i.to(dtype), q.to(dtype), valid, inv_sigma)
 
 
 def _reference(T_ij, K, X_j, p_i, z_i, q, valid, inv_sigma):
@@ -91,8 +94,9 @@ def test_calibrated_blocks_are_float64_sums_of_the_inputs(dtype) -> None:
     assert 0.1 < beyond < 0.9, "the problem must exercise both Huber regimes"
     torch.testing.assert_close(H, H_ref, rtol=0, atol=1e-12 * H_ref.abs().max().item())
     torch.testing.assert_close(g, g_ref, rtol=0, atol=1e-12 * g_ref.abs().max().item())
-    torch.testing.assert_close(cpu_kernels.calibrated_costs(*args, HUBER_K).sum(), cost_ref,
-                               rtol=1e-12, atol=0)
+    torch.testing.assert_close(
+        cpu_kernels.calibrated_costs(*args, HUBER_K).sum(), cost_ref, rtol=1e-12, atol=0
+    )
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -119,16 +123,25 @@ def test_factor_batch_preparation_equals_pytorch(dtype) -> None:
     assert torch.equal(q_out, torch.where(confident, q, torch.zeros_like(q)))
     z = X[..., 2].abs()
     z[1, :4] = torch.tensor([0.0, float("nan"), float("inf"), -1.0])
-    assert torch.equal(cpu_kernels.observed(X[..., :2], z),
-                       torch.isfinite(X[..., :2]).all(-1) & torch.isfinite(z) & (z > 0))
+    assert torch.equal(
+        cpu_kernels.observed(X[..., :2], z),
+        torch.isfinite(X[..., :2]).all(-1) & torch.isfinite(z) & (z > 0),
+    )
     valid = torch.rand(3, 500, generator=gen) < torch.tensor([[0.2], [0.9], [0.5]])
     order = torch.sort((~valid).to(torch.uint8), dim=1, stable=True).indices
     compiled_order, most = cpu_kernels.valid_first(valid)
     assert torch.equal(compiled_order, order) and most == int(valid.sum(1).max())
     for kept in (500, most, 1):
         for values in (X, valid, X[..., 2]):
-            index = order[:, :kept].reshape(3, kept, *(1,) * (values.ndim - 2)).expand(
-                3, kept, *values.shape[2:])
-            torch.testing.assert_close(cpu_kernels.take_matches(values, order, kept),
-                                       torch.gather(values, 1, index), rtol=0, atol=0,
-                                       equal_nan=True)
+            index = (
+                order[:, :kept]
+                .reshape(3, kept, *(1,) * (values.ndim - 2))
+                .expand(3, kept, *values.shape[2:])
+            )
+            torch.testing.assert_close(
+                cpu_kernels.take_matches(values, order, kept),
+                torch.gather(values, 1, index),
+                rtol=0,
+                atol=0,
+                equal_nan=True,
+            )

@@ -54,9 +54,12 @@ def _perturbed(M: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
     v, w, z = tau[:, :3], tau[:, 3:6], tau[:, 6]
     hat = torch.zeros(M.shape[0], 4, 4, dtype=M.dtype)
     hat[:, :3, :3] = torch.stack(
-        [torch.stack([z, -w[:, 2], w[:, 1]], -1),
-         torch.stack([w[:, 2], z, -w[:, 0]], -1),
-         torch.stack([-w[:, 1], w[:, 0], z], -1)], -2
+        [
+            torch.stack([z, -w[:, 2], w[:, 1]], -1),
+            torch.stack([w[:, 2], z, -w[:, 0]], -1),
+            torch.stack([-w[:, 1], w[:, 0], z], -1),
+        ],
+        -2,
     )
     hat[:, :3, 3] = v
     return (torch.eye(4, dtype=M.dtype) + hat) @ M
@@ -72,8 +75,13 @@ def _transformed(poses, i, j, X_j, tau):
 def _ray_range_whitened(poses, i, j, X_i, X_j, q, valid, sigmas, tau):
     x = _transformed(poses, i, j, X_j, tau)
     d = x.norm(dim=-1)
-    e = torch.cat([x / d[..., None] - X_i / X_i.norm(dim=-1, keepdim=True),
-                   (d - X_i.norm(dim=-1))[..., None]], -1)
+    e = torch.cat(
+        [
+            x / d[..., None] - X_i / X_i.norm(dim=-1, keepdim=True),
+            (d - X_i.norm(dim=-1))[..., None],
+        ],
+        -1,
+    )
     r = e * q.sqrt()[..., None] / torch.tensor(sigmas, dtype=e.dtype)
     return torch.where(valid[..., None], r, torch.zeros_like(r))
 
@@ -124,16 +132,37 @@ def _tiny_graph(dtype=torch.float64):
 def test_ray_range_linearization_matches_autograd(path):
     poses, graph, X_j, valid = _tiny_graph()
     sigmas = (3e-3,) * 3 + (0.05,)
-    factors = RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, graph.q, valid,
-                              sigma_ray=3e-3, sigma_dist=0.05, huber_k=HUBER_K)
+    factors = RayRangeFactors(
+        graph.i,
+        graph.j,
+        graph.X_i,
+        X_j,
+        graph.q,
+        valid,
+        sigma_ray=3e-3,
+        sigma_dist=0.05,
+        huber_k=HUBER_K,
+    )
     system = assemble(4, [factors.linearize(poses)])
 
     X_j_clean = torch.where(valid[..., None], X_j, graph.X_i)
     H_ref, g_ref, cost_ref = _reference_system(
-        lambda t: _ray_range_whitened(poses, graph.i, graph.j, graph.X_i, X_j_clean,
-                                      graph.q, valid, sigmas, t), 4)
-    r = _ray_range_whitened(poses, graph.i, graph.j, graph.X_i, X_j_clean, graph.q, valid,
-                            sigmas, torch.zeros(4, 7, dtype=torch.float64))
+        lambda t: _ray_range_whitened(
+            poses, graph.i, graph.j, graph.X_i, X_j_clean, graph.q, valid, sigmas, t
+        ),
+        4,
+    )
+    r = _ray_range_whitened(
+        poses,
+        graph.i,
+        graph.j,
+        graph.X_i,
+        X_j_clean,
+        graph.q,
+        valid,
+        sigmas,
+        torch.zeros(4, 7, dtype=torch.float64),
+    )
     beyond = (r.abs() > HUBER_K).float().mean()
     assert 0.1 < beyond < 0.9, "the test must exercise both Huber regimes"
 
@@ -153,14 +182,28 @@ def test_calibrated_linearization_matches_autograd(path):
     p_i = p_i[..., :2] / p_i[..., 2:]
     z_i = truth_x[..., 2]
     sigmas = (1.0, 1.0, 0.01)
-    factors = CalibratedFactors(graph.i, graph.j, X_j, p_i, z_i, K, graph.q, valid,
-                                sigma_pixel=1.0, sigma_depth=0.01, huber_k=HUBER_K)
+    factors = CalibratedFactors(
+        graph.i,
+        graph.j,
+        X_j,
+        p_i,
+        z_i,
+        K,
+        graph.q,
+        valid,
+        sigma_pixel=1.0,
+        sigma_depth=0.01,
+        huber_k=HUBER_K,
+    )
     system = assemble(4, [factors.linearize(poses)])
 
     X_j_clean = torch.where(valid[..., None], X_j, graph.X_i)
     H_ref, g_ref, cost_ref = _reference_system(
-        lambda t: _calibrated_whitened(poses, graph.i, graph.j, X_j_clean, p_i, z_i, K,
-                                       graph.q, valid, sigmas, t), 4)
+        lambda t: _calibrated_whitened(
+            poses, graph.i, graph.j, X_j_clean, p_i, z_i, K, graph.q, valid, sigmas, t
+        ),
+        4,
+    )
 
     H = system.to_dense()
     torch.testing.assert_close(H, H_ref, rtol=1e-9, atol=1e-9 * H_ref.abs().max().item())
@@ -205,16 +248,16 @@ def test_calibrated_points_beyond_the_depth_ratio_keep_their_weight(path):
     X_j = graph.X_j.clone()
     T_ij = sim3_compose(sim3_inverse(poses[0]), poses[1])
     X_j[0, 0] = sim3_act(sim3_inverse(T_ij), 1.2 * MIN_DEPTH_RATIO * graph.X_i[0, 0])
-    factors = CalibratedFactors(graph.i, graph.j, X_j, p_i, graph.X_i[..., 2], K, graph.q,
-                                valid)
+    factors = CalibratedFactors(graph.i, graph.j, X_j, p_i, graph.X_i[..., 2], K, graph.q, valid)
     assert torch.all(factors.whitened_residual(poses, slice(0, 1))[0][0, 0] != 0)
 
 
 def test_gradient_is_the_gradient_of_the_robust_cost():
     """LM relies on g = d cost / d tau; check it by autograd through the factor's own cost."""
     poses, graph, _, valid = _tiny_graph()  # finite points: autograd of where() needs them
-    factors = RayRangeFactors(graph.i, graph.j, graph.X_i, graph.X_j, graph.q, valid,
-                              sigma_ray=3e-3, sigma_dist=0.05)
+    factors = RayRangeFactors(
+        graph.i, graph.j, graph.X_i, graph.X_j, graph.q, valid, sigma_ray=3e-3, sigma_dist=0.05
+    )
     tau = torch.zeros(4, 7, dtype=torch.float64, requires_grad=True)
     factors.cost(sim3_compose(sim3_exp(tau), poses)).backward()
     g = assemble(4, [factors.linearize(poses)]).g
@@ -224,8 +267,9 @@ def test_gradient_is_the_gradient_of_the_robust_cost():
 def test_chunking_does_not_change_the_blocks(path):
     poses, graph, X_j, valid = _tiny_graph()
     whole = RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, graph.q, valid)
-    chunked = RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, graph.q, valid,
-                              chunk_matches=40)  # two edges per chunk, last chunk ragged
+    chunked = RayRangeFactors(
+        graph.i, graph.j, graph.X_i, X_j, graph.q, valid, chunk_matches=40
+    )  # two edges per chunk, last chunk ragged
     a, b = whole.linearize(poses), chunked.linearize(poses)
     for name in ("i", "j", "H_ii", "H_jj", "H_ij", "g_i", "g_j"):
         torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=1e-12, atol=0)
@@ -234,10 +278,12 @@ def test_chunking_does_not_change_the_blocks(path):
 
 def test_linearization_in_each_dtype(dtype):
     poses, graph, X_j, valid = _tiny_graph()
-    reference = assemble(4, [RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, graph.q,
-                                             valid).linearize(poses)])
-    factors = RayRangeFactors(graph.i, graph.j, graph.X_i.to(dtype), X_j.to(dtype),
-                              graph.q.to(dtype), valid)
+    reference = assemble(
+        4, [RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, graph.q, valid).linearize(poses)]
+    )
+    factors = RayRangeFactors(
+        graph.i, graph.j, graph.X_i.to(dtype), X_j.to(dtype), graph.q.to(dtype), valid
+    )
     blocks = factors.linearize(poses.to(dtype))
     assert blocks.H_ii.dtype == dtype
     system = assemble(4, [blocks])
@@ -284,9 +330,13 @@ def test_invalid_padding_changes_nothing_and_is_dropped():
     pad = 30
     garbage = torch.full((E, pad, 3), float("nan"), dtype=X_j.dtype)
     padded = RayRangeFactors(
-        graph.i, graph.j, torch.cat([garbage, graph.X_i], 1), torch.cat([garbage, X_j], 1),
+        graph.i,
+        graph.j,
+        torch.cat([garbage, graph.X_i], 1),
+        torch.cat([garbage, X_j], 1),
         torch.cat([torch.rand(E, pad, dtype=graph.q.dtype), graph.q], 1),
-        torch.cat([torch.zeros(E, pad, dtype=torch.bool), valid], 1))
+        torch.cat([torch.zeros(E, pad, dtype=torch.bool), valid], 1),
+    )
     assert padded.q.shape == base.q.shape
     a, b = base.linearize(poses), padded.linearize(poses)
     for name in ("i", "j", "H_ii", "H_jj", "H_ij", "g_i", "g_j"):
@@ -308,8 +358,9 @@ def test_compiled_blocks_do_not_depend_on_the_thread_count(factor_type):
     else:
         K = torch.tensor([[500.0, 0, 320], [0, 480, 240], [0, 0, 1]])
         p_i = (K @ X_i[..., None])[..., 0]
-        factors = CalibratedFactors(graph.i, graph.j, X_j, p_i[..., :2] / p_i[..., 2:],
-                                    X_i[..., 2], K, q, valid)
+        factors = CalibratedFactors(
+            graph.i, graph.j, X_j, p_i[..., :2] / p_i[..., 2:], X_i[..., 2], K, q, valid
+        )
     before = torch.get_num_threads()
     try:
         results = []
@@ -341,8 +392,9 @@ def test_quadratic_edges_match_the_dense_energy_to_first_order():
     """Moved away from its linearization, an edge's model keeps the dense energy and its
     slope: the gap is second order in the step (halving the step about quarters it)."""
     poses, graph, _, valid = _tiny_graph()
-    dense = RayRangeFactors(graph.i, graph.j, graph.X_i, graph.X_j, graph.q, valid,
-                            sigma_ray=3e-3, sigma_dist=0.05)
+    dense = RayRangeFactors(
+        graph.i, graph.j, graph.X_i, graph.X_j, graph.q, valid, sigma_ray=3e-3, sigma_dist=0.05
+    )
     model = dense.quadratic_model(poses)
     tau = sim3_log(random_sim3(4, 10.0, 0.5, 0.05, torch.Generator().manual_seed(1)))
     gaps = []

@@ -16,8 +16,9 @@ FACTORISATIONS = ["dense", "sparse"]
 BACKENDS = [*FACTORISATIONS, "pcg", "band"]
 
 
-def _random_edges(num_poses: int, edges: list[tuple[int, int]], seed: int,
-                  rank: int = 40) -> EdgeBlocks:
+def _random_edges(
+    num_poses: int, edges: list[tuple[int, int]], seed: int, rank: int = 40
+) -> EdgeBlocks:
     """Edge blocks of random Gauss-Newton terms J^T J over stacked (J_i, J_j) Jacobians."""
     generator = torch.Generator().manual_seed(seed)
     i = torch.tensor([e[0] for e in edges])
@@ -34,10 +35,10 @@ def _dense_reference(blocks: EdgeBlocks, num_poses: int) -> torch.Tensor:
     H = torch.zeros(num_poses * 7, num_poses * 7, dtype=torch.float64)
     for k in range(len(blocks.i)):
         a, b = int(blocks.i[k]) * 7, int(blocks.j[k]) * 7
-        H[a:a + 7, a:a + 7] += blocks.H_ii[k]
-        H[b:b + 7, b:b + 7] += blocks.H_jj[k]
-        H[a:a + 7, b:b + 7] += blocks.H_ij[k]
-        H[b:b + 7, a:a + 7] += blocks.H_ij[k].T
+        H[a : a + 7, a : a + 7] += blocks.H_ii[k]
+        H[b : b + 7, b : b + 7] += blocks.H_jj[k]
+        H[a : a + 7, b : b + 7] += blocks.H_ij[k]
+        H[b : b + 7, a : a + 7] += blocks.H_ij[k].T
     return H
 
 
@@ -95,7 +96,10 @@ def _slightly_indefinite_system() -> tuple[linear.BlockSystem, torch.Tensor]:
     off_i, off_j = torch.triu_indices(4, 4, offset=1)
     g = projector @ system.g.reshape(-1)
     indefinite = linear.BlockSystem(
-        H_diag=blocks[diag, diag], off_i=off_i, off_j=off_j, H_off=blocks[off_i, off_j],
+        H_diag=blocks[diag, diag],
+        off_i=off_i,
+        off_j=off_j,
+        H_off=blocks[off_i, off_j],
         g=g.reshape(4, 7),
     )
     return indefinite, torch.ones(4, dtype=torch.bool)

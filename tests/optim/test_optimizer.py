@@ -48,9 +48,14 @@ def _errors(T_est: torch.Tensor, T_true: torch.Tensor) -> tuple[float, float, fl
 
 
 def _track(graph, dtype, X_j=None, config=None):
-    factors = RayRangeFactors(graph.i, graph.j, graph.X_i.to(dtype),
-                              (graph.X_j if X_j is None else X_j).to(dtype),
-                              graph.q.to(dtype), graph.valid)
+    factors = RayRangeFactors(
+        graph.i,
+        graph.j,
+        graph.X_i.to(dtype),
+        (graph.X_j if X_j is None else X_j).to(dtype),
+        graph.q.to(dtype),
+        graph.valid,
+    )
     values = PoseValues.from_poses(sim3_identity(2, dtype=dtype), num_pinned=1)
     return levenberg_marquardt_irls(factors, values, config)
 
@@ -73,7 +78,8 @@ def _rotate_about_centre(X: torch.Tensor, generator: torch.Generator) -> torch.T
     axis = torch.randn(*X.shape, generator=generator, dtype=torch.float64)
     axis = axis / axis.norm(dim=-1, keepdim=True)
     angle = math.radians(5) + math.radians(25) * torch.rand(
-        *X.shape[:-1], 1, generator=generator, dtype=torch.float64)
+        *X.shape[:-1], 1, generator=generator, dtype=torch.float64
+    )
     rotation = torch.cat([torch.zeros_like(axis), axis * angle, torch.zeros_like(angle)], -1)
     return sim3_act(sim3_exp(rotation), X)
 
@@ -97,8 +103,9 @@ def test_tracking_rotation_survives_arbitrary_wrong_matches():
     T_true, graph, generator = _tracking_problem(5, torch.float64)
     outlier = torch.rand(graph.q.shape, generator=generator) < 0.2
     shuffled = graph.X_i[:, torch.randperm(NUM_MATCHES, generator=generator)]
-    values, report = _track(graph, torch.float64, torch.where(outlier[..., None], shuffled,
-                                                               graph.X_j))
+    values, report = _track(
+        graph, torch.float64, torch.where(outlier[..., None], shuffled, graph.X_j)
+    )
     assert report.converged, report.reason
     assert _errors(values.poses[1], T_true)[1] < 5e-3
 
@@ -107,8 +114,16 @@ def test_calibrated_tracking_recovers_the_relative_pose():
     T_true, graph, _ = _tracking_problem(6, torch.float64)
     K = torch.tensor([[400.0, 0, 256], [0, 400, 192], [0, 0, 1]], dtype=torch.float64)
     pixels = (K @ graph.X_i[..., None])[..., 0]
-    factors = CalibratedFactors(graph.i, graph.j, graph.X_j, pixels[..., :2] / pixels[..., 2:],
-                                graph.X_i[..., 2], K, graph.q, graph.valid)
+    factors = CalibratedFactors(
+        graph.i,
+        graph.j,
+        graph.X_j,
+        pixels[..., :2] / pixels[..., 2:],
+        graph.X_i[..., 2],
+        K,
+        graph.q,
+        graph.valid,
+    )
     values = PoseValues.from_poses(sim3_identity(2, dtype=torch.float64))
     values, report = levenberg_marquardt_irls(factors, values)
     assert report.converged, report.reason
@@ -132,8 +147,9 @@ def test_global_ba_converges_to_the_truth(backend):
     truth, graph, values = _loop_graph()
     # Two factor batches (e.g. intra- and inter-agent edges) assembled into one system.
     factors = [
-        RayRangeFactors(graph.i[s], graph.j[s], graph.X_i[s], graph.X_j[s], graph.q[s],
-                        graph.valid[s])
+        RayRangeFactors(
+            graph.i[s], graph.j[s], graph.X_i[s], graph.X_j[s], graph.q[s], graph.valid[s]
+        )
         for s in (slice(0, 5), slice(5, 7))
     ]
     result, report = gauss_newton_irls(factors, values, GlobalBAConfig(), backend=backend)
@@ -173,8 +189,15 @@ class _FixedLinearization:
 
     def linearize(self, poses):
         zero_block = torch.zeros(1, 7, 7, dtype=torch.float64)
-        return EdgeBlocks(torch.tensor([0]), torch.tensor([1]), zero_block, self.H_jj[None],
-                          zero_block, torch.zeros(1, 7, dtype=torch.float64), self.g_j[None])
+        return EdgeBlocks(
+            torch.tensor([0]),
+            torch.tensor([1]),
+            zero_block,
+            self.H_jj[None],
+            zero_block,
+            torch.zeros(1, 7, dtype=torch.float64),
+            self.g_j[None],
+        )
 
     def cost(self, poses):
         return torch.tensor(self._cost(poses), dtype=torch.float64)
@@ -266,9 +289,16 @@ def _scaled_chain_problem(scale: float):
     truth, graph, values = _loop_graph()
     K = torch.tensor([[400.0, 0, 256], [0, 400, 192], [0, 0, 1]], dtype=torch.float64)
     pixels = (K @ graph.X_i[..., None])[..., 0]
-    factors = CalibratedFactors(graph.i, graph.j, scale * graph.X_j,
-                                pixels[..., :2] / pixels[..., 2:], scale * graph.X_i[..., 2], K,
-                                graph.q, graph.valid)
+    factors = CalibratedFactors(
+        graph.i,
+        graph.j,
+        scale * graph.X_j,
+        pixels[..., :2] / pixels[..., 2:],
+        scale * graph.X_i[..., 2],
+        K,
+        graph.q,
+        graph.valid,
+    )
     poses = values.poses.clone()
     poses[:, :3] *= scale
     return factors, PoseValues.from_poses(poses, num_pinned=1)
@@ -280,14 +310,14 @@ def test_step_tolerance_is_relative_to_the_scene_length() -> None:
     reports = []
     for scale in (1.0, 100.0):
         factor, values = _scaled_chain_problem(scale)
-        _, report = gauss_newton_irls(factor, values, GlobalBAConfig(), max_iters=50,
-                                      step_tol=1e-6, length_scale=scale)
+        _, report = gauss_newton_irls(
+            factor, values, GlobalBAConfig(), max_iters=50, step_tol=1e-6, length_scale=scale
+        )
         reports.append(report)
     assert reports[0].converged and reports[1].converged
     assert reports[0].iterations == reports[1].iterations
     factor, values = _scaled_chain_problem(100.0)
-    _, absolute = gauss_newton_irls(factor, values, GlobalBAConfig(), max_iters=50,
-                                    step_tol=1e-6)
+    _, absolute = gauss_newton_irls(factor, values, GlobalBAConfig(), max_iters=50, step_tol=1e-6)
     assert absolute.iterations > reports[1].iterations
 
 

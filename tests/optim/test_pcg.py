@@ -14,8 +14,12 @@ from como3r.optim.linear import BlockSystem, EdgeBlocks, SolveStatus, assemble, 
 
 DEVICES = [
     "cpu",
-    pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
-                                                  reason="no CUDA device on this machine")),
+    pytest.param(
+        "cuda",
+        marks=pytest.mark.skipif(
+            not torch.cuda.is_available(), reason="no CUDA device on this machine"
+        ),
+    ),
 ]
 NUM_POSES = 40
 PINNED = (0, 17)
@@ -23,9 +27,11 @@ PINNED = (0, 17)
 
 def _edges(num_poses: int) -> list[tuple[int, int]]:
     """Chain (k, k+1), skips (k, k+2) and a loop (k, k+9) every third keyframe."""
-    return ([(k, k + 1) for k in range(num_poses - 1)]
-            + [(k, k + 2) for k in range(num_poses - 2)]
-            + [(k, k + 9) for k in range(0, num_poses - 9, 3)])
+    return (
+        [(k, k + 1) for k in range(num_poses - 1)]
+        + [(k, k + 2) for k in range(num_poses - 2)]
+        + [(k, k + 9) for k in range(0, num_poses - 9, 3)]
+    )
 
 
 def _system(badly_scaled: bool, device: str, seed: int = 0) -> BlockSystem:
@@ -45,8 +51,9 @@ def _system(badly_scaled: bool, device: str, seed: int = 0) -> BlockSystem:
     j = torch.tensor([b for _, b in edges])
     blocks = EdgeBlocks(i, j, H[:, :7, :7], H[:, 7:, 7:], H[:, :7, 7:], g[:, :7], g[:, 7:])
     system = assemble(NUM_POSES, [blocks])
-    return BlockSystem(*(t.to(device) for t in (system.H_diag, system.off_i, system.off_j,
-                                                system.H_off, system.g)))
+    return BlockSystem(
+        *(t.to(device) for t in (system.H_diag, system.off_i, system.off_j, system.H_off, system.g))
+    )
 
 
 def _free(device: str) -> torch.Tensor:
@@ -60,8 +67,9 @@ def _relative_error(step: torch.Tensor, reference: torch.Tensor) -> float:
 
 
 def _cpu(system: BlockSystem) -> BlockSystem:
-    return BlockSystem(*(t.cpu() for t in (system.H_diag, system.off_i, system.off_j,
-                                           system.H_off, system.g)))
+    return BlockSystem(
+        *(t.cpu() for t in (system.H_diag, system.off_i, system.off_j, system.H_off, system.g))
+    )
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -132,8 +140,9 @@ def test_non_positive_definite_system_escalates_like_the_factorisations(device, 
     outcomes = {}
     for name in ("dense", "sparse", backend):
         target = system if name == backend else _cpu(system)
-        outcomes[name] = solve(target, free if name == backend else free.cpu(),
-                               backend=name, cg_tolerance=1e-10)
+        outcomes[name] = solve(
+            target, free if name == backend else free.cpu(), backend=name, cg_tolerance=1e-10
+        )
     for solution in outcomes.values():
         assert solution.status is SolveStatus.ESCALATED
         assert solution.attempts == 2 and solution.epsilon == pytest.approx(1e-4)
@@ -141,8 +150,9 @@ def test_non_positive_definite_system_escalates_like_the_factorisations(device, 
     assert _relative_error(outcomes[backend].step, outcomes["dense"].step) < 1e-9
     # the first attempt stopped on a direction of negative curvature (after 14 / 9
     # iterations: the band level keeps this H's band positive definite)
-    first, second = pcg.pcg_attempts(system, free, 0.0, 1e-6, 2, 1e-10,
-                                     preconditioner=CG_BACKENDS[backend])
+    first, second = pcg.pcg_attempts(
+        system, free, 0.0, 1e-6, 2, 1e-10, preconditioner=CG_BACKENDS[backend]
+    )
     assert first.x is None and first.reason == "negative_curvature" and first.iterations > 0
     assert second.reason == "converged"
     assert outcomes[backend].cg_iterations == first.iterations + second.iterations
@@ -159,13 +169,16 @@ def test_indefinite_diagonal_block_and_nan_fail_every_attempt(device, backend, c
     assert solution.status is SolveStatus.FAILED and solution.attempts == 6
     assert solution.cg_iterations == 0 and torch.all(solution.step == 0)
     assert "zero step" in caplog.text
-    reasons = {outcome.reason for outcome in pcg.pcg_attempts(
-        system, free, 0.0, 1e-6, 3, preconditioner=CG_BACKENDS[backend])}
+    reasons = {
+        outcome.reason
+        for outcome in pcg.pcg_attempts(
+            system, free, 0.0, 1e-6, 3, preconditioner=CG_BACKENDS[backend]
+        )
+    }
     assert reasons == {"indefinite_block"}
     H_off = system.H_off.clone()
     H_off[3, 2, 5] = float("nan")
-    broken = BlockSystem(_system(False, device).H_diag, system.off_i, system.off_j, H_off,
-                         system.g)
+    broken = BlockSystem(_system(False, device).H_diag, system.off_i, system.off_j, H_off, system.g)
     solution = solve(broken, free, backend=backend, retries=3)
     assert solution.status is SolveStatus.FAILED and torch.all(solution.step == 0)
 
@@ -185,7 +198,8 @@ def test_iteration_cap_returns_the_last_iterate(caplog):
     assert errors[0] > errors[1] > errors[2] > 4e-3
     # the default cap, max(100, 7F), is never reached here
     assert solve(system, free, backend="pcg", cg_tolerance=0.0).cg_iterations == max(
-        pcg.CG_MIN_ITERATION_CAP, 7 * (NUM_POSES - len(PINNED)))
+        pcg.CG_MIN_ITERATION_CAP, 7 * (NUM_POSES - len(PINNED))
+    )
 
 
 def test_pcg_arguments_are_validated():

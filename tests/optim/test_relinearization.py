@@ -26,16 +26,25 @@ def _problem(dtype: torch.dtype = torch.float32, device: torch.device | str = "c
     graph = synthetic_graph(truth, i, j, 300, generator)
     # a little noise on the points of j, so the solution has residuals and Huber weights < 1
     X_j = graph.X_j + 0.05 * torch.randn(graph.X_j.shape, generator=generator, dtype=torch.float64)
-    factors = RayRangeFactors(graph.i.to(device), graph.j.to(device),
-                              graph.X_i.to(device, dtype), X_j.to(device, dtype),
-                              graph.q.to(device, dtype), graph.valid.to(device))
+    factors = RayRangeFactors(
+        graph.i.to(device),
+        graph.j.to(device),
+        graph.X_i.to(device, dtype),
+        X_j.to(device, dtype),
+        graph.q.to(device, dtype),
+        graph.valid.to(device),
+    )
     initial = sim3_compose(random_sim3(6, 3.0, 0.3, 0.05, generator), truth)
     initial[0] = truth[0]
     return truth, factors, PoseValues.from_poses(initial.to(device), num_pinned=1)
 
 
-def _lazy(factors: RayRangeFactors, tol: float, models: EdgeModels | None = None,
-          stamps: list | None = None) -> ThresholdRelinearized:
+def _lazy(
+    factors: RayRangeFactors,
+    tol: float,
+    models: EdgeModels | None = None,
+    stamps: list | None = None,
+) -> ThresholdRelinearized:
     """The batch's edges through a relinearization threshold, built from ``factors``
     (edge positions = their rows), keyed by position."""
     E = factors.num_edges
@@ -45,9 +54,16 @@ def _lazy(factors: RayRangeFactors, tol: float, models: EdgeModels | None = None
         built.append(list(positions))
         return [(factors, list(range(E)))]
 
-    lazy = ThresholdRelinearized(factors.i, factors.j, list(range(E)), stamps or [0] * E,
-                                 EdgeModels() if models is None else models, build, tol,
-                                 SCENE)
+    lazy = ThresholdRelinearized(
+        factors.i,
+        factors.j,
+        list(range(E)),
+        stamps or [0] * E,
+        EdgeModels() if models is None else models,
+        build,
+        tol,
+        SCENE,
+    )
     lazy.built = built
     return lazy
 
@@ -98,8 +114,7 @@ def test_the_energy_is_the_dense_one() -> None:
 
 def test_a_solve_with_the_threshold_ends_where_the_dense_one_does() -> None:
     truth, factors, values = _problem()
-    dense, dense_report = gauss_newton_irls([factors], values, GlobalBAConfig(),
-                                            length_scale=SCENE)
+    dense, dense_report = gauss_newton_irls([factors], values, GlobalBAConfig(), length_scale=SCENE)
     lazy = _lazy(factors, GlobalBAConfig().relinearize_tol)
     solved, report = gauss_newton_irls([lazy], values, GlobalBAConfig(), length_scale=SCENE)
     assert report.converged and dense_report.converged
@@ -132,12 +147,14 @@ def test_models_are_kept_between_solves_while_their_stamps_hold(device) -> None:
 def test_a_bad_threshold_is_refused(tol: float, length: float) -> None:
     _, factors, _ = _problem()
     with pytest.raises(InputError, match="ThresholdRelinearized"):
-        ThresholdRelinearized(factors.i, factors.j, [0] * 7, [0] * 7, EdgeModels(),
-                              lambda p: [], tol, length)
+        ThresholdRelinearized(
+            factors.i, factors.j, [0] * 7, [0] * 7, EdgeModels(), lambda p: [], tol, length
+        )
 
 
 def test_edges_without_a_key_or_stamp_each_are_refused() -> None:
     _, factors, _ = _problem()
     with pytest.raises(InputError, match="one entry per edge"):
-        ThresholdRelinearized(factors.i, factors.j, [0] * 6, [0] * 7, EdgeModels(),
-                              lambda p: [], 1e-3, 1.0)
+        ThresholdRelinearized(
+            factors.i, factors.j, [0] * 6, [0] * 7, EdgeModels(), lambda p: [], 1e-3, 1.0
+        )

@@ -20,6 +20,8 @@ from como3r.prior.mast3r.testing import tiny_network
 from como3r.prior.simulated import SimulatedPrior
 
 W, H = 64, 48
+
+
 def _tiny_mast3r() -> Prior:
     prior = MASt3RPrior(tiny_network(seed=0))
     prior.retrieval = RetrievalHead(in_dim=32, hdims=(16,)).eval()
@@ -42,10 +44,16 @@ def views() -> list[View]:
         frame = renderer.render(R_WC, t_WC)
         quat = Rotation.from_matrix(R_WC).as_quat()
         out.append(View(ImageTransform.to_network(frame.rgb), agent=1, index=index))
-        TRUTH.add(1, index, GroundTruth(
-            depth=torch.from_numpy(frame.depth), K=torch.from_numpy(intrinsics.matrix()).float(),
-            surface=torch.from_numpy(frame.surface),
-            T_WC=torch.tensor([*t_WC, *quat, 1.0], dtype=torch.float64)))
+        TRUTH.add(
+            1,
+            index,
+            GroundTruth(
+                depth=torch.from_numpy(frame.depth),
+                K=torch.from_numpy(intrinsics.matrix()).float(),
+                surface=torch.from_numpy(frame.surface),
+                T_WC=torch.tensor([*t_WC, *quat, 1.0], dtype=torch.float64),
+            ),
+        )
     return out
 
 

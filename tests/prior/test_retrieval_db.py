@@ -89,9 +89,7 @@ def _places(
 def _view(base: np.ndarray, rng: np.random.Generator, noise: float = 0.05) -> np.ndarray:
     """Another view of a place: the same descriptors with noise, a few dropped."""
     keep = rng.permutation(len(base))[: len(base) - 4]
-    return (base[keep] + noise * rng.standard_normal((len(keep), base.shape[1]))).astype(
-        np.float32
-    )
+    return (base[keep] + noise * rng.standard_normal((len(keep), base.shape[1]))).astype(np.float32)
 
 
 CONFIGS = {
@@ -239,13 +237,15 @@ def test_quantized_once_equals_quantized_per_call(name):
         ma = max(config.multiple_assignment_query, config.multiple_assignment_build)
         np.testing.assert_array_equal(quantized.words, _ref_words(x, centroids, ma))
         np.testing.assert_array_equal(once.scores(quantized), per_call.scores(x))
-        assert (once.query(quantized, k=3, min_similarity=-1.0)
-                == per_call.query(x, k=3, min_similarity=-1.0))
+        assert once.query(quantized, k=3, min_similarity=-1.0) == per_call.query(
+            x, k=3, min_similarity=-1.0
+        )
         once.add(0, i, quantized, np.ones(len(x)))
         per_call.add(0, i, x)
     np.testing.assert_array_equal(once.scores(bases[0]), per_call.scores(bases[0]))
-    assert once.query_and_add(1, 0, once.quantize(bases[1])) == per_call.query_and_add(1, 0,
-                                                                                      bases[1])
+    assert once.query_and_add(1, 0, once.quantize(bases[1])) == per_call.query_and_add(
+        1, 0, bases[1]
+    )
 
 
 @pytest.mark.parametrize("ma", [1, 5])
@@ -254,8 +254,9 @@ def test_nearest_words_are_the_nearest_centroids_in_order(device, ma):
     rng = np.random.default_rng(14)
     centroids, bases = _places(64, 2, seed=15, k_words=256, n_desc=40)
     x = np.concatenate([_view(b, rng) for b in bases])
-    words = nearest_words(torch.from_numpy(x).to(device), torch.from_numpy(centroids).to(device),
-                          ma)
+    words = nearest_words(
+        torch.from_numpy(x).to(device), torch.from_numpy(centroids).to(device), ma
+    )
     assert words.device.type == device.type and words.dtype == torch.int64
     np.testing.assert_array_equal(words.cpu().numpy(), _ref_words(x, centroids, ma))
 
@@ -468,8 +469,10 @@ MALFORMED = {
     "garbage": (b"\x80\x04garbage", "not a valid codebook"),
     "not a dict": (pickle.dumps([1, 2, 3]), "not an asmk codebook"),
     "wrong type": (_state_pickle(np.ones((4, 4), np.float32), kind="IVF"), "not an asmk codebook"),
-    "no centroids": (pickle.dumps({"type": "Codebook", "params": {"size": 4}, "state": {}}),
-                     "state.centroids"),
+    "no centroids": (
+        pickle.dumps({"type": "Codebook", "params": {"size": 4}, "state": {}}),
+        "state.centroids",
+    ),
     "size mismatch": (_state_pickle(np.ones((4, 4), np.float32), size="1k"), "!= 4 centroids"),
     "bad size": (_state_pickle(np.ones((4, 4), np.float32), size="four"), "params.size"),
     "1-d": (_state_pickle(np.ones(4, np.float32), size=4), "shape"),

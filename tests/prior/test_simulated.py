@@ -24,6 +24,7 @@ from como3r.data.agent import open_agent
 from como3r.data.preprocess import frame_ground_truth, make_view
 from como3r.data.synth import synthesize
 from como3r.errors import ConfigError, PriorError
+from como3r.frontend.matching import refine_with_descriptors
 from como3r.geometry.camera import project, unproject_depth
 from como3r.geometry.lie import (
     matrix_to_quat,
@@ -38,15 +39,15 @@ from como3r.prior.base import Encoding, PairPrediction, View
 from como3r.prior.ground_truth import GroundTruth, InMemoryTruth
 from como3r.prior.retrieval import RetrievalDatabase
 from como3r.prior.simulated import SimulatedPrior, fill_depth_holes
-from como3r.frontend.matching import refine_with_descriptors
 
 WIDTH, HEIGHT, FRAMES = 96, 72, 40
 LONG_SIDE = 96
 #: The easy model with its default parameters.
 EASY = SimulatedPriorConfig(model="easy")
 #: Only the pose noise: every other error source off.
-POSE_NOISE_ONLY = dataclasses.replace(EASY, scale_sigma=0.0, depth_distortion_amplitude=0.0,
-                                      range_noise=0.0)
+POSE_NOISE_ONLY = dataclasses.replace(
+    EASY, scale_sigma=0.0, depth_distortion_amplitude=0.0, range_noise=0.0
+)
 NOISE_FREE = dataclasses.replace(POSE_NOISE_ONLY, rotation_noise_deg=0.0, translation_noise=0.0)
 
 
@@ -95,8 +96,16 @@ class _ChangedTruth:
 @pytest.fixture(scope="module")
 def default_views(tmp_path_factory) -> list[list[View]]:
     root = tmp_path_factory.mktemp("default")
-    synthesize(root, agents=2, seed=0, overlap=0.3, frames=FRAMES, preset="default",
-               width=WIDTH, height=HEIGHT)
+    synthesize(
+        root,
+        agents=2,
+        seed=0,
+        overlap=0.3,
+        frames=FRAMES,
+        preset="default",
+        width=WIDTH,
+        height=HEIGHT,
+    )
     return _load_views(root, 2)
 
 
@@ -104,8 +113,16 @@ def default_views(tmp_path_factory) -> list[list[View]]:
 def aliasing_scene(tmp_path_factory) -> tuple[list[View], list[int]]:
     """All views of the three agents of an aliasing scene and its aliased texture ids."""
     root = tmp_path_factory.mktemp("aliasing")
-    synthesize(root, agents=3, seed=0, overlap=0.3, frames=FRAMES, preset="aliasing",
-               width=WIDTH, height=HEIGHT)
+    synthesize(
+        root,
+        agents=3,
+        seed=0,
+        overlap=0.3,
+        frames=FRAMES,
+        preset="aliasing",
+        width=WIDTH,
+        height=HEIGHT,
+    )
     aliased = json.loads((root / "scene.json").read_text())["layout"]["aliased_texture_ids"]
     return [v for views in _load_views(root, 3, first_agent=10) for v in views], aliased
 
@@ -212,22 +229,24 @@ def test_decode_is_deterministic_and_ordered_pairs_are_independent(prior, defaul
     views = default_views[0]
     enc_a, enc_b = prior.encode(views[3]), prior.encode(views[4])
     first, again = prior.decode(enc_a, enc_b), prior.decode(enc_a, enc_b)
-    fresh = SimulatedPrior(EASY, TRUTH).decode(
-        prior.encode(views[3]), prior.encode(views[4]))
+    fresh = SimulatedPrior(EASY, TRUTH).decode(prior.encode(views[3]), prior.encode(views[4]))
     for field in dataclasses.fields(first):
         assert torch.equal(getattr(first, field.name), getattr(again, field.name))
         assert torch.equal(getattr(first, field.name), getattr(fresh, field.name))
     other_seed = SimulatedPrior(dataclasses.replace(EASY, seed=1), TRUTH)
-    assert not torch.equal(other_seed.decode(other_seed.encode(views[3]),
-                                             other_seed.encode(views[4])).X_ii, first.X_ii)
+    assert not torch.equal(
+        other_seed.decode(other_seed.encode(views[3]), other_seed.encode(views[4])).X_ii, first.X_ii
+    )
     # The scale draw of (i, j) says nothing about the one of (j, i).
     encodings = [prior.encode(v) for v in views]
     forward, backward = [], []
     for i in range(0, FRAMES - 1):
-        log_ij, valid_i = _log_range_ratio(views[i], prior.decode(
-            encodings[i], encodings[i + 1]).X_ii)
-        log_ji, valid_j = _log_range_ratio(views[i + 1], prior.decode(
-            encodings[i + 1], encodings[i]).X_ii)
+        log_ij, valid_i = _log_range_ratio(
+            views[i], prior.decode(encodings[i], encodings[i + 1]).X_ii
+        )
+        log_ji, valid_j = _log_range_ratio(
+            views[i + 1], prior.decode(encodings[i + 1], encodings[i]).X_ii
+        )
         forward.append(float(log_ij[valid_i].median()))
         backward.append(float(log_ji[valid_j].median()))
     correlation = np.corrcoef(forward, backward)[0, 1]
@@ -277,8 +296,7 @@ def test_invalid_configuration_names_the_key(key):
 
 
 def test_scale_error_spread_matches_scale_sigma(default_views):
-    config = dataclasses.replace(EASY, depth_distortion_amplitude=0.0,
-                                 range_noise=0.0)
+    config = dataclasses.replace(EASY, depth_distortion_amplitude=0.0, range_noise=0.0)
     prior = SimulatedPrior(config, TRUTH)
     views = default_views[0]
     encodings = [prior.encode(v) for v in views]
@@ -305,10 +323,12 @@ def test_scale_spread_with_every_error_source_on(prior, default_views):
 
 def test_range_noise_matches_config(default_views):
     views = default_views[0]
-    isolated = SimulatedPrior(dataclasses.replace(
-        EASY, scale_sigma=0.0, depth_distortion_amplitude=0.0), TRUTH)
-    log_ratio, valid = _log_range_ratio(views[5], isolated.decode(
-        isolated.encode(views[5]), isolated.encode(views[6])).X_ii)
+    isolated = SimulatedPrior(
+        dataclasses.replace(EASY, scale_sigma=0.0, depth_distortion_amplitude=0.0), TRUTH
+    )
+    log_ratio, valid = _log_range_ratio(
+        views[5], isolated.decode(isolated.encode(views[5]), isolated.encode(views[6])).X_ii
+    )
     assert abs(float(log_ratio[valid].std()) / isolated.config.range_noise - 1.0) < 0.05
 
     # With every error on: a 3x3 high-pass removes the scale and the smooth distortion
@@ -316,11 +336,14 @@ def test_range_noise_matches_config(default_views):
     prior = SimulatedPrior(EASY, TRUTH)
     residuals = []
     for i in range(0, 20, 4):
-        log_ratio, valid = _log_range_ratio(views[i], prior.decode(
-            prior.encode(views[i]), prior.encode(views[i + 1])).X_ii)
+        log_ratio, valid = _log_range_ratio(
+            views[i], prior.decode(prior.encode(views[i]), prior.encode(views[i + 1])).X_ii
+        )
         local_mean = F.avg_pool2d(log_ratio[None, None], 3, stride=1)[0, 0]
-        usable = F.max_pool2d((~valid | _depth_edges(views[i]))[None, None].float(), 3,
-                              stride=1)[0, 0] == 0
+        usable = (
+            F.max_pool2d((~valid | _depth_edges(views[i]))[None, None].float(), 3, stride=1)[0, 0]
+            == 0
+        )
         residuals.append((log_ratio[1:-1, 1:-1] - local_mean)[usable])
     noise = float(torch.cat(residuals).std()) / math.sqrt(8.0 / 9.0)
     assert abs(noise / prior.config.range_noise - 1.0) < 0.1
@@ -336,8 +359,9 @@ def test_depth_distortion_amplitude_and_wavelength(default_views):
     mean_square, corr_half, corr_eighth = [], [], []
     for i, j in _pairs(FRAMES, (1,))[:40]:
         log_ratio, valid = _log_range_ratio(views[i], prior.decode(encodings[i], encodings[j]).X_ii)
-        field = torch.where(valid, log_ratio / config.depth_distortion_amplitude,
-                            torch.zeros_like(log_ratio))
+        field = torch.where(
+            valid, log_ratio / config.depth_distortion_amplitude, torch.zeros_like(log_ratio)
+        )
         mean_square.append(float(field[valid].square().mean()))
         both = valid[:, half:] & valid[:, :-half]
         corr_half.append(float((field[:, half:] * field[:, :-half])[both].mean()))
@@ -356,8 +380,10 @@ def test_relative_pose_is_the_true_one_for_overlapping_views(default_views):
     views = default_views[0]
     for i, j in [(0, 2), (10, 14), (25, 20), (33, 30)]:
         prediction = prior.decode(prior.encode(views[i]), prior.encode(views[j]))
-        fitted, truth = _pose_of_prediction(views[j], prediction.X_ji), _relative_gt(
-            views[i], views[j])
+        fitted, truth = (
+            _pose_of_prediction(views[j], prediction.X_ji),
+            _relative_gt(views[i], views[j]),
+        )
         baseline = float(truth[:3].norm())
         assert _angle_deg(quat_to_matrix(fitted[3:7]).float(), quat_to_matrix(truth[3:7])) < 0.02
         assert float((fitted[:3].float() - truth[:3]).norm()) < 1e-3 + 0.002 * baseline
@@ -374,8 +400,7 @@ def test_pose_noise_matches_config(default_views):
         # truth is the pose noise.
         fitted = _pose_of_prediction(views[j], prior.decode(encodings[i], encodings[j]).X_ji)
         truth = _relative_gt(views[i], views[j])
-        angles.append(_angle_deg(quat_to_matrix(fitted[3:7]).float(),
-                                 quat_to_matrix(truth[3:7])))
+        angles.append(_angle_deg(quat_to_matrix(fitted[3:7]).float(), quat_to_matrix(truth[3:7])))
         relative_shifts.append(float((fitted[:3].float() - truth[:3]).norm() / truth[:3].norm()))
     # 80 draws of a 3-D error: the RMS is within 15 % of its expectation with ~99.5 %
     # probability.
@@ -397,8 +422,9 @@ def test_descriptor_nearest_neighbours_find_true_correspondences(prior, default_
         similarity = prediction.D_ii[covisible] @ prediction.D_ji.reshape(-1, 24).T
         nearest = similarity.argmax(-1)
         W = views[j].shape[1]
-        error = torch.maximum((nearest % W - uv[covisible][:, 0]).abs(),
-                              (nearest // W - uv[covisible][:, 1]).abs())
+        error = torch.maximum(
+            (nearest % W - uv[covisible][:, 0]).abs(), (nearest // W - uv[covisible][:, 1]).abs()
+        )
         assert float((error <= 1.0).float().mean()) > 0.8
 
 
@@ -428,9 +454,10 @@ def test_pair_without_common_keys_gets_low_confidence(prior, default_views):
     view_j = default_views[0][1]
     surface = gt(view_j).surface.clone()
     surface[..., 0] += 100_000  # textures view i has never seen
-    prediction = prior.decode(prior.encode(view_i),
-                              SimulatedPrior(EASY, _ChangedTruth([view_j], surface=surface))
-                              .encode(view_j))
+    prediction = prior.decode(
+        prior.encode(view_i),
+        SimulatedPrior(EASY, _ChangedTruth([view_j], surface=surface)).encode(view_j),
+    )
     assert float(prediction.C_ji.max()) < 1.2
     assert float(prediction.Q_ji.median()) < 1.5
     assert bool(torch.isfinite(prediction.X_ji).all())
@@ -480,11 +507,13 @@ def test_a_depth_sensors_holes_are_filled_matchable_and_unconfident(prior, defau
 def test_fill_depth_holes_takes_the_farthest_depth_of_the_smallest_block():
     """A hole pixel takes the farthest valid depth of the smallest aligned 2^k block around
     it that has one (the surface behind, where near and far meet); valid depth is kept."""
-    depth = torch.tensor([[1.0, 0.0, 0.0, 3.0, 0.0, 0.0, 0.0, 0.0],
-                          [0.0, 2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    depth = torch.tensor(
+        [[1.0, 0.0, 0.0, 3.0, 0.0, 0.0, 0.0, 0.0], [0.0, 2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]]
+    )
     filled = fill_depth_holes(depth, depth > 0)
-    expected = torch.tensor([[1.0, 2.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0],
-                             [2.0, 2.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0]])
+    expected = torch.tensor(
+        [[1.0, 2.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0], [2.0, 2.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0]]
+    )
     assert torch.equal(filled, expected)
 
 
@@ -492,8 +521,7 @@ def test_world_keys_without_surface_maps(prior, default_views):
     views = default_views[0][:6]
     world_keys = SimulatedPrior(NOISE_FREE, _ChangedTruth(None, surface=None))
     prediction = world_keys.decode(*[world_keys.encode(v) for v in (views[0], views[3])])
-    fitted, truth = _pose_of_prediction(views[3], prediction.X_ji), _relative_gt(
-        views[0], views[3])
+    fitted, truth = _pose_of_prediction(views[3], prediction.X_ji), _relative_gt(views[0], views[3])
     assert _angle_deg(quat_to_matrix(fitted[3:7]).float(), quat_to_matrix(truth[3:7])) < 0.02
     assert float((fitted[:3].float() - truth[:3]).norm()) < 2e-3
     noisy = SimulatedPrior(EASY, _ChangedTruth(None, surface=None))
@@ -514,8 +542,9 @@ def _aliased_pair(views: list[View], aliased: list[int]) -> tuple[View, View]:
         for b in ranked:
             if views[a].agent == views[b].agent:
                 continue
-            if not bool(_covisible(views[a], views[b])[0].any() | _covisible(
-                    views[b], views[a])[0].any()):
+            if not bool(
+                _covisible(views[a], views[b])[0].any() | _covisible(views[b], views[a])[0].any()
+            ):
                 return views[a], views[b]
     raise AssertionError("the aliasing scene has no pair of disjoint façade views")
 
@@ -525,7 +554,8 @@ def test_aliased_facades_are_confusable_and_give_a_wrong_pose(prior, aliasing_sc
     view_i, view_j = _aliased_pair(views, aliased)
     prediction = prior.decode(prior.encode(view_i), prior.encode(view_j))
     facade = torch.isin(gt(view_i).surface[..., 0].long(), torch.tensor(aliased)) & (
-        gt(view_i).depth > 0)
+        gt(view_i).depth > 0
+    )
     best = (prediction.D_ii[facade] @ prediction.D_ji.reshape(-1, 24).T).max(-1).values
     assert float(best.median()) > 0.9  # every façade pixel has a near-identical twin in j
     # ... and the prior places j where the twin façade would be: a confident wrong pose.
@@ -557,8 +587,9 @@ def test_retrieval_features_rank_the_same_place_first(prior, default_views, tmp_
     for k in stored:
         database.add(0, k, *prior.retrieval_features(prior.encode(views[k])))
     for query in (1, 13, 25, 35):
-        hits = database.query(prior.retrieval_features(prior.encode(views[query]))[0], k=1,
-                              min_similarity=-1.0)
+        hits = database.query(
+            prior.retrieval_features(prior.encode(views[query]))[0], k=1, min_similarity=-1.0
+        )
         assert hits[0].keyframe == min(stored, key=lambda k: abs(k - query))
 
 
@@ -571,13 +602,19 @@ def test_codebook_is_trained_once_and_cached(prior, tmp_path, monkeypatch):
         raise AssertionError("the cached codebook must be reused")
 
     monkeypatch.setattr("como3r.prior.retrieval.train_codebook", no_training)
-    np.testing.assert_array_equal(SimulatedPrior(truth=TRUTH).codebook(size=32, cache_dir=tmp_path), first)
+    np.testing.assert_array_equal(
+        SimulatedPrior(truth=TRUTH).codebook(size=32, cache_dir=tmp_path), first
+    )
     monkeypatch.undo()
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     np.testing.assert_array_equal(prior.codebook(size=32), first)  # deterministic
     assert len(list((tmp_path / "xdg" / "como3r").glob("simulated_codebook_*.npy"))) == 1
-    assert not np.array_equal(SimulatedPrior(dataclasses.replace(EASY, seed=3), TRUTH).codebook(
-        size=32, cache_dir=tmp_path), first)
+    assert not np.array_equal(
+        SimulatedPrior(dataclasses.replace(EASY, seed=3), TRUTH).codebook(
+            size=32, cache_dir=tmp_path
+        ),
+        first,
+    )
 
 
 def test_describe_reports_every_error_model_parameter():
@@ -591,7 +628,6 @@ def test_describe_reports_every_error_model_parameter():
     assert SimulatedPrior(EASY, TRUTH).describe()["model"] == "easy"
 
 
-
 def _refinement_success(scale: float, feature_map) -> float:
     """Share of pixels that the SLAM's descriptor search (radius 3, dilations 5 to 1) brings
     back to their true match from 7 pixels away, on a planar texture whose lengths and
@@ -600,8 +636,13 @@ def _refinement_success(scale: float, feature_map) -> float:
     side = 128
     v, u = torch.meshgrid(torch.arange(side), torch.arange(side), indexing="ij")
     footprint = 0.01 * scale
-    coords = torch.stack([u * footprint + 3.7 * scale, v * footprint + 1.3 * scale,
-                          torch.zeros(side, side)], -1).reshape(-1, 3).float()
+    coords = (
+        torch.stack(
+            [u * footprint + 3.7 * scale, v * footprint + 1.3 * scale, torch.zeros(side, side)], -1
+        )
+        .reshape(-1, 3)
+        .float()
+    )
     ids = torch.full((side * side,), 5)
     clean = feature_map(ids, coords, torch.full((side * side,), footprint))
     gen = torch.Generator().manual_seed(0)
@@ -624,6 +665,8 @@ def test_descriptor_search_works_at_every_scene_scale(prior):
     # Measured: 0.87-0.97 at every scale below. With one band of wavelengths fixed in metres
     # (0.05-10 m) it succeeded on 0.93 at 1 cm per pixel but 0.22 at 40 cm (the aerial
     # family's pixels: 6 of its 12 frames tracked) and 0.12 at 1 mm (a tabletop's)
-    success = {scale: _refinement_success(scale, prior._descriptor_map)
-               for scale in (0.01, 0.1, 1.0, 40.0, 1000.0)}
+    success = {
+        scale: _refinement_success(scale, prior._descriptor_map)
+        for scale in (0.01, 0.1, 1.0, 40.0, 1000.0)
+    }
     assert min(success.values()) > 0.8, success

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pytest
@@ -43,16 +43,30 @@ EASY = SimulatedPriorConfig(model="easy")
 #: dominate a least-squares pose fit of the whole pointmap.
 NO_OUTLIERS = dataclasses.replace(REALISTIC, flying_pixel_fraction=0.0, outlier_fraction=0.0)
 #: ... and without the intrinsics and range errors, which bias such a fit: the pose error alone.
-POSE_ONLY = dataclasses.replace(NO_OUTLIERS, focal_error=0.0, principal_point_error=0.0,
-                                ray_field_deg=0.0, image_distortion_amplitude=0.0,
-                                depth_distortion_amplitude=0.0, range_noise=0.0)
+POSE_ONLY = dataclasses.replace(
+    NO_OUTLIERS,
+    focal_error=0.0,
+    principal_point_error=0.0,
+    ray_field_deg=0.0,
+    image_distortion_amplitude=0.0,
+    depth_distortion_amplitude=0.0,
+    range_noise=0.0,
+)
 
 
 @pytest.fixture(scope="module")
 def views(tmp_path_factory) -> list[list[View]]:
     root = tmp_path_factory.mktemp("realistic")
-    synthesize(root, agents=2, seed=0, overlap=0.3, frames=FRAMES, preset="default",
-               width=WIDTH, height=HEIGHT)
+    synthesize(
+        root,
+        agents=2,
+        seed=0,
+        overlap=0.3,
+        frames=FRAMES,
+        preset="default",
+        width=WIDTH,
+        height=HEIGHT,
+    )
     out = []
     for a in range(2):
         agent = open_agent(Path(root) / f"agent_{a}")
@@ -96,8 +110,9 @@ def _log_error(truth: GroundTruth, X: torch.Tensor) -> torch.Tensor:
     return error - error.median()
 
 
-def _pose_errors(truth_i: GroundTruth, truth_j: GroundTruth, X_ji: torch.Tensor
-                 ) -> tuple[float, float]:
+def _pose_errors(
+    truth_i: GroundTruth, truth_j: GroundTruth, X_ji: torch.Tensor
+) -> tuple[float, float]:
     """Rotation error (degrees) and translation error (fraction of truth i's median range) of
     the similarity taking truth j's true points to ``X_ji``."""
     points, valid = unproject_depth(truth_j.depth, truth_j.K), truth_j.depth > 0
@@ -113,8 +128,7 @@ def _pose_errors(truth_i: GroundTruth, truth_j: GroundTruth, X_ji: torch.Tensor
 def _covisible(truth_i: GroundTruth, truth_j: GroundTruth) -> torch.Tensor:
     """``(H, W)`` pixels of i that j sees (z-buffer test on j's depth)."""
     points, valid = unproject_depth(truth_i.depth, truth_i.K), truth_i.depth > 0
-    in_j = sim3_act(sim3_inverse(sim3_compose(sim3_inverse(truth_i.T_WC), truth_j.T_WC)),
-                    points)
+    in_j = sim3_act(sim3_inverse(sim3_compose(sim3_inverse(truth_i.T_WC), truth_j.T_WC)), points)
     uv = project(in_j, truth_j.K)
     H, W = truth_j.depth.shape
     col, row = uv[..., 0].round().long(), uv[..., 1].round().long()
@@ -136,9 +150,13 @@ def test_realistic_is_the_default_and_describe_names_the_model():
     assert SimulatedPriorConfig().model == "realistic"
     assert SimulatedPrior(truth=TRUTH).describe()["model"] == "realistic"
     assert SimulatedPrior(EASY, TRUTH).describe()["model"] == "easy"
-    for key, value in (("gross_failure_rate", 1.5), ("focal_error", -0.1),
-                       ("pose_tail_dof", 0), ("image_error_correlation", 1.5),
-                       ("image_error_frames", 0.0)):
+    for key, value in (
+        ("gross_failure_rate", 1.5),
+        ("focal_error", -0.1),
+        ("pose_tail_dof", 0),
+        ("image_error_correlation", 1.5),
+        ("image_error_frames", 0.0),
+    ):
         with pytest.raises(ConfigError, match=f"simulated_prior.{key}"):
             SimulatedPrior(dataclasses.replace(REALISTIC, **{key: value}), TRUTH)
 
@@ -150,8 +168,7 @@ def test_outputs_keep_mast3r_types_and_ranges(views):
         value = getattr(prediction, field.name)
         assert value.dtype == torch.float32 and bool(torch.isfinite(value).all()), field.name
     assert bool((prediction.C_ii >= 1).all()) and bool((prediction.Q_ji > 0).all())
-    torch.testing.assert_close(prediction.D_ji.norm(dim=-1),
-                               torch.ones(prediction.D_ji.shape[:2]))
+    torch.testing.assert_close(prediction.D_ji.norm(dim=-1), torch.ones(prediction.D_ji.shape[:2]))
 
 
 def test_uncalibrated_rays_are_not_the_true_intrinsics_rays(views):
@@ -187,9 +204,13 @@ def test_the_pair_pointmap_implies_the_right_correspondences(views):
     """X_ji sits on camera i's believed rays where view j's points truly project in i, so
     projective matching of X_ji onto X_ii finds the true pixels despite the focal errors;
     the pair's pose error is what moves them (none here)."""
-    no_pose_error = dataclasses.replace(NO_OUTLIERS, rotation_noise_deg=0.0,
-                                        translation_noise=0.0, translation_floor=0.0,
-                                        gross_failure_rate=0.0)
+    no_pose_error = dataclasses.replace(
+        NO_OUTLIERS,
+        rotation_noise_deg=0.0,
+        translation_noise=0.0,
+        translation_floor=0.0,
+        gross_failure_rate=0.0,
+    )
     prior = SimulatedPrior(no_pose_error, TRUTH)
     view_i, view_j = views[0][10], views[0][11]
     enc_i = prior.encode(view_i)
@@ -198,16 +219,20 @@ def test_the_pair_pointmap_implies_the_right_correspondences(views):
     T_ij = sim3_compose(sim3_inverse(gt(view_i).T_WC), gt(view_j).T_WC).float()
     true_pixels = project(sim3_act(T_ij, points), view_i.K)[valid]
     H, W = view_i.shape
-    grid = torch.stack([2 * true_pixels[:, 0] / (W - 1) - 1, 2 * true_pixels[:, 1] / (H - 1) - 1],
-                       dim=-1)
+    grid = torch.stack(
+        [2 * true_pixels[:, 0] / (W - 1) - 1, 2 * true_pixels[:, 1] / (H - 1) - 1], dim=-1
+    )
     inside = (grid.abs() < 1).all(-1)
 
     def angle_to(rays: torch.Tensor) -> torch.Tensor:
         """Degrees between X_ji and ``rays`` (H, W, 3) sampled at the true pixels."""
         sampled = torch.nn.functional.grid_sample(
-            rays.permute(2, 0, 1)[None], grid[None, None], align_corners=True)[0, :, 0].T
-        cosine = (torch.nn.functional.normalize(X_ji[valid], dim=-1)
-                  * torch.nn.functional.normalize(sampled, dim=-1)).sum(-1)
+            rays.permute(2, 0, 1)[None], grid[None, None], align_corners=True
+        )[0, :, 0].T
+        cosine = (
+            torch.nn.functional.normalize(X_ji[valid], dim=-1)
+            * torch.nn.functional.normalize(sampled, dim=-1)
+        ).sum(-1)
         return torch.rad2deg(torch.acos(cosine.clamp(-1, 1)))[inside]
 
     # measured: median 0.00 deg from the believed rays (bilinear sampling only), 2.65 deg
@@ -241,8 +266,11 @@ def test_pose_error_is_heavy_tailed_grows_with_baseline_and_fails_grossly(views)
         for gap in (1, 6):
             for i in range(0, FRAMES - gap):
                 for x, y in ((i, i + gap), (i + gap, i)):
-                    angle, shift = _pose_errors(gt(views[a][x]), gt(views[a][y]), prior.decode(
-                        encodings[a][x], encodings[a][y]).X_ji)
+                    angle, shift = _pose_errors(
+                        gt(views[a][x]),
+                        gt(views[a][y]),
+                        prior.decode(encodings[a][x], encodings[a][y]).X_ji,
+                    )
                     rotation[gap].append(angle)
                     gross.append(angle > 10.0 or shift > 0.1)
     small, large = np.asarray(rotation[1]), np.asarray(rotation[6])
@@ -279,11 +307,13 @@ def test_confidence_tracks_the_error_not_covisibility(views):
             seen = _covisible(gt(view_j), gt(view_i))
             unseen = ~seen & (gt(view_j).depth > 0)
             if int(seen.sum()) > 50 and int(unseen.sum()) > 50:
-                values.append(float(prediction.C_ji[seen].median()
-                                    / prediction.C_ji[unseen].median()))
+                values.append(
+                    float(prediction.C_ji[seen].median() / prediction.C_ji[unseen].median())
+                )
         ratios[name] = np.median(values)
     # measured 1.5 (realistic) vs 5.7 (easy, the overlap oracle)
     assert ratios["realistic"] < 3.0 < ratios["easy"]
+
     # pairs without common keys: not all low-confidence (confident hallucinations)
     def unseen_textures(agent: int, index: int) -> GroundTruth:
         truth = TRUTH.truth(agent, index)
@@ -295,8 +325,7 @@ def test_confidence_tracks_the_error_not_covisibility(views):
     medians = []
     for a in range(2):
         for i in range(0, FRAMES - 1, 2):
-            prediction = prior.decode(prior.encode(views[a][i]),
-                                      elsewhere.encode(views[a][i + 1]))
+            prediction = prior.decode(prior.encode(views[a][i]), elsewhere.encode(views[a][i + 1]))
             medians.append(float(prediction.C_ji.median()))
     confident = np.mean(np.asarray(medians) > 3.0)
     # measured 0.24 with hallucination_rate 0.3; the easy model: 0 (C_ji < 1.2 everywhere)
@@ -333,8 +362,12 @@ def test_flying_pixels_sit_at_depth_discontinuities(views):
 
 def test_scale_drifts_smoothly_along_each_agent_sequence(views):
     only_drift = dataclasses.replace(
-        NO_OUTLIERS, scale_sigma=0.0, depth_distortion_amplitude=0.0, range_noise=0.0,
-        image_distortion_amplitude=0.0)
+        NO_OUTLIERS,
+        scale_sigma=0.0,
+        depth_distortion_amplitude=0.0,
+        range_noise=0.0,
+        image_distortion_amplitude=0.0,
+    )
     prior = SimulatedPrior(only_drift, TRUTH)
     log_scales, steps = {}, []
     for a in range(2):
@@ -345,8 +378,7 @@ def test_scale_drifts_smoothly_along_each_agent_sequence(views):
         same_image = SimulatedPrior(only_drift, _LookupTruth(lambda _a, _i, v=view_i: gt(v)))
 
         def log_scale(k: int) -> float:
-            X = prior.decode(same_image.encode(dataclasses.replace(view_i, index=k)),
-                             enc_j).X_ii
+            X = prior.decode(same_image.encode(dataclasses.replace(view_i, index=k)), enc_j).X_ii
             return float(torch.log(X.norm(dim=-1)[valid] / ranges[valid]).median())
 
         pairs = np.asarray([(log_scale(k), log_scale(k + 1)) for k in range(0, 240, 8)])
@@ -377,8 +409,10 @@ def test_descriptors_degrade_with_viewpoint_change(views):
             keep = (best.values < 0.02) & (gt(view_i).depth.reshape(-1)[sample] > 0)
             nearest = (D_i.reshape(-1, D_i.shape[-1])[sample[keep]] @ D_j.T).argmax(-1)
             W = view_j.shape[1]
-            offset = torch.maximum((nearest % W - best.indices[keep] % W).abs(),
-                                   (nearest // W - best.indices[keep] // W).abs())
+            offset = torch.maximum(
+                (nearest % W - best.indices[keep] % W).abs(),
+                (nearest // W - best.indices[keep] // W).abs(),
+            )
             values.append(float((offset <= 1).float().mean()))
         accuracy[gap] = np.mean(values)
     # nearest-descriptor matching gets worse as the viewpoint changes
@@ -402,16 +436,21 @@ def test_descriptors_degrade_with_viewpoint_change(views):
 @pytest.mark.parametrize("factor", [0.1, 20.0])
 def test_relative_errors_do_not_depend_on_the_scene_scale(views, factor):
     prior = SimulatedPrior(REALISTIC, TRUTH)
-    bigger = SimulatedPrior(REALISTIC, _LookupTruth(lambda a, i: _scaled(TRUTH.truth(a, i),
-                                                                         factor)))
+    bigger = SimulatedPrior(
+        REALISTIC, _LookupTruth(lambda a, i: _scaled(TRUTH.truth(a, i), factor))
+    )
     for i, j in ((0, 1), (12, 16), (30, 27)):
         base = [views[0][i], views[0][j]]
         truths = [gt(v) for v in base]
         scaled = [_scaled(t, factor) for t in truths]
         reference = prior.decode(*[prior.encode(v) for v in base])
         other = bigger.decode(*[bigger.encode(v) for v in base])
-        torch.testing.assert_close(_log_error(scaled[0], other.X_ii),
-                                   _log_error(truths[0], reference.X_ii), atol=2e-3, rtol=0)
+        torch.testing.assert_close(
+            _log_error(scaled[0], other.X_ii),
+            _log_error(truths[0], reference.X_ii),
+            atol=2e-3,
+            rtol=0,
+        )
         angle, shift = _pose_errors(*truths, reference.X_ji)
         angle_scaled, shift_scaled = _pose_errors(*scaled, other.X_ji)
         assert abs(angle - angle_scaled) < 0.05 and abs(shift - shift_scaled) < 1e-3

@@ -35,8 +35,16 @@ def scenes(tmp_path_factory) -> dict[str, tuple[list[View], InMemoryTruth]]:
     out = {}
     for preset in ("default", "low-texture"):
         root = tmp_path_factory.mktemp(preset)
-        synthesize(root, agents=1, seed=0, overlap=0.3, frames=FRAMES, preset=preset,
-                   width=WIDTH, height=HEIGHT)
+        synthesize(
+            root,
+            agents=1,
+            seed=0,
+            overlap=0.3,
+            frames=FRAMES,
+            preset=preset,
+            width=WIDTH,
+            height=HEIGHT,
+        )
         agent = open_agent(Path(root) / "agent_0")
         truth, views = InMemoryTruth(), []
         for i in range(len(agent)):
@@ -47,8 +55,7 @@ def scenes(tmp_path_factory) -> dict[str, tuple[list[View], InMemoryTruth]]:
     return out
 
 
-def _nn_accuracy(config: SimulatedPriorConfig, views: list[View], truth: InMemoryTruth
-                 ) -> float:
+def _nn_accuracy(config: SimulatedPriorConfig, views: list[View], truth: InMemoryTruth) -> float:
     """Fraction of pixels of i whose global nearest descriptor in j is within 1 px of the
     pixel of j with the same surface key (pairs of neighbouring frames)."""
     prior = SimulatedPrior(config, truth)
@@ -61,10 +68,13 @@ def _nn_accuracy(config: SimulatedPriorConfig, views: list[View], truth: InMemor
         best = torch.cdist(surface_i[sample], surface_j).min(-1)
         keep = (best.values < 0.02) & (surface_i[sample, 0] >= 0)
         d = prediction.D_ii.shape[-1]
-        nearest = (prediction.D_ii.reshape(-1, d)[sample[keep]]
-                   @ prediction.D_ji.reshape(-1, d).T).argmax(-1)
-        offset = torch.maximum((nearest % WIDTH - best.indices[keep] % WIDTH).abs(),
-                               (nearest // WIDTH - best.indices[keep] // WIDTH).abs())
+        nearest = (
+            prediction.D_ii.reshape(-1, d)[sample[keep]] @ prediction.D_ji.reshape(-1, d).T
+        ).argmax(-1)
+        offset = torch.maximum(
+            (nearest % WIDTH - best.indices[keep] % WIDTH).abs(),
+            (nearest // WIDTH - best.indices[keep] // WIDTH).abs(),
+        )
         values.append(float((offset <= 1).float().mean()))
     return float(np.mean(values))
 
@@ -72,8 +82,9 @@ def _nn_accuracy(config: SimulatedPriorConfig, views: list[View], truth: InMemor
 def test_texture_weight_follows_local_contrast():
     flat = torch.full((3, 48, 64), 0.3)
     weight = errors.texture_weight(flat)
-    torch.testing.assert_close(weight, torch.full((48, 64), errors.AppearanceConstants
-                                                  .context_weight))
+    torch.testing.assert_close(
+        weight, torch.full((48, 64), errors.AppearanceConstants.context_weight)
+    )
     checker = ((torch.arange(64)[None, :] // 2 + torch.arange(48)[:, None] // 2) % 2).float()
     assert float(errors.texture_weight(checker.expand(3, -1, -1)).min()) > 0.95
     # the appearance descriptors of one flat paint are all the same, unit norm
@@ -83,8 +94,11 @@ def test_texture_weight_follows_local_contrast():
 
 
 def test_flat_paint_is_ambiguous_texture_is_not(scenes):
-    accuracy = {(preset, config.model): _nn_accuracy(config, *scenes[preset])
-                for preset in scenes for config in (REALISTIC, V2)}
+    accuracy = {
+        (preset, config.model): _nn_accuracy(config, *scenes[preset])
+        for preset in scenes
+        for config in (REALISTIC, V2)
+    }
     # measured: realistic 0.75 (default), 0.80 (low-texture); v2 0.63 and 0.12
     assert accuracy["low-texture", "v2"] < 0.5 * accuracy["low-texture", "realistic"]
     assert accuracy["default", "v2"] > 0.6 * accuracy["default", "realistic"]
@@ -100,8 +114,9 @@ def test_v2_keeps_the_ranges_and_lowers_q_on_flat_paint(scenes):
     a = realistic.decode(realistic.encode(views[0]), realistic.encode(views[1]))
     b = v2.decode(enc, v2.encode(views[1]))
     for name in ("X_ii", "X_ji"):  # the same ranges on per-pair rays (item 12)
-        torch.testing.assert_close(getattr(b, name).norm(dim=-1),
-                                   getattr(a, name).norm(dim=-1), rtol=1e-5, atol=0)
+        torch.testing.assert_close(
+            getattr(b, name).norm(dim=-1), getattr(a, name).norm(dim=-1), rtol=1e-5, atol=0
+        )
     # Q falls where the image is flat: measured median ratio 0.59 on flat over textured pixels
     flat, textured = enc.texture < 0.5, enc.texture > 0.9
     assert int(flat.sum()) > 100 and int(textured.sum()) > 20
@@ -126,8 +141,9 @@ def test_v2_retrieval_features_see_the_image(scenes):
     similarity = {}
     for config in (REALISTIC, V2):
         prior = SimulatedPrior(config, truth)
-        seen, painted = (prior.retrieval_features(prior.encode(v))[0]
-                         for v in (views[3], flat_view))
+        seen, painted = (
+            prior.retrieval_features(prior.encode(v))[0] for v in (views[3], flat_view)
+        )
         assert seen.shape == painted.shape
         similarity[config.model] = float((seen * painted).sum(-1).mean())
     assert similarity["realistic"] == pytest.approx(1.0, abs=1e-5)
@@ -166,8 +182,10 @@ def test_v2_confidence_is_blind_to_the_smooth_error(scenes):
             error[valid] -= error[valid].median()
             size = WIDTH // 4 + 1
             pool = dict(kernel_size=size, stride=1, padding=size // 2, count_include_pad=False)
-            smooth = (F.avg_pool2d((error * valid)[None, None], **pool)
-                      / F.avg_pool2d(valid[None, None].float(), **pool).clamp_min(1e-6))[0, 0]
+            smooth = (
+                F.avg_pool2d((error * valid)[None, None], **pool)
+                / F.avg_pool2d(valid[None, None].float(), **pool).clamp_min(1e-6)
+            )[0, 0]
             logit = torch.log(prediction.C_ii - 1)[valid].numpy()
             smooth_rho.append(_spearman(logit, smooth[valid].abs().numpy()))
             local_rho.append(_spearman(logit, (error - smooth)[valid].abs().numpy()))
@@ -193,5 +211,6 @@ def test_v2_rays_change_with_the_partner_and_between_heads(scenes):
     prior = SimulatedPrior(no_intrinsics, truth)
     a = prior.decode(prior.encode(views[0]), prior.encode(views[1]))
     b = prior.decode(prior.encode(views[0]), prior.encode(views[2]))
-    torch.testing.assert_close(F.normalize(a.X_ii, dim=-1), F.normalize(b.X_ii, dim=-1),
-                               rtol=0, atol=1e-5)
+    torch.testing.assert_close(
+        F.normalize(a.X_ii, dim=-1), F.normalize(b.X_ii, dim=-1), rtol=0, atol=1e-5
+    )

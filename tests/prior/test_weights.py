@@ -48,7 +48,9 @@ def _handler(served: Served) -> type[BaseHTTPRequestHandler]:
                 return
             asked = None if served.ignore_range else self.headers.get("Range")
             start = int(re.match(r"bytes=(\d+)-", asked).group(1)) if asked else 0
-            body = data[start:start + served.cut.pop(name)] if name in served.cut else data[start:]
+            body = (
+                data[start : start + served.cut.pop(name)] if name in served.cut else data[start:]
+            )
             served.log.append((name, asked, len(body)))  # before replying: the client may be fast
             if start >= len(data):
                 self.send_response(416)
@@ -81,8 +83,9 @@ def server():
     """``(base_url, Served)`` of a server thread on 127.0.0.1."""
     served = Served()
     httpd = ThreadingHTTPServer(("127.0.0.1", 0), _handler(served))
-    thread = threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.02},
-                              daemon=True)
+    thread = threading.Thread(
+        target=httpd.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True
+    )
     thread.start()
     yield f"http://127.0.0.1:{httpd.server_address[1]}/MASt3R", served
     httpd.shutdown()
@@ -102,13 +105,15 @@ def test_complete_download_is_verified_and_recorded(server, tmp_path) -> None:
     url, served = server
     served.files["net.pth"] = data = _data(1)
     seen = []
-    status = fetch_file(_file(data), tmp_path, url,
-                        progress=lambda done, total: seen.append((done, total)))
+    status = fetch_file(
+        _file(data), tmp_path, url, progress=lambda done, total: seen.append((done, total))
+    )
     assert status.state == "verified" and status.size == SIZE
     assert (tmp_path / "net.pth").read_bytes() == data
     assert not (tmp_path / "net.pth.part").exists()
-    assert (tmp_path / "net.pth.sha256").read_text() == \
-        f"{hashlib.sha256(data).hexdigest()}  net.pth\n"
+    assert (
+        tmp_path / "net.pth.sha256"
+    ).read_text() == f"{hashlib.sha256(data).hexdigest()}  net.pth\n"
     assert seen[-1] == (SIZE, SIZE) and len(seen) > 1
     # accepted files are not fetched again
     assert fetch_file(_file(data), tmp_path, url).state == "verified"
@@ -254,19 +259,30 @@ def test_run_with_an_empty_cache_names_weights_fetch(official_names, tmp_path, p
     assert not out.exists() and not out.with_name("out.partial").exists()
 
 
-def test_missing_weights_name_the_simulated_prior_for_rgbd_inputs(official_names,
-                                                                  tmp_path) -> None:
+def test_missing_weights_name_the_simulated_prior_for_rgbd_inputs(official_names, tmp_path) -> None:
     """Every input has metric depth, intrinsics and ground-truth poses: the error says they
     also run with --prior simulated, and what that is."""
-    rgbd = [write_agent(tmp_path / f"agent_{k}", n=2, depth="npy", calib="20 20 16 12",
-                        groundtruth=True) for k in range(2)]
-    result = _cli("run", "--agent", str(rgbd[0]), "--agent", str(rgbd[1]), "--out",
-                  str(tmp_path / "out"))
+    rgbd = [
+        write_agent(
+            tmp_path / f"agent_{k}", n=2, depth="npy", calib="20 20 16 12", groundtruth=True
+        )
+        for k in range(2)
+    ]
+    result = _cli(
+        "run", "--agent", str(rgbd[0]), "--agent", str(rgbd[1]), "--out", str(tmp_path / "out")
+    )
     _one_error_line(result, "como3r weights fetch --trust-unverified")
     _one_error_line(result, "also run with --prior simulated")
     assert "does not measure MASt3R" in result.output
-    mixed = _cli("run", "--agent", str(rgbd[0]), "--agent",
-                 str(write_agent(tmp_path / "images", n=2)), "--out", str(tmp_path / "out"))
+    mixed = _cli(
+        "run",
+        "--agent",
+        str(rgbd[0]),
+        "--agent",
+        str(write_agent(tmp_path / "images", n=2)),
+        "--out",
+        str(tmp_path / "out"),
+    )
     _one_error_line(mixed, "--trust-unverified")
     assert "--prior simulated" not in mixed.output
 
@@ -276,7 +292,8 @@ def test_run_takes_all_three_files_from_the_cache(official_names) -> None:
     assert _cli("weights", "fetch", "--trust-unverified").exit_code == 0
     spec = resolve_weights(PriorSpec("mast3r"))
     assert (spec.weights, spec.retrieval_weights, spec.codebook) == tuple(
-        home / f.filename for f in weights.WEIGHT_FILES)
+        home / f.filename for f in weights.WEIGHT_FILES
+    )
     # an explicit checkpoint does not take the cached retrieval head made for another
     assert resolve_weights(PriorSpec("mast3r", weights=Path("own.pth"))).retrieval_weights is None
 
@@ -286,10 +303,14 @@ def test_cli_fetch_progress_lines_and_quiet(official_names, tmp_path, monkeypatc
     progress); --quiet: none, the cache and the files' statuses still printed."""
     plain = _cli("weights", "fetch", "--trust-unverified")
     assert plain.exit_code == 0, plain.output
-    lines = [line.split("] ", 1)[1] for line in plain.output.splitlines()
-             if re.match(r"^\[\d+:\d\d:\d\d\] ", line)]
-    assert lines == [f"{file.role}: {k + 1}.0 kB/{k + 1}.0 kB"
-                     for k, file in enumerate(weights.WEIGHT_FILES)]
+    lines = [
+        line.split("] ", 1)[1]
+        for line in plain.output.splitlines()
+        if re.match(r"^\[\d+:\d\d:\d\d\] ", line)
+    ]
+    assert lines == [
+        f"{file.role}: {k + 1}.0 kB/{k + 1}.0 kB" for k, file in enumerate(weights.WEIGHT_FILES)
+    ]
     monkeypatch.setenv("COMO3R_HOME", str(tmp_path / "other"))
     quiet = _cli("weights", "fetch", "--trust-unverified", "--quiet")
     assert quiet.exit_code == 0, quiet.output

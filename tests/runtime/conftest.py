@@ -29,8 +29,17 @@ def tiny_scene(tmp_path_factory) -> Callable[..., Path]:
         key = (frames, seed, overlap, agents)
         if key not in made:
             root = tmp_path_factory.mktemp(f"scene_f{frames}_s{seed}_a{agents}")
-            synthesize(root, agents=agents, seed=seed, overlap=overlap, frames=frames,
-                       preset="default", width=64, height=48, progress=None)
+            synthesize(
+                root,
+                agents=agents,
+                seed=seed,
+                overlap=overlap,
+                frames=frames,
+                preset="default",
+                width=64,
+                height=48,
+                progress=None,
+            )
             made[key] = root
         return made[key]
 
@@ -54,20 +63,42 @@ class ZenohTeam:
 
     def start(self, name: str, *args: str) -> subprocess.Popen:
         with open(self.tmp / f"{name}.log", "a") as log:
-            process = subprocess.Popen([sys.executable, "-m", "como3r.cli", *args,
-                                        "--session", self.session],
-                                       stdout=log, stderr=subprocess.STDOUT)
+            process = subprocess.Popen(
+                [sys.executable, "-m", "como3r.cli", *args, "--session", self.session],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
         self.processes[name] = process
         return process
 
     def coordinator(self, out: Path, agents: int, *extra: str) -> subprocess.Popen:
-        return self.start("coordinator", "coordinator", "--listen", self.endpoint, "--out",
-                          str(out), "--agents", str(agents), "--prior", "simulated", *SIZE,
-                          *extra)
+        return self.start(
+            "coordinator",
+            "coordinator",
+            "--listen",
+            self.endpoint,
+            "--out",
+            str(out),
+            "--agents",
+            str(agents),
+            "--prior",
+            "simulated",
+            *SIZE,
+            *extra,
+        )
 
     def agent(self, agent: int, path: Path) -> subprocess.Popen:
-        return self.start(f"agent{agent}", "agent", "--connect", self.endpoint, "--id",
-                          str(agent), str(path), "--prior", "simulated")
+        return self.start(
+            f"agent{agent}",
+            "agent",
+            "--connect",
+            self.endpoint,
+            "--id",
+            str(agent),
+            str(path),
+            "--prior",
+            "simulated",
+        )
 
     def log(self, name: str) -> str:
         return (self.tmp / f"{name}.log").read_text()

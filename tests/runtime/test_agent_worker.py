@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import pytest
 
@@ -29,8 +30,17 @@ class _TaskRecorder:
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
 def test_the_task_carries_the_precision_to_the_agent_prior(tmp_path, precision) -> None:
     (tmp_path / "scene").mkdir()
-    synthesize(tmp_path / "scene", agents=1, seed=0, overlap=0.5, frames=4, preset="default",
-               width=64, height=48, progress=None)
+    synthesize(
+        tmp_path / "scene",
+        agents=1,
+        seed=0,
+        overlap=0.5,
+        frames=4,
+        preset="default",
+        width=64,
+        height=48,
+        progress=None,
+    )
     ckpt = write_checkpoint(tmp_path / "tiny.pth", tiny_network(seed=0))
     spec = PriorSpec("mast3r", weights=ckpt, precision=precision)
     assert prior_spec(prior_fields(spec)) == spec

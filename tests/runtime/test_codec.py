@@ -6,9 +6,10 @@ import math
 import pickle
 import re
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, fields, is_dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -58,19 +59,23 @@ def _gen(seed: int) -> torch.Generator:
 
 def _matches(seed: int) -> DirectedMatches:
     g = _gen(seed)
-    return DirectedMatches(idx=torch.randint(0, H * W, (H * W,), generator=g),
-                           valid=torch.rand(H * W, generator=g) > 0.5,
-                           q=torch.rand(H * W, generator=g))
+    return DirectedMatches(
+        idx=torch.randint(0, H * W, (H * W,), generator=g),
+        valid=torch.rand(H * W, generator=g) > 0.5,
+        q=torch.rand(H * W, generator=g),
+    )
 
 
 def _from_hints(cls: type, seed: int, **given: Any) -> Any:
     """An instance of a dataclass of tensors and scalars, built from its annotations (so the
     sample follows the class as it evolves); tensors cycle through several dtypes."""
     g = _gen(seed)
-    makers = [lambda: torch.randn(H, W, 3, generator=g),
-              lambda: torch.rand(H, W, generator=g) > 0.5,
-              lambda: torch.randint(-1, 9, (H, W), generator=g),
-              lambda: torch.randn(H, W, 2, 3, dtype=torch.float64, generator=g)]
+    makers = [
+        lambda: torch.randn(H, W, 3, generator=g),
+        lambda: torch.rand(H, W, generator=g) > 0.5,
+        lambda: torch.randint(-1, 9, (H, W), generator=g),
+        lambda: torch.randn(H, W, 2, 3, dtype=torch.float64, generator=g),
+    ]
     scalars = {int: 3, float: 0.0123, bool: True, str: "s"}
     hints = typing.get_type_hints(cls)
     values = {}
@@ -94,42 +99,70 @@ def _simulated_encoding() -> SimulatedEncoding:
 
 
 def _mast3r_encoding() -> MASt3REncoding:
-    return MASt3REncoding(agent=0, index=3, shape=(32, 48),
-                          tokens=torch.randn(6, 16, generator=_gen(2)),
-                          pos=torch.arange(12, dtype=torch.int64).reshape(6, 2), grid=(2, 3))
+    return MASt3REncoding(
+        agent=0,
+        index=3,
+        shape=(32, 48),
+        tokens=torch.randn(6, 16, generator=_gen(2)),
+        pos=torch.arange(12, dtype=torch.int64).reshape(6, 2),
+        grid=(2, 3),
+    )
 
 
 def _refresh() -> PointmapRefresh:
-    return PointmapRefresh(kf_id=2, X_hat=torch.randn(H, W, 3, generator=_gen(3)),
-                           C_hat=1 + torch.rand(H, W, generator=_gen(4)), fused_frames=4)
+    return PointmapRefresh(
+        kf_id=2,
+        X_hat=torch.randn(H, W, 3, generator=_gen(3)),
+        C_hat=1 + torch.rand(H, W, generator=_gen(4)),
+        fused_frames=4,
+    )
 
 
 def _packet(encoding: Any = None) -> KeyframePacket:
     g = _gen(5)
     return KeyframePacket(
-        agent=1, kf_id=3, frame_index=12, timestamp=0.4, T_WC=torch.randn(8, dtype=torch.float64),
-        X_hat=torch.randn(H, W, 3, generator=g), C_hat=1 + torch.rand(H, W, generator=g),
+        agent=1,
+        kf_id=3,
+        frame_index=12,
+        timestamp=0.4,
+        T_WC=torch.randn(8, dtype=torch.float64),
+        X_hat=torch.randn(H, W, 3, generator=g),
+        C_hat=1 + torch.rand(H, W, generator=g),
         colors=np.random.default_rng(0).integers(0, 256, (H, W, 3), dtype=np.uint8),
         encoding=encoding if encoding is not None else _simulated_encoding(),
         retrieval=(torch.randn(5, 16, generator=g), torch.rand(5, generator=g)),
-        sequential_ij=_matches(6), sequential_ji=_matches(7), previous=_refresh(),
-        K=torch.tensor([[50.0, 0.0, 4.0], [0.0, 50.0, 3.0], [0.0, 0.0, 1.0]]))
+        sequential_ij=_matches(6),
+        sequential_ji=_matches(7),
+        previous=_refresh(),
+        K=torch.tensor([[50.0, 0.0, 4.0], [0.0, 50.0, 3.0], [0.0, 0.0, 1.0]]),
+    )
 
 
 def _pose_update() -> PoseUpdate:
-    return PoseUpdate(agent=1, kf_ids=torch.arange(4), T_WC=torch.randn(4, 8, dtype=torch.float64),
-                      reason="global_ba")
+    return PoseUpdate(
+        agent=1,
+        kf_ids=torch.arange(4),
+        T_WC=torch.randn(4, 8, dtype=torch.float64),
+        reason="global_ba",
+    )
 
 
 def _finished() -> messages.AgentFinished:
     return messages.AgentFinished(
-        agent=1, final=_refresh(), stats=FrontendStats(frames=5, lost=1, lost_frames=[4]),
-        seconds=1.5, applied_seq=2, frame_indices=np.arange(5, dtype=np.int64),
-        timestamps=np.linspace(0, 1, 5), anchors=np.array([0, 0, 1, 1, 1], dtype=np.int64),
+        agent=1,
+        final=_refresh(),
+        stats=FrontendStats(frames=5, lost=1, lost_frames=[4]),
+        seconds=1.5,
+        applied_seq=2,
+        frame_indices=np.arange(5, dtype=np.int64),
+        timestamps=np.linspace(0, 1, 5),
+        anchors=np.array([0, 0, 1, 1, 1], dtype=np.int64),
         T_rel=torch.randn(5, 8, dtype=torch.float64),
-        keyframe_frames=np.array([0, 2], dtype=np.int64), keyframe_timestamps=np.array([0, 0.5]),
+        keyframe_frames=np.array([0, 2], dtype=np.int64),
+        keyframe_timestamps=np.array([0, 0.5]),
         keyframe_T_WC=torch.randn(2, 8, dtype=torch.float64),
-        edges=[messages.EdgeSummary(0, 1, "sequential", 0.75)])
+        edges=[messages.EdgeSummary(0, 1, "sequential", 0.75)],
+    )
 
 
 SAMPLES: dict[str, Callable[[], Any]] = {
@@ -137,26 +170,45 @@ SAMPLES: dict[str, Callable[[], Any]] = {
     "PointmapRefresh": _refresh,
     "PoseUpdate": _pose_update,
     "DirectedMatches": lambda: _matches(8),
-    "FrontendStats": lambda: FrontendStats(frames=3, tracked=2, lost=1, local_solve_seconds=0.25,
-                                           lost_frames=[7]),
+    "FrontendStats": lambda: FrontendStats(
+        frames=3, tracked=2, lost=1, local_solve_seconds=0.25, lost_frames=[7]
+    ),
     "SimulatedEncoding": _simulated_encoding,
     "MASt3REncoding": _mast3r_encoding,
     "AgentTask": lambda: messages.AgentTask(
-        agent=0, input_path="/data/agent_0", config={"input": {"long_side": 64}, "seed": 3},
-        prior={"name": "simulated", "weights": None, "device": "cpu"}),
+        agent=0,
+        input_path="/data/agent_0",
+        config={"input": {"long_side": 64}, "seed": 3},
+        prior={"name": "simulated", "weights": None, "device": "cpu"},
+    ),
     "AgentStarted": lambda: messages.AgentStarted(agent=0, pid=1234, frames=10),
     "KeyframeMessage": lambda: messages.KeyframeMessage(
-        packet=_packet(_mast3r_encoding()), applied_seq=2,
-        T_WC_previous=torch.randn(8, dtype=torch.float64)),
-    "FrameDone": lambda: messages.FrameDone(agent=1, frame_index=4, timestamp=0.1333,
-                                            outcome="tracked", seconds=0.5, keyframes_waiting=1),
+        packet=_packet(_mast3r_encoding()),
+        applied_seq=2,
+        T_WC_previous=torch.randn(8, dtype=torch.float64),
+    ),
+    "FrameDone": lambda: messages.FrameDone(
+        agent=1,
+        frame_index=4,
+        timestamp=0.1333,
+        outcome="tracked",
+        seconds=0.5,
+        keyframes_waiting=1,
+    ),
     "FrameEvent": lambda: FrameEvent(
-        agent=1, frame_index=4, timestamp=0.1333, state="tracking",
-        T_WC=np.array([0.1, 0.2, 0.3, 0.0, 0.0, 0.0, 1.0, 1.1]), K=np.eye(3),
-        image=np.arange(4 * 6 * 3, dtype=np.uint8).reshape(4, 6, 3), wall_time=1.7e9),
+        agent=1,
+        frame_index=4,
+        timestamp=0.1333,
+        state="tracking",
+        T_WC=np.array([0.1, 0.2, 0.3, 0.0, 0.0, 0.0, 1.0, 1.1]),
+        K=np.eye(3),
+        image=np.arange(4 * 6 * 3, dtype=np.uint8).reshape(4, 6, 3),
+        wall_time=1.7e9,
+    ),
     "AgentFinished": _finished,
-    "AgentFailed": lambda: messages.AgentFailed(agent=2, error="InputError: bad frame",
-                                                details="Traceback ...", frame_index=6),
+    "AgentFailed": lambda: messages.AgentFailed(
+        agent=2, error="InputError: bad frame", details="Traceback ...", frame_index=6
+    ),
     "PoseUpdateMessage": lambda: messages.PoseUpdateMessage(update=_pose_update(), seq=3),
     "Step": lambda: messages.Step(frame_index=8),
     "Shutdown": lambda: messages.Shutdown(reason="test"),
@@ -205,8 +257,11 @@ def tamper(data: bytes, edit: Callable[[dict], None]) -> bytes:
 
 def test_every_registered_type_has_a_sample() -> None:
     # decentralized/ registers its own messages and round-trips them in its own tests
-    ours = {name for name, cls in codec.registered_types().items()
-            if not cls.__module__.startswith("como3r.decentralized")}
+    ours = {
+        name
+        for name, cls in codec.registered_types().items()
+        if not cls.__module__.startswith("como3r.decentralized")
+    }
     assert ours == set(SAMPLES)
 
 
@@ -248,8 +303,14 @@ def test_part_sizes_add_up_to_the_encoding_and_break_down_nested_messages(lossy:
     assert "packet.previous" not in sizes  # a nested message is its fields
     # only field names and the dataclasses' tags, type names and versions lie outside
     assert 0 < total - sum(sizes.values()) < 40 * len(sizes)
-    alone = len(msgpack.packb(msgpack.unpackb(encode(message, lossy=lossy), raw=False)
-                              ["fields"]["packet"]["fields"]["X_hat"], use_bin_type=True))
+    alone = len(
+        msgpack.packb(
+            msgpack.unpackb(encode(message, lossy=lossy), raw=False)["fields"]["packet"]["fields"][
+                "X_hat"
+            ],
+            use_bin_type=True,
+        )
+    )
     assert sizes["packet.X_hat"] == alone
 
 
@@ -260,8 +321,19 @@ def test_part_sizes_of_a_received_message_are_the_senders() -> None:
     assert sent["X_hat"] < codec.part_sizes(packet)["X_hat"]  # float16 on the wire
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.int64, torch.bool,
-                                   torch.uint8, torch.int32, torch.float16, torch.bfloat16])
+@pytest.mark.parametrize(
+    "dtype",
+    [
+        torch.float32,
+        torch.float64,
+        torch.int64,
+        torch.bool,
+        torch.uint8,
+        torch.int32,
+        torch.float16,
+        torch.bfloat16,
+    ],
+)
 def test_tensor_dtypes_round_trip(dtype: torch.dtype) -> None:
     values = torch.tensor([[0.0, -1.5, 2.25], [math.inf, -0.0, 7.0]])
     tensor = values.to(dtype)
@@ -274,14 +346,30 @@ def test_tensor_dtypes_round_trip(dtype: torch.dtype) -> None:
 @pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int64, np.bool_, np.uint8, np.int8])
 def test_numpy_arrays_round_trip(dtype: type) -> None:
     array = (np.arange(24).reshape(2, 3, 4) % 3).astype(dtype)
-    message = Probe(value={"c": array, "strided": array[:, ::2], "empty": array[:0],
-                           "scalar": np.asarray(array[1, 1, 1])})
+    message = Probe(
+        value={
+            "c": array,
+            "strided": array[:, ::2],
+            "empty": array[:0],
+            "scalar": np.asarray(array[1, 1, 1]),
+        }
+    )
     back = decode(encode(message)).value
     assert_identical({k: v.copy(order="C") for k, v in message.value.items()}, back)
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.int64, torch.bool,
-                                   torch.uint8, torch.float16, torch.bfloat16])
+@pytest.mark.parametrize(
+    "dtype",
+    [
+        torch.float32,
+        torch.float64,
+        torch.int64,
+        torch.bool,
+        torch.uint8,
+        torch.float16,
+        torch.bfloat16,
+    ],
+)
 def test_large_arrays_travel_compressed_and_come_back_bit_exact(dtype: torch.dtype) -> None:
     smooth = torch.linspace(-3, 3, 192 * 96).reshape(192, 96)
     tensor = (smooth > 0) if dtype == torch.bool else (smooth * 40).to(dtype)
@@ -290,8 +378,10 @@ def test_large_arrays_travel_compressed_and_come_back_bit_exact(dtype: torch.dty
     data = encode(message)
     wire = msgpack.unpackb(data, raw=False)["fields"]["value"]
     assert all("zstd" in item and "data" not in item for item in wire)
-    assert len(data) < sum(t.numel() * t.element_size() for t in (tensor, tensor[:, ::3])) \
-        + array.nbytes
+    assert (
+        len(data)
+        < sum(t.numel() * t.element_size() for t in (tensor, tensor[:, ::3])) + array.nbytes
+    )
     assert_identical(message, decode(data))
 
 
@@ -306,15 +396,17 @@ def test_compressed_arrays_may_not_decompress_past_the_budget() -> None:
     assert decode(data, max_bytes=2 * 2**20).value.nbytes == 10 * 2**20
 
 
-@pytest.mark.parametrize("edit, match", [
-    (lambda a: a.update(zstd=b"not zstd at all"), "compressed array data is not valid"),
-    (lambda a: a.update(shape=[a["shape"][0] + 1]), "does not decompress to the"),
-    (lambda a: a.update(shape=[a["shape"][0] - 1]), "does not decompress to the"),
-    (lambda a: a.update(data=b""), "has keys"),
-    (lambda a: a.update(zstd=a["zstd"] + a["zstd"]), "does not decompress to the"),
-])
-def test_tampered_compressed_arrays_are_rejected(edit: Callable[[dict], None],
-                                                  match: str) -> None:
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda a: a.update(zstd=b"not zstd at all"), "compressed array data is not valid"),
+        (lambda a: a.update(shape=[a["shape"][0] + 1]), "does not decompress to the"),
+        (lambda a: a.update(shape=[a["shape"][0] - 1]), "does not decompress to the"),
+        (lambda a: a.update(data=b""), "has keys"),
+        (lambda a: a.update(zstd=a["zstd"] + a["zstd"]), "does not decompress to the"),
+    ],
+)
+def test_tampered_compressed_arrays_are_rejected(edit: Callable[[dict], None], match: str) -> None:
     data = tamper(_zeros_message(8192), lambda tree: edit(tree["fields"]["value"]))
     with pytest.raises(MessageError, match=match):
         decode(data)
@@ -344,14 +436,18 @@ def test_half_fields_travel_as_float16_and_come_back_as_float32() -> None:
         assert wire["exact"]["dtype"] == "float32"  # not a half field
         back = decode(data)
         assert type(back.value) is type(value) and back.value.dtype == value.dtype
-        assert np.array_equal(np.asarray(back.value), np.asarray(value).astype(np.float16)
-                              .astype(np.float32))
+        assert np.array_equal(
+            np.asarray(back.value), np.asarray(value).astype(np.float16).astype(np.float32)
+        )
         assert_identical(back.exact, value)
 
 
 def test_a_half_field_that_is_a_tuple_narrows_its_float32_arrays() -> None:
-    value = (torch.randn(8, 4, generator=_gen(6)), torch.arange(3),
-             torch.rand(8, generator=_gen(7)))
+    value = (
+        torch.randn(8, 4, generator=_gen(6)),
+        torch.arange(3),
+        torch.rand(8, generator=_gen(7)),
+    )
     data = encode(HalfProbe(value), lossy=True)
     items = msgpack.unpackb(data, raw=False)["fields"]["value"]["items"]
     assert [item["dtype"] for item in items] == ["float16", "int64", "float16"]
@@ -370,13 +466,17 @@ def test_half_fields_that_float16_cannot_hold_travel_in_float32() -> None:
         assert_identical(decode(encode(HalfProbe(other), lossy=True)).value, other)
 
 
-@pytest.mark.parametrize("edit, match", [
-    (lambda a: a.update({"as": "float64"}), "cannot travel as 'float64'"),
-    (lambda a: a.update(dtype="int16"), "a int16 array cannot travel as 'float32'"),
-])
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda a: a.update({"as": "float64"}), "cannot travel as 'float64'"),
+        (lambda a: a.update(dtype="int16"), "a int16 array cannot travel as 'float32'"),
+    ],
+)
 def test_tampered_widening_is_rejected(edit: Callable[[dict], None], match: str) -> None:
-    data = tamper(encode(HalfProbe(torch.ones(4)), lossy=True),
-                  lambda t: edit(t["fields"]["value"]))
+    data = tamper(
+        encode(HalfProbe(torch.ones(4)), lossy=True), lambda t: edit(t["fields"]["value"])
+    )
     with pytest.raises(MessageError, match=match):
         decode(data)
 
@@ -388,8 +488,17 @@ def test_big_endian_arrays_keep_their_values() -> None:
 
 
 def test_nested_containers_none_and_scalars_round_trip() -> None:
-    value = (None, (1, (2.5, "x")), [True, False, None], {"k": (1,), 3: [b"raw"]},
-             -(2**63), 2**64 - 1, 1e-300, math.inf, "ü")
+    value = (
+        None,
+        (1, (2.5, "x")),
+        [True, False, None],
+        {"k": (1,), 3: [b"raw"]},
+        -(2**63),
+        2**64 - 1,
+        1e-300,
+        math.inf,
+        "ü",
+    )
     assert_identical(Probe(value), decode(encode(Probe(value))))
 
 
@@ -407,10 +516,19 @@ def test_tensors_come_back_on_cpu_and_detached() -> None:
 # ---------------------------------------------------------------------- encode errors
 
 
-@pytest.mark.parametrize("value", [object(), {1.5: "float key"}, {(1,): "tuple key"},
-                                   torch.zeros(2, dtype=torch.complex64),
-                                   np.array(["a"], dtype=object), Path("/tmp"), 2**70,
-                                   "\udc80"])
+@pytest.mark.parametrize(
+    "value",
+    [
+        object(),
+        {1.5: "float key"},
+        {(1,): "tuple key"},
+        torch.zeros(2, dtype=torch.complex64),
+        np.array(["a"], dtype=object),
+        Path("/tmp"),
+        2**70,
+        "\udc80",
+    ],
+)
 def test_encoding_unsupported_values_fails(value: Any) -> None:
     with pytest.raises(MessageError):
         encode(Probe(value))
@@ -442,8 +560,11 @@ def _valid() -> bytes:
 
 
 def test_pickle_bytes_are_rejected() -> None:
-    for payload in (pickle.dumps(SAMPLES["PoseUpdateMessage"]()), pickle.dumps({"x": 1}),
-                    pickle.dumps(torch.zeros(3))):
+    for payload in (
+        pickle.dumps(SAMPLES["PoseUpdateMessage"]()),
+        pickle.dumps({"x": 1}),
+        pickle.dumps(torch.zeros(3)),
+    ):
         with pytest.raises(MessageError):
             decode(payload)
 
@@ -453,8 +574,14 @@ def test_garbage_and_truncated_bytes_are_rejected() -> None:
     for cut in (0, 1, 7, len(data) // 2, len(data) - 1):
         with pytest.raises(MessageError):
             decode(data[:cut])
-    for junk in (b"\xc1", b"\xff" * 16, msgpack.packb([1, 2, 3]), msgpack.packb({"#": "tuple"}),
-                 msgpack.packb("text"), data + b"\x00"):
+    for junk in (
+        b"\xc1",
+        b"\xff" * 16,
+        msgpack.packb([1, 2, 3]),
+        msgpack.packb({"#": "tuple"}),
+        msgpack.packb("text"),
+        data + b"\x00",
+    ):
         with pytest.raises(MessageError):
             decode(junk)
     with pytest.raises(MessageError, match="bytes"):
@@ -464,8 +591,9 @@ def test_garbage_and_truncated_bytes_are_rejected() -> None:
 def test_random_mutations_never_escape_as_other_errors() -> None:
     """Flip bytes of valid messages: each mutant decodes or raises MessageError, nothing else."""
     rng = np.random.default_rng(0)
-    originals = [encode(SAMPLES[n]()) for n in ("PoseUpdateMessage", "KeyframeMessage",
-                                                "AgentFinished")]
+    originals = [
+        encode(SAMPLES[n]()) for n in ("PoseUpdateMessage", "KeyframeMessage", "AgentFinished")
+    ]
     for _ in range(300):
         data = bytearray(originals[rng.integers(len(originals))])
         header = min(len(data), 400)  # mostly structure, not raw array bytes
@@ -477,11 +605,27 @@ def test_random_mutations_never_escape_as_other_errors() -> None:
             pass
 
 
-WIRE_VALUES = [None, True, 0, -1, 2**64 - 1, 1.5, math.nan, "", "object", "#", b"", b"\x00" * 8,
-               [], [[0]] * 3, {}, {"#": "tuple"}, {"#": "dict", "items": [["a", 1]]},
-               {"#": "tensor", "dtype": "float32", "shape": [2], "data": b"\x00" * 8},
-               {"#": "object", "type": "Step", "version": 1,
-                "fields": {"frame_index": 1, "version": 1}}]
+WIRE_VALUES = [
+    None,
+    True,
+    0,
+    -1,
+    2**64 - 1,
+    1.5,
+    math.nan,
+    "",
+    "object",
+    "#",
+    b"",
+    b"\x00" * 8,
+    [],
+    [[0]] * 3,
+    {},
+    {"#": "tuple"},
+    {"#": "dict", "items": [["a", 1]]},
+    {"#": "tensor", "dtype": "float32", "shape": [2], "data": b"\x00" * 8},
+    {"#": "object", "type": "Step", "version": 1, "fields": {"frame_index": 1, "version": 1}},
+]
 
 
 def _wire_slots(tree: Any, out: list) -> list:
@@ -523,36 +667,46 @@ def _first_array(tree: dict) -> dict:
     return tree["fields"]["update"]["fields"]["T_WC"]
 
 
-@pytest.mark.parametrize("edit, match", [
-    (lambda t: t.update(type="os.system"), "unknown message type"),
-    (lambda t: t.update(type="Probe"), "unknown message type"),
-    (lambda t: t.update(version=2), "version 2 is not the supported"),
-    (lambda t: t.update(version=True), "version True"),
-    (lambda t: t["fields"].update(version=2), r"\.version: 2 is not 1"),
-    (lambda t: t["fields"].update(extra=1), "unexpected \\['extra'\\]"),
-    (lambda t: t["fields"].pop("seq"), "missing \\['seq'\\]"),
-    (lambda t: t["fields"].update(seq="three"), "seq: a str does not match"),
-    (lambda t: t["fields"].update(seq=2.0), "seq: a float does not match"),
-    (lambda t: t["fields"].update(seq=0), "seq must be >= 1"),
-    (lambda t: t["fields"]["update"]["fields"].update(reason=None), "reason: a NoneType"),
-    (lambda t: t["fields"]["update"].update(type="Step", version=1), "wrong fields for Step"),
-    (lambda t: _first_array(t).update(dtype="object"), "dtype 'object' is not allowed"),
-    (lambda t: _first_array(t).update(dtype="<f8"), "is not allowed"),
-    (lambda t: _first_array(t).update(shape=[4, 9]), "do not hold a float64 array"),
-    (lambda t: _first_array(t).update(shape=[4, -8]), "non-negative"),
-    (lambda t: _first_array(t).update(shape=[1] * 9), "at most 8"),
-    (lambda t: _first_array(t).update(shape=[0, 2**64 - 1], data=b""), "at most 8"),
-    (lambda t: _first_array(t).update(shape=[2**62, 0, 2**62], data=b""), "at most 8"),
-    (lambda t: _first_array(t).update(data=b"\x00" * 8), "do not hold"),
-    (lambda t: _first_array(t).update(data="text"), "not bytes"),
-    (lambda t: _first_array(t).update(extra=1), "has keys"),
-    (lambda t: _first_array(t).update({"#": "pickle"}), "unknown wire tag 'pickle'"),
-    (lambda t: t["fields"]["update"]["fields"].update(T_WC={"plain": "map"}), "unknown wire tag"),
-    (lambda t: t["fields"]["update"]["fields"].update(T_WC=[1.0] * 8), "a list does not match"),
-    (lambda t: t["fields"]["update"]["fields"]["T_WC"].update(shape=[4, 7], data=b"\x00" * 224),
-     r"T_WC has shape \(4, 7\)"),
-    (lambda t: t.update(fields=[1, 2]), "are not a map"),
-])
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda t: t.update(type="os.system"), "unknown message type"),
+        (lambda t: t.update(type="Probe"), "unknown message type"),
+        (lambda t: t.update(version=2), "version 2 is not the supported"),
+        (lambda t: t.update(version=True), "version True"),
+        (lambda t: t["fields"].update(version=2), r"\.version: 2 is not 1"),
+        (lambda t: t["fields"].update(extra=1), "unexpected \\['extra'\\]"),
+        (lambda t: t["fields"].pop("seq"), "missing \\['seq'\\]"),
+        (lambda t: t["fields"].update(seq="three"), "seq: a str does not match"),
+        (lambda t: t["fields"].update(seq=2.0), "seq: a float does not match"),
+        (lambda t: t["fields"].update(seq=0), "seq must be >= 1"),
+        (lambda t: t["fields"]["update"]["fields"].update(reason=None), "reason: a NoneType"),
+        (lambda t: t["fields"]["update"].update(type="Step", version=1), "wrong fields for Step"),
+        (lambda t: _first_array(t).update(dtype="object"), "dtype 'object' is not allowed"),
+        (lambda t: _first_array(t).update(dtype="<f8"), "is not allowed"),
+        (lambda t: _first_array(t).update(shape=[4, 9]), "do not hold a float64 array"),
+        (lambda t: _first_array(t).update(shape=[4, -8]), "non-negative"),
+        (lambda t: _first_array(t).update(shape=[1] * 9), "at most 8"),
+        (lambda t: _first_array(t).update(shape=[0, 2**64 - 1], data=b""), "at most 8"),
+        (lambda t: _first_array(t).update(shape=[2**62, 0, 2**62], data=b""), "at most 8"),
+        (lambda t: _first_array(t).update(data=b"\x00" * 8), "do not hold"),
+        (lambda t: _first_array(t).update(data="text"), "not bytes"),
+        (lambda t: _first_array(t).update(extra=1), "has keys"),
+        (lambda t: _first_array(t).update({"#": "pickle"}), "unknown wire tag 'pickle'"),
+        (
+            lambda t: t["fields"]["update"]["fields"].update(T_WC={"plain": "map"}),
+            "unknown wire tag",
+        ),
+        (lambda t: t["fields"]["update"]["fields"].update(T_WC=[1.0] * 8), "a list does not match"),
+        (
+            lambda t: t["fields"]["update"]["fields"]["T_WC"].update(
+                shape=[4, 7], data=b"\x00" * 224
+            ),
+            r"T_WC has shape \(4, 7\)",
+        ),
+        (lambda t: t.update(fields=[1, 2]), "are not a map"),
+    ],
+)
 def test_tampered_messages_are_rejected(edit: Callable[[dict], None], match: str) -> None:
     with pytest.raises(MessageError, match=match):
         decode(tamper(_valid(), edit))
@@ -577,6 +731,7 @@ def test_bfloat16_is_allowed_for_tensors_only() -> None:
 def test_dict_wire_form_is_validated() -> None:
     data = encode(Probe({"a": 1}))
     for items in ([["a", 1], ["a", 2]], [["a"]], [[1.5, 1]], "x"):
+
         def edit(tree: dict, items: Any = items) -> None:
             tree["fields"]["value"]["items"] = items
 
@@ -588,8 +743,12 @@ def test_deep_nesting_is_rejected() -> None:
     value: Any = 0
     for _ in range(codec.MAX_DEPTH + 2):
         value = [value]
-    tree = {"#": "object", "type": "tests.Probe", "version": 1, "fields": {"value": value,
-                                                                         "version": 1}}
+    tree = {
+        "#": "object",
+        "type": "tests.Probe",
+        "version": 1,
+        "fields": {"value": value, "version": 1},
+    }
     with pytest.raises(MessageError, match="nested deeper"):
         decode(msgpack.packb(tree))
     with pytest.raises(MessageError, match="nested deeper"):
@@ -599,8 +758,9 @@ def test_deep_nesting_is_rejected() -> None:
 def test_expected_type_is_enforced() -> None:
     with pytest.raises(MessageError, match="expected a Step or Shutdown message"):
         decode(_valid(), expected=(messages.Step, messages.Shutdown))
-    assert isinstance(decode(_valid(), expected=messages.PoseUpdateMessage),
-                      messages.PoseUpdateMessage)
+    assert isinstance(
+        decode(_valid(), expected=messages.PoseUpdateMessage), messages.PoseUpdateMessage
+    )
 
 
 def test_message_error_is_a_como3r_error() -> None:
@@ -632,5 +792,6 @@ def test_runtime_modules_do_not_use_pickle(module: str) -> None:
     assert not re.search(r"^\s*(import|from)\s+(c?pickle|dill|cloudpickle|_pickle)\b", source, re.M)
     assert not re.search(r"\b(pickle|dill)\.(loads?|dumps?)\b|torch\.load\(", source)
     # Connection.send/recv and multiprocessing queues pickle: only raw bytes may cross
-    assert not re.search(r"\.recv\(|\bQueue\(\)|SimpleQueue|JoinableQueue", source.replace(
-        "queue.Queue()", ""))
+    assert not re.search(
+        r"\.recv\(|\bQueue\(\)|SimpleQueue|JoinableQueue", source.replace("queue.Queue()", "")
+    )

@@ -39,8 +39,17 @@ def scene(tmp_path_factory) -> Path:
     ATE depends on the order in which the agents' keyframes arrive (17 % apart when one
     agent's come after the other's), which a cut changes."""
     root = tmp_path_factory.mktemp("links_scene")
-    synthesize(root, agents=2, seed=0, overlap=0.5, frames=12, preset="default", width=SIDE,
-               height=SIDE * 3 // 4, progress=None)
+    synthesize(
+        root,
+        agents=2,
+        seed=0,
+        overlap=0.5,
+        frames=12,
+        preset="default",
+        width=SIDE,
+        height=SIDE * 3 // 4,
+        progress=None,
+    )
     return root
 
 
@@ -75,14 +84,15 @@ def test_why_namespaces_cannot_be_made_is_said(monkeypatch) -> None:
 
 @pytest.mark.skipif(UNAVAILABLE is not None, reason=f"no network namespaces here: {UNAVAILABLE}")
 def test_a_capped_link_cut_for_10_s_loses_nothing(scene, tmp_path) -> None:
-    run = links.run_team("cut", scene, tmp_path, SIDE, 2, cap_mbit=5.0, cut_s=10.0,
-                         loopback=False)
+    run = links.run_team("cut", scene, tmp_path, SIDE, 2, cap_mbit=5.0, cut_s=10.0, loopback=False)
     assert run.cut_at is not None and run.up_at is not None  # the link was cut, mid-run
     row = links.summarize(run, 2)
     metrics = json.loads((run.out / "metrics.json").read_text())
-    print(f"cut 10 s at 5 Mbit/s: up {row.up_kb} kB, stall {row.stall_s} s, caught up "
-          f"{row.caught_up_s} s after link-up, longest acknowledgement {row.ack_ms:.0f} ms "
-          f"({row.acks} seen), merged ATE {row.ate_mm:.2f} mm")
+    print(
+        f"cut 10 s at 5 Mbit/s: up {row.up_kb} kB, stall {row.stall_s} s, caught up "
+        f"{row.caught_up_s} s after link-up, longest acknowledgement {row.ack_ms:.0f} ms "
+        f"({row.acks} seen), merged ATE {row.ate_mm:.2f} mm"
+    )
     assert row.lost_frames == 0 and row.lost_keyframes == 0
     for a, entry in enumerate(metrics["runtime"]["agents"]):
         assert entry["status"] == "finished", entry
@@ -98,6 +108,10 @@ def test_a_capped_link_cut_for_10_s_loses_nothing(scene, tmp_path) -> None:
     assert row.acks >= 2  # acknowledgements reached both ends' probes
 
     # the same team on loopback (keyframes travel in half precision either way)
-    loopback = links.summarize(links.run_team("loopback", scene, tmp_path, SIDE, 2,
-                                              cap_mbit=None, cut_s=None, loopback=True), 2)
+    loopback = links.summarize(
+        links.run_team(
+            "loopback", scene, tmp_path, SIDE, 2, cap_mbit=None, cut_s=None, loopback=True
+        ),
+        2,
+    )
     assert abs(row.ate_mm - loopback.ate_mm) <= 0.1 * loopback.ate_mm, (row, loopback)

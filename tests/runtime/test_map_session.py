@@ -28,24 +28,39 @@ def scene(tiny_scene) -> Path:
 def day1(scene, tmp_path_factory) -> Path:
     """Agent 0 alone, today."""
     out = tmp_path_factory.mktemp("day1") / "run"
-    result = CliRunner().invoke(app, ["run", "--agent", str(scene / "agent_0"), "--out",
-                                      str(out), *RUN, "--single-process"])
+    result = CliRunner().invoke(
+        app, ["run", "--agent", str(scene / "agent_0"), "--out", str(out), *RUN, "--single-process"]
+    )
     assert result.exit_code == 0, result.output
     return out
 
 
 def _day2(scene: Path, day1: Path, out: Path, *extra: str) -> dict:
     """Agent 1 tomorrow, on day 1's map, in the default runtime (agent processes)."""
-    result = CliRunner().invoke(app, ["run", "--map", str(day1), "--agent",
-                                      str(scene / "agent_1"), "--out", str(out), *RUN, *extra])
+    result = CliRunner().invoke(
+        app,
+        [
+            "run",
+            "--map",
+            str(day1),
+            "--agent",
+            str(scene / "agent_1"),
+            "--out",
+            str(out),
+            *RUN,
+            *extra,
+        ],
+    )
     assert result.exit_code == 0, result.output
     return json.loads((out / "metrics.json").read_text())
 
 
 def _ate(scene: Path, run: Path) -> dict:
     """``como3r eval`` of both agents' trajectories: per agent and merged (one Sim(3))."""
-    result = CliRunner().invoke(app, ["eval", "--est", str(run), "--gt", str(scene / "agent_0"),
-                                      "--gt", str(scene / "agent_1")])
+    result = CliRunner().invoke(
+        app,
+        ["eval", "--est", str(run), "--gt", str(scene / "agent_0"), "--gt", str(scene / "agent_1")],
+    )
     assert result.exit_code == 0, result.output
     return json.loads((run / "ate.json").read_text())
 
@@ -72,8 +87,10 @@ def test_a_second_day_joins_the_first_days_map_in_one_frame(scene, day1, tmp_pat
     per_agent = [a["ate"]["rmse"] for a in ate["agents"]]
     merged = ate["merged"]["ate"]["rmse"]
     assert merged <= 2 * max(per_agent), (merged, per_agent)  # one frame, not two
-    print(f"two days: merged ATE {merged:.4f} m (agents {per_agent}); the saved keyframes "
-          f"moved up to {moved:.2e} m")
+    print(
+        f"two days: merged ATE {merged:.4f} m (agents {per_agent}); the saved keyframes "
+        f"moved up to {moved:.2e} m"
+    )
 
 
 def test_a_frozen_map_keeps_its_keyframes(scene, day1, tmp_path) -> None:
@@ -87,18 +104,36 @@ def test_a_frozen_map_keeps_its_keyframes(scene, day1, tmp_path) -> None:
     assert ate["merged"]["ate"]["rmse"] <= 2 * max(a["ate"]["rmse"] for a in ate["agents"])
 
 
-def test_what_cannot_start_on_a_map_is_one_error_line(scene, day1, tmp_path,
-                                                     only_error_line) -> None:
+def test_what_cannot_start_on_a_map_is_one_error_line(
+    scene, day1, tmp_path, only_error_line
+) -> None:
     agent = ["--agent", str(scene / "agent_1")]
-    line = only_error_line(CliRunner().invoke(app, ["run", *agent, "--out", str(tmp_path / "a"),
-                                                    *RUN, "--freeze-map"]))
+    line = only_error_line(
+        CliRunner().invoke(app, ["run", *agent, "--out", str(tmp_path / "a"), *RUN, "--freeze-map"])
+    )
     assert "--freeze-map" in line and "--map" in line
-    line = only_error_line(CliRunner().invoke(app, ["run", *agent, "--map", str(scene), "--out",
-                                                    str(tmp_path / "b"), *RUN]))
+    line = only_error_line(
+        CliRunner().invoke(
+            app, ["run", *agent, "--map", str(scene), "--out", str(tmp_path / "b"), *RUN]
+        )
+    )
     assert "no session.db there" in line
     # this --set is the point of the check: a map made with another configuration
-    line = only_error_line(CliRunner().invoke(app, [
-        "run", *agent, "--map", str(day1), "--out", str(tmp_path / "c"), *RUN,
-        "--set", "depth.alternation_rounds=1"]))
+    line = only_error_line(
+        CliRunner().invoke(
+            app,
+            [
+                "run",
+                *agent,
+                "--map",
+                str(day1),
+                "--out",
+                str(tmp_path / "c"),
+                *RUN,
+                "--set",
+                "depth.alternation_rounds=1",
+            ],
+        )
+    )
     assert "another configuration (depth.alternation_rounds" in line
     assert not any((tmp_path / name).exists() for name in "abc")

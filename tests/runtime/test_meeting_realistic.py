@@ -17,7 +17,6 @@ on each agent's first keyframe pairs 105.06 and 104.40 px, after the terminal re
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 
@@ -34,8 +33,18 @@ def meeting(tmp_path_factory) -> tuple[dict, float]:
     root = tmp_path_factory.mktemp("realistic")
     scene = root / "scene"
     scene.mkdir()
-    synthesize(scene, agents=2, seed=1, overlap=0.2, frames=24, preset="default",
-               width=WIDTH, height=HEIGHT, loop_frames=100, progress=None)
+    synthesize(
+        scene,
+        agents=2,
+        seed=1,
+        overlap=0.2,
+        frames=24,
+        preset="default",
+        width=WIDTH,
+        height=HEIGHT,
+        loop_frames=100,
+        progress=None,
+    )
     info = json.loads((scene / "scene.json").read_text())
     path = sum(a["path_length_m"] for a in info["agents_info"]) / len(info["agents_info"])
     config = apply_overrides(Config(), [f"input.long_side={WIDTH}"])

@@ -20,19 +20,22 @@ RUN = ["--prior", "simulated", "--set", "input.long_side=64", "-q", "--single-pr
 
 def _alone(scene: Path, agent: int, out: Path) -> Path:
     """A session of one agent of ``scene``."""
-    result = CliRunner().invoke(app, ["run", "--agent", str(scene / f"agent_{agent}"), "--out",
-                                      str(out), *RUN])
+    result = CliRunner().invoke(
+        app, ["run", "--agent", str(scene / f"agent_{agent}"), "--out", str(out), *RUN]
+    )
     assert result.exit_code == 0, result.output
     return out
 
 
 def _merge(first: Path, second: Path, out: Path):
-    return CliRunner().invoke(app, ["merge", str(first), str(second), "--out", str(out),
-                                    "--prior", "simulated", "-q"])
+    return CliRunner().invoke(
+        app, ["merge", str(first), str(second), "--out", str(out), "--prior", "simulated", "-q"]
+    )
 
 
 def test_two_sessions_that_meet_merge_into_one_map_in_the_first_ones_frame(
-        tiny_scene, tmp_path) -> None:
+    tiny_scene, tmp_path
+) -> None:
     scene = tiny_scene(frames=8, seed=1, overlap=0.2)
     first, second = _alone(scene, 0, tmp_path / "a"), _alone(scene, 1, tmp_path / "b")
     out = tmp_path / "merged"
@@ -45,10 +48,14 @@ def test_two_sessions_that_meet_merge_into_one_map_in_the_first_ones_frame(
     assert merged.finished and set(merged.reports) == {0, 1}
     anchor_before, anchor_after = a.graph.keyframes[0], merged.graph.keyframes[0]
     assert torch.equal(anchor_before.T_WC, anchor_after.T_WC)  # A's frame is kept
-    assert sorted((out / "trajectories").iterdir()) == [out / "trajectories" / "agent_0.txt",
-                                                        out / "trajectories" / "agent_1.txt"]
-    result = CliRunner().invoke(app, ["eval", "--est", str(out), "--gt", str(scene / "agent_0"),
-                                      "--gt", str(scene / "agent_1")])
+    assert sorted((out / "trajectories").iterdir()) == [
+        out / "trajectories" / "agent_0.txt",
+        out / "trajectories" / "agent_1.txt",
+    ]
+    result = CliRunner().invoke(
+        app,
+        ["eval", "--est", str(out), "--gt", str(scene / "agent_0"), "--gt", str(scene / "agent_1")],
+    )
     assert result.exit_code == 0, result.output
     ate = json.loads((out / "ate.json").read_text())
     per_agent = [entry["ate"]["rmse"] for entry in ate["agents"]]
@@ -59,8 +66,17 @@ def test_two_sessions_that_meet_merge_into_one_map_in_the_first_ones_frame(
 def test_two_sessions_that_never_meet_are_one_error_line(tmp_path, only_error_line) -> None:
     scene = tmp_path / "scene"
     scene.mkdir()
-    synthesize(scene, agents=2, seed=1, overlap=0.2, frames=16, preset="no-meeting", width=64,
-               height=48, progress=None)
+    synthesize(
+        scene,
+        agents=2,
+        seed=1,
+        overlap=0.2,
+        frames=16,
+        preset="no-meeting",
+        width=64,
+        height=48,
+        progress=None,
+    )
     first, second = _alone(scene, 0, tmp_path / "a"), _alone(scene, 1, tmp_path / "b")
     assert all(len(read_session(run / STORE_NAME).graph) >= 2 for run in (first, second))
     out = tmp_path / "merged"
@@ -69,8 +85,9 @@ def test_two_sessions_that_never_meet_are_one_error_line(tmp_path, only_error_li
     assert not out.exists() and not out.with_name("merged.partial").exists()
 
 
-def test_a_folder_without_a_finished_session_is_one_error_line(tiny_scene, tmp_path,
-                                                               only_error_line) -> None:
+def test_a_folder_without_a_finished_session_is_one_error_line(
+    tiny_scene, tmp_path, only_error_line
+) -> None:
     scene = tiny_scene(frames=8, seed=1, overlap=0.2)
     line = only_error_line(_merge(scene, scene, tmp_path / "merged"))
     assert "merge" in line and "no session.db there" in line

@@ -29,8 +29,16 @@ WIDTH, HEIGHT, FRAMES = 64, 48, 8
 def frontend(tmp_path_factory) -> AgentFrontend:
     """A front-end that has run over a few frames of a small synthetic scene."""
     root = tmp_path_factory.mktemp("scene")
-    synthesize(root, agents=2, seed=0, overlap=0.5, frames=FRAMES, preset="default",
-               width=WIDTH, height=HEIGHT)
+    synthesize(
+        root,
+        agents=2,
+        seed=0,
+        overlap=0.5,
+        frames=FRAMES,
+        preset="default",
+        width=WIDTH,
+        height=HEIGHT,
+    )
     agent = open_agent(root / "agent_0")
     # the easy simulated prior: the realistic default makes a single keyframe here
     config = apply_overrides(Config(), [f"input.long_side={WIDTH}", "simulated_prior.model=easy"])
@@ -49,8 +57,11 @@ def identical(a: Any, b: Any) -> bool:
     if type(a) is not type(b):
         return False
     if isinstance(a, torch.Tensor):
-        return a.dtype == b.dtype and a.shape == b.shape and (
-            a.contiguous().numpy().tobytes() == b.numpy().tobytes())
+        return (
+            a.dtype == b.dtype
+            and a.shape == b.shape
+            and (a.contiguous().numpy().tobytes() == b.numpy().tobytes())
+        )
     if isinstance(a, np.ndarray):
         return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
     if is_dataclass(a):
@@ -62,8 +73,9 @@ def identical(a: Any, b: Any) -> bool:
 
 def _packet_message(fe: AgentFrontend, kf_id: int) -> messages.KeyframeMessage:
     previous = fe.keyframes[kf_id - 1].T_WC if kf_id > 0 else None
-    return messages.KeyframeMessage(fe.export_keyframe(kf_id), applied_seq=0,
-                                    T_WC_previous=previous)
+    return messages.KeyframeMessage(
+        fe.export_keyframe(kf_id), applied_seq=0, T_WC_previous=previous
+    )
 
 
 # ---------------------------------------------------------------------- schema
@@ -73,8 +85,11 @@ def _packet_message(fe: AgentFrontend, kf_id: int) -> messages.KeyframeMessage:
 VERSIONS = {"AgentTask": 3, "FrameDone": 2}
 
 
-@pytest.mark.parametrize("cls", [*messages.TO_AGENT, *messages.FROM_AGENT, messages.EdgeSummary],
-                         ids=lambda c: c.__name__)
+@pytest.mark.parametrize(
+    "cls",
+    [*messages.TO_AGENT, *messages.FROM_AGENT, messages.EdgeSummary],
+    ids=lambda c: c.__name__,
+)
 def test_every_message_is_a_frozen_versioned_registered_dataclass(cls: type) -> None:
     assert dataclasses.is_dataclass(cls) and cls.__dataclass_params__.frozen
     version = {f.name: f.default for f in fields(cls)}["version"]
@@ -100,8 +115,12 @@ def test_real_keyframe_messages_round_trip_bit_exactly(frontend: AgentFrontend) 
 def test_decoded_encodings_decode_to_the_same_prediction(frontend: AgentFrontend) -> None:
     """What crosses the process boundary is as good as the original for the prior."""
     enc_a, enc_b = (frontend.keyframes[k].encoding for k in (0, 1))
-    copy_a, copy_b = (decode(encode(messages.KeyframeMessage(
-        frontend.export_keyframe(k), 0, None))).packet.encoding for k in (0, 1))
+    copy_a, copy_b = (
+        decode(
+            encode(messages.KeyframeMessage(frontend.export_keyframe(k), 0, None))
+        ).packet.encoding
+        for k in (0, 1)
+    )
     original, copied = frontend.prior.decode(enc_a, enc_b), frontend.prior.decode(copy_a, copy_b)
     assert identical(original, copied)
 
@@ -127,17 +146,29 @@ def test_keyframe_message_is_compressed_below_its_raw_arrays(frontend: AgentFron
 
 def test_pose_update_message_applies_like_the_original(frontend: AgentFrontend) -> None:
     K = len(frontend.keyframes) - 1  # leave the newest to follow rigidly
-    update = PoseUpdate(agent=0, kf_ids=torch.arange(K),
-                        T_WC=frontend.keyframes.poses()[:K] + 0.01, reason="gauge")
+    update = PoseUpdate(
+        agent=0, kf_ids=torch.arange(K), T_WC=frontend.keyframes.poses()[:K] + 0.01, reason="gauge"
+    )
     back = decode(encode(messages.PoseUpdateMessage(update, seq=1))).update
     assert identical(update, back)
 
 
 def test_agent_task_carries_the_configuration(tmp_path) -> None:
-    config = apply_overrides(Config(), ["input.long_side=96", "tracking.sigma_ray=0.002",
-                                        "loop_closure=false", "depth.variant=pixel"])
-    task = messages.AgentTask(agent=1, input_path=str(tmp_path), config=config_to_dict(config),
-                              prior={"name": "simulated", "weights": None, "device": "cpu"})
+    config = apply_overrides(
+        Config(),
+        [
+            "input.long_side=96",
+            "tracking.sigma_ray=0.002",
+            "loop_closure=false",
+            "depth.variant=pixel",
+        ],
+    )
+    task = messages.AgentTask(
+        agent=1,
+        input_path=str(tmp_path),
+        config=config_to_dict(config),
+        prior={"name": "simulated", "weights": None, "device": "cpu"},
+    )
     back = decode(encode(task), expected=messages.AgentTask)
     assert config_from_dict(Config, back.config) == config
 
@@ -155,11 +186,15 @@ def test_malformed_pose_updates_are_rejected() -> None:
     good = PoseUpdate(agent=0, kf_ids=torch.arange(3), T_WC=torch.zeros(3, 8), reason="gauge")
     _reject(messages.PoseUpdateMessage(replace(good, T_WC=torch.zeros(3, 7)), 1), r"\(3, 8\)")
     _reject(messages.PoseUpdateMessage(replace(good, T_WC=torch.zeros(2, 8)), 1), r"\(3, 8\)")
-    _reject(messages.PoseUpdateMessage(replace(good, kf_ids=torch.tensor([0, -1, 2])), 1),
-            "non-negative")
+    _reject(
+        messages.PoseUpdateMessage(replace(good, kf_ids=torch.tensor([0, -1, 2])), 1),
+        "non-negative",
+    )
     _reject(messages.PoseUpdateMessage(replace(good, kf_ids=torch.zeros(3)), 1), "int64")
-    _reject(messages.PoseUpdateMessage(replace(good, T_WC=torch.zeros(3, 8, dtype=torch.int64)),
-                                       1), "floating")
+    _reject(
+        messages.PoseUpdateMessage(replace(good, T_WC=torch.zeros(3, 8, dtype=torch.int64)), 1),
+        "floating",
+    )
 
 
 def _with_words(fe: AgentFrontend, packet: KeyframePacket) -> KeyframePacket:
@@ -188,8 +223,13 @@ def test_malformed_keyframe_packets_are_rejected(frontend: AgentFrontend) -> Non
         (replace(packet, kf_id=-1), ">= 0"),
         (replace(packet, timestamp=float("nan")), "not finite"),
         (replace(packet, previous=replace(packet.previous, kf_id=5)), "kf_id - 1"),
-        (replace(packet, sequential_ij=replace(packet.sequential_ij,
-                                               idx=packet.sequential_ij.idx[1:])), "valid has"),
+        (
+            replace(
+                packet,
+                sequential_ij=replace(packet.sequential_ij, idx=packet.sequential_ij.idx[1:]),
+            ),
+            "valid has",
+        ),
         (replace(packet, retrieval=(packet.retrieval[0], packet.retrieval[1][1:])), "attention"),
         (replace(packet, K=torch.eye(3)[:2]), "K has shape"),
         (replace(packet, K=torch.eye(3, dtype=torch.int64)), "K must be floating"),
@@ -202,8 +242,9 @@ def test_malformed_keyframe_packets_are_rejected(frontend: AgentFrontend) -> Non
 
 
 def test_malformed_frame_done_is_rejected() -> None:
-    good = messages.FrameDone(agent=0, frame_index=2, timestamp=0.5, outcome="lost", seconds=1,
-                                keyframes_waiting=2)
+    good = messages.FrameDone(
+        agent=0, frame_index=2, timestamp=0.5, outcome="lost", seconds=1, keyframes_waiting=2
+    )
     assert decode(encode(good)) == good
     _reject(replace(good, timestamp=float("inf")), "not finite")
     _reject(replace(good, frame_index=-2), ">= 0")
@@ -211,10 +252,19 @@ def test_malformed_frame_done_is_rejected() -> None:
 
 def test_inconsistent_agent_finished_is_rejected() -> None:
     good = messages.AgentFinished(
-        agent=0, final=None, stats=FrontendStats(), seconds=0.0, applied_seq=0,
-        frame_indices=np.arange(3), timestamps=np.zeros(3), anchors=np.array([0, 0, 1]),
-        T_rel=torch.zeros(3, 8), keyframe_frames=np.array([0, 2]),
-        keyframe_timestamps=np.zeros(2), keyframe_T_WC=torch.zeros(2, 8))
+        agent=0,
+        final=None,
+        stats=FrontendStats(),
+        seconds=0.0,
+        applied_seq=0,
+        frame_indices=np.arange(3),
+        timestamps=np.zeros(3),
+        anchors=np.array([0, 0, 1]),
+        T_rel=torch.zeros(3, 8),
+        keyframe_frames=np.array([0, 2]),
+        keyframe_timestamps=np.zeros(2),
+        keyframe_T_WC=torch.zeros(2, 8),
+    )
     assert identical(good, decode(encode(good)))
     _reject(replace(good, anchors=np.array([0, 0, 2])), "anchors must be keyframe ids")
     _reject(replace(good, T_rel=torch.zeros(2, 8)), "T_rel has shape")

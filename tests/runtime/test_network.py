@@ -49,8 +49,9 @@ def _watcher(team):
 
 def _wait_for_coordinator(session, keys: Keys) -> None:
     deadline = time.monotonic() + LIMIT_S
-    while not any(r.ok is not None for r in session.liveliness().get(keys.coordinator(),
-                                                                        timeout=1.0)):
+    while not any(
+        r.ok is not None for r in session.liveliness().get(keys.coordinator(), timeout=1.0)
+    ):
         assert time.monotonic() < deadline, "the coordinator never came up"
         time.sleep(0.2)
 
@@ -59,16 +60,31 @@ def _merged_ate(out: Path) -> float:
     return json.loads((out / "metrics.json").read_text())["ate"]["merged"]["ate"]["rmse"]
 
 
-def test_coordinator_and_two_agents_over_tcp_match_the_single_process_run(scene, team,
-                                                                          tmp_path) -> None:
+def test_coordinator_and_two_agents_over_tcp_match_the_single_process_run(
+    scene, team, tmp_path
+) -> None:
     agents = [scene / "agent_0", scene / "agent_1"]
     team.coordinator(tmp_path / "net", 2, "--gt", str(agents[0]), "--gt", str(agents[1]))
     for a, path in enumerate(agents):
         team.agent(a, path)
     single = tmp_path / "single"
-    result = CliRunner().invoke(app, ["run", "--agent", str(agents[0]), "--agent",
-                                      str(agents[1]), "--out", str(single), "--prior",
-                                      "simulated", *SIZE, "--single-process", "--quiet"])
+    result = CliRunner().invoke(
+        app,
+        [
+            "run",
+            "--agent",
+            str(agents[0]),
+            "--agent",
+            str(agents[1]),
+            "--out",
+            str(single),
+            "--prior",
+            "simulated",
+            *SIZE,
+            "--single-process",
+            "--quiet",
+        ],
+    )
     assert result.exit_code == 0, result.output
     for name in ("coordinator", "agent0", "agent1"):
         team.wait(name)
@@ -82,15 +98,16 @@ def test_coordinator_and_two_agents_over_tcp_match_the_single_process_run(scene,
         assert entry["bytes_from_agent"]["KeyframeMessage"] > 0
         # the parts are measured as they travelled (float16 pointmaps): they add up to the
         # keyframe messages' bytes less their framing
-        per_message = (entry["bytes_from_agent"]["KeyframeMessage"]
-                       / entry["messages_from_agent"]["KeyframeMessage"])
+        per_message = (
+            entry["bytes_from_agent"]["KeyframeMessage"]
+            / entry["messages_from_agent"]["KeyframeMessage"]
+        )
         assert 0 < per_message - sum(row["keyframe_message_bytes_by_part"].values()) < 1000
     reference, networked = _merged_ate(single), _merged_ate(tmp_path / "net")
     assert abs(networked - reference) <= 0.1 * reference, (networked, reference)
 
 
-def test_malformed_and_oversized_messages_are_logged_and_dropped(scene, team,
-                                                                 tmp_path) -> None:
+def test_malformed_and_oversized_messages_are_logged_and_dropped(scene, team, tmp_path) -> None:
     team.coordinator(tmp_path / "out", 1, "--max-message-mb", "1")
     keys = Keys(team.session)
     session = _watcher(team)
@@ -107,13 +124,20 @@ def test_malformed_and_oversized_messages_are_logged_and_dropped(scene, team,
             (keys.up(0, "AgentStarted"), wrong_version, seq0),
             (keys.up(7, "AgentStarted"), valid, seq0),  # no agent 7 in this run
             (keys.up("x", "AgentStarted"), valid, seq0),
-            (keys.up(0, "AgentStarted"), codec.encode(AgentStarted(agent=3, pid=1, frames=6)),
-             seq0),  # agent 0's key, agent 3's message: must not claim agent 0's stream
+            (
+                keys.up(0, "AgentStarted"),
+                codec.encode(AgentStarted(agent=3, pid=1, frames=6)),
+                seq0,
+            ),  # agent 0's key, agent 3's message: must not claim agent 0's stream
         ]:
             # BLOCK as the transport does: the default (DROP) loses puts behind the 1.1 MB one
             # when the machine is busy
-            session.put(key, payload, attachment=attachment,
-                        congestion_control=zenoh.CongestionControl.BLOCK)
+            session.put(
+                key,
+                payload,
+                attachment=attachment,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
         deadline = time.monotonic() + 60  # the coordinator, still running, logs each
         while team.log("coordinator").count("dropped a message") < 7:
             assert team.processes["coordinator"].poll() is None, team.log("coordinator")
@@ -126,9 +150,15 @@ def test_malformed_and_oversized_messages_are_logged_and_dropped(scene, team,
     team.wait("coordinator")
     log = team.log("coordinator")
     assert log.count("dropped a message") == 7, log
-    for fragment in ("malformed msgpack", "no sequence number", "exceeds the cap",
-                     "version 7", "unknown agent '7'", "unknown agent 'x'",
-                     "an AgentStarted of agent 3"):
+    for fragment in (
+        "malformed msgpack",
+        "no sequence number",
+        "exceeds the cap",
+        "version 7",
+        "unknown agent '7'",
+        "unknown agent 'x'",
+        "an AgentStarted of agent 3",
+    ):
         assert fragment in log, fragment
     runtime = json.loads((tmp_path / "out" / "metrics.json").read_text())["runtime"]
     assert runtime["agents"][0]["status"] == "finished"
@@ -171,8 +201,9 @@ class _Watch:
 
     def _on_token(self, sample) -> None:
         with self.lock:
-            self.tokens.append((time.monotonic(), str(sample.key_expr),
-                                sample.kind == zenoh.SampleKind.PUT))
+            self.tokens.append(
+                (time.monotonic(), str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+            )
 
     def count(self, kind: str, agent: int) -> int:
         with self.lock:
@@ -187,8 +218,10 @@ class _Watch:
 
     def token_change(self, after: float, fragment: str, present: bool) -> float | None:
         with self.lock:
-            return next((t for t, key, p in self.tokens
-                         if t >= after and fragment in key and p == present), None)
+            return next(
+                (t for t, key, p in self.tokens if t >= after and fragment in key and p == present),
+                None,
+            )
 
     def close(self) -> None:
         for entity in self.entities:
@@ -207,14 +240,18 @@ def test_a_frozen_coordinator_loses_nothing(longer_scene, team, tmp_path) -> Non
     (Zenoh's default is 10 s) so that the agents are still tracking when they notice."""
     out, lease_s = tmp_path / "out", 1.0
     zenoh_config = tmp_path / "lease.json5"
-    zenoh_config.write_text("{ transport: { link: { tx: { lease: %d } } } }" % (lease_s * 1000))
+    zenoh_config.write_text(
+        f"{{ transport: {{ link: {{ tx: {{ lease: {lease_s * 1000:.0f} }} }} }} }}"
+    )
     team.coordinator(out, 2, "--zenoh-config", str(zenoh_config))
     watch = _Watch(team)
     try:
         for agent in (0, 1):
             team.agent(agent, longer_scene / f"agent_{agent}")
-        watch.until(lambda: watch.count("FrameDone", 0) >= 1 and watch.count("FrameDone", 1) >= 1,
-                    "the agents never got going")
+        watch.until(
+            lambda: watch.count("FrameDone", 0) >= 1 and watch.count("FrameDone", 1) >= 1,
+            "the agents never got going",
+        )
         coordinator = team.processes["coordinator"]
         os.kill(coordinator.pid, signal.SIGSTOP)
         stopped = time.monotonic()
@@ -222,16 +259,20 @@ def test_a_frozen_coordinator_loses_nothing(longer_scene, team, tmp_path) -> Non
         os.kill(coordinator.pid, signal.SIGCONT)
         resumed = time.monotonic()
         gone = watch.token_change(stopped, "coordinator", False)
-        back = watch.until(lambda: watch.token_change(resumed, "coordinator", True),
-                           "the coordinator never came back")
+        back = watch.until(
+            lambda: watch.token_change(resumed, "coordinator", True),
+            "the coordinator never came back",
+        )
         for name in ("agent0", "agent1", "coordinator"):
             team.wait(name)
         done = time.monotonic()
     finally:
         watch.close()
-    print(f"coordinator frozen {resumed - stopped:.1f} s: seen gone {gone - stopped:.2f} s "
-          f"after SIGSTOP, back {back - resumed:.2f} s after SIGCONT, run finished "
-          f"{done - resumed:.1f} s later")
+    print(
+        f"coordinator frozen {resumed - stopped:.1f} s: seen gone {gone - stopped:.2f} s "
+        f"after SIGSTOP, back {back - resumed:.2f} s after SIGCONT, run finished "
+        f"{done - resumed:.1f} s later"
+    )
     assert gone is not None and 0.5 * lease_s < gone - stopped < 4 * lease_s  # on the lease
     metrics = _runtime(out)
     for agent in (0, 1):
@@ -268,19 +309,25 @@ def test_a_killed_agent_restarted_with_its_id_rejoins(longer_scene, team, tmp_pa
         watch.until(lambda: watch.count("FrameDone", 1) > reported, "agent 1 stopped")
         os.kill(victim.pid, signal.SIGKILL)
         killed = time.monotonic()
-        left = watch.until(lambda: watch.token_change(killed, "agent/1/alive", False),
-                           "the killed agent's token never went")
+        left = watch.until(
+            lambda: watch.token_change(killed, "agent/1/alive", False),
+            "the killed agent's token never went",
+        )
         victim.wait()
         restarted = time.monotonic()
         team.agent(1, agents[1])  # the same command again
-        joined = watch.until(lambda: watch.token_change(restarted, "agent/1/alive", True),
-                             "the restarted agent never joined")
+        joined = watch.until(
+            lambda: watch.token_change(restarted, "agent/1/alive", True),
+            "the restarted agent never joined",
+        )
         for name in ("agent0", "agent1", "coordinator"):
             team.wait(name)
     finally:
         watch.close()
-    print(f"killed agent seen leaving after {(left - killed) * 1000:.0f} ms; restarted "
-          f"process joined {joined - restarted:.1f} s after its start")
+    print(
+        f"killed agent seen leaving after {(left - killed) * 1000:.0f} ms; restarted "
+        f"process joined {joined - restarted:.1f} s after its start"
+    )
     assert left - killed < 5.0
     metrics = _runtime(out)
     entry = metrics["runtime"]["agents"][1]
@@ -290,7 +337,7 @@ def test_a_killed_agent_restarted_with_its_id_rejoins(longer_scene, team, tmp_pa
     assert first["after_frame"] == -1 and resumed_after >= 2 and second["keyframes"] >= 1
     frames = watch.frames[1]  # FrameDone of both processes, as first seen
     before = [f for f in frames if f <= resumed_after]
-    after = frames[len(before):]
+    after = frames[len(before) :]
     assert after == [f for f in range(0, 24, 2) if f > resumed_after], frames  # it continued
     assert entry["frames_done"] == entry["frames_expected"] == len(before) + len(after) == 12
     log = team.log("coordinator")
@@ -303,5 +350,7 @@ def test_a_killed_agent_restarted_with_its_id_rejoins(longer_scene, team, tmp_pa
     stamps = np.loadtxt(out / "trajectories" / "agent_1.txt", ndmin=2)[:, 0]
     assert len(stamps) == first["keyframes"] + len([f for f in after if f not in lost])
     assert len(after) >= 6 and len(lost) <= 1 and np.all(np.diff(stamps) > 0)
-    print(f"agent 1: {len(before)} frames before the kill, {len(after)} after the restart; "
-          f"merged ATE {metrics['ate']['merged']['ate']['rmse']:.4f} m")
+    print(
+        f"agent 1: {len(before)} frames before the kill, {len(after)} after the restart; "
+        f"merged ATE {metrics['ate']['merged']['ate']['rmse']:.4f} m"
+    )

@@ -12,8 +12,13 @@ from como3r.runtime.outputs import tracking_warnings
 
 
 def _agent(agent: int, frames: int, lost: list[int], relocalized: int = 0) -> SimpleNamespace:
-    stats = FrontendStats(frames=frames, tracked=frames - len(lost), lost=len(lost),
-                          relocalized=relocalized, lost_frames=lost)
+    stats = FrontendStats(
+        frames=frames,
+        tracked=frames - len(lost),
+        lost=len(lost),
+        relocalized=relocalized,
+        lost_frames=lost,
+    )
     return SimpleNamespace(agent=agent, stats=stats)
 
 
@@ -39,7 +44,8 @@ def test_notes_name_the_final_folder_not_the_staging_one(tmp_path) -> None:
     staging = tmp_path / "run.partial"
     text = f"{staging / 'trajectories' / 'agent_0.txt'}: 1 pose, at least 3 needed"
     assert in_final_folder(text, staging) == (
-        f"{tmp_path / 'run' / 'trajectories' / 'agent_0.txt'}: 1 pose, at least 3 needed")
+        f"{tmp_path / 'run' / 'trajectories' / 'agent_0.txt'}: 1 pose, at least 3 needed"
+    )
 
 
 def test_bandwidth_is_per_keyframe_against_the_raw_image() -> None:
@@ -60,12 +66,17 @@ def test_keyframe_bandwidth_reads_what_each_agent_sent_the_coordinator() -> None
     from como3r.runtime.outputs import keyframe_bandwidth
 
     keyframe = SimpleNamespace(colors=np.zeros((6, 8, 3), np.uint8))
-    runtime = {"agents": [
-        {"agent": 0, "bytes_from_agent": {"KeyframeMessage": 1440}, "keyframes_received": 2},
-        {"agent": 1, "bytes_from_agent": {"AgentFailed": 50}, "keyframes_received": 0}]}
-    results = [SimpleNamespace(agent=0, keyframes=[keyframe, keyframe]),
-               SimpleNamespace(agent=0, keyframes=[]),  # a later map segment of agent 0
-               SimpleNamespace(agent=1, keyframes=[])]
+    runtime = {
+        "agents": [
+            {"agent": 0, "bytes_from_agent": {"KeyframeMessage": 1440}, "keyframes_received": 2},
+            {"agent": 1, "bytes_from_agent": {"AgentFailed": 50}, "keyframes_received": 0},
+        ]
+    }
+    results = [
+        SimpleNamespace(agent=0, keyframes=[keyframe, keyframe]),
+        SimpleNamespace(agent=0, keyframes=[]),  # a later map segment of agent 0
+        SimpleNamespace(agent=1, keyframes=[]),
+    ]
     rows = keyframe_bandwidth(runtime, results)
     assert [r["agent"] for r in rows] == [0, 1]
     assert rows[0]["per_keyframe_over_image"] == 720 / 144
@@ -82,10 +93,14 @@ def _keyframes(count: int, seed: int) -> list[SimpleNamespace]:
     keyframes = []
     for _ in range(count):
         confidence = 1.0 + 2.0 * torch.rand(6, 8, generator=gen)
-        keyframes.append(SimpleNamespace(
-            T_WC=torch.tensor([0.1, 0.0, 0.2, 0.0, 0.0, 0.0, 1.0, 1.0]),
-            X_hat=torch.rand(6, 8, 3, generator=gen), colors=np.full((6, 8, 3), seed, np.uint8),
-            mean_confidence=lambda c=confidence: c))
+        keyframes.append(
+            SimpleNamespace(
+                T_WC=torch.tensor([0.1, 0.0, 0.2, 0.0, 0.0, 0.0, 1.0, 1.0]),
+                X_hat=torch.rand(6, 8, 3, generator=gen),
+                colors=np.full((6, 8, 3), seed, np.uint8),
+                mean_confidence=lambda c=confidence: c,
+            )
+        )
     return keyframes
 
 
@@ -116,8 +131,10 @@ def test_first_point_per_voxel_over_pieces_of_any_extent() -> None:
     from como3r.runtime.outputs import _FirstPerVoxel
 
     rng = np.random.default_rng(1)
-    pieces = [rng.normal(size=(int(rng.integers(0, 300)), 3)) * [1.0, 1.0, 1e6 if k % 3 else 1]
-              for k in range(30)]
+    pieces = [
+        rng.normal(size=(int(rng.integers(0, 300)), 3)) * [1.0, 1.0, 1e6 if k % 3 else 1]
+        for k in range(30)
+    ]
     pieces.insert(5, np.zeros((0, 3)))
     voxels, kept, offset = _FirstPerVoxel(0.25), [], 0
     for piece in pieces:

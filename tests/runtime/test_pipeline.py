@@ -15,15 +15,28 @@ from como3r.runtime.pipeline import PriorSpec, run
 WIDTH, HEIGHT = 128, 96
 # Shorter global solves keep the module fast on CPU (see tests/coordination).
 # the easy simulated prior: gauge sharing and ATE bounds fail under the realistic default
-OVERRIDES = [f"input.long_side={WIDTH}", "simulated_prior.model=easy",
-             "global_ba.step_tol=1e-5", "global_ba.trigger_interval_edges=3",
-             "global_ba.max_iters_stream=10", "global_ba.max_iters_cleanup=30"]
+OVERRIDES = [
+    f"input.long_side={WIDTH}",
+    "simulated_prior.model=easy",
+    "global_ba.step_tol=1e-5",
+    "global_ba.trigger_interval_edges=3",
+    "global_ba.max_iters_stream=10",
+    "global_ba.max_iters_cleanup=30",
+]
 
 
 def _scene(root: Path, preset: str, frames: int) -> tuple[list[Path], float]:
     root.mkdir()
-    synthesize(root, agents=2, seed=1, overlap=0.2, frames=frames, preset=preset,
-               width=WIDTH, height=HEIGHT)
+    synthesize(
+        root,
+        agents=2,
+        seed=1,
+        overlap=0.2,
+        frames=frames,
+        preset=preset,
+        width=WIDTH,
+        height=HEIGHT,
+    )
     info = json.loads((root / "scene.json").read_text())
     length = sum(a["path_length_m"] for a in info["agents_info"])
     return [root / "agent_0", root / "agent_1"], length
@@ -32,8 +45,7 @@ def _scene(root: Path, preset: str, frames: int) -> tuple[list[Path], float]:
 def _run(agents: list[Path], out: Path, extra: list[str] = ()) -> dict:
     config = apply_overrides(Config(), [*OVERRIDES, *extra])
     run(agents, out, config, PriorSpec("simulated"))
-    return {name: json.loads((out / f"{name}.json").read_text())
-            for name in ("graph", "metrics")}
+    return {name: json.loads((out / f"{name}.json").read_text()) for name in ("graph", "metrics")}
 
 
 @pytest.fixture(scope="module")
@@ -41,8 +53,12 @@ def meeting(tmp_path_factory):
     """Two agents that meet, run with and without loop closure."""
     root = tmp_path_factory.mktemp("meeting")
     agents, length = _scene(root / "scene", "default", frames=20)
-    return (length, root / "with", _run(agents, root / "with"),
-            _run(agents, root / "without", ["loop_closure=false"]))
+    return (
+        length,
+        root / "with",
+        _run(agents, root / "with"),
+        _run(agents, root / "without", ["loop_closure=false"]),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -65,8 +81,9 @@ def test_two_agents_share_one_gauge(meeting) -> None:
     assert [m["agents"] for m in merged] == [[0, 1]]
     assert merged[0]["ate"]["rmse"] <= 0.01 * length, (merged, length)
     inter = [e for e in graph["edges"] if e["type"] == "inter"]
-    assert inter and all(e["nu_i"] >= 0.1 and e["nu_j"] >= 0.1 and e["similarity"] > 0
-                         for e in inter)
+    assert inter and all(
+        e["nu_i"] >= 0.1 and e["nu_j"] >= 0.1 and e["similarity"] > 0 for e in inter
+    )
     coordinator = metrics["coordinator"]
     assert coordinator["gauge_syncs"] == 1 and coordinator["edges_accepted"] == len(inter)
     assert coordinator["ba_runs"] >= 1 and coordinator["cleanup_passes"] >= 1
@@ -131,8 +148,16 @@ def test_metrics_give_each_agent_its_time_per_stage(meeting) -> None:
     for agent in result["metrics"]["agents"]:
         stages = agent["stage_seconds"]
         # prior_encode: waiting for the frame read and encoded ahead (runtime.prefetch)
-        assert {"prior_encode", "prior_decode", "matching", "tracking", "fusion",
-                "keyframe", "local_solve", "other"} <= set(stages)
+        assert {
+            "prior_encode",
+            "prior_decode",
+            "matching",
+            "tracking",
+            "fusion",
+            "keyframe",
+            "local_solve",
+            "other",
+        } <= set(stages)
         assert all(v >= 0.0 for v in stages.values())
         assert sum(stages.values()) == pytest.approx(agent["seconds"], rel=0.05)
 

@@ -28,8 +28,8 @@ from como3r.live import FrameEvent
 from como3r.prior.simulated import SimulatedPrior
 from como3r.progress import AgentProgress, PhaseEvent, ProgressEvent
 from como3r.runtime.messages import FrameDone, Step
-from como3r.runtime.pipeline import PriorSpec, RunSummary, run
 from como3r.runtime.multiprocess import run_multiprocess
+from como3r.runtime.pipeline import PriorSpec, RunSummary, run
 from como3r.runtime.processes import RuntimeOptions
 from como3r.runtime.results import AgentResult, KeyframeView
 from como3r.runtime.transport import Channel
@@ -38,9 +38,13 @@ WIDTH, HEIGHT, FRAMES, SHORT = 64, 48, 12, 8
 # small global solves keep the test fast; they do not change what is compared
 # the easy simulated prior: under the realistic default the free-running trajectories differ
 # from the single-process run by 0.23 % (bound 0.1 %)
-OVERRIDES = [f"input.long_side={WIDTH}", "simulated_prior.model=easy",
-             "global_ba.max_iters_stream=5", "global_ba.max_iters_cleanup=10",
-             "global_ba.cleanup_passes=1"]
+OVERRIDES = [
+    f"input.long_side={WIDTH}",
+    "simulated_prior.model=easy",
+    "global_ba.max_iters_stream=5",
+    "global_ba.max_iters_cleanup=10",
+    "global_ba.cleanup_passes=1",
+]
 
 
 #: torch threads of the process that starts the free-running run (the suite uses one)
@@ -63,8 +67,16 @@ def _truncate(agent_dir: Path, frames: int) -> None:
 def scene(tmp_path_factory) -> Path:
     """Two agents that meet; agent 1's stream is shorter (its process ends first)."""
     root = tmp_path_factory.mktemp("scene")
-    synthesize(root, agents=2, seed=0, overlap=0.5, frames=FRAMES, preset="default",
-               width=WIDTH, height=HEIGHT)
+    synthesize(
+        root,
+        agents=2,
+        seed=0,
+        overlap=0.5,
+        frames=FRAMES,
+        preset="default",
+        width=WIDTH,
+        height=HEIGHT,
+    )
     _truncate(root / "agent_1", SHORT)
     return root
 
@@ -91,8 +103,14 @@ def single(scene, config, tmp_path_factory, heard) -> Path:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as in every process of the multi-process run
     try:
-        run(_agents(scene), out, config, PriorSpec("simulated"), progress=events.append,
-            live=events.append)
+        run(
+            _agents(scene),
+            out,
+            config,
+            PriorSpec("simulated"),
+            progress=events.append,
+            live=events.append,
+        )
     finally:
         torch.set_num_threads(threads)
     return out
@@ -102,9 +120,15 @@ def single(scene, config, tmp_path_factory, heard) -> Path:
 def lockstep(scene, config, tmp_path_factory, heard) -> tuple[Path, RunSummary]:
     out = tmp_path_factory.mktemp("runs") / "lockstep"
     events = heard.setdefault("lockstep", [])
-    summary = run_multiprocess(_agents(scene), out, config, PriorSpec("simulated"),
-                               progress=events.append, live=events.append,
-                               options=RuntimeOptions(lockstep=True))
+    summary = run_multiprocess(
+        _agents(scene),
+        out,
+        config,
+        PriorSpec("simulated"),
+        progress=events.append,
+        live=events.append,
+        options=RuntimeOptions(lockstep=True),
+    )
     return out, summary
 
 
@@ -115,8 +139,9 @@ def free(scene, config, tmp_path_factory) -> tuple[Path, RunSummary]:
     threads = torch.get_num_threads()
     torch.set_num_threads(FINISH_THREADS)  # the caller's threads, for the terminal work
     try:
-        summary = run_multiprocess(_agents(scene), out, config, PriorSpec("simulated"),
-                                   progress=progress.append)
+        summary = run_multiprocess(
+            _agents(scene), out, config, PriorSpec("simulated"), progress=progress.append
+        )
     finally:
         torch.set_num_threads(threads)
     # every FrameDone is one AgentProgress, counted per agent; the terminal phases follow
@@ -127,8 +152,8 @@ def free(scene, config, tmp_path_factory) -> tuple[Path, RunSummary]:
         assert {e.frames_total for e in mine} == {total}
         assert mine[-1].keyframes == summary.agents[agent]["keyframes"]
         assert mine[-1].lost == summary.agents[agent]["lost"]
-    assert progress[:len(frames)] == frames  # the agents' events, then the terminal work's
-    phases = progress[len(frames):]
+    assert progress[: len(frames)] == frames  # the agents' events, then the terminal work's
+    phases = progress[len(frames) :]
     assert all(isinstance(e, PhaseEvent) for e in phases)
     assert {"alternation round", "outputs", "report"} <= {e.name for e in phases}
     return out, summary
@@ -176,8 +201,10 @@ def test_lockstep_agents_report_each_frame_as_in_one_process(single, lockstep, h
     """Both runtimes run an agent's frames through one loop (``AgentLoop``): on the same
     schedule, every frame's progress (outcome, keyframes made) and live event (pose, image)
     are the same and come in the same order."""
-    one, many = ([e for e in heard[name] if isinstance(e, (AgentProgress, FrameEvent))]
-                 for name in ("single", "lockstep"))
+    one, many = (
+        [e for e in heard[name] if isinstance(e, (AgentProgress, FrameEvent))]
+        for name in ("single", "lockstep")
+    )
     assert len(one) == 2 * (FRAMES // 2 + SHORT // 2)  # a live event and a progress a frame
     assert sum(isinstance(e, FrameEvent) and e.T_WC is not None for e in one) > FRAMES // 2
     for a, b in zip(one, many, strict=True):
@@ -185,8 +212,12 @@ def test_lockstep_agents_report_each_frame_as_in_one_process(single, lockstep, h
         if isinstance(a, AgentProgress):
             assert a == b
             continue
-        assert (a.agent, a.frame_index, a.timestamp, a.state) == \
-            (b.agent, b.frame_index, b.timestamp, b.state)
+        assert (a.agent, a.frame_index, a.timestamp, a.state) == (
+            b.agent,
+            b.frame_index,
+            b.timestamp,
+            b.state,
+        )
         assert np.array_equal(a.image, b.image)
         for mine, theirs in ((a.T_WC, b.T_WC), (a.K, b.K)):
             assert (mine is None) == (theirs is None)
@@ -241,9 +272,14 @@ def test_bytes_are_counted_per_message_type_and_agent(schedule, request) -> None
         assert parts["pointmap"] > 0 and parts["colours"] > 0 and parts["encoding_rest"] > 0
         assert 0 < per_message - sum(parts.values()) < 1000
     total = sum(runtime["bytes_by_type"].values())
-    assert total == runtime["bytes_total"] == sum(
-        sum(e["bytes_to_agent"].values()) + sum(e["bytes_from_agent"].values())
-        for e in runtime["agents"])
+    assert (
+        total
+        == runtime["bytes_total"]
+        == sum(
+            sum(e["bytes_to_agent"].values()) + sum(e["bytes_from_agent"].values())
+            for e in runtime["agents"]
+        )
+    )
     if schedule == "lockstep":  # the agents met while both ran (free-running, a busy
         # machine can delay the meeting past the agents' end: then no update is sent)
         assert runtime["bytes_by_type"]["PoseUpdateMessage"] > 0
@@ -264,8 +300,9 @@ def test_killed_and_crashing_agents_leave_the_others_running(scene, config, tmp_
                     os.kill(child.pid, signal.SIGKILL)
 
     out = tmp_path / "out"
-    summary = run_multiprocess([*_agents(scene), broken], out, config, PriorSpec("simulated"),
-                               progress=kill_agent_1)
+    summary = run_multiprocess(
+        [*_agents(scene), broken], out, config, PriorSpec("simulated"), progress=kill_agent_1
+    )
     runtime = _metrics(out)["runtime"]
     assert [a["status"] for a in runtime["agents"]] == ["finished", "failed", "failed"]
     assert runtime["failed_agents"] == [1, 2]
@@ -287,14 +324,16 @@ def test_killed_and_crashing_agents_leave_the_others_running(scene, config, tmp_
 def test_a_silent_agent_is_terminated_as_hung(scene, config, tmp_path) -> None:
     options = RuntimeOptions(agent_timeout_s=0.2, shutdown_grace_s=2.0)
     with pytest.raises(InputError, match="every agent failed: agent 0: no message for"):
-        run_multiprocess([scene / "agent_0"], tmp_path / "out", config, PriorSpec("simulated"),
-                         options=options)
+        run_multiprocess(
+            [scene / "agent_0"], tmp_path / "out", config, PriorSpec("simulated"), options=options
+        )
     assert not (tmp_path / "out").exists()
     assert not multiprocessing.active_children()
 
 
-def test_a_coordinator_slow_to_read_costs_no_message_and_no_agent(scene, config, tmp_path,
-                                                                  monkeypatch) -> None:
+def test_a_coordinator_slow_to_read_costs_no_message_and_no_agent(
+    scene, config, tmp_path, monkeypatch
+) -> None:
     """The coordinator is busy (a global BA) for longer than the hung-agent timeout while
     the agent keeps sending: its messages wait, and once the coordinator reads again the
     agent counts as talking, not as hung (it used to be terminated as hung with its
@@ -310,8 +349,9 @@ def test_a_coordinator_slow_to_read_costs_no_message_and_no_agent(scene, config,
 
     monkeypatch.setattr(Coordinator, "add_keyframe", busy_coordinator)
     options = RuntimeOptions(agent_timeout_s=BUSY_S - 4.0)
-    summary = run_multiprocess([scene / "agent_0"], tmp_path / "out", config,
-                               PriorSpec("simulated"), options=options)
+    summary = run_multiprocess(
+        [scene / "agent_0"], tmp_path / "out", config, PriorSpec("simulated"), options=options
+    )
     runtime = _metrics(tmp_path / "out")["runtime"]
     assert busy and runtime["failed_agents"] == [], runtime["agents"][0]["error"]
     assert summary.agents[0]["frames"] == FRAMES // 2
@@ -320,8 +360,12 @@ def test_a_coordinator_slow_to_read_costs_no_message_and_no_agent(scene, config,
 
 def test_bad_input_fails_before_any_process_starts(scene, config, tmp_path) -> None:
     with pytest.raises(InputError, match="does not exist"):
-        run_multiprocess([scene / "agent_0", tmp_path / "missing"], tmp_path / "out", config,
-                         PriorSpec("simulated"))
+        run_multiprocess(
+            [scene / "agent_0", tmp_path / "missing"],
+            tmp_path / "out",
+            config,
+            PriorSpec("simulated"),
+        )
     assert not multiprocessing.active_children()
 
 
@@ -336,8 +380,11 @@ def test_channel_counts_bytes_and_enforces_the_cap() -> None:
     assert receiver.poll(5.0) and receiver.receive() == Step(frame_index=4)
     assert sender.traffic.bytes_sent == receiver.traffic.bytes_received
     assert sender.traffic.bytes_sent["Step"] > 0
-    sender.send(FrameDone(agent=0, frame_index=1, timestamp=0.0, outcome="x" * 500, seconds=0,
-                          keyframes_waiting=0))
+    sender.send(
+        FrameDone(
+            agent=0, frame_index=1, timestamp=0.0, outcome="x" * 500, seconds=0, keyframes_waiting=0
+        )
+    )
     assert receiver.poll(5.0)
     with pytest.raises(OSError, match="bad message length"):  # over the cap: unread
         receiver.receive()
@@ -351,8 +398,14 @@ def test_close_waits_until_a_late_reader_has_the_whole_message() -> None:
     reader, writer = multiprocessing.Pipe(duplex=False)
     sender = Channel(None, writer, max_bytes=10_000_000, accepts=(FrameDone,))
     receiver = Channel(reader, None, max_bytes=10_000_000, accepts=(FrameDone,))
-    big = FrameDone(agent=0, frame_index=1, timestamp=0.0, outcome="x" * 2_000_000, seconds=0,
-                    keyframes_waiting=0)
+    big = FrameDone(
+        agent=0,
+        frame_index=1,
+        timestamp=0.0,
+        outcome="x" * 2_000_000,
+        seconds=0,
+        keyframes_waiting=0,
+    )
     sender.send(big)  # far beyond the pipe's buffer: the sender thread blocks on it
     received: list[FrameDone] = []
     late_reader = threading.Timer(1.0, lambda: received.append(receiver.receive()))
@@ -372,18 +425,31 @@ def test_agent_result_applies_updates_like_the_frontend() -> None:
     frontend = AgentFrontend(SimulatedPrior(Config().simulated_prior), Config(), 0, None)
     result = AgentResult(agent=0)
     for k, pose in enumerate(poses):
-        frontend.keyframes.add(Keyframe(k, 2 * k, 0.1 * k, None, pose.clone(), torch.zeros(1, 1, 3),
-                                        torch.ones(1, 1), torch.zeros(1, 1, 3), torch.ones(1, 1),
-                                        np.zeros((1, 1, 3), np.uint8)))
-        result.keyframes.append(KeyframeView(k, 2 * k, 0.1 * k, pose.clone(), graph=None,
-                                             agent=0, graph_kf_id=k))  # poses only
+        frontend.keyframes.add(
+            Keyframe(
+                k,
+                2 * k,
+                0.1 * k,
+                None,
+                pose.clone(),
+                torch.zeros(1, 1, 3),
+                torch.ones(1, 1),
+                torch.zeros(1, 1, 3),
+                torch.ones(1, 1),
+                np.zeros((1, 1, 3), np.uint8),
+            )
+        )
+        result.keyframes.append(
+            KeyframeView(k, 2 * k, 0.1 * k, pose.clone(), graph=None, agent=0, graph_kf_id=k)
+        )  # poses only
     for count in (3, 5, 1):
         new = sim3_exp(0.3 * torch.randn(count, 7, dtype=torch.float64, generator=generator))
         update = PoseUpdate(agent=0, kf_ids=torch.arange(count), T_WC=new, reason="global_ba")
         frontend.apply_pose_update(update)
         result.apply_pose_update(update)
-        assert torch.allclose(frontend.keyframes.poses(), result.keyframe_trajectory()[2],
-                              atol=1e-12)
+        assert torch.allclose(
+            frontend.keyframes.poses(), result.keyframe_trajectory()[2], atol=1e-12
+        )
     assert not torch.allclose(poses[3:], frontend.keyframes.poses()[3:])
 
 
@@ -424,9 +490,14 @@ def _scripted_runtime(away_timeout_s: float, states: list) -> tuple:
     from como3r.runtime.processes import _Runtime
 
     hub = _ScriptedHub()
-    runtime = _Runtime(hub, [0, 0], apply_overrides(Config(), OVERRIDES), PriorSpec("simulated"),
-                       RuntimeOptions(away_timeout_s=away_timeout_s),
-                       lambda e: states.append((e.agent, e.state)))
+    runtime = _Runtime(
+        hub,
+        [0, 0],
+        apply_overrides(Config(), OVERRIDES),
+        PriorSpec("simulated"),
+        RuntimeOptions(away_timeout_s=away_timeout_s),
+        lambda e: states.append((e.agent, e.state)),
+    )
     runtime.start([None, None], PriorSpec("simulated"))
     return hub, runtime
 
@@ -443,12 +514,22 @@ def test_an_agent_whose_link_is_lost_is_away_then_back_or_failed() -> None:
     states: list = []
     hub, runtime = _scripted_runtime(0.3, states)
     slot = runtime.slots[0]
-    _pump(hub, runtime, Received(0, AgentStarted(agent=0, pid=1, frames=6)),
-          Left(0, "left (link lost)", may_return=True))
+    _pump(
+        hub,
+        runtime,
+        Received(0, AgentStarted(agent=0, pid=1, frames=6)),
+        Left(0, "left (link lost)", may_return=True),
+    )
     assert slot.status == "running" and slot.away_since is not None
     assert states[-1] == (0, "away")
-    runtime._send_update(PoseUpdate(agent=0, kf_ids=torch.zeros(0, dtype=torch.int64),
-                                    T_WC=torch.zeros(0, 8), reason="global_ba"))
+    runtime._send_update(
+        PoseUpdate(
+            agent=0,
+            kf_ids=torch.zeros(0, dtype=torch.int64),
+            T_WC=torch.zeros(0, 8),
+            reason="global_ba",
+        )
+    )
     assert hub.sent == []  # nobody to send it to: kept for its return
     _pump(hub, runtime, Joined(0))
     assert slot.away_since is None and slot.absences == 1
@@ -478,8 +559,9 @@ def test_a_new_process_taking_over_an_id_starts_a_map_segment_after_the_last_fra
     hub, runtime = _scripted_runtime(120.0, [])
     slot = runtime.slots[1]
     slot.status, slot.last_frame = "running", 6
-    runtime.segments[1].result.keyframes.append(KeyframeView(
-        0, 4, 0.1, torch.zeros(8), graph=None, agent=1, graph_kf_id=0))  # frames only
+    runtime.segments[1].result.keyframes.append(
+        KeyframeView(0, 4, 0.1, torch.zeros(8), graph=None, agent=1, graph_kf_id=0)
+    )  # frames only
     _pump(hub, runtime, Left(1, "left", may_return=True))
     task = runtime.rejoin(1)
     assert task.agent == 1 and task.resume_after == 6

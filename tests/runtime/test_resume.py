@@ -36,8 +36,17 @@ def scene(tiny_scene) -> Path:
 
 
 def _args(scene: Path, out: Path, *extra: str) -> list[str]:
-    return ["run", "--agent", str(scene / "agent_0"), "--agent", str(scene / "agent_1"),
-            "--out", str(out), *RUN, *extra]
+    return [
+        "run",
+        "--agent",
+        str(scene / "agent_0"),
+        "--agent",
+        str(scene / "agent_1"),
+        "--out",
+        str(out),
+        *RUN,
+        *extra,
+    ]
 
 
 def _extra(runtime: str) -> list[str]:
@@ -82,8 +91,7 @@ def _merged_ate(metrics: dict) -> float:
     return merged["ate"]["rmse"]
 
 
-def test_a_killed_run_resumes_to_the_uninterrupted_result(scene, tmp_path,
-                                                          uninterrupted) -> None:
+def test_a_killed_run_resumes_to_the_uninterrupted_result(scene, tmp_path, uninterrupted) -> None:
     runtime, reference = uninterrupted
     out, extra = tmp_path / "run", _extra(runtime)
     store = tmp_path / "run.partial" / STORE_NAME
@@ -95,14 +103,15 @@ def test_a_killed_run_resumes_to_the_uninterrupted_result(scene, tmp_path,
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["coordinator"]["keyframes"] == total  # the stored ones were not re-added
     assert metrics["components"] == reference["components"] == [[0, 1]]
-    assert [a["frames"] for a in metrics["agents"]] == [a["frames"] for a in
-                                                         reference["agents"]]
+    assert [a["frames"] for a in metrics["agents"]] == [a["frames"] for a in reference["agents"]]
     assert _merged_ate(metrics) == pytest.approx(_merged_ate(reference), rel=0.1)
     session = read_session(out / STORE_NAME)
     assert session.finished and len(session.graph) == total
-    print(f"{runtime}: killed with {held} of {total} keyframes stored; merged ATE "
-          f"{_merged_ate(metrics):.4f} m resumed, {_merged_ate(reference):.4f} m "
-          f"uninterrupted")
+    print(
+        f"{runtime}: killed with {held} of {total} keyframes stored; merged ATE "
+        f"{_merged_ate(metrics):.4f} m resumed, {_merged_ate(reference):.4f} m "
+        f"uninterrupted"
+    )
 
 
 def _partial_store(scene: Path, tmp_path: Path) -> Path:
@@ -122,8 +131,11 @@ def test_what_cannot_be_resumed_is_one_error_line(scene, tmp_path, only_error_li
     assert "nothing to resume" in line
     store = _partial_store(scene, tmp_path)
     # this --set is the point of the check: a configuration other than the stored one
-    line = only_error_line(CliRunner().invoke(app, _args(
-        scene, out, "--resume", "--set", "depth.alternation_rounds=1")))
+    line = only_error_line(
+        CliRunner().invoke(
+            app, _args(scene, out, "--resume", "--set", "depth.alternation_rounds=1")
+        )
+    )
     assert "depth.alternation_rounds" in line
     line = only_error_line(CliRunner().invoke(app, _args(scene, out, "--resume")))
     assert "finished" in line  # killed while writing its outputs: nothing left to resume
@@ -159,10 +171,14 @@ def _signal_at(monkeypatch, call: int, signals: tuple[signal.Signals, ...]) -> N
     monkeypatch.setattr(Coordinator, "add_keyframe", add_and_signal)
 
 
-@pytest.mark.parametrize("signals", [(signal.SIGINT,), (signal.SIGINT, signal.SIGINT),
-                                     (signal.SIGTERM,)], ids=["ctrl-c", "twice", "sigterm"])
+@pytest.mark.parametrize(
+    "signals",
+    [(signal.SIGINT,), (signal.SIGINT, signal.SIGINT), (signal.SIGTERM,)],
+    ids=["ctrl-c", "twice", "sigterm"],
+)
 def test_an_interrupted_run_keeps_its_store_and_resumes_to_the_uninterrupted_result(
-        scene, tmp_path, uninterrupted, signals, monkeypatch) -> None:
+    scene, tmp_path, uninterrupted, signals, monkeypatch
+) -> None:
     """Ctrl-C (once or twice) or SIGTERM in the middle of a run leaves ``OUT.partial`` with
     its session store and one line giving the exact command that continues it; that
     command ends with the uninterrupted run's outputs."""
@@ -176,8 +192,10 @@ def test_an_interrupted_run_keeps_its_store_and_resumes_to_the_uninterrupted_res
     assert result.exit_code == 128 + signals[-1], result.output
     partial = tmp_path / "run.partial"
     lines = [line for line in result.output.splitlines() if line.strip()]
-    assert lines[-1] == (f"interrupted: the session store in {partial} is kept; continue "
-                         f"with: {shlex.join(['como3r', *args, '--resume'])}")
+    assert lines[-1] == (
+        f"interrupted: the session store in {partial} is kept; continue "
+        f"with: {shlex.join(['como3r', *args, '--resume'])}"
+    )
     assert "Traceback" not in result.output and not out.exists()
     held = len(read_session(partial / STORE_NAME).graph)
     # a first signal lets the run finish the frame (or message) at hand, which may hand
@@ -193,16 +211,18 @@ def test_an_interrupted_run_keeps_its_store_and_resumes_to_the_uninterrupted_res
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["coordinator"]["keyframes"] == total
     assert metrics["components"] == reference["components"]
-    assert [a["frames"] for a in metrics["agents"]] == [a["frames"] for a in
-                                                         reference["agents"]]
+    assert [a["frames"] for a in metrics["agents"]] == [a["frames"] for a in reference["agents"]]
     assert _merged_ate(metrics) == pytest.approx(_merged_ate(reference), rel=1e-3)
-    print(f"{runtime}, {'+'.join(s.name for s in signals)} after {held} of {total} "
-          f"keyframes: merged ATE {_merged_ate(metrics):.6f} m resumed, "
-          f"{_merged_ate(reference):.6f} m uninterrupted")
+    print(
+        f"{runtime}, {'+'.join(s.name for s in signals)} after {held} of {total} "
+        f"keyframes: merged ATE {_merged_ate(metrics):.6f} m resumed, "
+        f"{_merged_ate(reference):.6f} m uninterrupted"
+    )
 
 
-def test_a_first_ctrl_c_after_the_input_lets_the_outputs_be_written(scene, tmp_path,
-                                                                   monkeypatch) -> None:
+def test_a_first_ctrl_c_after_the_input_lets_the_outputs_be_written(
+    scene, tmp_path, monkeypatch
+) -> None:
     """Once every frame is read, what is left is the terminal work: a first Ctrl-C lets it
     finish and the outputs are written."""
     from como3r.coordination.coordinator import Coordinator
@@ -234,7 +254,8 @@ def test_overwrite_replaces_an_interrupted_runs_store(scene, tmp_path, monkeypat
 
 
 def test_a_full_disk_keeps_the_store_and_resumes_to_the_uninterrupted_result(
-        scene, tmp_path, uninterrupted, monkeypatch) -> None:
+    scene, tmp_path, uninterrupted, monkeypatch
+) -> None:
     """SQLite's own "database or disk is full" (the store may not grow past its size at the
     run's half: ``max_page_count``) ends a run as an interrupt does, with one error line
     naming the command that continues it once space is freed."""
@@ -260,8 +281,10 @@ def test_a_full_disk_keeps_the_store_and_resumes_to_the_uninterrupted_result(
     partial = tmp_path / "run.partial"
     [line] = [line for line in result.output.splitlines() if line.startswith("error:")]
     assert "database or disk is full" in line
-    assert line.endswith(f"; the session store in {partial} is kept: free some space and "
-                         f"continue with: {shlex.join(['como3r', *args, '--resume'])}")
+    assert line.endswith(
+        f"; the session store in {partial} is kept: free some space and "
+        f"continue with: {shlex.join(['como3r', *args, '--resume'])}"
+    )
     assert 0 < len(read_session(partial / STORE_NAME).graph) < total
     result = CliRunner().invoke(app, [*args, "--resume"])
     assert result.exit_code == 0, result.output
@@ -270,13 +293,17 @@ def test_a_full_disk_keeps_the_store_and_resumes_to_the_uninterrupted_result(
     assert _merged_ate(metrics) == pytest.approx(_merged_ate(reference), rel=1e-3)
 
 
-@pytest.mark.parametrize("error", [KeyboardInterrupt(),
-                                   OSError(errno.ENOSPC, "No space left on device")],
-                         ids=["ctrl-c twice", "full disk"])
-def test_a_run_stopped_while_writing_its_outputs_leaves_nothing(scene, tmp_path, error,
-                                                                monkeypatch) -> None:
+@pytest.mark.parametrize(
+    "error",
+    [KeyboardInterrupt(), OSError(errno.ENOSPC, "No space left on device")],
+    ids=["ctrl-c twice", "full disk"],
+)
+def test_a_run_stopped_while_writing_its_outputs_leaves_nothing(
+    scene, tmp_path, error, monkeypatch
+) -> None:
     """Its store took the terminal refinement, which ``run --resume`` does not continue:
     nothing is kept, nothing said to be resumable (as before interrupts were checkpoints)."""
+
     def stop(*_args, **_kwargs):
         raise error
 

@@ -41,8 +41,9 @@ def _until(condition, what: str) -> None:
 def _start(team, out: Path, agents: list[Path]) -> list:
     """Coordinator and agents; returns the processes, the coordinator's first."""
     args = [a for path in agents for a in ("--gt", str(path))]
-    return [team.coordinator(out, 2, *args)] + [team.agent(a, path)
-                                                  for a, path in enumerate(agents)]
+    return [team.coordinator(out, 2, *args)] + [
+        team.agent(a, path) for a, path in enumerate(agents)
+    ]
 
 
 def _wait(team) -> None:
@@ -68,15 +69,18 @@ def _run(team, out: Path, agents: list[Path], kills: list[int | str]) -> list[fl
         coordinator.wait()
         restarted, count = time.monotonic(), team.log("coordinator").count(RESUMED)
         coordinator = team.coordinator(out, 2, *args, "--resume")
-        _until(lambda: team.log("coordinator").count(RESUMED) > count,
-               "the coordinator never resumed: " + team.log("coordinator"))
+        _until(
+            lambda: team.log("coordinator").count(RESUMED) > count,
+            "the coordinator never resumed: " + team.log("coordinator"),
+        )
         seconds.append(time.monotonic() - restarted)
     _wait(team)
     return seconds
 
 
 def test_a_coordinator_killed_at_several_points_resumes_to_the_uninterrupted_result(
-        tiny_scene, new_team, tmp_path) -> None:
+    tiny_scene, new_team, tmp_path
+) -> None:
     scene = tiny_scene(frames=12, seed=0, overlap=0.5)  # 6 processed frames per agent
     agents = [scene / "agent_0", scene / "agent_1"]
     uninterrupted = new_team("reference")  # runs beside the killed one
@@ -84,8 +88,10 @@ def test_a_coordinator_killed_at_several_points_resumes_to_the_uninterrupted_res
     team = new_team("killed")
     seconds = _run(team, tmp_path / "killed.out", agents, [2, 5, "left"])
     _wait(uninterrupted)
-    reference, metrics = (json.loads((tmp_path / f"{name}.out" / "metrics.json").read_text())
-                          for name in ("reference", "killed"))
+    reference, metrics = (
+        json.loads((tmp_path / f"{name}.out" / "metrics.json").read_text())
+        for name in ("reference", "killed")
+    )
     assert team.log("coordinator").count(RESUMED) == 3
     assert metrics["components"] == reference["components"] == [[0, 1]]
     for entry, own in zip(metrics["runtime"]["agents"], metrics["agents"]):
@@ -98,5 +104,7 @@ def test_a_coordinator_killed_at_several_points_resumes_to_the_uninterrupted_res
     assert ate == pytest.approx(expected, rel=0.1)
     session = read_session(tmp_path / "killed.out" / STORE_NAME)
     assert session.finished and set(session.reports) == {0, 1}
-    print(f"merged ATE {ate:.4f} m after 3 kills, {expected:.4f} m uninterrupted; "
-          f"restart to state restored {', '.join(f'{s:.1f}' for s in seconds)} s")
+    print(
+        f"merged ATE {ate:.4f} m after 3 kills, {expected:.4f} m uninterrupted; "
+        f"restart to state restored {', '.join(f'{s:.1f}' for s in seconds)} s"
+    )

@@ -55,10 +55,23 @@ def scene(tiny_scene) -> Path:
 @pytest.mark.parametrize("runtime", ["processes", "single-process"])
 def test_a_run_keeps_its_coordinator_state_in_the_store(scene, tmp_path, runtime) -> None:
     out = tmp_path / "run"
-    args = ["run", "--agent", str(scene / "agent_0"), "--agent", str(scene / "agent_1"),
-            "--out", str(out), "--prior", "simulated", "--set", "input.long_side=64", "-q"]
-    result = CliRunner().invoke(app, args + (["--single-process"] if runtime != "processes"
-                                             else []))
+    args = [
+        "run",
+        "--agent",
+        str(scene / "agent_0"),
+        "--agent",
+        str(scene / "agent_1"),
+        "--out",
+        str(out),
+        "--prior",
+        "simulated",
+        "--set",
+        "input.long_side=64",
+        "-q",
+    ]
+    result = CliRunner().invoke(
+        app, args + (["--single-process"] if runtime != "processes" else [])
+    )
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in out.glob(STORE_NAME + "*")) == [STORE_NAME]  # one file
     session = read_session(out / STORE_NAME)
@@ -72,8 +85,9 @@ def test_a_run_keeps_its_coordinator_state_in_the_store(scene, tmp_path, runtime
         kf = stored[(entry["agent"], entry["keyframe"])]
         assert (kf.frame_index, kf.timestamp) == (entry["frame"], entry["timestamp"])
         assert kf.T_WC.tolist() == entry["T_WC"]
-        data = np.load(out / "keyframes" / f"agent_{entry['agent']}" /
-                       f"{entry['keyframe']:06d}.npz")
+        data = np.load(
+            out / "keyframes" / f"agent_{entry['agent']}" / f"{entry['keyframe']:06d}.npz"
+        )
         assert np.array_equal(data["X"], kf.X_hat.numpy())
         assert np.array_equal(data["C"], kf.mean_confidence().numpy())
     for agent in range(2):  # the keyframe trajectory files, to their printed precision
@@ -81,14 +95,21 @@ def test_a_run_keeps_its_coordinator_state_in_the_store(scene, tmp_path, runtime
         poses = torch.stack([graph.keyframes[g].T_WC for g in graph.agent_keyframes(agent)])
         assert np.allclose(np.asarray(tum.positions), poses[:, :3].numpy(), atol=1e-5)
     edges = [e for e in graph_json["edges"] if e["type"] in ("sequential", "inter")]
-    assert [(e["type"], e["global"], e.get("similarity"), e["nu_i"], e["nu_j"])
-            for e in edges] == [(link.kind, [link.i, link.j], link.similarity,
-                                 link.link.ji.match_fraction, link.link.ij.match_fraction)
-                                for link in graph.links]
+    assert [(e["type"], e["global"], e.get("similarity"), e["nu_i"], e["nu_j"]) for e in edges] == [
+        (
+            link.kind,
+            [link.i, link.j],
+            link.similarity,
+            link.link.ji.match_fraction,
+            link.link.ij.match_fraction,
+        )
+        for link in graph.links
+    ]
     assert any(link.kind == "inter" for link in graph.links)
-    assert [(c["status"], c["similarity"], c["nu_j"], c["residual_ratio"])
-            for c in graph_json["candidates"]] == [
-        (c.status, c.similarity, c.nu_j, c.residual_ratio) for c in session.candidates]
+    assert [
+        (c["status"], c["similarity"], c["nu_j"], c["residual_ratio"])
+        for c in graph_json["candidates"]
+    ] == [(c.status, c.similarity, c.nu_j, c.residual_ratio) for c in session.candidates]
     assert session.gauges.components() == graph_json["components"] == [[0, 1]]
     assert session.gauge_events == graph_json["gauge_events"]
     assert [e.position for e in session.retrieval] == list(range(len(graph)))
@@ -98,16 +119,21 @@ def test_a_run_keeps_its_coordinator_state_in_the_store(scene, tmp_path, runtime
     written = metrics["store"]  # the bytes written, per part: colours and encodings once
     with sqlite3.connect(out / STORE_NAME) as db:
         for column, part in (("colors", "colours"), ("encoding", "encoding")):
-            held, = db.execute(f"SELECT sum(length(b.data)) FROM keyframes k "
-                               f"JOIN blobs b ON b.id = k.{column}").fetchone()
+            (held,) = db.execute(
+                f"SELECT sum(length(b.data)) FROM keyframes k JOIN blobs b ON b.id = k.{column}"
+            ).fetchone()
             assert written["bytes_written_per_keyframe_by_part"][part] * len(graph) == (
-                pytest.approx(held))
+                pytest.approx(held)
+            )
     assert written["keyframes"] == len(graph) and written["file_bytes"] > 0
     assert written["bytes_written"] == pytest.approx(
-        written["bytes_written_per_keyframe"] * len(graph))
+        written["bytes_written_per_keyframe"] * len(graph)
+    )
     assert written["bytes_written_per_keyframe_by_part"]["pointmaps"] > 0
-    print(f"{runtime}: {len(graph)} keyframes, store "
-          f"{(out / STORE_NAME).stat().st_size / len(graph) / 1024:.0f} kB per keyframe")
+    print(
+        f"{runtime}: {len(graph)} keyframes, store "
+        f"{(out / STORE_NAME).stat().st_size / len(graph) / 1024:.0f} kB per keyframe"
+    )
 
 
 # ------------------------------------------------------------------------------ a scripted session
@@ -131,21 +157,37 @@ def _step(coordinator: Coordinator, seed: int, step: int) -> list[PoseUpdate]:
         return torch.rand(*shape, generator=gen)
 
     def matches() -> DirectedMatches:
-        return DirectedMatches(torch.randint(pixels, (pixels,), generator=gen),
-                               rand(pixels) > 0.3, rand(pixels))
+        return DirectedMatches(
+            torch.randint(pixels, (pixels,), generator=gen), rand(pixels) > 0.3, rand(pixels)
+        )
 
     first = kf_id == 0
-    g = graph.add_keyframe(KeyframePacket(
-        agent=agent, kf_id=kf_id, frame_index=3 * kf_id, timestamp=float(step),
-        T_WC=rand(8), X_hat=rand(HEIGHT, WIDTH, 3), C_hat=1 + rand(HEIGHT, WIDTH),
-        colors=torch.randint(256, (HEIGHT, WIDTH, 3), generator=gen,
-                             dtype=torch.uint8).numpy(),
-        encoding=MASt3REncoding(agent, 3 * kf_id, (HEIGHT, WIDTH), rand(12, 16),
-                                torch.zeros(12, 2, dtype=torch.int64), (3, 4)),
-        retrieval=(rand(20, 8), rand(20)), sequential_ij=None if first else matches(),
-        sequential_ji=None if first else matches(),
-        previous=None if first else PointmapRefresh(kf_id - 1, rand(HEIGHT, WIDTH, 3),
-                                                    1 + rand(HEIGHT, WIDTH), 2)))
+    g = graph.add_keyframe(
+        KeyframePacket(
+            agent=agent,
+            kf_id=kf_id,
+            frame_index=3 * kf_id,
+            timestamp=float(step),
+            T_WC=rand(8),
+            X_hat=rand(HEIGHT, WIDTH, 3),
+            C_hat=1 + rand(HEIGHT, WIDTH),
+            colors=torch.randint(256, (HEIGHT, WIDTH, 3), generator=gen, dtype=torch.uint8).numpy(),
+            encoding=MASt3REncoding(
+                agent,
+                3 * kf_id,
+                (HEIGHT, WIDTH),
+                rand(12, 16),
+                torch.zeros(12, 2, dtype=torch.int64),
+                (3, 4),
+            ),
+            retrieval=(rand(20, 8), rand(20)),
+            sequential_ij=None if first else matches(),
+            sequential_ji=None if first else matches(),
+            previous=None
+            if first
+            else PointmapRefresh(kf_id - 1, rand(HEIGHT, WIDTH, 3), 1 + rand(HEIGHT, WIDTH), 2),
+        )
+    )
     coordinator.stats.keyframes += 1
     updates = []
     for c in coordinator.candidates:
@@ -156,18 +198,33 @@ def _step(coordinator: Coordinator, seed: int, step: int) -> list[PoseUpdate]:
         i = others[int(torch.randint(len(others), (1,), generator=gen))]
         link = PairLink(matches(), matches(), 0.5, 0.6)
         pending = step % 2 == 0
-        coordinator.candidates.append(Candidate(
-            Verification((graph.agent_of[i], graph.keyframes[i].kf_id), (agent, kf_id), 0.1,
-                         link.ij, 0.5, link, 0.6, True),
-            i, g, "pending" if pending else "admitted", math.nan if pending else 0.01))
+        coordinator.candidates.append(
+            Candidate(
+                Verification(
+                    (graph.agent_of[i], graph.keyframes[i].kf_id),
+                    (agent, kf_id),
+                    0.1,
+                    link.ij,
+                    0.5,
+                    link,
+                    0.6,
+                    True,
+                ),
+                i,
+                g,
+                "pending" if pending else "admitted",
+                math.nan if pending else 0.01,
+            )
+        )
         if not pending:
             graph.add_inter_link(i, g, link, 0.1)
             coordinator.gauges.union(graph.agent_of[i], agent)
             for member in coordinator.gauges.members(agent):
                 own = graph.agent_keyframes(member)
                 graph.set_poses(own, graph.poses(own) + 0.01 * rand(len(own), 8))
-                updates.append(PoseUpdate(member, torch.arange(len(own)), graph.poses(own),
-                                          "gauge"))
+                updates.append(
+                    PoseUpdate(member, torch.arange(len(own)), graph.poses(own), "gauge")
+                )
     if step % 4 == 3:
         frozen = graph.keyframes[int(torch.randint(g + 1, (1,), generator=gen))]
         frozen.X_init = frozen.X_hat
@@ -205,7 +262,11 @@ def _assert_holds(session: Session, coordinator: Coordinator, sent: dict[int, in
     assert graph.agent_of == expected.agent_of and len(graph) == len(expected)
     for kf, want in zip(graph.keyframes, expected.keyframes):
         assert (kf.kf_id, kf.frame_index, kf.timestamp, kf.fused_frames) == (
-            want.kf_id, want.frame_index, want.timestamp, want.fused_frames)
+            want.kf_id,
+            want.frame_index,
+            want.timestamp,
+            want.fused_frames,
+        )
         for name in ("T_WC", "X_hat", "C_hat", "X_init", "C_init"):
             assert torch.equal(getattr(kf, name), getattr(want, name)), name
         assert (kf.X_init is kf.X_hat) == (want.X_init is want.X_hat)
@@ -215,20 +276,37 @@ def _assert_holds(session: Session, coordinator: Coordinator, sent: dict[int, in
     assert len(graph.links) == len(expected.links)
     for link, want in zip(graph.links, expected.links):
         assert (link.i, link.j, link.kind, link.similarity) == (
-            want.i, want.j, want.kind, want.similarity)
-        assert all(torch.equal(getattr(getattr(link.link, d), f), getattr(getattr(want.link, d), f))
-                   for d in ("ij", "ji") for f in ("idx", "valid", "q"))
-    assert [(c.i, c.j, c.status, c.residual_ratio, c.link is not None)
-            for c in session.candidates] == [
-        (c.i, c.j, c.status, None if math.isnan(c.residual_ratio) else c.residual_ratio,
-         c.status == "pending") for c in coordinator.candidates]
+            want.i,
+            want.j,
+            want.kind,
+            want.similarity,
+        )
+        assert all(
+            torch.equal(getattr(getattr(link.link, d), f), getattr(getattr(want.link, d), f))
+            for d in ("ij", "ji")
+            for f in ("idx", "valid", "q")
+        )
+    assert [
+        (c.i, c.j, c.status, c.residual_ratio, c.link is not None) for c in session.candidates
+    ] == [
+        (
+            c.i,
+            c.j,
+            c.status,
+            None if math.isnan(c.residual_ratio) else c.residual_ratio,
+            c.status == "pending",
+        )
+        for c in coordinator.candidates
+    ]
     for stored, want in zip(session.candidates, coordinator.candidates):
         if stored.link is not None:
             assert torch.equal(stored.link.ji.q, want.verification.link.ji.q)
     assert session.gauges.components() == coordinator.components()
     assert [(a.keyframes, a.updates_sent) for a in session.agents] == [
-        (len(expected.agent_keyframes(a)), sent.get(a, 0)) for a in range(AGENTS)]
+        (len(expected.agent_keyframes(a)), sent.get(a, 0)) for a in range(AGENTS)
+    ]
     assert session.stats == json.loads(json.dumps(dataclasses.asdict(coordinator.stats)))
+
 
 def test_the_store_holds_the_state_after_every_transaction(tmp_path) -> None:
     path = tmp_path / STORE_NAME
@@ -243,7 +321,8 @@ def test_the_store_holds_the_state_after_every_transaction(tmp_path) -> None:
             "SELECT COUNT(DISTINCT id) FROM (SELECT colors AS id FROM keyframes UNION ALL "
             "SELECT encoding FROM keyframes UNION ALL SELECT X_hat FROM pointmaps UNION ALL "
             "SELECT C_hat FROM pointmaps UNION ALL SELECT X_init FROM pointmaps UNION ALL "
-            "SELECT C_init FROM pointmaps)").fetchone()[0]
+            "SELECT C_init FROM pointmaps)"
+        ).fetchone()[0]
         assert db.execute("SELECT COUNT(*) FROM blobs").fetchone()[0] == referenced
         assert db.execute("PRAGMA page_size").fetchone()[0] == PAGE_SIZE  # set before WAL
 
@@ -253,8 +332,9 @@ def test_a_writer_killed_at_random_moments_leaves_a_consistent_store(tmp_path) -
     for seed in range(4):
         path = tmp_path / f"kill{seed}" / STORE_NAME
         path.parent.mkdir()
-        writer = subprocess.Popen([sys.executable, __file__, str(path), str(seed)],
-                                  stdout=subprocess.PIPE, text=True)
+        writer = subprocess.Popen(
+            [sys.executable, __file__, str(path), str(seed)], stdout=subprocess.PIPE, text=True
+        )
         deadline = time.monotonic() + 60
         while not path.exists() and writer.poll() is None and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -263,10 +343,10 @@ def test_a_writer_killed_at_random_moments_leaves_a_consistent_store(tmp_path) -
         writer.send_signal(signal.SIGKILL)
         said = writer.communicate()[0].split()
         assert writer.returncode == -signal.SIGKILL
-        started = max([int(k) for word, k in zip(said[::2], said[1::2]) if word == "record"],
-                      default=-1)
-        done = max([int(k) for word, k in zip(said[::2], said[1::2]) if word == "done"],
-                   default=-1)
+        started = max(
+            [int(k) for word, k in zip(said[::2], said[1::2]) if word == "record"], default=-1
+        )
+        done = max([int(k) for word, k in zip(said[::2], said[1::2]) if word == "done"], default=-1)
         session = read_session(path)  # opens, intact, consistent
         steps = len(session.graph)
         coordinator, sent = _scripted_session(seed, steps)
@@ -276,8 +356,10 @@ def test_a_writer_killed_at_random_moments_leaves_a_consistent_store(tmp_path) -
         inside += started > done
         with sqlite3.connect(path) as db:
             assert db.execute("PRAGMA integrity_check").fetchone() == ("ok",)
-        print(f"seed {seed}: killed {'inside' if started > done else 'between'} "
-              f"transactions, {steps} stored")
+        print(
+            f"seed {seed}: killed {'inside' if started > done else 'between'} "
+            f"transactions, {steps} stored"
+        )
     assert inside >= 1  # 89 % of the writer's time is spent in them
 
 
@@ -306,8 +388,9 @@ def test_a_store_of_a_newer_format_version_is_refused(small_store) -> None:
     _refused(small_store, f"format version {FORMAT_VERSION + 1}", "newer", "upgrade como3r")
 
 
-@pytest.mark.parametrize("damage", ["not sqlite", "another sqlite file", "first page",
-                                    "truncated", "middle", "blob"])
+@pytest.mark.parametrize(
+    "damage", ["not sqlite", "another sqlite file", "first page", "truncated", "middle", "blob"]
+)
 def test_corrupted_files_are_refused(small_store, damage) -> None:
     data = small_store.read_bytes()
     if damage == "not sqlite":
@@ -319,25 +402,32 @@ def test_corrupted_files_are_refused(small_store, damage) -> None:
     elif damage == "first page":  # the schema's b-tree, after the 100-byte file header
         small_store.write_bytes(data[:100] + bytes(range(256)) * 8 + data[2148:])
     elif damage == "truncated":
-        small_store.write_bytes(data[:len(data) // 2])
+        small_store.write_bytes(data[: len(data) // 2])
     elif damage == "middle":  # four pages zeroed
         middle = len(data) // 2 // 4096 * 4096
-        small_store.write_bytes(data[:middle] + bytes(4 * 4096) + data[middle + 4 * 4096:])
+        small_store.write_bytes(data[:middle] + bytes(4 * 4096) + data[middle + 4 * 4096 :])
     else:
         with sqlite3.connect(small_store) as db:
-            blob_id, blob = db.execute("SELECT b.id, b.data FROM pointmaps m JOIN blobs b "
-                                       "ON b.id = m.X_hat WHERE m.g = 2").fetchone()
+            blob_id, blob = db.execute(
+                "SELECT b.id, b.data FROM pointmaps m JOIN blobs b ON b.id = m.X_hat WHERE m.g = 2"
+            ).fetchone()
             middle = len(blob) // 2
-            db.execute("UPDATE blobs SET data = ? WHERE id = ?",
-                       (blob[:middle] + bytes(16) + blob[middle + 16:], blob_id))
-    _refused(small_store, "not a como3r session store" if "sqlite" in damage
-             else "corrupted")
+            db.execute(
+                "UPDATE blobs SET data = ? WHERE id = ?",
+                (blob[:middle] + bytes(16) + blob[middle + 16 :], blob_id),
+            )
+    _refused(small_store, "not a como3r session store" if "sqlite" in damage else "corrupted")
 
 
 def test_blobs_keep_dtypes_and_shapes_and_reject_damage() -> None:
-    arrays = [torch.randn(3, 4, 2), torch.arange(7), torch.rand(5) > 0.5,
-              torch.randn(2, 3).to(torch.bfloat16), np.arange(12, dtype=np.uint8).reshape(3, 4),
-              torch.zeros(0, 3)]
+    arrays = [
+        torch.randn(3, 4, 2),
+        torch.arange(7),
+        torch.rand(5) > 0.5,
+        torch.randn(2, 3).to(torch.bfloat16),
+        np.arange(12, dtype=np.uint8).reshape(3, 4),
+        torch.zeros(0, 3),
+    ]
     back = unpack_arrays(pack_arrays(*arrays), "test")
     for array, restored in zip(arrays, back):
         expected = torch.as_tensor(array)

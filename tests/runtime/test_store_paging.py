@@ -16,12 +16,12 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
+from como3r.backend.paged_refinement import ProblemSpill
 from como3r.cli import app
 from como3r.config import Config, apply_overrides
 from como3r.coordination.association import Verification
 from como3r.coordination.coordinator import Candidate, Coordinator, CoordinatorStats
 from como3r.frontend.packets import KeyframePacket
-from como3r.backend.paged_refinement import ProblemSpill
 from como3r.frontend.paging import PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches
 from como3r.prior.mast3r.prior import MASt3REncoding
@@ -34,20 +34,35 @@ H, W = 6, 8
 
 def _packet(agent: int, kf_id: int, gen: torch.Generator) -> KeyframePacket:
     def matches() -> DirectedMatches:
-        return DirectedMatches(torch.randint(H * W, (H * W,), generator=gen),
-                               torch.rand(H * W, generator=gen) > 0.3,
-                               torch.rand(H * W, generator=gen))
+        return DirectedMatches(
+            torch.randint(H * W, (H * W,), generator=gen),
+            torch.rand(H * W, generator=gen) > 0.3,
+            torch.rand(H * W, generator=gen),
+        )
 
     first = kf_id == 0
     return KeyframePacket(
-        agent=agent, kf_id=kf_id, frame_index=2 * kf_id, timestamp=float(kf_id),
-        T_WC=torch.rand(8, generator=gen), X_hat=torch.rand(H, W, 3, generator=gen),
+        agent=agent,
+        kf_id=kf_id,
+        frame_index=2 * kf_id,
+        timestamp=float(kf_id),
+        T_WC=torch.rand(8, generator=gen),
+        X_hat=torch.rand(H, W, 3, generator=gen),
         C_hat=1 + torch.rand(H, W, generator=gen),
         colors=torch.randint(256, (H, W, 3), generator=gen, dtype=torch.uint8).numpy(),
-        encoding=MASt3REncoding(agent, 2 * kf_id, (H, W), torch.rand(12, 16, generator=gen),
-                                torch.zeros(12, 2, dtype=torch.int64), (3, 4)),
-        retrieval=None, sequential_ij=None if first else matches(),
-        sequential_ji=None if first else matches(), previous=None)
+        encoding=MASt3REncoding(
+            agent,
+            2 * kf_id,
+            (H, W),
+            torch.rand(12, 16, generator=gen),
+            torch.zeros(12, 2, dtype=torch.int64),
+            (3, 4),
+        ),
+        retrieval=None,
+        sequential_ij=None if first else matches(),
+        sequential_ji=None if first else matches(),
+        previous=None,
+    )
 
 
 def test_keyframes_outside_the_working_set_are_let_go_and_read_back(tmp_path) -> None:
@@ -86,13 +101,15 @@ def test_keyframes_outside_the_working_set_are_let_go_and_read_back(tmp_path) ->
 
         changed = paged.X_hat + 1  # a change to a paged-out keyframe is stored
         paged.X_hat = changed
-        coordinator.candidates.append(Candidate(Verification(
-            (1, 0), (0, 4), 0.2, link.link.ij, 0.5, None, None, False), 1, 8))
+        coordinator.candidates.append(
+            Candidate(Verification((1, 0), (0, 4), 0.2, link.link.ij, 0.5, None, None, False), 1, 8)
+        )
         store.record(coordinator, [])
         assert not paged.resident("pointmaps")
         assert isinstance(coordinator.candidates[0].verification, StoredVerification)
         assert coordinator.candidates[0].verification.nu_j == pytest.approx(
-            link.link.ij.match_fraction)
+            link.link.ij.match_fraction
+        )
         assert torch.equal(paged.X_hat, changed) and not torch.equal(paged.X_init, changed)
         store.record(coordinator, [])
         confidence = paged.C_hat + 1  # set while paged out: reading the rest keeps it
@@ -114,16 +131,18 @@ def test_an_agent_with_fewer_keyframes_than_the_working_set_keeps_them_all(tmp_p
     coordinator = Coordinator(None, config, None, 2)
     gen = torch.Generator().manual_seed(3)
     with SessionStore.create(tmp_path / STORE_NAME, config, coordinator) as store:
-        for agent, kf_id in [(0, k) for k in range(3)] + [(1, k) for k in range(3)] + [
-                (0, k) for k in range(3, 6)]:
+        for agent, kf_id in (
+            [(0, k) for k in range(3)] + [(1, k) for k in range(3)] + [(0, k) for k in range(3, 6)]
+        ):
             coordinator.graph.add_keyframe(_packet(agent, kf_id, gen))
             coordinator.stats.keyframes += 1
             store.record(coordinator, [])
         graph = coordinator.graph
         kept = set(graph.agent_keyframes(0)[2:]) | set(graph.agent_keyframes(1))
         assert working_set(coordinator) == kept
-        assert {g for g, kf in enumerate(graph.keyframes)
-                if not isinstance(kf, PagedKeyframe)} == kept
+        assert {
+            g for g, kf in enumerate(graph.keyframes) if not isinstance(kf, PagedKeyframe)
+        } == kept
 
 
 @pytest.fixture(scope="module")
@@ -133,10 +152,26 @@ def scene(tiny_scene) -> Path:
 
 def _run(scene: Path, out: Path, resident: int) -> Path:
     # the setting compared is the point of the test: everything paged out, or nothing
-    result = CliRunner().invoke(app, [
-        "run", "--agent", str(scene / "agent_0"), "--agent", str(scene / "agent_1"), "--out",
-        str(out), "--prior", "simulated", "--set", "input.long_side=64", "--single-process",
-        "-q", "--set", f"session.resident_keyframes={resident}"])
+    result = CliRunner().invoke(
+        app,
+        [
+            "run",
+            "--agent",
+            str(scene / "agent_0"),
+            "--agent",
+            str(scene / "agent_1"),
+            "--out",
+            str(out),
+            "--prior",
+            "simulated",
+            "--set",
+            "input.long_side=64",
+            "--single-process",
+            "-q",
+            "--set",
+            f"session.resident_keyframes={resident}",
+        ],
+    )
     assert result.exit_code == 0, result.output
     return out
 
@@ -167,8 +202,12 @@ def test_a_session_read_paged_reads_nothing_until_its_store_serves_it(tmp_path) 
             store.record(coordinator, [])
     eager = read_session(tmp_path / STORE_NAME)
     paged = read_session(tmp_path / STORE_NAME, paged=True)
-    assert all(isinstance(kf, PagedKeyframe) and not kf.resident("pointmaps")
-               and not kf.resident("encoding") for kf in paged.graph.keyframes)
+    assert all(
+        isinstance(kf, PagedKeyframe)
+        and not kf.resident("pointmaps")
+        and not kf.resident("encoding")
+        for kf in paged.graph.keyframes
+    )
     assert [type(link.link) for link in paged.graph.links] == [PagedLink] * 4
     resumed = Coordinator(None, config, None, 2)
     resumed.restore(paged.graph, paged.gauges, [], CoordinatorStats(keyframes=6), [], (0, []))
@@ -180,8 +219,10 @@ def test_a_session_read_paged_reads_nothing_until_its_store_serves_it(tmp_path) 
             assert torch.equal(link.link.ji.q, want.link.ji.q)
         resumed.graph.keyframes[0].X_hat = resumed.graph.keyframes[0].X_hat * 2
         store.record(resumed, [])
-    assert torch.equal(read_session(tmp_path / STORE_NAME).graph.keyframes[0].X_hat,
-                       2 * eager.graph.keyframes[0].X_hat)
+    assert torch.equal(
+        read_session(tmp_path / STORE_NAME).graph.keyframes[0].X_hat,
+        2 * eager.graph.keyframes[0].X_hat,
+    )
 
 
 def _refined_coordinator(tmp_path: Path, resident: int) -> tuple[Coordinator, Path]:
@@ -189,9 +230,15 @@ def _refined_coordinator(tmp_path: Path, resident: int) -> tuple[Coordinator, Pa
     terminal cleanup runs pose passes and depth steps (per-pixel parameters: these 6x8
     pointmaps are too small for segments)."""
     # the settings are the point: the working set, and a refinement with parameters
-    config = apply_overrides(Config(), [f"session.resident_keyframes={resident}",
-                                        "depth.variant=pixel", "depth.alternation_rounds=2",
-                                        f"session.spill_dir={tmp_path / 'spill'}"])
+    config = apply_overrides(
+        Config(),
+        [
+            f"session.resident_keyframes={resident}",
+            "depth.variant=pixel",
+            "depth.alternation_rounds=2",
+            f"session.spill_dir={tmp_path / 'spill'}",
+        ],
+    )
     coordinator = Coordinator(None, config, None, 2)
     gen = torch.Generator().manual_seed(2)
     tmp_path.mkdir(exist_ok=True)
@@ -211,7 +258,8 @@ def _refined_coordinator(tmp_path: Path, resident: int) -> tuple[Coordinator, Pa
 
 
 def test_the_terminal_refinement_keeps_the_working_set_and_pages_the_rest(
-        tmp_path, monkeypatch) -> None:
+    tmp_path, monkeypatch
+) -> None:
     """While the terminal cleanup's depth steps run, no keyframe outside the working set
     holds its pointmaps in memory whenever the store is read (its own residency counters);
     a pose pass, which solves over every pointmap, lets go of them after it; what the
@@ -225,8 +273,13 @@ def test_the_terminal_refinement_keeps_the_working_set_and_pages_the_rest(
 
     def spy(store: SessionStore, g: int, group: str) -> dict:
         if not solving:
-            in_memory.append({k for k, kf in enumerate(graph.keyframes) if not isinstance(
-                kf, PagedKeyframe) or kf.resident("pointmaps")})
+            in_memory.append(
+                {
+                    k
+                    for k, kf in enumerate(graph.keyframes)
+                    if not isinstance(kf, PagedKeyframe) or kf.resident("pointmaps")
+                }
+            )
         return load(store, g, group)
 
     def solve(*args, **kwargs):
@@ -253,8 +306,11 @@ def test_the_terminal_refinement_keeps_the_working_set_and_pages_the_rest(
     assert alternation["rounds"] >= 1 and alternation["cleanup_passes"] >= 1
     assert alternation["depth_parameters"] > 0
     assert len(in_memory) > 16 and all(resident <= kept for resident in in_memory)
-    assert all(isinstance(kf, PagedKeyframe) and kf.served_by(coordinator.journal)
-               for g, kf in enumerate(graph.keyframes) if g not in kept)
+    assert all(
+        isinstance(kf, PagedKeyframe) and kf.served_by(coordinator.journal)
+        for g, kf in enumerate(graph.keyframes)
+        if g not in kept
+    )
     refined = [(kf.X_hat, kf.X_init) for kf in graph.keyframes]
     coordinator.journal.close()
     for kf, (X_hat, X_init) in zip(read_session(path).graph.keyframes, refined, strict=True):
@@ -273,14 +329,18 @@ def test_a_paged_terminal_refinement_equals_an_unpaged_one(tmp_path) -> None:
         changed += not torch.equal(a.X_hat, a.X_init)
     assert changed > 0  # the refinement moved pointmaps
     reports = [c.alternation[0] for c in (paged, unpaged)]
-    for key in ("rounds", "round_max_depth_change", "cleanup_max_translation",
-                "depth_matches", "depth_parameters"):
+    for key in (
+        "rounds",
+        "round_max_depth_change",
+        "cleanup_max_translation",
+        "depth_matches",
+        "depth_parameters",
+    ):
         assert reports[0][key] == reports[1][key], key
     for a, b in zip(*(list(c.pointmaps) for c in cleanups), strict=True):
         assert a.agent == b.agent and torch.equal(a.X_hat, b.X_hat)
     for agent in (0, 1):
-        for a, b in zip(paged.pre_refinement[agent], unpaged.pre_refinement[agent],
-                        strict=True):
+        for a, b in zip(paged.pre_refinement[agent], unpaged.pre_refinement[agent], strict=True):
             assert torch.equal(a.X_hat, b.X_hat) and torch.equal(a.C_hat, b.C_hat)
             assert np.array_equal(a.colors, b.colors) and torch.equal(a.T_WC, b.T_WC)
     for c in (paged, unpaged):

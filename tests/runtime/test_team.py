@@ -47,6 +47,7 @@ def free_port() -> int:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
 
+
 WAIT_S = 30.0  # no wait of a test below lasts longer
 QUIET_S = 1.5  # how long "nothing arrives" is watched
 
@@ -63,8 +64,14 @@ def crew(tmp_path_factory) -> Path:
     for robot in range(3):
         teams.add_member(root, f"r{robot}", "robot", robot)
     now = datetime.datetime.now(datetime.timezone.utc)
-    teams.add_member(root, "late", "agent", 5, not_before=now - datetime.timedelta(days=10),
-                     not_after=now - datetime.timedelta(days=1))
+    teams.add_member(
+        root,
+        "late",
+        "agent",
+        5,
+        not_before=now - datetime.timedelta(days=10),
+        not_after=now - datetime.timedelta(days=1),
+    )
     return root
 
 
@@ -87,8 +94,11 @@ def test_a_member_folder_holds_what_one_machine_needs_readable_by_its_owner_only
         assert stat.S_IMODE(path.stat().st_mode) == 0o600, path
     members = {name: teams.load_member(crew / name) for name in ("base", "cam0", "cam1", "r2")}
     assert [(m.role, m.member_id, m.name) for m in members.values()] == [
-        ("coordinator", None, "coordinator"), ("agent", 0, "agent-0"), ("agent", 1, "agent-1"),
-        ("robot", 2, "robot-2")]
+        ("coordinator", None, "coordinator"),
+        ("agent", 0, "agent-0"),
+        ("agent", 1, "agent-1"),
+        ("robot", 2, "robot-2"),
+    ]
     roster = teams.roster(crew)
     assert roster["team"] == "crew" and roster["members"]["cam0"]["cn"] == "agent-0"
 
@@ -108,8 +118,10 @@ def test_bad_team_requests_are_clear_errors(crew, tmp_path):
         teams.check_role(teams.load_member(crew / "cam0"), "agent", 1)
     with pytest.raises(InputError, match="only TLS"):
         access.team_endpoints(["udp/127.0.0.1:7447"])
-    assert access.team_endpoints(["tcp/10.0.0.1:7447", "tls/h:1"]) == ("tls/10.0.0.1:7447",
-                                                                      "tls/h:1")
+    assert access.team_endpoints(["tcp/10.0.0.1:7447", "tls/h:1"]) == (
+        "tls/10.0.0.1:7447",
+        "tls/h:1",
+    )
 
 
 def test_revoking_a_member_updates_the_team_and_its_member_folders(tmp_path):
@@ -128,14 +140,19 @@ def test_revoking_a_member_updates_the_team_and_its_member_folders(tmp_path):
 
 def test_the_command_line_makes_a_team(tmp_path):
     runner, root = CliRunner(), tmp_path / "t"
-    for args in (["init", str(root)], ["add", str(root), "base", "--role", "coordinator"],
-                 ["add", str(root), "cam", "--role", "agent", "--id", "4"],
-                 ["revoke", str(root), "cam"], ["list", str(root)]):
+    for args in (
+        ["init", str(root)],
+        ["add", str(root), "base", "--role", "coordinator"],
+        ["add", str(root), "cam", "--role", "agent", "--id", "4"],
+        ["revoke", str(root), "cam"],
+        ["list", str(root)],
+    ):
         result = runner.invoke(app, ["team", *args])
         assert result.exit_code == 0, result.output
     assert "agent-4" in result.output and "yes" in result.output
-    result = runner.invoke(app, ["team", "add", str(root), "x", "--role", "coordinator",
-                                 "--id", "1"])
+    result = runner.invoke(
+        app, ["team", "add", str(root), "x", "--role", "coordinator", "--id", "1"]
+    )
     assert result.exit_code == 2 and "a coordinator has no --id" in result.output
 
 
@@ -150,12 +167,18 @@ class _Hub:
         port, self.name = free_port(), f"t{uuid.uuid4().hex[:8]}"
         self.endpoint = f"tls/127.0.0.1:{port}"
         member = teams.load_member(folder or crew / "base")
-        self.session = open_session(access.network_options(member, [self.endpoint], [], False,
-                                                          None, self.name, peers=2))
-        self.hub = ZenohHub(self.session, Keys(self.name), 2, codec.DEFAULT_MAX_BYTES, 2.0,
-                            certified=True)
-        tasks = [AgentTask(agent=a, input_path="", config=config_to_dict(Config()),
-                           prior={"name": "simulated"}) for a in (0, 1)]
+        self.session = open_session(
+            access.network_options(member, [self.endpoint], [], False, None, self.name, peers=2)
+        )
+        self.hub = ZenohHub(
+            self.session, Keys(self.name), 2, codec.DEFAULT_MAX_BYTES, 2.0, certified=True
+        )
+        tasks = [
+            AgentTask(
+                agent=a, input_path="", config=config_to_dict(Config()), prior={"name": "simulated"}
+            )
+            for a in (0, 1)
+        ]
         self.hub.start(tasks, lambda agent: "no rejoining in this test")
         self.events: list = []
         self.running = True
@@ -176,8 +199,9 @@ class _Hub:
     def join(self, folder: Path, check_validity: bool = True):
         """A session of the member in ``folder`` connected to this hub."""
         member = teams.load_member(folder, check_validity)
-        return member, open_session(access.network_options(member, [], [self.endpoint], False,
-                                                          None, self.name))
+        return member, open_session(
+            access.network_options(member, [], [self.endpoint], False, None, self.name)
+        )
 
     def close(self) -> None:
         self.running = False
@@ -200,8 +224,7 @@ def _quiet(hub: _Hub) -> list:
     return list(hub.events)
 
 
-def test_members_are_admitted_and_a_member_writing_under_another_id_changes_nothing(
-        crew, caplog):
+def test_members_are_admitted_and_a_member_writing_under_another_id_changes_nothing(crew, caplog):
     hub = _Hub(crew)
     sessions = []
     try:
@@ -215,19 +238,20 @@ def test_members_are_admitted_and_a_member_writing_under_another_id_changes_noth
         assert "coordinator: agent-0 connected" in caplog.text
         # agent 0's certificate, agent 1's id: its key ends in agent-0 (access control
         # allows no other), the hub drops it and says so
-        session.put(Keys(hub.name, "agent-0").up(1, "AgentStarted"), _started(1),
-                    attachment=_seq())
-        hub.wait_for(lambda e: isinstance(e, Rejected) and e.agent == 1,
-                     "the message under agent 1's id rejected")
+        session.put(Keys(hub.name, "agent-0").up(1, "AgentStarted"), _started(1), attachment=_seq())
+        hub.wait_for(
+            lambda e: isinstance(e, Rejected) and e.agent == 1,
+            "the message under agent 1's id rejected",
+        )
         [rejected] = [e for e in hub.events if isinstance(e, Rejected)]
         assert rejected.error == "sent under agent 1's id by the holder of certificate agent-0"
         # claiming agent 1's certificate name in the key: access control drops it
-        session.put(Keys(hub.name, "agent-1").up(1, "AgentStarted"), _started(1),
-                    attachment=_seq())
+        session.put(Keys(hub.name, "agent-1").up(1, "AgentStarted"), _started(1), attachment=_seq())
         session.put(Keys(hub.name).up(1, "AgentStarted"), _started(1), attachment=_seq())
         # nor may it ask for agent 1's task (that would take over agent 1's id)
-        replies = list(session.get(Keys(hub.name).task(1), timeout=QUIET_S,
-                                   attachment=struct.pack("<Q", 7)))
+        replies = list(
+            session.get(Keys(hub.name).task(1), timeout=QUIET_S, attachment=struct.pack("<Q", 7))
+        )
         assert all(reply.ok is None for reply in replies)
         events = _quiet(hub)
         assert [e for e in events if e.agent == 1] == [rejected]
@@ -238,8 +262,7 @@ def test_members_are_admitted_and_a_member_writing_under_another_id_changes_noth
         hub.close()
 
 
-def test_peers_without_a_valid_certificate_change_nothing(crew, strangers, tmp_path, caplog,
-                                                          capfd):
+def test_peers_without_a_valid_certificate_change_nothing(crew, strangers, tmp_path, caplog, capfd):
     revoking = tmp_path / "base"  # the coordinator's folder with agent 1 revoked
     revoking.mkdir()
     for file in teams.MEMBER_FILES:
@@ -248,19 +271,34 @@ def test_peers_without_a_valid_certificate_change_nothing(crew, strangers, tmp_p
     hub = _Hub(crew, revoking)
     sessions = []
     try:
-        plain = open_session(ZenohOptions(connect=(hub.endpoint.replace("tls/", "tcp/"),),
-                                          session=hub.name))
+        plain = open_session(
+            ZenohOptions(connect=(hub.endpoint.replace("tls/", "tcp/"),), session=hub.name)
+        )
         sessions.append(plain)
         # TLS that trusts the team's authority but shows no certificate of its own
-        anonymous = {"transport/link/protocols": ["tls"], "listen/endpoints": [],
-                     "transport/link/tls": {"root_ca_certificate": str(crew / teams.CA_CERT),
-                                            "verify_name_on_connect": False}}
-        sessions.append(open_session(ZenohOptions(
-            connect=(hub.endpoint,), session=hub.name,
-            settings=tuple((k, json.dumps(v)) for k, v in anonymous.items()))))
+        anonymous = {
+            "transport/link/protocols": ["tls"],
+            "listen/endpoints": [],
+            "transport/link/tls": {
+                "root_ca_certificate": str(crew / teams.CA_CERT),
+                "verify_name_on_connect": False,
+            },
+        }
+        sessions.append(
+            open_session(
+                ZenohOptions(
+                    connect=(hub.endpoint,),
+                    session=hub.name,
+                    settings=tuple((k, json.dumps(v)) for k, v in anonymous.items()),
+                )
+            )
+        )
         with caplog.at_level(logging.WARNING, logger="como3r.runtime.team_access"):
-            for folder, check in [(strangers / "cam0", True), (crew / "late", False),
-                                  (crew / "cam1", True)]:
+            for folder, check in [
+                (strangers / "cam0", True),
+                (crew / "late", False),
+                (crew / "cam1", True),
+            ]:
                 sessions.append(hub.join(folder, check)[1])
             time.sleep(QUIET_S)
         assert "coordinator: refusing every message of agent-1" in caplog.text
@@ -268,15 +306,22 @@ def test_peers_without_a_valid_certificate_change_nothing(crew, strangers, tmp_p
         for session in sessions:
             for agent in (0, 1):
                 for sender in (None, f"agent-{agent}"):
-                    session.put(Keys(hub.name, sender).up(agent, "AgentStarted"),
-                                _started(agent), attachment=_seq())
+                    session.put(
+                        Keys(hub.name, sender).up(agent, "AgentStarted"),
+                        _started(agent),
+                        attachment=_seq(),
+                    )
         assert _quiet(hub) == []
         # the TLS handshake refused all but the revoked member, whom access control refuses
         connected = {link.auth_identifier for link in hub.session.info.links()}
         assert connected == {"agent-1"}
         logged = capfd.readouterr().out  # Zenoh's own log (its TLS layer's warnings)
-        for refusal in ("received corrupt message", "peer sent no certificates",
-                        "UnknownCA", "certificate expired"):
+        for refusal in (
+            "received corrupt message",
+            "peer sent no certificates",
+            "UnknownCA",
+            "certificate expired",
+        ):
             assert refusal in logged, refusal
     finally:
         for session in sessions:
@@ -305,14 +350,34 @@ def test_a_robot_writing_under_another_robots_id_changes_nothing_and_is_logged(c
     members = [teams.load_member(crew / f"r{robot}") for robot in range(3)]
     # robots 1 and 2 give only robot 0's endpoint: they meet each other through gossip, on
     # a TLS port of the system's choosing, as they do without a team
-    sessions = [open_session(access.network_options(
-        member, [endpoint] if member.member_id == 0 else [],
-        [] if member.member_id == 0 else [endpoint], False, None, name, peers=3))
-        for member in members]
+    sessions = [
+        open_session(
+            access.network_options(
+                member,
+                [endpoint] if member.member_id == 0 else [],
+                [] if member.member_id == 0 else [endpoint],
+                False,
+                None,
+                name,
+                peers=3,
+            )
+        )
+        for member in members
+    ]
     schedule = Schedule()
-    links = [ZenohRobotLink(sessions[r], RobotKeys(name, members[r].name), r, 3,
-                            RobotHello(robot=r, end_s=2.0, plan="p"), schedule.hears, 2**16,
-                            certified=True) for r in range(3)]
+    links = [
+        ZenohRobotLink(
+            sessions[r],
+            RobotKeys(name, members[r].name),
+            r,
+            3,
+            RobotHello(robot=r, end_s=2.0, plan="p"),
+            schedule.hears,
+            2**16,
+            certified=True,
+        )
+        for r in range(3)
+    ]
     try:
         hellos = _each(links, lambda link: link.meet_team(wait_log_s=5.0))
         assert [sorted(h) for h in hellos] == [[0, 1, 2]] * 3
@@ -320,18 +385,24 @@ def test_a_robot_writing_under_another_robots_id_changes_nothing_and_is_logged(c
             # robot 2 (valid, but not robot 1) sends robot 0 a message as robot 1: first with
             # its own name at the end of the key (dropped and logged by robot 0), then with
             # robot 1's (dropped by robot 0's access control)
-            forged = codec.encode(EncodingRequest(sender=1, recipient=0, round=0, time_s=0.5,
-                                                  keyframes=[3]))
+            forged = codec.encode(
+                EncodingRequest(sender=1, recipient=0, round=0, time_s=0.5, keyframes=[3])
+            )
             for sender in ("robot-2", "robot-1"):
-                sessions[2].put(RobotKeys(name, sender).messages(0, 1), forged,
-                                congestion_control=zenoh.CongestionControl.BLOCK)
+                sessions[2].put(
+                    RobotKeys(name, sender).messages(0, 1),
+                    forged,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                )
             genuine = EncodingRequest(sender=1, recipient=0, round=0, time_s=0.5, keyframes=[4])
             links[1].send(genuine)
             assert links[0].receive(WAIT_S) == genuine
             assert links[0].receive(QUIET_S) is None
         assert links[0].traffic.invalid == 1
-        assert "robot 0: dropped a message under robot '1''s key: sent by the holder of " \
-               "certificate robot-2" in caplog.text
+        assert (
+            "robot 0: dropped a message under robot '1''s key: sent by the holder of "
+            "certificate robot-2" in caplog.text
+        )
         between = EncodingRequest(sender=2, recipient=1, round=0, time_s=0.5, keyframes=[5])
         links[2].send(between)  # robots 1 and 2 talk directly
         assert links[1].receive(WAIT_S) == between
@@ -347,8 +418,7 @@ def test_a_robot_writing_under_another_robots_id_changes_nothing_and_is_logged(c
 
 def test_without_team_a_networked_command_warns_once_that_the_network_is_open(crew, tmp_path):
     missing = str(tmp_path / "nothing")
-    common = ["agent", missing, "--id", "0", "--connect", "tcp/127.0.0.1:9", "--prior",
-              "simulated"]
+    common = ["agent", missing, "--id", "0", "--connect", "tcp/127.0.0.1:9", "--prior", "simulated"]
     result = CliRunner().invoke(app, common)
     assert result.exit_code == 2 and "agent input does not exist" in result.output
     assert result.output.count("warning: open network") == 1
@@ -360,30 +430,61 @@ def test_without_team_a_networked_command_warns_once_that_the_network_is_open(cr
     assert result.exit_code == 2 and "this command runs agent-0" in result.output
 
 
-def test_a_team_run_merges_as_before_and_logs_what_it_refused(tiny_scene, crew, team,
-                                                              tmp_path) -> None:
+def test_a_team_run_merges_as_before_and_logs_what_it_refused(
+    tiny_scene, crew, team, tmp_path
+) -> None:
     scene = tiny_scene(frames=12, seed=0, overlap=0.5)
     endpoint = team.endpoint.replace("tcp/", "tls/")
     out = tmp_path / "net"
-    team.start("coordinator", "coordinator", "--listen", endpoint, "--out", str(out),
-               "--agents", "2", "--prior", "simulated", *SIZE, "--team", str(crew / "base"))
+    team.start(
+        "coordinator",
+        "coordinator",
+        "--listen",
+        endpoint,
+        "--out",
+        str(out),
+        "--agents",
+        "2",
+        "--prior",
+        "simulated",
+        *SIZE,
+        "--team",
+        str(crew / "base"),
+    )
     # a stranger on plain TCP, and a holder of agent 0's certificate writing as agent 1
     plain = open_session(ZenohOptions(connect=(team.endpoint,), session=team.session))
     member, forger = teams.load_member(crew / "cam0"), None
     try:
-        forger = open_session(access.network_options(member, [], [endpoint], False, None,
-                                                    team.session))
+        forger = open_session(
+            access.network_options(member, [], [endpoint], False, None, team.session)
+        )
         deadline = time.monotonic() + 240
-        while not any(r.ok is not None for r in forger.liveliness().get(
-                Keys(team.session).coordinator(), timeout=1.0)):
+        while not any(
+            r.ok is not None
+            for r in forger.liveliness().get(Keys(team.session).coordinator(), timeout=1.0)
+        ):
             assert time.monotonic() < deadline, team.log("coordinator")
-        forger.put(Keys(team.session, member.name).up(1, "AgentStarted"), _started(1),
-                   attachment=_seq(), congestion_control=zenoh.CongestionControl.BLOCK)
+        forger.put(
+            Keys(team.session, member.name).up(1, "AgentStarted"),
+            _started(1),
+            attachment=_seq(),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
         plain.put(Keys(team.session).up(1, "AgentStarted"), _started(1), attachment=_seq())
         for agent, name in ((0, "cam0"), (1, "cam1")):
-            team.start(f"agent{agent}", "agent", "--connect", endpoint, "--id", str(agent),
-                       str(scene / f"agent_{agent}"), "--prior", "simulated", "--team",
-                       str(crew / name))
+            team.start(
+                f"agent{agent}",
+                "agent",
+                "--connect",
+                endpoint,
+                "--id",
+                str(agent),
+                str(scene / f"agent_{agent}"),
+                "--prior",
+                "simulated",
+                "--team",
+                str(crew / name),
+            )
         for name in ("coordinator", "agent0", "agent1"):
             team.wait(name)
     finally:
@@ -395,6 +496,8 @@ def test_a_team_run_merges_as_before_and_logs_what_it_refused(tiny_scene, crew, 
     assert [a["status"] for a in metrics["runtime"]["agents"]] == ["finished", "finished"]
     log = team.log("coordinator")
     assert "open network" not in log
-    assert ("dropped a message from agent 1: sent under agent 1's id by the holder of "
-            "certificate agent-0") in log
+    assert (
+        "dropped a message from agent 1: sent under agent 1's id by the holder of "
+        "certificate agent-0"
+    ) in log
     assert "zenoh_link_tls" in log  # the plain TCP peer's refused handshake

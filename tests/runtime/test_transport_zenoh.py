@@ -61,8 +61,9 @@ def test_a_second_process_with_an_id_waits_then_takes_over(caplog) -> None:
     endpoint, keys = f"tcp/127.0.0.1:{_free_port()}", Keys(f"t{uuid.uuid4().hex[:8]}")
     coordinator_session = open_session(ZenohOptions(listen=(endpoint,)))
     hub = ZenohHub(coordinator_session, keys, 1, codec.DEFAULT_MAX_BYTES, 2.0)
-    task = AgentTask(agent=0, input_path="", config=config_to_dict(Config()),
-                     prior={"name": "simulated"})
+    task = AgentTask(
+        agent=0, input_path="", config=config_to_dict(Config()), prior={"name": "simulated"}
+    )
     asked: list[int] = []
 
     def rejoin(agent: int) -> AgentTask:
@@ -101,13 +102,22 @@ def test_a_second_process_with_an_id_waits_then_takes_over(caplog) -> None:
         loop.wait_for(lambda e: isinstance(e, Joined), "the newcomer joining")
 
         stale = struct.pack("<QQ", first.incarnation, 1)  # the old process, late
-        sessions[2].put(keys.up(0, "AgentStarted"),
-                        codec.encode(AgentStarted(agent=0, pid=1, frames=4)), attachment=stale)
-        loop.wait_for(lambda e: isinstance(e, Rejected) and "does not hold" in e.error,
-                      "the old process's message rejected")
+        sessions[2].put(
+            keys.up(0, "AgentStarted"),
+            codec.encode(AgentStarted(agent=0, pid=1, frames=4)),
+            attachment=stale,
+        )
+        loop.wait_for(
+            lambda e: isinstance(e, Rejected) and "does not hold" in e.error,
+            "the old process's message rejected",
+        )
         told: list = []  # the old process reconnecting is told to stop, and only it
-        listener = sessions[2].declare_subscriber(keys.down(0, "*"), lambda sample: told.append(
-            (sample.attachment.to_bytes(), codec.decode(sample.payload.to_bytes()))))
+        listener = sessions[2].declare_subscriber(
+            keys.down(0, "*"),
+            lambda sample: told.append(
+                (sample.attachment.to_bytes(), codec.decode(sample.payload.to_bytes()))
+            ),
+        )
         token = sessions[2].liveliness().declare_token(keys.alive(0, first.incarnation))
         deadline = time.monotonic() + 10
         while not told:
@@ -120,8 +130,9 @@ def test_a_second_process_with_an_id_waits_then_takes_over(caplog) -> None:
         token.undeclare()
         listener.undeclare()
         second.send(AgentStarted(agent=0, pid=2, frames=2))  # a fresh sequence from 0
-        loop.wait_for(lambda e: isinstance(e, Received) and e.message.pid == 2,
-                      "the newcomer's message")
+        loop.wait_for(
+            lambda e: isinstance(e, Received) and e.message.pid == 2, "the newcomer's message"
+        )
         second.close()  # returns once stored
     finally:
         loop.running = False
@@ -162,8 +173,9 @@ class _NoCoordinator:
 
 
 def test_a_waiting_agent_names_the_endpoints_and_the_session(caplog) -> None:
-    options = ZenohOptions(connect=("tcp/10.0.0.2:7447",), listen=("tcp/0.0.0.0:7448",),
-                           session="lab")
+    options = ZenohOptions(
+        connect=("tcp/10.0.0.2:7447",), listen=("tcp/0.0.0.0:7448",), session="lab"
+    )
     session = _NoCoordinator()
     link = ZenohAgentLink(session, Keys("lab"), 3, where=options.where())
     try:
@@ -172,26 +184,40 @@ def test_a_waiting_agent_names_the_endpoints_and_the_session(caplog) -> None:
     finally:
         link.close()
     [line] = [r.getMessage() for r in caplog.records if "waiting" in r.getMessage()]
-    assert line == ("agent 3: waiting: the coordinator (session 'lab', connecting to "
-                    "tcp/10.0.0.2:7447, listening on tcp/0.0.0.0:7448)")
+    assert line == (
+        "agent 3: waiting: the coordinator (session 'lab', connecting to "
+        "tcp/10.0.0.2:7447, listening on tcp/0.0.0.0:7448)"
+    )
 
 
 def test_where_names_scouting_and_the_configuration_file(tmp_path) -> None:
     where = ZenohOptions(scouting=True, config_file=tmp_path / "z.json5").where()
-    assert where == (f"session 'como3r', scouting by UDP multicast, Zenoh configuration "
-                     f"{tmp_path / 'z.json5'}")
+    assert where == (
+        f"session 'como3r', scouting by UDP multicast, Zenoh configuration {tmp_path / 'z.json5'}"
+    )
 
 
-@pytest.mark.parametrize("command, module, function, said", [
-    (["coordinator", "--agents", "3"], "como3r.runtime.network", "serve",
-     "coordinator: waiting for 3 agent(s) (session 'lab', listening on tcp/0.0.0.0:7447)"),
-    (["robot", "{tmp}", "--id", "0", "--robots", "2", "--connect", "tcp/10.0.0.2:7447"],
-     "como3r.runtime.robot_node", "run_robot",
-     "robot 0: waiting for the team of 2 robot(s) (session 'lab', connecting to "
-     "tcp/10.0.0.2:7447)"),
-])
-def test_a_networked_command_says_where_it_waits(tmp_path, monkeypatch, command, module,
-                                                 function, said) -> None:
+@pytest.mark.parametrize(
+    "command, module, function, said",
+    [
+        (
+            ["coordinator", "--agents", "3"],
+            "como3r.runtime.network",
+            "serve",
+            "coordinator: waiting for 3 agent(s) (session 'lab', listening on tcp/0.0.0.0:7447)",
+        ),
+        (
+            ["robot", "{tmp}", "--id", "0", "--robots", "2", "--connect", "tcp/10.0.0.2:7447"],
+            "como3r.runtime.robot_node",
+            "run_robot",
+            "robot 0: waiting for the team of 2 robot(s) (session 'lab', connecting to "
+            "tcp/10.0.0.2:7447)",
+        ),
+    ],
+)
+def test_a_networked_command_says_where_it_waits(
+    tmp_path, monkeypatch, command, module, function, said
+) -> None:
     import importlib
 
     from typer.testing import CliRunner
@@ -204,7 +230,10 @@ def test_a_networked_command_says_where_it_waits(tmp_path, monkeypatch, command,
 
     monkeypatch.setattr(importlib.import_module(module), function, stop)
     args = [a.replace("{tmp}", str(tmp_path)) for a in command]
-    result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "out"), "--prior",
-                                      "simulated", "--session", "lab"], env={"COLUMNS": "300"})
+    result = CliRunner().invoke(
+        app,
+        [*args, "--out", str(tmp_path / "out"), "--prior", "simulated", "--session", "lab"],
+        env={"COLUMNS": "300"},
+    )
     assert result.exit_code == 2, result.output
     assert said in result.output

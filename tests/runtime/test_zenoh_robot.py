@@ -35,8 +35,10 @@ def _free_port() -> int:
 def network():
     """Two sessions of one Zenoh network (the second connects to the first) and its keys."""
     endpoint, name = f"tcp/127.0.0.1:{_free_port()}", f"t{uuid.uuid4().hex[:12]}"
-    sessions = [open_session(ZenohOptions(listen=(endpoint,), session=name)),
-                open_session(ZenohOptions(connect=(endpoint,), session=name))]
+    sessions = [
+        open_session(ZenohOptions(listen=(endpoint,), session=name)),
+        open_session(ZenohOptions(connect=(endpoint,), session=name)),
+    ]
     yield sessions, RobotKeys(name)
     for session in sessions:
         session.close()
@@ -74,8 +76,9 @@ def _finish(links: list[ZenohRobotLink], peers: list[int]) -> None:
 
 
 def _request(sender: int, recipient: int, time_s: float) -> EncodingRequest:
-    return EncodingRequest(sender=sender, recipient=recipient, round=0, time_s=time_s,
-                           keyframes=[3])
+    return EncodingRequest(
+        sender=sender, recipient=recipient, round=0, time_s=time_s, keyframes=[3]
+    )
 
 
 def test_the_receiver_drops_what_it_could_not_hear_and_counts_the_rest(network):

@@ -20,7 +20,8 @@ import pytest
 from typer.testing import CliRunner
 
 rerun = pytest.importorskip(
-    "rerun", reason='rerun-sdk is not installed (the viewer extra: pip install "como3r[viewer]")')
+    "rerun", reason='rerun-sdk is not installed (the viewer extra: pip install "como3r[viewer]")'
+)
 from rerun.chunk import RrdReader  # noqa: E402
 
 from como3r import cli_viewer  # noqa: E402
@@ -37,16 +38,31 @@ OVERRIDES = ["input.long_side=64", "simulated_prior.model=easy"]
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("scene")
-    synthesize(root, agents=2, seed=0, overlap=0.5, frames=12, preset="default", width=64,
-               height=48)
+    synthesize(
+        root, agents=2, seed=0, overlap=0.5, frames=12, preset="default", width=64, height=48
+    )
     return root
 
 
 def _run(scene: Path, root: Path, *extra: str) -> tuple[Path, Path]:
     out, recording = root / "out", root / "run.rrd"
-    args = ["run", "--agent", str(scene / "agent_0"), "--agent", str(scene / "agent_1"),
-            "--out", str(out), "--prior", "simulated", "--calib", "-q", *extra,
-            "--viewer", "save", str(recording)]
+    args = [
+        "run",
+        "--agent",
+        str(scene / "agent_0"),
+        "--agent",
+        str(scene / "agent_1"),
+        "--out",
+        str(out),
+        "--prior",
+        "simulated",
+        "--calib",
+        "-q",
+        *extra,
+        "--viewer",
+        "save",
+        str(recording),
+    ]
     for override in OVERRIDES:
         args += ["--set", override]
     result = CliRunner().invoke(app, args)
@@ -71,8 +87,13 @@ def _read(recording: Path) -> dict[str, list]:
 
 def _rows(batches: list, name: str) -> list[list]:
     """Every row's instances of component ``name`` (rows without it left out)."""
-    return [value for batch in batches if name in batch.schema.names
-            for value in batch.column(name).to_pylist() if value is not None]
+    return [
+        value
+        for batch in batches
+        if name in batch.schema.names
+        for value in batch.column(name).to_pylist()
+        if value is not None
+    ]
 
 
 def test_every_agent_is_recorded(run) -> None:
@@ -80,25 +101,26 @@ def test_every_agent_is_recorded(run) -> None:
     entities = _read(recording)
     metrics = json.loads((out / "metrics.json").read_text())
     for agent in (0, 1):
-        frames, tracked, keyframes = (metrics["agents"][agent][k]
-                                      for k in ("frames", "tracked", "keyframes"))
+        frames, tracked, keyframes = (
+            metrics["agents"][agent][k] for k in ("frames", "tracked", "keyframes")
+        )
         base = f"/world/agents/{agent}"
         camera = entities[f"{base}/camera"]
         assert len(_rows(camera, "Transform3D:translation")) == tracked
         assert {"frame", "wall_time"} <= set(camera[0].schema.names)
         image = entities[f"{base}/camera/image"]
         assert len(_rows(image, "EncodedImage:blob")) == frames
-        (K, *_), resolution = (_rows(image, "Pinhole:image_from_camera"),
-                               _rows(image, "Pinhole:resolution"))
+        (K, *_), resolution = (
+            _rows(image, "Pinhole:image_from_camera"),
+            _rows(image, "Pinhole:resolution"),
+        )
         assert np.asarray(K).reshape(3, 3)[0, 0] > 0 and resolution[0] == [[64.0, 48.0]]
         strips = _rows(entities[f"{base}/trajectory"], "LineStrips3D:strips")
         assert len(strips[-1][0]) == tracked  # the final trajectory: every tracked frame
         points = _rows(entities[f"{base}/keyframes/0/points"], "Points3D:positions")
         assert len(points[-1]) > 100
-        assert sum(f"{base}/keyframes/{k}" in entities for k in range(keyframes + 1)) \
-            == keyframes
-        states = [text for text, in _rows(entities[f"/agents/{agent}/state"],
-                                           "TextLog:text")]
+        assert sum(f"{base}/keyframes/{k}" in entities for k in range(keyframes + 1)) == keyframes
+        states = [text for (text,) in _rows(entities[f"/agents/{agent}/state"], "TextLog:text")]
         assert len(states) == frames and set(states) <= {"tracking", "lost", "relocalized"}
 
 
@@ -106,7 +128,7 @@ def test_the_merged_map_and_the_edge_that_merged_it(run) -> None:
     out, recording = run
     entities = _read(recording)
     assert json.loads((out / "metrics.json").read_text())["components"] == [[0, 1]]
-    events = [text for text, in _rows(entities["/coordinator/events"], "TextLog:text")]
+    events = [text for (text,) in _rows(entities["/coordinator/events"], "TextLog:text")]
     assert events[0].startswith("gauge") and events[-1].startswith("final")
     assert events[-1].endswith("gauge components {0, 1}")
     colors = _rows(entities["/world/map/points"], "Points3D:colors")[-1]
@@ -123,9 +145,18 @@ def test_serve_mode_answers_on_its_ports() -> None:
         assert viewer.urls is not None
         assert viewer.urls[0] == f"rerun+http://127.0.0.1:{grpc}/proxy"
         assert viewer.urls[1].startswith(f"http://localhost:{web}/?url=rerun%2Bhttp://")
-        viewer(FrameEvent(agent=0, frame_index=0, timestamp=0.0, state="tracking",
-                          T_WC=np.array([0, 0, 0, 0, 0, 0, 1, 1.0]), K=np.eye(3),
-                          image=np.zeros((4, 6, 3), np.uint8), wall_time=0.0))
+        viewer(
+            FrameEvent(
+                agent=0,
+                frame_index=0,
+                timestamp=0.0,
+                state="tracking",
+                T_WC=np.array([0, 0, 0, 0, 0, 0, 1, 1.0]),
+                K=np.eye(3),
+                image=np.zeros((4, 6, 3), np.uint8),
+                wall_time=0.0,
+            )
+        )
         for port in (grpc, web):
             with socket.create_connection(("127.0.0.1", port), timeout=5):
                 pass
@@ -135,8 +166,11 @@ def test_serve_mode_answers_on_its_ports() -> None:
 
 def test_serve_keeps_serving_after_the_run_until_ctrl_c(monkeypatch, capsys) -> None:
     ports = (_free_port(), _free_port())
-    monkeypatch.setattr(cli_viewer, "open_viewer",
-                        lambda spec: open_viewer(spec, grpc_port=ports[0], web_port=ports[1]))
+    monkeypatch.setattr(
+        cli_viewer,
+        "open_viewer",
+        lambda spec: open_viewer(spec, grpc_port=ports[0], web_port=ports[1]),
+    )
     waited = []
 
     def sleep(seconds: float) -> None:

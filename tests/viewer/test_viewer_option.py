@@ -14,13 +14,16 @@ from como3r.errors import InputError
 from como3r.viewer import INSTALL, ViewerSpec, check_viewer, parse_viewer
 
 
-@pytest.mark.parametrize("args, joined", [
-    (["--viewer", "save", "a.rrd", "--out", "o"], ["--viewer", "save=a.rrd", "--out", "o"]),
-    (["--viewer=save", "a.rrd"], ["--viewer", "save=a.rrd"]),
-    (["--viewer", "save", "--out", "o"], ["--viewer", "save", "--out", "o"]),
-    (["--viewer", "spawn", "--out", "save"], ["--viewer", "spawn", "--out", "save"]),
-    (["--out", "save", "x"], ["--out", "save", "x"]),
-])
+@pytest.mark.parametrize(
+    "args, joined",
+    [
+        (["--viewer", "save", "a.rrd", "--out", "o"], ["--viewer", "save=a.rrd", "--out", "o"]),
+        (["--viewer=save", "a.rrd"], ["--viewer", "save=a.rrd"]),
+        (["--viewer", "save", "--out", "o"], ["--viewer", "save", "--out", "o"]),
+        (["--viewer", "spawn", "--out", "save"], ["--viewer", "spawn", "--out", "save"]),
+        (["--out", "save", "x"], ["--out", "save", "x"]),
+    ],
+)
 def test_save_takes_the_next_word_as_its_file(args, joined) -> None:
     assert join_save_file(args) == joined
 
@@ -29,9 +32,12 @@ def test_parse_viewer() -> None:
     assert parse_viewer("spawn") == ViewerSpec("spawn")
     assert parse_viewer("serve") == ViewerSpec("serve")
     assert parse_viewer("save=run.rrd") == ViewerSpec("save", Path("run.rrd"))
-    for value, fragment in (("show", "spawn, serve or save FILE.rrd"),
-                            ("save", "needs a file"), ("save=run.txt", "FILE.rrd"),
-                            ("serve=x.rrd", "takes no file")):
+    for value, fragment in (
+        ("show", "spawn, serve or save FILE.rrd"),
+        ("save", "needs a file"),
+        ("save=run.txt", "FILE.rrd"),
+        ("serve=x.rrd", "takes no file"),
+    ):
         with pytest.raises(InputError, match=fragment):
             parse_viewer(value)
 
@@ -52,16 +58,21 @@ def test_spawn_needs_a_display_on_linux(tmp_path, monkeypatch) -> None:
 
 
 @pytest.mark.parametrize("command", ["run", "demo"])
-def test_without_the_extra_one_error_line_before_any_work(command, tmp_path, monkeypatch,
-                                                          only_error_line) -> None:
+def test_without_the_extra_one_error_line_before_any_work(
+    command, tmp_path, monkeypatch, only_error_line
+) -> None:
     monkeypatch.setitem(sys.modules, "rerun", None)  # `import rerun` raises ImportError
     agent = tmp_path / "agent"
     agent.mkdir()  # never opened: the viewer is checked first
     out = tmp_path / "out"
-    args = (["run", "--agent", str(agent), "--prior", "simulated"] if command == "run"
-            else ["demo", "--frames", "4"])
-    result = CliRunner().invoke(app, [*args, "--out", str(out),
-                                      "--viewer", "save", str(tmp_path / "run.rrd")])
+    args = (
+        ["run", "--agent", str(agent), "--prior", "simulated"]
+        if command == "run"
+        else ["demo", "--frames", "4"]
+    )
+    result = CliRunner().invoke(
+        app, [*args, "--out", str(out), "--viewer", "save", str(tmp_path / "run.rrd")]
+    )
     line = only_error_line(result)
     assert "rerun-sdk, which is not installed" in line and INSTALL in line
     assert not out.exists() and not out.with_name("out.partial").exists()
@@ -69,7 +80,18 @@ def test_without_the_extra_one_error_line_before_any_work(command, tmp_path, mon
 
 
 def test_decentralized_runs_have_no_viewer(tmp_path, only_error_line) -> None:
-    result = CliRunner().invoke(app, ["run", "--agent", str(tmp_path), "--out",
-                                      str(tmp_path / "out"), "--mode", "decentralized",
-                                      "--viewer", "spawn"])
+    result = CliRunner().invoke(
+        app,
+        [
+            "run",
+            "--agent",
+            str(tmp_path),
+            "--out",
+            str(tmp_path / "out"),
+            "--mode",
+            "decentralized",
+            "--viewer",
+            "spawn",
+        ],
+    )
     assert "--mode centralized" in only_error_line(result)

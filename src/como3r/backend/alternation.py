@@ -68,8 +68,8 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 from como3r.config import DepthRefinementConfig, GlobalBAConfig
 from como3r.errors import ConfigError, SolverError
@@ -113,18 +113,21 @@ class AlternationSettings:
     def __post_init__(self) -> None:
         for name in ("cleanup_iters", "cleanup_passes", "pose_pass_iters"):
             if getattr(self, name) < 1:
-                raise ConfigError(f"alternation: {name} must be at least 1, "
-                                  f"got {getattr(self, name)}")
+                raise ConfigError(
+                    f"alternation: {name} must be at least 1, got {getattr(self, name)}"
+                )
         if self.rounds < 0:
             raise ConfigError(f"alternation: rounds must be non-negative, got {self.rounds}")
         for name in ("translation_tol", "depth_convergence_tol", "stall_ratio"):
             if not getattr(self, name) >= 0:
-                raise ConfigError(f"alternation: {name} must be non-negative, "
-                                  f"got {getattr(self, name)}")
+                raise ConfigError(
+                    f"alternation: {name} must be non-negative, got {getattr(self, name)}"
+                )
 
     @classmethod
-    def from_config(cls, global_ba: GlobalBAConfig, depth: DepthRefinementConfig
-                    ) -> AlternationSettings:
+    def from_config(
+        cls, global_ba: GlobalBAConfig, depth: DepthRefinementConfig
+    ) -> AlternationSettings:
         """The schedule of a run's configuration."""
         return cls(
             cleanup_iters=global_ba.max_iters_cleanup,
@@ -182,14 +185,17 @@ class AlternationReport:
     def to_json(self) -> dict[str, object]:
         """JSON-ready summary (``metrics.json``)."""
         return {
-            "converged": self.converged, "reason": self.reason,
+            "converged": self.converged,
+            "reason": self.reason,
             "cleanup_passes": len(self.cleanup_translations),
             "cleanup_max_translation": list(self.cleanup_translations),
             "rounds": len(self.rounds),
             "round_max_depth_change": [r.max_depth_change for r in self.rounds],
             "round_max_translation": [r.max_translation for r in self.rounds],
-            "pose_seconds": self.pose_seconds, "depth_seconds": self.depth_seconds,
-            "broadcast_seconds": self.broadcast_seconds, "seconds": self.seconds,
+            "pose_seconds": self.pose_seconds,
+            "depth_seconds": self.depth_seconds,
+            "broadcast_seconds": self.broadcast_seconds,
+            "seconds": self.seconds,
         }
 
 
@@ -199,8 +205,10 @@ def _timed(fn: Callable[..., float], *args: int) -> tuple[float, float]:
     value = float(fn(*args))
     seconds = time.perf_counter() - start
     if not math.isfinite(value):
-        raise SolverError(f"alternation: {getattr(fn, '__name__', 'callback')} returned "
-                          f"{value}, expected a finite step size")
+        raise SolverError(
+            f"alternation: {getattr(fn, '__name__', 'callback')} returned "
+            f"{value}, expected a finite step size"
+        )
     return value, seconds
 
 
@@ -241,25 +249,35 @@ def alternate(
     start = time.perf_counter()
 
     for k in range(settings.cleanup_passes if pose_pass is not None else 0):
-        report_phase(progress, "cleanup pass",
-                     _previous("max ||dt||/depth", report.cleanup_translations), k,
-                     settings.cleanup_passes)
+        report_phase(
+            progress,
+            "cleanup pass",
+            _previous("max ||dt||/depth", report.cleanup_translations),
+            k,
+            settings.cleanup_passes,
+        )
         translation, seconds = _timed(pose_pass, settings.cleanup_iters)
         report.pose_seconds += seconds
         report.cleanup_translations.append(translation)
         if translation < settings.translation_tol:
             break
     if settings.rounds == 0:
-        report.converged = (not report.cleanup_translations
-                            or report.cleanup_translations[-1] < settings.translation_tol)
+        report.converged = (
+            not report.cleanup_translations
+            or report.cleanup_translations[-1] < settings.translation_tol
+        )
         report.reason = "pose_converged" if report.converged else "max_passes"
 
     alternating = pose_pass is not None and settings.round_pose_pass
     rounds = settings.rounds if alternating else min(settings.rounds, 1)
     for r in range(rounds):
-        report_phase(progress, "alternation round",
-                     _previous("max |ds|", [step.max_depth_change for step in report.rounds]),
-                     r, rounds)
+        report_phase(
+            progress,
+            "alternation round",
+            _previous("max |ds|", [step.max_depth_change for step in report.rounds]),
+            r,
+            rounds,
+        )
         depth_change, seconds = _timed(depth_step)
         report.depth_seconds += seconds
         translation = 0.0
@@ -271,10 +289,13 @@ def alternate(
             broadcast()
             report.broadcast_seconds += time.perf_counter() - broadcast_start
         report.rounds.append(AlternationRound(depth_change, translation))
-        logger.debug("alternation round %d: max |ds| = %.3g, max ||dt|| = %.3g depth", r + 1,
-                     depth_change, translation)
-        if (depth_change < settings.depth_convergence_tol
-                and translation < settings.translation_tol):
+        logger.debug(
+            "alternation round %d: max |ds| = %.3g, max ||dt|| = %.3g depth",
+            r + 1,
+            depth_change,
+            translation,
+        )
+        if depth_change < settings.depth_convergence_tol and translation < settings.translation_tol:
             report.converged, report.reason = True, "converged"
             break
         if not alternating:
@@ -284,7 +305,12 @@ def alternate(
             report.reason = "stalled"
             break
     report.seconds = time.perf_counter() - start
-    logger.info("alternation: %d cleanup passes, %d rounds (%s), pose %.2fs, depth %.2fs",
-                len(report.cleanup_translations), len(report.rounds), report.reason,
-                report.pose_seconds, report.depth_seconds)
+    logger.info(
+        "alternation: %d cleanup passes, %d rounds (%s), pose %.2fs, depth %.2fs",
+        len(report.cleanup_translations),
+        len(report.rounds),
+        report.reason,
+        report.pose_seconds,
+        report.depth_seconds,
+    )
     return report

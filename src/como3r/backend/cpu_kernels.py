@@ -81,8 +81,9 @@ def _vector_block(values, sqrt_w, first, count, scale_a, scale_b, k, out):  # pr
         out[4, i] = cost
 
 
-def _depth_sums(scale, values, sqrt_w, param_a, param_b, k, block, with_blocks, H_out, g_out,
-                cost_out):  # pragma: no cover (compiled)
+def _depth_sums(
+    scale, values, sqrt_w, param_a, param_b, k, block, with_blocks, H_out, g_out, cost_out
+):  # pragma: no cover (compiled)
     K = values.shape[1]
     for task in prange(cost_out.shape[0]):
         sums = np.empty((5, VECTOR_BLOCK))
@@ -133,14 +134,24 @@ class MatchStreams:
     param_b: Tensor
 
     @classmethod
-    def of(cls, depth0: Tensor, rays: Tensor, match_a: Tensor, match_b: Tensor,
-           param_a: Tensor, param_b: Tensor, rays_b_in_a: Tensor, t_ab: Tensor,
-           sqrt_w: Tensor) -> MatchStreams:
+    def of(
+        cls,
+        depth0: Tensor,
+        rays: Tensor,
+        match_a: Tensor,
+        match_b: Tensor,
+        param_a: Tensor,
+        param_b: Tensor,
+        rays_b_in_a: Tensor,
+        t_ab: Tensor,
+        sqrt_w: Tensor,
+    ) -> MatchStreams:
         """Gather the per-pixel ``depth0 (P,)`` and ``rays (P, 3)`` at the matches' pixels
         ``match_a, match_b (K,)``; the per-match ``param_a = param[match_a]``, ``param_b``
         ``(K,)``, ``rays_b_in_a, t_ab (K, 3)`` and ``sqrt_w (K,)`` are laid out as rows."""
-        values = torch.cat([depth0[match_a][None], depth0[match_b][None], rays[match_a].T,
-                            rays_b_in_a.T, t_ab.T])
+        values = torch.cat(
+            [depth0[match_a][None], depth0[match_b][None], rays[match_a].T, rays_b_in_a.T, t_ab.T]
+        )
         return cls(*(x.detach().contiguous() for x in (values, sqrt_w, param_a, param_b)))
 
     @property
@@ -151,12 +162,17 @@ class MatchStreams:
     @classmethod
     def empty(cls, K: int, dtype: torch.dtype) -> MatchStreams:
         """Streams of ``K`` matches to be filled (:func:`pack_kept`), values in ``dtype``."""
-        return cls(torch.empty(_ROWS, K, dtype=dtype), torch.empty(K, dtype=dtype),
-                   torch.empty(K, dtype=torch.int64), torch.empty(K, dtype=torch.int64))
+        return cls(
+            torch.empty(_ROWS, K, dtype=dtype),
+            torch.empty(K, dtype=dtype),
+            torch.empty(K, dtype=torch.int64),
+            torch.empty(K, dtype=torch.int64),
+        )
 
 
-def depth_normal_equations(s: Tensor, streams: MatchStreams, huber_k: float,
-                           with_blocks: bool = True) -> tuple[Tensor, Tensor, float]:
+def depth_normal_equations(
+    s: Tensor, streams: MatchStreams, huber_k: float, with_blocks: bool = True
+) -> tuple[Tensor, Tensor, float]:
     """Data term of C-Eq. 20-24: diagonal Hessian and gradient of the log-scales, and cost.
 
     Args:
@@ -176,10 +192,10 @@ def depth_normal_equations(s: Tensor, streams: MatchStreams, huber_k: float,
     H_out, g_out = np.zeros((blocks, width)), np.zeros((blocks, width))
     cost_out = np.zeros(blocks)
     scale = np.exp(s.detach().double().numpy())
-    compiled(_depth_sums, error_model="numpy")(scale, *arrays, float(huber_k), block,
-                                               with_blocks, H_out, g_out, cost_out)
-    return (torch.from_numpy(H_out.sum(0)), torch.from_numpy(g_out.sum(0)),
-            float(cost_out.sum()))
+    compiled(_depth_sums, error_model="numpy")(
+        scale, *arrays, float(huber_k), block, with_blocks, H_out, g_out, cost_out
+    )
+    return (torch.from_numpy(H_out.sum(0)), torch.from_numpy(g_out.sum(0)), float(cost_out.sum()))
 
 
 @njit(cache=True, boundscheck=False, inline="always")
@@ -208,8 +224,25 @@ def _count_kept(idx, valid, q, param, offset_i, offset_j, pixels_i):  # pragma: 
 
 
 @njit(cache=True, boundscheck=False)
-def _pack_kept(idx, valid, q, depth0, rays, param, offset_i, offset_j, R, scale, t,
-               whitening, first, values, sqrt_w, param_a, param_b):  # pragma: no cover
+def _pack_kept(
+    idx,
+    valid,
+    q,
+    depth0,
+    rays,
+    param,
+    offset_i,
+    offset_j,
+    R,
+    scale,
+    t,
+    whitening,
+    first,
+    values,
+    sqrt_w,
+    param_a,
+    param_b,
+):  # pragma: no cover
     k = first
     for n in range(idx.shape[0]):
         if not _usable(valid, q, n):
@@ -223,8 +256,9 @@ def _pack_kept(idx, valid, q, depth0, rays, param, offset_i, offset_j, R, scale,
         for c in range(3):
             values[_RAY_A + c, k] = rays[a, c]
             # s_ij R_ij psi_j: j's ray in frame i (C-Sec. A.6)
-            values[_RAY_B + c, k] = scale * (rays[b, 0] * R[c, 0] + rays[b, 1] * R[c, 1]
-                                             + rays[b, 2] * R[c, 2])  # R: float64
+            values[_RAY_B + c, k] = scale * (
+                rays[b, 0] * R[c, 0] + rays[b, 1] * R[c, 1] + rays[b, 2] * R[c, 2]
+            )  # R: float64
             values[_T_AB + c, k] = t[c]
         sqrt_w[k] = np.sqrt(np.float64(q[n])) * whitening  # float(): float32 stays float32
         param_a[k], param_b[k] = max(pa, -1), max(pb, -1)  # fixed: no log-scale
@@ -232,8 +266,11 @@ def _pack_kept(idx, valid, q, depth0, rays, param, offset_i, offset_j, R, scale,
 
 
 def _match_arrays(matches) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    return (matches.idx.contiguous().numpy(), matches.valid.contiguous().numpy(),
-            matches.q.contiguous().numpy())
+    return (
+        matches.idx.contiguous().numpy(),
+        matches.valid.contiguous().numpy(),
+        matches.q.contiguous().numpy(),
+    )
 
 
 def count_kept(matches, param: Tensor, offset_i: int, offset_j: int, pixels_i: int) -> int:
@@ -241,18 +278,40 @@ def count_kept(matches, param: Tensor, offset_i: int, offset_j: int, pixels_i: i
     (valid, finite ``q > 0``, both pixels usable in ``param (P,)`` (-1: not, -2: fixed) and
     one free), keyframes i and j starting at pixels ``offset_i``, ``offset_j``; -1 if a
     valid match names a pixel outside keyframe i's ``pixels_i``."""
-    return int(_count_kept(*_match_arrays(matches), param.numpy(), offset_i, offset_j,
-                           pixels_i))
+    return int(_count_kept(*_match_arrays(matches), param.numpy(), offset_i, offset_j, pixels_i))
 
 
-def pack_kept(matches, depth0: Tensor, rays: Tensor, param: Tensor, offset_i: int,
-              offset_j: int, R: Tensor, T_ij: Tensor, whitening: float, first: int,
-              streams: MatchStreams) -> None:
+def pack_kept(
+    matches,
+    depth0: Tensor,
+    rays: Tensor,
+    param: Tensor,
+    offset_i: int,
+    offset_j: int,
+    R: Tensor,
+    T_ij: Tensor,
+    whitening: float,
+    first: int,
+    streams: MatchStreams,
+) -> None:
     """Write the matches :func:`count_kept` counts, in pixel order, into ``streams`` from
     match ``first`` on: the ranges ``depth0 (P,)`` and rays ``rays (P, 3)`` of both pixels
     (j's rotated by ``R (3, 3)`` and scaled by ``T_ij[7]``), ``T_ij[:3]``, ``sqrt(q)`` times
     ``whitening`` (``1 / (sigma_point d_i)``) and both log-scales."""
-    _pack_kept(*_match_arrays(matches), depth0.numpy(), rays.numpy(), param.numpy(),
-               offset_i, offset_j, R.double().numpy(), float(T_ij[7]),
-               T_ij[:3].double().numpy(), float(whitening), first, streams.values.numpy(),
-               streams.sqrt_w.numpy(), streams.param_a.numpy(), streams.param_b.numpy())
+    _pack_kept(
+        *_match_arrays(matches),
+        depth0.numpy(),
+        rays.numpy(),
+        param.numpy(),
+        offset_i,
+        offset_j,
+        R.double().numpy(),
+        float(T_ij[7]),
+        T_ij[:3].double().numpy(),
+        float(whitening),
+        first,
+        streams.values.numpy(),
+        streams.sqrt_w.numpy(),
+        streams.param_a.numpy(),
+        streams.param_b.numpy(),
+    )

@@ -12,8 +12,9 @@ working sets of :mod:`como3r.backend.paged_refinement`).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Protocol, Sequence
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -79,7 +80,8 @@ def mean_log_ratio(X_hat: Tensor, d_init: Tensor, labels: Tensor, count: int) ->
     ratio = torch.log(d_hat[ok] / d_init[ok])
     sums = torch.zeros(count, dtype=ratio.dtype, device=ratio.device).index_add_(0, flat[ok], ratio)
     counts = torch.zeros(count, dtype=ratio.dtype, device=ratio.device).index_add_(
-        0, flat[ok], torch.ones_like(ratio))
+        0, flat[ok], torch.ones_like(ratio)
+    )
     return sums / counts.clamp_min(1.0)
 
 
@@ -100,8 +102,9 @@ def _adjacent_pairs(labels: Tensor, log_depth: Tensor) -> tuple[Tensor, Tensor, 
     return tuple(torch.cat(parts) for parts in zip(*pairs))
 
 
-def _boundary_terms(label_p: Tensor, label_q: Tensor, diff: Tensor, num_params: int
-                    ) -> tuple[Tensor, Tensor, Tensor]:
+def _boundary_terms(
+    label_p: Tensor, label_q: Tensor, diff: Tensor, num_params: int
+) -> tuple[Tensor, Tensor, Tensor]:
     """Unique unordered pairs ``(a, b)``, ``a < b``, with ``Delta_ab`` averaged over the
     shared boundary pixels (C-Eq. 22)."""
     swap = label_p > label_q
@@ -110,7 +113,8 @@ def _boundary_terms(label_p: Tensor, label_q: Tensor, diff: Tensor, num_params: 
     diff = torch.where(swap, -diff, diff)
     keys, inverse = torch.unique(a * num_params + b, return_inverse=True)
     sums = torch.zeros(keys.numel(), dtype=diff.dtype, device=diff.device).index_add_(
-        0, inverse, diff)
+        0, inverse, diff
+    )
     counts = torch.zeros_like(sums).index_add_(0, inverse, torch.ones_like(diff))
     return keys // num_params, keys % num_params, sums / counts
 
@@ -139,8 +143,13 @@ class _Pixels:
     boundary: list[tuple[Tensor, Tensor, Tensor]]
 
 
-def _pixels(keyframes: Sequence[RefinableKeyframe], labels: Sequence[Tensor],
-            config: DepthRefinementConfig, pinned: set[int], data_only: bool) -> _Pixels:
+def _pixels(
+    keyframes: Sequence[RefinableKeyframe],
+    labels: Sequence[Tensor],
+    config: DepthRefinementConfig,
+    pinned: set[int],
+    data_only: bool,
+) -> _Pixels:
     """The keyframes' pixels as :class:`_Pixels` (``data_only``: without warm start and
     boundary pairs)."""
     dtype, device = keyframes[0].X_init.dtype, keyframes[0].X_init.device
@@ -166,13 +175,21 @@ def _pixels(keyframes: Sequence[RefinableKeyframe], labels: Sequence[Tensor],
             if not data_only:
                 s_start.append(mean_log_ratio(kf.X_hat.to(dtype), d, lab.reshape(-1), count))
             if config.variant != "pixel" and not data_only:
-                lp, lq, diff = _adjacent_pairs(lab.reshape(kf.X_hat.shape[:2]),
-                                               d.clamp_min(MIN_RANGE).log())
+                lp, lq, diff = _adjacent_pairs(
+                    lab.reshape(kf.X_hat.shape[:2]), d.clamp_min(MIN_RANGE).log()
+                )
                 bnd.append((lp + num_params, lq + num_params, diff))
             num_params += count
         num_pixels += lab.numel()
-    return _Pixels(torch.cat(depth0), torch.cat(rays), torch.cat(param), pixel_offsets,
-                   param_offsets, s_start, bnd)
+    return _Pixels(
+        torch.cat(depth0),
+        torch.cat(rays),
+        torch.cat(param),
+        pixel_offsets,
+        param_offsets,
+        s_start,
+        bnd,
+    )
 
 
 def build_problem(
@@ -199,25 +216,47 @@ def build_problem(
     dtype, device = keyframes[0].X_init.dtype, keyframes[0].X_init.device
     px = _pixels(keyframes, labels, config, pinned, data_only)
     match_a, match_b, rays_b_in_a, t_ab, sqrt_w = _flatten_matches(
-        keyframes, poses.to(dtype), edges, index_of, px.pixel_offsets, px.param, px.rays,
-        config.sigma_point, ranges)
+        keyframes,
+        poses.to(dtype),
+        edges,
+        index_of,
+        px.pixel_offsets,
+        px.param,
+        px.rays,
+        config.sigma_point,
+        ranges,
+    )
     num_params = sum(int(s.numel()) for s in px.s_start) if not data_only else 0
     if px.boundary:
-        bnd_a, bnd_b, delta = _boundary_terms(*(torch.cat(p) for p in zip(*px.boundary)),
-                                              max(num_params, 1))
+        bnd_a, bnd_b, delta = _boundary_terms(
+            *(torch.cat(p) for p in zip(*px.boundary)), max(num_params, 1)
+        )
         if config.boundary_residual == "jump_change":
             delta = torch.zeros_like(delta)
     else:
         bnd_a = bnd_b = torch.zeros(0, dtype=torch.int64, device=device)
         delta = torch.zeros(0, dtype=dtype, device=device)
     s0 = torch.cat(px.s_start) if px.s_start else torch.zeros(0, dtype=dtype, device=device)
-    problem = Problem(px.depth0, px.rays, px.param.clamp_min(-1), match_a, match_b,
-                       rays_b_in_a, t_ab, sqrt_w, bnd_a, bnd_b, delta, s0)
+    problem = Problem(
+        px.depth0,
+        px.rays,
+        px.param.clamp_min(-1),
+        match_a,
+        match_b,
+        rays_b_in_a,
+        t_ab,
+        sqrt_w,
+        bnd_a,
+        bnd_b,
+        delta,
+        s0,
+    )
     return problem, px.pixel_offsets, px.param_offsets
 
 
-def _edge_rows(edge: Edge, index_of: Callable[[int], int],
-               keyframes: Sequence[RefinableKeyframe]) -> tuple[int, int, int]:
+def _edge_rows(
+    edge: Edge, index_of: Callable[[int], int], keyframes: Sequence[RefinableKeyframe]
+) -> tuple[int, int, int]:
     """An edge's endpoints as positions ``(ki, kj)`` in ``keyframes`` and keyframe i's pixel
     count, its matches checked to be one per pixel of keyframe j.
 
@@ -228,23 +267,31 @@ def _edge_rows(edge: Edge, index_of: Callable[[int], int],
     try:
         ki, kj = index_of(edge.i), index_of(edge.j)
     except (KeyError, IndexError):
-        raise InputError(f"refine_depths: edge ({edge.i}, {edge.j}) names a keyframe key "
-                         f"that is not in key_to_index") from None
+        raise InputError(
+            f"refine_depths: edge ({edge.i}, {edge.j}) names a keyframe key "
+            f"that is not in key_to_index"
+        ) from None
     if not (0 <= ki < len(keyframes) and 0 <= kj < len(keyframes)):
-        raise InputError(f"refine_depths: edge ({edge.i}, {edge.j}) maps to keyframe "
-                         f"indices ({ki}, {kj}) outside 0..{len(keyframes) - 1}")
+        raise InputError(
+            f"refine_depths: edge ({edge.i}, {edge.j}) maps to keyframe "
+            f"indices ({ki}, {kj}) outside 0..{len(keyframes) - 1}"
+        )
     m = edge.matches
     P_i = keyframes[ki].X_hat.shape[0] * keyframes[ki].X_hat.shape[1]
     P_j = keyframes[kj].X_hat.shape[0] * keyframes[kj].X_hat.shape[1]
     if m.idx.numel() != P_j or m.valid.numel() != P_j or m.q.numel() != P_j:
-        raise InputError(f"refine_depths: edge ({edge.i}, {edge.j}) has {m.idx.numel()} "
-                         f"matches for a keyframe j of {P_j} pixels")
+        raise InputError(
+            f"refine_depths: edge ({edge.i}, {edge.j}) has {m.idx.numel()} "
+            f"matches for a keyframe j of {P_j} pixels"
+        )
     return ki, kj, P_i
 
 
 def _outside_error(edge: Edge, P_i: int) -> InputError:
-    return InputError(f"refine_depths: edge ({edge.i}, {edge.j}) matches pixel indices "
-                      f"outside keyframe i's {P_i} pixels")
+    return InputError(
+        f"refine_depths: edge ({edge.i}, {edge.j}) matches pixel indices "
+        f"outside keyframe i's {P_i} pixels"
+    )
 
 
 def _relative_pose(poses: Tensor, ki: int, kj: int) -> Tensor:
@@ -284,8 +331,9 @@ def _flatten_matches(
     for edge in edges:
         ki, kj, P_i = _edge_rows(edge, index_of, keyframes)
         m = edge.matches
-        n = torch.nonzero(m.valid.to(device) & torch.isfinite(m.q.to(device))
-                          & (m.q.to(device) > 0)).squeeze(-1)
+        n = torch.nonzero(
+            m.valid.to(device) & torch.isfinite(m.q.to(device)) & (m.q.to(device) > 0)
+        ).squeeze(-1)
         idx = m.idx.to(device)[n]
         if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= P_i):
             raise _outside_error(edge, P_i)
@@ -296,8 +344,7 @@ def _flatten_matches(
         T_ij = _relative_pose(poses, ki, kj)
         # one rotation matrix per edge, applied as a product, not a quaternion per match
         ray_b_in_a = T_ij[7] * (rays[b] @ quat_to_matrix(T_ij[3:7]).T)
-        sqrt_w = m.q.to(device=device, dtype=dtype)[n[keep]].sqrt() / (sigma_point
-                                                                         * depth_of[ki])
+        sqrt_w = m.q.to(device=device, dtype=dtype)[n[keep]].sqrt() / (sigma_point * depth_of[ki])
         parts.append((a, b, ray_b_in_a, T_ij[:3].expand(a.numel(), 3), sqrt_w))
     if not parts:
         empty_i = torch.zeros(0, dtype=torch.int64, device=device)
@@ -310,14 +357,18 @@ def _flatten_matches(
 class _RangeCache(dict):
     """Keyframe position -> its median range ``d_i`` (given, or computed once when asked)."""
 
-    def __init__(self, keyframes: Sequence[RefinableKeyframe],
-                 ranges: Sequence[float] | None) -> None:
+    def __init__(
+        self, keyframes: Sequence[RefinableKeyframe], ranges: Sequence[float] | None
+    ) -> None:
         super().__init__()
         self._keyframes, self._ranges = keyframes, ranges
 
     def __missing__(self, k: int) -> float:
-        self[k] = (float(median_range(self._keyframes[k].X_hat)) if self._ranges is None
-                   else float(self._ranges[k]))
+        self[k] = (
+            float(median_range(self._keyframes[k].X_hat))
+            if self._ranges is None
+            else float(self._ranges[k])
+        )
         return self[k]
 
 
@@ -346,8 +397,9 @@ def chunk_streams(
     rows = [_edge_rows(edge, index_of, keyframes) for edge in edges]
     counts = []
     for edge, (ki, kj, P_i) in zip(edges, rows):
-        count = cpu_kernels.count_kept(edge.matches, px.param, px.pixel_offsets[ki],
-                                       px.pixel_offsets[kj], P_i)
+        count = cpu_kernels.count_kept(
+            edge.matches, px.param, px.pixel_offsets[ki], px.pixel_offsets[kj], P_i
+        )
         if count < 0:
             raise _outside_error(edge, P_i)
         counts.append(count)
@@ -355,21 +407,38 @@ def chunk_streams(
     first = 0
     for edge, (ki, kj, _), count in zip(edges, rows, counts):
         T_ij = _relative_pose(poses, ki, kj)
-        cpu_kernels.pack_kept(edge.matches, px.depth0, px.rays, px.param,
-                              px.pixel_offsets[ki], px.pixel_offsets[kj],
-                              quat_to_matrix(T_ij[3:7]), T_ij,
-                              1.0 / (config.sigma_point * depth_of[ki]), first, streams)
+        cpu_kernels.pack_kept(
+            edge.matches,
+            px.depth0,
+            px.rays,
+            px.param,
+            px.pixel_offsets[ki],
+            px.pixel_offsets[kj],
+            quat_to_matrix(T_ij[3:7]),
+            T_ij,
+            1.0 / (config.sigma_point * depth_of[ki]),
+            first,
+            streams,
+        )
         first += count
     return streams
 
 
-def match_streams(problem: Problem, param_a: Tensor | None = None,
-                  param_b: Tensor | None = None) -> cpu_kernels.MatchStreams:
+def match_streams(
+    problem: Problem, param_a: Tensor | None = None, param_b: Tensor | None = None
+) -> cpu_kernels.MatchStreams:
     """A CPU problem's matches laid out for the compiled data term
     (:class:`~como3r.backend.cpu_kernels.MatchStreams`); ``param_a, param_b (K,)``, the
     matches' log-scales, when already gathered."""
     p = problem
     return cpu_kernels.MatchStreams.of(
-        p.depth0, p.rays, p.match_a, p.match_b,
+        p.depth0,
+        p.rays,
+        p.match_a,
+        p.match_b,
         p.param[p.match_a] if param_a is None else param_a,
-        p.param[p.match_b] if param_b is None else param_b, p.rays_b_in_a, p.t_ab, p.sqrt_w)
+        p.param[p.match_b] if param_b is None else param_b,
+        p.rays_b_in_a,
+        p.t_ab,
+        p.sqrt_w,
+    )

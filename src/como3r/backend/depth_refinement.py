@@ -49,8 +49,9 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Mapping, Protocol, Sequence
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -143,8 +144,12 @@ def _index_fn(key_to_index: Mapping[int, int] | Callable[[int], int]) -> Callabl
     return key_to_index.__getitem__
 
 
-def _check_inputs(keyframes: Sequence[RefinableKeyframe], poses: Tensor,
-                  labels: Sequence[Tensor], config: DepthRefinementConfig) -> None:
+def _check_inputs(
+    keyframes: Sequence[RefinableKeyframe],
+    poses: Tensor,
+    labels: Sequence[Tensor],
+    config: DepthRefinementConfig,
+) -> None:
     if config.variant not in VARIANTS:
         raise ConfigError(f"depth.variant must be one of {VARIANTS}, got {config.variant!r}")
     for name in ("sigma_point", "step_clip"):
@@ -155,17 +160,21 @@ def _check_inputs(keyframes: Sequence[RefinableKeyframe], poses: Tensor,
             raise ConfigError(f"depth.{name} must be non-negative, got {getattr(config, name)}")
     if poses.ndim != 2 or poses.shape != (len(keyframes), 8):
         raise InputError(
-            f"refine_depths: poses must be ({len(keyframes)}, 8), got {tuple(poses.shape)}")
+            f"refine_depths: poses must be ({len(keyframes)}, 8), got {tuple(poses.shape)}"
+        )
     if len(labels) != len(keyframes):
-        raise InputError(
-            f"refine_depths: {len(labels)} label maps for {len(keyframes)} keyframes")
+        raise InputError(f"refine_depths: {len(labels)} label maps for {len(keyframes)} keyframes")
     for k, (kf, lab) in enumerate(zip(keyframes, labels)):
         if kf.X_init.shape != kf.X_hat.shape or kf.X_hat.ndim != 3 or kf.X_hat.shape[-1] != 3:
-            raise InputError(f"refine_depths: keyframe {k} X_hat {tuple(kf.X_hat.shape)} and "
-                             f"X_init {tuple(kf.X_init.shape)} must both be (H, W, 3)")
+            raise InputError(
+                f"refine_depths: keyframe {k} X_hat {tuple(kf.X_hat.shape)} and "
+                f"X_init {tuple(kf.X_init.shape)} must both be (H, W, 3)"
+            )
         if tuple(lab.shape) != tuple(kf.X_hat.shape[:2]):
-            raise InputError(f"refine_depths: label map {k} is {tuple(lab.shape)}, keyframe is "
-                             f"{tuple(kf.X_hat.shape[:2])}")
+            raise InputError(
+                f"refine_depths: label map {k} is {tuple(lab.shape)}, keyframe is "
+                f"{tuple(kf.X_hat.shape[:2])}"
+            )
 
 
 def _huber_cost(r: Tensor, k: float) -> Tensor:
@@ -261,12 +270,19 @@ class _Refiner:
 
 def _regularisers(s: Tensor, r_bnd: Tensor, config: DepthRefinementConfig) -> Tensor:
     """Boundary (C-Eq. 22) and prior (C-Eq. 23) energies."""
-    return config.lambda_smooth * (r_bnd ** 2).sum() + config.lambda_prior * (s ** 2).sum()
+    return config.lambda_smooth * (r_bnd**2).sum() + config.lambda_prior * (s**2).sum()
 
 
-def regularised(H: Tensor, g: Tensor, data_cost: float, s: Tensor, bnd_a: Tensor,
-                bnd_b: Tensor, delta: Tensor, config: DepthRefinementConfig
-                ) -> tuple[Tensor, Tensor, float]:
+def regularised(
+    H: Tensor,
+    g: Tensor,
+    data_cost: float,
+    s: Tensor,
+    bnd_a: Tensor,
+    bnd_b: Tensor,
+    delta: Tensor,
+    config: DepthRefinementConfig,
+) -> tuple[Tensor, Tensor, float]:
     """The data term's normal equations with the boundary (C-Eq. 22) and prior (C-Eq. 23)
     terms added: the Hessian diagonal ``(M,)``, gradient ``(M,)`` (in ``s``'s dtype) and the
     energy of C-Eq. 20.
@@ -288,14 +304,16 @@ def regularised(H: Tensor, g: Tensor, data_cost: float, s: Tensor, bnd_a: Tensor
     return H, g, energy
 
 
-def damped_step(H: Tensor, g: Tensor, s: Tensor, config: DepthRefinementConfig
-                ) -> tuple[Tensor, int]:
+def damped_step(
+    H: Tensor, g: Tensor, s: Tensor, config: DepthRefinementConfig
+) -> tuple[Tensor, int]:
     """The damped, clipped 1x1 Newton step of C-Eq. 24 from the diagonal Hessian ``H (M,)``
     and gradient ``g (M,)`` at ``s (M,)``: ``ds (M,)`` and how many entries the clip
     limited."""
     damped = H * (1.0 + config.lambda_lm)
-    ds = torch.where(damped > 0, -g / damped.clamp_min(torch.finfo(s.dtype).tiny),
-                     torch.zeros_like(g))
+    ds = torch.where(
+        damped > 0, -g / damped.clamp_min(torch.finfo(s.dtype).tiny), torch.zeros_like(g)
+    )
     clip = config.step_clip
     clipped = int((ds.abs() > clip).sum())
     return ds.clamp(-clip, clip), clipped
@@ -345,7 +363,8 @@ def refine_depths(
         return [], [], report
     pinned_set = {int(k) for k in pinned}
     problem, pixel_offsets, param_offsets = build_problem(
-        keyframes, poses, edges, _index_fn(key_to_index), labels, config, pinned_set)
+        keyframes, poses, edges, _index_fn(key_to_index), labels, config, pinned_set
+    )
     refiner = _Refiner(problem, config, huber_k)
     s = problem.s_start.clone()
     report.num_parameters = s.numel()
@@ -370,17 +389,25 @@ def refine_depths(
         count = int(lab.max()) + 1 if lab.numel() else 0
         if k in pinned_set:
             X_out.append(kf.X_hat)
-            log_scales.append(mean_log_ratio(kf.X_hat, kf.X_init.reshape(-1, 3).norm(dim=-1),
-                                              lab.to(kf.X_hat.device), count))
+            log_scales.append(
+                mean_log_ratio(
+                    kf.X_hat, kf.X_init.reshape(-1, 3).norm(dim=-1), lab.to(kf.X_hat.device), count
+                )
+            )
             continue
         rows = slice(pixel_offsets[k], pixel_offsets[k] + H * W)
-        X_out.append(written_back(kf.X_hat, depths[rows], problem.rays[rows],
-                                  problem.param[rows]))
-        log_scales.append(s[param_offsets[k]:param_offsets[k] + count])
+        X_out.append(written_back(kf.X_hat, depths[rows], problem.rays[rows], problem.param[rows]))
+        log_scales.append(s[param_offsets[k] : param_offsets[k] + count])
     report.seconds = time.perf_counter() - start
-    logger.debug("depth refinement (%s): %d params, %d matches, cost %.4g -> %.4g, max |ds| "
-                 "%.3g", report.variant, report.num_parameters, report.num_matches,
-                 report.initial_cost, report.final_cost, report.max_change)
+    logger.debug(
+        "depth refinement (%s): %d params, %d matches, cost %.4g -> %.4g, max |ds| %.3g",
+        report.variant,
+        report.num_parameters,
+        report.num_matches,
+        report.initial_cost,
+        report.final_cost,
+        report.max_change,
+    )
     return X_out, log_scales, report
 
 
@@ -392,8 +419,9 @@ def written_back(X_hat: Tensor, depths: Tensor, rays: Tensor, param: Tensor) -> 
     return torch.where((param >= 0)[:, None], points, X_hat.reshape(-1, 3)).reshape(X_hat.shape)
 
 
-def keyframe_labels(keyframes: Sequence[SegmentableKeyframe], config: DepthRefinementConfig
-                    ) -> list[Tensor]:
+def keyframe_labels(
+    keyframes: Sequence[SegmentableKeyframe], config: DepthRefinementConfig
+) -> list[Tensor]:
     """Label maps of ``config.variant`` for the keyframes' current ``X_hat`` (confidence:
     ``mean_confidence()``, comparable to one prediction's ``C``)."""
     pointmaps = ((k, kf.X_hat, kf.mean_confidence()) for k, kf in enumerate(keyframes))
@@ -424,8 +452,7 @@ def refine_keyframes(
     """
     if labels is None:
         labels = keyframe_labels(keyframes, config)
-    X_new, _, report = refine_depths(keyframes, poses, edges, key_to_index, labels, config,
-                                     pinned)
+    X_new, _, report = refine_depths(keyframes, poses, edges, key_to_index, labels, config, pinned)
     for kf, X in zip(keyframes, X_new):
         kf.X_hat = X
     return report

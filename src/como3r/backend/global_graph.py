@@ -28,9 +28,9 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Mapping, Sequence
 
 import torch
 from torch import Tensor
@@ -53,8 +53,8 @@ from como3r.frontend.pairs import PairLink
 from como3r.geometry.camera import to_focal
 from como3r.geometry.units import scene_depth
 from como3r.optim.factors import Factor
-from como3r.optim.relinearization import EdgeModels, ThresholdRelinearized
 from como3r.optim.optimizer import gauss_newton_irls
+from como3r.optim.relinearization import EdgeModels, ThresholdRelinearized
 from como3r.optim.values import PoseValues
 
 logger = logging.getLogger(__name__)
@@ -89,8 +89,9 @@ class GraphLink:
 
     def edges(self) -> tuple[Edge, Edge]:
         """The two directed factor edges of the link."""
-        return Edge(self.i, self.j, self.link.ij, self.kind), Edge(self.j, self.i, self.link.ji,
-                                                                    self.kind)
+        return Edge(self.i, self.j, self.link.ij, self.kind), Edge(
+            self.j, self.i, self.link.ji, self.kind
+        )
 
 
 @dataclass(frozen=True)
@@ -160,23 +161,43 @@ class GlobalGraph:
         """
         own = self.local_to_global.setdefault(packet.agent, [])
         if packet.kf_id != len(own):
-            raise InputError(f"coordinator: agent {packet.agent} sent keyframe {packet.kf_id} "
-                             f"but keyframe {len(own)} was expected (keyframes arrive in order)")
+            raise InputError(
+                f"coordinator: agent {packet.agent} sent keyframe {packet.kf_id} "
+                f"but keyframe {len(own)} was expected (keyframes arrive in order)"
+            )
         if packet.previous is not None:
             self.refresh(packet.agent, packet.previous)
         X_hat, K = self._corrected(packet.agent, packet.X_hat, packet.K)
-        g = self.append(Keyframe(
-            kf_id=packet.kf_id, frame_index=packet.frame_index, timestamp=packet.timestamp,
-            encoding=packet.encoding, T_WC=packet.T_WC.clone(), X_hat=X_hat,
-            C_hat=packet.C_hat, X_init=X_hat, C_init=packet.C_hat, colors=packet.colors,
-            retrieval=packet.retrieval, K=K,
-        ), packet.agent)
+        g = self.append(
+            Keyframe(
+                kf_id=packet.kf_id,
+                frame_index=packet.frame_index,
+                timestamp=packet.timestamp,
+                encoding=packet.encoding,
+                T_WC=packet.T_WC.clone(),
+                X_hat=X_hat,
+                C_hat=packet.C_hat,
+                X_init=X_hat,
+                C_init=packet.C_hat,
+                colors=packet.colors,
+                retrieval=packet.retrieval,
+                K=K,
+            ),
+            packet.agent,
+        )
         if packet.sequential_ij is not None and packet.sequential_ji is not None:
-            self.links.append(GraphLink(own[-2], g, "sequential",
-                                        PairLink(packet.sequential_ij, packet.sequential_ji)))
+            self.links.append(
+                GraphLink(
+                    own[-2], g, "sequential", PairLink(packet.sequential_ij, packet.sequential_ji)
+                )
+            )
         elif packet.kf_id > 0:
-            logger.info("agent %d keyframe %d has no sequential edge (relocalized); its chain "
-                        "is cut in the global graph", packet.agent, packet.kf_id)
+            logger.info(
+                "agent %d keyframe %d has no sequential edge (relocalized); its chain "
+                "is cut in the global graph",
+                packet.agent,
+                packet.kf_id,
+            )
         return g
 
     def append(self, kf: Keyframe, agent: int) -> int:
@@ -211,8 +232,9 @@ class GlobalGraph:
         """
         current = self.agent_focal(agent)
         if current is None:
-            raise InputError(f"coordinator: agent {agent} has no keyframe with intrinsics to "
-                             f"rescale")
+            raise InputError(
+                f"coordinator: agent {agent} has no keyframe with intrinsics to rescale"
+            )
         focal = current * math.exp(log_focal)
         for g in self.agent_keyframes(agent):
             self.keyframes[g].rescale_focal(focal)
@@ -228,8 +250,9 @@ class GlobalGraph:
             return None
         return float(self.keyframes[indices[0]].K[0, 0])
 
-    def _corrected(self, agent: int, X_hat: Tensor, K: Tensor | None
-                   ) -> tuple[Tensor, Tensor | None]:
+    def _corrected(
+        self, agent: int, X_hat: Tensor, K: Tensor | None
+    ) -> tuple[Tensor, Tensor | None]:
         """A pointmap of ``agent`` on camera ``K`` taken onto the agent's focal length in
         the map (unchanged without intrinsics or before any :meth:`rescale_focal`)."""
         if K is None or agent not in self.focal:
@@ -239,8 +262,10 @@ class GlobalGraph:
     def add_inter_link(self, i: int, j: int, link: PairLink, similarity: float) -> GraphLink:
         """Insert a verified inter-agent link between global keyframes ``i`` and ``j``."""
         if self.agent_of[i] == self.agent_of[j]:
-            raise InputError(f"coordinator: an inter-agent link needs two agents, got keyframes "
-                             f"{i} and {j} of agent {self.agent_of[i]}")
+            raise InputError(
+                f"coordinator: an inter-agent link needs two agents, got keyframes "
+                f"{i} and {j} of agent {self.agent_of[i]}"
+            )
         record = GraphLink(i, j, "inter", link, similarity)
         self.links.append(record)
         return record
@@ -307,41 +332,58 @@ class GlobalGraph:
         """
         nodes = self.connected(agents, anchor)
         chosen = set(nodes)
-        links = [(n, link) for n, link in enumerate(self.links)
-                 if link.i in chosen and link.j in chosen]
+        links = [
+            (n, link) for n, link in enumerate(self.links) if link.i in chosen and link.j in chosen
+        ]
         if not links:
             return BAResult(tuple(nodes), 0, 0.0, "no_edges", False, 0.0)
         row = {g: r for r, g in enumerate(nodes)}
         depth = self.scene_depth(agents)
         factors = [self._relinearized(links, row, depth)]
         before = self.poses(nodes)
-        pinned = torch.tensor([g == anchor or g in self.fixed for g in nodes],
-                              device=before.device)
+        pinned = torch.tensor([g == anchor or g in self.fixed for g in nodes], device=before.device)
         # float64 poses (composed and retracted in float64; the per-match work runs in the
         # pointmaps' dtype, see optim.factors); the step's translation is measured in scene
         # depths, so the tolerance holds at every scale
-        solved, report = gauss_newton_irls(factors, PoseValues(before.double(), pinned),
-                                           self.config, max_iters=max_iters,
-                                           backend=self.config.linear_solver,
-                                           length_scale=depth)
+        solved, report = gauss_newton_irls(
+            factors,
+            PoseValues(before.double(), pinned),
+            self.config,
+            max_iters=max_iters,
+            backend=self.config.linear_solver,
+            length_scale=depth,
+        )
         after = solved.poses.to(before.dtype)
         problem = "solver refused a step" if report.diverged else _implausible(before, after)
         if problem:
-            logger.warning("global BA over agents %s diverged (%s); previous poses restored",
-                           list(agents), problem)
-            return BAResult(tuple(nodes), report.iterations, report.seconds, report.reason,
-                            True, 0.0)
+            logger.warning(
+                "global BA over agents %s diverged (%s); previous poses restored",
+                list(agents),
+                problem,
+            )
+            return BAResult(
+                tuple(nodes), report.iterations, report.seconds, report.reason, True, 0.0
+            )
         self.set_poses(nodes, after)
         change = float((after[:, :3] - before[:, :3]).norm(dim=-1).max())
-        logger.debug("global BA over %d keyframes: %d iterations (%s), %d edges with a "
-                     "model, %d of %d edge linearizations over the matches, max move %.4g",
-                     len(nodes), report.iterations, report.reason, factors[0].reused,
-                     factors[0].linearized, factors[0].num_edges * report.iterations, change)
-        return BAResult(tuple(nodes), report.iterations, report.seconds, report.reason, False,
-                        change)
+        logger.debug(
+            "global BA over %d keyframes: %d iterations (%s), %d edges with a "
+            "model, %d of %d edge linearizations over the matches, max move %.4g",
+            len(nodes),
+            report.iterations,
+            report.reason,
+            factors[0].reused,
+            factors[0].linearized,
+            factors[0].num_edges * report.iterations,
+            change,
+        )
+        return BAResult(
+            tuple(nodes), report.iterations, report.seconds, report.reason, False, change
+        )
 
-    def _relinearized(self, links: Sequence[tuple[int, GraphLink]], row: dict[int, int],
-                      depth: float) -> ThresholdRelinearized:
+    def _relinearized(
+        self, links: Sequence[tuple[int, GraphLink]], row: dict[int, int], depth: float
+    ) -> ThresholdRelinearized:
         """The solve's factor over the directed edges of ``links`` (by position in
         :attr:`links`): each edge's model kept from earlier solves while its endpoints'
         pointmaps stay (:attr:`versions`), its dense factors built when it needs them."""
@@ -351,25 +393,40 @@ class GlobalGraph:
         device = edges[0].matches.idx.device
         return ThresholdRelinearized(
             torch.tensor([row[e.i] for e in edges], device=device),
-            torch.tensor([row[e.j] for e in edges], device=device), keys, stamps,
-            self.edge_models, lambda positions: self._factors(edges, positions, row),
-            self.config.relinearize_tol, depth)
+            torch.tensor([row[e.j] for e in edges], device=device),
+            keys,
+            stamps,
+            self.edge_models,
+            lambda positions: self._factors(edges, positions, row),
+            self.config.relinearize_tol,
+            depth,
+        )
 
-    def _factors(self, edges: Sequence[Edge], positions: Sequence[int], row: dict[int, int]
-                 ) -> list[tuple[Factor, list[int]]]:
+    def _factors(
+        self, edges: Sequence[Edge], positions: Sequence[int], row: dict[int, int]
+    ) -> list[tuple[Factor, list[int]]]:
         """Factor batches over the ``edges`` at ``positions``
         (:func:`~como3r.frontend.graph.build_factors`: their valid matches only), each with
         the positions of its edges. A batch pads its edges to its largest match count, so
         edges are batched by match count (:data:`EDGES_PER_BATCH` at a time) to keep the
         padding small."""
         order = sorted(positions, key=lambda p: int(edges[p].matches.valid.sum()))
-        return [(build_factors([edges[p] for p in order[s:s + EDGES_PER_BATCH]],
-                               self.keyframes.__getitem__, row.__getitem__, self.tracking),
-                 order[s:s + EDGES_PER_BATCH])
-                for s in range(0, len(order), EDGES_PER_BATCH)]
+        return [
+            (
+                build_factors(
+                    [edges[p] for p in order[s : s + EDGES_PER_BATCH]],
+                    self.keyframes.__getitem__,
+                    row.__getitem__,
+                    self.tracking,
+                ),
+                order[s : s + EDGES_PER_BATCH],
+            )
+            for s in range(0, len(order), EDGES_PER_BATCH)
+        ]
 
-    def freeze_refinement_base(self, agents: Sequence[int],
-                               parking: KeyframeParking | None = None) -> None:
+    def freeze_refinement_base(
+        self, agents: Sequence[int], parking: KeyframeParking | None = None
+    ) -> None:
         """Make every keyframe's current fused pointmap the base ``X_init`` of C-Eq. 19.
 
         C-Eq. 19 rebuilds each refined point from the insertion-time prediction, which
@@ -386,10 +443,16 @@ class GlobalGraph:
                 kf = self.keyframes[g]
                 self._set_pointmaps(g, {"X_init": read_fields(kf, "X_hat")}, parking)
 
-    def segment(self, agents: Sequence[int], anchor: int, config: DepthRefinementConfig,
-                parking: KeyframeParking | None = None) -> LabelMaps:
+    def segment(
+        self,
+        agents: Sequence[int],
+        anchor: int,
+        config: DepthRefinementConfig,
+        parking: KeyframeParking | None = None,
+    ) -> LabelMaps:
         """Label maps (C-Sec. A.6) of the keyframes reachable from ``anchor``, by global
         index; a paged-out keyframe's kept in ``parking`` (None: all in memory)."""
+
         def pointmaps() -> Iterator[tuple[int, Tensor, Tensor]]:
             for g in self.connected(agents, anchor):
                 kf = self.keyframes[g]
@@ -401,9 +464,15 @@ class GlobalGraph:
             labels.keep(g, label_map, parked=paged_out(self.keyframes[g]))
         return labels
 
-    def refine_depths(self, agents: Sequence[int], anchor: int, config: DepthRefinementConfig,
-                      labels: Mapping[int, Tensor], parking: KeyframeParking | None = None,
-                      spill_dir: Path | None = None) -> DepthRefinementReport:
+    def refine_depths(
+        self,
+        agents: Sequence[int],
+        anchor: int,
+        config: DepthRefinementConfig,
+        labels: Mapping[int, Tensor],
+        parking: KeyframeParking | None = None,
+        spill_dir: Path | None = None,
+    ) -> DepthRefinementReport:
         """One depth step (C-Sec. A.7 step 2b-2c; C-Eq. 19-24) at the current poses.
 
         The log-scales of the keyframes reachable from ``anchor`` are refined over the
@@ -426,25 +495,33 @@ class GlobalGraph:
         links = [link for link in self.links if link.i in row and link.j in row]
 
         def edges(chosen: Sequence[int]) -> list[Edge]:
-            return [Edge(row[e.i], row[e.j], e.matches, e.kind)
-                    for n in chosen for e in links[n].edges()]
+            return [
+                Edge(row[e.i], row[e.j], e.matches, e.kind)
+                for n in chosen
+                for e in links[n].edges()
+            ]
 
         def read(r: int) -> Pointmaps:
             return Pointmaps(*read_fields(self.keyframes[nodes[r]], "X_hat", "X_init"))
 
         return refine_in_chunks(
-            len(nodes), read, self.poses(nodes),
+            len(nodes),
+            read,
+            self.poses(nodes),
             chunk_edges([(row[link.i], row[link.j]) for link in links], edges),
-            lambda r: labels[nodes[r]], config,
+            lambda r: labels[nodes[r]],
+            config,
             lambda r, X: self._set_pointmaps(nodes[r], {"X_hat": X}, parking),
             pinned=[row[g] for g in nodes if g == anchor or g in self.fixed],
             # a chunk of resident keyframes keeps its problem in memory; one with paged-out
             # keyframes is spilled, or the step would hold the whole map's problem
             keep=lambda rows: not any(paged_out(self.keyframes[nodes[r]]) for r in rows),
-            spill_dir=spill_dir)
+            spill_dir=spill_dir,
+        )
 
-    def _set_pointmaps(self, g: int, values: dict[str, Tensor],
-                       parking: KeyframeParking | None) -> None:
+    def _set_pointmaps(
+        self, g: int, values: dict[str, Tensor], parking: KeyframeParking | None
+    ) -> None:
         """Set pointmap fields of keyframe ``g``: parked if it is paged out and a parking is
         given, else in the keyframe."""
         kf = self.keyframes[g]

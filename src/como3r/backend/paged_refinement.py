@@ -95,8 +95,9 @@ class Chunk:
     edges: Callable[[], list[Edge]]
 
 
-def chunk_edges(ends: Sequence[tuple[int, int]], make: Callable[[Sequence[int]], list[Edge]]
-                ) -> list[Chunk]:
+def chunk_edges(
+    ends: Sequence[tuple[int, int]], make: Callable[[Sequence[int]], list[Edge]]
+) -> list[Chunk]:
     """Links grouped into chunks by their later endpoint, :data:`KEYFRAMES_PER_CHUNK`
     keyframes per chunk.
 
@@ -108,9 +109,10 @@ def chunk_edges(ends: Sequence[tuple[int, int]], make: Callable[[Sequence[int]],
     groups: dict[int, list[int]] = {}
     for n, (i, j) in enumerate(ends):
         groups.setdefault(max(i, j) // KEYFRAMES_PER_CHUNK, []).append(n)
-    return [Chunk(tuple(sorted({r for n in links for r in ends[n]})),
-                  lambda links=links: make(links))
-            for _, links in sorted(groups.items())]
+    return [
+        Chunk(tuple(sorted({r for n in links for r in ends[n]})), lambda links=links: make(links))
+        for _, links in sorted(groups.items())
+    ]
 
 
 #: a chunk's flattened data problem as kept: the problem, or on CPU the match streams
@@ -125,8 +127,9 @@ def _data_problem(*args: object, **kwargs: object) -> Problem:
     return build_problem(*args, data_only=True, **kwargs)[0]
 
 
-def _stream_terms(s: Tensor, with_blocks: bool, streams: MatchStreams, huber_k: float
-                  ) -> tuple[Tensor, Tensor, float]:
+def _stream_terms(
+    s: Tensor, with_blocks: bool, streams: MatchStreams, huber_k: float
+) -> tuple[Tensor, Tensor, float]:
     return depth_normal_equations(s, streams, huber_k, with_blocks)
 
 
@@ -150,8 +153,9 @@ class ProblemSpill:
         self._spill: KeyframeSpill | None = None  # made when something is first saved
         # per chunk: its type, and (field, dtype, device, shape, stored numpy dtype) in file
         # order
-        self._layout: dict[int, tuple[type, list[tuple[str, torch.dtype, torch.device,
-                                                        tuple[int, ...], np.dtype]]]] = {}
+        self._layout: dict[
+            int, tuple[type, list[tuple[str, torch.dtype, torch.device, tuple[int, ...], np.dtype]]]
+        ] = {}
         #: bytes written by the step (its disk use), a figure for the log and tests
         self.bytes = 0
 
@@ -167,13 +171,16 @@ class ProblemSpill:
             for f in fields(problem):
                 tensor: Tensor = getattr(problem, f.name)
                 array = tensor.detach().cpu().contiguous().numpy()
-                if tensor.dtype == torch.int64 and (not tensor.numel() or (
-                        int(tensor.min()) >= -2**31 and int(tensor.max()) < 2**31)):
+                if tensor.dtype == torch.int64 and (
+                    not tensor.numel()
+                    or (int(tensor.min()) >= -(2**31) and int(tensor.max()) < 2**31)
+                ):
                     array = array.astype(np.int32)
                 array.tofile(file)
                 self.bytes += array.nbytes
-                layout.append((f.name, tensor.dtype, tensor.device, tuple(tensor.shape),
-                               array.dtype))
+                layout.append(
+                    (f.name, tensor.dtype, tensor.device, tuple(tensor.shape), array.dtype)
+                )
         self._layout[n] = (type(problem), layout)
 
     def load(self, n: int) -> ChunkData:
@@ -183,8 +190,7 @@ class ProblemSpill:
         with open(self._path(n), "rb") as file:
             for name, dtype, device, shape, stored in layout:
                 array = np.fromfile(file, dtype=stored, count=math.prod(shape))
-                values[name] = torch.from_numpy(array).reshape(shape).to(dtype=dtype,
-                                                                         device=device)
+                values[name] = torch.from_numpy(array).reshape(shape).to(dtype=dtype, device=device)
         return kind(**values)
 
     def close(self) -> None:
@@ -282,9 +288,16 @@ def refine_in_chunks(
     for r in range(count):
         kf, lab = read(r), labels(r)
         ranges[r] = float(median_range(kf.X_hat))  # whitens C-Eq. 21 (edges out of r)
-        _check_inputs([kf], poses[r:r + 1], [lab], config)
-        alone, _, _ = build_problem([kf], poses[r:r + 1], [], {}.__getitem__, [lab], config,
-                                     {0} if r in pinned_rows else set())
+        _check_inputs([kf], poses[r : r + 1], [lab], config)
+        alone, _, _ = build_problem(
+            [kf],
+            poses[r : r + 1],
+            [],
+            {}.__getitem__,
+            [lab],
+            config,
+            {0} if r in pinned_rows else set(),
+        )
         offsets.append(num_params)
         sizes.append(alone.s_start.numel())
         s_parts.append(alone.s_start)
@@ -311,10 +324,15 @@ def refine_in_chunks(
             keyframes = [read(r) for r in chunk.rows]
             build = chunk_streams if keyframes[0].X_init.device.type == "cpu" else _data_problem
             data = build(
-                keyframes, poses[list(chunk.rows)], chunk.edges(), position.__getitem__,
-                [labels(r) for r in chunk.rows], config,
+                keyframes,
+                poses[list(chunk.rows)],
+                chunk.edges(),
+                position.__getitem__,
+                [labels(r) for r in chunk.rows],
+                config,
                 {position[r] for r in chunk.rows if r in pinned_rows},
-                ranges=[float(ranges[r]) for r in chunk.rows])
+                ranges=[float(ranges[r]) for r in chunk.rows],
+            )
             in_memory = keep(chunk.rows)
             if not in_memory and num_params and config.inner_iters > 0:  # read again later
                 spill.save(n, data)
@@ -334,8 +352,12 @@ def refine_in_chunks(
         for n, chunk in enumerate(chunks):
             terms, matches = chunk_terms(n, chunk)
             report.num_matches += matches
-            index = torch.cat([torch.arange(offsets[r], offsets[r] + sizes[r],
-                                            device=s.device) for r in chunk.rows])
+            index = torch.cat(
+                [
+                    torch.arange(offsets[r], offsets[r] + sizes[r], device=s.device)
+                    for r in chunk.rows
+                ]
+            )
             H_c, g_c, cost_c = terms(s[index], with_blocks)
             if with_blocks:
                 H.index_add_(0, index, H_c.to(H))
@@ -368,13 +390,23 @@ def refine_in_chunks(
         if r in pinned_rows:
             continue
         kf = read(r)
-        alone, _, _ = build_problem([kf], poses[r:r + 1], [], {}.__getitem__, [labels(r)],
-                                     config, set(), data_only=True)
-        depths = _Refiner(alone, config, huber_k).depths(s[offsets[r]:offsets[r] + sizes[r]])
+        alone, _, _ = build_problem(
+            [kf], poses[r : r + 1], [], {}.__getitem__, [labels(r)], config, set(), data_only=True
+        )
+        depths = _Refiner(alone, config, huber_k).depths(s[offsets[r] : offsets[r] + sizes[r]])
         write(r, written_back(kf.X_hat, depths, alone.rays, alone.param))
     report.seconds = time.perf_counter() - start
-    logger.debug("depth refinement (%s) in %d chunk(s), %d kept, %.1f MB spilled: %d params, "
-                 "%d matches, cost %.4g -> %.4g, max |ds| %.3g", report.variant, len(chunks),
-                 kept_count, spilled / 2**20, report.num_parameters, report.num_matches,
-                 report.initial_cost, report.final_cost, report.max_change)
+    logger.debug(
+        "depth refinement (%s) in %d chunk(s), %d kept, %.1f MB spilled: %d params, "
+        "%d matches, cost %.4g -> %.4g, max |ds| %.3g",
+        report.variant,
+        len(chunks),
+        kept_count,
+        spilled / 2**20,
+        report.num_parameters,
+        report.num_matches,
+        report.initial_cost,
+        report.final_cost,
+        report.max_change,
+    )
     return report

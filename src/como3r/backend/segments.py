@@ -144,7 +144,8 @@ def segment_keyframe(X: Tensor, C: Tensor, config: DepthRefinementConfig) -> Ten
         raise ConfigError(
             f"depth: slic_segments ({config.slic_segments}) and min_valid_pixels "
             f"({config.min_valid_pixels}) must be >= 1, slic_compactness "
-            f"({config.slic_compactness}) positive")
+            f"({config.slic_compactness}) positive"
+        )
     valid = valid_pixels(X, C, config.slic_min_confidence)
     raw = slic(
         geometry_features(X),
@@ -183,9 +184,11 @@ def parameter_labels(X: Tensor, C: Tensor, config: DepthRefinementConfig) -> Ten
     return pixel_labels(X, C, config)
 
 
-def labels_in_order(pointmaps: Iterable[tuple[Key, Tensor, Tensor]],
-                    config: DepthRefinementConfig, workers: int | None = None
-                    ) -> Iterator[tuple[Key, Tensor]]:
+def labels_in_order(
+    pointmaps: Iterable[tuple[Key, Tensor, Tensor]],
+    config: DepthRefinementConfig,
+    workers: int | None = None,
+) -> Iterator[tuple[Key, Tensor]]:
     """:func:`parameter_labels` of every ``(key, X (H, W, 3), C (H, W))`` of ``pointmaps``,
     yielded as ``(key, labels)`` in their order, computed by ``workers`` threads (None:
     ``torch.get_num_threads()``). SLIC releases the GIL: six 512x384 keyframes took 0.56 s

@@ -35,8 +35,8 @@ against itself, 0.02-0.1 against overlapping views and below 0.005 against unrel
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import numpy as np
 from torch import Tensor
@@ -59,8 +59,9 @@ class CrossAgentRetrieval:
         self.database = RetrievalDatabase(codebook, config)
         self.queries = 0
 
-    def query_and_add(self, agent: int, kf_id: int,
-                      retrieval: tuple[Tensor | Quantized, Tensor]) -> list[Hit]:
+    def query_and_add(
+        self, agent: int, kf_id: int, retrieval: tuple[Tensor | Quantized, Tensor]
+    ) -> list[Hit]:
         """Candidates of OTHER agents for keyframe ``(agent, kf_id)``, then index it.
 
         Args:
@@ -81,8 +82,9 @@ class CrossAgentRetrieval:
 DECODES_PER_CANDIDATE = 2
 
 
-def budget_candidates(hits: Sequence[Hit], merged: Callable[[int], bool],
-                      verification: VerificationConfig) -> list[Hit]:
+def budget_candidates(
+    hits: Sequence[Hit], merged: Callable[[int], bool], verification: VerificationConfig
+) -> list[Hit]:
     """The retrieval hits one keyframe verifies, best first, within its decode budget.
 
     Args:
@@ -182,8 +184,9 @@ def verify_candidates(
     first: dict[int, tuple[DirectedMatches, float | None]] = {}
 
     def passes(matches: DirectedMatches, covisible: float | None) -> bool:
-        return direction_passes(matches, covisible, verification.tau_inter,
-                                verification.min_covisible_ratio)
+        return direction_passes(
+            matches, covisible, verification.tau_inter, verification.min_covisible_ratio
+        )
 
     def screen(k: int, ij: DirectedMatches, covisible: float | None) -> bool:
         first[k] = (ij, covisible)
@@ -191,13 +194,27 @@ def verify_candidates(
 
     # a pair whose first direction fails cannot pass (C-Eq. 12 takes the minimum over both
     # directions, the co-visibility test the smaller ratio): its second matching is skipped
-    links = link_pairs(prior, [(enc, query_encoding) for _, enc in candidates], matching, q_min,
-                       verification.covisible_min_confidence, screen=screen)
+    links = link_pairs(
+        prior,
+        [(enc, query_encoding) for _, enc in candidates],
+        matching,
+        q_min,
+        verification.covisible_min_confidence,
+        screen=screen,
+    )
     results = []
     for k, ((hit, _), link) in enumerate(zip(candidates, links)):
         ij, covisible_j = first[k]
-        results.append(Verification(
-            (hit.agent, hit.keyframe), query, hit.similarity, ij, covisible_j, link,
-            None if link is None else link.covisible_ji,
-            accepted=link is not None and passes(link.ji, link.covisible_ji)))
+        results.append(
+            Verification(
+                (hit.agent, hit.keyframe),
+                query,
+                hit.similarity,
+                ij,
+                covisible_j,
+                link,
+                None if link is None else link.covisible_ji,
+                accepted=link is not None and passes(link.ji, link.covisible_ji),
+            )
+        )
     return results

@@ -42,9 +42,10 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Mapping, Protocol, Sequence
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -54,8 +55,12 @@ from como3r.backend.alternation import AlternationReport, AlternationSettings, a
 from como3r.backend.depth_refinement import DepthRefinementReport
 from como3r.backend.global_graph import BAResult, GlobalGraph, GraphLink
 from como3r.config import Config, DepthRefinementConfig
-from como3r.coordination.association import (CrossAgentRetrieval, Verification,
-                                             budget_candidates, verify_candidates)
+from como3r.coordination.association import (
+    CrossAgentRetrieval,
+    Verification,
+    budget_candidates,
+    verify_candidates,
+)
 from como3r.coordination.gauge import (
     GaugeComponents,
     GaugeTransform,
@@ -213,25 +218,38 @@ class _ComponentCleanup:
             keyframes (``session.spill_dir``; None: the system's temporary folder).
     """
 
-    def __init__(self, graph: GlobalGraph, members: Sequence[int], anchor: int,
-                 depth: DepthRefinementConfig, parking: KeyframeParking,
-                 spill_dir: Path | None = None) -> None:
+    def __init__(
+        self,
+        graph: GlobalGraph,
+        members: Sequence[int],
+        anchor: int,
+        depth: DepthRefinementConfig,
+        parking: KeyframeParking,
+        spill_dir: Path | None = None,
+    ) -> None:
         self.graph, self.members, self.anchor, self.depth = graph, members, anchor, depth
         self.parking, self.spill_dir = parking, spill_dir
         self.results: list[BAResult] = []
         self.depth_reports: list[DepthRefinementReport] = []
         self.snapshot: dict[int, list[MapSnapshot]] = {}
         self.labels: Mapping[int, Tensor] = {}
-        self.paged = [graph.keyframes[g] for a in members for g in graph.agent_keyframes(a)
-                      if paged_out(graph.keyframes[g])]
+        self.paged = [
+            graph.keyframes[g]
+            for a in members
+            for g in graph.agent_keyframes(a)
+            if paged_out(graph.keyframes[g])
+        ]
 
     def pose_pass(self, max_iters: int) -> float:
         """A global pose solve; its largest camera move over the component's scene depth
         (0 if it kept the poses)."""
         result = self.graph.optimize(self.members, self.anchor, max_iters)
         self.results.append(result)
-        change = (result.max_translation_change / self.graph.scene_depth(self.members)
-                  if result.moved else 0.0)
+        change = (
+            result.max_translation_change / self.graph.scene_depth(self.members)
+            if result.moved
+            else 0.0
+        )
         for kf in self.paged:
             kf.release()
         return change
@@ -240,13 +258,18 @@ class _ComponentCleanup:
         """Segments, log-scale refinement, write-back; its ``max |ds|``."""
         graph, parking = self.graph, self.parking
         if not self.snapshot:
-            self.snapshot = {a: [MapSnapshot.of(graph.keyframes[g], parking, g)
-                                 for g in graph.agent_keyframes(a)] for a in self.members}
+            self.snapshot = {
+                a: [
+                    MapSnapshot.of(graph.keyframes[g], parking, g) for g in graph.agent_keyframes(a)
+                ]
+                for a in self.members
+            }
             if self.depth.refine_from == "fused":
                 graph.freeze_refinement_base(self.members, parking)
             self.labels = graph.segment(self.members, self.anchor, self.depth, parking)
-        report = graph.refine_depths(self.members, self.anchor, self.depth, self.labels,
-                                     parking, spill_dir=self.spill_dir)
+        report = graph.refine_depths(
+            self.members, self.anchor, self.depth, self.labels, parking, spill_dir=self.spill_dir
+        )
         self.depth_reports.append(report)
         return report.max_change
 
@@ -276,8 +299,10 @@ class Candidate:
         """Both directions' matches; only verified candidates reach the code that asks."""
         link = self.verification.link
         if link is None or not self.verification.accepted:
-            raise Como3rError(f"candidate {self.verification.candidate}-"
-                              f"{self.verification.query} was not verified")
+            raise Como3rError(
+                f"candidate {self.verification.candidate}-"
+                f"{self.verification.query} was not verified"
+            )
         return link
 
 
@@ -285,8 +310,9 @@ class Journal(Protocol):
     """Where the coordinator's durable state goes as it changes: the session store
     (:class:`como3r.runtime.store.SessionStore`)."""
 
-    def record(self, coordinator: Coordinator, updates: Sequence[PoseUpdate],
-               finished: bool = False) -> None:
+    def record(
+        self, coordinator: Coordinator, updates: Sequence[PoseUpdate], finished: bool = False
+    ) -> None:
         """Keep the state after one message's effect (one transaction); ``updates`` are the
         pose updates it made, ``finished`` says the terminal cleanup ran."""
 
@@ -301,8 +327,9 @@ class Coordinator:
         num_agents: number of agents; agent ids are ``0 .. num_agents - 1``.
     """
 
-    def __init__(self, prior: Prior, config: Config, codebook: np.ndarray | None,
-                 num_agents: int) -> None:
+    def __init__(
+        self, prior: Prior, config: Config, codebook: np.ndarray | None, num_agents: int
+    ) -> None:
         if num_agents < 1:
             raise InputError(f"coordinator: num_agents must be >= 1, got {num_agents}")
         self.config = config
@@ -358,8 +385,9 @@ class Coordinator:
                 another frame than the one held.
         """
         if not 0 <= packet.agent < self.num_agents:
-            raise InputError(f"coordinator: agent id {packet.agent} is out of range for "
-                             f"{self.num_agents} agents")
+            raise InputError(
+                f"coordinator: agent id {packet.agent} is out of range for {self.num_agents} agents"
+            )
         if packet.kf_id < len(self.graph.agent_keyframes(packet.agent)):
             return self._record(self._count(self._resent(packet)))
         g = self.graph.add_keyframe(packet)
@@ -369,8 +397,13 @@ class Coordinator:
             updates.extend(self._admit(candidate))
         if self._new_edges >= self.config.global_ba.trigger_interval_edges:
             updates.extend(self._global_ba())
-        logger.debug("coordinator: keyframe %d (agent %d, kf %d): %d update(s)",
-                     g, packet.agent, packet.kf_id, len(updates))
+        logger.debug(
+            "coordinator: keyframe %d (agent %d, kf %d): %d update(s)",
+            g,
+            packet.agent,
+            packet.kf_id,
+            len(updates),
+        )
         return self._record(self._count(updates))
 
     def refresh(self, agent: int, refresh: PointmapRefresh) -> None:
@@ -378,8 +411,9 @@ class Coordinator:
         self.graph.refresh(agent, refresh)
         self._record([])
 
-    def finish(self, agent_poses: Mapping[int, Tensor] | None = None,
-               progress: PhaseCallback | None = None) -> Cleanup:
+    def finish(
+        self, agent_poses: Mapping[int, Tensor] | None = None, progress: PhaseCallback | None = None
+    ) -> Cleanup:
         """Terminal cleanup of every component (C-Sec. A.7): the pose-depth alternation.
 
         A multi-agent component runs the whole schedule (global pose passes, then rounds of
@@ -406,7 +440,8 @@ class Coordinator:
         settings = AlternationSettings.from_config(self.config.global_ba, self.config.depth)
         for members in self.components():
             if not self.graph.agent_keyframes(members[0]) or any(
-                    set(members) <= done for done in self.refined):
+                set(members) <= done for done in self.refined
+            ):
                 continue
             multi_agent = len(members) > 1
             if not multi_agent:
@@ -416,10 +451,15 @@ class Coordinator:
             scoped = _scoped(progress, members)
             if multi_agent:
                 self._refine_focals(members, scoped)
-            component = _ComponentCleanup(self.graph, members, self._anchor(members[0]),
-                                          self.config.depth, parking, spill)
-            report = alternate(component.pose_pass if multi_agent else None,
-                               component.depth_step, settings, progress=scoped)
+            component = _ComponentCleanup(
+                self.graph, members, self._anchor(members[0]), self.config.depth, parking, spill
+            )
+            report = alternate(
+                component.pose_pass if multi_agent else None,
+                component.depth_step,
+                settings,
+                progress=scoped,
+            )
             self._record_cleanup(members, component, report)
             if multi_agent:
                 cleanup.updates.extend(self._updates(members, "cleanup"))
@@ -430,9 +470,15 @@ class Coordinator:
         self._record(self._count(cleanup.updates), finished=True)
         return cleanup
 
-    def restore(self, graph: GlobalGraph, gauges: GaugeComponents,
-                candidates: list[Candidate], stats: CoordinatorStats,
-                gauge_events: list[dict[str, Any]], backlog: tuple[int, list[int]]) -> None:
+    def restore(
+        self,
+        graph: GlobalGraph,
+        gauges: GaugeComponents,
+        candidates: list[Candidate],
+        stats: CoordinatorStats,
+        gauge_events: list[dict[str, Any]],
+        backlog: tuple[int, list[int]],
+    ) -> None:
         """Continue from a stored state (:meth:`como3r.runtime.store.SessionStore.open`):
         the graph, gauge components, candidates (the pending ones wait again), counters,
         gauge events and the BA backlog. The caller rebuilds the retrieval database."""
@@ -457,14 +503,22 @@ class Coordinator:
         indices = self.graph.agent_keyframes(packet.agent)
         held = self.graph.keyframes[indices[packet.kf_id]]
         if held.frame_index != packet.frame_index:
-            raise InputError(f"coordinator: agent {packet.agent} re-sent keyframe "
-                             f"{packet.kf_id} at frame {packet.frame_index}, but the stored "
-                             f"session has it at frame {held.frame_index}")
+            raise InputError(
+                f"coordinator: agent {packet.agent} re-sent keyframe "
+                f"{packet.kf_id} at frame {packet.frame_index}, but the stored "
+                f"session has it at frame {held.frame_index}"
+            )
         if packet.kf_id < len(indices) - 1:
             return []
-        return [PoseUpdate(agent=packet.agent, kf_ids=torch.arange(len(indices)),
-                           T_WC=self.graph.poses(indices).clone(), reason="resume",
-                           focal=self.graph.focal.get(packet.agent))]
+        return [
+            PoseUpdate(
+                agent=packet.agent,
+                kf_ids=torch.arange(len(indices)),
+                T_WC=self.graph.poses(indices).clone(),
+                reason="resume",
+                focal=self.graph.focal.get(packet.agent),
+            )
+        ]
 
     def current_poses(self, agent: int, reason: str) -> PoseUpdate | None:
         """An update with the current poses of all of ``agent``'s keyframes (None before
@@ -496,30 +550,38 @@ class Coordinator:
             return
         indices = self.graph.agent_keyframes(agent)
         if T_WC.shape != (len(indices), 8):
-            raise InputError(f"coordinator: agent {agent} reported final poses of shape "
-                             f"{tuple(T_WC.shape)} for the {len(indices)} keyframes it sent")
+            raise InputError(
+                f"coordinator: agent {agent} reported final poses of shape "
+                f"{tuple(T_WC.shape)} for the {len(indices)} keyframes it sent"
+            )
         self.graph.set_poses(indices, T_WC)
 
-    def _record_cleanup(self, members: list[int], component: _ComponentCleanup,
-                        report: AlternationReport) -> None:
+    def _record_cleanup(
+        self, members: list[int], component: _ComponentCleanup, report: AlternationReport
+    ) -> None:
         self.stats.cleanup_passes += len(component.results)
         self.stats.cleanup_iterations += sum(r.iterations for r in component.results)
         self.stats.cleanup_seconds += sum(r.seconds for r in component.results)
         depth = component.depth_reports
-        self.alternation.append({
-            "agents": list(members), **report.to_json(),
-            "depth_variant": self.config.depth.variant,
-            "depth_parameters": depth[-1].num_parameters if depth else 0,
-            "depth_matches": depth[-1].num_matches if depth else 0,
-            "depth_iterations": sum(r.iterations for r in depth),
-        })
+        self.alternation.append(
+            {
+                "agents": list(members),
+                **report.to_json(),
+                "depth_variant": self.config.depth.variant,
+                "depth_parameters": depth[-1].num_parameters if depth else 0,
+                "depth_matches": depth[-1].num_matches if depth else 0,
+                "depth_iterations": sum(r.iterations for r in depth),
+            }
+        )
 
     def _pointmaps(self, agent: int) -> PointmapUpdate:
         """An update with the current pointmaps of all of ``agent``'s keyframes."""
         indices = self.graph.agent_keyframes(agent)
         return PointmapUpdate(
-            agent=agent, kf_ids=torch.arange(len(indices), dtype=torch.int64),
-            X_hat=torch.stack([read_fields(self.graph.keyframes[g], "X_hat") for g in indices]))
+            agent=agent,
+            kf_ids=torch.arange(len(indices), dtype=torch.int64),
+            X_hat=torch.stack([read_fields(self.graph.keyframes[g], "X_hat") for g in indices]),
+        )
 
     def components(self) -> list[list[int]]:
         """Gauge components (sorted agent lists), agent 0's first."""
@@ -528,8 +590,14 @@ class Coordinator:
     def graph_document(self) -> dict[str, Any]:
         """JSON-ready graph: keyframes, intra/inter edges with scores, candidates, components."""
         keyframes = [
-            {"global": g, "agent": self.graph.agent_of[g], "keyframe": kf.kf_id,
-             "frame": kf.frame_index, "timestamp": kf.timestamp, "T_WC": kf.T_WC.tolist()}
+            {
+                "global": g,
+                "agent": self.graph.agent_of[g],
+                "keyframe": kf.kf_id,
+                "frame": kf.frame_index,
+                "timestamp": kf.timestamp,
+                "T_WC": kf.T_WC.tolist(),
+            }
             for g, kf in enumerate(self.graph.keyframes)
         ]
         return {
@@ -564,29 +632,42 @@ class Coordinator:
             return []
         start = time.perf_counter()
         descriptors, attention = packet.retrieval
-        if (packet.retrieval_words is not None
-                and packet.codebook_id == self.retrieval.database.codebook_id):
+        if (
+            packet.retrieval_words is not None
+            and packet.codebook_id == self.retrieval.database.codebook_id
+        ):
             descriptors = Quantized(descriptors, packet.retrieval_words)  # the agent's search
         hits = self.retrieval.query_and_add(packet.agent, packet.kf_id, (descriptors, attention))
         self.stats.retrieval_queries += 1
         middle = time.perf_counter()
         self.stats.add_time("retrieval", middle - start)
         root = self.gauges.find(packet.agent)
-        hits = budget_candidates(hits, lambda agent: self.gauges.find(agent) == root,
-                                 self.config.verification)
+        hits = budget_candidates(
+            hits, lambda agent: self.gauges.find(agent) == root, self.config.verification
+        )
         if not hits:
             return []
-        candidates = [(h, self.graph.keyframes[self.graph.global_index(h.agent, h.keyframe)]
-                       .encoding) for h in hits]
+        candidates = [
+            (h, self.graph.keyframes[self.graph.global_index(h.agent, h.keyframe)].encoding)
+            for h in hits
+        ]
         decoded = self.stats.stage_seconds.get("prior_decode", 0.0)
         verifications = verify_candidates(
-            self.prior, (packet.agent, packet.kf_id), packet.encoding, candidates,
-            self.config.matching, self.config.tracking.q_min, self.config.verification)
+            self.prior,
+            (packet.agent, packet.kf_id),
+            packet.encoding,
+            candidates,
+            self.config.matching,
+            self.config.tracking.q_min,
+            self.config.verification,
+        )
         decoded = self.stats.stage_seconds.get("prior_decode", 0.0) - decoded
         self.stats.add_time("verification", time.perf_counter() - middle - decoded)
         self.stats.edges_tried += len(verifications)
-        records = [Candidate(v, self.graph.global_index(*v.candidate),
-                             self.graph.global_index(*v.query)) for v in verifications]
+        records = [
+            Candidate(v, self.graph.global_index(*v.candidate), self.graph.global_index(*v.query))
+            for v in verifications
+        ]
         self.candidates.extend(records)
         verified = [c for c in records if c.verification.accepted]
         self.stats.edges_verified += len(verified)
@@ -609,9 +690,12 @@ class Coordinator:
         if candidate.residual_ratio > self.config.verification.max_residual_ratio:
             candidate.status = "inconsistent"
             self.stats.edges_inconsistent += 1
-            logger.info("coordinator: edge %s-%s disagrees with the poses (ratio %.3f); "
-                        "rejected", candidate.verification.candidate,
-                        candidate.verification.query, candidate.residual_ratio)
+            logger.info(
+                "coordinator: edge %s-%s disagrees with the poses (ratio %.3f); rejected",
+                candidate.verification.candidate,
+                candidate.verification.query,
+                candidate.residual_ratio,
+            )
             return
         if not self._scale_agrees(candidate, x_j, x_i, q):
             return
@@ -627,10 +711,14 @@ class Coordinator:
         candidate.status = "inconsistent"
         self.stats.edges_inconsistent += 1
         self.stats.edges_scale_inconsistent += 1
-        logger.warning("coordinator: scale alarm: edge %s-%s would rescale the map by %.3f "
-                       "(threshold exp(%.3f)); held back", candidate.verification.candidate,
-                       candidate.verification.query, math.exp(log_scale),
-                       self.config.gauge.scale_alarm_log)
+        logger.warning(
+            "coordinator: scale alarm: edge %s-%s would rescale the map by %.3f "
+            "(threshold exp(%.3f)); held back",
+            candidate.verification.candidate,
+            candidate.verification.query,
+            math.exp(log_scale),
+            self.config.gauge.scale_alarm_log,
+        )
         return False
 
     def _add_inter_link(self, candidate: Candidate) -> None:
@@ -650,9 +738,13 @@ class Coordinator:
         supporters = [candidate]
         if needed > 1:
             hypothesis = self._gauge_transform([candidate])
-            supporters += [c for c in self._waiting if c is not candidate
-                           and self._roots(c) == self._roots(candidate)
-                           and self._agrees(c, hypothesis)]
+            supporters += [
+                c
+                for c in self._waiting
+                if c is not candidate
+                and self._roots(c) == self._roots(candidate)
+                and self._agrees(c, hypothesis)
+            ]
             supporters = self._scale_supporters(supporters)
         if len(supporters) < needed:
             return []
@@ -689,16 +781,21 @@ class Coordinator:
             own = math.log(float(self._gauge_transform([c]).T[7]))
             if abs(own - joint) > self.config.gauge.scale_alarm_log:
                 self.stats.gauge_scale_held += 1
-                logger.warning("coordinator: scale alarm: edge %s-%s would merge at scale "
-                               "x%.3f, the others at x%.3f; not counted as support",
-                               c.verification.candidate, c.verification.query,
-                               math.exp(own), math.exp(joint))
+                logger.warning(
+                    "coordinator: scale alarm: edge %s-%s would merge at scale "
+                    "x%.3f, the others at x%.3f; not counted as support",
+                    c.verification.candidate,
+                    c.verification.query,
+                    math.exp(own),
+                    math.exp(joint),
+                )
             else:
                 kept.append(c)
         return kept
 
-    def _align_focal(self, supporters: Sequence[Candidate], moved_agents: list[int]
-                     ) -> float | None:
+    def _align_focal(
+        self, supporters: Sequence[Candidate], moved_agents: list[int]
+    ) -> float | None:
         """Give the moving component the anchor's focal length (``gauge.align_focal``,
         self-calibrated runs; :mod:`como3r.frontend.focal`); returns the log correction
         applied, or None."""
@@ -711,27 +808,33 @@ class Coordinator:
 
     def _aligns_focal(self) -> bool:
         config = self.config
-        return (config.gauge.align_focal and config.tracking.self_calibration
-                and not config.calibrated)
+        return (
+            config.gauge.align_focal and config.tracking.self_calibration and not config.calibrated
+        )
 
-    def _apply_focal(self, agents: list[int], pairs: Sequence[FocalPair], how: str
-                     ) -> float | None:
+    def _apply_focal(self, agents: list[int], pairs: Sequence[FocalPair], how: str) -> float | None:
         """Estimate the moving side's log focal correction on ``pairs`` and give it to
         ``agents``; returns the correction (None without pairs)."""
         if not pairs:
             return None
         start = time.perf_counter()
-        estimate = estimate_log_focal(pairs, self.config.tracking,
-                                      search=self.config.gauge.focal_search)
+        estimate = estimate_log_focal(
+            pairs, self.config.tracking, search=self.config.gauge.focal_search
+        )
         for agent in agents:
             self.graph.rescale_focal(agent, estimate.log_focal)
         self.stats.add_time("focal", time.perf_counter() - start)
-        logger.info("focal: agents %s %s on %d pair(s) (x %.4f, %d evaluations)", agents, how,
-                    len(pairs), math.exp(estimate.log_focal), estimate.evaluations)
+        logger.info(
+            "focal: agents %s %s on %d pair(s) (x %.4f, %d evaluations)",
+            agents,
+            how,
+            len(pairs),
+            math.exp(estimate.log_focal),
+            estimate.evaluations,
+        )
         return estimate.log_focal
 
-    def _refine_focals(self, members: list[int], progress: PhaseCallback | None = None
-                       ) -> None:
+    def _refine_focals(self, members: list[int], progress: PhaseCallback | None = None) -> None:
         """Re-align the agents' focal lengths on every admitted pair (``gauge.align_focal``).
 
         A merge aligns the moving component's focal length on the few edges that made it
@@ -752,19 +855,30 @@ class Coordinator:
         settled = {members[0]} | {agent for agent in members if self._frozen(agent)}
         admitted = [c for c in self.candidates if c.status == "admitted"]
         while True:
-            edges = {agent: [c for c in admitted if self._joins(c, agent, settled)]
-                     for agent in members if agent not in settled}
+            edges = {
+                agent: [c for c in admitted if self._joins(c, agent, settled)]
+                for agent in members
+                if agent not in settled
+            }
             agent = max(edges, key=lambda a: len(edges[a]), default=None)
             if agent is None or not edges[agent]:
                 return
             chosen = sorted(edges[agent], key=lambda c: -c.verification.similarity)
-            report_phase(progress, "focal refinement", f"agent {agent} on "
-                         f"{min(len(chosen), FOCAL_REFINEMENT_PAIRS)} pair(s)",
-                         len(settled) - 1, len(members) - 1)
-            pairs = [self._focal_pair(c, self.graph.agent_of[c.j] == agent)
-                     for c in chosen[:FOCAL_REFINEMENT_PAIRS]]
-            if self._apply_focal([agent], [p for p in pairs if p is not None],
-                                 "refined") is not None:
+            report_phase(
+                progress,
+                "focal refinement",
+                f"agent {agent} on {min(len(chosen), FOCAL_REFINEMENT_PAIRS)} pair(s)",
+                len(settled) - 1,
+                len(members) - 1,
+            )
+            pairs = [
+                self._focal_pair(c, self.graph.agent_of[c.j] == agent)
+                for c in chosen[:FOCAL_REFINEMENT_PAIRS]
+            ]
+            if (
+                self._apply_focal([agent], [p for p in pairs if p is not None], "refined")
+                is not None
+            ):
                 self.stats.focal_refinements += 1
             settled.add(agent)
 
@@ -779,23 +893,31 @@ class Coordinator:
 
     def _focal_pair(self, candidate: Candidate, moving_is_j: bool) -> FocalPair | None:
         """The candidate's keyframe pair, anchor side first (None without intrinsics)."""
-        anchor, moving = ((candidate.i, candidate.j) if moving_is_j
-                          else (candidate.j, candidate.i))
+        anchor, moving = (candidate.i, candidate.j) if moving_is_j else (candidate.j, candidate.i)
         kf_a, kf_m = self.graph.keyframes[anchor], self.graph.keyframes[moving]
         if kf_a.K is None or kf_m.K is None:
             return None
         link = candidate.link  # ij: every pixel of j looked up in i
         in_anchor, in_moving = (link.ij, link.ji) if moving_is_j else (link.ji, link.ij)
-        return FocalPair(kf_a.X_hat, kf_m.X_hat, kf_a.K, kf_m.K,
-                         relative_pose(kf_a.T_WC, kf_m.T_WC), in_anchor, in_moving)
+        return FocalPair(
+            kf_a.X_hat,
+            kf_m.X_hat,
+            kf_a.K,
+            kf_m.K,
+            relative_pose(kf_a.T_WC, kf_m.T_WC),
+            in_anchor,
+            in_moving,
+        )
 
     def _agrees(self, candidate: Candidate, hypothesis: GaugeTransform) -> bool:
         """Whether a waiting edge's points agree once the moving side is transported."""
         x_moving, x_anchor, _ = self._oriented_correspondences(candidate)
         anchor = candidate.i if self._moving_is_j(candidate) else candidate.j
         candidate.residual_ratio = residual_ratio(
-            x_anchor, sim3_act(hypothesis.T.to(x_moving)[None], x_moving),
-            self.graph.keyframes[anchor].T_WC[:3])
+            x_anchor,
+            sim3_act(hypothesis.T.to(x_moving)[None], x_moving),
+            self.graph.keyframes[anchor].T_WC[:3],
+        )
         return candidate.residual_ratio <= self.config.verification.max_residual_ratio
 
     def _gauge_transform(self, candidates: Sequence[Candidate]) -> GaugeTransform:
@@ -803,12 +925,15 @@ class Coordinator:
         (C-Eq. 14); the rigid snap uses the first edge's endpoints."""
         parts = [self._oriented_correspondences(c) for c in candidates]
         first = candidates[0]
-        moving, anchor = ((first.j, first.i) if self._moving_is_j(first)
-                          else (first.i, first.j))
+        moving, anchor = (first.j, first.i) if self._moving_is_j(first) else (first.i, first.j)
         return solve_gauge_transform(
-            torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts]),
-            torch.cat([p[2] for p in parts]), self.graph.keyframes[moving].T_WC,
-            self.graph.keyframes[anchor].T_WC, self.config.gauge.min_correspondences)
+            torch.cat([p[0] for p in parts]),
+            torch.cat([p[1] for p in parts]),
+            torch.cat([p[2] for p in parts]),
+            self.graph.keyframes[moving].T_WC,
+            self.graph.keyframes[anchor].T_WC,
+            self.config.gauge.min_correspondences,
+        )
 
     def _roots(self, candidate: Candidate) -> tuple[int, int]:
         """``(anchor root, moving root)`` of the components an edge connects."""
@@ -817,8 +942,7 @@ class Coordinator:
         return min(root_i, root_j), max(root_i, root_j)
 
     def _same_component(self, candidate: Candidate) -> bool:
-        return self.gauges.same(self.graph.agent_of[candidate.i],
-                                self.graph.agent_of[candidate.j])
+        return self.gauges.same(self.graph.agent_of[candidate.i], self.graph.agent_of[candidate.j])
 
     def _moving_is_j(self, candidate: Candidate) -> bool:
         return self.gauges.find(self.graph.agent_of[candidate.j]) == self._roots(candidate)[1]
@@ -846,8 +970,14 @@ class Coordinator:
         x_j = lift(kf_j.T_WC, torch.cat([x_j_ij, x_j_ji]))
         return x_i, x_j, torch.cat([ij.q[ij.valid], ji.q[ji.valid]])
 
-    def _record_gauge_event(self, transform: GaugeTransform, kept: int, moved: list[int],
-                            supporters: Sequence[Candidate], log_focal: float | None) -> None:
+    def _record_gauge_event(
+        self,
+        transform: GaugeTransform,
+        kept: int,
+        moved: list[int],
+        supporters: Sequence[Candidate],
+        log_focal: float | None,
+    ) -> None:
         event = {
             "keyframes": self.stats.keyframes,
             "anchor_component": kept,
@@ -860,9 +990,14 @@ class Coordinator:
             "focal_factor": None if log_focal is None else math.exp(log_focal),
         }
         self.gauge_events.append(event)
-        logger.info("gauge: agents %s join component %d by %s over %d edge(s), "
-                    "%d correspondences", moved, kept, transform.method, len(supporters),
-                    transform.correspondences)
+        logger.info(
+            "gauge: agents %s join component %d by %s over %d edge(s), %d correspondences",
+            moved,
+            kept,
+            transform.method,
+            len(supporters),
+            transform.correspondences,
+        )
 
     # ------------------------------------------------------------------ global BA
 
@@ -876,8 +1011,9 @@ class Coordinator:
         updates: list[PoseUpdate] = []
         for root in sorted({self.gauges.find(r) for r in self._dirty_roots}):
             members = self.gauges.members(root)
-            result = self.graph.optimize(members, self._anchor(root),
-                                         self.config.global_ba.max_iters_stream)
+            result = self.graph.optimize(
+                members, self._anchor(root), self.config.global_ba.max_iters_stream
+            )
             self._count_ba(result)
             if result.moved:
                 moved = sorted({self.graph.agent_of[g] for g in result.keyframes})
@@ -901,10 +1037,15 @@ class Coordinator:
         for agent in agents:
             indices = self.graph.agent_keyframes(agent)
             if indices:
-                updates.append(PoseUpdate(
-                    agent=agent, kf_ids=torch.arange(len(indices), dtype=torch.int64),
-                    T_WC=self.graph.poses(indices).clone(), reason=reason,
-                    focal=self.graph.focal.get(agent)))
+                updates.append(
+                    PoseUpdate(
+                        agent=agent,
+                        kf_ids=torch.arange(len(indices), dtype=torch.int64),
+                        T_WC=self.graph.poses(indices).clone(),
+                        reason=reason,
+                        focal=self.graph.focal.get(agent),
+                    )
+                )
         return updates
 
     def _count(self, updates: list[PoseUpdate]) -> list[PoseUpdate]:
@@ -917,9 +1058,12 @@ class Coordinator:
 
     def _link_json(self, link: GraphLink) -> dict[str, Any]:
         document: dict[str, Any] = {
-            "type": link.kind, "from": self._key(link.i), "to": self._key(link.j),
+            "type": link.kind,
+            "from": self._key(link.i),
+            "to": self._key(link.j),
             "global": [link.i, link.j],
-            "nu_i": link.link.ji.match_fraction, "nu_j": link.link.ij.match_fraction,
+            "nu_i": link.link.ji.match_fraction,
+            "nu_j": link.link.ij.match_fraction,
         }
         if link.similarity is not None:
             document["similarity"] = link.similarity
@@ -927,11 +1071,17 @@ class Coordinator:
 
     def _candidate_json(self, c: Candidate) -> dict[str, Any]:
         v = c.verification
-        return {"from": list(v.candidate), "to": list(v.query), "similarity": v.similarity,
-                "nu_i": v.nu_i, "nu_j": v.nu_j, "covisible_ratio": v.covisible_ratio,
-                "verified": v.accepted, "status": c.status,
-                "residual_ratio": None if c.residual_ratio != c.residual_ratio
-                else c.residual_ratio}
+        return {
+            "from": list(v.candidate),
+            "to": list(v.query),
+            "similarity": v.similarity,
+            "nu_i": v.nu_i,
+            "nu_j": v.nu_j,
+            "covisible_ratio": v.covisible_ratio,
+            "verified": v.accepted,
+            "status": c.status,
+            "residual_ratio": None if c.residual_ratio != c.residual_ratio else c.residual_ratio,
+        }
 
 
 def _scoped(progress: PhaseCallback | None, members: Sequence[int]) -> PhaseCallback | None:
@@ -946,8 +1096,9 @@ def _scoped(progress: PhaseCallback | None, members: Sequence[int]) -> PhaseCall
     return report
 
 
-def _matched_points(matches: DirectedMatches, X_target: Tensor,
-                    X_source: Tensor) -> tuple[Tensor, Tensor]:
+def _matched_points(
+    matches: DirectedMatches, X_target: Tensor, X_source: Tensor
+) -> tuple[Tensor, Tensor]:
     """Valid matches of ``matches`` as point pairs ``(X_target[idx[n]], X_source[n])``.
 
     Args:

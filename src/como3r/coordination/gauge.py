@@ -137,12 +137,14 @@ def solve_gauge_transform(
         except GeometryError as exc:
             logger.warning("gauge: Umeyama failed (%s); falling back to a rigid snap", exc)
     T = sim3_compose(T_WC_anchor, sim3_inverse(T_WC_moving.to(T_WC_anchor)))
-    return GaugeTransform(T=T, method="rigid_snap", correspondences=int(x_moving.shape[0]),
-                          rmse=float("nan"))
+    return GaugeTransform(
+        T=T, method="rigid_snap", correspondences=int(x_moving.shape[0]), rmse=float("nan")
+    )
 
 
-def _umeyama_transport(x_moving: Tensor, x_anchor: Tensor, weights: Tensor,
-                       min_correspondences: int) -> GaugeTransform:
+def _umeyama_transport(
+    x_moving: Tensor, x_anchor: Tensor, weights: Tensor, min_correspondences: int
+) -> GaugeTransform:
     """Weighted Umeyama, refit once without the pairs far off the first fit."""
     src, dst, w = x_moving.double(), x_anchor.double(), weights.double()
     T = umeyama_sim3(src, dst, w)
@@ -152,12 +154,14 @@ def _umeyama_transport(x_moving: Tensor, x_anchor: Tensor, weights: Tensor,
         src, dst, w = src[keep], dst[keep], w[keep]
         T = umeyama_sim3(src, dst, w)
     rmse = umeyama_rmse(T, src, dst, w)
-    return GaugeTransform(T=T.to(x_anchor.dtype), method="umeyama",
-                          correspondences=int(src.shape[0]), rmse=rmse)
+    return GaugeTransform(
+        T=T.to(x_anchor.dtype), method="umeyama", correspondences=int(src.shape[0]), rmse=rmse
+    )
 
 
-def edge_log_scale(x_source: Tensor, x_target: Tensor, weights: Tensor,
-                   min_correspondences: int) -> float:
+def edge_log_scale(
+    x_source: Tensor, x_target: Tensor, weights: Tensor, min_correspondences: int
+) -> float:
     """Log scale of the similarity (Umeyama, refit without outliers as for ``T*``) taking
     an edge's lifted points ``x_source (N, 3)`` onto their matches ``x_target (N, 3)``
     (weights ``(N,)``): 0 for an edge that agrees with the map's scale, ``log s`` for one
@@ -199,4 +203,3 @@ def transport(T: Tensor, T_WC: Tensor) -> Tensor:
 def lift(T_WC: Tensor, X: Tensor) -> Tensor:
     """Camera-frame points ``X (N, 3)`` into the world frame of ``T_WC (8,)``."""
     return sim3_act(T_WC.to(X)[None, :], X)
-

@@ -35,9 +35,9 @@ import logging
 import math
 import os
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
 
 import cv2
 import numpy as np
@@ -154,8 +154,10 @@ class AgentInput:
         if self.groundtruth is None or has.all():
             return None
         where = missing_pose_summary(self.timestamps, self.groundtruth, has)
-        return (f"{self.root}: {int((~has).sum())} of {self.num_frames} frames have no "
-                f"ground-truth pose ({where})")
+        return (
+            f"{self.root}: {int((~has).sum())} of {self.num_frames} frames have no "
+            f"ground-truth pose ({where})"
+        )
 
     def __len__(self) -> int:
         return self.num_frames
@@ -217,13 +219,15 @@ class AgentInput:
         """
         frames = np.flatnonzero(self.has_gt_pose).astype(np.int64)
         assert self.gt_poses is not None
-        return frames, Trajectory(self.timestamps[frames].copy(),
-                                  self.gt_poses[torch.from_numpy(frames)].clone())
+        return frames, Trajectory(
+            self.timestamps[frames].copy(), self.gt_poses[torch.from_numpy(frames)].clone()
+        )
 
     def load_depth(self, i: int) -> np.ndarray:
         """``(H, W)`` float32 metric depth of frame ``i``, 0 where invalid."""
-        return _load_depth(self.depth_paths[i], self.image_size, self.depth_units_per_metre,
-                           self.depth_invalid)
+        return _load_depth(
+            self.depth_paths[i], self.image_size, self.depth_units_per_metre, self.depth_invalid
+        )
 
     def _video_image(self, bgr: np.ndarray, i: int) -> np.ndarray:
         height, width = bgr.shape[:2]
@@ -245,8 +249,9 @@ class AgentInput:
         return Frame(i, float(self.timestamps[i]), self.stems[i], image, depth, surface, T_WC_gt)
 
 
-def open_agent(path: str | Path, fps: float = 30.0, format: str = "auto",
-               topic: str = "") -> AgentInput:
+def open_agent(
+    path: str | Path, fps: float = 30.0, format: str = "auto", topic: str = ""
+) -> AgentInput:
     """Open and validate an input: an agent folder or video, a dataset sequence folder
     (TUM RGB-D, 7-Scenes, EuRoC MAV, KITTI odometry, Tanks and Temples) or a ROS log
     (:mod:`como3r.data.readers`).
@@ -315,11 +320,15 @@ def timestamps_from_names(stems: tuple[str, ...], folder: Path) -> np.ndarray | 
     repeated = np.flatnonzero(np.diff(timestamps) <= 0)
     if repeated.size:
         first = [stems[order[k]] for k in (repeated[0], repeated[0] + 1)]
-        raise InputError(f"{folder}: images {first[0]} and {first[1]} are named by timestamp "
-                         "but name the same instant")
+        raise InputError(
+            f"{folder}: images {first[0]} and {first[1]} are named by timestamp "
+            "but name the same instant"
+        )
     if not np.array_equal(order, np.arange(len(stems))):
-        raise InputError(f"{folder}: images are named by timestamp but their names do not sort "
-                         "in time (pad the names to one number of digits, or add timestamps.txt)")
+        raise InputError(
+            f"{folder}: images are named by timestamp but their names do not sort "
+            "in time (pad the names to one number of digits, or add timestamps.txt)"
+        )
     return timestamps
 
 
@@ -376,9 +385,7 @@ def open_agent_folder(path: str | Path, fps: float = 30.0) -> AgentInput:
     )
 
 
-def associate_timestamps(
-    stamps: np.ndarray, reference: np.ndarray, tolerance: float
-) -> np.ndarray:
+def associate_timestamps(stamps: np.ndarray, reference: np.ndarray, tolerance: float) -> np.ndarray:
     """Nearest reference stamp for each stamp, within ``tolerance`` seconds.
 
     Args:
@@ -395,9 +402,7 @@ def associate_timestamps(
     nearest = np.where(
         np.abs(reference[left] - stamps) <= np.abs(reference[right] - stamps), left, right
     )
-    return np.where(np.abs(reference[nearest] - stamps) <= tolerance, nearest, -1).astype(
-        np.int64
-    )
+    return np.where(np.abs(reference[nearest] - stamps) <= tolerance, nearest, -1).astype(np.int64)
 
 
 def read_calib(path: Path) -> tuple[float, float, float, float]:
@@ -655,9 +660,12 @@ def _load_npy(path: Path, kind: str, mmap: bool = False) -> np.ndarray:
         raise InputError(f"{path}: cannot read {kind} map ({exc})") from None
 
 
-def _load_depth(path: Path, image_size: tuple[int, int],
-                units_per_metre: float = DEPTH_PNG_PER_METRE,
-                invalid: tuple[int, ...] = (0,)) -> np.ndarray:
+def _load_depth(
+    path: Path,
+    image_size: tuple[int, int],
+    units_per_metre: float = DEPTH_PNG_PER_METRE,
+    invalid: tuple[int, ...] = (0,),
+) -> np.ndarray:
     """``(H, W)`` float32 metres; 0 marks invalid pixels (non-finite values and the PNG
     values in ``invalid`` become 0)."""
     if path.suffix.lower() == ".png":

@@ -9,7 +9,7 @@ ground-truth pose is skipped, :func:`skipped_warning` counts them once).
 
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 

@@ -31,8 +31,9 @@ EXACT_TOLERANCE = 1e-3
 after the last sample (timestamps printed with a few decimals)."""
 
 
-def poses_at(timestamps: np.ndarray, groundtruth: Trajectory | None,
-             max_gap: float = MAX_GAP) -> Tensor:
+def poses_at(
+    timestamps: np.ndarray, groundtruth: Trajectory | None, max_gap: float = MAX_GAP
+) -> Tensor:
     """Ground-truth poses at ``timestamps`` (module docstring).
 
     Args:
@@ -53,8 +54,9 @@ def poses_at(timestamps: np.ndarray, groundtruth: Trajectory | None,
     after = np.searchsorted(reference, stamps)  # first sample >= the frame
     right = np.clip(after, 0, len(reference) - 1)
     left = np.clip(after - 1, 0, len(reference) - 1)
-    nearest = np.where(np.abs(reference[left] - stamps) <= np.abs(reference[right] - stamps),
-                       left, right)
+    nearest = np.where(
+        np.abs(reference[left] - stamps) <= np.abs(reference[right] - stamps), left, right
+    )
     exact = np.abs(reference[nearest] - stamps) <= EXACT_TOLERANCE
     inside = (after > 0) & (after < len(reference))
     bridged = inside & ~exact & (reference[right] - reference[left] <= max_gap)
@@ -94,15 +96,17 @@ def slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
-def missing_pose_summary(timestamps: np.ndarray, groundtruth: Trajectory,
-                         has_pose: np.ndarray) -> str:
+def missing_pose_summary(
+    timestamps: np.ndarray, groundtruth: Trajectory, has_pose: np.ndarray
+) -> str:
     """Where the frames without a pose are, for the one warning: ``"4 before the first
     ground-truth pose, 2 in gaps wider than 0.1 s"``."""
     missing = ~np.asarray(has_pose, dtype=bool)
     stamps = np.asarray(timestamps)[missing]
     first, last = float(groundtruth.timestamps[0]), float(groundtruth.timestamps[-1])
-    parts = [(int((stamps < first).sum()), "before the first ground-truth pose"),
-             (int((stamps > last).sum()), "after the last"),
-             (int(((stamps >= first) & (stamps <= last)).sum()),
-              f"in gaps wider than {MAX_GAP:g} s")]
+    parts = [
+        (int((stamps < first).sum()), "before the first ground-truth pose"),
+        (int((stamps > last).sum()), "after the last"),
+        (int(((stamps >= first) & (stamps <= last)).sum()), f"in gaps wider than {MAX_GAP:g} s"),
+    ]
     return ", ".join(f"{count} {where}" for count, where in parts if count)

@@ -108,8 +108,9 @@ class ImageTransform:
         rows = _nearest_source(self.output[1], self.crop_top, self.scale_h, height)
         return values[rows[:, None], cols[None, :]]
 
-    def apply_geometry(self, depth: np.ndarray, surface: np.ndarray | None
-                       ) -> tuple[np.ndarray, np.ndarray | None]:
+    def apply_geometry(
+        self, depth: np.ndarray, surface: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """Resize and crop a depth map (and its appearance keys) aligned with the image.
 
         Shrinking samples the nearest input pixel (:meth:`apply_nearest`). Enlarging
@@ -133,10 +134,18 @@ class ImageTransform:
         width, height = self.original
         c0, c1, a = _linear_source(self.output[0], self.crop_left, self.scale_w, width)
         r0, r1, b = _linear_source(self.output[1], self.crop_top, self.scale_h, height)
-        corners = [(r0[:, None], c0[None]), (r0[:, None], c1[None]),
-                   (r1[:, None], c0[None]), (r1[:, None], c1[None])]
-        weights = [(1 - b)[:, None] * (1 - a)[None], (1 - b)[:, None] * a[None],
-                   b[:, None] * (1 - a)[None], b[:, None] * a[None]]
+        corners = [
+            (r0[:, None], c0[None]),
+            (r0[:, None], c1[None]),
+            (r1[:, None], c0[None]),
+            (r1[:, None], c1[None]),
+        ]
+        weights = [
+            (1 - b)[:, None] * (1 - a)[None],
+            (1 - b)[:, None] * a[None],
+            b[:, None] * (1 - a)[None],
+            b[:, None] * a[None],
+        ]
         z = np.stack([depth[rc] for rc in corners]).astype(np.float64)
         smooth = (z > 0).all(0) & (z.max(0) < math.exp(0.1) * z.min(0))
         if surface is not None:
@@ -146,8 +155,10 @@ class ImageTransform:
         out_depth = np.where(smooth, 1.0 / inverse, nearest_depth).astype(np.float32)
         if surface is None:
             return out_depth, None
-        keys = sum(w[..., None] * surface[rc][..., 1:].astype(np.float64)
-                   for rc, w in zip(corners, weights))
+        keys = sum(
+            w[..., None] * surface[rc][..., 1:].astype(np.float64)
+            for rc, w in zip(corners, weights)
+        )
         out_surface = nearest_surface.astype(np.float32, copy=True)
         out_surface[..., 1:] = np.where(smooth[..., None], keys, out_surface[..., 1:])
         return out_depth, out_surface
@@ -253,8 +264,12 @@ def make_view(
         given; never ground truth (:func:`frame_ground_truth` is the simulated prior's).
     """
     image, transform = resize_crop(frame.image, long_side)
-    return View(image=ImageTransform.to_network(image), agent=agent, index=frame.index,
-                K=None if calib is None else _network_intrinsics(transform, calib))
+    return View(
+        image=ImageTransform.to_network(image),
+        agent=agent,
+        index=frame.index,
+        K=None if calib is None else _network_intrinsics(transform, calib),
+    )
 
 
 def frame_ground_truth(
@@ -288,16 +303,18 @@ def frame_ground_truth(
     return GroundTruth(depth=depth, K=K, surface=surface, T_WC=frame.T_WC_gt)
 
 
-def _network_intrinsics(transform: ImageTransform,
-                        calib: tuple[float, float, float, float]) -> Tensor:
+def _network_intrinsics(
+    transform: ImageTransform, calib: tuple[float, float, float, float]
+) -> Tensor:
     """``(3, 3)`` float32 intrinsics of the transformed image from ``(fx, fy, cx, cy)``."""
     fx, fy, cx, cy = calib
     K_original = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     return torch.from_numpy(transform.intrinsics(K_original)).to(torch.float32)
 
 
-def _linear_source(size: int, offset: int, scale: float, limit: int
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _linear_source(
+    size: int, offset: int, scale: float, limit: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For each of ``size`` output pixels: the two input indices around its centre and the
     weight of the second (pixel-centre convention, clamped at the border)."""
     position = np.clip((np.arange(size) + offset + 0.5) * scale - 0.5, 0.0, limit - 1.0)

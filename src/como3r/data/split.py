@@ -65,8 +65,13 @@ def chunk_ranges(num_frames: int, agents: int, overlap: float) -> list[tuple[int
 
 
 def split_sequence(
-    src: str | Path, out: str | Path, agents: int, overlap: float, stride: int = 1,
-    topic: str = "", format: str = "auto",
+    src: str | Path,
+    out: str | Path,
+    agents: int,
+    overlap: float,
+    stride: int = 1,
+    topic: str = "",
+    format: str = "auto",
 ) -> list[Path]:
     """Write ``out/agent_<a>/`` agent inputs, one per contiguous sub-sequence of ``src``.
 
@@ -137,9 +142,14 @@ def _write_side_files(source: AgentInput, frames: np.ndarray, folder: Path) -> N
             (folder / name).mkdir(exist_ok=True)
             for i in frames:
                 target = folder / name / f"{source.stems[i]}{paths[i].suffix}"
-                if name == "depth" and (remapped or paths[i].suffix.lower() == ".png" and (
+                if name == "depth" and (
+                    remapped
+                    or paths[i].suffix.lower() == ".png"
+                    and (
                         source.depth_units_per_metre != DEPTH_PNG_PER_METRE
-                        or source.depth_invalid != (0,))):
+                        or source.depth_invalid != (0,)
+                    )
+                ):
                     np.save(target.with_suffix(".npy"), source.load_depth(int(i)))
                 else:
                     _link_or_copy(paths[i], target)
@@ -151,8 +161,7 @@ def _write_side_files(source: AgentInput, frames: np.ndarray, folder: Path) -> N
         ("odometry.txt", source.odometry, odometry_window),
     ):
         if trajectory is not None:
-            _write_time_slice(trajectory, stamps[0] - window, stamps[-1] + window,
-                              folder / name)
+            _write_time_slice(trajectory, stamps[0] - window, stamps[-1] + window, folder / name)
     if source.calib is not None:
         (folder / "calib.txt").write_text(" ".join(repr(v) for v in source.calib) + "\n")
 
@@ -168,7 +177,8 @@ def _write_images(source: AgentInput, selections: list[np.ndarray], folders: lis
         for frames, folder in zip(selections, folders):
             for i in frames:
                 Image.fromarray(source.load_frame(int(i)).image).save(
-                    folder / "rgb" / f"{source.stems[i]}.png")
+                    folder / "rgb" / f"{source.stems[i]}.png"
+                )
         return
     targets: dict[int, list[Path]] = {}
     for frames, folder in zip(selections, folders):

@@ -22,8 +22,10 @@ import math
 def correspondence_ratio(loop_correspondences: int, odometry_correspondences: int) -> float:
     """``r`` of F-Eq. 1; 0 when the odometry pair has no correspondence (nothing to trust)."""
     if loop_correspondences < 0 or odometry_correspondences < 0:
-        raise ValueError("correspondence counts must be >= 0, got "
-                         f"{loop_correspondences} and {odometry_correspondences}")
+        raise ValueError(
+            "correspondence counts must be >= 0, got "
+            f"{loop_correspondences} and {odometry_correspondences}"
+        )
     if odometry_correspondences == 0:
         return 0.0
     return loop_correspondences / odometry_correspondences

@@ -233,26 +233,40 @@ def check_config(config: DecentralizedConfig) -> None:
         if value < 1:
             raise ConfigError(f"decentralized.{key} must be >= 1, got {value}")
     if not 0 < config.registration.match_stride_ratio <= 1:
-        raise ConfigError("decentralized.registration.match_stride_ratio must be in (0, 1], "
-                          f"got {config.registration.match_stride_ratio}")
+        raise ConfigError(
+            "decentralized.registration.match_stride_ratio must be in (0, 1], "
+            f"got {config.registration.match_stride_ratio}"
+        )
     if not 0 <= config.registration.min_inlier_fraction < 1:
-        raise ConfigError("decentralized.registration.min_inlier_fraction must be in [0, 1), "
-                          f"got {config.registration.min_inlier_fraction}")
+        raise ConfigError(
+            "decentralized.registration.min_inlier_fraction must be in [0, 1), "
+            f"got {config.registration.min_inlier_fraction}"
+        )
     if config.ratio_threshold < 0:
-        raise ConfigError(f"decentralized.ratio_threshold must be >= 0, got "
-                          f"{config.ratio_threshold}")
+        raise ConfigError(
+            f"decentralized.ratio_threshold must be >= 0, got {config.ratio_threshold}"
+        )
     if config.protocol.round_period_s < 0:
-        raise ConfigError(f"decentralized.protocol.round_period_s must be >= 0, got "
-                          f"{config.protocol.round_period_s}")
+        raise ConfigError(
+            f"decentralized.protocol.round_period_s must be >= 0, got "
+            f"{config.protocol.round_period_s}"
+        )
     if not 0 < config.pose_graph.gnc_inlier_probability < 1:
-        raise ConfigError("decentralized.pose_graph.gnc_inlier_probability must be in (0, 1), "
-                          f"got {config.pose_graph.gnc_inlier_probability}")
+        raise ConfigError(
+            "decentralized.pose_graph.gnc_inlier_probability must be in (0, 1), "
+            f"got {config.pose_graph.gnc_inlier_probability}"
+        )
     if not 0 < config.pose_graph.consistency_probability < 1:
-        raise ConfigError("decentralized.pose_graph.consistency_probability must be in (0, 1), "
-                          f"got {config.pose_graph.consistency_probability}")
+        raise ConfigError(
+            "decentralized.pose_graph.consistency_probability must be in (0, 1), "
+            f"got {config.pose_graph.consistency_probability}"
+        )
     if config.pose_graph.consistency not in ("pcm", "none"):
-        raise ConfigError("decentralized.pose_graph.consistency must be 'pcm' or 'none', "
-                          f"got {config.pose_graph.consistency!r}")
+        raise ConfigError(
+            "decentralized.pose_graph.consistency must be 'pcm' or 'none', "
+            f"got {config.pose_graph.consistency!r}"
+        )
     if not config.pose_graph.gnc_mu_step > 1:
-        raise ConfigError(f"decentralized.pose_graph.gnc_mu_step must be > 1, got "
-                          f"{config.pose_graph.gnc_mu_step}")
+        raise ConfigError(
+            f"decentralized.pose_graph.gnc_mu_step must be > 1, got {config.pose_graph.gnc_mu_step}"
+        )

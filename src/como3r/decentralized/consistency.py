@@ -87,12 +87,15 @@ class LoopCheck:
 
     def to_json(self) -> dict[str, Any]:
         merged = self.merged_scale_log
-        return {"robots": list(self.robots), "loops": self.loops,
-                "consistent": int(self.consistent.sum()),
-                "held_back": int(self.loops - self.consistent.sum()),
-                "robot_scale_log": {str(r): v for r, v in self.robot_scale_log.items()},
-                "merged_scale_log": None if math.isnan(merged) else merged,
-                "scale_alarm": self.alarm}
+        return {
+            "robots": list(self.robots),
+            "loops": self.loops,
+            "consistent": int(self.consistent.sum()),
+            "held_back": int(self.loops - self.consistent.sum()),
+            "robot_scale_log": {str(r): v for r, v in self.robot_scale_log.items()},
+            "merged_scale_log": None if math.isnan(merged) else merged,
+            "scale_alarm": self.alarm,
+        }
 
 
 def _oriented(loop: LoopClosure, scale: float) -> tuple[int, int, int, int, gtsam.Pose3]:
@@ -109,9 +112,15 @@ def _odometry_between(odometry: np.ndarray, i: int, j: int) -> gtsam.Pose3:
     return to_pose3(odometry[i]).between(to_pose3(odometry[j]))
 
 
-def pair_chi2(first: tuple, second: tuple, p_first: float, p_second: float,
-              odometry: dict[int, np.ndarray], spacing: float,
-              config: PoseGraphConfig) -> float:
+def pair_chi2(
+    first: tuple,
+    second: tuple,
+    p_first: float,
+    p_second: float,
+    odometry: dict[int, np.ndarray],
+    spacing: float,
+    config: PoseGraphConfig,
+) -> float:
     """Whitened squared residual of the cycle of two oriented loops (module docstring).
 
     Args:
@@ -138,14 +147,20 @@ def pair_chi2(first: tuple, second: tuple, p_first: float, p_second: float,
     # Rotation errors turn into translation errors over their lever arms: a rotation random
     # walk along an odometry chain of length L gives n sigma^2 L^2 / 3; the cycle's rotation
     # error acts on both loops' translations.
-    var_trans = ((n_a + n_b) * (config.odom_sigma_trans_ratio * spacing) ** 2
-                 + odom_rot * (n_a * np.linalg.norm(O_a.translation()) ** 2
-                               + n_b * np.linalg.norm(O_b.translation()) ** 2) / 3
-                 + (config.loop_sigma_trans_ratio * spacing) ** 2 * (1 / p_first + 1 / p_second)
-                 + var_rot * (length_i ** 2 + length_j ** 2)
-                 # The scale scatter on the shorter loop's length: a wrong scale that
-                 # lengthens a loop must not widen its own tolerance.
-                 + 2 * (config.scale_smoothing_sigma * min(length_i, length_j)) ** 2)
+    var_trans = (
+        (n_a + n_b) * (config.odom_sigma_trans_ratio * spacing) ** 2
+        + odom_rot
+        * (
+            n_a * np.linalg.norm(O_a.translation()) ** 2
+            + n_b * np.linalg.norm(O_b.translation()) ** 2
+        )
+        / 3
+        + (config.loop_sigma_trans_ratio * spacing) ** 2 * (1 / p_first + 1 / p_second)
+        + var_rot * (length_i**2 + length_j**2)
+        # The scale scatter on the shorter loop's length: a wrong scale that
+        # lengthens a loop must not widen its own tolerance.
+        + 2 * (config.scale_smoothing_sigma * min(length_i, length_j)) ** 2
+    )
     return float(np.dot(e[:3], e[:3]) / var_rot + np.dot(e[3:], e[3:]) / var_trans)
 
 
@@ -176,13 +191,21 @@ def consistent_loops(problem: PoseGraphProblem, config: PoseGraphConfig) -> np.n
         # with almost anything, so by count alone several of them (an aliased façade seen
         # again and again) outvote two confident true loops. Integer weights: networkx's
         # clique search sums them exactly.
-        graph.add_nodes_from((i, {"w": 1 + round(1000 * loops[i].probability)})
-                             for i in members)
+        graph.add_nodes_from((i, {"w": 1 + round(1000 * loops[i].probability)}) for i in members)
         for x, i in enumerate(members):
-            for j in members[x + 1:]:
-                if pair_chi2(oriented[i], oriented[j], loops[i].probability,
-                             loops[j].probability, problem.odometry, spacing,
-                             config) < threshold:
+            for j in members[x + 1 :]:
+                if (
+                    pair_chi2(
+                        oriented[i],
+                        oriented[j],
+                        loops[i].probability,
+                        loops[j].probability,
+                        problem.odometry,
+                        spacing,
+                        config,
+                    )
+                    < threshold
+                ):
                     graph.add_edge(i, j)
         if len(members) <= MAX_EXACT_LOOPS:
             clique, _ = nx.max_weight_clique(graph, weight="w")
@@ -195,8 +218,7 @@ def consistent_loops(problem: PoseGraphProblem, config: PoseGraphConfig) -> np.n
 def _greedy_clique(graph: nx.Graph) -> list[int]:
     """A heavy clique of ``graph`` (node weights ``w``): nodes by decreasing weight of their
     closed neighbourhood, each kept if it is consistent with all kept before it."""
-    support = {n: graph.nodes[n]["w"] + sum(graph.nodes[m]["w"] for m in graph[n])
-               for n in graph}
+    support = {n: graph.nodes[n]["w"] + sum(graph.nodes[m]["w"] for m in graph[n]) for n in graph}
     clique: list[int] = []
     for node in sorted(graph, key=lambda n: (-support[n], n)):
         if all(graph.has_edge(node, other) for other in clique):
@@ -208,7 +230,7 @@ def similarity_scale(source: np.ndarray, target: np.ndarray) -> float:
     """Scale of the least-squares similarity (Umeyama) taking points ``source (N, 3)`` onto
     ``target (N, 3)``; NaN when ``source`` has no extent."""
     src, dst = source - source.mean(0), target - target.mean(0)
-    variance = float((src ** 2).sum(1).mean())
+    variance = float((src**2).sum(1).mean())
     if not variance > 0:
         return float("nan")
     U, D, Vt = np.linalg.svd(dst.T @ src / len(src))
@@ -218,9 +240,11 @@ def similarity_scale(source: np.ndarray, target: np.ndarray) -> float:
     return float((D * signs).sum() / variance)
 
 
-def scale_changes(problem: PoseGraphProblem, solution: PoseGraphSolution,
-                  reference: dict[int, np.ndarray] | None = None
-                  ) -> tuple[dict[int, float], float]:
+def scale_changes(
+    problem: PoseGraphProblem,
+    solution: PoseGraphSolution,
+    reference: dict[int, np.ndarray] | None = None,
+) -> tuple[dict[int, float], float]:
     """Log scale change of every robot and of the merged map (module docstring).
 
     Args:
@@ -246,23 +270,35 @@ def scale_changes(problem: PoseGraphProblem, solution: PoseGraphSolution,
     return robots, math.log(scale) if scale > 0 else float("nan")
 
 
-def check_solution(problem: PoseGraphProblem, solution: PoseGraphSolution,
-                   consistent: np.ndarray, robots: list[int], config: PoseGraphConfig,
-                   reference: dict[int, np.ndarray] | None = None) -> LoopCheck:
+def check_solution(
+    problem: PoseGraphProblem,
+    solution: PoseGraphSolution,
+    consistent: np.ndarray,
+    robots: list[int],
+    config: PoseGraphConfig,
+    reference: dict[int, np.ndarray] | None = None,
+) -> LoopCheck:
     """The :class:`LoopCheck` of a solve of ``problem`` restricted to its ``consistent``
     loops (``solution`` is that solve; ``reference`` as :func:`scale_changes`); raises the
     alarm as the module docstring says."""
     robot_logs, merged = scale_changes(problem, solution, reference)
     limit = config.scale_alarm_log
-    worst = max([abs(v) for v in robot_logs.values()]
-                + ([abs(merged)] if not math.isnan(merged) else []))
-    check = LoopCheck(robots, len(problem.loops), consistent, robot_logs, merged,
-                      alarm=worst > limit)
+    worst = max(
+        [abs(v) for v in robot_logs.values()] + ([abs(merged)] if not math.isnan(merged) else [])
+    )
+    check = LoopCheck(
+        robots, len(problem.loops), consistent, robot_logs, merged, alarm=worst > limit
+    )
     if check.alarm:
-        logger.warning("robots %s: scale-collapse alarm: the loop set changes scale by "
-                       "exp(%.3f) (robots %s, merged %.3f; threshold %.3f); held back",
-                       robots, worst, {r: round(v, 3) for r, v in robot_logs.items()},
-                       merged, limit)
+        logger.warning(
+            "robots %s: scale-collapse alarm: the loop set changes scale by "
+            "exp(%.3f) (robots %s, merged %.3f; threshold %.3f); held back",
+            robots,
+            worst,
+            {r: round(v, 3) for r, v in robot_logs.items()},
+            merged,
+            limit,
+        )
     return check
 
 
@@ -270,29 +306,42 @@ def previous_loops(problem: PoseGraphProblem, loops: list[LoopClosure]) -> list[
     """The ``loops`` the previous solve could have used: both ends within the previous
     estimates (``problem.initial``) of their robots."""
     known = {r: len(e) for r, e in problem.initial.items()}
-    return [l for l in loops if l.keyframe_a < known.get(l.robot_a, 0)
-            and l.keyframe_b < known.get(l.robot_b, 0)]
+    return [
+        l
+        for l in loops
+        if l.keyframe_a < known.get(l.robot_a, 0) and l.keyframe_b < known.get(l.robot_b, 0)
+    ]
 
 
-def _reference(problem: PoseGraphProblem, kept: list[LoopClosure], formulation: str,
-               solver: str, config: PoseGraphConfig) -> dict[int, np.ndarray] | None:
+def _reference(
+    problem: PoseGraphProblem,
+    kept: list[LoopClosure],
+    formulation: str,
+    solver: str,
+    config: PoseGraphConfig,
+) -> dict[int, np.ndarray] | None:
     """The merged map before the new loops: the same solve with only the consistent loops
     the previous solve could have used, over the robots they connect to the anchor; None
     when that is fewer than two robots."""
     old = previous_loops(problem, kept)
-    component = next((c for c in connected_components(sorted(problem.odometry), old)
-                      if problem.anchor in c), [])
+    component = next(
+        (c for c in connected_components(sorted(problem.odometry), old) if problem.anchor in c), []
+    )
     if len(component) < 2 or len(old) == len(kept):
         return None
-    before = PoseGraphProblem({r: problem.odometry[r] for r in component},
-                              [l for l in old if l.robot_a in component], problem.anchor,
-                              problem.anchor_pose,
-                              {r: e for r, e in problem.initial.items() if r in component})
+    before = PoseGraphProblem(
+        {r: problem.odometry[r] for r in component},
+        [l for l in old if l.robot_a in component],
+        problem.anchor,
+        problem.anchor_pose,
+        {r: e for r, e in problem.initial.items() if r in component},
+    )
     return solve_pose_graph(before, formulation, solver, config).poses
 
 
-def solve_checked(problem: PoseGraphProblem, formulation: str, solver: str,
-                  config: PoseGraphConfig) -> tuple[PoseGraphSolution, LoopCheck]:
+def solve_checked(
+    problem: PoseGraphProblem, formulation: str, solver: str, config: PoseGraphConfig
+) -> tuple[PoseGraphSolution, LoopCheck]:
     """Solve ``problem`` behind both safeguards.
 
     With ``pose_graph.consistency == "pcm"`` only the pairwise-consistent loops enter the
@@ -309,13 +358,23 @@ def solve_checked(problem: PoseGraphProblem, formulation: str, solver: str,
         consistent = consistent_loops(problem, config)
     else:
         consistent = np.ones(len(problem.loops), dtype=bool)
-    kept = PoseGraphProblem(problem.odometry, [l for l, c in zip(problem.loops, consistent) if c],
-                            problem.anchor, problem.anchor_pose, problem.initial)
+    kept = PoseGraphProblem(
+        problem.odometry,
+        [l for l, c in zip(problem.loops, consistent) if c],
+        problem.anchor,
+        problem.anchor_pose,
+        problem.initial,
+    )
     if len(kept.loops) < len(problem.loops):
-        logger.info("robots %s: %d of %d loops pairwise consistent; the others held back",
-                    sorted(problem.odometry), len(kept.loops), len(problem.loops))
+        logger.info(
+            "robots %s: %d of %d loops pairwise consistent; the others held back",
+            sorted(problem.odometry),
+            len(kept.loops),
+            len(problem.loops),
+        )
     solution = solve_pose_graph(kept, formulation, solver, config)
     reference = _reference(problem, kept.loops, formulation, solver, config)
-    check = check_solution(problem, solution, consistent, sorted(problem.odometry), config,
-                           reference)
+    check = check_solution(
+        problem, solution, consistent, sorted(problem.odometry), config, reference
+    )
     return solution, check

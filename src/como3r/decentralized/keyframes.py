@@ -74,14 +74,17 @@ def frame_odometry(agent: AgentInput) -> FrameOdometry:
         InputError: the agent has no ``odometry.txt`` or no frame matches an odometry pose.
     """
     if agent.odometry is None:
-        raise InputError(f"{agent.root}: the decentralized mode needs odometry.txt (TUM, metric "
-                         "odometry of the robot)")
+        raise InputError(
+            f"{agent.root}: the decentralized mode needs odometry.txt (TUM, metric "
+            "odometry of the robot)"
+        )
     tolerance = max(0.5 / agent.fps, MIN_TOLERANCE_S)
     rows = associate_timestamps(agent.timestamps, agent.odometry.timestamps, tolerance)
     frames = np.flatnonzero(rows >= 0).astype(np.int64)
     if frames.size == 0:
-        raise InputError(f"{agent.root}/odometry.txt: no pose within {tolerance:.4f} s of a "
-                         "frame timestamp")
+        raise InputError(
+            f"{agent.root}/odometry.txt: no pose within {tolerance:.4f} s of a frame timestamp"
+        )
     T_OC = agent.odometry.T_WC[torch.from_numpy(rows[frames])].double()
     return FrameOdometry(frames, agent.timestamps[frames].copy(), T_OC)
 
@@ -103,8 +106,12 @@ def select_keyframes(odometry: FrameOdometry, distance: float) -> Keyframes:
             rows.append(k)
             since = 0.0
     chosen = np.asarray(rows, dtype=np.int64)
-    return Keyframes(chosen, odometry.frames[chosen], odometry.timestamps[chosen],
-                     odometry.T_OC[torch.from_numpy(chosen)])
+    return Keyframes(
+        chosen,
+        odometry.frames[chosen],
+        odometry.timestamps[chosen],
+        odometry.T_OC[torch.from_numpy(chosen)],
+    )
 
 
 def frame_poses(odometry: FrameOdometry, keyframes: Keyframes, estimate: np.ndarray) -> Tensor:

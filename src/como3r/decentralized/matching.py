@@ -45,8 +45,15 @@ class _CoarseToFine:
         candidates: coarse candidates refined per pixel (clipped to G).
     """
 
-    def __init__(self, source: np.ndarray, target: np.ndarray, confident: np.ndarray,
-                 coarse: np.ndarray, radius: int, candidates: int) -> None:
+    def __init__(
+        self,
+        source: np.ndarray,
+        target: np.ndarray,
+        confident: np.ndarray,
+        coarse: np.ndarray,
+        radius: int,
+        candidates: int,
+    ) -> None:
         self._source = source
         self._height, self._width, d = target.shape
         self._target = target.reshape(-1, d)
@@ -127,8 +134,9 @@ def query_grid(height: int, width: int, stride_ratio: float) -> Tensor:
     return (rows[:, None] * width + cols[None, :]).reshape(-1)
 
 
-def reciprocal_matches(D_i: Tensor, D_j: Tensor, Q_i: Tensor, Q_j: Tensor,
-                       config: RegistrationConfig) -> tuple[Tensor, Tensor]:
+def reciprocal_matches(
+    D_i: Tensor, D_j: Tensor, Q_i: Tensor, Q_j: Tensor, config: RegistrationConfig
+) -> tuple[Tensor, Tensor]:
     """Reciprocal nearest neighbours between the confident descriptors of two views.
 
     Only pixels with descriptor confidence ``Q > min_descriptor_confidence`` take part, as
@@ -173,8 +181,11 @@ def reciprocal_matches(D_i: Tensor, D_j: Tensor, Q_i: Tensor, Q_j: Tensor,
         found_i.append(query[converged])
         found_j.append(in_j[converged])
         query = np.unique(back[~converged])
-    pairs = np.unique(np.stack([np.concatenate(found_i), np.concatenate(found_j)], axis=1),
-                      axis=0)
-    logger.debug("reciprocal matching: %d matches, %d + %d neighbours searched",
-                 pairs.shape[0], i_to_j.searched, j_to_i.searched)
+    pairs = np.unique(np.stack([np.concatenate(found_i), np.concatenate(found_j)], axis=1), axis=0)
+    logger.debug(
+        "reciprocal matching: %d matches, %d + %d neighbours searched",
+        pairs.shape[0],
+        i_to_j.searched,
+        j_to_i.searched,
+    )
     return torch.from_numpy(pairs[:, 0]), torch.from_numpy(pairs[:, 1])

@@ -221,45 +221,59 @@ ROBOT_MESSAGES = (PlaceDescriptors, EncodingRequest, EncodingReply, PoseGraphSha
 
 
 def _check_round(m: Any) -> None:
-    require(min(m.sender, m.recipient, m.round) >= 0 and math.isfinite(m.time_s),
-            "sender, recipient and round must be >= 0 and time_s finite")
+    require(
+        min(m.sender, m.recipient, m.round) >= 0 and math.isfinite(m.time_s),
+        "sender, recipient and round must be >= 0 and time_s finite",
+    )
 
 
 def _check_descriptors(m: PlaceDescriptors) -> None:
     _check_round(m)
     require(m.first >= 0, "first must be >= 0")
     for k, d in enumerate(m.descriptors):
-        require(d.ndim in (1, 2) and d.dtype.kind == "f" and bool(np.isfinite(d).all()),
-                f"descriptors[{k}] must be a finite float (d,) or (n, d) array")
-    require(len({(d.ndim, d.shape[-1]) for d in m.descriptors}) <= 1,
-            "descriptors must share one shape kind and width")
+        require(
+            d.ndim in (1, 2) and d.dtype.kind == "f" and bool(np.isfinite(d).all()),
+            f"descriptors[{k}] must be a finite float (d,) or (n, d) array",
+        )
+    require(
+        len({(d.ndim, d.shape[-1]) for d in m.descriptors}) <= 1,
+        "descriptors must share one shape kind and width",
+    )
 
 
 def _check_request(m: EncodingRequest) -> None:
     _check_round(m)
-    require(all(k >= 0 for k in m.keyframes) and len(set(m.keyframes)) == len(m.keyframes),
-            "keyframes must be distinct and >= 0")
+    require(
+        all(k >= 0 for k in m.keyframes) and len(set(m.keyframes)) == len(m.keyframes),
+        "keyframes must be distinct and >= 0",
+    )
 
 
 def _check_reply(m: EncodingReply) -> None:
     _check_round(m)
     require(m.keyframe >= 0, "keyframe must be >= 0")
-    require(isinstance(m.encoding, Encoding),
-            f"encoding must be a prior's Encoding, got a {type(m.encoding).__name__}")
+    require(
+        isinstance(m.encoding, Encoding),
+        f"encoding must be a prior's Encoding, got a {type(m.encoding).__name__}",
+    )
 
 
 def _check_poses(poses: np.ndarray, name: str) -> None:
     require_shape(poses, (None, 8), name)
-    require(poses.dtype == np.float64 and bool(np.isfinite(poses).all()),
-            f"{name} must be finite float64")
+    require(
+        poses.dtype == np.float64 and bool(np.isfinite(poses).all()),
+        f"{name} must be finite float64",
+    )
 
 
 def _check_share(m: PoseGraphShare) -> None:
     _check_round(m)
     _check_poses(m.odometry, "odometry")
     _check_poses(m.estimate, "estimate")
-    require(len(m.estimate) <= len(m.odometry) and m.frame >= 0,
-            "estimate must not outnumber odometry, frame must be >= 0")
+    require(
+        len(m.estimate) <= len(m.odometry) and m.frame >= 0,
+        "estimate must not outnumber odometry, frame must be >= 0",
+    )
 
 
 def _check_estimate(m: PoseEstimate) -> None:
@@ -268,18 +282,30 @@ def _check_estimate(m: PoseEstimate) -> None:
 
 
 def _check_loop(loop: LoopClosure) -> None:
-    require(min(loop.robot_a, loop.keyframe_a, loop.robot_b, loop.keyframe_b,
-                loop.correspondences) >= 0, "robots, keyframes and correspondences >= 0")
+    require(
+        min(loop.robot_a, loop.keyframe_a, loop.robot_b, loop.keyframe_b, loop.correspondences)
+        >= 0,
+        "robots, keyframes and correspondences >= 0",
+    )
     require_shape(loop.T_ab, (8,), "T_ab")
-    require(bool(np.isfinite(loop.T_ab).all()) and math.isfinite(loop.ratio)
-            and loop.ratio >= 0 and 0 <= loop.probability <= 1,
-            "T_ab and ratio must be finite, ratio >= 0, probability in [0, 1]")
+    require(
+        bool(np.isfinite(loop.T_ab).all())
+        and math.isfinite(loop.ratio)
+        and loop.ratio >= 0
+        and 0 <= loop.probability <= 1,
+        "T_ab and ratio must be finite, ratio >= 0, probability in [0, 1]",
+    )
 
 
 for _cls in (*ROBOT_MESSAGES, RobotTask, RobotProgress, RobotReport, RobotHello):
     codec.register(_cls, version=1)
 codec.register(LoopClosure, version=1)
-for _cls, _check in ((PlaceDescriptors, _check_descriptors), (EncodingRequest, _check_request),
-                     (EncodingReply, _check_reply), (PoseGraphShare, _check_share),
-                     (PoseEstimate, _check_estimate), (LoopClosure, _check_loop)):
+for _cls, _check in (
+    (PlaceDescriptors, _check_descriptors),
+    (EncodingRequest, _check_request),
+    (EncodingReply, _check_reply),
+    (PoseGraphShare, _check_share),
+    (PoseEstimate, _check_estimate),
+    (LoopClosure, _check_loop),
+):
     codec.add_check(_cls.__name__, _check)

@@ -64,8 +64,13 @@ class OdometryNoise:
 
 ODOMETRY_PRESETS: dict[str, OdometryNoise] = {
     "vio": OdometryNoise(),
-    "lio": OdometryNoise(initial_scale_error=0.0, scale_drift=0.005, yaw_drift_deg_per_depth=0.3,
-                         yaw_walk_deg_per_sqrt_depth=0.05, translation_walk_per_sqrt_depth=0.0008),
+    "lio": OdometryNoise(
+        initial_scale_error=0.0,
+        scale_drift=0.005,
+        yaw_drift_deg_per_depth=0.3,
+        yaw_walk_deg_per_sqrt_depth=0.05,
+        translation_walk_per_sqrt_depth=0.0008,
+    ),
 }
 """Odometry models by name (module docstring)."""
 
@@ -75,8 +80,9 @@ def _yaw(angle: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def simulate_odometry(groundtruth: Trajectory, seed: int, noise: OdometryNoise | None = None,
-                      *, scene_depth: float) -> Trajectory:
+def simulate_odometry(
+    groundtruth: Trajectory, seed: int, noise: OdometryNoise | None = None, *, scene_depth: float
+) -> Trajectory:
     """Odometry of a robot that moved along ``groundtruth`` (module docstring).
 
     Args:
@@ -112,12 +118,17 @@ def simulate_odometry(groundtruth: Trajectory, seed: int, noise: OdometryNoise |
         length = lengths[k - 1]
         decay = np.exp(-length / noise.scale_correlation_depths)
         drift = decay * drift + noise.scale_drift * np.sqrt(1.0 - decay**2) * rng.standard_normal()
-        scale = (1.0 + start_error * np.exp(-travelled[k] / noise.scale_convergence_depths)) \
-            * (1 + drift)
+        scale = (1.0 + start_error * np.exp(-travelled[k] / noise.scale_convergence_depths)) * (
+            1 + drift
+        )
         heading += yaw_rate * length + yaw_walk * np.sqrt(length) * rng.standard_normal()
         turn = _yaw(heading)
-        walk = (scene_depth * noise.translation_walk_per_sqrt_depth * np.sqrt(length)
-                * rng.standard_normal(3))
+        walk = (
+            scene_depth
+            * noise.translation_walk_per_sqrt_depth
+            * np.sqrt(length)
+            * rng.standard_normal(3)
+        )
         est_positions[k] = est_positions[k - 1] + scale * turn @ steps[k - 1] + walk
         est_rotations[k] = turn @ rotations[k]
 
@@ -139,8 +150,10 @@ def scene_depth_of(agent_dir: Path) -> float:
     """
     agent = open_agent(agent_dir)
     if not agent.has_depth:
-        raise InputError(f"{agent_dir}: no depth/ maps to measure the scene depth the odometry "
-                         "noise is relative to; pass scene_depth")
+        raise InputError(
+            f"{agent_dir}: no depth/ maps to measure the scene depth the odometry "
+            "noise is relative to; pass scene_depth"
+        )
     depth = agent.load_frame(0).depth
     depth = depth[np.isfinite(depth) & (depth > 0)]
     if depth.size == 0:
@@ -148,8 +161,12 @@ def scene_depth_of(agent_dir: Path) -> float:
     return float(np.median(depth))
 
 
-def add_odometry(agent_dir: str | Path, seed: int, params: OdometryNoise | str | None = None,
-                 scene_depth: float | None = None) -> Path:
+def add_odometry(
+    agent_dir: str | Path,
+    seed: int,
+    params: OdometryNoise | str | None = None,
+    scene_depth: float | None = None,
+) -> Path:
     """Write ``odometry.txt`` (TUM) into an agent folder that has ``groundtruth.txt``.
 
     Args:
@@ -169,8 +186,9 @@ def add_odometry(agent_dir: str | Path, seed: int, params: OdometryNoise | str |
     """
     if isinstance(params, str):
         if params not in ODOMETRY_PRESETS:
-            raise InputError(f"unknown odometry model {params!r} (valid: "
-                             f"{', '.join(ODOMETRY_PRESETS)})")
+            raise InputError(
+                f"unknown odometry model {params!r} (valid: {', '.join(ODOMETRY_PRESETS)})"
+            )
         params = ODOMETRY_PRESETS[params]
     agent_dir = Path(agent_dir)
     gt_file = agent_dir / "groundtruth.txt"

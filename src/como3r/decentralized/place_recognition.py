@@ -19,8 +19,8 @@ one found from both sides by the robot with the smaller id.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from torch import Tensor
@@ -61,13 +61,18 @@ class PlaceRecognizer:
         retrieval: ASMK parameters (``asmk`` only).
     """
 
-    def __init__(self, method: str, codebook: np.ndarray | None = None,
-                 retrieval: RetrievalConfig | None = None) -> None:
+    def __init__(
+        self,
+        method: str,
+        codebook: np.ndarray | None = None,
+        retrieval: RetrievalConfig | None = None,
+    ) -> None:
         if method not in METHODS:
             raise ConfigError(f"decentralized.place_method: {method!r} is not one of {METHODS}")
         if method == "asmk" and codebook is None:
-            raise ConfigError("decentralized.place_method asmk needs the prior's retrieval "
-                              "codebook")
+            raise ConfigError(
+                "decentralized.place_method asmk needs the prior's retrieval codebook"
+            )
         self.method = method
         self._codebook = codebook
         self._retrieval = retrieval or RetrievalConfig()
@@ -123,8 +128,11 @@ class PlaceRecognizer:
         return known[1]
 
 
-def candidate_pairs(similarity: np.ndarray, threshold: float,
-                    exclude: set[tuple[int, int]] | frozenset = frozenset()) -> list[Candidate]:
+def candidate_pairs(
+    similarity: np.ndarray,
+    threshold: float,
+    exclude: set[tuple[int, int]] | frozenset = frozenset(),
+) -> list[Candidate]:
     """Best matches of every row and every column above ``threshold`` (F-Sec. III-A).
 
     Args:
@@ -141,6 +149,8 @@ def candidate_pairs(similarity: np.ndarray, threshold: float,
             found.setdefault((r, int(c)), [False, False])[0] = True
         for c, r in enumerate(np.argmax(similarity, axis=0)):
             found.setdefault((int(r), c), [False, False])[1] = True
-    return [Candidate(r, c, float(similarity[r, c]), by_row, by_col)
-            for (r, c), (by_row, by_col) in sorted(found.items())
-            if similarity[r, c] > threshold and (r, c) not in exclude]
+    return [
+        Candidate(r, c, float(similarity[r, c]), by_row, by_col)
+        for (r, c), (by_row, by_col) in sorted(found.items())
+        if similarity[r, c] > threshold and (r, c) not in exclude
+    ]

@@ -40,8 +40,8 @@ from __future__ import annotations
 import math
 import time
 from collections import defaultdict, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import gtsam
 import numpy as np
@@ -49,7 +49,6 @@ from scipy.stats import chi2
 
 from como3r.decentralized.config import FORMULATIONS, SOLVERS, PoseGraphConfig
 from como3r.errors import ConfigError, SolverError
-
 
 #: Standard deviation of the gauge prior on the anchor's first keyframe (rad, and keyframe
 #: spacings for its translation).
@@ -169,8 +168,9 @@ def scale_key(index: int) -> int:
 # --------------------------------------------------------------------------- factors
 
 
-def scaled_loop_error(R_bar: np.ndarray, t_bar: np.ndarray, T_a: gtsam.Pose3, T_b: gtsam.Pose3,
-                      s: float) -> tuple[np.ndarray, list[np.ndarray]]:
+def scaled_loop_error(
+    R_bar: np.ndarray, t_bar: np.ndarray, T_a: gtsam.Pose3, T_b: gtsam.Pose3, s: float
+) -> tuple[np.ndarray, list[np.ndarray]]:
     """Error of F-Eq. 8 and its exact Jacobians (module docstring).
 
     Args:
@@ -193,15 +193,18 @@ def scaled_loop_error(R_bar: np.ndarray, t_bar: np.ndarray, T_a: gtsam.Pose3, T_
     return e, [H_a, J_log.copy(), H_s]
 
 
-def scaled_loop_factor(keys: tuple[int, int, int], R_bar: np.ndarray, t_bar: np.ndarray,
-                       noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+def scaled_loop_factor(
+    keys: tuple[int, int, int], R_bar: np.ndarray, t_bar: np.ndarray, noise: gtsam.noiseModel.Base
+) -> gtsam.CustomFactor:
     """``CustomFactor`` on ``(T_a, T_b, s)`` with the error of :func:`scaled_loop_error`."""
     key_a, key_b, key_s = keys
 
-    def error(factor: gtsam.CustomFactor, values: gtsam.Values,
-              jacobians: list[np.ndarray] | None) -> np.ndarray:
-        e, H = scaled_loop_error(R_bar, t_bar, values.atPose3(key_a), values.atPose3(key_b),
-                                 values.atDouble(key_s))
+    def error(
+        factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None
+    ) -> np.ndarray:
+        e, H = scaled_loop_error(
+            R_bar, t_bar, values.atPose3(key_a), values.atPose3(key_b), values.atDouble(key_s)
+        )
         if jacobians is not None:
             jacobians[0], jacobians[1], jacobians[2] = H
         return e
@@ -246,6 +249,7 @@ def loop_clusters(loops: list[LoopClosure], window: int) -> list[list[int]]:
     """Clusters of loop indices (F-Sec. III-C-c): same pair of robots, endpoints fewer than
     ``window`` keyframes apart on both robots, closed transitively. Each cluster is sorted
     by the keyframes of the robot with the smaller id."""
+
     def endpoints(loop: LoopClosure) -> tuple[int, int, int, int]:
         if loop.robot_a < loop.robot_b:
             return loop.robot_a, loop.robot_b, loop.keyframe_a, loop.keyframe_b
@@ -268,8 +272,9 @@ def loop_clusters(loops: list[LoopClosure], window: int) -> list[list[int]]:
     groups: dict[int, list[int]] = defaultdict(list)
     for i in range(len(loops)):
         groups[find(i)].append(i)
-    return sorted((sorted(g, key=lambda i: ends[i][2:] + (i,)) for g in groups.values()),
-                  key=lambda g: g[0])
+    return sorted(
+        (sorted(g, key=lambda i: ends[i][2:] + (i,)) for g in groups.values()), key=lambda g: g[0]
+    )
 
 
 def initial_scales(loops: list[LoopClosure], scale_init: str) -> np.ndarray:
@@ -278,8 +283,9 @@ def initial_scales(loops: list[LoopClosure], scale_init: str) -> np.ndarray:
     if scale_init == "prior":
         return np.ones(len(loops))
     if scale_init != "odometry":
-        raise ConfigError(f"decentralized.pose_graph.scale_init: {scale_init!r} is not "
-                          "'odometry' or 'prior'")
+        raise ConfigError(
+            f"decentralized.pose_graph.scale_init: {scale_init!r} is not 'odometry' or 'prior'"
+        )
     scales = np.array([loop.odometry_scale for loop in loops], dtype=np.float64)
     return np.where(np.isfinite(scales) & (scales > 0), scales, 1.0)
 
@@ -311,18 +317,22 @@ def keyframe_spacing(problem: PoseGraphProblem, scales: np.ndarray) -> float:
     Returns:
         A length > 0 (1 when the problem has neither a keyframe step nor a loop translation).
     """
-    steps = [np.linalg.norm(np.diff(odometry[:, :3], axis=0), axis=1)
-             for odometry in problem.odometry.values()]
+    steps = [
+        np.linalg.norm(np.diff(odometry[:, :3], axis=0), axis=1)
+        for odometry in problem.odometry.values()
+    ]
     lengths = np.concatenate([np.zeros(0), *steps])
     if not np.any(lengths > 0):
-        lengths = np.array([scale * np.linalg.norm(loop.T_ab[:3])
-                            for loop, scale in zip(problem.loops, scales)])
+        lengths = np.array(
+            [scale * np.linalg.norm(loop.T_ab[:3]) for loop, scale in zip(problem.loops, scales)]
+        )
     lengths = lengths[np.isfinite(lengths) & (lengths > 0)]
     return float(np.median(lengths)) if lengths.size else 1.0
 
 
-def _consensus_alignment(candidates: list[tuple[gtsam.Pose3, float]],
-                         translation_tolerance: float) -> gtsam.Pose3:
+def _consensus_alignment(
+    candidates: list[tuple[gtsam.Pose3, float]], translation_tolerance: float
+) -> gtsam.Pose3:
     """The candidate alignment with the largest confidence-weighted support: the summed
     confidence (F-Eq. 2) of the candidates within ``translation_tolerance`` (odometry
     units) and :data:`CONSENSUS_ROTATION_RAD` of it."""
@@ -331,16 +341,19 @@ def _consensus_alignment(candidates: list[tuple[gtsam.Pose3, float]],
         support = 0.0
         for other, probability in candidates:
             delta = pose.between(other)
-            if (np.linalg.norm(delta.translation()) < translation_tolerance
-                    and np.linalg.norm(gtsam.Rot3.Logmap(delta.rotation())) < CONSENSUS_ROTATION_RAD):
+            if (
+                np.linalg.norm(delta.translation()) < translation_tolerance
+                and np.linalg.norm(gtsam.Rot3.Logmap(delta.rotation())) < CONSENSUS_ROTATION_RAD
+            ):
                 support += probability
         if support > best_support:
             best, best_support = pose, support
     return best
 
 
-def initial_poses(problem: PoseGraphProblem, scales: np.ndarray,
-                  spacing: float) -> dict[int, list[gtsam.Pose3]]:
+def initial_poses(
+    problem: PoseGraphProblem, scales: np.ndarray, spacing: float
+) -> dict[int, list[gtsam.Pose3]]:
     """Initial keyframe poses of every robot in the output frame.
 
     The anchor starts at ``anchor_pose``; robots with a current estimate start from it;
@@ -367,18 +380,32 @@ def initial_poses(problem: PoseGraphProblem, scales: np.ndarray,
         candidates: dict[int, list[tuple[gtsam.Pose3, float]]] = defaultdict(list)
         for loop, scale in zip(problem.loops, scales):
             for src, kf_src, dst, kf_dst, relative in (
-                    (loop.robot_a, loop.keyframe_a, loop.robot_b, loop.keyframe_b,
-                     _measured(loop, scale)),
-                    (loop.robot_b, loop.keyframe_b, loop.robot_a, loop.keyframe_a,
-                     _measured(loop, scale).inverse())):
+                (
+                    loop.robot_a,
+                    loop.keyframe_a,
+                    loop.robot_b,
+                    loop.keyframe_b,
+                    _measured(loop, scale),
+                ),
+                (
+                    loop.robot_b,
+                    loop.keyframe_b,
+                    loop.robot_a,
+                    loop.keyframe_a,
+                    _measured(loop, scale).inverse(),
+                ),
+            ):
                 if src in placed and dst in pending:
                     world_dst = placed[src][kf_src].compose(relative)
                     odometry_dst = to_pose3(problem.odometry[dst][kf_dst])
-                    candidates[dst].append((world_dst.compose(odometry_dst.inverse()),
-                                            loop.probability))
+                    candidates[dst].append(
+                        (world_dst.compose(odometry_dst.inverse()), loop.probability)
+                    )
         if not candidates:
-            raise ValueError(f"robots {sorted(pending)} are not connected to anchor "
-                             f"{problem.anchor} by loop closures")
+            raise ValueError(
+                f"robots {sorted(pending)} are not connected to anchor "
+                f"{problem.anchor} by loop closures"
+            )
         for robot, options in sorted(candidates.items()):
             alignment = _consensus_alignment(options, CONSENSUS_TRANSLATION_SPACINGS * spacing)
             placed[robot] = [alignment.compose(to_pose3(T)) for T in problem.odometry[robot]]
@@ -410,12 +437,12 @@ class _Graph:
         return np.array([2.0 * self.loop_factor(i, 1.0).error(values) for i in range(self.count)])
 
 
-def build_graph(problem: PoseGraphProblem, formulation: str,
-                config: PoseGraphConfig) -> _Graph:
+def build_graph(problem: PoseGraphProblem, formulation: str, config: PoseGraphConfig) -> _Graph:
     """The factors and initial values of ``formulation`` (module docstring)."""
     if formulation not in FORMULATIONS:
-        raise ConfigError(f"decentralized.pose_graph.formulation: {formulation!r} is not one "
-                          f"of {FORMULATIONS}")
+        raise ConfigError(
+            f"decentralized.pose_graph.formulation: {formulation!r} is not one of {FORMULATIONS}"
+        )
     scales = initial_scales(problem.loops, config.scale_init)
     # Translation noise and the consensus bound follow the scene's scale (keyframe spacing).
     spacing = keyframe_spacing(problem, scales)
@@ -429,23 +456,34 @@ def build_graph(problem: PoseGraphProblem, formulation: str,
         noise = _pose_noise(odom_rot, config.odom_sigma_trans_ratio * spacing, 1.0)
         for k in range(1, len(odometry)):
             step = to_pose3(odometry[k - 1]).between(to_pose3(odometry[k]))
-            fixed.add(gtsam.BetweenFactorPose3(pose_key(robot, k - 1), pose_key(robot, k),
-                                               step, noise))
-    fixed.add(gtsam.PriorFactorPose3(pose_key(problem.anchor, 0), to_pose3(problem.anchor_pose),
-                                     _pose_noise(ANCHOR_SIGMA, ANCHOR_SIGMA * spacing, 1.0)))
+            fixed.add(
+                gtsam.BetweenFactorPose3(pose_key(robot, k - 1), pose_key(robot, k), step, noise)
+            )
+    fixed.add(
+        gtsam.PriorFactorPose3(
+            pose_key(problem.anchor, 0),
+            to_pose3(problem.anchor_pose),
+            _pose_noise(ANCHOR_SIGMA, ANCHOR_SIGMA * spacing, 1.0),
+        )
+    )
 
     loops = problem.loops
     loop_rot = math.radians(config.loop_sigma_rot_deg)
     keys = [(pose_key(l.robot_a, l.keyframe_a), pose_key(l.robot_b, l.keyframe_b)) for l in loops]
 
     def noise(index: int, weight: float) -> gtsam.noiseModel.Base:
-        return _pose_noise(loop_rot, config.loop_sigma_trans_ratio * spacing,
-                           max(weight, MIN_WEIGHT) * loops[index].probability)
+        return _pose_noise(
+            loop_rot,
+            config.loop_sigma_trans_ratio * spacing,
+            max(weight, MIN_WEIGHT) * loops[index].probability,
+        )
 
     if formulation == "base":
+
         def base_factor(index: int, weight: float) -> gtsam.NonlinearFactor:
-            return gtsam.BetweenFactorPose3(*keys[index], _measured(loops[index], scales[index]),
-                                            noise(index, weight))
+            return gtsam.BetweenFactorPose3(
+                *keys[index], _measured(loops[index], scales[index]), noise(index, weight)
+            )
 
         return _Graph(fixed, values, base_factor, lambda v, i: float(scales[i]), len(loops))
 
@@ -454,30 +492,42 @@ def build_graph(problem: PoseGraphProblem, formulation: str,
         members = [i for i in range(len(loops)) if variable[i] == v]
         start = float(np.median(scales[members]))
         values.insert(scale_key(v), start)
-        fixed.add(gtsam.PriorFactorDouble(scale_key(v), start, gtsam.noiseModel.Isotropic.Sigma(
-            1, config.scale_prior_sigma * abs(start))))
+        fixed.add(
+            gtsam.PriorFactorDouble(
+                scale_key(v),
+                start,
+                gtsam.noiseModel.Isotropic.Sigma(1, config.scale_prior_sigma * abs(start)),
+            )
+        )
     if formulation == "smoothed":
         smoothing = gtsam.noiseModel.Isotropic.Sigma(1, config.scale_smoothing_sigma)
         for cluster in loop_clusters(loops, config.cluster_window):
             for first, second in zip(cluster, cluster[1:]):
-                fixed.add(gtsam.BetweenFactorDouble(scale_key(first), scale_key(second), 0.0,
-                                                    smoothing))
+                fixed.add(
+                    gtsam.BetweenFactorDouble(scale_key(first), scale_key(second), 0.0, smoothing)
+                )
     rotations = [to_pose3(l.T_ab).rotation().matrix() for l in loops]
     translations = [np.asarray(l.T_ab[:3], dtype=np.float64) for l in loops]
 
     def scaled_factor(index: int, weight: float) -> gtsam.NonlinearFactor:
-        return scaled_loop_factor((*keys[index], scale_key(variable[index])), rotations[index],
-                                  translations[index], noise(index, weight))
+        return scaled_loop_factor(
+            (*keys[index], scale_key(variable[index])),
+            rotations[index],
+            translations[index],
+            noise(index, weight),
+        )
 
-    return _Graph(fixed, values, scaled_factor,
-                  lambda v, i: v.atDouble(scale_key(variable[i])), len(loops))
+    return _Graph(
+        fixed, values, scaled_factor, lambda v, i: v.atDouble(scale_key(variable[i])), len(loops)
+    )
 
 
 # --------------------------------------------------------------------------- solvers
 
 
-def _levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
-                         max_iterations: int) -> tuple[gtsam.Values, int]:
+def _levenberg_marquardt(
+    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, max_iterations: int
+) -> tuple[gtsam.Values, int]:
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     try:
@@ -498,12 +548,14 @@ def _gnc_weights(residuals: np.ndarray, mu: float, threshold: float, loss: str) 
     return np.where(residuals >= upper, 0.0, np.where(residuals <= lower, 1.0, middle))
 
 
-def _graduated_non_convexity(graph: _Graph, config: PoseGraphConfig
-                             ) -> tuple[gtsam.Values, np.ndarray, int]:
+def _graduated_non_convexity(
+    graph: _Graph, config: PoseGraphConfig
+) -> tuple[gtsam.Values, np.ndarray, int]:
     """GNC over LM with the loop factors as the only uncertain measurements."""
     weights = np.ones(graph.count)
-    values, iterations = _levenberg_marquardt(graph.with_weights(weights), graph.initial,
-                                              config.lm_max_iterations)
+    values, iterations = _levenberg_marquardt(
+        graph.with_weights(weights), graph.initial, config.lm_max_iterations
+    )
     if graph.count == 0:
         return values, weights, iterations
     threshold = float(chi2.ppf(config.gnc_inlier_probability, _POSE_DIM))
@@ -517,8 +569,9 @@ def _graduated_non_convexity(graph: _Graph, config: PoseGraphConfig
         mu = threshold / max(2.0 * largest - threshold, 1e-12)
     for _ in range(config.gnc_max_iterations):
         weights = _gnc_weights(residuals, mu, threshold, config.gnc_loss)
-        values, used = _levenberg_marquardt(graph.with_weights(weights), values,
-                                            config.lm_max_iterations)
+        values, used = _levenberg_marquardt(
+            graph.with_weights(weights), values, config.lm_max_iterations
+        )
         iterations += used
         residuals = graph.residuals(values)
         if config.gnc_loss == "gm":
@@ -532,8 +585,9 @@ def _graduated_non_convexity(graph: _Graph, config: PoseGraphConfig
     return values, weights, iterations
 
 
-def solve_pose_graph(problem: PoseGraphProblem, formulation: str, solver: str,
-                     config: PoseGraphConfig) -> PoseGraphSolution:
+def solve_pose_graph(
+    problem: PoseGraphProblem, formulation: str, solver: str, config: PoseGraphConfig
+) -> PoseGraphSolution:
     """Solve one connected multi-robot pose graph.
 
     Args:
@@ -552,14 +606,18 @@ def solve_pose_graph(problem: PoseGraphProblem, formulation: str, solver: str,
     start = time.perf_counter()
     if solver == "lm":
         weights = np.ones(graph.count)
-        values, iterations = _levenberg_marquardt(graph.with_weights(weights), graph.initial,
-                                                  config.lm_max_iterations)
+        values, iterations = _levenberg_marquardt(
+            graph.with_weights(weights), graph.initial, config.lm_max_iterations
+        )
     else:
         values, weights, iterations = _graduated_non_convexity(graph, config)
     seconds = time.perf_counter() - start
-    poses = {robot: np.stack([from_pose3(values.atPose3(pose_key(robot, k)))
-                              for k in range(len(odometry))])
-             for robot, odometry in problem.odometry.items()}
+    poses = {
+        robot: np.stack(
+            [from_pose3(values.atPose3(pose_key(robot, k))) for k in range(len(odometry))]
+        )
+        for robot, odometry in problem.odometry.items()
+    }
     return PoseGraphSolution(
         poses=poses,
         loop_scales=np.array([graph.loop_scale(values, i) for i in range(graph.count)]),

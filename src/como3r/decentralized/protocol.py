@@ -30,10 +30,11 @@ import threading
 import time
 import traceback
 from collections import Counter
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -92,8 +93,9 @@ class Schedule:
         """Round times up to ``end_s``: window ends, every ``period_s`` (if > 0) and ``end_s``."""
         times = {float(end_s)}
         if self.windows is not None:
-            times.update(end for windows in self.windows.values() for _, end in windows
-                         if end <= end_s)
+            times.update(
+                end for windows in self.windows.values() for _, end in windows if end <= end_s
+            )
         if period_s > 0:
             times.update(float(t) for t in np.arange(period_s, end_s, period_s))
         return sorted(times)
@@ -118,8 +120,9 @@ def read_schedule(path: str | Path) -> Schedule:
         parts = [p.strip() for p in text.split(",")]
         where = f"{path}:{line_no}"
         if len(parts) < 3 or len(parts) % 2 == 0:
-            raise InputError(f"{where}: expected robot_id,start_s,end_s[,start_s,end_s...], "
-                             f"got {text!r}")
+            raise InputError(
+                f"{where}: expected robot_id,start_s,end_s[,start_s,end_s...], got {text!r}"
+            )
         try:
             robot = int(parts[0])
             bounds = [float(p) for p in parts[1:]]
@@ -141,8 +144,9 @@ def elect(group: Sequence[int]) -> int:
     return min(group)
 
 
-def plan_rounds(schedule: Schedule, robots: Sequence[int], end_s: float,
-                period_s: float = 0.0) -> list[RoundPlan]:
+def plan_rounds(
+    schedule: Schedule, robots: Sequence[int], end_s: float, period_s: float = 0.0
+) -> list[RoundPlan]:
     """Every round with at least two robots in range, numbered in time order."""
     plans = []
     for time_s in schedule.round_times(end_s, period_s):
@@ -173,17 +177,23 @@ class TrafficCounter:
         self.bytes_by_type[kind] += size
 
     def to_json(self, robots: Sequence[int]) -> dict[str, Any]:
-        per_robot = {str(r): {"sent": dict(self.sent.get(r, {})),
-                              "received": dict(self.received.get(r, {})),
-                              "sent_total": sum(self.sent.get(r, Counter()).values()),
-                              "received_total": sum(self.received.get(r, Counter()).values())}
-                     for r in robots}
-        return {"per_robot": per_robot, "bytes_by_type": dict(self.bytes_by_type),
-                "messages_by_type": dict(self.messages),
-                "bytes_per_message": {k: v / self.messages[k]
-                                      for k, v in self.bytes_by_type.items()},
-                "total_bytes": sum(self.bytes_by_type.values()),
-                "dropped": dict(self.dropped)}
+        per_robot = {
+            str(r): {
+                "sent": dict(self.sent.get(r, {})),
+                "received": dict(self.received.get(r, {})),
+                "sent_total": sum(self.sent.get(r, Counter()).values()),
+                "received_total": sum(self.received.get(r, Counter()).values()),
+            }
+            for r in robots
+        }
+        return {
+            "per_robot": per_robot,
+            "bytes_by_type": dict(self.bytes_by_type),
+            "messages_by_type": dict(self.messages),
+            "bytes_per_message": {k: v / self.messages[k] for k, v in self.bytes_by_type.items()},
+            "total_bytes": sum(self.bytes_by_type.values()),
+            "dropped": dict(self.dropped),
+        }
 
 
 class Router:
@@ -198,10 +208,14 @@ class Router:
             a time (robot threads route concurrently).
     """
 
-    def __init__(self, schedule: Schedule, deliver: Any, max_bytes: int,
-                 robots: Sequence[int],
-                 progress: MissionProgress | None = None
-                 ) -> None:
+    def __init__(
+        self,
+        schedule: Schedule,
+        deliver: Any,
+        max_bytes: int,
+        robots: Sequence[int],
+        progress: MissionProgress | None = None,
+    ) -> None:
         self.robots = set(robots)
         self.schedule = schedule
         self.deliver = deliver
@@ -214,8 +228,9 @@ class Router:
 
     def route(self, data: bytes) -> None:
         """Validate, check range, count and forward one encoded message."""
-        message = codec.decode(data, max_bytes=self.max_bytes,
-                               expected=(*ROBOT_MESSAGES, RobotProgress, RobotReport))
+        message = codec.decode(
+            data, max_bytes=self.max_bytes, expected=(*ROBOT_MESSAGES, RobotProgress, RobotReport)
+        )
         with self._lock:
             if isinstance(message, RobotReport):
                 self.reports[message.sender] = message
@@ -226,8 +241,11 @@ class Router:
                 return
             kind = type(message).__name__
             sender, recipient, time_s = message.sender, message.recipient, message.time_s
-            if (recipient not in self.robots or recipient in self.gone
-                    or not self.schedule.hears(recipient, sender, time_s)):
+            if (
+                recipient not in self.robots
+                or recipient in self.gone
+                or not self.schedule.hears(recipient, sender, time_s)
+            ):
                 self.traffic.dropped[kind] += 1
                 return
             self.traffic.count(sender, recipient, kind, len(data))
@@ -315,36 +333,66 @@ class ProtocolResult:
     seconds: float
 
 
-def build_prior(spec: Any, config: Config, place_method: str,
-                agent_paths: dict[int, str]) -> tuple[Prior, np.ndarray | None]:
+def build_prior(
+    spec: Any, config: Config, place_method: str, agent_paths: dict[int, str]
+) -> tuple[Prior, np.ndarray | None]:
     """The prior of a :class:`~como3r.runtime.pipeline.PriorSpec` for the robots
     ``agent_paths`` (robot id -> agent input, where the simulated prior reads its ground
     truth) and, for ASMK place recognition, its retrieval codebook."""
     from como3r.runtime.pipeline import build_prior as build_pipeline_prior
 
-    agents = {r: open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format,
-                            topic=config.input.topic) for r, path in agent_paths.items()}
+    agents = {
+        r: open_agent(
+            path,
+            fps=config.input.frame_rate_hz,
+            format=config.input.format,
+            topic=config.input.topic,
+        )
+        for r, path in agent_paths.items()
+    }
     prior, codebook = build_pipeline_prior(spec, config, agents)
     if spec.name == "simulated":
         return prior, (codebook if place_method == "asmk" else None)
     if codebook is None:
-        raise InputError("the decentralized mode with --prior mast3r needs --retrieval-weights "
-                         "for place recognition")
+        raise InputError(
+            "the decentralized mode with --prior mast3r needs --retrieval-weights "
+            "for place recognition"
+        )
     return prior, codebook
 
 
-def make_robot(robot: int, agent_path: str, prior: Prior, codebook: np.ndarray | None,
-               config: Config, settings: DecentralizedConfig, link: Any,
-               leave: tuple[int, str] | None) -> Robot:
+def make_robot(
+    robot: int,
+    agent_path: str,
+    prior: Prior,
+    codebook: np.ndarray | None,
+    config: Config,
+    settings: DecentralizedConfig,
+    link: Any,
+    leave: tuple[int, str] | None,
+) -> Robot:
     """Robot ``robot`` on its input, with its place recognizer, over ``link``."""
     recognizer = PlaceRecognizer(settings.place_method, codebook, config.retrieval)
-    return Robot(robot, open_agent(agent_path, fps=config.input.frame_rate_hz,
-                                   format=config.input.format, topic=config.input.topic), prior,
-                 recognizer, config, settings, link, leave)
+    return Robot(
+        robot,
+        open_agent(
+            agent_path,
+            fps=config.input.frame_rate_hz,
+            format=config.input.format,
+            topic=config.input.topic,
+        ),
+        prior,
+        recognizer,
+        config,
+        settings,
+        link,
+        leave,
+    )
 
 
-def _run_thread(robot: int, worker: Robot | Exception, link: ThreadLink,
-                rounds: list[RoundPlan]) -> None:
+def _run_thread(
+    robot: int, worker: Robot | Exception, link: ThreadLink, rounds: list[RoundPlan]
+) -> None:
     try:
         if isinstance(worker, Exception):
             raise worker
@@ -356,8 +404,15 @@ def _run_thread(robot: int, worker: Robot | Exception, link: ThreadLink,
 
 def _failure(robot: int, exc: Exception) -> RobotReport:
     details = "" if isinstance(exc, Como3rError) else "\n" + traceback.format_exc()
-    return RobotReport(sender=robot, recipient=DRIVER, estimate=np.zeros((0, 8)), frame=robot,
-                       loops=[], rejected=[], error=f"{type(exc).__name__}: {exc}{details}")
+    return RobotReport(
+        sender=robot,
+        recipient=DRIVER,
+        estimate=np.zeros((0, 8)),
+        frame=robot,
+        loops=[],
+        rejected=[],
+        error=f"{type(exc).__name__}: {exc}{details}",
+    )
 
 
 def _robot_process_main(robot: int, inbox: Connection, outbox: Connection) -> None:
@@ -373,13 +428,21 @@ def _robot_process_main(robot: int, inbox: Connection, outbox: Connection) -> No
         link.max_bytes = int(settings.protocol.max_message_mb * 2**20)
         from como3r.runtime.pipeline import PriorSpec
 
-        spec = PriorSpec(**{k: (Path(v) if k in ("weights", "retrieval_weights", "codebook")
-                                and v is not None else v) for k, v in task.prior.items()})
-        prior, codebook = build_prior(spec, config, settings.place_method,
-                                      {robot: task.agent_path})
+        spec = PriorSpec(
+            **{
+                k: (
+                    Path(v)
+                    if k in ("weights", "retrieval_weights", "codebook") and v is not None
+                    else v
+                )
+                for k, v in task.prior.items()
+            }
+        )
+        prior, codebook = build_prior(spec, config, settings.place_method, {robot: task.agent_path})
         rounds = [RoundPlan(r, t, tuple(g)) for r, t, g in task.rounds]
-        worker = make_robot(robot, task.agent_path, prior, codebook, config, settings, link,
-                            task.leave)
+        worker = make_robot(
+            robot, task.agent_path, prior, codebook, config, settings, link, task.leave
+        )
         link.send(worker.run(rounds))
     except Exception as exc:
         link.send(_failure(robot, exc))
@@ -400,12 +463,17 @@ def _prior_fields(spec: Any) -> dict[str, Any]:
     return {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(spec).items()}
 
 
-def run_protocol(agent_paths: Sequence[str | Path], config: Config,
-                 settings: DecentralizedConfig, prior_spec: Any, end_s: float,
-                 schedule: Schedule | None = None, prior: Prior | None = None,
-                 leave: dict[int, tuple[int, str]] | None = None,
-                 progress: MissionProgress | None = None
-                 ) -> ProtocolResult:
+def run_protocol(
+    agent_paths: Sequence[str | Path],
+    config: Config,
+    settings: DecentralizedConfig,
+    prior_spec: Any,
+    end_s: float,
+    schedule: Schedule | None = None,
+    prior: Prior | None = None,
+    leave: dict[int, tuple[int, str]] | None = None,
+    progress: MissionProgress | None = None,
+) -> ProtocolResult:
     """Run every robot over the mission and collect their reports.
 
     Args:
@@ -428,8 +496,9 @@ def run_protocol(agent_paths: Sequence[str | Path], config: Config,
         ConfigError: an unknown phase in ``leave``.
     """
     if schedule is None:
-        schedule = (read_schedule(settings.protocol.schedule) if settings.protocol.schedule
-                    else Schedule())
+        schedule = (
+            read_schedule(settings.protocol.schedule) if settings.protocol.schedule else Schedule()
+        )
     leave = leave or {}
     for robot, (_, phase) in leave.items():
         if phase not in PHASES:
@@ -439,25 +508,53 @@ def run_protocol(agent_paths: Sequence[str | Path], config: Config,
     max_bytes = int(settings.protocol.max_message_mb * 2**20)
     start = time.perf_counter()
     if settings.protocol.processes:
-        router = _run_processes(agent_paths, config, settings, prior_spec, schedule, rounds,
-                                leave, max_bytes, progress)
+        router = _run_processes(
+            agent_paths, config, settings, prior_spec, schedule, rounds, leave, max_bytes, progress
+        )
     else:
-        router = _run_threads(agent_paths, config, settings, prior_spec, schedule, rounds,
-                              leave, max_bytes, prior, progress)
+        router = _run_threads(
+            agent_paths,
+            config,
+            settings,
+            prior_spec,
+            schedule,
+            rounds,
+            leave,
+            max_bytes,
+            prior,
+            progress,
+        )
     return ProtocolResult(router.reports, router.traffic, rounds, time.perf_counter() - start)
 
 
-def _run_threads(agent_paths: Sequence[str | Path], config: Config,
-                 settings: DecentralizedConfig, prior_spec: Any, schedule: Schedule,
-                 rounds: list[RoundPlan], leave: dict[int, tuple[int, str]], max_bytes: int,
-                 prior: Prior | None, progress: MissionProgress | None) -> Router:
+def _run_threads(
+    agent_paths: Sequence[str | Path],
+    config: Config,
+    settings: DecentralizedConfig,
+    prior_spec: Any,
+    schedule: Schedule,
+    rounds: list[RoundPlan],
+    leave: dict[int, tuple[int, str]],
+    max_bytes: int,
+    prior: Prior | None,
+    progress: MissionProgress | None,
+) -> Router:
     codebook = None
     if prior is None or settings.place_method == "asmk":
-        prior, codebook = build_prior(prior_spec, config, settings.place_method,
-                                      {r: str(path) for r, path in enumerate(agent_paths)})
+        prior, codebook = build_prior(
+            prior_spec,
+            config,
+            settings.place_method,
+            {r: str(path) for r, path in enumerate(agent_paths)},
+        )
     links: dict[int, ThreadLink] = {}
-    router = Router(schedule, lambda robot, data: links[robot].inbox.put(data), max_bytes,
-                    range(len(agent_paths)), progress)
+    router = Router(
+        schedule,
+        lambda robot, data: links[robot].inbox.put(data),
+        max_bytes,
+        range(len(agent_paths)),
+        progress,
+    )
     links.update({r: ThreadLink(router, max_bytes) for r in range(len(agent_paths))})
     # Robots are built (files opened, classes imported) and message types resolved here,
     # one at a time: CPython 3.11's AST constructor fails when threads compile concurrently
@@ -465,14 +562,21 @@ def _run_threads(agent_paths: Sequence[str | Path], config: Config,
     workers: list[Robot | Exception] = []
     for r, path in enumerate(agent_paths):
         try:
-            workers.append(make_robot(r, str(path), prior, codebook, config, settings, links[r],
-                                      leave.get(r)))
+            workers.append(
+                make_robot(r, str(path), prior, codebook, config, settings, links[r], leave.get(r))
+            )
         except Exception as exc:  # the robot's thread reports it like any other failure
             workers.append(exc)
     codec.resolve_all()
-    threads = [threading.Thread(target=_run_thread, name=f"como3r-robot-{r}", daemon=True,
-                                args=(r, workers[r], links[r], rounds))
-               for r in range(len(agent_paths))]
+    threads = [
+        threading.Thread(
+            target=_run_thread,
+            name=f"como3r-robot-{r}",
+            daemon=True,
+            args=(r, workers[r], links[r], rounds),
+        )
+        for r in range(len(agent_paths))
+    ]
     for thread in threads:
         thread.start()
     for thread in threads:
@@ -480,10 +584,17 @@ def _run_threads(agent_paths: Sequence[str | Path], config: Config,
     return router
 
 
-def _run_processes(agent_paths: Sequence[str | Path], config: Config,
-                   settings: DecentralizedConfig, prior_spec: Any, schedule: Schedule,
-                   rounds: list[RoundPlan], leave: dict[int, tuple[int, str]],
-                   max_bytes: int, progress: MissionProgress | None) -> Router:
+def _run_processes(
+    agent_paths: Sequence[str | Path],
+    config: Config,
+    settings: DecentralizedConfig,
+    prior_spec: Any,
+    schedule: Schedule,
+    rounds: list[RoundPlan],
+    leave: dict[int, tuple[int, str]],
+    max_bytes: int,
+    progress: MissionProgress | None,
+) -> Router:
     context = multiprocessing.get_context("spawn")
     slots: dict[int, _ProcessSlot] = {}
 
@@ -494,8 +605,12 @@ def _run_processes(agent_paths: Sequence[str | Path], config: Config,
     for robot, path in enumerate(agent_paths):
         to_robot_r, to_robot_w = context.Pipe(duplex=False)
         from_robot_r, from_robot_w = context.Pipe(duplex=False)
-        process = context.Process(target=_robot_process_main, name=f"como3r-robot-{robot}",
-                                  args=(robot, to_robot_r, from_robot_w), daemon=True)
+        process = context.Process(
+            target=_robot_process_main,
+            name=f"como3r-robot-{robot}",
+            args=(robot, to_robot_r, from_robot_w),
+            daemon=True,
+        )
         from como3r.runtime.child_signals import children_ignore_sigint
 
         with children_ignore_sigint():  # Ctrl-C is the driver's to handle
@@ -506,11 +621,15 @@ def _run_processes(agent_paths: Sequence[str | Path], config: Config,
         slot.sender = threading.Thread(target=_pipe_sender, args=(slot,), daemon=True)
         slot.sender.start()
         slots[robot] = slot
-        task = RobotTask(robot=robot, agent_path=str(path), config=config_to_dict(config),
-                         decentralized=asdict(settings), prior=_prior_fields(prior_spec),
-                         rounds=[(p.round, p.time_s, list(p.group)) for p in rounds
-                                 if robot in p.group],
-                         leave=leave.get(robot))
+        task = RobotTask(
+            robot=robot,
+            agent_path=str(path),
+            config=config_to_dict(config),
+            decentralized=asdict(settings),
+            prior=_prior_fields(prior_spec),
+            rounds=[(p.round, p.time_s, list(p.group)) for p in rounds if robot in p.group],
+            leave=leave.get(robot),
+        )
         slot.queue.put(codec.encode(task, max_bytes=max_bytes))
     open_inboxes = {slot.inbox: robot for robot, slot in slots.items()}
     while open_inboxes:

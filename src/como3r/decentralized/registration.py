@@ -20,8 +20,8 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
-from typing import Callable
 
 import torch
 from torch import Tensor
@@ -35,6 +35,7 @@ from como3r.prior.base import Encoding, PairPrediction, Prior, View
 from como3r.prior.simulated_keys import generator
 
 logger = logging.getLogger(__name__)
+
 
 @dataclass(frozen=True)
 class Registration:
@@ -78,15 +79,21 @@ class RegistrationStats:
     registration_encodes: int = 0
 
     def to_json(self) -> dict[str, float]:
-        return {"encodes": self.encodes, "encode_seconds": self.encode_seconds,
-                "decodes": self.decodes, "decode_seconds": self.decode_seconds,
-                "match_seconds": self.match_seconds, "fit_seconds": self.fit_seconds,
-                "naive_encodes": self.naive_encodes,
-                "registration_encodes": self.registration_encodes}
+        return {
+            "encodes": self.encodes,
+            "encode_seconds": self.encode_seconds,
+            "decodes": self.decodes,
+            "decode_seconds": self.decode_seconds,
+            "match_seconds": self.match_seconds,
+            "fit_seconds": self.fit_seconds,
+            "naive_encodes": self.naive_encodes,
+            "registration_encodes": self.registration_encodes,
+        }
 
 
-def ransac_similarity(src: Tensor, dst: Tensor, config: RegistrationConfig,
-                      gen: torch.Generator) -> tuple[Tensor, Tensor] | None:
+def ransac_similarity(
+    src: Tensor, dst: Tensor, config: RegistrationConfig, gen: torch.Generator
+) -> tuple[Tensor, Tensor] | None:
     """Robust similarity ``dst ~= s R src + t`` from putative 3-D correspondences.
 
     Args:
@@ -105,14 +112,15 @@ def ransac_similarity(src: Tensor, dst: Tensor, config: RegistrationConfig,
         return None
     src, dst = src.double(), dst.double()
     threshold = config.ransac_inlier_ratio * dst.norm(dim=-1)
-    samples = torch.stack([torch.randperm(count, generator=gen)[:3]
-                           for _ in range(config.ransac_hypotheses)])
+    samples = torch.stack(
+        [torch.randperm(count, generator=gen)[:3] for _ in range(config.ransac_hypotheses)]
+    )
     # closed-form similarities of the minimal samples, scored as matrices (B, M, 3)
     R, t, s = umeyama_sim3_batched(src[samples], dst[samples])
     moved = s[:, None, None] * torch.matmul(src[None], R.transpose(1, 2)) + t[:, None]
     support = ((moved - dst[None]).norm(dim=-1) < threshold).sum(dim=1)
     k = int(torch.argmax(support))
-    best = torch.cat([t[k], matrix_to_quat(R[k]), s[k:k + 1]])
+    best = torch.cat([t[k], matrix_to_quat(R[k]), s[k : k + 1]])
     inliers = (sim3_act(best, src) - dst).norm(dim=-1) < threshold
     for _ in range(2):
         # the floor only: the fraction judges the refined fit, which may gain support
@@ -138,9 +146,13 @@ def required_inliers(count: int, config: RegistrationConfig) -> int:
     return max(config.min_inliers, math.ceil(config.min_inlier_fraction * count))
 
 
-def register_predictions(pred_ij: PairPrediction, pred_ji: PairPrediction,
-                         config: RegistrationConfig, gen: torch.Generator,
-                         stats: RegistrationStats | None = None) -> Registration:
+def register_predictions(
+    pred_ij: PairPrediction,
+    pred_ji: PairPrediction,
+    config: RegistrationConfig,
+    gen: torch.Generator,
+    stats: RegistrationStats | None = None,
+) -> Registration:
     """Match a decoded pair and estimate the relative pose (module docstring).
 
     Args:
@@ -220,8 +232,10 @@ class Registrar:
         depth = self.prior.decode(encoding, encoding).X_ii[..., 2].reshape(-1).float().cpu()
         depth = depth[torch.isfinite(depth) & (depth > 0)]
         if depth.numel() == 0:
-            raise GeometryError(f"robot {self.robot}: the prior's pointmap of keyframe 0 has no "
-                                "point in front of the camera")
+            raise GeometryError(
+                f"robot {self.robot}: the prior's pointmap of keyframe 0 has no "
+                "point in front of the camera"
+            )
         return float(depth.median())
 
     def encoding_for_peer(self, keyframe: int) -> Encoding:
@@ -251,8 +265,13 @@ class Registrar:
         if why is None:
             self._foreign[(robot, keyframe)] = encoding
             return
-        logger.warning("robot %d: refused robot %d's encoding of keyframe %d: %s", self.robot,
-                       robot, keyframe, why)
+        logger.warning(
+            "robot %d: refused robot %d's encoding of keyframe %d: %s",
+            self.robot,
+            robot,
+            keyframe,
+            why,
+        )
         self._refused.add((robot, keyframe))
 
     def register(self, keyframe: int, robot: int, other: int) -> Registration:
@@ -281,7 +300,8 @@ class Registrar:
             enc_i = self.own_encoding(keyframe)
             enc_n = self.own_encoding(neighbour)
             self._consecutive[keyframe] = self._decode(
-                enc_i, enc_n, ("odometry", self.robot, keyframe, neighbour))
+                enc_i, enc_n, ("odometry", self.robot, keyframe, neighbour)
+            )
         return neighbour, self._consecutive[keyframe]
 
     def _decode(self, enc_i: Encoding, enc_j: Encoding, name: tuple) -> Registration:
@@ -290,8 +310,9 @@ class Registrar:
         pred_ij, pred_ji = pred_ij.to("cpu"), pred_ji.to("cpu")
         self.stats.decode_seconds += time.perf_counter() - start
         self.stats.decodes += 1
-        return register_predictions(pred_ij, pred_ji, self.config,
-                                    generator(self.config.seed, *name), self.stats)
+        return register_predictions(
+            pred_ij, pred_ji, self.config, generator(self.config.seed, *name), self.stats
+        )
 
 
 def _mismatch(own: Encoding, other: Encoding) -> str | None:
@@ -300,8 +321,9 @@ def _mismatch(own: Encoding, other: Encoding) -> str | None:
         return f"a {type(other).__name__}, where this prior makes {type(own).__name__}"
     for f in fields(own):
         mine, theirs = getattr(own, f.name), getattr(other, f.name)
-        if isinstance(mine, Tensor) and (not isinstance(theirs, Tensor)
-                                         or (mine.dtype, mine.ndim) != (theirs.dtype, theirs.ndim)):
+        if isinstance(mine, Tensor) and (
+            not isinstance(theirs, Tensor) or (mine.dtype, mine.ndim) != (theirs.dtype, theirs.ndim)
+        ):
             return f"{f.name} is not a {mine.ndim}-d {mine.dtype} tensor"
     return None
 

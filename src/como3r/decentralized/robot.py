@@ -26,8 +26,9 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -35,8 +36,8 @@ from como3r.config import Config
 from como3r.data.agent import AgentInput
 from como3r.data.preprocess import make_view
 from como3r.decentralized.confidence import accept_loop, correspondence_ratio, loop_probability
-from como3r.decentralized.consistency import LoopCheck, solve_checked
 from como3r.decentralized.config import DecentralizedConfig
+from como3r.decentralized.consistency import LoopCheck, solve_checked
 from como3r.decentralized.keyframes import frame_odometry, select_keyframes
 from como3r.decentralized.messages import (
     DRIVER,
@@ -120,9 +121,17 @@ class Robot:
         leave: ``(round, phase)`` at which the robot drops out, for failure injection.
     """
 
-    def __init__(self, robot: int, agent: AgentInput, prior: Prior, recognizer: PlaceRecognizer,
-                 config: Config, settings: DecentralizedConfig, link: Link,
-                 leave: tuple[int, str] | None = None) -> None:
+    def __init__(
+        self,
+        robot: int,
+        agent: AgentInput,
+        prior: Prior,
+        recognizer: PlaceRecognizer,
+        config: Config,
+        settings: DecentralizedConfig,
+        link: Link,
+        leave: tuple[int, str] | None = None,
+    ) -> None:
         self.robot = robot
         self.agent = agent
         self.settings = settings
@@ -136,7 +145,8 @@ class Robot:
         self._frame_times = odometry.timestamps
         #: Path length between keyframes [odometry units]: a fraction of the scene depth.
         self.keyframe_distance = settings.keyframe_distance_ratio * self.registrar.scene_depth(
-            self._frame_view(int(odometry.frames[0])))
+            self._frame_view(int(odometry.frames[0]))
+        )
         self.keyframes = select_keyframes(odometry, self.keyframe_distance)
         self.odometry = self.keyframes.T_OC.numpy()
         self.estimate = np.zeros((0, 8))
@@ -173,25 +183,40 @@ class Robot:
                 logger.info("robot %d leaves during round %d", self.robot, plan.round)
                 left = True
                 break
-            self.link.send(RobotProgress(
-                sender=self.robot, recipient=DRIVER, round=plan.round,
-                frames_done=int(np.searchsorted(self._frame_times, plan.time_s, side="right")),
-                keyframes=self.keyframes.up_to(plan.time_s)))
+            self.link.send(
+                RobotProgress(
+                    sender=self.robot,
+                    recipient=DRIVER,
+                    round=plan.round,
+                    frames_done=int(np.searchsorted(self._frame_times, plan.time_s, side="right")),
+                    keyframes=self.keyframes.up_to(plan.time_s),
+                )
+            )
         return self.report(left)
 
     def report(self, left: bool = False) -> RobotReport:
         """The robot's final state for the driver."""
-        stats: dict[str, float] = {**self.registrar.stats.to_json(),
-                                   "keyframes": len(self.keyframes),
-                                   "keyframe_distance": self.keyframe_distance,
-                                   "candidates": self.candidates,
-                                   "loops": len(self.loops), "rejected": len(self.rejected),
-                                   "timeouts": self.timeouts,
-                                   "scale_alarms": self.scale_alarms,
-                                   "loops_held_back": self.loops_held_back}
-        return RobotReport(sender=self.robot, recipient=DRIVER, estimate=self.estimate,
-                           frame=self.frame, loops=list(self.loops),
-                           rejected=list(self.rejected), stats=stats, left=left)
+        stats: dict[str, float] = {
+            **self.registrar.stats.to_json(),
+            "keyframes": len(self.keyframes),
+            "keyframe_distance": self.keyframe_distance,
+            "candidates": self.candidates,
+            "loops": len(self.loops),
+            "rejected": len(self.rejected),
+            "timeouts": self.timeouts,
+            "scale_alarms": self.scale_alarms,
+            "loops_held_back": self.loops_held_back,
+        }
+        return RobotReport(
+            sender=self.robot,
+            recipient=DRIVER,
+            estimate=self.estimate,
+            frame=self.frame,
+            loops=list(self.loops),
+            rejected=list(self.rejected),
+            stats=stats,
+            left=left,
+        )
 
     def _round(self, plan: RoundPlan) -> None:
         r, t = plan.round, plan.time_s
@@ -199,26 +224,32 @@ class Robot:
         count = self.keyframes.up_to(t)
         self._check_leave(r, "descriptors")
         self._send_descriptors(r, t, peers, count)
-        self._wait(lambda: all((r, p) in self._got_descriptors or p in self._gone
-                               for p in peers))
+        self._wait(lambda: all((r, p) in self._got_descriptors or p in self._gone for p in peers))
         present = [p for p in peers if (r, p) in self._got_descriptors and p not in self._gone]
         leader = min([self.robot, *present])
         self._check_leave(r, "registration")
         tasks = self._candidates(present, count)
         self._request_encodings(r, t, tasks, present)
-        self._wait(lambda: all((r, p) in self._got_requests or p in self._gone for p in present)
-                   and all(self.registrar.answered(k.peer, k.other) or k.peer in self._gone
-                           for k in tasks))
+        self._wait(
+            lambda: (
+                all((r, p) in self._got_requests or p in self._gone for p in present)
+                and all(
+                    self.registrar.answered(k.peer, k.other) or k.peer in self._gone for k in tasks
+                )
+            )
+        )
         self._register(tasks, count)
         # A peer whose request never came is gone for this round: nobody waits for it again.
-        present = [p for p in present if ((r, p) in self._got_requests or p == leader)
-                   and p not in self._gone]
+        present = [
+            p
+            for p in present
+            if ((r, p) in self._got_requests or p == leader) and p not in self._gone
+        ]
         participants = sorted([self.robot, *present])
         if self.robot == leader:
             self._wait(lambda: all(p in self._shares[r] or p in self._gone for p in present))
             self._check_leave(r, "optimisation")
-            self._solve_and_broadcast(r, t, present, self._share(r, t, leader, participants,
-                                                                 count))
+            self._solve_and_broadcast(r, t, present, self._share(r, t, leader, participants, count))
         else:
             self._check_leave(r, "optimisation")
             self.link.send(self._share(r, t, leader, participants, count))
@@ -260,10 +291,16 @@ class Robot:
         elif isinstance(message, EncodingRequest):
             for keyframe in message.keyframes:
                 if 0 <= keyframe < len(self.keyframes):
-                    self.link.send(EncodingReply(
-                        sender=self.robot, recipient=sender, round=message.round,
-                        time_s=message.time_s, keyframe=keyframe,
-                        encoding=self.registrar.encoding_for_peer(keyframe)))
+                    self.link.send(
+                        EncodingReply(
+                            sender=self.robot,
+                            recipient=sender,
+                            round=message.round,
+                            time_s=message.time_s,
+                            keyframe=keyframe,
+                            encoding=self.registrar.encoding_for_peer(keyframe),
+                        )
+                    )
             self._got_requests.add((message.round, sender))
         elif isinstance(message, EncodingReply):
             self.registrar.add_foreign(sender, message.keyframe, message.encoding)
@@ -282,11 +319,20 @@ class Robot:
         for k in range(len(self._descriptors), count):
             encoding = self.registrar.own_encoding(k)
             self._descriptors.append(
-                self.recognizer.describe(*self.registrar.prior.retrieval_features(encoding)))
+                self.recognizer.describe(*self.registrar.prior.retrieval_features(encoding))
+            )
         for peer in peers:
             first = self._sent[peer]
-            self.link.send(PlaceDescriptors(sender=self.robot, recipient=peer, round=r, time_s=t,
-                                            first=first, descriptors=self._descriptors[first:count]))
+            self.link.send(
+                PlaceDescriptors(
+                    sender=self.robot,
+                    recipient=peer,
+                    round=r,
+                    time_s=t,
+                    first=first,
+                    descriptors=self._descriptors[first:count],
+                )
+            )
             self._sent[peer] = max(first, count)
 
     def _known_peer_descriptors(self, peer: int) -> list[np.ndarray]:
@@ -317,10 +363,18 @@ class Robot:
 
     def _request_encodings(self, r: int, t: float, tasks: list[_Task], present: list[int]) -> None:
         for peer in present:
-            needed = sorted({k.other for k in tasks if k.peer == peer
-                             and not self.registrar.has_foreign(peer, k.other)})
-            self.link.send(EncodingRequest(sender=self.robot, recipient=peer, round=r, time_s=t,
-                                           keyframes=needed))
+            needed = sorted(
+                {
+                    k.other
+                    for k in tasks
+                    if k.peer == peer and not self.registrar.has_foreign(peer, k.other)
+                }
+            )
+            self.link.send(
+                EncodingRequest(
+                    sender=self.robot, recipient=peer, round=r, time_s=t, keyframes=needed
+                )
+            )
 
     # ------------------------------------------------------------------ registration
 
@@ -331,16 +385,20 @@ class Robot:
                 continue
             registration = self.registrar.register(task.keyframe, task.peer, task.other)
             neighbour, consecutive = self.registrar.consecutive(task.keyframe, count)
-            ratio = correspondence_ratio(registration.correspondences,
-                                         consecutive.correspondences)
+            ratio = correspondence_ratio(registration.correspondences, consecutive.correspondences)
             loop = LoopClosure(
-                robot_a=self.robot, keyframe_a=task.keyframe, robot_b=task.peer,
+                robot_a=self.robot,
+                keyframe_a=task.keyframe,
+                robot_b=task.peer,
                 keyframe_b=task.other,
-                T_ab=(np.zeros(8) if registration.T_ij is None
-                      else registration.T_ij.double().numpy()),
+                T_ab=(
+                    np.zeros(8) if registration.T_ij is None else registration.T_ij.double().numpy()
+                ),
                 odometry_scale=self._odometry_scale(task.keyframe, neighbour, consecutive.T_ij),
-                ratio=ratio, probability=loop_probability(ratio, self.settings.confidence_k),
-                correspondences=registration.correspondences)
+                ratio=ratio,
+                probability=loop_probability(ratio, self.settings.confidence_k),
+                correspondences=registration.correspondences,
+            )
             if registration.T_ij is not None and accept_loop(ratio, self.settings.ratio_threshold):
                 self.loops.append(loop)
             else:
@@ -351,26 +409,38 @@ class Robot:
         if T_prior is None:
             return float("nan")
         prior_distance = float(T_prior[:3].norm())
-        odometry_distance = float(np.linalg.norm(self.odometry[keyframe, :3]
-                                                 - self.odometry[neighbour, :3]))
+        odometry_distance = float(
+            np.linalg.norm(self.odometry[keyframe, :3] - self.odometry[neighbour, :3])
+        )
         if prior_distance <= 0 or odometry_distance <= 0:
             return float("nan")
         return odometry_distance / prior_distance
 
     # ------------------------------------------------------------------ pose graph
 
-    def _share(self, r: int, t: float, leader: int, participants: list[int],
-               count: int) -> PoseGraphShare:
+    def _share(
+        self, r: int, t: float, leader: int, participants: list[int], count: int
+    ) -> PoseGraphShare:
         loops = [loop for loop in self.loops if loop.robot_b in participants]
-        return PoseGraphShare(sender=self.robot, recipient=leader, round=r, time_s=t,
-                              odometry=self.odometry[:count], estimate=self.estimate[:count],
-                              frame=self.frame, loops=loops)
+        return PoseGraphShare(
+            sender=self.robot,
+            recipient=leader,
+            round=r,
+            time_s=t,
+            odometry=self.odometry[:count],
+            estimate=self.estimate[:count],
+            frame=self.frame,
+            loops=loops,
+        )
 
-    def _solve_and_broadcast(self, r: int, t: float, present: list[int],
-                             own: PoseGraphShare) -> None:
+    def _solve_and_broadcast(
+        self, r: int, t: float, present: list[int], own: PoseGraphShare
+    ) -> None:
         """The elected robot's step: solve every connected group, answer every robot."""
-        shares = {self.robot: own, **{p: self._shares[r][p] for p in present
-                                      if p in self._shares[r]}}
+        shares = {
+            self.robot: own,
+            **{p: self._shares[r][p] for p in present if p in self._shares[r]},
+        }
         checks: list[LoopCheck] = []
         updates = solve_shares(shares, self.settings, checks=checks)
         self.scale_alarms += sum(check.alarm for check in checks)
@@ -379,8 +449,9 @@ class Robot:
         # Every robot present gets an answer, empty when it has no update, so none waits.
         for robot in sorted([self.robot, *present]):
             poses, frame = updates.get(robot, (np.zeros((0, 8)), -1))
-            estimate = PoseEstimate(sender=self.robot, recipient=robot, round=r, time_s=t,
-                                    poses=poses, frame=frame)
+            estimate = PoseEstimate(
+                sender=self.robot, recipient=robot, round=r, time_s=t, poses=poses, frame=frame
+            )
             if robot == self.robot:
                 self._apply(estimate)
             else:
@@ -392,10 +463,13 @@ class Robot:
             self.frame = estimate.frame
 
 
-def solve_shares(shares: dict[int, PoseGraphShare], settings: DecentralizedConfig,
-                 formulation: str | None = None,
-                 solver: str | None = None, checks: list[LoopCheck] | None = None
-                 ) -> dict[int, tuple[np.ndarray, int]]:
+def solve_shares(
+    shares: dict[int, PoseGraphShare],
+    settings: DecentralizedConfig,
+    formulation: str | None = None,
+    solver: str | None = None,
+    checks: list[LoopCheck] | None = None,
+) -> dict[int, tuple[np.ndarray, int]]:
     """Solve the pose graph of every group of robots connected by loops.
 
     Each group is anchored on its smallest robot id, at that robot's current estimate (or
@@ -414,8 +488,12 @@ def solve_shares(shares: dict[int, PoseGraphShare], settings: DecentralizedConfi
         whose solve was not held back.
     """
     graph_config = settings.pose_graph
-    loops = [loop for share in shares.values() for loop in share.loops
-             if loop.robot_a in shares and loop.robot_b in shares]
+    loops = [
+        loop
+        for share in shares.values()
+        for loop in share.loops
+        if loop.robot_a in shares and loop.robot_b in shares
+    ]
     updates: dict[int, tuple[np.ndarray, int]] = {}
     for component in connected_components(sorted(shares), loops):
         if len(component) < 2:
@@ -426,12 +504,21 @@ def solve_shares(shares: dict[int, PoseGraphShare], settings: DecentralizedConfi
         problem = PoseGraphProblem(
             odometry={r: shares[r].odometry for r in component},
             loops=[loop for loop in loops if loop.robot_a in component],
-            anchor=component[0], anchor_pose=anchor_pose,
-            initial={r: shares[r].estimate for r in component
-                     if shares[r].frame == frame and len(shares[r].estimate)})
+            anchor=component[0],
+            anchor_pose=anchor_pose,
+            initial={
+                r: shares[r].estimate
+                for r in component
+                if shares[r].frame == frame and len(shares[r].estimate)
+            },
+        )
         try:
-            solution, check = solve_checked(problem, formulation or graph_config.formulation,
-                                            solver or graph_config.solver, graph_config)
+            solution, check = solve_checked(
+                problem,
+                formulation or graph_config.formulation,
+                solver or graph_config.solver,
+                graph_config,
+            )
         except SolverError as exc:
             logger.warning("robots %s: %s; estimates unchanged", component, exc)
             continue

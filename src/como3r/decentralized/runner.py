@@ -29,8 +29,9 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections import defaultdict
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import yaml
@@ -44,6 +45,7 @@ from como3r.decentralized.config import (
     DecentralizedConfig,
     check_config,
 )
+from como3r.decentralized.consistency import solve_checked
 from como3r.decentralized.keyframes import (
     FrameOdometry,
     Keyframes,
@@ -51,7 +53,6 @@ from como3r.decentralized.keyframes import (
     frame_poses,
     select_keyframes,
 )
-from como3r.decentralized.consistency import solve_checked
 from como3r.decentralized.messages import RobotProgress, RobotReport
 from como3r.decentralized.pose_graph import (
     LoopClosure,
@@ -125,10 +126,17 @@ def run_decentralized(
     robots = [open_robot(path, config) for path in agent_paths]
     end_s = max(float(r.odometry.timestamps[-1]) for r in robots)
     started = time.perf_counter()
-    result = run_protocol([str(p) for p in agent_paths], config, settings, prior_spec, end_s,
-                          schedule, prior, leave,
-                          None if progress is None else RobotProgressAdapter(
-                              progress, dict(enumerate(robots))))
+    result = run_protocol(
+        [str(p) for p in agent_paths],
+        config,
+        settings,
+        prior_spec,
+        end_s,
+        schedule,
+        prior,
+        leave,
+        None if progress is None else RobotProgressAdapter(progress, dict(enumerate(robots))),
+    )
     failed = {r: report.error for r, report in result.reports.items() if report.error}
     if len(failed) == len(robots):
         raise Como3rError(f"every robot failed; robot 0: {failed[0].splitlines()[0]}")
@@ -141,15 +149,25 @@ def run_decentralized(
     for r, robot in enumerate(robots):
         robot.keyframes = reported_keyframes(robot.odometry, result.reports.get(r))
     with atomic_output_dir(out, overwrite=overwrite) as staging:
-        _write(staging, robots, result, config, settings, summary,
-               time.perf_counter() - started, prior_spec.name, progress)
+        _write(
+            staging,
+            robots,
+            result,
+            config,
+            settings,
+            summary,
+            time.perf_counter() - started,
+            prior_spec.name,
+            progress,
+        )
     summary.out = Path(out)
     return summary
 
 
 def open_robot(path: str | Path, config: Config) -> RobotData:
-    agent = open_agent(path, fps=config.input.frame_rate_hz, format=config.input.format,
-                       topic=config.input.topic)
+    agent = open_agent(
+        path, fps=config.input.frame_rate_hz, format=config.input.format, topic=config.input.topic
+    )
     return RobotData(agent, frame_odometry(agent))
 
 
@@ -165,22 +183,26 @@ class RobotProgressAdapter:
 
     def __init__(self, progress: ProgressCallback, robots: dict[int, RobotData]) -> None:
         self.progress = progress
-        self.latest = {r: AgentProgress(r, 0, len(robot.odometry), 0, 0, 0)
-                       for r, robot in robots.items()}
+        self.latest = {
+            r: AgentProgress(r, 0, len(robot.odometry), 0, 0, 0) for r, robot in robots.items()
+        }
         for event in self.latest.values():
             progress(event)
 
     def __call__(self, message: RobotProgress | RobotReport) -> None:
         event = self.latest[message.sender]
         if isinstance(message, RobotProgress):
-            event = dataclasses.replace(event, frames_done=message.frames_done,
-                                        keyframes=message.keyframes)
+            event = dataclasses.replace(
+                event, frames_done=message.frames_done, keyframes=message.keyframes
+            )
         elif message.error:
             event = dataclasses.replace(event, state="failed")
         elif not message.left:  # the mission's end: every frame is done
             event = dataclasses.replace(
-                event, frames_done=event.frames_total,
-                keyframes=int(message.stats.get("keyframes", event.keyframes)))
+                event,
+                frames_done=event.frames_total,
+                keyframes=int(message.stats.get("keyframes", event.keyframes)),
+            )
         if event != self.latest[message.sender]:  # the last round may have said it all
             self.latest[message.sender] = event
             self.progress(event)
@@ -203,38 +225,56 @@ def _frame_groups(reports: dict[int, RobotReport], count: int) -> list[list[int]
     return sorted(groups.values())
 
 
-def _write(staging: Path, robots: list[RobotData], result: ProtocolResult, config: Config,
-           settings: DecentralizedConfig, summary: Any, seconds: float, prior: str,
-           progress: PhaseCallback | None = None) -> None:
+def _write(
+    staging: Path,
+    robots: list[RobotData],
+    result: ProtocolResult,
+    config: Config,
+    settings: DecentralizedConfig,
+    summary: Any,
+    seconds: float,
+    prior: str,
+    progress: PhaseCallback | None = None,
+) -> None:
     from como3r.runtime.outputs import bandwidth, write_json
 
     report_phase(progress, "outputs", "config.yaml, trajectories, graph.json")
     reports = result.reports
     document = {**config_to_dict(config), "decentralized": dataclasses.asdict(settings)}
     (staging / "config.yaml").write_text(yaml.safe_dump(document, sort_keys=False))
-    estimates = [reports[r].estimate if r in reports else np.zeros((0, 8))
-                 for r in range(len(robots))]
+    estimates = [
+        reports[r].estimate if r in reports else np.zeros((0, 8)) for r in range(len(robots))
+    ]
     write_trajectories(staging, dict(enumerate(robots)), dict(enumerate(estimates)))
     groups = _frame_groups(reports, len(robots))
     # Loops to a robot that failed before reporting its keyframes name keyframes unknown here.
     known = {r for r, report in reports.items() if "keyframe_distance" in report.stats}
-    loops = [loop for r in sorted(reports) for loop in reports[r].loops
-             if set(loop.robots) <= known]
-    rejected = [loop for r in sorted(reports) for loop in reports[r].rejected
-                if set(loop.robots) <= known]
+    loops = [
+        loop for r in sorted(reports) for loop in reports[r].loops if set(loop.robots) <= known
+    ]
+    rejected = [
+        loop for r in sorted(reports) for loop in reports[r].rejected if set(loop.robots) <= known
+    ]
     metrics: dict[str, Any] = {
         "mode": "decentralized",
         "prior": {"name": prior},
         "seconds": seconds,
         "protocol_seconds": result.seconds,
-        "rounds": [{"round": p.round, "time_s": p.time_s, "group": list(p.group)}
-                   for p in result.rounds],
+        "rounds": [
+            {"round": p.round, "time_s": p.time_s, "group": list(p.group)} for p in result.rounds
+        ],
         "frame_groups": groups,
         "bytes": result.traffic.to_json(range(len(robots))),
         "robots": [robot_metrics(r, reports.get(r)) for r in range(len(robots))],
-        "bandwidth": [{"robot": r, **bandwidth(result.traffic.sent.get(r, {}),
-                                                len(robot.keyframes), image_shape(robot, config))}
-                      for r, robot in enumerate(robots)],
+        "bandwidth": [
+            {
+                "robot": r,
+                **bandwidth(
+                    result.traffic.sent.get(r, {}), len(robot.keyframes), image_shape(robot, config)
+                ),
+            }
+            for r, robot in enumerate(robots)
+        ],
         "two_stage": two_stage(reports),
         "loops": loop_statistics(loops, rejected),
         "loop_check": final_loop_check(robots, loops, settings),
@@ -242,24 +282,44 @@ def _write(staging: Path, robots: list[RobotData], result: ProtocolResult, confi
     has_gt = all(r.agent.groundtruth is not None for r in robots)
     table_weights: dict[tuple, float] = {}
     if settings.table and has_gt and loops:
-        report_phase(progress, "formulation table",
-                     f"{len(FORMULATIONS)} formulations x {len(SOLVERS)} solvers")
+        report_phase(
+            progress,
+            "formulation table",
+            f"{len(FORMULATIONS)} formulations x {len(SOLVERS)} solvers",
+        )
         metrics["table"], table_weights = _formulation_table(robots, loops, settings)
-    write_json(staging / "graph.json", graph_document(dict(enumerate(robots)),
-                                                      dict(enumerate(estimates)), loops,
-                                                      rejected, groups, table_weights))
+    write_json(
+        staging / "graph.json",
+        graph_document(
+            dict(enumerate(robots)),
+            dict(enumerate(estimates)),
+            loops,
+            rejected,
+            groups,
+            table_weights,
+        ),
+    )
     for r, robot in enumerate(robots):
         stats = reports[r].stats if r in reports else {}
-        summary.agents.append({"agent": r, "keyframes": len(robot.keyframes),
-                               "loops": int(stats.get("loops", 0)),
-                               "rejected": int(stats.get("rejected", 0)),
-                               "frame": groups.index(next(g for g in groups if r in g))})
+        summary.agents.append(
+            {
+                "agent": r,
+                "keyframes": len(robot.keyframes),
+                "loops": int(stats.get("loops", 0)),
+                "rejected": int(stats.get("rejected", 0)),
+                "frame": groups.index(next(g for g in groups if r in g)),
+            }
+        )
     if has_gt:
         from como3r.evaluation.report import evaluate_run
 
         report_phase(progress, "evaluation", "ATE and RPE through evo")
-        evaluation = evaluate_run(staging, [r.agent.root for r in robots], staging,
-                                  components=groups if len(groups) > 1 else None)
+        evaluation = evaluate_run(
+            staging,
+            [r.agent.root for r in robots],
+            staging,
+            components=groups if len(groups) > 1 else None,
+        )
         metrics["ate"] = evaluation.to_json()
         summary.evaluation = evaluation
     else:
@@ -268,20 +328,23 @@ def _write(staging: Path, robots: list[RobotData], result: ProtocolResult, confi
     from como3r.evaluation.html import write_report
 
     report_phase(progress, "report", "report.html")
-    write_report(staging, summary.notes,
-                 [r.agent.groundtruth for r in robots] if has_gt else None)
+    write_report(staging, summary.notes, [r.agent.groundtruth for r in robots] if has_gt else None)
 
 
-def write_trajectories(staging: Path, robots: dict[int, RobotData],
-                       estimates: dict[int, np.ndarray]) -> None:
+def write_trajectories(
+    staging: Path, robots: dict[int, RobotData], estimates: dict[int, np.ndarray]
+) -> None:
     """``trajectories/agent_<r>.txt`` (every frame with odometry) and
     ``keyframes/agent_<r>.txt`` of each robot ``r``, from its ``(K', 8)`` keyframe estimate
     (its odometry beyond it)."""
     for r, robot in robots.items():
         poses = frame_poses(robot.odometry, robot.keyframes, estimates[r])
         write_tum(staging / "trajectories" / f"agent_{r}.txt", robot.odometry.timestamps, poses)
-        write_tum(staging / "keyframes" / f"agent_{r}.txt", robot.keyframes.timestamps,
-                  poses[robot.keyframes.rows])
+        write_tum(
+            staging / "keyframes" / f"agent_{r}.txt",
+            robot.keyframes.timestamps,
+            poses[robot.keyframes.rows],
+        )
 
 
 def image_shape(robot: RobotData, config: Config) -> tuple[int, int]:
@@ -294,8 +357,13 @@ def image_shape(robot: RobotData, config: Config) -> tuple[int, int]:
 def robot_metrics(robot: int, report: RobotReport | None) -> dict[str, Any]:
     if report is None:
         return {"robot": robot, "error": "no report"}
-    return {"robot": robot, **report.stats, "frame": report.frame, "left": report.left,
-            "error": report.error}
+    return {
+        "robot": robot,
+        **report.stats,
+        "frame": report.frame,
+        "left": report.left,
+        "error": report.error,
+    }
 
 
 def two_stage(reports: dict[int, RobotReport]) -> dict[str, float]:
@@ -305,48 +373,63 @@ def two_stage(reports: dict[int, RobotReport]) -> dict[str, float]:
     encodes = sum(r.stats.get("encodes", 0) for r in reports.values())
     encode_seconds = sum(r.stats.get("encode_seconds", 0.0) for r in reports.values())
     mean = encode_seconds / encodes if encodes else 0.0
-    return {"naive_encodes": naive, "two_stage_encodes": used,
-            "saved_encodes": naive - used,
-            "saved_fraction": (naive - used) / naive if naive else 0.0,
-            "mean_encode_seconds": mean,
-            "saved_seconds_estimate": (naive - used) * mean,
-            "all_encodes_including_place_descriptors": encodes}
+    return {
+        "naive_encodes": naive,
+        "two_stage_encodes": used,
+        "saved_encodes": naive - used,
+        "saved_fraction": (naive - used) / naive if naive else 0.0,
+        "mean_encode_seconds": mean,
+        "saved_seconds_estimate": (naive - used) * mean,
+        "all_encodes_including_place_descriptors": encodes,
+    }
 
 
 def loop_statistics(loops: list[LoopClosure], rejected: list[LoopClosure]) -> dict[str, Any]:
     ratios = np.array([loop.ratio for loop in loops]) if loops else np.zeros(0)
-    return {"accepted": len(loops), "rejected": len(rejected),
-            "ratio_median": float(np.median(ratios)) if loops else None,
-            "probability_mean": float(np.mean([l.probability for l in loops])) if loops else None}
+    return {
+        "accepted": len(loops),
+        "rejected": len(rejected),
+        "ratio_median": float(np.median(ratios)) if loops else None,
+        "probability_mean": float(np.mean([l.probability for l in loops])) if loops else None,
+    }
 
 
-def _component_problems(robots: list[RobotData], loops: list[LoopClosure]
-                        ) -> list[PoseGraphProblem]:
+def _component_problems(
+    robots: list[RobotData], loops: list[LoopClosure]
+) -> list[PoseGraphProblem]:
     """One pose graph per group of robots connected by loops, anchored on its smallest id
     at its odometry origin."""
     components = [c for c in connected_components(list(range(len(robots))), loops) if len(c) > 1]
-    return [PoseGraphProblem(odometry={r: robots[r].keyframes.T_OC.numpy() for r in component},
-                             loops=[l for l in loops if l.robot_a in component],
-                             anchor=component[0],
-                             anchor_pose=robots[component[0]].keyframes.T_OC[0].numpy())
-            for component in components]
+    return [
+        PoseGraphProblem(
+            odometry={r: robots[r].keyframes.T_OC.numpy() for r in component},
+            loops=[l for l in loops if l.robot_a in component],
+            anchor=component[0],
+            anchor_pose=robots[component[0]].keyframes.T_OC[0].numpy(),
+        )
+        for component in components
+    ]
 
 
-def final_loop_check(robots: list[RobotData], loops: list[LoopClosure],
-                     settings: DecentralizedConfig) -> list[dict[str, Any]]:
+def final_loop_check(
+    robots: list[RobotData], loops: list[LoopClosure], settings: DecentralizedConfig
+) -> list[dict[str, Any]]:
     """``metrics.json`` ``loop_check``: for every group of robots, the mission's loops
     that pairwise consistency held back and the scale changes (and alarm) of the configured
     solve of all of them (:mod:`~.consistency`); ``[{"error": ...}]`` if a solve failed."""
     graph = settings.pose_graph
     try:
-        return [solve_checked(problem, graph.formulation, graph.solver, graph)[1].to_json()
-                for problem in _component_problems(robots, loops)]
+        return [
+            solve_checked(problem, graph.formulation, graph.solver, graph)[1].to_json()
+            for problem in _component_problems(robots, loops)
+        ]
     except Como3rError as exc:
         return [{"error": str(exc)}]
 
 
-def _formulation_table(robots: list[RobotData], loops: list[LoopClosure],
-                       settings: DecentralizedConfig) -> tuple[list[dict[str, Any]], dict]:
+def _formulation_table(
+    robots: list[RobotData], loops: list[LoopClosure], settings: DecentralizedConfig
+) -> tuple[list[dict[str, Any]], dict]:
     """Every formulation x solver on the mission's full graph (F-Tables II-III).
 
     Each group of robots connected by loops is anchored on its smallest id at its odometry
@@ -368,8 +451,9 @@ def _formulation_table(robots: list[RobotData], loops: list[LoopClosure],
             seconds, inliers, held_back, alarms = 0.0, 0, 0, 0
             try:
                 for problem in problems:
-                    solution, check = solve_checked(problem, formulation, solver,
-                                                    settings.pose_graph)
+                    solution, check = solve_checked(
+                        problem, formulation, solver, settings.pose_graph
+                    )
                     seconds += solution.seconds
                     inliers += int((solution.loop_weights > 0.5).sum())
                     held_back += int((~check.consistent).sum())
@@ -379,23 +463,40 @@ def _formulation_table(robots: list[RobotData], loops: list[LoopClosure],
                     if (formulation, solver) == (settings.pose_graph.formulation, "gnc"):
                         kept = iter(solution.loop_weights)
                         # A loop pairwise consistency held back has weight 0.
-                        weights.update({_loop_key(l): float(next(kept)) if c else 0.0
-                                        for l, c in zip(problem.loops, check.consistent)})
+                        weights.update(
+                            {
+                                _loop_key(l): float(next(kept)) if c else 0.0
+                                for l, c in zip(problem.loops, check.consistent)
+                            }
+                        )
             except Como3rError as exc:
                 rows.append({"formulation": formulation, "solver": solver, "error": str(exc)})
                 continue
-            pairs = [associate(Trajectory(r.odometry.timestamps,
-                                          frame_poses(r.odometry, r.keyframes, e)),
-                               r.agent.groundtruth, f"agent_{k}", str(r.agent.root))
-                     for k, (r, e) in enumerate(zip(robots, estimates))]
+            pairs = [
+                associate(
+                    Trajectory(r.odometry.timestamps, frame_poses(r.odometry, r.keyframes, e)),
+                    r.agent.groundtruth,
+                    f"agent_{k}",
+                    str(r.agent.root),
+                )
+                for k, (r, e) in enumerate(zip(robots, estimates))
+            ]
             merged = merged_errors_by_component(pairs, components)
-            rows.append({"formulation": formulation, "solver": solver,
-                         "merged_ate_rmse": [m.ate.rmse for m in merged],
-                         "merged_ate_mean": [m.ate.mean for m in merged],
-                         "merged_ate_std": [m.ate.std for m in merged],
-                         "groups": [list(m.agents) for m in merged],
-                         "seconds": seconds, "loops": len(loops), "inlier_loops": inliers,
-                         "held_back_loops": held_back, "scale_alarms": alarms})
+            rows.append(
+                {
+                    "formulation": formulation,
+                    "solver": solver,
+                    "merged_ate_rmse": [m.ate.rmse for m in merged],
+                    "merged_ate_mean": [m.ate.mean for m in merged],
+                    "merged_ate_std": [m.ate.std for m in merged],
+                    "groups": [list(m.agents) for m in merged],
+                    "seconds": seconds,
+                    "loops": len(loops),
+                    "inlier_loops": inliers,
+                    "held_back_loops": held_back,
+                    "scale_alarms": alarms,
+                }
+            )
     return rows, weights
 
 
@@ -403,9 +504,14 @@ def _loop_key(loop: LoopClosure) -> tuple[int, int, int, int]:
     return loop.robot_a, loop.keyframe_a, loop.robot_b, loop.keyframe_b
 
 
-def graph_document(robots: dict[int, RobotData], estimates: dict[int, np.ndarray],
-                   loops: list[LoopClosure], rejected: list[LoopClosure],
-                   groups: list[list[int]], weights: dict) -> dict[str, Any]:
+def graph_document(
+    robots: dict[int, RobotData],
+    estimates: dict[int, np.ndarray],
+    loops: list[LoopClosure],
+    rejected: list[LoopClosure],
+    groups: list[list[int]],
+    weights: dict,
+) -> dict[str, Any]:
     """``graph.json``: every keyframe of ``robots`` with its final pose, accepted and
     rejected loop closures (with their GNC weight where ``weights`` has one) and the
     groups of robots sharing a frame."""
@@ -413,17 +519,28 @@ def graph_document(robots: dict[int, RobotData], estimates: dict[int, np.ndarray
     for r, robot in robots.items():
         poses = frame_poses(robot.odometry, robot.keyframes, estimates[r])[robot.keyframes.rows]
         for k in range(len(robot.keyframes)):
-            keyframes.append({"agent": r, "keyframe": k, "frame": int(robot.keyframes.frames[k]),
-                              "timestamp": float(robot.keyframes.timestamps[k]),
-                              "T_WC": poses[k].tolist()})
+            keyframes.append(
+                {
+                    "agent": r,
+                    "keyframe": k,
+                    "frame": int(robot.keyframes.frames[k]),
+                    "timestamp": float(robot.keyframes.timestamps[k]),
+                    "T_WC": poses[k].tolist(),
+                }
+            )
     edges = []
     for accepted, group in ((True, loops), (False, rejected)):
         for loop in group:
-            edge = {"type": "inter", "from": [loop.robot_a, loop.keyframe_a],
-                    "to": [loop.robot_b, loop.keyframe_b], "accepted": accepted,
-                    "ratio": loop.ratio, "probability": loop.probability,
-                    "correspondences": loop.correspondences,
-                    "odometry_scale": loop.odometry_scale}
+            edge = {
+                "type": "inter",
+                "from": [loop.robot_a, loop.keyframe_a],
+                "to": [loop.robot_b, loop.keyframe_b],
+                "accepted": accepted,
+                "ratio": loop.ratio,
+                "probability": loop.probability,
+                "correspondences": loop.correspondences,
+                "odometry_scale": loop.odometry_scale,
+            }
             if _loop_key(loop) in weights:
                 edge["gnc_weight"] = weights[_loop_key(loop)]
             edges.append(edge)

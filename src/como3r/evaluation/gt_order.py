@@ -63,8 +63,9 @@ def _merged_ate(pairs: Sequence[AssociatedPair]) -> float | None:
         return None
 
 
-def ground_truth_order_warning(ests: Sequence[Trajectory], gts: Sequence[Trajectory],
-                               max_diff: float = MAX_TIME_DIFF) -> str | None:
+def ground_truth_order_warning(
+    ests: Sequence[Trajectory], gts: Sequence[Trajectory], max_diff: float = MAX_TIME_DIFF
+) -> str | None:
     """One warning line when the ground truths in another order fit the agents' estimates much
     better (:data:`MUCH_BETTER`) under one Sim(3) alignment than in the order given; else None.
 
@@ -96,7 +97,9 @@ def ground_truth_order_warning(ests: Sequence[Trajectory], gts: Sequence[Traject
         return None
     ate, order = best
     taken = ", ".join(f"#{j + 1}" for j in order)
-    return (f"warning: the ground truths fit the agents much better in another order: taking "
-            f"--gt {taken} for agents {', '.join(str(i) for i in range(n))}, the merged ATE is "
-            f"{ate:.4f} m instead of {given:.4f} m. Is --gt in agent order (the first for "
-            f"trajectories/agent_0.txt, the second for agent_1, ...)?")
+    return (
+        f"warning: the ground truths fit the agents much better in another order: taking "
+        f"--gt {taken} for agents {', '.join(str(i) for i in range(n))}, the merged ATE is "
+        f"{ate:.4f} m instead of {given:.4f} m. Is --gt in agent order (the first for "
+        f"trajectories/agent_0.txt, the second for agent_1, ...)?"
+    )

@@ -47,9 +47,16 @@ logger = logging.getLogger(__name__)
 
 REPORT_NAME = "report.html"
 #: the sections of the report, in order: (id, heading)
-SECTIONS = (("trajectories", "Trajectories"), ("error", "Error over time"),
-            ("agents", "Agents"), ("timing", "Timing"), ("bandwidth", "Bandwidth"),
-            ("merges", "Cross-agent merges"), ("map", "Map"), ("appendix", "Appendix"))
+SECTIONS = (
+    ("trajectories", "Trajectories"),
+    ("error", "Error over time"),
+    ("agents", "Agents"),
+    ("timing", "Timing"),
+    ("bandwidth", "Bandwidth"),
+    ("merges", "Cross-agent merges"),
+    ("map", "Map"),
+    ("appendix", "Appendix"),
+)
 
 
 def image(build: Callable[[], Figure], alt: str, caption: str = "") -> str:
@@ -59,11 +66,14 @@ def image(build: Callable[[], Figure], alt: str, caption: str = "") -> str:
         data = base64.b64encode(png_bytes(build())).decode("ascii")
     except Exception as exc:  # noqa: BLE001 - any plotting failure leaves a sentence
         logger.warning("report: the %s figure could not be drawn", alt, exc_info=True)
-        return f"<p class='missing'>The {html.escape(alt)} figure could not be drawn: " \
-               f"{html.escape(str(exc))}</p>"
+        return (
+            f"<p class='missing'>The {html.escape(alt)} figure could not be drawn: "
+            f"{html.escape(str(exc))}</p>"
+        )
     text = f"<figcaption>{caption}</figcaption>" if caption else ""
-    return (f"<figure><img alt='{html.escape(alt)}' "
-            f"src='data:image/png;base64,{data}'>{text}</figure>")
+    return (
+        f"<figure><img alt='{html.escape(alt)}' src='data:image/png;base64,{data}'>{text}</figure>"
+    )
 
 
 def _missing(sentence: str) -> str:
@@ -82,19 +92,21 @@ def _summary(data: RunData, notes: Sequence[str]) -> str:
         facts.append(("frames", sum(frames)))
     components = m.get("components") or m.get("frame_groups")
     if components:
-        facts.append(("gauge components", " ".join(
-            "{" + ", ".join(map(str, c)) + "}" for c in components)))
+        facts.append(
+            ("gauge components", " ".join("{" + ", ".join(map(str, c)) + "}" for c in components))
+        )
     merged = (data.ate or {}).get("merged")
     if merged:
         facts.append(("merged ATE RMSE [m]", merged["ate"]["rmse"]))
     if m.get("map_points") is not None:
         facts.append(("map points", m["map_points"]))
-    items = "".join(f"<div><b>{html.escape(k)}</b> {html.escape(fmt(v))}</div>"
-                    for k, v in facts)
+    items = "".join(f"<div><b>{html.escape(k)}</b> {html.escape(fmt(v))}</div>" for k, v in facts)
     text = f"<div class='facts'>{items}</div>"
     if notes:
-        lines = "".join(f"<li class='{'warn' if n.startswith('warning') else ''}'>"
-                        f"{html.escape(n)}</li>" for n in notes)
+        lines = "".join(
+            f"<li class='{'warn' if n.startswith('warning') else ''}'>{html.escape(n)}</li>"
+            for n in notes
+        )
         text += f"<ul class='notes'>{lines}</ul>"
     toc = " · ".join(f"<a href='#{i}'>{h}</a>" for i, h in SECTIONS)
     return text + f"<nav>{toc}</nav>"
@@ -105,29 +117,48 @@ def _trajectories(data: RunData) -> str:
         return _missing("No agent has an estimated trajectory.")
     if data.has_ground_truth:
         est = [t.aligned if t.aligned is not None else t.positions for t in data.tracks]
-        caption = ("Top view. Estimates solid, one colour per agent (a dot marks the start); "
-                   "ground truth dashed grey. " + (data.alignment_text or "") + ".")
-        return image(lambda: trajectory_figure(est, [t.gt for t in data.tracks])[0],
-                     "trajectories", html.escape(caption))
-    sentence = ("No ground truth was given for this run, so the estimates are drawn alone, "
-                "in the run's world frame (the first camera's), and no error is computed.")
+        caption = (
+            "Top view. Estimates solid, one colour per agent (a dot marks the start); "
+            "ground truth dashed grey. " + (data.alignment_text or "") + "."
+        )
+        return image(
+            lambda: trajectory_figure(est, [t.gt for t in data.tracks])[0],
+            "trajectories",
+            html.escape(caption),
+        )
+    sentence = (
+        "No ground truth was given for this run, so the estimates are drawn alone, "
+        "in the run's world frame (the first camera's), and no error is computed."
+    )
     if data.ate is not None:
-        sentence = ("The run was evaluated, but its ground truth was not handed to the "
-                    "report: the estimates are drawn alone, in the run's world frame.")
+        sentence = (
+            "The run was evaluated, but its ground truth was not handed to the "
+            "report: the estimates are drawn alone, in the run's world frame."
+        )
     return _missing(sentence) + image(
-        lambda: trajectory_figure([t.positions for t in data.tracks], None,
-                                  "Estimated trajectories (top view, world frame)")[0],
-        "trajectories", "Top view of the estimates, one colour per agent.")
+        lambda: trajectory_figure(
+            [t.positions for t in data.tracks],
+            None,
+            "Estimated trajectories (top view, world frame)",
+        )[0],
+        "trajectories",
+        "Top view of the estimates, one colour per agent.",
+    )
 
 
 def _error(data: RunData) -> str:
-    series = [(t.agent, t.error_times, t.errors) for t in data.tracks
-              if t.errors is not None and t.error_times is not None]
+    series = [
+        (t.agent, t.error_times, t.errors)
+        for t in data.tracks
+        if t.errors is not None and t.error_times is not None
+    ]
     if not series:
         return _missing("No ground truth: no error over time.")
-    caption = ("Distance between each estimated camera centre and its ground truth (nearest "
-               "timestamp) after the agent's own Sim(3) alignment; its RMSE is the agent's "
-               "ATE in the table below.")
+    caption = (
+        "Distance between each estimated camera centre and its ground truth (nearest "
+        "timestamp) after the agent's own Sim(3) alignment; its RMSE is the agent's "
+        "ATE in the table below."
+    )
     return image(lambda: ate_figure(series), "ATE over time", html.escape(caption))
 
 
@@ -135,16 +166,22 @@ def _agents(data: RunData) -> str:
     rows = agent_rows(data)
     if not rows:
         return _missing("No agents.")
-    note = ("" if data.ate else "<p>ATE and RPE need ground truth for every agent; "
-            "this run has none, or its evaluation failed (see the notes above).</p>")
+    note = (
+        ""
+        if data.ate
+        else "<p>ATE and RPE need ground truth for every agent; "
+        "this run has none, or its evaluation failed (see the notes above).</p>"
+    )
     rpe = ""
     if data.ate:
         p = data.ate.get("parameters", {})
-        rpe = (f"<p class='small'>ATE: RMSE of camera-centre errors after a Sim(3) Umeyama "
-               f"alignment per agent (merged rows: one Sim(3) for the group). RPE: between "
-               f"associated poses {p.get('rpe_delta', 1)} {p.get('rpe_delta_unit', 'frames')}"
-               f" apart. "
-               f"Computed with evo {html.escape(str(p.get('evo_version', '')))}.</p>")
+        rpe = (
+            f"<p class='small'>ATE: RMSE of camera-centre errors after a Sim(3) Umeyama "
+            f"alignment per agent (merged rows: one Sim(3) for the group). RPE: between "
+            f"associated poses {p.get('rpe_delta', 1)} {p.get('rpe_delta_unit', 'frames')}"
+            f" apart. "
+            f"Computed with evo {html.escape(str(p.get('evo_version', '')))}.</p>"
+        )
     return table(rows) + rpe + note
 
 
@@ -155,42 +192,84 @@ def _timing(data: RunData) -> str:
     stages = stage_order(columns)
     rows = [{"stage": s, **{f"{c} [s]": columns[c].get(s) for c in columns}} for s in stages]
     rows.append({"stage": "total", **{f"{c} [s]": sum(columns[c].values()) for c in columns}})
-    text, caption = "", ("Wall seconds per stage of each agent's front-end and of the "
-                         "coordinator (<i>other</i>: the rest of the agent's time).")
+    text, caption = (
+        "",
+        (
+            "Wall seconds per stage of each agent's front-end and of the "
+            "coordinator (<i>other</i>: the rest of the agent's time)."
+        ),
+    )
     if data.decentralized:
-        text = _missing("The decentralized mode records only the prior's encoder and decoder "
-                        f"time per robot; the whole mission took "
-                        f"{fmt(data.metrics.get('seconds'))} s.")
+        text = _missing(
+            "The decentralized mode records only the prior's encoder and decoder "
+            f"time per robot; the whole mission took "
+            f"{fmt(data.metrics.get('seconds'))} s."
+        )
         caption = "Wall seconds each robot spent in the prior's encoder and decoder."
-    return text + table(rows) + image(
-        lambda: stacked_bar_figure(columns, "wall time [s]", "Time per stage",
-                                   total_label=lambda v: f"{v:.3g} s"), "timing", caption)
+    return (
+        text
+        + table(rows)
+        + image(
+            lambda: stacked_bar_figure(
+                columns, "wall time [s]", "Time per stage", total_label=lambda v: f"{v:.3g} s"
+            ),
+            "timing",
+            caption,
+        )
+    )
 
 
 def _bandwidth(data: RunData) -> str:
     found = traffic(data)
     if found is None and data.runtime_mode == "single-process" and data.metrics:
-        return _missing("Single-process run: the agents and the coordinator shared memory and "
-                        "sent no messages, so there is no bandwidth to report (run without "
-                        "--single-process to measure it).")
+        return _missing(
+            "Single-process run: the agents and the coordinator shared memory and "
+            "sent no messages, so there is no bandwidth to report (run without "
+            "--single-process to measure it)."
+        )
     if found is None:
         return _missing("This run recorded no message bytes.")
     rows, keyframe_counts = [], {r["agent"]: r.get("keyframes") for r in agent_rows(data)}
     for agent, t in found.items():
         sent, received = sum(t.sent.values()), sum(t.received.values())
         keyframes = keyframe_counts.get(agent)
-        rows.append({"agent": agent, "sent": fmt_bytes(sent), "received": fmt_bytes(received),
-                     "sent per keyframe": fmt_bytes(sent / keyframes) if keyframes else None,
-                     "largest sent type": max(t.sent, key=t.sent.get) if t.sent else None})
+        rows.append(
+            {
+                "agent": agent,
+                "sent": fmt_bytes(sent),
+                "received": fmt_bytes(received),
+                "sent per keyframe": fmt_bytes(sent / keyframes) if keyframes else None,
+                "largest sent type": max(t.sent, key=t.sent.get) if t.sent else None,
+            }
+        )
     by_type = (data.metrics.get("bytes") or data.metrics.get("runtime") or {}).get(
-        "bytes_by_type") or {}
-    types = table([{"message type": k, "bytes": fmt_bytes(v)} for k, v in
-                   sorted(by_type.items(), key=lambda kv: -kv[1])]) if by_type else ""
-    return table(rows) + image(
-        lambda: stacked_bar_figure(traffic_columns(found), "MB", "Bytes per agent and "
-                                   "message type", scale=1e6, total_label=fmt_bytes),
-        "bandwidth",
-        "Encoded message bytes each agent sent and received, by message type.") + types
+        "bytes_by_type"
+    ) or {}
+    types = (
+        table(
+            [
+                {"message type": k, "bytes": fmt_bytes(v)}
+                for k, v in sorted(by_type.items(), key=lambda kv: -kv[1])
+            ]
+        )
+        if by_type
+        else ""
+    )
+    return (
+        table(rows)
+        + image(
+            lambda: stacked_bar_figure(
+                traffic_columns(found),
+                "MB",
+                "Bytes per agent and message type",
+                scale=1e6,
+                total_label=fmt_bytes,
+            ),
+            "bandwidth",
+            "Encoded message bytes each agent sent and received, by message type.",
+        )
+        + types
+    )
 
 
 def _event_rows(data: RunData, events: Sequence[MergeEvent]) -> list[dict[str, Any]]:
@@ -198,16 +277,31 @@ def _event_rows(data: RunData, events: Sequence[MergeEvent]) -> list[dict[str, A
     for i, event in enumerate(events, 1):
         d = event.details
         if data.decentralized:
-            rows.append({"#": i, "time [s]": event.time, "round": d.get("round"),
-                         "robots": ", ".join(map(str, d.get("group", [])))})
+            rows.append(
+                {
+                    "#": i,
+                    "time [s]": event.time,
+                    "round": d.get("round"),
+                    "robots": ", ".join(map(str, d.get("group", []))),
+                }
+            )
             continue
         edges = "; ".join(f"{a[0]}:{a[1]} ↔ {b[0]}:{b[1]}" for a, b in d.get("edges", []))
-        rows.append({"#": i, "time [s]": event.time, "after keyframes": d.get("keyframes"),
-                     "moved agents": ", ".join(map(str, d.get("moved_agents", []))),
-                     "into component": d.get("anchor_component"), "edges (agent:kf)": edges,
-                     "method": d.get("method"), "correspondences": d.get("correspondences"),
-                     "RMSE": d.get("rmse"), "scale": d.get("scale"),
-                     "focal factor": d.get("focal_factor")})
+        rows.append(
+            {
+                "#": i,
+                "time [s]": event.time,
+                "after keyframes": d.get("keyframes"),
+                "moved agents": ", ".join(map(str, d.get("moved_agents", []))),
+                "into component": d.get("anchor_component"),
+                "edges (agent:kf)": edges,
+                "method": d.get("method"),
+                "correspondences": d.get("correspondences"),
+                "RMSE": d.get("rmse"),
+                "scale": d.get("scale"),
+                "focal factor": d.get("focal_factor"),
+            }
+        )
     return rows
 
 
@@ -223,12 +317,17 @@ def _merges(data: RunData) -> str:
     what = "loop closures" if data.decentralized else "verified candidates"
     summary = ", ".join(f"{n} {s}" for s, n in sorted(counts.items())) or "none"
     kind = "rendezvous rounds" if data.decentralized else "gauge synchronizations"
-    text = (f"<p>Cross-agent {what}: {html.escape(summary)}. "
-            f"{len(line.events)} {kind} (dotted lines, numbered as in the table).</p>")
-    caption = ("Each tick is a keyframe at its timestamp; a line joins the two keyframes of a "
-               "cross-agent link, green where it was admitted, red where it was rejected.")
-    text += image(lambda: timeline_figure(line, [t.agent for t in data.tracks]), "timeline",
-                  caption)
+    text = (
+        f"<p>Cross-agent {what}: {html.escape(summary)}. "
+        f"{len(line.events)} {kind} (dotted lines, numbered as in the table).</p>"
+    )
+    caption = (
+        "Each tick is a keyframe at its timestamp; a line joins the two keyframes of a "
+        "cross-agent link, green where it was admitted, red where it was rejected."
+    )
+    text += image(
+        lambda: timeline_figure(line, [t.agent for t in data.tracks]), "timeline", caption
+    )
     if line.events:
         text += table(_event_rows(data, line.events))
     elif not data.decentralized:
@@ -240,57 +339,89 @@ def _map(data: RunData) -> str:
     path = data.run_dir / "map.ply"
     sample = sample_map(path)
     if sample is None:
-        text = _missing("No map.ply in this run (or it is empty): nothing to render."
-                        if not data.decentralized else
-                        "The decentralized mode writes no fused map.")
+        text = _missing(
+            "No map.ply in this run (or it is empty): nothing to render."
+            if not data.decentralized
+            else "The decentralized mode writes no fused map."
+        )
     else:
-        text = image(lambda: map_figure(sample, data.tracks), "map",
-                     f"map.ply, {len(sample.xyz):,} of {sample.total:,} points drawn (a fixed "
-                     f"random subset) in their colours; top-down with the estimated "
-                     f"trajectories, and oblique. Up is the cameras' mean up direction.")
+        text = image(
+            lambda: map_figure(sample, data.tracks),
+            "map",
+            f"map.ply, {len(sample.xyz):,} of {sample.total:,} points drawn (a fixed "
+            f"random subset) in their colours; top-down with the estimated "
+            f"trajectories, and oblique. Up is the cameras' mean up direction.",
+        )
     rows = []
     for entry in data.metrics.get("map_accuracy") or []:
         for which in ("final", "before_refinement"):
             if which in entry:
                 m = entry[which]
-                rows.append({"agents": "+".join(map(str, entry["agents"])), "map": which,
-                             "accuracy [m]": m.get("accuracy"),
-                             "completeness [m]": m.get("completeness"),
-                             "Chamfer [m]": m.get("chamfer"), "F-score": m.get("fscore"),
-                             "threshold [m]": m.get("threshold")})
+                rows.append(
+                    {
+                        "agents": "+".join(map(str, entry["agents"])),
+                        "map": which,
+                        "accuracy [m]": m.get("accuracy"),
+                        "completeness [m]": m.get("completeness"),
+                        "Chamfer [m]": m.get("chamfer"),
+                        "F-score": m.get("fscore"),
+                        "threshold [m]": m.get("threshold"),
+                    }
+                )
     return text + (table(rows) if rows else "")
 
 
 def _appendix(data: RunData) -> str:
     parts = []
     if data.config_text is not None:
-        parts.append(details("Configuration (config.yaml)",
-                             f"<pre>{html.escape(data.config_text)}</pre>"))
+        parts.append(
+            details("Configuration (config.yaml)", f"<pre>{html.escape(data.config_text)}</pre>")
+        )
     prior = data.metrics.get("prior") or {}
     if prior:
         flat = {k: v for k, v in prior.items() if not isinstance(v, dict)}
-        nested = "".join(f"<h4>{html.escape(k)}</h4>" + table([{"name": n, "value": v}
-                                                                for n, v in v.items()])
-                         for k, v in prior.items() if isinstance(v, dict))
-        parts.append(details(f"Prior: {prior.get('name', '')}",
-                             table([{"name": k, "value": v} for k, v in flat.items()]) + nested))
+        nested = "".join(
+            f"<h4>{html.escape(k)}</h4>" + table([{"name": n, "value": v} for n, v in v.items()])
+            for k, v in prior.items()
+            if isinstance(v, dict)
+        )
+        parts.append(
+            details(
+                f"Prior: {prior.get('name', '')}",
+                table([{"name": k, "value": v} for k, v in flat.items()]) + nested,
+            )
+        )
     if data.ate:
-        parts.append(details("Evaluation parameters", table(
-            [{"name": k, "value": v} for k, v in data.ate.get("parameters", {}).items()])))
+        parts.append(
+            details(
+                "Evaluation parameters",
+                table([{"name": k, "value": v} for k, v in data.ate.get("parameters", {}).items()]),
+            )
+        )
     coordinator = data.metrics.get("coordinator") or {}
     counters = {k: v for k, v in coordinator.items() if not isinstance(v, (dict, list))}
     if counters:
-        parts.append(details("Coordinator counters", table(
-            [{"name": k, "value": v} for k, v in counters.items()])))
+        parts.append(
+            details(
+                "Coordinator counters",
+                table([{"name": k, "value": v} for k, v in counters.items()]),
+            )
+        )
     if coordinator.get("alternation"):
         text = html.escape(json.dumps(coordinator["alternation"], indent=1))
         parts.append(details("Terminal alternation", f"<pre>{text}</pre>"))
-    for key, title in (("loops", "Loop closures"), ("two_stage", "Two-stage registration"),
-                       ("table", "Formulations (F-Tables II-III)")):
+    for key, title in (
+        ("loops", "Loop closures"),
+        ("two_stage", "Two-stage registration"),
+        ("table", "Formulations (F-Tables II-III)"),
+    ):
         if data.metrics.get(key):
             value = data.metrics[key]
-            body = table(value) if isinstance(value, list) else table(
-                [{"name": k, "value": v} for k, v in value.items()])
+            body = (
+                table(value)
+                if isinstance(value, list)
+                else table([{"name": k, "value": v} for k, v in value.items()])
+            )
             parts.append(details(title, body))
     return "".join(parts) or _missing("Nothing to add.")
 
@@ -306,19 +437,32 @@ def run_label(run_dir: Path) -> str:
 def render(data: RunData, notes: Sequence[str] = ()) -> str:
     """The HTML page of a loaded run."""
     name = html.escape(run_label(data.run_dir))
-    builders = {"trajectories": _trajectories, "error": _error, "agents": _agents,
-                "timing": _timing, "bandwidth": _bandwidth, "merges": _merges, "map": _map,
-                "appendix": _appendix}
+    builders = {
+        "trajectories": _trajectories,
+        "error": _error,
+        "agents": _agents,
+        "timing": _timing,
+        "bandwidth": _bandwidth,
+        "merges": _merges,
+        "map": _map,
+        "appendix": _appendix,
+    }
     body = "".join(section(i, h, builders[i](data)) for i, h in SECTIONS)
-    return (f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
-            f"<title>{name} - como3r report</title><style>{STYLE}</style></head><body>"
-            f"<h1>como3r report <span class='name'>{name}</span></h1>"
-            f"{_summary(data, notes)}{body}</body></html>\n")
+    return (
+        f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
+        f"<title>{name} - como3r report</title><style>{STYLE}</style></head><body>"
+        f"<h1>como3r report <span class='name'>{name}</span></h1>"
+        f"{_summary(data, notes)}{body}</body></html>\n"
+    )
 
 
-def write_report(run_dir: Path, notes: Sequence[str] = (),
-                 ground_truth: Sequence[Trajectory | None] | None = None,
-                 ate: dict[str, Any] | None = None, path: Path | None = None) -> Path:
+def write_report(
+    run_dir: Path,
+    notes: Sequence[str] = (),
+    ground_truth: Sequence[Trajectory | None] | None = None,
+    ate: dict[str, Any] | None = None,
+    path: Path | None = None,
+) -> Path:
     """Write the report of a run folder; returns its path.
 
     The page is written beside its place and renamed into it, so an interrupted report
@@ -345,8 +489,7 @@ def write_report(run_dir: Path, notes: Sequence[str] = (),
     return out
 
 
-def write_evaluation_report(run_dir: Path, summary: EvalSummary,
-                            path: Path | None = None) -> Path:
+def write_evaluation_report(run_dir: Path, summary: EvalSummary, path: Path | None = None) -> Path:
     """The report of a run folder showing the evaluation ``summary`` of ``como3r eval``
     (which may differ from the run's own: other ground truth, or none at run time) instead
     of the run's; returns its path.

@@ -63,8 +63,9 @@ def table(rows: Sequence[Mapping[str, Any]]) -> str:
         return "<p class='missing'>none</p>"
     head = "".join(f"<th>{html.escape(str(k))}</th>" for k in rows[0])
     body = "".join(
-        "<tr>" + "".join(f"<td>{html.escape(fmt(row.get(k)))}</td>" for k in rows[0])
-        + "</tr>" for row in rows)
+        "<tr>" + "".join(f"<td>{html.escape(fmt(row.get(k)))}</td>" for k in rows[0]) + "</tr>"
+        for row in rows
+    )
     return f"<table><tr>{head}</tr>{body}</table>"
 
 

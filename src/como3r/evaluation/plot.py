@@ -25,8 +25,12 @@ from matplotlib.figure import Figure
 AXIS_NAMES = ("x", "y", "z")
 
 #: ground truth: dashed, grey, beneath the estimates
-GT_STYLE: dict[str, Any] = {"color": "0.55", "linestyle": (0, (5, 3)), "linewidth": 1.4,
-                            "zorder": 1}
+GT_STYLE: dict[str, Any] = {
+    "color": "0.55",
+    "linestyle": (0, (5, 3)),
+    "linewidth": 1.4,
+    "zorder": 1,
+}
 #: an estimate: solid, in its agent's colour (``color`` is added per agent)
 EST_STYLE: dict[str, Any] = {"linestyle": "-", "linewidth": 1.8, "zorder": 2}
 
@@ -73,9 +77,12 @@ def plane_axes(positions: Sequence[np.ndarray]) -> tuple[int, int]:
     return first, second
 
 
-def draw_trajectories(ax: Axes, est_positions: Sequence[np.ndarray],
-                      gt_positions: Sequence[np.ndarray | None] | None = None,
-                      axes: tuple[int, int] | None = None) -> tuple[int, int]:
+def draw_trajectories(
+    ax: Axes,
+    est_positions: Sequence[np.ndarray],
+    gt_positions: Sequence[np.ndarray | None] | None = None,
+    axes: tuple[int, int] | None = None,
+) -> tuple[int, int]:
     """Top view of every agent: estimate solid in its colour, ground truth dashed grey.
 
     Args:
@@ -98,8 +105,7 @@ def draw_trajectories(ax: Axes, est_positions: Sequence[np.ndarray],
     gt_labelled = False
     for agent, (est, gt) in enumerate(zip(est_positions, gts)):
         if gt is not None and len(gt):
-            ax.plot(gt[:, u], gt[:, v], **GT_STYLE,
-                    label=None if gt_labelled else "ground truth")
+            ax.plot(gt[:, u], gt[:, v], **GT_STYLE, label=None if gt_labelled else "ground truth")
             gt_labelled = True
         if len(est):
             colour = agent_colour(agent)
@@ -114,9 +120,11 @@ def draw_trajectories(ax: Axes, est_positions: Sequence[np.ndarray],
     return u, v
 
 
-def trajectory_figure(est_positions: Sequence[np.ndarray],
-                      gt_positions: Sequence[np.ndarray | None] | None = None,
-                      title: str = "Trajectories (top view)") -> tuple[Figure, tuple[int, int]]:
+def trajectory_figure(
+    est_positions: Sequence[np.ndarray],
+    gt_positions: Sequence[np.ndarray | None] | None = None,
+    title: str = "Trajectories (top view)",
+) -> tuple[Figure, tuple[int, int]]:
     """A figure with :func:`draw_trajectories` and the two world axes it shows."""
     figure = new_figure(7.0, 6.0)
     ax = figure.add_subplot(1, 1, 1)
@@ -160,8 +168,13 @@ def ate_figure(series: Sequence[tuple[int, np.ndarray, np.ndarray]]) -> Figure:
     ax = figure.add_subplot(1, 1, 1)
     for agent, stamps, errors in series:
         rmse = float(np.sqrt(np.mean(np.square(errors)))) if len(errors) else float("nan")
-        ax.plot(stamps, errors, color=agent_colour(agent), **EST_STYLE,
-                label=f"agent {agent} (RMSE {rmse:.3g} m)")
+        ax.plot(
+            stamps,
+            errors,
+            color=agent_colour(agent),
+            **EST_STYLE,
+            label=f"agent {agent} (RMSE {rmse:.3g} m)",
+        )
     ax.set_xlabel("timestamp [s]")
     ax.set_ylabel("ATE [m]")
     ax.set_ylim(bottom=0.0)

@@ -70,8 +70,7 @@ def sample_map(path: Path, max_points: int = MAX_MAP_POINTS, seed: int = 0) -> M
         return None
     ranks = np.arange(total_finite)  # k-th finite vertex of the file
     if total_finite > max_points:
-        ranks = np.sort(np.random.default_rng(seed).choice(total_finite, max_points,
-                                                           replace=False))
+        ranks = np.sort(np.random.default_rng(seed).choice(total_finite, max_points, replace=False))
     samples, first, total = [], 0, 0
     for chunk, count in zip(iter_ply(path, _CHUNK), finite):
         mine = ranks[(ranks >= first) & (ranks < first + count)] - first
@@ -117,11 +116,19 @@ def _oblique(local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return screen, np.cos(el) * b - np.sin(el) * local[:, 2]
 
 
-def _splat(ax: Axes, screen: np.ndarray, colours: np.ndarray, depth: np.ndarray,
-           title: str) -> None:
+def _splat(
+    ax: Axes, screen: np.ndarray, colours: np.ndarray, depth: np.ndarray, title: str
+) -> None:
     order = np.argsort(-depth, kind="stable")  # far first
-    ax.scatter(screen[order, 0], screen[order, 1], c=colours[order] / 255.0, s=2.0,
-               marker="o", linewidths=0, rasterized=True)
+    ax.scatter(
+        screen[order, 0],
+        screen[order, 1],
+        c=colours[order] / 255.0,
+        s=2.0,
+        marker="o",
+        linewidths=0,
+        rasterized=True,
+    )
     low, high = np.percentile(screen, VIEW_PERCENTILES, axis=0)
     margin = 0.05 * np.maximum(high - low, 1e-6)
     ax.set_xlim(low[0] - margin[0], high[0] + margin[0])
@@ -146,8 +153,14 @@ def map_figure(sample: MapSample, tracks: Sequence[AgentTrack]) -> Figure:
     for track in tracks:
         if len(track.positions):
             path = track.positions @ basis.T
-            top.plot(path[:, 0], path[:, 1], "-", color=agent_colour(track.agent),
-                     linewidth=1.4, label=f"agent {track.agent}")
+            top.plot(
+                path[:, 0],
+                path[:, 1],
+                "-",
+                color=agent_colour(track.agent),
+                linewidth=1.4,
+                label=f"agent {track.agent}",
+            )
     if top.get_legend_handles_labels()[0]:
         top.legend(loc="best", fontsize="small")
     top.set_xlabel("horizontal [m]")

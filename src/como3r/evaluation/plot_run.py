@@ -16,8 +16,13 @@ from como3r.evaluation.plot import agent_colour, new_figure
 from como3r.evaluation.report_data import Timeline, Traffic
 
 #: colour of a cross-agent link by its status (centralized candidates, decentralized loops)
-LINK_COLOURS = {"admitted": "tab:green", "accepted": "tab:green", "pending": "tab:orange",
-                "inconsistent": "tab:purple", "rejected": "tab:red"}
+LINK_COLOURS = {
+    "admitted": "tab:green",
+    "accepted": "tab:green",
+    "pending": "tab:orange",
+    "inconsistent": "tab:purple",
+    "rejected": "tab:red",
+}
 #: more stacked parts than this are drawn as "other"
 MAX_PARTS = 12
 
@@ -31,9 +36,13 @@ def stage_order(columns: Mapping[str, Mapping[str, float]]) -> list[str]:
     return sorted(totals, key=lambda s: (s == "other", -totals[s], s))
 
 
-def stacked_bar_figure(columns: Mapping[str, Mapping[str, float]], unit: str,
-                       title: str, scale: float = 1.0,
-                       total_label: Callable[[float], str] | None = None) -> Figure:
+def stacked_bar_figure(
+    columns: Mapping[str, Mapping[str, float]],
+    unit: str,
+    title: str,
+    scale: float = 1.0,
+    total_label: Callable[[float], str] | None = None,
+) -> Figure:
     """Horizontal stacked bars, one per column, one colour per part (consistent across bars).
 
     Args:
@@ -46,10 +55,14 @@ def stacked_bar_figure(columns: Mapping[str, Mapping[str, float]], unit: str,
     """
     parts = stage_order(columns)
     if len(parts) > MAX_PARTS:
-        kept, rest = parts[:MAX_PARTS - 1], set(parts[MAX_PARTS - 1:])
-        columns = {name: {**{p: v for p, v in c.items() if p not in rest},
-                          "other": sum(v for p, v in c.items() if p in rest)}
-                   for name, c in columns.items()}
+        kept, rest = parts[: MAX_PARTS - 1], set(parts[MAX_PARTS - 1 :])
+        columns = {
+            name: {
+                **{p: v for p, v in c.items() if p not in rest},
+                "other": sum(v for p, v in c.items() if p in rest),
+            }
+            for name, c in columns.items()
+        }
         parts = kept + ["other"]
     names = list(columns)
     figure = new_figure(7.5, 1.4 + 0.45 * len(names))
@@ -63,8 +76,12 @@ def stacked_bar_figure(columns: Mapping[str, Mapping[str, float]], unit: str,
         left += widths
     if total_label is not None:
         for y, (name, width) in enumerate(zip(names, left)):
-            ax.annotate(" " + total_label(sum(columns[name].values())), (width, y),
-                        va="center", fontsize="small")
+            ax.annotate(
+                " " + total_label(sum(columns[name].values())),
+                (width, y),
+                va="center",
+                fontsize="small",
+            )
         ax.set_xlim(right=1.15 * max(left.max(), 1e-9))
     ax.invert_yaxis()
     ax.set_xlabel(unit)
@@ -97,8 +114,15 @@ def timeline_figure(line: Timeline, agents: Sequence[int]) -> Figure:
     row = {agent: i for i, agent in enumerate(agents)}
     for agent in agents:
         stamps = line.keyframes.get(agent, np.zeros(0))
-        ax.plot(stamps, np.full(len(stamps), row[agent]), "|", color=agent_colour(agent),
-                markersize=12, markeredgewidth=2, zorder=3)
+        ax.plot(
+            stamps,
+            np.full(len(stamps), row[agent]),
+            "|",
+            color=agent_colour(agent),
+            markersize=12,
+            markeredgewidth=2,
+            zorder=3,
+        )
     shown: set[str] = set()
     for link in line.links:
         (a, _), (b, _) = link.ends
@@ -106,18 +130,38 @@ def timeline_figure(line: Timeline, agents: Sequence[int]) -> Figure:
             continue
         colour = LINK_COLOURS.get(link.status, "0.5")
         good = link.status in ("admitted", "accepted")
-        ax.plot(link.times, (row[a], row[b]), "-", color=colour, zorder=2 if good else 1,
-                linewidth=1.6 if good else 0.8, alpha=1.0 if good else 0.6,
-                label=None if link.status in shown else link.status)
+        ax.plot(
+            link.times,
+            (row[a], row[b]),
+            "-",
+            color=colour,
+            zorder=2 if good else 1,
+            linewidth=1.6 if good else 0.8,
+            alpha=1.0 if good else 0.6,
+            label=None if link.status in shown else link.status,
+        )
         shown.add(link.status)
     for i, event in enumerate(line.events):
         if not np.isfinite(event.time):
             continue
-        ax.axvline(event.time, color="black", linestyle=":", linewidth=1.2, zorder=0,
-                   label=None if "merge" in shown else "merge")
+        ax.axvline(
+            event.time,
+            color="black",
+            linestyle=":",
+            linewidth=1.2,
+            zorder=0,
+            label=None if "merge" in shown else "merge",
+        )
         shown.add("merge")
-        ax.annotate(f"{i + 1}", (event.time, 1.0), xycoords=ax.get_xaxis_transform(),
-                    ha="center", va="bottom", fontsize="small", annotation_clip=False)
+        ax.annotate(
+            f"{i + 1}",
+            (event.time, 1.0),
+            xycoords=ax.get_xaxis_transform(),
+            ha="center",
+            va="bottom",
+            fontsize="small",
+            annotation_clip=False,
+        )
     ax.set_yticks(range(len(agents)), [f"agent {a}" for a in agents])
     ax.set_ylim(len(agents) - 0.5, -0.5)
     ax.set_xlabel("timestamp [s]")

@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -153,17 +153,18 @@ class VoxelCentroids:
             return
         points = np.concatenate(self._pending)
         self._pending, self._pending_points = [], 0
-        cells = np.concatenate([self._cells,
-                                np.floor(points / self.voxel_size).astype(np.int64)])
+        cells = np.concatenate([self._cells, np.floor(points / self.voxel_size).astype(np.int64)])
         self._cells, inverse = unique_rows(cells)
         old = self._counts.size
         sums = np.zeros((self._cells.shape[0], 3))
         np.add.at(sums, inverse[:old], self._sums)
         np.add.at(sums, inverse[old:], points)
         self._sums = sums
-        self._counts = np.bincount(inverse, weights=np.concatenate(
-            [self._counts, np.ones(points.shape[0], dtype=np.int64)]),
-            minlength=self._cells.shape[0]).astype(np.int64)
+        self._counts = np.bincount(
+            inverse,
+            weights=np.concatenate([self._counts, np.ones(points.shape[0], dtype=np.int64)]),
+            minlength=self._cells.shape[0],
+        ).astype(np.int64)
 
 
 def unique_rows(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -276,8 +277,10 @@ def keyframe_cloud(
         ``(M, 3)`` float64 world points.
     """
     if len(pointmaps) != len(confidences) or poses.shape != (len(pointmaps), 8):
-        raise InputError(f"keyframe_cloud: {len(pointmaps)} pointmaps, {len(confidences)} "
-                         f"confidence maps and poses of shape {tuple(poses.shape)}")
+        raise InputError(
+            f"keyframe_cloud: {len(pointmaps)} pointmaps, {len(confidences)} "
+            f"confidence maps and poses of shape {tuple(poses.shape)}"
+        )
     clouds = []
     for X, C, T_WC in zip(pointmaps, confidences, poses):
         keep = (C > min_confidence) & torch.isfinite(X).all(dim=-1)
@@ -342,16 +345,23 @@ def ground_truth_cloud(
         InputError: an agent without depth, ground truth or calibration, or no usable frame.
     """
     if frame_stride < 1 or pixel_stride < 1:
-        raise InputError(f"ground_truth_cloud: strides must be >= 1, got frame_stride="
-                         f"{frame_stride}, pixel_stride={pixel_stride}")
+        raise InputError(
+            f"ground_truth_cloud: strides must be >= 1, got frame_stride="
+            f"{frame_stride}, pixel_stride={pixel_stride}"
+        )
     clouds: list[np.ndarray] = []
     voxels = VoxelCentroids(voxel_size) if voxel_size > 0 else None
     for agent in agents:
         agent = agent if isinstance(agent, AgentInput) else open_agent(agent)
-        missing = [name for name, present in (("depth/", agent.has_depth),
-                                              ("groundtruth.txt", agent.groundtruth is not None),
-                                              ("calib.txt", agent.calib is not None))
-                   if not present]
+        missing = [
+            name
+            for name, present in (
+                ("depth/", agent.has_depth),
+                ("groundtruth.txt", agent.groundtruth is not None),
+                ("calib.txt", agent.calib is not None),
+            )
+            if not present
+        ]
         if missing:
             raise InputError(f"{agent.root}: a ground-truth cloud needs {', '.join(missing)}")
         K = intrinsics_matrix(*agent.calib, dtype=torch.float64)
@@ -430,6 +440,7 @@ def evaluate_maps(
         for piece in pieces:
             piece = np.asarray(piece, dtype=np.float64).reshape(-1, 3)
             voxels.add(alignment.apply(piece[np.isfinite(piece).all(axis=1)]))
-        scores[name] = reconstruction_metrics(voxels.centroids(), reference,
-                                              threshold_ratio * depth)
+        scores[name] = reconstruction_metrics(
+            voxels.centroids(), reference, threshold_ratio * depth
+        )
     return scores

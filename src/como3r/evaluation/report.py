@@ -28,8 +28,8 @@ from como3r.evaluation.trajectory import (
     AgentErrors,
     MergedErrors,
     Sim3Alignment,
-    associate,
     agent_errors,
+    associate,
     merged_errors_by_component,
 )
 from como3r.io.tum import Trajectory, read_tum
@@ -76,8 +76,12 @@ class AgentResult:
 
 
 def _merged_json(m: MergedErrors) -> dict[str, object]:
-    return {"agents": list(m.agents), "frames": m.frames, "ate": m.ate.to_json(),
-            "alignment": m.alignment.to_json()}
+    return {
+        "agents": list(m.agents),
+        "frames": m.frames,
+        "ate": m.ate.to_json(),
+        "alignment": m.alignment.to_json(),
+    }
 
 
 @dataclass
@@ -126,17 +130,30 @@ class EvalSummary:
         rows: list[dict[str, object]] = []
         for result in self.agents:
             e = result.errors
-            rows.append({
-                "agent": result.agent, "frames": e.frames, "ATE RMSE": e.ate.rmse,
-                "ATE mean": e.ate.mean, "RPE trans": e.rpe_trans.rmse,
-                "RPE rot deg": e.rpe_rot_deg.rmse, "scale": e.alignment.scale,
-            })
+            rows.append(
+                {
+                    "agent": result.agent,
+                    "frames": e.frames,
+                    "ATE RMSE": e.ate.rmse,
+                    "ATE mean": e.ate.mean,
+                    "RPE trans": e.rpe_trans.rmse,
+                    "RPE rot deg": e.rpe_rot_deg.rmse,
+                    "scale": e.alignment.scale,
+                }
+            )
         for m in self.merged_groups:
             name = "merged" if m is self.merged else "merged " + "+".join(map(str, m.agents))
-            rows.append({
-                "agent": name, "frames": m.frames, "ATE RMSE": m.ate.rmse, "ATE mean": m.ate.mean,
-                "RPE trans": "-", "RPE rot deg": "-", "scale": m.alignment.scale,
-            })
+            rows.append(
+                {
+                    "agent": name,
+                    "frames": m.frames,
+                    "ATE RMSE": m.ate.rmse,
+                    "ATE mean": m.ate.mean,
+                    "RPE trans": "-",
+                    "RPE rot deg": "-",
+                    "scale": m.alignment.scale,
+                }
+            )
         return rows
 
     def to_json(self) -> dict[str, object]:
@@ -174,7 +191,8 @@ def resolve_est_files(est: Path, num_gt: int) -> list[Path]:
     if est.is_file():
         if num_gt != 1:
             raise InputError(
-                f"{est}: a single trajectory file needs exactly one --gt, got {num_gt}")
+                f"{est}: a single trajectory file needs exactly one --gt, got {num_gt}"
+            )
         return [est]
     folder = est / TRAJECTORY_DIR
     if not folder.is_dir():
@@ -202,8 +220,12 @@ def _prepare_out(out: Path) -> None:
         raise InputError(f"{out}: cannot create output folder ({exc.strerror})") from None
 
 
-def _write_plot(path: Path, results: Sequence[AgentResult], ests: Sequence[Trajectory],
-                gts: Sequence[Trajectory]) -> None:
+def _write_plot(
+    path: Path,
+    results: Sequence[AgentResult],
+    ests: Sequence[Trajectory],
+    gts: Sequence[Trajectory],
+) -> None:
     aligned = [r.errors.alignment.apply(t.positions) for r, t in zip(results, ests)]
     plot_trajectories(path, [g.positions for g in gts], aligned)
 
@@ -261,30 +283,45 @@ def evaluate_run(
     est_files = resolve_est_files(est, len(gt_files))
     ests = [read_tum(p) for p in est_files]
     gts = [trajectory for _, trajectory in ground_truth]
-    pairs = [associate(e, g, str(ep), str(gp), max_diff)
-             for e, g, ep, gp in zip(ests, gts, est_files, gt_files)]
+    pairs = [
+        associate(e, g, str(ep), str(gp), max_diff)
+        for e, g, ep, gp in zip(ests, gts, est_files, gt_files)
+    ]
     # inside a run folder the estimate is named relative to it: the run is written to
     # DIR.partial and renamed, so an absolute path would name a folder that no longer exists
     named = [ep.relative_to(est) if est.is_dir() else ep for ep in est_files]
     gt_named = [_name_ground_truth(gp, est) for gp in gt_files]
-    results = [AgentResult(a, ep, gp, len(e), agent_errors(pair))
-               for a, (e, ep, gp, pair) in enumerate(zip(ests, named, gt_named, pairs))]
-    summary = EvalSummary(results, merged_errors_by_component(pairs, components), components,
-                          max_diff, ground_truth=gts)
+    results = [
+        AgentResult(a, ep, gp, len(e), agent_errors(pair))
+        for a, (e, ep, gp, pair) in enumerate(zip(ests, named, gt_named, pairs))
+    ]
+    summary = EvalSummary(
+        results,
+        merged_errors_by_component(pairs, components),
+        components,
+        max_diff,
+        ground_truth=gts,
+    )
 
     for r in results:
         if r.errors.frames < r.est_poses:
-            summary.notes.append(f"agent {r.agent}: {r.errors.frames} of {r.est_poses} estimated "
-                                 f"poses matched a ground-truth timestamp")
-    if check_gt_order and (components is None or len(components) == 1) and (
-            not est.is_dir() or in_one_frame(est)):
+            summary.notes.append(
+                f"agent {r.agent}: {r.errors.frames} of {r.est_poses} estimated "
+                f"poses matched a ground-truth timestamp"
+            )
+    if (
+        check_gt_order
+        and (components is None or len(components) == 1)
+        and (not est.is_dir() or in_one_frame(est))
+    ):
         warning = ground_truth_order_warning(ests, gts, max_diff)
         if warning is not None:
             summary.notes.insert(0, warning)
     if summary.merged is None:
         summary.notes.append(
             f"agents form separate gauge components {components}: merged ATE "
-            f"(one Sim(3)) is reported per component with more than one agent")
+            f"(one Sim(3)) is reported per component with more than one agent"
+        )
 
     _prepare_out(out)
     json_path, plot_path = out / JSON_NAME, out / PLOT_NAME

@@ -161,8 +161,9 @@ def _shared_alignment(ate: dict[str, Any], agent: int) -> tuple[Sim3Alignment, l
     return None
 
 
-def _track(agent: int, est: Trajectory | None, gt: Trajectory | None,
-           ate: dict[str, Any] | None) -> tuple[AgentTrack, list[int] | None]:
+def _track(
+    agent: int, est: Trajectory | None, gt: Trajectory | None, ate: dict[str, Any] | None
+) -> tuple[AgentTrack, list[int] | None]:
     """An agent's track; with ground truth and an evaluation, aligned and with errors.
 
     Returns:
@@ -172,8 +173,12 @@ def _track(agent: int, est: Trajectory | None, gt: Trajectory | None,
         empty = np.zeros((0, 3))
         return AgentTrack(agent, np.zeros(0), empty, np.zeros((0, 4))), None
     poses = est.T_WC.cpu().numpy()
-    base = {"agent": agent, "timestamps": est.timestamps, "positions": poses[:, :3],
-            "orientations": poses[:, 3:7]}
+    base = {
+        "agent": agent,
+        "timestamps": est.timestamps,
+        "positions": poses[:, :3],
+        "orientations": poses[:, 3:7],
+    }
     entry = next((e for e in (ate or {}).get("agents", []) if e["agent"] == agent), None)
     if gt is None or entry is None:
         return AgentTrack(**base), None
@@ -188,10 +193,14 @@ def _track(agent: int, est: Trajectory | None, gt: Trajectory | None,
         times = errors = None
     else:
         times = np.asarray(pair.est.timestamps)
-        errors = np.linalg.norm(own.apply(pair.est.positions_xyz) - pair.gt.positions_xyz,
-                                axis=1)
-    return AgentTrack(**base, aligned=alignment.apply(poses[:, :3]), gt=gt.positions,
-                      error_times=times, errors=errors), group
+        errors = np.linalg.norm(own.apply(pair.est.positions_xyz) - pair.gt.positions_xyz, axis=1)
+    return AgentTrack(
+        **base,
+        aligned=alignment.apply(poses[:, :3]),
+        gt=gt.positions,
+        error_times=times,
+        errors=errors,
+    ), group
 
 
 def _alignment_text(groups: list[list[int] | None], tracks: list[AgentTrack]) -> str | None:
@@ -201,16 +210,21 @@ def _alignment_text(groups: list[list[int] | None], tracks: list[AgentTrack]) ->
     if not shared:
         return "Each estimate is mapped onto its ground truth by its own Sim(3) (Umeyama)"
     named = ", ".join("+".join(map(str, g)) for g in shared)
-    text = (f"Estimates are mapped onto ground truth by one Sim(3) per gauge component "
-            f"(agents {named}), the alignment of the merged ATE, so a misplaced agent shows")
+    text = (
+        f"Estimates are mapped onto ground truth by one Sim(3) per gauge component "
+        f"(agents {named}), the alignment of the merged ATE, so a misplaced agent shows"
+    )
     alone = [t.agent for t, g in zip(tracks, groups) if t.aligned is not None and g is None]
     if alone:
         text += f"; agents alone in their component ({', '.join(map(str, alone))}) use their own"
     return text
 
 
-def load_run(run_dir: Path, ground_truth: Sequence[Trajectory | None] | None = None,
-             ate: dict[str, Any] | None = None) -> RunData:
+def load_run(
+    run_dir: Path,
+    ground_truth: Sequence[Trajectory | None] | None = None,
+    ate: dict[str, Any] | None = None,
+) -> RunData:
     """Read a run folder for the report.
 
     Args:
@@ -226,8 +240,11 @@ def load_run(run_dir: Path, ground_truth: Sequence[Trajectory | None] | None = N
         ate = metrics.get("ate") or _read_json(run_dir / JSON_NAME)
     config = run_dir / "config.yaml"
     folder = run_dir / TRAJECTORY_DIR
-    numbers = sorted(int(m.group(1)) for p in (folder.iterdir() if folder.is_dir() else [])
-                     if (m := AGENT_FILE.fullmatch(p.name)))
+    numbers = sorted(
+        int(m.group(1))
+        for p in (folder.iterdir() if folder.is_dir() else [])
+        if (m := AGENT_FILE.fullmatch(p.name))
+    )
     count = max(numbers) + 1 if numbers else 0
     truths = list(ground_truth or [])
     tracks, groups = [], []
@@ -238,9 +255,15 @@ def load_run(run_dir: Path, ground_truth: Sequence[Trajectory | None] | None = N
         track, group = _track(agent, est, gt, ate)
         tracks.append(track)
         groups.append(group)
-    return RunData(run_dir, metrics, ate, _read_json(run_dir / "graph.json"),
-                   config.read_text() if config.is_file() else None, tracks,
-                   _alignment_text(groups, tracks))
+    return RunData(
+        run_dir,
+        metrics,
+        ate,
+        _read_json(run_dir / "graph.json"),
+        config.read_text() if config.is_file() else None,
+        tracks,
+        _alignment_text(groups, tracks),
+    )
 
 
 # ---------------------------------------------------------------------------- tables
@@ -259,20 +282,31 @@ def agent_rows(data: RunData) -> list[dict[str, Any]]:
     for track in data.tracks:
         m = per_agent[track.agent] if track.agent < len(per_agent) else {}
         e = ate_entries.get(track.agent)
-        rows.append({
-            "agent": track.agent,
-            "frames": m.get("frames", len(track.timestamps)),
-            "tracked": m.get("tracked"), "lost": m.get("lost"),
-            "relocalized": m.get("relocalized"), "keyframes": m.get("keyframes"),
-            "ATE RMSE [m]": _stat(e, "ate"), "RPE trans [m]": _stat(e, "rpe_trans"),
-            "RPE rot [deg]": _stat(e, "rpe_rot_deg"), "fps": m.get("fps"),
-        })
+        rows.append(
+            {
+                "agent": track.agent,
+                "frames": m.get("frames", len(track.timestamps)),
+                "tracked": m.get("tracked"),
+                "lost": m.get("lost"),
+                "relocalized": m.get("relocalized"),
+                "keyframes": m.get("keyframes"),
+                "ATE RMSE [m]": _stat(e, "ate"),
+                "RPE trans [m]": _stat(e, "rpe_trans"),
+                "RPE rot [deg]": _stat(e, "rpe_rot_deg"),
+                "fps": m.get("fps"),
+            }
+        )
     for merged in (data.ate or {}).get("merged_components") or []:
         if len(merged["agents"]) < 2:
             continue
         row = dict.fromkeys(rows[0]) if rows else {}
-        row.update({"agent": "merged " + "+".join(map(str, merged["agents"])),
-                    "frames": merged["frames"], "ATE RMSE [m]": merged["ate"]["rmse"]})
+        row.update(
+            {
+                "agent": "merged " + "+".join(map(str, merged["agents"])),
+                "frames": merged["frames"],
+                "ATE RMSE [m]": merged["ate"]["rmse"],
+            }
+        )
         rows.append(row)
     return rows
 
@@ -286,10 +320,12 @@ def stage_seconds(data: RunData) -> dict[str, dict[str, float]]:
     columns: dict[str, dict[str, float]] = {}
     if data.decentralized:
         for a, robot in enumerate(data.metrics.get("robots") or []):
-            times = {"prior_encode": robot.get("encode_seconds"),
-                     "prior_decode": robot.get("decode_seconds"),
-                     "matching": robot.get("match_seconds"),
-                     "registration_fit": robot.get("fit_seconds")}
+            times = {
+                "prior_encode": robot.get("encode_seconds"),
+                "prior_decode": robot.get("decode_seconds"),
+                "matching": robot.get("match_seconds"),
+                "registration_fit": robot.get("fit_seconds"),
+            }
             if any(v is not None for v in times.values()):
                 columns[f"agent {a}"] = {k: float(v) for k, v in times.items() if v is not None}
         return columns
@@ -315,12 +351,17 @@ def traffic(data: RunData) -> dict[int, Traffic] | None:
     (single-process runs hand data over in memory)."""
     if data.decentralized:
         per_robot = (data.metrics.get("bytes") or {}).get("per_robot") or {}
-        found = {int(r): Traffic(dict(v.get("sent", {})), dict(v.get("received", {})))
-                 for r, v in per_robot.items()}
+        found = {
+            int(r): Traffic(dict(v.get("sent", {})), dict(v.get("received", {})))
+            for r, v in per_robot.items()
+        }
     else:
-        found = {int(a.get("agent", i)): Traffic(dict(a.get("bytes_from_agent", {})),
-                                                 dict(a.get("bytes_to_agent", {})))
-                 for i, a in enumerate((data.metrics.get("runtime") or {}).get("agents") or [])}
+        found = {
+            int(a.get("agent", i)): Traffic(
+                dict(a.get("bytes_from_agent", {})), dict(a.get("bytes_to_agent", {}))
+            )
+            for i, a in enumerate((data.metrics.get("runtime") or {}).get("agents") or [])
+        }
     return dict(sorted(found.items())) or None
 
 
@@ -331,8 +372,10 @@ def _gauge_event(event: dict[str, Any], times: dict[tuple[int, int], float]) -> 
     stamps = [times.get(tuple(end), np.nan) for edge in event.get("edges", []) for end in edge]
     known = [t for t in stamps if np.isfinite(t)]
     moved = event.get("moved_agents", [])
-    label = (f"agent{'s' if len(moved) > 1 else ''} {', '.join(map(str, moved))} join "
-             f"component {event.get('anchor_component')} ({event.get('method')})")
+    label = (
+        f"agent{'s' if len(moved) > 1 else ''} {', '.join(map(str, moved))} join "
+        f"component {event.get('anchor_component')} ({event.get('method')})"
+    )
     return MergeEvent(max(known) if known else float("nan"), label, dict(event))
 
 
@@ -347,14 +390,24 @@ def timeline(data: RunData) -> Timeline:
     for agent in sorted({a for a, _ in times}):
         result.keyframes[agent] = np.sort([t for (a, _), t in times.items() if a == agent])
     if data.decentralized:
-        links = [(e["from"], e["to"], "accepted" if e.get("accepted") else "rejected")
-                 for e in graph.get("edges", []) if e.get("type") == "inter"]
-        result.events = [MergeEvent(float(r["time_s"]), f"round {r['round']}: robots "
-                                    f"{', '.join(map(str, r['group']))}", dict(r))
-                         for r in data.metrics.get("rounds") or []]
+        links = [
+            (e["from"], e["to"], "accepted" if e.get("accepted") else "rejected")
+            for e in graph.get("edges", [])
+            if e.get("type") == "inter"
+        ]
+        result.events = [
+            MergeEvent(
+                float(r["time_s"]),
+                f"round {r['round']}: robots {', '.join(map(str, r['group']))}",
+                dict(r),
+            )
+            for r in data.metrics.get("rounds") or []
+        ]
     else:
-        links = [(c["from"], c["to"], str(c.get("status", "rejected")))
-                 for c in graph.get("candidates", [])]
+        links = [
+            (c["from"], c["to"], str(c.get("status", "rejected")))
+            for c in graph.get("candidates", [])
+        ]
         result.events = [_gauge_event(e, times) for e in graph.get("gauge_events", [])]
     for start, end, status in links:
         a, b = (int(start[0]), int(start[1])), (int(end[0]), int(end[1]))

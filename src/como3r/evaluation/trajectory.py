@@ -61,9 +61,11 @@ class Sim3Alignment:
     @classmethod
     def from_json(cls, document: dict[str, object]) -> Sim3Alignment:
         """The alignment :meth:`to_json` wrote (``ate.json``)."""
-        return cls(np.asarray(document["rotation"], dtype=np.float64),
-                   np.asarray(document["translation"], dtype=np.float64),
-                   float(document["scale"]))  # type: ignore[arg-type]
+        return cls(
+            np.asarray(document["rotation"], dtype=np.float64),
+            np.asarray(document["translation"], dtype=np.float64),
+            float(document["scale"]),
+        )  # type: ignore[arg-type]
 
     def to_json(self) -> dict[str, object]:
         return {
@@ -208,14 +210,17 @@ def align_sim3(est: PosePath3D, gt: PosePath3D, what: str) -> tuple[PosePath3D, 
     # 9 decimals passes that test and yields an arbitrary rotation about the line.
     for name, path in (("estimated", est), ("ground-truth", gt)):
         if is_collinear(path.positions_xyz):
-            raise InputError(f"{what}: degenerate Sim(3) alignment, the {name} positions are "
-                             f"constant or collinear")
+            raise InputError(
+                f"{what}: degenerate Sim(3) alignment, the {name} positions are "
+                f"constant or collinear"
+            )
     aligned = copy.deepcopy(est)
     try:
         rotation, translation, scale = aligned.align(gt, correct_scale=True)
     except EvoException as exc:
         raise InputError(
-            f"{what}: cannot Sim(3)-align the estimate to ground truth ({exc})") from None
+            f"{what}: cannot Sim(3)-align the estimate to ground truth ({exc})"
+        ) from None
     alignment = Sim3Alignment(np.asarray(rotation), np.asarray(translation), float(scale))
     if not (np.isfinite(alignment.scale) and alignment.scale > 0.0):
         raise InputError(f"{what}: degenerate Sim(3) alignment (scale {alignment.scale})")
@@ -286,7 +291,8 @@ def validate_components(components: Sequence[Sequence[int]], num_agents: int) ->
         for agent in component:
             if not 0 <= agent < num_agents:
                 raise InputError(
-                    f"components: agent {agent} is out of range for {num_agents} agents")
+                    f"components: agent {agent} is out of range for {num_agents} agents"
+                )
             if agent in seen:
                 raise InputError(f"components: agent {agent} is in more than one component")
             seen.add(agent)

@@ -40,6 +40,7 @@ import torch
 from torch import Tensor
 
 from como3r.config import Config
+from como3r.errors import GeometryError, InputError
 from como3r.frontend.calibration import estimate_intrinsics, refine_focal
 from como3r.frontend.graph import Edge, QuadraticEdgeCache, build_factors
 from como3r.frontend.keyframes import (
@@ -53,13 +54,12 @@ from como3r.frontend.paging import AgentPaging, PagedKeyframe, plain_matches
 from como3r.frontend.pairs import (
     DirectedMatches,
     PairLink,
-    direction_passes,
     directed_matches,
+    direction_passes,
     link_pairs,
 )
 from como3r.frontend.timing import StageTimer, TimedPrior
 from como3r.frontend.tracker import FrameTracker, TrackResult, inlier_fraction, solved
-from como3r.errors import GeometryError, InputError
 from como3r.geometry.camera import lock_to_rays, to_focal
 from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse
 from como3r.geometry.units import scene_depth
@@ -149,14 +149,21 @@ class AgentFrontend:
             (:func:`como3r.data.preprocess.upsampling`; see :class:`FrameTracker`).
     """
 
-    def __init__(self, prior: Prior, config: Config, agent: int = 0,
-                 codebook: np.ndarray | None = None, upsampling: float = 1.0) -> None:
+    def __init__(
+        self,
+        prior: Prior,
+        config: Config,
+        agent: int = 0,
+        codebook: np.ndarray | None = None,
+        upsampling: float = 1.0,
+    ) -> None:
         self.config = config
         self.agent = agent
         self.keyframes = KeyframeStore()
         session = config.session
-        self.paging = AgentPaging(session.resident_keyframes,
-                                  Path(session.spill_dir) if session.spill_dir else None)
+        self.paging = AgentPaging(
+            session.resident_keyframes, Path(session.spill_dir) if session.spill_dir else None
+        )
         self.edges: list[Edge] = []
         self._quadratic = QuadraticEdgeCache()  # models of the edges far from the newest
         self.records: list[FrameRecord] = []
@@ -164,7 +171,9 @@ class AgentFrontend:
         self.timer = StageTimer(self.stats.stage_seconds)
         self.prior = TimedPrior(prior, self.timer)
         self.tracker = FrameTracker(self.prior, config, self.timer, upsampling)
-        self.database = RetrievalDatabase(codebook, config.retrieval) if codebook is not None else None
+        self.database = (
+            RetrievalDatabase(codebook, config.retrieval) if codebook is not None else None
+        )
         self.new_keyframes: list[int] = []  # keyframes not yet handed to a coordinator
         self._unsent_words: dict[int, np.ndarray] = {}  # their retrieval words, by kf_id
         self._T_kf_prev: Tensor | None = None
@@ -174,12 +183,16 @@ class AgentFrontend:
         tracking = config.tracking
         # a self-calibrated camera is re-estimated on the first keyframes' pairs before they
         # leave the agent (frontend.calibration)
-        self._camera_settled = (config.calibrated or not tracking.self_calibration
-                                or tracking.self_calibration_keyframes == 0)
+        self._camera_settled = (
+            config.calibrated
+            or not tracking.self_calibration
+            or tracking.self_calibration_keyframes == 0
+        )
         self._unsettled: list[_UnsettledFrame] = []  # tracked before the camera settled
 
-    def process(self, view: View, timestamp: float, colors: np.ndarray,
-                encoding: Encoding | None = None) -> str:
+    def process(
+        self, view: View, timestamp: float, colors: np.ndarray, encoding: Encoding | None = None
+    ) -> str:
         """Process the next frame; returns ``"keyframe"``, ``"tracked"``, ``"relocalized"``
         or ``"lost"``.
 
@@ -199,13 +212,16 @@ class AgentFrontend:
         (:class:`~como3r.frontend.paging.AgentPaging`); done after every frame and update."""
         self.paging.page_out(self.keyframes.keyframes, self.edges)
 
-    def _process(self, view: View, timestamp: float, colors: np.ndarray,
-                 encoding: Encoding | None) -> str:
+    def _process(
+        self, view: View, timestamp: float, colors: np.ndarray, encoding: Encoding | None
+    ) -> str:
         self.stats.frames += 1
         if self.config.calibrated:
             if view.K is None:
-                raise InputError(f"agent {self.agent}: a calibrated run needs calib.txt "
-                                 "(fx fy cx cy) in the agent folder")
+                raise InputError(
+                    f"agent {self.agent}: a calibrated run needs calib.txt "
+                    "(fx fy cx cy) in the agent folder"
+                )
             self._K = view.K
         enc = self.prior.encode(view) if encoding is None else encoding
         if len(self.keyframes) == 0:
@@ -224,8 +240,7 @@ class AgentFrontend:
             self._accept(result, self.keyframes.last, view.index, timestamp, enc, colors)
         return "keyframe" if result.new_keyframe else "tracked"
 
-    def _initialise(self, enc: Encoding, index: int, timestamp: float,
-                    colors: np.ndarray) -> str:
+    def _initialise(self, enc: Encoding, index: int, timestamp: float, colors: np.ndarray) -> str:
         """The frame becomes the first keyframe (``"keyframe"``), or, when self-calibration
         finds nothing in front of the camera (a covered lens, a blank wall), it is lost and
         the next frame tries again (``"lost"``): one unusable frame must not end the agent."""
@@ -234,8 +249,9 @@ class AgentFrontend:
             try:
                 self._K = estimate_intrinsics(pred.X_ii, pred.C_ii)
             except GeometryError as exc:
-                logger.warning("agent %d: frame %d cannot start the map: %s", self.agent,
-                               index, exc)
+                logger.warning(
+                    "agent %d: frame %d cannot start the map: %s", self.agent, index, exc
+                )
                 self.stats.lost += 1
                 self.stats.lost_frames.append(index)
                 return "lost"
@@ -247,15 +263,23 @@ class AgentFrontend:
         self.stats.tracked += 1  # the first frame has its pose (it defines the map's frame)
         return "keyframe"
 
-    def _accept(self, result: TrackResult, keyframe: Keyframe, index: int, timestamp: float,
-                enc: Encoding, colors: np.ndarray) -> None:
+    def _accept(
+        self,
+        result: TrackResult,
+        keyframe: Keyframe,
+        index: int,
+        timestamp: float,
+        enc: Encoding,
+        colors: np.ndarray,
+    ) -> None:
         """Record a tracked frame; promote it to a keyframe when due."""
         self.stats.tracked += 1
         if not result.new_keyframe:
             self.records.append(FrameRecord(index, timestamp, keyframe.kf_id, result.T_kf))
             if not self._camera_settled:
-                self._unsettled.append(_UnsettledFrame(index, keyframe.kf_id, result.X_ff,
-                                                       result.matches))
+                self._unsettled.append(
+                    _UnsettledFrame(index, keyframe.kf_id, result.X_ff, result.matches)
+                )
             self._T_kf_prev = result.T_kf
             self._last_tracked = _TrackedFrame(result, keyframe, index, timestamp, enc, colors)
             return
@@ -268,38 +292,70 @@ class AgentFrontend:
         """Make the last tracked frame the keyframe it should have been; False if there is
         none (it is not the latest frame processed on the current keyframe)."""
         last, self._last_tracked = self._last_tracked, None
-        if (last is None or last.keyframe is not self.keyframes.last or not self.records
-                or self.records[-1].frame_index != last.index):
+        if (
+            last is None
+            or last.keyframe is not self.keyframes.last
+            or not self.records
+            or self.records[-1].frame_index != last.index
+        ):
             return False
         self.records.pop()  # re-recorded as a keyframe, anchored on itself
         with self.timer.stage("keyframe"):
             T_WC = sim3_compose(last.keyframe.T_WC, last.result.T_kf)
-            new = self._add_keyframe(last.encoding, last.index, last.timestamp, T_WC,
-                                     last.result.X_ff, last.result.C_ff, last.colors)
+            new = self._add_keyframe(
+                last.encoding,
+                last.index,
+                last.timestamp,
+                T_WC,
+                last.result.X_ff,
+                last.result.C_ff,
+                last.colors,
+            )
             self._link_new_keyframe(new, last.result.matches)
         self._T_kf_prev = sim3_identity(dtype=T_WC.dtype, device=T_WC.device)
         self.stats.late_keyframes += 1
-        logger.info("agent %d: frame %d promoted to keyframe after frame tracking failed",
-                    self.agent, last.index)
+        logger.info(
+            "agent %d: frame %d promoted to keyframe after frame tracking failed",
+            self.agent,
+            last.index,
+        )
         return True
 
-    def _add_keyframe(self, enc: Encoding, index: int, timestamp: float, T_WC: Tensor,
-                      X: Tensor, C: Tensor, colors: np.ndarray) -> Keyframe:
+    def _add_keyframe(
+        self,
+        enc: Encoding,
+        index: int,
+        timestamp: float,
+        T_WC: Tensor,
+        X: Tensor,
+        C: Tensor,
+        colors: np.ndarray,
+    ) -> Keyframe:
         """A new keyframe with canonical pointmap ``X`` ``(H, W, 3)``, on the agent's
         calibrated rays (C-Eq. 16) when it has intrinsics."""
         if self._K is not None:
             X = lock_to_rays(X, self._K.to(X))
         kf = PagedKeyframe(
-            kf_id=len(self.keyframes), frame_index=index, timestamp=timestamp, encoding=enc,
-            T_WC=T_WC, X_hat=X.clone(), C_hat=C.clone(), X_init=X.clone(), C_init=C.clone(),
+            kf_id=len(self.keyframes),
+            frame_index=index,
+            timestamp=timestamp,
+            encoding=enc,
+            T_WC=T_WC,
+            X_hat=X.clone(),
+            C_hat=C.clone(),
+            X_init=X.clone(),
+            C_init=C.clone(),
             colors=colors,
             retrieval=self.prior.retrieval_features(enc) if self.database is not None else None,
             K=None if self._K is None else self._K.to(X),
         )
         self.keyframes.add(kf)
         self._last_tracked = None
-        self.records.append(FrameRecord(index, timestamp, kf.kf_id, sim3_identity(
-            dtype=T_WC.dtype, device=T_WC.device)))
+        self.records.append(
+            FrameRecord(
+                index, timestamp, kf.kf_id, sim3_identity(dtype=T_WC.dtype, device=T_WC.device)
+            )
+        )
         self.new_keyframes.append(kf.kf_id)
         self.stats.keyframes += 1
         self.tracker.reset_warm_start()
@@ -326,28 +382,39 @@ class AgentFrontend:
         def loop_test(matches: DirectedMatches, covisible: float | None) -> bool:
             # a loop needs matches where the pair's own geometry says both views see: the
             # match fraction alone accepts repeated structure (the coordinator's same test)
-            return direction_passes(matches, covisible, self.config.local_solve.min_match_fraction,
-                                    verification.min_covisible_ratio)
+            return direction_passes(
+                matches,
+                covisible,
+                self.config.local_solve.min_match_fraction,
+                verification.min_covisible_ratio,
+            )
 
         # a loop candidate failing its first direction cannot pass: its second matching is
         # skipped
         links = link_pairs(
-            self.prior, [(self.keyframes[p].encoding, kf.encoding) for p in candidates],
-            self.config.matching, self.config.tracking.q_min,
-            verification.covisible_min_confidence, self.timer,
+            self.prior,
+            [(self.keyframes[p].encoding, kf.encoding) for p in candidates],
+            self.config.matching,
+            self.config.tracking.q_min,
+            verification.covisible_min_confidence,
+            self.timer,
             screen=lambda k, ij, covisible: loop_test(ij, covisible),
         )
         for partner, link in zip(candidates, links):
-            if (link is not None and loop_test(link.ij, link.covisible_ij)
-                    and loop_test(link.ji, link.covisible_ji)):
+            if (
+                link is not None
+                and loop_test(link.ij, link.covisible_ij)
+                and loop_test(link.ji, link.covisible_ji)
+            ):
                 self._add_edge_pair(partner, kf.kf_id, link, "loop")
                 self.stats.loop_edges += 1
         self._local_solve()
         self._index(kf, quantized)
         self._settle_camera_when_due()
 
-    def _checked_direction(self, ij: DirectedMatches, previous: Keyframe,
-                           kf: Keyframe) -> DirectedMatches:
+    def _checked_direction(
+        self, ij: DirectedMatches, previous: Keyframe, kf: Keyframe
+    ) -> DirectedMatches:
         """The direction (kf - 1, kf) of a new sequential edge, put to tracking's test.
 
         Tracking accepted the other direction, (kf, kf - 1), only once its matches agreed
@@ -381,15 +448,25 @@ class AgentFrontend:
         # the previous keyframe posed in the new one's camera, from the tracked pose
         T_init = sim3_compose(sim3_inverse(kf.T_WC), previous.T_WC)
         T, report = self.tracker.solve(previous.X_hat, kf, ij, T_init)
-        agreement = (inlier_fraction(T, previous.X_hat, kf.X_hat, ij, tracking,
-                                     self.tracker.inlier_angle_deg)
-                     if solved(T, report) else 0.0)
+        agreement = (
+            inlier_fraction(
+                T, previous.X_hat, kf.X_hat, ij, tracking, self.tracker.inlier_angle_deg
+            )
+            if solved(T, report)
+            else 0.0
+        )
         if agreement >= tracking.min_inlier_fraction:
             return ij
         self.stats.rejected_directions += 1
-        logger.info("agent %d: edge (%d, %d) direction dropped: %.2f of its matches agree with "
-                    "their own pose (minimum %.2f)", self.agent, previous.kf_id, kf.kf_id,
-                    agreement, tracking.min_inlier_fraction)
+        logger.info(
+            "agent %d: edge (%d, %d) direction dropped: %.2f of its matches agree with "
+            "their own pose (minimum %.2f)",
+            self.agent,
+            previous.kf_id,
+            kf.kf_id,
+            agreement,
+            tracking.min_inlier_fraction,
+        )
         return replace(ij, valid=torch.zeros_like(ij.valid))
 
     def _quantized(self, kf: Keyframe) -> Quantized | None:
@@ -423,7 +500,8 @@ class AgentFrontend:
             return []
         with self.timer.stage("retrieval"):
             hits = self.database.query(
-                quantized, agent=self.agent,
+                quantized,
+                agent=self.agent,
                 exclude_keyframes=[(self.agent, kf.kf_id - 1)],
             )
         self.stats.loop_candidates += len(hits)
@@ -435,13 +513,15 @@ class AgentFrontend:
             return
         solve = self.config.local_solve
         with self.timer.stage("local_solve"):
-            values = PoseValues.from_poses(self.keyframes.poses(),
-                                           num_pinned=solve.pinned_keyframes)
+            values = PoseValues.from_poses(
+                self.keyframes.poses(), num_pinned=solve.pinned_keyframes
+            )
             factors = self._solve_factors()
             # the newest keyframe's depth is the step tolerance's length (O(1) per solve)
             last = self.keyframes.last
             solved, report = gauss_newton_irls(
-                factors, values, solve, length_scale=scene_depth([last.T_WC], [last.X_hat]))
+                factors, values, solve, length_scale=scene_depth([last.T_WC], [last.X_hat])
+            )
         self.stats.local_solves += 1
         self.stats.local_solve_seconds += report.seconds
         if report.diverged:
@@ -463,10 +543,16 @@ class AgentFrontend:
             points = self.paging.solve_points(self.keyframes.__getitem__)
             factors.append(build_factors(dense, points, lambda k: k, self.config.tracking))
         if old:
-            factors.append(self._quadratic.factor(
-                self.edges, old, lambda: self.paging.solve_points(self.keyframes.__getitem__),
-                lambda k: self.keyframes[k].version("pointmaps"), self.config.tracking,
-                solve.relinearize_tol))
+            factors.append(
+                self._quadratic.factor(
+                    self.edges,
+                    old,
+                    lambda: self.paging.solve_points(self.keyframes.__getitem__),
+                    lambda k: self.keyframes[k].version("pointmaps"),
+                    self.config.tracking,
+                    solve.relinearize_tol,
+                )
+            )
         return factors
 
     def _settle_camera_when_due(self) -> None:
@@ -486,8 +572,12 @@ class AgentFrontend:
         self._camera_settled = True
         unsettled, self._unsettled = self._unsettled, []
         with self.timer.stage("calibration"):
-            estimate = refine_focal(self.keyframes.keyframes, self.edges, self.config.tracking,
-                                    self.config.gauge.focal_search)
+            estimate = refine_focal(
+                self.keyframes.keyframes,
+                self.edges,
+                self.config.tracking,
+                self.config.gauge.focal_search,
+            )
             if estimate is None or estimate.log_focal == 0.0:
                 return
             first_K, focal = self._K, float(self._K[0, 0]) * math.exp(estimate.log_focal)
@@ -495,8 +585,13 @@ class AgentFrontend:
                 kf.rescale_focal(focal)
             self._K = self.keyframes.last.K.to(self._K)
         self.stats.estimated_focal = focal
-        logger.info("agent %d: camera settled on %d keyframes: focal %.1f px (first frame %.1f)",
-                    self.agent, len(self.keyframes), focal, self.stats.first_frame_focal)
+        logger.info(
+            "agent %d: camera settled on %d keyframes: focal %.1f px (first frame %.1f)",
+            self.agent,
+            len(self.keyframes),
+            focal,
+            self.stats.first_frame_focal,
+        )
         self._local_solve()
         with self.timer.stage("tracking"):
             self._track_again(unsettled, first_K, focal)
@@ -513,8 +608,9 @@ class AgentFrontend:
             if k is None or self.records[k].anchor != frame.keyframe:
                 continue  # promoted to a keyframe since: its record is anchored on itself
             X_ff, _ = to_focal(frame.X_ff, first_K.to(frame.X_ff), focal)
-            T_kf, report = self.tracker.solve(X_ff, self.keyframes[frame.keyframe],
-                                              frame.matches, self.records[k].T_rel)
+            T_kf, report = self.tracker.solve(
+                X_ff, self.keyframes[frame.keyframe], frame.matches, self.records[k].T_rel
+            )
             if solved(T_kf, report):
                 self.records[k] = replace(self.records[k], T_rel=T_kf)
 
@@ -533,22 +629,25 @@ class AgentFrontend:
         keyframe and with the promoted last frame; it matched the keyframe before at 0.29,
         and was lost (tracked 11 of 12 frames).
         """
-        identity = sim3_identity(dtype=self.keyframes.last.T_WC.dtype,
-                                 device=self.keyframes.last.T_WC.device)
+        identity = sim3_identity(
+            dtype=self.keyframes.last.T_WC.dtype, device=self.keyframes.last.T_WC.device
+        )
         current = self.keyframes.last
         recent = self._recent_keyframes()
         for kf_id in self._relocalization_candidates(enc):
             keyframe = self.keyframes[kf_id]
             self.tracker.reset_warm_start()
             result = self.tracker.track(enc, keyframe, identity, fuse=False)
-            if not result.ok or kf_id not in recent and (
-                    result.match_fraction < self.config.tracking.reloc_match_fraction):
+            if (
+                not result.ok
+                or kf_id not in recent
+                and (result.match_fraction < self.config.tracking.reloc_match_fraction)
+            ):
                 continue
             resumes = keyframe is current
             self._lost = False
             self.stats.relocalized += 1
-            logger.info("agent %d: frame %d relocalized on keyframe %d",
-                        self.agent, index, kf_id)
+            logger.info("agent %d: frame %d relocalized on keyframe %d", self.agent, index, kf_id)
             if resumes:
                 with self.timer.stage("keyframe"):
                     self._accept(result, keyframe, index, timestamp, enc, colors)
@@ -559,15 +658,26 @@ class AgentFrontend:
         self.stats.lost_frames.append(index)
         return "lost"
 
-    def _promote_after_reloc(self, result: TrackResult, keyframe: Keyframe, index: int,
-                             timestamp: float, enc: Encoding, colors: np.ndarray) -> None:
+    def _promote_after_reloc(
+        self,
+        result: TrackResult,
+        keyframe: Keyframe,
+        index: int,
+        timestamp: float,
+        enc: Encoding,
+        colors: np.ndarray,
+    ) -> None:
         """The relocalized frame becomes a keyframe linked to the keyframe it matched."""
         self.stats.tracked += 1
         T_WC = sim3_compose(keyframe.T_WC, result.T_kf)
         new = self._add_keyframe(enc, index, timestamp, T_WC, result.X_ff, result.C_ff, colors)
-        link = link_pairs(self.prior, [(keyframe.encoding, new.encoding)],
-                          self.config.matching, self.config.tracking.q_min,
-                          timer=self.timer)[0]
+        link = link_pairs(
+            self.prior,
+            [(keyframe.encoding, new.encoding)],
+            self.config.matching,
+            self.config.tracking.q_min,
+            timer=self.timer,
+        )[0]
         self._add_edge_pair(keyframe.kf_id, new.kf_id, link, "loop")
         self._local_solve()
         self._index(new)
@@ -595,15 +705,21 @@ class AgentFrontend:
             return np.zeros(0, dtype=np.int64), np.zeros(0), torch.zeros(0, 8)
         anchors = torch.stack([self.keyframes[r.anchor].T_WC for r in records])
         T_rel = torch.stack([r.T_rel.to(anchors) for r in records])
-        return (np.array([r.frame_index for r in records]),
-                np.array([r.timestamp for r in records]), sim3_compose(anchors, T_rel))
+        return (
+            np.array([r.frame_index for r in records]),
+            np.array([r.timestamp for r in records]),
+            sim3_compose(anchors, T_rel),
+        )
 
     def keyframe_trajectory(self) -> tuple[np.ndarray, np.ndarray, Tensor]:
         """Keyframes only: ``(frame indices, timestamps, T_WC (K, 8))``."""
         if len(self.keyframes) == 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0), torch.zeros(0, 8)
-        return (np.array([kf.frame_index for kf in self.keyframes]),
-                np.array([kf.timestamp for kf in self.keyframes]), self.keyframes.poses())
+        return (
+            np.array([kf.frame_index for kf in self.keyframes]),
+            np.array([kf.timestamp for kf in self.keyframes]),
+            self.keyframes.poses(),
+        )
 
     def export_keyframe(self, kf_id: int) -> KeyframePacket:
         """The packet announcing keyframe ``kf_id`` to a coordinator (C-Sec. B.1)."""
@@ -613,15 +729,25 @@ class AgentFrontend:
         previous = None
         if kf_id > 0:
             prev = self.keyframes[kf_id - 1]
-            previous = PointmapRefresh(prev.kf_id, prev.X_hat, prev.C_hat, prev.fused_frames,
-                                       prev.K)
+            previous = PointmapRefresh(
+                prev.kf_id, prev.X_hat, prev.C_hat, prev.fused_frames, prev.K
+            )
         return KeyframePacket(
-            agent=self.agent, kf_id=kf_id, frame_index=kf.frame_index, timestamp=kf.timestamp,
-            T_WC=kf.T_WC, X_hat=kf.X_init, C_hat=kf.C_init, colors=kf.colors,
-            encoding=kf.encoding, retrieval=kf.retrieval,
+            agent=self.agent,
+            kf_id=kf_id,
+            frame_index=kf.frame_index,
+            timestamp=kf.timestamp,
+            T_WC=kf.T_WC,
+            X_hat=kf.X_init,
+            C_hat=kf.C_init,
+            colors=kf.colors,
+            encoding=kf.encoding,
+            retrieval=kf.retrieval,
             sequential_ij=plain_matches(seq.get((kf_id - 1, kf_id))),
             sequential_ji=plain_matches(seq.get((kf_id, kf_id - 1))),
-            previous=previous, K=kf.K, retrieval_words=words,
+            previous=previous,
+            K=kf.K,
+            retrieval_words=words,
             codebook_id=None if words is None else self.database.codebook_id,
         )
 

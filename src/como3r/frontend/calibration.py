@@ -58,11 +58,14 @@ def estimate_intrinsics(X: Tensor, C: Tensor) -> Tensor:
     """
     focal = float(estimate_focal(X, C))
     if not focal > 0:
-        raise GeometryError("self-calibration: the prediction has no point in front of the "
-                            "camera to estimate the focal length from")
+        raise GeometryError(
+            "self-calibration: the prediction has no point in front of the "
+            "camera to estimate the focal length from"
+        )
     H, W = X.shape[:2]
-    return intrinsics_matrix(focal, focal, (W - 1) / 2.0, (H - 1) / 2.0, dtype=X.dtype,
-                             device=X.device)
+    return intrinsics_matrix(
+        focal, focal, (W - 1) / 2.0, (H - 1) / 2.0, dtype=X.dtype, device=X.device
+    )
 
 
 def keyframe_pairs(keyframes: Sequence[Keyframe], edges: Sequence[Edge]) -> list[FocalPair]:
@@ -73,14 +76,25 @@ def keyframe_pairs(keyframes: Sequence[Keyframe], edges: Sequence[Edge]) -> list
         edges: its directed edges; ``Edge(i, j).matches`` looks every pixel of j up in i.
     """
     directed = {(e.i, e.j): e.matches for e in edges}
-    return [FocalPair(keyframes[i].X_hat, keyframes[j].X_hat, keyframes[i].K, keyframes[j].K,
-                      relative_pose(keyframes[i].T_WC, keyframes[j].T_WC), ij,
-                      directed[(j, i)], shared=True)
-            for (i, j), ij in directed.items() if i < j and (j, i) in directed]
+    return [
+        FocalPair(
+            keyframes[i].X_hat,
+            keyframes[j].X_hat,
+            keyframes[i].K,
+            keyframes[j].K,
+            relative_pose(keyframes[i].T_WC, keyframes[j].T_WC),
+            ij,
+            directed[(j, i)],
+            shared=True,
+        )
+        for (i, j), ij in directed.items()
+        if i < j and (j, i) in directed
+    ]
 
 
-def refine_focal(keyframes: Sequence[Keyframe], edges: Sequence[Edge], tracking: TrackingConfig,
-                 search: float) -> FocalEstimate | None:
+def refine_focal(
+    keyframes: Sequence[Keyframe], edges: Sequence[Edge], tracking: TrackingConfig, search: float
+) -> FocalEstimate | None:
     """The log correction of an agent's one focal length that best aligns its keyframe pairs
     (:func:`~como3r.frontend.focal.estimate_log_focal`, searched within ``search``); None
     without a pair to observe it."""

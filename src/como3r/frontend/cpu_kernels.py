@@ -45,7 +45,7 @@ _SEARCH_BLOCK = 64
 #: first candidate in row-major order
 _KEY_SHIFT = 16
 #: the key of a lane that kept no candidate (larger than any window key)
-_NO_KEY = 2 ** 31 - 1
+_NO_KEY = 2**31 - 1
 
 _F32, _I32, _I64 = ir.FloatType(), ir.IntType(32), ir.IntType(64)
 _V8F, _V8I = ir.VectorType(_F32, 8), ir.VectorType(_I32, 8)
@@ -72,8 +72,10 @@ def _lane_sums(builder: ir.IRBuilder, vectors: list[ir.Value]) -> ir.Value:
         odd = _shuffle(builder, a, b, [1, 3, 9, 11, 5, 7, 13, 15])
         return builder.fadd(even, odd)
 
-    quads = [pairwise(pairwise(vectors[k], vectors[k + 1]), pairwise(vectors[k + 2], vectors[k + 3]))
-             for k in (0, 4)]  # lane sums 0-3 (4-7) in each half of quads[0] (quads[1])
+    quads = [
+        pairwise(pairwise(vectors[k], vectors[k + 1]), pairwise(vectors[k + 2], vectors[k + 3]))
+        for k in (0, 4)
+    ]  # lane sums 0-3 (4-7) in each half of quads[0] (quads[1])
     low = _shuffle(builder, quads[0], quads[1], [0, 1, 2, 3, 8, 9, 10, 11])
     high = _shuffle(builder, quads[0], quads[1], [4, 5, 6, 7, 12, 13, 14, 15])
     return builder.fadd(low, high)
@@ -106,12 +108,14 @@ def _window_best(typingctx, table, lines, columns, side, query, query_start, dim
     signature = types.int64(table, lines, columns, side, query, query_start, dim)
 
     def codegen(context, builder, sig, args):
-        data = [context.make_array(sig.args[k])(context, builder, args[k]).data
-                for k in (0, 1, 2, 4)]
+        data = [
+            context.make_array(sig.args[k])(context, builder, args[k]).data for k in (0, 1, 2, 4)
+        ]
         table_data, line_data, column_data, query_data = data
         side_64, query_start = args[3], args[5]
         fmuladd = cgutils.get_or_insert_function(
-            builder.module, ir.FunctionType(_V8F, [_V8F] * 3), "llvm.fmuladd.v8f32")
+            builder.module, ir.FunctionType(_V8F, [_V8F] * 3), "llvm.fmuladd.v8f32"
+        )
 
         def load8(pointer: ir.Value, offset: int) -> ir.Value:
             at = builder.gep(pointer, [ir.Constant(_I64, offset)])
@@ -135,8 +139,9 @@ def _window_best(typingctx, table, lines, columns, side, query, query_start, dim
                 first = builder.mul(group.index, ir.Constant(_I64, 8))
                 products = []
                 for lane in range(8):
-                    column = builder.load(builder.gep(column_data, [
-                        builder.add(first, ir.Constant(_I64, lane))]))
+                    column = builder.load(
+                        builder.gep(column_data, [builder.add(first, ir.Constant(_I64, lane))])
+                    )
                     candidate = builder.gep(line, [column])
                     acc = builder.fmul(load8(candidate, 0), q[0])
                     for c in range(1, chunks_per_descriptor):
@@ -146,13 +151,15 @@ def _window_best(typingctx, table, lines, columns, side, query, query_start, dim
                 i = builder.add(_splat(builder, builder.trunc(first, _I32), _V8I), lane_ids)
                 key = builder.or_(_splat(builder, row_key, _V8I), i)
                 kept, kept_key = builder.load(best), builder.load(best_key)
-                better = builder.and_(builder.fcmp_ordered(">", scores, kept),
-                                      builder.icmp_signed("<", i, side_lanes))
+                better = builder.and_(
+                    builder.fcmp_ordered(">", scores, kept), builder.icmp_signed("<", i, side_lanes)
+                )
                 builder.store(builder.select(better, scores, kept), best)
                 builder.store(builder.select(better, key, kept_key), best_key)
         kept, kept_key = builder.load(best), builder.load(best_key)
-        top = _splat(builder, _reduce(builder, kept, lambda o, m: builder.fcmp_ordered(">", o, m)),
-                     _V8F)
+        top = _splat(
+            builder, _reduce(builder, kept, lambda o, m: builder.fcmp_ordered(">", o, m)), _V8F
+        )
         tied = builder.select(builder.fcmp_ordered("==", kept, top), kept_key, no_key)
         key = _reduce(builder, tied, lambda o, m: builder.icmp_signed("<", o, m))
         found = builder.icmp_signed("!=", key, ir.Constant(_I32, _NO_KEY))
@@ -165,27 +172,37 @@ def _window_best(typingctx, table, lines, columns, side, query, query_start, dim
 def _window_search(dim: int) -> Callable:
     """The window search over descriptors of ``dim`` floats (a multiple of 8)."""
 
-    def _refine_windows(table: np.ndarray, height: int, width: int, query: np.ndarray,
-                        pixel: np.ndarray, rows: np.ndarray, per_image: int, radius: int,
-                        dilation_max: int, out: np.ndarray) -> None:  # pragma: no cover
+    def _refine_windows(
+        table: np.ndarray,
+        height: int,
+        width: int,
+        query: np.ndarray,
+        pixel: np.ndarray,
+        rows: np.ndarray,
+        per_image: int,
+        radius: int,
+        dilation_max: int,
+        out: np.ndarray,
+    ) -> None:  # pragma: no cover
         side = 2 * radius + 1
         padded = (side + 7) // 8 * 8
         mask = (1 << _KEY_SHIFT) - 1
         for block in prange((rows.shape[0] + _SEARCH_BLOCK - 1) // _SEARCH_BLOCK):
             columns = np.empty(padded, np.int64)  # per window: element offsets in a row
             lines = np.empty(side, np.int64)  # per window: element offsets of its rows
-            for k in range(block * _SEARCH_BLOCK,
-                           min((block + 1) * _SEARCH_BLOCK, rows.shape[0])):
+            for k in range(block * _SEARCH_BLOCK, min((block + 1) * _SEARCH_BLOCK, rows.shape[0])):
                 row = rows[k]
                 first = (row // per_image) * height
                 u, v = pixel[row, 0], pixel[row, 1]
                 for dil in range(dilation_max, 0, -1):
                     for a in range(padded):  # window pixels outside: the nearest border pixel
-                        columns[a] = min(max(u + dil * (min(a, side - 1) - radius), 0),
-                                         width - 1) * dim
+                        columns[a] = (
+                            min(max(u + dil * (min(a, side - 1) - radius), 0), width - 1) * dim
+                        )
                     for a in range(side):
-                        lines[a] = (first + min(max(v + dil * (a - radius), 0), height - 1)
-                                    ) * width * dim
+                        lines[a] = (
+                            (first + min(max(v + dil * (a - radius), 0), height - 1)) * width * dim
+                        )
                     key = _window_best(table, lines, columns, side, query, row * dim, dim)
                     if key >= 0:
                         u = min(max(u + dil * ((key & mask) - radius), 0), width - 1)
@@ -195,8 +212,14 @@ def _window_search(dim: int) -> Callable:
     return _refine_windows
 
 
-def refine_windows(D_search: Tensor, D_query: Tensor, pixel: Tensor, radius: int,
-                   dilation_max: int, active: Tensor | None) -> Tensor:
+def refine_windows(
+    D_search: Tensor,
+    D_query: Tensor,
+    pixel: Tensor,
+    radius: int,
+    dilation_max: int,
+    active: Tensor | None,
+) -> Tensor:
     """:func:`como3r.frontend.matching.refine_with_descriptors` on CPU tensors.
 
     Scores in float32 like the PyTorch path; window pixels outside the image count as the
@@ -216,19 +239,32 @@ def refine_windows(D_search: Tensor, D_query: Tensor, pixel: Tensor, radius: int
         query = torch.nn.functional.pad(query, (0, dim - d))
     start = pixel.detach().reshape(B * P, 2).to(torch.int64).contiguous().numpy()
     refined = start.copy()
-    rows = (np.arange(B * P, dtype=np.int64) if active is None
-            else np.flatnonzero(active.detach().reshape(-1).numpy()).astype(np.int64))
+    rows = (
+        np.arange(B * P, dtype=np.int64)
+        if active is None
+        else np.flatnonzero(active.detach().reshape(-1).numpy()).astype(np.int64)
+    )
     if rows.size:
         search = compiled(_window_search(dim))
-        search(table.contiguous().reshape(-1).numpy(), H, W,
-               query.contiguous().reshape(-1).numpy(), start, rows, P, radius, dilation_max,
-               refined)
+        search(
+            table.contiguous().reshape(-1).numpy(),
+            H,
+            W,
+            query.contiguous().reshape(-1).numpy(),
+            start,
+            rows,
+            P,
+            radius,
+            dilation_max,
+            refined,
+        )
     return torch.from_numpy(refined).reshape(B, P, 2)
 
 
 @njit(cache=True, boundscheck=False, inline="always")
-def _ray_sample(table: np.ndarray, first: int, height: int, width: int, u: float, v: float,
-                target: tuple) -> tuple:  # pragma: no cover (compiled)
+def _ray_sample(
+    table: np.ndarray, first: int, height: int, width: int, u: float, v: float, target: tuple
+) -> tuple:  # pragma: no cover (compiled)
     """Bilinear ray and gradients at (u, v), clamped into the image, as
     ``matching._bilinear``; returns ``(cost, err (3,), d/du (3,), d/dv (3,))`` as scalars
     (a tuple, no array allocated per sample). Inlined, the target ray ``(3,)`` a tuple and
@@ -245,19 +281,28 @@ def _ray_sample(table: np.ndarray, first: int, height: int, width: int, u: float
     i10, i11 = first + v1 * width + u0, first + v1 * width + u1
 
     def mix(c: int) -> float:
-        return (float(table[i00, c]) * w00 + float(table[i01, c]) * w01
-                + float(table[i10, c]) * w10 + float(table[i11, c]) * w11)
+        return (
+            float(table[i00, c]) * w00
+            + float(table[i01, c]) * w01
+            + float(table[i10, c]) * w10
+            + float(table[i11, c]) * w11
+        )
 
     r0, r1, r2 = mix(0), mix(1), mix(2)
     norm = max(np.sqrt(r0 * r0 + r1 * r1 + r2 * r2), 1e-12)
     e0, e1, e2 = r0 / norm - target[0], r1 / norm - target[1], r2 / norm - target[2]
-    return (e0 * e0 + e1 * e1 + e2 * e2, (e0, e1, e2), (mix(3), mix(4), mix(5)),
-            (mix(6), mix(7), mix(8)))
+    return (
+        e0 * e0 + e1 * e1 + e2 * e2,
+        (e0, e1, e2),
+        (mix(3), mix(4), mix(5)),
+        (mix(6), mix(7), mix(8)),
+    )
 
 
 @njit(cache=True, boundscheck=False, inline="always")
-def _nearest_pixel(table: np.ndarray, first: int, height: int, width: int, u: float, v: float,
-                   target: tuple) -> tuple:  # pragma: no cover (compiled)
+def _nearest_pixel(
+    table: np.ndarray, first: int, height: int, width: int, u: float, v: float, target: tuple
+) -> tuple:  # pragma: no cover (compiled)
     """Of the four pixel centres around (u, v), the one whose ray is closest to the target
     (the first of equals in the order (0, 0), (1, 0), (0, 1), (1, 1)), as
     ``matching._nearest_ray_pixel``."""
@@ -277,10 +322,22 @@ def _nearest_pixel(table: np.ndarray, first: int, height: int, width: int, u: fl
 
 
 @njit(cache=True, boundscheck=False)
-def _project_pixels(table: np.ndarray, height: int, width: int, target: np.ndarray,
-                    start: np.ndarray, per_image: int, max_iters: int, lambda_init: float,
-                    tol: float, pixel: np.ndarray, nearest: np.ndarray, cost_out: np.ndarray,
-                    first_row: int, end_row: int) -> None:  # pragma: no cover (compiled)
+def _project_pixels(
+    table: np.ndarray,
+    height: int,
+    width: int,
+    target: np.ndarray,
+    start: np.ndarray,
+    per_image: int,
+    max_iters: int,
+    lambda_init: float,
+    tol: float,
+    pixel: np.ndarray,
+    nearest: np.ndarray,
+    cost_out: np.ndarray,
+    first_row: int,
+    end_row: int,
+) -> None:  # pragma: no cover (compiled)
     """The projection of pixels ``first_row`` to ``end_row`` (a serial loop: numba's
     parallel analysis does not take the inlined samples)."""
     for row in range(first_row, end_row):
@@ -302,8 +359,9 @@ def _project_pixels(table: np.ndarray, height: int, width: int, target: np.ndarr
                 break  # a singular system: the PyTorch path stops the pixel too
             cand_u = min(max(step_u, 0.0), width - 1.0)
             cand_v = min(max(step_v, 0.0), height - 1.0)
-            new_cost, new_err, new_J_u, new_J_v = _ray_sample(table, first, height, width,
-                                                              cand_u, cand_v, t)
+            new_cost, new_err, new_J_u, new_J_v = _ray_sample(
+                table, first, height, width, cand_u, cand_v, t
+            )
             better = new_cost < cost and np.isfinite(new_cost)
             if better:
                 u, v, cost, err, J_u, J_v = cand_u, cand_v, new_cost, new_err, new_J_u, new_J_v
@@ -321,20 +379,48 @@ def _project_pixels(table: np.ndarray, height: int, width: int, target: np.ndarr
 _PROJECT_BLOCK = 1024
 
 
-def _project_rays(table: np.ndarray, height: int, width: int, target: np.ndarray,
-                  start: np.ndarray, per_image: int, max_iters: int, lambda_init: float,
-                  tol: float, pixel: np.ndarray, nearest: np.ndarray, cost_out: np.ndarray
-                  ) -> None:  # pragma: no cover (compiled)
+def _project_rays(
+    table: np.ndarray,
+    height: int,
+    width: int,
+    target: np.ndarray,
+    start: np.ndarray,
+    per_image: int,
+    max_iters: int,
+    lambda_init: float,
+    tol: float,
+    pixel: np.ndarray,
+    nearest: np.ndarray,
+    cost_out: np.ndarray,
+) -> None:  # pragma: no cover (compiled)
     P = start.shape[0]
     for block in prange((P + _PROJECT_BLOCK - 1) // _PROJECT_BLOCK):
-        _project_pixels(table, height, width, target, start, per_image, max_iters,
-                        lambda_init, tol, pixel, nearest, cost_out, block * _PROJECT_BLOCK,
-                        min((block + 1) * _PROJECT_BLOCK, P))
+        _project_pixels(
+            table,
+            height,
+            width,
+            target,
+            start,
+            per_image,
+            max_iters,
+            lambda_init,
+            tol,
+            pixel,
+            nearest,
+            cost_out,
+            block * _PROJECT_BLOCK,
+            min((block + 1) * _PROJECT_BLOCK, P),
+        )
 
 
-def project_rays(rays_grad: Tensor, target_rays: Tensor, p_init: Tensor, max_iters: int,
-                 lambda_init: float, convergence_tol: float
-                 ) -> tuple[Tensor, Tensor, Tensor]:
+def project_rays(
+    rays_grad: Tensor,
+    target_rays: Tensor,
+    p_init: Tensor,
+    max_iters: int,
+    lambda_init: float,
+    convergence_tol: float,
+) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`como3r.frontend.matching.project_iteratively` on CPU tensors, per pixel in
     float64 (the PyTorch path computes in the pointmap's dtype), followed by
     ``matching._nearest_ray_pixel``. Shapes as there.
@@ -351,11 +437,15 @@ def project_rays(rays_grad: Tensor, target_rays: Tensor, p_init: Tensor, max_ite
     pixel, cost = np.empty((B * P, 2)), np.empty(B * P)
     nearest = np.empty((B * P, 2), dtype=np.int64)
     project = compiled(_project_rays)
-    project(table, H, W, target, start, P, max_iters, lambda_init, convergence_tol, pixel,
-            nearest, cost)
+    project(
+        table, H, W, target, start, P, max_iters, lambda_init, convergence_tol, pixel, nearest, cost
+    )
     p = torch.from_numpy(pixel).to(p_init.dtype).reshape(B, P, 2)
-    return (p, torch.from_numpy(nearest).reshape(B, P, 2),
-            torch.from_numpy(cost < convergence_tol).reshape(B, P))
+    return (
+        p,
+        torch.from_numpy(nearest).reshape(B, P, 2),
+        torch.from_numpy(cost < convergence_tol).reshape(B, P),
+    )
 
 
 def _ray_image(X: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover (compiled)
@@ -387,9 +477,16 @@ def ray_image_with_gradients(X: Tensor) -> Tensor:
     return torch.from_numpy(out)
 
 
-def _match_validity(X_search: np.ndarray, width: int, queries: np.ndarray, pixel: np.ndarray,
-                    converged: np.ndarray, ratio: float, idx: np.ndarray,
-                    valid: np.ndarray) -> None:  # pragma: no cover (compiled)
+def _match_validity(
+    X_search: np.ndarray,
+    width: int,
+    queries: np.ndarray,
+    pixel: np.ndarray,
+    converged: np.ndarray,
+    ratio: float,
+    idx: np.ndarray,
+    valid: np.ndarray,
+) -> None:  # pragma: no cover (compiled)
     B, P = converged.shape
     for b in prange(B):
         for m in range(P):
@@ -403,8 +500,9 @@ def _match_validity(X_search: np.ndarray, width: int, queries: np.ndarray, pixel
             valid[b, m] = converged[b, m] and gap < reach and finite
 
 
-def match_validity(X_search: Tensor, queries: Tensor, pixel: Tensor, converged: Tensor,
-                   occlusion_ratio: float) -> tuple[Tensor, Tensor]:
+def match_validity(
+    X_search: Tensor, queries: Tensor, pixel: Tensor, converged: Tensor, occlusion_ratio: float
+) -> tuple[Tensor, Tensor]:
     """The end of :func:`como3r.frontend.matching.match_pointmaps` on CPU tensors, one pass:
     ``(idx (B, P) int64, valid (B, P) bool)``, a match valid when converged, its query finite
     and not occluded (``||X_search[idx] - query|| < occlusion_ratio * ||query||``).
@@ -414,17 +512,30 @@ def match_validity(X_search: Tensor, queries: Tensor, pixel: Tensor, converged: 
     points = X_search.detach().reshape(B, H * W, 3).contiguous().numpy()
     idx, valid = np.empty((B, P), dtype=np.int64), np.empty((B, P), dtype=np.bool_)
     compiled(_match_validity, fastmath={"contract"})(
-        points, W, queries.detach().to(X_search.dtype).contiguous().numpy(),
-        pixel.detach().contiguous().numpy(), converged.detach().contiguous().numpy(),
-        np.float32(occlusion_ratio) if points.dtype == np.float32 else occlusion_ratio, idx,
-        valid)
+        points,
+        W,
+        queries.detach().to(X_search.dtype).contiguous().numpy(),
+        pixel.detach().contiguous().numpy(),
+        converged.detach().contiguous().numpy(),
+        np.float32(occlusion_ratio) if points.dtype == np.float32 else occlusion_ratio,
+        idx,
+        valid,
+    )
     return torch.from_numpy(idx), torch.from_numpy(valid)
 
 
 @njit(cache=True, boundscheck=False)
-def _pack_valid(X_i: np.ndarray, X_j: np.ndarray, idx: np.ndarray, valid: np.ndarray,
-                q: np.ndarray, X_i_out: np.ndarray, X_j_out: np.ndarray, q_out: np.ndarray,
-                valid_out: np.ndarray) -> None:  # pragma: no cover (compiled)
+def _pack_valid(
+    X_i: np.ndarray,
+    X_j: np.ndarray,
+    idx: np.ndarray,
+    valid: np.ndarray,
+    q: np.ndarray,
+    X_i_out: np.ndarray,
+    X_j_out: np.ndarray,
+    q_out: np.ndarray,
+    valid_out: np.ndarray,
+) -> None:  # pragma: no cover (compiled)
     k = 0
     for n in range(valid.shape[0]):
         if valid[n]:
@@ -437,14 +548,31 @@ def _pack_valid(X_i: np.ndarray, X_j: np.ndarray, idx: np.ndarray, valid: np.nda
             k += 1
 
 
-def pack_valid(X_i: Tensor, X_j: Tensor, idx: Tensor, valid: Tensor, q: Tensor,
-               X_i_out: Tensor, X_j_out: Tensor, q_out: Tensor, valid_out: Tensor) -> None:
+def pack_valid(
+    X_i: Tensor,
+    X_j: Tensor,
+    idx: Tensor,
+    valid: Tensor,
+    q: Tensor,
+    X_i_out: Tensor,
+    X_j_out: Tensor,
+    q_out: Tensor,
+    valid_out: Tensor,
+) -> None:
     """An edge's valid matches written to the front of its rows of a factor batch, in pixel
     order, in one pass (PyTorch: a nonzero, three gathers and three copies): for each pixel
     ``n`` of j with ``valid[n]``, ``X_i[idx[n]]`` and ``X_j[n]`` of the flat ``(HW, 3)``
     pointmaps, ``q[n]`` and True. The outputs are CPU rows of the batch ``(P', 3)``,
     ``(P', 3)``, ``(P',)``, ``(P',)`` with ``P' >= valid.sum()``, contiguous, in the inputs'
     dtypes; their other rows are left as they are."""
-    _pack_valid(X_i.contiguous().numpy(), X_j.contiguous().numpy(), idx.contiguous().numpy(),
-                valid.contiguous().numpy(), q.contiguous().numpy(), X_i_out.numpy(),
-                X_j_out.numpy(), q_out.numpy(), valid_out.numpy())
+    _pack_valid(
+        X_i.contiguous().numpy(),
+        X_j.contiguous().numpy(),
+        idx.contiguous().numpy(),
+        valid.contiguous().numpy(),
+        q.contiguous().numpy(),
+        X_i_out.numpy(),
+        X_j_out.numpy(),
+        q_out.numpy(),
+        valid_out.numpy(),
+    )

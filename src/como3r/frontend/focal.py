@@ -27,8 +27,8 @@ Brent's bounded search (scipy). Two uses:
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import torch
 from scipy.optimize import minimize_scalar
@@ -41,6 +41,7 @@ from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse
 from como3r.geometry.units import median_point_range
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.values import PoseValues
+
 
 @dataclass(frozen=True)
 class FocalPair:
@@ -110,8 +111,13 @@ def estimate_log_focal(
     # Brent's bounded search (golden sections and parabolic steps): on the pairs of
     # tests/frontend/test_focal.py 7-10 relative solves where a golden-section search took
     # 17 (the estimates within 2e-4 of its)
-    found = minimize_scalar(energy, bounds=(-search, search), args=(prior_sigma,),
-                            method="bounded", options={"xatol": tolerance})
+    found = minimize_scalar(
+        energy,
+        bounds=(-search, search),
+        args=(prior_sigma,),
+        method="bounded",
+        options={"xatol": tolerance},
+    )
     best, f_best = float(found.x), float(found.fun)
     f_zero = energy(0.0, prior_sigma)
     if f_zero <= f_best:
@@ -143,8 +149,9 @@ class _PairEnergy:
     corrections are close to each other).
     """
 
-    def __init__(self, pairs: Sequence[FocalPair], tracking: TrackingConfig, max_matches: int,
-                 max_iters: int) -> None:
+    def __init__(
+        self, pairs: Sequence[FocalPair], tracking: TrackingConfig, max_matches: int, max_iters: int
+    ) -> None:
         self.tracking = tracking
         self.max_iters = max_iters
         self.evaluations = 0
@@ -152,14 +159,33 @@ class _PairEnergy:
         for k, pair in enumerate(pairs):
             anchor, moving = 2 * k, 2 * k + 1
             self.directions += [
-                _direction(anchor, moving, pair.X_anchor, pair.X_moving, pair.K_anchor,
-                           pair.in_anchor, max_matches, pair.shared, True),
-                _direction(moving, anchor, pair.X_moving, pair.X_anchor, pair.K_moving,
-                           pair.in_moving, max_matches, True, pair.shared),
+                _direction(
+                    anchor,
+                    moving,
+                    pair.X_anchor,
+                    pair.X_moving,
+                    pair.K_anchor,
+                    pair.in_anchor,
+                    max_matches,
+                    pair.shared,
+                    True,
+                ),
+                _direction(
+                    moving,
+                    anchor,
+                    pair.X_moving,
+                    pair.X_anchor,
+                    pair.K_moving,
+                    pair.in_moving,
+                    max_matches,
+                    True,
+                    pair.shared,
+                ),
             ]
         identity = sim3_identity(dtype=torch.float64)
-        self.poses = torch.stack([T for pair in pairs
-                                  for T in (identity, pair.T_anchor_moving.double())])
+        self.poses = torch.stack(
+            [T for pair in pairs for T in (identity, pair.T_anchor_moving.double())]
+        )
         self.pinned = torch.arange(2 * len(pairs)) % 2 == 0
         # the solves' step tolerance in the pairs' own length (geometry.units)
         self.length = float(median_point_range(torch.cat([d.X_i for d in self.directions])))
@@ -167,9 +193,13 @@ class _PairEnergy:
     def __call__(self, log_focal: float, prior_sigma: float) -> float:
         self.evaluations += 1
         factors = self._factors(math.exp(log_focal))
-        solved, _ = gauss_newton_irls(factors, PoseValues(self.poses, self.pinned),
-                                      GlobalBAConfig(), max_iters=self.max_iters,
-                                      length_scale=self.length)
+        solved, _ = gauss_newton_irls(
+            factors,
+            PoseValues(self.poses, self.pinned),
+            GlobalBAConfig(),
+            max_iters=self.max_iters,
+            length_scale=self.length,
+        )
         self.poses = solved.poses
         data = float(factors.cost(solved.poses.to(factors.q.dtype)))
         return 0.5 * (log_focal / prior_sigma) ** 2 + data
@@ -192,22 +222,43 @@ class _PairEnergy:
                 K_i[1, 1] *= factor
             K.append(K_i)
         X_i_t = torch.stack(X_i)
-        return make_factors(torch.tensor([d.i for d in self.directions]),
-                            torch.tensor([d.j for d in self.directions]), X_i_t,
-                            torch.stack(X_j), torch.stack(q), torch.stack(valid), self.tracking,
-                            torch.stack(K).to(X_i_t))
+        return make_factors(
+            torch.tensor([d.i for d in self.directions]),
+            torch.tensor([d.j for d in self.directions]),
+            X_i_t,
+            torch.stack(X_j),
+            torch.stack(q),
+            torch.stack(valid),
+            self.tracking,
+            torch.stack(K).to(X_i_t),
+        )
 
 
-def _direction(i: int, j: int, X_i: Tensor, X_j: Tensor, K_i: Tensor,
-               matches: DirectedMatches, max_matches: int, rescales_i: bool,
-               rescales_j: bool) -> _Direction:
+def _direction(
+    i: int,
+    j: int,
+    X_i: Tensor,
+    X_j: Tensor,
+    K_i: Tensor,
+    matches: DirectedMatches,
+    max_matches: int,
+    rescales_i: bool,
+    rescales_j: bool,
+) -> _Direction:
     """The edge (i, j) of a pair, its valid matches evenly subsampled to ``max_matches``."""
     pixels = torch.nonzero(matches.valid).flatten()
     if pixels.numel() > max_matches:
         pixels = pixels[torch.linspace(0, pixels.numel() - 1, max_matches).long()]
-    return _Direction(i, j, gather_points(X_i, matches.idx[pixels]),
-                      X_j.reshape(-1, 3)[pixels], matches.q[pixels], K_i, rescales_i,
-                      rescales_j)
+    return _Direction(
+        i,
+        j,
+        gather_points(X_i, matches.idx[pixels]),
+        X_j.reshape(-1, 3)[pixels],
+        matches.q[pixels],
+        K_i,
+        rescales_i,
+        rescales_j,
+    )
 
 
 def _padded(x: Tensor, pad: int) -> Tensor:
@@ -218,4 +269,3 @@ def _padded(x: Tensor, pad: int) -> Tensor:
 def relative_pose(T_WC_anchor: Tensor, T_WC_moving: Tensor) -> Tensor:
     """``(8,)`` pose of the moving keyframe in the anchor keyframe's camera."""
     return sim3_compose(sim3_inverse(T_WC_anchor), T_WC_moving)
-

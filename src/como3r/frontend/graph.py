@@ -14,8 +14,9 @@ grow with the graph (issue 14, bounded memory).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Protocol, Sequence
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -50,8 +51,14 @@ class Edge:
 
 
 def make_factors(
-    i: Tensor, j: Tensor, X_i: Tensor, X_j: Tensor, q: Tensor, valid: Tensor,
-    tracking: TrackingConfig, K_i: Tensor | None = None,
+    i: Tensor,
+    j: Tensor,
+    X_i: Tensor,
+    X_j: Tensor,
+    q: Tensor,
+    valid: Tensor,
+    tracking: TrackingConfig,
+    K_i: Tensor | None = None,
 ) -> RayRangeFactors | CalibratedFactors:
     """Factors for matched point pairs: ray-and-range (C-Eq. 6) or, with intrinsics,
     pixel and log-depth (C-Eq. 17).
@@ -66,13 +73,32 @@ def make_factors(
     """
     if K_i is None:
         # sigma_dist is relative to the scene: times the median range of i's points (units.py)
-        return RayRangeFactors(i, j, X_i, X_j, q, valid, sigma_ray=tracking.sigma_ray,
-                               sigma_dist=tracking.sigma_dist, huber_k=tracking.huber_k,
-                               range_scale=median_point_range(X_i, valid))
+        return RayRangeFactors(
+            i,
+            j,
+            X_i,
+            X_j,
+            q,
+            valid,
+            sigma_ray=tracking.sigma_ray,
+            sigma_dist=tracking.sigma_dist,
+            huber_k=tracking.huber_k,
+            range_scale=median_point_range(X_i, valid),
+        )
     # X_i lies on K_i's rays (C-Eq. 16), so its projection is exactly its pixel
-    return CalibratedFactors(i, j, X_j, project(X_i, K_i[:, None]), X_i[..., 2], K_i, q, valid,
-                             sigma_pixel=tracking.sigma_pixel, sigma_depth=tracking.sigma_depth,
-                             huber_k=tracking.huber_k)
+    return CalibratedFactors(
+        i,
+        j,
+        X_j,
+        project(X_i, K_i[:, None]),
+        X_i[..., 2],
+        K_i,
+        q,
+        valid,
+        sigma_pixel=tracking.sigma_pixel,
+        sigma_depth=tracking.sigma_depth,
+        huber_k=tracking.huber_k,
+    )
 
 
 class Pointmap(Protocol):
@@ -113,12 +139,18 @@ def build_factors(
     return make_factors(
         torch.tensor([pose_index(e.i) for e in edges], device=device),
         torch.tensor([pose_index(e.j) for e in edges], device=device),
-        X_i, X_j, q, valid, tracking, K_i,
+        X_i,
+        X_j,
+        q,
+        valid,
+        tracking,
+        K_i,
     )
 
 
-def packed_matches(edges: Sequence[Edge], keyframe: Callable[[int], Pointmap]
-                   ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def packed_matches(
+    edges: Sequence[Edge], keyframe: Callable[[int], Pointmap]
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The edges' valid matches, each edge's packed to the front of its row in pixel order
     and padded with invalid ones to the largest count ``P`` (at least 1).
 
@@ -140,15 +172,23 @@ def packed_matches(edges: Sequence[Edge], keyframe: Callable[[int], Pointmap]
     for k, e in enumerate(edges):
         X_hat_i, X_hat_j = keyframe(e.i).X_hat.reshape(-1, 3), keyframe(e.j).X_hat.reshape(-1, 3)
         if first.device.type == "cpu":
-            cpu_kernels.pack_valid(X_hat_i.to(X_i), X_hat_j.to(X_j), e.matches.idx,
-                                   e.matches.valid, e.matches.q.to(q), X_i[k], X_j[k], q[k],
-                                   valid[k])
+            cpu_kernels.pack_valid(
+                X_hat_i.to(X_i),
+                X_hat_j.to(X_j),
+                e.matches.idx,
+                e.matches.valid,
+                e.matches.q.to(q),
+                X_i[k],
+                X_j[k],
+                q[k],
+                valid[k],
+            )
             continue
         n = torch.nonzero(e.matches.valid).squeeze(-1)
-        X_i[k, :counts[k]] = X_hat_i[e.matches.idx[n]]
-        X_j[k, :counts[k]] = X_hat_j[n]
-        q[k, :counts[k]] = e.matches.q[n]
-        valid[k, :counts[k]] = True
+        X_i[k, : counts[k]] = X_hat_i[e.matches.idx[n]]
+        X_j[k, : counts[k]] = X_hat_j[n]
+        q[k, : counts[k]] = e.matches.q[n]
+        valid[k, : counts[k]] = True
     return X_i, X_j, q, valid
 
 
@@ -174,9 +214,15 @@ class QuadraticEdgeCache:
         self._versions = torch.full((0, 2), -1, dtype=torch.int64)  # -1: no model
         self.remade = 0  # models made, over the cache's life
 
-    def factor(self, edges: Sequence[Edge], old: Sequence[int],
-               points: Callable[[], Callable[[int], Pointmap]], version: Callable[[int], int],
-               tracking: TrackingConfig, tol: float) -> ModeledEdges:
+    def factor(
+        self,
+        edges: Sequence[Edge],
+        old: Sequence[int],
+        points: Callable[[], Callable[[int], Pointmap]],
+        version: Callable[[int], int],
+        tracking: TrackingConfig,
+        tol: float,
+    ) -> ModeledEdges:
         """The edges ``old`` (positions in ``edges``) as one factor of a solve whose pose
         index is the keyframe key.
 
@@ -191,10 +237,19 @@ class QuadraticEdgeCache:
         """
         self._grow(len(edges))
         ij = torch.tensor([(edges[n].i, edges[n].j) for n in old], dtype=torch.int64)
-        versions = torch.tensor([(version(i), version(j)) for i, j in ij.tolist()],
-                                dtype=torch.int64)
-        return ModeledEdges(self, edges, torch.tensor(list(old), dtype=torch.int64),
-                            ij.reshape(-1, 2), versions.reshape(-1, 2), points, tracking, tol)
+        versions = torch.tensor(
+            [(version(i), version(j)) for i, j in ij.tolist()], dtype=torch.int64
+        )
+        return ModeledEdges(
+            self,
+            edges,
+            torch.tensor(list(old), dtype=torch.int64),
+            ij.reshape(-1, 2),
+            versions.reshape(-1, 2),
+            points,
+            tracking,
+            tol,
+        )
 
     def models(self, factor: ModeledEdges, poses: Tensor) -> QuadraticEdges:
         """The models of ``factor``'s edges at ``poses`` ``(N, 8)``, stale ones made again."""
@@ -204,23 +259,40 @@ class QuadraticEdgeCache:
         moved[:, :3] /= self._length[rows, None]
         stale |= (moved > factor.tol).any(1)
         for start in range(0, int(stale.sum()), QUADRATIC_CHUNK_EDGES):
-            chunk = rows[stale][start:start + QUADRATIC_CHUNK_EDGES]
-            self._remake(chunk, [factor.edges[n] for n in chunk.tolist()], factor.points(),
-                         poses, factor.tracking)
+            chunk = rows[stale][start : start + QUADRATIC_CHUNK_EDGES]
+            self._remake(
+                chunk,
+                [factor.edges[n] for n in chunk.tolist()],
+                factor.points(),
+                poses,
+                factor.tracking,
+            )
         self._versions[rows] = factor.versions
         return self._model(rows, factor.ij)
 
     def _model(self, rows: Tensor, ij: Tensor) -> QuadraticEdges:
-        return QuadraticEdges(ij[:, 0], ij[:, 1], self._T0[rows], self._H[rows],
-                              self._g[rows], self._c[rows])
+        return QuadraticEdges(
+            ij[:, 0], ij[:, 1], self._T0[rows], self._H[rows], self._g[rows], self._c[rows]
+        )
 
-    def _remake(self, rows: Tensor, edges: list[Edge], keyframe: Callable[[int], Pointmap],
-                poses: Tensor, tracking: TrackingConfig) -> None:
+    def _remake(
+        self,
+        rows: Tensor,
+        edges: list[Edge],
+        keyframe: Callable[[int], Pointmap],
+        poses: Tensor,
+        tracking: TrackingConfig,
+    ) -> None:
         model = build_factors(edges, keyframe, lambda k: k, tracking).quadratic_model(poses)
         self._T0[rows], self._H[rows], self._g[rows], self._c[rows] = (
-            model.T0, model.H, model.g, model.c)
-        self._length[rows] = torch.stack(
-            [median_range(keyframe(e.i).X_hat) for e in edges]).to(torch.float64)
+            model.T0,
+            model.H,
+            model.g,
+            model.c,
+        )
+        self._length[rows] = torch.stack([median_range(keyframe(e.i).X_hat) for e in edges]).to(
+            torch.float64
+        )
         self.remade += len(edges)
 
     def _grow(self, size: int) -> None:

@@ -9,16 +9,17 @@ the depth refinement of C-Eq. 19 starts from.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from como3r.errors import InputError
-from como3r.geometry.camera import lock_to_rays, to_focal
 from como3r.frontend.packets import PointmapUpdate, PoseUpdate
+from como3r.geometry.camera import lock_to_rays, to_focal
 from como3r.geometry.lie import sim3_act, sim3_compose, sim3_inverse
 from como3r.geometry.residuals import psi
 from como3r.prior.base import Encoding
@@ -101,8 +102,9 @@ class Keyframe:
             d = (self.C_hat * self.X_hat.norm(dim=-1) + C_kf * X_k.norm(dim=-1)) / C_new
             self.X_hat = psi(self.X_hat) * d[..., None]
         else:
-            self.X_hat = (self.C_hat[..., None] * self.X_hat
-                          + C_kf[..., None] * X_k) / C_new[..., None]
+            self.X_hat = (self.C_hat[..., None] * self.X_hat + C_kf[..., None] * X_k) / C_new[
+                ..., None
+            ]
         if self.K is not None:
             self.X_hat = lock_to_rays(self.X_hat, self.K)
         self.C_hat = C_new
@@ -177,7 +179,7 @@ def apply_pose_update(keyframes: Sequence[Any], update: PoseUpdate) -> None:
     for kf_id, pose in zip(update.kf_ids.tolist(), update.T_WC):
         keyframes[kf_id].T_WC = pose.to(T_old).clone()
     correction = sim3_compose(keyframes[newest].T_WC, sim3_inverse(T_old))
-    for kf in keyframes[newest + 1:]:
+    for kf in keyframes[newest + 1 :]:
         kf.T_WC = sim3_compose(correction, kf.T_WC)
 
 

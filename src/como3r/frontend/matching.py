@@ -109,8 +109,9 @@ def _bilinear(table: Tensor, H: int, W: int, base: Tensor, p: Tensor) -> Tensor:
     return top * (1 - b) + bottom * b
 
 
-def _ray_cost(table: Tensor, H: int, W: int, base: Tensor, p: Tensor,
-              target: Tensor) -> tuple[Tensor, Tensor]:
+def _ray_cost(
+    table: Tensor, H: int, W: int, base: Tensor, p: Tensor, target: Tensor
+) -> tuple[Tensor, Tensor]:
     """Squared ray error ``(M,)`` at ``p`` and the linearization ``(M, 9)`` there: the
     residual (3) and its derivatives w.r.t. u (3) and v (3), kept in one tensor."""
     sample = _bilinear(table, H, W, base, p)
@@ -162,31 +163,47 @@ def project_iteratively(
         ``(p (B, P, 2) float, converged (B, P) bool)``.
     """
     if rays_grad.device.type == "cpu":
-        p, _, converged = cpu_kernels.project_rays(rays_grad, target_rays, p_init, max_iters,
-                                                   lambda_init, convergence_tol)
+        p, _, converged = cpu_kernels.project_rays(
+            rays_grad, target_rays, p_init, max_iters, lambda_init, convergence_tol
+        )
         return p, converged
-    return _project_vectorised(rays_grad, target_rays, p_init, max_iters, lambda_init,
-                               convergence_tol)
+    return _project_vectorised(
+        rays_grad, target_rays, p_init, max_iters, lambda_init, convergence_tol
+    )
 
 
-def project_to_pixels(rays_grad: Tensor, target_rays: Tensor, p_init: Tensor, max_iters: int,
-                      lambda_init: float, convergence_tol: float) -> tuple[Tensor, Tensor]:
+def project_to_pixels(
+    rays_grad: Tensor,
+    target_rays: Tensor,
+    p_init: Tensor,
+    max_iters: int,
+    lambda_init: float,
+    convergence_tol: float,
+) -> tuple[Tensor, Tensor]:
     """:func:`project_iteratively`, then the pixel centre whose ray is nearest the target
     (:func:`_nearest_ray_pixel`): ``(pixel (B, P, 2) int64, converged (B, P) bool)``.
 
     On CPU one compiled loop does both per pixel (:mod:`como3r.frontend.cpu_kernels`).
     """
     if rays_grad.device.type == "cpu":
-        _, pixel, converged = cpu_kernels.project_rays(rays_grad, target_rays, p_init,
-                                                       max_iters, lambda_init, convergence_tol)
+        _, pixel, converged = cpu_kernels.project_rays(
+            rays_grad, target_rays, p_init, max_iters, lambda_init, convergence_tol
+        )
         return pixel, converged
-    p, converged = _project_vectorised(rays_grad, target_rays, p_init, max_iters, lambda_init,
-                                       convergence_tol)
+    p, converged = _project_vectorised(
+        rays_grad, target_rays, p_init, max_iters, lambda_init, convergence_tol
+    )
     return _nearest_ray_pixel(rays_grad[..., :3], p, target_rays), converged
 
 
-def _project_vectorised(rays_grad: Tensor, target_rays: Tensor, p_init: Tensor, max_iters: int,
-                        lambda_init: float, convergence_tol: float) -> tuple[Tensor, Tensor]:
+def _project_vectorised(
+    rays_grad: Tensor,
+    target_rays: Tensor,
+    p_init: Tensor,
+    max_iters: int,
+    lambda_init: float,
+    convergence_tol: float,
+) -> tuple[Tensor, Tensor]:
     """:func:`project_iteratively` as batched PyTorch over the pixels still moving (any
     device; on CPU the compiled loop of :mod:`como3r.frontend.cpu_kernels` is faster)."""
     B, H, W, C = rays_grad.shape
@@ -245,7 +262,11 @@ def _nearest_ray_pixel(rays: Tensor, p: Tensor, target_rays: Tensor) -> Tensor:
 
 
 def refine_with_descriptors(
-    D_search: Tensor, D_query: Tensor, pixel: Tensor, radius: int, dilation_max: int,
+    D_search: Tensor,
+    D_query: Tensor,
+    pixel: Tensor,
+    radius: int,
+    dilation_max: int,
     active: Tensor | None = None,
 ) -> Tensor:
     """Move each match to the best descriptor match in shrinking dilated windows.
@@ -272,8 +293,14 @@ def refine_with_descriptors(
     return _refine_vectorised(D_search, D_query, pixel, radius, dilation_max, active)
 
 
-def _refine_vectorised(D_search: Tensor, D_query: Tensor, pixel: Tensor, radius: int,
-                       dilation_max: int, active: Tensor | None) -> Tensor:
+def _refine_vectorised(
+    D_search: Tensor,
+    D_query: Tensor,
+    pixel: Tensor,
+    radius: int,
+    dilation_max: int,
+    active: Tensor | None,
+) -> Tensor:
     """:func:`refine_with_descriptors` as batched PyTorch (any device; on CPU the compiled
     loop of :mod:`como3r.frontend.cpu_kernels` is 9x faster)."""
     B, H, W, d = D_search.shape
@@ -356,31 +383,42 @@ def match_pointmaps(
     queries = X_query.reshape(B, Hq * Wq, 3)
     if p_init is None:
         v, u = torch.meshgrid(
-            torch.arange(Hq, device=X_query.device), torch.arange(Wq, device=X_query.device),
+            torch.arange(Hq, device=X_query.device),
+            torch.arange(Wq, device=X_query.device),
             indexing="ij",
         )
         grid = torch.stack([u.reshape(-1), v.reshape(-1)], dim=-1).to(X_query.dtype)
         upper = torch.tensor([W - 1, H - 1], dtype=X_query.dtype, device=X_query.device)
         p_init = grid.minimum(upper).expand(B, -1, -1)
     pixel, converged = project_to_pixels(
-        ray_image_with_gradients(X_search), psi(queries), p_init.to(X_query.dtype),
-        config.max_iters, config.lambda_init, config.convergence_tol,
+        ray_image_with_gradients(X_search),
+        psi(queries),
+        p_init.to(X_query.dtype),
+        config.max_iters,
+        config.lambda_init,
+        config.convergence_tol,
     )
     finite = torch.isfinite(queries).all(-1)
     if config.descriptor_radius > 0:
         # the window is given at the paper's 512 px and scales with the image (units.py);
         # only matches that can be valid (converged, finite query) are refined
         pixel = refine_with_descriptors(
-            D_search, D_query.reshape(B, Hq * Wq, -1), pixel,
+            D_search,
+            D_query.reshape(B, Hq * Wq, -1),
+            pixel,
             pixels_at(config.descriptor_radius, max(H, W)),
-            pixels_at(config.descriptor_dilation_max, max(H, W)), active=converged & finite,
+            pixels_at(config.descriptor_dilation_max, max(H, W)),
+            active=converged & finite,
         )
     if X_search.device.type == "cpu":  # the same test in one compiled pass
-        idx, valid = cpu_kernels.match_validity(X_search, queries, pixel, converged,
-                                                config.occlusion_ratio)
+        idx, valid = cpu_kernels.match_validity(
+            X_search, queries, pixel, converged, config.occlusion_ratio
+        )
         return Matches(idx=idx, pixel=pixel, valid=valid)
     idx = pixel[..., 1] * W + pixel[..., 0]
-    matched_points = torch.gather(X_search.reshape(B, H * W, 3), 1, idx[..., None].expand(-1, -1, 3))
+    matched_points = torch.gather(
+        X_search.reshape(B, H * W, 3), 1, idx[..., None].expand(-1, -1, 3)
+    )
     # occlusion gap relative to the query's range: the same test at every scene scale
     gap = (matched_points - queries).norm(dim=-1)
     not_occluded = gap < config.occlusion_ratio * queries.norm(dim=-1)

@@ -155,8 +155,12 @@ class PagedMatches(DirectedMatches):
     for and kept until :meth:`evict`; the match fraction is kept."""
 
     def __init__(self, pages: MatchPages, n: int, match_fraction: float) -> None:
-        for name, value in (("_pages", pages), ("_n", n), ("_fraction", match_fraction),
-                            ("_resident", None)):
+        for name, value in (
+            ("_pages", pages),
+            ("_n", n),
+            ("_fraction", match_fraction),
+            ("_resident", None),
+        ):
             object.__setattr__(self, name, value)
 
     def _matches(self) -> DirectedMatches:
@@ -299,9 +303,13 @@ def _remove_orphans(parent: Path) -> None:
     again: the safe side."""
     host = _owner().split("@", 1)[1]
     for folder in parent.glob(f"{SPILL_PREFIX}*@*-*"):
-        pid, _, rest = folder.name[len(SPILL_PREFIX):].partition("@")
-        if (folder.is_dir() and pid.isdigit() and rest.rsplit("-", 1)[0] == host
-                and _process_is_gone(int(pid))):
+        pid, _, rest = folder.name[len(SPILL_PREFIX) :].partition("@")
+        if (
+            folder.is_dir()
+            and pid.isdigit()
+            and rest.rsplit("-", 1)[0] == host
+            and _process_is_gone(int(pid))
+        ):
             logger.info("removing the spill folder of a process that is gone: %s", folder)
             shutil.rmtree(folder, ignore_errors=True)
 
@@ -357,8 +365,12 @@ class KeyframeSpill:
                     del tensors[k]
                 for k, tensor in tensors.items():
                     arrays[f"{field_name}.{k}"] = _numpy(tensor)
-                layout[field_name] = ("dataclass", type(value), others,
-                                      {k: (t.dtype, t.device) for k, t in tensors.items()})
+                layout[field_name] = (
+                    "dataclass",
+                    type(value),
+                    others,
+                    {k: (t.dtype, t.device) for k, t in tensors.items()},
+                )
             elif isinstance(value, Tensor):
                 arrays[field_name] = _numpy(value)
                 layout[field_name] = ("tensor", value.dtype, value.device)
@@ -374,9 +386,13 @@ class KeyframeSpill:
             for field_name, layout in self._layout[name].items():
                 if layout[0] == "dataclass":
                     cls, others, tensors = layout[1], layout[2], layout[3]
-                    values[field_name] = cls(**others, **{
-                        k: _tensor(data[f"{field_name}.{k}"], dtype, device)
-                        for k, (dtype, device) in tensors.items()})
+                    values[field_name] = cls(
+                        **others,
+                        **{
+                            k: _tensor(data[f"{field_name}.{k}"], dtype, device)
+                            for k, (dtype, device) in tensors.items()
+                        },
+                    )
                 elif layout[0] == "tensor":
                     values[field_name] = _tensor(data[field_name], layout[1], layout[2])
                 else:
@@ -443,8 +459,9 @@ class AgentPaging:
         spill = self._spill_folder()
         for kf in keyframes[:first_kept]:
             for group in kf.changed():
-                spill.save_keyframe(kf.kf_id, group,
-                                    {name: getattr(kf, name) for name in GROUPS[group]})
+                spill.save_keyframe(
+                    kf.kf_id, group, {name: getattr(kf, name) for name in GROUPS[group]}
+                )
             if kf._resident or kf._pages is None:
                 kf.evict(spill, kf.kf_id)
         for n, edge in enumerate(edges):
@@ -452,11 +469,13 @@ class AgentPaging:
                 edge.matches.evict()
             elif edge.i < first_kept and edge.j < first_kept:
                 spill.save_edge(n, edge.matches)
-                edges[n] = replace(edge, matches=PagedMatches(
-                    spill, n, edge.matches.match_fraction))
+                edges[n] = replace(
+                    edge, matches=PagedMatches(spill, n, edge.matches.match_fraction)
+                )
 
-    def solve_points(self, keyframe: Callable[[int], PagedKeyframe]
-                     ) -> Callable[[int], SolvePoints]:
+    def solve_points(
+        self, keyframe: Callable[[int], PagedKeyframe]
+    ) -> Callable[[int], SolvePoints]:
         """What a solve reads of each keyframe, read back once per keyframe and kept by the
         solve only."""
         cache: dict[int, SolvePoints] = {}

@@ -14,8 +14,8 @@ threshold of its use (C-Eq. 12: ``tau_inter`` across agents).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -73,8 +73,10 @@ class PairLink:
         """The smaller share, over both directions, of co-visible pixels that match."""
         if self.covisible_ij is None or self.covisible_ji is None:
             return None
-        return min(_ratio(self.ij.match_fraction, self.covisible_ij),
-                   _ratio(self.ji.match_fraction, self.covisible_ji))
+        return min(
+            _ratio(self.ij.match_fraction, self.covisible_ij),
+            _ratio(self.ji.match_fraction, self.covisible_ji),
+        )
 
     @property
     def min_match_fraction(self) -> float:
@@ -124,8 +126,10 @@ def link_pairs(
         return []
     timer = StageTimer() if timer is None else timer
     if screen is None:
-        return [_link(p_ij, p_ji, matching, q_min, covisible_min_confidence, timer)
-                for p_ij, p_ji in prior.decode_symmetric(pairs)]
+        return [
+            _link(p_ij, p_ji, matching, q_min, covisible_min_confidence, timer)
+            for p_ij, p_ji in prior.decode_symmetric(pairs)
+        ]
     firsts: list[tuple[DirectedMatches, float | None] | None] = []
     for k, p_ij in enumerate(prior.decode_pairs(pairs)):
         ij, cov_ij = _direction(p_ij, matching, q_min, covisible_min_confidence, timer)
@@ -140,27 +144,44 @@ def link_pairs(
     return links
 
 
-def _direction(pred: PairPrediction, matching: MatchingConfig, q_min: float,
-               covisible_min_confidence: float | None,
-               timer: StageTimer) -> tuple[DirectedMatches, float | None]:
+def _direction(
+    pred: PairPrediction,
+    matching: MatchingConfig,
+    q_min: float,
+    covisible_min_confidence: float | None,
+    timer: StageTimer,
+) -> tuple[DirectedMatches, float | None]:
     """One direction's matches and (with ``covisible_min_confidence``) co-visible fraction."""
     with timer.stage("matching"):
         matches = directed_matches(pred, matching, q_min)
-    covisible = (None if covisible_min_confidence is None
-                 else covisible_fraction(pred, matches, covisible_min_confidence))
+    covisible = (
+        None
+        if covisible_min_confidence is None
+        else covisible_fraction(pred, matches, covisible_min_confidence)
+    )
     return matches, covisible
 
 
-def _link(p_ij: PairPrediction, p_ji: PairPrediction, matching: MatchingConfig, q_min: float,
-          covisible_min_confidence: float | None, timer: StageTimer) -> PairLink:
+def _link(
+    p_ij: PairPrediction,
+    p_ji: PairPrediction,
+    matching: MatchingConfig,
+    q_min: float,
+    covisible_min_confidence: float | None,
+    timer: StageTimer,
+) -> PairLink:
     """Both directions of a decoded pair."""
     ij, cov_ij = _direction(p_ij, matching, q_min, covisible_min_confidence, timer)
     ji, cov_ji = _direction(p_ji, matching, q_min, covisible_min_confidence, timer)
     return PairLink(ij, ji, cov_ij, cov_ji)
 
 
-def direction_passes(matches: DirectedMatches, covisible: float | None,
-                     min_match_fraction: float, min_covisible_ratio: float) -> bool:
+def direction_passes(
+    matches: DirectedMatches,
+    covisible: float | None,
+    min_match_fraction: float,
+    min_covisible_ratio: float,
+) -> bool:
     """One direction of a link has ``nu >= min_match_fraction`` and, where its co-visible
     fraction is known, matches at least ``min_covisible_ratio`` of its co-visible pixels.
 
@@ -177,8 +198,9 @@ def _ratio(matched: float, covisible: float) -> float:
     return matched / covisible if covisible > 0 else 0.0
 
 
-def covisible_fraction(pred: PairPrediction, matches: DirectedMatches,
-                       min_confidence: float) -> float:
+def covisible_fraction(
+    pred: PairPrediction, matches: DirectedMatches, min_confidence: float
+) -> float:
     """Share of view j's pixels that the prediction puts where view i confidently sees.
 
     A pixel n of j is co-visible when its point ``X_ji[n]`` lies in front of camera i and
@@ -194,8 +216,9 @@ def covisible_fraction(pred: PairPrediction, matches: DirectedMatches,
     ahead = X_i[:, 2] > 0
     if not bool(ahead.any()):
         return 0.0
-    low, high = _quantiles(X_i[ahead, :2] / X_i[ahead, 2:],
-                           (FIELD_OF_VIEW_QUANTILE, 1.0 - FIELD_OF_VIEW_QUANTILE))
+    low, high = _quantiles(
+        X_i[ahead, :2] / X_i[ahead, 2:], (FIELD_OF_VIEW_QUANTILE, 1.0 - FIELD_OF_VIEW_QUANTILE)
+    )
     depth_j = X_j[:, 2:]
     plane_j = X_j[:, :2] / depth_j.clamp_min(torch.finfo(X_j.dtype).tiny)
     inside = (depth_j[:, 0] > 0) & ((plane_j > low) & (plane_j < high)).all(dim=-1)

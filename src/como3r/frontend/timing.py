@@ -14,8 +14,9 @@ it waits for, which is where the time is spent from the caller's point of view.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from typing import Any, Callable, Iterator, Mapping, Sequence
+from typing import Any
 
 from como3r.prior.base import Encoding, PairPrediction, Prior, View
 
@@ -80,8 +81,9 @@ class TimedPrior:
         decoded: told how many ordered pairs each decode call decoded (None: nobody).
     """
 
-    def __init__(self, prior: Prior, timer: StageTimer,
-                 decoded: Callable[[int], None] | None = None) -> None:
+    def __init__(
+        self, prior: Prior, timer: StageTimer, decoded: Callable[[int], None] | None = None
+    ) -> None:
         self._prior = prior
         self._timer = timer
         self._decoded = decoded or (lambda pairs: None)

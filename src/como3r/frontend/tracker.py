@@ -23,8 +23,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from como3r.config import Config, TrackingConfig
-from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.graph import make_factors
+from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.pairs import DirectedMatches, directed_matches, gather_points
 from como3r.frontend.timing import StageTimer
 from como3r.geometry.camera import lock_to_rays
@@ -88,8 +88,9 @@ class FrameTracker:
             with it, as an enlarged image cannot place a match finer than its own pixels.
     """
 
-    def __init__(self, prior: Prior, config: Config, timer: StageTimer | None = None,
-                 upsampling: float = 1.0) -> None:
+    def __init__(
+        self, prior: Prior, config: Config, timer: StageTimer | None = None, upsampling: float = 1.0
+    ) -> None:
         self.prior = prior
         self.config = config
         self.timer = StageTimer() if timer is None else timer
@@ -120,29 +121,45 @@ class FrameTracker:
         if keyframe.K is not None:  # the frame's own pointmap on the calibrated rays (C-Eq. 16)
             pred = replace(pred, X_ii=lock_to_rays(pred.X_ii, keyframe.K))
         tracking = self.config.tracking
-        base = dict(match_fraction=nu, unique_fraction=nu_unique, X_ff=pred.X_ii, C_ff=pred.C_ii,
-                    matches=matches)
+        base = dict(
+            match_fraction=nu,
+            unique_fraction=nu_unique,
+            X_ff=pred.X_ii,
+            C_ff=pred.C_ii,
+            matches=matches,
+        )
         if nu < tracking.min_match_fraction:
-            logger.info("tracking failed against keyframe %d: %.2f of the pixels matched "
-                        "(minimum %.2f)", keyframe.kf_id, nu, tracking.min_match_fraction)
+            logger.info(
+                "tracking failed against keyframe %d: %.2f of the pixels matched (minimum %.2f)",
+                keyframe.kf_id,
+                nu,
+                tracking.min_match_fraction,
+            )
             return TrackResult(False, "too_few_matches", T_kf_init, new_keyframe=True, **base)
         with self.timer.stage("tracking"):
             T_kf, report = self.solve(pred.X_ii, keyframe, matches, T_kf_init)
         if not solved(T_kf, report):
             logger.info("tracking failed against keyframe %d: %s", keyframe.kf_id, report.reason)
-            return TrackResult(False, report.reason, T_kf_init, new_keyframe=True, solve=report,
-                               **base)
-        inliers = inlier_fraction(T_kf, pred.X_ii, keyframe.X_hat, matches, tracking,
-                                  self.inlier_angle_deg)
+            return TrackResult(
+                False, report.reason, T_kf_init, new_keyframe=True, solve=report, **base
+            )
+        inliers = inlier_fraction(
+            T_kf, pred.X_ii, keyframe.X_hat, matches, tracking, self.inlier_angle_deg
+        )
         if inliers < tracking.min_inlier_fraction:
-            logger.info("tracking against keyframe %d rejected: %.2f of the matches agree with "
-                        "the pose", keyframe.kf_id, inliers)
-            return TrackResult(False, "inconsistent", T_kf_init, new_keyframe=True, solve=report,
-                               **base)
+            logger.info(
+                "tracking against keyframe %d rejected: %.2f of the matches agree with the pose",
+                keyframe.kf_id,
+                inliers,
+            )
+            return TrackResult(
+                False, "inconsistent", T_kf_init, new_keyframe=True, solve=report, **base
+            )
         if fuse:
             with self.timer.stage("fusion"):
-                keyframe.fuse(T_kf, pred.X_ji, pred.C_ji,
-                              ranges_only=self.config.tracking.fusion == "ranges")
+                keyframe.fuse(
+                    T_kf, pred.X_ji, pred.C_ji, ranges_only=self.config.tracking.fusion == "ranges"
+                )
         new_kf = min(nu, nu_unique) < tracking.keyframe_match_fraction
         return TrackResult(True, "ok", T_kf, new_keyframe=new_kf, solve=report, **base)
 
@@ -160,18 +177,25 @@ class FrameTracker:
         """
         K = None if keyframe.K is None else keyframe.K[None].to(X_ff)
         factors = make_factors(
-            torch.tensor([0]), torch.tensor([1]), keyframe.X_hat.reshape(1, -1, 3),
-            gather_points(X_ff, matches.idx)[None], matches.q[None], matches.valid[None],
-            self.config.tracking, K,
+            torch.tensor([0]),
+            torch.tensor([1]),
+            keyframe.X_hat.reshape(1, -1, 3),
+            gather_points(X_ff, matches.idx)[None],
+            matches.q[None],
+            matches.valid[None],
+            self.config.tracking,
+            K,
         )
         identity = sim3_identity(dtype=T_kf_init.dtype, device=T_kf_init.device)
-        values = PoseValues(torch.stack([identity, T_kf_init]),
-                            torch.tensor([True, False], device=T_kf_init.device))
+        values = PoseValues(
+            torch.stack([identity, T_kf_init]), torch.tensor([True, False], device=T_kf_init.device)
+        )
         # tracking.step_tol is a fraction of the scene depth (geometry.units): the keyframe's
         # median range, read off every 4th pixel (1.7 ms at 512x384 instead of 5)
         depth = float(median_range(keyframe.X_hat[::_RANGE_STRIDE, ::_RANGE_STRIDE]))
-        solved, report = levenberg_marquardt_irls(factors, values, self.config.tracking,
-                                                  backend="dense", length_scale=depth)
+        solved, report = levenberg_marquardt_irls(
+            factors, values, self.config.tracking, backend="dense", length_scale=depth
+        )
         return solved.poses[1], report
 
     def _warm_start(self, keyframe: Keyframe) -> Tensor | None:
@@ -203,8 +227,14 @@ def _unique_fraction(matches: DirectedMatches, searched_pixels: int) -> float:
     return float(hit.sum() / matches.idx.numel())
 
 
-def inlier_fraction(T_kf: Tensor, X_ff: Tensor, X_hat: Tensor, matches: DirectedMatches,
-                    tracking: TrackingConfig, angle_deg: float) -> float:
+def inlier_fraction(
+    T_kf: Tensor,
+    X_ff: Tensor,
+    X_hat: Tensor,
+    matches: DirectedMatches,
+    tracking: TrackingConfig,
+    angle_deg: float,
+) -> float:
     """Share of the valid matches that agree with a solved frame pose.
 
     A match agrees when the frame's point moved by ``T_kf`` lies within ``angle_deg`` of the

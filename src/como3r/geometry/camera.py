@@ -35,19 +35,27 @@ __all__ = [
 _MIN_DEPTH = 1e-12
 
 
-def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float,
-                      dtype: torch.dtype = torch.float32,
-                      device: torch.device | str | None = None) -> Tensor:
+def intrinsics_matrix(
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> Tensor:
     """``(3, 3)`` pinhole intrinsics ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``."""
-    return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=dtype,
-                        device=device)
+    return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=dtype, device=device)
 
 
-def pixel_grid(H: int, W: int, dtype: torch.dtype = torch.float32,
-               device: torch.device | str | None = None) -> Tensor:
+def pixel_grid(
+    H: int, W: int, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None
+) -> Tensor:
     """``(H, W, 2)`` pixel coordinates ``(u, v) = (column, row)`` of every pixel centre."""
-    v, u = torch.meshgrid(torch.arange(H, dtype=dtype, device=device),
-                          torch.arange(W, dtype=dtype, device=device), indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(H, dtype=dtype, device=device),
+        torch.arange(W, dtype=dtype, device=device),
+        indexing="ij",
+    )
     return torch.stack([u, v], dim=-1)
 
 
@@ -105,8 +113,11 @@ def scale_intrinsics(K: Tensor, sx: float, sy: float) -> Tensor:
     ``u' = sx (u + 0.5) - 0.5``: ``fx' = sx fx`` and ``cx' = sx (cx + 0.5) - 0.5`` (likewise
     for ``v``). ``K``: ``(..., 3, 3)``.
     """
-    S = torch.tensor([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]],
-                     dtype=K.dtype, device=K.device)
+    S = torch.tensor(
+        [[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]],
+        dtype=K.dtype,
+        device=K.device,
+    )
     return S @ K
 
 

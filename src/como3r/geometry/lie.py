@@ -122,8 +122,9 @@ def skew(v: Tensor) -> Tensor:
     return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).unflatten(-1, (3, 3))
 
 
-def quat_identity(*batch_shape: int, dtype: torch.dtype = torch.float32,
-                  device: torch.device | str | None = None) -> Tensor:
+def quat_identity(
+    *batch_shape: int, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None
+) -> Tensor:
     """Identity quaternions ``(*batch_shape, 4)`` = ``(0, 0, 0, 1)``."""
     q = torch.zeros(*batch_shape, 4, dtype=dtype, device=device)
     q[..., 3] = 1.0
@@ -180,9 +181,15 @@ def quat_to_matrix(q: Tensor) -> Tensor:
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z
     rows = [
-        1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
-        2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
-        2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
+        1 - 2 * (yy + zz),
+        2 * (xy - wz),
+        2 * (xz + wy),
+        2 * (xy + wz),
+        1 - 2 * (xx + zz),
+        2 * (yz - wx),
+        2 * (xz - wy),
+        2 * (yz + wx),
+        1 - 2 * (xx + yy),
     ]
     return torch.stack(rows, dim=-1).unflatten(-1, (3, 3))
 
@@ -205,21 +212,27 @@ def matrix_to_quat(R: Tensor) -> Tensor:
         raise ValueError(f"R must have shape (..., 3, 3), got {tuple(R.shape)}")
     m = R.flatten(-2).unbind(-1)
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = m
-    four_sq = torch.stack([
-        1 + m00 - m11 - m22,  # 4 x^2
-        1 - m00 + m11 - m22,  # 4 y^2
-        1 - m00 - m11 + m22,  # 4 z^2
-        1 + m00 + m11 + m22,  # 4 w^2
-    ], dim=-1)
+    four_sq = torch.stack(
+        [
+            1 + m00 - m11 - m22,  # 4 x^2
+            1 - m00 + m11 - m22,  # 4 y^2
+            1 - m00 - m11 + m22,  # 4 z^2
+            1 + m00 + m11 + m22,  # 4 w^2
+        ],
+        dim=-1,
+    )
     # Off-diagonal sums and differences: 4xy, 4xz, 4yz and 4wx, 4wy, 4wz.
     xy, xz, yz = m01 + m10, m02 + m20, m12 + m21
     wx, wy, wz = m21 - m12, m02 - m20, m10 - m01
-    candidates = torch.stack([
-        torch.stack([four_sq[..., 0], xy, xz, wx], dim=-1),
-        torch.stack([xy, four_sq[..., 1], yz, wy], dim=-1),
-        torch.stack([xz, yz, four_sq[..., 2], wz], dim=-1),
-        torch.stack([wx, wy, wz, four_sq[..., 3]], dim=-1),
-    ], dim=-2)
+    candidates = torch.stack(
+        [
+            torch.stack([four_sq[..., 0], xy, xz, wx], dim=-1),
+            torch.stack([xy, four_sq[..., 1], yz, wy], dim=-1),
+            torch.stack([xz, yz, four_sq[..., 2], wz], dim=-1),
+            torch.stack([wx, wy, wz, four_sq[..., 3]], dim=-1),
+        ],
+        dim=-2,
+    )
     # Only the candidate with the largest entry (>= 1 since the four sum to 4) is kept; the
     # clamp merely keeps the discarded ones finite.
     candidates = candidates / (2.0 * four_sq.clamp_min(0.1).sqrt()[..., None])
@@ -288,8 +301,9 @@ def so3_log(q: Tensor) -> Tensor:
 
 def _taylor_coefficients(order: int) -> list[float]:
     """Taylor coefficients of phi^(order)(zeta) / order!, phi(zeta) = (e^zeta - 1) / zeta."""
-    return [math.comb(k + order, order) / math.factorial(k + order + 1)
-            for k in range(_SERIES_TERMS)]
+    return [
+        math.comb(k + order, order) / math.factorial(k + order + 1) for k in range(_SERIES_TERMS)
+    ]
 
 
 _PHI_SERIES = [_taylor_coefficients(order) for order in range(3)]
@@ -345,16 +359,18 @@ def _left_jacobian_coefficients(zeta: Tensor, theta_sq: Tensor) -> tuple[Tensor,
     return a, b, c
 
 
-def _apply_polynomial(coefficients: tuple[Tensor, Tensor, Tensor], omega: Tensor,
-                      x: Tensor) -> Tensor:
+def _apply_polynomial(
+    coefficients: tuple[Tensor, Tensor, Tensor], omega: Tensor, x: Tensor
+) -> Tensor:
     """``(a I + b Omega + c Omega^2) x`` with ``Omega = [omega]_x``, via cross products."""
     a, b, c = (k.to(x.dtype) for k in coefficients)
     omega_x = _cross(omega, x)
     return a * x + b * omega_x + c * _cross(omega, omega_x)
 
 
-def _left_jacobian_inverse_coefficients(zeta: Tensor, theta_sq: Tensor
-                                        ) -> tuple[Tensor, Tensor, Tensor]:
+def _left_jacobian_inverse_coefficients(
+    zeta: Tensor, theta_sq: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
     """Coefficients of ``W^-1`` (module docstring); free of cancellation for small theta."""
     a, b, c = _left_jacobian_coefficients(zeta, theta_sq)
     in_plane_real = a - c * theta_sq
@@ -373,8 +389,9 @@ def _coefficient_inputs(omega: Tensor, zeta: Tensor | None) -> tuple[Tensor, Ten
 # --------------------------------------------------------------------------------------------
 
 
-def se3_identity(*batch_shape: int, dtype: torch.dtype = torch.float32,
-                 device: torch.device | str | None = None) -> Tensor:
+def se3_identity(
+    *batch_shape: int, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None
+) -> Tensor:
     """Identity SE(3) elements ``(*batch_shape, 7)``."""
     T = torch.zeros(*batch_shape, 7, dtype=dtype, device=device)
     T[..., 6] = 1.0
@@ -385,8 +402,7 @@ def se3_exp(xi: Tensor) -> Tensor:
     """Exponential map of se(3). ``xi``: ``(..., 6)`` = ``(v, omega)`` -> ``(..., 7)``."""
     _check_last_dim(xi, 6, "xi")
     v, omega = xi[..., :3], xi[..., 3:]
-    t = _apply_polynomial(_left_jacobian_coefficients(*_coefficient_inputs(omega, None)),
-                          omega, v)
+    t = _apply_polynomial(_left_jacobian_coefficients(*_coefficient_inputs(omega, None)), omega, v)
     return torch.cat([t, so3_exp(omega)], dim=-1)
 
 
@@ -443,8 +459,9 @@ def se3_to_matrix(T: Tensor) -> Tensor:
 # --------------------------------------------------------------------------------------------
 
 
-def sim3_identity(*batch_shape: int, dtype: torch.dtype = torch.float32,
-                  device: torch.device | str | None = None) -> Tensor:
+def sim3_identity(
+    *batch_shape: int, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None
+) -> Tensor:
     """Identity Sim(3) elements ``(*batch_shape, 8)`` = ``(0, 0, 0, 0, 0, 0, 1, 1)``."""
     T = torch.zeros(*batch_shape, 8, dtype=dtype, device=device)
     T[..., 6:] = 1.0
@@ -462,8 +479,7 @@ def sim3_exp(tau: Tensor) -> Tensor:
     """
     _check_last_dim(tau, 7, "tau")
     v, omega, zeta = tau[..., :3], tau[..., 3:6], tau[..., 6:]
-    t = _apply_polynomial(_left_jacobian_coefficients(*_coefficient_inputs(omega, zeta)),
-                          omega, v)
+    t = _apply_polynomial(_left_jacobian_coefficients(*_coefficient_inputs(omega, zeta)), omega, v)
     return torch.cat([t, so3_exp(omega), zeta.exp()], dim=-1)
 
 
@@ -564,8 +580,10 @@ def sim3_from_matrix(M: Tensor) -> Tensor:
     sR = M[..., :3, :3]
     det = torch.linalg.det(sR)
     if not bool((det > 0).all()):
-        raise GeometryError("sim3_from_matrix: the 3x3 block of M must have a positive "
-                            "determinant (a scaled rotation)")
+        raise GeometryError(
+            "sim3_from_matrix: the 3x3 block of M must have a positive "
+            "determinant (a scaled rotation)"
+        )
     s = det.pow(1.0 / 3.0)[..., None]
     q = matrix_to_quat(sR / s[..., None])
     return torch.cat([M[..., :3, 3], q, s], dim=-1)

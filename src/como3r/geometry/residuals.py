@@ -150,8 +150,9 @@ def ray_range_residual(T_ij: Tensor, X_j: Tensor, X_i: Tensor) -> tuple[Tensor, 
     return e, J.expand(*e.shape, 7)
 
 
-def calibrated_residual(T_ij: Tensor, X_j: Tensor, p_i: Tensor, z_i: Tensor,
-                        K: Tensor) -> tuple[Tensor, Tensor]:
+def calibrated_residual(
+    T_ij: Tensor, X_j: Tensor, p_i: Tensor, z_i: Tensor, K: Tensor
+) -> tuple[Tensor, Tensor]:
     """Pixel-and-log-depth residual of the known-calibration variant (C-Eq. 17-18).
 
     ``e = [Pi_K(T X_j) - p_i; log z(T X_j) - log z_i]`` with ``Pi_K(x) = (K x)_{1,2} / z``.
@@ -181,8 +182,9 @@ def calibrated_residual(T_ij: Tensor, X_j: Tensor, p_i: Tensor, z_i: Tensor,
     x0, x1 = x[..., 0] * inv_z, x[..., 1] * inv_z  # normalised image coordinates
     u = fx * x0 + k_skew * x1 + cx
     v = fy * x1 + cy
-    e = torch.stack([u - p_i[..., 0], v - p_i[..., 1],
-                     z.log() - z_i.clamp_min(_MIN_NORM).log()], dim=-1)
+    e = torch.stack(
+        [u - p_i[..., 0], v - p_i[..., 1], z.log() - z_i.clamp_min(_MIN_NORM).log()], dim=-1
+    )
 
     # Rows j_c of d e_c / d x, composed with C-Eq. 9's [I, -[x]_x, x] into
     # [j_c, x cross j_c, j_c . x], written block by block into one buffer (the global BA
@@ -198,7 +200,11 @@ def calibrated_residual(T_ij: Tensor, X_j: Tensor, p_i: Tensor, z_i: Tensor,
     J[..., 2, 2] = inv_z
     J[..., 0, 6] = J[..., 1, 0] = J[..., 1, 6] = J[..., 2, 0] = J[..., 2, 1] = J[..., 2, 5] = 0.0
     X, Y, Z = x.unbind(-1)
-    J[..., 0, 3], J[..., 0, 4], J[..., 0, 5] = Y * ju2 - Z * ju1, Z * ju0 - X * ju2, X * ju1 - Y * ju0
+    J[..., 0, 3], J[..., 0, 4], J[..., 0, 5] = (
+        Y * ju2 - Z * ju1,
+        Z * ju0 - X * ju2,
+        X * ju1 - Y * ju0,
+    )
     J[..., 1, 3], J[..., 1, 4], J[..., 1, 5] = Y * jv2 - Z * jv1, -X * jv2, X * jv1
     J[..., 2, 3], J[..., 2, 4] = x1, -x0
     J[..., 2, 6] = x[..., 2] * inv_z

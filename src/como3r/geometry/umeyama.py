@@ -28,8 +28,10 @@ def _validate(src: Tensor, dst: Tensor, weights: Tensor | None) -> None:
     if src.ndim != 2 or src.shape[-1] != 3:
         raise GeometryError(f"umeyama_sim3: src must have shape (N, 3), got {tuple(src.shape)}")
     if dst.shape != src.shape:
-        raise GeometryError(f"umeyama_sim3: dst must have the shape of src {tuple(src.shape)}, "
-                            f"got {tuple(dst.shape)}")
+        raise GeometryError(
+            f"umeyama_sim3: dst must have the shape of src {tuple(src.shape)}, "
+            f"got {tuple(dst.shape)}"
+        )
     if src.shape[0] < 3:
         raise GeometryError(f"umeyama_sim3: need at least 3 point pairs, got {src.shape[0]}")
     if not (bool(torch.isfinite(src).all()) and bool(torch.isfinite(dst).all())):
@@ -37,16 +39,18 @@ def _validate(src: Tensor, dst: Tensor, weights: Tensor | None) -> None:
     if weights is None:
         return
     if weights.shape != src.shape[:1]:
-        raise GeometryError(f"umeyama_sim3: weights must have shape ({src.shape[0]},), "
-                            f"got {tuple(weights.shape)}")
+        raise GeometryError(
+            f"umeyama_sim3: weights must have shape ({src.shape[0]},), got {tuple(weights.shape)}"
+        )
     if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
         raise GeometryError("umeyama_sim3: weights must be finite and non-negative")
     positive = int((weights > 0).sum())
     if positive == 0:
         raise GeometryError("umeyama_sim3: all weights are zero")
     if positive < 3:
-        raise GeometryError(f"umeyama_sim3: need at least 3 point pairs with positive weight, "
-                            f"got {positive}")
+        raise GeometryError(
+            f"umeyama_sim3: need at least 3 point pairs with positive weight, got {positive}"
+        )
 
 
 def _check_spread(points: Tensor, centred: Tensor, w: Tensor, eps: float, name: str) -> Tensor:
@@ -54,13 +58,19 @@ def _check_spread(points: Tensor, centred: Tensor, w: Tensor, eps: float, name: 
     variance = (w * (centred * centred).sum(-1)).sum()
     magnitude = points.abs().max()
     if bool(variance.sqrt() <= _SPREAD_ULPS * eps * magnitude):
-        raise GeometryError(f"umeyama_sim3: degenerate input, the {name} points coincide "
-                            "(zero spread)")
+        raise GeometryError(
+            f"umeyama_sim3: degenerate input, the {name} points coincide (zero spread)"
+        )
     return variance
 
 
-def umeyama_sim3(src: Tensor, dst: Tensor, weights: Tensor | None = None,
-                 with_scale: bool = True, rank_rtol: float | None = None) -> Tensor:
+def umeyama_sim3(
+    src: Tensor,
+    dst: Tensor,
+    weights: Tensor | None = None,
+    with_scale: bool = True,
+    rank_rtol: float | None = None,
+) -> Tensor:
     """Least-squares similarity ``dst ~= s R src + t`` (C-Eq. 14).
 
     With normalised weights ``w``, centroids ``mu_src, mu_dst`` and the cross-covariance
@@ -103,8 +113,10 @@ def umeyama_sim3(src: Tensor, dst: Tensor, weights: Tensor | None = None,
     covariance = (y_c * w[:, None]).T @ x_c
     U, singular, Vh = torch.linalg.svd(covariance)
     if bool(singular[1] <= rtol * singular[0]):
-        raise GeometryError("umeyama_sim3: degenerate input, the points are collinear "
-                            f"(covariance singular values {singular.tolist()})")
+        raise GeometryError(
+            "umeyama_sim3: degenerate input, the points are collinear "
+            f"(covariance singular values {singular.tolist()})"
+        )
     d = torch.ones_like(singular)
     d[2] = torch.linalg.det(U @ Vh).sign()
     R = U @ torch.diag(d) @ Vh

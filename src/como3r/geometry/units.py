@@ -14,7 +14,7 @@ RGB-D, 7-Scenes, Tanks and Temples at MASt3R's metric scale) have median depths 
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor

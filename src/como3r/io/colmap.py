@@ -12,9 +12,9 @@ como3r's principal points and pixels and adds 0.5.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -32,8 +32,10 @@ class Pinhole:
 
     def project(self, x_C: np.ndarray) -> np.ndarray:
         """``(N, 2)`` pixels ``(u, v)`` of camera-frame points ``x_C (N, 3)`` (z > 0)."""
-        return np.stack([self.fx * x_C[:, 0] / x_C[:, 2] + self.cx,
-                         self.fy * x_C[:, 1] / x_C[:, 2] + self.cy], axis=1)
+        return np.stack(
+            [self.fx * x_C[:, 0] / x_C[:, 2] + self.cx, self.fy * x_C[:, 1] / x_C[:, 2] + self.cy],
+            axis=1,
+        )
 
 
 @dataclass(frozen=True)
@@ -67,8 +69,13 @@ class ColmapImage:
     point3D_ids: np.ndarray
 
 
-def write_colmap_text(folder: str | Path, cameras: Sequence[ColmapCamera],
-                      images: Sequence[ColmapImage], xyz: np.ndarray, rgb: np.ndarray) -> None:
+def write_colmap_text(
+    folder: str | Path,
+    cameras: Sequence[ColmapCamera],
+    images: Sequence[ColmapImage],
+    xyz: np.ndarray,
+    rgb: np.ndarray,
+) -> None:
     """Write ``cameras.txt``, ``images.txt`` and ``points3D.txt`` into ``folder``.
 
     3-D point ``i`` gets id ``i + 1``; its track is every image observation whose
@@ -84,32 +91,45 @@ def write_colmap_text(folder: str | Path, cameras: Sequence[ColmapCamera],
     """
     folder = Path(folder)
     with open(folder / "cameras.txt", "w") as f:
-        f.write("# Camera list with one line of data per camera:\n"
-                "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
-                f"# Number of cameras: {len(cameras)}\n")
+        f.write(
+            "# Camera list with one line of data per camera:\n"
+            "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
+            f"# Number of cameras: {len(cameras)}\n"
+        )
         for c in cameras:
             pin = c.pinhole
-            f.write(f"{c.camera_id} PINHOLE {pin.width} {pin.height} {pin.fx!r} {pin.fy!r} "
-                    f"{pin.cx + 0.5!r} {pin.cy + 0.5!r}\n")
+            f.write(
+                f"{c.camera_id} PINHOLE {pin.width} {pin.height} {pin.fx!r} {pin.fy!r} "
+                f"{pin.cx + 0.5!r} {pin.cy + 0.5!r}\n"
+            )
     observations = sum(int((im.point3D_ids > 0).sum()) for im in images)
     with open(folder / "images.txt", "w") as f:
-        f.write("# Image list with two lines of data per image:\n"
-                "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n"
-                "#   POINTS2D[] as (X, Y, POINT3D_ID)\n"
-                f"# Number of images: {len(images)}, mean observations per image: "
-                f"{observations / max(len(images), 1):.6g}\n")
+        f.write(
+            "# Image list with two lines of data per image:\n"
+            "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n"
+            "#   POINTS2D[] as (X, Y, POINT3D_ID)\n"
+            f"# Number of images: {len(images)}, mean observations per image: "
+            f"{observations / max(len(images), 1):.6g}\n"
+        )
         for im in images:
             x, y, z, w = (float(v) + 0.0 for v in im.q_CW)  # + 0.0: no "-0.0"
             t = " ".join(repr(float(v) + 0.0) for v in im.t_CW)
             f.write(f"{im.image_id} {w!r} {x!r} {y!r} {z!r} {t} {im.camera_id} {im.name}\n")
-            f.write(" ".join(f"{u + 0.5:.4f} {v + 0.5:.4f} {int(p)}"
-                             for (u, v), p in zip(im.points2D, im.point3D_ids)) + "\n")
+            f.write(
+                " ".join(
+                    f"{u + 0.5:.4f} {v + 0.5:.4f} {int(p)}"
+                    for (u, v), p in zip(im.points2D, im.point3D_ids)
+                )
+                + "\n"
+            )
     tracks = _tracks(images, len(xyz))
     with open(folder / "points3D.txt", "w") as f:
-        f.write("# 3D point list with one line of data per point:\n"
-                "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n"
-                f"# Number of points: {len(xyz)}, mean track length: "
-                f"{observations / max(len(xyz), 1):.6g}\n")
+        f.write(
+            "# 3D point list with one line of data per point:\n"
+            "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n"
+            f"# Number of points: {len(xyz)}, mean track length: "
+            f"{observations / max(len(xyz), 1):.6g}\n"
+        )
         for i, ((x, y, z), (r, g, b), track) in enumerate(zip(xyz, rgb, tracks)):
             f.write(f"{i + 1} {x:.9g} {y:.9g} {z:.9g} {r} {g} {b} 0 {track}\n")
 

@@ -32,9 +32,10 @@ import json
 import math
 import os
 import shutil
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import numpy as np
 import torch
@@ -135,8 +136,13 @@ class ExportSummary:
 
     def add(self, export: str, path: Path, counts: dict[str, int]) -> None:
         """One export's row."""
-        self.rows.append({"export": export, "path": str(path),
-                          "wrote": ", ".join(f"{n} {what}" for what, n in counts.items())})
+        self.rows.append(
+            {
+                "export": export,
+                "path": str(path),
+                "wrote": ", ".join(f"{n} {what}" for what, n in counts.items()),
+            }
+        )
 
 
 def read_run_graph(run: str | Path) -> RunGraph:
@@ -152,19 +158,27 @@ def read_run_graph(run: str | Path) -> RunGraph:
     if not run.is_dir():
         raise InputError(f"{run}: not a folder (give a run folder, como3r run --out)")
     if run.name.endswith(".partial"):
-        raise InputError(f"{run}: an unfinished run (a run writes DIR.partial and renames it to "
-                         f"DIR when it is complete)")
+        raise InputError(
+            f"{run}: an unfinished run (a run writes DIR.partial and renames it to "
+            f"DIR when it is complete)"
+        )
     path = run / "graph.json"
     if not path.is_file():
-        hint = (f"; the run of this demo folder is {run / 'run'}"
-                if (run / "run" / "graph.json").is_file() else "")
+        hint = (
+            f"; the run of this demo folder is {run / 'run'}"
+            if (run / "run" / "graph.json").is_file()
+            else ""
+        )
         raise InputError(f"{run}: not a finished como3r run folder: no graph.json{hint}")
     try:
         document = json.loads(path.read_text())
         keyframes = [_keyframe(i, entry) for i, entry in enumerate(document["keyframes"])]
         index = {(k.agent, k.kf_id): k.index for k in keyframes}
-        edges = [_edge(e, index) for e in document.get("edges", [])
-                 if e.get("accepted", True) is not False]
+        edges = [
+            _edge(e, index)
+            for e in document.get("edges", [])
+            if e.get("accepted", True) is not False
+        ]
         components = [[int(a) for a in c] for c in document.get("components", [])]
     except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise InputError(f"{path}: not a como3r graph ({type(exc).__name__}: {exc})") from None
@@ -181,8 +195,14 @@ def _keyframe(index: int, entry: dict[str, Any]) -> RunKeyframe:
     if abs(q_norm - 1.0) > 1e-2:
         raise ValueError(f"keyframe {index}: quaternion norm {q_norm:.4f} is not 1")
     T_WC[3:7] /= q_norm
-    return RunKeyframe(index, int(entry["agent"]), int(entry["keyframe"]), int(entry["frame"]),
-                       float(entry["timestamp"]), T_WC)
+    return RunKeyframe(
+        index,
+        int(entry["agent"]),
+        int(entry["keyframe"]),
+        int(entry["frame"]),
+        float(entry["timestamp"]),
+        T_WC,
+    )
 
 
 def _edge(entry: dict[str, Any], index: dict[tuple[int, int], int]) -> RunEdge:
@@ -190,8 +210,10 @@ def _edge(entry: dict[str, Any], index: dict[tuple[int, int], int]) -> RunEdge:
     for end in (entry["from"], entry["to"]):
         agent, kf_id = (int(v) for v in end)
         if (agent, kf_id) not in index:
-            raise ValueError(f"edge {entry['from']} -> {entry['to']}: no keyframe {kf_id} of "
-                             f"agent {agent} in the graph")
+            raise ValueError(
+                f"edge {entry['from']} -> {entry['to']}: no keyframe {kf_id} of "
+                f"agent {agent} in the graph"
+            )
         ends.append(index[agent, kf_id])
     return RunEdge(ends[0], ends[1], str(entry.get("type", "")), edge_weight(entry))
 
@@ -210,8 +232,10 @@ def keyframe_intrinsics(data: KeyframeData) -> Pinhole:
         return Pinhole(W, H, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     focal = float(estimate_focal(torch.from_numpy(data.X), torch.from_numpy(data.C)))
     if not math.isfinite(focal) or focal <= 0:
-        raise InputError(f"{data.image_path.with_suffix('.npz')}: no intrinsics and no point in "
-                         f"front of the camera to estimate a focal length from")
+        raise InputError(
+            f"{data.image_path.with_suffix('.npz')}: no intrinsics and no point in "
+            f"front of the camera to estimate a focal length from"
+        )
     return Pinhole(W, H, focal, focal, (W - 1) / 2.0, (H - 1) / 2.0)
 
 
@@ -229,11 +253,17 @@ def depth_png(depth: np.ndarray) -> np.ndarray:
     return np.where((scaled > 0) & (scaled <= 65535), scaled, 0).astype(np.uint16)
 
 
-def export_run(run: str | Path, colmap: str | Path | None = None,
-               nerfstudio: str | Path | None = None, g2o: str | Path | None = None,
-               depth: str | Path | None = None, ros2_bag: str | Path | None = None,
-               overwrite: bool = False, max_points: int = DEFAULT_MAX_POINTS,
-               progress: Callable[[int, int], None] | None = None) -> ExportSummary:
+def export_run(
+    run: str | Path,
+    colmap: str | Path | None = None,
+    nerfstudio: str | Path | None = None,
+    g2o: str | Path | None = None,
+    depth: str | Path | None = None,
+    ros2_bag: str | Path | None = None,
+    overwrite: bool = False,
+    max_points: int = DEFAULT_MAX_POINTS,
+    progress: Callable[[int, int], None] | None = None,
+) -> ExportSummary:
     """Export a finished run; every output appears only once all of them are complete.
 
     Args:
@@ -251,12 +281,21 @@ def export_run(run: str | Path, colmap: str | Path | None = None,
         InputError: nothing to export; a run folder that is missing, unfinished, or lacks what
             a requested export needs; an output that may not be replaced.
     """
-    folders = {name: Path(p) for name, p in
-               (("colmap", colmap), ("nerfstudio", nerfstudio), ("depth", depth),
-                ("ros2_bag", ros2_bag)) if p is not None}
+    folders = {
+        name: Path(p)
+        for name, p in (
+            ("colmap", colmap),
+            ("nerfstudio", nerfstudio),
+            ("depth", depth),
+            ("ros2_bag", ros2_bag),
+        )
+        if p is not None
+    }
     if not folders and g2o is None:
-        raise InputError("nothing to export: give at least one of --colmap DIR, --nerfstudio "
-                         "DIR, --g2o FILE, --depth DIR, --ros2-bag DIR")
+        raise InputError(
+            "nothing to export: give at least one of --colmap DIR, --nerfstudio "
+            "DIR, --g2o FILE, --depth DIR, --ros2-bag DIR"
+        )
     run = Path(run)
     graph = read_run_graph(run)
     _check_inputs(run, graph, folders)
@@ -283,10 +322,12 @@ def export_run(run: str | Path, colmap: str | Path | None = None,
     # loads only when a bag is asked for
     from como3r.io.ros2_bag import write_ros2_bag
 
-    writers = {"colmap": lambda out: write_colmap(run, graph, out, max_points, step),
-               "nerfstudio": lambda out: write_nerfstudio(run, graph, out, max_points, step),
-               "depth": lambda out: write_depth(run, graph, out, step),
-               "ros2_bag": lambda out: write_ros2_bag(run, graph, out, step)}
+    writers = {
+        "colmap": lambda out: write_colmap(run, graph, out, max_points, step),
+        "nerfstudio": lambda out: write_nerfstudio(run, graph, out, max_points, step),
+        "depth": lambda out: write_depth(run, graph, out, step),
+        "ros2_bag": lambda out: write_ros2_bag(run, graph, out, step),
+    }
     summary = ExportSummary()
     with contextlib.ExitStack() as stack:  # every staging folder is renamed in at the end
         for name, target in folders.items():
@@ -296,30 +337,40 @@ def export_run(run: str | Path, colmap: str | Path | None = None,
             staging_file = stack.enter_context(_atomic_output_file(Path(g2o), overwrite))
             summary.add("g2o", Path(g2o), write_g2o(graph, staging_file))
     if len(graph.components) > 1:
-        summary.notes.append(f"the agents form {len(graph.components)} separate gauge components "
-                             f"{graph.components}: their poses share no world frame")
+        summary.notes.append(
+            f"the agents form {len(graph.components)} separate gauge components "
+            f"{graph.components}: their poses share no world frame"
+        )
     return summary
 
 
 def _check_inputs(run: Path, graph: RunGraph, folders: dict[str, Path]) -> None:
     """What the requested exports read is there, before any is written."""
     if folders.keys() & {"colmap", "nerfstudio", "ros2_bag"} and not (run / "map.ply").is_file():
-        raise InputError(f"{run}: no map.ply (the COLMAP, nerfstudio and ROS 2 bag exports take "
-                         f"their points from it)")
+        raise InputError(
+            f"{run}: no map.ply (the COLMAP, nerfstudio and ROS 2 bag exports take "
+            f"their points from it)"
+        )
     if "ros2_bag" in folders:
         for agent in sorted({k.agent for k in graph.keyframes}):
             if not (run / "trajectories" / f"agent_{agent}.txt").is_file():
-                raise InputError(f"{run}: no trajectories/agent_{agent}.txt (the ROS 2 bag's "
-                                 f"/tf and odometry come from it)")
+                raise InputError(
+                    f"{run}: no trajectories/agent_{agent}.txt (the ROS 2 bag's "
+                    f"/tf and odometry come from it)"
+                )
     if folders:
-        missing = [k for k in graph.keyframes
-                   if not keyframe_data_path(run, k.agent, k.kf_id, ".npz").is_file()]
+        missing = [
+            k
+            for k in graph.keyframes
+            if not keyframe_data_path(run, k.agent, k.kf_id, ".npz").is_file()
+        ]
         if missing:
             raise InputError(
                 f"{run}: no keyframe data for {len(missing)} of {len(graph.keyframes)} keyframes "
                 f"(first: {keyframe_data_path(run, missing[0].agent, missing[0].kf_id, '.npz')}); "
                 f"runs write it since como3r export exists: run the input again, or export "
-                f"--g2o only")
+                f"--g2o only"
+            )
 
 
 def _check_g2o_target(path: Path, overwrite: bool) -> None:
@@ -356,16 +407,20 @@ def _map_points(run: Path, max_points: int) -> tuple[np.ndarray, np.ndarray, np.
     """``map.ply`` thinned to at most ``max_points`` evenly spaced points: ``xyz (N, 3)``
     float64, ``rgb (N, 3)`` uint8, ``agent_id (N,)`` int32."""
     cloud = read_ply(run / "map.ply")
-    keep = np.arange(len(cloud)) if len(cloud) <= max_points else (
-        np.arange(max_points, dtype=np.int64) * len(cloud) // max_points)
+    keep = (
+        np.arange(len(cloud))
+        if len(cloud) <= max_points
+        else (np.arange(max_points, dtype=np.int64) * len(cloud) // max_points)
+    )
     cloud = cloud[keep]
     xyz = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1).astype(np.float64)
     rgb = np.stack([cloud["red"], cloud["green"], cloud["blue"]], axis=1)
     return xyz, rgb, cloud["agent_id"].astype(np.int32)
 
 
-def _observed(xyz: np.ndarray, keyframe: RunKeyframe, data: KeyframeData, camera: Pinhole
-              ) -> tuple[np.ndarray, np.ndarray]:
+def _observed(
+    xyz: np.ndarray, keyframe: RunKeyframe, data: KeyframeData, camera: Pinhole
+) -> tuple[np.ndarray, np.ndarray]:
     """The map points a keyframe sees: in front of it, inside its image, and within
     :data:`DEPTH_TOLERANCE` of its own depth at the pixel they project to.
 
@@ -387,8 +442,13 @@ def _observed(xyz: np.ndarray, keyframe: RunKeyframe, data: KeyframeData, camera
     return front[agree], uv[agree]
 
 
-def write_colmap(run: Path, graph: RunGraph, out: Path, max_points: int = DEFAULT_MAX_POINTS,
-                 step: Callable[[], None] = lambda: None) -> dict[str, int]:
+def write_colmap(
+    run: Path,
+    graph: RunGraph,
+    out: Path,
+    max_points: int = DEFAULT_MAX_POINTS,
+    step: Callable[[], None] = lambda: None,
+) -> dict[str, int]:
     """A COLMAP text model: ``out/sparse/0/{cameras,images,points3D}.txt`` and
     ``out/images/<name>.png`` (the layout COLMAP's tools, nerfstudio's ``colmap`` data
     parser and 3D Gaussian Splatting's ``-s out`` read).
@@ -416,16 +476,28 @@ def write_colmap(run: Path, graph: RunGraph, out: Path, max_points: int = DEFAUL
         shutil.copyfile(data.image_path, out / "images" / f"{kf.name}.png")
         T_CW = se3_inverse(kf.rigid).numpy()
         points, uv = _observed(xyz, kf, data, pin)
-        images.append(ColmapImage(image_id, T_CW[3:7], T_CW[:3], camera.camera_id,
-                                  f"{kf.name}.png", uv, points + 1))
+        images.append(
+            ColmapImage(
+                image_id, T_CW[3:7], T_CW[:3], camera.camera_id, f"{kf.name}.png", uv, points + 1
+            )
+        )
         step()
     write_colmap_text(sparse, list(cameras.values()), images, xyz, rgb)
-    return {"images": len(images), "cameras": len(cameras), "points": len(xyz),
-            "observations": sum(len(im.point3D_ids) for im in images)}
+    return {
+        "images": len(images),
+        "cameras": len(cameras),
+        "points": len(xyz),
+        "observations": sum(len(im.point3D_ids) for im in images),
+    }
 
 
-def write_nerfstudio(run: Path, graph: RunGraph, out: Path, max_points: int = DEFAULT_MAX_POINTS,
-                     step: Callable[[], None] = lambda: None) -> dict[str, int]:
+def write_nerfstudio(
+    run: Path,
+    graph: RunGraph,
+    out: Path,
+    max_points: int = DEFAULT_MAX_POINTS,
+    step: Callable[[], None] = lambda: None,
+) -> dict[str, int]:
     """nerfstudio's ``out/transforms.json``, ``out/images/<name>.png``,
     ``out/depth/<name>.png`` and ``out/sparse_pc.ply``.
 
@@ -446,11 +518,19 @@ def write_nerfstudio(run: Path, graph: RunGraph, out: Path, max_points: int = DE
         pin = keyframe_intrinsics(data)
         shutil.copyfile(data.image_path, out / "images" / f"{kf.name}.png")
         Image.fromarray(depth_png(keyframe_depth(kf, data))).save(out / "depth" / f"{kf.name}.png")
-        frames.append({"file_path": f"images/{kf.name}.png",
-                       "depth_file_path": f"depth/{kf.name}.png",
-                       "fl_x": pin.fx, "fl_y": pin.fy, "cx": pin.cx + 0.5, "cy": pin.cy + 0.5,
-                       "w": pin.width, "h": pin.height,
-                       "transform_matrix": (kf.camera_to_world() @ OPENCV_TO_OPENGL).tolist()})
+        frames.append(
+            {
+                "file_path": f"images/{kf.name}.png",
+                "depth_file_path": f"depth/{kf.name}.png",
+                "fl_x": pin.fx,
+                "fl_y": pin.fy,
+                "cx": pin.cx + 0.5,
+                "cy": pin.cy + 0.5,
+                "w": pin.width,
+                "h": pin.height,
+                "transform_matrix": (kf.camera_to_world() @ OPENCV_TO_OPENGL).tolist(),
+            }
+        )
         step()
     xyz, rgb, agent_id = _map_points(run, max_points)
     write_ply(out / "sparse_pc.ply", xyz.astype(np.float32), rgb, agent_id)
@@ -459,8 +539,9 @@ def write_nerfstudio(run: Path, graph: RunGraph, out: Path, max_points: int = DE
     return {"images": len(frames), "points": len(xyz)}
 
 
-def write_depth(run: Path, graph: RunGraph, out: Path,
-                step: Callable[[], None] = lambda: None) -> dict[str, int]:
+def write_depth(
+    run: Path, graph: RunGraph, out: Path, step: Callable[[], None] = lambda: None
+) -> dict[str, int]:
     """Per keyframe ``out/<name>.npz`` and ``out/<name>.png``.
 
     The ``.npz`` holds float32 ``depth (H, W)`` (z in the keyframe's camera in world units,
@@ -478,8 +559,13 @@ def write_depth(run: Path, graph: RunGraph, out: Path,
         pin = keyframe_intrinsics(data)
         z = keyframe_depth(kf, data)
         K = np.array([[pin.fx, 0.0, pin.cx], [0.0, pin.fy, pin.cy], [0.0, 0.0, 1.0]])
-        np.savez(out / f"{kf.name}.npz", depth=z, confidence=data.C.astype(np.float32), K=K,
-                 T_WC=kf.camera_to_world())
+        np.savez(
+            out / f"{kf.name}.npz",
+            depth=z,
+            confidence=data.C.astype(np.float32),
+            K=K,
+            T_WC=kf.camera_to_world(),
+        )
         Image.fromarray(depth_png(z)).save(out / f"{kf.name}.png")
         step()
     return {"keyframes": len(graph.keyframes)}
@@ -513,13 +599,17 @@ def write_g2o(graph: RunGraph, path: Path) -> dict[str, int]:
     Returns:
         counts: ``vertices``, ``edges``.
     """
-    lines = [G2O_HEADER,
-             "# vertices: keyframes in graph.json order (agent, keyframe id in the comment above "
-             "each); poses: rigid camera-to-world, world units; information: w I_6, w = the "
-             "edge's match fraction"]
+    lines = [
+        G2O_HEADER,
+        "# vertices: keyframes in graph.json order (agent, keyframe id in the comment above "
+        "each); poses: rigid camera-to-world, world units; information: w I_6, w = the "
+        "edge's match fraction",
+    ]
     for kf in graph.keyframes:
-        lines.append(f"# agent {kf.agent} keyframe {kf.kf_id} frame {kf.frame} "
-                     f"timestamp {kf.timestamp!r} scale {float(kf.T_WC[7])!r}")
+        lines.append(
+            f"# agent {kf.agent} keyframe {kf.kf_id} frame {kf.frame} "
+            f"timestamp {kf.timestamp!r} scale {float(kf.T_WC[7])!r}"
+        )
         lines.append(f"VERTEX_SE3:QUAT {kf.index} " + _numbers(kf.T_WC[:7]))
     for component in graph.components:
         first = next((k for k in graph.keyframes if k.agent in component), None)
@@ -529,12 +619,15 @@ def write_g2o(graph: RunGraph, path: Path) -> dict[str, int]:
         i, j = graph.keyframes[edge.i], graph.keyframes[edge.j]
         relative = se3_compose(se3_inverse(i.rigid), j.rigid).numpy()
         information = edge.weight * np.eye(6)
-        lines.append(f"EDGE_SE3:QUAT {i.index} {j.index} " + _numbers(relative) + " "
-                     + _numbers(information[np.triu_indices(6)]))
+        lines.append(
+            f"EDGE_SE3:QUAT {i.index} {j.index} "
+            + _numbers(relative)
+            + " "
+            + _numbers(information[np.triu_indices(6)])
+        )
     path.write_text("\n".join(lines) + "\n")
     return {"vertices": len(graph.keyframes), "edges": len(graph.edges)}
 
 
 def _numbers(values: np.ndarray) -> str:
     return " ".join(repr(float(v) + 0.0) for v in values)  # + 0.0: no "-0.0"
-

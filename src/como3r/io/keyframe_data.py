@@ -19,9 +19,10 @@ depth in world units ``s X_z``. Pixel centres are at integer coordinates (``K``'
 from __future__ import annotations
 
 import zipfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
@@ -47,13 +48,16 @@ def write_keyframe_data(out: str | Path, agents: Sequence[Any]) -> None:
         for kf in agent.keyframes:
             npz = keyframe_data_path(out, agent.agent, kf.kf_id, ".npz")
             npz.parent.mkdir(parents=True, exist_ok=True)
-            arrays = {"X": kf.X_hat.detach().cpu().numpy().astype(np.float32),
-                      "C": kf.mean_confidence().detach().cpu().numpy().astype(np.float32)}
+            arrays = {
+                "X": kf.X_hat.detach().cpu().numpy().astype(np.float32),
+                "C": kf.mean_confidence().detach().cpu().numpy().astype(np.float32),
+            }
             if kf.K is not None:
                 arrays["K"] = kf.K.detach().cpu().numpy().astype(np.float64)
             np.savez(npz, **arrays)
             Image.fromarray(np.asarray(kf.colors, dtype=np.uint8)).save(
-                npz.with_suffix(".png"), compress_level=1)
+                npz.with_suffix(".png"), compress_level=1
+            )
 
 
 @dataclass(frozen=True)
@@ -89,8 +93,10 @@ class KeyframeData:
         except (OSError, UnidentifiedImageError) as exc:
             raise InputError(f"{self.image_path}: cannot read keyframe image ({exc})") from None
         if rgb.shape[:2] != self.shape:
-            raise InputError(f"{self.image_path}: image is {rgb.shape[1]}x{rgb.shape[0]}, its "
-                             f"pointmap {self.shape[1]}x{self.shape[0]}")
+            raise InputError(
+                f"{self.image_path}: image is {rgb.shape[1]}x{rgb.shape[0]}, its "
+                f"pointmap {self.shape[1]}x{self.shape[0]}"
+            )
         return rgb
 
 
@@ -104,8 +110,10 @@ def read_keyframe_data(run: str | Path, agent: int, kf_id: int) -> KeyframeData:
     png = npz.with_suffix(".png")
     for path in (npz, png):
         if not path.is_file():
-            raise InputError(f"{path}: missing keyframe data (a run folder written before "
-                             f"como3r export existed has none: run the input again)")
+            raise InputError(
+                f"{path}: missing keyframe data (a run folder written before "
+                f"como3r export existed has none: run the input again)"
+            )
     try:
         with np.load(npz, allow_pickle=False) as data:
             X, C = data["X"], data["C"]
@@ -114,8 +122,14 @@ def read_keyframe_data(run: str | Path, agent: int, kf_id: int) -> KeyframeData:
         raise InputError(f"{npz}: not a keyframe data file ({exc})") from None
     H, W = X.shape[:2]
     if X.shape != (H, W, 3) or C.shape != (H, W) or (K is not None and K.shape != (3, 3)):
-        raise InputError(f"{npz}: arrays of shapes X {X.shape}, C {C.shape}"
-                         f"{'' if K is None else f', K {K.shape}'} are not (H, W, 3), (H, W), "
-                         f"(3, 3)")
-    return KeyframeData(X=X.astype(np.float32), C=C.astype(np.float32),
-                        K=None if K is None else K.astype(np.float64), image_path=png)
+        raise InputError(
+            f"{npz}: arrays of shapes X {X.shape}, C {C.shape}"
+            f"{'' if K is None else f', K {K.shape}'} are not (H, W, 3), (H, W), "
+            f"(3, 3)"
+        )
+    return KeyframeData(
+        X=X.astype(np.float32),
+        C=C.astype(np.float32),
+        K=None if K is None else K.astype(np.float64),
+        image_path=png,
+    )

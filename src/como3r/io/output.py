@@ -24,9 +24,9 @@ import os
 import shlex
 import shutil
 import sys
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Iterator
 
 from como3r import __version__
 from como3r.errors import InputError
@@ -67,8 +67,9 @@ def is_disk_full(exc: BaseException | None) -> bool:
     return False
 
 
-def check_output_dir(out: str | Path, overwrite: bool = False, resume: bool = False,
-                     kept: Kept | None = None) -> None:
+def check_output_dir(
+    out: str | Path, overwrite: bool = False, resume: bool = False, kept: Kept | None = None
+) -> None:
     """Refuse, before any work, an ``out`` that a run could not write.
 
     Args:
@@ -86,15 +87,20 @@ def check_output_dir(out: str | Path, overwrite: bool = False, resume: bool = Fa
     _check_target(out, overwrite)
     staging = _staging(out)
     if resume and not is_como3r_output(staging):
-        raise InputError(f"{out}: nothing to resume ({staging} does not exist or was not "
-                         f"written by como3r)")
+        raise InputError(
+            f"{out}: nothing to resume ({staging} does not exist or was not written by como3r)"
+        )
     if (staging.exists() or staging.is_symlink()) and not is_como3r_output(staging):
-        raise InputError(f"{staging}: not written by como3r; refusing to delete it (it has "
-                         f"no {MARKER} file): move it away or choose another --out")
+        raise InputError(
+            f"{staging}: not written by como3r; refusing to delete it (it has "
+            f"no {MARKER} file): move it away or choose another --out"
+        )
     if not (resume or overwrite) and kept is not None and staging.is_dir() and kept(staging):
-        raise InputError(f"{staging}: holds the session store of an interrupted run: continue "
-                         f"it with --resume, or start afresh with --overwrite (which deletes "
-                         f"it)")
+        raise InputError(
+            f"{staging}: holds the session store of an interrupted run: continue "
+            f"it with --resume, or start afresh with --overwrite (which deletes "
+            f"it)"
+        )
 
 
 def _check_target(out: Path, overwrite: bool) -> None:
@@ -105,8 +111,9 @@ def _check_target(out: Path, overwrite: bool) -> None:
             if not overwrite:
                 raise InputError(f"{out}: output folder exists and is not empty (use --overwrite)")
             if not is_como3r_output(out):
-                raise InputError(f"{out}: not written by como3r; refusing to overwrite (it "
-                                 f"has no {MARKER} file)")
+                raise InputError(
+                    f"{out}: not written by como3r; refusing to overwrite (it has no {MARKER} file)"
+                )
 
 
 def _staging(out: Path) -> Path:
@@ -127,9 +134,11 @@ def _program() -> list[str]:
 
 
 def _write_marker(folder: Path) -> None:
-    marker = {"como3r": __version__, "command": command_line(),
-              "created": datetime.datetime.now(datetime.timezone.utc).isoformat(
-                  timespec="seconds")}
+    marker = {
+        "como3r": __version__,
+        "command": command_line(),
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    }
     (folder / MARKER).write_text(json.dumps(marker) + "\n")
 
 
@@ -153,8 +162,9 @@ def _swap_in(staging: Path, out: Path) -> None:
 
 
 @contextmanager
-def atomic_output_dir(out: str | Path, overwrite: bool = False,
-                      resume: bool = False, kept: Kept | None = None) -> Iterator[Path]:
+def atomic_output_dir(
+    out: str | Path, overwrite: bool = False, resume: bool = False, kept: Kept | None = None
+) -> Iterator[Path]:
     """Yield a staging folder that becomes ``out`` only if the block succeeds.
 
     The staging folder carries the marker from the start, so a staging folder left by a

@@ -7,15 +7,24 @@ The header declares ``x y z`` (float32), ``red green blue`` (uchar) and ``agent_
 from __future__ import annotations
 
 import shutil
+from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import Iterable, Iterator
 
 import numpy as np
 
 from como3r.errors import InputError
 
-_VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                    ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("agent_id", "<i4")])
+_VERTEX = np.dtype(
+    [
+        ("x", "<f4"),
+        ("y", "<f4"),
+        ("z", "<f4"),
+        ("red", "u1"),
+        ("green", "u1"),
+        ("blue", "u1"),
+        ("agent_id", "<i4"),
+    ]
+)
 #: the header :func:`write_ply` writes is about 250 bytes
 _MAX_HEADER = 4096
 
@@ -25,8 +34,9 @@ def write_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray, agent_id: np.n
     write_ply_pieces(path, [(xyz, rgb, agent_id)])
 
 
-def write_ply_pieces(path: str | Path,
-                     pieces: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> int:
+def write_ply_pieces(
+    path: str | Path, pieces: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]]
+) -> int:
     """Write the vertices of ``pieces`` (each ``xyz (N_k, 3)``, ``rgb (N_k, 3)``,
     ``agent_id (N_k,)`` as in :func:`write_ply`) one after the other, each let go once
     written: a map of any size is written in the memory of its largest piece. The vertices
@@ -58,8 +68,10 @@ def write_ply_pieces(path: str | Path,
 def _vertices(xyz: np.ndarray, rgb: np.ndarray, agent_id: np.ndarray) -> np.ndarray:
     n = xyz.shape[0]
     if xyz.shape != (n, 3) or rgb.shape != (n, 3) or agent_id.shape != (n,):
-        raise ValueError(f"write_ply: shapes {xyz.shape}, {rgb.shape}, {agent_id.shape} "
-                         f"are not (N, 3), (N, 3), (N,)")
+        raise ValueError(
+            f"write_ply: shapes {xyz.shape}, {rgb.shape}, {agent_id.shape} "
+            f"are not (N, 3), (N, 3), (N,)"
+        )
     vertices = np.empty(n, dtype=_VERTEX)
     for axis, name in enumerate("xyz"):
         vertices[name] = xyz[:, axis]
@@ -100,8 +112,9 @@ def _layout(path: str | Path) -> tuple[int, int]:
     if not head.startswith(b"ply\n") or end < 0:
         raise InputError(f"{path}: not a PLY file")
     header = head[:end].decode("ascii", errors="replace").splitlines()
-    count = next((int(line.split()[2]) for line in header if line.startswith("element vertex")),
-                 None)
+    count = next(
+        (int(line.split()[2]) for line in header if line.startswith("element vertex")), None
+    )
     if count is None or "format binary_little_endian 1.0" not in header:
         raise InputError(f"{path}: not a binary little-endian PLY with vertices")
     offset = end + len(marker)

@@ -43,8 +43,9 @@ clocks keep their own time bases.
 from __future__ import annotations
 
 import shutil
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -72,9 +73,12 @@ def camera_frame(agent: int) -> str:
 
 def agent_topics(agent: int) -> dict[str, str]:
     """The per-agent topics: ``odometry``, ``keyframes``, ``image``, ``camera_info``."""
-    return {"odometry": f"/agent_{agent}/odometry", "keyframes": f"/agent_{agent}/keyframes",
-            "image": f"/agent_{agent}/camera/image/compressed",
-            "camera_info": f"/agent_{agent}/camera/camera_info"}
+    return {
+        "odometry": f"/agent_{agent}/odometry",
+        "keyframes": f"/agent_{agent}/keyframes",
+        "image": f"/agent_{agent}/camera/image/compressed",
+        "camera_info": f"/agent_{agent}/camera/camera_info",
+    }
 
 
 def read_trajectories(run: Path, agents: list[int]) -> dict[int, Trajectory]:
@@ -93,8 +97,9 @@ def read_trajectories(run: Path, agents: list[int]) -> dict[int, Trajectory]:
     return trajectories
 
 
-def write_ros2_bag(run: Path, graph: RunGraph, out: Path,
-                   step: Callable[[], None] = lambda: None) -> dict[str, int]:
+def write_ros2_bag(
+    run: Path, graph: RunGraph, out: Path, step: Callable[[], None] = lambda: None
+) -> dict[str, int]:
     """Write the bag into the existing, empty staging folder ``out`` (see the module docstring).
 
     ``rosbags`` creates the bag folder itself, so it is written to ``out/<out's final name>``
@@ -119,25 +124,34 @@ def write_ros2_bag(run: Path, graph: RunGraph, out: Path,
     topics = {"/tf": "tf2_msgs/msg/TFMessage", "/map": "sensor_msgs/msg/PointCloud2"}
     for agent in agents:
         names = agent_topics(agent)
-        topics.update({names["odometry"]: "nav_msgs/msg/Odometry",
-                       names["keyframes"]: "nav_msgs/msg/Path",
-                       names["image"]: "sensor_msgs/msg/CompressedImage",
-                       names["camera_info"]: "sensor_msgs/msg/CameraInfo"})
+        topics.update(
+            {
+                names["odometry"]: "nav_msgs/msg/Odometry",
+                names["keyframes"]: "nav_msgs/msg/Path",
+                names["image"]: "sensor_msgs/msg/CompressedImage",
+                names["camera_info"]: "sensor_msgs/msg/CameraInfo",
+            }
+        )
         trajectory = trajectories[agent]
         twists = _twists(trajectory)
         for i, stamp in enumerate(trajectory.timestamps.tolist()):
             pose = trajectory.T_WC[i].numpy()
             add(stamp, "/tf", lambda s=stamp, a=agent, p=pose: _tf(store, s, a, p))
-            add(stamp, names["odometry"],
-                lambda s=stamp, a=agent, p=pose, v=twists[i]: _odometry(store, s, a, p, v))
+            add(
+                stamp,
+                names["odometry"],
+                lambda s=stamp, a=agent, p=pose, v=twists[i]: _odometry(store, s, a, p, v),
+            )
         keyframes = [k for k in graph.keyframes if k.agent == agent]
         stamps = keyframe_stamps(keyframes, trajectory, run)
         for n, (kf, stamp) in enumerate(zip(keyframes, stamps)):
-            add(stamp, names["keyframes"], lambda s=stamp, ks=keyframes[:n + 1],
-                ss=stamps[:n + 1]: _path(store, s, ks, ss))
+            add(
+                stamp,
+                names["keyframes"],
+                lambda s=stamp, ks=keyframes[: n + 1], ss=stamps[: n + 1]: _path(store, s, ks, ss),
+            )
             add(stamp, names["image"], lambda k=kf, s=stamp: _image(store, run, k, s))
-            add(stamp, names["camera_info"],
-                lambda k=kf, s=stamp: _camera_info(store, run, k, s))
+            add(stamp, names["camera_info"], lambda k=kf, s=stamp: _camera_info(store, run, k, s))
     first = min(m[0] for m in messages) * 1e-9
     add(first, "/map", lambda: _cloud(store, first, cloud))
     messages.sort(key=lambda m: m[:2])
@@ -149,10 +163,15 @@ def write_ros2_bag(run: Path, graph: RunGraph, out: Path,
     # Foxglove read it as an uncompressed bag)
     writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
     with writer:
-        connections = {topic: writer.add_connection(
-            topic, msgtype, typestore=store,
-            offered_qos_profiles=latched if topic == "/map" else ())
-            for topic, msgtype in topics.items()}
+        connections = {
+            topic: writer.add_connection(
+                topic,
+                msgtype,
+                typestore=store,
+                offered_qos_profiles=latched if topic == "/map" else (),
+            )
+            for topic, msgtype in topics.items()
+        }
         for ns, _, topic, make in messages:
             writer.write(connections[topic], ns, store.serialize_cdr(make(), topics[topic]))
             if topic.endswith("/camera_info"):  # the last of a keyframe's three messages
@@ -160,12 +179,15 @@ def write_ros2_bag(run: Path, graph: RunGraph, out: Path,
     for path in bag.iterdir():
         shutil.move(path, out / path.name)
     bag.rmdir()
-    return {"messages": len(messages), "frames": sum(len(t) for t in trajectories.values()),
-            "keyframes": len(graph.keyframes), "points": len(cloud)}
+    return {
+        "messages": len(messages),
+        "frames": sum(len(t) for t in trajectories.values()),
+        "keyframes": len(graph.keyframes),
+        "points": len(cloud),
+    }
 
 
-def keyframe_stamps(keyframes: list[RunKeyframe], trajectory: Trajectory, run: Path
-                    ) -> list[float]:
+def keyframe_stamps(keyframes: list[RunKeyframe], trajectory: Trajectory, run: Path) -> list[float]:
     """Each keyframe's stamp: the timestamp of its frame in the agent's trajectory file.
 
     ``graph.json`` keeps a keyframe's time as read, the TUM file to the microsecond; taking
@@ -180,9 +202,11 @@ def keyframe_stamps(keyframes: list[RunKeyframe], trajectory: Trajectory, run: P
     for kf in keyframes:
         i = int(np.argmin(np.abs(times - kf.timestamp)))
         if abs(times[i] - kf.timestamp) > STAMP_TOLERANCE:
-            raise InputError(f"{run}: keyframe {kf.kf_id} of agent {kf.agent} "
-                             f"({kf.timestamp!r} s) has no pose in trajectories/"
-                             f"agent_{kf.agent}.txt")
+            raise InputError(
+                f"{run}: keyframe {kf.kf_id} of agent {kf.agent} "
+                f"({kf.timestamp!r} s) has no pose in trajectories/"
+                f"agent_{kf.agent}.txt"
+            )
         stamps.append(float(times[i]))
     return stamps
 
@@ -192,11 +216,28 @@ def _nanoseconds(stamp: float) -> int:
 
 
 def _latched_qos() -> list[Any]:
-    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
-                                    QosReliability, QosTime)
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
 
-    return [Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL,
-                QosTime(0, 0), QosTime(0, 0), QosLiveliness.AUTOMATIC, QosTime(0, 0), False)]
+    return [
+        Qos(
+            QosHistory.KEEP_LAST,
+            1,
+            QosReliability.RELIABLE,
+            QosDurability.TRANSIENT_LOCAL,
+            QosTime(0, 0),
+            QosTime(0, 0),
+            QosLiveliness.AUTOMATIC,
+            QosTime(0, 0),
+            False,
+        )
+    ]
 
 
 def _header(store: Any, stamp: float, frame_id: str) -> Any:
@@ -204,7 +245,8 @@ def _header(store: Any, stamp: float, frame_id: str) -> Any:
     ns = _nanoseconds(stamp)
     return types["std_msgs/msg/Header"](
         stamp=types["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
-        frame_id=frame_id)
+        frame_id=frame_id,
+    )
 
 
 def _pose(store: Any, T: np.ndarray) -> Any:
@@ -212,12 +254,14 @@ def _pose(store: Any, T: np.ndarray) -> Any:
     types = store.types
     return types["geometry_msgs/msg/Pose"](
         position=types["geometry_msgs/msg/Point"](x=float(T[0]), y=float(T[1]), z=float(T[2])),
-        orientation=_quaternion(store, T[3:7]))
+        orientation=_quaternion(store, T[3:7]),
+    )
 
 
 def _quaternion(store: Any, q: np.ndarray) -> Any:
     return store.types["geometry_msgs/msg/Quaternion"](
-        x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+        x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])
+    )
 
 
 def _vector(store: Any, v: np.ndarray) -> Any:
@@ -227,9 +271,12 @@ def _vector(store: Any, v: np.ndarray) -> Any:
 def _tf(store: Any, stamp: float, agent: int, T: np.ndarray) -> Any:
     types = store.types
     transform = types["geometry_msgs/msg/TransformStamped"](
-        header=_header(store, stamp, MAP_FRAME), child_frame_id=camera_frame(agent),
-        transform=types["geometry_msgs/msg/Transform"](translation=_vector(store, T[:3]),
-                                                       rotation=_quaternion(store, T[3:7])))
+        header=_header(store, stamp, MAP_FRAME),
+        child_frame_id=camera_frame(agent),
+        transform=types["geometry_msgs/msg/Transform"](
+            translation=_vector(store, T[:3]), rotation=_quaternion(store, T[3:7])
+        ),
+    )
     return types["tf2_msgs/msg/TFMessage"](transforms=[transform])
 
 
@@ -251,19 +298,26 @@ def _odometry(store: Any, stamp: float, agent: int, T: np.ndarray, twist: np.nda
     types = store.types
     zero = np.zeros(36, dtype=np.float64)
     return types["nav_msgs/msg/Odometry"](
-        header=_header(store, stamp, MAP_FRAME), child_frame_id=camera_frame(agent),
+        header=_header(store, stamp, MAP_FRAME),
+        child_frame_id=camera_frame(agent),
         pose=types["geometry_msgs/msg/PoseWithCovariance"](pose=_pose(store, T), covariance=zero),
         twist=types["geometry_msgs/msg/TwistWithCovariance"](
-            twist=types["geometry_msgs/msg/Twist"](linear=_vector(store, twist[:3]),
-                                                   angular=_vector(store, twist[3:])),
-            covariance=zero))
+            twist=types["geometry_msgs/msg/Twist"](
+                linear=_vector(store, twist[:3]), angular=_vector(store, twist[3:])
+            ),
+            covariance=zero,
+        ),
+    )
 
 
 def _path(store: Any, stamp: float, keyframes: list[RunKeyframe], stamps: list[float]) -> Any:
     types = store.types
-    poses = [types["geometry_msgs/msg/PoseStamped"](
-        header=_header(store, s, MAP_FRAME), pose=_pose(store, k.T_WC[:7]))
-        for k, s in zip(keyframes, stamps)]
+    poses = [
+        types["geometry_msgs/msg/PoseStamped"](
+            header=_header(store, s, MAP_FRAME), pose=_pose(store, k.T_WC[:7])
+        )
+        for k, s in zip(keyframes, stamps)
+    ]
     return types["nav_msgs/msg/Path"](header=_header(store, stamp, MAP_FRAME), poses=poses)
 
 
@@ -271,8 +325,10 @@ def _image(store: Any, run: Path, kf: RunKeyframe, stamp: float) -> Any:
     data = read_keyframe_data(run, kf.agent, kf.kf_id)
     data.image()  # readable and of the pointmap's size, else a clear InputError
     return store.types["sensor_msgs/msg/CompressedImage"](
-        header=_header(store, stamp, camera_frame(kf.agent)), format="png",
-        data=np.frombuffer(data.image_path.read_bytes(), dtype=np.uint8))
+        header=_header(store, stamp, camera_frame(kf.agent)),
+        format="png",
+        data=np.frombuffer(data.image_path.read_bytes(), dtype=np.uint8),
+    )
 
 
 def _camera_info(store: Any, run: Path, kf: RunKeyframe, stamp: float) -> Any:
@@ -281,16 +337,26 @@ def _camera_info(store: Any, run: Path, kf: RunKeyframe, stamp: float) -> Any:
     P = np.array([pin.fx, 0.0, pin.cx, 0.0, 0.0, pin.fy, pin.cy, 0.0, 0.0, 0.0, 1.0, 0.0])
     types = store.types
     return types["sensor_msgs/msg/CameraInfo"](
-        header=_header(store, stamp, camera_frame(kf.agent)), height=pin.height,
-        width=pin.width, distortion_model="plumb_bob", d=np.zeros(5), k=K, r=np.eye(3).ravel(),
-        p=P, binning_x=0, binning_y=0,
-        roi=types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
-                                                      do_rectify=False))
+        header=_header(store, stamp, camera_frame(kf.agent)),
+        height=pin.height,
+        width=pin.width,
+        distortion_model="plumb_bob",
+        d=np.zeros(5),
+        k=K,
+        r=np.eye(3).ravel(),
+        p=P,
+        binning_x=0,
+        binning_y=0,
+        roi=types["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        ),
+    )
 
 
 #: one PointCloud2 point: 20 bytes, little-endian
-POINT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4"),
-                        ("agent_id", "<u4")])
+POINT_DTYPE = np.dtype(
+    [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4"), ("agent_id", "<u4")]
+)
 
 
 def _cloud(store: Any, stamp: float, cloud: np.ndarray) -> Any:
@@ -299,19 +365,34 @@ def _cloud(store: Any, stamp: float, cloud: np.ndarray) -> Any:
     points = np.zeros(len(cloud), dtype=POINT_DTYPE)
     for axis in "xyz":
         points[axis] = cloud[axis]
-    points["rgb"] = ((cloud["red"].astype(np.uint32) << 16)
-                     | (cloud["green"].astype(np.uint32) << 8) | cloud["blue"].astype(np.uint32))
+    points["rgb"] = (
+        (cloud["red"].astype(np.uint32) << 16)
+        | (cloud["green"].astype(np.uint32) << 8)
+        | cloud["blue"].astype(np.uint32)
+    )
     points["agent_id"] = cloud["agent_id"]
     types = store.types
     field = types["sensor_msgs/msg/PointField"]
     float32, uint32 = field.FLOAT32, field.UINT32
-    fields = [field(name=name, offset=POINT_DTYPE.fields[name][1], datatype=kind, count=1)
-              for name, kind in (("x", float32), ("y", float32), ("z", float32),
-                                 ("rgb", float32), ("agent_id", uint32))]
+    fields = [
+        field(name=name, offset=POINT_DTYPE.fields[name][1], datatype=kind, count=1)
+        for name, kind in (
+            ("x", float32),
+            ("y", float32),
+            ("z", float32),
+            ("rgb", float32),
+            ("agent_id", uint32),
+        )
+    ]
     xyz = np.stack([points["x"], points["y"], points["z"]], axis=1)
     return types["sensor_msgs/msg/PointCloud2"](
-        header=_header(store, stamp, MAP_FRAME), height=1, width=len(points), fields=fields,
-        is_bigendian=False, point_step=POINT_DTYPE.itemsize,
+        header=_header(store, stamp, MAP_FRAME),
+        height=1,
+        width=len(points),
+        fields=fields,
+        is_bigendian=False,
+        point_step=POINT_DTYPE.itemsize,
         row_step=POINT_DTYPE.itemsize * len(points),
         data=np.frombuffer(points.tobytes(), dtype=np.uint8),
-        is_dense=bool(np.isfinite(xyz).all()))
+        is_dense=bool(np.isfinite(xyz).all()),
+    )

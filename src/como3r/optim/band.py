@@ -220,9 +220,13 @@ class OrderedSystem:
         self._band = torch.zeros(D * (band_blocks + 1) * D * num, dtype=torch.float64)
         near = (i - j).abs() <= band_blocks
         swap = i[near] < j[near]  # every block into the lower triangle
-        _add_to_band(self._band, torch.where(swap, j[near], i[near]),
-                     torch.where(swap, i[near], j[near]),
-                     torch.where(swap[:, None, None], upper[near].mT, upper[near]), num)
+        _add_to_band(
+            self._band,
+            torch.where(swap, j[near], i[near]),
+            torch.where(swap, i[near], j[near]),
+            torch.where(swap[:, None, None], upper[near].mT, upper[near]),
+            num,
+        )
         loop = near & (i == j)  # a block at (k, k) adds its transpose too
         _add_to_band(self._band, i[loop], i[loop], upper[loop].mT, num)
         # coarse level: consecutive runs of group_size poses; A's blocks summed per pair
@@ -251,8 +255,12 @@ class OrderedSystem:
             # B is not A's principal submatrix: its failure proves nothing about A. Fall
             # back to A's diagonal blocks, which are (a principal submatrix of a positive
             # definite matrix is positive definite).
-            logger.debug("band preconditioner: B not positive definite (pivot %d of %d); "
-                         "block-Jacobi fine level for this attempt", info, band.shape[1])
+            logger.debug(
+                "band preconditioner: B not positive definite (pivot %d of %d); "
+                "block-Jacobi fine level for this attempt",
+                info,
+                band.shape[1],
+            )
             fine, block_info = torch.linalg.cholesky_ex(ordered)
             if bool((block_info != 0).any()):
                 return None, "indefinite_block"
@@ -260,13 +268,15 @@ class OrderedSystem:
         coarse.index_put_((self.group, self.group), ordered, accumulate=True)
         size = D * self.num_groups
         factor, coarse_info = torch.linalg.cholesky_ex(
-            coarse.permute(0, 2, 1, 3).reshape(size, size))
+            coarse.permute(0, 2, 1, 3).reshape(size, size)
+        )
         if int(coarse_info) != 0 or not bool(factor.isfinite().all()):
             return None, "indefinite_coarse"
         blocks = self._blocks.copy()
         blocks[self._diagonal_slot] += ordered.numpy()
-        matrix = scipy.sparse.bsr_matrix((blocks, self._indices, self._indptr),
-                                         shape=(D * self.num, D * self.num))
+        matrix = scipy.sparse.bsr_matrix(
+            (blocks, self._indices, self._indptr), shape=(D * self.num, D * self.num)
+        )
         return TwoLevelAttempt(matrix, fine, self.group, torch.cholesky_inverse(factor)), ""
 
     def unorder(self, x: torch.Tensor) -> torch.Tensor:
@@ -281,8 +291,13 @@ class TwoLevelAttempt:
     says which fine level it holds: ``"band"``, or ``"jacobi"`` (B = A's diagonal blocks)
     when B was not positive definite."""
 
-    def __init__(self, matrix: scipy.sparse.bsr_matrix, fine: np.ndarray | torch.Tensor,
-                 group: torch.Tensor, coarse_inverse: torch.Tensor) -> None:
+    def __init__(
+        self,
+        matrix: scipy.sparse.bsr_matrix,
+        fine: np.ndarray | torch.Tensor,
+        group: torch.Tensor,
+        coarse_inverse: torch.Tensor,
+    ) -> None:
         self.matrix = matrix
         self.fine_factor = fine  # LAPACK band Cholesky factor, or (F, 7, 7) block factors
         self.fine = "band" if isinstance(fine, np.ndarray) else "jacobi"
@@ -297,8 +312,7 @@ class TwoLevelAttempt:
         """``B^-1 r``."""
         if self.fine == "jacobi":
             return torch.cholesky_solve(r.reshape(-1, D, 1), self.fine_factor).reshape(-1)
-        solved, _ = scipy.linalg.lapack.dpbtrs(self.fine_factor, r.numpy().reshape(-1, 1),
-                                               lower=1)
+        solved, _ = scipy.linalg.lapack.dpbtrs(self.fine_factor, r.numpy().reshape(-1, 1), lower=1)
         return torch.from_numpy(solved).reshape(-1)
 
     def coarse_solve(self, r: torch.Tensor) -> torch.Tensor:
@@ -312,8 +326,9 @@ class TwoLevelAttempt:
         return self.fine_solve(r).add_(self.coarse_solve(r))
 
 
-def _add_to_band(band: torch.Tensor, R: torch.Tensor, C: torch.Tensor, blocks: torch.Tensor,
-                 num: int) -> None:
+def _add_to_band(
+    band: torch.Tensor, R: torch.Tensor, C: torch.Tensor, blocks: torch.Tensor, num: int
+) -> None:
     """Add 7x7 blocks at block rows R >= block columns C (where R == C only their lower
     triangle) to a flat LAPACK lower band storage ``(rows, 7 num)``: ``ab[r - c, c] +=
     A[r, c]``."""

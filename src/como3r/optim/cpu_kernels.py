@@ -65,8 +65,9 @@ MIN_DEPTH_RATIO = 0.25
 
 
 @njit(cache=True, inline="always")
-def _add_row(acc: np.ndarray, row: np.ndarray, weight: float,
-             weighted_residual: float) -> None:  # pragma: no cover (compiled)
+def _add_row(
+    acc: np.ndarray, row: np.ndarray, weight: float, weighted_residual: float
+) -> None:  # pragma: no cover (compiled)
     """``acc[:28] += weight * row row^T`` (upper triangle), ``acc[28:] += weighted_residual
     * row`` for one Jacobian row ``(7,)``."""
     k = 0
@@ -79,8 +80,9 @@ def _add_row(acc: np.ndarray, row: np.ndarray, weight: float,
 
 
 @njit(cache=True, inline="always")
-def _add_component(acc: np.ndarray, row: np.ndarray, error: float, info: float,
-                   k: float) -> None:  # pragma: no cover (compiled)
+def _add_component(
+    acc: np.ndarray, row: np.ndarray, error: float, info: float, k: float
+) -> None:  # pragma: no cover (compiled)
     """One residual component with Jacobian ``row (7,)``: whitened by ``info`` (C-Eq. 7),
     weighted by its Huber IRLS weight (C-Sec. A.1), added to ``acc`` (:func:`_add_row`)."""
     whitened = error * info
@@ -110,14 +112,17 @@ def _rho(whitened: float, k: float) -> float:  # pragma: no cover (compiled)
 
 @njit(cache=True, inline="always")
 def _transform(sR: np.ndarray, t: np.ndarray, X: np.ndarray) -> tuple:  # pragma: no cover
-    return (sR[0, 0] * X[0] + sR[0, 1] * X[1] + sR[0, 2] * X[2] + t[0],
-            sR[1, 0] * X[0] + sR[1, 1] * X[1] + sR[1, 2] * X[2] + t[1],
-            sR[2, 0] * X[0] + sR[2, 1] * X[1] + sR[2, 2] * X[2] + t[2])
+    return (
+        sR[0, 0] * X[0] + sR[0, 1] * X[1] + sR[0, 2] * X[2] + t[0],
+        sR[1, 0] * X[0] + sR[1, 1] * X[1] + sR[1, 2] * X[2] + t[1],
+        sR[2, 0] * X[0] + sR[2, 1] * X[1] + sR[2, 2] * X[2] + t[2],
+    )
 
 
 @njit(cache=True, inline="always")
-def _ray_range_error(sR: np.ndarray, t: np.ndarray, X_i: np.ndarray, X_j: np.ndarray,
-                     e: np.ndarray) -> tuple:  # pragma: no cover (compiled)
+def _ray_range_error(
+    sR: np.ndarray, t: np.ndarray, X_i: np.ndarray, X_j: np.ndarray, e: np.ndarray
+) -> tuple:  # pragma: no cover (compiled)
     """C-Eq. 6 into ``e (4,)``: ``[psi(T X_j) - psi(X_i); ||T X_j|| - ||X_i||]``; returns
     ``(d, r0, r1, r2)`` with ``d = ||T X_j||`` and ``r = T X_j / d``."""
     x0, x1, x2 = _transform(sR, t, X_j)
@@ -148,25 +153,64 @@ def _log(values: np.ndarray, out: np.ndarray, n: int) -> None:  # pragma: no cov
         e = e + 1.0 if halve else e
         s = (m - 1.0) / (m + 1.0)
         s2 = s * s
-        series = (((((((((1 / 21 * s2 + 1 / 19) * s2 + 1 / 17) * s2 + 1 / 15) * s2 + 1 / 13)
-                       * s2 + 1 / 11) * s2 + 1 / 9) * s2 + 1 / 7) * s2 + 1 / 5) * s2 + 1 / 3)
+        series = (
+            (
+                (
+                    (
+                        ((((1 / 21 * s2 + 1 / 19) * s2 + 1 / 17) * s2 + 1 / 15) * s2 + 1 / 13) * s2
+                        + 1 / 11
+                    )
+                    * s2
+                    + 1 / 9
+                )
+                * s2
+                + 1 / 7
+            )
+            * s2
+            + 1 / 5
+        ) * s2 + 1 / 3
         out[a] = e * _LN2_HI + (e * _LN2_LO + 2.0 * s + 2.0 * s * s2 * series)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _edge_constants(sR: np.ndarray, t: np.ndarray, K: np.ndarray,
-                    edge: int) -> tuple:  # pragma: no cover (compiled)
+def _edge_constants(
+    sR: np.ndarray, t: np.ndarray, K: np.ndarray, edge: int
+) -> tuple:  # pragma: no cover (compiled)
     """``(s R row by row, t, fx, skew, cx, fy, cy)`` of an edge as 17 scalars: read once per
     block, not in a loop over its matches (whose stores they could alias)."""
-    return (sR[edge, 0, 0], sR[edge, 0, 1], sR[edge, 0, 2], sR[edge, 1, 0], sR[edge, 1, 1],
-            sR[edge, 1, 2], sR[edge, 2, 0], sR[edge, 2, 1], sR[edge, 2, 2], t[edge, 0],
-            t[edge, 1], t[edge, 2], K[edge, 0, 0], K[edge, 0, 1], K[edge, 0, 2], K[edge, 1, 1],
-            K[edge, 1, 2])
+    return (
+        sR[edge, 0, 0],
+        sR[edge, 0, 1],
+        sR[edge, 0, 2],
+        sR[edge, 1, 0],
+        sR[edge, 1, 1],
+        sR[edge, 1, 2],
+        sR[edge, 2, 0],
+        sR[edge, 2, 1],
+        sR[edge, 2, 2],
+        t[edge, 0],
+        t[edge, 1],
+        t[edge, 2],
+        K[edge, 0, 0],
+        K[edge, 0, 1],
+        K[edge, 0, 2],
+        K[edge, 1, 1],
+        K[edge, 1, 2],
+    )
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _in_camera_i(c: tuple, ok: bool, X0: float, X1: float, X2: float, p_u: float, p_v: float,
-                 z_i: float, q: float) -> tuple:  # pragma: no cover (compiled)
+def _in_camera_i(
+    c: tuple,
+    ok: bool,
+    X0: float,
+    X1: float,
+    X2: float,
+    p_u: float,
+    p_v: float,
+    z_i: float,
+    q: float,
+) -> tuple:  # pragma: no cover (compiled)
     """One match of C-Eq. 17 (the edge's :func:`_edge_constants` ``c``, the match's point in
     camera j, observed pixel and depth in camera i and confidence, as read from their arrays):
     ``(x0, x1, x2, 1 / z, u, v, e_u, e_v, z / z_i, sqrt q)`` with ``x = T X_j`` (z clamped),
@@ -192,28 +236,35 @@ def _in_camera_i(c: tuple, ok: bool, X0: float, X1: float, X2: float, p_u: float
 
 
 @njit(cache=True, error_model="numpy", fastmath=_FAST_SUMS)
-def _calibrated_block(sR, t, K, X_j, p_i, z_i, q, valid, edge, first,
-                      n):  # pragma: no cover (compiled)
+def _calibrated_block(
+    sR, t, K, X_j, p_i, z_i, q, valid, edge, first, n
+):  # pragma: no cover (compiled)
     """Matches ``first`` to ``first + n`` of ``edge`` (C-Eq. 17): their inputs as flat 1-D
     views (numba indexes a 3-D array by its runtime shape, which LLVM vectorises only for a
     unit stride), the edge's :func:`_edge_constants` and the log-depth residuals
     ``log(z / z_i)`` ``(n,)``. Called, not inlined: numba's parallel analysis does not take
     the inlined arrays."""
     m0 = edge * q.shape[1] + first
-    X = X_j.reshape(-1)[3 * m0:3 * (m0 + n)]
-    p = p_i.reshape(-1)[2 * m0:2 * (m0 + n)]
-    z, qs, ok = z_i.reshape(-1)[m0:m0 + n], q.reshape(-1)[m0:m0 + n], valid.reshape(-1)[m0:m0 + n]
+    X = X_j.reshape(-1)[3 * m0 : 3 * (m0 + n)]
+    p = p_i.reshape(-1)[2 * m0 : 2 * (m0 + n)]
+    z, qs, ok = (
+        z_i.reshape(-1)[m0 : m0 + n],
+        q.reshape(-1)[m0 : m0 + n],
+        valid.reshape(-1)[m0 : m0 + n],
+    )
     c = _edge_constants(sR, t, K, edge)
     ratios, log_ratio = np.empty(n), np.empty(n)
     for a in range(n):
-        ratios[a] = _in_camera_i(c, ok[a], X[3 * a], X[3 * a + 1], X[3 * a + 2], p[2 * a],
-                                 p[2 * a + 1], z[a], qs[a])[8]
+        ratios[a] = _in_camera_i(
+            c, ok[a], X[3 * a], X[3 * a + 1], X[3 * a + 2], p[2 * a], p[2 * a + 1], z[a], qs[a]
+        )[8]
     _log(ratios, log_ratio, n)
     return X, p, z, qs, ok, c, log_ratio
 
 
-def _ray_range_blocks(sR, t, X_i, X_j, q, valid, inv_sigma, k, block,
-                      out):  # pragma: no cover (compiled)
+def _ray_range_blocks(
+    sR, t, X_i, X_j, q, valid, inv_sigma, k, block, out
+):  # pragma: no cover (compiled)
     E, P = q.shape
     blocks = (P + block - 1) // block
     for task in prange(E * blocks):
@@ -227,8 +278,11 @@ def _ray_range_blocks(sR, t, X_i, X_j, q, valid, inv_sigma, k, block,
             d, r0, r1, r2 = _ray_range_error(sR[edge], t[edge], X_i[edge, m], X_j[edge, m], e)
             s = math.sqrt(np.float64(q[edge, m]))
             # ray rows (C-Eq. 9-10): [(I - r r^T) / d, -[r]_x, 0]
-            for c, r_c, s0, s1, s2 in ((0, r0, 0.0, r2, -r1), (1, r1, -r2, 0.0, r0),
-                                       (2, r2, r1, -r0, 0.0)):
+            for c, r_c, s0, s1, s2 in (
+                (0, r0, 0.0, r2, -r1),
+                (1, r1, -r2, 0.0, r0),
+                (2, r2, r1, -r0, 0.0),
+            ):
                 row[0], row[1], row[2] = -r_c * r0 / d, -r_c * r1 / d, -r_c * r2 / d
                 row[c] += 1.0 / d
                 row[3], row[4], row[5], row[6] = s0, s1, s2, 0.0
@@ -240,15 +294,17 @@ def _ray_range_blocks(sR, t, X_i, X_j, q, valid, inv_sigma, k, block,
         out[task] = acc
 
 
-def _calibrated_blocks(sR, t, K, X_j, p_i, z_i, q, valid, inv_sigma, k, block,
-                       out):  # pragma: no cover (compiled)
+def _calibrated_blocks(
+    sR, t, K, X_j, p_i, z_i, q, valid, inv_sigma, k, block, out
+):  # pragma: no cover (compiled)
     E, P = q.shape
     blocks = (P + block - 1) // block
     for task in prange(E * blocks):
         edge, first = task // blocks, (task % blocks) * block
         n = min(block, P - first)
-        X, p, z, qs, ok, c, log_ratio = _calibrated_block(sR, t, K, X_j, p_i, z_i, q, valid,
-                                                          edge, first, n)
+        X, p, z, qs, ok, c, log_ratio = _calibrated_block(
+            sR, t, K, X_j, p_i, z_i, q, valid, edge, first, n
+        )
         fx, skew, cx, fy, cy = c[12:]
         info_u, info_v, info_z = inv_sigma[edge, 0], inv_sigma[edge, 1], inv_sigma[edge, 2]
         # Each component's Jacobian row [j, x cross j, dz] (C-Sec. A.5) scaled by the square
@@ -259,8 +315,8 @@ def _calibrated_blocks(sR, t, K, X_j, p_i, z_i, q, valid, inv_sigma, k, block,
         h55 = h66 = g0 = g1 = g2 = g3 = g4 = g5 = g6 = 0.0
         for a in range(n):
             x0, x1, x2, inv_z, u, v, e_u, e_v, _, s = _in_camera_i(
-                c, ok[a], X[3 * a], X[3 * a + 1], X[3 * a + 2], p[2 * a], p[2 * a + 1], z[a],
-                qs[a])
+                c, ok[a], X[3 * a], X[3 * a + 1], X[3 * a + 2], p[2 * a], p[2 * a + 1], z[a], qs[a]
+            )
             # u: j = (fx, skew, cx - u) / z
             w = _root_weight(e_u, s * info_u, k)
             a0, a1, a2 = w * fx * inv_z, w * skew * inv_z, w * (cx - u) * inv_z
@@ -310,15 +366,51 @@ def _calibrated_blocks(sR, t, K, X_j, p_i, z_i, q, valid, inv_sigma, k, block,
             g5 += ea * a5 + eb * b5
             g6 += ec * c6
         # the upper triangle row by row, then g (as _add_row lays them out)
-        for entry, value in enumerate((h00, h01, h02, h03, h04, h05, 0.0, h11, h12, h13, h14,
-                                       h15, 0.0, h22, h23, h24, h25, h26, h33, h34, h35, h36,
-                                       h44, h45, h46, h55, 0.0, h66, g0, g1, g2, g3, g4, g5,
-                                       g6)):
+        for entry, value in enumerate(
+            (
+                h00,
+                h01,
+                h02,
+                h03,
+                h04,
+                h05,
+                0.0,
+                h11,
+                h12,
+                h13,
+                h14,
+                h15,
+                0.0,
+                h22,
+                h23,
+                h24,
+                h25,
+                h26,
+                h33,
+                h34,
+                h35,
+                h36,
+                h44,
+                h45,
+                h46,
+                h55,
+                0.0,
+                h66,
+                g0,
+                g1,
+                g2,
+                g3,
+                g4,
+                g5,
+                g6,
+            )
+        ):
             out[task, entry] = value
 
 
-def _ray_range_cost(sR, t, X_i, X_j, q, valid, inv_sigma, k, block,
-                    out):  # pragma: no cover (compiled)
+def _ray_range_cost(
+    sR, t, X_i, X_j, q, valid, inv_sigma, k, block, out
+):  # pragma: no cover (compiled)
     E, P = q.shape
     blocks = (P + block - 1) // block
     for task in prange(E * blocks):
@@ -334,23 +426,28 @@ def _ray_range_cost(sR, t, X_i, X_j, q, valid, inv_sigma, k, block,
         out[task] = total
 
 
-def _calibrated_cost(sR, t, K, X_j, p_i, z_i, q, valid, inv_sigma, k, block,
-                     out):  # pragma: no cover (compiled)
+def _calibrated_cost(
+    sR, t, K, X_j, p_i, z_i, q, valid, inv_sigma, k, block, out
+):  # pragma: no cover (compiled)
     E, P = q.shape
     blocks = (P + block - 1) // block
     for task in prange(E * blocks):
         edge, first = task // blocks, (task % blocks) * block
         n = min(block, P - first)
-        X, p, z, qs, ok, c, log_ratio = _calibrated_block(sR, t, K, X_j, p_i, z_i, q, valid,
-                                                          edge, first, n)
+        X, p, z, qs, ok, c, log_ratio = _calibrated_block(
+            sR, t, K, X_j, p_i, z_i, q, valid, edge, first, n
+        )
         info_u, info_v, info_z = inv_sigma[edge, 0], inv_sigma[edge, 1], inv_sigma[edge, 2]
         total = 0.0
         for a in range(n):
             _, _, _, _, _, _, e_u, e_v, _, s = _in_camera_i(
-                c, ok[a], X[3 * a], X[3 * a + 1], X[3 * a + 2], p[2 * a], p[2 * a + 1], z[a],
-                qs[a])
-            total += (_rho(e_u * s * info_u, k) + _rho(e_v * s * info_v, k)
-                      + _rho(log_ratio[a] * s * info_z, k))
+                c, ok[a], X[3 * a], X[3 * a + 1], X[3 * a + 2], p[2 * a], p[2 * a + 1], z[a], qs[a]
+            )
+            total += (
+                _rho(e_u * s * info_u, k)
+                + _rho(e_v * s * info_v, k)
+                + _rho(log_ratio[a] * s * info_z, k)
+            )
         out[task] = total
 
 
@@ -379,16 +476,32 @@ def _array(x: Tensor, dtype: torch.dtype | None = None) -> np.ndarray:
     return x.detach().to(dtype or x.dtype).contiguous().numpy()
 
 
-def _sums(loop, T_ij: Tensor, data: tuple[Tensor, ...], q: Tensor, valid: Tensor,
-          inv_sigma: Tensor, huber_k: float, width: int,
-          error_model: str = "python") -> np.ndarray:
+def _sums(
+    loop,
+    T_ij: Tensor,
+    data: tuple[Tensor, ...],
+    q: Tensor,
+    valid: Tensor,
+    inv_sigma: Tensor,
+    huber_k: float,
+    width: int,
+    error_model: str = "python",
+) -> np.ndarray:
     """Run ``loop`` over the edges' match blocks; per-edge sums ``(e, width)`` float64."""
     E, P = q.shape
     blocks = -(-P // BLOCK)
     out = np.empty((E * blocks, width)) if width > 1 else np.empty(E * blocks)
     kernel = compiled(loop, fastmath=_FAST_SUMS, error_model=error_model)
-    kernel(*_pose_arrays(_array(T_ij, torch.float64)), *(_array(x) for x in data), _array(q),
-           _array(valid), _array(inv_sigma, torch.float64), float(huber_k), BLOCK, out)
+    kernel(
+        *_pose_arrays(_array(T_ij, torch.float64)),
+        *(_array(x) for x in data),
+        _array(q),
+        _array(valid),
+        _array(inv_sigma, torch.float64),
+        float(huber_k),
+        BLOCK,
+        out,
+    )
     return out.reshape(E, blocks, width).sum(1)
 
 
@@ -400,8 +513,15 @@ def _blocks(sums: np.ndarray) -> tuple[Tensor, Tensor]:
     return torch.from_numpy(H), torch.from_numpy(sums[:, 28:])
 
 
-def ray_range_blocks(T_ij: Tensor, X_i: Tensor, X_j: Tensor, q: Tensor, valid: Tensor,
-                     inv_sigma: Tensor, huber_k: float) -> tuple[Tensor, Tensor]:
+def ray_range_blocks(
+    T_ij: Tensor,
+    X_i: Tensor,
+    X_j: Tensor,
+    q: Tensor,
+    valid: Tensor,
+    inv_sigma: Tensor,
+    huber_k: float,
+) -> tuple[Tensor, Tensor]:
     """``H = J^T W J`` ``(e, 7, 7)`` and ``g = J^T W e`` ``(e, 7)`` float64 of C-Eq. 6 per edge.
 
     Args:
@@ -415,9 +535,17 @@ def ray_range_blocks(T_ij: Tensor, X_i: Tensor, X_j: Tensor, q: Tensor, valid: T
     return _blocks(H_and_g)
 
 
-def calibrated_blocks(T_ij: Tensor, K: Tensor, X_j: Tensor, p_i: Tensor, z_i: Tensor,
-                      q: Tensor, valid: Tensor, inv_sigma: Tensor,
-                      huber_k: float) -> tuple[Tensor, Tensor]:
+def calibrated_blocks(
+    T_ij: Tensor,
+    K: Tensor,
+    X_j: Tensor,
+    p_i: Tensor,
+    z_i: Tensor,
+    q: Tensor,
+    valid: Tensor,
+    inv_sigma: Tensor,
+    huber_k: float,
+) -> tuple[Tensor, Tensor]:
     """``H`` ``(e, 7, 7)`` and ``g`` ``(e, 7)`` float64 of C-Eq. 17 per edge; matches that
     ``T_ij`` brings nearer camera i than ``MIN_DEPTH_RATIO`` of their observed depth (behind
     it included) count nothing.
@@ -428,26 +556,63 @@ def calibrated_blocks(T_ij: Tensor, K: Tensor, X_j: Tensor, p_i: Tensor, z_i: Te
         :func:`ray_range_blocks`; inv_sigma: ``(e, 3)`` (pixel u, v and log-depth).
     """
     K64 = K.detach().to(torch.float64)
-    H_and_g = _sums(_calibrated_blocks, T_ij, (K64, X_j, p_i, z_i), q, valid, inv_sigma,
-                    huber_k, 35, error_model="numpy")
+    H_and_g = _sums(
+        _calibrated_blocks,
+        T_ij,
+        (K64, X_j, p_i, z_i),
+        q,
+        valid,
+        inv_sigma,
+        huber_k,
+        35,
+        error_model="numpy",
+    )
     return _blocks(H_and_g)
 
 
-def ray_range_costs(T_ij: Tensor, X_i: Tensor, X_j: Tensor, q: Tensor, valid: Tensor,
-                    inv_sigma: Tensor, huber_k: float) -> Tensor:
+def ray_range_costs(
+    T_ij: Tensor,
+    X_i: Tensor,
+    X_j: Tensor,
+    q: Tensor,
+    valid: Tensor,
+    inv_sigma: Tensor,
+    huber_k: float,
+) -> Tensor:
     """Robust energy ``sum rho(r)`` of C-Eq. 6 of each edge, ``(e,)`` float64 (arguments
     as in :func:`ray_range_blocks`)."""
     return torch.from_numpy(
-        _sums(_ray_range_cost, T_ij, (X_i, X_j), q, valid, inv_sigma, huber_k, 1)[:, 0])
+        _sums(_ray_range_cost, T_ij, (X_i, X_j), q, valid, inv_sigma, huber_k, 1)[:, 0]
+    )
 
 
-def calibrated_costs(T_ij: Tensor, K: Tensor, X_j: Tensor, p_i: Tensor, z_i: Tensor,
-                     q: Tensor, valid: Tensor, inv_sigma: Tensor, huber_k: float) -> Tensor:
+def calibrated_costs(
+    T_ij: Tensor,
+    K: Tensor,
+    X_j: Tensor,
+    p_i: Tensor,
+    z_i: Tensor,
+    q: Tensor,
+    valid: Tensor,
+    inv_sigma: Tensor,
+    huber_k: float,
+) -> Tensor:
     """Robust energy of C-Eq. 17 of each edge, ``(e,)`` float64 (arguments as in
     :func:`calibrated_blocks`)."""
     K64 = K.detach().to(torch.float64)
-    return torch.from_numpy(_sums(_calibrated_cost, T_ij, (K64, X_j, p_i, z_i), q, valid,
-                                  inv_sigma, huber_k, 1, error_model="numpy")[:, 0])
+    return torch.from_numpy(
+        _sums(
+            _calibrated_cost,
+            T_ij,
+            (K64, X_j, p_i, z_i),
+            q,
+            valid,
+            inv_sigma,
+            huber_k,
+            1,
+            error_model="numpy",
+        )[:, 0]
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -459,8 +624,9 @@ def calibrated_costs(T_ij: Tensor, K: Tensor, X_j: Tensor, p_i: Tensor, z_i: Ten
 
 
 @njit(cache=True, boundscheck=False)
-def _confident(valid: np.ndarray, q: np.ndarray, valid_out: np.ndarray,
-               q_out: np.ndarray) -> None:  # pragma: no cover (compiled)
+def _confident(
+    valid: np.ndarray, q: np.ndarray, valid_out: np.ndarray, q_out: np.ndarray
+) -> None:  # pragma: no cover (compiled)
     for m in range(q.shape[0]):
         ok = valid[m] and np.isfinite(q[m]) and q[m] > 0
         valid_out[m] = ok
@@ -470,8 +636,9 @@ def _confident(valid: np.ndarray, q: np.ndarray, valid_out: np.ndarray,
 def confident(valid: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
     """``(valid & isfinite(q) & (q > 0), q there and 0 elsewhere)`` for CPU tensors."""
     valid_out, q_out = np.empty(q.shape, dtype=np.bool_), np.empty(q.shape, dtype=_array(q).dtype)
-    _confident(_array(valid).reshape(-1), _array(q).reshape(-1), valid_out.reshape(-1),
-               q_out.reshape(-1))
+    _confident(
+        _array(valid).reshape(-1), _array(q).reshape(-1), valid_out.reshape(-1), q_out.reshape(-1)
+    )
     return torch.from_numpy(valid_out), torch.from_numpy(q_out)
 
 
@@ -548,8 +715,9 @@ def valid_first(valid: Tensor) -> tuple[Tensor, int]:
 
 
 @njit(cache=True, boundscheck=False)
-def _take_matches(values: np.ndarray, order: np.ndarray, kept: int,
-                  out: np.ndarray) -> None:  # pragma: no cover (compiled)
+def _take_matches(
+    values: np.ndarray, order: np.ndarray, kept: int, out: np.ndarray
+) -> None:  # pragma: no cover (compiled)
     width = values.shape[2]
     for e in range(order.shape[0]):
         if width == 1:

@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from typing import Protocol, Sequence
+from collections.abc import Sequence
+from typing import Protocol
 
 import torch
 
@@ -91,14 +92,16 @@ class RelativePoseFactors(ABC):
         self.j = _edge_index(j, "j", name).to(q.device)
         num_edges = self.i.shape[0]
         if self.j.shape != self.i.shape:
-            raise InputError(f"{name}: i and j must have the same length, got {num_edges} and "
-                             f"{self.j.shape[0]}")
+            raise InputError(
+                f"{name}: i and j must have the same length, got {num_edges} and {self.j.shape[0]}"
+            )
         if bool((self.i == self.j).any()):
             raise InputError(f"{name}: an edge connects a pose to itself (i == j)")
         self._max_pose_index = int(torch.maximum(self.i, self.j).max()) if num_edges else -1
         if q.ndim != 2 or q.shape[0] != num_edges:
-            raise InputError(f"{name}: q must have shape (E, P) with E={num_edges}, got "
-                             f"{tuple(q.shape)}")
+            raise InputError(
+                f"{name}: q must have shape (E, P) with E={num_edges}, got {tuple(q.shape)}"
+            )
         if valid.shape != q.shape or valid.dtype != torch.bool:
             raise InputError(f"{name}: valid must be a bool tensor of shape {tuple(q.shape)}")
         for label, value in zip(("sigma", "huber_k"), (*sigmas, huber_k)):
@@ -118,8 +121,10 @@ class RelativePoseFactors(ABC):
         self._inv_sigmas = inv_sigmas.expand(num_edges, 1, len(sigmas)).clone()
         if sigma_scale is not None:
             if sigma_scale.shape != (num_edges, len(sigmas)):
-                raise InputError(f"{name}: sigma_scale must have shape "
-                                 f"{(num_edges, len(sigmas))}, got {tuple(sigma_scale.shape)}")
+                raise InputError(
+                    f"{name}: sigma_scale must have shape "
+                    f"{(num_edges, len(sigmas))}, got {tuple(sigma_scale.shape)}"
+                )
             if not bool((torch.isfinite(sigma_scale) & (sigma_scale > 0)).all()):
                 raise InputError(f"{name}: sigma_scale must be positive and finite")
             self._inv_sigmas /= sigma_scale.to(q)[:, None, :]
@@ -134,8 +139,9 @@ class RelativePoseFactors(ABC):
         degenerate at some poses, a ``(e, P)`` bool mask of the matches it is defined for."""
 
     @abstractmethod
-    def _compiled_blocks(self, T_ij: torch.Tensor, edges: slice
-                         ) -> tuple[torch.Tensor, torch.Tensor]:
+    def _compiled_blocks(
+        self, T_ij: torch.Tensor, edges: slice
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """``H = J^T W J`` ``(e, 7, 7)`` and ``g = J^T W e`` ``(e, 7)`` float64 in the tangent
         of ``T_ij`` ``(e, 8)`` by the compiled CPU loop (:mod:`como3r.optim.cpu_kernels`)."""
 
@@ -214,8 +220,9 @@ class RelativePoseFactors(ABC):
         sqrt_info = self._sqrt_info(edges, defined)
         return e * sqrt_info, sqrt_info, J, T_WC_i
 
-    def _relative_poses(self, poses: torch.Tensor, edges: slice
-                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    def _relative_poses(
+        self, poses: torch.Tensor, edges: slice
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """``T_WC_i`` and ``T_ij = T_WC_i^-1 T_WC_j`` (C-Eq. 13), ``(e, 8)`` each in the poses'
         dtype.
 
@@ -257,8 +264,10 @@ class RelativePoseFactors(ABC):
         ``rho`` is the Huber kernel with ``rho(r) = r^2/2`` inside the breakpoint, whose
         IRLS weight is exactly ``w(r) = rho'(r)/r = min(1, k/|r|)``.
         """
-        return sum((self._edge_costs(poses, chunk).sum() for chunk in self.chunks(poses)),
-                   torch.zeros((), dtype=torch.float64, device=poses.device))
+        return sum(
+            (self._edge_costs(poses, chunk).sum() for chunk in self.chunks(poses)),
+            torch.zeros((), dtype=torch.float64, device=poses.device),
+        )
 
     def quadratic_model(self, poses: torch.Tensor) -> QuadraticEdges:
         """Each edge's robust energy as a quadratic in its relative pose at ``poses``
@@ -269,11 +278,13 @@ class RelativePoseFactors(ABC):
             for part, value in zip((T_ij, H_rel, g_rel), self.relative_blocks(poses, chunk)):
                 part.append(value)
             costs.append(self._edge_costs(poses, chunk))
-        return QuadraticEdges(self.i, self.j, torch.cat(T_ij), torch.cat(H_rel),
-                              torch.cat(g_rel), torch.cat(costs))
+        return QuadraticEdges(
+            self.i, self.j, torch.cat(T_ij), torch.cat(H_rel), torch.cat(g_rel), torch.cat(costs)
+        )
 
-    def relative_blocks(self, poses: torch.Tensor, edges: slice
-                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def relative_blocks(
+        self, poses: torch.Tensor, edges: slice
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """A slice of edges (at most a :meth:`chunks` slice) linearized in the tangent of
         their relative poses at ``poses`` ``(N, 8)``, before the projection onto the
         endpoints: ``T_ij`` ``(e, 8)``, ``H`` ``(e, 7, 7)`` and ``g`` ``(e, 7)``, float64."""
@@ -335,8 +346,9 @@ class RelativePoseFactors(ABC):
 
     def _check_poses(self, poses: torch.Tensor) -> None:
         if poses.ndim != 2 or poses.shape[1] != 8:
-            raise InputError(f"{type(self).__name__}: poses must be (N, 8), got "
-                             f"{tuple(poses.shape)}")
+            raise InputError(
+                f"{type(self).__name__}: poses must be (N, 8), got {tuple(poses.shape)}"
+            )
         if self.max_pose_index >= poses.shape[0]:
             raise InputError(
                 f"{type(self).__name__}: an edge refers to pose {self.max_pose_index} but only "
@@ -344,8 +356,9 @@ class RelativePoseFactors(ABC):
             )
 
 
-def endpoint_blocks(i: torch.Tensor, j: torch.Tensor, H_rel: torch.Tensor, g_rel: torch.Tensor,
-                    T_WC_i: torch.Tensor) -> EdgeBlocks:
+def endpoint_blocks(
+    i: torch.Tensor, j: torch.Tensor, H_rel: torch.Tensor, g_rel: torch.Tensor, T_WC_i: torch.Tensor
+) -> EdgeBlocks:
     """Endpoint blocks of edges from their blocks in the tangent of ``T_ij`` (C-Eq. 11).
 
     ``J_i = -J Ad`` and ``J_j = J Ad`` with ``Ad = Ad(T_WC_i^-1)``, constant over an edge's
@@ -383,8 +396,15 @@ class QuadraticEdges:
         H: ``(E, 7, 7)``; g: ``(E, 7)``; c: ``(E,)`` float64 energies at ``T0``.
     """
 
-    def __init__(self, i: torch.Tensor, j: torch.Tensor, T0: torch.Tensor, H: torch.Tensor,
-                 g: torch.Tensor, c: torch.Tensor) -> None:
+    def __init__(
+        self,
+        i: torch.Tensor,
+        j: torch.Tensor,
+        T0: torch.Tensor,
+        H: torch.Tensor,
+        g: torch.Tensor,
+        c: torch.Tensor,
+    ) -> None:
         self.i = _edge_index(i, "i", "QuadraticEdges")
         self.j = _edge_index(j, "j", "QuadraticEdges")
         self.T0, self.H, self.g, self.c = T0, H, g, c
@@ -449,16 +469,28 @@ class RayRangeFactors(RelativePoseFactors):
         scale = None
         if range_scale is not None:
             if range_scale.shape != q.shape[:1]:
-                raise InputError(f"RayRangeFactors: range_scale must have shape "
-                                 f"({q.shape[0]},), got {tuple(range_scale.shape)}")
+                raise InputError(
+                    f"RayRangeFactors: range_scale must have shape "
+                    f"({q.shape[0]},), got {tuple(range_scale.shape)}"
+                )
             scale = torch.ones(q.shape[0], 4, dtype=q.dtype, device=q.device)
             scale[:, 3] = range_scale.to(q)
-        super().__init__(i, j, q, valid, (sigma_ray,) * 3 + (sigma_dist,), huber_k, chunk_matches,
-                         sigma_scale=scale)
+        super().__init__(
+            i,
+            j,
+            q,
+            valid,
+            (sigma_ray,) * 3 + (sigma_dist,),
+            huber_k,
+            chunk_matches,
+            sigma_scale=scale,
+        )
         for label, X in (("X_i", X_i), ("X_j", X_j)):
             if X.shape != (*q.shape, 3):
-                raise InputError(f"RayRangeFactors: {label} must have shape "
-                                 f"{(*q.shape, 3)}, got {tuple(X.shape)}")
+                raise InputError(
+                    f"RayRangeFactors: {label} must have shape "
+                    f"{(*q.shape, 3)}, got {tuple(X.shape)}"
+                )
         # A point at the camera centre has no ray (the geometry clamps its norm instead of
         # returning NaN), and Sim(3) maps only the centre to the centre, so this is static.
         self.valid = self.valid & _usable_points(X_i) & _usable_points(X_j)
@@ -475,16 +507,29 @@ class RayRangeFactors(RelativePoseFactors):
     def _error(self, T_ij: torch.Tensor, edges: slice) -> tuple[torch.Tensor, None]:
         return ray_range_error(T_ij, self.X_j[edges], self.X_i[edges]), None
 
-    def _compiled_blocks(self, T_ij: torch.Tensor, edges: slice
-                         ) -> tuple[torch.Tensor, torch.Tensor]:
-        return cpu_kernels.ray_range_blocks(T_ij, self.X_i[edges], self.X_j[edges],
-                                            self.q[edges], self.valid[edges],
-                                            self._inv_sigmas[edges, 0], self.huber_k)
+    def _compiled_blocks(
+        self, T_ij: torch.Tensor, edges: slice
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        return cpu_kernels.ray_range_blocks(
+            T_ij,
+            self.X_i[edges],
+            self.X_j[edges],
+            self.q[edges],
+            self.valid[edges],
+            self._inv_sigmas[edges, 0],
+            self.huber_k,
+        )
 
     def _compiled_costs(self, T_ij: torch.Tensor, edges: slice) -> torch.Tensor:
-        return cpu_kernels.ray_range_costs(T_ij, self.X_i[edges], self.X_j[edges],
-                                          self.q[edges], self.valid[edges],
-                                          self._inv_sigmas[edges, 0], self.huber_k)
+        return cpu_kernels.ray_range_costs(
+            T_ij,
+            self.X_i[edges],
+            self.X_j[edges],
+            self.q[edges],
+            self.valid[edges],
+            self._inv_sigmas[edges, 0],
+            self.huber_k,
+        )
 
     def _vectorised_blocks(
         self, poses: torch.Tensor, edges: slice
@@ -529,20 +574,26 @@ class RayRangeFactors(RelativePoseFactors):
         A = torch.einsum("epk,epl->ekl", a * inv_d[..., None], r)  # sum a_k r_l / d
         zero = torch.zeros_like(A[:, 0, 0])
         # (sum diag(a) S / d)_{kl} = sum a_k S_kl / d with S = -[r]_x
-        aS = torch.stack([
-            torch.stack([zero, A[:, 0, 2], -A[:, 0, 1]], -1),
-            torch.stack([-A[:, 1, 2], zero, A[:, 1, 0]], -1),
-            torch.stack([A[:, 2, 1], -A[:, 2, 0], zero], -1),
-        ], dim=1)
+        aS = torch.stack(
+            [
+                torch.stack([zero, A[:, 0, 2], -A[:, 0, 1]], -1),
+                torch.stack([-A[:, 1, 2], zero, A[:, 1, 0]], -1),
+                torch.stack([A[:, 2, 1], -A[:, 2, 0], zero], -1),
+            ],
+            dim=1,
+        )
         H_tw = aS - torch.einsum("epk,epl->ekl", r * inv_d[..., None], v)
         # S^T diag(a) S: diagonal sum_{c != l != k} a_c r_l^2, off-diagonal -a_m r_k r_l
         ar2 = torch.einsum("epc,epl->ecl", a, r * r)
         off = (a * cross).sum(1)
-        H_ww = torch.stack([
-            torch.stack([ar2[:, 1, 2] + ar2[:, 2, 1], -off[:, 2], -off[:, 1]], -1),
-            torch.stack([-off[:, 2], ar2[:, 0, 2] + ar2[:, 2, 0], -off[:, 0]], -1),
-            torch.stack([-off[:, 1], -off[:, 0], ar2[:, 0, 1] + ar2[:, 1, 0]], -1),
-        ], dim=1)
+        H_ww = torch.stack(
+            [
+                torch.stack([ar2[:, 1, 2] + ar2[:, 2, 1], -off[:, 2], -off[:, 1]], -1),
+                torch.stack([-off[:, 2], ar2[:, 0, 2] + ar2[:, 2, 0], -off[:, 0]], -1),
+                torch.stack([-off[:, 1], -off[:, 0], ar2[:, 0, 1] + ar2[:, 1, 0]], -1),
+            ],
+            dim=1,
+        )
         bd = b * d
         H_ts = (bd[..., None] * r).sum(1)
         num = H_tt.shape[0]
@@ -599,13 +650,16 @@ class CalibratedFactors(RelativePoseFactors):
             ("z_i", z_i, tuple(q.shape)),
         ):
             if value.shape != shape:
-                raise InputError(f"CalibratedFactors: {label} must have shape {shape}, got "
-                                 f"{tuple(value.shape)}")
+                raise InputError(
+                    f"CalibratedFactors: {label} must have shape {shape}, got {tuple(value.shape)}"
+                )
         if K.shape == (3, 3):
             K = K.expand(q.shape[0], 3, 3)
         if K.shape != (q.shape[0], 3, 3):
-            raise InputError(f"CalibratedFactors: K must have shape (3, 3) or "
-                             f"({q.shape[0]}, 3, 3), got {tuple(K.shape)}")
+            raise InputError(
+                f"CalibratedFactors: K must have shape (3, 3) or "
+                f"({q.shape[0]}, 3, 3), got {tuple(K.shape)}"
+            )
         if z_i.device.type == "cpu":
             observed = cpu_kernels.observed(p_i, z_i)
         else:
@@ -628,18 +682,33 @@ class CalibratedFactors(RelativePoseFactors):
         z = sim3_act(T_ij[:, None, :], X_j)[..., 2]
         return e, J, z > cpu_kernels.MIN_DEPTH_RATIO * self.z_i[edges].to(z.dtype)
 
-    def _compiled_blocks(self, T_ij: torch.Tensor, edges: slice
-                         ) -> tuple[torch.Tensor, torch.Tensor]:
-        return cpu_kernels.calibrated_blocks(T_ij, self.K[edges], self.X_j[edges],
-                                             self.p_i[edges], self.z_i[edges], self.q[edges],
-                                             self.valid[edges], self._inv_sigmas[edges, 0],
-                                             self.huber_k)
+    def _compiled_blocks(
+        self, T_ij: torch.Tensor, edges: slice
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        return cpu_kernels.calibrated_blocks(
+            T_ij,
+            self.K[edges],
+            self.X_j[edges],
+            self.p_i[edges],
+            self.z_i[edges],
+            self.q[edges],
+            self.valid[edges],
+            self._inv_sigmas[edges, 0],
+            self.huber_k,
+        )
 
     def _compiled_costs(self, T_ij: torch.Tensor, edges: slice) -> torch.Tensor:
-        return cpu_kernels.calibrated_costs(T_ij, self.K[edges], self.X_j[edges],
-                                           self.p_i[edges], self.z_i[edges], self.q[edges],
-                                           self.valid[edges], self._inv_sigmas[edges, 0],
-                                           self.huber_k)
+        return cpu_kernels.calibrated_costs(
+            T_ij,
+            self.K[edges],
+            self.X_j[edges],
+            self.p_i[edges],
+            self.z_i[edges],
+            self.q[edges],
+            self.valid[edges],
+            self._inv_sigmas[edges, 0],
+            self.huber_k,
+        )
 
 
 def _edge_index(index: torch.Tensor, label: str, name: str) -> torch.Tensor:
@@ -671,8 +740,11 @@ def _finite_rows(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """``values`` ``(E, P, k)`` with the rows of invalid matches set to 1 if any of them is
     not finite: garbage behind the mask (NaN pointmap pixels) must not turn a zero weight
     into NaN. Without such garbage the input is kept as is (no copy)."""
-    if (cpu_kernels.all_finite(values) if values.device.type == "cpu"
-            else bool(torch.isfinite(values).all())):
+    if (
+        cpu_kernels.all_finite(values)
+        if values.device.type == "cpu"
+        else bool(torch.isfinite(values).all())
+    ):
         return values
     return torch.where(valid[..., None], values, torch.ones_like(values))
 

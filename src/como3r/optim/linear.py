@@ -21,8 +21,9 @@ from __future__ import annotations
 
 import enum
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, Sequence
+from typing import Literal
 
 import numpy as np
 import scipy.sparse
@@ -84,9 +85,7 @@ class EdgeBlocks:
     @staticmethod
     def cat(parts: Sequence[EdgeBlocks]) -> EdgeBlocks:
         """Concatenate edge batches (e.g. the chunks of one factor)."""
-        return EdgeBlocks(
-            *(torch.cat([getattr(p, name) for p in parts]) for name in _EDGE_FIELDS)
-        )
+        return EdgeBlocks(*(torch.cat([getattr(p, name) for p in parts]) for name in _EDGE_FIELDS))
 
 
 _EDGE_FIELDS = ("i", "j", "H_ii", "H_jj", "H_ij", "g_i", "g_j")
@@ -223,8 +222,10 @@ def solve(
     if backend not in BACKENDS:
         raise InputError(f"solve: backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     if not (cg_tolerance >= 0 and (cg_max_iterations is None or cg_max_iterations >= 1)):
-        raise InputError(f"solve: cg_tolerance must be >= 0 and cg_max_iterations >= 1, got "
-                         f"{cg_tolerance} and {cg_max_iterations}")
+        raise InputError(
+            f"solve: cg_tolerance must be >= 0 and cg_max_iterations >= 1, got "
+            f"{cg_tolerance} and {cg_max_iterations}"
+        )
     num_free = int(free.sum())
     if backend == "auto":
         backend = auto_backend(num_free)
@@ -232,22 +233,29 @@ def solve(
     if num_free == 0:
         return LinearSolution(step, SolveStatus.SUCCESS, 0, tikhonov_base, backend)
     if backend in ("pcg", "band"):
-        outcomes = pcg_attempts(system, free, lm_lambda, tikhonov_base, retries,
-                                cg_tolerance, cg_max_iterations,
-                                "jacobi" if backend == "pcg" else "band")
+        outcomes = pcg_attempts(
+            system,
+            free,
+            lm_lambda,
+            tikhonov_base,
+            retries,
+            cg_tolerance,
+            cg_max_iterations,
+            "jacobi" if backend == "pcg" else "band",
+        )
         attempts = ((outcome.x, outcome.iterations) for outcome in outcomes)
     else:
         factorise = _dense_attempts if backend == "dense" else _sparse_attempts
-        attempts = ((tau, 0) for tau in factorise(system, free, lm_lambda, tikhonov_base,
-                                                   retries))
+        attempts = ((tau, 0) for tau in factorise(system, free, lm_lambda, tikhonov_base, retries))
     cg_iterations = 0
     for r, (tau_free, iterations) in enumerate(attempts):
         cg_iterations += iterations
         if tau_free is not None:
             step[free] = tau_free
             status = SolveStatus.SUCCESS if r == 0 else SolveStatus.ESCALATED
-            return LinearSolution(step, status, r + 1, tikhonov_base * 100.0**r, backend,
-                                  cg_iterations)
+            return LinearSolution(
+                step, status, r + 1, tikhonov_base * 100.0**r, backend, cg_iterations
+            )
     logger.warning(
         "damped normal equations not positive definite after %d Tikhonov attempts "
         "(eps up to %.0e); returning a zero step",
@@ -274,8 +282,7 @@ def _dense_attempts(system, free, lm_lambda, tikhonov_base, retries):
 def _sparse_attempts(system, free, lm_lambda, tikhonov_base, retries):
     """Sparse counterpart of :func:`_dense_attempts` (scipy SuperLU in symmetric mode)."""
     rows, cols, values, size = (
-        t.cpu().numpy() if isinstance(t, torch.Tensor) else t
-        for t in _free_triplets(system, free)
+        t.cpu().numpy() if isinstance(t, torch.Tensor) else t for t in _free_triplets(system, free)
     )
     H = scipy.sparse.coo_matrix((values, (rows, cols)), shape=(size, size)).tocsc()  # sums
     rhs = -system.g[free].reshape(-1).cpu().numpy()

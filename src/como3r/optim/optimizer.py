@@ -17,8 +17,8 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import torch
 
@@ -151,8 +151,9 @@ def gauss_newton_irls(
         candidate = values.retract(tau)
         problem = _implausible_step(tau, values, candidate)
         if problem:
-            logger.warning("Gauss-Newton step %d refused (%s); keeping the previous poses",
-                           iteration, problem)
+            logger.warning(
+                "Gauss-Newton step %d refused (%s); keeping the previous poses", iteration, problem
+            )
             report.diverged, report.reason = True, "diverged"
             break
         values = candidate
@@ -169,8 +170,9 @@ def _relative_step_norm(tau: torch.Tensor, length_scale: float) -> float:
     ``length_scale`` (rotation and log-scale rows are unitless already)."""
     if length_scale == 1.0:
         return float(torch.linalg.vector_norm(tau))
-    return float(torch.linalg.vector_norm(torch.cat([tau[..., :3] / length_scale, tau[..., 3:]],
-                                                    dim=-1)))
+    return float(
+        torch.linalg.vector_norm(torch.cat([tau[..., :3] / length_scale, tau[..., 3:]], dim=-1))
+    )
 
 
 def levenberg_marquardt_irls(
@@ -206,8 +208,7 @@ def levenberg_marquardt_irls(
         ``cost_history`` holds the robust cost of every accepted iterate.
     """
     if not length_scale > 0:
-        raise InputError(f"levenberg_marquardt_irls: length_scale must be > 0, got "
-                         f"{length_scale}")
+        raise InputError(f"levenberg_marquardt_irls: length_scale must be > 0, got {length_scale}")
     config = TrackingConfig() if config is None else config
     max_iters = _pick(max_iters, config.max_iters)
     rel_cost_tol = _pick(rel_cost_tol, config.rel_cost_tol)
@@ -249,8 +250,14 @@ def levenberg_marquardt_irls(
             candidate = values.retract(solution.step)
             new_cost = _total_cost(factors, candidate)
             accepted = new_cost < cost
-        logger.debug("LM iteration %d: cost %.6e -> %.6e, |tau| = %.3e, lambda = %.1e",
-                     iteration, cost, new_cost, step_norm, lam)
+        logger.debug(
+            "LM iteration %d: cost %.6e -> %.6e, |tau| = %.3e, lambda = %.1e",
+            iteration,
+            cost,
+            new_cost,
+            step_norm,
+            lam,
+        )
         if accepted:
             relative_decrease = (cost - new_cost) / cost
             values, cost, system = candidate, new_cost, None

@@ -224,8 +224,12 @@ def pcg_attempts(
         scaled = _ScaledOperator(operator, L)
         outcome = _cg(scaled, scaled.scale_rhs(operator.rhs), tolerance, max_iterations)
         if outcome.x is not None:
-            outcome = CGOutcome(scaled.unscale_solution(outcome.x), outcome.iterations,
-                                outcome.residual, outcome.reason)
+            outcome = CGOutcome(
+                scaled.unscale_solution(outcome.x),
+                outcome.iterations,
+                outcome.residual,
+                outcome.reason,
+            )
         yield outcome
 
 
@@ -239,8 +243,9 @@ def _band_attempt(
     outcome = _cg(attempt, ordered.rhs, tolerance, max_iterations, attempt)
     if outcome.x is None:
         return outcome
-    return CGOutcome(ordered.unorder(outcome.x), outcome.iterations, outcome.residual,
-                     outcome.reason)
+    return CGOutcome(
+        ordered.unorder(outcome.x), outcome.iterations, outcome.residual, outcome.reason
+    )
 
 
 def _cg(
@@ -285,6 +290,9 @@ def _cg(
             return CGOutcome(x, iterations, residual, "converged")
         p.mul_(rz_next / rz).add_(z)
         rz = rz_next
-    logger.debug("PCG: relative residual %.2e at the cap of %d iterations; last iterate kept",
-                 residual, iterations)
+    logger.debug(
+        "PCG: relative residual %.2e at the cap of %d iterations; last iterate kept",
+        residual,
+        iterations,
+    )
     return CGOutcome(x, iterations, residual, "capped")

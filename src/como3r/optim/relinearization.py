@@ -80,31 +80,43 @@ class ThresholdRelinearized:
             threshold holds at every scale.
     """
 
-    def __init__(self, i: torch.Tensor, j: torch.Tensor, keys: Sequence[Hashable],
-                 stamps: Sequence[Hashable], models: EdgeModels, build: DenseBuilder,
-                 tol: float, length: float) -> None:
+    def __init__(
+        self,
+        i: torch.Tensor,
+        j: torch.Tensor,
+        keys: Sequence[Hashable],
+        stamps: Sequence[Hashable],
+        models: EdgeModels,
+        build: DenseBuilder,
+        tol: float,
+        length: float,
+    ) -> None:
         if not (tol >= 0 and length > 0):
-            raise InputError(f"ThresholdRelinearized: tol ({tol}) must be >= 0 and length "
-                             f"({length}) positive")
+            raise InputError(
+                f"ThresholdRelinearized: tol ({tol}) must be >= 0 and length ({length}) positive"
+            )
         if not (len(i) == len(j) == len(keys) == len(stamps)):
-            raise InputError("ThresholdRelinearized: i, j, keys and stamps must have one "
-                             "entry per edge")
+            raise InputError(
+                "ThresholdRelinearized: i, j, keys and stamps must have one entry per edge"
+            )
         self.keys, self.stamps, self.models, self.build = list(keys), list(stamps), models, build
         self.tol, self.length = float(tol), float(length)
         E, device = len(self.keys), i.device
         kept = [models.get(k, s) for k, s in zip(self.keys, self.stamps)]
-        self._known = torch.tensor([m is not None for m in kept], dtype=torch.bool,
-                                   device=device)
+        self._known = torch.tensor([m is not None for m in kept], dtype=torch.bool, device=device)
 
         def stacked(name: str, empty: torch.Tensor) -> torch.Tensor:
             rows = [(getattr(m, name) if m is not None else empty).to(device) for m in kept]
             return torch.stack(rows) if rows else empty[None][:0].to(device)
 
         self._quadratic = QuadraticEdges(
-            i.to(torch.int64), j.to(torch.int64), stacked("T0", sim3_identity(dtype=torch.float64)),
+            i.to(torch.int64),
+            j.to(torch.int64),
+            stacked("T0", sim3_identity(dtype=torch.float64)),
             stacked("H", torch.zeros(7, 7, dtype=torch.float64)),
             stacked("g", torch.zeros(7, dtype=torch.float64)),
-            torch.zeros(E, dtype=torch.float64, device=device))
+            torch.zeros(E, dtype=torch.float64, device=device),
+        )
         # edge position -> (its dense batch, its row there); built when first needed
         self._dense: dict[int, tuple[RelativePoseFactors, int]] = {}
         self.linearized = 0  # edge linearizations over the matches, so far
@@ -135,8 +147,12 @@ class ThresholdRelinearized:
                 at = positions[first:last]
                 model.T0[at], model.H[at], model.g[at] = batch.relative_blocks(poses, edges)
             for p in positions:
-                self.models.put(self.keys[p], _Model(model.T0[p].clone(), model.H[p].clone(),
-                                                     model.g[p].clone(), self.stamps[p]))
+                self.models.put(
+                    self.keys[p],
+                    _Model(
+                        model.T0[p].clone(), model.H[p].clone(), model.g[p].clone(), self.stamps[p]
+                    ),
+                )
             self.linearized += len(positions)
         self._known[stale] = True
         # the others kept their T0, so their motion is still delta; the stale ones were
@@ -148,11 +164,14 @@ class ThresholdRelinearized:
     def cost(self, poses: torch.Tensor) -> torch.Tensor:
         """The dense edges' robust energy at ``poses`` ``(N, 8)`` (no model), float64."""
         batches = {id(b): b for b, _, _ in self._batches(list(range(self.num_edges)))}
-        return sum((b.cost(poses) for b in batches.values()),
-                   torch.zeros((), dtype=torch.float64, device=poses.device))
+        return sum(
+            (b.cost(poses) for b in batches.values()),
+            torch.zeros((), dtype=torch.float64, device=poses.device),
+        )
 
-    def _batches(self, positions: list[int]
-                 ) -> list[tuple[RelativePoseFactors, list[int], list[int]]]:
+    def _batches(
+        self, positions: list[int]
+    ) -> list[tuple[RelativePoseFactors, list[int], list[int]]]:
         """``positions`` grouped by dense batch (built for those that have none), each
         group's rows in its batch ascending: ``(batch, rows, positions)``."""
         missing = [p for p in positions if p not in self._dense]

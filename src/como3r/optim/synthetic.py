@@ -105,7 +105,7 @@ def synthetic_graph(
     )
     extent = math.tan(math.radians(half_fov_deg))
     xy = extent * (2 * torch.rand(*shape, 2, generator=generator, dtype=torch.float64) - 1)
-    X_i = (torch.cat([xy, torch.ones(*shape, 1, dtype=torch.float64)], -1) * depth[..., None])
+    X_i = torch.cat([xy, torch.ones(*shape, 1, dtype=torch.float64)], -1) * depth[..., None]
     T_ij = sim3_compose(sim3_inverse(poses[i]), poses[j]).to(torch.float64)
     X_j = sim3_act(sim3_inverse(T_ij)[:, None, :], X_i)
     q = 1.5 + torch.rand(shape, generator=generator, dtype=torch.float64)
@@ -127,8 +127,9 @@ def chain_poses(
     rotations and per-keyframe scales within +-10 %; pose 0 is the identity."""
     angle = torch.linspace(0, 2 * math.pi, num_poses + 1, dtype=torch.float64)[:-1]
     radius = max(2.0, num_poses / (2 * math.pi))
-    centre = torch.stack([radius * angle.sin(), 0.1 * torch.sin(5 * angle),
-                          radius * (1 - angle.cos())], dim=-1)
+    centre = torch.stack(
+        [radius * angle.sin(), 0.1 * torch.sin(5 * angle), radius * (1 - angle.cos())], dim=-1
+    )
     yaw = torch.zeros(num_poses, 3, dtype=torch.float64)
     yaw[:, 1] = -angle
     jitter = 0.05 * torch.randn(num_poses, 3, generator=generator, dtype=torch.float64)

@@ -13,8 +13,8 @@ simulated sensor are interchangeable. A prior turns views into geometry:
 from __future__ import annotations
 
 import abc
+from collections.abc import Sequence
 from dataclasses import dataclass, fields
-from typing import Sequence
 
 import torch
 from torch import Tensor
@@ -89,11 +89,11 @@ class PairPrediction:
     Q_ii: Tensor
     Q_ji: Tensor
 
-    def to(self, device: torch.device | str) -> "PairPrediction":
+    def to(self, device: torch.device | str) -> PairPrediction:
         """Copy of the prediction with every tensor on ``device``."""
         return PairPrediction(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
 
-    def unbatch(self) -> list["PairPrediction"]:
+    def unbatch(self) -> list[PairPrediction]:
         """Split a batched prediction ``(B, H, W, ...)`` into B single predictions."""
         batch = self.X_ii.shape[0]
         return [

@@ -251,8 +251,9 @@ def codebook_fingerprint(codebook: np.ndarray) -> str:
     return digest.hexdigest()
 
 
-def nearest_words(descriptors: torch.Tensor, centroids: torch.Tensor,
-                  multiple_assignment: int) -> torch.Tensor:
+def nearest_words(
+    descriptors: torch.Tensor, centroids: torch.Tensor, multiple_assignment: int
+) -> torch.Tensor:
     """The ``multiple_assignment`` nearest centroids of every descriptor by squared L2
     distance, nearest first, on the inputs' device, as MASt3R-SLAM quantises on the GPU
     (MAST3R_SPEC.md §8.4: ``|x|^2 + |c|^2 - 2 x.c``, then the smallest).
@@ -265,8 +266,9 @@ def nearest_words(descriptors: torch.Tensor, centroids: torch.Tensor,
     Returns:
         ``(n, MA)`` int64 centroid ids.
     """
-    distances = torch.addmm((centroids * centroids).sum(1)[None], descriptors, centroids.T,
-                            alpha=-2.0)
+    distances = torch.addmm(
+        (centroids * centroids).sum(1)[None], descriptors, centroids.T, alpha=-2.0
+    )
     distances += (descriptors * descriptors).sum(1, keepdim=True)
     return distances.topk(multiple_assignment, dim=1, largest=False, sorted=True).indices
 
@@ -340,8 +342,9 @@ class RetrievalDatabase:
         """``(agent, keyframe)`` of every stored image, in insertion order."""
         return list(self._keys)
 
-    def _assign(self, descriptors: np.ndarray, multiple_assignment: int,
-                device: torch.device = _CPU) -> np.ndarray:
+    def _assign(
+        self, descriptors: np.ndarray, multiple_assignment: int, device: torch.device = _CPU
+    ) -> np.ndarray:
         """``(n, MA)`` ids of the nearest centroids (L2), nearest first: by faiss on the CPU
         (asmk's index: 0.34 s at the released codebook's size against 0.45 s for torch's
         float32 matmul on one core), by :func:`nearest_words` on any other ``device`` (the
@@ -352,8 +355,9 @@ class RetrievalDatabase:
             return word_ids
         if device not in self._device_centroids:
             self._device_centroids = {device: torch.from_numpy(self._centroids).to(device)}
-        words = nearest_words(torch.from_numpy(descriptors).to(device),
-                              self._device_centroids[device], ma)
+        words = nearest_words(
+            torch.from_numpy(descriptors).to(device), self._device_centroids[device], ma
+        )
         return words.cpu().numpy()
 
     def quantize(self, descriptors: Any) -> Quantized:
@@ -362,8 +366,11 @@ class RetrievalDatabase:
         result to :meth:`query`, :meth:`scores` and :meth:`add` of this database instead of
         the descriptors, which are then not quantised again."""
         config = self.config
-        return Quantized(*self._words(descriptors, max(config.multiple_assignment_query,
-                                                       config.multiple_assignment_build)))
+        return Quantized(
+            *self._words(
+                descriptors, max(config.multiple_assignment_query, config.multiple_assignment_build)
+            )
+        )
 
     def _words(self, descriptors: Any, multiple_assignment: int) -> tuple[np.ndarray, np.ndarray]:
         """``(descriptors (n, d) float32, words (n, MA))``, from a :class:`Quantized` or by
@@ -373,12 +380,17 @@ class RetrievalDatabase:
             ma = min(multiple_assignment, self.codebook_size)
             words = np.asarray(descriptors.words)
             if words.ndim != 2 or words.shape[0] != array.shape[0] or words.shape[1] < ma:
-                raise InputError(f"quantized descriptors: words of shape {words.shape}, "
-                                 f"expected ({array.shape[0]}, >= {ma})")
-            if words.dtype.kind not in "iu" or not (
-                    (words >= 0) & (words < self.codebook_size)).all():
-                raise InputError(f"quantized descriptors: words must be integers in "
-                                 f"[0, {self.codebook_size})")
+                raise InputError(
+                    f"quantized descriptors: words of shape {words.shape}, "
+                    f"expected ({array.shape[0]}, >= {ma})"
+                )
+            if (
+                words.dtype.kind not in "iu"
+                or not ((words >= 0) & (words < self.codebook_size)).all()
+            ):
+                raise InputError(
+                    f"quantized descriptors: words must be integers in [0, {self.codebook_size})"
+                )
             return array, words[:, :ma].astype(np.int64)
         device = descriptors.device if isinstance(descriptors, torch.Tensor) else _CPU
         return array, self._assign(array, multiple_assignment, device)
@@ -403,7 +415,8 @@ class RetrievalDatabase:
             n = np.shape(_unquantized(descriptors))[0]
             if tuple(np.shape(attention)) != (n,):
                 raise InputError(
-                    f"attention: expected shape ({n},), got {tuple(np.shape(attention))}")
+                    f"attention: expected shape ({n},), got {tuple(np.shape(attention))}"
+                )
         return self._words(descriptors, multiple_assignment)
 
     def add(
@@ -420,8 +433,9 @@ class RetrievalDatabase:
                 weight descriptors (the head's top-k selection already used attention); it
                 is accepted so ``add(a, k, *prior.retrieval_features(enc))`` works.
         """
-        array, words = self._prepare(agent, keyframe, descriptors, attention,
-                                     self.config.multiple_assignment_build)
+        array, words = self._prepare(
+            agent, keyframe, descriptors, attention, self.config.multiple_assignment_build
+        )
         self._store(int(agent), int(keyframe), array, words)
 
     def _scores_of(self, descriptors: np.ndarray, words: np.ndarray) -> np.ndarray:
@@ -472,9 +486,7 @@ class RetrievalDatabase:
         ]
         # Stable sort: equal scores keep insertion order, so results are deterministic.
         ranked = sorted(candidates, key=lambda i: -scores[i])[:k]
-        return [
-            Hit(*self._keys[i], float(scores[i])) for i in ranked if scores[i] > threshold
-        ]
+        return [Hit(*self._keys[i], float(scores[i])) for i in ranked if scores[i] > threshold]
 
     def query(
         self,
@@ -529,8 +541,9 @@ class RetrievalDatabase:
             self.config.multiple_assignment_query,
             self.config.multiple_assignment_build,
         )
-        array, words = self._prepare(agent, keyframe, descriptors, attention,
-                                     max(ma_query, ma_build))
+        array, words = self._prepare(
+            agent, keyframe, descriptors, attention, max(ma_query, ma_build)
+        )
         hits: list[Hit] = []
         if self._keys:
             scores = self._scores_of(array, words[:, :ma_query])

@@ -265,9 +265,12 @@ class SimulatedPrior(Prior):
         constants: fixed constants of the sensor model; the defaults are the documented ones.
     """
 
-    def __init__(self, config: SimulatedPriorConfig | None = None,
-                 truth: GroundTruthSource | None = None,
-                 constants: SimulatedConstants | None = None) -> None:
+    def __init__(
+        self,
+        config: SimulatedPriorConfig | None = None,
+        truth: GroundTruthSource | None = None,
+        constants: SimulatedConstants | None = None,
+    ) -> None:
         self.config = config or SimulatedPriorConfig()
         self.truth = truth
         self.constants = constants or SimulatedConstants()
@@ -278,14 +281,22 @@ class SimulatedPrior(Prior):
         c = self.constants
         ambiguity = self.config.descriptor_ambiguity if self.realistic else 0.0
         self._descriptor_map = RandomFeatureMap(
-            self.config.descriptor_dim, self.config.seed, *c.descriptor_wavelengths,
-            id_weight=c.descriptor_id_weight + ambiguity, blur=c.footprint_blur,
-            coarse_footprints=c.descriptor_coarse_footprints, name="descriptor",
+            self.config.descriptor_dim,
+            self.config.seed,
+            *c.descriptor_wavelengths,
+            id_weight=c.descriptor_id_weight + ambiguity,
+            blur=c.footprint_blur,
+            coarse_footprints=c.descriptor_coarse_footprints,
+            name="descriptor",
         )
         self._retrieval_map = RandomFeatureMap(
-            c.retrieval_dim, self.config.seed, *c.retrieval_wavelengths,
-            id_weight=1.0, blur=c.footprint_blur,
-            coarse_footprints=c.retrieval_coarse_footprints, name="retrieval",
+            c.retrieval_dim,
+            self.config.seed,
+            *c.retrieval_wavelengths,
+            id_weight=1.0,
+            blur=c.footprint_blur,
+            coarse_footprints=c.retrieval_coarse_footprints,
+            name="retrieval",
         )
 
     # ------------------------------------------------------------------ encode
@@ -315,8 +326,9 @@ class SimulatedPrior(Prior):
         else:
             key_ids, key_coords = keys_from_world(points, truth.T_WC, valid)
         focal = 0.5 * float(K[0, 0] + K[1, 1])
-        footprint = key_footprint(key_ids, key_coords, ranges / focal + 1e-9,
-                                  self.constants.footprint_max_ratio)
+        footprint = key_footprint(
+            key_ids, key_coords, ranges / focal + 1e-9, self.constants.footprint_max_ratio
+        )
         keyed = key_ids >= 0
         median_footprint = float(footprint[keyed].median()) if bool(keyed.any()) else 0.0
         if self.realistic:
@@ -330,49 +342,71 @@ class SimulatedPrior(Prior):
         if self.appearance:
             image = view.image.to(descriptors.device)
             texture = errors.texture_weight(image)
-            appearance = errors.appearance_descriptors(image, self.descriptor_dim,
-                                                       self.config.seed)
-            descriptors = _normalize(texture[..., None] * descriptors
-                                     + (1.0 - texture[..., None]) * appearance)
+            appearance = errors.appearance_descriptors(image, self.descriptor_dim, self.config.seed)
+            descriptors = _normalize(
+                texture[..., None] * descriptors + (1.0 - texture[..., None]) * appearance
+            )
             colours = errors.cell_colours(image, self.constants.retrieval_stride)
         return SimulatedEncoding(
-            agent=view.agent, index=view.index, shape=(H, W), K=K, rays=rays, pred_rays=pred_rays,
+            agent=view.agent,
+            index=view.index,
+            shape=(H, W),
+            K=K,
+            rays=rays,
+            pred_rays=pred_rays,
             log_range_error=log_range_error,
             median_range=float(median_of_ranges(ranges.flatten(), (valid & ~filled).flatten())),
             ranges=ranges,
-            valid=valid, filled=filled,
+            valid=valid,
+            filled=filled,
             edges=_depth_edges(depth, valid & ~filled, self.constants.edge_log_jump),
-            key_ids=key_ids, key_coords=key_coords, footprint=footprint,
+            key_ids=key_ids,
+            key_coords=key_coords,
+            footprint=footprint,
             median_footprint=median_footprint,
             # float16 as MASt3R-SLAM's matching kernels use them; far below the noise
-            descriptors=descriptors.half(), texture=texture, colours=colours,
+            descriptors=descriptors.half(),
+            texture=texture,
+            colours=colours,
         )
 
     def _truth_of(self, view: View) -> GroundTruth:
         if self.truth is None:
-            raise PriorError(f"simulated prior: no ground-truth source to encode agent "
-                             f"{view.agent}, frame {view.index} (it was built to decode only)")
+            raise PriorError(
+                f"simulated prior: no ground-truth source to encode agent "
+                f"{view.agent}, frame {view.index} (it was built to decode only)"
+            )
         return self.truth.truth(view.agent, view.index)
 
     @staticmethod
     def _validated_inputs(view: View, truth: GroundTruth) -> tuple[Tensor, Tensor]:
         """``(depth (H, W), K (3, 3))`` as float32; PriorError naming what is missing."""
         name = f"simulated prior: view (agent {view.agent}, frame {view.index})"
-        missing = [what for what, value in (("a depth map (depth/)", truth.depth),
-                                            ("intrinsics K (calib.txt)", truth.K))
-                   if value is None]
+        missing = [
+            what
+            for what, value in (
+                ("a depth map (depth/)", truth.depth),
+                ("intrinsics K (calib.txt)", truth.K),
+            )
+            if value is None
+        ]
         if truth.surface is None and truth.T_WC is None:
             missing.append("a surface map (surface/) or a ground-truth pose (groundtruth.txt)")
         if missing:
-            raise PriorError(f"{name} lacks {' and '.join(missing)}, which the simulated "
-                             "prior needs; images alone take --prior mast3r")
+            raise PriorError(
+                f"{name} lacks {' and '.join(missing)}, which the simulated "
+                "prior needs; images alone take --prior mast3r"
+            )
         H, W = view.shape
         if tuple(truth.depth.shape) != (H, W):
-            raise PriorError(f"{name}: depth map of shape {tuple(truth.depth.shape)} does not "
-                             f"match the {W}x{H} image")
+            raise PriorError(
+                f"{name}: depth map of shape {tuple(truth.depth.shape)} does not "
+                f"match the {W}x{H} image"
+            )
         if truth.surface is not None and tuple(truth.surface.shape) != (H, W, 3):
-            raise PriorError(f"{name}: surface map of shape {tuple(truth.surface.shape)}, "
-                             f"expected ({H}, {W}, 3)")
+            raise PriorError(
+                f"{name}: surface map of shape {tuple(truth.surface.shape)}, expected ({H}, {W}, 3)"
+            )
         if tuple(truth.K.shape) != (3, 3):
             raise PriorError(f"{name}: K of shape {tuple(truth.K.shape)}, expected (3, 3)")
         return truth.depth.to(torch.float32), truth.K.to(torch.float32)
@@ -389,15 +423,19 @@ class SimulatedPrior(Prior):
         desc_conf = torch.where(valid, desc_conf, torch.full_like(desc_conf, c.q_sky))
         return conf, desc_conf
 
-    def _clean_descriptors(self, key_ids: Tensor, key_coords: Tensor,
-                           footprint: Tensor) -> Tensor:
+    def _clean_descriptors(self, key_ids: Tensor, key_coords: Tensor, footprint: Tensor) -> Tensor:
         """``(H, W, d)`` unit descriptors of the keys; keyless pixels share the sky vector."""
         keyed = key_ids >= 0
-        out = self._descriptor_map.embedding(-1).to(key_coords.device).expand(
-            *key_ids.shape, -1).clone()
+        out = (
+            self._descriptor_map.embedding(-1)
+            .to(key_coords.device)
+            .expand(*key_ids.shape, -1)
+            .clone()
+        )
         if bool(keyed.any()):
-            out[keyed] = _normalize(self._descriptor_map(
-                key_ids[keyed], key_coords[keyed], footprint[keyed]))
+            out[keyed] = _normalize(
+                self._descriptor_map(key_ids[keyed], key_coords[keyed], footprint[keyed])
+            )
         return out
 
     # ------------------------------------------------------------------ decode
@@ -410,8 +448,9 @@ class SimulatedPrior(Prior):
             unit ``D`` of dimension ``config.descriptor_dim`` and ``Q > 0``, float32.
         """
         enc_i, enc_j = self._checked(enc_i), self._checked(enc_j)
-        gen = generator(self.config.seed, "pair", enc_i.agent, enc_i.index,
-                        enc_j.agent, enc_j.index)
+        gen = generator(
+            self.config.seed, "pair", enc_i.agent, enc_i.index, enc_j.agent, enc_j.index
+        )
         scale = math.exp(self.config.scale_sigma * float(torch.randn((), generator=gen)))
         matches = match_keys(enc_i, enc_j, self.constants, gen)
         fitted = robust_fit(enc_i, enc_j, matches, self.constants, gen)
@@ -426,24 +465,37 @@ class SimulatedPrior(Prior):
         C_ii, C_ji, Q_ii, Q_ji = self._confidences(enc_i, enc_j, matches, overlap, gen)
         noise = self.config.descriptor_noise
         return PairPrediction(
-            X_ii=scale * X_ii, X_ji=X_ji, C_ii=C_ii, C_ji=C_ji,
+            X_ii=scale * X_ii,
+            X_ji=X_ji,
+            C_ii=C_ii,
+            C_ji=C_ji,
             D_ii=self._noisy_descriptors(enc_i, gen, noise),
-            D_ji=self._noisy_descriptors(enc_j, gen, noise), Q_ii=Q_ii, Q_ji=Q_ji,
+            D_ji=self._noisy_descriptors(enc_j, gen, noise),
+            Q_ii=Q_ii,
+            Q_ji=Q_ji,
         )
 
-    def _decode_realistic(self, enc_i: SimulatedEncoding, enc_j: SimulatedEncoding,
-                          matches: KeyMatches, pose: tuple[Tensor, Tensor, Tensor],
-                          overlap: bool, scale: float,
-                          gen: torch.Generator) -> PairPrediction:
+    def _decode_realistic(
+        self,
+        enc_i: SimulatedEncoding,
+        enc_j: SimulatedEncoding,
+        matches: KeyMatches,
+        pose: tuple[Tensor, Tensor, Tensor],
+        overlap: bool,
+        scale: float,
+        gen: torch.Generator,
+    ) -> PairPrediction:
         """The realistic model's prediction from the fitted (or random) ``pose``
         (:mod:`~como3r.prior.simulated_errors`): gross failures and confident hallucinations,
         heavy-tailed pose error, scale drift, confidence that falls with the injected error
         and viewpoint-dependent descriptor noise."""
         cfg = self.config
-        extra = generator(cfg.seed, "realistic pair", enc_i.agent, enc_i.index,
-                          enc_j.agent, enc_j.index)
+        extra = generator(
+            cfg.seed, "realistic pair", enc_i.agent, enc_i.index, enc_j.agent, enc_j.index
+        )
         hallucinated = not overlap and float(torch.rand((), generator=extra)) < (
-            cfg.hallucination_rate)
+            cfg.hallucination_rate
+        )
         failed = overlap and float(torch.rand((), generator=extra)) < cfg.gross_failure_rate
         R, t, s = pose
         change = errors.viewpoint_change(R, enc_i.median_range, enc_j.median_range)
@@ -457,11 +509,11 @@ class SimulatedPrior(Prior):
         # into camera i and bent as camera i is believed to be
         on_rays_j = enc_j.rays * X_j.norm(dim=-1, keepdim=True)
         X_j_in_i = s * reproducible_matmul(on_rays_j, R.T) + t
-        X_ji = scale * errors.in_believed_camera(X_j_in_i, enc_i.rays, enc_i.pred_rays,
-                                                 enc_i.K)
+        X_ji = scale * errors.in_believed_camera(X_j_in_i, enc_i.rays, enc_i.pred_rays, enc_i.K)
         if self.appearance:  # v2: per-pair rays, the two heads apart (errors, item 12)
-            heads = generator(cfg.seed, "v2 pair rays", enc_i.agent, enc_i.index,
-                              enc_j.agent, enc_j.index)
+            heads = generator(
+                cfg.seed, "v2 pair rays", enc_i.agent, enc_i.index, enc_j.agent, enc_j.index
+            )
             X_ii = errors.jitter_rays(X_ii, enc_i.K, cfg, heads)
             X_ji = errors.jitter_rays(X_ji, enc_i.K, cfg, heads)
         r = errors.RealisticConstants
@@ -488,7 +540,8 @@ class SimulatedPrior(Prior):
             conf_i = conf_i - a.conf_texture_drop * (1.0 - enc_i.texture)
             conf_j = conf_j - a.conf_texture_drop * (1.0 - enc_j.texture)
         return PairPrediction(
-            X_ii=scale * X_ii, X_ji=X_ji,
+            X_ii=scale * X_ii,
+            X_ji=X_ji,
             C_ii=self._conf(conf_i - errors.error_logit(known_i, cfg), gen, noise),
             C_ji=self._conf(conf_j - errors.error_logit(known_j, cfg) - drop_j, gen, noise),
             D_ii=self._noisy_descriptors(enc_i, gen, noise_i),
@@ -497,9 +550,14 @@ class SimulatedPrior(Prior):
             Q_ji=self._desc_conf(desc_conf_j - drop_j, gen, noise),
         )
 
-    def _confidences(self, enc_i: SimulatedEncoding, enc_j: SimulatedEncoding,
-                     matches: KeyMatches, overlap: bool,
-                     gen: torch.Generator) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def _confidences(
+        self,
+        enc_i: SimulatedEncoding,
+        enc_j: SimulatedEncoding,
+        matches: KeyMatches,
+        overlap: bool,
+        gen: torch.Generator,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """``C_ii, C_ji, Q_ii, Q_ji``: the range and edge cues of each view, lowered where a
         pixel's key has no counterpart in the other view (everywhere without overlap) and,
         without overlap, ``C_ji`` about 1 everywhere."""
@@ -514,21 +572,22 @@ class SimulatedPrior(Prior):
         return (
             self._conf(conf_i, gen, c.conf_noise),
             self._conf(conf_j - c.conf_unmatched_drop * unmatched_j.float(), gen, c.conf_noise),
-            self._desc_conf(desc_conf_i - c.q_unmatched_drop * unmatched_i.float(), gen,
-                            c.q_noise),
-            self._desc_conf(desc_conf_j - c.q_unmatched_drop * unmatched_j.float(), gen,
-                            c.q_noise),
+            self._desc_conf(desc_conf_i - c.q_unmatched_drop * unmatched_i.float(), gen, c.q_noise),
+            self._desc_conf(desc_conf_j - c.q_unmatched_drop * unmatched_j.float(), gen, c.q_noise),
         )
 
     @staticmethod
     def _checked(enc: Encoding) -> SimulatedEncoding:
         if not isinstance(enc, SimulatedEncoding):
-            raise PriorError(f"simulated prior: cannot decode a {type(enc).__name__} "
-                             "(encode the view with the simulated prior)")
+            raise PriorError(
+                f"simulated prior: cannot decode a {type(enc).__name__} "
+                "(encode the view with the simulated prior)"
+            )
         return enc
 
-    def _random_pose(self, enc_i: SimulatedEncoding,
-                     gen: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+    def _random_pose(
+        self, enc_i: SimulatedEncoding, gen: torch.Generator
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """A plausible wrong pose for views without common keys: near camera i, turned."""
         c = self.constants
         axis = _normalize(torch.randn(3, generator=gen))
@@ -545,11 +604,19 @@ class SimulatedPrior(Prior):
         its predicted rays, and its log-range error ``(H, W)`` (0 on sky)."""
         H, W = enc.shape
         device = enc.rays.device
-        field = errors.fourier_field(H, W, self.config.depth_distortion_wavelength * max(H, W),
-                                     self.constants.distortion_modes, gen).to(device)
+        field = errors.fourier_field(
+            H,
+            W,
+            self.config.depth_distortion_wavelength * max(H, W),
+            self.constants.distortion_modes,
+            gen,
+        ).to(device)
         noise = torch.randn(H, W, generator=gen).to(device)
-        log_factor = (self.config.depth_distortion_amplitude * field
-                      + self.config.range_noise * noise + enc.log_range_error)
+        log_factor = (
+            self.config.depth_distortion_amplitude * field
+            + self.config.range_noise * noise
+            + enc.log_range_error
+        )
         low, high = self.constants.sky_range
         sky = enc.median_range * (low + (high - low) * torch.rand(H, W, generator=gen).to(device))
         ranges = torch.where(enc.valid, enc.ranges * torch.exp(log_factor), sky)
@@ -569,8 +636,9 @@ class SimulatedPrior(Prior):
         return torch.exp(logit + sigma * noise)
 
     @staticmethod
-    def _noisy_descriptors(enc: SimulatedEncoding, gen: torch.Generator,
-                           sigma: float | Tensor) -> Tensor:
+    def _noisy_descriptors(
+        enc: SimulatedEncoding, gen: torch.Generator, sigma: float | Tensor
+    ) -> Tensor:
         """``(H, W, d)`` unit descriptors plus noise of RMS norm ``sigma`` (a number or an
         ``(H, W)`` map)."""
         d = enc.descriptors.shape[-1]
@@ -600,19 +668,35 @@ class SimulatedPrior(Prior):
         enc = self._checked(enc)
         c = self.constants
         if min(enc.shape) < c.retrieval_patch:
-            raise PriorError(f"simulated prior: a {enc.shape[1]}x{enc.shape[0]} view has no "
-                             f"{c.retrieval_patch}x{c.retrieval_patch} patch for retrieval")
+            raise PriorError(
+                f"simulated prior: a {enc.shape[1]}x{enc.shape[0]} view has no "
+                f"{c.retrieval_patch}x{c.retrieval_patch} patch for retrieval"
+            )
         gen = generator(self.config.seed, "retrieval", enc.agent, enc.index)
         appearance = None
         if enc.texture is not None and enc.colours is not None:  # v2 (errors, item 10)
-            appearance = errors.patch_appearance(enc.colours, enc.texture, c.retrieval_patch,
-                                                 c.retrieval_stride, c.retrieval_dim,
-                                                 self.config.seed)
+            appearance = errors.patch_appearance(
+                enc.colours,
+                enc.texture,
+                c.retrieval_patch,
+                c.retrieval_stride,
+                c.retrieval_dim,
+                self.config.seed,
+            )
         descriptors, attention = patch_features(
-            self._retrieval_map, enc.key_ids, enc.key_coords, enc.footprint,
-            c.retrieval_patch, c.retrieval_stride, c.retrieval_noise, gen, appearance)
-        return select_patches(descriptors, attention, c.retrieval_max_features,
-                              c.retrieval_min_valid)
+            self._retrieval_map,
+            enc.key_ids,
+            enc.key_coords,
+            enc.footprint,
+            c.retrieval_patch,
+            c.retrieval_stride,
+            c.retrieval_noise,
+            gen,
+            appearance,
+        )
+        return select_patches(
+            descriptors, attention, c.retrieval_max_features, c.retrieval_min_valid
+        )
 
     def codebook(self, size: int | None = None, cache_dir: str | Path | None = None) -> np.ndarray:
         """ASMK codebook of the retrieval features, trained once and cached on disk.
@@ -637,25 +721,41 @@ class SimulatedPrior(Prior):
         size = size or c.codebook_size
         directory = Path(cache_dir) if cache_dir is not None else default_cache_dir()
         v2 = (repr(dataclasses.astuple(errors.AppearanceConstants())),) if self.appearance else ()
-        digest = stable_seed(CODEBOOK_CACHE_VERSION, size, self.config.seed,
-                             repr(dataclasses.astuple(c)), *v2)
+        digest = stable_seed(
+            CODEBOOK_CACHE_VERSION, size, self.config.seed, repr(dataclasses.astuple(c)), *v2
+        )
 
         def train() -> np.ndarray:
             logger.info("training the simulated prior's %d-word codebook (once)", size)
             count = size * c.codebook_samples_per_word
             gen = generator(self.config.seed, "codebook sample")
             sample = synthetic_patch_features(
-                self._retrieval_map, count, c.retrieval_patch, c.retrieval_stride,
-                c.retrieval_noise, c.codebook_world_fraction, gen)
+                self._retrieval_map,
+                count,
+                c.retrieval_patch,
+                c.retrieval_stride,
+                c.retrieval_noise,
+                c.codebook_world_fraction,
+                gen,
+            )
             if self.appearance:  # v2: key patches mixed with image appearance (errors, 10)
-                mixed = mix_appearance(sample, *errors.random_patch_appearance(
-                    count, c.retrieval_patch, c.retrieval_stride, c.retrieval_dim,
-                    self.config.seed, gen))
+                mixed = mix_appearance(
+                    sample,
+                    *errors.random_patch_appearance(
+                        count,
+                        c.retrieval_patch,
+                        c.retrieval_stride,
+                        c.retrieval_dim,
+                        self.config.seed,
+                        gen,
+                    ),
+                )
                 sample = _normalize(mixed)
             return train_codebook(sample.numpy(), size, self.config.seed)
 
-        return cached_array(directory / f"simulated_codebook_{digest:016x}.npy",
-                            (size, c.retrieval_dim), train)
+        return cached_array(
+            directory / f"simulated_codebook_{digest:016x}.npy", (size, c.retrieval_dim), train
+        )
 
     # ------------------------------------------------------------------ report
 

@@ -184,12 +184,14 @@ class AppearanceConstants:
 
 def _box_mean(x: Tensor, size: int) -> Tensor:
     """``(H, W)`` mean of ``x`` over a ``size x size`` window (odd), borders renormalised."""
-    return F.avg_pool2d(x[None, None], size, stride=1, padding=size // 2,
-                        count_include_pad=False)[0, 0]
+    return F.avg_pool2d(x[None, None], size, stride=1, padding=size // 2, count_include_pad=False)[
+        0, 0
+    ]
 
 
-def jitter_rays(points: Tensor, K: Tensor, config: SimulatedPriorConfig,
-                gen: torch.Generator) -> Tensor:
+def jitter_rays(
+    points: Tensor, K: Tensor, config: SimulatedPriorConfig, gen: torch.Generator
+) -> Tensor:
     """``points`` ``(H, W, 3)`` of camera i with their normalised image coordinates
     ``x / z, y / z`` scaled by ``exp(-share focal_error n)`` and shifted by
     ``share principal_point_error`` of the long side (in pixels of ``K``'s focal) per axis,
@@ -214,8 +216,12 @@ def _box_sum(x: Tensor, size: int) -> Tensor:
     an integral image: cost independent of ``size``."""
     pad = size // 2
     integral = F.pad(x.double(), (pad + 1, pad, pad + 1, pad)).cumsum(0).cumsum(1)
-    return (integral[size:, size:] - integral[:-size, size:] - integral[size:, :-size]
-            + integral[:-size, :-size])
+    return (
+        integral[size:, size:]
+        - integral[:-size, size:]
+        - integral[size:, :-size]
+        + integral[:-size, :-size]
+    )
 
 
 def local_error(log_error: Tensor, valid: Tensor) -> Tensor:
@@ -239,7 +245,7 @@ def texture_weight(image: Tensor) -> Tensor:
     gy = 0.5 * (padded[2:, 1:-1] - padded[:-2, 1:-1])
     size = max(3, round(c.contrast_window * max(gray.shape)) | 1)
     energy = _box_mean(gx * gx + gy * gy, size)
-    share = energy / (energy + c.contrast_ref ** 2)
+    share = energy / (energy + c.contrast_ref**2)
     return c.context_weight + (1.0 - c.context_weight) * share
 
 
@@ -249,12 +255,16 @@ def appearance_descriptors(image: Tensor, dim: int, seed: int) -> Tensor:
     grid of step ``patch_step`` of the long side (27 values; borders replicated)."""
     c = AppearanceConstants
     _, H, W = image.shape
-    blurred = F.avg_pool2d(F.pad(image.float()[None], (1, 1, 1, 1), mode="replicate"), 3,
-                           stride=1)[0]
+    blurred = F.avg_pool2d(F.pad(image.float()[None], (1, 1, 1, 1), mode="replicate"), 3, stride=1)[
+        0
+    ]
     step = max(1, round(c.patch_step * max(H, W)))
     padded = F.pad(blurred[None], (step, step, step, step), mode="replicate")[0]
-    samples = [padded[:, step + dv:step + dv + H, step + du:step + du + W]
-               for dv in (-step, 0, step) for du in (-step, 0, step)]
+    samples = [
+        padded[:, step + dv : step + dv + H, step + du : step + du + W]
+        for dv in (-step, 0, step)
+        for du in (-step, 0, step)
+    ]
     patch = torch.cat(samples, dim=0).permute(1, 2, 0)  # (H, W, 27)
     return random_fourier(patch, dim, generator(seed, "appearance descriptor"))
 
@@ -270,7 +280,7 @@ def random_fourier(x: Tensor, dim: int, gen: torch.Generator) -> Tensor:
     # its (..., K, dim) intermediate
     phase = b.to(x).expand(*x.shape[:-1], dim).clone()
     for k in range(x.shape[-1]):
-        phase.add_(x[..., k:k + 1] * A[k])
+        phase.add_(x[..., k : k + 1] * A[k])
     return F.normalize(torch.cos(phase), dim=-1)
 
 
@@ -280,8 +290,9 @@ def cell_colours(image: Tensor, cell: int) -> Tensor:
     return F.avg_pool2d(image.float()[None], cell)[0].permute(1, 2, 0).contiguous()
 
 
-def patch_appearance(colours: Tensor, texture: Tensor, patch: int, cell: int, dim: int,
-                     seed: int) -> tuple[Tensor, Tensor]:
+def patch_appearance(
+    colours: Tensor, texture: Tensor, patch: int, cell: int, dim: int, seed: int
+) -> tuple[Tensor, Tensor]:
     """Appearance features ``(P, dim)`` and texture weights ``(P,)`` of every whole
     ``patch x patch`` patch (row-major, as
     :func:`~como3r.prior.simulated_retrieval.patch_features`): random Fourier features of
@@ -289,14 +300,15 @@ def patch_appearance(colours: Tensor, texture: Tensor, patch: int, cell: int, di
     ``(H, W)`` (:func:`texture_weight`) over the patch (module docstring, 10)."""
     per = patch // cell
     rows, cols = texture.shape[0] // patch, texture.shape[1] // patch
-    grid = colours[:rows * per, :cols * per].reshape(rows, per, cols, per, 3)
+    grid = colours[: rows * per, : cols * per].reshape(rows, per, cols, per, 3)
     flat = grid.permute(0, 2, 1, 3, 4).reshape(rows * cols, per * per * 3)
     weight = F.avg_pool2d(texture[None, None].float(), patch)[0, 0, :rows, :cols].reshape(-1)
     return random_fourier(flat, dim, generator(seed, "appearance retrieval")), weight
 
 
-def random_patch_appearance(count: int, patch: int, cell: int, dim: int, seed: int,
-                            gen: torch.Generator) -> tuple[Tensor, Tensor]:
+def random_patch_appearance(
+    count: int, patch: int, cell: int, dim: int, seed: int, gen: torch.Generator
+) -> tuple[Tensor, Tensor]:
     """Appearance features and texture weights of ``count`` random patches for the ``v2``
     codebook sample: a uniform colour in [-1, 1] plus a linear ramp of up to 0.2 across the
     patch, weights uniform in ``[context_weight, 1]``."""
@@ -304,43 +316,66 @@ def random_patch_appearance(count: int, patch: int, cell: int, dim: int, seed: i
     base = 2.0 * torch.rand(count, 1, 1, 3, generator=gen) - 1.0
     ramp = 0.2 * (2.0 * torch.rand(count, 2, 3, generator=gen) - 1.0)
     position = torch.linspace(-0.5, 0.5, per)
-    colours = (base + position[None, :, None, None] * ramp[:, None, None, 0]
-               + position[None, None, :, None] * ramp[:, None, None, 1])
+    colours = (
+        base
+        + position[None, :, None, None] * ramp[:, None, None, 0]
+        + position[None, None, :, None] * ramp[:, None, None, 1]
+    )
     w0 = AppearanceConstants.context_weight
     weight = w0 + (1.0 - w0) * torch.rand(count, generator=gen)
-    return (random_fourier(colours.reshape(count, -1), dim,
-                           generator(seed, "appearance retrieval")), weight)
+    return (
+        random_fourier(colours.reshape(count, -1), dim, generator(seed, "appearance retrieval")),
+        weight,
+    )
 
 
 def check_config(config: SimulatedPriorConfig) -> None:
     """Raise ConfigError naming the first out-of-range simulated_prior key."""
-    non_negative = ("scale_sigma", "depth_distortion_amplitude", "range_noise",
-                    "rotation_noise_deg", "translation_noise", "descriptor_noise",
-                    "focal_error", "principal_point_error", "ray_field_deg",
-                    "image_distortion_amplitude", "scale_drift", "pose_noise_growth",
-                    "translation_floor", "confidence_error_slope", "confidence_noise",
-                    "descriptor_viewpoint_gain", "descriptor_ambiguity")
+    non_negative = (
+        "scale_sigma",
+        "depth_distortion_amplitude",
+        "range_noise",
+        "rotation_noise_deg",
+        "translation_noise",
+        "descriptor_noise",
+        "focal_error",
+        "principal_point_error",
+        "ray_field_deg",
+        "image_distortion_amplitude",
+        "scale_drift",
+        "pose_noise_growth",
+        "translation_floor",
+        "confidence_error_slope",
+        "confidence_noise",
+        "descriptor_viewpoint_gain",
+        "descriptor_ambiguity",
+    )
     for name in non_negative:
         if getattr(config, name) < 0:
             raise ConfigError(f"simulated_prior.{name} must be >= 0, got {getattr(config, name)}")
-    for name in ("gross_failure_rate", "hallucination_rate", "flying_pixel_fraction",
-                 "outlier_fraction", "image_error_correlation"):
+    for name in (
+        "gross_failure_rate",
+        "hallucination_rate",
+        "flying_pixel_fraction",
+        "outlier_fraction",
+        "image_error_correlation",
+    ):
         if not 0.0 <= getattr(config, name) <= 1.0:
-            raise ConfigError(f"simulated_prior.{name} must be in [0, 1], "
-                              f"got {getattr(config, name)}")
+            raise ConfigError(
+                f"simulated_prior.{name} must be in [0, 1], got {getattr(config, name)}"
+            )
     for name in ("depth_distortion_wavelength", "scale_drift_frames", "image_error_frames"):
         if getattr(config, name) <= 0:
             raise ConfigError(f"simulated_prior.{name} must be > 0, got {getattr(config, name)}")
     if config.pose_tail_dof < 1:
-        raise ConfigError(f"simulated_prior.pose_tail_dof must be >= 1, "
-                          f"got {config.pose_tail_dof}")
+        raise ConfigError(f"simulated_prior.pose_tail_dof must be >= 1, got {config.pose_tail_dof}")
     if config.descriptor_dim < 2:
-        raise ConfigError(f"simulated_prior.descriptor_dim must be >= 2, "
-                          f"got {config.descriptor_dim}")
+        raise ConfigError(
+            f"simulated_prior.descriptor_dim must be >= 2, got {config.descriptor_dim}"
+        )
 
 
-def fourier_field(H: int, W: int, wavelength_px: float, modes: int,
-                  gen: torch.Generator) -> Tensor:
+def fourier_field(H: int, W: int, wavelength_px: float, modes: int, gen: torch.Generator) -> Tensor:
     """``(H, W)`` unit-RMS random Fourier field of wavelength ``wavelength_px`` pixels.
 
     ``sqrt(2 / M) sum_m cos(a_m u + b_m v + phi_m)`` with ``(a_m, b_m)`` of fixed length in
@@ -351,10 +386,8 @@ def fourier_field(H: int, W: int, wavelength_px: float, modes: int,
     angle = 2.0 * math.pi * torch.rand(modes, generator=gen)
     phase = 2.0 * math.pi * torch.rand(modes, generator=gen)
     along_u = wavenumber * torch.arange(W, dtype=torch.float32)[:, None] * torch.cos(angle)
-    along_v = (wavenumber * torch.arange(H, dtype=torch.float32)[:, None] * torch.sin(angle)
-               + phase)
-    field = torch.cos(along_v) @ torch.cos(along_u).T - torch.sin(along_v) @ torch.sin(
-        along_u).T
+    along_v = wavenumber * torch.arange(H, dtype=torch.float32)[:, None] * torch.sin(angle) + phase
+    field = torch.cos(along_v) @ torch.cos(along_u).T - torch.sin(along_v) @ torch.sin(along_u).T
     return math.sqrt(2.0 / modes) * field
 
 
@@ -377,9 +410,11 @@ class ImageDraws:
         block = math.floor(position)
         angle = 0.5 * math.pi * (position - block)
         self.jitter = generator(seed, "image", agent, index)
-        self._parts = [(rho * math.cos(angle), generator(seed, "image block", agent, block)),
-                       (rho * math.sin(angle), generator(seed, "image block", agent, block + 1)),
-                       (math.sqrt(max(0.0, 1.0 - rho * rho)), self.jitter)]
+        self._parts = [
+            (rho * math.cos(angle), generator(seed, "image block", agent, block)),
+            (rho * math.sin(angle), generator(seed, "image block", agent, block + 1)),
+            (math.sqrt(max(0.0, 1.0 - rho * rho)), self.jitter),
+        ]
 
     def normal(self, *shape: int) -> Tensor:
         """Standard normal draws of ``shape``."""
@@ -390,8 +425,9 @@ class ImageDraws:
         return sum(w * fourier_field(H, W, wavelength_px, modes, g) for w, g in self._parts)
 
 
-def predicted_rays(K: Tensor, H: int, W: int, config: SimulatedPriorConfig,
-                   draws: ImageDraws) -> Tensor:
+def predicted_rays(
+    K: Tensor, H: int, W: int, config: SimulatedPriorConfig, draws: ImageDraws
+) -> Tensor:
     """``(H, W, 3)`` unit rays the realistic prior believes in for one image.
 
     Pinhole rays of ``K`` with the focal scaled by ``exp(focal_error n)`` and the principal
@@ -450,13 +486,19 @@ def in_believed_camera(points: Tensor, rays: Tensor, pred_rays: Tensor, K: Tenso
     front = z[..., 0] > 1e-9
     xy = points[..., :2] / torch.where(front[..., None], z, torch.ones_like(z))
     pixels = reproducible_matmul(xy, K[:2, :2].T.to(xy)) + K[:2, 2].to(xy)
-    grid = torch.stack([2 * pixels[..., 0] / max(W - 1, 1) - 1,
-                        2 * pixels[..., 1] / max(H - 1, 1) - 1], dim=-1)
-    bend = F.grid_sample(remainder.permute(2, 0, 1)[None], grid.reshape(1, 1, -1, 2),
-                         mode="bilinear", padding_mode="border", align_corners=True)
-    believed_xy = (reproducible_matmul(torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1),
-                                       affine)
-                   + bend[0, :, 0].T.reshape(xy.shape))
+    grid = torch.stack(
+        [2 * pixels[..., 0] / max(W - 1, 1) - 1, 2 * pixels[..., 1] / max(H - 1, 1) - 1], dim=-1
+    )
+    bend = F.grid_sample(
+        remainder.permute(2, 0, 1)[None],
+        grid.reshape(1, 1, -1, 2),
+        mode="bilinear",
+        padding_mode="border",
+        align_corners=True,
+    )
+    believed_xy = reproducible_matmul(
+        torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1), affine
+    ) + bend[0, :, 0].T.reshape(xy.shape)
     direction = F.normalize(torch.cat([believed_xy, torch.ones_like(z)], dim=-1), dim=-1)
     moved = direction * points.norm(dim=-1, keepdim=True)
     return torch.where(front[..., None], moved, points)
@@ -473,8 +515,9 @@ def _least_squares(A: Tensor, B: Tensor) -> Tensor:
     return torch.linalg.solve(gram, rhs).to(A.dtype)
 
 
-def image_log_range_error(ranges: Tensor, valid: Tensor, config: SimulatedPriorConfig,
-                          draws: ImageDraws) -> Tensor:
+def image_log_range_error(
+    ranges: Tensor, valid: Tensor, config: SimulatedPriorConfig, draws: ImageDraws
+) -> Tensor:
     """``(H, W)`` per-image log-range error: shared smooth field, flying pixels, outliers.
 
     The smooth field comes from the image's sequence-correlated ``draws``; flying pixels and
@@ -486,23 +529,25 @@ def image_log_range_error(ranges: Tensor, valid: Tensor, config: SimulatedPriorC
     H, W = ranges.shape
     c = RealisticConstants
     gen = draws.jitter
-    field = draws.field(H, W, config.depth_distortion_wavelength * max(H, W),
-                        c.distortion_modes).to(ranges.device)
+    field = draws.field(
+        H, W, config.depth_distortion_wavelength * max(H, W), c.distortion_modes
+    ).to(ranges.device)
     log_error = config.image_distortion_amplitude * field
     far = torch.where(valid, ranges, torch.zeros_like(ranges))
     near = torch.where(valid, ranges, torch.full_like(ranges, math.inf))
     far = F.max_pool2d(far[None, None], 3, stride=1, padding=1)[0, 0]
     near = -F.max_pool2d(-near[None, None], 3, stride=1, padding=1)[0, 0]
-    jump = valid & (torch.log(far.clamp_min(1e-12)) - torch.log(near.clamp_min(1e-12))
-                    > c.edge_log_jump)
+    jump = valid & (
+        torch.log(far.clamp_min(1e-12)) - torch.log(near.clamp_min(1e-12)) > c.edge_log_jump
+    )
     draw = torch.rand(H, W, generator=gen).to(ranges.device)
     flying = jump & (draw < config.flying_pixel_fraction)
     where = torch.rand(H, W, generator=gen).to(ranges.device)
     flown = near + where * (far - near)
-    log_error = torch.where(flying, torch.log(flown.clamp_min(1e-12) / ranges.clamp_min(1e-12)),
-                            log_error)
-    outlier = valid & (torch.rand(H, W, generator=gen).to(ranges.device)
-                       < config.outlier_fraction)
+    log_error = torch.where(
+        flying, torch.log(flown.clamp_min(1e-12) / ranges.clamp_min(1e-12)), log_error
+    )
+    outlier = valid & (torch.rand(H, W, generator=gen).to(ranges.device) < config.outlier_fraction)
     jolt = c.outlier_log_sigma * torch.randn(H, W, generator=gen).to(ranges.device)
     log_error = torch.where(outlier, log_error + jolt, log_error)
     return torch.where(valid, log_error, torch.zeros_like(log_error))
@@ -515,7 +560,8 @@ def scale_drift(config: SimulatedPriorConfig, agent: int, index: int) -> float:
     gen = generator(config.seed, "scale drift", agent)
     modes = RealisticConstants.drift_modes
     wavelength = config.scale_drift_frames * torch.exp(
-        math.log(2.0) * (2.0 * torch.rand(modes, generator=gen, dtype=torch.float64) - 1.0))
+        math.log(2.0) * (2.0 * torch.rand(modes, generator=gen, dtype=torch.float64) - 1.0)
+    )
     phase = 2.0 * math.pi * torch.rand(modes, generator=gen, dtype=torch.float64)
     series = torch.cos(2.0 * math.pi * index / wavelength + phase).sum()
     return config.scale_drift * math.sqrt(2.0 / modes) * float(series)
@@ -535,8 +581,9 @@ def _heavy_tailed(sigma: float, dof: int, gen: torch.Generator) -> Tensor:
     return gaussian / math.sqrt(max(chi2, 1e-12) / dof)
 
 
-def perturb_pose_easy(R: Tensor, t: Tensor, config: SimulatedPriorConfig,
-                      gen: torch.Generator) -> tuple[Tensor, Tensor]:
+def perturb_pose_easy(
+    R: Tensor, t: Tensor, config: SimulatedPriorConfig, gen: torch.Generator
+) -> tuple[Tensor, Tensor]:
     """Rotation ``Exp(omega) R`` and translation ``t + delta``, Gaussian (easy model)."""
     sigma_rotation = math.radians(config.rotation_noise_deg) / math.sqrt(3.0)
     omega = sigma_rotation * torch.randn(3, generator=gen, dtype=torch.float64)
@@ -546,8 +593,9 @@ def perturb_pose_easy(R: Tensor, t: Tensor, config: SimulatedPriorConfig,
     return noise @ R, t + delta.to(t)
 
 
-def perturb_pose_realistic(R: Tensor, t: Tensor, unit: float, config: SimulatedPriorConfig,
-                           gen: torch.Generator) -> tuple[Tensor, Tensor]:
+def perturb_pose_realistic(
+    R: Tensor, t: Tensor, unit: float, config: SimulatedPriorConfig, gen: torch.Generator
+) -> tuple[Tensor, Tensor]:
     """Heavy-tailed pose error growing with the viewpoint change (module docstring, 4).
 
     Args:
@@ -556,8 +604,9 @@ def perturb_pose_realistic(R: Tensor, t: Tensor, unit: float, config: SimulatedP
     """
     change_deg = math.degrees(rotation_angle(R) + float(t.norm()) / unit)
     growth = 1.0 + config.pose_noise_growth * change_deg
-    omega = _heavy_tailed(math.radians(config.rotation_noise_deg) * growth,
-                          config.pose_tail_dof, gen)
+    omega = _heavy_tailed(
+        math.radians(config.rotation_noise_deg) * growth, config.pose_tail_dof, gen
+    )
     sigma_t = config.translation_noise * growth * float(t.norm()) + config.translation_floor * unit
     delta = _heavy_tailed(sigma_t, config.pose_tail_dof, gen)
     return quat_to_matrix(so3_exp(omega)).to(R) @ R, t + delta.to(t)
@@ -572,4 +621,5 @@ def error_logit(log_error: Tensor, config: SimulatedPriorConfig) -> Tensor:
     """Confidence-logit drop for a pixel's injected log-range error (module docstring, 7)."""
     c = RealisticConstants
     return config.confidence_error_slope * (log_error.abs() / c.conf_error_ref).clamp_max(
-        c.conf_error_cap)
+        c.conf_error_cap
+    )

@@ -27,18 +27,24 @@ if TYPE_CHECKING:
     from como3r.prior.simulated import SimulatedConstants, SimulatedEncoding
 
 
-def match_keys(enc_i: SimulatedEncoding, enc_j: SimulatedEncoding, c: SimulatedConstants,
-               gen: torch.Generator) -> KeyMatches:
+def match_keys(
+    enc_i: SimulatedEncoding, enc_j: SimulatedEncoding, c: SimulatedConstants, gen: torch.Generator
+) -> KeyMatches:
     """Key-cell matches of the pair; the cell is ``cell_per_footprint`` times the coarser
     of the two median footprints, so both views sample almost every cell they share."""
     cell = c.cell_per_footprint * max(enc_i.median_footprint, enc_j.median_footprint, 1e-6)
-    return match_key_cells(enc_i.key_ids, enc_i.key_coords, enc_j.key_ids,
-                           enc_j.key_coords, cell, gen)
+    return match_key_cells(
+        enc_i.key_ids, enc_i.key_coords, enc_j.key_ids, enc_j.key_coords, cell, gen
+    )
 
 
-def robust_fit(enc_i: SimulatedEncoding, enc_j: SimulatedEncoding, matches: KeyMatches,
-               c: SimulatedConstants, gen: torch.Generator
-               ) -> tuple[Tensor, Tensor, Tensor] | None:
+def robust_fit(
+    enc_i: SimulatedEncoding,
+    enc_j: SimulatedEncoding,
+    matches: KeyMatches,
+    c: SimulatedConstants,
+    gen: torch.Generator,
+) -> tuple[Tensor, Tensor, Tensor] | None:
     """RANSAC similarity ``x_i = s R x_j + t`` from the key matches, None if unsupported.
 
     Hypotheses are minimal 3-point similarities scored by their inliers (distance below
@@ -57,8 +63,7 @@ def robust_fit(enc_i: SimulatedEncoding, enc_j: SimulatedEncoding, matches: KeyM
     keep = keep.to(matches.pixels_j.device)
     pixels_i, pixels_j = matches.pixels_i[keep], matches.pixels_j[keep]
     src = true_points(enc_j).reshape(-1, 3)[pixels_j].double()
-    dst = _point_at_key(enc_i, pixels_i, enc_j.key_coords.reshape(-1, 3)[pixels_j],
-                        c.newton_steps)
+    dst = _point_at_key(enc_i, pixels_i, enc_j.key_coords.reshape(-1, 3)[pixels_j], c.newton_steps)
     # Hypotheses are scored on a subset; the refinement below uses every correspondence.
     scored = slice(0, c.ransac_scored_correspondences)
     samples = torch.randint(0, src.shape[0], (c.ransac_hypotheses, 3), generator=gen)
@@ -84,8 +89,9 @@ def robust_fit(enc_i: SimulatedEncoding, enc_j: SimulatedEncoding, matches: KeyM
     return quat_to_matrix(T[3:7]), T[:3], T[7]
 
 
-def _point_at_key(enc: SimulatedEncoding, pixels: Tensor, keys: Tensor,
-                  newton_steps: int) -> Tensor:
+def _point_at_key(
+    enc: SimulatedEncoding, pixels: Tensor, keys: Tensor, newton_steps: int
+) -> Tensor:
     """``(M, 3)`` float64 points of ``enc`` at exactly ``keys`` ``(M, 3)``, starting from
     pixels of the same key cell.
 
@@ -107,19 +113,19 @@ def _point_at_key(enc: SimulatedEncoding, pixels: Tensor, keys: Tensor,
         v = (pixels // W + step[:, 1]).clamp(0, H - 1)
         candidate = v * W + u
         candidate_to_pixel, candidate_jacobian = key_jacobians(
-            enc.key_ids, enc.key_coords, points, candidate)
-        better = (ids[candidate] == ids[pixels]) & (
-            candidate_to_pixel.abs().sum((1, 2)) > 0)
+            enc.key_ids, enc.key_coords, points, candidate
+        )
+        better = (ids[candidate] == ids[pixels]) & (candidate_to_pixel.abs().sum((1, 2)) > 0)
         pixels = torch.where(better, candidate, pixels)
         key_to_pixel = torch.where(better[:, None, None], candidate_to_pixel, key_to_pixel)
         jacobian = torch.where(better[:, None, None], candidate_jacobian, jacobian)
     offset = (keys - coords[pixels]).double()
-    return (points.reshape(-1, 3)[pixels].double()
-            + (jacobian.double() @ offset[:, :, None])[..., 0])
+    return points.reshape(-1, 3)[pixels].double() + (jacobian.double() @ offset[:, :, None])[..., 0]
 
 
-def _refit(src: Tensor, dst: Tensor, inliers: Tensor, threshold: float,
-           min_inliers: int) -> tuple[Tensor, Tensor] | None:
+def _refit(
+    src: Tensor, dst: Tensor, inliers: Tensor, threshold: float, min_inliers: int
+) -> tuple[Tensor, Tensor] | None:
     """Umeyama fit on ``inliers`` and its inliers within ``threshold``; None if the fit
     is degenerate or keeps too few inliers (then the previous fit stands)."""
     if int(inliers.sum()) < min_inliers:

@@ -111,8 +111,9 @@ def keys_from_world(points_C: Tensor, T_WC: Tensor, valid: Tensor) -> tuple[Tens
     return ids, torch.where(valid[..., None], world, torch.zeros_like(world))
 
 
-def _neighbour_differences(ids: Tensor, coords: Tensor, values: Tensor | None,
-                           pixels: Tensor) -> tuple[Tensor, Tensor | None, Tensor]:
+def _neighbour_differences(
+    ids: Tensor, coords: Tensor, values: Tensor | None, pixels: Tensor
+) -> tuple[Tensor, Tensor | None, Tensor]:
     """Finite differences of the keys (and ``values``) at ``pixels`` along u and v.
 
     Along each axis, of the two neighbours sharing the pixel's (valid) id, the one with the
@@ -149,8 +150,9 @@ def _neighbour_differences(ids: Tensor, coords: Tensor, values: Tensor | None,
     flat_values = values.reshape(H * W, -1)
     dv = sign * (flat_values[other] - flat_values[pixels, None])
     channels = flat_values.shape[1]
-    best_dv = dv.view(-1, 2, 2, channels).gather(
-        2, side[..., None].expand(-1, -1, -1, channels))[:, :, 0]
+    best_dv = dv.view(-1, 2, 2, channels).gather(2, side[..., None].expand(-1, -1, -1, channels))[
+        :, :, 0
+    ]
     return best_dk, best_dv, best_step
 
 
@@ -167,8 +169,9 @@ def key_footprint(ids: Tensor, coords: Tensor, fallback: Tensor, max_ratio: floa
     Returns:
         ``(H, W)`` root-mean-square of the key steps along u and v.
     """
-    steps = _neighbour_differences(ids, coords, None, torch.arange(ids.numel(),
-                                                                    device=ids.device))[2]
+    steps = _neighbour_differences(ids, coords, None, torch.arange(ids.numel(), device=ids.device))[
+        2
+    ]
     step_u, step_v = steps.unbind(-1)
     finite_u, finite_v = torch.isfinite(step_u), torch.isfinite(step_v)
     step_u, step_v = torch.where(finite_u, step_u, step_v), torch.where(finite_v, step_v, step_u)
@@ -177,8 +180,9 @@ def key_footprint(ids: Tensor, coords: Tensor, fallback: Tensor, max_ratio: floa
     return torch.minimum(torch.maximum(footprint, fallback / max_ratio), fallback * max_ratio)
 
 
-def key_jacobians(ids: Tensor, coords: Tensor, points: Tensor,
-                  pixels: Tensor) -> tuple[Tensor, Tensor]:
+def key_jacobians(
+    ids: Tensor, coords: Tensor, points: Tensor, pixels: Tensor
+) -> tuple[Tensor, Tensor]:
     """Local maps from key offsets to pixel offsets and to camera points at ``pixels``.
 
     From finite differences with the neighbours on the same surface, with ``dK``, ``dX``
@@ -236,8 +240,14 @@ class KeyMatches(NamedTuple):
     cell: float  # cell size, metres
 
 
-def match_key_cells(ids_i: Tensor, coords_i: Tensor, ids_j: Tensor, coords_j: Tensor,
-                    cell: float, gen: torch.Generator) -> KeyMatches:
+def match_key_cells(
+    ids_i: Tensor,
+    coords_i: Tensor,
+    ids_j: Tensor,
+    coords_j: Tensor,
+    cell: float,
+    gen: torch.Generator,
+) -> KeyMatches:
     """Pixels of two views whose keys fall in the same cell (what a learned matcher pairs).
 
     Args:
@@ -267,8 +277,9 @@ def match_key_cells(ids_i: Tensor, coords_i: Tensor, ids_j: Tensor, coords_j: Te
     counterpart_j[keyed_j[order_j]] = count > 0
     offset = torch.rand(found.shape[0], generator=gen).to(count.device) * count[found]
     pick = first[found] + torch.minimum(offset.long(), count[found] - 1)
-    return KeyMatches(counterpart_i, counterpart_j, keyed_i[order_i[pick]],
-                      keyed_j[order_j[found]], cell)
+    return KeyMatches(
+        counterpart_i, counterpart_j, keyed_i[order_i[pick]], keyed_j[order_j[found]], cell
+    )
 
 
 class RandomFeatureMap:
@@ -297,9 +308,18 @@ class RandomFeatureMap:
             interest: 4 tiles of the descriptors' 200x band span 13 decades either way).
     """
 
-    def __init__(self, dim: int, seed: int, wavelength_min: float, wavelength_max: float,
-                 id_weight: float, blur: float, coarse_footprints: float, name: str,
-                 tiles: int = 4) -> None:
+    def __init__(
+        self,
+        dim: int,
+        seed: int,
+        wavelength_min: float,
+        wavelength_max: float,
+        id_weight: float,
+        blur: float,
+        coarse_footprints: float,
+        name: str,
+        tiles: int = 4,
+    ) -> None:
         self.dim = dim
         self.seed = seed
         self.id_weight = id_weight
@@ -313,44 +333,55 @@ class RandomFeatureMap:
             math.log(wavelength_min), math.log(wavelength_max), generator=gen
         )
         self._lambda = torch.exp(log_lambda)
-        base_angle = torch.empty(dim, dtype=torch.float64).uniform_(0.0, 2.0 * math.pi,
-                                                                    generator=gen)
+        base_angle = torch.empty(dim, dtype=torch.float64).uniform_(
+            0.0, 2.0 * math.pi, generator=gen
+        )
         base_spatial = torch.randn(dim, 3, dtype=torch.float64, generator=gen)
-        base_phase = torch.empty(dim, dtype=torch.float64).uniform_(0.0, 2.0 * math.pi,
-                                                                    generator=gen)
-        self._tiles = {k: self._tile(k, base_angle, base_spatial, base_phase)
-                       for k in range(-tiles, tiles + 1)}
+        base_phase = torch.empty(dim, dtype=torch.float64).uniform_(
+            0.0, 2.0 * math.pi, generator=gen
+        )
+        self._tiles = {
+            k: self._tile(k, base_angle, base_spatial, base_phase) for k in range(-tiles, tiles + 1)
+        }
         self._embeddings: dict[int, Tensor] = {}
 
-    def _tile(self, k: int, angle: Tensor, spatial: Tensor,
-              phase: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def _tile(
+        self, k: int, angle: Tensor, spatial: Tensor, phase: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """``(omega_surface (dim, 3), omega_world (dim, 3), phase (dim,), lambda (dim,))`` of
         tile ``k``; tile 0 uses the base draws, the others their own."""
         if k != 0:
             gen = generator(self.seed, self.name, "tile", k)
-            angle = torch.empty(self.dim, dtype=torch.float64).uniform_(0.0, 2.0 * math.pi,
-                                                                        generator=gen)
+            angle = torch.empty(self.dim, dtype=torch.float64).uniform_(
+                0.0, 2.0 * math.pi, generator=gen
+            )
             spatial = torch.randn(self.dim, 3, dtype=torch.float64, generator=gen)
-            phase = torch.empty(self.dim, dtype=torch.float64).uniform_(0.0, 2.0 * math.pi,
-                                                                        generator=gen)
-        wavelength = self._lambda * self.ratio ** k
+            phase = torch.empty(self.dim, dtype=torch.float64).uniform_(
+                0.0, 2.0 * math.pi, generator=gen
+            )
+        wavelength = self._lambda * self.ratio**k
         magnitude = 2.0 * math.pi / wavelength
         planar = torch.stack([torch.cos(angle), torch.sin(angle), torch.zeros_like(angle)], -1)
         spatial = spatial / spatial.norm(dim=-1, keepdim=True)
-        return ((planar * magnitude[:, None]).float(), (spatial * magnitude[:, None]).float(),
-                phase.float(), wavelength.float())
+        return (
+            (planar * magnitude[:, None]).float(),
+            (spatial * magnitude[:, None]).float(),
+            phase.float(),
+            wavelength.float(),
+        )
 
     def _band(self, k: int) -> tuple[float, float]:
         """Shortest and longest wavelength of tile ``k``."""
-        return self._base_band[0] * self.ratio ** k, self._base_band[1] * self.ratio ** k
+        return self._base_band[0] * self.ratio**k, self._base_band[1] * self.ratio**k
 
     def _in_band(self, k: int, footprint: Tensor) -> Tensor:
         """``(N,)`` bool: some wavelength of tile ``k`` keeps 1 % of its amplitude at the
         footprint, i.e. lies between ``1.04 blur`` and ``3.03 coarse_footprints`` footprints."""
         cut = math.sqrt(2.0 * math.log(100.0))
         shortest, longest = self._band(k)
-        return ((longest >= footprint * (2.0 * math.pi * self.blur / cut))
-                & (shortest <= footprint * (self.coarse_footprints * cut)))
+        return (longest >= footprint * (2.0 * math.pi * self.blur / cut)) & (
+            shortest <= footprint * (self.coarse_footprints * cut)
+        )
 
     def embedding(self, key_id: int) -> Tensor:
         """``(dim,)`` float32 random unit vector of a texture id (cached)."""
@@ -367,8 +398,13 @@ class RandomFeatureMap:
         table = torch.stack([self.embedding(int(i)) for i in unique.tolist()])
         return table.to(ids.device)[inverse]
 
-    def _tile_waves(self, tile: tuple[Tensor, Tensor, Tensor, Tensor], coords: Tensor,
-                    footprint: Tensor, is_world: Tensor | None) -> Tensor:
+    def _tile_waves(
+        self,
+        tile: tuple[Tensor, Tensor, Tensor, Tensor],
+        coords: Tensor,
+        footprint: Tensor,
+        is_world: Tensor | None,
+    ) -> Tensor:
         """``(N, dim)`` attenuated cosines of one tile at ``(N, 3)`` keys (class docstring);
         ``is_world`` marks world keys (None: none)."""
         omega_surface, omega_world, phi, wavelength = (t.to(coords.device) for t in tile)
@@ -403,8 +439,13 @@ class RandomFeatureMap:
         for k, tile in self._tiles.items():
             rows = torch.nonzero(self._in_band(k, footprint))[:, 0]
             if rows.numel():
-                waves.index_add_(0, rows, self._tile_waves(
-                    tile, coords[rows], footprint[rows], is_world[rows] if any_world else None))
+                waves.index_add_(
+                    0,
+                    rows,
+                    self._tile_waves(
+                        tile, coords[rows], footprint[rows], is_world[rows] if any_world else None
+                    ),
+                )
         waves *= math.sqrt(2.0 / self.dim)
         if bool(is_world.all()):
             return waves  # world keys carry no texture: a shared embedding would only blur

@@ -15,8 +15,8 @@ import logging
 import math
 import os
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -35,10 +35,17 @@ def _noisy_unit(mean: Tensor, noise: float, gen: torch.Generator) -> Tensor:
     return F.normalize(unit + noise / math.sqrt(mean.shape[-1]) * perturbation, dim=-1)
 
 
-def patch_features(feature_map: RandomFeatureMap, key_ids: Tensor, key_coords: Tensor,
-                   footprint: Tensor, patch: int, stride: int, noise: float,
-                   gen: torch.Generator, appearance: tuple[Tensor, Tensor] | None = None
-                   ) -> tuple[Tensor, Tensor]:
+def patch_features(
+    feature_map: RandomFeatureMap,
+    key_ids: Tensor,
+    key_coords: Tensor,
+    footprint: Tensor,
+    patch: int,
+    stride: int,
+    noise: float,
+    gen: torch.Generator,
+    appearance: tuple[Tensor, Tensor] | None = None,
+) -> tuple[Tensor, Tensor]:
     """Descriptor and keyed fraction of every whole ``patch x patch`` patch of a view.
 
     Keys are sampled every ``stride`` pixels and their features blurred by that footprint.
@@ -84,8 +91,9 @@ def mix_appearance(keys: Tensor, appearance: Tensor, weight: Tensor) -> Tensor:
     return w * F.normalize(keys, dim=-1) + (1.0 - w) * appearance.to(keys)
 
 
-def select_patches(descriptors: Tensor, attention: Tensor, max_features: int,
-                   min_attention: float) -> tuple[Tensor, Tensor]:
+def select_patches(
+    descriptors: Tensor, attention: Tensor, max_features: int, min_attention: float
+) -> tuple[Tensor, Tensor]:
     """Top ``max_features`` patches by attention among those with at least
     ``min_attention`` (all patches if none has), highest first.
 
@@ -105,9 +113,15 @@ def select_patches(descriptors: Tensor, attention: Tensor, max_features: int,
     return descriptors[chosen], attention[chosen]
 
 
-def synthetic_patch_features(feature_map: RandomFeatureMap, count: int, patch: int,
-                             stride: int, noise: float, world_fraction: float,
-                             gen: torch.Generator) -> Tensor:
+def synthetic_patch_features(
+    feature_map: RandomFeatureMap,
+    count: int,
+    patch: int,
+    stride: int,
+    noise: float,
+    world_fraction: float,
+    gen: torch.Generator,
+) -> Tensor:
     """Descriptors ``(count, d)`` of random planar patches, sampled as :func:`patch_features`
     samples a view.
 
@@ -119,25 +133,32 @@ def synthetic_patch_features(feature_map: RandomFeatureMap, count: int, patch: i
     per = patch // stride
     world = torch.rand(count, generator=gen) < world_fraction
     ids = torch.where(world, WORLD_KEY_ID, torch.randint(0, 256, (count,), generator=gen))
-    surface_origin = torch.cat([100.0 * torch.rand(count, 2, generator=gen),
-                                torch.zeros(count, 1)], dim=-1)
+    surface_origin = torch.cat(
+        [100.0 * torch.rand(count, 2, generator=gen), torch.zeros(count, 1)], dim=-1
+    )
     world_origin = 400.0 * torch.rand(count, 3, generator=gen) - 200.0
     origin = torch.where(world[:, None], world_origin, surface_origin)
     # in-plane axes: a random 2-D rotation of (s, t), or two random orthonormal 3-D vectors
     spatial_axes = torch.linalg.qr(torch.randn(count, 3, 3, generator=gen)).Q[..., :2]
     angle = 2.0 * math.pi * torch.rand(count, generator=gen)
     cos, sin, zero = torch.cos(angle), torch.sin(angle), torch.zeros(count)
-    planar_axes = torch.stack([torch.stack([cos, -sin], -1), torch.stack([sin, cos], -1),
-                               torch.stack([zero, zero], -1)], dim=1)
+    planar_axes = torch.stack(
+        [torch.stack([cos, -sin], -1), torch.stack([sin, cos], -1), torch.stack([zero, zero], -1)],
+        dim=1,
+    )
     axes = torch.where(world[:, None, None], spatial_axes, planar_axes)
     pixel = torch.exp(torch.empty(count).uniform_(math.log(3e-3), math.log(0.3), generator=gen))
     step = stride * pixel
-    grid = torch.stack(torch.meshgrid(torch.arange(per), torch.arange(per), indexing="ij"),
-                       dim=-1).reshape(-1, 2).float()
+    grid = (
+        torch.stack(torch.meshgrid(torch.arange(per), torch.arange(per), indexing="ij"), dim=-1)
+        .reshape(-1, 2)
+        .float()
+    )
     coords = origin[:, None] + step[:, None, None] * (grid @ axes.transpose(1, 2))
     samples = per * per
-    features = feature_map(ids.repeat_interleave(samples), coords.reshape(-1, 3),
-                           step.repeat_interleave(samples))
+    features = feature_map(
+        ids.repeat_interleave(samples), coords.reshape(-1, 3), step.repeat_interleave(samples)
+    )
     return _noisy_unit(features.reshape(count, samples, -1).mean(1), noise, gen)
 
 
@@ -147,8 +168,9 @@ def default_cache_dir() -> Path:
     return Path(root) / "como3r"
 
 
-def cached_array(path: Path, shape: tuple[int, ...],
-                 compute: Callable[[], np.ndarray]) -> np.ndarray:
+def cached_array(
+    path: Path, shape: tuple[int, ...], compute: Callable[[], np.ndarray]
+) -> np.ndarray:
     """The float32 array cached at ``path`` (``.npy``), computed and stored if absent.
 
     A file of another shape or dtype is recomputed. The file is written to a temporary

@@ -71,14 +71,21 @@ class WeightFile:
 # 2026-11 (GitHub code and issues, web pages). Until one is published, `como3r weights fetch`
 # accepts them only with --trust-unverified and prints the SHA-256 it computed.
 WEIGHT_FILES: tuple[WeightFile, ...] = (
-    WeightFile("checkpoint", "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth", None,
-               "--weights"),
-    WeightFile("retrieval",
-               "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric_retrieval_trainingfree.pth",
-               None, "--retrieval-weights"),
-    WeightFile("codebook",
-               "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric_retrieval_codebook.pkl",
-               None, "--codebook"),
+    WeightFile(
+        "checkpoint", "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth", None, "--weights"
+    ),
+    WeightFile(
+        "retrieval",
+        "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric_retrieval_trainingfree.pth",
+        None,
+        "--retrieval-weights",
+    ),
+    WeightFile(
+        "codebook",
+        "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric_retrieval_codebook.pkl",
+        None,
+        "--codebook",
+    ),
 )
 
 
@@ -114,11 +121,16 @@ def cached_file(role: str, home: Path | None = None) -> Path:
     file = weight_file(role)
     path = (home or weights_home()) / file.filename
     if not path.is_file():
-        fetch = ("`como3r weights fetch`" if all(f.sha256 for f in WEIGHT_FILES) else
-                 "`como3r weights fetch --trust-unverified` (no official SHA-256 is published "
-                 "for the release)")
-        raise InputError(f"--prior mast3r: no {file.filename} in {path.parent}; run {fetch} "
-                         f"or pass {file.option} FILE")
+        fetch = (
+            "`como3r weights fetch`"
+            if all(f.sha256 for f in WEIGHT_FILES)
+            else "`como3r weights fetch --trust-unverified` (no official SHA-256 is published "
+            "for the release)"
+        )
+        raise InputError(
+            f"--prior mast3r: no {file.filename} in {path.parent}; run {fetch} "
+            f"or pass {file.option} FILE"
+        )
     return path
 
 
@@ -148,8 +160,7 @@ class FileStatus:
     sha256: str | None
 
 
-def file_status(file: WeightFile, home: Path | None = None, rehash: bool = False
-                ) -> FileStatus:
+def file_status(file: WeightFile, home: Path | None = None, rehash: bool = False) -> FileStatus:
     """The state of one release file in the cache; ``rehash`` recomputes its SHA-256
     instead of trusting the ``.sha256`` written when it was fetched."""
     path = (home or weights_home()) / file.filename
@@ -211,12 +222,17 @@ def check_trust(files: Sequence[WeightFile], trust_unverified: bool) -> None:
         raise CheckpointError(
             f"no official SHA-256 is published for {', '.join(unknown)}: como3r cannot "
             "verify them; `como3r weights fetch --trust-unverified` downloads them all the "
-            "same and prints the SHA-256 it computed")
+            "same and prints the SHA-256 it computed"
+        )
 
 
-def fetch_file(file: WeightFile, home: Path | None = None, url: str | None = None,
-               trust_unverified: bool = False, progress: Progress | None = None
-               ) -> FileStatus:
+def fetch_file(
+    file: WeightFile,
+    home: Path | None = None,
+    url: str | None = None,
+    trust_unverified: bool = False,
+    progress: Progress | None = None,
+) -> FileStatus:
     """Download one release file into the cache (resuming a ``.part``) and accept it.
 
     Args:
@@ -262,8 +278,10 @@ def _accept(file: WeightFile, path: Path, digest: str, what: str) -> None:
     """
     if file.sha256 is not None and digest != file.sha256:
         path.unlink()
-        raise CheckpointError(f"{file.filename}: SHA-256 {digest} is not the official "
-                              f"{file.sha256}; {what} was deleted")
+        raise CheckpointError(
+            f"{file.filename}: SHA-256 {digest} is not the official "
+            f"{file.sha256}; {what} was deleted"
+        )
     _digest_file(path.with_name(file.filename)).write_text(f"{digest}  {file.filename}\n")
 
 
@@ -290,8 +308,10 @@ def _download(url: str, part: Path, progress: Progress | None) -> str:
             return digest.hexdigest()
         if exc.code == 416:  # longer than the server's file: not a prefix of it
             part.unlink()
-            raise DownloadError(f"{url}: the partial download was longer than the file on "
-                                "the server and was deleted; run again") from None
+            raise DownloadError(
+                f"{url}: the partial download was longer than the file on "
+                "the server and was deleted; run again"
+            ) from None
         raise DownloadError(f"{url}: HTTP {exc.code} {exc.reason}") from None
     except (urllib.error.URLError, OSError) as exc:
         reason = getattr(exc, "reason", exc)
@@ -306,8 +326,9 @@ def _download(url: str, part: Path, progress: Progress | None) -> str:
     return digest.hexdigest()
 
 
-def _append(response, part: Path, digest, done: int, total: int | None,
-            progress: Progress | None, url: str) -> None:
+def _append(
+    response, part: Path, digest, done: int, total: int | None, progress: Progress | None, url: str
+) -> None:
     """Stream ``response`` onto the end of ``part`` (a new file when ``done`` is 0),
     updating ``digest``.
 
@@ -324,11 +345,13 @@ def _append(response, part: Path, digest, done: int, total: int | None,
                 if progress is not None:
                     progress(done, total)
         except (OSError, http.client.HTTPException) as exc:
-            raise DownloadError(f"{url}: transfer broke after {done} bytes ({exc}); run "
-                                "again to resume") from None
+            raise DownloadError(
+                f"{url}: transfer broke after {done} bytes ({exc}); run again to resume"
+            ) from None
     if total is not None and done != total:
-        raise DownloadError(f"{url}: the connection closed after {done} of {total} bytes; "
-                            "run again to resume")
+        raise DownloadError(
+            f"{url}: the connection closed after {done} of {total} bytes; run again to resume"
+        )
 
 
 def _total_of(content_range: str | None) -> int | None:

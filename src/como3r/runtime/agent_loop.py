@@ -78,8 +78,9 @@ class AgentLoop:
         live: takes each frame's live event (None: no event is built).
     """
 
-    def __init__(self, frontend: AgentFrontend, keyframe: KeyframeSink,
-                 live: FrameEventSink | None = None) -> None:
+    def __init__(
+        self, frontend: AgentFrontend, keyframe: KeyframeSink, live: FrameEventSink | None = None
+    ) -> None:
         self.frontend = frontend
         self.keyframe = keyframe
         self.live = live
@@ -96,15 +97,15 @@ class AgentLoop:
         """
         # the agent's wall time includes waiting for its input and encoding
         self.frontend.timer.charge("prior_encode", time.perf_counter() - started)
-        outcome = self.frontend.process(frame.view, frame.timestamp, frame.colors,
-                                        frame.encoding)
+        outcome = self.frontend.process(frame.view, frame.timestamp, frame.colors, frame.encoding)
         seconds = time.perf_counter() - started
         self.seconds += seconds
         # the event shows the frame as tracked: in one process, the keyframes' hand-out
         # applies the coordinator's pose updates at once
         if self.live is not None:
-            self.live(frame_event(self.frontend, frame.index, frame.timestamp, outcome,
-                                  frame.colors))
+            self.live(
+                frame_event(self.frontend, frame.index, frame.timestamp, outcome, frame.colors)
+            )
         self._hand_out()
         if MALLOC_TRIM is not None:
             MALLOC_TRIM(0)

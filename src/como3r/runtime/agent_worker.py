@@ -17,9 +17,10 @@ import logging
 import os
 import time
 import traceback
+from collections.abc import Iterator
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import torch
 
@@ -65,8 +66,9 @@ def agent_process_main(agent: int, inbox: Connection, outbox: Connection) -> Non
         channel.close()
         return
     channel.max_bytes = task.max_message_bytes
-    logging.basicConfig(level=task.log_level,
-                        format=f"[agent {agent}] %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=task.log_level, format=f"[agent {agent}] %(levelname)s %(name)s: %(message)s"
+    )
     run_agent(task, channel, input_checked=True)
 
 
@@ -89,8 +91,7 @@ def run_agent(task: AgentTask, link: AgentLink, input_checked: bool = False) -> 
     except (EOFError, KeyboardInterrupt):
         pass  # the coordinator is gone or the user interrupted: nothing to report to
     except Exception as exc:
-        _report_failure(link, task.agent, exc,
-                        worker.current_frame if worker is not None else -1)
+        _report_failure(link, task.agent, exc, worker.current_frame if worker is not None else -1)
     finally:
         link.close()
     return ok
@@ -99,8 +100,11 @@ def run_agent(task: AgentTask, link: AgentLink, input_checked: bool = False) -> 
 def _report_failure(link: AgentLink, agent: int, exc: Exception, frame: int) -> None:
     details = "" if isinstance(exc, Como3rError) else traceback.format_exc()
     logger.error("agent %d failed: %s: %s", agent, type(exc).__name__, exc)
-    link.send(AgentFailed(agent=agent, error=f"{type(exc).__name__}: {exc}", details=details,
-                          frame_index=frame))
+    link.send(
+        AgentFailed(
+            agent=agent, error=f"{type(exc).__name__}: {exc}", details=details, frame_index=frame
+        )
+    )
 
 
 class AgentWorker:
@@ -113,32 +117,47 @@ class AgentWorker:
         self.config = config_from_dict(Config, task.config)
         spec = prior_spec(task.prior)
         with quiet_reading() if input_checked else contextlib.nullcontext():
-            self.input = open_agent(task.input_path, fps=self.config.input.frame_rate_hz,
-                                    format=self.config.input.format,
-                                    topic=self.config.input.topic)
-        self.prior, codebook = build_prior(spec, self.config, {task.agent: self.input},
-                                           quiet=True)  # the coordinator says it once
+            self.input = open_agent(
+                task.input_path,
+                fps=self.config.input.frame_rate_hz,
+                format=self.config.input.format,
+                topic=self.config.input.topic,
+            )
+        self.prior, codebook = build_prior(
+            spec, self.config, {task.agent: self.input}, quiet=True
+        )  # the coordinator says it once
         self.frontend = AgentFrontend(
-            self.prior, self.config, task.agent, codebook,
-            upsampling(self.input.image_size, self.config.input.long_side))
-        self.loop = AgentLoop(self.frontend, self._send_keyframe,
-                              self.channel.send if task.live else None)
-        self.frames = [int(i) for i in run_frames(self.input, self.config.input.subsample,
-                                                  spec.name, start=task.resume_after + 1)]
+            self.prior,
+            self.config,
+            task.agent,
+            codebook,
+            upsampling(self.input.image_size, self.config.input.long_side),
+        )
+        self.loop = AgentLoop(
+            self.frontend, self._send_keyframe, self.channel.send if task.live else None
+        )
+        self.frames = [
+            int(i)
+            for i in run_frames(
+                self.input, self.config.input.subsample, spec.name, start=task.resume_after + 1
+            )
+        ]
         self.applied_seq = 0
         self.current_frame = -1
 
     def run(self) -> bool:
         """Process every frame and send the final report; False when stopped early (a
         :class:`Shutdown`)."""
-        self.channel.send(AgentStarted(agent=self.task.agent, pid=os.getpid(),
-                                       frames=len(self.frames)))
+        self.channel.send(
+            AgentStarted(agent=self.task.agent, pid=os.getpid(), frames=len(self.frames))
+        )
         agent, long_side = self.task.agent, self.config.input.long_side
         frames = prepared_frames(
             ((agent, index) for index in self.frames),
             lambda a, i: load_frame(self.input, a, i, long_side, self.config.calibrated),
             self.prior,
-            self.config.input.prefetch_frames)
+            self.config.input.prefetch_frames,
+        )
         with contextlib.closing(frames):
             for index in self.frames:
                 ready = self._await_step(index) if self.task.lockstep else self._drain_inbox()
@@ -159,18 +178,26 @@ class AgentWorker:
         self.current_frame = index
         start = time.perf_counter()
         step = self.loop.step(next(frames), start)
-        self.channel.send(FrameDone(agent=self.task.agent, frame_index=step.index,
-                                    timestamp=step.timestamp, outcome=step.outcome,
-                                    seconds=step.seconds,
-                                    keyframes_waiting=len(self.frontend.new_keyframes)))
+        self.channel.send(
+            FrameDone(
+                agent=self.task.agent,
+                frame_index=step.index,
+                timestamp=step.timestamp,
+                outcome=step.outcome,
+                seconds=step.seconds,
+                keyframes_waiting=len(self.frontend.new_keyframes),
+            )
+        )
 
     def _send_keyframe(self, packet: KeyframePacket) -> None:
         """Send a keyframe with the pose its predecessor had here: the coordinator
         re-anchors one exported before an update reached this agent on it (C-Sec. A.8)."""
-        previous = (self.frontend.keyframes[packet.kf_id - 1].T_WC.clone()
-                    if packet.kf_id > 0 else None)
-        self.channel.send(KeyframeMessage(packet=packet, applied_seq=self.applied_seq,
-                                          T_WC_previous=previous))
+        previous = (
+            self.frontend.keyframes[packet.kf_id - 1].T_WC.clone() if packet.kf_id > 0 else None
+        )
+        self.channel.send(
+            KeyframeMessage(packet=packet, applied_seq=self.applied_seq, T_WC_previous=previous)
+        )
 
     def _handle(self, message: Any) -> bool:
         """Apply one coordinator message; False on Shutdown."""
@@ -181,8 +208,9 @@ class AgentWorker:
             if message.seq <= self.applied_seq and message.update.agent == self.task.agent:
                 return True  # sent again after a reconnect: applied already
             if message.seq != self.applied_seq + 1 or message.update.agent != self.task.agent:
-                raise codec.MessageError(f"pose update {message.seq} for agent "
-                                         f"{message.update.agent} out of sequence")
+                raise codec.MessageError(
+                    f"pose update {message.seq} for agent {message.update.agent} out of sequence"
+                )
             self.frontend.apply_pose_update(message.update)
             self.applied_seq = message.seq
             return True
@@ -201,8 +229,9 @@ class AgentWorker:
             message = self.channel.receive()
             if isinstance(message, Step):
                 if message.frame_index != index:
-                    raise codec.MessageError(f"step for frame {message.frame_index}, "
-                                             f"expected frame {index}")
+                    raise codec.MessageError(
+                        f"step for frame {message.frame_index}, expected frame {index}"
+                    )
                 return True
             if not self._handle(message):
                 return False
@@ -213,14 +242,17 @@ PATH_FIELDS = ("weights", "retrieval_weights", "codebook")
 
 def prior_fields(spec: PriorSpec) -> dict[str, Any]:
     """``AgentTask.prior`` of a prior specification (paths as strings)."""
-    return {"name": spec.name, "device": spec.device, "precision": spec.precision,
-            **{k: (None if getattr(spec, k) is None else str(getattr(spec, k)))
-               for k in PATH_FIELDS}}
+    return {
+        "name": spec.name,
+        "device": spec.device,
+        "precision": spec.precision,
+        **{k: (None if getattr(spec, k) is None else str(getattr(spec, k))) for k in PATH_FIELDS},
+    }
 
 
 def prior_spec(fields: dict[str, Any]) -> PriorSpec:
     """The prior specification of ``AgentTask.prior`` (the inverse of :func:`prior_fields`;
     a task without ``precision`` gets the default)."""
-    return PriorSpec(**{k: (Path(v) if k in PATH_FIELDS and v is not None else v)
-                        for k, v in fields.items()})
-
+    return PriorSpec(
+        **{k: (Path(v) if k in PATH_FIELDS and v is not None else v) for k, v in fields.items()}
+    )

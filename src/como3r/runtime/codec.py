@@ -40,8 +40,9 @@ import math
 import threading
 import types
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, Union
+from typing import Any, Union
 
 import msgpack
 import numpy as np
@@ -95,8 +96,11 @@ ARRAY_DTYPES: dict[str, tuple[np.dtype | None, torch.dtype]] = {
 """Allow-list of array dtypes: wire name -> (little-endian numpy dtype, torch dtype)."""
 
 _TORCH_NAMES = {torch_dtype: name for name, (_, torch_dtype) in ARRAY_DTYPES.items()}
-_NUMPY_NAMES = {np_dtype.newbyteorder("="): name for name, (np_dtype, _) in ARRAY_DTYPES.items()
-                if np_dtype is not None}
+_NUMPY_NAMES = {
+    np_dtype.newbyteorder("="): name
+    for name, (np_dtype, _) in ARRAY_DTYPES.items()
+    if np_dtype is not None
+}
 
 
 class MessageError(Como3rError):
@@ -130,8 +134,9 @@ _HINTS_LOCK = threading.Lock()
 _CHECKS: dict[str, Callable[[Any], None]] = {}
 
 
-def register(target: type | str, *, version: int = 1, name: str | None = None,
-             half: tuple[str, ...] = ()) -> None:
+def register(
+    target: type | str, *, version: int = 1, name: str | None = None, half: tuple[str, ...] = ()
+) -> None:
     """Allow a dataclass on the wire.
 
     Args:
@@ -153,8 +158,10 @@ def register(target: type | str, *, version: int = 1, name: str | None = None,
     entry = MessageType(wire_name, path, int(version), frozenset(half))
     known = REGISTRY.get(wire_name)
     if known is not None and known != entry:
-        raise ValueError(f"message type name {wire_name!r} already registered as "
-                         f"{known.path} version {known.version}")
+        raise ValueError(
+            f"message type name {wire_name!r} already registered as "
+            f"{known.path} version {known.version}"
+        )
     if not isinstance(target, str):
         _check_registrable(target, entry)
         _RESOLVED[wire_name] = target
@@ -197,8 +204,10 @@ def _check_registrable(cls: type, entry: MessageType) -> None:
         raise TypeError(f"{entry.path} is not a dataclass")
     for f in dataclasses.fields(cls):
         if f.name == "version" and f.default != entry.version:
-            raise TypeError(f"{entry.path}.version defaults to {f.default}, "
-                            f"registered as version {entry.version}")
+            raise TypeError(
+                f"{entry.path}.version defaults to {f.default}, "
+                f"registered as version {entry.version}"
+            )
 
 
 def resolve_all() -> None:
@@ -239,16 +248,19 @@ def encode(message: Any, *, max_bytes: int = DEFAULT_MAX_BYTES, lossy: bool = Fa
             ``max_bytes``.
     """
     if not dataclasses.is_dataclass(message) or isinstance(message, type):
-        raise MessageError("only registered dataclasses are messages, "
-                           f"got {type(message).__name__}")
+        raise MessageError(
+            f"only registered dataclasses are messages, got {type(message).__name__}"
+        )
     tree = _to_wire(message, type(message).__name__, 0, lossy)
     try:
         data = msgpack.packb(tree, use_bin_type=True)
     except (ValueError, TypeError, OverflowError) as exc:
         raise MessageError(f"cannot encode {type(message).__name__}: {exc}") from None
     if len(data) > max_bytes:
-        raise MessageError(f"{type(message).__name__} encodes to {len(data)} bytes, "
-                           f"over the cap of {max_bytes} bytes")
+        raise MessageError(
+            f"{type(message).__name__} encodes to {len(data)} bytes, "
+            f"over the cap of {max_bytes} bytes"
+        )
     return data
 
 
@@ -266,11 +278,15 @@ def _to_wire(value: Any, path: str, depth: int, lossy: bool) -> Any:
     if isinstance(value, list):
         return [_to_wire(v, f"{path}[{i}]", depth + 1, lossy) for i, v in enumerate(value)]
     if isinstance(value, tuple):
-        return {TAG: "tuple", "items": [_to_wire(v, f"{path}[{i}]", depth + 1, lossy)
-                                        for i, v in enumerate(value)]}
+        return {
+            TAG: "tuple",
+            "items": [_to_wire(v, f"{path}[{i}]", depth + 1, lossy) for i, v in enumerate(value)],
+        }
     if isinstance(value, dict):
-        items = [[_dict_key(k, path), _to_wire(v, f"{path}[{k!r}]", depth + 1, lossy)]
-                 for k, v in value.items()]
+        items = [
+            [_dict_key(k, path), _to_wire(v, f"{path}[{k!r}]", depth + 1, lossy)]
+            for k, v in value.items()
+        ]
         return {TAG: "dict", "items": items}
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return _object_to_wire(value, path, depth, lossy)
@@ -302,8 +318,10 @@ def _part_sizes(value: Any, prefix: str, lossy: bool, sizes: dict[str, int]) -> 
     cls = type(value)
     entry = _BY_PATH.get(f"{cls.__module__}:{cls.__qualname__}")
     if entry is None:
-        raise MessageError(f"{prefix or cls.__qualname__}: type {cls.__qualname__} is not a "
-                           "registered message type")
+        raise MessageError(
+            f"{prefix or cls.__qualname__}: type {cls.__qualname__} is not a "
+            "registered message type"
+        )
     for f in _init_fields(cls):
         field_value, path = getattr(value, f.name), f"{prefix}{f.name}"
         if dataclasses.is_dataclass(field_value) and not isinstance(field_value, type):
@@ -325,9 +343,16 @@ def _object_to_wire(value: Any, path: str, depth: int, lossy: bool) -> dict[str,
     if entry is None:
         raise MessageError(f"{path}: type {cls.__qualname__} is not a registered message type")
     _RESOLVED.setdefault(entry.name, cls)
-    fields = {f.name: _field_to_wire(getattr(value, f.name), lossy and f.name in entry.half,
-                                     f"{path}.{f.name}", depth + 1, lossy)
-              for f in _init_fields(cls)}
+    fields = {
+        f.name: _field_to_wire(
+            getattr(value, f.name),
+            lossy and f.name in entry.half,
+            f"{path}.{f.name}",
+            depth + 1,
+            lossy,
+        )
+        for f in _init_fields(cls)
+    }
     return {TAG: "object", "type": entry.name, "version": entry.version, "fields": fields}
 
 
@@ -335,8 +360,13 @@ def _field_to_wire(value: Any, half: bool, path: str, depth: int, lossy: bool) -
     """A field's wire form; a float32 array of a ``half`` field (or in a tuple that is the
     field) as float16 where it fits."""
     if half and isinstance(value, tuple):
-        return {TAG: "tuple", "items": [_field_to_wire(v, True, f"{path}[{i}]", depth + 1, lossy)
-                                        for i, v in enumerate(value)]}
+        return {
+            TAG: "tuple",
+            "items": [
+                _field_to_wire(v, True, f"{path}[{i}]", depth + 1, lossy)
+                for i, v in enumerate(value)
+            ],
+        }
     narrow = _as_half(value) if half else None
     if narrow is None:
         return _to_wire(value, path, depth, lossy)
@@ -357,8 +387,9 @@ def as_received(value: Any) -> Any:
     changes = {}
     for f in _init_fields(type(value)):
         field_value = getattr(value, f.name)
-        changes[f.name] = (_half_received(field_value) if f.name in half
-                           else as_received(field_value))
+        changes[f.name] = (
+            _half_received(field_value) if f.name in half else as_received(field_value)
+        )
     return dataclasses.replace(value, **changes)
 
 
@@ -420,15 +451,22 @@ def byte_planes(raw: bytes, itemsize: int, inverse: bool = False) -> bytes:
     (``inverse``: planes back to elements)."""
     if itemsize == 1 or not raw:
         return raw
-    return np.frombuffer(raw, np.uint8).reshape((itemsize, -1) if inverse
-                                                else (-1, itemsize)).T.tobytes()
+    return (
+        np.frombuffer(raw, np.uint8)
+        .reshape((itemsize, -1) if inverse else (-1, itemsize))
+        .T.tobytes()
+    )
 
 
 # ----------------------------------------------------------------------------- decoding
 
 
-def decode(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES,
-           expected: type | tuple[type, ...] | None = None) -> Any:
+def decode(
+    data: bytes,
+    *,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+    expected: type | tuple[type, ...] | None = None,
+) -> Any:
     """Decode and validate one message.
 
     Args:
@@ -464,8 +502,10 @@ class _Budget:
 
     def take(self, nbytes: int, path: str) -> None:
         if nbytes > self.left:
-            raise MessageError(f"{path}: compressed arrays would decompress to more than "
-                               f"{MAX_EXPANSION} times the message size cap")
+            raise MessageError(
+                f"{path}: compressed arrays would decompress to more than "
+                f"{MAX_EXPANSION} times the message size cap"
+            )
         self.left -= nbytes
 
 
@@ -483,8 +523,10 @@ def _from_wire(value: Any, path: str, depth: int, budget: _Budget) -> Any:
         return _array_from_wire(value, tag, path, budget)
     if tag == "tuple":
         items = _exact_keys(value, ("items",), path)["items"]
-        return tuple(_from_wire(v, f"{path}[{i}]", depth + 1, budget)
-                     for i, v in enumerate(_list(items, path)))
+        return tuple(
+            _from_wire(v, f"{path}[{i}]", depth + 1, budget)
+            for i, v in enumerate(_list(items, path))
+        )
     if tag == "dict":
         items = _list(_exact_keys(value, ("items",), path)["items"], path)
         return _dict_from_wire(items, path, depth, budget)
@@ -495,8 +537,10 @@ def _from_wire(value: Any, path: str, depth: int, budget: _Budget) -> Any:
 
 def _exact_keys(value: dict, keys: tuple[str, ...], path: str) -> dict:
     if set(value) != {TAG, *keys}:
-        raise MessageError(f"{path}: a {value.get(TAG)!r} has keys {sorted(map(str, value))}, "
-                           f"expected {sorted([TAG, *keys])}")
+        raise MessageError(
+            f"{path}: a {value.get(TAG)!r} has keys {sorted(map(str, value))}, "
+            f"expected {sorted([TAG, *keys])}"
+        )
     return value
 
 
@@ -518,8 +562,7 @@ def _dict_from_wire(items: list, path: str, depth: int, budget: _Budget) -> dict
     return out
 
 
-def _array_from_wire(value: dict, kind: str, path: str,
-                     budget: _Budget) -> np.ndarray | Tensor:
+def _array_from_wire(value: dict, kind: str, path: str, budget: _Budget) -> np.ndarray | Tensor:
     body = "zstd" if "zstd" in value else "data"
     widen = "as" in value
     _exact_keys(value, ("dtype", "shape", body, *(("as",) if widen else ())), path)
@@ -532,8 +575,10 @@ def _array_from_wire(value: dict, kind: str, path: str,
         budget.take(size, path)
         data = _inflate(data, size, itemsize(name), path)
     if size != len(data):
-        raise MessageError(f"{path}: {len(data)} bytes do not hold a {name} array of shape "
-                           f"{tuple(shape)} ({size} bytes)")
+        raise MessageError(
+            f"{path}: {len(data)} bytes do not hold a {name} array of shape "
+            f"{tuple(shape)} ({size} bytes)"
+        )
     if name == "bool" and data and max(data) > 1:
         raise MessageError(f"{path}: bool array holds bytes other than 0 and 1")
     np_dtype, torch_dtype = ARRAY_DTYPES[name]
@@ -543,8 +588,9 @@ def _array_from_wire(value: dict, kind: str, path: str,
     array = np.frombuffer(data, dtype=np_dtype).reshape(shape).astype(np_dtype.newbyteorder("="))
     if widen:
         if (value["as"], name) != ("float32", "float16"):
-            raise MessageError(f"{path}: a {name} array cannot travel as {value['as']!r} "
-                               f"(only float16 as float32)")
+            raise MessageError(
+                f"{path}: a {name} array cannot travel as {value['as']!r} (only float16 as float32)"
+            )
         array = array.astype(np.float32)
     return torch.from_numpy(array) if kind == "tensor" else array
 
@@ -553,15 +599,21 @@ def _array_header(value: dict, kind: str, path: str) -> tuple[str, list[int]]:
     """An array's checked dtype name and shape."""
     name, shape = value["dtype"], value["shape"]
     if not isinstance(name, str) or name not in ARRAY_DTYPES:
-        raise MessageError(f"{path}: dtype {name!r} is not allowed "
-                           f"(allowed: {', '.join(ARRAY_DTYPES)})")
+        raise MessageError(
+            f"{path}: dtype {name!r} is not allowed (allowed: {', '.join(ARRAY_DTYPES)})"
+        )
     if ARRAY_DTYPES[name][0] is None and kind == "ndarray":
         raise MessageError(f"{path}: dtype {name} is only allowed for tensors")
-    if (not isinstance(shape, list) or len(shape) > MAX_NDIM
-            or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)
-            or math.prod(max(n, 1) for n in shape) > MAX_ELEMENTS):
-        raise MessageError(f"{path}: shape {shape!r} is not a list of at most {MAX_NDIM} "
-                           f"non-negative integers spanning at most {MAX_ELEMENTS} elements")
+    if (
+        not isinstance(shape, list)
+        or len(shape) > MAX_NDIM
+        or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)
+        or math.prod(max(n, 1) for n in shape) > MAX_ELEMENTS
+    ):
+        raise MessageError(
+            f"{path}: shape {shape!r} is not a list of at most {MAX_NDIM} "
+            f"non-negative integers spanning at most {MAX_ELEMENTS} elements"
+        )
     return name, shape
 
 
@@ -573,8 +625,9 @@ def _inflate(packed: bytes, size: int, itemsize: int, path: str) -> bytes:
     except zstd.ZstdError as exc:
         raise MessageError(f"{path}: compressed array data is not valid ({exc})") from None
     if len(planes) != size or not inflater.eof or inflater.unused_data:
-        raise MessageError(f"{path}: compressed array data does not decompress to the "
-                           f"{size} bytes of its shape")
+        raise MessageError(
+            f"{path}: compressed array data does not decompress to the {size} bytes of its shape"
+        )
     return byte_planes(planes, itemsize, inverse=True)
 
 
@@ -585,8 +638,9 @@ def _object_from_wire(value: dict, path: str, depth: int, budget: _Budget) -> An
         raise MessageError(f"{path}: unknown message type {name!r}")
     entry = REGISTRY[name]
     if isinstance(version, bool) or version != entry.version:
-        raise MessageError(f"{path}: {name} version {version!r} is not the supported "
-                           f"version {entry.version}")
+        raise MessageError(
+            f"{path}: {name} version {version!r} is not the supported version {entry.version}"
+        )
     cls = _resolve(entry)
     path = name if path == "message" else path
     if not isinstance(fields, dict):
@@ -595,16 +649,19 @@ def _object_from_wire(value: dict, path: str, depth: int, budget: _Budget) -> An
     if set(fields) != set(expected_names):
         missing = sorted(set(expected_names) - set(fields))
         extra = sorted(map(str, set(fields) - set(expected_names)))
-        raise MessageError(f"{path}: wrong fields for {name} "
-                           f"(missing {missing}, unexpected {extra})")
+        raise MessageError(
+            f"{path}: wrong fields for {name} (missing {missing}, unexpected {extra})"
+        )
     hints = _hints(cls)
     kwargs = {}
     for field_name in expected_names:
         field_path = f"{path}.{field_name}"
         decoded = _from_wire(fields[field_name], field_path, depth + 1, budget)
         if not _conforms(decoded, hints[field_name]):
-            raise MessageError(f"{field_path}: a {type(decoded).__name__} does not match the "
-                               f"declared type {_hint_name(hints[field_name])}")
+            raise MessageError(
+                f"{field_path}: a {type(decoded).__name__} does not match the "
+                f"declared type {_hint_name(hints[field_name])}"
+            )
         kwargs[field_name] = decoded
     if "version" in kwargs and kwargs["version"] != entry.version:
         raise MessageError(f"{path}.version: {kwargs['version']!r} is not {entry.version}")
@@ -639,7 +696,8 @@ def _conforms(value: Any, hint: Any) -> bool:
     if origin is dict:
         key, item = typing.get_args(hint) or (Any, Any)
         return isinstance(value, dict) and all(
-            _conforms(k, key) and _conforms(v, item) for k, v in value.items())
+            _conforms(k, key) and _conforms(v, item) for k, v in value.items()
+        )
     if hint is float:
         return isinstance(value, (int, float)) and not isinstance(value, bool)
     if hint is int:
@@ -672,10 +730,14 @@ def require(ok: bool, what: str) -> None:
 
 def require_shape(x: Tensor | np.ndarray, shape: tuple[int | None, ...], name: str) -> None:
     """For the per-type checks: ``x.shape`` matches ``shape`` (None matches any size)."""
-    matches = len(x.shape) == len(shape) and all(s is None or s == n
-                                                 for s, n in zip(shape, x.shape))
-    require(matches, f"{name} has shape {tuple(x.shape)}, expected "
-            f"({', '.join('*' if s is None else str(s) for s in shape)})")
+    matches = len(x.shape) == len(shape) and all(
+        s is None or s == n for s, n in zip(shape, x.shape)
+    )
+    require(
+        matches,
+        f"{name} has shape {tuple(x.shape)}, expected "
+        f"({', '.join('*' if s is None else str(s) for s in shape)})",
+    )
 
 
 def registered_types() -> dict[str, type]:

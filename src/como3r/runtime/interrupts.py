@@ -23,7 +23,8 @@ import contextlib
 import logging
 import signal
 import threading
-from typing import Any, Iterator
+from collections.abc import Iterator
+from typing import Any
 
 logger = logging.getLogger(__name__)
 
@@ -61,11 +62,17 @@ def _on_signal(signum: int, frame: Any) -> None:
         raise KeyboardInterrupt
     _STATE.signum = signum
     if _STATE.finishing:
-        logger.warning("%s: every input was read; the run finishes and writes its outputs "
-                       "(again to abort: the session store is kept)", _name(signum))
+        logger.warning(
+            "%s: every input was read; the run finishes and writes its outputs "
+            "(again to abort: the session store is kept)",
+            _name(signum),
+        )
     else:
-        logger.warning("%s: the run stops reading its input and keeps its session store "
-                       "for --resume (again to abort at once)", _name(signum))
+        logger.warning(
+            "%s: the run stops reading its input and keeps its session store "
+            "for --resume (again to abort at once)",
+            _name(signum),
+        )
 
 
 @contextlib.contextmanager

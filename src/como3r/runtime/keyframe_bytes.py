@@ -14,7 +14,8 @@ what it writes itself (:meth:`~como3r.runtime.store.SessionStore.written_metrics
 from __future__ import annotations
 
 from collections import Counter
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 from como3r.runtime import codec
 
@@ -27,8 +28,7 @@ PARTS: dict[str, tuple[str, ...]] = {
     "colours": ("colors",),
     "retrieval_descriptors": ("retrieval",),
     "retrieval_words": ("retrieval_words",),
-    "sequential_matches": ("sequential_ij.", "sequential_ji.", "sequential_ij",
-                           "sequential_ji"),
+    "sequential_matches": ("sequential_ij.", "sequential_ji.", "sequential_ij", "sequential_ji"),
     "previous_refresh": ("previous.", "previous"),
 }
 
@@ -41,7 +41,7 @@ LOSSY_TRANSPORTS = frozenset({"zenoh"})
 
 def part_of(path: str) -> str:
     """The :data:`PARTS` name of a field path of a packet (``"other"`` if none)."""
-    path = path[len(_PACKET):] if path.startswith(_PACKET) else path
+    path = path[len(_PACKET) :] if path.startswith(_PACKET) else path
     for name, prefixes in PARTS.items():
         if any(path == p or (p.endswith(".") and path.startswith(p)) for p in prefixes):
             return name

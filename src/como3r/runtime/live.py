@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, Iterable, Mapping, Protocol, Sequence
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -63,8 +64,9 @@ class _AgentOutcome(Protocol):
     def trajectory(self) -> tuple[np.ndarray, np.ndarray, Tensor]: ...
 
 
-def frame_event(frontend: AgentFrontend, index: int, timestamp: float, outcome: str,
-                colors: np.ndarray) -> FrameEvent:
+def frame_event(
+    frontend: AgentFrontend, index: int, timestamp: float, outcome: str, colors: np.ndarray
+) -> FrameEvent:
     """The event of the frame ``frontend`` has just processed.
 
     Args:
@@ -80,17 +82,31 @@ def frame_event(frontend: AgentFrontend, index: int, timestamp: float, outcome: 
     if record is not None and outcome != "lost":
         anchor = keyframes[record.anchor]
         T_WC = sim3_compose(anchor.T_WC, record.T_rel.to(anchor.T_WC)).double().numpy()
-    keyframe = (keyframes[record.anchor] if record is not None
-                else keyframes.last if len(keyframes) else None)
+    keyframe = (
+        keyframes[record.anchor]
+        if record is not None
+        else keyframes.last
+        if len(keyframes)
+        else None
+    )
     stride = max(1, math.ceil(max(colors.shape[:2]) / FRAME_IMAGE_LONG_SIDE))
-    K = None if keyframe is None else _intrinsics(keyframe.K, keyframe.X_hat,
-                                                  keyframe.mean_confidence())
+    K = (
+        None
+        if keyframe is None
+        else _intrinsics(keyframe.K, keyframe.X_hat, keyframe.mean_confidence())
+    )
     if K is not None:
         K[:2] /= stride  # pixel u of the subsampled image is pixel stride * u of the input
-    return FrameEvent(agent=frontend.agent, frame_index=index, timestamp=float(timestamp),
-                      state=tracking_state(outcome), T_WC=T_WC, K=K,
-                      image=np.ascontiguousarray(colors[::stride, ::stride]),
-                      wall_time=time.time())
+    return FrameEvent(
+        agent=frontend.agent,
+        frame_index=index,
+        timestamp=float(timestamp),
+        state=tracking_state(outcome),
+        T_WC=T_WC,
+        K=K,
+        image=np.ascontiguousarray(colors[::stride, ::stride]),
+        wall_time=time.time(),
+    )
 
 
 def _intrinsics(K: Tensor | None, X: Tensor, C: Tensor) -> np.ndarray | None:
@@ -102,8 +118,7 @@ def _intrinsics(K: Tensor | None, X: Tensor, C: Tensor) -> np.ndarray | None:
     if not math.isfinite(focal) or focal <= 0:
         return None
     H, W = X.shape[:2]
-    return np.array([[focal, 0.0, (W - 1) / 2.0], [0.0, focal, (H - 1) / 2.0],
-                     [0.0, 0.0, 1.0]])
+    return np.array([[focal, 0.0, (W - 1) / 2.0], [0.0, focal, (H - 1) / 2.0], [0.0, 0.0, 1.0]])
 
 
 def keyframe_points(keyframe: _PointmapKeyframe, min_confidence: float) -> Tensor:
@@ -113,23 +128,32 @@ def keyframe_points(keyframe: _PointmapKeyframe, min_confidence: float) -> Tenso
     H, W = X.shape[:2]
     stride = max(1, math.ceil(math.sqrt(H * W / KEYFRAME_POINTS)))
     X = X[::stride, ::stride].reshape(-1, 3)
-    keep = ((keyframe.mean_confidence()[::stride, ::stride].reshape(-1) > min_confidence)
-            & torch.isfinite(X).all(-1))
+    keep = (
+        keyframe.mean_confidence()[::stride, ::stride].reshape(-1) > min_confidence
+    ) & torch.isfinite(X).all(-1)
     return X[keep]
 
 
-def keyframe_event(agent: int, keyframe: _PointmapKeyframe,
-                   min_confidence: float) -> KeyframeEvent:
+def keyframe_event(agent: int, keyframe: _PointmapKeyframe, min_confidence: float) -> KeyframeEvent:
     """The event of one keyframe (:func:`keyframe_points` in its camera frame)."""
     points = keyframe_points(keyframe, min_confidence)
-    return KeyframeEvent(agent=agent, kf_id=keyframe.kf_id, frame_index=keyframe.frame_index,
-                         T_WC=keyframe.T_WC.double().cpu().numpy(),
-                         points=points.float().cpu().numpy(), wall_time=time.time())
+    return KeyframeEvent(
+        agent=agent,
+        kf_id=keyframe.kf_id,
+        frame_index=keyframe.frame_index,
+        T_WC=keyframe.T_WC.double().cpu().numpy(),
+        points=points.float().cpu().numpy(),
+        wall_time=time.time(),
+    )
 
 
-def map_event(reason: str, keyframes: Mapping[int, Sequence[_PointmapKeyframe]],
-              edges: Iterable[tuple[int, int, int, int, str]],
-              components: Sequence[Sequence[int]], min_confidence: float) -> MapEvent:
+def map_event(
+    reason: str,
+    keyframes: Mapping[int, Sequence[_PointmapKeyframe]],
+    edges: Iterable[tuple[int, int, int, int, str]],
+    components: Sequence[Sequence[int]],
+    min_confidence: float,
+) -> MapEvent:
     """The map of ``keyframes`` (agent -> its keyframes in order) with ``edges``
     ``(agent_i, kf_i, agent_j, kf_j, kind)``."""
     keys, poses, points, owners = [], [], [], []
@@ -142,14 +166,16 @@ def map_event(reason: str, keyframes: Mapping[int, Sequence[_PointmapKeyframe]],
             owners.append(np.full(len(local), agent, dtype=np.int32))
     edge_list = list(edges)
     return MapEvent(
-        reason=reason, keyframes=np.array(keys, dtype=np.int64).reshape(-1, 2),
+        reason=reason,
+        keyframes=np.array(keys, dtype=np.int64).reshape(-1, 2),
         T_WC=torch.stack(poses).numpy() if poses else np.zeros((0, 8)),
         edges=np.array([e[:4] for e in edge_list], dtype=np.int64).reshape(-1, 4),
         edge_kinds=tuple(e[4] for e in edge_list),
         components=tuple(tuple(int(a) for a in c) for c in components),
         points=np.concatenate(points) if points else np.zeros((0, 3), np.float32),
         point_agents=np.concatenate(owners) if owners else np.zeros(0, np.int32),
-        wall_time=time.time())
+        wall_time=time.time(),
+    )
 
 
 class CoordinatorLive:
@@ -162,8 +188,7 @@ class CoordinatorLive:
             (``visualization.map_min_confidence``, as for ``map.ply``).
     """
 
-    def __init__(self, sink: LiveCallback, coordinator: Coordinator,
-                 min_confidence: float) -> None:
+    def __init__(self, sink: LiveCallback, coordinator: Coordinator, min_confidence: float) -> None:
         self.sink, self.coordinator, self.min_confidence = sink, coordinator, min_confidence
 
     def keyframe_added(self, packet: KeyframePacket, updates: Sequence[PoseUpdate]) -> None:
@@ -176,8 +201,15 @@ class CoordinatorLive:
             self.sink(keyframe_event(packet.agent, keyframe, self.min_confidence))
         if updates:
             reason = ", ".join(dict.fromkeys(u.reason for u in updates))
-            self.sink(map_event(reason, self._graph_keyframes(), self._inter_edges(),
-                                self.coordinator.components(), self.min_confidence))
+            self.sink(
+                map_event(
+                    reason,
+                    self._graph_keyframes(),
+                    self._inter_edges(),
+                    self.coordinator.components(),
+                    self.min_confidence,
+                )
+            )
 
     def finish(self, results: Sequence[_AgentOutcome]) -> None:
         """The run's final state, from the agents' results after the terminal alternation:
@@ -186,25 +218,49 @@ class CoordinatorLive:
         for result in results:
             for keyframe in result.keyframes:
                 self.sink(keyframe_event(result.agent, keyframe, self.min_confidence))
-        loops = [(r.agent, e.i, r.agent, e.j, "loop") for r in results for e in r.edges
-                 if e.kind == "loop" and e.i < e.j]
-        self.sink(map_event("final", {r.agent: list(r.keyframes) for r in results},
-                            [*self._inter_edges(), *loops], self.coordinator.components(),
-                            self.min_confidence))
+        loops = [
+            (r.agent, e.i, r.agent, e.j, "loop")
+            for r in results
+            for e in r.edges
+            if e.kind == "loop" and e.i < e.j
+        ]
+        self.sink(
+            map_event(
+                "final",
+                {r.agent: list(r.keyframes) for r in results},
+                [*self._inter_edges(), *loops],
+                self.coordinator.components(),
+                self.min_confidence,
+            )
+        )
         for result in results:
             frames, _, T_WC = result.trajectory()
-            self.sink(TrajectoryEvent(agent=result.agent,
-                                      frame_indices=np.asarray(frames, dtype=np.int64),
-                                      T_WC=T_WC.double().cpu().numpy().reshape(-1, 8),
-                                      wall_time=time.time()))
+            self.sink(
+                TrajectoryEvent(
+                    agent=result.agent,
+                    frame_indices=np.asarray(frames, dtype=np.int64),
+                    T_WC=T_WC.double().cpu().numpy().reshape(-1, 8),
+                    wall_time=time.time(),
+                )
+            )
 
     def _graph_keyframes(self) -> dict[int, list[Any]]:
         graph = self.coordinator.graph
-        return {agent: [graph.keyframes[g] for g in graph.agent_keyframes(agent)]
-                for agent in range(self.coordinator.num_agents)}
+        return {
+            agent: [graph.keyframes[g] for g in graph.agent_keyframes(agent)]
+            for agent in range(self.coordinator.num_agents)
+        }
 
     def _inter_edges(self) -> list[tuple[int, int, int, int, str]]:
         graph = self.coordinator.graph
-        return [(graph.agent_of[link.i], graph.keyframes[link.i].kf_id,
-                 graph.agent_of[link.j], graph.keyframes[link.j].kf_id, "inter")
-                for link in graph.links if link.kind == "inter"]
+        return [
+            (
+                graph.agent_of[link.i],
+                graph.keyframes[link.i].kf_id,
+                graph.agent_of[link.j],
+                graph.keyframes[link.j].kf_id,
+                "inter",
+            )
+            for link in graph.links
+            if link.kind == "inter"
+        ]

@@ -57,8 +57,9 @@ class SavedMap:
         return len(self.session.agents)
 
 
-def open_map(folder: Path, config: Config | None, freeze: bool = False,
-             option: str = "--map") -> SavedMap:
+def open_map(
+    folder: Path, config: Config | None, freeze: bool = False, option: str = "--map"
+) -> SavedMap:
     """The map of the finished run in ``folder``, made with ``config`` (None: any).
 
     Raises:
@@ -67,16 +68,21 @@ def open_map(folder: Path, config: Config | None, freeze: bool = False,
         StoreError: a store that cannot be read (corrupted, another format version).
     """
     if not (folder / STORE_NAME).is_file():
-        raise InputError(f"{option} {folder}: no {STORE_NAME} there (the output folder of a "
-                         f"finished --mode centralized run holds one)")
+        raise InputError(
+            f"{option} {folder}: no {STORE_NAME} there (the output folder of a "
+            f"finished --mode centralized run holds one)"
+        )
     session = read_session(folder / STORE_NAME)
     if not session.finished:
-        raise InputError(f"{option} {folder}: that run did not finish (continue it with "
-                         f"--resume first)")
+        raise InputError(
+            f"{option} {folder}: that run did not finish (continue it with --resume first)"
+        )
     difference = None if config is None else differing_key(session.config, config)
     if difference is not None:
-        raise InputError(f"{option} {folder}: made with another configuration "
-                         f"({difference}); give the options of the run that made it")
+        raise InputError(
+            f"{option} {folder}: made with another configuration "
+            f"({difference}); give the options of the run that made it"
+        )
     return SavedMap(session, freeze)
 
 
@@ -86,25 +92,32 @@ def seed_map(coordinator: Coordinator, saved: SavedMap) -> None:
     database; then :func:`hold_map`."""
     session = saved.session
     indexed = sorted(session.retrieval, key=lambda e: (e.position is None, e.position or 0))
-    load_state(session, coordinator, CoordinatorStats(keyframes=len(session.graph)), (0, []),
-               indexed)
+    load_state(
+        session, coordinator, CoordinatorStats(keyframes=len(session.graph)), (0, []), indexed
+    )
     hold_map(coordinator, saved)
-    logger.info("started from a saved map: %d keyframes of %d agents%s", len(session.graph),
-                saved.agents, ", held fixed" if saved.freeze else "")
+    logger.info(
+        "started from a saved map: %d keyframes of %d agents%s",
+        len(session.graph),
+        saved.agents,
+        ", held fixed" if saved.freeze else "",
+    )
 
 
 def hold_map(coordinator: Coordinator, saved: SavedMap) -> None:
     """Mark the saved map in a coordinator that holds it (seeded, or resumed from a store
     that was): its components count as refined, and under ``freeze`` its keyframes (the
     first ones) are held fixed."""
-    coordinator.refined = [set(members) for members in saved.session.gauges.components()
-                           if max(members) < saved.agents]
+    coordinator.refined = [
+        set(members) for members in saved.session.gauges.components() if max(members) < saved.agents
+    ]
     if saved.freeze:
         coordinator.graph.fixed = set(range(len(saved.session.graph)))
 
 
-def map_results(saved: SavedMap, offset: int = 0,
-                graph: GlobalGraph | None = None) -> list[AgentResult]:
+def map_results(
+    saved: SavedMap, offset: int = 0, graph: GlobalGraph | None = None
+) -> list[AgentResult]:
     """The saved agents' results as the outputs read them (keyframes from the map, their
     trajectories and statistics from their reports), by agent id, the ids moved by
     ``offset``; their keyframes' arrays are read from ``graph`` (the coordinator's, under
@@ -112,15 +125,17 @@ def map_results(saved: SavedMap, offset: int = 0,
     results = []
     for agent in range(saved.agents):
         report = saved.session.reports.get(agent)
-        views = stored_views(saved.session.graph, agent, graph,
-                             None if graph is None else offset + agent)
+        views = stored_views(
+            saved.session.graph, agent, graph, None if graph is None else offset + agent
+        )
         result = AgentResult(offset + agent, views, finished=report)
         if report is not None:
             if len(report.keyframe_T_WC) != len(result.keyframes):
                 result.finished = None  # a failed agent's: its keyframes only
             result.stats = report.stats
-            result.edges = [EdgeView(e.i, e.j, e.kind, MatchFraction(e.match_fraction))
-                            for e in report.edges]
+            result.edges = [
+                EdgeView(e.i, e.j, e.kind, MatchFraction(e.match_fraction)) for e in report.edges
+            ]
         else:
             result.stats = FrontendStats(keyframes=len(result.keyframes))
         results.append(result)

@@ -21,8 +21,8 @@ where it is one of them).
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from como3r.coordination.coordinator import Coordinator
 from como3r.errors import InputError
@@ -39,8 +39,14 @@ from como3r.runtime.store import STORE_NAME, SessionStore
 logger = logging.getLogger(__name__)
 
 
-def merge_runs(first: Path, second: Path, out: Path, prior_spec: PriorSpec,
-               overwrite: bool = False, progress: PhaseCallback | None = None) -> RunSummary:
+def merge_runs(
+    first: Path,
+    second: Path,
+    out: Path,
+    prior_spec: PriorSpec,
+    overwrite: bool = False,
+    progress: PhaseCallback | None = None,
+) -> RunSummary:
     """Merge the maps of two finished runs into the output folder ``out``.
 
     Args:
@@ -63,8 +69,9 @@ def merge_runs(first: Path, second: Path, out: Path, prior_spec: PriorSpec,
     prior, codebook = build_prior(prior_spec, config)
     coordinator = Coordinator(prior, config, codebook, kept.agents + moved.agents)
     seed_map(coordinator, kept)
-    coordinator.refined += [{kept.agents + a for a in members}
-                            for members in moved.session.gauges.components()]
+    coordinator.refined += [
+        {kept.agents + a for a in members} for members in moved.session.gauges.components()
+    ]
     results = map_results(kept) + map_results(moved, kept.agents, coordinator.graph)
     with atomic_output_dir(out, overwrite=overwrite) as staging:
         with SessionStore.create(staging / STORE_NAME, config, coordinator) as store:
@@ -79,8 +86,13 @@ def merge_runs(first: Path, second: Path, out: Path, prior_spec: PriorSpec,
     return summary
 
 
-def _replay(moved: SavedMap, offset: int, coordinator: Coordinator,
-            results: Sequence[AgentResult], progress: PhaseCallback | None) -> None:
+def _replay(
+    moved: SavedMap,
+    offset: int,
+    coordinator: Coordinator,
+    results: Sequence[AgentResult],
+    progress: PhaseCallback | None,
+) -> None:
     """Hand the moved session's keyframes to the coordinator in their stored order, each in
     its agent's current frame (its pose in ``results``; the coordinator takes its pointmap
     onto the agent's focal length in the merged map); apply the coordinator's updates to
@@ -91,14 +103,27 @@ def _replay(moved: SavedMap, offset: int, coordinator: Coordinator,
         report_phase(progress, "merging", f"keyframe {g + 1} of {len(graph)}", g, len(graph))
         agent = offset + graph.agent_of[g]
         link = sequential.get(g)
-        previous = (None if kf.kf_id == 0 else _refresh(
-            graph.keyframes[graph.global_index(graph.agent_of[g], kf.kf_id - 1)]))
+        previous = (
+            None
+            if kf.kf_id == 0
+            else _refresh(graph.keyframes[graph.global_index(graph.agent_of[g], kf.kf_id - 1)])
+        )
         packet = KeyframePacket(
-            agent=agent, kf_id=kf.kf_id, frame_index=kf.frame_index, timestamp=kf.timestamp,
-            T_WC=results[agent].keyframes[kf.kf_id].T_WC.clone(), X_hat=kf.X_hat,
-            C_hat=kf.C_hat, colors=kf.colors, encoding=kf.encoding, retrieval=kf.retrieval,
+            agent=agent,
+            kf_id=kf.kf_id,
+            frame_index=kf.frame_index,
+            timestamp=kf.timestamp,
+            T_WC=results[agent].keyframes[kf.kf_id].T_WC.clone(),
+            X_hat=kf.X_hat,
+            C_hat=kf.C_hat,
+            colors=kf.colors,
+            encoding=kf.encoding,
+            retrieval=kf.retrieval,
             sequential_ij=None if link is None else link.ij,
-            sequential_ji=None if link is None else link.ji, previous=previous, K=kf.K)
+            sequential_ji=None if link is None else link.ji,
+            previous=previous,
+            K=kf.K,
+        )
         for update in coordinator.add_keyframe(packet):
             results[update.agent].apply_pose_update(update)
     for agent in range(moved.agents):  # as an agent's last keyframe comes with its report
@@ -121,19 +146,36 @@ def _check_meeting(first: Path, second: Path, coordinator: Coordinator, split: i
     """
     mapped = [c for c in coordinator.components() if coordinator.graph.agent_keyframes(c[0])]
     if not any(min(c) < split <= max(c) for c in mapped):
-        raise InputError(f"merge: {first} and {second} share no place (no keyframe of one was "
-                         f"verified against the other's); nothing written")
+        raise InputError(
+            f"merge: {first} and {second} share no place (no keyframe of one was "
+            f"verified against the other's); nothing written"
+        )
 
 
-def _write(staging: Path, results: Sequence[AgentResult], coordinator: Coordinator,
-           prior: dict, progress: PhaseCallback | None) -> RunSummary:
+def _write(
+    staging: Path,
+    results: Sequence[AgentResult],
+    coordinator: Coordinator,
+    prior: dict,
+    progress: PhaseCallback | None,
+) -> RunSummary:
     """The output folder of a run, from the merged results (no evaluation: the sessions'
     ground truth is not known here; ``como3r eval`` takes it)."""
     seconds = [r.finished.seconds if r.finished else 0.0 for r in results]
-    metrics, components = outputs.write_run_files(staging, results, coordinator,
-                                                  coordinator.config, prior, seconds, progress)
+    metrics, components = outputs.write_run_files(
+        staging, results, coordinator, coordinator.config, prior, seconds, progress
+    )
     summary = RunSummary(out=staging)
     summary.agents.extend(outputs.agent_row(r, s) for r, s in zip(results, seconds))
-    outputs.evaluate_and_finish(staging, summary, metrics, [], components, results,
-                                coordinator, coordinator.config, progress)
+    outputs.evaluate_and_finish(
+        staging,
+        summary,
+        metrics,
+        [],
+        components,
+        results,
+        coordinator,
+        coordinator.config,
+        progress,
+    )
     return summary

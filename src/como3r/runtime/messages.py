@@ -239,8 +239,7 @@ class Shutdown:
 TO_AGENT = (AgentTask, PoseUpdateMessage, Step, Shutdown)
 """Messages an agent accepts."""
 
-FROM_AGENT = (AgentStarted, KeyframeMessage, FrameDone, FrameEvent, AgentFinished,
-              AgentFailed)
+FROM_AGENT = (AgentStarted, KeyframeMessage, FrameDone, FrameEvent, AgentFinished, AgentFailed)
 """Messages the coordinator accepts from an agent."""
 
 
@@ -255,12 +254,16 @@ def _floating(x: Tensor, name: str) -> None:
 
 def _check_pose_update(u: PoseUpdate) -> None:
     _shape(u.kf_ids, (None,), "kf_ids")
-    _require(u.kf_ids.dtype == torch.int64 and bool((u.kf_ids >= 0).all()),
-             "kf_ids must be non-negative int64")
+    _require(
+        u.kf_ids.dtype == torch.int64 and bool((u.kf_ids >= 0).all()),
+        "kf_ids must be non-negative int64",
+    )
     _shape(u.T_WC, (u.kf_ids.shape[0], 8), "T_WC")
     _floating(u.T_WC, "T_WC")
-    _require(u.focal is None or (math.isfinite(u.focal) and u.focal > 0),
-             f"focal must be positive and finite, got {u.focal}")
+    _require(
+        u.focal is None or (math.isfinite(u.focal) and u.focal > 0),
+        f"focal must be positive and finite, got {u.focal}",
+    )
 
 
 def _check_refresh(r: PointmapRefresh) -> None:
@@ -278,16 +281,22 @@ def _check_matches(m: DirectedMatches) -> None:
     _shape(m.idx, (None,), "idx")
     _shape(m.valid, tuple(m.idx.shape), "valid")
     _shape(m.q, tuple(m.idx.shape), "q")
-    _require(m.idx.dtype == torch.int64 and m.valid.dtype == torch.bool,
-             "idx must be int64 and valid bool")
+    _require(
+        m.idx.dtype == torch.int64 and m.valid.dtype == torch.bool,
+        "idx must be int64 and valid bool",
+    )
     # both keyframes of an agent's edge share the agent's resolution: P_i == P_j
-    _require(m.idx.numel() == 0 or bool(((m.idx >= 0) & (m.idx < m.idx.numel())).all()),
-             "idx must index pixels of the keyframe")
+    _require(
+        m.idx.numel() == 0 or bool(((m.idx >= 0) & (m.idx < m.idx.numel())).all()),
+        "idx must index pixels of the keyframe",
+    )
 
 
 def _check_packet(p: KeyframePacket) -> None:
-    _require(p.agent >= 0 and p.kf_id >= 0 and p.frame_index >= 0,
-             "agent, kf_id and frame_index must be >= 0")
+    _require(
+        p.agent >= 0 and p.kf_id >= 0 and p.frame_index >= 0,
+        "agent, kf_id and frame_index must be >= 0",
+    )
     _require(math.isfinite(p.timestamp), f"timestamp {p.timestamp} is not finite")
     _shape(p.T_WC, (8,), "T_WC")
     _check_refresh(PointmapRefresh(p.kf_id, p.X_hat, p.C_hat, 1))
@@ -308,11 +317,15 @@ def _check_packet(p: KeyframePacket) -> None:
         _shape(descriptors, (None, None), "retrieval descriptors")
         _shape(attention, (descriptors.shape[0],), "retrieval attention")
     if p.retrieval_words is not None:
-        _require(p.retrieval is not None and p.codebook_id is not None,
-                 "retrieval_words need retrieval and codebook_id")
+        _require(
+            p.retrieval is not None and p.codebook_id is not None,
+            "retrieval_words need retrieval and codebook_id",
+        )
         _shape(p.retrieval_words, (p.retrieval[0].shape[0], None), "retrieval_words")
-        _require(p.retrieval_words.dtype.kind in "iu",
-                 f"retrieval_words must be integers, got {p.retrieval_words.dtype}")
+        _require(
+            p.retrieval_words.dtype.kind in "iu",
+            f"retrieval_words must be integers, got {p.retrieval_words.dtype}",
+        )
 
 
 def _check_keyframe_message(m: KeyframeMessage) -> None:
@@ -322,8 +335,10 @@ def _check_keyframe_message(m: KeyframeMessage) -> None:
 
 
 def _check_frame_done(m: FrameDone) -> None:
-    _require(m.frame_index >= 0 and m.seconds >= 0 and m.keyframes_waiting >= 0,
-             "frame_index, seconds and keyframes_waiting must be >= 0")
+    _require(
+        m.frame_index >= 0 and m.seconds >= 0 and m.keyframes_waiting >= 0,
+        "frame_index, seconds and keyframes_waiting must be >= 0",
+    )
     _require(math.isfinite(m.timestamp), f"timestamp {m.timestamp} is not finite")
 
 
@@ -339,13 +354,19 @@ def _check_frame_event(m: FrameEvent) -> None:
 
 def _check_finished(m: AgentFinished) -> None:
     frames, keyframes = len(m.frame_indices), len(m.keyframe_frames)
-    for name, shape in (("frame_indices", (frames,)), ("timestamps", (frames,)),
-                        ("anchors", (frames,)), ("T_rel", (frames, 8)),
-                        ("keyframe_timestamps", (keyframes,)),
-                        ("keyframe_T_WC", (keyframes, 8))):
+    for name, shape in (
+        ("frame_indices", (frames,)),
+        ("timestamps", (frames,)),
+        ("anchors", (frames,)),
+        ("T_rel", (frames, 8)),
+        ("keyframe_timestamps", (keyframes,)),
+        ("keyframe_T_WC", (keyframes, 8)),
+    ):
         _shape(getattr(m, name), shape, name)
-    _require(frames == 0 or (int(m.anchors.min()) >= 0 and int(m.anchors.max()) < keyframes),
-             "anchors must be keyframe ids")
+    _require(
+        frames == 0 or (int(m.anchors.min()) >= 0 and int(m.anchors.max()) < keyframes),
+        "anchors must be keyframe ids",
+    )
     _require(m.applied_seq >= 0, "applied_seq must be >= 0")
 
 
@@ -357,11 +378,15 @@ for _cls in (*TO_AGENT, *FROM_AGENT, EdgeSummary):
     # AgentTask 3: resume_after; FrameDone 2: keyframes_waiting
     codec.register(_cls, version={AgentTask: 3, FrameDone: 2}.get(_cls, 1))
 
-for _name, _check in (("PoseUpdate", _check_pose_update), ("PointmapRefresh", _check_refresh),
-                      ("DirectedMatches", _check_matches), ("KeyframePacket", _check_packet),
-                      ("KeyframeMessage", _check_keyframe_message),
-                      ("FrameDone", _check_frame_done),
-                      ("FrameEvent", _check_frame_event),
-                      ("AgentFinished", _check_finished),
-                      ("PoseUpdateMessage", _check_update_message)):
+for _name, _check in (
+    ("PoseUpdate", _check_pose_update),
+    ("PointmapRefresh", _check_refresh),
+    ("DirectedMatches", _check_matches),
+    ("KeyframePacket", _check_packet),
+    ("KeyframeMessage", _check_keyframe_message),
+    ("FrameDone", _check_frame_done),
+    ("FrameEvent", _check_frame_event),
+    ("AgentFinished", _check_finished),
+    ("PoseUpdateMessage", _check_update_message),
+):
     codec.add_check(_name, _check)

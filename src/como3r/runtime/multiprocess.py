@@ -11,8 +11,8 @@ handled, the outputs are written.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import torch
 
@@ -26,8 +26,13 @@ from como3r.runtime import outputs
 from como3r.runtime.agent_worker import agent_process_main
 from como3r.runtime.interrupts import interrupts_are_checkpoints
 from como3r.runtime.map_session import SavedMap, hold_map, seed_map
-from como3r.runtime.pipeline import (PriorSpec, RunSummary, open_agents, run_frames,
-                                      warn_skipped_frames)
+from como3r.runtime.pipeline import (
+    PriorSpec,
+    RunSummary,
+    open_agents,
+    run_frames,
+    warn_skipped_frames,
+)
 from como3r.runtime.processes import RuntimeOptions, _Runtime
 from como3r.runtime.results import SegmentedCoordinator, agent_results, left_out
 from como3r.runtime.runtime_state import restore_runtime
@@ -81,9 +86,21 @@ def run_multiprocess(
     warn_skipped_frames(inputs, prior_spec.name)
     frames = [len(run_frames(a, config.input.subsample, prior_spec.name)) for a in inputs]
     hub = PipeHub(agent_process_main, options.max_message_bytes, options.shutdown_grace_s)
-    return coordinate(hub, list(agent_paths), frames, out, config, prior_spec, options,
-                      inputs=inputs, overwrite=overwrite, progress=progress, live=live,
-                      resume=resume, saved_map=saved_map)
+    return coordinate(
+        hub,
+        list(agent_paths),
+        frames,
+        out,
+        config,
+        prior_spec,
+        options,
+        inputs=inputs,
+        overwrite=overwrite,
+        progress=progress,
+        live=live,
+        resume=resume,
+        saved_map=saved_map,
+    )
 
 
 def coordinate(
@@ -132,16 +149,24 @@ def coordinate(
     try:
         # a finished store resumes with agents across machines only (como3r coordinator)
         finished = not isinstance(hub, PipeHub)
-        with interrupts_are_checkpoints(), atomic_output_dir(
-                out, overwrite=overwrite, resume=resume,
-                kept=lambda folder: resumable(folder, finished)) as staging:
-            runtime = _Runtime(hub, frames, config, prior_spec, options, progress, live,
-                               inputs, saved_map)
+        with (
+            interrupts_are_checkpoints(),
+            atomic_output_dir(
+                out,
+                overwrite=overwrite,
+                resume=resume,
+                kept=lambda folder: resumable(folder, finished),
+            ) as staging,
+        ):
+            runtime = _Runtime(
+                hub, frames, config, prior_spec, options, progress, live, inputs, saved_map
+            )
             if saved_map is not None and not resume:
                 seed_map(runtime.coordinator, saved_map)
             session = read_session(staging / STORE_NAME, paged=True) if continuing else None
-            for _ in range(runtime.coordinator.num_agents, len(session.agents) if session
-                           else 0):  # map segments of restarted agents
+            for _ in range(
+                runtime.coordinator.num_agents, len(session.agents) if session else 0
+            ):  # map segments of restarted agents
                 runtime.coordinator.add_agent()
             with open_store(staging, config, runtime.coordinator, resume, session) as store:
                 runtime.store = store
@@ -153,8 +178,10 @@ def coordinate(
                 runtime.run(finish_threads=threads)
                 runtime.stop()
                 if all(s.status == "failed" for s in runtime.slots):
-                    raise InputError("every agent failed: " + "; ".join(
-                        f"agent {s.agent}: {s.error}" for s in runtime.slots))
+                    raise InputError(
+                        "every agent failed: "
+                        + "; ".join(f"agent {s.agent}: {s.error}" for s in runtime.slots)
+                    )
                 summary = _write(staging, runtime, inputs)  # reads paged-out keyframes
     except KeyboardInterrupt:
         interrupted = True
@@ -170,24 +197,40 @@ def coordinate(
 def _write(staging: Path, runtime: _Runtime, inputs: Sequence[AgentInput]) -> RunSummary:
     """The output folder of :func:`pipeline.run`, from the agents' results."""
     config = runtime.config
-    results, runtime.places = agent_results(runtime.slots, runtime.segments,
-                                            runtime.coordinator.components())
+    results, runtime.places = agent_results(
+        runtime.slots, runtime.segments, runtime.coordinator.components()
+    )
     coordinator = SegmentedCoordinator(runtime.coordinator, runtime.places)
     seconds = [s.seconds for s in runtime.slots]
-    metrics, components = outputs.write_run_files(staging, results, coordinator, config,
-                                                  runtime.prior.describe(), seconds,
-                                                  runtime.progress)
+    metrics, components = outputs.write_run_files(
+        staging, results, coordinator, config, runtime.prior.describe(), seconds, runtime.progress
+    )
     metrics["runtime"] = runtime.runtime_metrics()
     metrics["store"] = None if runtime.store is None else runtime.store.written_metrics()
     summary = RunSummary(out=staging)
     for slot, s in zip(runtime.slots, seconds):
-        summary.agents.append({"agent": slot.agent, "status": slot.status,
-                               **outputs.agent_row(results[slot.agent], s)})
+        summary.agents.append(
+            {
+                "agent": slot.agent,
+                "status": slot.status,
+                **outputs.agent_row(results[slot.agent], s),
+            }
+        )
         if slot.status == "failed":
             summary.notes.append(
                 f"agent {slot.agent} failed: {slot.error}; its outputs hold the "
-                f"{len(results[slot.agent].keyframes)} keyframes the coordinator received")
+                f"{len(results[slot.agent].keyframes)} keyframes the coordinator received"
+            )
     summary.notes.extend(left_out(runtime.segments, runtime.places))
-    outputs.evaluate_and_finish(staging, summary, metrics, [] if runtime.first else inputs,
-                                components, results, coordinator, config, runtime.progress)
+    outputs.evaluate_and_finish(
+        staging,
+        summary,
+        metrics,
+        [] if runtime.first else inputs,
+        components,
+        results,
+        coordinator,
+        config,
+        runtime.progress,
+    )
     return summary

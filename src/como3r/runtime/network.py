@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import torch
 
@@ -22,8 +22,8 @@ from como3r.config import Config
 from como3r.errors import InputError
 from como3r.progress import ProgressCallback
 from como3r.runtime.agent_worker import prior_fields, run_agent
-from como3r.runtime.pipeline import PriorSpec, RunSummary, open_agents
 from como3r.runtime.multiprocess import coordinate
+from como3r.runtime.pipeline import PriorSpec, RunSummary, open_agents
 from como3r.runtime.processes import RuntimeOptions
 from como3r.runtime.spool import DEFAULT_MEMORY_BYTES, Spool
 from como3r.runtime.transport_zenoh import Keys, ZenohHub, ZenohOptions, open_session
@@ -32,9 +32,18 @@ from como3r.runtime.zenoh_agent import ZenohAgentLink
 logger = logging.getLogger(__name__)
 
 
-def serve(network: ZenohOptions, agents: int, out: Path, config: Config, prior_spec: PriorSpec,
-          options: RuntimeOptions, ground_truth: Sequence[Path] = (), overwrite: bool = False,
-          progress: ProgressCallback | None = None, resume: bool = False) -> RunSummary:
+def serve(
+    network: ZenohOptions,
+    agents: int,
+    out: Path,
+    config: Config,
+    prior_spec: PriorSpec,
+    options: RuntimeOptions,
+    ground_truth: Sequence[Path] = (),
+    overwrite: bool = False,
+    progress: ProgressCallback | None = None,
+    resume: bool = False,
+) -> RunSummary:
     """Coordinate agents ``0 .. agents-1`` joining over Zenoh until each has finished or
     failed; write the output folder.
 
@@ -65,19 +74,42 @@ def serve(network: ZenohOptions, agents: int, out: Path, config: Config, prior_s
     keys = Keys(network.session)
     session = open_session(network)
     try:
-        hub = ZenohHub(session, keys, agents, options.max_message_bytes,
-                       options.shutdown_grace_s, certified=network.member is not None)
+        hub = ZenohHub(
+            session,
+            keys,
+            agents,
+            options.max_message_bytes,
+            options.shutdown_grace_s,
+            certified=network.member is not None,
+        )
         logger.info("coordinator of %s: %s", keys.root, network.where())
-        return coordinate(hub, [None] * agents, [0] * agents, out, config, prior_spec, options,
-                          inputs=inputs, overwrite=overwrite, progress=progress, resume=resume,
-                          continuing=resume)
+        return coordinate(
+            hub,
+            [None] * agents,
+            [0] * agents,
+            out,
+            config,
+            prior_spec,
+            options,
+            inputs=inputs,
+            overwrite=overwrite,
+            progress=progress,
+            resume=resume,
+            continuing=resume,
+        )
     finally:
         session.close()
 
 
-def run_remote_agent(network: ZenohOptions, agent: int, path: Path, prior_spec: PriorSpec,
-                     threads: int | None = None, queue_memory_bytes: int = DEFAULT_MEMORY_BYTES,
-                     spill_dir: Path | None = None) -> bool:
+def run_remote_agent(
+    network: ZenohOptions,
+    agent: int,
+    path: Path,
+    prior_spec: PriorSpec,
+    threads: int | None = None,
+    queue_memory_bytes: int = DEFAULT_MEMORY_BYTES,
+    spill_dir: Path | None = None,
+) -> bool:
     """Run agent ``agent`` on ``path`` for the coordinator reached through ``network``:
     wait for it, take its task, track every frame (on while the coordinator is away), and
     leave once the coordinator has stored the last message.
@@ -103,19 +135,28 @@ def run_remote_agent(network: ZenohOptions, agent: int, path: Path, prior_spec: 
     session = open_session(network)
     try:
         spool = Spool(queue_memory_bytes, spill_dir, label=f"agent-{agent}")
-        link = ZenohAgentLink(session, Keys(network.session, network.member), agent, spool,
-                              where=network.where())
+        link = ZenohAgentLink(
+            session, Keys(network.session, network.member), agent, spool, where=network.where()
+        )
         task = link.fetch_task()
         if task.prior["name"] != prior_spec.name:
             link.close()
-            raise InputError(f"--prior {prior_spec.name}: the coordinator runs --prior "
-                             f"{task.prior['name']}")
+            raise InputError(
+                f"--prior {prior_spec.name}: the coordinator runs --prior {task.prior['name']}"
+            )
         task = dataclasses.replace(
-            task, input_path=str(path), prior=prior_fields(prior_spec),
+            task,
+            input_path=str(path),
+            prior=prior_fields(prior_spec),
             torch_threads=threads if threads is not None else torch.get_num_threads(),
-            log_level=logging.getLogger().getEffectiveLevel())
-        logger.info("agent %d: task received, running %s%s", agent, path,
-                    f" after frame {task.resume_after}" if task.resume_after >= 0 else "")
+            log_level=logging.getLogger().getEffectiveLevel(),
+        )
+        logger.info(
+            "agent %d: task received, running %s%s",
+            agent,
+            path,
+            f" after frame {task.resume_after}" if task.resume_after >= 0 else "",
+        )
         return run_agent(task, link)
     finally:
         session.close()

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -29,8 +30,10 @@ from como3r.progress import PhaseCallback, report_phase
 logger = logging.getLogger(__name__)
 
 #: the first note of every run on the simulated prior (CLI summary, report.html)
-SIMULATED_NOTE = ("prior: simulated (made from the input's ground-truth depth as a stand-in "
-                  "for MASt3R): these results do not measure MASt3R")
+SIMULATED_NOTE = (
+    "prior: simulated (made from the input's ground-truth depth as a stand-in "
+    "for MASt3R): these results do not measure MASt3R"
+)
 
 
 def write_trajectories(out: Path, frontends: Sequence[AgentFrontend]) -> None:
@@ -42,8 +45,9 @@ def write_trajectories(out: Path, frontends: Sequence[AgentFrontend]) -> None:
         write_tum(out / "keyframes" / f"agent_{fe.agent}.txt", kf_stamps, kf_T_WC)
 
 
-def fused_map(keyframes: Mapping[int, Iterable[Any]], min_confidence: float,
-              voxel_size: float = 0.0) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def fused_map(
+    keyframes: Mapping[int, Iterable[Any]], min_confidence: float, voxel_size: float = 0.0
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Every keyframe's canonical pointmap in the world, above a confidence threshold, one
     keyframe at a time (a long run's map is never held whole, issue 14).
 
@@ -100,8 +104,9 @@ def _world_points(kf: Any, min_confidence: float) -> tuple[np.ndarray, np.ndarra
     return points[keep].numpy().astype(np.float32), keep.numpy()
 
 
-def fused_points(keyframes: Mapping[int, Iterable[Any]], min_confidence: float
-                 ) -> Iterator[np.ndarray]:
+def fused_points(
+    keyframes: Mapping[int, Iterable[Any]], min_confidence: float
+) -> Iterator[np.ndarray]:
     """:func:`fused_map`'s points, one ``(N_k, 3)`` float32 piece per keyframe."""
     for xyz, _, _ in fused_map(keyframes, min_confidence):
         yield xyz
@@ -109,13 +114,19 @@ def fused_points(keyframes: Mapping[int, Iterable[Any]], min_confidence: float
 
 def write_map(out: Path, frontends: Sequence[AgentFrontend], config: Config) -> int:
     """Write ``map.ply`` a keyframe at a time; returns the number of points."""
-    return write_ply_pieces(out / "map.ply", fused_map(
-        {fe.agent: fe.keyframes for fe in frontends},
-        config.visualization.map_min_confidence, config.visualization.voxel_size_m))
+    return write_ply_pieces(
+        out / "map.ply",
+        fused_map(
+            {fe.agent: fe.keyframes for fe in frontends},
+            config.visualization.map_min_confidence,
+            config.visualization.voxel_size_m,
+        ),
+    )
 
 
-def graph_document(frontends: Sequence[AgentFrontend],
-                   coordinator: Coordinator | None = None) -> dict[str, Any]:
+def graph_document(
+    frontends: Sequence[AgentFrontend], coordinator: Coordinator | None = None
+) -> dict[str, Any]:
     """The keyframe graph as JSON-ready data.
 
     Keyframes carry the agents' final poses. Edges are the coordinator's global graph
@@ -128,14 +139,30 @@ def graph_document(frontends: Sequence[AgentFrontend],
     keyframes, local_loops = [], []
     for fe in frontends:
         for kf in fe.keyframes:
-            keyframes.append({"agent": fe.agent, "keyframe": kf.kf_id, "frame": kf.frame_index,
-                              "timestamp": kf.timestamp, "T_WC": kf.T_WC.tolist()})
+            keyframes.append(
+                {
+                    "agent": fe.agent,
+                    "keyframe": kf.kf_id,
+                    "frame": kf.frame_index,
+                    "timestamp": kf.timestamp,
+                    "T_WC": kf.T_WC.tolist(),
+                }
+            )
         local_loops.extend(
-            {"type": e.kind, "from": [fe.agent, e.i], "to": [fe.agent, e.j],
-             "match_fraction": e.matches.match_fraction}
-            for e in fe.edges if e.kind == "loop" or coordinator is None)
-    document: dict[str, Any] = {"keyframes": keyframes, "edges": local_loops,
-                                "components": [[fe.agent] for fe in frontends]}
+            {
+                "type": e.kind,
+                "from": [fe.agent, e.i],
+                "to": [fe.agent, e.j],
+                "match_fraction": e.matches.match_fraction,
+            }
+            for e in fe.edges
+            if e.kind == "loop" or coordinator is None
+        )
+    document: dict[str, Any] = {
+        "keyframes": keyframes,
+        "edges": local_loops,
+        "components": [[fe.agent] for fe in frontends],
+    }
     if coordinator is not None:
         coordinated = coordinator.graph_document()
         document["edges"] = coordinated["edges"] + local_loops
@@ -185,16 +212,22 @@ def tracking_warnings(results: Sequence[Any]) -> list[str]:
             continue
         lost = stats.lost_frames
         shown = ", ".join(str(f) for f in lost[:20]) + (", ..." if len(lost) > 20 else "")
-        text = (f"agent {result.agent} was tracked on {stats.tracked} of "
-                f"{stats.frames} processed frames ({100.0 * stats.tracked / stats.frames:.0f} %); "
-                f"{stats.relocalized} relocalized, lost frames: {shown or 'none'}")
+        text = (
+            f"agent {result.agent} was tracked on {stats.tracked} of "
+            f"{stats.frames} processed frames ({100.0 * stats.tracked / stats.frames:.0f} %); "
+            f"{stats.relocalized} relocalized, lost frames: {shown or 'none'}"
+        )
         logger.warning(text)  # the log line has its own WARNING level
         warnings.append(f"warning: {text}")
     return warnings
 
 
-def bandwidth(sent: Mapping[str, int], keyframes: int, image_shape: tuple[int, int],
-              by_part: Mapping[str, float] | None = None) -> dict[str, Any]:
+def bandwidth(
+    sent: Mapping[str, int],
+    keyframes: int,
+    image_shape: tuple[int, int],
+    by_part: Mapping[str, float] | None = None,
+) -> dict[str, Any]:
     """What one agent (or robot) sent, per keyframe, against the raw bytes of an image.
 
     Args:
@@ -213,16 +246,22 @@ def bandwidth(sent: Mapping[str, int], keyframes: int, image_shape: tuple[int, i
     image = 3 * int(image_shape[0]) * int(image_shape[1])
     total = int(sum(sent.values()))
     per_keyframe = total / keyframes if keyframes else None
-    return {"keyframes": keyframes, "bytes_sent": total, "bytes_per_keyframe": per_keyframe,
-            "image_bytes": image,
-            "per_keyframe_over_image": per_keyframe / image if per_keyframe else None,
-            "bytes_per_keyframe_by_type": ({k: v / keyframes for k, v in sorted(sent.items())}
-                                           if keyframes else {}),
-            "keyframe_message_bytes_by_part": dict(by_part) if by_part else None}
+    return {
+        "keyframes": keyframes,
+        "bytes_sent": total,
+        "bytes_per_keyframe": per_keyframe,
+        "image_bytes": image,
+        "per_keyframe_over_image": per_keyframe / image if per_keyframe else None,
+        "bytes_per_keyframe_by_type": (
+            {k: v / keyframes for k, v in sorted(sent.items())} if keyframes else {}
+        ),
+        "keyframe_message_bytes_by_part": dict(by_part) if by_part else None,
+    }
 
 
-def keyframe_bandwidth(runtime: Mapping[str, Any] | None,
-                       results: Sequence[Any]) -> list[dict[str, Any]] | None:
+def keyframe_bandwidth(
+    runtime: Mapping[str, Any] | None, results: Sequence[Any]
+) -> list[dict[str, Any]] | None:
     """Per agent of a multi-process run, :func:`bandwidth` of what it sent the coordinator
     (None without a ``runtime`` section: nothing travelled)."""
     if not runtime:
@@ -235,9 +274,17 @@ def keyframe_bandwidth(runtime: Mapping[str, Any] | None,
         result = by_agent.get(entry["agent"])
         keyframes = list(result.keyframes) if result is not None else []
         shape = tuple(keyframes[0].colors.shape[:2]) if keyframes else (0, 0)
-        rows.append({"agent": entry["agent"], **bandwidth(
-            entry["bytes_from_agent"], entry["keyframes_received"], shape,
-            entry.get("keyframe_bytes_by_part"))})
+        rows.append(
+            {
+                "agent": entry["agent"],
+                **bandwidth(
+                    entry["bytes_from_agent"],
+                    entry["keyframes_received"],
+                    shape,
+                    entry.get("keyframe_bytes_by_part"),
+                ),
+            }
+        )
     return rows
 
 
@@ -252,10 +299,17 @@ def in_final_folder(text: str, staging: Path) -> str:
     return text.replace(str(staging), str(staging.with_name(staging.name.removesuffix(".partial"))))
 
 
-def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
-                        agents: Sequence[Any], components: Sequence[Sequence[int]],
-                        results: Sequence[Any], coordinator: Any, config: Config,
-                        progress: PhaseCallback | None = None) -> None:
+def evaluate_and_finish(
+    staging: Path,
+    summary: Any,
+    metrics: dict[str, Any],
+    agents: Sequence[Any],
+    components: Sequence[Sequence[int]],
+    results: Sequence[Any],
+    coordinator: Any,
+    config: Config,
+    progress: PhaseCallback | None = None,
+) -> None:
     """Evaluate against ground truth (where every agent has it), then write
     ``metrics.json`` and ``report.html``; adds what the user should know to ``summary.notes``.
 
@@ -281,10 +335,14 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
     if agents and all(a.groundtruth is not None for a in agents):
         report_phase(progress, "evaluation", "ATE and RPE through evo", 0, 2)
         try:
-            evaluation = evaluate_run(staging, [a.root for a in agents], staging,
-                                      components=[list(c) for c in components],
-                                      gt_format=config.input.format,
-                                      fps=config.input.frame_rate_hz)
+            evaluation = evaluate_run(
+                staging,
+                [a.root for a in agents],
+                staging,
+                components=[list(c) for c in components],
+                gt_format=config.input.format,
+                fps=config.input.frame_rate_hz,
+            )
         except InputError as exc:  # e.g. too few tracked frames: the run itself stands
             summary.notes.append(f"ATE not computed: {in_final_folder(str(exc), staging)}")
         else:
@@ -293,12 +351,15 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
     else:
         summary.notes.append("no ground truth for every agent: ATE not computed")
     if len(components) > 1:
-        summary.notes.append(f"agents form {len(components)} separate gauge components "
-                             f"{[list(c) for c in components]}: no merged ATE across them")
+        summary.notes.append(
+            f"agents form {len(components)} separate gauge components "
+            f"{[list(c) for c in components]}: no merged ATE across them"
+        )
     summary.notes.extend(tracking_warnings(results))
     report_phase(progress, "evaluation", "map accuracy", 1, 2)
-    metrics["map_accuracy"] = _map_accuracy(summary, agents, components, results, coordinator,
-                                            config)
+    metrics["map_accuracy"] = _map_accuracy(
+        summary, agents, components, results, coordinator, config
+    )
     metrics["bandwidth"] = keyframe_bandwidth(metrics.get("runtime"), results)
     write_json(staging / "metrics.json", metrics)
     truth = [a.groundtruth for a in agents] if summary.evaluation is not None else None
@@ -306,10 +367,15 @@ def evaluate_and_finish(staging: Path, summary: Any, metrics: dict[str, Any],
     write_report(staging, summary.notes, truth)
 
 
-def write_run_files(staging: Path, agents: Sequence[Any], coordinator: Any, config: Config,
-                    prior_description: dict[str, Any], seconds: Sequence[float],
-                    progress: PhaseCallback | None = None
-                    ) -> tuple[dict[str, Any], list[list[int]]]:
+def write_run_files(
+    staging: Path,
+    agents: Sequence[Any],
+    coordinator: Any,
+    config: Config,
+    prior_description: dict[str, Any],
+    seconds: Sequence[float],
+    progress: PhaseCallback | None = None,
+) -> tuple[dict[str, Any], list[list[int]]]:
     """Write config, trajectories, keyframe data, map and graph of a run; returns the base
     metrics document and the gauge components.
 
@@ -344,14 +410,24 @@ def write_run_files(staging: Path, agents: Sequence[Any], coordinator: Any, conf
 def agent_row(agent: Any, seconds: float) -> dict[str, Any]:
     """One agent's line of the final summary table."""
     stats = agent.stats
-    return {"agent": agent.agent, "frames": stats.frames, "tracked": stats.tracked,
-            "lost": stats.lost, "keyframes": len(agent.keyframes),
-            "fps": stats.frames / seconds if seconds > 0 else 0.0}
+    return {
+        "agent": agent.agent,
+        "frames": stats.frames,
+        "tracked": stats.tracked,
+        "lost": stats.lost,
+        "keyframes": len(agent.keyframes),
+        "fps": stats.frames / seconds if seconds > 0 else 0.0,
+    }
 
 
-def _map_accuracy(summary: Any, agents: Sequence[Any], components: Sequence[Sequence[int]],
-                  results: Sequence[Any], coordinator: Any, config: Config
-                  ) -> list[dict[str, Any]] | None:
+def _map_accuracy(
+    summary: Any,
+    agents: Sequence[Any],
+    components: Sequence[Sequence[int]],
+    results: Sequence[Any],
+    coordinator: Any,
+    config: Config,
+) -> list[dict[str, Any]] | None:
     """Reconstruction metrics of each component's fused map (C-Sec. B.5) after its trajectory
     alignment: the final map and, where the depth refinement ran, the map before it."""
     from como3r.errors import InputError
@@ -360,8 +436,9 @@ def _map_accuracy(summary: Any, agents: Sequence[Any], components: Sequence[Sequ
     if summary.evaluation is None:
         return None
     if not all(a.has_depth and a.calib is not None for a in agents):
-        summary.notes.append("no ground-truth depth and calibration for every agent: map "
-                             "accuracy not computed")
+        summary.notes.append(
+            "no ground-truth depth and calibration for every agent: map accuracy not computed"
+        )
         return None
     min_confidence = config.visualization.map_min_confidence
     entries = []
@@ -369,18 +446,21 @@ def _map_accuracy(summary: Any, agents: Sequence[Any], components: Sequence[Sequ
         alignment = summary.evaluation.alignment_of(component)
         if alignment is None:
             continue
-        clouds = {"final": fused_points({a: results[a].keyframes for a in component},
-                                        min_confidence)}
+        clouds = {
+            "final": fused_points({a: results[a].keyframes for a in component}, min_confidence)
+        }
         if all(a in coordinator.pre_refinement for a in component):
             clouds["before_refinement"] = fused_points(
-                {a: coordinator.pre_refinement[a] for a in component}, min_confidence)
+                {a: coordinator.pre_refinement[a] for a in component}, min_confidence
+            )
         try:
             scores = evaluate_maps([agents[a] for a in component], clouds, alignment)
         except InputError as exc:
             summary.notes.append(f"map accuracy of agents {list(component)} not computed: {exc}")
             continue
-        entries.append({"agents": list(component),
-                        **{name: m.to_json() for name, m in scores.items()}})
+        entries.append(
+            {"agents": list(component), **{name: m.to_json() for name, m in scores.items()}}
+        )
         summary.notes.append(_map_note(component, scores))
     return entries
 
@@ -389,11 +469,15 @@ def _map_note(component: Sequence[int], scores: dict[str, Any]) -> str:
     from como3r.evaluation.reconstruction import MAP_THRESHOLD_RATIO
 
     final = scores["final"]
-    text = (f"map of agents {list(component)}: accuracy {final.accuracy:.3f} m, completeness "
-            f"{final.completeness:.3f} m, F-score@{final.threshold:.3g} m "
-            f"({100 * MAP_THRESHOLD_RATIO:g} % of the median depth) {final.fscore:.3f}")
+    text = (
+        f"map of agents {list(component)}: accuracy {final.accuracy:.3f} m, completeness "
+        f"{final.completeness:.3f} m, F-score@{final.threshold:.3g} m "
+        f"({100 * MAP_THRESHOLD_RATIO:g} % of the median depth) {final.fscore:.3f}"
+    )
     before = scores.get("before_refinement")
     if before is not None:
-        text += (f" (before depth refinement: accuracy {before.accuracy:.3f} m, F-score "
-                 f"{before.fscore:.3f})")
+        text += (
+            f" (before depth refinement: accuracy {before.accuracy:.3f} m, F-score "
+            f"{before.fscore:.3f})"
+        )
     return text

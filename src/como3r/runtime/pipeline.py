@@ -23,9 +23,9 @@ import functools
 import heapq
 import logging
 import time
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -33,6 +33,7 @@ import torch
 from como3r.config import Config
 from como3r.coordination.coordinator import Coordinator
 from como3r.data.agent import AgentInput, open_agent
+from como3r.data.preprocess import make_view, upsampling
 from como3r.data.readers.camera import (
     CameraInput,
     CameraSource,
@@ -40,7 +41,6 @@ from como3r.data.readers.camera import (
     interrupt_ends_streams,
     open_camera,
 )
-from como3r.data.preprocess import make_view, upsampling
 from como3r.errors import InputError
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
@@ -122,12 +122,17 @@ def resolve_weights(spec: PriorSpec) -> PriorSpec:
     if codebook is None and retrieval is not None:
         beside = codebook_path_for(retrieval)
         codebook = beside if beside.is_file() else cached_file("codebook")
-    return dataclasses.replace(spec, weights=weights, retrieval_weights=retrieval,
-                               codebook=codebook)
+    return dataclasses.replace(
+        spec, weights=weights, retrieval_weights=retrieval, codebook=codebook
+    )
 
 
-def build_prior(spec: PriorSpec, config: Config, agents: Mapping[int, AgentInput] | None = None,
-                quiet: bool = False) -> tuple[Prior, np.ndarray | None]:
+def build_prior(
+    spec: PriorSpec,
+    config: Config,
+    agents: Mapping[int, AgentInput] | None = None,
+    quiet: bool = False,
+) -> tuple[Prior, np.ndarray | None]:
     """The prior and its retrieval codebook (None when retrieval is unavailable); MASt3R
     files not in ``spec`` come from the weights cache (:func:`resolve_weights`).
 
@@ -163,8 +168,9 @@ def build_prior(spec: PriorSpec, config: Config, agents: Mapping[int, AgentInput
     raise InputError(f"unknown prior {spec.name!r}; choose one of {', '.join(PRIORS)}")
 
 
-def open_agents(paths: Sequence[Path | CameraSource], config: Config,
-                cameras: bool = False) -> list[AgentInput] | list[CameraInput]:
+def open_agents(
+    paths: Sequence[Path | CameraSource], config: Config, cameras: bool = False
+) -> list[AgentInput] | list[CameraInput]:
     """Open and validate every agent input before any work starts; with ``cameras``, the
     live inputs of :mod:`como3r.data.readers.camera` too (they start reading).
 
@@ -176,13 +182,19 @@ def open_agents(paths: Sequence[Path | CameraSource], config: Config,
         raise InputError("no --agent given")
     live = [p for p in paths if isinstance(p, CameraSource)]
     if not live:
-        return [open_agent(p, fps=config.input.frame_rate_hz, format=config.input.format,
-                           topic=config.input.topic) for p in paths]
+        return [
+            open_agent(
+                p,
+                fps=config.input.frame_rate_hz,
+                format=config.input.format,
+                topic=config.input.topic,
+            )
+            for p in paths
+        ]
     if not cameras:
         raise InputError(f"{live[0]}: live inputs run in one process (--single-process)")
     if len(live) < len(paths):
-        raise InputError("a run takes recorded inputs (--agent) or live ones (--camera), not "
-                         "both")
+        raise InputError("a run takes recorded inputs (--agent) or live ones (--camera), not both")
     opened: list[CameraInput] = []
     try:
         for source in live:
@@ -221,12 +233,14 @@ def warn_skipped_frames(agents: Sequence[AgentInput], prior: str) -> None:
             logger.warning("%s", line)
 
 
-def _frame_schedule(agents: Sequence[AgentInput], frames: Sequence[np.ndarray]
-                    ) -> Iterator[tuple[int, int]]:
+def _frame_schedule(
+    agents: Sequence[AgentInput], frames: Sequence[np.ndarray]
+) -> Iterator[tuple[int, int]]:
     """``(agent, frame index)`` of every agent's ``frames`` (:func:`run_frames`), by
     timestamp."""
-    heap = [(float(a.timestamps[f[0]]), k, 0) for k, (a, f) in enumerate(zip(agents, frames))
-            if len(f)]
+    heap = [
+        (float(a.timestamps[f[0]]), k, 0) for k, (a, f) in enumerate(zip(agents, frames)) if len(f)
+    ]
     heapq.heapify(heap)
     while heap:
         _, k, n = heapq.heappop(heap)
@@ -235,8 +249,9 @@ def _frame_schedule(agents: Sequence[AgentInput], frames: Sequence[np.ndarray]
             heapq.heappush(heap, (float(agents[k].timestamps[frames[k][n + 1]]), k, n + 1))
 
 
-def load_frame(source: AgentInput, agent: int, index: int, long_side: int,
-               calibrated: bool) -> tuple[View, float, np.ndarray]:
+def load_frame(
+    source: AgentInput, agent: int, index: int, long_side: int, calibrated: bool
+) -> tuple[View, float, np.ndarray]:
     """Frame ``index`` of agent ``agent``'s input pre-processed: ``(view, timestamp,
     colors)``; the folder's intrinsics go into the view only in a ``calibrated`` run."""
     frame = source.load_frame(index)
@@ -284,41 +299,51 @@ def run(
     """
     agents = open_agents(agent_paths, config, cameras=True)
     first = 0 if saved_map is None else saved_map.agents  # the id of the first new agent
-    prior, codebook = build_prior(prior_spec, config,
-                                  {first + k: agent for k, agent in enumerate(agents)})
-    frontends = [AgentFrontend(prior, config, first + k, codebook,
-                               upsampling(agent.image_size, config.input.long_side))
-                 for k, agent in enumerate(agents)]
+    prior, codebook = build_prior(
+        prior_spec, config, {first + k: agent for k, agent in enumerate(agents)}
+    )
+    frontends = [
+        AgentFrontend(
+            prior, config, first + k, codebook, upsampling(agent.image_size, config.input.long_side)
+        )
+        for k, agent in enumerate(agents)
+    ]
     coordinator = Coordinator(prior, config, codebook, first + len(agents))
     saved = [] if saved_map is None else map_results(saved_map)
     if saved_map is not None and not resume:
         seed_map(coordinator, saved_map)
     results = [*saved, *frontends]  # by agent id
-    coordinator_live = (None if live is None else CoordinatorLive(
-        live, coordinator, config.visualization.map_min_confidence))
+    coordinator_live = (
+        None
+        if live is None
+        else CoordinatorLive(live, coordinator, config.visualization.map_min_confidence)
+    )
     hand_over = functools.partial(_hand_over, results, coordinator, coordinator_live)
     loops = [AgentLoop(frontend, hand_over, live) for frontend in frontends]
     cameras = [a for a in agents if isinstance(a, CameraInput)]
-    selected = [] if cameras else [run_frames(a, config.input.subsample, prior_spec.name)
-                                   for a in agents]
+    selected = (
+        [] if cameras else [run_frames(a, config.input.subsample, prior_spec.name) for a in agents]
+    )
     if not cameras:
         warn_skipped_frames(agents, prior_spec.name)
-    totals = ([a.source.max_frames for a in cameras] if cameras
-              else [len(f) for f in selected])
+    totals = [a.source.max_frames for a in cameras] if cameras else [len(f) for f in selected]
     frames = prepared_frames(
         camera_schedule(cameras) if cameras else _frame_schedule(agents, selected),
-        lambda k, i: load_frame(agents[k], first + k, i, config.input.long_side,
-                                config.calibrated),
+        lambda k, i: load_frame(agents[k], first + k, i, config.input.long_side, config.calibrated),
         prior,
-        config.input.prefetch_frames)
+        config.input.prefetch_frames,
+    )
     # recorded inputs: the first Ctrl-C or SIGTERM stops the run between two frames, and
     # OUT.partial is kept for --resume; a live run's store cannot be resumed
     checkpoints = contextlib.nullcontext() if cameras else interrupts_are_checkpoints()
     kept = None if cameras else resumable
-    with checkpoints, \
-            atomic_output_dir(out, overwrite=overwrite, resume=resume, kept=kept) as staging, \
-            open_store(staging, config, coordinator, resume) as store, \
-            contextlib.closing(frames), contextlib.ExitStack() as streams:
+    with (
+        checkpoints,
+        atomic_output_dir(out, overwrite=overwrite, resume=resume, kept=kept) as staging,
+        open_store(staging, config, coordinator, resume) as store,
+        contextlib.closing(frames),
+        contextlib.ExitStack() as streams,
+    ):
         if saved_map is not None:
             hold_map(coordinator, saved_map)
             store.record_runtime(None, {r.agent: r.finished for r in saved if r.finished})
@@ -336,9 +361,17 @@ def run(
             step = loops[k].step(frame, start)
             if progress is not None:
                 stats = frontends[k].stats
-                progress(AgentProgress(first + k, stats.frames, totals[k],
-                                       len(frontends[k].keyframes), stats.lost,
-                                       stats.relocalized, tracking_state(step.outcome)))
+                progress(
+                    AgentProgress(
+                        first + k,
+                        stats.frames,
+                        totals[k],
+                        len(frontends[k].keyframes),
+                        stats.lost,
+                        stats.relocalized,
+                        tracking_state(step.outcome),
+                    )
+                )
         finishing()  # every frame was read: a first Ctrl-C now lets the outputs be written
         streams.close()  # the live streams end; Ctrl-C interrupts again
         notes = [camera.stop() for camera in cameras]  # frames read and dropped
@@ -349,16 +382,22 @@ def run(
         if coordinator_live is not None:
             coordinator_live.finish(results)
         seconds = [r.finished.seconds if r.finished else 0.0 for r in saved] + [
-            loop.seconds for loop in loops]
-        summary = _write(staging, results, coordinator, config, agents, seconds, prior,
-                         store, progress)
+            loop.seconds for loop in loops
+        ]
+        summary = _write(
+            staging, results, coordinator, config, agents, seconds, prior, store, progress
+        )
     summary.out = out
     summary.notes.extend(notes)
     return summary
 
 
-def _hand_over(results: Sequence[AgentFrontend | AgentResult], coordinator: Coordinator,
-               coordinator_live: CoordinatorLive | None, packet: KeyframePacket) -> None:
+def _hand_over(
+    results: Sequence[AgentFrontend | AgentResult],
+    coordinator: Coordinator,
+    coordinator_live: CoordinatorLive | None,
+    packet: KeyframePacket,
+) -> None:
     """Give an agent's keyframe to the coordinator and the pose updates it returns to the
     agents (``results``: by agent id)."""
     updates = coordinator.add_keyframe(packet)
@@ -373,16 +412,22 @@ def _apply(frontends: Sequence[AgentFrontend], updates: Sequence[PoseUpdate]) ->
         frontends[update.agent].apply_pose_update(update)
 
 
-def _finish(frontends: Sequence[AgentFrontend], results: Sequence[AgentFrontend | AgentResult],
-            coordinator: Coordinator, progress: PhaseCallback | None = None) -> None:
+def _finish(
+    frontends: Sequence[AgentFrontend],
+    results: Sequence[AgentFrontend | AgentResult],
+    coordinator: Coordinator,
+    progress: PhaseCallback | None = None,
+) -> None:
     """Send every front-end's last fused pointmap, run the terminal alternation, apply the
     final poses and refined pointmaps to every agent's ``results`` (by agent id)."""
     final_poses = {}
     for fe in frontends:
         if len(fe.keyframes):
             last = fe.keyframes.last
-            coordinator.refresh(fe.agent, PointmapRefresh(last.kf_id, last.X_hat, last.C_hat,
-                                                          last.fused_frames, last.K))
+            coordinator.refresh(
+                fe.agent,
+                PointmapRefresh(last.kf_id, last.X_hat, last.C_hat, last.fused_frames, last.K),
+            )
             final_poses[fe.agent] = fe.keyframes.poses()
     cleanup = coordinator.finish(final_poses, progress)
     _apply(results, cleanup.updates)
@@ -390,15 +435,23 @@ def _finish(frontends: Sequence[AgentFrontend], results: Sequence[AgentFrontend 
         results[update.agent].apply_pointmap_update(update)
 
 
-def _write(staging: Path, results: list[AgentFrontend | AgentResult], coordinator: Coordinator,
-           config: Config, agents: list[AgentInput], seconds: list[float],
-           prior: Prior, store: SessionStore, progress: PhaseCallback | None = None
-           ) -> RunSummary:
+def _write(
+    staging: Path,
+    results: list[AgentFrontend | AgentResult],
+    coordinator: Coordinator,
+    config: Config,
+    agents: list[AgentInput],
+    seconds: list[float],
+    prior: Prior,
+    store: SessionStore,
+    progress: PhaseCallback | None = None,
+) -> RunSummary:
     """The output folder; ``agents`` are the inputs of the last ``len(agents)`` results
     (the others came with a saved map: then nothing is evaluated); ``store``: the run's
     session store (``metrics.json``: the bytes written to it)."""
-    metrics, components = outputs.write_run_files(staging, results, coordinator, config,
-                                                  prior.describe(), seconds, progress)
+    metrics, components = outputs.write_run_files(
+        staging, results, coordinator, config, prior.describe(), seconds, progress
+    )
     metrics["store"] = store.written_metrics()
     first = len(results) - len(agents)
     for entry, agent in zip(metrics["agents"][first:], agents):
@@ -406,6 +459,15 @@ def _write(staging: Path, results: list[AgentFrontend | AgentResult], coordinato
             entry["frames_dropped"] = agent.dropped
     summary = RunSummary(out=staging)
     summary.agents.extend(outputs.agent_row(r, s) for r, s in zip(results, seconds))
-    outputs.evaluate_and_finish(staging, summary, metrics, [] if first else agents, components,
-                                results, coordinator, config, progress)
+    outputs.evaluate_and_finish(
+        staging,
+        summary,
+        metrics,
+        [] if first else agents,
+        components,
+        results,
+        coordinator,
+        config,
+        progress,
+    )
     return summary

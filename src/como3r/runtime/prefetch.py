@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import queue
 import threading
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
 from como3r.prior.base import Encoding, Prior, View
+
 
 @dataclass(frozen=True)
 class PreparedFrame:
@@ -47,8 +48,9 @@ class PreparedFrame:
 LoadFrame = Callable[[int, int], tuple[View, float, np.ndarray]]
 
 
-def prepared_frames(schedule: Iterable[tuple[int, int]], load: LoadFrame, prior: Prior,
-                    depth: int) -> Iterator[PreparedFrame]:
+def prepared_frames(
+    schedule: Iterable[tuple[int, int]], load: LoadFrame, prior: Prior, depth: int
+) -> Iterator[PreparedFrame]:
     """Prepared frames in ``schedule`` order, ``depth`` of them made ahead on a thread.
 
     Args:
@@ -66,8 +68,9 @@ def prepared_frames(schedule: Iterable[tuple[int, int]], load: LoadFrame, prior:
         return
     items: queue.Queue = queue.Queue(maxsize=depth)
     stop = threading.Event()
-    worker = threading.Thread(target=_work, args=(schedule, load, prior, items, stop),
-                              name="como3r-prefetch", daemon=True)
+    worker = threading.Thread(
+        target=_work, args=(schedule, load, prior, items, stop), name="como3r-prefetch", daemon=True
+    )
     worker.start()
     try:
         while True:
@@ -91,8 +94,13 @@ def _prepare(agent: int, index: int, load: LoadFrame, prior: Prior) -> PreparedF
     return PreparedFrame(agent, index, timestamp, view, colors, prior.encode(view))
 
 
-def _work(schedule: Iterable[tuple[int, int]], load: LoadFrame, prior: Prior,
-          items: queue.Queue, stop: threading.Event) -> None:
+def _work(
+    schedule: Iterable[tuple[int, int]],
+    load: LoadFrame,
+    prior: Prior,
+    items: queue.Queue,
+    stop: threading.Event,
+) -> None:
     """The worker: prepare every frame in order; end with None or the exception."""
     try:
         for agent, index in schedule:

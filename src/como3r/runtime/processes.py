@@ -59,9 +59,10 @@ import logging
 import math
 import time
 from collections import Counter
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import torch
 
@@ -81,7 +82,9 @@ from como3r.progress import (
 from como3r.runtime import codec
 from como3r.runtime.agent_worker import prior_fields
 from como3r.runtime.interrupts import checkpoint, finishing
+from como3r.runtime.keyframe_bytes import LOSSY_TRANSPORTS, PartCounter, wire_parts
 from como3r.runtime.live import CoordinatorLive
+from como3r.runtime.map_session import SavedMap, map_results
 from como3r.runtime.messages import (
     AgentFailed,
     AgentFinished,
@@ -107,8 +110,6 @@ from como3r.runtime.results import (
     SegmentPlace,
     graph_view,
 )
-from como3r.runtime.keyframe_bytes import LOSSY_TRANSPORTS, PartCounter, wire_parts
-from como3r.runtime.map_session import SavedMap, map_results
 from como3r.runtime.runtime_state import snapshot
 from como3r.runtime.store import SessionStore
 from como3r.runtime.transport import Hub, Joined, Left, Received, Rejected, Traffic
@@ -153,6 +154,7 @@ class _Waiting:
     message: KeyframeMessage
     seq: int | None
 
+
 _LIVE = ("starting", "running")
 
 
@@ -168,11 +170,18 @@ class _Runtime:
             ``0 .. M-1`` (status ``"map"``: no process), the ones with processes follow.
     """
 
-    def __init__(self, hub: Hub, frames: Sequence[int], config: Config, spec: PriorSpec,
-                 options: RuntimeOptions, progress: ProgressCallback | None,
-                 live: LiveCallback | None = None,
-                 inputs: Sequence[AgentInput] | None = None,
-                 saved_map: SavedMap | None = None) -> None:
+    def __init__(
+        self,
+        hub: Hub,
+        frames: Sequence[int],
+        config: Config,
+        spec: PriorSpec,
+        options: RuntimeOptions,
+        progress: ProgressCallback | None,
+        live: LiveCallback | None = None,
+        inputs: Sequence[AgentInput] | None = None,
+        saved_map: SavedMap | None = None,
+    ) -> None:
         self.hub = hub
         self.inputs = inputs
         self.config = config
@@ -185,8 +194,10 @@ class _Runtime:
         self.first = 0 if saved_map is None else saved_map.agents
         self.coordinator = Coordinator(self.prior, config, codebook, self.first + len(frames))
         self.coordinator_live = (
-            None if live is None else
-            CoordinatorLive(live, self.coordinator, config.visualization.map_min_confidence))
+            None
+            if live is None
+            else CoordinatorLive(live, self.coordinator, config.visualization.map_min_confidence)
+        )
         #: keyframes waiting for their turn: ((timestamp, agent, kf_id, arrival), it)
         self.pending: list[tuple[tuple[float, int, int, int], _Waiting]] = []
         #: where the coordinator's state and this runtime's are kept (set by coordinate())
@@ -199,12 +210,23 @@ class _Runtime:
         saved = [] if saved_map is None else map_results(saved_map)
         self.segments = [MapSegment(r.agent, r.agent, r) for r in saved] + [
             MapSegment(agent, agent, AgentResult(agent))
-            for agent in range(self.first, self.first + len(frames))]
-        self.slots = [AgentSlot(r.agent, 0, self.segments[r.agent], status="map",
-                                clock=math.inf, seconds=r.finished.seconds if r.finished else 0.0)
-                      for r in saved]
-        self.slots += [AgentSlot(self.first + k, count, self.segments[self.first + k])
-                       for k, count in enumerate(frames)]
+            for agent in range(self.first, self.first + len(frames))
+        ]
+        self.slots = [
+            AgentSlot(
+                r.agent,
+                0,
+                self.segments[r.agent],
+                status="map",
+                clock=math.inf,
+                seconds=r.finished.seconds if r.finished else 0.0,
+            )
+            for r in saved
+        ]
+        self.slots += [
+            AgentSlot(self.first + k, count, self.segments[self.first + k])
+            for k, count in enumerate(frames)
+        ]
         self.finish_threads = options.torch_threads
         self.tasks: dict[int, AgentTask] = {}
         self.places: dict[int, SegmentPlace] = {}
@@ -212,13 +234,20 @@ class _Runtime:
     def start(self, paths: Sequence[Path | None], spec: PriorSpec) -> None:
         """Hand each agent its task: its input (None: the agent brings its own) and the
         prior it builds."""
-        self.tasks = {self.first + k: AgentTask(
-            agent=self.first + k, input_path="" if path is None else str(path),
-            config=config_to_dict(self.config), prior=prior_fields(spec),
-            torch_threads=self.options.torch_threads, lockstep=self.options.lockstep,
-            max_message_bytes=self.options.max_message_bytes,
-            log_level=logging.getLogger().getEffectiveLevel(), live=self.live is not None)
-            for k, path in enumerate(paths)}
+        self.tasks = {
+            self.first + k: AgentTask(
+                agent=self.first + k,
+                input_path="" if path is None else str(path),
+                config=config_to_dict(self.config),
+                prior=prior_fields(spec),
+                torch_threads=self.options.torch_threads,
+                lockstep=self.options.lockstep,
+                max_message_bytes=self.options.max_message_bytes,
+                log_level=logging.getLogger().getEffectiveLevel(),
+                live=self.live is not None,
+            )
+            for k, path in enumerate(paths)
+        }
         self.hub.start(list(self.tasks.values()), self.rejoin)
 
     def rejoin(self, agent: int) -> AgentTask | str:
@@ -231,8 +260,11 @@ class _Runtime:
         if slot.status == "failed":
             return f"agent {agent} failed in this run ({slot.error}); it cannot rejoin"
         old = slot.segment
-        resume_after = max([slot.last_frame] + [kf.frame_index for kf in old.result.keyframes]
-                           + [w.message.packet.frame_index for w in self._waiting(old)])
+        resume_after = max(
+            [slot.last_frame]
+            + [kf.frame_index for kf in old.result.keyframes]
+            + [w.message.packet.frame_index for w in self._waiting(old)]
+        )
         slot.handled_seq = -1  # the new process numbers its messages from 0
         if old.result.keyframes or self._waiting(old):
             index = self.coordinator.add_agent()
@@ -240,11 +272,19 @@ class _Runtime:
             self.segments.append(slot.segment)
         else:  # its map is empty: the new process makes it
             old.after_frame = resume_after
-        away = "" if slot.away_since is None else \
-            f" after {time.monotonic() - slot.away_since:.1f} s away"
-        logger.warning("agent %d: a new process takes over its id%s; it starts after frame %d "
-                       "on map segment %d (re-localized by cross-agent association)", agent,
-                       away, resume_after, slot.segment.index)
+        away = (
+            ""
+            if slot.away_since is None
+            else f" after {time.monotonic() - slot.away_since:.1f} s away"
+        )
+        logger.warning(
+            "agent %d: a new process takes over its id%s; it starts after frame %d "
+            "on map segment %d (re-localized by cross-agent association)",
+            agent,
+            away,
+            resume_after,
+            slot.segment.index,
+        )
         slot.away_since, slot.last_heard = None, time.monotonic()
         slot.restarts += 1
         return replace(self.tasks[agent], resume_after=resume_after)
@@ -271,15 +311,16 @@ class _Runtime:
     def _run_lockstep(self) -> None:
         """Agents take turns in the single-process schedule (by timestamp, then agent)."""
         self._pump_until(lambda: all(s.status != "starting" for s in self.slots), self.slots)
-        selected = [run_frames(a, self.config.input.subsample, self.prior_name)
-                    for a in self.inputs]
+        selected = [
+            run_frames(a, self.config.input.subsample, self.prior_name) for a in self.inputs
+        ]
         for k, index in _frame_schedule(self.inputs, selected):
             slot = self.slots[self.first + k]
             if slot.status != "running":
                 continue
             self.hub.send(slot.agent, Step(index))
             slot.last_heard = time.monotonic()
-            self._pump_until(lambda: slot.last_frame >= index or slot.status != "running", [slot])
+            self._pump_until(lambda: slot.last_frame >= index or slot.status != "running", [slot])  # noqa: B023 (called here, in its loop)
             self._process_pending(force=True)
         self._pump_until(lambda: not any(s.expected() for s in self.slots), self.slots)
 
@@ -318,7 +359,8 @@ class _Runtime:
             return
         message, segment = event.message, slot.segment
         if isinstance(message, KeyframeMessage) and message.packet.kf_id == (
-                len(segment.result.keyframes) + len(self._waiting(segment))):
+            len(segment.result.keyframes) + len(self._waiting(segment))
+        ):
             self._queue(segment, message, event.seq)
 
     def _waiting(self, segment: MapSegment) -> list[_Waiting]:
@@ -334,9 +376,14 @@ class _Runtime:
             if waiting.segment is slot.segment and waiting.seq is not None:
                 held[slot.agent] = min(held.get(slot.agent, waiting.seq), waiting.seq)
         if self.store is not None:
-            self.store.record_runtime(snapshot(self, self.hub.durable(held)), {
-                s.index: s.result.finished for s in self.segments
-                if s.result.finished is not None})
+            self.store.record_runtime(
+                snapshot(self, self.hub.durable(held)),
+                {
+                    s.index: s.result.finished
+                    for s in self.segments
+                    if s.result.finished is not None
+                },
+            )
         self.hub.acknowledge(held)
 
     def _left(self, slot: AgentSlot, event: Left) -> None:
@@ -345,28 +392,35 @@ class _Runtime:
             return
         slot.away_since, slot.away_reason = time.monotonic(), event.reason
         slot.absences += 1
-        logger.warning("agent %d %s; it is away: kept for %.0f s to reconnect or restart with "
-                       "its id", slot.agent, event.reason, self.options.away_timeout_s)
+        logger.warning(
+            "agent %d %s; it is away: kept for %.0f s to reconnect or restart with its id",
+            slot.agent,
+            event.reason,
+            self.options.away_timeout_s,
+        )
         self._report(slot, "away")
 
     def _joined(self, slot: AgentSlot) -> None:
         if slot.away_since is None:
             logger.info("agent %d joined", slot.agent)
             return
-        logger.warning("agent %d is back after %.1f s away", slot.agent,
-                       time.monotonic() - slot.away_since)
+        logger.warning(
+            "agent %d is back after %.1f s away", slot.agent, time.monotonic() - slot.away_since
+        )
         slot.away_since, slot.last_heard = None, time.monotonic()
         segment = slot.segment  # updates sent while it was away may be lost: again
         for seq in range(segment.confirmed_seq + 1, segment.sent_seq + 1):
             update = segment.updates[seq - 1]
-            self.hub.send(slot.agent, PoseUpdateMessage(update=replace(update, agent=slot.agent),
-                                                        seq=seq))
+            self.hub.send(
+                slot.agent, PoseUpdateMessage(update=replace(update, agent=slot.agent), seq=seq)
+            )
 
     def _handle(self, slot: AgentSlot, message: Any, seq: int | None) -> None:
         agent = message.packet.agent if isinstance(message, KeyframeMessage) else message.agent
         if agent != slot.agent:
-            logger.warning("dropped a %s for agent %d from agent %d", type(message).__name__,
-                           agent, slot.agent)
+            logger.warning(
+                "dropped a %s for agent %d from agent %d", type(message).__name__, agent, slot.agent
+            )
         elif isinstance(message, AgentStarted):
             slot.status, slot.pid = "running", message.pid
             slot.frames_expected = slot.frames_done + message.frames
@@ -374,7 +428,8 @@ class _Runtime:
             self._queue(slot.segment, message, seq)
             slot.keyframes_received += 1
             self.keyframe_parts.setdefault(slot.agent, PartCounter()).add(
-                wire_parts(message, lossy=self.hub.name in LOSSY_TRANSPORTS))
+                wire_parts(message, lossy=self.hub.name in LOSSY_TRANSPORTS)
+            )
             slot.segment.confirmed_seq = max(slot.segment.confirmed_seq, message.applied_seq)
         elif isinstance(message, FrameDone):
             self._frame_done(slot, message)
@@ -392,8 +447,13 @@ class _Runtime:
 
     def _queue(self, segment: MapSegment, message: KeyframeMessage, seq: int | None) -> None:
         packet = message.packet
-        heapq.heappush(self.pending, ((packet.timestamp, segment.agent, packet.kf_id,
-                                       self._arrivals), _Waiting(segment, message, seq)))
+        heapq.heappush(
+            self.pending,
+            (
+                (packet.timestamp, segment.agent, packet.kf_id, self._arrivals),
+                _Waiting(segment, message, seq),
+            ),
+        )
         self._arrivals += 1
 
     def _frame_done(self, slot: AgentSlot, message: FrameDone) -> None:
@@ -409,10 +469,17 @@ class _Runtime:
     def _report(self, slot: AgentSlot, state: str) -> None:
         """The agent's progress, from its messages so far, to the progress callback."""
         if self.progress is not None:
-            self.progress(AgentProgress(slot.agent, slot.frames_done, slot.frames_expected,
-                                        slot.keyframes_received + slot.keyframes_waiting,
-                                        slot.outcomes["lost"],
-                                        slot.outcomes["relocalized"], state))
+            self.progress(
+                AgentProgress(
+                    slot.agent,
+                    slot.frames_done,
+                    slot.frames_expected,
+                    slot.keyframes_received + slot.keyframes_waiting,
+                    slot.outcomes["lost"],
+                    slot.outcomes["relocalized"],
+                    state,
+                )
+            )
 
     def _fail(self, slot: AgentSlot, error: str) -> None:
         slot.status, slot.error, slot.clock = "failed", error, math.inf
@@ -438,35 +505,47 @@ class _Runtime:
                 continue
             if slot.away_since is not None:
                 if now - slot.away_since > self.options.away_timeout_s:
-                    self._fail(slot, f"{slot.away_reason} and did not come back within "
-                                     f"{self.options.away_timeout_s:g} s")
+                    self._fail(
+                        slot,
+                        f"{slot.away_reason} and did not come back within "
+                        f"{self.options.away_timeout_s:g} s",
+                    )
             elif now - slot.last_heard > limit:
                 self._fail(slot, f"no message for {limit:.0f} s (hung)")
 
     # ---------------------------------------------------------------- keyframes and updates
 
-    def _process_pending(self, force: bool = False,
-                         progress: PhaseCallback | None = None) -> None:
+    def _process_pending(self, force: bool = False, progress: PhaseCallback | None = None) -> None:
         """Hand waiting keyframes to the coordinator in ``(timestamp, agent)`` order, each
         once no running agent present can still send an earlier one; ``progress`` hears of
         each (the backlog once the agents stopped: the coordinator may trail them by many)."""
         queued = len(self.pending)
         while self.pending:
             (timestamp, agent, _, _), waiting = self.pending[0]
-            if not force and not all((s.order_clock(), s.agent) > (timestamp, agent)
-                                     for s in self.slots if s.agent != agent):
+            if not force and not all(
+                (s.order_clock(), s.agent) > (timestamp, agent)
+                for s in self.slots
+                if s.agent != agent
+            ):
                 return
             checkpoint()  # between keyframes: a backlog can take long
-            report_phase(progress, "queued keyframes", "retrieval, verification, global BA",
-                         queued - len(self.pending), queued)
+            report_phase(
+                progress,
+                "queued keyframes",
+                "retrieval, verification, global BA",
+                queued - len(self.pending),
+                queued,
+            )
             heapq.heappop(self.pending)
             self._add_keyframe(waiting.segment, waiting.message)
 
     def _add_keyframe(self, segment: MapSegment, message: KeyframeMessage) -> None:
         packet, keyframes = message.packet, segment.result.keyframes
         if packet.kf_id != len(keyframes):
-            self._fail(self.slots[segment.agent],
-                       f"protocol error: keyframe {packet.kf_id} after {len(keyframes)}")
+            self._fail(
+                self.slots[segment.agent],
+                f"protocol error: keyframe {packet.kf_id} after {len(keyframes)}",
+            )
             return
         packet = replace(packet, agent=segment.index)
         stale = message.applied_seq < segment.sent_seq
@@ -476,8 +555,16 @@ class _Runtime:
             T_rel = sim3_compose(sim3_inverse(message.T_WC_previous), packet.T_WC)
             packet = replace(packet, T_WC=sim3_compose(keyframes[-1].T_WC.to(T_rel), T_rel))
             segment.reanchored += 1
-        keyframes.append(graph_view(self.coordinator.graph, segment.index, packet.kf_id,
-                                    packet.frame_index, packet.timestamp, packet.T_WC.clone()))
+        keyframes.append(
+            graph_view(
+                self.coordinator.graph,
+                segment.index,
+                packet.kf_id,
+                packet.frame_index,
+                packet.timestamp,
+                packet.T_WC.clone(),
+            )
+        )
         updates = self.coordinator.add_keyframe(packet)
         for update in updates:
             self._send_update(update)
@@ -494,8 +581,10 @@ class _Runtime:
         segment.updates.append(update)
         segment.result.apply_pose_update(update)
         if slot.segment is segment and slot.status in _LIVE and slot.away_since is None:
-            self.hub.send(slot.agent, PoseUpdateMessage(update=replace(update, agent=slot.agent),
-                                                        seq=segment.sent_seq))
+            self.hub.send(
+                slot.agent,
+                PoseUpdateMessage(update=replace(update, agent=slot.agent), seq=segment.sent_seq),
+            )
 
     # ---------------------------------------------------------------- the end
 
@@ -510,8 +599,11 @@ class _Runtime:
         final_poses = {}
         for slot in self.slots:
             segment, done = slot.segment, slot.segment.result.finished
-            if done is not None and slot.status == "finished" and \
-                    len(done.keyframe_T_WC) == len(segment.result.keyframes):  # else failed
+            if (
+                done is not None
+                and slot.status == "finished"
+                and len(done.keyframe_T_WC) == len(segment.result.keyframes)
+            ):  # else failed
                 if done.final is not None:
                     self.coordinator.refresh(segment.index, done.final)
                 final_poses[segment.index] = done.keyframe_T_WC
@@ -533,18 +625,20 @@ class _Runtime:
             result.finished = None
             return
         if len(done.keyframe_T_WC) != len(result.keyframes):
-            slot.error = (f"reported {len(done.keyframe_T_WC)} keyframes but sent "
-                          f"{len(result.keyframes)}")
+            slot.error = (
+                f"reported {len(done.keyframe_T_WC)} keyframes but sent {len(result.keyframes)}"
+            )
             slot.status, result.finished = "failed", None
             logger.error("agent %d: %s", slot.agent, slot.error)
             return
         for view, pose in zip(result.keyframes, done.keyframe_T_WC):
             view.T_WC = pose.clone()
-        for update in segment.updates[done.applied_seq:]:
+        for update in segment.updates[done.applied_seq :]:
             result.apply_pose_update(update)
         result.stats = done.stats
-        result.edges = [EdgeView(e.i, e.j, e.kind, MatchFraction(e.match_fraction))
-                        for e in done.edges]
+        result.edges = [
+            EdgeView(e.i, e.j, e.kind, MatchFraction(e.match_fraction)) for e in done.edges
+        ]
 
     def _segments_of(self, agent: int) -> list[MapSegment]:
         return [segment for segment in self.segments if segment.agent == agent]
@@ -564,31 +658,47 @@ class _Runtime:
             by_type.update(channel.bytes_sent)
             by_type.update(channel.bytes_received)
             segments = self._segments_of(slot.agent)
-            agents.append({
-                "agent": slot.agent, "status": slot.status, "error": slot.error,
-                "pid": slot.pid,
-                "exitcode": None if slot.status == "map" else self.hub.exitcode(slot.agent),
-                "frames_expected": slot.frames_expected, "frames_done": slot.frames_done,
-                "keyframes_received": sum(len(s.result.keyframes) for s in segments),
-                "pose_updates_sent": sum(s.sent_seq for s in segments),
-                "keyframes_reanchored": sum(s.reanchored for s in segments),
-                "times_away": slot.absences, "restarts": slot.restarts,
-                "map_segments": [{"segment": s.index, "after_frame": s.after_frame,
-                                  "keyframes": len(s.result.keyframes),
-                                  "in_outputs": s.index in self.places}
-                                 for s in segments],
-                "bytes_to_agent": dict(channel.bytes_sent),
-                "bytes_from_agent": dict(channel.bytes_received),
-                "messages_to_agent": dict(channel.messages_sent),
-                "messages_from_agent": dict(channel.messages_received),
-                "keyframe_bytes_by_part": self.keyframe_parts.get(
-                    slot.agent, PartCounter()).per_keyframe(),
-            })
-        return {"mode": "multiprocess", "transport": self.hub.name,
-                "lockstep": self.options.lockstep,
-                "torch_threads": self.options.torch_threads,
-                "finish_torch_threads": self.finish_threads,
-                "max_message_bytes": self.options.max_message_bytes,
-                "agents": agents, "bytes_by_type": dict(by_type),
-                "bytes_total": sum(by_type.values()),
-                "failed_agents": [s.agent for s in self.slots if s.status == "failed"]}
+            agents.append(
+                {
+                    "agent": slot.agent,
+                    "status": slot.status,
+                    "error": slot.error,
+                    "pid": slot.pid,
+                    "exitcode": None if slot.status == "map" else self.hub.exitcode(slot.agent),
+                    "frames_expected": slot.frames_expected,
+                    "frames_done": slot.frames_done,
+                    "keyframes_received": sum(len(s.result.keyframes) for s in segments),
+                    "pose_updates_sent": sum(s.sent_seq for s in segments),
+                    "keyframes_reanchored": sum(s.reanchored for s in segments),
+                    "times_away": slot.absences,
+                    "restarts": slot.restarts,
+                    "map_segments": [
+                        {
+                            "segment": s.index,
+                            "after_frame": s.after_frame,
+                            "keyframes": len(s.result.keyframes),
+                            "in_outputs": s.index in self.places,
+                        }
+                        for s in segments
+                    ],
+                    "bytes_to_agent": dict(channel.bytes_sent),
+                    "bytes_from_agent": dict(channel.bytes_received),
+                    "messages_to_agent": dict(channel.messages_sent),
+                    "messages_from_agent": dict(channel.messages_received),
+                    "keyframe_bytes_by_part": self.keyframe_parts.get(
+                        slot.agent, PartCounter()
+                    ).per_keyframe(),
+                }
+            )
+        return {
+            "mode": "multiprocess",
+            "transport": self.hub.name,
+            "lockstep": self.options.lockstep,
+            "torch_threads": self.options.torch_threads,
+            "finish_torch_threads": self.finish_threads,
+            "max_message_bytes": self.options.max_message_bytes,
+            "agents": agents,
+            "bytes_by_type": dict(by_type),
+            "bytes_total": sum(by_type.values()),
+            "failed_agents": [s.agent for s in self.slots if s.status == "failed"],
+        }

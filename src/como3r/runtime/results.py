@@ -17,8 +17,9 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -72,8 +73,7 @@ class KeyframeView:
     # every keyframe once
     X_hat = property(lambda self: read_fields(self.keyframe, "X_hat"), lambda self, value: None)
     C_hat = property(lambda self: read_fields(self.keyframe, "C_hat"), lambda self, value: None)
-    colors = property(lambda self: read_fields(self.keyframe, "colors"),
-                      lambda self, value: None)
+    colors = property(lambda self: read_fields(self.keyframe, "colors"), lambda self, value: None)
     K = property(lambda self: self.keyframe.K, lambda self, value: None)
     fused_frames = property(lambda self: self.keyframe.fused_frames, lambda self, value: None)
 
@@ -86,21 +86,30 @@ class KeyframeView:
         return read_fields(kf, "C_hat") / kf.fused_frames
 
 
-def graph_view(graph: GlobalGraph, agent: int, kf_id: int, frame_index: int, timestamp: float,
-               T_WC: Tensor) -> KeyframeView:
+def graph_view(
+    graph: GlobalGraph, agent: int, kf_id: int, frame_index: int, timestamp: float, T_WC: Tensor
+) -> KeyframeView:
     """The view of keyframe ``kf_id`` of ``agent`` in ``graph`` with pose ``T_WC``."""
     return KeyframeView(kf_id, frame_index, timestamp, T_WC, graph, agent, kf_id)
 
 
-def stored_views(graph: GlobalGraph, agent: int, source: GlobalGraph | None = None,
-                 as_agent: int | None = None) -> list[KeyframeView]:
+def stored_views(
+    graph: GlobalGraph, agent: int, source: GlobalGraph | None = None, as_agent: int | None = None
+) -> list[KeyframeView]:
     """``agent``'s keyframes as ``graph`` holds them (a session store read back), in keyframe
     order, with their current poses; their arrays read from ``source`` (default ``graph``)
     as agent ``as_agent`` (default ``agent``) there."""
-    return [graph_view(graph if source is None else source,
-                       agent if as_agent is None else as_agent, kf.kf_id, kf.frame_index,
-                       kf.timestamp, kf.T_WC.clone())
-            for kf in (graph.keyframes[g] for g in graph.agent_keyframes(agent))]
+    return [
+        graph_view(
+            graph if source is None else source,
+            agent if as_agent is None else as_agent,
+            kf.kf_id,
+            kf.frame_index,
+            kf.timestamp,
+            kf.T_WC.clone(),
+        )
+        for kf in (graph.keyframes[g] for g in graph.agent_keyframes(agent))
+    ]
 
 
 def final_report(frontend: AgentFrontend, seconds: float, applied_seq: int) -> AgentFinished:
@@ -119,17 +128,24 @@ def final_report(frontend: AgentFrontend, seconds: float, applied_seq: int) -> A
         last = frontend.keyframes.last
         final = PointmapRefresh(last.kf_id, last.X_hat, last.C_hat, last.fused_frames, last.K)
     return AgentFinished(
-        agent=frontend.agent, final=final, stats=frontend.stats, seconds=seconds,
+        agent=frontend.agent,
+        final=final,
+        stats=frontend.stats,
+        seconds=seconds,
         applied_seq=applied_seq,
         frame_indices=np.array([r.frame_index for r in records], dtype=np.int64),
         timestamps=np.array([r.timestamp for r in records], dtype=np.float64),
         anchors=np.array([r.anchor for r in records], dtype=np.int64),
-        T_rel=(torch.stack([r.T_rel for r in records]) if records
-               else torch.zeros(0, 8, dtype=torch.float64)),
+        T_rel=(
+            torch.stack([r.T_rel for r in records])
+            if records
+            else torch.zeros(0, 8, dtype=torch.float64)
+        ),
         keyframe_frames=kf_frames.astype(np.int64),
-        keyframe_timestamps=kf_stamps.astype(np.float64), keyframe_T_WC=kf_poses,
-        edges=[EdgeSummary(e.i, e.j, e.kind, e.matches.match_fraction)
-               for e in frontend.edges])
+        keyframe_timestamps=kf_stamps.astype(np.float64),
+        keyframe_T_WC=kf_poses,
+        edges=[EdgeSummary(e.i, e.j, e.kind, e.matches.match_fraction) for e in frontend.edges],
+    )
 
 
 @dataclass(frozen=True)
@@ -190,9 +206,11 @@ class AgentResult:
         """Keyframes only: ``(frame indices, timestamps, T_WC (K, 8))``."""
         if not self.keyframes:
             return np.zeros(0, dtype=np.int64), np.zeros(0), torch.zeros(0, 8)
-        return (np.array([kf.frame_index for kf in self.keyframes]),
-                np.array([kf.timestamp for kf in self.keyframes]),
-                torch.stack([kf.T_WC for kf in self.keyframes]))
+        return (
+            np.array([kf.frame_index for kf in self.keyframes]),
+            np.array([kf.timestamp for kf in self.keyframes]),
+            torch.stack([kf.T_WC for kf in self.keyframes]),
+        )
 
 
 @dataclass
@@ -271,10 +289,12 @@ class SegmentedResult:
     def __post_init__(self) -> None:
         self.keyframes, self.edges, offset = [], [], 0
         for part in self.parts:
-            self.keyframes.extend(replace(kf, kf_id=kf.kf_id + offset) if offset else kf
-                                  for kf in part.keyframes)
-            self.edges.extend(replace(e, i=e.i + offset, j=e.j + offset) if offset else e
-                              for e in part.edges)
+            self.keyframes.extend(
+                replace(kf, kf_id=kf.kf_id + offset) if offset else kf for kf in part.keyframes
+            )
+            self.edges.extend(
+                replace(e, i=e.i + offset, j=e.j + offset) if offset else e for e in part.edges
+            )
             offset += len(part.keyframes)
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray, Tensor]:
@@ -318,24 +338,32 @@ class SegmentedCoordinator:
 
     def components(self) -> list[list[int]]:
         """Gauge components as agent lists, agent 0's first."""
-        groups = [sorted({self.places[s].agent for s in c if s in self.places})
-                  for c in self.coordinator.components()]
+        groups = [
+            sorted({self.places[s].agent for s in c if s in self.places})
+            for c in self.coordinator.components()
+        ]
         return sorted((g for g in groups if g), key=lambda g: g[0])
 
     def graph_document(self) -> dict[str, Any]:
         """:meth:`Coordinator.graph_document` with ``[agent, keyframe]`` keys."""
         document = self.coordinator.graph_document()
-        document["keyframes"] = [{**k, "agent": key[0], "keyframe": key[1]}
-                                 for k in document["keyframes"]
-                                 if (key := self._key((k["agent"], k["keyframe"]))) is not None]
-        document["edges"] = [{**e, "from": key_from, "to": key_to}
-                             for e in document["edges"]
-                             if (key_from := self._key(e["from"])) is not None
-                             and (key_to := self._key(e["to"])) is not None]
-        document["candidates"] = [{**c, "from": key_from, "to": key_to}
-                                  for c in document["candidates"]
-                                  if (key_from := self._key(c["from"])) is not None
-                                  and (key_to := self._key(c["to"])) is not None]
+        document["keyframes"] = [
+            {**k, "agent": key[0], "keyframe": key[1]}
+            for k in document["keyframes"]
+            if (key := self._key((k["agent"], k["keyframe"]))) is not None
+        ]
+        document["edges"] = [
+            {**e, "from": key_from, "to": key_to}
+            for e in document["edges"]
+            if (key_from := self._key(e["from"])) is not None
+            and (key_to := self._key(e["to"])) is not None
+        ]
+        document["candidates"] = [
+            {**c, "from": key_from, "to": key_to}
+            for c in document["candidates"]
+            if (key_from := self._key(c["from"])) is not None
+            and (key_to := self._key(c["to"])) is not None
+        ]
         document["gauge_events"] = [self._gauge_event(e) for e in document["gauge_events"]]
         document["components"] = self.components()
         return document
@@ -345,8 +373,9 @@ class SegmentedCoordinator:
         stats = self.coordinator.metrics()
         stats["components"] = self.components()
         stats["gauge_events"] = [self._gauge_event(e) for e in stats["gauge_events"]]
-        stats["alternation"] = [{**a, "agents": self._agents(a["agents"])}
-                                for a in stats["alternation"]]
+        stats["alternation"] = [
+            {**a, "agents": self._agents(a["agents"])} for a in stats["alternation"]
+        ]
         focal: dict[str, float] = {}
         for segment, value in stats["focal_lengths"].items():
             if int(segment) in self.places:
@@ -362,8 +391,11 @@ class SegmentedCoordinator:
         for segment, place in self.places.items():
             kept.setdefault(place.agent, []).append(segment)
         before = self.coordinator.pre_refinement
-        return {agent: [kf for s in sorted(segments) for kf in before[s]]
-                for agent, segments in kept.items() if all(s in before for s in segments)}
+        return {
+            agent: [kf for s in sorted(segments) for kf in before[s]]
+            for agent, segments in kept.items()
+            if all(s in before for s in segments)
+        }
 
     def _key(self, key: Sequence[int]) -> list[int] | None:
         place = self.places.get(int(key[0]))
@@ -374,14 +406,21 @@ class SegmentedCoordinator:
 
     def _gauge_event(self, event: dict[str, Any]) -> dict[str, Any]:
         anchor = self.places.get(event["anchor_component"])
-        return {**event, "moved_agents": self._agents(event["moved_agents"]),
-                "anchor_component": event["anchor_component"] if anchor is None else anchor.agent,
-                "edges": [[a, b] for a, b in (map(self._key, pair) for pair in event["edges"])
-                          if a is not None and b is not None]}
+        return {
+            **event,
+            "moved_agents": self._agents(event["moved_agents"]),
+            "anchor_component": event["anchor_component"] if anchor is None else anchor.agent,
+            "edges": [
+                [a, b]
+                for a, b in (map(self._key, pair) for pair in event["edges"])
+                if a is not None and b is not None
+            ],
+        }
 
 
-def output_places(components: Sequence[Sequence[int]],
-                  segments: Sequence[tuple[int, int, int]]) -> dict[int, SegmentPlace]:
+def output_places(
+    components: Sequence[Sequence[int]], segments: Sequence[tuple[int, int, int]]
+) -> dict[int, SegmentPlace]:
     """Which map segments the outputs show, and where.
 
     An agent's outputs hold its segments in one gauge component, the one with most of its
@@ -411,19 +450,25 @@ def output_places(components: Sequence[Sequence[int]],
     return places
 
 
-def agent_results(slots: Sequence[AgentSlot], segments: Sequence[MapSegment],
-                  components: Sequence[Sequence[int]]
-                  ) -> tuple[list[SegmentedResult], dict[int, SegmentPlace]]:
+def agent_results(
+    slots: Sequence[AgentSlot], segments: Sequence[MapSegment], components: Sequence[Sequence[int]]
+) -> tuple[list[SegmentedResult], dict[int, SegmentPlace]]:
     """Each agent's results for the outputs, its segments placed by
     :func:`output_places` and joined, with the places."""
-    places = output_places(components, [(s.index, s.agent, len(s.result.keyframes))
-                                        for s in segments])
+    places = output_places(
+        components, [(s.index, s.agent, len(s.result.keyframes)) for s in segments]
+    )
     results = []
     for slot in slots:
         mine = [s for s in segments if s.agent == slot.agent]
         parts = [s.result for s in mine if s.index in places]
-        results.append(SegmentedResult(slot.agent, parts, _agent_stats(
-            slot, len(mine), sum(len(p.keyframes) for p in parts))))
+        results.append(
+            SegmentedResult(
+                slot.agent,
+                parts,
+                _agent_stats(slot, len(mine), sum(len(p.keyframes) for p in parts)),
+            )
+        )
     return results, places
 
 
@@ -434,15 +479,23 @@ def _agent_stats(slot: AgentSlot, segments: int, keyframes: int) -> FrontendStat
     if done is not None and segments == 1:
         return done.stats
     base = done.stats if done is not None else FrontendStats()
-    return replace(base, frames=slot.frames_done, lost=slot.outcomes["lost"],
-                   relocalized=slot.outcomes["relocalized"], keyframes=keyframes,
-                   tracked=slot.frames_done - slot.outcomes["lost"],
-                   lost_frames=list(slot.lost_frames))
+    return replace(
+        base,
+        frames=slot.frames_done,
+        lost=slot.outcomes["lost"],
+        relocalized=slot.outcomes["relocalized"],
+        keyframes=keyframes,
+        tracked=slot.frames_done - slot.outcomes["lost"],
+        lost_frames=list(slot.lost_frames),
+    )
 
 
 def left_out(segments: Sequence[MapSegment], places: Mapping[int, SegmentPlace]) -> list[str]:
     """A note per map segment not in the outputs (it never met its agent's main map)."""
-    return [f"agent {s.agent}: the map of its process from after frame {s.after_frame} "
-            f"({len(s.result.keyframes)} keyframes) was never associated with the rest of "
-            f"its map; it is left out of the outputs"
-            for s in segments if s.index not in places]
+    return [
+        f"agent {s.agent}: the map of its process from after frame {s.after_frame} "
+        f"({len(s.result.keyframes)} keyframes) was never associated with the rest of "
+        f"its map; it is left out of the outputs"
+        for s in segments
+        if s.index not in places
+    ]

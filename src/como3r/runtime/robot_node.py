@@ -71,17 +71,29 @@ def plan_digest(config: Config, schedule: Schedule, team: int, prior: str) -> st
     """What robots of one team must agree on, as a short digest: the configuration (with
     the schedule's windows in place of its file name), the team size and the prior."""
     document = config_to_dict(config)
-    windows = None if schedule.windows is None else {
-        str(r): [list(w) for w in spans] for r, spans in sorted(schedule.windows.items())}
+    windows = (
+        None
+        if schedule.windows is None
+        else {str(r): [list(w) for w in spans] for r, spans in sorted(schedule.windows.items())}
+    )
     document["decentralized"]["protocol"]["schedule"] = windows
     document["team"], document["prior"] = team, prior
     text = json.dumps(document, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def run_robot(network: ZenohOptions, robot: int, team: int, path: Path, out: Path,
-              config: Config, prior_spec: PriorSpec, schedule: Schedule | None = None,
-              overwrite: bool = False, progress: ProgressCallback | None = None) -> RunSummary:
+def run_robot(
+    network: ZenohOptions,
+    robot: int,
+    team: int,
+    path: Path,
+    out: Path,
+    config: Config,
+    prior_spec: PriorSpec,
+    schedule: Schedule | None = None,
+    overwrite: bool = False,
+    progress: ProgressCallback | None = None,
+) -> RunSummary:
     """Run robot ``robot`` of a team of ``team`` on ``path``; write its output folder.
 
     Args:
@@ -106,68 +118,113 @@ def run_robot(network: ZenohOptions, robot: int, team: int, path: Path, out: Pat
         raise InputError(f"--id {robot}: a team of {team} robots has ids 0 to {team - 1}")
     check_output_dir(out, overwrite)
     if schedule is None:
-        schedule = (read_schedule(settings.protocol.schedule) if settings.protocol.schedule
-                    else Schedule())
+        schedule = (
+            read_schedule(settings.protocol.schedule) if settings.protocol.schedule else Schedule()
+        )
     data = open_robot(path, config)
     prior, codebook = build_prior(prior_spec, config, settings.place_method, {robot: str(path)})
-    hello = RobotHello(robot=robot, end_s=float(data.odometry.timestamps[-1]),
-                       plan=plan_digest(config, schedule, team, prior_spec.name))
+    hello = RobotHello(
+        robot=robot,
+        end_s=float(data.odometry.timestamps[-1]),
+        plan=plan_digest(config, schedule, team, prior_spec.name),
+    )
     adapter = None if progress is None else RobotProgressAdapter(progress, {robot: data})
     started = time.perf_counter()
     session = open_session(network)
     try:
-        link = ZenohRobotLink(session, RobotKeys(network.session, network.member), robot, team,
-                              hello, schedule.hears,
-                              int(settings.protocol.max_message_mb * 2**20), adapter,
-                              certified=network.member is not None)
+        link = ZenohRobotLink(
+            session,
+            RobotKeys(network.session, network.member),
+            robot,
+            team,
+            hello,
+            schedule.hears,
+            int(settings.protocol.max_message_mb * 2**20),
+            adapter,
+            certified=network.member is not None,
+        )
         worker = make_robot(robot, str(path), prior, codebook, config, settings, link, None)
         end_s = max(h.end_s for h in link.meet_team().values())
-        rounds = [plan for plan in plan_rounds(schedule, range(team), end_s,
-                                               settings.protocol.round_period_s)
-                  if robot in plan.group]
+        rounds = [
+            plan
+            for plan in plan_rounds(schedule, range(team), end_s, settings.protocol.round_period_s)
+            if robot in plan.group
+        ]
         logger.info("robot %d: the team has met; %d round(s) ahead", robot, len(rounds))
         report = worker.run(rounds)
         if adapter is not None:
             adapter(report)
-        link.finish({p for plan in rounds for p in plan.group},
-                    finish_timeout(settings.protocol.message_timeout_s))
+        link.finish(
+            {p for plan in rounds for p in plan.group},
+            finish_timeout(settings.protocol.message_timeout_s),
+        )
     finally:
         session.close()
     data.keyframes = reported_keyframes(data.odometry, report)
     summary = RunSummary(out=Path(out))
     if prior_spec.name == "simulated":
         summary.notes.append(SIMULATED_NOTE)
-    summary.agents.append({"agent": robot, "keyframes": len(data.keyframes),
-                           "loops": len(report.loops), "rejected": len(report.rejected),
-                           "frame": report.frame,
-                           "sent [B]": sum(by_type(link.traffic.sent).values()),
-                           "received [B]": sum(by_type(link.traffic.received).values())})
+    summary.agents.append(
+        {
+            "agent": robot,
+            "keyframes": len(data.keyframes),
+            "loops": len(report.loops),
+            "rejected": len(report.rejected),
+            "frame": report.frame,
+            "sent [B]": sum(by_type(link.traffic.sent).values()),
+            "received [B]": sum(by_type(link.traffic.received).values()),
+        }
+    )
     with atomic_output_dir(out, overwrite=overwrite) as staging:
-        _write(staging, robot, data, report, link.traffic, rounds, config,
-               time.perf_counter() - started, prior_spec.name)
+        _write(
+            staging,
+            robot,
+            data,
+            report,
+            link.traffic,
+            rounds,
+            config,
+            time.perf_counter() - started,
+            prior_spec.name,
+        )
     return summary
 
 
-def _write(staging: Path, robot: int, data: RobotData, report: RobotReport,
-           traffic: RobotTraffic, rounds: list[RoundPlan], config: Config, seconds: float,
-           prior: str) -> None:
-    (staging / "config.yaml").write_text(yaml.safe_dump(config_to_dict(config),
-                                                        sort_keys=False))
+def _write(
+    staging: Path,
+    robot: int,
+    data: RobotData,
+    report: RobotReport,
+    traffic: RobotTraffic,
+    rounds: list[RoundPlan],
+    config: Config,
+    seconds: float,
+    prior: str,
+) -> None:
+    (staging / "config.yaml").write_text(yaml.safe_dump(config_to_dict(config), sort_keys=False))
     write_trajectories(staging, {robot: data}, {robot: report.estimate})
-    graph = graph_document({robot: data}, {robot: report.estimate}, report.loops,
-                           report.rejected, [], {})
+    graph = graph_document(
+        {robot: data}, {robot: report.estimate}, report.loops, report.rejected, [], {}
+    )
     write_json(staging / "graph.json", {**graph, "frame": report.frame})
     metrics: dict[str, Any] = {
-        "mode": "decentralized", "runtime": "robot", "transport": "zenoh", "robot": robot,
-        "prior": {"name": prior}, "seconds": seconds, "frame": report.frame,
-        "rounds": [{"round": p.round, "time_s": p.time_s, "group": list(p.group)}
-                   for p in rounds],
+        "mode": "decentralized",
+        "runtime": "robot",
+        "transport": "zenoh",
+        "robot": robot,
+        "prior": {"name": prior},
+        "seconds": seconds,
+        "frame": report.frame,
+        "rounds": [{"round": p.round, "time_s": p.time_s, "group": list(p.group)} for p in rounds],
         "bytes": traffic.to_json(),
-        "bandwidth": [{"robot": robot, **bandwidth(by_type(traffic.sent), len(data.keyframes),
-                                                    image_shape(data, config))}],
+        "bandwidth": [
+            {
+                "robot": robot,
+                **bandwidth(by_type(traffic.sent), len(data.keyframes), image_shape(data, config)),
+            }
+        ],
         "robots": [robot_metrics(robot, report)],
         "two_stage": two_stage({robot: report}),
         "loops": loop_statistics(report.loops, report.rejected),
     }
     write_json(staging / "metrics.json", metrics)
-

@@ -39,9 +39,21 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 #: the counters of an agent slot kept as they are
-SLOT_FIELDS = ("status", "pid", "frames_expected", "frames_done", "clock", "last_frame",
-               "lost_frames", "keyframes_received", "seconds", "error", "absences",
-               "restarts", "handled_seq")
+SLOT_FIELDS = (
+    "status",
+    "pid",
+    "frames_expected",
+    "frames_done",
+    "clock",
+    "last_frame",
+    "lost_frames",
+    "keyframes_received",
+    "seconds",
+    "error",
+    "absences",
+    "restarts",
+    "handled_seq",
+)
 #: the fields of a map segment kept as they are
 SEGMENT_FIELDS = ("index", "agent", "after_frame", "confirmed_seq", "reanchored")
 
@@ -54,11 +66,18 @@ def snapshot(runtime: _Runtime, hub: dict[str, Any]) -> dict[str, Any]:
         hub: its transport's state (:meth:`~como3r.runtime.transport.Hub.durable`).
     """
     return {
-        "slots": [{**{name: getattr(slot, name) for name in SLOT_FIELDS},
-                   "outcomes": dict(slot.outcomes), "segment": slot.segment.index}
-                  for slot in runtime.slots],
-        "segments": [{name: getattr(segment, name) for name in SEGMENT_FIELDS}
-                     for segment in runtime.segments],
+        "slots": [
+            {
+                **{name: getattr(slot, name) for name in SLOT_FIELDS},
+                "outcomes": dict(slot.outcomes),
+                "segment": slot.segment.index,
+            }
+            for slot in runtime.slots
+        ],
+        "segments": [
+            {name: getattr(segment, name) for name in SEGMENT_FIELDS}
+            for segment in runtime.segments
+        ],
         "hub": hub,
     }
 
@@ -73,15 +92,21 @@ def restore_runtime(runtime: _Runtime, session: Session) -> None:
     """
     state = session.runtime
     if state is None:
-        raise StoreError(f"{session.path}: the stored session was not run by a coordinator "
-                         f"of agent processes; continue it with como3r run --resume")
+        raise StoreError(
+            f"{session.path}: the stored session was not run by a coordinator "
+            f"of agent processes; continue it with como3r run --resume"
+        )
     if len(state["slots"]) != len(runtime.slots):
-        raise StoreError(f"{session.path}: the stored session has {len(state['slots'])} "
-                         f"agents, this coordinator {len(runtime.slots)} (--agents)")
+        raise StoreError(
+            f"{session.path}: the stored session has {len(state['slots'])} "
+            f"agents, this coordinator {len(runtime.slots)} (--agents)"
+        )
     runtime.segments = [_segment(saved, runtime, session) for saved in state["segments"]]
     if [s.index for s in runtime.segments] != list(range(len(session.agents))):
-        raise StoreError(f"{session.path}: inconsistent session store: the runtime's map "
-                         f"segments are not the coordinator's agents")
+        raise StoreError(
+            f"{session.path}: inconsistent session store: the runtime's map "
+            f"segments are not the coordinator's agents"
+        )
     now = time.monotonic()
     for slot, saved in zip(runtime.slots, state["slots"]):
         for name in SLOT_FIELDS:
@@ -97,23 +122,33 @@ def restore_runtime(runtime: _Runtime, session: Session) -> None:
         if slot.expected():  # until its token is seen again
             slot.away_since, slot.away_reason = now, "not back since the coordinator restarted"
     away = [slot.agent for slot in runtime.slots if slot.away_since is not None]
-    logger.warning("coordinator resumed from %s: %d keyframes; waiting for agents %s to "
-                   "re-send what it had not stored", session.path, len(session.graph), away)
+    logger.warning(
+        "coordinator resumed from %s: %d keyframes; waiting for agents %s to "
+        "re-send what it had not stored",
+        session.path,
+        len(session.graph),
+        away,
+    )
 
 
 def _segment(saved: dict[str, Any], runtime: _Runtime, session: Session) -> MapSegment:
     """A map segment with its keyframes as the store holds them and its pose updates."""
     index = saved["index"]
     report = session.reports.get(index)
-    segment = MapSegment(index, saved["agent"], AgentResult(
-        index, stored_views(session.graph, index), finished=report),
-        sent_seq=session.agents[index].updates_sent)
+    segment = MapSegment(
+        index,
+        saved["agent"],
+        AgentResult(index, stored_views(session.graph, index), finished=report),
+        sent_seq=session.agents[index].updates_sent,
+    )
     for name in SEGMENT_FIELDS:
         setattr(segment, name, saved[name])
     if segment.sent_seq:  # the ones applied are never sent or applied again
         current = runtime.coordinator.current_poses(index, "resume")
         if current is None:
-            raise StoreError(f"{session.path}: inconsistent session store: agent {index} "
-                             f"was sent pose updates but has no keyframes")
+            raise StoreError(
+                f"{session.path}: inconsistent session store: agent {index} "
+                f"was sent pose updates but has no keyframes"
+            )
         segment.updates = [current] * segment.sent_seq
     return segment

@@ -49,8 +49,12 @@ class Spool:
         label: names the spill folder (``como3r-<label>-*``).
     """
 
-    def __init__(self, memory_bytes: int = DEFAULT_MEMORY_BYTES,
-                 spill_dir: Path | None = None, label: str = "spool") -> None:
+    def __init__(
+        self,
+        memory_bytes: int = DEFAULT_MEMORY_BYTES,
+        spill_dir: Path | None = None,
+        label: str = "spool",
+    ) -> None:
         self.memory_bytes = memory_bytes
         self.spill_parent = spill_dir
         self.label = label
@@ -123,8 +127,13 @@ class Spool:
 
     def _path(self, seq: int) -> Path:
         if self._folder is None:
-            self._folder = Path(tempfile.mkdtemp(prefix=f"como3r-{self.label}-",
-                                                 dir=self.spill_parent))
-            logger.info("%s: over %.0f MB of messages not yet stored by the coordinator; "
-                        "spilling to %s", self.label, self.memory_bytes / 2**20, self._folder)
+            self._folder = Path(
+                tempfile.mkdtemp(prefix=f"como3r-{self.label}-", dir=self.spill_parent)
+            )
+            logger.info(
+                "%s: over %.0f MB of messages not yet stored by the coordinator; spilling to %s",
+                self.label,
+                self.memory_bytes / 2**20,
+                self._folder,
+            )
         return self._folder / f"{seq:012d}.msg"

@@ -70,10 +70,11 @@ import logging
 import sqlite3
 import weakref
 from collections import Counter
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -86,8 +87,8 @@ from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import PoseUpdate
 from como3r.frontend.paging import POINTMAP_FIELDS, PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches, PairLink
-from como3r.runtime.messages import AgentFinished
 from como3r.prior.base import Encoding
+from como3r.runtime.messages import AgentFinished
 from como3r.runtime.store_blobs import pack_arrays, pack_object, unpack_arrays, unpack_object
 from como3r.runtime.store_paging import PagedLink, page_out
 
@@ -143,11 +144,9 @@ CREATE TABLE reports (agent INTEGER PRIMARY KEY, message BLOB NOT NULL);
 """
 
 
-
 def pack_link(link: PairLink) -> bytes:
     """Both directions' matches of a link in one blob (the ``matches`` columns)."""
-    return pack_arrays(link.ij.idx, link.ij.valid, link.ij.q,
-                       link.ji.idx, link.ji.valid, link.ji.q)
+    return pack_arrays(link.ij.idx, link.ij.valid, link.ij.q, link.ji.idx, link.ji.valid, link.ji.q)
 
 
 @dataclass
@@ -196,8 +195,9 @@ class SessionStore:
         self.written: Counter[str] = Counter()
 
     @classmethod
-    def create(cls, path: str | Path, config: Config,
-               coordinator: Coordinator | None = None) -> SessionStore:
+    def create(
+        cls, path: str | Path, config: Config, coordinator: Coordinator | None = None
+    ) -> SessionStore:
         """A new store at ``path`` (which must not exist) holding ``config``; it becomes
         ``coordinator``'s journal and takes its current state at once.
 
@@ -215,10 +215,14 @@ class SessionStore:
             connection.execute(f"PRAGMA page_size={PAGE_SIZE}")
             connection.execute("PRAGMA journal_mode=WAL")
             connection.executescript("BEGIN;" + SCHEMA + "COMMIT;")
-            meta = {"format_version": str(FORMAT_VERSION), "como3r_version": __version__,
-                    "created": datetime.datetime.now(datetime.timezone.utc).isoformat(
-                        timespec="seconds"),
-                    "config": json.dumps(config_to_dict(config))}
+            meta = {
+                "format_version": str(FORMAT_VERSION),
+                "como3r_version": __version__,
+                "created": datetime.datetime.now(datetime.timezone.utc).isoformat(
+                    timespec="seconds"
+                ),
+                "config": json.dumps(config_to_dict(config)),
+            }
             with _transaction(connection):
                 connection.executemany("INSERT INTO meta VALUES (?, ?)", meta.items())
                 connection.execute(f"PRAGMA application_id={APPLICATION_ID}")
@@ -261,8 +265,9 @@ class SessionStore:
         """Take what the store holds as written: the coordinator's restored tensors with their
         blob ids, and the rows of the small tables as they are."""
         graph, db = coordinator.graph, self.connection
-        for g, *ids in db.execute("SELECT g, X_hat, C_hat, X_init, C_init FROM pointmaps "
-                                  "ORDER BY g"):
+        for g, *ids in db.execute(
+            "SELECT g, X_hat, C_hat, X_init, C_init FROM pointmaps ORDER BY g"
+        ):
             kf = graph.keyframes[g]
             if isinstance(kf, PagedKeyframe) and not kf.resident("pointmaps"):
                 kf.evict(self, g)  # read back as paged: this store serves it
@@ -276,15 +281,18 @@ class SessionStore:
         if len(graph):
             self._poses = graph.poses(range(len(graph))).detach().cpu().clone()
         self._edges = len(graph.links)
-        self._candidates = [(c.status, None if c.residual_ratio != c.residual_ratio
-                             else c.residual_ratio) for c in coordinator.candidates]
-        self._indexed = 0 if coordinator.retrieval is None else len(
-            coordinator.retrieval.database)
+        self._candidates = [
+            (c.status, None if c.residual_ratio != c.residual_ratio else c.residual_ratio)
+            for c in coordinator.candidates
+        ]
+        self._indexed = 0 if coordinator.retrieval is None else len(coordinator.retrieval.database)
         for table in self._rows:
-            self._rows[table] = {key: tuple(row) for key, *row in db.execute(
-                f"SELECT * FROM {table}")}
-        self._updates = {agent: sent for agent, sent in db.execute(
-            "SELECT agent, updates_sent FROM agents")}
+            self._rows[table] = {
+                key: tuple(row) for key, *row in db.execute(f"SELECT * FROM {table}")
+            }
+        self._updates = {
+            agent: sent for agent, sent in db.execute("SELECT agent, updates_sent FROM agents")
+        }
         self._finished = json.loads(self._rows["state"].get("finished", ("false",))[0])
 
     def attach(self, coordinator: Coordinator) -> None:
@@ -314,8 +322,9 @@ class SessionStore:
 
     # ------------------------------------------------------------------ recording
 
-    def record(self, coordinator: Coordinator, updates: Sequence[PoseUpdate],
-               finished: bool = False) -> None:
+    def record(
+        self, coordinator: Coordinator, updates: Sequence[PoseUpdate], finished: bool = False
+    ) -> None:
         """Store what changed in ``coordinator`` since the last call, in one transaction.
 
         Args:
@@ -358,8 +367,9 @@ class SessionStore:
         try:
             if group == "pointmaps":
                 return self._load_pointmaps(g)
-            blob_id, = self.connection.execute(f"SELECT {group} FROM keyframes WHERE g = ?",
-                                               (g,)).fetchone()
+            (blob_id,) = self.connection.execute(
+                f"SELECT {group} FROM keyframes WHERE g = ?", (g,)
+            ).fetchone()
             data, what = self._read_blob(blob_id), f"keyframe {g} {group}"
         except sqlite3.Error as exc:
             raise StoreError(f"{self.path}: cannot read the session store ({exc})") from None
@@ -374,7 +384,7 @@ class SessionStore:
         arrays: dict[int, Tensor] = {}
         for blob_id in written.blobs:
             if blob_id not in arrays:
-                arrays[blob_id], = unpack_arrays(self._read_blob(blob_id), f"keyframe {g}")
+                (arrays[blob_id],) = unpack_arrays(self._read_blob(blob_id), f"keyframe {g}")
         values = tuple(arrays[b] for b in written.blobs)
         written.arrays = _refs(values)
         return dict(zip(POINTMAP_FIELDS, values))
@@ -386,20 +396,23 @@ class SessionStore:
             StoreError: the store cannot be read.
         """
         try:
-            blob, = self.connection.execute("SELECT matches FROM edges WHERE n = ?",
-                                            (n,)).fetchone()
+            (blob,) = self.connection.execute(
+                "SELECT matches FROM edges WHERE n = ?", (n,)
+            ).fetchone()
         except sqlite3.Error as exc:
             raise StoreError(f"{self.path}: cannot read the session store ({exc})") from None
         arrays = unpack_arrays(blob, f"edge {n} matches")
         return DirectedMatches(*arrays[:3]), DirectedMatches(*arrays[3:])
 
     def _read_blob(self, blob_id: int) -> bytes:
-        data, = self.connection.execute("SELECT data FROM blobs WHERE id = ?",
-                                        (blob_id,)).fetchone()
+        (data,) = self.connection.execute(
+            "SELECT data FROM blobs WHERE id = ?", (blob_id,)
+        ).fetchone()
         return data
 
-    def record_runtime(self, state: dict[str, Any] | None,
-                       reports: Mapping[int, AgentFinished]) -> None:
+    def record_runtime(
+        self, state: dict[str, Any] | None, reports: Mapping[int, AgentFinished]
+    ) -> None:
         """Store the multi-process runtime's state and the agents' final reports that are
         new, in one transaction (nothing when neither changed).
 
@@ -414,8 +427,11 @@ class SessionStore:
         if self._failed:
             raise StoreError(f"{self.path}: the session store failed earlier")
         rows = {} if state is None else {"runtime": (json.dumps(state),)}
-        new = {agent: report for agent, report in reports.items()
-               if self._reports.get(agent) is not report}
+        new = {
+            agent: report
+            for agent, report in reports.items()
+            if self._reports.get(agent) is not report
+        }
         if not new and all(self._rows["state"].get(k) == row for k, row in rows.items()):
             return
         try:
@@ -423,8 +439,11 @@ class SessionStore:
                 self._upsert("state", rows)
                 self.connection.executemany(
                     "INSERT OR REPLACE INTO reports VALUES (?, ?)",
-                    [(agent, self._count("reports", pack_object(report)))
-                     for agent, report in new.items()])
+                    [
+                        (agent, self._count("reports", pack_object(report)))
+                        for agent, report in new.items()
+                    ],
+                )
         except sqlite3.Error as exc:
             self._failed = True
             raise StoreError(f"{self.path}: cannot write the session store ({exc})") from None
@@ -432,8 +451,11 @@ class SessionStore:
         self.transactions += 1
 
     def _blob(self, data: bytes, part: str) -> int:
-        return int(self.connection.execute("INSERT INTO blobs (data) VALUES (?)",
-                                           (self._count(part, data),)).lastrowid)
+        return int(
+            self.connection.execute(
+                "INSERT INTO blobs (data) VALUES (?)", (self._count(part, data),)
+            ).lastrowid
+        )
 
     def _count(self, part: str, data: bytes) -> bytes:
         """``data``, counted as written for ``part``."""
@@ -449,20 +471,26 @@ class SessionStore:
         ``state``), and the bytes the store's files hold now (``session.db`` and its WAL)."""
         keyframes = len(self._keyframes)
         total = sum(self.written.values())
-        files = sum(p.stat().st_size for p in (self.path, self.path.with_name(
-            self.path.name + "-wal")) if p.is_file())
-        return {"keyframes": keyframes, "bytes_written": total,
-                "bytes_written_per_keyframe": total / keyframes if keyframes else None,
-                "bytes_written_per_keyframe_by_part": (
-                    {k: v / keyframes for k, v in sorted(self.written.items())}
-                    if keyframes else {}),
-                "file_bytes": files,
-                "file_bytes_per_keyframe": files / keyframes if keyframes else None}
+        files = sum(
+            p.stat().st_size
+            for p in (self.path, self.path.with_name(self.path.name + "-wal"))
+            if p.is_file()
+        )
+        return {
+            "keyframes": keyframes,
+            "bytes_written": total,
+            "bytes_written_per_keyframe": total / keyframes if keyframes else None,
+            "bytes_written_per_keyframe_by_part": (
+                {k: v / keyframes for k, v in sorted(self.written.items())} if keyframes else {}
+            ),
+            "file_bytes": files,
+            "file_bytes_per_keyframe": files / keyframes if keyframes else None,
+        }
 
     def _record_keyframes(self, coordinator: Coordinator) -> None:
         """New keyframes, and the pointmaps of known ones that were replaced."""
         graph = coordinator.graph
-        for g, kf in enumerate(graph.keyframes[:len(self._keyframes)]):
+        for g, kf in enumerate(graph.keyframes[: len(self._keyframes)]):
             written = self._keyframes[g]
             if isinstance(kf, PagedKeyframe) and not kf.resident("pointmaps"):
                 if not kf.served_by(self):
@@ -472,22 +500,37 @@ class SessionStore:
                     self._keyframes[g] = self._write_pointmaps(g, kf, written)
                     kf.evict(self, g)
                 continue  # else as written: a pointmap that changes is read back first
-            if (any(b() is not a for a, b in zip(_pointmap_arrays(kf), written.arrays))
-                    or kf.K is not written.K or kf.fused_frames != written.fused_frames):
+            if (
+                any(b() is not a for a, b in zip(_pointmap_arrays(kf), written.arrays))
+                or kf.K is not written.K
+                or kf.fused_frames != written.fused_frames
+            ):
                 self._keyframes[g] = self._write_pointmaps(g, kf, written)
         for g in range(len(self._keyframes), len(graph.keyframes)):
             kf = graph.keyframes[g]
             self.connection.execute(
                 "INSERT INTO keyframes VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (g, graph.agent_of[g], kf.kf_id, kf.frame_index, kf.timestamp,
-                 self._blob(pack_arrays(kf.colors), "colours"),
-                 self._blob(pack_object(kf.encoding), "encoding")))
+                (
+                    g,
+                    graph.agent_of[g],
+                    kf.kf_id,
+                    kf.frame_index,
+                    kf.timestamp,
+                    self._blob(pack_arrays(kf.colors), "colours"),
+                    self._blob(pack_object(kf.encoding), "encoding"),
+                ),
+            )
             self._keyframes.append(self._write_pointmaps(g, kf, None))
             if kf.retrieval is not None:
                 self.connection.execute(
                     "INSERT INTO retrieval VALUES (?, ?, ?, NULL, ?)",
-                    (g, graph.agent_of[g], kf.kf_id,
-                     self._count("retrieval", pack_arrays(*kf.retrieval))))
+                    (
+                        g,
+                        graph.agent_of[g],
+                        kf.kf_id,
+                        self._count("retrieval", pack_arrays(*kf.retrieval)),
+                    ),
+                )
 
     def _write_pointmaps(self, g: int, kf: Keyframe, before: _Written | None) -> _Written:
         """Write a keyframe's pointmaps row: a blob per distinct array (one for ``X_init``
@@ -497,14 +540,22 @@ class SessionStore:
         for k, array in enumerate(arrays):
             same = next((ids[m] for m in range(k) if arrays[m] is array), None)
             kept = None if before is None else before.holds(array)
-            ids.append(same if same is not None else kept if kept is not None
-                       else self._blob(pack_arrays(array), "pointmaps"))
+            ids.append(
+                same
+                if same is not None
+                else kept
+                if kept is not None
+                else self._blob(pack_arrays(array), "pointmaps")
+            )
         K = None if kf.K is None else self._count("pointmaps", pack_arrays(kf.K))
-        self.connection.execute("INSERT OR REPLACE INTO pointmaps VALUES (?, ?, ?, ?, ?, ?, ?)",
-                                (g, kf.fused_frames, *ids, K))
+        self.connection.execute(
+            "INSERT OR REPLACE INTO pointmaps VALUES (?, ?, ?, ?, ?, ?, ?)",
+            (g, kf.fused_frames, *ids, K),
+        )
         if before is not None:
-            self.connection.executemany("DELETE FROM blobs WHERE id = ?",
-                                        [(b,) for b in set(before.blobs) - set(ids)])
+            self.connection.executemany(
+                "DELETE FROM blobs WHERE id = ?", [(b,) for b in set(before.blobs) - set(ids)]
+            )
         return _Written(_refs(arrays), tuple(ids), kf.K, kf.fused_frames)
 
     def _record_poses(self, coordinator: Coordinator) -> None:
@@ -515,9 +566,10 @@ class SessionStore:
         known = min(len(self._poses), len(poses))
         moved = (poses[:known] != self._poses[:known].to(poses)).any(dim=1).nonzero()
         changed = [int(g) for g in moved[:, 0]] + list(range(known, len(poses)))
-        self.connection.executemany("INSERT OR REPLACE INTO poses VALUES (?, ?)",
-                                    [(g, self._count("poses", pack_arrays(poses[g])))
-                                     for g in changed])
+        self.connection.executemany(
+            "INSERT OR REPLACE INTO poses VALUES (?, ?)",
+            [(g, self._count("poses", pack_arrays(poses[g]))) for g in changed],
+        )
         self._poses = poses.clone()
 
     def _record_retrieval(self, coordinator: Coordinator) -> None:
@@ -527,17 +579,31 @@ class SessionStore:
         keys = coordinator.retrieval.database.keys
         self.connection.executemany(
             "UPDATE retrieval SET position = ? WHERE agent = ? AND kf_id = ?",
-            [(n, agent, kf_id) for n, (agent, kf_id) in enumerate(keys[self._indexed:],
-                                                                     self._indexed)])
+            [
+                (n, agent, kf_id)
+                for n, (agent, kf_id) in enumerate(keys[self._indexed :], self._indexed)
+            ],
+        )
         self._indexed = len(keys)
 
     def _record_edges(self, coordinator: Coordinator) -> None:
         links = coordinator.graph.links
         self.connection.executemany(
             "INSERT INTO edges VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-            [(n, link.i, link.j, link.kind, link.similarity, link.link.covisible_ij,
-              link.link.covisible_ji, self._count("edges", pack_link(link.link)))
-             for n, link in enumerate(links[self._edges:], self._edges)])
+            [
+                (
+                    n,
+                    link.i,
+                    link.j,
+                    link.kind,
+                    link.similarity,
+                    link.link.covisible_ij,
+                    link.link.covisible_ji,
+                    self._count("edges", pack_link(link.link)),
+                )
+                for n, link in enumerate(links[self._edges :], self._edges)
+            ],
+        )
         self._edges = len(links)
 
     def _record_candidates(self, candidates: Sequence[Candidate]) -> None:
@@ -549,12 +615,23 @@ class SessionStore:
             v, pending = c.verification, c.status == "pending"
             link = v.link if pending else None
             self.connection.execute(
-                "INSERT OR REPLACE INTO candidates VALUES "
-                "(?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (n, c.i, c.j, c.status, ratio, v.similarity, v.nu_i, v.nu_j, v.covisible_ratio,
-                 int(v.accepted), None if v.link is None else v.link.covisible_ij,
-                 None if v.link is None else v.link.covisible_ji,
-                 None if link is None else self._count("candidates", pack_link(link))))
+                "INSERT OR REPLACE INTO candidates VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    n,
+                    c.i,
+                    c.j,
+                    c.status,
+                    ratio,
+                    v.similarity,
+                    v.nu_i,
+                    v.nu_j,
+                    v.covisible_ratio,
+                    int(v.accepted),
+                    None if v.link is None else v.link.covisible_ij,
+                    None if v.link is None else v.link.covisible_ji,
+                    None if link is None else self._count("candidates", pack_link(link)),
+                ),
+            )
             if n < len(self._candidates):
                 self._candidates[n] = (c.status, ratio)
             else:
@@ -563,24 +640,29 @@ class SessionStore:
     def _record_agents(self, coordinator: Coordinator) -> None:
         """Gauge components and per-agent progress."""
         graph = coordinator.graph
-        gauges = {agent: (members[0],) for members in coordinator.components()
-                  for agent in members}
+        gauges = {agent: (members[0],) for members in coordinator.components() for agent in members}
         agents = {}
         for agent in range(coordinator.num_agents):
             own = graph.agent_keyframes(agent)
-            agents[agent] = (len(own), graph.keyframes[own[-1]].frame_index if own else -1,
-                             self._updates.get(agent, 0), graph.focal.get(agent))
+            agents[agent] = (
+                len(own),
+                graph.keyframes[own[-1]].frame_index if own else -1,
+                self._updates.get(agent, 0),
+                graph.focal.get(agent),
+            )
         self._upsert("gauges", gauges)
         self._upsert("agents", agents)
 
     def _record_state(self, coordinator: Coordinator, finished: bool) -> None:
         new_edges, roots = coordinator.backlog
         self._finished = self._finished or finished
-        state = {"stats": dataclasses.asdict(coordinator.stats),
-                 "gauge_events": coordinator.gauge_events,
-                 "alternation": coordinator.alternation,
-                 "backlog": {"new_edges": new_edges, "roots": roots},
-                 "finished": self._finished}
+        state = {
+            "stats": dataclasses.asdict(coordinator.stats),
+            "gauge_events": coordinator.gauge_events,
+            "alternation": coordinator.alternation,
+            "backlog": {"new_edges": new_edges, "roots": roots},
+            "finished": self._finished,
+        }
         self._upsert("state", {key: (json.dumps(value),) for key, value in state.items()})
 
     def _upsert(self, table: str, rows: dict[Any, tuple]) -> None:
@@ -592,8 +674,7 @@ class SessionStore:
             if text:
                 self.written[table] += text
             marks = ", ".join("?" * len(changed[0]))
-            self.connection.executemany(f"INSERT OR REPLACE INTO {table} VALUES ({marks})",
-                                        changed)
+            self.connection.executemany(f"INSERT OR REPLACE INTO {table} VALUES ({marks})", changed)
             known.update((key, tuple(row)) for key, *row in changed)
 
 

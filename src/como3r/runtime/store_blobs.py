@@ -31,7 +31,8 @@ from __future__ import annotations
 
 import math
 import struct
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -45,15 +46,27 @@ ARRAYS_MAGIC = b"C3RA"
 OBJECT_MAGIC = b"C3RO"
 
 #: dtype code -> wire name (:data:`como3r.runtime.codec.ARRAY_DTYPES`); part of the format
-DTYPES = ("bool", "uint8", "int8", "int16", "int32", "int64", "float16", "float32", "float64",
-          "bfloat16")
+DTYPES = (
+    "bool",
+    "uint8",
+    "int8",
+    "int16",
+    "int32",
+    "int64",
+    "float16",
+    "float32",
+    "float64",
+    "bfloat16",
+)
 _CODE = {name: code for code, name in enumerate(DTYPES)}
 _TORCH_NAME = {torch_dtype: name for name, (_, torch_dtype) in codec.ARRAY_DTYPES.items()}
 
 #: Zstandard at the messages' level, with the frame's content checksum (XXH64) that zlib's
 #: Adler-32 gave: a damaged blob is an error, not different numbers
-ZSTD_OPTIONS = {zstd.CompressionParameter.compression_level: ZSTD_LEVEL,
-                zstd.CompressionParameter.checksum_flag: 1}
+ZSTD_OPTIONS = {
+    zstd.CompressionParameter.compression_level: ZSTD_LEVEL,
+    zstd.CompressionParameter.checksum_flag: 1,
+}
 MAX_ARRAYS = 16
 MAX_BYTES = 2**34  # 16 GiB: the largest array set a blob may claim to hold
 
@@ -112,16 +125,23 @@ def unpack_arrays(blob: bytes, what: str) -> list[Tensor]:
     payload = _inflate(data[offset:], sum(sizes), what)
     arrays, start = [], 0
     for (name, shape), size in zip(specs, sizes):
-        arrays.append(_array(name, shape, byte_planes(payload[start:start + size],
-                                                      itemsize(name), inverse=True), what))
+        arrays.append(
+            _array(
+                name,
+                shape,
+                byte_planes(payload[start : start + size], itemsize(name), inverse=True),
+                what,
+            )
+        )
         start += size
     return arrays
 
 
 def pack_object(obj: Any) -> bytes:
     """One blob of a registered dataclass (:mod:`como3r.runtime.codec`)."""
-    return OBJECT_MAGIC + zstd.compress(codec.encode(obj, max_bytes=MAX_BYTES),
-                                        options=ZSTD_OPTIONS)
+    return OBJECT_MAGIC + zstd.compress(
+        codec.encode(obj, max_bytes=MAX_BYTES), options=ZSTD_OPTIONS
+    )
 
 
 def unpack_object(blob: bytes, expected: type, what: str) -> Any:
@@ -175,8 +195,11 @@ def _inflate(data: memoryview, size: int | None, what: str) -> bytes:
 def _array(name: str, shape: list[int], raw: bytes, what: str) -> Tensor:
     np_dtype, torch_dtype = codec.ARRAY_DTYPES[name]
     if np_dtype is None:  # bfloat16: stored as its int16 bits
-        return torch.from_numpy(np.frombuffer(raw, "<i2").astype(np.int16)).view(
-            torch_dtype).reshape(shape)
+        return (
+            torch.from_numpy(np.frombuffer(raw, "<i2").astype(np.int16))
+            .view(torch_dtype)
+            .reshape(shape)
+        )
     if name == "bool" and raw and int(np.frombuffer(raw, np.uint8).max()) > 1:
         raise StoreError(f"{what}: bool array holds bytes other than 0 and 1")
     array = np.frombuffer(raw, np_dtype).astype(np_dtype.newbyteorder("="))

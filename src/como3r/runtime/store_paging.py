@@ -51,10 +51,15 @@ class PagedLink(PairLink):
     """A link whose matches are read from the session store whenever they are asked for
     (their match fractions are kept)."""
 
-    def __init__(self, pages: Pages | None, n: int, covisible_ij: float | None,
-                 covisible_ji: float | None) -> None:
-        for name, value in (("_pages", pages), ("_n", n), ("covisible_ij", covisible_ij),
-                            ("covisible_ji", covisible_ji)):
+    def __init__(
+        self, pages: Pages | None, n: int, covisible_ij: float | None, covisible_ji: float | None
+    ) -> None:
+        for name, value in (
+            ("_pages", pages),
+            ("_n", n),
+            ("covisible_ij", covisible_ij),
+            ("covisible_ji", covisible_ji),
+        ):
             object.__setattr__(self, name, value)
 
     def serve(self, pages: Pages) -> None:
@@ -95,14 +100,24 @@ class StoredVerification(Verification):
 
 
 #: the matches of a verification that keeps its figures only
-NO_MATCHES = DirectedMatches(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.bool),
-                             torch.zeros(0))
+NO_MATCHES = DirectedMatches(
+    torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.bool), torch.zeros(0)
+)
 
 
 def figures_only(v: Verification) -> StoredVerification:
     """``v`` without its matches."""
-    return StoredVerification(v.candidate, v.query, v.similarity, NO_MATCHES, None, None, None,
-                              v.accepted, figures=(v.nu_i, v.nu_j, v.covisible_ratio))
+    return StoredVerification(
+        v.candidate,
+        v.query,
+        v.similarity,
+        NO_MATCHES,
+        None,
+        None,
+        None,
+        v.accepted,
+        figures=(v.nu_i, v.nu_j, v.covisible_ratio),
+    )
 
 
 def working_set(coordinator: Coordinator) -> set[int]:
@@ -111,8 +126,12 @@ def working_set(coordinator: Coordinator) -> set[int]:
     graph = coordinator.graph
     # max(0, ...): an agent with fewer keyframes keeps all of them (a negative start would
     # count from the end and keep only its last keep - len(own))
-    return {g for own in graph.local_to_global.values() for g in own[max(0, len(own) - keep):]
-            if keep > 0}
+    return {
+        g
+        for own in graph.local_to_global.values()
+        for g in own[max(0, len(own) - keep) :]
+        if keep > 0
+    }
 
 
 def page_out(coordinator: Coordinator, pages: Pages) -> None:
@@ -131,11 +150,17 @@ def page_out(coordinator: Coordinator, pages: Pages) -> None:
             kf = graph.keyframes[g] = PagedKeyframe.of(kf)
         kf.evict(pages, g)
     for n, link in enumerate(graph.links):
-        if (link.kind == "sequential" and not isinstance(link.link, PagedLink)
-                and link.i not in kept and link.j not in kept):
-            graph.links[n] = replace(link, link=PagedLink(pages, n, link.link.covisible_ij,
-                                                          link.link.covisible_ji))
+        if (
+            link.kind == "sequential"
+            and not isinstance(link.link, PagedLink)
+            and link.i not in kept
+            and link.j not in kept
+        ):
+            graph.links[n] = replace(
+                link, link=PagedLink(pages, n, link.link.covisible_ij, link.link.covisible_ji)
+            )
     for candidate in coordinator.candidates:
         if candidate.status in ("rejected", "inconsistent") and not isinstance(
-                candidate.verification, StoredVerification):
+            candidate.verification, StoredVerification
+        ):
             candidate.verification = figures_only(candidate.verification)

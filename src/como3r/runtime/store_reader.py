@@ -16,9 +16,10 @@ from __future__ import annotations
 import json
 import logging
 import sqlite3
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, TypeVar
+from typing import Any, TypeVar
 
 from torch import Tensor
 
@@ -208,15 +209,17 @@ def _read(path: Path, load: Callable[[sqlite3.Connection], T], check: bool) -> T
         try:
             _check_header(connection, path, check)
         except sqlite3.DatabaseError as exc:
-            raise StoreError(f"{path}: not a como3r session store, or corrupted "
-                             f"({_one_line(exc)})") from None
+            raise StoreError(
+                f"{path}: not a como3r session store, or corrupted ({_one_line(exc)})"
+            ) from None
         return load(connection)
     except sqlite3.DatabaseError as exc:
         raise StoreError(f"{path}: corrupted session store ({_one_line(exc)})") from None
     except StoreError as exc:
         message = str(exc)
-        raise StoreError(message if message.startswith(str(path)) else f"{path}: {message}"
-                         ) from None
+        raise StoreError(
+            message if message.startswith(str(path)) else f"{path}: {message}"
+        ) from None
     except Como3rError as exc:
         raise StoreError(f"{path}: {_one_line(exc)}") from None
     finally:
@@ -229,18 +232,24 @@ def _one_line(exc: BaseException) -> str:
 
 def _check_header(connection: sqlite3.Connection, path: Path, check: bool) -> None:
     """A como3r store of :data:`FORMAT_VERSION`; with ``check``, structurally intact."""
-    application, = connection.execute("PRAGMA application_id").fetchone()
-    version, = connection.execute("PRAGMA user_version").fetchone()
+    (application,) = connection.execute("PRAGMA application_id").fetchone()
+    (version,) = connection.execute("PRAGMA user_version").fetchone()
     if application != APPLICATION_ID:
         raise StoreError(f"{path}: not a como3r session store")
     if version > FORMAT_VERSION:
-        raise StoreError(f"{path}: session store format version {version} is newer than "
-                         f"this como3r reads ({FORMAT_VERSION}); upgrade como3r")
+        raise StoreError(
+            f"{path}: session store format version {version} is newer than "
+            f"this como3r reads ({FORMAT_VERSION}); upgrade como3r"
+        )
     if version != FORMAT_VERSION:
-        raise StoreError(f"{path}: session store format version {version} is not the one "
-                         f"this como3r reads ({FORMAT_VERSION})")
-    problems = [" ".join(row[0].split()) for row in connection.execute(
-        "PRAGMA quick_check" if check else "SELECT 'ok'")]
+        raise StoreError(
+            f"{path}: session store format version {version} is not the one "
+            f"this como3r reads ({FORMAT_VERSION})"
+        )
+    problems = [
+        " ".join(row[0].split())
+        for row in connection.execute("PRAGMA quick_check" if check else "SELECT 'ok'")
+    ]
     if problems != ["ok"]:
         raise StoreError(f"{path}: corrupted session store ({'; '.join(problems[:3])})")
 
@@ -249,8 +258,10 @@ def _meta(connection: sqlite3.Connection, path: Path) -> tuple[dict[str, str], C
     """The meta table (without the configuration) and the configuration."""
     meta = dict(connection.execute("SELECT key, value FROM meta"))
     if meta.get("format_version") != str(FORMAT_VERSION) or "config" not in meta:
-        raise StoreError(f"{path}: inconsistent session store (its meta table says format "
-                         f"{meta.get('format_version')!r})")
+        raise StoreError(
+            f"{path}: inconsistent session store (its meta table says format "
+            f"{meta.get('format_version')!r})"
+        )
     return meta, validate(config_from_dict(Config, json.loads(meta.pop("config"))))
 
 
@@ -263,26 +274,44 @@ def _load(connection: sqlite3.Connection, path: Path, paged: bool) -> Session:
         _page_keyframes(connection, graph)
     else:
         _load_keyframes(connection, graph, blobs)
-    agents = [AgentRecord(*row) for row in connection.execute(
-        "SELECT * FROM agents ORDER BY agent")]
+    agents = [
+        AgentRecord(*row) for row in connection.execute("SELECT * FROM agents ORDER BY agent")
+    ]
     graph.focal = {a.agent: a.focal for a in agents if a.focal is not None}
-    graph.links = [_link(row, len(graph), paged) for row in connection.execute(
-        "SELECT i, j, kind, similarity, covisible_ij, covisible_ji, "
-        f"{PAGED_MATCHES if paged else 'matches'}, "
-        "n FROM edges ORDER BY n")]
+    graph.links = [
+        _link(row, len(graph), paged)
+        for row in connection.execute(
+            "SELECT i, j, kind, similarity, covisible_ij, covisible_ji, "
+            f"{PAGED_MATCHES if paged else 'matches'}, "
+            "n FROM edges ORDER BY n"
+        )
+    ]
     session = Session(
-        path=path, config=config, meta=meta, graph=graph,
-        gauges=_gauges(connection, len(agents)), agents=agents,
+        path=path,
+        config=config,
+        meta=meta,
+        graph=graph,
+        gauges=_gauges(connection, len(agents)),
+        agents=agents,
         retrieval=_retrieval(connection, graph),
-        candidates=[_candidate(row, len(graph)) for row in connection.execute(
-            "SELECT * FROM candidates ORDER BY n")],
-        stats=state.get("stats", {}), gauge_events=state.get("gauge_events", []),
+        candidates=[
+            _candidate(row, len(graph))
+            for row in connection.execute("SELECT * FROM candidates ORDER BY n")
+        ],
+        stats=state.get("stats", {}),
+        gauge_events=state.get("gauge_events", []),
         alternation=state.get("alternation", []),
-        backlog=(state.get("backlog", {}).get("new_edges", 0),
-                 state.get("backlog", {}).get("roots", [])),
-        finished=bool(state.get("finished", False)), runtime=state.get("runtime"),
-        reports={agent: unpack_object(blob, AgentFinished, f"agent {agent}'s final report")
-                 for agent, blob in connection.execute("SELECT * FROM reports")})
+        backlog=(
+            state.get("backlog", {}).get("new_edges", 0),
+            state.get("backlog", {}).get("roots", []),
+        ),
+        finished=bool(state.get("finished", False)),
+        runtime=state.get("runtime"),
+        reports={
+            agent: unpack_object(blob, AgentFinished, f"agent {agent}'s final report")
+            for agent, blob in connection.execute("SELECT * FROM reports")
+        },
+    )
     _check_agents(session)
     return session
 
@@ -294,8 +323,7 @@ class _Blobs:
         self.connection = connection
 
     def get(self, blob_id: int, what: str) -> bytes:
-        row = self.connection.execute("SELECT data FROM blobs WHERE id = ?",
-                                      (blob_id,)).fetchone()
+        row = self.connection.execute("SELECT data FROM blobs WHERE id = ?", (blob_id,)).fetchone()
         if row is None:
             raise StoreError(f"inconsistent session store: {what} refers to a missing blob")
         return row[0]
@@ -312,58 +340,102 @@ def _load_keyframes(connection: sqlite3.Connection, graph: GlobalGraph, blobs: _
         "SELECT k.g, k.agent, k.kf_id, k.frame_index, k.timestamp, k.colors, k.encoding, "
         "m.fused_frames, m.X_hat, m.C_hat, m.X_init, m.C_init, m.K, p.T_WC "
         "FROM keyframes k LEFT JOIN pointmaps m USING (g) LEFT JOIN poses p USING (g) "
-        "ORDER BY k.g")
-    for (g, agent, kf_id, frame, timestamp, colors, encoding, fused, X_hat, C_hat, X_init,
-         C_init, K, T_WC) in rows:
+        "ORDER BY k.g"
+    )
+    for (
+        g,
+        agent,
+        kf_id,
+        frame,
+        timestamp,
+        colors,
+        encoding,
+        fused,
+        X_hat,
+        C_hat,
+        X_init,
+        C_init,
+        K,
+        T_WC,
+    ) in rows:
         what = _check_keyframe(graph, g, agent, kf_id, fused, T_WC)
         maps = {}
-        for name, blob_id in (("X_hat", X_hat), ("C_hat", C_hat), ("X_init", X_init),
-                              ("C_init", C_init)):  # one tensor per blob, as written
+        for name, blob_id in (
+            ("X_hat", X_hat),
+            ("C_hat", C_hat),
+            ("X_init", X_init),
+            ("C_init", C_init),
+        ):  # one tensor per blob, as written
             maps.setdefault(blob_id, blobs.array(blob_id, f"{what} {name}"))
-        pose, = unpack_arrays(T_WC, f"{what} T_WC")
-        graph.append(Keyframe(
-            kf_id=kf_id, frame_index=frame, timestamp=timestamp,
-            encoding=unpack_object(blobs.get(encoding, what), Encoding, f"{what} encoding"),
-            T_WC=pose, X_hat=maps[X_hat], C_hat=maps[C_hat], X_init=maps[X_init],
-            C_init=maps[C_init], colors=blobs.array(colors, f"{what} colors").numpy(),
-            fused_frames=fused, K=None if K is None else unpack_arrays(K, f"{what} K")[0]),
-            agent)
+        (pose,) = unpack_arrays(T_WC, f"{what} T_WC")
+        graph.append(
+            Keyframe(
+                kf_id=kf_id,
+                frame_index=frame,
+                timestamp=timestamp,
+                encoding=unpack_object(blobs.get(encoding, what), Encoding, f"{what} encoding"),
+                T_WC=pose,
+                X_hat=maps[X_hat],
+                C_hat=maps[C_hat],
+                X_init=maps[X_init],
+                C_init=maps[C_init],
+                colors=blobs.array(colors, f"{what} colors").numpy(),
+                fused_frames=fused,
+                K=None if K is None else unpack_arrays(K, f"{what} K")[0],
+            ),
+            agent,
+        )
 
 
-def _check_keyframe(graph: GlobalGraph, g: int, agent: int, kf_id: int, fused: int | None,
-                    T_WC: bytes | None) -> str:
+def _check_keyframe(
+    graph: GlobalGraph, g: int, agent: int, kf_id: int, fused: int | None, T_WC: bytes | None
+) -> str:
     """Keyframe ``g`` comes next, with its pointmaps and pose; returns how errors name it."""
     what = f"keyframe {g} (agent {agent}, kf {kf_id})"
     if g != len(graph) or kf_id != len(graph.local_to_global.get(agent, [])):
         raise StoreError(f"inconsistent session store: {what} out of order")
     if fused is None or T_WC is None:
-        raise StoreError(f"inconsistent session store: {what} has no "
-                         f"{'pointmaps' if fused is None else 'pose'}")
+        raise StoreError(
+            f"inconsistent session store: {what} has no {'pointmaps' if fused is None else 'pose'}"
+        )
     return what
 
 
 def _page_keyframes(connection: sqlite3.Connection, graph: GlobalGraph) -> None:
     """The keyframes without their large arrays (:class:`~como3r.frontend.paging.PagedKeyframe`),
     after checking that every blob they refer to is there."""
-    missing, = connection.execute(
+    (missing,) = connection.execute(
         "SELECT COUNT(*) FROM (SELECT colors AS id FROM keyframes UNION SELECT encoding FROM "
         "keyframes UNION SELECT X_hat FROM pointmaps UNION SELECT C_hat FROM pointmaps UNION "
         "SELECT X_init FROM pointmaps UNION SELECT C_init FROM pointmaps) "
-        "WHERE id NOT IN (SELECT id FROM blobs)").fetchone()
+        "WHERE id NOT IN (SELECT id FROM blobs)"
+    ).fetchone()
     if missing:
-        raise StoreError(f"inconsistent session store: {missing} keyframe arrays refer to "
-                         f"missing blobs")
+        raise StoreError(
+            f"inconsistent session store: {missing} keyframe arrays refer to missing blobs"
+        )
     rows = connection.execute(
         "SELECT k.g, k.agent, k.kf_id, k.frame_index, k.timestamp, m.fused_frames, m.K, "
         "p.T_WC FROM keyframes k LEFT JOIN pointmaps m USING (g) LEFT JOIN poses p USING (g) "
-        "ORDER BY k.g")
+        "ORDER BY k.g"
+    )
     for g, agent, kf_id, frame, timestamp, fused, K, T_WC in rows:
         what = _check_keyframe(graph, g, agent, kf_id, fused, T_WC)
-        pose, = unpack_arrays(T_WC, f"{what} T_WC")
-        kf = PagedKeyframe(kf_id=kf_id, frame_index=frame, timestamp=timestamp, encoding=None,
-                           T_WC=pose, X_hat=None, C_hat=None, X_init=None, C_init=None,
-                           colors=None, fused_frames=fused,
-                           K=None if K is None else unpack_arrays(K, f"{what} K")[0])
+        (pose,) = unpack_arrays(T_WC, f"{what} T_WC")
+        kf = PagedKeyframe(
+            kf_id=kf_id,
+            frame_index=frame,
+            timestamp=timestamp,
+            encoding=None,
+            T_WC=pose,
+            X_hat=None,
+            C_hat=None,
+            X_init=None,
+            C_init=None,
+            colors=None,
+            fused_frames=fused,
+            K=None if K is None else unpack_arrays(K, f"{what} K")[0],
+        )
         kf.evict(None, g)
         graph.append(kf, agent)
 
@@ -371,10 +443,12 @@ def _page_keyframes(connection: sqlite3.Connection, graph: GlobalGraph) -> None:
 def _retrieval(connection: sqlite3.Connection, graph: GlobalGraph) -> list[RetrievalEntry]:
     entries = []
     for g, agent, kf_id, position, features in connection.execute(
-            "SELECT * FROM retrieval ORDER BY g"):
+        "SELECT * FROM retrieval ORDER BY g"
+    ):
         if g >= len(graph) or (graph.agent_of[g], graph.keyframes[g].kf_id) != (agent, kf_id):
-            raise StoreError(f"inconsistent session store: retrieval entry {g} names no "
-                             f"such keyframe")
+            raise StoreError(
+                f"inconsistent session store: retrieval entry {g} names no such keyframe"
+            )
         descriptors, attention = unpack_arrays(features, f"keyframe {g} retrieval features")
         graph.keyframes[g].retrieval = (descriptors, attention)
         entries.append(RetrievalEntry(agent, kf_id, descriptors, attention, position))
@@ -396,23 +470,39 @@ def _link(row: tuple, keyframes: int, paged: bool) -> GraphLink:
     if kind not in KINDS or not (0 <= i < keyframes and 0 <= j < keyframes):
         raise StoreError(f"inconsistent session store: edge {n} ({kind} {i}-{j})")
     if paged and kind == "sequential":
-        return GraphLink(i, j, kind, PagedLink(None, n, covisible_ij, covisible_ji),
-                         similarity)
+        return GraphLink(i, j, kind, PagedLink(None, n, covisible_ij, covisible_ji), similarity)
     ij, ji = _matches(blob, f"edge {n} matches")
     return GraphLink(i, j, kind, PairLink(ij, ji, covisible_ij, covisible_ji), similarity)
 
 
 def _candidate(row: tuple, keyframes: int) -> StoredCandidate:
-    (n, i, j, status, ratio, similarity, nu_i, nu_j, covisible_ratio, accepted,
-     covisible_ij, covisible_ji, blob) = row
-    if status not in STATUSES or not (0 <= i < keyframes and 0 <= j < keyframes) or \
-            (status == "pending") != (blob is not None):
+    (
+        n,
+        i,
+        j,
+        status,
+        ratio,
+        similarity,
+        nu_i,
+        nu_j,
+        covisible_ratio,
+        accepted,
+        covisible_ij,
+        covisible_ji,
+        blob,
+    ) = row
+    if (
+        status not in STATUSES
+        or not (0 <= i < keyframes and 0 <= j < keyframes)
+        or (status == "pending") != (blob is not None)
+    ):
         raise StoreError(f"inconsistent session store: candidate {n} ({status} {i}-{j})")
     link = None
     if blob is not None:
         link = PairLink(*_matches(blob, f"candidate {n} matches"), covisible_ij, covisible_ji)
-    return StoredCandidate(i, j, status, ratio, similarity, nu_i, nu_j, covisible_ratio,
-                           bool(accepted), link)
+    return StoredCandidate(
+        i, j, status, ratio, similarity, nu_i, nu_j, covisible_ratio, bool(accepted), link
+    )
 
 
 def _gauges(connection: sqlite3.Connection, agents: int) -> GaugeComponents:
@@ -420,7 +510,8 @@ def _gauges(connection: sqlite3.Connection, agents: int) -> GaugeComponents:
     rows = list(connection.execute("SELECT agent, component FROM gauges ORDER BY agent"))
     roots = {agent: root for agent, root in rows}
     if sorted(roots) != list(range(agents)) or any(
-            roots.get(root) != root or root > agent for agent, root in rows):
+        roots.get(root) != root or root > agent for agent, root in rows
+    ):
         raise StoreError("inconsistent session store: gauge components")
     for agent, root in rows:
         gauges.add(agent)
@@ -431,16 +522,17 @@ def _gauges(connection: sqlite3.Connection, agents: int) -> GaugeComponents:
 def _check_agents(session: Session) -> None:
     """Per-agent progress agrees with the keyframes stored."""
     graph = session.graph
-    if [a.agent for a in session.agents] != list(range(len(session.agents))) or \
-            any(agent >= len(session.agents) for agent in [*graph.local_to_global,
-                                                           *session.reports]):
+    if [a.agent for a in session.agents] != list(range(len(session.agents))) or any(
+        agent >= len(session.agents) for agent in [*graph.local_to_global, *session.reports]
+    ):
         raise StoreError("inconsistent session store: the agents table")
     for a in session.agents:
         own = graph.agent_keyframes(a.agent)
         last = graph.keyframes[own[-1]].frame_index if own else -1
         if (a.keyframes, a.last_keyframe_frame) != (len(own), last):
-            raise StoreError(f"inconsistent session store: agent {a.agent} has "
-                             f"{len(own)} keyframes stored, its progress says {a.keyframes}")
+            raise StoreError(
+                f"inconsistent session store: agent {a.agent} has "
+                f"{len(own)} keyframes stored, its progress says {a.keyframes}"
+            )
     if session.stats.get("keyframes", len(graph)) != len(graph):
         raise StoreError("inconsistent session store: the coordinator's keyframe count")
-

@@ -21,9 +21,8 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
-
 
 from como3r.config import Config, differing_key
 from como3r.coordination.association import Verification
@@ -35,8 +34,14 @@ from como3r.runtime.store_reader import RetrievalEntry, Session, StoredCandidate
 
 logger = logging.getLogger(__name__)
 
-def open_store(folder: Path, config: Config, coordinator: Coordinator,
-               resume: bool = False, session: Session | None = None) -> SessionStore:
+
+def open_store(
+    folder: Path,
+    config: Config,
+    coordinator: Coordinator,
+    resume: bool = False,
+    session: Session | None = None,
+) -> SessionStore:
     """The session store of a run in ``folder``, journal of ``coordinator``: a new one, or
     with ``resume`` the one there, whose state ``coordinator`` (new) takes first.
 
@@ -55,11 +60,18 @@ def open_store(folder: Path, config: Config, coordinator: Coordinator,
     if session is None:
         session = read_session(path, paged=True)
         if session.finished:
-            raise StoreError(f"{path}: the stored session finished (its run was stopped "
-                             f"while writing its outputs); run again without --resume")
+            raise StoreError(
+                f"{path}: the stored session finished (its run was stopped "
+                f"while writing its outputs); run again without --resume"
+            )
     restore_coordinator(session, coordinator)
-    logger.info("resuming from %s: %d keyframes of %d agents, %d edges", path,
-                len(session.graph), len(session.agents), len(session.graph.links))
+    logger.info(
+        "resuming from %s: %d keyframes of %d agents, %d edges",
+        path,
+        len(session.graph),
+        len(session.agents),
+        len(session.graph.links),
+    )
     return SessionStore.reopen(path, coordinator)
 
 
@@ -75,20 +87,29 @@ def restore_coordinator(session: Session, coordinator: Coordinator) -> None:
     if difference is not None:
         raise StoreError(f"{where}: the stored session has another configuration ({difference})")
     if len(session.agents) != coordinator.num_agents:
-        raise StoreError(f"{where}: the stored session has {len(session.agents)} agents, this "
-                         f"run {coordinator.num_agents}")
-    indexed = sorted((e for e in session.retrieval if e.position is not None),
-                     key=lambda e: e.position)
+        raise StoreError(
+            f"{where}: the stored session has {len(session.agents)} agents, this "
+            f"run {coordinator.num_agents}"
+        )
+    indexed = sorted(
+        (e for e in session.retrieval if e.position is not None), key=lambda e: e.position
+    )
     if bool(indexed) != (coordinator.retrieval is not None) and len(session.graph):
-        raise StoreError(f"{where}: the stored session was run "
-                         f"{'with' if indexed else 'without'} cross-agent retrieval, this run "
-                         f"{'without' if indexed else 'with'} (another prior or codebook?)")
-    load_state(session, coordinator, CoordinatorStats(**session.stats), session.backlog,
-               indexed)
+        raise StoreError(
+            f"{where}: the stored session was run "
+            f"{'with' if indexed else 'without'} cross-agent retrieval, this run "
+            f"{'without' if indexed else 'with'} (another prior or codebook?)"
+        )
+    load_state(session, coordinator, CoordinatorStats(**session.stats), session.backlog, indexed)
 
 
-def load_state(session: Session, coordinator: Coordinator, stats: CoordinatorStats,
-               backlog: tuple[int, list[int]], indexed: Sequence[RetrievalEntry]) -> None:
+def load_state(
+    session: Session,
+    coordinator: Coordinator,
+    stats: CoordinatorStats,
+    backlog: tuple[int, list[int]],
+    indexed: Sequence[RetrievalEntry],
+) -> None:
     """Put a stored session's keyframes, links, gauge components (its agents are the
     coordinator's first ones; the others stay in components of their own), candidates and
     gauge events into ``coordinator``, with ``stats`` and the BA ``backlog``, and the
@@ -97,13 +118,19 @@ def load_state(session: Session, coordinator: Coordinator, stats: CoordinatorSta
     gauges = session.gauges
     for agent in range(len(session.agents), coordinator.num_agents):
         gauges.add(agent)
-    coordinator.restore(session.graph, gauges,
-                        [_candidate(c, session) for c in session.candidates], stats,
-                        session.gauge_events, backlog)
+    coordinator.restore(
+        session.graph,
+        gauges,
+        [_candidate(c, session) for c in session.candidates],
+        stats,
+        session.gauge_events,
+        backlog,
+    )
     if coordinator.retrieval is not None:
         for entry in indexed:
-            coordinator.retrieval.database.add(entry.agent, entry.kf_id, entry.descriptors,
-                                               entry.attention)
+            coordinator.retrieval.database.add(
+                entry.agent, entry.kf_id, entry.descriptors, entry.attention
+            )
 
 
 def _candidate(stored: StoredCandidate, session: Session) -> Candidate:
@@ -113,18 +140,41 @@ def _candidate(stored: StoredCandidate, session: Session) -> Candidate:
     keys = [(graph.agent_of[g], graph.keyframes[g].kf_id) for g in (stored.i, stored.j)]
     link = stored.link
     if stored.status == "admitted":
-        link = next((e.link for e in graph.links
-                     if e.kind == "inter" and (e.i, e.j) == (stored.i, stored.j)), None)
+        link = next(
+            (
+                e.link
+                for e in graph.links
+                if e.kind == "inter" and (e.i, e.j) == (stored.i, stored.j)
+            ),
+            None,
+        )
         if link is None:
-            raise StoreError(f"{session.path}: inconsistent session store: admitted candidate "
-                             f"{stored.i}-{stored.j} has no edge")
+            raise StoreError(
+                f"{session.path}: inconsistent session store: admitted candidate "
+                f"{stored.i}-{stored.j} has no edge"
+            )
     if link is not None:
         verification: Verification = Verification(
-            keys[0], keys[1], stored.similarity, link.ij, link.covisible_ij, link,
-            link.covisible_ji, stored.accepted)
+            keys[0],
+            keys[1],
+            stored.similarity,
+            link.ij,
+            link.covisible_ij,
+            link,
+            link.covisible_ji,
+            stored.accepted,
+        )
     else:
         verification = StoredVerification(
-            keys[0], keys[1], stored.similarity, NO_MATCHES, None, None, None,
-            stored.accepted, figures=(stored.nu_i, stored.nu_j, stored.covisible_ratio))
+            keys[0],
+            keys[1],
+            stored.similarity,
+            NO_MATCHES,
+            None,
+            None,
+            None,
+            stored.accepted,
+            figures=(stored.nu_i, stored.nu_j, stored.covisible_ratio),
+        )
     ratio = math.nan if stored.residual_ratio is None else stored.residual_ratio
     return Candidate(verification, stored.i, stored.j, stored.status, ratio)

@@ -97,14 +97,18 @@ def init_team(folder: Path) -> None:
     key = ec.generate_private_key(ec.SECP256R1())
     subject = x509.Name([x509.NameAttribute(x509.NameOID.COMMON_NAME, f"como3r-team-{name}")])
     now = _now()
-    builder = (x509.CertificateBuilder().subject_name(subject).issuer_name(subject)
-               .public_key(key.public_key()).serial_number(x509.random_serial_number())
-               .not_valid_before(now - SKEW)
-               .not_valid_after(now + datetime.timedelta(days=CA_VALID_DAYS))
-               .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
-               .add_extension(_key_usage(sign_certificates=True), critical=True)
-               .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()),
-                              critical=False))
+    builder = (
+        x509.CertificateBuilder()
+        .subject_name(subject)
+        .issuer_name(subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - SKEW)
+        .not_valid_after(now + datetime.timedelta(days=CA_VALID_DAYS))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(_key_usage(sign_certificates=True), critical=True)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+    )
     certificate = _sign(builder, key)
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -117,10 +121,15 @@ def init_team(folder: Path) -> None:
         raise InputError(f"{folder}: {exc.strerror}") from None
 
 
-def add_member(team: Path, name: str, role: str, member_id: int | None = None,
-               valid_days: float = DEFAULT_VALID_DAYS,
-               not_before: datetime.datetime | None = None,
-               not_after: datetime.datetime | None = None) -> Path:
+def add_member(
+    team: Path,
+    name: str,
+    role: str,
+    member_id: int | None = None,
+    valid_days: float = DEFAULT_VALID_DAYS,
+    not_before: datetime.datetime | None = None,
+    not_after: datetime.datetime | None = None,
+) -> Path:
     """Write the member folder ``team/name`` of a new member (module docstring).
 
     Args:
@@ -151,15 +160,16 @@ def add_member(team: Path, name: str, role: str, member_id: int | None = None,
         raise InputError("a coordinator has no --id")
     taken = {entry["cn"] for entry in roster["members"].values()}
     if member_id is None and role != "coordinator":
-        member_id = next(k for k in range(len(taken) + 1)
-                         if common_name(role, k) not in taken)
+        member_id = next(k for k in range(len(taken) + 1) if common_name(role, k) not in taken)
     if member_id is not None and member_id < 0:
         raise InputError(f"--id {member_id}: ids start at 0")
     cn = common_name(role, member_id)
     if cn in taken:
         holder = next(n for n, e in roster["members"].items() if e["cn"] == cn)
-        raise InputError(f"{cn} is member {holder!r} of team {roster['team']} already (a "
-                         f"revoked id is not given out again)")
+        raise InputError(
+            f"{cn} is member {holder!r} of team {roster['team']} already (a "
+            f"revoked id is not given out again)"
+        )
     folder = team / name
     if folder.exists():
         raise InputError(f"{folder}: exists already")
@@ -169,20 +179,28 @@ def add_member(team: Path, name: str, role: str, member_id: int | None = None,
     key = ec.generate_private_key(ec.SECP256R1())
     start = not_before if not_before is not None else _now() - SKEW
     end = not_after if not_after is not None else _now() + datetime.timedelta(days=valid_days)
-    builder = (x509.CertificateBuilder()
-               .subject_name(x509.Name([x509.NameAttribute(x509.NameOID.COMMON_NAME, cn)]))
-               .issuer_name(ca_cert.subject).public_key(key.public_key())
-               .serial_number(x509.random_serial_number())
-               .not_valid_before(start).not_valid_after(end)
-               .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-               .add_extension(_key_usage(sign_certificates=False), critical=True)
-               .add_extension(x509.ExtendedKeyUsage([x509.ExtendedKeyUsageOID.SERVER_AUTH,
-                                                     x509.ExtendedKeyUsageOID.CLIENT_AUTH]),
-                              critical=False)
-               # rustls wants a subject alternative name; the name, not a host, is what counts
-               .add_extension(x509.SubjectAlternativeName([x509.DNSName(cn)]), critical=False)
-               .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(
-                   ca_key.public_key()), critical=False))
+    builder = (
+        x509.CertificateBuilder()
+        .subject_name(x509.Name([x509.NameAttribute(x509.NameOID.COMMON_NAME, cn)]))
+        .issuer_name(ca_cert.subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(start)
+        .not_valid_after(end)
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(_key_usage(sign_certificates=False), critical=True)
+        .add_extension(
+            x509.ExtendedKeyUsage(
+                [x509.ExtendedKeyUsageOID.SERVER_AUTH, x509.ExtendedKeyUsageOID.CLIENT_AUTH]
+            ),
+            critical=False,
+        )
+        # rustls wants a subject alternative name; the name, not a host, is what counts
+        .add_extension(x509.SubjectAlternativeName([x509.DNSName(cn)]), critical=False)
+        .add_extension(
+            x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), critical=False
+        )
+    )
     certificate = _sign(builder, ca_key)
     try:
         folder.mkdir()
@@ -193,9 +211,13 @@ def add_member(team: Path, name: str, role: str, member_id: int | None = None,
         _write(folder / REVOKED, (team / REVOKED).read_bytes())
     except OSError as exc:
         raise InputError(f"{folder}: {exc.strerror}") from None
-    roster["members"][name] = {"role": role, "id": member_id, "cn": cn,
-                               "serial": format(certificate.serial_number, "x"),
-                               "not_after": end.isoformat()}
+    roster["members"][name] = {
+        "role": role,
+        "id": member_id,
+        "cn": cn,
+        "serial": format(certificate.serial_number, "x"),
+        "not_after": end.isoformat(),
+    }
     _write(team / ROSTER, json.dumps(roster, indent=1).encode())
     return folder
 
@@ -256,12 +278,16 @@ def load_member(folder: Path, check_validity: bool = True) -> Member:
     if not folder.is_dir():
         raise InputError(f"--team {folder}: no such member folder (como3r team add)")
     if (folder / CA_KEY).exists():
-        raise InputError(f"--team {folder}: this is the team's folder (with the authority's "
-                         f"key); give a member's folder, TEAM/NAME")
+        raise InputError(
+            f"--team {folder}: this is the team's folder (with the authority's "
+            f"key); give a member's folder, TEAM/NAME"
+        )
     missing = [file for file in MEMBER_FILES if not (folder / file).is_file()]
     if missing:
-        raise InputError(f"--team {folder}: missing {', '.join(missing)} (a member folder "
-                         f"is made by como3r team add)")
+        raise InputError(
+            f"--team {folder}: missing {', '.join(missing)} (a member folder "
+            f"is made by como3r team add)"
+        )
     try:
         certificate = x509.load_pem_x509_certificate((folder / CERT).read_bytes())
         authority = x509.load_pem_x509_certificate((folder / CA_CERT).read_bytes())
@@ -277,16 +303,22 @@ def load_member(folder: Path, check_validity: bool = True) -> Member:
     if check_validity:
         now = _now()
         if now > certificate.not_valid_after_utc:
-            raise InputError(f"--team {folder}: its certificate expired on "
-                             f"{certificate.not_valid_after_utc:%Y-%m-%d %H:%M} UTC")
+            raise InputError(
+                f"--team {folder}: its certificate expired on "
+                f"{certificate.not_valid_after_utc:%Y-%m-%d %H:%M} UTC"
+            )
         if now < certificate.not_valid_before_utc:
-            raise InputError(f"--team {folder}: its certificate is valid from "
-                             f"{certificate.not_valid_before_utc:%Y-%m-%d %H:%M} UTC only")
+            raise InputError(
+                f"--team {folder}: its certificate is valid from "
+                f"{certificate.not_valid_before_utc:%Y-%m-%d %H:%M} UTC only"
+            )
         try:
             certificate.verify_directly_issued_by(authority)
         except (InvalidSignature, ValueError, TypeError) as exc:
-            raise InputError(f"--team {folder}: its certificate is not issued by the "
-                             f"folder's authority ({type(exc).__name__})") from None
+            raise InputError(
+                f"--team {folder}: its certificate is not issued by the "
+                f"folder's authority ({type(exc).__name__})"
+            ) from None
         if cn in revoked:
             raise InputError(f"--team {folder}: its certificate ({cn}) is revoked")
     return member
@@ -299,10 +331,15 @@ def check_role(member: Member, role: str, member_id: int | None = None) -> None:
         InputError: the certificate names another role or id.
     """
     if member.role != role or (member_id is not None and member.member_id != member_id):
-        wanted = f"a {role}" if role != "coordinator" and member_id is None else common_name(
-            role, member_id)
-        raise InputError(f"--team {member.folder}: its certificate is {member.name}'s, this "
-                         f"command runs {wanted}")
+        wanted = (
+            f"a {role}"
+            if role != "coordinator" and member_id is None
+            else common_name(role, member_id)
+        )
+        raise InputError(
+            f"--team {member.folder}: its certificate is {member.name}'s, this "
+            f"command runs {wanted}"
+        )
 
 
 # ------------------------------------------------------------ files
@@ -354,10 +391,17 @@ def _now() -> datetime.datetime:
 def _key_usage(sign_certificates: bool) -> Any:
     from cryptography import x509
 
-    return x509.KeyUsage(digital_signature=not sign_certificates, content_commitment=False,
-                         key_encipherment=False, data_encipherment=False, key_agreement=False,
-                         key_cert_sign=sign_certificates, crl_sign=sign_certificates,
-                         encipher_only=False, decipher_only=False)
+    return x509.KeyUsage(
+        digital_signature=not sign_certificates,
+        content_commitment=False,
+        key_encipherment=False,
+        data_encipherment=False,
+        key_agreement=False,
+        key_cert_sign=sign_certificates,
+        crl_sign=sign_certificates,
+        encipher_only=False,
+        decipher_only=False,
+    )
 
 
 def _sign(builder: Any, key: Any) -> Any:
@@ -369,8 +413,9 @@ def _sign(builder: Any, key: Any) -> Any:
 def _key_pem(key: Any) -> bytes:
     from cryptography.hazmat.primitives import serialization
 
-    return key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
-                             serialization.NoEncryption())
+    return key.private_bytes(
+        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+    )
 
 
 def _cert_pem(certificate: Any) -> bytes:

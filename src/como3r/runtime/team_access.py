@@ -24,8 +24,9 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 from como3r.errors import InputError
 from como3r.runtime.team import CA_CERT, CERT, KEY, Member, common_name
@@ -33,8 +34,17 @@ from como3r.runtime.team import CA_CERT, CERT, KEY, Member, common_name
 logger = logging.getLogger(__name__)
 
 #: every kind of message Zenoh's access control filters
-MESSAGES = ("put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
-            "liveliness_token", "declare_liveliness_subscriber", "liveliness_query")
+MESSAGES = (
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "declare_queryable",
+    "reply",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+)
 
 
 def team_endpoints(endpoints: Iterable[str]) -> tuple[str, ...]:
@@ -47,8 +57,7 @@ def team_endpoints(endpoints: Iterable[str]) -> tuple[str, ...]:
     for endpoint in endpoints:
         protocol, _, address = endpoint.partition("/")
         if protocol not in ("tcp", "tls") or not address:
-            raise InputError(f"endpoint {endpoint!r}: a team speaks only TLS "
-                             f"(tls/HOST:PORT)")
+            raise InputError(f"endpoint {endpoint!r}: a team speaks only TLS (tls/HOST:PORT)")
         out.append(f"tls/{address}")
     return tuple(out)
 
@@ -62,13 +71,21 @@ def zenoh_settings(member: Member, peers: int | None = None) -> dict[str, Any]:
         peers: agents of the coordinator's run, or robots of a robot's team (ids 0 to
             peers-1); unused for an agent (its one peer is the coordinator).
     """
-    tls = {"root_ca_certificate": member.path(CA_CERT),
-           "listen_private_key": member.path(KEY), "listen_certificate": member.path(CERT),
-           "connect_private_key": member.path(KEY), "connect_certificate": member.path(CERT),
-           "enable_mtls": True, "verify_name_on_connect": False,
-           "close_link_on_expiration": True}
-    return {"transport/link/protocols": ["tls"], "transport/link/tls": tls,
-            "access_control": access_control(member, peers)}
+    tls = {
+        "root_ca_certificate": member.path(CA_CERT),
+        "listen_private_key": member.path(KEY),
+        "listen_certificate": member.path(CERT),
+        "connect_private_key": member.path(KEY),
+        "connect_certificate": member.path(CERT),
+        "enable_mtls": True,
+        "verify_name_on_connect": False,
+        "close_link_on_expiration": True,
+    }
+    return {
+        "transport/link/protocols": ["tls"],
+        "transport/link/tls": tls,
+        "access_control": access_control(member, peers),
+    }
 
 
 def access_control(member: Member, peers: int | None = None) -> dict[str, Any]:
@@ -92,47 +109,74 @@ def access_control(member: Member, peers: int | None = None) -> dict[str, Any]:
         ids = []
         for index, (messages, keys) in enumerate(rights):
             ids.append(f"{cn}/{index}")
-            rules.append({"id": ids[-1], "permission": "allow", "flows": ["ingress"],
-                          "messages": messages, "key_exprs": keys})
+            rules.append(
+                {
+                    "id": ids[-1],
+                    "permission": "allow",
+                    "flows": ["ingress"],
+                    "messages": messages,
+                    "key_exprs": keys,
+                }
+            )
         ids.append(f"{cn}/out")  # what this process sends it: its subscriptions filter that
-        rules.append({"id": ids[-1], "permission": "allow", "flows": ["egress"],
-                      "messages": list(MESSAGES), "key_exprs": ["**"]})
+        rules.append(
+            {
+                "id": ids[-1],
+                "permission": "allow",
+                "flows": ["egress"],
+                "messages": list(MESSAGES),
+                "key_exprs": ["**"],
+            }
+        )
         policies.append({"id": f"{cn}/policy", "rules": ids, "subjects": [cn]})
-    return {"enabled": True, "default_permission": "deny", "rules": rules,
-            "subjects": subjects, "policies": policies}
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }
 
 
 def agent_rights(agent: int) -> list[tuple[list[str], list[str]]]:
     """What the coordinator takes from agent ``agent``'s certificate."""
     own = f"como3r/*/agent/{agent}"
-    return [(["put"], [f"como3r/*/agent/*/up/*/{common_name('agent', agent)}"]),
-            (["liveliness_token"], [f"{own}/alive/*"]),
-            (["query"], [f"{own}/task"]),
-            (["declare_subscriber"], [f"{own}/**"]),
-            (["declare_liveliness_subscriber", "liveliness_query"], ["como3r/*/coordinator"])]
+    return [
+        (["put"], [f"como3r/*/agent/*/up/*/{common_name('agent', agent)}"]),
+        (["liveliness_token"], [f"{own}/alive/*"]),
+        (["query"], [f"{own}/task"]),
+        (["declare_subscriber"], [f"{own}/**"]),
+        (["declare_liveliness_subscriber", "liveliness_query"], ["como3r/*/coordinator"]),
+    ]
 
 
 def coordinator_rights(agent: int | None) -> list[tuple[list[str], list[str]]]:
     """What agent ``agent`` takes from the coordinator's certificate."""
     own = f"como3r/*/agent/{agent}"
-    return [(["put"], [f"{own}/down/*", f"{own}/ack"]),
-            (["liveliness_token"], ["como3r/*/coordinator"]),
-            (["declare_queryable"], ["como3r/*/agent/*/task"]),
-            (["reply"], [f"{own}/task"]),
-            (["declare_subscriber"], ["como3r/*/agent/*/up/**"]),
-            (["declare_liveliness_subscriber", "liveliness_query"], ["como3r/*/agent/*/alive/*"])]
+    return [
+        (["put"], [f"{own}/down/*", f"{own}/ack"]),
+        (["liveliness_token"], ["como3r/*/coordinator"]),
+        (["declare_queryable"], ["como3r/*/agent/*/task"]),
+        (["reply"], [f"{own}/task"]),
+        (["declare_subscriber"], ["como3r/*/agent/*/up/**"]),
+        (["declare_liveliness_subscriber", "liveliness_query"], ["como3r/*/agent/*/alive/*"]),
+    ]
 
 
 def robot_rights(peer: int, robot: int | None) -> list[tuple[list[str], list[str]]]:
     """What robot ``robot`` takes from robot ``peer``'s certificate."""
     theirs = f"como3r/*/robot/{peer}"
-    return [(["put"], [f"como3r/*/robot/{robot}/from/*/{common_name('robot', peer)}"]),
-            (["liveliness_token"], [f"{theirs}/alive", f"{theirs}/done"]),
-            (["declare_queryable"], [f"{theirs}/hello"]),
-            (["query", "reply"], ["como3r/*/robot/*/hello"]),
-            (["declare_subscriber"], [f"{theirs}/from/**"]),
-            (["declare_liveliness_subscriber", "liveliness_query"],
-             ["como3r/*/robot/*/alive", "como3r/*/robot/*/done"])]
+    return [
+        (["put"], [f"como3r/*/robot/{robot}/from/*/{common_name('robot', peer)}"]),
+        (["liveliness_token"], [f"{theirs}/alive", f"{theirs}/done"]),
+        (["declare_queryable"], [f"{theirs}/hello"]),
+        (["query", "reply"], ["como3r/*/robot/*/hello"]),
+        (["declare_subscriber"], [f"{theirs}/from/**"]),
+        (
+            ["declare_liveliness_subscriber", "liveliness_query"],
+            ["como3r/*/robot/*/alive", "como3r/*/robot/*/done"],
+        ),
+    ]
 
 
 class LinkWatch:
@@ -150,8 +194,9 @@ class LinkWatch:
         self.listeners: list[Any] = []
 
     def __call__(self, session: Any) -> None:
-        self.listeners.append(session.info.declare_link_events_listener(self._on_link,
-                                                                         history=True))
+        self.listeners.append(
+            session.info.declare_link_events_listener(self._on_link, history=True)
+        )
 
     def _on_link(self, event: Any) -> None:
         import zenoh
@@ -160,18 +205,32 @@ class LinkWatch:
             return
         name = event.link.auth_identifier or "(none)"
         if name in self.member.revoked:
-            logger.warning("%s: refusing every message of %s (%s): its certificate is revoked",
-                           self.member.name, name, event.link.dst)
+            logger.warning(
+                "%s: refusing every message of %s (%s): its certificate is revoked",
+                self.member.name,
+                name,
+                event.link.dst,
+            )
         elif name not in self.admitted:  # e.g. another agent, found by gossip: no threat
-            logger.info("%s: refusing every message of %s (%s): not a peer of this run",
-                        self.member.name, name, event.link.dst)
+            logger.info(
+                "%s: refusing every message of %s (%s): not a peer of this run",
+                self.member.name,
+                name,
+                event.link.dst,
+            )
         else:
             logger.info("%s: %s connected (%s)", self.member.name, name, event.link.dst)
 
 
-def network_options(member: Member, listen: Iterable[str], connect: Iterable[str],
-                    scouting: bool, config_file: Path | None, session: str,
-                    peers: int | None = None) -> Any:
+def network_options(
+    member: Member,
+    listen: Iterable[str],
+    connect: Iterable[str],
+    scouting: bool,
+    config_file: Path | None,
+    session: str,
+    peers: int | None = None,
+) -> Any:
     """The :class:`~como3r.runtime.transport_zenoh.ZenohOptions` of ``member``'s process:
     its endpoints as TLS ones (:func:`team_endpoints`), :func:`zenoh_settings` and a
     :class:`LinkWatch`; ``peers`` as for :func:`zenoh_settings`."""
@@ -183,12 +242,22 @@ def network_options(member: Member, listen: Iterable[str], connect: Iterable[str
         # robots: a TLS port of the system's choosing, which gossip tells their peers of so
         # that they connect directly, as without a team; an agent needs only its coordinator
         settings["listen/endpoints"] = ["tls/[::]:0"] if member.role == "robot" else []
-    return ZenohOptions(listen, connect, scouting, config_file, session,
-                        tuple((path, json.dumps(value)) for path, value in settings.items()),
-                        member.name, LinkWatch(member, admitted(settings)))
+    return ZenohOptions(
+        listen,
+        connect,
+        scouting,
+        config_file,
+        session,
+        tuple((path, json.dumps(value)) for path, value in settings.items()),
+        member.name,
+        LinkWatch(member, admitted(settings)),
+    )
 
 
 def admitted(settings: dict[str, Any]) -> list[str]:
     """The certificate names with rights in ``settings`` (:func:`zenoh_settings`)."""
-    return [name for subject in settings["access_control"]["subjects"]
-            for name in subject["cert_common_names"]]
+    return [
+        name
+        for subject in settings["access_control"]["subjects"]
+        for name in subject["cert_common_names"]
+    ]

@@ -26,9 +26,10 @@ import queue
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection, wait
-from typing import Any, Callable, Mapping, Protocol, Sequence, Union
+from typing import Any, Protocol
 
 from como3r.runtime import codec
 from como3r.runtime.child_signals import children_ignore_sigint
@@ -79,9 +80,9 @@ class Left:
     may_return: bool = False
 
 
-Event = Union[Received, Rejected, Joined, Left]
+Event = Received | Rejected | Joined | Left
 
-Rejoin = Callable[[int], Union[AgentTask, str]]
+Rejoin = Callable[[int], AgentTask | str]
 """Asked by a hub when a new process wants agent ``a``'s id after the one that held it left:
 the task the newcomer runs, or why it cannot take over (a reason it is told)."""
 
@@ -187,8 +188,13 @@ class Channel:
         accepts: message classes :meth:`receive` accepts.
     """
 
-    def __init__(self, inbox: Connection | None, outbox: Connection | None, max_bytes: int,
-                 accepts: tuple[type, ...]) -> None:
+    def __init__(
+        self,
+        inbox: Connection | None,
+        outbox: Connection | None,
+        max_bytes: int,
+        accepts: tuple[type, ...],
+    ) -> None:
         self.inbox = inbox
         self.outbox = outbox
         self.max_bytes = max_bytes
@@ -270,8 +276,9 @@ class PipeHub:
 
     name = "pipes"
 
-    def __init__(self, target: Callable[[int, Connection, Connection], None], max_bytes: int,
-                 grace_s: float) -> None:
+    def __init__(
+        self, target: Callable[[int, Connection, Connection], None], max_bytes: int, grace_s: float
+    ) -> None:
         self.target = target
         self.max_bytes = max_bytes
         self.grace_s = grace_s
@@ -287,9 +294,12 @@ class PipeHub:
         for task in tasks:
             to_agent_r, to_agent_w = context.Pipe(duplex=False)
             from_agent_r, from_agent_w = context.Pipe(duplex=False)
-            process = context.Process(target=self.target,
-                                      args=(task.agent, to_agent_r, from_agent_w),
-                                      name=f"como3r-agent-{task.agent}", daemon=True)
+            process = context.Process(
+                target=self.target,
+                args=(task.agent, to_agent_r, from_agent_w),
+                name=f"como3r-agent-{task.agent}",
+                daemon=True,
+            )
             with children_ignore_sigint():  # Ctrl-C is the coordinator's to handle
                 process.start()
             to_agent_r.close()  # the child holds its own copies; ours would hide its death
@@ -319,8 +329,9 @@ class PipeHub:
                 out.extend(self._drain(agent))
                 self.processes[agent].join(5.0)  # the sentinel fires just before the status
                 self._gone.add(agent)
-                out.append(Left(agent, f"process died "
-                                       f"({exit_reason(self.processes[agent].exitcode)})"))
+                out.append(
+                    Left(agent, f"process died ({exit_reason(self.processes[agent].exitcode)})")
+                )
         return out
 
     def _drain(self, agent: int) -> list[Event]:
@@ -335,8 +346,12 @@ class PipeHub:
             except OSError as exc:  # the framing is lost: nothing after it can be read
                 self._open.discard(agent)
                 self.drop(agent)
-                out.append(Left(agent, f"protocol error: unreadable message ({exc}); cap "
-                                       f"{self.max_bytes} bytes"))
+                out.append(
+                    Left(
+                        agent,
+                        f"protocol error: unreadable message ({exc}); cap {self.max_bytes} bytes",
+                    )
+                )
                 self._gone.add(agent)
             except codec.MessageError as exc:
                 out.append(Rejected(agent, str(exc)))

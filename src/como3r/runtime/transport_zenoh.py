@@ -75,9 +75,10 @@ import queue
 import struct
 import threading
 from collections import deque
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 from como3r.errors import InputError
 from como3r.runtime import codec
@@ -153,8 +154,11 @@ def open_session(options: ZenohOptions) -> Any:
     import zenoh
 
     try:
-        config = (zenoh.Config.from_file(str(options.config_file))
-                  if options.config_file is not None else zenoh.Config())
+        config = (
+            zenoh.Config.from_file(str(options.config_file))
+            if options.config_file is not None
+            else zenoh.Config()
+        )
         config.insert_json5("mode", json.dumps("peer"))
         config.insert_json5("scouting/multicast/enabled", json.dumps(options.scouting))
         if options.listen:
@@ -202,7 +206,7 @@ class Keys:
 
     def sender_of(self, key: str) -> str | None:
         """The certificate name a message key under ``up/`` ends in (None: none)."""
-        parts = key[len(self.root) + len("/agent/"):].split("/")
+        parts = key[len(self.root) + len("/agent/") :].split("/")
         return parts[3] if len(parts) > 3 else None
 
     def down(self, agent: int | str, kind: str) -> str:
@@ -219,7 +223,7 @@ class Keys:
 
     def agent_of(self, key: str) -> str:
         """The agent field of a key under ``agent/`` (as written: not checked)."""
-        return key[len(self.root) + len("/agent/"):].split("/", 1)[0]
+        return key[len(self.root) + len("/agent/") :].split("/", 1)[0]
 
 
 #: Zenoh priority of what the coordinator sends (acknowledgements, pose updates, Shutdown)
@@ -239,8 +243,13 @@ class Sender:
         express: send each put at once instead of batching it with the next.
     """
 
-    def __init__(self, session: Any, publishers: dict[str, Any] | None = None,
-                 priority: str = STREAM_PRIORITY, express: bool = False) -> None:
+    def __init__(
+        self,
+        session: Any,
+        publishers: dict[str, Any] | None = None,
+        priority: str = STREAM_PRIORITY,
+        express: bool = False,
+    ) -> None:
         import zenoh
 
         self.session = session
@@ -266,9 +275,14 @@ class Sender:
                 if key in self.publishers:
                     self.publishers[key].put(payload, attachment=attachment)
                 else:
-                    self.session.put(key, payload, attachment=attachment,
-                                     congestion_control=self.block, priority=self.priority,
-                                     express=self.express)
+                    self.session.put(
+                        key,
+                        payload,
+                        attachment=attachment,
+                        congestion_control=self.block,
+                        priority=self.priority,
+                        express=self.express,
+                    )
             except Exception as exc:  # a closed session: nothing more can be sent
                 logger.debug("put on %s failed: %s", key, exc)
 
@@ -303,8 +317,9 @@ class Pieces:
             current = self._open.get(agent)
             if current is None or current[0] != which or len(current[1]) != index:
                 self._open.pop(agent, None)
-                logger.debug("agent %s: piece %d of message %d out of order: dropped", agent,
-                             index, seq)
+                logger.debug(
+                    "agent %s: piece %d of message %d out of order: dropped", agent, index, seq
+                )
                 return None
             _, parts, size = current
             size += len(data)
@@ -334,8 +349,11 @@ class _Holder:
     superseded: set[int] = field(default_factory=set)  # earlier holders
 
     def describe(self) -> str:
-        return ("no process holds it yet" if self.incarnation is None
-                else f"process {self.incarnation:016x} does")
+        return (
+            "no process holds it yet"
+            if self.incarnation is None
+            else f"process {self.incarnation:016x} does"
+        )
 
 
 class ZenohHub:
@@ -354,8 +372,15 @@ class ZenohHub:
 
     name = "zenoh"
 
-    def __init__(self, session: Any, keys: Keys, agents: int, max_bytes: int,
-                 grace_s: float, certified: bool = False) -> None:
+    def __init__(
+        self,
+        session: Any,
+        keys: Keys,
+        agents: int,
+        max_bytes: int,
+        grace_s: float,
+        certified: bool = False,
+    ) -> None:
         self.session, self.keys, self.agents = session, keys, agents
         self.certified = certified
         self.max_bytes, self.grace_s = max_bytes, grace_s
@@ -369,8 +394,9 @@ class ZenohHub:
         self._pieces = Pieces(max_bytes)
         self._declared = [
             session.declare_subscriber(keys.up_all(), self._on_sample),
-            session.liveliness().declare_subscriber(keys.alive("*", "*"), self._on_liveliness,
-                                                    history=True),
+            session.liveliness().declare_subscriber(
+                keys.alive("*", "*"), self._on_liveliness, history=True
+            ),
         ]
         self._stopped = False
 
@@ -380,12 +406,22 @@ class ZenohHub:
         key, size = str(sample.key_expr), len(sample.payload)
         agent, sender = self.keys.agent_of(key), self.keys.sender_of(key)
         if self.certified and sender != f"agent-{agent}":
-            self._inbox.put(("reject", agent, f"sent under agent {agent}'s id by the holder "
-                                              f"of certificate {sender}"))
+            self._inbox.put(
+                (
+                    "reject",
+                    agent,
+                    f"sent under agent {agent}'s id by the holder of certificate {sender}",
+                )
+            )
             return
         if size > self.max_bytes:  # not even copied
-            self._inbox.put(("reject", agent, f"message of {size} bytes exceeds the cap of "
-                                              f"{self.max_bytes} bytes"))
+            self._inbox.put(
+                (
+                    "reject",
+                    agent,
+                    f"message of {size} bytes exceeds the cap of {self.max_bytes} bytes",
+                )
+            )
             return
         attachment, data = _attachment(sample), sample.payload.to_bytes()
         if len(attachment) == PIECE.size and self._agent_id(agent) is not None:
@@ -401,12 +437,19 @@ class ZenohHub:
         import zenoh
 
         key = str(sample.key_expr)
-        self._inbox.put(("alive", self.keys.agent_of(key), key.rsplit("/", 1)[-1],
-                         sample.kind == zenoh.SampleKind.PUT))
+        self._inbox.put(
+            (
+                "alive",
+                self.keys.agent_of(key),
+                key.rsplit("/", 1)[-1],
+                sample.kind == zenoh.SampleKind.PUT,
+            )
+        )
 
     def _on_query(self, query: Any) -> None:
-        self._inbox.put(("query", self.keys.agent_of(str(query.key_expr)), _attachment(query),
-                         query))
+        self._inbox.put(
+            ("query", self.keys.agent_of(str(query.key_expr)), _attachment(query), query)
+        )
 
     # ------------------------------------------------------------ the coordinator's thread
 
@@ -418,15 +461,15 @@ class ZenohHub:
                 holder.task = self._tasks[task.agent]
         self._rejoin = rejoin
         # agents get their tasks, then see the coordinator, once it can answer them
-        self._declared.append(self.session.declare_queryable(self.keys.task("*"),
-                                                             self._on_query))
+        self._declared.append(self.session.declare_queryable(self.keys.task("*"), self._on_query))
         self._declared.append(self.session.liveliness().declare_token(self.keys.coordinator()))
 
     def events(self, timeout: float) -> list[Event]:
         if not self._backlog:
             try:
-                self._backlog.append(self._inbox.get(timeout=timeout) if timeout > 0 else
-                                     self._inbox.get_nowait())
+                self._backlog.append(
+                    self._inbox.get(timeout=timeout) if timeout > 0 else self._inbox.get_nowait()
+                )
             except queue.Empty:
                 return []
         while True:
@@ -448,10 +491,11 @@ class ZenohHub:
         kind, name = item[0], item[1]
         agent = self._agent_id(name)
         if agent is None:
-            text = (f"unknown agent {name!r} (this run has agents 0 to {self.agents - 1})")
+            text = f"unknown agent {name!r} (this run has agents 0 to {self.agents - 1})"
             if kind == "query":
-                _reply(item[3], error=f"no agent {name} in this run (agents 0 to "
-                                      f"{self.agents - 1})")
+                _reply(
+                    item[3], error=f"no agent {name} in this run (agents 0 to {self.agents - 1})"
+                )
             elif kind != "alive":
                 logger.warning("dropped a message for %s", text)
             return []
@@ -472,13 +516,19 @@ class ZenohHub:
         holder = self._holders[agent]
         (holder.present.add if present else holder.present.discard)(incarnation)
         if present and incarnation in holder.superseded:  # back after it was replaced
-            self._send(agent, incarnation, Shutdown(f"another process has taken over agent "
-                                                    f"{agent}'s id"))
+            self._send(
+                agent, incarnation, Shutdown(f"another process has taken over agent {agent}'s id")
+            )
         if incarnation != holder.incarnation:
             return []  # a process not (or no longer) holding the id
         if not present:
-            return [Left(agent, "left (its liveliness token is gone: the process ended or "
-                                "its link was lost)", may_return=True)]
+            return [
+                Left(
+                    agent,
+                    "left (its liveliness token is gone: the process ended or its link was lost)",
+                    may_return=True,
+                )
+            ]
         if holder.dropped:  # back after it was counted as failed: it may have missed it
             self._shutdown(agent)
         return [Joined(agent)]
@@ -495,16 +545,20 @@ class ZenohHub:
         """Answer a process asking for agent ``agent``'s task."""
         holder, incarnation = self._holders[agent], _incarnation(attachment)
         if incarnation is None:
-            _reply(query, error="the task query carries no incarnation (a como3r of another "
-                                "version?)")
+            _reply(
+                query, error="the task query carries no incarnation (a como3r of another version?)"
+            )
             return []
         decision = _decision(holder, incarnation)
         if decision == "again":
             _reply(query, holder.task)
             return []
         if decision == "wait":
-            _reply(query, error=f"{WAIT}another process with id {agent} "
-                                f"({holder.incarnation:016x}) is still connected")
+            _reply(
+                query,
+                error=f"{WAIT}another process with id {agent} "
+                f"({holder.incarnation:016x}) is still connected",
+            )
             return []
         assert self._rejoin is not None, "start() first"
         answer = self._tasks[agent] if decision == "first" else self._rejoin(agent)
@@ -512,13 +566,18 @@ class ZenohHub:
             _reply(query, error=answer)
             return []
         if holder.incarnation is not None:
-            logger.info("agent %d: process %016x takes over the id from %016x", agent,
-                        incarnation, holder.incarnation)
+            logger.info(
+                "agent %d: process %016x takes over the id from %016x",
+                agent,
+                incarnation,
+                holder.incarnation,
+            )
             holder.superseded.add(holder.incarnation)
         holder.incarnation, holder.next_seq, holder.acked = incarnation, 0, -1
         holder.ack_due, holder.dropped = False, False
-        holder.task = answer if isinstance(answer, bytes) else codec.encode(
-            answer, max_bytes=self.max_bytes)
+        holder.task = (
+            answer if isinstance(answer, bytes) else codec.encode(answer, max_bytes=self.max_bytes)
+        )
         _reply(query, holder.task)
         return [Joined(agent)] if incarnation in holder.present else []
 
@@ -529,8 +588,12 @@ class ZenohHub:
         holder = self._holders[agent]
         if incarnation != holder.incarnation:
             _, error = self._decode(agent, data)
-            return Rejected(agent, error or f"from process {incarnation:016x}, which does not "
-                                            f"hold agent {agent}'s id ({holder.describe()})")
+            return Rejected(
+                agent,
+                error
+                or f"from process {incarnation:016x}, which does not "
+                f"hold agent {agent}'s id ({holder.describe()})",
+            )
         if holder.dropped:
             logger.debug("agent %d counts as failed: message %d ignored", agent, seq)
             return None
@@ -538,8 +601,9 @@ class ZenohHub:
             holder.ack_due = True
             return None
         if seq > holder.next_seq:
-            return Rejected(agent, f"message {seq} before {holder.next_seq} (a gap: the agent "
-                                   f"re-sends)")
+            return Rejected(
+                agent, f"message {seq} before {holder.next_seq} (a gap: the agent re-sends)"
+            )
         holder.next_seq += 1  # the holder's own: taken, or skipped, never waited for
         message, error = self._decode(agent, data)
         if error is not None:
@@ -561,16 +625,27 @@ class ZenohHub:
     # ------------------------------------------------------------ to the agents
 
     def durable(self, held: Mapping[int, int]) -> dict[str, Any]:
-        return {"holders": [
-            {"incarnation": h.incarnation, "next_seq": self._storable(agent, held) + 1,
-             "superseded": sorted(h.superseded), "dropped": h.dropped}
-            for agent, h in enumerate(self._holders)]}
+        return {
+            "holders": [
+                {
+                    "incarnation": h.incarnation,
+                    "next_seq": self._storable(agent, held) + 1,
+                    "superseded": sorted(h.superseded),
+                    "dropped": h.dropped,
+                }
+                for agent, h in enumerate(self._holders)
+            ]
+        }
 
     def acknowledge(self, held: Mapping[int, int]) -> None:
         for agent, holder in enumerate(self._holders):
             upto = self._storable(agent, held)
-            if holder.incarnation is None or holder.dropped or upto < 0 or not (
-                    holder.ack_due or upto > holder.acked):
+            if (
+                holder.incarnation is None
+                or holder.dropped
+                or upto < 0
+                or not (holder.ack_due or upto > holder.acked)
+            ):
                 continue
             self._sender.put(self.keys.ack(agent), SEQ.pack(holder.incarnation, upto))
             holder.acked, holder.ack_due = max(holder.acked, upto), False
@@ -584,16 +659,19 @@ class ZenohHub:
     def resume(self, state: Mapping[str, Any]) -> dict[int, int]:
         holders = state.get("holders", [])
         if len(holders) != self.agents:
-            raise InputError(f"the stored session has {len(holders)} agents, this "
-                             f"coordinator {self.agents} (--agents)")
+            raise InputError(
+                f"the stored session has {len(holders)} agents, this "
+                f"coordinator {self.agents} (--agents)"
+            )
         for holder, saved in zip(self._holders, holders):
             holder.incarnation = saved["incarnation"]
             holder.next_seq = saved["next_seq"]
             holder.acked = saved["next_seq"] - 1
             holder.superseded = set(saved["superseded"])
             holder.dropped = saved["dropped"]
-        return {agent: h.acked for agent, h in enumerate(self._holders)
-                if h.incarnation is not None}
+        return {
+            agent: h.acked for agent, h in enumerate(self._holders) if h.incarnation is not None
+        }
 
     def send(self, agent: int, message: Any) -> None:
         incarnation = self._holders[agent].incarnation
@@ -603,8 +681,9 @@ class ZenohHub:
     def _send(self, agent: int, incarnation: int, message: Any) -> None:
         data = codec.encode(message, max_bytes=self.max_bytes)
         self._traffic[agent].sent(message, len(data))
-        self._sender.put(self.keys.down(agent, type(message).__name__), data,
-                         INCARNATION.pack(incarnation))
+        self._sender.put(
+            self.keys.down(agent, type(message).__name__), data, INCARNATION.pack(incarnation)
+        )
 
     def drop(self, agent: int) -> None:
         self._holders[agent].dropped = True

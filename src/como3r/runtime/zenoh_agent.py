@@ -25,8 +25,15 @@ from como3r.runtime import codec
 from como3r.runtime.messages import TO_AGENT, AgentTask, Shutdown
 from como3r.runtime.spool import Spool
 from como3r.runtime.transport import Traffic
-from como3r.runtime.transport_zenoh import (INCARNATION, PIECE, PIECE_BYTES, SEQ,
-                                            STREAM_PRIORITY, WAIT, Keys)
+from como3r.runtime.transport_zenoh import (
+    INCARNATION,
+    PIECE,
+    PIECE_BYTES,
+    SEQ,
+    STREAM_PRIORITY,
+    WAIT,
+    Keys,
+)
 
 #: the error reply Zenoh itself gives a query no queryable answered in time
 ZENOH_QUERY_TIMEOUT = "Timeout"
@@ -52,8 +59,15 @@ class ZenohAgentLink:
             waits; empty: the run's key expressions.
     """
 
-    def __init__(self, session: Any, keys: Keys, agent: int, spool: Spool | None = None,
-                 wait_log_s: float = 30.0, where: str = "") -> None:
+    def __init__(
+        self,
+        session: Any,
+        keys: Keys,
+        agent: int,
+        spool: Spool | None = None,
+        wait_log_s: float = 30.0,
+        where: str = "",
+    ) -> None:
         self.session, self.keys, self.agent = session, keys, agent
         self.where = where or keys.root
         self.max_bytes = codec.DEFAULT_MAX_BYTES
@@ -75,11 +89,13 @@ class ZenohAgentLink:
         self._declared = [
             session.declare_subscriber(keys.down(agent, "*"), self._on_down),
             session.declare_subscriber(keys.ack(agent), self._on_ack),
-            session.liveliness().declare_subscriber(keys.coordinator(), self._on_coordinator,
-                                                    history=True),
+            session.liveliness().declare_subscriber(
+                keys.coordinator(), self._on_coordinator, history=True
+            ),
         ]
-        self._declared.append(session.liveliness().declare_token(
-            keys.alive(agent, self.incarnation)))
+        self._declared.append(
+            session.liveliness().declare_token(keys.alive(agent, self.incarnation))
+        )
         self._sender = threading.Thread(target=self._send_loop, daemon=True)
         self._sender.start()
 
@@ -92,8 +108,9 @@ class ZenohAgentLink:
         """
         said, waiting = -math.inf, f"the coordinator ({self.where})"
         while True:
-            for reply in self.session.get(self.keys.task(self.agent), timeout=5.0,
-                                          attachment=self._mine):
+            for reply in self.session.get(
+                self.keys.task(self.agent), timeout=5.0, attachment=self._mine
+            ):
                 if reply.ok is not None:
                     task = codec.decode(reply.ok.payload.to_bytes(), expected=AgentTask)
                     self.max_bytes = task.max_message_bytes
@@ -104,7 +121,7 @@ class ZenohAgentLink:
                     continue
                 if not text.startswith(WAIT):
                     raise InputError(f"agent {self.agent}: the coordinator says: {text}")
-                waiting = text[len(WAIT):]
+                waiting = text[len(WAIT) :]
             if time.monotonic() - said > self.wait_log_s:
                 logger.warning("agent %d: waiting: %s", self.agent, waiting)
                 said = time.monotonic()
@@ -123,15 +140,15 @@ class ZenohAgentLink:
     def poll(self, timeout: float = 0.0) -> bool:
         if self._peeked is None:
             try:
-                self._peeked = (self._inbox.get(timeout=timeout) if timeout > 0
-                                else self._inbox.get_nowait())
+                self._peeked = (
+                    self._inbox.get(timeout=timeout) if timeout > 0 else self._inbox.get_nowait()
+                )
             except queue.Empty:
                 return False
         return True
 
     def receive(self) -> Any:
-        data, self._peeked = (self._peeked if self._peeked is not None
-                              else self._inbox.get()), None
+        data, self._peeked = (self._peeked if self._peeked is not None else self._inbox.get()), None
         message = codec.decode(data, max_bytes=self.max_bytes, expected=TO_AGENT)
         self.traffic.received(message, len(data))
         if isinstance(message, Shutdown):
@@ -148,8 +165,11 @@ class ZenohAgentLink:
             while len(self.spool) and not self._discard:
                 self._cond.wait(1.0)
                 if time.monotonic() - said > self.wait_log_s:
-                    logger.warning("agent %d: waiting for the coordinator to store %d "
-                                   "message(s)", self.agent, len(self.spool))
+                    logger.warning(
+                        "agent %d: waiting for the coordinator to store %d message(s)",
+                        self.agent,
+                        len(self.spool),
+                    )
                     said = time.monotonic()
             self._closed = True
             self._cond.notify_all()
@@ -175,10 +195,16 @@ class ZenohAgentLink:
             try:
                 for index in range(pieces):
                     self.session.put(
-                        key, data[index * PIECE_BYTES:(index + 1) * PIECE_BYTES],
-                        attachment=(SEQ.pack(self.incarnation, seq) if pieces == 1 else
-                                    PIECE.pack(self.incarnation, seq, index, pieces)),
-                        congestion_control=zenoh.CongestionControl.BLOCK, priority=priority)
+                        key,
+                        data[index * PIECE_BYTES : (index + 1) * PIECE_BYTES],
+                        attachment=(
+                            SEQ.pack(self.incarnation, seq)
+                            if pieces == 1
+                            else PIECE.pack(self.incarnation, seq, index, pieces)
+                        ),
+                        congestion_control=zenoh.CongestionControl.BLOCK,
+                        priority=priority,
+                    )
             except Exception as exc:  # the session is closing
                 logger.debug("put on %s failed: %s", key, exc)
 
@@ -197,9 +223,12 @@ class ZenohAgentLink:
         with self._cond:
             self.spool.acknowledge(seq)
             if self._back_at is not None and seq >= self._catch_up_to:
-                logger.warning("agent %d: caught up %.1f s after the coordinator came back: "
-                               "it has stored every message made before", self.agent,
-                               time.monotonic() - self._back_at)
+                logger.warning(
+                    "agent %d: caught up %.1f s after the coordinator came back: "
+                    "it has stored every message made before",
+                    self.agent,
+                    time.monotonic() - self._back_at,
+                )
                 self._back_at = None
             self._cond.notify_all()
 
@@ -209,16 +238,23 @@ class ZenohAgentLink:
         present = sample.kind == zenoh.SampleKind.PUT
         with self._cond:
             if present and self._gone_at is not None:  # it may have lost some: again, in order
-                logger.warning("agent %d: the coordinator is back after %.1f s; re-sending %d "
-                               "message(s), %d of them made while it was away", self.agent,
-                               time.monotonic() - self._gone_at, self.spool.rewind(),
-                               self._made_away)
+                logger.warning(
+                    "agent %d: the coordinator is back after %.1f s; re-sending %d "
+                    "message(s), %d of them made while it was away",
+                    self.agent,
+                    time.monotonic() - self._gone_at,
+                    self.spool.rewind(),
+                    self._made_away,
+                )
                 self._gone_at, self._made_away = None, 0
                 if len(self.spool):  # else nothing to catch up on
                     self._back_at, self._catch_up_to = time.monotonic(), self.spool.next_seq - 1
             elif not present:
-                logger.warning("agent %d: the coordinator is gone; tracking on and keeping "
-                               "messages until it is back", self.agent)
+                logger.warning(
+                    "agent %d: the coordinator is gone; tracking on and keeping "
+                    "messages until it is back",
+                    self.agent,
+                )
                 self._gone_at = time.monotonic()
             self._present = present
             self._cond.notify_all()

@@ -43,8 +43,9 @@ import logging
 import queue
 import time
 from collections import Counter, defaultdict
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable
+from typing import Any
 
 from como3r.decentralized.messages import DRIVER, ROBOT_MESSAGES, RobotHello
 from como3r.decentralized.robot import PeerLeft
@@ -94,7 +95,7 @@ class RobotKeys:
     def robot_of(self, key: str, field_index: int = 0) -> str:
         """Field ``field_index`` after the root (0: the robot; 2: a message's sender; 3: its
         certificate name in a team run)."""
-        parts = key[len(self.root) + 1:].split("/")
+        parts = key[len(self.root) + 1 :].split("/")
         return parts[field_index] if len(parts) > field_index else ""
 
 
@@ -113,16 +114,24 @@ class RobotTraffic:
     def to_json(self) -> dict[str, Any]:
         """``metrics.json``'s ``bytes`` of a robot."""
         sent, received = by_type(self.sent), by_type(self.received)
-        return {"sent": dict(sent), "received": dict(received),
-                "sent_total": sum(sent.values()), "received_total": sum(received.values()),
-                "messages_sent": dict(self.messages_sent),
-                "bytes_per_message_sent": {k: v / self.messages_sent[k]
-                                           for k, v in sent.items()},
-                "messages_received": dict(self.messages_received),
-                "by_peer": {str(p): {"sent": dict(self.sent.get(p, {})),
-                                     "received": dict(self.received.get(p, {}))}
-                            for p in sorted({*self.sent, *self.received})},
-                "dropped_by_link_filter": dict(self.filtered), "invalid": self.invalid}
+        return {
+            "sent": dict(sent),
+            "received": dict(received),
+            "sent_total": sum(sent.values()),
+            "received_total": sum(received.values()),
+            "messages_sent": dict(self.messages_sent),
+            "bytes_per_message_sent": {k: v / self.messages_sent[k] for k, v in sent.items()},
+            "messages_received": dict(self.messages_received),
+            "by_peer": {
+                str(p): {
+                    "sent": dict(self.sent.get(p, {})),
+                    "received": dict(self.received.get(p, {})),
+                }
+                for p in sorted({*self.sent, *self.received})
+            },
+            "dropped_by_link_filter": dict(self.filtered),
+            "invalid": self.invalid,
+        }
 
 
 def by_type(per_peer: dict[int, Counter]) -> Counter:
@@ -149,10 +158,18 @@ class ZenohRobotLink:
             name of the robot it claims to come from.
     """
 
-    def __init__(self, session: Any, keys: RobotKeys, robot: int, team: int,
-                 hello: RobotHello, hears: Hears, max_bytes: int,
-                 progress: Callable[[Any], None] | None = None,
-                 certified: bool = False) -> None:
+    def __init__(
+        self,
+        session: Any,
+        keys: RobotKeys,
+        robot: int,
+        team: int,
+        hello: RobotHello,
+        hears: Hears,
+        max_bytes: int,
+        progress: Callable[[Any], None] | None = None,
+        certified: bool = False,
+    ) -> None:
         self.session, self.keys, self.robot, self.team = session, keys, robot, team
         self.certified = certified
         self.hears, self.max_bytes, self.progress = hears, max_bytes, progress
@@ -160,8 +177,11 @@ class ZenohRobotLink:
         self._hello = codec.encode(hello, max_bytes=max_bytes)
         self._plan = hello.plan
         self._inbox: queue.Queue[tuple[str, bytes | int | None]] = queue.Queue()
-        self._publishers = {keys.messages(peer, robot): _publisher(session, keys.messages(
-            peer, robot)) for peer in range(team) if peer != robot}
+        self._publishers = {
+            keys.messages(peer, robot): _publisher(session, keys.messages(peer, robot))
+            for peer in range(team)
+            if peer != robot
+        }
         self._sender = Sender(session, self._publishers)
         self._declared = [
             session.declare_subscriber(keys.inbox(robot), self._on_message),
@@ -230,8 +250,9 @@ class ZenohRobotLink:
             self._invalid(claimed, f"sent by the holder of certificate {certificate or '(none)'}")
             return None
         if isinstance(data, int):
-            self._invalid(claimed, f"message of {data} bytes exceeds the cap of "
-                                   f"{self.max_bytes} bytes")
+            self._invalid(
+                claimed, f"message of {data} bytes exceeds the cap of {self.max_bytes} bytes"
+            )
             return None
         try:
             message = codec.decode(data, max_bytes=self.max_bytes, expected=ROBOT_MESSAGES)
@@ -239,14 +260,26 @@ class ZenohRobotLink:
             self._invalid(claimed, str(exc))
             return None
         sender, kind = message.sender, type(message).__name__
-        if (message.recipient != self.robot or str(sender) != claimed
-                or not 0 <= sender < self.team or sender == self.robot):
-            self._invalid(claimed, f"a {kind} from robot {sender} to robot "
-                                   f"{message.recipient} under robot {claimed}'s key")
+        if (
+            message.recipient != self.robot
+            or str(sender) != claimed
+            or not 0 <= sender < self.team
+            or sender == self.robot
+        ):
+            self._invalid(
+                claimed,
+                f"a {kind} from robot {sender} to robot "
+                f"{message.recipient} under robot {claimed}'s key",
+            )
             return None
         if not self.hears(self.robot, sender, message.time_s):
-            logger.debug("robot %d: out of range of robot %d at %.3f s: %s dropped",
-                         self.robot, sender, message.time_s, kind)
+            logger.debug(
+                "robot %d: out of range of robot %d at %.3f s: %s dropped",
+                self.robot,
+                sender,
+                message.time_s,
+                kind,
+            )
             self.traffic.filtered[kind] += 1
             return None
         self.traffic.received[sender][kind] += len(data)
@@ -254,8 +287,9 @@ class ZenohRobotLink:
         return message
 
     def _invalid(self, claimed: str, error: str) -> None:
-        logger.warning("robot %d: dropped a message under robot %r's key: %s", self.robot,
-                       claimed, error)
+        logger.warning(
+            "robot %d: dropped a message under robot %r's key: %s", self.robot, claimed, error
+        )
         self.traffic.invalid += 1
 
     # ------------------------------------------------------------ start and end
@@ -277,8 +311,11 @@ class ZenohRobotLink:
             if len(known) < self.team:
                 if time.monotonic() - said > wait_log_s:
                     missing = sorted(set(range(self.team)) - set(known))
-                    logger.warning("robot %d: waiting for robot(s) %s to start", self.robot,
-                                   ", ".join(map(str, missing)))
+                    logger.warning(
+                        "robot %d: waiting for robot(s) %s to start",
+                        self.robot,
+                        ", ".join(map(str, missing)),
+                    )
                     said = time.monotonic()
                 time.sleep(POLL_S)
         self._wait_for_subscribers(wait_log_s)
@@ -287,8 +324,11 @@ class ZenohRobotLink:
     def _wait_for_subscribers(self, wait_log_s: float) -> None:
         """Until every peer's subscriber is known to this robot's publisher to it."""
         said = time.monotonic()
-        while unmatched := [key for key, publisher in self._publishers.items()
-                            if not publisher.matching_status.matching]:
+        while unmatched := [
+            key
+            for key, publisher in self._publishers.items()
+            if not publisher.matching_status.matching
+        ]:
             if time.monotonic() - said > wait_log_s:
                 logger.warning("robot %d: waiting to reach %s", self.robot, ", ".join(unmatched))
                 said = time.monotonic()
@@ -301,21 +341,23 @@ class ZenohRobotLink:
             logger.warning("robot %d: dropped an unreadable hello: %s", self.robot, exc)
             return None
         if not 0 <= hello.robot < self.team:
-            logger.warning("robot %d: robot %d is not in this team of %d", self.robot,
-                           hello.robot, self.team)
+            logger.warning(
+                "robot %d: robot %d is not in this team of %d", self.robot, hello.robot, self.team
+            )
             return None
         if hello.plan != self._plan:
-            raise InputError(f"robot {hello.robot} runs another mission plan (configuration, "
-                             f"rendezvous schedule, --robots or --prior differ from robot "
-                             f"{self.robot}'s)")
+            raise InputError(
+                f"robot {hello.robot} runs another mission plan (configuration, "
+                f"rendezvous schedule, --robots or --prior differ from robot "
+                f"{self.robot}'s)"
+            )
         return hello
 
     def finish(self, peers: Iterable[int], timeout: float) -> None:
         """Say this robot is done, then wait (at most ``timeout`` seconds) until each of
         ``peers`` is done or gone, and undeclare everything."""
         self._sender.close(timeout)
-        self._declared.append(self.session.liveliness().declare_token(
-            self.keys.done(self.robot)))
+        self._declared.append(self.session.liveliness().declare_token(self.keys.done(self.robot)))
         waiting = set(peers) - {self.robot}
         deadline = time.monotonic() + timeout
         while waiting and time.monotonic() < deadline:
@@ -324,8 +366,11 @@ class ZenohRobotLink:
             if waiting:
                 time.sleep(POLL_S)
         if waiting:
-            logger.warning("robot %d: leaving before robot(s) %s finished", self.robot,
-                           ", ".join(map(str, sorted(waiting))))
+            logger.warning(
+                "robot %d: leaving before robot(s) %s finished",
+                self.robot,
+                ", ".join(map(str, sorted(waiting))),
+            )
         for entity in reversed(self._declared):
             entity.undeclare()
 
@@ -343,8 +388,11 @@ class ZenohRobotLink:
 def _publisher(session: Any, key: str) -> Any:
     import zenoh
 
-    return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK,
-                                     reliability=zenoh.Reliability.RELIABLE)
+    return session.declare_publisher(
+        key,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+        reliability=zenoh.Reliability.RELIABLE,
+    )
 
 
 def finish_timeout(message_timeout_s: float) -> float:

@@ -30,8 +30,15 @@ from como3r.errors import InputError
 if TYPE_CHECKING:
     from como3r.viewer.recording import RerunViewer
 
-__all__ = ["MODES", "INSTALL", "ViewerSpec", "check_viewer", "open_viewer", "parse_viewer",
-           "require_rerun"]
+__all__ = [
+    "MODES",
+    "INSTALL",
+    "ViewerSpec",
+    "check_viewer",
+    "open_viewer",
+    "parse_viewer",
+    "require_rerun",
+]
 
 #: what ``--viewer`` accepts: open the native viewer, serve for a remote one, write a file
 MODES = ("spawn", "serve", "save")
@@ -85,8 +92,7 @@ def require_rerun() -> None:
     except ImportError as exc:
         missing = isinstance(exc, ModuleNotFoundError) and exc.name == "rerun"
         why = "is not installed" if missing else f"does not import ({exc})"
-        raise InputError(f"--viewer needs the optional rerun-sdk, which {why}: {INSTALL}"
-                         ) from None
+        raise InputError(f"--viewer needs the optional rerun-sdk, which {why}: {INSTALL}") from None
 
 
 def check_viewer(value: str, out: Path) -> ViewerSpec:
@@ -100,24 +106,31 @@ def check_viewer(value: str, out: Path) -> ViewerSpec:
         InputError: naming what is wrong (one line).
     """
     spec = parse_viewer(value)
-    if spec.mode == "spawn" and sys.platform.startswith("linux") and not (
-            os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        raise InputError("--viewer spawn needs a display (DISPLAY and WAYLAND_DISPLAY are "
-                         "unset); on a headless machine use --viewer serve or save FILE.rrd")
+    if (
+        spec.mode == "spawn"
+        and sys.platform.startswith("linux")
+        and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    ):
+        raise InputError(
+            "--viewer spawn needs a display (DISPLAY and WAYLAND_DISPLAY are "
+            "unset); on a headless machine use --viewer serve or save FILE.rrd"
+        )
     if spec.path is not None:
         path = spec.path.resolve()
         if path.is_relative_to(out.resolve()):
-            raise InputError(f"--viewer save {spec.path}: write the recording outside --out "
-                             f"{out} (the output folder appears only when the run is done)")
+            raise InputError(
+                f"--viewer save {spec.path}: write the recording outside --out "
+                f"{out} (the output folder appears only when the run is done)"
+            )
         if not path.parent.is_dir():
-            raise InputError(f"--viewer save {spec.path}: folder {spec.path.parent} "
-                             "does not exist")
+            raise InputError(f"--viewer save {spec.path}: folder {spec.path.parent} does not exist")
     require_rerun()
     return spec
 
 
-def open_viewer(spec: ViewerSpec, grpc_port: int | None = None,
-                web_port: int | None = None) -> RerunViewer:
+def open_viewer(
+    spec: ViewerSpec, grpc_port: int | None = None, web_port: int | None = None
+) -> RerunViewer:
     """A :class:`~como3r.viewer.recording.RerunViewer` for ``spec`` (imports rerun).
 
     Args:

@@ -39,9 +39,21 @@ from como3r.viewer import ViewerSpec
 logger = logging.getLogger(__name__)
 
 #: agent colours (RGB), agent ``a`` takes ``PALETTE[a % len(PALETTE)]``
-PALETTE = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40],
-                    [148, 103, 189], [140, 86, 75], [227, 119, 194], [127, 127, 127],
-                    [188, 189, 34], [23, 190, 207]], dtype=np.uint8)
+PALETTE = np.array(
+    [
+        [31, 119, 180],
+        [255, 127, 14],
+        [44, 160, 44],
+        [214, 39, 40],
+        [148, 103, 189],
+        [140, 86, 75],
+        [227, 119, 194],
+        [127, 127, 127],
+        [188, 189, 34],
+        [23, 190, 207],
+    ],
+    dtype=np.uint8,
+)
 
 #: edge colours by kind
 EDGE_COLORS = {"inter": (255, 255, 255), "loop": (255, 215, 0)}
@@ -60,8 +72,9 @@ def agent_color(agent: int) -> np.ndarray:
 
 def sim3_transform(T_WC: np.ndarray) -> rr.Transform3D:
     """The rerun transform (parent from child) of an ``(8,)`` Sim(3) pose."""
-    return rr.Transform3D(translation=T_WC[:3], quaternion=rr.Quaternion(xyzw=T_WC[3:7]),
-                          scale=float(T_WC[7]))
+    return rr.Transform3D(
+        translation=T_WC[:3], quaternion=rr.Quaternion(xyzw=T_WC[3:7]), scale=float(T_WC[7])
+    )
 
 
 class RerunViewer:
@@ -77,8 +90,9 @@ class RerunViewer:
         InputError: rerun could not start the viewer or open the file.
     """
 
-    def __init__(self, spec: ViewerSpec, grpc_port: int | None = None,
-                 web_port: int | None = None) -> None:
+    def __init__(
+        self, spec: ViewerSpec, grpc_port: int | None = None, web_port: int | None = None
+    ) -> None:
         self.spec = spec
         self.rec = rr.RecordingStream("como3r")
         #: ``serve``: ``(gRPC URL for `rerun URL`, web viewer URL)``, with localhost
@@ -91,8 +105,10 @@ class RerunViewer:
             else:
                 grpc = self.rec.serve_grpc(grpc_port=grpc_port)
                 rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=grpc)
-                web = (f"http://localhost:{9090 if web_port is None else web_port}/?url="
-                       + urllib.parse.quote(grpc, safe=":/"))
+                web = (
+                    f"http://localhost:{9090 if web_port is None else web_port}/?url="
+                    + urllib.parse.quote(grpc, safe=":/")
+                )
                 self.urls = (grpc, web)
         except (OSError, RuntimeError, ValueError) as exc:
             raise InputError(f"--viewer {spec.mode}: rerun could not start ({exc})") from None
@@ -125,18 +141,26 @@ class RerunViewer:
             self.rec.log(f"{base}/camera", sim3_transform(e.T_WC))
             positions = self.positions.setdefault(e.agent, [])
             positions.append(e.T_WC[:3])
-            self.rec.log(f"{base}/trajectory", rr.LineStrips3D([np.stack(positions)],
-                                                               colors=color))
+            self.rec.log(f"{base}/trajectory", rr.LineStrips3D([np.stack(positions)], colors=color))
         height, width = e.image.shape[:2]
         if e.K is not None:
-            self.rec.log(f"{base}/camera/image", rr.Pinhole(
-                image_from_camera=e.K, resolution=[width, height],
-                image_plane_distance=FRUSTUM_DEPTH * self.depth.get(e.agent, 1.0),
-                color=color))
-        self.rec.log(f"{base}/camera/image",
-                     rr.Image(e.image, color_model="RGB").compress(jpeg_quality=JPEG_QUALITY))
-        self.rec.log(f"agents/{e.agent}/state",
-                     rr.TextLog(e.state, level="WARN" if e.state == "lost" else "INFO"))
+            self.rec.log(
+                f"{base}/camera/image",
+                rr.Pinhole(
+                    image_from_camera=e.K,
+                    resolution=[width, height],
+                    image_plane_distance=FRUSTUM_DEPTH * self.depth.get(e.agent, 1.0),
+                    color=color,
+                ),
+            )
+        self.rec.log(
+            f"{base}/camera/image",
+            rr.Image(e.image, color_model="RGB").compress(jpeg_quality=JPEG_QUALITY),
+        )
+        self.rec.log(
+            f"agents/{e.agent}/state",
+            rr.TextLog(e.state, level="WARN" if e.state == "lost" else "INFO"),
+        )
 
     def keyframe_event(self, e: KeyframeEvent) -> None:
         """The keyframe's pose and points (in its camera frame, in the agent's colour)."""
@@ -150,27 +174,35 @@ class RerunViewer:
     def map_event(self, e: MapEvent) -> None:
         """The merged map, the edges, and every keyframe moved to its new pose."""
         self._time(self.frame, e.wall_time)
-        self.rec.log("world/map/points", rr.Points3D(e.points, colors=PALETTE[
-            e.point_agents % len(PALETTE)]))
+        self.rec.log(
+            "world/map/points", rr.Points3D(e.points, colors=PALETTE[e.point_agents % len(PALETTE)])
+        )
         centres = {(int(a), int(k)): T[:3] for (a, k), T in zip(e.keyframes, e.T_WC)}
         for kind, color in EDGE_COLORS.items():
-            segments = [np.stack([centres[(int(ai), int(ki))], centres[(int(aj), int(kj))]])
-                        for (ai, ki, aj, kj), k in zip(e.edges, e.edge_kinds)
-                        if k == kind and (int(ai), int(ki)) in centres
-                        and (int(aj), int(kj)) in centres]
+            segments = [
+                np.stack([centres[(int(ai), int(ki))], centres[(int(aj), int(kj))]])
+                for (ai, ki, aj, kj), k in zip(e.edges, e.edge_kinds)
+                if k == kind and (int(ai), int(ki)) in centres and (int(aj), int(kj)) in centres
+            ]
             self.rec.log(f"world/map/edges/{kind}", rr.LineStrips3D(segments, colors=color))
         for (agent, kf_id), T_WC in zip(e.keyframes, e.T_WC):
             self.rec.log(f"world/agents/{agent}/keyframes/{kf_id}", sim3_transform(T_WC))
         components = " ".join("{" + ", ".join(map(str, c)) + "}" for c in e.components)
-        self.rec.log("coordinator/events", rr.TextLog(
-            f"{e.reason}: {len(e.keyframes)} keyframes, {len(e.edges)} edges, "
-            f"{len(e.points)} map points; gauge components {components}"))
+        self.rec.log(
+            "coordinator/events",
+            rr.TextLog(
+                f"{e.reason}: {len(e.keyframes)} keyframes, {len(e.edges)} edges, "
+                f"{len(e.points)} map points; gauge components {components}"
+            ),
+        )
 
     def trajectory_event(self, e: TrajectoryEvent) -> None:
         """The agent's final trajectory replaces the one drawn as it was tracked."""
         self._time(self.frame, e.wall_time)
-        self.rec.log(f"world/agents/{e.agent}/trajectory",
-                     rr.LineStrips3D([e.T_WC[:, :3]], colors=agent_color(e.agent)))
+        self.rec.log(
+            f"world/agents/{e.agent}/trajectory",
+            rr.LineStrips3D([e.T_WC[:, :3]], colors=agent_color(e.agent)),
+        )
 
     def close(self) -> None:
         """Flush what was logged and close the sink: the saved file is complete, the spawned

@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from como3r.errors import InputError
 from como3r.geometry.lie import quat_to_matrix
+
 from ..shared_data import SHARED_DATA
 
 WIDTH, HEIGHT = 32, 24
@@ -47,9 +48,16 @@ def pose_matrices(T_WC: torch.Tensor) -> np.ndarray:
     return M
 
 
-def write_tum(root: Path, n: int = 5, *, depth: bool = True, groundtruth: bool = True,
-              drop_depth: tuple[int, ...] = (), depth_offset: float = 0.004,
-              extra_depth: bool = False) -> dict:
+def write_tum(
+    root: Path,
+    n: int = 5,
+    *,
+    depth: bool = True,
+    groundtruth: bool = True,
+    drop_depth: tuple[int, ...] = (),
+    depth_offset: float = 0.004,
+    extra_depth: bool = False,
+) -> dict:
     """A TUM RGB-D sequence folder of ``n`` frames at 30 Hz (rgb from t = 1305031102.0).
 
     Depth images are stamped ``depth_offset`` after their rgb image; those of the frames in
@@ -92,10 +100,14 @@ def write_tum(root: Path, n: int = 5, *, depth: bool = True, groundtruth: bool =
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     rows = np.concatenate([rng.normal(size=(len(gt_stamps), 3)), q], axis=1)
     if groundtruth:
-        lines = ["# ground truth trajectory", "# file: 'rgbd_dataset_test.bag'",
-                 "# timestamp tx ty tz qx qy qz qw"]
-        lines += [f"{t:.4f} " + " ".join(f"{v:.6f}" for v in row)
-                  for t, row in zip(gt_stamps, rows)]
+        lines = [
+            "# ground truth trajectory",
+            "# file: 'rgbd_dataset_test.bag'",
+            "# timestamp tx ty tz qx qy qz qw",
+        ]
+        lines += [
+            f"{t:.4f} " + " ".join(f"{v:.6f}" for v in row) for t, row in zip(gt_stamps, rows)
+        ]
         (root / "groundtruth.txt").write_text("\n".join(lines) + "\n")
     return {"rgb": stamps, "gt": (gt_stamps, rows)}
 
@@ -105,8 +117,16 @@ def write_pose(path: Path, T: np.ndarray) -> None:
     path.write_text("".join("\t".join(f"{v: .7e}" for v in row) + "\t\n" for row in T))
 
 
-def write_7scenes(folder: Path, n: int = 4, *, start: int = 0, invalid: int = 65535,
-                  colour: str = "png", depth: bool = True, poses: bool = True) -> np.ndarray:
+def write_7scenes(
+    folder: Path,
+    n: int = 4,
+    *,
+    start: int = 0,
+    invalid: int = 65535,
+    colour: str = "png",
+    depth: bool = True,
+    poses: bool = True,
+) -> np.ndarray:
     """A 7-Scenes frames folder ``frame-{start..start+n-1}``; returns the ``(n, 4, 4)``
     poses. Depth of frame i is :func:`depth_metres` in millimetres, with pixel (0, 0) 0 and
     pixel (0, 1) ``invalid``."""
@@ -148,31 +168,43 @@ def input_error(match: str, func, *args, **kwargs) -> str:
 #: EuRoC cam0 intrinsics (fu, fv, cu, cv) for the 32x24 test images
 EUROC_CALIB = (30.0, 31.0, 15.5, 11.5)
 #: the published MH_01_easy cam0 T_BS (camera pose in the body frame), row-major 4x4
-EUROC_T_BS = np.array([
-    [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975],
-    [0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768],
-    [-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949],
-    [0.0, 0.0, 0.0, 1.0]])
+EUROC_T_BS = np.array(
+    [
+        [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975],
+        [0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768],
+        [-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949],
+        [0.0, 0.0, 0.0, 1.0],
+    ]
+)
 EUROC_T0_NS = 1403636579763555584
 
 
-def euroc_sensor_yaml(calib=EUROC_CALIB, distortion=(0.0, 0.0, 0.0, 0.0), T_BS=EUROC_T_BS,
-                      resolution=(WIDTH, HEIGHT)) -> str:
+def euroc_sensor_yaml(
+    calib=EUROC_CALIB, distortion=(0.0, 0.0, 0.0, 0.0), T_BS=EUROC_T_BS, resolution=(WIDTH, HEIGHT)
+) -> str:
     """A ``cam0/sensor.yaml`` as EuRoC publishes it (comments, flow lists, T_BS mapping)."""
     data = ", ".join(repr(float(v)) for v in np.asarray(T_BS).ravel())
-    return ("# General sensor definitions.\nsensor_type: camera\n"
-            "comment: VI-Sensor cam0 (MT9M034)\n\n"
-            "# Sensor extrinsics wrt. the body-frame.\nT_BS:\n  cols: 4\n  rows: 4\n"
-            f"  data: [{data}]\n\n"
-            "# Camera specific definitions.\nrate_hz: 20\n"
-            f"resolution: [{resolution[0]}, {resolution[1]}]\ncamera_model: pinhole\n"
-            f"intrinsics: [{', '.join(map(str, calib))}] #fu, fv, cu, cv\n"
-            "distortion_model: radial-tangential\n"
-            f"distortion_coefficients: [{', '.join(map(str, distortion))}]\n")
+    return (
+        "# General sensor definitions.\nsensor_type: camera\n"
+        "comment: VI-Sensor cam0 (MT9M034)\n\n"
+        "# Sensor extrinsics wrt. the body-frame.\nT_BS:\n  cols: 4\n  rows: 4\n"
+        f"  data: [{data}]\n\n"
+        "# Camera specific definitions.\nrate_hz: 20\n"
+        f"resolution: [{resolution[0]}, {resolution[1]}]\ncamera_model: pinhole\n"
+        f"intrinsics: [{', '.join(map(str, calib))}] #fu, fv, cu, cv\n"
+        "distortion_model: radial-tangential\n"
+        f"distortion_coefficients: [{', '.join(map(str, distortion))}]\n"
+    )
 
 
-def write_euroc(root: Path, n: int = 4, *, images: list[np.ndarray] | None = None,
-                groundtruth: bool = True, **sensor) -> dict:
+def write_euroc(
+    root: Path,
+    n: int = 4,
+    *,
+    images: list[np.ndarray] | None = None,
+    groundtruth: bool = True,
+    **sensor,
+) -> dict:
     """A EuRoC sequence ``root/mav0`` of ``n`` 8-bit grey cam0 frames at 20 Hz (ns stamps
     from :data:`EUROC_T0_NS`), ``sensor`` passed to :func:`euroc_sensor_yaml`; ground truth
     at 200 Hz from 20 ms before the first frame to 20 ms after the last, random body poses.
@@ -198,26 +230,40 @@ def write_euroc(root: Path, n: int = 4, *, images: list[np.ndarray] | None = Non
     if groundtruth:
         folder = root / "mav0" / "state_groundtruth_estimate0"
         folder.mkdir()
-        header = ("#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], "
-                  "q_RS_y [], q_RS_z [], v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], "
-                  "v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], "
-                  "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], "
-                  "b_a_RS_S_z [m s^-2]")
-        body = [f"{t}," + ",".join(f"{v:.9f}" for v in row) + ",0.1,0.2,0.3" + ",0.0" * 6
-                for t, row in zip(gt_ns, rows)]
+        header = (
+            "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], "
+            "q_RS_y [], q_RS_z [], v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], "
+            "v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], "
+            "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], "
+            "b_a_RS_S_z [m s^-2]"
+        )
+        body = [
+            f"{t}," + ",".join(f"{v:.9f}" for v in row) + ",0.1,0.2,0.3" + ",0.0" * 6
+            for t, row in zip(gt_ns, rows)
+        ]
         (folder / "data.csv").write_text("\n".join([header, *body]) + "\n")
     return {"ns": ns, "gt_ns": gt_ns, "gt": rows}
 
 
 #: KITTI sequence 00's published P2 (left colour camera, rectified), row-major 3x4
-KITTI_P2 = np.array([[718.856, 0.0, 607.1928, 45.38225],
-                     [0.0, 718.856, 185.2157, -0.1130887],
-                     [0.0, 0.0, 1.0, 0.003779761]])
+KITTI_P2 = np.array(
+    [
+        [718.856, 0.0, 607.1928, 45.38225],
+        [0.0, 718.856, 185.2157, -0.1130887],
+        [0.0, 0.0, 1.0, 0.003779761],
+    ]
+)
 
 
-def write_kitti(root: Path, name: str = "05", n: int = 4, *, poses: bool = True,
-                frames: tuple[int, ...] | None = None,
-                folders: tuple[str, ...] = ("image_2",)) -> dict:
+def write_kitti(
+    root: Path,
+    name: str = "05",
+    n: int = 4,
+    *,
+    poses: bool = True,
+    frames: tuple[int, ...] | None = None,
+    folders: tuple[str, ...] = ("image_2",),
+) -> dict:
     """A KITTI odometry dataset root ``root/sequences/<name>`` (in each of ``folders``,
     ``image_2/`` colour PNGs (:func:`pixels`) or ``image_0/`` grey ones (channel 0 of
     :func:`pixels`) of ``frames``, default all ``n``; ``times.txt`` of ``n`` lines at about
@@ -231,7 +277,7 @@ def write_kitti(root: Path, name: str = "05", n: int = 4, *, poses: bool = True,
     sequence.mkdir(parents=True)
     for folder in folders:
         (sequence / folder).mkdir()
-        for k in (range(n) if frames is None else frames):
+        for k in range(n) if frames is None else frames:
             image = pixels(k) if folder == "image_2" else pixels(k)[..., 0]
             Image.fromarray(image).save(sequence / folder / f"{k:06d}.png")
     times = np.arange(n) * 0.1036224 + np.arange(n) ** 2 * 1e-4
@@ -239,18 +285,25 @@ def write_kitti(root: Path, name: str = "05", n: int = 4, *, poses: bool = True,
     P0 = KITTI_P2.copy()
     P0[:, 3] = 0.0
     calib = [("P0", P0), ("P1", P0), ("P2", KITTI_P2), ("P3", KITTI_P2), ("Tr", np.eye(4)[:3])]
-    (sequence / "calib.txt").write_text("".join(
-        f"{key}: " + " ".join(f"{v:.12e}" for v in M.ravel()) + "\n" for key, M in calib))
+    (sequence / "calib.txt").write_text(
+        "".join(f"{key}: " + " ".join(f"{v:.12e}" for v in M.ravel()) + "\n" for key, M in calib)
+    )
     T = rigid(n, seed=7)
     if poses:
         (root / "poses").mkdir(exist_ok=True)
-        (root / "poses" / f"{name}.txt").write_text("".join(
-            " ".join(f"{v:e}" for v in M[:3].ravel()) + "\n" for M in T))
+        (root / "poses" / f"{name}.txt").write_text(
+            "".join(" ".join(f"{v:e}" for v in M[:3].ravel()) + "\n" for M in T)
+        )
     return {"sequence": sequence, "times": times, "cam0": T}
 
 
-def write_tanks(root: Path, ids: tuple[int, ...] = (1, 2, 3, 5), *, suffix: str = "png",
-                groundtruth: tuple[int, ...] | None = None) -> np.ndarray:
+def write_tanks(
+    root: Path,
+    ids: tuple[int, ...] = (1, 2, 3, 5),
+    *,
+    suffix: str = "png",
+    groundtruth: tuple[int, ...] | None = None,
+) -> np.ndarray:
     """A Tanks and Temples folder ``root`` with ``image/<id:06d>.<suffix>`` (image of frame
     id ``i`` is :func:`pixels` ``(i)``) and ``gt_traj.txt`` lines ``id tx ty tz qx qy qz qw``
     for ``groundtruth`` (default: every id; ``()``: no file).
@@ -267,6 +320,9 @@ def write_tanks(root: Path, ids: tuple[int, ...] = (1, 2, 3, 5), *, suffix: str 
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     rows = np.concatenate([rng.normal(size=(len(gt_ids), 3)), q], axis=1)
     if gt_ids:
-        (root / "gt_traj.txt").write_text("".join(
-            f"{i} " + " ".join(f"{v:.9f}" for v in row) + "\n" for i, row in zip(gt_ids, rows)))
+        (root / "gt_traj.txt").write_text(
+            "".join(
+                f"{i} " + " ".join(f"{v:.9f}" for v in row) + "\n" for i, row in zip(gt_ids, rows)
+            )
+        )
     return rows

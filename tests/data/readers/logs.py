@@ -3,14 +3,16 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np
 from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 
 from .layouts import HEIGHT, WIDTH, pixels
@@ -66,8 +68,14 @@ def raw_image(rgb: np.ndarray, encoding: str, stamp: int, padding: int = 0) -> B
         rows = np.ascontiguousarray(data).reshape(rgb.shape[0], -1)
         rows = np.concatenate([rows, np.zeros((rows.shape[0], padding), np.uint8)], axis=1)
         return store.types["sensor_msgs/msg/Image"](
-            header=_header(store, stamp), height=rgb.shape[0], width=rgb.shape[1],
-            encoding=encoding, is_bigendian=0, step=rows.shape[1], data=rows.ravel())
+            header=_header(store, stamp),
+            height=rgb.shape[0],
+            width=rgb.shape[1],
+            encoding=encoding,
+            is_bigendian=0,
+            step=rows.shape[1],
+            data=rows.ravel(),
+        )
 
     return build
 
@@ -80,15 +88,19 @@ def compressed_image(rgb: np.ndarray, fmt: str, stamp: int) -> Build:
 
     def build(store: Any) -> Any:
         return store.types["sensor_msgs/msg/CompressedImage"](
-            header=_header(store, stamp), format=fmt, data=encoded.ravel())
+            header=_header(store, stamp), format=fmt, data=encoded.ravel()
+        )
 
     return build
 
 
-def camera_info(calib: tuple[float, float, float, float] = CALIB,
-                distortion: tuple[float, ...] = (), model: str = "plumb_bob",
-                size: tuple[int, int] = (WIDTH, HEIGHT),
-                P: tuple[float, float, float, float] | None = None) -> Build:
+def camera_info(
+    calib: tuple[float, float, float, float] = CALIB,
+    distortion: tuple[float, ...] = (),
+    model: str = "plumb_bob",
+    size: tuple[int, int] = (WIDTH, HEIGHT),
+    P: tuple[float, float, float, float] | None = None,
+) -> Build:
     """A CameraInfo message (ROS 1 field names K D R P, ROS 2 k d r p)."""
     fx, fy, cx, cy = calib
     px, py, pcx, pcy = P if P is not None else calib
@@ -97,39 +109,61 @@ def camera_info(calib: tuple[float, float, float, float] = CALIB,
         T = store.types
         names = [name for name, _ in store.fielddefs["sensor_msgs/msg/CameraInfo"][1]]
         upper = "K" in names
-        values = {"k": np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], dtype=np.float64),
-                  "d": np.array(distortion, dtype=np.float64),
-                  "r": np.eye(3).ravel(),
-                  "p": np.array([px, 0, pcx, 0, 0, py, pcy, 0, 0, 0, 1, 0], dtype=np.float64)}
-        roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
-                                                    do_rectify=False)
+        values = {
+            "k": np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], dtype=np.float64),
+            "d": np.array(distortion, dtype=np.float64),
+            "r": np.eye(3).ravel(),
+            "p": np.array([px, 0, pcx, 0, 0, py, pcy, 0, 0, 0, 1, 0], dtype=np.float64),
+        }
+        roi = T["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        )
         return T["sensor_msgs/msg/CameraInfo"](
-            header=_header(store, FIRST_STAMP_NS), height=size[1], width=size[0],
-            distortion_model=model, binning_x=0, binning_y=0, roi=roi,
-            **{(k.upper() if upper else k): v for k, v in values.items()})
+            header=_header(store, FIRST_STAMP_NS),
+            height=size[1],
+            width=size[0],
+            distortion_model=model,
+            binning_x=0,
+            binning_y=0,
+            roi=roi,
+            **{(k.upper() if upper else k): v for k, v in values.items()},
+        )
 
     return build
 
 
-def image_stream(topic: str, n: int, encoding: str = "rgb8", start: int = 0,
-                 compressed: str = "") -> list[Message]:
+def image_stream(
+    topic: str, n: int, encoding: str = "rgb8", start: int = 0, compressed: str = ""
+) -> list[Message]:
     """``n`` frames of :func:`~.layouts.pixels` (``start`` on) on ``topic``, raw in
     ``encoding`` or, with ``compressed`` (``png``, ``jpeg``), as CompressedImage."""
     messages = []
     for i in range(start, start + n):
         stamp = stamp_ns(i)
         if compressed:
-            messages.append(Message(topic, "sensor_msgs/msg/CompressedImage",
-                                    stamp + LOG_DELAY_NS, compressed_image(pixels(i), compressed,
-                                                                           stamp)))
+            messages.append(
+                Message(
+                    topic,
+                    "sensor_msgs/msg/CompressedImage",
+                    stamp + LOG_DELAY_NS,
+                    compressed_image(pixels(i), compressed, stamp),
+                )
+            )
         else:
-            messages.append(Message(topic, "sensor_msgs/msg/Image", stamp + LOG_DELAY_NS,
-                                    raw_image(pixels(i), encoding, stamp)))
+            messages.append(
+                Message(
+                    topic,
+                    "sensor_msgs/msg/Image",
+                    stamp + LOG_DELAY_NS,
+                    raw_image(pixels(i), encoding, stamp),
+                )
+            )
     return messages
 
 
-def write_log(path: Path, kind: str, messages: list[Message],
-              empty_topics: tuple[tuple[str, str], ...] = ()) -> Path:
+def write_log(
+    path: Path, kind: str, messages: list[Message], empty_topics: tuple[tuple[str, str], ...] = ()
+) -> Path:
     """Write ``messages`` (in log-time order) as a ``kind`` log at ``path`` (a ``.bag`` file
     for ``ros1``, a bag folder otherwise); ``empty_topics`` ``(topic, type)`` get a
     connection and no message. Returns ``path``."""
@@ -147,8 +181,11 @@ def write_log(path: Path, kind: str, messages: list[Message],
             if topic not in connections:
                 connections[topic] = writer.add_connection(topic, msgtype, typestore=store)
         for message in sorted(messages, key=lambda m: m.log_time):
-            writer.write(connections[message.topic], message.log_time,
-                         serialize(message.build(store), message.msgtype))
+            writer.write(
+                connections[message.topic],
+                message.log_time,
+                serialize(message.build(store), message.msgtype),
+            )
     return path
 
 

@@ -70,8 +70,9 @@ class ScriptedCapture:
         self.released = True
 
 
-def scripted(n: int | None = None, max_frames: int | None = None) -> tuple[CameraInput,
-                                                                           ScriptedCapture]:
+def scripted(
+    n: int | None = None, max_frames: int | None = None
+) -> tuple[CameraInput, ScriptedCapture]:
     """A :class:`CameraInput` over a :class:`ScriptedCapture` whose first frame is 0."""
     capture = ScriptedCapture(n)
     first = np.zeros((HEIGHT, WIDTH, 3), np.uint8)
@@ -100,8 +101,10 @@ def test_a_busy_consumer_gets_the_newest_frame_and_the_others_are_counted():
     assert camera.take() is True and camera.load_frame(2).image[0, 0, 0] == 9
     assert camera.take() is None  # ended
     report = camera.stop()
-    assert report == ("scripted: 3 frames processed, 7 dropped while SLAM was busy (queue of "
-                      "one, the newest kept), 10 read")
+    assert report == (
+        "scripted: 3 frames processed, 7 dropped while SLAM was busy (queue of "
+        "one, the newest kept), 10 read"
+    )
     assert capture.released and camera.stop() == report  # once
     with pytest.raises(IndexError, match="frame 1 is not the one taken last"):
         camera.load_frame(1)
@@ -187,11 +190,19 @@ def test_sources_and_what_is_refused(tmp_path):
     assert parse_source("rtsp://10.0.0.2:554/live").device == "rtsp://10.0.0.2:554/live"
     assert is_stream_url("HTTP://cam/video.mjpg") and is_stream_url(str(Path("rtsp://h/x")))
     assert not is_stream_url("/data/rtsp/x.avi") and not is_stream_url("C:/videos/x.avi")
-    input_error("--camera cam0: expected a device index (0), a stream URL (rtsp://, rtsps://, "
-                "rtmp://, http://...) or a video file", parse_source, "cam0")
+    input_error(
+        "--camera cam0: expected a device index (0), a stream URL (rtsp://, rtsps://, "
+        "rtmp://, http://...) or a video file",
+        parse_source,
+        "cam0",
+    )
     input_error("--max-frames must be at least 1, got 0", parse_source, "0", max_frames=0)
-    input_error("camera 99: cannot open (no such device, or it is in use)", open_camera,
-                CameraSource(99))
+    input_error(
+        "camera 99: cannot open (no such device, or it is in use)", open_camera, CameraSource(99)
+    )
     (tmp_path / "noise.avi").write_bytes(b"not a video")
-    input_error("noise.avi: cannot open (unreachable, or not a stream OpenCV can decode)",
-                open_camera, parse_source(str(tmp_path / "noise.avi")))
+    input_error(
+        "noise.avi: cannot open (unreachable, or not a stream OpenCV can decode)",
+        open_camera,
+        parse_source(str(tmp_path / "noise.avi")),
+    )

@@ -12,8 +12,15 @@ from scipy.spatial.transform import Rotation
 from como3r.data.agent import open_agent
 from como3r.data.readers import read_ground_truth
 
-from .layouts import (EUROC_CALIB, EUROC_T_BS, euroc_sensor_yaml, input_error, pixels,
-                      pose_matrices, write_euroc)
+from .layouts import (
+    EUROC_CALIB,
+    EUROC_T_BS,
+    euroc_sensor_yaml,
+    input_error,
+    pixels,
+    pose_matrices,
+    write_euroc,
+)
 
 
 def _body_matrices(rows: np.ndarray) -> np.ndarray:
@@ -60,8 +67,9 @@ def test_ground_truth_is_the_body_pose_composed_with_T_BS(tmp_path):
 def test_identity_T_BS_gives_the_body_trajectory(tmp_path):
     info = write_euroc(tmp_path / "seq", n=2, T_BS=np.eye(4))
     _, trajectory = read_ground_truth(tmp_path / "seq")
-    np.testing.assert_allclose(pose_matrices(trajectory.T_WC), _body_matrices(info["gt"]),
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        pose_matrices(trajectory.T_WC), _body_matrices(info["gt"]), atol=1e-6
+    )
 
 
 def test_undistortion_moves_a_known_point_back(tmp_path):
@@ -72,14 +80,20 @@ def test_undistortion_moves_a_known_point_back(tmp_path):
     target = np.array([56.0, 42.0])
     normalised = np.array([[(target[0] - cx) / fx, (target[1] - cy) / fy, 1.0]])
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
-    distorted = cv2.projectPoints(normalised, np.zeros(3), np.zeros(3), K,
-                                  np.array(distortion))[0].reshape(2)
+    distorted = cv2.projectPoints(normalised, np.zeros(3), np.zeros(3), K, np.array(distortion))[
+        0
+    ].reshape(2)
     assert np.linalg.norm(distorted - target) > 2.0  # the lens moves it by pixels
 
     v, u = np.mgrid[0:48, 0:64]
-    blob = 250 * np.exp(-((u - distorted[0]) ** 2 + (v - distorted[1]) ** 2) / (2 * 1.5 ** 2))
-    write_euroc(tmp_path / "seq", images=[blob.astype(np.uint8)] * 2, calib=calib,
-                distortion=distortion, resolution=(64, 48))
+    blob = 250 * np.exp(-((u - distorted[0]) ** 2 + (v - distorted[1]) ** 2) / (2 * 1.5**2))
+    write_euroc(
+        tmp_path / "seq",
+        images=[blob.astype(np.uint8)] * 2,
+        calib=calib,
+        distortion=distortion,
+        resolution=(64, 48),
+    )
     agent = open_agent(tmp_path / "seq")
     assert agent.calib == calib  # the same K before and after undistortion
     image = agent.load_frame(1).image[..., 0].astype(np.float64)
@@ -96,8 +110,11 @@ def test_without_ground_truth(tmp_path):
     write_euroc(tmp_path / "seq", n=2, groundtruth=False)
     agent = open_agent(tmp_path / "seq")
     assert agent.groundtruth is None and not agent.has_gt_pose.any()
-    input_error("EuRoC sequence has no mav0/state_groundtruth_estimate0/data.csv",
-                read_ground_truth, tmp_path / "seq")
+    input_error(
+        "EuRoC sequence has no mav0/state_groundtruth_estimate0/data.csv",
+        read_ground_truth,
+        tmp_path / "seq",
+    )
 
 
 def test_frames_far_from_ground_truth_have_none(tmp_path):
@@ -118,24 +135,48 @@ def _replace(path, old: str, new: str) -> None:
     path.write_text(text.replace(old, new, 1))
 
 
-@pytest.mark.parametrize("old, new, fragment", [
-    ("intrinsics: [30.0, 31.0, 15.5, 11.5]", "intrinsics: [30.0, 31.0, 15.5]",
-     "sensor.yaml:15: expected 4 finite numbers (intrinsics: fu fv cu cv), got 3"),
-    ("intrinsics: [30.0, 31.0, 15.5, 11.5]", "intrinsics: [30.0, x, 15.5, 11.5]",
-     "sensor.yaml:15: expected 4 numbers (intrinsics: fu fv cu cv), found text"),
-    ("intrinsics: [30.0, 31.0, 15.5, 11.5]", "intrinsics: [-30.0, 31.0, 15.5, 11.5]",
-     "sensor.yaml:15: focal lengths must be positive"),
-    ("intrinsics: [30.0, 31.0, 15.5, 11.5] #fu, fv, cu, cv\n", "",
-     "sensor.yaml: no 'intrinsics' entry"),
-    ("radial-tangential", "equidistant",
-     "sensor.yaml:16: distortion_model 'equidistant' is not supported (only radial-tangential)"),
-    ("distortion_coefficients: [0.0, 0.0, 0.0, 0.0]", "distortion_coefficients: [0.1]",
-     "expected 4 finite numbers (distortion_coefficients: k1 k2 p1 p2 [k3]), got 1"),
-    ("data: [0.01", "data: [0.5", "sensor.yaml:6: T_BS: not a rigid camera-to-body transform"),
-    ("  rows: 4\n", "  rows: [4\n", "sensor.yaml:9: not valid YAML"),
-    ("resolution: [32, 24]", "resolution: [752, 480]",
-     "sensor.yaml: resolution [752, 480] but the images are 32x24"),
-])
+@pytest.mark.parametrize(
+    "old, new, fragment",
+    [
+        (
+            "intrinsics: [30.0, 31.0, 15.5, 11.5]",
+            "intrinsics: [30.0, 31.0, 15.5]",
+            "sensor.yaml:15: expected 4 finite numbers (intrinsics: fu fv cu cv), got 3",
+        ),
+        (
+            "intrinsics: [30.0, 31.0, 15.5, 11.5]",
+            "intrinsics: [30.0, x, 15.5, 11.5]",
+            "sensor.yaml:15: expected 4 numbers (intrinsics: fu fv cu cv), found text",
+        ),
+        (
+            "intrinsics: [30.0, 31.0, 15.5, 11.5]",
+            "intrinsics: [-30.0, 31.0, 15.5, 11.5]",
+            "sensor.yaml:15: focal lengths must be positive",
+        ),
+        (
+            "intrinsics: [30.0, 31.0, 15.5, 11.5] #fu, fv, cu, cv\n",
+            "",
+            "sensor.yaml: no 'intrinsics' entry",
+        ),
+        (
+            "radial-tangential",
+            "equidistant",
+            "sensor.yaml:16: distortion_model 'equidistant' is not supported (only radial-tangential)",
+        ),
+        (
+            "distortion_coefficients: [0.0, 0.0, 0.0, 0.0]",
+            "distortion_coefficients: [0.1]",
+            "expected 4 finite numbers (distortion_coefficients: k1 k2 p1 p2 [k3]), got 1",
+        ),
+        ("data: [0.01", "data: [0.5", "sensor.yaml:6: T_BS: not a rigid camera-to-body transform"),
+        ("  rows: 4\n", "  rows: [4\n", "sensor.yaml:9: not valid YAML"),
+        (
+            "resolution: [32, 24]",
+            "resolution: [752, 480]",
+            "sensor.yaml: resolution [752, 480] but the images are 32x24",
+        ),
+    ],
+)
 def test_malformed_sensor_yaml(tmp_path, old, new, fragment):
     write_euroc(tmp_path / "seq", n=2)
     _replace(tmp_path / "seq" / "mav0" / "cam0" / "sensor.yaml", old, new)
@@ -169,13 +210,18 @@ def test_listed_image_missing(tmp_path):
     input_error(f"{info['ns'][1]}.png: missing (listed in", open_agent, tmp_path / "seq")
 
 
-@pytest.mark.parametrize("line, fragment", [
-    ("1403636579743555584,1.0,2.0", "data.csv:2: expected at least 8 comma-separated numbers"),
-    ("1403636579743555584,1,2,3,0.5,0.5,0.5,0.1", "data.csv:2: quaternion q_RS norm 0.87"),
-    ("1403636579743555584,1,2,nan,1,0,0,0", "data.csv:2: expected 8 finite numbers"),
-    ("1403636579743555584,1,2,3,1,0,0,0\n1403636579743555584,1,2,3,1,0,0,0",
-     "data.csv:3: timestamps are not strictly increasing"),
-])
+@pytest.mark.parametrize(
+    "line, fragment",
+    [
+        ("1403636579743555584,1.0,2.0", "data.csv:2: expected at least 8 comma-separated numbers"),
+        ("1403636579743555584,1,2,3,0.5,0.5,0.5,0.1", "data.csv:2: quaternion q_RS norm 0.87"),
+        ("1403636579743555584,1,2,nan,1,0,0,0", "data.csv:2: expected 8 finite numbers"),
+        (
+            "1403636579743555584,1,2,3,1,0,0,0\n1403636579743555584,1,2,3,1,0,0,0",
+            "data.csv:3: timestamps are not strictly increasing",
+        ),
+    ],
+)
 def test_malformed_ground_truth(tmp_path, line, fragment):
     write_euroc(tmp_path / "seq", n=2)
     gt = tmp_path / "seq" / "mav0" / "state_groundtruth_estimate0" / "data.csv"

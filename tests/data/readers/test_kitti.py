@@ -4,8 +4,6 @@ download (image_0, P0, cam0's poses as they are), synthetic and the real excerpt
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
@@ -13,8 +11,8 @@ import torch
 from como3r.data.agent import open_agent
 from como3r.data.readers import read_ground_truth
 
-from .layouts import KITTI_P2, input_error, pixels, pose_matrices, write_kitti
 from ..shared_data import SHARED_DATA
+from .layouts import KITTI_P2, input_error, pixels, pose_matrices, write_kitti
 
 KITTI_GREY_REAL = SHARED_DATA / "kitti_odometry_00_gray_60/dataset/sequences/00"
 
@@ -45,8 +43,9 @@ def test_ground_truth_is_cam0_moved_to_image_2(tmp_path):
     M = pose_matrices(trajectory.T_WC)
     np.testing.assert_allclose(M, expected, atol=1e-5)
     np.testing.assert_allclose(M[:, :3, :3], info["cam0"][:, :3, :3], atol=1e-5)
-    np.testing.assert_allclose(np.linalg.norm(M[:, :3, 3] - info["cam0"][:, :3, 3], axis=1),
-                               np.linalg.norm(t2), atol=1e-5)
+    np.testing.assert_allclose(
+        np.linalg.norm(M[:, :3, 3] - info["cam0"][:, :3, 3], axis=1), np.linalg.norm(t2), atol=1e-5
+    )
     np.testing.assert_allclose(pose_matrices(open_agent(info["sequence"]).groundtruth.T_WC), M)
 
 
@@ -65,9 +64,13 @@ def test_a_test_sequence_without_poses(tmp_path):
     info = write_kitti(tmp_path / "dataset", name="11", n=2, poses=False)
     agent = open_agent(info["sequence"])
     assert agent.groundtruth is None and not agent.has_gt_pose.any()
-    input_error(f"no ground truth for KITTI sequence 11: expected "
-                f"{tmp_path / 'dataset' / 'poses' / '11.txt'} (KITTI publishes poses for "
-                "sequences 00-10 only)", read_ground_truth, info["sequence"])
+    input_error(
+        f"no ground truth for KITTI sequence 11: expected "
+        f"{tmp_path / 'dataset' / 'poses' / '11.txt'} (KITTI publishes poses for "
+        "sequences 00-10 only)",
+        read_ground_truth,
+        info["sequence"],
+    )
 
 
 def test_the_grey_download_is_read_from_image_0(tmp_path):
@@ -97,12 +100,16 @@ def test_colour_is_taken_first_when_both_downloads_are_there(tmp_path):
 def test_a_grey_sequence_without_p0_names_it(tmp_path):
     info = write_kitti(tmp_path / "dataset", n=2, folders=("image_0",))
     _edit_line(info["sequence"] / "calib.txt", 1, None)
-    input_error("calib.txt: no 'P0:' line (the left grey camera's 3x4 projection matrix)",
-                open_agent, info["sequence"])
+    input_error(
+        "calib.txt: no 'P0:' line (the left grey camera's 3x4 projection matrix)",
+        open_agent,
+        info["sequence"],
+    )
 
 
-@pytest.mark.skipif(not KITTI_GREY_REAL.is_dir(),
-                    reason=f"KITTI grey excerpt not found at {KITTI_GREY_REAL}")
+@pytest.mark.skipif(
+    not KITTI_GREY_REAL.is_dir(), reason=f"KITTI grey excerpt not found at {KITTI_GREY_REAL}"
+)
 def test_the_real_grey_excerpt():
     """Sequence 00's first 60 frames as data_odometry_gray.zip extracts them: 1241x376 grey,
     P0, the poses file's rows as the frames' poses."""
@@ -132,24 +139,33 @@ def _edit_line(path, line_no: int, text: str | None) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-@pytest.mark.parametrize("line_no, text, fragment", [
-    (2, "0.1 0.2", "times.txt:2: expected one timestamp, got 2 values"),
-    (3, "abc", "times.txt:3: not a timestamp: 'abc'"),
-    (3, "0.01", "times.txt:3: timestamps are not strictly increasing"),
-    (4, None, "image_2/000003.png: frame 3 has no line in"),
-])
+@pytest.mark.parametrize(
+    "line_no, text, fragment",
+    [
+        (2, "0.1 0.2", "times.txt:2: expected one timestamp, got 2 values"),
+        (3, "abc", "times.txt:3: not a timestamp: 'abc'"),
+        (3, "0.01", "times.txt:3: timestamps are not strictly increasing"),
+        (4, None, "image_2/000003.png: frame 3 has no line in"),
+    ],
+)
 def test_malformed_times(tmp_path, line_no, text, fragment):
     info = write_kitti(tmp_path / "dataset", n=4)
     _edit_line(info["sequence"] / "times.txt", line_no, text)
     input_error(fragment, open_agent, info["sequence"])
 
 
-@pytest.mark.parametrize("line_no, text, fragment", [
-    (3, None, "calib.txt: no 'P2:' line"),
-    (3, "P2: 1 0 2 0 0 1 2", "calib.txt:3: expected 12 finite numbers (P2: 3x4 projection "
-                           "matrix), got 7"),
-    (3, "P2: 700 0 600 0 0 700 180 0 0 0 2 0", "calib.txt:3: P2 is not a projection matrix"),
-])
+@pytest.mark.parametrize(
+    "line_no, text, fragment",
+    [
+        (3, None, "calib.txt: no 'P2:' line"),
+        (
+            3,
+            "P2: 1 0 2 0 0 1 2",
+            "calib.txt:3: expected 12 finite numbers (P2: 3x4 projection matrix), got 7",
+        ),
+        (3, "P2: 700 0 600 0 0 700 180 0 0 0 2 0", "calib.txt:3: P2 is not a projection matrix"),
+    ],
+)
 def test_malformed_calib(tmp_path, line_no, text, fragment):
     info = write_kitti(tmp_path / "dataset", n=2)
     _edit_line(info["sequence"] / "calib.txt", line_no, text)
@@ -157,13 +173,19 @@ def test_malformed_calib(tmp_path, line_no, text, fragment):
     input_error(fragment, read_ground_truth, info["sequence"])
 
 
-@pytest.mark.parametrize("line_no, text, fragment", [
-    (2, "1 0 0 0 0 1 0 0 0 0 1", "05.txt:2: expected 12 finite numbers (3x4 camera-to-world "
-                              "matrix, row-major), got 11"),
-    (2, "1 0 0 0 0 1 0 0 0 0 1 x", "05.txt:2: expected 12 numbers"),
-    (3, "1.2 0 0 0 0 1 0 0 0 0 1 0", "05.txt:3: not a rigid camera-to-world transform"),
-    (3, None, "05.txt: 2 poses for 3 lines of times.txt; expected one per frame"),
-])
+@pytest.mark.parametrize(
+    "line_no, text, fragment",
+    [
+        (
+            2,
+            "1 0 0 0 0 1 0 0 0 0 1",
+            "05.txt:2: expected 12 finite numbers (3x4 camera-to-world matrix, row-major), got 11",
+        ),
+        (2, "1 0 0 0 0 1 0 0 0 0 1 x", "05.txt:2: expected 12 numbers"),
+        (3, "1.2 0 0 0 0 1 0 0 0 0 1 0", "05.txt:3: not a rigid camera-to-world transform"),
+        (3, None, "05.txt: 2 poses for 3 lines of times.txt; expected one per frame"),
+    ],
+)
 def test_malformed_poses(tmp_path, line_no, text, fragment):
     info = write_kitti(tmp_path / "dataset", n=3)
     _edit_line(tmp_path / "dataset" / "poses" / "05.txt", line_no, text)
@@ -175,20 +197,25 @@ def test_images_not_named_by_frame_number(tmp_path):
     info = write_kitti(tmp_path / "dataset", n=2)
     images = info["sequence"] / "image_2"
     (images / "000001.png").rename(images / "x1.png")
-    input_error("image_2/x1.png: not named by its frame number (expected e.g. 000000.png)",
-                open_agent, info["sequence"])
+    input_error(
+        "image_2/x1.png: not named by its frame number (expected e.g. 000000.png)",
+        open_agent,
+        info["sequence"],
+    )
     (images / "x1.png").rename(images / "1.png")
     assert open_agent(info["sequence"]).stems == ("000000", "1")
     (images / "0001.png").write_bytes((images / "1.png").read_bytes())
-    input_error("image_2/1.png: frame 1 has two images (also 0001.png)", open_agent,
-                info["sequence"])
+    input_error(
+        "image_2/1.png: frame 1 has two images (also 0001.png)", open_agent, info["sequence"]
+    )
 
 
 def test_missing_times_or_calib(tmp_path):
     info = write_kitti(tmp_path / "dataset", n=2)
     (info["sequence"] / "calib.txt").unlink()
-    input_error("calib.txt: missing (calibration of the KITTI sequence)", open_agent,
-                info["sequence"])
+    input_error(
+        "calib.txt: missing (calibration of the KITTI sequence)", open_agent, info["sequence"]
+    )
     (info["sequence"] / "image_2" / "000000.png").unlink()
     (info["sequence"] / "image_2" / "000001.png").unlink()
     input_error("image_2: no images", open_agent, info["sequence"])

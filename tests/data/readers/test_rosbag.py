@@ -13,8 +13,18 @@ from como3r.data.readers.undistort import undistort
 from como3r.data.split import split_sequence
 
 from .layouts import HEIGHT, WIDTH, input_error, pixels, write_7scenes
-from .logs import (CALIB, KINDS, LOG_DELAY_NS, Message, camera_info, image_stream, log_path,
-                   raw_image, stamp_ns, write_log)
+from .logs import (
+    CALIB,
+    KINDS,
+    LOG_DELAY_NS,
+    Message,
+    camera_info,
+    image_stream,
+    log_path,
+    raw_image,
+    stamp_ns,
+    write_log,
+)
 
 TOPIC = "/camera/image_raw"
 
@@ -34,8 +44,9 @@ def test_raw_frames_and_stamps_round_trip(tmp_path, kind, encoding):
     assert agent.name == "log" and agent.image_size == (WIDTH, HEIGHT)
     assert agent.calib is None and agent.groundtruth is None and not agent.has_depth
     assert not agent.frames_are_files
-    np.testing.assert_allclose(agent.timestamps, [stamp_ns(i) * 1e-9 for i in range(4)],
-                               rtol=0, atol=1e-9)  # the header stamps, not the log times
+    np.testing.assert_allclose(
+        agent.timestamps, [stamp_ns(i) * 1e-9 for i in range(4)], rtol=0, atol=1e-9
+    )  # the header stamps, not the log times
     assert agent.stems == tuple(str(stamp_ns(i)) for i in range(4))
     frames = list(agent.frames())
     assert [f.index for f in frames] == [0, 1, 2, 3]
@@ -48,8 +59,15 @@ def test_raw_frames_and_stamps_round_trip(tmp_path, kind, encoding):
 
 
 def test_padded_rows_and_a_path_inside_the_bag_folder(tmp_path):
-    messages = [Message(TOPIC, "sensor_msgs/msg/Image", stamp_ns(i),
-                        raw_image(pixels(i), "bgr8", stamp_ns(i), padding=5)) for i in range(2)]
+    messages = [
+        Message(
+            TOPIC,
+            "sensor_msgs/msg/Image",
+            stamp_ns(i),
+            raw_image(pixels(i), "bgr8", stamp_ns(i), padding=5),
+        )
+        for i in range(2)
+    ]
     path = write_log(tmp_path / "log", "sqlite3", messages)
     storage = next(path.glob("*.db3"))
     agent = open_agent(storage)  # the .db3 file opens its bag folder
@@ -59,10 +77,12 @@ def test_padded_rows_and_a_path_inside_the_bag_folder(tmp_path):
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_compressed_png_and_jpeg(tmp_path, kind):
-    path = write_log(log_path(tmp_path, kind), kind,
-                     image_stream("/cam/image_raw/compressed", 3, compressed="png")
-                     + image_stream("/jpeg/image/compressed", 3, compressed="rgb8; jpeg "
-                                                                            "compressed bgr8"))
+    path = write_log(
+        log_path(tmp_path, kind),
+        kind,
+        image_stream("/cam/image_raw/compressed", 3, compressed="png")
+        + image_stream("/jpeg/image/compressed", 3, compressed="rgb8; jpeg compressed bgr8"),
+    )
     agent = open_agent(path, topic="/cam/image_raw/compressed")
     assert agent.image_size == (WIDTH, HEIGHT)
     for i, frame in enumerate(agent.frames()):  # PNG is lossless
@@ -75,8 +95,9 @@ def test_compressed_png_and_jpeg(tmp_path, kind):
 
 def test_a_zero_stamp_takes_the_log_time(tmp_path):
     messages = image_stream(TOPIC, 3)
-    zero = Message(TOPIC, "sensor_msgs/msg/Image", messages[1].log_time,
-                   raw_image(pixels(1), "rgb8", 0))
+    zero = Message(
+        TOPIC, "sensor_msgs/msg/Image", messages[1].log_time, raw_image(pixels(1), "rgb8", 0)
+    )
     path = write_log(tmp_path / "log", "sqlite3", [messages[0], zero, messages[2]])
     stamps = open_agent(path).timestamps
     assert stamps[0] == stamp_ns(0) * 1e-9 and stamps[2] == stamp_ns(2) * 1e-9
@@ -85,13 +106,20 @@ def test_a_zero_stamp_takes_the_log_time(tmp_path):
 
 @pytest.mark.parametrize("kind", ["ros1", "mcap"])
 def test_several_image_topics_need_topic(tmp_path, kind):
-    path = write_log(log_path(tmp_path, kind), kind,
-                     image_stream("/left/image_raw", 2)
-                     + image_stream("/right/image_raw", 3, start=5)
-                     + [Message("/imu", "sensor_msgs/msg/CameraInfo", 1, camera_info())])
-    message = input_error("2 image topics, choose one with --topic: /left/image_raw "
-                          "(sensor_msgs/msg/Image, 2 messages), /right/image_raw "
-                          "(sensor_msgs/msg/Image, 3 messages)", open_agent, path)
+    path = write_log(
+        log_path(tmp_path, kind),
+        kind,
+        image_stream("/left/image_raw", 2)
+        + image_stream("/right/image_raw", 3, start=5)
+        + [Message("/imu", "sensor_msgs/msg/CameraInfo", 1, camera_info())],
+    )
+    message = input_error(
+        "2 image topics, choose one with --topic: /left/image_raw "
+        "(sensor_msgs/msg/Image, 2 messages), /right/image_raw "
+        "(sensor_msgs/msg/Image, 3 messages)",
+        open_agent,
+        path,
+    )
     assert "/imu" not in message
     right = open_agent(path, topic="/right/image_raw")
     assert right.num_frames == 3
@@ -100,26 +128,45 @@ def test_several_image_topics_need_topic(tmp_path, kind):
 
 
 def test_topic_errors(tmp_path):
-    path = write_log(tmp_path / "log.bag", "ros1",
-                     image_stream(TOPIC, 2) + [Message("/info", "sensor_msgs/msg/CameraInfo", 1,
-                                                       camera_info())],
-                     empty_topics=(("/empty/image", "sensor_msgs/msg/Image"),))
-    input_error(f"no topic '/nope'; image topics: /camera/image_raw (sensor_msgs/msg/Image, "
-                "2 messages), /empty/image (sensor_msgs/msg/Image, 0 messages)",
-                open_agent, path, topic="/nope")
-    input_error("topic /info is sensor_msgs/msg/CameraInfo, not an image topic", open_agent,
-                path, topic="/info")
+    path = write_log(
+        tmp_path / "log.bag",
+        "ros1",
+        image_stream(TOPIC, 2) + [Message("/info", "sensor_msgs/msg/CameraInfo", 1, camera_info())],
+        empty_topics=(("/empty/image", "sensor_msgs/msg/Image"),),
+    )
+    input_error(
+        "no topic '/nope'; image topics: /camera/image_raw (sensor_msgs/msg/Image, "
+        "2 messages), /empty/image (sensor_msgs/msg/Image, 0 messages)",
+        open_agent,
+        path,
+        topic="/nope",
+    )
+    input_error(
+        "topic /info is sensor_msgs/msg/CameraInfo, not an image topic",
+        open_agent,
+        path,
+        topic="/info",
+    )
     input_error("topic /empty/image has no messages", open_agent, path, topic="/empty/image")
-    only_info = write_log(tmp_path / "info.bag", "ros1",
-                          [Message("/info", "sensor_msgs/msg/CameraInfo", 1, camera_info())])
-    input_error("no image topic (sensor_msgs/msg/Image or sensor_msgs/msg/CompressedImage); "
-                "topics: /info", open_agent, only_info)
+    only_info = write_log(
+        tmp_path / "info.bag",
+        "ros1",
+        [Message("/info", "sensor_msgs/msg/CameraInfo", 1, camera_info())],
+    )
+    input_error(
+        "no image topic (sensor_msgs/msg/Image or sensor_msgs/msg/CompressedImage); topics: /info",
+        open_agent,
+        only_info,
+    )
 
 
-@pytest.mark.parametrize("encoding, fragment", [
-    ("16UC1", "encoding '16UC1' is a depth or intensity image, not a colour image"),
-    ("yuv422", "encoding 'yuv422' is not supported (supported: rgb8, bgr8, mono8"),
-])
+@pytest.mark.parametrize(
+    "encoding, fragment",
+    [
+        ("16UC1", "encoding '16UC1' is a depth or intensity image, not a colour image"),
+        ("yuv422", "encoding 'yuv422' is not supported (supported: rgb8, bgr8, mono8"),
+    ],
+)
 def test_unsupported_encodings_are_refused(tmp_path, encoding, fragment):
     path = write_log(tmp_path / "log", "sqlite3", image_stream(TOPIC, 2, encoding))
     message = input_error(fragment, open_agent, path)
@@ -128,63 +175,107 @@ def test_unsupported_encodings_are_refused(tmp_path, encoding, fragment):
 
 def test_a_later_message_of_another_encoding_or_a_depth_png_is_refused(tmp_path):
     mixed = image_stream(TOPIC, 2) + image_stream(TOPIC, 1, "16UC1", start=2)
-    input_error(f"{TOPIC} message 2: encoding '16UC1' is a depth", open_agent,
-                write_log(tmp_path / "mixed", "sqlite3", mixed))
+    input_error(
+        f"{TOPIC} message 2: encoding '16UC1' is a depth",
+        open_agent,
+        write_log(tmp_path / "mixed", "sqlite3", mixed),
+    )
     depth = image_stream(TOPIC, 1, compressed="16UC1; compressedDepth png")
-    input_error("a compressed depth image ('16UC1; compressedDepth png')", open_agent,
-                write_log(tmp_path / "depth", "sqlite3", depth))
+    input_error(
+        "a compressed depth image ('16UC1; compressedDepth png')",
+        open_agent,
+        write_log(tmp_path / "depth", "sqlite3", depth),
+    )
 
 
 def test_stamps_must_increase_and_sizes_agree(tmp_path):
     messages = image_stream(TOPIC, 3)
-    back = Message(TOPIC, "sensor_msgs/msg/Image", messages[2].log_time,
-                   raw_image(pixels(2), "rgb8", stamp_ns(0)))
-    input_error(f"{TOPIC} stamps are not strictly increasing at message 2 (100.050000000 s "
-                "then 100.000000000 s)", open_agent,
-                write_log(tmp_path / "back", "sqlite3", [*messages[:2], back]))
-    small = Message(TOPIC, "sensor_msgs/msg/Image", messages[2].log_time,
-                    raw_image(pixels(2)[:10], "rgb8", stamp_ns(2)))
-    input_error(f"{TOPIC} holds images of sizes 32x10, 32x24", open_agent,
-                write_log(tmp_path / "sizes", "sqlite3", [*messages[:2], small]))
+    back = Message(
+        TOPIC,
+        "sensor_msgs/msg/Image",
+        messages[2].log_time,
+        raw_image(pixels(2), "rgb8", stamp_ns(0)),
+    )
+    input_error(
+        f"{TOPIC} stamps are not strictly increasing at message 2 (100.050000000 s "
+        "then 100.000000000 s)",
+        open_agent,
+        write_log(tmp_path / "back", "sqlite3", [*messages[:2], back]),
+    )
+    small = Message(
+        TOPIC,
+        "sensor_msgs/msg/Image",
+        messages[2].log_time,
+        raw_image(pixels(2)[:10], "rgb8", stamp_ns(2)),
+    )
+    input_error(
+        f"{TOPIC} holds images of sizes 32x10, 32x24",
+        open_agent,
+        write_log(tmp_path / "sizes", "sqlite3", [*messages[:2], small]),
+    )
 
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_camera_info_beside_the_topic_gives_the_intrinsics(tmp_path, kind):
     distortion = (-0.2, 0.05, 0.001, -0.002, 0.0)
-    messages = [Message("/camera/camera_info", "sensor_msgs/msg/CameraInfo", 1,
-                        camera_info(distortion=distortion)),
-                *image_stream(TOPIC, 2), *image_stream(f"{TOPIC}/compressed", 2,
-                                                       compressed="png")]
+    messages = [
+        Message(
+            "/camera/camera_info",
+            "sensor_msgs/msg/CameraInfo",
+            1,
+            camera_info(distortion=distortion),
+        ),
+        *image_stream(TOPIC, 2),
+        *image_stream(f"{TOPIC}/compressed", 2, compressed="png"),
+    ]
     path = write_log(log_path(tmp_path, kind), kind, messages)
     for topic in (TOPIC, f"{TOPIC}/compressed"):  # image_transport's topic shares it
         agent = open_agent(path, topic=topic)
         assert agent.calib == CALIB and agent.distortion == distortion
         # undistorted as EuRoC's frames are: OpenCV, the same K before and after
-        np.testing.assert_array_equal(agent.load_frame(1).image,
-                                      undistort(pixels(1), CALIB, distortion))
+        np.testing.assert_array_equal(
+            agent.load_frame(1).image, undistort(pixels(1), CALIB, distortion)
+        )
 
 
 def test_a_rectified_topic_takes_P_and_is_not_undistorted(tmp_path):
     P = (28.0, 28.5, 16.0, 12.0)
-    messages = [Message("/camera/camera_info", "sensor_msgs/msg/CameraInfo", 1,
-                        camera_info(distortion=(-0.2, 0.05, 0.0, 0.0, 0.0), P=P)),
-                *image_stream("/camera/image_rect_color", 2)]
+    messages = [
+        Message(
+            "/camera/camera_info",
+            "sensor_msgs/msg/CameraInfo",
+            1,
+            camera_info(distortion=(-0.2, 0.05, 0.0, 0.0, 0.0), P=P),
+        ),
+        *image_stream("/camera/image_rect_color", 2),
+    ]
     agent = open_agent(write_log(tmp_path / "log", "sqlite3", messages))
     assert agent.calib == P and agent.distortion == ()
     np.testing.assert_array_equal(agent.load_frame(1).image, pixels(1))
 
 
-@pytest.mark.parametrize("info, calib, fragment", [
-    (camera_info(distortion=(0.1, 0.0, 0.0, 0.0)), CALIB, None),  # plumb_bob, 4 numbers
-    (camera_info(calib=(0.0, 0.0, 0.0, 0.0)), None, None),  # an uncalibrated camera: K = 0
-    (camera_info(distortion=(0.1, 0.0, 0.0, 0.0), model="equidistant"), None,
-     "distortion_model 'equidistant' is not supported (only plumb_bob, rational_polynomial)"),
-    (camera_info(size=(64, 48)), None,
-     "the camera is 64x48, the images of /camera/image_raw are 32x24"),
-])
+@pytest.mark.parametrize(
+    "info, calib, fragment",
+    [
+        (camera_info(distortion=(0.1, 0.0, 0.0, 0.0)), CALIB, None),  # plumb_bob, 4 numbers
+        (camera_info(calib=(0.0, 0.0, 0.0, 0.0)), None, None),  # an uncalibrated camera: K = 0
+        (
+            camera_info(distortion=(0.1, 0.0, 0.0, 0.0), model="equidistant"),
+            None,
+            "distortion_model 'equidistant' is not supported (only plumb_bob, rational_polynomial)",
+        ),
+        (
+            camera_info(size=(64, 48)),
+            None,
+            "the camera is 64x48, the images of /camera/image_raw are 32x24",
+        ),
+    ],
+)
 def test_camera_info_checks(tmp_path, info, calib, fragment):
-    messages = [Message("/camera/camera_info", "sensor_msgs/msg/CameraInfo", 1, info),
-                *image_stream(TOPIC, 2)]
+    messages = [
+        Message("/camera/camera_info", "sensor_msgs/msg/CameraInfo", 1, info),
+        *image_stream(TOPIC, 2),
+    ]
     path = write_log(tmp_path / "log", "sqlite3", messages)
     if fragment is not None:
         input_error(f"{path}: /camera/camera_info: {fragment}", open_agent, path)
@@ -200,18 +291,26 @@ def test_detection_and_what_is_refused(tmp_path):
     bare = tmp_path / "bare" / "recording.mcap"
     bare.parent.mkdir()
     bare.write_bytes(next(folder.glob("*.mcap")).read_bytes())
-    input_error(f"{bare}: the rosbags library reads .mcap storage only as part of a ROS 2 bag "
-                "folder, with the metadata.yaml", open_agent, bare)
+    input_error(
+        f"{bare}: the rosbags library reads .mcap storage only as part of a ROS 2 bag "
+        "folder, with the metadata.yaml",
+        open_agent,
+        bare,
+    )
     (tmp_path / "garbage.bag").write_bytes(b"not a bag at all")
-    input_error(f"{tmp_path / 'garbage.bag'}: cannot read the ROS log", open_agent,
-                tmp_path / "garbage.bag")
+    input_error(
+        f"{tmp_path / 'garbage.bag'}: cannot read the ROS log", open_agent, tmp_path / "garbage.bag"
+    )
     input_error(f"{bag}: a ROS log holds no ground truth como3r reads", read_ground_truth, bag)
     seq = tmp_path / "seq-01"
     write_7scenes(seq, n=2)
-    input_error("--topic /x is for ROS logs; this is a 7scenes input", open_agent, seq,
-                topic="/x")
-    input_error("not a ROS log (--format rosbag): expected a ROS 1 .bag file", open_agent, seq,
-                format="rosbag")
+    input_error("--topic /x is for ROS logs; this is a 7scenes input", open_agent, seq, topic="/x")
+    input_error(
+        "not a ROS log (--format rosbag): expected a ROS 1 .bag file",
+        open_agent,
+        seq,
+        format="rosbag",
+    )
 
 
 def test_split_writes_the_decoded_frames(tmp_path):

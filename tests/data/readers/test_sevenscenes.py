@@ -12,8 +12,15 @@ from como3r.data.agent import open_agent
 from como3r.data.readers import read_ground_truth
 from como3r.data.readers.sevenscenes import DEFAULT_INTRINSICS
 
-from .layouts import (SEVEN_SCENES_REAL, depth_metres, input_error, pixels, pose_matrices,
-                      write_7scenes, write_pose)
+from .layouts import (
+    SEVEN_SCENES_REAL,
+    depth_metres,
+    input_error,
+    pixels,
+    pose_matrices,
+    write_7scenes,
+    write_pose,
+)
 
 
 @pytest.mark.parametrize("invalid", [65535, 0])
@@ -68,7 +75,8 @@ def test_frames_in_the_only_subfolder_and_intrinsics_beside_them(tmp_path):
     root = tmp_path / "excerpt"
     write_7scenes(root / "rgbd-frames", n=2)
     (root / "camera-intrinsics.txt").write_text(
-        " 5.00000000e+02\t 0.0\t 3.10000000e+02\t\n 0.0\t 5.1e+02\t 2.3e+02\t\n 0 0 1\n")
+        " 5.00000000e+02\t 0.0\t 3.10000000e+02\t\n 0.0\t 5.1e+02\t 2.3e+02\t\n 0 0 1\n"
+    )
     agent = open_agent(root)
     assert agent.num_frames == 2 and agent.name == "excerpt"
     assert agent.calib == (500.0, 510.0, 310.0, 230.0)
@@ -90,8 +98,9 @@ def test_ground_truth_for_eval(tmp_path):
 def test_a_scene_folder_of_several_sequences(tmp_path):
     write_7scenes(tmp_path / "chess" / "seq-01", n=2)
     write_7scenes(tmp_path / "chess" / "seq-02", n=2)
-    input_error("holds 2 7-Scenes sequences (seq-01, seq-02); give one", open_agent,
-           tmp_path / "chess")
+    input_error(
+        "holds 2 7-Scenes sequences (seq-01, seq-02); give one", open_agent, tmp_path / "chess"
+    )
 
 
 @pytest.mark.parametrize("kind", ["depth.png", "pose.txt"])
@@ -104,8 +113,11 @@ def test_a_frame_without_its_depth_or_pose(tmp_path, kind):
 def test_depth_without_a_colour_image(tmp_path):
     write_7scenes(tmp_path / "seq", n=3)
     (tmp_path / "seq" / "frame-000002.color.png").unlink()
-    input_error("frame-000002.depth.png: no colour image frame-000002.color.png|jpg",
-           open_agent, tmp_path / "seq")
+    input_error(
+        "frame-000002.depth.png: no colour image frame-000002.color.png|jpg",
+        open_agent,
+        tmp_path / "seq",
+    )
 
 
 def test_two_colour_images_of_one_frame(tmp_path):
@@ -126,11 +138,14 @@ def test_depth_of_another_size(tmp_path):
     input_error("frame-000001.depth.png: depth map is 7x5", open_agent, tmp_path / "seq")
 
 
-@pytest.mark.parametrize("text, fragment", [
-    ("1 0 0 0\n0 1 0 0\n0 0 1 0\n", "expected 16 finite numbers"),
-    ("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 x\n", "not a number"),
-    ("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 -1.#INF\n", "not a number"),
-])
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("1 0 0 0\n0 1 0 0\n0 0 1 0\n", "expected 16 finite numbers"),
+        ("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 x\n", "not a number"),
+        ("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 -1.#INF\n", "not a number"),
+    ],
+)
 def test_malformed_pose(tmp_path, text, fragment):
     write_7scenes(tmp_path / "seq", n=2)
     (tmp_path / "seq" / "frame-000001.pose.txt").write_text(text)
@@ -146,8 +161,9 @@ def test_pose_that_is_not_rigid(tmp_path, scale, flip):
     if flip:
         T[2, 2] = -1.0  # a reflection
     write_pose(tmp_path / "seq" / "frame-000000.pose.txt", T)
-    input_error("frame-000000.pose.txt: not a rigid camera-to-world transform", open_agent,
-           tmp_path / "seq")
+    input_error(
+        "frame-000000.pose.txt: not a rigid camera-to-world transform", open_agent, tmp_path / "seq"
+    )
 
 
 def test_bad_intrinsics_file(tmp_path):
@@ -158,8 +174,9 @@ def test_bad_intrinsics_file(tmp_path):
 
 # ------------------------------------------------------------------------ the real excerpt
 
-real = pytest.mark.skipif(not SEVEN_SCENES_REAL.is_dir(),
-                          reason=f"7-Scenes excerpt not found at {SEVEN_SCENES_REAL}")
+real = pytest.mark.skipif(
+    not SEVEN_SCENES_REAL.is_dir(), reason=f"7-Scenes excerpt not found at {SEVEN_SCENES_REAL}"
+)
 
 
 @real
@@ -180,8 +197,12 @@ def test_the_real_redkitchen_excerpt():
         invalid.append(float((depth == 0).mean()))
         assert 0.3 < float(np.median(depth[depth > 0])) < 3.0 and depth.max() < 4.0
     assert all(0.09 < share < 0.13 for share in invalid), invalid
-    raw = np.stack([np.loadtxt(p) for p in sorted(
-        (SEVEN_SCENES_REAL / "rgbd-frames").glob("frame-*.pose.txt"))])
+    raw = np.stack(
+        [
+            np.loadtxt(p)
+            for p in sorted((SEVEN_SCENES_REAL / "rgbd-frames").glob("frame-*.pose.txt"))
+        ]
+    )
     R = raw[:, :3, :3]  # the files are rigid to the README's 1.6e-4 ...
     assert np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max() < 5e-4
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=5e-4)

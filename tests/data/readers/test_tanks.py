@@ -43,8 +43,9 @@ def test_ids_are_numbers_not_names(tmp_path):
     assert agent.stems == ("frame_9", "frame_10", "frame_11")
     assert agent.load_frame(0).image.shape == (24, 32, 3)
     assert agent.groundtruth is None and not agent.has_gt_pose.any()
-    input_error("Tanks and Temples sequence has no gt_traj.txt", read_ground_truth,
-                tmp_path / "seq")
+    input_error(
+        "Tanks and Temples sequence has no gt_traj.txt", read_ground_truth, tmp_path / "seq"
+    )
 
 
 def test_frames_without_a_ground_truth_line(tmp_path):
@@ -67,13 +68,19 @@ def test_calib_txt_is_the_calibration(tmp_path):
 # ---------------------------------------------------------------------------------- bad inputs
 
 
-@pytest.mark.parametrize("line, fragment", [
-    ("2 0 0 0 0 0 0", "gt_traj.txt:2: expected 8 numbers (timestamp tx ty tz qx qy qz qw), got 7"),
-    ("2 0 0 0 0 0 0 x", "gt_traj.txt:2: not a number"),
-    ("2 0 0 0 0 0 0 0.5", "gt_traj.txt:2: quaternion norm 0.5000 is not 1"),
-    ("1 0 0 0 0 0 0 1", "gt_traj.txt:2: frame ids are not strictly increasing (1 then 1)"),
-    ("2.5 0 0 0 0 0 0 1", "gt_traj.txt:2: frame id 2.5 is not a whole number"),
-])
+@pytest.mark.parametrize(
+    "line, fragment",
+    [
+        (
+            "2 0 0 0 0 0 0",
+            "gt_traj.txt:2: expected 8 numbers (timestamp tx ty tz qx qy qz qw), got 7",
+        ),
+        ("2 0 0 0 0 0 0 x", "gt_traj.txt:2: not a number"),
+        ("2 0 0 0 0 0 0 0.5", "gt_traj.txt:2: quaternion norm 0.5000 is not 1"),
+        ("1 0 0 0 0 0 0 1", "gt_traj.txt:2: frame ids are not strictly increasing (1 then 1)"),
+        ("2.5 0 0 0 0 0 0 1", "gt_traj.txt:2: frame id 2.5 is not a whole number"),
+    ],
+)
 def test_malformed_ground_truth(tmp_path, line, fragment):
     write_tanks(tmp_path / "seq", ids=(1, 2), groundtruth=())
     (tmp_path / "seq" / "gt_traj.txt").write_text(f"1 0 0 0 0 0 0 1\n{line}\n")
@@ -84,11 +91,15 @@ def test_malformed_ground_truth(tmp_path, line, fragment):
 def test_bad_image_names(tmp_path):
     write_tanks(tmp_path / "seq", ids=(1, 2))
     Image.fromarray(pixels(0)).save(tmp_path / "seq" / "image" / "1.jpg")
-    input_error("image/1.jpg: frame 1 has two images (also 000001.png)", open_agent,
-                tmp_path / "seq")
+    input_error(
+        "image/1.jpg: frame 1 has two images (also 000001.png)", open_agent, tmp_path / "seq"
+    )
     (tmp_path / "seq" / "image" / "1.jpg").rename(tmp_path / "seq" / "image" / "cover.jpg")
-    input_error("image/cover.jpg: not named by its frame number (expected e.g. 000001.jpg)",
-                open_agent, tmp_path / "seq")
+    input_error(
+        "image/cover.jpg: not named by its frame number (expected e.g. 000001.jpg)",
+        open_agent,
+        tmp_path / "seq",
+    )
 
 
 def test_no_frames(tmp_path):
@@ -96,5 +107,6 @@ def test_no_frames(tmp_path):
     input_error("seq/image: no images", open_agent, tmp_path / "seq")
     (tmp_path / "gt").mkdir()
     (tmp_path / "gt" / "gt_traj.txt").write_text("1 0 0 0 0 0 0 1\n")
-    input_error("Tanks and Temples sequence has no image/ folder of frames", open_agent,
-                tmp_path / "gt")
+    input_error(
+        "Tanks and Temples sequence has no image/ folder of frames", open_agent, tmp_path / "gt"
+    )

@@ -36,18 +36,22 @@ def test_sequence_is_read_as_published(tmp_path):
     # ground truth: the 100 Hz sample at the frame's time (within 1 ms)
     gt_stamps, rows = written["gt"]
     row = int(np.argmin(np.abs(gt_stamps - agent.timestamps[3])))
-    torch.testing.assert_close(frame.T_WC_gt[:3], torch.from_numpy(np.round(rows[row, :3], 6)),
-                               atol=1e-6, rtol=0)
+    torch.testing.assert_close(
+        frame.T_WC_gt[:3], torch.from_numpy(np.round(rows[row, :3], 6)), atol=1e-6, rtol=0
+    )
     assert frame.T_WC_gt[7] == 1.0
 
 
-@pytest.mark.parametrize("name, calib", [
-    ("rgbd_dataset_freiburg1_xyz", (517.3, 516.5, 318.6, 255.3)),
-    ("rgbd_dataset_freiburg2_desk", (520.9, 521.0, 325.1, 249.7)),
-    ("rgbd_dataset_freiburg3_long_office_household", (535.4, 539.2, 320.1, 247.6)),
-    ("rgbd_dataset_freiburg12_x", None),
-    ("my_sequence", None),
-])
+@pytest.mark.parametrize(
+    "name, calib",
+    [
+        ("rgbd_dataset_freiburg1_xyz", (517.3, 516.5, 318.6, 255.3)),
+        ("rgbd_dataset_freiburg2_desk", (520.9, 521.0, 325.1, 249.7)),
+        ("rgbd_dataset_freiburg3_long_office_household", (535.4, 539.2, 320.1, 247.6)),
+        ("rgbd_dataset_freiburg12_x", None),
+        ("my_sequence", None),
+    ],
+)
 def test_intrinsics_from_the_folder_name(name, calib):
     assert camera_from_name(name)[0] == calib
 
@@ -101,8 +105,9 @@ def test_rgb_without_a_depth_partner_is_left_out(tmp_path, caplog):
     written = write_tum(root, n=5, drop_depth=(2,))
     agent = open_agent(root)
     assert agent.num_frames == 4
-    np.testing.assert_allclose(agent.timestamps, np.round(written["rgb"][[0, 1, 3, 4]], 6),
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        agent.timestamps, np.round(written["rgb"][[0, 1, 3, 4]], 6), atol=1e-6
+    )
     assert "1 of 5 rgb images have no depth image" in caplog.text
     assert agent.load_frame(2).depth[5, 5] == pytest.approx(depth_metres(3)[5, 5], abs=2e-4)
 
@@ -121,9 +126,11 @@ def test_associate_matches_tum_associate_py():
     first = np.sort(rng.uniform(0, 1, 40))
     second = np.sort(rng.uniform(0, 1, 35))
     # associate.py, literally: every candidate pair, greedily by difference
-    candidates = sorted((abs(a - b), i, j) for (i, a), (j, b)
-                        in itertools.product(enumerate(first), enumerate(second))
-                        if abs(a - b) < 0.02)
+    candidates = sorted(
+        (abs(a - b), i, j)
+        for (i, a), (j, b) in itertools.product(enumerate(first), enumerate(second))
+        if abs(a - b) < 0.02
+    )
     used_i, used_j, expected = set(), set(), []
     for _, i, j in candidates:
         if i not in used_i and j not in used_j:
@@ -146,7 +153,7 @@ def test_frames_outside_the_groundtruth_have_none(tmp_path):
     write_tum(root, n=3)
     gt = root / "groundtruth.txt"
     lines = gt.read_text().splitlines()
-    gt.write_text("\n".join(lines[:3] + lines[3 + 10:]) + "\n")  # first 0.1 s gone
+    gt.write_text("\n".join(lines[:3] + lines[3 + 10 :]) + "\n")  # first 0.1 s gone
     agent = open_agent(root)  # poses from +0.05 s: frames 0 and 1 (33 ms) come before them
     np.testing.assert_array_equal(agent.has_gt_pose, [False, False, True])
 
@@ -166,7 +173,9 @@ def test_listed_image_missing(tmp_path):
     root = tmp_path / NAME
     stamps = write_tum(root, n=3)["rgb"]
     (root / "rgb" / f"{stamps[1]:.6f}.png").unlink()
-    input_error(f"rgb/{stamps[1]:.6f}.png: missing (listed in {root / 'rgb.txt'}:5)", open_agent, root)
+    input_error(
+        f"rgb/{stamps[1]:.6f}.png: missing (listed in {root / 'rgb.txt'}:5)", open_agent, root
+    )
 
 
 def test_listed_depth_missing(tmp_path):
@@ -191,11 +200,14 @@ def test_depth_that_is_not_16_bit(tmp_path):
     input_error("16-bit", open_agent, root)
 
 
-@pytest.mark.parametrize("line, fragment", [
-    ("1305031102.5 rgb/a.png extra", "expected 'timestamp filename'"),
-    ("abc rgb/a.png", "not a timestamp"),
-    ("1305031101.0 rgb/a.png", "timestamps are not strictly increasing"),
-])
+@pytest.mark.parametrize(
+    "line, fragment",
+    [
+        ("1305031102.5 rgb/a.png extra", "expected 'timestamp filename'"),
+        ("abc rgb/a.png", "not a timestamp"),
+        ("1305031101.0 rgb/a.png", "timestamps are not strictly increasing"),
+    ],
+)
 def test_malformed_rgb_txt(tmp_path, line, fragment):
     root = tmp_path / NAME
     write_tum(root, n=3)
@@ -228,10 +240,15 @@ def test_malformed_groundtruth(tmp_path):
 def _associations(root, frames, depth_first=False):
     """``associations.txt`` of the given frames of a :func:`write_tum` folder, as
     ``associate.py rgb.txt depth.txt`` writes it (``depth_first``: the other way round)."""
+
     def entries(name):
-        rows = [line.split() for line in (root / name).read_text().splitlines()
-                if not line.startswith("#")]
+        rows = [
+            line.split()
+            for line in (root / name).read_text().splitlines()
+            if not line.startswith("#")
+        ]
         return [rows[i] for i in frames]
+
     pairs = zip(entries("rgb.txt"), entries("depth.txt"))
     lines = [" ".join(d + r if depth_first else r + d) for r, d in pairs]
     (root / "associations.txt").write_text("\n".join(lines) + "\n")
@@ -248,8 +265,7 @@ def test_associations_txt_gives_the_frames(tmp_path):
     full = tmp_path / "full" / NAME
     write_tum(full, n=5)
     expected = open_agent(full)
-    assert [p.name for p in agent.depth_paths] == [
-        expected.depth_paths[i].name for i in (0, 2, 3)]
+    assert [p.name for p in agent.depth_paths] == [expected.depth_paths[i].name for i in (0, 2, 3)]
     np.testing.assert_allclose(agent.timestamps, expected.timestamps[[0, 2, 3]])
     np.testing.assert_array_equal(agent.load_frame(1).depth, expected.load_frame(2).depth)
     np.testing.assert_array_equal(agent.load_frame(1).image, pixels(2))
@@ -262,12 +278,17 @@ def test_associations_txt_gives_the_frames(tmp_path):
     assert agent.has_gt_pose.all()
 
 
-@pytest.mark.parametrize("line, fragment", [
-    ("1305031102.0 rgb/a.png 1305031102.0", "associations.txt:1: expected 'rgb_timestamp "
-                                            "rgb_file depth_timestamp depth_file'"),
-    ("1305031102.0 rgb/a.png 1305031102.0 depth/a.png", "rgb/a.png: missing (listed in"),
-    ("x rgb/a.png 1305031102.0 depth/a.png", "associations.txt:1: not a timestamp: 'x'"),
-])
+@pytest.mark.parametrize(
+    "line, fragment",
+    [
+        (
+            "1305031102.0 rgb/a.png 1305031102.0",
+            "associations.txt:1: expected 'rgb_timestamp rgb_file depth_timestamp depth_file'",
+        ),
+        ("1305031102.0 rgb/a.png 1305031102.0 depth/a.png", "rgb/a.png: missing (listed in"),
+        ("x rgb/a.png 1305031102.0 depth/a.png", "associations.txt:1: not a timestamp: 'x'"),
+    ],
+)
 def test_malformed_associations(tmp_path, line, fragment):
     root = tmp_path / NAME
     write_tum(root, n=2)

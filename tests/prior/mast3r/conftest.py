@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import pytest
 import torch
 
 from como3r.prior.mast3r import MASt3RConfig, MASt3RNetwork, parse_model_string
 from como3r.prior.mast3r.testing import TINY_MODEL_STRING, official_state_dict, seeded_network
+
 
 @pytest.fixture
 def tiny_config() -> MASt3RConfig:
@@ -57,8 +58,14 @@ def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory, _tiny_state) -> Pa
     """The tiny network's checkpoint in the official format, written once (read-only use)."""
     network = network_from_state(parse_model_string(TINY_MODEL_STRING), _tiny_state)
     path = tmp_path_factory.mktemp("mast3r") / "tiny.pth"
-    torch.save({"model": official_state_dict(network), "epoch": 3,
-                "args": argparse.Namespace(model=TINY_MODEL_STRING)}, path)
+    torch.save(
+        {
+            "model": official_state_dict(network),
+            "epoch": 3,
+            "args": argparse.Namespace(model=TINY_MODEL_STRING),
+        },
+        path,
+    )
     return path
 
 

@@ -37,7 +37,8 @@ def test_argument_order_and_inf_spellings_do_not_matter():
 
 def test_class_defaults_apply_to_omitted_optional_arguments(tiny_model_string):
     text = tiny_model_string.replace(", two_confs=True", "").replace(
-        ", desc_conf_mode=('exp', 0, inf)", "")
+        ", desc_conf_mode=('exp', 0, inf)", ""
+    )
     config = parse_model_string(text)
     assert not config.two_confs
     assert config.local_channels == config.desc_dim

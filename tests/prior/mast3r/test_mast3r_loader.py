@@ -57,10 +57,12 @@ def test_checkpoint_without_args_gets_released_configuration(tiny_network, write
         load_network(path)
 
 
-def test_unknown_constructor_argument_names_file_and_argument(tiny_network, write_checkpoint,
-                                                              tiny_model_string):
-    path = write_checkpoint(tiny_network,
-                            model_string=tiny_model_string.replace(")", ", use_magic=True)"))
+def test_unknown_constructor_argument_names_file_and_argument(
+    tiny_network, write_checkpoint, tiny_model_string
+):
+    path = write_checkpoint(
+        tiny_network, model_string=tiny_model_string.replace(")", ", use_magic=True)")
+    )
     with pytest.raises(CheckpointError, match="use_magic") as error:
         read_checkpoint(path)
     assert str(path) in str(error.value)
@@ -98,8 +100,9 @@ def test_alias_that_differs_is_refused(tiny_network, write_checkpoint, make_offi
 def test_malicious_torch_save_is_refused_without_running(tiny_network, tmp_path: Path):
     marker = tmp_path / "pwned"
     path = tmp_path / "evil.pth"
-    torch.save({"model": dict(tiny_network.state_dict()),
-                "args": RunsCommand(f"touch {marker}")}, path)
+    torch.save(
+        {"model": dict(tiny_network.state_dict()), "args": RunsCommand(f"touch {marker}")}, path
+    )
     with pytest.raises(CheckpointError, match=r"refusing to load .*evil\.pth.*system"):
         read_checkpoint(path)
     assert not marker.exists()

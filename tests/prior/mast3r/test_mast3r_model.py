@@ -101,10 +101,12 @@ def test_local_features_pixel_layout(tiny_network):
     for y, x, i, j in [(0, 0, 0, 0), (1, 2, 15, 3), (0, 1, 7, 15), (1, 0, 9, 9)]:
         token = raw[y * 3 + x]
         descriptor = torch.stack([token[c * 256 + i * 16 + j] for c in range(24)])
-        torch.testing.assert_close(out.desc[0, 16 * y + i, 16 * x + j],
-                                   descriptor / descriptor.norm())
-        torch.testing.assert_close(out.desc_conf[0, 16 * y + i, 16 * x + j],
-                                   token[24 * 256 + i * 16 + j].exp())
+        torch.testing.assert_close(
+            out.desc[0, 16 * y + i, 16 * x + j], descriptor / descriptor.norm()
+        )
+        torch.testing.assert_close(
+            out.desc_conf[0, 16 * y + i, 16 * x + j], token[24 * 256 + i * 16 + j].exp()
+        )
 
 
 def _reference_dpt(dpt, layers: list[torch.Tensor], grid: tuple[int, int]) -> torch.Tensor:
@@ -116,17 +118,21 @@ def _reference_dpt(dpt, layers: list[torch.Tensor], grid: tuple[int, int]) -> to
     def fusion(block, path, skip=None):
         if skip is not None:
             path = path + rcu(block.resConfUnit1, skip)
-        up = F.interpolate(rcu(block.resConfUnit2, path), scale_factor=2, mode="bilinear",
-                           align_corners=True)
+        up = F.interpolate(
+            rcu(block.resConfUnit2, path), scale_factor=2, mode="bilinear", align_corners=True
+        )
         return block.out_conv(up)
 
-    levels = [post(tokens.transpose(1, 2).unflatten(-1, grid).contiguous())
-              for post, tokens in zip(dpt.act_postprocess, layers)]
+    levels = [
+        post(tokens.transpose(1, 2).unflatten(-1, grid).contiguous())
+        for post, tokens in zip(dpt.act_postprocess, layers)
+    ]
     scratch = dpt.scratch
     l1, l2, l3, l4 = (getattr(scratch, f"layer{k}_rn")(x) for k, x in enumerate(levels, 1))
     path = fusion(scratch.refinenet4, l4)[:, :, : l3.shape[2], : l3.shape[3]]
-    path = fusion(scratch.refinenet1, fusion(scratch.refinenet2,
-                                             fusion(scratch.refinenet3, path, l3), l2), l1)
+    path = fusion(
+        scratch.refinenet1, fusion(scratch.refinenet2, fusion(scratch.refinenet3, path, l3), l2), l1
+    )
     conv1, _, conv2, _, conv3 = dpt.head
     up = F.interpolate(conv1(path), scale_factor=2, mode="bilinear", align_corners=True)
     return conv3(F.relu(conv2(up)))
@@ -162,8 +168,16 @@ def test_postprocessing_formulas(tiny_config):
 
 
 def test_single_confidence_configuration_copies_conf():
-    config = MASt3RConfig(enc_embed_dim=32, enc_depth=1, enc_num_heads=2, dec_embed_dim=32,
-                          dec_depth=2, dec_num_heads=2, two_confs=False, conf_max=3.0)
+    config = MASt3RConfig(
+        enc_embed_dim=32,
+        enc_depth=1,
+        enc_num_heads=2,
+        dec_embed_dim=32,
+        dec_depth=2,
+        dec_num_heads=2,
+        two_confs=False,
+        conf_max=3.0,
+    )
     head = CatMlpDptHead(config)
     assert head.head_local_features.fc2.out_features == 24 * 256
     out = head.postprocess(torch.randn(1, 2, 2, 28) * 3)
@@ -179,16 +193,24 @@ def test_network_on_odd_grids_and_portrait(tiny_network, height, width):
         assert out.pts3d.shape == (1, height, width, 3)
         assert out.conf.shape == out.desc_conf.shape == (1, height, width)
         assert out.desc.shape == (1, height, width, 24)
-        assert all(t.dtype == torch.float32 and torch.isfinite(t).all()
-                   for t in (out.pts3d, out.conf, out.desc, out.desc_conf))
+        assert all(
+            t.dtype == torch.float32 and torch.isfinite(t).all()
+            for t in (out.pts3d, out.conf, out.desc, out.desc_conf)
+        )
         assert float(out.conf.min()) >= 1.0 and float(out.desc_conf.min()) > 0.0
         torch.testing.assert_close(out.desc.norm(dim=-1), torch.ones(1, height, width))
 
 
 @pytest.mark.parametrize("dec_depth", [1, 3])
 def test_other_decoder_depths_run(make_network, dec_depth):
-    config = MASt3RConfig(enc_embed_dim=32, enc_depth=1, enc_num_heads=2, dec_embed_dim=16,
-                          dec_depth=dec_depth, dec_num_heads=1)
+    config = MASt3RConfig(
+        enc_embed_dim=32,
+        enc_depth=1,
+        enc_num_heads=2,
+        dec_embed_dim=16,
+        dec_depth=dec_depth,
+        dec_num_heads=1,
+    )
     network = make_network(config, 0)
     with torch.no_grad():
         out1, _ = network(images(1, 32, 48), images(1, 32, 48, seed=1))
@@ -202,8 +224,7 @@ def test_encoder_output_is_layer_normalised(tiny_network):
         tokens, grid = tiny_network.encode(images(2, 48, 64))
     assert grid == (3, 4) and tokens.shape == (2, 12, 32) and tokens.dtype == torch.float32
     torch.testing.assert_close(tokens.mean(-1), torch.zeros(2, 12), atol=1e-5, rtol=0)
-    torch.testing.assert_close(tokens.var(-1, unbiased=False), torch.ones(2, 12), atol=1e-3,
-                               rtol=0)
+    torch.testing.assert_close(tokens.var(-1, unbiased=False), torch.ones(2, 12), atol=1e-3, rtol=0)
 
 
 def test_bfloat16_runs_encoder_and_decoder_in_bf16_heads_in_float32(tiny_network):

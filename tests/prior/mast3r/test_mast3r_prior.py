@@ -57,8 +57,11 @@ def test_encode_accepts_tensors_batches_and_view_lists(prior):
     batch = prior.encode(torch.stack([image(32, 48, 0), image(32, 48, 1)]), agent=1, index=10)
     assert [(e.agent, e.index) for e in batch] == [(1, 10), (1, 11)]
     torch.testing.assert_close(batch[0].tokens, single.tokens, atol=1e-5, rtol=1e-5)
-    views = [View(image(32, 48, 0), index=0), View(image(48, 32, 2), index=1),
-             View(image(32, 48, 1), index=2)]
+    views = [
+        View(image(32, 48, 0), index=0),
+        View(image(48, 32, 2), index=1),
+        View(image(32, 48, 1), index=2),
+    ]
     encodings = prior.encode(views)
     assert [e.index for e in encodings] == [0, 1, 2]
     assert [e.shape for e in encodings] == [(32, 48), (48, 32), (32, 48)]
@@ -120,8 +123,9 @@ def _assert_as_decoded_alone(prior, pred, a, b) -> None:
     expected = prior.decode(a, b)
     assert_valid_prediction(pred, a.shape, b.shape)
     for f in fields(pred):
-        torch.testing.assert_close(getattr(pred, f.name), getattr(expected, f.name),
-                                   atol=1e-4, rtol=1e-4)
+        torch.testing.assert_close(
+            getattr(pred, f.name), getattr(expected, f.name), atol=1e-4, rtol=1e-4
+        )
 
 
 def _encodings(prior):
@@ -137,8 +141,7 @@ def test_decode_symmetric_batches_one_decoder_call_per_size(prior, monkeypatch):
     calls = _count_decoder_calls(prior, monkeypatch)
     results = prior.decode_symmetric(pairs)
     # 2 same-size pairs: one call of 4 ordered pairs; the mixed-size pair: one call per order
-    assert sorted(calls) == sorted([(4, (2, 2), (2, 2)), (1, (3, 2), (2, 3)),
-                                    (1, (2, 3), (3, 2))])
+    assert sorted(calls) == sorted([(4, (2, 2), (2, 2)), (1, (3, 2), (2, 3)), (1, (2, 3), (3, 2))])
     monkeypatch.undo()
     assert len(results) == len(pairs)
     for (enc_i, enc_j), (forward, backward) in zip(pairs, results):
@@ -151,8 +154,7 @@ def test_decode_pairs_batches_one_decoder_call_per_pair_of_sizes(prior, monkeypa
     pairs = [(encs[0], encs[1]), (mixed[0], mixed[1]), (encs[2], encs[0]), (mixed[1], encs[1])]
     calls = _count_decoder_calls(prior, monkeypatch)
     results = prior.decode_pairs(pairs)
-    assert sorted(calls) == sorted([(2, (2, 2), (2, 2)), (1, (3, 2), (2, 3)),
-                                    (1, (2, 3), (2, 2))])
+    assert sorted(calls) == sorted([(2, (2, 2), (2, 2)), (1, (3, 2), (2, 3)), (1, (2, 3), (2, 2))])
     monkeypatch.undo()
     assert len(results) == len(pairs)
     for (a, b), pred in zip(pairs, results):
@@ -184,8 +186,10 @@ def test_retrieval_features_need_retrieval_weights(prior):
 
 def whitening_checkpoint(path: Path, dim: int) -> Path:
     """A retrieval checkpoint in the official layout: pre-whitening only (spec §8.1)."""
-    model = {"prewhiten.m": torch.zeros(1, dim, dtype=torch.float64),
-             "prewhiten.p": torch.eye(dim, dtype=torch.float64)}
+    model = {
+        "prewhiten.m": torch.zeros(1, dim, dtype=torch.float64),
+        "prewhiten.p": torch.eye(dim, dtype=torch.float64),
+    }
     torch.save({"model": model, "args": argparse.Namespace(nfeat=5, hdims="")}, path)
     return path
 
@@ -207,11 +211,14 @@ def test_cuda_without_cuda_is_a_prior_error(monkeypatch, tmp_path: Path):
         load_mast3r(tmp_path / "absent.pth", device="cuda")
 
 
-@pytest.mark.parametrize(("kwargs", "message"), [
-    ({"device": "tpu"}, "device"),
-    ({"device": "quantum:0"}, "device"),
-    ({"dtype": torch.float16}, "dtype"),
-])
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"device": "tpu"}, "device"),
+        ({"device": "quantum:0"}, "device"),
+        ({"dtype": torch.float16}, "dtype"),
+    ],
+)
 def test_bad_device_or_dtype_is_a_prior_error(tmp_path: Path, kwargs, message):
     with pytest.raises(PriorError, match=message):
         load_mast3r(tmp_path / "absent.pth", **kwargs)

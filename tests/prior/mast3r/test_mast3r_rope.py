@@ -66,7 +66,7 @@ def test_rope_is_a_rotation_that_encodes_relative_position():
     k = torch.randn(1, 1, 1, 16, dtype=torch.float64).expand(1, 1, 24, 16)
     rq, rk = rope.apply(q, grid), rope.apply(k, grid)
     torch.testing.assert_close(rq.norm(dim=-1), q.norm(dim=-1))
-    scores = (rq[0, 0] @ rk[0, 0].T)
+    scores = rq[0, 0] @ rk[0, 0].T
     # same displacement (1 row, 2 columns) from two different tokens: same score
     first = scores[0 * 6 + 0, 1 * 6 + 2]
     second = scores[2 * 6 + 3, 3 * 6 + 5]
@@ -78,7 +78,8 @@ def test_bfloat16_is_rotated_in_float32_and_tables_are_cached():
     t = torch.randn(1, 2, 12, 16)
     rotated = rope.apply(t.bfloat16(), (3, 4))
     assert rotated.dtype == torch.bfloat16
-    torch.testing.assert_close(rotated.float(), rope.apply(t.bfloat16().float(), (3, 4)),
-                               rtol=1e-2, atol=1e-2)
+    torch.testing.assert_close(
+        rotated.float(), rope.apply(t.bfloat16().float(), (3, 4)), rtol=1e-2, atol=1e-2
+    )
     table = rope.table((3, 4), 16, torch.device("cpu"), torch.float32)
     assert rope.table((3, 4), 16, torch.device("cpu"), torch.float32)[0] is table[0]

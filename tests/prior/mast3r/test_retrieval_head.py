@@ -92,8 +92,14 @@ def test_features_follow_spec_formulas(tmp_path, device, hdims, postwhiten, resi
     state = _state(hdims, postwhiten=postwhiten)
     hdims_arg = "_".join(map(str, hdims))
     path = _save(
-        tmp_path / "r.pth", state, prewhiten=1, hdims=hdims_arg, residual=residual,
-        postwhiten=1 if postwhiten else None, featweights="l2norm", nfeat=10,
+        tmp_path / "r.pth",
+        state,
+        prewhiten=1,
+        hdims=hdims_arg,
+        residual=residual,
+        postwhiten=1 if postwhiten else None,
+        featweights="l2norm",
+        nfeat=10,
     )
     head = load_retrieval_head(path, device=device)
     tokens = torch.randn(60, C, generator=torch.Generator().manual_seed(1))
@@ -189,12 +195,14 @@ MALFORMED = {
     "shape mismatch": (_bad_shape, "prewhiten.p has shape"),
     "hdims mismatch": (lambda p: _save(p, _state([16]), prewhiten=1, hdims="8"), "hdims"),
     "featweights": (
-        lambda p: _save(p, _state([]), prewhiten=1, featweights="softplus"), "featweights"
+        lambda p: _save(p, _state([]), prewhiten=1, featweights="softplus"),
+        "featweights",
     ),
     "nfeat": (lambda p: _save(p, _state([]), prewhiten=1, nfeat=-2), "nfeat"),
     "non-finite": (_non_finite, "not finite"),
     "residual dims": (
-        lambda p: _save(p, _state([16]), prewhiten=1, hdims="16", residual=True), "residual"
+        lambda p: _save(p, _state([16]), prewhiten=1, hdims="16", residual=True),
+        "residual",
     ),
 }
 

@@ -26,11 +26,14 @@ def _reference(x, weight, bias, add, relu):
     ("batch", "c_in", "c_out", "height", "width"),
     [(1, 3, 5, 4, 4), (2, 16, 8, 12, 20), (1, 64, 64, 32, 24), (1, 8, 40, 4, 36)],
 )
-@pytest.mark.parametrize(("with_bias", "with_add", "relu"),
-                         [(True, False, False), (False, True, False), (True, True, True)])
+@pytest.mark.parametrize(
+    ("with_bias", "with_add", "relu"),
+    [(True, False, False), (False, True, False), (True, True, True)],
+)
 @pytest.mark.parametrize("threads", [1, 2])
-def test_equals_a_direct_convolution(batch, c_in, c_out, height, width, with_bias, with_add,
-                                     relu, threads):
+def test_equals_a_direct_convolution(
+    batch, c_in, c_out, height, width, with_bias, with_add, relu, threads
+):
     generator = torch.Generator().manual_seed(c_in + height)
     x = torch.randn(batch, c_in, height, width, generator=generator)
     x = x.contiguous(memory_format=torch.channels_last)

@@ -75,21 +75,26 @@ DEPTH_SOURCES = {
 #: what a forced format expects in the folder, for "not a ... (--format X)" messages
 _FORCED = {
     "tum": ("a TUM RGB-D sequence", tum.matches, f"{tum.EXPECTED} in it"),
-    "7scenes": ("a 7-Scenes sequence", sevenscenes.matches,
-                f"{sevenscenes.EXPECTED} in it or in one sub-folder"),
+    "7scenes": (
+        "a 7-Scenes sequence",
+        sevenscenes.matches,
+        f"{sevenscenes.EXPECTED} in it or in one sub-folder",
+    ),
     "euroc": ("a EuRoC sequence", euroc.matches, f"{euroc.EXPECTED} (or the mav0 folder)"),
     "kitti": ("a KITTI odometry sequence", kitti.matches, f"{kitti.EXPECTED} in it"),
     "tanks": ("a Tanks and Temples sequence", tanks.matches, f"{tanks.EXPECTED} in it"),
     "rosbag": ("a ROS log", rosbag.matches, rosbag.EXPECTED),
 }
 
-_EXPECTED = ("an agent folder (rgb/ or a video file), a TUM RGB-D sequence (rgb.txt, "
-             "rgb/, depth.txt, depth/, groundtruth.txt), a 7-Scenes sequence "
-             "(frame-NNNNNN.color.png, .depth.png, .pose.txt), a EuRoC sequence "
-             "(mav0/cam0/data.csv, mav0/cam0/data/, mav0/cam0/sensor.yaml), a KITTI odometry "
-             "sequence (image_2/ or image_0/, times.txt, calib.txt), a Tanks and Temples sequence "
-             "(image/, gt_traj.txt) or a ROS log (a .bag file, a ROS 2 bag folder with "
-             "metadata.yaml)")
+_EXPECTED = (
+    "an agent folder (rgb/ or a video file), a TUM RGB-D sequence (rgb.txt, "
+    "rgb/, depth.txt, depth/, groundtruth.txt), a 7-Scenes sequence "
+    "(frame-NNNNNN.color.png, .depth.png, .pose.txt), a EuRoC sequence "
+    "(mav0/cam0/data.csv, mav0/cam0/data/, mav0/cam0/sensor.yaml), a KITTI odometry "
+    "sequence (image_2/ or image_0/, times.txt, calib.txt), a Tanks and Temples sequence "
+    "(image/, gt_traj.txt) or a ROS log (a .bag file, a ROS 2 bag folder with "
+    "metadata.yaml)"
+)
 
 
 def detect_format(path: str | Path) -> str:
@@ -147,8 +152,9 @@ def resolve_format(path: str | Path, format: str = "auto") -> str:
     return format
 
 
-def open_input(path: str | Path, fps: float = 30.0, format: str = "auto",
-               topic: str = "") -> AgentInput:
+def open_input(
+    path: str | Path, fps: float = 30.0, format: str = "auto", topic: str = ""
+) -> AgentInput:
     """Open and validate any supported input (:func:`como3r.data.agent.open_agent`).
 
     Raises:
@@ -167,8 +173,9 @@ def open_input(path: str | Path, fps: float = 30.0, format: str = "auto",
     return _READERS[kind].open_sequence(Path(path), fps)
 
 
-def read_ground_truth(path: str | Path, format: str = "auto",
-                      fps: float = 30.0) -> tuple[Path, Trajectory]:
+def read_ground_truth(
+    path: str | Path, format: str = "auto", fps: float = 30.0
+) -> tuple[Path, Trajectory]:
     """The ground-truth trajectory ``como3r eval --gt PATH`` reads.
 
     A file is a TUM trajectory (a video file: its folder's ``groundtruth.txt``); a folder
@@ -218,5 +225,11 @@ def _has_file(folder: Path, suffixes: tuple[str, ...]) -> bool:
     return any(p.suffix.lower() in suffixes and p.is_file() for p in folder.iterdir())
 
 
-__all__ = ["DEPTH_SOURCES", "FORMATS", "detect_format", "open_input", "read_ground_truth",
-           "resolve_format"]
+__all__ = [
+    "DEPTH_SOURCES",
+    "FORMATS",
+    "detect_format",
+    "open_input",
+    "read_ground_truth",
+    "resolve_format",
+]

@@ -36,9 +36,10 @@ import re
 import signal
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import cv2
 import numpy as np
@@ -89,8 +90,10 @@ def parse_source(text: str, max_frames: int | None = None) -> CameraSource:
         return CameraSource(int(text), max_frames)
     if is_stream_url(text) or Path(text).is_file():
         return CameraSource(text, max_frames)
-    raise InputError(f"--camera {text}: expected a device index (0), a stream URL "
-                     f"({', '.join(f'{s}://' for s in STREAM_SCHEMES[:4])}...) or a video file")
+    raise InputError(
+        f"--camera {text}: expected a device index (0), a stream URL "
+        f"({', '.join(f'{s}://' for s in STREAM_SCHEMES[:4])}...) or a video file"
+    )
 
 
 def is_stream_url(text: str) -> bool:
@@ -122,8 +125,9 @@ class CameraInput:
     has_surface = False
     format = "camera"
 
-    def __init__(self, source: CameraSource, capture: Any, first: np.ndarray,
-                 fps: float, paced: bool = False) -> None:
+    def __init__(
+        self, source: CameraSource, capture: Any, first: np.ndarray, fps: float, paced: bool = False
+    ) -> None:
         self.source = source
         self.root = str(source.device)
         self.name = _name(source.device)
@@ -139,8 +143,7 @@ class CameraInput:
         self._stop = threading.Event()
         self._report: str | None = None
         self._period = 1.0 / fps if paced else 0.0
-        self._thread = threading.Thread(target=self._read, name=f"como3r-{self.name}",
-                                        daemon=True)
+        self._thread = threading.Thread(target=self._read, name=f"como3r-{self.name}", daemon=True)
         self._thread.start()
 
     def take(self, timeout: float = POLL_S) -> bool | None:
@@ -168,8 +171,9 @@ class CameraInput:
         self._last_stamp = stamp
         self._last = Frame(self.taken - 1, stamp, f"{self.taken - 1:06d}", self._rgb(bgr))
         if self.source.max_frames is not None and self.taken >= self.source.max_frames:
-            logger.info("%s: %d frames taken (--max-frames): ending the stream", self.source,
-                        self.taken)
+            logger.info(
+                "%s: %d frames taken (--max-frames): ending the stream", self.source, self.taken
+            )
             self._stop.set()
         return True
 
@@ -200,9 +204,11 @@ class CameraInput:
             self._thread.join(timeout=TIMEOUT_MS / 1000)
             if not self._thread.is_alive():  # else a read blocks it; the process ends it
                 self._capture.release()
-            self._report = (f"{self.source}: {self.taken} frames processed, {self.dropped} "
-                            f"dropped while SLAM was busy (queue of one, the newest kept), "
-                            f"{self.received} read")
+            self._report = (
+                f"{self.source}: {self.taken} frames processed, {self.dropped} "
+                f"dropped while SLAM was busy (queue of one, the newest kept), "
+                f"{self.received} read"
+            )
             logger.info("%s", self._report)
         return self._report
 
@@ -212,8 +218,10 @@ class CameraInput:
     def _rgb(self, bgr: np.ndarray) -> np.ndarray:
         """``(H, W, 3)`` uint8 RGB of a captured frame of the first frame's size."""
         if (bgr.shape[1], bgr.shape[0]) != self.image_size:
-            raise InputError(f"{self.source}: a frame is {bgr.shape[1]}x{bgr.shape[0]}, the "
-                             f"first was {self.image_size[0]}x{self.image_size[1]}")
+            raise InputError(
+                f"{self.source}: a frame is {bgr.shape[1]}x{bgr.shape[0]}, the "
+                f"first was {self.image_size[0]}x{self.image_size[1]}"
+            )
         if bgr.ndim == 2:
             return cv2.cvtColor(bgr, cv2.COLOR_GRAY2RGB)
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
@@ -225,8 +233,7 @@ class CameraInput:
             while not self._over():
                 ok, bgr = self._capture.read()
                 if not ok:
-                    logger.info("%s: end of stream after %d frames", self.source,
-                                self.received)
+                    logger.info("%s: end of stream after %d frames", self.source, self.received)
                     break
                 if self._period:  # a file plays at its frame rate
                     self._stop.wait(start + self.received * self._period - time.monotonic())
@@ -260,15 +267,25 @@ def open_camera(source: CameraSource, fps: float = 30.0) -> CameraInput:
         if isinstance(source.device, int):
             capture = cv2.VideoCapture(source.device)
         else:  # FFmpeg's timeouts; a camera backend (V4L2) would refuse them
-            capture = cv2.VideoCapture(source.device, cv2.CAP_ANY, [
-                cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, TIMEOUT_MS, cv2.CAP_PROP_READ_TIMEOUT_MSEC,
-                TIMEOUT_MS])
+            capture = cv2.VideoCapture(
+                source.device,
+                cv2.CAP_ANY,
+                [
+                    cv2.CAP_PROP_OPEN_TIMEOUT_MSEC,
+                    TIMEOUT_MS,
+                    cv2.CAP_PROP_READ_TIMEOUT_MSEC,
+                    TIMEOUT_MS,
+                ],
+            )
     finally:
         cv2.utils.logging.setLogLevel(level)
     if not capture.isOpened():
         capture.release()
-        what = "no such device, or it is in use" if isinstance(source.device, int) else \
-            "unreachable, or not a stream OpenCV can decode"
+        what = (
+            "no such device, or it is in use"
+            if isinstance(source.device, int)
+            else "unreachable, or not a stream OpenCV can decode"
+        )
         raise InputError(f"{source}: cannot open ({what})")
     ok, first = capture.read()
     if not ok:
@@ -310,8 +327,11 @@ def interrupt_ends_streams() -> Iterator[None]:
             raise KeyboardInterrupt
         _INTERRUPTED.set()
         name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
-        logger.warning("%s: ending the live streams; the run finishes and writes its "
-                       "outputs (Ctrl-C again to abort)", name)
+        logger.warning(
+            "%s: ending the live streams; the run finishes and writes its "
+            "outputs (Ctrl-C again to abort)",
+            name,
+        )
 
     for signum, handler in previous.items():
         if handler is not signal.SIG_IGN:
@@ -333,5 +353,12 @@ def _name(device: int | str) -> str:
     return re.sub(r"[^A-Za-z0-9]+", "_", device.split(":", 1)[1]).strip("_") or "stream"
 
 
-__all__ = ["CameraInput", "CameraSource", "camera_schedule", "interrupt_ends_streams",
-           "is_stream_url", "open_camera", "parse_source"]
+__all__ = [
+    "CameraInput",
+    "CameraSource",
+    "camera_schedule",
+    "interrupt_ends_streams",
+    "is_stream_url",
+    "open_camera",
+    "parse_source",
+]

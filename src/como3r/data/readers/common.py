@@ -6,8 +6,8 @@ of images named by frame number (KITTI ``image_2/`` or ``image_0/``, Tanks and T
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -20,8 +20,9 @@ from como3r.geometry.lie import matrix_to_quat
 RIGID_TOLERANCE = 1e-3
 
 
-def rigid_poses(matrices: np.ndarray, sources: Sequence[str | Path],
-                what: str = "camera-to-world") -> torch.Tensor:
+def rigid_poses(
+    matrices: np.ndarray, sources: Sequence[str | Path], what: str = "camera-to-world"
+) -> torch.Tensor:
     """``(N, 8)`` float64 poses (t, q_xyzw, s = 1) of rigid transform matrices.
 
     Args:
@@ -40,8 +41,10 @@ def rigid_poses(matrices: np.ndarray, sources: Sequence[str | Path],
         error = np.maximum(error, np.abs(matrices[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1))
     bad = np.flatnonzero((error > RIGID_TOLERANCE) | (np.linalg.det(R) <= 0))
     if bad.size:
-        raise InputError(f"{sources[bad[0]]}: not a rigid {what} transform (a rotation "
-                         f"and a translation, last row 0 0 0 1; off by {error[bad[0]]:.2g})")
+        raise InputError(
+            f"{sources[bad[0]]}: not a rigid {what} transform (a rotation "
+            f"and a translation, last row 0 0 0 1; off by {error[bad[0]]:.2g})"
+        )
     q = matrix_to_quat(torch.from_numpy(np.ascontiguousarray(R)))
     t = torch.from_numpy(np.ascontiguousarray(matrices[:, :3, 3]))
     return torch.cat([t, q, torch.ones(len(matrices), 1, dtype=torch.float64)], dim=1)
@@ -61,8 +64,7 @@ def data_lines(path: Path, what: str) -> list[tuple[int, str]]:
         raise InputError(f"{path}: missing ({what})") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read {what} ({exc})") from None
-    data = [(n, text) for n, line in enumerate(lines, 1)
-            if (text := line.split("#", 1)[0].strip())]
+    data = [(n, text) for n, line in enumerate(lines, 1) if (text := line.split("#", 1)[0].strip())]
     if not data:
         raise InputError(f"{path}: empty ({what})")
     return data
@@ -78,16 +80,17 @@ def parse_numbers(tokens: Sequence[str], count: int, where: str, what: str) -> n
     try:
         values = np.array([float(t) for t in tokens], dtype=np.float64)
     except ValueError:
-        raise InputError(f"{where}: expected {count} numbers ({what}), found text that is "
-                         "not a number") from None
+        raise InputError(
+            f"{where}: expected {count} numbers ({what}), found text that is not a number"
+        ) from None
     if values.size != count or not np.isfinite(values).all():
-        raise InputError(f"{where}: expected {count} finite numbers ({what}), got "
-                         f"{values.size}")
+        raise InputError(f"{where}: expected {count} finite numbers ({what}), got {values.size}")
     return values
 
 
-def numbered_images(folder: Path, number: re.Pattern[str],
-                    example: str) -> tuple[tuple[Path, ...], np.ndarray]:
+def numbered_images(
+    folder: Path, number: re.Pattern[str], example: str
+) -> tuple[tuple[Path, ...], np.ndarray]:
     """The images of ``folder`` in frame-number order, and their ``(N,)`` int64 numbers.
 
     Args:
@@ -105,12 +108,12 @@ def numbered_images(folder: Path, number: re.Pattern[str],
             continue
         match = number.fullmatch(image.stem)
         if match is None:
-            raise InputError(f"{image}: not named by its frame number (expected e.g. "
-                             f"{example}{image.suffix})")
+            raise InputError(
+                f"{image}: not named by its frame number (expected e.g. {example}{image.suffix})"
+            )
         frame = int(match.group(1))
         if frame in found:
-            raise InputError(f"{image}: frame {frame} has two images (also "
-                             f"{found[frame].name})")
+            raise InputError(f"{image}: frame {frame} has two images (also {found[frame].name})")
         found[frame] = image
     if not found:
         raise InputError(f"{folder}: no images ({', '.join(IMAGE_SUFFIXES)})")

@@ -108,18 +108,32 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
     image_size = common_image_size(image_paths)
     camera = read_sensor(cam0 / "sensor.yaml")
     if camera.resolution is not None and camera.resolution != image_size:
-        raise InputError(f"{cam0 / 'sensor.yaml'}: resolution {list(camera.resolution)} but "
-                         f"the images are {image_size[0]}x{image_size[1]}")
+        raise InputError(
+            f"{cam0 / 'sensor.yaml'}: resolution {list(camera.resolution)} but "
+            f"the images are {image_size[0]}x{image_size[1]}"
+        )
     timestamps = np.array([stamp for _, stamp, _ in rows], dtype=np.float64) * 1e-9
     groundtruth = None
     if (mav0 / GROUNDTRUTH).is_file():
         groundtruth = camera_trajectory(mav0 / GROUNDTRUTH, camera.T_BS)
     return UndistortedInput(
-        root=path, name=_name(path, mav0), num_frames=len(rows), image_size=image_size,
-        timestamps=timestamps, calib=camera.calib, groundtruth=groundtruth, odometry=None,
-        has_depth=False, has_surface=False, fps=float(fps),
-        stems=tuple(p.stem for p in image_paths), image_paths=image_paths, video=None,
-        depth_paths=(), surface_paths=(), format="euroc",
+        root=path,
+        name=_name(path, mav0),
+        num_frames=len(rows),
+        image_size=image_size,
+        timestamps=timestamps,
+        calib=camera.calib,
+        groundtruth=groundtruth,
+        odometry=None,
+        has_depth=False,
+        has_surface=False,
+        fps=float(fps),
+        stems=tuple(p.stem for p in image_paths),
+        image_paths=image_paths,
+        video=None,
+        depth_paths=(),
+        surface_paths=(),
+        format="euroc",
         distortion=camera.distortion,
     )
 
@@ -149,21 +163,23 @@ def camera_trajectory(path: Path, T_BS: torch.Tensor) -> Trajectory:
         parts = [p.strip() for p in text.split(",")]
         where = f"{path}:{line_no}"
         if len(parts) < 8:
-            raise InputError(f"{where}: expected at least 8 comma-separated numbers "
-                             f"({_GT_COLUMNS}), got {len(parts)}")
+            raise InputError(
+                f"{where}: expected at least 8 comma-separated numbers "
+                f"({_GT_COLUMNS}), got {len(parts)}"
+            )
         row = parse_numbers(parts[:8], 8, where, _GT_COLUMNS)
         stamp = int(parts[0]) if parts[0].isdigit() else row[0]
         if numbers and stamp <= numbers[-1][0]:
-            raise InputError(f"{where}: timestamps are not strictly increasing "
-                             f"({numbers[-1][0]} then {stamp})")
+            raise InputError(
+                f"{where}: timestamps are not strictly increasing ({numbers[-1][0]} then {stamp})"
+            )
         norm = float(np.linalg.norm(row[4:8]))
         if abs(norm - 1.0) > QUATERNION_TOLERANCE:
             raise InputError(f"{where}: quaternion q_RS norm {norm:.4f} is not 1")
         numbers.append((stamp, row))
     data = np.stack([row for _, row in numbers])
     q_xyzw = data[:, [5, 6, 7, 4]] / np.linalg.norm(data[:, 4:8], axis=1, keepdims=True)
-    T_WB = torch.from_numpy(np.concatenate([data[:, 1:4], q_xyzw, np.ones((len(data), 1))],
-                                           axis=1))
+    T_WB = torch.from_numpy(np.concatenate([data[:, 1:4], q_xyzw, np.ones((len(data), 1))], axis=1))
     stamps = np.array([stamp for stamp, _ in numbers], dtype=np.float64) * 1e-9
     return Trajectory(stamps, sim3_compose(T_WB, T_BS.expand_as(T_WB)))
 

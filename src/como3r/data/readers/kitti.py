@@ -42,15 +42,16 @@ from pathlib import Path
 import numpy as np
 
 from como3r.data.agent import AgentInput, common_image_size, parse_timestamp
-from como3r.data.readers.common import (data_lines, numbered_images, parse_numbers,
-                                         rigid_poses)
+from como3r.data.readers.common import data_lines, numbered_images, parse_numbers, rigid_poses
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory
 
 logger = logging.getLogger(__name__)
 
-EXPECTED = ("image_2/ (colour) or image_0/ (grey) and times.txt (with calib.txt; poses in "
-            "../../poses/XX.txt)")
+EXPECTED = (
+    "image_2/ (colour) or image_0/ (grey) and times.txt (with calib.txt; poses in "
+    "../../poses/XX.txt)"
+)
 #: the left cameras' image folders and their calib.txt rows, in the order they are taken
 CAMERAS = (("image_2", 2), ("image_0", 0))
 _NUMBER = re.compile(r"(\d+)")
@@ -87,8 +88,10 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
     images, numbers = numbered_images(path / folder, _NUMBER, "000000")
     times = read_times(path / "times.txt")
     if numbers[-1] >= len(times):
-        raise InputError(f"{images[-1]}: frame {numbers[-1]} has no line in "
-                         f"{path / 'times.txt'} ({len(times)} lines)")
+        raise InputError(
+            f"{images[-1]}: frame {numbers[-1]} has no line in "
+            f"{path / 'times.txt'} ({len(times)} lines)"
+        )
     calib, offset = read_calib(path / "calib.txt", number)
     groundtruth = None
     gt_file = poses_file(path)
@@ -97,11 +100,23 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
     else:
         logger.info("%s: no %s: no ground truth", path, gt_file)
     return AgentInput(
-        root=path, name=Path(os.path.abspath(path)).name, num_frames=len(images),
-        image_size=common_image_size(images), timestamps=times[numbers], calib=calib,
-        groundtruth=groundtruth, odometry=None, has_depth=False, has_surface=False,
-        fps=float(fps), stems=tuple(p.stem for p in images), image_paths=images, video=None,
-        depth_paths=(), surface_paths=(), format="kitti",
+        root=path,
+        name=Path(os.path.abspath(path)).name,
+        num_frames=len(images),
+        image_size=common_image_size(images),
+        timestamps=times[numbers],
+        calib=calib,
+        groundtruth=groundtruth,
+        odometry=None,
+        has_depth=False,
+        has_surface=False,
+        fps=float(fps),
+        stems=tuple(p.stem for p in images),
+        image_paths=images,
+        video=None,
+        depth_paths=(),
+        surface_paths=(),
+        format="kitti",
     )
 
 
@@ -110,9 +125,11 @@ def ground_truth(path: Path) -> tuple[Path, Trajectory]:
     (:func:`camera`), stamped by ``times.txt``."""
     gt_file = poses_file(path)
     if not gt_file.is_file():
-        raise InputError(f"{path}: no ground truth for KITTI sequence "
-                         f"{Path(os.path.abspath(path)).name}: expected {gt_file} (KITTI "
-                         "publishes poses for sequences 00-10 only)")
+        raise InputError(
+            f"{path}: no ground truth for KITTI sequence "
+            f"{Path(os.path.abspath(path)).name}: expected {gt_file} (KITTI "
+            "publishes poses for sequences 00-10 only)"
+        )
     _, offset = read_calib(path / "calib.txt", camera(path)[1])
     return gt_file, camera_trajectory(gt_file, read_times(path / "times.txt"), offset)
 
@@ -128,18 +145,18 @@ def read_times(path: Path) -> np.ndarray:
     for line_no, text in data_lines(path, "times of the KITTI sequence"):
         parts = text.split()
         if len(parts) != 1:
-            raise InputError(f"{path}:{line_no}: expected one timestamp, got {len(parts)} "
-                             "values")
+            raise InputError(f"{path}:{line_no}: expected one timestamp, got {len(parts)} values")
         stamp = parse_timestamp(parts[0], path, line_no)
         if stamps and stamp <= stamps[-1]:
-            raise InputError(f"{path}:{line_no}: timestamps are not strictly increasing "
-                             f"({stamps[-1]!r} then {stamp!r})")
+            raise InputError(
+                f"{path}:{line_no}: timestamps are not strictly increasing "
+                f"({stamps[-1]!r} then {stamp!r})"
+            )
         stamps.append(stamp)
     return np.array(stamps, dtype=np.float64)
 
 
-def read_calib(path: Path, number: int = 2
-               ) -> tuple[tuple[float, float, float, float], np.ndarray]:
+def read_calib(path: Path, number: int = 2) -> tuple[tuple[float, float, float, float], np.ndarray]:
     """``((fx, fy, cx, cy), tc)`` of ``calib.txt``'s ``Pc`` line (``c = number``: 2 the
     left colour camera, 0 the left grey one); ``tc`` ``(3,)`` metres is cam0's origin in
     camera c's coordinates (module docstring; zero for cam0).
@@ -158,12 +175,13 @@ def read_calib(path: Path, number: int = 2
         K = P[:, :3]
         fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
         if fx <= 0 or fy <= 0 or K[0, 1] != 0 or K[1, 0] != 0 or list(K[2]) != [0, 0, 1]:
-            raise InputError(f"{where}: {key} is not a projection matrix K [I | t] with K = "
-                             "[[fx 0 cx] [0 fy cy] [0 0 1]], fx, fy > 0")
+            raise InputError(
+                f"{where}: {key} is not a projection matrix K [I | t] with K = "
+                "[[fx 0 cx] [0 fy cy] [0 0 1]], fx, fy > 0"
+            )
         return (fx, fy, cx, cy), np.linalg.solve(K, P[:, 3])
     what = "colour" if number == 2 else "grey"
-    raise InputError(f"{path}: no '{key}:' line (the left {what} camera's 3x4 projection "
-                     "matrix)")
+    raise InputError(f"{path}: no '{key}:' line (the left {what} camera's 3x4 projection matrix)")
 
 
 def camera_trajectory(path: Path, times: np.ndarray, offset: np.ndarray) -> Trajectory:
@@ -179,11 +197,16 @@ def camera_trajectory(path: Path, times: np.ndarray, offset: np.ndarray) -> Traj
     """
     lines = [(n, text.split()) for n, text in data_lines(path, "poses of the KITTI sequence")]
     if len(lines) != len(times):
-        raise InputError(f"{path}: {len(lines)} poses for {len(times)} lines of times.txt; "
-                         "expected one per frame")
-    matrices = np.stack([parse_numbers(parts, 12, f"{path}:{line_no}",
-                                       "3x4 camera-to-world matrix, row-major")
-                         for line_no, parts in lines]).reshape(-1, 3, 4)
+        raise InputError(
+            f"{path}: {len(lines)} poses for {len(times)} lines of times.txt; "
+            "expected one per frame"
+        )
+    matrices = np.stack(
+        [
+            parse_numbers(parts, 12, f"{path}:{line_no}", "3x4 camera-to-world matrix, row-major")
+            for line_no, parts in lines
+        ]
+    ).reshape(-1, 3, 4)
     matrices[:, :, 3] -= matrices[:, :, :3] @ offset
     T_WC = rigid_poses(matrices, [f"{path}:{line_no}" for line_no, _ in lines])
     return Trajectory(times.copy(), T_WC)

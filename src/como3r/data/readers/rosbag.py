@@ -42,9 +42,10 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import cv2
 import numpy as np
@@ -56,14 +57,18 @@ from como3r.io.tum import Trajectory
 
 logger = logging.getLogger(__name__)
 
-EXPECTED = ("a ROS 1 .bag file, or a ROS 2 bag folder (metadata.yaml with its .db3 or .mcap "
-            "files)")
+EXPECTED = "a ROS 1 .bag file, or a ROS 2 bag folder (metadata.yaml with its .db3 or .mcap files)"
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 #: ``sensor_msgs/Image`` encodings read, and the OpenCV conversion to RGB (None: as is)
-ENCODINGS = {"rgb8": (3, None), "bgr8": (3, cv2.COLOR_BGR2RGB), "mono8": (1, cv2.COLOR_GRAY2RGB),
-             "rgba8": (4, cv2.COLOR_RGBA2RGB), "bgra8": (4, cv2.COLOR_BGRA2RGB)}
+ENCODINGS = {
+    "rgb8": (3, None),
+    "bgr8": (3, cv2.COLOR_BGR2RGB),
+    "mono8": (1, cv2.COLOR_GRAY2RGB),
+    "rgba8": (4, cv2.COLOR_RGBA2RGB),
+    "bgra8": (4, cv2.COLOR_BGRA2RGB),
+}
 DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
 _STORAGE_SUFFIXES = (".db3", ".mcap")
 
@@ -74,9 +79,13 @@ def matches(path: Path) -> bool:
     if path.is_file():
         suffix = path.suffix.lower()
         return suffix in (".bag", ".mcap") or (
-            suffix == ".db3" and (path.parent / "metadata.yaml").is_file())
-    return path.is_dir() and (path / "metadata.yaml").is_file() and any(
-        p.suffix.lower() in _STORAGE_SUFFIXES for p in path.iterdir())
+            suffix == ".db3" and (path.parent / "metadata.yaml").is_file()
+        )
+    return (
+        path.is_dir()
+        and (path / "metadata.yaml").is_file()
+        and any(p.suffix.lower() in _STORAGE_SUFFIXES for p in path.iterdir())
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -131,9 +140,11 @@ class RosbagInput(AgentInput):
         """``(H, W, 3)`` uint8 RGB of message ``i``, undistorted."""
         image = decode_image(msg, f"{self.bag}: {self.topic} message {i}")
         if (image.shape[1], image.shape[0]) != self.image_size:
-            raise InputError(f"{self.bag}: {self.topic} message {i} is {image.shape[1]}x"
-                             f"{image.shape[0]}, the first is {self.image_size[0]}x"
-                             f"{self.image_size[1]}")
+            raise InputError(
+                f"{self.bag}: {self.topic} message {i} is {image.shape[1]}x"
+                f"{image.shape[0]}, the first is {self.image_size[0]}x"
+                f"{self.image_size[1]}"
+            )
         return undistort(image, self.calib, self.distortion)
 
 
@@ -171,35 +182,57 @@ def open_sequence(path: Path, fps: float, topic: str = "") -> RosbagInput:
             raise InputError(f"{bag}: topic {topic} has no messages")
         image_size = (first.shape[1], first.shape[0])
         if len(sizes) > 1:
-            raise InputError(f"{bag}: {topic} holds images of sizes "
-                             f"{', '.join(f'{w}x{h}' for w, h in sorted(sizes))}; all frames "
-                             "of an agent must have one size")
+            raise InputError(
+                f"{bag}: {topic} holds images of sizes "
+                f"{', '.join(f'{w}x{h}' for w, h in sorted(sizes))}; all frames "
+                "of an agent must have one size"
+            )
         calib, distortion = _camera_info(bag, reader, topic, image_size)
     nanoseconds = np.array(stamps, dtype=np.int64)
     steps = np.diff(nanoseconds)
     if np.any(steps <= 0):
         bad = int(np.argmax(steps <= 0)) + 1
-        before, after = (f"{ns // 10**9}.{ns % 10**9:09d}" for ns in stamps[bad - 1:bad + 1])
-        raise InputError(f"{bag}: {topic} stamps are not strictly increasing at message {bad} "
-                         f"({before} s then {after} s)")
+        before, after = (f"{ns // 10**9}.{ns % 10**9:09d}" for ns in stamps[bad - 1 : bad + 1])
+        raise InputError(
+            f"{bag}: {topic} stamps are not strictly increasing at message {bad} "
+            f"({before} s then {after} s)"
+        )
     times = np.array(log_times, dtype=np.int64)
     ranks = np.zeros(len(times), dtype=np.int64)
     for i in range(1, len(times)):
         ranks[i] = ranks[i - 1] + 1 if times[i] == times[i - 1] else 0
     return RosbagInput(
-        root=path, name=bag.stem if bag.is_file() else bag.resolve().name,
-        num_frames=len(times), image_size=image_size, timestamps=nanoseconds * 1e-9,
-        calib=calib, groundtruth=None, odometry=None, has_depth=False, has_surface=False,
-        fps=float(fps), stems=tuple(str(ns) for ns in nanoseconds.tolist()), image_paths=(),
-        video=None, depth_paths=(), surface_paths=(),
-        format="rosbag", bag=bag,
-        topic=topic, log_times=times, ranks=ranks, distortion=distortion)
+        root=path,
+        name=bag.stem if bag.is_file() else bag.resolve().name,
+        num_frames=len(times),
+        image_size=image_size,
+        timestamps=nanoseconds * 1e-9,
+        calib=calib,
+        groundtruth=None,
+        odometry=None,
+        has_depth=False,
+        has_surface=False,
+        fps=float(fps),
+        stems=tuple(str(ns) for ns in nanoseconds.tolist()),
+        image_paths=(),
+        video=None,
+        depth_paths=(),
+        surface_paths=(),
+        format="rosbag",
+        bag=bag,
+        topic=topic,
+        log_times=times,
+        ranks=ranks,
+        distortion=distortion,
+    )
 
 
 def ground_truth(path: Path) -> tuple[Path, Trajectory]:
     """ROS logs carry no ground truth this reader takes: always an :class:`InputError`."""
-    raise InputError(f"{path}: a ROS log holds no ground truth como3r reads; give --gt a TUM "
-                     "trajectory file (timestamp tx ty tz qx qy qz qw)")
+    raise InputError(
+        f"{path}: a ROS log holds no ground truth como3r reads; give --gt a TUM "
+        "trajectory file (timestamp tx ty tz qx qy qz qw)"
+    )
 
 
 def decode_image(msg: Any, where: str) -> np.ndarray:
@@ -218,10 +251,12 @@ def decode_image(msg: Any, where: str) -> np.ndarray:
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
     if height == 0 or width == 0 or step < width * channels or len(msg.data) < height * step:
-        raise InputError(f"{where}: {len(msg.data)} bytes do not hold a {width}x{height} "
-                         f"{msg.encoding} image of row step {step}")
-    rows = np.frombuffer(memoryview(msg.data), dtype=np.uint8)[:height * step]
-    pixels = rows.reshape(height, step)[:, :width * channels].reshape(height, width, channels)
+        raise InputError(
+            f"{where}: {len(msg.data)} bytes do not hold a {width}x{height} "
+            f"{msg.encoding} image of row step {step}"
+        )
+    rows = np.frombuffer(memoryview(msg.data), dtype=np.uint8)[: height * step]
+    pixels = rows.reshape(height, step)[:, : width * channels].reshape(height, width, channels)
     if conversion is None:
         return pixels.copy()
     return cv2.cvtColor(np.ascontiguousarray(pixels), conversion)
@@ -233,19 +268,24 @@ def _check_encoding(msg: Any, where: str) -> tuple[int, int | None]:
     if hasattr(msg, "format"):  # CompressedImage
         kind = str(msg.format).lower()
         if "compresseddepth" in kind:
-            raise InputError(f"{where}: a compressed depth image ({msg.format!r}), not a "
-                             "colour image")
+            raise InputError(
+                f"{where}: a compressed depth image ({msg.format!r}), not a colour image"
+            )
         if kind and not any(name in kind for name in ("jpeg", "jpg", "png")):
-            raise InputError(f"{where}: compressed format {msg.format!r} is not supported "
-                             "(jpeg or png)")
+            raise InputError(
+                f"{where}: compressed format {msg.format!r} is not supported (jpeg or png)"
+            )
         return 0, None
     encoding = str(msg.encoding).lower()
     if encoding not in ENCODINGS:
-        what = ("a depth or intensity image, not a colour image"
-                if encoding.startswith(("mono16", "16u", "16s", "32s", "32f", "64f")) else
-                "not supported")
-        raise InputError(f"{where}: encoding {msg.encoding!r} is {what} (supported: "
-                         f"{', '.join(ENCODINGS)})")
+        what = (
+            "a depth or intensity image, not a colour image"
+            if encoding.startswith(("mono16", "16u", "16s", "32s", "32f", "64f"))
+            else "not supported"
+        )
+        raise InputError(
+            f"{where}: encoding {msg.encoding!r} is {what} (supported: {', '.join(ENCODINGS)})"
+        )
     return ENCODINGS[encoding]
 
 
@@ -256,9 +296,11 @@ def _bag(path: Path) -> Path:
     if path.suffix.lower() in _STORAGE_SUFFIXES:
         if (path.parent / "metadata.yaml").is_file():
             return path.parent
-        raise InputError(f"{path}: the rosbags library reads {path.suffix} storage only as part "
-                         "of a ROS 2 bag folder, with the metadata.yaml that ros2 bag record "
-                         "writes beside it; there is none in its folder")
+        raise InputError(
+            f"{path}: the rosbags library reads {path.suffix} storage only as part "
+            "of a ROS 2 bag folder, with the metadata.yaml that ros2 bag record "
+            "writes beside it; there is none in its folder"
+        )
     raise InputError(f"{path}: not a ROS log: expected {EXPECTED}")
 
 
@@ -276,8 +318,9 @@ def _open_reader(bag: Path) -> Any:
     return reader
 
 
-def _messages(reader: Any, bag: Path, topic: str, start: int | None = None,
-              stop: int | None = None) -> Iterator[tuple[Any, int, bytes]]:
+def _messages(
+    reader: Any, bag: Path, topic: str, start: int | None = None, stop: int | None = None
+) -> Iterator[tuple[Any, int, bytes]]:
     """``(connection, log time [ns], raw bytes)`` of ``topic``'s messages in log order,
     logged in ``[start, stop)``; a log that fails to read is an :class:`InputError`."""
     try:
@@ -290,37 +333,53 @@ def _deserialize(reader: Any, raw: bytes, connection: Any) -> Any:
     try:
         return reader.deserialize(raw, connection.msgtype)
     except Exception as exc:
-        raise InputError(f"{reader.paths[0]}: cannot decode a {connection.msgtype} message of "
-                         f"{connection.topic} ({exc})") from None
+        raise InputError(
+            f"{reader.paths[0]}: cannot decode a {connection.msgtype} message of "
+            f"{connection.topic} ({exc})"
+        ) from None
 
 
 def _choose_topic(bag: Path, topics: dict[str, Any], topic: str) -> str:
     """The image topic: ``topic`` (with or without its leading ``/``), or the only one."""
     images = {name: info for name, info in topics.items() if info.msgtype in (IMAGE, COMPRESSED)}
-    listing = ", ".join(f"{name} ({info.msgtype}, {info.msgcount} messages)"
-                        for name, info in sorted(images.items())) or "none"
+    listing = (
+        ", ".join(
+            f"{name} ({info.msgtype}, {info.msgcount} messages)"
+            for name, info in sorted(images.items())
+        )
+        or "none"
+    )
     if not topic:
         if len(images) != 1:
             if images:
-                raise InputError(f"{bag}: {len(images)} image topics, choose one with --topic: "
-                                 f"{listing}")
-            raise InputError(f"{bag}: no image topic ({IMAGE} or {COMPRESSED}); topics: "
-                             f"{', '.join(sorted(topics)) or 'none'}")
+                raise InputError(
+                    f"{bag}: {len(images)} image topics, choose one with --topic: {listing}"
+                )
+            raise InputError(
+                f"{bag}: no image topic ({IMAGE} or {COMPRESSED}); topics: "
+                f"{', '.join(sorted(topics)) or 'none'}"
+            )
         topic = next(iter(images))
     elif topic not in topics and f"/{topic}" in topics:
         topic = f"/{topic}"
     if topic not in topics:
         raise InputError(f"{bag}: no topic {topic!r}; image topics: {listing}")
     if topics[topic].msgtype not in (IMAGE, COMPRESSED):
-        raise InputError(f"{bag}: topic {topic} is {topics[topic].msgtype}, not an image topic "
-                         f"({IMAGE} or {COMPRESSED}); image topics: {listing}")
+        raise InputError(
+            f"{bag}: topic {topic} is {topics[topic].msgtype}, not an image topic "
+            f"({IMAGE} or {COMPRESSED}); image topics: {listing}"
+        )
     if topics[topic].msgcount == 0:
         raise InputError(f"{bag}: topic {topic} has no messages")
     return topic
 
 
-def _camera_info(bag: Path, reader: Any, topic: str, image_size: tuple[int, int],
-                 ) -> tuple[tuple[float, float, float, float] | None, tuple[float, ...]]:
+def _camera_info(
+    bag: Path,
+    reader: Any,
+    topic: str,
+    image_size: tuple[int, int],
+) -> tuple[tuple[float, float, float, float] | None, tuple[float, ...]]:
     """``(fx, fy, cx, cy)`` or None, and the distortion to undo, from the ``camera_info``
     beside ``topic`` (module docstring)."""
     base = topic.removesuffix("/compressed")
@@ -335,26 +394,33 @@ def _camera_info(bag: Path, reader: Any, topic: str, image_size: tuple[int, int]
     where = f"{bag}: {info_topic}"
     width, height = int(msg.width), int(msg.height)
     if (width or height) and (width, height) != image_size:
-        raise InputError(f"{where}: the camera is {width}x{height}, the images of {topic} are "
-                         f"{image_size[0]}x{image_size[1]}")
+        raise InputError(
+            f"{where}: the camera is {width}x{height}, the images of {topic} are "
+            f"{image_size[0]}x{image_size[1]}"
+        )
     rectified = name.startswith("image_rect")
     # ROS 1 names the matrices K, D, P; ROS 2 k, d, p
     matrix = np.asarray(_field(msg, "p" if rectified else "k"), dtype=np.float64)
     columns = 4 if rectified else 3
     fx, fy, cx, cy = matrix[0], matrix[columns + 1], matrix[2], matrix[columns + 2]
     if fx <= 0 or fy <= 0:
-        logger.warning("%s: no intrinsics in %s (K is not calibrated): uncalibrated", bag,
-                       info_topic)
+        logger.warning(
+            "%s: no intrinsics in %s (K is not calibrated): uncalibrated", bag, info_topic
+        )
         return None, ()
     coefficients = tuple(float(d) for d in _field(msg, "d"))
     if rectified or not any(coefficients):
         return (float(fx), float(fy), float(cx), float(cy)), ()
     if msg.distortion_model not in DISTORTION_MODELS:
-        raise InputError(f"{where}: distortion_model {msg.distortion_model!r} is not supported "
-                         f"(only {', '.join(DISTORTION_MODELS)})")
+        raise InputError(
+            f"{where}: distortion_model {msg.distortion_model!r} is not supported "
+            f"(only {', '.join(DISTORTION_MODELS)})"
+        )
     if len(coefficients) not in (4, 5, 8):
-        raise InputError(f"{where}: {len(coefficients)} distortion coefficients for "
-                         f"{msg.distortion_model} (expected 5 or 8)")
+        raise InputError(
+            f"{where}: {len(coefficients)} distortion coefficients for "
+            f"{msg.distortion_model} (expected 5 or 8)"
+        )
     return (float(fx), float(fy), float(cx), float(cy)), coefficients
 
 

@@ -73,11 +73,13 @@ def locate(path: Path) -> Path:
     if len(found) == 1:
         return found[0]
     if not found:
-        raise InputError(f"{path}: not a 7-Scenes sequence: expected {EXPECTED} in it or in "
-                         "one sub-folder")
+        raise InputError(
+            f"{path}: not a 7-Scenes sequence: expected {EXPECTED} in it or in one sub-folder"
+        )
     names = ", ".join(p.name for p in found[:4]) + (", ..." if len(found) > 4 else "")
-    raise InputError(f"{path}: holds {len(found)} 7-Scenes sequences ({names}); give one "
-                     "of them as the input")
+    raise InputError(
+        f"{path}: holds {len(found)} 7-Scenes sequences ({names}); give one of them as the input"
+    )
 
 
 def open_sequence(path: Path, fps: float) -> AgentInput:
@@ -99,11 +101,24 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
     if pose:
         groundtruth = Trajectory(timestamps.copy(), read_poses(pose))
     return AgentInput(
-        root=path, name=path.resolve().name, num_frames=len(numbers), image_size=image_size,
-        timestamps=timestamps, calib=intrinsics(folder), groundtruth=groundtruth,
-        odometry=None, has_depth=bool(depth), has_surface=False, fps=float(fps),
-        stems=tuple(_stem(p) for p in colour), image_paths=colour, video=None,
-        depth_paths=depth, surface_paths=(), format="7scenes", depth_units_per_metre=DEPTH_UNITS_PER_METRE,
+        root=path,
+        name=path.resolve().name,
+        num_frames=len(numbers),
+        image_size=image_size,
+        timestamps=timestamps,
+        calib=intrinsics(folder),
+        groundtruth=groundtruth,
+        odometry=None,
+        has_depth=bool(depth),
+        has_surface=False,
+        fps=float(fps),
+        stems=tuple(_stem(p) for p in colour),
+        image_paths=colour,
+        video=None,
+        depth_paths=depth,
+        surface_paths=(),
+        format="7scenes",
+        depth_units_per_metre=DEPTH_UNITS_PER_METRE,
         depth_invalid=DEPTH_INVALID,
     )
 
@@ -142,8 +157,9 @@ def intrinsics(folder: Path) -> tuple[float, float, float, float]:
 def _intrinsics_matrix(path: Path) -> tuple[float, float, float, float]:
     K = _read_matrix(path, 3)
     if not (np.allclose(K[2], [0.0, 0.0, 1.0]) and K[1, 0] == 0 and K[0, 1] == 0):
-        raise InputError(f"{path}: expected a 3x3 intrinsics matrix [[fx 0 cx] [0 fy cy] "
-                         "[0 0 1]] (no skew)")
+        raise InputError(
+            f"{path}: expected a 3x3 intrinsics matrix [[fx 0 cx] [0 fy cy] [0 0 1]] (no skew)"
+        )
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise InputError(f"{path}: focal lengths must be positive")
     return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
@@ -159,8 +175,7 @@ def _read_matrix(path: Path, n: int) -> np.ndarray:
     return values.reshape(n, n)
 
 
-def _scan(folder: Path) -> tuple[np.ndarray, tuple[Path, ...], tuple[Path, ...],
-                                  tuple[Path, ...]]:
+def _scan(folder: Path) -> tuple[np.ndarray, tuple[Path, ...], tuple[Path, ...], tuple[Path, ...]]:
     """``(frame numbers, colour, depth, pose files)`` of a frames folder, in frame order;
     depth and pose are empty or one per frame."""
     files: dict[str, dict[int, Path]] = {"color": {}, "depth": {}, "pose": {}}
@@ -170,25 +185,32 @@ def _scan(folder: Path) -> tuple[np.ndarray, tuple[Path, ...], tuple[Path, ...],
             continue
         number, kind = int(match.group(1)), match.group(2).split(".")[0].lower()
         if number in files[kind]:
-            raise InputError(f"{folder / entry.name}: frame {number} has two {kind} files "
-                             f"(also {files[kind][number].name})")
+            raise InputError(
+                f"{folder / entry.name}: frame {number} has two {kind} files "
+                f"(also {files[kind][number].name})"
+            )
         files[kind][number] = folder / entry.name
     numbers = sorted(files["color"])
     for kind, suffix in (("depth", "depth.png"), ("pose", "pose.txt")):
         extra = sorted(set(files[kind]) - set(numbers))
         if extra:
             stem = _stem(files[kind][extra[0]])
-            raise InputError(f"{files[kind][extra[0]]}: no colour image {stem}.color.png|jpg "
-                             "for it")
+            raise InputError(
+                f"{files[kind][extra[0]]}: no colour image {stem}.color.png|jpg for it"
+            )
         if files[kind] and len(files[kind]) != len(numbers):
             missing = next(n for n in numbers if n not in files[kind])
             stem = _stem(files["color"][missing])
-            raise InputError(f"{folder / f'{stem}.{suffix}'}: missing ({len(files[kind])} "
-                             f"{kind} files for {len(numbers)} colour images; all or none)")
-    return (np.array(numbers, dtype=np.int64),
-            tuple(files["color"][n] for n in numbers),
-            tuple(files["depth"][n] for n in numbers) if files["depth"] else (),
-            tuple(files["pose"][n] for n in numbers) if files["pose"] else ())
+            raise InputError(
+                f"{folder / f'{stem}.{suffix}'}: missing ({len(files[kind])} "
+                f"{kind} files for {len(numbers)} colour images; all or none)"
+            )
+    return (
+        np.array(numbers, dtype=np.int64),
+        tuple(files["color"][n] for n in numbers),
+        tuple(files["depth"][n] for n in numbers) if files["depth"] else (),
+        tuple(files["pose"][n] for n in numbers) if files["pose"] else (),
+    )
 
 
 def _stem(path: Path) -> str:

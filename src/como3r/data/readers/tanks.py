@@ -57,8 +57,7 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
     """
     folder = path / IMAGES
     if not folder.is_dir():
-        raise InputError(f"{path}: Tanks and Temples sequence has no {IMAGES}/ folder of "
-                         "frames")
+        raise InputError(f"{path}: Tanks and Temples sequence has no {IMAGES}/ folder of frames")
     images, ids = numbered_images(folder, _ID, "000001")
     timestamps = ids.astype(np.float64) / fps
     groundtruth = None
@@ -66,12 +65,23 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
         groundtruth = read_groundtruth(path / GROUNDTRUTH, fps)[1]
     calib_file = path / "calib.txt"
     return AgentInput(
-        root=path, name=path.resolve().name, num_frames=len(images),
-        image_size=common_image_size(images), timestamps=timestamps,
+        root=path,
+        name=path.resolve().name,
+        num_frames=len(images),
+        image_size=common_image_size(images),
+        timestamps=timestamps,
         calib=read_calib(calib_file) if calib_file.is_file() else None,
-        groundtruth=groundtruth, odometry=None, has_depth=False, has_surface=False,
-        fps=float(fps), stems=tuple(p.stem for p in images), image_paths=images, video=None,
-        depth_paths=(), surface_paths=(), format="tanks",
+        groundtruth=groundtruth,
+        odometry=None,
+        has_depth=False,
+        has_surface=False,
+        fps=float(fps),
+        stems=tuple(p.stem for p in images),
+        image_paths=images,
+        video=None,
+        depth_paths=(),
+        surface_paths=(),
+        format="tanks",
     )
 
 
@@ -97,11 +107,15 @@ def read_groundtruth(path: Path, fps: float) -> tuple[np.ndarray, Trajectory]:
         row = parse_tum_line(text, path, line_no)
         assert row is not None  # a data line
         if row[0] != round(row[0]):
-            raise InputError(f"{path}:{line_no}: frame id {row[0]!r} is not a whole number "
-                             "(expected 'frame_id tx ty tz qx qy qz qw')")
+            raise InputError(
+                f"{path}:{line_no}: frame id {row[0]!r} is not a whole number "
+                "(expected 'frame_id tx ty tz qx qy qz qw')"
+            )
         if rows and row[0] <= rows[-1][0]:
-            raise InputError(f"{path}:{line_no}: frame ids are not strictly increasing "
-                             f"({int(rows[-1][0])} then {int(row[0])})")
+            raise InputError(
+                f"{path}:{line_no}: frame ids are not strictly increasing "
+                f"({int(rows[-1][0])} then {int(row[0])})"
+            )
         rows.append(row)
     data = np.array(rows, dtype=np.float64)
     q = data[:, 4:8] / np.linalg.norm(data[:, 4:8], axis=1, keepdims=True)

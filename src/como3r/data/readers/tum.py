@@ -64,8 +64,10 @@ from como3r.io.tum import Trajectory, read_tum
 
 logger = logging.getLogger(__name__)
 
-EXPECTED = ("rgb.txt (with rgb/) or associations.txt, optionally depth.txt (with depth/) and "
-            "groundtruth.txt")
+EXPECTED = (
+    "rgb.txt (with rgb/) or associations.txt, optionally depth.txt (with depth/) and "
+    "groundtruth.txt"
+)
 ASSOCIATIONS = "associations.txt"
 #: TUM associate.py's default ``--max_difference`` [s]
 MAX_DIFFERENCE = 0.02
@@ -90,8 +92,9 @@ def matches(path: Path) -> bool:
     return (path / "rgb.txt").is_file() or (path / ASSOCIATIONS).is_file()
 
 
-def camera_from_name(name: str) -> tuple[tuple[float, float, float, float] | None,
-                                         tuple[float, ...]]:
+def camera_from_name(
+    name: str,
+) -> tuple[tuple[float, float, float, float] | None, tuple[float, ...]]:
     """The freiburg 1/2/3 colour intrinsics and distortion for a folder named
     ``..freiburgK..``; ``(None, ())`` for another name."""
     match = re.search(r"freiburg([123])(?!\d)", name)
@@ -122,16 +125,19 @@ def read_file_list(path: Path) -> list[tuple[int, float, str]]:
             raise InputError(f"{path}:{line_no}: expected 'timestamp filename', got {text!r}")
         stamp = parse_timestamp(parts[0], path, line_no)
         if rows and stamp <= rows[-1][1]:
-            raise InputError(f"{path}:{line_no}: timestamps are not strictly increasing "
-                             f"({rows[-1][1]!r} then {stamp!r})")
+            raise InputError(
+                f"{path}:{line_no}: timestamps are not strictly increasing "
+                f"({rows[-1][1]!r} then {stamp!r})"
+            )
         rows.append((line_no, stamp, parts[1]))
     if not rows:
         raise InputError(f"{path}: no 'timestamp filename' entries")
     return rows
 
 
-def associate(first: np.ndarray, second: np.ndarray,
-              max_difference: float = MAX_DIFFERENCE) -> list[tuple[int, int]]:
+def associate(
+    first: np.ndarray, second: np.ndarray, max_difference: float = MAX_DIFFERENCE
+) -> list[tuple[int, int]]:
     """TUM ``associate.py``: one-to-one pairs of two timestamp lists.
 
     Every pair closer than ``max_difference`` is a candidate; candidates are taken in order
@@ -183,28 +189,43 @@ def open_sequence(path: Path, fps: float) -> AgentInput:
         check_map_header(depth_file, image_size, "depth")
     timestamps = np.array([rgb[i][1] for i in frames], dtype=np.float64)
 
-    groundtruth = read_tum(path / "groundtruth.txt") if (path / "groundtruth.txt").is_file() \
-        else None
+    groundtruth = (
+        read_tum(path / "groundtruth.txt") if (path / "groundtruth.txt").is_file() else None
+    )
     calib_file = path / "calib.txt"
     name = path.resolve().name
-    calib, distortion = (read_calib(calib_file), ()) if calib_file.is_file() else \
-        camera_from_name(name)
+    calib, distortion = (
+        (read_calib(calib_file), ()) if calib_file.is_file() else camera_from_name(name)
+    )
     if calib is None:
-        logger.info("%s: no calib.txt and no freiburg1/2/3 in the folder name: uncalibrated",
-                    path)
+        logger.info("%s: no calib.txt and no freiburg1/2/3 in the folder name: uncalibrated", path)
     return UndistortedInput(
-        root=path, name=name, num_frames=len(frames), image_size=image_size,
-        timestamps=timestamps, calib=calib, groundtruth=groundtruth, odometry=None,
-        has_depth=bool(depth_files), has_surface=False, fps=float(fps),
-        stems=tuple(p.stem for p in image_paths), image_paths=image_paths, video=None,
-        depth_paths=tuple(depth_files), surface_paths=(),
-        format="tum", depth_units_per_metre=DEPTH_UNITS_PER_METRE, depth_invalid=(0,),
+        root=path,
+        name=name,
+        num_frames=len(frames),
+        image_size=image_size,
+        timestamps=timestamps,
+        calib=calib,
+        groundtruth=groundtruth,
+        odometry=None,
+        has_depth=bool(depth_files),
+        has_surface=False,
+        fps=float(fps),
+        stems=tuple(p.stem for p in image_paths),
+        image_paths=image_paths,
+        video=None,
+        depth_paths=tuple(depth_files),
+        surface_paths=(),
+        format="tum",
+        depth_units_per_metre=DEPTH_UNITS_PER_METRE,
+        depth_invalid=(0,),
         distortion=distortion,
     )
 
 
-def read_associations(path: Path) -> tuple[list[tuple[int, float, str]],
-                                           list[tuple[int, float, str]]]:
+def read_associations(
+    path: Path,
+) -> tuple[list[tuple[int, float, str]], list[tuple[int, float, str]]]:
     """The rgb and depth entries ``(line number, timestamp, file name)`` of an
     ``associations.txt``, pair by pair in rgb-time order.
 
@@ -224,20 +245,23 @@ def read_associations(path: Path) -> tuple[list[tuple[int, float, str]],
             continue
         parts = text.split()
         if len(parts) != 4:
-            raise InputError(f"{path}:{line_no}: expected 'rgb_timestamp rgb_file "
-                             f"depth_timestamp depth_file', got {text!r}")
+            raise InputError(
+                f"{path}:{line_no}: expected 'rgb_timestamp rgb_file "
+                f"depth_timestamp depth_file', got {text!r}"
+            )
         first = (line_no, parse_timestamp(parts[0], path, line_no), parts[1])
         second = (line_no, parse_timestamp(parts[2], path, line_no), parts[3])
         if parts[1].startswith("depth") and not parts[3].startswith("depth"):
             first, second = second, first  # written as associate.py depth.txt rgb.txt
         if rgb and first[1] <= rgb[-1][1]:
-            raise InputError(f"{path}:{line_no}: rgb timestamps are not strictly increasing "
-                             f"({rgb[-1][1]!r} then {first[1]!r})")
+            raise InputError(
+                f"{path}:{line_no}: rgb timestamps are not strictly increasing "
+                f"({rgb[-1][1]!r} then {first[1]!r})"
+            )
         rgb.append(first)
         depth.append(second)
     if not rgb:
-        raise InputError(f"{path}: no 'rgb_timestamp rgb_file depth_timestamp depth_file' "
-                         "entries")
+        raise InputError(f"{path}: no 'rgb_timestamp rgb_file depth_timestamp depth_file' entries")
     return rgb, depth
 
 
@@ -254,12 +278,19 @@ def _associate_lists(path: Path) -> tuple[list[tuple[int, float, str]], list[int
         depth = read_file_list(depth_list)
         pairs = associate(np.array([s for _, s, _ in rgb]), np.array([s for _, s, _ in depth]))
         if not pairs:
-            raise InputError(f"{depth_list}: no depth image within {MAX_DIFFERENCE} s of any "
-                             f"image of {rgb_list.name}")
+            raise InputError(
+                f"{depth_list}: no depth image within {MAX_DIFFERENCE} s of any "
+                f"image of {rgb_list.name}"
+            )
         if len(pairs) < len(rgb):
-            logger.warning("%s: %d of %d rgb images have no depth image within %g s "
-                           "(TUM associate.py); they are left out", path, len(rgb) - len(pairs),
-                           len(rgb), MAX_DIFFERENCE)
+            logger.warning(
+                "%s: %d of %d rgb images have no depth image within %g s "
+                "(TUM associate.py); they are left out",
+                path,
+                len(rgb) - len(pairs),
+                len(rgb),
+                MAX_DIFFERENCE,
+            )
         frames = [i for i, _ in pairs]
         depth_rows = [depth[j] for _, j in pairs]
         _check_listed(path, depth_list, depth_rows)
@@ -271,8 +302,10 @@ def ground_truth(path: Path) -> tuple[Path, Trajectory]:
     """``groundtruth.txt`` of a TUM sequence folder, as published (100 Hz motion capture)."""
     gt_file = path / "groundtruth.txt"
     if not gt_file.is_file():
-        raise InputError(f"{path}: TUM sequence has no groundtruth.txt (the benchmark's "
-                         "validation sequences publish none)")
+        raise InputError(
+            f"{path}: TUM sequence has no groundtruth.txt (the benchmark's "
+            "validation sequences publish none)"
+        )
     return gt_file, read_tum(gt_file)
 
 

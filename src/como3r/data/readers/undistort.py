@@ -35,18 +35,21 @@ class UndistortedInput(AgentInput):
 
     def load_frame(self, i: int) -> Frame:
         frame = super().load_frame(i)
-        return dataclasses.replace(frame, image=undistort(frame.image, self.calib,
-                                                          self.distortion))
+        return dataclasses.replace(frame, image=undistort(frame.image, self.calib, self.distortion))
 
     def load_depth(self, i: int) -> np.ndarray:
         """``(H, W)`` float32 metric depth of frame ``i`` on the undistorted pixels."""
-        return undistort(super().load_depth(i), self.calib, self.distortion,
-                         interpolation=cv2.INTER_NEAREST)
+        return undistort(
+            super().load_depth(i), self.calib, self.distortion, interpolation=cv2.INTER_NEAREST
+        )
 
 
-def undistort(image: np.ndarray, calib: tuple[float, float, float, float] | None,
-              distortion: tuple[float, ...], interpolation: int = cv2.INTER_LINEAR
-              ) -> np.ndarray:
+def undistort(
+    image: np.ndarray,
+    calib: tuple[float, float, float, float] | None,
+    distortion: tuple[float, ...],
+    interpolation: int = cv2.INTER_LINEAR,
+) -> np.ndarray:
     """``(H, W[, C])`` image of a radial-tangential camera, as seen by the pinhole camera of
     the same ``calib`` ``(fx, fy, cx, cy)`` (outside the distorted image: 0); unchanged
     without distortion."""
@@ -58,10 +61,12 @@ def undistort(image: np.ndarray, calib: tuple[float, float, float, float] | None
 
 
 @functools.lru_cache(maxsize=8)
-def _undistort_maps(calib: tuple[float, float, float, float], distortion: tuple[float, ...],
-                    size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def _undistort_maps(
+    calib: tuple[float, float, float, float], distortion: tuple[float, ...], size: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
     """``(H, W)`` float32 source x and y of each undistorted pixel."""
     fx, fy, cx, cy = calib
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    return cv2.initUndistortRectifyMap(K, np.array(distortion, dtype=np.float64), None, K,
-                                       size, cv2.CV_32FC1)
+    return cv2.initUndistortRectifyMap(
+        K, np.array(distortion, dtype=np.float64), None, K, size, cv2.CV_32FC1
+    )

@@ -103,32 +103,46 @@ def _rotation(agents: int, frames: int, overlap: float, rng: np.random.Generator
         turned = rate * np.arange(frames)
         yaw = heading0 + plan.starts[a] + turned
         wobble = rng.uniform(0, 2 * np.pi, 2)
-        pitch = np.radians(motion.pitch + motion.pitch_amplitude
-                           * np.sin(0.21 * np.arange(frames) + wobble[0]))
+        pitch = np.radians(
+            motion.pitch + motion.pitch_amplitude * np.sin(0.21 * np.arange(frames) + wobble[0])
+        )
         roll = np.radians(motion.roll_amplitude) * np.sin(0.13 * np.arange(frames) + wobble[1])
         xy = pivot + NODAL_OFFSET * np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
         positions = np.concatenate([xy, np.full((frames, 1), motion.height)], axis=1)
-        paths.append(AgentPath(arc=NODAL_OFFSET * turned, positions=positions,
-                               rotations=camera_rotations(yaw, pitch, roll)))
+        paths.append(
+            AgentPath(
+                arc=NODAL_OFFSET * turned,
+                positions=positions,
+                rotations=camera_rotations(yaw, pitch, roll),
+            )
+        )
     builder = SceneBuilder(rng, np.vstack([p.positions[:, :2] for p in paths]), CLEARANCE)
-    builder.ring_wall((0.0, 0.0), COURTYARD_RADIUS, WALL_HEIGHTS,
-                      math.ceil(2 * math.pi * COURTYARD_RADIUS / 8))
+    builder.ring_wall(
+        (0.0, 0.0), COURTYARD_RADIUS, WALL_HEIGHTS, math.ceil(2 * math.pi * COURTYARD_RADIUS / 8)
+    )
 
     def sample(g: np.random.Generator) -> tuple[float, float, float]:
         r = COURTYARD_RADIUS * math.sqrt(g.uniform())
         a = g.uniform(0, 2 * np.pi)
         return r * math.cos(a), r * math.sin(a), a
 
-    builder.scatter(sample, int(math.pi * COURTYARD_RADIUS ** 2 / 8.0))
-    info = {"loop": "none", "courtyard_radius_m": COURTYARD_RADIUS, "pivot_radius_m": radius,
-            "nodal_offset_m": NODAL_OFFSET, "rotation_deg_per_frame": ROTATION_DEG_PER_FRAME,
-            "shared_sweep_deg": math.degrees(plan.shared), "shared_length_m": 0.0,
-            "aliased_texture_ids": []}
+    builder.scatter(sample, int(math.pi * COURTYARD_RADIUS**2 / 8.0))
+    info = {
+        "loop": "none",
+        "courtyard_radius_m": COURTYARD_RADIUS,
+        "pivot_radius_m": radius,
+        "nodal_offset_m": NODAL_OFFSET,
+        "rotation_deg_per_frame": ROTATION_DEG_PER_FRAME,
+        "shared_sweep_deg": math.degrees(plan.shared),
+        "shared_length_m": 0.0,
+        "aliased_texture_ids": [],
+    }
     return SceneSpec(builder.build(), paths, [], motion, info)
 
 
-def _revisit(agents: int, frames: int, overlap: float, rng: np.random.Generator,
-             loop_frames: int | None) -> SceneSpec:
+def _revisit(
+    agents: int, frames: int, overlap: float, rng: np.random.Generator, loop_frames: int | None
+) -> SceneSpec:
     """The ``revisit`` preset (module docstring)."""
     jump = math.ceil(REVISIT_SHARE * frames)
     target = frames // 5
@@ -136,20 +150,29 @@ def _revisit(agents: int, frames: int, overlap: float, rng: np.random.Generator,
     motion = spec.motion
     paths = []
     for first in spec.paths:
-        rest = ride(spec.loop, float(first.arc[target]) + 0.5 * motion.speed, frames - jump,
-                    motion, 0.0, rng.uniform(0, 2 * np.pi, 4))
-        paths.append(AgentPath(
-            arc=np.concatenate([first.arc, rest.arc]),
-            positions=np.concatenate([first.positions, rest.positions]),
-            rotations=np.concatenate([first.rotations, rest.rotations]),
-            jumps=(jump,),
-        ))
+        rest = ride(
+            spec.loop,
+            float(first.arc[target]) + 0.5 * motion.speed,
+            frames - jump,
+            motion,
+            0.0,
+            rng.uniform(0, 2 * np.pi, 4),
+        )
+        paths.append(
+            AgentPath(
+                arc=np.concatenate([first.arc, rest.arc]),
+                positions=np.concatenate([first.positions, rest.positions]),
+                rotations=np.concatenate([first.rotations, rest.rotations]),
+                jumps=(jump,),
+            )
+        )
     info = {**spec.info, "revisit_jump_frame": jump, "revisit_target_frame": target}
     return SceneSpec(spec.scene, paths, spec.meetings, motion, info, loop=spec.loop)
 
 
-def build_preset(preset: str, agents: int, frames: int, overlap: float, seed: int,
-                 loop_frames: int | None = None) -> SceneSpec:
+def build_preset(
+    preset: str, agents: int, frames: int, overlap: float, seed: int, loop_frames: int | None = None
+) -> SceneSpec:
     """Generate the scene and agent paths of ``preset`` (validated by the caller: one of
     :data:`PRESETS`, at least :data:`MIN_FRAMES` frames).
 
@@ -173,17 +196,31 @@ def build_preset(preset: str, agents: int, frames: int, overlap: float, seed: in
     if preset == "rotation":
         return _rotation(agents, frames, overlap, rng)
     if preset == "fast":
-        return rooms(agents, frames, overlap, rng, aliasing=False, loop_frames=loop_frames,
-                     motion=CameraMotion(speed=FAST_FACTOR * CameraMotion().speed))
+        return rooms(
+            agents,
+            frames,
+            overlap,
+            rng,
+            aliasing=False,
+            loop_frames=loop_frames,
+            motion=CameraMotion(speed=FAST_FACTOR * CameraMotion().speed),
+        )
     if preset == "low-texture":
-        return rooms(agents, frames, overlap, rng, aliasing=False, plain=True,
-                     loop_frames=loop_frames)
+        return rooms(
+            agents, frames, overlap, rng, aliasing=False, plain=True, loop_frames=loop_frames
+        )
     if preset == "covered":
         spec = rooms(agents, frames, overlap, rng, aliasing=False, loop_frames=loop_frames)
         first, last = covered_frames(frames)
-        return SceneSpec(spec.scene, spec.paths, spec.meetings, spec.motion,
-                         {**spec.info, "covered_frames": [first, last]}, loop=spec.loop,
-                         covered=(first, last))
+        return SceneSpec(
+            spec.scene,
+            spec.paths,
+            spec.meetings,
+            spec.motion,
+            {**spec.info, "covered_frames": [first, last]},
+            loop=spec.loop,
+            covered=(first, last),
+        )
     if preset == "revisit":
         return _revisit(agents, frames, overlap, rng, loop_frames)
     raise ValueError(f"unknown preset {preset!r}")

@@ -8,8 +8,8 @@ paths so that nothing is ever placed closer than a clearance to any camera.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -79,8 +79,11 @@ class SceneBuilder:
         b = np.array([w[1] for w in self.walls])
         half_thickness = np.array([w[2] for w in self.walls])
         ab = b - a
-        u = np.clip(np.einsum("ij,ij->i", np.array([x, y]) - a, ab)
-                    / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
+        u = np.clip(
+            np.einsum("ij,ij->i", np.array([x, y]) - a, ab) / np.einsum("ij,ij->i", ab, ab),
+            0.0,
+            1.0,
+        )
         closest = a + u[:, None] * ab
         return float(np.min(np.hypot(x - closest[:, 0], y - closest[:, 1]) - half_thickness))
 
@@ -143,18 +146,32 @@ class SceneBuilder:
             centre = a + (i + 0.5) * module_length * direction
             left = style.left_id if style.left_id is not None else self.texture(Kind.FACADE)
             right = style.right_id if style.right_id is not None else self.texture(Kind.FACADE)
-            self.primitives.append(Box(
-                center=(float(centre[0]), float(centre[1]), 0.5 * height),
-                half=(0.5 * module_length, 0.5 * thickness, 0.5 * height),
-                yaw=yaw,
-                face_ids=(ends[2 * i], ends[2 * i + 1], left, right, roofs[2 * i],
-                          roofs[2 * i + 1]),
-            ))
+            self.primitives.append(
+                Box(
+                    center=(float(centre[0]), float(centre[1]), 0.5 * height),
+                    half=(0.5 * module_length, 0.5 * thickness, 0.5 * height),
+                    yaw=yaw,
+                    face_ids=(
+                        ends[2 * i],
+                        ends[2 * i + 1],
+                        left,
+                        right,
+                        roofs[2 * i],
+                        roofs[2 * i + 1],
+                    ),
+                )
+            )
         self.walls.append((a, a + count * module_length * direction, 0.5 * thickness))
 
-    def ring_wall(self, center: tuple[float, float], radius: float, heights: tuple[float, float],
-                  segments: int, thickness: float = 1.5, style: ModuleStyle = ModuleStyle()
-                  ) -> None:
+    def ring_wall(
+        self,
+        center: tuple[float, float],
+        radius: float,
+        heights: tuple[float, float],
+        segments: int,
+        thickness: float = 1.5,
+        style: ModuleStyle = ModuleStyle(),
+    ) -> None:
         """A closed polygon of walls whose inner (left) faces are tangent to the circle
         ``radius`` around ``center``; consecutive segments overlap so it is sealed."""
         outer = radius + 0.5 * thickness
@@ -163,44 +180,74 @@ class SceneBuilder:
             ang = 2.0 * math.pi * k / segments
             mid = np.array(center) + outer * np.array([math.cos(ang), math.sin(ang)])
             tangent = np.array([-math.sin(ang), math.cos(ang)])
-            self.wall(tuple(mid - half_chord * tangent), tuple(mid + half_chord * tangent),
-                      thickness, heights, 2.0 * half_chord, style)
+            self.wall(
+                tuple(mid - half_chord * tangent),
+                tuple(mid + half_chord * tangent),
+                thickness,
+                heights,
+                2.0 * half_chord,
+                style,
+            )
 
     def add_tree(self, x: float, y: float) -> None:
         """A trunk with a conical crown (footprint radius <= 1.5 m)."""
         u = self.rng.uniform
         base, yaw = float(u(1.7, 2.2)), float(u(0, 2 * np.pi))
         bark, leaves = self.family(Kind.BARK, 2), self.family(Kind.FOLIAGE, 2)
-        self.primitives.append(Cylinder((x, y), float(u(0.12, 0.2)), 0.0, base + 0.5, yaw,
-                                        *bark))
-        self.primitives.append(Cone((x, y), float(u(0.8, 1.5)), base, float(u(2.0, 3.5)), yaw,
-                                    *leaves))
+        self.primitives.append(Cylinder((x, y), float(u(0.12, 0.2)), 0.0, base + 0.5, yaw, *bark))
+        self.primitives.append(
+            Cone((x, y), float(u(0.8, 1.5)), base, float(u(2.0, 3.5)), yaw, *leaves)
+        )
 
     def add_building(self, x: float, y: float, half: tuple[float, float], yaw: float) -> None:
         """A low building with façades and stone sides."""
         height = float(self.rng.uniform(3.0, MAX_CLUTTER_HEIGHT))
         faces = [self.texture(Kind.FACADE if i % 2 == 0 else Kind.STONE) for i in range(4)]
-        self.primitives.append(Box((x, y, 0.5 * height), (*half, 0.5 * height), yaw,
-                                   (*faces, *self.family(Kind.ROOF, 2))))
+        self.primitives.append(
+            Box(
+                (x, y, 0.5 * height),
+                (*half, 0.5 * height),
+                yaw,
+                (*faces, *self.family(Kind.ROOF, 2)),
+            )
+        )
 
     def add_small_object(self, kind: str, x: float, y: float) -> None:
         """A pillar, shrub, crate or bollard."""
         u = self.rng.uniform
         yaw = float(u(0, 2 * np.pi))
         if kind == "pillar":
-            self.primitives.append(Cylinder((x, y), float(u(0.2, 0.5)), 0.0, float(u(2.5, 5.0)),
-                                            yaw, *self.family(Kind.CONCRETE, 2)))
+            self.primitives.append(
+                Cylinder(
+                    (x, y),
+                    float(u(0.2, 0.5)),
+                    0.0,
+                    float(u(2.5, 5.0)),
+                    yaw,
+                    *self.family(Kind.CONCRETE, 2),
+                )
+            )
         elif kind == "shrub":
-            self.primitives.append(Cone((x, y), float(u(0.4, 0.8)), 0.0, float(u(0.8, 1.6)),
-                                        yaw, *self.family(Kind.FOLIAGE, 2)))
+            self.primitives.append(
+                Cone(
+                    (x, y),
+                    float(u(0.4, 0.8)),
+                    0.0,
+                    float(u(0.8, 1.6)),
+                    yaw,
+                    *self.family(Kind.FOLIAGE, 2),
+                )
+            )
         elif kind == "crate":
             h = float(u(0.4, 1.2))
             half = (float(u(0.2, 0.6)), float(u(0.2, 0.6)), 0.5 * h)
-            self.primitives.append(Box((x, y, 0.5 * h), half, yaw,
-                                       tuple(self.family(Kind.PAINT, 6))))
+            self.primitives.append(
+                Box((x, y, 0.5 * h), half, yaw, tuple(self.family(Kind.PAINT, 6)))
+            )
         else:
-            self.primitives.append(Cylinder((x, y), 0.1, 0.0, 0.9, yaw,
-                                            *self.family(Kind.PAINT, 2)))
+            self.primitives.append(
+                Cylinder((x, y), 0.1, 0.0, 0.9, yaw, *self.family(Kind.PAINT, 2))
+            )
 
     _SMALL_RADIUS = {"tree": 1.5, "pillar": 0.5, "shrub": 0.8, "crate": 0.9, "bollard": 0.15}
 
@@ -209,8 +256,12 @@ class SceneBuilder:
 
         ``facing`` is the preferred yaw of buildings (so they line up with the paths).
         """
-        kind = str(self.rng.choice(["building", "tree", "pillar", "shrub", "crate", "bollard"],
-                                   p=[0.25, 0.2, 0.15, 0.15, 0.15, 0.1]))
+        kind = str(
+            self.rng.choice(
+                ["building", "tree", "pillar", "shrub", "crate", "bollard"],
+                p=[0.25, 0.2, 0.15, 0.15, 0.15, 0.1],
+            )
+        )
         if kind == "building":
             half = (float(self.rng.uniform(1.5, 4.0)), float(self.rng.uniform(1.5, 4.0)))
             radius = math.hypot(*half)

@@ -98,12 +98,18 @@ def _loop_radius(length: float, petals: int) -> tuple[float, float]:
     return radius, fit_flower_bulge(length, radius, petals)
 
 
-def _plan(agents: int, frames: int, overlap: float, motion: CameraMotion,
-          loop_frames: int | None) -> RingPlan:
+def _plan(
+    agents: int, frames: int, overlap: float, motion: CameraMotion, loop_frames: int | None
+) -> RingPlan:
     """The ring plan of agents riding ``frames`` at ``motion.speed``, on a loop at least
     ``loop_frames`` frames of motion long."""
-    return plan_ring(agents, motion.speed * (frames - 1), overlap, motion.speed,
-                     motion.speed * (loop_frames or 0))
+    return plan_ring(
+        agents,
+        motion.speed * (frames - 1),
+        overlap,
+        motion.speed,
+        motion.speed * (loop_frames or 0),
+    )
 
 
 def _ring_paths(
@@ -118,8 +124,10 @@ def _ring_paths(
     (not of the last and the first on an open plan) and the shared stretch length."""
     agents = len(plan.starts)
     path_length = motion.speed * (frames - 1)
-    paths = [ride(curve, float(plan.starts[a]), frames, motion, lateral[a],
-                  rng.uniform(0, 2 * np.pi, 4)) for a in range(agents)]
+    paths = [
+        ride(curve, float(plan.starts[a]), frames, motion, lateral[a], rng.uniform(0, 2 * np.pi, 4))
+        for a in range(agents)
+    ]
     meetings = []
     if agents > 1:
         eps = 1e-9 + 1e-6 * motion.speed
@@ -128,12 +136,14 @@ def _ring_paths(
             tail = np.nonzero(paths[a].arc >= plan.starts[a] + path_length - plan.shared - eps)[0]
             head = np.nonzero(paths[b].arc <= plan.starts[b] + plan.shared + eps)[0]
             junction, _ = curve.at(np.array([plan.junctions[b]]))
-            meetings.append(Meeting(
-                agents=(a, b),
-                junction=(float(junction[0, 0]), float(junction[0, 1])),
-                length=float(plan.shared),
-                frames=((int(tail[0]), int(tail[-1])), (int(head[0]), int(head[-1]))),
-            ))
+            meetings.append(
+                Meeting(
+                    agents=(a, b),
+                    junction=(float(junction[0, 0]), float(junction[0, 1])),
+                    length=float(plan.shared),
+                    frames=((int(tail[0]), int(tail[-1])), (int(head[0]), int(head[-1]))),
+                )
+            )
     return paths, meetings, float(plan.shared)
 
 
@@ -141,8 +151,14 @@ def _lateral_offsets(agents: int, amplitude: float) -> list[float]:
     return [amplitude * (1 if a % 2 == 0 else -1) for a in range(agents)]
 
 
-def _door_walls(builder: SceneBuilder, theta: float, radius: float, tower: float, outer: float,
-                style: ModuleStyle) -> None:
+def _door_walls(
+    builder: SceneBuilder,
+    theta: float,
+    radius: float,
+    tower: float,
+    outer: float,
+    style: ModuleStyle,
+) -> None:
     """The wall between two rooms along the ray at angle ``theta``, with a door where the
     loop's waist crosses it: an outer row of buildings from the door to the ring wall and
     an inner one from the tower to the door, each reaching as close to the waist as the
@@ -151,20 +167,29 @@ def _door_walls(builder: SceneBuilder, theta: float, radius: float, tower: float
     u = np.array([math.cos(theta), math.sin(theta)])
     far = outer + 2.0
     for start in np.arange(radius + builder.clearance, far - module, 0.25):
-        if builder.box_clear(0.5 * (start + far) * u, (0.5 * (far - start), 0.5 * thickness),
-                             theta):
+        if builder.box_clear(
+            0.5 * (start + far) * u, (0.5 * (far - start), 0.5 * thickness), theta
+        ):
             builder.wall(tuple(start * u), tuple(far * u), thickness, WALL_HEIGHTS, module, style)
             break
     for end in np.arange(radius - builder.clearance, tower + 0.5, -0.25):
-        if builder.box_clear(0.5 * (tower + end) * u, (0.5 * (end - tower), 0.5 * thickness),
-                             theta):
+        if builder.box_clear(
+            0.5 * (tower + end) * u, (0.5 * (end - tower), 0.5 * thickness), theta
+        ):
             builder.wall(tuple(tower * u), tuple(end * u), thickness, WALL_HEIGHTS, end - tower)
             break
 
 
-def rooms(agents: int, frames: int, overlap: float, rng: np.random.Generator,
-          aliasing: bool, motion: CameraMotion = CameraMotion(), plain: bool = False,
-          loop_frames: int | None = None) -> SceneSpec:
+def rooms(
+    agents: int,
+    frames: int,
+    overlap: float,
+    rng: np.random.Generator,
+    aliasing: bool,
+    motion: CameraMotion = CameraMotion(),
+    plain: bool = False,
+    loop_frames: int | None = None,
+) -> SceneSpec:
     """The ``default`` and ``aliasing`` presets (module docstring); with another camera
     ``motion`` or ``plain`` textures (:class:`SceneBuilder`), the rooms of the families in
     :mod:`.families`. The loop is at least ``loop_frames`` frames of motion long."""
@@ -173,8 +198,9 @@ def rooms(agents: int, frames: int, overlap: float, rng: np.random.Generator,
     phase = float(rng.uniform(0, 2 * np.pi))
     curve = flower_loop((0.0, 0.0), radius, bulge, agents, phase)
     offset = min(0.2, 0.1 * radius)
-    paths, meetings, shared = _ring_paths(curve, plan, frames, motion,
-                                          _lateral_offsets(agents, offset), rng)
+    paths, meetings, shared = _ring_paths(
+        curve, plan, frames, motion, _lateral_offsets(agents, offset), rng
+    )
     builder = SceneBuilder(rng, curve.points, CLEARANCE + offset, plain=plain)
     outer = max(radius + bulge + 7.0, 10.0)
 
@@ -185,31 +211,51 @@ def rooms(agents: int, frames: int, overlap: float, rng: np.random.Generator,
     aliased = [i for st in (style, ring_style) for i in (st.left_id, st.right_id) if i is not None]
     tower = radius - builder.clearance - 0.3
     if tower >= 0.4:
-        builder.primitives.append(Cylinder((0.0, 0.0), tower, 0.0, WALL_HEIGHTS[0], phase,
-                                           builder.texture(Kind.FACADE),
-                                           builder.texture(Kind.ROOF)))
+        builder.primitives.append(
+            Cylinder(
+                (0.0, 0.0),
+                tower,
+                0.0,
+                WALL_HEIGHTS[0],
+                phase,
+                builder.texture(Kind.FACADE),
+                builder.texture(Kind.ROOF),
+            )
+        )
         builder.footprints.append((0.0, 0.0, tower))
     else:
         tower = 0.0
     for k in range(agents):
         _door_walls(builder, phase + 2.0 * math.pi * k / agents, radius, tower, outer, style)
-    builder.ring_wall((0.0, 0.0), outer, WALL_HEIGHTS, max(8, math.ceil(2 * math.pi * outer / 8)),
-                      style=ring_style)
+    builder.ring_wall(
+        (0.0, 0.0),
+        outer,
+        WALL_HEIGHTS,
+        max(8, math.ceil(2 * math.pi * outer / 8)),
+        style=ring_style,
+    )
 
     def sample(g: np.random.Generator) -> tuple[float, float, float]:
         r = outer * math.sqrt(g.uniform())
         a = g.uniform(0, 2 * np.pi)
         return r * math.cos(a), r * math.sin(a), a
 
-    area = math.pi * outer ** 2
+    area = math.pi * outer**2
     builder.scatter(sample, int(np.clip(area / 12.0, 8, 300)))
-    info = {"loop": "flower", "loop_length_m": curve.length, "waist_radius_m": radius,
-            "bulge_m": bulge, "shared_length_m": shared, "aliased_texture_ids": aliased}
+    info = {
+        "loop": "flower",
+        "loop_length_m": curve.length,
+        "waist_radius_m": radius,
+        "bulge_m": bulge,
+        "shared_length_m": shared,
+        "aliased_texture_ids": aliased,
+    }
     return SceneSpec(builder.build(), paths, meetings, motion, info, loop=curve)
 
 
-def _compounds(agents: int, frames: int, rng: np.random.Generator,
-               loop_frames: int | None) -> SceneSpec:
+def _compounds(
+    agents: int, frames: int, rng: np.random.Generator, loop_frames: int | None
+) -> SceneSpec:
     """The ``no-meeting`` preset: one sealed compound and one closed loop per agent (an
     open part of a loop ``loop_frames`` frames of motion long, if that is longer)."""
     motion = CameraMotion()
@@ -219,24 +265,45 @@ def _compounds(agents: int, frames: int, rng: np.random.Generator,
     half = radius + bulge + 6.0
     thickness = 1.0
     pitch = 2.0 * (half + thickness) + 4.0
-    curves = [flower_loop((a * pitch, 0.0), radius, bulge, 3, float(rng.uniform(0, 2 * np.pi)))
-              for a in range(agents)]
-    paths = [ride(curves[a], 0.0, frames, motion, 0.0, rng.uniform(0, 2 * np.pi, 4))
-             for a in range(agents)]
+    curves = [
+        flower_loop((a * pitch, 0.0), radius, bulge, 3, float(rng.uniform(0, 2 * np.pi)))
+        for a in range(agents)
+    ]
+    paths = [
+        ride(curves[a], 0.0, frames, motion, 0.0, rng.uniform(0, 2 * np.pi, 4))
+        for a in range(agents)
+    ]
     builder = SceneBuilder(rng, np.vstack([c.points for c in curves]), CLEARANCE)
     for a in range(agents):
         cx = a * pitch
         h, e = half + 0.5 * thickness, half + thickness
         # Counter-clockwise, so the left (+y) façades face into the compound.
-        corners = [(cx - e, -h), (cx + e, -h), (cx + h, -e), (cx + h, e), (cx + e, h),
-                   (cx - e, h), (cx - h, e), (cx - h, -e)]
+        corners = [
+            (cx - e, -h),
+            (cx + e, -h),
+            (cx + h, -e),
+            (cx + h, e),
+            (cx + e, h),
+            (cx - e, h),
+            (cx - h, e),
+            (cx - h, -e),
+        ]
         for i in range(0, 8, 2):
             builder.wall(corners[i], corners[i + 1], thickness, (9.0, 11.0), 2 * e / 3)
         tower = radius - builder.clearance - 0.3
         if tower >= 0.4:
             tex = builder.texture(Kind.CONCRETE)
-            builder.primitives.append(Cylinder((cx, 0.0), tower, 0.0, MAX_CLUTTER_HEIGHT, 0.0,
-                                               tex, builder.materials.clone(tex)))
+            builder.primitives.append(
+                Cylinder(
+                    (cx, 0.0),
+                    tower,
+                    0.0,
+                    MAX_CLUTTER_HEIGHT,
+                    0.0,
+                    tex,
+                    builder.materials.clone(tex),
+                )
+            )
             builder.footprints.append((cx, 0.0, tower))
 
     def sample(g: np.random.Generator) -> tuple[float, float, float]:
@@ -244,17 +311,30 @@ def _compounds(agents: int, frames: int, rng: np.random.Generator,
         return a * pitch + g.uniform(-half, half), g.uniform(-half, half), 0.0
 
     builder.scatter(sample, int(np.clip(agents * (2 * half) ** 2 / 12.0, 8, 300)))
-    info = {"loop": "flower", "loop_length_m": curves[0].length, "compound_half_size_m": half,
-            "shared_length_m": 0.0, "aliased_texture_ids": []}
+    info = {
+        "loop": "flower",
+        "loop_length_m": curves[0].length,
+        "compound_half_size_m": half,
+        "shared_length_m": 0.0,
+        "aliased_texture_ids": [],
+    }
     return SceneSpec(builder.build(), paths, [], motion, info)
 
 
-def _road(agents: int, frames: int, overlap: float, rng: np.random.Generator,
-          loop_frames: int | None) -> SceneSpec:
+def _road(
+    agents: int, frames: int, overlap: float, rng: np.random.Generator, loop_frames: int | None
+) -> SceneSpec:
     """The ``forward`` preset: a ring road; agents drive its outer lane (at least
     ``loop_frames`` frames of motion long)."""
-    motion = CameraMotion(speed=0.4, yaw_amplitude=0.5, yaw_wavelength=40.0, pitch=-2.0,
-                          pitch_amplitude=0.3, roll_amplitude=0.0, bob_amplitude=0.01)
+    motion = CameraMotion(
+        speed=0.4,
+        yaw_amplitude=0.5,
+        yaw_wavelength=40.0,
+        pitch=-2.0,
+        pitch_amplitude=0.3,
+        roll_amplitude=0.0,
+        bob_amplitude=0.01,
+    )
     plan = _plan(agents, frames, overlap, motion, loop_frames)
     half_width, lane = 3.5, 1.75
     loop_length = plan.loop_length
@@ -266,13 +346,20 @@ def _road(agents: int, frames: int, overlap: float, rng: np.random.Generator,
     road_radius = lane_radius - lane
     road = None
     builder_clearance = CLEARANCE + 0.3
-    paths, meetings, shared = _ring_paths(curve, plan, frames, motion,
-                                          _lateral_offsets(agents, 0.15), rng)
+    paths, meetings, shared = _ring_paths(
+        curve, plan, frames, motion, _lateral_offsets(agents, 0.15), rng
+    )
     builder = SceneBuilder(rng, curve.points, builder_clearance)
     if road_radius > half_width:
-        road = StadiumRoad((0.0, 0.0), straight, road_radius, half_width,
-                           builder.materials.add(Kind.ROAD, (0.22, 0.22, 0.23),
-                                                 (0.92, 0.92, 0.88), (half_width, 6.0)))
+        road = StadiumRoad(
+            (0.0, 0.0),
+            straight,
+            road_radius,
+            half_width,
+            builder.materials.add(
+                Kind.ROAD, (0.22, 0.22, 0.23), (0.92, 0.92, 0.88), (half_width, 6.0)
+            ),
+        )
 
         def on_road(x: float, y: float, r: float) -> bool:
             _, lateral = road.coordinates(np.array([x]), np.array([y]))
@@ -281,8 +368,13 @@ def _road(agents: int, frames: int, overlap: float, rng: np.random.Generator,
         builder.keep_out = on_road
     inner = road_radius - half_width - 2.0
     if inner >= 1.0 and straight >= 4.0:
-        builder.wall((-0.5 * straight, 0.0), (0.5 * straight, 0.0), 2 * min(inner, 6.0),
-                     WALL_HEIGHTS, straight / max(1, round(straight / 8.0)))
+        builder.wall(
+            (-0.5 * straight, 0.0),
+            (0.5 * straight, 0.0),
+            2 * min(inner, 6.0),
+            WALL_HEIGHTS,
+            straight / max(1, round(straight / 8.0)),
+        )
     outer = 0.5 * straight + lane_radius + half_width + 16.0
     builder.ring_wall((0.0, 0.0), outer, WALL_HEIGHTS, max(8, math.ceil(2 * math.pi * outer / 10)))
 
@@ -295,13 +387,25 @@ def _road(agents: int, frames: int, overlap: float, rng: np.random.Generator,
         return float(x), float(y), math.atan2(tangent[0, 1], tangent[0, 0])
 
     builder.scatter(sample, int(np.clip(curve.length * 0.6, 8, 300)))
-    info = {"loop": "stadium", "loop_length_m": curve.length, "lane_radius_m": lane_radius,
-            "straight_m": straight, "shared_length_m": shared, "aliased_texture_ids": []}
+    info = {
+        "loop": "stadium",
+        "loop_length_m": curve.length,
+        "lane_radius_m": lane_radius,
+        "straight_m": straight,
+        "shared_length_m": shared,
+        "aliased_texture_ids": [],
+    }
     return SceneSpec(builder.build(road), paths, meetings, motion, info, loop=curve)
 
 
-def build_base_preset(preset: str, agents: int, frames: int, overlap: float,
-                      rng: np.random.Generator, loop_frames: int | None = None) -> SceneSpec:
+def build_base_preset(
+    preset: str,
+    agents: int,
+    frames: int,
+    overlap: float,
+    rng: np.random.Generator,
+    loop_frames: int | None = None,
+) -> SceneSpec:
     """Generate the scene and agent paths of one of :data:`BASE_PRESETS` (validated by the
     caller) from the scene's random generator; the loop is at least ``loop_frames`` frames
     of motion long (None: as long as the agents' paths make it)."""

@@ -30,9 +30,7 @@ SurfaceKeys = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 Components = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
-def _quadratic_roots(
-    a: np.ndarray, b: np.ndarray, c: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def _quadratic_roots(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Both real roots of ``a x^2 + b x + c = 0`` (``nan`` where none), numerically stable.
 
     Uses ``q = -(b + sign(b) sqrt(disc)) / 2``, roots ``q / a`` and ``c / q``, which stays
@@ -44,8 +42,9 @@ def _quadratic_roots(
         return q / a, c / q
 
 
-def _nearest_valid(roots: tuple[np.ndarray, np.ndarray], oz: float, dz: np.ndarray,
-                   z_lo: float, z_hi: float) -> np.ndarray:
+def _nearest_valid(
+    roots: tuple[np.ndarray, np.ndarray], oz: float, dz: np.ndarray, z_lo: float, z_hi: float
+) -> np.ndarray:
     """Smallest root > NEAR whose hit height lies in ``[z_lo, z_hi]`` (``inf`` if none)."""
     lam = np.full(dz.shape, np.inf)
     for root in roots:
@@ -56,13 +55,15 @@ def _nearest_valid(roots: tuple[np.ndarray, np.ndarray], oz: float, dz: np.ndarr
     return lam
 
 
-def _disc_hit(o: np.ndarray, d: Components, center: tuple[float, float], radius: float,
-              z: float) -> np.ndarray:
+def _disc_hit(
+    o: np.ndarray, d: Components, center: tuple[float, float], radius: float, z: float
+) -> np.ndarray:
     """``lam`` of the horizontal disc of ``radius`` at height ``z`` (``inf`` on a miss)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = (z - o[2]) / d[2]
-        inside = ((o[0] - center[0] + lam * d[0]) ** 2
-                  + (o[1] - center[1] + lam * d[1]) ** 2 <= radius * radius)
+        inside = (o[0] - center[0] + lam * d[0]) ** 2 + (
+            o[1] - center[1] + lam * d[1]
+        ) ** 2 <= radius * radius
     return np.where(inside & (lam > NEAR), lam, np.inf)
 
 
@@ -156,8 +157,14 @@ class Cylinder:
         """``(8, 3)`` corners of the world bounding box."""
         cx, cy = self.center
         r = self.radius
-        return np.array([[cx + x * r, cy + y * r, z] for x in (-1, 1) for y in (-1, 1)
-                         for z in (self.z0, self.z1)])
+        return np.array(
+            [
+                [cx + x * r, cy + y * r, z]
+                for x in (-1, 1)
+                for y in (-1, 1)
+                for z in (self.z0, self.z1)
+            ]
+        )
 
     def intersect(self, o: np.ndarray, d: Components) -> np.ndarray:
         """``lam`` of the first hit on the side or the caps, shaped like ``d[0]``."""
@@ -165,7 +172,7 @@ class Cylinder:
         dx, dy, dz = d
         a = dx * dx + dy * dy
         b = 2.0 * (px * dx + py * dy)
-        c = px * px + py * py - self.radius ** 2
+        c = px * px + py * py - self.radius**2
         lam = _nearest_valid(_quadratic_roots(a, b, c), o[2], dz, self.z0, self.z1)
         for z_cap in (self.z0, self.z1):
             lam = np.fmin(lam, _disc_hit(o, d, self.center, self.radius, z_cap))
@@ -175,8 +182,9 @@ class Cylinder:
         """Side: s = arc length from ``yaw``, t = height above z0. Caps: corner offsets."""
         x, y = p[0] - self.center[0], p[1] - self.center[1]
         radial = np.hypot(x, y)
-        side = np.abs(radial - self.radius) < np.minimum(np.abs(p[2] - self.z0),
-                                                         np.abs(p[2] - self.z1))
+        side = np.abs(radial - self.radius) < np.minimum(
+            np.abs(p[2] - self.z0), np.abs(p[2] - self.z1)
+        )
         angle = np.mod(np.arctan2(y, x) - self.yaw, 2.0 * np.pi)
         s = np.where(side, self.radius * angle, x + self.radius)
         t = np.where(side, p[2] - self.z0, y + self.radius)
@@ -209,8 +217,14 @@ class Cone:
         """``(8, 3)`` corners of the world bounding box."""
         cx, cy = self.center
         r = self.radius
-        return np.array([[cx + x * r, cy + y * r, z] for x in (-1, 1) for y in (-1, 1)
-                         for z in (self.z_base, self.z_base + self.height)])
+        return np.array(
+            [
+                [cx + x * r, cy + y * r, z]
+                for x in (-1, 1)
+                for y in (-1, 1)
+                for z in (self.z_base, self.z_base + self.height)
+            ]
+        )
 
     def intersect(self, o: np.ndarray, d: Components) -> np.ndarray:
         """``lam`` of the first hit on the side or the base disc, shaped like ``d[0]``."""
@@ -282,8 +296,9 @@ class StadiumRoad:
         ang_left = np.arctan2(-v, -(u + half)) + 0.5 * np.pi
         arc_right = self.straight + self.radius * ang_right
         arc_left = 2.0 * self.straight + np.pi * self.radius + self.radius * ang_left
-        arc = np.where(on_straight, np.where(v < 0, arc_low, arc_high),
-                       np.where(u > 0, arc_right, arc_left))
+        arc = np.where(
+            on_straight, np.where(v < 0, arc_low, arc_high), np.where(u > 0, arc_right, arc_left)
+        )
         return np.mod(arc, self.length), lateral
 
 

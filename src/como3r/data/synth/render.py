@@ -35,7 +35,7 @@ class Intrinsics:
     height: int
 
     @classmethod
-    def from_hfov(cls, width: int, height: int, hfov_deg: float) -> "Intrinsics":
+    def from_hfov(cls, width: int, height: int, hfov_deg: float) -> Intrinsics:
         """Square pixels, principal point at the image centre, horizontal field of view."""
         fx = 0.5 * width / math.tan(math.radians(hfov_deg) / 2.0)
         return cls(fx, fx, (width - 1) / 2.0, (height - 1) / 2.0, width, height)
@@ -124,7 +124,8 @@ class Renderer:
         o = np.asarray(t_WC, dtype=np.float64)
         # World ray directions as three contiguous (H, W) planes.
         dirs = np.ascontiguousarray(
-            np.einsum("ij,hwj->ihw", np.asarray(R_WC, dtype=np.float64), self._rays))
+            np.einsum("ij,hwj->ihw", np.asarray(R_WC, dtype=np.float64), self._rays)
+        )
         rects = self._screen_rects(R_WC, o)
         rgb = np.empty((H, W, 3), dtype=np.uint8)
         depth = np.empty((H, W), dtype=np.float32)
@@ -134,14 +135,23 @@ class Renderer:
         band = max(1, _BAND_PIXELS // W)
         for v0 in range(0, H, band):
             v1 = min(H, v0 + band)
-            in_band = [(k, max(a, v0) - v0, min(b, v1) - v0, u0, u1)
-                       for k, a, b, u0, u1 in rects if a < v1 and b > v0]
-            self._render_band(o, dirs[:, v0:v1], in_band, rgb[v0:v1], depth[v0:v1],
-                              surface[v0:v1])
+            in_band = [
+                (k, max(a, v0) - v0, min(b, v1) - v0, u0, u1)
+                for k, a, b, u0, u1 in rects
+                if a < v1 and b > v0
+            ]
+            self._render_band(o, dirs[:, v0:v1], in_band, rgb[v0:v1], depth[v0:v1], surface[v0:v1])
         return Frame(rgb=rgb, depth=depth, surface=surface)
 
-    def _render_band(self, o: np.ndarray, dirs: np.ndarray, rects: list[tuple[int, ...]],
-                     rgb: np.ndarray, depth_out: np.ndarray, surface: np.ndarray) -> None:
+    def _render_band(
+        self,
+        o: np.ndarray,
+        dirs: np.ndarray,
+        rects: list[tuple[int, ...]],
+        rgb: np.ndarray,
+        depth_out: np.ndarray,
+        surface: np.ndarray,
+    ) -> None:
         """Render rows of the image into the output views ``rgb``, ``depth_out``,
         ``surface``; ``dirs`` ``(3, h, W)`` and ``rects`` are relative to the band."""
         depth, owner = self._cast(o, dirs, rects)
@@ -159,8 +169,9 @@ class Renderer:
             k = flat_owner[order[a]]
             if k == _SKY:
                 continue
-            surface_fn = self.scene.ground.surface if k == _GROUND else \
-                self.scene.primitives[k].surface
+            surface_fn = (
+                self.scene.ground.surface if k == _GROUND else self.scene.primitives[k].surface
+            )
             ids[a:b], s[a:b], t[a:b], nz[a:b] = surface_fn(tuple(p[a:b] for p in points))
 
         solid = ids >= 0
@@ -169,14 +180,22 @@ class Renderer:
         colour[~solid] = sky_colour(np.stack([r[~solid] for r in rays], axis=1))
         h, w = depth.shape
         unsorted = np.empty((order.size, 7))
-        unsorted[order] = np.column_stack([np.round(np.clip(colour, 0.0, 1.0) * 255.0), lam, ids,
-                                           np.where(solid, s, 0.0), np.where(solid, t, 0.0)])
+        unsorted[order] = np.column_stack(
+            [
+                np.round(np.clip(colour, 0.0, 1.0) * 255.0),
+                lam,
+                ids,
+                np.where(solid, s, 0.0),
+                np.where(solid, t, 0.0),
+            ]
+        )
         rgb[...] = unsorted[:, :3].reshape(h, w, 3)
         depth_out[...] = unsorted[:, 3].reshape(h, w)
         surface[...] = unsorted[:, 4:].reshape(h, w, 3)
 
-    def _cast(self, o: np.ndarray, dirs: np.ndarray, rects: list[tuple[int, ...]]
-              ) -> tuple[np.ndarray, np.ndarray]:
+    def _cast(
+        self, o: np.ndarray, dirs: np.ndarray, rects: list[tuple[int, ...]]
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Nearest hit of every ray: z-depth ``(h, W)`` (``inf`` for sky) and its owner
         ``(h, W)`` int32 (primitive index, ``_GROUND`` or ``_SKY``)."""
         depth = self.scene.ground.intersect(o, tuple(dirs))

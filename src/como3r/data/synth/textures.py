@@ -135,8 +135,8 @@ def fbm(
         gain: amplitude ratio between consecutive octaves (< 1 = smoother).
     """
     k = np.arange(octaves)
-    freq = (2.0 ** k / wavelength)[:, None].astype(s.dtype)
-    amplitude = gain ** k
+    freq = (2.0**k / wavelength)[:, None].astype(s.dtype)
+    amplitude = gain**k
     amplitude = (amplitude * (2.0 / amplitude.sum())).astype(s.dtype)
     # All octaves in one call; the offsets decorrelate lattices that would align at 0.
     seeds = _as_u32(seed)[None] + (101 * k).astype(np.uint32)[:, None]
@@ -184,8 +184,12 @@ class MaterialTable:
     def clone(self, texture_id: int) -> int:
         """A new id with the same kind, colours and proportions (but its own noise): for
         the faces of one object, which must not share keys with each other."""
-        return self.add(Kind(self.kind[texture_id]), self.color_a[texture_id],
-                        self.color_b[texture_id], self.params[texture_id])
+        return self.add(
+            Kind(self.kind[texture_id]),
+            self.color_a[texture_id],
+            self.color_b[texture_id],
+            self.params[texture_id],
+        )
 
     def kinds_of(self) -> dict[int, str]:
         """Texture id -> kind name, for scene.json."""
@@ -197,12 +201,22 @@ def _jitter(rng: np.random.Generator, rgb: tuple[float, float, float], amount: f
 
 
 _WALL_COLOURS = [
-    (0.80, 0.72, 0.60), (0.70, 0.45, 0.35), (0.85, 0.82, 0.74), (0.55, 0.60, 0.65),
-    (0.78, 0.62, 0.42), (0.60, 0.55, 0.50), (0.88, 0.78, 0.62), (0.50, 0.42, 0.40),
+    (0.80, 0.72, 0.60),
+    (0.70, 0.45, 0.35),
+    (0.85, 0.82, 0.74),
+    (0.55, 0.60, 0.65),
+    (0.78, 0.62, 0.42),
+    (0.60, 0.55, 0.50),
+    (0.88, 0.78, 0.62),
+    (0.50, 0.42, 0.40),
 ]
 _PAINT_COLOURS = [
-    (0.75, 0.20, 0.15), (0.15, 0.35, 0.70), (0.85, 0.65, 0.10), (0.20, 0.55, 0.30),
-    (0.55, 0.55, 0.58), (0.90, 0.45, 0.10),
+    (0.75, 0.20, 0.15),
+    (0.15, 0.35, 0.70),
+    (0.85, 0.65, 0.10),
+    (0.20, 0.55, 0.30),
+    (0.55, 0.55, 0.58),
+    (0.90, 0.45, 0.10),
 ]
 
 
@@ -218,11 +232,16 @@ def random_material(table: MaterialTable, kind: Kind, rng: np.random.Generator) 
         return table.add(kind, stone, (0.35, 0.33, 0.30), (u(0.28, 0.45), u(0.55, 0.95)))
     if kind == Kind.CONCRETE:
         grey = u(0.50, 0.72)
-        return table.add(kind, _jitter(rng, (grey, grey, grey * 0.97), 0.03), (0.3, 0.3, 0.3),
-                         (u(1.0, 1.6), u(0.5, 0.9)))
+        return table.add(
+            kind,
+            _jitter(rng, (grey, grey, grey * 0.97), 0.03),
+            (0.3, 0.3, 0.3),
+            (u(1.0, 1.6), u(0.5, 0.9)),
+        )
     if kind == Kind.FOLIAGE:
-        return table.add(kind, _jitter(rng, (0.12, 0.30, 0.10), 0.04),
-                         _jitter(rng, (0.40, 0.62, 0.22), 0.06))
+        return table.add(
+            kind, _jitter(rng, (0.12, 0.30, 0.10), 0.04), _jitter(rng, (0.40, 0.62, 0.22), 0.06)
+        )
     if kind == Kind.BARK:
         return table.add(kind, _jitter(rng, (0.30, 0.22, 0.15), 0.04), (0.15, 0.11, 0.08))
     if kind == Kind.ROOF:
@@ -232,12 +251,17 @@ def random_material(table: MaterialTable, kind: Kind, rng: np.random.Generator) 
         stripe = _jitter(rng, _PAINT_COLOURS[rng.integers(len(_PAINT_COLOURS))], 0.05)
         return table.add(kind, base, stripe, (u(0.15, 0.4),))
     if kind == Kind.PAVING:
-        return table.add(kind, _jitter(rng, (0.62, 0.58, 0.52), 0.05),
-                         _jitter(rng, (0.30, 0.45, 0.18), 0.04), (u(0.45, 0.75),))
+        return table.add(
+            kind,
+            _jitter(rng, (0.62, 0.58, 0.52), 0.05),
+            _jitter(rng, (0.30, 0.45, 0.18), 0.04),
+            (u(0.45, 0.75),),
+        )
     if kind == Kind.PLAIN:
         base = _jitter(rng, _WALL_COLOURS[rng.integers(len(_WALL_COLOURS))], 0.08)
-        return table.add(kind, base, tuple(0.45 * c for c in base),
-                         (u(0.8, 1.2), u(0.03, 0.06), u(0.06, 0.1)))
+        return table.add(
+            kind, base, tuple(0.45 * c for c in base), (u(0.8, 1.2), u(0.03, 0.06), u(0.06, 0.1))
+        )
     raise ValueError(f"no random material for {kind!r}")
 
 
@@ -329,7 +353,8 @@ def _concrete(seed, s, t, ca, cb, p) -> np.ndarray:
     fu, fv = s / pw - i, t / ph - j
     seam = (np.minimum(fu, 1 - fu) * pw < 0.015) | (np.minimum(fv, 1 - fv) * ph < 0.015)
     hole = (np.hypot((fu - 0.25) * pw, (fv - 0.5) * ph) < 0.03) | (
-        np.hypot((fu - 0.75) * pw, (fv - 0.5) * ph) < 0.03)
+        np.hypot((fu - 0.75) * pw, (fv - 0.5) * ph) < 0.03
+    )
     jitter = 0.85 + 0.3 * hash_unit(i.astype(np.int64), j.astype(np.int64), seed)
     stain = 1.0 + 0.25 * fbm(s, t, seed + 1, 2.5, 3, 0.6) + 0.25 * fbm(s, t, seed + 2, 0.3, 2)
     out = ca * (jitter * stain)[:, None]
@@ -380,9 +405,16 @@ def _plain(seed, s, t, ca, cb, p) -> np.ndarray:
 
 
 _KIND_FUNCTIONS = {
-    Kind.PAVING: _paving, Kind.ROAD: _road, Kind.FACADE: _facade, Kind.STONE: _stone,
-    Kind.CONCRETE: _concrete, Kind.FOLIAGE: _foliage, Kind.BARK: _bark, Kind.ROOF: _roof,
-    Kind.PAINT: _paint, Kind.PLAIN: _plain,
+    Kind.PAVING: _paving,
+    Kind.ROAD: _road,
+    Kind.FACADE: _facade,
+    Kind.STONE: _stone,
+    Kind.CONCRETE: _concrete,
+    Kind.FOLIAGE: _foliage,
+    Kind.BARK: _bark,
+    Kind.ROOF: _roof,
+    Kind.PAINT: _paint,
+    Kind.PLAIN: _plain,
 }
 
 
@@ -416,7 +448,11 @@ class TextureBank:
             sel = np.nonzero(kinds == kind)[0]
             tid = ids[sel]
             out[sel] = _KIND_FUNCTIONS[Kind(int(kind))](
-                self.seed[tid], s[sel], t[sel], self.color_a[tid], self.color_b[tid],
+                self.seed[tid],
+                s[sel],
+                t[sel],
+                self.color_a[tid],
+                self.color_b[tid],
                 self.params[tid],
             )
         return np.clip(out, 0.0, 1.0)

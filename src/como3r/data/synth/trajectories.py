@@ -204,8 +204,9 @@ def ride(
     xy = xy + lateral_offset * normal
     # Wobble as functions of the distance travelled: same path shape at any frame rate.
     w = 2.0 * np.pi * arc / motion.yaw_wavelength
-    yaw = np.arctan2(tangent[:, 1], tangent[:, 0]) + np.radians(
-        motion.yaw_amplitude) * np.sin(w + phases[0])
+    yaw = np.arctan2(tangent[:, 1], tangent[:, 0]) + np.radians(motion.yaw_amplitude) * np.sin(
+        w + phases[0]
+    )
     pitch = np.radians(motion.pitch + motion.pitch_amplitude * np.sin(0.37 * w + phases[1]))
     roll = np.radians(motion.roll_amplitude) * np.sin(0.61 * w + phases[2])
     z = motion.height + motion.bob_amplitude * np.sin(2.3 * w + phases[3])
@@ -240,8 +241,9 @@ class RingPlan:
         return self.starts + 0.5 * self.shared
 
 
-def plan_ring(agents: int, path_length: float, overlap: float, step: float,
-              min_loop: float = 0.0) -> RingPlan:
+def plan_ring(
+    agents: int, path_length: float, overlap: float, step: float, min_loop: float = 0.0
+) -> RingPlan:
     """Starts of ``agents`` paths of length ``path_length`` on one loop (module docstring).
 
     With one agent the loop is ``path_length + step`` long: the agent goes round once and

@@ -27,8 +27,8 @@ import logging
 import math
 import numbers
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from PIL import Image
@@ -49,30 +49,49 @@ MIN_SIZE = 8
 MAX_SIZE = 4096
 
 
-def _validate(staging_dir: Path, agents: int, overlap: float, frames: int, preset: str,
-              width: int, height: int, scale: float, loop_frames: int | None) -> None:
+def _validate(
+    staging_dir: Path,
+    agents: int,
+    overlap: float,
+    frames: int,
+    preset: str,
+    width: int,
+    height: int,
+    scale: float,
+    loop_frames: int | None,
+) -> None:
     if preset not in PRESETS:
         raise InputError(f"--preset: unknown preset {preset!r} (valid: {', '.join(PRESETS)})")
     if not isinstance(agents, numbers.Integral) or not 1 <= agents <= MAX_AGENTS:
         raise InputError(f"--agents: must be an integer in [1, {MAX_AGENTS}], got {agents!r}")
     least = MIN_FRAMES.get(preset, 2)
     if not isinstance(frames, numbers.Integral) or not least <= frames <= MAX_FRAMES:
-        raise InputError(f"--frames: must be an integer in [{least}, {MAX_FRAMES}] for preset "
-                         f"{preset!r}, got {frames!r}")
-    if not (isinstance(scale, numbers.Real) and not isinstance(scale, bool)
-            and math.isfinite(scale) and scale > 0):
-        raise InputError(f"--scale: must be a finite number > 0 (1 = the presets' metres), "
-                         f"got {scale!r}")
-    if loop_frames is not None and not (isinstance(loop_frames, numbers.Integral)
-                                        and 2 <= loop_frames <= MAX_FRAMES):
-        raise InputError(f"--loop-frames: must be an integer in [2, {MAX_FRAMES}], "
-                         f"got {loop_frames!r}")
+        raise InputError(
+            f"--frames: must be an integer in [{least}, {MAX_FRAMES}] for preset "
+            f"{preset!r}, got {frames!r}"
+        )
+    if not (
+        isinstance(scale, numbers.Real)
+        and not isinstance(scale, bool)
+        and math.isfinite(scale)
+        and scale > 0
+    ):
+        raise InputError(
+            f"--scale: must be a finite number > 0 (1 = the presets' metres), got {scale!r}"
+        )
+    if loop_frames is not None and not (
+        isinstance(loop_frames, numbers.Integral) and 2 <= loop_frames <= MAX_FRAMES
+    ):
+        raise InputError(
+            f"--loop-frames: must be an integer in [2, {MAX_FRAMES}], got {loop_frames!r}"
+        )
     if not (isinstance(overlap, numbers.Real) and math.isfinite(overlap) and 0 <= overlap <= 1):
         raise InputError(f"--overlap: must be a number in [0, 1], got {overlap!r}")
     for name, size in (("--width", width), ("--height", height)):
         if not isinstance(size, numbers.Integral) or not MIN_SIZE <= size <= MAX_SIZE:
             raise InputError(
-                f"{name}: must be an integer in [{MIN_SIZE}, {MAX_SIZE}], got {size!r}")
+                f"{name}: must be an integer in [{MIN_SIZE}, {MAX_SIZE}], got {size!r}"
+            )
     if not staging_dir.is_dir():
         raise InputError(f"{staging_dir}: output folder does not exist")
 
@@ -93,30 +112,41 @@ def _covered_frame(height: int, width: int, seed: int, agent: int, index: int) -
     rng = np.random.default_rng([seed % 2**32, agent, index])
     surface = np.zeros((height, width, 3), dtype=np.float32)
     surface[..., 0] = -1.0
-    return Frame(rgb=rng.integers(0, 8, (height, width, 3), dtype=np.uint8),
-                 depth=np.zeros((height, width), dtype=np.float32), surface=surface)
+    return Frame(
+        rgb=rng.integers(0, 8, (height, width, 3), dtype=np.uint8),
+        depth=np.zeros((height, width), dtype=np.float32),
+        surface=surface,
+    )
 
 
 def _scene_json(spec: SceneSpec, K: Intrinsics, args: dict, scale: float) -> dict:
     """Everything about the scene a consumer may want, JSON-serialisable, lengths times
     ``scale``."""
-    meetings = [{
-        "agents": list(m.agents),
-        "junction_xy": [round(scale * v, 6) for v in m.junction],
-        "shared_length_m": round(scale * m.length, 6),
-        "frames": {str(m.agents[0]): list(m.frames[0]), str(m.agents[1]): list(m.frames[1])},
-    } for m in spec.meetings]
+    meetings = [
+        {
+            "agents": list(m.agents),
+            "junction_xy": [round(scale * v, 6) for v in m.junction],
+            "shared_length_m": round(scale * m.length, 6),
+            "frames": {str(m.agents[0]): list(m.frames[0]), str(m.agents[1]): list(m.frames[1])},
+        }
+        for m in spec.meetings
+    ]
     agents = []
     for a, path in enumerate(spec.paths):
         shared = np.zeros(len(path.arc), dtype=bool)
         for m in spec.meetings:
             for who, (first, last) in zip(m.agents, m.frames):
                 if who == a:
-                    shared[first:last + 1] = True
-        agents.append({"name": f"agent_{a}", "frames": len(path.arc),
-                       "path_length_m": round(scale * path.length(), 6),
-                       "jump_frames": list(path.jumps),
-                       "shared_frame_fraction": round(float(shared.mean()), 6)})
+                    shared[first : last + 1] = True
+        agents.append(
+            {
+                "name": f"agent_{a}",
+                "frames": len(path.arc),
+                "path_length_m": round(scale * path.length(), 6),
+                "jump_frames": list(path.jumps),
+                "shared_frame_fraction": round(float(shared.mean()), 6),
+            }
+        )
     info = {k: (scale * v if k.endswith("_m") else v) for k, v in spec.info.items()}
     info = {k: (round(v, 6) if isinstance(v, float) else v) for k, v in info.items()}
     return {
@@ -125,9 +155,16 @@ def _scene_json(spec: SceneSpec, K: Intrinsics, args: dict, scale: float) -> dic
         **args,
         "frame_rate_hz": FRAME_RATE,
         "speed_m_per_frame": scale * spec.motion.speed,
-        "camera": {"model": "pinhole", "convention": "OpenCV (x right, y down, z forward)",
-                   "hfov_deg": HFOV_DEG, "fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy,
-                   "height_m": scale * spec.motion.height},
+        "camera": {
+            "model": "pinhole",
+            "convention": "OpenCV (x right, y down, z forward)",
+            "hfov_deg": HFOV_DEG,
+            "fx": K.fx,
+            "fy": K.fy,
+            "cx": K.cx,
+            "cy": K.cy,
+            "height_m": scale * spec.motion.height,
+        },
         "covered_frames": None if spec.covered is None else list(spec.covered),
         "world": "z up, ground plane z = 0, metres; poses are T_WC",
         "depth": "float32 z-depth in metres, 0 for sky",
@@ -184,11 +221,20 @@ def synthesize(
     spec = build_preset(preset, agents, frames, float(overlap), seed, loop_frames)
     K = Intrinsics.from_hfov(width, height, HFOV_DEG)
     renderer = Renderer(spec.scene, K)
-    args = {"preset": preset, "seed": seed, "agents": agents, "frames": frames,
-            "overlap": float(overlap), "width": width, "height": height, "scale": scale,
-            "loop_frames": loop_frames}
+    args = {
+        "preset": preset,
+        "seed": seed,
+        "agents": agents,
+        "frames": frames,
+        "overlap": float(overlap),
+        "width": width,
+        "height": height,
+        "scale": scale,
+        "loop_frames": loop_frames,
+    }
     (staging_dir / "scene.json").write_text(
-        json.dumps(_scene_json(spec, K, args, scale), indent=2, sort_keys=True) + "\n")
+        json.dumps(_scene_json(spec, K, args, scale), indent=2, sort_keys=True) + "\n"
+    )
     first_covered, last_covered = spec.covered if spec.covered is not None else (frames, -1)
     timestamps = np.arange(frames) / FRAME_RATE
     started = time.perf_counter()

@@ -44,8 +44,7 @@ _ONEDNN_DTYPES = (
 )
 
 
-def _linear(x: Tensor, weight: Tensor, bias: Tensor, gelu: bool,
-            residual: Tensor | None) -> Tensor:
+def _linear(x: Tensor, weight: Tensor, bias: Tensor, gelu: bool, residual: Tensor | None) -> Tensor:
     """``gelu?(x W^T + b) (+ residual)``, through oneDNN for CPU inference (no autograd; the
     residual added as the output is written when it has the output's dtype), else
     ``F.linear``."""
@@ -60,8 +59,9 @@ def _linear(x: Tensor, weight: Tensor, bias: Tensor, gelu: bool,
     return _plain_linear(x, weight, bias, gelu, residual)
 
 
-def _plain_linear(x: Tensor, weight: Tensor, bias: Tensor, gelu: bool,
-                  residual: Tensor | None) -> Tensor:
+def _plain_linear(
+    x: Tensor, weight: Tensor, bias: Tensor, gelu: bool, residual: Tensor | None
+) -> Tensor:
     """``gelu?(F.linear(x, W, b)) (+ residual)``: any device, dtype, autocast or autograd."""
     y = F.linear(x, weight, bias)
     y = F.gelu(y) if gelu else y
@@ -156,8 +156,9 @@ class CrossAttention(nn.Module):
         self.proj = Linear(dim, dim)
         self.rope = rope
 
-    def forward(self, x: Tensor, y: Tensor, x_grid: Grid, y_grid: Grid,
-                residual: Tensor | None = None) -> Tensor:
+    def forward(
+        self, x: Tensor, y: Tensor, x_grid: Grid, y_grid: Grid, residual: Tensor | None = None
+    ) -> Tensor:
         """Queries from ``x`` ``(B, N, C)``, keys and values from ``y`` ``(B, M, C)``.
 
         Returns ``(B, N, C)`` (``+ residual`` when given).

@@ -102,8 +102,15 @@ class MASt3RConfig:
     desc_conf_max: float = math.inf
 
     def __post_init__(self) -> None:
-        for name in ("enc_embed_dim", "enc_depth", "enc_num_heads", "dec_embed_dim",
-                     "dec_depth", "dec_num_heads", "desc_dim"):
+        for name in (
+            "enc_embed_dim",
+            "enc_depth",
+            "enc_num_heads",
+            "dec_embed_dim",
+            "dec_depth",
+            "dec_num_heads",
+            "desc_dim",
+        ):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ConfigError(f"MASt3R {name} must be a positive integer, got {value!r}")
@@ -152,8 +159,9 @@ class MASt3RConfig:
 
 def _literal(node: ast.expr, name: str) -> Any:
     """Value of a literal expression node; ``inf`` and ``float('inf')`` are allowed."""
-    if isinstance(node, ast.Constant) and isinstance(node.value, (int, float, str, bool,
-                                                                  type(None))):
+    if isinstance(node, ast.Constant) and isinstance(
+        node.value, (int, float, str, bool, type(None))
+    ):
         return node.value
     if isinstance(node, (ast.Tuple, ast.List)):
         return tuple(_literal(element, name) for element in node.elts)
@@ -163,9 +171,15 @@ def _literal(node: ast.expr, name: str) -> Any:
         operand = _literal(node.operand, name)
         if isinstance(operand, (int, float)) and not isinstance(operand, bool):
             return -operand if isinstance(node.op, ast.USub) else operand
-    if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "float"
-            and len(node.args) == 1 and not node.keywords
-            and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+    if (
+        isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Name)
+        and node.func.id == "float"
+        and len(node.args) == 1
+        and not node.keywords
+        and isinstance(node.args[0], ast.Constant)
+        and isinstance(node.args[0].value, str)
+    ):
         text = node.args[0].value.strip().lower()
         if text in ("inf", "+inf", "-inf", "infinity", "-infinity"):
             return float(text)
@@ -176,8 +190,12 @@ def _literal(node: ast.expr, name: str) -> Any:
 
 def _exp_mode(value: Any, name: str) -> tuple[float, float]:
     """Bounds ``(vmin, vmax)`` of an ``('exp', vmin, vmax)`` post-processing mode."""
-    if (isinstance(value, tuple) and len(value) == 3 and value[0] == "exp"
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value[1:])):
+    if (
+        isinstance(value, tuple)
+        and len(value) == 3
+        and value[0] == "exp"
+        and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value[1:])
+    ):
         return float(value[1]), float(value[2])
     raise CheckpointError(
         f"MASt3R {name}={value!r} is not supported (expected ('exp', vmin, vmax))"
@@ -238,28 +256,37 @@ def parse_model_string(text: str) -> MASt3RConfig:
             f"MASt3R pos_embed={args['pos_embed']!r} is not supported (expected 'RoPE<base>')"
         )
     if args["head_type"] != "catmlp+dpt":
-        raise CheckpointError(f"MASt3R head_type={args['head_type']!r} is not supported "
-                              "(expected 'catmlp+dpt')")
+        raise CheckpointError(
+            f"MASt3R head_type={args['head_type']!r} is not supported (expected 'catmlp+dpt')"
+        )
     desc = _DESC_PATTERN.match(str(args["output_mode"]))
     if desc is None:
-        raise CheckpointError(f"MASt3R output_mode={args['output_mode']!r} is not supported "
-                              "(expected 'pts3d+desc<d>')")
+        raise CheckpointError(
+            f"MASt3R output_mode={args['output_mode']!r} is not supported "
+            "(expected 'pts3d+desc<d>')"
+        )
     if args["desc_mode"] != "norm":
-        raise CheckpointError(f"MASt3R desc_mode={args['desc_mode']!r} is not supported "
-                              "(expected 'norm')")
+        raise CheckpointError(
+            f"MASt3R desc_mode={args['desc_mode']!r} is not supported (expected 'norm')"
+        )
     depth_min, depth_max = _exp_mode(args["depth_mode"], "depth_mode")
     if math.isfinite(depth_min) or math.isfinite(depth_max):
-        raise CheckpointError(f"MASt3R depth_mode={args['depth_mode']!r} is not supported "
-                              "(the 'exp' depth mode has no bounds)")
+        raise CheckpointError(
+            f"MASt3R depth_mode={args['depth_mode']!r} is not supported "
+            "(the 'exp' depth mode has no bounds)"
+        )
     if args["conf_mode"] is None:
         raise CheckpointError("MASt3R conf_mode=None is not supported: confidences are required")
     conf_min, conf_max = _exp_mode(args["conf_mode"], "conf_mode")
-    desc_conf_mode = args["desc_conf_mode"] if args["desc_conf_mode"] is not None \
-        else args["conf_mode"]
+    desc_conf_mode = (
+        args["desc_conf_mode"] if args["desc_conf_mode"] is not None else args["conf_mode"]
+    )
     desc_conf_min, desc_conf_max = _exp_mode(desc_conf_mode, "desc_conf_mode")
     if args["patch_embed_cls"] not in _PATCH_EMBED_CLASSES:
-        raise CheckpointError(f"MASt3R patch_embed_cls={args['patch_embed_cls']!r} is not "
-                              f"supported (expected one of {_PATCH_EMBED_CLASSES})")
+        raise CheckpointError(
+            f"MASt3R patch_embed_cls={args['patch_embed_cls']!r} is not "
+            f"supported (expected one of {_PATCH_EMBED_CLASSES})"
+        )
     for name in ("two_confs", "norm_im2_in_dec", "landscape_only"):
         if not isinstance(args[name], bool):
             raise CheckpointError(f"MASt3R {name} must be True or False, got {args[name]!r}")
@@ -291,4 +318,3 @@ def parse_model_string(text: str) -> MASt3RConfig:
         )
     except ConfigError as error:
         raise CheckpointError(str(error)) from error
-

@@ -80,16 +80,28 @@ def conv2d(conv: nn.Conv2d, x: Tensor, add: Tensor | None = None, relu: bool = F
         add: ``(B, C_out, h', w')``, the shape of the convolution's output.
         relu: apply ReLU last.
     """
-    if (_ONEDNN and x.device.type == "cpu" and x.dtype == torch.float32
-            and conv.weight.dtype == torch.float32 and not torch.is_grad_enabled()):
+    if (
+        _ONEDNN
+        and x.device.type == "cpu"
+        and x.dtype == torch.float32
+        and conv.weight.dtype == torch.float32
+        and not torch.is_grad_enabled()
+    ):
         if isinstance(conv, Conv3x3) and x.shape[2] % TILE == 0 and x.shape[3] % TILE == 0:
             return winograd_conv3x3(x, conv.winograd_weight(), conv.bias, add, relu)
-        args = (conv.weight, conv.bias, list(conv.padding), list(conv.stride),
-                list(conv.dilation), conv.groups)
+        args = (
+            conv.weight,
+            conv.bias,
+            list(conv.padding),
+            list(conv.stride),
+            list(conv.dilation),
+            conv.groups,
+        )
         unary = "relu" if relu else None
         if add is not None:
             return torch.ops.mkldnn._convolution_pointwise.binary(
-                x, add, *args, "add", None, unary, [], None)
+                x, add, *args, "add", None, unary, [], None
+            )
         return torch.ops.mkldnn._convolution_pointwise(x, *args, unary or "none", [], "")
     y = conv(x)
     if add is not None:
@@ -158,9 +170,7 @@ class Scratch(nn.Module):
 
     def forward(self, levels: list[Tensor]) -> Tensor:
         """Four maps at ``4x, 2x, 1x, 1/2x`` the token grid -> ``(B, 256, 8h, 8w)``."""
-        l1, l2, l3, l4 = (
-            conv2d(getattr(self, f"layer{k}_rn"), x) for k, x in enumerate(levels, 1)
-        )
+        l1, l2, l3, l4 = (conv2d(getattr(self, f"layer{k}_rn"), x) for k, x in enumerate(levels, 1))
         path = self.refinenet4(l4)
         # odd grids: the stride-2 level rounds up, so crop back to level 3 (spec §5.1 step 4)
         path = path[:, :, : l3.shape[2], : l3.shape[3]]
@@ -180,13 +190,20 @@ class DPTAdapter(nn.Module):
     def __init__(self, hook_dims: tuple[int, int, int, int], out_channels: int) -> None:
         super().__init__()
         d0, d1, d2, d3 = DPT_LAYER_DIMS
-        self.act_postprocess = nn.ModuleList([
-            nn.Sequential(nn.Conv2d(hook_dims[0], d0, 1), nn.ConvTranspose2d(d0, d0, 4, stride=4)),
-            nn.Sequential(nn.Conv2d(hook_dims[1], d1, 1), nn.ConvTranspose2d(d1, d1, 2, stride=2)),
-            nn.Sequential(nn.Conv2d(hook_dims[2], d2, 1)),
-            nn.Sequential(nn.Conv2d(hook_dims[3], d3, 1),
-                          nn.Conv2d(d3, d3, 3, stride=2, padding=1)),
-        ])
+        self.act_postprocess = nn.ModuleList(
+            [
+                nn.Sequential(
+                    nn.Conv2d(hook_dims[0], d0, 1), nn.ConvTranspose2d(d0, d0, 4, stride=4)
+                ),
+                nn.Sequential(
+                    nn.Conv2d(hook_dims[1], d1, 1), nn.ConvTranspose2d(d1, d1, 2, stride=2)
+                ),
+                nn.Sequential(nn.Conv2d(hook_dims[2], d2, 1)),
+                nn.Sequential(
+                    nn.Conv2d(hook_dims[3], d3, 1), nn.Conv2d(d3, d3, 3, stride=2, padding=1)
+                ),
+            ]
+        )
         self.scratch = Scratch()
         self.head = nn.Sequential(
             Conv3x3(DPT_FEATURE_DIM, DPT_LAST_DIM),
@@ -283,8 +300,9 @@ class CatMlpDptHead(nn.Module):
         raw_desc = fmap[..., 4 : 4 + config.desc_dim]
         desc = raw_desc / raw_desc.norm(dim=-1, keepdim=True)
         if config.two_confs:
-            desc_conf = _bounded_exp(fmap[..., 4 + config.desc_dim], config.desc_conf_min,
-                                     config.desc_conf_max)
+            desc_conf = _bounded_exp(
+                fmap[..., 4 + config.desc_dim], config.desc_conf_min, config.desc_conf_max
+            )
         else:
             desc_conf = conf.clone()
         return HeadOutput(pts3d=pts3d, conf=conf, desc=desc, desc_conf=desc_conf)

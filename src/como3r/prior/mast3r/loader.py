@@ -129,9 +129,13 @@ def read_checkpoint(path: str | Path) -> Checkpoint:
     if not isinstance(content, Mapping) or not isinstance(content.get("model"), Mapping):
         raise CheckpointError(f"{path} is not a MASt3R checkpoint: no 'model' state dict")
     state_dict = dict(content["model"])
-    bad = [key for key, value in state_dict.items()
-           if not isinstance(key, str) or not isinstance(value, Tensor)
-           or not value.is_floating_point()]
+    bad = [
+        key
+        for key, value in state_dict.items()
+        if not isinstance(key, str)
+        or not isinstance(value, Tensor)
+        or not value.is_floating_point()
+    ]
     if bad:
         names = _names([str(key) for key in bad])
         raise CheckpointError(f"{path}: state dict entries that are not float tensors: {names}")

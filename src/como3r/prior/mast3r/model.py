@@ -15,7 +15,7 @@ precision); the heads always run in float32 with autocast disabled, as upstream 
 from __future__ import annotations
 
 import contextlib
-from typing import ContextManager
+from contextlib import AbstractContextManager as ContextManager
 
 import torch
 from torch import Tensor, nn
@@ -73,8 +73,13 @@ class MASt3RNetwork(nn.Module):
 
     def _decoder(self, config: MASt3RConfig) -> nn.ModuleList:
         return nn.ModuleList(
-            DecoderBlock(config.dec_embed_dim, config.dec_num_heads, config.mlp_ratio, self.rope,
-                         config.norm_im2_in_dec)
+            DecoderBlock(
+                config.dec_embed_dim,
+                config.dec_num_heads,
+                config.mlp_ratio,
+                self.rope,
+                config.norm_im2_in_dec,
+            )
             for _ in range(config.dec_depth)
         )
 
@@ -85,8 +90,12 @@ class MASt3RNetwork(nn.Module):
         if dtype != self.compute_dtype:
             # low-precision weight copies of the encoder's and decoders' linear layers
             low = None if dtype == torch.float32 else dtype
-            for module in (*self.enc_blocks, self.decoder_embed, *self.dec_blocks,
-                           *self.dec_blocks2):
+            for module in (
+                *self.enc_blocks,
+                self.decoder_embed,
+                *self.dec_blocks,
+                *self.dec_blocks2,
+            ):
                 for linear in module.modules():
                     if isinstance(linear, Linear):
                         linear.set_low_precision(low)

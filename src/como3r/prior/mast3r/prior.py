@@ -14,9 +14,10 @@ Example::
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol, Sequence
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -93,8 +94,10 @@ def resolve_device(device: str | torch.device) -> torch.device:
 
 def _check_dtype(dtype: torch.dtype) -> torch.dtype:
     if dtype not in SUPPORTED_DTYPES:
-        raise PriorError(f"unsupported MASt3R dtype {dtype} (use torch.float32, torch.bfloat16 "
-                         "or, on CUDA, torch.float16)")
+        raise PriorError(
+            f"unsupported MASt3R dtype {dtype} (use torch.float32, torch.bfloat16 "
+            "or, on CUDA, torch.float16)"
+        )
     return dtype
 
 
@@ -190,8 +193,10 @@ class MASt3RPrior(Prior):
         height, width = images.shape[-2:]
         patch = self.network.config.patch_size
         if height == 0 or width == 0 or height % patch or width % patch:
-            raise PriorError(f"MASt3R image size {height}x{width} (HxW) is not a positive "
-                             f"multiple of {patch} (resize, then centre-crop to multiples of {patch})")
+            raise PriorError(
+                f"MASt3R image size {height}x{width} (HxW) is not a positive "
+                f"multiple of {patch} (resize, then centre-crop to multiples of {patch})"
+            )
         if not images.is_floating_point():
             raise PriorError(f"MASt3R images must be float in [-1, 1], got dtype {images.dtype}")
         low, high = torch.aminmax(images)
@@ -208,8 +213,9 @@ class MASt3RPrior(Prior):
             tokens, grid = self.network.encode(images.to(self.device, torch.float32))
         pos = grid_positions(grid, self.device)
         return [
-            MASt3REncoding(agent=agent, index=index, shape=shape, tokens=tokens[b], pos=pos,
-                           grid=grid)
+            MASt3REncoding(
+                agent=agent, index=index, shape=shape, tokens=tokens[b], pos=pos, grid=grid
+            )
             for b, (agent, index) in enumerate(ids)
         ]
 
@@ -241,10 +247,14 @@ class MASt3RPrior(Prior):
     @staticmethod
     def _prediction(out1: HeadOutput, out2: HeadOutput, b: int) -> PairPrediction:
         return PairPrediction(
-            X_ii=out1.pts3d[b], X_ji=out2.pts3d[b],
-            C_ii=out1.conf[b], C_ji=out2.conf[b],
-            D_ii=out1.desc[b], D_ji=out2.desc[b],
-            Q_ii=out1.desc_conf[b], Q_ji=out2.desc_conf[b],
+            X_ii=out1.pts3d[b],
+            X_ji=out2.pts3d[b],
+            C_ii=out1.conf[b],
+            C_ji=out2.conf[b],
+            D_ii=out1.desc[b],
+            D_ji=out2.desc[b],
+            Q_ii=out1.desc_conf[b],
+            Q_ji=out2.desc_conf[b],
         )
 
     def decode(self, enc_i: Encoding, enc_j: Encoding) -> PairPrediction:
@@ -270,8 +280,9 @@ class MASt3RPrior(Prior):
             groups[(enc_i.grid, enc_j.grid)].append(n)
         results: list[PairPrediction | None] = [None] * len(checked)
         for members in groups.values():
-            out1, out2 = self._run([checked[n][0] for n in members],
-                                   [checked[n][1] for n in members])
+            out1, out2 = self._run(
+                [checked[n][0] for n in members], [checked[n][1] for n in members]
+            )
             for m, n in enumerate(members):
                 results[n] = self._prediction(out1, out2, m)
         return results  # type: ignore[return-value]
@@ -290,7 +301,7 @@ class MASt3RPrior(Prior):
             ``[(pred_ij, pred_ji), ...]`` in the order of ``pairs``.
         """
         both = self.decode_pairs([*pairs, *((b, a) for a, b in pairs)])
-        return list(zip(both[:len(pairs)], both[len(pairs):]))
+        return list(zip(both[: len(pairs)], both[len(pairs) :]))
 
     # --------------------------------------------------------------- retrieval
     def retrieval_features(self, enc: Encoding) -> tuple[Tensor, Tensor]:
@@ -349,11 +360,18 @@ def load_mast3r(
     precision = dtype if isinstance(dtype, str) else ""
     compute_dtype = _check_dtype(choose_dtype(resolved, dtype) if precision else dtype)
     if compute_dtype == torch.float16 and resolved.type == "cpu":
-        raise PriorError("MASt3R dtype torch.float16 is not supported on CPU (use torch.float32 "
-                         "or torch.bfloat16)")
+        raise PriorError(
+            "MASt3R dtype torch.float16 is not supported on CPU (use torch.float32 "
+            "or torch.bfloat16)"
+        )
     network, model_string = load_network(checkpoint_path)
-    prior = MASt3RPrior(network.to(resolved), dtype=compute_dtype, source=str(checkpoint_path),
-                        model_string=model_string, precision=precision)
+    prior = MASt3RPrior(
+        network.to(resolved),
+        dtype=compute_dtype,
+        source=str(checkpoint_path),
+        model_string=model_string,
+        precision=precision,
+    )
     if retrieval_checkpoint is not None:
         # imported here: the retrieval head is optional and lives in its own module
         from como3r.prior.mast3r.retrieval import load_retrieval_head

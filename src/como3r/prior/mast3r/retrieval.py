@@ -265,7 +265,9 @@ def _head_from(state: Mapping[str, Tensor], args: Mapping[str, Any], path: Path)
     linear_weights = sorted(
         (int(key.split(".")[1]), value)
         for key, value in state.items()
-        if key.startswith("projector.") and key.endswith(".weight") and value.ndim == 2
+        if key.startswith("projector.")
+        and key.endswith(".weight")
+        and value.ndim == 2
         and key.split(".")[1].isdigit()
     )
     hdims = [int(weight.shape[0]) for _, weight in linear_weights]

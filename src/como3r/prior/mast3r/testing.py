@@ -61,12 +61,19 @@ def seeded_network(config: MASt3RConfig, seed: int) -> MASt3RNetwork:
     return network.eval()
 
 
-def write_checkpoint(path: str | Path, network: MASt3RNetwork,
-                     model_string: str = TINY_MODEL_STRING) -> Path:
+def write_checkpoint(
+    path: str | Path, network: MASt3RNetwork, model_string: str = TINY_MODEL_STRING
+) -> Path:
     """Write ``network`` as an official-format checkpoint; returns the path."""
     path = Path(path)
-    torch.save({"model": official_state_dict(network), "epoch": 3,
-                "args": argparse.Namespace(model=model_string)}, path)
+    torch.save(
+        {
+            "model": official_state_dict(network),
+            "epoch": 3,
+            "args": argparse.Namespace(model=model_string),
+        },
+        path,
+    )
     return path
 
 

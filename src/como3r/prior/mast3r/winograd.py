@@ -37,8 +37,17 @@ from como3r.jit import compiled
 BAND_ELEMENTS = 65_536
 
 #: G of F(4x4, 3x3), the filter transform ``U = G g G^T`` (Lavin & Gray, eq. 9)
-G = np.array([[1 / 4, 0, 0], [-1 / 6, -1 / 6, -1 / 6], [-1 / 6, 1 / 6, -1 / 6],
-              [1 / 24, 1 / 12, 1 / 6], [1 / 24, -1 / 12, 1 / 6], [0, 0, 1]], np.float64)
+G = np.array(
+    [
+        [1 / 4, 0, 0],
+        [-1 / 6, -1 / 6, -1 / 6],
+        [-1 / 6, 1 / 6, -1 / 6],
+        [1 / 24, 1 / 12, 1 / 6],
+        [1 / 24, -1 / 12, 1 / 6],
+        [0, 0, 1],
+    ],
+    np.float64,
+)
 #: output tile side m and input tile side m + 2
 TILE, SIZE = 4, 6
 
@@ -83,21 +92,33 @@ def _input_tiles(padded: np.ndarray, t0: int, out: np.ndarray) -> None:  # pragm
             for j in range(SIZE):
                 for c in range(channels):
                     b0, b1, b2, b3, b4, b5 = _bt(
-                        padded[r, q + j, c], padded[r + 1, q + j, c], padded[r + 2, q + j, c],
-                        padded[r + 3, q + j, c], padded[r + 4, q + j, c], padded[r + 5, q + j, c])
+                        padded[r, q + j, c],
+                        padded[r + 1, q + j, c],
+                        padded[r + 2, q + j, c],
+                        padded[r + 3, q + j, c],
+                        padded[r + 4, q + j, c],
+                        padded[r + 5, q + j, c],
+                    )
                     col[0, j, c], col[1, j, c], col[2, j, c] = b0, b1, b2
                     col[3, j, c], col[4, j, c], col[5, j, c] = b3, b4, b5
             for i in range(SIZE):
                 k = SIZE * i
                 for c in range(channels):
-                    v0, v1, v2, v3, v4, v5 = _bt(col[i, 0, c], col[i, 1, c], col[i, 2, c],
-                                                 col[i, 3, c], col[i, 4, c], col[i, 5, c])
+                    v0, v1, v2, v3, v4, v5 = _bt(
+                        col[i, 0, c],
+                        col[i, 1, c],
+                        col[i, 2, c],
+                        col[i, 3, c],
+                        col[i, 4, c],
+                        col[i, 5, c],
+                    )
                     out[k, t, s, c], out[k + 1, t, s, c], out[k + 2, t, s, c] = v0, v1, v2
                     out[k + 3, t, s, c], out[k + 4, t, s, c], out[k + 5, t, s, c] = v3, v4, v5
 
 
-def _output_tiles(m: np.ndarray, bias: np.ndarray, add: np.ndarray, relu: bool, t0: int,
-                  out: np.ndarray) -> None:  # pragma: no cover
+def _output_tiles(
+    m: np.ndarray, bias: np.ndarray, add: np.ndarray, relu: bool, t0: int, out: np.ndarray
+) -> None:  # pragma: no cover
     """``Y = A^T M A`` of tile rows ``[t0, t0 + n)`` into ``out`` ``(H, W, C_out)``, then
     ``+ bias``, ``+ add`` (an ``(H, W, C_out)`` array, or ``(0, 0, 0)`` for none), ReLU.
 
@@ -112,14 +133,25 @@ def _output_tiles(m: np.ndarray, bias: np.ndarray, add: np.ndarray, relu: bool, 
             q = TILE * s
             for j in range(SIZE):
                 for o in range(channels):
-                    y0, y1, y2, y3 = _at(m[j, t, s, o], m[6 + j, t, s, o], m[12 + j, t, s, o],
-                                         m[18 + j, t, s, o], m[24 + j, t, s, o],
-                                         m[30 + j, t, s, o])
+                    y0, y1, y2, y3 = _at(
+                        m[j, t, s, o],
+                        m[6 + j, t, s, o],
+                        m[12 + j, t, s, o],
+                        m[18 + j, t, s, o],
+                        m[24 + j, t, s, o],
+                        m[30 + j, t, s, o],
+                    )
                     row[0, j, o], row[1, j, o], row[2, j, o], row[3, j, o] = y0, y1, y2, y3
             for a in range(TILE):
                 for o in range(channels):
-                    y0, y1, y2, y3 = _at(row[a, 0, o], row[a, 1, o], row[a, 2, o],
-                                         row[a, 3, o], row[a, 4, o], row[a, 5, o])
+                    y0, y1, y2, y3 = _at(
+                        row[a, 0, o],
+                        row[a, 1, o],
+                        row[a, 2, o],
+                        row[a, 3, o],
+                        row[a, 4, o],
+                        row[a, 5, o],
+                    )
                     y0, y1, y2, y3 = y0 + bias[o], y1 + bias[o], y2 + bias[o], y3 + bias[o]
                     if has_add:
                         y0 += add[r + a, q, o]
@@ -174,6 +206,7 @@ def winograd_conv3x3(
             inputs(padded_np, t0, v.numpy())
             m = M[:, : n * width_tiles]
             torch.bmm(v.reshape(SIZE * SIZE, -1, channels), U.transpose(1, 2), out=m)
-            outputs(m.view(-1, n, width_tiles, out_channels).numpy(), bias_np, add_np, relu, t0,
-                    out_np)
+            outputs(
+                m.view(-1, n, width_tiles, out_channels).numpy(), bias_np, add_np, relu, t0, out_np
+            )
     return out.permute(0, 3, 1, 2)
