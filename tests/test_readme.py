@@ -1,111 +1,87 @@
-"""The README's command synopsis is the CLI: every command and option, no more, no fewer, and
-the choices it lists are the ones the code accepts (issue 17: "a README that stays true")."""
+"""The README is the front page (issue 40): short, with the picture, the install, the demo, a
+real sequence (with and without MASt3R's weights), the test command and links into the
+manual, each of which resolves to one of the manual's pages. Every command it shows is
+checked against the CLI with the manual's (tests/test_docs.py)."""
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
 
-import pytest
-import typer
+import yaml
 
-from como3r.cli import app
-from como3r.data.readers import FORMATS
-from como3r.data.synth import PRESETS
-from como3r.decentralized.odometry_sim import ODOMETRY_PRESETS
-from como3r.prior.mast3r.precision import PRECISIONS
-from como3r.runtime.pipeline import PRIORS
-from como3r.viewer import MODES as VIEWER_MODES
-
-README = Path(__file__).resolve().parents[1] / "README.md"
-GROUP = "como3r"
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+#: the most lines the front page may have
+MAX_LINES = 200
+#: the most bytes its picture may have
+MAX_PICTURE_BYTES = 200_000
 
 
-def _synopsis() -> str:
-    """The code block right after the README's "## Commands" heading."""
-    text = README.read_text()
-    block = re.search(r"^## Commands\n\n```\n(.*?)^```", text, re.S | re.M)
-    assert block is not None, "README.md has no code block after '## Commands'"
-    return block.group(1)
+def _text() -> str:
+    return README.read_text()
 
 
-def _readme_commands() -> dict[str, str]:
-    """Command path (``run``, ``weights fetch``, ``como3r`` for the group) -> its synopsis
-    text, continuation lines included."""
-    commands: dict[str, str] = {}
-    current = None
-    for line in _synopsis().splitlines():
-        if line.startswith("como3r"):
-            words = line.split()[1:]
-            name = []
-            for word in words:
-                if not re.fullmatch(r"[a-z]+", word):
-                    break
-                name.append(word)
-            current = " ".join(name) or GROUP
-            commands[current] = line
-        elif line.strip() and current is not None:
-            commands[current] += " " + line.strip()
-    return commands
+def _links() -> list[str]:
+    """The README's relative link targets, anchors dropped."""
+    targets = re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", _text())
+    return [t for t in targets if "://" not in t]
 
 
-def _options(synopsis: str) -> set[str]:
-    return set(re.findall(r"(?<![\w-])(--?[a-z][a-z0-9-]*)", synopsis))
+def _nav_pages() -> set[str]:
+    """The pages of mkdocs.yml's navigation, relative to its docs_dir."""
+    config = yaml.safe_load((ROOT / "mkdocs.yml").read_text())
+    pages: set[str] = set()
+
+    def walk(entry) -> None:
+        if isinstance(entry, str):
+            pages.add(entry)
+        elif isinstance(entry, list):
+            for item in entry:
+                walk(item)
+        elif isinstance(entry, dict):
+            for value in entry.values():
+                walk(value)
+
+    walk(config["nav"])
+    return {f"{config['docs_dir']}/{page}" for page in pages}
 
 
-def _cli_commands() -> dict[str, set[str]]:
-    """Command path -> the option names click knows for it (``--help`` aside)."""
-    root = typer.main.get_command(app)
-    found = {GROUP: {name for p in root.params for name in p.opts}}
-
-    def walk(group, prefix: list[str]) -> None:
-        for name, command in group.commands.items():
-            if hasattr(command, "commands"):
-                walk(command, [*prefix, name])
-            else:
-                found[" ".join([*prefix, name])] = {
-                    opt
-                    for p in command.params
-                    if p.param_type_name == "option"
-                    for opt in (*p.opts, *p.secondary_opts)
-                }  # not arguments (export's RUN)
-
-    walk(root, [])
-    return found
+def test_the_readme_is_a_front_page() -> None:
+    assert len(_text().splitlines()) <= MAX_LINES
 
 
-def test_every_command_is_in_the_synopsis_and_no_other() -> None:
-    assert sorted(_readme_commands()) == sorted(_cli_commands())
+def test_the_readme_links_into_the_manual_and_each_link_is_a_page() -> None:
+    pages = [t for t in _links() if t.endswith(".md")]
+    assert "docs/index.md" in pages and "docs/configuration.md" in pages
+    assert [p for p in pages if p not in _nav_pages()] == []
 
 
-@pytest.mark.parametrize("command", sorted(_cli_commands()))
-def test_the_synopsis_lists_exactly_the_options_of(command: str) -> None:
-    documented = _options(_readme_commands().get(command, ""))
-    assert documented == _cli_commands()[command], (
-        f"README synopsis of {command!r}: missing {sorted(_cli_commands()[command] - documented)}"
-        f", not in the CLI {sorted(documented - _cli_commands()[command])}"
+def test_the_readme_links_the_architecture_document() -> None:
+    assert "(docs/architecture.md)" in _text()
+
+
+def test_the_readme_shows_a_small_picture_of_a_merged_map() -> None:
+    pictures = re.findall(r"!\[[^\]]+\]\(([^)]+\.png)\)", _text())
+    assert pictures, "the README shows no picture"
+    for picture in pictures:
+        assert (ROOT / picture).is_file(), picture
+        assert (ROOT / picture).stat().st_size < MAX_PICTURE_BYTES, picture
+
+
+def test_the_readme_shows_install_demo_and_a_real_sequence_with_and_without_weights() -> None:
+    text = _text()
+    assert "bash scripts/install.sh" in text
+    assert re.search(r"^como3r demo ", text, re.M)
+    assert re.search(r"^como3r weights fetch", text, re.M)
+    real = re.findall(r"^como3r run --agent (\S+) .*$", text, re.M)
+    assert real and all("freiburg" in agent for agent in real), real
+    assert re.search(r"^como3r run --agent \S+ .*--prior simulated", text, re.M)
+    assert re.search(r"^como3r eval --est ", text, re.M)
+
+
+def test_the_test_command_is_between_its_markers() -> None:
+    block = re.search(
+        r"^<!-- test-command -->\n```\n(.+?)\n```\n<!-- /test-command -->$", _text(), re.S | re.M
     )
-
-
-@pytest.mark.parametrize(
-    "option, accepted",
-    [
-        ("--prior", set(PRIORS)),
-        ("--precision", set(PRECISIONS)),
-        ("--odometry", {*ODOMETRY_PRESETS, "none"}),
-        ("--mode", {"centralized", "decentralized"}),
-        ("--device", {"cpu", "cuda"}),
-        ("--format", set(FORMATS)),
-        ("--viewer", set(VIEWER_MODES)),
-    ],
-)
-def test_listed_choices_are_the_accepted_ones(option: str, accepted: set[str]) -> None:
-    listed = re.search(rf"{option} ([a-z0-9]+(?:\|[a-z0-9]+)+)", _synopsis())
-    assert listed is not None, f"{option} lists no choices in the README synopsis"
-    assert set(listed.group(1).split("|")) == accepted
-
-
-def test_the_preset_list_names_every_preset() -> None:
-    paragraph = re.search(r"^Synthetic presets: (.*?)\n\n", README.read_text(), re.S | re.M)
-    assert paragraph is not None
-    assert set(re.findall(r"`([a-z-]+)`", paragraph.group(1))) == set(PRESETS)
+    assert block is not None and "pytest" in block.group(1)
