@@ -5,6 +5,7 @@ true"), and the configuration reference is generated from the code (issue 40).""
 
 from __future__ import annotations
 
+import importlib
 import importlib.util
 import os
 import re
@@ -294,6 +295,47 @@ def test_the_architecture_document_names_every_package() -> None:
     )
     assert packages, "no sub-packages found under src/como3r"
     assert [p for p in packages if f"`{p}/`" not in text] == []
+
+
+def _resolve(name: str) -> None:
+    """Import the longest importable module prefix of ``name``, then get the rest."""
+    parts = name.split(".")
+    for i in range(len(parts), 0, -1):
+        try:
+            found = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        for part in parts[i:]:
+            found = getattr(found, part)
+        return
+    raise ImportError(name)
+
+
+@pytest.mark.parametrize("document", DOCUMENTS, ids=_name)
+def test_the_code_the_documents_name_exists(document: Path) -> None:
+    """A module, class or function named in code (`como3r.data.poses.MAX_GAP`) imports, and a
+    file named by its path (`src/como3r/...`, `benchmarks/...`) exists: a move or a rename
+    shows here."""
+    text = document.read_text()
+    spans = re.findall(r"`([^`\n]+)`", text)
+    names = {m for s in spans for m in re.findall(r"(?<![\w/.])como3r(?:\.[A-Za-z_]\w*)+", s)}
+    unresolved = []
+    for name in sorted(names):
+        try:
+            _resolve(name)
+        except (ImportError, AttributeError):
+            unresolved.append(name)
+    paths = re.findall(r"`((?:src|tests|benchmarks|scripts|docs)/[\w/.-]+)`", text)
+    missing = [p for p in paths if not (ROOT / p).exists()]
+    assert not unresolved and not missing, f"{_name(document)}: {unresolved} {missing}"
+
+
+def test_the_name_check_catches_what_it_should() -> None:
+    _resolve("como3r.data.poses.MAX_GAP")
+    with pytest.raises(AttributeError):
+        _resolve("como3r.data.poses.NO_SUCH_NAME")
+    with pytest.raises(ImportError):
+        _resolve("como3r_no_such_package.x")
 
 
 def test_the_manual_names_nothing_from_the_shared_folder() -> None:
