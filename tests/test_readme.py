@@ -57,6 +57,20 @@ def test_the_readme_links_into_the_manual_and_each_link_is_a_page() -> None:
     assert [p for p in pages if p not in _nav_pages()] == []
 
 
+def test_the_readme_links_every_part_of_the_manual() -> None:
+    """Every top-level entry of the site's navigation (a section by its first page)."""
+    config = yaml.safe_load((ROOT / "mkdocs.yml").read_text())
+    firsts = []
+    for entry in config["nav"]:
+        value = next(iter(entry.values())) if isinstance(entry, dict) else entry
+        while isinstance(value, list):
+            value = value[0]
+        if isinstance(value, dict):
+            value = next(iter(value.values()))
+        firsts.append(f"{config['docs_dir']}/{value}")
+    assert [page for page in firsts if page not in _links()] == []
+
+
 def test_the_readme_links_the_architecture_document() -> None:
     assert "(docs/architecture.md)" in _text()
 
