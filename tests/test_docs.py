@@ -386,6 +386,61 @@ def test_the_configuration_reference_takes_each_kind_of_field_documentation() ->
     assert "log-depth" in docs["tracking.sigma_depth"]  # a block above names another field
 
 
+SAMPLE_CONFIG = '''
+from dataclasses import dataclass, field
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class Inner:
+    """The inner section.
+
+    Attributes:
+        listed: documented in Attributes,
+            over two lines.
+    """
+
+    listed: float = 0.5
+    plain: int = 3
+
+
+@dataclass(frozen=True)
+class Outer:
+    """The root.
+
+    ``para``: documented by a paragraph.
+    """
+
+    # documented above,
+    # over two lines
+    above: str = "x"
+    after: bool = True  # documented after
+    attribute: Literal["a", "b"] = "b"
+    """documented by an attribute docstring"""
+    para: float = 1.0
+    inner: Inner = field(default_factory=Inner)
+'''
+
+
+def test_the_configuration_reference_reads_every_way_a_field_is_documented(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    (tmp_path / "sample_config.py").write_text(SAMPLE_CONFIG)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    outer = importlib.import_module("sample_config").Outer
+    found = {f.key: (f.type, f.default, f.doc) for s in _hook().sections(outer) for f in s.fields}
+    assert found == {
+        "above": ("str", '"x"', "documented above, over two lines"),
+        "after": ("bool", "True", "documented after"),
+        "attribute": ('"a" | "b"', '"b"', "documented by an attribute docstring"),
+        "para": ("float", "1.0", "``para``: documented by a paragraph."),
+        "inner.listed": ("float", "0.5", "documented in Attributes, over two lines."),
+        "inner.plain": ("int", "3", ""),
+    }
+    text = _hook().render(outer)
+    assert "### `inner`" in text and "`Inner`: The inner section." in text
+
+
 def test_the_configuration_page_holds_the_generated_reference() -> None:
     assert _hook().MARKER in (DOCS / "configuration.md").read_text()
 

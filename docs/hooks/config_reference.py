@@ -7,6 +7,7 @@ type and default as the dataclasses give them, and its documentation as the sour
 it, wherever that is:
 
 - a comment block right above the field, or a comment after it on its line;
+- a string right after the field (an attribute docstring);
 - an entry of the class docstring's ``Attributes:`` section (``name, other: text``);
 - a paragraph or ``*`` item of the class docstring that starts with the field's name in
   double backticks (``min_covisible_ratio``: ...).
@@ -81,7 +82,19 @@ def _comments(node: ast.ClassDef, lines: list[str]) -> dict[str, str]:
         if isinstance(s, ast.AnnAssign) and isinstance(s.target, ast.Name)
     }
     previous_end = node.body[0].end_lineno if node.body else node.lineno
+    previous: ast.stmt | None = None
     for statement in node.body:
+        if (
+            isinstance(previous, ast.AnnAssign)
+            and isinstance(previous.target, ast.Name)
+            and isinstance(statement, ast.Expr)
+            and isinstance(statement.value, ast.Constant)
+            and isinstance(statement.value.value, str)
+        ):  # an attribute docstring: the string right after the field
+            name = previous.target.id
+            text = " ".join(inspect.cleandoc(statement.value.value).split())
+            found[name] = f"{found.get(name, '')} {text}".strip()
+        previous = statement
         if not (isinstance(statement, ast.AnnAssign) and isinstance(statement.target, ast.Name)):
             previous_end = statement.end_lineno or statement.lineno
             continue
@@ -169,8 +182,9 @@ def _default(value: Any) -> str:
     return repr(value)
 
 
-def sections() -> list[SectionDoc]:
-    """Every dataclass of the configuration tree, the root first, depth first."""
+def sections(root: type | None = None) -> list[SectionDoc]:
+    """Every dataclass of the configuration tree under ``root`` (default
+    :class:`como3r.config.Config`), the root first, depth first."""
     found: list[SectionDoc] = []
 
     def visit(cls: type, key: str) -> None:
@@ -197,7 +211,7 @@ def sections() -> list[SectionDoc]:
         for child, dotted in nested:
             visit(child, dotted)
 
-    visit(_root(), "")
+    visit(root or _root(), "")
     return found
 
 
@@ -208,10 +222,10 @@ def _markdown_text(text: str) -> str:
     return re.sub(r"(?<![`\w])\*(?=\w)", r"\\*", text)  # a lone * is not emphasis
 
 
-def render() -> str:
+def render(root: type | None = None) -> str:
     """The reference as Markdown: one heading per section, one item per key."""
     out: list[str] = []
-    for section in sections():
+    for section in sections(root):
         title = f"`{section.key}`" if section.key else "Top level"
         out += [
             f"### {title}",
