@@ -465,3 +465,5 @@ def test_mkdocs_builds_the_manual_strictly(tmp_path: Path) -> None:
     assert "config-reference" not in page
     assert (site / "api" / "geometry" / "index.html").exists()
     assert "se3_exp" in (site / "api" / "geometry" / "index.html").read_text()
+    assert (site / "assets" / "front_map.png").is_file()
+    assert not (site / "hooks").exists() and not (site / "assets" / "front_map.py").exists()
