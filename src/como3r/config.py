@@ -613,7 +613,7 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
         if value not in get_args(annotation):
             raise ConfigError(f"{key}: {value!r} is not one of {list(get_args(annotation))}")
         return value
-    if dataclasses.is_dataclass(annotation):
+    if isinstance(annotation, type) and dataclasses.is_dataclass(annotation):
         if not isinstance(value, Mapping):
             raise ConfigError(f"{key}: expected a mapping of settings, got {value!r}")
         return config_from_dict(annotation, value, prefix=f"{key}.")

@@ -29,6 +29,7 @@ Same equations as :mod:`como3r.geometry.residuals`; tests compare both paths and
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -237,8 +238,18 @@ def _in_camera_i(
 
 @njit(cache=True, error_model="numpy", fastmath=_FAST_SUMS)
 def _calibrated_block(
-    sR, t, K, X_j, p_i, z_i, q, valid, edge, first, n
-):  # pragma: no cover (compiled)
+    sR: np.ndarray,
+    t: np.ndarray,
+    K: np.ndarray,
+    X_j: np.ndarray,
+    p_i: np.ndarray,
+    z_i: np.ndarray,
+    q: np.ndarray,
+    valid: np.ndarray,
+    edge: int,
+    first: int,
+    n: int,
+) -> tuple:  # pragma: no cover (compiled)
     """Matches ``first`` to ``first + n`` of ``edge`` (C-Eq. 17): their inputs as flat 1-D
     views (numba indexes a 3-D array by its runtime shape, which LLVM vectorises only for a
     unit stride), the edge's :func:`_edge_constants` and the log-depth residuals
@@ -263,8 +274,17 @@ def _calibrated_block(
 
 
 def _ray_range_blocks(
-    sR, t, X_i, X_j, q, valid, inv_sigma, k, block, out
-):  # pragma: no cover (compiled)
+    sR: np.ndarray,
+    t: np.ndarray,
+    X_i: np.ndarray,
+    X_j: np.ndarray,
+    q: np.ndarray,
+    valid: np.ndarray,
+    inv_sigma: np.ndarray,
+    k: float,
+    block: int,
+    out: np.ndarray,
+) -> None:  # pragma: no cover (compiled)
     E, P = q.shape
     blocks = (P + block - 1) // block
     for task in prange(E * blocks):
@@ -295,8 +315,19 @@ def _ray_range_blocks(
 
 
 def _calibrated_blocks(
-    sR, t, K, X_j, p_i, z_i, q, valid, inv_sigma, k, block, out
-):  # pragma: no cover (compiled)
+    sR: np.ndarray,
+    t: np.ndarray,
+    K: np.ndarray,
+    X_j: np.ndarray,
+    p_i: np.ndarray,
+    z_i: np.ndarray,
+    q: np.ndarray,
+    valid: np.ndarray,
+    inv_sigma: np.ndarray,
+    k: float,
+    block: int,
+    out: np.ndarray,
+) -> None:  # pragma: no cover (compiled)
     E, P = q.shape
     blocks = (P + block - 1) // block
     for task in prange(E * blocks):
@@ -409,8 +440,17 @@ def _calibrated_blocks(
 
 
 def _ray_range_cost(
-    sR, t, X_i, X_j, q, valid, inv_sigma, k, block, out
-):  # pragma: no cover (compiled)
+    sR: np.ndarray,
+    t: np.ndarray,
+    X_i: np.ndarray,
+    X_j: np.ndarray,
+    q: np.ndarray,
+    valid: np.ndarray,
+    inv_sigma: np.ndarray,
+    k: float,
+    block: int,
+    out: np.ndarray,
+) -> None:  # pragma: no cover (compiled)
     E, P = q.shape
     blocks = (P + block - 1) // block
     for task in prange(E * blocks):
@@ -427,8 +467,19 @@ def _ray_range_cost(
 
 
 def _calibrated_cost(
-    sR, t, K, X_j, p_i, z_i, q, valid, inv_sigma, k, block, out
-):  # pragma: no cover (compiled)
+    sR: np.ndarray,
+    t: np.ndarray,
+    K: np.ndarray,
+    X_j: np.ndarray,
+    p_i: np.ndarray,
+    z_i: np.ndarray,
+    q: np.ndarray,
+    valid: np.ndarray,
+    inv_sigma: np.ndarray,
+    k: float,
+    block: int,
+    out: np.ndarray,
+) -> None:  # pragma: no cover (compiled)
     E, P = q.shape
     blocks = (P + block - 1) // block
     for task in prange(E * blocks):
@@ -477,7 +528,7 @@ def _array(x: Tensor, dtype: torch.dtype | None = None) -> np.ndarray:
 
 
 def _sums(
-    loop,
+    loop: Callable[..., None],
     T_ij: Tensor,
     data: tuple[Tensor, ...],
     q: Tensor,

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Protocol
 
 import torch
@@ -175,6 +175,7 @@ class RelativePoseFactors(ABC):
         # pass instead of the count, the sort and the gathers)
         if self.valid.device.type == "cpu":
             order, kept = cpu_kernels.valid_first(self.valid)
+            take: Callable[[torch.Tensor, torch.Tensor, int], torch.Tensor]
             take = cpu_kernels.take_matches
         else:
             kept = int(self.valid.sum(1).max())
@@ -273,7 +274,10 @@ class RelativePoseFactors(ABC):
         """Each edge's robust energy as a quadratic in its relative pose at ``poses``
         ``(N, 8)``: the Gauss-Newton blocks of :meth:`linearize` before they are projected
         onto the endpoints, and each edge's energy (see :class:`QuadraticEdges`)."""
-        T_ij, H_rel, g_rel, costs = [], [], [], []
+        T_ij: list[torch.Tensor] = []
+        H_rel: list[torch.Tensor] = []
+        g_rel: list[torch.Tensor] = []
+        costs: list[torch.Tensor] = []
         for chunk in self.chunks(poses):
             for part, value in zip((T_ij, H_rel, g_rel), self.relative_blocks(poses, chunk)):
                 part.append(value)

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import enum
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -184,7 +184,7 @@ class LinearSolution:
         return max(self.attempts - 1, 0)
 
 
-def auto_backend(num_free: int) -> str:
+def auto_backend(num_free: int) -> Literal["dense", "band"]:
     """The backend ``"auto"`` takes for ``num_free`` free poses (see DENSE_MAX_FREE_POSES)."""
     return "dense" if num_free <= DENSE_MAX_FREE_POSES else "band"
 
@@ -265,7 +265,9 @@ def solve(
     return LinearSolution(step, SolveStatus.FAILED, retries, None, backend, cg_iterations)
 
 
-def _dense_attempts(system, free, lm_lambda, tikhonov_base, retries):
+def _dense_attempts(
+    system: BlockSystem, free: torch.Tensor, lm_lambda: float, tikhonov_base: float, retries: int
+) -> Iterator[torch.Tensor | None]:
     """Yield the free-pose step ``(F, 7)`` of each escalation attempt, or None on failure."""
     H = _dense(*_free_triplets(system, free))
     rhs = -system.g[free].reshape(-1, 1)
@@ -279,12 +281,14 @@ def _dense_attempts(system, free, lm_lambda, tikhonov_base, retries):
         yield tau.reshape(-1, D) if tau is not None and bool(tau.isfinite().all()) else None
 
 
-def _sparse_attempts(system, free, lm_lambda, tikhonov_base, retries):
+def _sparse_attempts(
+    system: BlockSystem, free: torch.Tensor, lm_lambda: float, tikhonov_base: float, retries: int
+) -> Iterator[torch.Tensor | None]:
     """Sparse counterpart of :func:`_dense_attempts` (scipy SuperLU in symmetric mode)."""
-    rows, cols, values, size = (
-        t.cpu().numpy() if isinstance(t, torch.Tensor) else t for t in _free_triplets(system, free)
-    )
-    H = scipy.sparse.coo_matrix((values, (rows, cols)), shape=(size, size)).tocsc()  # sums
+    rows, cols, values, size = _free_triplets(system, free)
+    H = scipy.sparse.coo_matrix(
+        (values.cpu().numpy(), (rows.cpu().numpy(), cols.cpu().numpy())), shape=(size, size)
+    ).tocsc()  # sums
     rhs = -system.g[free].reshape(-1).cpu().numpy()
     damping = lm_lambda * H.diagonal()
     for r in range(retries):
