@@ -23,6 +23,8 @@ from typing import Any, Literal, TypeVar, get_args, get_origin
 
 import yaml
 
+from como3r.config_simulated_prior import SimulatedPriorConfig
+from como3r.config_simulated_prior import check_config as check_simulated_prior
 from como3r.decentralized.config import DecentralizedConfig
 from como3r.decentralized.config import check_config as check_decentralized
 from como3r.errors import ConfigError
@@ -372,51 +374,6 @@ class SessionConfig:
 
 
 @dataclass(frozen=True)
-class SimulatedPriorConfig:
-    """Error model of the simulated prior (README, "Python API").
-
-    ``model`` selects it: ``"realistic"`` (default) imitates MASt3R's failure modes,
-    ``"easy"`` is the near-oracle of round 1 for tests that need precision, ``"v2"`` (in
-    progress, not yet the default) adds to the realistic model what the image reveals
-    (descriptors, retrieval and confidence from local contrast; a confidence blind to the
-    low-frequency error; per-pair rays); the keys from ``focal_error`` on are used by the
-    realistic and v2 models only. Units and sources of every key:
-    :mod:`como3r.prior.simulated_errors`. Lengths are fractions (of a range, a baseline,
-    the view's median valid depth or the image's long side), never metres.
-    """
-
-    model: Literal["realistic", "easy", "v2"] = "realistic"
-    scale_sigma: float = 0.05
-    depth_distortion_amplitude: float = 0.03
-    depth_distortion_wavelength: float = 1.0 / 3.0
-    range_noise: float = 0.005
-    rotation_noise_deg: float = 0.5
-    translation_noise: float = 0.01
-    descriptor_dim: int = 24
-    descriptor_noise: float = 0.1
-    seed: int = 0
-    focal_error: float = 0.08
-    principal_point_error: float = 0.01
-    ray_field_deg: float = 0.3
-    image_distortion_amplitude: float = 0.04
-    image_error_correlation: float = 0.9
-    image_error_frames: float = 30.0
-    scale_drift: float = 0.08
-    scale_drift_frames: float = 60.0
-    pose_noise_growth: float = 0.05
-    translation_floor: float = 0.002
-    pose_tail_dof: int = 3
-    gross_failure_rate: float = 0.03
-    hallucination_rate: float = 0.3
-    flying_pixel_fraction: float = 0.5
-    outlier_fraction: float = 0.005
-    confidence_error_slope: float = 1.0
-    confidence_noise: float = 0.5
-    descriptor_viewpoint_gain: float = 1.0
-    descriptor_ambiguity: float = 0.5
-
-
-@dataclass(frozen=True)
 class Config:
     """The full effective configuration of a run."""
 
@@ -580,9 +537,6 @@ def validate(config: Config) -> Config:
             f"patch size), got {long_side}"
         )
     check_decentralized(config.decentralized)
-    # the simulated prior owns its error model's ranges; imported here because it needs torch
-    from como3r.prior.simulated_errors import check_config as check_simulated_prior
-
     check_simulated_prior(config.simulated_prior)
     return config
 

@@ -25,6 +25,7 @@ from typing import Protocol
 
 import torch
 
+import como3r.optim.cpu_kernels as cpu_kernels
 from como3r.config import TrackingConfig
 from como3r.errors import InputError
 from como3r.geometry.lie import (
@@ -41,8 +42,7 @@ from como3r.geometry.residuals import (
     ray_range_residual,
     ray_range_terms,
 )
-from como3r.optim import cpu_kernels
-from como3r.optim.linear import EdgeBlocks
+from como3r.optim.system import EdgeBlocks
 
 # Matches linearized at once: bounds the (chunk, P, C, 7) Jacobian, its weighted copy and
 # the temporaries of the residual to ~100 MB in float32 whatever E and P are (a chunk holds

@@ -26,7 +26,8 @@ import torch
 from como3r.config import GlobalBAConfig, LocalSolveConfig, TrackingConfig
 from como3r.errors import InputError
 from como3r.optim.factors import Factor
-from como3r.optim.linear import Backend, BlockSystem, SolveStatus, assemble, solve
+from como3r.optim.linear import Backend, SolveStatus, solve
+from como3r.optim.system import BlockSystem, assemble
 from como3r.optim.values import PoseValues
 
 _T = TypeVar("_T")
