@@ -19,7 +19,7 @@ import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, TypeVar, get_args, get_origin
+from typing import TYPE_CHECKING, Any, Literal, TypeVar, get_args, get_origin
 
 import yaml
 
@@ -28,6 +28,9 @@ from como3r.config_simulated_prior import check_config as check_simulated_prior
 from como3r.decentralized.config import DecentralizedConfig
 from como3r.decentralized.config import check_config as check_decentralized
 from como3r.errors import ConfigError
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
 
 
 @dataclass(frozen=True)
@@ -395,7 +398,7 @@ class Config:
     seed: int = 0
 
 
-C = TypeVar("C")
+C = TypeVar("C", bound="DataclassInstance")
 
 # Ranges checked by validate(); a key not listed takes any (finite) value of its type, and
 # Literal keys are checked against their choices when read. 0 stays allowed where it means
@@ -604,7 +607,7 @@ def config_from_dict(cls: type[C], values: Mapping[str, Any], prefix: str = "") 
     Missing keys keep their defaults; unknown keys raise :class:`ConfigError`.
     """
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(values) - names)
     if unknown:
         raise ConfigError(f"unknown configuration key {prefix}{unknown[0]!s}")

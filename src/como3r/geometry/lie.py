@@ -332,10 +332,11 @@ def _phi_derivatives(zeta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         (z * exp_z - expm1_z) / (z * z),
         (z * z * exp_z - 2.0 * z * exp_z + 2.0 * expm1_z) / (2.0 * z * z * z),
     )
-    return tuple(  # type: ignore[return-value]
+    phi, d_phi, half_dd_phi = (
         torch.where(small, _horner(series, z_series), value)
         for series, value in zip(_PHI_SERIES, closed)
     )
+    return phi, d_phi, half_dd_phi
 
 
 def _left_jacobian_coefficients(zeta: Tensor, theta_sq: Tensor) -> tuple[Tensor, Tensor, Tensor]:
