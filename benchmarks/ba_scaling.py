@@ -47,9 +47,10 @@ import time
 import torch
 
 from como3r.geometry.lie import sim3_compose
-from como3r.optim.factors import RayRangeFactors
-from como3r.optim.linear import DENSE_MAX_FREE_POSES, assemble, auto_backend, solve
+from como3r.optim.linear import DENSE_MAX_FREE_POSES, auto_backend, solve
+from como3r.optim.match_factors import RayRangeFactors
 from como3r.optim.synthetic import chain_loop_edges, chain_poses, random_sim3, synthetic_graph
+from como3r.optim.system import assemble
 from como3r.optim.values import PoseValues
 
 POINTS_PER_EDGE = 256

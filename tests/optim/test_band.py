@@ -7,10 +7,11 @@ import torch
 
 from como3r.geometry.lie import sim3_compose
 from como3r.optim import band, linear, pcg
-from como3r.optim.factors import RayRangeFactors
-from como3r.optim.linear import BlockSystem, EdgeBlocks, SolveStatus, assemble, solve
+from como3r.optim.linear import SolveStatus, solve
+from como3r.optim.match_factors import RayRangeFactors
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.synthetic import chain_loop_edges, chain_poses, random_sim3, synthetic_graph
+from como3r.optim.system import BlockSystem, EdgeBlocks, assemble
 from como3r.optim.values import PoseValues
 
 DEVICES = [

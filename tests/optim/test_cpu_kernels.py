@@ -12,7 +12,7 @@ from numba import njit
 
 from como3r.geometry.lie import sim3_act, sim3_exp
 from como3r.geometry.residuals import calibrated_residual
-from como3r.optim import cpu_kernels
+from como3r.optim import cpu_kernels, cpu_loops
 
 HUBER_K = 1.345
 
@@ -20,7 +20,7 @@ HUBER_K = 1.345
 @njit(error_model="numpy")
 def _logs(values: np.ndarray) -> np.ndarray:
     out = np.empty_like(values)
-    cpu_kernels._log(values, out, values.shape[0])
+    cpu_loops._log(values, out, values.shape[0])
     return out
 
 
@@ -71,7 +71,7 @@ def _reference(T_ij, K, X_j, p_i, z_i, q, valid, inv_sigma):
     or nearer it than MIN_DEPTH_RATIO of their observed depth and invalid ones weightless."""
     X_j, p_i, z_i, q = (x.to(torch.float64) for x in (X_j, p_i, z_i, q))
     e, J = calibrated_residual(T_ij, X_j, p_i, z_i, K)
-    in_front = sim3_act(T_ij[:, None, :], X_j)[..., 2] > cpu_kernels.MIN_DEPTH_RATIO * z_i
+    in_front = sim3_act(T_ij[:, None, :], X_j)[..., 2] > cpu_loops.MIN_DEPTH_RATIO * z_i
     info = q.sqrt()[..., None] * inv_sigma[:, None, :] * (valid & in_front)[..., None]
     whitened = e * info
     w = HUBER_K / whitened.abs().clamp_min(HUBER_K) * info

@@ -7,10 +7,11 @@ import torch
 
 from como3r.errors import InputError
 from como3r.geometry.lie import sim3_act, sim3_compose, sim3_exp, sim3_inverse, sim3_log
-from como3r.optim.cpu_kernels import MIN_DEPTH_RATIO
-from como3r.optim.factors import CalibratedFactors, RayRangeFactors, RelativePoseFactors
-from como3r.optim.linear import assemble
+from como3r.optim.cpu_loops import MIN_DEPTH_RATIO
+from como3r.optim.factors import RelativePoseFactors
+from como3r.optim.match_factors import CalibratedFactors, RayRangeFactors
 from como3r.optim.synthetic import chain_poses, random_sim3, synthetic_graph
+from como3r.optim.system import assemble
 
 HUBER_K = 1.345
 

@@ -10,7 +10,8 @@ import torch
 
 from como3r.errors import InputError
 from como3r.optim import linear
-from como3r.optim.linear import EdgeBlocks, SolveStatus, assemble, solve
+from como3r.optim.linear import SolveStatus, solve
+from como3r.optim.system import BlockSystem, EdgeBlocks, assemble
 
 FACTORISATIONS = ["dense", "sparse"]
 BACKENDS = [*FACTORISATIONS, "pcg", "band"]
@@ -80,7 +81,7 @@ def test_dense_and_sparse_backends_give_the_same_step(lm_lambda):
     assert torch.all(dense.step[~free] == 0) and torch.all(sparse.step[~free] == 0)
 
 
-def _slightly_indefinite_system() -> tuple[linear.BlockSystem, torch.Tensor]:
+def _slightly_indefinite_system() -> tuple[BlockSystem, torch.Tensor]:
     """A gauge-free system (no pose pinned) whose 7-dimensional null space picked up an
     eigenvalue of -1e-5, as rounding does to a gauge direction at large weights: the first
     attempt (eps = 1e-6) is not positive definite, the second (1e-4) is."""
@@ -95,7 +96,7 @@ def _slightly_indefinite_system() -> tuple[linear.BlockSystem, torch.Tensor]:
     diag = torch.arange(4)
     off_i, off_j = torch.triu_indices(4, 4, offset=1)
     g = projector @ system.g.reshape(-1)
-    indefinite = linear.BlockSystem(
+    indefinite = BlockSystem(
         H_diag=blocks[diag, diag],
         off_i=off_i,
         off_j=off_j,
@@ -150,7 +151,7 @@ def test_zero_step_and_failed_status_when_every_attempt_fails(backend, caplog):
     system = assemble(5, [_random_edges(5, GRAPH, seed=7)])
     H_diag = system.H_diag.clone()
     H_diag[2, 3, 3] = float("nan")
-    broken = linear.BlockSystem(H_diag, system.off_i, system.off_j, system.H_off, system.g)
+    broken = BlockSystem(H_diag, system.off_i, system.off_j, system.H_off, system.g)
     with caplog.at_level(logging.WARNING, logger="como3r.optim.linear"):
         solution = solve(broken, torch.ones(5, dtype=torch.bool), retries=6, backend=backend)
     assert solution.status is SolveStatus.FAILED

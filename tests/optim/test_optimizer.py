@@ -18,10 +18,10 @@ from como3r.geometry.lie import (
     sim3_inverse,
     sim3_log,
 )
-from como3r.optim.factors import CalibratedFactors, RayRangeFactors
-from como3r.optim.linear import EdgeBlocks
+from como3r.optim.match_factors import CalibratedFactors, RayRangeFactors
 from como3r.optim.optimizer import gauss_newton_irls, levenberg_marquardt_irls
 from como3r.optim.synthetic import chain_poses, random_sim3, synthetic_graph
+from como3r.optim.system import EdgeBlocks
 from como3r.optim.values import PoseValues
 
 NUM_MATCHES = 2000

@@ -10,7 +10,8 @@ import torch
 
 from como3r.errors import InputError
 from como3r.optim import pcg
-from como3r.optim.linear import BlockSystem, EdgeBlocks, SolveStatus, assemble, solve
+from como3r.optim.linear import SolveStatus, solve
+from como3r.optim.system import BlockSystem, EdgeBlocks, assemble
 
 DEVICES = [
     "cpu",

@@ -8,7 +8,7 @@ import torch
 from como3r.config import GlobalBAConfig
 from como3r.errors import InputError
 from como3r.geometry.lie import sim3_compose, sim3_exp
-from como3r.optim.factors import RayRangeFactors
+from como3r.optim.match_factors import RayRangeFactors
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.relinearization import EdgeModels, ThresholdRelinearized
 from como3r.optim.synthetic import chain_poses, random_sim3, synthetic_graph

@@ -26,8 +26,9 @@ from como3r.frontend import cpu_kernels
 from como3r.frontend.pairs import DirectedMatches
 from como3r.geometry.camera import project
 from como3r.geometry.units import median_point_range, median_range
-from como3r.optim.factors import CalibratedFactors, QuadraticEdges, RayRangeFactors
-from como3r.optim.linear import EdgeBlocks
+from como3r.optim.factors import QuadraticEdges
+from como3r.optim.match_factors import CalibratedFactors, RayRangeFactors
+from como3r.optim.system import EdgeBlocks
 
 #: edges linearized at once when their quadratic models are made (bounds the dense factors)
 QUADRATIC_CHUNK_EDGES = 64

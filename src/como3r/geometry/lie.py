@@ -21,27 +21,22 @@ With ``Omega = [omega]_x``, ``theta = |omega|`` the Sim(3) exponential is
     B = Im phi(zeta + i theta) / theta,
     C = (A - Re phi(zeta + i theta)) / theta^2,        phi(z) = (e^z - 1) / z.
 
-``W`` acts on the rotation axis as ``A`` and on the plane orthogonal to it as the complex
-number ``phi(zeta + i theta)``; this view gives both the numerically careful evaluation below
-and the closed-form inverse used by ``Log``:
-
-    W^-1 = (1/A) I - (B / den) Omega + ((B^2 - A C + C^2 theta^2) / (A den)) Omega^2,
-    den = (A - C theta^2)^2 + (B theta)^2 = |phi(zeta + i theta)|^2.
-
 SE(3) is the special case ``zeta = 0`` (``A = 1``, ``B = (1 - cos theta) / theta^2``,
-``C = (theta - sin theta) / theta^3``). The scalar coefficients are evaluated in float64 and
-cast back, which keeps float32 exp/log accurate in the coupled small-angle / small-``zeta``
-regime, where the closed forms cancel catastrophically in single precision.
+``C = (theta - sin theta) / theta^3``). ``Log`` applies the closed-form ``W^-1``. Both sets
+of coefficients are computed in float64 by :mod:`como3r.geometry.left_jacobian`.
 """
 
 from __future__ import annotations
-
-import math
 
 import torch
 from torch import Tensor
 
 from como3r.errors import GeometryError
+from como3r.geometry.left_jacobian import (
+    coefficient_inputs,
+    left_jacobian_coefficients,
+    left_jacobian_inverse_coefficients,
+)
 
 __all__ = [
     "skew",
@@ -78,15 +73,6 @@ __all__ = [
 # Below this rotation angle so3_exp / so3_log switch to Taylor series; the truncation error
 # there is below 1e-17 and the closed forms above it are accurate to a few ulps.
 _SO3_SERIES_ANGLE = 1e-2
-# Below this |zeta| the float64 Sim(3) coefficients use a 10-term Taylor series (error < 3e-18);
-# above it the closed forms lose at most ~1e-13 relative, which the callers multiply away.
-_ZETA_SERIES = 0.1
-# Below this rotation angle the float64 Sim(3) coefficients B, C take their theta -> 0 limits
-# (truncation error theta^2 / 24 relative, i.e. < 1e-11, and B, C enter W multiplied by
-# theta and theta^2). Above it the complex-exponential evaluation is accurate to
-# eps / theta (B) and eps / theta^2 (C), again multiplied away.
-_THETA_LIMIT = 1e-5
-_SERIES_TERMS = 10
 
 
 def _check_last_dim(x: Tensor, size: int, name: str) -> None:
@@ -295,68 +281,9 @@ def so3_log(q: Tensor) -> Tensor:
 
 
 # --------------------------------------------------------------------------------------------
-# The left Jacobian W(zeta, omega) shared by SE(3) and Sim(3)
+# The left Jacobian W(zeta, omega) shared by SE(3) and Sim(3): its coefficients are computed in
+# como3r.geometry.left_jacobian
 # --------------------------------------------------------------------------------------------
-
-
-def _taylor_coefficients(order: int) -> list[float]:
-    """Taylor coefficients of phi^(order)(zeta) / order!, phi(zeta) = (e^zeta - 1) / zeta."""
-    return [
-        math.comb(k + order, order) / math.factorial(k + order + 1) for k in range(_SERIES_TERMS)
-    ]
-
-
-_PHI_SERIES = [_taylor_coefficients(order) for order in range(3)]
-
-
-def _horner(coefficients: list[float], x: Tensor) -> Tensor:
-    result = torch.full_like(x, coefficients[-1])
-    for c in reversed(coefficients[:-1]):
-        result = result * x + c
-    return result
-
-
-def _phi_derivatives(zeta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``phi(zeta)``, ``phi'(zeta)``, ``phi''(zeta) / 2`` for ``phi(z) = (e^z - 1) / z``.
-
-    ``phi`` is ``A``; its derivatives are the ``theta -> 0`` limits of ``B`` and ``C``
-    (``phi' = int_0^1 u e^(u zeta) du``, ``phi'' / 2 = int_0^1 u^2 / 2 e^(u zeta) du``).
-    Float64 in and out.
-    """
-    small = zeta.abs() < _ZETA_SERIES
-    z_series = torch.where(small, zeta, torch.zeros_like(zeta))
-    z = torch.where(small, torch.ones_like(zeta), zeta)
-    exp_z, expm1_z = z.exp(), z.expm1()
-    closed = (
-        expm1_z / z,
-        (z * exp_z - expm1_z) / (z * z),
-        (z * z * exp_z - 2.0 * z * exp_z + 2.0 * expm1_z) / (2.0 * z * z * z),
-    )
-    return tuple(  # type: ignore[return-value]
-        torch.where(small, _horner(series, z_series), value)
-        for series, value in zip(_PHI_SERIES, closed)
-    )
-
-
-def _left_jacobian_coefficients(zeta: Tensor, theta_sq: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``A, B, C`` of ``W = A I + B Omega + C Omega^2`` (module docstring). Float64 in and out.
-
-    ``phi(zeta + i theta) = expm1(zeta + i theta) / (zeta + i theta)`` is evaluated with
-    ``Re expm1(zeta + i theta) = expm1(zeta) cos(theta) - 2 sin^2(theta / 2)`` so that both of
-    its parts are accurate to a few ulps of ``|zeta + i theta|`` for any small argument.
-    """
-    a, b_limit, c_limit = _phi_derivatives(zeta)
-    small = theta_sq < _THETA_LIMIT**2
-    theta_sq = torch.where(small, torch.ones_like(theta_sq), theta_sq)
-    theta = theta_sq.sqrt()
-    re_expm1 = zeta.expm1() * theta.cos() - 2.0 * (0.5 * theta).sin() ** 2
-    im_expm1 = zeta.exp() * theta.sin()
-    abs_sq = zeta * zeta + theta_sq
-    re_phi = (re_expm1 * zeta + im_expm1 * theta) / abs_sq
-    im_phi = (im_expm1 * zeta - re_expm1 * theta) / abs_sq
-    b = torch.where(small, b_limit, im_phi / theta)
-    c = torch.where(small, c_limit, (a - re_phi) / theta_sq)
-    return a, b, c
 
 
 def _apply_polynomial(
@@ -366,22 +293,6 @@ def _apply_polynomial(
     a, b, c = (k.to(x.dtype) for k in coefficients)
     omega_x = _cross(omega, x)
     return a * x + b * omega_x + c * _cross(omega, omega_x)
-
-
-def _left_jacobian_inverse_coefficients(
-    zeta: Tensor, theta_sq: Tensor
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Coefficients of ``W^-1`` (module docstring); free of cancellation for small theta."""
-    a, b, c = _left_jacobian_coefficients(zeta, theta_sq)
-    in_plane_real = a - c * theta_sq
-    den = in_plane_real * in_plane_real + b * b * theta_sq
-    return 1.0 / a, -b / den, (b * b - a * c + c * c * theta_sq) / (a * den)
-
-
-def _coefficient_inputs(omega: Tensor, zeta: Tensor | None) -> tuple[Tensor, Tensor]:
-    theta_sq = (omega.double() ** 2).sum(-1, keepdim=True)
-    zeta64 = torch.zeros_like(theta_sq) if zeta is None else zeta.double()
-    return zeta64, theta_sq
 
 
 # --------------------------------------------------------------------------------------------
@@ -402,7 +313,7 @@ def se3_exp(xi: Tensor) -> Tensor:
     """Exponential map of se(3). ``xi``: ``(..., 6)`` = ``(v, omega)`` -> ``(..., 7)``."""
     _check_last_dim(xi, 6, "xi")
     v, omega = xi[..., :3], xi[..., 3:]
-    t = _apply_polynomial(_left_jacobian_coefficients(*_coefficient_inputs(omega, None)), omega, v)
+    t = _apply_polynomial(left_jacobian_coefficients(*coefficient_inputs(omega, None)), omega, v)
     return torch.cat([t, so3_exp(omega)], dim=-1)
 
 
@@ -410,7 +321,7 @@ def se3_log(T: Tensor) -> Tensor:
     """Logarithm of SE(3). ``T``: ``(..., 7)`` -> ``(..., 6)`` = ``(v, omega)``, angle <= pi."""
     _check_last_dim(T, 7, "T")
     omega = so3_log(T[..., 3:7])
-    inverse = _left_jacobian_inverse_coefficients(*_coefficient_inputs(omega, None))
+    inverse = left_jacobian_inverse_coefficients(*coefficient_inputs(omega, None))
     v = _apply_polynomial(inverse, omega, T[..., :3])
     return torch.cat([v, omega], dim=-1)
 
@@ -479,7 +390,7 @@ def sim3_exp(tau: Tensor) -> Tensor:
     """
     _check_last_dim(tau, 7, "tau")
     v, omega, zeta = tau[..., :3], tau[..., 3:6], tau[..., 6:]
-    t = _apply_polynomial(_left_jacobian_coefficients(*_coefficient_inputs(omega, zeta)), omega, v)
+    t = _apply_polynomial(left_jacobian_coefficients(*coefficient_inputs(omega, zeta)), omega, v)
     return torch.cat([t, so3_exp(omega), zeta.exp()], dim=-1)
 
 
@@ -495,7 +406,7 @@ def sim3_log(T: Tensor) -> Tensor:
     _check_last_dim(T, 8, "T")
     omega = so3_log(T[..., 3:7])
     zeta = T[..., 7:].log()
-    inverse = _left_jacobian_inverse_coefficients(*_coefficient_inputs(omega, zeta))
+    inverse = left_jacobian_inverse_coefficients(*coefficient_inputs(omega, zeta))
     v = _apply_polynomial(inverse, omega, T[..., :3])
     return torch.cat([v, omega, zeta], dim=-1)
 

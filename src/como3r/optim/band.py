@@ -247,10 +247,11 @@ class OrderedSystem:
         band = self._band.clone()
         index = torch.arange(self.num)
         _add_to_band(band, index, index, ordered, self.num)
-        band = band.reshape(-1, D * self.num).numpy()
-        if not (self._finite and np.isfinite(band).all()):
+        ab = band.reshape(-1, D * self.num).numpy()  # LAPACK's band storage
+        if not (self._finite and np.isfinite(ab).all()):
             return None, "non_finite"
-        fine, info = scipy.linalg.lapack.dpbtrf(band, lower=1, overwrite_ab=1)
+        fine: np.ndarray | torch.Tensor
+        fine, info = scipy.linalg.lapack.dpbtrf(ab, lower=1, overwrite_ab=1)
         if info != 0:
             # B is not A's principal submatrix: its failure proves nothing about A. Fall
             # back to A's diagonal blocks, which are (a principal submatrix of a positive
@@ -259,7 +260,7 @@ class OrderedSystem:
                 "band preconditioner: B not positive definite (pivot %d of %d); "
                 "block-Jacobi fine level for this attempt",
                 info,
-                band.shape[1],
+                ab.shape[1],
             )
             fine, block_info = torch.linalg.cholesky_ex(ordered)
             if bool((block_info != 0).any()):
@@ -310,7 +311,7 @@ class TwoLevelAttempt:
 
     def fine_solve(self, r: torch.Tensor) -> torch.Tensor:
         """``B^-1 r``."""
-        if self.fine == "jacobi":
+        if isinstance(self.fine_factor, torch.Tensor):  # self.fine == "jacobi"
             return torch.cholesky_solve(r.reshape(-1, D, 1), self.fine_factor).reshape(-1)
         solved, _ = scipy.linalg.lapack.dpbtrs(self.fine_factor, r.numpy().reshape(-1, 1), lower=1)
         return torch.from_numpy(solved).reshape(-1)

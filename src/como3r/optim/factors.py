@@ -14,35 +14,31 @@ Each match contributes C residual components, each whitened by
 Huber kernel (C-Eq. 8). ``linearize`` produces the per-edge Gauss-Newton blocks with the
 IRLS weights ``w = min(1, k/|r|)`` recomputed from the whitened residual of the poses it is
 given (C-Sec. B.2); ``cost`` evaluates the robust energy for Levenberg-Marquardt.
+
+The two residual models, :class:`~como3r.optim.match_factors.RayRangeFactors` (C-Eq. 6) and
+:class:`~como3r.optim.match_factors.CalibratedFactors` (C-Eq. 17), are in
+:mod:`como3r.optim.match_factors`.
 """
 
 from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Protocol
 
 import torch
 
-from como3r.config import TrackingConfig
+import como3r.optim.cpu_kernels as cpu_kernels
 from como3r.errors import InputError
 from como3r.geometry.lie import (
-    sim3_act,
     sim3_adjoint,
     sim3_compose,
     sim3_inverse,
     sim3_log,
 )
-from como3r.geometry.residuals import (
-    calibrated_residual,
-    huber_weight,
-    ray_range_error,
-    ray_range_residual,
-    ray_range_terms,
-)
-from como3r.optim import cpu_kernels
-from como3r.optim.linear import EdgeBlocks
+from como3r.geometry.residuals import huber_weight
+from como3r.optim.system import EdgeBlocks
 
 # Matches linearized at once: bounds the (chunk, P, C, 7) Jacobian, its weighted copy and
 # the temporaries of the residual to ~100 MB in float32 whatever E and P are (a chunk holds
@@ -175,6 +171,7 @@ class RelativePoseFactors(ABC):
         # pass instead of the count, the sort and the gathers)
         if self.valid.device.type == "cpu":
             order, kept = cpu_kernels.valid_first(self.valid)
+            take: Callable[[torch.Tensor, torch.Tensor, int], torch.Tensor]
             take = cpu_kernels.take_matches
         else:
             kept = int(self.valid.sum(1).max())
@@ -211,11 +208,11 @@ class RelativePoseFactors(ABC):
             ``J`` ``(e, P, C, 7)`` w.r.t. a left perturbation of ``T_ij``, and ``T_WC_i``
             ``(e, 8)``. ``r`` and ``sqrt_info`` are zero for unusable matches (invalid, or in
             the calibrated residual brought nearer camera i than
-            ``cpu_kernels.MIN_DEPTH_RATIO`` of their observed depth, behind it included).
+            ``cpu_loops.MIN_DEPTH_RATIO`` of their observed depth, behind it included).
         """
         T_WC_i, T_ij = self._relative_poses(poses, edges)
         e, J, defined = self._residual(T_ij.to(self.q.dtype), edges)
-        # The stored inputs are finite (see _finite_rows), so e and J are finite for finite
+        # The stored inputs are finite (see finite_rows), so e and J are finite for finite
         # poses and a zero sqrt_info removes a match from every sum without masking J.
         sqrt_info = self._sqrt_info(edges, defined)
         return e * sqrt_info, sqrt_info, J, T_WC_i
@@ -273,7 +270,10 @@ class RelativePoseFactors(ABC):
         """Each edge's robust energy as a quadratic in its relative pose at ``poses``
         ``(N, 8)``: the Gauss-Newton blocks of :meth:`linearize` before they are projected
         onto the endpoints, and each edge's energy (see :class:`QuadraticEdges`)."""
-        T_ij, H_rel, g_rel, costs = [], [], [], []
+        T_ij: list[torch.Tensor] = []
+        H_rel: list[torch.Tensor] = []
+        g_rel: list[torch.Tensor] = []
+        costs: list[torch.Tensor] = []
         for chunk in self.chunks(poses):
             for part, value in zip((T_ij, H_rel, g_rel), self.relative_blocks(poses, chunk)):
                 part.append(value)
@@ -434,283 +434,6 @@ class QuadraticEdges:
         return (self.c + (self.g * delta).sum(-1) + quadratic).sum()
 
 
-class RayRangeFactors(RelativePoseFactors):
-    """Ray-and-range factors of C-Eq. 6 (uncalibrated tracking, local and global BA).
-
-    Args:
-        i, j: ``(E,)`` pose indices of each edge; the residual depends on
-            ``T_ij = T_WC_i^-1 T_WC_j``.
-        X_i: ``(E, P, 3)`` canonical points of keyframe i at the matched pixels m, in
-            camera i.
-        X_j: ``(E, P, 3)`` canonical points of j at the matched pixels n, in camera j.
-        q: ``(E, P)`` per-match confidence ``q_mn`` (C-Eq. 7).
-        valid: ``(E, P)`` bool, which matches exist.
-        sigma_ray, sigma_dist: ray and range noise (C-Tab. 3).
-        huber_k: Huber breakpoint on whitened components.
-        chunk_matches: how many matches to linearize at once (memory bound).
-        range_scale: ``(E,)`` optional length that multiplies ``sigma_dist`` per edge
-            (keyframe i's median range when ``sigma_dist`` is relative to the scene).
-    """
-
-    def __init__(
-        self,
-        i: torch.Tensor,
-        j: torch.Tensor,
-        X_i: torch.Tensor,
-        X_j: torch.Tensor,
-        q: torch.Tensor,
-        valid: torch.Tensor,
-        sigma_ray: float = TrackingConfig.sigma_ray,
-        sigma_dist: float = TrackingConfig.sigma_dist,
-        huber_k: float = TrackingConfig.huber_k,
-        chunk_matches: int = DEFAULT_CHUNK_MATCHES,
-        range_scale: torch.Tensor | None = None,
-    ) -> None:
-        scale = None
-        if range_scale is not None:
-            if range_scale.shape != q.shape[:1]:
-                raise InputError(
-                    f"RayRangeFactors: range_scale must have shape "
-                    f"({q.shape[0]},), got {tuple(range_scale.shape)}"
-                )
-            scale = torch.ones(q.shape[0], 4, dtype=q.dtype, device=q.device)
-            scale[:, 3] = range_scale.to(q)
-        super().__init__(
-            i,
-            j,
-            q,
-            valid,
-            (sigma_ray,) * 3 + (sigma_dist,),
-            huber_k,
-            chunk_matches,
-            sigma_scale=scale,
-        )
-        for label, X in (("X_i", X_i), ("X_j", X_j)):
-            if X.shape != (*q.shape, 3):
-                raise InputError(
-                    f"RayRangeFactors: {label} must have shape "
-                    f"{(*q.shape, 3)}, got {tuple(X.shape)}"
-                )
-        # A point at the camera centre has no ray (the geometry clamps its norm instead of
-        # returning NaN), and Sim(3) maps only the centre to the centre, so this is static.
-        self.valid = self.valid & _usable_points(X_i) & _usable_points(X_j)
-        self.X_i = _finite_rows(X_i, self.valid)
-        self.X_j = _finite_rows(X_j, self.valid)
-        self._keep_valid_matches("X_i", "X_j")
-
-    def _residual(
-        self, T_ij: torch.Tensor, edges: slice
-    ) -> tuple[torch.Tensor, torch.Tensor, None]:
-        e, J = ray_range_residual(T_ij, self.X_j[edges], self.X_i[edges])
-        return e, J, None
-
-    def _error(self, T_ij: torch.Tensor, edges: slice) -> tuple[torch.Tensor, None]:
-        return ray_range_error(T_ij, self.X_j[edges], self.X_i[edges]), None
-
-    def _compiled_blocks(
-        self, T_ij: torch.Tensor, edges: slice
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        return cpu_kernels.ray_range_blocks(
-            T_ij,
-            self.X_i[edges],
-            self.X_j[edges],
-            self.q[edges],
-            self.valid[edges],
-            self._inv_sigmas[edges, 0],
-            self.huber_k,
-        )
-
-    def _compiled_costs(self, T_ij: torch.Tensor, edges: slice) -> torch.Tensor:
-        return cpu_kernels.ray_range_costs(
-            T_ij,
-            self.X_i[edges],
-            self.X_j[edges],
-            self.q[edges],
-            self.valid[edges],
-            self._inv_sigmas[edges, 0],
-            self.huber_k,
-        )
-
-    def _vectorised_blocks(
-        self, poses: torch.Tensor, edges: slice
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``J^T W J`` and ``J^T W e`` of C-Eq. 6 summed in closed form, without ``J``.
-
-        With ``x = T_ij X_j``, ``d = ||x||``, ``r = x / d`` the Jacobian rows are (C-Eq. 9-10,
-        :func:`~como3r.geometry.residuals.ray_range_residual`) ``J_c = [(e_c - r_c r) / d,
-        S_c, 0]`` for the ray components c = 0..2, with ``S = -[r]_x``, and
-        ``J_3 = [r^T, 0, d]`` for the range. With per-component weights ``a_c`` (ray),
-        ``b`` (range) and weighted residuals ``alpha_c``, ``beta`` (IRLS weight times
-        information, C-Sec. A.1) the blocks of ``H = sum_c a_c J_c^T J_c + b J_3^T J_3`` are
-
-            H_tt = diag(sum u) - M - M^T + sum (u . (r*r) + b) r r^T,  u = a / d^2,
-                   M = sum (u * r) r^T
-            H_tw = sum (diag(a) S - r v^T) / d,  v = S^T (a * r)
-            H_ww = sum S^T diag(a) S,  H_ts = sum b d r,  H_ss = sum b d^2,  H_ws = 0
-            g_t = sum ((alpha - (alpha . r) r) / d + beta r),  g_w = sum r x alpha,
-            g_s = sum beta d
-
-        so a match costs a few 3-vectors and 3x3 products instead of a ``(4, 7)`` Jacobian
-        (the same sums as the generic path up to rounding; tests pin both to autograd).
-        """
-        T_WC_i, T_ij = self._relative_poses(poses, edges)
-        d, r, e = ray_range_terms(T_ij.to(self.q.dtype), self.X_j[edges], self.X_i[edges])
-        sqrt_info = self._sqrt_info(edges, None)
-        whitened = e * sqrt_info
-        weight = huber_weight(whitened, self.huber_k) * sqrt_info
-        W, G = weight * sqrt_info, weight * whitened  # (e, P, 4): w s^2 and w s^2 e
-        a, b = W[..., :3], W[..., 3]
-        alpha, beta = G[..., :3], G[..., 3]
-        inv_d = 1.0 / d
-        r0, r1, r2 = r.unbind(-1)
-        # products of the two other components of r, indexed by the missing one
-        cross = torch.stack([r1 * r2, r0 * r2, r0 * r1], dim=-1)
-        u = a * (inv_d * inv_d)[..., None]
-        M = torch.einsum("epk,epl->ekl", u * r, r)
-        N = torch.einsum("epk,epl->ekl", ((u * r * r).sum(-1) + b)[..., None] * r, r)
-        H_tt = torch.diag_embed(u.sum(1)) - M - M.transpose(1, 2) + N
-        # v = S^T (a * r): v_l = cross_l (a_{l+2} - a_{l+1}) (indices mod 3)
-        v = cross * (a.roll(-2, dims=-1) - a.roll(-1, dims=-1))
-        A = torch.einsum("epk,epl->ekl", a * inv_d[..., None], r)  # sum a_k r_l / d
-        zero = torch.zeros_like(A[:, 0, 0])
-        # (sum diag(a) S / d)_{kl} = sum a_k S_kl / d with S = -[r]_x
-        aS = torch.stack(
-            [
-                torch.stack([zero, A[:, 0, 2], -A[:, 0, 1]], -1),
-                torch.stack([-A[:, 1, 2], zero, A[:, 1, 0]], -1),
-                torch.stack([A[:, 2, 1], -A[:, 2, 0], zero], -1),
-            ],
-            dim=1,
-        )
-        H_tw = aS - torch.einsum("epk,epl->ekl", r * inv_d[..., None], v)
-        # S^T diag(a) S: diagonal sum_{c != l != k} a_c r_l^2, off-diagonal -a_m r_k r_l
-        ar2 = torch.einsum("epc,epl->ecl", a, r * r)
-        off = (a * cross).sum(1)
-        H_ww = torch.stack(
-            [
-                torch.stack([ar2[:, 1, 2] + ar2[:, 2, 1], -off[:, 2], -off[:, 1]], -1),
-                torch.stack([-off[:, 2], ar2[:, 0, 2] + ar2[:, 2, 0], -off[:, 0]], -1),
-                torch.stack([-off[:, 1], -off[:, 0], ar2[:, 0, 1] + ar2[:, 1, 0]], -1),
-            ],
-            dim=1,
-        )
-        bd = b * d
-        H_ts = (bd[..., None] * r).sum(1)
-        num = H_tt.shape[0]
-        H_rel = H_tt.new_zeros(num, 7, 7)
-        H_rel[:, :3, :3] = H_tt
-        H_rel[:, :3, 3:6] = H_tw
-        H_rel[:, 3:6, :3] = H_tw.transpose(1, 2)
-        H_rel[:, 3:6, 3:6] = H_ww
-        H_rel[:, :3, 6] = H_ts
-        H_rel[:, 6, :3] = H_ts
-        H_rel[:, 6, 6] = (bd * d).sum(1)
-        along = (alpha * r).sum(-1, keepdim=True)
-        g_t = ((alpha - along * r) * inv_d[..., None] + beta[..., None] * r).sum(1)
-        g_w = torch.linalg.cross(r, alpha, dim=-1).sum(1)
-        g_rel = torch.cat([g_t, g_w, (beta * d).sum(1, keepdim=True)], dim=-1)
-        return H_rel, g_rel, T_WC_i
-
-
-class CalibratedFactors(RelativePoseFactors):
-    """Pixel-reprojection and log-depth factors of C-Eq. 17 (known calibration, C-Sec. A.5).
-
-    Args:
-        i, j: ``(E,)`` pose indices of each edge.
-        X_j: ``(E, P, 3)`` canonical points of j at the matched pixels n, in camera j.
-        p_i: ``(E, P, 2)`` observed pixel coordinates m in image i.
-        z_i: ``(E, P)`` depth ``[X_i]_3`` of keyframe i at pixel m (metres, > 0).
-        K: ``(E, 3, 3)`` or ``(3, 3)`` intrinsics of camera i.
-        q, valid: as in :class:`RayRangeFactors`.
-        sigma_pixel, sigma_depth: pixel and log-depth noise (C-Tab. 3).
-        huber_k, chunk_matches: as in :class:`RayRangeFactors`.
-    """
-
-    def __init__(
-        self,
-        i: torch.Tensor,
-        j: torch.Tensor,
-        X_j: torch.Tensor,
-        p_i: torch.Tensor,
-        z_i: torch.Tensor,
-        K: torch.Tensor,
-        q: torch.Tensor,
-        valid: torch.Tensor,
-        sigma_pixel: float = TrackingConfig.sigma_pixel,
-        sigma_depth: float = TrackingConfig.sigma_depth,
-        huber_k: float = TrackingConfig.huber_k,
-        chunk_matches: int = DEFAULT_CHUNK_MATCHES,
-    ) -> None:
-        super().__init__(
-            i, j, q, valid, (sigma_pixel,) * 2 + (sigma_depth,), huber_k, chunk_matches
-        )
-        for label, value, shape in (
-            ("X_j", X_j, (*q.shape, 3)),
-            ("p_i", p_i, (*q.shape, 2)),
-            ("z_i", z_i, tuple(q.shape)),
-        ):
-            if value.shape != shape:
-                raise InputError(
-                    f"CalibratedFactors: {label} must have shape {shape}, got {tuple(value.shape)}"
-                )
-        if K.shape == (3, 3):
-            K = K.expand(q.shape[0], 3, 3)
-        if K.shape != (q.shape[0], 3, 3):
-            raise InputError(
-                f"CalibratedFactors: K must have shape (3, 3) or "
-                f"({q.shape[0]}, 3, 3), got {tuple(K.shape)}"
-            )
-        if z_i.device.type == "cpu":
-            observed = cpu_kernels.observed(p_i, z_i)
-        else:
-            observed = torch.isfinite(p_i).all(-1) & torch.isfinite(z_i) & (z_i > 0)
-        self.valid = self.valid & observed & _usable_points(X_j)
-        self.X_j = _finite_rows(X_j, self.valid)
-        self.p_i = _finite_rows(p_i, self.valid)
-        self.z_i = _finite_rows(z_i[..., None], self.valid)[..., 0]
-        self.K = K
-        self._keep_valid_matches("X_j", "p_i", "z_i")
-
-    def _residual(
-        self, T_ij: torch.Tensor, edges: slice
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        X_j = self.X_j[edges]
-        e, J = calibrated_residual(T_ij, X_j, self.p_i[edges], self.z_i[edges], self.K[edges])
-        # Pi_K and log z exist only in front of camera i, and their Jacobian grows as 1 / z^2
-        # near it: a match counts where the transformed depth is at least MIN_DEPTH_RATIO of
-        # the observed one (C-Eq. 17-18), recomputed at every iterate.
-        z = sim3_act(T_ij[:, None, :], X_j)[..., 2]
-        return e, J, z > cpu_kernels.MIN_DEPTH_RATIO * self.z_i[edges].to(z.dtype)
-
-    def _compiled_blocks(
-        self, T_ij: torch.Tensor, edges: slice
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        return cpu_kernels.calibrated_blocks(
-            T_ij,
-            self.K[edges],
-            self.X_j[edges],
-            self.p_i[edges],
-            self.z_i[edges],
-            self.q[edges],
-            self.valid[edges],
-            self._inv_sigmas[edges, 0],
-            self.huber_k,
-        )
-
-    def _compiled_costs(self, T_ij: torch.Tensor, edges: slice) -> torch.Tensor:
-        return cpu_kernels.calibrated_costs(
-            T_ij,
-            self.K[edges],
-            self.X_j[edges],
-            self.p_i[edges],
-            self.z_i[edges],
-            self.q[edges],
-            self.valid[edges],
-            self._inv_sigmas[edges, 0],
-            self.huber_k,
-        )
-
-
 def _edge_index(index: torch.Tensor, label: str, name: str) -> torch.Tensor:
     """Validate an ``(E,)`` pose index tensor and return it as int64."""
     if not isinstance(index, torch.Tensor) or index.ndim != 1:
@@ -729,14 +452,7 @@ def _take_matches(value: torch.Tensor, order: torch.Tensor, kept: int) -> torch.
     return torch.gather(value, 1, index.expand(E, kept, *value.shape[2:]))
 
 
-def _usable_points(X: torch.Tensor) -> torch.Tensor:
-    """``(E, P)`` bool: finite points away from the camera centre."""
-    if X.device.type == "cpu":
-        return cpu_kernels.usable_points(X)
-    return torch.isfinite(X).all(-1) & (torch.linalg.vector_norm(X, dim=-1) > 0)
-
-
-def _finite_rows(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+def finite_rows(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """``values`` ``(E, P, k)`` with the rows of invalid matches set to 1 if any of them is
     not finite: garbage behind the mask (NaN pointmap pixels) must not turn a zero weight
     into NaN. Without such garbage the input is kept as is (no copy)."""

@@ -1,8 +1,8 @@
-"""The block-sparse normal equations of a pose solve and their damped solution (C-Eq. 25).
+"""The damped solution of a pose solve's block normal equations (C-Eq. 25).
 
-Factors linearize into per-edge 7x7 blocks (:class:`EdgeBlocks`); :func:`assemble`
-scatter-adds them into the global block system (:class:`BlockSystem`) over N poses;
-:func:`solve` solves
+Factors linearize into per-edge 7x7 blocks that :func:`como3r.optim.system.assemble`
+scatter-adds into the global block system (:class:`~como3r.optim.system.BlockSystem`)
+over N poses; :func:`solve` solves
 
     (H + lambda diag(H) + eps_r I) tau = -g
 
@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import enum
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Literal
 
@@ -32,10 +32,9 @@ import torch
 
 from como3r.errors import InputError
 from como3r.optim.pcg import CG_RELATIVE_TOLERANCE, pcg_attempts
+from como3r.optim.system import BlockSystem, D, free_triplets, triplets_to_dense
 
 logger = logging.getLogger(__name__)
-
-D = 7  # tangent dimension of Sim(3)
 
 Backend = Literal["auto", "dense", "sparse", "pcg", "band"]
 BACKENDS: tuple[str, ...] = ("auto", "dense", "sparse", "pcg", "band")
@@ -58,91 +57,6 @@ BACKENDS: tuple[str, ...] = ("auto", "dense", "sparse", "pcg", "band")
 #   about linear on both families is band above the dense crossover (slopes in
 #   como3r.optim.band), and SuperLU's loss on the loop-rich graphs grows with N.
 DENSE_MAX_FREE_POSES = 60
-
-
-@dataclass(frozen=True, eq=False)
-class EdgeBlocks:
-    """Per-edge Gauss-Newton blocks of a relative-pose factor batch over E edges.
-
-    For an edge (i, j) with stacked whitened Jacobians J_i, J_j and IRLS weights W:
-    ``H_ii = J_i^T W J_i``, ``H_jj = J_j^T W J_j``, ``H_ij = J_i^T W J_j``,
-    ``g_i = J_i^T W e``, ``g_j = J_j^T W e``.
-
-    Attributes:
-        i, j: ``(E,)`` int64 pose indices.
-        H_ii, H_jj, H_ij: ``(E, 7, 7)`` blocks.
-        g_i, g_j: ``(E, 7)`` gradient blocks.
-    """
-
-    i: torch.Tensor
-    j: torch.Tensor
-    H_ii: torch.Tensor
-    H_jj: torch.Tensor
-    H_ij: torch.Tensor
-    g_i: torch.Tensor
-    g_j: torch.Tensor
-
-    @staticmethod
-    def cat(parts: Sequence[EdgeBlocks]) -> EdgeBlocks:
-        """Concatenate edge batches (e.g. the chunks of one factor)."""
-        return EdgeBlocks(*(torch.cat([getattr(p, name) for p in parts]) for name in _EDGE_FIELDS))
-
-
-_EDGE_FIELDS = ("i", "j", "H_ii", "H_jj", "H_ij", "g_i", "g_j")
-
-
-@dataclass(frozen=True, eq=False)
-class BlockSystem:
-    """Global block normal equations ``H tau = -g`` over N poses, H symmetric.
-
-    Attributes:
-        H_diag: ``(N, 7, 7)`` float64 diagonal blocks (scatter-added over edges).
-        off_i, off_j: ``(M,)`` int64 indices of the upper off-diagonal blocks; repeated
-            pairs are summed, the lower triangle is their transpose.
-        H_off: ``(M, 7, 7)`` float64 block at (off_i, off_j).
-        g: ``(N, 7)`` float64 gradient.
-    """
-
-    H_diag: torch.Tensor
-    off_i: torch.Tensor
-    off_j: torch.Tensor
-    H_off: torch.Tensor
-    g: torch.Tensor
-
-    @property
-    def num_poses(self) -> int:
-        """N, the number of pose variables (pinned ones included)."""
-        return self.H_diag.shape[0]
-
-    def to_dense(self) -> torch.Tensor:
-        """The full ``(7N, 7N)`` Hessian, both triangles."""
-        return _dense(*_free_triplets(self, torch.ones_like(self.g[:, 0], dtype=torch.bool)))
-
-
-def assemble(num_poses: int, contributions: Sequence[EdgeBlocks]) -> BlockSystem:
-    """Scatter-add per-edge blocks of one or more factor batches into a ``BlockSystem``.
-
-    Args:
-        num_poses: N.
-        contributions: edge blocks whose indices lie in ``[0, N)``.
-    """
-    if not contributions:
-        raise InputError("assemble: no factor contributions to assemble")
-    device = contributions[0].i.device
-    H_diag = torch.zeros(num_poses, D, D, dtype=torch.float64, device=device)
-    g = torch.zeros(num_poses, D, dtype=torch.float64, device=device)
-    for c in contributions:
-        H_diag.index_add_(0, c.i, c.H_ii.to(torch.float64))
-        H_diag.index_add_(0, c.j, c.H_jj.to(torch.float64))
-        g.index_add_(0, c.i, c.g_i.to(torch.float64))
-        g.index_add_(0, c.j, c.g_j.to(torch.float64))
-    return BlockSystem(
-        H_diag=H_diag,
-        off_i=torch.cat([c.i for c in contributions]),
-        off_j=torch.cat([c.j for c in contributions]),
-        H_off=torch.cat([c.H_ij.to(torch.float64) for c in contributions]),
-        g=g,
-    )
 
 
 class SolveStatus(enum.Enum):
@@ -184,7 +98,7 @@ class LinearSolution:
         return max(self.attempts - 1, 0)
 
 
-def auto_backend(num_free: int) -> str:
+def auto_backend(num_free: int) -> Literal["dense", "band"]:
     """The backend ``"auto"`` takes for ``num_free`` free poses (see DENSE_MAX_FREE_POSES)."""
     return "dense" if num_free <= DENSE_MAX_FREE_POSES else "band"
 
@@ -265,9 +179,11 @@ def solve(
     return LinearSolution(step, SolveStatus.FAILED, retries, None, backend, cg_iterations)
 
 
-def _dense_attempts(system, free, lm_lambda, tikhonov_base, retries):
+def _dense_attempts(
+    system: BlockSystem, free: torch.Tensor, lm_lambda: float, tikhonov_base: float, retries: int
+) -> Iterator[torch.Tensor | None]:
     """Yield the free-pose step ``(F, 7)`` of each escalation attempt, or None on failure."""
-    H = _dense(*_free_triplets(system, free))
+    H = triplets_to_dense(*free_triplets(system, free))
     rhs = -system.g[free].reshape(-1, 1)
     damping = lm_lambda * H.diagonal()
     for r in range(retries):
@@ -279,12 +195,14 @@ def _dense_attempts(system, free, lm_lambda, tikhonov_base, retries):
         yield tau.reshape(-1, D) if tau is not None and bool(tau.isfinite().all()) else None
 
 
-def _sparse_attempts(system, free, lm_lambda, tikhonov_base, retries):
+def _sparse_attempts(
+    system: BlockSystem, free: torch.Tensor, lm_lambda: float, tikhonov_base: float, retries: int
+) -> Iterator[torch.Tensor | None]:
     """Sparse counterpart of :func:`_dense_attempts` (scipy SuperLU in symmetric mode)."""
-    rows, cols, values, size = (
-        t.cpu().numpy() if isinstance(t, torch.Tensor) else t for t in _free_triplets(system, free)
-    )
-    H = scipy.sparse.coo_matrix((values, (rows, cols)), shape=(size, size)).tocsc()  # sums
+    rows, cols, values, size = free_triplets(system, free)
+    H = scipy.sparse.coo_matrix(
+        (values.cpu().numpy(), (rows.cpu().numpy(), cols.cpu().numpy())), shape=(size, size)
+    ).tocsc()  # sums
     rhs = -system.g[free].reshape(-1).cpu().numpy()
     damping = lm_lambda * H.diagonal()
     for r in range(retries):
@@ -321,42 +239,3 @@ def _spd_solve(A: scipy.sparse.csc_matrix, rhs: np.ndarray) -> np.ndarray | None
         return None
     x = lu.solve(rhs)
     return x if np.all(np.isfinite(x)) else None
-
-
-def _free_triplets(
-    system: BlockSystem, free: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
-    """Scalar (row, col, value) triplets of the free-pose Hessian, both triangles, with
-    repeated entries left to be summed, and its size 7F. Built for all blocks at once."""
-    n = system.num_poses
-    new_index = torch.full((n,), -1, dtype=torch.int64, device=free.device)
-    new_index[free] = torch.arange(int(free.sum()), device=free.device)
-    diag = torch.arange(n, device=free.device)
-    rows, cols, values = [], [], []
-    for bi, bj, blocks in (
-        (diag, diag, system.H_diag),
-        (system.off_i, system.off_j, system.H_off),
-        (system.off_j, system.off_i, system.H_off.transpose(-1, -2)),
-    ):
-        keep = free[bi] & free[bj]
-        r, c = _block_entry_indices(new_index[bi[keep]], new_index[bj[keep]])
-        rows.append(r.reshape(-1))
-        cols.append(c.reshape(-1))
-        values.append(blocks[keep].reshape(-1))
-    return torch.cat(rows), torch.cat(cols), torch.cat(values), int(free.sum()) * D
-
-
-def _dense(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, size: int) -> torch.Tensor:
-    """Dense matrix of summed triplets."""
-    H = torch.zeros(size, size, dtype=values.dtype, device=values.device)
-    return H.index_put_((rows, cols), values, accumulate=True)
-
-
-def _block_entry_indices(
-    rows: torch.Tensor, cols: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Scalar row / column indices ``(B, 7, 7)`` of the entries of 7x7 blocks at (rows, cols)."""
-    offset = torch.arange(D, device=rows.device)
-    r = (rows[:, None, None] * D + offset[None, :, None]).expand(-1, D, D)
-    c = (cols[:, None, None] * D + offset[None, None, :]).expand(-1, D, D)
-    return r, c

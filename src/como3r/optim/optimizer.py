@@ -19,14 +19,18 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import torch
 
 from como3r.config import GlobalBAConfig, LocalSolveConfig, TrackingConfig
 from como3r.errors import InputError
 from como3r.optim.factors import Factor
-from como3r.optim.linear import Backend, BlockSystem, SolveStatus, assemble, solve
+from como3r.optim.linear import Backend, SolveStatus, solve
+from como3r.optim.system import BlockSystem, assemble
 from como3r.optim.values import PoseValues
+
+_T = TypeVar("_T")
 
 logger = logging.getLogger(__name__)
 
@@ -277,7 +281,7 @@ def levenberg_marquardt_irls(
     return values, _finish(report, start, lam)
 
 
-def _pick(value, default):
+def _pick(value: _T | None, default: _T) -> _T:
     return default if value is None else value
 
 

@@ -5,7 +5,7 @@ and the CG loop and positive-definiteness tests that its ``"band"`` backend (ban
 two-level preconditioner, :mod:`como3r.optim.band`, what ``backend="auto"`` takes above
 the dense crossover) shares. pcg never forms a matrix: the product ``A x`` of the
 free-pose system ``A = H + lambda diag(H) + eps_r I`` is computed blockwise from the 7x7
-blocks of the :class:`~como3r.optim.linear.BlockSystem` (one gather, batched multiply-adds,
+blocks of the :class:`~como3r.optim.system.BlockSystem` (one gather, batched multiply-adds,
 one ``index_add_``, float64, on the system's device), and the preconditioner is the
 inverse of A's 7x7 diagonal blocks (batched Cholesky). Its cost per CG iteration is linear
 in poses + edges, with no fill-in, and it runs on CUDA unchanged. Its iteration count is
@@ -58,14 +58,12 @@ import logging
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 import torch
 
-from como3r.optim import band
-
-if TYPE_CHECKING:
-    from como3r.optim.linear import BlockSystem
+from como3r.optim.band import OrderedSystem, TwoLevelAttempt
+from como3r.optim.system import BlockSystem
 
 logger = logging.getLogger(__name__)
 
@@ -210,7 +208,7 @@ def pcg_attempts(
         max_iterations = max(CG_MIN_ITERATION_CAP, operator.rhs.numel())
     ordered = None
     if preconditioner == "band":
-        ordered = band.OrderedSystem(operator.i, operator.j, operator.upper, operator.rhs)
+        ordered = OrderedSystem(operator.i, operator.j, operator.upper, operator.rhs)
     for r in range(retries):
         diag = operator.damped_diagonal(lm_lambda, tikhonov_base * 100.0**r)
         if ordered is not None:
@@ -234,7 +232,7 @@ def pcg_attempts(
 
 
 def _band_attempt(
-    ordered: band.OrderedSystem, diag: torch.Tensor, tolerance: float, max_iterations: int
+    ordered: OrderedSystem, diag: torch.Tensor, tolerance: float, max_iterations: int
 ) -> CGOutcome:
     """One attempt of the band-preconditioned CG, damped diagonal blocks ``diag``."""
     attempt, reason = ordered.attempt(diag)
@@ -249,7 +247,7 @@ def _band_attempt(
 
 
 def _cg(
-    operator: _ScaledOperator | band.TwoLevelAttempt,
+    operator: _ScaledOperator | TwoLevelAttempt,
     b: torch.Tensor,
     tolerance: float,
     max_iterations: int,

@@ -27,7 +27,7 @@ import torch
 from como3r.errors import InputError
 from como3r.geometry.lie import sim3_identity
 from como3r.optim.factors import QuadraticEdges, RelativePoseFactors, endpoint_blocks
-from como3r.optim.linear import EdgeBlocks
+from como3r.optim.system import EdgeBlocks
 
 #: builds the dense factors of some of a solve's edges (positions in its edge list) as
 #: factor batches, each with the positions of its edges in batch order; each batch's pose

@@ -2,7 +2,7 @@
 
 A problem is a set of true keyframe poses ``T_WC``, edges (i, j), and per edge P world
 points seen by both cameras, expressed as the canonical points ``X_i`` (camera i) and
-``X_j`` (camera j) that a :class:`~como3r.optim.factors.RayRangeFactors` batch consumes.
+``X_j`` (camera j) that a :class:`~como3r.optim.match_factors.RayRangeFactors` batch consumes.
 Noise-free correspondences make the true poses an exact zero-cost minimum.
 """
 

@@ -1,0 +1,190 @@
+"""Configuration sections of the coordinator's back-end: cross-agent retrieval and
+verification, gauge synchronization, global bundle adjustment and depth refinement
+(C-Tab. 3's back-end rows). Sections of :class:`como3r.config.Config`, imported from
+:mod:`como3r.config`, whose docstring says where the defaults come from.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class RetrievalConfig:
+    """Cross-agent retrieval with binary ASMK (C-Tab. 3, C-Sec. B.3)."""
+
+    codebook_size: int = 65536
+    binary: bool = True
+    use_idf: bool = False
+    alpha: float = 3.0
+    similarity_threshold_asmk: float = 0.0
+    multiple_assignment_build: int = 1
+    multiple_assignment_query: int = 5
+    k_nn: int = 3
+    min_similarity: float = 5e-3
+
+
+@dataclass(frozen=True)
+class VerificationConfig:
+    """Inter-agent geometric verification, C-Eq. 12.
+
+    The fields after ``tau_inter`` are not in the paper (como3r additions, see
+    :mod:`como3r.coordination.association`):
+
+    * ``min_covisible_ratio``: of the pixels of one view that the pair's own predicted
+      geometry places inside the other view, onto a pixel whose confidence is at least
+      ``covisible_min_confidence``, at least this share must be validly matched, in both
+      directions. A prior that hallucinates a pose from repeated façades predicts overlap
+      it cannot match. 0 restores the paper's single test. Measured on the aliasing
+      façades (tests/coordination/test_association.py, occlusion_ratio 0.1): true pairs
+      0.87-0.97, hallucinated ones 0.15-0.55; 0.7 sits between them.
+    * ``max_residual_ratio``: an edge between agents that already share a gauge must
+      agree with their poses: the median distance of its matched points lifted into the
+      shared world at most this fraction of their median range (about the relative
+      rotation error in radians). ``inf`` admits every such edge, as the paper does.
+    * ``max_decodes_per_keyframe``: the prior decodes one keyframe's verification may
+      cost, over ALL other agents: the retrieval hits (``retrieval.k_nn`` over all other
+      agents' keyframes, best first) are verified while their worst case (two decodes
+      each, C-Eq. 12 is symmetric) fits, so the coordinator's work per keyframe does not
+      grow with the team (the paper verifies every hit: with its ``k_NN = 3`` that is at
+      most 6, the default, which so leaves the paper's behaviour unchanged).
+    * ``max_within_component``: of those hits, at most this many whose agent already
+      shares the keyframe's gauge component are verified (best first). Such an edge no
+      longer synchronises a gauge (C-Sec. A.4: only the first edge between two
+      components transports one); it only adds a loop constraint to the global BA, and
+      one per keyframe keeps every meeting keyframe tied to the others, while the
+      verifications that decide a merge are not spent on agents already merged. Measured
+      on a 4-agent synthetic scene (320x240, 16 frames each, overlap 0.5, simulated
+      prior, seed 0): the coordinator's decodes per keyframe 2.95 -> 1.58 (56 -> 30),
+      admitted inter-agent edges 23 -> 12, the same three gauge merges, merged ATE
+      10.5 -> 8.4 mm; 3 agents: 2.56 -> 1.39 (46 -> 25), merged ATE 9.6 -> 6.3 mm;
+      8 agents: 3.93 -> 2.78 (106 -> 75), edges 30 -> 20, merged ATE 12.1 -> 15.2 mm
+      (fewer loop constraints cost accuracy there). One seed each, and a loss at 8 agents:
+      the default is 3 (``retrieval.k_nn``'s default), the paper's behaviour, until it is
+      measured over seeds and team sizes; ``k_nn`` or more is the paper.
+    """
+
+    tau_inter: float = 0.1
+    min_covisible_ratio: float = 0.7
+    covisible_min_confidence: float = 1.5
+    max_residual_ratio: float = 0.25
+    max_decodes_per_keyframe: int = 6
+    max_within_component: int = 3
+
+
+@dataclass(frozen=True)
+class GaugeConfig:
+    """Gauge synchronization, C-Eq. 14-15.
+
+    ``min_consistent_edges`` is not in the paper (como3r addition): two gauge components
+    merge once this many verified edges between them agree on the aligning transform
+    (each within ``verification.max_residual_ratio`` under it). The default 1 is the
+    paper's synchronization on the first verified edge.
+
+    ``align_focal`` (como3r addition, self-calibrated runs only): at a merge the moving
+    component's focal length is corrected to agree with the anchor's on the supporting
+    keyframe pairs (:mod:`como3r.frontend.focal`), searched within
+    ``focal_search`` in log focal. Measured on a two-agent simulated scene (160 px,
+    2 x 30 frames, realistic prior, merged ATE % of mean agent path): agents' estimates
+    +1.2 % and -8.7 % off give 3.8 % without it; both on one focal length 0.72 %.
+    The terminal cleanup re-aligns every agent of a component on up to four of its
+    admitted edges to the agents settled before it (anchor first,
+    ``Coordinator._refine_focals``): a merge often rests on one pair. Measured on a 3-agent
+    room (320x240 -> 512, 12 processed frames each, seed 0): merged ATE 2.7 -> 1.07 % of
+    path (calibrated: 0.38 %); seed 1: 0.72 -> 0.85 % (one focal length, but the single
+    edge between agents 0 and 1 leaves a 3 % scale offset the focal errors had hidden).
+
+    ``scale_alarm_log`` (como3r addition): the scale watch of wrong links. An edge between
+    agents that already share a gauge whose own similarity (Umeyama on its lifted points)
+    would rescale the map by more than this in ``|log s|`` is held back (status
+    ``inconsistent``, counted in ``edges_scale_inconsistent`` and logged); at a merge over
+    several agreeing edges, an edge whose own ``T*`` scale differs from the joint one by
+    more than this does not count as support (``gauge_scale_held``). A single first edge
+    has nothing to be compared with: ``min_consistent_edges`` > 1 makes the merge watch it.
+    """
+
+    min_correspondences: int = 64
+    min_consistent_edges: int = 1
+    align_focal: bool = True
+    focal_search: float = 0.3
+    scale_alarm_log: float = 0.2
+
+
+@dataclass(frozen=True)
+class GlobalBAConfig:
+    """Global Sim(3) bundle adjustment, C-Eq. 5 and C-Eq. 25 (C-Tab. 3)."""
+
+    trigger_interval_edges: int = 1
+    max_iters_stream: int = 50
+    max_iters_cleanup: int = 100
+    cleanup_passes: int = 5
+    # cleanup stops when no keyframe moved more than this fraction of the component's median
+    # keyframe depth (C-Sec. A.7's 5 mm at the 1 m reference depth of geometry.units)
+    cleanup_stop_translation: float = 5e-3
+    # a solve stops when ||tau||_2 < step_tol, its translations in units of the component's
+    # median keyframe depth (optim.optimizer, length_scale). C-Sec. B.2 prints 1e-8; below
+    # about 1e-6 float32 factors cannot resolve the step, and Huber IRLS converges linearly
+    # (|tau| shrinks x0.6-0.8 per iteration), so 1e-8 runs nearly every solve to max_iters.
+    # Demo scene (2 agents x 15 frames, long side 256, scene depth 4.6 m), absolute
+    # tolerance 1e-8 / 1e-5 / 1e-4 / 1e-3: in-stream BA 154 / 100 / 73 / 47 iterations,
+    # cleanup 129 / 58 / 37 / 20, coordinator 71 / 41 / 33 / 23 s; merged ATE 4.180 / 4.180 /
+    # 4.179 / 4.175 cm, map accuracy 33.42 cm and F-score 0.5735 in all four. 1e-4 of the
+    # scene depth (4.6e-4 there) keeps a margin; 1e-8 restores the paper at 1 m.
+    step_tol: float = 1e-4
+    # not in the paper: an edge's matches are linearized again only when its relative pose
+    # moved more than this (radians, nepers, the component's median keyframe depth) since
+    # they last were, in this solve or an earlier one, or an endpoint's pointmap changed;
+    # in between, its blocks come from the quadratic model of that linearization
+    # (optim.relinearization; iSAM2's relinearization threshold). 0: every edge at every
+    # iteration, as the paper
+    relinearize_tol: float = 1e-3
+    lm_lambda: float = 0.0
+    tikhonov_base: float = 1e-6
+    tikhonov_retries: int = 6
+    # backend of the C-Eq. 25 solve (como3r.optim.linear.solve): "auto" takes a dense
+    # Cholesky up to 60 free keyframes and above it "band" (conjugate gradients with a band
+    # + coarse two-level preconditioner, como3r.optim.band), whose cost grows about linearly
+    # with and without many loop closures: at 2,000 keyframes 0.25x SuperLU's solve time
+    # with a loop edge every 4 keyframes, 0.9-1.6x with one every 50. "sparse" (SuperLU)
+    # and "pcg" (block-Jacobi conjugate gradients, 40x SuperLU on chain-like graphs) stay
+    # selectable
+    linear_solver: Literal["auto", "dense", "sparse", "pcg", "band"] = "auto"
+
+
+@dataclass(frozen=True)
+class DepthRefinementConfig:
+    """Segment-level depth refinement and alternation, C-Eq. 19-24, C-Sec. A.6-A.7."""
+
+    variant: Literal["segment", "pixel", "pixel_laplacian"] = "segment"
+    slic_segments: int = 200
+    slic_compactness: float = 8.0
+    slic_sigma: float = 1.0
+    slic_min_confidence: float = 1.5
+    min_valid_pixels: int = 16
+    # C-Eq. 21 point noise as a fraction of keyframe i's median range (C-Tab. 3's 0.05 m at
+    # the 1 m reference depth of geometry.units)
+    sigma_point: float = 0.05
+    lambda_smooth: float = 1.0
+    lambda_prior: float = 1.0
+    lambda_lm: float = 0.05
+    step_clip: float = 0.5
+    inner_iters: int = 10
+    alternation_rounds: int = 100
+    # what the poses do in the rounds of C-Sec. A.7 step 2 in a multi-agent component:
+    # "frozen" = one depth step at the poses of step 1's passes (departs from the paper, see
+    # backend.alternation; alternation_rounds then only allows or, at 0, skips it),
+    # "pose_pass" = the paper's rounds, a short pose pass after each depth step
+    round_poses: Literal["frozen", "pose_pass"] = "frozen"
+    pose_pass_iters: int = 50
+    depth_convergence_tol: float = 5e-3  # max |delta s| that ends the alternation (A.7)
+    # C-Eq. 19's base pointmap: "insertion" = the keyframe's first prediction (the paper),
+    # "fused" = its fused pointmap (C-Eq. 3) when the cleanup starts; see backend.global_graph
+    refine_from: Literal["fused", "insertion"] = "fused"
+    # boundary residual of C-Eq. 22: "jump_change" = (s_a - s_b), the refinement may not
+    # change the prior's depth jump between adjacent segments; "log_depth" = the paper's
+    # (s_a - s_b) + Delta_ab, refined log-depths pulled together (see backend.depth_refinement)
+    boundary_residual: Literal["jump_change", "log_depth"] = "jump_change"
+    # a round whose max |delta s| exceeds this fraction of the previous round's has stalled
+    # and ends the alternation (later rounds drift the map; inf disables)
+    depth_stall_ratio: float = 0.5
