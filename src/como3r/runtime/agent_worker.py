@@ -5,7 +5,7 @@
 (:class:`~como3r.runtime.agent_loop.AgentLoop`, the single-process runtime's too) over its
 frames, sends every new keyframe as it appears and applies the pose updates it receives
 between frames. It talks to the coordinator through an
-:class:`~como3r.runtime.transport.AgentLink` only, so the same loop runs in a process
+:class:`~como3r.transport.links.AgentLink` only, so the same loop runs in a process
 started by ``como3r run`` (pipes, :func:`agent_process_main`) and in ``como3r agent`` on
 another machine (Zenoh, :mod:`como3r.runtime.network`).
 """
@@ -30,9 +30,12 @@ from como3r.data.preprocess import upsampling
 from como3r.errors import Como3rError
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.packets import KeyframePacket
-from como3r.runtime import codec
 from como3r.runtime.agent_loop import AgentLoop
-from como3r.runtime.messages import (
+from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame, run_frames
+from como3r.runtime.prefetch import PreparedFrame, prepared_frames
+from como3r.transport import codec
+from como3r.transport.links import AgentLink, Channel
+from como3r.transport.messages import (
     TO_AGENT,
     AgentFailed,
     AgentStarted,
@@ -43,9 +46,6 @@ from como3r.runtime.messages import (
     Shutdown,
     Step,
 )
-from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame, run_frames
-from como3r.runtime.prefetch import PreparedFrame, prepared_frames
-from como3r.runtime.transport import AgentLink, Channel
 
 logger = logging.getLogger(__name__)
 

@@ -31,9 +31,9 @@ from como3r.coordination.coordinator import Coordinator, CoordinatorStats
 from como3r.errors import InputError
 from como3r.frontend.agent import FrontendStats
 from como3r.runtime.results import AgentResult, EdgeView, MatchFraction, stored_views
-from como3r.runtime.store import STORE_NAME
-from como3r.runtime.store_reader import Session, read_session
-from como3r.runtime.store_resume import load_state
+from como3r.store.reader import Session, read_session
+from como3r.store.resume import load_state
+from como3r.store.writer import STORE_NAME
 
 logger = logging.getLogger(__name__)
 

@@ -36,10 +36,10 @@ from como3r.runtime.pipeline import (
 from como3r.runtime.processes import RuntimeOptions, _Runtime
 from como3r.runtime.results import SegmentedCoordinator, agent_results, left_out
 from como3r.runtime.runtime_state import restore_runtime
-from como3r.runtime.store import STORE_NAME
-from como3r.runtime.store_reader import read_session, resumable
-from como3r.runtime.store_resume import open_store
-from como3r.runtime.transport import Hub, PipeHub
+from como3r.store.reader import read_session, resumable
+from como3r.store.resume import open_store
+from como3r.store.writer import STORE_NAME
+from como3r.transport.links import Hub, PipeHub
 
 
 def run_multiprocess(
@@ -74,7 +74,7 @@ def run_multiprocess(
             coordinator here. Only this process calls it; agents send frame events only
             when it is given.
         resume: continue the killed run in ``out.partial`` from its session store
-            (:mod:`como3r.runtime.store_resume`; the agents start again from the beginning).
+            (:mod:`como3r.store.resume`; the agents start again from the beginning).
         saved_map: a finished run's map to start from (``--map``, :mod:`.map_session`).
 
     Raises:

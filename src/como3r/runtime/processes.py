@@ -1,11 +1,11 @@
 """The coordinator's loop over agent processes (C-Sec. B.1, A.8), on any transport.
 
 Each agent runs :class:`~como3r.runtime.agent_worker.AgentWorker` in its own process; the
-coordinator runs here. They exchange only the messages of :mod:`como3r.runtime.messages`,
-carried by a :class:`~como3r.runtime.transport.Hub`:
+coordinator runs here. They exchange only the messages of :mod:`como3r.transport.messages`,
+carried by a :class:`~como3r.transport.links.Hub`:
 :func:`~como3r.runtime.multiprocess.run_multiprocess` (``como3r run``) starts one process
 per agent on this machine and talks to it over two one-way pipes
-(:class:`~como3r.runtime.transport.PipeHub`); ``como3r coordinator`` serves agents started
+(:class:`~como3r.transport.links.PipeHub`); ``como3r coordinator`` serves agents started
 on other machines over Zenoh (:mod:`como3r.runtime.network`). Both go through
 :func:`~como3r.runtime.multiprocess.coordinate`, so the loop below is the same. (``spawn``
 re-imports the caller's main module, so a script calling ``run_multiprocess`` needs an
@@ -79,22 +79,10 @@ from como3r.progress import (
     report_phase,
     tracking_state,
 )
-from como3r.runtime import codec
 from como3r.runtime.agent_worker import prior_fields
 from como3r.runtime.interrupts import checkpoint, finishing
-from como3r.runtime.keyframe_bytes import LOSSY_TRANSPORTS, PartCounter, wire_parts
 from como3r.runtime.live import CoordinatorLive
 from como3r.runtime.map_session import SavedMap, map_results
-from como3r.runtime.messages import (
-    AgentFailed,
-    AgentFinished,
-    AgentStarted,
-    AgentTask,
-    FrameDone,
-    KeyframeMessage,
-    PoseUpdateMessage,
-    Step,
-)
 from como3r.runtime.pipeline import (
     PriorSpec,
     _frame_schedule,
@@ -111,8 +99,20 @@ from como3r.runtime.results import (
     graph_view,
 )
 from como3r.runtime.runtime_state import snapshot
-from como3r.runtime.store import SessionStore
-from como3r.runtime.transport import Hub, Joined, Left, Received, Rejected, Traffic
+from como3r.store.writer import SessionStore
+from como3r.transport import codec
+from como3r.transport.keyframe_bytes import LOSSY_TRANSPORTS, PartCounter, wire_parts
+from como3r.transport.links import Hub, Joined, Left, Received, Rejected, Traffic
+from como3r.transport.messages import (
+    AgentFailed,
+    AgentFinished,
+    AgentStarted,
+    AgentTask,
+    FrameDone,
+    KeyframeMessage,
+    PoseUpdateMessage,
+    Step,
+)
 
 logger = logging.getLogger(__name__)
 

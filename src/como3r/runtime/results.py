@@ -32,7 +32,7 @@ from como3r.frontend.keyframes import Keyframe, apply_pose_update
 from como3r.frontend.packets import PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.frontend.paging import read_fields
 from como3r.geometry.lie import sim3_compose
-from como3r.runtime.messages import AgentFinished, EdgeSummary
+from como3r.transport.messages import AgentFinished, EdgeSummary
 
 
 @dataclass

@@ -4,11 +4,11 @@ up again (issue 14: ``como3r coordinator --resume``).
 The coordinator's state (keyframes, poses, edges, gauges, pose updates made per agent) is
 in the store after every message (:mod:`.store`). What the runtime of
 :mod:`.processes` knows beside it goes there too, before every acknowledgement
-(:meth:`~como3r.runtime.store.SessionStore.record_runtime`): per agent its status, progress
+(:meth:`~como3r.store.writer.SessionStore.record_runtime`): per agent its status, progress
 counters and the number of the last message it handled; per map segment its agent and what
 its process confirmed having applied; each agent process's final report
-(:class:`~como3r.runtime.messages.AgentFinished`); and the transport's state (who holds each
-agent id, the stream position acknowledged: :meth:`~como3r.runtime.transport.Hub.durable`).
+(:class:`~como3r.transport.messages.AgentFinished`); and the transport's state (who holds each
+agent id, the stream position acknowledged: :meth:`~como3r.transport.links.Hub.durable`).
 
 A coordinator killed at any moment and started again with ``--resume`` rebuilds from the
 store (:func:`restore_runtime`): the segments' keyframes from the stored graph, the agents'
@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 from como3r.errors import StoreError
 from como3r.runtime.results import AgentResult, MapSegment, stored_views
-from como3r.runtime.store_reader import Session
+from como3r.store.reader import Session
 
 if TYPE_CHECKING:
     from como3r.runtime.processes import _Runtime
@@ -63,7 +63,7 @@ def snapshot(runtime: _Runtime, hub: dict[str, Any]) -> dict[str, Any]:
 
     Args:
         runtime: the multi-process runtime.
-        hub: its transport's state (:meth:`~como3r.runtime.transport.Hub.durable`).
+        hub: its transport's state (:meth:`~como3r.transport.links.Hub.durable`).
     """
     return {
         "slots": [

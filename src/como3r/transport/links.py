@@ -1,8 +1,8 @@
 """How agents and the coordinator reach each other (C-Sec. B.1; DESIGN.md, "One frame loop,
 one transport").
 
-Both ends exchange the typed messages of :mod:`como3r.runtime.messages`, encoded by
-:mod:`como3r.runtime.codec` (no pickle). What carries them is a transport with two faces:
+Both ends exchange the typed messages of :mod:`como3r.transport.messages`, encoded by
+:mod:`como3r.transport.codec` (no pickle). What carries them is a transport with two faces:
 
 * an agent holds an :class:`AgentLink` (``send``, ``poll``, ``receive``, ``close``): sends
   never block its frame loop, and ``close`` returns only once the coordinator has every
@@ -13,7 +13,7 @@ Both ends exchange the typed messages of :mod:`como3r.runtime.messages`, encoded
   stored (the runtime may still hold some back: keyframes waiting for their turn).
 
 Two transports implement it: pipes to child processes (:class:`PipeHub`, :class:`Channel`;
-``como3r run``) and Zenoh across machines (:mod:`como3r.runtime.transport_zenoh`;
+``como3r run``) and Zenoh across machines (:mod:`como3r.transport.zenoh_hub`;
 ``como3r coordinator`` / ``como3r agent``). The runtime above them
 (:mod:`como3r.runtime.processes`, :mod:`como3r.runtime.agent_worker`) is the same.
 """
@@ -31,9 +31,9 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection, wait
 from typing import Any, Protocol
 
-from como3r.runtime import codec
-from como3r.runtime.child_signals import children_ignore_sigint
-from como3r.runtime.messages import FROM_AGENT, AgentTask, Shutdown
+from como3r.transport import codec
+from como3r.transport.child_signals import children_ignore_sigint
+from como3r.transport.messages import FROM_AGENT, AgentTask, Shutdown
 
 logger = logging.getLogger(__name__)
 

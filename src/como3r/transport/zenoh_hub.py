@@ -1,6 +1,6 @@
 """The transport across machines: Zenoh in peer mode (``como3r coordinator`` / ``agent``).
 
-The typed msgpack messages of :mod:`como3r.runtime.messages` are the payloads, unchanged.
+The typed msgpack messages of :mod:`como3r.transport.messages` are the payloads, unchanged.
 Key expressions name the session, the agent and the message kind::
 
     como3r/<session>/coordinator              liveliness token of the coordinator
@@ -22,9 +22,9 @@ Key expressions name the session, the agent and the message kind::
 
 Delivery is reliable with congestion control ``BLOCK`` (``DROP`` loses messages under a
 slow subscriber), and acknowledged: an agent keeps every message until the coordinator has
-stored it (:mod:`como3r.runtime.spool`: in memory, on disk past a limit), re-sends the
+stored it (:mod:`como3r.transport.spool`: in memory, on disk past a limit), re-sends the
 unacknowledged ones when the coordinator's token reappears, and leaves
-(:class:`~como3r.runtime.zenoh_agent.ZenohAgentLink`) only once the last one is stored. The
+(:class:`~como3r.transport.zenoh_agent.ZenohAgentLink`) only once the last one is stored. The
 coordinator takes an agent's messages in sequence, drops duplicates of re-sent ones, and
 logs and drops whatever is not a valid message (oversized, malformed, unknown agent, a
 process that does not hold the agent's id). "Stored" means in the session store: the
@@ -37,12 +37,12 @@ up where the store has it and the agents' re-sent messages fill in the rest.
 Who holds an id. The coordinator hands agent a's task to the first process that asks and
 from then on takes a's messages from that incarnation only. When that process's token goes
 (a crash, a lost link, a frozen coordinator: Zenoh cannot tell them apart), the agent is
-reported as :class:`~como3r.runtime.transport.Left` with ``may_return``; if the same
-process reconnects, its token comes back (:class:`~como3r.runtime.transport.Joined`) and its
+reported as :class:`~como3r.transport.links.Left` with ``may_return``; if the same
+process reconnects, its token comes back (:class:`~como3r.transport.links.Joined`) and its
 stream continues. A new process asking for a's task while the holder's token is present is
 told to wait (the holder may be dead with its lease not yet expired, or a second process
 started with the same id by mistake); once the holder's token is gone, the runtime's
-:data:`~como3r.runtime.transport.Rejoin` decides, and the newcomer takes over the id with a
+:data:`~como3r.transport.links.Rejoin` decides, and the newcomer takes over the id with a
 fresh message sequence. Messages to an agent carry the incarnation they are meant for, so a
 superseded process never applies its successor's updates.
 
@@ -81,9 +81,9 @@ from pathlib import Path
 from typing import Any
 
 from como3r.errors import InputError
-from como3r.runtime import codec
-from como3r.runtime.messages import FROM_AGENT, AgentTask, KeyframeMessage, Shutdown
-from como3r.runtime.transport import Event, Joined, Left, Received, Rejected, Rejoin, Traffic
+from como3r.transport import codec
+from como3r.transport.links import Event, Joined, Left, Received, Rejected, Rejoin, Traffic
+from como3r.transport.messages import FROM_AGENT, AgentTask, KeyframeMessage, Shutdown
 
 logger = logging.getLogger(__name__)
 
@@ -114,11 +114,11 @@ class ZenohOptions:
         session: the run's name in every key expression (several runs on one network).
         settings: Zenoh configuration entries ``(path, JSON value)`` set last: a team
             member's mutual TLS and access control
-            (:func:`como3r.runtime.team_access.zenoh_settings`).
+            (:func:`como3r.transport.team_access.zenoh_settings`).
         member: a team member's certificate name (its message keys end in it); None: an
             open network.
         on_open: called with the session once it is open (a team member's watch on who
-            connects, :class:`como3r.runtime.team_access.LinkWatch`).
+            connects, :class:`como3r.transport.team_access.LinkWatch`).
     """
 
     listen: tuple[str, ...] = ()
@@ -357,7 +357,7 @@ class _Holder:
 
 
 class ZenohHub:
-    """The coordinator's end (:class:`~como3r.runtime.transport.Hub`) over Zenoh.
+    """The coordinator's end (:class:`~como3r.transport.links.Hub`) over Zenoh.
 
     Args:
         session: an open Zenoh session (the caller closes it).
@@ -367,7 +367,7 @@ class ZenohHub:
         grace_s: how long :meth:`stop` waits for its last sends.
         certified: a team run: a message counts only if its key ends in the certificate
             name of the agent it claims to come from (Zenoh's access control makes that
-            name its sender's, :mod:`como3r.runtime.team_access`).
+            name its sender's, :mod:`como3r.transport.team_access`).
     """
 
     name = "zenoh"

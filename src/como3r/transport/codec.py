@@ -29,7 +29,7 @@ decompress to exactly their shape's bytes or that would take the message past
 :data:`MAX_EXPANSION` times its size cap (a decompression bomb), and whatever the per-type
 checks of
 :func:`add_check` reject (shapes and ranges the receiver relies on, see
-:mod:`como3r.runtime.messages`).
+:mod:`como3r.transport.messages`).
 """
 
 from __future__ import annotations

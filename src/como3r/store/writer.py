@@ -8,8 +8,8 @@ pointmap refresh; the terminal cleanup) the store takes everything that changed 
 transaction. A process killed at any moment (``kill -9``) therefore leaves a store that
 opens and holds the coordinator's state after some message, complete; a power loss may
 lose the last transactions (``synchronous=NORMAL``) but not the store's consistency.
-:func:`como3r.runtime.store_reader.read_session` loads it back;
-:mod:`como3r.runtime.store_resume` continues a killed run from it (``--resume``).
+:func:`como3r.store.reader.read_session` loads it back;
+:mod:`como3r.store.resume` continues a killed run from it (``--resume``).
 
 Layout (format version :data:`FORMAT_VERSION`; also ``PRAGMA user_version``, and ``PRAGMA
 application_id`` = :data:`APPLICATION_ID` marks the file as a como3r store). Keyframes are
@@ -88,9 +88,9 @@ from como3r.frontend.packets import PoseUpdate
 from como3r.frontend.paging import POINTMAP_FIELDS, PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.prior.base import Encoding
-from como3r.runtime.messages import AgentFinished
-from como3r.runtime.store_blobs import pack_arrays, pack_object, unpack_arrays, unpack_object
-from como3r.runtime.store_paging import PagedLink, page_out
+from como3r.store.blobs import pack_arrays, pack_object, unpack_arrays, unpack_object
+from como3r.store.paging import PagedLink, page_out
+from como3r.transport.messages import AgentFinished
 
 logger = logging.getLogger(__name__)
 
@@ -242,7 +242,7 @@ class SessionStore:
     @classmethod
     def reopen(cls, path: str | Path, coordinator: Coordinator) -> SessionStore:
         """The store at ``path`` written on by ``coordinator``, which holds its state already
-        (:func:`como3r.runtime.store_resume.open_store` restored it); a WAL left by a killed
+        (:func:`como3r.store.resume.open_store` restored it); a WAL left by a killed
         writer is recovered on opening.
 
         Raises:

@@ -1,4 +1,4 @@
-"""Reading a session store back (:mod:`como3r.runtime.store`, issue 14).
+"""Reading a session store back (:mod:`como3r.store.writer`, issue 14).
 
 :func:`read_session` opens ``session.db`` (of a finished run, or of a run killed at any
 moment), checks that it is a como3r store of the format version this como3r reads and that
@@ -31,10 +31,10 @@ from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.paging import PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.prior.base import Encoding
-from como3r.runtime.messages import AgentFinished
-from como3r.runtime.store import APPLICATION_ID, FORMAT_VERSION, STORE_NAME
-from como3r.runtime.store_blobs import unpack_arrays, unpack_object
-from como3r.runtime.store_paging import PagedLink
+from como3r.store.blobs import unpack_arrays, unpack_object
+from como3r.store.paging import PagedLink
+from como3r.store.writer import APPLICATION_ID, FORMAT_VERSION, STORE_NAME
+from como3r.transport.messages import AgentFinished
 
 logger = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""The compressed blobs of the session store (:mod:`como3r.runtime.store`): no pickle.
+"""The compressed blobs of the session store (:mod:`como3r.store.writer`): no pickle.
 
 Two kinds, told apart by their first four bytes:
 
@@ -8,16 +8,16 @@ Two kinds, told apart by their first four bytes:
       b"C3RA" | u8 count | per array: u8 dtype code, u8 ndim, ndim x u64 dims (little-endian)
               | Zstandard frame of every array's bytes, byte-shuffled, one after the other
 
-  Dtype codes index :data:`DTYPES` (the wire names of :data:`como3r.runtime.codec.
+  Dtype codes index :data:`DTYPES` (the wire names of :data:`como3r.transport.codec.
   ARRAY_DTYPES`; append only). Byte-shuffling (all first bytes of the elements, then all
   second bytes, ...) groups the slowly varying exponent bytes of floats and the zero high
   bytes of indices: on a 512x384 float32 pointmap zlib then keeps 74 % of the bytes
   instead of 91 %, in two thirds of the time.
-* **objects** (``C3RO``): a registered dataclass of :mod:`como3r.runtime.codec` (a prior's
+* **objects** (``C3RO``): a registered dataclass of :mod:`como3r.transport.codec` (a prior's
   :class:`~como3r.prior.base.Encoding`), ``b"C3RO" | zstd(codec.encode(obj))``; decoding
   validates it as a received message is validated.
 
-Zstandard at the messages' level (:data:`como3r.runtime.codec.ZSTD_LEVEL`) rather than zlib
+Zstandard at the messages' level (:data:`como3r.transport.codec.ZSTD_LEVEL`) rather than zlib
 (format version 2): on a shuffled 512x384 float32 pointmap it keeps 74.3 % of the bytes
 against zlib level 1's 72.7 %, compressing in 2 ms instead of 45 and inflating in 1.4 ms
 instead of 4.2 (one core); the demo's coordinator spent 7 s of its CPU in zlib's
@@ -39,13 +39,13 @@ import torch
 from torch import Tensor
 
 from como3r.errors import StoreError
-from como3r.runtime import codec
-from como3r.runtime.codec import ZSTD_LEVEL, byte_planes, itemsize, zstd
+from como3r.transport import codec
+from como3r.transport.codec import ZSTD_LEVEL, byte_planes, itemsize, zstd
 
 ARRAYS_MAGIC = b"C3RA"
 OBJECT_MAGIC = b"C3RO"
 
-#: dtype code -> wire name (:data:`como3r.runtime.codec.ARRAY_DTYPES`); part of the format
+#: dtype code -> wire name (:data:`como3r.transport.codec.ARRAY_DTYPES`); part of the format
 DTYPES = (
     "bool",
     "uint8",
@@ -138,7 +138,7 @@ def unpack_arrays(blob: bytes, what: str) -> list[Tensor]:
 
 
 def pack_object(obj: Any) -> bytes:
-    """One blob of a registered dataclass (:mod:`como3r.runtime.codec`)."""
+    """One blob of a registered dataclass (:mod:`como3r.transport.codec`)."""
     return OBJECT_MAGIC + zstd.compress(
         codec.encode(obj, max_bytes=MAX_BYTES), options=ZSTD_OPTIONS
     )

@@ -21,9 +21,9 @@ would cost a round its timeout.
 During the mission a robot puts each message under its recipient's key (reliable,
 congestion control ``BLOCK``, from a background thread, so the robot never waits on the
 network). The receiver decodes it (size-capped and validated by
-:mod:`como3r.runtime.codec`), checks that it names this robot as recipient and the sender
+:mod:`como3r.transport.codec`), checks that it names this robot as recipient and the sender
 its key names (in a team run, also the certificate name the key ends in, which Zenoh's
-access control makes the sender's: :mod:`como3r.runtime.team_access`), and applies the
+access control makes the sender's: :mod:`como3r.transport.team_access`), and applies the
 **link filter**: a message its sender sent at mission time ``t`` is dropped unless the
 receiver hears the sender at ``t`` (:meth:`~como3r.decentralized.protocol.Schedule.hears`),
 as radio range would drop it.
@@ -50,8 +50,8 @@ from typing import Any
 from como3r.decentralized.messages import DRIVER, ROBOT_MESSAGES, RobotHello
 from como3r.decentralized.robot import PeerLeft
 from como3r.errors import InputError
-from como3r.runtime import codec
-from como3r.runtime.transport_zenoh import Sender
+from como3r.transport import codec
+from como3r.transport.zenoh_hub import Sender
 
 logger = logging.getLogger(__name__)
 
