@@ -27,16 +27,30 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from como3r.errors import StoreError
-from como3r.runtime.results import AgentResult, MapSegment, stored_views
+from como3r.runtime.results import AgentResult, AgentSlot, MapSegment, stored_views
 from como3r.store.reader import Session
 
 if TYPE_CHECKING:
-    from como3r.runtime.processes import _Runtime
+    from como3r.coordination.coordinator import Coordinator
+    from como3r.transport.links import Hub
 
 logger = logging.getLogger(__name__)
+
+
+class StatefulRuntime(Protocol):
+    """What this module reads and restores of the multi-process runtime
+    (:class:`~como3r.runtime.processes._Runtime`, which imports this module: it is named
+    here by what it holds, not imported)."""
+
+    slots: list[AgentSlot]
+    segments: list[MapSegment]
+    hub: Hub
+    coordinator: Coordinator
+    cleaned_up: bool
+
 
 #: the counters of an agent slot kept as they are
 SLOT_FIELDS = (
@@ -58,7 +72,7 @@ SLOT_FIELDS = (
 SEGMENT_FIELDS = ("index", "agent", "after_frame", "confirmed_seq", "reanchored")
 
 
-def snapshot(runtime: _Runtime, hub: dict[str, Any]) -> dict[str, Any]:
+def snapshot(runtime: StatefulRuntime, hub: dict[str, Any]) -> dict[str, Any]:
     """The runtime's state beside the coordinator's (JSON-able).
 
     Args:
@@ -82,7 +96,7 @@ def snapshot(runtime: _Runtime, hub: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def restore_runtime(runtime: _Runtime, session: Session) -> None:
+def restore_runtime(runtime: StatefulRuntime, session: Session) -> None:
     """Take up the stored runtime state in a new runtime whose coordinator has restored
     ``session`` already (before the runtime starts its transport).
 
@@ -131,7 +145,7 @@ def restore_runtime(runtime: _Runtime, session: Session) -> None:
     )
 
 
-def _segment(saved: dict[str, Any], runtime: _Runtime, session: Session) -> MapSegment:
+def _segment(saved: dict[str, Any], runtime: StatefulRuntime, session: Session) -> MapSegment:
     """A map segment with its keyframes as the store holds them and its pose updates."""
     index = saved["index"]
     report = session.reports.get(index)
