@@ -92,7 +92,7 @@ from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame
 from como3r.runtime.results import final_report
 from como3r.store.blobs import pack_arrays, pack_object
 from como3r.transport import codec
-from como3r.transport.codec import zstd
+from como3r.transport.codec_arrays import zstd
 from como3r.transport.keyframe_bytes import PARTS, wire_parts
 from como3r.transport.messages import FrameDone, KeyframeMessage, PoseUpdateMessage
 

@@ -29,7 +29,7 @@ import torch
 
 from como3r.evaluation.reconstruction import unique_rows
 from como3r.store.blobs import ZSTD_OPTIONS, pack_arrays, unpack_arrays
-from como3r.transport.codec import byte_planes, zstd
+from como3r.transport.codec_arrays import byte_planes, zstd
 
 HEIGHT, WIDTH = 384, 512
 

@@ -17,7 +17,7 @@ import pytest
 import torch
 
 import como3r.transport.messages as messages
-from como3r.errors import Como3rError
+from como3r.errors import Como3rError, MessageError
 from como3r.frontend.agent import FrontendStats
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches
@@ -25,7 +25,7 @@ from como3r.live import FrameEvent
 from como3r.prior.mast3r.prior import MASt3REncoding
 from como3r.prior.simulated import SimulatedEncoding
 from como3r.transport import codec
-from como3r.transport.codec import MessageError, decode, encode
+from como3r.transport.codec import decode, encode
 
 H, W = 6, 8
 

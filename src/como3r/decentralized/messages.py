@@ -36,7 +36,7 @@ import numpy as np
 from como3r.decentralized.pose_graph import LoopClosure
 from como3r.prior.base import Encoding
 from como3r.transport import codec
-from como3r.transport.codec import require, require_shape
+from como3r.transport.codec_types import require, require_shape
 
 #: ``recipient`` of messages to the driver (the process that runs the simulation).
 DRIVER = -1

@@ -49,7 +49,7 @@ from typing import Any
 
 from como3r.decentralized.messages import DRIVER, ROBOT_MESSAGES, RobotHello
 from como3r.decentralized.robot import PeerLeft
-from como3r.errors import InputError
+from como3r.errors import InputError, MessageError
 from como3r.transport import codec
 from como3r.transport.zenoh_hub import Sender
 
@@ -256,7 +256,7 @@ class ZenohRobotLink:
             return None
         try:
             message = codec.decode(data, max_bytes=self.max_bytes, expected=ROBOT_MESSAGES)
-        except codec.MessageError as exc:
+        except MessageError as exc:
             self._invalid(claimed, str(exc))
             return None
         sender, kind = message.sender, type(message).__name__
@@ -337,7 +337,7 @@ class ZenohRobotLink:
     def _peer_hello(self, data: bytes) -> RobotHello | None:
         try:
             hello = codec.decode(data, max_bytes=self.max_bytes, expected=RobotHello)
-        except codec.MessageError as exc:
+        except MessageError as exc:
             logger.warning("robot %d: dropped an unreadable hello: %s", self.robot, exc)
             return None
         if not 0 <= hello.robot < self.team:

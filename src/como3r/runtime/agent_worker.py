@@ -27,7 +27,7 @@ import torch
 from como3r.config import Config, config_from_dict
 from como3r.data.agent import open_agent, quiet_reading
 from como3r.data.preprocess import upsampling
-from como3r.errors import Como3rError
+from como3r.errors import Como3rError, MessageError
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.packets import KeyframePacket
 from como3r.runtime.agent_loop import AgentLoop
@@ -57,7 +57,7 @@ def agent_process_main(agent: int, inbox: Connection, outbox: Connection) -> Non
     try:
         task = channel.receive()
         if not isinstance(task, AgentTask) or task.agent != agent:
-            raise codec.MessageError(f"agent {agent}: the first message must be its AgentTask")
+            raise MessageError(f"agent {agent}: the first message must be its AgentTask")
     except (EOFError, KeyboardInterrupt):
         channel.close()
         return  # the coordinator is gone or the user interrupted: nothing to report to
@@ -208,13 +208,13 @@ class AgentWorker:
             if message.seq <= self.applied_seq and message.update.agent == self.task.agent:
                 return True  # sent again after a reconnect: applied already
             if message.seq != self.applied_seq + 1 or message.update.agent != self.task.agent:
-                raise codec.MessageError(
+                raise MessageError(
                     f"pose update {message.seq} for agent {message.update.agent} out of sequence"
                 )
             self.frontend.apply_pose_update(message.update)
             self.applied_seq = message.seq
             return True
-        raise codec.MessageError(f"unexpected {type(message).__name__} from the coordinator")
+        raise MessageError(f"unexpected {type(message).__name__} from the coordinator")
 
     def _drain_inbox(self) -> bool:
         """Apply every waiting message without blocking; False on Shutdown."""
@@ -229,7 +229,7 @@ class AgentWorker:
             message = self.channel.receive()
             if isinstance(message, Step):
                 if message.frame_index != index:
-                    raise codec.MessageError(
+                    raise MessageError(
                         f"step for frame {message.frame_index}, expected frame {index}"
                     )
                 return True

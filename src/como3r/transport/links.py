@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection, wait
 from typing import Any, Protocol
 
+from como3r.errors import MessageError
 from como3r.transport import codec
 from como3r.transport.child_signals import children_ignore_sigint
 from como3r.transport.messages import FROM_AGENT, AgentTask, Shutdown
@@ -123,7 +124,7 @@ class AgentLink(Protocol):
 
         Raises:
             EOFError: the coordinator closed the link for good.
-            codec.MessageError: bytes that are not an acceptable message.
+            MessageError: bytes that are not an acceptable message.
         """
 
     def close(self) -> None:
@@ -222,7 +223,7 @@ class Channel:
 
         Raises:
             EOFError: the other side closed the pipe.
-            codec.MessageError: the bytes are not an acceptable message.
+            MessageError: the bytes are not an acceptable message.
             OSError: the pipe's framing is unreadable (the stream is lost).
         """
         assert self.inbox is not None
@@ -353,7 +354,7 @@ class PipeHub:
                     )
                 )
                 self._gone.add(agent)
-            except codec.MessageError as exc:
+            except MessageError as exc:
                 out.append(Rejected(agent, str(exc)))
             else:
                 out.append(Received(agent, message))

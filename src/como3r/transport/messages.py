@@ -39,8 +39,8 @@ from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches
 from como3r.live import FrameEvent
 from como3r.transport import codec
-from como3r.transport.codec import require as _require
-from como3r.transport.codec import require_shape as _shape
+from como3r.transport.codec_types import require as _require
+from como3r.transport.codec_types import require_shape as _shape
 
 
 @dataclass(frozen=True)

@@ -80,7 +80,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from como3r.errors import InputError
+from como3r.errors import InputError, MessageError
 from como3r.transport import codec
 from como3r.transport.links import Event, Joined, Left, Received, Rejected, Rejoin, Traffic
 from como3r.transport.messages import FROM_AGENT, AgentTask, KeyframeMessage, Shutdown
@@ -615,7 +615,7 @@ class ZenohHub:
         """The message of ``data`` sent under agent ``agent``'s key, or why it is not one."""
         try:
             message = codec.decode(data, max_bytes=self.max_bytes, expected=FROM_AGENT)
-        except codec.MessageError as exc:
+        except MessageError as exc:
             return None, str(exc)
         sender = message.packet.agent if isinstance(message, KeyframeMessage) else message.agent
         if sender != agent:
