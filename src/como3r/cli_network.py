@@ -134,7 +134,7 @@ def _network(
     or, with one warning line, an open network's."""
     from como3r.transport.team import check_role, load_member
     from como3r.transport.team_access import network_options
-    from como3r.transport.zenoh_hub import ZenohOptions
+    from como3r.transport.zenoh_protocol import ZenohOptions
 
     if zenoh_config is not None and not zenoh_config.is_file():
         raise InputError(f"--zenoh-config {zenoh_config}: no such file")

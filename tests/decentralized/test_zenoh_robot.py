@@ -16,7 +16,7 @@ from como3r.decentralized.robot import PeerLeft
 from como3r.decentralized.zenoh_robot import RobotKeys, ZenohRobotLink
 from como3r.errors import InputError
 from como3r.transport import codec
-from como3r.transport.zenoh_hub import ZenohOptions, open_session
+from como3r.transport.zenoh_protocol import ZenohOptions, open_session
 
 zenoh = pytest.importorskip("zenoh")
 

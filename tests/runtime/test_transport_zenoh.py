@@ -21,7 +21,8 @@ from como3r.transport import codec
 from como3r.transport.links import Joined, Left, Received, Rejected
 from como3r.transport.messages import AgentStarted, AgentTask, Shutdown, Step
 from como3r.transport.zenoh_agent import ZenohAgentLink
-from como3r.transport.zenoh_hub import Keys, ZenohHub, ZenohOptions, open_session
+from como3r.transport.zenoh_hub import ZenohHub
+from como3r.transport.zenoh_protocol import Keys, ZenohOptions, open_session
 
 zenoh = pytest.importorskip("zenoh")
 

@@ -62,7 +62,7 @@ from como3r.io.output import atomic_output_dir, check_output_dir
 from como3r.progress import ProgressCallback
 from como3r.runtime.outputs import SIMULATED_NOTE, bandwidth, write_json
 from como3r.runtime.pipeline import PriorSpec, RunSummary
-from como3r.transport.zenoh_hub import ZenohOptions, open_session
+from como3r.transport.zenoh_protocol import ZenohOptions, open_session
 
 logger = logging.getLogger(__name__)
 

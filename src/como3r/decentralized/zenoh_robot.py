@@ -51,7 +51,7 @@ from como3r.decentralized.messages import DRIVER, ROBOT_MESSAGES, RobotHello
 from como3r.decentralized.robot import PeerLeft
 from como3r.errors import InputError, MessageError
 from como3r.transport import codec
-from como3r.transport.zenoh_hub import Sender
+from como3r.transport.zenoh_protocol import Sender
 
 logger = logging.getLogger(__name__)
 

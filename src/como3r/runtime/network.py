@@ -27,7 +27,8 @@ from como3r.runtime.pipeline import PriorSpec, RunSummary, open_agents
 from como3r.runtime.processes import RuntimeOptions
 from como3r.transport.spool import DEFAULT_MEMORY_BYTES, Spool
 from como3r.transport.zenoh_agent import ZenohAgentLink
-from como3r.transport.zenoh_hub import Keys, ZenohHub, ZenohOptions, open_session
+from como3r.transport.zenoh_hub import ZenohHub
+from como3r.transport.zenoh_protocol import Keys, ZenohOptions, open_session
 
 logger = logging.getLogger(__name__)
 

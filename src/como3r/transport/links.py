@@ -13,7 +13,7 @@ Both ends exchange the typed messages of :mod:`como3r.transport.messages`, encod
   stored (the runtime may still hold some back: keyframes waiting for their turn).
 
 Two transports implement it: pipes to child processes (:class:`PipeHub`, :class:`Channel`;
-``como3r run``) and Zenoh across machines (:mod:`como3r.transport.zenoh_hub`;
+``como3r run``) and Zenoh across machines (:mod:`como3r.transport.zenoh_protocol`;
 ``como3r coordinator`` / ``como3r agent``). The runtime above them
 (:mod:`como3r.runtime.processes`, :mod:`como3r.runtime.agent_worker`) is the same.
 """

@@ -231,10 +231,10 @@ def network_options(
     session: str,
     peers: int | None = None,
 ) -> Any:
-    """The :class:`~como3r.transport.zenoh_hub.ZenohOptions` of ``member``'s process:
+    """The :class:`~como3r.transport.zenoh_protocol.ZenohOptions` of ``member``'s process:
     its endpoints as TLS ones (:func:`team_endpoints`), :func:`zenoh_settings` and a
     :class:`LinkWatch`; ``peers`` as for :func:`zenoh_settings`."""
-    from como3r.transport.zenoh_hub import ZenohOptions
+    from como3r.transport.zenoh_protocol import ZenohOptions
 
     listen, connect = team_endpoints(listen), team_endpoints(connect)
     settings = zenoh_settings(member, peers)

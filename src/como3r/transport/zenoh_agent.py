@@ -1,5 +1,5 @@
 """An agent's end of the Zenoh transport (``como3r agent``; the protocol is in
-:mod:`como3r.transport.zenoh_hub`).
+:mod:`como3r.transport.zenoh_protocol`).
 
 The agent's frame loop never waits on the network: :meth:`ZenohAgentLink.send` puts the
 message in the agent's :class:`~como3r.transport.spool.Spool` and a background thread puts it
@@ -25,7 +25,7 @@ from como3r.transport import codec
 from como3r.transport.links import Traffic
 from como3r.transport.messages import TO_AGENT, AgentTask, Shutdown
 from como3r.transport.spool import Spool
-from como3r.transport.zenoh_hub import (
+from como3r.transport.zenoh_protocol import (
     INCARNATION,
     PIECE,
     PIECE_BYTES,
@@ -55,7 +55,7 @@ class ZenohAgentLink:
         spool: where unacknowledged messages wait (None: a default one).
         wait_log_s: how often :meth:`fetch_task` and :meth:`close` say what they wait for.
         where: where the session looks for the coordinator
-            (:meth:`~como3r.transport.zenoh_hub.ZenohOptions.where`), named while it
+            (:meth:`~como3r.transport.zenoh_protocol.ZenohOptions.where`), named while it
             waits; empty: the run's key expressions.
     """
 
