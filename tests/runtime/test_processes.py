@@ -31,8 +31,8 @@ from como3r.runtime.multiprocess import run_multiprocess
 from como3r.runtime.pipeline import PriorSpec, RunSummary, run
 from como3r.runtime.processes import RuntimeOptions
 from como3r.runtime.results import AgentResult, KeyframeView
-from como3r.transport.links import Channel
 from como3r.transport.messages import FrameDone, Step
+from como3r.transport.pipes import Channel
 
 WIDTH, HEIGHT, FRAMES, SHORT = 64, 48, 12, 8
 # small global solves keep the test fast; they do not change what is compared

@@ -34,7 +34,7 @@ from como3r.runtime.agent_loop import AgentLoop
 from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame, run_frames
 from como3r.runtime.prefetch import PreparedFrame, prepared_frames
 from como3r.transport import codec
-from como3r.transport.links import AgentLink, Channel
+from como3r.transport.links import AgentLink
 from como3r.transport.messages import (
     TO_AGENT,
     AgentFailed,
@@ -46,6 +46,7 @@ from como3r.transport.messages import (
     Shutdown,
     Step,
 )
+from como3r.transport.pipes import Channel
 
 logger = logging.getLogger(__name__)
 

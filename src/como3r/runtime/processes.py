@@ -5,7 +5,7 @@ coordinator runs here. They exchange only the messages of :mod:`como3r.transport
 carried by a :class:`~como3r.transport.links.Hub`:
 :func:`~como3r.runtime.multiprocess.run_multiprocess` (``como3r run``) starts one process
 per agent on this machine and talks to it over two one-way pipes
-(:class:`~como3r.transport.links.PipeHub`); ``como3r coordinator`` serves agents started
+(:class:`~como3r.transport.pipes.PipeHub`); ``como3r coordinator`` serves agents started
 on other machines over Zenoh (:mod:`como3r.runtime.network`). Both go through
 :func:`~como3r.runtime.multiprocess.coordinate`, so the loop below is the same. (``spawn``
 re-imports the caller's main module, so a script calling ``run_multiprocess`` needs an

@@ -1,0 +1,247 @@
+"""The transport on one machine: two one-way pipes per agent process (``como3r run``).
+
+:class:`PipeHub` is the coordinator's :class:`~como3r.transport.links.Hub`: it starts one
+process per agent and talks to it over a :class:`Channel`, the agent's
+:class:`~como3r.transport.links.AgentLink`. Only raw bytes of
+:mod:`como3r.transport.codec` cross the pipes (``Connection.send_bytes``, never ``send``,
+which pickles).
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import queue
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from multiprocessing.connection import Connection, wait
+from typing import Any
+
+from como3r.errors import MessageError
+from como3r.transport import codec
+from como3r.transport.child_signals import children_ignore_sigint
+from como3r.transport.links import Event, Left, Received, Rejected, Rejoin, Traffic
+from como3r.transport.messages import FROM_AGENT, AgentTask, Shutdown
+
+logger = logging.getLogger(__name__)
+
+
+class Channel:
+    """Typed messages over two one-way pipes; sends go through a background thread.
+
+    Args:
+        inbox: the receiving end, or None.
+        outbox: the sending end, or None.
+        max_bytes: size cap of a message in either direction.
+        accepts: message classes :meth:`receive` accepts.
+    """
+
+    def __init__(
+        self,
+        inbox: Connection | None,
+        outbox: Connection | None,
+        max_bytes: int,
+        accepts: tuple[type, ...],
+    ) -> None:
+        self.inbox = inbox
+        self.outbox = outbox
+        self.max_bytes = max_bytes
+        self.accepts = accepts
+        self.traffic = Traffic()
+        self.broken = False
+        self._queue: queue.Queue[bytes | None] = queue.Queue()
+        self._sender: threading.Thread | None = None
+        if outbox is not None:
+            self._sender = threading.Thread(target=self._send_loop, daemon=True)
+            self._sender.start()
+
+    def send(self, message: Any) -> None:
+        """Encode ``message`` and queue it; never blocks on the pipe."""
+        data = codec.encode(message, max_bytes=self.max_bytes)
+        self.traffic.sent(message, len(data))
+        self._queue.put(data)
+
+    def poll(self, timeout: float = 0.0) -> bool:
+        """Whether a message (or end of stream) is waiting."""
+        return self.inbox is not None and self.inbox.poll(timeout)
+
+    def receive(self) -> Any:
+        """The next message (blocking).
+
+        Raises:
+            EOFError: the other side closed the pipe.
+            MessageError: the bytes are not an acceptable message.
+            OSError: the pipe's framing is unreadable (the stream is lost).
+        """
+        assert self.inbox is not None
+        data = self.inbox.recv_bytes(self.max_bytes)
+        message = codec.decode(data, max_bytes=self.max_bytes, expected=self.accepts)
+        self.traffic.received(message, len(data))
+        return message
+
+    def close(self, timeout: float | None = None) -> None:
+        """Flush queued messages and close both ends.
+
+        Args:
+            timeout: seconds to wait for the flush; None waits until the other side has
+                read everything or is gone. An agent closes with None: its last messages
+                (keyframes, the final report) sit in the pipe for as long as the
+                coordinator is busy (a global BA can take minutes), and closing the pipe
+                under a half-sent message made the coordinator read a truncated one and
+                count a finished agent as failed.
+        """
+        if self._sender is not None:
+            self._queue.put(None)
+            self._sender.join(timeout)
+        for conn in (self.inbox, self.outbox):
+            if conn is not None:
+                conn.close()
+
+    def _send_loop(self) -> None:
+        assert self.outbox is not None
+        while (data := self._queue.get()) is not None:
+            if self.broken:
+                continue
+            try:
+                self.outbox.send_bytes(data)
+            except OSError:  # the other side is gone; later messages are dropped too
+                self.broken = True
+
+
+def exit_reason(code: int | None) -> str:
+    """``killed by signal N`` or ``exit code N`` of a process's exit status."""
+    return f"killed by signal {-code}" if code is not None and code < 0 else f"exit code {code}"
+
+
+class PipeHub:
+    """One spawned process per agent, two pipes each (``como3r run``).
+
+    Args:
+        target: the agent processes' entry point, ``target(agent, inbox, outbox)``.
+        max_bytes: size cap of one message.
+        grace_s: how long a stopping agent may take before it is terminated.
+    """
+
+    name = "pipes"
+
+    def __init__(
+        self, target: Callable[[int, Connection, Connection], None], max_bytes: int, grace_s: float
+    ) -> None:
+        self.target = target
+        self.max_bytes = max_bytes
+        self.grace_s = grace_s
+        self.processes: dict[int, Any] = {}
+        self.channels: dict[int, Channel] = {}
+        self._open: set[int] = set()  # inbox not at end of stream
+        self._gone: set[int] = set()  # Left reported
+
+    def start(self, tasks: Sequence[AgentTask], rejoin: Rejoin) -> None:
+        """Start one process per task and send it its task. ``rejoin`` is never asked: a
+        process this hub started that ends is gone for good."""
+        context = multiprocessing.get_context("spawn")
+        for task in tasks:
+            to_agent_r, to_agent_w = context.Pipe(duplex=False)
+            from_agent_r, from_agent_w = context.Pipe(duplex=False)
+            process = context.Process(
+                target=self.target,
+                args=(task.agent, to_agent_r, from_agent_w),
+                name=f"como3r-agent-{task.agent}",
+                daemon=True,
+            )
+            with children_ignore_sigint():  # Ctrl-C is the coordinator's to handle
+                process.start()
+            to_agent_r.close()  # the child holds its own copies; ours would hide its death
+            from_agent_w.close()
+            channel = Channel(from_agent_r, to_agent_w, self.max_bytes, FROM_AGENT)
+            channel.send(task)
+            self.processes[task.agent], self.channels[task.agent] = process, channel
+            self._open.add(task.agent)
+
+    def events(self, timeout: float) -> list[Event]:
+        handles: dict[Any, int] = {}
+        for agent, process in self.processes.items():
+            if agent not in self._gone:
+                handles[process.sentinel] = agent
+                if agent in self._open:
+                    handles[self.channels[agent].inbox] = agent
+        if not handles:
+            return []
+        ready = wait(list(handles), timeout)
+        out: list[Event] = []
+        for handle in ready:  # messages first: an exited agent's last words are in its pipe
+            if handle is not self.processes[handles[handle]].sentinel:
+                out.extend(self._drain(handles[handle]))
+        for handle in ready:
+            agent = handles[handle]
+            if handle is self.processes[agent].sentinel:
+                out.extend(self._drain(agent))
+                self.processes[agent].join(5.0)  # the sentinel fires just before the status
+                self._gone.add(agent)
+                out.append(
+                    Left(agent, f"process died ({exit_reason(self.processes[agent].exitcode)})")
+                )
+        return out
+
+    def _drain(self, agent: int) -> list[Event]:
+        channel, out = self.channels[agent], []
+        while agent in self._open:
+            try:
+                if not channel.poll(0.0):
+                    break
+                message = channel.receive()
+            except EOFError:
+                self._open.discard(agent)
+            except OSError as exc:  # the framing is lost: nothing after it can be read
+                self._open.discard(agent)
+                self.drop(agent)
+                out.append(
+                    Left(
+                        agent,
+                        f"protocol error: unreadable message ({exc}); cap {self.max_bytes} bytes",
+                    )
+                )
+                self._gone.add(agent)
+            except MessageError as exc:
+                out.append(Rejected(agent, str(exc)))
+            else:
+                out.append(Received(agent, message))
+        return out
+
+    def durable(self, held: Mapping[int, int]) -> dict[str, Any]:
+        """Nothing: agents on pipes end with the coordinator."""
+        return {}
+
+    def acknowledge(self, held: Mapping[int, int]) -> None:
+        """Nothing to do: a pipe's writer is done once its reader took the bytes."""
+
+    def resume(self, state: Mapping[str, Any]) -> dict[int, int]:
+        """Nothing to continue: a resumed run starts its agents' processes afresh."""
+        return {}
+
+    def send(self, agent: int, message: Any) -> None:
+        self.channels[agent].send(message)
+
+    def drop(self, agent: int) -> None:
+        if self.processes[agent].is_alive():
+            self.processes[agent].terminate()
+
+    def stop(self, live: Sequence[int], interrupted: bool) -> None:
+        for agent, process in self.processes.items():
+            if process.is_alive() and interrupted:
+                process.terminate()
+            elif process.is_alive() and agent in live:
+                self.channels[agent].send(Shutdown("the coordinator is stopping"))
+        deadline = time.monotonic() + self.grace_s
+        for agent, process in self.processes.items():
+            process.join(max(0.0, deadline - time.monotonic()))
+            if process.is_alive():
+                process.terminate()
+                process.join(self.grace_s)
+            self.channels[agent].close(timeout=self.grace_s)
+
+    def traffic(self, agent: int) -> Traffic:
+        return self.channels[agent].traffic
+
+    def exitcode(self, agent: int) -> int | None:
+        return self.processes[agent].exitcode
