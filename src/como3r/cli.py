@@ -531,7 +531,7 @@ def _check_resumable(out: Path, config) -> None:
     """The killed run in ``out.partial`` has a session store made with ``config``."""
     from como3r.config import differing_key
     from como3r.store.reader import read_config
-    from como3r.store.writer import STORE_NAME
+    from como3r.store.schema import STORE_NAME
 
     store = out.with_name(out.name + ".partial") / STORE_NAME
     difference = differing_key(read_config(store), config)

@@ -15,7 +15,7 @@ import pytest
 
 from como3r.errors import StoreError
 from como3r.store.reader import read_session
-from como3r.store.writer import STORE_NAME
+from como3r.store.schema import STORE_NAME
 
 zenoh = pytest.importorskip("zenoh")
 

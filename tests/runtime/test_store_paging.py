@@ -27,7 +27,8 @@ from como3r.frontend.pairs import DirectedMatches
 from como3r.prior.mast3r.prior import MASt3REncoding
 from como3r.store.paging import PagedLink, StoredVerification, working_set
 from como3r.store.reader import read_session
-from como3r.store.writer import STORE_NAME, SessionStore
+from como3r.store.schema import STORE_NAME
+from como3r.store.writer import SessionStore
 
 H, W = 6, 8
 

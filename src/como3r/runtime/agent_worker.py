@@ -52,7 +52,7 @@ logger = logging.getLogger(__name__)
 
 
 def agent_process_main(agent: int, inbox: Connection, outbox: Connection) -> None:
-    """Entry point of an agent process started by :class:`~.transport.PipeHub`: its task
+    """Entry point of an agent process started by :class:`~como3r.transport.pipes.PipeHub`: its task
     is the first message on its pipe."""
     channel = Channel(inbox, outbox, codec.DEFAULT_MAX_BYTES, TO_AGENT)
     try:

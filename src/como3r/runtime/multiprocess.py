@@ -38,7 +38,7 @@ from como3r.runtime.results import SegmentedCoordinator, agent_results, left_out
 from como3r.runtime.runtime_state import restore_runtime
 from como3r.store.reader import read_session, resumable
 from como3r.store.resume import open_store
-from como3r.store.writer import STORE_NAME
+from como3r.store.schema import STORE_NAME
 from como3r.transport.links import Hub
 from como3r.transport.pipes import PipeHub
 

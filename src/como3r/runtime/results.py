@@ -39,7 +39,7 @@ from como3r.transport.messages import AgentFinished, EdgeSummary
 class KeyframeView:
     """What the outputs need of a keyframe, its pose the agent's and the rest read from
     the coordinator's graph, which holds (or pages in) the pointmaps: a view keeps no large
-    array, so the coordinator's memory stays bounded (:mod:`.store_paging`).
+    array, so the coordinator's memory stays bounded (:mod:`como3r.store.paging`).
 
     The graph gets every change a view is told of before or as the view does (a refreshed
     pointmap, a focal length, a refined pointmap), so a view only reads them: writing one

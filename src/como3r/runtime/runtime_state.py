@@ -2,7 +2,7 @@
 up again (issue 14: ``como3r coordinator --resume``).
 
 The coordinator's state (keyframes, poses, edges, gauges, pose updates made per agent) is
-in the store after every message (:mod:`.store`). What the runtime of
+in the store after every message (:mod:`como3r.store.writer`). What the runtime of
 :mod:`.processes` knows beside it goes there too, before every acknowledgement
 (:meth:`~como3r.store.writer.SessionStore.record_runtime`): per agent its status, progress
 counters and the number of the last message it handled; per map segment its agent and what

@@ -33,7 +33,7 @@ from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.prior.base import Encoding
 from como3r.store.blobs import unpack_arrays, unpack_object
 from como3r.store.paging import PagedLink
-from como3r.store.writer import APPLICATION_ID, FORMAT_VERSION, STORE_NAME
+from como3r.store.schema import APPLICATION_ID, FORMAT_VERSION, STORE_NAME
 from como3r.transport.messages import AgentFinished
 
 logger = logging.getLogger(__name__)
@@ -125,7 +125,7 @@ class Session:
         gauge_events, alternation: as in metrics.json.
         backlog: ``(inter edges since the last in-stream BA, their component roots)``.
         finished: the terminal cleanup ran.
-        runtime: the multi-process runtime's state (:mod:`.runtime_state`), None if no
+        runtime: the multi-process runtime's state (:mod:`como3r.runtime.runtime_state`), None if no
             such runtime wrote the store.
         reports: each coordinator agent's final report, where its process sent one.
     """
@@ -153,8 +153,8 @@ def read_session(path: str | Path, paged: bool = False) -> Session:
     Args:
         paged: leave the keyframes' encodings, images and pointmaps and the sequential
             edges' matches in the store (:class:`~como3r.frontend.paging.PagedKeyframe`,
-            :class:`~.store_paging.PagedLink`; they read nothing until the store that
-            continues the session, :meth:`~.store.SessionStore.reopen`, serves them): a
+            :class:`~.paging.PagedLink`; they read nothing until the store that
+            continues the session, :meth:`~.writer.SessionStore.reopen`, serves them): a
             resumed session takes the memory of its working set, not of its whole map.
 
     Raises:

@@ -30,7 +30,8 @@ from como3r.coordination.coordinator import Candidate, Coordinator, CoordinatorS
 from como3r.errors import StoreError
 from como3r.store.paging import NO_MATCHES, StoredVerification
 from como3r.store.reader import RetrievalEntry, Session, StoredCandidate, read_session
-from como3r.store.writer import STORE_NAME, SessionStore
+from como3r.store.schema import STORE_NAME
+from como3r.store.writer import SessionStore
 
 logger = logging.getLogger(__name__)
 

@@ -11,51 +11,8 @@ lose the last transactions (``synchronous=NORMAL``) but not the store's consiste
 :func:`como3r.store.reader.read_session` loads it back;
 :mod:`como3r.store.resume` continues a killed run from it (``--resume``).
 
-Layout (format version :data:`FORMAT_VERSION`; also ``PRAGMA user_version``, and ``PRAGMA
-application_id`` = :data:`APPLICATION_ID` marks the file as a como3r store). Keyframes are
-numbered by their global index ``g`` (arrival order at the coordinator); agent ids are the
-coordinator's (a restarted agent process that starts a new map segment has its own).
-``blob`` columns hold :mod:`.store_blobs` blobs (typed arrays or codec objects, Zstandard)::
-
-    meta        key TEXT PK, value TEXT   format_version, como3r_version, created (UTC),
-                                          config (JSON of the effective configuration)
-    blobs       id PK, data BLOB          the large arrays, referenced by id below
-    keyframes   g PK, agent, kf_id, frame_index, timestamp, colors -> blobs (H, W, 3) uint8,
-                encoding -> blobs (the prior's Encoding, codec object); UNIQUE (agent, kf_id);
-                written once
-    pointmaps   g PK, fused_frames, X_hat, C_hat, X_init, C_init -> blobs ((H, W, 3) and
-                (H, W) float32; X_init/C_init point at the same blob as X_hat/C_hat while
-                they are the same arrays), K blob (3, 3) or NULL; rewritten on refresh, focal
-                alignment, depth refinement (its old blobs deleted)
-    poses       g PK, T_WC blob (8,)      the current pose, rewritten when it moves
-    retrieval   g PK, agent, kf_id, position (insertion order in the coordinator's ASMK
-                database, NULL if not indexed), features blob (descriptors (N, d),
-                attention (N,))
-    edges       n PK (graph order), i, j (global), kind 'sequential'|'inter', similarity,
-                covisible_ij, covisible_ji, matches blob (ij.idx, ij.valid, ij.q, ji.idx,
-                ji.valid, ji.q: every pixel of j in i and of i in j)
-    candidates  n PK (verification order), i, j, status 'rejected'|'pending'|'admitted'|
-                'inconsistent', residual_ratio, similarity, nu_i, nu_j, covisible_ratio,
-                accepted, covisible_ij, covisible_ji, matches blob while pending (an admitted
-                candidate's matches are its edge's)
-    gauges      agent PK, component       the component's root (its lowest agent id)
-    agents      agent PK, keyframes, last_keyframe_frame, updates_sent, focal
-                                          per-agent progress: keyframes stored, the frame
-                                          index of the last, pose updates made for it (the
-                                          seq of the last PoseUpdateMessage), its focal
-                                          length in the map (NULL: not aligned)
-    state       key TEXT PK, value JSON   stats, gauge_events, alternation, backlog
-                                          (inter edges since the last BA, their component
-                                          roots), finished (the terminal cleanup ran),
-                                          runtime (the multi-process runtime's view of its
-                                          agents and map segments, and its transport's
-                                          state: :mod:`.runtime_state`)
-    reports     agent PK, message blob    an agent process's final report (AgentFinished,
-                                          codec object) per coordinator agent: its
-                                          trajectory relative to its keyframes, statistics
-
-A reader refuses a file that is not such a store, is corrupted, or has another format
-version, with one :class:`~como3r.errors.StoreError` line. The store is created complete
+Its layout is :mod:`.schema`'s. A reader refuses a file that is not such a store, is
+corrupted, or has another format version, with one :class:`~como3r.errors.StoreError` line. The store is created complete
 (schema and configuration in a file renamed into place), so it never exists half-made;
 while it is written ``session.db-wal`` and ``session.db-shm`` sit beside it (a killed run
 leaves them: they hold its last transactions), and closing it folds them back into one file.
@@ -63,7 +20,6 @@ leaves them: they hold its last transactions), and closing it folds them back in
 
 from __future__ import annotations
 
-import dataclasses
 import datetime
 import json
 import logging
@@ -72,7 +28,6 @@ import weakref
 from collections import Counter
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -81,91 +36,22 @@ from torch import Tensor
 
 from como3r import __version__
 from como3r.config import Config, config_to_dict
-from como3r.coordination.coordinator import Candidate, Coordinator
+from como3r.coordination.coordinator import Coordinator
 from como3r.errors import StoreError
-from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import PoseUpdate
 from como3r.frontend.paging import POINTMAP_FIELDS, PagedKeyframe
-from como3r.frontend.pairs import DirectedMatches, PairLink
+from como3r.frontend.pairs import DirectedMatches
 from como3r.prior.base import Encoding
-from como3r.store.blobs import pack_arrays, pack_object, unpack_arrays, unpack_object
+from como3r.store.blobs import pack_object, unpack_arrays, unpack_object
 from como3r.store.paging import PagedLink, page_out
+from como3r.store.schema import APPLICATION_ID, FORMAT_VERSION, PAGE_SIZE, SCHEMA
+from como3r.store.tables import TableWriter, Written, pointmap_arrays, refs
 from como3r.transport.messages import AgentFinished
 
 logger = logging.getLogger(__name__)
 
-#: the store's file name in an output folder
-STORE_NAME = "session.db"
-#: the layout above; a reader refuses any other
-FORMAT_VERSION = 3
-#: SQLite page size of a new store, the largest: a keyframe writes megabytes of blobs
-#: (13 MB of simulated-prior state, 2 MB per pointmap at 512x384) as chains of overflow
-#: pages, and 15 transactions of 13 + 4 x 1.8 MB took 0.68 s at 64 KiB pages against 1.65 s
-#: at SQLite's default 4 KiB (WAL, synchronous=NORMAL; 0.76 s against 1.37 s in another run
-#: of ``benchmarks/depth_step_speed.py``). Stores made with other page sizes open as they are.
-PAGE_SIZE = 65536
 
-#: ``PRAGMA application_id`` of a como3r session store ("C3RS")
-APPLICATION_ID = 0x43335253
-
-SCHEMA = """
-CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE blobs (id INTEGER PRIMARY KEY, data BLOB NOT NULL);
-CREATE TABLE keyframes (
-    g INTEGER PRIMARY KEY, agent INTEGER NOT NULL, kf_id INTEGER NOT NULL,
-    frame_index INTEGER NOT NULL, timestamp REAL NOT NULL,
-    colors INTEGER NOT NULL REFERENCES blobs (id),
-    encoding INTEGER NOT NULL REFERENCES blobs (id),
-    UNIQUE (agent, kf_id));
-CREATE TABLE pointmaps (
-    g INTEGER PRIMARY KEY REFERENCES keyframes (g), fused_frames INTEGER NOT NULL,
-    X_hat INTEGER NOT NULL REFERENCES blobs (id), C_hat INTEGER NOT NULL REFERENCES blobs (id),
-    X_init INTEGER NOT NULL REFERENCES blobs (id), C_init INTEGER NOT NULL REFERENCES blobs (id),
-    K BLOB);
-CREATE TABLE poses (g INTEGER PRIMARY KEY REFERENCES keyframes (g), T_WC BLOB NOT NULL);
-CREATE TABLE retrieval (
-    g INTEGER PRIMARY KEY REFERENCES keyframes (g), agent INTEGER NOT NULL,
-    kf_id INTEGER NOT NULL, position INTEGER UNIQUE, features BLOB NOT NULL);
-CREATE TABLE edges (
-    n INTEGER PRIMARY KEY, i INTEGER NOT NULL REFERENCES keyframes (g),
-    j INTEGER NOT NULL REFERENCES keyframes (g), kind TEXT NOT NULL, similarity REAL,
-    covisible_ij REAL, covisible_ji REAL, matches BLOB NOT NULL);
-CREATE TABLE candidates (
-    n INTEGER PRIMARY KEY, i INTEGER NOT NULL REFERENCES keyframes (g),
-    j INTEGER NOT NULL REFERENCES keyframes (g), status TEXT NOT NULL, residual_ratio REAL,
-    similarity REAL NOT NULL, nu_i REAL, nu_j REAL NOT NULL, covisible_ratio REAL,
-    accepted INTEGER NOT NULL, covisible_ij REAL, covisible_ji REAL, matches BLOB);
-CREATE TABLE gauges (agent INTEGER PRIMARY KEY, component INTEGER NOT NULL);
-CREATE TABLE agents (
-    agent INTEGER PRIMARY KEY, keyframes INTEGER NOT NULL,
-    last_keyframe_frame INTEGER NOT NULL, updates_sent INTEGER NOT NULL, focal REAL);
-CREATE TABLE state (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE reports (agent INTEGER PRIMARY KEY, message BLOB NOT NULL);
-"""
-
-
-def pack_link(link: PairLink) -> bytes:
-    """Both directions' matches of a link in one blob (the ``matches`` columns)."""
-    return pack_arrays(link.ij.idx, link.ij.valid, link.ij.q, link.ji.idx, link.ji.valid, link.ji.q)
-
-
-@dataclass
-class _Written:
-    """What the store holds of one keyframe's pointmaps: the very tensors (weakly: compared
-    by identity, so a replaced pointmap is seen without comparing its values, and a
-    paged-out one is not kept alive) and their blob ids."""
-
-    arrays: tuple[weakref.ref, ...]
-    blobs: tuple[int, ...]
-    K: Tensor | None
-    fused_frames: int
-
-    def holds(self, array: Tensor) -> int | None:
-        """The blob id of ``array`` if it is one of these tensors."""
-        return next((b for a, b in zip(self.arrays, self.blobs) if a() is array), None)
-
-
-class SessionStore:
+class SessionStore(TableWriter):
     """The coordinator's journal: its state in ``session.db``, one transaction per message.
 
     Made by :meth:`create`; as a context manager it is the coordinator's journal until the
@@ -183,7 +69,7 @@ class SessionStore:
         self._coordinator: Coordinator | None = None
         self._failed = False
         self._finished = False
-        self._keyframes: list[_Written] = []
+        self._keyframes: list[Written] = []
         self._poses = torch.zeros(0, 8)
         self._edges = 0
         self._candidates: list[tuple[str, float | None]] = []
@@ -273,8 +159,8 @@ class SessionStore:
                 kf.evict(self, g)  # read back as paged: this store serves it
                 arrays: tuple[weakref.ref, ...] = ()
             else:
-                arrays = _refs(_pointmap_arrays(kf))
-            self._keyframes.append(_Written(arrays, tuple(ids), kf.K, kf.fused_frames))
+                arrays = refs(pointmap_arrays(kf))
+            self._keyframes.append(Written(arrays, tuple(ids), kf.K, kf.fused_frames))
         for link in graph.links:
             if isinstance(link.link, PagedLink):
                 link.link.serve(self)
@@ -386,7 +272,7 @@ class SessionStore:
             if blob_id not in arrays:
                 (arrays[blob_id],) = unpack_arrays(self._read_blob(blob_id), f"keyframe {g}")
         values = tuple(arrays[b] for b in written.blobs)
-        written.arrays = _refs(values)
+        written.arrays = refs(values)
         return dict(zip(POINTMAP_FIELDS, values))
 
     def load_matches(self, n: int) -> tuple[DirectedMatches, DirectedMatches]:
@@ -450,18 +336,6 @@ class SessionStore:
         self._reports.update(new)
         self.transactions += 1
 
-    def _blob(self, data: bytes, part: str) -> int:
-        return int(
-            self.connection.execute(
-                "INSERT INTO blobs (data) VALUES (?)", (self._count(part, data),)
-            ).lastrowid
-        )
-
-    def _count(self, part: str, data: bytes) -> bytes:
-        """``data``, counted as written for ``part``."""
-        self.written[part] += len(data)
-        return data
-
     def written_metrics(self) -> dict[str, Any]:
         """``metrics.json``'s ``store`` entry: the bytes of blobs and text written so far
         (rewrites included; SQLite's pages and WAL add to them), in all, per keyframe and per
@@ -486,204 +360,6 @@ class SessionStore:
             "file_bytes": files,
             "file_bytes_per_keyframe": files / keyframes if keyframes else None,
         }
-
-    def _record_keyframes(self, coordinator: Coordinator) -> None:
-        """New keyframes, and the pointmaps of known ones that were replaced."""
-        graph = coordinator.graph
-        for g, kf in enumerate(graph.keyframes[: len(self._keyframes)]):
-            written = self._keyframes[g]
-            if isinstance(kf, PagedKeyframe) and not kf.resident("pointmaps"):
-                if not kf.served_by(self):
-                    # parked by the terminal cleanup (KeyframeParking): the pointmaps it
-                    # changed are read back (the others from this store, as written) and
-                    # written, one keyframe in memory at a time
-                    self._keyframes[g] = self._write_pointmaps(g, kf, written)
-                    kf.evict(self, g)
-                continue  # else as written: a pointmap that changes is read back first
-            if (
-                any(b() is not a for a, b in zip(_pointmap_arrays(kf), written.arrays))
-                or kf.K is not written.K
-                or kf.fused_frames != written.fused_frames
-            ):
-                self._keyframes[g] = self._write_pointmaps(g, kf, written)
-        for g in range(len(self._keyframes), len(graph.keyframes)):
-            kf = graph.keyframes[g]
-            self.connection.execute(
-                "INSERT INTO keyframes VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (
-                    g,
-                    graph.agent_of[g],
-                    kf.kf_id,
-                    kf.frame_index,
-                    kf.timestamp,
-                    self._blob(pack_arrays(kf.colors), "colours"),
-                    self._blob(pack_object(kf.encoding), "encoding"),
-                ),
-            )
-            self._keyframes.append(self._write_pointmaps(g, kf, None))
-            if kf.retrieval is not None:
-                self.connection.execute(
-                    "INSERT INTO retrieval VALUES (?, ?, ?, NULL, ?)",
-                    (
-                        g,
-                        graph.agent_of[g],
-                        kf.kf_id,
-                        self._count("retrieval", pack_arrays(*kf.retrieval)),
-                    ),
-                )
-
-    def _write_pointmaps(self, g: int, kf: Keyframe, before: _Written | None) -> _Written:
-        """Write a keyframe's pointmaps row: a blob per distinct array (one for ``X_init``
-        and ``X_hat`` while they are the same tensor), the replaced ones deleted."""
-        arrays = _pointmap_arrays(kf)
-        ids: list[int] = []
-        for k, array in enumerate(arrays):
-            same = next((ids[m] for m in range(k) if arrays[m] is array), None)
-            kept = None if before is None else before.holds(array)
-            ids.append(
-                same
-                if same is not None
-                else kept
-                if kept is not None
-                else self._blob(pack_arrays(array), "pointmaps")
-            )
-        K = None if kf.K is None else self._count("pointmaps", pack_arrays(kf.K))
-        self.connection.execute(
-            "INSERT OR REPLACE INTO pointmaps VALUES (?, ?, ?, ?, ?, ?, ?)",
-            (g, kf.fused_frames, *ids, K),
-        )
-        if before is not None:
-            self.connection.executemany(
-                "DELETE FROM blobs WHERE id = ?", [(b,) for b in set(before.blobs) - set(ids)]
-            )
-        return _Written(_refs(arrays), tuple(ids), kf.K, kf.fused_frames)
-
-    def _record_poses(self, coordinator: Coordinator) -> None:
-        graph = coordinator.graph
-        if not len(graph):
-            return
-        poses = graph.poses(range(len(graph))).detach().cpu()
-        known = min(len(self._poses), len(poses))
-        moved = (poses[:known] != self._poses[:known].to(poses)).any(dim=1).nonzero()
-        changed = [int(g) for g in moved[:, 0]] + list(range(known, len(poses)))
-        self.connection.executemany(
-            "INSERT OR REPLACE INTO poses VALUES (?, ?)",
-            [(g, self._count("poses", pack_arrays(poses[g]))) for g in changed],
-        )
-        self._poses = poses.clone()
-
-    def _record_retrieval(self, coordinator: Coordinator) -> None:
-        """Positions of the keyframes the ASMK database indexed since the last call."""
-        if coordinator.retrieval is None:
-            return
-        keys = coordinator.retrieval.database.keys
-        self.connection.executemany(
-            "UPDATE retrieval SET position = ? WHERE agent = ? AND kf_id = ?",
-            [
-                (n, agent, kf_id)
-                for n, (agent, kf_id) in enumerate(keys[self._indexed :], self._indexed)
-            ],
-        )
-        self._indexed = len(keys)
-
-    def _record_edges(self, coordinator: Coordinator) -> None:
-        links = coordinator.graph.links
-        self.connection.executemany(
-            "INSERT INTO edges VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-            [
-                (
-                    n,
-                    link.i,
-                    link.j,
-                    link.kind,
-                    link.similarity,
-                    link.link.covisible_ij,
-                    link.link.covisible_ji,
-                    self._count("edges", pack_link(link.link)),
-                )
-                for n, link in enumerate(links[self._edges :], self._edges)
-            ],
-        )
-        self._edges = len(links)
-
-    def _record_candidates(self, candidates: Sequence[Candidate]) -> None:
-        """New candidates; the status and residual ratio of known ones that changed."""
-        for n, c in enumerate(candidates):
-            ratio = None if c.residual_ratio != c.residual_ratio else c.residual_ratio
-            if n < len(self._candidates) and self._candidates[n] == (c.status, ratio):
-                continue
-            v, pending = c.verification, c.status == "pending"
-            link = v.link if pending else None
-            self.connection.execute(
-                "INSERT OR REPLACE INTO candidates VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (
-                    n,
-                    c.i,
-                    c.j,
-                    c.status,
-                    ratio,
-                    v.similarity,
-                    v.nu_i,
-                    v.nu_j,
-                    v.covisible_ratio,
-                    int(v.accepted),
-                    None if v.link is None else v.link.covisible_ij,
-                    None if v.link is None else v.link.covisible_ji,
-                    None if link is None else self._count("candidates", pack_link(link)),
-                ),
-            )
-            if n < len(self._candidates):
-                self._candidates[n] = (c.status, ratio)
-            else:
-                self._candidates.append((c.status, ratio))
-
-    def _record_agents(self, coordinator: Coordinator) -> None:
-        """Gauge components and per-agent progress."""
-        graph = coordinator.graph
-        gauges = {agent: (members[0],) for members in coordinator.components() for agent in members}
-        agents = {}
-        for agent in range(coordinator.num_agents):
-            own = graph.agent_keyframes(agent)
-            agents[agent] = (
-                len(own),
-                graph.keyframes[own[-1]].frame_index if own else -1,
-                self._updates.get(agent, 0),
-                graph.focal.get(agent),
-            )
-        self._upsert("gauges", gauges)
-        self._upsert("agents", agents)
-
-    def _record_state(self, coordinator: Coordinator, finished: bool) -> None:
-        new_edges, roots = coordinator.backlog
-        self._finished = self._finished or finished
-        state = {
-            "stats": dataclasses.asdict(coordinator.stats),
-            "gauge_events": coordinator.gauge_events,
-            "alternation": coordinator.alternation,
-            "backlog": {"new_edges": new_edges, "roots": roots},
-            "finished": self._finished,
-        }
-        self._upsert("state", {key: (json.dumps(value),) for key, value in state.items()})
-
-    def _upsert(self, table: str, rows: dict[Any, tuple]) -> None:
-        """Write the rows of a small keyed table that differ from what it holds."""
-        known = self._rows[table]
-        changed = [(key, *row) for key, row in rows.items() if known.get(key) != row]
-        if changed:
-            text = sum(len(v) for row in changed for v in row[1:] if isinstance(v, (str, bytes)))
-            if text:
-                self.written[table] += text
-            marks = ", ".join("?" * len(changed[0]))
-            self.connection.executemany(f"INSERT OR REPLACE INTO {table} VALUES ({marks})", changed)
-            known.update((key, tuple(row)) for key, *row in changed)
-
-
-def _pointmap_arrays(kf: Keyframe) -> tuple[Tensor, ...]:
-    return tuple(getattr(kf, name) for name in POINTMAP_FIELDS)
-
-
-def _refs(arrays: Sequence[Tensor]) -> tuple[weakref.ref, ...]:
-    return tuple(weakref.ref(a) for a in arrays)
 
 
 @contextmanager

@@ -191,7 +191,7 @@ class ZenohAgentLink:
                 if self._closed:
                     return
                 seq, key, data = self.spool.take()
-            pieces = max(1, math.ceil(len(data) / PIECE_BYTES))  # see transport_zenoh
+            pieces = max(1, math.ceil(len(data) / PIECE_BYTES))  # see zenoh_protocol
             try:
                 for index in range(pieces):
                     self.session.put(
