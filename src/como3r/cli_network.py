@@ -276,8 +276,8 @@ def coordinator(
 
     from como3r.cli import _check_resumable, _load_config, _print_summary
     from como3r.io.output import check_output_dir
+    from como3r.runtime.agent_events import RuntimeOptions
     from como3r.runtime.network import serve
-    from como3r.runtime.processes import RuntimeOptions
     from como3r.store.reader import resumable
 
     network = _network(

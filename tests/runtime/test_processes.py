@@ -27,9 +27,9 @@ from como3r.io.tum import read_tum
 from como3r.live import FrameEvent
 from como3r.prior.simulated import SimulatedPrior
 from como3r.progress import AgentProgress, PhaseEvent, ProgressEvent
+from como3r.runtime.agent_events import RuntimeOptions
 from como3r.runtime.multiprocess import run_multiprocess
 from como3r.runtime.pipeline import PriorSpec, RunSummary, run
-from como3r.runtime.processes import RuntimeOptions
 from como3r.runtime.results import AgentResult, KeyframeView
 from como3r.transport.messages import FrameDone, Step
 from como3r.transport.pipes import Channel

@@ -23,6 +23,7 @@ from como3r.io.output import atomic_output_dir
 from como3r.live import LiveCallback
 from como3r.progress import ProgressCallback
 from como3r.runtime import outputs
+from como3r.runtime.agent_events import RuntimeOptions
 from como3r.runtime.agent_worker import agent_process_main
 from como3r.runtime.interrupts import interrupts_are_checkpoints
 from como3r.runtime.map_session import SavedMap, hold_map, seed_map
@@ -33,7 +34,7 @@ from como3r.runtime.pipeline import (
     run_frames,
     warn_skipped_frames,
 )
-from como3r.runtime.processes import RuntimeOptions, _Runtime
+from como3r.runtime.processes import _Runtime
 from como3r.runtime.results import SegmentedCoordinator, agent_results, left_out
 from como3r.runtime.runtime_state import restore_runtime
 from como3r.store.reader import read_session, resumable

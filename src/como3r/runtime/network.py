@@ -21,10 +21,10 @@ import torch
 from como3r.config import Config
 from como3r.errors import InputError
 from como3r.progress import ProgressCallback
+from como3r.runtime.agent_events import RuntimeOptions
 from como3r.runtime.agent_worker import prior_fields, run_agent
 from como3r.runtime.multiprocess import coordinate
 from como3r.runtime.pipeline import PriorSpec, RunSummary, open_agents
-from como3r.runtime.processes import RuntimeOptions
 from como3r.transport.spool import DEFAULT_MEMORY_BYTES, Spool
 from como3r.transport.zenoh_agent import ZenohAgentLink
 from como3r.transport.zenoh_hub import ZenohHub
