@@ -29,7 +29,8 @@ from como3r.coordination.association import Verification
 from como3r.coordination.coordinator import Candidate, Coordinator, CoordinatorStats
 from como3r.errors import StoreError
 from como3r.store.paging import NO_MATCHES, StoredVerification
-from como3r.store.reader import RetrievalEntry, Session, StoredCandidate, read_session
+from como3r.store.reader import Session, read_session
+from como3r.store.rows import RetrievalEntry, StoredCandidate
 from como3r.store.schema import STORE_NAME
 from como3r.store.writer import SessionStore
 
