@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import ast
 import fnmatch
+import functools
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -113,7 +114,9 @@ def imports(name: str, path: Path, known: set[str]) -> Iterator[str]:
                 yield target
 
 
+@functools.cache
 def import_graph() -> dict[str, set[str]]:
+    """Module -> the modules it imports (read once per test session)."""
     found = modules()
     known = set(found)
     return {name: set(imports(name, path, known)) for name, path in found.items()}
