@@ -12,7 +12,7 @@ for rows 1-2), ratios within one run, on synthetic 512x384 keyframes:
 3. SLIC label maps of six keyframes (:func:`~como3r.backend.segments.labels_in_order`) on
    one thread and on two;
 4. 15 session-store transactions of 13 + 4 x 1.8 MB of blobs into SQLite in WAL mode at
-   the default 4 KiB pages and at the store's :data:`~como3r.runtime.store.PAGE_SIZE`.
+   the default 4 KiB pages and at the store's :data:`~como3r.store.schema.PAGE_SIZE`.
 
     python benchmarks/depth_step_speed.py [--repeats 3] [--threads 1] [--matches 6000000]
 """
@@ -38,7 +38,7 @@ from como3r.backend.segments import labels_in_order
 from como3r.config import DepthRefinementConfig
 from como3r.frontend.graph import Edge
 from como3r.frontend.pairs import DirectedMatches
-from como3r.runtime.store import PAGE_SIZE
+from como3r.store.schema import PAGE_SIZE
 
 HEIGHT, WIDTH = 384, 512
 KEYFRAMES = 8

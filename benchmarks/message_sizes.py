@@ -3,7 +3,7 @@
 Part 0, bytes per keyframe on the wire per message part, for each ``--agent`` (its
 resolution at ``input.long_side``): an agent front-end with the simulated prior runs over the
 agent's first ``--frames`` frames; every keyframe message after the first (which has no
-sequential edge and no refresh) is measured with :func:`como3r.runtime.codec.part_sizes`,
+sequential edge and no refresh) is measured with :func:`como3r.transport.codec.part_sizes`,
 exact (pipes on one machine) and lossy (zenoh, across machines), and averaged. Then the same
 messages with MASt3R's shapes: the encoding replaced by the full-size network's (ViT-L, the
 released checkpoint's configuration, seeded random weights: sizes, not values, are what
@@ -46,7 +46,7 @@ configuration with seeded random weights: the released weights are not needed to
 tokens' size; their compressibility with trained weights may differ). For each, its raw
 bytes and the ratio and speed (MB/s compress / decompress) of zlib level 1, Zstandard
 levels 1 and 3, and LZ4, on the raw bytes and on byte planes (every element's first byte,
-then every second byte, ...), which is what ``runtime/codec.py`` sends.
+then every second byte, ...), which is what ``transport/codec.py`` sends.
 
 Part 2, the codec against msgspec (typed msgpack structs validated at decode), if
 installed: microseconds to encode and decode a small message (a pose update of 50
@@ -88,13 +88,13 @@ from como3r.prior.mast3r.model import MASt3RNetwork
 from como3r.prior.mast3r.retrieval import DEFAULT_NFEAT, RetrievalHead
 from como3r.prior.mast3r.testing import seeded_network
 from como3r.prior.simulated import SimulatedPrior
-from como3r.runtime import codec
-from como3r.runtime.codec import zstd
-from como3r.runtime.keyframe_bytes import PARTS, wire_parts
-from como3r.runtime.messages import FrameDone, KeyframeMessage, PoseUpdateMessage
 from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame
 from como3r.runtime.results import final_report
-from como3r.runtime.store_blobs import pack_arrays, pack_object
+from como3r.store.blobs import pack_arrays, pack_object
+from como3r.transport import codec
+from como3r.transport.codec_arrays import zstd
+from como3r.transport.keyframe_bytes import PARTS, wire_parts
+from como3r.transport.messages import FrameDone, KeyframeMessage, PoseUpdateMessage
 
 COMPRESSORS: dict[str, tuple[Callable[[bytes], bytes], Callable[[bytes], bytes]]] = {
     "zlib-1": (lambda b: zlib.compress(b, 1), zlib.decompress),
@@ -170,7 +170,7 @@ def _mean_parts(messages: list[Any], lossy: bool) -> dict[str, float]:
 
 def _stored_parts(messages: list[KeyframeMessage]) -> dict[str, float]:
     """Mean bytes per keyframe of the blobs the session store writes as a keyframe arrives
-    (:mod:`como3r.runtime.store`: colours, encoding, pointmap and confidence, retrieval
+    (:mod:`como3r.store.writer`: colours, encoding, pointmap and confidence, retrieval
     features, the sequential edge's matches), rewrites of later refreshes left out."""
     rows = []
     for message in messages:

@@ -1,6 +1,6 @@
 """Retrieval hits from float16 features against float32 ones (a script, not a test).
 
-Keyframe retrieval features travel in float16 across machines (``runtime/codec.py``). This
+Keyframe retrieval features travel in float16 across machines (``transport/codec.py``). This
 runs the simulated front-end over every frame of both agents of a folder, then feeds the
 keyframes in time order to two coordinator retrieval databases (binary ASMK,
 ``coordination.association.CrossAgentRetrieval``), one with the features as made, one with

@@ -8,7 +8,7 @@ Prints two tables of CPU milliseconds (``time.process_time``, one thread, median
    confidence and int64 match indices): its byte planes compressed and decompressed with
    Zstandard at level 1 with the content checksum (the store's, format version 3) and
    with zlib at level 1 (format version 2), with the compressed size over the raw; and
-   the store's whole :func:`~como3r.runtime.store_blobs.pack_arrays` / ``unpack_arrays``;
+   the store's whole :func:`~como3r.store.blobs.pack_arrays` / ``unpack_arrays``;
 2. the distinct voxels of a cloud and each point's voxel
    (:func:`como3r.evaluation.reconstruction.unique_rows`, one int64 key per cell) against
    ``np.unique(axis=0)``, for a 640x480 ground-truth frame at stride 4 and for 10^6 points.
@@ -28,8 +28,8 @@ import numpy as np
 import torch
 
 from como3r.evaluation.reconstruction import unique_rows
-from como3r.runtime.codec import byte_planes, zstd
-from como3r.runtime.store_blobs import ZSTD_OPTIONS, pack_arrays, unpack_arrays
+from como3r.store.blobs import ZSTD_OPTIONS, pack_arrays, unpack_arrays
+from como3r.transport.codec_arrays import byte_planes, zstd
 
 HEIGHT, WIDTH = 384, 512
 

@@ -24,8 +24,8 @@ from como3r.cli import app
 from como3r.config import Config, apply_overrides, load_config, validate
 from como3r.data.synth import synthesize
 from como3r.errors import ConfigError, StoreError
-from como3r.runtime.store import STORE_NAME
-from como3r.runtime.store_reader import read_session
+from como3r.store.reader import read_session
+from como3r.store.schema import STORE_NAME
 
 
 @pytest.fixture(scope="module")

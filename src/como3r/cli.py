@@ -430,7 +430,7 @@ def run(
     from como3r.prior.mast3r.precision import PRECISIONS, check_precision
     from como3r.runtime.pipeline import PRIORS, PriorSpec, resolve_weights
     from como3r.runtime.pipeline import run as run_pipeline
-    from como3r.runtime.store_reader import resumable
+    from como3r.store.reader import resumable
 
     # every option is checked before any work starts (and before a progress bar shows)
     _check_device(device)
@@ -530,8 +530,8 @@ def run(
 def _check_resumable(out: Path, config) -> None:
     """The killed run in ``out.partial`` has a session store made with ``config``."""
     from como3r.config import differing_key
-    from como3r.runtime.store import STORE_NAME
-    from como3r.runtime.store_reader import read_config
+    from como3r.store.reader import read_config
+    from como3r.store.schema import STORE_NAME
 
     store = out.with_name(out.name + ".partial") / STORE_NAME
     difference = differing_key(read_config(store), config)

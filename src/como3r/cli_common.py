@@ -160,7 +160,7 @@ def _kept_on_full_disk(exc: BaseException, kwargs: dict[str, Any]) -> str:
 
     if kwargs.get("out") is None or not is_disk_full(exc):
         return ""
-    from como3r.runtime.store import STORE_NAME
+    from como3r.store.schema import STORE_NAME
 
     staging = staging_dir(kwargs["out"])
     if not (staging / STORE_NAME).is_file():
@@ -176,7 +176,7 @@ def _store_kept_or_nothing(kwargs: dict[str, Any]) -> str:
     """What an interrupted ``run`` or ``coordinator`` left: its session store in
     ``OUT.partial`` and the exact command that continues it, or nothing."""
     from como3r.io.output import command_line, staging_dir
-    from como3r.runtime.store import STORE_NAME
+    from como3r.store.schema import STORE_NAME
 
     staging = staging_dir(kwargs["out"])
     if not (staging / STORE_NAME).is_file():

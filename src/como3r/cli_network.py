@@ -1,5 +1,5 @@
 """``como3r coordinator``, ``como3r agent`` and ``como3r robot``: runs across machines over
-Zenoh (:mod:`como3r.runtime.network`, :mod:`como3r.runtime.robot_node`; README, "Across
+Zenoh (:mod:`como3r.runtime.network`, :mod:`como3r.decentralized.robot_node`; README, "Across
 machines")."""
 
 from __future__ import annotations
@@ -132,9 +132,9 @@ def _network(
     """The Zenoh options of a networked command: a team member's (``team``: its folder,
     checked to hold a certificate of ``role`` and ``member_id``; ``peers`` agents or robots)
     or, with one warning line, an open network's."""
-    from como3r.runtime.team import check_role, load_member
-    from como3r.runtime.team_access import network_options
-    from como3r.runtime.transport_zenoh import ZenohOptions
+    from como3r.transport.team import check_role, load_member
+    from como3r.transport.team_access import network_options
+    from como3r.transport.zenoh_protocol import ZenohOptions
 
     if zenoh_config is not None and not zenoh_config.is_file():
         raise InputError(f"--zenoh-config {zenoh_config}: no such file")
@@ -276,9 +276,9 @@ def coordinator(
 
     from como3r.cli import _check_resumable, _load_config, _print_summary
     from como3r.io.output import check_output_dir
+    from como3r.runtime.agent_events import RuntimeOptions
     from como3r.runtime.network import serve
-    from como3r.runtime.processes import RuntimeOptions
-    from como3r.runtime.store_reader import resumable
+    from como3r.store.reader import resumable
 
     network = _network(
         listen, connect, scouting, zenoh_config, session, team, "coordinator", peers=agents
@@ -413,7 +413,7 @@ def robot(
     robot's output folder."""
     from como3r.cli import _load_config, _print_summary
     from como3r.decentralized.protocol import read_schedule
-    from como3r.runtime.robot_node import run_robot
+    from como3r.decentralized.robot_node import run_robot
 
     if robots > 1 and not (listen or connect or scouting):
         raise InputError(

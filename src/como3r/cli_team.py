@@ -1,5 +1,5 @@
 """``como3r team``: a team's certificate authority and its members' folders
-(:mod:`como3r.runtime.team`; README, "Across machines")."""
+(:mod:`como3r.transport.team`; README, "Across machines")."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ TeamArgument = typer.Argument(
 @user_errors
 def init(team: Path = TeamArgument) -> None:
     """Make a team: a certificate authority in the new folder TEAM."""
-    from como3r.runtime.team import init_team
+    from como3r.transport.team import init_team
 
     init_team(team)
     console.print(
@@ -65,7 +65,7 @@ def add(
 
     Its key, its certificate (role and id), the authority's certificate and the revocation
     list, readable by their owner only; copy the folder to the member's machine."""
-    from como3r.runtime.team import add_member, load_member
+    from como3r.transport.team import add_member, load_member
 
     folder = add_member(team, name, role, member_id, valid_days)
     member = load_member(folder)
@@ -88,7 +88,7 @@ def revoke(
     """Revoke member NAME: its role and id get no rights in the team any more.
 
     The member folders under TEAM get the new revoked.txt; copy it to their machines."""
-    from como3r.runtime.team import revoke_member
+    from como3r.transport.team import revoke_member
 
     updated = revoke_member(team, name)
     console.print(
@@ -103,7 +103,7 @@ def revoke(
 @user_errors
 def list_members(team: Path = TeamArgument) -> None:
     """The team's members: role, id, certificate name, validity, revoked or not."""
-    from como3r.runtime.team import roster
+    from como3r.transport.team import roster
 
     data = roster(team)
     rows = [

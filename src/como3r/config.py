@@ -84,7 +84,7 @@ class SessionConfig:
     whole in memory (a count). The others' encodings, images and pointmaps, and the matches
     of the sequential edges between them, are paged out to the session store after every
     message and read back while a verification or a solve needs them
-    (:mod:`como3r.runtime.store_paging`), so the coordinator's memory does not grow with
+    (:mod:`como3r.store.paging`), so the coordinator's memory does not grow with
     the sequence. Each agent's front-end keeps as many of its own keyframes whole and pages
     the others, and the matches of the edges between them, out to a private spill folder
     after every frame (:class:`como3r.frontend.paging.AgentPaging`). The results are the

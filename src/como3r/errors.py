@@ -43,3 +43,7 @@ class SolverError(Como3rError):
 class StoreError(Como3rError):
     """A session store that cannot be read: not a store, corrupted, inconsistent, or written
     in a format version this como3r does not read."""
+
+
+class MessageError(Como3rError):
+    """A message that cannot be encoded, or bytes that are not a valid message."""

@@ -8,7 +8,7 @@ reaches into SLAM state, only into these events.
 
 * :class:`FrameEvent` -- after every frame of an agent: its pose, intrinsics, a
   downsampled image and its tracking state. In the multi-process runtime the agent process
-  builds it and sends it as a message (registered in :mod:`como3r.runtime.messages`); the
+  builds it and sends it as a message (registered in :mod:`como3r.transport.messages`); the
   coordinator's process passes it on unchanged.
 * :class:`KeyframeEvent` -- when the coordinator takes a keyframe (and again when the
   keyframe's fused pointmap is refreshed, and at the end with its refined one): its pose and

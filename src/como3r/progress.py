@@ -10,7 +10,7 @@ A run reports two kinds of event through one optional callback (no globals):
 
 Both are small frozen dataclasses built from plain values, so the multi-process runtime
 emits them in the coordinator's process from the agents' typed messages
-(:class:`~como3r.runtime.messages.FrameDone`), exactly as the single-process runner does
+(:class:`~como3r.transport.messages.FrameDone`), exactly as the single-process runner does
 from its front-ends. This module imports nothing of como3r: every layer may emit events.
 """
 

@@ -21,7 +21,7 @@ from como3r.decentralized.protocol import read_schedule, run_protocol
 from como3r.decentralized.runner import open_robot
 from como3r.io.tum import read_tum
 from como3r.runtime.pipeline import PriorSpec
-from como3r.runtime.team import add_member, init_team
+from como3r.transport.team import add_member, init_team
 
 pytest.importorskip("zenoh")
 

@@ -31,8 +31,8 @@ from como3r.decentralized.protocol import (
 )
 from como3r.decentralized.robot import PeerLeft, RoundPlan
 from como3r.errors import ConfigError, InputError
-from como3r.runtime import codec
 from como3r.runtime.pipeline import PriorSpec
+from como3r.transport import codec
 
 MISSION_END_S = 2.0  # the scene's 60 frames at 30 Hz end at 1.97 s
 

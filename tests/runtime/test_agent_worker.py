@@ -11,11 +11,12 @@ import pytest
 from como3r.config import Config, apply_overrides
 from como3r.data.synth import synthesize
 from como3r.prior.mast3r.testing import tiny_network, write_checkpoint
+from como3r.runtime.agent_events import RuntimeOptions
 from como3r.runtime.agent_worker import AgentWorker, prior_fields, prior_spec
-from como3r.runtime.codec import decode, encode
-from como3r.runtime.messages import AgentTask
 from como3r.runtime.pipeline import PriorSpec
-from como3r.runtime.processes import RuntimeOptions, _Runtime
+from como3r.runtime.processes import _Runtime
+from como3r.transport.codec import decode, encode
+from como3r.transport.messages import AgentTask
 
 
 class _TaskRecorder:

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from como3r.data.synth import synthesize
-from como3r.runtime.transport_zenoh import PIECE, SEQ, Pieces
+from como3r.transport.zenoh_protocol import PIECE, SEQ, Pieces
 
 pytest.importorskip("zenoh")
 

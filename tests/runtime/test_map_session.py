@@ -13,8 +13,8 @@ import torch
 from typer.testing import CliRunner
 
 from como3r.cli import app
-from como3r.runtime.store import STORE_NAME
-from como3r.runtime.store_reader import read_session
+from como3r.store.reader import read_session
+from como3r.store.schema import STORE_NAME
 
 RUN = ["--prior", "simulated", "--set", "input.long_side=64", "-q"]
 

@@ -18,9 +18,9 @@ import pytest
 from typer.testing import CliRunner
 
 from como3r.cli import app
-from como3r.runtime import codec
-from como3r.runtime.messages import AgentStarted
-from como3r.runtime.transport_zenoh import Keys, ZenohOptions, open_session
+from como3r.transport import codec
+from como3r.transport.messages import AgentStarted
+from como3r.transport.zenoh_protocol import Keys, ZenohOptions, open_session
 
 zenoh = pytest.importorskip("zenoh")
 

@@ -27,12 +27,12 @@ from como3r.io.tum import read_tum
 from como3r.live import FrameEvent
 from como3r.prior.simulated import SimulatedPrior
 from como3r.progress import AgentProgress, PhaseEvent, ProgressEvent
-from como3r.runtime.messages import FrameDone, Step
+from como3r.runtime.agent_events import RuntimeOptions
 from como3r.runtime.multiprocess import run_multiprocess
 from como3r.runtime.pipeline import PriorSpec, RunSummary, run
-from como3r.runtime.processes import RuntimeOptions
 from como3r.runtime.results import AgentResult, KeyframeView
-from como3r.runtime.transport import Channel
+from como3r.transport.messages import FrameDone, Step
+from como3r.transport.pipes import Channel
 
 WIDTH, HEIGHT, FRAMES, SHORT = 64, 48, 12, 8
 # small global solves keep the test fast; they do not change what is compared
@@ -508,8 +508,8 @@ def _pump(hub: _ScriptedHub, runtime, *events) -> None:
 
 
 def test_an_agent_whose_link_is_lost_is_away_then_back_or_failed() -> None:
-    from como3r.runtime.messages import AgentStarted, PoseUpdateMessage
-    from como3r.runtime.transport import Joined, Left, Received
+    from como3r.transport.links import Joined, Left, Received
+    from como3r.transport.messages import AgentStarted, PoseUpdateMessage
 
     states: list = []
     hub, runtime = _scripted_runtime(0.3, states)
@@ -545,7 +545,7 @@ def test_an_agent_whose_link_is_lost_is_away_then_back_or_failed() -> None:
 
 
 def test_a_process_ending_fails_its_agent_at_once() -> None:
-    from como3r.runtime.transport import Left
+    from como3r.transport.links import Left
 
     hub, runtime = _scripted_runtime(120.0, [])
     _pump(hub, runtime, Left(1, "process died (exit code 1)"))  # pipes: it cannot return
@@ -554,7 +554,7 @@ def test_a_process_ending_fails_its_agent_at_once() -> None:
 
 def test_a_new_process_taking_over_an_id_starts_a_map_segment_after_the_last_frame() -> None:
     from como3r.runtime.results import KeyframeView
-    from como3r.runtime.transport import Left
+    from como3r.transport.links import Left
 
     hub, runtime = _scripted_runtime(120.0, [])
     slot = runtime.slots[1]

@@ -1,4 +1,4 @@
-"""``como3r run --resume`` (runtime/store_resume.py; issue 14 item 2 for como3r run).
+"""``como3r run --resume`` (store/resume.py; issue 14 item 2 for como3r run).
 
 A run killed with SIGKILL once its session store holds some keyframes, or interrupted by
 Ctrl-C (once or twice) or SIGTERM (runtime/interrupts.py), then run again with ``--resume``,
@@ -24,8 +24,8 @@ from typer.testing import CliRunner
 
 from como3r.cli import app
 from como3r.errors import StoreError
-from como3r.runtime.store import FORMAT_VERSION, STORE_NAME
-from como3r.runtime.store_reader import read_session
+from como3r.store.reader import read_session
+from como3r.store.schema import FORMAT_VERSION, STORE_NAME
 
 RUN = ["--prior", "simulated", "--set", "input.long_side=64", "-q"]
 
@@ -259,7 +259,7 @@ def test_a_full_disk_keeps_the_store_and_resumes_to_the_uninterrupted_result(
     """SQLite's own "database or disk is full" (the store may not grow past its size at the
     run's half: ``max_page_count``) ends a run as an interrupt does, with one error line
     naming the command that continues it once space is freed."""
-    from como3r.runtime.store import SessionStore
+    from como3r.store.writer import SessionStore
 
     runtime, reference = uninterrupted
     out, total = tmp_path / "run", reference["coordinator"]["keyframes"]

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 
 from como3r.errors import StoreError
-from como3r.runtime.store import STORE_NAME
-from como3r.runtime.store_reader import read_session
+from como3r.store.reader import read_session
+from como3r.store.schema import STORE_NAME
 
 zenoh = pytest.importorskip("zenoh")
 

@@ -1,4 +1,4 @@
-"""The session store (runtime/store.py, store_reader.py, store_blobs.py; issue 14 item 1).
+"""The session store (store/writer.py, tables.py, schema.py, reader.py, blobs.py; issue 14 item 1).
 
 A run keeps its coordinator's state in ``session.db`` and reading it back gives the run's
 keyframes, poses, pointmaps and edges; a writer killed with SIGKILL at random moments leaves a
@@ -36,9 +36,10 @@ from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.io.tum import read_tum
 from como3r.prior.mast3r.prior import MASt3REncoding
-from como3r.runtime.store import FORMAT_VERSION, PAGE_SIZE, STORE_NAME, SessionStore
-from como3r.runtime.store_blobs import pack_arrays, unpack_arrays
-from como3r.runtime.store_reader import Session, read_session
+from como3r.store.blobs import pack_arrays, unpack_arrays
+from como3r.store.reader import Session, read_session
+from como3r.store.schema import FORMAT_VERSION, PAGE_SIZE, STORE_NAME
+from como3r.store.writer import SessionStore
 
 AGENTS = 3
 HEIGHT, WIDTH = 48, 64  # the scripted session's keyframes

@@ -1,4 +1,4 @@
-"""Keyframes outside the working set paged out to the session store (runtime/store_paging.py;
+"""Keyframes outside the working set paged out to the session store (store/paging.py;
 issue 14 item 4): what is paged out is let go of (nothing keeps it alive), reads back exactly
 as written, changes made to it are stored; a run that pages everything out has the outputs of
 one that pages nothing."""
@@ -25,9 +25,10 @@ from como3r.frontend.packets import KeyframePacket
 from como3r.frontend.paging import PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches
 from como3r.prior.mast3r.prior import MASt3REncoding
-from como3r.runtime.store import STORE_NAME, SessionStore
-from como3r.runtime.store_paging import PagedLink, StoredVerification, working_set
-from como3r.runtime.store_reader import read_session
+from como3r.store.paging import PagedLink, StoredVerification, working_set
+from como3r.store.reader import read_session
+from como3r.store.schema import STORE_NAME
+from como3r.store.writer import SessionStore
 
 H, W = 6, 8
 

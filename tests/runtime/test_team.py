@@ -1,4 +1,4 @@
-"""A team that admits only the team (runtime/team.py, team_access.py, ``como3r team``,
+"""A team that admits only the team (transport/team.py, team_access.py, ``como3r team``,
 ``--team``): the authority and member folders, then on loopback TLS: members are admitted;
 a peer without a certificate, with another team's, with an expired or a revoked one changes
 nothing; a valid member writing under another member's id changes nothing and is logged; a
@@ -26,15 +26,16 @@ from como3r.cli_network import OPEN_NETWORK
 from como3r.config import Config, config_to_dict
 from como3r.decentralized.messages import EncodingRequest, RobotHello
 from como3r.decentralized.protocol import Schedule
+from como3r.decentralized.zenoh_robot import RobotKeys, ZenohRobotLink
 from como3r.errors import InputError
-from como3r.runtime import codec
-from como3r.runtime import team as teams
-from como3r.runtime import team_access as access
-from como3r.runtime.messages import AgentStarted, AgentTask
-from como3r.runtime.transport import Received, Rejected
-from como3r.runtime.transport_zenoh import Keys, ZenohHub, ZenohOptions, open_session
-from como3r.runtime.zenoh_agent import ZenohAgentLink
-from como3r.runtime.zenoh_robot import RobotKeys, ZenohRobotLink
+from como3r.transport import codec
+from como3r.transport import team as teams
+from como3r.transport import team_access as access
+from como3r.transport.links import Received, Rejected
+from como3r.transport.messages import AgentStarted, AgentTask
+from como3r.transport.zenoh_agent import ZenohAgentLink
+from como3r.transport.zenoh_hub import ZenohHub
+from como3r.transport.zenoh_protocol import Keys, ZenohOptions, open_session
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -228,7 +229,7 @@ def test_members_are_admitted_and_a_member_writing_under_another_id_changes_noth
     hub = _Hub(crew)
     sessions = []
     try:
-        with caplog.at_level(logging.INFO, logger="como3r.runtime.team_access"):
+        with caplog.at_level(logging.INFO, logger="como3r.transport.team_access"):
             member, session = hub.join(crew / "cam0")
             sessions.append(session)
             link = ZenohAgentLink(session, Keys(hub.name, member.name), 0)
@@ -293,7 +294,7 @@ def test_peers_without_a_valid_certificate_change_nothing(crew, strangers, tmp_p
                 )
             )
         )
-        with caplog.at_level(logging.WARNING, logger="como3r.runtime.team_access"):
+        with caplog.at_level(logging.WARNING, logger="como3r.transport.team_access"):
             for folder, check in [
                 (strangers / "cam0", True),
                 (crew / "late", False),

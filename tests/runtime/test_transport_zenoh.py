@@ -17,11 +17,12 @@ import uuid
 import pytest
 
 from como3r.config import Config, config_to_dict
-from como3r.runtime import codec
-from como3r.runtime.messages import AgentStarted, AgentTask, Shutdown, Step
-from como3r.runtime.transport import Joined, Left, Received, Rejected
-from como3r.runtime.transport_zenoh import Keys, ZenohHub, ZenohOptions, open_session
-from como3r.runtime.zenoh_agent import ZenohAgentLink
+from como3r.transport import codec
+from como3r.transport.links import Joined, Left, Received, Rejected
+from como3r.transport.messages import AgentStarted, AgentTask, Shutdown, Step
+from como3r.transport.zenoh_agent import ZenohAgentLink
+from como3r.transport.zenoh_hub import ZenohHub
+from como3r.transport.zenoh_protocol import Keys, ZenohOptions, open_session
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -208,7 +209,7 @@ def test_where_names_scouting_and_the_configuration_file(tmp_path) -> None:
         ),
         (
             ["robot", "{tmp}", "--id", "0", "--robots", "2", "--connect", "tcp/10.0.0.2:7447"],
-            "como3r.runtime.robot_node",
+            "como3r.decentralized.robot_node",
             "run_robot",
             "robot 0: waiting for the team of 2 robot(s) (session 'lab', connecting to "
             "tcp/10.0.0.2:7447)",

@@ -308,7 +308,7 @@ class Candidate:
 
 class Journal(Protocol):
     """Where the coordinator's durable state goes as it changes: the session store
-    (:class:`como3r.runtime.store.SessionStore`)."""
+    (:class:`como3r.store.writer.SessionStore`)."""
 
     def record(
         self, coordinator: Coordinator, updates: Sequence[PoseUpdate], finished: bool = False
@@ -479,7 +479,7 @@ class Coordinator:
         gauge_events: list[dict[str, Any]],
         backlog: tuple[int, list[int]],
     ) -> None:
-        """Continue from a stored state (:meth:`como3r.runtime.store.SessionStore.open`):
+        """Continue from a stored state (:meth:`como3r.store.writer.SessionStore.open`):
         the graph, gauge components, candidates (the pending ones wait again), counters,
         gauge events and the BA backlog. The caller rebuilds the retrieval database."""
         self.graph, self.gauges, self.candidates = graph, gauges, candidates

@@ -1,7 +1,7 @@
 """The messages robots exchange in the decentralized mode (F-Sec. III, F-Fig. 1).
 
 Robots share nothing but these frozen dataclasses, encoded without pickle by
-:mod:`como3r.runtime.codec` (msgpack with raw array bytes, size-capped and validated on
+:mod:`como3r.transport.codec` (msgpack with raw array bytes, size-capped and validated on
 decode). Every robot-to-robot message names its ``sender``, ``recipient``, the exchange
 ``round`` and the mission time ``time_s`` of that round, which the router checks against
 the rendezvous schedule: a message between robots that are not both in range is dropped.
@@ -35,8 +35,8 @@ import numpy as np
 
 from como3r.decentralized.pose_graph import LoopClosure
 from como3r.prior.base import Encoding
-from como3r.runtime import codec
-from como3r.runtime.codec import require, require_shape
+from como3r.transport import codec
+from como3r.transport.codec_types import require, require_shape
 
 #: ``recipient`` of messages to the driver (the process that runs the simulation).
 DRIVER = -1

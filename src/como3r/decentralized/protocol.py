@@ -53,7 +53,7 @@ from como3r.decentralized.place_recognition import PlaceRecognizer
 from como3r.decentralized.robot import PHASES, Robot, RoundPlan
 from como3r.errors import Como3rError, ConfigError, InputError
 from como3r.prior.base import Prior
-from como3r.runtime import codec
+from como3r.transport import codec
 
 logger = logging.getLogger(__name__)
 
@@ -611,7 +611,7 @@ def _run_processes(
             args=(robot, to_robot_r, from_robot_w),
             daemon=True,
         )
-        from como3r.runtime.child_signals import children_ignore_sigint
+        from como3r.transport.child_signals import children_ignore_sigint
 
         with children_ignore_sigint():  # Ctrl-C is the driver's to handle
             process.start()

@@ -10,7 +10,7 @@ the first time something needs them and kept until the next eviction; its light 
 :class:`PagedMatches` does the same for an edge's matches.
 
 Two processes page this way: the coordinator reads back from its session store
-(:mod:`como3r.runtime.store_paging`), an agent's front-end from its own
+(:mod:`como3r.store.paging`), an agent's front-end from its own
 :class:`KeyframeSpill`, a private folder it writes what it evicts to (:class:`AgentPaging`).
 """
 

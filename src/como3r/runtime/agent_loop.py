@@ -20,9 +20,9 @@ from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.packets import KeyframePacket
 from como3r.live import FrameEvent
 from como3r.runtime.live import frame_event
-from como3r.runtime.messages import AgentFinished
 from como3r.runtime.prefetch import PreparedFrame
 from como3r.runtime.results import final_report
+from como3r.transport.messages import AgentFinished
 
 
 def _malloc_trim() -> Callable[[int], int] | None:

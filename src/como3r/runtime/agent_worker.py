@@ -5,7 +5,7 @@
 (:class:`~como3r.runtime.agent_loop.AgentLoop`, the single-process runtime's too) over its
 frames, sends every new keyframe as it appears and applies the pose updates it receives
 between frames. It talks to the coordinator through an
-:class:`~como3r.runtime.transport.AgentLink` only, so the same loop runs in a process
+:class:`~como3r.transport.links.AgentLink` only, so the same loop runs in a process
 started by ``como3r run`` (pipes, :func:`agent_process_main`) and in ``como3r agent`` on
 another machine (Zenoh, :mod:`como3r.runtime.network`).
 """
@@ -27,12 +27,15 @@ import torch
 from como3r.config import Config, config_from_dict
 from como3r.data.agent import open_agent, quiet_reading
 from como3r.data.preprocess import upsampling
-from como3r.errors import Como3rError
+from como3r.errors import Como3rError, MessageError
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.packets import KeyframePacket
-from como3r.runtime import codec
 from como3r.runtime.agent_loop import AgentLoop
-from como3r.runtime.messages import (
+from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame, run_frames
+from como3r.runtime.prefetch import PreparedFrame, prepared_frames
+from como3r.transport import codec
+from como3r.transport.links import AgentLink
+from como3r.transport.messages import (
     TO_AGENT,
     AgentFailed,
     AgentStarted,
@@ -43,21 +46,19 @@ from como3r.runtime.messages import (
     Shutdown,
     Step,
 )
-from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame, run_frames
-from como3r.runtime.prefetch import PreparedFrame, prepared_frames
-from como3r.runtime.transport import AgentLink, Channel
+from como3r.transport.pipes import Channel
 
 logger = logging.getLogger(__name__)
 
 
 def agent_process_main(agent: int, inbox: Connection, outbox: Connection) -> None:
-    """Entry point of an agent process started by :class:`~.transport.PipeHub`: its task
+    """Entry point of an agent process started by :class:`~como3r.transport.pipes.PipeHub`: its task
     is the first message on its pipe."""
     channel = Channel(inbox, outbox, codec.DEFAULT_MAX_BYTES, TO_AGENT)
     try:
         task = channel.receive()
         if not isinstance(task, AgentTask) or task.agent != agent:
-            raise codec.MessageError(f"agent {agent}: the first message must be its AgentTask")
+            raise MessageError(f"agent {agent}: the first message must be its AgentTask")
     except (EOFError, KeyboardInterrupt):
         channel.close()
         return  # the coordinator is gone or the user interrupted: nothing to report to
@@ -208,13 +209,13 @@ class AgentWorker:
             if message.seq <= self.applied_seq and message.update.agent == self.task.agent:
                 return True  # sent again after a reconnect: applied already
             if message.seq != self.applied_seq + 1 or message.update.agent != self.task.agent:
-                raise codec.MessageError(
+                raise MessageError(
                     f"pose update {message.seq} for agent {message.update.agent} out of sequence"
                 )
             self.frontend.apply_pose_update(message.update)
             self.applied_seq = message.seq
             return True
-        raise codec.MessageError(f"unexpected {type(message).__name__} from the coordinator")
+        raise MessageError(f"unexpected {type(message).__name__} from the coordinator")
 
     def _drain_inbox(self) -> bool:
         """Apply every waiting message without blocking; False on Shutdown."""
@@ -229,7 +230,7 @@ class AgentWorker:
             message = self.channel.receive()
             if isinstance(message, Step):
                 if message.frame_index != index:
-                    raise codec.MessageError(
+                    raise MessageError(
                         f"step for frame {message.frame_index}, expected frame {index}"
                     )
                 return True

@@ -14,7 +14,7 @@ Why a checkpoint and not the signal itself: a ``KeyboardInterrupt`` raised in th
 a global BA or a store transaction leaves nothing wrong on disk (the transaction rolls
 back), but it throws away the keyframe being handled, and SIGTERM's default action would
 end the process without closing anything. Agent processes ignore SIGINT
-(:mod:`.child_signals`) and are stopped by the run.
+(:mod:`como3r.transport.child_signals`) and are stopped by the run.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """A finished run's map as the start of a new run (issue 14: ``como3r run --map OLD``).
 
-A centralized run leaves its whole map in ``OLD/session.db`` (:mod:`.store`): every
+A centralized run leaves its whole map in ``OLD/session.db`` (:mod:`como3r.store.writer`): every
 keyframe with its encoding, pointmaps, pose and retrieval features, the links with their
 matches, the gauge components, and each agent process's final report (its trajectory
 relative to its keyframes). :func:`open_map` reads it; :func:`seed_map` makes it the start
@@ -31,9 +31,9 @@ from como3r.coordination.coordinator import Coordinator, CoordinatorStats
 from como3r.errors import InputError
 from como3r.frontend.agent import FrontendStats
 from como3r.runtime.results import AgentResult, EdgeView, MatchFraction, stored_views
-from como3r.runtime.store import STORE_NAME
-from como3r.runtime.store_reader import Session, read_session
-from como3r.runtime.store_resume import load_state
+from como3r.store.reader import Session, read_session
+from como3r.store.resume import load_state
+from como3r.store.schema import STORE_NAME
 
 logger = logging.getLogger(__name__)
 

@@ -34,7 +34,8 @@ from como3r.runtime import outputs
 from como3r.runtime.map_session import SavedMap, map_results, open_map, seed_map
 from como3r.runtime.pipeline import PriorSpec, RunSummary, build_prior
 from como3r.runtime.results import AgentResult
-from como3r.runtime.store import STORE_NAME, SessionStore
+from como3r.store.schema import STORE_NAME
+from como3r.store.writer import SessionStore
 
 logger = logging.getLogger(__name__)
 

@@ -23,6 +23,7 @@ from como3r.io.output import atomic_output_dir
 from como3r.live import LiveCallback
 from como3r.progress import ProgressCallback
 from como3r.runtime import outputs
+from como3r.runtime.agent_events import RuntimeOptions
 from como3r.runtime.agent_worker import agent_process_main
 from como3r.runtime.interrupts import interrupts_are_checkpoints
 from como3r.runtime.map_session import SavedMap, hold_map, seed_map
@@ -33,13 +34,14 @@ from como3r.runtime.pipeline import (
     run_frames,
     warn_skipped_frames,
 )
-from como3r.runtime.processes import RuntimeOptions, _Runtime
+from como3r.runtime.processes import _Runtime
 from como3r.runtime.results import SegmentedCoordinator, agent_results, left_out
 from como3r.runtime.runtime_state import restore_runtime
-from como3r.runtime.store import STORE_NAME
-from como3r.runtime.store_reader import read_session, resumable
-from como3r.runtime.store_resume import open_store
-from como3r.runtime.transport import Hub, PipeHub
+from como3r.store.reader import read_session, resumable
+from como3r.store.resume import open_store
+from como3r.store.schema import STORE_NAME
+from como3r.transport.links import Hub
+from como3r.transport.pipes import PipeHub
 
 
 def run_multiprocess(
@@ -74,7 +76,7 @@ def run_multiprocess(
             coordinator here. Only this process calls it; agents send frame events only
             when it is given.
         resume: continue the killed run in ``out.partial`` from its session store
-            (:mod:`como3r.runtime.store_resume`; the agents start again from the beginning).
+            (:mod:`como3r.store.resume`; the agents start again from the beginning).
         saved_map: a finished run's map to start from (``--map``, :mod:`.map_session`).
 
     Raises:

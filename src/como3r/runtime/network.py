@@ -2,9 +2,9 @@
 machines").
 
 The coordinator (:func:`serve`) is the loop of :mod:`como3r.runtime.processes` over a
-:class:`~como3r.runtime.transport_zenoh.ZenohHub`; each agent (:func:`run_remote_agent`)
+:class:`~como3r.transport.zenoh_hub.ZenohHub`; each agent (:func:`run_remote_agent`)
 is the frame loop of :mod:`como3r.runtime.agent_worker` over a
-:class:`~como3r.runtime.zenoh_agent.ZenohAgentLink`. The coordinator owns the run's
+:class:`~como3r.transport.zenoh_agent.ZenohAgentLink`. The coordinator owns the run's
 configuration and sends it with every agent's task; an agent brings its input and its prior
 files (its own paths, its own device).
 """
@@ -21,13 +21,14 @@ import torch
 from como3r.config import Config
 from como3r.errors import InputError
 from como3r.progress import ProgressCallback
+from como3r.runtime.agent_events import RuntimeOptions
 from como3r.runtime.agent_worker import prior_fields, run_agent
 from como3r.runtime.multiprocess import coordinate
 from como3r.runtime.pipeline import PriorSpec, RunSummary, open_agents
-from como3r.runtime.processes import RuntimeOptions
-from como3r.runtime.spool import DEFAULT_MEMORY_BYTES, Spool
-from como3r.runtime.transport_zenoh import Keys, ZenohHub, ZenohOptions, open_session
-from como3r.runtime.zenoh_agent import ZenohAgentLink
+from como3r.transport.spool import DEFAULT_MEMORY_BYTES, Spool
+from como3r.transport.zenoh_agent import ZenohAgentLink
+from como3r.transport.zenoh_hub import ZenohHub
+from como3r.transport.zenoh_protocol import Keys, ZenohOptions, open_session
 
 logger = logging.getLogger(__name__)
 

@@ -236,7 +236,7 @@ def bandwidth(
         image_shape: ``(H, W)`` of its images at network resolution (``input.long_side``),
             whose raw RGB bytes (``3 H W``) are the yardstick.
         by_part: mean bytes per keyframe message of each of its parts
-            (:mod:`.keyframe_bytes`), where they were measured.
+            (:mod:`como3r.transport.keyframe_bytes`), where they were measured.
 
     Returns:
         ``metrics.json``'s ``bandwidth`` entry: totals, bytes per keyframe (all, per

@@ -9,7 +9,7 @@ the pose updates it returns to the agents (C-Sec. 3.1, A.8). At the end it sends
 agent's last fused pointmap, runs the coordinator's terminal pose-depth alternation, writes
 the output folder atomically and, where ground truth exists, evaluates the trajectories
 (merged ATE only within gauge components). The coordinator's state is kept in the output
-folder's session store as it changes (:mod:`como3r.runtime.store`). A first Ctrl-C or
+folder's session store as it changes (:mod:`como3r.store.writer`). A first Ctrl-C or
 SIGTERM stops reading recorded inputs after the frame at hand and keeps ``OUT.partial`` for
 ``--resume`` (:mod:`.interrupts`); on live inputs it ends the streams and the outputs are
 written.
@@ -55,9 +55,9 @@ from como3r.runtime.live import CoordinatorLive
 from como3r.runtime.map_session import SavedMap, hold_map, map_results, seed_map
 from como3r.runtime.prefetch import prepared_frames
 from como3r.runtime.results import AgentResult
-from como3r.runtime.store import SessionStore
-from como3r.runtime.store_reader import resumable
-from como3r.runtime.store_resume import open_store
+from como3r.store.reader import resumable
+from como3r.store.resume import open_store
+from como3r.store.writer import SessionStore
 
 logger = logging.getLogger(__name__)
 
@@ -292,7 +292,7 @@ def run(
         live: called with the live events of :mod:`como3r.live` (a viewer); they are only
             built when it is given.
         resume: continue the killed run in ``out.partial`` from its session store
-            (:mod:`como3r.runtime.store_resume`; the agents start again from the beginning).
+            (:mod:`como3r.store.resume`; the agents start again from the beginning).
         saved_map: a finished run's map to start from (``--map``, :mod:`.map_session`): its
             agents keep their ids, the new ones are numbered after them, the outputs hold
             them all; without ground truth for the saved agents, nothing is evaluated.

@@ -32,14 +32,14 @@ from como3r.frontend.keyframes import Keyframe, apply_pose_update
 from como3r.frontend.packets import PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.frontend.paging import read_fields
 from como3r.geometry.lie import sim3_compose
-from como3r.runtime.messages import AgentFinished, EdgeSummary
+from como3r.transport.messages import AgentFinished, EdgeSummary
 
 
 @dataclass
 class KeyframeView:
     """What the outputs need of a keyframe, its pose the agent's and the rest read from
     the coordinator's graph, which holds (or pages in) the pointmaps: a view keeps no large
-    array, so the coordinator's memory stays bounded (:mod:`.store_paging`).
+    array, so the coordinator's memory stays bounded (:mod:`como3r.store.paging`).
 
     The graph gets every change a view is told of before or as the view does (a refreshed
     pointmap, a focal length, a refined pointmap), so a view only reads them: writing one

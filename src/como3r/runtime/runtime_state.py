@@ -2,13 +2,13 @@
 up again (issue 14: ``como3r coordinator --resume``).
 
 The coordinator's state (keyframes, poses, edges, gauges, pose updates made per agent) is
-in the store after every message (:mod:`.store`). What the runtime of
+in the store after every message (:mod:`como3r.store.writer`). What the runtime of
 :mod:`.processes` knows beside it goes there too, before every acknowledgement
-(:meth:`~como3r.runtime.store.SessionStore.record_runtime`): per agent its status, progress
+(:meth:`~como3r.store.writer.SessionStore.record_runtime`): per agent its status, progress
 counters and the number of the last message it handled; per map segment its agent and what
 its process confirmed having applied; each agent process's final report
-(:class:`~como3r.runtime.messages.AgentFinished`); and the transport's state (who holds each
-agent id, the stream position acknowledged: :meth:`~como3r.runtime.transport.Hub.durable`).
+(:class:`~como3r.transport.messages.AgentFinished`); and the transport's state (who holds each
+agent id, the stream position acknowledged: :meth:`~como3r.transport.links.Hub.durable`).
 
 A coordinator killed at any moment and started again with ``--resume`` rebuilds from the
 store (:func:`restore_runtime`): the segments' keyframes from the stored graph, the agents'
@@ -27,16 +27,30 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from como3r.errors import StoreError
-from como3r.runtime.results import AgentResult, MapSegment, stored_views
-from como3r.runtime.store_reader import Session
+from como3r.runtime.results import AgentResult, AgentSlot, MapSegment, stored_views
+from como3r.store.reader import Session
 
 if TYPE_CHECKING:
-    from como3r.runtime.processes import _Runtime
+    from como3r.coordination.coordinator import Coordinator
+    from como3r.transport.links import Hub
 
 logger = logging.getLogger(__name__)
+
+
+class StatefulRuntime(Protocol):
+    """What this module reads and restores of the multi-process runtime
+    (:class:`~como3r.runtime.processes._Runtime`, which imports this module: it is named
+    here by what it holds, not imported)."""
+
+    slots: list[AgentSlot]
+    segments: list[MapSegment]
+    hub: Hub
+    coordinator: Coordinator
+    cleaned_up: bool
+
 
 #: the counters of an agent slot kept as they are
 SLOT_FIELDS = (
@@ -58,12 +72,12 @@ SLOT_FIELDS = (
 SEGMENT_FIELDS = ("index", "agent", "after_frame", "confirmed_seq", "reanchored")
 
 
-def snapshot(runtime: _Runtime, hub: dict[str, Any]) -> dict[str, Any]:
+def snapshot(runtime: StatefulRuntime, hub: dict[str, Any]) -> dict[str, Any]:
     """The runtime's state beside the coordinator's (JSON-able).
 
     Args:
         runtime: the multi-process runtime.
-        hub: its transport's state (:meth:`~como3r.runtime.transport.Hub.durable`).
+        hub: its transport's state (:meth:`~como3r.transport.links.Hub.durable`).
     """
     return {
         "slots": [
@@ -82,7 +96,7 @@ def snapshot(runtime: _Runtime, hub: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def restore_runtime(runtime: _Runtime, session: Session) -> None:
+def restore_runtime(runtime: StatefulRuntime, session: Session) -> None:
     """Take up the stored runtime state in a new runtime whose coordinator has restored
     ``session`` already (before the runtime starts its transport).
 
@@ -131,7 +145,7 @@ def restore_runtime(runtime: _Runtime, session: Session) -> None:
     )
 
 
-def _segment(saved: dict[str, Any], runtime: _Runtime, session: Session) -> MapSegment:
+def _segment(saved: dict[str, Any], runtime: StatefulRuntime, session: Session) -> MapSegment:
     """A map segment with its keyframes as the store holds them and its pose updates."""
     index = saved["index"]
     report = session.reports.get(index)

@@ -12,7 +12,7 @@ import torch
 from como3r.errors import CheckpointError, PriorError
 from como3r.prior.base import Encoding, PairPrediction, View
 from como3r.prior.mast3r import MASt3REncoding, MASt3RPrior, load_mast3r
-from como3r.runtime import codec
+from como3r.transport import codec
 
 
 def image(height: int, width: int, seed: int) -> torch.Tensor:

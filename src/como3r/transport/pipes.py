@@ -1,21 +1,10 @@
-"""How agents and the coordinator reach each other (C-Sec. B.1; DESIGN.md, "One frame loop,
-one transport").
+"""The transport on one machine: two one-way pipes per agent process (``como3r run``).
 
-Both ends exchange the typed messages of :mod:`como3r.runtime.messages`, encoded by
-:mod:`como3r.runtime.codec` (no pickle). What carries them is a transport with two faces:
-
-* an agent holds an :class:`AgentLink` (``send``, ``poll``, ``receive``, ``close``): sends
-  never block its frame loop, and ``close`` returns only once the coordinator has every
-  message the agent sent (or is gone for good), so a slow coordinator never costs a message;
-* the coordinator holds a :class:`Hub` over all agents: :meth:`Hub.events` hands over what
-  arrived as :class:`Received`, :class:`Rejected`, :class:`Joined` and :class:`Left`
-  events, in arrival order per agent, and :meth:`Hub.acknowledge` says which of them are
-  stored (the runtime may still hold some back: keyframes waiting for their turn).
-
-Two transports implement it: pipes to child processes (:class:`PipeHub`, :class:`Channel`;
-``como3r run``) and Zenoh across machines (:mod:`como3r.runtime.transport_zenoh`;
-``como3r coordinator`` / ``como3r agent``). The runtime above them
-(:mod:`como3r.runtime.processes`, :mod:`como3r.runtime.agent_worker`) is the same.
+:class:`PipeHub` is the coordinator's :class:`~como3r.transport.links.Hub`: it starts one
+process per agent and talks to it over a :class:`Channel`, the agent's
+:class:`~como3r.transport.links.AgentLink`. Only raw bytes of
+:mod:`como3r.transport.codec` cross the pipes (``Connection.send_bytes``, never ``send``,
+which pickles).
 """
 
 from __future__ import annotations
@@ -25,157 +14,17 @@ import multiprocessing
 import queue
 import threading
 import time
-from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
 from multiprocessing.connection import Connection, wait
-from typing import Any, Protocol
+from typing import Any
 
-from como3r.runtime import codec
-from como3r.runtime.child_signals import children_ignore_sigint
-from como3r.runtime.messages import FROM_AGENT, AgentTask, Shutdown
+from como3r.errors import MessageError
+from como3r.transport import codec
+from como3r.transport.child_signals import children_ignore_sigint
+from como3r.transport.links import Event, Left, Received, Rejected, Rejoin, Traffic
+from como3r.transport.messages import FROM_AGENT, AgentTask, Shutdown
 
 logger = logging.getLogger(__name__)
-
-
-# ------------------------------------------------------------------------------ events
-
-
-@dataclass(frozen=True)
-class Received:
-    """A valid message from ``agent``; ``seq`` is its number in the sending process's
-    stream where the transport numbers messages (None: pipes, which lose nothing)."""
-
-    agent: int
-    message: Any
-    seq: int | None = None
-
-
-@dataclass(frozen=True)
-class Rejected:
-    """Bytes claiming to come from ``agent`` that are not an acceptable message: logged and
-    dropped, never fatal to the coordinator."""
-
-    agent: int
-    error: str
-
-
-@dataclass(frozen=True)
-class Joined:
-    """``agent`` is reachable (its process started, or its liveliness token appeared)."""
-
-    agent: int
-
-
-@dataclass(frozen=True)
-class Left:
-    """``agent`` is gone: its process ended or its link was lost (``reason`` says which).
-
-    ``may_return``: the link was lost, not the process seen ending (a network transport
-    cannot tell a crash from a radio gap): the agent may reconnect, or a new process may
-    take over its id (see :data:`Rejoin`)."""
-
-    agent: int
-    reason: str
-    may_return: bool = False
-
-
-Event = Received | Rejected | Joined | Left
-
-Rejoin = Callable[[int], AgentTask | str]
-"""Asked by a hub when a new process wants agent ``a``'s id after the one that held it left:
-the task the newcomer runs, or why it cannot take over (a reason it is told)."""
-
-
-@dataclass
-class Traffic:
-    """Bytes and messages per message type, both directions, as seen by one end."""
-
-    bytes_sent: Counter[str] = field(default_factory=Counter)
-    bytes_received: Counter[str] = field(default_factory=Counter)
-    messages_sent: Counter[str] = field(default_factory=Counter)
-    messages_received: Counter[str] = field(default_factory=Counter)
-
-    def sent(self, message: Any, nbytes: int) -> None:
-        """Count one message sent."""
-        self.bytes_sent[type(message).__name__] += nbytes
-        self.messages_sent[type(message).__name__] += 1
-
-    def received(self, message: Any, nbytes: int) -> None:
-        """Count one message received."""
-        self.bytes_received[type(message).__name__] += nbytes
-        self.messages_received[type(message).__name__] += 1
-
-
-class AgentLink(Protocol):
-    """An agent's end of the transport."""
-
-    traffic: Traffic
-
-    def send(self, message: Any) -> None:
-        """Encode and queue ``message`` for the coordinator; never blocks on the network."""
-
-    def poll(self, timeout: float = 0.0) -> bool:
-        """Whether a message from the coordinator waits (or the link ended)."""
-
-    def receive(self) -> Any:
-        """The next message from the coordinator (blocking).
-
-        Raises:
-            EOFError: the coordinator closed the link for good.
-            codec.MessageError: bytes that are not an acceptable message.
-        """
-
-    def close(self) -> None:
-        """Return once the coordinator holds every message sent (or is gone), then close."""
-
-
-class Hub(Protocol):
-    """The coordinator's end of the transport, over agents ``0 .. N-1``."""
-
-    name: str
-    """What carries the messages (``metrics.json``: ``runtime.transport``)."""
-
-    def start(self, tasks: Sequence[AgentTask], rejoin: Rejoin) -> None:
-        """Make each agent's task available to it (pipes: start its process and send it);
-        ``rejoin`` decides on a process taking over the id of an agent that left (only
-        transports whose agents start on their own ask it)."""
-
-    def events(self, timeout: float) -> list[Event]:
-        """What arrived, waiting up to ``timeout`` seconds for the first event."""
-
-    def durable(self, held: Mapping[int, int]) -> dict[str, Any]:
-        """What this hub needs to continue after the coordinator restarts (JSON-able; see
-        :meth:`resume`), once the messages :meth:`acknowledge` with ``held`` would
-        acknowledge are stored."""
-
-    def acknowledge(self, held: Mapping[int, int]) -> None:
-        """Every message handed over by :meth:`events` so far is stored, except agent
-        ``a``'s from its number ``held[a]`` on (what the runtime still holds back)."""
-
-    def resume(self, state: Mapping[str, Any]) -> dict[int, int]:
-        """Continue from :meth:`durable`'s state (a coordinator resumed from its store),
-        before :meth:`start`; returns per agent the number of the last message of its
-        process's stream that is stored (its process re-sends the later ones)."""
-
-    def send(self, agent: int, message: Any) -> None:
-        """Queue ``message`` for ``agent``; never blocks on the network."""
-
-    def drop(self, agent: int) -> None:
-        """Stop a failed agent (it may still be running); what it sends from now on is not
-        acknowledged as stored."""
-
-    def stop(self, live: Sequence[int], interrupted: bool) -> None:
-        """Ask the ``live`` agents to stop (at once when ``interrupted``), release all."""
-
-    def traffic(self, agent: int) -> Traffic:
-        """What crossed to and from ``agent``, counted at this end."""
-
-    def exitcode(self, agent: int) -> int | None:
-        """The agent process's exit status where this end started it, else None."""
-
-
-# ------------------------------------------------------------------------------ pipes
 
 
 class Channel:
@@ -222,7 +71,7 @@ class Channel:
 
         Raises:
             EOFError: the other side closed the pipe.
-            codec.MessageError: the bytes are not an acceptable message.
+            MessageError: the bytes are not an acceptable message.
             OSError: the pipe's framing is unreadable (the stream is lost).
         """
         assert self.inbox is not None
@@ -353,7 +202,7 @@ class PipeHub:
                     )
                 )
                 self._gone.add(agent)
-            except codec.MessageError as exc:
+            except MessageError as exc:
                 out.append(Rejected(agent, str(exc)))
             else:
                 out.append(Received(agent, message))

@@ -1,4 +1,4 @@
-"""Bytes of a keyframe message per part (runtime/keyframe_bytes.py)."""
+"""Bytes of a keyframe message per part (transport/keyframe_bytes.py)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import torch
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh
 from como3r.frontend.pairs import DirectedMatches
 from como3r.prior.mast3r.prior import MASt3REncoding
-from como3r.runtime import codec
-from como3r.runtime.keyframe_bytes import PARTS, PartCounter, part_of, wire_parts
-from como3r.runtime.messages import KeyframeMessage
+from como3r.transport import codec
+from como3r.transport.keyframe_bytes import PARTS, PartCounter, part_of, wire_parts
+from como3r.transport.messages import KeyframeMessage
 
 H, W = 24, 32
 

@@ -1,7 +1,7 @@
 """Continuing a run from its session store (issue 14, item 2: ``como3r run --resume``).
 
 A run killed at any moment leaves ``OUT.partial/session.db`` holding the coordinator's state
-after its last complete message (:mod:`como3r.runtime.store`). ``--resume`` starts the same
+after its last complete message (:mod:`como3r.store.writer`). ``--resume`` starts the same
 run again: :func:`open_store` reads the store, puts its state into the new run's coordinator
 (:func:`restore_coordinator`) and keeps writing the store. The agents process their inputs
 again from the start and send their keyframes again; the coordinator ignores the keyframes
@@ -28,9 +28,11 @@ from como3r.config import Config, differing_key
 from como3r.coordination.association import Verification
 from como3r.coordination.coordinator import Candidate, Coordinator, CoordinatorStats
 from como3r.errors import StoreError
-from como3r.runtime.store import STORE_NAME, SessionStore
-from como3r.runtime.store_paging import NO_MATCHES, StoredVerification
-from como3r.runtime.store_reader import RetrievalEntry, Session, StoredCandidate, read_session
+from como3r.store.paging import NO_MATCHES, StoredVerification
+from como3r.store.reader import Session, read_session
+from como3r.store.rows import RetrievalEntry, StoredCandidate
+from como3r.store.schema import STORE_NAME
+from como3r.store.writer import SessionStore
 
 logger = logging.getLogger(__name__)
 

@@ -10,11 +10,9 @@ Wire format (msgpack, every map carries a ``"#"`` tag):
 * tuple: ``{"#": "tuple", "items": [...]}``;
 * dict (``str`` or ``int`` keys): ``{"#": "dict", "items": [[key, value], ...]}``;
 * ``np.ndarray`` / ``torch.Tensor``: ``{"#": "ndarray" | "tensor", "dtype": name,
-  "shape": [...], "data": raw little-endian bytes}``, dtype from :data:`ARRAY_DTYPES`
-  (tensors come back on the CPU, detached); an array of :data:`COMPRESS_MIN_BYTES` or more
-  has ``"zstd"`` instead of ``"data"``: its bytes split into byte planes (every element's
-  first byte, then every second byte, ...) and compressed with Zstandard at level
-  :data:`ZSTD_LEVEL`. Lossless; measured on 512x384 payloads (``benchmarks/
+  "shape": [...], "data": raw little-endian bytes}`` (:mod:`.codec_arrays`); an array of
+  4 KiB or more has ``"zstd"`` instead of ``"data"``: its bytes split into byte planes and
+  compressed with Zstandard. Lossless; measured on 512x384 payloads (``benchmarks/
   message_sizes.py``) it takes MASt3R's float32 encoder tokens to 0.79 of their size and
   the simulated prior's encodings to 0.66, at about 1 GB/s each way, where zlib at level 1
   reaches 0.80 at 0.06 GB/s;
@@ -29,82 +27,43 @@ decompress to exactly their shape's bytes or that would take the message past
 :data:`MAX_EXPANSION` times its size cap (a decompression bomb), and whatever the per-type
 checks of
 :func:`add_check` reject (shapes and ranges the receiver relies on, see
-:mod:`como3r.runtime.messages`).
+:mod:`como3r.transport.messages`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import importlib
-import math
 import threading
-import types
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Union
+from typing import Any
 
 import msgpack
 import numpy as np
-
-try:  # the standard library's from Python 3.14
-    from compression import zstd
-except ImportError:  # pragma: no cover - depends on the Python version
-    from backports import zstd
-import torch
 from torch import Tensor
 
-from como3r.errors import Como3rError
+from como3r.errors import Como3rError, MessageError
+from como3r.transport.codec_arrays import (
+    MAX_EXPANSION,
+    TAG,
+    Budget,
+    array_from_wire,
+    array_to_wire,
+    as_half,
+    exact_keys,
+    ndarray_bytes,
+    tensor_bytes,
+    widen,
+)
+from como3r.transport.codec_types import conforms, hint_name
 
 DEFAULT_MAX_BYTES = 256 * 2**20
 """Default cap on the size of one encoded message (256 MiB)."""
 
 MAX_DEPTH = 32
 """Deepest nesting of containers and dataclasses a message may have."""
-
-MAX_NDIM = 8
-"""Most dimensions an array may have."""
-
-MAX_ELEMENTS = 2**40
-"""Bound on the product of an array's non-zero dimensions (also for empty arrays, whose
-other dimensions could otherwise be arbitrarily large)."""
-
-TAG = "#"
-
-COMPRESS_MIN_BYTES = 4096
-"""Arrays of at least this many bytes travel compressed (byte planes + Zstandard)."""
-
-ZSTD_LEVEL = 1
-"""Zstandard level of compressed arrays (level 3 gains under 1 % on these payloads and
-takes 1.3-1.5x the time)."""
-
-MAX_EXPANSION = 8
-"""A message's compressed arrays may decompress to at most this many times its size cap."""
-
-ARRAY_DTYPES: dict[str, tuple[np.dtype | None, torch.dtype]] = {
-    "bool": (np.dtype(np.bool_), torch.bool),
-    "uint8": (np.dtype("<u1"), torch.uint8),
-    "int8": (np.dtype("<i1"), torch.int8),
-    "int16": (np.dtype("<i2"), torch.int16),
-    "int32": (np.dtype("<i4"), torch.int32),
-    "int64": (np.dtype("<i8"), torch.int64),
-    "float16": (np.dtype("<f2"), torch.float16),
-    "float32": (np.dtype("<f4"), torch.float32),
-    "float64": (np.dtype("<f8"), torch.float64),
-    "bfloat16": (None, torch.bfloat16),  # tensors only: numpy has no bfloat16
-}
-"""Allow-list of array dtypes: wire name -> (little-endian numpy dtype, torch dtype)."""
-
-_TORCH_NAMES = {torch_dtype: name for name, (_, torch_dtype) in ARRAY_DTYPES.items()}
-_NUMPY_NAMES = {
-    np_dtype.newbyteorder("="): name
-    for name, (np_dtype, _) in ARRAY_DTYPES.items()
-    if np_dtype is not None
-}
-
-
-class MessageError(Como3rError):
-    """A message that cannot be encoded, or bytes that are not a valid message."""
 
 
 @dataclass(frozen=True)
@@ -272,9 +231,9 @@ def _to_wire(value: Any, path: str, depth: int, lossy: bool) -> Any:
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, Tensor):
-        return _array_to_wire("tensor", *_tensor_bytes(value, path))
+        return array_to_wire("tensor", *tensor_bytes(value, path))
     if isinstance(value, np.ndarray):
-        return _array_to_wire("ndarray", *_ndarray_bytes(value, path))
+        return array_to_wire("ndarray", *ndarray_bytes(value, path))
     if isinstance(value, list):
         return [_to_wire(v, f"{path}[{i}]", depth + 1, lossy) for i, v in enumerate(value)]
     if isinstance(value, tuple):
@@ -367,7 +326,7 @@ def _field_to_wire(value: Any, half: bool, path: str, depth: int, lossy: bool) -
                 for i, v in enumerate(value)
             ],
         }
-    narrow = _as_half(value) if half else None
+    narrow = as_half(value) if half else None
     if narrow is None:
         return _to_wire(value, path, depth, lossy)
     return {**_to_wire(narrow, path, depth, lossy), "as": "float32"}
@@ -397,65 +356,8 @@ def _half_received(value: Any) -> Any:
     """A ``half`` field's value as :func:`decode` gives it back after a ``lossy`` encode."""
     if isinstance(value, tuple):
         return tuple(_half_received(v) for v in value)
-    narrow = _as_half(value)
-    return as_received(value) if narrow is None else _widen(narrow)
-
-
-def _widen(narrow: Tensor | np.ndarray) -> Tensor | np.ndarray:
-    return narrow.float() if isinstance(narrow, Tensor) else narrow.astype(np.float32)
-
-
-def _as_half(value: Any) -> Tensor | np.ndarray | None:
-    """``value`` in float16 if it is a float32 array that float16 holds without overflow."""
-    if isinstance(value, Tensor) and value.dtype == torch.float32:
-        wide = value.detach().cpu()
-        narrow = wide.half()
-        return narrow if torch.equal(torch.isinf(narrow), torch.isinf(wide)) else None
-    if isinstance(value, np.ndarray) and value.dtype == np.float32:
-        narrow_array = value.astype(np.float16)
-        return narrow_array if np.array_equal(np.isinf(narrow_array), np.isinf(value)) else None
-    return None
-
-
-def _tensor_bytes(value: Tensor, path: str) -> tuple[str, list[int], bytes]:
-    name = _TORCH_NAMES.get(value.dtype)
-    if name is None:
-        raise MessageError(f"{path}: tensor dtype {value.dtype} is not allowed on the wire")
-    tensor = value.detach().cpu().contiguous()
-    raw = tensor.view(torch.int16) if tensor.dtype == torch.bfloat16 else tensor
-    return name, list(tensor.shape), raw.numpy().tobytes()
-
-
-def _ndarray_bytes(value: np.ndarray, path: str) -> tuple[str, list[int], bytes]:
-    name = _NUMPY_NAMES.get(value.dtype.newbyteorder("="))
-    if name is None:
-        raise MessageError(f"{path}: array dtype {value.dtype} is not allowed on the wire")
-    little = np.ascontiguousarray(value, dtype=ARRAY_DTYPES[name][0])
-    return name, list(value.shape), little.tobytes()
-
-
-def _array_to_wire(kind: str, dtype: str, shape: list[int], data: bytes) -> dict[str, Any]:
-    if len(data) < COMPRESS_MIN_BYTES:
-        return {TAG: kind, "dtype": dtype, "shape": shape, "data": data}
-    packed = zstd.compress(byte_planes(data, itemsize(dtype)), level=ZSTD_LEVEL)
-    return {TAG: kind, "dtype": dtype, "shape": shape, "zstd": packed}
-
-
-def itemsize(dtype: str) -> int:
-    """Bytes per element of wire dtype ``dtype`` (a key of :data:`ARRAY_DTYPES`)."""
-    return torch.empty(0, dtype=ARRAY_DTYPES[dtype][1]).element_size()
-
-
-def byte_planes(raw: bytes, itemsize: int, inverse: bool = False) -> bytes:
-    """``raw`` as byte planes: every element's first byte, then every second byte, ...
-    (``inverse``: planes back to elements)."""
-    if itemsize == 1 or not raw:
-        return raw
-    return (
-        np.frombuffer(raw, np.uint8)
-        .reshape((itemsize, -1) if inverse else (-1, itemsize))
-        .T.tobytes()
-    )
+    narrow = as_half(value)
+    return as_received(value) if narrow is None else widen(narrow)
 
 
 # ----------------------------------------------------------------------------- decoding
@@ -487,29 +389,14 @@ def decode(
         raise MessageError(f"not a valid message (malformed msgpack: {exc})") from None
     if not (isinstance(tree, dict) and tree.get(TAG) == "object"):
         raise MessageError("not a valid message (the top level is not a typed object)")
-    message = _from_wire(tree, "message", 0, _Budget(MAX_EXPANSION * max_bytes))
+    message = _from_wire(tree, "message", 0, Budget(MAX_EXPANSION * max_bytes))
     if expected is not None and not isinstance(message, expected):
         names = [c.__name__ for c in (expected if isinstance(expected, tuple) else (expected,))]
         raise MessageError(f"expected a {' or '.join(names)} message, got {type(message).__name__}")
     return message
 
 
-class _Budget:
-    """The bytes the compressed arrays of one message may still decompress to."""
-
-    def __init__(self, nbytes: int) -> None:
-        self.left = nbytes
-
-    def take(self, nbytes: int, path: str) -> None:
-        if nbytes > self.left:
-            raise MessageError(
-                f"{path}: compressed arrays would decompress to more than "
-                f"{MAX_EXPANSION} times the message size cap"
-            )
-        self.left -= nbytes
-
-
-def _from_wire(value: Any, path: str, depth: int, budget: _Budget) -> Any:
+def _from_wire(value: Any, path: str, depth: int, budget: Budget) -> Any:
     if depth > MAX_DEPTH:
         raise MessageError(f"{path}: nested deeper than {MAX_DEPTH}")
     if value is None or isinstance(value, (bool, int, float, str, bytes)):
@@ -520,28 +407,19 @@ def _from_wire(value: Any, path: str, depth: int, budget: _Budget) -> Any:
         raise MessageError(f"{path}: unexpected wire value of type {type(value).__name__}")
     tag = value.get(TAG)
     if tag in ("ndarray", "tensor"):
-        return _array_from_wire(value, tag, path, budget)
+        return array_from_wire(value, tag, path, budget)
     if tag == "tuple":
-        items = _exact_keys(value, ("items",), path)["items"]
+        items = exact_keys(value, ("items",), path)["items"]
         return tuple(
             _from_wire(v, f"{path}[{i}]", depth + 1, budget)
             for i, v in enumerate(_list(items, path))
         )
     if tag == "dict":
-        items = _list(_exact_keys(value, ("items",), path)["items"], path)
+        items = _list(exact_keys(value, ("items",), path)["items"], path)
         return _dict_from_wire(items, path, depth, budget)
     if tag == "object":
         return _object_from_wire(value, path, depth, budget)
     raise MessageError(f"{path}: unknown wire tag {tag!r}")
-
-
-def _exact_keys(value: dict, keys: tuple[str, ...], path: str) -> dict:
-    if set(value) != {TAG, *keys}:
-        raise MessageError(
-            f"{path}: a {value.get(TAG)!r} has keys {sorted(map(str, value))}, "
-            f"expected {sorted([TAG, *keys])}"
-        )
-    return value
 
 
 def _list(value: Any, path: str) -> list:
@@ -550,7 +428,7 @@ def _list(value: Any, path: str) -> list:
     return value
 
 
-def _dict_from_wire(items: list, path: str, depth: int, budget: _Budget) -> dict:
+def _dict_from_wire(items: list, path: str, depth: int, budget: Budget) -> dict:
     out: dict[Any, Any] = {}
     for item in items:
         if not (isinstance(item, list) and len(item) == 2):
@@ -562,77 +440,8 @@ def _dict_from_wire(items: list, path: str, depth: int, budget: _Budget) -> dict
     return out
 
 
-def _array_from_wire(value: dict, kind: str, path: str, budget: _Budget) -> np.ndarray | Tensor:
-    body = "zstd" if "zstd" in value else "data"
-    widen = "as" in value
-    _exact_keys(value, ("dtype", "shape", body, *(("as",) if widen else ())), path)
-    name, shape = _array_header(value, kind, path)
-    data = value[body]
-    if not isinstance(data, bytes):
-        raise MessageError(f"{path}: array data is not bytes")
-    size = math.prod(shape) * itemsize(name)
-    if body == "zstd":
-        budget.take(size, path)
-        data = _inflate(data, size, itemsize(name), path)
-    if size != len(data):
-        raise MessageError(
-            f"{path}: {len(data)} bytes do not hold a {name} array of shape "
-            f"{tuple(shape)} ({size} bytes)"
-        )
-    if name == "bool" and data and max(data) > 1:
-        raise MessageError(f"{path}: bool array holds bytes other than 0 and 1")
-    np_dtype, torch_dtype = ARRAY_DTYPES[name]
-    if np_dtype is None:
-        bits = np.frombuffer(data, dtype="<i2").astype(np.int16)
-        return torch.from_numpy(bits).view(torch_dtype).reshape(shape)
-    array = np.frombuffer(data, dtype=np_dtype).reshape(shape).astype(np_dtype.newbyteorder("="))
-    if widen:
-        if (value["as"], name) != ("float32", "float16"):
-            raise MessageError(
-                f"{path}: a {name} array cannot travel as {value['as']!r} (only float16 as float32)"
-            )
-        array = array.astype(np.float32)
-    return torch.from_numpy(array) if kind == "tensor" else array
-
-
-def _array_header(value: dict, kind: str, path: str) -> tuple[str, list[int]]:
-    """An array's checked dtype name and shape."""
-    name, shape = value["dtype"], value["shape"]
-    if not isinstance(name, str) or name not in ARRAY_DTYPES:
-        raise MessageError(
-            f"{path}: dtype {name!r} is not allowed (allowed: {', '.join(ARRAY_DTYPES)})"
-        )
-    if ARRAY_DTYPES[name][0] is None and kind == "ndarray":
-        raise MessageError(f"{path}: dtype {name} is only allowed for tensors")
-    if (
-        not isinstance(shape, list)
-        or len(shape) > MAX_NDIM
-        or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)
-        or math.prod(max(n, 1) for n in shape) > MAX_ELEMENTS
-    ):
-        raise MessageError(
-            f"{path}: shape {shape!r} is not a list of at most {MAX_NDIM} "
-            f"non-negative integers spanning at most {MAX_ELEMENTS} elements"
-        )
-    return name, shape
-
-
-def _inflate(packed: bytes, size: int, itemsize: int, path: str) -> bytes:
-    """The array bytes of a compressed array: exactly ``size`` bytes, or an error."""
-    inflater = zstd.ZstdDecompressor()
-    try:
-        planes = inflater.decompress(packed, max_length=size)
-    except zstd.ZstdError as exc:
-        raise MessageError(f"{path}: compressed array data is not valid ({exc})") from None
-    if len(planes) != size or not inflater.eof or inflater.unused_data:
-        raise MessageError(
-            f"{path}: compressed array data does not decompress to the {size} bytes of its shape"
-        )
-    return byte_planes(planes, itemsize, inverse=True)
-
-
-def _object_from_wire(value: dict, path: str, depth: int, budget: _Budget) -> Any:
-    _exact_keys(value, ("type", "version", "fields"), path)
+def _object_from_wire(value: dict, path: str, depth: int, budget: Budget) -> Any:
+    exact_keys(value, ("type", "version", "fields"), path)
     name, version, fields = value["type"], value["version"], value["fields"]
     if not isinstance(name, str) or name not in REGISTRY:
         raise MessageError(f"{path}: unknown message type {name!r}")
@@ -657,10 +466,10 @@ def _object_from_wire(value: dict, path: str, depth: int, budget: _Budget) -> An
     for field_name in expected_names:
         field_path = f"{path}.{field_name}"
         decoded = _from_wire(fields[field_name], field_path, depth + 1, budget)
-        if not _conforms(decoded, hints[field_name]):
+        if not conforms(decoded, hints[field_name]):
             raise MessageError(
                 f"{field_path}: a {type(decoded).__name__} does not match the "
-                f"declared type {_hint_name(hints[field_name])}"
+                f"declared type {hint_name(hints[field_name])}"
             )
         kwargs[field_name] = decoded
     if "version" in kwargs and kwargs["version"] != entry.version:
@@ -675,69 +484,6 @@ def _object_from_wire(value: dict, path: str, depth: int, budget: _Budget) -> An
 
 
 # ----------------------------------------------------------------------------- type checks
-
-
-def _conforms(value: Any, hint: Any) -> bool:
-    """Whether a decoded value matches a (resolved) type annotation."""
-    if hint is Any:
-        return True
-    if hint is None or hint is type(None):
-        return value is None
-    origin = typing.get_origin(hint)
-    if origin is Union or origin is types.UnionType:
-        return any(_conforms(value, h) for h in typing.get_args(hint))
-    if origin is typing.Literal:
-        return value in typing.get_args(hint)
-    if origin is tuple:
-        return _conforms_tuple(value, typing.get_args(hint))
-    if origin is list:
-        (item,) = typing.get_args(hint) or (Any,)
-        return isinstance(value, list) and all(_conforms(v, item) for v in value)
-    if origin is dict:
-        key, item = typing.get_args(hint) or (Any, Any)
-        return isinstance(value, dict) and all(
-            _conforms(k, key) and _conforms(v, item) for k, v in value.items()
-        )
-    if hint is float:
-        return isinstance(value, (int, float)) and not isinstance(value, bool)
-    if hint is int:
-        return isinstance(value, int) and not isinstance(value, bool)
-    if isinstance(hint, type):
-        return isinstance(value, hint)
-    raise TypeError(f"unsupported annotation {hint!r} on a registered message type")
-
-
-def _conforms_tuple(value: Any, args: tuple) -> bool:
-    if not isinstance(value, tuple):
-        return False
-    if not args:
-        return True
-    if len(args) == 2 and args[1] is Ellipsis:
-        return all(_conforms(v, args[0]) for v in value)
-    return len(value) == len(args) and all(_conforms(v, a) for v, a in zip(value, args))
-
-
-def _hint_name(hint: Any) -> str:
-    return getattr(hint, "__name__", None) or repr(hint).replace("typing.", "")
-
-
-def require(ok: bool, what: str) -> None:
-    """For the per-type checks of :func:`add_check`: raise :class:`MessageError` ``what``
-    unless ``ok``."""
-    if not ok:
-        raise MessageError(what)
-
-
-def require_shape(x: Tensor | np.ndarray, shape: tuple[int | None, ...], name: str) -> None:
-    """For the per-type checks: ``x.shape`` matches ``shape`` (None matches any size)."""
-    matches = len(x.shape) == len(shape) and all(
-        s is None or s == n for s, n in zip(shape, x.shape)
-    )
-    require(
-        matches,
-        f"{name} has shape {tuple(x.shape)}, expected "
-        f"({', '.join('*' if s is None else str(s) for s in shape)})",
-    )
 
 
 def registered_types() -> dict[str, type]:

@@ -15,12 +15,13 @@ from como3r.data.agent import open_agent
 from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import make_view
 from como3r.data.synth import synthesize
+from como3r.errors import MessageError
 from como3r.frontend.agent import AgentFrontend, FrontendStats
 from como3r.frontend.packets import KeyframePacket, PoseUpdate
 from como3r.prior.simulated import SimulatedPrior
-from como3r.runtime import codec, messages
-from como3r.runtime.codec import MessageError, decode, encode
 from como3r.runtime.pipeline import _colors
+from como3r.transport import codec, messages
+from como3r.transport.codec import decode, encode
 
 WIDTH, HEIGHT, FRAMES = 64, 48, 8
 

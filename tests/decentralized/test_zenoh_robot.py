@@ -1,4 +1,4 @@
-"""A robot's Zenoh link (runtime/zenoh_robot.py) on loopback TCP, in this process: the team
+"""A robot's Zenoh link (decentralized/zenoh_robot.py) on loopback TCP, in this process: the team
 handshake, the link filter at the receiver, invalid messages dropped."""
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ import pytest
 from como3r.decentralized.messages import DRIVER, EncodingRequest, RobotHello, RobotProgress
 from como3r.decentralized.protocol import Schedule
 from como3r.decentralized.robot import PeerLeft
+from como3r.decentralized.zenoh_robot import RobotKeys, ZenohRobotLink
 from como3r.errors import InputError
-from como3r.runtime import codec
-from como3r.runtime.transport_zenoh import ZenohOptions, open_session
-from como3r.runtime.zenoh_robot import RobotKeys, ZenohRobotLink
+from como3r.transport import codec
+from como3r.transport.zenoh_protocol import ZenohOptions, open_session
 
 zenoh = pytest.importorskip("zenoh")
 

@@ -1,14 +1,14 @@
 """What a keyframe message weighs on the wire, per part.
 
-A keyframe message (:class:`~como3r.runtime.messages.KeyframeMessage` around a
+A keyframe message (:class:`~como3r.transport.messages.KeyframeMessage` around a
 :class:`~como3r.frontend.packets.KeyframePacket`) is measured field by field with
-:func:`como3r.runtime.codec.part_sizes`; :func:`wire_parts` sums the fields into the parts
+:func:`como3r.transport.codec.part_sizes`; :func:`wire_parts` sums the fields into the parts
 that :data:`PARTS` names, the ones a decision about what travels is made on (the prior's
 encoding split into MASt3R's encoder tokens and the rest, the pointmap, its confidences,
 the colours, the retrieval descriptors and words, the sequential edge's matches, the refresh
 of the previous keyframe). What no part names (ids, pose, intrinsics) is ``"other"``.
 :class:`PartCounter` adds them up over a run for ``metrics.json``; the session store counts
-what it writes itself (:meth:`~como3r.runtime.store.SessionStore.written_metrics`).
+what it writes itself (:meth:`~como3r.store.writer.SessionStore.written_metrics`).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from collections import Counter
 from collections.abc import Mapping
 from typing import Any
 
-from como3r.runtime import codec
+from como3r.transport import codec
 
 #: part name -> the field paths (within the packet) it sums, matched by prefix
 PARTS: dict[str, tuple[str, ...]] = {

@@ -3,7 +3,7 @@
 Every keyframe the coordinator holds carries its encoding (the simulated prior's is 15.5 MB
 at 512x384, MASt3R's 3 MB), its image and four pointmaps, and every sequential edge both
 directions' dense matches (5 MB at 512x384): kept in memory, they grow with the sequence.
-The session store holds all of them already (:mod:`.store`), so after every message's
+The session store holds all of them already (:mod:`.writer`), so after every message's
 transaction :func:`page_out` lets go of what is outside the *working set*, the newest
 ``session.resident_keyframes`` keyframes of each agent:
 

@@ -21,9 +21,9 @@ would cost a round its timeout.
 During the mission a robot puts each message under its recipient's key (reliable,
 congestion control ``BLOCK``, from a background thread, so the robot never waits on the
 network). The receiver decodes it (size-capped and validated by
-:mod:`como3r.runtime.codec`), checks that it names this robot as recipient and the sender
+:mod:`como3r.transport.codec`), checks that it names this robot as recipient and the sender
 its key names (in a team run, also the certificate name the key ends in, which Zenoh's
-access control makes the sender's: :mod:`como3r.runtime.team_access`), and applies the
+access control makes the sender's: :mod:`como3r.transport.team_access`), and applies the
 **link filter**: a message its sender sent at mission time ``t`` is dropped unless the
 receiver hears the sender at ``t`` (:meth:`~como3r.decentralized.protocol.Schedule.hears`),
 as radio range would drop it.
@@ -49,9 +49,9 @@ from typing import Any
 
 from como3r.decentralized.messages import DRIVER, ROBOT_MESSAGES, RobotHello
 from como3r.decentralized.robot import PeerLeft
-from como3r.errors import InputError
-from como3r.runtime import codec
-from como3r.runtime.transport_zenoh import Sender
+from como3r.errors import InputError, MessageError
+from como3r.transport import codec
+from como3r.transport.zenoh_protocol import Sender
 
 logger = logging.getLogger(__name__)
 
@@ -256,7 +256,7 @@ class ZenohRobotLink:
             return None
         try:
             message = codec.decode(data, max_bytes=self.max_bytes, expected=ROBOT_MESSAGES)
-        except codec.MessageError as exc:
+        except MessageError as exc:
             self._invalid(claimed, str(exc))
             return None
         sender, kind = message.sender, type(message).__name__
@@ -337,7 +337,7 @@ class ZenohRobotLink:
     def _peer_hello(self, data: bytes) -> RobotHello | None:
         try:
             hello = codec.decode(data, max_bytes=self.max_bytes, expected=RobotHello)
-        except codec.MessageError as exc:
+        except MessageError as exc:
             logger.warning("robot %d: dropped an unreadable hello: %s", self.robot, exc)
             return None
         if not 0 <= hello.robot < self.team:

@@ -13,7 +13,7 @@ A member's certificate names its role and id in its common name: ``coordinator``
 on both ends of a link.
 
 What a member's process makes of it (mutual TLS, access control from the peers'
-certificates, revocation) is :mod:`como3r.runtime.team_access`.
+certificates, revocation) is :mod:`como3r.transport.team_access`.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""What a team member's process makes of its member folder (:mod:`como3r.runtime.team`):
+"""What a team member's process makes of its member folder (:mod:`como3r.transport.team`):
 its Zenoh configuration (``--team``; README, "Across machines").
 
 - Transport: mutual TLS only (``transport/link/protocols`` is ``tls``): a peer must show a
@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from como3r.errors import InputError
-from como3r.runtime.team import CA_CERT, CERT, KEY, Member, common_name
+from como3r.transport.team import CA_CERT, CERT, KEY, Member, common_name
 
 logger = logging.getLogger(__name__)
 
@@ -231,10 +231,10 @@ def network_options(
     session: str,
     peers: int | None = None,
 ) -> Any:
-    """The :class:`~como3r.runtime.transport_zenoh.ZenohOptions` of ``member``'s process:
+    """The :class:`~como3r.transport.zenoh_protocol.ZenohOptions` of ``member``'s process:
     its endpoints as TLS ones (:func:`team_endpoints`), :func:`zenoh_settings` and a
     :class:`LinkWatch`; ``peers`` as for :func:`zenoh_settings`."""
-    from como3r.runtime.transport_zenoh import ZenohOptions
+    from como3r.transport.zenoh_protocol import ZenohOptions
 
     listen, connect = team_endpoints(listen), team_endpoints(connect)
     settings = zenoh_settings(member, peers)

@@ -3,7 +3,7 @@ the oldest after a reconnect; forgotten once stored."""
 
 from __future__ import annotations
 
-from como3r.runtime.spool import Spool
+from como3r.transport.spool import Spool
 
 
 def test_past_its_memory_limit_the_spool_spills_to_disk_and_loses_nothing(tmp_path) -> None:

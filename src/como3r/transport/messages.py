@@ -1,7 +1,7 @@
 """The messages of the multi-process runtime (C-Sec. B.1, A.8; docs/architecture.md, "Conventions").
 
 Agents and the coordinator share nothing but these messages. Each is a frozen dataclass
-with a ``version`` field and is registered with :mod:`como3r.runtime.codec`, which encodes
+with a ``version`` field and is registered with :mod:`como3r.transport.codec`, which encodes
 it without pickle and validates it on decode. The payloads of
 :mod:`como3r.frontend.packets` travel wrapped in them.
 
@@ -38,9 +38,9 @@ from como3r.frontend.agent import FrontendStats
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches
 from como3r.live import FrameEvent
-from como3r.runtime import codec
-from como3r.runtime.codec import require as _require
-from como3r.runtime.codec import require_shape as _shape
+from como3r.transport import codec
+from como3r.transport.codec_types import require as _require
+from como3r.transport.codec_types import require_shape as _shape
 
 
 @dataclass(frozen=True)

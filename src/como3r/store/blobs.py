@@ -1,4 +1,4 @@
-"""The compressed blobs of the session store (:mod:`como3r.runtime.store`): no pickle.
+"""The compressed blobs of the session store (:mod:`como3r.store.writer`): no pickle.
 
 Two kinds, told apart by their first four bytes:
 
@@ -8,17 +8,17 @@ Two kinds, told apart by their first four bytes:
       b"C3RA" | u8 count | per array: u8 dtype code, u8 ndim, ndim x u64 dims (little-endian)
               | Zstandard frame of every array's bytes, byte-shuffled, one after the other
 
-  Dtype codes index :data:`DTYPES` (the wire names of :data:`como3r.runtime.codec.
+  Dtype codes index :data:`DTYPES` (the wire names of :data:`como3r.transport.codec_arrays.
   ARRAY_DTYPES`; append only). Byte-shuffling (all first bytes of the elements, then all
   second bytes, ...) groups the slowly varying exponent bytes of floats and the zero high
   bytes of indices: on a 512x384 float32 pointmap zlib then keeps 74 % of the bytes
   instead of 91 %, in two thirds of the time.
-* **objects** (``C3RO``): a registered dataclass of :mod:`como3r.runtime.codec` (a prior's
+* **objects** (``C3RO``): a registered dataclass of :mod:`como3r.transport.codec` (a prior's
   :class:`~como3r.prior.base.Encoding`), ``b"C3RO" | zstd(codec.encode(obj))``; decoding
   validates it as a received message is validated.
 
-Zstandard at the messages' level (:data:`como3r.runtime.codec.ZSTD_LEVEL`) rather than zlib
-(format version 2): on a shuffled 512x384 float32 pointmap it keeps 74.3 % of the bytes
+Zstandard at the messages' level (:data:`como3r.transport.codec_arrays.ZSTD_LEVEL`) rather
+than zlib (format version 2): on a shuffled 512x384 float32 pointmap it keeps 74.3 % of the bytes
 against zlib level 1's 72.7 %, compressing in 2 ms instead of 45 and inflating in 1.4 ms
 instead of 4.2 (one core); the demo's coordinator spent 7 s of its CPU in zlib's
 compression and 6 s in its decompression (14 keyframes, paging included).
@@ -38,14 +38,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from como3r.errors import StoreError
-from como3r.runtime import codec
-from como3r.runtime.codec import ZSTD_LEVEL, byte_planes, itemsize, zstd
+from como3r.errors import MessageError, StoreError
+from como3r.transport import codec, codec_arrays
+from como3r.transport.codec_arrays import ZSTD_LEVEL, byte_planes, itemsize, zstd
 
 ARRAYS_MAGIC = b"C3RA"
 OBJECT_MAGIC = b"C3RO"
 
-#: dtype code -> wire name (:data:`como3r.runtime.codec.ARRAY_DTYPES`); part of the format
+#: dtype code -> wire name (:data:`como3r.transport.codec_arrays.ARRAY_DTYPES`); part of the format
 DTYPES = (
     "bool",
     "uint8",
@@ -59,7 +59,7 @@ DTYPES = (
     "bfloat16",
 )
 _CODE = {name: code for code, name in enumerate(DTYPES)}
-_TORCH_NAME = {torch_dtype: name for name, (_, torch_dtype) in codec.ARRAY_DTYPES.items()}
+_TORCH_NAME = {torch_dtype: name for name, (_, torch_dtype) in codec_arrays.ARRAY_DTYPES.items()}
 
 #: Zstandard at the messages' level, with the frame's content checksum (XXH64) that zlib's
 #: Adler-32 gave: a damaged blob is an error, not different numbers
@@ -114,7 +114,11 @@ def unpack_arrays(blob: bytes, what: str) -> list[Tensor]:
             raise StoreError(f"{what}: header cut short")
         code, ndim = _ARRAY.unpack_from(data, offset)
         offset += _ARRAY.size
-        if code >= len(DTYPES) or ndim > codec.MAX_NDIM or offset + ndim * _DIM.size > len(data):
+        if (
+            code >= len(DTYPES)
+            or ndim > codec_arrays.MAX_NDIM
+            or offset + ndim * _DIM.size > len(data)
+        ):
             raise StoreError(f"{what}: bad array header (dtype code {code}, {ndim} dimensions)")
         shape = [_DIM.unpack_from(data, offset + k * _DIM.size)[0] for k in range(ndim)]
         offset += ndim * _DIM.size
@@ -138,7 +142,7 @@ def unpack_arrays(blob: bytes, what: str) -> list[Tensor]:
 
 
 def pack_object(obj: Any) -> bytes:
-    """One blob of a registered dataclass (:mod:`como3r.runtime.codec`)."""
+    """One blob of a registered dataclass (:mod:`como3r.transport.codec`)."""
     return OBJECT_MAGIC + zstd.compress(
         codec.encode(obj, max_bytes=MAX_BYTES), options=ZSTD_OPTIONS
     )
@@ -155,7 +159,7 @@ def unpack_object(blob: bytes, expected: type, what: str) -> Any:
     data = _inflate(memoryview(blob)[4:], None, what)
     try:
         return codec.decode(data, max_bytes=MAX_BYTES, expected=expected)
-    except codec.MessageError as exc:
+    except MessageError as exc:
         raise StoreError(f"{what}: {exc}") from None
 
 
@@ -172,7 +176,7 @@ def _raw(array: Tensor | np.ndarray) -> tuple[str, Sequence[int], bytes]:
         bits = (tensor.view(torch.int16) if tensor.dtype == torch.bfloat16 else tensor).numpy()
         little = np.ascontiguousarray(bits, dtype=bits.dtype.newbyteorder("<"))
         return name, tuple(tensor.shape), little.tobytes()
-    for name, (np_dtype, _) in codec.ARRAY_DTYPES.items():
+    for name, (np_dtype, _) in codec_arrays.ARRAY_DTYPES.items():
         if np_dtype is not None and array.dtype.newbyteorder("=") == np_dtype.newbyteorder("="):
             return name, array.shape, np.ascontiguousarray(array, dtype=np_dtype).tobytes()
     raise ValueError(f"array dtype {array.dtype} cannot be stored")
@@ -193,7 +197,7 @@ def _inflate(data: memoryview, size: int | None, what: str) -> bytes:
 
 
 def _array(name: str, shape: list[int], raw: bytes, what: str) -> Tensor:
-    np_dtype, torch_dtype = codec.ARRAY_DTYPES[name]
+    np_dtype, torch_dtype = codec_arrays.ARRAY_DTYPES[name]
     if np_dtype is None:  # bfloat16: stored as its int16 bits
         return (
             torch.from_numpy(np.frombuffer(raw, "<i2").astype(np.int16))

@@ -1,12 +1,12 @@
 """An agent's end of the Zenoh transport (``como3r agent``; the protocol is in
-:mod:`como3r.runtime.transport_zenoh`).
+:mod:`como3r.transport.zenoh_protocol`).
 
 The agent's frame loop never waits on the network: :meth:`ZenohAgentLink.send` puts the
-message in the agent's :class:`~como3r.runtime.spool.Spool` and a background thread puts it
+message in the agent's :class:`~como3r.transport.spool.Spool` and a background thread puts it
 on the network while the coordinator's liveliness token is present. While the coordinator is
 away the agent keeps tracking and the spool grows (on disk past its memory limit); when the
 coordinator is back, everything it has not acknowledged is put again, oldest first.
-Messages are encoded ``lossy`` (:func:`~como3r.runtime.codec.encode`): keyframe pointmaps,
+Messages are encoded ``lossy`` (:func:`~como3r.transport.codec.encode`): keyframe pointmaps,
 their confidences and MASt3R's encoder tokens travel in half precision.
 """
 
@@ -21,11 +21,11 @@ import time
 from typing import Any
 
 from como3r.errors import InputError
-from como3r.runtime import codec
-from como3r.runtime.messages import TO_AGENT, AgentTask, Shutdown
-from como3r.runtime.spool import Spool
-from como3r.runtime.transport import Traffic
-from como3r.runtime.transport_zenoh import (
+from como3r.transport import codec
+from como3r.transport.links import Traffic
+from como3r.transport.messages import TO_AGENT, AgentTask, Shutdown
+from como3r.transport.spool import Spool
+from como3r.transport.zenoh_protocol import (
     INCARNATION,
     PIECE,
     PIECE_BYTES,
@@ -42,7 +42,7 @@ logger = logging.getLogger(__name__)
 
 
 class ZenohAgentLink:
-    """An agent's end (:class:`~como3r.runtime.transport.AgentLink`) over Zenoh.
+    """An agent's end (:class:`~como3r.transport.links.AgentLink`) over Zenoh.
 
     Declares the agent's subscribers, then the liveliness token of this process (the
     coordinator sees it join). Messages are put only while the coordinator's token is
@@ -55,7 +55,7 @@ class ZenohAgentLink:
         spool: where unacknowledged messages wait (None: a default one).
         wait_log_s: how often :meth:`fetch_task` and :meth:`close` say what they wait for.
         where: where the session looks for the coordinator
-            (:meth:`~como3r.runtime.transport_zenoh.ZenohOptions.where`), named while it
+            (:meth:`~como3r.transport.zenoh_protocol.ZenohOptions.where`), named while it
             waits; empty: the run's key expressions.
     """
 
@@ -191,7 +191,7 @@ class ZenohAgentLink:
                 if self._closed:
                     return
                 seq, key, data = self.spool.take()
-            pieces = max(1, math.ceil(len(data) / PIECE_BYTES))  # see transport_zenoh
+            pieces = max(1, math.ceil(len(data) / PIECE_BYTES))  # see zenoh_protocol
             try:
                 for index in range(pieces):
                     self.session.put(

@@ -3,7 +3,7 @@ talking to its peers over Zenoh (README, "Decentralized robots across machines")
 
 :func:`run_robot` is the robot of :mod:`como3r.decentralized.robot` -- the same keyframes,
 place recognition, two-stage registration, election and pose graph as ``como3r run --mode
-decentralized`` -- over a :class:`~como3r.runtime.zenoh_robot.ZenohRobotLink` instead of
+decentralized`` -- over a :class:`~como3r.decentralized.zenoh_robot.ZenohRobotLink` instead of
 the one-process router. Every robot reads the same rendezvous schedule; each plans the
 same rounds from it (:func:`~como3r.decentralized.protocol.plan_rounds`, the team's mission
 ending at the latest robot's last frame, learnt at start-up) and filters what it hears by
@@ -50,19 +50,19 @@ from como3r.decentralized.runner import (
     two_stage,
     write_trajectories,
 )
-from como3r.errors import InputError
-from como3r.io.output import atomic_output_dir, check_output_dir
-from como3r.progress import ProgressCallback
-from como3r.runtime.outputs import SIMULATED_NOTE, bandwidth, write_json
-from como3r.runtime.pipeline import PriorSpec, RunSummary
-from como3r.runtime.transport_zenoh import ZenohOptions, open_session
-from como3r.runtime.zenoh_robot import (
+from como3r.decentralized.zenoh_robot import (
     RobotKeys,
     RobotTraffic,
     ZenohRobotLink,
     by_type,
     finish_timeout,
 )
+from como3r.errors import InputError
+from como3r.io.output import atomic_output_dir, check_output_dir
+from como3r.progress import ProgressCallback
+from como3r.runtime.outputs import SIMULATED_NOTE, bandwidth, write_json
+from como3r.runtime.pipeline import PriorSpec, RunSummary
+from como3r.transport.zenoh_protocol import ZenohOptions, open_session
 
 logger = logging.getLogger(__name__)
 

@@ -1,0 +1,274 @@
+"""What one transaction of the session store writes, table by table
+(:class:`~como3r.store.writer.SessionStore` is a :class:`TableWriter`; the tables are
+:mod:`.schema`'s): new keyframes and replaced pointmaps, moved poses, retrieval positions,
+new edges, changed candidates, gauges and per-agent progress, the coordinator's state.
+Each writer compares with what the store holds already (kept here, so nothing is read back)
+and writes only what changed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sqlite3
+import weakref
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from torch import Tensor
+
+from como3r.coordination.coordinator import Candidate, Coordinator
+from como3r.frontend.keyframes import Keyframe
+from como3r.frontend.paging import POINTMAP_FIELDS, PagedKeyframe
+from como3r.frontend.pairs import PairLink
+from como3r.store.blobs import pack_arrays, pack_object
+
+
+def pack_link(link: PairLink) -> bytes:
+    """Both directions' matches of a link in one blob (the ``matches`` columns)."""
+    return pack_arrays(link.ij.idx, link.ij.valid, link.ij.q, link.ji.idx, link.ji.valid, link.ji.q)
+
+
+@dataclass
+class Written:
+    """What the store holds of one keyframe's pointmaps: the very tensors (weakly: compared
+    by identity, so a replaced pointmap is seen without comparing its values, and a
+    paged-out one is not kept alive) and their blob ids."""
+
+    arrays: tuple[weakref.ref, ...]
+    blobs: tuple[int, ...]
+    K: Tensor | None
+    fused_frames: int
+
+    def holds(self, array: Tensor) -> int | None:
+        """The blob id of ``array`` if it is one of these tensors."""
+        return next((b for a, b in zip(self.arrays, self.blobs) if a() is array), None)
+
+
+class TableWriter:
+    """The per-table writes of :meth:`~como3r.store.writer.SessionStore.record`, and what
+    the store holds already that they compare with (set up by the store)."""
+
+    connection: sqlite3.Connection
+    #: bytes of blobs and text written, per part
+    written: Counter[str]
+    _keyframes: list[Written]
+    _poses: Tensor
+    _edges: int
+    _candidates: list[tuple[str, float | None]]
+    _indexed: int
+    _rows: dict[str, dict[Any, tuple]]
+    _updates: dict[int, int]
+    _finished: bool
+
+    def _blob(self, data: bytes, part: str) -> int:
+        return int(
+            self.connection.execute(
+                "INSERT INTO blobs (data) VALUES (?)", (self._count(part, data),)
+            ).lastrowid
+        )
+
+    def _count(self, part: str, data: bytes) -> bytes:
+        """``data``, counted as written for ``part``."""
+        self.written[part] += len(data)
+        return data
+
+    def _record_keyframes(self, coordinator: Coordinator) -> None:
+        """New keyframes, and the pointmaps of known ones that were replaced."""
+        graph = coordinator.graph
+        for g, kf in enumerate(graph.keyframes[: len(self._keyframes)]):
+            written = self._keyframes[g]
+            if isinstance(kf, PagedKeyframe) and not kf.resident("pointmaps"):
+                if not kf.served_by(self):
+                    # parked by the terminal cleanup (KeyframeParking): the pointmaps it
+                    # changed are read back (the others from this store, as written) and
+                    # written, one keyframe in memory at a time
+                    self._keyframes[g] = self._write_pointmaps(g, kf, written)
+                    kf.evict(self, g)
+                continue  # else as written: a pointmap that changes is read back first
+            if (
+                any(b() is not a for a, b in zip(pointmap_arrays(kf), written.arrays))
+                or kf.K is not written.K
+                or kf.fused_frames != written.fused_frames
+            ):
+                self._keyframes[g] = self._write_pointmaps(g, kf, written)
+        for g in range(len(self._keyframes), len(graph.keyframes)):
+            kf = graph.keyframes[g]
+            self.connection.execute(
+                "INSERT INTO keyframes VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (
+                    g,
+                    graph.agent_of[g],
+                    kf.kf_id,
+                    kf.frame_index,
+                    kf.timestamp,
+                    self._blob(pack_arrays(kf.colors), "colours"),
+                    self._blob(pack_object(kf.encoding), "encoding"),
+                ),
+            )
+            self._keyframes.append(self._write_pointmaps(g, kf, None))
+            if kf.retrieval is not None:
+                self.connection.execute(
+                    "INSERT INTO retrieval VALUES (?, ?, ?, NULL, ?)",
+                    (
+                        g,
+                        graph.agent_of[g],
+                        kf.kf_id,
+                        self._count("retrieval", pack_arrays(*kf.retrieval)),
+                    ),
+                )
+
+    def _write_pointmaps(self, g: int, kf: Keyframe, before: Written | None) -> Written:
+        """Write a keyframe's pointmaps row: a blob per distinct array (one for ``X_init``
+        and ``X_hat`` while they are the same tensor), the replaced ones deleted."""
+        arrays = pointmap_arrays(kf)
+        ids: list[int] = []
+        for k, array in enumerate(arrays):
+            same = next((ids[m] for m in range(k) if arrays[m] is array), None)
+            kept = None if before is None else before.holds(array)
+            ids.append(
+                same
+                if same is not None
+                else kept
+                if kept is not None
+                else self._blob(pack_arrays(array), "pointmaps")
+            )
+        K = None if kf.K is None else self._count("pointmaps", pack_arrays(kf.K))
+        self.connection.execute(
+            "INSERT OR REPLACE INTO pointmaps VALUES (?, ?, ?, ?, ?, ?, ?)",
+            (g, kf.fused_frames, *ids, K),
+        )
+        if before is not None:
+            self.connection.executemany(
+                "DELETE FROM blobs WHERE id = ?", [(b,) for b in set(before.blobs) - set(ids)]
+            )
+        return Written(refs(arrays), tuple(ids), kf.K, kf.fused_frames)
+
+    def _record_poses(self, coordinator: Coordinator) -> None:
+        graph = coordinator.graph
+        if not len(graph):
+            return
+        poses = graph.poses(range(len(graph))).detach().cpu()
+        known = min(len(self._poses), len(poses))
+        moved = (poses[:known] != self._poses[:known].to(poses)).any(dim=1).nonzero()
+        changed = [int(g) for g in moved[:, 0]] + list(range(known, len(poses)))
+        self.connection.executemany(
+            "INSERT OR REPLACE INTO poses VALUES (?, ?)",
+            [(g, self._count("poses", pack_arrays(poses[g]))) for g in changed],
+        )
+        self._poses = poses.clone()
+
+    def _record_retrieval(self, coordinator: Coordinator) -> None:
+        """Positions of the keyframes the ASMK database indexed since the last call."""
+        if coordinator.retrieval is None:
+            return
+        keys = coordinator.retrieval.database.keys
+        self.connection.executemany(
+            "UPDATE retrieval SET position = ? WHERE agent = ? AND kf_id = ?",
+            [
+                (n, agent, kf_id)
+                for n, (agent, kf_id) in enumerate(keys[self._indexed :], self._indexed)
+            ],
+        )
+        self._indexed = len(keys)
+
+    def _record_edges(self, coordinator: Coordinator) -> None:
+        links = coordinator.graph.links
+        self.connection.executemany(
+            "INSERT INTO edges VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+            [
+                (
+                    n,
+                    link.i,
+                    link.j,
+                    link.kind,
+                    link.similarity,
+                    link.link.covisible_ij,
+                    link.link.covisible_ji,
+                    self._count("edges", pack_link(link.link)),
+                )
+                for n, link in enumerate(links[self._edges :], self._edges)
+            ],
+        )
+        self._edges = len(links)
+
+    def _record_candidates(self, candidates: Sequence[Candidate]) -> None:
+        """New candidates; the status and residual ratio of known ones that changed."""
+        for n, c in enumerate(candidates):
+            ratio = None if c.residual_ratio != c.residual_ratio else c.residual_ratio
+            if n < len(self._candidates) and self._candidates[n] == (c.status, ratio):
+                continue
+            v, pending = c.verification, c.status == "pending"
+            link = v.link if pending else None
+            self.connection.execute(
+                "INSERT OR REPLACE INTO candidates VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    n,
+                    c.i,
+                    c.j,
+                    c.status,
+                    ratio,
+                    v.similarity,
+                    v.nu_i,
+                    v.nu_j,
+                    v.covisible_ratio,
+                    int(v.accepted),
+                    None if v.link is None else v.link.covisible_ij,
+                    None if v.link is None else v.link.covisible_ji,
+                    None if link is None else self._count("candidates", pack_link(link)),
+                ),
+            )
+            if n < len(self._candidates):
+                self._candidates[n] = (c.status, ratio)
+            else:
+                self._candidates.append((c.status, ratio))
+
+    def _record_agents(self, coordinator: Coordinator) -> None:
+        """Gauge components and per-agent progress."""
+        graph = coordinator.graph
+        gauges = {agent: (members[0],) for members in coordinator.components() for agent in members}
+        agents = {}
+        for agent in range(coordinator.num_agents):
+            own = graph.agent_keyframes(agent)
+            agents[agent] = (
+                len(own),
+                graph.keyframes[own[-1]].frame_index if own else -1,
+                self._updates.get(agent, 0),
+                graph.focal.get(agent),
+            )
+        self._upsert("gauges", gauges)
+        self._upsert("agents", agents)
+
+    def _record_state(self, coordinator: Coordinator, finished: bool) -> None:
+        new_edges, roots = coordinator.backlog
+        self._finished = self._finished or finished
+        state = {
+            "stats": dataclasses.asdict(coordinator.stats),
+            "gauge_events": coordinator.gauge_events,
+            "alternation": coordinator.alternation,
+            "backlog": {"new_edges": new_edges, "roots": roots},
+            "finished": self._finished,
+        }
+        self._upsert("state", {key: (json.dumps(value),) for key, value in state.items()})
+
+    def _upsert(self, table: str, rows: dict[Any, tuple]) -> None:
+        """Write the rows of a small keyed table that differ from what it holds."""
+        known = self._rows[table]
+        changed = [(key, *row) for key, row in rows.items() if known.get(key) != row]
+        if changed:
+            text = sum(len(v) for row in changed for v in row[1:] if isinstance(v, (str, bytes)))
+            if text:
+                self.written[table] += text
+            marks = ", ".join("?" * len(changed[0]))
+            self.connection.executemany(f"INSERT OR REPLACE INTO {table} VALUES ({marks})", changed)
+            known.update((key, tuple(row)) for key, *row in changed)
+
+
+def pointmap_arrays(kf: Keyframe) -> tuple[Tensor, ...]:
+    return tuple(getattr(kf, name) for name in POINTMAP_FIELDS)
+
+
+def refs(arrays: Sequence[Tensor]) -> tuple[weakref.ref, ...]:
+    return tuple(weakref.ref(a) for a in arrays)
