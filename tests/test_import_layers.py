@@ -43,18 +43,6 @@ KNOWN_CYCLES: dict[str, frozenset[str]] = {
     ),
     # the simulated prior and its fitted error model (branch tree-split)
     "simulated prior": frozenset({"como3r.prior.simulated", "como3r.prior.simulated_fit"}),
-    # the configuration checks against the simulated prior's error model (branch typed-core)
-    "config": frozenset({"como3r.config", "como3r.prior.simulated_errors"}),
-    # the solver's package and its modules (branch typed-core)
-    "optim": frozenset(
-        {
-            "como3r.optim",
-            "como3r.optim.factors",
-            "como3r.optim.linear",
-            "como3r.optim.optimizer",
-            "como3r.optim.pcg",
-        }
-    ),
     # the viewer's package imports its recording lazily, which imports the package's spec
     # (no branch of this session owns it)
     "viewer": frozenset({"como3r.viewer", "como3r.viewer.recording"}),
@@ -69,9 +57,6 @@ KNOWN_UPWARD: dict[tuple[str, str], str] = {
     ("como3r.config", "como3r.decentralized.config"): (
         "the decentralized mode's configuration section lives in its package (branch "
         "typed-core or tree-split moves it down)"
-    ),
-    ("como3r.config", "como3r.prior.simulated_errors"): (
-        "part of the 'config' cycle above (branch typed-core)"
     ),
 }
 
