@@ -36,7 +36,8 @@ import numpy as np
 import torch
 
 from como3r.config import Config, InputConfig
-from como3r.data.agent import AgentInput, open_agent
+from como3r.data.agent import open_agent
+from como3r.data.agent_input import AgentInput
 from como3r.data.preprocess import make_view
 from como3r.decentralized.config import DecentralizedConfig
 from como3r.decentralized.registration import register_predictions

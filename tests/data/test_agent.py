@@ -10,7 +10,9 @@ import pytest
 import torch
 from PIL import Image
 
-from como3r.data.agent import DEPTH_PNG_PER_METRE, associate_timestamps, open_agent
+from como3r.data.agent import open_agent
+from como3r.data.agent_input import DEPTH_PNG_PER_METRE
+from como3r.data.input_files import associate_timestamps
 from como3r.errors import InputError
 from como3r.io.tum import write_tum
 

@@ -16,7 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from como3r.data.agent import AgentInput, associate_timestamps
+from como3r.data.agent_input import AgentInput
+from como3r.data.input_files import associate_timestamps
 from como3r.errors import InputError
 from como3r.geometry.lie import sim3_compose, sim3_inverse, sim3_normalize
 

@@ -33,7 +33,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from como3r.config import Config
-from como3r.data.agent import AgentInput
+from como3r.data.agent_input import AgentInput
 from como3r.data.preprocess import make_view
 from como3r.decentralized.confidence import accept_loop, correspondence_ratio, loop_probability
 from como3r.decentralized.config import DecentralizedConfig

@@ -37,7 +37,8 @@ import numpy as np
 import yaml
 
 from como3r.config import Config, config_to_dict
-from como3r.data.agent import AgentInput, open_agent
+from como3r.data.agent import open_agent
+from como3r.data.agent_input import AgentInput
 from como3r.data.preprocess import make_view
 from como3r.decentralized.config import (
     FORMULATIONS,
