@@ -38,7 +38,8 @@ from como3r.geometry.umeyama import umeyama_sim3
 from como3r.prior.base import Encoding, PairPrediction, View
 from como3r.prior.ground_truth import GroundTruth, InMemoryTruth
 from como3r.prior.retrieval import RetrievalDatabase
-from como3r.prior.simulated import SimulatedPrior, fill_depth_holes
+from como3r.prior.simulated import SimulatedPrior
+from como3r.prior.simulated_encoding import fill_depth_holes
 
 WIDTH, HEIGHT, FRAMES = 96, 72, 40
 LONG_SIDE = 96
