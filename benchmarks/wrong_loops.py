@@ -60,7 +60,7 @@ import numpy as np
 from como3r.decentralized.config import DecentralizedConfig, PoseGraphConfig
 from como3r.decentralized.consistency import LoopCheck
 from como3r.decentralized.messages import PoseGraphShare
-from como3r.decentralized.pose_graph import LoopClosure, from_pose3, to_pose3
+from como3r.decentralized.pose_graph_problem import LoopClosure, from_pose3, to_pose3
 from como3r.decentralized.robot import solve_shares
 
 ROBOTS = 3

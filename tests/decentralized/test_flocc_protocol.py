@@ -18,7 +18,7 @@ from como3r.decentralized.messages import (
     RobotReport,
     RobotTask,
 )
-from como3r.decentralized.pose_graph import LoopClosure
+from como3r.decentralized.pose_graph_problem import LoopClosure
 from como3r.decentralized.protocol import (
     Router,
     Schedule,

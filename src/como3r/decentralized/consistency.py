@@ -11,7 +11,7 @@ Two safeguards around :func:`~.pose_graph.solve_pose_graph`:
   where ``Z`` is a loop's relative pose with the prior's translation scaled by its F-Eq. 6
   factor and ``O`` the metric odometry. ``Log(E_ij)`` is tested against a chi-square bound
   (6 dof) with a covariance built from the configured noise models, all lengths in keyframe
-  spacings (:func:`~.pose_graph.keyframe_spacing`), so the test is scale-free. The loops of
+  spacings (:func:`~.initial_estimate.keyframe_spacing`), so the test is scale-free. The loops of
   each robot pair kept are a set of mutually consistent ones (a clique of the consistency
   graph); the others are held back before the solve. The set is the clique of largest summed
   confidence (F-Eq. 2) rather than PCM's largest clique: loops of low confidence have wide
@@ -45,14 +45,13 @@ import numpy as np
 from scipy.stats import chi2
 
 from como3r.decentralized.config import PoseGraphConfig
-from como3r.decentralized.pose_graph import (
+from como3r.decentralized.initial_estimate import initial_scales, keyframe_spacing
+from como3r.decentralized.pose_graph import solve_pose_graph
+from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
     PoseGraphProblem,
     PoseGraphSolution,
     connected_components,
-    initial_scales,
-    keyframe_spacing,
-    solve_pose_graph,
     to_pose3,
 )
 

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from como3r.decentralized.pose_graph import LoopClosure
+from como3r.decentralized.pose_graph_problem import LoopClosure
 from como3r.prior.base import Encoding
 from como3r.runtime import codec
 from como3r.runtime.codec import require, require_shape

@@ -50,7 +50,7 @@ from como3r.decentralized.messages import (
     RobotReport,
 )
 from como3r.decentralized.place_recognition import PlaceRecognizer, candidate_pairs
-from como3r.decentralized.pose_graph import (
+from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
     PoseGraphProblem,
     connected_components,

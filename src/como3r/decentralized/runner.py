@@ -55,7 +55,7 @@ from como3r.decentralized.keyframes import (
     select_keyframes,
 )
 from como3r.decentralized.messages import RobotProgress, RobotReport
-from como3r.decentralized.pose_graph import (
+from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
     PoseGraphProblem,
     connected_components,
