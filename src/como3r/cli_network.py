@@ -410,7 +410,7 @@ def robot(
     Waits until the whole team has started, runs the rendezvous rounds of the schedule
     (messages from robots out of range are dropped here, at the receiver) and writes this
     robot's output folder."""
-    from como3r.decentralized.protocol import read_schedule
+    from como3r.decentralized.schedule import read_schedule
     from como3r.runtime.robot_node import run_robot
 
     if robots > 1 and not (listen or connect or scouting):

@@ -60,7 +60,8 @@ from como3r.decentralized.pose_graph_problem import (
     PoseGraphProblem,
     connected_components,
 )
-from como3r.decentralized.protocol import ProtocolResult, Schedule, run_protocol
+from como3r.decentralized.protocol import ProtocolResult, run_protocol
+from como3r.decentralized.schedule import Schedule
 from como3r.errors import Como3rError, InputError
 from como3r.io.output import atomic_output_dir, check_output_dir
 from como3r.io.tum import Trajectory, write_tum
