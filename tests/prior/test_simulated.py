@@ -602,7 +602,7 @@ def test_codebook_is_trained_once_and_cached(prior, tmp_path, monkeypatch):
     def no_training(*args, **kwargs):
         raise AssertionError("the cached codebook must be reused")
 
-    monkeypatch.setattr("como3r.prior.retrieval.train_codebook", no_training)
+    monkeypatch.setattr("como3r.prior.codebook.train_codebook", no_training)
     np.testing.assert_array_equal(
         SimulatedPrior(truth=TRUTH).codebook(size=32, cache_dir=tmp_path), first
     )

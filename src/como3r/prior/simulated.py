@@ -445,7 +445,7 @@ class SimulatedPrior(Prior):
     def codebook(self, size: int | None = None, cache_dir: str | Path | None = None) -> np.ndarray:
         """ASMK codebook of the retrieval features, trained once and cached on disk.
 
-        k-means (:func:`como3r.prior.retrieval.train_codebook`) on the retrieval features of
+        k-means (:func:`como3r.prior.codebook.train_codebook`) on the retrieval features of
         ``codebook_samples_per_word * size`` random synthetic patches
         (:func:`~como3r.prior.simulated_retrieval.synthetic_patch_features`), deterministic
         for the seed. Cached as ``simulated_codebook_<hash>.npy`` in ``cache_dir`` (default
@@ -459,7 +459,7 @@ class SimulatedPrior(Prior):
         Returns:
             ``(size, retrieval_dim)`` float32 centroids.
         """
-        from como3r.prior.retrieval import train_codebook  # deferred: imports faiss
+        from como3r.prior.codebook import train_codebook  # deferred: imports faiss
 
         c = self.constants
         size = size or c.codebook_size
