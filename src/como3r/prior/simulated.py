@@ -72,6 +72,7 @@ from como3r.config import SimulatedPriorConfig
 from como3r.errors import PriorError
 from como3r.geometry.camera import rays_from_intrinsics, unproject_depth
 from como3r.geometry.units import median_of_ranges
+from como3r.prior import simulated_appearance as appearance_model
 from como3r.prior import simulated_errors as errors
 from como3r.prior.base import Encoding, PairPrediction, Prior, View
 from como3r.prior.ground_truth import GroundTruth, GroundTruthSource
@@ -204,12 +205,14 @@ class SimulatedPrior(Prior):
         texture = colours = None
         if self.appearance:
             image = view.image.to(descriptors.device)
-            texture = errors.texture_weight(image)
-            appearance = errors.appearance_descriptors(image, self.descriptor_dim, self.config.seed)
+            texture = appearance_model.texture_weight(image)
+            appearance = appearance_model.appearance_descriptors(
+                image, self.descriptor_dim, self.config.seed
+            )
             descriptors = normalize(
                 texture[..., None] * descriptors + (1.0 - texture[..., None]) * appearance
             )
-            colours = errors.cell_colours(image, self.constants.retrieval_stride)
+            colours = appearance_model.cell_colours(image, self.constants.retrieval_stride)
         return SimulatedEncoding(
             agent=view.agent,
             index=view.index,
@@ -330,12 +333,12 @@ class SimulatedPrior(Prior):
         on_rays_j = enc_j.rays * X_j.norm(dim=-1, keepdim=True)
         X_j_in_i = s * reproducible_matmul(on_rays_j, R.T) + t
         X_ji = scale * errors.in_believed_camera(X_j_in_i, enc_i.rays, enc_i.pred_rays, enc_i.K)
-        if self.appearance:  # v2: per-pair rays, the two heads apart (errors, item 12)
+        if self.appearance:  # v2: per-pair rays, the two heads apart (item 12)
             heads = generator(
                 cfg.seed, "v2 pair rays", enc_i.agent, enc_i.index, enc_j.agent, enc_j.index
             )
-            X_ii = errors.jitter_rays(X_ii, enc_i.K, cfg, heads)
-            X_ji = errors.jitter_rays(X_ji, enc_i.K, cfg, heads)
+            X_ii = appearance_model.jitter_rays(X_ii, enc_i.K, cfg, heads)
+            X_ji = appearance_model.jitter_rays(X_ji, enc_i.K, cfg, heads)
         r = errors.RealisticConstants
         unmatched_i = ~matches.counterpart_i.view(enc_i.shape) & enc_i.valid
         unmatched_j = ~matches.counterpart_j.view(enc_j.shape) & enc_j.valid
@@ -349,14 +352,14 @@ class SimulatedPrior(Prior):
         descriptor_noise = cfg.descriptor_noise * (1.0 + cfg.descriptor_viewpoint_gain * change)
         noise_i = noise_j = descriptor_noise
         known_i, known_j = error_i, error_j
-        if enc_i.texture is not None and enc_j.texture is not None:  # v2 (errors, 9 and 11)
-            a = errors.AppearanceConstants
+        if enc_i.texture is not None and enc_j.texture is not None:  # v2 (items 9 and 11)
+            a = appearance_model.AppearanceConstants
             noise_i = descriptor_noise * (1.0 + a.contrast_noise_gain * (1.0 - enc_i.texture))
             noise_j = descriptor_noise * (1.0 + a.contrast_noise_gain * (1.0 - enc_j.texture))
             desc_conf_i = desc_conf_i - a.contrast_q_drop * (1.0 - enc_i.texture)
             desc_conf_j = desc_conf_j - a.contrast_q_drop * (1.0 - enc_j.texture)
-            known_i = errors.local_error(error_i, enc_i.valid)
-            known_j = errors.local_error(error_j, enc_j.valid)
+            known_i = appearance_model.local_error(error_i, enc_i.valid)
+            known_j = appearance_model.local_error(error_j, enc_j.valid)
             conf_i = conf_i - a.conf_texture_drop * (1.0 - enc_i.texture)
             conf_j = conf_j - a.conf_texture_drop * (1.0 - enc_j.texture)
         return PairPrediction(
@@ -418,8 +421,8 @@ class SimulatedPrior(Prior):
             )
         gen = generator(self.config.seed, "retrieval", enc.agent, enc.index)
         appearance = None
-        if enc.texture is not None and enc.colours is not None:  # v2 (errors, item 10)
-            appearance = errors.patch_appearance(
+        if enc.texture is not None and enc.colours is not None:  # v2 (item 10)
+            appearance = appearance_model.patch_appearance(
                 enc.colours,
                 enc.texture,
                 c.retrieval_patch,
@@ -464,7 +467,11 @@ class SimulatedPrior(Prior):
         c = self.constants
         size = size or c.codebook_size
         directory = Path(cache_dir) if cache_dir is not None else default_cache_dir()
-        v2 = (repr(dataclasses.astuple(errors.AppearanceConstants())),) if self.appearance else ()
+        v2 = (
+            (repr(dataclasses.astuple(appearance_model.AppearanceConstants())),)
+            if self.appearance
+            else ()
+        )
         digest = stable_seed(
             CODEBOOK_CACHE_VERSION, size, self.config.seed, repr(dataclasses.astuple(c)), *v2
         )
@@ -482,10 +489,10 @@ class SimulatedPrior(Prior):
                 c.codebook_world_fraction,
                 gen,
             )
-            if self.appearance:  # v2: key patches mixed with image appearance (errors, 10)
+            if self.appearance:  # v2: key patches mixed with image appearance (item 10)
                 mixed = mix_appearance(
                     sample,
-                    *errors.random_patch_appearance(
+                    *appearance_model.random_patch_appearance(
                         count,
                         c.retrieval_patch,
                         c.retrieval_stride,
@@ -513,5 +520,5 @@ class SimulatedPrior(Prior):
         if self.realistic:
             out["realistic_constants"] = dataclasses.asdict(errors.RealisticConstants())
         if self.appearance:
-            out["appearance_constants"] = dataclasses.asdict(errors.AppearanceConstants())
+            out["appearance_constants"] = dataclasses.asdict(appearance_model.AppearanceConstants())
         return out

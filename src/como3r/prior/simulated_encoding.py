@@ -98,10 +98,10 @@ class SimulatedEncoding(Encoding):
         median_footprint: median of ``footprint`` over keyed pixels (metres).
         descriptors: ``(H, W, d)`` float16 noise-free unit descriptors.
         texture: ``(H, W)`` float32 weight of the key in each descriptor, from the image's
-            local contrast (:func:`~como3r.prior.simulated_errors.texture_weight`); None in
+            local contrast (:func:`~como3r.prior.simulated_appearance.texture_weight`); None in
             the models that ignore the image (all but ``v2``).
         colours: ``(H // s, W // s, 3)`` float32 mean image colour of each ``s x s`` cell,
-            ``s = retrieval_stride`` (:func:`~como3r.prior.simulated_errors.cell_colours`);
+            ``s = retrieval_stride`` (:func:`~como3r.prior.simulated_appearance.cell_colours`);
             None as ``texture``.
     """
 
