@@ -55,7 +55,8 @@ import torch
 from torch import Tensor
 
 from como3r.backend.alternation import AlternationReport, AlternationSettings, alternate
-from como3r.backend.global_graph import BAResult, GlobalGraph, GraphLink
+from como3r.backend.global_graph import BAResult, GlobalGraph
+from como3r.backend.graph_link import GraphLink
 from como3r.config import Config
 from como3r.coordination.association import Candidate, CrossAgentRetrieval
 from como3r.coordination.cleanup import Cleanup, ComponentCleanup, MapSnapshot, scoped_progress
