@@ -13,7 +13,12 @@ import pytest
 
 from como3r.decentralized import consistency
 from como3r.decentralized.config import DecentralizedConfig, PoseGraphConfig, check_config
-from como3r.decentralized.consistency import check_solution, consistent_loops, solve_checked
+from como3r.decentralized.consistency import (
+    check_solution,
+    consistent_loops,
+    solve_checked,
+    solve_shares,
+)
 from como3r.decentralized.messages import PoseGraphShare
 from como3r.decentralized.pose_graph import solve_pose_graph
 from como3r.decentralized.pose_graph_problem import (
@@ -22,7 +27,6 @@ from como3r.decentralized.pose_graph_problem import (
     PoseGraphSolution,
     from_pose3,
 )
-from como3r.decentralized.robot import solve_shares
 from como3r.errors import ConfigError
 
 COUNT = 24
