@@ -1,4 +1,5 @@
-"""Tests of como3r.data.agent: agent input discovery, parsing, validation and frame loading."""
+"""Tests of opening agent inputs (como3r.data.agent): discovery, parsing and validation of the
+agent layout (data/readers/agent, data/input_files) and frame loading (data/agent_input)."""
 
 from __future__ import annotations
 
