@@ -1,7 +1,8 @@
-"""What ``como3r run``, ``serve``, ``robot`` and ``merge`` check before any work, and the
-summary tables they print after: the configuration from ``--config``, ``--set`` and the flags,
-``--resume`` against the stored session, ``--format``, ``--camera``, each input's layout and
-what ``--prior simulated`` needs of it, and ``--device``.
+"""The checks ``como3r run`` and the network commands (``coordinator``, ``agent``, ``robot``)
+make before any work, and the summary tables ``run``, ``coordinator``, ``robot`` and ``merge``
+print after: the configuration from ``--config``, ``--set`` and the flags, ``--resume``
+against the stored session, ``--format``, ``--camera``, each input's layout and what
+``--prior simulated`` needs of it, and ``--device``.
 
 The command modules (:mod:`como3r.cli`, :mod:`como3r.cli_network`, :mod:`como3r.cli_sessions`)
 import it; it imports none of them.
