@@ -36,9 +36,10 @@ import numpy as np
 import torch
 
 from como3r.config import Config, InputConfig
-from como3r.data.agent import AgentInput, open_agent
+from como3r.config_decentralized import DecentralizedConfig
+from como3r.data.agent import open_agent
+from como3r.data.agent_input import AgentInput
 from como3r.data.preprocess import make_view
-from como3r.decentralized.config import DecentralizedConfig
 from como3r.decentralized.registration import register_predictions
 from como3r.geometry.lie import quat_to_matrix
 from como3r.prior.base import Encoding, Prior

@@ -64,9 +64,9 @@ import torch
 from torch import Tensor
 
 from como3r.config import Config, InputConfig
+from como3r.config_decentralized import RegistrationConfig
 from como3r.data.agent import open_agent
 from como3r.data.preprocess import make_view
-from como3r.decentralized.config import RegistrationConfig
 from como3r.decentralized.matching import query_grid, reciprocal_matches
 from como3r.prior.base import PairPrediction
 from como3r.runtime.pipeline import PriorSpec, build_prior

@@ -123,7 +123,7 @@ from pathlib import Path
 import numpy as np
 
 from como3r.config import Config, InputConfig
-from como3r.decentralized.config import DecentralizedConfig, ProtocolConfig
+from como3r.config_decentralized import DecentralizedConfig, ProtocolConfig
 from como3r.decentralized.runner import run_decentralized
 from como3r.runtime.pipeline import PriorSpec
 

@@ -24,7 +24,7 @@ from collections.abc import Callable
 
 import torch
 
-from como3r.frontend import cpu_kernels, matching, pairs
+from como3r.frontend import cpu_kernels, cpu_window_search, matching, pairs
 from como3r.geometry.camera import intrinsics_matrix, unproject_depth
 from como3r.geometry.lie import sim3_act, sim3_exp
 
@@ -109,7 +109,7 @@ def main() -> None:
     width, height = (int(v) for v in args.size.split("x"))
     loops = {
         "descriptor window search": (
-            cpu_kernels.refine_windows,
+            cpu_window_search.refine_windows,
             matching._refine_vectorised,
             descriptor_problem(width, height),
         ),

@@ -70,7 +70,8 @@ from como3r.geometry.lie import (
 from como3r.geometry.umeyama import umeyama_sim3
 from como3r.prior.base import View
 from como3r.prior.ground_truth import GroundTruth, InMemoryTruth
-from como3r.prior.simulated import SimulatedEncoding, SimulatedPrior
+from como3r.prior.simulated import SimulatedPrior
+from como3r.prior.simulated_encoding import SimulatedEncoding
 
 MODELS = typing.get_args(typing.get_type_hints(SimulatedPriorConfig)["model"])
 OVERLAP, NO_OVERLAP = 0.3, 0.01

@@ -37,7 +37,7 @@ real_data.csv`` holds the table. A run that fails is a result, not a stop: its r
 
 Measured (2-core x86_64 shared with other jobs, so ``s/frame`` is only indicative), before
 and after the simulated prior filled the Kinect's depth holes instead of treating them as
-sky (``prior/simulated.py``, :func:`~como3r.prior.simulated.fill_depth_holes`); "before"
+sky (``prior/simulated.py``, :func:`~como3r.prior.simulated_encoding.fill_depth_holes`); "before"
 read the TUM excerpt without its first 4 frames, which had no pose then:
 
 =========  ======  ======  =======  ========  ========  =========  =========  ======

@@ -57,11 +57,10 @@ from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
 
-from como3r.decentralized.config import DecentralizedConfig, PoseGraphConfig
-from como3r.decentralized.consistency import LoopCheck
+from como3r.config_decentralized import DecentralizedConfig, PoseGraphConfig
+from como3r.decentralized.consistency import LoopCheck, solve_shares
 from como3r.decentralized.messages import PoseGraphShare
-from como3r.decentralized.pose_graph import LoopClosure, from_pose3, to_pose3
-from como3r.decentralized.robot import solve_shares
+from como3r.decentralized.pose_graph_problem import LoopClosure, from_pose3, to_pose3
 
 ROBOTS = 3
 KEYFRAMES = 40
@@ -249,7 +248,7 @@ def mission(
 ) -> Mission:
     """Round 1: the first half of every robot's keyframes and the loops among them; round
     2: everything, from round 1's estimates; both solved as the elected robot does
-    (:func:`~como3r.decentralized.robot.solve_shares`). A solve the alarm holds back leaves
+    (:func:`~como3r.decentralized.consistency.solve_shares`). A solve the alarm holds back leaves
     the robots with their previous estimates (extended by odometry), or their odometry."""
     settings = DecentralizedConfig(
         pose_graph=replace(config, solver=solver, formulation="smoothed")

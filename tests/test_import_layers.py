@@ -19,46 +19,9 @@ ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src"
 ARCHITECTURE = ROOT / "docs" / "architecture.md"
 
-#: Import cycles that exist today and are being broken by other branches of issue 40
-#: (item 2). Each entry is one cycle's modules; a cycle found that is not within an entry
-#: fails, and so does an entry whose cycle is gone: delete it then (the lead empties this
-#: list as the branches are merged).
-KNOWN_CYCLES: dict[str, frozenset[str]] = {
-    # the command's modules import each other's commands (branch tree-split)
-    "cli": frozenset({"como3r.cli", "como3r.cli_network", "como3r.cli_sessions"}),
-    # the readers register with data/agent.py, which imports them (branch tree-split)
-    "data readers": frozenset(
-        {
-            "como3r.data.agent",
-            "como3r.data.readers",
-            "como3r.data.readers.common",
-            "como3r.data.readers.euroc",
-            "como3r.data.readers.kitti",
-            "como3r.data.readers.rosbag",
-            "como3r.data.readers.sevenscenes",
-            "como3r.data.readers.tanks",
-            "como3r.data.readers.tum",
-            "como3r.data.readers.undistort",
-        }
-    ),
-    # the simulated prior and its fitted error model (branch tree-split)
-    "simulated prior": frozenset({"como3r.prior.simulated", "como3r.prior.simulated_fit"}),
-    # the viewer's package imports its recording lazily, which imports the package's spec
-    # (no branch of this session owns it)
-    "viewer": frozenset({"como3r.viewer", "como3r.viewer.recording"}),
-    # exports and the ROS 2 bag writer import each other lazily (no branch of this session
-    # owns it)
-    "io export": frozenset({"como3r.io.export", "como3r.io.ros2_bag"}),
-}
-
-#: Imports that point up the layer list today: (importing module, imported module) -> why.
-#: An upward import not listed fails, and so does an entry no longer found.
-KNOWN_UPWARD: dict[tuple[str, str], str] = {
-    ("como3r.config", "como3r.decentralized.config"): (
-        "the decentralized mode's configuration section lives in its package (branch "
-        "typed-core or tree-split moves it down)"
-    ),
-}
+#: Imports that point up the layer list and why; none today. An upward import not listed
+#: fails, and so does an entry no longer found.
+KNOWN_UPWARD: dict[tuple[str, str], str] = {}
 
 
 def modules() -> dict[str, Path]:
@@ -179,15 +142,8 @@ def layer_of(name: str, listed: list[list[str]]) -> int | None:
 
 
 def test_no_import_cycles() -> None:
-    found = cycles(import_graph())
-    new = [
-        sorted(cycle)
-        for cycle in found
-        if not any(cycle <= known for known in KNOWN_CYCLES.values())
-    ]
-    assert not new, f"import cycles: {new}"
-    gone = [label for label, known in KNOWN_CYCLES.items() if not any(c <= known for c in found)]
-    assert not gone, f"these cycles are broken: delete them from KNOWN_CYCLES: {gone}"
+    found = [sorted(cycle) for cycle in cycles(import_graph())]
+    assert not found, f"import cycles: {found}"
 
 
 def test_every_package_is_in_a_layer() -> None:

@@ -9,20 +9,27 @@ from __future__ import annotations
 
 import logging
 import os
-import re
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import typer
 
-from como3r import cli_network, cli_sessions
+from como3r import cli_network, cli_results, cli_sessions
+from como3r.cli_checks import (
+    FORMAT_HELP,
+    camera_sources,
+    check_device,
+    check_format,
+    check_input,
+    check_resumable,
+    config_from_options,
+    print_summary,
+)
 from como3r.cli_common import (
     Command,
     OneLineErrorsGroup,
     console,
     interrupt_keeps_the_store,
     interrupt_leaves_nothing,
-    on_interrupt,
     print_rows,
     user_errors,
 )
@@ -31,9 +38,6 @@ from como3r.cli_team import team_app
 from como3r.cli_viewer import VIEWER_HELP, ViewerCommand, check_viewer_option, live_viewer
 from como3r.cli_weights import weights_app
 from como3r.errors import InputError
-
-if TYPE_CHECKING:
-    from como3r.data.readers.camera import CameraSource
 
 app = typer.Typer(
     cls=OneLineErrorsGroup,
@@ -172,150 +176,8 @@ def split(
     )
 
 
-FORMAT_HELP = (
-    "Layout of the input folders: auto (detect) | agent | tum (TUM RGB-D) | "
-    "7scenes | euroc (EuRoC MAV) | kitti (KITTI odometry) | tanks (Tanks and "
-    "Temples) | rosbag (ROS 1 .bag, ROS 2 bag folder)."
-)
-
-
-@app.command("eval", cls=Command)
-@on_interrupt(
-    lambda kwargs: (
-        "interrupted: nothing was written to "
-        f"{kwargs['out'] if kwargs['out'] is not None else kwargs['est']}"
-    )
-)
-@user_errors
-def evaluate(
-    est: Path = typer.Option(..., "--est", help="Run output folder (trajectories/agent_<a>.txt)."),
-    gt: list[Path] = typer.Option(
-        ...,
-        "--gt",
-        metavar="PATH",
-        help="Ground truth per agent: TUM file, agent folder, TUM "
-        "RGB-D or 7-Scenes sequence (repeat per agent).",
-    ),
-    out: Path | None = typer.Option(
-        None,
-        "--out",
-        help="Where to write ate.json, the plot and report.html (default: the --est folder).",
-    ),
-    report: Path | None = typer.Option(
-        None,
-        "--report",
-        metavar="PATH",
-        help="Where to write report.html, the run's report with this evaluation (default: "
-        "report.html in the --out folder; a run's own report there is replaced). "
-        "Needs a run folder as --est.",
-    ),
-    format: str = typer.Option("auto", "--format", help=FORMAT_HELP),
-) -> None:
-    """ATE (and RPE) per agent and merged, through evo, and the run's report.html."""
-    from como3r.evaluation.html import REPORT_NAME, write_evaluation_report
-    from como3r.evaluation.report import evaluate_run
-
-    _check_format(format)
-    folder = out if out is not None else est
-    page = report if report is not None else folder / REPORT_NAME
-    if report is not None and est.is_file():
-        raise InputError(f"--report: {est} is a trajectory file; the report needs a run folder")
-    if report is not None and report.is_dir():
-        raise InputError(f"--report {report}: is a folder; give the page's file name")
-    summary = evaluate_run(est, gt, folder, gt_format=format, check_gt_order=True)
-    print_rows("ATE RMSE [m] (Sim(3)-aligned)", summary.table_rows())
-    for line in summary.notes:
-        console.print(line)
-    if est.is_dir():
-        try:
-            page.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise InputError(
-                f"--report {page}: cannot create its folder ({exc.strerror})"
-            ) from None
-        console.print(f"wrote {write_evaluation_report(est, summary, page)}")
-
-
-@app.command("export", cls=Command)
-@on_interrupt(lambda kwargs: "interrupted: no export was written")
-@user_errors
-def export(
-    run: Path = typer.Argument(
-        ..., metavar="RUN", show_default=False, help="A finished run folder (como3r run --out)."
-    ),
-    colmap: Path | None = typer.Option(
-        None,
-        "--colmap",
-        metavar="DIR",
-        help="COLMAP text model: DIR/sparse/0/*.txt and DIR/images.",
-    ),
-    nerfstudio: Path | None = typer.Option(
-        None,
-        "--nerfstudio",
-        metavar="DIR",
-        help="nerfstudio: DIR/transforms.json, images, depth, sparse_pc.ply.",
-    ),
-    g2o: Path | None = typer.Option(
-        None, "--g2o", metavar="FILE", help="Keyframe pose graph (VERTEX_SE3:QUAT, EDGE_SE3:QUAT)."
-    ),
-    depth: Path | None = typer.Option(
-        None,
-        "--depth",
-        metavar="DIR",
-        help="Per keyframe depth and confidence (.npz) and 16-bit PNG depth (1000 per unit).",
-    ),
-    ros2_bag: Path | None = typer.Option(
-        None,
-        "--ros2-bag",
-        metavar="DIR",
-        help="ROS 2 bag (MCAP): /tf, per agent odometry, keyframe path, images and camera "
-        "info, the map as PointCloud2.",
-    ),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace earlier exports of como3r."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
-) -> None:
-    """Export a finished run to COLMAP, nerfstudio, g2o, depth maps and a ROS 2 bag (any
-    subset)."""
-    from como3r.io.export import export_run
-
-    with run_progress(quiet) as shown:
-        summary = export_run(
-            run,
-            colmap=colmap,
-            nerfstudio=nerfstudio,
-            g2o=g2o,
-            depth=depth,
-            ros2_bag=ros2_bag,
-            overwrite=overwrite,
-            progress=shown.steps("exporting keyframes"),
-        )
-    print_rows("exports", summary.rows)
-    for line in summary.notes:
-        console.print(line)
-
-
-def _load_config(
-    config_file: Path | None,
-    overrides: list[str],
-    calib: bool,
-    no_loop_closure: bool,
-    format: str | None = None,
-    topic: str | None = None,
-):
-    import dataclasses
-
-    from como3r.config import Config, apply_overrides, load_config
-
-    config = load_config(config_file) if config_file is not None else Config()
-    extra = (["calibrated=true"] if calib else []) + (
-        ["loop_closure=false"] if no_loop_closure else []
-    )
-    if format is not None:
-        extra.append(f"input.format={format}")
-    config = apply_overrides(config, [*overrides, *extra])
-    if topic is not None:  # as given: a topic is any string, not a YAML scalar
-        config = dataclasses.replace(config, input=dataclasses.replace(config.input, topic=topic))
-    return config
+app.command("eval", cls=Command)(cli_results.evaluate)
+app.command("export", cls=Command)(cli_results.export)
 
 
 @app.command(cls=ViewerCommand)
@@ -433,7 +295,7 @@ def run(
     from como3r.store.reader import resumable
 
     # every option is checked before any work starts (and before a progress bar shows)
-    _check_device(device)
+    check_device(device)
     if prior not in PRIORS:
         raise InputError(f"unknown --prior {prior!r}; choose one of {', '.join(PRIORS)}")
     if precision not in PRECISIONS:  # also where the simulated prior would ignore it
@@ -443,8 +305,8 @@ def run(
     if mode not in ("centralized", "decentralized"):
         raise InputError(f"unknown --mode {mode!r}; choose centralized or decentralized")
     if format is not None:
-        _check_format(format)
-    sources = _camera_sources(camera, max_frames, agent, prior, mode)
+        check_format(format)
+    sources = camera_sources(camera, max_frames, agent, prior, mode)
     if out is None:
         raise InputError("missing option --out: the output folder (see: como3r run --help)")
     if viewer is not None and mode == "decentralized":
@@ -462,9 +324,9 @@ def run(
         resume,  # before the weights load and the agents start
         resumable if mode == "centralized" and not sources else None,
     )
-    config = _load_config(config_file, overrides, calib, no_loop_closure, format, topic)
+    config = config_from_options(config_file, overrides, calib, no_loop_closure, format, topic)
     if resume:
-        _check_resumable(out, config)
+        check_resumable(out, config)
     saved_map = None
     if map_folder is not None:
         from como3r.runtime.map_session import open_map
@@ -476,7 +338,7 @@ def run(
             raise InputError(f"{path}: agent input does not exist{hint}")
     # input problems before weights are looked for
     simulatable = [
-        _check_input(path, config, prior, every_pose=mode == "decentralized") for path in agent
+        check_input(path, config, prior, every_pose=mode == "decentralized") for path in agent
     ]
     spec = PriorSpec(prior, weights, retrieval_weights, codebook, device, precision)
     if prior == "mast3r":
@@ -505,7 +367,7 @@ def run(
             summary = run_decentralized(
                 agent, out, config, spec, overwrite=overwrite, progress=shown
             )
-        _print_summary(summary, out)
+        print_summary(summary, out)
         return
     if single_process or sources:  # live inputs run in this process
         runner = run_pipeline
@@ -524,161 +386,7 @@ def run(
                 resume=resume,
                 saved_map=saved_map,
             )
-        _print_summary(summary, out)
-
-
-def _check_resumable(out: Path, config) -> None:
-    """The killed run in ``out.partial`` has a session store made with ``config``."""
-    from como3r.config import differing_key
-    from como3r.store.reader import read_config
-    from como3r.store.schema import STORE_NAME
-
-    store = out.with_name(out.name + ".partial") / STORE_NAME
-    difference = differing_key(read_config(store), config)
-    if difference is not None:
-        raise InputError(
-            f"--resume: the configuration differs from the stored session's "
-            f"({difference}); give the options of the run that was killed"
-        )
-
-
-def _check_format(format: str) -> None:
-    """``--format`` names a known input layout (:data:`como3r.data.readers.FORMATS`)."""
-    from como3r.data.readers import FORMATS
-
-    if format not in FORMATS:
-        raise InputError(f"unknown --format {format!r}; choose one of {', '.join(FORMATS)}")
-
-
-def _camera_sources(
-    camera: list[str], max_frames: int | None, agent: list[Path], prior: str, mode: str
-) -> list[CameraSource]:
-    """The :class:`~como3r.data.readers.camera.CameraSource` of each ``--camera``, after
-    the checks of what a live input cannot do.
-
-    Raises:
-        InputError: no input at all, --camera beside --agent, --max-frames without
-            --camera, or a live input with the simulated prior or the decentralized mode.
-    """
-    from como3r.data.readers.camera import parse_source
-
-    if not camera:
-        if not agent:
-            raise InputError(
-                "no input: give --agent PATH or --camera SOURCE (see: como3r run --help)"
-            )
-        if max_frames is not None:
-            raise InputError("--max-frames ends --camera streams; there is none")
-        return []
-    if agent:
-        raise InputError("a run takes recorded inputs (--agent) or live ones (--camera), not both")
-    if prior == "simulated":
-        raise InputError(
-            "--camera: a live camera has no depth, which --prior simulated needs "
-            "(a stand-in made from ground-truth depth); use --prior mast3r"
-        )
-    if mode == "decentralized":
-        raise InputError(
-            "--camera: --mode decentralized needs each robot's odometry "
-            "(odometry.txt), which a live camera does not give"
-        )
-    return [parse_source(text, max_frames) for text in camera]
-
-
-def _check_input(path: Path, config, prior: str, every_pose: bool = False) -> bool:
-    """An input opened before any work and before MASt3R's weights are looked for (its
-    layout, files and image headers: :func:`como3r.data.agent.open_agent`), and what
-    ``--prior simulated`` needs of it: depth, intrinsics and ground-truth poses (or
-    appearance keys); frames without a pose (before the first, after the last, in a gap
-    wider than :data:`como3r.data.poses.MAX_GAP`) are skipped by the run, with one warning,
-    so at least one frame must have one; ``every_pose``: every frame must (decentralized
-    robots pick their keyframes by odometry and do not skip frames).
-
-    Returns:
-        Whether ``--prior simulated`` could run the input (depth, intrinsics, and appearance
-        keys or a ground-truth pose for some frame).
-
-    Raises:
-        InputError: naming the input and what is wrong with it or what it lacks; images
-            alone take --prior mast3r.
-    """
-    from como3r.data.agent import open_agent, quiet_reading
-    from como3r.data.poses import MAX_GAP
-    from como3r.data.readers import DEPTH_SOURCES
-
-    with quiet_reading():  # the run opens it again and says the readers' warnings once
-        source = open_agent(
-            path,
-            fps=config.input.frame_rate_hz,
-            format=config.input.format,
-            topic=config.input.topic,
-        )
-    if prior != "simulated":
-        return bool(
-            source.has_depth
-            and source.calib is not None
-            and (
-                source.has_surface or (source.groundtruth is not None and source.has_gt_pose.any())
-            )
-        )
-    needs = (
-        "which --prior simulated needs (a stand-in made from ground-truth depth); "
-        "images alone take --prior mast3r"
-    )
-    if not source.has_depth:
-        raise InputError(f"{path}: no {DEPTH_SOURCES[source.format]}, {needs}")
-    if source.calib is None:
-        raise InputError(f"{path}: no intrinsics (calib.txt 'fx fy cx cy'), {needs}")
-    if not source.has_surface:
-        if source.groundtruth is None:
-            raise InputError(f"{path}: no ground truth, {needs}")
-        has = source.has_gt_pose
-        if not has.any():
-            raise InputError(
-                f"{path}: no frame has a ground-truth pose within {MAX_GAP:g} s, {needs}"
-            )
-        if every_pose and not has.all():
-            raise InputError(
-                f"{path}: {int((~has).sum())} of {source.num_frames} frames have "
-                f"no ground-truth pose within {MAX_GAP:g} s, which --prior "
-                "simulated needs for every frame in --mode decentralized"
-            )
-    return True
-
-
-def _check_device(device: str) -> None:
-    """``--device`` is cpu, cuda or cuda:N, and CUDA only where this torch can use it.
-
-    Raises:
-        InputError: another device, or CUDA that torch cannot reach (no silent CPU run).
-    """
-    if device == "cpu":
-        return
-    match = re.fullmatch(r"cuda(?::(\d+))?", device)
-    if match is None:
-        raise InputError(f"unknown --device {device!r}; choose cpu or cuda")
-    import torch
-
-    if not torch.cuda.is_available():
-        why = (
-            f"this torch ({torch.__version__}) is built without CUDA"
-            if torch.version.cuda is None
-            else "torch finds no usable CUDA device"
-        )
-        raise InputError(f"--device {device}: {why}; use --device cpu")
-    count = torch.cuda.device_count()
-    if int(match.group(1) or 0) >= count:
-        raise InputError(f"--device {device}: this machine has {count} CUDA device(s)")
-
-
-def _print_summary(summary, out: Path) -> None:
-    """The final tables of a run."""
-    print_rows("agents", summary.agents)
-    if summary.evaluation is not None:
-        print_rows("ATE RMSE [m] (Sim(3)-aligned)", summary.evaluation.table_rows())
-    for line in summary.notes:
-        console.print(line)
-    console.print(f"wrote {out}")
+        print_summary(summary, out)
 
 
 #: the demo renders what a camera gives (640x480) and runs it at the default long side 512

@@ -12,6 +12,7 @@ from typing import Annotated, Any, TypeVar
 
 import typer
 
+from como3r.cli_checks import check_device, check_resumable, config_from_options, print_summary
 from como3r.cli_common import (
     console,
     err_console,
@@ -154,11 +155,10 @@ def _prior_spec(
     device: str,
     precision: str,
 ):
-    from como3r.cli import _check_device
     from como3r.prior.mast3r.precision import PRECISIONS, check_precision
     from como3r.runtime.pipeline import PRIORS, PriorSpec, resolve_weights
 
-    _check_device(device)
+    check_device(device)
     if prior not in PRIORS:
         raise InputError(f"unknown --prior {prior!r}; choose one of {', '.join(PRIORS)}")
     if precision not in PRECISIONS:
@@ -274,7 +274,6 @@ def coordinator(
     Writes the output folder once every agent has finished or failed."""
     import torch
 
-    from como3r.cli import _check_resumable, _load_config, _print_summary
     from como3r.io.output import check_output_dir
     from como3r.runtime.agent_events import RuntimeOptions
     from como3r.runtime.network import serve
@@ -289,9 +288,9 @@ def coordinator(
         resume,  # a finished store resumes here too
         lambda staging: resumable(staging, finished=True),
     )
-    config = _load_config(config_file, overrides, calib, no_loop_closure)
+    config = config_from_options(config_file, overrides, calib, no_loop_closure)
     if resume:
-        _check_resumable(out, config)
+        check_resumable(out, config)
     threads = torch.get_num_threads()  # this machine runs no agent
     options = RuntimeOptions(
         torch_threads=threads,
@@ -319,7 +318,7 @@ def coordinator(
             progress=shown,
             resume=resume,
         )
-    _print_summary(summary, out)
+    print_summary(summary, out)
 
 
 @on_interrupt(lambda kwargs: f"interrupted: agent {kwargs['agent_id']} stopped")
@@ -411,9 +410,8 @@ def robot(
     Waits until the whole team has started, runs the rendezvous rounds of the schedule
     (messages from robots out of range are dropped here, at the receiver) and writes this
     robot's output folder."""
-    from como3r.cli import _load_config, _print_summary
-    from como3r.decentralized.protocol import read_schedule
     from como3r.decentralized.robot_node import run_robot
+    from como3r.decentralized.schedule import read_schedule
 
     if robots > 1 and not (listen or connect or scouting):
         raise InputError(
@@ -425,7 +423,7 @@ def robot(
     network = _network(
         listen, connect, scouting, zenoh_config, session, team, "robot", robot_id, robots
     )
-    config = _load_config(config_file, overrides, calib, False)
+    config = config_from_options(config_file, overrides, calib, False)
     plan = read_schedule(schedule) if schedule is not None else None
     if robots > 1 and not quiet:  # it waits for the whole team: say where it looks
         err_console.print(
@@ -447,4 +445,4 @@ def robot(
             overwrite=overwrite,
             progress=shown,
         )
-    _print_summary(summary, out)
+    print_summary(summary, out)

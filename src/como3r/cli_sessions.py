@@ -8,6 +8,7 @@ from pathlib import Path
 
 import typer
 
+from como3r.cli_checks import print_summary
 from como3r.cli_common import interrupt_leaves_nothing, user_errors
 from como3r.cli_network import (
     CodebookOption,
@@ -54,7 +55,6 @@ def merge(
 
     B's keyframes meet A's map as a new agent's would; if none is recognized, nothing is
     written."""
-    from como3r.cli import _print_summary
     from como3r.io.output import check_output_dir
     from como3r.runtime.merge import merge_runs
 
@@ -62,4 +62,4 @@ def merge(
     check_output_dir(out, overwrite)
     with run_progress(quiet) as shown:
         summary = merge_runs(first, second, out, spec, overwrite=overwrite, progress=shown)
-    _print_summary(summary, out)
+    print_summary(summary, out)

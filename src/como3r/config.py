@@ -30,11 +30,11 @@ from como3r.config_backend import (
     RetrievalConfig,
     VerificationConfig,
 )
+from como3r.config_decentralized import DecentralizedConfig
+from como3r.config_decentralized import check_config as check_decentralized
 from como3r.config_frontend import InputConfig, LocalSolveConfig, MatchingConfig, TrackingConfig
 from como3r.config_simulated_prior import SimulatedPriorConfig
 from como3r.config_simulated_prior import check_config as check_simulated_prior
-from como3r.decentralized.config import DecentralizedConfig
-from como3r.decentralized.config import check_config as check_decentralized
 from como3r.errors import ConfigError
 
 if TYPE_CHECKING:

@@ -1,4 +1,5 @@
-"""Tests of como3r.data.agent: agent input discovery, parsing, validation and frame loading."""
+"""Tests of opening agent inputs (como3r.data.agent): discovery, parsing and validation of the
+agent layout (data/readers/agent, data/input_files) and frame loading (data/agent_input)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,9 @@ import pytest
 import torch
 from PIL import Image
 
-from como3r.data.agent import DEPTH_PNG_PER_METRE, associate_timestamps, open_agent
+from como3r.data.agent import open_agent
+from como3r.data.agent_input import DEPTH_PNG_PER_METRE
+from como3r.data.input_files import associate_timestamps
 from como3r.errors import InputError
 from como3r.io.tum import write_tum
 

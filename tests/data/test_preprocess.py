@@ -9,7 +9,7 @@ import pytest
 import torch
 from PIL import Image
 
-from como3r.data.agent import Frame
+from como3r.data.agent_input import Frame
 from como3r.data.preprocess import (
     ImageTransform,
     compute_transform,

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from como3r.config import Config, InputConfig, SimulatedPriorConfig
+from como3r.config_decentralized import DecentralizedConfig, ProtocolConfig
 from como3r.data.synth import synthesize
-from como3r.decentralized.config import DecentralizedConfig, ProtocolConfig
 from como3r.decentralized.odometry_sim import add_odometry
 
 ROBOTS = 3

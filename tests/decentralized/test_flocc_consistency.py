@@ -11,18 +11,22 @@ import gtsam
 import numpy as np
 import pytest
 
+from como3r.config_decentralized import DecentralizedConfig, PoseGraphConfig, check_config
 from como3r.decentralized import consistency
-from como3r.decentralized.config import DecentralizedConfig, PoseGraphConfig, check_config
-from como3r.decentralized.consistency import check_solution, consistent_loops, solve_checked
+from como3r.decentralized.consistency import (
+    check_solution,
+    consistent_loops,
+    solve_checked,
+    solve_shares,
+)
 from como3r.decentralized.messages import PoseGraphShare
-from como3r.decentralized.pose_graph import (
+from como3r.decentralized.pose_graph import solve_pose_graph
+from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
     PoseGraphProblem,
     PoseGraphSolution,
     from_pose3,
-    solve_pose_graph,
 )
-from como3r.decentralized.robot import solve_shares
 from como3r.errors import ConfigError
 
 COUNT = 24

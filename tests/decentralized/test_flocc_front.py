@@ -11,11 +11,11 @@ import pytest
 import torch
 
 from como3r.config import RetrievalConfig
+from como3r.config_decentralized import DecentralizedConfig, RegistrationConfig, check_config
 from como3r.data.agent import open_agent
 from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import make_view
 from como3r.decentralized.confidence import accept_loop, correspondence_ratio, loop_probability
-from como3r.decentralized.config import DecentralizedConfig, RegistrationConfig, check_config
 from como3r.decentralized.keyframes import frame_odometry, select_keyframes
 from como3r.decentralized.matching import reciprocal_matches
 from como3r.decentralized.place_recognition import PlaceRecognizer, candidate_pairs

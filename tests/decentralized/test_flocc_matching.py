@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from como3r.decentralized.config import DecentralizedConfig, RegistrationConfig, check_config
+from como3r.config_decentralized import DecentralizedConfig, RegistrationConfig, check_config
 from como3r.decentralized.matching import query_grid, reciprocal_matches
 from como3r.errors import ConfigError
 

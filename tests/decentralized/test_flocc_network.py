@@ -17,8 +17,9 @@ import pytest
 import yaml
 
 from como3r.config import config_to_dict
-from como3r.decentralized.protocol import read_schedule, run_protocol
+from como3r.decentralized.protocol import run_protocol
 from como3r.decentralized.runner import open_robot
+from como3r.decentralized.schedule import read_schedule
 from como3r.io.tum import read_tum
 from como3r.runtime.pipeline import PriorSpec
 from como3r.transport.team import add_member, init_team

@@ -1,4 +1,5 @@
-"""Scale-aware multi-robot pose graphs (decentralized/pose_graph.py; F-Sec. III-C)."""
+"""Scale-aware multi-robot pose graphs (decentralized/pose_graph.py, pose_graph_problem.py,
+initial_estimate.py; F-Sec. III-C)."""
 
 from __future__ import annotations
 
@@ -10,18 +11,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from como3r.decentralized.config import FORMULATIONS, PoseGraphConfig
-from como3r.decentralized.pose_graph import (
+from como3r.config_decentralized import FORMULATIONS, PoseGraphConfig
+from como3r.decentralized.initial_estimate import initial_poses, keyframe_spacing
+from como3r.decentralized.pose_graph import scaled_loop_error, scaled_loop_factor, solve_pose_graph
+from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
     PoseGraphProblem,
     connected_components,
     from_pose3,
-    initial_poses,
-    keyframe_spacing,
     loop_clusters,
-    scaled_loop_error,
-    scaled_loop_factor,
-    solve_pose_graph,
     to_pose3,
 )
 

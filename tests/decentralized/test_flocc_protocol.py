@@ -18,18 +18,11 @@ from como3r.decentralized.messages import (
     RobotReport,
     RobotTask,
 )
-from como3r.decentralized.pose_graph import LoopClosure
-from como3r.decentralized.protocol import (
-    Router,
-    Schedule,
-    build_prior,
-    elect,
-    make_robot,
-    plan_rounds,
-    read_schedule,
-    run_protocol,
-)
+from como3r.decentralized.pose_graph_problem import LoopClosure
+from como3r.decentralized.protocol import build_prior, make_robot, run_protocol
 from como3r.decentralized.robot import PeerLeft, RoundPlan
+from como3r.decentralized.routing import Router
+from como3r.decentralized.schedule import Schedule, elect, plan_rounds, read_schedule
 from como3r.errors import ConfigError, InputError
 from como3r.runtime.pipeline import PriorSpec
 from como3r.transport import codec

@@ -10,7 +10,7 @@ import shutil
 import pytest
 import yaml
 
-from como3r.decentralized.config import DecentralizedConfig, PoseGraphConfig
+from como3r.config_decentralized import DecentralizedConfig, PoseGraphConfig
 from como3r.decentralized.runner import run_decentralized
 from como3r.errors import ConfigError, InputError
 from como3r.io.tum import read_tum

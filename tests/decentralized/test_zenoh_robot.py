@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from como3r.decentralized.messages import DRIVER, EncodingRequest, RobotHello, RobotProgress
-from como3r.decentralized.protocol import Schedule
 from como3r.decentralized.robot import PeerLeft
+from como3r.decentralized.schedule import Schedule
 from como3r.decentralized.zenoh_robot import RobotKeys, ZenohRobotLink
 from como3r.errors import InputError
 from como3r.transport import codec

@@ -6,7 +6,7 @@ from collections.abc import Callable, Iterable
 
 import pytest
 
-from como3r.data.agent import AgentInput
+from como3r.data.agent_input import AgentInput
 from como3r.data.preprocess import make_view
 from como3r.frontend.agent import AgentFrontend
 from como3r.runtime.pipeline import _colors

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from como3r.frontend import cpu_kernels, matching
+from como3r.frontend import cpu_kernels, cpu_window_search, matching
 from como3r.geometry.camera import intrinsics_matrix, unproject_depth
 from como3r.geometry.lie import sim3_act, sim3_exp
 
@@ -41,7 +41,7 @@ def test_descriptor_window_search_equals_the_vectorised_path(threads, size) -> N
     also where the dilated window reaches far past the image (7x9 px, reach 15 px)."""
     B, H, W = size
     D, D_query, pixel = _descriptor_problem(B, H, W, dim=24, flow=6, seed=threads)
-    compiled = cpu_kernels.refine_windows(D, D_query, pixel, 3, 5, None)
+    compiled = cpu_window_search.refine_windows(D, D_query, pixel, 3, 5, None)
     vectorised = matching._refine_vectorised(D, D_query, pixel, 3, 5, None)
     assert compiled.dtype == torch.int64 and compiled.shape == (B, H * W, 2)
     assert torch.equal(compiled, vectorised)
@@ -60,7 +60,7 @@ def test_descriptor_window_search_of_any_width_and_radius(
     """Descriptors whose width is not a multiple of 8 (zero-padded), windows wider than the
     8 lanes of one group of candidates (radius 4: 9 columns) and the smallest window."""
     D, D_query, pixel = _descriptor_problem(2, 18, 26, dim=dim, flow=5, seed=dim + radius)
-    compiled = cpu_kernels.refine_windows(D, D_query, pixel, radius, dilation_max, None)
+    compiled = cpu_window_search.refine_windows(D, D_query, pixel, radius, dilation_max, None)
     vectorised = matching._refine_vectorised(D, D_query, pixel, radius, dilation_max, None)
     assert torch.equal(compiled, vectorised)
     assert (compiled != pixel).any(-1).float().mean() > 0.3
@@ -76,14 +76,14 @@ def test_descriptor_window_search_breaks_ties_by_window_order(threads) -> None:
     D_query = palette[torch.randint(0, 3, (B, H * W), generator=gen)]
     v, u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
     pixel = torch.stack([u.reshape(-1), v.reshape(-1)], -1)[None]
-    compiled = cpu_kernels.refine_windows(D, D_query, pixel, 3, 3, None)
+    compiled = cpu_window_search.refine_windows(D, D_query, pixel, 3, 3, None)
     assert torch.equal(compiled, matching._refine_vectorised(D, D_query, pixel, 3, 3, None))
 
 
 def test_descriptor_window_search_leaves_inactive_matches(threads) -> None:
     D, D_query, pixel = _descriptor_problem(2, 20, 30, dim=16, flow=4, seed=5)
     active = torch.rand(pixel.shape[:2], generator=torch.Generator().manual_seed(1)) < 0.5
-    compiled = cpu_kernels.refine_windows(D, D_query, pixel, 2, 3, active)
+    compiled = cpu_window_search.refine_windows(D, D_query, pixel, 2, 3, active)
     assert torch.equal(compiled[~active], pixel[~active])
     assert torch.equal(compiled, matching._refine_vectorised(D, D_query, pixel, 2, 3, active))
 
@@ -93,7 +93,7 @@ def test_descriptor_window_search_takes_half_precision_descriptors() -> None:
     D, D_query, pixel = _descriptor_problem(1, 16, 20, dim=24, flow=4, seed=2)
     D, D_query = D.to(torch.bfloat16), D_query.to(torch.bfloat16)
     assert torch.equal(
-        cpu_kernels.refine_windows(D, D_query, pixel, 3, 2, None),
+        cpu_window_search.refine_windows(D, D_query, pixel, 3, 2, None),
         matching._refine_vectorised(D, D_query, pixel, 3, 2, None),
     )
 

@@ -10,8 +10,8 @@ import torch
 
 from como3r.backend.global_graph import GlobalGraph
 from como3r.config import Config, GlobalBAConfig, TrackingConfig
-from como3r.coordination.association import Verification
-from como3r.coordination.coordinator import Candidate, Coordinator
+from como3r.coordination.association import Candidate, Verification
+from como3r.coordination.coordinator import Coordinator
 from como3r.frontend import focal as focal_module
 from como3r.frontend.focal import FocalPair, estimate_log_focal, relative_pose
 from como3r.frontend.keyframes import apply_pose_update

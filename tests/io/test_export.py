@@ -18,16 +18,11 @@ from como3r.errors import InputError
 from como3r.geometry.camera import intrinsics_matrix, project, unproject_depth
 from como3r.geometry.lie import quat_to_matrix, sim3_act, sim3_inverse
 from como3r.io import export as export_module
-from como3r.io.export import (
-    DEPTH_PNG_SCALE,
-    G2O_HEADER,
-    depth_png,
-    export_run,
-    keyframe_intrinsics,
-    read_run_graph,
-)
+from como3r.io.export import DEPTH_PNG_SCALE, depth_png, export_run
+from como3r.io.g2o import G2O_HEADER
 from como3r.io.keyframe_data import KeyframeData, read_keyframe_data
 from como3r.io.ply import read_ply
+from como3r.io.run_graph import keyframe_intrinsics, read_run_graph
 
 from .tiny_run import HEIGHT, OVERRIDES, WIDTH, tiny_run
 

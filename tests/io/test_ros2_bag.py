@@ -16,10 +16,11 @@ from typer.testing import CliRunner
 from como3r.cli import app
 from como3r.errors import InputError
 from como3r.geometry.lie import se3_compose, se3_exp
-from como3r.io.export import RunKeyframe, export_run
+from como3r.io.export import export_run
 from como3r.io.keyframe_data import read_keyframe_data
 from como3r.io.ply import read_ply
 from como3r.io.ros2_bag import MAP_FRAME, agent_topics, camera_frame, keyframe_stamps
+from como3r.io.run_graph import RunKeyframe
 from como3r.io.tum import Trajectory, read_tum
 
 from .tiny_run import HEIGHT, WIDTH, tiny_run

@@ -20,14 +20,8 @@ import torch
 
 from como3r.config import RetrievalConfig
 from como3r.errors import CheckpointError, ConfigError, InputError
-from como3r.prior.retrieval import (
-    Hit,
-    Quantized,
-    RetrievalDatabase,
-    load_codebook,
-    nearest_words,
-    train_codebook,
-)
+from como3r.prior.codebook import load_codebook, train_codebook
+from como3r.prior.retrieval import Hit, Quantized, RetrievalDatabase, nearest_words
 
 K_WORDS = 16
 

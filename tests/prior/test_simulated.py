@@ -38,7 +38,8 @@ from como3r.geometry.umeyama import umeyama_sim3
 from como3r.prior.base import Encoding, PairPrediction, View
 from como3r.prior.ground_truth import GroundTruth, InMemoryTruth
 from como3r.prior.retrieval import RetrievalDatabase
-from como3r.prior.simulated import SimulatedPrior, fill_depth_holes
+from como3r.prior.simulated import SimulatedPrior
+from como3r.prior.simulated_encoding import fill_depth_holes
 
 WIDTH, HEIGHT, FRAMES = 96, 72, 40
 LONG_SIDE = 96
@@ -601,7 +602,7 @@ def test_codebook_is_trained_once_and_cached(prior, tmp_path, monkeypatch):
     def no_training(*args, **kwargs):
         raise AssertionError("the cached codebook must be reused")
 
-    monkeypatch.setattr("como3r.prior.retrieval.train_codebook", no_training)
+    monkeypatch.setattr("como3r.prior.codebook.train_codebook", no_training)
     np.testing.assert_array_equal(
         SimulatedPrior(truth=TRUTH).codebook(size=32, cache_dir=tmp_path), first
     )

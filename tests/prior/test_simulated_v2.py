@@ -20,7 +20,7 @@ from como3r.data.agent import open_agent
 from como3r.data.preprocess import frame_ground_truth, make_view
 from como3r.data.synth import synthesize
 from como3r.geometry.camera import unproject_depth
-from como3r.prior import simulated_errors as errors
+from como3r.prior import simulated_appearance as appearance_model
 from como3r.prior.base import View
 from como3r.prior.ground_truth import InMemoryTruth
 from como3r.prior.simulated import SimulatedPrior
@@ -81,14 +81,14 @@ def _nn_accuracy(config: SimulatedPriorConfig, views: list[View], truth: InMemor
 
 def test_texture_weight_follows_local_contrast():
     flat = torch.full((3, 48, 64), 0.3)
-    weight = errors.texture_weight(flat)
+    weight = appearance_model.texture_weight(flat)
     torch.testing.assert_close(
-        weight, torch.full((48, 64), errors.AppearanceConstants.context_weight)
+        weight, torch.full((48, 64), appearance_model.AppearanceConstants.context_weight)
     )
     checker = ((torch.arange(64)[None, :] // 2 + torch.arange(48)[:, None] // 2) % 2).float()
-    assert float(errors.texture_weight(checker.expand(3, -1, -1)).min()) > 0.95
+    assert float(appearance_model.texture_weight(checker.expand(3, -1, -1)).min()) > 0.95
     # the appearance descriptors of one flat paint are all the same, unit norm
-    appearance = errors.appearance_descriptors(flat, 24, seed=0)
+    appearance = appearance_model.appearance_descriptors(flat, 24, seed=0)
     torch.testing.assert_close(appearance.norm(dim=-1), torch.ones(48, 64))
     assert float((appearance @ appearance[10, 10]).min()) > 0.999
 

@@ -29,8 +29,8 @@ from typer.testing import CliRunner
 
 from como3r.cli import app
 from como3r.config import Config
-from como3r.coordination.association import Verification
-from como3r.coordination.coordinator import Candidate, Coordinator
+from como3r.coordination.association import Candidate, Verification
+from como3r.coordination.coordinator import Coordinator
 from como3r.errors import StoreError
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches, PairLink

@@ -19,8 +19,8 @@ from typer.testing import CliRunner
 from como3r.backend.paged_refinement import ProblemSpill
 from como3r.cli import app
 from como3r.config import Config, apply_overrides
-from como3r.coordination.association import Verification
-from como3r.coordination.coordinator import Candidate, Coordinator, CoordinatorStats
+from como3r.coordination.association import Candidate, Verification
+from como3r.coordination.coordinator import Coordinator, CoordinatorStats
 from como3r.frontend.packets import KeyframePacket
 from como3r.frontend.paging import PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches

@@ -25,7 +25,7 @@ from como3r.cli import app
 from como3r.cli_network import OPEN_NETWORK
 from como3r.config import Config, config_to_dict
 from como3r.decentralized.messages import EncodingRequest, RobotHello
-from como3r.decentralized.protocol import Schedule
+from como3r.decentralized.schedule import Schedule
 from como3r.decentralized.zenoh_robot import RobotKeys, ZenohRobotLink
 from como3r.errors import InputError
 from como3r.transport import codec

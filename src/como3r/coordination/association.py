@@ -42,6 +42,7 @@ import numpy as np
 from torch import Tensor
 
 from como3r.config import MatchingConfig, RetrievalConfig, VerificationConfig
+from como3r.errors import Como3rError
 from como3r.frontend.pairs import DirectedMatches, PairLink, direction_passes, link_pairs
 from como3r.prior.base import Encoding, Prior
 from como3r.prior.retrieval import Hit, Quantized, RetrievalDatabase
@@ -218,3 +219,35 @@ def verify_candidates(
             )
         )
     return results
+
+
+@dataclass(eq=False)
+class Candidate:
+    """A verified cross-agent candidate edge and what became of it.
+
+    Attributes:
+        verification: the dense verification (C-Eq. 12).
+        i: global index of the candidate keyframe (endpoint i).
+        j: global index of the new keyframe (endpoint j).
+        status: ``"rejected"`` (C-Eq. 12 failed), ``"pending"`` (waiting for agreeing
+            edges between two components), ``"admitted"`` (in the graph) or
+            ``"inconsistent"`` (disagrees with the poses it would constrain).
+        residual_ratio: the consistency measure of the last test (NaN if untested).
+    """
+
+    verification: Verification
+    i: int
+    j: int
+    status: str = "rejected"
+    residual_ratio: float = float("nan")
+
+    @property
+    def link(self) -> PairLink:
+        """Both directions' matches; only verified candidates reach the code that asks."""
+        link = self.verification.link
+        if link is None or not self.verification.accepted:
+            raise Como3rError(
+                f"candidate {self.verification.candidate}-"
+                f"{self.verification.query} was not verified"
+            )
+        return link

@@ -13,7 +13,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from como3r.data.agent import AgentInput
+from como3r.data.agent_input import AgentInput
 from como3r.data.preprocess import frame_ground_truth
 from como3r.errors import PriorError
 from como3r.prior.ground_truth import GroundTruth
@@ -44,7 +44,7 @@ def encodable(source: AgentInput) -> np.ndarray:
     """``(N,)`` bool: the frames the simulated prior can encode. Every frame with surface
     maps (appearance keys) or without any ground truth (the prior then says what is
     missing); otherwise those with a ground-truth pose
-    (:attr:`~como3r.data.agent.AgentInput.has_gt_pose`: not before the first sample, after
+    (:attr:`~como3r.data.agent_input.AgentInput.has_gt_pose`: not before the first sample, after
     the last or in a gap wider than :data:`como3r.data.poses.MAX_GAP`)."""
     if source.has_surface or source.groundtruth is None:
         return np.ones(source.num_frames, dtype=bool)

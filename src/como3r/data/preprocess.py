@@ -28,7 +28,7 @@ import torch
 from PIL import Image
 from torch import Tensor
 
-from como3r.data.agent import Frame
+from como3r.data.agent_input import Frame
 from como3r.errors import InputError
 from como3r.prior.base import View
 from como3r.prior.ground_truth import GroundTruth

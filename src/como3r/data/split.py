@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from como3r.data.agent import DEPTH_PNG_PER_METRE, AgentInput, open_agent
+from como3r.data.agent import open_agent
+from como3r.data.agent_input import DEPTH_PNG_PER_METRE, AgentInput
 from como3r.data.poses import MAX_GAP
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory, write_tum

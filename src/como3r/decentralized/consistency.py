@@ -11,7 +11,7 @@ Two safeguards around :func:`~.pose_graph.solve_pose_graph`:
   where ``Z`` is a loop's relative pose with the prior's translation scaled by its F-Eq. 6
   factor and ``O`` the metric odometry. ``Log(E_ij)`` is tested against a chi-square bound
   (6 dof) with a covariance built from the configured noise models, all lengths in keyframe
-  spacings (:func:`~.pose_graph.keyframe_spacing`), so the test is scale-free. The loops of
+  spacings (:func:`~.initial_estimate.keyframe_spacing`), so the test is scale-free. The loops of
   each robot pair kept are a set of mutually consistent ones (a clique of the consistency
   graph); the others are held back before the solve. The set is the clique of largest summed
   confidence (F-Eq. 2) rather than PCM's largest clique: loops of low confidence have wide
@@ -30,6 +30,9 @@ Two safeguards around :func:`~.pose_graph.solve_pose_graph`:
   aliasing scene of ``tests/decentralized/test_flocc_aliasing.py`` the true loops'
   F-Eq. 6 lengths are 1.1-2x the true ones (median log ratio -0.29 after a correct solve,
   merged ATE 8 mm), which the scale-aware formulations rightly overrule.
+
+:func:`solve_checked` is one solve behind both; :func:`solve_shares` solves every group of
+robots connected by loops with it (an elected robot's step, :mod:`.robot`).
 """
 
 from __future__ import annotations
@@ -44,17 +47,18 @@ import networkx as nx
 import numpy as np
 from scipy.stats import chi2
 
-from como3r.decentralized.config import PoseGraphConfig
-from como3r.decentralized.pose_graph import (
+from como3r.config_decentralized import DecentralizedConfig, PoseGraphConfig
+from como3r.decentralized.initial_estimate import initial_scales, keyframe_spacing
+from como3r.decentralized.messages import PoseGraphShare
+from como3r.decentralized.pose_graph import solve_pose_graph
+from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
     PoseGraphProblem,
     PoseGraphSolution,
     connected_components,
-    initial_scales,
-    keyframe_spacing,
-    solve_pose_graph,
     to_pose3,
 )
+from como3r.errors import SolverError
 
 logger = logging.getLogger(__name__)
 
@@ -378,3 +382,71 @@ def solve_checked(
         problem, solution, consistent, sorted(problem.odometry), config, reference
     )
     return solution, check
+
+
+def solve_shares(
+    shares: dict[int, PoseGraphShare],
+    settings: DecentralizedConfig,
+    formulation: str | None = None,
+    solver: str | None = None,
+    checks: list[LoopCheck] | None = None,
+) -> dict[int, tuple[np.ndarray, int]]:
+    """Solve the pose graph of every group of robots connected by loops.
+
+    Each group is anchored on its smallest robot id, at that robot's current estimate (or
+    odometry) of its first keyframe, so the group joins the anchor's frame. Only pairwise
+    consistent loops enter a solve, and a group whose solve raises the scale-collapse alarm
+    keeps its estimates (:func:`solve_checked`).
+
+    Args:
+        shares: every participating robot's share, by robot id.
+        settings: decentralized configuration (its formulation and solver by default).
+        formulation, solver: override the configured ones.
+        checks: if given, receives each group's :class:`~.consistency.LoopCheck`.
+
+    Returns:
+        robot -> (``(K, 8)`` poses, frame id) for every robot in a group of two or more
+        whose solve was not held back.
+    """
+    graph_config = settings.pose_graph
+    loops = [
+        loop
+        for share in shares.values()
+        for loop in share.loops
+        if loop.robot_a in shares and loop.robot_b in shares
+    ]
+    updates: dict[int, tuple[np.ndarray, int]] = {}
+    for component in connected_components(sorted(shares), loops):
+        if len(component) < 2:
+            continue
+        anchor = shares[component[0]]
+        frame = anchor.frame
+        anchor_pose = anchor.estimate[0] if len(anchor.estimate) else anchor.odometry[0]
+        problem = PoseGraphProblem(
+            odometry={r: shares[r].odometry for r in component},
+            loops=[loop for loop in loops if loop.robot_a in component],
+            anchor=component[0],
+            anchor_pose=anchor_pose,
+            initial={
+                r: shares[r].estimate
+                for r in component
+                if shares[r].frame == frame and len(shares[r].estimate)
+            },
+        )
+        try:
+            solution, check = solve_checked(
+                problem,
+                formulation or graph_config.formulation,
+                solver or graph_config.solver,
+                graph_config,
+            )
+        except SolverError as exc:
+            logger.warning("robots %s: %s; estimates unchanged", component, exc)
+            continue
+        if checks is not None:
+            checks.append(check)
+        if check.alarm:
+            continue
+        for robot in component:
+            updates[robot] = (solution.poses[robot], frame)
+    return updates

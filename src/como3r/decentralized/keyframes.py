@@ -6,17 +6,22 @@ keyframe when the odometry path length since the previous keyframe reaches the k
 distance; the first frame with odometry is always one. The decentralized mode sets that
 distance relative to the scene (``keyframe_distance_ratio`` times the scene depth a robot
 sees), so its keyframes are equally dense at any scene scale.
+
+:class:`RobotData` is a mission driver's view of one robot: its input, its frames' odometry
+and, after the mission, its keyframes.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from como3r.data.agent import AgentInput, associate_timestamps
+from como3r.data.agent_input import AgentInput
+from como3r.data.input_files import associate_timestamps
 from como3r.errors import InputError
 from como3r.geometry.lie import sim3_compose, sim3_inverse, sim3_normalize
 
@@ -137,3 +142,13 @@ def frame_poses(odometry: FrameOdometry, keyframes: Keyframes, estimate: np.ndar
     T_OK = keyframes.T_OC[keyframe]
     relative = sim3_compose(sim3_inverse(T_OK), odometry.T_OC)
     return sim3_normalize(sim3_compose(T_WK, relative))
+
+
+@dataclasses.dataclass
+class RobotData:
+    """The driver's view of one robot: its input, odometry and (after the mission, from
+    its report) keyframes."""
+
+    agent: AgentInput
+    odometry: FrameOdometry
+    keyframes: Keyframes | None = None

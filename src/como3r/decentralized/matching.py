@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from como3r.decentralized.config import RegistrationConfig
+from como3r.config_decentralized import RegistrationConfig
 
 logger = logging.getLogger(__name__)
 

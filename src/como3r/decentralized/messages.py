@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from como3r.decentralized.pose_graph import LoopClosure
+from como3r.decentralized.pose_graph_problem import LoopClosure
 from como3r.prior.base import Encoding
 from como3r.transport import codec
 from como3r.transport.codec_types import require, require_shape
@@ -131,7 +131,7 @@ class RobotTask:
         robot: robot id.
         agent_path: the robot's agent input folder.
         config: the main configuration as a nested mapping (``config_to_dict``).
-        decentralized: the :class:`~como3r.decentralized.config.DecentralizedConfig` as a
+        decentralized: the :class:`~como3r.config_decentralized.DecentralizedConfig` as a
             nested mapping.
         prior: prior specification (``name``, ``weights``, ``retrieval_weights``,
             ``codebook``, ``device``; paths as strings or None).

@@ -5,7 +5,7 @@ the scale-aware formulations, loop scales ``s`` (doubles). Factors:
 
 * odometry (F-Eq. 4): ``BetweenFactorPose3`` of consecutive keyframes of a robot;
 * the gauge: a tight ``PriorFactorPose3`` on the anchor robot's first keyframe;
-* loops, by formulation (:data:`~como3r.decentralized.config.FORMULATIONS`):
+* loops, by formulation (:data:`~como3r.config_decentralized.FORMULATIONS`):
 
   - ``base``: ``BetweenFactorPose3`` with the prior's translation scaled once, by odometry
     (F-Eq. 6) or not at all (``scale_init``);
@@ -39,15 +39,25 @@ from __future__ import annotations
 
 import math
 import time
-from collections import defaultdict, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
 from scipy.stats import chi2
 
-from como3r.decentralized.config import FORMULATIONS, SOLVERS, PoseGraphConfig
+from como3r.config_decentralized import FORMULATIONS, SOLVERS, PoseGraphConfig
+from como3r.decentralized.initial_estimate import initial_poses, initial_scales, keyframe_spacing
+from como3r.decentralized.pose_graph_problem import (
+    PoseGraphProblem,
+    PoseGraphSolution,
+    from_pose3,
+    loop_clusters,
+    loop_measurement,
+    pose_key,
+    scale_key,
+    to_pose3,
+)
 from como3r.errors import ConfigError, SolverError
 
 #: Standard deviation of the gauge prior on the anchor's first keyframe (rad, and keyframe
@@ -57,112 +67,7 @@ ANCHOR_SIGMA = 1e-6
 MIN_WEIGHT = 1e-6
 #: GNC stops once every weight is this close to 0 or 1 (TLS).
 WEIGHT_TOLERANCE = 1e-4
-#: Loops agreeing on a robot's alignment within these bounds support each other (init); the
-#: translation bound in keyframe spacings (:func:`keyframe_spacing`; was 1 m at the default
-#: synthetic scene's 0.5 m spacing).
-CONSENSUS_TRANSLATION_SPACINGS = 2.0
-CONSENSUS_ROTATION_RAD = math.radians(10.0)
 _POSE_DIM = 6
-
-
-@dataclass(frozen=True)
-class LoopClosure:
-    """An inter-robot loop closure between keyframe ``keyframe_a`` of robot ``robot_a``
-    (alpha, who registered it) and keyframe ``keyframe_b`` of robot ``robot_b`` (beta).
-
-    Attributes:
-        T_ab: ``(8,)`` float64 relative pose from the prior: camera b in camera a
-            (t in the prior's units, q_xyzw, s = the fit's scale, unused).
-        odometry_scale: F-Eq. 6 factor ``|t_odom(i-1, i)| / |t_prior(i-1, i)|``; NaN if
-            unavailable.
-        ratio: correspondence ratio r (F-Eq. 1).
-        probability: confidence p (F-Eq. 2).
-        correspondences: correspondences of the loop pair.
-    """
-
-    robot_a: int
-    keyframe_a: int
-    robot_b: int
-    keyframe_b: int
-    T_ab: np.ndarray
-    odometry_scale: float
-    ratio: float
-    probability: float
-    correspondences: int
-
-    @property
-    def robots(self) -> tuple[int, int]:
-        return self.robot_a, self.robot_b
-
-
-@dataclass
-class PoseGraphProblem:
-    """One connected multi-robot pose graph.
-
-    Attributes:
-        odometry: robot -> ``(K, 8)`` keyframe odometry poses ``T_OC`` in its own frame.
-        loops: loop closures between these robots.
-        anchor: the robot whose first keyframe fixes the gauge.
-        anchor_pose: ``(8,)`` pose of the anchor's first keyframe in the output frame.
-        initial: robot -> ``(K', 8)`` current estimates of its first ``K'`` keyframes,
-            already in the output frame (used for initialisation only).
-    """
-
-    odometry: dict[int, np.ndarray]
-    loops: list[LoopClosure]
-    anchor: int
-    anchor_pose: np.ndarray
-    initial: dict[int, np.ndarray] = field(default_factory=dict)
-
-
-@dataclass
-class PoseGraphSolution:
-    """Result of one solve.
-
-    Attributes:
-        poses: robot -> ``(K, 8)`` keyframe poses ``T_WC`` in the output frame.
-        loop_scales: ``(L,)`` scale applied to each loop's prior translation.
-        loop_weights: ``(L,)`` GNC weights (1 for LM).
-        loop_residuals: ``(L,)`` whitened squared residual of each loop at weight 1.
-        seconds: solver wall time.
-        iterations: LM iterations (summed over GNC's outer iterations).
-        cost: final value of the (weighted) objective.
-    """
-
-    poses: dict[int, np.ndarray]
-    loop_scales: np.ndarray
-    loop_weights: np.ndarray
-    loop_residuals: np.ndarray
-    seconds: float
-    iterations: int
-    cost: float
-
-
-# --------------------------------------------------------------------------- conversions
-
-
-def to_pose3(T: np.ndarray) -> gtsam.Pose3:
-    """``gtsam.Pose3`` of an ``(8,)`` (or ``(7,)``) pose ``(t, q_xyzw[, s])``."""
-    x, y, z, w = (float(v) for v in T[3:7])
-    return gtsam.Pose3(gtsam.Rot3.Quaternion(w, x, y, z), np.asarray(T[:3], dtype=np.float64))
-
-
-def from_pose3(pose: gtsam.Pose3) -> np.ndarray:
-    """``(8,)`` float64 ``(t, q_xyzw, 1)`` of a ``gtsam.Pose3`` (``w >= 0``)."""
-    q = pose.rotation().toQuaternion()
-    quat = np.array([q.x(), q.y(), q.z(), q.w()])
-    quat = -quat if quat[3] < 0 else quat
-    return np.concatenate([pose.translation(), quat / np.linalg.norm(quat), [1.0]])
-
-
-def pose_key(robot: int, keyframe: int) -> int:
-    """GTSAM key of robot ``robot``'s keyframe ``keyframe``."""
-    return gtsam.symbol("x", (robot << 24) | keyframe)
-
-
-def scale_key(index: int) -> int:
-    """GTSAM key of loop scale variable ``index``."""
-    return gtsam.symbol("s", index)
 
 
 # --------------------------------------------------------------------------- factors
@@ -217,200 +122,6 @@ def _pose_noise(sigma_rot_rad: float, sigma_trans: float, weight: float) -> gtsa
     ``sigma_trans`` in odometry units."""
     sigmas = np.array([sigma_rot_rad] * 3 + [sigma_trans] * 3) / math.sqrt(weight)
     return gtsam.noiseModel.Diagonal.Sigmas(sigmas)
-
-
-# --------------------------------------------------------------------------- structure
-
-
-def connected_components(robots: list[int], loops: list[LoopClosure]) -> list[list[int]]:
-    """Groups of ``robots`` connected by ``loops`` (sorted; singletons included)."""
-    neighbours: dict[int, set[int]] = {r: set() for r in robots}
-    for loop in loops:
-        if loop.robot_a in neighbours and loop.robot_b in neighbours:
-            neighbours[loop.robot_a].add(loop.robot_b)
-            neighbours[loop.robot_b].add(loop.robot_a)
-    components, seen = [], set()
-    for start in sorted(robots):
-        if start in seen:
-            continue
-        queue, component = deque([start]), []
-        seen.add(start)
-        while queue:
-            robot = queue.popleft()
-            component.append(robot)
-            for other in sorted(neighbours[robot] - seen):
-                seen.add(other)
-                queue.append(other)
-        components.append(sorted(component))
-    return components
-
-
-def loop_clusters(loops: list[LoopClosure], window: int) -> list[list[int]]:
-    """Clusters of loop indices (F-Sec. III-C-c): same pair of robots, endpoints fewer than
-    ``window`` keyframes apart on both robots, closed transitively. Each cluster is sorted
-    by the keyframes of the robot with the smaller id."""
-
-    def endpoints(loop: LoopClosure) -> tuple[int, int, int, int]:
-        if loop.robot_a < loop.robot_b:
-            return loop.robot_a, loop.robot_b, loop.keyframe_a, loop.keyframe_b
-        return loop.robot_b, loop.robot_a, loop.keyframe_b, loop.keyframe_a
-
-    parent = list(range(len(loops)))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    ends = [endpoints(loop) for loop in loops]
-    for i, (ra, rb, ka, kb) in enumerate(ends):
-        for j in range(i):
-            ra2, rb2, ka2, kb2 = ends[j]
-            if (ra, rb) == (ra2, rb2) and abs(ka - ka2) < window and abs(kb - kb2) < window:
-                parent[find(i)] = find(j)
-    groups: dict[int, list[int]] = defaultdict(list)
-    for i in range(len(loops)):
-        groups[find(i)].append(i)
-    return sorted(
-        (sorted(g, key=lambda i: ends[i][2:] + (i,)) for g in groups.values()), key=lambda g: g[0]
-    )
-
-
-def initial_scales(loops: list[LoopClosure], scale_init: str) -> np.ndarray:
-    """``(L,)`` initial loop scales: F-Eq. 6 (``odometry``; 1 where unavailable) or 1
-    (``prior``: the prior's own scale)."""
-    if scale_init == "prior":
-        return np.ones(len(loops))
-    if scale_init != "odometry":
-        raise ConfigError(
-            f"decentralized.pose_graph.scale_init: {scale_init!r} is not 'odometry' or 'prior'"
-        )
-    scales = np.array([loop.odometry_scale for loop in loops], dtype=np.float64)
-    return np.where(np.isfinite(scales) & (scales > 0), scales, 1.0)
-
-
-def _measured(loop: LoopClosure, scale: float) -> gtsam.Pose3:
-    pose = to_pose3(loop.T_ab)
-    return gtsam.Pose3(pose.rotation(), scale * pose.translation())
-
-
-def _extend_by_odometry(estimate: np.ndarray, odometry: np.ndarray) -> list[gtsam.Pose3]:
-    """Poses of all keyframes: ``estimate`` for the first ones, then odometry increments."""
-    poses = [to_pose3(T) for T in estimate]
-    for k in range(len(poses), len(odometry)):
-        step = to_pose3(odometry[k - 1]).between(to_pose3(odometry[k]))
-        poses.append(poses[-1].compose(step))
-    return poses
-
-
-def keyframe_spacing(problem: PoseGraphProblem, scales: np.ndarray) -> float:
-    """The problem's length unit, in odometry units: the median odometry distance between
-    consecutive keyframes of all its robots (keyframes are spaced relative to the scene
-    depth, so this follows the scene's scale); without any pair of consecutive keyframes,
-    the median length of the scaled loop translations (F-Eq. 6-7).
-
-    Args:
-        problem: odometry ``(K, 8)`` per robot and the loops.
-        scales: ``(L,)`` loop scales (:func:`initial_scales`).
-
-    Returns:
-        A length > 0 (1 when the problem has neither a keyframe step nor a loop translation).
-    """
-    steps = [
-        np.linalg.norm(np.diff(odometry[:, :3], axis=0), axis=1)
-        for odometry in problem.odometry.values()
-    ]
-    lengths = np.concatenate([np.zeros(0), *steps])
-    if not np.any(lengths > 0):
-        lengths = np.array(
-            [scale * np.linalg.norm(loop.T_ab[:3]) for loop, scale in zip(problem.loops, scales)]
-        )
-    lengths = lengths[np.isfinite(lengths) & (lengths > 0)]
-    return float(np.median(lengths)) if lengths.size else 1.0
-
-
-def _consensus_alignment(
-    candidates: list[tuple[gtsam.Pose3, float]], translation_tolerance: float
-) -> gtsam.Pose3:
-    """The candidate alignment with the largest confidence-weighted support: the summed
-    confidence (F-Eq. 2) of the candidates within ``translation_tolerance`` (odometry
-    units) and :data:`CONSENSUS_ROTATION_RAD` of it."""
-    best, best_support = candidates[0][0], -1.0
-    for pose, _ in candidates:
-        support = 0.0
-        for other, probability in candidates:
-            delta = pose.between(other)
-            if (
-                np.linalg.norm(delta.translation()) < translation_tolerance
-                and np.linalg.norm(gtsam.Rot3.Logmap(delta.rotation())) < CONSENSUS_ROTATION_RAD
-            ):
-                support += probability
-        if support > best_support:
-            best, best_support = pose, support
-    return best
-
-
-def initial_poses(
-    problem: PoseGraphProblem, scales: np.ndarray, spacing: float
-) -> dict[int, list[gtsam.Pose3]]:
-    """Initial keyframe poses of every robot in the output frame.
-
-    The anchor starts at ``anchor_pose``; robots with a current estimate start from it;
-    the others are placed breadth-first through the loops to robots already placed, each
-    by the loop-implied alignment that most other loops agree with (within
-    :data:`CONSENSUS_TRANSLATION_SPACINGS` keyframe spacings).
-
-    Args:
-        problem: the pose graph.
-        scales: ``(L,)`` loop scales.
-        spacing: the problem's keyframe spacing (:func:`keyframe_spacing`).
-
-    Raises:
-        ValueError: a robot is connected to the anchor neither by loops nor by an estimate.
-    """
-    placed: dict[int, list[gtsam.Pose3]] = {}
-    anchor_odometry = problem.odometry[problem.anchor]
-    placed[problem.anchor] = _extend_by_odometry(problem.anchor_pose[None], anchor_odometry)
-    for robot, estimate in problem.initial.items():
-        if robot != problem.anchor and len(estimate):
-            placed[robot] = _extend_by_odometry(estimate, problem.odometry[robot])
-    pending = set(problem.odometry) - set(placed)
-    while pending:
-        candidates: dict[int, list[tuple[gtsam.Pose3, float]]] = defaultdict(list)
-        for loop, scale in zip(problem.loops, scales):
-            for src, kf_src, dst, kf_dst, relative in (
-                (
-                    loop.robot_a,
-                    loop.keyframe_a,
-                    loop.robot_b,
-                    loop.keyframe_b,
-                    _measured(loop, scale),
-                ),
-                (
-                    loop.robot_b,
-                    loop.keyframe_b,
-                    loop.robot_a,
-                    loop.keyframe_a,
-                    _measured(loop, scale).inverse(),
-                ),
-            ):
-                if src in placed and dst in pending:
-                    world_dst = placed[src][kf_src].compose(relative)
-                    odometry_dst = to_pose3(problem.odometry[dst][kf_dst])
-                    candidates[dst].append(
-                        (world_dst.compose(odometry_dst.inverse()), loop.probability)
-                    )
-        if not candidates:
-            raise ValueError(
-                f"robots {sorted(pending)} are not connected to anchor "
-                f"{problem.anchor} by loop closures"
-            )
-        for robot, options in sorted(candidates.items()):
-            alignment = _consensus_alignment(options, CONSENSUS_TRANSLATION_SPACINGS * spacing)
-            placed[robot] = [alignment.compose(to_pose3(T)) for T in problem.odometry[robot]]
-            pending.discard(robot)
-    return placed
 
 
 # --------------------------------------------------------------------------- graph
@@ -482,7 +193,7 @@ def build_graph(problem: PoseGraphProblem, formulation: str, config: PoseGraphCo
 
         def base_factor(index: int, weight: float) -> gtsam.NonlinearFactor:
             return gtsam.BetweenFactorPose3(
-                *keys[index], _measured(loops[index], scales[index]), noise(index, weight)
+                *keys[index], loop_measurement(loops[index], scales[index]), noise(index, weight)
             )
 
         return _Graph(fixed, values, base_factor, lambda v, i: float(scales[i]), len(loops))
@@ -592,7 +303,7 @@ def solve_pose_graph(
 
     Args:
         problem: odometry, loops, anchor and initial estimates.
-        formulation: one of :data:`~como3r.decentralized.config.FORMULATIONS`.
+        formulation: one of :data:`~como3r.config_decentralized.FORMULATIONS`.
         solver: ``lm`` or ``gnc``.
         config: noise models and solver parameters.
 

@@ -1,36 +1,27 @@
-"""Rendezvous, election and message routing of the decentralized mode.
+"""Rendezvous, election and message routing of the decentralized mode: a mission run on one
+machine (:func:`run_protocol`).
 
 Robots run as separate processes (or, for tests, as threads of one process) and exchange
 only the typed messages of :mod:`como3r.decentralized.messages`. Radio range is simulated
-by a rendezvous schedule: a file with one line per robot,
+by a rendezvous schedule (:mod:`.schedule`: who is in range when, the exchange rounds, the
+election of the robot that optimises a round's group).
 
-    robot_id,start_s,end_s[,start_s,end_s...]
-
-listing the mission-time windows [s] in which the robot is in communication range (of the
-rendezvous point; two robots can talk when both are in range). A robot without a line is
-never in range; without a schedule every robot always is. Exchange rounds happen when a
-window closes, every ``round_period_s`` while robots are in range, and at the end of the
-mission; the group of a round is every robot in range at its time. The robot with the
-smallest id in a group is elected to optimise (Swarm-SLAM, F-[9]; :func:`elect`).
-
-All traffic goes through a :class:`Router` in the driver, which delivers a message only
-when sender and recipient are both in range at the message's round time, and counts the
-bytes of every delivered message per robot and per message type. The robots' messages to
-the driver (progress after each round, the final report) are not radio traffic: they are
-always delivered and not counted.
+All traffic goes through a :class:`~.routing.Router` in the driver, which delivers a message
+only when sender and recipient are both in range at the message's round time, and counts the
+bytes of every delivered message per robot and per message type (:mod:`.routing`). The
+robots' messages to the driver (progress after each round, the final report) are not radio
+traffic: they are always delivered and not counted.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import multiprocessing
 import queue
 import threading
 import time
 import traceback
-from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
@@ -40,280 +31,30 @@ import numpy as np
 import torch
 
 from como3r.config import Config, config_from_dict, config_to_dict
+from como3r.config_decentralized import DecentralizedConfig
 from como3r.data.agent import open_agent
-from como3r.decentralized.config import DecentralizedConfig
 from como3r.decentralized.messages import (
     DRIVER,
-    ROBOT_MESSAGES,
-    RobotProgress,
     RobotReport,
     RobotTask,
 )
 from como3r.decentralized.place_recognition import PlaceRecognizer
 from como3r.decentralized.robot import PHASES, Robot, RoundPlan
+from como3r.decentralized.routing import (
+    MissionProgress,
+    PipeLink,
+    Router,
+    ThreadLink,
+    TrafficCounter,
+)
+from como3r.decentralized.schedule import Schedule, plan_rounds, read_schedule
 from como3r.errors import Como3rError, ConfigError, InputError
 from como3r.prior.base import Prior
 from como3r.transport import codec
 
 logger = logging.getLogger(__name__)
 
-MissionProgress = Callable[[RobotProgress | RobotReport], None]
 """What the driver calls with the robots' progress messages and final reports."""
-
-
-# ------------------------------------------------------------------------------ schedule
-
-
-@dataclass(frozen=True)
-class Schedule:
-    """When each robot is in communication range.
-
-    Attributes:
-        windows: robot -> sorted ``(start_s, end_s)`` windows; None: always in range.
-    """
-
-    windows: dict[int, list[tuple[float, float]]] | None = None
-
-    def in_range(self, robot: int, time_s: float) -> bool:
-        """Whether ``robot`` is in range at ``time_s`` (windows are closed intervals)."""
-        if self.windows is None:
-            return True
-        return any(start <= time_s <= end for start, end in self.windows.get(robot, ()))
-
-    def hears(self, receiver: int, sender: int, time_s: float) -> bool:
-        """The link filter: whether ``receiver`` hears a message ``sender`` sent at mission
-        time ``time_s`` (both in range of the rendezvous)."""
-        return self.in_range(receiver, time_s) and self.in_range(sender, time_s)
-
-    def group(self, robots: Sequence[int], time_s: float) -> tuple[int, ...]:
-        """The robots of ``robots`` in range at ``time_s``, sorted."""
-        return tuple(sorted(r for r in robots if self.in_range(r, time_s)))
-
-    def round_times(self, end_s: float, period_s: float = 0.0) -> list[float]:
-        """Round times up to ``end_s``: window ends, every ``period_s`` (if > 0) and ``end_s``."""
-        times = {float(end_s)}
-        if self.windows is not None:
-            times.update(
-                end for windows in self.windows.values() for _, end in windows if end <= end_s
-            )
-        if period_s > 0:
-            times.update(float(t) for t in np.arange(period_s, end_s, period_s))
-        return sorted(times)
-
-
-def read_schedule(path: str | Path) -> Schedule:
-    """Parse a rendezvous file (module docstring); ``#`` starts a comment.
-
-    Raises:
-        InputError: naming the line of a malformed entry.
-    """
-    path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read the rendezvous schedule ({exc})") from None
-    windows: dict[int, list[tuple[float, float]]] = {}
-    for line_no, line in enumerate(lines, 1):
-        text = line.split("#", 1)[0].strip()
-        if not text:
-            continue
-        parts = [p.strip() for p in text.split(",")]
-        where = f"{path}:{line_no}"
-        if len(parts) < 3 or len(parts) % 2 == 0:
-            raise InputError(
-                f"{where}: expected robot_id,start_s,end_s[,start_s,end_s...], got {text!r}"
-            )
-        try:
-            robot = int(parts[0])
-            bounds = [float(p) for p in parts[1:]]
-        except ValueError:
-            raise InputError(f"{where}: not a number in {text!r}") from None
-        if robot < 0 or robot in windows:
-            raise InputError(f"{where}: robot id {robot} is negative or listed twice")
-        pairs = list(zip(bounds[0::2], bounds[1::2]))
-        if not all(math.isfinite(a) and math.isfinite(b) and a <= b for a, b in pairs):
-            raise InputError(f"{where}: every window needs finite start_s <= end_s")
-        windows[robot] = sorted(pairs)
-    return Schedule(windows)
-
-
-def elect(group: Sequence[int]) -> int:
-    """The robot that optimises for ``group``: the smallest id (Swarm-SLAM, F-[9])."""
-    if not group:
-        raise ValueError("cannot elect a robot in an empty group")
-    return min(group)
-
-
-def plan_rounds(
-    schedule: Schedule, robots: Sequence[int], end_s: float, period_s: float = 0.0
-) -> list[RoundPlan]:
-    """Every round with at least two robots in range, numbered in time order."""
-    plans = []
-    for time_s in schedule.round_times(end_s, period_s):
-        group = schedule.group(robots, time_s)
-        if len(group) >= 2:
-            plans.append(RoundPlan(len(plans), time_s, group))
-    return plans
-
-
-# ------------------------------------------------------------------------------ router
-
-
-@dataclass
-class TrafficCounter:
-    """Bytes and messages delivered, per robot and message type; messages dropped (out of
-    range, or to a robot that is gone) per type."""
-
-    sent: dict[int, Counter] = field(default_factory=dict)
-    received: dict[int, Counter] = field(default_factory=dict)
-    messages: Counter = field(default_factory=Counter)
-    bytes_by_type: Counter = field(default_factory=Counter)
-    dropped: Counter = field(default_factory=Counter)
-
-    def count(self, sender: int, recipient: int, kind: str, size: int) -> None:
-        self.sent.setdefault(sender, Counter())[kind] += size
-        self.received.setdefault(recipient, Counter())[kind] += size
-        self.messages[kind] += 1
-        self.bytes_by_type[kind] += size
-
-    def to_json(self, robots: Sequence[int]) -> dict[str, Any]:
-        per_robot = {
-            str(r): {
-                "sent": dict(self.sent.get(r, {})),
-                "received": dict(self.received.get(r, {})),
-                "sent_total": sum(self.sent.get(r, Counter()).values()),
-                "received_total": sum(self.received.get(r, Counter()).values()),
-            }
-            for r in robots
-        }
-        return {
-            "per_robot": per_robot,
-            "bytes_by_type": dict(self.bytes_by_type),
-            "messages_by_type": dict(self.messages),
-            "bytes_per_message": {k: v / self.messages[k] for k, v in self.bytes_by_type.items()},
-            "total_bytes": sum(self.bytes_by_type.values()),
-            "dropped": dict(self.dropped),
-        }
-
-
-class Router:
-    """Delivers robot messages that the schedule allows and counts them.
-
-    Args:
-        schedule: rendezvous schedule.
-        deliver: ``deliver(recipient, data)`` hands raw bytes to a robot.
-        max_bytes: size cap of a message.
-        robots: the robot ids; messages to any other id are dropped.
-        progress: called with every :class:`RobotProgress` and :class:`RobotReport`, one at
-            a time (robot threads route concurrently).
-    """
-
-    def __init__(
-        self,
-        schedule: Schedule,
-        deliver: Any,
-        max_bytes: int,
-        robots: Sequence[int],
-        progress: MissionProgress | None = None,
-    ) -> None:
-        self.robots = set(robots)
-        self.schedule = schedule
-        self.deliver = deliver
-        self.max_bytes = max_bytes
-        self.progress = progress
-        self.traffic = TrafficCounter()
-        self.reports: dict[int, RobotReport] = {}
-        self.gone: set[int] = set()
-        self._lock = threading.Lock()
-
-    def route(self, data: bytes) -> None:
-        """Validate, check range, count and forward one encoded message."""
-        message = codec.decode(
-            data, max_bytes=self.max_bytes, expected=(*ROBOT_MESSAGES, RobotProgress, RobotReport)
-        )
-        with self._lock:
-            if isinstance(message, RobotReport):
-                self.reports[message.sender] = message
-                self.gone.add(message.sender)
-            if isinstance(message, (RobotProgress, RobotReport)):
-                if self.progress is not None and message.sender in self.robots:
-                    self.progress(message)
-                return
-            kind = type(message).__name__
-            sender, recipient, time_s = message.sender, message.recipient, message.time_s
-            if (
-                recipient not in self.robots
-                or recipient in self.gone
-                or not self.schedule.hears(recipient, sender, time_s)
-            ):
-                self.traffic.dropped[kind] += 1
-                return
-            self.traffic.count(sender, recipient, kind, len(data))
-        self.deliver(recipient, data)
-
-
-# ------------------------------------------------------------------------------ links
-
-
-class ThreadLink:
-    """A robot's link in single-process mode: straight into the router, a queue back."""
-
-    def __init__(self, router: Router, max_bytes: int) -> None:
-        self.router = router
-        self.inbox: queue.Queue[bytes] = queue.Queue()
-        self.max_bytes = max_bytes
-
-    def send(self, message: Any) -> None:
-        self.router.route(codec.encode(message, max_bytes=self.max_bytes))
-
-    def receive(self, timeout: float) -> Any | None:
-        try:
-            data = self.inbox.get(timeout=max(timeout, 0.0))
-        except queue.Empty:
-            return None
-        return codec.decode(data, max_bytes=self.max_bytes, expected=ROBOT_MESSAGES)
-
-
-class PipeLink:
-    """A robot process's link: raw bytes over two one-way pipes, sends from a thread so a
-    full pipe never blocks computation."""
-
-    def __init__(self, inbox: Connection, outbox: Connection, max_bytes: int) -> None:
-        self.inbox = inbox
-        self.outbox = outbox
-        self.max_bytes = max_bytes
-        self._queue: queue.Queue[bytes | None] = queue.Queue()
-        self._sender = threading.Thread(target=self._send_loop, daemon=True)
-        self._sender.start()
-
-    def send(self, message: Any) -> None:
-        self._queue.put(codec.encode(message, max_bytes=self.max_bytes))
-
-    def receive(self, timeout: float) -> Any | None:
-        if not self.inbox.poll(max(timeout, 0.0)):
-            return None
-        try:
-            data = self.inbox.recv_bytes(self.max_bytes)
-        except (EOFError, OSError):
-            return None
-        return codec.decode(data, max_bytes=self.max_bytes, expected=(*ROBOT_MESSAGES, RobotTask))
-
-    def close(self, timeout: float = 60.0) -> None:
-        """Flush queued messages, then close both pipes."""
-        self._queue.put(None)
-        self._sender.join(timeout)
-        self.inbox.close()
-        self.outbox.close()
-
-    def _send_loop(self) -> None:
-        while (data := self._queue.get()) is not None:
-            try:
-                self.outbox.send_bytes(data)
-            except OSError:
-                return
-
-
-# ------------------------------------------------------------------------------ robots
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field, fields
 import torch
 from torch import Tensor
 
-from como3r.decentralized.config import RegistrationConfig
+from como3r.config_decentralized import RegistrationConfig
 from como3r.decentralized.matching import reciprocal_matches
 from como3r.errors import GeometryError
 from como3r.geometry.lie import matrix_to_quat, sim3_act

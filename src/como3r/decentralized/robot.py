@@ -33,11 +33,11 @@ from typing import Any, Protocol
 import numpy as np
 
 from como3r.config import Config
-from como3r.data.agent import AgentInput
+from como3r.config_decentralized import DecentralizedConfig
+from como3r.data.agent_input import AgentInput
 from como3r.data.preprocess import make_view
 from como3r.decentralized.confidence import accept_loop, correspondence_ratio, loop_probability
-from como3r.decentralized.config import DecentralizedConfig
-from como3r.decentralized.consistency import LoopCheck, solve_checked
+from como3r.decentralized.consistency import LoopCheck, solve_shares
 from como3r.decentralized.keyframes import frame_odometry, select_keyframes
 from como3r.decentralized.messages import (
     DRIVER,
@@ -50,13 +50,10 @@ from como3r.decentralized.messages import (
     RobotReport,
 )
 from como3r.decentralized.place_recognition import PlaceRecognizer, candidate_pairs
-from como3r.decentralized.pose_graph import (
+from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
-    PoseGraphProblem,
-    connected_components,
 )
 from como3r.decentralized.registration import Registrar
-from como3r.errors import SolverError
 from como3r.prior.base import Prior, View
 
 logger = logging.getLogger(__name__)
@@ -461,71 +458,3 @@ class Robot:
         if len(estimate.poses):
             self.estimate = np.asarray(estimate.poses, dtype=np.float64)
             self.frame = estimate.frame
-
-
-def solve_shares(
-    shares: dict[int, PoseGraphShare],
-    settings: DecentralizedConfig,
-    formulation: str | None = None,
-    solver: str | None = None,
-    checks: list[LoopCheck] | None = None,
-) -> dict[int, tuple[np.ndarray, int]]:
-    """Solve the pose graph of every group of robots connected by loops.
-
-    Each group is anchored on its smallest robot id, at that robot's current estimate (or
-    odometry) of its first keyframe, so the group joins the anchor's frame. Only pairwise
-    consistent loops enter a solve, and a group whose solve raises the scale-collapse alarm
-    keeps its estimates (:func:`~.consistency.solve_checked`).
-
-    Args:
-        shares: every participating robot's share, by robot id.
-        settings: decentralized configuration (its formulation and solver by default).
-        formulation, solver: override the configured ones.
-        checks: if given, receives each group's :class:`~.consistency.LoopCheck`.
-
-    Returns:
-        robot -> (``(K, 8)`` poses, frame id) for every robot in a group of two or more
-        whose solve was not held back.
-    """
-    graph_config = settings.pose_graph
-    loops = [
-        loop
-        for share in shares.values()
-        for loop in share.loops
-        if loop.robot_a in shares and loop.robot_b in shares
-    ]
-    updates: dict[int, tuple[np.ndarray, int]] = {}
-    for component in connected_components(sorted(shares), loops):
-        if len(component) < 2:
-            continue
-        anchor = shares[component[0]]
-        frame = anchor.frame
-        anchor_pose = anchor.estimate[0] if len(anchor.estimate) else anchor.odometry[0]
-        problem = PoseGraphProblem(
-            odometry={r: shares[r].odometry for r in component},
-            loops=[loop for loop in loops if loop.robot_a in component],
-            anchor=component[0],
-            anchor_pose=anchor_pose,
-            initial={
-                r: shares[r].estimate
-                for r in component
-                if shares[r].frame == frame and len(shares[r].estimate)
-            },
-        )
-        try:
-            solution, check = solve_checked(
-                problem,
-                formulation or graph_config.formulation,
-                solver or graph_config.solver,
-                graph_config,
-            )
-        except SolverError as exc:
-            logger.warning("robots %s: %s; estimates unchanged", component, exc)
-            continue
-        if checks is not None:
-            checks.append(check)
-        if check.alarm:
-            continue
-        for robot in component:
-            updates[robot] = (solution.poses[robot], frame)
-    return updates

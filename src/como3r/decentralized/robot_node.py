@@ -5,7 +5,7 @@ talking to its peers over Zenoh (README, "Decentralized robots across machines")
 place recognition, two-stage registration, election and pose graph as ``como3r run --mode
 decentralized`` -- over a :class:`~como3r.decentralized.zenoh_robot.ZenohRobotLink` instead of
 the one-process router. Every robot reads the same rendezvous schedule; each plans the
-same rounds from it (:func:`~como3r.decentralized.protocol.plan_rounds`, the team's mission
+same rounds from it (:func:`~como3r.decentralized.schedule.plan_rounds`, the team's mission
 ending at the latest robot's last frame, learnt at start-up) and filters what it hears by
 it, so range limits hold without a central router.
 
@@ -28,28 +28,21 @@ from typing import Any
 import yaml
 
 from como3r.config import Config, config_to_dict
-from como3r.decentralized.config import check_config
+from como3r.config_decentralized import check_config
+from como3r.decentralized.keyframes import RobotData
 from como3r.decentralized.messages import RobotHello, RobotReport
-from como3r.decentralized.protocol import (
-    Schedule,
-    build_prior,
-    make_robot,
-    plan_rounds,
-    read_schedule,
-)
-from como3r.decentralized.robot import RoundPlan
-from como3r.decentralized.runner import (
-    RobotData,
-    RobotProgressAdapter,
+from como3r.decentralized.outputs import (
     graph_document,
     image_shape,
     loop_statistics,
-    open_robot,
-    reported_keyframes,
     robot_metrics,
     two_stage,
     write_trajectories,
 )
+from como3r.decentralized.protocol import build_prior, make_robot
+from como3r.decentralized.robot import RoundPlan
+from como3r.decentralized.runner import RobotProgressAdapter, open_robot, reported_keyframes
+from como3r.decentralized.schedule import Schedule, plan_rounds, read_schedule
 from como3r.decentralized.zenoh_robot import (
     RobotKeys,
     RobotTraffic,

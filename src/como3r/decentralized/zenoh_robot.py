@@ -25,7 +25,7 @@ network). The receiver decodes it (size-capped and validated by
 its key names (in a team run, also the certificate name the key ends in, which Zenoh's
 access control makes the sender's: :mod:`como3r.transport.team_access`), and applies the
 **link filter**: a message its sender sent at mission time ``t`` is dropped unless the
-receiver hears the sender at ``t`` (:meth:`~como3r.decentralized.protocol.Schedule.hears`),
+receiver hears the sender at ``t`` (:meth:`~como3r.decentralized.schedule.Schedule.hears`),
 as radio range would drop it.
 Drops and invalid messages are logged and counted, never fatal.
 

@@ -30,7 +30,8 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from como3r.data.agent import AgentInput, open_agent
+from como3r.data.agent import open_agent
+from como3r.data.agent_input import AgentInput
 from como3r.errors import InputError
 from como3r.evaluation.trajectory import Sim3Alignment
 from como3r.geometry.camera import intrinsics_matrix, unproject_depth

@@ -1,4 +1,5 @@
-"""Keyframes, their fused canonical pointmaps, and the growable store (C-Sec. 3.3).
+"""Keyframes, their fused canonical pointmaps, and the growable store (C-Sec. 3.3); a tracked
+frame's record relative to its anchor keyframe (:class:`FrameRecord`, C-Sec. A.8).
 
 A keyframe keeps its encoding (so pairs with it decode without re-encoding), its pose
 ``T_WC`` in the agent's (later: the shared) world frame, and its canonical pointmap
@@ -192,3 +193,13 @@ def apply_pointmap_update(keyframes: Sequence[Any], update: PointmapUpdate) -> N
     """
     for kf_id, X_hat in zip(update.kf_ids.tolist(), update.X_hat):
         keyframes[kf_id].X_hat = X_hat
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """A tracked frame: its pose is ``T_WC(anchor) * T_rel`` (C-Sec. A.8)."""
+
+    frame_index: int
+    timestamp: float
+    anchor: int
+    T_rel: Tensor

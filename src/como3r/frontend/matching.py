@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from como3r.config import MatchingConfig
-from como3r.frontend import cpu_kernels
+from como3r.frontend import cpu_kernels, cpu_window_search
 from como3r.geometry.residuals import psi
 from como3r.geometry.units import pixels_at
 
@@ -289,7 +289,9 @@ def refine_with_descriptors(
         ``(B, P, 2)`` int64 refined pixels.
     """
     if D_search.device.type == "cpu":
-        return cpu_kernels.refine_windows(D_search, D_query, pixel, radius, dilation_max, active)
+        return cpu_window_search.refine_windows(
+            D_search, D_query, pixel, radius, dilation_max, active
+        )
     return _refine_vectorised(D_search, D_query, pixel, radius, dilation_max, active)
 
 
@@ -302,7 +304,7 @@ def _refine_vectorised(
     active: Tensor | None,
 ) -> Tensor:
     """:func:`refine_with_descriptors` as batched PyTorch (any device; on CPU the compiled
-    loop of :mod:`como3r.frontend.cpu_kernels` is 9x faster)."""
+    loop of :mod:`como3r.frontend.cpu_window_search` is 9x faster)."""
     B, H, W, d = D_search.shape
     P = pixel.shape[1]
     margin = radius * dilation_max

@@ -1,8 +1,8 @@
-"""Exports of a finished run folder (README, "Exporting a run"): COLMAP, nerfstudio, g2o,
-per-keyframe depth maps and a ROS 2 bag (:mod:`como3r.io.ros2_bag`).
+"""Exports of a finished run folder (README, "Exporting a run"): COLMAP, nerfstudio, g2o
+(:mod:`como3r.io.g2o`), per-keyframe depth maps and a ROS 2 bag (:mod:`como3r.io.ros2_bag`).
 
 What is read: ``graph.json`` (keyframes with their final ``T_WC``, graph edges, gauge
-components), ``map.ply`` (the fused cloud) and the keyframe data of
+components: :mod:`como3r.io.run_graph`), ``map.ply`` (the fused cloud) and the keyframe data of
 :mod:`como3r.io.keyframe_data` (pointmap, confidence, intrinsics and image per keyframe).
 Nothing of a live run is touched.
 
@@ -29,25 +29,29 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
 import os
 import shutil
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
-import torch
 from PIL import Image
 
 from como3r.errors import InputError
-from como3r.geometry.camera import estimate_focal
-from como3r.geometry.lie import quat_to_matrix, se3_compose, se3_inverse
+from como3r.geometry.lie import quat_to_matrix, se3_inverse
 from como3r.io.colmap import ColmapCamera, ColmapImage, Pinhole, write_colmap_text
+from como3r.io.g2o import G2O_HEADER, write_g2o
 from como3r.io.keyframe_data import KeyframeData, keyframe_data_path, read_keyframe_data
 from como3r.io.output import atomic_output_dir, check_output_dir
 from como3r.io.ply import read_ply, write_ply
+from como3r.io.run_graph import (
+    RunGraph,
+    RunKeyframe,
+    keyframe_depth,
+    keyframe_intrinsics,
+    read_run_graph,
+)
 
 #: at most this many points of ``map.ply`` go into ``points3D.txt`` (and nerfstudio's
 #: ``sparse_pc.ply``): evenly spaced in the file's order, so the same run gives the same points
@@ -58,72 +62,8 @@ DEPTH_TOLERANCE = 0.05
 #: 16-bit depth PNGs hold round(depth x this) per world unit (millimetres when the map's
 #: unit is the metre; nerfstudio's default ``depth_unit_scale_factor`` 1e-3 reads them)
 DEPTH_PNG_SCALE = 1000.0
-#: the first line of every g2o file como3r writes (``--overwrite`` replaces only such a file)
-G2O_HEADER = "# como3r keyframe pose graph"
 #: the OpenCV camera (x right, y down, z forward) in OpenGL axes (x right, y up, z backward)
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
-
-
-@dataclass(frozen=True)
-class RunKeyframe:
-    """One keyframe of ``graph.json``.
-
-    Attributes:
-        index: its position in ``graph.json``'s ``keyframes`` (the g2o vertex id).
-        agent: agent id.
-        kf_id: keyframe id within the agent.
-        frame: frame index in the agent's stream.
-        timestamp: seconds.
-        T_WC: ``(8,)`` float64 Sim(3) pose ``(t, q_xyzw, s)``, quaternion normalised.
-    """
-
-    index: int
-    agent: int
-    kf_id: int
-    frame: int
-    timestamp: float
-    T_WC: np.ndarray
-
-    @property
-    def name(self) -> str:
-        """File stem of its exported image and depth: ``agent<a>_kf<k:06d>``."""
-        return f"agent{self.agent}_kf{self.kf_id:06d}"
-
-    @property
-    def rigid(self) -> torch.Tensor:
-        """``(7,)`` float64 SE(3) camera-to-world pose ``(t, q_xyzw)`` (the scale dropped)."""
-        return torch.from_numpy(self.T_WC[:7].copy())
-
-    def camera_to_world(self) -> np.ndarray:
-        """``(4, 4)`` rigid camera-to-world matrix (OpenCV camera axes)."""
-        M = np.eye(4)
-        M[:3, :3] = quat_to_matrix(self.rigid[3:7]).numpy()
-        M[:3, 3] = self.T_WC[:3]
-        return M
-
-
-@dataclass(frozen=True)
-class RunEdge:
-    """One edge of ``graph.json`` between keyframes ``i`` and ``j`` (their indices).
-
-    Attributes:
-        weight: :func:`edge_weight`.
-    """
-
-    i: int
-    j: int
-    kind: str
-    weight: float
-
-
-@dataclass(frozen=True)
-class RunGraph:
-    """What ``graph.json`` says: keyframes in file order, the edges between them (those
-    marked ``"accepted": false`` left out), the gauge components (lists of agents)."""
-
-    keyframes: list[RunKeyframe]
-    edges: list[RunEdge]
-    components: list[list[int]]
 
 
 @dataclass
@@ -143,107 +83,6 @@ class ExportSummary:
                 "wrote": ", ".join(f"{n} {what}" for what, n in counts.items()),
             }
         )
-
-
-def read_run_graph(run: str | Path) -> RunGraph:
-    """Read ``run/graph.json`` of a finished run folder.
-
-    Raises:
-        InputError: ``run`` is missing, not a folder, an unfinished run (``*.partial``), has no
-            ``graph.json`` (a demo folder is pointed to its ``run``), or a malformed one.
-    """
-    run = Path(run)
-    if not run.exists():
-        raise InputError(f"{run}: no such run folder")
-    if not run.is_dir():
-        raise InputError(f"{run}: not a folder (give a run folder, como3r run --out)")
-    if run.name.endswith(".partial"):
-        raise InputError(
-            f"{run}: an unfinished run (a run writes DIR.partial and renames it to "
-            f"DIR when it is complete)"
-        )
-    path = run / "graph.json"
-    if not path.is_file():
-        hint = (
-            f"; the run of this demo folder is {run / 'run'}"
-            if (run / "run" / "graph.json").is_file()
-            else ""
-        )
-        raise InputError(f"{run}: not a finished como3r run folder: no graph.json{hint}")
-    try:
-        document = json.loads(path.read_text())
-        keyframes = [_keyframe(i, entry) for i, entry in enumerate(document["keyframes"])]
-        index = {(k.agent, k.kf_id): k.index for k in keyframes}
-        edges = [
-            _edge(e, index)
-            for e in document.get("edges", [])
-            if e.get("accepted", True) is not False
-        ]
-        components = [[int(a) for a in c] for c in document.get("components", [])]
-    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise InputError(f"{path}: not a como3r graph ({type(exc).__name__}: {exc})") from None
-    if not keyframes:
-        raise InputError(f"{path}: no keyframes to export")
-    return RunGraph(keyframes, edges, components)
-
-
-def _keyframe(index: int, entry: dict[str, Any]) -> RunKeyframe:
-    T_WC = np.asarray(entry["T_WC"], dtype=np.float64)
-    if T_WC.shape != (8,) or not np.isfinite(T_WC).all() or T_WC[7] <= 0:
-        raise ValueError(f"keyframe {index}: T_WC is not 8 finite numbers with scale > 0")
-    q_norm = np.linalg.norm(T_WC[3:7])
-    if abs(q_norm - 1.0) > 1e-2:
-        raise ValueError(f"keyframe {index}: quaternion norm {q_norm:.4f} is not 1")
-    T_WC[3:7] /= q_norm
-    return RunKeyframe(
-        index,
-        int(entry["agent"]),
-        int(entry["keyframe"]),
-        int(entry["frame"]),
-        float(entry["timestamp"]),
-        T_WC,
-    )
-
-
-def _edge(entry: dict[str, Any], index: dict[tuple[int, int], int]) -> RunEdge:
-    ends = []
-    for end in (entry["from"], entry["to"]):
-        agent, kf_id = (int(v) for v in end)
-        if (agent, kf_id) not in index:
-            raise ValueError(
-                f"edge {entry['from']} -> {entry['to']}: no keyframe {kf_id} of "
-                f"agent {agent} in the graph"
-            )
-        ends.append(index[agent, kf_id])
-    return RunEdge(ends[0], ends[1], str(entry.get("type", "")), edge_weight(entry))
-
-
-def keyframe_intrinsics(data: KeyframeData) -> Pinhole:
-    """The keyframe's intrinsics: its ``K``, else the focal length its pointmap implies
-    (:func:`~como3r.geometry.camera.estimate_focal`, confidence-weighted) with the principal
-    point at the image centre.
-
-    Raises:
-        InputError: no ``K`` and no point in front of the camera to estimate one from.
-    """
-    H, W = data.shape
-    if data.K is not None:
-        K = data.K
-        return Pinhole(W, H, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
-    focal = float(estimate_focal(torch.from_numpy(data.X), torch.from_numpy(data.C)))
-    if not math.isfinite(focal) or focal <= 0:
-        raise InputError(
-            f"{data.image_path.with_suffix('.npz')}: no intrinsics and no point in "
-            f"front of the camera to estimate a focal length from"
-        )
-    return Pinhole(W, H, focal, focal, (W - 1) / 2.0, (H - 1) / 2.0)
-
-
-def keyframe_depth(keyframe: RunKeyframe, data: KeyframeData) -> np.ndarray:
-    """``(H, W)`` float32 depth along the optical axis in world units, ``s X_z``; 0 where the
-    pointmap has no finite point in front of the camera."""
-    depth = keyframe.T_WC[7] * data.X[..., 2].astype(np.float64)
-    return np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
 
 
 def depth_png(depth: np.ndarray) -> np.ndarray:
@@ -569,65 +408,3 @@ def write_depth(
         Image.fromarray(depth_png(z)).save(out / f"{kf.name}.png")
         step()
     return {"keyframes": len(graph.keyframes)}
-
-
-def edge_weight(edge: dict[str, Any]) -> float:
-    """An edge's weight in the g2o information matrix: its match fraction (the smaller of
-    ``nu_i``, ``nu_j`` for sequential and inter-agent edges, ``match_fraction`` for loop
-    edges), 1 for an edge without one."""
-    if "nu_i" in edge and "nu_j" in edge:
-        return float(min(edge["nu_i"], edge["nu_j"]))
-    return float(edge.get("match_fraction", 1.0))
-
-
-def write_g2o(graph: RunGraph, path: Path) -> dict[str, int]:
-    """The keyframe pose graph as a g2o file (3-D, ``types_slam3d``).
-
-    ``VERTEX_SE3:QUAT id tx ty tz qx qy qz qw`` per keyframe (id = its index in
-    ``graph.json``'s ``keyframes``; the rigid camera-to-world pose, world units); ``FIX id``
-    for the first keyframe of each gauge component; ``EDGE_SE3:QUAT i j`` and the relative
-    pose ``T_i^-1 T_j`` per edge ``graph.json`` lists (sequential, inter-agent, loop; an edge
-    marked ``"accepted": false`` is left out), then the upper triangle of its 6x6 information
-    matrix in g2o's order (translation, then rotation), row by row.
-
-    ``graph.json`` stores the final poses but not the pairwise measurements the solver used,
-    so each measurement is the relative pose of the final estimates (a graph at rest), and
-    the information matrix is ``w I_6`` with ``w`` = :func:`edge_weight`: a relative weight by
-    how much of the pair matched, not a calibrated covariance. Lines starting with ``#`` are
-    comments (g2o and GTSAM's ``readG2o`` skip them).
-
-    Returns:
-        counts: ``vertices``, ``edges``.
-    """
-    lines = [
-        G2O_HEADER,
-        "# vertices: keyframes in graph.json order (agent, keyframe id in the comment above "
-        "each); poses: rigid camera-to-world, world units; information: w I_6, w = the "
-        "edge's match fraction",
-    ]
-    for kf in graph.keyframes:
-        lines.append(
-            f"# agent {kf.agent} keyframe {kf.kf_id} frame {kf.frame} "
-            f"timestamp {kf.timestamp!r} scale {float(kf.T_WC[7])!r}"
-        )
-        lines.append(f"VERTEX_SE3:QUAT {kf.index} " + _numbers(kf.T_WC[:7]))
-    for component in graph.components:
-        first = next((k for k in graph.keyframes if k.agent in component), None)
-        if first is not None:
-            lines.append(f"FIX {first.index}")
-    for edge in graph.edges:
-        i, j = graph.keyframes[edge.i], graph.keyframes[edge.j]
-        relative = se3_compose(se3_inverse(i.rigid), j.rigid).numpy()
-        information = edge.weight * np.eye(6)
-        lines.append(
-            f"EDGE_SE3:QUAT {i.index} {j.index} "
-            + _numbers(relative)
-            + " "
-            + _numbers(information[np.triu_indices(6)])
-        )
-    path.write_text("\n".join(lines) + "\n")
-    return {"vertices": len(graph.keyframes), "edges": len(graph.edges)}
-
-
-def _numbers(values: np.ndarray) -> str:
-    return " ".join(repr(float(v) + 0.0) for v in values)  # + 0.0: no "-0.0"

@@ -52,9 +52,9 @@ import torch
 
 from como3r.errors import InputError
 from como3r.geometry.lie import se3_compose, se3_inverse, se3_log
-from como3r.io.export import RunGraph, RunKeyframe, keyframe_intrinsics
 from como3r.io.keyframe_data import read_keyframe_data
 from como3r.io.ply import read_ply
+from como3r.io.run_graph import RunGraph, RunKeyframe, keyframe_intrinsics
 from como3r.io.tum import Trajectory, read_tum
 
 #: the world frame's id

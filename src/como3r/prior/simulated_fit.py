@@ -8,23 +8,21 @@ enough common keys none (``None``).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+import math
 
 import torch
 from torch import Tensor
 
 from como3r.errors import GeometryError
-from como3r.geometry.lie import matrix_to_quat, quat_to_matrix, sim3_act
+from como3r.geometry.lie import matrix_to_quat, quat_to_matrix, sim3_act, so3_exp
 from como3r.geometry.umeyama import umeyama_sim3, umeyama_sim3_batched
+from como3r.prior.simulated_encoding import SimulatedConstants, SimulatedEncoding, normalize
 from como3r.prior.simulated_keys import (
     KeyMatches,
     key_jacobians,
     match_key_cells,
     reproducible_matmul,
 )
-
-if TYPE_CHECKING:
-    from como3r.prior.simulated import SimulatedConstants, SimulatedEncoding
 
 
 def match_keys(
@@ -143,3 +141,17 @@ def _refit(
 def true_points(enc: SimulatedEncoding) -> Tensor:
     """``(H, W, 3)`` true camera-frame points (0 where invalid)."""
     return enc.rays * enc.ranges[..., None]
+
+
+def random_pose(
+    enc_i: SimulatedEncoding, c: SimulatedConstants, gen: torch.Generator
+) -> tuple[Tensor, Tensor, Tensor]:
+    """A plausible wrong pose for views without common keys: near camera i, turned."""
+    axis = normalize(torch.randn(3, generator=gen))
+    angle = math.radians(c.random_pose_max_angle_deg) * float(torch.rand((), generator=gen))
+    direction = normalize(torch.randn(3, generator=gen))
+    low, high = c.random_pose_distance
+    distance = enc_i.median_range * (low + (high - low) * float(torch.rand((), generator=gen)))
+    device = enc_i.rays.device
+    R = quat_to_matrix(so3_exp(axis * angle)).to(device)
+    return R, (direction * distance).to(device), torch.ones((), device=device)

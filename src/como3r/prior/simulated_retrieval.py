@@ -60,7 +60,7 @@ def patch_features(
         noise: RMS norm of the per-view noise added to each unit descriptor.
         gen: generator of the noise.
         appearance: ``(P, d)`` unit appearance features and ``(P,)`` weights ``w`` of the
-            keys (:func:`~como3r.prior.simulated_errors.patch_appearance`): the noise is
+            keys (:func:`~como3r.prior.simulated_appearance.patch_appearance`): the noise is
             added to ``w`` times the unit key mean plus ``1 - w`` times the appearance;
             None: the key mean alone.
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from como3r.config import Config
-from como3r.data.agent import AgentInput
+from como3r.data.agent_input import AgentInput
 from como3r.errors import InputError
 from como3r.io.output import atomic_output_dir
 from como3r.live import LiveCallback

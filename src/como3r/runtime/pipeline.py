@@ -32,7 +32,8 @@ import torch
 
 from como3r.config import Config
 from como3r.coordination.coordinator import Coordinator
-from como3r.data.agent import AgentInput, open_agent
+from como3r.data.agent import open_agent
+from como3r.data.agent_input import AgentInput
 from como3r.data.preprocess import make_view, upsampling
 from como3r.data.readers.camera import (
     CameraInput,

@@ -47,7 +47,7 @@ import torch
 
 from como3r.config import Config, config_to_dict
 from como3r.coordination.coordinator import Coordinator
-from como3r.data.agent import AgentInput
+from como3r.data.agent_input import AgentInput
 from como3r.frontend.packets import PoseUpdate
 from como3r.geometry.lie import sim3_compose, sim3_inverse
 from como3r.live import LiveCallback

@@ -25,8 +25,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from como3r.config import Config, differing_key
-from como3r.coordination.association import Verification
-from como3r.coordination.coordinator import Candidate, Coordinator, CoordinatorStats
+from como3r.coordination.association import Candidate, Verification
+from como3r.coordination.coordinator import Coordinator, CoordinatorStats
 from como3r.errors import StoreError
 from como3r.store.paging import NO_MATCHES, StoredVerification
 from como3r.store.reader import Session, read_session

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 from torch import Tensor
 
-from como3r.backend.global_graph import GlobalGraph, GraphLink
+from como3r.backend.global_graph import GlobalGraph
+from como3r.backend.graph_link import GraphLink
 from como3r.coordination.gauge import GaugeComponents
 from como3r.errors import StoreError
 from como3r.frontend.keyframes import Keyframe

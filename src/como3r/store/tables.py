@@ -19,7 +19,8 @@ from typing import Any
 
 from torch import Tensor
 
-from como3r.coordination.coordinator import Candidate, Coordinator
+from como3r.coordination.association import Candidate
+from como3r.coordination.coordinator import Coordinator
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.paging import POINTMAP_FIELDS, PagedKeyframe
 from como3r.frontend.pairs import PairLink

@@ -21,11 +21,11 @@ from __future__ import annotations
 import importlib
 import os
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from como3r.errors import InputError
+from como3r.viewer.spec import MODES, ViewerSpec
 
 if TYPE_CHECKING:
     from como3r.viewer.recording import RerunViewer
@@ -40,24 +40,9 @@ __all__ = [
     "require_rerun",
 ]
 
-#: what ``--viewer`` accepts: open the native viewer, serve for a remote one, write a file
-MODES = ("spawn", "serve", "save")
 
 #: how to get the optional dependency
 INSTALL = 'pip install "como3r[viewer]"'
-
-
-@dataclass(frozen=True)
-class ViewerSpec:
-    """Where the live events go.
-
-    Attributes:
-        mode: one of :data:`MODES`.
-        path: the ``.rrd`` file of ``save`` (None otherwise).
-    """
-
-    mode: str
-    path: Path | None = None
 
 
 def parse_viewer(value: str) -> ViewerSpec:

@@ -34,7 +34,7 @@ import rerun as rr
 
 from como3r.errors import InputError
 from como3r.live import FrameEvent, KeyframeEvent, LiveEvent, MapEvent, TrajectoryEvent
-from como3r.viewer import ViewerSpec
+from como3r.viewer.spec import ViewerSpec
 
 logger = logging.getLogger(__name__)
 

@@ -2,13 +2,13 @@
 
 One module per format; each has ``matches(path) -> bool`` (the layout test of detection),
 ``open_sequence(path, fps) -> AgentInput`` (the common return type, from
-:mod:`como3r.data.agent`) and ``ground_truth(path, ...) -> (source, Trajectory)`` (what
+:mod:`como3r.data.agent_input`) and ``ground_truth(path, ...) -> (source, Trajectory)`` (what
 ``como3r eval --gt`` reads):
 
 =========  ===========================================  ===================================
 format     layout                                       module
 =========  ===========================================  ===================================
-agent      ``rgb/`` or a video, side files (README)     :mod:`como3r.data.agent`
+agent      ``rgb/`` or a video, side files (README)     :mod:`como3r.data.readers.agent`
 tum        TUM RGB-D: ``rgb.txt``, ``depth.txt``,        :mod:`como3r.data.readers.tum`
            ``groundtruth.txt``, ``rgb/``, ``depth/``
 7scenes    7-Scenes: ``frame-NNNNNN.color.png|jpg``,     :mod:`como3r.data.readers.sevenscenes`
@@ -47,13 +47,9 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from como3r.data.agent import (
-    IMAGE_SUFFIXES,
-    VIDEO_SUFFIXES,
-    AgentInput,
-    open_agent_folder,
-)
+from como3r.data.agent_input import IMAGE_SUFFIXES, VIDEO_SUFFIXES, AgentInput
 from como3r.data.readers import euroc, kitti, rosbag, sevenscenes, tanks, tum
+from como3r.data.readers.agent import open_agent_folder
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory, read_tum
 

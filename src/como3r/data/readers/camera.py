@@ -44,7 +44,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from como3r.data.agent import Frame
+from como3r.data.agent_input import Frame
 from como3r.errors import InputError
 
 logger = logging.getLogger(__name__)

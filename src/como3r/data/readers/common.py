@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from como3r.data.agent import IMAGE_SUFFIXES
+from como3r.data.agent_input import IMAGE_SUFFIXES
 from como3r.errors import InputError
 from como3r.geometry.lie import matrix_to_quat
 

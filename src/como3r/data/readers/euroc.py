@@ -40,7 +40,8 @@ import numpy as np
 import torch
 import yaml
 
-from como3r.data.agent import AgentInput, common_image_size
+from como3r.data.agent_input import AgentInput
+from como3r.data.input_files import common_image_size
 from como3r.data.readers.common import data_lines, parse_numbers, rigid_poses
 from como3r.data.readers.tum import read_file_list
 from como3r.data.readers.undistort import UndistortedInput

@@ -41,7 +41,8 @@ from pathlib import Path
 
 import numpy as np
 
-from como3r.data.agent import AgentInput, common_image_size, parse_timestamp
+from como3r.data.agent_input import AgentInput
+from como3r.data.input_files import common_image_size, parse_timestamp
 from como3r.data.readers.common import data_lines, numbered_images, parse_numbers, rigid_poses
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory

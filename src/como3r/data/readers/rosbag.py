@@ -50,7 +50,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from como3r.data.agent import AgentInput, Frame
+from como3r.data.agent_input import AgentInput, Frame
 from como3r.data.readers.undistort import undistort
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory

@@ -40,7 +40,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from como3r.data.agent import AgentInput, check_map_header, common_image_size, read_calib
+from como3r.data.agent_input import AgentInput
+from como3r.data.input_files import check_map_header, common_image_size, read_calib
 from como3r.data.readers.common import parse_numbers, rigid_poses
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory

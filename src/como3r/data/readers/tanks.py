@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from como3r.data.agent import AgentInput, common_image_size, read_calib
+from como3r.data.agent_input import AgentInput
+from como3r.data.input_files import common_image_size, read_calib
 from como3r.data.readers.common import data_lines, numbered_images
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory, parse_tum_line

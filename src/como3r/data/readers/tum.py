@@ -51,13 +51,8 @@ from pathlib import Path
 
 import numpy as np
 
-from como3r.data.agent import (
-    AgentInput,
-    check_map_header,
-    common_image_size,
-    parse_timestamp,
-    read_calib,
-)
+from como3r.data.agent_input import AgentInput
+from como3r.data.input_files import check_map_header, common_image_size, parse_timestamp, read_calib
 from como3r.data.readers.undistort import UndistortedInput
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory, read_tum

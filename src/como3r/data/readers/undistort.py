@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from como3r.data.agent import AgentInput, Frame
+from como3r.data.agent_input import AgentInput, Frame
 
 
 @dataclass(frozen=True, eq=False)

@@ -97,7 +97,7 @@ class PoseGraphConfig:
         odom_sigma_rot_deg: odometry factor rotation noise per keyframe step [deg].
         odom_sigma_trans_ratio: odometry factor translation noise per keyframe step, as a
             fraction of the keyframe spacing (median odometry distance between consecutive
-            keyframes of the graph, :func:`~.pose_graph.keyframe_spacing`); 0.04: 2 cm at the
+            keyframes of the graph, :func:`~.initial_estimate.keyframe_spacing`); 0.04: 2 cm at the
             default 0.5 m spacing of the synthetic scene, 5 cm at a 1.2 m outdoor spacing
             (the paper states no noise values).
         loop_sigma_rot_deg: loop factor rotation noise at confidence p = 1 [deg]; the

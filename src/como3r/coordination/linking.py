@@ -1,0 +1,336 @@
+"""How the coordinator links agents (C-Sec. 3.4, 3.5, A.3, A.4): a new keyframe's cross-agent
+candidates retrieved and verified (:mod:`.association`), a verified edge admitted inside one
+gauge component when its points agree with the poses and its scale with the map, or held
+until enough edges between two components agree on one transform, which then merges them
+(:mod:`.gauge`; steps 2 and 3 of :mod:`como3r.coordination.coordinator`).
+
+:class:`InterAgentLinking` is one part of :class:`~como3r.coordination.coordinator.Coordinator`
+(its base class): its methods read and change the coordinator's graph, gauge components,
+candidates and counters.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from como3r.backend.global_graph import GlobalGraph
+from como3r.config import Config
+from como3r.coordination.association import (
+    Candidate,
+    CrossAgentRetrieval,
+    budget_candidates,
+    verify_candidates,
+)
+from como3r.coordination.gauge import (
+    GaugeComponents,
+    GaugeTransform,
+    edge_log_scale,
+    lift,
+    residual_ratio,
+    solve_gauge_transform,
+    transport,
+)
+from como3r.frontend.packets import KeyframePacket, PoseUpdate
+from como3r.frontend.pairs import DirectedMatches, gather_points
+from como3r.frontend.timing import TimedPrior
+from como3r.geometry.lie import sim3_act
+from como3r.prior.retrieval import Quantized
+
+# the coordinator's logger: its messages read as they did before this part had a module
+logger = logging.getLogger("como3r.coordination.coordinator")
+
+
+class InterAgentLinking:
+    """Association and gauge merges of the :class:`~como3r.coordination.coordinator.Coordinator`
+    (the coordinator's attributes it uses are declared below; it also counts in the
+    coordinator's ``stats`` and calls its helpers)."""
+
+    config: Config
+    graph: GlobalGraph
+    gauges: GaugeComponents
+    retrieval: CrossAgentRetrieval | None
+    prior: TimedPrior
+    candidates: list[Candidate]
+    gauge_events: list[dict[str, Any]]
+    _waiting: list[Candidate]
+    _new_edges: int
+    _dirty_roots: set[int]
+
+    def _associate(self, packet: KeyframePacket) -> list[Candidate]:
+        """Retrieve candidates of other agents and verify them densely (C-Eq. 12)."""
+        if self.retrieval is None or packet.retrieval is None:
+            return []
+        start = time.perf_counter()
+        descriptors, attention = packet.retrieval
+        if (
+            packet.retrieval_words is not None
+            and packet.codebook_id == self.retrieval.database.codebook_id
+        ):
+            descriptors = Quantized(descriptors, packet.retrieval_words)  # the agent's search
+        hits = self.retrieval.query_and_add(packet.agent, packet.kf_id, (descriptors, attention))
+        self.stats.retrieval_queries += 1
+        middle = time.perf_counter()
+        self.stats.add_time("retrieval", middle - start)
+        root = self.gauges.find(packet.agent)
+        hits = budget_candidates(
+            hits, lambda agent: self.gauges.find(agent) == root, self.config.verification
+        )
+        if not hits:
+            return []
+        candidates = [
+            (h, self.graph.keyframes[self.graph.global_index(h.agent, h.keyframe)].encoding)
+            for h in hits
+        ]
+        decoded = self.stats.stage_seconds.get("prior_decode", 0.0)
+        verifications = verify_candidates(
+            self.prior,
+            (packet.agent, packet.kf_id),
+            packet.encoding,
+            candidates,
+            self.config.matching,
+            self.config.tracking.q_min,
+            self.config.verification,
+        )
+        decoded = self.stats.stage_seconds.get("prior_decode", 0.0) - decoded
+        self.stats.add_time("verification", time.perf_counter() - middle - decoded)
+        self.stats.edges_tried += len(verifications)
+        records = [
+            Candidate(v, self.graph.global_index(*v.candidate), self.graph.global_index(*v.query))
+            for v in verifications
+        ]
+        self.candidates.extend(records)
+        verified = [c for c in records if c.verification.accepted]
+        self.stats.edges_verified += len(verified)
+        return verified
+
+    def _admit(self, candidate: Candidate) -> list[PoseUpdate]:
+        """Route a verified edge: into its component's graph, or towards a gauge merge."""
+        if self._same_component(candidate):
+            self._admit_within(candidate)
+            return []
+        candidate.status = "pending"
+        self._waiting.append(candidate)
+        return self._try_merge(candidate)
+
+    def _admit_within(self, candidate: Candidate) -> None:
+        """Add an edge between agents sharing a gauge if it agrees with their poses."""
+        x_i, x_j, q = self._lifted_correspondences(candidate)
+        centre = self.graph.keyframes[candidate.i].T_WC[:3]
+        candidate.residual_ratio = residual_ratio(x_i, x_j, centre)
+        if candidate.residual_ratio > self.config.verification.max_residual_ratio:
+            candidate.status = "inconsistent"
+            self.stats.edges_inconsistent += 1
+            logger.info(
+                "coordinator: edge %s-%s disagrees with the poses (ratio %.3f); rejected",
+                candidate.verification.candidate,
+                candidate.verification.query,
+                candidate.residual_ratio,
+            )
+            return
+        if not self._scale_agrees(candidate, x_j, x_i, q):
+            return
+        self._add_inter_link(candidate)
+
+    def _scale_agrees(self, candidate: Candidate, x_j: Tensor, x_i: Tensor, q: Tensor) -> bool:
+        """The scale watch of an edge inside one gauge (``gauge.scale_alarm_log``): its own
+        similarity from endpoint j's lifted points to endpoint i's must not rescale the map;
+        otherwise it is held back as inconsistent and reported."""
+        log_scale = edge_log_scale(x_j, x_i, q, self.config.gauge.min_correspondences)
+        if not abs(log_scale) > self.config.gauge.scale_alarm_log:
+            return True
+        candidate.status = "inconsistent"
+        self.stats.edges_inconsistent += 1
+        self.stats.edges_scale_inconsistent += 1
+        logger.warning(
+            "coordinator: scale alarm: edge %s-%s would rescale the map by %.3f "
+            "(threshold exp(%.3f)); held back",
+            candidate.verification.candidate,
+            candidate.verification.query,
+            math.exp(log_scale),
+            self.config.gauge.scale_alarm_log,
+        )
+        return False
+
+    def _add_inter_link(self, candidate: Candidate) -> None:
+        candidate.status = "admitted"
+        v = candidate.verification
+        self.graph.add_inter_link(candidate.i, candidate.j, candidate.link, v.similarity)
+        self.stats.edges_accepted += 1
+        self._new_edges += 1
+        self._dirty_roots.add(self.gauges.find(self.graph.agent_of[candidate.i]))
+
+    def _try_merge(self, candidate: Candidate) -> list[PoseUpdate]:
+        """Merge the two components of ``candidate`` once enough waiting edges between them
+        agree with its transform; then admit them and re-test the rest."""
+        needed = self.config.gauge.min_consistent_edges
+        supporters = [candidate]
+        if needed > 1:
+            hypothesis = self._gauge_transform([candidate])
+            supporters += [
+                c
+                for c in self._waiting
+                if c is not candidate
+                and self._roots(c) == self._roots(candidate)
+                and self._agrees(c, hypothesis)
+            ]
+            supporters = self._scale_supporters(supporters)
+        if len(supporters) < needed:
+            return []
+        start = time.perf_counter()
+        transform = self._gauge_transform(supporters)
+        anchor_root, moved_root = self._roots(candidate)
+        moved_agents = self.gauges.members(moved_root)
+        for agent in moved_agents:
+            indices = self.graph.agent_keyframes(agent)
+            self.graph.set_poses(indices, transport(transform.T, self.graph.poses(indices)))
+        log_focal = self._align_focal(supporters, moved_agents)
+        self.gauges.union(anchor_root, moved_root)
+        self._record_gauge_event(transform, anchor_root, moved_agents, supporters, log_focal)
+        self.stats.gauge_syncs += 1
+        self.stats.add_time("gauge", time.perf_counter() - start)
+        for c in supporters:
+            self._add_inter_link(c)
+        # Other waiting edges now inside one component are tested like any such edge.
+        inside = [c for c in self._waiting if self._same_component(c) and c not in supporters]
+        self._waiting = [c for c in self._waiting if not self._same_component(c)]
+        for c in inside:
+            self._admit_within(c)
+        return self._updates(moved_agents, "gauge")
+
+    def _scale_supporters(self, supporters: list[Candidate]) -> list[Candidate]:
+        """The supporters whose own ``T*`` scale agrees with the joint one within
+        ``gauge.scale_alarm_log`` (a wrong link must not set the gauge's scale); the others
+        are logged and counted (``gauge_scale_held``) and wait on."""
+        if len(supporters) < 2:
+            return supporters
+        joint = math.log(float(self._gauge_transform(supporters).T[7]))
+        kept = []
+        for c in supporters:
+            own = math.log(float(self._gauge_transform([c]).T[7]))
+            if abs(own - joint) > self.config.gauge.scale_alarm_log:
+                self.stats.gauge_scale_held += 1
+                logger.warning(
+                    "coordinator: scale alarm: edge %s-%s would merge at scale "
+                    "x%.3f, the others at x%.3f; not counted as support",
+                    c.verification.candidate,
+                    c.verification.query,
+                    math.exp(own),
+                    math.exp(joint),
+                )
+            else:
+                kept.append(c)
+        return kept
+
+    def _agrees(self, candidate: Candidate, hypothesis: GaugeTransform) -> bool:
+        """Whether a waiting edge's points agree once the moving side is transported."""
+        x_moving, x_anchor, _ = self._oriented_correspondences(candidate)
+        anchor = candidate.i if self._moving_is_j(candidate) else candidate.j
+        candidate.residual_ratio = residual_ratio(
+            x_anchor,
+            sim3_act(hypothesis.T.to(x_moving)[None], x_moving),
+            self.graph.keyframes[anchor].T_WC[:3],
+        )
+        return candidate.residual_ratio <= self.config.verification.max_residual_ratio
+
+    def _gauge_transform(self, candidates: Sequence[Candidate]) -> GaugeTransform:
+        """``T*`` from the lifted correspondences of edges between the same two components
+        (C-Eq. 14); the rigid snap uses the first edge's endpoints."""
+        parts = [self._oriented_correspondences(c) for c in candidates]
+        first = candidates[0]
+        moving, anchor = (first.j, first.i) if self._moving_is_j(first) else (first.i, first.j)
+        return solve_gauge_transform(
+            torch.cat([p[0] for p in parts]),
+            torch.cat([p[1] for p in parts]),
+            torch.cat([p[2] for p in parts]),
+            self.graph.keyframes[moving].T_WC,
+            self.graph.keyframes[anchor].T_WC,
+            self.config.gauge.min_correspondences,
+        )
+
+    def _roots(self, candidate: Candidate) -> tuple[int, int]:
+        """``(anchor root, moving root)`` of the components an edge connects."""
+        root_i = self.gauges.find(self.graph.agent_of[candidate.i])
+        root_j = self.gauges.find(self.graph.agent_of[candidate.j])
+        return min(root_i, root_j), max(root_i, root_j)
+
+    def _same_component(self, candidate: Candidate) -> bool:
+        return self.gauges.same(self.graph.agent_of[candidate.i], self.graph.agent_of[candidate.j])
+
+    def _moving_is_j(self, candidate: Candidate) -> bool:
+        return self.gauges.find(self.graph.agent_of[candidate.j]) == self._roots(candidate)[1]
+
+    def _oriented_correspondences(self, candidate: Candidate) -> tuple[Tensor, Tensor, Tensor]:
+        """``(x_moving, x_anchor, q)``: lifted correspondences of an edge between two
+        components, the moving component's side first."""
+        x_i, x_j, q = self._lifted_correspondences(candidate)
+        return (x_j, x_i, q) if self._moving_is_j(candidate) else (x_i, x_j, q)
+
+    def _lifted_correspondences(self, candidate: Candidate) -> tuple[Tensor, Tensor, Tensor]:
+        """Matched canonical points of both endpoints lifted into their world frames.
+
+        Both match directions contribute their valid matches (``q > Q_min``, the
+        high-confidence matches of C-Sec. A.4), weighted by ``q``.
+
+        Returns:
+            ``x_i (N, 3)``, ``x_j (N, 3)``, ``q (N,)``.
+        """
+        kf_i, kf_j = self.graph.keyframes[candidate.i], self.graph.keyframes[candidate.j]
+        ij, ji = candidate.link.ij, candidate.link.ji
+        x_i_ij, x_j_ij = _matched_points(ij, kf_i.X_hat, kf_j.X_hat)
+        x_j_ji, x_i_ji = _matched_points(ji, kf_j.X_hat, kf_i.X_hat)
+        x_i = lift(kf_i.T_WC, torch.cat([x_i_ij, x_i_ji]))
+        x_j = lift(kf_j.T_WC, torch.cat([x_j_ij, x_j_ji]))
+        return x_i, x_j, torch.cat([ij.q[ij.valid], ji.q[ji.valid]])
+
+    def _record_gauge_event(
+        self,
+        transform: GaugeTransform,
+        kept: int,
+        moved: list[int],
+        supporters: Sequence[Candidate],
+        log_focal: float | None,
+    ) -> None:
+        event = {
+            "keyframes": self.stats.keyframes,
+            "anchor_component": kept,
+            "moved_agents": moved,
+            "edges": [[self._key(c.i), self._key(c.j)] for c in supporters],
+            "method": transform.method,
+            "correspondences": transform.correspondences,
+            "rmse": None if transform.method == "rigid_snap" else transform.rmse,
+            "scale": float(transform.T[7]),
+            "focal_factor": None if log_focal is None else math.exp(log_focal),
+        }
+        self.gauge_events.append(event)
+        logger.info(
+            "gauge: agents %s join component %d by %s over %d edge(s), %d correspondences",
+            moved,
+            kept,
+            transform.method,
+            len(supporters),
+            transform.correspondences,
+        )
+
+
+def _matched_points(
+    matches: DirectedMatches, X_target: Tensor, X_source: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Valid matches of ``matches`` as point pairs ``(X_target[idx[n]], X_source[n])``.
+
+    Args:
+        matches: every pixel ``n`` of the source keyframe looked up in the target.
+        X_target: ``(H, W, 3)`` target canonical pointmap.
+        X_source: ``(H, W, 3)`` source canonical pointmap.
+
+    Returns:
+        ``(M, 3)`` target points and ``(M, 3)`` source points (camera frames).
+    """
+    valid = matches.valid
+    return gather_points(X_target, matches.idx[valid]), X_source.reshape(-1, 3)[valid]
