@@ -83,6 +83,9 @@ class PagedKeyframe(Keyframe):
     """A keyframe whose encoding, image and pointmaps may live in its pages only (see the
     module docstring); it reads and writes like a :class:`Keyframe`."""
 
+    #: the fields in memory, by name (the others are read from the pages on access)
+    _resident: dict[str, Any]
+
     encoding = _Paged()
     colors = _Paged()
     X_hat = _Paged()

@@ -34,6 +34,7 @@ import torch
 
 from como3r.coordination.association import Verification
 from como3r.coordination.coordinator import Coordinator
+from como3r.errors import StoreError
 from como3r.frontend.paging import KeyframePages, PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches, PairLink
 
@@ -51,6 +52,9 @@ class PagedLink(PairLink):
     """A link whose matches are read from the session store whenever they are asked for
     (their match fractions are kept)."""
 
+    _pages: Pages | None
+    _n: int
+
     def __init__(
         self, pages: Pages | None, n: int, covisible_ij: float | None, covisible_ji: float | None
     ) -> None:
@@ -66,13 +70,18 @@ class PagedLink(PairLink):
         """Read from ``pages`` from now on (a store read back)."""
         object.__setattr__(self, "_pages", pages)
 
-    @property  # type: ignore[override]
+    @property
     def ij(self) -> DirectedMatches:
-        return self._pages.load_matches(self._n)[0]
+        return self._matches()[0]
 
-    @property  # type: ignore[override]
+    @property
     def ji(self) -> DirectedMatches:
-        return self._pages.load_matches(self._n)[1]
+        return self._matches()[1]
+
+    def _matches(self) -> tuple[DirectedMatches, DirectedMatches]:
+        if self._pages is None:
+            raise StoreError(f"the matches of edge {self._n} were asked for before its store")
+        return self._pages.load_matches(self._n)
 
 
 @dataclass(frozen=True)

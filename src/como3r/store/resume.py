@@ -94,7 +94,7 @@ def restore_coordinator(session: Session, coordinator: Coordinator) -> None:
             f"run {coordinator.num_agents}"
         )
     indexed = sorted(
-        (e for e in session.retrieval if e.position is not None), key=lambda e: e.position
+        (e for e in session.retrieval if e.position is not None), key=lambda e: e.position or 0
     )
     if bool(indexed) != (coordinator.retrieval is not None) and len(session.graph):
         raise StoreError(

@@ -133,7 +133,7 @@ def load_keyframes(connection: sqlite3.Connection, graph: GlobalGraph, blobs: Bl
         T_WC,
     ) in rows:
         what = _check_keyframe(graph, g, agent, kf_id, fused, T_WC)
-        maps = {}
+        maps: dict[int, Tensor] = {}
         for name, blob_id in (
             ("X_hat", X_hat),
             ("C_hat", C_hat),

@@ -13,7 +13,7 @@ import json
 import sqlite3
 import weakref
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,6 +21,7 @@ from torch import Tensor
 
 from como3r.coordination.association import Candidate
 from como3r.coordination.coordinator import Coordinator
+from como3r.errors import StoreError
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.paging import POINTMAP_FIELDS, PagedKeyframe
 from como3r.frontend.pairs import PairLink
@@ -63,13 +64,17 @@ class TableWriter:
     _rows: dict[str, dict[Any, tuple]]
     _updates: dict[int, int]
     _finished: bool
+    #: the store reads a paged-out keyframe's arrays back (SessionStore.load_keyframe): what
+    #: makes the store a keyframe's KeyframePages
+    load_keyframe: Callable[[int, str], dict[str, Any]]
 
     def _blob(self, data: bytes, part: str) -> int:
-        return int(
-            self.connection.execute(
-                "INSERT INTO blobs (data) VALUES (?)", (self._count(part, data),)
-            ).lastrowid
-        )
+        row_id = self.connection.execute(
+            "INSERT INTO blobs (data) VALUES (?)", (self._count(part, data),)
+        ).lastrowid
+        if row_id is None:  # sqlite3 sets it on every INSERT
+            raise StoreError(f"{part}: the store gave no id to a blob it wrote")
+        return row_id
 
     def _count(self, part: str, data: bytes) -> bytes:
         """``data``, counted as written for ``part``."""

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from como3r.errors import MessageError
 from como3r.frontend.agent import FrontendStats
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches
@@ -317,10 +318,8 @@ def _check_packet(p: KeyframePacket) -> None:
         _shape(descriptors, (None, None), "retrieval descriptors")
         _shape(attention, (descriptors.shape[0],), "retrieval attention")
     if p.retrieval_words is not None:
-        _require(
-            p.retrieval is not None and p.codebook_id is not None,
-            "retrieval_words need retrieval and codebook_id",
-        )
+        if p.retrieval is None or p.codebook_id is None:
+            raise MessageError("retrieval_words need retrieval and codebook_id")
         _shape(p.retrieval_words, (p.retrieval[0].shape[0], None), "retrieval_words")
         _require(
             p.retrieval_words.dtype.kind in "iu",

@@ -184,7 +184,8 @@ class PipeHub:
         return out
 
     def _drain(self, agent: int) -> list[Event]:
-        channel, out = self.channels[agent], []
+        channel = self.channels[agent]
+        out: list[Event] = []
         while agent in self._open:
             try:
                 if not channel.poll(0.0):
