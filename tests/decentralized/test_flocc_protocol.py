@@ -256,6 +256,7 @@ def test_frames_propagate_over_successive_rendezvous(scene, main_config, setting
     )
 
 
+@pytest.mark.slow
 def test_a_leader_leaving_mid_optimisation_does_not_hang_the_others(
     scene, main_config, settings_factory
 ):
@@ -278,6 +279,7 @@ def test_a_leader_leaving_mid_optimisation_does_not_hang_the_others(
     assert _sent(result, 1, "PoseGraphShare") > 0
 
 
+@pytest.mark.slow
 def test_a_robot_leaving_before_registration_is_left_out(scene, main_config, settings_factory):
     result = _run(
         scene,
@@ -329,6 +331,7 @@ def test_unknown_leave_phase_is_rejected(scene, main_config, settings_factory):
         _run(scene, main_config, settings_factory, leave={0: (0, "lunch")})
 
 
+@pytest.mark.slow
 def test_robot_processes_match_robot_threads(scene, main_config, settings_factory):
     threads = _run(scene, main_config, settings_factory, robots=2, keyframe_distance_ratio=0.45)
     processes = _run(

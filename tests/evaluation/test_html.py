@@ -88,6 +88,7 @@ def _images(page: str) -> dict[str, bytes]:
     return found
 
 
+@pytest.mark.slow
 def test_the_report_of_a_run_has_every_section_and_embeds_its_images(real_run) -> None:
     page = (real_run / REPORT_NAME).read_text()
     # named by its folder and the one above (the run was written in run.partial)
@@ -126,6 +127,7 @@ def test_the_report_of_a_run_has_every_section_and_embeds_its_images(real_run) -
     assert "conf_base" in appendix and "conf_base" not in page[: page.index("id='appendix'")]
 
 
+@pytest.mark.slow
 def test_ground_truth_and_estimates_are_drawn_differently_after_the_alignment(
     real_run, ground_truth
 ) -> None:
@@ -156,6 +158,7 @@ def test_ground_truth_and_estimates_are_drawn_differently_after_the_alignment(
     assert rmse == pytest.approx(ate["merged"]["ate"]["rmse"], rel=1e-6)
 
 
+@pytest.mark.slow
 def test_ate_over_time_is_the_evaluated_error(real_run, ground_truth) -> None:
     data = load_run(real_run, ground_truth)
     ate = json.loads((real_run / "ate.json").read_text())
@@ -177,6 +180,7 @@ def test_ate_over_time_is_the_evaluated_error(real_run, ground_truth) -> None:
         )
 
 
+@pytest.mark.slow
 def test_the_timeline_holds_the_candidates_and_gauge_events(real_run) -> None:
     data = load_run(real_run)
     graph = json.loads((real_run / "graph.json").read_text())
@@ -191,6 +195,7 @@ def test_the_timeline_holds_the_candidates_and_gauge_events(real_run) -> None:
     assert len(figure.axes[0].lines) >= len(line.links) + AGENTS
 
 
+@pytest.mark.slow
 def test_the_map_sample_is_deterministic_and_bounded(real_run) -> None:
     a, b = sample_map(real_run / "map.ply", 500), sample_map(real_run / "map.ply", 500)
     assert a is not None and b is not None and len(a.xyz) == 500
@@ -223,6 +228,7 @@ def test_the_map_sample_read_in_chunks_is_the_one_of_the_whole_file(tmp_path, mo
     np.testing.assert_array_equal(whole.xyz, xyz[finite].astype(np.float64))
 
 
+@pytest.mark.slow
 def test_without_ground_truth_the_report_says_so(real_run, tmp_path) -> None:
     copy = _copy(real_run, tmp_path)
     metrics = json.loads((copy / "metrics.json").read_text())
@@ -238,6 +244,7 @@ def test_without_ground_truth_the_report_says_so(real_run, tmp_path) -> None:
     assert not data.has_ground_truth and all(t.aligned is None for t in data.tracks)
 
 
+@pytest.mark.slow
 def test_a_single_agent_folder_without_map_or_metrics(real_run, tmp_path) -> None:
     folder = tmp_path / "bare"
     (folder / "trajectories").mkdir(parents=True)
@@ -252,6 +259,7 @@ def test_a_single_agent_folder_without_map_or_metrics(real_run, tmp_path) -> Non
     assert set(_images(page)) == {"trajectories"}
 
 
+@pytest.mark.slow
 def test_missing_map_and_multiprocess_bandwidth(real_run, tmp_path) -> None:
     copy = _copy(real_run, tmp_path)
     (copy / "map.ply").unlink()
@@ -279,6 +287,7 @@ def _browser() -> str | None:
     return shutil.which("chromium") or shutil.which("chromium-browser")
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     _browser() is None,
     reason="chromium is not installed: the report is "

@@ -16,6 +16,8 @@ from como3r.cli import app
 from como3r.runtime.store import STORE_NAME
 from como3r.runtime.store_reader import read_session
 
+pytestmark = pytest.mark.slow
+
 RUN = ["--prior", "simulated", "--set", "input.long_side=64", "-q"]
 
 

@@ -27,6 +27,8 @@ from como3r.errors import StoreError
 from como3r.runtime.store import FORMAT_VERSION, STORE_NAME
 from como3r.runtime.store_reader import read_session
 
+pytestmark = pytest.mark.slow
+
 RUN = ["--prior", "simulated", "--set", "input.long_side=64", "-q"]
 
 

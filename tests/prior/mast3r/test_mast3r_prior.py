@@ -135,6 +135,7 @@ def _encodings(prior):
     return encs, mixed
 
 
+@pytest.mark.slow
 def test_decode_symmetric_batches_one_decoder_call_per_size(prior, monkeypatch):
     encs, mixed = _encodings(prior)
     pairs = [(encs[0], encs[1]), (mixed[0], mixed[1]), (encs[2], encs[0])]
