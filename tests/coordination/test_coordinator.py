@@ -223,6 +223,7 @@ def aliasing(tmp_path_factory) -> Scene:
     )
 
 
+@pytest.mark.slow
 def test_agents_two_and_three_meet_first_then_join_agent_zero(ring) -> None:
     order = _interleave(ring, [2, 3]) + _interleave(ring, [0, 1])
     coordinator, updates = _run(ring, order)

@@ -234,6 +234,7 @@ def test_robots_out_of_range_exchange_nothing(scene, main_config, settings_facto
     assert _sent(result, 0, "EncodingReply") + _sent(result, 1, "EncodingReply") > 0
 
 
+@pytest.mark.slow
 def test_the_smallest_id_in_range_is_elected(scene, main_config, settings_factory):
     schedule = Schedule({1: [(0.0, 10.0)], 2: [(0.0, 10.0)]})  # robot 0 is never in range
     result = _run(scene, main_config, settings_factory, schedule, keyframe_distance_ratio=0.45)
@@ -243,6 +244,7 @@ def test_the_smallest_id_in_range_is_elected(scene, main_config, settings_factor
     assert result.reports[0].frame == 0 and len(result.reports[0].estimate) == 0
 
 
+@pytest.mark.slow
 def test_frames_propagate_over_successive_rendezvous(scene, main_config, settings_factory):
     """Robots 0 and 1 meet first, then 1 and 2: robot 2 joins robot 0's frame through 1."""
     schedule = Schedule({0: [(0.0, 1.9)], 1: [(0.0, 1.9), (1.95, 3.0)], 2: [(1.95, 3.0)]})
