@@ -14,40 +14,25 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from matplotlib.colors import to_rgba
 from PIL import Image
 
-from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
-from como3r.data.synth import synthesize
 from como3r.evaluation.html import REPORT_NAME, SECTIONS, run_label, write_report
 from como3r.evaluation.plot import GT_STYLE, ate_figure, trajectory_figure
 from como3r.evaluation.plot_map import map_figure, sample_map
 from como3r.evaluation.plot_run import timeline_figure
 from como3r.evaluation.report_data import agent_rows, load_run, timeline, traffic
 from como3r.io.tum import Trajectory
-from como3r.runtime.pipeline import PriorSpec, run
 
 AGENTS = 2
-OVERRIDES = [
-    "input.long_side=64",
-    "simulated_prior.model=easy",
-    "global_ba.max_iters_stream=5",
-    "global_ba.max_iters_cleanup=10",
-    "global_ba.cleanup_passes=1",
-]
 IMAGE = re.compile(r"<img alt='([^']*)' src='([^']*)'")
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    """Two agents that meet, 12 frames each at 64x48."""
-    root = tmp_path_factory.mktemp("scene")
-    synthesize(
-        root, agents=AGENTS, seed=0, overlap=0.5, frames=12, preset="default", width=64, height=48
-    )
-    return root
+def scene(tiny_run_dir) -> Path:
+    """Two agents that meet, 12 frames each at 64x48 (tests/io/tiny_run.py)."""
+    return tiny_run_dir.parent / "scene"
 
 
 @pytest.fixture(scope="module")
@@ -56,22 +41,10 @@ def ground_truth(scene) -> list[Trajectory]:
 
 
 @pytest.fixture(scope="module")
-def real_run(scene, tmp_path_factory) -> Path:
-    """A single-process run of the scene on the simulated prior (its report.html written by
-    the run itself)."""
-    out = tmp_path_factory.mktemp("runs") / "run"
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        run(
-            [scene / f"agent_{a}" for a in range(AGENTS)],
-            out,
-            apply_overrides(Config(), OVERRIDES),
-            PriorSpec("simulated"),
-        )
-    finally:
-        torch.set_num_threads(threads)
-    return out
+def real_run(tiny_run_dir) -> Path:
+    """A single-process run of the scene on the simulated prior with short global solves
+    (its report.html written by the run itself), shared with the export tests."""
+    return tiny_run_dir
 
 
 def _copy(run_dir: Path, tmp_path: Path) -> Path:
