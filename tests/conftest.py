@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 from como3r.cli import OMP_WAIT_POLICY
 
@@ -11,6 +12,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", OMP_WAIT_POLICY)
 
 import pytest  # noqa: E402
 import torch  # noqa: E402
+
+from .io.tiny_run import OVERRIDES, tiny_run  # noqa: E402
 
 # One intra-op thread per test process: with more threads than free cores (CI's 2 cores
 # shared with subprocess tests) torch's spinning workers slow the dense front-end tests
@@ -52,3 +55,11 @@ def only_error_line():
         return lines[0]
 
     return check
+
+
+@pytest.fixture(scope="session")
+def tiny_run_dir(tmp_path_factory) -> Path:
+    """A finished two-agent run of the real pipeline on a tiny synthetic scene
+    (tests/io/tiny_run.py), made once for the tests that only read it: the exports and the
+    HTML report. Its scene is the sibling folder ``scene``."""
+    return tiny_run(tmp_path_factory.mktemp("tiny_run"), OVERRIDES)

@@ -37,6 +37,7 @@ def test_benchmark_is_in_the_readme(script: Path) -> None:
     assert f"benchmarks/{script.name}" in (ROOT / "docs" / "benchmarks.md").read_text()
 
 
+@pytest.mark.slow
 def test_prior_statistics_measures_a_tiny_scene(monkeypatch, capsys) -> None:
     script = ROOT / "benchmarks" / "prior_statistics.py"
     monkeypatch.setattr(

@@ -43,6 +43,7 @@ def _scene_video(root: Path, frames: int = 12) -> Path:
     return video
 
 
+@pytest.mark.slow
 def test_a_camera_runs_until_max_frames_and_reports_its_drops(tmp_path):
     video = _scene_video(tmp_path)
     ckpt = write_checkpoint(tmp_path / "tiny.pth", tiny_network(seed=0))

@@ -76,6 +76,7 @@ def tum_from_synthetic(root: Path, frames: int = 8) -> Path:
     return seq
 
 
+@pytest.mark.slow
 def test_a_tum_sequence_runs_with_the_simulated_prior_and_evaluates(tmp_path):
     """`como3r run --agent <TUM folder> --prior simulated` as a user types it (the default
     multi-process runtime; only the input size set for a 64x48 sequence), then `como3r eval`
@@ -111,6 +112,7 @@ def test_a_tum_sequence_runs_with_the_simulated_prior_and_evaluates(tmp_path):
     assert "ground truth dashed grey" in (evaluated / "report.html").read_text()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("runtime", [["--single-process"], []])
 def test_frames_in_a_ground_truth_gap_are_skipped_with_one_warning(tmp_path, caplog, runtime):
     """Ground truth with a hole wider than 0.1 s (frames 5-8 of a 30 Hz sequence): the run
@@ -148,6 +150,7 @@ def test_frames_in_a_ground_truth_gap_are_skipped_with_one_warning(tmp_path, cap
     assert metrics["ate"]["agents"][0]["frames"] == 6
 
 
+@pytest.mark.slow
 def test_the_check_before_the_run_does_not_repeat_reader_warnings(tmp_path, caplog):
     """The command line opens the input to check it before the run opens it: a reader's
     warning (an rgb image without depth) is said once in one process."""
@@ -172,6 +175,7 @@ def test_the_check_before_the_run_does_not_repeat_reader_warnings(tmp_path, capl
     assert len(said) == 1, said
 
 
+@pytest.mark.slow
 def test_agent_processes_do_not_repeat_reader_warnings(tmp_path):
     """In the default agent processes the main process opens the input (and says a reader's
     warning) before each agent process opens it again: still said once."""
@@ -354,6 +358,7 @@ def test_run_takes_a_ros_log_and_its_topic(tmp_path, only_error_line):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     not SEVEN_SCENES_REAL.is_dir(), reason=f"7-Scenes excerpt not found at {SEVEN_SCENES_REAL}"
 )
@@ -442,6 +447,7 @@ def link_kitti(source: Path, target: Path, count: int) -> Path:
     return sequence
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     not KITTI_GREY_REAL.is_dir(), reason=f"KITTI grey excerpt not found at {KITTI_GREY_REAL}"
 )
@@ -507,6 +513,7 @@ def cut_tum(source: Path, target: Path, frames: int, hole: tuple[float, float]) 
     return target
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not TEDDY.is_dir(), reason=f"TUM excerpt not found at {TEDDY}")
 def test_the_real_tum_excerpt_with_a_motion_capture_dropout_runs(tmp_path, caplog):
     """The real freiburg3_teddy excerpt's first 30 frames, as published but for a 40 ms hole

@@ -265,6 +265,7 @@ def test_run_options_are_checked_before_any_work(
     assert not out.exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "args",
     [
@@ -333,6 +334,7 @@ def test_ctrl_c_is_one_line_and_leaves_nothing(command, scene, tmp_path, monkeyp
     assert not out.exists() and not out.with_name("out.partial").exists()
 
 
+@pytest.mark.slow
 def test_sigint_during_synth(tmp_path) -> None:
     """The real signal, in a child process: waits until the work has started."""
     out = tmp_path / "scene"
@@ -385,6 +387,7 @@ def longer_scene(tmp_path_factory) -> Path:
     return root
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     not Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children").exists(),
     reason="needs Linux /proc children lists",

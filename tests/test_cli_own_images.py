@@ -70,6 +70,7 @@ def test_a_flat_folder_of_images_says_where_they_belong(tmp_path, only_error_lin
     assert f"its images belong in {agent / 'rgb'}/" in line
 
 
+@pytest.mark.slow
 def test_own_jpegs_with_a_local_checkpoint_run_and_warn_once(tmp_path, caplog) -> None:
     """The README's path for one's own images: no depth, no calibration, MASt3R from a
     local checkpoint, one agent process. Without retrieval files loop closure is off, said

@@ -71,6 +71,7 @@ def _progress_lines(output: str) -> list[str]:
     return [line for line in output.splitlines() if LINE.match(line)]
 
 
+@pytest.mark.slow
 def test_a_run_not_on_a_terminal_prints_plain_lines_per_agent_and_phase(covered, tmp_path):
     """The multi-process runtime: per-agent lines from the agents' FrameDone messages (the
     last frame always), then one line as each coordinator phase starts."""
@@ -99,6 +100,7 @@ def test_a_run_not_on_a_terminal_prints_plain_lines_per_agent_and_phase(covered,
     assert result.output.index("report (report.html)") < result.output.index("wrote ")
 
 
+@pytest.mark.slow
 def test_quiet_prints_no_progress_only_the_summary(covered, tmp_path):
     out = tmp_path / "run"
     result = _run(covered, out, "--quiet", "--single-process")
@@ -284,6 +286,7 @@ def _run_decentralized(scene: Path, out: Path, *args: str):
     return _run(scene, out, "--mode", "decentralized", *args)
 
 
+@pytest.mark.slow
 def test_a_decentralized_run_prints_plain_lines_per_robot_and_phase(robots, tmp_path):
     """Robot processes (the default): each robot's line from its progress message after its
     round (here the one at the mission's end), once; then the driver's phases in order."""
@@ -305,6 +308,7 @@ def test_a_decentralized_run_prints_plain_lines_per_robot_and_phase(robots, tmp_
     assert result.output.index("report (report.html)") < result.output.index("wrote ")
 
 
+@pytest.mark.slow
 def test_a_quiet_decentralized_run_prints_only_the_summary(robots, tmp_path):
     out = tmp_path / "run"
     result = _run_decentralized(

@@ -87,6 +87,7 @@ def test_existing_output_folder_is_not_overwritten(scene, tmp_path) -> None:
     assert (out / "keep.txt").read_text() == "mine"
 
 
+@pytest.mark.slow
 def test_mast3r_plumbing_with_a_tiny_random_checkpoint(scene, tmp_path) -> None:
     ckpt = write_checkpoint(tmp_path / "tiny.pth", tiny_network(seed=0))
     out = tmp_path / "run"

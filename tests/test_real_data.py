@@ -17,6 +17,8 @@ from como3r.data.agent import open_agent
 from .data.readers.layouts import SEVEN_SCENES_REAL, link_frames
 from .test_cli_datasets import TEDDY, cut_tum
 
+pytestmark = pytest.mark.slow
+
 seven_scenes = pytest.mark.skipif(
     not SEVEN_SCENES_REAL.is_dir(), reason=f"7-Scenes excerpt not found at {SEVEN_SCENES_REAL}"
 )

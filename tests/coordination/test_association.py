@@ -90,6 +90,7 @@ def _verify_all_pairs(prior, config, views):
     return results
 
 
+@pytest.mark.slow
 def test_only_true_pairs_pass_among_identical_facades(facades) -> None:
     prior, config, views = facades
     results = _verify_all_pairs(prior, config, views)

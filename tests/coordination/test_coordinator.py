@@ -223,6 +223,7 @@ def aliasing(tmp_path_factory) -> Scene:
     )
 
 
+@pytest.mark.slow
 def test_agents_two_and_three_meet_first_then_join_agent_zero(ring) -> None:
     order = _interleave(ring, [2, 3]) + _interleave(ring, [0, 1])
     coordinator, updates = _run(ring, order)
@@ -261,6 +262,7 @@ def test_consensus_merges_only_on_agreeing_edges(ring) -> None:
     assert _merged_keyframe_ate(coordinator, ring) <= 0.01 * ring.path_length
 
 
+@pytest.mark.slow
 def test_agents_already_merged_are_verified_less(ring) -> None:
     order = _interleave(ring, [0, 1, 2, 3])
     runs = {
@@ -291,6 +293,7 @@ def test_without_loop_closure_agents_stay_apart(ring) -> None:
     assert document["components"] == [[0], [1]]
 
 
+@pytest.mark.slow
 def test_no_false_edge_among_identical_facades(aliasing) -> None:
     coordinator, _ = _run(aliasing, _interleave(aliasing, [0, 1]))
     admitted = coordinator.graph.inter_links()
@@ -405,6 +408,7 @@ def test_finish_runs_pose_passes_then_one_depth_step(ring) -> None:
     assert _merged_keyframe_ate(coordinator, ring) < 0.01 * ring.path_length
 
 
+@pytest.mark.slow
 def test_terminal_rounds_keep_the_multi_agent_trajectory(tmp_path) -> None:
     """Two agents, the realistic prior (the default): the depth steps of the terminal rounds
     must not worsen the trajectories that the cleanup's pose passes left (C-Sec. A.7 step 1;
@@ -490,6 +494,7 @@ def _retrieval_hits(scene: Scene, order: list[KeyframePacket], monkeypatch) -> t
     return hits, len(searches)
 
 
+@pytest.mark.slow
 def test_the_agents_retrieval_words_spare_the_coordinators_search(ring, monkeypatch) -> None:
     """Words quantised by an agent with the same codebook are taken, not searched again,
     with the same hits; another codebook's are not."""

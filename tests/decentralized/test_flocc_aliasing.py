@@ -16,6 +16,8 @@ from como3r.decentralized.odometry_sim import add_odometry
 from como3r.decentralized.runner import run_decentralized
 from como3r.runtime.pipeline import PriorSpec
 
+pytestmark = pytest.mark.slow
+
 #: Keyframes every 0.09 scene depths: about 0.6 m at the scene's 6-8 m median depth.
 KEYFRAME_DISTANCE_RATIO = 0.09
 #: Keyframes of two robots whose true camera centres are further apart cannot overlap in

@@ -24,6 +24,8 @@ from como3r.io.tum import read_tum
 from como3r.runtime.pipeline import PriorSpec
 from como3r.transport.team import add_member, init_team
 
+pytestmark = pytest.mark.slow
+
 pytest.importorskip("zenoh")
 
 LIMIT_S = 240  # no robot process outlives this

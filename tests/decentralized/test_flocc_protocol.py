@@ -227,6 +227,7 @@ def test_robots_out_of_range_exchange_nothing(scene, main_config, settings_facto
     assert _sent(result, 0, "EncodingReply") + _sent(result, 1, "EncodingReply") > 0
 
 
+@pytest.mark.slow
 def test_the_smallest_id_in_range_is_elected(scene, main_config, settings_factory):
     schedule = Schedule({1: [(0.0, 10.0)], 2: [(0.0, 10.0)]})  # robot 0 is never in range
     result = _run(scene, main_config, settings_factory, schedule, keyframe_distance_ratio=0.45)
@@ -236,6 +237,7 @@ def test_the_smallest_id_in_range_is_elected(scene, main_config, settings_factor
     assert result.reports[0].frame == 0 and len(result.reports[0].estimate) == 0
 
 
+@pytest.mark.slow
 def test_frames_propagate_over_successive_rendezvous(scene, main_config, settings_factory):
     """Robots 0 and 1 meet first, then 1 and 2: robot 2 joins robot 0's frame through 1."""
     schedule = Schedule({0: [(0.0, 1.9)], 1: [(0.0, 1.9), (1.95, 3.0)], 2: [(1.95, 3.0)]})
@@ -249,6 +251,7 @@ def test_frames_propagate_over_successive_rendezvous(scene, main_config, setting
     )
 
 
+@pytest.mark.slow
 def test_a_leader_leaving_mid_optimisation_does_not_hang_the_others(
     scene, main_config, settings_factory
 ):
@@ -271,6 +274,7 @@ def test_a_leader_leaving_mid_optimisation_does_not_hang_the_others(
     assert _sent(result, 1, "PoseGraphShare") > 0
 
 
+@pytest.mark.slow
 def test_a_robot_leaving_before_registration_is_left_out(scene, main_config, settings_factory):
     result = _run(
         scene,
@@ -322,6 +326,7 @@ def test_unknown_leave_phase_is_rejected(scene, main_config, settings_factory):
         _run(scene, main_config, settings_factory, leave={0: (0, "lunch")})
 
 
+@pytest.mark.slow
 def test_robot_processes_match_robot_threads(scene, main_config, settings_factory):
     threads = _run(scene, main_config, settings_factory, robots=2, keyframe_distance_ratio=0.45)
     processes = _run(

@@ -41,6 +41,7 @@ def run(scene, main_config, settings_factory, tmp_path_factory):
     return out, summary, metrics
 
 
+@pytest.mark.slow
 def test_output_folder(run, scene):
     out, summary, metrics = run
     for a, agent in enumerate(scene):
@@ -63,6 +64,7 @@ def test_output_folder(run, scene):
     assert graph["components"] == [[0, 1, 2]]
 
 
+@pytest.mark.slow
 def test_metrics_count_bytes_per_robot_and_message_type(run):
     _, _, metrics = run
     traffic = metrics["bytes"]
@@ -89,6 +91,7 @@ def test_metrics_count_bytes_per_robot_and_message_type(run):
     )
 
 
+@pytest.mark.slow
 def test_metrics_give_bytes_per_keyframe_against_the_raw_image(run):
     _, summary, metrics = run
     for row, robot in zip(metrics["bandwidth"], summary.agents):
@@ -99,6 +102,7 @@ def test_metrics_give_bytes_per_keyframe_against_the_raw_image(run):
         assert row["per_keyframe_over_image"] == sent / robot["keyframes"] / (3 * 64 * 96)
 
 
+@pytest.mark.slow
 def test_two_stage_registration_saves_encodes(run):
     _, _, metrics = run
     two_stage = metrics["two_stage"]
@@ -109,6 +113,7 @@ def test_two_stage_registration_saves_encodes(run):
     )
 
 
+@pytest.mark.slow
 def test_scale_aware_formulations_beat_the_base_graph(run):
     """F-Tables II-III: with the prior's scale inconsistent, optimising the loop scales
     (IS, SS) gives a lower merged ATE than scaling loops once by odometry (F-Eq. 6)."""
@@ -121,6 +126,7 @@ def test_scale_aware_formulations_beat_the_base_graph(run):
     assert all(row["seconds"] > 0 for row in table.values())
 
 
+@pytest.mark.slow
 def test_protocol_result_is_the_configured_solve_and_is_accurate(run):
     """Everyone met at the end: the robots' final poses are the configured (smoothed, GNC)
     solve of the table (same graph, same anchor)."""
@@ -160,6 +166,7 @@ def test_bad_input_fails_before_any_work(scene, main_config, tmp_path):
         )
 
 
+@pytest.mark.slow
 def test_report_of_a_decentralized_run(run):
     out, _, metrics = run
     page = (out / "report.html").read_text()

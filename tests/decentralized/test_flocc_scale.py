@@ -18,6 +18,8 @@ from como3r.decentralized.odometry_sim import add_odometry
 from como3r.decentralized.runner import run_decentralized
 from como3r.runtime.pipeline import PriorSpec
 
+pytestmark = pytest.mark.slow
+
 ROBOTS = 3
 SCALES = (0.1, 10.0)
 #: Merged ATE RMSE / summed ground-truth path length [%] measured at both scales (1.27 at

@@ -14,40 +14,25 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from matplotlib.colors import to_rgba
 from PIL import Image
 
-from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
-from como3r.data.synth import synthesize
 from como3r.evaluation.html import REPORT_NAME, SECTIONS, run_label, write_report
 from como3r.evaluation.plot import GT_STYLE, ate_figure, trajectory_figure
 from como3r.evaluation.plot_map import map_figure, sample_map
 from como3r.evaluation.plot_run import timeline_figure
 from como3r.evaluation.report_data import agent_rows, load_run, timeline, traffic
 from como3r.io.tum import Trajectory
-from como3r.runtime.pipeline import PriorSpec, run
 
 AGENTS = 2
-OVERRIDES = [
-    "input.long_side=64",
-    "simulated_prior.model=easy",
-    "global_ba.max_iters_stream=5",
-    "global_ba.max_iters_cleanup=10",
-    "global_ba.cleanup_passes=1",
-]
 IMAGE = re.compile(r"<img alt='([^']*)' src='([^']*)'")
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    """Two agents that meet, 12 frames each at 64x48."""
-    root = tmp_path_factory.mktemp("scene")
-    synthesize(
-        root, agents=AGENTS, seed=0, overlap=0.5, frames=12, preset="default", width=64, height=48
-    )
-    return root
+def scene(tiny_run_dir) -> Path:
+    """Two agents that meet, 12 frames each at 64x48 (tests/io/tiny_run.py)."""
+    return tiny_run_dir.parent / "scene"
 
 
 @pytest.fixture(scope="module")
@@ -56,22 +41,10 @@ def ground_truth(scene) -> list[Trajectory]:
 
 
 @pytest.fixture(scope="module")
-def real_run(scene, tmp_path_factory) -> Path:
-    """A single-process run of the scene on the simulated prior (its report.html written by
-    the run itself)."""
-    out = tmp_path_factory.mktemp("runs") / "run"
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        run(
-            [scene / f"agent_{a}" for a in range(AGENTS)],
-            out,
-            apply_overrides(Config(), OVERRIDES),
-            PriorSpec("simulated"),
-        )
-    finally:
-        torch.set_num_threads(threads)
-    return out
+def real_run(tiny_run_dir) -> Path:
+    """A single-process run of the scene on the simulated prior with short global solves
+    (its report.html written by the run itself), shared with the export tests."""
+    return tiny_run_dir
 
 
 def _copy(run_dir: Path, tmp_path: Path) -> Path:
@@ -88,6 +61,7 @@ def _images(page: str) -> dict[str, bytes]:
     return found
 
 
+@pytest.mark.slow
 def test_the_report_of_a_run_has_every_section_and_embeds_its_images(real_run) -> None:
     page = (real_run / REPORT_NAME).read_text()
     # named by its folder and the one above (the run was written in run.partial)
@@ -126,6 +100,7 @@ def test_the_report_of_a_run_has_every_section_and_embeds_its_images(real_run) -
     assert "conf_base" in appendix and "conf_base" not in page[: page.index("id='appendix'")]
 
 
+@pytest.mark.slow
 def test_ground_truth_and_estimates_are_drawn_differently_after_the_alignment(
     real_run, ground_truth
 ) -> None:
@@ -156,6 +131,7 @@ def test_ground_truth_and_estimates_are_drawn_differently_after_the_alignment(
     assert rmse == pytest.approx(ate["merged"]["ate"]["rmse"], rel=1e-6)
 
 
+@pytest.mark.slow
 def test_ate_over_time_is_the_evaluated_error(real_run, ground_truth) -> None:
     data = load_run(real_run, ground_truth)
     ate = json.loads((real_run / "ate.json").read_text())
@@ -177,6 +153,7 @@ def test_ate_over_time_is_the_evaluated_error(real_run, ground_truth) -> None:
         )
 
 
+@pytest.mark.slow
 def test_the_timeline_holds_the_candidates_and_gauge_events(real_run) -> None:
     data = load_run(real_run)
     graph = json.loads((real_run / "graph.json").read_text())
@@ -191,6 +168,7 @@ def test_the_timeline_holds_the_candidates_and_gauge_events(real_run) -> None:
     assert len(figure.axes[0].lines) >= len(line.links) + AGENTS
 
 
+@pytest.mark.slow
 def test_the_map_sample_is_deterministic_and_bounded(real_run) -> None:
     a, b = sample_map(real_run / "map.ply", 500), sample_map(real_run / "map.ply", 500)
     assert a is not None and b is not None and len(a.xyz) == 500
@@ -223,6 +201,7 @@ def test_the_map_sample_read_in_chunks_is_the_one_of_the_whole_file(tmp_path, mo
     np.testing.assert_array_equal(whole.xyz, xyz[finite].astype(np.float64))
 
 
+@pytest.mark.slow
 def test_without_ground_truth_the_report_says_so(real_run, tmp_path) -> None:
     copy = _copy(real_run, tmp_path)
     metrics = json.loads((copy / "metrics.json").read_text())
@@ -238,6 +217,7 @@ def test_without_ground_truth_the_report_says_so(real_run, tmp_path) -> None:
     assert not data.has_ground_truth and all(t.aligned is None for t in data.tracks)
 
 
+@pytest.mark.slow
 def test_a_single_agent_folder_without_map_or_metrics(real_run, tmp_path) -> None:
     folder = tmp_path / "bare"
     (folder / "trajectories").mkdir(parents=True)
@@ -252,6 +232,7 @@ def test_a_single_agent_folder_without_map_or_metrics(real_run, tmp_path) -> Non
     assert set(_images(page)) == {"trajectories"}
 
 
+@pytest.mark.slow
 def test_missing_map_and_multiprocess_bandwidth(real_run, tmp_path) -> None:
     copy = _copy(real_run, tmp_path)
     (copy / "map.ply").unlink()
@@ -279,6 +260,7 @@ def _browser() -> str | None:
     return shutil.which("chromium") or shutil.which("chromium-browser")
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     _browser() is None,
     reason="chromium is not installed: the report is "

@@ -33,6 +33,7 @@ def test_estimate_intrinsics_takes_the_focal_and_the_image_centre():
         estimate_intrinsics(-X, torch.ones(48, 64))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("self_calibration", [True, False])
 def test_an_uncalibrated_agent_locks_every_keyframe_to_one_estimated_camera(
     tmp_path, process_frames, self_calibration: bool
@@ -112,6 +113,7 @@ def miscalibrated(tmp_path_factory, process_frames):
     return agent, frontend, waited
 
 
+@pytest.mark.slow
 def test_keyframes_wait_for_the_camera_settled_on_their_pairs(miscalibrated) -> None:
     agent, frontend, waited = miscalibrated
     true_focal = float(agent.calib[0])  # the rendered width is the network width
@@ -128,6 +130,7 @@ def test_keyframes_wait_for_the_camera_settled_on_their_pairs(miscalibrated) -> 
     assert "calibration" in stats.stage_seconds
 
 
+@pytest.mark.slow
 def test_frames_tracked_before_the_camera_settled_are_solved_again_on_it(miscalibrated) -> None:
     """Their poses were solved on the 12 % short camera; solved again from their pointmaps
     and matches on the settled one, the whole trajectory is within 1.1 % of the path
@@ -141,6 +144,7 @@ def test_frames_tracked_before_the_camera_settled_are_solved_again_on_it(miscali
     assert umeyama_rmse(umeyama_sim3(est, gt), est, gt) <= 0.011 * path
 
 
+@pytest.mark.slow
 def test_each_packet_carries_the_updates_applied_before_it_was_taken(miscalibrated) -> None:
     """A merge on an agent's first packet moves the agent into the anchor's gauge before
     its next packet is made (all of them were waiting for its camera). Runs last: it moves

@@ -114,6 +114,7 @@ def solved_both_ways(tmp_path_factory, process_frames):
     return agent, runs
 
 
+@pytest.mark.slow
 def test_quadratic_models_of_old_edges_keep_the_local_solve(solved_both_ways) -> None:
     """Edges away from the newest keyframes enter the local solve by their quadratic models
     (bounded memory): the keyframe poses stay those of the all-dense solve."""

@@ -11,6 +11,8 @@ from como3r.data.synth import synthesize
 from como3r.frontend.agent import AgentFrontend
 from como3r.prior.simulated import SimulatedPrior
 
+pytestmark = pytest.mark.slow
+
 WIDTH, HEIGHT, FRAMES = 96, 72, 16
 
 

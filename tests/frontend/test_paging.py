@@ -110,6 +110,7 @@ def _same(a, b) -> bool:
     return a == b
 
 
+@pytest.mark.slow
 def test_paging_everything_out_changes_nothing(runs) -> None:
     (paged, paged_outcomes, paged_packets), (whole, outcomes, packets) = runs[0], runs[1000]
     assert paged_outcomes == outcomes
@@ -145,6 +146,7 @@ def test_paging_everything_out_changes_nothing(runs) -> None:
     assert stats[0] == stats[1]
 
 
+@pytest.mark.slow
 def test_at_most_the_resident_keyframes_hold_their_arrays(agent, process_frames, tmp_path) -> None:
     frontend, _, _ = _run(agent, process_frames, tmp_path, 3)
     keyframes = frontend.keyframes.keyframes

@@ -25,6 +25,8 @@ from como3r.frontend.agent import AgentFrontend
 from como3r.geometry.umeyama import umeyama_rmse, umeyama_sim3
 from como3r.prior.simulated import SimulatedPrior
 
+pytestmark = pytest.mark.slow
+
 FRAMES = 40
 
 

@@ -24,13 +24,14 @@ from como3r.io.keyframe_data import KeyframeData, read_keyframe_data
 from como3r.io.ply import read_ply
 from como3r.io.run_graph import keyframe_intrinsics, read_run_graph
 
-from .tiny_run import HEIGHT, OVERRIDES, WIDTH, tiny_run
+from .tiny_run import HEIGHT, WIDTH
 
 
 @pytest.fixture(scope="module")
-def run_dir(tmp_path_factory) -> Path:
-    """A finished two-agent run of the real pipeline on a tiny synthetic scene."""
-    return tiny_run(tmp_path_factory.mktemp("export"), OVERRIDES)
+def run_dir(tiny_run_dir) -> Path:
+    """A finished two-agent run of the real pipeline on a tiny synthetic scene (the
+    session's, which the HTML report's tests read too)."""
+    return tiny_run_dir
 
 
 @pytest.fixture(scope="module")

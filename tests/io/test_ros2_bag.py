@@ -86,12 +86,14 @@ def _pose(pose) -> np.ndarray:
     return np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w])
 
 
+@pytest.mark.slow
 def test_bag_folder_layout(bag) -> None:
     names = sorted(p.name for p in bag.iterdir())
     assert names == [".como3r-run", "metadata.yaml", "run_bag.mcap"]
     assert "storage_identifier: mcap" in (bag / "metadata.yaml").read_text()
 
 
+@pytest.mark.slow
 def test_message_counts_and_types(run_dir, bag) -> None:
     agents = _agents(run_dir)
     assert agents == [0, 1]
@@ -117,6 +119,7 @@ def test_message_counts_and_types(run_dir, bag) -> None:
     assert types[agent_topics(1)["image"]] == "sensor_msgs/msg/CompressedImage"
 
 
+@pytest.mark.slow
 def test_tf_and_odometry_are_the_tum_trajectory(run_dir, messages) -> None:
     for agent in _agents(run_dir):
         tum = read_tum(run_dir / "trajectories" / f"agent_{agent}.txt")
@@ -140,6 +143,7 @@ def test_tf_and_odometry_are_the_tum_trajectory(run_dir, messages) -> None:
             assert log_time == round(tum.timestamps[k] * 1e9)
 
 
+@pytest.mark.slow
 def test_odometry_twist_carries_each_frame_to_the_next(run_dir, messages) -> None:
     tum = read_tum(run_dir / "trajectories" / "agent_1.txt")
     odometry = [m for topic, _, m in messages if topic == agent_topics(1)["odometry"]]
@@ -162,6 +166,7 @@ def test_odometry_twist_carries_each_frame_to_the_next(run_dir, messages) -> Non
         assert abs(float(moved[3:7] @ tum.T_WC[k + 1, 3:7])) == pytest.approx(1.0, abs=1e-9)
 
 
+@pytest.mark.slow
 def test_keyframe_path_images_and_camera_info(run_dir, messages) -> None:
     for agent in _agents(run_dir):
         topics = agent_topics(agent)
@@ -193,6 +198,7 @@ def test_keyframe_path_images_and_camera_info(run_dir, messages) -> None:
             np.testing.assert_allclose(info.p.reshape(3, 4)[:, :3], data.K)
 
 
+@pytest.mark.slow
 def test_map_cloud_is_map_ply(run_dir, messages) -> None:
     (cloud,) = [m for topic, _, m in messages if topic == "/map"]
     ply = read_ply(run_dir / "map.ply")
@@ -216,6 +222,7 @@ def test_map_cloud_is_map_ply(run_dir, messages) -> None:
     assert set(np.unique(points["agent_id"])) == {0, 1}
 
 
+@pytest.mark.slow
 def test_mcap_reader_sees_the_same_bag(run_dir, bag) -> None:
     """The ``mcap`` package's reader: ROS 2 schemas, CDR channels, counts and a pose."""
     from rosbags.typesys import Stores, get_typestore
@@ -247,6 +254,7 @@ def test_mcap_reader_sees_the_same_bag(run_dir, bag) -> None:
     np.testing.assert_allclose(_pose(message.pose.pose), tum.T_WC[k, :7].numpy(), atol=1e-9)
 
 
+@pytest.mark.slow
 def test_bag_is_replaced_only_with_overwrite(run_dir, bag, tmp_path) -> None:
     target = tmp_path / "bag"
     export_run(run_dir, ros2_bag=target)
@@ -258,6 +266,7 @@ def test_bag_is_replaced_only_with_overwrite(run_dir, bag, tmp_path) -> None:
     assert [p.name for p in tmp_path.iterdir()] == ["bag"]  # no staging or old folder left
 
 
+@pytest.mark.slow
 def test_bag_needs_the_trajectories(run_dir, tmp_path, only_error_line) -> None:
     copy = tmp_path / "run"
     copy.mkdir()

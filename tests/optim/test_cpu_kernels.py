@@ -24,6 +24,7 @@ def _logs(values: np.ndarray) -> np.ndarray:
     return out
 
 
+@pytest.mark.slow
 def test_vectorisable_log_is_within_two_ulp_of_the_c_library() -> None:
     rng = np.random.default_rng(0)
     values = np.concatenate(

@@ -226,6 +226,7 @@ def test_outputs_have_mast3r_types_shapes_and_ranges(prior, default_views):
     assert float(log_ratio[valid].abs().max()) < math.log(1.3)
 
 
+@pytest.mark.slow
 def test_decode_is_deterministic_and_ordered_pairs_are_independent(prior, default_views):
     views = default_views[0]
     enc_a, enc_b = prior.encode(views[3]), prior.encode(views[4])
@@ -296,6 +297,7 @@ def test_invalid_configuration_names_the_key(key):
 # ---------------------------------------------------------------------------------- statistics
 
 
+@pytest.mark.slow
 def test_scale_error_spread_matches_scale_sigma(default_views):
     config = dataclasses.replace(EASY, depth_distortion_amplitude=0.0, range_noise=0.0)
     prior = SimulatedPrior(config, TRUTH)
@@ -311,6 +313,7 @@ def test_scale_error_spread_matches_scale_sigma(default_views):
     assert abs(log_scales.mean()) < 3.0 * config.scale_sigma / math.sqrt(len(log_scales))
 
 
+@pytest.mark.slow
 def test_scale_spread_with_every_error_source_on(prior, default_views):
     views = default_views[1]
     encodings = [prior.encode(v) for v in views]
@@ -350,6 +353,7 @@ def test_range_noise_matches_config(default_views):
     assert abs(noise / prior.config.range_noise - 1.0) < 0.1
 
 
+@pytest.mark.slow
 def test_depth_distortion_amplitude_and_wavelength(default_views):
     config = dataclasses.replace(EASY, scale_sigma=0.0, range_noise=0.0)
     prior = SimulatedPrior(config, TRUTH)
@@ -391,6 +395,7 @@ def test_relative_pose_is_the_true_one_for_overlapping_views(default_views):
         assert abs(float(fitted[7]) - 1.0) < 1e-3
 
 
+@pytest.mark.slow
 def test_pose_noise_matches_config(default_views):
     prior = SimulatedPrior(POSE_NOISE_ONLY, TRUTH)
     views = default_views[0]
@@ -550,6 +555,7 @@ def _aliased_pair(views: list[View], aliased: list[int]) -> tuple[View, View]:
     raise AssertionError("the aliasing scene has no pair of disjoint façade views")
 
 
+@pytest.mark.slow
 def test_aliased_facades_are_confusable_and_give_a_wrong_pose(prior, aliasing_scene):
     views, aliased = aliasing_scene
     view_i, view_j = _aliased_pair(views, aliased)

@@ -171,6 +171,7 @@ def test_outputs_keep_mast3r_types_and_ranges(views):
     torch.testing.assert_close(prediction.D_ji.norm(dim=-1), torch.ones(prediction.D_ji.shape[:2]))
 
 
+@pytest.mark.slow
 def test_uncalibrated_rays_are_not_the_true_intrinsics_rays(views):
     realistic, easy = SimulatedPrior(REALISTIC, TRUTH), SimulatedPrior(EASY, TRUTH)
     angles, easy_angles, log_focal = [], [], []
@@ -241,6 +242,7 @@ def test_the_pair_pointmap_implies_the_right_correspondences(views):
     assert float(angle_to(enc_i.rays).median()) > 1.3
 
 
+@pytest.mark.slow
 def test_an_image_error_is_shared_by_its_pairs(views):
     correlations = {}
     for name, config in (("realistic", REALISTIC), ("easy", EASY)):
@@ -257,6 +259,7 @@ def test_an_image_error_is_shared_by_its_pairs(views):
     assert abs(correlations["easy"]) < 0.2
 
 
+@pytest.mark.slow
 def test_pose_error_is_heavy_tailed_grows_with_baseline_and_fails_grossly(views):
     prior = SimulatedPrior(POSE_ONLY, TRUTH)
     encodings = [[prior.encode(v) for v in agent] for agent in views]
@@ -284,6 +287,7 @@ def test_pose_error_is_heavy_tailed_grows_with_baseline_and_fails_grossly(views)
     assert 0.005 < np.mean(gross) < 0.07
 
 
+@pytest.mark.slow
 def test_confidence_tracks_the_error_not_covisibility(views):
     prior = SimulatedPrior(REALISTIC, TRUTH)
     enc = [prior.encode(v) for v in views[0][:30]]
@@ -360,6 +364,7 @@ def test_flying_pixels_sit_at_depth_discontinuities(views):
     assert fractions["easy"][0] < 0.01
 
 
+@pytest.mark.slow
 def test_scale_drifts_smoothly_along_each_agent_sequence(views):
     only_drift = dataclasses.replace(
         NO_OUTLIERS,

@@ -93,6 +93,7 @@ def test_texture_weight_follows_local_contrast():
     assert float((appearance @ appearance[10, 10]).min()) > 0.999
 
 
+@pytest.mark.slow
 def test_flat_paint_is_ambiguous_texture_is_not(scenes):
     accuracy = {
         (preset, config.model): _nn_accuracy(config, *scenes[preset])

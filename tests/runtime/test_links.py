@@ -82,6 +82,7 @@ def test_why_namespaces_cannot_be_made_is_said(monkeypatch) -> None:
     assert links.namespaces_unavailable() == "no `ip` command"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(UNAVAILABLE is not None, reason=f"no network namespaces here: {UNAVAILABLE}")
 def test_a_capped_link_cut_for_10_s_loses_nothing(scene, tmp_path) -> None:
     run = links.run_team("cut", scene, tmp_path, SIDE, 2, cap_mbit=5.0, cut_s=10.0, loopback=False)

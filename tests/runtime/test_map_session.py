@@ -16,6 +16,8 @@ from como3r.cli import app
 from como3r.store.reader import read_session
 from como3r.store.schema import STORE_NAME
 
+pytestmark = pytest.mark.slow
+
 RUN = ["--prior", "simulated", "--set", "input.long_side=64", "-q"]
 
 

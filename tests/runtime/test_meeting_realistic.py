@@ -24,6 +24,8 @@ from como3r.config import Config, apply_overrides
 from como3r.data.synth import synthesize
 from como3r.runtime.pipeline import PriorSpec, run
 
+pytestmark = pytest.mark.slow
+
 WIDTH, HEIGHT = 160, 120
 
 

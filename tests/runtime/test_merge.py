@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import torch
 from typer.testing import CliRunner
 
@@ -33,6 +34,7 @@ def _merge(first: Path, second: Path, out: Path):
     )
 
 
+@pytest.mark.slow
 def test_two_sessions_that_meet_merge_into_one_map_in_the_first_ones_frame(
     tiny_scene, tmp_path
 ) -> None:
@@ -63,6 +65,7 @@ def test_two_sessions_that_meet_merge_into_one_map_in_the_first_ones_frame(
     print(f"merged ATE {ate['merged']['ate']['rmse']:.4f} m (agents {per_agent})")
 
 
+@pytest.mark.slow
 def test_two_sessions_that_never_meet_are_one_error_line(tmp_path, only_error_line) -> None:
     scene = tmp_path / "scene"
     scene.mkdir()

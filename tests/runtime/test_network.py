@@ -22,6 +22,8 @@ from como3r.transport import codec
 from como3r.transport.messages import AgentStarted
 from como3r.transport.zenoh_protocol import Keys, ZenohOptions, open_session
 
+pytestmark = pytest.mark.slow
+
 zenoh = pytest.importorskip("zenoh")
 
 #: what a user would pass for a tiny run: 64x48 images

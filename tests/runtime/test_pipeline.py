@@ -12,6 +12,8 @@ from como3r.data.synth import synthesize
 from como3r.io.tum import read_tum
 from como3r.runtime.pipeline import PriorSpec, run
 
+pytestmark = pytest.mark.slow
+
 WIDTH, HEIGHT = 128, 96
 # Shorter global solves keep the module fast on CPU (see tests/coordination).
 # the easy simulated prior: gauge sharing and ATE bounds fail under the realistic default

@@ -191,12 +191,14 @@ def _assert_same_run(reference: Path, other: Path, tolerance: float) -> None:
     assert len(graph_ref["edges"]) == len(graph_oth["edges"])
 
 
+@pytest.mark.slow
 def test_lockstep_reproduces_the_single_process_run(single, lockstep) -> None:
     out, summary = lockstep
     _assert_same_run(single, out, tolerance=1e-6)
     assert [a["status"] for a in summary.agents] == ["finished", "finished"]
 
 
+@pytest.mark.slow
 def test_lockstep_agents_report_each_frame_as_in_one_process(single, lockstep, heard) -> None:
     """Both runtimes run an agent's frames through one loop (``AgentLoop``): on the same
     schedule, every frame's progress (outcome, keyframes made) and live event (pose, image)
@@ -225,6 +227,7 @@ def test_lockstep_agents_report_each_frame_as_in_one_process(single, lockstep, h
                 np.testing.assert_allclose(mine, theirs, rtol=1e-6, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_the_coordinator_finishes_on_the_cores_the_agents_freed(lockstep, free) -> None:
     """Free-running, the terminal refinement gets the caller's threads (it ran on one of
     two cores); lockstep keeps the serial schedule's single thread."""
@@ -232,6 +235,7 @@ def test_the_coordinator_finishes_on_the_cores_the_agents_freed(lockstep, free) 
     assert _metrics(lockstep[0])["runtime"]["finish_torch_threads"] == 1
 
 
+@pytest.mark.slow
 def test_agent_processes_report_their_time_per_stage(lockstep) -> None:
     out, _ = lockstep
     for agent in _metrics(out)["agents"]:
@@ -241,6 +245,7 @@ def test_agent_processes_report_their_time_per_stage(lockstep) -> None:
         assert sum(stages.values()) == pytest.approx(agent["seconds"], rel=0.05)
 
 
+@pytest.mark.slow
 def test_free_running_agents_match_the_single_process_run(single, free) -> None:
     """Keyframes reach the coordinator in the same order; only the moment an agent applies a
     pose update differs, which the final global solve absorbs."""
@@ -251,6 +256,7 @@ def test_free_running_agents_match_the_single_process_run(single, free) -> None:
     assert [a["frames_done"] for a in runtime["agents"]] == [FRAMES // 2, SHORT // 2]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("schedule", ["free", "lockstep"])
 def test_bytes_are_counted_per_message_type_and_agent(schedule, request) -> None:
     out, _ = request.getfixturevalue(schedule)
@@ -285,6 +291,7 @@ def test_bytes_are_counted_per_message_type_and_agent(schedule, request) -> None
         assert runtime["bytes_by_type"]["PoseUpdateMessage"] > 0
 
 
+@pytest.mark.slow
 def test_killed_and_crashing_agents_leave_the_others_running(scene, config, tmp_path) -> None:
     """Agent 1 is SIGKILLed after its first frame, agent 2 fails on a truncated image; the
     coordinator and agent 0 finish and every output is written."""
@@ -321,6 +328,7 @@ def test_killed_and_crashing_agents_leave_the_others_running(scene, config, tmp_
     assert not multiprocessing.active_children()
 
 
+@pytest.mark.slow
 def test_a_silent_agent_is_terminated_as_hung(scene, config, tmp_path) -> None:
     options = RuntimeOptions(agent_timeout_s=0.2, shutdown_grace_s=2.0)
     with pytest.raises(InputError, match="every agent failed: agent 0: no message for"):
@@ -331,6 +339,7 @@ def test_a_silent_agent_is_terminated_as_hung(scene, config, tmp_path) -> None:
     assert not multiprocessing.active_children()
 
 
+@pytest.mark.slow
 def test_a_coordinator_slow_to_read_costs_no_message_and_no_agent(
     scene, config, tmp_path, monkeypatch
 ) -> None:

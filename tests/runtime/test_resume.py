@@ -27,6 +27,8 @@ from como3r.errors import StoreError
 from como3r.store.reader import read_session
 from como3r.store.schema import FORMAT_VERSION, STORE_NAME
 
+pytestmark = pytest.mark.slow
+
 RUN = ["--prior", "simulated", "--set", "input.long_side=64", "-q"]
 
 

@@ -78,6 +78,7 @@ def _run(team, out: Path, agents: list[Path], kills: list[int | str]) -> list[fl
     return seconds
 
 
+@pytest.mark.slow
 def test_a_coordinator_killed_at_several_points_resumes_to_the_uninterrupted_result(
     tiny_scene, new_team, tmp_path
 ) -> None:

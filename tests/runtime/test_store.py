@@ -53,6 +53,7 @@ def scene(tiny_scene) -> Path:
     return tiny_scene(frames=8, seed=1, overlap=0.2)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("runtime", ["processes", "single-process"])
 def test_a_run_keeps_its_coordinator_state_in_the_store(scene, tmp_path, runtime) -> None:
     out = tmp_path / "run"
@@ -328,6 +329,7 @@ def test_the_store_holds_the_state_after_every_transaction(tmp_path) -> None:
         assert db.execute("PRAGMA page_size").fetchone()[0] == PAGE_SIZE  # set before WAL
 
 
+@pytest.mark.slow
 def test_a_writer_killed_at_random_moments_leaves_a_consistent_store(tmp_path) -> None:
     rng, inside = random.Random(0), 0
     for seed in range(4):

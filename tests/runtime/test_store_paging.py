@@ -177,6 +177,7 @@ def _run(scene: Path, out: Path, resident: int) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_paging_everything_out_changes_no_output(scene, tmp_path) -> None:
     paged, resident = _run(scene, tmp_path / "paged", 0), _run(scene, tmp_path / "resident", 1000)
     for name in ("trajectories/agent_0.txt", "trajectories/agent_1.txt", "graph.json"):
@@ -258,6 +259,7 @@ def _refined_coordinator(tmp_path: Path, resident: int) -> tuple[Coordinator, Pa
     return coordinator, tmp_path / STORE_NAME
 
 
+@pytest.mark.slow
 def test_the_terminal_refinement_keeps_the_working_set_and_pages_the_rest(
     tmp_path, monkeypatch
 ) -> None:
@@ -318,6 +320,7 @@ def test_the_terminal_refinement_keeps_the_working_set_and_pages_the_rest(
         assert torch.equal(kf.X_hat, X_hat) and torch.equal(kf.X_init, X_init)
 
 
+@pytest.mark.slow
 def test_a_paged_terminal_refinement_equals_an_unpaged_one(tmp_path) -> None:
     paged, _ = _refined_coordinator(tmp_path / "paged", 2)
     unpaged, _ = _refined_coordinator(tmp_path / "unpaged", 10**9)

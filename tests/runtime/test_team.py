@@ -225,6 +225,7 @@ def _quiet(hub: _Hub) -> list:
     return list(hub.events)
 
 
+@pytest.mark.slow
 def test_members_are_admitted_and_a_member_writing_under_another_id_changes_nothing(crew, caplog):
     hub = _Hub(crew)
     sessions = []
@@ -263,6 +264,7 @@ def test_members_are_admitted_and_a_member_writing_under_another_id_changes_noth
         hub.close()
 
 
+@pytest.mark.slow
 def test_peers_without_a_valid_certificate_change_nothing(crew, strangers, tmp_path, caplog, capfd):
     revoking = tmp_path / "base"  # the coordinator's folder with agent 1 revoked
     revoking.mkdir()
@@ -345,6 +347,7 @@ def _each(links: list[ZenohRobotLink], call) -> list:
     return results
 
 
+@pytest.mark.slow
 def test_a_robot_writing_under_another_robots_id_changes_nothing_and_is_logged(crew, caplog):
     port, name = free_port(), f"t{uuid.uuid4().hex[:8]}"
     endpoint = f"tls/127.0.0.1:{port}"
@@ -431,6 +434,7 @@ def test_without_team_a_networked_command_warns_once_that_the_network_is_open(cr
     assert result.exit_code == 2 and "this command runs agent-0" in result.output
 
 
+@pytest.mark.slow
 def test_a_team_run_merges_as_before_and_logs_what_it_refused(
     tiny_scene, crew, team, tmp_path
 ) -> None:

@@ -58,6 +58,7 @@ def _fetch(link: ZenohAgentLink, out: list) -> threading.Thread:
     return thread
 
 
+@pytest.mark.slow
 def test_a_second_process_with_an_id_waits_then_takes_over(caplog) -> None:
     endpoint, keys = f"tcp/127.0.0.1:{_free_port()}", Keys(f"t{uuid.uuid4().hex[:8]}")
     coordinator_session = open_session(ZenohOptions(listen=(endpoint,)))

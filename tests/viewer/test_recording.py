@@ -96,6 +96,7 @@ def _rows(batches: list, name: str) -> list[list]:
     ]
 
 
+@pytest.mark.slow
 def test_every_agent_is_recorded(run) -> None:
     out, recording = run
     entities = _read(recording)
@@ -124,6 +125,7 @@ def test_every_agent_is_recorded(run) -> None:
         assert len(states) == frames and set(states) <= {"tracking", "lost", "relocalized"}
 
 
+@pytest.mark.slow
 def test_the_merged_map_and_the_edge_that_merged_it(run) -> None:
     out, recording = run
     entities = _read(recording)

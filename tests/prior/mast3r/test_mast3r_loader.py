@@ -25,6 +25,7 @@ class RunsCommand:
         return (os.system, (self.command,))
 
 
+@pytest.mark.slow
 def test_round_trip_is_strict_and_deterministic(tiny_network, write_checkpoint):
     path = write_checkpoint(tiny_network)
     network, model_string = load_network(path)

@@ -135,6 +135,7 @@ def _encodings(prior):
     return encs, mixed
 
 
+@pytest.mark.slow
 def test_decode_symmetric_batches_one_decoder_call_per_size(prior, monkeypatch):
     encs, mixed = _encodings(prior)
     pairs = [(encs[0], encs[1]), (mixed[0], mixed[1]), (encs[2], encs[0])]
@@ -149,6 +150,7 @@ def test_decode_symmetric_batches_one_decoder_call_per_size(prior, monkeypatch):
         _assert_as_decoded_alone(prior, backward, enc_j, enc_i)
 
 
+@pytest.mark.slow
 def test_decode_pairs_batches_one_decoder_call_per_pair_of_sizes(prior, monkeypatch):
     encs, mixed = _encodings(prior)
     pairs = [(encs[0], encs[1]), (mixed[0], mixed[1]), (encs[2], encs[0]), (mixed[1], encs[1])]
@@ -224,6 +226,7 @@ def test_bad_device_or_dtype_is_a_prior_error(tmp_path: Path, kwargs, message):
         load_mast3r(tmp_path / "absent.pth", **kwargs)
 
 
+@pytest.mark.slow
 def test_bfloat16_prior_outputs_float32_close_to_float32(tiny_checkpoint):
     full = load_mast3r(tiny_checkpoint)
     half = load_mast3r(tiny_checkpoint, dtype=torch.bfloat16)
