@@ -1,4 +1,4 @@
-"""The ``como3r`` command (README, "Commands").
+"""The ``como3r`` command (manual: docs/commands/index.md).
 
 Each command is a thin shell around one library function: it parses options, shows
 progress, prints a summary table, and turns every :class:`Como3rError` into one

@@ -36,7 +36,7 @@ from como3r.config import RetrievalConfig
 from como3r.errors import ConfigError, InputError
 from como3r.prior.codebook import as_descriptor_array
 
-# load_codebook is named here by the README ("Python API")
+# load_codebook is named here by the manual (docs/api/index.md, "Retrieval")
 from como3r.prior.codebook import load_codebook as load_codebook
 
 #: bits per packed word of ``asmk.hamming.binarize_and_pack_2D``

@@ -1,5 +1,5 @@
-"""The simulated prior: a seeded sensor simulator with MASt3R's outputs (README,
-"Python API").
+"""The simulated prior: a seeded sensor simulator with MASt3R's outputs (manual:
+docs/api/index.md, "The simulated prior").
 
 For scenes with metric depth it produces :class:`~como3r.prior.base.PairPrediction` s of
 exactly MASt3R's types, shapes and value ranges from the true geometry, corrupted by a

@@ -1,5 +1,5 @@
-"""como3r's own layout (the ``agent`` format; README, "Agent input"): one robot's camera
-stream and its optional side files.
+"""como3r's own layout (the ``agent`` format; manual: docs/inputs.md, "Agent input"): one
+robot's camera stream and its optional side files.
 
 An agent input is a folder with ``rgb/`` (images sorted by name) or a video file (the file
 itself, or a folder holding exactly one video and no ``rgb/``), plus optionally:
