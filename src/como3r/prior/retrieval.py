@@ -113,7 +113,8 @@ class RetrievalDatabase:
     consecutively in insertion order, as its inverted file requires (§8.4, "IVF add").
 
     Args:
-        codebook: ``(K, d)`` float32 centroids (:func:`load_codebook`, :func:`train_codebook`).
+        codebook: ``(K, d)`` float32 centroids (:func:`load_codebook`,
+            :func:`~como3r.prior.codebook.train_codebook`).
         config: ASMK parameters. ``config.codebook_size`` describes the official MASt3R
             codebook and is not checked here: other priors bring codebooks of other sizes.
     """
