@@ -2,7 +2,7 @@
 
 A small room (floor, two walls, a box) is ray-cast from N keyframes on a forward-sideways
 path. Each keyframe's prior pointmap is the true one with the simulated prior's kind of error
-(DESIGN.md, "Simulated prior"): a smooth multiplicative depth distortion of amplitude
+(:mod:`como3r.prior.simulated_errors`): a smooth multiplicative depth distortion of amplitude
 ``--amplitude`` (default 3 %) with a spatial wavelength of about a third of the image, and
 per-pixel range noise of ``--noise`` (0.5 %). Poses are exact (the depth step runs at frozen
 poses); keyframe 0 is pinned. Edges (k, k+1) and (k, k+2) in both directions carry

@@ -1,7 +1,7 @@
-"""The ``como3r`` command (README, "Commands").
+"""The ``como3r`` command (manual: docs/commands/index.md).
 
 Each command is a thin shell around one library function: it parses options, shows
-progress, prints a summary table, and turns every :class:`Como3rError` into one
+progress, prints a summary table, and turns every :class:`~como3r.errors.Como3rError` into one
 ``error:`` line on stderr and exit status 2.
 """
 

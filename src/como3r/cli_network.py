@@ -1,6 +1,6 @@
 """``como3r coordinator``, ``como3r agent`` and ``como3r robot``: runs across machines over
-Zenoh (:mod:`como3r.runtime.network`, :mod:`como3r.decentralized.robot_node`; README, "Across
-machines")."""
+Zenoh (:mod:`como3r.runtime.network`, :mod:`como3r.decentralized.robot_node`; manual:
+docs/networked.md)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """What ``como3r run``, ``demo``, ``synth``, ``export`` and ``weights fetch`` show while
-they work (README, "Commands").
+they work (manual: docs/commands/index.md, "Progress").
 
 Progress goes to stderr, as the progress bar always did (stdout keeps the final summary
 tables, so ``como3r run ... > summary.txt`` stays clean), in one of three modes chosen when

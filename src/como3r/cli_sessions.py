@@ -1,5 +1,5 @@
-"""``como3r merge``: two finished runs' maps into one (:mod:`como3r.runtime.merge`; README,
-"Maps of several days").
+"""``como3r merge``: two finished runs' maps into one (:mod:`como3r.runtime.merge`;
+manual: docs/sessions.md, "Maps of several days").
 """
 
 from __future__ import annotations

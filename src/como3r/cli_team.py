@@ -1,5 +1,5 @@
 """``como3r team``: a team's certificate authority and its members' folders
-(:mod:`como3r.transport.team`; README, "Across machines")."""
+(:mod:`como3r.transport.team`; manual: docs/commands/team.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""``--viewer`` of ``como3r run`` and ``como3r demo`` (README, "Live viewer").
+"""``--viewer`` of ``como3r run`` and ``como3r demo`` (manual: docs/viewer.md).
 
 ``--viewer spawn``, ``--viewer serve`` or ``--viewer save FILE.rrd``: the option's value
 is one word except after ``save``, so :class:`ViewerCommand` joins ``save FILE`` into

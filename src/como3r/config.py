@@ -77,8 +77,8 @@ class VisualizationConfig:
 
 @dataclass(frozen=True)
 class SessionConfig:
-    """The coordinator's memory and its session store (not in C-Tab. 3; README, "Run
-    output").
+    """The coordinator's memory and its session store (not in C-Tab. 3; manual:
+    docs/outputs.md).
 
     ``resident_keyframes``: per agent, how many of its newest keyframes the coordinator keeps
     whole in memory (a count). The others' encodings, images and pointmaps, and the matches

@@ -36,7 +36,8 @@ class RegistrationConfig:
             one pixel). 1/64: 8 px at 512, the official ``fast_reciprocal_NNs`` subsampling at
             MASt3R's resolution; about 64 x 48 queries at any resolution of a 4:3 image. The
             same grid of each view is the coarse level of the nearest-neighbour search
-            (:mod:`~.matching`), refined within half a spacing at full resolution.
+            (:mod:`~como3r.decentralized.matching`), refined within half a spacing at full
+            resolution.
         match_coarse_candidates: grid pixels of the other view, the most similar first,
             around whose cells each nearest-neighbour search looks at full resolution. 3: on
             the 55 pairs registered at 512 in the 20x scene of
@@ -97,8 +98,9 @@ class PoseGraphConfig:
         odom_sigma_rot_deg: odometry factor rotation noise per keyframe step [deg].
         odom_sigma_trans_ratio: odometry factor translation noise per keyframe step, as a
             fraction of the keyframe spacing (median odometry distance between consecutive
-            keyframes of the graph, :func:`~.initial_estimate.keyframe_spacing`); 0.04: 2 cm at the
-            default 0.5 m spacing of the synthetic scene, 5 cm at a 1.2 m outdoor spacing
+            keyframes of the graph,
+            :func:`~como3r.decentralized.initial_estimate.keyframe_spacing`); 0.04: 2 cm at
+            the default 0.5 m spacing of the synthetic scene, 5 cm at a 1.2 m outdoor spacing
             (the paper states no noise values).
         loop_sigma_rot_deg: loop factor rotation noise at confidence p = 1 [deg]; the
             information is multiplied by p (F-Eq. 3).
@@ -118,7 +120,8 @@ class PoseGraphConfig:
         gnc_mu_step: factor of the GNC control parameter per outer iteration.
         gnc_max_iterations: GNC outer iterations.
         consistency: ``pcm``: before a solve, keep the largest set of pairwise-consistent
-            loops of each robot pair (:mod:`~.consistency`); ``none``: every loop.
+            loops of each robot pair (:mod:`~como3r.decentralized.consistency`); ``none``:
+            every loop.
         consistency_probability: chi-square quantile (6 dof) under which two loops'
             odometry cycle counts as consistent.
         scale_alarm_log: a solve that changes a robot's scale (its path length over its
@@ -178,10 +181,10 @@ class DecentralizedConfig:
     Attributes:
         keyframe_distance_ratio: a new keyframe after the odometry travelled this fraction
             of the robot's scene depth (median depth of the prior's pointmap of its first
-            keyframe, :meth:`~.registration.Registrar.scene_depth`). 0.07: 0.5 m at the
-            ~7 m median depth the prior sees in the default synthetic scene (the former
-            default); the paper's keyframe distances of 0.5-4 m outdoors (F-Fig. 5, GrAco,
-            depth of order 15 m) are 0.03-0.27.
+            keyframe, :meth:`~como3r.decentralized.registration.Registrar.scene_depth`).
+            0.07: 0.5 m at the ~7 m median depth the prior sees in the default synthetic
+            scene (the former default); the paper's keyframe distances of 0.5-4 m outdoors
+            (F-Fig. 5, GrAco, depth of order 15 m) are 0.03-0.27.
         place_method: global place descriptor: ``cosine`` (attention-weighted aggregate of
             the prior's retrieval features, compared by cosine similarity) or ``asmk``.
         place_threshold: minimum similarity of a candidate (F-Sec. IV: permissive 0.1).

@@ -15,7 +15,7 @@ from como3r.errors import ConfigError
 
 @dataclass(frozen=True)
 class SimulatedPriorConfig:
-    """Error model of the simulated prior (README, "Python API").
+    """Error model of the simulated prior (manual: docs/api/index.md, "The simulated prior").
 
     ``model`` selects it: ``"realistic"`` (default) imitates MASt3R's failure modes,
     ``"easy"`` is the near-oracle of round 1 for tests that need precision, ``"v2"`` (in

@@ -3,7 +3,7 @@
 They flow like the progress events of :mod:`como3r.progress`: small frozen dataclasses
 handed to one optional callback (``live``) of :func:`como3r.runtime.pipeline.run` and
 :func:`como3r.runtime.multiprocess.run_multiprocess`, built only when a sink is attached. The
-live viewer (:mod:`como3r.viewer`, README "Live viewer") is the sink that exists; it never
+live viewer (:mod:`como3r.viewer`, manual: docs/viewer.md) is the sink that exists; it never
 reaches into SLAM state, only into these events.
 
 * :class:`FrameEvent` -- after every frame of an agent: its pose, intrinsics, a

@@ -280,7 +280,7 @@ class Coordinator(InterAgentLinking, FocalAlignment):
         gauge_events: list[dict[str, Any]],
         backlog: tuple[int, list[int]],
     ) -> None:
-        """Continue from a stored state (:meth:`como3r.store.writer.SessionStore.open`):
+        """Continue from a stored state (:func:`como3r.store.resume.load_state`):
         the graph, gauge components, candidates (the pending ones wait again), counters,
         gauge events and the BA backlog. The caller rebuilds the retrieval database."""
         self.graph, self.gauges, self.candidates = graph, gauges, candidates

@@ -229,9 +229,9 @@ def run_protocol(
         prior: a prior to share between robot threads (single-process mode only).
         leave: robot -> ``(round, phase)`` at which it drops out (failure injection; phases
             in :data:`~como3r.decentralized.robot.PHASES`).
-        progress: called with each robot's :class:`RobotProgress` after every round it took
-            part in and with its :class:`RobotReport` (also the one of a robot process that
-            died), one at a time.
+        progress: called with each robot's :class:`~.messages.RobotProgress` after every
+            round it took part in and with its :class:`RobotReport` (also the one of a robot
+            process that died), one at a time.
 
     Raises:
         ConfigError: an unknown phase in ``leave``.

@@ -1,5 +1,5 @@
 """``como3r robot``: one robot of the decentralized mode (FLOCC-SLAM) as its own process,
-talking to its peers over Zenoh (README, "Decentralized robots across machines").
+talking to its peers over Zenoh (manual: docs/commands/robot.md).
 
 :func:`run_robot` is the robot of :mod:`como3r.decentralized.robot` -- the same keyframes,
 place recognition, two-stage registration, election and pose graph as ``como3r run --mode

@@ -2,7 +2,7 @@
 
 :func:`run_decentralized` validates every input (each needs ``odometry.txt``), runs the
 robots (:func:`~como3r.decentralized.protocol.run_protocol`), and writes the output folder
-(README, "Run output"):
+(manual: docs/outputs.md, "Run output"):
 
 * ``trajectories/agent_<a>.txt`` every frame with odometry, ``keyframes/agent_<a>.txt``,
   in the frame the robot ended in (robots that met share one);

@@ -1,5 +1,5 @@
 """A robot's radio over Zenoh (``como3r robot``): peer to peer, the link filter at the
-receiver (README, "Decentralized robots across machines").
+receiver (manual: docs/commands/robot.md).
 
 Key expressions of a session ``S``::
 

@@ -1,11 +1,12 @@
 """What ``report.html`` shows, read from a finished run's output folder.
 
-The report reads files only (README, "Run output"): ``metrics.json``, ``graph.json``,
-``trajectories/agent_<a>.txt``, ``config.yaml`` and, when the run was evaluated, the ``ate``
-section of ``metrics.json`` (or ``ate.json``). Ground truth is not in the run folder; the
-caller passes the trajectories the evaluation read. Both modes are understood: the
-centralized runs (single-process or one process per agent, ``metrics.runtime``) and the
-decentralized runs (``metrics.mode == "decentralized"``: ``robots``, ``bytes``, ``rounds``).
+The report reads files only (manual: docs/outputs.md, "Run output"): ``metrics.json``,
+``graph.json``, ``trajectories/agent_<a>.txt``, ``config.yaml`` and, when the run was
+evaluated, the ``ate`` section of ``metrics.json`` (or ``ate.json``). Ground truth is not in
+the run folder; the caller passes the trajectories the evaluation read. Both modes are
+understood: the centralized runs (single-process or one process per agent,
+``metrics.runtime``) and the decentralized runs (``metrics.mode == "decentralized"``:
+``robots``, ``bytes``, ``rounds``).
 """
 
 from __future__ import annotations

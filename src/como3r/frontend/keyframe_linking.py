@@ -164,24 +164,24 @@ class KeyframeLinking:
 
         Tracking accepted the other direction, (kf, kf - 1), only once its matches agreed
         with the pose solved from them (``tracking.min_inlier_fraction`` within
-        :attr:`FrameTracker.inlier_angle_deg` and ``sigma_dist``). This direction comes from
-        a decode of its own, (kf - 1, kf), with its own draw of the prior's pose error, and
-        nothing tested it: with only the previous keyframe to link to, a wrong one pulled
-        the new keyframe towards its pose in the local solve. So it is solved alone as a
-        frame is tracked (C-Eq. 2, C-Eq. 17 when calibrated; from the tracked pose) and,
-        when its matches do not agree with their own pose, it keeps no valid match: the
-        edge stands on the tracked direction, as a frame whose matches disagree is not
-        tracked. Measured on the realistic prior (benchmarks/robustness.py scenes, 24
-        frames; 16 runs: fast, room, street, forward, rotation, revisit at 640x480 seeds 0
-        and 1, fast at 320x240 seeds 0 and 1, low-texture 640x480 and aerial 320x240 seed
-        0; 69 sequential edges): agreement 0.65-0.91, except the fast family's seed 1,
-        keyframes 14 -> 22 (16 deg of turn): 0.18 at 640x480, 0.36 at 320x240. Its decode
-        was 4.1 deg and 28 % of the baseline off; solved alone 2.8 deg off (the tracked
-        direction 0.05 deg), it had pulled keyframe 22 1.7 deg off (ATE 1.18 and 1.10 % of
-        the path; 0.13 and 0.17 % without it). A decode error that leaves its matches
-        agreeing with their (wrong) pose is not caught: a rigid 6 deg turn of ``X_ji``
-        injected into one such decode on the default scene at 128x96 passes, and the local
-        solve weighs it against the tracked direction as before.
+        :attr:`~como3r.frontend.tracker.FrameTracker.inlier_angle_deg` and ``sigma_dist``).
+        This direction comes from a decode of its own, (kf - 1, kf), with its own draw of
+        the prior's pose error, and nothing tested it: with only the previous keyframe to
+        link to, a wrong one pulled the new keyframe towards its pose in the local solve. So
+        it is solved alone as a frame is tracked (C-Eq. 2, C-Eq. 17 when calibrated; from
+        the tracked pose) and, when its matches do not agree with their own pose, it keeps
+        no valid match: the edge stands on the tracked direction, as a frame whose matches
+        disagree is not tracked. Measured on the realistic prior (benchmarks/robustness.py
+        scenes, 24 frames; 16 runs: fast, room, street, forward, rotation, revisit at
+        640x480 seeds 0 and 1, fast at 320x240 seeds 0 and 1, low-texture 640x480 and aerial
+        320x240 seed 0; 69 sequential edges): agreement 0.65-0.91, except the fast family's
+        seed 1, keyframes 14 -> 22 (16 deg of turn): 0.18 at 640x480, 0.36 at 320x240. Its
+        decode was 4.1 deg and 28 % of the baseline off; solved alone 2.8 deg off (the
+        tracked direction 0.05 deg), it had pulled keyframe 22 1.7 deg off (ATE 1.18 and
+        1.10 % of the path; 0.13 and 0.17 % without it). A decode error that leaves its
+        matches agreeing with their (wrong) pose is not caught: a rigid 6 deg turn of
+        ``X_ji`` injected into one such decode on the default scene at 128x96 passes, and
+        the local solve weighs it against the tracked direction as before.
 
         Args:
             ij: pixel of ``previous`` (keyframe kf - 1) per pixel of ``kf``.

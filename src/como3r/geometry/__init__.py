@@ -1,7 +1,8 @@
 """Pure geometry on torch tensors: Lie groups, residuals with Jacobians, Umeyama, cameras.
 
 No state and no I/O; every function is batched over leading dims and works in float32 and
-float64 on any device. Conventions are in ``lie.py`` and docs/architecture.md ("Conventions").
+float64 on any device. Conventions are in ``lie.py`` and the manual
+(docs/architecture.md, "Conventions").
 """
 
 from como3r.geometry.camera import (

@@ -1,4 +1,4 @@
-"""Exports of a finished run folder (README, "Exporting a run"): COLMAP, nerfstudio, g2o
+"""Exports of a finished run folder (manual: docs/commands/export.md): COLMAP, nerfstudio, g2o
 (:mod:`como3r.io.g2o`), per-keyframe depth maps and a ROS 2 bag (:mod:`como3r.io.ros2_bag`).
 
 What is read: ``graph.json`` (keyframes with their final ``T_WC``, graph edges, gauge

@@ -1,5 +1,5 @@
-"""The keyframe pose graph of a finished run as a g2o file (``como3r export --g2o``; README,
-"Exporting a run")."""
+"""The keyframe pose graph of a finished run as a g2o file (``como3r export --g2o``; manual:
+docs/commands/export.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Binary PLY point clouds with colour and a per-point agent id (README, "Run output").
+"""Binary PLY point clouds with colour and a per-point agent id (manual: docs/outputs.md,
+"Run output").
 
 The header declares ``x y z`` (float32), ``red green blue`` (uchar) and ``agent_id``
 (int32), binary little-endian, which Open3D, CloudCompare and MeshLab read.

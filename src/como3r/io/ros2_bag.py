@@ -1,4 +1,4 @@
-"""ROS 2 bag export of a finished run folder (README, "Exporting a run").
+"""ROS 2 bag export of a finished run folder (manual: docs/commands/export.md).
 
 The bag is a rosbag2 folder (``metadata.yaml`` version 8 and one MCAP file with
 zstd-compressed chunks, CDR messages of the ROS 2 Humble definitions, which Jazzy's are equal

@@ -21,15 +21,16 @@ IROS 2010, and Jian, Balch, Dellaert, ICCV 2011, with an aggregation coarse leve
   PSD term). It is factorised with LAPACK's banded Cholesky (``dpbtrf``, band width
   7(b+1) = 21, no fill outside the band) in O(F b^2) and applied in O(F b). On a chain
   (plus skip edges) it is A itself and CG converges in one or two iterations.
-* **Coarse level P.** Consecutive runs of ``COARSE_GROUP`` = 32 poses of the path order
-  form groups, and P gives every pose of a group the same tangent step. Updates are left
-  perturbations (``T <- Exp(tau) T``, DESIGN.md), so a constant tau over a group moves it
-  as one rigid body (similarity): exactly the motions its internal edges do not resist and
-  that B, anchored by the diagonal blocks of the edges outside the band, resists too much
-  -- the long-wavelength drift of a chain between loop closures that leaves block-Jacobi
-  PCG O(N) iterations (:mod:`como3r.optim.pcg`). ``P^T A P`` is a dense ``(7G, 7G)``
-  matrix over G = ceil(F / 32) groups (at most ``COARSE_MAX_GROUPS``; the groups grow
-  beyond), summed from A's blocks, Cholesky-factorised and inverted once per attempt.
+* **Coarse level P.** Consecutive runs of ``COARSE_GROUP`` = 32 poses of the path order form
+  groups, and P gives every pose of a group the same tangent step. Updates are left
+  perturbations (``T <- Exp(tau) T``; manual: docs/architecture.md, "Conventions"), so a
+  constant tau over a group moves it as one rigid body (similarity): exactly the motions its
+  internal edges do not resist and that B, anchored by the diagonal blocks of the edges
+  outside the band, resists too much -- the long-wavelength drift of a chain between loop
+  closures that leaves block-Jacobi PCG O(N) iterations (:mod:`como3r.optim.pcg`).
+  ``P^T A P`` is a dense ``(7G, 7G)`` matrix over G = ceil(F / 32) groups (at most
+  ``COARSE_MAX_GROUPS``; the groups grow beyond), summed from A's blocks, Cholesky-factorised
+  and inverted once per attempt.
 
 Positive definiteness (C-Sec. B.2's success test) is checked where A's structure allows:
 ``P^T A P`` not positive definite implies A is not (P has full column rank), and CG stops

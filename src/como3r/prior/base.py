@@ -1,4 +1,4 @@
-"""The prior interface (README, "Python API"; C-Sec. 3.2).
+"""The prior interface (manual: docs/api/index.md; C-Sec. 3.2).
 
 Everything above ``prior/`` depends on this module alone, so the MASt3R network and the
 simulated sensor are interchangeable. A prior turns views into geometry:

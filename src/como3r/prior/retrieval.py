@@ -36,7 +36,7 @@ from como3r.config import RetrievalConfig
 from como3r.errors import ConfigError, InputError
 from como3r.prior.codebook import as_descriptor_array
 
-# load_codebook is named here by the README ("Python API")
+# load_codebook is named here by the manual (docs/api/index.md, "Retrieval")
 from como3r.prior.codebook import load_codebook as load_codebook
 
 #: bits per packed word of ``asmk.hamming.binarize_and_pack_2D``
@@ -113,7 +113,8 @@ class RetrievalDatabase:
     consecutively in insertion order, as its inverted file requires (§8.4, "IVF add").
 
     Args:
-        codebook: ``(K, d)`` float32 centroids (:func:`load_codebook`, :func:`train_codebook`).
+        codebook: ``(K, d)`` float32 centroids (:func:`load_codebook`,
+            :func:`~como3r.prior.codebook.train_codebook`).
         config: ASMK parameters. ``config.codebook_size`` describes the official MASt3R
             codebook and is not checked here: other priors bring codebooks of other sizes.
     """

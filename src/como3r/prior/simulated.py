@@ -1,5 +1,5 @@
-"""The simulated prior: a seeded sensor simulator with MASt3R's outputs (README,
-"Python API").
+"""The simulated prior: a seeded sensor simulator with MASt3R's outputs (manual:
+docs/api/index.md, "The simulated prior").
 
 For scenes with metric depth it produces :class:`~como3r.prior.base.PairPrediction` s of
 exactly MASt3R's types, shapes and value ranges from the true geometry, corrupted by a
@@ -7,11 +7,11 @@ documented error model that imitates a learned prior. It is a sensor simulator, 
 oracle: the ground-truth pose of a view is used only by :meth:`SimulatedPrior.encode` to
 build world-coordinate appearance keys when a view has no surface map; no encoding stores it
 and no prediction is made from it. The relative placement of view j in camera i is what a
-learned matcher would believe: a robust similarity fit (RANSAC + :func:`umeyama_sim3`)
-between the depth points of both views whose appearance keys coincide
-(:mod:`como3r.prior.simulated_keys`). Truly overlapping views with unique textures get the
-true relative pose, aliased views the wrong one, views without common keys a random one with
-low confidence.
+learned matcher would believe: a robust similarity fit (RANSAC +
+:func:`~como3r.geometry.umeyama.umeyama_sim3`) between the depth points of both views whose
+appearance keys coincide (:mod:`como3r.prior.simulated_keys`). Truly overlapping views with
+unique textures get the true relative pose, aliased views the wrong one, views without common
+keys a random one with low confidence.
 
 Error model (:class:`~como3r.config.SimulatedPriorConfig`, ``model`` key): the
 ``realistic`` default, the ``easy`` near-oracle or ``v2`` (the realistic model with

@@ -20,7 +20,8 @@ from como3r.prior.ground_truth import GroundTruth
 
 @dataclass(frozen=True)
 class SimulatedConstants:
-    """Fixed constants of the sensor model (reported by :meth:`SimulatedPrior.describe`).
+    """Fixed constants of the sensor model (reported by :meth:`SimulatedPrior.describe
+    <como3r.prior.simulated.SimulatedPrior.describe>`).
 
     Logits are natural logs: ``C = 1 + exp(conf_*)``, ``Q = exp(q_*)``; ``sky_range`` and
     ``conf_range_ref`` are multiples of the view's median valid depth. ``*_wavelengths`` are

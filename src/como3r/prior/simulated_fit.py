@@ -1,5 +1,5 @@
 """Where a learned matcher would place view j in camera i: key-cell matches and a robust
-similarity fit between the true depth points of two views (README, "Python API").
+similarity fit between the true depth points of two views (manual: docs/api/index.md).
 
 Part of the simulated prior (:mod:`como3r.prior.simulated`): truly overlapping views with
 unique textures get the true relative pose, aliased views the wrong one, views without

@@ -1,7 +1,7 @@
 """Appearance keys and the fixed random-feature maps of the simulated prior.
 
 A pixel's *appearance key* is what a learned prior recognises it by: the id of the texture it
-shows and where on that texture it lies (README, "Python API"). Synthetic scenes store
+shows and where on that texture it lies (manual: docs/api/index.md). Synthetic scenes store
 keys as ``surface`` maps ``(texture id, s, t)`` with ``s, t`` in metres; two façades that
 share a texture id and its parameterisation are indistinguishable, exactly like repeated
 structure for a learned model. Without a surface map the key of a pixel is its world point

@@ -1,4 +1,5 @@
-"""Interrupts are checkpoints (DESIGN.md): Ctrl-C and SIGTERM end a run the same way.
+"""Interrupts are checkpoints: Ctrl-C and SIGTERM end a run the same way (manual:
+docs/sessions.md, "Interrupting and resuming a run").
 
 Inside :func:`interrupts_are_checkpoints` the first SIGINT or SIGTERM only takes note; the
 run's loops call :func:`checkpoint` between messages (a frame in one process, a keyframe

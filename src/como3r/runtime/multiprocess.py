@@ -197,7 +197,7 @@ def coordinate(
 
 
 def _write(staging: Path, runtime: _Runtime, inputs: Sequence[AgentInput]) -> RunSummary:
-    """The output folder of :func:`pipeline.run`, from the agents' results."""
+    """The output folder of :func:`como3r.runtime.pipeline.run`, from the agents' results."""
     config = runtime.config
     results, runtime.places = agent_results(
         runtime.slots, runtime.segments, runtime.coordinator.components()

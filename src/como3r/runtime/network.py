@@ -1,5 +1,5 @@
-"""A run across machines: ``como3r coordinator`` and ``como3r agent`` (README, "Across
-machines").
+"""A run across machines: ``como3r coordinator`` and ``como3r agent`` (manual:
+docs/networked.md, "Across machines").
 
 The coordinator (:func:`serve`) is the loop of :mod:`como3r.runtime.processes` over a
 :class:`~como3r.transport.zenoh_hub.ZenohHub`; each agent (:func:`run_remote_agent`)

@@ -1,4 +1,4 @@
-"""Writing a run's output folder (README, "Run output").
+"""Writing a run's output folder (manual: docs/outputs.md, "Run output").
 
 ``config.yaml``, ``trajectories/agent_<a>.txt`` (every tracked frame), ``keyframes/agent_<a>.txt``
 and ``keyframes/agent_<a>/`` (:mod:`como3r.io.keyframe_data`),

@@ -1,5 +1,5 @@
 """An agent's results as the coordinator of the multi-process runtime holds them, and the
-view of them the output files take (README, "Run output").
+view of them the output files take (manual: docs/outputs.md, "Run output").
 
 Each process that ran an agent leaves one *map segment*: an :class:`AgentResult` under a
 coordinator agent id of its own. An agent whose process was restarted (``como3r agent``

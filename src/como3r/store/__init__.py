@@ -2,4 +2,4 @@
 goes (:mod:`.writer`, in the layout of :mod:`.schema`, its arrays packed by :mod:`.blobs`),
 read back (:mod:`.reader`), the coordinator's memory bounded by paging out to it
 (:mod:`.paging`), and a run continued from it (:mod:`.resume`). It knows nothing of the
-runtimes above it (docs/architecture.md, "Layers")."""
+runtimes above it (manual: docs/architecture.md, "Layers")."""

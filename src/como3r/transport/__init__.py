@@ -3,4 +3,4 @@ encoded without pickle by :mod:`.codec`), the transport interface (:mod:`.links`
 carries it: pipes on one machine (:mod:`.pipes`) and Zenoh across machines (:mod:`.zenoh_hub`,
 :mod:`.zenoh_agent`, an agent's :mod:`.spool`), a team's certificates and access rules
 (:mod:`.team`, :mod:`.team_access`). It knows nothing of the session store or the runtimes
-above it (docs/architecture.md, "Layers")."""
+above it (manual: docs/architecture.md, "Layers")."""

@@ -1,4 +1,5 @@
-"""Typed, versioned, pickle-free encoding of messages (docs/architecture.md, "Conventions").
+"""Typed, versioned, pickle-free encoding of messages (manual:
+docs/architecture.md, "Processes and messages").
 
 Processes share nothing but messages; a message is a registered dataclass encoded by
 :func:`encode` into one msgpack document and rebuilt by :func:`decode`, which only ever

@@ -1,5 +1,5 @@
-"""How agents and the coordinator reach each other (C-Sec. B.1; DESIGN.md, "One frame loop,
-one transport").
+"""How agents and the coordinator reach each other (C-Sec. B.1; manual:
+docs/architecture.md, "Processes and messages").
 
 Both ends exchange the typed messages of :mod:`como3r.transport.messages`, encoded by
 :mod:`como3r.transport.codec` (no pickle). What carries them is a transport with two faces:

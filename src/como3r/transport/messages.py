@@ -1,4 +1,5 @@
-"""The messages of the multi-process runtime (C-Sec. B.1, A.8; docs/architecture.md, "Conventions").
+"""The messages of the multi-process runtime (C-Sec. B.1, A.8; manual:
+docs/architecture.md, "Processes and messages").
 
 Agents and the coordinator share nothing but these messages. Each is a frozen dataclass
 with a ``version`` field and is registered with :mod:`como3r.transport.codec`, which encodes

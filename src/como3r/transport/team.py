@@ -1,5 +1,5 @@
 """A team that admits only the team: a certificate authority and its members (``como3r team``;
-README, "Across machines").
+manual: docs/networked.md, "Across machines").
 
 A team is a folder made by :func:`init_team`: the authority's key (``ca.key``, it never
 leaves this folder) and certificate (``ca.pem``), the roster (``team.json``) and the

@@ -1,5 +1,5 @@
 """What a team member's process makes of its member folder (:mod:`como3r.transport.team`):
-its Zenoh configuration (``--team``; README, "Across machines").
+its Zenoh configuration (``--team``; manual: docs/networked.md, "Across machines").
 
 - Transport: mutual TLS only (``transport/link/protocols`` is ``tls``): a peer must show a
   certificate of the team's authority, valid now; a plain TCP peer, a peer without a

@@ -1,5 +1,5 @@
 """The live 3D viewer: the live events of a run (:mod:`como3r.live`) shown in rerun
-(README, "Live viewer").
+(manual: docs/viewer.md).
 
 An optional extra: ``pip install "como3r[viewer]"`` installs ``rerun-sdk``, and nothing
 else in como3r imports it. This module does not either; :func:`open_viewer` imports

@@ -8,7 +8,7 @@ One module per format; each has ``matches(path) -> bool`` (the layout test of de
 =========  ===========================================  ===================================
 format     layout                                       module
 =========  ===========================================  ===================================
-agent      ``rgb/`` or a video, side files (README)     :mod:`como3r.data.readers.agent`
+agent      ``rgb/`` or a video, side files (manual)     :mod:`como3r.data.readers.agent`
 tum        TUM RGB-D: ``rgb.txt``, ``depth.txt``,        :mod:`como3r.data.readers.tum`
            ``groundtruth.txt``, ``rgb/``, ``depth/``
 7scenes    7-Scenes: ``frame-NNNNNN.color.png|jpg``,     :mod:`como3r.data.readers.sevenscenes`

@@ -1,5 +1,5 @@
-"""como3r's own layout (the ``agent`` format; README, "Agent input"): one robot's camera
-stream and its optional side files.
+"""como3r's own layout (the ``agent`` format; manual: docs/inputs.md, "Agent input"): one
+robot's camera stream and its optional side files.
 
 An agent input is a folder with ``rgb/`` (images sorted by name) or a video file (the file
 itself, or a folder holding exactly one video and no ``rgb/``), plus optionally:
@@ -42,7 +42,7 @@ from como3r.io.tum import Trajectory, read_tum
 
 def open_agent_folder(path: str | Path, fps: float = 30.0) -> AgentInput:
     """Open and validate an input in como3r's own agent layout (folder or video file);
-    arguments and errors as :func:`open_agent`."""
+    arguments and errors as :func:`~como3r.data.agent.open_agent`."""
     if not (math.isfinite(fps) and fps > 0):
         raise InputError(f"fps must be a positive number, got {fps}")
     path = Path(path)

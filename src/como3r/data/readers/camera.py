@@ -1,11 +1,11 @@
 """Live inputs: a camera (device index) or a network stream (``rtsp://``, ``http://``, ...)
 read through OpenCV's ``cv2.VideoCapture`` while SLAM runs (``como3r run --camera``).
 
-A live stream has no length and cannot be rewound, so it is not an :class:`AgentInput`:
-:class:`CameraInput` offers the same attributes the run reads (``image_size``, ``calib``,
-``groundtruth``, ``has_depth``, ...), with ``num_frames`` None, and hands its frames out
-once, in order (:meth:`CameraInput.take`, :meth:`CameraInput.load_frame`,
-:meth:`CameraInput.frames`).
+A live stream has no length and cannot be rewound, so it is not an
+:class:`~como3r.data.agent_input.AgentInput`: :class:`CameraInput` offers the same attributes
+the run reads (``image_size``, ``calib``, ``groundtruth``, ``has_depth``, ...), with
+``num_frames`` None, and hands its frames out once, in order (:meth:`CameraInput.take`,
+:meth:`CameraInput.load_frame`, :meth:`CameraInput.frames`).
 
 Frame-drop policy. A reader thread reads the capture as fast as it delivers and keeps only
 the newest frame (a queue of one): a frame that arrives before SLAM has taken the previous

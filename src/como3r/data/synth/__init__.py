@@ -1,6 +1,6 @@
 """Synthetic multi-agent outdoor scenes with exact ground truth (``como3r synth``).
 
-:func:`synthesize` writes one agent input folder per agent (README, "Agent
+:func:`synthesize` writes one agent input folder per agent (manual: docs/inputs.md, "Agent
 input") plus ``scene.json``; the presets are described in :mod:`.presets` and
 :mod:`.families`, the rendering in :mod:`.render` and the appearance keys in
 :mod:`.textures`.

@@ -10,7 +10,7 @@ tuned on, for the robustness benchmark (``benchmarks/robustness.py``).
     pixel beyond a few metres) but keeps the ground truth non-degenerate for the Sim(3)
     alignment of the ATE (a single point has no defined scale or rotation). With several
     agents the pivots lie 1.5 m from the courtyard centre and neighbours' headings overlap
-    by ``overlap`` of their sweep (as the arc of a ring plan, :func:`.plan_ring`).
+    by ``overlap`` of their sweep (as the arc of a ring plan, :func:`~.trajectories.plan_ring`).
 ``fast``
     The ``default`` rooms driven :data:`FAST_FACTOR` times faster: per frame, the camera
     moves that many times as far and its hand-held wobble (a function of the distance)
@@ -19,7 +19,7 @@ tuned on, for the robustness benchmark (``benchmarks/robustness.py``).
     dominates short single-agent paths (a small closed loop).
 ``low-texture``
     The ``default`` rooms with every surface, ground included, in flat paint with faint
-    shading and sparse dark marks (:attr:`.Kind.PLAIN`): large weakly textured walls.
+    shading and sparse dark marks (:attr:`~.textures.Kind.PLAIN`): large weakly textured walls.
 ``covered``
     The ``default`` preset with the lens covered for a few consecutive frames in the middle
     of every agent's path (:func:`covered_frames`): the images are near-black sensor noise,

@@ -1,7 +1,7 @@
 """Procedural textures: colour as a pure function of an appearance key (id, s, t).
 
 Every surface of a synthetic scene carries a texture id and surface-local coordinates
-``(s, t)`` in metres (README, "Python API"). The colour of a surface point is a
+``(s, t)`` in metres (manual: docs/api/index.md). The colour of a surface point is a
 deterministic function of that key alone, so the same point has the same colour in every
 view and two surfaces that share an id and a parameterisation look exactly alike (the
 aliasing a learned matcher falls for). Shading only depends on the surface normal's

@@ -1,6 +1,6 @@
 """``synthesize``: render a preset scene and write it in the agent input format.
 
-Layout (README, "Commands")::
+Layout (manual: docs/commands/synth.md)::
 
     scene.json                      preset, seed, scale, parameters, intrinsics, meetings
     agent_<a>/rgb/<stem>.png        8-bit RGB
