@@ -1,4 +1,4 @@
-"""Every benchmark script imports, parses its options and is listed in the README.
+"""Every benchmark script imports, parses its options and is listed in the manual (docs/benchmarks.md).
 
 Benchmarks never gate CI on their numbers; this only keeps them runnable as the package
 changes under them (a renamed function or option otherwise surfaces when somebody needs the
