@@ -21,7 +21,7 @@ from como3r.runtime.pipeline import PriorSpec
 #: 1.5 px apart, which here admits one wrong loop (37 deg, ratio 0.389) and then base/LM
 #: (0.09 m) no longer loses to independent/LM (0.090 m) by F-Tables II-III's margin (measured
 #: ratios 0.44 / 0.63 / 0.82 / 1.01 at 1/24, 1/32, 1/48, 1/64): a limit of the default on
-#: very small images, listed in the manual (docs/commands/robot.md), not what these tests compare.
+#: very small images, listed in the manual (docs/networked.md), not what these tests compare.
 QUERY_GRID_RATIO = 1 / 24
 
 
