@@ -5,7 +5,14 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from como3r.cli import OMP_WAIT_POLICY
+# Tests never take the width of the terminal they run in: rich's consoles (cli_common's are
+# made when como3r.cli is imported, just below) would fix it from COLUMNS, which a terminal
+# exports and pytest-xdist's workers start with (80), and the width a test gives a CLI run
+# (CliRunner(env={"COLUMNS": ...})) would no longer reach the CLI's output.
+for _name in ("COLUMNS", "LINES"):
+    os.environ.pop(_name, None)
+
+from como3r.cli import OMP_WAIT_POLICY  # noqa: E402
 
 # as the como3r command sets it, before torch loads OpenMP; the CLI's subprocesses inherit it
 os.environ.setdefault("OMP_WAIT_POLICY", OMP_WAIT_POLICY)
