@@ -24,7 +24,7 @@ from como3r.frontend.pairs import DirectedMatches
 from como3r.live import FrameEvent
 from como3r.prior.mast3r.prior import MASt3REncoding
 from como3r.prior.simulated import SimulatedEncoding
-from como3r.transport import codec
+from como3r.transport import codec, codec_registry
 from como3r.transport.codec import decode, encode
 
 H, W = 6, 8
@@ -38,7 +38,7 @@ class Probe:
     version: int = 1
 
 
-codec.register(Probe, version=1, name="tests.Probe")
+codec_registry.register(Probe, version=1, name="tests.Probe")
 
 
 @dataclass(frozen=True)
@@ -50,7 +50,7 @@ class HalfProbe:
     version: int = 1
 
 
-codec.register(HalfProbe, version=1, name="tests.HalfProbe", half=("value",))
+codec_registry.register(HalfProbe, version=1, name="tests.HalfProbe", half=("value",))
 
 
 def _gen(seed: int) -> torch.Generator:
@@ -259,7 +259,7 @@ def test_every_registered_type_has_a_sample() -> None:
     # decentralized/ registers its own messages and round-trips them in its own tests
     ours = {
         name
-        for name, cls in codec.registered_types().items()
+        for name, cls in codec_registry.registered_types().items()
         if not cls.__module__.startswith("como3r.decentralized")
     }
     assert ours == set(SAMPLES)
@@ -773,11 +773,11 @@ def test_registry_rejects_conflicting_names_and_versions() -> None:
         version: int = 2
 
     with pytest.raises(ValueError, match="already registered"):
-        codec.register(Other, version=2, name="Step")
+        codec_registry.register(Other, version=2, name="Step")
     with pytest.raises(TypeError, match="defaults to 2"):
-        codec.register(Other, version=1, name="tests.Other")
+        codec_registry.register(Other, version=1, name="tests.Other")
     with pytest.raises(ValueError, match="no registered message type"):
-        codec.add_check("tests.Unknown", lambda obj: None)
+        codec_registry.add_check("tests.Unknown", lambda obj: None)
 
 
 # ---------------------------------------------------------------------- no pickle anywhere

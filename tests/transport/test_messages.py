@@ -20,7 +20,7 @@ from como3r.frontend.agent import AgentFrontend, FrontendStats
 from como3r.frontend.packets import KeyframePacket, PoseUpdate
 from como3r.prior.simulated import SimulatedPrior
 from como3r.runtime.pipeline import _colors
-from como3r.transport import codec, messages
+from como3r.transport import codec_registry, messages
 from como3r.transport.codec import decode, encode
 
 WIDTH, HEIGHT, FRAMES = 64, 48, 8
@@ -94,8 +94,8 @@ VERSIONS = {"AgentTask": 3, "FrameDone": 2}
 def test_every_message_is_a_frozen_versioned_registered_dataclass(cls: type) -> None:
     assert dataclasses.is_dataclass(cls) and cls.__dataclass_params__.frozen
     version = {f.name: f.default for f in fields(cls)}["version"]
-    assert codec.REGISTRY[cls.__name__].version == version == VERSIONS.get(cls.__name__, 1)
-    assert codec.registered_types()[cls.__name__] is cls
+    assert codec_registry.REGISTRY[cls.__name__].version == version == VERSIONS.get(cls.__name__, 1)
+    assert codec_registry.registered_types()[cls.__name__] is cls
 
 
 def test_message_directions_are_disjoint() -> None:

@@ -35,7 +35,7 @@ import numpy as np
 
 from como3r.decentralized.pose_graph_problem import LoopClosure
 from como3r.prior.base import Encoding
-from como3r.transport import codec
+from como3r.transport import codec_registry
 from como3r.transport.codec_types import require, require_shape
 
 #: ``recipient`` of messages to the driver (the process that runs the simulation).
@@ -298,8 +298,8 @@ def _check_loop(loop: LoopClosure) -> None:
 
 
 for _cls in (*ROBOT_MESSAGES, RobotTask, RobotProgress, RobotReport, RobotHello):
-    codec.register(_cls, version=1)
-codec.register(LoopClosure, version=1)
+    codec_registry.register(_cls, version=1)
+codec_registry.register(LoopClosure, version=1)
 for _cls, _check in (
     (PlaceDescriptors, _check_descriptors),
     (EncodingRequest, _check_request),
@@ -308,4 +308,4 @@ for _cls, _check in (
     (PoseEstimate, _check_estimate),
     (LoopClosure, _check_loop),
 ):
-    codec.add_check(_cls.__name__, _check)
+    codec_registry.add_check(_cls.__name__, _check)

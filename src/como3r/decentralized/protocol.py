@@ -50,7 +50,7 @@ from como3r.decentralized.routing import (
 from como3r.decentralized.schedule import Schedule, plan_rounds, read_schedule
 from como3r.errors import Como3rError, ConfigError, InputError
 from como3r.prior.base import Prior
-from como3r.transport import codec
+from como3r.transport import codec, codec_registry
 
 logger = logging.getLogger(__name__)
 
@@ -308,7 +308,7 @@ def _run_threads(
             )
         except Exception as exc:  # the robot's thread reports it like any other failure
             workers.append(exc)
-    codec.resolve_all()
+    codec_registry.resolve_all()
     threads = [
         threading.Thread(
             target=_run_thread,

@@ -34,11 +34,6 @@ checks of
 from __future__ import annotations
 
 import dataclasses
-import importlib
-import threading
-import typing
-from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import msgpack
@@ -58,6 +53,16 @@ from como3r.transport.codec_arrays import (
     tensor_bytes,
     widen,
 )
+from como3r.transport.codec_registry import (
+    BY_PATH,
+    CHECKS,
+    REGISTRY,
+    RESOLVED,
+    init_fields,
+    register,
+    resolve,
+    type_hints,
+)
 from como3r.transport.codec_types import conforms, hint_name
 
 DEFAULT_MAX_BYTES = 256 * 2**20
@@ -65,129 +70,6 @@ DEFAULT_MAX_BYTES = 256 * 2**20
 
 MAX_DEPTH = 32
 """Deepest nesting of containers and dataclasses a message may have."""
-
-
-@dataclass(frozen=True)
-class MessageType:
-    """One entry of the registry.
-
-    Attributes:
-        name: the type's name on the wire.
-        path: ``"module:QualName"`` of the dataclass (imported on first use).
-        version: the schema version; decoding any other version is an error.
-        half: float32 array fields that travel in half precision (:func:`register`).
-    """
-
-    name: str
-    path: str
-    version: int
-    half: frozenset[str] = frozenset()
-
-
-REGISTRY: dict[str, MessageType] = {}
-"""Every type :func:`decode` may instantiate, by wire name."""
-
-_BY_PATH: dict[str, MessageType] = {}
-_RESOLVED: dict[str, type] = {}
-_HINTS: dict[type, dict[str, Any]] = {}
-_HINTS_LOCK = threading.Lock()
-_CHECKS: dict[str, Callable[[Any], None]] = {}
-
-
-def register(
-    target: type | str, *, version: int = 1, name: str | None = None, half: tuple[str, ...] = ()
-) -> None:
-    """Allow a dataclass on the wire.
-
-    Args:
-        target: the dataclass, or its ``"module:QualName"`` path (imported lazily, so an
-            optional dependency such as the MASt3R prior costs nothing until used).
-        version: schema version; a class with a ``version`` field must default it to this.
-        name: wire name (default: the class name).
-        half: fields whose float32 arrays (also those in a tuple that is the field) travel
-            as float16 in a ``lossy`` :func:`encode` and are decoded back to float32 (only
-            where the loss was measured negligible);
-            an array float16 cannot hold (a finite value beyond +-65504) travels in float32.
-
-    Raises:
-        ValueError: the name is taken by a different class or version.
-        TypeError: the class is not a dataclass or its ``version`` default differs.
-    """
-    path = target if isinstance(target, str) else f"{target.__module__}:{target.__qualname__}"
-    wire_name = name or path.rpartition(":")[2].rpartition(".")[2]
-    entry = MessageType(wire_name, path, int(version), frozenset(half))
-    known = REGISTRY.get(wire_name)
-    if known is not None and known != entry:
-        raise ValueError(
-            f"message type name {wire_name!r} already registered as "
-            f"{known.path} version {known.version}"
-        )
-    if not isinstance(target, str):
-        _check_registrable(target, entry)
-        _RESOLVED[wire_name] = target
-    REGISTRY[wire_name] = entry
-    _BY_PATH[path] = entry
-
-
-def add_check(name: str, check: Callable[[Any], None]) -> None:
-    """Run ``check(obj)`` on every decoded ``name`` (shape and range checks beyond types).
-
-    ``check`` raises :class:`MessageError` (or ``ValueError``) naming what is wrong.
-    """
-    if name not in REGISTRY:
-        raise ValueError(f"no registered message type {name!r}")
-    _CHECKS[name] = check
-
-
-def _resolve(entry: MessageType) -> type:
-    """The class of a registry entry, importing its module on first use."""
-    cls = _RESOLVED.get(entry.name)
-    if cls is None:
-        module, _, qualname = entry.path.partition(":")
-        try:
-            obj: Any = importlib.import_module(module)
-            for part in qualname.split("."):
-                obj = getattr(obj, part)
-        except (ImportError, AttributeError) as exc:
-            raise MessageError(
-                f"message type {entry.name} ({entry.path}) is not available here: {exc}"
-            ) from None
-        cls = obj
-        _check_registrable(cls, entry)
-        _RESOLVED[entry.name] = cls
-    return cls
-
-
-def _check_registrable(cls: type, entry: MessageType) -> None:
-    """A registered class is a dataclass whose ``version`` default, if any, matches."""
-    if not dataclasses.is_dataclass(cls):
-        raise TypeError(f"{entry.path} is not a dataclass")
-    for f in dataclasses.fields(cls):
-        if f.name == "version" and f.default != entry.version:
-            raise TypeError(
-                f"{entry.path}.version defaults to {f.default}, "
-                f"registered as version {entry.version}"
-            )
-
-
-def resolve_all() -> None:
-    """Import every registered type and resolve its field types now, e.g. before starting
-    threads that will encode and decode concurrently."""
-    for cls in registered_types().values():
-        _hints(cls)
-
-
-def _hints(cls: type) -> dict[str, Any]:
-    with _HINTS_LOCK:
-        # get_type_hints compiles string annotations; CPython 3.11's AST constructor is not
-        # safe when robots (threads) decode their first messages at the same time
-        if cls not in _HINTS:
-            _HINTS[cls] = typing.get_type_hints(cls)
-        return _HINTS[cls]
-
-
-def _init_fields(cls: type) -> list[dataclasses.Field]:
-    return [f for f in dataclasses.fields(cls) if f.init]
 
 
 # ----------------------------------------------------------------------------- encoding
@@ -276,13 +158,13 @@ def part_sizes(message: Any, *, lossy: bool = False) -> dict[str, int]:
 
 def _part_sizes(value: Any, prefix: str, lossy: bool, sizes: dict[str, int]) -> None:
     cls = type(value)
-    entry = _BY_PATH.get(f"{cls.__module__}:{cls.__qualname__}")
+    entry = BY_PATH.get(f"{cls.__module__}:{cls.__qualname__}")
     if entry is None:
         raise MessageError(
             f"{prefix or cls.__qualname__}: type {cls.__qualname__} is not a "
             "registered message type"
         )
-    for f in _init_fields(cls):
+    for f in init_fields(cls):
         field_value, path = getattr(value, f.name), f"{prefix}{f.name}"
         if dataclasses.is_dataclass(field_value) and not isinstance(field_value, type):
             _part_sizes(field_value, f"{path}.", lossy, sizes)
@@ -299,10 +181,10 @@ def _dict_key(key: Any, path: str) -> str | int:
 
 def _object_to_wire(value: Any, path: str, depth: int, lossy: bool) -> dict[str, Any]:
     cls = type(value)
-    entry = _BY_PATH.get(f"{cls.__module__}:{cls.__qualname__}")
+    entry = BY_PATH.get(f"{cls.__module__}:{cls.__qualname__}")
     if entry is None:
         raise MessageError(f"{path}: type {cls.__qualname__} is not a registered message type")
-    _RESOLVED.setdefault(entry.name, cls)
+    RESOLVED.setdefault(entry.name, cls)
     fields = {
         f.name: _field_to_wire(
             getattr(value, f.name),
@@ -311,7 +193,7 @@ def _object_to_wire(value: Any, path: str, depth: int, lossy: bool) -> dict[str,
             depth + 1,
             lossy,
         )
-        for f in _init_fields(cls)
+        for f in init_fields(cls)
     }
     return {TAG: "object", "type": entry.name, "version": entry.version, "fields": fields}
 
@@ -342,10 +224,10 @@ def as_received(value: Any) -> Any:
         return {k: as_received(v) for k, v in value.items()}
     if not dataclasses.is_dataclass(value) or isinstance(value, type):
         return value
-    entry = _BY_PATH.get(f"{type(value).__module__}:{type(value).__qualname__}")
+    entry = BY_PATH.get(f"{type(value).__module__}:{type(value).__qualname__}")
     half = entry.half if entry is not None else frozenset()
     changes = {}
-    for f in _init_fields(type(value)):
+    for f in init_fields(type(value)):
         field_value = getattr(value, f.name)
         changes[f.name] = (
             _half_received(field_value) if f.name in half else as_received(field_value)
@@ -451,18 +333,18 @@ def _object_from_wire(value: dict, path: str, depth: int, budget: Budget) -> Any
         raise MessageError(
             f"{path}: {name} version {version!r} is not the supported version {entry.version}"
         )
-    cls = _resolve(entry)
+    cls = resolve(entry)
     path = name if path == "message" else path
     if not isinstance(fields, dict):
         raise MessageError(f"{path}: fields of {name} are not a map")
-    expected_names = [f.name for f in _init_fields(cls)]
+    expected_names = [f.name for f in init_fields(cls)]
     if set(fields) != set(expected_names):
         missing = sorted(set(expected_names) - set(fields))
         extra = sorted(map(str, set(fields) - set(expected_names)))
         raise MessageError(
             f"{path}: wrong fields for {name} (missing {missing}, unexpected {extra})"
         )
-    hints = _hints(cls)
+    hints = type_hints(cls)
     kwargs = {}
     for field_name in expected_names:
         field_path = f"{path}.{field_name}"
@@ -477,25 +359,11 @@ def _object_from_wire(value: dict, path: str, depth: int, budget: Budget) -> Any
         raise MessageError(f"{path}.version: {kwargs['version']!r} is not {entry.version}")
     try:
         obj = cls(**kwargs)
-        if name in _CHECKS:
-            _CHECKS[name](obj)
+        if name in CHECKS:
+            CHECKS[name](obj)
     except (TypeError, ValueError, Como3rError) as exc:
         raise MessageError(f"{path}: invalid {name}: {exc}") from None
     return obj
-
-
-# ----------------------------------------------------------------------------- type checks
-
-
-def registered_types() -> dict[str, type]:
-    """Every registered type that can be imported here, by wire name."""
-    out = {}
-    for name, entry in REGISTRY.items():
-        try:
-            out[name] = _resolve(entry)
-        except MessageError:
-            continue
-    return out
 
 
 #: Keyframe pointmaps and confidences travel in half precision across machines (``lossy``

@@ -1,6 +1,6 @@
 """The checks of decoded messages (:mod:`como3r.transport.codec`): a field's value against its
 dataclass annotation, and the helpers of the per-type checks
-(:func:`~como3r.transport.codec.add_check`) that messages register.
+(:func:`~como3r.transport.codec_registry.add_check`) that messages register.
 """
 
 from __future__ import annotations

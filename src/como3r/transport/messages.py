@@ -40,7 +40,7 @@ from como3r.frontend.agent import FrontendStats
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches
 from como3r.live import FrameEvent
-from como3r.transport import codec
+from como3r.transport import codec, codec_registry
 from como3r.transport.codec_types import require as _require
 from como3r.transport.codec_types import require_shape as _shape
 
@@ -376,7 +376,7 @@ def _check_update_message(m: PoseUpdateMessage) -> None:
 
 for _cls in (*TO_AGENT, *FROM_AGENT, EdgeSummary):
     # AgentTask 3: resume_after; FrameDone 2: keyframes_waiting
-    codec.register(_cls, version={AgentTask: 3, FrameDone: 2}.get(_cls, 1))
+    codec_registry.register(_cls, version={AgentTask: 3, FrameDone: 2}.get(_cls, 1))
 
 for _name, _check in (
     ("PoseUpdate", _check_pose_update),
@@ -389,4 +389,4 @@ for _name, _check in (
     ("AgentFinished", _check_finished),
     ("PoseUpdateMessage", _check_update_message),
 ):
-    codec.add_check(_name, _check)
+    codec_registry.add_check(_name, _check)
