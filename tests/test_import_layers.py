@@ -15,13 +15,11 @@ import re
 from collections.abc import Iterator
 from pathlib import Path
 
+import networkx as nx
+
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src"
 ARCHITECTURE = ROOT / "docs" / "architecture.md"
-
-#: Imports that point up the layer list and why; none today. An upward import not listed
-#: fails, and so does an entry no longer found.
-KNOWN_UPWARD: dict[tuple[str, str], str] = {}
 
 
 def modules() -> dict[str, Path]:
@@ -71,45 +69,9 @@ def import_graph() -> dict[str, set[str]]:
 
 
 def cycles(graph: dict[str, set[str]]) -> list[frozenset[str]]:
-    """The strongly connected components of more than one module (Tarjan, iterative)."""
-    index: dict[str, int] = {}
-    low: dict[str, int] = {}
-    stack: list[str] = []
-    on_stack: set[str] = set()
-    found = []
-    for root in sorted(graph):
-        if root in index:
-            continue
-        work = [(root, iter(sorted(graph[root])))]
-        index[root] = low[root] = len(index)
-        stack.append(root)
-        on_stack.add(root)
-        while work:
-            node, children = work[-1]
-            child = next(children, None)
-            if child is not None:
-                if child not in index:
-                    index[child] = low[child] = len(index)
-                    stack.append(child)
-                    on_stack.add(child)
-                    work.append((child, iter(sorted(graph[child]))))
-                elif child in on_stack:
-                    low[node] = min(low[node], index[child])
-                continue
-            work.pop()
-            if work:
-                low[work[-1][0]] = min(low[work[-1][0]], low[node])
-            if low[node] == index[node]:
-                component = set()
-                while True:
-                    member = stack.pop()
-                    on_stack.discard(member)
-                    component.add(member)
-                    if member == node:
-                        break
-                if len(component) > 1:
-                    found.append(frozenset(component))
-    return found
+    """The strongly connected components of more than one module."""
+    digraph = nx.DiGraph([(name, target) for name, targets in graph.items() for target in targets])
+    return [frozenset(c) for c in nx.strongly_connected_components(digraph) if len(c) > 1]
 
 
 def layers() -> list[list[str]]:
@@ -155,15 +117,13 @@ def test_every_package_is_in_a_layer() -> None:
 
 def test_imports_point_down_the_layers() -> None:
     listed = layers()
-    upward = {}
-    for name, targets in import_graph().items():
-        for target in targets:
-            if layer_of(target, listed) < layer_of(name, listed):
-                upward[(name, target)] = f"{listed[layer_of(name, listed)]} imports up"
-    new = sorted(set(upward) - set(KNOWN_UPWARD))
-    assert not new, f"imports that point up the layers of {ARCHITECTURE.name}: {new}"
-    gone = sorted(set(KNOWN_UPWARD) - set(upward))
-    assert not gone, f"these upward imports are gone: delete them from KNOWN_UPWARD: {gone}"
+    upward = sorted(
+        (name, target)
+        for name, targets in import_graph().items()
+        for target in targets
+        if layer_of(target, listed) < layer_of(name, listed)
+    )
+    assert not upward, f"imports that point up the layers of {ARCHITECTURE.name}: {upward}"
 
 
 def test_the_check_sees_cycles_and_layers() -> None:
