@@ -17,7 +17,7 @@ import pytest
 import typer
 
 from como3r.cli import app
-from como3r.config import Config, apply_overrides, config_to_dict
+from como3r.config import Config, _flatten, apply_overrides, config_to_dict
 from como3r.data.readers import FORMATS
 from como3r.data.synth import PRESETS
 from como3r.decentralized.odometry_sim import ODOMETRY_PRESETS
@@ -355,16 +355,6 @@ def _hook():
     sys.modules[spec.name] = module  # its dataclasses look their module up
     spec.loader.exec_module(module)
     return module
-
-
-def _flatten(tree: dict, prefix: str = "") -> dict[str, object]:
-    flat: dict[str, object] = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            flat.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = value
-    return flat
 
 
 def test_the_configuration_reference_has_every_key_with_its_default() -> None:
