@@ -21,6 +21,7 @@ from como3r.cli import app
 from como3r.config import Config, apply_overrides
 from como3r.coordination.association import Candidate, Verification
 from como3r.coordination.coordinator import Coordinator, CoordinatorStats
+from como3r.errors import StoreError
 from como3r.frontend.packets import KeyframePacket
 from como3r.frontend.paging import PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches
@@ -211,6 +212,8 @@ def test_a_session_read_paged_reads_nothing_until_its_store_serves_it(tmp_path) 
         for kf in paged.graph.keyframes
     )
     assert [type(link.link) for link in paged.graph.links] == [PagedLink] * 4
+    with pytest.raises(StoreError, match="before its store"):
+        paged.graph.links[0].link.ij  # noqa: B018 (a property read back from the store)
     resumed = Coordinator(None, config, None, 2)
     resumed.restore(paged.graph, paged.gauges, [], CoordinatorStats(keyframes=6), [], (0, []))
     with SessionStore.reopen(tmp_path / STORE_NAME, resumed) as store:
