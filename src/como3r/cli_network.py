@@ -4,6 +4,7 @@ docs/networked.md)."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import inspect
 from collections.abc import Callable
@@ -99,6 +100,15 @@ TeamOption = Annotated[
         help="This machine's member folder (como3r team add): speak only mutual TLS with the "
         "team's certificates, under access control from them (tcp/ endpoints are taken "
         "as tls/). Without it the network is open to anyone who can reach it.",
+    ),
+]
+MaxMbpsOption = Annotated[
+    float,
+    typer.Option(
+        "--max-mbps",
+        min=0.0,
+        help="Rate limit of what this process sends, Mbit/s (its radio link; 0: none): "
+        "small messages (acknowledgements, pose updates) go before large ones.",
     ),
 ]
 OutOption = Annotated[Path, typer.Option("--out", help="Output folder.")]
@@ -259,6 +269,7 @@ def coordinator(
     scouting: ScoutingOption = False,
     zenoh_config: ZenohConfigOption = None,
     team: TeamOption = None,
+    max_mbps: MaxMbpsOption = 0.0,
     overwrite: OverwriteOption = False,
     resume: bool = typer.Option(
         False,
@@ -282,6 +293,7 @@ def coordinator(
     network = _network(
         listen, connect, scouting, zenoh_config, session, team, "coordinator", peers=agents
     )
+    network = dataclasses.replace(network, max_mbps=max_mbps)
     check_output_dir(
         out,
         overwrite,
@@ -350,6 +362,7 @@ def agent(
     scouting: ScoutingOption = False,
     zenoh_config: ZenohConfigOption = None,
     team: TeamOption = None,
+    max_mbps: MaxMbpsOption = 0.0,
 ) -> None:
     """Track one camera for a coordinator on another machine (como3r coordinator).
 
@@ -357,17 +370,38 @@ def agent(
     the coordinator has stored every message. Restarted with the same --id, it takes over
     after the last frame the coordinator heard of."""
     from como3r.runtime.network import run_remote_agent
+    from como3r.transport.zenoh_agent import SendStatus
 
     if not connect and not scouting:
         raise InputError("give the coordinator's --connect tcp/HOST:PORT (or --scouting)")
     network = _network(listen, connect, scouting, zenoh_config, session, team, "agent", agent_id)
+    network = dataclasses.replace(network, max_mbps=max_mbps)
     if spill_dir is not None and not spill_dir.is_dir():
         raise InputError(f"--spill-dir {spill_dir}: no such folder")
+    said: list[SendStatus] = []
+
+    def say(status: SendStatus) -> None:
+        said.append(status)
+        err_console.print(
+            f"agent {agent_id}: {status.line()}", markup=False, highlight=False, soft_wrap=True
+        )
+
     if not run_remote_agent(
-        network, agent_id, path, prior_spec, threads, int(queue_memory_mb * 2**20), spill_dir
+        network,
+        agent_id,
+        path,
+        prior_spec,
+        threads,
+        int(queue_memory_mb * 2**20),
+        spill_dir,
+        on_status=say if max_mbps > 0 else said.append,
     ):
         raise InputError(f"agent {agent_id} did not finish its input (see the log above)")
-    console.print(f"agent {agent_id}: finished; the coordinator has every message")
+    peak = ""
+    if said and said[-1].max_mbps is not None:
+        last = said[-1]
+        peak = f"; sent {last.bytes_put / 1e6:.1f} MB, the longest send backlog {last.seconds(last.peak_backlog_bytes):.1f} s"
+    console.print(f"agent {agent_id}: finished; the coordinator has every message{peak}")
 
 
 @interrupt_leaves_nothing
@@ -402,6 +436,7 @@ def robot(
     scouting: ScoutingOption = False,
     zenoh_config: ZenohConfigOption = None,
     team: TeamOption = None,
+    max_mbps: MaxMbpsOption = 0.0,
     overwrite: OverwriteOption = False,
     quiet: QuietOption = False,
 ) -> None:
@@ -423,6 +458,7 @@ def robot(
     network = _network(
         listen, connect, scouting, zenoh_config, session, team, "robot", robot_id, robots
     )
+    network = dataclasses.replace(network, max_mbps=max_mbps)
     config = config_from_options(config_file, overrides, calib, False)
     plan = read_schedule(schedule) if schedule is not None else None
     if robots > 1 and not quiet:  # it waits for the whole team: say where it looks

@@ -87,7 +87,7 @@ class ZenohTeam:
             *extra,
         )
 
-    def agent(self, agent: int, path: Path) -> subprocess.Popen:
+    def agent(self, agent: int, path: Path, *extra: str) -> subprocess.Popen:
         return self.start(
             f"agent{agent}",
             "agent",
@@ -98,6 +98,7 @@ class ZenohTeam:
             str(path),
             "--prior",
             "simulated",
+            *extra,
         )
 
     def log(self, name: str) -> str:

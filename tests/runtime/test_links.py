@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from como3r.data.synth import synthesize
-from como3r.transport.zenoh_protocol import PIECE, SEQ, Pieces
+from como3r.transport.zenoh_protocol import PIECE, STREAM, Pieces
 
 pytest.importorskip("zenoh")
 
@@ -54,21 +54,28 @@ def scene(tmp_path_factory) -> Path:
 
 
 def test_pieces_join_in_order_and_a_broken_message_is_dropped() -> None:
+    def piece(incarnation: int, seq: int, index: int, count: int, queued: int = 0) -> bytes:
+        return PIECE.pack(incarnation, seq, index, count, queued, 125e3)
+
+    def whole(incarnation: int, seq: int, queued: int = 0) -> bytes:
+        return STREAM.pack(incarnation, seq, queued, 125e3)
+
     pieces = Pieces(max_bytes=100)
-    one = [PIECE.pack(7, 3, i, 3) for i in range(3)]
+    one = [piece(7, 3, i, 3, queued=30 - 10 * i) for i in range(3)]
     assert pieces.add("0", one[0], b"ab") is None
-    assert pieces.add("1", PIECE.pack(9, 0, 0, 2), b"xy") is None  # agents apart
+    assert pieces.add("1", piece(9, 0, 0, 2), b"xy") is None  # agents apart
     assert pieces.add("0", one[1], b"cd") is None
-    assert pieces.add("0", one[2], b"e") == (SEQ.pack(7, 3), b"abcde")
+    # the whole message carries the backlog its sender had after the last piece
+    assert pieces.add("0", one[2], b"e") == (whole(7, 3, queued=10), b"abcde")
     # a link lost mid-message: its pieces then the message again, whole, from its start
-    assert pieces.add("0", PIECE.pack(7, 4, 0, 2), b"fg") is None
-    assert pieces.add("0", PIECE.pack(7, 5, 1, 2), b"zz") is None  # out of order: dropped
-    assert pieces.add("0", PIECE.pack(7, 4, 1, 2), b"hi") is None  # its message is gone
-    assert pieces.add("0", PIECE.pack(7, 4, 0, 2), b"fg") is None
-    assert pieces.add("0", PIECE.pack(7, 4, 1, 2), b"hi") == (SEQ.pack(7, 4), b"fghi")
-    assert pieces.add("1", PIECE.pack(9, 0, 1, 2), b"zw") == (SEQ.pack(9, 0), b"xyzw")
+    assert pieces.add("0", piece(7, 4, 0, 2), b"fg") is None
+    assert pieces.add("0", piece(7, 5, 1, 2), b"zz") is None  # out of order: dropped
+    assert pieces.add("0", piece(7, 4, 1, 2), b"hi") is None  # its message is gone
+    assert pieces.add("0", piece(7, 4, 0, 2), b"fg") is None
+    assert pieces.add("0", piece(7, 4, 1, 2), b"hi") == (whole(7, 4), b"fghi")
+    assert pieces.add("1", piece(9, 0, 1, 2), b"zw") == (whole(9, 0), b"xyzw")
     # over the cap: rejected once, the rest of it dropped
-    big = [PIECE.pack(7, 6, i, 3) for i in range(3)]
+    big = [piece(7, 6, i, 3) for i in range(3)]
     assert pieces.add("0", big[0], b"x" * 60) is None
     assert "exceeds the cap of 100 bytes" in pieces.add("0", big[1], b"x" * 60)
     assert pieces.add("0", big[2], b"x") is None

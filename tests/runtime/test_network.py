@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 from como3r.cli import app
 from como3r.transport import codec
 from como3r.transport.messages import AgentStarted
-from como3r.transport.zenoh_protocol import Keys, ZenohOptions, open_session
+from como3r.transport.zenoh_protocol import PIECE, STREAM, Keys, ZenohOptions, open_session
 
 pytestmark = pytest.mark.slow
 
@@ -118,7 +118,7 @@ def test_malformed_and_oversized_messages_are_logged_and_dropped(scene, team, tm
         valid = codec.encode(AgentStarted(agent=0, pid=1, frames=6))
         wrong_version = valid.replace(b"\xa7version\x01", b"\xa7version\x07")
         assert wrong_version != valid
-        seq0 = struct.pack("<QQ", 12345, 0)
+        seq0 = STREAM.pack(12345, 0, 0, 0.0)
         for key, payload, attachment in [
             (keys.up(0, "KeyframeMessage"), b"\x00garbage", seq0),
             (keys.up(0, "KeyframeMessage"), os.urandom(4096), None),  # no sequence number
@@ -189,8 +189,8 @@ class _Watch:
         kind, agent = key.rsplit("/", 1)[-1], int(self.keys.agent_of(key))
         attachment = sample.attachment.to_bytes()
         incarnation, seq = struct.unpack("<QQ", attachment[:16])
-        if len(attachment) > 16:  # a piece of a large message: counted at its last
-            index, pieces = struct.unpack("<II", attachment[16:])
+        if len(attachment) == PIECE.size:  # a piece of a large message: counted at its last
+            _, _, index, pieces, *_ = PIECE.unpack(attachment)
             if index + 1 < pieces:
                 return
         with self.lock:

@@ -22,7 +22,7 @@ from como3r.transport.links import Joined, Left, Received, Rejected
 from como3r.transport.messages import AgentStarted, AgentTask, Shutdown, Step
 from como3r.transport.zenoh_agent import ZenohAgentLink
 from como3r.transport.zenoh_hub import ZenohHub
-from como3r.transport.zenoh_protocol import Keys, ZenohOptions, open_session
+from como3r.transport.zenoh_protocol import STREAM, Keys, ZenohOptions, open_session
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -103,7 +103,7 @@ def test_a_second_process_with_an_id_waits_then_takes_over(caplog) -> None:
         loop.wait_for(lambda e: isinstance(e, Left) and e.may_return, "the holder leaving")
         loop.wait_for(lambda e: isinstance(e, Joined), "the newcomer joining")
 
-        stale = struct.pack("<QQ", first.incarnation, 1)  # the old process, late
+        stale = STREAM.pack(first.incarnation, 1, 0, 0.0)  # the old process, late
         sessions[2].put(
             keys.up(0, "AgentStarted"),
             codec.encode(AgentStarted(agent=0, pid=1, frames=4)),
@@ -239,3 +239,59 @@ def test_a_networked_command_says_where_it_waits(
     )
     assert result.exit_code == 2, result.output
     assert said in result.output
+
+
+@pytest.mark.slow
+def test_an_agent_under_max_mbps_stays_under_it_and_hears_back_between_its_messages() -> None:
+    """1 MB of messages from an agent at 4 Mbit/s (0.5 MB/s) on loopback: every message
+    arrives, at no more than the rate over the whole transfer (plus its burst: one piece),
+    the coordinator hears how much was queued behind each, and the acknowledgement of the
+    first comes back while later ones still wait to be put (not behind them)."""
+    from como3r.transport.messages import AgentFailed
+    from como3r.transport.zenoh_protocol import PIECE_BYTES
+
+    endpoint, keys = f"tcp/127.0.0.1:{_free_port()}", Keys(f"t{uuid.uuid4().hex[:8]}")
+    coordinator_session = open_session(ZenohOptions(listen=(endpoint,)))
+    hub = ZenohHub(coordinator_session, keys, 1, codec.DEFAULT_MAX_BYTES, 2.0)
+    task = AgentTask(
+        agent=0, input_path="", config=config_to_dict(Config()), prior={"name": "simulated"}
+    )
+    hub.start([task], lambda agent: task)
+    loop = _Coordinator(hub)
+    loop.start()
+    session = open_session(ZenohOptions(connect=(endpoint,)))
+    try:
+        link = ZenohAgentLink(session, keys, 0, max_mbps=4.0)
+        link.fetch_task()
+        queued_at_ack: list[int] = []
+        acknowledge = link.spool.acknowledge
+
+        def noting(seq: int) -> None:  # the link holds its lock here
+            queued_at_ack.append(link._backlog())
+            acknowledge(seq)
+
+        link.spool.acknowledge = noting
+        messages = [
+            AgentFailed(agent=0, error="padding", details=f"{k}" * 200_000) for k in range(5)
+        ]
+        start = time.monotonic()
+        for message in messages:
+            link.send(message)
+        link.close()  # returns once the coordinator has stored every message
+        elapsed = time.monotonic() - start
+        received = [e.message for e in loop.events if isinstance(e, Received)]
+        assert [m.details[:1] for m in received] == [f"{k}" for k in range(5)]
+        sent = link.bytes_put
+        assert sent >= 1_000_000
+        rate = 4e6 / 8
+        assert sent <= rate * elapsed * 1.1 + PIECE_BYTES, (sent, elapsed)
+        assert queued_at_ack[0] > 0, queued_at_ack  # acknowledged before the rest was put
+        backlog = hub.traffic(0).backlog
+        assert backlog is not None and backlog.max_mbps == pytest.approx(4.0)
+        assert 600_000 < backlog.peak_bytes < sent and backlog.last_bytes == 0
+    finally:
+        loop.running = False
+        loop.join(5)
+        hub.stop([], interrupted=False)
+        session.close()
+        coordinator_session.close()

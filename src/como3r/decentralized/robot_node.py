@@ -135,6 +135,7 @@ def run_robot(
             int(settings.protocol.max_message_mb * 2**20),
             adapter,
             certified=network.member is not None,
+            max_mbps=network.max_mbps,
         )
         worker = make_robot(robot, str(path), prior, codebook, config, settings, link, None)
         end_s = max(h.end_s for h in link.meet_team().values())

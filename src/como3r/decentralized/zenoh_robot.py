@@ -51,6 +51,7 @@ from como3r.decentralized.messages import DRIVER, ROBOT_MESSAGES, RobotHello
 from como3r.decentralized.robot import PeerLeft
 from como3r.errors import InputError, MessageError
 from como3r.transport import codec
+from como3r.transport.pacing import CONTROL_BYTES
 from como3r.transport.zenoh_protocol import Sender
 
 logger = logging.getLogger(__name__)
@@ -156,6 +157,8 @@ class ZenohRobotLink:
         progress: called with the robot's messages to the driver (progress, report).
         certified: a team run: a message counts only if its key ends in the certificate
             name of the robot it claims to come from.
+        max_mbps: the rate limit of what it sends (0: none); messages up to
+            :data:`~como3r.transport.pacing.CONTROL_BYTES` go before larger ones.
     """
 
     def __init__(
@@ -169,6 +172,7 @@ class ZenohRobotLink:
         max_bytes: int,
         progress: Callable[[Any], None] | None = None,
         certified: bool = False,
+        max_mbps: float = 0.0,
     ) -> None:
         self.session, self.keys, self.robot, self.team = session, keys, robot, team
         self.certified = certified
@@ -182,7 +186,12 @@ class ZenohRobotLink:
             for peer in range(team)
             if peer != robot
         }
-        self._sender = Sender(session, self._publishers)
+        self._sender = Sender(
+            session,
+            self._publishers,
+            max_mbps=max_mbps,
+            control=lambda nbytes: nbytes <= CONTROL_BYTES,
+        )
         self._declared = [
             session.declare_subscriber(keys.inbox(robot), self._on_message),
             session.declare_queryable(keys.hello(robot), self._on_hello),

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
@@ -26,7 +26,7 @@ from como3r.runtime.agent_worker import prior_fields, run_agent
 from como3r.runtime.multiprocess import coordinate
 from como3r.runtime.pipeline import PriorSpec, RunSummary, open_agents
 from como3r.transport.spool import DEFAULT_MEMORY_BYTES, Spool
-from como3r.transport.zenoh_agent import ZenohAgentLink
+from como3r.transport.zenoh_agent import SendStatus, ZenohAgentLink
 from como3r.transport.zenoh_hub import ZenohHub
 from como3r.transport.zenoh_protocol import Keys, ZenohOptions, open_session
 
@@ -82,6 +82,7 @@ def serve(
             options.max_message_bytes,
             options.shutdown_grace_s,
             certified=network.member is not None,
+            max_mbps=network.max_mbps,
         )
         logger.info("coordinator of %s: %s", keys.root, network.where())
         return coordinate(
@@ -110,6 +111,7 @@ def run_remote_agent(
     threads: int | None = None,
     queue_memory_bytes: int = DEFAULT_MEMORY_BYTES,
     spill_dir: Path | None = None,
+    on_status: Callable[[SendStatus], None] | None = None,
 ) -> bool:
     """Run agent ``agent`` on ``path`` for the coordinator reached through ``network``:
     wait for it, take its task, track every frame (on while the coordinator is away), and
@@ -123,6 +125,8 @@ def run_remote_agent(
         queue_memory_bytes: messages not yet stored by the coordinator kept in memory; more
             are spilled to disk.
         spill_dir: where the spill folder is made (None: the system's temporary folder).
+        on_status: called with what was sent and what waits, every 10 s while messages
+            wait to be put (``network.max_mbps`` caps the rate).
 
     Returns:
         Whether the agent ran to the end of its input without an error.
@@ -137,7 +141,13 @@ def run_remote_agent(
     try:
         spool = Spool(queue_memory_bytes, spill_dir, label=f"agent-{agent}")
         link = ZenohAgentLink(
-            session, Keys(network.session, network.member), agent, spool, where=network.where()
+            session,
+            Keys(network.session, network.member),
+            agent,
+            spool,
+            where=network.where(),
+            max_mbps=network.max_mbps,
+            on_status=on_status,
         )
         task = link.fetch_task()
         if task.prior["name"] != prior_spec.name:
@@ -158,6 +168,9 @@ def run_remote_agent(
             path,
             f" after frame {task.resume_after}" if task.resume_after >= 0 else "",
         )
-        return run_agent(task, link)
+        finished = run_agent(task, link)
+        if on_status is not None:
+            on_status(link.status())
+        return finished
     finally:
         session.close()

@@ -283,6 +283,7 @@ def keyframe_bandwidth(
                     shape,
                     entry.get("keyframe_bytes_by_part"),
                 ),
+                "send_backlog": entry.get("send_backlog"),
             }
         )
     return rows

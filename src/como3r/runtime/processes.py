@@ -433,6 +433,7 @@ class _Runtime(AgentEvents):
                     "bytes_from_agent": dict(channel.bytes_received),
                     "messages_to_agent": dict(channel.messages_sent),
                     "messages_from_agent": dict(channel.messages_received),
+                    "send_backlog": None if channel.backlog is None else channel.backlog.to_json(),
                     "keyframe_bytes_by_part": self.keyframe_parts.get(
                         slot.agent, PartCounter()
                     ).per_keyframe(),

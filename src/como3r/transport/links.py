@@ -81,13 +81,48 @@ the task the newcomer runs, or why it cannot take over (a reason it is told)."""
 
 
 @dataclass
+class SendBacklog:
+    """What a rate-limited sender had queued, as it said with its messages
+    (:mod:`como3r.transport.pacing`).
+
+    Attributes:
+        max_mbps: its rate limit, Mbit/s (None: none, or nothing heard yet).
+        last_bytes: bytes it had queued after its latest message.
+        peak_bytes: the most it had queued after any message.
+    """
+
+    max_mbps: float | None = None
+    last_bytes: int = 0
+    peak_bytes: int = 0
+
+    def note(self, queued: int, rate: float) -> None:
+        """A message came with ``queued`` bytes behind it at ``rate`` bytes/s (0: none)."""
+        self.max_mbps = rate * 8 / 1e6 if rate > 0 else None
+        self.last_bytes, self.peak_bytes = queued, max(self.peak_bytes, queued)
+
+    def to_json(self) -> dict[str, Any]:
+        """``metrics.json``'s ``send_backlog``: bytes and, under a rate limit, seconds
+        (queued bytes over the rate)."""
+        rate = None if self.max_mbps is None else self.max_mbps * 1e6 / 8
+        return {
+            "max_mbps": self.max_mbps,
+            "peak_bytes": self.peak_bytes,
+            "peak_s": None if rate is None else self.peak_bytes / rate,
+            "last_bytes": self.last_bytes,
+            "last_s": None if rate is None else self.last_bytes / rate,
+        }
+
+
+@dataclass
 class Traffic:
-    """Bytes and messages per message type, both directions, as seen by one end."""
+    """Bytes and messages per message type, both directions, as seen by one end, and the
+    backlog the other end said it had (a rate-limited Zenoh agent)."""
 
     bytes_sent: Counter[str] = field(default_factory=Counter)
     bytes_received: Counter[str] = field(default_factory=Counter)
     messages_sent: Counter[str] = field(default_factory=Counter)
     messages_received: Counter[str] = field(default_factory=Counter)
+    backlog: SendBacklog | None = None
 
     def sent(self, message: Any, nbytes: int) -> None:
         """Count one message sent."""

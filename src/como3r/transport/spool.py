@@ -89,6 +89,10 @@ class Spool:
         """Whether a message waits to be put."""
         return self._cursor < len(self._entries)
 
+    def pending_bytes(self) -> int:
+        """Payload bytes of the messages that wait to be put (from the cursor on)."""
+        return sum(self._entries[i].size for i in range(self._cursor, len(self._entries)))
+
     def take(self) -> tuple[int, str, bytes]:
         """The next message to put, ``(seq, key, payload)``; the cursor moves past it (it
         stays kept until acknowledged).

@@ -8,6 +8,14 @@ away the agent keeps tracking and the spool grows (on disk past its memory limit
 coordinator is back, everything it has not acknowledged is put again, oldest first.
 Messages are encoded ``lossy`` (:func:`~como3r.transport.codec.encode`): keyframe pointmaps,
 their confidences and MASt3R's encoder tokens travel in half precision.
+
+Under ``--max-mbps`` the pieces leave at the rate (:class:`~como3r.transport.pacing.TokenBucket`):
+the link and Zenoh's queues never hold more than a piece of a keyframe, so what the
+coordinator sends back, and Zenoh's liveliness, cross at once. The agent's own messages
+stay one sequence, oldest first (the coordinator takes them in order: a keyframe's
+sequential edge needs its predecessor). Each put tells the coordinator the bytes still
+queued behind it (:data:`~como3r.transport.zenoh_protocol.STREAM`); :meth:`ZenohAgentLink.status`
+says the same here.
 """
 
 from __future__ import annotations
@@ -18,18 +26,22 @@ import os
 import queue
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from como3r.errors import InputError
 from como3r.transport import codec
 from como3r.transport.links import Traffic
 from como3r.transport.messages import TO_AGENT, AgentTask, Shutdown
+from como3r.transport.pacing import TokenBucket, bytes_per_s
 from como3r.transport.spool import Spool
 from como3r.transport.zenoh_protocol import (
     INCARNATION,
     PIECE,
     PIECE_BYTES,
     SEQ,
+    STREAM,
     STREAM_PRIORITY,
     WAIT,
     Keys,
@@ -39,6 +51,38 @@ from como3r.transport.zenoh_protocol import (
 ZENOH_QUERY_TIMEOUT = "Timeout"
 
 logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SendStatus:
+    """What an agent has sent and what waits (its progress line).
+
+    Attributes:
+        bytes_put: payload bytes put on the network so far (re-sends included).
+        backlog_bytes: bytes made and not yet put.
+        max_mbps: the rate limit (None: none).
+        peak_backlog_bytes: the most that waited at once.
+    """
+
+    bytes_put: int
+    backlog_bytes: int
+    max_mbps: float | None
+    peak_backlog_bytes: int
+
+    def seconds(self, nbytes: int) -> float | None:
+        """``nbytes`` in seconds at the rate limit (None: none)."""
+        return None if self.max_mbps is None else nbytes * 8 / (self.max_mbps * 1e6)
+
+    def line(self) -> str:
+        """One line for a person: ``sent 12.3 MB; backlog 4.1 s (0.5 MB at 1 Mbit/s)``."""
+        text = f"sent {self.bytes_put / 1e6:.1f} MB; backlog "
+        seconds = self.seconds(self.backlog_bytes)
+        if seconds is None:
+            return text + f"{self.backlog_bytes / 1e6:.1f} MB"
+        return (
+            text
+            + f"{seconds:.1f} s ({self.backlog_bytes / 1e6:.1f} MB at {self.max_mbps:g} Mbit/s)"
+        )
 
 
 class ZenohAgentLink:
@@ -57,6 +101,10 @@ class ZenohAgentLink:
         where: where the session looks for the coordinator
             (:meth:`~como3r.transport.zenoh_protocol.ZenohOptions.where`), named while it
             waits; empty: the run's key expressions.
+        max_mbps: the rate limit of what it sends (0: none).
+        on_status: called from the sending thread with :meth:`status`, every
+            ``status_s`` seconds while something waits to be put, and once it has all gone.
+        status_s: see ``on_status``.
     """
 
     def __init__(
@@ -67,6 +115,9 @@ class ZenohAgentLink:
         spool: Spool | None = None,
         wait_log_s: float = 30.0,
         where: str = "",
+        max_mbps: float = 0.0,
+        on_status: Callable[[SendStatus], None] | None = None,
+        status_s: float = 10.0,
     ) -> None:
         self.session, self.keys, self.agent = session, keys, agent
         self.where = where or keys.root
@@ -86,6 +137,14 @@ class ZenohAgentLink:
         self._cond = threading.Condition()
         self._inbox: queue.Queue[bytes] = queue.Queue()
         self._peeked: bytes | None = None
+        rate = bytes_per_s(max_mbps)
+        self.rate = rate or 0.0
+        self.bucket = TokenBucket(rate, PIECE_BYTES) if rate is not None else None
+        self.bytes_put = 0
+        self.peak_backlog = 0
+        self._in_flight = 0  # bytes of the message being put not put yet
+        self._on_status, self._status_s = on_status, status_s
+        self._said_status, self._said_queued = -math.inf, False
         self._declared = [
             session.declare_subscriber(keys.down(agent, "*"), self._on_down),
             session.declare_subscriber(keys.ack(agent), self._on_ack),
@@ -135,7 +194,22 @@ class ZenohAgentLink:
         with self._cond:
             self.spool.append(self.keys.up(self.agent, type(message).__name__), data)
             self._made_away += self._gone_at is not None
+            self.peak_backlog = max(self.peak_backlog, self._backlog())
             self._cond.notify_all()
+
+    def status(self) -> SendStatus:
+        """What was sent and what waits, now."""
+        with self._cond:
+            return SendStatus(
+                self.bytes_put,
+                self._backlog(),
+                self.rate * 8 / 1e6 if self.rate else None,
+                self.peak_backlog,
+            )
+
+    def _backlog(self) -> int:
+        """Bytes made and not put yet (the caller holds the lock)."""
+        return self.spool.pending_bytes() + self._in_flight
 
     def poll(self, timeout: float = 0.0) -> bool:
         if self._peeked is None:
@@ -191,22 +265,57 @@ class ZenohAgentLink:
                 if self._closed:
                     return
                 seq, key, data = self.spool.take()
+                self._in_flight = len(data)
             pieces = max(1, math.ceil(len(data) / PIECE_BYTES))  # see zenoh_protocol
             try:
                 for index in range(pieces):
+                    piece = data[index * PIECE_BYTES : (index + 1) * PIECE_BYTES]
+                    if not self._paced(len(piece)):
+                        return
+                    with self._cond:
+                        self._in_flight -= len(piece)
+                        queued = self._backlog()
                     self.session.put(
                         key,
-                        data[index * PIECE_BYTES : (index + 1) * PIECE_BYTES],
+                        piece,
                         attachment=(
-                            SEQ.pack(self.incarnation, seq)
+                            STREAM.pack(self.incarnation, seq, queued, self.rate)
                             if pieces == 1
-                            else PIECE.pack(self.incarnation, seq, index, pieces)
+                            else PIECE.pack(self.incarnation, seq, index, pieces, queued, self.rate)
                         ),
                         congestion_control=zenoh.CongestionControl.BLOCK,
                         priority=priority,
                     )
+                    self.bytes_put += len(piece)
+                    self._report(queued)
             except Exception as exc:  # the session is closing
                 logger.debug("put on %s failed: %s", key, exc)
+            finally:
+                with self._cond:
+                    self._in_flight = 0
+
+    def _paced(self, nbytes: int) -> bool:
+        """Wait until the rate limit lets a piece of ``nbytes`` go (spent at once); False
+        once the link is closed."""
+        if self.bucket is None:
+            return True
+        with self._cond:
+            while (wait := self.bucket.delay()) > 0:
+                if self._closed:
+                    return False
+                self._cond.wait(wait)
+            self.bucket.spend(nbytes)
+        return True
+
+    def _report(self, queued: int) -> None:
+        """Call ``on_status`` at most every ``status_s`` while something waits, and once
+        more when nothing does after that."""
+        if self._on_status is None:
+            return
+        now = time.monotonic()
+        if now - self._said_status >= self._status_s and (queued or self._said_queued):
+            self._said_status, self._said_queued = now, queued > 0
+            self._on_status(self.status())
 
     def _on_down(self, sample: Any) -> None:
         attachment = sample.attachment

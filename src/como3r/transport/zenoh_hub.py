@@ -30,13 +30,23 @@ from typing import Any
 
 from como3r.errors import InputError, MessageError
 from como3r.transport import codec
-from como3r.transport.links import Event, Joined, Left, Received, Rejected, Rejoin, Traffic
+from como3r.transport.links import (
+    Event,
+    Joined,
+    Left,
+    Received,
+    Rejected,
+    Rejoin,
+    SendBacklog,
+    Traffic,
+)
 from como3r.transport.messages import FROM_AGENT, AgentTask, KeyframeMessage, Shutdown
 from como3r.transport.zenoh_protocol import (
     CONTROL_PRIORITY,
     INCARNATION,
     PIECE,
     SEQ,
+    STREAM,
     WAIT,
     Keys,
     Pieces,
@@ -77,6 +87,9 @@ class ZenohHub:
         agents: agent ids ``0 .. agents-1`` take part; others are logged and dropped.
         max_bytes: size cap of one message.
         grace_s: how long :meth:`stop` waits for its last sends.
+        max_mbps: the rate limit of what the coordinator sends (0: none); all of it goes in
+            the control lane (:class:`~como3r.transport.zenoh_protocol.Sender`), in order
+            (an agent applies its pose updates in sequence).
         certified: a team run: a message counts only if its key ends in the certificate
             name of the agent it claims to come from (Zenoh's access control makes that
             name its sender's, :mod:`como3r.transport.team_access`).
@@ -92,6 +105,7 @@ class ZenohHub:
         max_bytes: int,
         grace_s: float,
         certified: bool = False,
+        max_mbps: float = 0.0,
     ) -> None:
         self.session, self.keys, self.agents = session, keys, agents
         self.certified = certified
@@ -102,7 +116,7 @@ class ZenohHub:
         self._rejoin: Rejoin | None = None
         self._inbox: queue.Queue[tuple[Any, ...]] = queue.Queue()
         self._backlog: deque[tuple[Any, ...]] = deque()
-        self._sender = Sender(session, priority=CONTROL_PRIORITY, express=True)
+        self._sender = Sender(session, priority=CONTROL_PRIORITY, express=True, max_mbps=max_mbps)
         self._pieces = Pieces(max_bytes)
         self._declared = [
             session.declare_subscriber(keys.up_all(), self._on_sample),
@@ -294,10 +308,15 @@ class ZenohHub:
         return [Joined(agent)] if incarnation in holder.present else []
 
     def _message(self, agent: int, attachment: bytes, data: bytes) -> Event | None:
-        if len(attachment) != SEQ.size:
+        if len(attachment) != STREAM.size:
             return Rejected(agent, "no sequence number attached")
-        incarnation, seq = SEQ.unpack(attachment)
+        incarnation, seq, queued, rate = STREAM.unpack(attachment)
         holder = self._holders[agent]
+        if incarnation == holder.incarnation:
+            traffic = self._traffic[agent]
+            if traffic.backlog is None:
+                traffic.backlog = SendBacklog()
+            traffic.backlog.note(queued, rate)
         if incarnation != holder.incarnation:
             _, error = self._decode(agent, data)
             return Rejected(

@@ -11,12 +11,14 @@ Key expressions name the session, the agent and the message kind::
                                               process): join / leave
     como3r/<session>/agent/<a>/task           queryable: agent a's AgentTask; the query's
                                               attachment <Q: the asking process's incarnation
-    como3r/<session>/agent/<a>/up/<Type>      agent -> coordinator; attachment <QQ:
-                                              incarnation, seq; or, for each piece of a
-                                              message over PIECE_BYTES, <QQII:
-                                              incarnation, seq, piece, pieces; in a team
-                                              run the key ends in /<sender's certificate
-                                              name>
+    como3r/<session>/agent/<a>/up/<Type>      agent -> coordinator; attachment <QQQd:
+                                              incarnation, seq, the sender's backlog
+                                              (bytes queued after this put) and rate
+                                              limit (bytes/s, 0: none); or, for each piece
+                                              of a message over PIECE_BYTES, <QQIIQd:
+                                              incarnation, seq, piece, pieces, backlog,
+                                              rate; in a team run the key ends in
+                                              /<sender's certificate name>
     como3r/<session>/agent/<a>/down/<Type>    coordinator -> agent; attachment <Q: the
                                               incarnation it is meant for
     como3r/<session>/agent/<a>/ack            coordinator -> agent <QQ: incarnation, the
@@ -27,7 +29,8 @@ slow subscriber), and acknowledged: an agent keeps every message until the coord
 stored it (:mod:`como3r.transport.spool`: in memory, on disk past a limit), re-sends the
 unacknowledged ones when the coordinator's token reappears, and leaves
 (:class:`~como3r.transport.zenoh_agent.ZenohAgentLink`) only once the last one is stored. The
-coordinator takes an agent's messages in sequence, drops duplicates of re-sent ones, and
+coordinator takes an agent's messages in sequence, drops duplicates of re-sent ones, notes the backlog
+the agent says it has (``metrics.json``: ``bandwidth[].send_backlog``), and
 logs and drops whatever is not a valid message (oversized, malformed, unknown agent, a
 process that does not hold the agent's id). "Stored" means in the session store: the
 runtime acknowledges a message once its effect is committed there (a keyframe waiting for
@@ -58,7 +61,6 @@ from __future__ import annotations
 
 import json
 import logging
-import queue
 import struct
 import threading
 from collections.abc import Callable
@@ -67,11 +69,15 @@ from pathlib import Path
 from typing import Any
 
 from como3r.errors import InputError
+from como3r.transport.pacing import Lanes, bytes_per_s
 
 logger = logging.getLogger(__name__)
 
-SEQ = struct.Struct("<QQ")  # incarnation, sequence number
-PIECE = struct.Struct("<QQII")  # incarnation, sequence number, piece index, pieces
+SEQ = struct.Struct("<QQ")  # incarnation, sequence number (an acknowledgement)
+#: incarnation, sequence number, the sender's backlog in bytes, its rate limit in bytes/s
+STREAM = struct.Struct("<QQQd")
+#: incarnation, sequence number, piece index, pieces, backlog, rate (as :data:`STREAM`)
+PIECE = struct.Struct("<QQIIQd")
 #: the largest piece of a message an agent puts at once (see "Pieces" above): 1 s of a
 #: 1 Mbit/s link
 PIECE_BYTES = 128 * 1024
@@ -102,6 +108,8 @@ class ZenohOptions:
             open network.
         on_open: called with the session once it is open (a team member's watch on who
             connects, :class:`como3r.transport.team_access.LinkWatch`).
+        max_mbps: the rate limit of what this process sends, Mbit/s (``--max-mbps``; 0:
+            none; :mod:`como3r.transport.pacing`).
     """
 
     listen: tuple[str, ...] = ()
@@ -112,6 +120,7 @@ class ZenohOptions:
     settings: tuple[tuple[str, str], ...] = ()
     member: str | None = None
     on_open: Callable[[Any], None] | None = field(default=None, compare=False)
+    max_mbps: float = 0.0
 
     def where(self) -> str:
         """Where this process looks for its peers, for a person (``session 'como3r',
@@ -216,7 +225,8 @@ STREAM_PRIORITY = "DATA"
 
 
 class Sender:
-    """Puts ``(key, payload, attachment)`` on the network from a background thread.
+    """Puts ``(key, payload, attachment)`` on the network from a background thread, at most
+    ``max_mbps`` (:mod:`como3r.transport.pacing`: control before bulk).
 
     Args:
         session: the Zenoh session.
@@ -224,6 +234,9 @@ class Sender:
             ``BLOCK``); a key without one is put through the session.
         priority: the Zenoh priority (a ``zenoh.Priority`` name) of the session's puts.
         express: send each put at once instead of batching it with the next.
+        max_mbps: the rate limit of this process's link (0: none).
+        control: which puts go in the control lane, by payload size (default: all; a put
+            order that matters within a lane is kept, not across lanes).
     """
 
     def __init__(
@@ -232,6 +245,8 @@ class Sender:
         publishers: dict[str, Any] | None = None,
         priority: str = STREAM_PRIORITY,
         express: bool = False,
+        max_mbps: float = 0.0,
+        control: Callable[[int], bool] = lambda nbytes: True,
     ) -> None:
         import zenoh
 
@@ -240,19 +255,36 @@ class Sender:
         self.block = zenoh.CongestionControl.BLOCK
         self.priority = getattr(zenoh.Priority, priority)
         self.express = express
-        self.queue: queue.Queue[tuple[str, bytes, bytes | None] | None] = queue.Queue()
+        self.control = control
+        self.lanes: Lanes[tuple[str, bytes, bytes | None]] = Lanes(bytes_per_s(max_mbps))
+        self.bytes_put = 0
+        self._closing = False
+        self._cond = threading.Condition()
         self.thread = threading.Thread(target=self._loop, daemon=True)
         self.thread.start()
 
     def put(self, key: str, payload: bytes, attachment: bytes | None = None) -> None:
-        self.queue.put((key, payload, attachment))
+        with self._cond:
+            self.lanes.add((key, payload, attachment), len(payload), self.control(len(payload)))
+            self._cond.notify_all()
 
     def close(self, timeout: float) -> None:
-        self.queue.put(None)
+        """Put what is queued (for up to ``timeout`` seconds), then stop."""
+        with self._cond:
+            self._closing = True
+            self._cond.notify_all()
         self.thread.join(timeout)
 
     def _loop(self) -> None:
-        while (item := self.queue.get()) is not None:
+        while True:
+            with self._cond:
+                while True:
+                    item, wait = self.lanes.next()
+                    if item is not None or (self._closing and not len(self.lanes)):
+                        break
+                    self._cond.wait(None if wait == float("inf") else wait)
+            if item is None:
+                return
             key, payload, attachment = item
             try:
                 if key in self.publishers:
@@ -266,6 +298,7 @@ class Sender:
                         priority=self.priority,
                         express=self.express,
                     )
+                self.bytes_put += len(payload)
             except Exception as exc:  # a closed session: nothing more can be sent
                 logger.debug("put on %s failed: %s", key, exc)
 
@@ -287,12 +320,13 @@ class Pieces:
         """Take one piece (``attachment`` of :data:`PIECE`) of agent ``agent``'s message.
 
         Returns:
-            ``(attachment, payload)`` of the whole message (its attachment a :data:`SEQ`)
+            ``(attachment, payload)`` of the whole message (its attachment a :data:`STREAM`
+            with the last piece's backlog)
             once its last piece is in; a reason to reject it once it exceeds the cap; None
             while it is incomplete, and for a piece out of order (dropped, with what came
             of its message).
         """
-        incarnation, seq, index, count = PIECE.unpack(attachment)
+        incarnation, seq, index, count, backlog, rate = PIECE.unpack(attachment)
         which = (incarnation, seq, count)
         with self._lock:
             if index == 0:
@@ -314,4 +348,4 @@ class Pieces:
                 self._open[agent] = (which, parts, size)
                 return None
             del self._open[agent]
-            return SEQ.pack(incarnation, seq), b"".join(parts)
+            return STREAM.pack(incarnation, seq, backlog, rate), b"".join(parts)
