@@ -92,10 +92,16 @@ class SessionConfig:
 
     ``spill_dir``: the folder in which each agent makes its spill folder (removed when the
     agent ends); empty: the system's temporary folder.
+
+    ``disk_reserve_mb``: the free space (MB) below which a run stops, resumably, before its
+    disk is full (:mod:`como3r.runtime.disk_guard`); 0: eight keyframes at the rate the
+    store has filled the disk so far, plus the outputs, estimated as large as the store's
+    files, at least 16 MB.
     """
 
     resident_keyframes: int = 8
     spill_dir: str = ""
+    disk_reserve_mb: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -176,6 +182,7 @@ _NON_NEGATIVE = (
     "depth.alternation_rounds",
     "visualization.voxel_size_m",
     "session.resident_keyframes",
+    "session.disk_reserve_mb",
 )
 _AT_LEAST_ONE = (
     "input.subsample",

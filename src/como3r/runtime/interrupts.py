@@ -11,6 +11,10 @@ is the terminal work on what was processed, and the outputs are written. A secon
 aborts at once (``KeyboardInterrupt`` wherever the run is); the store still holds every
 transaction committed before it, so the run resumes from there as after ``kill -9``.
 
+A run that must stop for another reason (its disk filling up: :mod:`.disk_guard`) asks for
+it with :func:`stop_at_checkpoint`: the next checkpoint raises that error instead, and the
+run ends as on a full disk, its store kept for ``--resume``.
+
 Why a checkpoint and not the signal itself: a ``KeyboardInterrupt`` raised in the middle of
 a global BA or a store transaction leaves nothing wrong on disk (the transaction rolls
 back), but it throws away the keyframe being handled, and SIGTERM's default action would
@@ -49,6 +53,7 @@ class _State:
         self.active = False
         self.signum: int | None = None
         self.finishing = False
+        self.stop: BaseException | None = None  # raised at the next checkpoint
 
 
 _STATE = _State()
@@ -88,7 +93,7 @@ def interrupts_are_checkpoints() -> Iterator[None]:
         yield
         return
     previous = {signum: signal.getsignal(signum) for signum in SIGNALS}
-    _STATE.active, _STATE.signum, _STATE.finishing = True, None, False
+    _STATE.active, _STATE.signum, _STATE.finishing, _STATE.stop = True, None, False, None
     try:
         for signum, handler in previous.items():
             if handler is not signal.SIG_IGN:
@@ -97,15 +102,31 @@ def interrupts_are_checkpoints() -> Iterator[None]:
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-        _STATE.active, _STATE.signum, _STATE.finishing = False, None, False
+        _STATE.active, _STATE.signum, _STATE.finishing, _STATE.stop = False, None, False, None
+
+
+def stop_at_checkpoint(error: BaseException) -> bool:
+    """Have the next :func:`checkpoint` raise ``error`` (the first asked for wins); whether
+    one will: only inside :func:`interrupts_are_checkpoints` and while the run reads input
+    (a live run's store cannot be resumed)."""
+    if not _STATE.active or _STATE.finishing:
+        return False
+    if _STATE.stop is None:
+        _STATE.stop = error
+    return True
 
 
 def checkpoint() -> None:
-    """Raise :class:`RunInterrupted` if a first signal came and the run still reads input.
+    """Raise :class:`RunInterrupted` if a first signal came and the run still reads input,
+    or the error :func:`stop_at_checkpoint` was given.
 
     Call it only where the session store holds everything handled so far."""
-    if _STATE.signum is not None and not _STATE.finishing:
+    if _STATE.finishing:
+        return
+    if _STATE.signum is not None:
         raise RunInterrupted(_STATE.signum)
+    if _STATE.stop is not None:
+        raise _STATE.stop
 
 
 def finishing() -> None:

@@ -25,6 +25,7 @@ from como3r.progress import ProgressCallback
 from como3r.runtime import outputs
 from como3r.runtime.agent_events import RuntimeOptions
 from como3r.runtime.agent_worker import agent_process_main
+from como3r.runtime.disk_guard import DiskGuard, store_metrics
 from como3r.runtime.interrupts import interrupts_are_checkpoints
 from como3r.runtime.map_session import SavedMap, hold_map, seed_map
 from como3r.runtime.pipeline import (
@@ -160,8 +161,9 @@ def coordinate(
                 kept=lambda folder: resumable(folder, finished),
             ) as staging,
         ):
+            guard = DiskGuard(config.session.disk_reserve_mb, progress)
             runtime = _Runtime(
-                hub, frames, config, prior_spec, options, progress, live, inputs, saved_map
+                hub, frames, config, prior_spec, options, guard.progress, live, inputs, saved_map
             )
             if saved_map is not None and not resume:
                 seed_map(runtime.coordinator, saved_map)
@@ -172,6 +174,7 @@ def coordinate(
                 runtime.coordinator.add_agent()
             with open_store(staging, config, runtime.coordinator, resume, session) as store:
                 runtime.store = store
+                guard.watch(store)  # from here a disk filling up stops the run, resumably
                 if saved_map is not None:
                     hold_map(runtime.coordinator, saved_map)
                 if session is not None:
@@ -208,7 +211,7 @@ def _write(staging: Path, runtime: _Runtime, inputs: Sequence[AgentInput]) -> Ru
         staging, results, coordinator, config, runtime.prior.describe(), seconds, runtime.progress
     )
     metrics["runtime"] = runtime.runtime_metrics()
-    metrics["store"] = None if runtime.store is None else runtime.store.written_metrics()
+    metrics["store"] = None if runtime.store is None else store_metrics(runtime.store)
     summary = RunSummary(out=staging)
     for slot, s in zip(runtime.slots, seconds):
         summary.agents.append(

@@ -51,6 +51,7 @@ from como3r.prior.base import Prior, View
 from como3r.progress import AgentProgress, PhaseCallback, ProgressCallback, tracking_state
 from como3r.runtime import outputs
 from como3r.runtime.agent_loop import AgentLoop
+from como3r.runtime.disk_guard import DiskGuard, store_metrics
 from como3r.runtime.interrupts import checkpoint, finishing, interrupts_are_checkpoints
 from como3r.runtime.live import CoordinatorLive
 from como3r.runtime.map_session import SavedMap, hold_map, map_results, seed_map
@@ -338,6 +339,7 @@ def run(
     # OUT.partial is kept for --resume; a live run's store cannot be resumed
     checkpoints = contextlib.nullcontext() if cameras else interrupts_are_checkpoints()
     kept = None if cameras else resumable
+    guard = DiskGuard(config.session.disk_reserve_mb, progress)
     with (
         checkpoints,
         atomic_output_dir(out, overwrite=overwrite, resume=resume, kept=kept) as staging,
@@ -345,6 +347,7 @@ def run(
         contextlib.closing(frames),
         contextlib.ExitStack() as streams,
     ):
+        guard.watch(store)  # from here a disk filling up stops the run, resumably
         if saved_map is not None:
             hold_map(coordinator, saved_map)
             store.record_runtime(None, {r.agent: r.finished for r in saved if r.finished})
@@ -360,19 +363,18 @@ def run(
                 break
             k = frame.agent
             step = loops[k].step(frame, start)
-            if progress is not None:
-                stats = frontends[k].stats
-                progress(
-                    AgentProgress(
-                        first + k,
-                        stats.frames,
-                        totals[k],
-                        len(frontends[k].keyframes),
-                        stats.lost,
-                        stats.relocalized,
-                        tracking_state(step.outcome),
-                    )
+            stats = frontends[k].stats
+            guard.progress(  # the disk guard counts the input left; it calls progress
+                AgentProgress(
+                    first + k,
+                    stats.frames,
+                    totals[k],
+                    len(frontends[k].keyframes),
+                    stats.lost,
+                    stats.relocalized,
+                    tracking_state(step.outcome),
                 )
+            )
         finishing()  # every frame was read: a first Ctrl-C now lets the outputs be written
         streams.close()  # the live streams end; Ctrl-C interrupts again
         notes = [camera.stop() for camera in cameras]  # frames read and dropped
@@ -453,7 +455,7 @@ def _write(
     metrics, components = outputs.write_run_files(
         staging, results, coordinator, config, prior.describe(), seconds, progress
     )
-    metrics["store"] = store.written_metrics()
+    metrics["store"] = store_metrics(store)
     first = len(results) - len(agents)
     for entry, agent in zip(metrics["agents"][first:], agents):
         if isinstance(agent, CameraInput):  # its stream has ended: the count is final

@@ -26,7 +26,7 @@ import logging
 import sqlite3
 import weakref
 from collections import Counter
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -79,6 +79,8 @@ class SessionStore(TableWriter):
         self._reports: dict[int, AgentFinished] = {}
         #: bytes of blobs and text written, per part (:meth:`written_metrics`)
         self.written: Counter[str] = Counter()
+        #: called after each :meth:`record` has committed (a disk guard)
+        self.on_commit: Callable[[SessionStore], None] | None = None
 
     @classmethod
     def create(
@@ -240,6 +242,8 @@ class SessionStore(TableWriter):
             raise StoreError(f"{self.path}: cannot write the session store ({exc})") from None
         self.transactions += 1
         page_out(coordinator, self)
+        if self.on_commit is not None:
+            self.on_commit(self)
 
     # ------------------------------------------------------------------ paging
 
