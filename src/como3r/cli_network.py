@@ -107,6 +107,7 @@ MaxMbpsOption = Annotated[
     typer.Option(
         "--max-mbps",
         min=0.0,
+        metavar="M",
         help="Rate limit of what this process sends, Mbit/s (its radio link; 0: none): "
         "small messages (acknowledgements, pose updates) go before large ones.",
     ),
