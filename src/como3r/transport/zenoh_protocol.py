@@ -55,6 +55,12 @@ lets an agent free its spool and correct its map) goes at ``INTERACTIVE_HIGH`` a
 link busy with keyframes still carries them at once (``benchmarks/links.py``). An agent's
 own messages go at ``DATA``, all of them: they form one sequence, which the coordinator
 takes in order, and Zenoh keeps order only within a priority.
+
+Rate. Under ``--max-mbps`` (:attr:`ZenohOptions.max_mbps`) what a process puts goes at most
+at that rate (:mod:`como3r.transport.pacing`): an agent's pieces one by one as its token
+bucket allows, so Zenoh's queue holds at most a piece of a keyframe ahead of anything else;
+the :class:`Sender` of the coordinator and of a robot puts small messages ahead of large
+ones.
 """
 
 from __future__ import annotations
