@@ -12,7 +12,8 @@ knows the input left: the frames still to read times the keyframes per frame so 
   line, which the command line shows), saying how much space the run needs.
 * When the free space falls under the reserve (``session.disk_reserve_mb``; by default eight
   keyframes at the measured rate plus the outputs, estimated as large as the store's files:
-  the outputs of the measured runs weighed 0.4 to 1.3 times the store; at least 16 MB), it
+  beside the store the outputs weighed 0.3 times it on the 64x48 test scene, 1.3 times on
+  the demo scene; at least 16 MB), it
   stops the run at its next checkpoint (:func:`~como3r.runtime.interrupts.stop_at_checkpoint`)
   with a full disk's error (``ENOSPC``): the run ends as on a full disk, ``OUT.partial`` kept
   with its store, and the command line names the space needed and the ``--resume`` command.
