@@ -361,7 +361,7 @@ def test_a_killed_agent_restarted_with_its_id_rejoins(longer_scene, team, tmp_pa
 def test_an_agent_under_max_mbps_stays_under_it_and_reports_its_backlog(
     scene, team, tmp_path
 ) -> None:
-    """One agent at 1 Mbit/s on loopback: every keyframe arrives, what it puts stays under
+    """One agent at 4 Mbit/s on loopback: every keyframe arrives, what it puts stays under
     the rate over the run (as the test's own subscriber sees the pieces), and the agent and
     metrics.json report its send backlog."""
     from como3r.transport.zenoh_protocol import PIECE_BYTES
@@ -379,7 +379,7 @@ def test_an_agent_under_max_mbps_stays_under_it_and_reports_its_backlog(
     subscriber = session.declare_subscriber(keys.up("*", "*"), on_piece)
     try:
         _wait_for_coordinator(session, keys)
-        team.agent(0, scene / "agent_0", "--max-mbps", "1")
+        team.agent(0, scene / "agent_0", "--max-mbps", "4")
         team.wait("agent0")
         team.wait("coordinator")
     finally:
@@ -392,11 +392,11 @@ def test_an_agent_under_max_mbps_stays_under_it_and_reports_its_backlog(
     put = sum(size for _, size in seen)
     assert put >= sum(entry["bytes_from_agent"].values())  # every piece was seen
     span = seen[-1][0] - seen[0][0]
-    rate = 1e6 / 8
-    print(f"1 Mbit/s: {put} bytes put in {span:.1f} s, backlog {row['send_backlog']}")
+    rate = 4e6 / 8
+    print(f"4 Mbit/s: {put} bytes put in {span:.1f} s, backlog {row['send_backlog']}")
     assert put <= 2 * PIECE_BYTES + 1.1 * rate * span, (put, span)
     backlog = row["send_backlog"]
-    assert backlog["max_mbps"] == 1.0 and backlog["last_bytes"] == 0
+    assert backlog["max_mbps"] == 4.0 and backlog["last_bytes"] == 0
     assert backlog["peak_bytes"] > 0 and backlog["peak_s"] == backlog["peak_bytes"] / rate
     log = team.log("agent0")
     assert re.search(r"the coordinator has every message; sent [\d.]+ MB, the longest", log), log
