@@ -82,6 +82,7 @@ from como3r.data.preprocess import make_view, upsampling
 from como3r.decentralized.messages import EncodingReply
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.packets import PoseUpdate
+from como3r.prior.base import view_from_colors
 from como3r.prior.mast3r import MASt3REncoding, MASt3RPrior
 from como3r.prior.mast3r.config import RELEASED_MODEL_STRING, parse_model_string
 from como3r.prior.mast3r.model import MASt3RNetwork
@@ -184,7 +185,8 @@ def _stored_parts(messages: list[KeyframeMessage]) -> dict[str, float]:
         rows.append(
             {
                 "colours": len(pack_arrays(packet.colors)),
-                "encoding": len(pack_object(packet.encoding)),
+                # not kept where the coordinator encodes the colours again
+                "encoding": 0 if packet.encoding is None else len(pack_object(packet.encoding)),
                 "pointmaps": len(pack_arrays(packet.X_hat)) + len(pack_arrays(packet.C_hat)),
                 "retrieval": len(pack_arrays(*packet.retrieval)) if packet.retrieval else 0,
                 "edges": len(pack_arrays(*edge)) if edge else 0,
@@ -193,6 +195,29 @@ def _stored_parts(messages: list[KeyframeMessage]) -> dict[str, float]:
     mean = {name: sum(r[name] for r in rows) / len(rows) for name in rows[0]}
     mean["total"] = sum(mean.values())
     return mean
+
+
+def _without_encoding(message: KeyframeMessage) -> KeyframeMessage:
+    """``message`` as an agent sends it to a coordinator that encodes the colours again."""
+    return dataclasses.replace(message, packet=dataclasses.replace(message.packet, encoding=None))
+
+
+def _reencode_cost(messages: list[KeyframeMessage], network: MASt3RNetwork, size: str) -> None:
+    """What the coordinator pays for tokens not sent: one encoder run per keyframe it
+    verifies with (:mod:`como3r.coordination.encodings`), timed here on this machine's
+    threads, and whether the tokens are bit-identical to the agent's."""
+    prior, seconds, identical = MASt3RPrior(network), [], True
+    for message in messages:
+        packet = message.packet
+        start = time.perf_counter()
+        again = prior.encode(view_from_colors(packet.colors, packet.agent, packet.frame_index))
+        seconds.append(time.perf_counter() - start)
+        identical &= torch.equal(again.tokens, packet.encoding.tokens)
+    print(
+        f"coordinator's re-encode at {size}: {np.mean(seconds):.2f} s per keyframe "
+        f"({torch.get_num_threads()} threads, {platform.processor() or platform.machine()}); "
+        f"tokens bit-identical to the agent's: {identical}"
+    )
 
 
 def part0(agent_paths: list[Path], frames: int) -> None:
@@ -205,15 +230,23 @@ def part0(agent_paths: list[Path], frames: int) -> None:
         messages, views, final, (height, width) = _keyframe_messages(path, frames)
         shaped = [_mast3r_shaped(m, v, network, head, config) for m, v in zip(messages, views)]
         size = f"{width}x{height}"
-        for prior, batch in (("MASt3R", shaped), ("simulated", messages)):
+        # as sent to a coordinator that encodes the colours again (AgentTask.send_encoding)
+        untokened = [_without_encoding(m) for m in shaped]
+        _reencode_cost(shaped, network, size)
+        for prior, batch in (
+            ("MASt3R", shaped),
+            ("MASt3R no tokens", untokened),
+            ("simulated", messages),
+        ):
             for lossy in (False, True):
                 label = f"{prior} {size} {'lossy' if lossy else 'exact'}"
                 columns[label] = _mean_parts(batch, lossy)
         finals[size] = {lossy: len(codec.encode(final, lossy=lossy)) for lossy in (False, True)}
-        stored[f"MASt3R {size}"], stored[f"simulated {size}"] = (
+        stored[f"MASt3R {size}"], stored[f"MASt3R no tokens {size}"] = (
             _stored_parts(shaped),
-            _stored_parts(messages),
+            _stored_parts(untokened),
         )
+        stored[f"simulated {size}"] = _stored_parts(messages)
         print(f"{path}: {len(messages)} keyframe messages measured ({size})")
     print("\nbytes per keyframe message per part [kB] (exact: pipes; lossy: zenoh)")
     print(" | ".join(["part", *columns]))

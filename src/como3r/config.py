@@ -92,10 +92,18 @@ class SessionConfig:
 
     ``spill_dir``: the folder in which each agent makes its spill folder (removed when the
     agent ends); empty: the system's temporary folder.
+
+    ``encoding_cache``: how many keyframe encodings (a count) the coordinator keeps after
+    encoding a keyframe's colours again, least recently used first out. Where its prior can
+    remake an agent's encodings (MASt3R; the simulated prior where the coordinator has the
+    agent's ground truth) the agent sends none and the session store keeps none
+    (:mod:`como3r.coordination.encodings`); a verification then re-encodes the keyframes it
+    decodes. 0: re-encode at every use. The results are the same for every value.
     """
 
     resident_keyframes: int = 8
     spill_dir: str = ""
+    encoding_cache: int = 16
 
 
 @dataclass(frozen=True)
@@ -176,6 +184,7 @@ _NON_NEGATIVE = (
     "depth.alternation_rounds",
     "visualization.voxel_size_m",
     "session.resident_keyframes",
+    "session.encoding_cache",
 )
 _AT_LEAST_ONE = (
     "input.subsample",
