@@ -33,7 +33,12 @@ pipes, lossy: across machines, with float16 encoder tokens and retrieval feature
     total                 10184.7   4994.5   20471.7  16927.3     7906.6   3879.8
 
 (with float32 tokens and retrieval features across machines: total 6706.9 at 512x384,
-5279.9 at 512x288.) The agent's final message: 2396.8 kB exact, 958.4 lossy at 512x384.
+5279.9 at 512x288.) Without the tokens, as agents send keyframes to a coordinator that
+encodes their colours again (``AgentTask.send_encoding``; MASt3R): 7688.5 exact, 3739.5
+lossy at 512x384, tokens 0; the store then writes no encoding (5297.7 kB per keyframe at
+512x384). The coordinator's price, one encoder run per keyframe a verification decodes
+(bounded cache ``session.encoding_cache``), is printed as ``coordinator's re-encode`` with
+whether its tokens are bit-identical to the agent's. The agent's final message: 2396.8 kB exact, 958.4 lossy at 512x384.
 Session store, blobs written as a keyframe arrives (MASt3R 512x384 / simulated 512x384 /
 MASt3R 512x288): colours 400 / 400 / 305, encoding 2493 / 13444 / 1885, pointmaps
 2389 / 2389 / 1797, retrieval 979 / 136 / 979, edges 1530 / 1530 / 1139, total 7791 /
@@ -123,15 +128,18 @@ def _keyframe_messages(
     frontend = AgentFrontend(
         prior, config, 0, codebook, upsampling(agent.image_size, config.input.long_side)
     )
-    messages, views = [], []
+    messages, views, seen = [], [], {}
     for index in range(min(frames, agent.num_frames)):
         view, timestamp, colors = load_frame(agent, 0, index, config.input.long_side, False)
+        seen[index] = view
         frontend.process(view, timestamp, colors)
         for packet in frontend.drain_new_keyframes():
             if packet.kf_id > 0:
                 previous = frontend.keyframes[packet.kf_id - 1].T_WC
                 messages.append(KeyframeMessage(packet, 0, previous))
-                views.append(view)
+                # the keyframe's own view: a self-calibrating agent hands its first
+                # keyframes out at a later frame
+                views.append(seen[packet.frame_index])
     if not messages:
         raise SystemExit(f"{agent_path}: fewer than 2 keyframes in {frames} frames")
     shape = tuple(messages[0].packet.colors.shape[:2])
