@@ -34,7 +34,8 @@ class KeyframeEncodings:
     encoded again, in a bounded least-recently-used cache by global keyframe index.
 
     Args:
-        prior: the coordinator's prior (the one the agents' encodings came from).
+        prior: the coordinator's prior (the one the agents' encodings came from); None for
+            a coordinator that decodes nothing (it can remake no encoding).
         capacity: how many re-encoded keyframes are kept (0: none; every use re-encodes).
 
     Attributes:
@@ -42,7 +43,7 @@ class KeyframeEncodings:
         seconds: wall-clock seconds spent encoding them.
     """
 
-    def __init__(self, prior: Prior, capacity: int) -> None:
+    def __init__(self, prior: Prior | None, capacity: int) -> None:
         if capacity < 0:
             raise InputError(f"session.encoding_cache must be >= 0, got {capacity}")
         self.prior = prior
@@ -53,7 +54,7 @@ class KeyframeEncodings:
 
     def can_reencode(self, agent: int) -> bool:
         """Whether ``agent``'s keyframes need not carry (nor the store keep) encodings."""
-        return self.prior.can_reencode(agent)
+        return self.prior is not None and self.prior.can_reencode(agent)
 
     def get(self, g: int, kf: Keyframe, agent: int) -> Encoding:
         """The encoding of global keyframe ``g`` (``kf``, of ``agent``).
@@ -69,7 +70,8 @@ class KeyframeEncodings:
         if cached is not None:
             self._cache.move_to_end(g)
             return cached
-        if not self.can_reencode(agent):
+        prior = self.prior
+        if prior is None or not prior.can_reencode(agent):
             raise InputError(
                 f"coordinator: keyframe {kf.kf_id} of agent {agent} came without its "
                 "encoding and this coordinator's prior cannot encode it again"
@@ -81,7 +83,7 @@ class KeyframeEncodings:
                 f"{tuple(colors.shape[:2])}, not the {kf.shape} image its encoding came from"
             )
         start = time.perf_counter()
-        encoding = self.prior.encode(view_from_colors(colors, agent, kf.frame_index))
+        encoding = prior.encode(view_from_colors(colors, agent, kf.frame_index))
         self.seconds += time.perf_counter() - start
         self.reencodes += 1
         if self.capacity > 0:
