@@ -33,7 +33,12 @@ pipes, lossy: across machines, with float16 encoder tokens and retrieval feature
     total                 10184.7   4994.5   20471.7  16927.3     7906.6   3879.8
 
 (with float32 tokens and retrieval features across machines: total 6706.9 at 512x384,
-5279.9 at 512x288.) The agent's final message: 2396.8 kB exact, 958.4 lossy at 512x384.
+5279.9 at 512x288.) Without the tokens, as agents send keyframes to a coordinator that
+encodes their colours again (``AgentTask.send_encoding``; MASt3R): 7688.5 exact, 3739.5
+lossy at 512x384, tokens 0; the store then writes no encoding (5297.7 kB per keyframe at
+512x384). The coordinator's price, one encoder run per keyframe a verification decodes
+(bounded cache ``session.encoding_cache``), is printed as ``coordinator's re-encode`` with
+whether its tokens are bit-identical to the agent's. The agent's final message: 2396.8 kB exact, 958.4 lossy at 512x384.
 Session store, blobs written as a keyframe arrives (MASt3R 512x384 / simulated 512x384 /
 MASt3R 512x288): colours 400 / 400 / 305, encoding 2493 / 13444 / 1885, pointmaps
 2389 / 2389 / 1797, retrieval 979 / 136 / 979, edges 1530 / 1530 / 1139, total 7791 /
@@ -82,6 +87,7 @@ from como3r.data.preprocess import make_view, upsampling
 from como3r.decentralized.messages import EncodingReply
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.packets import PoseUpdate
+from como3r.prior.base import view_from_colors
 from como3r.prior.mast3r import MASt3REncoding, MASt3RPrior
 from como3r.prior.mast3r.config import RELEASED_MODEL_STRING, parse_model_string
 from como3r.prior.mast3r.model import MASt3RNetwork
@@ -122,15 +128,18 @@ def _keyframe_messages(
     frontend = AgentFrontend(
         prior, config, 0, codebook, upsampling(agent.image_size, config.input.long_side)
     )
-    messages, views = [], []
+    messages, views, seen = [], [], {}
     for index in range(min(frames, agent.num_frames)):
         view, timestamp, colors = load_frame(agent, 0, index, config.input.long_side, False)
+        seen[index] = view
         frontend.process(view, timestamp, colors)
         for packet in frontend.drain_new_keyframes():
             if packet.kf_id > 0:
                 previous = frontend.keyframes[packet.kf_id - 1].T_WC
                 messages.append(KeyframeMessage(packet, 0, previous))
-                views.append(view)
+                # the keyframe's own view: a self-calibrating agent hands its first
+                # keyframes out at a later frame
+                views.append(seen[packet.frame_index])
     if not messages:
         raise SystemExit(f"{agent_path}: fewer than 2 keyframes in {frames} frames")
     shape = tuple(messages[0].packet.colors.shape[:2])
@@ -184,7 +193,8 @@ def _stored_parts(messages: list[KeyframeMessage]) -> dict[str, float]:
         rows.append(
             {
                 "colours": len(pack_arrays(packet.colors)),
-                "encoding": len(pack_object(packet.encoding)),
+                # not kept where the coordinator encodes the colours again
+                "encoding": 0 if packet.encoding is None else len(pack_object(packet.encoding)),
                 "pointmaps": len(pack_arrays(packet.X_hat)) + len(pack_arrays(packet.C_hat)),
                 "retrieval": len(pack_arrays(*packet.retrieval)) if packet.retrieval else 0,
                 "edges": len(pack_arrays(*edge)) if edge else 0,
@@ -193,6 +203,29 @@ def _stored_parts(messages: list[KeyframeMessage]) -> dict[str, float]:
     mean = {name: sum(r[name] for r in rows) / len(rows) for name in rows[0]}
     mean["total"] = sum(mean.values())
     return mean
+
+
+def _without_encoding(message: KeyframeMessage) -> KeyframeMessage:
+    """``message`` as an agent sends it to a coordinator that encodes the colours again."""
+    return dataclasses.replace(message, packet=dataclasses.replace(message.packet, encoding=None))
+
+
+def _reencode_cost(messages: list[KeyframeMessage], network: MASt3RNetwork, size: str) -> None:
+    """What the coordinator pays for tokens not sent: one encoder run per keyframe it
+    verifies with (:mod:`como3r.coordination.encodings`), timed here on this machine's
+    threads, and whether the tokens are bit-identical to the agent's."""
+    prior, seconds, identical = MASt3RPrior(network), [], True
+    for message in messages:
+        packet = message.packet
+        start = time.perf_counter()
+        again = prior.encode(view_from_colors(packet.colors, packet.agent, packet.frame_index))
+        seconds.append(time.perf_counter() - start)
+        identical &= torch.equal(again.tokens, packet.encoding.tokens)
+    print(
+        f"coordinator's re-encode at {size}: {np.mean(seconds):.2f} s per keyframe "
+        f"({torch.get_num_threads()} threads, {platform.processor() or platform.machine()}); "
+        f"tokens bit-identical to the agent's: {identical}"
+    )
 
 
 def part0(agent_paths: list[Path], frames: int) -> None:
@@ -205,15 +238,23 @@ def part0(agent_paths: list[Path], frames: int) -> None:
         messages, views, final, (height, width) = _keyframe_messages(path, frames)
         shaped = [_mast3r_shaped(m, v, network, head, config) for m, v in zip(messages, views)]
         size = f"{width}x{height}"
-        for prior, batch in (("MASt3R", shaped), ("simulated", messages)):
+        # as sent to a coordinator that encodes the colours again (AgentTask.send_encoding)
+        untokened = [_without_encoding(m) for m in shaped]
+        _reencode_cost(shaped, network, size)
+        for prior, batch in (
+            ("MASt3R", shaped),
+            ("MASt3R no tokens", untokened),
+            ("simulated", messages),
+        ):
             for lossy in (False, True):
                 label = f"{prior} {size} {'lossy' if lossy else 'exact'}"
                 columns[label] = _mean_parts(batch, lossy)
         finals[size] = {lossy: len(codec.encode(final, lossy=lossy)) for lossy in (False, True)}
-        stored[f"MASt3R {size}"], stored[f"simulated {size}"] = (
+        stored[f"MASt3R {size}"], stored[f"MASt3R no tokens {size}"] = (
             _stored_parts(shaped),
-            _stored_parts(messages),
+            _stored_parts(untokened),
         )
+        stored[f"simulated {size}"] = _stored_parts(messages)
         print(f"{path}: {len(messages)} keyframe messages measured ({size})")
     print("\nbytes per keyframe message per part [kB] (exact: pipes; lossy: zenoh)")
     print(" | ".join(["part", *columns]))

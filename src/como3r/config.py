@@ -97,11 +97,19 @@ class SessionConfig:
     disk is full (:mod:`como3r.runtime.disk_guard`); 0: eight keyframes at the rate the
     store has filled the disk so far, plus the outputs, estimated as large as the store's
     files, at least 16 MB.
+
+    ``encoding_cache``: how many keyframe encodings (a count) the coordinator keeps after
+    encoding a keyframe's colours again, least recently used first out. Where its prior can
+    remake an agent's encodings (MASt3R; the simulated prior where the coordinator has the
+    agent's ground truth) the agent sends none and the session store keeps none
+    (:mod:`como3r.coordination.encodings`); a verification then re-encodes the keyframes it
+    decodes. 0: re-encode at every use. The results are the same for every value.
     """
 
     resident_keyframes: int = 8
     spill_dir: str = ""
     disk_reserve_mb: float = 0.0
+    encoding_cache: int = 16
 
 
 @dataclass(frozen=True)
@@ -183,6 +191,7 @@ _NON_NEGATIVE = (
     "visualization.voxel_size_m",
     "session.resident_keyframes",
     "session.disk_reserve_mb",
+    "session.encoding_cache",
 )
 _AT_LEAST_ONE = (
     "input.subsample",

@@ -60,6 +60,7 @@ from como3r.backend.graph_link import GraphLink
 from como3r.config import Config
 from como3r.coordination.association import Candidate, CrossAgentRetrieval
 from como3r.coordination.cleanup import Cleanup, ComponentCleanup, MapSnapshot, scoped_progress
+from como3r.coordination.encodings import KeyframeEncodings
 from como3r.coordination.focal_alignment import FocalAlignment
 from como3r.coordination.gauge import GaugeComponents
 from como3r.coordination.linking import InterAgentLinking
@@ -100,6 +101,9 @@ class CoordinatorStats:
     # ordered pairs the prior decoded for the coordinator (verification): the prior's work
     # its keyframes caused, as the agents' decodes are theirs (benchmarks/report.py)
     prior_decodes: int = 0
+    # keyframes whose encoding was made again from their colours (.encodings); their
+    # seconds are stage_seconds["reencode"]
+    reencodes: int = 0
     stage_seconds: dict[str, float] = field(default_factory=dict)
 
     def add_time(self, stage: str, seconds: float) -> None:
@@ -144,6 +148,8 @@ class Coordinator(InterAgentLinking, FocalAlignment):
         self.stats = CoordinatorStats()
         # the prior's decodes (verification) are charged to stage_seconds["prior_decode"]
         self.prior = TimedPrior(prior, StageTimer(self.stats.stage_seconds), self._decoded)
+        #: keyframe encodings, remade from their colours where they were not sent
+        self.encodings = KeyframeEncodings(prior, config.session.encoding_cache)
         self.candidates: list[Candidate] = []
         self.gauge_events: list[dict[str, Any]] = []
         self._waiting: list[Candidate] = []  # verified edges between two components

@@ -28,6 +28,7 @@ from como3r.coordination.association import (
     budget_candidates,
     verify_candidates,
 )
+from como3r.coordination.encodings import KeyframeEncodings
 from como3r.coordination.gauge import (
     GaugeComponents,
     GaugeTransform,
@@ -41,6 +42,7 @@ from como3r.frontend.packets import KeyframePacket, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches, gather_points
 from como3r.frontend.timing import TimedPrior
 from como3r.geometry.lie import sim3_act
+from como3r.prior.base import Encoding
 from como3r.prior.retrieval import Quantized
 
 # the coordinator's logger: its messages read as they did before this part had a module
@@ -57,6 +59,7 @@ class InterAgentLinking:
     gauges: GaugeComponents
     retrieval: CrossAgentRetrieval | None
     prior: TimedPrior
+    encodings: KeyframeEncodings
     candidates: list[Candidate]
     gauge_events: list[dict[str, Any]]
     _waiting: list[Candidate]
@@ -84,15 +87,13 @@ class InterAgentLinking:
         )
         if not hits:
             return []
-        candidates = [
-            (h, self.graph.keyframes[self.graph.global_index(h.agent, h.keyframe)].encoding)
-            for h in hits
-        ]
+        candidates = [(h, self._encoding(h.agent, h.keyframe)) for h in hits]
+        query = self._encoding(packet.agent, packet.kf_id)
         decoded = self.stats.stage_seconds.get("prior_decode", 0.0)
         verifications = verify_candidates(
             self.prior,
             (packet.agent, packet.kf_id),
-            packet.encoding,
+            query,
             candidates,
             self.config.matching,
             self.config.tracking.q_min,
@@ -109,6 +110,17 @@ class InterAgentLinking:
         verified = [c for c in records if c.verification.accepted]
         self.stats.edges_verified += len(verified)
         return verified
+
+    def _encoding(self, agent: int, kf_id: int) -> Encoding:
+        """A keyframe's encoding: the one it came with, else its colours encoded again
+        (:mod:`.encodings`; counted in ``reencodes`` and ``stage_seconds["reencode"]``)."""
+        g = self.graph.global_index(agent, kf_id)
+        count, seconds = self.encodings.reencodes, self.encodings.seconds
+        encoding = self.encodings.get(g, self.graph.keyframes[g], agent)
+        self.stats.reencodes += self.encodings.reencodes - count
+        if self.encodings.seconds > seconds:
+            self.stats.add_time("reencode", self.encodings.seconds - seconds)
+        return encoding
 
     def _admit(self, candidate: Candidate) -> list[PoseUpdate]:
         """Route a verified edge: into its component's graph, or towards a gauge merge."""

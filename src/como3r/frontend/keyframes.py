@@ -34,7 +34,8 @@ class Keyframe:
         kf_id: index of the keyframe within its agent (0, 1, ...).
         frame_index: index of the frame in the agent's stream.
         timestamp: seconds.
-        encoding: the prior's encoding of the frame.
+        encoding: the prior's encoding of the frame; None on a coordinator that encodes
+            the keyframe's colours again when it needs it (:mod:`como3r.coordination.encodings`).
         T_WC: ``(8,)`` Sim(3) pose.
         X_hat: ``(H, W, 3)`` fused canonical pointmap in the keyframe's camera frame.
         C_hat: ``(H, W)`` accumulated confidence of ``X_hat``.
@@ -50,7 +51,7 @@ class Keyframe:
     kf_id: int
     frame_index: int
     timestamp: float
-    encoding: Encoding
+    encoding: Encoding | None
     T_WC: Tensor
     X_hat: Tensor
     C_hat: Tensor

@@ -4,7 +4,7 @@ Two payloads cross the agent/coordinator boundary:
 
 * :class:`KeyframePacket`, agent -> coordinator, once per new keyframe: everything the
   coordinator needs to retrieve, verify and optimise with the keyframe (its encoding for
-  pair decodes, retrieval features, canonical pointmap, pose, and the dense sequential edge
+  pair decodes, unless the coordinator encodes its colours again, retrieval features, canonical pointmap, pose, and the dense sequential edge
   to the agent's previous keyframe), plus a refresh of the previous keyframe's fused
   canonical pointmap, which kept absorbing frames after it was sent.
 * :class:`PoseUpdate`, coordinator -> agent, after every gauge transport or global solve.
@@ -59,7 +59,10 @@ class KeyframePacket:
             of C-Eq. 19).
         C_hat: ``(H, W)`` its confidence.
         colors: ``(H, W, 3)`` uint8 image at network resolution.
-        encoding: the prior's encoding of the keyframe.
+        encoding: the prior's encoding of the keyframe; None when the receiver encodes
+            ``colors`` again itself (it said so at the session start:
+            :attr:`~como3r.transport.messages.AgentTask.send_encoding`;
+            :mod:`como3r.coordination.encodings`).
         retrieval: ``(descriptors (N, d_r), attention (N,))`` or None without retrieval.
         sequential_ij: matches of the edge (kf_id - 1, kf_id), None for the first keyframe.
         sequential_ji: matches of the edge (kf_id, kf_id - 1).
@@ -82,7 +85,7 @@ class KeyframePacket:
     X_hat: Tensor
     C_hat: Tensor
     colors: np.ndarray
-    encoding: Encoding
+    encoding: Encoding | None
     retrieval: tuple[Tensor, Tensor] | None
     sequential_ij: DirectedMatches | None
     sequential_ji: DirectedMatches | None

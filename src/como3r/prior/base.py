@@ -8,6 +8,10 @@ simulated sensor are interchangeable. A prior turns views into geometry:
 * ``decode_pairs(pairs)``: many ordered pairs (i, j) at once.
 * ``decode_symmetric(pairs)``: (i, j) and (j, i) of many pairs at once.
 * ``retrieval_features(enc) -> (descriptors, attention)``: what ASMK indexes.
+* ``can_reencode(agent)``: whether ``encode`` of a keyframe's uint8 colours
+  (:func:`view_from_colors`) gives that agent's encoding again, so a receiver that says so
+  needs no encoding sent or stored ("what can be recomputed from the input is not stored
+  twice").
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import abc
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -44,6 +49,16 @@ class View:
     def shape(self) -> tuple[int, int]:
         """``(H, W)`` of the image."""
         return int(self.image.shape[-2]), int(self.image.shape[-1])
+
+
+def view_from_colors(colors: np.ndarray, agent: int, index: int) -> View:
+    """The view whose image a keyframe's colours are: ``(H, W, 3)`` uint8 -> ``(3, H, W)``
+    float32 ``2 * v / 255 - 1``, computed as ``(v / 255 - 0.5) / 0.5`` exactly as
+    :meth:`como3r.data.preprocess.Preprocessor.to_network` made the image the agent encoded
+    (bit-identical), without intrinsics (no prior's encoding reads ``View.K``).
+    """
+    pixels = torch.from_numpy(np.ascontiguousarray(colors, dtype=np.uint8)).permute(2, 0, 1)
+    return View(image=(pixels.to(torch.float32) / 255.0 - 0.5) / 0.5, agent=agent, index=index)
 
 
 @dataclass(frozen=True)
@@ -129,6 +144,15 @@ class Prior(abc.ABC):
     @abc.abstractmethod
     def retrieval_features(self, enc: Encoding) -> tuple[Tensor, Tensor]:
         """Local retrieval descriptors ``(N, d_r)`` and their attention ``(N,)``."""
+
+    def can_reencode(self, agent: int) -> bool:
+        """Whether any coordinator with this prior (this session's, or a later one: a
+        resume, a saved map, a merge) remakes ``agent``'s encodings from their keyframes'
+        colours: ``encode(view_from_colors(colors, agent, frame_index))`` equals the
+        encoding the agent made (same network and settings). Such a coordinator is sent no
+        encodings and stores none (:mod:`como3r.coordination.encodings`); the default is
+        no."""
+        return False
 
     def describe(self) -> dict[str, object]:
         """Parameters of the prior, reported with every result it produces."""

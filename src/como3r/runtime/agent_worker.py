@@ -13,6 +13,7 @@ another machine (Zenoh, :mod:`como3r.runtime.network`).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 import time
@@ -192,10 +193,13 @@ class AgentWorker:
 
     def _send_keyframe(self, packet: KeyframePacket) -> None:
         """Send a keyframe with the pose its predecessor had here: the coordinator
-        re-anchors one exported before an update reached this agent on it (C-Sec. A.8)."""
+        re-anchors one exported before an update reached this agent on it (C-Sec. A.8); without
+        its encoding when the task says the coordinator makes it again."""
         previous = (
             self.frontend.keyframes[packet.kf_id - 1].T_WC.clone() if packet.kf_id > 0 else None
         )
+        if not self.task.send_encoding:  # the coordinator encodes the colours again
+            packet = dataclasses.replace(packet, encoding=None)
         self.channel.send(
             KeyframeMessage(packet=packet, applied_seq=self.applied_seq, T_WC_previous=previous)
         )

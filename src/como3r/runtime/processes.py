@@ -182,6 +182,7 @@ class _Runtime(AgentEvents):
                 max_message_bytes=self.options.max_message_bytes,
                 log_level=logging.getLogger().getEffectiveLevel(),
                 live=self.live is not None,
+                send_encoding=not self.coordinator.encodings.can_reencode(self.first + k),
             )
             for k, path in enumerate(paths)
         }
@@ -224,7 +225,12 @@ class _Runtime(AgentEvents):
         )
         slot.away_since, slot.last_heard = None, time.monotonic()
         slot.restarts += 1
-        return replace(self.tasks[agent], resume_after=resume_after)
+        return replace(
+            self.tasks[agent],
+            resume_after=resume_after,
+            # the segment's keyframes arrive under its own id
+            send_encoding=not self.coordinator.encodings.can_reencode(slot.segment.index),
+        )
 
     # ---------------------------------------------------------------- drivers
 

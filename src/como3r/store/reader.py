@@ -3,11 +3,11 @@
 :func:`read_session` opens ``session.db`` (of a finished run, or of a run killed at any
 moment), checks that it is a como3r store of the format version this como3r reads and that
 it is intact and consistent, and loads it into the objects the coordinator works with: a
-:class:`~como3r.backend.global_graph.GlobalGraph` (keyframes with pointmaps, encodings and
-current poses; sequential and inter-agent links with their matches; focal lengths), the
-:class:`~como3r.coordination.gauge.GaugeComponents`, the retrieval entries in the order the
-ASMK database indexed them, the candidates (with their matches while pending), the
-per-agent progress and the configuration. Anything else is one
+:class:`~como3r.backend.global_graph.GlobalGraph` (keyframes with pointmaps, encodings where
+stored, and current poses; sequential and inter-agent links with their matches; focal
+lengths), the :class:`~como3r.coordination.gauge.GaugeComponents`, the retrieval entries in
+the order the ASMK database indexed them, the candidates (with their matches while
+pending), the per-agent progress and the configuration. Anything else is one
 :class:`~como3r.errors.StoreError` line.
 """
 

@@ -10,10 +10,11 @@ keyframes (a ``"resume"`` pose update,
 :meth:`~como3r.coordination.coordinator.Coordinator.add_keyframe`), so the agent tracks on
 in the shared frame, and takes the keyframes after them as new.
 
-The coordinator comes back exactly: keyframes with their pointmaps, encodings and poses,
-links with their matches, gauge components, the retrieval database (rebuilt from the stored
-features in their order), pending candidates with their matches, counters and the BA
-backlog. Candidates that were rejected or found inconsistent keep only their figures
+The coordinator comes back exactly: keyframes with their pointmaps, encodings (those the
+store does not keep, MASt3R's, are encoded again from the stored colours when a verification
+needs them: :mod:`como3r.coordination.encodings`) and poses, links with their matches, gauge
+components, the retrieval database (rebuilt from the stored features in their order),
+pending candidates with their matches, counters and the BA backlog. Candidates that were rejected or found inconsistent keep only their figures
 (:class:`StoredVerification`): nothing uses their matches again.
 """
 

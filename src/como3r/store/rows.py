@@ -147,7 +147,11 @@ def load_keyframes(connection: sqlite3.Connection, graph: GlobalGraph, blobs: Bl
                 kf_id=kf_id,
                 frame_index=frame,
                 timestamp=timestamp,
-                encoding=unpack_object(blobs.get(encoding, what), Encoding, f"{what} encoding"),
+                encoding=(
+                    None  # not kept: the coordinator encodes the colours again
+                    if encoding is None
+                    else unpack_object(blobs.get(encoding, what), Encoding, f"{what} encoding")
+                ),
                 T_WC=pose,
                 X_hat=maps[X_hat],
                 C_hat=maps[C_hat],

@@ -11,7 +11,9 @@ coordinator's (a restarted agent process that starts a new map segment has its o
                                           config (JSON of the effective configuration)
     blobs       id PK, data BLOB          the large arrays, referenced by id below
     keyframes   g PK, agent, kf_id, frame_index, timestamp, colors -> blobs (H, W, 3) uint8,
-                encoding -> blobs (the prior's Encoding, codec object); UNIQUE (agent, kf_id);
+                encoding -> blobs (the prior's Encoding, codec object) or NULL where the
+                coordinator's prior encodes the colours again (Prior.can_reencode: MASt3R,
+                the simulated prior with the agent's ground truth); UNIQUE (agent, kf_id);
                 written once
     pointmaps   g PK, fused_frames, X_hat, C_hat, X_init, C_init -> blobs ((H, W, 3) and
                 (H, W) float32; X_init/C_init point at the same blob as X_hat/C_hat while
@@ -50,7 +52,7 @@ from __future__ import annotations
 #: the store's file name in an output folder
 STORE_NAME = "session.db"
 #: the layout above; a reader refuses any other
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 #: SQLite page size of a new store, the largest: a keyframe writes megabytes of blobs
 #: (13 MB of simulated-prior state, 2 MB per pointmap at 512x384) as chains of overflow
 #: pages, and 15 transactions of 13 + 4 x 1.8 MB took 0.68 s at 64 KiB pages against 1.65 s
@@ -68,7 +70,7 @@ CREATE TABLE keyframes (
     g INTEGER PRIMARY KEY, agent INTEGER NOT NULL, kf_id INTEGER NOT NULL,
     frame_index INTEGER NOT NULL, timestamp REAL NOT NULL,
     colors INTEGER NOT NULL REFERENCES blobs (id),
-    encoding INTEGER NOT NULL REFERENCES blobs (id),
+    encoding INTEGER REFERENCES blobs (id),
     UNIQUE (agent, kf_id));
 CREATE TABLE pointmaps (
     g INTEGER PRIMARY KEY REFERENCES keyframes (g), fused_frames INTEGER NOT NULL,

@@ -101,17 +101,24 @@ class TableWriter:
             ):
                 self._keyframes[g] = self._write_pointmaps(g, kf, written)
         for g in range(len(self._keyframes), len(graph.keyframes)):
-            kf = graph.keyframes[g]
+            kf, agent = graph.keyframes[g], graph.agent_of[g]
+            # not kept where the coordinator's prior encodes the colours again (what can be
+            # recomputed from the input is not stored twice)
+            encoding = (
+                None
+                if kf.encoding is None or coordinator.encodings.can_reencode(agent)
+                else self._blob(pack_object(kf.encoding), "encoding")
+            )
             self.connection.execute(
                 "INSERT INTO keyframes VALUES (?, ?, ?, ?, ?, ?, ?)",
                 (
                     g,
-                    graph.agent_of[g],
+                    agent,
                     kf.kf_id,
                     kf.frame_index,
                     kf.timestamp,
                     self._blob(pack_arrays(kf.colors), "colours"),
-                    self._blob(pack_object(kf.encoding), "encoding"),
+                    encoding,
                 ),
             )
             self._keyframes.append(self._write_pointmaps(g, kf, None))

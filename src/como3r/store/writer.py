@@ -260,6 +260,8 @@ class SessionStore(TableWriter):
             (blob_id,) = self.connection.execute(
                 f"SELECT {group} FROM keyframes WHERE g = ?", (g,)
             ).fetchone()
+            if blob_id is None:  # an encoding not kept: the coordinator encodes it again
+                return {group: None}
             data, what = self._read_blob(blob_id), f"keyframe {g} {group}"
         except sqlite3.Error as exc:
             raise StoreError(f"{self.path}: cannot read the session store ({exc})") from None

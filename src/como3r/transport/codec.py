@@ -396,8 +396,8 @@ def _register_payloads() -> None:
     their confidences, match confidences (:data:`_POINTMAP`), MASt3R's encoder tokens
     (:data:`_TOKENS`) and retrieval features (:data:`_RETRIEVAL`) in half precision."""
     for path, version, half in (
-        # 2: retrieval_words
-        ("como3r.frontend.packets:KeyframePacket", 2, (*_POINTMAP, *_RETRIEVAL)),
+        # 2: retrieval_words, 3: encoding None (the receiver encodes the colours again)
+        ("como3r.frontend.packets:KeyframePacket", 3, (*_POINTMAP, *_RETRIEVAL)),
         ("como3r.frontend.packets:PointmapRefresh", 2, _POINTMAP),  # 2: K
         ("como3r.frontend.packets:PoseUpdate", 2, ()),  # 2: focal
         ("como3r.frontend.pairs:DirectedMatches", 1, ("q",)),

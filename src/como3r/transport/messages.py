@@ -63,6 +63,8 @@ class AgentTask:
         live: send a :class:`~como3r.live.FrameEvent` after every frame (a viewer watches).
         resume_after: process only the frames after this index (a process taking over the
             id of an agent whose earlier process left; -1: every frame).
+        send_encoding: send each keyframe's encoding; False when the coordinator encodes
+            the keyframes' colours again itself (:mod:`como3r.coordination.encodings`).
     """
 
     agent: int
@@ -75,7 +77,8 @@ class AgentTask:
     log_level: int = 30
     live: bool = False
     resume_after: int = -1
-    version: int = 3
+    send_encoding: bool = True
+    version: int = 4
 
 
 @dataclass(frozen=True)
@@ -375,8 +378,8 @@ def _check_update_message(m: PoseUpdateMessage) -> None:
 
 
 for _cls in (*TO_AGENT, *FROM_AGENT, EdgeSummary):
-    # AgentTask 3: resume_after; FrameDone 2: keyframes_waiting
-    codec_registry.register(_cls, version={AgentTask: 3, FrameDone: 2}.get(_cls, 1))
+    # AgentTask 3: resume_after, 4: send_encoding; FrameDone 2: keyframes_waiting
+    codec_registry.register(_cls, version={AgentTask: 4, FrameDone: 2}.get(_cls, 1))
 
 for _name, _check in (
     ("PoseUpdate", _check_pose_update),

@@ -303,6 +303,12 @@ class MASt3RPrior(Prior):
         both = self.decode_pairs([*pairs, *((b, a) for a, b in pairs)])
         return list(zip(both[: len(pairs)], both[len(pairs) :]))
 
+    def can_reencode(self, agent: int) -> bool:
+        """Yes: the tokens are a function of the image alone, which a keyframe's colours
+        are (bit-identical on one device and dtype; another device or dtype re-encodes to
+        within its rounding)."""
+        return True
+
     # --------------------------------------------------------------- retrieval
     def retrieval_features(self, enc: Encoding) -> tuple[Tensor, Tensor]:
         """Local retrieval descriptors and attention of ``enc`` (spec §8.2).

@@ -1,0 +1,97 @@
+"""The coordinator's keyframe encodings, remade from the keyframes' colours when needed.
+
+A keyframe's encoding is what the prior decodes pairs from (MASt3R's encoder tokens at
+512x384: 1.25 MB of a 5 MB keyframe message across machines, 2.5 MB of the 7.8 MB a keyframe
+writes to the session store; ``benchmarks/message_sizes.py``). When the
+coordinator's prior can remake an agent's encodings from its keyframes' uint8 colours
+(:meth:`~como3r.prior.base.Prior.can_reencode`: MASt3R, whose tokens are a function of the
+image alone), the agent is told at the session start not to send them
+(:attr:`~como3r.transport.messages.AgentTask.send_encoding`) and the session store does not
+keep them: such a keyframe's ``encoding`` is None, and :class:`KeyframeEncodings` encodes
+its colours again the first time a verification decodes a pair with it
+(:mod:`.linking`), keeping the newest ``session.encoding_cache`` of them (least recently
+used first out). Encoding work is counted (``reencodes`` and ``stage_seconds["reencode"]``
+of the coordinator's statistics).
+
+The simulated prior's encodings keep travelling and being stored: they are made from the
+frame's ground truth, which a coordinator has in a single-process run only (not in a
+networked one, whose agents read their own inputs, nor in the later sessions that read a
+store: a saved map, a merge).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+
+from como3r.errors import InputError
+from como3r.frontend.keyframes import Keyframe
+from como3r.prior.base import Encoding, Prior, view_from_colors
+
+
+class KeyframeEncodings:
+    """Encodings of the coordinator's keyframes: the one a keyframe holds, else its colours
+    encoded again, in a bounded least-recently-used cache by global keyframe index.
+
+    Args:
+        prior: the coordinator's prior (the one the agents' encodings came from); None for
+            a coordinator that decodes nothing (it can remake no encoding).
+        capacity: how many re-encoded keyframes are kept (0: none; every use re-encodes).
+
+    Attributes:
+        reencodes: keyframes encoded again so far.
+        seconds: wall-clock seconds spent encoding them.
+    """
+
+    def __init__(self, prior: Prior | None, capacity: int) -> None:
+        if capacity < 0:
+            raise InputError(f"session.encoding_cache must be >= 0, got {capacity}")
+        self.prior = prior
+        self.capacity = capacity
+        self.reencodes = 0
+        self.seconds = 0.0
+        self._cache: OrderedDict[int, Encoding] = OrderedDict()
+
+    def can_reencode(self, agent: int) -> bool:
+        """Whether ``agent``'s keyframes need not carry (nor the store keep) encodings."""
+        return self.prior is not None and self.prior.can_reencode(agent)
+
+    def get(self, g: int, kf: Keyframe, agent: int) -> Encoding:
+        """The encoding of global keyframe ``g`` (``kf``, of ``agent``).
+
+        Raises:
+            InputError: the keyframe holds no encoding and the prior cannot remake it, or
+                its colours are not at its pointmap's resolution (the image it encoded).
+        """
+        held = kf.encoding
+        if held is not None:
+            return held
+        cached = self._cache.get(g)
+        if cached is not None:
+            self._cache.move_to_end(g)
+            return cached
+        prior = self.prior
+        if prior is None or not prior.can_reencode(agent):
+            raise InputError(
+                f"coordinator: keyframe {kf.kf_id} of agent {agent} came without its "
+                "encoding and this coordinator's prior cannot encode it again"
+            )
+        colors = kf.colors
+        if tuple(colors.shape[:2]) != kf.shape:
+            raise InputError(
+                f"coordinator: keyframe {kf.kf_id} of agent {agent} has colours of "
+                f"{tuple(colors.shape[:2])}, not the {kf.shape} image its encoding came from"
+            )
+        start = time.perf_counter()
+        encoding = prior.encode(view_from_colors(colors, agent, kf.frame_index))
+        self.seconds += time.perf_counter() - start
+        self.reencodes += 1
+        if self.capacity > 0:
+            self._cache[g] = encoding
+            while len(self._cache) > self.capacity:
+                self._cache.popitem(last=False)
+        return encoding
+
+    def cached(self) -> list[int]:
+        """Global indices of the re-encoded keyframes held, least recently used first."""
+        return list(self._cache)
