@@ -100,8 +100,9 @@ class SessionConfig:
 
     ``encoding_cache``: how many keyframe encodings (a count) the coordinator keeps after
     encoding a keyframe's colours again, least recently used first out. Where its prior can
-    remake an agent's encodings (MASt3R; the simulated prior where the coordinator has the
-    agent's ground truth) the agent sends none and the session store keeps none
+    remake an agent's encodings from the keyframe's colours (MASt3R; not the simulated
+    prior, whose encodings need the agent's ground truth) the agent sends none and the
+    session store keeps none
     (:mod:`como3r.coordination.encodings`); a verification then re-encodes the keyframes it
     decodes. 0: re-encode at every use. The results are the same for every value.
     """
