@@ -36,6 +36,7 @@ class TrafficCounter:
     sent: dict[int, Counter] = field(default_factory=dict)
     received: dict[int, Counter] = field(default_factory=dict)
     sent_by_round: dict[int, Counter] = field(default_factory=dict)
+    peers_by_round: dict[int, dict[int, set[int]]] = field(default_factory=dict)
     messages: Counter = field(default_factory=Counter)
     bytes_by_type: Counter = field(default_factory=Counter)
     dropped: Counter = field(default_factory=Counter)
@@ -44,6 +45,7 @@ class TrafficCounter:
         self.sent.setdefault(sender, Counter())[kind] += size
         self.received.setdefault(recipient, Counter())[kind] += size
         self.sent_by_round.setdefault(sender, Counter())[round] += size
+        self.peers_by_round.setdefault(sender, {}).setdefault(round, set()).add(recipient)
         self.messages[kind] += 1
         self.bytes_by_type[kind] += size
 
@@ -52,6 +54,13 @@ class TrafficCounter:
         stay bounded as the team grows."""
         return max(
             (b for rounds in self.sent_by_round.values() for b in rounds.values()), default=0
+        )
+
+    def max_peers_per_round(self) -> int:
+        """The most robots one robot sent to in one round."""
+        return max(
+            (len(peers) for rounds in self.peers_by_round.values() for peers in rounds.values()),
+            default=0,
         )
 
     def to_json(self, robots: Sequence[int]) -> dict[str, Any]:
@@ -70,6 +79,7 @@ class TrafficCounter:
         return {
             "per_robot": per_robot,
             "max_sent_per_round": self.max_sent_per_round(),
+            "max_peers_per_round": self.max_peers_per_round(),
             "bytes_by_type": dict(self.bytes_by_type),
             "messages_by_type": dict(self.messages),
             "bytes_per_message": {k: v / self.messages[k] for k, v in self.bytes_by_type.items()},
