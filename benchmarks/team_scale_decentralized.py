@@ -6,11 +6,14 @@ walled ring of N rooms, each robot's path ends on the stretch where the next one
 non-neighbours never see the same surface), and runs ``como3r run --mode decentralized``
 with the simulated prior, robots as threads of one process, under a rendezvous schedule
 built from the scene's meetings (``scene.json``): each pair of neighbours meets at its own
-point at the end of the mission (:func:`~como3r.decentralized.schedule.pair_schedule`), so a
-robot exchanges with the two robots it meets, never with the whole team; the chain of
-meetings relays the first robot's frame round the ring. ``--all-in-range`` runs without a
-schedule instead (one group of the whole team: every robot exchanges with every other one),
-the contrast whose bytes per robot grow with the team.
+point at the end of the mission, in ring order, twice round the ring
+(:func:`~como3r.decentralized.schedule.pair_schedule` with ``laps=2``), so a robot
+exchanges with the two robots it meets, never with the whole team. Along the chain of
+meetings each robot relays the pose graph it knows (odometry and loops of the robots it met
+through others): the last meeting of the first lap solves the whole ring, the second lap
+brings that solution to every robot (and registers nothing new). ``--all-in-range`` runs
+without a schedule instead (one group of the whole team: every robot exchanges with every
+other one), the contrast whose bytes per robot grow with the team.
 
 Each team size runs in a fresh process (its peak RSS is its own). Columns:
 
@@ -21,6 +24,9 @@ Each team size runs in a fresh process (its peak RSS is its own). Columns:
   path;
 * ``sent/robot``: bytes a robot sent over the mission, mean and max over robots;
   ``sent/round max``: the most bytes one robot sent in one round (what must stay bounded);
+  ``peers/round``: the most robots one robot sent to in one round; ``graph kB/msg``: mean
+  size of the pose-graph messages (shares and estimates, with the relayed graph: this part
+  grows with the robots a robot has heard of);
 * ``rounds``: exchange rounds (pose-graph solves), ``group``: the largest round's robots;
 * ``loops``: accepted inter-robot loops;
 * ``s/robot-frame``: the run's wall seconds over robots x frames (2 shared cores, robots as
@@ -57,6 +63,8 @@ COLUMNS = (
     "sent/robot mean kB",
     "sent/robot max kB",
     "sent/round max kB",
+    "peers/round",
+    "graph kB/msg",
     "rounds",
     "group",
     "loops",
@@ -112,6 +120,7 @@ def _row(robots: int, metrics: dict, lengths: list[float], seconds: float, frame
     ]
     traffic = metrics["bytes"]
     sent = [r["sent_total"] for r in traffic["per_robot"].values()]
+    graph_kinds = ("PoseGraphShare", "PoseEstimate")
     return {
         "robots": robots,
         "merged ATE %": 100.0 * merged / sum(lengths),
@@ -120,6 +129,10 @@ def _row(robots: int, metrics: dict, lengths: list[float], seconds: float, frame
         "sent/robot mean kB": float(np.mean(sent)) / 1e3,
         "sent/robot max kB": float(max(sent)) / 1e3,
         "sent/round max kB": float(traffic["max_sent_per_round"]) / 1e3,
+        "peers/round": int(traffic["max_peers_per_round"]),
+        "graph kB/msg": sum(traffic["bytes_by_type"].get(k, 0) for k in graph_kinds)
+        / max(1, sum(traffic["messages_by_type"].get(k, 0) for k in graph_kinds))
+        / 1e3,
         "rounds": len(metrics["rounds"]),
         "group": max((len(r["group"]) for r in metrics["rounds"]), default=0),
         "loops": int(metrics["loops"]["accepted"]),

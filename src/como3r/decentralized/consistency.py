@@ -394,7 +394,7 @@ def merged_graph(
 ) -> tuple[dict[int, np.ndarray], list[LoopClosure]]:
     """The pose graph the shares know together: every participant's odometry, the
     odometry relayed for robots not in the round (the longest copy), and every loop once
-    (sorted by :func:`loop_key`) whose keyframes that odometry holds.
+    (the first copy, in the order of the shares) whose keyframes that odometry holds.
 
     Returns:
         ``(robot -> (K, 8) odometry, loops)``.
@@ -414,7 +414,7 @@ def merged_graph(
                 and loop.keyframe_b < len(odometry[loop.robot_b])
             ):
                 loops.setdefault(loop_key(loop), loop)
-    return odometry, [loops[k] for k in sorted(loops)]
+    return odometry, list(loops.values())
 
 
 #: participant -> ``(robot -> odometry, loops)`` of the group it was solved in.

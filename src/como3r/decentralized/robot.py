@@ -462,7 +462,7 @@ class Robot:
             odometry=self.odometry[:count],
             estimate=self.estimate[:count],
             frame=self.frame,
-            loops=[loops[k] for k in sorted(loops)],
+            loops=list(loops.values()),
             relayed=relayed,
         )
 
