@@ -53,7 +53,8 @@ over the first lap: the candidates per meeting are flat (14.5 / 16.4 / 14.1), th
 keyframes they name grow with the scenes (3.0 / 4.4 / 5.8 encodings per meeting: the ring of
 N rooms is laid out differently for each N). All in range, one robot sends 2.9x the bytes at
 8 robots that it sends at 4. The relayed pose graph grows with the robots a robot has heard
-of (10 / 24 / 39 kB per message), small beside one encoding. Runs took 3.8 / 5 / 11 min.
+of (10 / 24 / 39 kB per message), small beside one encoding. Wall s per robot-frame
+1.18 / 1.30 / 1.38 (robots as threads on 2 loaded cores; 16 robots: 11 min of run).
 
 Run (``frames`` etc. as the arguments of :func:`decentralized_rows`):
 
