@@ -384,16 +384,58 @@ def solve_checked(
     return solution, check
 
 
+def loop_key(loop: LoopClosure) -> tuple[int, int, int, int]:
+    """What identifies a loop closure wherever it travels: its two keyframes."""
+    return loop.robot_a, loop.keyframe_a, loop.robot_b, loop.keyframe_b
+
+
+def merged_graph(
+    shares: dict[int, PoseGraphShare],
+) -> tuple[dict[int, np.ndarray], list[LoopClosure]]:
+    """The pose graph the shares know together: every participant's odometry, the
+    odometry relayed for robots not in the round (the longest copy), and every loop once
+    (the first copy, in the order of the shares) whose keyframes that odometry holds.
+
+    Returns:
+        ``(robot -> (K, 8) odometry, loops)``.
+    """
+    odometry: dict[int, np.ndarray] = {r: share.odometry for r, share in shares.items()}
+    for share in shares.values():
+        for robot, relayed in share.relayed.items():
+            if robot not in shares and len(relayed) > len(odometry.get(robot, ())):
+                odometry[robot] = relayed
+    loops: dict[tuple[int, int, int, int], LoopClosure] = {}
+    for share in shares.values():
+        for loop in share.loops:
+            if (
+                loop.robot_a in odometry
+                and loop.robot_b in odometry
+                and loop.keyframe_a < len(odometry[loop.robot_a])
+                and loop.keyframe_b < len(odometry[loop.robot_b])
+            ):
+                loops.setdefault(loop_key(loop), loop)
+    return odometry, list(loops.values())
+
+
+#: participant -> ``(robot -> odometry, loops)`` of the group it was solved in.
+Graphs = dict[int, tuple[dict[int, np.ndarray], list[LoopClosure]]]
+
+
 def solve_shares(
     shares: dict[int, PoseGraphShare],
     settings: DecentralizedConfig,
     formulation: str | None = None,
     solver: str | None = None,
     checks: list[LoopCheck] | None = None,
+    graphs: Graphs | None = None,
 ) -> dict[int, tuple[np.ndarray, int]]:
     """Solve the pose graph of every group of robots connected by loops.
 
-    Each group is anchored on its smallest robot id, at that robot's current estimate (or
+    The graph is every participant's share with the graph they relay
+    (:func:`merged_graph`): robots that met earlier and are absent now take part through
+    their odometry and loops, so a team that meets in small groups still solves its whole
+    map (and a chain of meetings that closes a loop corrects every robot on it). Each group
+    is anchored on its smallest participating robot id, at that robot's current estimate (or
     odometry) of its first keyframe, so the group joins the anchor's frame. Only pairwise
     consistent loops enter a solve, and a group whose solve raises the scale-collapse alarm
     keeps its estimates (:func:`solve_checked`).
@@ -403,33 +445,35 @@ def solve_shares(
         settings: decentralized configuration (its formulation and solver by default).
         formulation, solver: override the configured ones.
         checks: if given, receives each group's :class:`~.consistency.LoopCheck`.
+        graphs: if given, receives, for every participant in a group of two or more robots
+            (held back or not), the odometry and loops of its group: what it relays later.
 
     Returns:
-        robot -> (``(K, 8)`` poses, frame id) for every robot in a group of two or more
-        whose solve was not held back.
+        robot -> (``(K, 8)`` poses, frame id) for every participant in a group of two or
+        more robots whose solve was not held back.
     """
     graph_config = settings.pose_graph
-    loops = [
-        loop
-        for share in shares.values()
-        for loop in share.loops
-        if loop.robot_a in shares and loop.robot_b in shares
-    ]
+    odometry, loops = merged_graph(shares)
     updates: dict[int, tuple[np.ndarray, int]] = {}
-    for component in connected_components(sorted(shares), loops):
-        if len(component) < 2:
+    for component in connected_components(sorted(odometry), loops):
+        present = [r for r in component if r in shares]
+        if len(component) < 2 or not present:
             continue
-        anchor = shares[component[0]]
+        group_loops = [loop for loop in loops if loop.robot_a in component]
+        graph = ({r: odometry[r] for r in component}, group_loops)
+        if graphs is not None:
+            graphs.update({r: graph for r in present})
+        anchor = shares[present[0]]
         frame = anchor.frame
         anchor_pose = anchor.estimate[0] if len(anchor.estimate) else anchor.odometry[0]
         problem = PoseGraphProblem(
-            odometry={r: shares[r].odometry for r in component},
-            loops=[loop for loop in loops if loop.robot_a in component],
-            anchor=component[0],
+            odometry=graph[0],
+            loops=group_loops,
+            anchor=present[0],
             anchor_pose=anchor_pose,
             initial={
                 r: shares[r].estimate
-                for r in component
+                for r in present
                 if shares[r].frame == frame and len(shares[r].estimate)
             },
         )
@@ -447,6 +491,6 @@ def solve_shares(
             checks.append(check)
         if check.alarm:
             continue
-        for robot in component:
+        for robot in present:
             updates[robot] = (solution.poses[robot], frame)
     return updates

@@ -95,7 +95,11 @@ class PoseGraphShare:
             frame ``frame`` (``K' = 0``: none yet).
         frame: id of the frame the estimate is expressed in (the robot's own id until it
             joins another robot's frame).
-        loops: the loop closures this robot registered with robots of the round.
+        loops: the loop closures it knows between robots of the round and the robots it
+            relays: its own and those relayed to it.
+        relayed: robot -> ``(K_r, 8)`` keyframe odometry of the robots not in the round that
+            it learnt of in earlier rounds (their pose graph travels with it, so the elected
+            robot solves the whole graph the group knows; :mod:`.robot`).
     """
 
     sender: int
@@ -106,13 +110,20 @@ class PoseGraphShare:
     estimate: np.ndarray
     frame: int
     loops: list[LoopClosure]
-    version: int = 1
+    relayed: dict[int, np.ndarray] = field(default_factory=dict)
+    version: int = 2
 
 
 @dataclass(frozen=True)
 class PoseEstimate:
     """Optimised poses of the recipient's first ``len(poses)`` keyframes in frame ``frame``;
-    no poses: no update this round (``frame`` is then meaningless)."""
+    no poses: no update this round (``frame`` is then meaningless).
+
+    Attributes:
+        relayed: robot -> ``(K_r, 8)`` keyframe odometry of the other robots of the solve,
+            and ``loops`` its loop closures: the graph the recipient relays to the robots
+            it meets later.
+    """
 
     sender: int
     recipient: int
@@ -120,7 +131,9 @@ class PoseEstimate:
     time_s: float
     poses: np.ndarray
     frame: int
-    version: int = 1
+    relayed: dict[int, np.ndarray] = field(default_factory=dict)
+    loops: list[LoopClosure] = field(default_factory=list)
+    version: int = 2
 
 
 @dataclass(frozen=True)
@@ -135,7 +148,8 @@ class RobotTask:
             nested mapping.
         prior: prior specification (``name``, ``weights``, ``retrieval_weights``,
             ``codebook``, ``device``; paths as strings or None).
-        rounds: ``(round, time_s, group)`` of every round this robot takes part in.
+        rounds: ``(round, time_s, group)`` of every round of the mission (the robot takes
+            part in those whose group holds it).
         leave: ``(round, phase)`` at which the robot drops out (failure injection), or None.
     """
 
@@ -266,6 +280,12 @@ def _check_poses(poses: np.ndarray, name: str) -> None:
     )
 
 
+def _check_relayed(relayed: dict[int, np.ndarray]) -> None:
+    require(all(r >= 0 for r in relayed), "relayed robot ids must be >= 0")
+    for r, odometry in relayed.items():
+        _check_poses(odometry, f"relayed[{r}]")
+
+
 def _check_share(m: PoseGraphShare) -> None:
     _check_round(m)
     _check_poses(m.odometry, "odometry")
@@ -274,11 +294,13 @@ def _check_share(m: PoseGraphShare) -> None:
         len(m.estimate) <= len(m.odometry) and m.frame >= 0,
         "estimate must not outnumber odometry, frame must be >= 0",
     )
+    _check_relayed(m.relayed)
 
 
 def _check_estimate(m: PoseEstimate) -> None:
     _check_round(m)
     _check_poses(m.poses, "poses")
+    _check_relayed(m.relayed)
 
 
 def _check_loop(loop: LoopClosure) -> None:
@@ -297,8 +319,19 @@ def _check_loop(loop: LoopClosure) -> None:
     )
 
 
-for _cls in (*ROBOT_MESSAGES, RobotTask, RobotProgress, RobotReport, RobotHello):
+for _cls in (
+    PlaceDescriptors,
+    EncodingRequest,
+    EncodingReply,
+    RobotTask,
+    RobotProgress,
+    RobotReport,
+    RobotHello,
+):
     codec_registry.register(_cls, version=1)
+# Version 2: the relayed pose graph (``relayed``, and ``loops`` of PoseEstimate).
+for _cls in (PoseGraphShare, PoseEstimate):
+    codec_registry.register(_cls, version=2)
 codec_registry.register(LoopClosure, version=1)
 for _cls, _check in (
     (PlaceDescriptors, _check_descriptors),

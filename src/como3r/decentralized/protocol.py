@@ -368,7 +368,7 @@ def _run_processes(
             config=config_to_dict(config),
             decentralized=asdict(settings),
             prior=_prior_fields(prior_spec),
-            rounds=[(p.round, p.time_s, list(p.group)) for p in rounds if robot in p.group],
+            rounds=[(p.round, p.time_s, list(p.group)) for p in rounds],
             leave=leave.get(robot),
         )
         slot.queue.put(codec.encode(task, max_bytes=max_bytes))

@@ -37,7 +37,7 @@ from como3r.config_decentralized import DecentralizedConfig
 from como3r.data.agent_input import AgentInput
 from como3r.data.preprocess import make_view
 from como3r.decentralized.confidence import accept_loop, correspondence_ratio, loop_probability
-from como3r.decentralized.consistency import LoopCheck, solve_shares
+from como3r.decentralized.consistency import Graphs, LoopCheck, loop_key, solve_shares
 from como3r.decentralized.keyframes import frame_odometry, select_keyframes
 from como3r.decentralized.messages import (
     DRIVER,
@@ -89,6 +89,24 @@ class RoundPlan:
     round: int
     time_s: float
     group: tuple[int, ...]
+
+
+def chain_depths(rounds: list[RoundPlan], robot: int) -> dict[int, int]:
+    """Round id -> how many rounds deep ``robot``'s peers may be busy before its round,
+    for each of its rounds: 1 plus the longest chain of rounds without it, since its peers
+    last met it, in which each round shares a robot with the next. Peers reach a round
+    after such earlier rounds, which wait in turn for theirs: in a relay of pairwise
+    meetings round a team of N robots, the last robot's first round is N rounds deep."""
+    depths: dict[int, int] = {}
+    behind: dict[int, int] = {}  # peer -> rounds it may still be in before meeting robot
+    for plan in sorted(rounds, key=lambda p: p.round):
+        depth = 1 + max((behind.get(q, 0) for q in plan.group if q != robot), default=0)
+        if robot in plan.group:
+            depths[plan.round] = depth
+            behind.update({q: 0 for q in plan.group})
+        else:
+            behind.update({q: depth for q in plan.group})
+    return depths
 
 
 @dataclass(frozen=True)
@@ -164,18 +182,23 @@ class Robot:
         self._shares: dict[int, dict[int, PoseGraphShare]] = defaultdict(dict)
         self._estimates: dict[int, PoseEstimate] = {}
         self._gone: set[int] = set()
+        # The pose graph of robots met through others (odometry, loops), relayed onwards.
+        self._relayed: dict[int, np.ndarray] = {}
+        self._relayed_loops: dict[tuple[int, int, int, int], LoopClosure] = {}
 
     # ------------------------------------------------------------------ running
 
     def run(self, rounds: list[RoundPlan]) -> RobotReport:
-        """Take part in ``rounds`` (those whose group holds this robot), telling the driver
-        how far the mission got after each, then report."""
+        """Take part in ``rounds`` (those whose group holds this robot; the others tell how
+        long its peers may be busy before, :func:`chain_depths`), telling the driver how far
+        the mission got after each, then report."""
         left = False
+        depths = chain_depths(rounds, self.robot)
         for plan in rounds:
             if self.robot not in plan.group:
                 continue
             try:
-                self._round(plan)
+                self._round(plan, depths[plan.round])
             except _Left:
                 logger.info("robot %d leaves during round %d", self.robot, plan.round)
                 left = True
@@ -215,13 +238,17 @@ class Robot:
             left=left,
         )
 
-    def _round(self, plan: RoundPlan) -> None:
+    def _round(self, plan: RoundPlan, depth: int = 1) -> None:
         r, t = plan.round, plan.time_s
         peers = [p for p in plan.group if p != self.robot]
         count = self.keyframes.up_to(t)
         self._check_leave(r, "descriptors")
         self._send_descriptors(r, t, peers, count)
-        self._wait(lambda: all((r, p) in self._got_descriptors or p in self._gone for p in peers))
+        # A peer first finishes the rounds before this one that it depends on: one timeout each.
+        self._wait(
+            lambda: all((r, p) in self._got_descriptors or p in self._gone for p in peers),
+            timeouts=depth,
+        )
         present = [p for p in peers if (r, p) in self._got_descriptors and p not in self._gone]
         leader = min([self.robot, *present])
         self._check_leave(r, "registration")
@@ -418,7 +445,15 @@ class Robot:
     def _share(
         self, r: int, t: float, leader: int, participants: list[int], count: int
     ) -> PoseGraphShare:
-        loops = [loop for loop in self.loops if loop.robot_b in participants]
+        """Its odometry, estimate and loops, with the graph of the robots it relays (those
+        it learnt of in earlier rounds and that are not in this one)."""
+        relayed = {q: o for q, o in sorted(self._relayed.items()) if q not in participants}
+        known = set(participants) | set(relayed)
+        loops = {
+            loop_key(loop): loop
+            for loop in [*self.loops, *self._relayed_loops.values()]
+            if loop.robot_a in known and loop.robot_b in known
+        }
         return PoseGraphShare(
             sender=self.robot,
             recipient=leader,
@@ -427,7 +462,8 @@ class Robot:
             odometry=self.odometry[:count],
             estimate=self.estimate[:count],
             frame=self.frame,
-            loops=loops,
+            loops=list(loops.values()),
+            relayed=relayed,
         )
 
     def _solve_and_broadcast(
@@ -439,15 +475,24 @@ class Robot:
             **{p: self._shares[r][p] for p in present if p in self._shares[r]},
         }
         checks: list[LoopCheck] = []
-        updates = solve_shares(shares, self.settings, checks=checks)
+        graphs: Graphs = {}
+        updates = solve_shares(shares, self.settings, checks=checks, graphs=graphs)
         self.scale_alarms += sum(check.alarm for check in checks)
         # The last solve's count: every solve sees all loops found so far.
         self.loops_held_back = sum(check.loops - int(check.consistent.sum()) for check in checks)
         # Every robot present gets an answer, empty when it has no update, so none waits.
         for robot in sorted([self.robot, *present]):
             poses, frame = updates.get(robot, (np.zeros((0, 8)), -1))
+            odometry, loops = graphs.get(robot, ({}, []))
             estimate = PoseEstimate(
-                sender=self.robot, recipient=robot, round=r, time_s=t, poses=poses, frame=frame
+                sender=self.robot,
+                recipient=robot,
+                round=r,
+                time_s=t,
+                poses=poses,
+                frame=frame,
+                relayed={q: o for q, o in odometry.items() if q != robot},
+                loops=loops,
             )
             if robot == self.robot:
                 self._apply(estimate)
@@ -458,3 +503,8 @@ class Robot:
         if len(estimate.poses):
             self.estimate = np.asarray(estimate.poses, dtype=np.float64)
             self.frame = estimate.frame
+        for robot, odometry in estimate.relayed.items():
+            if robot != self.robot and len(odometry) > len(self._relayed.get(robot, ())):
+                self._relayed[robot] = odometry
+        for loop in estimate.loops:
+            self._relayed_loops.setdefault(loop_key(loop), loop)

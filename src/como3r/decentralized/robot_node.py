@@ -64,12 +64,7 @@ def plan_digest(config: Config, schedule: Schedule, team: int, prior: str) -> st
     """What robots of one team must agree on, as a short digest: the configuration (with
     the schedule's windows in place of its file name), the team size and the prior."""
     document = config_to_dict(config)
-    windows = (
-        None
-        if schedule.windows is None
-        else {str(r): [list(w) for w in spans] for r, spans in sorted(schedule.windows.items())}
-    )
-    document["decentralized"]["protocol"]["schedule"] = windows
+    document["decentralized"]["protocol"]["schedule"] = schedule.to_json()
     document["team"], document["prior"] = team, prior
     text = json.dumps(document, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
@@ -139,13 +134,10 @@ def run_robot(
         )
         worker = make_robot(robot, str(path), prior, codebook, config, settings, link, None)
         end_s = max(h.end_s for h in link.meet_team().values())
-        rounds = [
-            plan
-            for plan in plan_rounds(schedule, range(team), end_s, settings.protocol.round_period_s)
-            if robot in plan.group
-        ]
+        mission = plan_rounds(schedule, range(team), end_s, settings.protocol.round_period_s)
+        rounds = [plan for plan in mission if robot in plan.group]
         logger.info("robot %d: the team has met; %d round(s) ahead", robot, len(rounds))
-        report = worker.run(rounds)
+        report = worker.run(mission)
         if adapter is not None:
             adapter(report)
         link.finish(

@@ -30,20 +30,38 @@ MissionProgress = Callable[[RobotProgress | RobotReport], None]
 
 @dataclass
 class TrafficCounter:
-    """Bytes and messages delivered, per robot and message type; messages dropped (out of
-    range, or to a robot that is gone) per type."""
+    """Bytes and messages delivered, per robot and message type and per robot and round;
+    messages dropped (out of range, or to a robot that is gone) per type."""
 
     sent: dict[int, Counter] = field(default_factory=dict)
     received: dict[int, Counter] = field(default_factory=dict)
+    sent_by_round: dict[int, Counter] = field(default_factory=dict)
+    peers_by_round: dict[int, dict[int, set[int]]] = field(default_factory=dict)
     messages: Counter = field(default_factory=Counter)
     bytes_by_type: Counter = field(default_factory=Counter)
     dropped: Counter = field(default_factory=Counter)
 
-    def count(self, sender: int, recipient: int, kind: str, size: int) -> None:
+    def count(self, sender: int, recipient: int, kind: str, size: int, round: int = -1) -> None:
         self.sent.setdefault(sender, Counter())[kind] += size
         self.received.setdefault(recipient, Counter())[kind] += size
+        self.sent_by_round.setdefault(sender, Counter())[round] += size
+        self.peers_by_round.setdefault(sender, {}).setdefault(round, set()).add(recipient)
         self.messages[kind] += 1
         self.bytes_by_type[kind] += size
+
+    def max_sent_per_round(self) -> int:
+        """The most bytes one robot sent in one round (0 before any traffic): what must
+        stay bounded as the team grows."""
+        return max(
+            (b for rounds in self.sent_by_round.values() for b in rounds.values()), default=0
+        )
+
+    def max_peers_per_round(self) -> int:
+        """The most robots one robot sent to in one round."""
+        return max(
+            (len(peers) for rounds in self.peers_by_round.values() for peers in rounds.values()),
+            default=0,
+        )
 
     def to_json(self, robots: Sequence[int]) -> dict[str, Any]:
         per_robot = {
@@ -52,11 +70,16 @@ class TrafficCounter:
                 "received": dict(self.received.get(r, {})),
                 "sent_total": sum(self.sent.get(r, Counter()).values()),
                 "received_total": sum(self.received.get(r, Counter()).values()),
+                "sent_by_round": {
+                    str(k): v for k, v in sorted(self.sent_by_round.get(r, Counter()).items())
+                },
             }
             for r in robots
         }
         return {
             "per_robot": per_robot,
+            "max_sent_per_round": self.max_sent_per_round(),
+            "max_peers_per_round": self.max_peers_per_round(),
             "bytes_by_type": dict(self.bytes_by_type),
             "messages_by_type": dict(self.messages),
             "bytes_per_message": {k: v / self.messages[k] for k, v in self.bytes_by_type.items()},
@@ -117,7 +140,7 @@ class Router:
             ):
                 self.traffic.dropped[kind] += 1
                 return
-            self.traffic.count(sender, recipient, kind, len(data))
+            self.traffic.count(sender, recipient, kind, len(data), message.round)
         self.deliver(recipient, data)
 
 
