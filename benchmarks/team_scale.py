@@ -30,8 +30,9 @@ process of its own so memory peaks do not carry over. Per team size the table gi
 * ``coord MB``, ``agent MB``: peak resident memory (``VmHWM``) of the coordinator's
   process over the whole run (terminal refinement and evaluation included) and of the
   largest agent process;
-* ``ATE %``: merged ATE RMSE (every agent aligned by one similarity) over the agents'
-  mean ground-truth path length; ``maps``: gauge components at the end (1: one map);
+* ``ATE mm``, ``path m``, ``ATE %``: merged ATE RMSE (every agent aligned by one
+  similarity; one agent: its own), the agents' mean ground-truth path length, and the one
+  over the other; ``maps``: gauge components at the end (1: one map);
 * ``kB/robot``: bytes exchanged between the coordinator and one agent (both directions),
   averaged over the agents.
 
@@ -90,6 +91,8 @@ COLUMNS = (
     "cleanup s",
     "coord MB",
     "agent MB",
+    "ATE mm",
+    "path m",
     "ATE %",
     "maps",
     "kB/robot",
@@ -258,8 +261,9 @@ def row(agents: int, seed: int, scene: Path, out: Path, measured: dict[str, Any]
         measured["calls"], frame_times, {int(k): v for k, v in measured["cpu_per_frame"].items()}
     )
     paths = [_path_length(scene / f"agent_{a}" / "groundtruth.txt") for a in range(agents)]
-    merged = metrics.get("ate", {}).get("merged")
-    ate = 100.0 * merged["ate"]["rmse"] / float(np.mean(paths)) if merged else float("nan")
+    ate_json = metrics.get("ate", {})
+    merged = ate_json.get("merged") or next(iter(ate_json.get("agents", [])), None)
+    rmse = merged["ate"]["rmse"] if merged else float("nan")  # one agent: its own
     backlog = runtime.get("backlog", {})
     per_robot = [
         sum(a["bytes_to_agent"].values()) + sum(a["bytes_from_agent"].values())
@@ -281,7 +285,9 @@ def row(agents: int, seed: int, scene: Path, out: Path, measured: dict[str, Any]
         "cleanup s": coordinator["stage_seconds"].get("cleanup", 0.0),
         "coord MB": measured["coordinator_peak_mb"],
         "agent MB": measured["agent_peak_mb"],
-        "ATE %": ate,
+        "ATE mm": 1000.0 * rmse,
+        "path m": float(np.mean(paths)),
+        "ATE %": 100.0 * rmse / float(np.mean(paths)),
         "maps": len(metrics["components"]),
         "kB/robot": float(np.mean(per_robot)) / 1000.0,
     }

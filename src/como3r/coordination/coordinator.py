@@ -21,7 +21,10 @@ any interleaving, and for each one
    component's first keyframe pinned (keyframe 0 of agent 0 for the global gauge);
 
 and returns :class:`~como3r.frontend.packets.PoseUpdate` s for the agents whose keyframes
-moved (C-Sec. A.8). :meth:`Coordinator.finish` runs the terminal pose-depth alternation
+moved (C-Sec. A.8). Keyframes that waited for a busy coordinator come as one batch
+(:meth:`Coordinator.add_keyframes`): steps 1 and 2's retrieval in time order, verification
+and step 3 newest first, step 4 once after the batch (issue 41: a coordinator that falls
+behind does not solve once per waiting keyframe). :meth:`Coordinator.finish` runs the terminal pose-depth alternation
 (C-Sec. A.7; :mod:`como3r.backend.alternation`) and returns the final poses and the refined
 canonical pointmaps.
 
