@@ -70,7 +70,7 @@ class PhaseEvent:
     """The coordinator starts step ``done + 1`` of phase ``name``.
 
     Attributes:
-        name: the phase: ``"coordinator backlog"`` (while agents stream, multi-process
+        name: the phase: ``"backlog"`` (while agents stream, multi-process
             runs: keyframes waiting and seconds of input behind in ``detail``, keyframes
             handled of those received in ``done`` and ``total``), ``"queued keyframes"``,
             ``"focal refinement"``, ``"cleanup pass"``,

@@ -51,7 +51,7 @@ OVERRIDES = [
 FINISH_THREADS = 2
 
 #: the phase that shows the coordinator's backlog while agents stream
-BACKLOG = "coordinator backlog"
+BACKLOG = "backlog"
 
 #: how long the coordinator of the slow-reader test is busy in one keyframe [s]
 BUSY_S = 12.0

@@ -279,7 +279,7 @@ class _Runtime(AgentEvents):
         if self.progress is not None and not ended and self.pending:
             report_phase(
                 self.progress,
-                "coordinator backlog",
+                "backlog",
                 self.backlog.text(),
                 self.backlog.handled,
                 self.backlog.handled + len(self.pending),
