@@ -116,6 +116,13 @@ class GlobalBAConfig:
     """Global Sim(3) bundle adjustment, C-Eq. 5 and C-Eq. 25 (C-Tab. 3)."""
 
     trigger_interval_edges: int = 1
+    # not in the paper: keyframes that waited for a busy coordinator are taken together,
+    # up to this many (Coordinator.add_keyframes): inserted and retrieved in time order,
+    # verified newest first, and the in-stream BA runs at most once per batch, so the
+    # solves a falling-behind coordinator makes do not grow with the keyframes waiting.
+    # A keyframe handed over as it comes (the single-process runner, lockstep) is a batch
+    # of one: the paper's BA after every trigger_interval_edges
+    max_batch_keyframes: int = 32
     max_iters_stream: int = 50
     max_iters_cleanup: int = 100
     cleanup_passes: int = 5

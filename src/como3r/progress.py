@@ -70,7 +70,10 @@ class PhaseEvent:
     """The coordinator starts step ``done + 1`` of phase ``name``.
 
     Attributes:
-        name: the phase: ``"queued keyframes"``, ``"focal refinement"``, ``"cleanup pass"``,
+        name: the phase: ``"backlog"`` (while agents stream, multi-process
+            runs: keyframes waiting and seconds of input behind in ``detail``, keyframes
+            handled of those received in ``done`` and ``total``), ``"queued keyframes"``,
+            ``"focal refinement"``, ``"cleanup pass"``,
             ``"alternation round"``, ``"outputs"``, ``"evaluation"``, ``"report"``; in the
             decentralized mode also ``"formulation table"``.
         detail: what the step works on, one short line (agents, last step's change, files).

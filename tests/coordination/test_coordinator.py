@@ -157,18 +157,27 @@ def _run(
     order: list[KeyframePacket],
     config: Config | None = None,
     agents: int | None = None,
+    batch: int = 1,
 ) -> tuple[Coordinator, list[PoseUpdate]]:
     """Feed packets in ``order`` as agents would: each agent applies the updates it gets,
     so its later keyframes arrive in the corrected frame (AgentFrontend.apply_pose_update:
-    keyframes after the newest updated one follow it rigidly)."""
+    keyframes after the newest updated one follow it rigidly). ``batch`` > 1: the
+    coordinator takes that many at a time (``add_keyframes``), as one that fell behind."""
     coordinator = Coordinator(
         scene.prior, config or scene.config, scene.prior.codebook(), agents or len(scene.packets)
     )
     correction = {a: torch.tensor([0, 0, 0, 0, 0, 0, 1, 1.0]) for a in scene.packets}
     updates = []
-    for packet in order:
-        moved = sim3_compose(correction[packet.agent], packet.T_WC)
-        new = coordinator.add_keyframe(dataclasses.replace(packet, T_WC=moved))
+    for start in range(0, len(order), batch):
+        packets = [
+            dataclasses.replace(p, T_WC=sim3_compose(correction[p.agent], p.T_WC))
+            for p in order[start : start + batch]
+        ]
+        new = (
+            coordinator.add_keyframe(packets[0])
+            if batch == 1
+            else coordinator.add_keyframes(packets)
+        )
         for update in new:
             newest = int(update.kf_ids.max())
             original = scene.packets[update.agent][newest].T_WC
@@ -543,3 +552,48 @@ def test_re_sent_keyframes_are_answered_once_the_last_held_one_comes_again(ring)
     assert len(coordinator.graph) == 3 and coordinator.stats.keyframes == stats.keyframes
     with pytest.raises(InputError, match="re-sent keyframe 1 at frame"):
         coordinator.add_keyframe(dataclasses.replace(packets[1], frame_index=999))
+
+
+def test_a_batch_is_verified_newest_first_with_one_global_ba(ring) -> None:
+    """Keyframes taken as batches (a coordinator that fell behind): every keyframe is
+    retrieved as it would have been alone, the newest is verified first, the global BA runs
+    once per batch at most, the agents still merge; the same batches give the same result."""
+    order = _interleave(ring, [0, 1])
+    alone, _ = _run(ring, order, agents=2)
+    runs = [_run(ring, order, agents=2, batch=4) for _ in range(2)]
+    coordinator, updates = runs[0]
+    stats = coordinator.stats
+    batches = -(-len(order) // 4)
+    assert stats.keyframes == len(order) and stats.batches == batches
+    assert stats.largest_batch == 4
+    assert stats.ba_runs <= min(batches, alone.stats.ba_runs)
+    assert stats.retrieval_queries == alone.stats.retrieval_queries
+    assert stats.prior_decodes <= ring.config.verification.max_decodes_per_keyframe * len(order)
+    assert coordinator.components() == [[0, 1]]
+    # within a batch the newest keyframe's candidates were verified (recorded) first
+    queries = [c.verification.query for c in coordinator.candidates]
+    first = {key: queries.index(key) for key in dict.fromkeys(queries)}
+    for start in range(0, len(order), 4):
+        keys = [(p.agent, p.kf_id) for p in order[start : start + 4] if (p.agent, p.kf_id) in first]
+        assert [first[k] for k in keys] == sorted((first[k] for k in keys), reverse=True)
+    # deterministic: the same batches, the same poses and updates
+    other, other_updates = runs[1]
+    assert torch.equal(
+        coordinator.graph.poses(range(len(order))), other.graph.poses(range(len(order)))
+    )
+    assert [(u.agent, u.reason) for u in updates] == [(u.agent, u.reason) for u in other_updates]
+
+
+def test_a_batch_of_one_is_a_single_keyframe(ring) -> None:
+    """add_keyframes([p]) is add_keyframe(p): the same poses, counters and candidates."""
+    order = _interleave(ring, [0, 1])[:8]
+    one = Coordinator(ring.prior, ring.config, ring.prior.codebook(), 2)
+    batched = Coordinator(ring.prior, ring.config, ring.prior.codebook(), 2)
+    for packet in order:
+        one.add_keyframe(packet)
+        batched.add_keyframes([packet])
+    assert torch.equal(one.graph.poses(range(len(order))), batched.graph.poses(range(len(order))))
+    assert one.metrics().keys() == batched.metrics().keys()
+    for key in ("keyframes", "edges_tried", "edges_accepted", "gauge_syncs", "ba_runs", "batches"):
+        assert getattr(one.stats, key) == getattr(batched.stats, key), key
+    assert [c.status for c in one.candidates] == [c.status for c in batched.candidates]

@@ -50,6 +50,9 @@ OVERRIDES = [
 #: torch threads of the process that starts the free-running run (the suite uses one)
 FINISH_THREADS = 2
 
+#: the phase that shows the coordinator's backlog while agents stream
+BACKLOG = "backlog"
+
 #: how long the coordinator of the slow-reader test is busy in one keyframe [s]
 BUSY_S = 12.0
 
@@ -152,9 +155,13 @@ def free(scene, config, tmp_path_factory) -> tuple[Path, RunSummary]:
         assert {e.frames_total for e in mine} == {total}
         assert mine[-1].keyframes == summary.agents[agent]["keyframes"]
         assert mine[-1].lost == summary.agents[agent]["lost"]
-    assert progress[: len(frames)] == frames  # the agents' events, then the terminal work's
-    phases = progress[len(frames) :]
+    # the agents' events with the coordinator's backlog among them, then the terminal work's
+    streaming = [e for e in progress if not (isinstance(e, PhaseEvent) and e.name == BACKLOG)]
+    assert streaming[: len(frames)] == frames
+    phases = streaming[len(frames) :]
     assert all(isinstance(e, PhaseEvent) for e in phases)
+    backlog = [e for e in progress if isinstance(e, PhaseEvent) and e.name == BACKLOG]
+    assert all(e.done < e.total and "behind" in e.detail for e in backlog)
     assert {"alternation round", "outputs", "report"} <= {e.name for e in phases}
     return out, summary
 
@@ -176,8 +183,12 @@ def _max_relative_difference(a: Path, b: Path, kind: str, agent: int) -> float:
 def _assert_same_run(reference: Path, other: Path, tolerance: float) -> None:
     ref, oth = _metrics(reference), _metrics(other)
     assert ref["components"] == oth["components"] == [[0, 1]]  # the agents met
-    for key in ("keyframes", "edges_accepted", "gauge_syncs", "ba_runs"):
+    for key in ("keyframes", "edges_accepted", "gauge_syncs"):
         assert ref["coordinator"][key] == oth["coordinator"][key], key
+    # keyframes that waited for a busy coordinator share a batch and its one global BA
+    shared = oth["coordinator"]["keyframes"] - oth["coordinator"]["batches"]
+    runs = ref["coordinator"]["ba_runs"]
+    assert runs - shared <= oth["coordinator"]["ba_runs"] <= runs
     for agent in (0, 1):
         for key in ("frames", "tracked", "lost", "keyframes"):
             assert ref["agents"][agent][key] == oth["agents"][agent][key], (agent, key)
@@ -254,6 +265,12 @@ def test_free_running_agents_match_the_single_process_run(single, free) -> None:
     runtime = _metrics(out)["runtime"]
     assert runtime["lockstep"] is False and runtime["failed_agents"] == []
     assert [a["frames_done"] for a in runtime["agents"]] == [FRAMES // 2, SHORT // 2]
+    # the coordinator's backlog: sampled when the input ended, and none left after it
+    backlog, keyframes = runtime["backlog"], _metrics(out)["coordinator"]["keyframes"]
+    assert backlog["keyframes_handled"] == keyframes
+    assert keyframes >= backlog["max_keyframes"] >= backlog["end_keyframes"] >= 0
+    assert backlog["max_seconds"] >= backlog["end_seconds"] >= 0.0
+    assert backlog["drain_seconds"] >= 0.0
 
 
 @pytest.mark.slow

@@ -29,7 +29,17 @@ from como3r.store.schema import FORMAT_VERSION, STORE_NAME
 
 pytestmark = pytest.mark.slow
 
-RUN = ["--prior", "simulated", "--set", "input.long_side=64", "-q"]
+# keyframes go to the coordinator one at a time (no batches): the kills and signals below
+# count the keyframes stored and the coordinator's add_keyframe calls
+RUN = [
+    "--prior",
+    "simulated",
+    "--set",
+    "input.long_side=64",
+    "--set",
+    "global_ba.max_batch_keyframes=1",
+    "-q",
+]
 
 
 @pytest.fixture(scope="module")

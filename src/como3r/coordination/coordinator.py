@@ -21,7 +21,10 @@ any interleaving, and for each one
    component's first keyframe pinned (keyframe 0 of agent 0 for the global gauge);
 
 and returns :class:`~como3r.frontend.packets.PoseUpdate` s for the agents whose keyframes
-moved (C-Sec. A.8). :meth:`Coordinator.finish` runs the terminal pose-depth alternation
+moved (C-Sec. A.8). Keyframes that waited for a busy coordinator come as one batch
+(:meth:`Coordinator.add_keyframes`): steps 1 and 2's retrieval in time order, verification
+and step 3 newest first, step 4 once after the batch (issue 41: a coordinator that falls
+behind does not solve once per waiting keyframe). :meth:`Coordinator.finish` runs the terminal pose-depth alternation
 (C-Sec. A.7; :mod:`como3r.backend.alternation`) and returns the final poses and the refined
 canonical pointmaps.
 
@@ -69,6 +72,7 @@ from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpd
 from como3r.frontend.paging import KeyframeParking, read_fields
 from como3r.frontend.timing import StageTimer, TimedPrior
 from como3r.prior.base import Prior
+from como3r.prior.retrieval import Hit
 from como3r.progress import PhaseCallback
 
 logger = logging.getLogger(__name__)
@@ -98,6 +102,10 @@ class CoordinatorStats:
     cleanup_iterations: int = 0
     cleanup_seconds: float = 0.0
     pose_updates: int = 0
+    # keyframes are taken in batches (Coordinator.add_keyframes): how many batches had a new
+    # keyframe, and the most new keyframes one had (1: the coordinator never fell behind)
+    batches: int = 0
+    largest_batch: int = 0
     # ordered pairs the prior decoded for the coordinator (verification): the prior's work
     # its keyframes caused, as the agents' decodes are theirs (benchmarks/report.py)
     prior_decodes: int = 0
@@ -176,7 +184,8 @@ class Coordinator(InterAgentLinking, FocalAlignment):
         return agent
 
     def add_keyframe(self, packet: KeyframePacket) -> list[PoseUpdate]:
-        """Insert, associate, synchronize and (maybe) optimize one new keyframe.
+        """Insert, associate, synchronize and (maybe) optimize one new keyframe: a batch of
+        one (:meth:`add_keyframes`).
 
         A keyframe the coordinator holds already (an agent re-sending after the coordinator
         resumed from its session store) changes nothing; the last one it holds of that agent
@@ -191,26 +200,61 @@ class Coordinator(InterAgentLinking, FocalAlignment):
             InputError: unknown agent id, a keyframe out of order, or a re-sent keyframe of
                 another frame than the one held.
         """
-        if not 0 <= packet.agent < self.num_agents:
-            raise InputError(
-                f"coordinator: agent id {packet.agent} is out of range for {self.num_agents} agents"
-            )
-        if packet.kf_id < len(self.graph.agent_keyframes(packet.agent)):
-            return self._record(self._count(self._resent(packet)))
-        g = self.graph.add_keyframe(packet)
-        self.stats.keyframes += 1
+        return self.add_keyframes([packet])
+
+    def add_keyframes(self, packets: Sequence[KeyframePacket]) -> list[PoseUpdate]:
+        """Take the keyframes that waited for the coordinator as one batch.
+
+        In the given order (the runtimes' ``(timestamp, agent)`` order) each keyframe is
+        inserted into the graph and its retrieval query made and indexed (cheap), so every
+        keyframe's hits are those it would have had alone; then the keyframes are verified
+        and their edges admitted NEWEST FIRST, each within its own decode budget
+        (``verification.max_decodes_per_keyframe``): the part of the map the agents are in
+        now is linked first. The in-stream global BA (C-Eq. 5) runs at most once, after the
+        whole batch, if ``global_ba.trigger_interval_edges`` new inter-agent edges are
+        waiting by then; the journal keeps the batch's effect in one transaction. A batch
+        of one is :meth:`add_keyframe`'s single keyframe, step for step. The result depends
+        on the batch's content and order only, never on timing.
+
+        Args:
+            packets: the keyframes, oldest first; re-sent ones are answered as in
+                :meth:`add_keyframe`.
+
+        Returns:
+            The pose updates of the batch in the order they were made (re-sent keyframes'
+            answers, gauge transports, the global BA's).
+
+        Raises:
+            InputError: as :meth:`add_keyframe`, for any keyframe of the batch.
+        """
         updates: list[PoseUpdate] = []
-        for candidate in self._associate(packet):
-            updates.extend(self._admit(candidate))
-        if self._new_edges >= self.config.global_ba.trigger_interval_edges:
+        fresh: list[tuple[KeyframePacket, list[Hit]]] = []
+        for packet in packets:
+            if not 0 <= packet.agent < self.num_agents:
+                raise InputError(
+                    f"coordinator: agent id {packet.agent} is out of range for "
+                    f"{self.num_agents} agents"
+                )
+            if packet.kf_id < len(self.graph.agent_keyframes(packet.agent)):
+                updates.extend(self._resent(packet))
+                continue
+            self.graph.add_keyframe(packet)
+            self.stats.keyframes += 1
+            fresh.append((packet, self._retrieve(packet)))
+        for packet, hits in reversed(fresh):
+            found = len(updates)
+            for candidate in self._verify(packet, hits):
+                updates.extend(self._admit(candidate))
+            logger.debug(
+                "coordinator: agent %d kf %d: %d gauge update(s)",
+                packet.agent,
+                packet.kf_id,
+                len(updates) - found,
+            )
+        if fresh and self._new_edges >= self.config.global_ba.trigger_interval_edges:
             updates.extend(self._global_ba())
-        logger.debug(
-            "coordinator: keyframe %d (agent %d, kf %d): %d update(s)",
-            g,
-            packet.agent,
-            packet.kf_id,
-            len(updates),
-        )
+        self.stats.batches += int(bool(fresh))
+        self.stats.largest_batch = max(self.stats.largest_batch, len(fresh))
         return self._record(self._count(updates))
 
     def refresh(self, agent: int, refresh: PointmapRefresh) -> None:

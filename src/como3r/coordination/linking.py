@@ -43,7 +43,7 @@ from como3r.frontend.pairs import DirectedMatches, gather_points
 from como3r.frontend.timing import TimedPrior
 from como3r.geometry.lie import sim3_act
 from como3r.prior.base import Encoding
-from como3r.prior.retrieval import Quantized
+from como3r.prior.retrieval import Hit, Quantized
 
 # the coordinator's logger: its messages read as they did before this part had a module
 logger = logging.getLogger("como3r.coordination.coordinator")
@@ -66,8 +66,9 @@ class InterAgentLinking:
     _new_edges: int
     _dirty_roots: set[int]
 
-    def _associate(self, packet: KeyframePacket) -> list[Candidate]:
-        """Retrieve candidates of other agents and verify them densely (C-Eq. 12)."""
+    def _retrieve(self, packet: KeyframePacket) -> list[Hit]:
+        """Query the shared database for keyframes of other agents, then index this one
+        (the retrieval half of association; :meth:`_verify` is the other)."""
         if self.retrieval is None or packet.retrieval is None:
             return []
         start = time.perf_counter()
@@ -79,8 +80,15 @@ class InterAgentLinking:
             descriptors = Quantized(descriptors, packet.retrieval_words)  # the agent's search
         hits = self.retrieval.query_and_add(packet.agent, packet.kf_id, (descriptors, attention))
         self.stats.retrieval_queries += 1
+        self.stats.add_time("retrieval", time.perf_counter() - start)
+        return hits
+
+    def _verify(self, packet: KeyframePacket, hits: list[Hit]) -> list[Candidate]:
+        """The candidates among a keyframe's retrieval hits that its decode budget allows,
+        verified densely (C-Eq. 12); returns the accepted ones."""
+        if not hits:
+            return []
         middle = time.perf_counter()
-        self.stats.add_time("retrieval", middle - start)
         root = self.gauges.find(packet.agent)
         hits = budget_candidates(
             hits, lambda agent: self.gauges.find(agent) == root, self.config.verification

@@ -48,7 +48,7 @@ import torch
 from como3r.config import Config, config_to_dict
 from como3r.coordination.coordinator import Coordinator
 from como3r.data.agent_input import AgentInput
-from como3r.frontend.packets import PoseUpdate
+from como3r.frontend.packets import KeyframePacket, PoseUpdate
 from como3r.geometry.lie import sim3_compose, sim3_inverse
 from como3r.live import LiveCallback
 from como3r.progress import (
@@ -58,6 +58,7 @@ from como3r.progress import (
 )
 from como3r.runtime.agent_events import AgentEvents, RuntimeOptions, Waiting
 from como3r.runtime.agent_worker import prior_fields
+from como3r.runtime.backlog import Backlog
 from como3r.runtime.interrupts import checkpoint, finishing
 from como3r.runtime.live import CoordinatorLive
 from como3r.runtime.map_session import SavedMap, map_results
@@ -142,6 +143,8 @@ class _Runtime(AgentEvents):
         #: the coordinator's terminal alternation ran (a resumed coordinator's store says so)
         self.cleaned_up = False
         self._arrivals = 0
+        #: how far the coordinator trails the agents (metrics.json: runtime.backlog)
+        self.backlog = Backlog()
         #: bytes per part of the keyframe messages received, per agent (metrics.json)
         self.keyframe_parts: dict[int, PartCounter] = {}
         saved = [] if saved_map is None else map_results(saved_map)
@@ -270,37 +273,82 @@ class _Runtime(AgentEvents):
     # ---------------------------------------------------------------- keyframes and updates
 
     def _process_pending(self, force: bool = False, progress: PhaseCallback | None = None) -> None:
-        """Hand waiting keyframes to the coordinator in ``(timestamp, agent)`` order, each
-        once no running agent present can still send an earlier one; ``progress`` hears of
-        each (the backlog once the agents stopped: the coordinator may trail them by many)."""
-        queued = len(self.pending)
+        """Hand the waiting keyframes whose turn has come to the coordinator in batches
+        (:meth:`~como3r.coordination.coordinator.Coordinator.add_keyframes`, at most
+        ``global_ba.max_batch_keyframes`` each), in ``(timestamp, agent)`` order, each once
+        no running agent present can still send an earlier one (``force``: all of them).
+        The backlog is sampled first (:mod:`.backlog`) and shown as the coordinator's line
+        while agents run; ``progress`` hears of each batch (the backlog once the agents
+        stopped: the coordinator may trail them by many)."""
+        ended = not any(s.expected() for s in self.slots)
+        self.backlog.sample((key[0] for key, _ in self.pending), ended)
+        if self.progress is not None and not ended and self.pending:
+            report_phase(
+                self.progress,
+                "backlog",
+                self.backlog.text(),
+                self.backlog.handled,
+                self.backlog.handled + len(self.pending),
+            )
+        queued, limit = len(self.pending), max(1, self.config.global_ba.max_batch_keyframes)
         while self.pending:
-            (timestamp, agent, _, _), waiting = self.pending[0]
-            if not force and not all(
-                (s.order_clock(), s.agent) > (timestamp, agent)
-                for s in self.slots
-                if s.agent != agent
-            ):
+            checkpoint()  # between batches: a backlog can take long
+            batch: list[Waiting] = []
+            while self.pending and len(batch) < limit:
+                (timestamp, agent, _, _), waiting = self.pending[0]
+                if not force and not all(
+                    (s.order_clock(), s.agent) > (timestamp, agent)
+                    for s in self.slots
+                    if s.agent != agent
+                ):
+                    break
+                heapq.heappop(self.pending)
+                batch.append(waiting)
+            if not batch:
                 return
-            checkpoint()  # between keyframes: a backlog can take long
             report_phase(
                 progress,
                 "queued keyframes",
                 "retrieval, verification, global BA",
-                queued - len(self.pending),
+                queued - len(self.pending) - len(batch),
                 queued,
             )
-            heapq.heappop(self.pending)
-            self._add_keyframe(waiting.segment, waiting.message)
+            self._add_keyframes(batch)
 
-    def _add_keyframe(self, segment: MapSegment, message: KeyframeMessage) -> None:
+    def _add_keyframes(self, batch: Sequence[Waiting]) -> None:
+        """One batch of keyframes to the coordinator; its updates to the agents."""
+        packets = [
+            packet
+            for packet in (self._packet(w.segment, w.message) for w in batch)
+            if packet is not None
+        ]
+        if not packets:
+            return
+        coordinator = self.coordinator
+        one = len(packets) == 1  # the single-process runner's call
+        updates = (
+            coordinator.add_keyframe(packets[0]) if one else coordinator.add_keyframes(packets)
+        )
+        for update in updates:
+            self._send_update(update)
+        self.backlog.handed(packet.timestamp for packet in packets)
+        if self.coordinator_live is not None:
+            for k, packet in enumerate(packets):  # the map moved once, after the batch
+                self.coordinator_live.keyframe_added(
+                    packet, updates if k == len(packets) - 1 else []
+                )
+
+    def _packet(self, segment: MapSegment, message: KeyframeMessage) -> KeyframePacket | None:
+        """The coordinator's packet of a received keyframe (its segment's agent id, re-anchored
+        if it is stale), its view appended to the segment's result; None (the agent failed)
+        for a keyframe out of order."""
         packet, keyframes = message.packet, segment.result.keyframes
         if packet.kf_id != len(keyframes):
             self._fail(
                 self.slots[segment.agent],
                 f"protocol error: keyframe {packet.kf_id} after {len(keyframes)}",
             )
-            return
+            return None
         packet = replace(packet, agent=segment.index)
         stale = message.applied_seq < segment.sent_seq
         if stale and packet.kf_id > 0 and message.T_WC_previous is not None:
@@ -319,11 +367,7 @@ class _Runtime(AgentEvents):
                 packet.T_WC.clone(),
             )
         )
-        updates = self.coordinator.add_keyframe(packet)
-        for update in updates:
-            self._send_update(update)
-        if self.coordinator_live is not None:
-            self.coordinator_live.keyframe_added(packet, updates)
+        return packet
 
     def _send_update(self, update: PoseUpdate) -> None:
         """Record a coordinator update of a segment, apply it to the segment's result and
@@ -456,4 +500,5 @@ class _Runtime(AgentEvents):
             "bytes_by_type": dict(by_type),
             "bytes_total": sum(by_type.values()),
             "failed_agents": [s.agent for s in self.slots if s.status == "failed"],
+            "backlog": self.backlog.to_json(),
         }

@@ -1,0 +1,403 @@
+"""Teams of 1 to 16 agents, centralized: does the coordinator's cost per keyframe stay flat?
+
+For every team size a synthetic ring scene is made (``como3r synth --agents N``: neighbours
+share ``--overlap`` of their paths, non-neighbours never meet; ``--loop-frames`` lays the
+loop out for longer paths than the ``--frames`` rendered, as the dashboard's scene does) and
+run with the default multi-process runtime (``como3r run``: one process per agent, the
+coordinator in the measuring process, free-running, simulated prior), each size in a
+process of its own so memory peaks do not carry over. Per team size the table gives
+
+* ``coord ms/kf``: the coordinator's CPU time (its thread's, so other processes on the
+  cores do not count) in ``add_keyframe(s)`` per keyframe: retrieval, verification and
+  its decodes, gauge merges, in-stream global BA and the session store's writes, all of
+  the in-stream work; the terminal cleanup is apart (``cleanup s``, wall);
+* ``coord s/s input``: that CPU time per second of the team's input (its timestamps);
+* ``decodes/kf``: prior decodes the verification caused per keyframe (the budget,
+  ``verification.max_decodes_per_keyframe``, bounds it per keyframe);
+* ``end kf``, ``end s``, ``drain s``: the backlog at the end of the input when every agent
+  runs at its measured frame rate on a core of its own and the coordinator on another: a
+  replay of the measured per-keyframe coordinator CPU times (a batch's split evenly over
+  its keyframes) against the keyframes' arrival times, each agent's frames at its own
+  CPU seconds per frame (read from ``/proc`` between its first and last frame: the
+  agents' startup is left out). At the moment the last agent's last frame is done:
+  keyframes arrived and not yet handled, seconds of input the coordinator trails (newest
+  arrived keyframe's timestamp minus newest handled one's) and seconds it then needs to
+  finish. A coordinator that keeps up trails by at most the keyframes of the last moment;
+* ``rt end kf``, ``rt max kf``: the runtime's own backlog (``metrics.json``
+  ``runtime.backlog``) on this machine, where all processes share its cores: at the end
+  of the input and the most during the run;
+* ``batch``: the most keyframes the coordinator took at once;
+* ``coord MB``, ``agent MB``: peak resident memory (``VmHWM``) of the coordinator's
+  process over the whole run (terminal refinement and evaluation included) and of the
+  largest agent process;
+* ``ATE mm``, ``path m``, ``ATE %``: merged ATE RMSE (every agent aligned by one
+  similarity; one agent: its own), the agents' mean ground-truth path length, and the one
+  over the other; ``maps``: gauge components at the end (1: one map);
+* ``kB/robot``: bytes exchanged between the coordinator and one agent (both directions),
+  averaged over the agents.
+
+With ``--decentralized`` (default) the table of ``team_scale_decentralized.py``
+(``decentralized_rows``) follows when that module is present.
+
+    python benchmarks/team_scale.py --work /tmp/team_scale   # 1, 2, 4, 8, 16 agents
+    python benchmarks/team_scale.py --work /tmp/team_scale --sizes 4 16 --seeds 0 1
+
+Measured (issue 41; ``--width 96 --height 72``, 16 frames rendered, 8 processed per agent,
+seed 0, 2 shared cores under a load of about 20, so wall times are not comparable; CPU times
+are):
+
+    agents  kf  coord ms/kf  decodes/kf  end kf  drain s  batch  coord MB  agent MB  ATE mm  ATE %
+         1   4         10.7        0         2    0.015      2       483       457    20.6    1.90
+         2   9          173        2.56      1    0.11       4       515       464    29.5    2.45
+         4  17          173        3.82      8    1.16      11       532       461    28.6    2.37
+         8  27          170        4.48     16    2.77      23       557       460    29.8    2.48
+        16  40          238        4.88     33    7.59      32       596       461    56.6    4.70
+
+16 vs 4 agents: coordinator CPU per keyframe 1.38x, its peak memory 1.12x, decodes per
+keyframe within the budget of 6. The rise at 16 is the gauge merges (with the focal
+alignment, 60 % of the in-stream wall time there): a team makes N - 1 of them, and these
+short runs (2.5 keyframes per agent at 16, 4.3 at 4) spread them over few keyframes. The
+coordinator does not keep up at these agents' rates (5 frames per CPU second each with the
+simulated prior at 96x72): it needs about 0.24 s per keyframe, and from 4 agents on the
+keyframes arrive faster than that (drain 1.2 s at 4, 7.6 s at 16 after the input's 1.6 s);
+batching bounds its global BAs (2 in-stream at 16 agents), not its verification and
+merges. One agent alone is at 1.9 % of path at this resolution, the floor under the merged
+figures; the same 16-agent scene in one process (every keyframe alone, 26 in-stream BAs)
+merged at 238 mm (19.8 %): the 16-ring's merge is an open problem, not the batch's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _tables import print_table, write_csv  # noqa: E402
+
+from como3r.config import Config, apply_overrides  # noqa: E402
+from como3r.coordination.coordinator import Coordinator  # noqa: E402
+from como3r.data.synth import synthesize  # noqa: E402
+from como3r.io.tum import read_tum  # noqa: E402
+from como3r.progress import AgentProgress  # noqa: E402
+from como3r.runtime.multiprocess import run_multiprocess  # noqa: E402
+from como3r.runtime.pipeline import PriorSpec  # noqa: E402
+
+try:
+    from team_scale_decentralized import decentralized_rows  # noqa: E402
+except ImportError:  # the decentralized benchmark is not in this tree
+    decentralized_rows = None
+
+COLUMNS = (
+    "agents",
+    "seed",
+    "keyframes",
+    "coord ms/kf",
+    "coord s/s input",
+    "decodes/kf",
+    "end kf",
+    "end s",
+    "drain s",
+    "rt end kf",
+    "rt max kf",
+    "batch",
+    "cleanup s",
+    "coord MB",
+    "agent MB",
+    "ATE mm",
+    "path m",
+    "ATE %",
+    "maps",
+    "kB/robot",
+)
+
+
+# ------------------------------------------------------------------ one run (a process of its own)
+
+
+def _proc_status(pid: int | str) -> float:
+    """``VmHWM`` of a process [MB] (0 if it is gone)."""
+    try:
+        lines = Path(f"/proc/{pid}/status").read_text().splitlines()
+    except OSError:
+        return 0.0
+    fields = dict(line.split(":", 1) for line in lines if ":" in line)
+    return int(fields["VmHWM"].split()[0]) / 1024
+
+
+def _proc_cpu(pid: int) -> float | None:
+    """User + system CPU seconds of a process (None if it is gone)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (int(stat[11]) + int(stat[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _children() -> list[int]:
+    """This process's agent processes (multiprocessing spawn children)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            command = (entry / "cmdline").read_bytes()
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == os.getpid() and b"spawn_main" in command and b"resource_tracker" not in command:
+            pids.append(int(entry.name))
+    return pids
+
+
+class _Timed:
+    """The coordinator's CPU time per call of ``add_keyframe(s)``, with the keyframes."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[float, list[tuple[int, int, float]]]] = []
+
+    def install(self) -> None:
+        one, many = Coordinator.add_keyframe, Coordinator.add_keyframes
+        calls = self.calls
+
+        def add_keyframe(coordinator: Coordinator, packet: Any) -> Any:
+            start = time.thread_time()
+            updates = one(coordinator, packet)
+            calls.append(
+                (time.thread_time() - start, [(packet.agent, packet.kf_id, packet.timestamp)])
+            )
+            return updates
+
+        def add_keyframes(coordinator: Coordinator, packets: Any) -> Any:
+            start = time.thread_time()
+            updates = many(coordinator, packets)
+            keys = [(p.agent, p.kf_id, p.timestamp) for p in packets]
+            calls.append((time.thread_time() - start, keys))
+            return updates
+
+        Coordinator.add_keyframe = add_keyframe  # type: ignore[method-assign]
+        Coordinator.add_keyframes = add_keyframes  # type: ignore[method-assign]
+
+
+def run_one(scene: Path, out: Path, long_side: int) -> dict[str, Any]:
+    """One team run; what the table needs, measured (JSON-ready)."""
+    agents = sorted(scene.glob("agent_*"))
+    config = apply_overrides(Config(), [f"input.long_side={long_side}"])
+    timed = _Timed()
+    timed.install()
+    # per progress event of agent a: (a, frames done, {pid: cpu seconds})
+    samples: list[tuple[int, int, dict[int, float]]] = []
+    agent_peak: dict[int, float] = {}
+
+    def progress(event: object) -> None:
+        if not isinstance(event, AgentProgress):
+            return
+        cpu = {}
+        for pid in _children():
+            seconds = _proc_cpu(pid)
+            if seconds is not None:
+                cpu[pid] = seconds
+            agent_peak[pid] = max(agent_peak.get(pid, 0.0), _proc_status(pid))
+        samples.append((event.agent, event.frames_done, cpu))
+
+    run_multiprocess(agents, out, config, PriorSpec("simulated"), overwrite=True, progress=progress)
+    metrics = json.loads((out / "metrics.json").read_text())
+    pids = {entry["agent"]: entry["pid"] for entry in metrics["runtime"]["agents"]}
+    cpu_per_frame = {}
+    for agent, pid in pids.items():
+        mine = [(done, cpu[pid]) for a, done, cpu in samples if a == agent and pid in cpu]
+        if len(mine) >= 2 and mine[-1][0] > mine[0][0]:
+            cpu_per_frame[agent] = (mine[-1][1] - mine[0][1]) / (mine[-1][0] - mine[0][0])
+    return {
+        "calls": timed.calls,
+        "cpu_per_frame": cpu_per_frame,
+        "coordinator_peak_mb": _proc_status("self"),
+        "agent_peak_mb": max(agent_peak.values(), default=0.0),
+    }
+
+
+# ------------------------------------------------------------------ the table
+
+
+def replay(
+    calls: list[tuple[float, list[tuple[int, int, float]]]],
+    frame_times: dict[int, np.ndarray],
+    cpu_per_frame: dict[int, float],
+) -> tuple[int, float, float]:
+    """The backlog at the end of the input at the agents' measured frame rates (module
+    docstring): ``(keyframes waiting, seconds of input behind, seconds to drain)``.
+
+    Args:
+        calls: the coordinator's CPU seconds per call and the ``(agent, kf_id, timestamp)``
+            of the keyframes it took.
+        frame_times: each agent's processed frames' timestamps [s], in order.
+        cpu_per_frame: each agent's CPU seconds per frame.
+    """
+    keyframes = []  # (arrival [s], timestamp [s], service [s])
+    for seconds, keys in calls:
+        for agent, _, stamp in keys:
+            frames = int(np.searchsorted(frame_times[agent], stamp + 1e-9))  # frames done
+            arrival = frames * cpu_per_frame.get(agent, 0.0)
+            keyframes.append((arrival, stamp, seconds / len(keys)))
+    if not keyframes:
+        return 0, 0.0, 0.0
+    end = max(len(t) * cpu_per_frame.get(a, 0.0) for a, t in frame_times.items())
+    free, done = 0.0, []
+    for arrival, stamp, service in sorted(keyframes):
+        free = max(free, arrival) + service
+        done.append((free, arrival, stamp))
+    waiting = [(f, s) for f, a, s in done if a <= end < f]
+    handled = [s for f, a, s in done if f <= end]
+    newest = max(s for f, a, s in done if a <= end)
+    behind = newest - max(handled) if handled else newest - min(s for _, s in waiting)
+    last = max(f for f, _, _ in done)
+    return len(waiting), max(0.0, behind) if waiting else 0.0, max(0.0, last - end)
+
+
+def _path_length(groundtruth: Path) -> float:
+    positions = np.asarray(read_tum(groundtruth).T_WC)[:, :3]
+    return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())
+
+
+def row(agents: int, seed: int, scene: Path, out: Path, measured: dict[str, Any]) -> dict:
+    """One line of the table from a run's folder and its measurements."""
+    metrics = json.loads((out / "metrics.json").read_text())
+    coordinator, runtime = metrics["coordinator"], metrics["runtime"]
+    keyframes = max(1, coordinator["keyframes"])
+    cpu = sum(seconds for seconds, _ in measured["calls"])
+    frame_times = {
+        a: np.asarray(read_tum(out / "trajectories" / f"agent_{a}.txt").timestamps)
+        for a in range(agents)
+    }
+    input_seconds = max(float(t[-1] - t[0]) for t in frame_times.values() if len(t))
+    waiting, behind, drain = replay(
+        measured["calls"], frame_times, {int(k): v for k, v in measured["cpu_per_frame"].items()}
+    )
+    paths = [_path_length(scene / f"agent_{a}" / "groundtruth.txt") for a in range(agents)]
+    ate_json = metrics.get("ate", {})
+    merged = ate_json.get("merged") or next(iter(ate_json.get("agents", [])), None)
+    rmse = merged["ate"]["rmse"] if merged else float("nan")  # one agent: its own
+    backlog = runtime.get("backlog", {})
+    per_robot = [
+        sum(a["bytes_to_agent"].values()) + sum(a["bytes_from_agent"].values())
+        for a in runtime["agents"]
+    ]
+    return {
+        "agents": agents,
+        "seed": seed,
+        "keyframes": coordinator["keyframes"],
+        "coord ms/kf": 1000.0 * cpu / keyframes,
+        "coord s/s input": cpu / input_seconds if input_seconds > 0 else float("nan"),
+        "decodes/kf": coordinator["prior_decodes"] / keyframes,
+        "end kf": waiting,
+        "end s": behind,
+        "drain s": drain,
+        "rt end kf": backlog.get("end_keyframes", "-"),
+        "rt max kf": backlog.get("max_keyframes", "-"),
+        "batch": coordinator.get("largest_batch", "-"),
+        "cleanup s": coordinator["stage_seconds"].get("cleanup", 0.0),
+        "coord MB": measured["coordinator_peak_mb"],
+        "agent MB": measured["agent_peak_mb"],
+        "ATE mm": 1000.0 * rmse,
+        "path m": float(np.mean(paths)),
+        "ATE %": 100.0 * rmse / float(np.mean(paths)),
+        "maps": len(metrics["components"]),
+        "kB/robot": float(np.mean(per_robot)) / 1000.0,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--work", type=Path, default=Path("/tmp/team_scale"))
+    parser.add_argument("--sizes", type=int, nargs="+", default=[1, 2, 4, 8, 16])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--frames", type=int, default=16, help="rendered frames per agent")
+    parser.add_argument("--loop-frames", type=int, default=48, help="synth --loop-frames")
+    parser.add_argument("--overlap", type=float, default=0.5)
+    parser.add_argument("--width", type=int, default=128)
+    parser.add_argument("--height", type=int, default=96)
+    parser.add_argument(
+        "--long-side", type=int, default=None, help="input.long_side (default: --width)"
+    )
+    parser.add_argument(
+        "--reuse",
+        action="store_true",
+        help="tabulate the runs already in --work instead of running them again",
+    )
+    parser.add_argument("--csv", type=Path, default=None, help="also write the rows here")
+    parser.add_argument(
+        "--decentralized",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also print the decentralized table (team_scale_decentralized.py)",
+    )
+    parser.add_argument(
+        "--one", nargs=3, metavar=("SCENE", "OUT", "LONG_SIDE"), help=argparse.SUPPRESS
+    )
+    args = parser.parse_args()
+    if args.one:
+        measured = run_one(Path(args.one[0]), Path(args.one[1]), int(args.one[2]))
+        print(json.dumps(measured))
+        return
+    long_side = args.long_side or args.width
+    console = Console(width=240)
+    console.print(
+        f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
+        f"{args.width}x{args.height} (long side {long_side}), {args.frames} frames per agent "
+        f"rendered, overlap {args.overlap}, simulated prior"
+    )
+    rows = []
+    for agents in args.sizes:
+        for seed in args.seeds:
+            scene = args.work / f"scene_a{agents}_s{seed}"
+            if not (scene / "scene.json").exists():
+                scene.mkdir(parents=True, exist_ok=True)
+                synthesize(
+                    scene,
+                    agents=agents,
+                    seed=seed,
+                    overlap=args.overlap,
+                    frames=args.frames,
+                    preset="default",
+                    width=args.width,
+                    height=args.height,
+                    loop_frames=args.loop_frames,
+                    progress=None,
+                )
+            out = args.work / f"run_a{agents}_s{seed}"
+            kept = out / "team_scale.json"
+            if not (args.reuse and kept.exists()):
+                command = [sys.executable, __file__, "--one", str(scene), str(out), str(long_side)]
+                start = time.perf_counter()
+                done = subprocess.run(command, stdout=subprocess.PIPE, text=True, check=False)
+                if done.returncode:
+                    raise SystemExit(f"the {agents}-agent run (seed {seed}) failed")
+                kept.write_text(done.stdout.strip().splitlines()[-1])
+                console.print(f"{agents} agents, seed {seed}: {time.perf_counter() - start:.0f} s")
+            rows.append(row(agents, seed, scene, out, json.loads(kept.read_text())))
+    print_table(console, rows, COLUMNS, "centralized teams")
+    if args.csv is not None:
+        write_csv(args.csv, rows, COLUMNS)
+    if args.decentralized:
+        if decentralized_rows is None:
+            console.print(
+                "(team_scale_decentralized.py is not in this tree: no decentralized table)"
+            )
+        else:
+            robots = decentralized_rows()
+            if robots:
+                print_table(console, robots, list(robots[0]), "decentralized teams")
+
+
+if __name__ == "__main__":
+    main()
