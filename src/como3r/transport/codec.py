@@ -53,6 +53,7 @@ from como3r.transport.codec_arrays import (
     tensor_bytes,
     widen,
 )
+from como3r.transport.codec_compact import CODED, coded_from_wire, coded_to_wire
 from como3r.transport.codec_registry import (
     BY_PATH,
     CHECKS,
@@ -166,11 +167,23 @@ def _part_sizes(value: Any, prefix: str, lossy: bool, sizes: dict[str, int]) -> 
         )
     for f in init_fields(cls):
         field_value, path = getattr(value, f.name), f"{prefix}{f.name}"
+        coded = _coded(entry.coding(f.name), field_value, value, lossy)
+        if coded is not None:
+            sizes[path] = len(msgpack.packb(coded, use_bin_type=True))
+            continue
         if dataclasses.is_dataclass(field_value) and not isinstance(field_value, type):
             _part_sizes(field_value, f"{path}.", lossy, sizes)
             continue
         tree = _field_to_wire(field_value, lossy and f.name in entry.half, path, 1, lossy)
         sizes[path] = len(msgpack.packb(tree, use_bin_type=True))
+
+
+def _coded(coding: str | None, value: Any, owner: Any, lossy: bool) -> dict[str, Any] | None:
+    """``value`` (a field of ``owner``) in its compact coding on the lossy wire, or None
+    (no coding, an exact encode, or a value the coding does not fit)."""
+    if coding is None or not lossy or value is None:
+        return None
+    return coded_to_wire(coding, value, owner)
 
 
 def _dict_key(key: Any, path: str) -> str | int:
@@ -185,16 +198,17 @@ def _object_to_wire(value: Any, path: str, depth: int, lossy: bool) -> dict[str,
     if entry is None:
         raise MessageError(f"{path}: type {cls.__qualname__} is not a registered message type")
     RESOLVED.setdefault(entry.name, cls)
-    fields = {
-        f.name: _field_to_wire(
-            getattr(value, f.name),
-            lossy and f.name in entry.half,
-            f"{path}.{f.name}",
-            depth + 1,
-            lossy,
+    fields = {}
+    for f in init_fields(cls):
+        field_value = getattr(value, f.name)
+        coded = _coded(entry.coding(f.name), field_value, value, lossy)
+        fields[f.name] = (
+            coded
+            if coded is not None
+            else _field_to_wire(
+                field_value, lossy and f.name in entry.half, f"{path}.{f.name}", depth + 1, lossy
+            )
         )
-        for f in init_fields(cls)
-    }
     return {TAG: "object", "type": entry.name, "version": entry.version, "fields": fields}
 
 
@@ -217,7 +231,8 @@ def _field_to_wire(value: Any, half: bool, path: str, depth: int, lossy: bool) -
 
 def as_received(value: Any) -> Any:
     """``value`` as :func:`decode` gives it back after a ``lossy`` :func:`encode`: a copy
-    whose half-precision fields (:func:`register`) hold their float16-rounded values."""
+    whose half-precision fields (:func:`register`) hold their float16-rounded values and
+    whose coded fields (:mod:`.codec_compact`) their decoded codings."""
     if isinstance(value, (list, tuple)):
         return type(value)(as_received(v) for v in value)
     if isinstance(value, dict):
@@ -229,6 +244,10 @@ def as_received(value: Any) -> Any:
     changes = {}
     for f in init_fields(type(value)):
         field_value = getattr(value, f.name)
+        coded = _coded(entry.coding(f.name) if entry else None, field_value, value, True)
+        if coded is not None:
+            changes[f.name] = coded_from_wire(coded, f.name, Budget(2**62))
+            continue
         changes[f.name] = (
             _half_received(field_value) if f.name in half else as_received(field_value)
         )
@@ -302,6 +321,8 @@ def _from_wire(value: Any, path: str, depth: int, budget: Budget) -> Any:
         return _dict_from_wire(items, path, depth, budget)
     if tag == "object":
         return _object_from_wire(value, path, depth, budget)
+    if tag == CODED:
+        return coded_from_wire(value, path, budget)
     raise MessageError(f"{path}: unknown wire tag {tag!r}")
 
 
@@ -391,14 +412,29 @@ _TOKENS = ("tokens",)
 _RETRIEVAL = ("retrieval",)
 
 
+#: The keyframe's large parts in compact codings on the lossy wire (:mod:`.codec_compact`):
+#: each at the precision its receiver reads.
+_CODED = {
+    "como3r.frontend.packets:KeyframePacket": {
+        "X_hat": "pointmap",
+        "C_hat": "confidence",
+        "colors": "image",
+        "retrieval": "retrieval",
+        "sequential_ij": "matches",
+        "sequential_ji": "matches",
+    },
+    "como3r.frontend.packets:PointmapRefresh": {"X_hat": "pointmap", "C_hat": "confidence"},
+}
+
+
 def _register_payloads() -> None:
     """The payloads that cross the agent/coordinator boundary (C-Sec. B.1); pointmaps,
     their confidences, match confidences (:data:`_POINTMAP`), MASt3R's encoder tokens
     (:data:`_TOKENS`) and retrieval features (:data:`_RETRIEVAL`) in half precision."""
     for path, version, half in (
-        # 2: retrieval_words
-        ("como3r.frontend.packets:KeyframePacket", 2, (*_POINTMAP, *_RETRIEVAL)),
-        ("como3r.frontend.packets:PointmapRefresh", 2, _POINTMAP),  # 2: K
+        # 2: retrieval_words; 3: compact codings
+        ("como3r.frontend.packets:KeyframePacket", 3, (*_POINTMAP, *_RETRIEVAL)),
+        ("como3r.frontend.packets:PointmapRefresh", 3, _POINTMAP),  # 2: K; 3: codings
         ("como3r.frontend.packets:PoseUpdate", 2, ()),  # 2: focal
         ("como3r.frontend.pairs:DirectedMatches", 1, ("q",)),
         # 2: first_frame_focal, 3: rejected_directions
@@ -407,7 +443,7 @@ def _register_payloads() -> None:
         ("como3r.prior.simulated_encoding:SimulatedEncoding", 3, ()),
         ("como3r.prior.mast3r.prior:MASt3REncoding", 1, _TOKENS),
     ):
-        register(path, version=version, half=half)
+        register(path, version=version, half=half, coded=_CODED.get(path))
 
 
 _register_payloads()
