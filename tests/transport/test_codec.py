@@ -808,3 +808,16 @@ def test_runtime_modules_do_not_use_pickle(module: str) -> None:
     assert not re.search(
         r"\.recv\(|\bQueue\(\)|SimpleQueue|JoinableQueue", source.replace("queue.Queue()", "")
     )
+
+
+@pytest.mark.parametrize("lossy", [False, True])
+def test_a_sender_records_the_part_sizes_of_the_encoding_it_sends(lossy: bool) -> None:
+    message = messages.KeyframeMessage(SAMPLES["KeyframePacket"](), 3, None)
+    seen: list[dict[str, int]] = []
+    codec.record_parts(message, seen.append)
+    data = encode(message, lossy=lossy)
+    assert seen == [codec.part_sizes(message, lossy=lossy)]
+    assert 0 < len(data) - sum(seen[0].values()) < 40 * len(seen[0])
+    encode(message, lossy=lossy)  # once: a later encode of the same message is not counted
+    encode(messages.KeyframeMessage(SAMPLES["KeyframePacket"](), 3, None))  # nor another's
+    assert len(seen) == 1

@@ -34,6 +34,9 @@ checks of
 from __future__ import annotations
 
 import dataclasses
+import threading
+import weakref
+from collections.abc import Callable
 from typing import Any
 
 import msgpack
@@ -95,6 +98,11 @@ def encode(message: Any, *, max_bytes: int = DEFAULT_MAX_BYTES, lossy: bool = Fa
             f"only registered dataclasses are messages, got {type(message).__name__}"
         )
     tree = _to_wire(message, type(message).__name__, 0, lossy)
+    recorder = _recorder(message)
+    if recorder is not None:
+        sizes: dict[str, int] = {}
+        _tree_parts(tree, "", sizes)
+        recorder(sizes)
     try:
         data = msgpack.packb(tree, use_bin_type=True)
     except (ValueError, TypeError, OverflowError) as exc:
@@ -139,43 +147,68 @@ def _to_wire(value: Any, path: str, depth: int, lossy: bool) -> Any:
 def part_sizes(message: Any, *, lossy: bool = False) -> dict[str, int]:
     """Bytes of each field of ``message`` on the wire, as :func:`encode` writes them.
 
-    A field holding a registered dataclass is broken down into its own fields; every other
-    field is one part, keyed by its dotted path (``"packet.encoding.tokens"``), its size the
-    msgpack encoding of its wire form (compressed arrays included). The parts add up to the
-    encoding's length less the few bytes of tags, names and versions around them.
+    A field holding a registered dataclass (not in a compact coding) is broken down into
+    its own fields; every other field is one part, keyed by its dotted path
+    (``"packet.encoding.tokens"``), its size the msgpack encoding of its wire form
+    (compressed arrays included). The parts add up to the encoding's length less the few
+    bytes of tags, names and versions around them. A sender learns them from the encode
+    itself (:func:`record_parts`); this encodes again.
 
     Args:
         message: a registered dataclass instance.
-        lossy: as in :func:`encode` (a decoded message re-measured with the ``lossy`` its
-            sender used gives the sender's sizes: float16-rounded values narrow exactly).
+        lossy: as in :func:`encode`.
 
     Raises:
         MessageError: as :func:`encode`.
     """
+    if not dataclasses.is_dataclass(message) or isinstance(message, type):
+        raise MessageError(
+            f"only registered dataclasses are messages, got {type(message).__name__}"
+        )
     sizes: dict[str, int] = {}
-    _part_sizes(message, "", lossy, sizes)
+    _tree_parts(_to_wire(message, type(message).__name__, 0, lossy), "", sizes)
     return sizes
 
 
-def _part_sizes(value: Any, prefix: str, lossy: bool, sizes: dict[str, int]) -> None:
-    cls = type(value)
-    entry = BY_PATH.get(f"{cls.__module__}:{cls.__qualname__}")
-    if entry is None:
-        raise MessageError(
-            f"{prefix or cls.__qualname__}: type {cls.__qualname__} is not a "
-            "registered message type"
-        )
-    for f in init_fields(cls):
-        field_value, path = getattr(value, f.name), f"{prefix}{f.name}"
-        coded = _coded(entry.coding(f.name), field_value, value, lossy)
-        if coded is not None:
-            sizes[path] = len(msgpack.packb(coded, use_bin_type=True))
-            continue
-        if dataclasses.is_dataclass(field_value) and not isinstance(field_value, type):
-            _part_sizes(field_value, f"{path}.", lossy, sizes)
-            continue
-        tree = _field_to_wire(field_value, lossy and f.name in entry.half, path, 1, lossy)
-        sizes[path] = len(msgpack.packb(tree, use_bin_type=True))
+def _tree_parts(tree: dict[str, Any], prefix: str, sizes: dict[str, int]) -> None:
+    """The part sizes of an object's wire form (:func:`part_sizes`)."""
+    for name, value in tree["fields"].items():
+        if isinstance(value, dict) and value.get(TAG) == "object":
+            _tree_parts(value, f"{prefix}{name}.", sizes)
+        else:
+            sizes[f"{prefix}{name}"] = len(msgpack.packb(value, use_bin_type=True))
+
+
+#: id of a message -> (a weak reference to it, its recorder); by identity, as messages
+#: holding arrays are neither hashable nor comparable
+_RECORDERS: dict[int, tuple[weakref.ref, Callable[[dict[str, int]], None]]] = {}
+_RECORDERS_LOCK = threading.Lock()
+
+
+def record_parts(message: Any, recorder: Callable[[dict[str, int]], None]) -> None:
+    """Have the next :func:`encode` of ``message`` (this very object, by whichever link
+    sends it) call ``recorder`` with its :func:`part_sizes`, taken from that encoding: the
+    sender learns what each part weighs without encoding twice, and the receiver need not
+    measure (it re-encoded every keyframe for it)."""
+    key = id(message)
+
+    def forget(_: weakref.ref) -> None:  # the message is gone without being encoded
+        with _RECORDERS_LOCK:
+            if key in _RECORDERS and _RECORDERS[key][0]() is None:
+                del _RECORDERS[key]
+
+    with _RECORDERS_LOCK:
+        _RECORDERS[key] = (weakref.ref(message, forget), recorder)
+
+
+def _recorder(message: Any) -> Callable[[dict[str, int]], None] | None:
+    """The recorder :func:`record_parts` left for ``message`` (once), or None."""
+    with _RECORDERS_LOCK:
+        entry = _RECORDERS.get(id(message))
+        if entry is None or entry[0]() is not message:
+            return None
+        del _RECORDERS[id(message)]
+        return entry[1]
 
 
 def _coded(coding: str | None, value: Any, owner: Any, lossy: bool) -> dict[str, Any] | None:
