@@ -33,7 +33,22 @@ pipes, lossy: across machines, with float16 encoder tokens and retrieval feature
     total                 10184.7   4994.5   20471.7  16927.3     7906.6   3879.8
 
 (with float32 tokens and retrieval features across machines: total 6706.9 at 512x384,
-5279.9 at 512x288.) The agent's final message: 2396.8 kB exact, 958.4 lossy at 512x384.
+5279.9 at 512x288.) Since the compact codings across machines (``transport/codec_compact.py``),
+the same sequence at 512x384, lossy, kB per keyframe (exact unchanged)::
+
+    part                   MASt3R   simulated     before (MASt3R lossy)
+    pointmap                201.6     201.6       644.1
+    confidences             145.1     145.1       307.4
+    colours                 194.0     194.0       399.9
+    retrieval_descriptors   277.2      38.8       508.1
+    sequential_matches      299.4     299.4       927.9
+    previous_refresh        344.3     344.3       948.2
+    total less tokens      1467.3   14851.9      3740.6
+
+(the MASt3R retrieval descriptors here from the released-size head on seeded random tokens,
+not the full network's: 8-bit descriptors do not compress, so their size is 300 x 1024
+bytes and their scales whatever the tokens. Merged ATE of the demo scene, single process,
+every keyframe and refresh through the lossy codec: 7.8796 mm against 7.8794 mm exact.) The agent's final message: 2396.8 kB exact, 958.4 lossy at 512x384.
 Session store, blobs written as a keyframe arrives (MASt3R 512x384 / simulated 512x384 /
 MASt3R 512x288): colours 400 / 400 / 305, encoding 2493 / 13444 / 1885, pointmaps
 2389 / 2389 / 1797, retrieval 979 / 136 / 979, edges 1530 / 1530 / 1139, total 7791 /
@@ -157,12 +172,19 @@ def _mast3r_shaped(
 
 
 def _mean_parts(messages: list[Any], lossy: bool) -> dict[str, float]:
-    """Mean bytes per part of ``messages`` (:func:`wire_parts`), ``framing`` and ``total``."""
+    """Mean bytes per part of ``messages`` (:func:`wire_parts`), ``framing`` and ``total``,
+    and the milliseconds of one encode and one decode (``encode_ms``, ``decode_ms``)."""
     rows = []
     for message in messages:
         parts: dict[str, float] = dict(wire_parts(message, lossy=lossy))
-        total = len(codec.encode(message, lossy=lossy))
-        parts["framing"] = total - sum(parts.values())
+        start = time.perf_counter()
+        data = codec.encode(message, lossy=lossy)
+        middle = time.perf_counter()
+        codec.decode(data)
+        parts["encode_ms"] = (middle - start) * 1e3
+        parts["decode_ms"] = (time.perf_counter() - middle) * 1e3
+        total = len(data)
+        parts["framing"] = total - sum(v for k, v in parts.items() if not k.endswith("_ms"))
         parts["total"] = total
         rows.append(parts)
     return {name: sum(r[name] for r in rows) / len(rows) for name in rows[0]}
@@ -219,6 +241,8 @@ def part0(agent_paths: list[Path], frames: int) -> None:
     print(" | ".join(["part", *columns]))
     for name in [*PARTS, "other", "framing", "total"]:
         print(" | ".join([name, *(f"{c[name] / 1e3:.1f}" for c in columns.values())]))
+    for name in ("encode_ms", "decode_ms"):  # milliseconds, not kB
+        print(" | ".join([name, *(f"{c[name]:.0f}" for c in columns.values())]))
     print("\nsession store: bytes per keyframe written as it arrives [kB]")
     print(" | ".join(["part", *stored]))
     for name in next(iter(stored.values())):
