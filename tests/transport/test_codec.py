@@ -821,3 +821,8 @@ def test_a_sender_records_the_part_sizes_of_the_encoding_it_sends(lossy: bool) -
     encode(message, lossy=lossy)  # once: a later encode of the same message is not counted
     encode(messages.KeyframeMessage(SAMPLES["KeyframePacket"](), 3, None))  # nor another's
     assert len(seen) == 1
+    too_big = messages.KeyframeMessage(SAMPLES["KeyframePacket"](), 3, None)
+    codec.record_parts(too_big, seen.append)
+    with pytest.raises(MessageError, match="over the cap"):
+        encode(too_big, max_bytes=100)
+    assert len(seen) == 1  # a message that never left is not counted

@@ -99,10 +99,6 @@ def encode(message: Any, *, max_bytes: int = DEFAULT_MAX_BYTES, lossy: bool = Fa
         )
     tree = _to_wire(message, type(message).__name__, 0, lossy)
     recorder = _recorder(message)
-    if recorder is not None:
-        sizes: dict[str, int] = {}
-        _tree_parts(tree, "", sizes)
-        recorder(sizes)
     try:
         data = msgpack.packb(tree, use_bin_type=True)
     except (ValueError, TypeError, OverflowError) as exc:
@@ -112,6 +108,10 @@ def encode(message: Any, *, max_bytes: int = DEFAULT_MAX_BYTES, lossy: bool = Fa
             f"{type(message).__name__} encodes to {len(data)} bytes, "
             f"over the cap of {max_bytes} bytes"
         )
+    if recorder is not None:  # only a message that leaves is counted
+        sizes: dict[str, int] = {}
+        _tree_parts(tree, "", sizes)
+        recorder(sizes)
     return data
 
 
