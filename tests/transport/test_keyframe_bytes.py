@@ -79,3 +79,17 @@ def test_part_counter_averages_per_keyframe() -> None:
     counter.add({"tokens": 10, "pointmap": 4})
     counter.add({"tokens": 30, "pointmap": 0})
     assert counter.per_keyframe() == {"tokens": 20.0, "pointmap": 2.0}
+
+
+def test_part_counter_sums_recorded_fields_and_agents_reports() -> None:
+    message = KeyframeMessage(_packet(torch.randn(12, 16)), 2, None)
+    counter = PartCounter()
+    codec.record_parts(message, counter.add_fields)
+    codec.encode(message, lossy=True)
+    assert counter.keyframes == 1
+    assert dict(counter.bytes) == wire_parts(message, lossy=True)
+    merged = PartCounter()  # an agent that came back: two processes' reports
+    merged.add_totals(counter.bytes, counter.keyframes)
+    merged.add_totals({"pointmap": 10}, 1)
+    assert merged.keyframes == 2
+    assert merged.per_keyframe()["pointmap"] == (counter.bytes["pointmap"] + 10) / 2

@@ -83,7 +83,7 @@ def _packet_message(fe: AgentFrontend, kf_id: int) -> messages.KeyframeMessage:
 
 
 #: messages past their first schema (AgentTask 2: live, 3: resume_after)
-VERSIONS = {"AgentTask": 4, "FrameDone": 2}
+VERSIONS = {"AgentTask": 4, "FrameDone": 2, "AgentFinished": 2}
 
 
 @pytest.mark.parametrize(

@@ -43,7 +43,7 @@ from como3r.runtime.results import AgentSlot, MapSegment
 from como3r.runtime.runtime_state import snapshot
 from como3r.store.writer import SessionStore
 from como3r.transport import codec
-from como3r.transport.keyframe_bytes import LOSSY_TRANSPORTS, PartCounter, wire_parts
+from como3r.transport.keyframe_bytes import PartCounter
 from como3r.transport.links import Hub, Joined, Left, Received, Rejected
 from como3r.transport.messages import (
     AgentFailed,
@@ -211,9 +211,6 @@ class AgentEvents:
         elif isinstance(message, KeyframeMessage):
             self._queue(slot.segment, message, seq)
             slot.keyframes_received += 1
-            self.keyframe_parts.setdefault(slot.agent, PartCounter()).add(
-                wire_parts(message, lossy=self.hub.name in LOSSY_TRANSPORTS)
-            )
             slot.segment.confirmed_seq = max(slot.segment.confirmed_seq, message.applied_seq)
         elif isinstance(message, FrameDone):
             self._frame_done(slot, message)
@@ -222,6 +219,9 @@ class AgentEvents:
                 self.live(message)
         elif isinstance(message, AgentFinished):
             slot.segment.result.finished = message
+            self.keyframe_parts.setdefault(slot.agent, PartCounter()).add_totals(
+                message.keyframe_bytes_by_part, message.keyframes_measured
+            )  # the agent measured its keyframe messages as it encoded them
             slot.status, slot.clock = "finished", math.inf
             logger.info("agent %d finished its stream", slot.agent)
         elif isinstance(message, AgentFailed):

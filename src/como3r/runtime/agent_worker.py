@@ -19,6 +19,7 @@ import os
 import time
 import traceback
 from collections.abc import Iterator
+from dataclasses import replace
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,8 @@ from como3r.runtime.agent_loop import AgentLoop
 from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame, run_frames
 from como3r.runtime.prefetch import PreparedFrame, prepared_frames
 from como3r.transport import codec
+from como3r.transport.codec import record_parts
+from como3r.transport.keyframe_bytes import PartCounter
 from como3r.transport.links import AgentLink
 from como3r.transport.messages import (
     TO_AGENT,
@@ -146,6 +149,7 @@ class AgentWorker:
         ]
         self.applied_seq = 0
         self.current_frame = -1
+        self.parts = PartCounter()  # bytes per part of the keyframe messages sent
 
     def run(self) -> bool:
         """Process every frame and send the final report; False when stopped early (a
@@ -170,7 +174,14 @@ class AgentWorker:
         if not (self.task.lockstep or self._drain_inbox()):
             return False
         self.loop.end()
-        self.channel.send(self.loop.report(self.applied_seq))
+        report = self.loop.report(self.applied_seq)
+        self.channel.send(
+            replace(
+                report,
+                keyframe_bytes_by_part=dict(self.parts.bytes),
+                keyframes_measured=self.parts.keyframes,
+            )
+        )
         return True
 
     def _process(self, index: int, frames: Iterator[PreparedFrame]) -> None:
@@ -200,9 +211,11 @@ class AgentWorker:
         )
         if not self.task.send_encoding:  # the coordinator encodes the colours again
             packet = dataclasses.replace(packet, encoding=None)
-        self.channel.send(
-            KeyframeMessage(packet=packet, applied_seq=self.applied_seq, T_WC_previous=previous)
+        message = KeyframeMessage(
+            packet=packet, applied_seq=self.applied_seq, T_WC_previous=previous
         )
+        record_parts(message, self.parts.add_fields)  # sizes from the encoding that is sent
+        self.channel.send(message)
 
     def _handle(self, message: Any) -> bool:
         """Apply one coordinator message; False on Shutdown."""

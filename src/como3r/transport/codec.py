@@ -34,6 +34,9 @@ checks of
 from __future__ import annotations
 
 import dataclasses
+import threading
+import weakref
+from collections.abc import Callable
 from typing import Any
 
 import msgpack
@@ -53,6 +56,7 @@ from como3r.transport.codec_arrays import (
     tensor_bytes,
     widen,
 )
+from como3r.transport.codec_compact import CODED, coded_from_wire, coded_to_wire
 from como3r.transport.codec_registry import (
     BY_PATH,
     CHECKS,
@@ -94,6 +98,7 @@ def encode(message: Any, *, max_bytes: int = DEFAULT_MAX_BYTES, lossy: bool = Fa
             f"only registered dataclasses are messages, got {type(message).__name__}"
         )
     tree = _to_wire(message, type(message).__name__, 0, lossy)
+    recorder = _recorder(message)
     try:
         data = msgpack.packb(tree, use_bin_type=True)
     except (ValueError, TypeError, OverflowError) as exc:
@@ -103,6 +108,10 @@ def encode(message: Any, *, max_bytes: int = DEFAULT_MAX_BYTES, lossy: bool = Fa
             f"{type(message).__name__} encodes to {len(data)} bytes, "
             f"over the cap of {max_bytes} bytes"
         )
+    if recorder is not None:  # only a message that leaves is counted
+        sizes: dict[str, int] = {}
+        _tree_parts(tree, "", sizes)
+        recorder(sizes)
     return data
 
 
@@ -138,39 +147,76 @@ def _to_wire(value: Any, path: str, depth: int, lossy: bool) -> Any:
 def part_sizes(message: Any, *, lossy: bool = False) -> dict[str, int]:
     """Bytes of each field of ``message`` on the wire, as :func:`encode` writes them.
 
-    A field holding a registered dataclass is broken down into its own fields; every other
-    field is one part, keyed by its dotted path (``"packet.encoding.tokens"``), its size the
-    msgpack encoding of its wire form (compressed arrays included). The parts add up to the
-    encoding's length less the few bytes of tags, names and versions around them.
+    A field holding a registered dataclass (not in a compact coding) is broken down into
+    its own fields; every other field is one part, keyed by its dotted path
+    (``"packet.encoding.tokens"``), its size the msgpack encoding of its wire form
+    (compressed arrays included). The parts add up to the encoding's length less the few
+    bytes of tags, names and versions around them. A sender learns them from the encode
+    itself (:func:`record_parts`); this encodes again.
 
     Args:
         message: a registered dataclass instance.
-        lossy: as in :func:`encode` (a decoded message re-measured with the ``lossy`` its
-            sender used gives the sender's sizes: float16-rounded values narrow exactly).
+        lossy: as in :func:`encode`.
 
     Raises:
         MessageError: as :func:`encode`.
     """
+    if not dataclasses.is_dataclass(message) or isinstance(message, type):
+        raise MessageError(
+            f"only registered dataclasses are messages, got {type(message).__name__}"
+        )
     sizes: dict[str, int] = {}
-    _part_sizes(message, "", lossy, sizes)
+    _tree_parts(_to_wire(message, type(message).__name__, 0, lossy), "", sizes)
     return sizes
 
 
-def _part_sizes(value: Any, prefix: str, lossy: bool, sizes: dict[str, int]) -> None:
-    cls = type(value)
-    entry = BY_PATH.get(f"{cls.__module__}:{cls.__qualname__}")
-    if entry is None:
-        raise MessageError(
-            f"{prefix or cls.__qualname__}: type {cls.__qualname__} is not a "
-            "registered message type"
-        )
-    for f in init_fields(cls):
-        field_value, path = getattr(value, f.name), f"{prefix}{f.name}"
-        if dataclasses.is_dataclass(field_value) and not isinstance(field_value, type):
-            _part_sizes(field_value, f"{path}.", lossy, sizes)
-            continue
-        tree = _field_to_wire(field_value, lossy and f.name in entry.half, path, 1, lossy)
-        sizes[path] = len(msgpack.packb(tree, use_bin_type=True))
+def _tree_parts(tree: dict[str, Any], prefix: str, sizes: dict[str, int]) -> None:
+    """The part sizes of an object's wire form (:func:`part_sizes`)."""
+    for name, value in tree["fields"].items():
+        if isinstance(value, dict) and value.get(TAG) == "object":
+            _tree_parts(value, f"{prefix}{name}.", sizes)
+        else:
+            sizes[f"{prefix}{name}"] = len(msgpack.packb(value, use_bin_type=True))
+
+
+#: id of a message -> (a weak reference to it, its recorder); by identity, as messages
+#: holding arrays are neither hashable nor comparable
+_RECORDERS: dict[int, tuple[weakref.ref, Callable[[dict[str, int]], None]]] = {}
+_RECORDERS_LOCK = threading.Lock()
+
+
+def record_parts(message: Any, recorder: Callable[[dict[str, int]], None]) -> None:
+    """Have the next :func:`encode` of ``message`` (this very object, by whichever link
+    sends it) call ``recorder`` with its :func:`part_sizes`, taken from that encoding: the
+    sender learns what each part weighs without encoding twice, and the receiver need not
+    measure (it re-encoded every keyframe for it)."""
+    key = id(message)
+
+    def forget(_: weakref.ref) -> None:  # the message is gone without being encoded
+        with _RECORDERS_LOCK:
+            if key in _RECORDERS and _RECORDERS[key][0]() is None:
+                del _RECORDERS[key]
+
+    with _RECORDERS_LOCK:
+        _RECORDERS[key] = (weakref.ref(message, forget), recorder)
+
+
+def _recorder(message: Any) -> Callable[[dict[str, int]], None] | None:
+    """The recorder :func:`record_parts` left for ``message`` (once), or None."""
+    with _RECORDERS_LOCK:
+        entry = _RECORDERS.get(id(message))
+        if entry is None or entry[0]() is not message:
+            return None
+        del _RECORDERS[id(message)]
+        return entry[1]
+
+
+def _coded(coding: str | None, value: Any, owner: Any, lossy: bool) -> dict[str, Any] | None:
+    """``value`` (a field of ``owner``) in its compact coding on the lossy wire, or None
+    (no coding, an exact encode, or a value the coding does not fit)."""
+    if coding is None or not lossy or value is None:
+        return None
+    return coded_to_wire(coding, value, owner)
 
 
 def _dict_key(key: Any, path: str) -> str | int:
@@ -185,16 +231,17 @@ def _object_to_wire(value: Any, path: str, depth: int, lossy: bool) -> dict[str,
     if entry is None:
         raise MessageError(f"{path}: type {cls.__qualname__} is not a registered message type")
     RESOLVED.setdefault(entry.name, cls)
-    fields = {
-        f.name: _field_to_wire(
-            getattr(value, f.name),
-            lossy and f.name in entry.half,
-            f"{path}.{f.name}",
-            depth + 1,
-            lossy,
+    fields = {}
+    for f in init_fields(cls):
+        field_value = getattr(value, f.name)
+        coded = _coded(entry.coding(f.name), field_value, value, lossy)
+        fields[f.name] = (
+            coded
+            if coded is not None
+            else _field_to_wire(
+                field_value, lossy and f.name in entry.half, f"{path}.{f.name}", depth + 1, lossy
+            )
         )
-        for f in init_fields(cls)
-    }
     return {TAG: "object", "type": entry.name, "version": entry.version, "fields": fields}
 
 
@@ -217,7 +264,8 @@ def _field_to_wire(value: Any, half: bool, path: str, depth: int, lossy: bool) -
 
 def as_received(value: Any) -> Any:
     """``value`` as :func:`decode` gives it back after a ``lossy`` :func:`encode`: a copy
-    whose half-precision fields (:func:`register`) hold their float16-rounded values."""
+    whose half-precision fields (:func:`register`) hold their float16-rounded values and
+    whose coded fields (:mod:`.codec_compact`) their decoded codings."""
     if isinstance(value, (list, tuple)):
         return type(value)(as_received(v) for v in value)
     if isinstance(value, dict):
@@ -229,6 +277,10 @@ def as_received(value: Any) -> Any:
     changes = {}
     for f in init_fields(type(value)):
         field_value = getattr(value, f.name)
+        coded = _coded(entry.coding(f.name) if entry else None, field_value, value, True)
+        if coded is not None:
+            changes[f.name] = coded_from_wire(coded, f.name, Budget(2**62))
+            continue
         changes[f.name] = (
             _half_received(field_value) if f.name in half else as_received(field_value)
         )
@@ -302,6 +354,8 @@ def _from_wire(value: Any, path: str, depth: int, budget: Budget) -> Any:
         return _dict_from_wire(items, path, depth, budget)
     if tag == "object":
         return _object_from_wire(value, path, depth, budget)
+    if tag == CODED:
+        return coded_from_wire(value, path, budget)
     raise MessageError(f"{path}: unknown wire tag {tag!r}")
 
 
@@ -391,14 +445,30 @@ _TOKENS = ("tokens",)
 _RETRIEVAL = ("retrieval",)
 
 
+#: The keyframe's large parts in compact codings on the lossy wire (:mod:`.codec_compact`):
+#: each at the precision its receiver reads.
+_CODED = {
+    "como3r.frontend.packets:KeyframePacket": {
+        "X_hat": "pointmap",
+        "C_hat": "confidence",
+        "colors": "image",
+        "retrieval": "retrieval",
+        "sequential_ij": "matches",
+        "sequential_ji": "matches",
+    },
+    "como3r.frontend.packets:PointmapRefresh": {"X_hat": "pointmap", "C_hat": "confidence"},
+}
+
+
 def _register_payloads() -> None:
     """The payloads that cross the agent/coordinator boundary (C-Sec. B.1); pointmaps,
     their confidences, match confidences (:data:`_POINTMAP`), MASt3R's encoder tokens
     (:data:`_TOKENS`) and retrieval features (:data:`_RETRIEVAL`) in half precision."""
     for path, version, half in (
-        # 2: retrieval_words, 3: encoding None (the receiver encodes the colours again)
+        # 2: retrieval_words; 3: compact codings, encoding None (the receiver encodes the
+        # colours again)
         ("como3r.frontend.packets:KeyframePacket", 3, (*_POINTMAP, *_RETRIEVAL)),
-        ("como3r.frontend.packets:PointmapRefresh", 2, _POINTMAP),  # 2: K
+        ("como3r.frontend.packets:PointmapRefresh", 3, _POINTMAP),  # 2: K; 3: codings
         ("como3r.frontend.packets:PoseUpdate", 2, ()),  # 2: focal
         ("como3r.frontend.pairs:DirectedMatches", 1, ("q",)),
         # 2: first_frame_focal, 3: rejected_directions
@@ -407,7 +477,7 @@ def _register_payloads() -> None:
         ("como3r.prior.simulated_encoding:SimulatedEncoding", 3, ()),
         ("como3r.prior.mast3r.prior:MASt3REncoding", 1, _TOKENS),
     ):
-        register(path, version=version, half=half)
+        register(path, version=version, half=half, coded=_CODED.get(path))
 
 
 _register_payloads()

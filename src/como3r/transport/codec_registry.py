@@ -31,12 +31,19 @@ class MessageType:
         path: ``"module:QualName"`` of the dataclass (imported on first use).
         version: the schema version; decoding any other version is an error.
         half: float32 array fields that travel in half precision (:func:`register`).
+        coded: ``(field, coding)`` pairs: fields that travel in a compact coding
+            (:mod:`.codec_compact`) in a ``lossy`` encode.
     """
 
     name: str
     path: str
     version: int
     half: frozenset[str] = frozenset()
+    coded: tuple[tuple[str, str], ...] = ()
+
+    def coding(self, field: str) -> str | None:
+        """The compact coding of ``field`` on the lossy wire, or None."""
+        return dict(self.coded).get(field)
 
 
 REGISTRY: dict[str, MessageType] = {}
@@ -50,7 +57,12 @@ CHECKS: dict[str, Callable[[Any], None]] = {}
 
 
 def register(
-    target: type | str, *, version: int = 1, name: str | None = None, half: tuple[str, ...] = ()
+    target: type | str,
+    *,
+    version: int = 1,
+    name: str | None = None,
+    half: tuple[str, ...] = (),
+    coded: dict[str, str] | None = None,
 ) -> None:
     """Allow a dataclass on the wire.
 
@@ -63,6 +75,9 @@ def register(
             as float16 in a ``lossy`` :func:`encode` and are decoded back to float32 (only
             where the loss was measured negligible);
             an array float16 cannot hold (a finite value beyond +-65504) travels in float32.
+        coded: field -> name of a coding of :data:`~.codec_compact.CODINGS`: the field
+            travels in it in a ``lossy`` encode (where the value fits it; else as ``half``
+            says).
 
     Raises:
         ValueError: the name is taken by a different class or version.
@@ -70,7 +85,9 @@ def register(
     """
     path = target if isinstance(target, str) else f"{target.__module__}:{target.__qualname__}"
     wire_name = name or path.rpartition(":")[2].rpartition(".")[2]
-    entry = MessageType(wire_name, path, int(version), frozenset(half))
+    entry = MessageType(
+        wire_name, path, int(version), frozenset(half), tuple(sorted((coded or {}).items()))
+    )
     known = REGISTRY.get(wire_name)
     if known is not None and known != entry:
         raise ValueError(

@@ -7,8 +7,10 @@ that :data:`PARTS` names, the ones a decision about what travels is made on (the
 encoding split into MASt3R's encoder tokens and the rest, the pointmap, its confidences,
 the colours, the retrieval descriptors and words, the sequential edge's matches, the refresh
 of the previous keyframe). What no part names (ids, pose, intrinsics) is ``"other"``.
-:class:`PartCounter` adds them up over a run for ``metrics.json``; the session store counts
-what it writes itself (:meth:`~como3r.store.writer.SessionStore.written_metrics`).
+:class:`PartCounter` adds them up over a run for ``metrics.json``: the agent, from the very
+encoding it sends (:func:`~como3r.transport.codec.record_parts`), reports its sums in its
+final message; the session store counts what it writes itself
+(:meth:`~como3r.store.writer.SessionStore.written_metrics`).
 """
 
 from __future__ import annotations
@@ -33,10 +35,6 @@ PARTS: dict[str, tuple[str, ...]] = {
 }
 
 _PACKET = "packet."
-
-#: transports (``Hub.name``) whose agents encode ``lossy`` (:mod:`.zenoh_agent`); the
-#: others (pipes) send exact encodings
-LOSSY_TRANSPORTS = frozenset({"zenoh"})
 
 
 def part_of(path: str) -> str:
@@ -72,6 +70,19 @@ class PartCounter:
         """Count one keyframe's parts (:func:`wire_parts`)."""
         self.bytes.update(parts)
         self.keyframes += 1
+
+    def add_fields(self, sizes: Mapping[str, int]) -> None:
+        """Count one keyframe message from its field sizes
+        (:func:`~como3r.transport.codec.part_sizes`, as :func:`record_parts` hands them)."""
+        parts = dict.fromkeys([*PARTS, "other"], 0)
+        for path, size in sizes.items():
+            parts[part_of(path)] += size
+        self.add(parts)
+
+    def add_totals(self, parts: Mapping[str, int], keyframes: int) -> None:
+        """Count ``keyframes`` keyframes whose parts sum to ``parts`` (an agent's report)."""
+        self.bytes.update(parts)
+        self.keyframes += keyframes
 
     def per_keyframe(self) -> dict[str, float] | None:
         """Mean bytes per keyframe of each part (None before the first keyframe)."""

@@ -180,6 +180,9 @@ class AgentFinished:
         keyframe_timestamps: ``(K,)`` float64.
         keyframe_T_WC: ``(K, 8)`` the agent's keyframe poses.
         edges: the agent's local keyframe graph.
+        keyframe_bytes_by_part: bytes of the keyframe messages this process sent, summed
+            per part (:data:`~como3r.transport.keyframe_bytes.PARTS`), as they were encoded.
+        keyframes_measured: the keyframe messages they sum.
     """
 
     agent: int
@@ -195,7 +198,9 @@ class AgentFinished:
     keyframe_timestamps: np.ndarray
     keyframe_T_WC: Tensor
     edges: list[EdgeSummary] = field(default_factory=list)
-    version: int = 1
+    keyframe_bytes_by_part: dict[str, int] = field(default_factory=dict)
+    keyframes_measured: int = 0
+    version: int = 2
 
 
 @dataclass(frozen=True)
@@ -371,6 +376,10 @@ def _check_finished(m: AgentFinished) -> None:
         "anchors must be keyframe ids",
     )
     _require(m.applied_seq >= 0, "applied_seq must be >= 0")
+    _require(
+        m.keyframes_measured >= 0 and all(v >= 0 for v in m.keyframe_bytes_by_part.values()),
+        "keyframes_measured and keyframe_bytes_by_part must be >= 0",
+    )
 
 
 def _check_update_message(m: PoseUpdateMessage) -> None:
@@ -378,8 +387,11 @@ def _check_update_message(m: PoseUpdateMessage) -> None:
 
 
 for _cls in (*TO_AGENT, *FROM_AGENT, EdgeSummary):
-    # AgentTask 3: resume_after, 4: send_encoding; FrameDone 2: keyframes_waiting
-    codec_registry.register(_cls, version={AgentTask: 4, FrameDone: 2}.get(_cls, 1))
+    # AgentTask 3: resume_after, 4: send_encoding; FrameDone 2: keyframes_waiting;
+    # AgentFinished 2: the keyframe bytes per part, measured by the agent
+    codec_registry.register(
+        _cls, version={AgentTask: 4, FrameDone: 2, AgentFinished: 2}.get(_cls, 1)
+    )
 
 for _name, _check in (
     ("PoseUpdate", _check_pose_update),

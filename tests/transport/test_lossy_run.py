@@ -1,0 +1,63 @@
+"""A small centralized run whose keyframes and refreshes cross the lossy wire (the compact
+codings of :mod:`como3r.transport.codec_compact`, as between machines) against the same run
+on the exact path: the merged ATE within 2 %."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from como3r.config import Config, apply_overrides
+from como3r.coordination.coordinator import Coordinator
+from como3r.data.synth import synthesize
+from como3r.runtime.pipeline import PriorSpec, run
+from como3r.transport import codec
+
+pytestmark = pytest.mark.slow
+
+# the settings of tests/runtime/test_pipeline.py: a fast, deterministic single-process run
+OVERRIDES = [
+    "input.long_side=128",
+    "simulated_prior.model=easy",
+    "global_ba.step_tol=1e-5",
+    "global_ba.trigger_interval_edges=3",
+    "global_ba.max_iters_stream=10",
+    "global_ba.max_iters_cleanup=30",
+]
+
+
+def _merged_ate(out: Path) -> float:
+    ate = json.loads((out / "metrics.json").read_text())["ate"]
+    return float(ate["merged"]["ate"]["rmse"])
+
+
+def test_merged_ate_across_the_lossy_wire_is_within_two_percent(tmp_path, monkeypatch) -> None:
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    synthesize(
+        scene, agents=2, seed=1, overlap=0.2, frames=12, preset="default", width=128, height=96
+    )
+    agents = [scene / "agent_0", scene / "agent_1"]
+    config = apply_overrides(Config(), OVERRIDES)
+    run(agents, tmp_path / "exact", config, PriorSpec("simulated"))
+
+    add, refresh = Coordinator.add_keyframe, Coordinator.refresh
+    sent: list[int] = []
+
+    def add_lossy(self: Coordinator, packet: Any) -> Any:
+        data = codec.encode(packet, lossy=True)
+        sent.append(len(data))
+        return add(self, codec.decode(data))
+
+    def refresh_lossy(self: Coordinator, agent: int, update: Any) -> None:
+        refresh(self, agent, codec.decode(codec.encode(update, lossy=True)))
+
+    monkeypatch.setattr(Coordinator, "add_keyframe", add_lossy)
+    monkeypatch.setattr(Coordinator, "refresh", refresh_lossy)
+    run(agents, tmp_path / "lossy", config, PriorSpec("simulated"))
+    assert len(sent) > 4  # every keyframe crossed the lossy wire
+    exact, lossy = _merged_ate(tmp_path / "exact"), _merged_ate(tmp_path / "lossy")
+    assert abs(lossy - exact) <= 0.02 * exact, (lossy, exact)
