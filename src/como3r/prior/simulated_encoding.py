@@ -104,6 +104,10 @@ class SimulatedEncoding(Encoding):
         colours: ``(H // s, W // s, 3)`` float32 mean image colour of each ``s x s`` cell,
             ``s = retrieval_stride`` (:func:`~como3r.prior.simulated_appearance.cell_colours`);
             None as ``texture``.
+        hidden_log_error: ``(H, W)`` log-range error of the out-of-distribution effects that
+            the confidence never sees (:mod:`~como3r.prior.simulated_ood`); None without them.
+        sky_scale: factor on the sky's range; sky_logit_raise: added to the sky's
+            ``log(C - 1)`` (1 and 0 without the out-of-distribution effects).
     """
 
     K: Tensor
@@ -122,6 +126,9 @@ class SimulatedEncoding(Encoding):
     descriptors: Tensor
     texture: Tensor | None = None
     colours: Tensor | None = None
+    hidden_log_error: Tensor | None = None
+    sky_scale: float = 1.0
+    sky_logit_raise: float = 0.0
 
 
 def normalize(x: Tensor) -> Tensor:
