@@ -1,18 +1,20 @@
 """The ``v2`` model's confidence of a pair from what its two images reveal (item 13 of
-:mod:`como3r.prior.simulated_appearance`), and its confidence logits as a whole.
+:mod:`como3r.prior.simulated_errors`), and its confidence logits as a whole.
 
 In the ``realistic`` model a pair's confidence knows the true overlap: a pixel is lowered
 when its appearance key has no counterpart in the other view, and a pair whose keys do not
-support a similarity fit is lowered as a whole unless a coin says it hallucinates. Here
-both come from the *descriptor agreement of the correspondences the pair predicts*: each
-pixel of j is placed in camera i by the pose the matcher believes (the key fit, or the
-random pose of a pair it could not fit, before the pose noise and gross failures that the
-confidence never knows), projected into image i, and its clean descriptor compared with
-the one image i has there (:func:`agreement`). A look-alike wrong place (aliased façades,
-one flat paint) agrees and stays confident; a true overlap on flat paint agrees no more
-than flat paint anywhere and, weighted by the texture weight ``w`` of item 9, gives little
-evidence; occluded and out-of-view pixels disagree. Nothing here looks at the true
-geometry or at which keys coincide.
+support a similarity fit is lowered as a whole unless a coin says it hallucinates. Here a
+pixel's drop comes from the *descriptor agreement of the correspondence the pair predicts*:
+each pixel is placed in the other camera by the pose the matcher believes (the key fit, or
+the random pose of a pair it could not fit, before the pose noise and gross failures that
+the confidence never knows), projected into the other image, and its clean descriptor
+compared with the one that image has there (:func:`agreement`); occluded and out-of-view
+pixels disagree. The pair's drop comes from *appearance similarity* alone, no pose: how
+well pixels of j find a look-alike anywhere in i (:func:`look_alike_evidence`), weighted
+by the texture weight ``w`` of item 9. A look-alike wrong place (one wallpaper in two
+rooms, aliased façades) is confident; a true overlap on flat paint looks like any flat
+paint and gives little evidence. Nothing here looks at the true geometry or at which keys
+coincide.
 """
 
 from __future__ import annotations
@@ -111,8 +113,14 @@ def look_alike_evidence(
     d = enc_j.descriptors.shape[-1]
     step = max(1, round(max(enc_i.shape) / c.look_alike_grid))
     grid = enc_i.descriptors[::step, ::step].reshape(-1, d).float()
-    best = reproducible_matmul(enc_j.descriptors.reshape(-1, d)[samples].float(), grid.T)
-    evidence = pixel_evidence(best.max(-1).values)
+    queries = enc_j.descriptors.reshape(-1, d)[samples].float()
+    # one rank-1 term at a time: a fixed summation order (a max of cosines decides a
+    # confidence, so it must not change by an ulp between calls) without the
+    # (samples, grid, d) intermediate of reproducible_matmul
+    cosine = torch.zeros(queries.shape[0], grid.shape[0], device=grid.device)
+    for k in range(d):
+        cosine.add_(queries[:, k : k + 1] * grid[:, k])
+    evidence = pixel_evidence(cosine.max(-1).values)
     return float((enc_j.texture.reshape(-1)[samples] * evidence).mean())
 
 
