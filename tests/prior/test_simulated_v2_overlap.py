@@ -152,7 +152,7 @@ def test_ood_severity_grows_the_depth_error_and_the_ambiguity(scene):
             nn.append(_nn_within_2px(prediction, truth, k, k + 1))
         depth.append(np.mean(errors))
         matched.append(np.mean(nn))
-    # measured: depth 2.8 %, 3.9 %, 5.8 %; matched 0.88, 0.60, 0.21
+    # measured: depth 2.8 %, 3.9 %, 5.8 %; matched 0.88, 0.55, 0.17
     assert depth[0] < depth[1] < depth[2]
     assert depth[2] > 1.5 * depth[0]
     assert matched[0] > matched[1] > matched[2]

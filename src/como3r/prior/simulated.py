@@ -204,9 +204,9 @@ class SimulatedPrior(Prior):
         else:
             pred_rays, log_range_error = rays, torch.zeros_like(ranges)
         descriptors = self._clean_descriptors(key_ids, key_coords, footprint)
-        texture = colours = ood = None
+        texture = seen_texture = colours = ood = None
         if self.appearance:  # v2: what the image shows (items 9, 10 and 14)
-            descriptors, texture, colours, ood = v2_appearance(
+            descriptors, texture, seen_texture, colours, ood = v2_appearance(
                 view.image,
                 descriptors,
                 ranges,
@@ -238,6 +238,7 @@ class SimulatedPrior(Prior):
             # float16 as MASt3R-SLAM's matching kernels use them; far below the noise
             descriptors=descriptors.half(),
             texture=texture,
+            confidence_texture=seen_texture,
             colours=colours,
             hidden_log_error=ood.hidden_log_error if ood is not None else None,
             sky_scale=ood.sky_scale if ood is not None else 1.0,

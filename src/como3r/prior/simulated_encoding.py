@@ -101,6 +101,9 @@ class SimulatedEncoding(Encoding):
         texture: ``(H, W)`` float32 weight of the key in each descriptor, from the image's
             local contrast (:func:`~como3r.prior.simulated_appearance.texture_weight`); None in
             the models that ignore the image (all but ``v2``).
+        confidence_texture: ``(H, W)`` the texture weight the confidence sees, when it
+            differs from ``texture`` (low light's noise taken for texture,
+            :mod:`~como3r.prior.simulated_ood`); None otherwise.
         colours: ``(H // s, W // s, 3)`` float32 mean image colour of each ``s x s`` cell,
             ``s = retrieval_stride`` (:func:`~como3r.prior.simulated_appearance.cell_colours`);
             None as ``texture``.
@@ -125,6 +128,7 @@ class SimulatedEncoding(Encoding):
     median_footprint: float
     descriptors: Tensor
     texture: Tensor | None = None
+    confidence_texture: Tensor | None = None
     colours: Tensor | None = None
     hidden_log_error: Tensor | None = None
     sky_scale: float = 1.0

@@ -114,8 +114,10 @@ plus what the image the prior sees can and cannot reveal: items 9-12 in
       pixel noise of RMS ``low_light_noise = 0.15`` intensity units; per-image descriptor
       noise of RMS norm ``low_light_descriptor_noise = 0.6`` (two views of one place
       disagree) and pixel range noise ``low_light_range_noise = 0.04``. The image noise
-      raises the local contrast, so the texture weight and with it ``C`` and ``Q`` rise on
-      flat paint: a confidence that takes noise for texture, not fully informative.
+      raises the local contrast that ``C`` and ``Q`` see (item 9's texture drops), so they
+      rise on flat paint: a confidence that takes noise for texture, not fully informative;
+      the key's share of a descriptor follows the noise-free signal, so noise never makes
+      matching easier.
     * Sky: no depth to learn from (DUSt3R and MASt3R exclude pixels without ground truth
       from the loss, naver/dust3r issue 194; a depth network puts the sky at close, varying
       values because stereo ground truth does, lpiccinelli-eth/UniDepth issue 69): the

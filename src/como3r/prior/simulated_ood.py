@@ -63,6 +63,7 @@ class OodImage:
     Attributes:
         image: ``(3, H, W)`` the image the prior sees (blurred, darkened, noisy), in
             [-1, 1] before the noise.
+        signal: ``(3, H, W)`` the same without the noise: the texture there is to match.
         descriptor_noise: RMS of the per-image noise on its clean descriptors (low light).
         known_log_error: ``(H, W)`` log-range error the confidence may see (low light's
             pixel noise: it differs from its neighbours).
@@ -73,6 +74,7 @@ class OodImage:
     """
 
     image: Tensor
+    signal: Tensor
     descriptor_noise: float
     known_log_error: Tensor
     hidden_log_error: Tensor
@@ -149,7 +151,8 @@ def ood_image(
     seen = _gaussian_blur(image, blur * c.blur_sigma * long_side)
     gain = max(0.0, 1.0 - c.low_light_gain * dark)
     noise = torch.randn(seen.shape, generator=gen).to(seen)
-    seen = (seen + 1.0) * gain - 1.0 + dark * c.low_light_noise * noise
+    signal = (seen + 1.0) * gain - 1.0
+    seen = signal + dark * c.low_light_noise * noise
     bias = fourier_field(H, W, long_side / 3.0, 8, gen).to(ranges)
     hidden = blur * c.blur_depth_bias * bias + thin_log_error(
         ranges, valid, round(thin * c.thin_width * long_side), thin
@@ -158,6 +161,7 @@ def ood_image(
     zero = torch.zeros_like(ranges)
     return OodImage(
         image=seen,
+        signal=signal,
         descriptor_noise=dark * c.low_light_descriptor_noise,
         known_log_error=torch.where(valid, known, zero),
         hidden_log_error=torch.where(valid, hidden, zero),
@@ -175,12 +179,17 @@ def v2_appearance(
     agent: int,
     index: int,
     constants: SimulatedConstants,
-) -> tuple[Tensor, Tensor, Tensor, OodImage | None]:
+) -> tuple[Tensor, Tensor, Tensor | None, Tensor, OodImage | None]:
     """What the ``v2`` encoding takes from the image the prior sees (items 9, 10 and 14):
     ``(H, W, d)`` unit descriptors (the key's weighted by the texture weight, the rest the
     image patch's appearance, plus low light's per-image noise), the ``(H, W)`` texture
-    weight, the retrieval cells' colours and the out-of-distribution effects (None when
-    off).
+    weight of the signal, the texture weight the confidence sees (of the noisy image; None
+    without out-of-distribution effects, when it is the same), the retrieval cells' colours
+    and the out-of-distribution effects (None when off).
+
+    Low light's pixel noise raises the local contrast: the confidence takes it for texture,
+    but the key's share of a descriptor follows the texture the noise-free signal has, so
+    noise never makes matching easier.
 
     Args:
         image: ``(3, H, W)`` the view's image in [-1, 1].
@@ -188,17 +197,10 @@ def v2_appearance(
         ranges, valid: ``(H, W)`` true ranges and where they are valid.
         constants: the prior's sensor constants (sky range, retrieval cells).
     """
-    ood = ood_image(
-        image.to(key_descriptors.device),
-        ranges,
-        valid,
-        config,
-        agent,
-        index,
-        constants.sky_range[0],
-    )
-    seen = ood.image if ood is not None else image.to(key_descriptors.device)
-    texture = texture_weight(seen)
+    image = image.to(key_descriptors.device)
+    ood = ood_image(image, ranges, valid, config, agent, index, constants.sky_range[0])
+    seen = ood.image if ood is not None else image
+    texture = texture_weight(ood.signal if ood is not None else image)
     appearance = appearance_descriptors(seen, key_descriptors.shape[-1], config.seed)
     weight = texture[..., None]
     descriptors = normalize(weight * key_descriptors + (1.0 - weight) * appearance)
@@ -207,4 +209,5 @@ def v2_appearance(
         noise = torch.randn(descriptors.shape, generator=gen).to(descriptors)
         scale = ood.descriptor_noise / math.sqrt(descriptors.shape[-1])
         descriptors = normalize(descriptors + scale * noise)
-    return descriptors, texture, cell_colours(seen, constants.retrieval_stride), ood
+    seen_texture = texture_weight(seen) if ood is not None else None
+    return descriptors, texture, seen_texture, cell_colours(seen, constants.retrieval_stride), ood

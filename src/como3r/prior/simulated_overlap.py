@@ -197,11 +197,13 @@ def v2_logits(
         # out-of-distribution sky: low but not zero (item 14)
         conf = torch.where(enc.valid, conf, conf + enc.sky_logit_raise)
         flat = 1.0 - enc.texture
+        # what the confidence takes for texture (low light's noise included, item 14)
+        looks_flat = flat if enc.confidence_texture is None else 1.0 - enc.confidence_texture
         known = local_error(error, enc.valid)
         logits.append(
             (
-                conf - a.conf_texture_drop * flat - error_logit(known, config),
-                desc_conf - a.contrast_q_drop * flat,
+                conf - a.conf_texture_drop * looks_flat - error_logit(known, config),
+                desc_conf - a.contrast_q_drop * looks_flat,
             )
         )
         noises.append(descriptor_noise * (1.0 + a.contrast_noise_gain * flat))
