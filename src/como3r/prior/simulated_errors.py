@@ -83,12 +83,14 @@ plus what the image the prior sees can and cannot reveal: items 9-12 in
 
 13. No truth-decided overlap (:mod:`como3r.prior.simulated_overlap`). Items 6 and 7 lower a
     pair by whether its surface keys support a similarity fit and a pixel by whether its key
-    has a counterpart: confidence that knows the true overlap (overlap AUC 1.00 in
-    ``benchmarks/prior_statistics.py``). Here a pixel's drop ``pixel_drop (1 - e)`` comes
+    has a counterpart: confidence that knows the true overlap (overlap AUC 0.96-1.00 in
+    ``benchmarks/prior_statistics.py``, below 1 only by the hallucination coin). Here a pixel's drop ``pixel_drop (1 - e)`` comes
     from the agreement ``e`` of its clean descriptor with the one at the pixel its predicted
     correspondence lands on (the pose the matcher believes, before the pose noise the
-    confidence never knows), and the pair's drop from how well 400 random pixels of view j
-    find a look-alike anywhere in view i, weighted by their texture weight (item 9): two
+    confidence never knows), and the pair's drop (of ``C_ji`` only: a pair-level drop of
+    ``Q`` moved the share of a low-texture pair's pixels above tracking's absolute
+    ``Q_min`` from 0.95 to 0.01-0.86 and lost frames) from how well 400 random pixels of
+    view j find a look-alike anywhere in view i, weighted by their texture weight (item 9): two
     views of one wallpaper, aliased façades or flat paint look like overlap, a true overlap
     on flat paint gives little evidence. The hallucination coin (item 6) is drawn for every
     pair, not for the pairs the keys could not fit, and a per-pair offset of RMS

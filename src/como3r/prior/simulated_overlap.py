@@ -154,7 +154,7 @@ def pair_evidences(
 
 
 def pair_drop(pair: float, hallucinated: bool, noise: float) -> float:
-    """Logit drop of the pair's ``C_ji``, ``Q_ii`` and ``Q_ji``: ``pair_drop`` times the
+    """Logit drop of the pair's ``C_ji``: ``pair_drop`` times the
     missing share of the evidence (0 at ``evidence_full`` and above, all of it at
     ``evidence_none`` and below), none for a pair that hallucinates, plus the pair's offset
     ``pair_noise n`` (``noise`` is ``n``)."""
@@ -211,7 +211,10 @@ def v2_logits(
     # the coin is drawn for every pair: whether a pair hallucinates does not look at truth
     hallucinated = float(torch.rand((), generator=gen)) < config.hallucination_rate
     drop = pair_drop(pair, hallucinated, float(torch.randn((), generator=gen)))
-    drop_i = c.pixel_drop * (1.0 - evidence_i) * enc_i.valid + drop
-    drop_j = c.pixel_drop * (1.0 - evidence_j) * enc_j.valid + drop
+    drop_i = c.pixel_drop * (1.0 - evidence_i) * enc_i.valid
+    drop_j = c.pixel_drop * (1.0 - evidence_j) * enc_j.valid
     (conf_i, q_i), (conf_j, q_j) = logits
-    return (conf_i, conf_j - drop_j, q_i - drop_i, q_j - drop_j), (noises[0], noises[1])
+    # the pair's drop lowers its geometry (C_ji), not the matchability of its pixels (Q):
+    # on Q it made the share of consecutive low-texture pixels above tracking's absolute
+    # Q_min jump from pair to pair (0.01-0.86) and tracking lost frames
+    return (conf_i, conf_j - drop_j - drop, q_i - drop_i, q_j - drop_j), (noises[0], noises[1])
