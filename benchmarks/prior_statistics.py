@@ -27,16 +27,20 @@ item 1) for each ``--model`` on two synthetic scenes (``--presets``: a textured 
   covisibility above 0.3) and of pairs that do not (below 0.01); ``AUC``: how well the
   pair's median ``C_ji`` separates the two (0.5: it does not know, 1: it knows the truth);
   ``covis``: within overlapping pairs, median ``C_ji`` of the pixels i truly sees over that
-  of the others.
+  of the others. Overlapping pairs are up to ``--pairs`` of those above 0.3, pairs without
+  overlap up to ``--pairs`` below 0.01, each spread over all such pairs.
 * ``depth %``: median ``|X_ii range / true range - 1|`` after the pair's median scale;
   ``focal %``: median ``|f / f_true - 1|`` of the focal ``X_ii`` implies (least squares of
   ``u = f x / z + c``); ``pose deg``: median rotation error of the similarity fitted between
   view j's true points and ``X_ji``.
 
+``--ood S ...`` adds rows of the ``v2`` model at ``simulated_prior.ood_severity = S``
+(blur, low light, sky, thin structures; :mod:`como3r.prior.simulated_ood`).
+
 Usage::
 
     python benchmarks/prior_statistics.py [--model realistic easy] [--presets default
-        low-texture] [--width 320] [--height 240] [--frames 16] [--threads 1]
+        low-texture] [--width 320] [--height 240] [--frames 16] [--ood 0.5 1] [--threads 1]
 """
 
 from __future__ import annotations
@@ -307,9 +311,13 @@ def measure(
         [[covisibility(scene.gt(a), scene.gt(b)) for b in scene.views[1]] for a in scene.views[0]]
     )
     ranks = retrieval_ranks(prior, encodings, covis)
-    overlapping = list(zip(*np.nonzero(covis > OVERLAP)))[:max_pairs]
-    apart = list(zip(*np.nonzero(covis < NO_OVERLAP)))
-    apart = apart[:: max(1, len(apart) // max_pairs)][:max_pairs]
+    overlapping, apart = (
+        pairs[:: max(1, len(pairs) // max_pairs)][:max_pairs]
+        for pairs in (
+            list(zip(*np.nonzero(covis > OVERLAP))),
+            list(zip(*np.nonzero(covis < NO_OVERLAP))),
+        )
+    )
     medians: dict[bool, list[float]] = {True: [], False: []}
     covis_ratio = []
     for is_overlap, pairs in ((True, overlapping), (False, apart)):
@@ -397,6 +405,13 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=16, help="frames per agent (2 agents)")
     parser.add_argument("--gap", type=int, default=2, help="frame gap of the agent-0 pairs")
     parser.add_argument("--pairs", type=int, default=6, help="pairs per kind")
+    parser.add_argument(
+        "--ood",
+        nargs="*",
+        type=float,
+        default=[],
+        help="also measure v2 at these simulated_prior.ood_severity values (rows 'v2 oodS')",
+    )
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -407,8 +422,11 @@ def main() -> None:
             root = Path(tmp) / preset
             root.mkdir()
             scene = load_scene(root, preset, args.frames, args.width, args.height)
-            for model in args.model:
-                stats = measure(scene, SimulatedPriorConfig(model=model), args.gap, args.pairs)
+            configs = [(model, SimulatedPriorConfig(model=model)) for model in args.model] + [
+                (f"v2 ood{s:g}", SimulatedPriorConfig(model="v2", ood_severity=s)) for s in args.ood
+            ]
+            for model, config in configs:
+                stats = measure(scene, config, args.gap, args.pairs)
                 rows.append((preset, model, stats))
                 print(
                     f"{preset} / {model}: {stats['pairs']:.0f} pairs (gap {args.gap}), "

@@ -22,7 +22,10 @@ class SimulatedPriorConfig:
     progress, not yet the default) adds to the realistic model what the image reveals
     (descriptors, retrieval and confidence from local contrast; a confidence blind to the
     low-frequency error; per-pair rays); the keys from ``focal_error`` on are used by the
-    realistic and v2 models only. Units and sources of every key:
+    realistic and v2 models only. ``ood_severity`` (0 off, 1 the strongest modelled; ``v2``
+    only) adds out-of-distribution images: blur, low light, sky and thin structures, each
+    scaled by its weight ``ood_blur``, ``ood_low_light``, ``ood_sky``, ``ood_thin``
+    (:mod:`como3r.prior.simulated_ood`). Units and sources of every key:
     :mod:`como3r.prior.simulated_errors`. Lengths are fractions (of a range, a baseline,
     the view's median valid depth or the image's long side), never metres.
     """
@@ -56,6 +59,11 @@ class SimulatedPriorConfig:
     confidence_noise: float = 0.5
     descriptor_viewpoint_gain: float = 1.0
     descriptor_ambiguity: float = 0.5
+    ood_severity: float = 0.0
+    ood_blur: float = 1.0
+    ood_low_light: float = 1.0
+    ood_sky: float = 1.0
+    ood_thin: float = 1.0
 
 
 def check_config(config: SimulatedPriorConfig) -> None:
@@ -78,6 +86,10 @@ def check_config(config: SimulatedPriorConfig) -> None:
         "confidence_noise",
         "descriptor_viewpoint_gain",
         "descriptor_ambiguity",
+        "ood_blur",
+        "ood_low_light",
+        "ood_sky",
+        "ood_thin",
     )
     for name in non_negative:
         if getattr(config, name) < 0:
@@ -88,6 +100,7 @@ def check_config(config: SimulatedPriorConfig) -> None:
         "flying_pixel_fraction",
         "outlier_fraction",
         "image_error_correlation",
+        "ood_severity",
     ):
         if not 0.0 <= getattr(config, name) <= 1.0:
             raise ConfigError(
@@ -101,4 +114,10 @@ def check_config(config: SimulatedPriorConfig) -> None:
     if config.descriptor_dim < 2:
         raise ConfigError(
             f"simulated_prior.descriptor_dim must be >= 2, got {config.descriptor_dim}"
+        )
+    if config.ood_severity > 0 and config.model != "v2":
+        raise ConfigError(
+            f"simulated_prior.ood_severity={config.ood_severity} needs simulated_prior.model=v2 "
+            f"(the out-of-distribution effects act on what the image shows), got "
+            f"model={config.model}"
         )

@@ -16,7 +16,8 @@ keys a random one with low confidence.
 Error model (:class:`~como3r.config.SimulatedPriorConfig`, ``model`` key): the
 ``realistic`` default, the ``easy`` near-oracle or ``v2`` (the realistic model with
 descriptors and confidence that depend on the image's local contrast, a confidence blind
-to the low-frequency error and per-pair ray errors, in progress), documented parameter by
+to the low-frequency error, per-pair ray errors, overlap judged from descriptor agreement
+only and an out-of-distribution knob; not yet the default), documented parameter by
 parameter, with their sources, in :mod:`como3r.prior.simulated_errors`. Draws that
 belong to one image (its intrinsics and ray errors, its range-error field, flying pixels
 and outliers) are made once at :meth:`SimulatedPrior.encode`, seeded by ``(config.seed,
@@ -78,11 +79,11 @@ from como3r.prior import simulated_errors as errors
 from como3r.prior.base import Encoding, PairPrediction, Prior, View
 from como3r.prior.ground_truth import GroundTruth, GroundTruthSource
 from como3r.prior.simulated_confidence import (
-    base_logits,
     confidence,
     descriptor_confidence,
     easy_confidences,
     noisy_descriptors,
+    realistic_logits,
 )
 from como3r.prior.simulated_encoding import (
     SimulatedConstants,
@@ -104,13 +105,13 @@ from como3r.prior.simulated_keys import (
     reproducible_matmul,
     stable_seed,
 )
+from como3r.prior.simulated_ood import OodConstants, v2_appearance
+from como3r.prior.simulated_overlap import OverlapConstants, v2_logits
 from como3r.prior.simulated_retrieval import (
     cached_array,
+    codebook_sample,
     default_cache_dir,
-    mix_appearance,
-    patch_features,
-    select_patches,
-    synthetic_patch_features,
+    view_features,
 )
 
 logger = logging.getLogger(__name__)
@@ -203,17 +204,20 @@ class SimulatedPrior(Prior):
         else:
             pred_rays, log_range_error = rays, torch.zeros_like(ranges)
         descriptors = self._clean_descriptors(key_ids, key_coords, footprint)
-        texture = colours = None
-        if self.appearance:
-            image = view.image.to(descriptors.device)
-            texture = appearance_model.texture_weight(image)
-            appearance = appearance_model.appearance_descriptors(
-                image, self.descriptor_dim, self.config.seed
+        texture = seen_texture = colours = ood = None
+        if self.appearance:  # v2: what the image shows (items 9, 10 and 14)
+            descriptors, texture, seen_texture, colours, ood = v2_appearance(
+                view.image,
+                descriptors,
+                ranges,
+                valid,
+                self.config,
+                view.agent,
+                view.index,
+                self.constants,
             )
-            descriptors = normalize(
-                texture[..., None] * descriptors + (1.0 - texture[..., None]) * appearance
-            )
-            colours = appearance_model.cell_colours(image, self.constants.retrieval_stride)
+            if ood is not None:
+                log_range_error = log_range_error + ood.known_log_error
         return SimulatedEncoding(
             agent=view.agent,
             index=view.index,
@@ -234,7 +238,11 @@ class SimulatedPrior(Prior):
             # float16 as MASt3R-SLAM's matching kernels use them; far below the noise
             descriptors=descriptors.half(),
             texture=texture,
+            confidence_texture=seen_texture,
             colours=colours,
+            hidden_log_error=ood.hidden_log_error if ood is not None else None,
+            sky_scale=ood.sky_scale if ood is not None else 1.0,
+            sky_logit_raise=ood.sky_logit_raise if ood is not None else 0.0,
         )
 
     def _truth_of(self, view: View) -> GroundTruth:
@@ -340,38 +348,42 @@ class SimulatedPrior(Prior):
             )
             X_ii = appearance_model.jitter_rays(X_ii, enc_i.K, cfg, heads)
             X_ji = appearance_model.jitter_rays(X_ji, enc_i.K, cfg, heads)
-        r = errors.RealisticConstants
-        unmatched_i = ~matches.counterpart_i.view(enc_i.shape) & enc_i.valid
-        unmatched_j = ~matches.counterpart_j.view(enc_j.shape) & enc_j.valid
-        drop_i = r.weak_unmatched_drop * unmatched_i.float()
-        drop_j = r.weak_unmatched_drop * unmatched_j.float()
-        if not (overlap or hallucinated):
-            drop_i, drop_j = drop_i + r.weak_no_overlap_drop, drop_j + r.weak_no_overlap_drop
-        conf_i, desc_conf_i = base_logits(enc_i, self.constants)
-        conf_j, desc_conf_j = base_logits(enc_j, self.constants)
         noise = cfg.confidence_noise
         descriptor_noise = cfg.descriptor_noise * (1.0 + cfg.descriptor_viewpoint_gain * change)
-        noise_i = noise_j = descriptor_noise
-        known_i, known_j = error_i, error_j
-        if enc_i.texture is not None and enc_j.texture is not None:  # v2 (items 9 and 11)
-            a = appearance_model.AppearanceConstants
-            noise_i = descriptor_noise * (1.0 + a.contrast_noise_gain * (1.0 - enc_i.texture))
-            noise_j = descriptor_noise * (1.0 + a.contrast_noise_gain * (1.0 - enc_j.texture))
-            desc_conf_i = desc_conf_i - a.contrast_q_drop * (1.0 - enc_i.texture)
-            desc_conf_j = desc_conf_j - a.contrast_q_drop * (1.0 - enc_j.texture)
-            known_i = appearance_model.local_error(error_i, enc_i.valid)
-            known_j = appearance_model.local_error(error_j, enc_j.valid)
-            conf_i = conf_i - a.conf_texture_drop * (1.0 - enc_i.texture)
-            conf_j = conf_j - a.conf_texture_drop * (1.0 - enc_j.texture)
+        if self.appearance:  # v2: confidence from what the images reveal (items 9-13)
+            pair_gen = generator(
+                cfg.seed, "v2 pair confidence", enc_i.agent, enc_i.index, enc_j.agent, enc_j.index
+            )
+            (conf_i, conf_j, q_i, q_j), (noise_i, noise_j) = v2_logits(
+                enc_i,
+                enc_j,
+                pose,
+                (error_i, error_j),
+                cfg,
+                self.constants,
+                descriptor_noise,
+                pair_gen,
+            )
+        else:
+            conf_i, conf_j, q_i, q_j = realistic_logits(
+                enc_i,
+                enc_j,
+                matches,
+                overlap or hallucinated,
+                (error_i, error_j),
+                cfg,
+                self.constants,
+            )
+            noise_i = noise_j = descriptor_noise
         return PairPrediction(
             X_ii=scale * X_ii,
             X_ji=X_ji,
-            C_ii=confidence(conf_i - errors.error_logit(known_i, cfg), gen, noise),
-            C_ji=confidence(conf_j - errors.error_logit(known_j, cfg) - drop_j, gen, noise),
+            C_ii=confidence(conf_i, gen, noise),
+            C_ji=confidence(conf_j, gen, noise),
             D_ii=noisy_descriptors(enc_i, gen, noise_i),
             D_ji=noisy_descriptors(enc_j, gen, noise_j),
-            Q_ii=descriptor_confidence(desc_conf_i - drop_i, gen, noise),
-            Q_ji=descriptor_confidence(desc_conf_j - drop_j, gen, noise),
+            Q_ii=descriptor_confidence(q_i, gen, noise),
+            Q_ji=descriptor_confidence(q_j, gen, noise),
         )
 
     def _observe(self, enc: SimulatedEncoding, gen: torch.Generator) -> tuple[Tensor, Tensor]:
@@ -392,9 +404,11 @@ class SimulatedPrior(Prior):
             + self.config.range_noise * noise
             + enc.log_range_error
         )
-        low, high = self.constants.sky_range
+        low, high = (enc.sky_scale * x for x in self.constants.sky_range)
         sky = enc.median_range * (low + (high - low) * torch.rand(H, W, generator=gen).to(device))
-        ranges = torch.where(enc.valid, enc.ranges * torch.exp(log_factor), sky)
+        # the out-of-distribution error the confidence never sees (item 14)
+        hidden = log_factor if enc.hidden_log_error is None else log_factor + enc.hidden_log_error
+        ranges = torch.where(enc.valid, enc.ranges * torch.exp(hidden), sky)
         log_error = torch.where(enc.valid, log_factor, torch.zeros_like(log_factor))
         return enc.pred_rays * ranges[..., None], log_error
 
@@ -413,37 +427,8 @@ class SimulatedPrior(Prior):
             ``(N, retrieval_dim)`` float32 unit descriptors and ``(N,)`` attention, highest
             first.
         """
-        enc = checked_encoding(enc)
-        c = self.constants
-        if min(enc.shape) < c.retrieval_patch:
-            raise PriorError(
-                f"simulated prior: a {enc.shape[1]}x{enc.shape[0]} view has no "
-                f"{c.retrieval_patch}x{c.retrieval_patch} patch for retrieval"
-            )
-        gen = generator(self.config.seed, "retrieval", enc.agent, enc.index)
-        appearance = None
-        if enc.texture is not None and enc.colours is not None:  # v2 (item 10)
-            appearance = appearance_model.patch_appearance(
-                enc.colours,
-                enc.texture,
-                c.retrieval_patch,
-                c.retrieval_stride,
-                c.retrieval_dim,
-                self.config.seed,
-            )
-        descriptors, attention = patch_features(
-            self._retrieval_map,
-            enc.key_ids,
-            enc.key_coords,
-            enc.footprint,
-            c.retrieval_patch,
-            c.retrieval_stride,
-            c.retrieval_noise,
-            gen,
-            appearance,
-        )
-        return select_patches(
-            descriptors, attention, c.retrieval_max_features, c.retrieval_min_valid
+        return view_features(
+            self._retrieval_map, checked_encoding(enc), self.constants, self.config.seed
         )
 
     def codebook(self, size: int | None = None, cache_dir: str | Path | None = None) -> np.ndarray:
@@ -479,30 +464,13 @@ class SimulatedPrior(Prior):
 
         def train() -> np.ndarray:
             logger.info("training the simulated prior's %d-word codebook (once)", size)
-            count = size * c.codebook_samples_per_word
-            gen = generator(self.config.seed, "codebook sample")
-            sample = synthetic_patch_features(
+            sample = codebook_sample(
                 self._retrieval_map,
-                count,
-                c.retrieval_patch,
-                c.retrieval_stride,
-                c.retrieval_noise,
-                c.codebook_world_fraction,
-                gen,
+                c,
+                size * c.codebook_samples_per_word,
+                self.config.seed,
+                self.appearance,
             )
-            if self.appearance:  # v2: key patches mixed with image appearance (item 10)
-                mixed = mix_appearance(
-                    sample,
-                    *appearance_model.random_patch_appearance(
-                        count,
-                        c.retrieval_patch,
-                        c.retrieval_stride,
-                        c.retrieval_dim,
-                        self.config.seed,
-                        gen,
-                    ),
-                )
-                sample = normalize(mixed)
             return train_codebook(sample.numpy(), size, self.config.seed)
 
         return cached_array(
@@ -522,4 +490,7 @@ class SimulatedPrior(Prior):
             out["realistic_constants"] = dataclasses.asdict(errors.RealisticConstants())
         if self.appearance:
             out["appearance_constants"] = dataclasses.asdict(appearance_model.AppearanceConstants())
+            out["overlap_constants"] = dataclasses.asdict(OverlapConstants())
+        if self.config.ood_severity > 0:
+            out["ood_constants"] = dataclasses.asdict(OodConstants())
         return out

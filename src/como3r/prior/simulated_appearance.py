@@ -1,9 +1,10 @@
 """The ``v2`` error model of the simulated prior: the ``realistic`` model
 (:mod:`como3r.prior.simulated_errors`, items 1-8) plus what the image can reveal.
 
-The ``v2`` model (work in progress towards a prior as hard as MASt3R; not the default) is the
-realistic model plus what the image the prior sees can and cannot reveal
-(:class:`AppearanceConstants`, every value OUR ASSUMPTION unless a source is named):
+The ``v2`` model (towards a prior as hard as MASt3R; not the default) is the realistic model
+plus what the image the prior sees can and cannot reveal (:class:`AppearanceConstants`,
+every value OUR ASSUMPTION unless a source is named; items 13, overlap from descriptor
+agreement, and 14, out-of-distribution images, are in :mod:`como3r.prior.simulated_errors`):
 
 9. Descriptors from the image's local appearance. In ``realistic`` they are functions of the
    true surface keys alone, so flat paint matches as well as rich texture (93-96 % of the

@@ -12,7 +12,9 @@ import math
 import torch
 from torch import Tensor
 
+from como3r.config import SimulatedPriorConfig
 from como3r.prior.simulated_encoding import SimulatedConstants, SimulatedEncoding
+from como3r.prior.simulated_errors import RealisticConstants, error_logit
 from como3r.prior.simulated_keys import KeyMatches
 
 
@@ -82,4 +84,35 @@ def easy_confidences(
         descriptor_confidence(
             desc_conf_j - c.q_unmatched_drop * unmatched_j.float(), gen, c.q_noise
         ),
+    )
+
+
+def realistic_logits(
+    enc_i: SimulatedEncoding,
+    enc_j: SimulatedEncoding,
+    matches: KeyMatches,
+    confident: bool,
+    errors_ij: tuple[Tensor, Tensor],
+    config: SimulatedPriorConfig,
+    c: SimulatedConstants,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The ``realistic`` model's ``log(C_ii - 1), log(C_ji - 1), log Q_ii, log Q_ji`` before
+    the noise (:mod:`~como3r.prior.simulated_errors`, item 7): the range and edge cues, the
+    injected errors ``errors_ij`` ``(H, W)`` of ``X_ii`` and of view j, a weak drop where a
+    pixel's key has no counterpart in the other view and, unless the pair is
+    ``confident`` (its keys overlap, or it hallucinates), a weak drop of the pair."""
+    r = RealisticConstants
+    unmatched_i = ~matches.counterpart_i.view(enc_i.shape) & enc_i.valid
+    unmatched_j = ~matches.counterpart_j.view(enc_j.shape) & enc_j.valid
+    drop_i = r.weak_unmatched_drop * unmatched_i.float()
+    drop_j = r.weak_unmatched_drop * unmatched_j.float()
+    if not confident:
+        drop_i, drop_j = drop_i + r.weak_no_overlap_drop, drop_j + r.weak_no_overlap_drop
+    conf_i, q_i = base_logits(enc_i, c)
+    conf_j, q_j = base_logits(enc_j, c)
+    return (
+        conf_i - error_logit(errors_ij[0], config),
+        conf_j - error_logit(errors_ij[1], config) - drop_j,
+        q_i - drop_i,
+        q_j - drop_j,
     )

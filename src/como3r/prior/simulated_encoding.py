@@ -101,9 +101,16 @@ class SimulatedEncoding(Encoding):
         texture: ``(H, W)`` float32 weight of the key in each descriptor, from the image's
             local contrast (:func:`~como3r.prior.simulated_appearance.texture_weight`); None in
             the models that ignore the image (all but ``v2``).
+        confidence_texture: ``(H, W)`` the texture weight the confidence sees, when it
+            differs from ``texture`` (low light's noise taken for texture,
+            :mod:`~como3r.prior.simulated_ood`); None otherwise.
         colours: ``(H // s, W // s, 3)`` float32 mean image colour of each ``s x s`` cell,
             ``s = retrieval_stride`` (:func:`~como3r.prior.simulated_appearance.cell_colours`);
             None as ``texture``.
+        hidden_log_error: ``(H, W)`` log-range error of the out-of-distribution effects that
+            the confidence never sees (:mod:`~como3r.prior.simulated_ood`); None without them.
+        sky_scale: factor on the sky's range; sky_logit_raise: added to the sky's
+            ``log(C - 1)`` (1 and 0 without the out-of-distribution effects).
     """
 
     K: Tensor
@@ -121,7 +128,11 @@ class SimulatedEncoding(Encoding):
     median_footprint: float
     descriptors: Tensor
     texture: Tensor | None = None
+    confidence_texture: Tensor | None = None
     colours: Tensor | None = None
+    hidden_log_error: Tensor | None = None
+    sky_scale: float = 1.0
+    sky_logit_raise: float = 0.0
 
 
 def normalize(x: Tensor) -> Tensor:

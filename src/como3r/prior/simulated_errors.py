@@ -77,9 +77,61 @@ by any factor gets the same relative errors.
    ``descriptor_viewpoint_gain = 1.0``, our assumption), and the per-texture embedding
    weighted up by ``descriptor_ambiguity = 0.5`` so that repeated texture is ambiguous.
 
-The ``v2`` model (work in progress towards a prior as hard as MASt3R; not the default) is the
-realistic model plus what the image the prior sees can and cannot reveal: items 9-12, in
-:mod:`como3r.prior.simulated_appearance`.
+The ``v2`` model (towards a prior as hard as MASt3R; not the default) is the realistic model
+plus what the image the prior sees can and cannot reveal: items 9-12 in
+:mod:`como3r.prior.simulated_appearance`, and:
+
+13. No truth-decided overlap (:mod:`como3r.prior.simulated_overlap`). Items 6 and 7 lower a
+    pair by whether its surface keys support a similarity fit and a pixel by whether its key
+    has a counterpart: confidence that knows the true overlap (overlap AUC 0.96-1.00 in
+    ``benchmarks/prior_statistics.py``, below 1 only by the hallucination coin). Here a pixel's drop ``pixel_drop (1 - e)`` comes
+    from the agreement ``e`` of its clean descriptor with the one at the pixel its predicted
+    correspondence lands on (the pose the matcher believes, before the pose noise the
+    confidence never knows), and the pair's drop (of ``C_ji`` only: a pair-level drop of
+    ``Q`` moved the share of a low-texture pair's pixels above tracking's absolute
+    ``Q_min`` from 0.95 to 0.01-0.86 and lost frames) from how well 400 random pixels of
+    view j find a look-alike anywhere in view i, weighted by their texture weight (item 9): two
+    views of one wallpaper, aliased façades or flat paint look like overlap, a true overlap
+    on flat paint gives little evidence. The hallucination coin (item 6) is drawn for every
+    pair, not for the pairs the keys could not fit, and a per-pair offset of RMS
+    ``pair_noise = 0.5`` moves the pair's confidence level. Values in
+    :class:`~como3r.prior.simulated_overlap.OverlapConstants`, our assumption, set from the
+    descriptor agreements measured on our synthetic scenes.
+14. Out-of-distribution images, ``ood_severity`` (0 = off, the default; 1 the strongest
+    modelled) times a weight per effect (``ood_blur``, ``ood_low_light``, ``ood_sky``,
+    ``ood_thin``, 1 each; :mod:`como3r.prior.simulated_ood`, values at severity 1 in
+    :class:`~como3r.prior.simulated_ood.OodConstants`). Corruptions of this kind (defocus
+    and motion blur, Gaussian/shot noise, low brightness at graded severities: ImageNet-C,
+    Hendrycks and Dietterich, ICLR 2019) raise the error of learned monocular depth
+    monotonically with severity (RoboDepth, Kong et al., NeurIPS 2023 Datasets and
+    Benchmarks); no published figure for MASt3R under them could be consulted, so every
+    magnitude below is OUR ASSUMPTION and only the kind of failure has a source.
+
+    * Blur (per image, ``u_k`` of the sequence): the image the prior sees is blurred by a
+      Gaussian of up to ``blur_sigma = 0.008`` of the long side (4 px at 512), so its local
+      contrast and with it the texture weight (item 9) fall: descriptors become ambiguous;
+      and a smooth depth bias of RMS ``blur_depth_bias = 0.06`` (log range) that the
+      confidence does not see.
+    * Low light (per image): the image darkened by up to ``low_light_gain = 0.6`` plus
+      pixel noise of RMS ``low_light_noise = 0.15`` intensity units; per-image descriptor
+      noise of RMS norm ``low_light_descriptor_noise = 0.6`` (two views of one place
+      disagree) and pixel range noise ``low_light_range_noise = 0.04``. The image noise
+      raises the local contrast that ``C`` and ``Q`` see (item 9's texture drops), so they
+      rise on flat paint: a confidence that takes noise for texture, not fully informative;
+      the key's share of a descriptor follows the noise-free signal, so noise never makes
+      matching easier.
+    * Sky: no depth to learn from (DUSt3R and MASt3R exclude pixels without ground truth
+      from the loss, naver/dust3r issue 194; a depth network puts the sky at close, varying
+      values because stereo ground truth does, lpiccinelli-eth/UniDepth issue 69): the
+      sky's range moves from 10-20 to ``sky_near_range = 2``-4 times the median depth and
+      its ``log(C - 1)`` rises by ``sky_conf_raise = 3`` (``C`` about 1.4 instead of 1.02):
+      large wrong depth, low but not zero confidence.
+    * Thin structures: the network regresses 16x16-pixel patch tokens upsampled by a DPT
+      head (DUSt3R, Wang et al., CVPR 2024), so a structure much thinner than a patch is
+      smoothed into its background: every pixel with a surface farther by more than
+      ``thin_jump = 0.1`` (log) within ``thin_width = 0.012`` of the long side (6 px at
+      512) is pulled towards it (all the way at severity 1), an error the confidence does
+      not see beyond the usual edge drop.
 """
 
 from __future__ import annotations

@@ -23,7 +23,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from como3r.prior.simulated_keys import WORLD_KEY_ID, RandomFeatureMap
+from como3r.errors import PriorError
+from como3r.prior.simulated_appearance import patch_appearance, random_patch_appearance
+from como3r.prior.simulated_encoding import SimulatedConstants, SimulatedEncoding, normalize
+from como3r.prior.simulated_keys import WORLD_KEY_ID, RandomFeatureMap, generator
 
 logger = logging.getLogger(__name__)
 
@@ -160,6 +163,66 @@ def synthetic_patch_features(
         ids.repeat_interleave(samples), coords.reshape(-1, 3), step.repeat_interleave(samples)
     )
     return _noisy_unit(features.reshape(count, samples, -1).mean(1), noise, gen)
+
+
+def view_features(
+    retrieval_map: RandomFeatureMap, enc: SimulatedEncoding, c: SimulatedConstants, seed: int
+) -> tuple[Tensor, Tensor]:
+    """The retrieval features of a view
+    (:meth:`SimulatedPrior.retrieval_features
+    <como3r.prior.simulated.SimulatedPrior.retrieval_features>`): :func:`patch_features`
+    of its keys, in the ``v2`` model mixed with its cells' appearance
+    (:func:`~como3r.prior.simulated_appearance.patch_appearance`, item 10), then
+    :func:`select_patches`. PriorError for a view smaller than a patch."""
+    if min(enc.shape) < c.retrieval_patch:
+        raise PriorError(
+            f"simulated prior: a {enc.shape[1]}x{enc.shape[0]} view has no "
+            f"{c.retrieval_patch}x{c.retrieval_patch} patch for retrieval"
+        )
+    gen = generator(seed, "retrieval", enc.agent, enc.index)
+    appearance = None
+    if enc.texture is not None and enc.colours is not None:
+        appearance = patch_appearance(
+            enc.colours, enc.texture, c.retrieval_patch, c.retrieval_stride, c.retrieval_dim, seed
+        )
+    descriptors, attention = patch_features(
+        retrieval_map,
+        enc.key_ids,
+        enc.key_coords,
+        enc.footprint,
+        c.retrieval_patch,
+        c.retrieval_stride,
+        c.retrieval_noise,
+        gen,
+        appearance,
+    )
+    return select_patches(descriptors, attention, c.retrieval_max_features, c.retrieval_min_valid)
+
+
+def codebook_sample(
+    retrieval_map: RandomFeatureMap, c: SimulatedConstants, count: int, seed: int, appearance: bool
+) -> Tensor:
+    """``(count, retrieval_dim)`` retrieval features of random synthetic patches
+    (:func:`synthetic_patch_features`) that the simulated prior's codebook is trained on,
+    deterministic for ``seed``; with ``appearance`` (the ``v2`` model, item 10) mixed with
+    the appearance of random smooth colour patches
+    (:func:`~como3r.prior.simulated_appearance.random_patch_appearance`)."""
+    gen = generator(seed, "codebook sample")
+    sample = synthetic_patch_features(
+        retrieval_map,
+        count,
+        c.retrieval_patch,
+        c.retrieval_stride,
+        c.retrieval_noise,
+        c.codebook_world_fraction,
+        gen,
+    )
+    if not appearance:
+        return sample
+    patches = random_patch_appearance(
+        count, c.retrieval_patch, c.retrieval_stride, c.retrieval_dim, seed, gen
+    )
+    return normalize(mix_appearance(sample, *patches))
 
 
 def default_cache_dir() -> Path:
