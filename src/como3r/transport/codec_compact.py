@@ -12,8 +12,8 @@ never uses them.
 * ``"pointmap"``: an ``(H, W, 3)`` float32 pointmap as the range along each point's ray,
   ``log2`` quantised in steps of ``2^-LOG_RANGE_BITS``, and the ray's direction in
   octahedral coordinates quantised in steps of ``2^-OCT_BITS``: a point moves by at most
-  :data:`POINTMAP_RELATIVE_ERROR` of its range (float16 xyz: up to 4.9e-4 per coordinate;
-  MASt3R's own error is about 1e-3). Each integer plane is predicted from its neighbours
+  :data:`POINTMAP_RELATIVE_ERROR` of its range (7.8e-4; float16 xyz: up to 4.9e-4 per
+  coordinate; MASt3R's own error is about 1e-3). Each integer plane is predicted from its neighbours
   (:data:`PREDICTORS`, the best per plane) and the residuals compressed.
 * ``"confidence"``: an ``(H, W)`` positive float32 confidence as ``log2`` quantised in steps
   of ``2^-CONFIDENCE_BITS``, within :data:`CONFIDENCE_RELATIVE_ERROR` relative (its
@@ -60,26 +60,27 @@ from como3r.transport.codec_registry import CHECKS, REGISTRY, resolve
 CODED = "coded"
 """The wire tag of a coded value."""
 
-LOG_RANGE_BITS = 10
+LOG_RANGE_BITS = 9
 """A point's range travels as ``round(log2(range) * 2^LOG_RANGE_BITS)``."""
 
 OCT_BITS = 14
 """A ray's octahedral coordinates (in [-1, 1]) travel as ``round(u * 2^OCT_BITS)``."""
 
-POINTMAP_RELATIVE_ERROR = 4.5e-4
+POINTMAP_RELATIVE_ERROR = 7.8e-4
 """Bound on ``|X' - X| / |X|`` of a pointmap after the ``"pointmap"`` coding: the range's
-quantisation (``2^(2^-11) - 1 = 3.4e-4``) plus the direction's (at most 9e-5 rad: half a
+quantisation (``2^(2^-10) - 1 = 6.8e-4``; MASt3R's own error is about 1e-3) plus the direction's (at most 9e-5 rad: half a
 step of 2^-14 across the octahedral map's largest stretch)."""
 
-CONFIDENCE_BITS = 4
+CONFIDENCE_BITS = 2
 """A confidence travels as ``round(log2(C) * 2^CONFIDENCE_BITS)``."""
 
 CONFIDENCE_RELATIVE_ERROR = 2 ** (2.0 ** -(CONFIDENCE_BITS + 1)) - 1
-"""Bound on ``|C' - C| / C`` after the ``"confidence"`` coding (0.54 %)."""
+"""Bound on ``|C' - C| / C`` after the ``"confidence"`` coding (9.1 %: a BA weight; MASt3R's
+confidence varies by far more between two views of the same point)."""
 
-MATCH_Q_BITS = 4
+MATCH_Q_BITS = 2
 """A valid match's confidence ``q`` travels as ``round(log2(q) * 2^MATCH_Q_BITS)``, within
-``2^(2^-5) - 1 = 2.2 %`` relative (it weighs the match's residual, C-Eq. 17)."""
+``2^(2^-3) - 1 = 9.1 %`` relative (it weighs the match's residual, C-Eq. 17)."""
 
 WEBP_METHOD = 0
 """WebP's lossless effort (0: fastest): 218 kB for a synthetic 512x384 frame in 55 ms, where
