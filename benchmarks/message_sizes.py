@@ -82,10 +82,7 @@ retrieval coding is unchanged)::
 messages through :func:`~como3r.transport.keyframe_bytes.wire_parts`, which are the
 MASt3R-shaped column's parts but the retrieval features'. Merged ATE of
 ``tests/transport/test_lossy_run.py``'s scene, lossy against exact: +0.035 %, -0.059 %
-before.) Binary ASMK reads of a keyframe only its per-word sign bits
-(:meth:`~como3r.prior.retrieval.RetrievalDatabase.aggregate`, identical hits, not yet on
-the wire): for 300 random 1024-d descriptors against a random 65,536-word codebook 1479
-query words and 300 stored ones, 228 kB against 281 kB in 8 bits.
+before.)
 
 Part 1, payloads at 512x384 (the default ``input.long_side``): the arrays of a simulated
 encoding and of a decoded pair (as the simulated prior makes them from a synthetic view),
