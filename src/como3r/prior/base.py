@@ -57,7 +57,8 @@ def view_from_colors(colors: np.ndarray, agent: int, index: int) -> View:
     :meth:`como3r.data.preprocess.Preprocessor.to_network` made the image the agent encoded
     (bit-identical), without intrinsics (no prior's encoding reads ``View.K``).
     """
-    pixels = torch.from_numpy(np.ascontiguousarray(colors, dtype=np.uint8)).permute(2, 0, 1)
+    # a copy: decoded colours may be a read-only view of the message's bytes
+    pixels = torch.from_numpy(np.array(colors, dtype=np.uint8)).permute(2, 0, 1)
     return View(image=(pixels.to(torch.float32) / 255.0 - 0.5) / 0.5, agent=agent, index=index)
 
 
