@@ -177,19 +177,26 @@ def unpack_ints(body: Any, count: int, path: str, budget: Budget) -> np.ndarray:
         raise MessageError(f"{path}: packed integers of width {width!r}")
     size = count * width
     budget.take(size, path)
-    inflater = zstd.ZstdDecompressor()
-    try:
-        planes = inflater.decompress(packed, max_length=size)
-    except zstd.ZstdError as exc:
-        raise MessageError(f"{path}: packed integers do not decompress ({exc})") from None
-    if len(planes) != size or not inflater.eof or inflater.unused_data:
-        raise MessageError(f"{path}: packed integers are not the {size} bytes of {count} values")
+    planes = _inflate(packed, size, path, "packed integers", f"the {size} bytes of {count} values")
     raw = np.frombuffer(planes, np.uint8).reshape(width, -1).T.tobytes() if width > 1 else planes
     zig = np.frombuffer(raw, f"<u{width}").astype(np.int64)
     return (zig >> 1) ^ -(zig & 1)
 
 
 # ------------------------------------------------------------------ helpers
+
+
+def _inflate(packed: bytes, size: int, path: str, what: str, expected: str) -> bytes:
+    """Exactly ``size`` bytes from one whole Zstandard frame (never more: the budget was
+    taken for them), or a :class:`MessageError` naming ``what`` and the ``expected`` size."""
+    inflater = zstd.ZstdDecompressor()
+    try:
+        raw = inflater.decompress(packed, max_length=size)
+    except zstd.ZstdError as exc:
+        raise MessageError(f"{path}: {what}: not Zstandard ({exc})") from None
+    if len(raw) != size or not inflater.eof or inflater.unused_data:
+        raise MessageError(f"{path}: {what}: not {expected}")
+    return raw
 
 
 def _numpy(value: Any) -> np.ndarray:
@@ -366,13 +373,7 @@ def _matches_decode(body: dict, path: str, budget: Budget) -> Any:
         raise MessageError(f"{path}: coded matches' valid mask is not bytes")
     size = (count + 7) // 8
     budget.take(size, path)
-    inflater = zstd.ZstdDecompressor()
-    try:
-        mask = inflater.decompress(bits, max_length=size)
-    except zstd.ZstdError as exc:
-        raise MessageError(f"{path}: coded valid mask does not decompress ({exc})") from None
-    if len(mask) != size or not inflater.eof or inflater.unused_data:
-        raise MessageError(f"{path}: coded valid mask is not {size} bytes")
+    mask = _inflate(bits, size, path, "coded valid mask", f"{size} bytes")
     valid = np.unpackbits(np.frombuffer(mask, np.uint8), count=count).astype(bool)
     pixels = np.flatnonzero(valid)
     columns, rows, log_q = (
@@ -466,13 +467,7 @@ def _retrieval_decode(body: dict, path: str, budget: Budget) -> Any:
     if len(scale) != 4 * n or len(attention) != 2 * n:
         raise MessageError(f"{path}: coded retrieval scales or attention are not {n} values")
     budget.take(n * d, path)
-    inflater = zstd.ZstdDecompressor()
-    try:
-        raw = inflater.decompress(packed, max_length=n * d)
-    except zstd.ZstdError as exc:
-        raise MessageError(f"{path}: coded descriptors do not decompress ({exc})") from None
-    if len(raw) != n * d or not inflater.eof or inflater.unused_data:
-        raise MessageError(f"{path}: coded descriptors are not {n} x {d} bytes")
+    raw = _inflate(packed, n * d, path, "coded descriptors", f"{n} x {d} bytes")
     scales = np.frombuffer(scale, "<f4").astype(np.float32)
     if not np.isfinite(scales).all():
         raise MessageError(f"{path}: coded descriptor scales are not finite")
