@@ -130,15 +130,17 @@ from como3r.runtime.pipeline import PriorSpec
 ROBOTS = 3
 
 
-def render(scene: Path, frames: int, width: int, height: int, seed: int) -> None:
-    """The 1x scene, as ``como3r synth --agents 3 --odometry vio`` writes it."""
+def render(
+    scene: Path, frames: int, width: int, height: int, seed: int, robots: int = ROBOTS
+) -> None:
+    """The 1x scene, as ``como3r synth --agents ROBOTS --odometry vio`` writes it."""
     from como3r.data.synth import synthesize
     from como3r.decentralized.odometry_sim import add_odometry
 
     scene.mkdir(parents=True)
     synthesize(
         scene,
-        agents=ROBOTS,
+        agents=robots,
         seed=seed,
         overlap=0.2,
         frames=frames,
@@ -146,7 +148,7 @@ def render(scene: Path, frames: int, width: int, height: int, seed: int) -> None
         width=width,
         height=height,
     )
-    for a in range(ROBOTS):
+    for a in range(robots):
         add_odometry(scene / f"agent_{a}", seed=seed * 1000 + a, params="vio")
 
 

@@ -98,22 +98,9 @@ COLUMNS = (
 
 def render(scene: Path, robots: int, frames: int, width: int, height: int, seed: int) -> None:
     """The scene as ``como3r synth --agents ROBOTS --odometry vio`` writes it."""
-    from como3r.data.synth import synthesize
-    from como3r.decentralized.odometry_sim import add_odometry
+    import decentralized_scale  # the benchmark next to this one
 
-    scene.mkdir(parents=True)
-    synthesize(
-        scene,
-        agents=robots,
-        seed=seed,
-        overlap=0.2,
-        frames=frames,
-        preset="default",
-        width=width,
-        height=height,
-    )
-    for a in range(robots):
-        add_odometry(scene / f"agent_{a}", seed=seed * 1000 + a, params="vio")
+    decentralized_scale.render(scene, frames, width, height, seed, robots=robots)
 
 
 def meeting_pairs(scene: Path) -> list[tuple[int, int]]:
