@@ -425,9 +425,9 @@ def robot(
         "--schedule",
         metavar="FILE",
         help="Rendezvous schedule, the same file on every robot: lines "
-        "robot_id\\[@point],start_s,end_s[,start_s,end_s...] of mission time in range of "
-        "a rendezvous point (robots at one point at one time meet); a robot without a "
-        "line is never in range (default: the configuration's "
+        "robot_id\\[@point],start_s,end_s (more start_s,end_s pairs may follow) of "
+        "mission time in range of a rendezvous point (robots at one point at one time "
+        "meet); a robot without a line is never in range (default: the configuration's "
         "decentralized.protocol.schedule; none: always in range).",
     ),
     prior_spec: Any = None,
