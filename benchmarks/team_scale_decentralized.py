@@ -33,7 +33,7 @@ Each team size runs in a fresh process (its peak RSS is its own). Columns:
   threads: this grows with contention, not with the protocol);
 * ``RSS MB``: the run process's peak resident memory, all robots together.
 
-Measured (30 frames of 160x120 per robot, seed 0, 2 cores shared with other jobs at a load
+Measured (30 frames of 160x120 per robot, ``--long-side 160``, seed 0, 2 cores shared with other jobs at a load
 of 15-30; sent/round, peers/round, graph kB per message; merged ATE % of the summed path):
 
     robots  merged ATE %  robot ATE %  sent/robot mean kB  sent/round max kB  peers  graph kB  loops
@@ -59,7 +59,10 @@ of (10 / 24 / 39 kB per message), small beside one encoding. Wall s per robot-fr
 Run (``frames`` etc. as the arguments of :func:`decentralized_rows`):
 
     PYTHONPATH=src python benchmarks/team_scale_decentralized.py --work /tmp/team_dec \\
-        [--sizes 4 8 16] [--frames 30] [--width 160] [--height 120] [--all-in-range]
+        [--sizes 4 8 16] [--frames 30] [--width 160] [--height 120] [--long-side 160] \\
+        [--all-in-range]
+
+(without ``--long-side`` the runs use the configuration's default ``input.long_side``)
 """
 
 from __future__ import annotations
@@ -159,6 +162,7 @@ def run_team(
     height: int,
     seed: int,
     all_in_range: bool = False,
+    long_side: int | None = None,
 ) -> dict[str, Any]:
     """Render (or reuse) the scene of ``robots`` robots under ``work`` and run it; the row."""
     from como3r.config import Config, InputConfig
@@ -180,7 +184,7 @@ def run_team(
     settings = DecentralizedConfig(
         protocol=ProtocolConfig(processes=False, schedule=schedule_file), table=False
     )
-    config = Config(input=InputConfig(long_side=max(width, height)))
+    config = Config() if long_side is None else Config(input=InputConfig(long_side=long_side))
     out = work / f"run_{robots}{'_all' if all_in_range else ''}"
     start = time.perf_counter()
     run_decentralized(agents, out, config, PriorSpec("simulated"), settings, overwrite=True)
@@ -197,17 +201,19 @@ def decentralized_rows(
     seed: int = 0,
     work: Path | None = None,
     all_in_range: bool = False,
+    long_side: int | None = None,
 ) -> list[dict[str, Any]]:
     """One row per team size (module docstring), each run in a fresh process.
 
     Args:
         sizes: robots per team.
         frames: frames per robot.
-        width, height: image size of the rendered scene (also the run's long side).
+        width, height: image size of the rendered scene.
         seed: scene and odometry seed.
         work: folder for scenes and runs (scenes are reused); default a temporary folder,
             removed afterwards.
         all_in_range: no schedule: one group of the whole team.
+        long_side: ``input.long_side`` of the runs; None: the configuration's default.
 
     Returns:
         Rows with the keys of :data:`COLUMNS`.
@@ -222,7 +228,8 @@ def decentralized_rows(
             with context.Pool(1) as pool:
                 rows.append(
                     pool.apply(
-                        run_team, (folder, robots, frames, width, height, seed, all_in_range)
+                        run_team,
+                        (folder, robots, frames, width, height, seed, all_in_range, long_side),
                     )
                 )
     finally:
@@ -242,11 +249,21 @@ def main() -> None:
     parser.add_argument("--height", type=int, default=120)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
+        "--long-side", type=int, default=None, help="input.long_side (default: the configuration's)"
+    )
+    parser.add_argument(
         "--all-in-range", action="store_true", help="no schedule: every robot meets every other"
     )
     args = parser.parse_args()
     rows = decentralized_rows(
-        args.sizes, args.frames, args.width, args.height, args.seed, args.work, args.all_in_range
+        args.sizes,
+        args.frames,
+        args.width,
+        args.height,
+        args.seed,
+        args.work,
+        args.all_in_range,
+        args.long_side,
     )
     title = "decentralized team scale" + (" (all in range)" if args.all_in_range else "")
     print_table(Console(width=200), rows, COLUMNS, title)
