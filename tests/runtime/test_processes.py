@@ -142,8 +142,11 @@ def free(scene, config, tmp_path_factory) -> tuple[Path, RunSummary]:
     threads = torch.get_num_threads()
     torch.set_num_threads(FINISH_THREADS)  # the caller's threads, for the terminal work
     try:
+        # keyframes one at a time, as the single-process run takes them: whether a busy
+        # coordinator batches them depends on the machine's timing (batches: test_coordinator)
+        one_by_one = apply_overrides(config, ["global_ba.max_batch_keyframes=1"])
         summary = run_multiprocess(
-            _agents(scene), out, config, PriorSpec("simulated"), progress=progress.append
+            _agents(scene), out, one_by_one, PriorSpec("simulated"), progress=progress.append
         )
     finally:
         torch.set_num_threads(threads)
@@ -364,16 +367,16 @@ def test_a_coordinator_slow_to_read_costs_no_message_and_no_agent(
     the agent keeps sending: its messages wait, and once the coordinator reads again the
     agent counts as talking, not as hung (it used to be terminated as hung with its
     messages unread)."""
-    slow = Coordinator.add_keyframe
+    slow = Coordinator.add_keyframes
     busy = []
 
-    def busy_coordinator(self, packet):
+    def busy_coordinator(self, packets):
         if not busy:
-            busy.append(packet.kf_id)
+            busy.append(packets[0].kf_id)
             time.sleep(BUSY_S)
-        return slow(self, packet)
+        return slow(self, packets)
 
-    monkeypatch.setattr(Coordinator, "add_keyframe", busy_coordinator)
+    monkeypatch.setattr(Coordinator, "add_keyframes", busy_coordinator)
     options = RuntimeOptions(agent_timeout_s=BUSY_S - 4.0)
     summary = run_multiprocess(
         [scene / "agent_0"], tmp_path / "out", config, PriorSpec("simulated"), options=options

@@ -170,17 +170,17 @@ def _signal_at(monkeypatch, call: int, signals: tuple[signal.Signals, ...]) -> N
     a second aborts at once, inside it (the store has the keyframes before it)."""
     from como3r.coordination.coordinator import Coordinator
 
-    add_keyframe, calls = Coordinator.add_keyframe, []
+    add_keyframes, calls = Coordinator.add_keyframes, []
 
-    def add_and_signal(self, packet):
-        calls.append(packet)
+    def add_and_signal(self, packets):
+        calls.append(packets)  # one keyframe each: these runs set max_batch_keyframes=1
         if len(calls) == call:
             for signum in signals:
                 os.kill(os.getpid(), signum)
                 time.sleep(0.05)  # let the handler run before the next signal
-        return add_keyframe(self, packet)
+        return add_keyframes(self, packets)
 
-    monkeypatch.setattr(Coordinator, "add_keyframe", add_and_signal)
+    monkeypatch.setattr(Coordinator, "add_keyframes", add_and_signal)
 
 
 @pytest.mark.parametrize(

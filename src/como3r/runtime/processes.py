@@ -324,11 +324,7 @@ class _Runtime(AgentEvents):
         ]
         if not packets:
             return
-        coordinator = self.coordinator
-        one = len(packets) == 1  # the single-process runner's call
-        updates = (
-            coordinator.add_keyframe(packets[0]) if one else coordinator.add_keyframes(packets)
-        )
+        updates = self.coordinator.add_keyframes(packets)
         for update in updates:
             self._send_update(update)
         self.backlog.handed(packet.timestamp for packet in packets)
