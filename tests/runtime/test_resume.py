@@ -183,10 +183,19 @@ def _signal_at(monkeypatch, call: int, signals: tuple[signal.Signals, ...]) -> N
     monkeypatch.setattr(Coordinator, "add_keyframes", add_and_signal)
 
 
+# SIGTERM with agent processes, the real signal reaching the main process only, is
+# tests/test_cli_errors.py::test_an_interrupted_multiprocess_run_keeps_its_store[sigterm]
 @pytest.mark.parametrize(
-    "signals",
-    [(signal.SIGINT,), (signal.SIGINT, signal.SIGINT), (signal.SIGTERM,)],
-    ids=["ctrl-c", "twice", "sigterm"],
+    ("uninterrupted", "signals"),
+    [
+        ("processes", (signal.SIGINT,)),
+        ("processes", (signal.SIGINT, signal.SIGINT)),
+        ("single-process", (signal.SIGINT,)),
+        ("single-process", (signal.SIGINT, signal.SIGINT)),
+        ("single-process", (signal.SIGTERM,)),
+    ],
+    ids=["processes-ctrl-c", "processes-twice", "single-ctrl-c", "single-twice", "single-sigterm"],
+    indirect=["uninterrupted"],
 )
 def test_an_interrupted_run_keeps_its_store_and_resumes_to_the_uninterrupted_result(
     scene, tmp_path, uninterrupted, signals, monkeypatch
