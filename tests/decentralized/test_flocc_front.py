@@ -253,7 +253,7 @@ def test_registration_of_an_overlapping_pair_and_ratio_rejection_of_a_distant_on
     near = _nearest_keyframe(agent_a, kf_a.frames[mine], agent_b, kf_b)
     far = len(kf_b) - 1
     for other in (near, far):
-        reg_a.add_foreign(1, other, reg_b.encoding_for_peer(other))
+        reg_a.add_foreign(1, other, **reg_b.reply_for_peer(other))
     overlap = reg_a.register(mine, 1, near)
     _, odometry_pair = reg_a.consecutive(mine, len(kf_a))
     truth = _true_relative(agent_a, kf_a.frames[mine], agent_b, kf_b.frames[near])
@@ -275,12 +275,12 @@ def test_registration_of_an_overlapping_pair_and_ratio_rejection_of_a_distant_on
 def test_two_stage_encoding_encodes_each_keyframe_once(registrars):
     (reg_a, kf_a, _), (reg_b, _, _) = registrars
     last = len(kf_a) - 1
-    reg_a.add_foreign(1, 1, reg_b.encoding_for_peer(1))
+    reg_a.add_foreign(1, 1, **reg_b.reply_for_peer(1))
     reg_a.register(last, 1, 1)
     encodes, naive, sent = reg_a.stats.encodes, reg_a.stats.naive_encodes, reg_b.stats.encodes
     decodes = reg_a.stats.decodes
     again = reg_a.register(last, 1, 1)
-    reg_a.add_foreign(1, 1, reg_b.encoding_for_peer(1))
+    reg_a.add_foreign(1, 1, **reg_b.reply_for_peer(1))
     assert reg_a.stats.encodes == encodes and reg_b.stats.encodes == sent
     assert reg_a.stats.decodes == decodes + 1
     assert reg_a.stats.naive_encodes == naive + 2  # a naive pipeline encodes both again
@@ -290,7 +290,7 @@ def test_two_stage_encoding_encodes_each_keyframe_once(registrars):
 
 def test_an_encoding_this_prior_cannot_decode_is_refused(registrars, caplog):
     (reg_a, _, _), (reg_b, _, _) = registrars
-    theirs = reg_b.encoding_for_peer(2)
+    theirs = reg_b.reply_for_peer(2)["encoding"]  # the simulated prior cannot re-encode
     foreign = MASt3REncoding(
         agent=1,
         index=0,

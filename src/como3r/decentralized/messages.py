@@ -10,7 +10,8 @@ Robot -> robot, in the order of a round:
 
 * :class:`PlaceDescriptors` -- global place descriptors of new keyframes (F-Sec. III-A);
 * :class:`EncodingRequest` -- which of the recipient's keyframes the sender must decode;
-* :class:`EncodingReply` -- one keyframe's encoding, the latent that travels (F-Sec. III-B);
+* :class:`EncodingReply` -- one keyframe's encoding, the latent (F-Sec. III-B), or the image the
+  recipient encodes again;
 * :class:`PoseGraphShare` -- to the elected robot: odometry, estimate and loop closures;
 * :class:`PoseEstimate` -- from the elected robot: the optimised keyframe poses.
 
@@ -74,15 +75,24 @@ class EncodingRequest:
 
 @dataclass(frozen=True)
 class EncodingReply:
-    """The encoding of one of the sender's keyframes (a registered prior ``Encoding``)."""
+    """One of the sender's keyframes, for the recipient to decode: its image's exact colours
+    where the prior encodes them again (MASt3R: the recipient runs its own encoder), else its
+    encoding (a registered prior ``Encoding``: the simulated prior's needs ground truth).
+
+    Attributes:
+        encoding: the keyframe's encoding, or None when ``colours`` travel.
+        colours: ``(H, W, 3)`` uint8, the image the sender's prior encoded (the network's
+            input, bit for bit: :func:`~como3r.prior.base.view_from_colors`), or None.
+    """
 
     sender: int
     recipient: int
     round: int
     time_s: float
     keyframe: int
-    encoding: Any
-    version: int = 1
+    encoding: Any = None
+    colours: np.ndarray | None = None
+    version: int = 2
 
 
 @dataclass(frozen=True)
@@ -267,9 +277,20 @@ def _check_reply(m: EncodingReply) -> None:
     _check_round(m)
     require(m.keyframe >= 0, "keyframe must be >= 0")
     require(
-        isinstance(m.encoding, Encoding),
-        f"encoding must be a prior's Encoding, got a {type(m.encoding).__name__}",
+        (m.encoding is None) != (m.colours is None),
+        "exactly one of encoding and colours must be given",
     )
+    if m.colours is not None:
+        require(
+            m.colours.dtype == np.uint8 and m.colours.ndim == 3 and m.colours.shape[2] == 3,
+            "colours must be an (H, W, 3) uint8 image",
+        )
+        require(min(m.colours.shape[:2]) > 0, "colours must not be empty")
+    else:
+        require(
+            isinstance(m.encoding, Encoding),
+            f"encoding must be a prior's Encoding, got a {type(m.encoding).__name__}",
+        )
 
 
 def _check_poses(poses: np.ndarray, name: str) -> None:
@@ -319,10 +340,11 @@ def _check_loop(loop: LoopClosure) -> None:
     )
 
 
+# Version 2: colours in place of an encoding the recipient's prior makes again.
+codec_registry.register(EncodingReply, version=2, coded={"colours": "image"})
 for _cls in (
     PlaceDescriptors,
     EncodingRequest,
-    EncodingReply,
     RobotTask,
     RobotProgress,
     RobotReport,

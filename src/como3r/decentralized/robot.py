@@ -322,12 +322,12 @@ class Robot:
                             round=message.round,
                             time_s=message.time_s,
                             keyframe=keyframe,
-                            encoding=self.registrar.encoding_for_peer(keyframe),
+                            **self.registrar.reply_for_peer(keyframe),
                         )
                     )
             self._got_requests.add((message.round, sender))
         elif isinstance(message, EncodingReply):
-            self.registrar.add_foreign(sender, message.keyframe, message.encoding)
+            self.registrar.add_foreign(sender, message.keyframe, message.encoding, message.colours)
         elif isinstance(message, PoseGraphShare):
             self._shares[message.round][sender] = message
         elif isinstance(message, PoseEstimate):
