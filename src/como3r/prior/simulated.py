@@ -76,7 +76,7 @@ from como3r.geometry.camera import rays_from_intrinsics, unproject_depth
 from como3r.geometry.units import median_of_ranges
 from como3r.prior import simulated_appearance as appearance_model
 from como3r.prior import simulated_errors as errors
-from como3r.prior.base import Encoding, PairPrediction, Prior, View
+from como3r.prior.base import Encoding, EncodingRecord, PairPrediction, Prior, View
 from como3r.prior.ground_truth import GroundTruth, GroundTruthSource
 from como3r.prior.simulated_confidence import (
     confidence,
@@ -107,6 +107,11 @@ from como3r.prior.simulated_keys import (
 )
 from como3r.prior.simulated_ood import OodConstants, v2_appearance
 from como3r.prior.simulated_overlap import OverlapConstants, v2_logits
+from como3r.prior.simulated_record import (
+    SimulatedTruthRecord,
+    record_truth,
+    truth_of_record,
+)
 from como3r.prior.simulated_retrieval import (
     cached_array,
     codebook_sample,
@@ -177,6 +182,34 @@ class SimulatedPrior(Prior):
         """
         truth = self._truth_of(view)
         depth, K = validated_inputs(view, truth)
+        return self._encode(view, record_truth(view, truth, depth, K))
+
+    def encode_from_record(self, view: View, record: EncodingRecord) -> SimulatedEncoding:
+        """The encoding of ``view`` (a keyframe's colours) from the ground truth ``record``
+        holds, as :meth:`encode` made it (:mod:`~como3r.prior.simulated_record`).
+
+        Raises:
+            PriorError: ``record`` is not a :class:`SimulatedTruthRecord` of this view.
+        """
+        if not isinstance(record, SimulatedTruthRecord):
+            return super().encode_from_record(view, record)  # type: ignore[return-value]
+        if (record.agent, record.index, tuple(record.shape)) != (
+            view.agent,
+            view.index,
+            view.shape,
+        ):
+            raise PriorError(
+                f"simulated prior: the record of agent {record.agent}, frame {record.index} "
+                f"({record.shape[1]}x{record.shape[0]}) is not that of agent {view.agent}, "
+                f"frame {view.index} ({view.shape[1]}x{view.shape[0]})"
+            )
+        return self._encode(view, record)
+
+    def _encode(self, view: View, record: SimulatedTruthRecord) -> SimulatedEncoding:
+        """:meth:`encode` from the quantized ground truth in ``record``, which it keeps
+        (:meth:`SimulatedEncoding.portable`)."""
+        truth = truth_of_record(record)
+        depth, K = validated_inputs(view, truth)
         H, W = view.shape
         valid = torch.isfinite(depth) & (depth > 0)
         depth = torch.where(valid, depth, torch.zeros_like(depth))
@@ -243,6 +276,7 @@ class SimulatedPrior(Prior):
             hidden_log_error=ood.hidden_log_error if ood is not None else None,
             sky_scale=ood.sky_scale if ood is not None else 1.0,
             sky_logit_raise=ood.sky_logit_raise if ood is not None else 0.0,
+            record=record,
         )
 
     def _truth_of(self, view: View) -> GroundTruth:
