@@ -289,7 +289,7 @@ def test_the_simulated_priors_record_travels_and_is_stored_in_place_of_its_encod
     with SessionStore.create(tmp_path / "session.db", config, single) as store:
         for packet in packets:
             store.record(single, single.add_keyframe(packet))
-        # the record, not the encoding (at 64x48 a tenth of it at most; 512x384: 1/35)
+        # the record, not the encoding (at 64x48 a tenth of it at most; 512x384: 1/17)
         full = sum(len(encode(p.encoding)) for p in packets)
         assert 0 < store.written["encoding"] * 10 < full
     session = read_session(tmp_path / "session.db")

@@ -17,8 +17,8 @@ The simulated prior's encoding is made from the frame's ground truth as well as 
 which a coordinator does not have (a networked run's agents read their own inputs; a resume,
 a saved map and a merge read a store). What travels and is stored in its place is the
 smaller :class:`~como3r.prior.base.EncodingRecord` the encoding names
-(:meth:`~como3r.prior.base.Encoding.portable`: the simulated prior's quantized ground truth,
-:mod:`como3r.prior.simulated_record`; 0.3-0.4 MB at 512x384 where the encoding is 13.2 MB),
+(:meth:`~como3r.prior.base.Encoding.portable`: the simulated prior's ground truth, losslessly packed,
+:mod:`como3r.prior.simulated_record`; 0.7-0.8 MB at 512x384 where the encoding is 13.2 MB),
 and :class:`KeyframeEncodings` makes the encoding from the colours and the record
 (:meth:`~como3r.prior.base.Prior.encode_from_record`) as it does MASt3R's from the colours
 alone, with the same cache and counts. A coordinator in the agents' process (``--single-process``)

@@ -5,7 +5,8 @@ For scenes with metric depth it produces :class:`~como3r.prior.base.PairPredicti
 exactly MASt3R's types, shapes and value ranges from the true geometry, corrupted by a
 documented error model that imitates a learned prior. It is a sensor simulator, not an
 oracle: the ground-truth pose of a view is used only by :meth:`SimulatedPrior.encode` to
-build world-coordinate appearance keys when a view has no surface map; no encoding stores it
+build world-coordinate appearance keys when a view has no surface map; only the ground-truth
+record the encoding keeps for its receivers stores it (:mod:`~como3r.prior.simulated_record`)
 and no prediction is made from it. The relative placement of view j in camera i is what a
 learned matcher would believe: a robust similarity fit (RANSAC +
 :func:`~como3r.geometry.umeyama.umeyama_sim3`) between the depth points of both views whose
@@ -55,7 +56,8 @@ ASMK codebook once by k-means on features of a fixed synthetic sample and caches
 ``~/.cache/como3r/``), the hash covering every parameter it depends on.
 
 A view needs depth and intrinsics ``K``, plus a surface map or a ground-truth pose for its
-keys. Decoding a 512x384 pair takes about 0.2 s on one CPU thread.
+keys, read through a lossless :class:`~como3r.prior.simulated_record.SimulatedTruthRecord`
+that travels and is stored in place of the encoding. Decoding a 512x384 pair takes about 0.2 s on one CPU thread.
 """
 
 from __future__ import annotations
@@ -109,6 +111,7 @@ from como3r.prior.simulated_ood import OodConstants, v2_appearance
 from como3r.prior.simulated_overlap import OverlapConstants, v2_logits
 from como3r.prior.simulated_record import (
     SimulatedTruthRecord,
+    checked_record,
     record_truth,
     truth_of_record,
 )
@@ -185,28 +188,18 @@ class SimulatedPrior(Prior):
         return self._encode(view, record_truth(view, truth, depth, K))
 
     def encode_from_record(self, view: View, record: EncodingRecord) -> SimulatedEncoding:
-        """The encoding of ``view`` (a keyframe's colours) from the ground truth ``record``
-        holds, as :meth:`encode` made it (:mod:`~como3r.prior.simulated_record`).
+        """:meth:`encode` of ``view`` (a keyframe's colours) from the ground truth ``record``
+        holds (:mod:`~como3r.prior.simulated_record`), without a ground-truth source.
 
         Raises:
             PriorError: ``record`` is not a :class:`SimulatedTruthRecord` of this view.
         """
         if not isinstance(record, SimulatedTruthRecord):
             return super().encode_from_record(view, record)  # type: ignore[return-value]
-        if (record.agent, record.index, tuple(record.shape)) != (
-            view.agent,
-            view.index,
-            view.shape,
-        ):
-            raise PriorError(
-                f"simulated prior: the record of agent {record.agent}, frame {record.index} "
-                f"({record.shape[1]}x{record.shape[0]}) is not that of agent {view.agent}, "
-                f"frame {view.index} ({view.shape[1]}x{view.shape[0]})"
-            )
-        return self._encode(view, record)
+        return self._encode(view, checked_record(view, record))
 
     def _encode(self, view: View, record: SimulatedTruthRecord) -> SimulatedEncoding:
-        """:meth:`encode` from the quantized ground truth in ``record``, which it keeps
+        """:meth:`encode` from the ground truth in ``record``, which it keeps
         (:meth:`SimulatedEncoding.portable`)."""
         truth = truth_of_record(record)
         depth, K = validated_inputs(view, truth)

@@ -114,7 +114,7 @@ class SimulatedEncoding(Encoding):
             the confidence never sees (:mod:`~como3r.prior.simulated_ood`); None without them.
         sky_scale: factor on the sky's range; sky_logit_raise: added to the sky's
             ``log(C - 1)`` (1 and 0 without the out-of-distribution effects).
-        record: the quantized ground truth the encoding was made from, which travels and is
+        record: the ground truth the encoding was made from, which travels and is
             stored in its place (:meth:`portable`; :mod:`~como3r.prior.simulated_record`);
             None in an encoding made by hand.
     """
