@@ -117,6 +117,8 @@ def test_the_colours_and_the_record_give_the_agents_encoding_bit_for_bit(
     a, b = agent_prior.decode(made, other), coordinator_prior.decode(again, other)
     for name in ("X_ii", "X_ji", "C_ii", "C_ji", "D_ii", "D_ji", "Q_ii", "Q_ji"):
         assert torch.equal(getattr(a, name), getattr(b, name)), name
+    bare = made.for_decoding()  # what a robot that only decodes it is sent
+    assert bare.record is None and torch.equal(coordinator_prior.decode(bare, other).X_ji, a.X_ji)
 
 
 def test_the_record_is_the_truth_the_prior_reads_bit_for_bit_and_small() -> None:

@@ -241,7 +241,7 @@ class Registrar:
     def encoding_for_peer(self, keyframe: int) -> Encoding:
         """The encoding of one of this robot's keyframes, to send to a robot that decodes it."""
         self._mark_used(keyframe)
-        return self.own_encoding(keyframe)
+        return self.own_encoding(keyframe).for_decoding()
 
     def _mark_used(self, keyframe: int) -> None:
         if keyframe not in self._used:

@@ -90,6 +90,11 @@ class Encoding:
         (:meth:`Prior.encode_from_record`) when that is smaller."""
         return self
 
+    def for_decoding(self) -> Encoding:
+        """This encoding as a receiver that only decodes it needs it: without what only
+        making it again needs (the record :meth:`portable` gives)."""
+        return self
+
 
 @dataclass(frozen=True)
 class EncodingRecord(Encoding):

@@ -7,6 +7,7 @@ checked depth and intrinsics, depth edges, and a depth sensor's holes filled
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -145,6 +146,10 @@ class SimulatedEncoding(Encoding):
         """The ground-truth record, about a tenth of the encoding's size (compressed), from
         which a coordinator's prior makes the encoding again with the keyframe's colours."""
         return self if self.record is None else self.record
+
+    def for_decoding(self) -> Encoding:
+        """Without its record."""
+        return self if self.record is None else dataclasses.replace(self, record=None)
 
 
 def normalize(x: Tensor) -> Tensor:
