@@ -18,7 +18,7 @@ which a coordinator does not have (a networked run's agents read their own input
 a saved map and a merge read a store). What travels and is stored in its place is the
 smaller :class:`~como3r.prior.base.EncodingRecord` the encoding names
 (:meth:`~como3r.prior.base.Encoding.portable`: the simulated prior's ground truth, losslessly packed,
-:mod:`como3r.prior.simulated_record`; 0.7-0.8 MB at 512x384 where the encoding is 13.2 MB),
+:mod:`como3r.prior.simulated_record`; 0.7-0.9 MB at 512x384 where the encoding is 13.4 MB),
 and :class:`KeyframeEncodings` makes the encoding from the colours and the record
 (:meth:`~como3r.prior.base.Prior.encode_from_record`) as it does MASt3R's from the colours
 alone, with the same cache and counts. A coordinator in the agents' process (``--single-process``)

@@ -4,7 +4,7 @@ truth exactly as the prior reads it (:class:`SimulatedTruthRecord`), compactly.
 MASt3R's encoding is a function of the image alone, so a coordinator encodes a keyframe's
 colours again and nothing else travels or is stored
 (:meth:`~como3r.prior.base.Prior.can_reencode`). The simulated prior's encoding (about 110
-bytes per pixel: 13.2 MB at 512x384) is made from the frame's ground truth (depth,
+bytes per pixel: 13.4 MB at 512x384) is made from the frame's ground truth (depth,
 intrinsics, surface keys or pose), which a coordinator does not have in a networked run, a
 resume, a saved map or a merge. What travels and is stored in its place is this record, from
 which the coordinator's prior makes the encoding with the keyframe's colours
@@ -21,7 +21,7 @@ the demo scene, per-pixel differences of 3 % in the pointmaps and merged ATE 10.
 of 7.9 mm). Each map is stored as the float32 bit patterns' residuals of a second-order
 prediction along image rows (the first column: first differences down it), modulo 2**32 and
 zigzag-mapped, so that smooth surfaces give small non-negative integers the codec's
-Zstandard (:mod:`como3r.transport.codec_arrays`) packs well: about 0.7-0.8 MB per 512x384
+Zstandard (:mod:`como3r.transport.codec_arrays`) packs well: about 0.7-0.9 MB per 512x384
 keyframe of the demo scene (depth 0.2 MB, surface 0.5-0.6 MB), where MASt3R's tokens would
 be 1.57 MB in float16.
 """
