@@ -305,3 +305,32 @@ def test_the_simulated_priors_record_travels_and_is_stored_in_place_of_its_encod
 def replace_encoding(packet: KeyframePacket) -> KeyframePacket:
     """The packet as an agent process sends it (runtime/agent_worker.py)."""
     return dataclasses.replace(packet, encoding=packet.encoding.portable())
+
+
+def test_a_record_is_encoded_as_its_own_view_whatever_the_agent_is_called_now(
+    scene: Path,
+) -> None:
+    """A merge renumbers the moved session's agents; its encodings keep their own identity
+    (the simulated prior seeds an image's draws by it)."""
+    agents = {1: open_agent(scene / "agent_1")}
+    prior = SimulatedPrior(Config().simulated_prior, AgentFolderTruth(agents, LONG_SIDE))
+    view, _, colors = load_frame(agents[1], 1, 2, LONG_SIDE, False)
+    made = prior.encode(view)
+    pointmap = torch.ones(*view.shape, 3)
+    kf = Keyframe(
+        kf_id=0,
+        frame_index=2,
+        timestamp=0.0,
+        encoding=made.portable(),
+        T_WC=torch.zeros(8),
+        X_hat=pointmap,
+        C_hat=torch.ones(view.shape),
+        X_init=pointmap,
+        C_init=torch.ones(view.shape),
+        colors=colors,
+    )
+    again = KeyframeEncodings(SimulatedPrior(Config().simulated_prior), 1).get(0, kf, agent=5)
+    assert (again.agent, again.index) == (1, 2)
+    assert torch.equal(again.ranges, made.ranges) and torch.equal(
+        again.descriptors, made.descriptors
+    )

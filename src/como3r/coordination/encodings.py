@@ -91,7 +91,10 @@ class KeyframeEncodings:
                 f"{tuple(colors.shape[:2])}, not the {kf.shape} image its encoding came from"
             )
         start = time.perf_counter()
-        view = view_from_colors(colors, agent, kf.frame_index)
+        if held is None:
+            view = view_from_colors(colors, agent, kf.frame_index)
+        else:  # the record's own view: a merge renumbers agents, not their encodings' seeds
+            view = view_from_colors(colors, held.agent, held.index)
         try:
             encoding = prior.encode(view) if held is None else prior.encode_from_record(view, held)
         except PriorError as exc:
