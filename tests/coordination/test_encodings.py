@@ -20,16 +20,19 @@ from como3r.config import Config, apply_overrides
 from como3r.coordination.coordinator import Coordinator
 from como3r.coordination.encodings import KeyframeEncodings
 from como3r.data.agent import open_agent
+from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import upsampling
 from como3r.data.synth import synthesize
 from como3r.errors import InputError, MessageError
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket
-from como3r.prior.base import Encoding, View, view_from_colors
+from como3r.prior.base import Encoding, Prior, View, view_from_colors
 from como3r.prior.mast3r.prior import MASt3RPrior
 from como3r.prior.mast3r.testing import tiny_network
 from como3r.prior.retrieval import Hit
+from como3r.prior.simulated import SimulatedPrior
+from como3r.prior.simulated_record import SimulatedTruthRecord
 from como3r.runtime.pipeline import load_frame
 from como3r.store.reader import read_session
 from como3r.store.writer import SessionStore
@@ -68,8 +71,13 @@ def prior() -> MASt3RPrior:
 
 @pytest.fixture(scope="module")
 def packets(scene: Path, config: Config, prior: MASt3RPrior) -> list[KeyframePacket]:
-    """Both agents' keyframe packets from MASt3R front-ends, interleaved by frame, with
-    placeholder retrieval features (the stub retrieval below ignores them)."""
+    """Both agents' keyframe packets from MASt3R front-ends."""
+    return _packets(scene, config, prior)
+
+
+def _packets(scene: Path, config: Config, prior: Prior) -> list[KeyframePacket]:
+    """Both agents' keyframe packets from front-ends with ``prior``, interleaved by frame,
+    with placeholder retrieval features (the stub retrieval below ignores them)."""
     agents = [open_agent(scene / f"agent_{a}") for a in (0, 1)]
     frontends = [
         AgentFrontend(prior, config, a, None, upsampling(agent.image_size, LONG_SIDE))
@@ -252,3 +260,77 @@ def test_the_store_keeps_an_encoding_the_coordinator_cannot_make(
         assert store.written["encoding"] > 0
     (kf,) = read_session(tmp_path / "session.db").graph.keyframes
     assert torch.equal(kf.encoding.tokens, packets[0].encoding.tokens)
+
+
+def test_the_simulated_priors_record_travels_and_is_stored_in_place_of_its_encoding(
+    tmp_path: Path, scene: Path, config: Config
+) -> None:
+    """Its encoding needs the frame's ground truth, which only the agents have: the record
+    of it goes (prior/simulated_record.py), and the coordinator makes the encoding from the
+    colours and the record, bit for bit, on the wire and from the store."""
+    agents = {a: open_agent(scene / f"agent_{a}") for a in (0, 1)}
+    agents_prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth(agents, LONG_SIDE))
+    packets = _packets(scene, config, agents_prior)
+    sent = _coordinate(agents_prior, config, packets)  # one process: the encodings themselves
+    received = [
+        decode(encode(KeyframeMessage(replace_encoding(p), 0, None), lossy=True)).packet
+        for p in packets
+    ]
+    assert all(isinstance(p.encoding, SimulatedTruthRecord) for p in received)
+    coordinators_prior = SimulatedPrior(config.simulated_prior, None)  # no ground truth
+    remade = _coordinate(coordinators_prior, config, received)
+    assert sent.stats.edges_tried > 0 and sent.stats.reencodes == 0 < remade.stats.reencodes
+    for a, b in zip(sent.candidates, remade.candidates, strict=True):
+        assert (a.i, a.j, a.status) == (b.i, b.j, b.status)
+    assert torch.equal(
+        sent.graph.poses(range(len(sent.graph))), remade.graph.poses(range(len(remade.graph)))
+    )
+    single = Coordinator(agents_prior, config, None, 2)
+    with SessionStore.create(tmp_path / "session.db", config, single) as store:
+        for packet in packets:
+            store.record(single, single.add_keyframe(packet))
+        # the record, not the encoding (at 64x48 a tenth of it at most; 512x384: 1/17)
+        full = sum(len(encode(p.encoding)) for p in packets)
+        assert 0 < store.written["encoding"] * 10 < full
+    session = read_session(tmp_path / "session.db")
+    for g, kf in enumerate(session.graph.keyframes):
+        assert isinstance(kf.encoding, SimulatedTruthRecord)
+        again = KeyframeEncodings(coordinators_prior, 0).get(g, kf, session.graph.agent_of[g])
+        held = single.graph.keyframes[g].encoding
+        assert torch.equal(again.ranges, held.ranges) and torch.equal(
+            again.key_coords, held.key_coords
+        )
+
+
+def replace_encoding(packet: KeyframePacket) -> KeyframePacket:
+    """The packet as an agent process sends it (runtime/agent_worker.py)."""
+    return dataclasses.replace(packet, encoding=packet.encoding.portable())
+
+
+def test_a_record_is_encoded_as_its_own_view_whatever_the_agent_is_called_now(
+    scene: Path,
+) -> None:
+    """A merge renumbers the moved session's agents; its encodings keep their own identity
+    (the simulated prior seeds an image's draws by it)."""
+    agents = {1: open_agent(scene / "agent_1")}
+    prior = SimulatedPrior(Config().simulated_prior, AgentFolderTruth(agents, LONG_SIDE))
+    view, _, colors = load_frame(agents[1], 1, 2, LONG_SIDE, False)
+    made = prior.encode(view)
+    pointmap = torch.ones(*view.shape, 3)
+    kf = Keyframe(
+        kf_id=0,
+        frame_index=2,
+        timestamp=0.0,
+        encoding=made.portable(),
+        T_WC=torch.zeros(8),
+        X_hat=pointmap,
+        C_hat=torch.ones(view.shape),
+        X_init=pointmap,
+        C_init=torch.ones(view.shape),
+        colors=colors,
+    )
+    again = KeyframeEncodings(SimulatedPrior(Config().simulated_prior), 1).get(0, kf, agent=5)
+    assert (again.agent, again.index) == (1, 2)
+    assert torch.equal(again.ranges, made.ranges) and torch.equal(
+        again.descriptors, made.descriptors
+    )

@@ -26,6 +26,7 @@ from como3r.decentralized.registration import (
 )
 from como3r.errors import ConfigError
 from como3r.geometry.lie import quat_to_matrix, sim3_act, sim3_compose, sim3_inverse, so3_exp
+from como3r.prior.base import EncodingRecord
 from como3r.prior.mast3r.prior import MASt3REncoding
 from como3r.prior.retrieval import RetrievalDatabase
 from como3r.prior.simulated import SimulatedPrior
@@ -288,9 +289,25 @@ def test_two_stage_encoding_encodes_each_keyframe_once(registrars):
     assert reg_b.stats.registration_encodes <= reg_b.stats.encodes
 
 
+def test_the_simulated_prior_sends_its_record_and_colours_in_place_of_its_encoding(registrars):
+    """A peer makes the encoding again from the image and the ground-truth record (13 MB
+    against about 1 MB at 512x384) and registers the pair as with the encoding itself."""
+    (reg_a, kf_a, _), (reg_b, _, _) = registrars
+    reply = reg_b.reply_for_peer(3)
+    assert isinstance(reply["encoding"], EncodingRecord) and reply["colours"].dtype == np.uint8
+    made = reg_a.stats.foreign_encodes
+    reg_a.add_foreign(1, 3, **reply)
+    assert reg_a.stats.foreign_encodes == made + 1 and reg_a.has_foreign(1, 3)
+    by_record = reg_a.register(len(kf_a) - 1, 1, 3)
+    reg_a.add_foreign(1, 3, reg_b.own_encoding(3).for_decoding())
+    by_encoding = reg_a.register(len(kf_a) - 1, 1, 3)
+    assert by_record.correspondences == by_encoding.correspondences > 0
+    assert by_record.inliers == by_encoding.inliers
+
+
 def test_an_encoding_this_prior_cannot_decode_is_refused(registrars, caplog):
     (reg_a, _, _), (reg_b, _, _) = registrars
-    theirs = reg_b.reply_for_peer(2)["encoding"]  # the simulated prior cannot re-encode
+    theirs = reg_b.own_encoding(2).for_decoding()  # an encoding as such, not its record
     foreign = MASt3REncoding(
         agent=1,
         index=0,

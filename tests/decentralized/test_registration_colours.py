@@ -61,10 +61,13 @@ def test_the_recipient_encodes_the_colours_and_registers_as_with_the_encoding(pr
         assert bool((one.T_ij == other.T_ij).all())
 
 
-def test_a_reply_with_neither_or_both_is_refused(prior) -> None:
+def test_a_reply_with_neither_or_colours_beside_an_encoding_is_refused(prior) -> None:
     view = _views(1, seed=3)[0]
     encoding = prior.encode(view)
-    for fields in ({}, {"encoding": encoding, "colours": colours_of(view)}):
+    for fields, message in (
+        ({}, "an encoding or colours"),
+        ({"encoding": encoding, "colours": colours_of(view)}, "never with an encoding"),
+    ):
         reply = EncodingReply(sender=1, recipient=0, round=0, time_s=0.5, keyframe=0, **fields)
-        with pytest.raises(MessageError, match="exactly one of encoding and colours"):
+        with pytest.raises(MessageError, match=message):
             codec.decode(codec.encode(reply))

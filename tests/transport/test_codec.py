@@ -24,6 +24,7 @@ from como3r.frontend.pairs import DirectedMatches
 from como3r.live import FrameEvent
 from como3r.prior.mast3r.prior import MASt3REncoding
 from como3r.prior.simulated import SimulatedEncoding
+from como3r.prior.simulated_record import SimulatedTruthRecord
 from como3r.transport import codec, codec_compact, codec_registry
 from como3r.transport.codec import decode, encode
 
@@ -95,7 +96,7 @@ def _from_hints(cls: type, seed: int, **given: Any) -> Any:
 
 
 def _simulated_encoding() -> SimulatedEncoding:
-    return _from_hints(SimulatedEncoding, 1, agent=1, index=7)
+    return _from_hints(SimulatedEncoding, 1, agent=1, index=7, record=None)
 
 
 def _mast3r_encoding() -> MASt3REncoding:
@@ -174,6 +175,7 @@ SAMPLES: dict[str, Callable[[], Any]] = {
         frames=3, tracked=2, lost=1, local_solve_seconds=0.25, lost_frames=[7]
     ),
     "SimulatedEncoding": _simulated_encoding,
+    "SimulatedTruthRecord": lambda: _from_hints(SimulatedTruthRecord, 5, agent=1, index=7),
     "MASt3REncoding": _mast3r_encoding,
     "AgentTask": lambda: messages.AgentTask(
         agent=0,

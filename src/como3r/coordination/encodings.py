@@ -13,10 +13,16 @@ its colours again the first time a verification decodes a pair with it
 used first out). Encoding work is counted (``reencodes`` and ``stage_seconds["reencode"]``
 of the coordinator's statistics).
 
-The simulated prior's encodings keep travelling and being stored: they are made from the
-frame's ground truth, which a coordinator has in a single-process run only (not in a
-networked one, whose agents read their own inputs, nor in the later sessions that read a
-store: a saved map, a merge).
+The simulated prior's encoding is made from the frame's ground truth as well as its image,
+which a coordinator does not have (a networked run's agents read their own inputs; a resume,
+a saved map and a merge read a store). What travels and is stored in its place is the
+smaller :class:`~como3r.prior.base.EncodingRecord` the encoding names
+(:meth:`~como3r.prior.base.Encoding.portable`: the simulated prior's ground truth, losslessly packed,
+:mod:`como3r.prior.simulated_record`; 0.7-0.9 MB at 512x384 where the encoding is 13.4 MB),
+and :class:`KeyframeEncodings` makes the encoding from the colours and the record
+(:meth:`~como3r.prior.base.Prior.encode_from_record`) as it does MASt3R's from the colours
+alone, with the same cache and counts. A coordinator in the agents' process (``--single-process``)
+holds the agents' encodings themselves and encodes nothing.
 """
 
 from __future__ import annotations
@@ -24,14 +30,15 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 
-from como3r.errors import InputError
+from como3r.errors import InputError, PriorError
 from como3r.frontend.keyframes import Keyframe
-from como3r.prior.base import Encoding, Prior, view_from_colors
+from como3r.prior.base import Encoding, EncodingRecord, Prior, view_from_colors
 
 
 class KeyframeEncodings:
     """Encodings of the coordinator's keyframes: the one a keyframe holds, else its colours
-    encoded again, in a bounded least-recently-used cache by global keyframe index.
+    encoded again (with the record it holds in the encoding's place, if any), in a bounded
+    least-recently-used cache by global keyframe index.
 
     Args:
         prior: the coordinator's prior (the one the agents' encodings came from); None for
@@ -60,18 +67,19 @@ class KeyframeEncodings:
         """The encoding of global keyframe ``g`` (``kf``, of ``agent``).
 
         Raises:
-            InputError: the keyframe holds no encoding and the prior cannot remake it, or
-                its colours are not at its pointmap's resolution (the image it encoded).
+            InputError: the keyframe holds no encoding and the prior cannot remake it (from
+                its colours, or from them and the record it holds), or its colours are not
+                at its pointmap's resolution (the image it encoded).
         """
         held = kf.encoding
-        if held is not None:
+        if held is not None and not isinstance(held, EncodingRecord):
             return held
         cached = self._cache.get(g)
         if cached is not None:
             self._cache.move_to_end(g)
             return cached
         prior = self.prior
-        if prior is None or not prior.can_reencode(agent):
+        if prior is None or (held is None and not prior.can_reencode(agent)):
             raise InputError(
                 f"coordinator: keyframe {kf.kf_id} of agent {agent} came without its "
                 "encoding and this coordinator's prior cannot encode it again"
@@ -83,7 +91,14 @@ class KeyframeEncodings:
                 f"{tuple(colors.shape[:2])}, not the {kf.shape} image its encoding came from"
             )
         start = time.perf_counter()
-        encoding = prior.encode(view_from_colors(colors, agent, kf.frame_index))
+        if held is None:
+            view = view_from_colors(colors, agent, kf.frame_index)
+        else:  # the record's own view: a merge renumbers agents, not their encodings' seeds
+            view = view_from_colors(colors, held.agent, held.index)
+        try:
+            encoding = prior.encode(view) if held is None else prior.encode_from_record(view, held)
+        except PriorError as exc:
+            raise InputError(f"coordinator: keyframe {kf.kf_id} of agent {agent}: {exc}") from None
         self.seconds += time.perf_counter() - start
         self.reencodes += 1
         if self.capacity > 0:

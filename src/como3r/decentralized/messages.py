@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from como3r.decentralized.pose_graph_problem import LoopClosure
-from como3r.prior.base import Encoding
+from como3r.prior.base import Encoding, EncodingRecord
 from como3r.transport import codec_registry
 from como3r.transport.codec_types import require, require_shape
 
@@ -76,11 +76,13 @@ class EncodingRequest:
 @dataclass(frozen=True)
 class EncodingReply:
     """One of the sender's keyframes, for the recipient to decode: its image's exact colours
-    where the prior encodes them again (MASt3R: the recipient runs its own encoder), else its
-    encoding (a registered prior ``Encoding``: the simulated prior's needs ground truth).
+    where the prior encodes them again (MASt3R: the recipient runs its own encoder), with its
+    encoding's record where the prior makes it from both (the simulated prior's ground truth,
+    :meth:`~como3r.prior.base.Encoding.portable`), else its encoding.
 
     Attributes:
-        encoding: the keyframe's encoding, or None when ``colours`` travel.
+        encoding: the keyframe's encoding (a registered prior ``Encoding``), its
+            :class:`~como3r.prior.base.EncodingRecord`, or None.
         colours: ``(H, W, 3)`` uint8, the image the sender's prior encoded (the network's
             input, bit for bit: :func:`~como3r.prior.base.view_from_colors`), or None.
     """
@@ -277,20 +279,25 @@ def _check_reply(m: EncodingReply) -> None:
     _check_round(m)
     require(m.keyframe >= 0, "keyframe must be >= 0")
     require(
-        (m.encoding is None) != (m.colours is None),
-        "exactly one of encoding and colours must be given",
+        m.encoding is not None or m.colours is not None,
+        "an encoding or colours (or both) must be given",
     )
+    if m.encoding is not None:
+        require(
+            isinstance(m.encoding, Encoding),
+            f"encoding must be a prior's Encoding, got a {type(m.encoding).__name__}",
+        )
+        record = isinstance(m.encoding, EncodingRecord)
+        require(
+            record == (m.colours is not None),
+            "colours travel with an encoding's record, never with an encoding",
+        )
     if m.colours is not None:
         require(
             m.colours.dtype == np.uint8 and m.colours.ndim == 3 and m.colours.shape[2] == 3,
             "colours must be an (H, W, 3) uint8 image",
         )
         require(min(m.colours.shape[:2]) > 0, "colours must not be empty")
-    else:
-        require(
-            isinstance(m.encoding, Encoding),
-            f"encoding must be a prior's Encoding, got a {type(m.encoding).__name__}",
-        )
 
 
 def _check_poses(poses: np.ndarray, name: str) -> None:

@@ -32,10 +32,17 @@ from torch import Tensor
 
 from como3r.config_decentralized import RegistrationConfig
 from como3r.decentralized.matching import reciprocal_matches
-from como3r.errors import GeometryError
+from como3r.errors import GeometryError, PriorError
 from como3r.geometry.lie import matrix_to_quat, sim3_act
 from como3r.geometry.umeyama import umeyama_sim3, umeyama_sim3_batched
-from como3r.prior.base import Encoding, PairPrediction, Prior, View, view_from_colors
+from como3r.prior.base import (
+    Encoding,
+    EncodingRecord,
+    PairPrediction,
+    Prior,
+    View,
+    view_from_colors,
+)
 from como3r.prior.simulated_keys import generator
 
 logger = logging.getLogger(__name__)
@@ -257,12 +264,18 @@ class Registrar:
     def reply_for_peer(self, keyframe: int) -> dict[str, Any]:
         """What a robot that decodes one of this robot's keyframes receives, as the fields of
         an :class:`~.messages.EncodingReply`: ``colours``, the exact image the prior encoded,
-        where the prior encodes images again (:meth:`Prior.can_reencode`), else ``encoding``.
+        where the prior encodes images again (:meth:`Prior.can_reencode`); with the
+        ``encoding``'s record where the prior makes it again from both
+        (:meth:`Encoding.portable`: the simulated prior's ground truth); else ``encoding``.
         """
         self._mark_used(keyframe)
         if self.prior.can_reencode(self.robot):
             return {"colours": colours_of(self.view_of(keyframe))}
-        return {"encoding": self.own_encoding(keyframe)}
+        encoding = self.own_encoding(keyframe)
+        portable = encoding.portable()
+        if isinstance(portable, EncodingRecord):  # the prior makes it from both again
+            return {"encoding": portable, "colours": colours_of(self.view_of(keyframe))}
+        return {"encoding": encoding.for_decoding()}
 
     def _mark_used(self, keyframe: int) -> None:
         if keyframe not in self._used:
@@ -289,12 +302,7 @@ class Registrar:
         robot's prior cannot decode with its own: another encoding type, or a tensor field
         of another dtype or number of dimensions."""
         if colours is not None:
-            start = time.perf_counter()
-            self._foreign[(robot, keyframe)] = self.prior.encode(
-                view_from_colors(colours, robot, keyframe)
-            )
-            self.stats.encode_seconds += time.perf_counter() - start
-            self.stats.foreign_encodes += 1
+            self._encode_foreign(robot, keyframe, colours, encoding)
             return
         if encoding is None:
             raise ValueError("add_foreign needs an encoding or colours")
@@ -311,6 +319,32 @@ class Registrar:
             why,
         )
         self._refused.add((robot, keyframe))
+
+    def _encode_foreign(
+        self, robot: int, keyframe: int, colours: np.ndarray, record: Encoding | None
+    ) -> None:
+        """Encode another robot's keyframe from its colours (and ``record``, an
+        :class:`EncodingRecord`, where its prior needs one), or refuse (and log) it."""
+        # a record names the view it belongs to (its frame, not this keyframe number)
+        agent, index = (robot, keyframe) if record is None else (record.agent, record.index)
+        view = view_from_colors(colours, agent, index)
+        start = time.perf_counter()
+        try:
+            if record is None:
+                encoding = self.prior.encode(view)
+            elif isinstance(record, EncodingRecord):
+                encoding = self.prior.encode_from_record(view, record)
+            else:
+                raise PriorError(f"a {type(record).__name__} came with colours, not a record")
+        except PriorError as exc:
+            logger.warning(
+                "robot %d: refused robot %d's keyframe %d: %s", self.robot, robot, keyframe, exc
+            )
+            self._refused.add((robot, keyframe))
+            return
+        self.stats.encode_seconds += time.perf_counter() - start
+        self.stats.foreign_encodes += 1
+        self._foreign[(robot, keyframe)] = encoding
 
     def register(self, keyframe: int, robot: int, other: int) -> Registration:
         """Register this robot's ``keyframe`` (i) with ``robot``'s keyframe ``other`` (j).

@@ -12,6 +12,10 @@ simulated sensor are interchangeable. A prior turns views into geometry:
   (:func:`view_from_colors`) gives that agent's encoding again, so a receiver that says so
   needs no encoding sent or stored ("what can be recomputed from the input is not stored
   twice").
+* ``encode_from_record(view, record)``: the encoding again from a keyframe's colours and the
+  :class:`EncodingRecord` that travelled and was stored in its place
+  (:meth:`Encoding.portable`: what a prior needs beside the image, e.g. the simulated
+  prior's ground truth).
 """
 
 from __future__ import annotations
@@ -23,6 +27,8 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 from torch import Tensor
+
+from como3r.errors import PriorError
 
 
 @dataclass(frozen=True)
@@ -77,6 +83,25 @@ class Encoding:
     agent: int
     index: int
     shape: tuple[int, int]
+
+    def portable(self) -> Encoding:
+        """What travels to a coordinator and is stored in place of this encoding: itself,
+        or an :class:`EncodingRecord` from which the prior makes it again
+        (:meth:`Prior.encode_from_record`) when that is smaller."""
+        return self
+
+    def for_decoding(self) -> Encoding:
+        """This encoding as a receiver that only decodes it needs it: without what only
+        making it again needs (the record :meth:`portable` gives)."""
+        return self
+
+
+@dataclass(frozen=True)
+class EncodingRecord(Encoding):
+    """What a prior needs, besides the image, to make a view's encoding again
+    (:meth:`Prior.encode_from_record`): it travels and is stored in the encoding's place.
+    It is no encoding: a prior decodes none (a coordinator's
+    :class:`~como3r.coordination.encodings.KeyframeEncodings` makes the encoding first)."""
 
 
 @dataclass(frozen=True)
@@ -154,6 +179,20 @@ class Prior(abc.ABC):
         encodings and stores none (:mod:`como3r.coordination.encodings`); the default is
         no."""
         return False
+
+    def encode_from_record(self, view: View, record: EncodingRecord) -> Encoding:
+        """The encoding of ``view`` (a keyframe's colours, :func:`view_from_colors`) made
+        with what ``record`` holds (:meth:`Encoding.portable`), bit-identical to the one the
+        agent made.
+
+        Raises:
+            PriorError: this prior makes no encodings from records (the default), or not
+                from this one.
+        """
+        raise PriorError(
+            f"{type(self).__name__} cannot encode agent {view.agent}'s frame {view.index} "
+            f"from a {type(record).__name__} (another prior made it)"
+        )
 
     def describe(self) -> dict[str, object]:
         """Parameters of the prior, reported with every result it produces."""

@@ -5,7 +5,8 @@ For scenes with metric depth it produces :class:`~como3r.prior.base.PairPredicti
 exactly MASt3R's types, shapes and value ranges from the true geometry, corrupted by a
 documented error model that imitates a learned prior. It is a sensor simulator, not an
 oracle: the ground-truth pose of a view is used only by :meth:`SimulatedPrior.encode` to
-build world-coordinate appearance keys when a view has no surface map; no encoding stores it
+build world-coordinate appearance keys when a view has no surface map; only the ground-truth
+record the encoding keeps for its receivers stores it (:mod:`~como3r.prior.simulated_record`)
 and no prediction is made from it. The relative placement of view j in camera i is what a
 learned matcher would believe: a robust similarity fit (RANSAC +
 :func:`~como3r.geometry.umeyama.umeyama_sim3`) between the depth points of both views whose
@@ -55,7 +56,8 @@ ASMK codebook once by k-means on features of a fixed synthetic sample and caches
 ``~/.cache/como3r/``), the hash covering every parameter it depends on.
 
 A view needs depth and intrinsics ``K``, plus a surface map or a ground-truth pose for its
-keys. Decoding a 512x384 pair takes about 0.2 s on one CPU thread.
+keys, read through a lossless :class:`~como3r.prior.simulated_record.SimulatedTruthRecord`
+that travels and is stored in place of the encoding. Decoding a 512x384 pair takes about 0.2 s on one CPU thread.
 """
 
 from __future__ import annotations
@@ -76,7 +78,7 @@ from como3r.geometry.camera import rays_from_intrinsics, unproject_depth
 from como3r.geometry.units import median_of_ranges
 from como3r.prior import simulated_appearance as appearance_model
 from como3r.prior import simulated_errors as errors
-from como3r.prior.base import Encoding, PairPrediction, Prior, View
+from como3r.prior.base import Encoding, EncodingRecord, PairPrediction, Prior, View
 from como3r.prior.ground_truth import GroundTruth, GroundTruthSource
 from como3r.prior.simulated_confidence import (
     confidence,
@@ -107,6 +109,12 @@ from como3r.prior.simulated_keys import (
 )
 from como3r.prior.simulated_ood import OodConstants, v2_appearance
 from como3r.prior.simulated_overlap import OverlapConstants, v2_logits
+from como3r.prior.simulated_record import (
+    SimulatedTruthRecord,
+    checked_record,
+    record_truth,
+    truth_of_record,
+)
 from como3r.prior.simulated_retrieval import (
     cached_array,
     codebook_sample,
@@ -177,6 +185,24 @@ class SimulatedPrior(Prior):
         """
         truth = self._truth_of(view)
         depth, K = validated_inputs(view, truth)
+        return self._encode(view, record_truth(view, truth, depth, K))
+
+    def encode_from_record(self, view: View, record: EncodingRecord) -> SimulatedEncoding:
+        """:meth:`encode` of ``view`` (a keyframe's colours) from the ground truth ``record``
+        holds (:mod:`~como3r.prior.simulated_record`), without a ground-truth source.
+
+        Raises:
+            PriorError: ``record`` is not a :class:`SimulatedTruthRecord` of this view.
+        """
+        if not isinstance(record, SimulatedTruthRecord):
+            return super().encode_from_record(view, record)  # type: ignore[return-value]
+        return self._encode(view, checked_record(view, record))
+
+    def _encode(self, view: View, record: SimulatedTruthRecord) -> SimulatedEncoding:
+        """:meth:`encode` from the ground truth in ``record``, which it keeps
+        (:meth:`SimulatedEncoding.portable`)."""
+        truth = truth_of_record(record)
+        depth, K = validated_inputs(view, truth)
         H, W = view.shape
         valid = torch.isfinite(depth) & (depth > 0)
         depth = torch.where(valid, depth, torch.zeros_like(depth))
@@ -243,6 +269,7 @@ class SimulatedPrior(Prior):
             hidden_log_error=ood.hidden_log_error if ood is not None else None,
             sky_scale=ood.sky_scale if ood is not None else 1.0,
             sky_logit_raise=ood.sky_logit_raise if ood is not None else 0.0,
+            record=record,
         )
 
     def _truth_of(self, view: View) -> GroundTruth:

@@ -7,6 +7,7 @@ checked depth and intrinsics, depth edges, and a depth sensor's holes filled
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -16,6 +17,7 @@ from torch import Tensor
 from como3r.errors import PriorError
 from como3r.prior.base import Encoding, View
 from como3r.prior.ground_truth import GroundTruth
+from como3r.prior.simulated_record import SimulatedTruthRecord
 
 
 @dataclass(frozen=True)
@@ -79,7 +81,9 @@ class SimulatedConstants:
 
 @dataclass(frozen=True)
 class SimulatedEncoding(Encoding):
-    """Per-view state of the simulated prior (about 110 bytes per pixel). Holds no pose.
+    """Per-view state of the simulated prior (about 110 bytes per pixel). Holds no pose but
+    in its ``record``, for the keys of a view without a surface map, which only the prior
+    reads.
 
     Attributes:
         K: ``(3, 3)`` true intrinsics at the view's resolution.
@@ -111,6 +115,9 @@ class SimulatedEncoding(Encoding):
             the confidence never sees (:mod:`~como3r.prior.simulated_ood`); None without them.
         sky_scale: factor on the sky's range; sky_logit_raise: added to the sky's
             ``log(C - 1)`` (1 and 0 without the out-of-distribution effects).
+        record: the ground truth the encoding was made from, which travels and is
+            stored in its place (:meth:`portable`; :mod:`~como3r.prior.simulated_record`);
+            None in an encoding made by hand.
     """
 
     K: Tensor
@@ -133,6 +140,16 @@ class SimulatedEncoding(Encoding):
     hidden_log_error: Tensor | None = None
     sky_scale: float = 1.0
     sky_logit_raise: float = 0.0
+    record: SimulatedTruthRecord | None = None
+
+    def portable(self) -> Encoding:
+        """The ground-truth record, about a tenth of the encoding's size (compressed), from
+        which a coordinator's prior makes the encoding again with the keyframe's colours."""
+        return self if self.record is None else self.record
+
+    def for_decoding(self) -> Encoding:
+        """Without its record."""
+        return self if self.record is None else dataclasses.replace(self, record=None)
 
 
 def normalize(x: Tensor) -> Tensor:

@@ -205,12 +205,15 @@ class AgentWorker:
     def _send_keyframe(self, packet: KeyframePacket) -> None:
         """Send a keyframe with the pose its predecessor had here: the coordinator
         re-anchors one exported before an update reached this agent on it (C-Sec. A.8); without
-        its encoding when the task says the coordinator makes it again."""
+        its encoding when the task says the coordinator makes it again, else with what
+        travels in its place (:meth:`~como3r.prior.base.Encoding.portable`)."""
         previous = (
             self.frontend.keyframes[packet.kf_id - 1].T_WC.clone() if packet.kf_id > 0 else None
         )
         if not self.task.send_encoding:  # the coordinator encodes the colours again
             packet = dataclasses.replace(packet, encoding=None)
+        elif packet.encoding is not None:  # or from them and what else it needs
+            packet = dataclasses.replace(packet, encoding=packet.encoding.portable())
         message = KeyframeMessage(
             packet=packet, applied_seq=self.applied_seq, T_WC_previous=previous
         )

@@ -103,11 +103,12 @@ class TableWriter:
         for g in range(len(self._keyframes), len(graph.keyframes)):
             kf, agent = graph.keyframes[g], graph.agent_of[g]
             # not kept where the coordinator's prior encodes the colours again (what can be
-            # recomputed from the input is not stored twice)
+            # recomputed from the input is not stored twice), else what it needs to
+            # (Encoding.portable: the simulated prior's ground truth)
             encoding = (
                 None
                 if kf.encoding is None or coordinator.encodings.can_reencode(agent)
-                else self._blob(pack_object(kf.encoding), "encoding")
+                else self._blob(pack_object(kf.encoding.portable()), "encoding")
             )
             self.connection.execute(
                 "INSERT INTO keyframes VALUES (?, ?, ?, ?, ?, ?, ?)",

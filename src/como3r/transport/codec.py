@@ -473,8 +473,9 @@ def _register_payloads() -> None:
         ("como3r.frontend.pairs:DirectedMatches", 1, ("q",)),
         # 2: first_frame_focal, 3: rejected_directions
         ("como3r.frontend.agent:FrontendStats", 3, ()),
-        # 2: filled, 3: texture, colours
-        ("como3r.prior.simulated_encoding:SimulatedEncoding", 3, ()),
+        # 2: filled, 3: texture, colours, 4: record
+        ("como3r.prior.simulated_encoding:SimulatedEncoding", 4, ()),
+        ("como3r.prior.simulated_record:SimulatedTruthRecord", 1, ()),
         ("como3r.prior.mast3r.prior:MASt3REncoding", 1, _TOKENS),
     ):
         register(path, version=version, half=half, coded=_CODED.get(path))
