@@ -63,6 +63,11 @@ Session store, blobs written as a keyframe arrives (MASt3R 512x384 / simulated 5
 MASt3R 512x288): colours 400 / 400 / 305, encoding 2493 / 13444 / 1885, pointmaps
 2389 / 2389 / 1797, retrieval 979 / 136 / 979, edges 1530 / 1530 / 1139, total 7791 /
 17898 / 6105.
+Since the store keeps the received keyframe in those codings (format version 5,
+``como3r.store.coded``; the packet as the coordinator's ingest gives it), at 512x384
+(MASt3R / MASt3R no tokens / simulated): colours 194, encoding 1218 / 0 / 13444 (the
+tokens float16-rounded, stored exact), pointmaps 287, retrieval 284 / 284 / 39, edges 261,
+total 2244 / 1026 / 14224 (before: 7790 / 5298 / 17899).
 With coarser steps where the receiver reads a weight (confidences and match ``q`` in
 ``2^-2`` log steps, within 9.1 %; a point's range in ``2^-9`` log steps, within 7.8e-4 of
 it), the same sequence at 512x384, lossy, kB per keyframe (MASt3R no tokens; the
