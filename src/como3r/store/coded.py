@@ -18,7 +18,8 @@ coding and the coordinator takes its decoded value in their place
 machines (in a run's store, :func:`~.resume.open_store`). With the ingest and this, the
 demo scene (2 agents x 30 frames at 512x384, simulated prior, ``--single-process``) ended
 with a merged ATE of 7.814 mm against 7.879 exact, and 1.9 MB per keyframe in ``session.db``
-besides the simulated prior's encoding, against 7.1 MB (``benchmarks/store_speed.py``).
+besides the simulated prior's encoding, against 7.1 MB (``benchmarks/message_sizes.py`` and
+``benchmarks/store_speed.py`` measure the parts).
 
 A coded blob is an object blob (:func:`~.blobs.pack_object`'s ``C3RO``, Zstandard with its
 content checksum around the lossy encoding) of one of the store's own registered types
@@ -153,7 +154,7 @@ def pack_pointmap(array: Tensor) -> tuple[bytes, Tensor]:
         value = back.C_hat
     if value.dtype != array.dtype or value.shape != array.shape:  # not the coding's
         return pack_arrays(array), array
-    return blob, (array if identical(array, value) else value)
+    return blob, (array if identical(array, value) else value.to(array.device))
 
 
 def pack_exact(obj: Any, *arrays: Tensor | np.ndarray) -> bytes:
