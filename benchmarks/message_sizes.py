@@ -63,6 +63,11 @@ Session store, blobs written as a keyframe arrives (MASt3R 512x384 / simulated 5
 MASt3R 512x288): colours 400 / 400 / 305, encoding 2493 / 13444 / 1885, pointmaps
 2389 / 2389 / 1797, retrieval 979 / 136 / 979, edges 1530 / 1530 / 1139, total 7791 /
 17898 / 6105.
+Since the store keeps the received keyframe in those codings (format version 5,
+``como3r.store.coded``; the packet as the coordinator's ingest gives it), at 512x384
+(MASt3R / MASt3R no tokens / simulated): colours 194, encoding 1218 / 0 / 13444 (the
+tokens float16-rounded, stored exact), pointmaps 287, retrieval 284 / 284 / 39, edges 261,
+total 2244 / 1026 / 14224 (before: 7790 / 5298 / 17899).
 With coarser steps where the receiver reads a weight (confidences and match ``q`` in
 ``2^-2`` log steps, within 9.1 %; a point's range in ``2^-9`` log steps, within 7.8e-4 of
 it), the same sequence at 512x384, lossy, kB per keyframe (MASt3R no tokens; the
@@ -134,9 +139,11 @@ from como3r.prior.mast3r.model import MASt3RNetwork
 from como3r.prior.mast3r.retrieval import DEFAULT_NFEAT, RetrievalHead
 from como3r.prior.mast3r.testing import seeded_network
 from como3r.prior.simulated import SimulatedPrior
+from como3r.runtime.ingest import received
 from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame
 from como3r.runtime.results import final_report
-from como3r.store.blobs import pack_arrays, pack_object
+from como3r.store.blobs import pack_object
+from como3r.store.coded import pack_colours, pack_matches, pack_pointmap, pack_retrieval
 from como3r.transport import codec
 from como3r.transport.codec_arrays import zstd
 from como3r.transport.keyframe_bytes import PARTS, wire_parts
@@ -227,24 +234,22 @@ def _mean_parts(messages: list[Any], lossy: bool) -> dict[str, float]:
 def _stored_parts(messages: list[KeyframeMessage]) -> dict[str, float]:
     """Mean bytes per keyframe of the blobs the session store writes as a keyframe arrives
     (:mod:`como3r.store.writer`: colours, encoding, pointmap and confidence, retrieval
-    features, the sequential edge's matches), rewrites of later refreshes left out."""
+    features, the sequential edge's matches), rewrites of later refreshes left out: the
+    packet as the coordinator receives it (:func:`como3r.runtime.ingest.received`), its
+    arrays in the store's codings (:mod:`como3r.store.coded`)."""
     rows = []
     for message in messages:
-        packet = message.packet
-        edge = [
-            getattr(m, k)
-            for m in (packet.sequential_ij, packet.sequential_ji)
-            if m is not None
-            for k in ("idx", "valid", "q")
-        ]
+        packet = received(message.packet)
+        edge = packet.sequential_ij, packet.sequential_ji
+        width = int(packet.X_hat.shape[1])
         rows.append(
             {
-                "colours": len(pack_arrays(packet.colors)),
+                "colours": len(pack_colours(packet.colors)),
                 # not kept where the coordinator encodes the colours again
                 "encoding": 0 if packet.encoding is None else len(pack_object(packet.encoding)),
-                "pointmaps": len(pack_arrays(packet.X_hat)) + len(pack_arrays(packet.C_hat)),
-                "retrieval": len(pack_arrays(*packet.retrieval)) if packet.retrieval else 0,
-                "edges": len(pack_arrays(*edge)) if edge else 0,
+                "pointmaps": sum(len(pack_pointmap(a)[0]) for a in (packet.X_hat, packet.C_hat)),
+                "retrieval": len(pack_retrieval(packet.retrieval)) if packet.retrieval else 0,
+                "edges": 0 if None in edge else len(pack_matches(*edge, width)),  # type: ignore[arg-type]
             }
         )
     mean = {name: sum(r[name] for r in rows) / len(rows) for name in rows[0]}

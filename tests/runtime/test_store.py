@@ -36,6 +36,7 @@ from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.io.tum import read_tum
 from como3r.prior.mast3r.prior import MASt3REncoding
+from como3r.runtime.ingest import received
 from como3r.store.blobs import pack_arrays, unpack_arrays
 from como3r.store.reader import Session, read_session
 from como3r.store.schema import FORMAT_VERSION, PAGE_SIZE, STORE_NAME
@@ -164,7 +165,7 @@ def _step(coordinator: Coordinator, seed: int, step: int) -> list[PoseUpdate]:
         )
 
     first = kf_id == 0
-    g = graph.add_keyframe(
+    packet = received(  # as every runtime hands a keyframe to the coordinator
         KeyframePacket(
             agent=agent,
             kf_id=kf_id,
@@ -190,6 +191,7 @@ def _step(coordinator: Coordinator, seed: int, step: int) -> list[PoseUpdate]:
             else PointmapRefresh(kf_id - 1, rand(HEIGHT, WIDTH, 3), 1 + rand(HEIGHT, WIDTH), 2),
         )
     )
+    g = graph.add_keyframe(packet)
     coordinator.stats.keyframes += 1
     updates = []
     for c in coordinator.candidates:

@@ -52,6 +52,7 @@ from como3r.progress import AgentProgress, PhaseCallback, ProgressCallback, trac
 from como3r.runtime import outputs
 from como3r.runtime.agent_loop import AgentLoop
 from como3r.runtime.disk_guard import DiskGuard, store_metrics
+from como3r.runtime.ingest import hold_the_coordinators, received
 from como3r.runtime.interrupts import checkpoint, finishing, interrupts_are_checkpoints
 from como3r.runtime.live import CoordinatorLive
 from como3r.runtime.map_session import SavedMap, hold_map, map_results, seed_map
@@ -403,7 +404,7 @@ def _hand_over(
 ) -> None:
     """Give an agent's keyframe to the coordinator and the pose updates it returns to the
     agents (``results``: by agent id)."""
-    updates = coordinator.add_keyframe(packet)
+    updates = coordinator.add_keyframe(received(packet, coordinator))
     _apply(results, updates)
     if coordinator_live is not None:
         coordinator_live.keyframe_added(packet, updates)
@@ -427,15 +428,14 @@ def _finish(
     for fe in frontends:
         if len(fe.keyframes):
             last = fe.keyframes.last
-            coordinator.refresh(
-                fe.agent,
-                PointmapRefresh(last.kf_id, last.X_hat, last.C_hat, last.fused_frames, last.K),
-            )
+            refresh = PointmapRefresh(last.kf_id, last.X_hat, last.C_hat, last.fused_frames, last.K)
+            coordinator.refresh(fe.agent, received(refresh, coordinator))
             final_poses[fe.agent] = fe.keyframes.poses()
     cleanup = coordinator.finish(final_poses, progress)
     _apply(results, cleanup.updates)
     for update in cleanup.pointmaps:
         results[update.agent].apply_pointmap_update(update)
+    hold_the_coordinators(frontends, coordinator)
 
 
 def _write(

@@ -59,6 +59,7 @@ from como3r.progress import (
 from como3r.runtime.agent_events import AgentEvents, RuntimeOptions, Waiting
 from como3r.runtime.agent_worker import prior_fields
 from como3r.runtime.backlog import Backlog
+from como3r.runtime.ingest import received
 from como3r.runtime.interrupts import checkpoint, finishing
 from como3r.runtime.live import CoordinatorLive
 from como3r.runtime.map_session import SavedMap, map_results
@@ -318,7 +319,7 @@ class _Runtime(AgentEvents):
     def _add_keyframes(self, batch: Sequence[Waiting]) -> None:
         """One batch of keyframes to the coordinator; its updates to the agents."""
         packets = [
-            packet
+            received(packet, self.coordinator)
             for packet in (self._packet(w.segment, w.message) for w in batch)
             if packet is not None
         ]
@@ -399,7 +400,7 @@ class _Runtime(AgentEvents):
                 and len(done.keyframe_T_WC) == len(segment.result.keyframes)
             ):  # else failed
                 if done.final is not None:
-                    self.coordinator.refresh(segment.index, done.final)
+                    self.coordinator.refresh(segment.index, received(done.final, self.coordinator))
                 final_poses[segment.index] = done.keyframe_T_WC
         cleanup = self.coordinator.finish(final_poses, self.progress)
         for update in cleanup.updates:

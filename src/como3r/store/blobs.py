@@ -14,7 +14,9 @@ Two kinds, told apart by their first four bytes:
   bytes of indices: on a 512x384 float32 pointmap zlib then keeps 74 % of the bytes
   instead of 91 %, in two thirds of the time.
 * **objects** (``C3RO``): a registered dataclass of :mod:`como3r.transport.codec` (a prior's
-  :class:`~como3r.prior.base.Encoding`), ``b"C3RO" | zstd(codec.encode(obj))``; decoding
+  :class:`~como3r.prior.base.Encoding`, an agent's final report, or since format version 5
+  one of :mod:`.coded`'s arrays in the wire's compact codings),
+  ``b"C3RO" | zstd(codec.encode(obj))`` (with ``lossy`` for the coded arrays); decoding
   validates it as a received message is validated.
 
 Zstandard at the messages' level (:data:`como3r.transport.codec_arrays.ZSTD_LEVEL`) rather
@@ -148,7 +150,7 @@ def pack_object(obj: Any) -> bytes:
     )
 
 
-def unpack_object(blob: bytes, expected: type, what: str) -> Any:
+def unpack_object(blob: bytes, expected: type | tuple[type, ...], what: str) -> Any:
     """The object of a :func:`pack_object` blob, validated by the codec.
 
     Raises:

@@ -39,7 +39,7 @@ from como3r.store.rows import (
     read_link,
     read_retrieval,
 )
-from como3r.store.schema import APPLICATION_ID, FORMAT_VERSION, STORE_NAME
+from como3r.store.schema import APPLICATION_ID, FORMAT_VERSION, READABLE_VERSIONS, STORE_NAME
 from como3r.transport.messages import AgentFinished
 
 logger = logging.getLogger(__name__)
@@ -170,7 +170,8 @@ def _one_line(exc: BaseException) -> str:
 
 
 def _check_header(connection: sqlite3.Connection, path: Path, check: bool) -> None:
-    """A como3r store of :data:`FORMAT_VERSION`; with ``check``, structurally intact."""
+    """A como3r store of a format version this como3r reads (:data:`READABLE_VERSIONS`);
+    with ``check``, structurally intact."""
     (application,) = connection.execute("PRAGMA application_id").fetchone()
     (version,) = connection.execute("PRAGMA user_version").fetchone()
     if application != APPLICATION_ID:
@@ -180,10 +181,11 @@ def _check_header(connection: sqlite3.Connection, path: Path, check: bool) -> No
             f"{path}: session store format version {version} is newer than "
             f"this como3r reads ({FORMAT_VERSION}); upgrade como3r"
         )
-    if version != FORMAT_VERSION:
+    if version not in READABLE_VERSIONS:
         raise StoreError(
-            f"{path}: session store format version {version} is not the one "
-            f"this como3r reads ({FORMAT_VERSION})"
+            f"{path}: session store format version {version} is older than this como3r "
+            f"reads ({', '.join(map(str, READABLE_VERSIONS))}); read it with the como3r "
+            f"that wrote it (the file is left as it is)"
         )
     problems = [
         " ".join(row[0].split())
@@ -196,7 +198,10 @@ def _check_header(connection: sqlite3.Connection, path: Path, check: bool) -> No
 def _meta(connection: sqlite3.Connection, path: Path) -> tuple[dict[str, str], Config]:
     """The meta table (without the configuration) and the configuration."""
     meta = dict(connection.execute("SELECT key, value FROM meta"))
-    if meta.get("format_version") != str(FORMAT_VERSION) or "config" not in meta:
+    if (
+        meta.get("format_version") not in [str(v) for v in READABLE_VERSIONS]
+        or "config" not in meta
+    ):
         raise StoreError(
             f"{path}: inconsistent session store (its meta table says format "
             f"{meta.get('format_version')!r})"

@@ -46,7 +46,9 @@ def open_store(
     session: Session | None = None,
 ) -> SessionStore:
     """The session store of a run in ``folder``, journal of ``coordinator``: a new one, or
-    with ``resume`` the one there, whose state ``coordinator`` (new) takes first.
+    with ``resume`` the one there, whose state ``coordinator`` (new) takes first. It
+    settles the pointmaps the coordinator makes on their coded values
+    (:class:`~.writer.SessionStore`, ``settles``).
 
     Args:
         session: (resume) the store's contents, where the caller read them already; a
@@ -59,7 +61,7 @@ def open_store(
     """
     path = folder / STORE_NAME
     if not resume:
-        return SessionStore.create(path, config, coordinator)
+        return SessionStore.create(path, config, coordinator, settles=True)
     if session is None:
         session = read_session(path, paged=True)
         if session.finished:
@@ -75,7 +77,7 @@ def open_store(
         len(session.agents),
         len(session.graph.links),
     )
-    return SessionStore.reopen(path, coordinator)
+    return SessionStore.reopen(path, coordinator, settles=True)
 
 
 def restore_coordinator(session: Session, coordinator: Coordinator) -> None:

@@ -20,6 +20,7 @@ from como3r.frontend.paging import PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.prior.base import Encoding
 from como3r.store.blobs import unpack_arrays, unpack_object
+from como3r.store.coded import unpack, unpack_matches, unpack_one
 from como3r.store.paging import PagedLink
 
 STATUSES = ("rejected", "pending", "admitted", "inconsistent")
@@ -103,10 +104,7 @@ class Blobs:
         return row[0]
 
     def array(self, blob_id: int, what: str) -> Tensor:
-        arrays = unpack_arrays(self.get(blob_id, what), what)
-        if len(arrays) != 1:
-            raise StoreError(f"{what}: holds {len(arrays)} arrays, not one")
-        return arrays[0]
+        return unpack_one(self.get(blob_id, what), what)
 
 
 def load_keyframes(connection: sqlite3.Connection, graph: GlobalGraph, blobs: Blobs) -> None:
@@ -227,7 +225,11 @@ def read_retrieval(connection: sqlite3.Connection, graph: GlobalGraph) -> list[R
             raise StoreError(
                 f"inconsistent session store: retrieval entry {g} names no such keyframe"
             )
-        descriptors, attention = unpack_arrays(features, f"keyframe {g} retrieval features")
+        what = f"keyframe {g} retrieval features"
+        arrays = unpack(features, what)
+        if len(arrays) != 2:
+            raise StoreError(f"{what}: holds {len(arrays)} arrays, not 2")
+        descriptors, attention = arrays
         graph.keyframes[g].retrieval = (descriptors, attention)
         entries.append(RetrievalEntry(agent, kf_id, descriptors, attention, position))
     positions = sorted(e.position for e in entries if e.position is not None)
@@ -237,9 +239,7 @@ def read_retrieval(connection: sqlite3.Connection, graph: GlobalGraph) -> list[R
 
 
 def _matches(blob: bytes, what: str) -> tuple[DirectedMatches, DirectedMatches]:
-    arrays = unpack_arrays(blob, what)
-    if len(arrays) != 6:
-        raise StoreError(f"{what}: holds {len(arrays)} arrays, not 6")
+    arrays = unpack_matches(blob, what)
     return DirectedMatches(*arrays[:3]), DirectedMatches(*arrays[3:])
 
 

@@ -9,7 +9,11 @@ coordinator's (a restarted agent process that starts a new map segment has its o
 
     meta        key TEXT PK, value TEXT   format_version, como3r_version, created (UTC),
                                           config (JSON of the effective configuration)
-    blobs       id PK, data BLOB          the large arrays, referenced by id below
+    blobs       id PK, data BLOB          the large arrays, referenced by id below; since
+                                          version 5 a keyframe's arrays (colours, pointmaps,
+                                          retrieval features, matches) in the wire's compact
+                                          codings where these give them back exactly
+                                          (:mod:`.coded`), else exact
     keyframes   g PK, agent, kf_id, frame_index, timestamp, colors -> blobs (H, W, 3) uint8,
                 encoding -> blobs (the prior's Encoding, codec object) or NULL where the
                 coordinator's prior encodes the colours again (Prior.can_reencode: MASt3R,
@@ -51,8 +55,11 @@ from __future__ import annotations
 
 #: the store's file name in an output folder
 STORE_NAME = "session.db"
-#: the layout above; a reader refuses any other
-FORMAT_VERSION = 4
+#: the layout above; a reader refuses any other than :data:`READABLE_VERSIONS`
+FORMAT_VERSION = 5
+#: the versions a reader reads: version 4 differs only in holding every array exact, which
+#: version 5 reads as it is (a resumed version-4 store is marked version 5 once written on)
+READABLE_VERSIONS = (4, 5)
 #: SQLite page size of a new store, the largest: a keyframe writes megabytes of blobs
 #: (13 MB of simulated-prior state, 2 MB per pointmap at 512x384) as chains of overflow
 #: pages, and 15 transactions of 13 + 4 x 1.8 MB took 0.68 s at 64 KiB pages against 1.65 s

@@ -19,6 +19,7 @@ from typing import Any
 
 from torch import Tensor
 
+from como3r.backend.global_graph import GlobalGraph
 from como3r.coordination.association import Candidate
 from como3r.coordination.coordinator import Coordinator
 from como3r.errors import StoreError
@@ -26,11 +27,13 @@ from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.paging import POINTMAP_FIELDS, PagedKeyframe
 from como3r.frontend.pairs import PairLink
 from como3r.store.blobs import pack_arrays, pack_object
+from como3r.store.coded import pack_colours, pack_matches, pack_pointmap, pack_retrieval
 
 
-def pack_link(link: PairLink) -> bytes:
-    """Both directions' matches of a link in one blob (the ``matches`` columns)."""
-    return pack_arrays(link.ij.idx, link.ij.valid, link.ij.q, link.ji.idx, link.ji.valid, link.ji.q)
+def pack_link(link: PairLink, width: int) -> bytes:
+    """Both directions' matches of a link in one blob (the ``matches`` columns; ``width``:
+    the keyframes' row length, which the coding's offsets are split by)."""
+    return pack_matches(link.ij, link.ji, width)
 
 
 @dataclass
@@ -64,6 +67,10 @@ class TableWriter:
     _rows: dict[str, dict[Any, tuple]]
     _updates: dict[int, int]
     _finished: bool
+    #: the row length of the keyframes written last (the matches' coding splits by it)
+    _width: int
+    #: pointmaps that do not code to themselves are settled on their coded values
+    settles: bool
     #: the store reads a paged-out keyframe's arrays back (SessionStore.load_keyframe): what
     #: makes the store a keyframe's KeyframePages
     load_keyframe: Callable[[int, str], dict[str, Any]]
@@ -91,7 +98,7 @@ class TableWriter:
                     # parked by the terminal cleanup (KeyframeParking): the pointmaps it
                     # changed are read back (the others from this store, as written) and
                     # written, one keyframe in memory at a time
-                    self._keyframes[g] = self._write_pointmaps(g, kf, written)
+                    self._keyframes[g] = self._write_pointmaps(graph, g, kf, written)
                     kf.evict(self, g)
                 continue  # else as written: a pointmap that changes is read back first
             if (
@@ -99,7 +106,7 @@ class TableWriter:
                 or kf.K is not written.K
                 or kf.fused_frames != written.fused_frames
             ):
-                self._keyframes[g] = self._write_pointmaps(g, kf, written)
+                self._keyframes[g] = self._write_pointmaps(graph, g, kf, written)
         for g in range(len(self._keyframes), len(graph.keyframes)):
             kf, agent = graph.keyframes[g], graph.agent_of[g]
             # not kept where the coordinator's prior encodes the colours again (what can be
@@ -118,11 +125,11 @@ class TableWriter:
                     kf.kf_id,
                     kf.frame_index,
                     kf.timestamp,
-                    self._blob(pack_arrays(kf.colors), "colours"),
+                    self._blob(pack_colours(kf.colors), "colours"),
                     encoding,
                 ),
             )
-            self._keyframes.append(self._write_pointmaps(g, kf, None))
+            self._keyframes.append(self._write_pointmaps(graph, g, kf, None))
             if kf.retrieval is not None:
                 self.connection.execute(
                     "INSERT INTO retrieval VALUES (?, ?, ?, NULL, ?)",
@@ -130,25 +137,45 @@ class TableWriter:
                         g,
                         graph.agent_of[g],
                         kf.kf_id,
-                        self._count("retrieval", pack_arrays(*kf.retrieval)),
+                        self._count("retrieval", pack_retrieval(kf.retrieval)),
                     ),
                 )
 
-    def _write_pointmaps(self, g: int, kf: Keyframe, before: Written | None) -> Written:
+    def _write_pointmaps(
+        self, graph: GlobalGraph, g: int, kf: Keyframe, before: Written | None
+    ) -> Written:
         """Write a keyframe's pointmaps row: a blob per distinct array (one for ``X_init``
-        and ``X_hat`` while they are the same tensor), the replaced ones deleted."""
+        and ``X_hat`` while they are the same tensor), the replaced ones deleted.
+
+        An array its coding does not give back unchanged (one the coordinator made: a
+        refined or rescaled pointmap) is written exact, or where the store :attr:`settles`
+        coded, the keyframe taking the coded value in its place (:mod:`.coded`), its
+        pointmap version moved on: what the coordinator holds on is what a read gives
+        back."""
         arrays = pointmap_arrays(kf)
         ids: list[int] = []
+        settled: dict[int, Tensor] = {}  # position -> the coded value taken in its place
         for k, array in enumerate(arrays):
-            same = next((ids[m] for m in range(k) if arrays[m] is array), None)
+            same = next((m for m in range(k) if arrays[m] is array), None)
             kept = None if before is None else before.holds(array)
-            ids.append(
-                same
-                if same is not None
-                else kept
-                if kept is not None
-                else self._blob(pack_arrays(array), "pointmaps")
-            )
+            if same is not None:
+                ids.append(ids[same])
+                if same in settled:
+                    settled[k] = settled[same]
+            elif kept is not None:
+                ids.append(kept)
+            else:
+                blob, value = pack_pointmap(array)
+                if value is not array and not self.settles:
+                    blob = pack_arrays(array)
+                elif value is not array:
+                    settled[k] = value
+                ids.append(self._blob(blob, "pointmaps"))
+        for k, value in settled.items():
+            setattr(kf, POINTMAP_FIELDS[k], value)
+        if settled:
+            graph.versions[g] += 1
+        self._width = int(arrays[0].shape[1])
         K = None if kf.K is None else self._count("pointmaps", pack_arrays(kf.K))
         self.connection.execute(
             "INSERT OR REPLACE INTO pointmaps VALUES (?, ?, ?, ?, ?, ?, ?)",
@@ -158,7 +185,7 @@ class TableWriter:
             self.connection.executemany(
                 "DELETE FROM blobs WHERE id = ?", [(b,) for b in set(before.blobs) - set(ids)]
             )
-        return Written(refs(arrays), tuple(ids), kf.K, kf.fused_frames)
+        return Written(refs(pointmap_arrays(kf)), tuple(ids), kf.K, kf.fused_frames)
 
     def _record_poses(self, coordinator: Coordinator) -> None:
         graph = coordinator.graph
@@ -201,7 +228,7 @@ class TableWriter:
                     link.similarity,
                     link.link.covisible_ij,
                     link.link.covisible_ji,
-                    self._count("edges", pack_link(link.link)),
+                    self._count("edges", pack_link(link.link, self._width)),
                 )
                 for n, link in enumerate(links[self._edges :], self._edges)
             ],
@@ -231,7 +258,9 @@ class TableWriter:
                     int(v.accepted),
                     None if v.link is None else v.link.covisible_ij,
                     None if v.link is None else v.link.covisible_ji,
-                    None if link is None else self._count("candidates", pack_link(link)),
+                    None
+                    if link is None
+                    else self._count("candidates", pack_link(link, self._width)),
                 ),
             )
             if n < len(self._candidates):

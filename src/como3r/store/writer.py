@@ -42,7 +42,8 @@ from como3r.frontend.packets import PoseUpdate
 from como3r.frontend.paging import POINTMAP_FIELDS, PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches
 from como3r.prior.base import Encoding
-from como3r.store.blobs import pack_object, unpack_arrays, unpack_object
+from como3r.store.blobs import pack_object, unpack_object
+from como3r.store.coded import unpack_matches, unpack_one
 from como3r.store.paging import PagedLink, page_out
 from como3r.store.schema import APPLICATION_ID, FORMAT_VERSION, PAGE_SIZE, SCHEMA
 from como3r.store.tables import TableWriter, Written, pointmap_arrays, refs
@@ -60,11 +61,15 @@ class SessionStore(TableWriter):
     Args:
         connection: the open database (WAL, autocommit: transactions are explicit).
         path: its file.
+        settles: a pointmap its coding does not give back unchanged is written coded and
+            the coordinator takes the coded value in its place (:mod:`.coded`; a run's
+            store, :func:`~.resume.open_store`); else it is written exact.
     """
 
-    def __init__(self, connection: sqlite3.Connection, path: Path) -> None:
+    def __init__(self, connection: sqlite3.Connection, path: Path, settles: bool = False) -> None:
         self.connection = connection
         self.path = path
+        self.settles = settles
         self.transactions = 0
         self._coordinator: Coordinator | None = None
         self._failed = False
@@ -77,6 +82,7 @@ class SessionStore(TableWriter):
         self._rows: dict[str, dict[Any, tuple]] = {"gauges": {}, "agents": {}, "state": {}}
         self._updates: dict[int, int] = {}
         self._reports: dict[int, AgentFinished] = {}
+        self._width = 1
         #: bytes of blobs and text written, per part (:meth:`written_metrics`)
         self.written: Counter[str] = Counter()
         #: called after each :meth:`record` has committed (a disk guard)
@@ -84,10 +90,15 @@ class SessionStore(TableWriter):
 
     @classmethod
     def create(
-        cls, path: str | Path, config: Config, coordinator: Coordinator | None = None
+        cls,
+        path: str | Path,
+        config: Config,
+        coordinator: Coordinator | None = None,
+        settles: bool = False,
     ) -> SessionStore:
         """A new store at ``path`` (which must not exist) holding ``config``; it becomes
-        ``coordinator``'s journal and takes its current state at once.
+        ``coordinator``'s journal and takes its current state at once (``settles``: as
+        the class says).
 
         Raises:
             StoreError: ``path`` exists, or the store cannot be written there.
@@ -101,6 +112,9 @@ class SessionStore(TableWriter):
             connection = sqlite3.connect(partial, isolation_level=None)
             # set before the first table (WAL fixes it): the blobs are megabytes each
             connection.execute(f"PRAGMA page_size={PAGE_SIZE}")
+            # the pages of replaced blobs (refreshed, refined pointmaps) go back to the
+            # file system when the store is closed (:meth:`close`)
+            connection.execute("PRAGMA auto_vacuum=INCREMENTAL")
             connection.execute("PRAGMA journal_mode=WAL")
             connection.executescript("BEGIN;" + SCHEMA + "COMMIT;")
             meta = {
@@ -122,16 +136,18 @@ class SessionStore(TableWriter):
             connection.execute("PRAGMA synchronous=NORMAL")
         except sqlite3.Error as exc:
             raise StoreError(f"{path}: cannot create the session store ({exc})") from None
-        store = cls(connection, path)
+        store = cls(connection, path, settles)
         if coordinator is not None:
             store.attach(coordinator)
         return store
 
     @classmethod
-    def reopen(cls, path: str | Path, coordinator: Coordinator) -> SessionStore:
+    def reopen(
+        cls, path: str | Path, coordinator: Coordinator, settles: bool = False
+    ) -> SessionStore:
         """The store at ``path`` written on by ``coordinator``, which holds its state already
         (:func:`como3r.store.resume.open_store` restored it); a WAL left by a killed
-        writer is recovered on opening.
+        writer is recovered on opening (``settles``: as the class says).
 
         Raises:
             StoreError: the store cannot be opened for writing.
@@ -141,7 +157,8 @@ class SessionStore(TableWriter):
             connection = sqlite3.connect(path, isolation_level=None)
             connection.execute("PRAGMA journal_mode=WAL")
             connection.execute("PRAGMA synchronous=NORMAL")
-            store = cls(connection, path)
+            _upgrade(connection, path)
+            store = cls(connection, path, settles)
             store._held(coordinator)
         except sqlite3.Error as exc:
             raise StoreError(f"{path}: cannot open the session store ({exc})") from None
@@ -162,6 +179,7 @@ class SessionStore(TableWriter):
                 arrays: tuple[weakref.ref, ...] = ()
             else:
                 arrays = refs(pointmap_arrays(kf))
+                self._width = int(kf.X_hat.shape[1])
             self._keyframes.append(Written(arrays, tuple(ids), kf.K, kf.fused_frames))
         for link in graph.links:
             if isinstance(link.link, PagedLink):
@@ -203,6 +221,7 @@ class SessionStore(TableWriter):
             self._coordinator.journal = None
         self._coordinator = None
         try:
+            self.connection.execute("PRAGMA incremental_vacuum")
             self.connection.execute("PRAGMA journal_mode=DELETE")
         except sqlite3.Error as exc:
             logger.warning("%s: the session store stays in WAL mode (%s)", self.path, exc)
@@ -267,7 +286,7 @@ class SessionStore(TableWriter):
             raise StoreError(f"{self.path}: cannot read the session store ({exc})") from None
         if group == "encoding":
             return {group: unpack_object(data, Encoding, what)}
-        return {group: unpack_arrays(data, what)[0].numpy()}
+        return {group: unpack_one(data, what).numpy()}
 
     def _load_pointmaps(self, g: int) -> dict[str, Any]:
         """A keyframe's pointmaps from the blobs last written (one tensor per blob), which
@@ -276,7 +295,7 @@ class SessionStore(TableWriter):
         arrays: dict[int, Tensor] = {}
         for blob_id in written.blobs:
             if blob_id not in arrays:
-                (arrays[blob_id],) = unpack_arrays(self._read_blob(blob_id), f"keyframe {g}")
+                arrays[blob_id] = unpack_one(self._read_blob(blob_id), f"keyframe {g}")
         values = tuple(arrays[b] for b in written.blobs)
         written.arrays = refs(values)
         return dict(zip(POINTMAP_FIELDS, values))
@@ -293,7 +312,7 @@ class SessionStore(TableWriter):
             ).fetchone()
         except sqlite3.Error as exc:
             raise StoreError(f"{self.path}: cannot read the session store ({exc})") from None
-        arrays = unpack_arrays(blob, f"edge {n} matches")
+        arrays = unpack_matches(blob, f"edge {n} matches")
         return DirectedMatches(*arrays[:3]), DirectedMatches(*arrays[3:])
 
     def _read_blob(self, blob_id: int) -> bytes:
@@ -366,6 +385,26 @@ class SessionStore(TableWriter):
             "file_bytes": files,
             "file_bytes_per_keyframe": files / keyframes if keyframes else None,
         }
+
+
+def _upgrade(connection: sqlite3.Connection, path: Path) -> None:
+    """Mark an older store this como3r reads (:data:`~.schema.READABLE_VERSIONS`) as of
+    :data:`~.schema.FORMAT_VERSION` before it is written on (its blobs stay as they are)."""
+    (version,) = connection.execute("PRAGMA user_version").fetchone()
+    if version == FORMAT_VERSION:
+        return
+    logger.warning(
+        "%s: session store format version %d upgraded to %d in place (what it holds is "
+        "kept as it is; a como3r older than this one no longer reads it)",
+        path,
+        version,
+        FORMAT_VERSION,
+    )
+    with _transaction(connection):
+        connection.execute(
+            "UPDATE meta SET value = ? WHERE key = 'format_version'", (str(FORMAT_VERSION),)
+        )
+        connection.execute(f"PRAGMA user_version={FORMAT_VERSION}")
 
 
 @contextmanager
