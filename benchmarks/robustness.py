@@ -63,10 +63,11 @@ than this grid's session had on 2 cores shared at a load of 10-18; everything el
 default ``Config()``; each cell: tracked fraction, then ATE % of path (merged with several
 agents, over the mean path of an agent); ``rotation``: RPE rot in degrees instead).
 ``1 agent`` before and after the intra-agent loop gate
-(:data:`como3r.frontend.keyframe_linking.LOOP_MAX_ROTATION_DEG`); the multi-agent cells
-before it (it rejected no loop on those families' single-agent runs); ``dec.``: decentralized
-(its every frame placed by odometry), whose merged ATE over the summed path of the robots
-(``team_scale_decentralized.py``'s measure) is the number shown over the robots:
+(:data:`como3r.frontend.keyframe_linking.LOOP_MAX_ROTATION_DEG`); the centralized
+multi-agent cells the same before and after it (it held back none of their loops);
+``dec.``: decentralized (its every frame placed by odometry), whose merged ATE over the
+summed path of the robots (``team_scale_decentralized.py``'s measure) is the number shown
+over the robots:
 
 =============  ==========  ==========  ==========  ==========  ==========  ==========
 family         1 agent     1, gate     2 agents    3 agents    2, dec.     3, dec.
