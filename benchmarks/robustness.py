@@ -96,6 +96,11 @@ decentralized, 3 robots: the ``realistic`` prior gives 2.81, 3.03, 3.05 % (v2 3.
 11 deg off), forward 0.17, fast 0.21, rotation 0.13 deg, low-texture 0.50, covered 0.29,
 revisit 0.31 %, all tracked.
 
+At the default ``input.long_side`` 512 (v2, with the gate, one agent): room 1.00 0.19 %
+(0.68 at 160), aliasing 1.00 5.51 %: two look-alike loops held back (44.3 and 36.9 deg off)
+but frame 66, lost, relocalized on keyframe 11 (frame 44, retrieved before the recent
+keyframes and matched at the 0.3 bar) 44 deg off: the same failure through relocalization.
+
     OMP_NUM_THREADS=1 python benchmarks/robustness.py --out /tmp/v2 --prior-model v2 \\
         --long-side 160 --sizes 160x120 --frames 80 --seeds 0 [--agents 2 \\
         --families tabletop room aerial]
