@@ -275,7 +275,7 @@ def _reencode_cost(messages: list[KeyframeMessage], network: MASt3RNetwork, size
     )
 
 
-def part0(agent_paths: list[Path], frames: int) -> None:
+def part0(agent_paths: list[Path], frames: int, reencode: bool = True) -> None:
     config = Config()
     network = seeded_network(parse_model_string(RELEASED_MODEL_STRING), 0).eval()
     torch.manual_seed(0)
@@ -287,7 +287,8 @@ def part0(agent_paths: list[Path], frames: int) -> None:
         size = f"{width}x{height}"
         # as sent to a coordinator that encodes the colours again (AgentTask.send_encoding)
         untokened = [_without_encoding(m) for m in shaped]
-        _reencode_cost(shaped, network, size)
+        if reencode:
+            _reencode_cost(shaped, network, size)
         for prior, batch in (
             ("MASt3R", shaped),
             ("MASt3R no tokens", untokened),
@@ -494,10 +495,15 @@ def main() -> None:
         help="frames of each agent the front-end runs over (part 0)",
     )
     parser.add_argument("--parts-only", action="store_true", help="part 0 only")
+    parser.add_argument(
+        "--skip-reencode",
+        action="store_true",
+        help="leave out the coordinator's re-encode cost (one encoder run per keyframe)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     print(f"machine: {platform.processor() or platform.machine()}, torch threads 1")
-    part0(args.agent, args.frames)
+    part0(args.agent, args.frames, not args.skip_reencode)
     if args.parts_only:
         return
     arrays = part1(args.agent[0])
