@@ -150,9 +150,17 @@ def _pinhole_fit(X: np.ndarray) -> list[float] | None:
     if front.sum() * 2 < front.size or X.shape[0] < 2 or X.shape[1] < 2:
         return None
     v, u = np.nonzero(front)
+    if u.min() == u.max() or v.min() == v.max():  # one column or row: no line to fit
+        return None
     z = X[..., 2][front]
-    a, b = np.polyfit(u.astype(np.float64), X[..., 0][front] / z, 1)
-    c, d = np.polyfit(v.astype(np.float64), X[..., 1][front] / z, 1)
+    slopes = (X[..., 0][front] / z, X[..., 1][front] / z)
+    if not (np.isfinite(slopes[0]).all() and np.isfinite(slopes[1]).all()):
+        return None
+    try:
+        a, b = np.polyfit(u.astype(np.float64), slopes[0], 1)
+        c, d = np.polyfit(v.astype(np.float64), slopes[1], 1)
+    except (np.linalg.LinAlgError, ValueError):
+        return None
     params = [float(a), float(b), float(c), float(d)]
     return params if all(np.isfinite(params)) and max(map(abs, params)) < 1e6 else None
 
