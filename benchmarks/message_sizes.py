@@ -83,6 +83,25 @@ messages through :func:`~como3r.transport.keyframe_bytes.wire_parts`, which are 
 MASt3R-shaped column's parts but the retrieval features'. Merged ATE of
 ``tests/transport/test_lossy_run.py``'s scene, lossy against exact: +0.035 %, -0.059 %
 before.)
+With the directions against a fitted pinhole's rays, ranges in ``2^-8`` log steps,
+confidences in whole powers of two, match ``q`` in ``2^-1`` steps, paired match steps, WebP
+method 3 and Zstandard level 6 on the planes (``transport/codec_compact.py``,
+``codec_planes.py``), lossy, kB per keyframe, MASt3R shapes without tokens::
+
+    part                   512x384 before  after   512x288 before  after
+    pointmap                        177.3  104.3            137.1   79.4
+    confidences                     109.0   53.9             82.4   40.8
+    colours                         194.0  169.0            147.6  128.9
+    retrieval_descriptors           284.2  284.2            282.8  282.8
+    retrieval_words                   3.1    3.1              3.1    3.1
+    sequential_matches              260.8  223.8            192.7  165.2
+    previous_refresh                285.2  156.3            218.2  119.6
+    total                          1314.3  995.3           1064.6  820.5
+
+(simulated, lossy: 14694.0 -> 14374.9 at 512x384, 10899.3 -> 10655.3 at 512x288; the
+agent's final message 292.0 -> 167.9 kB at 512x384, 228.3 -> 130.9 at 512x288. Merged ATE
+of ``tests/transport/test_lossy_run.py``'s scene lossy against exact: +0.018 %.)
+``--skip-reencode`` leaves the coordinator's re-encode cost out (half the run).
 
 Part 1, payloads at 512x384 (the default ``input.long_side``): the arrays of a simulated
 encoding and of a decoded pair (as the simulated prior makes them from a synthetic view),
