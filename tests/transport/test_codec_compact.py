@@ -230,6 +230,8 @@ def test_malformed_matches_image_and_retrieval_codings_are_message_errors() -> N
     bad = [
         {**matches, "count": H * W + 8},  # the mask holds other than count bits
         {**matches, "width": 7},  # rows that do not tile the pixels
+        {**matches, "q_steps": 1},  # not a bool
+        {**matches, "steps": {**matches["steps"], "extra": b""}},
         {**image, "shape": [H + 1, W, 3]},  # a size other than the image's
         {**image, "webp": b"RIFF0000WEBPgarbage"},
         {**retrieval, "scale": b"\x00" * 12},
