@@ -88,6 +88,25 @@ messages through :func:`~como3r.transport.keyframe_bytes.wire_parts`, which are 
 MASt3R-shaped column's parts but the retrieval features'. Merged ATE of
 ``tests/transport/test_lossy_run.py``'s scene, lossy against exact: +0.035 %, -0.059 %
 before.)
+With the directions against a fitted pinhole's rays, ranges in ``2^-8`` log steps,
+confidences in whole powers of two, match ``q`` in ``2^-1`` steps, paired match steps, WebP
+method 3 and Zstandard level 6 on the planes (``transport/codec_compact.py``,
+``codec_planes.py``), lossy, kB per keyframe, MASt3R shapes without tokens::
+
+    part                   512x384 before  after   512x288 before  after
+    pointmap                        177.3  104.3            137.1   79.4
+    confidences                     109.0   53.9             82.4   40.8
+    colours                         194.0  169.0            147.6  128.9
+    retrieval_descriptors           284.2  284.2            282.8  282.8
+    retrieval_words                   3.1    3.1              3.1    3.1
+    sequential_matches              260.8  223.8            192.7  165.2
+    previous_refresh                285.2  156.3            218.2  119.6
+    total                          1314.3  995.3           1064.6  820.5
+
+(simulated, lossy: 14694.0 -> 14374.9 at 512x384, 10899.3 -> 10655.3 at 512x288; the
+agent's final message 292.0 -> 167.9 kB at 512x384, 228.3 -> 130.9 at 512x288. Merged ATE
+of ``tests/transport/test_lossy_run.py``'s scene lossy against exact: +0.018 %.)
+``--skip-reencode`` leaves the coordinator's re-encode cost out (half the run).
 
 Part 1, payloads at 512x384 (the default ``input.long_side``): the arrays of a simulated
 encoding and of a decoded pair (as the simulated prior makes them from a synthetic view),
@@ -280,7 +299,7 @@ def _reencode_cost(messages: list[KeyframeMessage], network: MASt3RNetwork, size
     )
 
 
-def part0(agent_paths: list[Path], frames: int) -> None:
+def part0(agent_paths: list[Path], frames: int, reencode: bool = True) -> None:
     config = Config()
     network = seeded_network(parse_model_string(RELEASED_MODEL_STRING), 0).eval()
     torch.manual_seed(0)
@@ -292,7 +311,8 @@ def part0(agent_paths: list[Path], frames: int) -> None:
         size = f"{width}x{height}"
         # as sent to a coordinator that encodes the colours again (AgentTask.send_encoding)
         untokened = [_without_encoding(m) for m in shaped]
-        _reencode_cost(shaped, network, size)
+        if reencode:
+            _reencode_cost(shaped, network, size)
         for prior, batch in (
             ("MASt3R", shaped),
             ("MASt3R no tokens", untokened),
@@ -499,10 +519,15 @@ def main() -> None:
         help="frames of each agent the front-end runs over (part 0)",
     )
     parser.add_argument("--parts-only", action="store_true", help="part 0 only")
+    parser.add_argument(
+        "--skip-reencode",
+        action="store_true",
+        help="leave out the coordinator's re-encode cost (one encoder run per keyframe)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     print(f"machine: {platform.processor() or platform.machine()}, torch threads 1")
-    part0(args.agent, args.frames)
+    part0(args.agent, args.frames, not args.skip_reencode)
     if args.parts_only:
         return
     arrays = part1(args.agent[0])

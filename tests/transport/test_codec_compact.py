@@ -18,7 +18,7 @@ from como3r.frontend.pairs import DirectedMatches
 from como3r.prior.mast3r.prior import MASt3REncoding
 from como3r.transport import codec, codec_compact
 from como3r.transport.codec import decode, encode
-from como3r.transport.codec_arrays import Budget
+from como3r.transport.codec_arrays import Budget, zstd
 from como3r.transport.codec_compact import (
     CONFIDENCE_RELATIVE_ERROR,
     MATCH_Q_BITS,
@@ -26,6 +26,7 @@ from como3r.transport.codec_compact import (
     coded_from_wire,
     coded_to_wire,
 )
+from como3r.transport.codec_planes import pack_steps, unpack_steps
 
 H, W = 48, 64
 
@@ -79,6 +80,23 @@ def test_pointmap_moves_no_point_by_more_than_the_stated_fraction_of_its_range()
     assert len(msgpack.packb(coded_to_wire("pointmap", X))) < 0.8 * len(msgpack.packb(half))
 
 
+def test_pinhole_rays_cost_almost_nothing_and_other_rays_keep_the_bound() -> None:
+    X = _pointmap()  # pinhole rays: the directions travel as their codes less the pinhole's
+    wire = coded_to_wire("pointmap", X)
+    assert wire is not None and wire["pinhole"] is not None
+    assert max(len(p["zstd"]) for p in wire["planes"][1:]) < len(wire["planes"][0]["zstd"]) / 4
+    # rays scattered about a pinhole's by about 2 degrees; rays behind the camera (no
+    # pinhole): the same bound
+    rng = _rng(5)
+    bent = X * torch.from_numpy(1 + rng.normal(0, 0.03, (H, W, 3)).astype(np.float32))
+    behind = X * torch.tensor([1.0, 1.0, -1.0])
+    assert coded_to_wire("pointmap", behind)["pinhole"] is None  # type: ignore[index]
+    for value in (X, bent, behind):
+        back = _round_trip("pointmap", value)
+        error = (back - value).norm(dim=-1) / value.norm(dim=-1)
+        assert float(error.max()) <= POINTMAP_RELATIVE_ERROR
+
+
 def test_confidence_is_within_its_relative_bound_and_numpy_stays_numpy() -> None:
     C = (1 + np.exp(_rng(1).normal(0, 1.5, (H, W)))).astype(np.float32)
     back = _round_trip("confidence", C)
@@ -102,6 +120,19 @@ def test_matches_keep_every_valid_index_exactly() -> None:
     # without the row length (no pointmap beside them) the indices are still exact
     alone = _round_trip("matches", matches)
     assert torch.equal(alone.idx[valid], matches.idx[valid])
+
+
+def test_step_pairs_round_trip_exactly_with_escapes() -> None:
+    rng = _rng(6)
+    first, second = rng.integers(-3, 4, 500), rng.integers(-3, 4, 500)
+    first[::7] = rng.integers(-(2**20), 2**20, len(first[::7]))  # escaped: beyond one byte
+    second[3] = -8  # zigzag 15: escaped too
+    body = msgpack.unpackb(msgpack.packb(pack_steps(first, second)), raw=False)
+    back = unpack_steps(body, 500, "x", Budget(2**20))
+    assert np.array_equal(back[0], first) and np.array_equal(back[1], second)
+    body["pairs"] = zstd.compress(bytes([226]) * 500)
+    with pytest.raises(MessageError, match="beyond"):
+        unpack_steps(body, 500, "x", Budget(2**20))
 
 
 def test_colours_are_lossless() -> None:
@@ -179,6 +210,8 @@ def test_a_lossy_packet_uses_every_coding_and_an_exact_one_none() -> None:
         lambda w: w["planes"][1].update(predictor="psychic"),
         lambda w: w["planes"][2].update(width=3),
         lambda w: w.update(extra=1),
+        lambda w: w.update(pinhole=[1.0, 0.0, float("nan"), 0.0]),
+        lambda w: w.update(pinhole=[1.0, 0.0]),
     ],
 )
 def test_malformed_pointmap_codings_are_message_errors(change: object) -> None:
@@ -197,6 +230,8 @@ def test_malformed_matches_image_and_retrieval_codings_are_message_errors() -> N
     bad = [
         {**matches, "count": H * W + 8},  # the mask holds other than count bits
         {**matches, "width": 7},  # rows that do not tile the pixels
+        {**matches, "q_steps": 1},  # not a bool
+        {**matches, "steps": {**matches["steps"], "extra": b""}},
         {**image, "shape": [H + 1, W, 3]},  # a size other than the image's
         {**image, "webp": b"RIFF0000WEBPgarbage"},
         {**retrieval, "scale": b"\x00" * 12},

@@ -60,4 +60,5 @@ def test_merged_ate_across_the_lossy_wire_is_within_two_percent(tmp_path, monkey
     run(agents, tmp_path / "lossy", config, PriorSpec("simulated"))
     assert len(sent) > 4  # every keyframe crossed the lossy wire
     exact, lossy = _merged_ate(tmp_path / "exact"), _merged_ate(tmp_path / "lossy")
+    print(f"merged ATE exact {exact:.6f} lossy {lossy:.6f} ({(lossy - exact) / exact:+.3%})")
     assert abs(lossy - exact) <= 0.02 * exact, (lossy, exact)

@@ -466,9 +466,10 @@ def _register_payloads() -> None:
     (:data:`_TOKENS`) and retrieval features (:data:`_RETRIEVAL`) in half precision."""
     for path, version, half in (
         # 2: retrieval_words; 3: compact codings, encoding None (the receiver encodes the
-        # colours again)
-        ("como3r.frontend.packets:KeyframePacket", 3, (*_POINTMAP, *_RETRIEVAL)),
-        ("como3r.frontend.packets:PointmapRefresh", 3, _POINTMAP),  # 2: K; 3: codings
+        # colours again); 4: pointmap rays against a fitted pinhole
+        ("como3r.frontend.packets:KeyframePacket", 4, (*_POINTMAP, *_RETRIEVAL)),
+        # 2: K; 3: codings; 4: pointmap rays against a fitted pinhole
+        ("como3r.frontend.packets:PointmapRefresh", 4, _POINTMAP),
         ("como3r.frontend.packets:PoseUpdate", 2, ()),  # 2: focal
         ("como3r.frontend.pairs:DirectedMatches", 1, ("q",)),
         # 2: first_frame_focal, 3: rejected_directions

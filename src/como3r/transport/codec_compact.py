@@ -12,9 +12,12 @@ never uses them.
 * ``"pointmap"``: an ``(H, W, 3)`` float32 pointmap as the range along each point's ray,
   ``log2`` quantised in steps of ``2^-LOG_RANGE_BITS``, and the ray's direction in
   octahedral coordinates quantised in steps of ``2^-OCT_BITS``: a point moves by at most
-  :data:`POINTMAP_RELATIVE_ERROR` of its range (7.8e-4; float16 xyz: up to 4.9e-4 per
-  coordinate; MASt3R's own error is about 1e-3). Each integer plane is predicted from its neighbours
-  (:data:`PREDICTORS`, the best per plane) and the residuals compressed.
+  :data:`POINTMAP_RELATIVE_ERROR` of its range (1.45e-3; float16 xyz: up to 4.9e-4 per
+  coordinate; the simulated prior's per-pixel range noise is 5e-3). Where a pinhole camera's
+  rays fit the directions (a calibrated or self-calibrated keyframe's lie on them), the
+  direction codes travel less those of the fitted pinhole (four numbers), mostly zeros.
+  Each integer plane is predicted from its neighbours (:data:`~.codec_planes.PREDICTORS`,
+  the best per plane) and the residuals compressed.
 * ``"confidence"``: an ``(H, W)`` positive float32 confidence as ``log2`` quantised in steps
   of ``2^-CONFIDENCE_BITS``, within :data:`CONFIDENCE_RELATIVE_ERROR` relative (its
   receivers weigh residuals by it: global BA, depth refinement); predicted and compressed
@@ -22,9 +25,10 @@ never uses them.
 * ``"matches"``: a :class:`~como3r.frontend.pairs.DirectedMatches` as the receiver reads it
   (:mod:`como3r.optim.factors`: matches where ``valid``, ``q`` zero elsewhere): the valid
   mask (bits), each valid match's index exactly, as its column and row offsets from its
-  own pixel (each as its difference to the previous valid match's), and each valid ``q``
-  ``log2`` quantised (:data:`MATCH_Q_BITS`). Invalid pixels come back matched to
-  themselves with ``q`` 0.
+  own pixel (each as its difference to the previous valid match's, the two differences in
+  one byte where both are small: :func:`~.codec_planes.pack_steps`), and each valid ``q``
+  ``log2`` quantised (:data:`MATCH_Q_BITS`; as it is or as differences, whichever is
+  smaller). Invalid pixels come back matched to themselves with ``q`` 0.
 * ``"image"``: an ``(H, W, 3)`` uint8 image, lossless (the coordinator re-encodes the
   network's input from it) in WebP's lossless mode (:data:`WEBP_METHOD`); the header's
   size is checked against the declared shape before the pixels are decoded.
@@ -49,194 +53,74 @@ from PIL import Image
 from torch import Tensor
 
 from como3r.errors import MessageError
-from como3r.transport.codec_arrays import (
-    TAG,
-    Budget,
-    exact_keys,
-    zstd,
+from como3r.transport.codec_arrays import TAG, Budget, exact_keys, zstd
+from como3r.transport.codec_planes import (
+    ZSTD_LEVEL,
+    as_kind,
+    as_numpy,
+    coded_header,
+    float32_or_none,
+    inflate,
+    kind_of,
+    pack_ints,
+    pack_plane,
+    pack_steps,
+    unpack_ints,
+    unpack_plane,
+    unpack_steps,
 )
 from como3r.transport.codec_registry import CHECKS, REGISTRY, resolve
 
 CODED = "coded"
 """The wire tag of a coded value."""
 
-LOG_RANGE_BITS = 9
-"""A point's range travels as ``round(log2(range) * 2^LOG_RANGE_BITS)``."""
+LOG_RANGE_BITS = 8
+"""A point's range travels as ``round(log2(range) * 2^LOG_RANGE_BITS)``: its quantisation
+error (uniform, RMS ``2^-8 / sqrt(12)`` in ``log2``: 7.8e-4 of the range) adds 2.4 % to the
+variance of the simulated prior's per-pixel range noise (0.5 %), for 1 bit per pixel less
+than ``2^-9`` steps (about 21 kB of a 512x384 pointmap). Merged ATE of
+``tests/transport/test_lossy_run.py``'s scene lossy against exact: +0.018 % (``2^-7``
+steps: +0.94 %)."""
 
 OCT_BITS = 14
 """A ray's octahedral coordinates (in [-1, 1]) travel as ``round(u * 2^OCT_BITS)``."""
 
-POINTMAP_RELATIVE_ERROR = 7.8e-4
+POINTMAP_RELATIVE_ERROR = 1.45e-3
 """Bound on ``|X' - X| / |X|`` of a pointmap after the ``"pointmap"`` coding: the range's
-quantisation (``2^(2^-10) - 1 = 6.8e-4``; MASt3R's own error is about 1e-3) plus the direction's (at most 9e-5 rad: half a
+quantisation (``2^(2^-9) - 1 = 1.36e-3``) plus the direction's (at most 9e-5 rad: half a
 step of 2^-14 across the octahedral map's largest stretch)."""
 
-CONFIDENCE_BITS = 2
-"""A confidence travels as ``round(log2(C) * 2^CONFIDENCE_BITS)``."""
+CONFIDENCE_BITS = 0
+"""A confidence travels as ``round(log2(C) * 2^CONFIDENCE_BITS)``: in whole powers of two.
+Measured (``tests/transport/test_lossy_run.py``'s scene, merged ATE lossy against exact,
+with ranges in ``2^-8`` and match ``q`` in ``2^-1`` steps): +0.018 % with confidences in
+``2^-1`` steps and in ``2^0`` steps alike (+0.035 % with everything in the earlier, finer
+steps); ``2^0`` steps take 23 kB off a 512x384 keyframe's confidences and as much off its
+refresh."""
 
 CONFIDENCE_RELATIVE_ERROR = 2 ** (2.0 ** -(CONFIDENCE_BITS + 1)) - 1
-"""Bound on ``|C' - C| / C`` after the ``"confidence"`` coding (9.1 %: a BA weight; MASt3R's
-confidence varies by far more between two views of the same point)."""
+"""Bound on ``|C' - C| / C`` after the ``"confidence"`` coding (41 %: a weight of the global
+BA's and the depth refinement's residuals; MASt3R's confidence varies by far more between two views of the same point, the simulated
+prior's by a factor of about 2 between neighbouring pixels)."""
 
-MATCH_Q_BITS = 2
+MATCH_Q_BITS = 1
 """A valid match's confidence ``q`` travels as ``round(log2(q) * 2^MATCH_Q_BITS)``, within
-``2^(2^-3) - 1 = 9.1 %`` relative (it weighs the match's residual, C-Eq. 17)."""
+``2^(2^-2) - 1 = 19 %`` relative (it weighs the match's residual, C-Eq. 17). The global BA
+is more sensitive to it than to the confidences: in whole powers of two (41 %) the merged
+ATE of ``tests/transport/test_lossy_run.py``'s scene moved by +1.25 % (+0.018 % in
+``2^-1`` steps)."""
 
-WEBP_METHOD = 0
-"""WebP's lossless effort (0: fastest): 218 kB for a synthetic 512x384 frame in 55 ms, where
-method 4 takes 290 ms for 189 kB; PNG (OpenCV, level 3) 267 kB in 58 ms, the byte planes with
-Zstandard 400 kB."""
+WEBP_METHOD = 3
+"""WebP's lossless effort (0: fastest). On 4 synthetic 512x384 keyframes (CPU time of a
+loaded core): method 0 211 kB in 14 ms, 2 190 kB in 62 ms, 3 185 kB in 79 ms, 6 182 kB in
+315 ms; earlier, PNG (OpenCV, level 3) 267 kB in 58 ms, the byte planes with Zstandard
+400 kB."""
 
 WEBP_EFFORT = 50
 """WebP's lossless ``quality`` (the encoder's effort at the chosen method)."""
 
 WEBP_MAX_SIDE = 16383
 """WebP's largest image side; a larger image travels uncoded."""
-
-ZSTD_LEVEL = 3
-"""Zstandard level of the coded planes (small integers: level 3 is 3-8 % smaller than 1
-and fast enough at these sizes)."""
-
-
-# ------------------------------------------------------------------ integer planes
-
-
-def _predict(values: np.ndarray, predictor: str) -> np.ndarray:
-    """Residuals of int64 ``(H, W)`` ``values`` under ``predictor`` (outside counts as 0):
-    ``"none"``, ``"left"`` (``x[i, j-1]``), ``"up"`` (``x[i-1, j]``) or ``"lorenzo"``
-    (``x[i-1, j] + x[i, j-1] - x[i-1, j-1]``); :func:`_unpredict` inverts each exactly."""
-    out = values.copy()
-    if predictor in ("up", "lorenzo"):
-        out[1:] -= values[:-1]
-    if predictor in ("left", "lorenzo"):
-        rows = out.copy()
-        out[:, 1:] -= rows[:, :-1]
-    return out
-
-
-def _unpredict(residuals: np.ndarray, predictor: str) -> np.ndarray:
-    out = residuals
-    if predictor in ("left", "lorenzo"):
-        out = np.cumsum(out, axis=1)
-    if predictor in ("up", "lorenzo"):
-        out = np.cumsum(out, axis=0)
-    return out
-
-
-PREDICTORS = ("none", "left", "up", "lorenzo")
-"""Each integer plane travels under the one of these that compresses it most (smooth
-planes: ``lorenzo``; noisy ones: ``left`` or ``up``)."""
-
-
-def pack_plane(values: np.ndarray) -> dict[str, Any] | None:
-    """An int64 ``(H, W)`` plane's residuals under the predictor (:data:`PREDICTORS`) whose
-    middle quarter of rows compresses smallest, :func:`pack_ints`; None where a residual
-    needs more than 4 bytes. (Compressing the whole plane under each took 2.5 times as long;
-    the smallest sum of magnitudes, or every fourth row, chose worse: pointmaps 6 % larger.)"""
-    residuals = {p: _predict(values, p) for p in PREDICTORS}
-    rows = values.shape[0]
-    trials = {p: pack_ints(r[3 * rows // 8 : 5 * rows // 8 + 1]) for p, r in residuals.items()}
-    fits = [p for p in PREDICTORS if trials[p] is not None]
-    if not fits:
-        return None
-    predictor = min(fits, key=lambda p: len(trials[p]["zstd"]))  # type: ignore[index]
-    packed = pack_ints(residuals[predictor])
-    return None if packed is None else {"predictor": predictor, **packed}
-
-
-def unpack_plane(body: Any, shape: tuple[int, int], path: str, budget: Budget) -> np.ndarray:
-    """The int64 ``shape`` plane of a :func:`pack_plane` body, or :class:`MessageError`."""
-    if not isinstance(body, dict) or body.get("predictor") not in PREDICTORS:
-        raise MessageError(f"{path}: a packed plane without a known predictor")
-    ints = {k: v for k, v in body.items() if k != "predictor"}
-    count = shape[0] * shape[1]
-    return _unpredict(unpack_ints(ints, count, path, budget).reshape(shape), body["predictor"])
-
-
-def pack_ints(values: np.ndarray) -> dict[str, Any] | None:
-    """int64 ``values`` zigzag-mapped to the narrowest of 1, 2 or 4 bytes, as byte planes,
-    compressed; None where one needs more than 4 bytes."""
-    flat = values.astype(np.int64).ravel()
-    zig = ((flat << 1) ^ (flat >> 63)).astype(np.uint64)
-    top = int(zig.max()) if zig.size else 0
-    width = next((w for w in (1, 2, 4) if top < 1 << (8 * w)), None)
-    if width is None:
-        return None
-    raw = zig.astype(f"<u{width}").tobytes()
-    planes = np.frombuffer(raw, np.uint8).reshape(-1, width).T.tobytes() if width > 1 else raw
-    return {"width": width, "zstd": zstd.compress(planes, level=ZSTD_LEVEL)}
-
-
-def unpack_ints(body: Any, count: int, path: str, budget: Budget) -> np.ndarray:
-    """The ``count`` int64 values of a :func:`pack_ints` body, or :class:`MessageError`."""
-    if not isinstance(body, dict):
-        raise MessageError(f"{path}: packed integers are not a map")
-    exact_keys({TAG: None, **body}, ("width", "zstd"), path)
-    width, packed = body["width"], body["zstd"]
-    if width not in (1, 2, 4) or isinstance(width, bool) or not isinstance(packed, bytes):
-        raise MessageError(f"{path}: packed integers of width {width!r}")
-    size = count * width
-    budget.take(size, path)
-    planes = _inflate(packed, size, path, "packed integers", f"the {size} bytes of {count} values")
-    raw = np.frombuffer(planes, np.uint8).reshape(width, -1).T.tobytes() if width > 1 else planes
-    zig = np.frombuffer(raw, f"<u{width}").astype(np.int64)
-    return (zig >> 1) ^ -(zig & 1)
-
-
-# ------------------------------------------------------------------ helpers
-
-
-def _inflate(packed: bytes, size: int, path: str, what: str, expected: str) -> bytes:
-    """Exactly ``size`` bytes from one whole Zstandard frame (never more: the budget was
-    taken for them), or a :class:`MessageError` naming ``what`` and the ``expected`` size."""
-    inflater = zstd.ZstdDecompressor()
-    try:
-        raw = inflater.decompress(packed, max_length=size)
-    except zstd.ZstdError as exc:
-        raise MessageError(f"{path}: {what}: not Zstandard ({exc})") from None
-    if len(raw) != size or not inflater.eof or inflater.unused_data:
-        raise MessageError(f"{path}: {what}: not {expected}")
-    return raw
-
-
-def _numpy(value: Any) -> np.ndarray:
-    return value.detach().cpu().numpy() if isinstance(value, Tensor) else np.asarray(value)
-
-
-def _kind(value: Any) -> str:
-    return "tensor" if isinstance(value, Tensor) else "ndarray"
-
-
-def _as_kind(array: np.ndarray, kind: str) -> Any:
-    return torch.from_numpy(np.ascontiguousarray(array)) if kind == "tensor" else array
-
-
-def _header(body: dict, keys: tuple[str, ...], ndim: int, path: str) -> tuple[str, list[int]]:
-    """A coded body's checked keys, ``kind`` and ``shape`` of ``ndim`` non-negative sizes."""
-    exact_keys(body, ("coding", "kind", "shape", *keys), path)
-    kind, shape = body["kind"], body["shape"]
-    if kind not in ("tensor", "ndarray"):
-        raise MessageError(f"{path}: coded kind {kind!r}")
-    if not (
-        isinstance(shape, list)
-        and len(shape) == ndim
-        and all(isinstance(n, int) and not isinstance(n, bool) and 0 <= n < 2**24 for n in shape)
-    ):
-        raise MessageError(f"{path}: coded shape {shape!r} is not {ndim} sizes")
-    return kind, shape
-
-
-def _float32(value: Any, ndim: int, last: int | None = None) -> np.ndarray | None:
-    if not isinstance(value, (Tensor, np.ndarray)) or value.dtype not in (
-        torch.float32,
-        np.float32,
-    ):
-        return None
-    array = _numpy(value)
-    if array.ndim != ndim or (last is not None and array.shape[-1] != last):
-        return None
-    return array
-
 
 # ------------------------------------------------------------------ pointmap
 
@@ -258,8 +142,47 @@ def _from_octahedral(p: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
+def _pinhole_fit(X: np.ndarray) -> list[float] | None:
+    """``[a, b, c, d]`` of the pinhole rays ``(a u + b, c v + d, 1)`` closest (least squares
+    in ``x/z`` and ``y/z``) to the float64 ``(H, W, 3)`` points ``X`` in front of the camera
+    (pixel ``(v, u)``: row, column), or None where fewer than half are."""
+    front = X[..., 2] > 0
+    if front.sum() * 2 < front.size or X.shape[0] < 2 or X.shape[1] < 2:
+        return None
+    v, u = np.nonzero(front)
+    if u.min() == u.max() or v.min() == v.max():  # one column or row: no line to fit
+        return None
+    z = X[..., 2][front]
+    slopes = (X[..., 0][front] / z, X[..., 1][front] / z)
+    if not (np.isfinite(slopes[0]).all() and np.isfinite(slopes[1]).all()):
+        return None
+    try:
+        a, b = np.polyfit(u.astype(np.float64), slopes[0], 1)
+        c, d = np.polyfit(v.astype(np.float64), slopes[1], 1)
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    params = [float(a), float(b), float(c), float(d)]
+    return params if all(np.isfinite(params)) and max(map(abs, params)) < 1e6 else None
+
+
+def _pinhole_codes(params: list[float], shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The quantised octahedral coordinates of the pinhole rays ``params``
+    (:func:`_pinhole_fit`) on an ``(H, W)`` grid: two int64 ``(H, W)`` planes. Elementwise
+    IEEE arithmetic only (no reductions), so that sender and receiver compute the same codes;
+    the octahedral map of a ray with ``z = 1`` is its ``(x, y) / (|x| + |y| + 1)``, within
+    [-1, 1] for any finite parameters."""
+    a, b, c, d = params
+    x = np.broadcast_to(a * np.arange(shape[1], dtype=np.float64) + b, shape)
+    y = np.broadcast_to((c * np.arange(shape[0], dtype=np.float64) + d)[:, None], shape)
+    l1 = np.abs(x) + np.abs(y) + 1.0
+    return (
+        np.rint(x / l1 * 2**OCT_BITS).astype(np.int64),
+        np.rint(y / l1 * 2**OCT_BITS).astype(np.int64),
+    )
+
+
 def _pointmap_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
-    X = _float32(value, 3, 3)
+    X = float32_or_none(value, 3, 3)
     if X is None:
         return None
     X64 = X.astype(np.float64)
@@ -267,22 +190,44 @@ def _pointmap_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
     if not (np.isfinite(X64).all() and (r > 1e-30).all()):
         return None
     oct_ = np.rint(_octahedral(X64 / r[..., None]) * 2**OCT_BITS).astype(np.int64)
-    planes = [
-        pack_plane(np.rint(np.log2(r) * 2**LOG_RANGE_BITS).astype(np.int64)),
-        pack_plane(oct_[..., 0]),
-        pack_plane(oct_[..., 1]),
-    ]
+    directions = [oct_[..., 0], oct_[..., 1]]
+    # rays close to a pinhole camera's (a calibrated or self-calibrated keyframe's are on
+    # its rays exactly): their codes less the fitted pinhole's are mostly 0
+    pinhole = _pinhole_fit(X64)
+    planes = [pack_plane(p) for p in directions]
+    if pinhole is not None:
+        predicted = _pinhole_codes(pinhole, (X.shape[0], X.shape[1]))
+        less = [pack_plane(p - q) for p, q in zip(directions, predicted)]
+        if all(p is not None for p in less) and _size(less) < _size(planes):
+            planes = less
+        else:
+            pinhole = None
+    planes.insert(0, pack_plane(np.rint(np.log2(r) * 2**LOG_RANGE_BITS).astype(np.int64)))
     if any(p is None for p in planes):
         return None
-    return {"kind": _kind(value), "shape": list(X.shape), "planes": planes}
+    return {"kind": kind_of(value), "shape": list(X.shape), "planes": planes, "pinhole": pinhole}
+
+
+def _size(planes: list[dict[str, Any] | None]) -> float:
+    """Bytes of packed planes (infinite where one did not pack)."""
+    return sum(float("inf") if p is None else len(p["zstd"]) for p in planes)
 
 
 def _pointmap_decode(body: dict, path: str, budget: Budget) -> Any:
-    kind, shape = _header(body, ("planes",), 3, path)
-    planes = body["planes"]
+    kind, shape = coded_header(body, ("planes", "pinhole"), 3, path)
+    planes, pinhole = body["planes"], body["pinhole"]
     if shape[2] != 3 or not (isinstance(planes, list) and len(planes) == 3):
         raise MessageError(f"{path}: a coded pointmap is (H, W, 3) in three planes")
     log_r, u, v = (unpack_plane(p, (shape[0], shape[1]), path, budget) for p in planes)
+    if pinhole is not None:
+        if not (
+            isinstance(pinhole, list)
+            and len(pinhole) == 4
+            and all(isinstance(x, float) and abs(x) < 1e6 for x in pinhole)
+        ):
+            raise MessageError(f"{path}: coded pointmap's pinhole is not 4 finite numbers")
+        pu, pv = _pinhole_codes(pinhole, (shape[0], shape[1]))
+        u, v = u + pu, v + pv
     if (
         max(np.abs(u).max(initial=0), np.abs(v).max(initial=0)) > 2**OCT_BITS
         or np.abs(log_r).max(initial=0) > 120 * 2**LOG_RANGE_BITS
@@ -290,7 +235,7 @@ def _pointmap_decode(body: dict, path: str, budget: Budget) -> Any:
         raise MessageError(f"{path}: coded pointmap values out of range")
     r = np.exp2(log_r / 2**LOG_RANGE_BITS)
     direction = _from_octahedral(np.stack([u, v], -1) / 2**OCT_BITS)
-    return _as_kind((direction * r[..., None]).astype(np.float32), kind)
+    return as_kind((direction * r[..., None]).astype(np.float32), kind)
 
 
 # ------------------------------------------------------------------ confidence
@@ -301,19 +246,21 @@ def _log_plane(values: np.ndarray, bits: int) -> np.ndarray:
 
 
 def _confidence_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
-    C = _float32(value, 2)
+    C = float32_or_none(value, 2)
     if C is None or not (np.isfinite(C).all() and (C > 0).all()):
         return None
     plane = pack_plane(_log_plane(C, CONFIDENCE_BITS))
-    return None if plane is None else {"kind": _kind(value), "shape": list(C.shape), "plane": plane}
+    return (
+        None if plane is None else {"kind": kind_of(value), "shape": list(C.shape), "plane": plane}
+    )
 
 
 def _confidence_decode(body: dict, path: str, budget: Budget) -> Any:
-    kind, shape = _header(body, ("plane",), 2, path)
+    kind, shape = coded_header(body, ("plane",), 2, path)
     q = unpack_plane(body["plane"], (shape[0], shape[1]), path, budget)
     if np.abs(q).max(initial=0) > 120 * 2**CONFIDENCE_BITS:
         raise MessageError(f"{path}: coded confidence values out of range")
-    return _as_kind(np.exp2(q / 2**CONFIDENCE_BITS).astype(np.float32), kind)
+    return as_kind(np.exp2(q / 2**CONFIDENCE_BITS).astype(np.float32), kind)
 
 
 # ------------------------------------------------------------------ matches
@@ -325,7 +272,7 @@ def _matches_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
         isinstance(getattr(value, n, None), Tensor) for n in names
     ):
         return None
-    idx, valid, q = (_numpy(getattr(value, n)) for n in names)
+    idx, valid, q = (as_numpy(getattr(value, n)) for n in names)
     if not (
         idx.ndim == 1
         and idx.dtype == np.int64
@@ -344,26 +291,28 @@ def _matches_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
     width = width if idx.shape[0] % max(width, 1) == 0 and width > 0 else 1
     columns = (idx[pixels] % width) - (pixels % width)
     rows = (idx[pixels] // width) - (pixels // width)
-    parts = [
-        pack_ints(np.diff(columns, prepend=np.int64(0))),
-        pack_ints(np.diff(rows, prepend=np.int64(0))),
-        pack_ints(np.diff(_log_plane(kept, MATCH_Q_BITS), prepend=np.int64(0))),
-    ]
-    if any(p is None for p in parts):
+    steps = pack_steps(np.diff(columns, prepend=np.int64(0)), np.diff(rows, prepend=np.int64(0)))
+    # q as it is or as steps, whichever is smaller (noisy: often as it is)
+    log_q = _log_plane(kept, MATCH_Q_BITS)
+    as_is, as_steps = pack_ints(log_q), pack_ints(np.diff(log_q, prepend=np.int64(0)))
+    if steps is None or as_is is None or as_steps is None:
         return None
+    q_steps = len(as_steps["zstd"]) < len(as_is["zstd"])
     return {
         "count": int(idx.shape[0]),
         "width": width,
         "valid": zstd.compress(np.packbits(valid).tobytes(), level=ZSTD_LEVEL),
-        "columns": parts[0],
-        "rows": parts[1],
-        "q": parts[2],
+        "steps": steps,
+        "q": as_steps if q_steps else as_is,
+        "q_steps": q_steps,
     }
 
 
 def _matches_decode(body: dict, path: str, budget: Budget) -> Any:
-    exact_keys(body, ("coding", "count", "width", "valid", "columns", "rows", "q"), path)
+    exact_keys(body, ("coding", "count", "width", "valid", "steps", "q", "q_steps"), path)
     count, width, bits = body["count"], body["width"], body["valid"]
+    if not isinstance(body["q_steps"], bool):
+        raise MessageError(f"{path}: coded matches' q_steps is not a bool")
     for name, n in (("count", count), ("width", width)):
         if not (isinstance(n, int) and not isinstance(n, bool) and 0 <= n < 2**32):
             raise MessageError(f"{path}: coded matches {name} {n!r}")
@@ -373,13 +322,14 @@ def _matches_decode(body: dict, path: str, budget: Budget) -> Any:
         raise MessageError(f"{path}: coded matches' valid mask is not bytes")
     size = (count + 7) // 8
     budget.take(size, path)
-    mask = _inflate(bits, size, path, "coded valid mask", f"{size} bytes")
+    mask = inflate(bits, size, path, "coded valid mask", f"{size} bytes")
     valid = np.unpackbits(np.frombuffer(mask, np.uint8), count=count).astype(bool)
     pixels = np.flatnonzero(valid)
-    columns, rows, log_q = (
-        np.cumsum(unpack_ints(body[k], len(pixels), f"{path}.{k}", budget))
-        for k in ("columns", "rows", "q")
+    columns, rows = (
+        np.cumsum(s) for s in unpack_steps(body["steps"], len(pixels), f"{path}.steps", budget)
     )
+    log_q = unpack_ints(body["q"], len(pixels), f"{path}.q", budget)
+    log_q = np.cumsum(log_q) if body["q_steps"] else log_q
     idx = np.arange(count, dtype=np.int64)
     idx[pixels] += rows * width + columns
     if np.abs(log_q).max(initial=0) > 120 * 2**MATCH_Q_BITS:
@@ -417,7 +367,7 @@ def _image_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
 
 
 def _image_decode(body: dict, path: str, budget: Budget) -> Any:
-    kind, shape = _header(body, ("webp",), 3, path)
+    kind, shape = coded_header(body, ("webp",), 3, path)
     data = body["webp"]
     if kind != "ndarray" or shape[2] != 3 or not isinstance(data, bytes):
         raise MessageError(f"{path}: a coded image is an (H, W, 3) ndarray in WebP bytes")
@@ -442,7 +392,7 @@ def _image_decode(body: dict, path: str, budget: Budget) -> Any:
 def _retrieval_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
     if not (isinstance(value, tuple) and len(value) == 2):
         return None
-    descriptors, attention = _float32(value[0], 2), _float32(value[1], 1)
+    descriptors, attention = float32_or_none(value[0], 2), float32_or_none(value[1], 1)
     if descriptors is None or attention is None or not np.isfinite(descriptors).all():
         return None
     if not (np.isfinite(attention).all() and np.abs(attention).max(initial=0) < 65504):
@@ -451,7 +401,7 @@ def _retrieval_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
     scale = np.where(scale > 0, scale, 1).astype(np.float32)
     q = np.rint(descriptors / scale[:, None]).astype(np.int8)
     return {
-        "kind": _kind(value[0]),
+        "kind": kind_of(value[0]),
         "shape": list(descriptors.shape),
         "q": zstd.compress(q.tobytes(), level=ZSTD_LEVEL),
         "scale": scale.tobytes(),
@@ -460,21 +410,21 @@ def _retrieval_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
 
 
 def _retrieval_decode(body: dict, path: str, budget: Budget) -> Any:
-    kind, (n, d) = _header(body, ("q", "scale", "attention"), 2, path)
+    kind, (n, d) = coded_header(body, ("q", "scale", "attention"), 2, path)
     packed, scale, attention = body["q"], body["scale"], body["attention"]
     if not all(isinstance(b, bytes) for b in (packed, scale, attention)):
         raise MessageError(f"{path}: coded retrieval features are not bytes")
     if len(scale) != 4 * n or len(attention) != 2 * n:
         raise MessageError(f"{path}: coded retrieval scales or attention are not {n} values")
     budget.take(n * d, path)
-    raw = _inflate(packed, n * d, path, "coded descriptors", f"{n} x {d} bytes")
+    raw = inflate(packed, n * d, path, "coded descriptors", f"{n} x {d} bytes")
     scales = np.frombuffer(scale, "<f4").astype(np.float32)
     if not np.isfinite(scales).all():
         raise MessageError(f"{path}: coded descriptor scales are not finite")
     q = np.frombuffer(raw, np.int8).reshape(n, d).astype(np.float32)
     descriptors = q * scales[:, None]
     weights = np.frombuffer(attention, "<f2").astype(np.float32)
-    return (_as_kind(descriptors, kind), _as_kind(weights, kind))
+    return (as_kind(descriptors, kind), as_kind(weights, kind))
 
 
 # ------------------------------------------------------------------ registry
