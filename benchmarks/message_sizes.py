@@ -202,7 +202,10 @@ def _keyframe_messages(
         for packet in frontend.drain_new_keyframes():
             if packet.kf_id > 0:
                 previous = frontend.keyframes[packet.kf_id - 1].T_WC
-                messages.append(KeyframeMessage(packet, 0, previous))
+                # the simulated encoding as an agent sends it: the ground-truth record it is
+                # made from again (Encoding.portable, runtime/agent_worker.py)
+                sent = dataclasses.replace(packet, encoding=packet.encoding.portable())
+                messages.append(KeyframeMessage(sent, 0, previous))
                 # the keyframe's own view: a self-calibrating agent hands its first
                 # keyframes out at a later frame
                 views.append(seen[packet.frame_index])
