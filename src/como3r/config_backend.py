@@ -63,6 +63,13 @@ class VerificationConfig:
       (fewer loop constraints cost accuracy there). One seed each, and a loss at 8 agents:
       the default is 3 (``retrieval.k_nn``'s default), the paper's behaviour, until it is
       measured over seeds and team sizes; ``k_nn`` or more is the paper.
+    * ``max_decodes_per_batch``: a coordinator that fell behind takes the waiting keyframes
+      as one batch (``global_ba.max_batch_keyframes``) and verifies them newest first; a
+      keyframe is verified only while the batch's decodes so far plus its own worst case
+      (``max_decodes_per_keyframe``) fit this budget, the older ones stay retrieval-only
+      (indexed: later keyframes still find them; counted in ``verification_skipped``).
+      A batch of one (``--single-process``, lockstep, a coordinator that keeps up) is
+      always verified: this only bounds the work of a backlog. 0: no batch budget.
     """
 
     tau_inter: float = 0.1
@@ -71,6 +78,7 @@ class VerificationConfig:
     max_residual_ratio: float = 0.25
     max_decodes_per_keyframe: int = 6
     max_within_component: int = 3
+    max_decodes_per_batch: int = 12
 
 
 @dataclass(frozen=True)

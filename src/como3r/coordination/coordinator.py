@@ -49,6 +49,7 @@ the terminal cleanup's records and solvers are in :mod:`.cleanup`, its counters
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import replace
@@ -171,8 +172,9 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
         inserted into the graph and its retrieval query made and indexed (cheap), so every
         keyframe's hits are those it would have had alone; then the keyframes are verified
         and their edges admitted NEWEST FIRST, each within its own decode budget
-        (``verification.max_decodes_per_keyframe``): the part of the map the agents are in
-        now is linked first. The in-stream global BA (C-Eq. 5) runs at most once, after the
+        (``verification.max_decodes_per_keyframe``), while the batch's budget
+        (``verification.max_decodes_per_batch``) lasts; older keyframes past it stay
+        retrieval-only: the part of the map the agents are in now is linked first. The in-stream global BA (C-Eq. 5) runs at most once, after the
         whole batch, if ``global_ba.trigger_interval_edges`` new inter-agent edges are
         waiting by then; the journal keeps the batch's effect in one transaction. A batch
         of one is :meth:`add_keyframe`'s single keyframe, step for step. The result depends
@@ -203,8 +205,12 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
             self.graph.add_keyframe(packet)
             self.stats.keyframes += 1
             fresh.append((packet, self._retrieve(packet)))
+        spent, budget = self.stats.prior_decodes, self._batch_budget(len(fresh))
         for packet, hits in reversed(fresh):
             found = len(updates)
+            if hits and self.stats.prior_decodes - spent + self._keyframe_budget() > budget:
+                self.stats.verification_skipped += 1
+                continue
             for candidate in self._verify(packet, hits):
                 updates.extend(self._admit(candidate))
             logger.debug(
@@ -218,6 +224,17 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
         self.stats.batches += int(bool(fresh))
         self.stats.largest_batch = max(self.stats.largest_batch, len(fresh))
         return self._record(self._count(updates))
+
+    def _keyframe_budget(self) -> int:
+        return self.config.verification.max_decodes_per_keyframe
+
+    def _batch_budget(self, keyframes: int) -> float:
+        """The decodes a batch of ``keyframes`` new keyframes may spend on verification
+        (``verification.max_decodes_per_batch``; a batch of one always has its keyframe's)."""
+        per_batch = self.config.verification.max_decodes_per_batch
+        if keyframes <= 1 or per_batch == 0:
+            return math.inf
+        return max(per_batch, self._keyframe_budget())
 
     def refresh(self, agent: int, refresh: PointmapRefresh) -> None:
         """Replace the canonical pointmap of a sent keyframe by its newer fused one."""

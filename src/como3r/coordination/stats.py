@@ -38,6 +38,8 @@ class CoordinatorStats:
     # ordered pairs the prior decoded for the coordinator (verification): the prior's work
     # its keyframes caused, as the agents' decodes are theirs (benchmarks/report.py)
     prior_decodes: int = 0
+    # keyframes of a batch left retrieval-only by verification.max_decodes_per_batch
+    verification_skipped: int = 0
     # keyframes whose encoding was made again from their colours (.encodings); their
     # seconds are stage_seconds["reencode"]
     reencodes: int = 0
