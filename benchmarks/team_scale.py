@@ -155,12 +155,14 @@ COLUMNS = (
 
 
 def _proc_status(pid: int | str) -> float:
-    """``VmHWM`` of a process [MB] (0 if it is gone)."""
+    """``VmHWM`` of a process [MB] (0 if it is gone or ended)."""
     try:
         lines = Path(f"/proc/{pid}/status").read_text().splitlines()
     except OSError:
         return 0.0
     fields = dict(line.split(":", 1) for line in lines if ":" in line)
+    if "VmHWM" not in fields:  # a process that just ended (a zombie) has no memory left
+        return 0.0
     return int(fields["VmHWM"].split()[0]) / 1024
 
 
