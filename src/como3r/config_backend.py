@@ -110,11 +110,20 @@ class GaugeConfig:
     several agreeing edges, an edge whose own ``T*`` scale differs from the joint one by
     more than this does not count as support (``gauge_scale_held``). A single first edge
     has nothing to be compared with: ``min_consistent_edges`` > 1 makes the merge watch it.
+
+    ``focal_loops`` (como3r addition, off by default; issue 41): after that chain, where the
+    agents' admitted pairs close a loop, re-measure every agent pair and solve all focal
+    lengths jointly in least squares (``Coordinator._close_focal_loops``). Measured on a
+    ring of agents (160x120 -> 512, 8 processed frames each, single process, seed 0):
+    merged ATE 4 agents 7.0 -> 6.4 mm, 8 agents 8.0 -> 8.0 mm, 16 agents 62.1 -> 59.2 mm,
+    but the 16 agents' map accuracy 0.151 -> 0.181 m (F-score 0.70 -> 0.55): its pairwise
+    estimates scatter by 2-5 %, so it is not the default.
     """
 
     min_correspondences: int = 64
     min_consistent_edges: int = 1
     align_focal: bool = True
+    focal_loops: bool = False
     focal_search: float = 0.3
     scale_alarm_log: float = 0.2
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from como3r.backend.global_graph import GlobalGraph
-from como3r.config import Config, GlobalBAConfig, TrackingConfig
+from como3r.config import Config, GlobalBAConfig, TrackingConfig, apply_overrides
 from como3r.coordination.association import Candidate, Verification
 from como3r.coordination.coordinator import Coordinator
 from como3r.frontend import focal as focal_module
@@ -281,7 +281,7 @@ def test_terminal_refinement_settles_focal_lengths_outwards_from_the_anchor() ->
 def test_terminal_refinement_closes_a_ring_of_agents() -> None:
     """Four agents in a ring (0-1, 1-2, 2-3 and 3-0 meet), focal lengths off by up to 7 %:
     the chain settles them outwards from agent 0, and since their pairs close a loop the
-    least-squares sweep re-measures every pair; all end on agent 0's camera, and the
+    least-squares sweep (gauge.focal_loops) re-measures every pair; all end on agent 0's camera, and the
     sweep counts one refinement per agent it moved."""
     errors = {0: 0.0, 1: 0.06, 2: -0.05, 3: 0.07}
     pairs = {
@@ -290,7 +290,8 @@ def test_terminal_refinement_closes_a_ring_of_agents() -> None:
         (2, 3): _pair(errors[3], anchor_focal_error=errors[2]),
         (0, 3): _pair(errors[3], anchor_focal_error=errors[0]),
     }
-    coordinator = Coordinator(None, Config(), None, 4)
+    config = apply_overrides(Config(), ["gauge.focal_loops=true"])
+    coordinator = Coordinator(None, config, None, 4)
     identity, T_am = sim3_identity(dtype=torch.float64), pairs[(0, 1)].T_anchor_moving
     keyframes: dict[int, list] = {a: [] for a in errors}
     for (a, b), pair in pairs.items():

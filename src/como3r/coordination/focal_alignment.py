@@ -96,8 +96,8 @@ class FocalAlignment:
         1.07 %, for 8 s more of coordinator time. The same run calibrated: 0.70 cm. Seed 1:
         0.72 -> 0.85 % (focal lengths 329.5 / 330.6 / 330.7 px after, but agents 1 and 2 sit
         3 % smaller than agent 0, joined by one edge: an offset the focal errors had hidden).
-        Where the agents' pairs close loops, :meth:`_close_focal_loops` then spreads what
-        this chain leaves around them.
+        With ``gauge.focal_loops``, where the agents' pairs close loops,
+        :meth:`_close_focal_loops` then spreads what this chain leaves around them.
         """
         if not self._aligns_focal():
             return
@@ -130,7 +130,8 @@ class FocalAlignment:
             ):
                 self.stats.focal_refinements += 1
             settled.add(agent)
-        self._close_focal_loops(members, progress)
+        if self.config.gauge.focal_loops:
+            self._close_focal_loops(members, progress)
 
     def _close_focal_loops(self, members: list[int], progress: PhaseCallback | None = None) -> None:
         """Spread what the chain of :meth:`_refine_focals` leaves around loops of agents.
