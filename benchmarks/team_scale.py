@@ -91,7 +91,19 @@ sits 23-120 mm off as a whole, in no agent alone. The solve puts the ring's misc
 weakest junctions: after it, the relative translations of the edges around agents 4|5 and
 8|9 (one or two edges each) are 100-150 mm off the ground truth's, the others' 10-50 mm;
 fitted alone, the agents' scales differ from the merged one by up to 3 % (0.970-1.020),
-which a chain of 16 rigid-scale segments cannot all take. Open.
+which a chain of 16 rigid-scale segments cannot all take.
+
+Root cause (offline on the run's session store, keyframe ATE): the agents' focal lengths.
+The BA (per-keyframe Sim(3), so it can take any scale) started from the ground-truth poses
+at the run's focal lengths (306-337 px after the merges and the terminal chain refinement;
+true 333.6) settles 56 mm off; with every agent on the true focal length, 11 mm from the
+ground truth and 13 mm from the run's own poses; all on one common but 3 % wrong focal
+length, 17 mm. So it is not the solver or the scales: 16 self-calibrated cameras that
+disagree by a few percent bend the ring. Re-measuring every agent pair and solving the
+focal lengths jointly in least squares (``gauge.focal_loops=true``, off by default) gives
+62.1 -> 59.2 mm in the run (4 agents 7.0 -> 6.4, 8 agents 8.0 -> 8.0), but worse map
+accuracy at 16 (0.151 -> 0.181 m): one pair's focal estimate scatters by 2-5 %. Open: a
+focal length per agent estimated inside the global BA over all its edges at once.
 """
 
 from __future__ import annotations
