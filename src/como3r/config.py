@@ -180,6 +180,7 @@ _NON_NEGATIVE = (
     "local_solve.lm_lambda",
     "verification.covisible_min_confidence",
     "verification.max_within_component",
+    "verification.max_decodes_per_batch",
     "global_ba.lm_lambda",
     "global_ba.tikhonov_base",
     "global_ba.tikhonov_retries",

@@ -584,6 +584,36 @@ def test_a_batch_is_verified_newest_first_with_one_global_ba(ring) -> None:
     assert [(u.agent, u.reason) for u in updates] == [(u.agent, u.reason) for u in other_updates]
 
 
+@pytest.mark.slow
+def test_a_batch_budget_verifies_the_newest_keyframes_only(ring) -> None:
+    """verification.max_decodes_per_batch: of a batch, keyframes are verified newest first
+    while the batch's decodes plus one keyframe's worst case fit; the older ones are
+    retrieval-only (indexed, counted); 0 lifts the bound."""
+    order = _interleave(ring, [0, 1])
+    per_keyframe = ring.config.verification.max_decodes_per_keyframe
+    bounded, _ = _run(
+        ring,
+        order,
+        apply_overrides(ring.config, [f"verification.max_decodes_per_batch={per_keyframe}"]),
+        agents=2,
+        batch=4,
+    )
+    free, _ = _run(
+        ring, order, apply_overrides(ring.config, ["verification.max_decodes_per_batch=0"]), 2, 4
+    )
+    batches = -(-len(order) // 4)
+    assert bounded.stats.prior_decodes <= per_keyframe * batches
+    assert bounded.stats.verification_skipped > 0 and free.stats.verification_skipped == 0
+    assert bounded.stats.prior_decodes < free.stats.prior_decodes
+    assert bounded.stats.retrieval_queries == free.stats.retrieval_queries == len(order)
+    # one keyframe per batch at most was verified, and it was the newest one with hits
+    queried = {c.verification.query for c in bounded.candidates}
+    for start in range(0, len(order), 4):
+        keys = [(p.agent, p.kf_id) for p in order[start : start + 4]]
+        assert len(queried & set(keys)) <= 1
+    assert {c.verification.query for c in free.candidates} >= queried
+
+
 def test_a_batch_of_one_is_a_single_keyframe(ring) -> None:
     """add_keyframes([p]) is add_keyframe(p): the same poses, counters and candidates."""
     order = _interleave(ring, [0, 1])[:8]

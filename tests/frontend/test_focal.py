@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from como3r.backend.global_graph import GlobalGraph
-from como3r.config import Config, GlobalBAConfig, TrackingConfig
+from como3r.config import Config, GlobalBAConfig, TrackingConfig, apply_overrides
 from como3r.coordination.association import Candidate, Verification
 from como3r.coordination.coordinator import Coordinator
 from como3r.frontend import focal as focal_module
@@ -275,3 +275,46 @@ def test_terminal_refinement_settles_focal_lengths_outwards_from_the_anchor() ->
     assert focal["1"] == pytest.approx(40.0, rel=0.01)
     assert focal["2"] == pytest.approx(40.0, rel=0.02)
     assert coordinator.stats.focal_refinements == 2
+
+
+@pytest.mark.slow
+def test_terminal_refinement_closes_a_ring_of_agents() -> None:
+    """Four agents in a ring (0-1, 1-2, 2-3 and 3-0 meet), focal lengths off by up to 7 %:
+    the chain settles them outwards from agent 0, and since their pairs close a loop the
+    least-squares sweep (gauge.focal_loops) re-measures every pair; all end on agent 0's camera, and the
+    sweep counts one refinement per agent it moved."""
+    errors = {0: 0.0, 1: 0.06, 2: -0.05, 3: 0.07}
+    pairs = {
+        (0, 1): _pair(errors[1], anchor_focal_error=errors[0]),
+        (1, 2): _pair(errors[2], anchor_focal_error=errors[1]),
+        (2, 3): _pair(errors[3], anchor_focal_error=errors[2]),
+        (0, 3): _pair(errors[3], anchor_focal_error=errors[0]),
+    }
+    config = apply_overrides(Config(), ["gauge.focal_loops=true"])
+    coordinator = Coordinator(None, config, None, 4)
+    identity, T_am = sim3_identity(dtype=torch.float64), pairs[(0, 1)].T_anchor_moving
+    keyframes: dict[int, list] = {a: [] for a in errors}
+    for (a, b), pair in pairs.items():
+        keyframes[a].append((pair.X_anchor, pair.K_anchor, identity))
+        keyframes[b].append((pair.X_moving, pair.K_moving, T_am))
+    for agent in sorted(keyframes):
+        for kf_id, (X, K, T) in enumerate(keyframes[agent]):
+            coordinator.graph.add_keyframe(replace(_packet(agent, kf_id, X, K), T_WC=T))
+    used = dict.fromkeys(errors, 0)
+    for (a, b), pair in pairs.items():
+        _admitted(coordinator, (a, used[a]), (b, used[b]), pair, similarity=0.5)
+        used[a] += 1
+        used[b] += 1
+    # the sweep alone, from the focal lengths as they came (6-7 % off): one pass of it
+    coordinator._close_focal_loops([0, 1, 2, 3])
+    focal = coordinator.metrics()["focal_lengths"]
+    assert focal["0"] == pytest.approx(40.0)
+    for agent in ("1", "2", "3"):
+        assert focal[agent] == pytest.approx(40.0, rel=0.03), agent
+    assert coordinator.stats.focal_refinements == 3
+    # then the whole refinement (the chain, then the sweep): on agent 0's camera
+    coordinator._refine_focals([0, 1, 2, 3])
+    focal = coordinator.metrics()["focal_lengths"]
+    for agent in ("1", "2", "3"):
+        assert focal[agent] == pytest.approx(40.0, rel=0.02), agent
+    assert coordinator.stats.focal_refinements == 3 + 3 + 3

@@ -41,15 +41,18 @@ optimizes, so the front-end's poses are the better ones.
 
 :class:`Coordinator` holds the state and the public API; steps 2 and 3 are its part
 :mod:`.linking`, the focal lengths of self-calibrated agents its part :mod:`.focal_alignment`,
-and the terminal cleanup's records and solvers are in :mod:`.cleanup`.
+the terminal cleanup's records and solvers are in :mod:`.cleanup`, its counters
+:class:`~.stats.CoordinatorStats` and its ``graph.json`` and ``metrics.json`` documents
+:mod:`.documents`.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -59,14 +62,15 @@ from torch import Tensor
 
 from como3r.backend.alternation import AlternationReport, AlternationSettings, alternate
 from como3r.backend.global_graph import BAResult, GlobalGraph
-from como3r.backend.graph_link import GraphLink
 from como3r.config import Config
 from como3r.coordination.association import Candidate, CrossAgentRetrieval
 from como3r.coordination.cleanup import Cleanup, ComponentCleanup, MapSnapshot, scoped_progress
+from como3r.coordination.documents import CoordinatorDocuments
 from como3r.coordination.encodings import KeyframeEncodings
 from como3r.coordination.focal_alignment import FocalAlignment
 from como3r.coordination.gauge import GaugeComponents
 from como3r.coordination.linking import InterAgentLinking
+from como3r.coordination.stats import CoordinatorStats
 from como3r.errors import InputError
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.frontend.paging import KeyframeParking, read_fields
@@ -76,47 +80,6 @@ from como3r.prior.retrieval import Hit
 from como3r.progress import PhaseCallback
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class CoordinatorStats:
-    """Counters and timings reported in metrics.json."""
-
-    keyframes: int = 0
-    retrieval_queries: int = 0
-    edges_tried: int = 0
-    edges_verified: int = 0
-    edges_accepted: int = 0
-    edges_inconsistent: int = 0
-    # of those, edges whose own similarity would rescale the map (gauge.scale_alarm_log)
-    edges_scale_inconsistent: int = 0
-    # edges a merge did not count as support: their T* scale disagreed with the joint one
-    gauge_scale_held: int = 0
-    gauge_syncs: int = 0
-    focal_refinements: int = 0
-    ba_runs: int = 0
-    ba_iterations: int = 0
-    ba_seconds: float = 0.0
-    ba_restored: int = 0
-    cleanup_passes: int = 0
-    cleanup_iterations: int = 0
-    cleanup_seconds: float = 0.0
-    pose_updates: int = 0
-    # keyframes are taken in batches (Coordinator.add_keyframes): how many batches had a new
-    # keyframe, and the most new keyframes one had (1: the coordinator never fell behind)
-    batches: int = 0
-    largest_batch: int = 0
-    # ordered pairs the prior decoded for the coordinator (verification): the prior's work
-    # its keyframes caused, as the agents' decodes are theirs (benchmarks/report.py)
-    prior_decodes: int = 0
-    # keyframes whose encoding was made again from their colours (.encodings); their
-    # seconds are stage_seconds["reencode"]
-    reencodes: int = 0
-    stage_seconds: dict[str, float] = field(default_factory=dict)
-
-    def add_time(self, stage: str, seconds: float) -> None:
-        """Accumulate wall-clock seconds of a stage."""
-        self.stage_seconds[stage] = self.stage_seconds.get(stage, 0.0) + seconds
 
 
 class Journal(Protocol):
@@ -130,7 +93,7 @@ class Journal(Protocol):
         pose updates it made, ``finished`` says the terminal cleanup ran."""
 
 
-class Coordinator(InterAgentLinking, FocalAlignment):
+class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
     """Cross-agent association, gauge synchronization and global BA (Level 2).
 
     Args:
@@ -209,8 +172,9 @@ class Coordinator(InterAgentLinking, FocalAlignment):
         inserted into the graph and its retrieval query made and indexed (cheap), so every
         keyframe's hits are those it would have had alone; then the keyframes are verified
         and their edges admitted NEWEST FIRST, each within its own decode budget
-        (``verification.max_decodes_per_keyframe``): the part of the map the agents are in
-        now is linked first. The in-stream global BA (C-Eq. 5) runs at most once, after the
+        (``verification.max_decodes_per_keyframe``), while the batch's budget
+        (``verification.max_decodes_per_batch``) lasts; older keyframes past it stay
+        retrieval-only: the part of the map the agents are in now is linked first. The in-stream global BA (C-Eq. 5) runs at most once, after the
         whole batch, if ``global_ba.trigger_interval_edges`` new inter-agent edges are
         waiting by then; the journal keeps the batch's effect in one transaction. A batch
         of one is :meth:`add_keyframe`'s single keyframe, step for step. The result depends
@@ -241,8 +205,12 @@ class Coordinator(InterAgentLinking, FocalAlignment):
             self.graph.add_keyframe(packet)
             self.stats.keyframes += 1
             fresh.append((packet, self._retrieve(packet)))
+        spent, budget = self.stats.prior_decodes, self._batch_budget(len(fresh))
         for packet, hits in reversed(fresh):
             found = len(updates)
+            if hits and self.stats.prior_decodes - spent + self._keyframe_budget() > budget:
+                self.stats.verification_skipped += 1
+                continue
             for candidate in self._verify(packet, hits):
                 updates.extend(self._admit(candidate))
             logger.debug(
@@ -256,6 +224,17 @@ class Coordinator(InterAgentLinking, FocalAlignment):
         self.stats.batches += int(bool(fresh))
         self.stats.largest_batch = max(self.stats.largest_batch, len(fresh))
         return self._record(self._count(updates))
+
+    def _keyframe_budget(self) -> int:
+        return self.config.verification.max_decodes_per_keyframe
+
+    def _batch_budget(self, keyframes: int) -> float:
+        """The decodes a batch of ``keyframes`` new keyframes may spend on verification
+        (``verification.max_decodes_per_batch``; a batch of one always has its keyframe's)."""
+        per_batch = self.config.verification.max_decodes_per_batch
+        if keyframes <= 1 or per_batch == 0:
+            return math.inf
+        return max(per_batch, self._keyframe_budget())
 
     def refresh(self, agent: int, refresh: PointmapRefresh) -> None:
         """Replace the canonical pointmap of a sent keyframe by its newer fused one."""
@@ -434,47 +413,6 @@ class Coordinator(InterAgentLinking, FocalAlignment):
             X_hat=torch.stack([read_fields(self.graph.keyframes[g], "X_hat") for g in indices]),
         )
 
-    def components(self) -> list[list[int]]:
-        """Gauge components (sorted agent lists), agent 0's first."""
-        return self.gauges.components()
-
-    def graph_document(self) -> dict[str, Any]:
-        """JSON-ready graph: keyframes, intra/inter edges with scores, candidates, components."""
-        keyframes = [
-            {
-                "global": g,
-                "agent": self.graph.agent_of[g],
-                "keyframe": kf.kf_id,
-                "frame": kf.frame_index,
-                "timestamp": kf.timestamp,
-                "T_WC": kf.T_WC.tolist(),
-            }
-            for g, kf in enumerate(self.graph.keyframes)
-        ]
-        return {
-            "keyframes": keyframes,
-            "edges": [self._link_json(link) for link in self.graph.links],
-            "candidates": [self._candidate_json(c) for c in self.candidates],
-            "gauge_events": list(self.gauge_events),
-            "components": self.components(),
-        }
-
-    def metrics(self) -> dict[str, Any]:
-        """Counters, timings and gauge events."""
-        stats = asdict(self.stats)
-        stats["stage_seconds"] = dict(self.stats.stage_seconds)
-        stats["gauge_events"] = list(self.gauge_events)
-        stats["components"] = self.components()
-        stats["cross_agent_retrieval"] = self.retrieval is not None
-        stats["alternation"] = list(self.alternation)
-        stats["focal_lengths"] = self._focal_lengths()
-        return stats
-
-    def _focal_lengths(self) -> dict[str, float]:
-        """Each self-calibrated or calibrated agent's focal length in the map [px]."""
-        focal = {agent: self.graph.agent_focal(agent) for agent in range(self.num_agents)}
-        return {str(agent): f for agent, f in focal.items() if f is not None}
-
     # ------------------------------------------------------------------ global BA
 
     def _anchor(self, root: int) -> int:
@@ -527,34 +465,3 @@ class Coordinator(InterAgentLinking, FocalAlignment):
     def _count(self, updates: list[PoseUpdate]) -> list[PoseUpdate]:
         self.stats.pose_updates += len(updates)
         return updates
-
-    def _key(self, g: int) -> list[int]:
-        """``[agent, kf_id]`` of global keyframe ``g``."""
-        return [self.graph.agent_of[g], self.graph.keyframes[g].kf_id]
-
-    def _link_json(self, link: GraphLink) -> dict[str, Any]:
-        document: dict[str, Any] = {
-            "type": link.kind,
-            "from": self._key(link.i),
-            "to": self._key(link.j),
-            "global": [link.i, link.j],
-            "nu_i": link.link.ji.match_fraction,
-            "nu_j": link.link.ij.match_fraction,
-        }
-        if link.similarity is not None:
-            document["similarity"] = link.similarity
-        return document
-
-    def _candidate_json(self, c: Candidate) -> dict[str, Any]:
-        v = c.verification
-        return {
-            "from": list(v.candidate),
-            "to": list(v.query),
-            "similarity": v.similarity,
-            "nu_i": v.nu_i,
-            "nu_j": v.nu_j,
-            "covisible_ratio": v.covisible_ratio,
-            "verified": v.accepted,
-            "status": c.status,
-            "residual_ratio": None if c.residual_ratio != c.residual_ratio else c.residual_ratio,
-        }

@@ -14,6 +14,8 @@ import math
 import time
 from collections.abc import Sequence
 
+import numpy as np
+
 from como3r.backend.global_graph import GlobalGraph
 from como3r.config import Config
 from como3r.coordination.association import Candidate
@@ -94,6 +96,8 @@ class FocalAlignment:
         1.07 %, for 8 s more of coordinator time. The same run calibrated: 0.70 cm. Seed 1:
         0.72 -> 0.85 % (focal lengths 329.5 / 330.6 / 330.7 px after, but agents 1 and 2 sit
         3 % smaller than agent 0, joined by one edge: an offset the focal errors had hidden).
+        With ``gauge.focal_loops``, where the agents' pairs close loops,
+        :meth:`_close_focal_loops` then spreads what this chain leaves around them.
         """
         if not self._aligns_focal():
             return
@@ -107,7 +111,7 @@ class FocalAlignment:
             }
             agent = max(edges, key=lambda a: len(edges[a]), default=None)
             if agent is None or not edges[agent]:
-                return
+                break
             chosen = sorted(edges[agent], key=lambda c: -c.verification.similarity)
             report_phase(
                 progress,
@@ -126,6 +130,72 @@ class FocalAlignment:
             ):
                 self.stats.focal_refinements += 1
             settled.add(agent)
+        if self.config.gauge.focal_loops:
+            self._close_focal_loops(members, progress)
+
+    def _close_focal_loops(self, members: list[int], progress: PhaseCallback | None = None) -> None:
+        """Spread what the chain of :meth:`_refine_focals` leaves around loops of agents.
+
+        Each pair of agents with admitted edges gives one measurement at the focal lengths
+        the chain left: the log focal correction of its higher agent against its lower one
+        on (at most ``FOCAL_REFINEMENT_PAIRS`` of) those edges, the most similar first
+        (:func:`~como3r.frontend.focal.estimate_log_focal`), a target for the difference of
+        their log focal lengths; all agents' corrections then solve these differences in
+        least squares (:func:`solve_log_focals`, each weighted by its edge count) with the
+        anchor agent ``members[0]`` and frozen agents held: a 1-D pose graph over log focal
+        lengths. Only where the agents' pairs close a loop (at least as many pairs as
+        agents): on a tree of pairs the chain already meets every measurement.
+
+        Issue 41: the chain settles agents outwards from the anchor, so around a ring of
+        agents its ratio errors add up on both sides and meet at the far end. On a 16-agent
+        ring (160x120 -> 512, 8 processed frames per agent, realistic prior, seed 0; true
+        focal 333.6 px) it left 306-337 px and a merged ATE of 62.1 mm; the BA from the
+        ground-truth poses at those focal lengths settles 56 mm off, at the true ones 11 mm
+        (their disagreement is what the ring could not close); this sweep at the chain's
+        focal lengths, then the BA: 38.7 mm (keyframes, offline on the stored session).
+        """
+        if not self._aligns_focal():
+            return
+        held = {members[0]} | {agent for agent in members if self._frozen(agent)}
+        inside = set(members)
+        by_pair: dict[tuple[int, int], list[Candidate]] = {}
+        for c in self.candidates:
+            ends = (self.graph.agent_of[c.i], self.graph.agent_of[c.j])
+            if c.status == "admitted" and set(ends) <= inside and ends[0] != ends[1]:
+                by_pair.setdefault((min(ends), max(ends)), []).append(c)
+        if len(by_pair) < len(members):
+            return
+        rows: list[tuple[int, int, float, int]] = []  # (lower, higher, log correction, pairs)
+        for done, ((low, high), edges) in enumerate(sorted(by_pair.items())):
+            chosen = sorted(edges, key=lambda c: -c.verification.similarity)
+            chosen = chosen[:FOCAL_REFINEMENT_PAIRS]
+            report_phase(
+                progress,
+                "focal loops",
+                f"agents {low}-{high} on {len(chosen)} pair(s)",
+                done,
+                len(by_pair),
+            )
+            pairs = [self._focal_pair(c, self.graph.agent_of[c.j] == high) for c in chosen]
+            known = [p for p in pairs if p is not None]
+            if not known:
+                continue
+            start = time.perf_counter()
+            estimate = estimate_log_focal(
+                known, self.config.tracking, search=self.config.gauge.focal_search
+            )
+            self.stats.add_time("focal", time.perf_counter() - start)
+            rows.append((low, high, estimate.log_focal, len(known)))
+        for agent, log_focal in solve_log_focals(rows, held).items():
+            self._apply_log_focal(agent, log_focal)
+
+    def _apply_log_focal(self, agent: int, log_focal: float) -> None:
+        """Move one agent onto ``f exp(log_focal)`` (a joint refinement's result)."""
+        focal = self.graph.rescale_focal(agent, log_focal)
+        self.stats.focal_refinements += 1
+        logger.info(
+            "focal: agent %d refined (x %.4f) to %.1f px", agent, math.exp(log_focal), focal
+        )
 
     def _frozen(self, agent: int) -> bool:
         """Whether an agent's keyframes are held fixed (a saved map under --freeze-map)."""
@@ -153,3 +223,43 @@ class FocalAlignment:
             in_anchor,
             in_moving,
         )
+
+
+def solve_log_focals(
+    rows: Sequence[tuple[int, int, float, int]], held: set[int]
+) -> dict[int, float]:
+    """The agents' log focal corrections from pairwise measurements, in least squares.
+
+    Args:
+        rows: ``(a, b, d, w)``: agent ``b``'s log focal length should exceed its current
+            difference to agent ``a``'s by ``d``, with weight ``w``.
+        held: agents whose focal length stays (the anchor, frozen agents).
+
+    Returns:
+        The correction of every agent connected to a held one through rows (held agents
+        and unconnected ones are left out).
+    """
+    reached = set(held)
+    grew = True
+    while grew:  # agents tied to a held one through measurements
+        grew = False
+        for a, b, _, _ in rows:
+            if (a in reached) != (b in reached):
+                reached |= {a, b}
+                grew = True
+    free = sorted(reached - held)
+    if not free:
+        return {}
+    column = {agent: k for k, agent in enumerate(free)}
+    used = [r for r in rows if r[0] in reached and r[1] in reached]
+    A = np.zeros((len(used), len(free)))
+    y = np.zeros(len(used))
+    for r, (a, b, d, w) in enumerate(used):
+        scale = math.sqrt(w)
+        if b in column:
+            A[r, column[b]] = scale
+        if a in column:
+            A[r, column[a]] = -scale
+        y[r] = scale * d
+    x = np.linalg.lstsq(A, y, rcond=None)[0]
+    return {agent: float(x[column[agent]]) for agent in free}
