@@ -143,9 +143,14 @@ def test_robot_processes_give_the_one_process_result(mission, scene):
         assert accepted == [
             ([l.robot_a, l.keyframe_a], [l.robot_b, l.keyframe_b]) for l in report.loops
         ]
-        # the bytes each robot counted are the ones the router delivered
-        assert m["bytes"]["sent"] == dict(reference.traffic.sent.get(robot, {}))
-        assert m["bytes"]["received"] == dict(reference.traffic.received.get(robot, {}))
+        # the bytes each robot counted are the ones the router delivered, but for the
+        # registered keyframes' images: lossless WebP across machines, byte planes and
+        # Zstandard between threads
+        for way in ("sent", "received"):
+            counted = dict(m["bytes"][way])
+            delivered = dict(getattr(reference.traffic, way).get(robot, {}))
+            assert counted.pop("EncodingReply", 0) <= delivered.pop("EncodingReply", 0)
+            assert counted == delivered
         keyframes = read_tum(tmp / f"out{robot}" / "keyframes" / f"agent_{robot}.txt")
         np.testing.assert_allclose(
             keyframes.T_WC[: len(report.estimate)].numpy(), report.estimate, atol=1e-4

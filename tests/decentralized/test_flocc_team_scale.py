@@ -91,10 +91,12 @@ def test_bytes_per_robot_per_round_do_not_grow_with_the_team(team):
         # At most each of its keyframes' encodings once, plus descriptors and pose graph.
         bound = row["keyframes"] * encoding + 64 * 1024
         assert 0 < max(robot["sent_by_round"].values()) <= bound
-    # The pose graph relayed round the ring stays small beside one encoding.
+    # The pose graph relayed round the ring stays small beside one registered keyframe
+    # (measured 0.086 of one at 96x64, where a reply is the image and the simulated
+    # prior's ground-truth record; 0.7 % when it was the whole simulated encoding).
     assert (
         traffic["bytes_by_type"]["PoseEstimate"] / traffic["messages_by_type"]["PoseEstimate"]
-        < 0.05 * encoding
+        < 0.2 * encoding
     )
 
 
