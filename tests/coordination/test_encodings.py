@@ -132,6 +132,8 @@ class _CountingPrior:
         self.calls += 1
         return SimpleNamespace(mean=float(view.image.mean()), index=view.index)
 
+    encode_again = Prior.encode_again  # the prior's own: colours to a view to encode
+
 
 def _keyframe(kf_id: int, encoding: Encoding | None = None, colors=None) -> Keyframe:
     pointmap = torch.ones(4, 6, 3)

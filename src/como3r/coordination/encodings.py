@@ -32,7 +32,7 @@ from collections import OrderedDict
 
 from como3r.errors import InputError, PriorError
 from como3r.frontend.keyframes import Keyframe
-from como3r.prior.base import Encoding, EncodingRecord, Prior, view_from_colors
+from como3r.prior.base import Encoding, EncodingRecord, Prior
 
 
 class KeyframeEncodings:
@@ -91,12 +91,8 @@ class KeyframeEncodings:
                 f"{tuple(colors.shape[:2])}, not the {kf.shape} image its encoding came from"
             )
         start = time.perf_counter()
-        if held is None:
-            view = view_from_colors(colors, agent, kf.frame_index)
-        else:  # the record's own view: a merge renumbers agents, not their encodings' seeds
-            view = view_from_colors(colors, held.agent, held.index)
         try:
-            encoding = prior.encode(view) if held is None else prior.encode_from_record(view, held)
+            encoding = prior.encode_again(colors, agent, kf.frame_index, held)
         except PriorError as exc:
             raise InputError(f"coordinator: keyframe {kf.kf_id} of agent {agent}: {exc}") from None
         self.seconds += time.perf_counter() - start

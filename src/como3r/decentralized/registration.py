@@ -41,7 +41,6 @@ from como3r.prior.base import (
     PairPrediction,
     Prior,
     View,
-    view_from_colors,
 )
 from como3r.prior.simulated_keys import generator
 
@@ -325,17 +324,11 @@ class Registrar:
     ) -> None:
         """Encode another robot's keyframe from its colours (and ``record``, an
         :class:`EncodingRecord`, where its prior needs one), or refuse (and log) it."""
-        # a record names the view it belongs to (its frame, not this keyframe number)
-        agent, index = (robot, keyframe) if record is None else (record.agent, record.index)
-        view = view_from_colors(colours, agent, index)
         start = time.perf_counter()
         try:
-            if record is None:
-                encoding = self.prior.encode(view)
-            elif isinstance(record, EncodingRecord):
-                encoding = self.prior.encode_from_record(view, record)
-            else:
+            if record is not None and not isinstance(record, EncodingRecord):
                 raise PriorError(f"a {type(record).__name__} came with colours, not a record")
+            encoding = self.prior.encode_again(colours, robot, keyframe, record)
         except PriorError as exc:
             logger.warning(
                 "robot %d: refused robot %d's keyframe %d: %s", self.robot, robot, keyframe, exc

@@ -16,6 +16,8 @@ simulated sensor are interchangeable. A prior turns views into geometry:
   :class:`EncodingRecord` that travelled and was stored in its place
   (:meth:`Encoding.portable`: what a prior needs beside the image, e.g. the simulated
   prior's ground truth).
+* ``encode_again(colors, agent, index, record)``: whichever of the two a keyframe needs, the
+  one place a receiver (a coordinator, a robot) remakes an encoding.
 """
 
 from __future__ import annotations
@@ -193,6 +195,22 @@ class Prior(abc.ABC):
             f"{type(self).__name__} cannot encode agent {view.agent}'s frame {view.index} "
             f"from a {type(record).__name__} (another prior made it)"
         )
+
+    def encode_again(
+        self, colors: np.ndarray, agent: int, index: int, record: EncodingRecord | None = None
+    ) -> Encoding:
+        """The encoding of a keyframe's ``(H, W, 3)`` uint8 ``colors`` (``agent``'s frame
+        ``index``) as its agent made it: :meth:`encode` of them where the prior remakes
+        encodings from the image alone (:meth:`can_reencode`), else
+        :meth:`encode_from_record` with ``record``, under the record's own agent and frame
+        (a merge renumbers agents, a robot numbers its keyframes, not their frames).
+
+        Raises:
+            PriorError: the prior makes no encoding from ``record``.
+        """
+        if record is None:
+            return self.encode(view_from_colors(colors, agent, index))
+        return self.encode_from_record(view_from_colors(colors, record.agent, record.index), record)
 
     def describe(self) -> dict[str, object]:
         """Parameters of the prior, reported with every result it produces."""
