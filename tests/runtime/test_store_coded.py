@@ -4,6 +4,7 @@ is settled on its coded value (a run's store) or stored exact; version-4 stores 
 
 from __future__ import annotations
 
+import dataclasses
 import sqlite3
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from como3r.coordination.coordinator import Coordinator
 from como3r.errors import StoreError
 from como3r.frontend.packets import KeyframePacket
 from como3r.frontend.pairs import DirectedMatches, PairLink
+from como3r.prior.mast3r.prior import MASt3REncoding
 from como3r.runtime.ingest import received
 from como3r.store.blobs import ARRAYS_MAGIC, OBJECT_MAGIC
 from como3r.store.reader import read_session
@@ -131,3 +133,25 @@ def test_a_version_4_store_is_read_and_upgraded_when_resumed(tmp_path, caplog) -
     with pytest.raises(StoreError, match="format version 3 is older than this como3r reads"):
         read_session(path)
     assert path.is_file()  # refused, never deleted
+
+
+def test_the_encoding_is_handed_over_as_its_agent_made_it() -> None:
+    """MASt3R's tokens travel in float16 across machines, but no coordinator there uses
+    them: it encodes the colours again, bit for bit. So every runtime hands the coordinator
+    the encoding itself, its float32 tokens unrounded, while the arrays beside it come
+    through the wire's codings."""
+    gen = torch.Generator().manual_seed(1)
+    tokens = torch.randn(12, 8, generator=gen) / 3  # float16 rounds them
+    encoding = MASt3REncoding(
+        agent=0,
+        index=1,
+        shape=(H, W),
+        tokens=tokens,
+        pos=torch.zeros(12, 2, dtype=torch.int64),
+        grid=(3, 4),
+    )
+    packet = dataclasses.replace(_packet(0, 1, gen), encoding=encoding)
+    assert not torch.equal(tokens.half().float(), tokens)
+    got = received(packet)
+    assert got.encoding is encoding
+    assert not torch.equal(got.X_hat, packet.X_hat)  # the pointmap came through its coding

@@ -17,6 +17,7 @@ it against 7.879 mm without.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
 from typing import TypeVar
@@ -38,7 +39,15 @@ def received(message: T, coordinator: Coordinator | None = None) -> T:
     receives it: lossy-encoded and decoded; the seconds it took are charged to
     ``coordinator``'s ``stage_seconds["ingest"]`` when given."""
     start = time.perf_counter()
+    # A keyframe's encoding is handed over as its agent made it: a coordinator across
+    # machines makes it again bit for bit (from the colours, and the simulated prior's
+    # record: coordination/encodings.py), never from float16 tokens.
+    encoding = getattr(message, "encoding", None)
+    if encoding is not None:
+        message = dataclasses.replace(message, encoding=None)
     back = codec.decode(codec.encode(message, lossy=True), expected=type(message))
+    if encoding is not None:
+        back = dataclasses.replace(back, encoding=encoding)
     if coordinator is not None:
         coordinator.stats.add_time(STAGE, time.perf_counter() - start)
     return back
