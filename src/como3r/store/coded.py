@@ -175,9 +175,8 @@ def pack_retrieval(retrieval: tuple[Tensor, Tensor]) -> bytes:
 
 def pack_matches(ij: DirectedMatches, ji: DirectedMatches, width: int) -> bytes:
     """Both directions' matches of an edge in one blob (``width``: the row length)."""
-    arrays = [getattr(m, f) for m in (ij, ji) for f in ("idx", "valid", "q")]
-    plain = [DirectedMatches(*(getattr(m, f) for f in ("idx", "valid", "q"))) for m in (ij, ji)]
-    return pack_exact(StoredMatches(width, *plain), *arrays)
+    stored = StoredMatches(width, *(DirectedMatches(m.idx, m.valid, m.q) for m in (ij, ji)))
+    return pack_exact(stored, *_arrays(stored))
 
 
 def unpack(blob: bytes, what: str) -> list[Tensor]:
