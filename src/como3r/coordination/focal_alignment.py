@@ -112,22 +112,15 @@ class FocalAlignment:
             agent = max(edges, key=lambda a: len(edges[a]), default=None)
             if agent is None or not edges[agent]:
                 break
-            chosen = sorted(edges[agent], key=lambda c: -c.verification.similarity)
             report_phase(
                 progress,
                 "focal refinement",
-                f"agent {agent} on {min(len(chosen), FOCAL_REFINEMENT_PAIRS)} pair(s)",
+                f"agent {agent} on {min(len(edges[agent]), FOCAL_REFINEMENT_PAIRS)} pair(s)",
                 len(settled) - 1,
                 len(members) - 1,
             )
-            pairs = [
-                self._focal_pair(c, self.graph.agent_of[c.j] == agent)
-                for c in chosen[:FOCAL_REFINEMENT_PAIRS]
-            ]
-            if (
-                self._apply_focal([agent], [p for p in pairs if p is not None], "refined")
-                is not None
-            ):
+            pairs = self._focal_pairs(edges[agent], agent)
+            if self._apply_focal([agent], pairs, "refined") is not None:
                 self.stats.focal_refinements += 1
             settled.add(agent)
         if self.config.gauge.focal_loops:
@@ -167,17 +160,14 @@ class FocalAlignment:
             return
         rows: list[tuple[int, int, float, int]] = []  # (lower, higher, log correction, pairs)
         for done, ((low, high), edges) in enumerate(sorted(by_pair.items())):
-            chosen = sorted(edges, key=lambda c: -c.verification.similarity)
-            chosen = chosen[:FOCAL_REFINEMENT_PAIRS]
             report_phase(
                 progress,
                 "focal loops",
-                f"agents {low}-{high} on {len(chosen)} pair(s)",
+                f"agents {low}-{high} on {min(len(edges), FOCAL_REFINEMENT_PAIRS)} pair(s)",
                 done,
                 len(by_pair),
             )
-            pairs = [self._focal_pair(c, self.graph.agent_of[c.j] == high) for c in chosen]
-            known = [p for p in pairs if p is not None]
+            known = self._focal_pairs(edges, high)
             if not known:
                 continue
             start = time.perf_counter()
@@ -205,6 +195,16 @@ class FocalAlignment:
         """Whether an edge links ``agent`` to one of the ``settled`` agents."""
         ends = {self.graph.agent_of[candidate.i], self.graph.agent_of[candidate.j]}
         return agent in ends and bool(ends & settled)
+
+    def _focal_pairs(self, candidates: Sequence[Candidate], moving: int) -> list[FocalPair]:
+        """At most ``FOCAL_REFINEMENT_PAIRS`` of ``candidates``, the most similar first, as
+        keyframe pairs with agent ``moving``'s second (those with intrinsics)."""
+        chosen = sorted(candidates, key=lambda c: -c.verification.similarity)
+        pairs = [
+            self._focal_pair(c, self.graph.agent_of[c.j] == moving)
+            for c in chosen[:FOCAL_REFINEMENT_PAIRS]
+        ]
+        return [p for p in pairs if p is not None]
 
     def _focal_pair(self, candidate: Candidate, moving_is_j: bool) -> FocalPair | None:
         """The candidate's keyframe pair, anchor side first (None without intrinsics)."""
