@@ -176,7 +176,9 @@ def _decompress(path: Path, frame: bytes, expected: int, name: str) -> bytes:
     except zstd.ZstdError as exc:
         raise InputError(f"{path}: {name} is corrupted ({exc})") from None
     if len(raw) != expected:
-        raise InputError(f"{path}: {name} holds {len(raw)} bytes, its shape {expected}")
+        raise InputError(
+            f"{path}: {name} is truncated or corrupted ({len(raw)} of {expected} bytes)"
+        )
     return raw
 
 
