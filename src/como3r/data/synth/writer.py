@@ -158,7 +158,7 @@ def _scene_json(spec: SceneSpec, K: Intrinsics, args: dict, scale: float) -> dic
     info = {k: (round(v, 6) if isinstance(v, float) else v) for k, v in info.items()}
     return {
         "format": "como3r-synth",
-        "version": 1,
+        "version": 2,  # 2: depth and surface maps as .c3z (1: .npy)
         **args,
         "frame_rate_hz": FRAME_RATE,
         "speed_m_per_frame": scale * spec.motion.speed,
