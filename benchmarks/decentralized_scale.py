@@ -125,6 +125,7 @@ import numpy as np
 from como3r.config import Config, InputConfig
 from como3r.config_decentralized import DecentralizedConfig, ProtocolConfig
 from como3r.decentralized.runner import run_decentralized
+from como3r.io.packed_arrays import read_packed, write_packed
 from como3r.runtime.pipeline import PriorSpec
 
 ROBOTS = 3
@@ -171,12 +172,12 @@ def scaled_copy(scene: Path, target: Path, factor: float, keep_keys: bool = Fals
     shutil.rmtree(target, ignore_errors=True)
     shutil.copytree(scene, target)
     for agent in sorted(target.glob("agent_*")):
-        for depth in (agent / "depth").glob("*.npy"):
-            np.save(depth, np.load(depth) * np.float32(factor))
-        for surface in [] if keep_keys else (agent / "surface").glob("*.npy"):
-            keys = np.load(surface)
+        for depth in (agent / "depth").glob("*.c3z"):
+            write_packed(depth, {"depth": read_packed(depth)["depth"] * np.float32(factor)})
+        for surface in [] if keep_keys else (agent / "surface").glob("*.c3z"):
+            keys = read_packed(surface)["surface"]
             keys[..., 1:3] *= np.float32(factor)
-            np.save(surface, keys)
+            write_packed(surface, {"surface": keys})
         for name in ("groundtruth.txt", "odometry.txt"):
             _scale_tum(agent / name, factor)
 

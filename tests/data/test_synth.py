@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from como3r.data.synth import PRESETS, build_preset, synthesize
 from como3r.errors import InputError
+from como3r.io.packed_arrays import read_packed
 from como3r.io.tum import read_tum
 
 W, H = 64, 48
@@ -58,10 +59,10 @@ class AgentData:
         self.stems = sorted(p.stem for p in (folder / "rgb").glob("*.png"))
 
     def depth(self, i: int) -> np.ndarray:
-        return np.load(self.folder / "depth" / f"{self.stems[i]}.npy")
+        return read_packed(self.folder / "depth" / f"{self.stems[i]}.c3z")["depth"]
 
     def surface(self, i: int) -> np.ndarray:
-        return np.load(self.folder / "surface" / f"{self.stems[i]}.npy")
+        return read_packed(self.folder / "surface" / f"{self.stems[i]}.c3z")["surface"]
 
     def pose(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         T = self.trajectory.T_WC[i].numpy()

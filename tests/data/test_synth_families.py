@@ -19,6 +19,7 @@ from como3r.data.synth import build_preset, synthesize
 from como3r.data.synth.families import FAMILY_PRESETS, MIN_FRAMES
 from como3r.decentralized.odometry_sim import add_odometry
 from como3r.errors import InputError
+from como3r.io.packed_arrays import read_packed
 from como3r.io.tum import read_tum
 
 W, H = 64, 48
@@ -56,10 +57,14 @@ def test_scale_multiplies_every_length_and_keeps_the_images(tmp_path):
         assert (one / "rgb" / f"{stem}.png").read_bytes() == (
             tenth / "rgb" / f"{stem}.png"
         ).read_bytes()
-        depth = np.load(one / "depth" / f"{stem}.npy")
+        depth = read_packed(one / "depth" / f"{stem}.c3z")["depth"]
         assert (depth > 0).mean() > 0.5
-        np.testing.assert_allclose(np.load(tenth / "depth" / f"{stem}.npy"), 0.1 * depth, rtol=1e-6)
-        keys, keys_tenth = (np.load(f / "surface" / f"{stem}.npy") for f in (one, tenth))
+        np.testing.assert_allclose(
+            read_packed(tenth / "depth" / f"{stem}.c3z")["depth"], 0.1 * depth, rtol=1e-6
+        )
+        keys, keys_tenth = (
+            read_packed(f / "surface" / f"{stem}.c3z")["surface"] for f in (one, tenth)
+        )
         np.testing.assert_array_equal(keys_tenth[..., 0], keys[..., 0])
         assert np.abs(keys[..., 1:]).max() > 1.0
         np.testing.assert_allclose(keys_tenth[..., 1:], 0.1 * keys[..., 1:], rtol=1e-6, atol=1e-6)
@@ -175,8 +180,8 @@ def test_covered_frames_are_dark_and_show_nothing(tmp_path):
         for i in range(12):
             stem = f"{i:06d}"
             depth, keys = (
-                np.load(agent / "depth" / f"{stem}.npy"),
-                np.load(agent / "surface" / f"{stem}.npy"),
+                read_packed(agent / "depth" / f"{stem}.c3z")["depth"],
+                read_packed(agent / "surface" / f"{stem}.c3z")["surface"],
             )
             if first <= i <= last:
                 assert _grey(agent, stem).max() < 10.0

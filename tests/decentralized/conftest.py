@@ -20,6 +20,7 @@ from como3r.config import Config, InputConfig, SimulatedPriorConfig
 from como3r.config_decentralized import DecentralizedConfig, ProtocolConfig
 from como3r.data.synth import synthesize
 from como3r.decentralized.odometry_sim import add_odometry
+from como3r.io.packed_arrays import read_packed, write_packed
 
 ROBOTS = 3
 
@@ -93,12 +94,12 @@ def scaled_scene(agents: list[Path], target: Path, factor: float) -> list[Path]:
     for agent in agents:
         copy = target / agent.name
         shutil.copytree(agent, copy)
-        for depth in (copy / "depth").glob("*.npy"):
-            np.save(depth, np.load(depth) * np.float32(factor))
-        for surface in (copy / "surface").glob("*.npy"):
-            keys = np.load(surface)
+        for depth in (copy / "depth").glob("*.c3z"):
+            write_packed(depth, {"depth": read_packed(depth)["depth"] * np.float32(factor)})
+        for surface in (copy / "surface").glob("*.c3z"):
+            keys = read_packed(surface)["surface"]
             keys[..., 1:3] *= np.float32(factor)
-            np.save(surface, keys)
+            write_packed(surface, {"surface": keys})
         for name in ("groundtruth.txt", "odometry.txt"):
             _scale_tum(copy / name, factor)
         copies.append(copy)

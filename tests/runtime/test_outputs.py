@@ -6,7 +6,9 @@ import logging
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
+from como3r.config import Config
 from como3r.frontend.agent import FrontendStats
 from como3r.runtime.outputs import tracking_warnings
 
@@ -144,3 +146,43 @@ def test_first_point_per_voxel_over_pieces_of_any_extent() -> None:
     _, first = np.unique(np.floor(cloud / 0.25).astype(np.int64), axis=0, return_index=True)
     np.testing.assert_array_equal(np.concatenate(kept), np.sort(first))
     assert 0 < len(first) < len(cloud)
+
+
+def test_the_map_is_thinned_by_a_voxel_relative_to_its_depth_and_says_so(tmp_path) -> None:
+    """write_map: visualization.map_voxel times the median of the keyframes' median ranges
+    (scaled by their poses' s), the same map at any scale; 0 keeps every confident point;
+    voxel_size_m, where set, wins; metrics' map counts both."""
+    from como3r.config import apply_overrides
+    from como3r.geometry.units import median_range
+    from como3r.io.ply import read_ply
+    from como3r.runtime.outputs import write_map
+
+    def frontends(scale: float) -> list[SimpleNamespace]:
+        agents = [SimpleNamespace(agent=a, keyframes=_keyframes(4, a)) for a in (0, 1)]
+        for agent in agents:
+            for kf in agent.keyframes:
+                kf.X_hat = kf.X_hat / scale  # the same world points at another pose scale
+                kf.T_WC = kf.T_WC.clone()
+                kf.T_WC[7] = scale
+        return agents
+
+    config = apply_overrides(Config(), ["visualization.map_voxel=0.4"])
+    agents = frontends(1.0)
+    confident = sum(int((kf.mean_confidence() > 1.5).sum()) for a in agents for kf in a.keyframes)
+    ranges = [
+        float(median_range(kf.X_hat, kf.mean_confidence() > 1.5))
+        for a in agents
+        for kf in a.keyframes
+    ]
+    written = write_map(tmp_path, agents, config)
+    assert written["confident_points"] == confident
+    assert written["voxel"] == pytest.approx(0.4 * float(np.median(ranges)), rel=1e-6)
+    assert 0 < written["points"] < confident // 2
+    assert len(read_ply(tmp_path / "map.ply")) == written["points"]
+    twice = write_map(tmp_path, frontends(2.0), config)
+    assert twice["points"] == written["points"]
+    assert twice["voxel"] == pytest.approx(written["voxel"], rel=1e-5)
+    every = write_map(tmp_path, agents, apply_overrides(config, ["visualization.map_voxel=0"]))
+    assert every == {"points": confident, "confident_points": confident, "voxel": 0.0}
+    metres = apply_overrides(config, ["visualization.voxel_size_m=0.01"])
+    assert write_map(tmp_path, agents, metres)["voxel"] == 0.01

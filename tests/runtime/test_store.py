@@ -34,6 +34,7 @@ from como3r.coordination.coordinator import Coordinator
 from como3r.errors import StoreError
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches, PairLink
+from como3r.io.keyframe_data import read_keyframe_data
 from como3r.io.tum import read_tum
 from como3r.prior.mast3r.prior import MASt3REncoding
 from como3r.runtime.ingest import received
@@ -88,11 +89,9 @@ def test_a_run_keeps_its_coordinator_state_in_the_store(scene, tmp_path, runtime
         kf = stored[(entry["agent"], entry["keyframe"])]
         assert (kf.frame_index, kf.timestamp) == (entry["frame"], entry["timestamp"])
         assert kf.T_WC.tolist() == entry["T_WC"]
-        data = np.load(
-            out / "keyframes" / f"agent_{entry['agent']}" / f"{entry['keyframe']:06d}.npz"
-        )
-        assert np.array_equal(data["X"], kf.X_hat.numpy())
-        assert np.array_equal(data["C"], kf.mean_confidence().numpy())
+        data = read_keyframe_data(out, entry["agent"], entry["keyframe"])
+        assert np.array_equal(data.X, kf.X_hat.numpy())
+        assert np.array_equal(data.C, kf.mean_confidence().numpy())
     for agent in range(2):  # the keyframe trajectory files, to their printed precision
         tum = read_tum(out / "keyframes" / f"agent_{agent}.txt")
         poses = torch.stack([graph.keyframes[g].T_WC for g in graph.agent_keyframes(agent)])

@@ -22,6 +22,8 @@ from torch import Tensor
 
 from como3r.data.poses import missing_pose_summary, poses_at
 from como3r.errors import InputError
+from como3r.io.packed_arrays import SUFFIX as PACKED_SUFFIX
+from como3r.io.packed_arrays import read_packed
 from como3r.io.tum import Trajectory
 
 logger = logging.getLogger(__name__)
@@ -256,6 +258,17 @@ def load_npy(path: Path, kind: str, mmap: bool = False) -> np.ndarray:
         raise InputError(f"{path}: cannot read {kind} map ({exc})") from None
 
 
+def load_float_map(path: Path, kind: str) -> np.ndarray:
+    """The float map of a ``.npy`` file, or the array named ``kind`` of a ``.c3z`` file
+    (:mod:`como3r.io.packed_arrays`, as ``como3r synth`` writes them): the same values."""
+    if path.suffix.lower() != PACKED_SUFFIX:
+        return load_npy(path, kind)
+    arrays = read_packed(path)
+    if kind not in arrays:
+        raise InputError(f"{path}: holds no {kind!r} array (it holds {', '.join(arrays)})")
+    return arrays[kind]
+
+
 def _load_depth(
     path: Path,
     image_size: tuple[int, int],
@@ -273,7 +286,7 @@ def _load_depth(
         depth = raw.astype(np.float32) / np.float32(units_per_metre)
         depth[np.isin(raw, invalid)] = 0.0
     else:
-        depth = np.asarray(load_npy(path, "depth"), dtype=np.float32)
+        depth = np.asarray(load_float_map(path, "depth"), dtype=np.float32)
         depth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
         if np.any(depth < 0):
             raise InputError(f"{path}: depth map has negative values")
@@ -284,7 +297,7 @@ def _load_depth(
 
 def _load_surface(path: Path, image_size: tuple[int, int]) -> np.ndarray:
     """``(H, W, 3)`` float32 appearance keys."""
-    surface = np.asarray(load_npy(path, "surface"), dtype=np.float32)
+    surface = np.asarray(load_float_map(path, "surface"), dtype=np.float32)
     if surface.shape != (image_size[1], image_size[0], 3):
         raise InputError(
             f"{path}: surface map has shape {surface.shape}, "

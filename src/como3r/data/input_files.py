@@ -15,6 +15,8 @@ from PIL import Image, UnidentifiedImageError
 
 from como3r.data.agent_input import DEPTH_PNG_MODES, load_npy
 from como3r.errors import InputError
+from como3r.io.packed_arrays import SUFFIX as PACKED_SUFFIX
+from como3r.io.packed_arrays import read_packed_header
 
 _SECONDS_NAME = re.compile(r"[1-9]\d{8,9}(\.\d+)?")
 
@@ -150,9 +152,15 @@ def check_map_header(path: Path, image_size: tuple[int, int], kind: str) -> None
             )
         return
     expected = (height, width) if kind == "depth" else (height, width, 3)
-    array = load_npy(path, kind, mmap=True)
-    if array.shape != expected or array.dtype.kind != "f":
+    if path.suffix.lower() == PACKED_SUFFIX:
+        arrays = read_packed_header(path)
+        if kind not in arrays:
+            raise InputError(f"{path}: holds no {kind!r} array (it holds {', '.join(arrays)})")
+        dtype, shape = arrays[kind]
+    else:
+        array = load_npy(path, kind, mmap=True)
+        dtype, shape = array.dtype, array.shape
+    if shape != expected or dtype.kind != "f":
         raise InputError(
-            f"{path}: {kind} map has shape {array.shape} dtype {array.dtype}, "
-            f"expected float {expected}"
+            f"{path}: {kind} map has shape {shape} dtype {dtype}, expected float {expected}"
         )

@@ -42,7 +42,7 @@ from como3r.errors import InputError
 from como3r.geometry.lie import quat_to_matrix, se3_inverse
 from como3r.io.colmap import ColmapCamera, ColmapImage, Pinhole, write_colmap_text
 from como3r.io.g2o import G2O_HEADER, write_g2o
-from como3r.io.keyframe_data import KeyframeData, keyframe_data_path, read_keyframe_data
+from como3r.io.keyframe_data import KeyframeData, keyframe_arrays_path, read_keyframe_data
 from como3r.io.output import atomic_output_dir, check_output_dir
 from como3r.io.ply import read_ply, write_ply
 from como3r.io.run_graph import (
@@ -199,14 +199,12 @@ def _check_inputs(run: Path, graph: RunGraph, folders: dict[str, Path]) -> None:
                 )
     if folders:
         missing = [
-            k
-            for k in graph.keyframes
-            if not keyframe_data_path(run, k.agent, k.kf_id, ".npz").is_file()
+            k for k in graph.keyframes if not keyframe_arrays_path(run, k.agent, k.kf_id).is_file()
         ]
         if missing:
             raise InputError(
                 f"{run}: no keyframe data for {len(missing)} of {len(graph.keyframes)} keyframes "
-                f"(first: {keyframe_data_path(run, missing[0].agent, missing[0].kf_id, '.npz')}); "
+                f"(first: {keyframe_arrays_path(run, missing[0].agent, missing[0].kf_id)}); "
                 f"runs write it since como3r export exists: run the input again, or export "
                 f"--g2o only"
             )

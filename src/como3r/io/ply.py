@@ -2,7 +2,8 @@
 "Run output").
 
 The header declares ``x y z`` (float32), ``red green blue`` (uchar) and ``agent_id``
-(int32), binary little-endian, which Open3D, CloudCompare and MeshLab read.
+(ushort), binary little-endian, which Open3D, CloudCompare and MeshLab read: 17 bytes a
+point. Files written before, with an ``int`` agent id (19 bytes a point), are read as well.
 """
 
 from __future__ import annotations
@@ -23,9 +24,15 @@ _VERTEX = np.dtype(
         ("red", "u1"),
         ("green", "u1"),
         ("blue", "u1"),
-        ("agent_id", "<i4"),
+        ("agent_id", "<u2"),
     ]
 )
+#: the vertex layout of earlier files (agent id as int32)
+_OLD_VERTEX = np.dtype(
+    [*((n, _VERTEX.fields[n][0]) for n in _VERTEX.names[:-1]), ("agent_id", "<i4")]
+)
+#: the agent ids a file can hold
+MAX_AGENT_ID = int(np.iinfo(np.uint16).max)
 #: the header :func:`write_ply` writes is about 250 bytes
 _MAX_HEADER = 4096
 
@@ -56,7 +63,7 @@ def write_ply_pieces(
             f"element vertex {count}\n"
             "property float x\nproperty float y\nproperty float z\n"
             "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-            "property int agent_id\nend_header\n"
+            "property ushort agent_id\nend_header\n"
         )
         with open(path, "wb") as f, open(body, "rb") as vertices:
             f.write(header.encode("ascii"))
@@ -78,30 +85,41 @@ def _vertices(xyz: np.ndarray, rgb: np.ndarray, agent_id: np.ndarray) -> np.ndar
         vertices[name] = xyz[:, axis]
     for channel, name in enumerate(("red", "green", "blue")):
         vertices[name] = rgb[:, channel]
+    if n and (int(np.min(agent_id)) < 0 or int(np.max(agent_id)) > MAX_AGENT_ID):
+        raise ValueError(f"write_ply: agent ids must be in [0, {MAX_AGENT_ID}]")
     vertices["agent_id"] = agent_id
     return vertices
 
 
 def read_ply(path: str | Path) -> np.ndarray:
-    """Read a PLY written by :func:`write_ply` as a structured array."""
-    count, offset = _layout(path)
+    """Read a PLY written by :func:`write_ply` (or an earlier one, with int32 agent ids) as a
+    structured array of this version's vertex layout."""
+    count, offset, dtype = _layout(path)
     with open(path, "rb") as f:
         f.seek(offset)
-        return np.fromfile(f, dtype=_VERTEX, count=count)
+        return _current(np.fromfile(f, dtype=dtype, count=count))
 
 
 def iter_ply(path: str | Path, chunk: int = 1 << 20) -> Iterator[np.ndarray]:
     """The vertices of a PLY written by :func:`write_ply`, ``chunk`` at a time, in file
     order (a map of any size is read in constant memory)."""
-    count, offset = _layout(path)
+    count, offset, dtype = _layout(path)
     with open(path, "rb") as f:
         f.seek(offset)
         for start in range(0, count, chunk):
-            yield np.fromfile(f, dtype=_VERTEX, count=min(chunk, count - start))
+            yield _current(np.fromfile(f, dtype=dtype, count=min(chunk, count - start)))
 
 
-def _layout(path: str | Path) -> tuple[int, int]:
-    """``(vertex count, byte offset of the first vertex)`` of a :func:`write_ply` file.
+def _current(vertices: np.ndarray) -> np.ndarray:
+    """``vertices`` in :data:`_VERTEX`'s layout (earlier files' int32 agent ids narrowed)."""
+    if vertices.dtype == _VERTEX:
+        return vertices
+    return vertices.astype(_VERTEX)
+
+
+def _layout(path: str | Path) -> tuple[int, int, np.dtype]:
+    """``(vertex count, byte offset of the first vertex, vertex dtype)`` of a
+    :func:`write_ply` file, this version's or an earlier one's.
 
     Raises:
         InputError: not such a file, or one whose size disagrees with its header.
@@ -118,8 +136,12 @@ def _layout(path: str | Path) -> tuple[int, int]:
     )
     if count is None or "format binary_little_endian 1.0" not in header:
         raise InputError(f"{path}: not a binary little-endian PLY with vertices")
+    kind = next((line.split()[1] for line in header if line.endswith(" agent_id")), None)
+    dtype = {"ushort": _VERTEX, "int": _OLD_VERTEX}.get(str(kind))
+    if dtype is None:
+        raise InputError(f"{path}: not a como3r map (no ushort or int agent_id property)")
     offset = end + len(marker)
     size = Path(path).stat().st_size - offset
-    if size != count * _VERTEX.itemsize:
+    if size != count * dtype.itemsize:
         raise InputError(f"{path}: truncated PLY ({size} bytes for {count} vertices)")
-    return count, offset
+    return count, offset, dtype

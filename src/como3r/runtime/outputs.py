@@ -22,6 +22,7 @@ from como3r.coordination.coordinator import Coordinator
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.timing import with_remainder
 from como3r.geometry.lie import sim3_act
+from como3r.geometry.units import median_range
 from como3r.io.keyframe_data import write_keyframe_data
 from como3r.io.ply import write_ply_pieces
 from como3r.io.tum import write_tum
@@ -112,16 +113,35 @@ def fused_points(
         yield xyz
 
 
-def write_map(out: Path, frontends: Sequence[AgentFrontend], config: Config) -> int:
-    """Write ``map.ply`` a keyframe at a time; returns the number of points."""
-    return write_ply_pieces(
+def map_voxel(keyframes: Mapping[int, Iterable[Any]], config: Config) -> tuple[float, int]:
+    """The voxel edge ``map.ply`` is thinned with (world units; 0 keeps every point) and
+    the points above the confidence threshold before it: ``visualization.voxel_size_m``
+    where set, else ``visualization.map_voxel`` times the median over keyframes of their
+    confident points' median range (``s`` times that of ``X_hat``)."""
+    min_confidence = config.visualization.map_min_confidence
+    ranges, confident = [], 0
+    for agent_keyframes in keyframes.values():
+        for kf in agent_keyframes:
+            keep = kf.mean_confidence() > min_confidence
+            confident += int(keep.sum())
+            if bool(keep.any()):
+                ranges.append(float(median_range(kf.X_hat, keep)) * float(kf.T_WC[7]))
+    if config.visualization.voxel_size_m > 0:
+        return config.visualization.voxel_size_m, confident
+    return config.visualization.map_voxel * (float(np.median(ranges)) if ranges else 0.0), confident
+
+
+def write_map(out: Path, frontends: Sequence[AgentFrontend], config: Config) -> dict[str, Any]:
+    """Write ``map.ply`` a keyframe at a time, thinned by :func:`map_voxel`; returns
+    ``metrics.json``'s ``map``: ``points`` written, ``confident_points`` before the thinning
+    and the ``voxel`` edge (world units, 0: none)."""
+    keyframes = {fe.agent: fe.keyframes for fe in frontends}
+    voxel, confident = map_voxel(keyframes, config)
+    points = write_ply_pieces(
         out / "map.ply",
-        fused_map(
-            {fe.agent: fe.keyframes for fe in frontends},
-            config.visualization.map_min_confidence,
-            config.visualization.voxel_size_m,
-        ),
+        fused_map(keyframes, config.visualization.map_min_confidence, voxel),
     )
+    return {"points": points, "confident_points": confident, "voxel": voxel}
 
 
 def graph_document(
@@ -395,7 +415,7 @@ def write_run_files(
     report_phase(progress, "outputs", "keyframe data", 1, 3)
     write_keyframe_data(staging, agents)  # what `como3r export` reads
     report_phase(progress, "outputs", "map.ply, graph.json", 2, 3)
-    points = write_map(staging, agents, config)
+    written = write_map(staging, agents, config)
     components = coordinator.components()
     write_json(staging / "graph.json", graph_document(agents, coordinator))
     metrics = {
@@ -403,7 +423,8 @@ def write_run_files(
         "agents": [frontend_metrics(a, s) for a, s in zip(agents, seconds)],
         "coordinator": coordinator.metrics(),
         "components": components,
-        "map_points": points,
+        "map_points": written["points"],
+        "map": written,
     }
     return metrics, components
 

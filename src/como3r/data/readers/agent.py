@@ -12,9 +12,11 @@ itself, or a folder holding exactly one video and no ``rgb/``), plus optionally:
   ``1403636579763555584.png``); otherwise ``timestamp = index / fps``;
 * ``groundtruth.txt`` and ``odometry.txt``: TUM trajectories (:func:`como3r.io.tum.read_tum`);
 * ``calib.txt``: ``fx fy cx cy`` on one line, in pixels of the original images;
-* ``depth/<stem>.png`` (16-bit, 5000 per metre as in TUM) or ``depth/<stem>.npy``
-  (float32 metres);
-* ``surface/<stem>.npy``: float32 ``(H, W, 3)`` appearance keys (texture id, s, t).
+* ``depth/<stem>.png`` (16-bit, 5000 per metre as in TUM), ``depth/<stem>.npy`` (float32
+  metres) or ``depth/<stem>.c3z`` (the same float32 metres compressed losslessly, array
+  ``depth``: :mod:`como3r.io.packed_arrays`, as ``como3r synth`` writes them);
+* ``surface/<stem>.npy`` or ``surface/<stem>.c3z`` (array ``surface``): float32
+  ``(H, W, 3)`` appearance keys (texture id, s, t).
 
 For a video the frame stems are the zero-padded indices ``000000, 000001, ...`` and the side
 files live in the folder that holds the video.
@@ -37,6 +39,7 @@ from como3r.data.input_files import (
     timestamps_from_names,
 )
 from como3r.errors import InputError
+from como3r.io.packed_arrays import SUFFIX as PACKED_SUFFIX
 from como3r.io.tum import Trajectory, read_tum
 
 
@@ -70,8 +73,12 @@ def open_agent_folder(path: str | Path, fps: float = 30.0) -> AgentInput:
 
     groundtruth = _optional_trajectory(folder / "groundtruth.txt")
 
-    depth_paths = _pair_maps(folder / "depth", stems, (".png", ".npy"), image_size, "depth")
-    surface_paths = _pair_maps(folder / "surface", stems, (".npy",), image_size, "surface")
+    depth_paths = _pair_maps(
+        folder / "depth", stems, (".png", ".npy", PACKED_SUFFIX), image_size, "depth"
+    )
+    surface_paths = _pair_maps(
+        folder / "surface", stems, (".npy", PACKED_SUFFIX), image_size, "surface"
+    )
     calib_file = folder / "calib.txt"
     return AgentInput(
         root=path,
