@@ -84,13 +84,14 @@ def _auc(positive: list[float], negative: list[float]) -> float:
 
 @pytest.mark.slow
 def test_v2_confidence_does_not_know_the_true_overlap(scene):
-    """Overlap AUC of the pair's median C_ji over every cross-agent pair."""
+    """Overlap AUC of the pair's median C_ji over the cross-agent pairs that overlap and
+    every third of those that do not (all of them: the same verdict, at twice the decodes)."""
     views, truth = scene
     overlap = {
         (i, j): _covisibility(truth, (0, i), (1, j)) for i in range(FRAMES) for j in range(FRAMES)
     }
     positive = [p for p, v in overlap.items() if v > 0.3]
-    negative = [p for p, v in overlap.items() if v < 0.01]
+    negative = [p for p, v in overlap.items() if v < 0.01][::3]
     assert len(positive) >= 5 and len(negative) >= 5
     aucs = {}
     for config in (REALISTIC, V2):
@@ -101,7 +102,7 @@ def test_v2_confidence_does_not_know_the_true_overlap(scene):
             for p in positive + negative
         }
         aucs[config.model] = _auc([median[p] for p in positive], [median[p] for p in negative])
-    # measured: realistic 0.97, v2 0.92
+    # measured: realistic 0.98, v2 0.94 (every negative pair: 0.97, 0.92)
     assert 0.6 < aucs["v2"] < min(0.99, aucs["realistic"])
 
 
