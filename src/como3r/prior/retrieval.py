@@ -61,6 +61,28 @@ class Quantized(NamedTuple):
     words: np.ndarray
 
 
+class Aggregated(NamedTuple):
+    """A keyframe as binary ASMK stores and queries it (:meth:`RetrievalDatabase.aggregate`):
+    for each visual word its descriptors are assigned to, the sign bits of the summed
+    residuals to the word's centroid, packed as asmk packs them. Everything the database
+    reads of a keyframe: :meth:`RetrievalDatabase.query_and_add` with it gives the hits and
+    similarities of the descriptors themselves. At the released codebook's size (d = 1024)
+    a word is 128 bytes: about 1,000 words for a query (``multiple_assignment_query`` 5) and
+    300 for an add (``multiple_assignment_build`` 1) of 300 descriptors.
+
+    Attributes:
+        query_words: ``(Wq,)`` int64 ascending ids of the query's words.
+        query_bits: ``(Wq, ceil(d / 32))`` uint32 packed sign bits of the query's words.
+        build_words: ``(Wb,)`` int64 ascending ids of the stored image's words.
+        build_bits: ``(Wb, ceil(d / 32))`` uint32 packed sign bits of the stored image's.
+    """
+
+    query_words: np.ndarray
+    query_bits: np.ndarray
+    build_words: np.ndarray
+    build_bits: np.ndarray
+
+
 class Hit(NamedTuple):
     """One retrieved keyframe: its agent, its keyframe index and the ASMK similarity."""
 
@@ -226,7 +248,12 @@ class RetrievalDatabase:
 
     def _store(self, agent: int, keyframe: int, descriptors: np.ndarray, words: np.ndarray) -> None:
         """Aggregate the assigned descriptors and append them as the next asmk image."""
-        aggregated, unique_words = self._kernel.aggregate_image(descriptors, words)
+        self._store_aggregated(agent, keyframe, *self._kernel.aggregate_image(descriptors, words))
+
+    def _store_aggregated(
+        self, agent: int, keyframe: int, aggregated: np.ndarray, unique_words: np.ndarray
+    ) -> None:
+        """Append an aggregated image (``(W, ceil(d / 32))`` bits, ``(W,)`` words)."""
         image_ids = np.full(unique_words.shape[0], len(self._keys), dtype=np.int64)
         self._ivf.add(aggregated, unique_words, image_ids)
         self._index_of[(agent, keyframe)] = len(self._keys)
@@ -269,7 +296,10 @@ class RetrievalDatabase:
 
     def _scores_of(self, descriptors: np.ndarray, words: np.ndarray) -> np.ndarray:
         """``(len(self),)`` float64 ASMK similarity of the query to every stored image."""
-        aggregated, unique_words = self._kernel.aggregate_image(descriptors, words)
+        return self._scores_of_aggregated(*self._kernel.aggregate_image(descriptors, words))
+
+    def _scores_of_aggregated(self, aggregated: np.ndarray, unique_words: np.ndarray) -> np.ndarray:
+        """:meth:`_scores_of` of an aggregated query (``(W, ceil(d / 32))``, ``(W,)``)."""
         ranks, ranked_scores = self._ivf.search(
             aggregated, unique_words, similarity_func=self._similarity, topk=None
         )
@@ -366,6 +396,10 @@ class RetrievalDatabase:
         """
         if scope not in ("all", "own", "others"):
             raise InputError(f"query_and_add: scope {scope!r} is not 'all', 'own' or 'others'")
+        if isinstance(descriptors, Aggregated):
+            return self._query_and_add_aggregated(
+                agent, keyframe, descriptors, k, min_similarity, scope, exclude_keyframes
+            )
         ma_query, ma_build = (
             self.config.multiple_assignment_query,
             self.config.multiple_assignment_build,
@@ -385,4 +419,66 @@ class RetrievalDatabase:
                 exclude_keyframes,
             )
         self._store(int(agent), int(keyframe), array, words[:, :ma_build])
+        return hits
+
+    def aggregate(self, descriptors: Any) -> Aggregated:
+        """What this database reads of a keyframe (:class:`Aggregated`): ``(n, d)``
+        descriptors (numpy or torch) or their :meth:`quantize`, aggregated per word for a
+        query and for an add."""
+        config = self.config
+        array, words = self._words(
+            descriptors, max(config.multiple_assignment_query, config.multiple_assignment_build)
+        )
+        ma_query = min(config.multiple_assignment_query, self.codebook_size)
+        ma_build = min(config.multiple_assignment_build, self.codebook_size)
+        query_bits, query_words = self._kernel.aggregate_image(array, words[:, :ma_query])
+        build_bits, build_words = self._kernel.aggregate_image(array, words[:, :ma_build])
+        return Aggregated(
+            query_words.astype(np.int64), query_bits, build_words.astype(np.int64), build_bits
+        )
+
+    def _checked(self, words: Any, bits: Any, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """``(bits, words)`` of an :class:`Aggregated`'s half, or :class:`InputError`."""
+        words, bits = np.asarray(words), np.asarray(bits)
+        width = -(-self.dim // PACK_BITS)
+        if words.ndim != 1 or bits.shape != (words.shape[0], width) or bits.dtype != np.uint32:
+            raise InputError(
+                f"aggregated {name}: words {words.shape} and uint32 bits {bits.shape} "
+                f"({bits.dtype}), expected (W,) and (W, {width})"
+            )
+        if words.dtype.kind not in "iu" or not (
+            ((words >= 0) & (words < self.codebook_size)).all() and (np.diff(words) > 0).all()
+        ):
+            raise InputError(
+                f"aggregated {name}: words must be ascending integers in [0, {self.codebook_size})"
+            )
+        return bits, words.astype(np.int64)
+
+    def _query_and_add_aggregated(
+        self,
+        agent: int,
+        keyframe: int,
+        aggregated: Aggregated,
+        k: int | None,
+        min_similarity: float | None,
+        scope: str,
+        exclude_keyframes: Collection[tuple[int, int]],
+    ) -> list[Hit]:
+        """:meth:`query_and_add` of an :class:`Aggregated` keyframe."""
+        key = (int(agent), int(keyframe))
+        if key in self._index_of:
+            raise InputError(f"retrieval database: agent {key[0]} keyframe {key[1]} already added")
+        query = self._checked(aggregated.query_words, aggregated.query_bits, "query")
+        build = self._checked(aggregated.build_words, aggregated.build_bits, "build")
+        hits: list[Hit] = []
+        if self._keys:
+            hits = self._select(
+                self._scores_of_aggregated(*query),
+                k,
+                min_similarity,
+                key[0] if scope == "own" else None,
+                key[0] if scope == "others" else None,
+                exclude_keyframes,
+            )
+        self._store_aggregated(*key, *build)
         return hits
