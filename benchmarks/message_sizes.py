@@ -144,7 +144,7 @@ import lz4.frame
 import numpy as np
 import torch
 
-from como3r.config import Config
+from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
 from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import make_view, upsampling
@@ -157,6 +157,7 @@ from como3r.prior.mast3r.config import RELEASED_MODEL_STRING, parse_model_string
 from como3r.prior.mast3r.model import MASt3RNetwork
 from como3r.prior.mast3r.retrieval import DEFAULT_NFEAT, RetrievalHead
 from como3r.prior.mast3r.testing import seeded_network
+from como3r.prior.retrieval import RetrievalDatabase
 from como3r.prior.simulated import SimulatedPrior
 from como3r.runtime.ingest import received
 from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame
@@ -183,12 +184,11 @@ def _planes(raw: bytes, itemsize: int) -> bytes:
 
 
 def _keyframe_messages(
-    agent_path: Path, frames: int
+    agent_path: Path, frames: int, config: Config
 ) -> tuple[list[KeyframeMessage], list[Any], Any, tuple[int, int]]:
     """The simulated front-end's keyframe messages over the first ``frames`` frames (the
     first keyframe's left out), the views they were made from, the agent's final message
     and the network resolution ``(H, W)``."""
-    config = Config()
     agent = open_agent(agent_path)
     prior, codebook = build_prior(PriorSpec("simulated"), config, {0: agent})
     frontend = AgentFrontend(
@@ -215,21 +215,32 @@ def _keyframe_messages(
     return messages, views, final_report(frontend, 1.0, 0), shape
 
 
+def _released_size_database(config: Config, dim: int) -> RetrievalDatabase:
+    """An ASMK database of the released codebook's size (``retrieval.codebook_size``
+    seeded random unit centroids of ``dim``): what an agent aggregates its retrieval in."""
+    generator = np.random.default_rng(0)
+    centroids = generator.standard_normal((config.retrieval.codebook_size, dim), np.float32)
+    centroids /= np.linalg.norm(centroids, axis=1, keepdims=True)
+    return RetrievalDatabase(centroids, config.retrieval)
+
+
 def _mast3r_shaped(
-    message: KeyframeMessage, view: Any, network: MASt3RNetwork, head: RetrievalHead, config: Config
+    message: KeyframeMessage,
+    view: Any,
+    network: MASt3RNetwork,
+    head: RetrievalHead,
+    database: RetrievalDatabase,
 ) -> KeyframeMessage:
-    """``message`` with MASt3R's encoding, retrieval features and words (module docstring)."""
+    """``message`` with MASt3R's encoding and its retrieval as an agent with a codebook
+    sends it (module docstring)."""
     encoding = MASt3RPrior(network).encode(view)
-    descriptors, attention = head.features(encoding.tokens)
-    generator = np.random.default_rng(message.packet.kf_id)
-    words = generator.integers(
-        0,
-        config.retrieval.codebook_size,
-        (len(descriptors), config.retrieval.multiple_assignment_query),
-        dtype=np.int32,
-    )
+    descriptors, _ = head.features(encoding.tokens)
     packet = dataclasses.replace(
-        message.packet, encoding=encoding, retrieval=(descriptors, attention), retrieval_words=words
+        message.packet,
+        encoding=encoding,
+        retrieval=database.aggregate(descriptors),
+        retrieval_words=None,
+        codebook_id=None,
     )
     return dataclasses.replace(message, packet=packet)
 
@@ -302,15 +313,18 @@ def _reencode_cost(messages: list[KeyframeMessage], network: MASt3RNetwork, size
     )
 
 
-def part0(agent_paths: list[Path], frames: int, reencode: bool = True) -> None:
-    config = Config()
+def part0(
+    agent_paths: list[Path], frames: int, reencode: bool = True, config: Config | None = None
+) -> None:
+    config = Config() if config is None else config
     network = seeded_network(parse_model_string(RELEASED_MODEL_STRING), 0).eval()
     torch.manual_seed(0)
     head = RetrievalHead(network.config.enc_embed_dim, hdims=(1024,), nfeat=DEFAULT_NFEAT).eval()
+    database = _released_size_database(config, head.dim)
     columns, finals, stored = {}, {}, {}
     for path in agent_paths:
-        messages, views, final, (height, width) = _keyframe_messages(path, frames)
-        shaped = [_mast3r_shaped(m, v, network, head, config) for m, v in zip(messages, views)]
+        messages, views, final, (height, width) = _keyframe_messages(path, frames, config)
+        shaped = [_mast3r_shaped(m, v, network, head, database) for m, v in zip(messages, views)]
         size = f"{width}x{height}"
         # as sent to a coordinator that encodes the colours again (AgentTask.send_encoding)
         untokened = [_without_encoding(m) for m in shaped]
@@ -527,10 +541,29 @@ def main() -> None:
         action="store_true",
         help="leave out the coordinator's re-encode cost (one encoder run per keyframe)",
     )
+    parser.add_argument(
+        "--prior-model",
+        choices=("easy", "realistic", "v2"),
+        default=None,
+        help="simulated_prior.model of the front-end (default: the configuration's)",
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a configuration override of the front-end (e.g. tracking.self_calibration=false: "
+        "the paper's uncalibrated mode, its pointmaps on the prior's own rays); repeatable",
+    )
     args = parser.parse_args()
+    overrides = list(args.set)
+    if args.prior_model is not None:
+        overrides.append(f"simulated_prior.model={args.prior_model}")
+    config = apply_overrides(Config(), overrides)
     torch.set_num_threads(1)
     print(f"machine: {platform.processor() or platform.machine()}, torch threads 1")
-    part0(args.agent, args.frames, not args.skip_reencode)
+    print(f"simulated_prior.model {config.simulated_prior.model}; overrides {overrides or 'none'}")
+    part0(args.agent, args.frames, not args.skip_reencode, config)
     if args.parts_only:
         return
     arrays = part1(args.agent[0])

@@ -553,19 +553,32 @@ def test_aggregated_keyframes_give_the_hits_and_similarities_of_their_descriptor
     assert len(expected) > 0 and from_aggregates.keys == from_descriptors.keys
     probe = _view(bases[1], rng)
     np.testing.assert_array_equal(from_aggregates.scores(probe), from_descriptors.scores(probe))
+    np.testing.assert_array_equal(
+        from_aggregates.scores(sender.aggregate(probe)), from_descriptors.scores(probe)
+    )
+    # a resumed database adds the stored aggregates (their build half) as the descriptors
+    resumed = RetrievalDatabase(centroids, config)
+    for agent, keyframe, x in frames:
+        resumed.add(agent, keyframe, sender.aggregate(x))
+    np.testing.assert_array_equal(resumed.scores(probe), from_descriptors.scores(probe))
 
 
 def test_malformed_aggregates_rejected(team_db):
     db, bases, rng = team_db
     good = db.aggregate(_view(bases[0], rng))
-    wrong_words = good._replace(query_words=good.query_words[::-1].copy())
-    short_bits = good._replace(build_bits=good.build_bits[:, :-1])
-    out_of_range = good._replace(build_words=good.build_words + db.codebook_size)
+    replace = dataclasses.replace
+    wrong_words = replace(good, query_words=good.query_words[::-1].copy())
+    short_bits = replace(good, build_bits=good.build_bits[:, :-1])
+    out_of_range = replace(good, build_words=good.build_words + db.codebook_size)
+    other_codebook = replace(good, codebook_id="0" * 32)
     for bad, message in (
         (wrong_words, "ascending"),
         (short_bits, "uint32 bits"),
         (out_of_range, "ascending"),
+        (other_codebook, "same codebook"),
     ):
         with pytest.raises(InputError, match=message):
             db.query_and_add(5, 0, bad)
+        with pytest.raises(InputError, match=message):
+            db.add(5, 0, bad) if bad is not wrong_words else db.scores(bad)
     assert len(db) == 9  # nothing added

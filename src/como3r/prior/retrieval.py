@@ -27,6 +27,7 @@ from __future__ import annotations
 import functools
 import hashlib
 from collections.abc import Collection
+from dataclasses import dataclass
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
@@ -61,22 +62,29 @@ class Quantized(NamedTuple):
     words: np.ndarray
 
 
-class Aggregated(NamedTuple):
+@dataclass(frozen=True)
+class Aggregated:
     """A keyframe as binary ASMK stores and queries it (:meth:`RetrievalDatabase.aggregate`):
     for each visual word its descriptors are assigned to, the sign bits of the summed
     residuals to the word's centroid, packed as asmk packs them. Everything the database
-    reads of a keyframe: :meth:`RetrievalDatabase.query_and_add` with it gives the hits and
-    similarities of the descriptors themselves. At the released codebook's size (d = 1024)
-    a word is 128 bytes: about 1,000 words for a query (``multiple_assignment_query`` 5) and
-    300 for an add (``multiple_assignment_build`` 1) of 300 descriptors.
+    reads of a keyframe: :meth:`RetrievalDatabase.query_and_add` (and :meth:`~RetrievalDatabase.add`,
+    which reads the build half) with it gives the hits and similarities of the descriptors
+    themselves, in a database of the same codebook (``codebook_id``) and configuration. At
+    the released codebook's size (d = 1024) a word is 128 bytes: about 1,500 words for a
+    query (``multiple_assignment_query`` 5) and 300 for an add
+    (``multiple_assignment_build`` 1) of 300 random descriptors, fewer where descriptors
+    share words. An agent sends its keyframes' retrieval so (issue 39): the coordinator
+    reads nothing else of them.
 
     Attributes:
+        codebook_id: :func:`codebook_fingerprint` of the codebook the words index.
         query_words: ``(Wq,)`` int64 ascending ids of the query's words.
         query_bits: ``(Wq, ceil(d / 32))`` uint32 packed sign bits of the query's words.
         build_words: ``(Wb,)`` int64 ascending ids of the stored image's words.
         build_bits: ``(Wb, ceil(d / 32))`` uint32 packed sign bits of the stored image's.
     """
 
+    codebook_id: str
     query_words: np.ndarray
     query_bits: np.ndarray
     build_words: np.ndarray
@@ -264,9 +272,7 @@ class RetrievalDatabase:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Validate an image to add; return its descriptors as float32 numpy and their words
         (:meth:`_words`)."""
-        key = (int(agent), int(keyframe))
-        if key in self._index_of:
-            raise InputError(f"retrieval database: agent {key[0]} keyframe {key[1]} already added")
+        self._new_key(agent, keyframe)
         if attention is not None:
             n = np.shape(_unquantized(descriptors))[0]
             if tuple(np.shape(attention)) != (n,):
@@ -288,7 +294,13 @@ class RetrievalDatabase:
             attention: optional ``(n,)`` attention of the descriptors. Binary ASMK does not
                 weight descriptors (the head's top-k selection already used attention); it
                 is accepted so ``add(a, k, *prior.retrieval_features(enc))`` works.
+                An :class:`Aggregated` keyframe is added by its build half (``attention``
+                None).
         """
+        if isinstance(descriptors, Aggregated):
+            key = self._new_key(agent, keyframe)
+            self._store_aggregated(*key, *self._checked(descriptors, "build"))
+            return
         array, words = self._prepare(
             agent, keyframe, descriptors, attention, self.config.multiple_assignment_build
         )
@@ -311,11 +323,15 @@ class RetrievalDatabase:
         """ASMK similarity of a query image to every stored image.
 
         Args:
-            descriptors: ``(n, d)`` query descriptors, or their :meth:`quantize`.
+            descriptors: ``(n, d)`` query descriptors, or their :meth:`quantize` or
+                :meth:`aggregate` (its query half).
 
         Returns:
             ``(len(self),)`` float64 scores in insertion order (see :attr:`keys`).
         """
+        if isinstance(descriptors, Aggregated):
+            query = self._checked(descriptors, "query")
+            return self._scores_of_aggregated(*query) if self._keys else np.zeros(0)
         if not self._keys:  # validated, not quantised
             as_descriptor_array(_unquantized(descriptors), "descriptors", self.dim)
             return np.zeros(0, dtype=np.float64)
@@ -434,23 +450,35 @@ class RetrievalDatabase:
         query_bits, query_words = self._kernel.aggregate_image(array, words[:, :ma_query])
         build_bits, build_words = self._kernel.aggregate_image(array, words[:, :ma_build])
         return Aggregated(
-            query_words.astype(np.int64), query_bits, build_words.astype(np.int64), build_bits
+            self.codebook_id,
+            query_words.astype(np.int64),
+            query_bits,
+            build_words.astype(np.int64),
+            build_bits,
         )
 
-    def _checked(self, words: Any, bits: Any, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """``(bits, words)`` of an :class:`Aggregated`'s half, or :class:`InputError`."""
-        words, bits = np.asarray(words), np.asarray(bits)
+    def _checked(
+        self, aggregated: Aggregated, half: Literal["query", "build"]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(bits, words)`` of one half of an :class:`Aggregated`, or :class:`InputError`
+        (another codebook's, or malformed)."""
+        if aggregated.codebook_id != self.codebook_id:
+            raise InputError(
+                f"aggregated retrieval of codebook {aggregated.codebook_id}, this database's "
+                f"is {self.codebook_id}: give every process the same codebook"
+            )
+        words, bits = (np.asarray(getattr(aggregated, f"{half}_{n}")) for n in ("words", "bits"))
         width = -(-self.dim // PACK_BITS)
         if words.ndim != 1 or bits.shape != (words.shape[0], width) or bits.dtype != np.uint32:
             raise InputError(
-                f"aggregated {name}: words {words.shape} and uint32 bits {bits.shape} "
+                f"aggregated {half}: words {words.shape} and uint32 bits {bits.shape} "
                 f"({bits.dtype}), expected (W,) and (W, {width})"
             )
         if words.dtype.kind not in "iu" or not (
             ((words >= 0) & (words < self.codebook_size)).all() and (np.diff(words) > 0).all()
         ):
             raise InputError(
-                f"aggregated {name}: words must be ascending integers in [0, {self.codebook_size})"
+                f"aggregated {half}: words must be ascending integers in [0, {self.codebook_size})"
             )
         return bits, words.astype(np.int64)
 
@@ -465,11 +493,9 @@ class RetrievalDatabase:
         exclude_keyframes: Collection[tuple[int, int]],
     ) -> list[Hit]:
         """:meth:`query_and_add` of an :class:`Aggregated` keyframe."""
-        key = (int(agent), int(keyframe))
-        if key in self._index_of:
-            raise InputError(f"retrieval database: agent {key[0]} keyframe {key[1]} already added")
-        query = self._checked(aggregated.query_words, aggregated.query_bits, "query")
-        build = self._checked(aggregated.build_words, aggregated.build_bits, "build")
+        key = self._new_key(agent, keyframe)
+        query = self._checked(aggregated, "query")
+        build = self._checked(aggregated, "build")
         hits: list[Hit] = []
         if self._keys:
             hits = self._select(
@@ -482,3 +508,10 @@ class RetrievalDatabase:
             )
         self._store_aggregated(*key, *build)
         return hits
+
+    def _new_key(self, agent: int, keyframe: int) -> tuple[int, int]:
+        """``(agent, keyframe)`` as ints, or :class:`InputError` where it is stored already."""
+        key = (int(agent), int(keyframe))
+        if key in self._index_of:
+            raise InputError(f"retrieval database: agent {key[0]} keyframe {key[1]} already added")
+        return key
