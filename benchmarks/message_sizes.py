@@ -113,23 +113,24 @@ method 3 and Zstandard level 6 on the planes (``transport/codec_compact.py``,
 (simulated, lossy: 14694.0 -> 14374.9 at 512x384, 10899.3 -> 10655.3 at 512x288; the
 agent's final message 292.0 -> 167.9 kB at 512x384, 228.3 -> 130.9 at 512x288. Merged ATE
 of ``tests/transport/test_lossy_run.py``'s scene lossy against exact: +0.018 %.)
-With the retrieval as its ASMK aggregate (packet version 5), lossy, kB per keyframe, MASt3R
-shapes without tokens at 512x384, the front-end under each ``--prior-model`` (default
-self-calibration / ``--set tracking.self_calibration=false``)::
+With the retrieval as its ASMK aggregate (packet version 5; across machines the build half
+against the query half), lossy, kB per keyframe, MASt3R shapes without tokens at 512x384,
+the front-end under each ``--prior-model`` (default self-calibration / ``--set
+tracking.self_calibration=false``; the parts but the retrieval from ``--simulated-only``)::
 
     part                   realistic     v2   realistic uncal.   v2 uncal.
     pointmap                   104.3  104.2            164.2       164.3
     confidences                 53.9   54.2             53.9        54.2
     colours                    169.0  173.3            169.0       173.3
     retrieval before           287.1  287.1            287.1       287.1
-    retrieval after            230.3  230.3            230.3       230.3
+    retrieval after            192.2  192.2            192.2       192.2
     sequential_matches         223.8  258.2            211.0       213.1
     previous_refresh           156.3  158.1            217.2       218.3
-    total before               994.9 1035.9           1103.2      1111.1
-    total after                938.1  979.1           1046.4      1054.3
+    total before               994.9 1035.7           1103.0      1110.9
+    total after                900.0  940.8           1008.1      1016.0
 
 (retrieval before: 8-bit descriptors 284.0 and words 3.1; after: 1483 query and 299 build
-words of 300 independent descriptors.)
+words of 300 independent descriptors, 230.3 kB with both halves whole.)
 ``--skip-reencode`` leaves the coordinator's re-encode cost out (half the run);
 ``--simulated-only`` measures the simulated front-end's messages alone (no network).
 

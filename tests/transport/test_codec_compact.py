@@ -312,3 +312,34 @@ def test_inter_matches_keep_their_q_in_finer_steps() -> None:
     for bad in ({**wire, "q_bits": 9}, {k: v for k, v in wire.items() if k != "q_bits"}):
         with pytest.raises(MessageError):
             coded_from_wire(bad, "x", Budget(2**40))
+
+
+def test_an_aggregate_travels_losslessly_with_its_build_bits_against_the_querys() -> None:
+    """A keyframe's ASMK aggregate on the lossy wire: bit for bit, the build words as a mask
+    over the query's and only the build bits that differ from the query's sent."""
+    from como3r.config import RetrievalConfig
+    from como3r.prior.retrieval import Aggregated, RetrievalDatabase
+
+    rng = _rng(7)
+    database = RetrievalDatabase(rng.normal(size=(512, 64)).astype(np.float32), RetrievalConfig())
+    aggregated = database.aggregate(rng.normal(size=(40, 64)).astype(np.float32))
+    back = _round_trip("retrieval", aggregated)
+    assert isinstance(back, Aggregated) and back.codebook_id == aggregated.codebook_id
+    for name in ("query_words", "query_bits", "build_words", "build_bits"):
+        a, b = getattr(aggregated, name), getattr(back, name)
+        assert a.dtype == b.dtype and np.array_equal(a, b), name
+    wire = coded_to_wire("retrieval", aggregated)
+    assert wire is not None
+    same = len(aggregated.build_words) - len(wire["build_bits"]) // (4 * wire["width"])
+    assert same > 0  # words whose build bits are the query's travel once
+    bad = [
+        {**wire, "query_bits": wire["query_bits"][:-4]},
+        {**wire, "build_bits": wire["build_bits"] + b"\0\0\0\0"},
+        {**wire, "width": 0},
+        {**wire, "same": b"garbage"},
+    ]
+    for body in bad:
+        with pytest.raises(MessageError):
+            coded_from_wire(body, "x", Budget(2**40))
+    outside = dataclasses.replace(aggregated, build_words=aggregated.build_words + 10**6)
+    assert coded_to_wire("retrieval", outside) is None  # travels as the object it is

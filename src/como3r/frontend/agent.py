@@ -402,7 +402,7 @@ class AgentFrontend(KeyframeLinking, Relocalization):
         retrieval = kf.retrieval
         if self.database is not None and retrieval is not None:
             # what the coordinator's binary ASMK reads of the descriptors, and all it reads
-            # of them: per-word sign bits, a fifth smaller at MASt3R's shapes (issue 39);
+            # of them: per-word sign bits, a third smaller at MASt3R's shapes (issue 39);
             # words quantised again only for a keyframe exported again
             descriptors = retrieval[0] if words is None else Quantized(retrieval[0], words)
             retrieval = self.database.aggregate(descriptors)

@@ -66,7 +66,7 @@ class KeyframePacket:
             :mod:`como3r.coordination.encodings`).
         retrieval: ``(descriptors (N, d_r), attention (N,))``, or what the coordinator's
             binary ASMK reads of them (:class:`~como3r.prior.retrieval.Aggregated`, which an
-            agent with a codebook sends: a quarter smaller at MASt3R's shapes), or None
+            agent with a codebook sends: a third smaller at MASt3R's shapes), or None
             without retrieval.
         sequential_ij: matches of the edge (kf_id - 1, kf_id), None for the first keyframe.
         sequential_ji: matches of the edge (kf_id, kf_id - 1).

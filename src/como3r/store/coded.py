@@ -75,9 +75,10 @@ class StoredImage:
 
 @dataclass(frozen=True)
 class StoredRetrieval:
-    """A keyframe's retrieval features ``(descriptors (N, d), attention (N,))``."""
+    """A keyframe's retrieval features ``(descriptors (N, d), attention (N,))``, or their
+    :class:`~como3r.prior.retrieval.Aggregated` (format 6)."""
 
-    retrieval: tuple[Tensor, Tensor]
+    retrieval: tuple[Tensor, Tensor] | Aggregated
 
 
 @dataclass(frozen=True)
@@ -132,6 +133,8 @@ def _arrays(obj: Any) -> list[Tensor]:
     if isinstance(obj, StoredImage):
         return [torch.from_numpy(np.array(obj.colors))]  # decoded images may be read-only
     if isinstance(obj, StoredRetrieval):
+        if isinstance(obj.retrieval, Aggregated):
+            raise StoreError("retrieval aggregate: not arrays (read it with unpack_retrieval)")
         return list(obj.retrieval)
     return [getattr(m, f) for m in (obj.ij, obj.ji) for f in ("idx", "valid", "q")]
 
@@ -188,7 +191,7 @@ def pack_retrieval(retrieval: tuple[Tensor, Tensor] | Aggregated) -> bytes:
     """A keyframe's retrieval blob: its descriptors and attention, or their
     :class:`~como3r.prior.retrieval.Aggregated` (an object blob, exact: since format 6)."""
     if isinstance(retrieval, Aggregated):
-        return code(retrieval)[0]
+        return code(StoredRetrieval(retrieval))[0]  # lossless
     return pack_exact(StoredRetrieval(tuple(retrieval)), *retrieval)  # type: ignore[arg-type]
 
 
@@ -199,9 +202,9 @@ def unpack_retrieval(blob: bytes, what: str) -> tuple[Tensor, Tensor] | Aggregat
         StoreError: not such a blob, or damaged.
     """
     if bytes(blob[:4]) == OBJECT_MAGIC:
-        obj = unpack_object(blob, (*STORED_TYPES, Aggregated), what)
-        if isinstance(obj, Aggregated):
-            return obj
+        obj = unpack_object(blob, STORED_TYPES, what)
+        if isinstance(obj, StoredRetrieval) and isinstance(obj.retrieval, Aggregated):
+            return obj.retrieval
         arrays = _arrays(obj)
     else:
         arrays = unpack_arrays(blob, what)
