@@ -8,9 +8,16 @@ exact (pipes on one machine) and lossy (zenoh, across machines), and averaged. T
 messages with MASt3R's shapes: the encoding replaced by the full-size network's (ViT-L, the
 released checkpoint's configuration, seeded random weights: sizes, not values, are what
 they say; trained tokens may compress differently), the retrieval features by a released-
-size retrieval head's (300 descriptors of 1024 dimensions, seeded random weights) and the
-retrieval words by 300 x ``multiple_assignment_query`` random word ids of the released
-codebook's size (incompressible: an upper bound). Pointmaps, confidences, colours and
+size retrieval head's (300 descriptors of 1024 dimensions, seeded random weights) as an
+agent with a codebook sends them since packet version 5: their ASMK aggregate
+(:class:`~como3r.prior.retrieval.Aggregated`) in a codebook of the released size (65,536
+seeded random unit centroids), of 300 seeded random unit descriptors in place of the
+head's (which with random weights fall on a few words): independent descriptors share few
+of their 5 nearest words, an upper bound; trained descriptors share more. Before, the descriptors in 8 bits and
+300 x ``multiple_assignment_query`` random word ids. ``--prior-model`` and ``--set
+KEY=VALUE`` configure the simulated front-end (the prior's error model; e.g.
+``tracking.self_calibration=false``, the paper's uncalibrated mode, whose pointmaps keep
+the prior's own rays). Pointmaps, confidences, colours and
 matches are the simulated front-end's (MASt3R's have the same shapes and dtypes). The
 agent's final message (``AgentFinished``) is measured once per run. No message carries
 thumbnails. Then the blobs the session store writes as each keyframe arrives.
@@ -106,7 +113,28 @@ method 3 and Zstandard level 6 on the planes (``transport/codec_compact.py``,
 (simulated, lossy: 14694.0 -> 14374.9 at 512x384, 10899.3 -> 10655.3 at 512x288; the
 agent's final message 292.0 -> 167.9 kB at 512x384, 228.3 -> 130.9 at 512x288. Merged ATE
 of ``tests/transport/test_lossy_run.py``'s scene lossy against exact: +0.018 %.)
-``--skip-reencode`` leaves the coordinator's re-encode cost out (half the run).
+With the retrieval as its ASMK aggregate (packet version 5; across machines the build half
+against the query half), lossy, kB per keyframe, MASt3R shapes without tokens at 512x384,
+the front-end under each ``--prior-model`` (default self-calibration / ``--set
+tracking.self_calibration=false``; the parts but the retrieval from ``--simulated-only``)::
+
+    part                   realistic     v2   realistic uncal.   v2 uncal.
+    pointmap                   104.3  104.2            164.2       164.3
+    confidences                 53.9   54.2             53.9        54.2
+    colours                    169.0  173.3            169.0       173.3
+    retrieval before           287.1  287.1            287.1       287.1
+    retrieval after            192.2  192.2            192.2       192.2
+    sequential_matches         223.8  258.2            211.0       213.1
+    previous_refresh           156.3  158.1            217.2       218.3
+    total before               994.9 1035.7           1103.0      1110.9
+    total after                900.1  940.8           1008.1      1016.0
+
+(retrieval before: 8-bit descriptors 284.0 and words 3.1; after: 1483 query and 299 build
+words of 300 independent descriptors, 230.3 kB with both halves whole; the realistic total
+measured whole, the others summed. The store as a keyframe arrives, MASt3R no tokens:
+838.0 -> 746.3 kB, retrieval 284.0 -> 192.3.)
+``--skip-reencode`` leaves the coordinator's re-encode cost out (half the run);
+``--simulated-only`` measures the simulated front-end's messages alone (no network).
 
 Part 1, payloads at 512x384 (the default ``input.long_side``): the arrays of a simulated
 encoding and of a decoded pair (as the simulated prior makes them from a synthetic view),
@@ -144,7 +172,7 @@ import lz4.frame
 import numpy as np
 import torch
 
-from como3r.config import Config
+from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
 from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import make_view, upsampling
@@ -157,6 +185,7 @@ from como3r.prior.mast3r.config import RELEASED_MODEL_STRING, parse_model_string
 from como3r.prior.mast3r.model import MASt3RNetwork
 from como3r.prior.mast3r.retrieval import DEFAULT_NFEAT, RetrievalHead
 from como3r.prior.mast3r.testing import seeded_network
+from como3r.prior.retrieval import Aggregated, RetrievalDatabase
 from como3r.prior.simulated import SimulatedPrior
 from como3r.runtime.ingest import received
 from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame
@@ -183,12 +212,11 @@ def _planes(raw: bytes, itemsize: int) -> bytes:
 
 
 def _keyframe_messages(
-    agent_path: Path, frames: int
+    agent_path: Path, frames: int, config: Config
 ) -> tuple[list[KeyframeMessage], list[Any], Any, tuple[int, int]]:
     """The simulated front-end's keyframe messages over the first ``frames`` frames (the
     first keyframe's left out), the views they were made from, the agent's final message
     and the network resolution ``(H, W)``."""
-    config = Config()
     agent = open_agent(agent_path)
     prior, codebook = build_prior(PriorSpec("simulated"), config, {0: agent})
     frontend = AgentFrontend(
@@ -215,23 +243,44 @@ def _keyframe_messages(
     return messages, views, final_report(frontend, 1.0, 0), shape
 
 
+def _released_size_database(config: Config, dim: int) -> RetrievalDatabase:
+    """An ASMK database of the released codebook's size (``retrieval.codebook_size``
+    seeded random unit centroids of ``dim``): what an agent aggregates its retrieval in."""
+    generator = np.random.default_rng(0)
+    centroids = generator.standard_normal((config.retrieval.codebook_size, dim), np.float32)
+    centroids /= np.linalg.norm(centroids, axis=1, keepdims=True)
+    return RetrievalDatabase(centroids, config.retrieval)
+
+
 def _mast3r_shaped(
-    message: KeyframeMessage, view: Any, network: MASt3RNetwork, head: RetrievalHead, config: Config
+    message: KeyframeMessage,
+    view: Any,
+    network: MASt3RNetwork,
+    head: RetrievalHead,
+    database: RetrievalDatabase,
 ) -> KeyframeMessage:
-    """``message`` with MASt3R's encoding, retrieval features and words (module docstring)."""
+    """``message`` with MASt3R's encoding and its retrieval as an agent with a codebook
+    sends it (module docstring)."""
     encoding = MASt3RPrior(network).encode(view)
-    descriptors, attention = head.features(encoding.tokens)
-    generator = np.random.default_rng(message.packet.kf_id)
-    words = generator.integers(
-        0,
-        config.retrieval.codebook_size,
-        (len(descriptors), config.retrieval.multiple_assignment_query),
-        dtype=np.int32,
-    )
+    descriptors, _ = head.features(encoding.tokens)
     packet = dataclasses.replace(
-        message.packet, encoding=encoding, retrieval=(descriptors, attention), retrieval_words=words
+        message.packet,
+        encoding=encoding,
+        retrieval=_aggregated(descriptors.shape[0], message.packet.kf_id, database),
+        retrieval_words=None,
+        codebook_id=None,
     )
     return dataclasses.replace(message, packet=packet)
+
+
+def _aggregated(count: int, seed: int, database: RetrievalDatabase) -> Aggregated:
+    """The aggregate of ``count`` seeded random unit descriptors: an upper bound of what an
+    agent sends (a random head's descriptors of one image fall on a few words: 3.6 kB;
+    independent ones on about ``count`` x ``multiple_assignment_query`` + ``count``)."""
+    generator = np.random.default_rng(seed)
+    descriptors = generator.standard_normal((count, database.dim), np.float32)
+    descriptors /= np.linalg.norm(descriptors, axis=1, keepdims=True)
+    return database.aggregate(descriptors)
 
 
 def _mean_parts(messages: list[Any], lossy: bool) -> dict[str, float]:
@@ -302,33 +351,44 @@ def _reencode_cost(messages: list[KeyframeMessage], network: MASt3RNetwork, size
     )
 
 
-def part0(agent_paths: list[Path], frames: int, reencode: bool = True) -> None:
-    config = Config()
-    network = seeded_network(parse_model_string(RELEASED_MODEL_STRING), 0).eval()
-    torch.manual_seed(0)
-    head = RetrievalHead(network.config.enc_embed_dim, hdims=(1024,), nfeat=DEFAULT_NFEAT).eval()
+def part0(
+    agent_paths: list[Path],
+    frames: int,
+    reencode: bool = True,
+    config: Config | None = None,
+    mast3r: bool = True,
+) -> None:
+    """The parts (module docstring); without ``mast3r`` the simulated front-end's messages
+    only (their pointmaps, confidences, colours and matches are the MASt3R-shaped ones')."""
+    config = Config() if config is None else config
+    if mast3r:
+        network = seeded_network(parse_model_string(RELEASED_MODEL_STRING), 0).eval()
+        torch.manual_seed(0)
+        head = RetrievalHead(
+            network.config.enc_embed_dim, hdims=(1024,), nfeat=DEFAULT_NFEAT
+        ).eval()
+        database = _released_size_database(config, head.dim)
     columns, finals, stored = {}, {}, {}
     for path in agent_paths:
-        messages, views, final, (height, width) = _keyframe_messages(path, frames)
-        shaped = [_mast3r_shaped(m, v, network, head, config) for m, v in zip(messages, views)]
+        messages, views, final, (height, width) = _keyframe_messages(path, frames, config)
         size = f"{width}x{height}"
-        # as sent to a coordinator that encodes the colours again (AgentTask.send_encoding)
-        untokened = [_without_encoding(m) for m in shaped]
-        if reencode:
-            _reencode_cost(shaped, network, size)
-        for prior, batch in (
-            ("MASt3R", shaped),
-            ("MASt3R no tokens", untokened),
-            ("simulated", messages),
-        ):
+        batches = [("simulated", messages)]
+        if mast3r:
+            shaped = [
+                _mast3r_shaped(m, v, network, head, database) for m, v in zip(messages, views)
+            ]
+            # as sent to a coordinator that encodes the colours again (AgentTask.send_encoding)
+            untokened = [_without_encoding(m) for m in shaped]
+            if reencode:
+                _reencode_cost(shaped, network, size)
+            batches[:0] = [("MASt3R", shaped), ("MASt3R no tokens", untokened)]
+            stored[f"MASt3R {size}"] = _stored_parts(shaped)
+            stored[f"MASt3R no tokens {size}"] = _stored_parts(untokened)
+        for prior, batch in batches:
             for lossy in (False, True):
                 label = f"{prior} {size} {'lossy' if lossy else 'exact'}"
                 columns[label] = _mean_parts(batch, lossy)
         finals[size] = {lossy: len(codec.encode(final, lossy=lossy)) for lossy in (False, True)}
-        stored[f"MASt3R {size}"], stored[f"MASt3R no tokens {size}"] = (
-            _stored_parts(shaped),
-            _stored_parts(untokened),
-        )
         stored[f"simulated {size}"] = _stored_parts(messages)
         print(f"{path}: {len(messages)} keyframe messages measured ({size})")
     print("\nbytes per keyframe message per part [kB] (exact: pipes; lossy: zenoh)")
@@ -527,11 +587,36 @@ def main() -> None:
         action="store_true",
         help="leave out the coordinator's re-encode cost (one encoder run per keyframe)",
     )
+    parser.add_argument(
+        "--simulated-only",
+        action="store_true",
+        help="part 0 with the simulated front-end's messages only (no MASt3R network: a "
+        "minute; pointmaps, confidences, colours and matches are the MASt3R-shaped ones')",
+    )
+    parser.add_argument(
+        "--prior-model",
+        choices=("easy", "realistic", "v2"),
+        default=None,
+        help="simulated_prior.model of the front-end (default: the configuration's)",
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a configuration override of the front-end (e.g. tracking.self_calibration=false: "
+        "the paper's uncalibrated mode, its pointmaps on the prior's own rays); repeatable",
+    )
     args = parser.parse_args()
+    overrides = list(args.set)
+    if args.prior_model is not None:
+        overrides.append(f"simulated_prior.model={args.prior_model}")
+    config = apply_overrides(Config(), overrides)
     torch.set_num_threads(1)
     print(f"machine: {platform.processor() or platform.machine()}, torch threads 1")
-    part0(args.agent, args.frames, not args.skip_reencode)
-    if args.parts_only:
+    print(f"simulated_prior.model {config.simulated_prior.model}; overrides {overrides or 'none'}")
+    part0(args.agent, args.frames, not args.skip_reencode, config, not args.simulated_only)
+    if args.parts_only or args.simulated_only:
         return
     arrays = part1(args.agent[0])
     part2(arrays["MASt3R tokens float32"])

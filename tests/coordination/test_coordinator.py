@@ -9,6 +9,7 @@ the meetings, undo the gauges and optimize; the front-end itself is tested elsew
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -504,9 +505,13 @@ def _retrieval_hits(scene: Scene, order: list[KeyframePacket], monkeypatch) -> t
 
 
 @pytest.mark.slow
-def test_the_agents_retrieval_words_spare_the_coordinators_search(ring, monkeypatch) -> None:
+def test_the_agents_retrieval_words_spare_the_coordinators_search(
+    ring, monkeypatch, caplog
+) -> None:
     """Words quantised by an agent with the same codebook are taken, not searched again,
-    with the same hits; another codebook's are not."""
+    with the same hits; another codebook's are not. Aggregates (as agents with a codebook
+    send their retrieval) give the same hits without a search; another codebook's are
+    skipped with a warning."""
     order = _interleave(ring, [0, 1])
     agents_database = RetrievalDatabase(ring.prior.codebook(), ring.config.retrieval)
     with_words = [
@@ -522,6 +527,22 @@ def test_the_agents_retrieval_words_spare_the_coordinators_search(ring, monkeypa
     assert _retrieval_hits(ring, with_words, monkeypatch) == (hits, 0)
     other = [dataclasses.replace(p, codebook_id="0" * 32) for p in with_words]
     assert _retrieval_hits(ring, other, monkeypatch) == (hits, len(order))
+    # as an agent with the codebook sends them: what the ASMK reads of them, the same hits
+    aggregated = [
+        dataclasses.replace(p, retrieval=agents_database.aggregate(p.retrieval[0])) for p in order
+    ]
+    assert _retrieval_hits(ring, aggregated, monkeypatch) == (hits, 0)
+    # another codebook's aggregates are not retrieved (nor indexed), and the log says so
+    foreign = [
+        dataclasses.replace(p, retrieval=dataclasses.replace(p.retrieval, codebook_id="0" * 32))
+        for p in aggregated[:2]
+    ]
+    coordinator = Coordinator(ring.prior, ring.config, ring.prior.codebook(), 4)
+    with caplog.at_level(logging.WARNING, "como3r.coordination.coordinator"):
+        for packet in foreign:
+            coordinator.add_keyframe(packet)
+    assert len(coordinator.retrieval.database) == 0
+    assert caplog.text.count("retrieval aggregated in another codebook") == 2
 
 
 def test_bad_packets_are_refused(ring) -> None:

@@ -161,14 +161,16 @@ def test_a_keyframe_is_quantised_once(long_agent, monkeypatch) -> None:
     assert "lost" not in outcomes.values() and frontend.config.loop_closure
     assert len(frontend.keyframes) >= 3
     packets = list(frontend.drain_new_keyframes())
-    assert len(searched) == len(frontend.keyframes)  # one search each (two before)
+    # one search each (two before), none again for the packets: their retrieval travels
+    # to the coordinator aggregated from the words of that search
+    assert len(searched) == len(frontend.keyframes)
     database = frontend.database
-    for packet in packets:  # their words travel to the coordinator
-        assert packet.codebook_id == database.codebook_id
-        assert packet.retrieval_words.dtype == np.int32
-        np.testing.assert_array_equal(
-            packet.retrieval_words, database.quantize(packet.retrieval[0]).words
-        )
+    for packet in packets:
+        assert packet.retrieval_words is None
+        expected = database.aggregate(frontend.keyframes[packet.kf_id].retrieval[0])
+        assert packet.retrieval.codebook_id == expected.codebook_id == database.codebook_id
+        for name in ("query_words", "query_bits", "build_words", "build_bits"):
+            np.testing.assert_array_equal(getattr(packet.retrieval, name), getattr(expected, name))
 
 
 def test_lost_frame_is_reported_and_tracking_relocalizes(long_agent) -> None:

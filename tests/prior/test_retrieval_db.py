@@ -21,7 +21,13 @@ import torch
 from como3r.config import RetrievalConfig
 from como3r.errors import CheckpointError, ConfigError, InputError
 from como3r.prior.codebook import load_codebook, train_codebook
-from como3r.prior.retrieval import Hit, Quantized, RetrievalDatabase, nearest_words
+from como3r.prior.retrieval import (
+    Aggregated,
+    Hit,
+    Quantized,
+    RetrievalDatabase,
+    nearest_words,
+)
 
 K_WORDS = 16
 
@@ -519,3 +525,60 @@ def test_config_fields_are_the_spec_parameters():
     assert values["binary"] is True and values["use_idf"] is False
     assert (values["alpha"], values["similarity_threshold_asmk"]) == (3.0, 0.0)
     assert (values["multiple_assignment_build"], values["multiple_assignment_query"]) == (1, 5)
+
+
+@pytest.mark.parametrize("name", list(CONFIGS))
+def test_aggregated_keyframes_give_the_hits_and_similarities_of_their_descriptors(name):
+    """A keyframe sent as what binary ASMK reads of it (the per-word sign bits of its
+    residual sums, :meth:`RetrievalDatabase.aggregate`, as another process with the same
+    codebook makes them) is retrieved, and retrieves, exactly as its descriptors."""
+    config = CONFIGS[name]
+    rng = np.random.default_rng(21)
+    centroids, bases = _places(32, 3, seed=22)
+    frames = [(i % 3, i, _view(bases[i % 3], rng)) for i in range(8)]
+    sender = RetrievalDatabase(centroids, config)  # the agent's: a codebook, no images
+    from_descriptors = RetrievalDatabase(centroids, config)
+    from_aggregates = RetrievalDatabase(centroids, config)
+    for agent, keyframe, x in frames:
+        aggregated = sender.aggregate(x)
+        assert isinstance(aggregated, Aggregated)
+        assert aggregated.build_words.shape[0] <= aggregated.query_words.shape[0]
+        expected = from_descriptors.query_and_add(
+            agent, keyframe, x, k=4, min_similarity=-1.0, scope="others"
+        )
+        hits = from_aggregates.query_and_add(
+            agent, keyframe, aggregated, k=4, min_similarity=-1.0, scope="others"
+        )
+        assert hits == expected
+    assert len(expected) > 0 and from_aggregates.keys == from_descriptors.keys
+    probe = _view(bases[1], rng)
+    np.testing.assert_array_equal(from_aggregates.scores(probe), from_descriptors.scores(probe))
+    np.testing.assert_array_equal(
+        from_aggregates.scores(sender.aggregate(probe)), from_descriptors.scores(probe)
+    )
+    # a resumed database adds the stored aggregates (their build half) as the descriptors
+    resumed = RetrievalDatabase(centroids, config)
+    for agent, keyframe, x in frames:
+        resumed.add(agent, keyframe, sender.aggregate(x))
+    np.testing.assert_array_equal(resumed.scores(probe), from_descriptors.scores(probe))
+
+
+def test_malformed_aggregates_rejected(team_db):
+    db, bases, rng = team_db
+    good = db.aggregate(_view(bases[0], rng))
+    replace = dataclasses.replace
+    wrong_words = replace(good, query_words=good.query_words[::-1].copy())
+    short_bits = replace(good, build_bits=good.build_bits[:, :-1])
+    out_of_range = replace(good, build_words=good.build_words + db.codebook_size)
+    other_codebook = replace(good, codebook_id="0" * 32)
+    for bad, message in (
+        (wrong_words, "ascending"),
+        (short_bits, "uint32 bits"),
+        (out_of_range, "ascending"),
+        (other_codebook, "same codebook"),
+    ):
+        with pytest.raises(InputError, match=message):
+            db.query_and_add(5, 0, bad)
+        with pytest.raises(InputError, match=message):
+            db.add(5, 0, bad) if bad is not wrong_words else db.scores(bad)
+    assert len(db) == 9  # nothing added

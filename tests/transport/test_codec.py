@@ -23,6 +23,7 @@ from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches
 from como3r.live import FrameEvent
 from como3r.prior.mast3r.prior import MASt3REncoding
+from como3r.prior.retrieval import Aggregated
 from como3r.prior.simulated import SimulatedEncoding
 from como3r.prior.simulated_record import SimulatedTruthRecord
 from como3r.transport import codec, codec_compact, codec_registry
@@ -166,8 +167,21 @@ def _finished() -> messages.AgentFinished:
     )
 
 
+def _aggregated() -> Aggregated:
+    """Per-word sign bits of 7 query and 3 build words of a 64-bit descriptor."""
+    rng = np.random.default_rng(4)
+    return Aggregated(
+        "0123456789abcdef" * 2,
+        np.array([0, 2, 3, 9, 40, 41, 70000], np.int64),
+        rng.integers(0, 2**32, (7, 2), dtype=np.uint32),
+        np.array([2, 9, 41], np.int64),
+        rng.integers(0, 2**32, (3, 2), dtype=np.uint32),
+    )
+
+
 SAMPLES: dict[str, Callable[[], Any]] = {
     "KeyframePacket": _packet,
+    "Aggregated": _aggregated,
     "PointmapRefresh": _refresh,
     "PoseUpdate": _pose_update,
     "DirectedMatches": lambda: _matches(8),

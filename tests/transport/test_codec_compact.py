@@ -26,7 +26,7 @@ from como3r.transport.codec_compact import (
     coded_from_wire,
     coded_to_wire,
 )
-from como3r.transport.codec_planes import pack_steps, unpack_steps
+from como3r.transport.codec_planes import pack_ints, pack_steps, unpack_steps
 
 H, W = 48, 64
 
@@ -150,6 +150,21 @@ def test_retrieval_descriptors_in_eight_bits_with_a_scale_per_descriptor() -> No
     step = descriptors.abs().amax(1, keepdim=True) / 127
     assert bool(((back_d - descriptors).abs() <= step / 2 + 1e-7).all())
     torch.testing.assert_close(back_a, attention, rtol=2**-11, atol=0)
+
+
+def test_ascending_ids_are_lossless_and_others_travel_as_before() -> None:
+    ids = np.array([0, 1, 7, 300, 65535, 70000, 2**30], np.int64)
+    for value in (ids, ids[:0], ids[3:4]):
+        back = _round_trip("ascending", value)
+        assert back.dtype == np.int64 and np.array_equal(back, value)
+    for value in (ids[::-1].copy(), ids.astype(np.int32), ids - 1, np.array([2, 2], np.int64)):
+        assert coded_to_wire("ascending", value) is None
+    wire = coded_to_wire("ascending", ids)
+    assert wire is not None
+    descending = {**wire, "count": 2, "steps": pack_ints(np.array([5, -1], np.int64))}
+    for bad in ({**wire, "count": -1}, {**wire, "count": 3}, descending):
+        with pytest.raises(MessageError):
+            coded_from_wire(bad, "x", Budget(2**40))
 
 
 def test_values_a_coding_cannot_hold_travel_as_before() -> None:
@@ -280,3 +295,51 @@ def test_coding_names_are_the_registered_ones() -> None:
 
     used = {c for entry in REGISTRY.values() for _, c in entry.coded}
     assert used == set(codec_compact.CODINGS)
+
+
+def test_inter_matches_keep_their_q_in_finer_steps() -> None:
+    """An inter-agent edge's matches (the session store's): every valid index exact and
+    ``q`` within 4.4 % (``2^-3`` log2 steps), against 19 % for a sequential edge's."""
+    matches = _matches()
+    fine, coarse = _round_trip("inter_matches", matches), _round_trip("matches", matches)
+    valid = matches.valid
+    for back, bits in ((fine, codec_compact.INTER_MATCH_Q_BITS), (coarse, MATCH_Q_BITS)):
+        assert torch.equal(back.valid, valid) and torch.equal(back.idx[valid], matches.idx[valid])
+        error = (back.q[valid] / matches.q[valid]).log2().abs()
+        assert float(error.max()) <= 2.0 ** -(bits + 1) + 1e-6
+    wire = coded_to_wire("inter_matches", matches)
+    assert wire is not None and wire["q_bits"] == codec_compact.INTER_MATCH_Q_BITS
+    for bad in ({**wire, "q_bits": 9}, {k: v for k, v in wire.items() if k != "q_bits"}):
+        with pytest.raises(MessageError):
+            coded_from_wire(bad, "x", Budget(2**40))
+
+
+def test_an_aggregate_travels_losslessly_with_its_build_bits_against_the_querys() -> None:
+    """A keyframe's ASMK aggregate on the lossy wire: bit for bit, the build words as a mask
+    over the query's and only the build bits that differ from the query's sent."""
+    from como3r.config import RetrievalConfig
+    from como3r.prior.retrieval import Aggregated, RetrievalDatabase
+
+    rng = _rng(7)
+    database = RetrievalDatabase(rng.normal(size=(512, 64)).astype(np.float32), RetrievalConfig())
+    aggregated = database.aggregate(rng.normal(size=(40, 64)).astype(np.float32))
+    back = _round_trip("retrieval", aggregated)
+    assert isinstance(back, Aggregated) and back.codebook_id == aggregated.codebook_id
+    for name in ("query_words", "query_bits", "build_words", "build_bits"):
+        a, b = getattr(aggregated, name), getattr(back, name)
+        assert a.dtype == b.dtype and np.array_equal(a, b), name
+    wire = coded_to_wire("retrieval", aggregated)
+    assert wire is not None
+    same = len(aggregated.build_words) - len(wire["build_bits"]) // (4 * wire["width"])
+    assert same > 0  # words whose build bits are the query's travel once
+    bad = [
+        {**wire, "query_bits": wire["query_bits"][:-4]},
+        {**wire, "build_bits": wire["build_bits"] + b"\0\0\0\0"},
+        {**wire, "width": 0},
+        {**wire, "same": b"garbage"},
+    ]
+    for body in bad:
+        with pytest.raises(MessageError):
+            coded_from_wire(body, "x", Budget(2**40))
+    outside = dataclasses.replace(aggregated, build_words=aggregated.build_words + 10**6)
+    assert coded_to_wire("retrieval", outside) is None  # travels as the object it is

@@ -18,10 +18,12 @@ from como3r.data.synth import synthesize
 from como3r.errors import MessageError
 from como3r.frontend.agent import AgentFrontend, FrontendStats
 from como3r.frontend.packets import KeyframePacket, PoseUpdate
+from como3r.prior.retrieval import Aggregated
 from como3r.prior.simulated import SimulatedPrior
 from como3r.runtime.pipeline import _colors
 from como3r.transport import codec_registry, messages
 from como3r.transport.codec import decode, encode
+from como3r.transport.keyframe_bytes import wire_parts
 
 WIDTH, HEIGHT, FRAMES = 64, 48, 8
 
@@ -199,9 +201,13 @@ def test_malformed_pose_updates_are_rejected() -> None:
 
 
 def _with_words(fe: AgentFrontend, packet: KeyframePacket) -> KeyframePacket:
-    """``packet`` with the retrieval words its agent sends once (the first export)."""
-    words = fe.database.quantize(packet.retrieval[0]).words.astype(np.int32)
-    return replace(packet, retrieval_words=words, codebook_id=fe.database.codebook_id)
+    """``packet`` with its keyframe's retrieval descriptors and their words (as a packet
+    made by an agent without the coordinator's codebook would carry them)."""
+    retrieval = fe.keyframes[packet.kf_id].retrieval
+    words = fe.database.quantize(retrieval[0]).words.astype(np.int32)
+    return replace(
+        packet, retrieval=retrieval, retrieval_words=words, codebook_id=fe.database.codebook_id
+    )
 
 
 def test_retrieval_words_round_trip_bit_exactly(frontend: AgentFrontend) -> None:
@@ -210,11 +216,34 @@ def test_retrieval_words_round_trip_bit_exactly(frontend: AgentFrontend) -> None
     assert identical(message, decode(encode(message), expected=messages.KeyframeMessage))
 
 
+def test_an_agent_with_a_codebook_sends_its_retrieval_aggregated(frontend: AgentFrontend) -> None:
+    """What the coordinator's ASMK reads of the descriptors, bit-exact on either wire, and
+    smaller on the lossy one than the descriptors in 8 bits with their words."""
+    message = _packet_message(frontend, 1)
+    aggregated = message.packet.retrieval
+    assert isinstance(aggregated, Aggregated) and message.packet.retrieval_words is None
+    assert aggregated.codebook_id == frontend.database.codebook_id
+    descriptors = frontend.keyframes[1].retrieval[0]
+    assert identical(aggregated, frontend.database.aggregate(descriptors))
+    for lossy in (False, True):
+        back = decode(encode(message, lossy=lossy), expected=messages.KeyframeMessage)
+        assert identical(back.packet.retrieval, aggregated)
+    sizes = wire_parts(message, lossy=True)
+    with_words = wire_parts(
+        replace(message, packet=_with_words(frontend, message.packet)), lossy=True
+    )
+    assert sizes["retrieval_words"] == 1 and sizes["retrieval_descriptors"] > 0  # 1: nil
+    assert sizes["retrieval_descriptors"] < (
+        with_words["retrieval_descriptors"] + with_words["retrieval_words"]
+    )
+
+
 def test_malformed_keyframe_packets_are_rejected(frontend: AgentFrontend) -> None:
     message = _packet_message(frontend, 1)
     packet = message.packet
     with_words = _with_words(frontend, packet)
-    words = with_words.retrieval_words
+    words, retrieval = with_words.retrieval_words, with_words.retrieval
+    aggregated = packet.retrieval
     for bad, match in [
         (replace(packet, T_WC=torch.zeros(7)), r"T_WC has shape"),
         (replace(packet, C_hat=packet.C_hat[1:]), r"C_hat has shape"),
@@ -231,10 +260,22 @@ def test_malformed_keyframe_packets_are_rejected(frontend: AgentFrontend) -> Non
             ),
             "valid has",
         ),
-        (replace(packet, retrieval=(packet.retrieval[0], packet.retrieval[1][1:])), "attention"),
+        (replace(packet, retrieval=(retrieval[0], retrieval[1][1:])), "attention"),
+        (
+            replace(packet, retrieval=replace(aggregated, query_bits=aggregated.query_bits[1:])),
+            "query_bits has shape",
+        ),
+        (
+            replace(
+                packet,
+                retrieval=replace(aggregated, build_bits=aggregated.build_bits.astype(np.int64)),
+            ),
+            "build_bits must be uint32",
+        ),
+        (replace(packet, retrieval_words=words, codebook_id="c"), "need retrieval descriptors"),
         (replace(packet, K=torch.eye(3)[:2]), "K has shape"),
         (replace(packet, K=torch.eye(3, dtype=torch.int64)), "K must be floating"),
-        (replace(with_words, codebook_id=None), "need retrieval and codebook_id"),
+        (replace(with_words, codebook_id=None), "need retrieval descriptors and codebook_id"),
         (replace(with_words, retrieval_words=words[1:]), "retrieval_words has shape"),
         (replace(with_words, retrieval_words=words.astype(np.float32)), "must be integers"),
     ]:

@@ -45,7 +45,7 @@ from como3r.config import MatchingConfig, RetrievalConfig, VerificationConfig
 from como3r.errors import Como3rError
 from como3r.frontend.pairs import DirectedMatches, PairLink, direction_passes, link_pairs
 from como3r.prior.base import Encoding, Prior
-from como3r.prior.retrieval import Hit, Quantized, RetrievalDatabase
+from como3r.prior.retrieval import Aggregated, Hit, Quantized, RetrievalDatabase
 
 
 class CrossAgentRetrieval:
@@ -61,7 +61,7 @@ class CrossAgentRetrieval:
         self.queries = 0
 
     def query_and_add(
-        self, agent: int, kf_id: int, retrieval: tuple[Tensor | Quantized, Tensor]
+        self, agent: int, kf_id: int, retrieval: tuple[Tensor | Quantized, Tensor] | Aggregated
     ) -> list[Hit]:
         """Candidates of OTHER agents for keyframe ``(agent, kf_id)``, then index it.
 
@@ -69,13 +69,16 @@ class CrossAgentRetrieval:
             agent: the keyframe's agent.
             kf_id: its id within the agent.
             retrieval: ``(descriptors (N, d), attention (N,))`` of the keyframe, the
-                descriptors perhaps already quantised (:class:`Quantized`).
+                descriptors perhaps already quantised (:class:`Quantized`), or their
+                :class:`Aggregated` (in this database's codebook).
 
         Returns:
             At most ``k_nn`` hits above the similarity threshold, best first.
         """
         self.queries += 1
-        descriptors, attention = retrieval
+        descriptors, attention = (
+            (retrieval, None) if isinstance(retrieval, Aggregated) else retrieval
+        )
         return self.database.query_and_add(agent, kf_id, descriptors, attention, scope="others")
 
 

@@ -43,7 +43,7 @@ from como3r.frontend.pairs import DirectedMatches, gather_points
 from como3r.frontend.timing import TimedPrior
 from como3r.geometry.lie import sim3_act
 from como3r.prior.base import Encoding
-from como3r.prior.retrieval import Hit, Quantized
+from como3r.prior.retrieval import Aggregated, Hit, Quantized
 
 # the coordinator's logger: its messages read as they did before this part had a module
 logger = logging.getLogger("como3r.coordination.coordinator")
@@ -72,13 +72,25 @@ class InterAgentLinking:
         if self.retrieval is None or packet.retrieval is None:
             return []
         start = time.perf_counter()
-        descriptors, attention = packet.retrieval
-        if (
+        retrieval = packet.retrieval
+        if isinstance(retrieval, Aggregated):
+            if retrieval.codebook_id != self.retrieval.database.codebook_id:
+                logger.warning(
+                    "agent %d keyframe %d: retrieval aggregated in another codebook (%s, "
+                    "the coordinator's %s): not retrieved; give the agents the coordinator's "
+                    "codebook",
+                    packet.agent,
+                    packet.kf_id,
+                    retrieval.codebook_id,
+                    self.retrieval.database.codebook_id,
+                )
+                return []
+        elif (
             packet.retrieval_words is not None
             and packet.codebook_id == self.retrieval.database.codebook_id
         ):
-            descriptors = Quantized(descriptors, packet.retrieval_words)  # the agent's search
-        hits = self.retrieval.query_and_add(packet.agent, packet.kf_id, (descriptors, attention))
+            retrieval = (Quantized(retrieval[0], packet.retrieval_words), retrieval[1])
+        hits = self.retrieval.query_and_add(packet.agent, packet.kf_id, retrieval)
         self.stats.retrieval_queries += 1
         self.stats.add_time("retrieval", time.perf_counter() - start)
         return hits

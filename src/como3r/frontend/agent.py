@@ -66,7 +66,7 @@ from como3r.frontend.tracker import FrameTracker, TrackResult, solved
 from como3r.geometry.camera import to_focal
 from como3r.geometry.lie import sim3_compose, sim3_identity
 from como3r.prior.base import Encoding, Prior, View
-from como3r.prior.retrieval import RetrievalDatabase
+from como3r.prior.retrieval import Quantized, RetrievalDatabase
 
 logger = logging.getLogger(__name__)
 
@@ -399,6 +399,13 @@ class AgentFrontend(KeyframeLinking, Relocalization):
             previous = PointmapRefresh(
                 prev.kf_id, prev.X_hat, prev.C_hat, prev.fused_frames, prev.K
             )
+        retrieval = kf.retrieval
+        if self.database is not None and retrieval is not None:
+            # what the coordinator's binary ASMK reads of the descriptors, and all it reads
+            # of them: per-word sign bits, a third smaller at MASt3R's shapes (issue 39);
+            # words quantised again only for a keyframe exported again
+            descriptors = retrieval[0] if words is None else Quantized(retrieval[0], words)
+            retrieval = self.database.aggregate(descriptors)
         return KeyframePacket(
             agent=self.agent,
             kf_id=kf_id,
@@ -409,13 +416,11 @@ class AgentFrontend(KeyframeLinking, Relocalization):
             C_hat=kf.C_init,
             colors=kf.colors,
             encoding=kf.encoding,
-            retrieval=kf.retrieval,
+            retrieval=retrieval,
             sequential_ij=plain_matches(seq.get((kf_id - 1, kf_id))),
             sequential_ji=plain_matches(seq.get((kf_id, kf_id - 1))),
             previous=previous,
             K=kf.K,
-            retrieval_words=words,
-            codebook_id=None if words is None else self.database.codebook_id,
         )
 
     def drain_new_keyframes(self) -> Iterator[KeyframePacket]:

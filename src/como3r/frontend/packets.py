@@ -23,6 +23,7 @@ from torch import Tensor
 
 from como3r.frontend.pairs import DirectedMatches
 from como3r.prior.base import Encoding
+from como3r.prior.retrieval import Aggregated
 
 
 @dataclass(frozen=True)
@@ -63,7 +64,10 @@ class KeyframePacket:
             ``colors`` again itself (it said so at the session start:
             :attr:`~como3r.transport.messages.AgentTask.send_encoding`;
             :mod:`como3r.coordination.encodings`).
-        retrieval: ``(descriptors (N, d_r), attention (N,))`` or None without retrieval.
+        retrieval: ``(descriptors (N, d_r), attention (N,))``, or what the coordinator's
+            binary ASMK reads of them (:class:`~como3r.prior.retrieval.Aggregated`, which an
+            agent with a codebook sends: a third smaller at MASt3R's shapes), or None
+            without retrieval.
         sequential_ij: matches of the edge (kf_id - 1, kf_id), None for the first keyframe.
         sequential_ji: matches of the edge (kf_id, kf_id - 1).
         previous: refresh of keyframe ``kf_id - 1`` (None for the first keyframe).
@@ -86,7 +90,7 @@ class KeyframePacket:
     C_hat: Tensor
     colors: np.ndarray
     encoding: Encoding | None
-    retrieval: tuple[Tensor, Tensor] | None
+    retrieval: tuple[Tensor, Tensor] | Aggregated | None
     sequential_ij: DirectedMatches | None
     sequential_ji: DirectedMatches | None
     previous: PointmapRefresh | None

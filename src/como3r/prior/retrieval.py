@@ -27,6 +27,7 @@ from __future__ import annotations
 import functools
 import hashlib
 from collections.abc import Collection
+from dataclasses import dataclass
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
@@ -59,6 +60,35 @@ class Quantized(NamedTuple):
 
     descriptors: np.ndarray
     words: np.ndarray
+
+
+@dataclass(frozen=True)
+class Aggregated:
+    """A keyframe as binary ASMK stores and queries it (:meth:`RetrievalDatabase.aggregate`):
+    for each visual word its descriptors are assigned to, the sign bits of the summed
+    residuals to the word's centroid, packed as asmk packs them. Everything the database
+    reads of a keyframe: :meth:`RetrievalDatabase.query_and_add` (and :meth:`~RetrievalDatabase.add`,
+    which reads the build half) with it gives the hits and similarities of the descriptors
+    themselves, in a database of the same codebook (``codebook_id``) and configuration. At
+    the released codebook's size (d = 1024) a word is 128 bytes: about 1,500 words for a
+    query (``multiple_assignment_query`` 5) and 300 for an add
+    (``multiple_assignment_build`` 1) of 300 random descriptors, fewer where descriptors
+    share words. An agent sends its keyframes' retrieval so (issue 39): the coordinator
+    reads nothing else of them.
+
+    Attributes:
+        codebook_id: :func:`codebook_fingerprint` of the codebook the words index.
+        query_words: ``(Wq,)`` int64 ascending ids of the query's words.
+        query_bits: ``(Wq, ceil(d / 32))`` uint32 packed sign bits of the query's words.
+        build_words: ``(Wb,)`` int64 ascending ids of the stored image's words.
+        build_bits: ``(Wb, ceil(d / 32))`` uint32 packed sign bits of the stored image's.
+    """
+
+    codebook_id: str
+    query_words: np.ndarray
+    query_bits: np.ndarray
+    build_words: np.ndarray
+    build_bits: np.ndarray
 
 
 class Hit(NamedTuple):
@@ -226,7 +256,12 @@ class RetrievalDatabase:
 
     def _store(self, agent: int, keyframe: int, descriptors: np.ndarray, words: np.ndarray) -> None:
         """Aggregate the assigned descriptors and append them as the next asmk image."""
-        aggregated, unique_words = self._kernel.aggregate_image(descriptors, words)
+        self._store_aggregated(agent, keyframe, *self._kernel.aggregate_image(descriptors, words))
+
+    def _store_aggregated(
+        self, agent: int, keyframe: int, aggregated: np.ndarray, unique_words: np.ndarray
+    ) -> None:
+        """Append an aggregated image (``(W, ceil(d / 32))`` bits, ``(W,)`` words)."""
         image_ids = np.full(unique_words.shape[0], len(self._keys), dtype=np.int64)
         self._ivf.add(aggregated, unique_words, image_ids)
         self._index_of[(agent, keyframe)] = len(self._keys)
@@ -237,9 +272,7 @@ class RetrievalDatabase:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Validate an image to add; return its descriptors as float32 numpy and their words
         (:meth:`_words`)."""
-        key = (int(agent), int(keyframe))
-        if key in self._index_of:
-            raise InputError(f"retrieval database: agent {key[0]} keyframe {key[1]} already added")
+        self._new_key(agent, keyframe)
         if attention is not None:
             n = np.shape(_unquantized(descriptors))[0]
             if tuple(np.shape(attention)) != (n,):
@@ -261,7 +294,13 @@ class RetrievalDatabase:
             attention: optional ``(n,)`` attention of the descriptors. Binary ASMK does not
                 weight descriptors (the head's top-k selection already used attention); it
                 is accepted so ``add(a, k, *prior.retrieval_features(enc))`` works.
+                An :class:`Aggregated` keyframe is added by its build half (``attention``
+                None).
         """
+        if isinstance(descriptors, Aggregated):
+            key = self._new_key(agent, keyframe)
+            self._store_aggregated(*key, *self._checked(descriptors, "build"))
+            return
         array, words = self._prepare(
             agent, keyframe, descriptors, attention, self.config.multiple_assignment_build
         )
@@ -269,7 +308,10 @@ class RetrievalDatabase:
 
     def _scores_of(self, descriptors: np.ndarray, words: np.ndarray) -> np.ndarray:
         """``(len(self),)`` float64 ASMK similarity of the query to every stored image."""
-        aggregated, unique_words = self._kernel.aggregate_image(descriptors, words)
+        return self._scores_of_aggregated(*self._kernel.aggregate_image(descriptors, words))
+
+    def _scores_of_aggregated(self, aggregated: np.ndarray, unique_words: np.ndarray) -> np.ndarray:
+        """:meth:`_scores_of` of an aggregated query (``(W, ceil(d / 32))``, ``(W,)``)."""
         ranks, ranked_scores = self._ivf.search(
             aggregated, unique_words, similarity_func=self._similarity, topk=None
         )
@@ -281,11 +323,15 @@ class RetrievalDatabase:
         """ASMK similarity of a query image to every stored image.
 
         Args:
-            descriptors: ``(n, d)`` query descriptors, or their :meth:`quantize`.
+            descriptors: ``(n, d)`` query descriptors, or their :meth:`quantize` or
+                :meth:`aggregate` (its query half).
 
         Returns:
             ``(len(self),)`` float64 scores in insertion order (see :attr:`keys`).
         """
+        if isinstance(descriptors, Aggregated):
+            query = self._checked(descriptors, "query")
+            return self._scores_of_aggregated(*query) if self._keys else np.zeros(0)
         if not self._keys:  # validated, not quantised
             as_descriptor_array(_unquantized(descriptors), "descriptors", self.dim)
             return np.zeros(0, dtype=np.float64)
@@ -366,6 +412,10 @@ class RetrievalDatabase:
         """
         if scope not in ("all", "own", "others"):
             raise InputError(f"query_and_add: scope {scope!r} is not 'all', 'own' or 'others'")
+        if isinstance(descriptors, Aggregated):
+            return self._query_and_add_aggregated(
+                agent, keyframe, descriptors, k, min_similarity, scope, exclude_keyframes
+            )
         ma_query, ma_build = (
             self.config.multiple_assignment_query,
             self.config.multiple_assignment_build,
@@ -386,3 +436,82 @@ class RetrievalDatabase:
             )
         self._store(int(agent), int(keyframe), array, words[:, :ma_build])
         return hits
+
+    def aggregate(self, descriptors: Any) -> Aggregated:
+        """What this database reads of a keyframe (:class:`Aggregated`): ``(n, d)``
+        descriptors (numpy or torch) or their :meth:`quantize`, aggregated per word for a
+        query and for an add."""
+        config = self.config
+        array, words = self._words(
+            descriptors, max(config.multiple_assignment_query, config.multiple_assignment_build)
+        )
+        ma_query = min(config.multiple_assignment_query, self.codebook_size)
+        ma_build = min(config.multiple_assignment_build, self.codebook_size)
+        query_bits, query_words = self._kernel.aggregate_image(array, words[:, :ma_query])
+        build_bits, build_words = self._kernel.aggregate_image(array, words[:, :ma_build])
+        return Aggregated(
+            self.codebook_id,
+            query_words.astype(np.int64),
+            query_bits,
+            build_words.astype(np.int64),
+            build_bits,
+        )
+
+    def _checked(
+        self, aggregated: Aggregated, half: Literal["query", "build"]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(bits, words)`` of one half of an :class:`Aggregated`, or :class:`InputError`
+        (another codebook's, or malformed)."""
+        if aggregated.codebook_id != self.codebook_id:
+            raise InputError(
+                f"aggregated retrieval of codebook {aggregated.codebook_id}, this database's "
+                f"is {self.codebook_id}: give every process the same codebook"
+            )
+        words, bits = (np.asarray(getattr(aggregated, f"{half}_{n}")) for n in ("words", "bits"))
+        width = -(-self.dim // PACK_BITS)
+        if words.ndim != 1 or bits.shape != (words.shape[0], width) or bits.dtype != np.uint32:
+            raise InputError(
+                f"aggregated {half}: words {words.shape} and uint32 bits {bits.shape} "
+                f"({bits.dtype}), expected (W,) and (W, {width})"
+            )
+        if words.dtype.kind not in "iu" or not (
+            ((words >= 0) & (words < self.codebook_size)).all() and (np.diff(words) > 0).all()
+        ):
+            raise InputError(
+                f"aggregated {half}: words must be ascending integers in [0, {self.codebook_size})"
+            )
+        return bits, words.astype(np.int64)
+
+    def _query_and_add_aggregated(
+        self,
+        agent: int,
+        keyframe: int,
+        aggregated: Aggregated,
+        k: int | None,
+        min_similarity: float | None,
+        scope: str,
+        exclude_keyframes: Collection[tuple[int, int]],
+    ) -> list[Hit]:
+        """:meth:`query_and_add` of an :class:`Aggregated` keyframe."""
+        key = self._new_key(agent, keyframe)
+        query = self._checked(aggregated, "query")
+        build = self._checked(aggregated, "build")
+        hits: list[Hit] = []
+        if self._keys:
+            hits = self._select(
+                self._scores_of_aggregated(*query),
+                k,
+                min_similarity,
+                key[0] if scope == "own" else None,
+                key[0] if scope == "others" else None,
+                exclude_keyframes,
+            )
+        self._store_aggregated(*key, *build)
+        return hits
+
+    def _new_key(self, agent: int, keyframe: int) -> tuple[int, int]:
+        """``(agent, keyframe)`` as ints, or :class:`InputError` where it is stored already."""
+        key = (int(agent), int(keyframe))
+        if key in self._index_of:
+            raise InputError(f"retrieval database: agent {key[0]} keyframe {key[1]} already added")
+        return key

@@ -38,6 +38,7 @@ from torch import Tensor
 
 from como3r.errors import MessageError, StoreError
 from como3r.frontend.pairs import DirectedMatches
+from como3r.prior.retrieval import Aggregated
 from como3r.store.blobs import (
     MAX_BYTES,
     OBJECT_MAGIC,
@@ -74,9 +75,10 @@ class StoredImage:
 
 @dataclass(frozen=True)
 class StoredRetrieval:
-    """A keyframe's retrieval features ``(descriptors (N, d), attention (N,))``."""
+    """A keyframe's retrieval features ``(descriptors (N, d), attention (N,))``, or their
+    :class:`~como3r.prior.retrieval.Aggregated` (format 6)."""
 
-    retrieval: tuple[Tensor, Tensor]
+    retrieval: tuple[Tensor, Tensor] | Aggregated
 
 
 @dataclass(frozen=True)
@@ -94,7 +96,20 @@ class StoredMatches:
         return torch.empty(0, self.width)
 
 
-STORED_TYPES = (StoredPointmap, StoredConfidence, StoredImage, StoredRetrieval, StoredMatches)
+@dataclass(frozen=True)
+class StoredInterMatches(StoredMatches):
+    """An inter-agent edge's matches (a verification's), their ``q`` in the finer steps of
+    the ``"inter_matches"`` coding (format 6)."""
+
+
+STORED_TYPES = (
+    StoredPointmap,
+    StoredConfidence,
+    StoredImage,
+    StoredRetrieval,
+    StoredMatches,
+    StoredInterMatches,
+)
 for _cls, _coded in zip(
     STORED_TYPES,
     (
@@ -103,6 +118,7 @@ for _cls, _coded in zip(
         {"colors": "image"},
         {"retrieval": "retrieval"},
         {"ij": "matches", "ji": "matches"},
+        {"ij": "inter_matches", "ji": "inter_matches"},
     ),
 ):
     register(_cls, version=1, coded=_coded)
@@ -117,6 +133,8 @@ def _arrays(obj: Any) -> list[Tensor]:
     if isinstance(obj, StoredImage):
         return [torch.from_numpy(np.array(obj.colors))]  # decoded images may be read-only
     if isinstance(obj, StoredRetrieval):
+        if isinstance(obj.retrieval, Aggregated):
+            raise StoreError("retrieval aggregate: not arrays (read it with unpack_retrieval)")
         return list(obj.retrieval)
     return [getattr(m, f) for m in (obj.ij, obj.ji) for f in ("idx", "valid", "q")]
 
@@ -169,14 +187,55 @@ def pack_colours(colors: np.ndarray) -> bytes:
     return pack_exact(StoredImage(colors), colors)
 
 
-def pack_retrieval(retrieval: tuple[Tensor, Tensor]) -> bytes:
+def pack_retrieval(retrieval: tuple[Tensor, Tensor] | Aggregated) -> bytes:
+    """A keyframe's retrieval blob: its descriptors and attention, or their
+    :class:`~como3r.prior.retrieval.Aggregated` (an object blob, exact: since format 6)."""
+    if isinstance(retrieval, Aggregated):
+        return code(StoredRetrieval(retrieval))[0]  # lossless
     return pack_exact(StoredRetrieval(tuple(retrieval)), *retrieval)  # type: ignore[arg-type]
+
+
+def unpack_retrieval(blob: bytes, what: str) -> tuple[Tensor, Tensor] | Aggregated:
+    """The retrieval of a :func:`pack_retrieval` blob.
+
+    Raises:
+        StoreError: not such a blob, or damaged.
+    """
+    if bytes(blob[:4]) == OBJECT_MAGIC:
+        obj = unpack_object(blob, STORED_TYPES, what)
+        if isinstance(obj, StoredRetrieval) and isinstance(obj.retrieval, Aggregated):
+            return obj.retrieval
+        arrays = _arrays(obj)
+    else:
+        arrays = unpack_arrays(blob, what)
+    if len(arrays) != 2:
+        raise StoreError(f"{what}: holds {len(arrays)} arrays, not 2")
+    return arrays[0], arrays[1]
 
 
 def pack_matches(ij: DirectedMatches, ji: DirectedMatches, width: int) -> bytes:
     """Both directions' matches of an edge in one blob (``width``: the row length)."""
     stored = StoredMatches(width, *(DirectedMatches(m.idx, m.valid, m.q) for m in (ij, ji)))
     return pack_exact(stored, *_arrays(stored))
+
+
+def settle_matches(
+    ij: DirectedMatches, ji: DirectedMatches, width: int
+) -> tuple[bytes, tuple[DirectedMatches, DirectedMatches] | None]:
+    """Both directions' matches of an edge the coordinator made (an inter-agent edge) in
+    their coding, and the matches a read gives back, which the coordinator takes in their
+    place (its ``q`` in ``2^-3`` log2 steps: within 4.4 %, every valid index exact;
+    :data:`~como3r.transport.codec_compact.INTER_MATCH_Q_BITS`); None
+    where those are the very matches (or the matches fit no coding: their exact blob)."""
+    stored = StoredInterMatches(width, *(DirectedMatches(m.idx, m.valid, m.q) for m in (ij, ji)))
+    arrays = _arrays(stored)
+    blob, back = code(stored)
+    got = _arrays(back)
+    if identical(arrays, got):
+        return blob, None
+    if any(a.dtype != b.dtype or a.shape != b.shape for a, b in zip(arrays, got)):
+        return pack_arrays(*arrays), None  # pragma: no cover - the codec keeps dtypes
+    return blob, (back.ij, back.ji)
 
 
 def unpack(blob: bytes, what: str) -> list[Tensor]:

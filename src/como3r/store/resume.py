@@ -28,7 +28,8 @@ from pathlib import Path
 from como3r.config import Config, differing_key
 from como3r.coordination.association import Candidate, Verification
 from como3r.coordination.coordinator import Coordinator, CoordinatorStats
-from como3r.errors import StoreError
+from como3r.errors import InputError, StoreError
+from como3r.prior.retrieval import Aggregated
 from como3r.store.paging import NO_MATCHES, StoredVerification
 from como3r.store.reader import Session, read_session
 from como3r.store.rows import RetrievalEntry, StoredCandidate
@@ -132,10 +133,18 @@ def load_state(
         backlog,
     )
     if coordinator.retrieval is not None:
+        database = coordinator.retrieval.database
         for entry in indexed:
-            coordinator.retrieval.database.add(
-                entry.agent, entry.kf_id, entry.descriptors, entry.attention
-            )
+            if not isinstance(entry.features, Aggregated):
+                database.add(entry.agent, entry.kf_id, *entry.features)
+                continue
+            try:
+                database.add(entry.agent, entry.kf_id, entry.features)
+            except InputError as exc:  # another codebook's words
+                raise StoreError(
+                    f"{session.path}: agent {entry.agent} keyframe {entry.kf_id}: {exc} "
+                    "(run with the codebook of the run that made the store)"
+                ) from None
 
 
 def _candidate(stored: StoredCandidate, session: Session) -> Candidate:

@@ -19,8 +19,9 @@ from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.paging import PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.prior.base import Encoding
+from como3r.prior.retrieval import Aggregated
 from como3r.store.blobs import unpack_arrays, unpack_object
-from como3r.store.coded import unpack, unpack_matches, unpack_one
+from como3r.store.coded import unpack_matches, unpack_one, unpack_retrieval
 from como3r.store.paging import PagedLink
 
 STATUSES = ("rejected", "pending", "admitted", "inconsistent")
@@ -35,16 +36,16 @@ class RetrievalEntry:
 
     Attributes:
         agent, kf_id: the keyframe.
-        descriptors: ``(N, d)`` its retrieval descriptors.
-        attention: ``(N,)`` their attention.
+        features: ``(descriptors (N, d), attention (N,))``, or what the ASMK database
+            reads of them (:class:`~como3r.prior.retrieval.Aggregated`, as an agent with a
+            codebook sends them; stores of format 6 on).
         position: its place in the coordinator's ASMK database (insertion order), None if
             it was not indexed (cross-agent retrieval off).
     """
 
     agent: int
     kf_id: int
-    descriptors: Tensor
-    attention: Tensor
+    features: tuple[Tensor, Tensor] | Aggregated
     position: int | None
 
 
@@ -225,13 +226,9 @@ def read_retrieval(connection: sqlite3.Connection, graph: GlobalGraph) -> list[R
             raise StoreError(
                 f"inconsistent session store: retrieval entry {g} names no such keyframe"
             )
-        what = f"keyframe {g} retrieval features"
-        arrays = unpack(features, what)
-        if len(arrays) != 2:
-            raise StoreError(f"{what}: holds {len(arrays)} arrays, not 2")
-        descriptors, attention = arrays
-        graph.keyframes[g].retrieval = (descriptors, attention)
-        entries.append(RetrievalEntry(agent, kf_id, descriptors, attention, position))
+        retrieval = unpack_retrieval(features, f"keyframe {g} retrieval features")
+        graph.keyframes[g].retrieval = retrieval
+        entries.append(RetrievalEntry(agent, kf_id, retrieval, position))
     positions = sorted(e.position for e in entries if e.position is not None)
     if positions != list(range(len(positions))):
         raise StoreError("inconsistent session store: retrieval positions have gaps")

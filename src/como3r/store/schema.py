@@ -13,7 +13,10 @@ coordinator's (a restarted agent process that starts a new map segment has its o
                                           version 5 a keyframe's arrays (colours, pointmaps,
                                           retrieval features, matches) in the wire's compact
                                           codings where these give them back exactly
-                                          (:mod:`.coded`), else exact
+                                          (:mod:`.coded`), else exact; since version 6
+                                          the inter-agent edges' matches coded too (the
+                                          coordinator takes their coded values) and the
+                                          retrieval features an agent sent aggregated
     keyframes   g PK, agent, kf_id, frame_index, timestamp, colors -> blobs (H, W, 3) uint8,
                 encoding -> blobs (the prior's Encoding, codec object) or NULL where the
                 coordinator's prior encodes the colours again (Prior.can_reencode: MASt3R,
@@ -26,7 +29,8 @@ coordinator's (a restarted agent process that starts a new map segment has its o
     poses       g PK, T_WC blob (8,)      the current pose, rewritten when it moves
     retrieval   g PK, agent, kf_id, position (insertion order in the coordinator's ASMK
                 database, NULL if not indexed), features blob (descriptors (N, d),
-                attention (N,))
+                attention (N,)), or since version 6 their ASMK aggregate (codec object
+                prior.retrieval.Aggregated) where the agent sent that
     edges       n PK (graph order), i, j (global), kind 'sequential'|'inter', similarity,
                 covisible_ij, covisible_ji, matches blob (ij.idx, ij.valid, ij.q, ji.idx,
                 ji.valid, ji.q: every pixel of j in i and of i in j)
@@ -56,10 +60,12 @@ from __future__ import annotations
 #: the store's file name in an output folder
 STORE_NAME = "session.db"
 #: the layout above; a reader refuses any other than :data:`READABLE_VERSIONS`
-FORMAT_VERSION = 5
-#: the versions a reader reads: version 4 differs only in holding every array exact, which
-#: version 5 reads as it is (a resumed version-4 store is marked version 5 once written on)
-READABLE_VERSIONS = (4, 5)
+FORMAT_VERSION = 6
+#: the versions a reader reads: version 4 differs only in holding every array exact, 5 in
+#: holding the inter-agent edges' matches exact and no retrieval aggregates, which version 6
+#: reads as they are (an older store resumed is marked version 6 once written on; its
+#: blobs stay as they were written)
+READABLE_VERSIONS = (4, 5, 6)
 #: SQLite page size of a new store, the largest: a keyframe writes megabytes of blobs
 #: (13 MB of simulated-prior state, 2 MB per pointmap at 512x384) as chains of overflow
 #: pages, and 15 transactions of 13 + 4 x 1.8 MB took 0.68 s at 64 KiB pages against 1.65 s

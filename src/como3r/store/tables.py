@@ -27,7 +27,13 @@ from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.paging import POINTMAP_FIELDS, PagedKeyframe
 from como3r.frontend.pairs import PairLink
 from como3r.store.blobs import pack_arrays, pack_object
-from como3r.store.coded import pack_colours, pack_matches, pack_pointmap, pack_retrieval
+from como3r.store.coded import (
+    pack_colours,
+    pack_matches,
+    pack_pointmap,
+    pack_retrieval,
+    settle_matches,
+)
 
 
 def pack_link(link: PairLink, width: int) -> bytes:
@@ -50,6 +56,15 @@ class Written:
     def holds(self, array: Tensor) -> int | None:
         """The blob id of ``array`` if it is one of these tensors."""
         return next((b for a, b in zip(self.arrays, self.blobs) if a() is array), None)
+
+
+def _settle_candidates(candidates: Sequence[Candidate], old: PairLink, new: PairLink) -> None:
+    """The candidates whose verification holds ``old`` (the one admitted with it) hold
+    ``new`` in its place, as a resumed coordinator's do (their edge's, read back)."""
+    for c in candidates:
+        v = c.verification
+        if v.link is old:
+            c.verification = dataclasses.replace(v, link=new, ij=new.ij if v.ij is old.ij else v.ij)
 
 
 class TableWriter:
@@ -216,10 +231,23 @@ class TableWriter:
         self._indexed = len(keys)
 
     def _record_edges(self, coordinator: Coordinator) -> None:
+        """New edges; where the store :attr:`settles`, an inter-agent edge's matches (the
+        coordinator's own, which do not code to themselves) written coded and taken by the
+        graph in their place (since format 6), as its pointmaps are."""
         links = coordinator.graph.links
-        self.connection.executemany(
-            "INSERT INTO edges VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-            [
+        rows = []
+        for n, link in enumerate(links[self._edges :], self._edges):
+            if link.kind == "inter" and self.settles:
+                blob, settled = settle_matches(link.link.ij, link.link.ji, self._width)
+                if settled is not None:
+                    old = link.link
+                    links[n] = link = dataclasses.replace(
+                        link, link=dataclasses.replace(old, ij=settled[0], ji=settled[1])
+                    )
+                    _settle_candidates(coordinator.candidates, old, link.link)
+            else:
+                blob = pack_link(link.link, self._width)
+            rows.append(
                 (
                     n,
                     link.i,
@@ -228,11 +256,10 @@ class TableWriter:
                     link.similarity,
                     link.link.covisible_ij,
                     link.link.covisible_ji,
-                    self._count("edges", pack_link(link.link, self._width)),
+                    self._count("edges", blob),
                 )
-                for n, link in enumerate(links[self._edges :], self._edges)
-            ],
-        )
+            )
+        self.connection.executemany("INSERT INTO edges VALUES (?, ?, ?, ?, ?, ?, ?, ?)", rows)
         self._edges = len(links)
 
     def _record_candidates(self, candidates: Sequence[Candidate]) -> None:

@@ -457,6 +457,7 @@ _CODED = {
         "sequential_ji": "matches",
     },
     "como3r.frontend.packets:PointmapRefresh": {"X_hat": "pointmap", "C_hat": "confidence"},
+    "como3r.prior.retrieval:Aggregated": {"query_words": "ascending", "build_words": "ascending"},
 }
 
 
@@ -466,8 +467,10 @@ def _register_payloads() -> None:
     (:data:`_TOKENS`) and retrieval features (:data:`_RETRIEVAL`) in half precision."""
     for path, version, half in (
         # 2: retrieval_words; 3: compact codings, encoding None (the receiver encodes the
-        # colours again); 4: pointmap rays against a fitted pinhole
-        ("como3r.frontend.packets:KeyframePacket", 4, (*_POINTMAP, *_RETRIEVAL)),
+        # colours again); 4: pointmap rays against a fitted pinhole; 5: retrieval as an
+        # Aggregated keyframe
+        ("como3r.frontend.packets:KeyframePacket", 5, (*_POINTMAP, *_RETRIEVAL)),
+        ("como3r.prior.retrieval:Aggregated", 1, ()),
         # 2: K; 3: codings; 4: pointmap rays against a fitted pinhole
         ("como3r.frontend.packets:PointmapRefresh", 4, _POINTMAP),
         ("como3r.frontend.packets:PoseUpdate", 2, ()),  # 2: focal

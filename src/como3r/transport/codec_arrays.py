@@ -51,6 +51,7 @@ ARRAY_DTYPES: dict[str, tuple[np.dtype | None, torch.dtype]] = {
     "bool": (np.dtype(np.bool_), torch.bool),
     "uint8": (np.dtype("<u1"), torch.uint8),
     "int8": (np.dtype("<i1"), torch.int8),
+    "uint32": (np.dtype("<u4"), torch.uint32),  # packed bits (asmk's binary words)
     "int16": (np.dtype("<i2"), torch.int16),
     "int32": (np.dtype("<i4"), torch.int32),
     "int64": (np.dtype("<i8"), torch.int64),

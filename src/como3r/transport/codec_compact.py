@@ -29,6 +29,8 @@ never uses them.
   one byte where both are small: :func:`~.codec_planes.pack_steps`), and each valid ``q``
   ``log2`` quantised (:data:`MATCH_Q_BITS`; as it is or as differences, whichever is
   smaller). Invalid pixels come back matched to themselves with ``q`` 0.
+* ``"inter_matches"``: ``"matches"`` with ``q`` in finer steps (:data:`INTER_MATCH_Q_BITS`,
+  carried as ``q_bits``): an inter-agent edge's in the session store.
 * ``"image"``: an ``(H, W, 3)`` uint8 image, lossless (the coordinator re-encodes the
   network's input from it) in WebP's lossless mode (:data:`WEBP_METHOD`); the header's
   size is checked against the declared shape before the pixels are decoded.
@@ -38,7 +40,15 @@ never uses them.
   (:mod:`como3r.prior.retrieval`); on 17 keyframes of 2 synthetic agents (simulated prior,
   300 x 128; ``benchmarks/retrieval_precision.py``) every query's hits were the same as with
   float32 features, with the agents' words and with the coordinator quantising, their
-  similarities within 4.4e-4.
+  similarities within 4.4e-4. An agent with a codebook sends instead what that ASMK reads
+  of them (:class:`~como3r.prior.retrieval.Aggregated`: per-word sign bits), losslessly:
+  the query's word ids as ``"ascending"``, its bits raw, the build's words (among the
+  query's: their nearest) as a mask over them and only the build bits that differ from the
+  query's of the same word (MASt3R's shapes, 300 independent descriptors: 192 kB against
+  230 kB for both halves whole and 287 kB for the 8-bit descriptors with their words). An
+  aggregate that does not fit this travels as the object it is, its word ids as:
+* ``"ascending"``: an ``(n,)`` int64 array of ascending non-negative ids, lossless, as its
+  first value and steps (:func:`~.codec_planes.pack_ints`).
 """
 
 from __future__ import annotations
@@ -53,6 +63,7 @@ from PIL import Image
 from torch import Tensor
 
 from como3r.errors import MessageError
+from como3r.prior.retrieval import Aggregated
 from como3r.transport.codec_arrays import TAG, Budget, exact_keys, zstd
 from como3r.transport.codec_planes import (
     ZSTD_LEVEL,
@@ -109,6 +120,14 @@ MATCH_Q_BITS = 1
 is more sensitive to it than to the confidences: in whole powers of two (41 %) the merged
 ATE of ``tests/transport/test_lossy_run.py``'s scene moved by +1.25 % (+0.018 % in
 ``2^-1`` steps)."""
+
+INTER_MATCH_Q_BITS = 3
+"""The ``"inter_matches"`` coding's ``q`` steps: ``2^-3`` in ``log2``, within
+``2^(2^-4) - 1 = 4.4 %`` relative. An inter-agent edge's matches (a verification's, which
+the session store keeps coded and the coordinator goes on from) weigh more than a
+sequential edge's: on ``tests/transport/test_lossy_run.py``'s scene the merged ATE moved
+by +1.16 % with their ``q`` in :data:`MATCH_Q_BITS` steps, by -0.01 % in these (0.00 %
+with every valid index coded and ``q`` exact)."""
 
 WEBP_METHOD = 3
 """WebP's lossless effort (0: fastest). On 4 synthetic 512x384 keyframes (CPU time of a
@@ -266,7 +285,9 @@ def _confidence_decode(body: dict, path: str, budget: Budget) -> Any:
 # ------------------------------------------------------------------ matches
 
 
-def _matches_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
+def _matches_encode(
+    value: Any, owner: Any = None, q_bits: int = MATCH_Q_BITS
+) -> dict[str, Any] | None:
     names = ("idx", "valid", "q")
     if type(value).__name__ != "DirectedMatches" or not all(
         isinstance(getattr(value, n, None), Tensor) for n in names
@@ -293,7 +314,7 @@ def _matches_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
     rows = (idx[pixels] // width) - (pixels // width)
     steps = pack_steps(np.diff(columns, prepend=np.int64(0)), np.diff(rows, prepend=np.int64(0)))
     # q as it is or as steps, whichever is smaller (noisy: often as it is)
-    log_q = _log_plane(kept, MATCH_Q_BITS)
+    log_q = _log_plane(kept, q_bits)
     as_is, as_steps = pack_ints(log_q), pack_ints(np.diff(log_q, prepend=np.int64(0)))
     if steps is None or as_is is None or as_steps is None:
         return None
@@ -305,11 +326,21 @@ def _matches_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
         "steps": steps,
         "q": as_steps if q_steps else as_is,
         "q_steps": q_steps,
+        **({} if q_bits == MATCH_Q_BITS else {"q_bits": q_bits}),
     }
 
 
+def _inter_matches_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
+    return _matches_encode(value, owner, INTER_MATCH_Q_BITS)
+
+
 def _matches_decode(body: dict, path: str, budget: Budget) -> Any:
-    exact_keys(body, ("coding", "count", "width", "valid", "steps", "q", "q_steps"), path)
+    fine = body.get("coding") == "inter_matches"
+    keys = ("coding", "count", "width", "valid", "steps", "q", "q_steps")
+    exact_keys(body, (*keys, "q_bits") if fine else keys, path)
+    q_bits = body["q_bits"] if fine else MATCH_Q_BITS
+    if q_bits not in range(9) or isinstance(q_bits, bool):
+        raise MessageError(f"{path}: coded matches' q_bits {q_bits!r} not in 0..8")
     count, width, bits = body["count"], body["width"], body["valid"]
     if not isinstance(body["q_steps"], bool):
         raise MessageError(f"{path}: coded matches' q_steps is not a bool")
@@ -332,10 +363,10 @@ def _matches_decode(body: dict, path: str, budget: Budget) -> Any:
     log_q = np.cumsum(log_q) if body["q_steps"] else log_q
     idx = np.arange(count, dtype=np.int64)
     idx[pixels] += rows * width + columns
-    if np.abs(log_q).max(initial=0) > 120 * 2**MATCH_Q_BITS:
+    if np.abs(log_q).max(initial=0) > 120 * 2**q_bits:
         raise MessageError(f"{path}: coded match confidences out of range")
     q = np.zeros(count, np.float32)
-    q[pixels] = np.exp2(log_q / 2**MATCH_Q_BITS)
+    q[pixels] = np.exp2(log_q / 2**q_bits)
     cls = resolve(REGISTRY["DirectedMatches"])
     matches = cls(torch.from_numpy(idx), torch.from_numpy(valid), torch.from_numpy(q))
     if "DirectedMatches" in CHECKS:
@@ -390,6 +421,8 @@ def _image_decode(body: dict, path: str, budget: Budget) -> Any:
 
 
 def _retrieval_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
+    if isinstance(value, Aggregated):
+        return _aggregate_encode(value)
     if not (isinstance(value, tuple) and len(value) == 2):
         return None
     descriptors, attention = float32_or_none(value[0], 2), float32_or_none(value[1], 1)
@@ -409,7 +442,90 @@ def _retrieval_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
     }
 
 
+def _aggregate_encode(value: Aggregated) -> dict[str, Any] | None:
+    """An :class:`Aggregated` keyframe, lossless: the query's word ids as steps and its bits
+    raw; the build's words (the query's nearest, so among them) as a mask over the query's,
+    and of their bits only those that differ from the query's bits of the same word (a word
+    no other descriptor has among its next nearest has the same descriptors, so the same
+    bits, in both: most of them)."""
+    arrays = (value.query_words, value.query_bits, value.build_words, value.build_bits)
+    if not all(isinstance(a, np.ndarray) for a in arrays):
+        return None
+    query_words, query_bits, build_words, build_bits = arrays
+    if not (
+        isinstance(value.codebook_id, str)
+        and query_words.dtype == build_words.dtype == np.int64
+        and query_bits.dtype == build_bits.dtype == np.uint32
+        and query_words.ndim == build_words.ndim == 1
+        and query_bits.ndim == build_bits.ndim == 2
+        and query_bits.shape[0] == query_words.size
+        and build_bits.shape == (build_words.size, query_bits.shape[1])
+    ):
+        return None
+    at = np.searchsorted(query_words, build_words)
+    if build_words.size and (
+        at.max() >= query_words.size or not np.array_equal(query_words[at], build_words)
+    ):
+        return None  # build words outside the query's
+    ids = _ascending_encode(query_words)
+    if ids is None or (build_words.size and (np.diff(build_words) <= 0).any()):
+        return None
+    in_build = np.zeros(query_words.size, bool)
+    in_build[at] = True
+    same = (query_bits[at] == build_bits).all(axis=1)
+    return {
+        "codebook_id": value.codebook_id,
+        "width": int(query_bits.shape[1]),
+        "query_words": ids,
+        "query_bits": query_bits.astype("<u4").tobytes(),
+        "build": zstd.compress(np.packbits(in_build).tobytes(), level=ZSTD_LEVEL),
+        "same": zstd.compress(np.packbits(same).tobytes(), level=ZSTD_LEVEL),
+        "build_bits": build_bits[~same].astype("<u4").tobytes(),
+    }
+
+
+def _aggregate_decode(body: dict, path: str, budget: Budget) -> Aggregated:
+    keys = ("codebook_id", "width", "query_words", "query_bits", "build", "same", "build_bits")
+    exact_keys(body, ("coding", *keys), path)
+    codebook_id, width = body["codebook_id"], body["width"]
+    if not (isinstance(codebook_id, str) and len(codebook_id) <= 128):
+        raise MessageError(f"{path}: coded aggregate's codebook id is not a short string")
+    if not (isinstance(width, int) and not isinstance(width, bool) and 0 < width <= 1024):
+        raise MessageError(f"{path}: coded aggregate's width {width!r}")
+    ids = body["query_words"]
+    if not isinstance(ids, dict):
+        raise MessageError(f"{path}: coded aggregate's query words are not a coding")
+    query_words = _ascending_decode(
+        {**ids, TAG: CODED, "coding": "ascending"}, f"{path}.query_words", budget
+    )
+    n = query_words.size
+    raw = body["query_bits"]
+    if not (isinstance(raw, bytes) and len(raw) == 4 * n * width):
+        raise MessageError(f"{path}: coded aggregate's query bits are not {n} x {width} words")
+    query_bits = np.frombuffer(raw, "<u4").astype(np.uint32).reshape(n, width)
+    size = (n + 7) // 8
+    in_build = np.unpackbits(
+        np.frombuffer(inflate(body["build"], size, path, "build mask", f"{size} bytes"), np.uint8),
+        count=n,
+    ).astype(bool)
+    m = int(in_build.sum())
+    size = (m + 7) // 8
+    same = np.unpackbits(
+        np.frombuffer(inflate(body["same"], size, path, "same mask", f"{size} bytes"), np.uint8),
+        count=m,
+    ).astype(bool)
+    raw = body["build_bits"]
+    differing = int((~same).sum())
+    if not (isinstance(raw, bytes) and len(raw) == 4 * differing * width):
+        raise MessageError(f"{path}: coded aggregate's build bits are not {differing} rows")
+    build_bits = query_bits[in_build].copy()
+    build_bits[~same] = np.frombuffer(raw, "<u4").reshape(differing, width)
+    return Aggregated(codebook_id, query_words, query_bits, query_words[in_build], build_bits)
+
+
 def _retrieval_decode(body: dict, path: str, budget: Budget) -> Any:
+    if "codebook_id" in body:
+        return _aggregate_decode(body, path, budget)
     kind, (n, d) = coded_header(body, ("q", "scale", "attention"), 2, path)
     packed, scale, attention = body["q"], body["scale"], body["attention"]
     if not all(isinstance(b, bytes) for b in (packed, scale, attention)):
@@ -427,6 +543,32 @@ def _retrieval_decode(body: dict, path: str, budget: Budget) -> Any:
     return (as_kind(descriptors, kind), as_kind(weights, kind))
 
 
+# ------------------------------------------------------------------ ascending ids
+
+
+def _ascending_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
+    if not (
+        isinstance(value, np.ndarray)
+        and value.ndim == 1
+        and value.dtype == np.int64
+        and (value.size == 0 or (value[0] >= 0 and (np.diff(value) > 0).all()))
+    ):
+        return None
+    steps = pack_ints(np.diff(value, prepend=np.int64(0)))
+    return None if steps is None else {"count": int(value.size), "steps": steps}
+
+
+def _ascending_decode(body: dict, path: str, budget: Budget) -> Any:
+    exact_keys(body, ("coding", "count", "steps"), path)
+    count = body["count"]
+    if not (isinstance(count, int) and not isinstance(count, bool) and 0 <= count < 2**32):
+        raise MessageError(f"{path}: coded ids' count {count!r}")
+    steps = unpack_ints(body["steps"], count, path, budget)
+    if (steps[1:] <= 0).any() or (count and steps[0] < 0):
+        raise MessageError(f"{path}: coded ids are not ascending non-negative integers")
+    return np.cumsum(steps)
+
+
 # ------------------------------------------------------------------ registry
 
 Encoder = Callable[[Any, Any], "dict[str, Any] | None"]
@@ -436,8 +578,10 @@ CODINGS: dict[str, tuple[Encoder, Decoder]] = {
     "pointmap": (_pointmap_encode, _pointmap_decode),
     "confidence": (_confidence_encode, _confidence_decode),
     "matches": (_matches_encode, _matches_decode),
+    "inter_matches": (_inter_matches_encode, _matches_decode),
     "image": (_image_encode, _image_decode),
     "retrieval": (_retrieval_encode, _retrieval_decode),
+    "ascending": (_ascending_encode, _ascending_decode),
 }
 """Coding name -> (encoder: value -> wire body or None where it does not fit, decoder)."""
 

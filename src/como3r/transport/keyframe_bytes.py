@@ -28,7 +28,8 @@ PARTS: dict[str, tuple[str, ...]] = {
     "pointmap": ("X_hat",),
     "confidences": ("C_hat",),
     "colours": ("colors",),
-    "retrieval_descriptors": ("retrieval",),
+    # the descriptors, or what the coordinator's ASMK reads of them (prior.retrieval.Aggregated)
+    "retrieval_descriptors": ("retrieval", "retrieval."),
     "retrieval_words": ("retrieval_words",),
     "sequential_matches": ("sequential_ij.", "sequential_ji.", "sequential_ij", "sequential_ji"),
     "previous_refresh": ("previous.", "previous"),

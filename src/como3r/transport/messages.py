@@ -40,6 +40,7 @@ from como3r.frontend.agent import FrontendStats
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches
 from como3r.live import FrameEvent
+from como3r.prior.retrieval import Aggregated
 from como3r.transport import codec, codec_registry
 from como3r.transport.codec_types import require as _require
 from como3r.transport.codec_types import require_shape as _shape
@@ -322,18 +323,34 @@ def _check_packet(p: KeyframePacket) -> None:
         _floating(p.K, "K")
     if p.previous is not None:
         _require(p.previous.kf_id == p.kf_id - 1, "previous must refresh keyframe kf_id - 1")
-    if p.retrieval is not None:
+    if isinstance(p.retrieval, tuple):
         descriptors, attention = p.retrieval
         _shape(descriptors, (None, None), "retrieval descriptors")
         _shape(attention, (descriptors.shape[0],), "retrieval attention")
     if p.retrieval_words is not None:
-        if p.retrieval is None or p.codebook_id is None:
-            raise MessageError("retrieval_words need retrieval and codebook_id")
+        if not isinstance(p.retrieval, tuple) or p.codebook_id is None:
+            raise MessageError("retrieval_words need retrieval descriptors and codebook_id")
         _shape(p.retrieval_words, (p.retrieval[0].shape[0], None), "retrieval_words")
         _require(
             p.retrieval_words.dtype.kind in "iu",
             f"retrieval_words must be integers, got {p.retrieval_words.dtype}",
         )
+
+
+def _check_aggregated(a: Aggregated) -> None:
+    """Shapes and dtypes; the words' range and order are the receiving database's to check
+    (:meth:`~como3r.prior.retrieval.RetrievalDatabase.query_and_add`)."""
+    for half in ("query", "build"):
+        words, bits = getattr(a, f"{half}_words"), getattr(a, f"{half}_bits")
+        _require(
+            isinstance(words, np.ndarray) and isinstance(bits, np.ndarray),
+            f"{half} words and bits must be arrays",
+        )
+        _shape(words, (None,), f"{half}_words")
+        _shape(bits, (words.shape[0], None), f"{half}_bits")
+        _require(words.dtype == np.int64, f"{half}_words must be int64, got {words.dtype}")
+        _require(bits.dtype == np.uint32, f"{half}_bits must be uint32, got {bits.dtype}")
+    _require(a.query_bits.shape[1] == a.build_bits.shape[1], "query and build bits of other widths")
 
 
 def _check_keyframe_message(m: KeyframeMessage) -> None:
@@ -398,6 +415,7 @@ for _name, _check in (
     ("PointmapRefresh", _check_refresh),
     ("DirectedMatches", _check_matches),
     ("KeyframePacket", _check_packet),
+    ("Aggregated", _check_aggregated),
     ("KeyframeMessage", _check_keyframe_message),
     ("FrameDone", _check_frame_done),
     ("FrameEvent", _check_frame_event),
