@@ -295,11 +295,32 @@ def test_a_relocalization_the_motion_does_not_allow_is_held_back(long_agent) -> 
 
 def test_a_held_relocalization_confirmed_by_the_next_frame_is_taken(long_agent) -> None:
     """As above, but frame 12 relocalizes where frame 10's held pose and the motion since
-    allow (a camera carried to a mapped place): frame 12 is relocalized, frame 10 stays
-    lost."""
+    allow (a camera carried to a mapped place; benchmarks/robustness.py, prior v2, revisit:
+    the path jumps 108 deg): frame 10, lost when processed, is placed as it relocalized after
+    all, and frame 12 follows it."""
     frontend, outcomes = _run_first_frames(
         long_agent, 14, sky_at=8, patch_track=_turned_relocalizations({10, 12})
     )
-    assert [outcomes[i] for i in (8, 10, 12)] == ["lost", "lost", "relocalized"]
-    assert frontend.stats.lost_frames == [8, 10]
-    assert frontend.trajectory()[0].tolist()[-1] == 12
+    assert [outcomes[i] for i in (8, 10)] == ["lost", "lost"]
+    assert outcomes[12] != "lost"
+    assert frontend.stats.lost_frames == [8] and frontend.stats.lost == 1
+    indices = frontend.trajectory()[0].tolist()
+    assert indices[-2:] == [10, 12]
+    assert frontend.stats.tracked == len(indices)
+
+
+def test_the_motion_test_allows_what_the_turn_rate_and_the_time_allow(long_agent) -> None:
+    """A pose at the last tracked frame's passes; turned by 150 deg one frame later it does
+    not (a relocalization there is held back); given a minute it does."""
+    frontend, outcomes = _run_first_frames(long_agent, 8)
+    assert "lost" not in outcomes.values()
+    last = frontend.records[-1]
+    pose = frontend._record_pose(last)
+    turn = torch.tensor(
+        [0.0, 0.0, 0.0, 0.0, 0.0, math.sin(math.radians(75)), math.cos(math.radians(75)), 1.0]
+    )
+    turned = sim3_compose(pose, turn.to(pose))
+    step = last.timestamp - frontend.records[-2].timestamp
+    assert frontend._turn_allowed(pose, last.timestamp + step)
+    assert not frontend._turn_allowed(turned, last.timestamp + step)
+    assert frontend._turn_allowed(turned, last.timestamp + 60.0)

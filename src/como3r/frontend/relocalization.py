@@ -63,19 +63,26 @@ RELOC_RATE_FRAMES = 5
 class HeldRelocalization:
     """A relocalization its motion did not allow, held back: the next lost frame confirms it
     when it relocalizes where the held frame's pose and the motion since allow (a camera
-    carried to a mapped place is confirmed, a single look-alike match is not).
+    carried to a mapped place is confirmed, a single look-alike match is not); the held
+    frame is then placed as it relocalized.
 
     Attributes:
         T_WC: ``(8,)`` the held frame's pose from its relocalization.
         timestamp: the held frame's time [s].
         index: the held frame's index.
         kf_id: the keyframe it relocalized on.
+        result: its tracking on that keyframe.
+        encoding: the held frame's encoding.
+        colors: ``(H, W, 3)`` uint8, its image at network resolution.
     """
 
     T_WC: Tensor
     timestamp: float
     index: int
     kf_id: int
+    result: TrackResult
+    encoding: Encoding
+    colors: np.ndarray
 
 
 class Relocalization:
@@ -113,7 +120,8 @@ class Relocalization:
         A candidate must also agree with the camera's motion (:meth:`_turn_allowed`): one
         that turned further from the last tracked frame than its motion allows is a look-alike
         place, or the camera was carried away; it is held back (the frame is lost), and the
-        next lost frame confirms it by relocalizing where the held pose allows. Every
+        next lost frame confirms it by relocalizing where the held pose allows: the held
+        frame is then placed as it relocalized and this one tracked from it. Every
         candidate is tried before a confirming one is taken, so that a frame which the
         motion allows on another keyframe refutes the held one.
         """
@@ -140,18 +148,10 @@ class Relocalization:
             if confirmed is None and held is not None and self._turn_allowed(T_WC, timestamp, held):
                 confirmed = (result, keyframe)
             elif self._held is None:
-                self._held = HeldRelocalization(T_WC, timestamp, index, kf_id)
+                self._held = HeldRelocalization(T_WC, timestamp, index, kf_id, result, enc, colors)
         if confirmed is not None:
             assert held is not None
-            logger.info(
-                "agent %d: frame %d confirms frame %d's relocalization",
-                self.agent,
-                index,
-                held.index,
-            )
-            self._held = None
-            self._resume(*confirmed, index, timestamp, enc, colors)
-            return "relocalized"
+            return self._confirm(held, confirmed, enc, index, timestamp, colors)
         if self._held is not None:
             logger.info(
                 "agent %d: frame %d's relocalization on keyframe %d held back: its pose turned "
@@ -163,6 +163,38 @@ class Relocalization:
         self.stats.lost += 1
         self.stats.lost_frames.append(index)
         return "lost"
+
+    def _confirm(
+        self,
+        held: HeldRelocalization,
+        confirmed: tuple[TrackResult, Keyframe],
+        enc: Encoding,
+        index: int,
+        timestamp: float,
+        colors: np.ndarray,
+    ) -> str:
+        """The held frame placed as it relocalized (no longer lost), then this frame tracked
+        from it, or, where that fails, re-anchored where it relocalized (``confirmed``)."""
+        logger.info(
+            "agent %d: frame %d confirms frame %d's relocalization", self.agent, index, held.index
+        )
+        self.stats.lost -= 1
+        self.stats.lost_frames.remove(held.index)
+        self._resume(
+            held.result,
+            self.keyframes[held.kf_id],
+            held.index,
+            held.timestamp,
+            held.encoding,
+            held.colors,
+        )
+        result = self.tracker.track(enc, self.keyframes.last, self._T_kf_prev)
+        if result.ok:
+            with self.timer.stage("keyframe"):
+                self._accept(result, self.keyframes.last, index, timestamp, enc, colors)
+            return "keyframe" if result.new_keyframe else "tracked"
+        self._resume(*confirmed, index, timestamp, enc, colors)
+        return "relocalized"
 
     def _resume(
         self,
