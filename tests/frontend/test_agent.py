@@ -279,7 +279,7 @@ def test_a_relocalization_the_motion_does_not_allow_is_held_back(long_agent) -> 
     5.51 % of the path): it is held back and lost; frame 12, whose relocalization the motion
     allows, refutes it."""
     frontend, outcomes = _run_first_frames(
-        long_agent, 16, sky_at=8, patch_track=_turned_relocalizations({10})
+        long_agent, 14, sky_at=8, patch_track=_turned_relocalizations({10})
     )
     assert [outcomes[i] for i in (8, 10, 12)] == ["lost", "lost", "relocalized"]
     assert frontend.stats.lost_frames == [8, 10]
