@@ -13,10 +13,11 @@
    (not in the paper: at 20 deg per frame one step can go from 36 % overlap to none);
 5. when tracking still fails, relocalizes: retrieves the agent's keyframes most like the frame,
    tracks against each and re-anchors on the first that matches well enough (the current
-   keyframe on tracking's own tests: the sequence resumes); frames that cannot be
-   relocalized are counted as lost, never invented. A first frame that cannot start the map
-   (self-calibration finds nothing in front of the camera) is lost too, and the next one
-   tries.
+   keyframe on tracking's own tests: the sequence resumes) and whose pose the camera's
+   motion since it was lost allows (else the next lost frame must confirm it); frames that
+   cannot be relocalized are counted as lost, never invented. A first frame that cannot
+   start the map (self-calibration finds nothing in front of the camera) is lost too, and
+   the next one tries.
 
 Every tracked frame is stored as ``(frame, anchor keyframe, T_rel)`` (C-Sec. A.8), so the
 trajectory written at the end follows every later correction of its anchor keyframe.
@@ -60,7 +61,7 @@ from como3r.frontend.paging import AgentPaging, plain_matches
 from como3r.frontend.pairs import (
     DirectedMatches,
 )
-from como3r.frontend.relocalization import Relocalization
+from como3r.frontend.relocalization import HeldRelocalization, Relocalization
 from como3r.frontend.timing import StageTimer, TimedPrior
 from como3r.frontend.tracker import FrameTracker, TrackResult, solved
 from como3r.geometry.camera import to_focal
@@ -163,6 +164,7 @@ class AgentFrontend(KeyframeLinking, Relocalization):
         self._unsent_words: dict[int, np.ndarray] = {}  # their retrieval words, by kf_id
         self._T_kf_prev: Tensor | None = None
         self._lost = False
+        self._held: HeldRelocalization | None = None  # a relocalization awaiting confirmation
         self._last_tracked: _TrackedFrame | None = None
         self._K: Tensor | None = None  # intrinsics at network resolution (calibrated runs)
         tracking = config.tracking

@@ -55,7 +55,11 @@ logger = logging.getLogger("como3r.frontend.agent")
 #: and the ATE was 11.1 % of the path (1.02 % without that loop; no other family's loop was
 #: held back). On the realistic prior 129 of the 11 families' 130 loops were 0.01-4.6 deg
 #: off; aliasing's keyframes 5 -> 8 were 37.8 deg off (held back, that family's ATE 8.85 ->
-#: 10.4 %: it has a tracking failure of its own, keyframe 8 posed 11 deg off).
+#: 10.4 %). That loop is a look-alike too: tracking had already posed keyframe 8 (frame 50,
+#: tracked on keyframe 7, frame 40, whose decode with it aligned the wrong facades) 11.7 deg
+#: off, so the loop is at least 26 deg from the truth; taken, it bent the wrongly posed map
+#: elsewhere, to 8.85 % by chance. Relocalization holds back a look-alike the same way
+#: (:data:`~como3r.frontend.relocalization.RELOC_TURN_RATE_FACTOR`).
 LOOP_MAX_ROTATION_DEG = 15.0
 
 
