@@ -252,10 +252,12 @@ class _Timed:
         Coordinator.add_keyframes = add_keyframes  # type: ignore[method-assign]
 
 
-def run_one(scene: Path, out: Path, long_side: int) -> dict[str, Any]:
+def run_one(
+    scene: Path, out: Path, long_side: int, overrides: list[str] | None = None
+) -> dict[str, Any]:
     """One team run; what the table needs, measured (JSON-ready)."""
     agents = sorted(scene.glob("agent_*"))
-    config = apply_overrides(Config(), [f"input.long_side={long_side}"])
+    config = apply_overrides(Config(), [f"input.long_side={long_side}", *(overrides or [])])
     timed = _Timed()
     timed.install()
     # per progress event of agent a: (a, frames done, {pid: cpu seconds})
@@ -400,6 +402,13 @@ def main() -> None:
     )
     parser.add_argument("--csv", type=Path, default=None, help="also write the rows here")
     parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a configuration override for every run (as como3r run --set)",
+    )
+    parser.add_argument(
         "--decentralized",
         action=argparse.BooleanOptionalAction,
         default=True,
@@ -410,7 +419,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     if args.one:
-        measured = run_one(Path(args.one[0]), Path(args.one[1]), int(args.one[2]))
+        measured = run_one(Path(args.one[0]), Path(args.one[1]), int(args.one[2]), args.set)
         print(json.dumps(measured))
         return
     long_side = args.long_side
@@ -442,6 +451,7 @@ def main() -> None:
             kept = out / "team_scale.json"
             if not (args.reuse and kept.exists()):
                 command = [sys.executable, __file__, "--one", str(scene), str(out), str(long_side)]
+                command += [f"--set={override}" for override in args.set]
                 start = time.perf_counter()
                 done = subprocess.run(command, stdout=subprocess.PIPE, text=True, check=False)
                 if done.returncode:

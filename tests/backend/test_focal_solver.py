@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import pytest
 import torch
 
@@ -15,10 +16,13 @@ from como3r.backend.focal_factors import (
     FocalValues,
     edge_blocks,
 )
-from como3r.backend.focal_solver import gauss_newton_focal
+from como3r.backend.focal_solver import gauss_newton_focal, optimize_focal
+from como3r.backend.global_graph import GlobalGraph
+from como3r.backend.graph_link import GraphLink
 from como3r.config import GlobalBAConfig, TrackingConfig
 from como3r.frontend.graph import Edge, build_factors
-from como3r.frontend.pairs import DirectedMatches
+from como3r.frontend.keyframes import Keyframe
+from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.geometry.camera import rescale_focal
 from como3r.geometry.lie import sim3_act, sim3_exp, sim3_inverse
 from como3r.geometry.residuals import huber_weight
@@ -154,3 +158,42 @@ def test_recovers_a_camera_focal_length(held: bool) -> None:
     ]
     assert focal[1] / focal[0] == pytest.approx(1.0, abs=0.01)
     assert (float(solved.log_focal[0]) == 0.0) == held
+
+
+def test_optimize_focal_moves_each_agent_onto_its_solved_focal_length() -> None:
+    """On the coordinator's graph: agent 1's keyframe, 6 % long, comes back within 1 % of
+    agent 0's focal length; the keyframes' intrinsics and pointmaps are moved
+    (:meth:`GlobalGraph.rescale_focal`) and the anchor keeps its pose."""
+    views, poses, _ = _scene([F, F * 1.06])
+    graph = GlobalGraph(TrackingConfig(), GlobalBAConfig())
+    for k, agent in enumerate([0, 0, 1]):
+        X = views[k].X_hat.float()
+        C = torch.ones(H, W)
+        kf = Keyframe(
+            len(graph.agent_keyframes(agent)),
+            k,
+            float(k),
+            None,
+            poses[k].float(),
+            X,
+            C,
+            X,
+            C,
+            np.zeros((H, W, 3), np.uint8),
+            K=views[k].K.float(),
+        )
+        graph.append(kf, agent)
+    renders = [_render(p) for p in poses]
+    for i, j, kind in ((0, 1, "sequential"), (1, 2, "inter"), (0, 2, "inter")):
+        link = PairLink(
+            _matches(poses[i], poses[j], renders[j]), _matches(poses[j], poses[i], renders[i])
+        )
+        graph.links.append(GraphLink(i, j, kind, link))
+    anchor = graph.poses([0]).clone()
+    result = optimize_focal(graph, [0, 1], 0, 20, 0.2)
+    assert result.reason == "step_tol"
+    assert set(result.log_focal) == {0, 1}
+    focal = [graph.agent_focal(0), graph.agent_focal(1)]
+    assert focal[1] / focal[0] == pytest.approx(1.0, abs=0.01)
+    assert float(graph.keyframes[2].K[1, 1]) == pytest.approx(focal[1])
+    assert torch.equal(graph.poses([0]), anchor)

@@ -224,15 +224,15 @@ def edge_blocks(
     """
     T_ij64, H_T, g_T = factors.relative_blocks(poses, edges)
     T_WC_i = poses[factors.i[edges]]
-    dtype = factors.q.dtype
+    X_j = factors.X_j[edges]
+    dtype = X_j.dtype  # the pointmaps' precision, as the factors' own PyTorch path
     T_ij = T_ij64.to(dtype)
     R = quat_to_matrix(T_ij[:, 3:7]) * T_ij[:, 7, None, None]  # (e, 3, 3): s R
-    X_j = factors.X_j[edges]
     x = X_j @ R.transpose(1, 2) + T_ij[:, None, :3]  # (e, P, 3) in camera i
     K = factors.K[edges].to(dtype)
     fx, skew_, cx = K[:, None, 0, 0], K[:, None, 0, 1], K[:, None, 0, 2]
     fy, cy = K[:, None, 1, 1], K[:, None, 1, 2]
-    z_i = factors.z_i[edges]
+    z_i = factors.z_i[edges].to(dtype)
     usable = factors.valid[edges] & (x[..., 2] > MIN_DEPTH_RATIO * z_i)
     # padded and unusable matches hold anything (zero depths): they get zero weight below
     z = torch.where(usable, x[..., 2], torch.ones_like(z_i))
@@ -240,7 +240,7 @@ def edge_blocks(
     inv_z = 1.0 / z
     x0, x1 = x[..., 0] * inv_z, x[..., 1] * inv_z
     u, v = fx * x0 + skew_ * x1 + cx, fy * x1 + cy
-    p_i = factors.p_i[edges]
+    p_i = factors.p_i[edges].to(dtype)
     e = torch.stack([u - p_i[..., 0], v - p_i[..., 1], z.log() - z_i.log()], dim=-1)
     e = torch.where(usable[..., None], e, torch.zeros_like(e))
     inv_sigma = torch.tensor(
@@ -248,7 +248,7 @@ def edge_blocks(
         dtype=dtype,
         device=e.device,
     )
-    sqrt_info = (factors.q[edges].clamp_min(0).sqrt() * usable)[..., None] * inv_sigma
+    sqrt_info = (factors.q[edges].to(dtype).clamp_min(0).sqrt() * usable)[..., None] * inv_sigma
     r = e * sqrt_info
     weight = huber_weight(r, factors.huber_k) * sqrt_info
     W, G = weight * sqrt_info, weight * r  # (e, P, 3)
