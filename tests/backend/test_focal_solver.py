@@ -19,7 +19,9 @@ from como3r.backend.focal_factors import (
 from como3r.backend.focal_solver import gauss_newton_focal, optimize_focal
 from como3r.backend.global_graph import GlobalGraph
 from como3r.backend.graph_link import GraphLink
-from como3r.config import GlobalBAConfig, TrackingConfig
+from como3r.config import Config, GlobalBAConfig, TrackingConfig, apply_overrides
+from como3r.coordination.focal_alignment import FocalAlignment
+from como3r.coordination.stats import CoordinatorStats
 from como3r.frontend.graph import Edge, build_factors
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.pairs import DirectedMatches, PairLink
@@ -160,35 +162,33 @@ def test_recovers_a_camera_focal_length(held: bool) -> None:
     assert (float(solved.log_focal[0]) == 0.0) == held
 
 
-def test_optimize_focal_moves_each_agent_onto_its_solved_focal_length() -> None:
-    """On the coordinator's graph: agent 1's keyframe, 6 % long, comes back within 1 % of
-    agent 0's focal length; the keyframes' intrinsics and pointmaps are moved
-    (:meth:`GlobalGraph.rescale_focal`) and the anchor keeps its pose."""
+def _graph() -> GlobalGraph:
+    """The scene's three keyframes on the coordinator's graph (agents 0, 0, 1), linked."""
     views, poses, _ = _scene([F, F * 1.06])
     graph = GlobalGraph(TrackingConfig(), GlobalBAConfig())
     for k, agent in enumerate([0, 0, 1]):
         X = views[k].X_hat.float()
         C = torch.ones(H, W)
-        kf = Keyframe(
-            len(graph.agent_keyframes(agent)),
-            k,
-            float(k),
-            None,
-            poses[k].float(),
-            X,
-            C,
-            X,
-            C,
-            np.zeros((H, W, 3), np.uint8),
-            K=views[k].K.float(),
+        colors = np.zeros((H, W, 3), np.uint8)
+        kf_id = len(graph.agent_keyframes(agent))
+        K = views[k].K.float()
+        graph.append(
+            Keyframe(kf_id, k, float(k), None, poses[k].float(), X, C, X, C, colors, K=K), agent
         )
-        graph.append(kf, agent)
     renders = [_render(p) for p in poses]
     for i, j, kind in ((0, 1, "sequential"), (1, 2, "inter"), (0, 2, "inter")):
         link = PairLink(
             _matches(poses[i], poses[j], renders[j]), _matches(poses[j], poses[i], renders[i])
         )
         graph.links.append(GraphLink(i, j, kind, link))
+    return graph
+
+
+def test_optimize_focal_moves_each_agent_onto_its_solved_focal_length() -> None:
+    """On the coordinator's graph: agent 1's keyframe, 6 % long, comes back within 1 % of
+    agent 0's focal length; the keyframes' intrinsics and pointmaps are moved
+    (:meth:`GlobalGraph.rescale_focal`) and the anchor keeps its pose."""
+    graph = _graph()
     anchor = graph.poses([0]).clone()
     result = optimize_focal(graph, [0, 1], 0, 20, 0.2)
     assert result.reason == "step_tol"
@@ -197,3 +197,26 @@ def test_optimize_focal_moves_each_agent_onto_its_solved_focal_length() -> None:
     assert focal[1] / focal[0] == pytest.approx(1.0, abs=0.01)
     assert float(graph.keyframes[2].K[1, 1]) == pytest.approx(focal[1])
     assert torch.equal(graph.poses([0]), anchor)
+
+
+@pytest.mark.parametrize("focal_ba", [True, False])
+def test_the_coordinators_terminal_focal_step_follows_gauge_focal_ba(focal_ba: bool) -> None:
+    """``gauge.focal_ba``: the terminal focal step of a component is the joint solve (each
+    moved agent counted as a refinement); without it, the chain over admitted candidates
+    (none here: nothing moves)."""
+    config = apply_overrides(Config(), [f"gauge.focal_ba={str(focal_ba).lower()}"])
+
+    class Part(FocalAlignment):
+        def __init__(self) -> None:
+            self.config, self.graph, self.candidates = config, _graph(), []
+            self.stats = CoordinatorStats()
+
+        def _anchor(self, root: int) -> int:
+            return self.graph.global_index(root, 0)
+
+    part = Part()
+    before = part.graph.agent_focal(1)
+    part._refine_focals([0, 1])
+    moved = part.graph.agent_focal(1) != before
+    assert moved == focal_ba
+    assert (part.stats.focal_refinements > 0) == focal_ba
