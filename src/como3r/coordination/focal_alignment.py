@@ -133,7 +133,12 @@ class FocalAlignment:
     def _solve_focals(self, members: list[int], progress: PhaseCallback | None = None) -> None:
         """One focal length per agent estimated inside the global BA over all the
         component's edges at once (``gauge.focal_ba``; :func:`optimize_focal`), with the
-        prior ``gauge.focal_prior`` on each agent's own self-calibration."""
+        prior ``gauge.focal_prior`` on each agent's own self-calibration. Keyframes without
+        intrinsics (a run whose agents did not self-calibrate) have no focal length to solve:
+        nothing changes."""
+        graph = self.graph
+        if any(graph.keyframes[g].K is None for a in members for g in graph.agent_keyframes(a)):
+            return
         report_phase(progress, "focal BA", f"{len(members)} agents", 0, 1)
         start = time.perf_counter()
         result = optimize_focal(
