@@ -183,7 +183,8 @@ def optimize_focal(
         lambda g: column[graph.agent_of[g]],
         graph.tracking,
     )
-    before = graph.poses(nodes).double()
+    stored = graph.poses(nodes)
+    before = stored.double()
     pinned = torch.tensor([g == anchor or g in graph.fixed for g in nodes], device=before.device)
     held = torch.tensor(
         [any(g in graph.fixed for g in graph.agent_keyframes(a)) for a in cameras],
@@ -195,9 +196,7 @@ def optimize_focal(
         dtype=torch.float64,
         device=before.device,
     )
-    values = FocalValues(
-        PoseValues(before, pinned), torch.zeros(len(cameras), dtype=torch.float64), held
-    )
+    values = FocalValues(PoseValues(before, pinned), torch.zeros_like(centre), held)
     solved, iterations, reason = gauss_newton_focal(
         factors,
         FocalPrior(centre, prior_sigma),
@@ -209,7 +208,7 @@ def optimize_focal(
     if reason in ("diverged", "solve_failed") and iterations <= 1:
         return FocalBAResult({}, iterations, time.perf_counter() - start, reason, 0.0)
     after = solved.poses.poses
-    graph.set_poses(nodes, after.to(graph.poses(nodes).dtype))
+    graph.set_poses(nodes, after.to(stored.dtype))
     corrections = {a: float(solved.log_focal[column[a]]) for a in cameras}
     for agent, log_focal in corrections.items():
         if log_focal != 0.0:
