@@ -135,8 +135,9 @@ class GaugeConfig:
     them, which nearly translational motion cannot tell from a baseline). Measured (true
     focal 333.6 px, ring scenes of ``benchmarks/team_scale.py``, 160x120 -> 512, seed 0):
     4 agents multi-process, merged ATE 9.93 -> 3.05 mm, focal lengths 335.7-336.1 ->
-    333.6-333.7 px; offline on the stored 16-agent single-process session (keyframe ATE)
-    62.7 -> 14.2 mm, 306-337 -> 331-335 px. A 2-agent room of the prior-v2 grid (160 px,
+    333.6-333.7 px; 16 agents multi-process 223 -> 24.8 mm, 270-337 -> 332-336 px; offline
+    on the stored 16-agent single-process session (keyframe ATE) 62.7 -> 14.2 mm, 306-337
+    -> 331-335 px. A 2-agent room of the prior-v2 grid (160 px,
     80 frames) stays at 166 mm: its agents each drift on their own (6.9 and 18.8 cm alone)
     and their focal lengths were already within 0.7 %.
     """
