@@ -120,10 +120,35 @@ length, 17 mm. So it is not the solver or the scales: 16 self-calibrated cameras
 disagree by a few percent bend the ring. Re-measuring every agent pair and solving the
 focal lengths jointly in least squares (``gauge.focal_loops=true``, off by default) gives
 62.1 -> 59.2 mm in the run (4 agents 7.0 -> 6.4, 8 agents 8.0 -> 8.0), but worse map
-accuracy at 16 (0.151 -> 0.181 m): one pair's focal estimate scatters by 2-5 %. Open: a
-focal length per agent estimated inside the global BA over all its edges at once. The same
+accuracy at 16 (0.151 -> 0.181 m): one pair's focal estimate scatters by 2-5 %. The same
 16-agent scene with the true intrinsics (``--calib``) merges at 10.0 mm, 0.83 % of one
 agent's path (map F-score 0.81): the 1 % is met once the focal lengths agree.
+
+A focal length per agent estimated inside the global BA over all its edges at once
+(``gauge.focal_ba``, now the default; ``como3r.backend.focal_solver``), measured with
+``--sizes 4 16 --no-decentralized --set gauge.focal_ba=true`` (branch focal41; 2 shared cores
+under a load of 8-18 from other jobs: wall times and even thread CPU times are inflated;
+the in-stream work, ``coord ms/kf``, is the same code as before):
+
+    agents  kf  coord ms/kf  decodes/kf  cleanup s  ATE mm  ATE %  ATE % team  focal px (true 333.6)
+         4  20         2010        3.0         237    3.05  0.254      0.0634  333.6-333.7 (was 335.7-336.1)
+        16  42         3335        4.76        618    24.8   2.06      0.129   332.1-336.0 (was 270.2-336.6)
+
+Against the table above: 4 agents 9.93 mm (0.83 %) -> 3.05 mm (0.25 %); 16 agents 223 mm
+(18.6 %) -> 24.8 mm (2.06 % of one agent's path, 0.13 % of the team's), one map; per agent
+2.0-7.6 mm except agent 11, 31 mm on its own. Not yet the 1 %. The terminal focal step
+costs more than the chain did: the coordinator's ``focal`` stage (merges and terminal step,
+wall) 118 -> 569 s at 16 agents while its verification, the same code, went 132 -> 286 s
+under the heavier load: about twice the chain's cost (each Gauss-Newton iteration of the
+joint solve rebuilds the dense factors and forms the focal rows in PyTorch). Offline on the stored 16-agent
+single-process session above (keyframe ATE; the joint solve from the poses and focal
+lengths the run ended with, 306-337 px): 62.7 -> 14.2 mm, focal lengths 331.4-334.9 px,
+six Gauss-Newton iterations, 34 s of CPU. Why the multi-process 16-agent run was at 223 mm
+where one process gave 62 mm: the same cause, worse. Its focal lengths ended at 270-337 px
+(agents 13 and 14 at 270, 19 % short) against 306-337 px in one process; presumably (not
+isolated) because in batches of up to 29 keyframes a merge aligns the moving component's
+focal length on the pairs that made it at poses no BA has refined since the previous
+batch, and the terminal chain carries that outwards. The joint solve on that run's stored graph brings them to 330.4-336.0 px.
 """
 
 from __future__ import annotations
@@ -252,10 +277,12 @@ class _Timed:
         Coordinator.add_keyframes = add_keyframes  # type: ignore[method-assign]
 
 
-def run_one(scene: Path, out: Path, long_side: int) -> dict[str, Any]:
+def run_one(
+    scene: Path, out: Path, long_side: int, overrides: list[str] | None = None
+) -> dict[str, Any]:
     """One team run; what the table needs, measured (JSON-ready)."""
     agents = sorted(scene.glob("agent_*"))
-    config = apply_overrides(Config(), [f"input.long_side={long_side}"])
+    config = apply_overrides(Config(), [f"input.long_side={long_side}", *(overrides or [])])
     timed = _Timed()
     timed.install()
     # per progress event of agent a: (a, frames done, {pid: cpu seconds})
@@ -400,6 +427,13 @@ def main() -> None:
     )
     parser.add_argument("--csv", type=Path, default=None, help="also write the rows here")
     parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a configuration override for every run (as como3r run --set)",
+    )
+    parser.add_argument(
         "--decentralized",
         action=argparse.BooleanOptionalAction,
         default=True,
@@ -410,7 +444,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     if args.one:
-        measured = run_one(Path(args.one[0]), Path(args.one[1]), int(args.one[2]))
+        measured = run_one(Path(args.one[0]), Path(args.one[1]), int(args.one[2]), args.set)
         print(json.dumps(measured))
         return
     long_side = args.long_side
@@ -442,6 +476,7 @@ def main() -> None:
             kept = out / "team_scale.json"
             if not (args.reuse and kept.exists()):
                 command = [sys.executable, __file__, "--one", str(scene), str(out), str(long_side)]
+                command += [f"--set={override}" for override in args.set]
                 start = time.perf_counter()
                 done = subprocess.run(command, stdout=subprocess.PIPE, text=True, check=False)
                 if done.returncode:

@@ -167,6 +167,7 @@ _POSITIVE = (
     "retrieval.alpha",
     "verification.max_residual_ratio",
     "gauge.focal_search",
+    "gauge.focal_prior",
     "gauge.scale_alarm_log",
     "global_ba.cleanup_stop_translation",
     "global_ba.step_tol",

@@ -258,7 +258,9 @@ def test_terminal_refinement_settles_focal_lengths_outwards_from_the_anchor() ->
     error_1, error_2 = 0.08, -0.06
     to_agent_0 = _pair(error_1)
     to_agent_1 = _pair(error_2, anchor_focal_error=error_1)
-    coordinator = Coordinator(None, Config(), None, 3)
+    # the chain (gauge.focal_ba=false; the joint solve is tests/backend/test_focal_solver.py)
+    config = apply_overrides(Config(), ["gauge.focal_ba=false"])
+    coordinator = Coordinator(None, config, None, 3)
     T_am = to_agent_0.T_anchor_moving
     for agent, kf_id, X, K, T in (
         (0, 0, to_agent_0.X_anchor, to_agent_0.K_anchor, sim3_identity(dtype=torch.float64)),
@@ -290,7 +292,7 @@ def test_terminal_refinement_closes_a_ring_of_agents() -> None:
         (2, 3): _pair(errors[3], anchor_focal_error=errors[2]),
         (0, 3): _pair(errors[3], anchor_focal_error=errors[0]),
     }
-    config = apply_overrides(Config(), ["gauge.focal_loops=true"])
+    config = apply_overrides(Config(), ["gauge.focal_loops=true", "gauge.focal_ba=false"])
     coordinator = Coordinator(None, config, None, 4)
     identity, T_am = sim3_identity(dtype=torch.float64), pairs[(0, 1)].T_anchor_moving
     keyframes: dict[int, list] = {a: [] for a in errors}

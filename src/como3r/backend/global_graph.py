@@ -105,6 +105,9 @@ class GlobalGraph(GraphDepthSteps):
         #: agent -> its focal length in the map (``fx``, pixels) once :meth:`rescale_focal`
         #: moved it; its pointmaps are taken onto it on receipt
         self.focal: dict[int, float] = {}
+        #: agent -> the focal length ``fx`` [px] its own self-calibration gave its latest
+        #: keyframe (before any :meth:`rescale_focal`)
+        self.own_focal: dict[int, float] = {}
         #: global indices of keyframes held fixed, like the anchor, by every solve (a saved
         #: map's keyframes under ``--freeze-map``)
         self.fixed: set[int] = set()
@@ -134,6 +137,8 @@ class GlobalGraph(GraphDepthSteps):
             )
         if packet.previous is not None:
             self.refresh(packet.agent, packet.previous)
+        if packet.K is not None:
+            self.own_focal[packet.agent] = float(packet.K[0, 0])
         X_hat, K = self._corrected(packet.agent, packet.X_hat, packet.K)
         g = self.append(
             Keyframe(

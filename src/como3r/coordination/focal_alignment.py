@@ -16,6 +16,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from como3r.backend.focal_solver import optimize_focal
 from como3r.backend.global_graph import GlobalGraph
 from como3r.config import Config
 from como3r.coordination.association import Candidate
@@ -101,6 +102,9 @@ class FocalAlignment:
         """
         if not self._aligns_focal():
             return
+        if self.config.gauge.focal_ba:
+            self._solve_focals(members, progress)
+            return
         settled = {members[0]} | {agent for agent in members if self._frozen(agent)}
         admitted = [c for c in self.candidates if c.status == "admitted"]
         while True:
@@ -125,6 +129,35 @@ class FocalAlignment:
             settled.add(agent)
         if self.config.gauge.focal_loops:
             self._close_focal_loops(members, progress)
+
+    def _solve_focals(self, members: list[int], progress: PhaseCallback | None = None) -> None:
+        """One focal length per agent estimated inside the global BA over all the
+        component's edges at once (``gauge.focal_ba``; :func:`optimize_focal`), with the
+        prior ``gauge.focal_prior`` on each agent's own self-calibration. Keyframes without
+        intrinsics (a run whose agents did not self-calibrate) have no focal length to solve:
+        nothing changes."""
+        graph = self.graph
+        if any(graph.keyframes[g].K is None for a in members for g in graph.agent_keyframes(a)):
+            return
+        report_phase(progress, "focal BA", f"{len(members)} agents", 0, 1)
+        start = time.perf_counter()
+        result = optimize_focal(
+            self.graph,
+            members,
+            self._anchor(members[0]),
+            self.config.global_ba.max_iters_stream,
+            self.config.gauge.focal_prior,
+            self.graph.own_focal,
+        )
+        self.stats.add_time("focal", time.perf_counter() - start)
+        self.stats.focal_refinements += sum(1 for v in result.log_focal.values() if v != 0.0)
+        logger.info(
+            "focal: joint BA over agents %s, %d iterations (%s): %s px",
+            members,
+            result.iterations,
+            result.reason,
+            ", ".join(f"{self.graph.agent_focal(a) or math.nan:.1f}" for a in members),
+        )
 
     def _close_focal_loops(self, members: list[int], progress: PhaseCallback | None = None) -> None:
         """Spread what the chain of :meth:`_refine_focals` leaves around loops of agents.
