@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 
 from como3r.cli import app
 from como3r.data.synth import synthesize
+from como3r.io.packed_arrays import read_packed
 from como3r.io.tum import read_tum, write_tum
 from como3r.prior.mast3r.testing import tiny_network, write_checkpoint
 
@@ -64,7 +65,7 @@ def tum_from_synthetic(root: Path, frames: int = 8) -> Path:
     rgb_lines, depth_lines = ["# color images"], ["# depth maps"]
     for t, png in zip(stamps, sorted((agent / "rgb").iterdir())):
         (seq / "rgb" / f"{t:.6f}.png").write_bytes(png.read_bytes())
-        metres = np.load(agent / "depth" / f"{png.stem}.npy")
+        metres = read_packed(agent / "depth" / f"{png.stem}.c3z")["depth"]
         units = np.where(metres * 5000 < 65535, np.round(metres * 5000), 0).astype(np.uint16)
         Image.fromarray(units).save(seq / "depth" / f"{t + 0.005:.6f}.png")
         rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")

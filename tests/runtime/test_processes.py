@@ -197,7 +197,9 @@ def _assert_same_run(reference: Path, other: Path, tolerance: float) -> None:
             assert ref["agents"][agent][key] == oth["agents"][agent][key], (agent, key)
         for kind in ("trajectories", "keyframes"):
             assert _max_relative_difference(reference, other, kind, agent) <= tolerance
-    assert ref["map_points"] == oth["map_points"]
+    assert ref["map"]["confident_points"] == oth["map"]["confident_points"]
+    # map.ply keeps a voxel's first point: one moved within the tolerance may cross a voxel
+    assert abs(ref["map_points"] - oth["map_points"]) <= tolerance * ref["map_points"]
     rounds = [[r["rounds"] for r in m["coordinator"]["alternation"]] for m in (ref, oth)]
     assert rounds[0] == rounds[1] and rounds[0][0] >= 1  # the refined pointmaps came back
     graph_ref = json.loads((reference / "graph.json").read_text())
