@@ -132,7 +132,9 @@ tracking.self_calibration=false``; the parts but the retrieval from ``--simulate
 (retrieval before: 8-bit descriptors 284.0 and words 3.1; after: 1483 query and 299 build
 words of 300 independent descriptors, 230.3 kB with both halves whole; the realistic total
 measured whole, the others summed. The store as a keyframe arrives, MASt3R no tokens:
-838.0 -> 746.3 kB, retrieval 284.0 -> 192.3.)
+838.0 -> 746.3 kB, retrieval 284.0 -> 192.3.) Directions in ``2^-12`` octahedral steps
+(``codec_compact.OCT_BITS``, 14 before), uncalibrated: pointmap 153.0 and 153.2, refresh
+206.1 and 207.2, total after 986.0 and 993.9 (realistic and v2).
 ``--skip-reencode`` leaves the coordinator's re-encode cost out (half the run);
 ``--simulated-only`` measures the simulated front-end's messages alone (no network).
 

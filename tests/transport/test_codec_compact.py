@@ -97,6 +97,27 @@ def test_pinhole_rays_cost_almost_nothing_and_other_rays_keep_the_bound() -> Non
         assert float(error.max()) <= POINTMAP_RELATIVE_ERROR
 
 
+def test_a_pointmap_coded_before_its_step_was_written_down_reads_at_the_old_step(
+    monkeypatch,
+) -> None:
+    """Session stores of formats 5 and 6 hold pointmaps coded in ``2^-14`` direction steps
+    with no ``oct_bits``: they decode at that step, not at today's."""
+    X = _pointmap()
+    for value in (X, X * torch.tensor([1.0, 1.0, -1.0])):  # with a pinhole fit and without
+        with monkeypatch.context() as then:
+            then.setattr(codec_compact, "OCT_BITS", codec_compact.LEGACY_OCT_BITS)
+            wire = coded_to_wire("pointmap", value)
+        assert wire is not None
+        del wire["oct_bits"]
+        back = coded_from_wire(wire, "x", Budget(2**40))
+        error = (back - value).norm(dim=-1) / value.norm(dim=-1)
+        assert float(error.max()) <= 1.45e-3  # that coding's bound
+    wire = coded_to_wire("pointmap", X)
+    wire["oct_bits"] = "twelve"  # type: ignore[index]
+    with pytest.raises(MessageError, match="direction step"):
+        coded_from_wire(wire, "x", Budget(2**40))
+
+
 def test_confidence_is_within_its_relative_bound_and_numpy_stays_numpy() -> None:
     C = (1 + np.exp(_rng(1).normal(0, 1.5, (H, W)))).astype(np.float32)
     back = _round_trip("confidence", C)

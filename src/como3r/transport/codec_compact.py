@@ -12,7 +12,7 @@ never uses them.
 * ``"pointmap"``: an ``(H, W, 3)`` float32 pointmap as the range along each point's ray,
   ``log2`` quantised in steps of ``2^-LOG_RANGE_BITS``, and the ray's direction in
   octahedral coordinates quantised in steps of ``2^-OCT_BITS``: a point moves by at most
-  :data:`POINTMAP_RELATIVE_ERROR` of its range (1.45e-3; float16 xyz: up to 4.9e-4 per
+  :data:`POINTMAP_RELATIVE_ERROR` of its range (1.72e-3; float16 xyz: up to 4.9e-4 per
   coordinate; the simulated prior's per-pixel range noise is 5e-3). Where a pinhole camera's
   rays fit the directions (a calibrated or self-calibrated keyframe's lie on them), the
   direction codes travel less those of the fitted pinhole (four numbers), mostly zeros.
@@ -93,13 +93,24 @@ than ``2^-9`` steps (about 21 kB of a 512x384 pointmap). Merged ATE of
 ``tests/transport/test_lossy_run.py``'s scene lossy against exact: +0.018 % (``2^-7``
 steps: +0.94 %)."""
 
-OCT_BITS = 14
-"""A ray's octahedral coordinates (in [-1, 1]) travel as ``round(u * 2^OCT_BITS)``."""
+OCT_BITS = 12
+"""A ray's octahedral coordinates (in [-1, 1]) travel as ``round(u * 2^OCT_BITS)``: a
+direction within 3.6e-4 rad (0.14 px at 512 px across 75 deg), a quarter of the range's
+quantisation. Uncalibrated (no pinhole to code the rays against: ``tracking.self_calibration
+=false``) the directions are a third of a pointmap's bytes; ``2^-14`` steps cost 11 kB more per
+pointmap and as much per refresh at 512x384 (``benchmarks/message_sizes.py``: 164.2 and
+217.2 kB against 153.0 and 206.1). Merged ATE of
+``tests/transport/test_lossy_run.py``'s scene lossy against exact, uncalibrated: -0.30 %
+(``2^-14``: -0.22 %), self-calibrated -0.11 % (-0.07 %)."""
 
-POINTMAP_RELATIVE_ERROR = 1.45e-3
+LEGACY_OCT_BITS = 14
+"""The direction step of pointmaps coded without ``oct_bits`` in their body (packets and
+session stores written before it was: store formats 5 and 6)."""
+
+POINTMAP_RELATIVE_ERROR = 1.72e-3
 """Bound on ``|X' - X| / |X|`` of a pointmap after the ``"pointmap"`` coding: the range's
-quantisation (``2^(2^-9) - 1 = 1.36e-3``) plus the direction's (at most 9e-5 rad: half a
-step of 2^-14 across the octahedral map's largest stretch)."""
+quantisation (``2^(2^-9) - 1 = 1.36e-3``) plus the direction's (at most 3.6e-4 rad: half a
+step of 2^-12 across the octahedral map's largest stretch)."""
 
 CONFIDENCE_BITS = 0
 """A confidence travels as ``round(log2(C) * 2^CONFIDENCE_BITS)``: in whole powers of two.
@@ -184,7 +195,9 @@ def _pinhole_fit(X: np.ndarray) -> list[float] | None:
     return params if all(np.isfinite(params)) and max(map(abs, params)) < 1e6 else None
 
 
-def _pinhole_codes(params: list[float], shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def _pinhole_codes(
+    params: list[float], shape: tuple[int, int], bits: int = OCT_BITS
+) -> tuple[np.ndarray, np.ndarray]:
     """The quantised octahedral coordinates of the pinhole rays ``params``
     (:func:`_pinhole_fit`) on an ``(H, W)`` grid: two int64 ``(H, W)`` planes. Elementwise
     IEEE arithmetic only (no reductions), so that sender and receiver compute the same codes;
@@ -195,8 +208,8 @@ def _pinhole_codes(params: list[float], shape: tuple[int, int]) -> tuple[np.ndar
     y = np.broadcast_to((c * np.arange(shape[0], dtype=np.float64) + d)[:, None], shape)
     l1 = np.abs(x) + np.abs(y) + 1.0
     return (
-        np.rint(x / l1 * 2**OCT_BITS).astype(np.int64),
-        np.rint(y / l1 * 2**OCT_BITS).astype(np.int64),
+        np.rint(x / l1 * 2**bits).astype(np.int64),
+        np.rint(y / l1 * 2**bits).astype(np.int64),
     )
 
 
@@ -224,7 +237,13 @@ def _pointmap_encode(value: Any, owner: Any = None) -> dict[str, Any] | None:
     planes.insert(0, pack_plane(np.rint(np.log2(r) * 2**LOG_RANGE_BITS).astype(np.int64)))
     if any(p is None for p in planes):
         return None
-    return {"kind": kind_of(value), "shape": list(X.shape), "planes": planes, "pinhole": pinhole}
+    return {
+        "kind": kind_of(value),
+        "shape": list(X.shape),
+        "planes": planes,
+        "pinhole": pinhole,
+        "oct_bits": OCT_BITS,
+    }
 
 
 def _size(planes: list[dict[str, Any] | None]) -> float:
@@ -233,8 +252,13 @@ def _size(planes: list[dict[str, Any] | None]) -> float:
 
 
 def _pointmap_decode(body: dict, path: str, budget: Budget) -> Any:
-    kind, shape = coded_header(body, ("planes", "pinhole"), 3, path)
+    # stores of formats 5 and 6 hold pointmaps coded before their step was written down
+    stated = ("oct_bits",) if isinstance(body, dict) and "oct_bits" in body else ()
+    kind, shape = coded_header(body, ("planes", "pinhole", *stated), 3, path)
     planes, pinhole = body["planes"], body["pinhole"]
+    bits = body.get("oct_bits", LEGACY_OCT_BITS)
+    if not (isinstance(bits, int) and not isinstance(bits, bool) and 8 <= bits <= 20):
+        raise MessageError(f"{path}: coded pointmap's direction step 2^-{bits!r}")
     if shape[2] != 3 or not (isinstance(planes, list) and len(planes) == 3):
         raise MessageError(f"{path}: a coded pointmap is (H, W, 3) in three planes")
     log_r, u, v = (unpack_plane(p, (shape[0], shape[1]), path, budget) for p in planes)
@@ -245,15 +269,15 @@ def _pointmap_decode(body: dict, path: str, budget: Budget) -> Any:
             and all(isinstance(x, float) and abs(x) < 1e6 for x in pinhole)
         ):
             raise MessageError(f"{path}: coded pointmap's pinhole is not 4 finite numbers")
-        pu, pv = _pinhole_codes(pinhole, (shape[0], shape[1]))
+        pu, pv = _pinhole_codes(pinhole, (shape[0], shape[1]), bits)
         u, v = u + pu, v + pv
     if (
-        max(np.abs(u).max(initial=0), np.abs(v).max(initial=0)) > 2**OCT_BITS
+        max(np.abs(u).max(initial=0), np.abs(v).max(initial=0)) > 2**bits
         or np.abs(log_r).max(initial=0) > 120 * 2**LOG_RANGE_BITS
     ):
         raise MessageError(f"{path}: coded pointmap values out of range")
     r = np.exp2(log_r / 2**LOG_RANGE_BITS)
-    direction = _from_octahedral(np.stack([u, v], -1) / 2**OCT_BITS)
+    direction = _from_octahedral(np.stack([u, v], -1) / 2**bits)
     return as_kind((direction * r[..., None]).astype(np.float32), kind)
 
 
