@@ -56,7 +56,8 @@ from como3r.transport.codec_arrays import (
     tensor_bytes,
     widen,
 )
-from como3r.transport.codec_compact import CODED, coded_from_wire, coded_to_wire
+from como3r.transport.codec_compact import coded_from_wire, coded_to_wire
+from como3r.transport.codec_planes import CODED
 from como3r.transport.codec_registry import (
     BY_PATH,
     CHECKS,

@@ -136,6 +136,10 @@ def as_kind(array: np.ndarray, kind: str) -> Any:
     return torch.from_numpy(np.ascontiguousarray(array)) if kind == "tensor" else array
 
 
+CODED = "coded"
+"""The wire tag of a coded value."""
+
+
 def coded_header(body: dict, keys: tuple[str, ...], ndim: int, path: str) -> tuple[str, list[int]]:
     """A coded body's checked keys, ``kind`` and ``shape`` of ``ndim`` non-negative sizes."""
     exact_keys(body, ("coding", "kind", "shape", *keys), path)
