@@ -63,6 +63,12 @@ logger = logging.getLogger("como3r.frontend.agent")
 LOOP_MAX_ROTATION_DEG = 15.0
 
 
+def turn_deg(A: Tensor, B: Tensor) -> float:
+    """Rotation angle [deg] between the orientations of two poses ``(8,)``."""
+    change = sim3_compose(sim3_inverse(A), B.to(A))
+    return float(so3_log(change[3:7].double()).norm()) * 180.0 / math.pi
+
+
 class KeyframeLinking:
     """Keyframe creation, linking and the local solve of the
     :class:`~como3r.frontend.agent.AgentFrontend` (the front-end's attributes it uses are
@@ -191,11 +197,7 @@ class KeyframeLinking:
         """
         T_graph = sim3_compose(sim3_inverse(kf.T_WC), partner.T_WC)
         T, report = self.tracker.solve(partner.X_hat, kf, ij, T_graph)
-        if solved(T, report):
-            change = sim3_compose(sim3_inverse(T_graph), T)
-            angle = float(so3_log(change[3:7].double()).norm()) * 180.0 / math.pi
-        else:
-            angle = math.inf
+        angle = turn_deg(T_graph, T) if solved(T, report) else math.inf
         logger.debug(
             "agent %d: loop (%d, %d) %.2f deg off the graph",
             self.agent,

@@ -10,14 +10,13 @@ base class): its methods read and change the front-end's state and counters.
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 
 import numpy as np
 from torch import Tensor
 
 from como3r.config import Config
-from como3r.frontend.keyframe_linking import LOOP_MAX_ROTATION_DEG
+from como3r.frontend.keyframe_linking import LOOP_MAX_ROTATION_DEG, turn_deg
 from como3r.frontend.keyframes import (
     FrameRecord,
     Keyframe,
@@ -28,7 +27,7 @@ from como3r.frontend.pairs import (
 )
 from como3r.frontend.timing import StageTimer, TimedPrior
 from como3r.frontend.tracker import FrameTracker, TrackResult
-from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse, so3_log
+from como3r.geometry.lie import sim3_compose, sim3_identity
 from como3r.prior.base import Encoding
 from como3r.prior.retrieval import RetrievalDatabase
 
@@ -243,7 +242,7 @@ class Relocalization:
         allowed = LOOP_MAX_ROTATION_DEG + RELOC_TURN_RATE_FACTOR * rate * max(
             0.0, timestamp - start
         )
-        turn = _turn_deg(origin, T_WC)
+        turn = turn_deg(origin, T_WC)
         logger.debug(
             "agent %d: relocalization turned %.1f deg in %.2f s (allowed %.1f)",
             self.agent,
@@ -258,7 +257,7 @@ class Relocalization:
         :data:`RELOC_RATE_FRAMES` tracked ones, or None where they do not tell."""
         latest = self.records[-RELOC_RATE_FRAMES:]
         rates = [
-            _turn_deg(self._record_pose(a), self._record_pose(b)) / (b.timestamp - a.timestamp)
+            turn_deg(self._record_pose(a), self._record_pose(b)) / (b.timestamp - a.timestamp)
             for a, b in zip(latest, latest[1:])
             if b.timestamp > a.timestamp
         ]
@@ -308,9 +307,3 @@ class Relocalization:
         with self.timer.stage("retrieval"):
             hits = self.database.query(desc, agent=self.agent)
         return list(dict.fromkeys([h.keyframe for h in hits] + recent))
-
-
-def _turn_deg(A: Tensor, B: Tensor) -> float:
-    """Rotation angle [deg] between the orientations of two poses ``(8,)``."""
-    change = sim3_compose(sim3_inverse(A), B.to(A))
-    return float(so3_log(change[3:7].double()).norm()) * 180.0 / math.pi
