@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -218,6 +219,16 @@ def test_focal_from_the_pointmap_without_intrinsics(tmp_path) -> None:
     )
     assert camera.fx == pytest.approx(50.0, rel=1e-4) and camera.fy == camera.fx
     assert (camera.cx, camera.cy, camera.width, camera.height) == (15.5, 11.5, 32, 24)
+
+
+@pytest.mark.parametrize("suffix", [".c3z", ".npz"])
+def test_no_focal_to_estimate_names_the_file_the_arrays_came_from(tmp_path, suffix) -> None:
+    behind = np.full((24, 32, 3), -1.0, np.float32)  # every point behind the camera
+    data = KeyframeData(behind, np.ones((24, 32), np.float32), None, tmp_path / "000003.png")
+    if suffix == ".npz":
+        data = replace(data, arrays_path=tmp_path / "000003.npz")
+    with pytest.raises(InputError, match=rf"000003\{suffix}: no intrinsics"):
+        keyframe_intrinsics(data)
 
 
 def test_a_failed_export_leaves_nothing(run_dir, tmp_path, monkeypatch) -> None:

@@ -86,12 +86,20 @@ class KeyframeData:
         C: ``(H, W)`` float32 confidence.
         K: ``(3, 3)`` float64 intrinsics, or None.
         image_path: the keyframe's ``(H, W)`` RGB PNG.
+        arrays_path: the file the arrays came from (``.c3z``, or ``.npz`` in an older run
+            folder); None: the ``.c3z`` beside the image.
     """
 
     X: np.ndarray
     C: np.ndarray
     K: np.ndarray | None
     image_path: Path
+    arrays_path: Path | None = None
+
+    @property
+    def source(self) -> Path:
+        """The file to name in an error about the arrays."""
+        return self.arrays_path or self.image_path.with_suffix(SUFFIX)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -144,6 +152,7 @@ def read_keyframe_data(run: str | Path, agent: int, kf_id: int) -> KeyframeData:
         C=C.astype(np.float32),
         K=None if K is None else K.astype(np.float64),
         image_path=png,
+        arrays_path=arrays_path,
     )
 
 

@@ -172,7 +172,7 @@ def keyframe_intrinsics(data: KeyframeData) -> Pinhole:
     focal = float(estimate_focal(torch.from_numpy(data.X), torch.from_numpy(data.C)))
     if not math.isfinite(focal) or focal <= 0:
         raise InputError(
-            f"{data.image_path.with_suffix('.c3z')}: no intrinsics and no point in "
+            f"{data.source}: no intrinsics and no point in "
             f"front of the camera to estimate a focal length from"
         )
     return Pinhole(W, H, focal, focal, (W - 1) / 2.0, (H - 1) / 2.0)
