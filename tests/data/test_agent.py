@@ -12,9 +12,10 @@ import torch
 from PIL import Image
 
 from como3r.data.agent import open_agent
-from como3r.data.agent_input import DEPTH_PNG_PER_METRE
-from como3r.data.input_files import associate_timestamps
+from como3r.data.agent_input import DEPTH_PNG_PER_METRE, load_float_map
+from como3r.data.input_files import associate_timestamps, check_map_header
 from como3r.errors import InputError
+from como3r.io.packed_arrays import write_packed
 from como3r.io.tum import write_tum
 
 WIDTH, HEIGHT = 32, 24
@@ -475,3 +476,15 @@ def test_timestamp_names_of_one_instant_are_refused(tmp_path):
     folder = write_agent(tmp_path / "a", n=2, stems=["1305031102.1", "1305031102.10"])
     with pytest.raises(InputError, match="name the same instant"):
         open_agent(folder)
+
+
+def test_a_packed_map_without_the_array_asked_for_is_named(tmp_path) -> None:
+    """A ``.c3z`` depth file holding other arrays: the header check and the reader both say
+    which arrays it holds."""
+    path = tmp_path / "000000.c3z"
+    write_packed(path, {"surface": np.ones((4, 6, 3), np.float32)})
+    message = rf"{path.name}: holds no 'depth' array \(it holds surface\)"
+    with pytest.raises(InputError, match=message):
+        check_map_header(path, (6, 4), "depth")
+    with pytest.raises(InputError, match=message):
+        load_float_map(path, "depth")

@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -25,6 +26,8 @@ from como3r.errors import InputError
 from como3r.io.packed_arrays import SUFFIX as PACKED_SUFFIX
 from como3r.io.packed_arrays import read_packed
 from como3r.io.tum import Trajectory
+
+T = TypeVar("T")
 
 logger = logging.getLogger(__name__)
 
@@ -263,10 +266,18 @@ def load_float_map(path: Path, kind: str) -> np.ndarray:
     (:mod:`como3r.io.packed_arrays`, as ``como3r synth`` writes them): the same values."""
     if path.suffix.lower() != PACKED_SUFFIX:
         return load_npy(path, kind)
-    arrays = read_packed(path)
-    if kind not in arrays:
-        raise InputError(f"{path}: holds no {kind!r} array (it holds {', '.join(arrays)})")
-    return arrays[kind]
+    return packed_member(read_packed(path), path, kind)
+
+
+def packed_member(members: Mapping[str, T], path: Path, kind: str) -> T:
+    """``members[kind]`` of the ``.c3z`` file ``path`` (its arrays, or their headers).
+
+    Raises:
+        InputError: the file holds no array of that name.
+    """
+    if kind not in members:
+        raise InputError(f"{path}: holds no {kind!r} array (it holds {', '.join(members)})")
+    return members[kind]
 
 
 def _load_depth(

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from como3r.data.agent_input import DEPTH_PNG_MODES, load_npy
+from como3r.data.agent_input import DEPTH_PNG_MODES, load_npy, packed_member
 from como3r.errors import InputError
 from como3r.io.packed_arrays import SUFFIX as PACKED_SUFFIX
 from como3r.io.packed_arrays import read_packed_header
@@ -153,10 +153,7 @@ def check_map_header(path: Path, image_size: tuple[int, int], kind: str) -> None
         return
     expected = (height, width) if kind == "depth" else (height, width, 3)
     if path.suffix.lower() == PACKED_SUFFIX:
-        arrays = read_packed_header(path)
-        if kind not in arrays:
-            raise InputError(f"{path}: holds no {kind!r} array (it holds {', '.join(arrays)})")
-        dtype, shape = arrays[kind]
+        dtype, shape = packed_member(read_packed_header(path), path, kind)
     else:
         array = load_npy(path, kind, mmap=True)
         dtype, shape = array.dtype, array.shape
