@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -347,6 +348,52 @@ def test_graph_document_and_metrics(ring) -> None:
     assert {"retrieval", "verification", "gauge", "global_ba", "cleanup"} <= set(
         metrics["stage_seconds"]
     )
+
+
+def _relocalized(scene: Scene, agent: int, kf_id: int, turn_deg: float = 0.0) -> Scene:
+    """``scene`` with one keyframe sent as a relocalized one (no sequential edge), its pose
+    turned by ``turn_deg`` about its centre (a relocalization the pair does not support)."""
+    packets = {a: list(p) for a, p in scene.packets.items()}
+    packet = packets[agent][kf_id]
+    turn = sim3_exp(torch.tensor([0, 0, 0, 0, math.radians(turn_deg), 0, 0.0]))
+    T_WC = sim3_compose(packet.T_WC, turn)
+    packets[agent][kf_id] = dataclasses.replace(
+        packet, T_WC=T_WC, sequential_ij=None, sequential_ji=None
+    )
+    return dataclasses.replace(scene, packets=packets)
+
+
+def _chain_links(coordinator: Coordinator, agent: int) -> dict[int, int]:
+    """The agent's chain edges in the global graph: keyframe id -> the id it is linked to."""
+    graph = coordinator.graph
+    return {
+        graph.keyframes[link.j].kf_id: graph.keyframes[link.i].kf_id
+        for link in graph.links
+        if link.kind == "sequential" and graph.agent_of[link.j] == agent
+    }
+
+
+def test_a_relocalized_keyframe_is_tied_to_its_agents_chain(ring) -> None:
+    """A keyframe without its sequential edge (the front-end relocalized it on an earlier
+    keyframe) is verified against its agent's latest keyframes and linked to its chain;
+    without that, the global BA took agent 1 of the prior-v2 room from 0.5 to 2.7 % of its
+    path (benchmarks/robustness.py)."""
+    scene = _relocalized(ring, agent=1, kf_id=2)
+    coordinator, _ = _run(scene, _interleave(scene, [0, 1]), agents=2)
+    chain = _chain_links(coordinator, 1)
+    assert sorted(chain) == [1, 2, 3] and chain[2] in (0, 1), chain
+    assert coordinator.metrics()["chain_relinks"] == 1
+    assert coordinator.components() == [[0, 1]]
+    assert _merged_keyframe_ate(coordinator, scene) <= 0.01 * scene.path_length
+
+
+def test_a_relocalized_keyframe_its_pairs_disagree_with_stays_cut(ring) -> None:
+    """The chain edge must agree with the agent's poses: a relocalization 30 deg off what
+    its pairs say (a look-alike place) is not tied to the chain."""
+    scene = _relocalized(ring, agent=1, kf_id=2, turn_deg=30.0)
+    coordinator, _ = _run(scene, _interleave(scene, [0, 1]), agents=2)
+    assert sorted(_chain_links(coordinator, 1)) == [1, 3]
+    assert coordinator.metrics()["chain_relinks"] == 0
 
 
 def test_a_link_that_would_rescale_the_map_is_held_back(ring) -> None:

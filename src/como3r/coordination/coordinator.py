@@ -4,7 +4,9 @@ It receives every agent's keyframes (:class:`~como3r.frontend.packets.KeyframePa
 any interleaving, and for each one
 
 1. inserts it and its sequential edge into the unified factor graph
-   (:class:`~como3r.backend.global_graph.GlobalGraph`);
+   (:class:`~como3r.backend.global_graph.GlobalGraph`); a relocalized keyframe, which comes
+   without one, is verified against its agent's latest keyframes and tied to its chain
+   (:meth:`~.linking.InterAgentLinking._relink`);
 2. retrieves up to ``k_NN`` keyframes of other agents from the shared ASMK database and
    verifies each candidate densely (C-Eq. 12; :mod:`.association`);
 3. admits a verified edge between two agents of ONE gauge component straight into the
@@ -204,6 +206,8 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
                 continue
             self.graph.add_keyframe(packet)
             self.stats.keyframes += 1
+            if packet.kf_id > 0 and packet.sequential_ij is None:
+                self._relink(packet)
             fresh.append((packet, self._retrieve(packet)))
         spent, budget = self.stats.prior_decodes, self._batch_budget(len(fresh))
         for packet, hits in reversed(fresh):

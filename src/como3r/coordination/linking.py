@@ -15,12 +15,14 @@ import logging
 import math
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
 
 import torch
 from torch import Tensor
 
 from como3r.backend.global_graph import GlobalGraph
+from como3r.backend.graph_link import GraphLink
 from como3r.config import Config
 from como3r.coordination.association import (
     Candidate,
@@ -40,6 +42,7 @@ from como3r.coordination.gauge import (
 )
 from como3r.frontend.packets import KeyframePacket, PoseUpdate
 from como3r.frontend.pairs import DirectedMatches, gather_points
+from como3r.frontend.relocalization import RECENT_KEYFRAMES
 from como3r.frontend.timing import TimedPrior
 from como3r.geometry.lie import sim3_act
 from como3r.prior.base import Encoding
@@ -130,6 +133,74 @@ class InterAgentLinking:
         verified = [c for c in records if c.verification.accepted]
         self.stats.edges_verified += len(verified)
         return verified
+
+    def _relink(self, packet: KeyframePacket) -> None:
+        """Tie a keyframe that came without its sequential edge to its agent's chain.
+
+        A relocalized keyframe (:mod:`como3r.frontend.relocalization`) is joined in its
+        agent's local graph to the keyframe it matched by a loop edge, which stays there
+        (C-Sec. 3.5), so the global graph had no edge from it to the agent's earlier
+        keyframes: the agent's chain was cut, and the global BA (C-Eq. 5) moved the pieces
+        apart, or left one where it was when no inter-agent edge reached it. Here the new
+        keyframe is decoded with its agent's :data:`RECENT_KEYFRAMES` latest keyframes
+        (those the front-end relocalizes on first) and the pair that passes C-Eq. 12
+        (``tau_inter`` both ways) and agrees with the agent's poses (``verification.
+        max_residual_ratio`` and the scale watch, as an edge inside one gauge) and matches
+        the largest share of its co-visible pixels enters the graph as the keyframe's chain
+        edge. The co-visibility bar of cross-agent edges is not applied: the pair that made
+        the agent lose track is often decoded well one way only (5 and 13 % of the pixels
+        matched, 6 and 14 % of those co-visible; 85-86 % the other way), and the one the
+        agent relocalized on can sit just under the bar (0.65 on a room of the prior-v2
+        grid, benchmarks/robustness.py); what guards a chain edge against a look-alike is
+        its agreement with the agent's own poses. None passing: the chain stays cut.
+        """
+        own = self.graph.agent_keyframes(packet.agent)
+        partners = range(packet.kf_id - 1, max(-1, packet.kf_id - 1 - RECENT_KEYFRAMES), -1)
+        verifications = verify_candidates(
+            self.prior,
+            (packet.agent, packet.kf_id),
+            self._encoding(packet.agent, packet.kf_id),
+            [(Hit(packet.agent, k, math.nan), self._encoding(packet.agent, k)) for k in partners],
+            self.config.matching,
+            self.config.tracking.q_min,
+            replace(self.config.verification, min_covisible_ratio=0.0),
+        )
+        best: tuple[float, Candidate] | None = None
+        for v in verifications:
+            candidate = Candidate(v, own[v.candidate[1]], own[packet.kf_id])
+            if v.accepted:
+                x_i, x_j, q = self._lifted_correspondences(candidate)
+                candidate.residual_ratio = residual_ratio(
+                    x_i, x_j, self.graph.keyframes[candidate.i].T_WC[:3]
+                )
+                log_scale = edge_log_scale(x_j, x_i, q, self.config.gauge.min_correspondences)
+                agrees = candidate.residual_ratio <= self.config.verification.max_residual_ratio
+                agrees = agrees and not abs(log_scale) > self.config.gauge.scale_alarm_log
+                covisible = v.covisible_ratio or 0.0
+                if agrees and (best is None or covisible > best[0]):
+                    best = (covisible, candidate)
+            logger.debug(
+                "coordinator: agent %d keyframe %d (relocalized) with keyframe %d: nu %.3f / "
+                "%s, co-visible matched %s, residual ratio %.3f",
+                packet.agent,
+                packet.kf_id,
+                v.candidate[1],
+                v.nu_j,
+                v.nu_i,
+                v.covisible_ratio,
+                candidate.residual_ratio,
+            )
+        if best is None:
+            logger.info(
+                "coordinator: agent %d keyframe %d (relocalized) matches none of its agent's "
+                "latest keyframes: its chain stays cut in the global graph",
+                packet.agent,
+                packet.kf_id,
+            )
+            return
+        chosen = best[1]
+        self.graph.links.append(GraphLink(chosen.i, chosen.j, "sequential", chosen.link))
+        self.stats.chain_relinks += 1
 
     def _encoding(self, agent: int, kf_id: int) -> Encoding:
         """A keyframe's encoding: the one it came with, else its colours encoded again

@@ -43,6 +43,9 @@ class CoordinatorStats:
     # keyframes whose encoding was made again from their colours (.encodings); their
     # seconds are stage_seconds["reencode"]
     reencodes: int = 0
+    # relocalized keyframes (no sequential edge) tied to their agent's chain by the
+    # coordinator (linking.InterAgentLinking._relink)
+    chain_relinks: int = 0
     stage_seconds: dict[str, float] = field(default_factory=dict)
 
     def add_time(self, stage: str, seconds: float) -> None:

@@ -99,7 +99,15 @@ def _replay(
     onto the agent's focal length in the merged map); apply the coordinator's updates to
     the results."""
     graph = moved.session.graph
-    sequential = {link.j: link.link for link in graph.links if link.kind == "sequential"}
+    # a relocalized keyframe's chain edge may join it to an earlier keyframe than its
+    # predecessor (linking.InterAgentLinking._relink): it is not a packet's sequential edge,
+    # and the coordinator here links that keyframe again itself
+    sequential = {
+        link.j: link.link
+        for link in graph.links
+        if link.kind == "sequential"
+        and graph.keyframes[link.i].kf_id + 1 == graph.keyframes[link.j].kf_id
+    }
     for g, kf in enumerate(graph.keyframes):
         report_phase(progress, "merging", f"keyframe {g + 1} of {len(graph)}", g, len(graph))
         agent = offset + graph.agent_of[g]
