@@ -235,8 +235,10 @@ class KeyframeLinking:
         of the matches agree with taken (tracking's test: ray within
         :attr:`~como3r.frontend.tracker.FrameTracker.inlier_angle_deg`, range within
         ``tracking.sigma_dist``): a solve from the graph's pose alone is not the loop's own
-        pose. Not the lower cost: C-Eq. 17 drops points that project behind the camera, so
-        a pose that sees none of them costs nothing. Measured (benchmarks/robustness.py,
+        pose. Not the lower cost: C-Eq. 17 drops the matches a pose brings behind (or
+        much nearer) the camera, so a pose that drops them all costs nothing (a loop turned
+        60 deg about the vertical axis: a solve from there stopped at once, cheaper than
+        the true pose). Measured (benchmarks/robustness.py,
         prior v2, aliasing, 160x120 at long side 160, seed 1): keyframes 6 -> 10 (frames 30
         and 46, truly 65 deg and 1.10 m apart) matched look-alike facades at 0.39 in both
         directions; from the graph's pose, where none of the matches agreed with it, LM
