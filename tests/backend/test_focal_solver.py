@@ -257,3 +257,37 @@ def test_the_coordinators_terminal_focal_step_follows_gauge_focal_ba(focal_ba: b
     moved = part.graph.agent_focal(1) != before
     assert moved == focal_ba
     assert (part.stats.focal_refinements > 0) == focal_ba
+
+
+def test_a_resumed_session_centres_the_prior_on_the_agents_own_focal_lengths(tmp_path) -> None:
+    """Each agent's own self-calibration (the prior's centre) is kept in the session store:
+    after a merge moved agent 1 onto agent 0's focal length, a session read back solves the
+    focal BA to the uninterrupted result; centred on the focal lengths the agents hold (what
+    a resumed run did before the store kept them) it ends elsewhere."""
+    from como3r.coordination.coordinator import Coordinator
+    from como3r.store.reader import read_session
+    from como3r.store.writer import SessionStore
+
+    graph = _graph()
+    graph.own_focal = {0: F, 1: F * 1.06}  # as each agent's keyframes said (add_keyframe)
+    graph.rescale_focal(1, math.log(1 / 1.06))  # a merge's alignment
+    coordinator = Coordinator(None, Config(), None, 2)  # type: ignore[arg-type]
+    coordinator.graph = graph
+    coordinator.stats.keyframes = len(graph)
+    path = tmp_path / "session.db"
+    with SessionStore.create(path, Config(), coordinator):
+        pass
+    resumed, lost = read_session(path).graph, read_session(path).graph
+    assert resumed.own_focal == graph.own_focal
+    assert resumed.agent_focal(1) == pytest.approx(F, rel=1e-6)
+    results = []
+    for solved in (graph, resumed, lost):
+        centres = {} if solved is lost else solved.own_focal
+        optimize_focal(solved, [0, 1], 0, 20, 0.05, centres)
+        results.append((solved.agent_focal(0), solved.agent_focal(1), solved.poses([0, 1, 2])))
+    (f0, f1, poses), (g0, g1, resumed_poses), (h0, _, _) = results
+    assert (g0, g1) == pytest.approx((f0, f1), rel=1e-9)
+    assert torch.allclose(resumed_poses, poses, atol=1e-6)
+    # the centre matters (the edges fix this scene's focal lengths but for 5e-4): centred
+    # on the focal lengths held, the solve ends elsewhere
+    assert abs(h0 / f0 - 1) > 1e-4
