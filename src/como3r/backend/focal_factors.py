@@ -118,6 +118,8 @@ class FocalEdgeFactors:
         camera: maps a key to its camera's column in ``log_focal``.
         tracking: noise model and Huber breakpoint (C-Eq. 7-8, C-Tab. 3 ``sigma_p``,
             ``sigma_z``).
+        compiled: CPU factors take the compiled loop (:func:`compiled_edge_blocks`); False:
+            the PyTorch path (:func:`edge_blocks`) on every device (tests, benchmarks).
 
     Raises:
         InputError: no edges, or a keyframe without intrinsics.
@@ -130,10 +132,11 @@ class FocalEdgeFactors:
         row: Callable[[int], int],
         camera: Callable[[int], int],
         tracking: TrackingConfig,
+        compiled: bool = True,
     ) -> None:
         if not edges:
             raise InputError("FocalEdgeFactors: no edges")
-        self.tracking = tracking
+        self.tracking, self.compiled = tracking, compiled
         keys = sorted({k for e in edges for k in (e.i, e.j)})
         for key in keys:
             if keyframe(key).K is None:
@@ -169,7 +172,7 @@ class FocalEdgeFactors:
         for batch in self.batches:
             factors = batch.factors
             scale_i, scale_j = log_focal[batch.camera_i].exp(), (-log_focal[batch.camera_j]).exp()
-            if factors.q.device.type == "cpu" and not poses.requires_grad:
+            if self.compiled and factors.q.device.type == "cpu" and not poses.requires_grad:
                 parts = [compiled_edge_blocks(factors, poses, scale_i, scale_j, self.tracking)]
                 slices = [slice(0, factors.num_edges)]
             else:

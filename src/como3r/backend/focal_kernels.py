@@ -11,12 +11,11 @@ points: :func:`~como3r.geometry.camera.rescale_focal` without making the rescale
 
 Everything per match runs in float64, in blocks of :data:`BLOCK` matches (one parallel task
 each) whose partial sums are added in block order, so the result does not depend on the
-thread count. Measured (issue 41; one thread, 2 shared cores under a load of 4-6): the
-focal stage of stored sessions of ``benchmarks/team_scale.py`` (every agent's focal length
-moved by up to 3 % first) took 9.4 -> 1.9 s of CPU at 4 agents (7.4 M matches, 4 iterations)
-and 19.8 -> 3.5 s at 16, where the PyTorch focal rows cost 376 ns a match beside the pose
-loop's 28, and this loop 35; the factors are now built once per solve (1.4 s at 4 agents),
-not per iteration.
+thread count. Measured (issue 41, ``benchmarks/focal_stage.py``; one thread): on the
+focal stage of stored 4- and 16-agent sessions a linearization takes 25-27 ns a match with
+this loop, 440-460 with the PyTorch path; with the factors built once per solve instead of
+every iteration, the stage went from 9.4 to 1.9 s of CPU at 4 agents and from 19.8 to 3.5 s
+at 16.
 
 The loops and their helper stay in this one file and take the depth ratio and clamp as
 arguments: numba keys a loop's disk cache on its own source file only, so a helper or
