@@ -166,11 +166,18 @@ by the multi-process schedule, not the solve (offline on one stored session the 
 implementations agree within 2e-5 in focal length and 0.12 mm in position): agents 5 and 13
 sit 55 and 39 mm off in the merged frame, 3.6 and 4.4 mm on their own. Agent 11 is 31.1 mm
 off on its own in both runs (frames 10-12 at 56-58 mm, the step between them 220 mm for 175):
-it moved only at the end of the input (its merge came with the 42nd keyframe), so no
-coordinator update reached it while it tracked, yet its front-end run in one process with
-the same agent id, prior and noise tracks at 2.8 mm (keyframes at frames 0, 2, 8, 10 where
-the team's process made 0, 2, 12; first-frame focal 337.79 px where it had 337.87): its
-input or state in the team's agent process differs from the first frame on. Not isolated.
+it moved only at the end of the input (its merge came with the 42nd keyframe) and its
+process received no message but its task (``runtime.agents``), yet its front-end run in one
+process with the same agent id, prior, noise and configuration tracks at 2.8 mm (keyframes
+at frames 0, 2, 8, 10 where the team's process made 0, 2, 12; first-frame focal 337.79 px
+where it had 337.87): its input or state in the team's agent process differs from the first
+frame on. Not only agent 11's: every agent's first-frame self-calibration (the prior's decode
+of frame 0 with itself) differs between the 16-agent team's processes and the same agent
+run in one process (agent 10: 312.96 against 313.11 px), while a one-agent multi-process run
+matches one process exactly (agent id 0, AgentWorker run in-process: same figures); what a
+team's agent process gets or does differently is not isolated, and from there agent 11's
+tracking meets a knife edge (its frame 4 matches 3 % of keyframe 0's pixels, the minimum is
+5 %).
 """
 
 from __future__ import annotations
