@@ -163,21 +163,18 @@ the 4-agent run) 185 -> 28 s at 4 agents and 569 -> 55 s at 16; the cleanup 237 
 618 -> 117 s. The in-stream work is the same code: 16 vs 4 agents 1.64x per keyframe (goal
 1.5x), peak memory 1.72x. The merged ATE at 16 agents differs from the run above (24.8 mm)
 by the multi-process schedule, not the solve (offline on one stored session the two
-implementations agree within 2e-5 in focal length and 0.12 mm in position): agents 5 and 13
+implementations agree within 2e-5 in focal length and 0.12 mm in position): agents (ids) 5 and 13
 sit 55 and 39 mm off in the merged frame, 3.6 and 4.4 mm on their own. Agent 11 is 31.1 mm
-off on its own in both runs (frames 10-12 at 56-58 mm, the step between them 220 mm for 175):
-it moved only at the end of the input (its merge came with the 42nd keyframe) and its
-process received no message but its task (``runtime.agents``), yet its front-end run in one
-process with the same agent id, prior, noise and configuration tracks at 2.8 mm (keyframes
-at frames 0, 2, 8, 10 where the team's process made 0, 2, 12; first-frame focal 337.79 px
-where it had 337.87): its input or state in the team's agent process differs from the first
-frame on. Not only agent 11's: every agent's first-frame self-calibration (the prior's decode
-of frame 0 with itself) differs between the 16-agent team's processes and the same agent
-run in one process (agent 10: 312.96 against 313.11 px), while a one-agent multi-process run
-matches one process exactly (agent id 0, AgentWorker run in-process: same figures); what a
-team's agent process gets or does differently is not isolated, and from there agent 11's
-tracking meets a knife edge (its frame 4 matches 3 % of keyframe 0's pixels, the minimum is
-5 %).
+off on its own in both runs (frames 10-12 at 56-58 mm, the step between them 220 mm for 175).
+It is folder ``agent_5``: the runs took the folders in name order (``agent_10`` before
+``agent_2``), so from 10 agents on the ids were not the folder numbers (now they are, which
+gives the 16-agent runs other noise draws). Its front-end alone, in one process with its id,
+prior and noise, tracks at 2.7 mm with the keyframes it made in the team (frames 0, 2, 12;
+frame 4 matched 2 % of keyframe 0's pixels, the minimum is 5 %, so frame 2 was promoted);
+in the map its last keyframe, which holds only its sequential edge (match fraction 0.38) and
+an intra-agent loop edge to its first (no inter-agent edge: its 3 candidates were rejected),
+ends 56 mm off: the coordinator's solves move it (its merge came with the 42nd keyframe and
+no update reached the agent while it tracked). Which solve, not isolated.
 """
 
 from __future__ import annotations
@@ -310,7 +307,8 @@ def run_one(
     scene: Path, out: Path, long_side: int, overrides: list[str] | None = None
 ) -> dict[str, Any]:
     """One team run; what the table needs, measured (JSON-ready)."""
-    agents = sorted(scene.glob("agent_*"))
+    # agent ids in folder-number order (by name, agent_10 would come before agent_2)
+    agents = sorted(scene.glob("agent_*"), key=lambda p: int(p.name.split("_")[1]))
     config = apply_overrides(Config(), [f"input.long_side={long_side}", *(overrides or [])])
     timed = _Timed()
     timed.install()
