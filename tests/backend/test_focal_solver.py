@@ -14,7 +14,9 @@ from como3r.backend.focal_factors import (
     FocalEdgeFactors,
     FocalPrior,
     FocalValues,
+    compiled_edge_blocks,
     edge_blocks,
+    rescaled,
 )
 from como3r.backend.focal_solver import gauss_newton_focal, optimize_focal
 from como3r.backend.global_graph import GlobalGraph
@@ -97,11 +99,12 @@ def _scene(believed: list[float]) -> tuple[list[View], torch.Tensor, list[Edge]]
     return views, poses, edges
 
 
-def test_focal_rows_match_finite_differences() -> None:
+@pytest.mark.parametrize("path", ["compiled", "pytorch"])
+def test_focal_rows_match_finite_differences(path: str) -> None:
     """The focal gradient is the derivative of the robust energy of C-Eq. 17 with each
     camera's focal length moved (pointmap and intrinsics, :func:`rescale_focal`), and the
     focal Hessian is J^T W J of the whitened residuals' finite-difference Jacobian with the
-    Huber-IRLS weights W."""
+    Huber-IRLS weights W; by the compiled CPU loop and by PyTorch."""
     views, poses, edges = _scene([F, F * 1.04])
     tracking = TrackingConfig()
     edge = [edges[2]]  # keyframe 1 (camera 0) <- keyframe 2 (camera 1)
@@ -116,7 +119,11 @@ def test_focal_rows_match_finite_differences() -> None:
         return build_factors(edge, view, row, tracking)
 
     factors = built([0.0, 0.0])
-    Hb, g, _ = edge_blocks(factors, poses, slice(0, 1), tracking)
+    if path == "compiled":
+        one = torch.ones(1, dtype=torch.float64)
+        Hb, g, _ = compiled_edge_blocks(factors, poses, one, one, tracking)
+    else:
+        Hb, g, _ = edge_blocks(factors, poses, slice(0, 1), tracking)
     h = 1e-5
     r0 = factors.whitened_residual(poses)[0].double()
     for side, camera in ((0, 0), (1, 1)):
@@ -130,6 +137,36 @@ def test_focal_rows_match_finite_differences() -> None:
         J = (r_plus - r_minus).double() / (2 * h)
         expected = (huber_weight(r0, tracking.huber_k) * J * J).sum()  # IRLS, C-Eq. 8
         assert float(Hb[0, 7 + side, 7 + side]) == pytest.approx(float(expected), rel=2e-2)
+
+
+def test_blocks_at_trial_corrections_are_those_of_the_rescaled_keyframes() -> None:
+    """The factors built once on the keyframes as held, at trial corrections (the compiled
+    loop's per-edge factors, or :func:`rescaled`), give the blocks of factors built on the
+    keyframes moved to those focal lengths (what the solve rebuilt every iteration before),
+    the compiled loop and PyTorch alike (float64 pointmaps: to rounding)."""
+    views, poses, edges = _scene([F, F * 1.04])
+    tracking = TrackingConfig()
+    cameras, row = [0, 0, 1], {0: 0, 1: 1, 2: 2}.__getitem__
+    log_focal = [0.03, -0.05]
+
+    def moved(k: int) -> View:
+        X, K = rescale_focal(views[k].X_hat, views[k].K, log_focal[cameras[k]])
+        return View(X, K)
+
+    held = build_factors(edges, views.__getitem__, row, tracking)
+    rebuilt = build_factors(edges, moved, row, tracking)
+    phi = torch.tensor(log_focal, dtype=torch.float64)
+    scale_i = phi[[cameras[e.i] for e in edges]].exp()
+    scale_j = (-phi[[cameras[e.j] for e in edges]]).exp()
+    every = slice(0, len(edges))
+    H_ref, g_ref, _ = edge_blocks(rebuilt, poses, every, tracking)
+    H_c, g_c, _ = compiled_edge_blocks(held, poses, scale_i, scale_j, tracking)
+    H_t, g_t, _ = edge_blocks(rescaled(held, scale_i, scale_j), poses, every, tracking)
+    scale = H_ref.abs().amax(dim=(1, 2), keepdim=True)
+    for H, g in ((H_c, g_c), (H_t, g_t)):
+        assert torch.allclose(H / scale, H_ref / scale, atol=1e-9)
+        assert torch.allclose(g / scale[..., 0], g_ref / scale[..., 0], atol=1e-9)
+    assert float(g_ref[:, 7:].abs().max()) > 1e-3 * float(scale.max())  # the focal rows count
 
 
 @pytest.mark.parametrize("held", [True, False])
@@ -220,3 +257,37 @@ def test_the_coordinators_terminal_focal_step_follows_gauge_focal_ba(focal_ba: b
     moved = part.graph.agent_focal(1) != before
     assert moved == focal_ba
     assert (part.stats.focal_refinements > 0) == focal_ba
+
+
+def test_a_resumed_session_centres_the_prior_on_the_agents_own_focal_lengths(tmp_path) -> None:
+    """Each agent's own self-calibration (the prior's centre) is kept in the session store:
+    after a merge moved agent 1 onto agent 0's focal length, a session read back solves the
+    focal BA to the uninterrupted result; centred on the focal lengths the agents hold (what
+    a resumed run did before the store kept them) it ends elsewhere."""
+    from como3r.coordination.coordinator import Coordinator
+    from como3r.store.reader import read_session
+    from como3r.store.writer import SessionStore
+
+    graph = _graph()
+    graph.own_focal = {0: F, 1: F * 1.06}  # as each agent's keyframes said (add_keyframe)
+    graph.rescale_focal(1, math.log(1 / 1.06))  # a merge's alignment
+    coordinator = Coordinator(None, Config(), None, 2)  # type: ignore[arg-type]
+    coordinator.graph = graph
+    coordinator.stats.keyframes = len(graph)
+    path = tmp_path / "session.db"
+    with SessionStore.create(path, Config(), coordinator):
+        pass
+    resumed, lost = read_session(path).graph, read_session(path).graph
+    assert resumed.own_focal == graph.own_focal
+    assert resumed.agent_focal(1) == pytest.approx(F, rel=1e-6)
+    results = []
+    for solved in (graph, resumed, lost):
+        centres = {} if solved is lost else solved.own_focal
+        optimize_focal(solved, [0, 1], 0, 20, 0.05, centres)
+        results.append((solved.agent_focal(0), solved.agent_focal(1), solved.poses([0, 1, 2])))
+    (f0, f1, poses), (g0, g1, resumed_poses), (h0, _, _) = results
+    assert (g0, g1) == pytest.approx((f0, f1), rel=1e-9)
+    assert torch.allclose(resumed_poses, poses, atol=1e-6)
+    # the centre matters (the edges fix this scene's focal lengths but for 5e-4): centred
+    # on the focal lengths held, the solve ends elsewhere
+    assert abs(h0 / f0 - 1) > 1e-4

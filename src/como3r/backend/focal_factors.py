@@ -24,19 +24,19 @@ and :mod:`como3r.backend.focal_solver` solves it.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from como3r.backend.focal_kernels import focal_blocks
 from como3r.config import TrackingConfig
 from como3r.errors import InputError
 from como3r.frontend.graph import Edge, Pointmap, build_factors
-from como3r.geometry.camera import rescale_focal
-from como3r.geometry.lie import quat_to_matrix, sim3_adjoint, sim3_inverse
+from como3r.geometry.lie import quat_to_matrix, sim3_adjoint, sim3_compose, sim3_inverse
 from como3r.geometry.residuals import huber_weight
-from como3r.optim.cpu_loops import MIN_DEPTH_RATIO
 from como3r.optim.factors import endpoint_blocks
 from como3r.optim.match_factors import CalibratedFactors
 from como3r.optim.system import BlockSystem, assemble
@@ -100,16 +100,15 @@ class FocalSystem:
     g_f: Tensor
 
 
-@dataclass(frozen=True)
-class _Pointmap:
-    """A keyframe's pointmap and intrinsics at a trial focal length (what a factor reads)."""
-
-    X_hat: Tensor
-    K: Tensor | None
-
-
 class FocalEdgeFactors:
     """C-Eq. 17 edges whose two cameras' focal lengths are variables (module docstring).
+
+    The edges' dense factors are built once, on the pointmaps and intrinsics the keyframes
+    hold (the corrections are relative to them), and kept for the solve, as the pose BA
+    keeps its own (:class:`~como3r.optim.relinearization.ThresholdRelinearized`): a trial
+    correction is a per-edge factor on camera i's ``fx, fy`` and on the x and y of camera
+    j's points (:func:`~como3r.geometry.camera.rescale_focal`, every point keeps its pixel
+    and depth), so no keyframe is read, and no batch packed, again.
 
     Args:
         edges: directed edges between keys (global keyframe indices).
@@ -119,6 +118,8 @@ class FocalEdgeFactors:
         camera: maps a key to its camera's column in ``log_focal``.
         tracking: noise model and Huber breakpoint (C-Eq. 7-8, C-Tab. 3 ``sigma_p``,
             ``sigma_z``).
+        compiled: CPU factors take the compiled loop (:func:`compiled_edge_blocks`); False:
+            the PyTorch path (:func:`edge_blocks`) on every device (tests, benchmarks).
 
     Raises:
         InputError: no edges, or a keyframe without intrinsics.
@@ -131,11 +132,11 @@ class FocalEdgeFactors:
         row: Callable[[int], int],
         camera: Callable[[int], int],
         tracking: TrackingConfig,
+        compiled: bool = True,
     ) -> None:
         if not edges:
             raise InputError("FocalEdgeFactors: no edges")
-        self._keyframe = keyframe
-        self._row, self._camera, self.tracking = row, camera, tracking
+        self.tracking, self.compiled = tracking, compiled
         keys = sorted({k for e in edges for k in (e.i, e.j)})
         for key in keys:
             if keyframe(key).K is None:
@@ -144,47 +145,48 @@ class FocalEdgeFactors:
                     "estimated only for calibrated or self-calibrated keyframes)"
                 )
         order = sorted(edges, key=lambda e: int(e.matches.valid.sum()))
-        self.batches = [
-            order[s : s + EDGES_PER_BATCH] for s in range(0, len(order), EDGES_PER_BATCH)
-        ]
-
-    def _at(self, log_focal: Tensor) -> Callable[[int], _Pointmap]:
-        """The keyframe accessor at the corrections ``log_focal (A,)``."""
-        cache: dict[int, _Pointmap] = {}
-
-        def pointmap(key: int) -> _Pointmap:
-            if key not in cache:
-                kf = self._keyframe(key)
-                K = kf.K
-                assert K is not None  # checked at construction
-                X, K = rescale_focal(kf.X_hat, K, float(log_focal[self._camera(key)]))
-                cache[key] = _Pointmap(X, K)
-            return cache[key]
-
-        return pointmap
+        self.batches: list[_Batch] = []
+        for s in range(0, len(order), EDGES_PER_BATCH):
+            batch = order[s : s + EDGES_PER_BATCH]
+            factors = build_factors(batch, keyframe, row, tracking)
+            if not isinstance(factors, CalibratedFactors):
+                raise InputError("FocalEdgeFactors: the edges did not give C-Eq. 17 factors")
+            device = factors.q.device
+            self.batches.append(
+                _Batch(
+                    factors,
+                    torch.tensor([camera(e.i) for e in batch], device=device),
+                    torch.tensor([camera(e.j) for e in batch], device=device),
+                )
+            )
 
     def linearize(self, values: FocalValues) -> FocalSystem:
         """The joint normal equations at ``values`` (Huber-IRLS weights at its residuals)."""
         poses = values.poses.poses
         N, A = poses.shape[0], values.num_cameras
-        pointmap = self._at(values.log_focal)
+        log_focal = values.log_focal.to(poses.device)
         blocks = []
         H_pf = torch.zeros(N * A, 7, dtype=torch.float64, device=poses.device)
         H_ff = torch.zeros(A, A, dtype=torch.float64, device=poses.device)
         g_f = torch.zeros(A, dtype=torch.float64, device=poses.device)
         for batch in self.batches:
-            factors = build_factors(batch, pointmap, self._row, self.tracking)
-            if not isinstance(factors, CalibratedFactors):
-                raise InputError("FocalEdgeFactors: the edges did not give C-Eq. 17 factors")
-            cameras_i = torch.tensor([self._camera(e.i) for e in batch], device=poses.device)
-            cameras_j = torch.tensor([self._camera(e.j) for e in batch], device=poses.device)
-            step = max(1, CHUNK_MATCHES // max(1, factors.q.shape[1]))
-            for start in range(0, factors.num_edges, step):
-                edges = slice(start, min(start + step, factors.num_edges))
-                H9, g9, T_WC_i = edge_blocks(factors, poses, edges, self.tracking)
+            factors = batch.factors
+            scale_i, scale_j = log_focal[batch.camera_i].exp(), (-log_focal[batch.camera_j]).exp()
+            if self.compiled and factors.q.device.type == "cpu" and not poses.requires_grad:
+                parts = [compiled_edge_blocks(factors, poses, scale_i, scale_j, self.tracking)]
+                slices = [slice(0, factors.num_edges)]
+            else:
+                moved = rescaled(factors, scale_i, scale_j)
+                step = max(1, CHUNK_MATCHES // max(1, factors.q.shape[1]))
+                slices = [
+                    slice(s, min(s + step, factors.num_edges))
+                    for s in range(0, factors.num_edges, step)
+                ]
+                parts = [edge_blocks(moved, poses, edges, self.tracking) for edges in slices]
+            for edges, (H9, g9, T_WC_i) in zip(slices, parts):
                 i, j = factors.i[edges], factors.j[edges]
                 blocks.append(endpoint_blocks(i, j, H9[:, :7, :7], g9[:, :7], T_WC_i))
-                c = torch.stack([cameras_i[edges], cameras_j[edges]], dim=1)  # (e, 2)
+                c = torch.stack([batch.camera_i[edges], batch.camera_j[edges]], dim=1)  # (e, 2)
                 # pose-focal coupling: J_i = -J Ad, J_j = J Ad (C-Eq. 11)
                 Ad_T = sim3_adjoint(sim3_inverse(T_WC_i)).transpose(1, 2)
                 coupling = Ad_T @ H9[:, :7, 7:]  # (e, 7, 2)
@@ -200,95 +202,99 @@ class FocalEdgeFactors:
         return FocalSystem(system, H_pf.reshape(N, A, 7).transpose(1, 2), H_ff, g_f)
 
 
+@dataclass(frozen=True)
+class _Batch:
+    """A factor batch of the solve and its edges' cameras ``(e,)`` (columns of
+    ``log_focal``)."""
+
+    factors: CalibratedFactors
+    camera_i: Tensor
+    camera_j: Tensor
+
+
+def rescaled(factors: CalibratedFactors, scale_i: Tensor, scale_j: Tensor) -> CalibratedFactors:
+    """The factors at trial focal corrections: ``fx, fy`` of camera i times ``scale_i (e,)``
+    (``exp(phi_i)``), x and y of camera j's points times ``scale_j (e,)`` (``exp(-phi_j)``);
+    the observed pixels and depths stay (:func:`~como3r.geometry.camera.rescale_focal`). A
+    shallow copy: the other per-match arrays are shared."""
+    moved = copy.copy(factors)
+    X_j = factors.X_j
+    moved.X_j = torch.cat([X_j[..., :2] * scale_j.to(X_j)[:, None, None], X_j[..., 2:]], dim=-1)
+    K = factors.K.clone()
+    K[:, 0, 0] *= scale_i.to(K)
+    K[:, 1, 1] *= scale_i.to(K)
+    moved.K = K
+    return moved
+
+
+def compiled_edge_blocks(
+    factors: CalibratedFactors,
+    poses: Tensor,
+    scale_i: Tensor,
+    scale_j: Tensor,
+    tracking: TrackingConfig,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`edge_blocks` of all the factors' edges at trial corrections (as
+    :func:`rescaled`) by the compiled CPU loop (:mod:`como3r.backend.focal_kernels`)."""
+    T_WC_i = poses[factors.i]
+    T_ij = sim3_compose(sim3_inverse(T_WC_i), poses[factors.j])
+    H, g = focal_blocks(
+        T_ij,
+        factors.K,
+        scale_i,
+        scale_j,
+        factors.X_j,
+        factors.p_i,
+        factors.z_i,
+        factors.q,
+        factors.valid,
+        (1 / tracking.sigma_pixel, 1 / tracking.sigma_pixel, 1 / tracking.sigma_depth),
+        factors.huber_k,
+    )
+    return H.to(poses.device), g.to(poses.device), T_WC_i
+
+
 def edge_blocks(
     factors: CalibratedFactors, poses: Tensor, edges: slice, tracking: TrackingConfig
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Gauss-Newton blocks of a slice of C-Eq. 17 edges in ``(T_ij, phi_i, phi_j)``.
+    """Gauss-Newton blocks of a slice of C-Eq. 17 edges in ``(T_ij, phi_i, phi_j)``, in
+    PyTorch (any device).
 
-    The pose block is the factors' own (``relative_blocks``: the compiled loop on CPU). The
-    focal rows are summed here from ``D = d e / d x`` per match (C-Eq. 18 and the log-depth
-    row ``(0, 0, 1/z)``): with ``J_T = D [I, -[x]_x, x]`` (C-Eq. 9) the coupling of a
-    focal column ``j_f`` is ``J_T^T W j_f = (m, x cross m, x . m)``, ``m = D^T W j_f``, so no
-    per-match ``(3, 7)`` Jacobian is formed.
+    The residual, its usable-depth mask, its Jacobian in ``T_ij`` and the Huber weights are
+    the factors' own (:meth:`~como3r.optim.factors.RelativePoseFactors.whitened_residual`,
+    :func:`~como3r.geometry.residuals.calibrated_residual`); two focal columns are added to
+    the Jacobian: with ``D = d e / d x`` its first three columns (C-Eq. 9) and ``x = T_ij
+    X_j = (x, y, z)``, ``d e / d phi_i = (fx x / z, fy y / z, 0)`` (``x / z`` and ``y / z``
+    are the log-depth row's rotation entries ``-J[2, 4]`` and ``J[2, 3]``) and ``d e / d
+    phi_j = D s R (-X_j.x, -X_j.y, 0)``.
 
     Args:
-        factors: the edges' factors at the current focal lengths.
+        factors: the edges' factors at the trial focal lengths (:func:`rescaled`).
         poses: ``(N, 8)`` poses.
         edges: which edges.
-        tracking: the noise model the factors were built with (``sigma_pixel``,
-            ``sigma_depth``).
+        tracking: the noise model the factors were built with (its Huber breakpoint).
 
     Returns:
         ``H (e, 9, 9)`` and ``g (e, 9)`` float64 (the first 7 rows in the left tangent of
         ``T_ij``, then camera i's and camera j's log focal) and ``T_WC_i (e, 8)``.
     """
-    T_ij64, H_T, g_T = factors.relative_blocks(poses, edges)
-    T_WC_i = poses[factors.i[edges]]
+    r, sqrt_info, J, T_WC_i = factors.whitened_residual(poses, edges)
     X_j = factors.X_j[edges]
     dtype = X_j.dtype  # the pointmaps' precision, as the factors' own PyTorch path
-    T_ij = T_ij64.to(dtype)
-    R = quat_to_matrix(T_ij[:, 3:7]) * T_ij[:, 7, None, None]  # (e, 3, 3): s R
-    x = X_j @ R.transpose(1, 2) + T_ij[:, None, :3]  # (e, P, 3) in camera i
+    T_ij = sim3_compose(sim3_inverse(T_WC_i), poses[factors.j[edges]]).to(dtype)
+    sR = quat_to_matrix(T_ij[:, 3:7]) * T_ij[:, 7, None, None]  # (e, 3, 3)
     K = factors.K[edges].to(dtype)
-    fx, skew_, cx = K[:, None, 0, 0], K[:, None, 0, 1], K[:, None, 0, 2]
-    fy, cy = K[:, None, 1, 1], K[:, None, 1, 2]
-    z_i = factors.z_i[edges].to(dtype)
-    usable = factors.valid[edges] & (x[..., 2] > MIN_DEPTH_RATIO * z_i)
-    # padded and unusable matches hold anything (zero depths): they get zero weight below
-    z = torch.where(usable, x[..., 2], torch.ones_like(z_i))
-    z_i = torch.where(usable, z_i, torch.ones_like(z_i))
-    inv_z = 1.0 / z
-    x0, x1 = x[..., 0] * inv_z, x[..., 1] * inv_z
-    u, v = fx * x0 + skew_ * x1 + cx, fy * x1 + cy
-    p_i = factors.p_i[edges].to(dtype)
-    e = torch.stack([u - p_i[..., 0], v - p_i[..., 1], z.log() - z_i.log()], dim=-1)
-    e = torch.where(usable[..., None], e, torch.zeros_like(e))
-    inv_sigma = torch.tensor(
-        [1 / tracking.sigma_pixel, 1 / tracking.sigma_pixel, 1 / tracking.sigma_depth],
-        dtype=dtype,
-        device=e.device,
-    )
-    sqrt_info = (factors.q[edges].to(dtype).clamp_min(0).sqrt() * usable)[..., None] * inv_sigma
-    r = e * sqrt_info
-    weight = huber_weight(r, factors.huber_k) * sqrt_info
-    W, G = weight * sqrt_info, weight * r  # (e, P, 3)
-    # rows of D = d e / d x: (fx, skew, cx - u) / z, (0, fy, cy - v) / z, (0, 0, 1) / z,
-    # written out per component (a stacked (P, 3, 3) D costs more than the arithmetic)
-    du, dv = (cx - u) * inv_z, (cy - v) * inv_z
-    # d e / d phi_i = (fx x / z, fy y / z, 0): camera i's focal in Pi_K
-    J_i = (fx * x0, fy * x1, torch.zeros_like(x0))
-    # d e / d phi_j = D s R (-X_j.x, -X_j.y, 0)
-    dx = -(X_j[..., :2] @ R[:, :, :2].transpose(1, 2))
-    d0, d1, d2 = dx.unbind(-1)
-    J_j = (
-        (fx * d0 + skew_ * d1) * inv_z + du * d2,
-        fy * d1 * inv_z + dv * d2,
-        d2 * inv_z,
-    )
-    w0, w1, w2 = W.unbind(-1)
-    X0, X1, X2 = x.unbind(-1)
-    rows = []
-    for jf in (J_i, J_j):
-        t0, t1, t2 = w0 * jf[0], w1 * jf[1], w2 * jf[2]
-        m = torch.stack(
-            [fx * t0 * inv_z, (skew_ * t0 + fy * t1) * inv_z, du * t0 + dv * t1 + t2 * inv_z], -1
-        )
-        m0, m1, m2 = m.unbind(-1)
-        cross = torch.stack([X1 * m2 - X2 * m1, X2 * m0 - X0 * m2, X0 * m1 - X1 * m0], -1)
-        rows.append(torch.cat([m, cross, (x * m).sum(-1, keepdim=True)], -1).sum(1))
-    H_Tf = torch.stack(rows, dim=1)  # (e, 2, 7): J_T^T W j_f = (m, x cross m, x . m)
-    J_f = torch.stack([torch.stack(J_i, -1), torch.stack(J_j, -1)], dim=-1)  # (e, P, 3, 2)
-    WJ = (W[..., None] * J_f).flatten(1, 2)
-    H_ff = WJ.transpose(1, 2) @ J_f.flatten(1, 2)
-    g_f = (J_f.flatten(1, 2).transpose(1, 2) @ G.flatten(1)[..., None])[..., 0]
-    num = H_T.shape[0]
-    H = H_T.new_zeros(num, 9, 9)
-    H[:, :7, :7] = H_T
-    H[:, 7:, :7] = H_Tf.double()
-    H[:, :7, 7:] = H_Tf.double().transpose(1, 2)
-    H[:, 7:, 7:] = H_ff.double()
-    g = torch.cat([g_T, g_f.double()], dim=-1)
-    return H, g, T_WC_i
+    fx, fy = K[:, None, 0, 0], K[:, None, 1, 1]
+    n0, n1 = -J[..., 2, 4], J[..., 2, 3]  # x / z and y / z
+    J_i = torch.stack([fx * n0, fy * n1, torch.zeros_like(n0)], dim=-1)  # (e, P, 3)
+    d = -(X_j[..., :2] @ sR[:, :, :2].transpose(1, 2))  # (e, P, 3): s R (-X.x, -X.y, 0)
+    J_j = (J[..., :3] @ d[..., None])[..., 0]
+    J9 = torch.cat([J, J_i[..., None], J_j[..., None]], dim=-1).flatten(1, 2)  # (e, 3P, 9)
+    weight = huber_weight(r, tracking.huber_k) * sqrt_info
+    W, G = (weight * sqrt_info).flatten(1), (weight * r).flatten(1)  # (e, 3P)
+    H = (J9 * W[..., None]).transpose(1, 2) @ J9
+    g = (J9.transpose(1, 2) @ G[..., None])[..., 0]
+    return H.double(), g.double(), T_WC_i
 
 
 @dataclass(frozen=True)

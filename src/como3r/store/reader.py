@@ -222,6 +222,7 @@ def _load(connection: sqlite3.Connection, path: Path, paged: bool) -> Session:
         AgentRecord(*row) for row in connection.execute("SELECT * FROM agents ORDER BY agent")
     ]
     graph.focal = {a.agent: a.focal for a in agents if a.focal is not None}
+    graph.own_focal = {a.agent: a.own_focal for a in agents if a.own_focal is not None}
     graph.links = [
         read_link(row, len(graph), paged)
         for row in connection.execute(

@@ -83,6 +83,8 @@ class AgentRecord:
         last_keyframe_frame: frame index of the last of them (-1: none).
         updates_sent: pose updates the coordinator made for it (the last one's seq).
         focal: its focal length in the map [px], None until aligned.
+        own_focal: the focal length [px] its own self-calibration gave its latest keyframe
+            (``GlobalGraph.own_focal``), None if none or a store of format 6 or older.
     """
 
     agent: int
@@ -90,6 +92,7 @@ class AgentRecord:
     last_keyframe_frame: int
     updates_sent: int
     focal: float | None
+    own_focal: float | None = None
 
 
 class Blobs:

@@ -39,11 +39,14 @@ coordinator's (a restarted agent process that starts a new map segment has its o
                 accepted, covisible_ij, covisible_ji, matches blob while pending (an admitted
                 candidate's matches are its edge's)
     gauges      agent PK, component       the component's root (its lowest agent id)
-    agents      agent PK, keyframes, last_keyframe_frame, updates_sent, focal
+    agents      agent PK, keyframes, last_keyframe_frame, updates_sent, focal, own_focal
                                           per-agent progress: keyframes stored, the frame
                                           index of the last, pose updates made for it (the
                                           seq of the last PoseUpdateMessage), its focal
-                                          length in the map (NULL: not aligned)
+                                          length in the map (NULL: not aligned); since
+                                          version 7 the focal length its own
+                                          self-calibration gave its latest keyframe (NULL:
+                                          none; the centre of the focal BA's prior)
     state       key TEXT PK, value JSON   stats, gauge_events, alternation, backlog
                                           (inter edges since the last BA, their component
                                           roots), finished (the terminal cleanup ran),
@@ -60,12 +63,13 @@ from __future__ import annotations
 #: the store's file name in an output folder
 STORE_NAME = "session.db"
 #: the layout above; a reader refuses any other than :data:`READABLE_VERSIONS`
-FORMAT_VERSION = 6
+FORMAT_VERSION = 7
 #: the versions a reader reads: version 4 differs only in holding every array exact, 5 in
 #: holding the inter-agent edges' matches exact and no retrieval aggregates, which version 6
-#: reads as they are (an older store resumed is marked version 6 once written on; its
-#: blobs stay as they were written)
-READABLE_VERSIONS = (4, 5, 6)
+#: reads as they are, 6 in having no ``agents.own_focal`` (read as unknown: the focal BA's
+#: prior then centres on the focal length an agent holds). An older store resumed is marked
+#: version 7 once written on (the column added; its blobs stay as they were written)
+READABLE_VERSIONS = (4, 5, 6, 7)
 #: SQLite page size of a new store, the largest: a keyframe writes megabytes of blobs
 #: (13 MB of simulated-prior state, 2 MB per pointmap at 512x384) as chains of overflow
 #: pages, and 15 transactions of 13 + 4 x 1.8 MB took 0.68 s at 64 KiB pages against 1.65 s
@@ -106,7 +110,8 @@ CREATE TABLE candidates (
 CREATE TABLE gauges (agent INTEGER PRIMARY KEY, component INTEGER NOT NULL);
 CREATE TABLE agents (
     agent INTEGER PRIMARY KEY, keyframes INTEGER NOT NULL,
-    last_keyframe_frame INTEGER NOT NULL, updates_sent INTEGER NOT NULL, focal REAL);
+    last_keyframe_frame INTEGER NOT NULL, updates_sent INTEGER NOT NULL, focal REAL,
+    own_focal REAL);
 CREATE TABLE state (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE reports (agent INTEGER PRIMARY KEY, message BLOB NOT NULL);
 """

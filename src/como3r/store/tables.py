@@ -307,6 +307,7 @@ class TableWriter:
                 graph.keyframes[own[-1]].frame_index if own else -1,
                 self._updates.get(agent, 0),
                 graph.focal.get(agent),
+                graph.own_focal.get(agent),
             )
         self._upsert("gauges", gauges)
         self._upsert("agents", agents)

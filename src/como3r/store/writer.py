@@ -389,7 +389,8 @@ class SessionStore(TableWriter):
 
 def _upgrade(connection: sqlite3.Connection, path: Path) -> None:
     """Mark an older store this como3r reads (:data:`~.schema.READABLE_VERSIONS`) as of
-    :data:`~.schema.FORMAT_VERSION` before it is written on (its blobs stay as they are)."""
+    :data:`~.schema.FORMAT_VERSION` before it is written on (its blobs stay as they are;
+    one of format 6 or older gets the ``agents.own_focal`` column, NULL until written)."""
     (version,) = connection.execute("PRAGMA user_version").fetchone()
     if version == FORMAT_VERSION:
         return
@@ -401,6 +402,9 @@ def _upgrade(connection: sqlite3.Connection, path: Path) -> None:
         FORMAT_VERSION,
     )
     with _transaction(connection):
+        columns = {row[1] for row in connection.execute("PRAGMA table_info(agents)")}
+        if "own_focal" not in columns:
+            connection.execute("ALTER TABLE agents ADD COLUMN own_focal REAL")
         connection.execute(
             "UPDATE meta SET value = ? WHERE key = 'format_version'", (str(FORMAT_VERSION),)
         )
