@@ -55,7 +55,7 @@ def main() -> None:
     parser.add_argument("--precision", default="auto", choices=PRECISIONS)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    agents = sorted(args.scene.glob("agent_*"))
+    agents = sorted(args.scene.glob("agent_*"), key=lambda p: int(p.name.split("_")[1]))
     if not agents:
         parser.error(f"no agent_* folders in {args.scene}")
     start = time.process_time()

@@ -163,10 +163,9 @@ class GlobalGraph(GraphDepthSteps):
                     own[-2], g, "sequential", PairLink(packet.sequential_ij, packet.sequential_ji)
                 )
             )
-        elif packet.kf_id > 0:
-            logger.info(
-                "agent %d keyframe %d has no sequential edge (relocalized); its chain "
-                "is cut in the global graph",
+        elif packet.kf_id > 0:  # the coordinator ties it to the chain if a pair allows
+            logger.debug(
+                "agent %d keyframe %d has no sequential edge (relocalized)",
                 packet.agent,
                 packet.kf_id,
             )
