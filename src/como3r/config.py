@@ -191,6 +191,7 @@ _NON_NEGATIVE = (
     "verification.covisible_min_confidence",
     "verification.max_within_component",
     "verification.max_decodes_per_batch",
+    "verification.max_loop_candidates",
     "global_ba.lm_lambda",
     "global_ba.tikhonov_base",
     "global_ba.tikhonov_retries",

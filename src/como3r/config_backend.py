@@ -76,6 +76,15 @@ class VerificationConfig:
       in 1 / 4 / 12 maps: skipped keyframes are never verified later, and where the
       coordinator falls far behind nearly all of them are skipped. Not a default until
       skipped keyframes get a deferred verification.
+    * ``max_loop_candidates``: an agent's intra-agent loop edges stay in its local graph
+      (C-Sec. 3.5), so the global BA (C-Eq. 5) re-bends a loop-closed chain along its
+      sequential edges alone. The coordinator's retrieval also returns up to this many
+      keyframes of the keyframe's OWN agent that are not among its 3 latest (the
+      agent's loop candidates, found the same way); they are verified with what the cross-agent hits leave of ``max_decodes_per_keyframe`` (so the
+      bound holds), and one that passes C-Eq. 12, the co-visibility test and agrees with
+      the agent's own poses (``max_residual_ratio`` and ``gauge.scale_alarm_log``, the
+      test of a relinked chain edge) enters the global graph as a ``"loop"`` link. 0: none,
+      the paper's global graph.
     """
 
     tau_inter: float = 0.1
@@ -85,6 +94,7 @@ class VerificationConfig:
     max_decodes_per_keyframe: int = 6
     max_within_component: int = 3
     max_decodes_per_batch: int = 0
+    max_loop_candidates: int = 1
 
 
 @dataclass(frozen=True)

@@ -695,3 +695,69 @@ def test_a_batch_of_one_is_a_single_keyframe(ring) -> None:
     for key in ("keyframes", "edges_tried", "edges_accepted", "gauge_syncs", "ba_runs", "batches"):
         assert getattr(one.stats, key) == getattr(batched.stats, key), key
     assert [c.status for c in one.candidates] == [c.status for c in batched.candidates]
+
+
+def _revisiting(scene: Scene, turn_deg: float = 0.0) -> Scene:
+    """Agent 0 of ``scene`` walking back over its path: keyframes 0-3, then the images of
+    keyframes 2, 1 and 0 again as keyframes 4-6 (with their true poses and sequential
+    edges), the last one's pose turned by ``turn_deg`` about its centre (a place that looks
+    like keyframe 0 but is not where the agent's poses put it)."""
+    own = scene.packets[0]
+    packets = list(own)
+    for kf_id, back in zip((4, 5, 6), (2, 1, 0)):
+        source = own[back]
+        link = link_pairs(
+            scene.prior,
+            [(packets[-1].encoding, source.encoding)],
+            scene.config.matching,
+            scene.config.tracking.q_min,
+        )[0]
+        T_WC = source.T_WC
+        if kf_id == 6:
+            turn = sim3_exp(torch.tensor([0, 0, 0, 0, math.radians(turn_deg), 0, 0.0]))
+            T_WC = sim3_compose(T_WC, turn)
+        packets.append(
+            dataclasses.replace(
+                source,
+                kf_id=kf_id,
+                frame_index=own[-1].frame_index + kf_id,
+                timestamp=own[-1].timestamp + kf_id,
+                T_WC=T_WC,
+                sequential_ij=link.ij,
+                sequential_ji=link.ji,
+            )
+        )
+    return dataclasses.replace(scene, packets={0: packets})
+
+
+def _loop_links(coordinator: Coordinator) -> list[tuple[int, int]]:
+    graph = coordinator.graph
+    return sorted(
+        (graph.keyframes[link.i].kf_id, graph.keyframes[link.j].kf_id)
+        for link in graph.links
+        if link.kind == "loop"
+    )
+
+
+def test_an_agents_verified_loop_becomes_a_loop_link(ring) -> None:
+    """verification.max_loop_candidates: an agent's return to its earlier keyframes is
+    found by the coordinator's retrieval, verified and added to the global graph (the
+    agent's own loop edge never reaches it, C-Sec. 3.5); a look-alike that disagrees with
+    the agent's poses is not, and 0 adds none."""
+    scene = _revisiting(ring)
+    coordinator, _ = _run(scene, scene.packets[0], agents=1)
+    # keyframe 4 (the image of 2) overlaps keyframe 0 too; 1-3 are its latest
+    assert _loop_links(coordinator) == [(0, 4), (0, 6), (1, 5)]
+    metrics = coordinator.metrics()
+    assert metrics["loop_links"] == 3 and metrics["loops_tried"] >= 3
+    budget = coordinator.config.verification.max_decodes_per_keyframe
+    assert metrics["prior_decodes"] <= budget * metrics["retrieval_queries"]
+    assert {"loop", "sequential"} == {e["type"] for e in coordinator.graph_document()["edges"]}
+
+    turned = _revisiting(ring, turn_deg=30.0)
+    coordinator, _ = _run(turned, turned.packets[0], agents=1)
+    assert _loop_links(coordinator) == [(0, 4), (1, 5)]
+
+    off = apply_overrides(scene.config, ["verification.max_loop_candidates=0"])
+    coordinator, _ = _run(scene, scene.packets[0], off, agents=1)
+    assert _loop_links(coordinator) == [] and coordinator.metrics()["loops_tried"] == 0

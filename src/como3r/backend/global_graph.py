@@ -6,6 +6,9 @@ Vertices are the keyframes of ALL agents in one flat global index space ``0 .. N
 
 * ``"sequential"``: the intra-agent edge ``(k-1, k)`` each keyframe packet brings
   (C-Eq. 12, ``alpha``); intra-agent loop closures stay in the agents' local graphs;
+* ``"loop"``: an agent's loop found again by the coordinator (como3r addition,
+  ``verification.max_loop_candidates``; :meth:`~como3r.coordination.linking.
+  InterAgentLinking._add_loop`);
 * ``"inter"``: geometrically verified cross-agent edges (C-Eq. 12, ``nu``).
 
 Every link stores both directions of its dense matches, so intra- and inter-agent edges

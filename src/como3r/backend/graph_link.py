@@ -16,7 +16,7 @@ class GraphLink:
     Attributes:
         i: global index of endpoint i.
         j: global index of endpoint j.
-        kind: ``"sequential"`` or ``"inter"``.
+        kind: ``"sequential"``, ``"loop"`` or ``"inter"``.
         link: ``link.ij`` matches every pixel of j in i, ``link.ji`` every pixel of i in j.
         similarity: retrieval similarity (inter links only).
     """

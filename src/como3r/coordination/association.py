@@ -8,6 +8,8 @@
    ``verification.max_within_component`` whose agent already shares the keyframe's gauge
    component, and no more than ``verification.max_decodes_per_keyframe`` decodes' worth in
    all, are verified, best first: the work a keyframe causes is bounded whatever the team.
+   What they leave of it goes to the keyframe's loop candidates in its own agent
+   (:meth:`CrossAgentRetrieval.loop_hits`, ``verification.max_loop_candidates``).
 2. **Verification.** Each candidate pair is decoded symmetrically by the prior and matched
    densely in both directions (:func:`~como3r.frontend.pairs.directed_matches`, the same
    code that builds every intra-agent edge); it is accepted when ``min(nu_i, nu_j) >=
@@ -80,6 +82,24 @@ class CrossAgentRetrieval:
             (retrieval, None) if isinstance(retrieval, Aggregated) else retrieval
         )
         return self.database.query_and_add(agent, kf_id, descriptors, attention, scope="others")
+
+    def loop_hits(
+        self,
+        agent: int,
+        kf_id: int,
+        retrieval: tuple[Tensor | Quantized, Tensor] | Aggregated,
+        k: int,
+        recent: int,
+    ) -> list[Hit]:
+        """Keyframe ``(agent, kf_id)``'s loop candidates: up to ``k`` keyframes of its OWN
+        agent above the similarity threshold, best first, none of its ``recent`` latest
+        (the agent's front-end finds its loop candidates the same way, C-Sec. 3.5). Query
+        before :meth:`query_and_add` indexes the keyframe."""
+        if k <= 0 or kf_id <= recent:
+            return []
+        descriptors = retrieval if isinstance(retrieval, Aggregated) else retrieval[0]
+        excluded = [(agent, kf_id - n) for n in range(1, recent + 1)]
+        return self.database.query(descriptors, k=k, agent=agent, exclude_keyframes=excluded)
 
 
 #: prior decodes one candidate's verification costs at most (C-Eq. 12 decodes both orders)

@@ -25,6 +25,7 @@ from como3r.backend.global_graph import GlobalGraph
 from como3r.backend.graph_link import GraphLink
 from como3r.config import Config
 from como3r.coordination.association import (
+    DECODES_PER_CANDIDATE,
     Candidate,
     CrossAgentRetrieval,
     budget_candidates,
@@ -71,7 +72,9 @@ class InterAgentLinking:
 
     def _retrieve(self, packet: KeyframePacket) -> list[Hit]:
         """Query the shared database for keyframes of other agents, then index this one
-        (the retrieval half of association; :meth:`_verify` is the other)."""
+        (the retrieval half of association; :meth:`_verify` is the other); the hits of the
+        keyframe's own agent that follow are its loop candidates
+        (``verification.max_loop_candidates``)."""
         if self.retrieval is None or packet.retrieval is None:
             return []
         start = time.perf_counter()
@@ -93,24 +96,37 @@ class InterAgentLinking:
             and packet.codebook_id == self.retrieval.database.codebook_id
         ):
             retrieval = (Quantized(retrieval[0], packet.retrieval_words), retrieval[1])
+        loops = self.retrieval.loop_hits(
+            packet.agent,
+            packet.kf_id,
+            retrieval,
+            self.config.verification.max_loop_candidates,
+            RECENT_KEYFRAMES,
+        )
         hits = self.retrieval.query_and_add(packet.agent, packet.kf_id, retrieval)
         self.stats.retrieval_queries += 1
         self.stats.add_time("retrieval", time.perf_counter() - start)
-        return hits
+        return hits + loops
 
     def _verify(self, packet: KeyframePacket, hits: list[Hit]) -> list[Candidate]:
         """The candidates among a keyframe's retrieval hits that its decode budget allows,
-        verified densely (C-Eq. 12); returns the accepted ones."""
+        verified densely (C-Eq. 12); returns the accepted cross-agent ones (its loop
+        candidates, verified with the decodes those leave, go to :meth:`_add_loop`)."""
         if not hits:
             return []
         middle = time.perf_counter()
         root = self.gauges.find(packet.agent)
+        loops = [h for h in hits if h.agent == packet.agent]
         hits = budget_candidates(
-            hits, lambda agent: self.gauges.find(agent) == root, self.config.verification
+            [h for h in hits if h.agent != packet.agent],
+            lambda agent: self.gauges.find(agent) == root,
+            self.config.verification,
         )
-        if not hits:
+        left = self.config.verification.max_decodes_per_keyframe // DECODES_PER_CANDIDATE
+        loops = loops[: max(0, left - len(hits))]
+        if not hits and not loops:
             return []
-        candidates = [(h, self._encoding(h.agent, h.keyframe)) for h in hits]
+        candidates = [(h, self._encoding(h.agent, h.keyframe)) for h in hits + loops]
         query = self._encoding(packet.agent, packet.kf_id)
         decoded = self.stats.stage_seconds.get("prior_decode", 0.0)
         verifications = verify_candidates(
@@ -129,6 +145,8 @@ class InterAgentLinking:
             Candidate(v, self.graph.global_index(*v.candidate), self.graph.global_index(*v.query))
             for v in verifications
         ]
+        self._add_loop(packet, records[len(hits) :])
+        records = records[: len(hits)]
         self.candidates.extend(records)
         verified = [c for c in records if c.verification.accepted]
         self.stats.edges_verified += len(verified)
@@ -168,16 +186,9 @@ class InterAgentLinking:
         best: tuple[float, Candidate] | None = None
         for v in verifications:
             candidate = Candidate(v, own[v.candidate[1]], own[packet.kf_id])
-            if v.accepted:
-                x_i, x_j, q = self._lifted_correspondences(candidate)
-                candidate.residual_ratio = residual_ratio(
-                    x_i, x_j, self.graph.keyframes[candidate.i].T_WC[:3]
-                )
-                log_scale = edge_log_scale(x_j, x_i, q, self.config.gauge.min_correspondences)
-                agrees = candidate.residual_ratio <= self.config.verification.max_residual_ratio
-                agrees = agrees and not abs(log_scale) > self.config.gauge.scale_alarm_log
+            if v.accepted and self._agrees_with_agent(candidate):
                 covisible = v.covisible_ratio or 0.0
-                if agrees and (best is None or covisible > best[0]):
+                if best is None or covisible > best[0]:
                     best = (covisible, candidate)
             logger.debug(
                 "coordinator: agent %d keyframe %d (relocalized) with keyframe %d: nu %.3f / "
@@ -201,6 +212,55 @@ class InterAgentLinking:
         chosen = best[1]
         self.graph.links.append(GraphLink(chosen.i, chosen.j, "sequential", chosen.link))
         self.stats.chain_relinks += 1
+
+    def _agrees_with_agent(self, candidate: Candidate) -> bool:
+        """Whether a verified pair of one agent's keyframes agrees with the agent's poses:
+        its matched points lifted by them at most ``verification.max_residual_ratio`` apart
+        (relative to their range) and its own similarity not rescaling the map beyond
+        ``gauge.scale_alarm_log``; what keeps a look-alike out of an agent's chain."""
+        x_i, x_j, q = self._lifted_correspondences(candidate)
+        candidate.residual_ratio = residual_ratio(
+            x_i, x_j, self.graph.keyframes[candidate.i].T_WC[:3]
+        )
+        if candidate.residual_ratio > self.config.verification.max_residual_ratio:
+            return False
+        log_scale = edge_log_scale(x_j, x_i, q, self.config.gauge.min_correspondences)
+        return not abs(log_scale) > self.config.gauge.scale_alarm_log
+
+    def _add_loop(self, packet: KeyframePacket, verified: list[Candidate]) -> None:
+        """Add a keyframe's verified intra-agent loop as a ``"loop"`` link of the global graph.
+
+        The agent's front-end closes the same loops in its local graph only (C-Sec. 3.5);
+        without them the global BA (C-Eq. 5) bends the agent's chain back along its
+        sequential edges, whose errors add up. Of the candidates that pass C-Eq. 12 and the
+        co-visibility test (:func:`verify_candidates`) and agree with the agent's own poses
+        (:meth:`_agrees_with_agent`), the one matching the largest share of its co-visible
+        pixels enters the graph. It does not count towards the in-stream BA's trigger:
+        the next BA and the terminal cleanup (C-Sec. A.7) solve with it.
+        """
+        self.stats.loops_tried += len(verified)
+        best: tuple[float, Candidate] | None = None
+        for candidate in verified:
+            v = candidate.verification
+            agrees = v.accepted and self._agrees_with_agent(candidate)
+            logger.debug(
+                "coordinator: agent %d keyframe %d loop candidate %d: nu %.3f / %s, "
+                "co-visible matched %s, residual ratio %.3f, %s",
+                packet.agent,
+                packet.kf_id,
+                v.candidate[1],
+                v.nu_j,
+                v.nu_i,
+                v.covisible_ratio,
+                candidate.residual_ratio,
+                "added" if agrees else "not added",
+            )
+            covisible = v.covisible_ratio or 0.0
+            if agrees and (best is None or covisible > best[0]):
+                best = (covisible, candidate)
+        if best is not None:
+            self.graph.links.append(GraphLink(best[1].i, best[1].j, "loop", best[1].link))
+            self.stats.loop_links += 1
 
     def _encoding(self, agent: int, kf_id: int) -> Encoding:
         """A keyframe's encoding: the one it came with, else its colours encoded again

@@ -46,6 +46,10 @@ class CoordinatorStats:
     # relocalized keyframes (no sequential edge) tied to their agent's chain by the
     # coordinator (linking.InterAgentLinking._relink)
     chain_relinks: int = 0
+    # keyframes of a keyframe's own agent verified as its loop candidates, and the loop
+    # links that entered the global graph (verification.max_loop_candidates)
+    loops_tried: int = 0
+    loop_links: int = 0
     stage_seconds: dict[str, float] = field(default_factory=dict)
 
     def add_time(self, stage: str, seconds: float) -> None:

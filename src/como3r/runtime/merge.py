@@ -101,7 +101,8 @@ def _replay(
     graph = moved.session.graph
     # a relocalized keyframe's chain edge may join it to an earlier keyframe than its
     # predecessor (linking.InterAgentLinking._relink): it is not a packet's sequential edge,
-    # and the coordinator here links that keyframe again itself
+    # and the coordinator here links that keyframe again itself, as it finds an agent's
+    # "loop" links again (linking.InterAgentLinking._add_loop)
     sequential = {
         link.j: link.link
         for link in graph.links

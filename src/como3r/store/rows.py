@@ -27,7 +27,7 @@ from como3r.store.paging import PagedLink
 STATUSES = ("rejected", "pending", "admitted", "inconsistent")
 #: the edges' matches read when their session is read paged: the inter-agent edges' only
 PAGED_MATCHES = "CASE kind WHEN 'inter' THEN matches END"
-KINDS = ("sequential", "inter")
+KINDS = ("sequential", "loop", "inter")
 
 
 @dataclass(frozen=True)

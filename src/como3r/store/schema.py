@@ -31,7 +31,7 @@ coordinator's (a restarted agent process that starts a new map segment has its o
                 database, NULL if not indexed), features blob (descriptors (N, d),
                 attention (N,)), or since version 6 their ASMK aggregate (codec object
                 prior.retrieval.Aggregated) where the agent sent that
-    edges       n PK (graph order), i, j (global), kind 'sequential'|'inter', similarity,
+    edges       n PK (graph order), i, j (global), kind 'sequential'|'loop'|'inter', similarity,
                 covisible_ij, covisible_ji, matches blob (ij.idx, ij.valid, ij.q, ji.idx,
                 ji.valid, ji.q: every pixel of j in i and of i in j)
     candidates  n PK (verification order), i, j, status 'rejected'|'pending'|'admitted'|
