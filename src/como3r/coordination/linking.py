@@ -52,6 +52,11 @@ from como3r.prior.retrieval import Aggregated, Hit, Quantized
 # the coordinator's logger: its messages read as they did before this part had a module
 logger = logging.getLogger("como3r.coordination.coordinator")
 
+#: A keyframe's loop candidates skip its agent's latest keyframes: its predecessor, whose
+#: sequential edge the global graph holds already, as the front-end's loop query does
+#: (``frontend.keyframe_linking``; an agent of two or three keyframes still closes its loop)
+LOOP_SKIPPED_LATEST = 1
+
 
 class InterAgentLinking:
     """Association and gauge merges of the :class:`~como3r.coordination.coordinator.Coordinator`
@@ -101,7 +106,7 @@ class InterAgentLinking:
             packet.kf_id,
             retrieval,
             self.config.verification.max_loop_candidates,
-            RECENT_KEYFRAMES,
+            LOOP_SKIPPED_LATEST,
         )
         hits = self.retrieval.query_and_add(packet.agent, packet.kf_id, retrieval)
         self.stats.retrieval_queries += 1
