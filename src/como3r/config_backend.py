@@ -79,12 +79,13 @@ class VerificationConfig:
     * ``max_loop_candidates``: an agent's intra-agent loop edges stay in its local graph
       (C-Sec. 3.5), so the global BA (C-Eq. 5) re-bends a loop-closed chain along its
       sequential edges alone. The coordinator's retrieval also returns up to this many
-      keyframes of the keyframe's OWN agent other than its predecessor (the
-      agent's loop candidates, found the same way); they are verified with what the cross-agent hits leave of ``max_decodes_per_keyframe`` (so the
-      bound holds), and one that passes C-Eq. 12, the co-visibility test and agrees with
-      the agent's own poses (``max_residual_ratio`` and ``gauge.scale_alarm_log``, the
-      test of a relinked chain edge) enters the global graph as a ``"loop"`` link. 0: none,
-      the paper's global graph.
+      keyframes of the keyframe's OWN agent other than its predecessor (the agent's loop
+      candidates, found the same way). They share ``max_decodes_per_keyframe`` (the bound
+      holds), after the hits that can merge two gauge components and before those of
+      agents already merged; one that passes C-Eq. 12 and the co-visibility test and
+      agrees with the agent's own poses (``max_residual_ratio`` and
+      ``gauge.scale_alarm_log``, the test of a relinked chain edge) enters the global
+      graph as a ``"loop"`` link. 0: none, the paper's global graph.
     """
 
     tau_inter: float = 0.1

@@ -187,7 +187,9 @@ class _AllOthers:
     def __init__(self) -> None:
         self.seen: list[tuple[int, int]] = []
 
-    def query_and_add(self, agent: int, kf_id: int, features) -> list[Hit]:
+    def query_and_add(
+        self, agent: int, kf_id: int, features, loops: int = 0, skipped: int = 1
+    ) -> list[Hit]:
         hits = [Hit(a, k, 1.0) for a, k in self.seen if a != agent]
         self.seen.append((agent, kf_id))
         return hits

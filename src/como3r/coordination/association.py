@@ -8,8 +8,9 @@
    ``verification.max_within_component`` whose agent already shares the keyframe's gauge
    component, and no more than ``verification.max_decodes_per_keyframe`` decodes' worth in
    all, are verified, best first: the work a keyframe causes is bounded whatever the team.
-   What they leave of it goes to the keyframe's loop candidates in its own agent
-   (:meth:`CrossAgentRetrieval.loop_hits`, ``verification.max_loop_candidates``).
+   The keyframe's loop candidates in its own agent (``verification.max_loop_candidates``)
+   share that budget: after the hits that can merge two gauge components, before those of
+   agents already merged (both only add loop constraints to the global BA).
 2. **Verification.** Each candidate pair is decoded symmetrically by the prior and matched
    densely in both directions (:func:`~como3r.frontend.pairs.directed_matches`, the same
    code that builds every intra-agent edge); it is accepted when ``min(nu_i, nu_j) >=
@@ -63,9 +64,15 @@ class CrossAgentRetrieval:
         self.queries = 0
 
     def query_and_add(
-        self, agent: int, kf_id: int, retrieval: tuple[Tensor | Quantized, Tensor] | Aggregated
+        self,
+        agent: int,
+        kf_id: int,
+        retrieval: tuple[Tensor | Quantized, Tensor] | Aggregated,
+        loops: int = 0,
+        skipped: int = 1,
     ) -> list[Hit]:
-        """Candidates of OTHER agents for keyframe ``(agent, kf_id)``, then index it.
+        """Candidates of OTHER agents for keyframe ``(agent, kf_id)``, then its loop
+        candidates, then index it.
 
         Args:
             agent: the keyframe's agent.
@@ -73,33 +80,26 @@ class CrossAgentRetrieval:
             retrieval: ``(descriptors (N, d), attention (N,))`` of the keyframe, the
                 descriptors perhaps already quantised (:class:`Quantized`), or their
                 :class:`Aggregated` (in this database's codebook).
+            loops: at most this many keyframes of its OWN agent (its loop candidates, as
+                the agent's front-end finds its own, C-Sec. 3.5) follow the other agents'.
+            skipped: the agent's latest keyframes that are never loop candidates.
 
         Returns:
-            At most ``k_nn`` hits above the similarity threshold, best first.
+            At most ``k_nn`` hits of other agents above the similarity threshold, best
+            first, then at most ``loops`` of the keyframe's own agent, best first.
         """
         self.queries += 1
         descriptors, attention = (
             (retrieval, None) if isinstance(retrieval, Aggregated) else retrieval
         )
-        return self.database.query_and_add(agent, kf_id, descriptors, attention, scope="others")
-
-    def loop_hits(
-        self,
-        agent: int,
-        kf_id: int,
-        retrieval: tuple[Tensor | Quantized, Tensor] | Aggregated,
-        k: int,
-        recent: int,
-    ) -> list[Hit]:
-        """Keyframe ``(agent, kf_id)``'s loop candidates: up to ``k`` keyframes of its OWN
-        agent above the similarity threshold, best first, none of its ``recent`` latest
-        (the agent's front-end finds its loop candidates the same way, C-Sec. 3.5). Query
-        before :meth:`query_and_add` indexes the keyframe."""
-        if k <= 0 or kf_id <= recent:
-            return []
-        descriptors = retrieval if isinstance(retrieval, Aggregated) else retrieval[0]
-        excluded = [(agent, kf_id - n) for n in range(1, recent + 1)]
-        return self.database.query(descriptors, k=k, agent=agent, exclude_keyframes=excluded)
+        own: list[Hit] = []
+        if loops > 0 and kf_id > skipped:
+            if not isinstance(descriptors, (Aggregated, Quantized)):
+                descriptors = self.database.quantize(descriptors)  # one search for both
+            excluded = [(agent, kf_id - n) for n in range(1, skipped + 1)]
+            own = self.database.query(descriptors, k=loops, agent=agent, exclude_keyframes=excluded)
+        others = self.database.query_and_add(agent, kf_id, descriptors, attention, scope="others")
+        return others + own
 
 
 #: prior decodes one candidate's verification costs at most (C-Eq. 12 decodes both orders)

@@ -101,34 +101,39 @@ class InterAgentLinking:
             and packet.codebook_id == self.retrieval.database.codebook_id
         ):
             retrieval = (Quantized(retrieval[0], packet.retrieval_words), retrieval[1])
-        loops = self.retrieval.loop_hits(
+        hits = self.retrieval.query_and_add(
             packet.agent,
             packet.kf_id,
             retrieval,
             self.config.verification.max_loop_candidates,
             LOOP_SKIPPED_LATEST,
         )
-        hits = self.retrieval.query_and_add(packet.agent, packet.kf_id, retrieval)
         self.stats.retrieval_queries += 1
         self.stats.add_time("retrieval", time.perf_counter() - start)
-        return hits + loops
+        return hits
 
     def _verify(self, packet: KeyframePacket, hits: list[Hit]) -> list[Candidate]:
         """The candidates among a keyframe's retrieval hits that its decode budget allows,
         verified densely (C-Eq. 12); returns the accepted cross-agent ones (its loop
-        candidates, verified with the decodes those leave, go to :meth:`_add_loop`)."""
+        candidates, verified in the same budget, go to :meth:`_add_loop`)."""
         if not hits:
             return []
         middle = time.perf_counter()
         root = self.gauges.find(packet.agent)
+
+        def merged(agent: int) -> bool:
+            return self.gauges.find(agent) == root
+
         loops = [h for h in hits if h.agent == packet.agent]
         hits = budget_candidates(
-            [h for h in hits if h.agent != packet.agent],
-            lambda agent: self.gauges.find(agent) == root,
-            self.config.verification,
+            [h for h in hits if h.agent != packet.agent], merged, self.config.verification
         )
-        left = self.config.verification.max_decodes_per_keyframe // DECODES_PER_CANDIDATE
-        loops = loops[: max(0, left - len(hits))]
+        # the budget's order: hits that can merge two components, the keyframe's loop
+        # candidates, then hits of agents already merged (the last two only add loops)
+        limit = self.config.verification.max_decodes_per_keyframe // DECODES_PER_CANDIDATE
+        apart = [h for h in hits if not merged(h.agent)]
+        loops = loops[: max(0, limit - len(apart))]
+        hits = apart + [h for h in hits if merged(h.agent)][: limit - len(apart) - len(loops)]
         if not hits and not loops:
             return []
         candidates = [(h, self._encoding(h.agent, h.keyframe)) for h in hits + loops]
