@@ -193,24 +193,11 @@ class InterAgentLinking:
             self.config.tracking.q_min,
             replace(self.config.verification, min_covisible_ratio=0.0),
         )
-        best: tuple[float, Candidate] | None = None
-        for v in verifications:
-            candidate = Candidate(v, own[v.candidate[1]], own[packet.kf_id])
-            if v.accepted and self._agrees_with_agent(candidate):
-                covisible = v.covisible_ratio or 0.0
-                if best is None or covisible > best[0]:
-                    best = (covisible, candidate)
-            logger.debug(
-                "coordinator: agent %d keyframe %d (relocalized) with keyframe %d: nu %.3f / "
-                "%s, co-visible matched %s, residual ratio %.3f",
-                packet.agent,
-                packet.kf_id,
-                v.candidate[1],
-                v.nu_j,
-                v.nu_i,
-                v.covisible_ratio,
-                candidate.residual_ratio,
-            )
+        best = self._best_agreeing(
+            packet,
+            [Candidate(v, own[v.candidate[1]], own[packet.kf_id]) for v in verifications],
+            "(relocalized) with keyframe",
+        )
         if best is None:
             logger.info(
                 "coordinator: agent %d keyframe %d (relocalized) matches none of its agent's "
@@ -219,8 +206,7 @@ class InterAgentLinking:
                 packet.kf_id,
             )
             return
-        chosen = best[1]
-        self.graph.links.append(GraphLink(chosen.i, chosen.j, "sequential", chosen.link))
+        self.graph.links.append(GraphLink(best.i, best.j, "sequential", best.link))
         self.stats.chain_relinks += 1
 
     def _agrees_with_agent(self, candidate: Candidate) -> bool:
@@ -249,28 +235,39 @@ class InterAgentLinking:
         the next BA and the terminal cleanup (C-Sec. A.7) solve with it.
         """
         self.stats.loops_tried += len(verified)
+        best = self._best_agreeing(packet, verified, "loop candidate")
+        if best is not None:
+            self.graph.links.append(GraphLink(best.i, best.j, "loop", best.link))
+            self.stats.loop_links += 1
+
+    def _best_agreeing(
+        self, packet: KeyframePacket, candidates: list[Candidate], what: str
+    ) -> Candidate | None:
+        """Of verified pairs of ``packet``'s keyframe with keyframes of its own agent, the
+        one that passed C-Eq. 12 and agrees with the agent's poses
+        (:meth:`_agrees_with_agent`) matching the largest share of its co-visible pixels;
+        None if none does. ``what`` names the partner in the debug log."""
         best: tuple[float, Candidate] | None = None
-        for candidate in verified:
+        for candidate in candidates:
             v = candidate.verification
             agrees = v.accepted and self._agrees_with_agent(candidate)
             logger.debug(
-                "coordinator: agent %d keyframe %d loop candidate %d: nu %.3f / %s, "
-                "co-visible matched %s, residual ratio %.3f, %s",
+                "coordinator: agent %d keyframe %d %s %d: nu %.3f / %s, co-visible matched "
+                "%s, residual ratio %.3f, %s",
                 packet.agent,
                 packet.kf_id,
+                what,
                 v.candidate[1],
                 v.nu_j,
                 v.nu_i,
                 v.covisible_ratio,
                 candidate.residual_ratio,
-                "added" if agrees else "not added",
+                "agrees" if agrees else "refused",
             )
             covisible = v.covisible_ratio or 0.0
             if agrees and (best is None or covisible > best[0]):
                 best = (covisible, candidate)
-        if best is not None:
-            self.graph.links.append(GraphLink(best[1].i, best[1].j, "loop", best[1].link))
-            self.stats.loop_links += 1
+        return None if best is None else best[1]
 
     def _encoding(self, agent: int, kf_id: int) -> Encoding:
         """A keyframe's encoding: the one it came with, else its colours encoded again
