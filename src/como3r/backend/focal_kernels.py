@@ -32,7 +32,7 @@ from numba import njit, prange
 from torch import Tensor
 
 from como3r.jit import compiled
-from como3r.optim.cpu_loops import MIN_DEPTH_RATIO, pose_arrays, root_weight
+from como3r.optim.cpu_loops import MIN_DEPTH_RATIO, pose_arrays
 
 #: matches per parallel task (the partial sums of a block are added in a fixed order)
 BLOCK = 4096
@@ -148,19 +148,19 @@ def _block_sums(
         # 9, 18; module docstring) scaled by its information times the square root of its
         # whitened Huber weight (C-Eq. 7-8): H += row row^T, g += (w e) row.
         # u: j = (fx, skew, cx - u) / z, j . x = 0, d u / d phi_i = fx x / z
-        w = root_weight(e_u, s * info_u, k)
+        w = s * info_u * math.sqrt(k / max(abs(e_u * s * info_u), k))
         a0, a1, a2 = w * fx * inv_z, w * skew * inv_z, w * (cx - u) * inv_z
         a3, a4, a5 = x1 * a2 - x2 * a1, x2 * a0 - x0 * a2, x0 * a1 - x1 * a0
         a7, a8 = w * fx * n0, a0 * d0 + a1 * d1 + a2 * d2
         ea = w * e_u
         # v: j = (0, fy, cy - v) / z, j . x = 0, d v / d phi_i = fy y / z
-        w = root_weight(e_v, s * info_v, k)
+        w = s * info_v * math.sqrt(k / max(abs(e_v * s * info_v), k))
         b1, b2 = w * fy * inv_z, w * (cy - v) * inv_z
         b3, b4, b5 = x1 * b2 - x2 * b1, -x0 * b2, x0 * b1
         b7, b8 = w * fy * n1, b1 * d1 + b2 * d2
         eb = w * e_v
         # log z: j = (0, 0, 1) / z, j . x = 1 (x2 / z), camera i's focal length not in it
-        w = root_weight(e_z, s * info_z, k)
+        w = s * info_z * math.sqrt(k / max(abs(e_z * s * info_z), k))
         c2 = w * inv_z
         c3, c4, c6, c8 = x1 * c2, -x0 * c2, x2 * c2, c2 * d2
         ec = w * e_z

@@ -73,7 +73,7 @@ def _huber(whitened: float, k: float) -> float:  # pragma: no cover (compiled)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def root_weight(error: float, info: float, k: float) -> float:  # pragma: no cover (compiled)
+def _root_weight(error: float, info: float, k: float) -> float:  # pragma: no cover (compiled)
     """``info`` times the square root of the Huber weight of the whitened ``error * info``:
     a Jacobian row scaled by it adds ``w info^2 row row^T`` to H (C-Sec. A.1)."""
     return info * math.sqrt(k / max(abs(error * info), k))
@@ -324,18 +324,18 @@ def calibrated_block_sums(
                 c, ok[a], X[3 * a], X[3 * a + 1], X[3 * a + 2], p[2 * a], p[2 * a + 1], z[a], qs[a]
             )
             # u: j = (fx, skew, cx - u) / z
-            w = root_weight(e_u, s * info_u, k)
+            w = _root_weight(e_u, s * info_u, k)
             a0, a1, a2 = w * fx * inv_z, w * skew * inv_z, w * (cx - u) * inv_z
             a3, a4, a5 = x1 * a2 - x2 * a1, x2 * a0 - x0 * a2, x0 * a1 - x1 * a0
             ea = w * e_u
             # v: j = (0, fy, cy - v) / z
-            w = root_weight(e_v, s * info_v, k)
+            w = _root_weight(e_v, s * info_v, k)
             b1, b2 = w * fy * inv_z, w * (cy - v) * inv_z
             b3, b4, b5 = x1 * b2 - x2 * b1, -x0 * b2, x0 * b1
             eb = w * e_v
             # log z: j = (0, 0, 1) / z, and x2 / z for the scale
             e_z = log_ratio[a]
-            w = root_weight(e_z, s * info_z, k)
+            w = _root_weight(e_z, s * info_z, k)
             c2 = w * inv_z
             c3, c4, c6 = x1 * c2, -x0 * c2, x2 * c2
             ec = w * e_z
