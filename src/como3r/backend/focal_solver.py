@@ -110,8 +110,9 @@ def gauss_newton_focal(
     """Gauss-Newton with Huber IRLS over poses and focal corrections.
 
     Stops when ``||tau||`` (translations in units of ``length_scale``) and ``|delta|`` are
-    both below ``config.step_tol`` or ``|delta|`` is below :data:`FOCAL_STEP_TOL`, or refuses a non-finite or implausibly large step
-    (:data:`MAX_LOG_FOCAL_STEP`) and keeps the previous values.
+    both below ``config.step_tol`` or ``|delta|`` is below :data:`FOCAL_STEP_TOL`, or
+    refuses a non-finite or implausibly large step (:data:`MAX_LOG_FOCAL_STEP`) and keeps
+    the previous values.
 
     Returns:
         The values, the iterations run and the stop reason.
