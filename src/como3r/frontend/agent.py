@@ -223,9 +223,7 @@ class AgentFrontend(KeyframeLinking, Relocalization):
             self._lost = True
             with self.timer.stage("relocalization"):
                 return self._relocalize(enc, view.index, timestamp, colors)
-        with self.timer.stage("keyframe"):
-            self._accept(result, self.keyframes.last, view.index, timestamp, enc, colors)
-        return "keyframe" if result.new_keyframe else "tracked"
+        return self._accept(result, view.index, timestamp, enc, colors)
 
     def _initialise(self, enc: Encoding, index: int, timestamp: float, colors: np.ndarray) -> str:
         """The frame becomes the first keyframe (``"keyframe"``), or, when self-calibration
@@ -251,15 +249,19 @@ class AgentFrontend(KeyframeLinking, Relocalization):
         return "keyframe"
 
     def _accept(
-        self,
-        result: TrackResult,
-        keyframe: Keyframe,
-        index: int,
-        timestamp: float,
-        enc: Encoding,
-        colors: np.ndarray,
+        self, result: TrackResult, index: int, timestamp: float, enc: Encoding, colors: np.ndarray
+    ) -> str:
+        """Record a frame tracked on the current keyframe; promote it to a keyframe when due.
+        Returns ``"keyframe"`` or ``"tracked"``."""
+        with self.timer.stage("keyframe"):
+            self._record_tracked(result, index, timestamp, enc, colors)
+        return "keyframe" if result.new_keyframe else "tracked"
+
+    def _record_tracked(
+        self, result: TrackResult, index: int, timestamp: float, enc: Encoding, colors: np.ndarray
     ) -> None:
-        """Record a tracked frame; promote it to a keyframe when due."""
+        """:meth:`_accept`'s work, on the current keyframe."""
+        keyframe = self.keyframes.last
         self.stats.tracked += 1
         if not result.new_keyframe:
             self.records.append(FrameRecord(index, timestamp, keyframe.kf_id, result.T_kf))

@@ -189,9 +189,7 @@ class Relocalization:
         )
         result = self.tracker.track(enc, self.keyframes.last, self._T_kf_prev)
         if result.ok:
-            with self.timer.stage("keyframe"):
-                self._accept(result, self.keyframes.last, index, timestamp, enc, colors)
-            return "keyframe" if result.new_keyframe else "tracked"
+            return self._accept(result, index, timestamp, enc, colors)
         self._resume(*confirmed, index, timestamp, enc, colors)
         return "relocalized"
 
@@ -214,8 +212,7 @@ class Relocalization:
             "agent %d: frame %d relocalized on keyframe %d", self.agent, index, keyframe.kf_id
         )
         if keyframe is self.keyframes.last:
-            with self.timer.stage("keyframe"):
-                self._accept(result, keyframe, index, timestamp, enc, colors)
+            self._accept(result, index, timestamp, enc, colors)
         else:
             self._promote_after_reloc(result, keyframe, index, timestamp, enc, colors)
 
