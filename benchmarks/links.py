@@ -267,9 +267,11 @@ def run_team(
     cap_mbit: float | None,
     cut_s: float | None,
     loopback: bool,
+    lease_s: float | None = None,
 ) -> Run:
     """One run of a coordinator and ``agents`` agents on ``scene``; in namespaces unless
-    ``loopback``."""
+    ``loopback``. ``lease_s``: the Zenoh lease every process announces (None: Zenoh's 10 s);
+    a cut longer than it ends the links on both sides."""
     run = Run(name, cap_mbit, cut_s, work / name)
     logs = work / f"{name}.logs"
     logs.mkdir(parents=True, exist_ok=True)
@@ -277,7 +279,8 @@ def run_team(
     # as on separate machines: Zenoh would otherwise hand large messages over in shared
     # memory (one host, one /dev/shm) and only their handles would cross the link
     zenoh_config = logs / "zenoh.json5"
-    zenoh_config.write_text("{ transport: { shared_memory: { enabled: false } } }")
+    lease = "" if lease_s is None else f", link: {{ tx: {{ lease: {lease_s * 1000:.0f} }} }}"
+    zenoh_config.write_text(f"{{ transport: {{ shared_memory: {{ enabled: false }}{lease} }} }}")
     radio = None if loopback else Radio(agents, cap_mbit)
     try:
 

@@ -24,7 +24,7 @@ from como3r.geometry.lie import sim3_compose, sim3_exp
 from como3r.prior.base import Encoding
 from como3r.prior.simulated import SimulatedPrior
 
-WIDTH, HEIGHT, FRAMES = 64, 48, 60
+WIDTH, HEIGHT, FRAMES = 64, 48, 40  # 13 keyframes, 9 loop edges: 12 are asked for
 ARRAYS = ("X_hat", "C_hat", "X_init", "C_init")
 
 

@@ -10,13 +10,15 @@ from __future__ import annotations
 
 import errno
 import json
+import multiprocessing
 import os
 import shlex
+import shutil
 import signal
 import sqlite3
-import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -65,36 +67,57 @@ def _extra(runtime: str) -> list[str]:
     return ["--single-process"] if runtime == "single-process" else []
 
 
-@pytest.fixture(scope="module", params=["processes", "single-process"])
-def uninterrupted(request, scene, tmp_path_factory) -> tuple[str, dict]:
+@pytest.fixture(scope="module")
+def reference_run(scene, tmp_path_factory) -> Callable[[str], Path]:
+    """``reference_run(runtime)``: the output folder of an uninterrupted run of ``runtime``,
+    made once for the module (never changed: a test that resumes from it copies it). Not a
+    parametrized module fixture: the tests parametrize ``uninterrupted`` indirectly, each
+    with its own values, and pytest would make such a fixture again for each of them."""
+    made: dict[str, Path] = {}
+
+    def get(runtime: str) -> Path:
+        if runtime not in made:
+            out = tmp_path_factory.mktemp("reference") / "run"
+            result = CliRunner().invoke(app, _args(scene, out, *_extra(runtime)))
+            assert result.exit_code == 0, result.output
+            made[runtime] = out
+        return made[runtime]
+
+    return get
+
+
+@pytest.fixture(params=["processes", "single-process"])
+def uninterrupted(request, reference_run) -> tuple[str, dict]:
     """A runtime and the metrics of its uninterrupted run (free-running agent processes
     differ from the single-process schedule: updates reach the agents later)."""
-    out = tmp_path_factory.mktemp("reference") / "run"
-    result = CliRunner().invoke(app, _args(scene, out, *_extra(request.param)))
-    assert result.exit_code == 0, result.output
+    out = reference_run(request.param)
     return request.param, json.loads((out / "metrics.json").read_text())
 
 
 def _kill_when_stored(args: list[str], store: Path, keyframes: int) -> int:
     """Run ``como3r`` with ``args`` in a process and SIGKILL it once ``store`` holds at least
-    ``keyframes`` keyframes; returns how many it holds."""
-    process = subprocess.Popen([sys.executable, "-m", "como3r.cli", *args])
+    ``keyframes`` keyframes; returns how many it holds. The process is a fork of this one
+    (a new interpreter would spend seconds importing torch before the run started)."""
+    process = multiprocessing.get_context("fork").Process(  # not a daemon: it starts agents
+        target=app, args=(args,), kwargs={"prog_name": "como3r"}
+    )
+    process.start()
     deadline = time.monotonic() + 300
     try:
-        while process.poll() is None and time.monotonic() < deadline:
+        while process.is_alive() and time.monotonic() < deadline:
             if store.exists():
                 try:
                     held = len(read_session(store).graph)
                 except StoreError:  # not created yet
                     held = 0
                 if held >= keyframes:
-                    process.send_signal(signal.SIGKILL)
+                    os.kill(process.pid, signal.SIGKILL)
                     break
             time.sleep(0.2)
     finally:
         process.kill()
-        process.wait()
-    assert process.returncode == -signal.SIGKILL, "the run ended before it was killed"
+        process.join()
+    assert process.exitcode == -signal.SIGKILL, "the run ended before it was killed"
     return len(read_session(store).graph)
 
 
@@ -126,22 +149,21 @@ def test_a_killed_run_resumes_to_the_uninterrupted_result(scene, tmp_path, unint
     )
 
 
-def _partial_store(scene: Path, tmp_path: Path) -> Path:
-    """A finished run's folder moved to ``run.partial`` (as a killed run leaves it) with its
-    store reopened: a store to resume from."""
-    out = tmp_path / "done"
-    result = CliRunner().invoke(app, _args(scene, out, "--single-process"))
-    assert result.exit_code == 0, result.output
+def _partial_store(finished: Path, tmp_path: Path) -> Path:
+    """A copy of a finished run's folder as ``run.partial`` (as a run killed while writing
+    its outputs leaves it): a store to resume from."""
     partial = tmp_path / "run.partial"
-    out.rename(partial)
+    shutil.copytree(finished, partial)
     return partial / STORE_NAME
 
 
-def test_what_cannot_be_resumed_is_one_error_line(scene, tmp_path, only_error_line) -> None:
+def test_what_cannot_be_resumed_is_one_error_line(
+    scene, reference_run, tmp_path, only_error_line
+) -> None:
     out = tmp_path / "run"
     line = only_error_line(CliRunner().invoke(app, _args(scene, out, "--resume")))
     assert "nothing to resume" in line
-    store = _partial_store(scene, tmp_path)
+    store = _partial_store(reference_run("single-process"), tmp_path)
     # this --set is the point of the check: a configuration other than the stored one
     line = only_error_line(
         CliRunner().invoke(

@@ -5,8 +5,8 @@ keyframes, poses, pointmaps and edges; a writer killed with SIGKILL at random mo
 store that opens and holds exactly the state after some transaction; a newer format version
 and corrupted files are refused with one error line.
 
-Run as a script (``python test_store.py STORE SEED``), this file is the writer the SIGKILL
-test kills: a scripted session of keyframes, links, merges and pose updates, forever.
+The writer the SIGKILL test kills is a forked copy of the test's process (:func:`_writer`):
+a scripted session of keyframes, links, merges and pose updates, forever.
 """
 
 from __future__ import annotations
@@ -14,13 +14,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import multiprocessing
+import os
 import random
 import signal
 import sqlite3
-import subprocess
-import sys
 import time
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 import pytest
@@ -243,20 +244,27 @@ def _scripted_session(seed: int, steps: int) -> tuple[Coordinator, dict[int, int
     return coordinator, sent
 
 
-def _write_store(path: Path, seed: int, steps: int | None, say: bool = False) -> None:
+def _write_store(path: Path, seed: int, steps: int | None, say: TextIO | None = None) -> None:
     """Write the scripted session to a new store, one transaction per step (None: forever);
-    ``say``: print ``record k`` before step k's transaction and ``done k`` after it."""
+    ``say``: write ``record k`` to it before step k's transaction and ``done k`` after it."""
     coordinator = _scripted_coordinator()
     with SessionStore.create(path, Config(), coordinator) as store:
         step = 0
         while steps is None or step < steps:
             updates = _step(coordinator, seed, step)
-            if say:
-                print(f"record {step}", flush=True)
+            if say is not None:
+                print(f"record {step}", file=say, flush=True)
             store.record(coordinator, updates)
-            if say:
-                print(f"done {step}", flush=True)
+            if say is not None:
+                print(f"done {step}", file=say, flush=True)
             step += 1
+
+
+def _writer(path: Path, seed: int, said: Path) -> None:
+    """The writer the SIGKILL test kills, forever, saying each step in ``said`` (each line
+    reaches the file before the step it names: a kill loses none)."""
+    with open(said, "w") as say:
+        _write_store(path, seed, steps=None, say=say)
 
 
 def _assert_holds(session: Session, coordinator: Coordinator, sent: dict[int, int]) -> None:
@@ -336,17 +344,20 @@ def test_a_writer_killed_at_random_moments_leaves_a_consistent_store(tmp_path) -
     for seed in range(4):
         path = tmp_path / f"kill{seed}" / STORE_NAME
         path.parent.mkdir()
-        writer = subprocess.Popen(
-            [sys.executable, __file__, str(path), str(seed)], stdout=subprocess.PIPE, text=True
+        # forked: a new interpreter would spend seconds importing torch before it wrote
+        writer = multiprocessing.get_context("fork").Process(
+            target=_writer, args=(path, seed, path.parent / "said.txt"), daemon=True
         )
+        writer.start()
         deadline = time.monotonic() + 60
-        while not path.exists() and writer.poll() is None and time.monotonic() < deadline:
+        while not path.exists() and writer.is_alive() and time.monotonic() < deadline:
             time.sleep(0.05)
         assert path.exists(), "the writer made no store"
         time.sleep(rng.uniform(0.3, 2.0))
-        writer.send_signal(signal.SIGKILL)
-        said = writer.communicate()[0].split()
-        assert writer.returncode == -signal.SIGKILL
+        os.kill(writer.pid, signal.SIGKILL)
+        writer.join()
+        said = (path.parent / "said.txt").read_text().split()
+        assert writer.exitcode == -signal.SIGKILL
         started = max(
             [int(k) for word, k in zip(said[::2], said[1::2]) if word == "record"], default=-1
         )
@@ -440,8 +451,3 @@ def test_blobs_keep_dtypes_and_shapes_and_reject_damage() -> None:
     for bad in (blob[:-3], blob + b"x", b"C3RX" + blob[4:], blob[:30] + b"\0" * 8 + blob[38:]):
         with pytest.raises(StoreError):
             unpack_arrays(bad, "test")
-
-
-if __name__ == "__main__":  # the writer the SIGKILL test kills
-    torch.set_num_threads(1)
-    _write_store(Path(sys.argv[1]), int(sys.argv[2]), steps=None, say=True)
