@@ -201,7 +201,15 @@ rays of a wrong focal length; C-Eq. 16 keeps depth) gives 14.2 mm (true focal 10
 the cause, and not changed. What lowers it is more inter-agent links: at
 ``verification.min_covisible_ratio=0.6`` 63 instead of 48, merged ATE 15.6 mm (1.30 %),
 inter-agent links 0.991 (sd 1.8 %); that bar admits false pairs under the ``v2`` prior
-(the ``VerificationConfig`` docstring), so it is not the default.
+(the ``VerificationConfig`` docstring), so it is not the default. In the multi-process
+run of the table above 8 inter-agent edges were refused inside one gauge (6 by the scale
+watch ``gauge.scale_alarm_log``), every one a true view of the same surface, where the
+keyframe-by-keyframe run refused none: a batch's edges were judged at poses its merges left
+unrefined. They are now tested once more after the batch's BA
+(``InterAgentLinking._recheck_refused``); the same scene in one process with the
+coordinator handed batches of 16 keyframes: 3 true edges refused, now admitted, merged ATE
+18.4 -> 17.7 mm (a 16-agent multi-process run no longer fits this machine's 23 GB next to
+the other jobs, so that run was not repeated).
 """
 
 from __future__ import annotations
