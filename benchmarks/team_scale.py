@@ -208,8 +208,15 @@ keyframe-by-keyframe run refused none: a batch's edges were judged at poses its 
 unrefined. They are now tested once more after the batch's BA
 (``InterAgentLinking._recheck_refused``); the same scene in one process with the
 coordinator handed batches of 16 keyframes: 3 true edges refused, now admitted, merged ATE
-18.4 -> 17.7 mm (a 16-agent multi-process run no longer fits this machine's 23 GB next to
-the other jobs, so that run was not repeated).
+18.4 -> 17.7 mm. ``--sizes 16 --no-decentralized`` before and after (2 shared cores, load
+2-10; the multi-process schedule differs from run to run, one run each):
+
+    agents  kf  coord ms/kf  decodes/kf  batch  refused  inter edges  ATE mm  ATE %  ATE % team
+    16      40         3050        4.83     24        3           50    28.2   2.35      0.147
+    16      40         3020        4.62     26        0           54    15.2   1.26      0.079
+
+(before: the 3 refused edges, all between agent 2's second keyframe and agents 3 and 4, see
+0.41-0.77 of a view overlapping by the ground truth.)
 """
 
 from __future__ import annotations
