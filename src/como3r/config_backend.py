@@ -38,7 +38,18 @@ class VerificationConfig:
       directions. A prior that hallucinates a pose from repeated façades predicts overlap
       it cannot match. 0 restores the paper's single test. Measured on the aliasing
       façades (tests/coordination/test_association.py, occlusion_ratio 0.1): true pairs
-      0.87-0.97, hallucinated ones 0.15-0.55; 0.7 sits between them.
+      0.87-0.97, hallucinated ones 0.15-0.55; 0.7 sits between them. Measured again
+      (issue 41) where baselines are wider and the prior harder: on the 16-agent ring of
+      benchmarks/team_scale.py (160x120 -> 512, realistic prior, one process, seed 0)
+      every verified cross-agent candidate truly overlaps (ground-truth depth: 0.10-0.86 of
+      a view seen by the other); the admitted ones sit at 0.70-0.89, and 13 were refused by
+      this ratio alone at 0.24-0.69 (9 at 0.6-0.7). At 0.6 that run admits 63 edges instead
+      of 48, merged ATE 17.2 -> 15.6 mm. But among the test's façades with prior ``v2`` (every
+      cross pair of every second frame verified, seed 1) the pairs that share no surface
+      and pass ``tau_inter`` reach 0.78: at 160x120 (long side 160) 65 such pairs, 7 at
+      0.72-0.78 and 8 at 0.6-0.7, against 28 true pairs, 19 above 0.7 and 4 at 0.6-0.7 (96x72: 64 false, 7
+      at 0.71-0.82, 11 at 0.6-0.7). Under ``v2`` the ratio does not separate the two; a lower
+      bar admits about two false pairs for each true one it gains, so 0.7 stays.
     * ``max_residual_ratio``: an edge between agents that already share a gauge must
       agree with their poses: the median distance of its matched points lifted into the
       shared world at most this fraction of their median range (about the relative

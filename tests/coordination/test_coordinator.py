@@ -415,6 +415,36 @@ def test_a_link_that_would_rescale_the_map_is_held_back(ring) -> None:
     assert coordinator.stats.edges_scale_inconsistent == 1
 
 
+def test_an_edge_refused_at_unrefined_poses_is_admitted_after_the_global_ba(ring) -> None:
+    """An edge inside one gauge judged at poses a merge's transport left unrefined (here:
+    agent 1's keyframes grown 1.5x, as a batch's merges can leave them) is refused; once
+    the poses agree again (the BA's), the recheck admits it and no counter keeps it. An
+    edge that still disagrees stays refused and is counted once."""
+    coordinator, _ = _run(ring, _interleave(ring, [0, 1]), agents=2)
+    graph = coordinator.graph
+    edge = [c for c in coordinator.candidates if c.status == "admitted"][-1]
+    graph.links = [link for link in graph.links if (link.i, link.j) != (edge.i, edge.j)]
+    links, accepted = len(graph.links), coordinator.stats.edges_accepted
+    moved = graph.agent_keyframes(1)
+    kept = graph.poses(moved).clone()
+    grow = torch.tensor([0, 0, 0, 0, 0, 0, 1, 1.5], dtype=kept.dtype)
+    graph.set_poses(moved, sim3_compose(grow.expand_as(kept), kept))
+    coordinator._admit_within(edge)
+    assert edge.status == "inconsistent" and coordinator.stats.edges_inconsistent == 1
+    coordinator._recheck_refused()  # the poses still disagree
+    assert edge.status == "inconsistent" and coordinator.stats.edges_inconsistent == 1
+    assert len(graph.links) == links
+    counted = (coordinator.stats.edges_inconsistent, coordinator.stats.edges_scale_inconsistent)
+    coordinator._admit_within(edge)  # refused again, then the BA's poses come
+    graph.set_poses(moved, kept)
+    coordinator._recheck_refused()
+    assert edge.status == "admitted" and len(graph.links) == links + 1
+    assert coordinator.stats.edges_accepted == accepted + 1
+    stats = coordinator.stats
+    assert (stats.edges_inconsistent, stats.edges_scale_inconsistent) == counted
+    assert coordinator._refused == []
+
+
 def test_a_merge_does_not_count_an_edge_of_another_scale_as_support(ring, monkeypatch) -> None:
     coordinator = Coordinator(ring.prior, ring.config, ring.prior.codebook(), 2)
     scales = {"a": 1.0, "b": 1.05, "c": 1.6}

@@ -128,6 +128,9 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
         self._waiting: list[Candidate] = []  # verified edges between two components
         self._new_edges = 0
         self._dirty_roots: set[int] = set()
+        #: edges refused inside one gauge since the last in-stream BA, and whether by the
+        #: scale watch (tested again after it: InterAgentLinking._recheck_refused)
+        self._refused: list[tuple[Candidate, bool]] = []
         self.alternation: list[dict[str, Any]] = []
         #: agent -> its keyframes as they were before the terminal depth refinement
         #: (pointmaps as streamed, poses after the pose-only cleanup passes)
@@ -225,6 +228,7 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
             )
         if fresh and self._new_edges >= self.config.global_ba.trigger_interval_edges:
             updates.extend(self._global_ba())
+            self._recheck_refused()
         self.stats.batches += int(bool(fresh))
         self.stats.largest_batch = max(self.stats.largest_batch, len(fresh))
         return self._record(self._count(updates))
