@@ -165,6 +165,20 @@ def test_consensus_keeps_flat_paint_at_its_projection() -> None:
     assert (m.pixel[0] == inner.flip(0).reshape(2, -1).T).all(-1).float().mean() > 0.95
 
 
+def test_compiled_move_medians_equal_the_pytorch_ones() -> None:
+    """The CPU loop counts the moves of each window, the PyTorch path sorts them: the same
+    lower median per axis, borders and inactive matches included."""
+    from como3r.frontend import cpu_kernels, matching
+
+    g = torch.Generator().manual_seed(0)
+    moves = torch.randint(-9, 10, (2, 11 * 13, 2), generator=g)
+    active = torch.rand(2, 11 * 13, generator=g) > 0.3
+    for window in (3, 5, 9):
+        want = matching._move_medians(moves, active, (11, 13), window)
+        got = cpu_kernels.move_medians(moves, active, (11, 13), window)
+        assert torch.equal(got[active], want[active])
+
+
 def test_match_confidence_is_geometric_mean() -> None:
     Q_query = torch.tensor([[4.0, 9.0]])
     Q_search = torch.tensor([[[1.0, 16.0]]])

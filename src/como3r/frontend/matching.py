@@ -395,16 +395,12 @@ def displacement_consensus(
     Returns:
         ``(B, P, 2)`` int64 matches inside the searched view.
     """
-    B = projected.shape[0]
-    (Hq, Wq), (H, W) = query_shape, search_shape
-    moves = (searched - projected).to(torch.float32)
-    moves = moves.masked_fill(~active[..., None], float("nan"))
-    grid = moves.reshape(B, Hq, Wq, 2).permute(0, 3, 1, 2)
-    pad = window // 2
-    grid = torch.nn.functional.pad(grid, (pad,) * 4, value=float("nan"))
-    blocks = grid.unfold(2, window, 1).unfold(3, window, 1).reshape(B, 2, Hq, Wq, -1)
-    median = blocks.nanmedian(dim=-1).values.permute(0, 2, 3, 1).reshape(B, -1, 2)
-    consensus = projected + median.nan_to_num(0.0).round().long()
+    (H, W) = search_shape
+    if projected.device.type == "cpu":  # counting in a compiled loop, 10-20x faster
+        median = cpu_kernels.move_medians(searched - projected, active, query_shape, window)
+    else:
+        median = _move_medians(searched - projected, active, query_shape, window)
+    consensus = projected + median
     upper = torch.tensor([W - 1, H - 1], device=projected.device)
     consensus = consensus.clamp(min=0).minimum(upper)
     # within a pixel of the consensus the search's own pixel stays: the median cannot carry
@@ -413,6 +409,23 @@ def displacement_consensus(
     agree = (searched - consensus).abs().amax(dim=-1) <= 1
     kept = torch.where(agree[..., None], searched, consensus)
     return torch.where(active[..., None], kept, searched)
+
+
+def _move_medians(
+    moves: Tensor, active: Tensor, query_shape: tuple[int, int], window: int
+) -> Tensor:
+    """Per match the lower median per axis of the active ``moves`` ``(B, P, 2)`` int64 in the
+    ``window x window`` block of query pixels around it -> ``(B, P, 2)`` int64 (0 where no
+    active move votes), as batched PyTorch (any device)."""
+    B = moves.shape[0]
+    Hq, Wq = query_shape
+    grid = moves.to(torch.float32).masked_fill(~active[..., None], float("nan"))
+    grid = grid.reshape(B, Hq, Wq, 2).permute(0, 3, 1, 2)
+    pad = window // 2
+    grid = torch.nn.functional.pad(grid, (pad,) * 4, value=float("nan"))
+    blocks = grid.unfold(2, window, 1).unfold(3, window, 1).reshape(B, 2, Hq, Wq, -1)
+    median = blocks.nanmedian(dim=-1).values.permute(0, 2, 3, 1).reshape(B, -1, 2)
+    return median.nan_to_num(0.0).round().long()
 
 
 def match_pointmaps(
