@@ -87,10 +87,11 @@ class MatchingConfig:
             0.89 / 0.78 -> 0.120 / 0.306, revisit 0.48 / 0.56 -> 0.100 / 0.143, rotation
             RPE 0.24 / 0.25 -> 0.072 / 0.059 deg; 2 agents merged (tabletop, room,
             aerial; before as in benchmarks/robustness.py) 0.71 / 1.05, 0.82 / 0.93,
-            0.69 / 1.01 -> 0.235 / 0.266, 0.160 / 0.256, 0.183 / 0.185. Real excerpts at 256 px (tests/test_real_data.py):
-            7-Scenes 2.33 -> 2.56 mm (2 -> 1 keyframes), TUM teddy 2.81 -> 2.12 mm (4 -> 3).
-            With a noise-free prior the median without that exception turned a 10 deg
-            yaw 1.005e-3 rad off (tests/frontend/test_tracker.py, bound 1e-3).
+            0.69 / 1.01 -> 0.235 / 0.266, 0.160 / 0.256, 0.183 / 0.185. Real excerpts
+            at 256 px (tests/test_real_data.py): 7-Scenes 2.33 -> 2.56 mm (2 -> 1
+            keyframes), TUM teddy 2.81 -> 2.12 mm (4 -> 3). With a noise-free prior the
+            median without that exception turned a 10 deg yaw 1.005e-3 rad off
+            (tests/frontend/test_tracker.py, bound 1e-3).
     """
 
     max_iters: int = 10

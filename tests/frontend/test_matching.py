@@ -126,9 +126,9 @@ def test_descriptor_refinement_recovers_true_pixel_and_validity_follows_it() -> 
 
 def test_consensus_keeps_flat_paint_at_its_projection() -> None:
     """Where descriptors are one flat colour plus per-pixel noise, the window search follows
-    the noise (MatchingConfig's docstring: the v2 prior's low-texture family); the median of its moves over the consensus window (13 pixels at this size)
-    does not, and a move shared by the neighbourhood (the prior's geometry two pixels off)
-    survives it."""
+    the noise (MatchingConfig's docstring: the v2 prior's low-texture family); the median of
+    its moves over the consensus window (13 pixels at this size) does not, and a move shared
+    by the neighbourhood (the prior's geometry two pixels off) survives it."""
     g = torch.Generator().manual_seed(3)
     K = intrinsics_matrix(30.0, 30.0, (W - 1) / 2, (H - 1) / 2, dtype=torch.float64)
     X_search = unproject_depth(_smooth_depth(g), K)
