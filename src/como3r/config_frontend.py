@@ -39,9 +39,59 @@ class MatchingConfig:
             Measured: 0.02-0.03 rejected the agents' true meeting on the aliasing façades
             (tests/coordination/test_association.py); 0.07 made 8 keyframes of 12 frames on
             tests/frontend/test_agent.py's scene, 0.1 and 0.2 six.
-        descriptor_radius, descriptor_dilation_max: window radius and largest dilation of the
-            descriptor search in pixels of a 512-pixel-long image; scaled with the long side
-            of the pointmaps matched (:func:`como3r.geometry.units.pixels_at`).
+        descriptor_radius, descriptor_dilation_max: window radius (in samples) and largest
+            dilation (in pixels) of the descriptor search, at a 512-pixel-long image; scaled
+            with the long side of the pointmaps matched
+            (:func:`como3r.geometry.units.pixels_at`), the radius never below its value
+            here. Below 512 px the paper's 7x7 window scaled to 3x3 (160 px: radius 1,
+            dilations 2, 1, a reach of 3 px or 2 % of the image, 9 % at 512) could not
+            pull back the v2 prior's zoomed matches (its two heads' focal lengths apart by
+            up to 6 %, matches up to 5 px off at 160 px, which the tracking solve explains
+            as forward motion); radius 3 and dilations 2, 1 reach 9 px (5.6 %).
+        descriptor_consensus: not in the paper (False restores its search at every size);
+            below 512 px each match's move by the search is replaced by the median move of
+            the matches of a window of query pixels around it, the smallest odd number at
+            least ``512 / long_side`` (5 at 160 px, 3 at 256, 1 at 512: the paper's search
+            unchanged there), unless its own pixel is within a pixel of that
+            (:func:`como3r.frontend.matching.displacement_consensus`). Why: where the
+            descriptors cannot tell pixels apart (flat paint: the v2 prior's descriptors
+            there are per-pixel noise around one colour) the search follows the noise.
+            Measured on the v2 low-texture family at 160 px (seed 0, 8 tracked frames,
+            error to the true correspondence from the scene's depth and poses; agreement
+            of the pose solved from the matches, ``tracking.min_inlier_fraction`` 0.5):
+            projection alone 1.54 px, agreement 0.96; the scaled paper window 1.87 px,
+            0.60; radius 3 and dilations 2, 1 3.06 px, 0.37; the same with the median of
+            5x5 1.12 px, 0.80. The search moves these matches as far at 512 px (8.7 px
+            of 512 against 5.5 for the projection: 1.7 % of the image, 1.9 % at 160), but
+            the scene's 160-px images are enlarged 3.2 times there, and tracking's
+            agreement angle with them (3.2 deg), so they pass (agreement 0.89; an input
+            of 512 px or more keeps 1 deg: not measured). No test of a single match
+            separates the moves: on this family moves that raised the descriptor score
+            by 0.05-0.1 made 57-74 % of the matches worse, on the room
+            family 88 % better, and the descriptor confidence of the worse ones (median
+            3.1, room 7.3) overlaps the room's. The prior's geometric error that the
+            search corrects (pose, the heads' focal and principal point) varies slowly
+            over the image; the noise does not. Single-agent cells of
+            benchmarks/robustness.py (v2, 160 px, seeds 0 / 1; tracked, ATE % of path):
+            low-texture before 1.00 1.09 / 0.85 2.18, room 1.00 0.68 / 1.00 0.74; radius 3
+            with a median of 3 low-texture seed 1 0.82 tracked, of 5 without keeping the
+            search's own pixel 1.00 1.03 / 1.00 1.16 and room 0.59 / 0.27, of 9 1.51 / 1.02
+            and 0.61 / 0.34; dilations 3, 2, 1 with a median of 5 lost 39 of 40 frames of
+            low-texture seed 1. Keeping the search's own pixel within a pixel of the
+            median (the default), every cell of both seeds tracked (before: all but
+            low-texture seed 1), ATE % of path before -> after, seed 0 / 1: low-texture
+            1.09 / 2.18 -> 1.17 / 1.23, room 0.68 / 0.74 -> 0.263 / 0.375, tabletop
+            0.78 / 0.56 -> 0.210 / 0.264, street 0.85 / 0.79 -> 0.288 / 0.358, aerial
+            0.76 / 0.70 -> 0.241 / 0.306, aliasing 1.02 / 0.99 -> 0.206 / 0.365, forward
+            0.38 / 0.31 -> 0.264 / 0.193, fast 0.44 / 0.27 -> 0.098 / 0.155, covered
+            0.89 / 0.78 -> 0.120 / 0.306, revisit 0.48 / 0.56 -> 0.100 / 0.143, rotation
+            RPE 0.24 / 0.25 -> 0.072 / 0.059 deg; 2 agents merged (tabletop, room,
+            aerial; before as in benchmarks/robustness.py) 0.71 / 1.05, 0.82 / 0.93,
+            0.69 / 1.01 -> 0.235 / 0.266, 0.160 / 0.256, 0.183 / 0.185. Real excerpts
+            at 256 px (tests/test_real_data.py): 7-Scenes 2.33 -> 2.56 mm (2 -> 1
+            keyframes), TUM teddy 2.81 -> 2.12 mm (4 -> 3). With a noise-free prior the
+            median without that exception turned a 10 deg yaw 1.005e-3 rad off
+            (tests/frontend/test_tracker.py, bound 1e-3).
     """
 
     max_iters: int = 10
@@ -50,6 +100,7 @@ class MatchingConfig:
     occlusion_ratio: float = 0.1
     descriptor_radius: int = 3
     descriptor_dilation_max: int = 5
+    descriptor_consensus: bool = True
 
 
 @dataclass(frozen=True)

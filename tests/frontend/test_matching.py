@@ -7,7 +7,7 @@ import math
 import torch
 
 from como3r.config import MatchingConfig
-from como3r.frontend.matching import match_confidence, match_pointmaps
+from como3r.frontend.matching import consensus_window, match_confidence, match_pointmaps
 from como3r.geometry.camera import intrinsics_matrix, unproject_depth
 from como3r.geometry.lie import sim3_act, sim3_exp, sim3_inverse
 from como3r.geometry.residuals import psi
@@ -100,8 +100,9 @@ def test_descriptor_refinement_recovers_true_pixel_and_validity_follows_it() -> 
     D_query = D_search[:, 4:-4]
     grid_v, grid_u = torch.meshgrid(torch.arange(H), torch.arange(4, W - 4), indexing="ij")
     p_true = torch.stack([grid_u, grid_v], -1).reshape(-1, 2)
-    # windows of 3 and 5 pixels at this image size (the config gives them at 512 px)
-    window = dict(descriptor_radius=round(3 * 512 / W), descriptor_dilation_max=round(5 * 512 / W))
+    # 3 samples and a dilation of 5 pixels at this image size (the config gives the dilation
+    # at 512 px)
+    window = dict(descriptor_radius=3, descriptor_dilation_max=round(5 * 512 / W))
     loose = MatchingConfig(occlusion_ratio=10.0, **window)
     m = match_pointmaps(X_search[None], X_query[None], D_search[None], D_query[None], loose)
     exact = (m.pixel[0] == p_true).all(-1)
@@ -121,6 +122,61 @@ def test_descriptor_refinement_recovers_true_pixel_and_validity_follows_it() -> 
     ranges = X_query.reshape(-1, 3).norm(dim=-1)
     assert bool((gap[m_strict.valid[0]] < strict.occlusion_ratio * ranges[m_strict.valid[0]]).all())
     assert m_strict.valid.float().mean() < 0.05
+
+
+def test_consensus_keeps_flat_paint_at_its_projection() -> None:
+    """Where descriptors are one flat colour plus per-pixel noise, the window search follows
+    the noise (MatchingConfig's docstring: the v2 prior's low-texture family); the median of
+    its moves over the consensus window (13 pixels at this size) does not, and a move shared
+    by the neighbourhood (the prior's geometry two pixels off) survives it."""
+    g = torch.Generator().manual_seed(3)
+    K = intrinsics_matrix(30.0, 30.0, (W - 1) / 2, (H - 1) / 2, dtype=torch.float64)
+    X_search = unproject_depth(_smooth_depth(g), K)
+    flat = torch.nn.functional.normalize(torch.ones(H, W, 16, dtype=torch.float64), dim=-1)
+
+    def noisy() -> torch.Tensor:
+        return torch.nn.functional.normalize(
+            flat + 0.3 * torch.randn(H, W, 16, generator=g, dtype=torch.float64), dim=-1
+        )
+
+    grid_v, grid_u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    p_true = torch.stack([grid_u, grid_v], -1).reshape(-1, 2)
+    assert consensus_window(W) == 13 and consensus_window(512) == 1
+
+    def matched(consensus: bool) -> torch.Tensor:
+        config = MatchingConfig(occlusion_ratio=10.0, descriptor_consensus=consensus)
+        m = match_pointmaps(X_search[None], X_search[None], noisy()[None], noisy()[None], config)
+        return ((m.pixel[0] - p_true).abs() <= 1).all(-1).float().mean()
+
+    # within a pixel of the true one: the search alone wanders up to 5 pixels off
+    assert matched(consensus=False) < 0.3
+    assert matched(consensus=True) > 0.95
+    # textured descriptors and geometry two pixels off: the consensus keeps the shared move
+    D_search = _descriptors(X_search, torch.randn(3, 32, generator=g, dtype=torch.float64))
+    X_query = torch.roll(X_search, shifts=-2, dims=1)[:, 4:-4]
+    m = match_pointmaps(
+        X_search[None],
+        X_query[None],
+        D_search[None],
+        D_search[:, 4:-4][None],
+        MatchingConfig(occlusion_ratio=10.0, descriptor_dilation_max=round(5 * 512 / W)),
+    )
+    inner = torch.stack(torch.meshgrid(torch.arange(H), torch.arange(4, W - 4), indexing="ij"))
+    assert (m.pixel[0] == inner.flip(0).reshape(2, -1).T).all(-1).float().mean() > 0.95
+
+
+def test_compiled_move_medians_equal_the_pytorch_ones() -> None:
+    """The CPU loop counts the moves of each window, the PyTorch path sorts them: the same
+    lower median per axis, borders and inactive matches included."""
+    from como3r.frontend import cpu_kernels, matching
+
+    g = torch.Generator().manual_seed(0)
+    moves = torch.randint(-9, 10, (2, 11 * 13, 2), generator=g)
+    active = torch.rand(2, 11 * 13, generator=g) > 0.3
+    for window in (3, 5, 9):
+        want = matching._move_medians(moves, active, (11, 13), window)
+        got = cpu_kernels.move_medians(moves, active, (11, 13), window)
+        assert torch.equal(got[active], want[active])
 
 
 def test_match_confidence_is_geometric_mean() -> None:

@@ -347,3 +347,61 @@ def pack_valid(
         q_out.numpy(),
         valid_out.numpy(),
     )
+
+
+def _move_medians(
+    moves: np.ndarray,
+    active: np.ndarray,
+    per_image: int,
+    height: int,
+    width: int,
+    window: int,
+    reach: int,
+    out: np.ndarray,
+) -> None:  # pragma: no cover (compiled)
+    """Per active match, the lower median per axis of the active moves ``(N, 2)`` (whole
+    pixels, at most ``reach``) in the ``window x window`` block of query pixels around it, by
+    counting: the moves are small integers."""
+    half = window // 2
+    values = 2 * reach + 1
+    for line in prange(active.shape[0] // width):  # one query row of one image per task
+        counts = np.zeros((2, values), np.int64)
+        first = (line // height) * per_image
+        v = line % height
+        for u in range(width):
+            row = first + v * width + u
+            if not active[row]:
+                continue
+            votes = 0
+            for b in range(max(v - half, 0), min(v + half + 1, height)):
+                for a in range(max(u - half, 0), min(u + half + 1, width)):
+                    other = first + b * width + a
+                    if active[other]:
+                        counts[0, moves[other, 0] + reach] += 1
+                        counts[1, moves[other, 1] + reach] += 1
+                        votes += 1
+            need = (votes + 1) // 2
+            for axis in range(2):
+                seen = 0
+                for k in range(values):
+                    seen += counts[axis, k]
+                    if seen >= need:
+                        out[row, axis] = k - reach
+                        break
+                counts[axis, :] = 0
+
+
+def move_medians(
+    moves: Tensor, active: Tensor, query_shape: tuple[int, int], window: int
+) -> Tensor:
+    """:func:`como3r.frontend.matching.displacement_consensus`'s medians on CPU tensors:
+    ``moves (B, P, 2)`` int64, ``active (B, P)`` bool, ``P = Hq * Wq`` row-major ->
+    ``(B, P, 2)`` int64 (0 where not active), the same values as the PyTorch median."""
+    B, P, _ = moves.shape
+    Hq, Wq = query_shape
+    flat = moves.detach().reshape(B * P, 2).to(torch.int64).contiguous()
+    on = active.detach().reshape(B * P)
+    reach = int(flat[on].abs().max()) if bool(on.any()) else 0
+    out = np.zeros((B * P, 2), np.int64)
+    compiled(_move_medians)(flat.numpy(), on.numpy(), P, Hq, Wq, window, reach, out)
+    return torch.from_numpy(out).reshape(B, P, 2)
