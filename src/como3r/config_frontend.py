@@ -53,7 +53,7 @@ class MatchingConfig:
             the matches of a window of query pixels around it, the smallest odd number at
             least ``512 / long_side`` (5 at 160 px, 3 at 256, 1 at 512: the paper's search
             unchanged there), unless its own pixel is within a pixel of that
-            (:func:`como3r.frontend.matching.displacement_consensus`). Why: where the
+            (:func:`como3r.frontend.match_consensus.displacement_consensus`). Why: where the
             descriptors cannot tell pixels apart (flat paint: the v2 prior's descriptors
             there are per-pixel noise around one colour) the search follows the noise.
             Measured on the v2 low-texture family at 160 px (seed 0, 8 tracked frames,

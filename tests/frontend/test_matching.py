@@ -7,7 +7,9 @@ import math
 import torch
 
 from como3r.config import MatchingConfig
-from como3r.frontend.matching import consensus_window, match_confidence, match_pointmaps
+from como3r.frontend import match_consensus
+from como3r.frontend.match_consensus import consensus_window
+from como3r.frontend.matching import match_confidence, match_pointmaps
 from como3r.geometry.camera import intrinsics_matrix, unproject_depth
 from como3r.geometry.lie import sim3_act, sim3_exp, sim3_inverse
 from como3r.geometry.residuals import psi
@@ -168,13 +170,13 @@ def test_consensus_keeps_flat_paint_at_its_projection() -> None:
 def test_compiled_move_medians_equal_the_pytorch_ones() -> None:
     """The CPU loop counts the moves of each window, the PyTorch path sorts them: the same
     lower median per axis, borders and inactive matches included."""
-    from como3r.frontend import cpu_kernels, matching
+    from como3r.frontend import cpu_kernels
 
     g = torch.Generator().manual_seed(0)
     moves = torch.randint(-9, 10, (2, 11 * 13, 2), generator=g)
     active = torch.rand(2, 11 * 13, generator=g) > 0.3
     for window in (3, 5, 9):
-        want = matching._move_medians(moves, active, (11, 13), window)
+        want = match_consensus._move_medians(moves, active, (11, 13), window)
         got = cpu_kernels.move_medians(moves, active, (11, 13), window)
         assert torch.equal(got[active], want[active])
 

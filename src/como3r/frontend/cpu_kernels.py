@@ -394,7 +394,7 @@ def _move_medians(
 def move_medians(
     moves: Tensor, active: Tensor, query_shape: tuple[int, int], window: int
 ) -> Tensor:
-    """:func:`como3r.frontend.matching.displacement_consensus`'s medians on CPU tensors:
+    """:func:`como3r.frontend.match_consensus.displacement_consensus`'s medians on CPU tensors:
     ``moves (B, P, 2)`` int64, ``active (B, P)`` bool, ``P = Hq * Wq`` row-major ->
     ``(B, P, 2)`` int64 (0 where not active), the same values as the PyTorch median."""
     B, P, _ = moves.shape
