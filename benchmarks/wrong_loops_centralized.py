@@ -64,6 +64,25 @@ compares; 92 s per rate and its clean run):
 No look-alike merges two components then (the merges ``merged on`` counts are wrong-scale
 pairs supported by their own true twin, which agrees with them within the residual bar);
 20 %: 1.16x the clean ATE, 0.36 % scale; 50 %: 1.27 % instead of 29.6 %.
+
+The v2 prior (``--prior-model v2``; 160 s per rate and its clean run):
+
+    wrong % verified injected admitted refused pending merged on held ATE % path scale % spread %
+          0     12.0      0.0      0.0     0.0     0.0       0.0  0.0      0.635    0.00     1.52
+         20     12.0      3.7      1.0     2.7     0.0       0.3  0.0     10.850    9.97    16.60
+    with --min-consistent-edges 2:
+          0     12.3      0.0      0.0     0.0     0.0       0.0  0.0      0.651    0.00     1.35
+         20     12.3      3.7      1.3     2.3     0.0       0.3  0.0      0.846    0.46     1.94
+
+With the default the 20 % row fails the issue's bar: in seed 1 a look-alike came before any
+true edge between agents 1 and 2 and merged them on its own (565.6 mm against 9.0 clean;
+16 true edges refused after it); seeds 0 and 2: 10.65 -> 17.99 and 15.36 -> 15.36 mm. With
+two agreeing edges per merge no look-alike merges: 1.30x the clean ATE (seeds 11.29 ->
+19.14, 9.00 -> 11.92, 15.62 -> 15.62 mm), 0.46 % scale; seed 0's 1.7x comes from one
+wrong-scale pair admitted (as a merge support beside its true twin, residual ratio 0.03).
+What lets wrong edges bend the map: (1) ``gauge.min_consistent_edges`` 1, a first edge
+between two components merges them untested; (2) inside a gauge, wrong-scale pairs of short
+baseline pass ``verification.max_residual_ratio`` 0.25 and the scale watch.
 """
 
 from __future__ import annotations
