@@ -794,3 +794,35 @@ def test_an_agents_verified_loop_becomes_a_loop_link(ring) -> None:
     off = apply_overrides(scene.config, ["verification.max_loop_candidates=0"])
     coordinator, _ = _run(scene, scene.packets[0], off, agents=1)
     assert _loop_links(coordinator) == [] and coordinator.metrics()["loops_tried"] == 0
+
+
+def test_the_store_keeps_the_matches_of_an_edge_waiting_for_its_recheck(ring) -> None:
+    """The store's page-out lets go of a refused edge's matches, but not before the recheck
+    after the next global BA has read them (issue 37: a run with a wrong edge refused inside
+    a gauge stopped there with "was not verified")."""
+    from como3r.store.paging import page_out
+
+    coordinator, _ = _run(ring, _interleave(ring, [0, 1]), agents=2)
+    graph = coordinator.graph
+    edge = [c for c in coordinator.candidates if c.status == "admitted"][-1]
+    graph.links = [link for link in graph.links if (link.i, link.j) != (edge.i, edge.j)]
+    moved = graph.agent_keyframes(1)
+    kept = graph.poses(moved).clone()
+    grow = torch.tensor([0, 0, 0, 0, 0, 0, 1, 1.5], dtype=kept.dtype)
+    graph.set_poses(moved, sim3_compose(grow.expand_as(kept), kept))
+    coordinator._admit_within(edge)
+    assert edge.status == "inconsistent"
+    # every keyframe resident: nothing else is paged, no store is read
+    config = dataclasses.replace(
+        coordinator.config,
+        session=dataclasses.replace(coordinator.config.session, resident_keyframes=10**6),
+    )
+    coordinator.config = config
+    page_out(coordinator, None)  # type: ignore[arg-type]
+    assert edge.verification.link is not None
+    graph.set_poses(moved, kept)
+    coordinator._recheck_refused()
+    assert edge.status == "admitted"
+    refused = [c for c in coordinator.candidates if c.status == "rejected"]
+    page_out(coordinator, None)  # type: ignore[arg-type]
+    assert all(c.verification.link is None for c in refused)

@@ -346,6 +346,11 @@ class InterAgentLinking:
                 )
                 self._add_inter_link(candidate)
 
+    def awaiting_recheck(self, candidate: Candidate) -> bool:
+        """Whether ``candidate`` is a refused edge :meth:`_recheck_refused` will test again
+        (its matches must stay in memory until then: the store's paging keeps them)."""
+        return any(candidate is refused for refused, _ in self._refused)
+
     def _scale_agrees(self, candidate: Candidate, x_j: Tensor, x_i: Tensor, q: Tensor) -> bool:
         """The scale watch of an edge inside one gauge (``gauge.scale_alarm_log``): its own
         similarity from endpoint j's lifted points to endpoint i's must not rescale the map;

@@ -15,7 +15,8 @@ transaction :func:`page_out` lets go of what is outside the *working set*, the n
 * a sequential edge between two such keyframes becomes a :class:`PagedLink`, whose matches
   are read from the store each time they are asked for (a solve builds its factors once);
 * a verified candidate that was rejected or found inconsistent keeps its figures only
-  (:class:`StoredVerification`): nothing reads its matches again.
+  (:class:`StoredVerification`): nothing reads its matches again; one refused inside a
+  gauge that the coordinator tests again after its next global BA keeps them until then.
 
 What a message needs is read while it is handled, so the results do not depend on the
 working set; only memory and time do. Inter-agent edges and admitted or pending candidates
@@ -168,8 +169,11 @@ def page_out(coordinator: Coordinator, pages: Pages) -> None:
             graph.links[n] = replace(
                 link, link=PagedLink(pages, n, link.link.covisible_ij, link.link.covisible_ji)
             )
+    # a refused edge the coordinator tests again after its next global BA keeps its matches
     for candidate in coordinator.candidates:
-        if candidate.status in ("rejected", "inconsistent") and not isinstance(
-            candidate.verification, StoredVerification
+        if (
+            candidate.status in ("rejected", "inconsistent")
+            and not isinstance(candidate.verification, StoredVerification)
+            and not coordinator.awaiting_recheck(candidate)
         ):
             candidate.verification = figures_only(candidate.verification)

@@ -1,0 +1,357 @@
+"""Wrong inter-agent edges against the centralized coordinator: merged ATE and scale per rate.
+
+The centralized counterpart of ``benchmarks/wrong_loops.py`` (issue 37, item 2). Three
+agents of a small synthetic scene (``como3r synth``'s ``default`` preset, 24 frames each,
+160x120, ``input.long_side`` 160, the simulated prior; one scene and prior seed per seed)
+run through :func:`como3r.runtime.pipeline.run` with the default configuration. Wrong edges
+enter where a wrong decode would: around the coordinator's verified cross-agent candidates
+(``InterAgentLinking._verify``), before its own tests (the residual-ratio agreement inside a
+gauge component, the scale alarm, the agreement of ``gauge.min_consistent_edges`` edges and
+their scales before a merge). For every true verified candidate a wrong one is added with
+probability ``r / (1 - r)``, so that about ``r`` of the verified edges are wrong, alternately:
+
+* a look-alike place: the true candidate's matches, attributed to the keyframe of another
+  agent (not the query's) whose true camera centre is farthest from the query's (at least
+  a quarter of an agent's path away): a registration at a plausible close-range pose of
+  keyframes that do not overlap;
+* a true place with a wrong scale: the true pair's matches recomputed as a decode whose
+  relative translation is 1.6-3x too long or too short would give them (the pair's
+  similarity fitted to its matched pointmaps, its translation scaled, j's points projected
+  into i with a pinhole fitted to i's pointmap; both directions).
+
+The C-Eq. 12 and co-visibility tests are not re-run on them: a wrong decode that reaches the
+coordinator has passed them. ``ATE`` is the merged ATE (evo's, one Sim(3) alignment of all
+agents) in % of the mean path; ``scale`` is ``|s / s_clean - 1|`` of that alignment's scale
+against the same seed's clean run (a monocular map has no absolute scale), ``spread`` the
+largest ``|s_agent / s - 1|`` of the agents' own alignments; ``admitted`` counts the wrong
+edges that entered the graph, ``refused`` those the residual or scale test held back inside
+a component, ``held`` the merge supports the scale alarm held (``gauge_scale_held``),
+``pending`` wrong edges still waiting for a merge at the end.
+
+    PYTHONPATH=src python benchmarks/wrong_loops_centralized.py --seeds 3
+
+Measured (3 seeds, 318 s on a shared 2-core machine, load 6-11; means over the seeds;
+``verified`` the true verified edges; the default configuration, the realistic prior):
+
+    wrong % verified injected admitted refused pending merged on held ATE % path scale % spread %
+          0     11.7      0.0      0.0     0.0     0.0       0.0  0.0      0.497    0.00     0.86
+          5     11.7      0.3      0.0     0.3     0.0       0.0  0.0      0.497    0.00     0.86
+         20     11.7      3.7      1.7     2.0     0.0       0.0  0.0      0.601    0.52     1.03
+         50     11.7     11.7      4.3     7.3     0.0       1.3  0.0     29.585   22.51    94.91
+
+With 20 % wrong edges the merged ATE is 1.21x the clean run's (seeds: 7.06 -> 7.06,
+5.01 -> 10.78, 15.35 -> 15.35 mm) and the scale error 0.52 %: at the issue's bar, not under
+it. The wrong edges that went in were admitted inside a gauge component: they passed
+``verification.max_residual_ratio`` (0.25; theirs 0.04-0.06: the wrong-scale pairs have
+baselines short against the range; the admitted look-alikes' keyframes, a quarter path or
+more apart, presumably see the same surfaces, not checked) and the scale watch (``gauge.scale_alarm_log`` 0.2); the refused
+ones had residual ratios of 1.7-3.0. The 5 % row holds one wrong edge in all (11.7 true
+edges per run). At 50 % a look-alike came first between two components in every seed and
+merged them on its own (``merged on``: ``gauge.min_consistent_edges`` is 1, the paper's
+synchronization on the first verified edge, which nothing tests); the true edges after it
+disagree with the bent poses and are refused (14-16 per run): 543 and 582 mm in seeds 0 and
+1 (path ~1.8 m). With each wrong edge always after its true one (no wrong merge at 20 %),
+20 % gave 0.792 % (1.59x) and 0.60 %, 50 % 21.0 %.
+
+With ``--min-consistent-edges 2`` (a merge needs two agreeing edges, whose scales the watch
+compares; 92 s per rate and its clean run):
+
+    wrong % verified injected admitted refused pending merged on held ATE % path scale % spread %
+          0     12.3      0.0      0.0     0.0     0.0       0.0  0.0      0.525    0.00     0.80
+         20     12.3      3.7      1.3     2.3     0.0       0.3  0.0      0.610    0.36     0.86
+         50     11.7     11.7      8.3     3.3     0.0       1.0  0.0      1.271    1.54     2.56
+
+No look-alike merges two components then (the merges ``merged on`` counts are wrong-scale
+pairs supported by their own true twin, which agrees with them within the residual bar);
+20 %: 1.16x the clean ATE, 0.36 % scale; 50 %: 1.27 % instead of 29.6 %.
+
+The v2 prior (``--prior-model v2``; 160 s per rate and its clean run):
+
+    wrong % verified injected admitted refused pending merged on held ATE % path scale % spread %
+          0     12.0      0.0      0.0     0.0     0.0       0.0  0.0      0.635    0.00     1.52
+         20     12.0      3.7      1.0     2.7     0.0       0.3  0.0     10.850    9.97    16.60
+    with --min-consistent-edges 2:
+          0     12.3      0.0      0.0     0.0     0.0       0.0  0.0      0.651    0.00     1.35
+         20     12.3      3.7      1.3     2.3     0.0       0.3  0.0      0.846    0.46     1.94
+
+With the default the 20 % row fails the issue's bar: in seed 1 a look-alike came before any
+true edge between agents 1 and 2 and merged them on its own (565.6 mm against 9.0 clean;
+16 true edges refused after it); seeds 0 and 2: 10.65 -> 17.99 and 15.36 -> 15.36 mm. With
+two agreeing edges per merge no look-alike merges: 1.30x the clean ATE (seeds 11.29 ->
+19.14, 9.00 -> 11.92, 15.62 -> 15.62 mm), 0.46 % scale; seed 0's 1.7x comes from one
+wrong-scale pair admitted (as a merge support beside its true twin, residual ratio 0.03).
+What lets wrong edges bend the map: (1) ``gauge.min_consistent_edges`` 1, a first edge
+between two components merges them untested; (2) inside a gauge, wrong-scale pairs of short
+baseline pass ``verification.max_residual_ratio`` 0.25 and the scale watch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from como3r.config import Config
+from como3r.coordination.association import Candidate
+from como3r.coordination.linking import InterAgentLinking
+from como3r.data.synth import synthesize
+from como3r.frontend.pairs import DirectedMatches, PairLink
+from como3r.io.output import atomic_output_dir
+from como3r.runtime.pipeline import PriorSpec, run
+
+AGENTS = 3
+FRAMES = 24
+RATES = (0.0, 0.05, 0.2, 0.5)
+log = logging.getLogger("wrong_loops_centralized")
+
+
+def _similarity(src: torch.Tensor, dst: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
+    """``(s, R, t)`` with ``dst ~ s R src + t`` (Umeyama) for ``(N, 3)`` point sets."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    S, D = src - mu_s, dst - mu_d
+    U, sig, Vt = torch.linalg.svd(D.T @ S / len(src))
+    fix = torch.eye(3, dtype=src.dtype)
+    if torch.det(U) * torch.det(Vt) < 0:
+        fix[2, 2] = -1
+    R = U @ fix @ Vt
+    s = float((sig * fix.diagonal()).sum() / (S**2).sum(1).mean())
+    return s, R, mu_d - s * R @ mu_s
+
+
+def _pinhole(X: torch.Tensor) -> tuple[float, float, float, float]:
+    """``(fx, cx, fy, cy)`` fitted to a ``(H, W, 3)`` camera-frame pointmap's rays."""
+    H, W, _ = X.shape
+    v, u = torch.meshgrid(
+        torch.arange(H, dtype=X.dtype), torch.arange(W, dtype=X.dtype), indexing="ij"
+    )
+    ok = X[..., 2] > 1e-6
+    fit = []
+    for axis, pixel in ((0, u), (1, v)):
+        ray = (X[..., axis] / X[..., 2].clamp_min(1e-6))[ok]
+        A = torch.stack([ray, torch.ones_like(ray)], 1)
+        fit += torch.linalg.lstsq(A, pixel[ok][:, None]).solution.flatten().tolist()
+    return fit[0], fit[1], fit[2], fit[3]
+
+
+def _rescaled(
+    matches: DirectedMatches, X_i: torch.Tensor, X_j: torch.Tensor, factor: float
+) -> DirectedMatches:
+    """``matches`` (pixels of j in i) as a decode with the pair's translation times
+    ``factor`` gives them."""
+    X_i, X_j = X_i.double(), X_j.double()
+    H, W, _ = X_i.shape
+    valid = matches.valid.clone()
+    pj = X_j.reshape(-1, 3)
+    s, R, t = _similarity(pj[valid], X_i.reshape(-1, 3)[matches.idx[valid]])
+    moved = s * pj @ R.T + factor * t
+    fx, cx, fy, cy = _pinhole(X_i)
+    z = moved[:, 2].clamp_min(1e-6)
+    u = torch.round(fx * moved[:, 0] / z + cx).long()
+    v = torch.round(fy * moved[:, 1] / z + cy).long()
+    valid &= (moved[:, 2] > 1e-6) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    idx = torch.where(valid, v.clamp(0, H - 1) * W + u.clamp(0, W - 1), matches.idx)
+    return DirectedMatches(idx, valid, matches.q)
+
+
+class Injector:
+    """Wraps ``InterAgentLinking._verify`` to add wrong candidates (see the module doc)."""
+
+    def __init__(self, rate: float, seed: int, truth: dict[int, np.ndarray], reach: float):
+        self.probability = rate / (1 - rate)
+        self.rng = np.random.default_rng(1000 + seed)
+        self.truth = truth  # agent -> (frames, 3) true camera centres
+        self.reach = reach
+        self.wrong: list[Candidate] = []
+        self.original = InterAgentLinking._verify
+
+    def __enter__(self) -> Injector:
+        injector = self
+
+        def verify(linking: InterAgentLinking, packet, hits):  # type: ignore[no-untyped-def]
+            verified = injector.original(linking, packet, hits)
+            # each wrong edge comes just before or just after its true one (a coin): one
+            # that comes first between two gauge components merges them
+            order, extra = [], []
+            for c in verified:
+                wrong = (
+                    injector.make(linking, c)
+                    if injector.rng.random() < injector.probability
+                    else None
+                )
+                if wrong is None:
+                    order.append(c)
+                    continue
+                extra.append(wrong)
+                order += [wrong, c] if injector.rng.random() < 0.5 else [c, wrong]
+            linking.candidates.extend(extra)
+            injector.wrong.extend(extra)
+            return order
+
+        InterAgentLinking._verify = verify  # type: ignore[method-assign]
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        InterAgentLinking._verify = self.original  # type: ignore[method-assign]
+
+    def make(self, linking: InterAgentLinking, true: Candidate) -> Candidate | None:
+        """A look-alike or a wrong-scale edge from a true verified candidate, alternately."""
+        graph, v = linking.graph, true.verification
+        if len(self.wrong) % 2 == 0:
+            query = graph.keyframes[true.j]
+            centre = self.truth[v.query[0]][query.frame_index]
+            best = None
+            for g, kf in enumerate(graph.keyframes):
+                agent = graph.agent_of[g]
+                if agent == v.query[0]:
+                    continue
+                gap = float(np.linalg.norm(self.truth[agent][kf.frame_index] - centre))
+                if gap > self.reach and (best is None or gap > best[0]):
+                    best = (gap, g, agent)
+            if best is None:
+                return None
+            _, g, agent = best
+            kf_id = graph.agent_keyframes(agent).index(g)
+            return Candidate(replace(v, candidate=(agent, kf_id)), g, true.j)
+        assert v.link is not None
+        factor = math.exp(self.rng.choice([-1, 1]) * self.rng.uniform(math.log(1.6), math.log(3.0)))
+        X_i, X_j = graph.keyframes[true.i].X_hat, graph.keyframes[true.j].X_hat
+        link = PairLink(
+            _rescaled(v.link.ij, X_i, X_j, factor),
+            _rescaled(v.link.ji, X_j, X_i, factor),
+            v.link.covisible_ij,
+            v.link.covisible_ji,
+        )
+        return Candidate(replace(v, link=link, ij=link.ij), true.i, true.j)
+
+
+def _scene(root: Path, seed: int) -> Path:
+    folder = root / f"scene-s{seed}"
+    if not (folder / "scene.json").is_file():
+        with atomic_output_dir(folder, overwrite=True) as staging:
+            synthesize(
+                staging,
+                agents=AGENTS,
+                seed=seed,
+                overlap=0.2,
+                frames=FRAMES,
+                preset="default",
+                width=160,
+                height=120,
+            )
+    return folder
+
+
+def one_run(
+    root: Path, seed: int, rate: float, prior_model: str | None, min_edges: int | None = None
+) -> dict[str, float]:
+    """One pipeline run with wrong edges at ``rate``; its numbers."""
+    scene = _scene(root, seed)
+    truth = {
+        a: np.loadtxt(scene / f"agent_{a}" / "groundtruth.txt", ndmin=2)[:, 1:4]
+        for a in range(AGENTS)
+    }
+    info = json.loads((scene / "scene.json").read_text())
+    path = float(np.mean([a["path_length_m"] for a in info["agents_info"]]))
+    config = Config()
+    prior = replace(config.simulated_prior, seed=seed)
+    if prior_model is not None:
+        prior = replace(prior, model=prior_model)
+    config = replace(config, input=replace(config.input, long_side=160), simulated_prior=prior)
+    if min_edges is not None:
+        config = replace(config, gauge=replace(config.gauge, min_consistent_edges=min_edges))
+    out = root / f"run-s{seed}-r{round(100 * rate)}-e{min_edges}-{prior_model}"
+    with Injector(rate, seed, truth, path / 4) as injector:
+        run(
+            [scene / f"agent_{a}" for a in range(AGENTS)],
+            out,
+            config,
+            PriorSpec("simulated"),
+            overwrite=True,
+        )
+    metrics = json.loads((out / "metrics.json").read_text())
+    merged = metrics["ate"]["merged"] if metrics.get("ate") else None
+    stats = metrics["coordinator"]
+    verified = stats["edges_verified"]
+    status = [c.status for c in injector.wrong]
+    # wrong edges a gauge merge counted as support (the others were admitted inside a gauge)
+    merges = [{tuple(map(tuple, e)) for e in event["edges"]} for event in stats["gauge_events"]]
+    keys = [(c.verification.candidate, c.verification.query) for c in injector.wrong]
+    kinds = ["look-alike" if n % 2 == 0 else "scale" for n in range(len(keys))]
+    ratios = [c.residual_ratio for c in injector.wrong]
+    for key, kind, state, ratio in zip(keys, kinds, status, ratios):
+        how = "merge" if any(key in m for m in merges) else "within"
+        log.info(
+            "seed %d rate %.2f: %s edge %s-%s %s (%s, residual ratio %.3f)",
+            seed,
+            rate,
+            kind,
+            *key,
+            state,
+            how,
+            ratio,
+        )
+    scale = merged["alignment"]["scale"] if merged else math.nan
+    return {
+        "verified": verified,
+        "injected": len(injector.wrong),
+        "admitted": status.count("admitted"),
+        "merged on": sum(any(k in m for m in merges) for k in keys),
+        "refused": status.count("inconsistent"),
+        "pending": status.count("pending"),
+        "held": stats["gauge_scale_held"],
+        "ATE": 100 * merged["ate"]["rmse"] / path if merged else math.nan,
+        "s": scale,
+        "spread": max(abs(a["alignment"]["scale"] / scale - 1) for a in metrics["ate"]["agents"])
+        if merged
+        else math.nan,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--rates", default=",".join(str(r) for r in RATES))
+    parser.add_argument("--prior-model", default=None, help="simulated_prior.model (e.g. v2)")
+    parser.add_argument(
+        "--min-consistent-edges", type=int, default=None, help="gauge.min_consistent_edges"
+    )
+    parser.add_argument("--out", type=Path, default=Path("/tmp/como3r-wrong-edges"))
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    log.setLevel(logging.INFO)
+    rates = [float(r) for r in args.rates.split(",")]
+    start = time.perf_counter()
+    clean: dict[int, float] = {}
+    print(
+        f"{'wrong %':>7} {'verified':>8} {'injected':>8} {'admitted':>8} {'refused':>7} "
+        f"{'pending':>7} {'merged on':>9} {'held':>4} {'ATE % path':>10} {'scale %':>7} {'spread %':>8}"
+    )
+    for rate in sorted(set([0.0, *rates])):
+        rows = []
+        for seed in range(args.seeds):
+            row = one_run(args.out, seed, rate, args.prior_model, args.min_consistent_edges)
+            if rate == 0.0:
+                clean[seed] = row["s"]
+            row["scale"] = abs(row["s"] / clean[seed] - 1)
+            rows.append(row)
+        mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+        print(
+            f"{100 * rate:>7.0f} {mean['verified']:>8.1f} {mean['injected']:>8.1f} "
+            f"{mean['admitted']:>8.1f} {mean['refused']:>7.1f} {mean['pending']:>7.1f} "
+            f"{mean['merged on']:>9.1f} "
+            f"{mean['held']:>4.1f} {mean['ATE']:>10.3f} {100 * mean['scale']:>7.2f} "
+            f"{100 * mean['spread']:>8.2f}",
+            flush=True,
+        )
+    print(f"{time.perf_counter() - start:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
