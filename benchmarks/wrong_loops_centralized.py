@@ -44,7 +44,8 @@ With 20 % wrong edges the merged ATE is 1.21x the clean run's (seeds: 7.06 -> 7.
 it. The wrong edges that went in were admitted inside a gauge component: they passed
 ``verification.max_residual_ratio`` (0.25; theirs 0.04-0.06: the wrong-scale pairs have
 baselines short against the range; the admitted look-alikes' keyframes, a quarter path or
-more apart, presumably see the same surfaces, not checked) and the scale watch (``gauge.scale_alarm_log`` 0.2); the refused
+more apart, presumably see the same surfaces, not checked) and the scale watch
+(``gauge.scale_alarm_log`` 0.2); the refused
 ones had residual ratios of 1.7-3.0. The 5 % row holds one wrong edge in all (11.7 true
 edges per run). At 50 % a look-alike came first between two components in every seed and
 merged them on its own (``merged on``: ``gauge.min_consistent_edges`` is 1, the paper's

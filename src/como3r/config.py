@@ -117,9 +117,9 @@ class SessionConfig:
     default 64 holds a team's recent keyframes, which cross-agent retrieval hits anywhere
     in the map. Measured with benchmarks/team_scale.py (``--sizes 4 16``, multi-process,
     simulated prior at 512x384, whose encoding is 13.4 MB where MASt3R's 768x1024 float
-    tokens are 3.1 MB) at 16: re-encodes per keyframe 1.2 / 2.15 at 4 / 16 agents, the coordinator's CPU
-    per keyframe 2130 / 2880 ms (16 against 4: 1.35x) and peak memory 2350 / 4020 MB; at
-    64: 1.0 / 1.0, 2010 / 2450 ms (1.22x), 2390 / 4530 MB (1.90x).
+    tokens are 3.1 MB) at 16: re-encodes per keyframe 1.2 / 2.15 at 4 / 16 agents, the
+    coordinator's CPU per keyframe 2130 / 2880 ms (16 against 4: 1.35x) and peak memory
+    2350 / 4020 MB; at 64: 1.0 / 1.0, 2010 / 2450 ms (1.22x), 2390 / 4530 MB (1.90x).
     """
 
     resident_keyframes: int = 8
