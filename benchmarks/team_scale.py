@@ -242,6 +242,7 @@ from _tables import print_table, write_csv  # noqa: E402
 from como3r.config import Config, apply_overrides  # noqa: E402
 from como3r.coordination.coordinator import Coordinator  # noqa: E402
 from como3r.data.synth import synthesize  # noqa: E402
+from como3r.geometry.lie import sim3_act  # noqa: E402
 from como3r.geometry.umeyama import umeyama_sim3  # noqa: E402
 from como3r.io.tum import read_tum  # noqa: E402
 from como3r.progress import AgentProgress  # noqa: E402
@@ -394,16 +395,9 @@ def run_one(
 def _aligned_scale(est: np.ndarray, gt: np.ndarray) -> tuple[float, np.ndarray]:
     """Scale of the similarity taking positions ``est (N, 3)`` onto ``gt``, and the aligned
     positions."""
-    T = umeyama_sim3(torch.from_numpy(est), torch.from_numpy(gt)).numpy()
-    x, y, z, w = T[3:7]
-    R = np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-    return float(T[7]), T[7] * est @ R.T + T[:3]
+    points = torch.from_numpy(est)
+    T = umeyama_sim3(points, torch.from_numpy(gt))
+    return float(T[7]), sim3_act(T, points).numpy()
 
 
 def _frames(scene: Path, out: Path, agent: int) -> tuple[np.ndarray, np.ndarray]:
