@@ -104,6 +104,7 @@ from como3r.coordination.association import Candidate
 from como3r.coordination.linking import InterAgentLinking
 from como3r.data.synth import synthesize
 from como3r.frontend.pairs import DirectedMatches, PairLink
+from como3r.geometry.umeyama import umeyama_sim3_batched
 from como3r.io.output import atomic_output_dir
 from como3r.runtime.pipeline import PriorSpec, run
 
@@ -111,19 +112,6 @@ AGENTS = 3
 FRAMES = 24
 RATES = (0.0, 0.05, 0.2, 0.5)
 log = logging.getLogger("wrong_loops_centralized")
-
-
-def _similarity(src: torch.Tensor, dst: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
-    """``(s, R, t)`` with ``dst ~ s R src + t`` (Umeyama) for ``(N, 3)`` point sets."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    S, D = src - mu_s, dst - mu_d
-    U, sig, Vt = torch.linalg.svd(D.T @ S / len(src))
-    fix = torch.eye(3, dtype=src.dtype)
-    if torch.det(U) * torch.det(Vt) < 0:
-        fix[2, 2] = -1
-    R = U @ fix @ Vt
-    s = float((sig * fix.diagonal()).sum() / (S**2).sum(1).mean())
-    return s, R, mu_d - s * R @ mu_s
 
 
 def _pinhole(X: torch.Tensor) -> tuple[float, float, float, float]:
@@ -150,7 +138,12 @@ def _rescaled(
     H, W, _ = X_i.shape
     valid = matches.valid.clone()
     pj = X_j.reshape(-1, 3)
-    s, R, t = _similarity(pj[valid], X_i.reshape(-1, 3)[matches.idx[valid]])
+    R, t, s = (
+        part[0]
+        for part in umeyama_sim3_batched(
+            pj[valid][None], X_i.reshape(-1, 3)[matches.idx[valid]][None]
+        )
+    )
     moved = s * pj @ R.T + factor * t
     fx, cx, fy, cy = _pinhole(X_i)
     z = moved[:, 2].clamp_min(1e-6)
