@@ -11,9 +11,19 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from como3r.config_decentralized import FORMULATIONS, PoseGraphConfig
+from como3r.config_decentralized import (
+    FORMULATIONS,
+    DecentralizedConfig,
+    PoseGraphConfig,
+    check_config,
+)
 from como3r.decentralized.initial_estimate import initial_poses, keyframe_spacing
-from como3r.decentralized.pose_graph import scaled_loop_error, scaled_loop_factor, solve_pose_graph
+from como3r.decentralized.pose_graph import (
+    build_graph,
+    scaled_loop_error,
+    scaled_loop_factor,
+    solve_pose_graph,
+)
 from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
     PoseGraphProblem,
@@ -22,6 +32,7 @@ from como3r.decentralized.pose_graph_problem import (
     loop_clusters,
     to_pose3,
 )
+from como3r.errors import ConfigError
 
 
 def _random_pose(rng: np.random.Generator, spread: float = 3.0) -> gtsam.Pose3:
@@ -123,10 +134,17 @@ _SPACING = 2 * 6.0 * math.sin(math.pi / 12)
 
 def _config(**overrides) -> PoseGraphConfig:
     """Pose-graph settings whose translation noise is 2 cm (odometry) and 10 cm (loops) at
-    :data:`_SPACING`, the noise the synthetic measurements carry."""
-    return PoseGraphConfig(
-        odom_sigma_trans_ratio=0.02 / _SPACING, loop_sigma_trans_ratio=0.1 / _SPACING, **overrides
-    )
+    :data:`_SPACING`, the noise the synthetic measurements carry: the paper's graph (metric
+    odometry, loop translations weighted by p alone, F-Sec. III-C's scale scatter 0.2)
+    unless ``overrides`` say otherwise."""
+    settings = {
+        "odom_sigma_trans_ratio": 0.02 / _SPACING,
+        "loop_sigma_trans_ratio": 0.1 / _SPACING,
+        "odom_scale_walk": 0.0,
+        "loop_sigma_trans_floor_ratio": 0.0,
+        "scale_smoothing_sigma": 0.2,
+    }
+    return PoseGraphConfig(**{**settings, **overrides})
 
 
 @dataclasses.dataclass
@@ -263,3 +281,51 @@ def test_pose_conversions_round_trip():
     T = from_pose3(pose)
     assert T.shape == (8,) and T[6] >= 0 and T[7] == 1.0
     assert to_pose3(T).equals(pose, 1e-12)
+
+
+def _stretched(odometry: np.ndarray, start_error: float, convergence: float) -> np.ndarray:
+    """``odometry (K, 8)`` re-integrated with step ``k`` scaled by
+    ``1 + start_error exp(-k / convergence)``: a VIO whose scale has not converged yet."""
+    out = odometry.copy()
+    for k in range(1, len(odometry)):
+        factor = 1.0 + start_error * math.exp(-k / convergence)
+        out[k, :3] = out[k - 1, :3] + factor * (odometry[k, :3] - odometry[k - 1, :3])
+    return out
+
+
+def test_odometry_scales_undo_an_unconverged_vio_start():
+    """One robot's odometry starts 40 % long; per-step odometry scales tied by a random walk
+    let the loops to the other robots shorten it, and change little where it is right."""
+    data = _synthetic(np.random.default_rng(9), loop_scale_sigma=0.05)
+    truth = _position_rmse(
+        data.truth, solve_pose_graph(data.problem, "smoothed", "lm", _config()).poses
+    )
+    data.problem.odometry[1] = _stretched(data.problem.odometry[1], 0.4, 3.0)
+    fixed = solve_pose_graph(data.problem, "smoothed", "lm", _config(odom_scale_walk=0.0)).poses
+    walk = solve_pose_graph(data.problem, "smoothed", "lm", _config(odom_scale_walk=0.1)).poses
+    assert _position_rmse(data.truth, walk) < 0.5 * _position_rmse(data.truth, fixed)
+    solved = np.linalg.norm(np.diff(walk[1][:, :3], axis=0), axis=1)
+    measured = np.linalg.norm(np.diff(data.problem.odometry[1][:, :3], axis=0), axis=1)
+    assert solved[0] / measured[0] < 0.85  # the first step shortened toward 1 / 1.4
+    assert truth < 0.05
+
+
+def test_loop_translation_sigma_has_a_floor_confidence_cannot_lower():
+    data = _synthetic(np.random.default_rng(10), robots=2)
+    spacing = keyframe_spacing(data.problem, np.ones(len(data.problem.loops)))
+    for floor, expected in ((0.0, 0.1), (1.0, spacing)):
+        graph = build_graph(data.problem, "smoothed", _config(loop_sigma_trans_floor_ratio=floor))
+        sigmas = graph.loop_factor(0, 1.0).noiseModel().sigmas()
+        # p = 0.9: without the floor 0.1 m / sqrt(0.9); the rotation keeps F-Eq. 3's 1/sqrt(p).
+        assert sigmas[3:] == pytest.approx([max(expected, 0.1 / math.sqrt(0.9))] * 3, rel=1e-6)
+        assert sigmas[:3] == pytest.approx([math.radians(2.0) / math.sqrt(0.9)] * 3, rel=1e-6)
+
+
+def test_odometry_scale_and_loop_floor_settings_are_validated():
+    for key, value in (
+        ("odom_scale_walk", -0.1),
+        ("odom_scale_prior", 0.0),
+        ("loop_sigma_trans_floor_ratio", -1.0),
+    ):
+        with pytest.raises(ConfigError, match=key):
+            check_config(DecentralizedConfig(pose_graph=PoseGraphConfig(**{key: value})))

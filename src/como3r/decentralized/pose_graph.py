@@ -18,7 +18,28 @@ the scale-aware formulations, loop scales ``s`` (doubles). Factors:
     fewer than ``cluster_window`` keyframes apart on both robots;
   - ``shared``: one scale variable for all loops.
 
-  Every loop's information is multiplied by its confidence ``p`` (F-Eq. 3).
+  Every loop's information is multiplied by its confidence ``p`` (F-Eq. 3), except that
+  its translation sigma never falls below ``loop_sigma_trans_floor_ratio`` keyframe
+  spacings. ``p`` is a correspondence ratio (F-Eq. 1-2): it tells true loops from failed
+  registrations, not how precise a true loop's translation is. The prior registers two
+  pointmaps of the scene, so a rotation error ``d_theta`` of the fit turns about the scene
+  (depth ``D``, about 14 spacings at the default keyframe distance) and moves the camera by
+  ``D d_theta`` whatever the baseline: 2 deg is 0.5 spacings. The closest pairs overlap most
+  and get the highest ``p`` (0.73-0.84), hence the stiffest translations, while at a baseline
+  of one spacing or less that error turns their direction by 54-127 deg (issue 37's 3-robot
+  scene, prior ``v2``; median 9 deg over all accepted loops).
+
+Odometry (F-Eq. 4) is metric in the paper (F-Sec. III). With ``odom_scale_walk > 0`` each
+step ``k`` of a robot's odometry is instead the measurement ``[R_k, lambda_k t_k]`` of
+:func:`scaled_loop_factor` with a scale ``lambda_k`` per step: consecutive scales are tied by
+a random walk (``odom_scale_walk`` per square root of the keyframe spacings travelled) and
+each is held near 1 by ``odom_scale_prior`` (:func:`_add_odometry_scales`). This rescales
+dead-reckoning odometry by factors refined by sporadic measurements, as F-[25] does for
+pedestrian IMU odometry with UWB ranges (F-Sec. III-C-b), here refined by the loops: a
+monocular VIO's scale is off until its estimate converges (F-Sec. IV-C), and the loops to
+other robots see it. Off by default: with the prior's loops it helped the scenes it was
+tried on and hurt held-out ones (measured in
+:class:`~como3r.config_decentralized.PoseGraphConfig`).
 
 Solvers: Levenberg-Marquardt, and graduated non-convexity (Yang et al. 2020, F-[6]) as an
 outer loop over LM that re-weights loop factors only: odometry, the gauge prior and scale
@@ -54,6 +75,7 @@ from como3r.decentralized.pose_graph_problem import (
     from_pose3,
     loop_clusters,
     loop_measurement,
+    odometry_scale_key,
     pose_key,
     scale_key,
     to_pose3,
@@ -124,6 +146,54 @@ def _pose_noise(sigma_rot_rad: float, sigma_trans: float, weight: float) -> gtsa
     return gtsam.noiseModel.Diagonal.Sigmas(sigmas)
 
 
+def _add_odometry_scales(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    robot: int,
+    odometry: np.ndarray,
+    noise: gtsam.noiseModel.Base,
+    spacing: float,
+    config: PoseGraphConfig,
+) -> None:
+    """Odometry factors of one robot with a scale ``lambda_k`` per step (module docstring).
+
+    Step ``k`` (keyframe ``k-1`` to ``k``) is the measurement ``[R_k, lambda_k t_k]`` of
+    :func:`scaled_loop_factor`; consecutive scales are tied by a random walk of
+    ``odom_scale_walk`` per square root of the keyframe spacings travelled, and each is held
+    near 1 by a prior of ``odom_scale_prior``.
+
+    Args:
+        graph, values: the graph and initial values, extended in place.
+        robot: the robot's id.
+        odometry: ``(K, 8)`` its keyframe odometry ``T_OC``.
+        noise: the odometry factor's noise (F-Eq. 4's ``Omega_odom``).
+        spacing: the problem's keyframe spacing (odometry units).
+        config: ``odom_scale_walk`` and ``odom_scale_prior``.
+    """
+    prior = gtsam.noiseModel.Isotropic.Sigma(1, config.odom_scale_prior)
+    previous_key = None
+    for k in range(1, len(odometry)):
+        step = to_pose3(odometry[k - 1]).between(to_pose3(odometry[k]))
+        key = odometry_scale_key(robot, k)
+        values.insert(key, 1.0)
+        graph.add(gtsam.PriorFactorDouble(key, 1.0, prior))
+        graph.add(
+            scaled_loop_factor(
+                (pose_key(robot, k - 1), pose_key(robot, k), key),
+                step.rotation().matrix(),
+                np.asarray(step.translation(), dtype=np.float64),
+                noise,
+            )
+        )
+        if previous_key is not None:
+            travelled = max(float(np.linalg.norm(step.translation())) / spacing, 1e-3)
+            walk = gtsam.noiseModel.Isotropic.Sigma(
+                1, config.odom_scale_walk * math.sqrt(travelled)
+            )
+            graph.add(gtsam.BetweenFactorDouble(previous_key, key, 0.0, walk))
+        previous_key = key
+
+
 # --------------------------------------------------------------------------- graph
 
 
@@ -165,6 +235,9 @@ def build_graph(problem: PoseGraphProblem, formulation: str, config: PoseGraphCo
         for k, pose in enumerate(poses[robot]):
             values.insert(pose_key(robot, k), pose)
         noise = _pose_noise(odom_rot, config.odom_sigma_trans_ratio * spacing, 1.0)
+        if config.odom_scale_walk > 0:
+            _add_odometry_scales(fixed, values, robot, odometry, noise, spacing, config)
+            continue
         for k in range(1, len(odometry)):
             step = to_pose3(odometry[k - 1]).between(to_pose3(odometry[k]))
             fixed.add(
@@ -183,11 +256,16 @@ def build_graph(problem: PoseGraphProblem, formulation: str, config: PoseGraphCo
     keys = [(pose_key(l.robot_a, l.keyframe_a), pose_key(l.robot_b, l.keyframe_b)) for l in loops]
 
     def noise(index: int, weight: float) -> gtsam.noiseModel.Base:
-        return _pose_noise(
-            loop_rot,
-            config.loop_sigma_trans_ratio * spacing,
-            max(weight, MIN_WEIGHT) * loops[index].probability,
+        weight = max(weight, MIN_WEIGHT)
+        information = weight * loops[index].probability
+        # F-Eq. 3 weighs by p; the translation's sigma has a floor that p does not lower
+        # (module docstring).
+        sigma_trans = max(
+            config.loop_sigma_trans_ratio * spacing / math.sqrt(information),
+            config.loop_sigma_trans_floor_ratio * spacing / math.sqrt(weight),
         )
+        sigmas = np.array([loop_rot / math.sqrt(information)] * 3 + [sigma_trans] * 3)
+        return gtsam.noiseModel.Diagonal.Sigmas(sigmas)
 
     if formulation == "base":
 

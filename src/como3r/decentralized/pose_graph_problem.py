@@ -110,6 +110,11 @@ def scale_key(index: int) -> int:
     return gtsam.symbol("s", index)
 
 
+def odometry_scale_key(robot: int, step: int) -> int:
+    """GTSAM key of robot ``robot``'s odometry scale on the step into keyframe ``step``."""
+    return gtsam.symbol("l", (robot << 24) | step)
+
+
 def connected_components(robots: list[int], loops: list[LoopClosure]) -> list[list[int]]:
     """Groups of ``robots`` connected by ``loops`` (sorted; singletons included)."""
     neighbours: dict[int, set[int]] = {r: set() for r in robots}
