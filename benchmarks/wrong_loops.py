@@ -28,7 +28,7 @@ Measured (5 seeds, 12.2 s CPU; ATE and scale error are means, ``merged log`` the
 
     setting                      wrong % loops  kept wrong kept ATE % path scale err % merged log alarms
     old default: lm                    0    26    26        0.0      0.096        0.29      0.003      0
-    old default: lm                   20    33    30        4.2      1.889        6.48      0.942      0
+    old default: lm                   20    33    30        4.2      1.888        6.47      0.942      0
     old default: lm                   50    53    40       13.4      3.175        6.06      0.938      0
     gnc                               20    33    30        4.2      0.096        0.29      0.908      0
     gnc                               50    53    40       13.4      0.096        0.29      0.969      0
@@ -40,8 +40,9 @@ Measured (5 seeds, 12.2 s CPU; ATE and scale error are means, ``merged log`` the
     default: gnc + pcm + alarm        20    33    26        2.0      0.096        0.29      0.003      0
     default: gnc + pcm + alarm        50    53    26        6.8      0.100        0.29      0.055      0
 
-Before the floor on loop translation noise (``pose_graph.loop_sigma_trans_floor_ratio``
-0.5, issue 37: this benchmark's loops carry 4 cm of noise, more precise than the prior's)
+Before the floor on loop translation noise (``decentralized.loop_lever_arm_depths``: 0.5
+keyframe spacings here, issue 37; this benchmark's loops carry 4 cm of noise, more precise
+than the prior's)
 the default's rows were 0.089 % at 0, 5 and 20 % wrong and 0.093 % at 50 % (scale error
 0.22 %).
 

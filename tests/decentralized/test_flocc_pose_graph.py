@@ -329,3 +329,14 @@ def test_odometry_scale_and_loop_floor_settings_are_validated():
     ):
         with pytest.raises(ConfigError, match=key):
             check_config(DecentralizedConfig(pose_graph=PoseGraphConfig(**{key: value})))
+
+
+def test_the_loop_floor_is_the_rotation_noise_at_the_scene_depth_in_keyframe_spacings():
+    """``radians(loop_sigma_rot_deg) x loop_lever_arm_depths / keyframe_distance_ratio``
+    spacings, or the explicit ``pose_graph`` floor where that is larger; 0: the paper's."""
+    graph = DecentralizedConfig(keyframe_distance_ratio=0.1).pose_graph_config()
+    assert graph.loop_sigma_trans_floor_ratio == pytest.approx(math.radians(2.0) / 0.1)
+    explicit = DecentralizedConfig(pose_graph=PoseGraphConfig(loop_sigma_trans_floor_ratio=3.0))
+    assert explicit.pose_graph_config().loop_sigma_trans_floor_ratio == 3.0
+    off = DecentralizedConfig(loop_lever_arm_depths=0.0).pose_graph_config()
+    assert off.loop_sigma_trans_floor_ratio == 0.0

@@ -452,7 +452,7 @@ def solve_shares(
         robot -> (``(K, 8)`` poses, frame id) for every participant in a group of two or
         more robots whose solve was not held back.
     """
-    graph_config = settings.pose_graph
+    graph_config = settings.pose_graph_config()
     odometry, loops = merged_graph(shares)
     updates: dict[int, tuple[np.ndarray, int]] = {}
     for component in connected_components(sorted(odometry), loops):

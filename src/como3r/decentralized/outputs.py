@@ -120,7 +120,7 @@ def final_loop_check(
     """``metrics.json`` ``loop_check``: for every group of robots, the mission's loops
     that pairwise consistency held back and the scale changes (and alarm) of the configured
     solve of all of them (:mod:`~.consistency`); ``[{"error": ...}]`` if a solve failed."""
-    graph = settings.pose_graph
+    graph = settings.pose_graph_config()
     try:
         return [
             solve_checked(problem, graph.formulation, graph.solver, graph)[1].to_json()
@@ -146,6 +146,7 @@ def formulation_table(
     from como3r.evaluation.trajectory import associate, merged_errors_by_component
 
     problems = _component_problems(robots, loops)
+    graph = settings.pose_graph_config()
     components = [sorted(problem.odometry) for problem in problems]
     rows, weights = [], {}
     for formulation in FORMULATIONS:
@@ -154,16 +155,14 @@ def formulation_table(
             seconds, inliers, held_back, alarms = 0.0, 0, 0, 0
             try:
                 for problem in problems:
-                    solution, check = solve_checked(
-                        problem, formulation, solver, settings.pose_graph
-                    )
+                    solution, check = solve_checked(problem, formulation, solver, graph)
                     seconds += solution.seconds
                     inliers += int((solution.loop_weights > 0.5).sum())
                     held_back += int((~check.consistent).sum())
                     alarms += int(check.alarm)
                     for r in problem.odometry:
                         estimates[r] = solution.poses[r]
-                    if (formulation, solver) == (settings.pose_graph.formulation, "gnc"):
+                    if (formulation, solver) == (graph.formulation, "gnc"):
                         kept = iter(solution.loop_weights)
                         # A loop pairwise consistency held back has weight 0.
                         weights.update(
