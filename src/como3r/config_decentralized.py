@@ -103,21 +103,21 @@ class PoseGraphConfig:
             :func:`~como3r.decentralized.initial_estimate.keyframe_spacing`); 0.04: 2 cm at
             the default 0.5 m spacing of the synthetic scene, 5 cm at a 1.2 m outdoor spacing
             (the paper states no noise values).
-        odom_scale_walk: with ``> 0``, a scale per odometry step (:mod:`~como3r.
-            decentralized.pose_graph`): the random walk tying consecutive steps' scales, per
-            square root of the keyframe spacings travelled; 0: the paper's metric odometry
-            (F-Sec. III). Off by default: it
-            fits the scenes it was tuned on and fails held-out ones. Re-solving the final
-            graphs of ``benchmarks/robustness.py --mode decentralized`` (prior ``v2``, 3 robots,
-            ``vio`` odometry, tabletop / room / aerial = 0.1 / 1 / 20x; keyframe merged ATE %
-            of one robot's path) with 0.1 (and ``odom_scale_prior`` 0.5,
-            ``loop_sigma_trans_floor_ratio`` 1, ``scale_smoothing_sigma`` 0.02): seed 0
-            3.30 / 3.17 / 3.16 -> 2.16 / 2.12 / 2.96 (with true loops 2.34 / 2.33 / 2.35 ->
-            1.05 / 1.06 / 1.21), but held-out seed 1 2.06 / 2.45 / 2.19 -> 2.60 / 3.91 / 3.03
+        odom_scale_walk: with ``> 0``, a scale per odometry step
+            (:mod:`~como3r.decentralized.pose_graph`): the random walk tying consecutive
+            steps' scales, per square root of the keyframe spacings travelled; 0: the
+            paper's metric odometry (F-Sec. III). Off by default: it fits the scenes it was
+            tuned on and fails held-out ones. Re-solving the final graphs of
+            ``benchmarks/robustness.py --mode decentralized`` (prior ``v2``, 3 robots,
+            ``vio`` odometry, tabletop / room / aerial = 0.1 / 1 / 20x; keyframe merged ATE
+            % of one robot's path) with 0.1 (and ``odom_scale_prior`` 0.5,
+            ``loop_sigma_trans_floor_ratio`` 1, ``scale_smoothing_sigma`` 0.02): seed 0 3.30
+            / 3.17 / 3.16 -> 2.16 / 2.12 / 2.96 (with true loops 2.34 / 2.33 / 2.35 -> 1.05
+            / 1.06 / 1.21), but held-out seed 1 2.06 / 2.45 / 2.19 -> 2.60 / 3.91 / 3.03
             (the full run of seed 1's tabletop 1.96 -> 2.76) and a ``lio`` odometry (the
-            preset simulated on the keyframes) bent 1.97 / 1.65 / 1.98 -> 2.00 / 1.88 / 2.85:
-            the measured loops' free scales and direction errors pull the scales where they
-            please. Alone (0.1, prior 0.3) seed 0's room gave 2.90.
+            preset simulated on the keyframes) bent 1.97 / 1.65 / 1.98 -> 2.00 / 1.88 /
+            2.85: the measured loops' free scales and direction errors pull the scales where
+            they please. Alone (0.1, prior 0.3) seed 0's room gave 2.90.
         odom_scale_prior: standard deviation of the prior holding each odometry step's scale
             near 1 (with ``odom_scale_walk > 0``).
         loop_sigma_rot_deg: loop factor rotation noise at confidence p = 1 [deg]; the
@@ -127,8 +127,8 @@ class PoseGraphConfig:
             relative-translation error grows with the scene depth, as the spacing does).
         loop_sigma_trans_floor_ratio: floor of a loop's translation noise, in keyframe
             spacings, that the confidence p does not lower (F-Eq. 3 divides the loop's
-            variances by p alone; :mod:`~como3r.decentralized.pose_graph`). 0 here; a decentralized run
-            sets it from ``DecentralizedConfig.loop_lever_arm_depths``
+            variances by p alone; :mod:`~como3r.decentralized.pose_graph`). 0 here; a
+            decentralized run sets it from ``DecentralizedConfig.loop_lever_arm_depths``
             (:meth:`DecentralizedConfig.pose_graph_config`).
         scale_prior_sigma: weak prior on every scale variable, relative to its initial
             value; makes a single loop between two robots well posed.
@@ -231,8 +231,8 @@ class DecentralizedConfig:
             path), 0 -> 1: ``vio`` seed 0 3.30 / 3.17 / 3.16 -> 3.08 / 2.95 / 3.08, held-out
             seed 1 2.06 / 2.45 / 2.19 -> 1.91 / 2.03 / 2.32; a ``lio`` odometry (the preset
             simulated on the keyframes) seed 0 1.97 / 1.65 / 1.98 -> 1.65 / 1.32 / 1.93, seed
-            1 1.39 / 1.35 / 1.61 -> 1.31 / 1.41 / 1.69. The full runs (``OMP_NUM_THREADS=1 python
-            benchmarks/robustness.py --mode decentralized --prior-model v2 --long-side 160
+            1 1.39 / 1.35 / 1.61 -> 1.31 / 1.41 / 1.69. The full runs (``OMP_NUM_THREADS=1
+            python benchmarks/robustness.py --mode decentralized --prior-model v2 --long-side 160
             --sizes 160x120 --frames 80 --agents 3 --families tabletop room aerial --seeds 0
             1``), merged ATE % of one robot's path, 0 -> 1: seed 0 3.22 / 3.09 / 3.06 ->
             2.96 / 2.84 / 2.95, seed 1 1.96 / 2.39 / 1.99 -> 1.77 / 1.92 / 2.10. The

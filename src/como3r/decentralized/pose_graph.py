@@ -18,17 +18,18 @@ the scale-aware formulations, loop scales ``s`` (doubles). Factors:
     fewer than ``cluster_window`` keyframes apart on both robots;
   - ``shared``: one scale variable for all loops.
 
-  Every loop's information is multiplied by its confidence ``p`` (F-Eq. 3), except that
-  its translation sigma never falls below ``loop_sigma_trans_floor_ratio`` keyframe
-  spacings (which a decentralized run sets to the rotation noise at the scene depth,
-  :meth:`~como3r.config_decentralized.DecentralizedConfig.pose_graph_config`). ``p`` is a correspondence ratio (F-Eq. 1-2): it tells true loops from failed
-  registrations, not how precise a true loop's translation is. The prior registers two
-  pointmaps of the scene, so a rotation error ``d_theta`` of the fit turns about the scene
-  (depth ``D``, about 14 spacings at the default keyframe distance) and moves the camera by
-  ``D d_theta`` whatever the baseline: 2 deg is 0.5 spacings there. The closest pairs overlap most
-  and get the highest ``p`` (0.73-0.84), hence the stiffest translations, while at a baseline
-  of one spacing or less that error turns their direction by 54-127 deg (issue 37's 3-robot
-  scene, prior ``v2``; median 9 deg over all accepted loops).
+  Every loop's information is multiplied by its confidence ``p`` (F-Eq. 3), except that its
+  translation sigma never falls below ``loop_sigma_trans_floor_ratio`` keyframe spacings
+  (which a decentralized run sets to the rotation noise at the scene depth,
+  :meth:`~como3r.config_decentralized.DecentralizedConfig.pose_graph_config`). ``p`` is a
+  correspondence ratio (F-Eq. 1-2): it tells true loops from failed registrations, not how
+  precise a true loop's translation is. The prior registers two pointmaps of the scene, so a
+  rotation error ``d_theta`` of the fit turns about the scene (depth ``D``, about 14
+  spacings at the default keyframe distance) and moves the camera by ``D d_theta`` whatever
+  the baseline: 2 deg is 0.5 spacings there. The closest pairs overlap most and get the
+  highest ``p`` (0.73-0.84), hence the stiffest translations, while at a baseline of one
+  spacing or less that error turns their direction by 54-127 deg (issue 37's 3-robot scene,
+  prior ``v2``; median 9 deg over all accepted loops).
 
 Odometry (F-Eq. 4) is metric in the paper (F-Sec. III). With ``odom_scale_walk > 0`` each
 step ``k`` of a robot's odometry is instead the measurement ``[R_k, lambda_k t_k]`` of
