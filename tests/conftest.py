@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 # Tests never take the width of the terminal they run in: rich's consoles (cli_common's are
@@ -62,6 +63,24 @@ def only_error_line():
         return lines[0]
 
     return check
+
+
+@pytest.fixture(scope="module")
+def undrawn_report_figures() -> Iterator[None]:
+    """For a module whose tests read no figure of their runs' ``report.html`` (its
+    ``pytestmark`` uses this fixture): the report is written whole (every section, table
+    and note, from the run folder) but its figures are left undrawn, a sentence in the place
+    of each, in the module's own process (its module fixtures included). Drawing them with
+    matplotlib is nearly all of a report's cost, about 0.9 s of CPU for a 64x48 run.
+    tests/evaluation/test_html.py and the CLI's end-to-end tests draw them."""
+    from como3r.evaluation import html as report_html
+
+    def undrawn(build, alt: str, caption: str = "") -> str:
+        return f"<p class='missing'>The {alt} figure is not drawn in this test.</p>"
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(report_html, "image", undrawn)
+        yield
 
 
 @pytest.fixture(scope="session")

@@ -13,6 +13,9 @@ from como3r.cli import app
 from como3r.errors import InputError
 from como3r.io.output import MARKER, atomic_output_dir, is_como3r_output
 
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("undrawn_report_figures")
+
 SYNTH = ["synth", "--agents", "1", "--frames", "2", "--width", "32", "--height", "24"]
 
 

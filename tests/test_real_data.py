@@ -17,7 +17,8 @@ from como3r.data.agent import open_agent
 from .data.readers.layouts import SEVEN_SCENES_REAL, link_frames
 from .test_cli_datasets import TEDDY, cut_tum
 
-pytestmark = pytest.mark.slow
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("undrawn_report_figures")]
 
 seven_scenes = pytest.mark.skipif(
     not SEVEN_SCENES_REAL.is_dir(), reason=f"7-Scenes excerpt not found at {SEVEN_SCENES_REAL}"

@@ -26,6 +26,9 @@ from como3r.io.tum import Trajectory, read_tum
 from .tiny_run import HEIGHT, WIDTH, tiny_run
 from .tiny_run import OVERRIDES as EXPORT_OVERRIDES
 
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("undrawn_report_figures")
+
 mcap_reader = pytest.importorskip(
     "mcap.reader",
     reason="the mcap package (test extra) reads the bag's MCAP file independently of rosbags",

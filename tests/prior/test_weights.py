@@ -22,6 +22,9 @@ from como3r.runtime.pipeline import PriorSpec, resolve_weights
 
 from ..data.test_agent import write_agent
 
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("undrawn_report_figures")
+
 SIZE = 300_000
 
 

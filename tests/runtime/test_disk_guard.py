@@ -21,6 +21,9 @@ from como3r.runtime.interrupts import checkpoint, interrupts_are_checkpoints
 from como3r.store.reader import read_session
 from como3r.store.schema import STORE_NAME
 
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("undrawn_report_figures")
+
 
 class _Store:
     """What the guard reads of a session store: its path, keyframes and file bytes."""

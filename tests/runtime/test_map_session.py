@@ -16,7 +16,8 @@ from como3r.cli import app
 from como3r.store.reader import read_session
 from como3r.store.schema import STORE_NAME
 
-pytestmark = pytest.mark.slow
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("undrawn_report_figures")]
 
 RUN = ["--prior", "simulated", "--set", "input.long_side=64", "-q"]
 

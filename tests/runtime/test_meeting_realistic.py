@@ -24,7 +24,8 @@ from como3r.config import Config, apply_overrides
 from como3r.data.synth import synthesize
 from como3r.runtime.pipeline import PriorSpec, run
 
-pytestmark = pytest.mark.slow
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("undrawn_report_figures")]
 
 WIDTH, HEIGHT = 160, 120
 

@@ -16,6 +16,9 @@ from como3r.data.synth import synthesize
 from como3r.store.reader import read_session
 from como3r.store.schema import STORE_NAME
 
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("undrawn_report_figures")
+
 RUN = ["--prior", "simulated", "--set", "input.long_side=64", "-q", "--single-process"]
 
 

@@ -22,7 +22,8 @@ from como3r.transport import codec
 from como3r.transport.messages import AgentStarted
 from como3r.transport.zenoh_protocol import PIECE, STREAM, Keys, ZenohOptions, open_session
 
-pytestmark = pytest.mark.slow
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("undrawn_report_figures")]
 
 zenoh = pytest.importorskip("zenoh")
 

@@ -12,7 +12,8 @@ from como3r.data.synth import synthesize
 from como3r.io.tum import read_tum
 from como3r.runtime.pipeline import PriorSpec, run
 
-pytestmark = pytest.mark.slow
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("undrawn_report_figures")]
 
 WIDTH, HEIGHT = 128, 96
 # Shorter global solves keep the module fast on CPU (see tests/coordination).

@@ -34,6 +34,9 @@ from como3r.runtime.results import AgentResult, KeyframeView
 from como3r.transport.messages import FrameDone, Step
 from como3r.transport.pipes import Channel
 
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("undrawn_report_figures")
+
 WIDTH, HEIGHT, FRAMES, SHORT = 64, 48, 12, 8
 # small global solves keep the test fast; they do not change what is compared
 # the easy simulated prior: under the realistic default the free-running trajectories differ

@@ -29,7 +29,8 @@ from como3r.errors import StoreError
 from como3r.store.reader import read_session
 from como3r.store.schema import FORMAT_VERSION, STORE_NAME
 
-pytestmark = pytest.mark.slow
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("undrawn_report_figures")]
 
 # keyframes go to the coordinator one at a time (no batches): the kills and signals below
 # count the keyframes stored and the coordinator's add_keyframe calls

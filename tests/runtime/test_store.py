@@ -44,6 +44,9 @@ from como3r.store.reader import Session, read_session
 from como3r.store.schema import FORMAT_VERSION, PAGE_SIZE, STORE_NAME
 from como3r.store.writer import SessionStore
 
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("undrawn_report_figures")
+
 AGENTS = 3
 HEIGHT, WIDTH = 48, 64  # the scripted session's keyframes
 

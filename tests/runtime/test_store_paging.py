@@ -32,6 +32,9 @@ from como3r.store.reader import read_session
 from como3r.store.schema import STORE_NAME
 from como3r.store.writer import SessionStore
 
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("undrawn_report_figures")
+
 H, W = 6, 8
 
 

@@ -37,6 +37,9 @@ from como3r.transport.zenoh_agent import ZenohAgentLink
 from como3r.transport.zenoh_hub import ZenohHub
 from como3r.transport.zenoh_protocol import Keys, ZenohOptions, open_session
 
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("undrawn_report_figures")
+
 zenoh = pytest.importorskip("zenoh")
 
 #: what a user would pass for a tiny run: 64x48 images

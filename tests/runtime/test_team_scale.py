@@ -16,6 +16,9 @@ from como3r.config import Config, apply_overrides
 from como3r.io.tum import read_tum
 from como3r.runtime.pipeline import PriorSpec, run
 
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("undrawn_report_figures")
+
 AGENTS, FRAMES = 8, 8
 # small global solves, one cleanup pass and no depth refinement keep it short; they do not
 # change what is tested

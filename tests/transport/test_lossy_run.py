@@ -18,7 +18,8 @@ from como3r.runtime import pipeline
 from como3r.runtime.pipeline import PriorSpec, run
 from como3r.transport import codec
 
-pytestmark = pytest.mark.slow
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("undrawn_report_figures")]
 
 # the settings of tests/runtime/test_pipeline.py: a fast, deterministic single-process run
 OVERRIDES = [

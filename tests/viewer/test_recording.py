@@ -31,6 +31,9 @@ from como3r.live import FrameEvent  # noqa: E402
 from como3r.viewer import ViewerSpec, open_viewer  # noqa: E402
 from como3r.viewer.recording import PALETTE  # noqa: E402
 
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("undrawn_report_figures")
+
 #: the scene's own size, and the easy prior (the recording, not the accuracy, is tested)
 OVERRIDES = ["input.long_side=64", "simulated_prior.model=easy"]
 

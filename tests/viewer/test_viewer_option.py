@@ -13,6 +13,9 @@ from como3r.cli_viewer import join_save_file
 from como3r.errors import InputError
 from como3r.viewer import INSTALL, ViewerSpec, check_viewer, parse_viewer
 
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("undrawn_report_figures")
+
 
 @pytest.mark.parametrize(
     "args, joined",

@@ -25,6 +25,9 @@ from .layouts import (
     write_tum,
 )
 
+# no test here reads a figure of its runs' report.html (tests/conftest.py)
+pytestmark = pytest.mark.usefixtures("undrawn_report_figures")
+
 
 @pytest.fixture
 def layouts(tmp_path):
