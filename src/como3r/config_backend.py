@@ -173,7 +173,7 @@ class GaugeConfig:
     """
 
     min_correspondences: int = 64
-    min_consistent_edges: int = 1
+    min_consistent_edges: int = 2
     align_focal: bool = True
     focal_loops: bool = False
     focal_search: float = 0.3
