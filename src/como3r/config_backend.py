@@ -148,8 +148,9 @@ class GaugeConfig:
     160x120, 80 frames, long side 160, seeds 0 / 1; merged ATE % of path, 1 -> 2): 2 agents
     tabletop 0.235 / 0.266 -> 0.239 / 0.270, room 0.160 / 0.256 -> 0.156 / 0.250, aerial
     0.183 / 0.185 -> 0.183 / 0.191, each merge 3 / 0 keyframes after the first verified
-    edge (of 21-23); 3 agents tabletop 0.261 / 0.214 -> 0.236 / 0.213, room 0.228 -> 0.185
-    (seed 0), the team in one map 2 / 2 keyframes later (of 28-29); no merge missed. The
+    edge (of 21-23); 3 agents tabletop 0.261 / 0.214 -> 0.236 / 0.213, room 0.228 / 0.245
+    -> 0.185 / 0.261, aerial 0.249 / 0.250 -> 0.201 / 0.260, the team in one map 2
+    keyframes later in every cell (of 28-29); no merge missed. The
     demo scene (``como3r demo``, 2 agents): 6.45 -> 6.30 mm, merged at keyframe 10 instead
     of 5 (of 14). The 7-Scenes split of tests/test_real_data.py (one keyframe per agent,
     one edge) merges at the end.
