@@ -20,8 +20,10 @@ import pytest
 import torch
 
 from como3r.config import Config, apply_overrides
+from como3r.coordination.association import Candidate
 from como3r.coordination.coordinator import Coordinator
 from como3r.coordination.gauge import GaugeTransform, edge_log_scale
+from como3r.coordination.linking import InterAgentLinking
 from como3r.data.agent import open_agent
 from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import frame_ground_truth, make_view
@@ -270,6 +272,64 @@ def test_consensus_merges_only_on_agreeing_edges(ring) -> None:
     coordinator, _ = _run(ring, _interleave(ring, [0, 1]), config, agents=2)
     assert coordinator.components() == [[0, 1]]
     assert len(coordinator.gauge_events[0]["edges"]) >= 2
+    assert _merged_keyframe_ate(coordinator, ring) <= 0.01 * ring.path_length
+
+
+def _look_alike_first(monkeypatch) -> list[Candidate]:
+    """Make the coordinator's first verified cross-agent candidate whose agent holds a
+    keyframe two or more keyframes away from the true one arrive with a look-alike just
+    before it: the true pair's matches attributed to that keyframe (the farthest), as a
+    prior that registers two places that look alike gives them. Returns the wrong edge
+    once made."""
+    original = InterAgentLinking._verify
+    wrong: list[Candidate] = []
+
+    def verify(linking, packet, hits):  # type: ignore[no-untyped-def]
+        verified = original(linking, packet, hits)
+        for true in verified if not wrong else []:
+            agent, kf = true.verification.candidate
+            keyframes = linking.graph.agent_keyframes(agent)
+            far = max(range(len(keyframes)), key=lambda k: abs(k - kf))
+            if abs(far - kf) >= 2:
+                v = dataclasses.replace(true.verification, candidate=(agent, far))
+                wrong.append(Candidate(v, keyframes[far], true.j))
+                linking.candidates.append(wrong[0])
+                return [wrong[0], *verified]
+        return verified
+
+    monkeypatch.setattr(InterAgentLinking, "_verify", verify)
+    return wrong
+
+
+def test_a_single_look_alike_does_not_merge_two_maps(ring, monkeypatch) -> None:
+    """gauge.min_consistent_edges 2: a look-alike that comes first between two components
+    waits; the true edges after it agree with one another, merge the maps, and the
+    look-alike, then inside one gauge, is refused. With the paper's rule (1) it merges the
+    maps alone and bends them. (Agent 1 sends all its keyframes first, so that the first
+    edge has a far keyframe to be mistaken for.)"""
+    order = ring.packets[1] + ring.packets[0]
+    wrong = _look_alike_first(monkeypatch)
+    config = apply_overrides(ring.config, ["gauge.min_consistent_edges=2"])
+    coordinator, _ = _run(ring, order, config, agents=2)
+    assert wrong and wrong[0].status == "inconsistent"
+    assert coordinator.components() == [[0, 1]]
+    assert all(len(e["edges"]) >= 2 for e in coordinator.gauge_events)
+    assert _merged_keyframe_ate(coordinator, ring) <= 0.01 * ring.path_length
+    wrong.clear()
+    config = apply_overrides(ring.config, ["gauge.min_consistent_edges=1"])
+    coordinator, _ = _run(ring, order, config, agents=2)
+    assert wrong and wrong[0].status == "admitted"
+    assert _merged_keyframe_ate(coordinator, ring) > 0.01 * ring.path_length
+
+
+def test_components_still_apart_merge_at_the_end_on_their_best_edges(ring) -> None:
+    """Edges that never reached ``gauge.min_consistent_edges`` merge their components when
+    the stream ends (a lone edge too: the paper's rule, when nothing else came)."""
+    config = apply_overrides(ring.config, ["gauge.min_consistent_edges=100"])
+    coordinator, _ = _run(ring, _interleave(ring, [0, 1]), config, agents=2)
+    assert coordinator.components() == [[0, 1]]
+    (event,) = coordinator.gauge_events
+    assert event["keyframes"] == len(coordinator.graph) and len(event["edges"]) >= 2
     assert _merged_keyframe_ate(coordinator, ring) <= 0.01 * ring.path_length
 
 

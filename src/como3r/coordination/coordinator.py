@@ -15,9 +15,13 @@ any interleaving, and for each one
    ``gauge.min_consistent_edges`` such edges agree on one aligning transform, then the
    higher-rooted component is transported into the lower one's gauge (Umeyama over all
    their lifted correspondences or rigid snap, C-Eq. 14-15; :mod:`.gauge`) and the edges
-   enter the graph. With 1 and ``inf`` this is the paper's rule (synchronize on the first
-   verified edge); the defaults add the consistency tests because the dense test of
-   C-Eq. 12 alone accepts edges that a prior hallucinates on repeated façades;
+   enter the graph; edges still waiting when the stream ends merge their components on
+   the set most of them agree with (:meth:`~.linking.InterAgentLinking._merge_waiting`).
+   With 1 and ``inf`` this is the paper's rule (synchronize on the first verified edge);
+   ``max_residual_ratio``'s default 0.25 adds the consistency test because the dense test
+   of C-Eq. 12 alone accepts edges that a prior hallucinates on repeated façades, and
+   ``min_consistent_edges`` 2 keeps a single such edge that comes first from merging two
+   maps on its own;
 4. once ``trigger_interval_edges`` new inter-agent edges have been admitted, runs the
    global Sim(3) BA (C-Eq. 5) over every component that received one, with the
    component's first keyframe pinned (keyframe 0 of agent 0 for the global gauge);
@@ -276,6 +280,14 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
         spill = Path(self.config.session.spill_dir) if self.config.session.spill_dir else None
         parking = KeyframeParking(spill)
         settings = AlternationSettings.from_config(self.config.global_ba, self.config.depth)
+        # components that edges still wait between merge now (their poses reach the agents
+        # with the cleanup's updates); an agent alone in its component first takes its own
+        # final poses, as it would below, so that the merge moves those
+        waiting = {self.graph.agent_of[g] for c in self._waiting for g in (c.i, c.j)}
+        for agent in sorted(waiting):
+            if len(self.gauges.members(agent)) == 1:
+                self._adopt(agent, (agent_poses or {}).get(agent))
+        self._merge_waiting()
         for members in self.components():
             if not self.graph.agent_keyframes(members[0]) or any(
                 set(members) <= done for done in self.refined

@@ -1,8 +1,9 @@
 """How the coordinator links agents (C-Sec. 3.4, 3.5, A.3, A.4): a new keyframe's cross-agent
 candidates retrieved and verified (:mod:`.association`), a verified edge admitted inside one
 gauge component when its points agree with the poses and its scale with the map, or held
-until enough edges between two components agree on one transform, which then merges them
-(:mod:`.gauge`; steps 2 and 3 of :mod:`como3r.coordination.coordinator`).
+until enough edges between two components agree on one transform, which then merges them,
+or until the stream ends (:mod:`.gauge`; steps 2 and 3 of
+:mod:`como3r.coordination.coordinator`).
 
 :class:`InterAgentLinking` is one part of :class:`~como3r.coordination.coordinator.Coordinator`
 (its base class): its methods read and change the coordinator's graph, gauge components,
@@ -368,21 +369,72 @@ class InterAgentLinking(GaugeGeometry):
 
     def _try_merge(self, candidate: Candidate) -> list[PoseUpdate]:
         """Merge the two components of ``candidate`` once enough waiting edges between them
-        agree with its transform; then admit them and re-test the rest."""
+        agree with its transform (``gauge.min_consistent_edges``)."""
         needed = self.config.gauge.min_consistent_edges
         supporters = [candidate]
         if needed > 1:
-            hypothesis = self._gauge_transform([candidate])
-            supporters += [
-                c
-                for c in self._waiting
-                if c is not candidate
-                and self._roots(c) == self._roots(candidate)
-                and self._agrees(c, hypothesis)
-            ]
-            supporters = self._scale_supporters(supporters)
+            supporters = self._scale_supporters(self._agreeing(candidate))
         if len(supporters) < needed:
             return []
+        return self._merge(candidate, supporters)
+
+    def _agreeing(self, candidate: Candidate) -> list[Candidate]:
+        """``candidate`` and the waiting edges between the same two components that agree
+        with its transform (:meth:`_agrees`)."""
+        hypothesis = self._gauge_transform([candidate])
+        return [candidate] + [
+            c
+            for c in self._waiting
+            if c is not candidate
+            and self._roots(c) == self._roots(candidate)
+            and self._agrees(c, hypothesis)
+        ]
+
+    def _merge_waiting(self) -> list[PoseUpdate]:
+        """At the end of the stream, merge the components that edges still wait between
+        (fewer than ``gauge.min_consistent_edges`` agreed) on their best-supported set.
+
+        The wait keeps a single look-alike from merging two maps while true edges may still
+        come; when none came, a lone edge is all there is, and the paper's rule (synchronize
+        on the first verified edge, C-Sec. A.4) applies. Between two components the edge
+        set that agrees with the most waiting edges merges them, provided no edge outside
+        it has as much support: two disagreeing edges of one support each leave the maps
+        apart (logged), as no edge can tell which is wrong.
+        """
+        updates: list[PoseUpdate] = []
+        ambiguous: set[tuple[int, int]] = set()
+        while True:
+            apart = [
+                c
+                for c in self._waiting
+                if not self._same_component(c) and self._roots(c) not in ambiguous
+            ]
+            if not apart:
+                return updates
+            support = [self._agreeing(c) for c in apart]
+            best = max(range(len(apart)), key=lambda n: len(support[n]))
+            roots, chosen = self._roots(apart[best]), support[best]
+            rivals = [
+                n
+                for n, c in enumerate(apart)
+                if self._roots(c) == roots and not any(c is s for s in chosen)
+            ]
+            supporters = self._scale_supporters(chosen)
+            if not supporters or any(len(support[n]) >= len(chosen) for n in rivals):
+                ambiguous.add(roots)
+                logger.warning(
+                    "coordinator: components %d and %d stay apart: their %d waiting edges "
+                    "disagree, none with more support than the others",
+                    *roots,
+                    len(rivals) + len(chosen),
+                )
+                continue
+            updates.extend(self._merge(apart[best], supporters))
+
+    def _merge(self, candidate: Candidate, supporters: list[Candidate]) -> list[PoseUpdate]:
+        """Transport the moving component of ``candidate`` by ``T*`` of ``supporters``
+        (C-Eq. 14-15), admit them, and test the other waiting edges now inside one
+        component like any such edge."""
         start = time.perf_counter()
         transform = self._gauge_transform(supporters)
         anchor_root, moved_root = self._roots(candidate)
@@ -397,7 +449,6 @@ class InterAgentLinking(GaugeGeometry):
         self.stats.add_time("gauge", time.perf_counter() - start)
         for c in supporters:
             self._add_inter_link(c)
-        # Other waiting edges now inside one component are tested like any such edge.
         inside = [c for c in self._waiting if self._same_component(c) and c not in supporters]
         self._waiting = [c for c in self._waiting if not self._same_component(c)]
         for c in inside:
