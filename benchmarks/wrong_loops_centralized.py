@@ -28,12 +28,10 @@ edges that entered the graph, ``refused`` those the residual or scale test held 
 a component, ``held`` the merge supports the scale alarm held (``gauge_scale_held``),
 ``pending`` wrong edges still waiting for a merge at the end.
 
-    PYTHONPATH=src python benchmarks/wrong_loops_centralized.py --seeds 3 \
-        --min-consistent-edges 2 [--prior-model v2]
+    PYTHONPATH=src python benchmarks/wrong_loops_centralized.py --seeds 3 [--prior-model v2]
 
-Measured with ``--min-consistent-edges 2`` (``gauge.min_consistent_edges``: a merge needs
-two agreeing edges, whose scales the watch compares; the default is still 1, see
-:class:`como3r.config_backend.GaugeConfig`), 3 seeds, means over the seeds;
+Measured with the default configuration (``gauge.min_consistent_edges`` 2: a merge needs
+two agreeing edges, whose scales the watch compares), 3 seeds, means over the seeds;
 ``verified`` the true verified edges. Prior v2 (1,773 s, 384 s of CPU, on a shared 2-core
 machine at load 10-17):
 
@@ -68,7 +66,7 @@ consistency or GNC over the inter-agent edges), not built. At 50 % the maps bend
 collapse: 1.027 % (v2; seeds 11.29 -> 21.53, 9.00 -> 15.97, 15.62 -> 19.19 mm) and 1.271 %
 (realistic), scale 0.62 and 1.54 %, against 29.6 % with the paper's merge (below).
 
-With the default 1 (the paper's merge on the first verified edge; measured before): v2
+Before (``--min-consistent-edges 1``, the paper's merge on the first verified edge): v2
 20 % 10.850 % (clean 0.635 %), scale 9.97 %: in seed 1 a look-alike came before any true
 edge between agents 1 and 2 and merged them on its own (565.6 mm against 9.0 clean; 16
 true edges refused after it). Realistic prior, 318 s at load 6-11:

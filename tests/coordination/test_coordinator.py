@@ -309,8 +309,7 @@ def test_a_single_look_alike_does_not_merge_two_maps(ring, monkeypatch) -> None:
     edge has a far keyframe to be mistaken for.)"""
     order = ring.packets[1] + ring.packets[0]
     wrong = _look_alike_first(monkeypatch)
-    config = apply_overrides(ring.config, ["gauge.min_consistent_edges=2"])
-    coordinator, _ = _run(ring, order, config, agents=2)
+    coordinator, _ = _run(ring, order, agents=2)
     assert wrong and wrong[0].status == "inconsistent"
     assert coordinator.components() == [[0, 1]]
     assert all(len(e["edges"]) >= 2 for e in coordinator.gauge_events)

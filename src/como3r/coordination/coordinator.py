@@ -18,10 +18,9 @@ any interleaving, and for each one
    enter the graph; edges still waiting when the stream ends merge their components on
    the set most of them agree with (:meth:`~.linking.InterAgentLinking._merge_waiting`).
    With 1 and ``inf`` this is the paper's rule (synchronize on the first verified edge);
-   ``max_residual_ratio``'s default 0.25 adds the consistency test because the dense test
-   of C-Eq. 12 alone accepts edges that a prior hallucinates on repeated façades, and
-   ``min_consistent_edges`` 2 keeps a single such edge that comes first from merging two
-   maps on its own;
+   the defaults (2 and 0.25) add the consistency tests because the dense test of C-Eq. 12
+   alone accepts edges that a prior hallucinates on repeated façades, and a single such
+   edge that comes first would merge two maps on its own;
 4. once ``trigger_interval_edges`` new inter-agent edges have been admitted, runs the
    global Sim(3) BA (C-Eq. 5) over every component that received one, with the
    component's first keyframe pinned (keyframe 0 of agent 0 for the global gauge);
@@ -281,12 +280,7 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
         parking = KeyframeParking(spill)
         settings = AlternationSettings.from_config(self.config.global_ba, self.config.depth)
         # components that edges still wait between merge now (their poses reach the agents
-        # with the cleanup's updates); an agent alone in its component first takes its own
-        # final poses, as it would below, so that the merge moves those
-        waiting = {self.graph.agent_of[g] for c in self._waiting for g in (c.i, c.j)}
-        for agent in sorted(waiting):
-            if len(self.gauges.members(agent)) == 1:
-                self._adopt(agent, (agent_poses or {}).get(agent))
+        # with the cleanup's updates)
         self._merge_waiting()
         for members in self.components():
             if not self.graph.agent_keyframes(members[0]) or any(
