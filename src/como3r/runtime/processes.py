@@ -26,7 +26,9 @@ latest update; the coordinator then re-anchors it on its predecessor's current p
 relative pose is the agent's). Results therefore match the single-process run up to the
 global solver's convergence. ``RuntimeOptions.lockstep`` additionally makes every agent wait
 for a ``Step`` before each frame, in the single-process schedule, which reproduces
-:func:`como3r.runtime.pipeline.run` (serially: for testing and debugging).
+:func:`como3r.runtime.pipeline.run` (serially: for testing and debugging) where keyframes
+reach the coordinator in batches of one; a batch of several is verified newest first, which
+with ``gauge.min_consistent_edges`` 2 can move a merge slightly (:class:`como3r.config_backend.GaugeConfig`).
 
 Failures, and agents away and back, are the agents' events (:mod:`.agent_events`).
 """
