@@ -41,7 +41,7 @@ import logging
 import math
 import time
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -259,41 +259,33 @@ class _Runtime(AgentEvents):
         self._finish()
 
     def _run_lockstep(self) -> None:
-        """Agents take turns in the single-process schedule (by timestamp, then agent), and
-        end their streams in agent order; each keyframe is handed to the coordinator alone,
-        as it arrives, and its agent waits until it is taken (``Step(TAKEN)``), with the
-        updates it caused sent first."""
+        """Agents take turns in the single-process schedule (by timestamp, then agent),
+        then end their streams in agent order, as :func:`~.pipeline.run` does."""
         self._pump_until(lambda: all(s.status != "starting" for s in self.slots), self.slots)
         selected = [
             run_frames(a, self.config.input.subsample, self.prior_name) for a in self.inputs
         ]
         turns = [(self.first + k, index) for k, index in _frame_schedule(self.inputs, selected)]
-        turns += [(slot.agent, END) for slot in self.slots]
-        for agent, index in turns:
-            slot = self.slots[agent]
-            if slot.status != "running":
-                continue
-            self.hub.send(slot.agent, Step(index))
-            slot.last_heard = time.monotonic()
-            if index == END:
-                self._turn(slot, lambda: not slot.expected())  # noqa: B023 (called in its loop)
-            else:
-                self._turn(slot, lambda: slot.last_frame >= index or slot.status != "running")  # noqa: B023
+        for agent, index in turns + [(slot.agent, END) for slot in self.slots]:
+            if self.slots[agent].status == "running":
+                self._turn(self.slots[agent], index)
         self._pump_until(lambda: not any(s.expected() for s in self.slots), self.slots)
 
-    def _turn(self, slot: AgentSlot, over: Callable[[], bool]) -> None:
-        """Lockstep: one agent's turn, until ``over``; its keyframes go to the coordinator
-        one by one as they arrive, each answered by ``Step(TAKEN)`` after its updates."""
+    def _turn(self, slot: AgentSlot, index: int) -> None:
+        """Lockstep: the agent's turn at frame ``index`` (``END``: its stream's end) until it
+        reports the frame, finishes or fails; each keyframe it sends goes to the coordinator
+        alone, as it arrives, and is answered by ``Step(TAKEN)`` after the updates it caused."""
+        self.hub.send(slot.agent, Step(index))
+        slot.last_heard = time.monotonic()
         while True:
             taken = len(self.pending)
             self._process_pending(force=True)
-            if slot.status == "running":
-                for _ in range(taken):
-                    self.hub.send(slot.agent, Step(TAKEN))
-            if over():
+            for _ in range(taken if slot.status == "running" else 0):
+                self.hub.send(slot.agent, Step(TAKEN))
+            if slot.status != "running" or (index != END and slot.last_frame >= index):
                 return
             self._pump(0.5)
-            self._check_timeouts([slot] if slot.expected() else [])
+            self._check_timeouts([slot])
 
     # ---------------------------------------------------------------- keyframes and updates
 
