@@ -154,11 +154,7 @@ class GaugeConfig:
     again with 1 on this code gave 0.261, 0.228 and 0.249 again). The
     demo scene (``como3r demo``, 2 agents): 6.45 -> 6.30 mm, merged at keyframe 10 instead
     of 5 (of 14). The 7-Scenes split of tests/test_real_data.py (one keyframe per agent,
-    one edge) merges at the end. A coordinator given keyframes in batches (a multi-process
-    run, lockstep included) verifies a batch newest first, so with 2 the edges can reach the
-    pending set in another order than one by one and the merge's transform differ slightly:
-    the lockstep run of tests/runtime/test_processes.py differs from the single-process one by
-    2.4e-4 relative (1e-6 with 1), so that test runs with 1.
+    one edge) merges at the end.
 
     ``align_focal`` (como3r addition, self-calibrated runs only): at a merge the moving
     component's focal length is corrected to agree with the anchor's on the supporting

@@ -47,10 +47,6 @@ OVERRIDES = [
     "global_ba.max_iters_stream=5",
     "global_ba.max_iters_cleanup=10",
     "global_ba.cleanup_passes=1",
-    # the paper's merge on the first edge: with the default 2 the merge falls in a lockstep
-    # batch of three keyframes, verified newest first, and the pending edges merge in another
-    # order than one by one (2.4e-4 relative, config_backend.GaugeConfig)
-    "gauge.min_consistent_edges=1",
 ]
 
 
@@ -218,6 +214,13 @@ def _assert_same_run(reference: Path, other: Path, tolerance: float) -> None:
 def test_lockstep_reproduces_the_single_process_run(single, lockstep) -> None:
     out, summary = lockstep
     _assert_same_run(single, out, tolerance=1e-6)
+    # each keyframe alone, as in one process (the first ones wait for the camera to settle)
+    coordinator = _metrics(out)["coordinator"]
+    assert (
+        coordinator["batches"]
+        == coordinator["keyframes"]
+        == _metrics(single)["coordinator"]["keyframes"]
+    )
     assert [a["status"] for a in summary.agents] == ["finished", "finished"]
 
 

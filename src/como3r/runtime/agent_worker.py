@@ -54,6 +54,15 @@ from como3r.transport.pipes import Channel
 
 logger = logging.getLogger(__name__)
 
+#: lockstep ``Step`` frame indices that are no frame: the coordinator took the keyframe
+#: just sent, with its pose updates sent before (the agent goes on with its frame); the
+#: agent's stream ends now (after its last frame)
+TAKEN, END = -2, -1
+
+
+class _Stopped(Exception):
+    """A Shutdown came while a lockstep agent waited for its keyframe to be taken."""
+
 
 def agent_process_main(agent: int, inbox: Connection, outbox: Connection) -> None:
     """Entry point of an agent process started by :class:`~como3r.transport.pipes.PipeHub`: its task
@@ -164,16 +173,21 @@ class AgentWorker:
             self.prior,
             self.config.input.prefetch_frames,
         )
-        with contextlib.closing(frames):
-            for index in self.frames:
-                ready = self._await_step(index) if self.task.lockstep else self._drain_inbox()
-                if not ready:
-                    return False
-                self._process(index, frames)
-        self.current_frame = -1
-        if not (self.task.lockstep or self._drain_inbox()):
+        try:
+            with contextlib.closing(frames):
+                for index in self.frames:
+                    ready = self._await_step(index) if self.task.lockstep else self._drain_inbox()
+                    if not ready:
+                        return False
+                    self._process(index, frames)
+            self.current_frame = -1
+            # lockstep: the stream ends on the coordinator's turn too, with every pose update
+            # made until then applied, as in one process
+            if not (self._await_step(END) if self.task.lockstep else self._drain_inbox()):
+                return False
+            self.loop.end()
+        except _Stopped:
             return False
-        self.loop.end()
         report = self.loop.report(self.applied_seq)
         self.channel.send(
             replace(
@@ -219,6 +233,10 @@ class AgentWorker:
         )
         record_parts(message, self.parts.add_fields)  # sizes from the encoding that is sent
         self.channel.send(message)
+        # lockstep: as in one process, the next keyframe leaves with the updates this one
+        # caused applied (a merge's gauge and focal length are in it)
+        if self.task.lockstep and not self._await_step(TAKEN):
+            raise _Stopped
 
     def _handle(self, message: Any) -> bool:
         """Apply one coordinator message; False on Shutdown."""

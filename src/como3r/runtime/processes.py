@@ -25,10 +25,11 @@ and apply updates asynchronously, so a keyframe may be exported before its agent
 latest update; the coordinator then re-anchors it on its predecessor's current pose (the
 relative pose is the agent's). Results therefore match the single-process run up to the
 global solver's convergence. ``RuntimeOptions.lockstep`` additionally makes every agent wait
-for a ``Step`` before each frame, in the single-process schedule, which reproduces
-:func:`como3r.runtime.pipeline.run` (serially: for testing and debugging) where keyframes
-reach the coordinator in batches of one; a batch of several is verified newest first, which
-with ``gauge.min_consistent_edges`` 2 can move a merge slightly (:class:`como3r.config_backend.GaugeConfig`).
+for a ``Step`` before each frame, in the single-process schedule, and before ending its
+stream, in agent order; after sending a keyframe it waits until the coordinator took it
+(alone) and sent the updates it caused, so its next keyframe and its final report carry them
+(a merge's gauge and focal length) as in one process. This reproduces
+:func:`como3r.runtime.pipeline.run` (serially: for testing and debugging).
 
 Failures, and agents away and back, are the agents' events (:mod:`.agent_events`).
 """
@@ -59,7 +60,7 @@ from como3r.progress import (
     report_phase,
 )
 from como3r.runtime.agent_events import AgentEvents, RuntimeOptions, Waiting
-from como3r.runtime.agent_worker import prior_fields
+from como3r.runtime.agent_worker import END, TAKEN, prior_fields
 from como3r.runtime.backlog import Backlog
 from como3r.runtime.ingest import received
 from como3r.runtime.interrupts import checkpoint, finishing
@@ -258,20 +259,33 @@ class _Runtime(AgentEvents):
         self._finish()
 
     def _run_lockstep(self) -> None:
-        """Agents take turns in the single-process schedule (by timestamp, then agent)."""
+        """Agents take turns in the single-process schedule (by timestamp, then agent),
+        then end their streams in agent order, as :func:`~.pipeline.run` does."""
         self._pump_until(lambda: all(s.status != "starting" for s in self.slots), self.slots)
         selected = [
             run_frames(a, self.config.input.subsample, self.prior_name) for a in self.inputs
         ]
-        for k, index in _frame_schedule(self.inputs, selected):
-            slot = self.slots[self.first + k]
-            if slot.status != "running":
-                continue
-            self.hub.send(slot.agent, Step(index))
-            slot.last_heard = time.monotonic()
-            self._pump_until(lambda: slot.last_frame >= index or slot.status != "running", [slot])  # noqa: B023 (called here, in its loop)
-            self._process_pending(force=True)
+        turns = [(self.first + k, index) for k, index in _frame_schedule(self.inputs, selected)]
+        for agent, index in turns + [(slot.agent, END) for slot in self.slots]:
+            if self.slots[agent].status == "running":
+                self._turn(self.slots[agent], index)
         self._pump_until(lambda: not any(s.expected() for s in self.slots), self.slots)
+
+    def _turn(self, slot: AgentSlot, index: int) -> None:
+        """Lockstep: the agent's turn at frame ``index`` (``END``: its stream's end) until it
+        reports the frame, finishes or fails; each keyframe it sends goes to the coordinator
+        alone, as it arrives, and is answered by ``Step(TAKEN)`` after the updates it caused."""
+        self.hub.send(slot.agent, Step(index))
+        slot.last_heard = time.monotonic()
+        while True:
+            taken = len(self.pending)
+            self._process_pending(force=True)
+            for _ in range(taken if slot.status == "running" else 0):
+                self.hub.send(slot.agent, Step(TAKEN))
+            if slot.status != "running" or (index != END and slot.last_frame >= index):
+                return
+            self._pump(0.5)
+            self._check_timeouts([slot])
 
     # ---------------------------------------------------------------- keyframes and updates
 

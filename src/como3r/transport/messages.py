@@ -233,7 +233,8 @@ class PoseUpdateMessage:
 
 @dataclass(frozen=True)
 class Step:
-    """Coordinator -> agent (lockstep mode): process frame ``frame_index`` now."""
+    """Coordinator -> agent (lockstep mode): process frame ``frame_index`` now; -1: end
+    your stream now; -2: the keyframe you sent was taken, go on (its updates came first)."""
 
     frame_index: int
     version: int = 1
