@@ -885,3 +885,58 @@ def test_the_store_keeps_the_matches_of_an_edge_waiting_for_its_recheck(ring) ->
     refused = [c for c in coordinator.candidates if c.status == "rejected"]
     page_out(coordinator, None)  # type: ignore[arg-type]
     assert all(c.verification.link is None for c in refused)
+
+
+def test_a_resumed_coordinator_tests_again_the_edges_awaiting_their_recheck(ring, tmp_path) -> None:
+    """Issue 41: an edge refused inside a gauge at unrefined poses, when the run stops
+    before the global BA that would test it again, is in the session store with its matches
+    and its scale flag; the resumed coordinator tests it after its next global BA as the
+    uninterrupted one would, and admits it. Once tested, the store lets go of its matches."""
+    from como3r.store.reader import read_session
+    from como3r.store.resume import restore_coordinator
+    from como3r.store.writer import SessionStore
+
+    coordinator, _ = _run(ring, _interleave(ring, [0, 1]), agents=2)
+    graph = coordinator.graph
+    edge = [c for c in coordinator.candidates if c.status == "admitted"][-1]
+    graph.links = [link for link in graph.links if (link.i, link.j) != (edge.i, edge.j)]
+    links = len(graph.links)
+    moved = graph.agent_keyframes(1)
+    kept = graph.poses(moved).clone()
+    grow = torch.tensor([0, 0, 0, 0, 0, 0, 1, 1.5], dtype=kept.dtype)
+    graph.set_poses(moved, sim3_compose(grow.expand_as(kept), kept))
+    coordinator._admit_within(edge)
+    assert edge.status == "inconsistent" and coordinator.awaiting_recheck(edge)
+    n = coordinator.candidates.index(edge)
+    awaiting = coordinator.refused_edges()
+    assert [m for m, _ in awaiting] == [n]
+    path = tmp_path / "session.db"
+    SessionStore.create(path, ring.config, coordinator, settles=True).close()
+
+    session = read_session(path, paged=True)
+    assert session.refused == awaiting and session.candidates[n].link is not None
+    resumed = Coordinator(ring.prior, ring.config, ring.prior.codebook(), 2)
+    restore_coordinator(session, resumed)
+    assert resumed.refused_edges() == awaiting
+    again = resumed.candidates[n]
+    assert (again.i, again.j, again.status) == (edge.i, edge.j, "inconsistent")
+    assert torch.equal(again.verification.link.ij.idx, edge.verification.link.ij.idx)
+    store = SessionStore.reopen(path, resumed, settles=True)
+    resumed.graph.set_poses(moved, kept)  # the global BA's poses
+    counted = (resumed.stats.edges_inconsistent, resumed.stats.edges_scale_inconsistent)
+    resumed._recheck_refused()
+    assert again.status == "admitted" and len(resumed.graph.links) == links + 1
+    assert resumed.stats.edges_inconsistent == counted[0] - 1
+    store.record(resumed, [])
+    store.close()
+    assert read_session(path).refused == []
+
+    # an edge that still disagrees stays inconsistent; the store lets go of its matches
+    other = tmp_path / "other.db"
+    store = SessionStore.create(other, ring.config, coordinator, settles=True)
+    coordinator._recheck_refused()
+    assert edge.status == "inconsistent" and coordinator.refused_edges() == []
+    store.record(coordinator, [])
+    store.close()
+    stored = read_session(other)
+    assert stored.refused == [] and stored.candidates[n].link is None

@@ -339,6 +339,18 @@ class InterAgentLinking(GaugeGeometry):
         (its matches must stay in memory until then: the store's paging keeps them)."""
         return any(candidate is refused for refused, _ in self._refused)
 
+    def refused_edges(self) -> list[tuple[int, bool]]:
+        """The edges :meth:`_recheck_refused` will test again, in its order, as their
+        indices in ``candidates`` with whether the scale watch refused them (the session
+        store keeps them: a resumed run tests them again as this one would)."""
+        index = {id(c): n for n, c in enumerate(self.candidates)}
+        return [(index[id(c)], by_scale) for c, by_scale in self._refused]
+
+    def restore_refused(self, refused: list[tuple[int, bool]]) -> None:
+        """Wait again to test the stored :meth:`refused_edges` (``candidates`` restored
+        first, those edges with their matches)."""
+        self._refused = [(self.candidates[n], by_scale) for n, by_scale in refused]
+
     def _scale_agrees(self, candidate: Candidate, x_j: Tensor, x_i: Tensor, q: Tensor) -> bool:
         """The scale watch of an edge inside one gauge (``gauge.scale_alarm_log``): its own
         similarity from endpoint j's lifted points to endpoint i's must not rescale the map;

@@ -63,6 +63,9 @@ class Session:
         stats: the coordinator's counters (``CoordinatorStats`` as a dict).
         gauge_events, alternation: as in metrics.json.
         backlog: ``(inter edges since the last in-stream BA, their component roots)``.
+        refused: the edges refused inside a gauge that await their recheck after the next
+            in-stream global BA, ``(candidate index, refused by the scale watch)`` in the
+            order they are tested (since version 8; none in older stores).
         finished: the terminal cleanup ran.
         runtime: the multi-process runtime's state (:mod:`como3r.runtime.runtime_state`),
             None if no such runtime wrote the store.
@@ -81,6 +84,7 @@ class Session:
     gauge_events: list[dict[str, Any]] = field(default_factory=list)
     alternation: list[dict[str, Any]] = field(default_factory=list)
     backlog: tuple[int, list[int]] = (0, [])
+    refused: list[tuple[int, bool]] = field(default_factory=list)
     finished: bool = False
     runtime: dict[str, Any] | None = None
     reports: dict[int, AgentFinished] = field(default_factory=dict)
@@ -250,6 +254,7 @@ def _load(connection: sqlite3.Connection, path: Path, paged: bool) -> Session:
             state.get("backlog", {}).get("new_edges", 0),
             state.get("backlog", {}).get("roots", []),
         ),
+        refused=[(int(n), bool(by_scale)) for n, by_scale in state.get("refused", [])],
         finished=bool(state.get("finished", False)),
         runtime=state.get("runtime"),
         reports={
@@ -258,6 +263,7 @@ def _load(connection: sqlite3.Connection, path: Path, paged: bool) -> Session:
         },
     )
     _check_agents(session)
+    _check_refused(session)
     return session
 
 
@@ -278,3 +284,16 @@ def _check_agents(session: Session) -> None:
             )
     if session.stats.get("keyframes", len(graph)) != len(graph):
         raise StoreError("inconsistent session store: the coordinator's keyframe count")
+
+
+def _check_refused(session: Session) -> None:
+    """The edges awaiting their recheck are the inconsistent candidates stored with their
+    matches, each once."""
+    awaiting = [n for n, _ in session.refused]
+    kept = [
+        n
+        for n, c in enumerate(session.candidates)
+        if c.status == "inconsistent" and c.link is not None
+    ]
+    if sorted(awaiting) != kept:
+        raise StoreError("inconsistent session store: the edges awaiting their recheck")

@@ -14,8 +14,11 @@ The coordinator comes back exactly: keyframes with their pointmaps, encodings (t
 store does not keep, MASt3R's, are encoded again from the stored colours when a verification
 needs them: :mod:`como3r.coordination.encodings`) and poses, links with their matches, gauge
 components, the retrieval database (rebuilt from the stored features in their order),
-pending candidates with their matches, counters and the BA backlog. Candidates that were rejected or found inconsistent keep only their figures
-(:class:`StoredVerification`): nothing uses their matches again.
+pending candidates with their matches, counters and the BA backlog. Edges refused inside
+a gauge that await their recheck after the next global BA come back with their matches and
+wait again (issue 41: else a resumed run would not test them again). Other candidates that
+were rejected or found inconsistent keep only their figures (:class:`StoredVerification`):
+nothing uses their matches again.
 """
 
 from __future__ import annotations
@@ -132,6 +135,7 @@ def load_state(
         session.gauge_events,
         backlog,
     )
+    coordinator.restore_refused(session.refused)
     if coordinator.retrieval is not None:
         database = coordinator.retrieval.database
         for entry in indexed:
@@ -149,7 +153,8 @@ def load_state(
 
 def _candidate(stored: StoredCandidate, session: Session) -> Candidate:
     """A coordinator candidate from its stored record: admitted ones with their edge's
-    matches, pending ones with theirs, the others with their figures."""
+    matches, pending ones and those awaiting their recheck with theirs, the others with
+    their figures."""
     graph = session.graph
     keys = [(graph.agent_of[g], graph.keyframes[g].kf_id) for g in (stored.i, stored.j)]
     link = stored.link

@@ -25,8 +25,10 @@ from como3r.store.coded import unpack_matches, unpack_one, unpack_retrieval
 from como3r.store.paging import PagedLink
 
 STATUSES = ("rejected", "pending", "admitted", "inconsistent")
-#: the edges' matches read when their session is read paged: the inter-agent edges' only
-PAGED_MATCHES = "CASE kind WHEN 'inter' THEN matches END"
+#: the edges' matches read when their session is read paged: all but the sequential edges'
+#: (those are paged; a loop edge's, as an inter-agent edge's, stay in memory as they do in
+#: the running coordinator: :func:`~.paging.page_out`)
+PAGED_MATCHES = "CASE kind WHEN 'sequential' THEN NULL ELSE matches END"
 KINDS = ("sequential", "loop", "inter")
 
 
@@ -272,7 +274,8 @@ def read_candidate(row: tuple, keyframes: int) -> StoredCandidate:
     if (
         status not in STATUSES
         or not (0 <= i < keyframes and 0 <= j < keyframes)
-        or (status == "pending") != (blob is not None)
+        or (status == "pending" and blob is None)
+        or (status in ("rejected", "admitted") and blob is not None)
     ):
         raise StoreError(f"inconsistent session store: candidate {n} ({status} {i}-{j})")
     link = None

@@ -37,7 +37,8 @@ coordinator's (a restarted agent process that starts a new map segment has its o
     candidates  n PK (verification order), i, j, status 'rejected'|'pending'|'admitted'|
                 'inconsistent', residual_ratio, similarity, nu_i, nu_j, covisible_ratio,
                 accepted, covisible_ij, covisible_ji, matches blob while pending (an admitted
-                candidate's matches are its edge's)
+                candidate's matches are its edge's) and, since version 8, while an
+                inconsistent one awaits its recheck (state ``refused``)
     gauges      agent PK, component       the component's root (its lowest agent id)
     agents      agent PK, keyframes, last_keyframe_frame, updates_sent, focal, own_focal
                                           per-agent progress: keyframes stored, the frame
@@ -49,7 +50,11 @@ coordinator's (a restarted agent process that starts a new map segment has its o
                                           none; the centre of the focal BA's prior)
     state       key TEXT PK, value JSON   stats, gauge_events, alternation, backlog
                                           (inter edges since the last BA, their component
-                                          roots), finished (the terminal cleanup ran),
+                                          roots), refused (since version 8: the edges
+                                          refused inside a gauge that await their recheck
+                                          after the next global BA, [candidate n, refused
+                                          by the scale watch] in test order), finished
+                                          (the terminal cleanup ran),
                                           runtime (the multi-process runtime's view of its
                                           agents and map segments, and its transport's
                                           state: :mod:`como3r.runtime.runtime_state`)
@@ -63,13 +68,15 @@ from __future__ import annotations
 #: the store's file name in an output folder
 STORE_NAME = "session.db"
 #: the layout above; a reader refuses any other than :data:`READABLE_VERSIONS`
-FORMAT_VERSION = 7
+FORMAT_VERSION = 8
 #: the versions a reader reads: version 4 differs only in holding every array exact, 5 in
 #: holding the inter-agent edges' matches exact and no retrieval aggregates, which version 6
 #: reads as they are, 6 in having no ``agents.own_focal`` (read as unknown: the focal BA's
-#: prior then centres on the focal length an agent holds). An older store resumed is marked
-#: version 7 once written on (the column added; its blobs stay as they were written)
-READABLE_VERSIONS = (4, 5, 6, 7)
+#: prior then centres on the focal length an agent holds), 7 in keeping no edges awaiting
+#: their recheck (read as none: a resumed run does not test them again). An older store
+#: resumed is marked version 8 once written on (the column added; its blobs stay as they
+#: its blobs stay as they were written)
+READABLE_VERSIONS = (4, 5, 6, 7, 8)
 #: SQLite page size of a new store, the largest: a keyframe writes megabytes of blobs
 #: (13 MB of simulated-prior state, 2 MB per pointmap at 512x384) as chains of overflow
 #: pages, and 15 transactions of 13 + 4 x 1.8 MB took 0.68 s at 64 KiB pages against 1.65 s

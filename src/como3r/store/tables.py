@@ -77,7 +77,8 @@ class TableWriter:
     _keyframes: list[Written]
     _poses: Tensor
     _edges: int
-    _candidates: list[tuple[str, float | None]]
+    #: per candidate: status, residual ratio (None: NaN), awaiting its recheck
+    _candidates: list[tuple[str, float | None, bool]]
     _indexed: int
     _rows: dict[str, dict[Any, tuple]]
     _updates: dict[int, int]
@@ -262,14 +263,17 @@ class TableWriter:
         self.connection.executemany("INSERT INTO edges VALUES (?, ?, ?, ?, ?, ?, ?, ?)", rows)
         self._edges = len(links)
 
-    def _record_candidates(self, candidates: Sequence[Candidate]) -> None:
-        """New candidates; the status and residual ratio of known ones that changed."""
-        for n, c in enumerate(candidates):
+    def _record_candidates(self, coordinator: Coordinator) -> None:
+        """New candidates; the status and residual ratio of known ones that changed, and
+        whether they await their recheck (then, as while pending, with their matches)."""
+        awaiting = {n for n, _ in coordinator.refused_edges()}
+        for n, c in enumerate(coordinator.candidates):
             ratio = None if c.residual_ratio != c.residual_ratio else c.residual_ratio
-            if n < len(self._candidates) and self._candidates[n] == (c.status, ratio):
+            row = (c.status, ratio, n in awaiting)
+            if n < len(self._candidates) and self._candidates[n] == row:
                 continue
-            v, pending = c.verification, c.status == "pending"
-            link = v.link if pending else None
+            v = c.verification
+            link = v.link if c.status == "pending" or n in awaiting else None
             self.connection.execute(
                 "INSERT OR REPLACE INTO candidates VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
@@ -291,9 +295,9 @@ class TableWriter:
                 ),
             )
             if n < len(self._candidates):
-                self._candidates[n] = (c.status, ratio)
+                self._candidates[n] = row
             else:
-                self._candidates.append((c.status, ratio))
+                self._candidates.append(row)
 
     def _record_agents(self, coordinator: Coordinator) -> None:
         """Gauge components and per-agent progress."""
@@ -320,6 +324,7 @@ class TableWriter:
             "gauge_events": coordinator.gauge_events,
             "alternation": coordinator.alternation,
             "backlog": {"new_edges": new_edges, "roots": roots},
+            "refused": coordinator.refused_edges(),
             "finished": self._finished,
         }
         self._upsert("state", {key: (json.dumps(value),) for key, value in state.items()})

@@ -77,7 +77,7 @@ class SessionStore(TableWriter):
         self._keyframes: list[Written] = []
         self._poses = torch.zeros(0, 8)
         self._edges = 0
-        self._candidates: list[tuple[str, float | None]] = []
+        self._candidates: list[tuple[str, float | None, bool]] = []
         self._indexed = 0
         self._rows: dict[str, dict[Any, tuple]] = {"gauges": {}, "agents": {}, "state": {}}
         self._updates: dict[int, int] = {}
@@ -187,9 +187,14 @@ class SessionStore(TableWriter):
         if len(graph):
             self._poses = graph.poses(range(len(graph))).detach().cpu().clone()
         self._edges = len(graph.links)
+        awaiting = {n for n, _ in coordinator.refused_edges()}
         self._candidates = [
-            (c.status, None if c.residual_ratio != c.residual_ratio else c.residual_ratio)
-            for c in coordinator.candidates
+            (
+                c.status,
+                None if c.residual_ratio != c.residual_ratio else c.residual_ratio,
+                n in awaiting,
+            )
+            for n, c in enumerate(coordinator.candidates)
         ]
         self._indexed = 0 if coordinator.retrieval is None else len(coordinator.retrieval.database)
         for table in self._rows:
@@ -253,7 +258,7 @@ class SessionStore(TableWriter):
                 self._record_poses(coordinator)
                 self._record_retrieval(coordinator)
                 self._record_edges(coordinator)
-                self._record_candidates(coordinator.candidates)
+                self._record_candidates(coordinator)
                 self._record_agents(coordinator)
                 self._record_state(coordinator, finished)
         except sqlite3.Error as exc:
