@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import sqlite3
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -892,6 +893,7 @@ def test_a_resumed_coordinator_tests_again_the_edges_awaiting_their_recheck(ring
     before the global BA that would test it again, is in the session store with its matches
     and its scale flag; the resumed coordinator tests it after its next global BA as the
     uninterrupted one would, and admits it. Once tested, the store lets go of its matches."""
+    from como3r.errors import StoreError
     from como3r.store.reader import read_session
     from como3r.store.resume import restore_coordinator
     from como3r.store.writer import SessionStore
@@ -940,3 +942,9 @@ def test_a_resumed_coordinator_tests_again_the_edges_awaiting_their_recheck(ring
     store.close()
     stored = read_session(other)
     assert stored.refused == [] and stored.candidates[n].link is None
+    # a list that names an edge the store holds no matches of is refused
+    with sqlite3.connect(other) as db:
+        db.execute("UPDATE state SET value = ? WHERE key = 'refused'", (f"[[{n}, false]]",))
+    db.close()
+    with pytest.raises(StoreError, match="awaiting their recheck"):
+        read_session(other)

@@ -110,6 +110,10 @@ def restore_coordinator(session: Session, coordinator: Coordinator) -> None:
             f"{'without' if indexed else 'with'} (another prior or codebook?)"
         )
     load_state(session, coordinator, CoordinatorStats(**session.stats), session.backlog, indexed)
+    # the edges awaiting their recheck: only a resumed run waits for them again (a map
+    # seeded from a finished run starts its counters afresh,
+    # :func:`como3r.runtime.map_session.seed_map`, which an admission would take below zero)
+    coordinator.restore_refused(session.refused)
 
 
 def load_state(
@@ -135,7 +139,6 @@ def load_state(
         session.gauge_events,
         backlog,
     )
-    coordinator.restore_refused(session.refused)
     if coordinator.retrieval is not None:
         database = coordinator.retrieval.database
         for entry in indexed:
