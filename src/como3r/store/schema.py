@@ -74,7 +74,7 @@ FORMAT_VERSION = 8
 #: reads as they are, 6 in having no ``agents.own_focal`` (read as unknown: the focal BA's
 #: prior then centres on the focal length an agent holds), 7 in keeping no edges awaiting
 #: their recheck (read as none: a resumed run does not test them again). An older store
-#: resumed is marked version 8 once written on (a version 6 store gets its column; the
+#: resumed is marked version 8 once written on (one before 7 gets agents.own_focal; the
 #: blobs stay as they were written)
 READABLE_VERSIONS = (4, 5, 6, 7, 8)
 #: SQLite page size of a new store, the largest: a keyframe writes megabytes of blobs
