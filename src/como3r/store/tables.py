@@ -67,6 +67,21 @@ def _settle_candidates(candidates: Sequence[Candidate], old: PairLink, new: Pair
             c.verification = dataclasses.replace(v, link=new, ij=new.ij if v.ij is old.ij else v.ij)
 
 
+def candidate_rows(coordinator: Coordinator) -> list[tuple[str, float | None, bool]]:
+    """What the store keeps of each of ``coordinator.candidates`` beyond its verification's
+    figures: its status, residual ratio (None for NaN) and whether it awaits its recheck
+    (:meth:`~como3r.coordination.linking.InterAgentLinking.refused_edges`)."""
+    awaiting = {n for n, _ in coordinator.refused_edges()}
+    return [
+        (
+            c.status,
+            None if c.residual_ratio != c.residual_ratio else c.residual_ratio,
+            n in awaiting,
+        )
+        for n, c in enumerate(coordinator.candidates)
+    ]
+
+
 class TableWriter:
     """The per-table writes of :meth:`~como3r.store.writer.SessionStore.record`, and what
     the store holds already that they compare with (set up by the store)."""
@@ -266,21 +281,19 @@ class TableWriter:
     def _record_candidates(self, coordinator: Coordinator) -> None:
         """New candidates; the status and residual ratio of known ones that changed, and
         whether they await their recheck (then, as while pending, with their matches)."""
-        awaiting = {n for n, _ in coordinator.refused_edges()}
-        for n, c in enumerate(coordinator.candidates):
-            ratio = None if c.residual_ratio != c.residual_ratio else c.residual_ratio
-            row = (c.status, ratio, n in awaiting)
+        for n, (c, row) in enumerate(zip(coordinator.candidates, candidate_rows(coordinator))):
             if n < len(self._candidates) and self._candidates[n] == row:
                 continue
+            status, ratio, awaiting = row
             v = c.verification
-            link = v.link if c.status == "pending" or n in awaiting else None
+            link = v.link if status == "pending" or awaiting else None
             self.connection.execute(
                 "INSERT OR REPLACE INTO candidates VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     n,
                     c.i,
                     c.j,
-                    c.status,
+                    status,
                     ratio,
                     v.similarity,
                     v.nu_i,

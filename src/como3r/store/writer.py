@@ -46,7 +46,7 @@ from como3r.store.blobs import pack_object, unpack_object
 from como3r.store.coded import unpack_matches, unpack_one
 from como3r.store.paging import PagedLink, page_out
 from como3r.store.schema import APPLICATION_ID, FORMAT_VERSION, PAGE_SIZE, SCHEMA
-from como3r.store.tables import TableWriter, Written, pointmap_arrays, refs
+from como3r.store.tables import TableWriter, Written, candidate_rows, pointmap_arrays, refs
 from como3r.transport.messages import AgentFinished
 
 logger = logging.getLogger(__name__)
@@ -187,15 +187,7 @@ class SessionStore(TableWriter):
         if len(graph):
             self._poses = graph.poses(range(len(graph))).detach().cpu().clone()
         self._edges = len(graph.links)
-        awaiting = {n for n, _ in coordinator.refused_edges()}
-        self._candidates = [
-            (
-                c.status,
-                None if c.residual_ratio != c.residual_ratio else c.residual_ratio,
-                n in awaiting,
-            )
-            for n, c in enumerate(coordinator.candidates)
-        ]
+        self._candidates = candidate_rows(coordinator)
         self._indexed = 0 if coordinator.retrieval is None else len(coordinator.retrieval.database)
         for table in self._rows:
             self._rows[table] = {
