@@ -475,20 +475,29 @@ def test_a_link_that_would_rescale_the_map_is_held_back(ring) -> None:
     assert coordinator.stats.edges_scale_inconsistent == 1
 
 
+def _edge_at_grown_poses(ring) -> tuple[Coordinator, Candidate, list[int], torch.Tensor]:
+    """A two-agent run's last admitted edge taken out of the graph, and agent 1's keyframes
+    grown 1.5x, as a batch's merges can leave them before the BA: judged at these, the edge is
+    refused. Returns the coordinator, the edge, agent 1's keyframes and their poses before."""
+    coordinator, _ = _run(ring, _interleave(ring, [0, 1]), agents=2)
+    graph = coordinator.graph
+    edge = [c for c in coordinator.candidates if c.status == "admitted"][-1]
+    graph.links = [link for link in graph.links if (link.i, link.j) != (edge.i, edge.j)]
+    moved = graph.agent_keyframes(1)
+    kept = graph.poses(moved).clone()
+    grow = torch.tensor([0, 0, 0, 0, 0, 0, 1, 1.5], dtype=kept.dtype)
+    graph.set_poses(moved, sim3_compose(grow.expand_as(kept), kept))
+    return coordinator, edge, moved, kept
+
+
 def test_an_edge_refused_at_unrefined_poses_is_admitted_after_the_global_ba(ring) -> None:
     """An edge inside one gauge judged at poses a merge's transport left unrefined (here:
     agent 1's keyframes grown 1.5x, as a batch's merges can leave them) is refused; once
     the poses agree again (the BA's), the recheck admits it and no counter keeps it. An
     edge that still disagrees stays refused and is counted once."""
-    coordinator, _ = _run(ring, _interleave(ring, [0, 1]), agents=2)
+    coordinator, edge, moved, kept = _edge_at_grown_poses(ring)
     graph = coordinator.graph
-    edge = [c for c in coordinator.candidates if c.status == "admitted"][-1]
-    graph.links = [link for link in graph.links if (link.i, link.j) != (edge.i, edge.j)]
     links, accepted = len(graph.links), coordinator.stats.edges_accepted
-    moved = graph.agent_keyframes(1)
-    kept = graph.poses(moved).clone()
-    grow = torch.tensor([0, 0, 0, 0, 0, 0, 1, 1.5], dtype=kept.dtype)
-    graph.set_poses(moved, sim3_compose(grow.expand_as(kept), kept))
     coordinator._admit_within(edge)
     assert edge.status == "inconsistent" and coordinator.stats.edges_inconsistent == 1
     coordinator._recheck_refused()  # the poses still disagree
@@ -862,14 +871,8 @@ def test_the_store_keeps_the_matches_of_an_edge_waiting_for_its_recheck(ring) ->
     a gauge stopped there with "was not verified")."""
     from como3r.store.paging import page_out
 
-    coordinator, _ = _run(ring, _interleave(ring, [0, 1]), agents=2)
+    coordinator, edge, moved, kept = _edge_at_grown_poses(ring)
     graph = coordinator.graph
-    edge = [c for c in coordinator.candidates if c.status == "admitted"][-1]
-    graph.links = [link for link in graph.links if (link.i, link.j) != (edge.i, edge.j)]
-    moved = graph.agent_keyframes(1)
-    kept = graph.poses(moved).clone()
-    grow = torch.tensor([0, 0, 0, 0, 0, 0, 1, 1.5], dtype=kept.dtype)
-    graph.set_poses(moved, sim3_compose(grow.expand_as(kept), kept))
     coordinator._admit_within(edge)
     assert edge.status == "inconsistent"
     # every keyframe resident: nothing else is paged, no store is read
@@ -898,15 +901,9 @@ def test_a_resumed_coordinator_tests_again_the_edges_awaiting_their_recheck(ring
     from como3r.store.resume import restore_coordinator
     from como3r.store.writer import SessionStore
 
-    coordinator, _ = _run(ring, _interleave(ring, [0, 1]), agents=2)
+    coordinator, edge, moved, kept = _edge_at_grown_poses(ring)
     graph = coordinator.graph
-    edge = [c for c in coordinator.candidates if c.status == "admitted"][-1]
-    graph.links = [link for link in graph.links if (link.i, link.j) != (edge.i, edge.j)]
     links = len(graph.links)
-    moved = graph.agent_keyframes(1)
-    kept = graph.poses(moved).clone()
-    grow = torch.tensor([0, 0, 0, 0, 0, 0, 1, 1.5], dtype=kept.dtype)
-    graph.set_poses(moved, sim3_compose(grow.expand_as(kept), kept))
     coordinator._admit_within(edge)
     assert edge.status == "inconsistent" and coordinator.awaiting_recheck(edge)
     n = coordinator.candidates.index(edge)
