@@ -102,7 +102,10 @@ def test_a_coordinator_killed_at_several_points_resumes_to_the_uninterrupted_res
     assert "re-sending" in team.log("agent0") + team.log("agent1")
     assert metrics["coordinator"]["keyframes"] == sum(a["keyframes"] for a in metrics["agents"])
     ate, expected = (m["ate"]["merged"]["ate"]["rmse"] for m in (metrics, reference))
-    assert ate == pytest.approx(expected, rel=0.1)
+    # both runs are free-running: on this scene a run ends at 13.66 mm or at 14.96-15.41 mm
+    # as its schedule verifies 10 or 9 of the same 28 candidates (test_network's tcp test,
+    # the same scene); a 10 % bound failed in CI when the two runs took different schedules
+    assert ate == pytest.approx(expected, rel=0.2)
     session = read_session(tmp_path / "killed.out" / STORE_NAME)
     assert session.finished and set(session.reports) == {0, 1}
     print(
