@@ -66,7 +66,10 @@ class VerificationConfig:
       baseline is under 2.5 % of the range, the prior's noise over a short baseline) and
       -0.56 to 1.31 (wrong). A bar of half a baseline where the baseline is at least 4 % of
       the range would refuse 2 of the 9 and none of the 14 true edges there, a margin too
-      thin on 14 edges to make a default of; not built.
+      thin on 14 edges to make a default of; not built. Those edges' matches were moved
+      as the wrong geometry places them; a wrong decode matched by the coordinator's own
+      matcher (the benchmark's default ``decode`` model since session 26) keeps matches
+      the descriptors pull back, or fails C-Eq. 12: 20 % wrong, 1.03x the clean ATE.
     * ``max_decodes_per_keyframe``: the prior decodes one keyframe's verification may
       cost, over ALL other agents: the retrieval hits (``retrieval.k_nn`` over all other
       agents' keyframes, best first) are verified while their worst case (two decodes
