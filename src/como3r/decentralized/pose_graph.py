@@ -148,6 +148,32 @@ def _pose_noise(sigma_rot_rad: float, sigma_trans: float, weight: float) -> gtsa
     return gtsam.noiseModel.Diagonal.Sigmas(sigmas)
 
 
+def loop_sigmas(
+    probability: float, spacing: float, config: PoseGraphConfig, weight: float = 1.0
+) -> tuple[float, float]:
+    """A loop's noise: ``(rotation sigma [rad], translation sigma [odometry units])``.
+
+    F-Eq. 3 multiplies the loop's information by its confidence ``p`` (and GNC's
+    ``weight``); the translation's sigma never falls below ``loop_sigma_trans_floor_ratio``
+    keyframe spacings, which ``p`` does not lower (module docstring). The solve's loop
+    factors and the pairwise consistency test
+    (:func:`~como3r.decentralized.consistency.pair_chi2`) both take a loop's noise from here.
+
+    Args:
+        probability: the loop's confidence ``p`` (F-Eq. 2).
+        spacing: the keyframe spacing, in odometry units.
+        config: ``loop_sigma_rot_deg``, ``loop_sigma_trans_ratio`` and
+            ``loop_sigma_trans_floor_ratio``.
+        weight: GNC weight of the loop (1 outside GNC).
+    """
+    information = weight * probability
+    sigma_trans = max(
+        config.loop_sigma_trans_ratio * spacing / math.sqrt(information),
+        config.loop_sigma_trans_floor_ratio * spacing / math.sqrt(weight),
+    )
+    return math.radians(config.loop_sigma_rot_deg) / math.sqrt(information), sigma_trans
+
+
 def _add_odometry_scales(
     graph: gtsam.NonlinearFactorGraph,
     values: gtsam.Values,
@@ -254,20 +280,13 @@ def build_graph(problem: PoseGraphProblem, formulation: str, config: PoseGraphCo
     )
 
     loops = problem.loops
-    loop_rot = math.radians(config.loop_sigma_rot_deg)
     keys = [(pose_key(l.robot_a, l.keyframe_a), pose_key(l.robot_b, l.keyframe_b)) for l in loops]
 
     def noise(index: int, weight: float) -> gtsam.noiseModel.Base:
-        weight = max(weight, MIN_WEIGHT)
-        information = weight * loops[index].probability
-        # F-Eq. 3 weighs by p; the translation's sigma has a floor that p does not lower
-        # (module docstring).
-        sigma_trans = max(
-            config.loop_sigma_trans_ratio * spacing / math.sqrt(information),
-            config.loop_sigma_trans_floor_ratio * spacing / math.sqrt(weight),
+        sigma_rot, sigma_trans = loop_sigmas(
+            loops[index].probability, spacing, config, max(weight, MIN_WEIGHT)
         )
-        sigmas = np.array([loop_rot / math.sqrt(information)] * 3 + [sigma_trans] * 3)
-        return gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+        return gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_rot] * 3 + [sigma_trans] * 3))
 
     if formulation == "base":
 
