@@ -51,7 +51,7 @@ from scipy.stats import chi2
 from como3r.config_decentralized import DecentralizedConfig, PoseGraphConfig
 from como3r.decentralized.initial_estimate import initial_scales, keyframe_spacing
 from como3r.decentralized.messages import PoseGraphShare
-from como3r.decentralized.pose_graph import loop_sigmas, solve_pose_graph
+from como3r.decentralized.pose_graph import loop_sigmas, solve_pose_graph, start_variance
 from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
     PoseGraphProblem,
@@ -117,6 +117,12 @@ def _odometry_between(odometry: np.ndarray, i: int, j: int) -> gtsam.Pose3:
     return to_pose3(odometry[i]).between(to_pose3(odometry[j]))
 
 
+def _start_between(start: dict[int, np.ndarray] | None, robot: int, i: int, j: int) -> float:
+    if start is None:
+        return 0.0
+    return float(abs(start[robot][j] - start[robot][i]))
+
+
 def pair_chi2(
     first: tuple,
     second: tuple,
@@ -125,6 +131,7 @@ def pair_chi2(
     odometry: dict[int, np.ndarray],
     spacing: float,
     config: PoseGraphConfig,
+    start: dict[int, np.ndarray] | None = None,
 ) -> float:
     """Whitened squared residual of the cycle of two oriented loops (module docstring).
 
@@ -135,6 +142,8 @@ def pair_chi2(
         odometry: robot -> ``(K, 8)`` odometry poses.
         spacing: the keyframe spacing, in odometry units.
         config: noise models; the scale scatter is ``scale_smoothing_sigma``.
+        start: robot -> ``(K,)`` summed variance of its odometry's unconverged scale
+            (:func:`~.pose_graph.start_variance`), counted in every direction; None: none.
 
     Returns:
         The chi-square statistic (6 dof) of ``Log(E_ij)``.
@@ -165,6 +174,8 @@ def pair_chi2(
         / 3
         + trans_i**2
         + trans_j**2
+        + _start_between(start, a, ka_i, ka_j)
+        + _start_between(start, b, kb_i, kb_j)
         + var_rot * (length_i**2 + length_j**2)
         # The scale scatter on the shorter loop's length: a wrong scale that
         # lengthens a loop must not widen its own tolerance.
@@ -190,6 +201,7 @@ def consistent_loops(problem: PoseGraphProblem, config: PoseGraphConfig) -> np.n
     scales = initial_scales(loops, config.scale_init)
     spacing = keyframe_spacing(problem, scales)
     oriented = [_oriented(loop, s) for loop, s in zip(loops, scales)]
+    start = {r: start_variance(o, spacing, config) for r, o in problem.odometry.items()}
     threshold = float(chi2.ppf(config.consistency_probability, _DOF))
     pairs: dict[tuple[int, int], list[int]] = {}
     for index, (a, _, b, _, _) in enumerate(oriented):
@@ -212,6 +224,7 @@ def consistent_loops(problem: PoseGraphProblem, config: PoseGraphConfig) -> np.n
                         problem.odometry,
                         spacing,
                         config,
+                        start,
                     )
                     < threshold
                 ):
