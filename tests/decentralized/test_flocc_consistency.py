@@ -10,17 +10,20 @@ import math
 import gtsam
 import numpy as np
 import pytest
+from scipy.stats import chi2
 
 from como3r.config_decentralized import DecentralizedConfig, PoseGraphConfig, check_config
 from como3r.decentralized import consistency
 from como3r.decentralized.consistency import (
+    _oriented,
     check_solution,
     consistent_loops,
+    pair_chi2,
     solve_checked,
     solve_shares,
 )
 from como3r.decentralized.messages import PoseGraphShare
-from como3r.decentralized.pose_graph import solve_pose_graph
+from como3r.decentralized.pose_graph import solve_pose_graph, start_variance
 from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
     PoseGraphProblem,
@@ -110,6 +113,65 @@ def test_pairwise_consistency_keeps_true_loops_and_holds_back_wrong_ones():
     keep = consistent_loops(data.problem, _config())
     assert keep[: data.true_loops].all()
     assert not keep[data.true_loops :].any(), keep[data.true_loops :]
+
+
+def test_pairwise_consistency_weighs_a_loop_with_the_solves_translation_floor():
+    """Two loops of robots 0 and 1, the second's translation one keyframe spacing off: at
+    p = 0.9 without a floor their cycle is inconsistent; with the floor the solve gives a
+    loop (0.5 spacings, :func:`~como3r.decentralized.pose_graph.loop_sigmas`) it is not."""
+    data = _data(0)
+    first, second = data.problem.loops[0], data.problem.loops[1]
+    assert (first.robot_a, first.robot_b, second.robot_a, second.robot_b) == (0, 1, 0, 1)
+    moved = second.T_ab.copy()
+    moved[0] += SPACING
+    threshold = chi2.ppf(0.99, 6)
+    statistics = [
+        pair_chi2(
+            _oriented(first, 1.0),
+            _oriented(dataclasses.replace(second, T_ab=moved), 1.0),
+            0.9,
+            0.9,
+            data.problem.odometry,
+            SPACING,
+            _config(loop_sigma_trans_floor_ratio=floor, scale_smoothing_sigma=0.01),
+        )
+        for floor in (0.0, 0.5)
+    ]
+    assert statistics[0] > threshold > statistics[1]
+
+
+def test_pairwise_consistency_counts_the_odometrys_unconverged_start():
+    """Robot 1's odometry starts 40 % long (a VIO's scale before it converges): the cycle of
+    two true loops at its keyframes 0 and 6 is inconsistent for a metric odometry and
+    consistent once the solve's start discount (:func:`~.pose_graph.start_variance`) is
+    counted."""
+    data = _data(0)
+    first, second = data.problem.loops[0], data.problem.loops[2]
+    assert (first.keyframe_b, second.keyframe_b, second.robot_b) == (0, 6, 1)
+    odometry = dict(data.problem.odometry)
+    steps = np.diff(odometry[1][:, :3], axis=0)
+    stretch = 1 + 0.4 * np.exp(-np.arange(1, COUNT) / 3)[:, None]
+    odometry[1] = odometry[1].copy()
+    odometry[1][1:, :3] = odometry[1][0, :3] + np.cumsum(stretch * steps, axis=0)
+    statistics = []
+    for start_sigma in (0.0, 0.4):
+        config = _config(
+            scale_smoothing_sigma=0.01, odom_start_scale_sigma=start_sigma, odom_start_spacings=3.0
+        )
+        start = {r: start_variance(o, SPACING, config) for r, o in odometry.items()}
+        statistics.append(
+            pair_chi2(
+                _oriented(first, 1.0),
+                _oriented(second, 1.0),
+                0.9,
+                0.9,
+                odometry,
+                SPACING,
+                config,
+                start,
+            )
+        )
+    assert statistics[0] > chi2.ppf(0.99, 6) > statistics[1]
 
 
 def test_the_greedy_clique_of_many_loops_holds_back_the_wrong_ones(monkeypatch):

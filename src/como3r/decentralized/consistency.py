@@ -10,7 +10,8 @@ Two safeguards around :func:`~.pose_graph.solve_pose_graph`:
 
   where ``Z`` is a loop's relative pose with the prior's translation scaled by its F-Eq. 6
   factor and ``O`` the metric odometry. ``Log(E_ij)`` is tested against a chi-square bound
-  (6 dof) with a covariance built from the configured noise models, all lengths in keyframe
+  (6 dof) with a covariance built from the configured noise models (each loop's as the
+  solve weighs it, :func:`~.pose_graph.loop_sigmas`), all lengths in keyframe
   spacings (:func:`~.initial_estimate.keyframe_spacing`), so the test is scale-free. The loops of
   each robot pair kept are a set of mutually consistent ones (a clique of the consistency
   graph); the others are held back before the solve. The set is the clique of largest summed
@@ -50,7 +51,7 @@ from scipy.stats import chi2
 from como3r.config_decentralized import DecentralizedConfig, PoseGraphConfig
 from como3r.decentralized.initial_estimate import initial_scales, keyframe_spacing
 from como3r.decentralized.messages import PoseGraphShare
-from como3r.decentralized.pose_graph import solve_pose_graph
+from como3r.decentralized.pose_graph import loop_sigmas, solve_pose_graph, start_variance
 from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
     PoseGraphProblem,
@@ -116,6 +117,12 @@ def _odometry_between(odometry: np.ndarray, i: int, j: int) -> gtsam.Pose3:
     return to_pose3(odometry[i]).between(to_pose3(odometry[j]))
 
 
+def _start_between(start: dict[int, np.ndarray] | None, robot: int, i: int, j: int) -> float:
+    if start is None:
+        return 0.0
+    return float(abs(start[robot][j] - start[robot][i]))
+
+
 def pair_chi2(
     first: tuple,
     second: tuple,
@@ -124,15 +131,19 @@ def pair_chi2(
     odometry: dict[int, np.ndarray],
     spacing: float,
     config: PoseGraphConfig,
+    start: dict[int, np.ndarray] | None = None,
 ) -> float:
     """Whitened squared residual of the cycle of two oriented loops (module docstring).
 
     Args:
         first, second: :func:`_oriented` tuples of two loops between the same robots.
-        p_first, p_second: their confidences (F-Eq. 2), dividing their loop variances.
+        p_first, p_second: their confidences (F-Eq. 2); each loop's noise is the solve's
+            (:func:`~.pose_graph.loop_sigmas`: F-Eq. 3 with the translation floor).
         odometry: robot -> ``(K, 8)`` odometry poses.
         spacing: the keyframe spacing, in odometry units.
         config: noise models; the scale scatter is ``scale_smoothing_sigma``.
+        start: robot -> ``(K,)`` summed variance of its odometry's unconverged scale
+            (:func:`~.pose_graph.start_variance`), counted in every direction; None: none.
 
     Returns:
         The chi-square statistic (6 dof) of ``Log(E_ij)``.
@@ -145,8 +156,10 @@ def pair_chi2(
     e = gtsam.Pose3.Logmap(E)
     n_a, n_b = abs(ka_j - ka_i), abs(kb_j - kb_i)
     odom_rot = math.radians(config.odom_sigma_rot_deg) ** 2
-    loop_rot = math.radians(config.loop_sigma_rot_deg) ** 2
-    var_rot = (n_a + n_b) * odom_rot + loop_rot * (1 / p_first + 1 / p_second)
+    # Each loop's noise as the solve weighs it (F-Eq. 3 with the translation floor).
+    rot_i, trans_i = loop_sigmas(p_first, spacing, config)
+    rot_j, trans_j = loop_sigmas(p_second, spacing, config)
+    var_rot = (n_a + n_b) * odom_rot + rot_i**2 + rot_j**2
     length_i, length_j = np.linalg.norm(Z_i.translation()), np.linalg.norm(Z_j.translation())
     # Rotation errors turn into translation errors over their lever arms: a rotation random
     # walk along an odometry chain of length L gives n sigma^2 L^2 / 3; the cycle's rotation
@@ -159,7 +172,10 @@ def pair_chi2(
             + n_b * np.linalg.norm(O_b.translation()) ** 2
         )
         / 3
-        + (config.loop_sigma_trans_ratio * spacing) ** 2 * (1 / p_first + 1 / p_second)
+        + trans_i**2
+        + trans_j**2
+        + _start_between(start, a, ka_i, ka_j)
+        + _start_between(start, b, kb_i, kb_j)
         + var_rot * (length_i**2 + length_j**2)
         # The scale scatter on the shorter loop's length: a wrong scale that
         # lengthens a loop must not widen its own tolerance.
@@ -185,6 +201,7 @@ def consistent_loops(problem: PoseGraphProblem, config: PoseGraphConfig) -> np.n
     scales = initial_scales(loops, config.scale_init)
     spacing = keyframe_spacing(problem, scales)
     oriented = [_oriented(loop, s) for loop, s in zip(loops, scales)]
+    start = {r: start_variance(o, spacing, config) for r, o in problem.odometry.items()}
     threshold = float(chi2.ppf(config.consistency_probability, _DOF))
     pairs: dict[tuple[int, int], list[int]] = {}
     for index, (a, _, b, _, _) in enumerate(oriented):
@@ -207,6 +224,7 @@ def consistent_loops(problem: PoseGraphProblem, config: PoseGraphConfig) -> np.n
                         problem.odometry,
                         spacing,
                         config,
+                        start,
                     )
                     < threshold
                 ):
