@@ -55,13 +55,9 @@ def flocc_settings(
     table: bool = False,
 ) -> DecentralizedConfig:
     """Decentralized settings for tests: threads, short timeouts, sparse keyframes (0.22 of
-    the scene depth: about 2 m at the scene's 7-10 m median depth), and no unconverged VIO
-    start (``vio_start_scale_error`` 0): the scenes of these tests have LIO odometry, metric
-    from the start, which the start's discount would let the loops bend (the team of
-    ``test_flocc_team_scale.py`` then raised the scale alarm: robot 0 shortened by 0.21)."""
+    the scene depth: about 2 m at the scene's 7-10 m median depth)."""
     return DecentralizedConfig(
         keyframe_distance_ratio=keyframe_distance_ratio,
-        vio_start_scale_error=0.0,
         table=table,
         protocol=ProtocolConfig(processes=processes, message_timeout_s=timeout_s),
     )

@@ -345,11 +345,13 @@ def test_a_discounted_odometry_start_lets_loops_shorten_an_unconverged_vio_start
 
 
 def test_the_vio_start_is_set_in_keyframe_spacings_from_scene_depths():
-    graph = DecentralizedConfig(keyframe_distance_ratio=0.1).pose_graph_config()
+    graph = DecentralizedConfig(
+        keyframe_distance_ratio=0.1, vio_start_scale_error=0.3
+    ).pose_graph_config()
     assert graph.odom_start_scale_sigma == 0.3
     assert graph.odom_start_spacings == pytest.approx(3.0)
-    off = DecentralizedConfig(vio_start_scale_error=0.0).pose_graph_config()
-    assert off.odom_start_scale_sigma == 0.0
+    off = DecentralizedConfig().pose_graph_config()
+    assert off.odom_start_scale_sigma == 0.0  # off by default (its docstring)
     assert PoseGraphConfig().odom_start_scale_sigma == 0.0  # the paper's metric odometry
 
 
