@@ -22,8 +22,9 @@ from como3r.decentralized.consistency import (
     solve_checked,
     solve_shares,
 )
+from como3r.decentralized.factor_noise import start_variance
 from como3r.decentralized.messages import PoseGraphShare
-from como3r.decentralized.pose_graph import solve_pose_graph, start_variance
+from como3r.decentralized.pose_graph import solve_pose_graph
 from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
     PoseGraphProblem,
@@ -118,7 +119,7 @@ def test_pairwise_consistency_keeps_true_loops_and_holds_back_wrong_ones():
 def test_pairwise_consistency_weighs_a_loop_with_the_solves_translation_floor():
     """Two loops of robots 0 and 1, the second's translation one keyframe spacing off: at
     p = 0.9 without a floor their cycle is inconsistent; with the floor the solve gives a
-    loop (0.5 spacings, :func:`~como3r.decentralized.pose_graph.loop_sigmas`) it is not."""
+    loop (0.5 spacings, :func:`~como3r.decentralized.factor_noise.loop_sigmas`) it is not."""
     data = _data(0)
     first, second = data.problem.loops[0], data.problem.loops[1]
     assert (first.robot_a, first.robot_b, second.robot_a, second.robot_b) == (0, 1, 0, 1)
@@ -143,7 +144,7 @@ def test_pairwise_consistency_weighs_a_loop_with_the_solves_translation_floor():
 def test_pairwise_consistency_counts_the_odometrys_unconverged_start():
     """Robot 1's odometry starts 40 % long (a VIO's scale before it converges): the cycle of
     two true loops at its keyframes 0 and 6 is inconsistent for a metric odometry and
-    consistent once the solve's start discount (:func:`~.pose_graph.start_variance`) is
+    consistent once the solve's start discount (:func:`~.factor_noise.start_variance`) is
     counted."""
     data = _data(0)
     first, second = data.problem.loops[0], data.problem.loops[2]

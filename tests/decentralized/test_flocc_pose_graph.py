@@ -17,10 +17,10 @@ from como3r.config_decentralized import (
     PoseGraphConfig,
     check_config,
 )
+from como3r.decentralized.factor_noise import odometry_noise
 from como3r.decentralized.initial_estimate import initial_poses, keyframe_spacing
 from como3r.decentralized.pose_graph import (
     build_graph,
-    odometry_noise,
     scaled_loop_error,
     scaled_loop_factor,
     solve_pose_graph,

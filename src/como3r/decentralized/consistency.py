@@ -11,7 +11,9 @@ Two safeguards around :func:`~.pose_graph.solve_pose_graph`:
   where ``Z`` is a loop's relative pose with the prior's translation scaled by its F-Eq. 6
   factor and ``O`` the metric odometry. ``Log(E_ij)`` is tested against a chi-square bound
   (6 dof) with a covariance built from the configured noise models (each loop's as the
-  solve weighs it, :func:`~.pose_graph.loop_sigmas`), all lengths in keyframe
+  solve weighs it, :func:`~.factor_noise.loop_sigmas`, or its full covariance
+  :func:`~.factor_noise.loop_covariance` carried through the cycle's adjoints where the solve
+  uses that), all lengths in keyframe
   spacings (:func:`~.initial_estimate.keyframe_spacing`), so the test is scale-free. The loops of
   each robot pair kept are a set of mutually consistent ones (a clique of the consistency
   graph); the others are held back before the solve. The set is the clique of largest summed
@@ -49,9 +51,10 @@ import numpy as np
 from scipy.stats import chi2
 
 from como3r.config_decentralized import DecentralizedConfig, PoseGraphConfig
+from como3r.decentralized.factor_noise import loop_covariance, loop_sigmas, start_variance
 from como3r.decentralized.initial_estimate import initial_scales, keyframe_spacing
 from como3r.decentralized.messages import PoseGraphShare
-from como3r.decentralized.pose_graph import loop_sigmas, solve_pose_graph, start_variance
+from como3r.decentralized.pose_graph import solve_pose_graph
 from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
     PoseGraphProblem,
@@ -132,18 +135,23 @@ def pair_chi2(
     spacing: float,
     config: PoseGraphConfig,
     start: dict[int, np.ndarray] | None = None,
+    covariances: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> float:
     """Whitened squared residual of the cycle of two oriented loops (module docstring).
 
     Args:
         first, second: :func:`_oriented` tuples of two loops between the same robots.
         p_first, p_second: their confidences (F-Eq. 2); each loop's noise is the solve's
-            (:func:`~.pose_graph.loop_sigmas`: F-Eq. 3 with the translation floor).
+            (:func:`~.factor_noise.loop_sigmas`: F-Eq. 3 with the translation floor).
         odometry: robot -> ``(K, 8)`` odometry poses.
         spacing: the keyframe spacing, in odometry units.
         config: noise models; the scale scatter is ``scale_smoothing_sigma``.
         start: robot -> ``(K,)`` summed variance of its odometry's unconverged scale
-            (:func:`~.pose_graph.start_variance`), counted in every direction; None: none.
+            (:func:`~.factor_noise.start_variance`), counted in every direction; None: none.
+        covariances: the two loops' ``(6, 6)`` covariances in their oriented frames
+            (:func:`oriented_covariance`); given, they replace the loops' isotropic sigmas
+            and reach the cycle's error through its adjoints (first order); None: the
+            isotropic sigmas of :func:`~.factor_noise.loop_sigmas`.
 
     Returns:
         The chi-square statistic (6 dof) of ``Log(E_ij)``.
@@ -159,6 +167,8 @@ def pair_chi2(
     # Each loop's noise as the solve weighs it (F-Eq. 3 with the translation floor).
     rot_i, trans_i = loop_sigmas(p_first, spacing, config)
     rot_j, trans_j = loop_sigmas(p_second, spacing, config)
+    if covariances is not None:
+        rot_i = rot_j = trans_i = trans_j = 0.0
     var_rot = (n_a + n_b) * odom_rot + rot_i**2 + rot_j**2
     length_i, length_j = np.linalg.norm(Z_i.translation()), np.linalg.norm(Z_j.translation())
     # Rotation errors turn into translation errors over their lever arms: a rotation random
@@ -181,7 +191,27 @@ def pair_chi2(
         # lengthens a loop must not widen its own tolerance.
         + 2 * (config.scale_smoothing_sigma * min(length_i, length_j)) ** 2
     )
-    return float(np.dot(e[:3], e[:3]) / var_rot + np.dot(e[3:], e[3:]) / var_trans)
+    if covariances is None:
+        return float(np.dot(e[:3], e[:3]) / var_rot + np.dot(e[3:], e[3:]) / var_trans)
+    # E = O_b^-1 Z_i^-1 O_a Z_j: Z_j's right perturbation is E's; Z_i's reaches E through
+    # Ad((Z_i^-1 O_a Z_j)^-1).
+    carry = Z_i.inverse().compose(O_a).compose(Z_j).inverse().AdjointMap()
+    covariance = np.diag([var_rot] * 3 + [var_trans] * 3)
+    covariance += carry @ covariances[0] @ carry.T + covariances[1]
+    return float(e @ np.linalg.solve(covariance, e))
+
+
+def oriented_covariance(
+    loop: LoopClosure, scale: float, spacing: float, config: PoseGraphConfig
+) -> np.ndarray:
+    """``(6, 6)``: the loop's covariance (:func:`~.factor_noise.loop_covariance`) in the frame
+    of its :func:`_oriented` pose: ``Z = M^-1`` perturbs as ``Ad(M)`` of ``M``'s error."""
+    covariance = loop_covariance(loop.T_ab, scale, loop.probability, spacing, config)
+    if loop.robot_a <= loop.robot_b:
+        return covariance
+    pose = to_pose3(loop.T_ab)
+    adjoint = gtsam.Pose3(pose.rotation(), scale * pose.translation()).AdjointMap()
+    return adjoint @ covariance @ adjoint.T
 
 
 def consistent_loops(problem: PoseGraphProblem, config: PoseGraphConfig) -> np.ndarray:
@@ -202,6 +232,11 @@ def consistent_loops(problem: PoseGraphProblem, config: PoseGraphConfig) -> np.n
     spacing = keyframe_spacing(problem, scales)
     oriented = [_oriented(loop, s) for loop, s in zip(loops, scales)]
     start = {r: start_variance(o, spacing, config) for r, o in problem.odometry.items()}
+    covariances = (
+        [oriented_covariance(loop, s, spacing, config) for loop, s in zip(loops, scales)]
+        if config.loop_scene_depth_ratio > 0
+        else None
+    )
     threshold = float(chi2.ppf(config.consistency_probability, _DOF))
     pairs: dict[tuple[int, int], list[int]] = {}
     for index, (a, _, b, _, _) in enumerate(oriented):
@@ -225,6 +260,7 @@ def consistent_loops(problem: PoseGraphProblem, config: PoseGraphConfig) -> np.n
                         spacing,
                         config,
                         start,
+                        None if covariances is None else (covariances[i], covariances[j]),
                     )
                     < threshold
                 ):

@@ -29,15 +29,19 @@ the scale-aware formulations, loop scales ``s`` (doubles). Factors:
   the baseline: 2 deg is 0.5 spacings there. The closest pairs overlap most and get the
   highest ``p`` (0.73-0.84), hence the stiffest translations, while at a baseline of one
   spacing or less that error turns their direction by 54-127 deg (issue 37's 3-robot scene,
-  prior ``v2``; median 9 deg over all accepted loops).
+  prior ``v2``; median 9 deg over all accepted loops). With ``loop_scene_depth_ratio > 0``
+  a loop's noise is instead a full covariance in which the rotation error turns the camera
+  about the scene (:func:`~.factor_noise.loop_covariance`, GTSAM's
+  ``Gaussian.Covariance``), off by default: the prior's loops' translation errors do not
+  follow their rotation errors.
 
 Odometry (F-Eq. 4) is metric in the paper (F-Sec. III), but a monocular VIO is off in scale
 until its estimate converges, at the start of a trajectory (F-Sec. IV-C). With
 ``odom_start_scale_sigma > 0`` (set by a decentralized run from
 ``decentralized.vio_start_scale_error``) a step's noise gains, along the step, that fraction
-of its length, decaying with the distance travelled (:func:`odometry_noise`), so the loops
-to other robots may stretch or shorten a robot's unconverged start; pairwise consistency
-counts the same variance (:func:`start_variance`).
+of its length, decaying with the distance travelled (:func:`~.factor_noise.odometry_noise`),
+so the loops to other robots may stretch or shorten a robot's unconverged start; pairwise
+consistency counts the same variance (:func:`~.factor_noise.start_variance`).
 
 With ``odom_scale_walk > 0`` each
 step ``k`` of a robot's odometry is instead the measurement ``[R_k, lambda_k t_k]`` of
@@ -78,6 +82,12 @@ import numpy as np
 from scipy.stats import chi2
 
 from como3r.config_decentralized import FORMULATIONS, SOLVERS, PoseGraphConfig
+from como3r.decentralized.factor_noise import (
+    loop_covariance,
+    loop_sigmas,
+    odometry_noise,
+    pose_noise,
+)
 from como3r.decentralized.initial_estimate import initial_poses, initial_scales, keyframe_spacing
 from como3r.decentralized.pose_graph_problem import (
     PoseGraphProblem,
@@ -147,88 +157,6 @@ def scaled_loop_factor(
         return e
 
     return gtsam.CustomFactor(noise, [key_a, key_b, key_s], error)
-
-
-def _pose_noise(sigma_rot_rad: float, sigma_trans: float, weight: float) -> gtsam.noiseModel.Base:
-    """Diagonal noise in GTSAM's (rotation, translation) order, information times ``weight``;
-    ``sigma_trans`` in odometry units."""
-    sigmas = np.array([sigma_rot_rad] * 3 + [sigma_trans] * 3) / math.sqrt(weight)
-    return gtsam.noiseModel.Diagonal.Sigmas(sigmas)
-
-
-def loop_sigmas(
-    probability: float, spacing: float, config: PoseGraphConfig, weight: float = 1.0
-) -> tuple[float, float]:
-    """A loop's noise: ``(rotation sigma [rad], translation sigma [odometry units])``.
-
-    F-Eq. 3 multiplies the loop's information by its confidence ``p`` (and GNC's
-    ``weight``); the translation's sigma never falls below ``loop_sigma_trans_floor_ratio``
-    keyframe spacings, which ``p`` does not lower (module docstring). The solve's loop
-    factors and the pairwise consistency test
-    (:func:`~como3r.decentralized.consistency.pair_chi2`) both take a loop's noise from here.
-
-    Args:
-        probability: the loop's confidence ``p`` (F-Eq. 2).
-        spacing: the keyframe spacing, in odometry units.
-        config: ``loop_sigma_rot_deg``, ``loop_sigma_trans_ratio`` and
-            ``loop_sigma_trans_floor_ratio``.
-        weight: GNC weight of the loop (1 outside GNC).
-    """
-    information = weight * probability
-    sigma_trans = max(
-        config.loop_sigma_trans_ratio * spacing / math.sqrt(information),
-        config.loop_sigma_trans_floor_ratio * spacing / math.sqrt(weight),
-    )
-    return math.radians(config.loop_sigma_rot_deg) / math.sqrt(information), sigma_trans
-
-
-def start_scale_sigma(travelled: float, config: PoseGraphConfig) -> float:
-    """The odometry's scale uncertainty ``odom_start_scale_sigma x exp(-travelled /
-    odom_start_spacings)`` after ``travelled`` keyframe spacings (:func:`odometry_noise`)."""
-    if config.odom_start_scale_sigma <= 0 or config.odom_start_spacings <= 0:
-        return 0.0
-    return config.odom_start_scale_sigma * math.exp(-travelled / config.odom_start_spacings)
-
-
-def start_variance(odometry: np.ndarray, spacing: float, config: PoseGraphConfig) -> np.ndarray:
-    """``(K,)``: the summed variance of the odometry's step lengths from keyframe 0 to each
-    keyframe of one robot's ``(K, 8)`` odometry, from its unconverged scale
-    (:func:`start_scale_sigma`; odometry units squared)."""
-    lengths = np.linalg.norm(np.diff(odometry[:, :3], axis=0), axis=1)
-    middles = (np.cumsum(lengths) - lengths / 2) / spacing
-    sigmas = np.array([start_scale_sigma(float(d), config) for d in middles])
-    return np.concatenate([[0.0], np.cumsum((sigmas * lengths) ** 2)])
-
-
-def odometry_noise(
-    step: gtsam.Pose3, travelled: float, spacing: float, config: PoseGraphConfig
-) -> gtsam.noiseModel.Base:
-    """Noise of one odometry step (F-Eq. 4's ``Omega_odom``).
-
-    ``odom_sigma_rot_deg`` and ``odom_sigma_trans_ratio`` keyframe spacings, plus, along the
-    step's direction, ``odom_start_scale_sigma x exp(-travelled / odom_start_spacings)`` of
-    its length: a monocular VIO's scale is off until its estimate converges, at the start of
-    a trajectory (F-Sec. IV-C), and a scale error stretches a step along itself.
-
-    Args:
-        step: the step's relative pose (keyframe ``k-1`` to ``k``, odometry units).
-        travelled: odometry distance from the robot's first keyframe to the step's middle,
-            in keyframe spacings.
-        spacing: the keyframe spacing, in odometry units.
-        config: the odometry noise parameters.
-    """
-    sigma_rot = math.radians(config.odom_sigma_rot_deg)
-    sigma_trans = config.odom_sigma_trans_ratio * spacing
-    start = start_scale_sigma(travelled, config)
-    if start == 0.0:
-        return _pose_noise(sigma_rot, sigma_trans, 1.0)
-    # GTSAM's error is Log(Z^-1 T_a^-1 T_b): a stretch d of the step's translation t appears
-    # as d R^T t in the step's end frame.
-    along = step.rotation().matrix().T @ np.asarray(step.translation(), dtype=np.float64)
-    covariance = np.zeros((_POSE_DIM, _POSE_DIM))
-    covariance[:3, :3] = np.eye(3) * sigma_rot**2
-    covariance[3:, 3:] = np.eye(3) * sigma_trans**2 + start**2 * np.outer(along, along)
-    return gtsam.noiseModel.Gaussian.Covariance(covariance)
 
 
 def _add_odometry_scales(
@@ -319,7 +247,7 @@ def build_graph(problem: PoseGraphProblem, formulation: str, config: PoseGraphCo
     for robot, odometry in sorted(problem.odometry.items()):
         for k, pose in enumerate(poses[robot]):
             values.insert(pose_key(robot, k), pose)
-        noise = _pose_noise(odom_rot, config.odom_sigma_trans_ratio * spacing, 1.0)
+        noise = pose_noise(odom_rot, config.odom_sigma_trans_ratio * spacing, 1.0)
         if config.odom_scale_walk > 0:
             _add_odometry_scales(fixed, values, robot, odometry, noise, spacing, config)
             continue
@@ -340,7 +268,7 @@ def build_graph(problem: PoseGraphProblem, formulation: str, config: PoseGraphCo
         gtsam.PriorFactorPose3(
             pose_key(problem.anchor, 0),
             to_pose3(problem.anchor_pose),
-            _pose_noise(ANCHOR_SIGMA, ANCHOR_SIGMA * spacing, 1.0),
+            pose_noise(ANCHOR_SIGMA, ANCHOR_SIGMA * spacing, 1.0),
         )
     )
 
@@ -348,9 +276,14 @@ def build_graph(problem: PoseGraphProblem, formulation: str, config: PoseGraphCo
     keys = [(pose_key(l.robot_a, l.keyframe_a), pose_key(l.robot_b, l.keyframe_b)) for l in loops]
 
     def noise(index: int, weight: float) -> gtsam.noiseModel.Base:
-        sigma_rot, sigma_trans = loop_sigmas(
-            loops[index].probability, spacing, config, max(weight, MIN_WEIGHT)
-        )
+        loop, weight = loops[index], max(weight, MIN_WEIGHT)
+        if config.loop_scene_depth_ratio > 0:
+            return gtsam.noiseModel.Gaussian.Covariance(
+                loop_covariance(
+                    loop.T_ab, float(scales[index]), loop.probability, spacing, config, weight
+                )
+            )
+        sigma_rot, sigma_trans = loop_sigmas(loop.probability, spacing, config, weight)
         return gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_rot] * 3 + [sigma_trans] * 3))
 
     if formulation == "base":
