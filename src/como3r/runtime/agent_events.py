@@ -241,7 +241,14 @@ class AgentEvents:
         self._arrivals += 1
 
     def _frame_done(self, slot: AgentSlot, message: FrameDone) -> None:
-        slot.clock, slot.last_frame = message.timestamp, message.frame_index
+        """Count a processed frame; it moves the agent's ordering clock to its timestamp,
+        unless keyframes made earlier still wait in the agent (a self-calibrated camera's
+        first ones, :meth:`~como3r.frontend.agent.AgentFrontend.settle_camera`): the clock
+        then stays at the frame that made the oldest of them, which is sent with its own
+        timestamp later, so no other agent's later keyframe is taken before it."""
+        if not (message.keyframes_waiting and slot.keyframes_waiting):
+            slot.clock = message.timestamp
+        slot.last_frame = message.frame_index
         slot.frames_done += 1
         slot.outcomes[message.outcome] += 1
         if message.outcome == "lost":
