@@ -659,3 +659,21 @@ def test_keyframes_an_agent_still_holds_keep_its_ordering_clock_back() -> None:
     assert runtime.slots[0].order_clock() == 2 / 30
     runtime._process_pending()
     assert batches == [[(0, 0), (1, 0), (0, 1)]]
+
+
+def test_an_agent_away_since_the_coordinator_restarted_still_orders_the_keyframes() -> None:
+    """Restored from its store (runtime_state.restore_runtime), a coordinator waits for the
+    agents that were present: their stored clocks order the keyframes until they are back,
+    so which reconnects first does not decide the order; once back, an agent whose link
+    is lost holds nothing back."""
+    from como3r.transport.links import Joined, Left
+
+    hub, runtime = _scripted_runtime(120.0, [])
+    slot = runtime.slots[0]
+    slot.status, slot.clock = "running", 0.2
+    slot.away_since, slot.awaited = time.monotonic(), True  # as restore_runtime leaves it
+    assert slot.order_clock() == 0.2
+    _pump(hub, runtime, Joined(0))
+    assert slot.away_since is None and not slot.awaited and slot.order_clock() == 0.2
+    _pump(hub, runtime, Left(0, "left (link lost)", may_return=True))
+    assert slot.order_clock() == float("inf")

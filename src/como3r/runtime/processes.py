@@ -236,7 +236,7 @@ class _Runtime(AgentEvents):
             resume_after,
             slot.segment.index,
         )
-        slot.away_since, slot.last_heard = None, time.monotonic()
+        slot.away_since, slot.last_heard, slot.awaited = None, time.monotonic(), False
         slot.keyframes_waiting = 0  # the old process's never come
         slot.restarts += 1
         return replace(
