@@ -221,9 +221,10 @@ class GlobalBAConfig:
 
     trigger_interval_edges: int = 1
     # not in the paper: keyframes that waited for a busy coordinator are taken together,
-    # up to this many (Coordinator.add_keyframes): inserted and retrieved in time order,
-    # verified newest first, and the in-stream BA runs at most once per batch, so the
-    # solves a falling-behind coordinator makes do not grow with the keyframes waiting.
+    # up to this many (Coordinator.add_keyframes): inserted, retrieved and verified in time
+    # order (newest first under a verification.max_decodes_per_batch budget), and the
+    # in-stream BA runs at most once per batch, so the solves a falling-behind
+    # coordinator makes do not grow with the keyframes waiting.
     # A keyframe handed over as it comes (the single-process runner, lockstep) is a batch
     # of one: the paper's BA after every trigger_interval_edges
     max_batch_keyframes: int = 32

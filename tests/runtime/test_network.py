@@ -107,11 +107,16 @@ def test_coordinator_and_two_agents_over_tcp_match_the_single_process_run(
         )
         assert 0 < per_message - sum(row["keyframe_message_bytes_by_part"].values()) < 1000
     reference, networked = _merged_ate(single), _merged_ate(tmp_path / "net")
-    # free-running, the coordinator takes the keyframes in 3-5 batches (the single process
-    # in 12) and runs 1-2 global BAs (5): measured networked 13.66 mm (10 of the 28 tried
-    # candidates verified, in 3 of 7 runs alone at load 2) or 14.96-15.22 mm (9, as the
-    # single process), against 15.41 mm single-process; a 10 % bound failed on the first
-    assert abs(networked - reference) <= 0.2 * reference, (networked, reference)
+    # free-running, the coordinator takes the keyframes in 2-5 batches (the single process
+    # in 12) and runs 1-2 in-stream global BAs (5): what an edge is judged at and what the
+    # agents track on differ, which the terminal alternation absorbs. Which candidates are
+    # verified does not: keyframes go by (timestamp, agent) and a batch is verified in that
+    # order, as one at a time (the single process takes a self-calibrated camera's first
+    # keyframes as it releases them: their candidates differ, all rejected here; a batch verified newest first gave agent 1's keyframe 5 a
+    # third cross-agent hit in place of its loop candidate when the merge fell in the same
+    # batch: 10 edges, 13.66 mm, in 3 of 6 runs). Measured 15.297-15.411 mm in 6 runs at
+    # load 7-15 against 15.408 mm single-process (0.7 % at most)
+    assert abs(networked - reference) <= 0.03 * reference, (networked, reference)
 
 
 def test_malformed_and_oversized_messages_are_logged_and_dropped(scene, team, tmp_path) -> None:

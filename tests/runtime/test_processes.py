@@ -615,3 +615,65 @@ def test_a_new_process_taking_over_an_id_starts_a_map_segment_after_the_last_fra
     assert "has finished" in runtime.rejoin(0)
     runtime._fail(slot, "boom")
     assert "failed in this run (boom)" in runtime.rejoin(1)
+
+
+def test_keyframes_an_agent_still_holds_keep_its_ordering_clock_back() -> None:
+    """A self-calibrated agent holds its first keyframes until its camera settles (each
+    FrameDone counts them): its clock stays at the frame that made the oldest, so another
+    agent's keyframe of that time waits for them, as the ``(timestamp, agent)`` order wants
+    (it was taken first when the clock followed the frames)."""
+    from types import SimpleNamespace
+
+    from como3r.transport.links import Received
+    from como3r.transport.messages import AgentStarted, FrameDone
+
+    hub, runtime = _scripted_runtime(120.0, [])
+    runtime.progress = None
+    batches: list = []
+    runtime._add_keyframes = lambda batch: batches.append(
+        [(w.message.packet.agent, w.message.packet.kf_id) for w in batch]
+    )
+
+    def done(agent: int, frame: int, waiting: int) -> Received:
+        return Received(agent, FrameDone(agent, frame, frame / 30, "keyframe", 0.0, waiting))
+
+    def keyframe(agent: int, kf_id: int, frame: int) -> None:  # as a KeyframeMessage queues
+        packet = SimpleNamespace(agent=agent, kf_id=kf_id, timestamp=frame / 30)
+        runtime._queue(runtime.segments[agent], SimpleNamespace(packet=packet), None)
+
+    _pump(
+        hub,
+        runtime,
+        *(Received(a, AgentStarted(agent=a, pid=1, frames=6)) for a in (0, 1)),
+        done(0, 0, 1),
+        done(0, 1, 2),  # agent 0 holds keyframes 0 and 1
+    )
+    keyframe(1, 0, 0)
+    _pump(hub, runtime, done(1, 0, 0), done(1, 1, 0))
+    assert runtime.slots[0].order_clock() == 0.0  # not frame 1's
+    runtime._process_pending()
+    assert batches == []  # (0, 0) may still come before agent 1's keyframe 0
+    keyframe(0, 0, 0)
+    keyframe(0, 1, 1)
+    _pump(hub, runtime, done(0, 2, 0))
+    assert runtime.slots[0].order_clock() == 2 / 30
+    runtime._process_pending()
+    assert batches == [[(0, 0), (1, 0), (0, 1)]]
+
+
+def test_an_agent_away_since_the_coordinator_restarted_still_orders_the_keyframes() -> None:
+    """Restored from its store (runtime_state.restore_runtime), a coordinator waits for the
+    agents that were present: their stored clocks order the keyframes until they are back,
+    so which reconnects first does not decide the order; once back, an agent whose link
+    is lost holds nothing back."""
+    from como3r.transport.links import Joined, Left
+
+    hub, runtime = _scripted_runtime(120.0, [])
+    slot = runtime.slots[0]
+    slot.status, slot.clock = "running", 0.2
+    slot.away_since, slot.awaited = time.monotonic(), True  # as restore_runtime leaves it
+    assert slot.order_clock() == 0.2
+    _pump(hub, runtime, Joined(0))
+    assert slot.away_since is None and not slot.awaited and slot.order_clock() == 0.2
+    _pump(hub, runtime, Left(0, "left (link lost)", may_return=True))
+    assert slot.order_clock() == float("inf")

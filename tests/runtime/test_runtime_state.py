@@ -102,10 +102,15 @@ def test_a_coordinator_killed_at_several_points_resumes_to_the_uninterrupted_res
     assert "re-sending" in team.log("agent0") + team.log("agent1")
     assert metrics["coordinator"]["keyframes"] == sum(a["keyframes"] for a in metrics["agents"])
     ate, expected = (m["ate"]["merged"]["ate"]["rmse"] for m in (metrics, reference))
-    # both runs are free-running: on this scene a run ends at 13.66 mm or at 14.96-15.41 mm
-    # as its schedule verifies 10 or 9 of the same 28 candidates (test_network's tcp test,
-    # the same scene); a 10 % bound failed in CI when the two runs took different schedules
-    assert ate == pytest.approx(expected, rel=0.2)
+    # both runs are free-running: their batches, and so when the in-stream BA runs, differ
+    # (test_network's tcp test, the same scene), which the terminal alternation absorbs;
+    # which candidates are verified does not: keyframes go by (timestamp, agent), a batch
+    # is verified in that order, and after each restart the order waits for the agents
+    # that were present (taking the first one back as the only one left agent 1's re-sent
+    # keyframe 2 to retrieve agent 0's keyframe 5: 10 edges, 14.12 mm, in 3 of 6 runs).
+    # Measured killed 15.185-15.304 mm against 15.297-15.338 uninterrupted in 6 runs at
+    # load 7-28 (0.7 % apart at most)
+    assert ate == pytest.approx(expected, rel=0.03)
     session = read_session(tmp_path / "killed.out" / STORE_NAME)
     assert session.finished and set(session.reports) == {0, 1}
     print(

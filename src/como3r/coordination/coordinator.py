@@ -27,8 +27,8 @@ any interleaving, and for each one
 
 and returns :class:`~como3r.frontend.packets.PoseUpdate` s for the agents whose keyframes
 moved (C-Sec. A.8). Keyframes that waited for a busy coordinator come as one batch
-(:meth:`Coordinator.add_keyframes`): steps 1 and 2's retrieval in time order, verification
-and step 3 newest first, step 4 once after the batch (issue 41: a coordinator that falls
+(:meth:`Coordinator.add_keyframes`): steps 1 to 3 in time order (verification newest first
+under a batch budget), step 4 once after the batch (issue 41: a coordinator that falls
 behind does not solve once per waiting keyframe). :meth:`Coordinator.finish` runs the terminal pose-depth alternation
 (C-Sec. A.7; :mod:`como3r.backend.alternation`) and returns the final poses and the refined
 canonical pointmaps.
@@ -179,14 +179,17 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
         In the given order (the runtimes' ``(timestamp, agent)`` order) each keyframe is
         inserted into the graph and its retrieval query made and indexed (cheap), so every
         keyframe's hits are those it would have had alone; then the keyframes are verified
-        and their edges admitted NEWEST FIRST, each within its own decode budget
-        (``verification.max_decodes_per_keyframe``), while the batch's budget
-        (``verification.max_decodes_per_batch``) lasts; older keyframes past it stay
-        retrieval-only: the part of the map the agents are in now is linked first. The in-stream global BA (C-Eq. 5) runs at most once, after the
-        whole batch, if ``global_ba.trigger_interval_edges`` new inter-agent edges are
-        waiting by then; the journal keeps the batch's effect in one transaction. A batch
-        of one is :meth:`add_keyframe`'s single keyframe, step for step. The result depends
-        on the batch's content and order only, never on timing.
+        and their edges admitted in the same order, each within its own decode budget
+        (``verification.max_decodes_per_keyframe``), so each keyframe's hits are chosen by
+        the gauge merges before it, as alone (:meth:`_verify` spends a merged agent's slots
+        on loop candidates); under a batch budget (``verification.max_decodes_per_batch``)
+        they are verified NEWEST FIRST while it lasts, and older keyframes past it stay
+        retrieval-only: the part of the map the agents are in now is linked first. The
+        in-stream global BA (C-Eq. 5) runs at most once, after the whole batch, if
+        ``global_ba.trigger_interval_edges`` new inter-agent edges are waiting by then; the
+        journal keeps the batch's effect in one transaction. A batch of one is
+        :meth:`add_keyframe`'s single keyframe, step for step. The result depends on the
+        batch's content and order only, never on timing.
 
         Args:
             packets: the keyframes, oldest first; re-sent ones are answered as in
@@ -216,7 +219,9 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
                 self._relink(packet)
             fresh.append((packet, self._retrieve(packet)))
         spent, budget = self.stats.prior_decodes, self._batch_budget(len(fresh))
-        for packet, hits in reversed(fresh):
+        # in time order, as one at a time (which hits a keyframe verifies depends on the
+        # merges before it); newest first only when a batch budget must choose
+        for packet, hits in fresh if math.isinf(budget) else reversed(fresh):
             found = len(updates)
             if hits and self.stats.prior_decodes - spent + self._keyframe_budget() > budget:
                 self.stats.verification_skipped += 1

@@ -12,8 +12,9 @@ Away and back (across machines). A networked agent whose link is lost (its livel
 token gone: a crash, a Wi-Fi gap, or this process frozen past the Zenoh lease, which the
 network cannot tell apart) is *away*, not failed: everything it sent is kept, its keyframes
 no longer hold back the others' (the ordering of :mod:`.processes` waits only for agents
-present), and it
-has ``away_timeout_s`` to come back. The same process reconnecting continues where it was
+present; after a coordinator restart it waits for those that were present, which come back
+in seconds: the order then does not depend on which reconnects first), and it has
+``away_timeout_s`` to come back. The same process reconnecting continues where it was
 (it re-sends what was not acknowledged; pose updates it may have missed are sent again). A
 new process started with the same id takes over (:meth:`~.processes._Runtime.rejoin`): it starts after
 the last frame the coordinator heard of, with a fresh map, as a new *map segment*, a
@@ -191,7 +192,7 @@ class AgentEvents:
         logger.warning(
             "agent %d is back after %.1f s away", slot.agent, time.monotonic() - slot.away_since
         )
-        slot.away_since, slot.last_heard = None, time.monotonic()
+        slot.away_since, slot.last_heard, slot.awaited = None, time.monotonic(), False
         segment = slot.segment  # updates sent while it was away may be lost: again
         for seq in range(segment.confirmed_seq + 1, segment.sent_seq + 1):
             update = segment.updates[seq - 1]
@@ -241,7 +242,14 @@ class AgentEvents:
         self._arrivals += 1
 
     def _frame_done(self, slot: AgentSlot, message: FrameDone) -> None:
-        slot.clock, slot.last_frame = message.timestamp, message.frame_index
+        """Count a processed frame; it moves the agent's ordering clock to its timestamp,
+        unless keyframes made earlier still wait in the agent (a self-calibrated camera's
+        first ones, :meth:`~como3r.frontend.agent.AgentFrontend.settle_camera`): the clock
+        then stays at the frame that made the oldest of them, which is sent with its own
+        timestamp later, so no other agent's later keyframe is taken before it."""
+        if not (message.keyframes_waiting and slot.keyframes_waiting):
+            slot.clock = message.timestamp
+        slot.last_frame = message.frame_index
         slot.frames_done += 1
         slot.outcomes[message.outcome] += 1
         if message.outcome == "lost":

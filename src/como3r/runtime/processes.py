@@ -17,10 +17,16 @@ and a separate coordinator process would add a core's worth of contention on sma
 machines and one more serialization hop for every keyframe. While it solves, agents keep
 tracking; their messages wait in the transport.
 
-Ordering. The coordinator hands keyframes to :class:`Coordinator` in the order the
-single-process runner does, by ``(timestamp, agent)``: a keyframe waits until every other
-running agent has reported a frame at or after it (each agent's ``FrameDone`` is its
-clock), so retrieval and verification see the same database in any run. Agents run free
+Ordering. The coordinator hands keyframes to :class:`Coordinator` by ``(timestamp,
+agent)``: a keyframe waits until every other running agent has reported a frame at or after
+it (each agent's ``FrameDone`` is its clock; it stays back while the agent holds keyframes
+made earlier, a self-calibrated camera's first ones), so retrieval sees the same database in
+any run, and the coordinator verifies a batch in that order too, so which candidates a
+keyframe verifies depends on the gauge merges before it only, as in one process. (The
+single-process runner hands a self-calibrated agent's first keyframes over when it releases
+them, after the other agents' keyframes of those frames: the first retrievals differ.) What
+the batching still changes is when the in-stream global BA runs (once per batch) and so the
+poses an edge is judged at and the agents track on. Agents run free
 and apply updates asynchronously, so a keyframe may be exported before its agent saw the
 latest update; the coordinator then re-anchors it on its predecessor's current pose (the
 relative pose is the agent's). Results therefore match the single-process run up to the
@@ -230,7 +236,8 @@ class _Runtime(AgentEvents):
             resume_after,
             slot.segment.index,
         )
-        slot.away_since, slot.last_heard = None, time.monotonic()
+        slot.away_since, slot.last_heard, slot.awaited = None, time.monotonic(), False
+        slot.keyframes_waiting = 0  # the old process's never come
         slot.restarts += 1
         return replace(
             self.tasks[agent],

@@ -258,6 +258,9 @@ class AgentSlot:
     #: (a resumed coordinator) its process re-sends messages up to this number, some of
     #: them not stored; -1: nothing to wait for
     resend_until: int = -1
+    #: away only since the coordinator restarted: its stored clock still orders the
+    #: keyframes until it is back (it comes back with what it sent since), or fails
+    awaited: bool = False
 
     def expected(self) -> bool:
         """Whether the coordinator waits for messages of its process: it runs, or it re-sends
@@ -265,8 +268,9 @@ class AgentSlot:
         return self.status in ("starting", "running") or self.resend_until >= 0
 
     def order_clock(self) -> float:
-        """The clock the keyframe ordering waits for: none while away."""
-        return math.inf if self.away_since is not None else self.clock
+        """The clock the keyframe ordering waits for: none while away, unless
+        :attr:`awaited`."""
+        return math.inf if self.away_since is not None and not self.awaited else self.clock
 
 
 @dataclass

@@ -135,6 +135,9 @@ def restore_runtime(runtime: StatefulRuntime, session: Session) -> None:
             slot.resend_until = slot.handled_seq  # even from a process that has finished
         if slot.expected():  # until its token is seen again
             slot.away_since, slot.away_reason = now, "not back since the coordinator restarted"
+            # the order of the keyframes waits for it as before the restart: which agent
+            # reconnects first must not decide what the others' keyframes are matched with
+            slot.awaited = True
     away = [slot.agent for slot in runtime.slots if slot.away_since is not None]
     logger.warning(
         "coordinator resumed from %s: %d keyframes; waiting for agents %s to "
