@@ -31,7 +31,8 @@ def test_a_decoded_value_takes_its_map_inside_reusing_only() -> None:
     with codec_reuse.reusing() as reuse:
         assert coded_to_wire("pointmap", X) is wire
         assert coded_to_wire("confidence", X[..., 0]) is not wire  # another value
-    assert (reuse.taken, reuse.coded, reuse.complete) == (1, 1, False)
+        assert coded_to_wire("pointmap", X) is not wire  # taken once: the taker keeps it
+    assert (reuse.taken, reuse.coded, reuse.complete) == (1, 2, False)
     assert torch.equal(coded_from_wire(wire, "test", Budget(2**40)), X)
 
 
@@ -54,22 +55,25 @@ def test_only_read_only_arrays_and_matches_of_unchanged_tensors_are_taken() -> N
         torch.randint(n, (n,), generator=gen), torch.rand(n, generator=gen) > 0.3, torch.rand(n)
     )
     got, matches_wire = _decoded("matches", matches)
+    changed, changed_wire = _decoded("matches", matches)
+    changed.q.mul_(2)
     writeable = decoded.copy()
     with codec_reuse.reusing() as reuse:
         assert coded_to_wire("image", decoded) is wire
         assert coded_to_wire("matches", got) is matches_wire
         assert coded_to_wire("inter_matches", got) is not matches_wire  # another coding
         assert coded_to_wire("image", writeable) is not wire  # writeable: never taken
-    assert (reuse.taken, reuse.coded) == (2, 2)
-    got.q.mul_(2)
-    with codec_reuse.reusing():
-        assert coded_to_wire("matches", got) is not matches_wire
+        assert coded_to_wire("matches", changed) is not changed_wire
+    assert (reuse.taken, reuse.coded) == (2, 3)
 
 
-def test_a_value_no_longer_held_is_forgotten() -> None:
-    X, _ = _decoded("pointmap", _pointmap())
+def test_a_value_no_longer_held_is_forgotten_and_unremembered_decodes_keep_nothing() -> None:
+    X, wire = _decoded("pointmap", _pointmap())
     key = id(X)
     assert key in codec_reuse._DECODED
     del X
     gc.collect()
     assert key not in codec_reuse._DECODED
+    with codec_reuse.unremembered():
+        Y = coded_from_wire(wire, "test", Budget(2**40))
+    assert id(Y) not in codec_reuse._DECODED

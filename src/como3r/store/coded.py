@@ -50,7 +50,7 @@ from como3r.store.blobs import (
 from como3r.transport import codec
 from como3r.transport.codec_arrays import zstd
 from como3r.transport.codec_registry import register
-from como3r.transport.codec_reuse import reusing
+from como3r.transport.codec_reuse import reusing, unremembered
 
 
 @dataclass(frozen=True)
@@ -162,9 +162,11 @@ def code(obj: Any) -> tuple[bytes, Any]:
     try:
         with reusing() as reuse:
             data = codec.encode(obj, max_bytes=MAX_BYTES, lossy=True)
-        back = (
-            obj if reuse.complete else codec.decode(data, max_bytes=MAX_BYTES, expected=type(obj))
-        )
+        if reuse.complete:
+            back = obj
+        else:
+            with unremembered():  # the store has its map: kept, it would only take memory
+                back = codec.decode(data, max_bytes=MAX_BYTES, expected=type(obj))
     except MessageError as exc:  # an array the codec cannot carry: a bug, not bad input
         raise StoreError(f"{type(obj).__name__}: cannot be coded ({exc})") from None
     return OBJECT_MAGIC + zstd.compress(data, options=ZSTD_OPTIONS), back

@@ -8,10 +8,10 @@ WebP, each twice per keyframe (about 0.5 s of the coordinator's CPU per keyframe
 512x384: ``benchmarks/coordinator_stages.py``). Every decode of a coded field remembers its
 wire map with the value it gave (weakly, by the value's identity: a value no longer held is
 forgotten with it); an encode inside :func:`reusing` takes that map for the same value, if
-it is unchanged since, instead of coding it again. The map decodes to that value bit for
-bit (the value was decoded from it), which is all a coded field promises its reader; the
-bytes may differ from a fresh encode of it (the codings give back their own output
-unchanged, not their own bytes).
+it is unchanged since, instead of coding it again, and forgets it (what took it keeps it).
+The map decodes to that value bit for bit (the value was decoded from it), which is all a
+coded field promises its reader; the bytes may differ from a fresh encode of it (the codings
+give back their own output unchanged, not their own bytes).
 
 Unchanged means: a tensor whose version counter (bumped by every in-place operation on it
 or a view of it) is the one it was decoded with, a read-only array, or a dataclass of such
@@ -54,6 +54,7 @@ class Reuse:
 
 
 _REUSE: ContextVar[Reuse | None] = ContextVar("codec_reuse", default=None)
+_QUIET: ContextVar[bool] = ContextVar("codec_reuse_quiet", default=False)
 
 
 @contextmanager
@@ -66,6 +67,17 @@ def reusing() -> Iterator[Reuse]:
         yield reuse
     finally:
         _REUSE.reset(token)
+
+
+@contextmanager
+def unremembered() -> Iterator[None]:
+    """Decodes in this block (this thread or task) keep nothing: their values are coded
+    already where they will be kept (the store's own read-back of what it wrote)."""
+    token = _QUIET.set(True)
+    try:
+        yield
+    finally:
+        _QUIET.reset(token)
 
 
 def _state(value: Any) -> tuple | None:
@@ -84,7 +96,9 @@ def _state(value: Any) -> tuple | None:
 
 def remember(value: Any, coding: str, wire: dict[str, Any]) -> None:
     """Keep ``wire``, the coded map ``value`` was just decoded from (where its state can
-    be told and it can be referred to weakly)."""
+    be told and it can be referred to weakly; not inside :func:`unremembered`)."""
+    if _QUIET.get():
+        return
     state = _state(value)
     if state is None:
         return
@@ -105,19 +119,23 @@ def remember(value: Any, coding: str, wire: dict[str, Any]) -> None:
 
 def recall(coding: str, value: Any) -> dict[str, Any] | None:
     """Inside :func:`reusing`: the map ``value`` was decoded from in ``coding``, if it is
-    unchanged since (counted as taken), else None (counted as coded afresh by the caller).
-    Outside: None, counting nothing."""
+    unchanged since (counted as taken, and forgotten: what takes it keeps it, so a
+    coordinator holds its keyframes' maps only from the ingest to the store's write),
+    else None (counted as coded afresh by the caller). Outside: None, counting nothing."""
     reuse = _REUSE.get()
     if reuse is None:
         return None
     with _LOCK:
         entry = _DECODED.get(id(value))
-    if (
-        entry is not None
-        and entry[0]() is value
-        and entry[1] == coding
-        and entry[3] == _state(value)
-    ):
+        taken = (
+            entry is not None
+            and entry[0]() is value
+            and entry[1] == coding
+            and entry[3] == _state(value)
+        )
+        if taken:
+            del _DECODED[id(value)]
+    if entry is not None and taken:
         reuse.taken += 1
         return entry[2]
     reuse.coded += 1
