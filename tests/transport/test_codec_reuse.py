@@ -77,3 +77,11 @@ def test_a_value_no_longer_held_is_forgotten_and_unremembered_decodes_keep_nothi
     with codec_reuse.unremembered():
         Y = coded_from_wire(wire, "test", Budget(2**40))
     assert id(Y) not in codec_reuse._DECODED
+
+
+def test_an_inference_tensor_is_never_taken() -> None:
+    with torch.inference_mode():
+        X, wire = _decoded("pointmap", _pointmap())
+    with codec_reuse.reusing() as reuse:
+        assert coded_to_wire("pointmap", X) is not wire
+    assert (reuse.taken, reuse.coded) == (0, 1)

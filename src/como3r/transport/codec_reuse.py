@@ -82,8 +82,8 @@ def unremembered() -> Iterator[None]:
 
 def _state(value: Any) -> tuple | None:
     """What must be the same for ``value`` to be unchanged; None: it cannot be told."""
-    if isinstance(value, Tensor):
-        return (id(value), value._version)
+    if isinstance(value, Tensor):  # an inference tensor counts no versions: not told
+        return None if value.is_inference() else (id(value), value._version)
     if isinstance(value, np.ndarray):
         return None if value.flags.writeable else (id(value),)
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
