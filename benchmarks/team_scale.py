@@ -217,6 +217,33 @@ coordinator handed batches of 16 keyframes: 3 true edges refused, now admitted, 
 
 (before: the 3 refused edges, all between agent 2's second keyframe and agents 3 and 4, see
 0.41-0.77 of a view overlapping by the ground truth.)
+
+The session store no longer codes again what the ingest decoded (each keyframe's pointmap,
+confidence, colours and sequential matches were coded twice: ``transport/codec_reuse.py``),
+and a focal merge keeps a keyframe's ``X_init`` and ``X_hat`` one tensor (commits 61bd83a,
+68116ae, 7d85f42, branch shed26). In the 4-agent scene run in lockstep (the reproducible
+multi-process schedule, ``RuntimeOptions(lockstep=True)``; coordinator thread CPU,
+``OMP_NUM_THREADS=1``) the in-stream journal went 410 -> 181 ms per keyframe and
+``add_keyframes`` 2137 -> 1895 ms (load 2-10), trajectories and keyframes bit for bit the
+same (in ``--single-process`` at 68116ae too: 2093 -> 1841 ms of in-stream work per
+keyframe). Then ``--sizes 4 16 --no-decentralized`` at 7d85f42 (2 shared cores under a
+load of 2 to 12; one run each; the "before" figures are the tables above, not run again):
+
+    agents  kf  coord ms/kf  decodes/kf  end kf  drain s  batch  cleanup s  coord MB  agent MB  ATE mm  ATE %  ATE % team
+         4  20         1838        3.5        9     22.2     12        7.7      2360      1300    3.11  0.259      0.0647
+        16  40         2360        4.55      32     82.2     28       18.9      4630      1090    15.6   1.30      0.0811
+
+16 vs 4 agents: 1.28x per keyframe (goal 1.5x; 1.56-1.64x in the tables above), peak memory
+1.96x (1.72x at 8fbf070; not isolated: the store's reuse holds no coded map once a batch is
+written). Per keyframe the 4-agent run did 3.5 decodes where 8fbf070's did 2.85, so its 1838
+ms against 1940 understates the cut, and the ratio moves with each run's schedule too. The
+coordinator still falls behind: at 4 and 16 agents 9 and 32 keyframes wait when the input
+ends. Of its in-stream CPU in the lockstep run (ms per keyframe) what is left: prior decodes
+608, verification 342 besides the re-encodes, re-encodes (the simulated prior's encoding from
+its record) 431, ingest 293 (the lossy coding of every keyframe: 17 % of it is the decode;
+agents that sent their keyframes coded, as across machines, would leave the coordinator the
+decode and the store nothing to code), journal 181 (the coordinator's own pointmaps: focal
+corrections at insertion and merges, 140 ms each), global BA 161, gauge 45, focal 28.
 """
 
 from __future__ import annotations

@@ -28,6 +28,7 @@ from como3r.store.reader import read_session
 from como3r.store.resume import open_store
 from como3r.store.schema import FORMAT_VERSION, STORE_NAME
 from como3r.store.writer import SessionStore
+from como3r.transport import codec_compact
 
 H, W = 12, 16
 
@@ -129,6 +130,44 @@ def test_received_arrays_are_stored_coded_and_made_ones_settled_or_exact(tmp_pat
         ratio = a.q[a.valid] / b.q[b.valid]
         assert bool(((ratio - 1).abs() <= 2 ** (2**-4) - 1 + 1e-6).all())
         assert torch.equal(a.q, b.q) != settles
+
+
+def test_received_arrays_are_not_coded_again_by_the_store(tmp_path, monkeypatch) -> None:
+    """The store takes the coded maps the ingest decoded a keyframe's arrays from
+    (transport/codec_reuse.py): its pointmap, confidence, colours and sequential matches
+    are coded once, by the ingest; a pointmap the coordinator made is coded by the store;
+    a read gives back what the coordinator holds."""
+    calls: dict[str, int] = {}
+    for name, (encoder, decoder) in list(codec_compact.CODINGS.items()):
+
+        def counted(value, owner=None, _name=name, _encoder=encoder):
+            calls[_name] = calls.get(_name, 0) + 1
+            return _encoder(value, owner)
+
+        monkeypatch.setitem(codec_compact.CODINGS, name, (counted, decoder))
+    coordinator, gen = Coordinator(None, Config(), None, 1), torch.Generator().manual_seed(0)
+    path = tmp_path / STORE_NAME
+    with SessionStore.create(path, Config(), coordinator, settles=True) as store:
+        for kf_id in (0, 1):
+            coordinator.graph.add_keyframe(received(_packet(0, kf_id, gen)))
+            coordinator.stats.keyframes += 1
+            store.record(coordinator, [])
+        # the ingest's: two pointmaps, confidences, images; one edge's two directions
+        assert calls == {
+            "pointmap": 2,
+            "confidence": 2,
+            "image": 2,
+            "matches": 2,
+            "retrieval": 4,  # a tuple: not referable, coded again by the store (small)
+        }
+        kf = coordinator.graph.keyframes[1]
+        kf.X_hat = kf.X_hat * 1.01  # the coordinator's own: the store codes it
+        store.record(coordinator, [])
+        assert calls["pointmap"] == 3
+    for kf, held in zip(read_session(path).graph.keyframes, coordinator.graph.keyframes):
+        for name in ("X_hat", "C_hat", "X_init", "C_init"):
+            assert torch.equal(getattr(kf, name), getattr(held, name)), name
+        assert np.array_equal(kf.colors, held.colors)
 
 
 def test_the_admitted_candidate_holds_its_settled_edge(tmp_path) -> None:

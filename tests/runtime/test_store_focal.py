@@ -80,3 +80,17 @@ def test_a_format_6_store_is_read_without_them_and_gets_them_when_resumed(tmp_pa
     session = read_session(path)
     assert session.meta["format_version"] == str(FORMAT_VERSION)
     assert session.graph.own_focal == {0: 20.0}
+
+
+def test_a_rescaled_keyframe_keeps_one_tensor_for_its_unfused_pointmap(tmp_path) -> None:
+    """A keyframe whose pointmap was not replaced since insertion (``X_init`` is ``X_hat``)
+    keeps them one tensor when a merge moves its focal length: the store codes one
+    pointmap for both, and a read gives back what the coordinator holds."""
+    path = tmp_path / STORE_NAME
+    coordinator = _store(path)
+    kf = coordinator.graph.keyframes[1]
+    assert kf.X_init is kf.X_hat
+    with sqlite3.connect(path) as db:
+        assert db.execute("SELECT X_hat = X_init FROM pointmaps WHERE g = 1").fetchone() == (1,)
+    stored = read_session(path).graph.keyframes[1]
+    assert torch.equal(stored.X_init, kf.X_hat) and torch.equal(stored.X_hat, kf.X_hat)

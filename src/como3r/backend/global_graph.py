@@ -211,7 +211,11 @@ class GlobalGraph(GraphDepthSteps):
             )
         focal = current * math.exp(log_focal)
         for g in self.agent_keyframes(agent):
-            self.keyframes[g].rescale_focal(focal)
+            kf = self.keyframes[g]
+            shared = kf.X_init is kf.X_hat
+            kf.rescale_focal(focal)
+            if shared:  # one tensor still (the same values): the store codes it once
+                kf.X_init = kf.X_hat
             self.versions[g] += 1
         self.focal[agent] = focal
         return focal

@@ -50,6 +50,7 @@ from como3r.store.blobs import (
 from como3r.transport import codec
 from como3r.transport.codec_arrays import zstd
 from como3r.transport.codec_registry import register
+from como3r.transport.codec_reuse import reusing, unremembered
 
 
 @dataclass(frozen=True)
@@ -151,10 +152,21 @@ def identical(a: Any, b: Any) -> bool:
 
 
 def code(obj: Any) -> tuple[bytes, Any]:
-    """A coded blob of a stored object and the object a read gives back."""
+    """A coded blob of a stored object and the object a read gives back.
+
+    Arrays the coordinator holds as the ingest decoded them (or a read of this store)
+    keep the coded maps they were decoded from (:mod:`como3r.transport.codec_reuse`): an
+    object whose every coded field is such an array is neither coded nor decoded again,
+    a read gives back its very arrays (half the coordinator's store writes: each
+    keyframe's pointmap, confidence, colours and sequential matches were coded twice)."""
     try:
-        data = codec.encode(obj, max_bytes=MAX_BYTES, lossy=True)
-        back = codec.decode(data, max_bytes=MAX_BYTES, expected=type(obj))
+        with reusing() as reuse:
+            data = codec.encode(obj, max_bytes=MAX_BYTES, lossy=True)
+        if reuse.complete:
+            back = obj
+        else:
+            with unremembered():  # the store has its map: kept, it would only take memory
+                back = codec.decode(data, max_bytes=MAX_BYTES, expected=type(obj))
     except MessageError as exc:  # an array the codec cannot carry: a bug, not bad input
         raise StoreError(f"{type(obj).__name__}: cannot be coded ({exc})") from None
     return OBJECT_MAGIC + zstd.compress(data, options=ZSTD_OPTIONS), back
@@ -164,15 +176,19 @@ def pack_pointmap(array: Tensor) -> tuple[bytes, Tensor]:
     """A pointmap field's blob (``(H, W, 3)`` pointmap or ``(H, W)`` confidence) and the
     array a read gives back: ``array`` itself where its coding keeps it, else its coded
     value (the caller settles on it)."""
+    # the very tensor where it can be: a copy would not be the one the ingest decoded
+    plain = array if array.device.type == "cpu" and not array.requires_grad else None
+    plain = array.detach().cpu() if plain is None else plain
     if array.ndim == 3:
-        blob, back = code(StoredPointmap(array.detach().cpu()))
+        blob, back = code(StoredPointmap(plain))
         value = back.X_hat
     else:
-        blob, back = code(StoredConfidence(array.detach().cpu()))
+        blob, back = code(StoredConfidence(plain))
         value = back.C_hat
     if value.dtype != array.dtype or value.shape != array.shape:  # not the coding's
         return pack_arrays(array), array
-    return blob, (array if identical(array, value) else value.to(array.device))
+    same = value is array or identical(array, value)
+    return blob, (array if same else value.to(array.device))
 
 
 def pack_exact(obj: Any, *arrays: Tensor | np.ndarray) -> bytes:
@@ -215,8 +231,16 @@ def unpack_retrieval(blob: bytes, what: str) -> tuple[Tensor, Tensor] | Aggregat
 
 def pack_matches(ij: DirectedMatches, ji: DirectedMatches, width: int) -> bytes:
     """Both directions' matches of an edge in one blob (``width``: the row length)."""
-    stored = StoredMatches(width, *(DirectedMatches(m.idx, m.valid, m.q) for m in (ij, ji)))
+    stored = StoredMatches(width, *(_plain(m) for m in (ij, ji)))
     return pack_exact(stored, *_arrays(stored))
+
+
+def _plain(matches: DirectedMatches) -> DirectedMatches:
+    """``matches`` as a plain :class:`DirectedMatches`: itself where it is one (then the
+    coded map it was decoded from is taken again: :func:`code`)."""
+    if type(matches) is DirectedMatches:
+        return matches
+    return DirectedMatches(matches.idx, matches.valid, matches.q)
 
 
 def settle_matches(

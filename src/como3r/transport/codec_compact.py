@@ -74,6 +74,7 @@ from como3r.transport.codec_retrieval import (
     retrieval_decode,
     retrieval_encode,
 )
+from como3r.transport.codec_reuse import recall, remember
 
 LOG_RANGE_BITS = 8
 """A point's range travels as ``round(log2(range) * 2^LOG_RANGE_BITS)``: its quantisation
@@ -450,7 +451,11 @@ CODINGS: dict[str, tuple[Encoder, Decoder]] = {
 
 def coded_to_wire(coding: str, value: Any, owner: Any = None) -> dict[str, Any] | None:
     """``value`` (a field of ``owner``) in ``coding`` as its wire map, or None where it does
-    not fit the coding."""
+    not fit the coding; inside :func:`~.codec_reuse.reusing`, the map it was decoded from
+    where it is unchanged since."""
+    wire = recall(coding, value)
+    if wire is not None:
+        return wire
     body = CODINGS[coding][0](value, owner)
     return None if body is None else {TAG: CODED, "coding": coding, **body}
 
@@ -461,6 +466,8 @@ def coded_from_wire(value: dict, path: str, budget: Budget) -> Any:
     if not isinstance(coding, str) or coding not in CODINGS:
         raise MessageError(f"{path}: unknown coding {coding!r}")
     try:
-        return CODINGS[coding][1](value, path, budget)
+        decoded = CODINGS[coding][1](value, path, budget)
     except (ValueError, TypeError, OverflowError) as exc:
         raise MessageError(f"{path}: malformed {coding} coding: {exc}") from None
+    remember(decoded, coding, value)
+    return decoded
