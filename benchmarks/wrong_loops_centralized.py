@@ -61,8 +61,8 @@ With 20 % wrong edges the merged ATE is 1.03x the clean run's and the scale 0.12
 11.29 / 12.95 / 16.88, 9.00 / 8.30 / 8.35, 15.62 / 15.62 / 20.75. The wrong-scale decodes
 that pass the matcher are not what the moved matches of ``twin`` and ``replace`` are: seed
 1 at 20 % admitted three of them inside a gauge (residual ratios 0.038-0.090) and ended
-better than clean (8.30 against 9.00 mm). The matcher's descriptor refinement pulls a match
-back to the pixel that looks the same, so their matches are near the true ones, and a
+better than clean (8.30 against 9.00 mm). Presumably the matcher's descriptor refinement
+pulls a match back to the pixel that looks the same (not checked match by match), and a
 decode moved further fails C-Eq. 12 (seed 0 at 20 %: five draws failed for one pair, which
 so lost its true edge: 11.29 -> 12.95 mm). The same runs with moved matches in the true
 edge's place (``--scale-errors replace``, 297 s): 20 % wrong 1.788 % of path (2.75x clean),
