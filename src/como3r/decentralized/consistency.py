@@ -164,10 +164,12 @@ def pair_chi2(
     e = gtsam.Pose3.Logmap(E)
     n_a, n_b = abs(ka_j - ka_i), abs(kb_j - kb_i)
     odom_rot = math.radians(config.odom_sigma_rot_deg) ** 2
-    # Each loop's noise as the solve weighs it (F-Eq. 3 with the translation floor).
-    rot_i, trans_i = loop_sigmas(p_first, spacing, config)
-    rot_j, trans_j = loop_sigmas(p_second, spacing, config)
-    if covariances is not None:
+    # Each loop's noise as the solve weighs it (F-Eq. 3 with the translation floor), unless
+    # its full covariance is given (added below).
+    if covariances is None:
+        rot_i, trans_i = loop_sigmas(p_first, spacing, config)
+        rot_j, trans_j = loop_sigmas(p_second, spacing, config)
+    else:
         rot_i = rot_j = trans_i = trans_j = 0.0
     var_rot = (n_a + n_b) * odom_rot + rot_i**2 + rot_j**2
     length_i, length_j = np.linalg.norm(Z_i.translation()), np.linalg.norm(Z_j.translation())

@@ -114,12 +114,19 @@ def start_scale_sigma(travelled: float, config: PoseGraphConfig) -> float:
     return config.odom_start_scale_sigma * math.exp(-travelled / config.odom_start_spacings)
 
 
+def step_lengths(odometry: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(K - 1,)`` each: the lengths of one robot's ``(K, 8)`` odometry steps (odometry
+    units) and the distance travelled from its first keyframe to each step's middle (keyframe
+    spacings), where :func:`start_scale_sigma` is taken."""
+    lengths = np.linalg.norm(np.diff(odometry[:, :3], axis=0), axis=1)
+    return lengths, (np.cumsum(lengths) - lengths / 2) / spacing
+
+
 def start_variance(odometry: np.ndarray, spacing: float, config: PoseGraphConfig) -> np.ndarray:
     """``(K,)``: the summed variance of the odometry's step lengths from keyframe 0 to each
     keyframe of one robot's ``(K, 8)`` odometry, from its unconverged scale
     (:func:`start_scale_sigma`; odometry units squared)."""
-    lengths = np.linalg.norm(np.diff(odometry[:, :3], axis=0), axis=1)
-    middles = (np.cumsum(lengths) - lengths / 2) / spacing
+    lengths, middles = step_lengths(odometry, spacing)
     sigmas = np.array([start_scale_sigma(float(d), config) for d in middles])
     return np.concatenate([[0.0], np.cumsum((sigmas * lengths) ** 2)])
 

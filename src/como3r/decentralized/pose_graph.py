@@ -87,6 +87,7 @@ from como3r.decentralized.factor_noise import (
     loop_sigmas,
     odometry_noise,
     pose_noise,
+    step_lengths,
 )
 from como3r.decentralized.initial_estimate import initial_poses, initial_scales, keyframe_spacing
 from como3r.decentralized.pose_graph_problem import (
@@ -251,19 +252,17 @@ def build_graph(problem: PoseGraphProblem, formulation: str, config: PoseGraphCo
         if config.odom_scale_walk > 0:
             _add_odometry_scales(fixed, values, robot, odometry, noise, spacing, config)
             continue
-        travelled = 0.0
+        _, middles = step_lengths(odometry, spacing)
         for k in range(1, len(odometry)):
             step = to_pose3(odometry[k - 1]).between(to_pose3(odometry[k]))
-            length = float(np.linalg.norm(step.translation()))
             fixed.add(
                 gtsam.BetweenFactorPose3(
                     pose_key(robot, k - 1),
                     pose_key(robot, k),
                     step,
-                    odometry_noise(step, (travelled + length / 2) / spacing, spacing, config),
+                    odometry_noise(step, float(middles[k - 1]), spacing, config),
                 )
             )
-            travelled += length
     fixed.add(
         gtsam.PriorFactorPose3(
             pose_key(problem.anchor, 0),
@@ -283,8 +282,7 @@ def build_graph(problem: PoseGraphProblem, formulation: str, config: PoseGraphCo
                     loop.T_ab, float(scales[index]), loop.probability, spacing, config, weight
                 )
             )
-        sigma_rot, sigma_trans = loop_sigmas(loop.probability, spacing, config, weight)
-        return gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_rot] * 3 + [sigma_trans] * 3))
+        return pose_noise(*loop_sigmas(loop.probability, spacing, config, weight), 1.0)
 
     if formulation == "base":
 
