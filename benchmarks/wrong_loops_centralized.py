@@ -333,7 +333,7 @@ class Injector:
                 if wrong is None:
                     order.append(c)
                     continue
-                if injector.scale_errors != "twin" and wrong.i == c.i and wrong.j == c.j:
+                if injector.scale_errors != "twin" and injector.kinds[id(wrong)] == "scale":
                     linking.candidates[:] = [x for x in linking.candidates if x is not c]
                     if not wrong.verification.accepted:
                         injector.failed += 1

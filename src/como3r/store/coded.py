@@ -177,8 +177,9 @@ def pack_pointmap(array: Tensor) -> tuple[bytes, Tensor]:
     array a read gives back: ``array`` itself where its coding keeps it, else its coded
     value (the caller settles on it)."""
     # the very tensor where it can be: a copy would not be the one the ingest decoded
-    plain = array if array.device.type == "cpu" and not array.requires_grad else None
-    plain = array.detach().cpu() if plain is None else plain
+    plain = (
+        array if array.device.type == "cpu" and not array.requires_grad else array.detach().cpu()
+    )
     if array.ndim == 3:
         blob, back = code(StoredPointmap(plain))
         value = back.X_hat
