@@ -388,6 +388,10 @@ def test_a_coordinator_slow_to_read_costs_no_message_and_no_agent(
             time.sleep(BUSY_S)
         return slow(self, packets)
 
+    # A run first, so that the agent's compiled loops are in numba's cache on disk: in a
+    # fresh checkout the timed agent compiles them in its first frames and stays silent
+    # for longer than the timeout (measured: "no message for 8 s (hung)" every time).
+    run_multiprocess([scene / "agent_0"], tmp_path / "warm", config, PriorSpec("simulated"))
     monkeypatch.setattr(Coordinator, "add_keyframes", busy_coordinator)
     options = RuntimeOptions(agent_timeout_s=BUSY_S - 4.0)
     summary = run_multiprocess(
