@@ -136,8 +136,11 @@ class AgentEvents:
         """Handle a message, unless the stored state has it already: a coordinator resumed
         from its store gets again what it had not acknowledged (:mod:`.runtime_state`), and
         of that takes only the keyframes it does not hold."""
-        if event.seq is not None and event.seq >= slot.resend_until:
-            slot.resend_until = -1  # caught up
+        if event.seq is not None and slot.resend_until >= 0:
+            if event.seq >= slot.resend_until:
+                slot.resend_until = -1  # caught up: its stored clock orders again
+            elif isinstance(event.message, KeyframeMessage):  # the next ones come after it
+                slot.resent_clock = max(slot.resent_clock, event.message.packet.timestamp)
         if event.seq is None or event.seq > slot.handled_seq:
             slot.handled_seq = slot.handled_seq if event.seq is None else event.seq
             self._handle(slot, event.message, event.seq)
