@@ -120,10 +120,11 @@ def test_a_coordinator_killed_at_several_points_resumes_to_the_uninterrupted_res
     # that were present, while they re-send by the latest keyframe each re-sent (ordered
     # by the stored clocks, infinite for an agent that had finished, one agent's later
     # keyframes went ahead of the other's re-sent ones in 3 of 6 runs: 14.92 and 15.44 mm;
-    # CI at b60fb32 13.85). Measured killed 15.304 mm in 14 runs (kills at 2/5/left and
-    # 1/3/8/left), uninterrupted 15.297-15.411 in 11 (one or two in-stream BAs), load
-    # 10-33 on 2 shared cores, 3 of them with a third core's worth burnt: 0.70 % apart at
-    # most. The counts above, which a lossy resume would break, are exact
+    # CI at b60fb32 13.85). Measured killed 15.304 mm in 19 runs (kills at 2/5/left and
+    # 1/3/8/left: after a restart the rest came as one batch, one in-stream BA),
+    # uninterrupted 15.297-15.411 in 14 (by where the batch that merges ends), load 7-33
+    # on 2 shared cores, 6 of the runs with one or two more cores' worth burnt: 0.70 %
+    # apart at most. The counts above, which a lossy resume would break, are exact
     assert ate == pytest.approx(expected, rel=0.015)
     session = read_session(tmp_path / "killed.out" / STORE_NAME)
     assert session.finished and set(session.reports) == {0, 1}
