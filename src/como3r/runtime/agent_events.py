@@ -13,7 +13,8 @@ token gone: a crash, a Wi-Fi gap, or this process frozen past the Zenoh lease, w
 network cannot tell apart) is *away*, not failed: everything it sent is kept, its keyframes
 no longer hold back the others' (the ordering of :mod:`.processes` waits only for agents
 present; after a coordinator restart it waits for those that were present, which come back
-in seconds: the order then does not depend on which reconnects first), and it has
+in seconds, and for what they re-send: the order then does not depend on which reconnects
+or re-sends first, :mod:`.runtime_state`), and it has
 ``away_timeout_s`` to come back. The same process reconnecting continues where it was
 (it re-sends what was not acknowledged; pose updates it may have missed are sent again). A
 new process started with the same id takes over (:meth:`~.processes._Runtime.rejoin`): it starts after
@@ -136,8 +137,11 @@ class AgentEvents:
         """Handle a message, unless the stored state has it already: a coordinator resumed
         from its store gets again what it had not acknowledged (:mod:`.runtime_state`), and
         of that takes only the keyframes it does not hold."""
-        if event.seq is not None and event.seq >= slot.resend_until:
-            slot.resend_until = -1  # caught up
+        if event.seq is not None and slot.resend_until >= 0:
+            if event.seq >= slot.resend_until:
+                slot.resend_until = -1  # caught up: its stored clock orders again
+            elif isinstance(event.message, KeyframeMessage):  # the next ones come after it
+                slot.resent_clock = max(slot.resent_clock, event.message.packet.timestamp)
         if event.seq is None or event.seq > slot.handled_seq:
             slot.handled_seq = slot.handled_seq if event.seq is None else event.seq
             self._handle(slot, event.message, event.seq)

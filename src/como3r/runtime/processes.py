@@ -237,7 +237,7 @@ class _Runtime(AgentEvents):
             slot.segment.index,
         )
         slot.away_since, slot.last_heard, slot.awaited = None, time.monotonic(), False
-        slot.keyframes_waiting = 0  # the old process's never come
+        slot.keyframes_waiting, slot.resend_until = 0, -1  # the old process's never come
         slot.restarts += 1
         return replace(
             self.tasks[agent],

@@ -261,6 +261,9 @@ class AgentSlot:
     #: away only since the coordinator restarted: its stored clock still orders the
     #: keyframes until it is back (it comes back with what it sent since), or fails
     awaited: bool = False
+    #: (while re-sending) the timestamp of the latest keyframe its process re-sent, -inf
+    #: before the first: the keyframes still to be re-sent come after it
+    resent_clock: float = -math.inf
 
     def expected(self) -> bool:
         """Whether the coordinator waits for messages of its process: it runs, or it re-sends
@@ -269,8 +272,13 @@ class AgentSlot:
 
     def order_clock(self) -> float:
         """The clock the keyframe ordering waits for: none while away, unless
-        :attr:`awaited`."""
-        return math.inf if self.away_since is not None and not self.awaited else self.clock
+        :attr:`awaited`; while its process re-sends what a resumed coordinator had not
+        stored, :attr:`resent_clock`: the stored clock may be past keyframes the killed
+        coordinator held back unstored (a finished agent's is infinite), which then came
+        after the other agents' later keyframes."""
+        if self.away_since is not None and not self.awaited:
+            return math.inf
+        return self.resent_clock if self.resend_until >= 0 else self.clock
 
 
 @dataclass

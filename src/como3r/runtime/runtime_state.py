@@ -14,7 +14,11 @@ A coordinator killed at any moment and started again with ``--resume`` rebuilds 
 store (:func:`restore_runtime`): the segments' keyframes from the stored graph, the agents'
 counters, their reports. Agents still running are *away* until their liveliness token is
 seen again; they then re-send every message not acknowledged, of which the runtime takes
-what the store does not have (:meth:`~como3r.runtime.processes._Runtime._received`). Pose
+what the store does not have (:meth:`~como3r.runtime.processes._Runtime._received`). The
+keyframes keep their ``(timestamp, agent)`` order across the restart: an agent that was
+present orders them by its stored clock until it is back, and while it re-sends by the
+latest keyframe it re-sent (:meth:`~.results.AgentSlot.order_clock`; its stored clock may be
+past the keyframes the killed coordinator had not taken). Pose
 updates the dead coordinator sent may have been lost on the way, and their contents are not
 stored: each one an agent may still lack is replaced by the current poses of the agent's
 keyframes, the state the last of them led to (an update carries all of an agent's keyframes
@@ -62,6 +66,7 @@ SLOT_FIELDS = (
     "last_frame",
     "lost_frames",
     "keyframes_received",
+    "keyframes_waiting",
     "seconds",
     "error",
     "absences",
@@ -123,8 +128,8 @@ def restore_runtime(runtime: StatefulRuntime, session: Session) -> None:
         )
     now = time.monotonic()
     for slot, saved in zip(runtime.slots, state["slots"]):
-        for name in SLOT_FIELDS:
-            setattr(slot, name, saved[name])
+        for name in SLOT_FIELDS:  # (a store of an older version lacks keyframes_waiting)
+            setattr(slot, name, saved.get(name, getattr(slot, name)))
         slot.outcomes = Counter(saved["outcomes"])
         slot.segment = runtime.segments[saved["segment"]]
         slot.last_heard = now
