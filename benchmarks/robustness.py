@@ -53,8 +53,8 @@ result, not a stop: its row says ``error`` and the traceback goes to ``--out/err
 
 ``--prior-model`` sets ``simulated_prior.model`` (issue 37's ``v2``), ``--long-side``
 ``input.long_side``, and ``--mode decentralized`` runs ``como3r run --mode decentralized``
-instead (robots as threads, every robot always in range, ``vio`` odometry added to a copy
-of the scene as ``como3r synth --odometry vio`` does; it places every frame with odometry,
+instead (robots as threads, every robot always in range, ``--odometry`` (``vio``, or
+``lio``) added to a copy of the scene as ``como3r synth --odometry`` does; it places every frame with odometry,
 so its ``frames`` are all frames and ``tracked`` the share of them in the trajectories).
 
 **Measured, prior v2** (issue 37; seed 0, 160x120 scenes of 80 frames per agent, 40
@@ -145,7 +145,9 @@ scales (``pose_graph.odom_scale_walk``, F-[25]'s rescaled dead reckoning) took s
 pairwise consistency weighing loops with the same floor, seed 0 2.89 / 2.79 / 2.91, seed 1
 1.87 / 1.90 / 1.90 (the default); with the odometry's unconverged start discounted as well
 (``decentralized.vio_start_scale_error`` 0.3, off by default: its docstring) seed 0 2.51 /
-2.41 / 2.48, seed 1 1.09 / 2.01 / 1.91. Before, seed 1's 1-agent
+2.41 / 2.48, seed 1 1.09 / 2.01 / 1.91. Session 27 (load 6-16): the default again 2.89 /
+2.79 / 2.91 and 1.87 / 1.90 / 1.90; with ``--odometry lio`` (metric from the start) 1.37 /
+1.24 / 1.51 and 1.30 / 1.42 / 1.45. Before, seed 1's 1-agent
 cells are in the paragraphs below, and its 2-agent ones 1.05 (tabletop), 0.93 (room) and
 1.01 % (aerial); low-texture seed 1 was 0.85 tracked at 2.18 %.
 
@@ -388,17 +390,17 @@ def cell_config(seed: int, prior_model: str | None, long_side: int | None) -> Co
     return config
 
 
-def _with_odometry(scene: Path, seed: int) -> Path:
-    """A copy of ``scene`` whose agents have simulated ``vio`` odometry (``odometry.txt``,
-    as ``como3r synth --odometry vio``), which the decentralized mode needs."""
+def _with_odometry(scene: Path, seed: int, model: str = "vio") -> Path:
+    """A copy of ``scene`` whose agents have simulated ``model`` odometry (``odometry.txt``,
+    as ``como3r synth --odometry MODEL``), which the decentralized mode needs."""
     from como3r.decentralized.odometry_sim import add_odometry
 
-    folder = scene.with_name(scene.name + "-vio")
+    folder = scene.with_name(f"{scene.name}-{model}")
     if not (folder / "scene.json").is_file():
         with atomic_output_dir(folder, overwrite=True) as staging:
             shutil.copytree(scene, staging, dirs_exist_ok=True)
             for agent in sorted(staging.glob("agent_*")):
-                add_odometry(agent, seed=seed * 1000 + int(agent.name.split("_")[1]))
+                add_odometry(agent, seed=seed * 1000 + int(agent.name.split("_")[1]), params=model)
     return folder
 
 
@@ -429,16 +431,18 @@ def run_cell(
     prior_model: str | None = None,
     long_side: int | None = None,
     mode: str = "centralized",
+    odometry: str = "vio",
 ) -> dict:
-    """Synthesize (or reuse) the cell's scene, run SLAM with the defaults, measure."""
+    """Synthesize (or reuse) the cell's scene, run SLAM with the defaults, measure
+    (``odometry``: the simulated odometry model of a decentralized run)."""
     name = f"{family}-{size}-a{agents}-f{frames}-s{seed}"
     row: dict = {"family": family, "size": size, "seed": seed, "agents": agents, "mode": mode}
     try:
         scene = _scene(out / "scenes", family, size, seed, agents, frames)
         config = cell_config(seed, prior_model, long_side)
         if mode == "decentralized":
-            scene = _with_odometry(scene, seed)
-            run_dir = out / "runs" / f"{name}-dec"
+            scene = _with_odometry(scene, seed, odometry)
+            run_dir = out / "runs" / f"{name}-dec{'' if odometry == 'vio' else '-' + odometry}"
             metrics, info = _run(scene, run_dir, agents, config, mode)
             row.update(measure_decentralized(metrics, info, scene, run_dir))
             if agents > 1 and metrics.get("ate") and not metrics["ate"].get("merged"):
@@ -564,6 +568,13 @@ def main() -> None:
         default=None,
         help="input.long_side (default: the configuration's, 512).",
     )
+    parser.add_argument(
+        "--odometry",
+        choices=("vio", "lio"),
+        default="vio",
+        help="--mode decentralized: the simulated odometry (como3r synth --odometry): a "
+        "monocular VIO off in scale at its start, or a metric LiDAR-inertial one.",
+    )
     args = parser.parse_args()
     for size in args.sizes:
         try:
@@ -580,6 +591,7 @@ def main() -> None:
         f"{args.prior_model or Config().simulated_prior.model}, input.long_side "
         f"{args.long_side or Config().input.long_side}; "
         f"{args.agents} agent(s), {args.frames} frames each, {args.mode}"
+        + (f" ({args.odometry} odometry)" if args.mode == "decentralized" else "")
     )
     console.print(header)
     rows = []
@@ -598,6 +610,7 @@ def main() -> None:
                         args.prior_model,
                         args.long_side,
                         args.mode,
+                        args.odometry,
                     )
                 )
                 console.print(

@@ -62,6 +62,10 @@ def test_output_folder(run, scene):
     assert all(e["ratio"] >= 0.3 for e in accepted)
     assert all("gnc_weight" in e for e in accepted)
     assert graph["components"] == [[0, 1, 2]]
+    # the final pose graph, for benchmarks/resolve_decentralized.py: each loop's prior pose
+    # and each keyframe's odometry pose
+    assert all(len(e["T_ab"]) == 8 for e in graph["edges"])
+    assert all(len(k["T_OC"]) == 8 for k in graph["keyframes"])
 
 
 @pytest.mark.slow

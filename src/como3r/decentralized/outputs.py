@@ -214,9 +214,11 @@ def graph_document(
     groups: list[list[int]],
     weights: dict,
 ) -> dict[str, Any]:
-    """``graph.json``: every keyframe of ``robots`` with its final pose, accepted and
-    rejected loop closures (with their GNC weight where ``weights`` has one) and the
-    groups of robots sharing a frame."""
+    """``graph.json``: every keyframe of ``robots`` with its final pose and its odometry
+    pose ``T_OC``, accepted and rejected loop closures (with the prior's relative pose
+    ``T_ab`` and their GNC weight where ``weights`` has one) and the groups of robots
+    sharing a frame: the final pose graph, which ``benchmarks/resolve_decentralized.py``
+    solves again."""
     keyframes = []
     for r, robot in robots.items():
         poses = frame_poses(robot.odometry, robot.keyframes, estimates[r])[robot.keyframes.rows]
@@ -228,6 +230,7 @@ def graph_document(
                     "frame": int(robot.keyframes.frames[k]),
                     "timestamp": float(robot.keyframes.timestamps[k]),
                     "T_WC": poses[k].tolist(),
+                    "T_OC": robot.keyframes.T_OC[k].tolist(),
                 }
             )
     edges = []
@@ -242,6 +245,7 @@ def graph_document(
                 "probability": loop.probability,
                 "correspondences": loop.correspondences,
                 "odometry_scale": loop.odometry_scale,
+                "T_ab": np.asarray(loop.T_ab, dtype=np.float64).tolist(),
             }
             if _loop_key(loop) in weights:
                 edge["gnc_weight"] = weights[_loop_key(loop)]

@@ -369,6 +369,15 @@ class Registrar:
             )
         return neighbour, self._consecutive[keyframe]
 
+    def register_own(self, keyframe: int, other: int) -> Registration:
+        """Registration of two of this robot's keyframes (``T_ij``: ``other`` in
+        ``keyframe``), not cached: :mod:`~.start_scale`'s pairs."""
+        return self._decode(
+            self.own_encoding(keyframe),
+            self.own_encoding(other),
+            ("own", self.robot, keyframe, other),
+        )
+
     def _decode(self, enc_i: Encoding, enc_j: Encoding, name: tuple) -> Registration:
         start = time.perf_counter()
         pred_ij, pred_ji = self.prior.decode_symmetric([(enc_i, enc_j)])[0]
