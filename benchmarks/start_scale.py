@@ -2,11 +2,11 @@
 
 For each robot of ``benchmarks/robustness.py``'s decentralized cells (same scenes, same
 prior and keyframes as a run), the prior registers the robot's own keyframe pairs ``(i, i +
-gap)``; :func:`~como3r.decentralized.start_scale.estimate_start_error` fits the odometry's
+gap)``; :func:`_start_scale.estimate_start_error` fits the odometry's
 start-scale error ``e0`` to the ratios of the odometry's distances to the prior's, once with
 the ``vio`` odometry's distances and once with the true ones (a metric, LIO-like odometry:
 the ``lio`` preset's scale error is 0.5 %), and
-:func:`~como3r.decentralized.start_scale.start_discount` says whether the discount would be
+:func:`_start_scale.start_discount` says whether the discount would be
 on. ``true e0`` is the ``vio`` odometry's first step over the true one, minus 1. ``prior
 log rms`` is the RMS of ``log(prior / true distance)`` per gap, over the cell's robots.
 
@@ -51,11 +51,11 @@ from _tables import print_table, write_csv
 from rich.console import Console
 
 sys.path.insert(0, str(Path(__file__).parent))
+from _start_scale import estimate_start_error, start_discount  # noqa: E402
 from robustness import FAMILIES, _scene, _with_odometry, cell_config  # noqa: E402
 
 from como3r.config_decentralized import DecentralizedConfig, ProtocolConfig  # noqa: E402
 from como3r.decentralized.protocol import build_prior, make_robot  # noqa: E402
-from como3r.decentralized.start_scale import estimate_start_error, start_discount  # noqa: E402
 from como3r.io.tum import read_tum  # noqa: E402
 from como3r.runtime.pipeline import PriorSpec  # noqa: E402
 

@@ -324,8 +324,7 @@ class DecentralizedConfig:
             exp(-d / L)``, ``e0`` held near 0 by 0.3) re-solved worse: seed 0 2.71 / 2.82 /
             2.91, seed 1 2.45 / 3.55 / 3.32. Nor can a robot set it from its own prior chain
             (the F-Eq. 6 ratio of its odometry's distances to the prior's over its
-            keyframe pairs, :func:`~como3r.decentralized.start_scale.estimate_start_error`;
-            ``benchmarks/start_scale.py``, seeds 0-2, 9 robots): one robot's start error is
+            keyframe pairs, ``benchmarks/start_scale.py``, seeds 0-2, 9 robots): one robot's start error is
             known to 0.2-0.9, and on seeds 0 and 2 the prior's distances are short at the
             starts, so a metric odometry's fit finds the VIO's error (the one discount a 2
             sigma test lets through is 0.9 for either odometry). Full runs with the default

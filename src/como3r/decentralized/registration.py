@@ -371,7 +371,7 @@ class Registrar:
 
     def register_own(self, keyframe: int, other: int) -> Registration:
         """Registration of two of this robot's keyframes (``T_ij``: ``other`` in
-        ``keyframe``), not cached: :mod:`~.start_scale`'s pairs."""
+        ``keyframe``), not cached: ``benchmarks/start_scale.py``'s pairs."""
         return self._decode(
             self.own_encoding(keyframe),
             self.own_encoding(other),

@@ -1,12 +1,17 @@
-"""A robot's odometry start-scale error from its own prior chain
-(decentralized/start_scale.py)."""
+"""The estimator of ``benchmarks/start_scale.py``: a robot's odometry start-scale error from
+its own prior chain (``benchmarks/_start_scale.py``)."""
 
 from __future__ import annotations
+
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from como3r.decentralized.start_scale import (
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+from _start_scale import (  # noqa: E402
     StartScale,
     estimate_start_error,
     pair_log_sigma,

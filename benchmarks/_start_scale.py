@@ -123,7 +123,7 @@ def estimate_start_error(
 
 def start_discount(estimate: StartScale, significance: float = 2.0) -> float:
     """The start discount (``pose_graph.odom_start_scale_sigma`` of one robot,
-    :func:`~.factor_noise.start_scale_sigma`): ``|e0|`` where ``e0`` is more than
+    :func:`como3r.decentralized.factor_noise.start_scale_sigma`): ``|e0|`` where ``e0`` is more than
     ``significance`` standard errors from 0 (the ratio is not flat), else 0."""
     if not abs(estimate.error) > significance * estimate.sigma:
         return 0.0
