@@ -13,17 +13,11 @@ import pytest
 from scipy.stats import chi2
 
 from como3r.config_decentralized import DecentralizedConfig, PoseGraphConfig, check_config
-from como3r.decentralized import consistency
-from como3r.decentralized.consistency import (
-    _oriented,
-    check_solution,
-    consistent_loops,
-    pair_chi2,
-    solve_checked,
-    solve_shares,
-)
+from como3r.decentralized import pairwise_consistency
+from como3r.decentralized.consistency import check_solution, solve_checked, solve_shares
 from como3r.decentralized.factor_noise import start_variance
 from como3r.decentralized.messages import PoseGraphShare
+from como3r.decentralized.pairwise_consistency import consistent_loops, oriented_loop, pair_chi2
 from como3r.decentralized.pose_graph import solve_pose_graph
 from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
@@ -128,8 +122,8 @@ def test_pairwise_consistency_weighs_a_loop_with_the_solves_translation_floor():
     threshold = chi2.ppf(0.99, 6)
     statistics = [
         pair_chi2(
-            _oriented(first, 1.0),
-            _oriented(dataclasses.replace(second, T_ab=moved), 1.0),
+            oriented_loop(first, 1.0),
+            oriented_loop(dataclasses.replace(second, T_ab=moved), 1.0),
             0.9,
             0.9,
             data.problem.odometry,
@@ -162,8 +156,8 @@ def test_pairwise_consistency_counts_the_odometrys_unconverged_start():
         start = {r: start_variance(o, SPACING, config) for r, o in odometry.items()}
         statistics.append(
             pair_chi2(
-                _oriented(first, 1.0),
-                _oriented(second, 1.0),
+                oriented_loop(first, 1.0),
+                oriented_loop(second, 1.0),
                 0.9,
                 0.9,
                 odometry,
@@ -176,7 +170,7 @@ def test_pairwise_consistency_counts_the_odometrys_unconverged_start():
 
 
 def test_the_greedy_clique_of_many_loops_holds_back_the_wrong_ones(monkeypatch):
-    monkeypatch.setattr(consistency, "MAX_EXACT_LOOPS", 2)
+    monkeypatch.setattr(pairwise_consistency, "MAX_EXACT_LOOPS", 2)
     data = _data(0, look_alike=4, wrong_scale=4)
     keep = consistent_loops(data.problem, _config())
     assert keep[: data.true_loops].all()

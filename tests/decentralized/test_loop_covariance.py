@@ -1,6 +1,6 @@
 """A loop's covariance whose rotation error turns about the scene
 (``decentralized.loop_covariance: scene``; decentralized/factor_noise.py ``loop_covariance``,
-pose_graph.py, consistency.py ``pair_chi2``)."""
+pose_graph.py, pairwise_consistency.py ``pair_chi2``)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,12 @@ import pytest
 from scipy.stats import chi2
 
 from como3r.config_decentralized import DecentralizedConfig, PoseGraphConfig, check_config
-from como3r.decentralized.consistency import _oriented, oriented_covariance, pair_chi2
 from como3r.decentralized.factor_noise import loop_covariance
+from como3r.decentralized.pairwise_consistency import (
+    oriented_covariance,
+    oriented_loop,
+    pair_chi2,
+)
 from como3r.decentralized.pose_graph import build_graph, scaled_loop_error
 from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
@@ -132,8 +136,8 @@ def test_pairwise_consistency_weighs_a_turn_about_the_scene_with_the_solves_cova
         second = _loop(from_pose3(poses[1]), *robots, ka=5, kb=5)
         statistics.append(
             pair_chi2(
-                _oriented(first, 1.0),
-                _oriented(second, 1.0),
+                oriented_loop(first, 1.0),
+                oriented_loop(second, 1.0),
                 0.8,
                 0.8,
                 odometry,

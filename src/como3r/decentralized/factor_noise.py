@@ -38,7 +38,7 @@ def loop_sigmas(
     ``weight``); the translation's sigma never falls below ``loop_sigma_trans_floor_ratio``
     keyframe spacings, which ``p`` does not lower (module docstring). The solve's loop
     factors and the pairwise consistency test
-    (:func:`~como3r.decentralized.consistency.pair_chi2`) both take a loop's noise from here.
+    (:func:`~como3r.decentralized.pairwise_consistency.pair_chi2`) both take a loop's noise from here.
 
     Args:
         probability: the loop's confidence ``p`` (F-Eq. 2).
