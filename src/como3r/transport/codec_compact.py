@@ -6,8 +6,8 @@ A field registered with a coding (:func:`~como3r.transport.codec_registry.regist
 ``coded``) travels as ``{"#": "coded", "coding": name, ...}`` in a lossy encode and is
 decoded back to the value's own type; where a value does not fit its coding (a pointmap
 with a zero or non-finite point, a confidence that is not positive) it travels as before
-(float16 where the field is a half-precision one). The exact encode (pipes on one machine)
-never uses them.
+(float16 where the field is a half-precision one). The exact encode never uses them (what
+the coordinator sends on pipes; an agent process sends in them: :mod:`.pipes`).
 
 * ``"pointmap"``: an ``(H, W, 3)`` float32 pointmap as the range along each point's ray,
   ``log2`` quantised in steps of ``2^-LOG_RANGE_BITS``, and the ray's direction in
