@@ -3,6 +3,7 @@ one handed over in the agent's own arrays (one process) is coded once, to the sa
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
 
 import numpy as np
@@ -112,9 +113,11 @@ def test_the_network_coding_is_not_coded_again(monkeypatch) -> None:
         ingest.received(_packet())  # the agent's own arrays: coded here
 
 
-def test_a_changed_pointmap_is_coded_again() -> None:
-    """A decoded pointmap changed in place is no longer what its sender coded."""
+def test_a_changed_or_uncoded_field_is_coded_again() -> None:
+    """A decoded pointmap changed in place, or a confidence not decoded, is no longer what
+    its sender coded."""
     once = ingest.received(_packet())
     assert ingest.coded(once)
+    assert not ingest.coded(dataclasses.replace(once, C_hat=once.C_hat.clone()))
     once.X_hat[0, 0, 2] += 1.0
     assert not ingest.coded(once)

@@ -66,11 +66,13 @@ def received(message: T, coordinator: Coordinator | None = None) -> T:
 def coded(message: object) -> bool:
     """Whether ``message`` (a :class:`~como3r.frontend.packets.KeyframePacket` or
     :class:`~como3r.frontend.packets.PointmapRefresh`) was decoded from the lossy wire in
-    this process (its sender coded it): its pointmap holds the coded map it was decoded from, unchanged
-    (:func:`~como3r.transport.codec_reuse.held`, until the session store takes the map).
-    Coding it again would give back the very values (the codings give back their own
-    output) for the cost of an encode and a decode."""
-    return codec_reuse.held("pointmap", getattr(message, "X_hat", None))
+    this process (its sender coded it): its pointmap and confidence hold the coded maps they
+    were decoded from, unchanged (:func:`~como3r.transport.codec_reuse.held`, until the
+    session store takes them). Coding it again would give back the very values (the
+    codings give back their own output) for the cost of an encode and a decode."""
+    return codec_reuse.held("pointmap", getattr(message, "X_hat", None)) and codec_reuse.held(
+        "confidence", getattr(message, "C_hat", None)
+    )
 
 
 def hold_the_coordinators(frontends: Sequence[AgentFrontend], coordinator: Coordinator) -> None:
