@@ -85,3 +85,23 @@ def test_an_inference_tensor_is_never_taken() -> None:
     with codec_reuse.reusing() as reuse:
         assert coded_to_wire("pointmap", X) is not wire
     assert (reuse.taken, reuse.coded) == (0, 1)
+
+
+def test_store_reads_keep_their_maps_only_while_the_value_read_is_held() -> None:
+    """A paged keyframe's pointmap read back from the session store again and again (as
+    its keyframe is paged in and out) leaves no map behind once the value read is gone:
+    the maps held stay bounded by the values held (issue 41: the coordinator's memory)."""
+    from como3r.store import coded
+
+    gc.collect()
+    before = len(codec_reuse._DECODED)
+    X = _pointmap()
+    blob, back = coded.pack_pointmap(X)
+    assert back is not X  # not its own coding: the store wrote its coded value
+    held = [coded.unpack_one(blob, "keyframe 0 X_hat") for _ in range(3)]
+    assert len(codec_reuse._DECODED) == before + 3  # one map per value held
+    for _ in range(50):
+        coded.unpack_one(blob, "keyframe 0 X_hat")  # read and dropped
+    del held
+    gc.collect()
+    assert len(codec_reuse._DECODED) == before

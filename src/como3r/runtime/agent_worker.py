@@ -66,8 +66,9 @@ class _Stopped(Exception):
 
 def agent_process_main(agent: int, inbox: Connection, outbox: Connection) -> None:
     """Entry point of an agent process started by :class:`~como3r.transport.pipes.PipeHub`: its task
-    is the first message on its pipe."""
-    channel = Channel(inbox, outbox, codec.DEFAULT_MAX_BYTES, TO_AGENT)
+    is the first message on its pipe; it sends in the lossy wire codings, as across
+    machines, so the coordinator only decodes (:mod:`como3r.runtime.ingest`)."""
+    channel = Channel(inbox, outbox, codec.DEFAULT_MAX_BYTES, TO_AGENT, coded=True)
     try:
         task = channel.receive()
         if not isinstance(task, AgentTask) or task.agent != agent:

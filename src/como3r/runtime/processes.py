@@ -68,6 +68,7 @@ from como3r.progress import (
 from como3r.runtime.agent_events import AgentEvents, RuntimeOptions, Waiting
 from como3r.runtime.agent_worker import END, TAKEN, prior_fields
 from como3r.runtime.backlog import Backlog
+from como3r.runtime.ingest import STAGE as INGEST
 from como3r.runtime.ingest import received
 from como3r.runtime.interrupts import checkpoint, finishing
 from como3r.runtime.live import CoordinatorLive
@@ -89,8 +90,9 @@ from como3r.runtime.results import (
 )
 from como3r.store.writer import SessionStore
 from como3r.transport.keyframe_bytes import PartCounter
-from como3r.transport.links import Hub, Traffic
+from como3r.transport.links import Hub, Received, Traffic
 from como3r.transport.messages import (
+    AgentFinished,
     AgentTask,
     KeyframeMessage,
     PoseUpdateMessage,
@@ -295,6 +297,13 @@ class _Runtime(AgentEvents):
             self._check_timeouts([slot])
 
     # ---------------------------------------------------------------- keyframes and updates
+
+    def _received(self, slot: AgentSlot, event: Received) -> None:
+        """A message, its decode charged to the coordinator's ingest where it is a keyframe
+        or the final report (their lossy codings: :mod:`.ingest`)."""
+        if isinstance(event.message, (KeyframeMessage, AgentFinished)):
+            self.coordinator.stats.add_time(INGEST, event.seconds)
+        super()._received(slot, event)
 
     def _process_pending(self, force: bool = False, progress: PhaseCallback | None = None) -> None:
         """Hand the waiting keyframes whose turn has come to the coordinator in batches

@@ -80,15 +80,25 @@ MAX_DEPTH = 32
 # ----------------------------------------------------------------------------- encoding
 
 
-def encode(message: Any, *, max_bytes: int = DEFAULT_MAX_BYTES, lossy: bool = False) -> bytes:
+def encode(
+    message: Any,
+    *,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+    lossy: bool = False,
+    exact: frozenset[str] = frozenset(),
+) -> bytes:
     """Encode a registered dataclass instance.
 
     Args:
         message: the message.
         max_bytes: size cap of the encoding.
-        lossy: send the half-precision fields (:func:`register`) in float16, as the
-            transports across machines do; otherwise the encoding is bit-exact (pipes on
-            one machine, where bandwidth costs nothing).
+        lossy: send the half-precision fields (:func:`register`) in float16 and the coded
+            ones in their compact codings, as the transports across machines do; otherwise
+            the encoding is bit-exact.
+        exact: with ``lossy``, fields (``"WireName.field"``, e.g.
+            ``"KeyframePacket.encoding"``) whose whole value is encoded bit-exact all the
+            same (an agent process on pipes: its keyframes coded as across machines, their
+            encodings exact, as the single-process ingest hands them over).
 
     Raises:
         MessageError: unregistered type, unsupported value, or the encoding exceeds
@@ -98,7 +108,7 @@ def encode(message: Any, *, max_bytes: int = DEFAULT_MAX_BYTES, lossy: bool = Fa
         raise MessageError(
             f"only registered dataclasses are messages, got {type(message).__name__}"
         )
-    tree = _to_wire(message, type(message).__name__, 0, lossy)
+    tree = _to_wire(message, type(message).__name__, 0, lossy, exact)
     recorder = _recorder(message)
     try:
         data = msgpack.packb(tree, use_bin_type=True)
@@ -116,7 +126,9 @@ def encode(message: Any, *, max_bytes: int = DEFAULT_MAX_BYTES, lossy: bool = Fa
     return data
 
 
-def _to_wire(value: Any, path: str, depth: int, lossy: bool) -> Any:
+def _to_wire(
+    value: Any, path: str, depth: int, lossy: bool, exact: frozenset[str] = frozenset()
+) -> Any:
     if depth > MAX_DEPTH:
         raise MessageError(f"{path}: nested deeper than {MAX_DEPTH}")
     if value is None or isinstance(value, (bool, int, float, str, bytes)):
@@ -128,20 +140,22 @@ def _to_wire(value: Any, path: str, depth: int, lossy: bool) -> Any:
     if isinstance(value, np.ndarray):
         return array_to_wire("ndarray", *ndarray_bytes(value, path))
     if isinstance(value, list):
-        return [_to_wire(v, f"{path}[{i}]", depth + 1, lossy) for i, v in enumerate(value)]
+        return [_to_wire(v, f"{path}[{i}]", depth + 1, lossy, exact) for i, v in enumerate(value)]
     if isinstance(value, tuple):
         return {
             TAG: "tuple",
-            "items": [_to_wire(v, f"{path}[{i}]", depth + 1, lossy) for i, v in enumerate(value)],
+            "items": [
+                _to_wire(v, f"{path}[{i}]", depth + 1, lossy, exact) for i, v in enumerate(value)
+            ],
         }
     if isinstance(value, dict):
         items = [
-            [_dict_key(k, path), _to_wire(v, f"{path}[{k!r}]", depth + 1, lossy)]
+            [_dict_key(k, path), _to_wire(v, f"{path}[{k!r}]", depth + 1, lossy, exact)]
             for k, v in value.items()
         ]
         return {TAG: "dict", "items": items}
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return _object_to_wire(value, path, depth, lossy)
+        return _object_to_wire(value, path, depth, lossy, exact)
     raise MessageError(f"{path}: cannot encode a {type(value).__name__}")
 
 
@@ -226,7 +240,9 @@ def _dict_key(key: Any, path: str) -> str | int:
     return key
 
 
-def _object_to_wire(value: Any, path: str, depth: int, lossy: bool) -> dict[str, Any]:
+def _object_to_wire(
+    value: Any, path: str, depth: int, lossy: bool, exact: frozenset[str]
+) -> dict[str, Any]:
     cls = type(value)
     entry = BY_PATH.get(f"{cls.__module__}:{cls.__qualname__}")
     if entry is None:
@@ -235,32 +251,40 @@ def _object_to_wire(value: Any, path: str, depth: int, lossy: bool) -> dict[str,
     fields = {}
     for f in init_fields(cls):
         field_value = getattr(value, f.name)
-        coded = _coded(entry.coding(f.name), field_value, value, lossy)
+        lossy_here = lossy and f"{entry.name}.{f.name}" not in exact
+        coded = _coded(entry.coding(f.name), field_value, value, lossy_here)
         fields[f.name] = (
             coded
             if coded is not None
             else _field_to_wire(
-                field_value, lossy and f.name in entry.half, f"{path}.{f.name}", depth + 1, lossy
+                field_value,
+                lossy_here and f.name in entry.half,
+                f"{path}.{f.name}",
+                depth + 1,
+                lossy_here,
+                exact,
             )
         )
     return {TAG: "object", "type": entry.name, "version": entry.version, "fields": fields}
 
 
-def _field_to_wire(value: Any, half: bool, path: str, depth: int, lossy: bool) -> Any:
+def _field_to_wire(
+    value: Any, half: bool, path: str, depth: int, lossy: bool, exact: frozenset[str]
+) -> Any:
     """A field's wire form; a float32 array of a ``half`` field (or in a tuple that is the
     field) as float16 where it fits."""
     if half and isinstance(value, tuple):
         return {
             TAG: "tuple",
             "items": [
-                _field_to_wire(v, True, f"{path}[{i}]", depth + 1, lossy)
+                _field_to_wire(v, True, f"{path}[{i}]", depth + 1, lossy, exact)
                 for i, v in enumerate(value)
             ],
         }
     narrow = as_half(value) if half else None
     if narrow is None:
-        return _to_wire(value, path, depth, lossy)
-    return {**_to_wire(narrow, path, depth, lossy), "as": "float32"}
+        return _to_wire(value, path, depth, lossy, exact)
+    return {**_to_wire(narrow, path, depth, lossy, exact), "as": "float32"}
 
 
 def as_received(value: Any) -> Any:

@@ -6,8 +6,8 @@ A field registered with a coding (:func:`~como3r.transport.codec_registry.regist
 ``coded``) travels as ``{"#": "coded", "coding": name, ...}`` in a lossy encode and is
 decoded back to the value's own type; where a value does not fit its coding (a pointmap
 with a zero or non-finite point, a confidence that is not positive) it travels as before
-(float16 where the field is a half-precision one). The exact encode (pipes on one machine)
-never uses them.
+(float16 where the field is a half-precision one). The exact encode never uses them (what
+the coordinator sends on pipes; an agent process sends in them: :mod:`.pipes`).
 
 * ``"pointmap"``: an ``(H, W, 3)`` float32 pointmap as the range along each point's ray,
   ``log2`` quantised in steps of ``2^-LOG_RANGE_BITS``, and the ray's direction in
@@ -177,13 +177,18 @@ def _pinhole_fit(X: np.ndarray) -> list[float] | None:
     slopes = (X[..., 0][front] / z, X[..., 1][front] / z)
     if not (np.isfinite(slopes[0]).all() and np.isfinite(slopes[1]).all()):
         return None
-    try:
-        a, b = np.polyfit(u.astype(np.float64), slopes[0], 1)
-        c, d = np.polyfit(v.astype(np.float64), slopes[1], 1)
-    except (np.linalg.LinAlgError, ValueError):
-        return None
-    params = [float(a), float(b), float(c), float(d)]
+    params = [*_line(u.astype(np.float64), slopes[0]), *_line(v.astype(np.float64), slopes[1])]
     return params if all(np.isfinite(params)) and max(map(abs, params)) < 1e6 else None
+
+
+def _line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Slope and intercept of the least-squares line through ``(x, y)`` (``x`` not all
+    equal), in closed form: numpy's ``polyfit`` took 6 times as long (34 against 5 ms on a
+    512x384 pointmap), a sixth of the pointmap's encode. Only the coded bytes depend on the
+    fit: a decode adds the pinhole's codes back to the residual codes it subtracted."""
+    dx = x - x.mean()
+    slope = float(dx @ (y - y.mean()) / (dx @ dx))
+    return slope, float(y.mean() - slope * x.mean())
 
 
 def _pinhole_codes(

@@ -117,6 +117,19 @@ def remember(value: Any, coding: str, wire: dict[str, Any]) -> None:
         _DECODED[key] = (ref, coding, wire, state)
 
 
+def held(coding: str, value: Any) -> bool:
+    """Whether ``value`` was decoded from ``coding`` in this process and is unchanged since,
+    its map not yet taken (:func:`recall`): a value as its sender coded it."""
+    with _LOCK:
+        entry = _DECODED.get(id(value))
+        return (
+            entry is not None
+            and entry[0]() is value
+            and entry[1] == coding
+            and entry[3] == _state(value)
+        )
+
+
 def recall(coding: str, value: Any) -> dict[str, Any] | None:
     """Inside :func:`reusing`: the map ``value`` was decoded from in ``coding``, if it is
     unchanged since (counted as taken, and forgotten: what takes it keeps it, so a

@@ -37,11 +37,13 @@ logger = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class Received:
     """A valid message from ``agent``; ``seq`` is its number in the sending process's
-    stream where the transport numbers messages (None: pipes, which lose nothing)."""
+    stream where the transport numbers messages (None: pipes, which lose nothing);
+    ``seconds``: its decode here (a keyframe's lossy codings: the coordinator's ingest)."""
 
     agent: int
     message: Any
     seq: int | None = None
+    seconds: float = 0.0
 
 
 @dataclass(frozen=True)

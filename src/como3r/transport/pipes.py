@@ -27,6 +27,11 @@ from como3r.transport.messages import FROM_AGENT, AgentTask, Shutdown
 logger = logging.getLogger(__name__)
 
 
+#: what an agent process codes exactly all the same (:class:`Channel`'s ``coded``): a
+#: keyframe's encoding, as the single-process ingest hands it over (never float16 tokens)
+EXACT_ON_PIPES = frozenset({"KeyframePacket.encoding"})
+
+
 class Channel:
     """Typed messages over two one-way pipes; sends go through a background thread.
 
@@ -35,6 +40,10 @@ class Channel:
         outbox: the sending end, or None.
         max_bytes: size cap of a message in either direction.
         accepts: message classes :meth:`receive` accepts.
+        coded: send in the lossy wire codings, as a link across machines does, but each
+            keyframe's encoding exact (:data:`EXACT_ON_PIPES`): an agent process's end,
+            so that the coordinator only decodes what it would code otherwise
+            (:mod:`como3r.runtime.ingest`). Else every message is sent bit-exact.
     """
 
     def __init__(
@@ -43,11 +52,13 @@ class Channel:
         outbox: Connection | None,
         max_bytes: int,
         accepts: tuple[type, ...],
+        coded: bool = False,
     ) -> None:
         self.inbox = inbox
         self.outbox = outbox
         self.max_bytes = max_bytes
         self.accepts = accepts
+        self.coded = coded
         self.traffic = Traffic()
         self.broken = False
         self._queue: queue.Queue[bytes | None] = queue.Queue()
@@ -58,7 +69,9 @@ class Channel:
 
     def send(self, message: Any) -> None:
         """Encode ``message`` and queue it; never blocks on the pipe."""
-        data = codec.encode(message, max_bytes=self.max_bytes)
+        data = codec.encode(
+            message, max_bytes=self.max_bytes, lossy=self.coded, exact=EXACT_ON_PIPES
+        )
         self.traffic.sent(message, len(data))
         self._queue.put(data)
 
@@ -74,11 +87,18 @@ class Channel:
             MessageError: the bytes are not an acceptable message.
             OSError: the pipe's framing is unreadable (the stream is lost).
         """
+        return self.receive_timed()[0]
+
+    def receive_timed(self) -> tuple[Any, float]:
+        """The next message (blocking) and the seconds its decode took; raises as
+        :meth:`receive`."""
         assert self.inbox is not None
         data = self.inbox.recv_bytes(self.max_bytes)
+        start = time.perf_counter()
         message = codec.decode(data, max_bytes=self.max_bytes, expected=self.accepts)
+        seconds = time.perf_counter() - start
         self.traffic.received(message, len(data))
-        return message
+        return message, seconds
 
     def close(self, timeout: float | None = None) -> None:
         """Flush queued messages and close both ends.
@@ -190,7 +210,7 @@ class PipeHub:
             try:
                 if not channel.poll(0.0):
                     break
-                message = channel.receive()
+                message, seconds = channel.receive_timed()
             except EOFError:
                 self._open.discard(agent)
             except OSError as exc:  # the framing is lost: nothing after it can be read
@@ -206,7 +226,7 @@ class PipeHub:
             except MessageError as exc:
                 out.append(Rejected(agent, str(exc)))
             else:
-                out.append(Received(agent, message))
+                out.append(Received(agent, message, seconds=seconds))
         return out
 
     def durable(self, held: Mapping[int, int]) -> dict[str, Any]:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import time
 from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -336,11 +337,12 @@ class ZenohHub:
                 agent, f"message {seq} before {holder.next_seq} (a gap: the agent re-sends)"
             )
         holder.next_seq += 1  # the holder's own: taken, or skipped, never waited for
+        start = time.perf_counter()
         message, error = self._decode(agent, data)
         if error is not None:
             return Rejected(agent, error)
         self._traffic[agent].received(message, len(data))
-        return Received(agent, message, seq)
+        return Received(agent, message, seq, time.perf_counter() - start)
 
     def _decode(self, agent: int, data: bytes) -> tuple[Any, str | None]:
         """The message of ``data`` sent under agent ``agent``'s key, or why it is not one."""
