@@ -152,6 +152,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from como3r.config_decentralized import DecentralizedConfig
 from como3r.decentralized.consistency import solve_checked
@@ -160,6 +161,8 @@ from como3r.decentralized.pose_graph_problem import (
     PoseGraphProblem,
     connected_components,
 )
+from como3r.geometry.lie import sim3_act
+from como3r.geometry.umeyama import umeyama_sim3
 from como3r.io.tum import read_tum
 
 
@@ -195,16 +198,9 @@ def load_graph(run: Path) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray],
 
 def umeyama_rmse(estimate: np.ndarray, truth: np.ndarray) -> float:
     """RMSE of ``estimate (N, 3)`` after the least-squares Sim(3) onto ``truth (N, 3)``."""
-    mu_e, mu_t = estimate.mean(0), truth.mean(0)
-    e, t = estimate - mu_e, truth - mu_t
-    U, D, Vt = np.linalg.svd(t.T @ e / len(e))
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2, 2] = -1.0
-    R = U @ S @ Vt
-    scale = float(np.trace(np.diag(D) @ S) / (e**2).sum(1).mean())
-    aligned = scale * e @ R.T + mu_t
-    return float(np.sqrt(((aligned - truth) ** 2).sum(1).mean()))
+    src, dst = torch.from_numpy(estimate).double(), torch.from_numpy(truth).double()
+    aligned = sim3_act(umeyama_sim3(src, dst), src)
+    return float(((aligned - dst) ** 2).sum(1).mean().sqrt())
 
 
 def resolve(run: Path, scene: Path, settings: DecentralizedConfig) -> float:

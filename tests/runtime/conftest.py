@@ -1,5 +1,6 @@
 """Fixtures shared by the runtime's tests: small synthetic scenes, made once per test
-session, and a team of ``como3r coordinator`` / ``como3r agent`` processes on loopback TCP."""
+session, and a team of ``como3r coordinator`` / ``como3r agent`` processes on loopback TCP, and a
+scripted hub."""
 
 from __future__ import annotations
 
@@ -137,3 +138,39 @@ def new_team(tmp_path) -> Callable[[str], ZenohTeam]:
 def team(new_team) -> ZenohTeam:
     """A :class:`ZenohTeam` logging in the test's ``tmp_path``."""
     return new_team("")
+
+
+class ScriptedHub:
+    """A hub whose events a test hands over (``script``); it records what the runtime sends
+    and which agents it drops (a coordinator's transport without processes)."""
+
+    name = "scripted"
+
+    def __init__(self) -> None:
+        self.script: list = []
+        self.sent: list = []
+        self.dropped: list[int] = []
+
+    def start(self, tasks, rejoin) -> None:
+        self.tasks = list(tasks)
+
+    def events(self, timeout: float) -> list:
+        events, self.script = self.script, []
+        return events
+
+    def durable(self, held) -> dict:
+        return {}
+
+    def acknowledge(self, held) -> None:
+        pass
+
+    def send(self, agent: int, message) -> None:
+        self.sent.append((agent, message))
+
+    def drop(self, agent: int) -> None:
+        self.dropped.append(agent)
+
+
+@pytest.fixture
+def scripted_hub() -> ScriptedHub:
+    return ScriptedHub()

@@ -502,40 +502,9 @@ def test_agent_result_applies_updates_like_the_frontend() -> None:
 # ---------------------------------------------------------------------- away, back, rejoin
 
 
-class _ScriptedHub:
-    """A hub whose events the test hands over; it records what the runtime sends."""
-
-    name = "scripted"
-
-    def __init__(self) -> None:
-        self.script: list = []
-        self.sent: list = []
-        self.dropped: list[int] = []
-
-    def start(self, tasks, rejoin) -> None:
-        self.tasks = list(tasks)
-
-    def events(self, timeout: float) -> list:
-        events, self.script = self.script, []
-        return events
-
-    def durable(self, held) -> dict:
-        return {}
-
-    def acknowledge(self, held) -> None:
-        pass
-
-    def send(self, agent: int, message) -> None:
-        self.sent.append((agent, message))
-
-    def drop(self, agent: int) -> None:
-        self.dropped.append(agent)
-
-
-def _scripted_runtime(away_timeout_s: float, states: list) -> tuple:
+def _scripted_runtime(hub, away_timeout_s: float, states: list) -> tuple:
     from como3r.runtime.processes import _Runtime
 
-    hub = _ScriptedHub()
     runtime = _Runtime(
         hub,
         [0, 0],
@@ -548,17 +517,17 @@ def _scripted_runtime(away_timeout_s: float, states: list) -> tuple:
     return hub, runtime
 
 
-def _pump(hub: _ScriptedHub, runtime, *events) -> None:
+def _pump(hub, runtime, *events) -> None:
     hub.script = list(events)
     runtime._pump(0.0)
 
 
-def test_an_agent_whose_link_is_lost_is_away_then_back_or_failed() -> None:
+def test_an_agent_whose_link_is_lost_is_away_then_back_or_failed(scripted_hub) -> None:
     from como3r.transport.links import Joined, Left, Received
     from como3r.transport.messages import AgentStarted, PoseUpdateMessage
 
     states: list = []
-    hub, runtime = _scripted_runtime(0.3, states)
+    hub, runtime = _scripted_runtime(scripted_hub, 0.3, states)
     slot = runtime.slots[0]
     _pump(
         hub,
@@ -590,19 +559,21 @@ def test_an_agent_whose_link_is_lost_is_away_then_back_or_failed() -> None:
     assert hub.dropped == [0] and states[-1] == (0, "failed")
 
 
-def test_a_process_ending_fails_its_agent_at_once() -> None:
+def test_a_process_ending_fails_its_agent_at_once(scripted_hub) -> None:
     from como3r.transport.links import Left
 
-    hub, runtime = _scripted_runtime(120.0, [])
+    hub, runtime = _scripted_runtime(scripted_hub, 120.0, [])
     _pump(hub, runtime, Left(1, "process died (exit code 1)"))  # pipes: it cannot return
     assert runtime.slots[1].status == "failed" and hub.dropped == [1]
 
 
-def test_a_new_process_taking_over_an_id_starts_a_map_segment_after_the_last_frame() -> None:
+def test_a_new_process_taking_over_an_id_starts_a_map_segment_after_the_last_frame(
+    scripted_hub,
+) -> None:
     from como3r.runtime.results import KeyframeView
     from como3r.transport.links import Left
 
-    hub, runtime = _scripted_runtime(120.0, [])
+    hub, runtime = _scripted_runtime(scripted_hub, 120.0, [])
     slot = runtime.slots[1]
     slot.status, slot.last_frame = "running", 6
     runtime.segments[1].result.keyframes.append(
@@ -622,7 +593,7 @@ def test_a_new_process_taking_over_an_id_starts_a_map_segment_after_the_last_fra
     assert "failed in this run (boom)" in runtime.rejoin(1)
 
 
-def test_keyframes_an_agent_still_holds_keep_its_ordering_clock_back() -> None:
+def test_keyframes_an_agent_still_holds_keep_its_ordering_clock_back(scripted_hub) -> None:
     """A self-calibrated agent holds its first keyframes until its camera settles (each
     FrameDone counts them): its clock stays at the frame that made the oldest, so another
     agent's keyframe of that time waits for them, as the ``(timestamp, agent)`` order wants
@@ -632,7 +603,7 @@ def test_keyframes_an_agent_still_holds_keep_its_ordering_clock_back() -> None:
     from como3r.transport.links import Received
     from como3r.transport.messages import AgentStarted, FrameDone
 
-    hub, runtime = _scripted_runtime(120.0, [])
+    hub, runtime = _scripted_runtime(scripted_hub, 120.0, [])
     runtime.progress = None
     batches: list = []
     runtime._add_keyframes = lambda batch: batches.append(
@@ -666,14 +637,16 @@ def test_keyframes_an_agent_still_holds_keep_its_ordering_clock_back() -> None:
     assert batches == [[(0, 0), (1, 0), (0, 1)]]
 
 
-def test_an_agent_away_since_the_coordinator_restarted_still_orders_the_keyframes() -> None:
+def test_an_agent_away_since_the_coordinator_restarted_still_orders_the_keyframes(
+    scripted_hub,
+) -> None:
     """Restored from its store (runtime_state.restore_runtime), a coordinator waits for the
     agents that were present: their stored clocks order the keyframes until they are back,
     so which reconnects first does not decide the order; once back, an agent whose link
     is lost holds nothing back."""
     from como3r.transport.links import Joined, Left
 
-    hub, runtime = _scripted_runtime(120.0, [])
+    hub, runtime = _scripted_runtime(scripted_hub, 120.0, [])
     slot = runtime.slots[0]
     slot.status, slot.clock = "running", 0.2
     slot.away_since, slot.awaited = time.monotonic(), True  # as restore_runtime leaves it

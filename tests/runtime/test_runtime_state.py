@@ -130,32 +130,9 @@ def test_a_coordinator_killed_at_several_points_resumes_to_the_uninterrupted_res
     assert session.finished and set(session.reports) == {0, 1}
 
 
-class _ScriptedHub:
-    """A hub whose events the test hands over (a resumed coordinator's transport)."""
-
-    name = "scripted"
-
-    def __init__(self) -> None:
-        self.script: list = []
-
-    def start(self, tasks, rejoin) -> None:
-        pass
-
-    def events(self, timeout: float) -> list:
-        events, self.script = self.script, []
-        return events
-
-    def durable(self, held) -> dict:
-        return {}
-
-    def acknowledge(self, held) -> None:
-        pass
-
-    def send(self, agent: int, message) -> None:
-        pass
-
-
-def test_keyframes_re_sent_after_a_restart_keep_the_order_of_an_uninterrupted_run() -> None:
+def test_keyframes_re_sent_after_a_restart_keep_the_order_of_an_uninterrupted_run(
+    scripted_hub,
+) -> None:
     """Both agents had finished when the coordinator was killed, their last keyframes not
     taken yet (their stored clocks are infinite): the resumed coordinator orders by what
     each agent has re-sent so far, so agent 1, all of whose keyframes are back, does not
@@ -164,7 +141,7 @@ def test_keyframes_re_sent_after_a_restart_keep_the_order_of_an_uninterrupted_ru
     database)."""
     from como3r.runtime.processes import _Runtime
 
-    hub = _ScriptedHub()
+    hub = scripted_hub
     config = apply_overrides(Config(), ["input.long_side=64"])
     options = RuntimeOptions()
     runtime = _Runtime(hub, [0, 0], config, PriorSpec("simulated"), options, None)
