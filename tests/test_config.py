@@ -93,6 +93,8 @@ def test_inf_turns_a_documented_gate_off(key: str, tmp_path) -> None:
         ("depth.boundary_residual=x", "depth.boundary_residual"),
         ("tracking.fusion=y", "tracking.fusion"),
         ("global_ba.linear_solver=cholmod", "global_ba.linear_solver"),
+        ("session.team_resident_keyframes=-1", "session.team_resident_keyframes must be >= 0"),
+        ("session.team_resident_keyframes=2.5", "session.team_resident_keyframes"),
         ("tracking=1", "section"),
         ("no_equals_sign", "section.key=value"),
     ],

@@ -99,6 +99,16 @@ class SessionConfig:
     after every frame (:class:`como3r.frontend.paging.AgentPaging`). The results are the
     same for every value.
 
+    ``team_resident_keyframes``: of those, how many the coordinator keeps whole at most,
+    across the team (a count): the newest by arrival; the others are paged out as above.
+    0: no team-wide bound (every agent's ``resident_keyframes``, so the coordinator's
+    resident keyframes grow with the team). The default 32 is four agents' worth at the
+    default ``resident_keyframes`` of 8: a team of up to four keeps what it kept before,
+    a larger one holds as many keyframes as four agents (issue 41: 16 agents held 128
+    whole). The agents' front-ends page their own keyframes by ``resident_keyframes``
+    alone. The results are the same for every value; only memory and time (reads from the
+    store) change.
+
     ``spill_dir``: the folder in which each agent makes its spill folder (removed when the
     agent ends); empty: the system's temporary folder.
 
@@ -123,6 +133,7 @@ class SessionConfig:
     """
 
     resident_keyframes: int = 8
+    team_resident_keyframes: int = 32
     spill_dir: str = ""
     disk_reserve_mb: float = 0.0
     encoding_cache: int = 64
@@ -210,6 +221,7 @@ _NON_NEGATIVE = (
     "visualization.voxel_size_m",
     "visualization.map_voxel",
     "session.resident_keyframes",
+    "session.team_resident_keyframes",
     "session.disk_reserve_mb",
     "session.encoding_cache",
 )

@@ -151,13 +151,43 @@ def test_an_agent_with_fewer_keyframes_than_the_working_set_keeps_them_all(tmp_p
         } == kept
 
 
+def test_the_team_bound_keeps_the_newest_keyframes_across_agents(tmp_path) -> None:
+    """Issue 41: three agents arriving unevenly, 3 resident each and 4 across the team: the
+    coordinator keeps the 4 newest arrivals of the agents' own newest 3 (global index is
+    arrival order), and pages out the rest."""
+    # the settings are the point of the test: a team bound below the agents' working sets
+    config = apply_overrides(
+        Config(), ["session.resident_keyframes=3", "session.team_resident_keyframes=4"]
+    )
+    coordinator = Coordinator(None, config, None, 3)
+    gen = torch.Generator().manual_seed(4)
+    arrivals = [0, 0, 1, 0, 2, 0, 1, 0, 2, 0, 0]  # agent 0 fast, 1 and 2 slow
+    with SessionStore.create(tmp_path / STORE_NAME, config, coordinator) as store:
+        for agent in arrivals:
+            kf_id = len(coordinator.graph.local_to_global.get(agent, []))
+            g = coordinator.graph.add_keyframe(_packet(agent, kf_id, gen))
+            assert g == len(coordinator.graph.keyframes) - 1  # global index = arrival order
+            coordinator.stats.keyframes += 1
+            store.record(coordinator, [])
+        graph = coordinator.graph
+        per_agent = {g for own in graph.local_to_global.values() for g in own[-3:]}
+        assert per_agent == {2, 4, 6, 7, 8, 9, 10}
+        assert working_set(coordinator) == {7, 8, 9, 10}  # agent 0's 7, 9, 10 and agent 2's 8
+        resident = {g for g, kf in enumerate(graph.keyframes) if not isinstance(kf, PagedKeyframe)}
+        assert resident == {7, 8, 9, 10}
+    # 0: no team-wide bound
+    coordinator.config = replace(config, session=replace(config.session, team_resident_keyframes=0))
+    assert working_set(coordinator) == per_agent
+
+
 @pytest.fixture(scope="module")
 def scene(tiny_scene) -> Path:
     return tiny_scene(frames=16, seed=1, overlap=0.2)
 
 
-def _run(scene: Path, out: Path, resident: int) -> Path:
-    # the setting compared is the point of the test: everything paged out, or nothing
+def _run(scene: Path, out: Path, resident: int, team: int = 0) -> Path:
+    # the settings compared are the point of the test: everything paged out, or nothing;
+    # the team-wide bound (0: none), or not
     result = CliRunner().invoke(
         app,
         [
@@ -176,27 +206,42 @@ def _run(scene: Path, out: Path, resident: int) -> Path:
             "-q",
             "--set",
             f"session.resident_keyframes={resident}",
+            "--set",
+            f"session.team_resident_keyframes={team}",
         ],
     )
     assert result.exit_code == 0, result.output
     return out
 
 
-@pytest.mark.slow
-def test_paging_everything_out_changes_no_output(scene, tmp_path) -> None:
-    paged, resident = _run(scene, tmp_path / "paged", 0), _run(scene, tmp_path / "resident", 1000)
+def _same_outputs(a: Path, b: Path) -> None:
+    """``a`` and ``b`` wrote the same trajectories, graph, keyframes and merged map."""
     for name in ("trajectories/agent_0.txt", "trajectories/agent_1.txt", "graph.json"):
-        assert (paged / name).read_text() == (resident / name).read_text(), name
-    keyframes = sorted(p.relative_to(resident) for p in resident.glob("keyframes/*/*.c3z"))
+        assert (a / name).read_text() == (b / name).read_text(), name
+    keyframes = sorted(p.relative_to(b) for p in b.glob("keyframes/*/*.c3z"))
     assert len(keyframes) >= 8
     for name in keyframes:
-        a, b = read_packed(paged / name), read_packed(resident / name)
-        assert a.keys() == b.keys(), name
-        assert all(np.array_equal(a[key], b[key]) for key in b), name
-    metrics = [json.loads((run / "metrics.json").read_text()) for run in (paged, resident)]
+        x, y = read_packed(a / name), read_packed(b / name)
+        assert x.keys() == y.keys(), name
+        assert all(np.array_equal(x[key], y[key]) for key in y), name
+    metrics = [json.loads((run / "metrics.json").read_text()) for run in (a, b)]
     assert metrics[0]["components"] == metrics[1]["components"] == [[0, 1]]
     assert metrics[0]["coordinator"]["ba_runs"] == metrics[1]["coordinator"]["ba_runs"] >= 1
     assert metrics[0]["map_points"] == metrics[1]["map_points"]
+
+
+@pytest.mark.slow
+def test_paging_everything_out_changes_no_output(scene, tmp_path) -> None:
+    paged, resident = _run(scene, tmp_path / "paged", 0), _run(scene, tmp_path / "resident", 1000)
+    _same_outputs(paged, resident)
+
+
+@pytest.mark.slow
+def test_the_team_bound_changes_no_output(scene, tmp_path) -> None:
+    """Issue 41: 4 resident keyframes per agent, at most 3 across the team (the bound pages
+    out keyframes the agents' working sets hold), writes what no bound writes."""
+    bounded = _run(scene, tmp_path / "bounded", 4, team=3)
+    _same_outputs(bounded, _run(scene, tmp_path / "unbounded", 4))
 
 
 def test_a_session_read_paged_reads_nothing_until_its_store_serves_it(tmp_path) -> None:

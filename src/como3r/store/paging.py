@@ -4,8 +4,10 @@ Every keyframe the coordinator holds carries its encoding (the simulated prior's
 at 512x384, MASt3R's 3 MB), its image and four pointmaps, and every sequential edge both
 directions' dense matches (5 MB at 512x384): kept in memory, they grow with the sequence.
 The session store holds all of them already (:mod:`.writer`), so after every message's
-transaction :func:`page_out` lets go of what is outside the *working set*, the newest
-``session.resident_keyframes`` keyframes of each agent:
+transaction :func:`page_out` lets go of what is outside the *working set*: the newest
+``session.resident_keyframes`` keyframes of each agent, of which the coordinator keeps at
+most ``session.team_resident_keyframes``, the newest by arrival (issue 41: without it the
+working set grows with the team, 8 keyframes per agent):
 
 * a keyframe outside it becomes a :class:`~como3r.frontend.paging.PagedKeyframe`: its
   light fields (pose, ids, intrinsics, retrieval features) stay, its encoding, image and
@@ -131,17 +133,27 @@ def figures_only(v: Verification) -> StoredVerification:
 
 
 def working_set(coordinator: Coordinator) -> set[int]:
-    """Global indices of each agent's newest ``session.resident_keyframes`` keyframes."""
-    keep = coordinator.config.session.resident_keyframes
+    """Global indices of the keyframes the coordinator keeps whole: each agent's newest
+    ``session.resident_keyframes``, and of those the newest
+    ``session.team_resident_keyframes`` by arrival (0: all of them).
+
+    A keyframe's global index is its arrival order (:meth:`GlobalGraph.append
+    <como3r.backend.global_graph.GlobalGraph.append>` gives it the graph's length, and a
+    session read back from its store appends them in that order), so the team-wide bound
+    keeps the largest indices.
+    """
+    session = coordinator.config.session
+    keep, team = session.resident_keyframes, session.team_resident_keyframes
     graph = coordinator.graph
     # max(0, ...): an agent with fewer keyframes keeps all of them (a negative start would
     # count from the end and keep only its last keep - len(own))
-    return {
+    own_newest = sorted(
         g
         for own in graph.local_to_global.values()
         for g in own[max(0, len(own) - keep) :]
         if keep > 0
-    }
+    )
+    return set(own_newest[-team:] if team > 0 else own_newest)
 
 
 def page_out(coordinator: Coordinator, pages: Pages) -> None:
