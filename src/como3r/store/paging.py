@@ -40,6 +40,7 @@ from como3r.coordination.coordinator import Coordinator
 from como3r.errors import StoreError
 from como3r.frontend.paging import KeyframePages, PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches, PairLink
+from como3r.store.heap import give_back_freed_memory
 
 logger = logging.getLogger(__name__)
 
@@ -189,3 +190,4 @@ def page_out(coordinator: Coordinator, pages: Pages) -> None:
             and not coordinator.awaiting_recheck(candidate)
         ):
             candidate.verification = figures_only(candidate.verification)
+    give_back_freed_memory()  # what was let go of leaves the process's RSS too (.heap)
