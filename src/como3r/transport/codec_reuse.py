@@ -117,17 +117,25 @@ def remember(value: Any, coding: str, wire: dict[str, Any]) -> None:
         _DECODED[key] = (ref, coding, wire, state)
 
 
+def _matching(coding: str, value: Any) -> tuple | None:
+    """(Under ``_LOCK``) ``value``'s entry if it was decoded from ``coding`` and is unchanged
+    since, else None."""
+    entry = _DECODED.get(id(value))
+    if (
+        entry is not None
+        and entry[0]() is value
+        and entry[1] == coding
+        and entry[3] == _state(value)
+    ):
+        return entry
+    return None
+
+
 def held(coding: str, value: Any) -> bool:
     """Whether ``value`` was decoded from ``coding`` in this process and is unchanged since,
     its map not yet taken (:func:`recall`): a value as its sender coded it."""
     with _LOCK:
-        entry = _DECODED.get(id(value))
-        return (
-            entry is not None
-            and entry[0]() is value
-            and entry[1] == coding
-            and entry[3] == _state(value)
-        )
+        return _matching(coding, value) is not None
 
 
 def recall(coding: str, value: Any) -> dict[str, Any] | None:
@@ -139,16 +147,10 @@ def recall(coding: str, value: Any) -> dict[str, Any] | None:
     if reuse is None:
         return None
     with _LOCK:
-        entry = _DECODED.get(id(value))
-        taken = (
-            entry is not None
-            and entry[0]() is value
-            and entry[1] == coding
-            and entry[3] == _state(value)
-        )
-        if taken:
+        entry = _matching(coding, value)
+        if entry is not None:
             del _DECODED[id(value)]
-    if entry is not None and taken:
+    if entry is not None:
         reuse.taken += 1
         return entry[2]
     reuse.coded += 1
