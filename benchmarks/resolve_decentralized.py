@@ -145,15 +145,14 @@ at 0-20 % wrong, scale error 0.30 %) but moves the ``vio`` cells both ways.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 
+from como3r.config import Config, apply_overrides
 from como3r.config_decentralized import DecentralizedConfig
 from como3r.decentralized.consistency import solve_checked
 from como3r.decentralized.pose_graph_problem import (
@@ -227,16 +226,6 @@ def resolve(run: Path, scene: Path, settings: DecentralizedConfig) -> float:
     return 100.0 * umeyama_rmse(np.concatenate(estimated), np.concatenate(true)) / path
 
 
-def _value(text: str) -> float | int | str:
-    """``text`` as an int, else a float, else itself."""
-    for kind in (int, float):
-        try:
-            return kind(text)
-        except ValueError:
-            pass
-    return text
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("out", type=Path, help="a robustness.py --mode decentralized --out")
@@ -245,24 +234,19 @@ def main() -> None:
         nargs="*",
         default=[],
         metavar="KEY=VALUE",
-        help="DecentralizedConfig overrides, e.g. vio_start_scale_error=0.3 or "
-        "pose_graph.loop_sigma_rot_deg=1 (a number, else a string: "
-        "pose_graph.formulation=base)",
+        help="overrides of the decentralized configuration (`como3r run --set "
+        "decentralized.KEY=VALUE` without the prefix), e.g. vio_start_scale_error=0.3 or "
+        "pose_graph.formulation=base",
     )
     args = parser.parse_args()
-    overrides: dict[str, Any] = {k: _value(v) for k, v in (item.split("=", 1) for item in args.set)}
-    graph = {k.removeprefix("pose_graph."): v for k, v in overrides.items() if "." in k}
-    top = {k: v for k, v in overrides.items() if "." not in k}
-    settings = DecentralizedConfig()
-    settings = dataclasses.replace(
-        settings, pose_graph=dataclasses.replace(settings.pose_graph, **graph), **top
-    )
-    print(f"overrides {overrides or 'none'}: merged keyframe ATE % of one robot's path")
+    # the configuration's own overrides, checked as `como3r run --set` checks them
+    settings = apply_overrides(Config(), [f"decentralized.{item}" for item in args.set])
+    print(f"overrides {args.set or 'none'}: merged keyframe ATE % of one robot's path")
     for run in sorted((args.out / "runs").glob("*-dec*")):
         lio = run.name.endswith("-dec-lio")
         cell = run.name.removesuffix("-dec-lio").removesuffix("-dec")
         scene = args.out / "scenes" / f"{cell}-{'lio' if lio else 'vio'}"
-        print(f"{run.name:40s} {resolve(run, scene, settings):6.2f}")
+        print(f"{run.name:40s} {resolve(run, scene, settings.decentralized):6.2f}")
 
 
 if __name__ == "__main__":
