@@ -110,8 +110,9 @@ class SessionConfig:
     store) change. Measured (8 agents of a 320x240 ``como3r synth`` scene, 27 keyframes,
     multi-process, simulated prior, ``resident_keyframes=2``): 4 keyframes held after
     every message instead of 16, byte-identical trajectories; the coordinator's peak memory
-    1.33 / 1.35 GB with / without: at this size the working set does not set the peak (a
-    global BA or a gauge merge reads every pointmap back, kept until the next page-out).
+    1.33 / 1.35 GB with / without: the arrays let go of were freed but stayed in glibc's
+    heap (given back since, :mod:`como3r.store.heap`), and the encoding cache below holds
+    up to ``encoding_cache`` encodings besides.
 
     ``spill_dir``: the folder in which each agent makes its spill folder (removed when the
     agent ends); empty: the system's temporary folder.
