@@ -24,6 +24,9 @@ With ``Omega = [omega]_x``, ``theta = |omega|`` the Sim(3) exponential is
 SE(3) is the special case ``zeta = 0`` (``A = 1``, ``B = (1 - cos theta) / theta^2``,
 ``C = (theta - sin theta) / theta^3``). ``Log`` applies the closed-form ``W^-1``. Both sets
 of coefficients are computed in float64 by :mod:`como3r.geometry.left_jacobian`.
+
+The SO(3) part (skew matrices, quaternions, ``so3_exp`` / ``so3_log``) lives in
+:mod:`como3r.geometry.so3`; this module re-exports it, so callers import every group from here.
 """
 
 from __future__ import annotations
@@ -36,6 +39,19 @@ from como3r.geometry.left_jacobian import (
     coefficient_inputs,
     left_jacobian_coefficients,
     left_jacobian_inverse_coefficients,
+)
+from como3r.geometry.so3 import (
+    check_last_dim,
+    cross3,
+    matrix_to_quat,
+    quat_conjugate,
+    quat_identity,
+    quat_multiply,
+    quat_rotate,
+    quat_to_matrix,
+    skew,
+    so3_exp,
+    so3_log,
 )
 
 __all__ = [
@@ -70,216 +86,6 @@ __all__ = [
     "sim3_normalize",
 ]
 
-# Below this rotation angle so3_exp / so3_log switch to Taylor series; the truncation error
-# there is below 1e-17 and the closed forms above it are accurate to a few ulps.
-_SO3_SERIES_ANGLE = 1e-2
-
-
-def _check_last_dim(x: Tensor, size: int, name: str) -> None:
-    if x.shape[-1:] != (size,):
-        raise ValueError(f"{name} must have shape (..., {size}), got {tuple(x.shape)}")
-
-
-def _cross(a: Tensor, b: Tensor) -> Tensor:
-    """Cross product over the last dim with full broadcasting (``linalg.cross`` needs equal
-    ranks)."""
-    a1, a2, a3 = a.unbind(-1)
-    b1, b2, b3 = b.unbind(-1)
-    return torch.stack([a2 * b3 - a3 * b2, a3 * b1 - a1 * b3, a1 * b2 - a2 * b1], dim=-1)
-
-
-# --------------------------------------------------------------------------------------------
-# SO(3): skew matrices and quaternions
-# --------------------------------------------------------------------------------------------
-
-
-def skew(v: Tensor) -> Tensor:
-    """Cross-product matrix: ``skew(v) @ x == cross(v, x)``.
-
-    Args:
-        v: ``(..., 3)``.
-
-    Returns:
-        ``(..., 3, 3)``.
-    """
-    _check_last_dim(v, 3, "v")
-    x, y, z = v.unbind(-1)
-    o = torch.zeros_like(x)
-    return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).unflatten(-1, (3, 3))
-
-
-def quat_identity(
-    *batch_shape: int, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None
-) -> Tensor:
-    """Identity quaternions ``(*batch_shape, 4)`` = ``(0, 0, 0, 1)``."""
-    q = torch.zeros(*batch_shape, 4, dtype=dtype, device=device)
-    q[..., 3] = 1.0
-    return q
-
-
-def quat_multiply(q1: Tensor, q2: Tensor) -> Tensor:
-    """Hamilton product ``q1 * q2`` (rotate by ``q2`` first, then ``q1``).
-
-    Args:
-        q1, q2: ``(..., 4)`` quaternions ``(x, y, z, w)``; batch dims broadcast.
-
-    Returns:
-        ``(..., 4)``.
-    """
-    _check_last_dim(q1, 4, "q1")
-    _check_last_dim(q2, 4, "q2")
-    v1, w1 = q1[..., :3], q1[..., 3:]
-    v2, w2 = q2[..., :3], q2[..., 3:]
-    v = w1 * v2 + w2 * v1 + _cross(v1, v2)
-    w = w1 * w2 - (v1 * v2).sum(-1, keepdim=True)
-    return torch.cat([v, w], dim=-1)
-
-
-def quat_conjugate(q: Tensor) -> Tensor:
-    """Conjugate (the inverse of a unit quaternion). ``q``: ``(..., 4)``."""
-    _check_last_dim(q, 4, "q")
-    return torch.cat([-q[..., :3], q[..., 3:]], dim=-1)
-
-
-def quat_rotate(q: Tensor, x: Tensor) -> Tensor:
-    """Rotate points by unit quaternions: ``R(q) x``.
-
-    Args:
-        q: ``(..., 4)`` unit quaternions.
-        x: ``(..., 3)`` points; batch dims broadcast against ``q``'s.
-
-    Returns:
-        ``(..., 3)``.
-    """
-    _check_last_dim(q, 4, "q")
-    _check_last_dim(x, 3, "x")
-    qv, w = q[..., :3], q[..., 3:]
-    # R x = x + 2 w (qv x x) + 2 qv x (qv x x): two cross products, no 3x3 matrix.
-    uv = 2.0 * _cross(qv, x)
-    return x + w * uv + _cross(qv, uv)
-
-
-def quat_to_matrix(q: Tensor) -> Tensor:
-    """Rotation matrices of unit quaternions. ``q``: ``(..., 4)`` -> ``(..., 3, 3)``."""
-    _check_last_dim(q, 4, "q")
-    x, y, z, w = q.unbind(-1)
-    xx, yy, zz = x * x, y * y, z * z
-    xy, xz, yz = x * y, x * z, y * z
-    wx, wy, wz = w * x, w * y, w * z
-    rows = [
-        1 - 2 * (yy + zz),
-        2 * (xy - wz),
-        2 * (xz + wy),
-        2 * (xy + wz),
-        1 - 2 * (xx + zz),
-        2 * (yz - wx),
-        2 * (xz - wy),
-        2 * (yz + wx),
-        1 - 2 * (xx + yy),
-    ]
-    return torch.stack(rows, dim=-1).unflatten(-1, (3, 3))
-
-
-def matrix_to_quat(R: Tensor) -> Tensor:
-    """Unit quaternions of rotation matrices (Shepperd's method, all four branches).
-
-    Each candidate quaternion is computed from one of ``4w^2, 4x^2, 4y^2, 4z^2`` (read off the
-    diagonal); the largest is at least 1, so dividing by its root is always well conditioned,
-    including at 180-degree rotations where ``w = 0``. The result is normalised and has
-    ``w >= 0``.
-
-    Args:
-        R: ``(..., 3, 3)`` rotation matrices.
-
-    Returns:
-        ``(..., 4)`` quaternions ``(x, y, z, w)``.
-    """
-    if R.shape[-2:] != (3, 3):
-        raise ValueError(f"R must have shape (..., 3, 3), got {tuple(R.shape)}")
-    m = R.flatten(-2).unbind(-1)
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = m
-    four_sq = torch.stack(
-        [
-            1 + m00 - m11 - m22,  # 4 x^2
-            1 - m00 + m11 - m22,  # 4 y^2
-            1 - m00 - m11 + m22,  # 4 z^2
-            1 + m00 + m11 + m22,  # 4 w^2
-        ],
-        dim=-1,
-    )
-    # Off-diagonal sums and differences: 4xy, 4xz, 4yz and 4wx, 4wy, 4wz.
-    xy, xz, yz = m01 + m10, m02 + m20, m12 + m21
-    wx, wy, wz = m21 - m12, m02 - m20, m10 - m01
-    candidates = torch.stack(
-        [
-            torch.stack([four_sq[..., 0], xy, xz, wx], dim=-1),
-            torch.stack([xy, four_sq[..., 1], yz, wy], dim=-1),
-            torch.stack([xz, yz, four_sq[..., 2], wz], dim=-1),
-            torch.stack([wx, wy, wz, four_sq[..., 3]], dim=-1),
-        ],
-        dim=-2,
-    )
-    # Only the candidate with the largest entry (>= 1 since the four sum to 4) is kept; the
-    # clamp merely keeps the discarded ones finite.
-    candidates = candidates / (2.0 * four_sq.clamp_min(0.1).sqrt()[..., None])
-    best = four_sq.argmax(dim=-1)
-    index = best[..., None, None].expand(*best.shape, 1, 4)
-    q = candidates.gather(-2, index).squeeze(-2)
-    q = torch.where(q[..., 3:] < 0, -q, q)
-    return q / q.norm(dim=-1, keepdim=True)
-
-
-def so3_exp(phi: Tensor) -> Tensor:
-    """Exponential map of so(3): rotation vector -> unit quaternion.
-
-    ``q = (sin(theta/2) phi / theta, cos(theta/2))``; Taylor series below a small angle so that
-    values and gradients are exact at ``phi = 0``.
-
-    Args:
-        phi: ``(..., 3)`` rotation vectors (axis * angle, radians).
-
-    Returns:
-        ``(..., 4)`` unit quaternions.
-    """
-    _check_last_dim(phi, 3, "phi")
-    theta_sq = (phi * phi).sum(-1, keepdim=True)
-    small = theta_sq < _SO3_SERIES_ANGLE**2
-    theta = torch.where(small, torch.ones_like(theta_sq), theta_sq).sqrt()
-    half = 0.5 * theta
-    t2, t4 = theta_sq, theta_sq * theta_sq
-    sin_half_over_theta = torch.where(small, 0.5 - t2 / 48.0 + t4 / 3840.0, half.sin() / theta)
-    cos_half = torch.where(small, 1.0 - t2 / 8.0 + t4 / 384.0, half.cos())
-    return torch.cat([sin_half_over_theta * phi, cos_half], dim=-1)
-
-
-def so3_log(q: Tensor) -> Tensor:
-    """Logarithm of SO(3): unit quaternion -> rotation vector with angle in ``[0, pi]``.
-
-    ``q`` and ``-q`` give the same result (the sign is chosen so that ``w >= 0``). The angle is
-    ``2 atan2(|qv|, w)``, which stays well conditioned near ``pi``; below a small ``|qv|`` the
-    ratio ``angle / |qv|`` is a Taylor series in ``(|qv| / w)^2`` so that values and gradients
-    are exact at the identity. Non-unit quaternions give the log of their normalisation.
-
-    Args:
-        q: ``(..., 4)`` quaternions ``(x, y, z, w)``.
-
-    Returns:
-        ``(..., 3)`` rotation vectors.
-    """
-    _check_last_dim(q, 4, "q")
-    q = torch.where(q[..., 3:] < 0, -q, q)
-    qv, w = q[..., :3], q[..., 3:]
-    n_sq = (qv * qv).sum(-1, keepdim=True)
-    small = n_sq < (_SO3_SERIES_ANGLE * w) ** 2
-    n = torch.where(small, torch.ones_like(n_sq), n_sq).sqrt()
-    w_safe = torch.where(small, w, torch.ones_like(w))
-    u2 = n_sq / (w_safe * w_safe)
-    # atan(u) / u = 1 - u^2/3 + u^4/5 - u^6/7 + u^8/9, u = |qv| / w < 1e-2.
-    atan_series = 1.0 + u2 * (-1.0 / 3 + u2 * (1.0 / 5 + u2 * (-1.0 / 7 + u2 / 9)))
-    scale = torch.where(small, 2.0 * atan_series / w_safe, 2.0 * torch.atan2(n, w) / n)
-    return scale * qv
-
-
 # --------------------------------------------------------------------------------------------
 # The left Jacobian W(zeta, omega) shared by SE(3) and Sim(3): its coefficients are computed in
 # como3r.geometry.left_jacobian
@@ -291,8 +97,8 @@ def _apply_polynomial(
 ) -> Tensor:
     """``(a I + b Omega + c Omega^2) x`` with ``Omega = [omega]_x``, via cross products."""
     a, b, c = (k.to(x.dtype) for k in coefficients)
-    omega_x = _cross(omega, x)
-    return a * x + b * omega_x + c * _cross(omega, omega_x)
+    omega_x = cross3(omega, x)
+    return a * x + b * omega_x + c * cross3(omega, omega_x)
 
 
 # --------------------------------------------------------------------------------------------
@@ -311,7 +117,7 @@ def se3_identity(
 
 def se3_exp(xi: Tensor) -> Tensor:
     """Exponential map of se(3). ``xi``: ``(..., 6)`` = ``(v, omega)`` -> ``(..., 7)``."""
-    _check_last_dim(xi, 6, "xi")
+    check_last_dim(xi, 6, "xi")
     v, omega = xi[..., :3], xi[..., 3:]
     t = _apply_polynomial(left_jacobian_coefficients(*coefficient_inputs(omega, None)), omega, v)
     return torch.cat([t, so3_exp(omega)], dim=-1)
@@ -319,7 +125,7 @@ def se3_exp(xi: Tensor) -> Tensor:
 
 def se3_log(T: Tensor) -> Tensor:
     """Logarithm of SE(3). ``T``: ``(..., 7)`` -> ``(..., 6)`` = ``(v, omega)``, angle <= pi."""
-    _check_last_dim(T, 7, "T")
+    check_last_dim(T, 7, "T")
     omega = so3_log(T[..., 3:7])
     inverse = left_jacobian_inverse_coefficients(*coefficient_inputs(omega, None))
     v = _apply_polynomial(inverse, omega, T[..., :3])
@@ -328,22 +134,22 @@ def se3_log(T: Tensor) -> Tensor:
 
 def se3_compose(A: Tensor, B: Tensor) -> Tensor:
     """``A o B`` (``x -> A(B(x))``). ``A, B``: ``(..., 7)``, batch dims broadcast."""
-    _check_last_dim(A, 7, "A")
-    _check_last_dim(B, 7, "B")
+    check_last_dim(A, 7, "A")
+    check_last_dim(B, 7, "B")
     t = A[..., :3] + quat_rotate(A[..., 3:7], B[..., :3])
     return torch.cat([t, quat_multiply(A[..., 3:7], B[..., 3:7])], dim=-1)
 
 
 def se3_inverse(T: Tensor) -> Tensor:
     """Inverse of SE(3) elements. ``T``: ``(..., 7)``."""
-    _check_last_dim(T, 7, "T")
+    check_last_dim(T, 7, "T")
     q_inv = quat_conjugate(T[..., 3:7])
     return torch.cat([-quat_rotate(q_inv, T[..., :3]), q_inv], dim=-1)
 
 
 def se3_act(T: Tensor, x: Tensor) -> Tensor:
     """``R x + t``. ``T``: ``(..., 7)``; ``x``: ``(..., 3)``, batch dims broadcast."""
-    _check_last_dim(T, 7, "T")
+    check_last_dim(T, 7, "T")
     return quat_rotate(T[..., 3:7], x) + T[..., :3]
 
 
@@ -352,7 +158,7 @@ def se3_adjoint(T: Tensor) -> Tensor:
 
     ``Ad_T = [[R, [t]_x R], [0, R]]``.
     """
-    _check_last_dim(T, 7, "T")
+    check_last_dim(T, 7, "T")
     R = quat_to_matrix(T[..., 3:7])
     zero = torch.zeros_like(R)
     top = torch.cat([R, skew(T[..., :3]) @ R], dim=-1)
@@ -361,7 +167,7 @@ def se3_adjoint(T: Tensor) -> Tensor:
 
 def se3_to_matrix(T: Tensor) -> Tensor:
     """Homogeneous ``(..., 4, 4)`` matrices of SE(3) elements ``(..., 7)``."""
-    _check_last_dim(T, 7, "T")
+    check_last_dim(T, 7, "T")
     return sim3_to_matrix(sim3_from_se3(T))
 
 
@@ -388,7 +194,7 @@ def sim3_exp(tau: Tensor) -> Tensor:
     Returns:
         ``(..., 8)`` Sim(3) elements.
     """
-    _check_last_dim(tau, 7, "tau")
+    check_last_dim(tau, 7, "tau")
     v, omega, zeta = tau[..., :3], tau[..., 3:6], tau[..., 6:]
     t = _apply_polynomial(left_jacobian_coefficients(*coefficient_inputs(omega, zeta)), omega, v)
     return torch.cat([t, so3_exp(omega), zeta.exp()], dim=-1)
@@ -403,7 +209,7 @@ def sim3_log(T: Tensor) -> Tensor:
     Returns:
         ``(..., 7)`` = ``(v, omega, zeta)`` with ``|omega|`` in ``[0, pi]``.
     """
-    _check_last_dim(T, 8, "T")
+    check_last_dim(T, 8, "T")
     omega = so3_log(T[..., 3:7])
     zeta = T[..., 7:].log()
     inverse = left_jacobian_inverse_coefficients(*coefficient_inputs(omega, zeta))
@@ -413,8 +219,8 @@ def sim3_log(T: Tensor) -> Tensor:
 
 def sim3_compose(A: Tensor, B: Tensor) -> Tensor:
     """``A o B``, i.e. ``x -> A(B(x))``. ``A, B``: ``(..., 8)``, batch dims broadcast."""
-    _check_last_dim(A, 8, "A")
-    _check_last_dim(B, 8, "B")
+    check_last_dim(A, 8, "A")
+    check_last_dim(B, 8, "B")
     t = A[..., :3] + A[..., 7:] * quat_rotate(A[..., 3:7], B[..., :3])
     q = quat_multiply(A[..., 3:7], B[..., 3:7])
     return torch.cat([t, q, A[..., 7:] * B[..., 7:]], dim=-1)
@@ -422,7 +228,7 @@ def sim3_compose(A: Tensor, B: Tensor) -> Tensor:
 
 def sim3_inverse(T: Tensor) -> Tensor:
     """Inverse ``(t, q, s)^-1 = (-R^T t / s, q*, 1 / s)``. ``T``: ``(..., 8)``."""
-    _check_last_dim(T, 8, "T")
+    check_last_dim(T, 8, "T")
     q_inv = quat_conjugate(T[..., 3:7])
     s_inv = 1.0 / T[..., 7:]
     return torch.cat([-s_inv * quat_rotate(q_inv, T[..., :3]), q_inv, s_inv], dim=-1)
@@ -439,7 +245,7 @@ def sim3_act(T: Tensor, x: Tensor) -> Tensor:
     Returns:
         ``(..., 3)`` with the broadcast batch shape.
     """
-    _check_last_dim(T, 8, "T")
+    check_last_dim(T, 8, "T")
     return T[..., 7:] * quat_rotate(T[..., 3:7], x) + T[..., :3]
 
 
@@ -451,7 +257,7 @@ def sim3_adjoint(T: Tensor) -> Tensor:
 
         Ad_T = [[s R, [t]_x R, -t], [0, R, 0], [0, 0, 1]].
     """
-    _check_last_dim(T, 8, "T")
+    check_last_dim(T, 8, "T")
     t, s = T[..., :3], T[..., 7:]
     R = quat_to_matrix(T[..., 3:7])
     zero_33 = torch.zeros_like(R)
@@ -472,7 +278,7 @@ def sim3_retract(tau: Tensor, T: Tensor) -> Tensor:
 
 def sim3_to_matrix(T: Tensor) -> Tensor:
     """Homogeneous ``(..., 4, 4)`` matrices ``[[s R, t], [0, 1]]`` of ``(..., 8)`` elements."""
-    _check_last_dim(T, 8, "T")
+    check_last_dim(T, 8, "T")
     top = torch.cat([T[..., 7:, None] * quat_to_matrix(T[..., 3:7]), T[..., :3, None]], dim=-1)
     bottom = torch.cat([torch.zeros_like(T[..., :3]), torch.ones_like(T[..., 7:])], dim=-1)
     return torch.cat([top, bottom[..., None, :]], dim=-2)
@@ -507,7 +313,7 @@ def sim3_from_se3(T: Tensor, scale: Tensor | float | None = None) -> Tensor:
         T: ``(..., 7)``.
         scale: ``None`` (scale 1), a float, or a tensor broadcastable to ``T.shape[:-1]``.
     """
-    _check_last_dim(T, 7, "T")
+    check_last_dim(T, 7, "T")
     s = torch.ones_like(T[..., :1])
     if scale is not None:
         s = s * torch.as_tensor(scale, dtype=T.dtype, device=T.device)[..., None]
@@ -516,6 +322,6 @@ def sim3_from_se3(T: Tensor, scale: Tensor | float | None = None) -> Tensor:
 
 def sim3_normalize(T: Tensor) -> Tensor:
     """Re-normalise the quaternion of ``(..., 8)`` elements (e.g. after many compositions)."""
-    _check_last_dim(T, 8, "T")
+    check_last_dim(T, 8, "T")
     q = T[..., 3:7]
     return torch.cat([T[..., :3], q / q.norm(dim=-1, keepdim=True), T[..., 7:]], dim=-1)
