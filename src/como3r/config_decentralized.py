@@ -67,6 +67,22 @@ class RegistrationConfig:
             ``benchmarks/decentralized_loops.py``, default synthetic scene at 160 and 512 long
             side, 0.1x and 20x).
         seed: seed of the RANSAC sampling (combined with the pair's ids).
+        pose_fit: the relative pose of a registered pair (the matches' consensus decides
+            whether it is registered): ``dense``, fitted to both decodes' pointmaps at every
+            pixel (:func:`~como3r.decentralized.registration.dense_similarity`), or
+            ``matches``, the Umeyama fit of the consensus's inliers. Measured (issue 37,
+            prior ``v2``, 160x120, 3 robots, the final graphs of ``benchmarks/robustness.py
+            --mode decentralized`` runs re-solved with every loop and F-Eq. 6 pair registered
+            again each way, ``benchmarks/resolve_decentralized.py``; merged ATE % of one
+            robot's path, tabletop / room / aerial), ``matches`` -> ``dense``: ``lio``
+            odometry seed 0 1.36 / 1.24 / 1.50 -> 0.94 / 1.01 / 1.09, seed 1 1.29 / 1.41 /
+            1.43 -> 1.09 / 1.24 / 1.24; ``vio`` seed 0 3.02 / 2.91 / 3.04 -> 2.60 / 2.54 /
+            2.59, seed 1 1.99 / 2.12 / 2.10 -> 2.19 / 2.02 / 2.06, held-out seed 2 2.92 / 2.92
+            / 2.83 -> 3.05 / 3.05 / 2.88; with the VIO start discount
+            (``vio_start_scale_error`` 0.3) ``vio`` seed 0 2.59 / 2.48 / 2.57 -> 1.75 / 1.69
+            / 1.76, seed 1 1.14 / 2.15 / 2.06 -> 1.26 / 1.47 / 1.49, seed 2 2.60 / 2.59 / 2.66
+            -> 2.48 / 2.48 / 2.29. The better loops pay where the odometry does not set the
+            error (a metric odometry, or a VIO whose start is discounted).
     """
 
     match_stride_ratio: float = 1 / 64
@@ -78,6 +94,7 @@ class RegistrationConfig:
     min_inliers: int = 12
     min_inlier_fraction: float = 0.1
     seed: int = 0
+    pose_fit: Literal["dense", "matches"] = "dense"
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,9 @@ against 1.25 MB of float16 tokens; :meth:`Registrar.reply_for_peer`), matches th
 3-D points (:func:`ransac_similarity`: minimal 3-point similarities, then Umeyama on the
 inliers; a pose explaining fewer than :func:`required_inliers` of the matches is a failed
 registration, a test relative to the number of matches so that it holds at any image size).
+The pose of a registered pair is then fitted to the two decodes' pointmaps of every pixel
+(:func:`dense_similarity`, ``registration.pose_fit``: ``dense``), or kept from the matches'
+consensus (``matches``).
 Encodings are cached, so a keyframe in several candidates is encoded (and sent)
 once; :class:`RegistrationStats` counts what a naive pipeline that encodes both images of
 every pair would have encoded.
@@ -153,6 +156,44 @@ def ransac_similarity(
     return best, inliers
 
 
+def dense_similarity(pred_ij: PairPrediction, pred_ji: PairPrediction) -> Tensor:
+    """The similarity of camera j into camera i fitted to both decodes' pointmaps, pixel by
+    pixel, as DUSt3R aligns a pair (como3r's choice; F-Sec. III-B names no estimator).
+
+    Each view appears in both decodes: view j as ``X_ji`` of (i, j) (camera i) and as
+    ``X_ii`` of (j, i) (camera j), view i likewise, so every pixel of both images is a
+    correspondence without matching. Weights: the product of the two confidences over the
+    squared range in camera i, the inverse variance of a depth error proportional to depth
+    (the prior's, C-Sec. 3.1), so the far points that fix the rotation do not outvote the
+    near ones that fix the translation. Against the matches' consensus fit (prior ``v2``,
+    the 496 accepted loops of issue 37's decentralized runs, tabletop / room / aerial,
+    160x120, seeds 0-2) the translation error falls from 0.69-0.86 to 0.43-0.52 keyframe
+    spacings (median) and its direction's from 9.1-10.6 to 6.1-7.5 deg, while the rotation
+    error rises from 1.8-2.0 to 2.0-2.5 deg (the ``X_ji`` head's own error): the merged map
+    depends on the loops' translations, not their rotations (replacing every loop's rotation
+    by the truth moves its ATE by at most 0.05 % of path).
+
+    Args:
+        pred_ij: decode of (i, j), everything in camera i.
+        pred_ji: decode of (j, i), everything in camera j.
+
+    Returns:
+        ``(8,)`` float64 Sim(3) ``T_ij``.
+
+    Raises:
+        GeometryError: fewer than three usable pixels, or degenerate pointmaps.
+    """
+    src = torch.cat([pred_ji.X_ii.reshape(-1, 3), pred_ji.X_ji.reshape(-1, 3)]).double()
+    dst = torch.cat([pred_ij.X_ji.reshape(-1, 3), pred_ij.X_ii.reshape(-1, 3)]).double()
+    confidence = torch.cat(
+        [(pred_ij.C_ji * pred_ji.C_ii).reshape(-1), (pred_ij.C_ii * pred_ji.C_ji).reshape(-1)]
+    ).double()
+    usable = torch.isfinite(src).all(-1) & torch.isfinite(dst).all(-1) & (dst[:, 2] > 0)
+    src, dst = src[usable], dst[usable]
+    weights = confidence[usable] / (dst * dst).sum(-1)
+    return umeyama_sim3(src, dst, weights)
+
+
 def required_inliers(count: int, config: RegistrationConfig) -> int:
     """Inliers a fit of ``count`` putative correspondences needs: ``min_inliers``, and
     ``min_inlier_fraction`` of ``count`` (chance support grows with the number of matches,
@@ -167,7 +208,8 @@ def register_predictions(
     gen: torch.Generator,
     stats: RegistrationStats | None = None,
 ) -> Registration:
-    """Match a decoded pair and estimate the relative pose (module docstring).
+    """Match a decoded pair, test the matches' consensus and estimate the relative pose
+    (module docstring). A dense fit that fails (degenerate pointmaps) fails the registration.
 
     Args:
         pred_ij: decode of (i, j): ``X_ii``, descriptors ``D_ii`` (view i) and ``D_ji``
@@ -189,6 +231,11 @@ def register_predictions(
     if fit is None:
         return Registration(int(p_i.numel()), 0, None)
     T, inliers = fit
+    if config.pose_fit == "dense":
+        try:
+            T = dense_similarity(pred_ij, pred_ji)
+        except GeometryError:
+            return Registration(int(p_i.numel()), 0, None)
     return Registration(int(p_i.numel()), int(inliers.sum()), T)
 
 
