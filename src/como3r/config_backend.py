@@ -131,6 +131,7 @@ class VerificationConfig:
     max_within_component: int = 3
     max_decodes_per_batch: int = 0
     max_loop_candidates: int = 1
+    workers: int = 2
 
 
 @dataclass(frozen=True)
