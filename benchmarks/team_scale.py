@@ -22,7 +22,24 @@ process of its own so memory peaks do not carry over. Per team size the table gi
   agents' startup is left out). At the moment the last agent's last frame is done:
   keyframes arrived and not yet handled, seconds of input the coordinator trails (newest
   arrived keyframe's timestamp minus newest handled one's) and seconds it then needs to
-  finish. A coordinator that keeps up trails by at most the keyframes of the last moment;
+  finish. A coordinator that keeps up trails by at most the keyframes of the last moment.
+  One core serves all the coordinator's CPU: its thread's and its verification pool's;
+* ``verify ms/kf``, ``pool ms/kf``, ``wasted``: of that CPU per keyframe, the verification's
+  (re-encodes, prior decodes and matching: what ``verification.workers`` threads run,
+  :mod:`como3r.coordination.decode_pool`), in the coordinator's thread and on its pool
+  together, and the pool's part (its workers' thread CPU, wasted work included; not in
+  ``coord ms/kf``); the decodes the pool made for a keyframe's predicted candidates that a
+  merge before it then changed;
+* ``end kf PP``, ``drain s PP``: the same replay for a coordinator of P cores
+  (``--coordinator-cores``, default 2, 4 and 8): each call's serial CPU (its thread's
+  less the verification it did in line) on one core, then all of its verification, in line
+  and pooled, spread evenly over the P cores. Measured, not modelled, are the two parts;
+  the model is that the verification of a call parallelizes perfectly (it is independent per
+  candidate pair, and what a run verified in line, a pool predicted wrongly or a batch of
+  one left to the coordinator, could have been pooled) and does not overlap the serial part
+  (where the pool in fact verifies the next keyframes while the coordinator admits this
+  one's edges): per call ``serial + verification / P``, conservative on the overlap,
+  optimistic on the speculation. P = 1 is the one-core replay (``end kf``, ``drain s``);
 * ``rt end kf``, ``rt max kf``: the runtime's own backlog (``metrics.json``
   ``runtime.backlog``) on this machine, where all processes share its cores: at the end
   of the input and the most during the run;
