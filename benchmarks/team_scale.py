@@ -316,6 +316,32 @@ keyframes per agent), so the coordinator holds every keyframe whole and its memo
 the keyframes (40 at 16 agents, 20 at 4), and the working set, per agent, grows with the
 team. With ``session.resident_keyframes=1 session.encoding_cache=4`` the 4-agent lockstep
 run peaked at 1837 MB instead of 2222 (the terminal cleanup's peak remains).
+
+The coordinator's verification on threads (``verification.workers``, 2 by default;
+:mod:`como3r.coordination.decode_pool`), ``OMP_NUM_THREADS=1 python benchmarks/team_scale.py
+--sizes 4 16 --no-decentralized`` (branch pool41; 2 cores shared under a load of 9 to 17, so
+only CPU times mean anything; one run each):
+
+    agents  kf  coord ms/kf  verify ms/kf  pool ms/kf  wasted  decodes/kf  batch  ATE mm  ATE %  maps
+         4  20          686          1580        1400       0        3.6       9    3.33  0.276     1
+        16  40          919          2126        2021       6        5.1      32    15.7   1.31     1
+
+    agents  end kf  drain s  end kf P2  drain s P2  end kf P4  drain s P4  end kf P8  drain s P8
+         4       9     25.7          6        10.5          4        4.45          2        1.81
+        16      34      104         31        61.0         27        39.7         23        29.1
+
+``coord ms/kf`` is now the coordinator's thread alone (1.8-3.3 s per keyframe in the tables
+above, with its verification): 4 agents 2086 ms of CPU per keyframe in all, 16 agents 2940.
+The verification is 76 / 72 % of it, and 89 / 95 % of the verification ran on the pool (the
+rest: a keyframe's first pair, which the coordinator verifies itself while the workers take
+the others). Spread over P cores it leaves the serial part, 507 / 814 ms per keyframe (what
+``add_keyframes`` does besides verifying: journal, merges and focal alignment, global BA,
+retrieval; not split in CPU here): with 8 cores the 4-agent
+coordinator nearly keeps up (2 keyframes waiting at the end, 1.8 s to drain, 25.7 s on one
+core), the 16-agent one does not (23 keyframes, 29 s): its agents (1.05-1.89 s of CPU per
+frame, a keyframe every 3.2 frames) bring one every 0.26 s, under its serial part alone.
+Closing the gap at 16 agents needs that part cut or overlapped with the next batch, not more
+verification cores.
 """
 
 from __future__ import annotations

@@ -119,17 +119,18 @@ class VerificationPool:
     """Verifications run ahead on ``workers`` threads for one batch at a time.
 
     Args:
-        prior: the coordinator's prior (unwrapped: its decodes are timed per job).
+        prior: the coordinator's prior (unwrapped: its decodes are timed per job); None for
+            a coordinator that decodes nothing (no threads).
         workers: threads; 0 verifies everything in line and starts none.
 
     Attributes:
         pairwise: chunks are single candidate pairs (the prior decodes pair by pair).
     """
 
-    def __init__(self, prior: Prior, workers: int) -> None:
+    def __init__(self, prior: Prior | None, workers: int) -> None:
         self.prior = prior
-        self.workers = workers
-        self.pairwise = type(prior).decode_pairs is Prior.decode_pairs
+        self.workers = workers if prior is not None else 0
+        self.pairwise = getattr(type(prior), "decode_pairs", None) is Prior.decode_pairs
         self._executor: futures.ThreadPoolExecutor | None = None
         self._jobs: dict[Hashable, tuple[futures.Future[Done], list[int]]] = {}
         self._needs: Counter[int] = Counter()
@@ -192,7 +193,7 @@ class VerificationPool:
         def job() -> Done:
             start = time.thread_time()
             self._local.reencode = 0.0
-            prior = _CountingPrior(self.prior)
+            prior = _CountingPrior(self.prior)  # type: ignore[arg-type]
             verifications = verify_candidates(
                 prior,  # type: ignore[arg-type]
                 query,
