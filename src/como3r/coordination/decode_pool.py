@@ -38,7 +38,8 @@ Work is accounted in thread CPU time: each job's re-encodes, decodes and the res
 verification (matching) go to ``pool_seconds`` by stage; what the coordinator's thread
 verifies itself to ``verification_cpu``; the pool's waits are no one's CPU. The prior's
 caches are filled on first use with values that depend on their key alone (the simulated
-prior's texture embeddings, MASt3R's rotary tables): a race computes one twice, the same.
+prior's texture embeddings, MASt3R's rotary tables): a race computes one twice, the same;
+MASt3R enters its no-grad and autocast modes, which are per thread, inside its own calls.
 """
 
 from __future__ import annotations
