@@ -22,7 +22,24 @@ process of its own so memory peaks do not carry over. Per team size the table gi
   agents' startup is left out). At the moment the last agent's last frame is done:
   keyframes arrived and not yet handled, seconds of input the coordinator trails (newest
   arrived keyframe's timestamp minus newest handled one's) and seconds it then needs to
-  finish. A coordinator that keeps up trails by at most the keyframes of the last moment;
+  finish. A coordinator that keeps up trails by at most the keyframes of the last moment.
+  One core serves all the coordinator's CPU: its thread's and its verification pool's;
+* ``verify ms/kf``, ``pool ms/kf``, ``wasted``: of that CPU per keyframe, the verification's
+  (re-encodes, prior decodes and matching: what ``verification.workers`` threads run,
+  :mod:`como3r.coordination.decode_pool`), in the coordinator's thread and on its pool
+  together, and the pool's part (its workers' thread CPU, wasted work included; not in
+  ``coord ms/kf``); the decodes the pool made for a keyframe's predicted candidates that a
+  merge before it then changed;
+* ``end kf PP``, ``drain s PP``: the same replay for a coordinator of P cores
+  (``--coordinator-cores``, default 2, 4 and 8): each call's serial CPU (its thread's
+  less the verification it did in line) on one core, then all of its verification, in line
+  and pooled, spread evenly over the P cores. Measured, not modelled, are the two parts;
+  the model is that the verification of a call parallelizes perfectly (it is independent per
+  candidate pair, and what a run verified in line, a pool predicted wrongly or a batch of
+  one left to the coordinator, could have been pooled) and does not overlap the serial part
+  (where the pool in fact verifies the next keyframes while the coordinator admits this
+  one's edges): per call ``serial + verification / P``, conservative on the overlap,
+  optimistic on the speculation. P = 1 is the one-core replay (``end kf``, ``drain s``);
 * ``rt end kf``, ``rt max kf``: the runtime's own backlog (``metrics.json``
   ``runtime.backlog``) on this machine, where all processes share its cores: at the end
   of the input and the most during the run;
@@ -299,6 +316,32 @@ keyframes per agent), so the coordinator holds every keyframe whole and its memo
 the keyframes (40 at 16 agents, 20 at 4), and the working set, per agent, grows with the
 team. With ``session.resident_keyframes=1 session.encoding_cache=4`` the 4-agent lockstep
 run peaked at 1837 MB instead of 2222 (the terminal cleanup's peak remains).
+
+The coordinator's verification on threads (``verification.workers``, 2 by default;
+:mod:`como3r.coordination.decode_pool`), ``OMP_NUM_THREADS=1 python benchmarks/team_scale.py
+--sizes 4 16 --no-decentralized`` (branch pool41; 2 cores shared under a load of 9 to 17, so
+only CPU times mean anything; one run each):
+
+    agents  kf  coord ms/kf  verify ms/kf  pool ms/kf  wasted  decodes/kf  batch  ATE mm  ATE %  maps
+         4  20          686          1580        1400       0        3.6       9    3.33  0.276     1
+        16  40          919          2126        2021       6        5.1      32    15.7   1.31     1
+
+    agents  end kf  drain s  end kf P2  drain s P2  end kf P4  drain s P4  end kf P8  drain s P8
+         4       9     25.7          6        10.5          4        4.45          2        1.81
+        16      34      104         31        61.0         27        39.7         23        29.1
+
+``coord ms/kf`` is now the coordinator's thread alone (1.8-3.3 s per keyframe in the tables
+above, with its verification): 4 agents 2086 ms of CPU per keyframe in all, 16 agents 2940.
+The verification is 76 / 72 % of it, and 89 / 95 % of the verification ran on the pool (the
+rest: a keyframe's first pair, which the coordinator verifies itself while the workers take
+the others). Spread over P cores it leaves the serial part, 507 / 814 ms per keyframe (what
+``add_keyframes`` does besides verifying: journal, merges and focal alignment, global BA,
+retrieval; not split in CPU here): with 8 cores the 4-agent
+coordinator nearly keeps up (2 keyframes waiting at the end, 1.8 s to drain, 25.7 s on one
+core), the 16-agent one does not (23 keyframes, 29 s): its agents (1.05-1.89 s of CPU per
+frame, a keyframe every 3.2 frames) bring one every 0.26 s, under its serial part alone.
+Closing the gap at 16 agents needs that part cut or overlapped with the next batch, not more
+verification cores.
 """
 
 from __future__ import annotations
@@ -310,6 +353,7 @@ import platform
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -344,6 +388,9 @@ COLUMNS = (
     "coord ms/kf",
     "coord s/s input",
     "decodes/kf",
+    "verify ms/kf",
+    "pool ms/kf",
+    "wasted",
     "end kf",
     "end s",
     "drain s",
@@ -360,6 +407,8 @@ COLUMNS = (
     "maps",
     "kB/robot",
 )
+#: the coordinator's cores the backlog is replayed for besides one (``--coordinator-cores``)
+CORES = (2, 4, 8)
 
 
 # ------------------------------------------------------------------ one run (a process of its own)
@@ -402,30 +451,39 @@ def _children() -> list[int]:
     return pids
 
 
+#: one call of ``add_keyframe(s)``: the coordinator thread's CPU seconds, the ``(agent,
+#: kf_id, timestamp)`` of the keyframes it took, and of its CPU the verification done in line
+#: and the pool's workers' CPU seconds during it (both 0 in runs recorded before them)
+Call = tuple[float, list[tuple[int, int, float]], float, float]
+
+
+def _verification_cpu(coordinator: Coordinator) -> tuple[float, float]:
+    """The coordinator's verification CPU so far: in its thread, on its pool."""
+    stats = coordinator.stats
+    return stats.verification_cpu, sum(stats.pool_seconds.values())
+
+
 class _Timed:
-    """The coordinator's CPU time per call of ``add_keyframe(s)``, with the keyframes."""
+    """The coordinator's CPU time per call of ``add_keyframe(s)``, with the keyframes and
+    its verification's CPU (:data:`Call`)."""
 
     def __init__(self) -> None:
-        self.calls: list[tuple[float, list[tuple[int, int, float]]]] = []
+        self.calls: list[Call] = []
 
     def install(self) -> None:
-        one, many = Coordinator.add_keyframe, Coordinator.add_keyframes
+        many = Coordinator.add_keyframes
         calls = self.calls
 
-        def add_keyframe(coordinator: Coordinator, packet: Any) -> Any:
-            start = time.thread_time()
-            updates = one(coordinator, packet)
-            calls.append(
-                (time.thread_time() - start, [(packet.agent, packet.kf_id, packet.timestamp)])
-            )
-            return updates
-
         def add_keyframes(coordinator: Coordinator, packets: Any) -> Any:
-            start = time.thread_time()
+            start, (inline, pool) = time.thread_time(), _verification_cpu(coordinator)
             updates = many(coordinator, packets)
             keys = [(p.agent, p.kf_id, p.timestamp) for p in packets]
-            calls.append((time.thread_time() - start, keys))
+            after = _verification_cpu(coordinator)
+            calls.append((time.thread_time() - start, keys, after[0] - inline, after[1] - pool))
             return updates
+
+        def add_keyframe(coordinator: Coordinator, packet: Any) -> Any:
+            return add_keyframes(coordinator, [packet])
 
         Coordinator.add_keyframe = add_keyframe  # type: ignore[method-assign]
         Coordinator.add_keyframes = add_keyframes  # type: ignore[method-assign]
@@ -560,26 +618,36 @@ def scale_rows(scene: Path, out: Path) -> tuple[list[dict], list[dict]]:
 # ------------------------------------------------------------------ the table
 
 
+def call_seconds(call: Sequence[Any], cores: int) -> float:
+    """Seconds a coordinator with ``cores`` cores needs for one recorded call (module
+    docstring): its serial CPU on one core, then its verification's spread over all."""
+    seconds, inline, pool = call[0], *(tuple(call[2:4]) or (0.0, 0.0))
+    return seconds - inline + (inline + pool) / cores
+
+
 def replay(
-    calls: list[tuple[float, list[tuple[int, int, float]]]],
+    calls: Sequence[Sequence[Any]],
     frame_times: dict[int, np.ndarray],
     cpu_per_frame: dict[int, float],
+    cores: int = 1,
 ) -> tuple[int, float, float]:
     """The backlog at the end of the input at the agents' measured frame rates (module
     docstring): ``(keyframes waiting, seconds of input behind, seconds to drain)``.
 
     Args:
-        calls: the coordinator's CPU seconds per call and the ``(agent, kf_id, timestamp)``
-            of the keyframes it took.
+        calls: the coordinator's calls (:data:`Call`; runs recorded before the
+            verification's CPU was have ``(seconds, keys)`` only: all serial).
         frame_times: each agent's processed frames' timestamps [s], in order.
         cpu_per_frame: each agent's CPU seconds per frame.
+        cores: the coordinator's cores (:func:`call_seconds`).
     """
     keyframes = []  # (arrival [s], timestamp [s], service [s])
-    for seconds, keys in calls:
+    for call in calls:
+        keys = call[1]
         for agent, _, stamp in keys:
             frames = int(np.searchsorted(frame_times[agent], stamp + 1e-9))  # frames done
             arrival = frames * cpu_per_frame.get(agent, 0.0)
-            keyframes.append((arrival, stamp, seconds / len(keys)))
+            keyframes.append((arrival, stamp, call_seconds(call, cores) / len(keys)))
     if not keyframes:
         return 0, 0.0, 0.0
     end = max(len(t) * cpu_per_frame.get(a, 0.0) for a, t in frame_times.items())
@@ -600,20 +668,34 @@ def _path_length(groundtruth: Path) -> float:
     return float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())
 
 
-def row(agents: int, seed: int, scene: Path, out: Path, measured: dict[str, Any]) -> dict:
-    """One line of the table from a run's folder and its measurements."""
+def row(
+    agents: int,
+    seed: int,
+    scene: Path,
+    out: Path,
+    measured: dict[str, Any],
+    cores: Sequence[int] = CORES,
+) -> dict:
+    """One line of the table from a run's folder and its measurements; the backlog also
+    for a coordinator of each of ``cores`` cores."""
     metrics = json.loads((out / "metrics.json").read_text())
     coordinator, runtime = metrics["coordinator"], metrics["runtime"]
     keyframes = max(1, coordinator["keyframes"])
-    cpu = sum(seconds for seconds, _ in measured["calls"])
+    calls = measured["calls"]
+    cpu = sum(call[0] for call in calls)
+    verify = sum(call[2] + call[3] for call in calls if len(call) > 2)
+    pool = sum(call[3] for call in calls if len(call) > 2)
     frame_times = {
         a: np.asarray(read_tum(out / "trajectories" / f"agent_{a}.txt").timestamps)
         for a in range(agents)
     }
     input_seconds = max(float(t[-1] - t[0]) for t in frame_times.values() if len(t))
-    waiting, behind, drain = replay(
-        measured["calls"], frame_times, {int(k): v for k, v in measured["cpu_per_frame"].items()}
-    )
+    agent_cpu = {int(k): v for k, v in measured["cpu_per_frame"].items()}
+    waiting, behind, drain = replay(calls, frame_times, agent_cpu)
+    per_cores = {}
+    for p in cores:
+        end, _, drained = replay(calls, frame_times, agent_cpu, p)
+        per_cores[f"end kf P{p}"], per_cores[f"drain s P{p}"] = end, drained
     paths = [_path_length(scene / f"agent_{a}" / "groundtruth.txt") for a in range(agents)]
     ate_json = metrics.get("ate", {})
     merged = ate_json.get("merged") or next(iter(ate_json.get("agents", [])), None)
@@ -630,9 +712,13 @@ def row(agents: int, seed: int, scene: Path, out: Path, measured: dict[str, Any]
         "coord ms/kf": 1000.0 * cpu / keyframes,
         "coord s/s input": cpu / input_seconds if input_seconds > 0 else float("nan"),
         "decodes/kf": coordinator["prior_decodes"] / keyframes,
+        "verify ms/kf": 1000.0 * verify / keyframes,
+        "pool ms/kf": 1000.0 * pool / keyframes,
+        "wasted": coordinator.get("pool_wasted_decodes", 0),
         "end kf": waiting,
         "end s": behind,
         "drain s": drain,
+        **per_cores,
         "rt end kf": backlog.get("end_keyframes", "-"),
         "rt max kf": backlog.get("max_keyframes", "-"),
         "batch": coordinator.get("largest_batch", "-"),
@@ -684,6 +770,15 @@ def main() -> None:
         "--scales",
         action="store_true",
         help="print where the scale goes in the runs already in --work (per agent and link kind)",
+    )
+    parser.add_argument(
+        "--coordinator-cores",
+        type=int,
+        nargs="+",
+        default=list(CORES),
+        metavar="P",
+        help="also replay the backlog for a coordinator of P cores (its verification spread "
+        "over them; default: 2 4 8)",
     )
     parser.add_argument(
         "--one", nargs=3, metavar=("SCENE", "OUT", "LONG_SIDE"), help=argparse.SUPPRESS
@@ -739,10 +834,14 @@ def main() -> None:
                     raise SystemExit(f"the {agents}-agent run (seed {seed}) failed")
                 kept.write_text(done.stdout.strip().splitlines()[-1])
                 console.print(f"{agents} agents, seed {seed}: {time.perf_counter() - start:.0f} s")
-            rows.append(row(agents, seed, scene, out, json.loads(kept.read_text())))
-    print_table(console, rows, COLUMNS, "centralized teams")
+            measured = json.loads(kept.read_text())
+            rows.append(row(agents, seed, scene, out, measured, args.coordinator_cores))
+    columns = list(COLUMNS)
+    at = columns.index("drain s") + 1
+    columns[at:at] = [f"{k} P{p}" for p in args.coordinator_cores for k in ("end kf", "drain s")]
+    print_table(console, rows, columns, "centralized teams")
     if args.csv is not None:
-        write_csv(args.csv, rows, COLUMNS)
+        write_csv(args.csv, rows, columns)
     if args.decentralized:
         if decentralized_rows is None:
             console.print(

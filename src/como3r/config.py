@@ -214,6 +214,7 @@ _NON_NEGATIVE = (
     "verification.max_within_component",
     "verification.max_decodes_per_batch",
     "verification.max_loop_candidates",
+    "verification.workers",
     "global_ba.lm_lambda",
     "global_ba.tikhonov_base",
     "global_ba.tikhonov_retries",

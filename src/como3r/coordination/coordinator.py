@@ -70,6 +70,7 @@ from como3r.backend.global_graph import BAResult, GlobalGraph
 from como3r.config import Config
 from como3r.coordination.association import Candidate, CrossAgentRetrieval
 from como3r.coordination.cleanup import Cleanup, ComponentCleanup, MapSnapshot, scoped_progress
+from como3r.coordination.decode_pool import VerificationPool
 from como3r.coordination.documents import CoordinatorDocuments
 from como3r.coordination.encodings import KeyframeEncodings
 from como3r.coordination.focal_alignment import FocalAlignment
@@ -126,6 +127,8 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
         self.prior = TimedPrior(prior, StageTimer(self.stats.stage_seconds), self._decoded)
         #: keyframe encodings, remade from their colours where they were not sent
         self.encodings = KeyframeEncodings(prior, config.session.encoding_cache)
+        #: verifications run ahead on threads (verification.workers; .decode_pool)
+        self.pool = VerificationPool(prior, config.verification.workers)
         self.candidates: list[Candidate] = []
         self.gauge_events: list[dict[str, Any]] = []
         self._waiting: list[Candidate] = []  # verified edges between two components
@@ -221,19 +224,24 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
         spent, budget = self.stats.prior_decodes, self._batch_budget(len(fresh))
         # in time order, as one at a time (which hits a keyframe verifies depends on the
         # merges before it); newest first only when a batch budget must choose
-        for packet, hits in fresh if math.isinf(budget) else reversed(fresh):
-            found = len(updates)
-            if hits and self.stats.prior_decodes - spent + self._keyframe_budget() > budget:
-                self.stats.verification_skipped += 1
-                continue
-            for candidate in self._verify(packet, hits):
-                updates.extend(self._admit(candidate))
-            logger.debug(
-                "coordinator: agent %d kf %d: %d gauge update(s)",
-                packet.agent,
-                packet.kf_id,
-                len(updates) - found,
-            )
+        order = fresh if math.isinf(budget) else fresh[::-1]
+        self._speculate(order)
+        try:
+            for packet, hits in order:
+                found = len(updates)
+                if hits and self.stats.prior_decodes - spent + self._keyframe_budget() > budget:
+                    self.stats.verification_skipped += 1
+                    continue
+                for candidate in self._verify(packet, hits):
+                    updates.extend(self._admit(candidate))
+                logger.debug(
+                    "coordinator: agent %d kf %d: %d gauge update(s)",
+                    packet.agent,
+                    packet.kf_id,
+                    len(updates) - found,
+                )
+        finally:
+            self._settle()
         if fresh and self._new_edges >= self.config.global_ba.trigger_interval_edges:
             updates.extend(self._global_ba())
             self._recheck_refused()

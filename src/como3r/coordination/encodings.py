@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 
 from como3r.errors import InputError, PriorError
 from como3r.frontend.keyframes import Keyframe
@@ -63,45 +64,63 @@ class KeyframeEncodings:
         """Whether ``agent``'s keyframes need not carry (nor the store keep) encodings."""
         return self.prior is not None and self.prior.can_reencode(agent)
 
-    def get(self, g: int, kf: Keyframe, agent: int) -> Encoding:
-        """The encoding of global keyframe ``g`` (``kf``, of ``agent``).
+    def get(self, g: int, kf: Keyframe, agent: int, made: Encoding | None = None) -> Encoding:
+        """The encoding of global keyframe ``g`` (``kf``, of ``agent``); ``made``: the one
+        :meth:`maker` made for it on another thread, taken where it must be made.
 
         Raises:
             InputError: the keyframe holds no encoding and the prior cannot remake it (from
                 its colours, or from them and the record it holds), or its colours are not
                 at its pointmap's resolution (the image it encoded).
         """
+        known = self.peek(g, kf)
+        if known is not None:
+            if g in self._cache:
+                self._cache.move_to_end(g)
+            return known
+        if made is None:
+            start = time.perf_counter()
+            made = self.maker(kf, agent)()
+            self.seconds += time.perf_counter() - start
+        self.reencodes += 1
+        if self.capacity > 0:
+            self._cache[g] = made
+            while len(self._cache) > self.capacity:
+                self._cache.popitem(last=False)
+        return made
+
+    def peek(self, g: int, kf: Keyframe) -> Encoding | None:
+        """The encoding of global keyframe ``g`` held or cached (the cache's order
+        unchanged), else None."""
         held = kf.encoding
         if held is not None and not isinstance(held, EncodingRecord):
             return held
-        cached = self._cache.get(g)
-        if cached is not None:
-            self._cache.move_to_end(g)
-            return cached
-        prior = self.prior
-        if prior is None or (held is None and not prior.can_reencode(agent)):
-            raise InputError(
-                f"coordinator: keyframe {kf.kf_id} of agent {agent} came without its "
-                "encoding and this coordinator's prior cannot encode it again"
-            )
-        colors = kf.colors
-        if tuple(colors.shape[:2]) != kf.shape:
-            raise InputError(
-                f"coordinator: keyframe {kf.kf_id} of agent {agent} has colours of "
-                f"{tuple(colors.shape[:2])}, not the {kf.shape} image its encoding came from"
-            )
-        start = time.perf_counter()
-        try:
-            encoding = prior.encode_again(colors, agent, kf.frame_index, held)
-        except PriorError as exc:
-            raise InputError(f"coordinator: keyframe {kf.kf_id} of agent {agent}: {exc}") from None
-        self.seconds += time.perf_counter() - start
-        self.reencodes += 1
-        if self.capacity > 0:
-            self._cache[g] = encoding
-            while len(self._cache) > self.capacity:
-                self._cache.popitem(last=False)
-        return encoding
+        return self._cache.get(g)
+
+    def maker(self, kf: Keyframe, agent: int) -> Callable[[], Encoding]:
+        """What makes ``kf``'s encoding again, its fields read now: safe to call on another
+        thread (it touches neither the keyframe nor the cache; raises as :meth:`get`)."""
+        held, colors, shape, prior = kf.encoding, kf.colors, kf.shape, self.prior
+        kf_id, frame_index = kf.kf_id, kf.frame_index
+
+        def make() -> Encoding:
+            if prior is None or (held is None and not prior.can_reencode(agent)):
+                raise InputError(
+                    f"coordinator: keyframe {kf_id} of agent {agent} came without its "
+                    "encoding and this coordinator's prior cannot encode it again"
+                )
+            if tuple(colors.shape[:2]) != shape:
+                raise InputError(
+                    f"coordinator: keyframe {kf_id} of agent {agent} has colours of "
+                    f"{tuple(colors.shape[:2])}, not the {shape} image its encoding came from"
+                )
+            try:
+                record = held if isinstance(held, EncodingRecord) else None
+                return prior.encode_again(colors, agent, frame_index, record)
+            except PriorError as exc:
+                raise InputError(f"coordinator: keyframe {kf_id} of agent {agent}: {exc}") from None
+
+        return make
 
     def cached(self) -> list[int]:
         """Global indices of the re-encoded keyframes held, least recently used first."""

@@ -28,6 +28,7 @@ from como3r.coordination.association import (
     budget_candidates,
     verify_candidates,
 )
+from como3r.coordination.decode_pool import Done, Source, VerificationPool
 from como3r.coordination.encodings import KeyframeEncodings
 from como3r.coordination.gauge import (
     edge_log_scale,
@@ -58,6 +59,7 @@ class InterAgentLinking(GaugeGeometry):
     retrieval: CrossAgentRetrieval | None
     prior: TimedPrior
     encodings: KeyframeEncodings
+    pool: VerificationPool
     candidates: list[Candidate]
     _waiting: list[Candidate]
     _new_edges: int
@@ -101,13 +103,9 @@ class InterAgentLinking(GaugeGeometry):
         self.stats.add_time("retrieval", time.perf_counter() - start)
         return hits
 
-    def _verify(self, packet: KeyframePacket, hits: list[Hit]) -> list[Candidate]:
-        """The candidates among a keyframe's retrieval hits that its decode budget allows,
-        verified densely (C-Eq. 12); returns the accepted cross-agent ones (its loop
-        candidates, verified in the same budget, go to :meth:`_add_loop`)."""
-        if not hits:
-            return []
-        middle = time.perf_counter()
+    def _selection(self, packet: KeyframePacket, hits: list[Hit]) -> tuple[list[Hit], list[Hit]]:
+        """The hits a keyframe verifies, within its decode budget and by the gauge
+        components as they are now: ``(cross-agent hits, loop candidates)``."""
         root = self.gauges.find(packet.agent)
 
         def merged(agent: int) -> bool:
@@ -122,23 +120,92 @@ class InterAgentLinking(GaugeGeometry):
         limit = self.config.verification.max_decodes_per_keyframe // DECODES_PER_CANDIDATE
         apart = [h for h in hits if not merged(h.agent)]
         loops = loops[: max(0, limit - len(apart))]
-        hits = apart + [h for h in hits if merged(h.agent)][: limit - len(apart) - len(loops)]
+        within = [h for h in hits if merged(h.agent)][: limit - len(apart) - len(loops)]
+        return apart + within, loops
+
+    def _chunks(self, chosen: list[Hit]) -> list[list[Hit]]:
+        """How a keyframe's candidates are verified: pair by pair where the prior decodes
+        pair by pair, else all in one call (:mod:`.decode_pool`)."""
+        return [[hit] for hit in chosen] if self.pool.pairwise else [chosen]
+
+    def _speculate(self, order: list[tuple[KeyframePacket, list[Hit]]]) -> None:
+        """Open a batch's verification pool (``verification.workers``) on the keyframes
+        with hits, in the order they will be verified (:mod:`.decode_pool`)."""
+        self.pool.open([((p.agent, p.kf_id), (p, hits)) for p, hits in order if hits])
+
+    def _settle(self) -> None:
+        """Close the batch's pool; the work it did for nothing is counted."""
+        for done in self.pool.close():
+            self.stats.pool_wasted += 1
+            self.stats.pool_wasted_decodes += done.decodes
+            self._charge_pool(done)
+
+    def _charge_pool(self, done: Done) -> None:
+        seconds = self.stats.pool_seconds
+        for stage, value in done.seconds.items():
+            seconds[stage] = seconds.get(stage, 0.0) + value
+
+    def _lookahead(self, packet: KeyframePacket) -> None:
+        """Submit the verifications the pool may run now: the next keyframes' predicted
+        selections, and the current keyframe's but its first chunk."""
+        for current, (p, hits) in self.pool.due((packet.agent, packet.kf_id)):
+            cross, loops = self._selection(p, hits)
+            chunks = self._chunks(cross + loops)
+            query = self._source(p.agent, p.kf_id)
+            for chunk in chunks[1:] if current else chunks:
+                self.pool.submit(
+                    (p.agent, p.kf_id),
+                    query,
+                    [(h, self._source(h.agent, h.keyframe)) for h in chunk],
+                    self.config.matching,
+                    self.config.tracking.q_min,
+                    self.config.verification,
+                )
+
+    def _source(self, agent: int, kf_id: int) -> Source:
+        """A keyframe's encoding for a pool worker: the one held, else how to make it."""
+        g = self.graph.global_index(agent, kf_id)
+        kf = self.graph.keyframes[g]
+        known = self.encodings.peek(g, kf)
+        return known if known is not None else (g, self.encodings.maker(kf, agent))
+
+    def _verify(self, packet: KeyframePacket, hits: list[Hit]) -> list[Candidate]:
+        """The candidates among a keyframe's retrieval hits that its decode budget allows,
+        verified densely (C-Eq. 12); returns the accepted cross-agent ones (its loop
+        candidates, verified in the same budget, go to :meth:`_add_loop`). Chunks the pool
+        verified for the same selection are taken from it (:mod:`.decode_pool`)."""
+        if not hits:
+            return []
+        middle, cpu = time.perf_counter(), time.thread_time()
+        hits, loops = self._selection(packet, hits)
         if not hits and not loops:
             return []
-        candidates = [(h, self._encoding(h.agent, h.keyframe)) for h in hits + loops]
+        self._lookahead(packet)
+        chosen = hits + loops
+        encodings = {h: self._encoding(h.agent, h.keyframe) for h in chosen}
         query = self._encoding(packet.agent, packet.kf_id)
         decoded = self.stats.stage_seconds.get("prior_decode", 0.0)
-        verifications = verify_candidates(
-            self.prior,
-            (packet.agent, packet.kf_id),
-            query,
-            candidates,
-            self.config.matching,
-            self.config.tracking.q_min,
-            self.config.verification,
-        )
+        verifications = []
+        for chunk in self._chunks(chosen):
+            done = self.pool.take((packet.agent, packet.kf_id), chunk)
+            if done is None:
+                verifications += verify_candidates(
+                    self.prior,
+                    (packet.agent, packet.kf_id),
+                    query,
+                    [(h, encodings[h]) for h in chunk],
+                    self.config.matching,
+                    self.config.tracking.q_min,
+                    self.config.verification,
+                )
+            else:
+                verifications += done.verifications
+                self.stats.prior_decodes += done.decodes
+                self._charge_pool(done)
+        self.pool.prune()
         decoded = self.stats.stage_seconds.get("prior_decode", 0.0) - decoded
         self.stats.add_time("verification", time.perf_counter() - middle - decoded)
+        self.stats.verification_cpu += time.thread_time() - cpu
         self.stats.edges_tried += len(verifications)
         records = [
             Candidate(v, self.graph.global_index(*v.candidate), self.graph.global_index(*v.query))
@@ -260,10 +327,17 @@ class InterAgentLinking(GaugeGeometry):
 
     def _encoding(self, agent: int, kf_id: int) -> Encoding:
         """A keyframe's encoding: the one it came with, else its colours encoded again
-        (:mod:`.encodings`; counted in ``reencodes`` and ``stage_seconds["reencode"]``)."""
+        (:mod:`.encodings`; counted in ``reencodes`` and ``stage_seconds["reencode"]``),
+        once per batch with the pool's threads (:mod:`.decode_pool`)."""
         g = self.graph.global_index(agent, kf_id)
+        kf = self.graph.keyframes[g]
         count, seconds = self.encodings.reencodes, self.encodings.seconds
-        encoding = self.encodings.get(g, self.graph.keyframes[g], agent)
+        made = None
+        if self.pool.active and self.encodings.peek(g, kf) is None:
+            start = time.perf_counter()
+            made = self.pool.encoding(g, self.encodings.maker(kf, agent))
+            self.stats.add_time("reencode", time.perf_counter() - start)
+        encoding = self.encodings.get(g, kf, agent, made)
         self.stats.reencodes += self.encodings.reencodes - count
         if self.encodings.seconds > seconds:
             self.stats.add_time("reencode", self.encodings.seconds - seconds)

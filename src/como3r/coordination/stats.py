@@ -50,6 +50,17 @@ class CoordinatorStats:
     # links that entered the global graph (verification.max_loop_candidates)
     loops_tried: int = 0
     loop_links: int = 0
+    # verification on threads (verification.workers, .decode_pool), in thread CPU seconds:
+    # the coordinator's own thread's in _verify (in line: what the pool did not run ahead,
+    # or everything without one), the workers' by stage (reencode, prior_decode and the
+    # rest of verification, the matching; wasted work included), so that
+    # benchmarks/team_scale.py can spread the verification over cores
+    verification_cpu: float = 0.0
+    pool_seconds: dict[str, float] = field(default_factory=dict)
+    # verifications the pool ran for a predicted selection the coordinator then did not
+    # make (a merge came between), and their decodes (not in prior_decodes)
+    pool_wasted: int = 0
+    pool_wasted_decodes: int = 0
     stage_seconds: dict[str, float] = field(default_factory=dict)
 
     def add_time(self, stage: str, seconds: float) -> None:

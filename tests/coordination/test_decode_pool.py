@@ -1,0 +1,168 @@
+"""Verification on a pool of threads (``verification.workers``, coordination/decode_pool.py):
+the coordinator's results are those of verifying in line, bit for bit; a worker's error is
+raised in the coordinator's thread."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import threading
+
+import pytest
+import torch
+
+from como3r.config import Config, apply_overrides
+from como3r.coordination.coordinator import Coordinator
+from como3r.data.agent import open_agent
+from como3r.data.ground_truth import AgentFolderTruth
+from como3r.data.preprocess import make_view
+from como3r.data.synth import synthesize
+from como3r.errors import ConfigError, PriorError
+from como3r.frontend.packets import KeyframePacket
+from como3r.frontend.pairs import link_pairs
+from como3r.prior.simulated import SimulatedPrior
+from como3r.runtime.pipeline import _colors
+
+WIDTH, HEIGHT = 64, 48
+OVERRIDES = [
+    f"input.long_side={WIDTH}",
+    "global_ba.max_iters_stream=5",
+    "global_ba.max_iters_cleanup=5",
+    "global_ba.cleanup_passes=1",
+    "depth.alternation_rounds=0",
+    "session.encoding_cache=2",
+]
+AGENTS = 3
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> tuple[SimulatedPrior, list[KeyframePacket]]:
+    """Three agents on a ring, every second frame a keyframe, interleaved in time; agents 1
+    and 2 send encoding records, as a multi-process run does (the coordinator encodes their
+    keyframes again, with a cache of 2: re-encodes and evictions)."""
+    root = tmp_path_factory.mktemp("pool")
+    synthesize(
+        root,
+        agents=AGENTS,
+        seed=0,
+        overlap=0.5,
+        frames=8,
+        preset="default",
+        width=WIDTH,
+        height=HEIGHT,
+    )
+    config = apply_overrides(Config(), OVERRIDES)
+    agents = {a: open_agent(root / f"agent_{a}") for a in range(AGENTS)}
+    prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth(agents, WIDTH))
+    packets: dict[int, list[KeyframePacket]] = {}
+    for a, agent in agents.items():
+        packets[a], previous = [], None
+        for kf_id, index in enumerate(range(0, agent.num_frames, 2)):
+            frame = agent.load_frame(index)
+            view = make_view(frame, a, WIDTH)
+            enc = prior.encode(view)
+            pred = prior.decode(enc, enc)
+            link = (
+                None
+                if previous is None
+                else link_pairs(prior, [(previous, enc)], config.matching, config.tracking.q_min)[0]
+            )
+            packets[a].append(
+                KeyframePacket(
+                    agent=a,
+                    kf_id=kf_id,
+                    frame_index=index,
+                    timestamp=frame.timestamp,
+                    T_WC=agent.groundtruth.T_WC[index].clone(),
+                    X_hat=pred.X_ii,
+                    C_hat=pred.C_ii,
+                    colors=_colors(view),
+                    encoding=enc if a == 0 else enc.portable(),
+                    retrieval=prior.retrieval_features(enc),
+                    sequential_ij=None if link is None else link.ij,
+                    sequential_ji=None if link is None else link.ji,
+                    previous=None,
+                )
+            )
+            previous = enc
+    order = [
+        p for k in range(len(packets[0])) for a in range(AGENTS) for p in packets[a][k : k + 1]
+    ]
+    return prior, order
+
+
+def _run(prior, order: list[KeyframePacket], workers: int, batch: int) -> Coordinator:
+    config = apply_overrides(Config(), [*OVERRIDES, f"verification.workers={workers}"])
+    coordinator = Coordinator(prior, config, prior.codebook(), AGENTS)
+    for start in range(0, len(order), batch):
+        coordinator.add_keyframes(order[start : start + batch])
+    coordinator.finish()
+    return coordinator
+
+
+def _outcome(coordinator: Coordinator) -> dict:
+    """Everything a run writes of the coordinator but its timings and the pool's counts."""
+    skipped = {"stage_seconds", "ba_seconds", "cleanup_seconds", "verification_cpu"}
+    stats = {
+        k: v
+        for k, v in dataclasses.asdict(coordinator.stats).items()
+        if k not in skipped and not k.startswith("pool_")
+    }
+    graph = coordinator.graph_document()
+    return {"stats": stats, "graph": json.dumps(graph, sort_keys=True, default=str)}
+
+
+class _Batching(SimulatedPrior):
+    """Decodes as a batching prior does (MASt3R: one call for many pairs): the pool then
+    verifies a keyframe's candidates in one job, the call the coordinator would make."""
+
+    def decode_pairs(self, pairs):
+        return [self.decode(a, b) for a, b in pairs]
+
+
+@pytest.mark.parametrize(("batch", "batching"), [(1, False), (6, False), (6, True)])
+def test_two_workers_give_the_outputs_of_verifying_in_line(scene, batch, batching) -> None:
+    """Batches of one (a keyframe's pairs side by side) and of six (keyframes ahead, merges
+    in between), pair by pair or one job per keyframe: poses, graph document and every
+    counter equal; the workers did work."""
+    prior, order = scene
+    if batching:
+        prior = _Batching(prior.config, prior.truth)
+    inline = _run(prior, order, 0, batch)
+    pooled = _run(prior, order, 2, batch)
+    assert pooled.pool.pairwise is not batching
+    assert inline.stats.reencodes > 0 and inline.stats.edges_tried > 0
+    n = len(order)
+    assert torch.equal(inline.graph.poses(range(n)), pooled.graph.poses(range(n)))
+    assert _outcome(inline) == _outcome(pooled)
+    assert inline.stats.pool_seconds == {} and inline.stats.pool_wasted == 0
+    assert pooled.stats.pool_seconds.get("prior_decode", 0.0) > 0
+    assert inline.stats.verification_cpu > pooled.stats.verification_cpu
+    assert not [t for t in threading.enumerate() if t.name.startswith("como3r-verify")]
+
+
+class _FailingOnThreads(SimulatedPrior):
+    """Decodes in the coordinator's thread only; on any other it raises."""
+
+    def decode(self, enc_i, enc_j):
+        if threading.current_thread() is not threading.main_thread():
+            raise PriorError("decoded on a worker")
+        return super().decode(enc_i, enc_j)
+
+
+def test_a_workers_error_is_raised_in_the_coordinators_thread(scene) -> None:
+    prior, order = scene
+    failing = _FailingOnThreads(prior.config, prior.truth)
+    config = apply_overrides(Config(), [*OVERRIDES, "verification.workers=2"])
+    coordinator = Coordinator(failing, config, prior.codebook(), AGENTS)
+    with pytest.raises(PriorError, match="decoded on a worker"):
+        for start in range(0, len(order), 6):
+            coordinator.add_keyframes(order[start : start + 6])
+    assert not coordinator.pool.active
+    assert not [t for t in threading.enumerate() if t.name.startswith("como3r-verify")]
+
+
+def test_workers_must_not_be_negative() -> None:
+    with pytest.raises(ConfigError, match="verification.workers must be >= 0, got -1"):
+        apply_overrides(Config(), ["verification.workers=-1"])
+    assert apply_overrides(Config(), ["verification.workers=0"]).verification.workers == 0
