@@ -54,7 +54,8 @@ result, not a stop: its row says ``error`` and the traceback goes to ``--out/err
 ``--prior-model`` sets ``simulated_prior.model`` (issue 37's ``v2``), ``--long-side``
 ``input.long_side``, and ``--mode decentralized`` runs ``como3r run --mode decentralized``
 instead (robots as threads, every robot always in range, ``--odometry`` (``vio``, or
-``lio``) added to a copy of the scene as ``como3r synth --odometry`` does; it places every frame with odometry,
+``lio``) added to a copy of the scene as ``como3r synth --odometry`` does, with its declared
+kind, ``odometry.json``: ``vio`` or ``metric``; it places every frame with odometry,
 so its ``frames`` are all frames and ``tracked`` the share of them in the trajectories).
 
 **Measured, prior v2** (issue 37; seed 0, 160x120 scenes of 80 frames per agent, 40
