@@ -345,7 +345,9 @@ class DecentralizedConfig:
             2.52-2.89).
             The rings of ``benchmarks/team_scale_decentralized.py`` (``vio``, merged ATE %
             of the summed path): 4 robots 0.901 -> 0.719, 8 robots 1.13 -> 1.32 (seven
-            robots' scales closer, one robot's start shortened too far).
+            robots' scales closer, one robot's start shortened too far; session 28, its
+            robots now declared ``vio`` by ``como3r synth``, the default: the same 0.719
+            and 1.32).
             ``benchmarks/wrong_loops.py --seeds 5``: unchanged. One start-scale variable per
             robot instead (steps scaled by ``1 + e0 exp(-d / L)``, ``e0`` held near 0 by
             0.3) re-solved worse: seed 0 2.71 / 2.82 / 2.91, seed 1 2.45 / 3.55 / 3.32. Nor
