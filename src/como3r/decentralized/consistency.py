@@ -252,8 +252,8 @@ class SharedGraph:
 
 def merged_graph(shares: dict[int, PoseGraphShare]) -> SharedGraph:
     """The pose graph the shares know together: every participant's odometry and declared
-    start, the odometry relayed for robots not in the round (the longest copy, with the start
-    relayed with it), and every loop once (the first copy, in the order of the shares) whose
+    start, the odometry relayed for robots not in the round (the longest copy) with their
+    declared starts, and every loop once (the first copy, in the order of the shares) whose
     keyframes that odometry holds."""
     odometry: dict[int, np.ndarray] = {r: share.odometry for r, share in shares.items()}
     starts = {r: share.start for r, share in shares.items() if share.start is not None}
@@ -261,8 +261,9 @@ def merged_graph(shares: dict[int, PoseGraphShare]) -> SharedGraph:
         for robot, relayed in share.relayed.items():
             if robot not in shares and len(relayed) > len(odometry.get(robot, ())):
                 odometry[robot] = relayed
-                if robot in share.relayed_starts:
-                    starts[robot] = share.relayed_starts[robot]
+            if robot not in shares and robot in share.relayed_starts:
+                # a robot's declared start is one for its whole mission, whichever copy
+                starts.setdefault(robot, share.relayed_starts[robot])
     loops: dict[tuple[int, int, int, int], LoopClosure] = {}
     for share in shares.values():
         for loop in share.loops:

@@ -518,7 +518,8 @@ class Robot:
         for robot, odometry in estimate.relayed.items():
             if robot != self.robot and len(odometry) > len(self._relayed.get(robot, ())):
                 self._relayed[robot] = odometry
-                if robot in estimate.relayed_starts:
-                    self._relayed_starts[robot] = estimate.relayed_starts[robot]
+        for robot, start in estimate.relayed_starts.items():
+            if robot != self.robot:
+                self._relayed_starts[robot] = start
         for loop in estimate.loops:
             self._relayed_loops.setdefault(loop_key(loop), loop)
