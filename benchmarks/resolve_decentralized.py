@@ -13,7 +13,13 @@ is not the run: the robots solved round by round and place every frame by odomet
 the numbers differ by about 0.1 % of path.
 
     PYTHONPATH=src python benchmarks/resolve_decentralized.py OUT \\
-        --set vio_start_scale_error=0.3
+        --set vio_start_scale_error=0.1 [--declare auto|none|vio|metric]
+
+Each robot's start discount follows its odometry's declared kind (``odometry.json``,
+:mod:`~como3r.decentralized.odometry_kind`; ``--declare auto``): a scene written before
+declarations (session 27's) gets the one ``como3r synth --odometry`` writes now for its model
+(``vio`` or ``metric``), ``--declare none`` leaves every robot undeclared (the behaviour
+before, and the table below's ``vio_start_scale_error`` rows were then applied to every robot).
 
 ``OUT`` is a ``benchmarks/robustness.py --mode decentralized --out`` folder: its runs
 ``runs/<cell>-dec`` (``vio``) and ``runs/<cell>-dec-lio`` with their scenes
@@ -155,6 +161,9 @@ import torch
 from como3r.config import Config, apply_overrides
 from como3r.config_decentralized import DecentralizedConfig
 from como3r.decentralized.consistency import solve_checked
+from como3r.decentralized.odometry_kind import OdometryKind, odometry_start, read_odometry_kind
+from como3r.decentralized.odometry_sim import ODOMETRY_PRESETS
+from como3r.decentralized.odometry_sim import declared_kind as declared_kind_of
 from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
     PoseGraphProblem,
@@ -202,17 +211,37 @@ def umeyama_rmse(estimate: np.ndarray, truth: np.ndarray) -> float:
     return float(((aligned - dst) ** 2).sum(1).mean().sqrt())
 
 
-def resolve(run: Path, scene: Path, settings: DecentralizedConfig) -> float:
+def declared_kind(scene: Path, robot: int, model: str, declare: str) -> OdometryKind | None:
+    """Robot ``robot``'s odometry kind: ``declare`` ``auto``: its input's ``odometry.json``
+    or, for a scene written before declarations, the one ``como3r synth --odometry
+    MODEL`` writes now; ``none``: undeclared; ``vio`` / ``metric``: that kind."""
+    if declare == "none":
+        return None
+    if declare != "auto":
+        return OdometryKind(declare)
+    declared = read_odometry_kind(scene / f"agent_{robot}")
+    return declared or declared_kind_of(ODOMETRY_PRESETS[model])
+
+
+def resolve(
+    run: Path, scene: Path, settings: DecentralizedConfig, model: str, declare: str = "auto"
+) -> float:
     """Merged keyframe ATE % of one robot's path of ``run``'s final graph solved under
-    ``settings`` (NaN when its robots are not one group)."""
+    ``settings`` with the robots' odometry kinds of ``declare`` (:func:`declared_kind`;
+    NaN when its robots are not one group)."""
     odometry, times, loops = load_graph(run)
     robots = sorted(odometry)
     components = [c for c in connected_components(robots, loops) if len(c) > 1]
     if len(components) != 1 or len(components[0]) != len(robots):
         return math.nan
     graph = settings.pose_graph_config()
+    starts = {r: odometry_start(declared_kind(scene, r, model, declare), settings) for r in robots}
     problem = PoseGraphProblem(
-        odometry=odometry, loops=loops, anchor=robots[0], anchor_pose=odometry[robots[0]][0]
+        odometry=odometry,
+        loops=loops,
+        anchor=robots[0],
+        anchor_pose=odometry[robots[0]][0],
+        starts={r: s for r, s in starts.items() if s is not None},
     )
     solution, _ = solve_checked(problem, graph.formulation, graph.solver, graph)
     estimated, true = [], []
@@ -238,15 +267,26 @@ def main() -> None:
         "decentralized.KEY=VALUE` without the prefix), e.g. vio_start_scale_error=0.3 or "
         "pose_graph.formulation=base",
     )
+    parser.add_argument(
+        "--declare",
+        choices=("auto", "none", "vio", "metric"),
+        default="auto",
+        help="the robots' odometry kinds: auto (each input's odometry.json, or the one como3r "
+        "synth writes for the scene's odometry model), none (undeclared), or one kind for all",
+    )
     args = parser.parse_args()
     # the configuration's own overrides, checked as `como3r run --set` checks them
     settings = apply_overrides(Config(), [f"decentralized.{item}" for item in args.set])
-    print(f"overrides {args.set or 'none'}: merged keyframe ATE % of one robot's path")
+    print(
+        f"overrides {args.set or 'none'}, kinds {args.declare}: merged keyframe ATE % of one "
+        "robot's path"
+    )
     for run in sorted((args.out / "runs").glob("*-dec*")):
-        lio = run.name.endswith("-dec-lio")
+        model = "lio" if run.name.endswith("-dec-lio") else "vio"
         cell = run.name.removesuffix("-dec-lio").removesuffix("-dec")
-        scene = args.out / "scenes" / f"{cell}-{'lio' if lio else 'vio'}"
-        print(f"{run.name:40s} {resolve(run, scene, settings.decentralized):6.2f}")
+        scene = args.out / "scenes" / f"{cell}-{model}"
+        value = resolve(run, scene, settings.decentralized, model, args.declare)
+        print(f"{run.name:40s} {value:6.2f}")
 
 
 if __name__ == "__main__":

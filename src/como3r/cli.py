@@ -90,8 +90,8 @@ def synth(
     odometry: str = typer.Option(
         "vio",
         "--odometry",
-        help="Simulated robot odometry written as odometry.txt "
-        "(decentralized mode): vio, lio or none.",
+        help="Simulated robot odometry written as odometry.txt, its kind declared in "
+        "odometry.json (decentralized mode): vio (declared vio), lio (declared metric) or none.",
     ),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing folder."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),

@@ -21,6 +21,7 @@ from como3r.decentralized.pairwise_consistency import consistent_loops, oriented
 from como3r.decentralized.pose_graph import solve_pose_graph
 from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
+    OdometryStart,
     PoseGraphProblem,
     PoseGraphSolution,
     from_pose3,
@@ -153,7 +154,8 @@ def test_pairwise_consistency_counts_the_odometrys_unconverged_start():
         config = _config(
             scale_smoothing_sigma=0.01, odom_start_scale_sigma=start_sigma, odom_start_spacings=3.0
         )
-        start = {r: start_variance(o, SPACING, config) for r, o in odometry.items()}
+        begin = OdometryStart(config.odom_start_scale_sigma, config.odom_start_spacings)
+        start = {r: start_variance(o, SPACING, begin) for r, o in odometry.items()}
         statistics.append(
             pair_chi2(
                 oriented_loop(first, 1.0),

@@ -105,7 +105,9 @@ def mission(scene, main_config, settings_factory, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("robots")
     config = _config(main_config, settings_factory)
     metrics = _run_robots(scene, config, tmp)
-    end_s = max(float(open_robot(p, config).odometry.timestamps[-1]) for p in scene)
+    end_s = max(
+        float(open_robot(p, config, config.decentralized).odometry.timestamps[-1]) for p in scene
+    )
     reference = run_protocol(
         [str(p) for p in scene],
         config,

@@ -19,6 +19,7 @@ from como3r.config_decentralized import (
 )
 from como3r.decentralized.factor_noise import odometry_noise
 from como3r.decentralized.initial_estimate import initial_poses, keyframe_spacing
+from como3r.decentralized.odometry_kind import OdometryKind, odometry_start
 from como3r.decentralized.pose_graph import (
     build_graph,
     scaled_loop_error,
@@ -27,10 +28,12 @@ from como3r.decentralized.pose_graph import (
 )
 from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
+    OdometryStart,
     PoseGraphProblem,
     connected_components,
     from_pose3,
     loop_clusters,
+    pose_key,
     to_pose3,
 )
 from como3r.errors import ConfigError
@@ -313,16 +316,15 @@ def test_odometry_scales_undo_an_unconverged_vio_start():
 
 def test_odometry_noise_widens_an_unconverged_start_along_the_motion():
     """At the start, a step's translation variance along its direction (in its end frame)
-    gains ``(odom_start_scale_sigma x length)^2``; across it, and far from the start, the
-    odometry keeps ``odom_sigma_trans_ratio`` spacings."""
-    config = PoseGraphConfig(
-        odom_sigma_trans_ratio=0.04, odom_start_scale_sigma=0.3, odom_start_spacings=2.0
-    )
+    gains ``(scale_sigma x length)^2``; across it, and far from the start, the odometry
+    keeps ``odom_sigma_trans_ratio`` spacings."""
+    config = PoseGraphConfig(odom_sigma_trans_ratio=0.04)
     step = gtsam.Pose3(gtsam.Rot3.Yaw(0.3), np.array([2.0, 0.0, 0.0]))
     along = step.rotation().matrix().T @ np.array([1.0, 0.0, 0.0])
     across = np.cross(along, [0.0, 0.0, 1.0])
     for travelled, stretch in ((0.0, 0.3 * 2.0), (2.0, 0.3 * 2.0 * math.exp(-1.0)), (40.0, 0.0)):
-        covariance = np.linalg.inv(odometry_noise(step, travelled, 1.0, config).information())
+        noise = odometry_noise(step, travelled, 1.0, config, OdometryStart(0.3, 2.0))
+        covariance = np.linalg.inv(noise.information())
         assert along @ covariance[3:, 3:] @ along == pytest.approx(0.04**2 + stretch**2, rel=1e-6)
         assert across @ covariance[3:, 3:] @ across == pytest.approx(0.04**2, rel=1e-6)
         assert np.diag(covariance[:3, :3]) == pytest.approx([math.radians(0.5) ** 2] * 3)
@@ -345,14 +347,69 @@ def test_a_discounted_odometry_start_lets_loops_shorten_an_unconverged_vio_start
 
 
 def test_the_vio_start_is_set_in_keyframe_spacings_from_scene_depths():
-    graph = DecentralizedConfig(
-        keyframe_distance_ratio=0.1, vio_start_scale_error=0.3
-    ).pose_graph_config()
-    assert graph.odom_start_scale_sigma == 0.3
-    assert graph.odom_start_spacings == pytest.approx(3.0)
-    off = DecentralizedConfig().pose_graph_config()
-    assert off.odom_start_scale_sigma == 0.0  # off by default (its docstring)
+    """A declared ``vio`` robot's start: ``vio_start_scale_error`` (0.3 by default) over
+    ``vio_start_depths / keyframe_distance_ratio`` spacings, or the declaration's own; a
+    ``metric`` one has none; undeclared: None (the pose graph's own key then)."""
+    settings = DecentralizedConfig(keyframe_distance_ratio=0.1)
+    assert odometry_start(OdometryKind("vio"), settings) == OdometryStart(0.3, pytest.approx(3.0))
+    own = odometry_start(OdometryKind("vio", start_scale_error=0.1, start_depths=0.5), settings)
+    assert own == OdometryStart(0.1, pytest.approx(5.0))
+    assert odometry_start(OdometryKind("metric"), settings) == OdometryStart(0.0, 0.0)
+    assert odometry_start(None, settings) is None
+    # the team-wide graph settings carry no start: it is per robot
+    assert settings.pose_graph_config().odom_start_scale_sigma == 0.0
     assert PoseGraphConfig().odom_start_scale_sigma == 0.0  # the paper's metric odometry
+
+
+def _odometry_stretch_sigmas(graph, problem: PoseGraphProblem, robot: int) -> np.ndarray:
+    """``(K - 1,)``: the translation sigma along each odometry step of ``robot`` in the
+    built graph (the step's direction in its end frame)."""
+    sigmas = []
+    for k in range(1, len(problem.odometry[robot])):
+        step = to_pose3(problem.odometry[robot][k - 1]).between(
+            to_pose3(problem.odometry[robot][k])
+        )
+        along = step.rotation().matrix().T @ np.asarray(step.translation())
+        along /= np.linalg.norm(along)
+        factor = next(
+            f
+            for f in (graph.fixed.at(i) for i in range(graph.fixed.size()))
+            if isinstance(f, gtsam.BetweenFactorPose3)
+            and list(f.keys()) == [pose_key(robot, k - 1), pose_key(robot, k)]
+        )
+        covariance = np.linalg.inv(factor.noiseModel().information())
+        sigmas.append(math.sqrt(along @ covariance[3:, 3:] @ along))
+    return np.array(sigmas)
+
+
+def test_a_declared_vio_robots_start_is_discounted_and_a_metric_ones_is_not():
+    """One team, robot 0 declared ``vio`` and robot 1 ``metric``, robot 2 undeclared: only
+    robot 0's first steps gain the start's stretch along the motion; robot 1's and robot
+    2's keep the odometry's sigma everywhere (the configuration's undeclared start is 0)."""
+    data = _synthetic(np.random.default_rng(3))
+    settings = DecentralizedConfig(keyframe_distance_ratio=0.1)
+    problem = dataclasses.replace(
+        data.problem,
+        starts={
+            0: odometry_start(OdometryKind("vio"), settings),
+            1: odometry_start(OdometryKind("metric"), settings),
+        },
+    )
+    config = _config()
+    graph = build_graph(problem, "smoothed", config)
+    plain = config.odom_sigma_trans_ratio * keyframe_spacing(problem, np.ones(len(problem.loops)))
+    vio, metric, undeclared = (_odometry_stretch_sigmas(graph, problem, r) for r in range(3))
+    assert vio[0] > 3 * plain  # 0.3 of a step's length, about a spacing, against 0.02 m
+    assert vio[-1] < 2 * plain < vio[0] / 2  # decayed over 3 spacings, 11 steps
+    assert np.all(np.diff(vio) < 0)
+    assert metric == pytest.approx(plain, rel=1e-6)
+    assert undeclared == pytest.approx(plain, rel=1e-6)
+    # the undeclared robot takes the configuration's start: here the same as robot 0's
+    legacy = build_graph(
+        problem, "smoothed", _config(odom_start_scale_sigma=0.3, odom_start_spacings=3.0)
+    )
+    assert _odometry_stretch_sigmas(legacy, problem, 2)[0] > 3 * plain
+    assert _odometry_stretch_sigmas(legacy, problem, 1) == pytest.approx(plain, rel=1e-6)
 
 
 def test_loop_translation_sigma_has_a_floor_confidence_cannot_lower():

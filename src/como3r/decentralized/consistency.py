@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -37,6 +37,7 @@ from como3r.decentralized.pairwise_consistency import consistent_loops
 from como3r.decentralized.pose_graph import solve_pose_graph
 from como3r.decentralized.pose_graph_problem import (
     LoopClosure,
+    OdometryStart,
     PoseGraphProblem,
     PoseGraphSolution,
     connected_components,
@@ -189,6 +190,7 @@ def _reference(
         problem.anchor,
         problem.anchor_pose,
         {r: e for r, e in problem.initial.items() if r in component},
+        {r: s for r, s in problem.starts.items() if r in component},
     )
     return solve_pose_graph(before, formulation, solver, config).poses
 
@@ -212,13 +214,7 @@ def solve_checked(
         consistent = consistent_loops(problem, config)
     else:
         consistent = np.ones(len(problem.loops), dtype=bool)
-    kept = PoseGraphProblem(
-        problem.odometry,
-        [l for l, c in zip(problem.loops, consistent) if c],
-        problem.anchor,
-        problem.anchor_pose,
-        problem.initial,
-    )
+    kept = replace(problem, loops=[l for l, c in zip(problem.loops, consistent) if c])
     if len(kept.loops) < len(problem.loops):
         logger.info(
             "robots %s: %d of %d loops pairwise consistent; the others held back",
@@ -239,21 +235,35 @@ def loop_key(loop: LoopClosure) -> tuple[int, int, int, int]:
     return loop.robot_a, loop.keyframe_a, loop.robot_b, loop.keyframe_b
 
 
-def merged_graph(
-    shares: dict[int, PoseGraphShare],
-) -> tuple[dict[int, np.ndarray], list[LoopClosure]]:
-    """The pose graph the shares know together: every participant's odometry, the
-    odometry relayed for robots not in the round (the longest copy), and every loop once
-    (the first copy, in the order of the shares) whose keyframes that odometry holds.
+@dataclass
+class SharedGraph:
+    """The pose graph a group of robots knows together (:func:`merged_graph`).
 
-    Returns:
-        ``(robot -> (K, 8) odometry, loops)``.
+    Attributes:
+        odometry: robot -> ``(K, 8)`` keyframe odometry.
+        loops: its loop closures.
+        starts: robot -> its declared odometry start (robots without one: undeclared).
     """
+
+    odometry: dict[int, np.ndarray]
+    loops: list[LoopClosure]
+    starts: dict[int, OdometryStart] = field(default_factory=dict)
+
+
+def merged_graph(shares: dict[int, PoseGraphShare]) -> SharedGraph:
+    """The pose graph the shares know together: every participant's odometry and declared
+    start, the odometry relayed for robots not in the round (the longest copy) with their
+    declared starts, and every loop once (the first copy, in the order of the shares) whose
+    keyframes that odometry holds."""
     odometry: dict[int, np.ndarray] = {r: share.odometry for r, share in shares.items()}
+    starts = {r: share.start for r, share in shares.items() if share.start is not None}
     for share in shares.values():
         for robot, relayed in share.relayed.items():
             if robot not in shares and len(relayed) > len(odometry.get(robot, ())):
                 odometry[robot] = relayed
+            if robot not in shares and robot in share.relayed_starts:
+                # a robot's declared start is one for its whole mission, whichever copy
+                starts.setdefault(robot, share.relayed_starts[robot])
     loops: dict[tuple[int, int, int, int], LoopClosure] = {}
     for share in shares.values():
         for loop in share.loops:
@@ -264,11 +274,11 @@ def merged_graph(
                 and loop.keyframe_b < len(odometry[loop.robot_b])
             ):
                 loops.setdefault(loop_key(loop), loop)
-    return odometry, list(loops.values())
+    return SharedGraph(odometry, list(loops.values()), starts)
 
 
-#: participant -> ``(robot -> odometry, loops)`` of the group it was solved in.
-Graphs = dict[int, tuple[dict[int, np.ndarray], list[LoopClosure]]]
+#: participant -> the graph of the group it was solved in.
+Graphs = dict[int, SharedGraph]
 
 
 def solve_shares(
@@ -296,29 +306,33 @@ def solve_shares(
         formulation, solver: override the configured ones.
         checks: if given, receives each group's :class:`~.consistency.LoopCheck`.
         graphs: if given, receives, for every participant in a group of two or more robots
-            (held back or not), the odometry and loops of its group: what it relays later.
+            (held back or not), the odometry, loops and declared starts of its group: what
+            it relays later.
 
     Returns:
         robot -> (``(K, 8)`` poses, frame id) for every participant in a group of two or
         more robots whose solve was not held back.
     """
     graph_config = settings.pose_graph_config()
-    odometry, loops = merged_graph(shares)
+    known = merged_graph(shares)
     updates: dict[int, tuple[np.ndarray, int]] = {}
-    for component in connected_components(sorted(odometry), loops):
+    for component in connected_components(sorted(known.odometry), known.loops):
         present = [r for r in component if r in shares]
         if len(component) < 2 or not present:
             continue
-        group_loops = [loop for loop in loops if loop.robot_a in component]
-        graph = ({r: odometry[r] for r in component}, group_loops)
+        graph = SharedGraph(
+            {r: known.odometry[r] for r in component},
+            [loop for loop in known.loops if loop.robot_a in component],
+            {r: s for r, s in known.starts.items() if r in component},
+        )
         if graphs is not None:
             graphs.update({r: graph for r in present})
         anchor = shares[present[0]]
         frame = anchor.frame
         anchor_pose = anchor.estimate[0] if len(anchor.estimate) else anchor.odometry[0]
         problem = PoseGraphProblem(
-            odometry=graph[0],
-            loops=group_loops,
+            odometry=graph.odometry,
+            loops=graph.loops,
             anchor=present[0],
             anchor_pose=anchor_pose,
             initial={
@@ -326,6 +340,7 @@ def solve_shares(
                 for r in present
                 if shares[r].frame == frame and len(shares[r].estimate)
             },
+            starts=graph.starts,
         )
         try:
             solution, check = solve_checked(

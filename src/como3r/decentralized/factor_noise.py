@@ -17,7 +17,7 @@ import gtsam
 import numpy as np
 
 from como3r.config_decentralized import PoseGraphConfig
-from como3r.decentralized.pose_graph_problem import to_pose3
+from como3r.decentralized.pose_graph_problem import OdometryStart, PoseGraphProblem, to_pose3
 
 _POSE_DIM = 6
 
@@ -106,12 +106,19 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def start_scale_sigma(travelled: float, config: PoseGraphConfig) -> float:
-    """The odometry's scale uncertainty ``odom_start_scale_sigma x exp(-travelled /
-    odom_start_spacings)`` after ``travelled`` keyframe spacings (:func:`odometry_noise`)."""
-    if config.odom_start_scale_sigma <= 0 or config.odom_start_spacings <= 0:
+def robot_start(problem: PoseGraphProblem, robot: int, config: PoseGraphConfig) -> OdometryStart:
+    """Robot ``robot``'s odometry start: the problem's (its declared kind), else the
+    configuration's ``odom_start_scale_sigma`` over ``odom_start_spacings``."""
+    default = OdometryStart(config.odom_start_scale_sigma, config.odom_start_spacings)
+    return problem.starts.get(robot, default)
+
+
+def start_scale_sigma(travelled: float, start: OdometryStart) -> float:
+    """The odometry's scale uncertainty ``scale_sigma x exp(-travelled / spacings)`` after
+    ``travelled`` keyframe spacings (:func:`odometry_noise`)."""
+    if start.scale_sigma <= 0 or start.spacings <= 0:
         return 0.0
-    return config.odom_start_scale_sigma * math.exp(-travelled / config.odom_start_spacings)
+    return start.scale_sigma * math.exp(-travelled / start.spacings)
 
 
 def step_lengths(odometry: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
@@ -122,24 +129,28 @@ def step_lengths(odometry: np.ndarray, spacing: float) -> tuple[np.ndarray, np.n
     return lengths, (np.cumsum(lengths) - lengths / 2) / spacing
 
 
-def start_variance(odometry: np.ndarray, spacing: float, config: PoseGraphConfig) -> np.ndarray:
+def start_variance(odometry: np.ndarray, spacing: float, start: OdometryStart) -> np.ndarray:
     """``(K,)``: the summed variance of the odometry's step lengths from keyframe 0 to each
-    keyframe of one robot's ``(K, 8)`` odometry, from its unconverged scale
+    keyframe of one robot's ``(K, 8)`` odometry, from its unconverged scale ``start``
     (:func:`start_scale_sigma`; odometry units squared)."""
     lengths, middles = step_lengths(odometry, spacing)
-    sigmas = np.array([start_scale_sigma(float(d), config) for d in middles])
+    sigmas = np.array([start_scale_sigma(float(d), start) for d in middles])
     return np.concatenate([[0.0], np.cumsum((sigmas * lengths) ** 2)])
 
 
 def odometry_noise(
-    step: gtsam.Pose3, travelled: float, spacing: float, config: PoseGraphConfig
+    step: gtsam.Pose3,
+    travelled: float,
+    spacing: float,
+    config: PoseGraphConfig,
+    start: OdometryStart,
 ) -> gtsam.noiseModel.Base:
     """Noise of one odometry step (F-Eq. 4's ``Omega_odom``).
 
     ``odom_sigma_rot_deg`` and ``odom_sigma_trans_ratio`` keyframe spacings, plus, along the
-    step's direction, ``odom_start_scale_sigma x exp(-travelled / odom_start_spacings)`` of
-    its length: a monocular VIO's scale is off until its estimate converges, at the start of
-    a trajectory (F-Sec. IV-C), and a scale error stretches a step along itself.
+    step's direction, ``start.scale_sigma x exp(-travelled / start.spacings)`` of its
+    length: a monocular VIO's scale is off until its estimate converges, at the start of a
+    trajectory (F-Sec. IV-C), and a scale error stretches a step along itself.
 
     Args:
         step: the step's relative pose (keyframe ``k-1`` to ``k``, odometry units).
@@ -147,16 +158,17 @@ def odometry_noise(
             in keyframe spacings.
         spacing: the keyframe spacing, in odometry units.
         config: the odometry noise parameters.
+        start: the robot's odometry start (:func:`robot_start`).
     """
     sigma_rot = math.radians(config.odom_sigma_rot_deg)
     sigma_trans = config.odom_sigma_trans_ratio * spacing
-    start = start_scale_sigma(travelled, config)
-    if start == 0.0:
+    stretch = start_scale_sigma(travelled, start)
+    if stretch == 0.0:
         return pose_noise(sigma_rot, sigma_trans, 1.0)
     # GTSAM's error is Log(Z^-1 T_a^-1 T_b): a stretch d of the step's translation t appears
     # as d R^T t in the step's end frame.
     along = step.rotation().matrix().T @ np.asarray(step.translation(), dtype=np.float64)
     covariance = np.zeros((_POSE_DIM, _POSE_DIM))
     covariance[:3, :3] = np.eye(3) * sigma_rot**2
-    covariance[3:, 3:] = np.eye(3) * sigma_trans**2 + start**2 * np.outer(along, along)
+    covariance[3:, 3:] = np.eye(3) * sigma_trans**2 + stretch**2 * np.outer(along, along)
     return gtsam.noiseModel.Gaussian.Covariance(covariance)

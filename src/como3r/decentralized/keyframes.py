@@ -22,6 +22,7 @@ from torch import Tensor
 
 from como3r.data.agent_input import AgentInput
 from como3r.data.input_files import associate_timestamps
+from como3r.decentralized.pose_graph_problem import OdometryStart
 from como3r.errors import InputError
 from como3r.geometry.lie import sim3_compose, sim3_inverse, sim3_normalize
 
@@ -146,9 +147,11 @@ def frame_poses(odometry: FrameOdometry, keyframes: Keyframes, estimate: np.ndar
 
 @dataclasses.dataclass
 class RobotData:
-    """The driver's view of one robot: its input, odometry and (after the mission, from
-    its report) keyframes."""
+    """The driver's view of one robot: its input, odometry, its odometry's declared start
+    (:mod:`.odometry_kind`; None: undeclared) and (after the mission, from its report)
+    keyframes."""
 
     agent: AgentInput
     odometry: FrameOdometry
     keyframes: Keyframes | None = None
+    start: OdometryStart | None = None

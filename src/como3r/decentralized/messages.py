@@ -12,7 +12,8 @@ Robot -> robot, in the order of a round:
 * :class:`EncodingRequest` -- which of the recipient's keyframes the sender must decode;
 * :class:`EncodingReply` -- one keyframe's encoding, the latent (F-Sec. III-B), or the image the
   recipient encodes again;
-* :class:`PoseGraphShare` -- to the elected robot: odometry, estimate and loop closures;
+* :class:`PoseGraphShare` -- to the elected robot: odometry (with its declared start,
+  :mod:`.odometry_kind`), estimate and loop closures;
 * :class:`PoseEstimate` -- from the elected robot: the optimised keyframe poses.
 
 Robot <-> robot before the mission (``como3r robot``, one process per robot): a
@@ -34,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from como3r.decentralized.pose_graph_problem import LoopClosure
+from como3r.decentralized.pose_graph_problem import LoopClosure, OdometryStart
 from como3r.prior.base import Encoding, EncodingRecord
 from como3r.transport import codec_registry
 from como3r.transport.codec_types import require, require_shape
@@ -112,6 +113,9 @@ class PoseGraphShare:
         relayed: robot -> ``(K_r, 8)`` keyframe odometry of the robots not in the round that
             it learnt of in earlier rounds (their pose graph travels with it, so the elected
             robot solves the whole graph the group knows; :mod:`.robot`).
+        start: its odometry's unconverged start, from the kind its input declares
+            (:func:`~.odometry_kind.odometry_start`); None: undeclared.
+        relayed_starts: the declared starts of the relayed robots that have one.
     """
 
     sender: int
@@ -123,7 +127,9 @@ class PoseGraphShare:
     frame: int
     loops: list[LoopClosure]
     relayed: dict[int, np.ndarray] = field(default_factory=dict)
-    version: int = 2
+    start: OdometryStart | None = None
+    relayed_starts: dict[int, OdometryStart] = field(default_factory=dict)
+    version: int = 3
 
 
 @dataclass(frozen=True)
@@ -133,8 +139,8 @@ class PoseEstimate:
 
     Attributes:
         relayed: robot -> ``(K_r, 8)`` keyframe odometry of the other robots of the solve,
-            and ``loops`` its loop closures: the graph the recipient relays to the robots
-            it meets later.
+            ``relayed_starts`` their declared odometry starts and ``loops`` its loop
+            closures: the graph the recipient relays to the robots it meets later.
     """
 
     sender: int
@@ -145,7 +151,8 @@ class PoseEstimate:
     frame: int
     relayed: dict[int, np.ndarray] = field(default_factory=dict)
     loops: list[LoopClosure] = field(default_factory=list)
-    version: int = 2
+    relayed_starts: dict[int, OdometryStart] = field(default_factory=dict)
+    version: int = 3
 
 
 @dataclass(frozen=True)
@@ -314,6 +321,10 @@ def _check_relayed(relayed: dict[int, np.ndarray]) -> None:
         _check_poses(odometry, f"relayed[{r}]")
 
 
+def _check_starts(starts: dict[int, OdometryStart], relayed: dict[int, np.ndarray]) -> None:
+    require(set(starts) <= set(relayed), "relayed_starts must be of relayed robots")
+
+
 def _check_share(m: PoseGraphShare) -> None:
     _check_round(m)
     _check_poses(m.odometry, "odometry")
@@ -323,12 +334,21 @@ def _check_share(m: PoseGraphShare) -> None:
         "estimate must not outnumber odometry, frame must be >= 0",
     )
     _check_relayed(m.relayed)
+    _check_starts(m.relayed_starts, m.relayed)
 
 
 def _check_estimate(m: PoseEstimate) -> None:
     _check_round(m)
     _check_poses(m.poses, "poses")
     _check_relayed(m.relayed)
+    _check_starts(m.relayed_starts, m.relayed)
+
+
+def _check_start(start: OdometryStart) -> None:
+    require(
+        all(math.isfinite(v) and v >= 0 for v in (start.scale_sigma, start.spacings)),
+        "an odometry start's scale_sigma and spacings must be finite and >= 0",
+    )
 
 
 def _check_loop(loop: LoopClosure) -> None:
@@ -358,10 +378,12 @@ for _cls in (
     RobotHello,
 ):
     codec_registry.register(_cls, version=1)
-# Version 2: the relayed pose graph (``relayed``, and ``loops`` of PoseEstimate).
+# Version 2: the relayed pose graph (``relayed``, and ``loops`` of PoseEstimate); version 3:
+# the robots' declared odometry starts (``start``, ``relayed_starts``).
 for _cls in (PoseGraphShare, PoseEstimate):
-    codec_registry.register(_cls, version=2)
+    codec_registry.register(_cls, version=3)
 codec_registry.register(LoopClosure, version=1)
+codec_registry.register(OdometryStart, version=1)
 for _cls, _check in (
     (PlaceDescriptors, _check_descriptors),
     (EncodingRequest, _check_request),
@@ -369,5 +391,6 @@ for _cls, _check in (
     (PoseGraphShare, _check_share),
     (PoseEstimate, _check_estimate),
     (LoopClosure, _check_loop),
+    (OdometryStart, _check_start),
 ):
     codec_registry.add_check(_cls.__name__, _check)

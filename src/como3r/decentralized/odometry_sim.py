@@ -27,7 +27,9 @@ yaw about z and moved to the first camera position, so robots do not share a fra
 Two presets mirror the paper's two backbones (F-Tables II-III): ``vio`` (monocular VIO such
 as VINS-Mono: 30 % scale error at the start, converged after 0.3 scene depths -- about 2 m
 in the default scene --, drifting heading)
-and ``lio`` (LiDAR-inertial odometry: near-perfect scale, little drift).
+and ``lio`` (LiDAR-inertial odometry: near-perfect scale, little drift). :func:`add_odometry`
+declares which beside the file (``odometry.json``: ``vio`` or ``metric``), as a real robot's
+operator would.
 
 Lengths at the paper's scale (GrAco, outdoors, depth of order 15 m): the ``vio`` scale
 converges after 0.3 D = 4.5 m and its heading drifts 0.13 deg/m.
@@ -43,6 +45,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from como3r.data.agent import open_agent
+from como3r.decentralized.odometry_kind import OdometryKind, write_odometry_kind
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory, read_tum, write_tum
 
@@ -161,13 +164,21 @@ def scene_depth_of(agent_dir: Path) -> float:
     return float(np.median(depth))
 
 
+def declared_kind(noise: OdometryNoise) -> OdometryKind:
+    """The declaration of a simulated odometry (:mod:`.odometry_kind`): ``vio`` when its
+    start is off in scale, else ``metric``; the start's size is left to the configuration
+    (``decentralized.vio_start_scale_error``, which the ``vio`` preset's start matches)."""
+    return OdometryKind("vio" if noise.initial_scale_error > 0 else "metric")
+
+
 def add_odometry(
     agent_dir: str | Path,
     seed: int,
     params: OdometryNoise | str | None = None,
     scene_depth: float | None = None,
 ) -> Path:
-    """Write ``odometry.txt`` (TUM) into an agent folder that has ``groundtruth.txt``.
+    """Write ``odometry.txt`` (TUM) into an agent folder that has ``groundtruth.txt``, and
+    beside it ``odometry.json``, the declaration of its kind (:func:`declared_kind`).
 
     Args:
         agent_dir: an agent input folder, e.g. one written by ``como3r synth``.
@@ -196,7 +207,9 @@ def add_odometry(
         raise InputError(f"{agent_dir}: no groundtruth.txt to simulate odometry from")
     if scene_depth is None:
         scene_depth = scene_depth_of(agent_dir)
+    params = params or OdometryNoise()
     odometry = simulate_odometry(read_tum(gt_file), seed, params, scene_depth=scene_depth)
     path = agent_dir / ODOMETRY_FILE
     write_tum(path, odometry.timestamps, odometry.T_WC)
+    write_odometry_kind(agent_dir, declared_kind(params))
     return path

@@ -101,7 +101,7 @@ def _component_problems(
     robots: list[RobotData], loops: list[LoopClosure]
 ) -> list[PoseGraphProblem]:
     """One pose graph per group of robots connected by loops, anchored on its smallest id
-    at its odometry origin."""
+    at its odometry origin, with the robots' declared odometry starts."""
     components = [c for c in connected_components(list(range(len(robots))), loops) if len(c) > 1]
     return [
         PoseGraphProblem(
@@ -109,6 +109,7 @@ def _component_problems(
             loops=[l for l in loops if l.robot_a in component],
             anchor=component[0],
             anchor_pose=robots[component[0]].keyframes.T_OC[0].numpy(),
+            starts={r: start for r in component if (start := robots[r].start) is not None},
         )
         for component in components
     ]

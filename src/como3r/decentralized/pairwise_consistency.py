@@ -31,7 +31,12 @@ import numpy as np
 from scipy.stats import chi2
 
 from como3r.config_decentralized import PoseGraphConfig
-from como3r.decentralized.factor_noise import loop_covariance, loop_sigmas, start_variance
+from como3r.decentralized.factor_noise import (
+    loop_covariance,
+    loop_sigmas,
+    robot_start,
+    start_variance,
+)
 from como3r.decentralized.initial_estimate import initial_scales, keyframe_spacing
 from como3r.decentralized.pose_graph_problem import LoopClosure, PoseGraphProblem, to_pose3
 
@@ -168,7 +173,10 @@ def consistent_loops(problem: PoseGraphProblem, config: PoseGraphConfig) -> np.n
     scales = initial_scales(loops, config.scale_init)
     spacing = keyframe_spacing(problem, scales)
     oriented = [oriented_loop(loop, s) for loop, s in zip(loops, scales)]
-    start = {r: start_variance(o, spacing, config) for r, o in problem.odometry.items()}
+    start = {
+        r: start_variance(o, spacing, robot_start(problem, r, config))
+        for r, o in problem.odometry.items()
+    }
     covariances = (
         [oriented_covariance(loop, s, spacing, config) for loop, s in zip(loops, scales)]
         if config.loop_scene_depth_ratio > 0

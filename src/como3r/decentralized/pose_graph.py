@@ -36,11 +36,12 @@ the scale-aware formulations, loop scales ``s`` (doubles). Factors:
   follow their rotation errors.
 
 Odometry (F-Eq. 4) is metric in the paper (F-Sec. III), but a monocular VIO is off in scale
-until its estimate converges, at the start of a trajectory (F-Sec. IV-C). With
-``odom_start_scale_sigma > 0`` (set by a decentralized run from
-``decentralized.vio_start_scale_error``) a step's noise gains, along the step, that fraction
-of its length, decaying with the distance travelled (:func:`~.factor_noise.odometry_noise`),
-so the loops to other robots may stretch or shorten a robot's unconverged start; pairwise
+until its estimate converges, at the start of a trajectory (F-Sec. IV-C). With a robot's
+start scale uncertainty (``PoseGraphProblem.starts``, which a decentralized run sets for a
+robot whose input declares a ``vio`` odometry, :mod:`.odometry_kind`; an undeclared robot's
+is ``odom_start_scale_sigma``) a step's noise gains, along the step, that fraction of its
+length, decaying with the distance travelled (:func:`~.factor_noise.odometry_noise`), so the
+loops to other robots may stretch or shorten a robot's unconverged start; pairwise
 consistency counts the same variance (:func:`~.factor_noise.start_variance`).
 
 With ``odom_scale_walk > 0`` each
@@ -87,6 +88,7 @@ from como3r.decentralized.factor_noise import (
     loop_sigmas,
     odometry_noise,
     pose_noise,
+    robot_start,
     step_lengths,
 )
 from como3r.decentralized.initial_estimate import initial_poses, initial_scales, keyframe_spacing
@@ -253,6 +255,7 @@ def build_graph(problem: PoseGraphProblem, formulation: str, config: PoseGraphCo
             _add_odometry_scales(fixed, values, robot, odometry, noise, spacing, config)
             continue
         _, middles = step_lengths(odometry, spacing)
+        start = robot_start(problem, robot, config)
         for k in range(1, len(odometry)):
             step = to_pose3(odometry[k - 1]).between(to_pose3(odometry[k]))
             fixed.add(
@@ -260,7 +263,7 @@ def build_graph(problem: PoseGraphProblem, formulation: str, config: PoseGraphCo
                     pose_key(robot, k - 1),
                     pose_key(robot, k),
                     step,
-                    odometry_noise(step, float(middles[k - 1]), spacing, config),
+                    odometry_noise(step, float(middles[k - 1]), spacing, config, start),
                 )
             )
     fixed.add(

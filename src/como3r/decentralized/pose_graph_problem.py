@@ -1,5 +1,6 @@
 """A multi-robot pose graph problem (F-Sec. III-C; :mod:`.pose_graph` solves it): its inter-robot
-loop closures, the robots' keyframe odometry and the anchor, a solution, the conversion of
+loop closures, the robots' keyframe odometry (with each odometry's unconverged start) and the
+anchor, a solution, the conversion of
 poses to and from ``gtsam.Pose3`` and the graph's variable keys, and the structure loops give
 it: the robots they connect and the clusters of nearby loops.
 """
@@ -43,6 +44,22 @@ class LoopClosure:
         return self.robot_a, self.robot_b
 
 
+@dataclass(frozen=True)
+class OdometryStart:
+    """A robot's odometry's unconverged start scale (F-Sec. IV-C), in the pose graph's units:
+    its steps may stretch along themselves by ``scale_sigma`` of their length, decaying as
+    ``exp(-d / spacings)`` with the distance ``d`` travelled in keyframe spacings
+    (:func:`~.factor_noise.odometry_noise`). ``(0, 0)``: metric from the start.
+
+    Attributes:
+        scale_sigma: the start's scale uncertainty, a fraction of a step's length, >= 0.
+        spacings: its decay length in keyframe spacings, >= 0.
+    """
+
+    scale_sigma: float = 0.0
+    spacings: float = 0.0
+
+
 @dataclass
 class PoseGraphProblem:
     """One connected multi-robot pose graph.
@@ -54,6 +71,10 @@ class PoseGraphProblem:
         anchor_pose: ``(8,)`` pose of the anchor's first keyframe in the output frame.
         initial: robot -> ``(K', 8)`` current estimates of its first ``K'`` keyframes,
             already in the output frame (used for initialisation only).
+        starts: robot -> its odometry's unconverged start, from the kind its input declares
+            (:mod:`.odometry_kind`); a robot without one (undeclared) has the
+            configuration's ``pose_graph.odom_start_scale_sigma`` over
+            ``odom_start_spacings`` (:func:`~.factor_noise.robot_start`).
     """
 
     odometry: dict[int, np.ndarray]
@@ -61,6 +82,7 @@ class PoseGraphProblem:
     anchor: int
     anchor_pose: np.ndarray
     initial: dict[int, np.ndarray] = field(default_factory=dict)
+    starts: dict[int, OdometryStart] = field(default_factory=dict)
 
 
 @dataclass

@@ -37,7 +37,13 @@ from como3r.config_decentralized import DecentralizedConfig
 from como3r.data.agent_input import AgentInput
 from como3r.data.preprocess import make_view
 from como3r.decentralized.confidence import accept_loop, correspondence_ratio, loop_probability
-from como3r.decentralized.consistency import Graphs, LoopCheck, loop_key, solve_shares
+from como3r.decentralized.consistency import (
+    Graphs,
+    LoopCheck,
+    SharedGraph,
+    loop_key,
+    solve_shares,
+)
 from como3r.decentralized.keyframes import frame_odometry, select_keyframes
 from como3r.decentralized.messages import (
     DRIVER,
@@ -49,10 +55,9 @@ from como3r.decentralized.messages import (
     RobotProgress,
     RobotReport,
 )
+from como3r.decentralized.odometry_kind import declared_start
 from como3r.decentralized.place_recognition import PlaceRecognizer, candidate_pairs
-from como3r.decentralized.pose_graph_problem import (
-    LoopClosure,
-)
+from como3r.decentralized.pose_graph_problem import LoopClosure, OdometryStart
 from como3r.decentralized.registration import Registrar
 from como3r.prior.base import Prior, View
 
@@ -164,6 +169,9 @@ class Robot:
         )
         self.keyframes = select_keyframes(odometry, self.keyframe_distance)
         self.odometry = self.keyframes.T_OC.numpy()
+        #: Its odometry's unconverged start, from the kind its input declares (None:
+        #: undeclared); it travels with the odometry to whoever solves the graph.
+        self.start = declared_start(agent, settings)
         self.estimate = np.zeros((0, 8))
         self.frame = robot
         self.loops: list[LoopClosure] = []
@@ -184,6 +192,7 @@ class Robot:
         self._gone: set[int] = set()
         # The pose graph of robots met through others (odometry, loops), relayed onwards.
         self._relayed: dict[int, np.ndarray] = {}
+        self._relayed_starts: dict[int, OdometryStart] = {}
         self._relayed_loops: dict[tuple[int, int, int, int], LoopClosure] = {}
 
     # ------------------------------------------------------------------ running
@@ -464,6 +473,8 @@ class Robot:
             frame=self.frame,
             loops=list(loops.values()),
             relayed=relayed,
+            start=self.start,
+            relayed_starts={q: s for q, s in self._relayed_starts.items() if q in relayed},
         )
 
     def _solve_and_broadcast(
@@ -483,7 +494,7 @@ class Robot:
         # Every robot present gets an answer, empty when it has no update, so none waits.
         for robot in sorted([self.robot, *present]):
             poses, frame = updates.get(robot, (np.zeros((0, 8)), -1))
-            odometry, loops = graphs.get(robot, ({}, []))
+            graph = graphs.get(robot, SharedGraph({}, []))
             estimate = PoseEstimate(
                 sender=self.robot,
                 recipient=robot,
@@ -491,8 +502,9 @@ class Robot:
                 time_s=t,
                 poses=poses,
                 frame=frame,
-                relayed={q: o for q, o in odometry.items() if q != robot},
-                loops=loops,
+                relayed={q: o for q, o in graph.odometry.items() if q != robot},
+                loops=graph.loops,
+                relayed_starts={q: s for q, s in graph.starts.items() if q != robot},
             )
             if robot == self.robot:
                 self._apply(estimate)
@@ -506,5 +518,8 @@ class Robot:
         for robot, odometry in estimate.relayed.items():
             if robot != self.robot and len(odometry) > len(self._relayed.get(robot, ())):
                 self._relayed[robot] = odometry
+        for robot, start in estimate.relayed_starts.items():
+            if robot != self.robot:
+                self._relayed_starts[robot] = start
         for loop in estimate.loops:
             self._relayed_loops.setdefault(loop_key(loop), loop)

@@ -109,7 +109,7 @@ def run_robot(
         schedule = (
             read_schedule(settings.protocol.schedule) if settings.protocol.schedule else Schedule()
         )
-    data = open_robot(path, config)
+    data = open_robot(path, config, settings)
     prior, codebook = build_prior(prior_spec, config, settings.place_method, {robot: str(path)})
     hello = RobotHello(
         robot=robot,

@@ -52,6 +52,7 @@ from como3r.decentralized.keyframes import (
     select_keyframes,
 )
 from como3r.decentralized.messages import RobotProgress, RobotReport
+from como3r.decentralized.odometry_kind import declared_start
 from como3r.decentralized.outputs import (
     final_loop_check,
     formulation_table,
@@ -116,7 +117,7 @@ def run_decentralized(
     if not agent_paths:
         raise InputError("no --agent given")
     check_output_dir(out, overwrite)  # the folder is written only after the whole mission
-    robots = [open_robot(path, config) for path in agent_paths]
+    robots = [open_robot(path, config, settings) for path in agent_paths]
     end_s = max(float(r.odometry.timestamps[-1]) for r in robots)
     started = time.perf_counter()
     result = run_protocol(
@@ -157,11 +158,17 @@ def run_decentralized(
     return summary
 
 
-def open_robot(path: str | Path, config: Config) -> RobotData:
+def open_robot(path: str | Path, config: Config, settings: DecentralizedConfig) -> RobotData:
+    """A robot's input, odometry and declared odometry start, checked before any work
+    (saying at info level when its odometry's kind is undeclared).
+
+    Raises:
+        InputError: a missing or malformed input, odometry or ``odometry.json``.
+    """
     agent = open_agent(
         path, fps=config.input.frame_rate_hz, format=config.input.format, topic=config.input.topic
     )
-    return RobotData(agent, frame_odometry(agent))
+    return RobotData(agent, frame_odometry(agent), start=declared_start(agent, settings, log=True))
 
 
 class RobotProgressAdapter:
@@ -258,7 +265,14 @@ def _write(
         ],
         "frame_groups": groups,
         "bytes": result.traffic.to_json(range(len(robots))),
-        "robots": [robot_metrics(r, reports.get(r)) for r in range(len(robots))],
+        "robots": [
+            {
+                **robot_metrics(r, reports.get(r)),
+                # its declared odometry start in the pose graph's units (None: undeclared)
+                "odometry_start": start and dataclasses.asdict(start),
+            }
+            for r, start in enumerate(robot.start for robot in robots)
+        ],
         "bandwidth": [
             {
                 "robot": r,
