@@ -68,7 +68,8 @@ by one robot in one round, one peer per round; 42 / 127 / 222 loops; peak RSS 1.
 Session 26 (issue 37, ``--long-side 160``, load 7-9), pairwise consistency weighing loops
 with that floor: 4 robots 0.901 %, 8 robots 1.19 -> 1.13 %; and with the odometry's
 unconverged VIO start discounted as well (``decentralized.vio_start_scale_error`` 0.3 over
-0.3 scene depths; not the default: held out it did not pay, see its docstring): 4 robots 0.901 -> 0.719 % (robot ATE 0.72-1.08 -> 0.45-1.38
+0.3 scene depths; since session 28 the default for robots that declare a ``vio``, as
+``como3r synth --odometry vio`` scenes do): 4 robots 0.901 -> 0.719 % (robot ATE 0.72-1.08 -> 0.45-1.38
 %), 8 robots 1.13 -> 1.32 % (robot ATE 0.77-1.02 -> 0.45-1.93 %: the robots' own Sim(3)
 scales 0.89-1.13 -> 0.93-1.04 but robot 1's, 1.13 -> 1.23, its start shortened too far).
 Bytes, rounds and loops unchanged.

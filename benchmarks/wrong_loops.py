@@ -45,8 +45,9 @@ keyframe spacings here, issue 37; this benchmark's loops carry 4 cm of noise, mo
 than the prior's)
 the default's rows were 0.089 % at 0, 5 and 20 % wrong and 0.093 % at 50 % (scale error
 0.22 %). With pairwise consistency weighing loops with that floor and the odometry's
-unconverged start discounted (``decentralized.vio_start_scale_error`` 0.3, session 26; off
-by default) the default's rows are unchanged; the bent solves without pairwise consistency moved (``old
+unconverged start discounted (``decentralized.vio_start_scale_error`` 0.3, session 26; since
+session 28 the default for robots whose ``odometry.json`` declares a ``vio``, while this
+benchmark's robots declare nothing) the default's rows are unchanged; the bent solves without pairwise consistency moved (``old
 default: lm`` at 20 % wrong 1.888 -> 1.947 %, at 50 % 3.175 -> 2.977 %).
 
 With 20 % wrong loops the default's merged ATE is 1.00x the clean run's and its scale
