@@ -131,16 +131,19 @@ class TableWriter:
         ingest decoded them are left to the transaction: their coding is taken again, not
         made (:func:`~.coded.code`)."""
         graph = coordinator.graph
+        # the row length the transaction will split the matches by: the newest keyframe's
+        # (where it guesses wrong, the matches are coded there)
+        width = self._width
         for g, kf in enumerate(graph.keyframes):
             if isinstance(kf, PagedKeyframe) and not kf.resident("pointmaps"):
                 continue  # as written (or parked by the cleanup: written one at a time)
             written = self._keyframes[g] if g < len(self._keyframes) else None
-            for array in {id(a): a for a in pointmap_arrays(kf)}.values():
+            arrays = pointmap_arrays(kf)
+            if written is None:
+                width = int(arrays[0].shape[1])
+            for array in {id(a): a for a in arrays}.values():
                 if (written is None or written.holds(array) is None) and not _decoded(array):
                     self.ahead.submit(pack_pointmap, array)
-        newest = graph.keyframes[-1] if len(graph) > len(self._keyframes) else None
-        # the row length the transaction will split the matches by (else coded there)
-        width = self._width if newest is None else int(newest.X_hat.shape[1])
         for link in graph.links[self._edges :]:
             if link.kind == "inter" and self.settles:
                 self.ahead.submit(settle_matches, link.link.ij, link.link.ji, width)
