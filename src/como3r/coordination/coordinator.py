@@ -98,6 +98,10 @@ class Journal(Protocol):
         """Keep the state after one message's effect (one transaction); ``updates`` are the
         pose updates it made, ``finished`` says the terminal cleanup ran."""
 
+    def prepare(self, coordinator: Coordinator) -> None:
+        """Start coding, off this thread, what the next :meth:`record` writes as the state
+        is now (what changes before is coded again there); quick."""
+
 
 class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
     """Cross-agent association, gauge synchronization and global BA (Level 2).
@@ -221,6 +225,7 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
             if packet.kf_id > 0 and packet.sequential_ij is None:
                 self._relink(packet)
             fresh.append((packet, self._retrieve(packet)))
+        self._prepare()  # the inserted pointmaps are coded while the batch is verified
         spent, budget = self.stats.prior_decodes, self._batch_budget(len(fresh))
         # in time order, as one at a time (which hits a keyframe verifies depends on the
         # merges before it); newest first only when a batch budget must choose
@@ -392,6 +397,14 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
     def _decoded(self, pairs: int) -> None:
         self.stats.prior_decodes += pairs
 
+    def _prepare(self) -> None:
+        """Let the journal start coding what it will write (:meth:`Journal.prepare`; its
+        time here is the stage ``journal``'s too)."""
+        if self.journal is not None:
+            start = time.perf_counter()
+            self.journal.prepare(self)
+            self.stats.add_time("journal", time.perf_counter() - start)
+
     def _record(self, updates: list[PoseUpdate], finished: bool = False) -> list[PoseUpdate]:
         """Hand the state after one message's effect to the journal (its time is the stage
         ``journal``: the session store's compression and writes); returns ``updates``."""
@@ -448,6 +461,7 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
 
     def _global_ba(self) -> list[PoseUpdate]:
         """In-stream BA (C-Eq. 5) of every component that received new inter edges."""
+        self._prepare()  # the merges' rescaled pointmaps and new edges, coded during it
         start = time.perf_counter()
         updates: list[PoseUpdate] = []
         for root in sorted({self.gauges.find(r) for r in self._dirty_roots}):

@@ -1,4 +1,4 @@
-"""Giving freed memory back to the system after a page-out (issue 41).
+"""Giving freed memory back to the system after a page-out that let go of something (issue 41).
 
 glibc's ``malloc`` keeps the blocks a process frees in its heap, to hand them out again,
 and returns them to the system only from the heap's top. A keyframe's arrays that

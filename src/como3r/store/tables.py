@@ -26,6 +26,7 @@ from como3r.errors import StoreError
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.paging import POINTMAP_FIELDS, PagedKeyframe
 from como3r.frontend.pairs import PairLink
+from como3r.store.ahead import Ahead
 from como3r.store.blobs import pack_arrays, pack_object
 from como3r.store.coded import (
     pack_colours,
@@ -34,6 +35,7 @@ from como3r.store.coded import (
     pack_retrieval,
     settle_matches,
 )
+from como3r.transport import codec_reuse
 
 
 def pack_link(link: PairLink, width: int) -> bytes:
@@ -102,6 +104,8 @@ class TableWriter:
     _width: int
     #: pointmaps that do not code to themselves are settled on their coded values
     settles: bool
+    #: the codings started before the transaction (:meth:`prepare`)
+    ahead: Ahead
     #: the store reads a paged-out keyframe's arrays back (SessionStore.load_keyframe): what
     #: makes the store a keyframe's KeyframePages
     load_keyframe: Callable[[int, str], dict[str, Any]]
@@ -118,6 +122,33 @@ class TableWriter:
         """``data``, counted as written for ``part``."""
         self.written[part] += len(data)
         return data
+
+    def prepare(self, coordinator: Coordinator) -> None:
+        """Start coding, on :attr:`ahead`'s workers, what the next transaction writes as
+        ``coordinator`` holds it now (:mod:`.ahead`): the pointmaps of new keyframes and the
+        replaced ones of keyframes in memory, and the matches of new edges the coordinator
+        made (inter-agent edges, settled where the store settles; loop edges). Arrays as the
+        ingest decoded them are left to the transaction: their coding is taken again, not
+        made (:func:`~.coded.code`)."""
+        graph = coordinator.graph
+        # the row length the transaction will split the matches by: the newest keyframe's
+        # (where it guesses wrong, the matches are coded there)
+        width = self._width
+        for g, kf in enumerate(graph.keyframes):
+            if isinstance(kf, PagedKeyframe) and not kf.resident("pointmaps"):
+                continue  # as written (or parked by the cleanup: written one at a time)
+            written = self._keyframes[g] if g < len(self._keyframes) else None
+            arrays = pointmap_arrays(kf)
+            if written is None:
+                width = int(arrays[0].shape[1])
+            for array in {id(a): a for a in arrays}.values():
+                if (written is None or written.holds(array) is None) and not _decoded(array):
+                    self.ahead.submit(pack_pointmap, array)
+        for link in graph.links[self._edges :]:
+            if link.kind == "inter" and self.settles:
+                self.ahead.submit(settle_matches, link.link.ij, link.link.ji, width)
+            elif not codec_reuse.held("matches", link.link.ij):  # a loop edge's, say
+                self.ahead.submit(pack_link, link.link, width)
 
     def _record_keyframes(self, coordinator: Coordinator) -> None:
         """New keyframes, and the pointmaps of known ones that were replaced."""
@@ -196,7 +227,7 @@ class TableWriter:
             elif kept is not None:
                 ids.append(kept)
             else:
-                blob, value = pack_pointmap(array)
+                blob, value = self.ahead.take(pack_pointmap, array)
                 if value is not array and not self.settles:
                     blob = pack_arrays(array)
                 elif value is not array:
@@ -254,7 +285,9 @@ class TableWriter:
         rows = []
         for n, link in enumerate(links[self._edges :], self._edges):
             if link.kind == "inter" and self.settles:
-                blob, settled = settle_matches(link.link.ij, link.link.ji, self._width)
+                blob, settled = self.ahead.take(
+                    settle_matches, link.link.ij, link.link.ji, self._width
+                )
                 if settled is not None:
                     old = link.link
                     links[n] = link = dataclasses.replace(
@@ -262,7 +295,7 @@ class TableWriter:
                     )
                     _settle_candidates(coordinator.candidates, old, link.link)
             else:
-                blob = pack_link(link.link, self._width)
+                blob = self.ahead.take(pack_link, link.link, self._width)
             rows.append(
                 (
                     n,
@@ -361,3 +394,8 @@ def pointmap_arrays(kf: Keyframe) -> tuple[Tensor, ...]:
 
 def refs(arrays: Sequence[Tensor]) -> tuple[weakref.ref, ...]:
     return tuple(weakref.ref(a) for a in arrays)
+
+
+def _decoded(array: Tensor) -> bool:
+    """A pointmap field as the ingest decoded it (its coding is taken again: no work)."""
+    return codec_reuse.held("pointmap" if array.ndim == 3 else "confidence", array)

@@ -42,6 +42,7 @@ from como3r.frontend.packets import PoseUpdate
 from como3r.frontend.paging import POINTMAP_FIELDS, PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches
 from como3r.prior.base import Encoding
+from como3r.store.ahead import Ahead
 from como3r.store.blobs import pack_object, unpack_object
 from como3r.store.coded import unpack_matches, unpack_one
 from como3r.store.paging import PagedLink, page_out
@@ -83,6 +84,7 @@ class SessionStore(TableWriter):
         self._updates: dict[int, int] = {}
         self._reports: dict[int, AgentFinished] = {}
         self._width = 1
+        self.ahead = Ahead()
         #: bytes of blobs and text written, per part (:meth:`written_metrics`)
         self.written: Counter[str] = Counter()
         #: called after each :meth:`record` has committed (a disk guard)
@@ -217,6 +219,7 @@ class SessionStore(TableWriter):
         if self._coordinator is not None and self._coordinator.journal is self:
             self._coordinator.journal = None
         self._coordinator = None
+        self.ahead.close()
         try:
             self.connection.execute("PRAGMA incremental_vacuum")
             self.connection.execute("PRAGMA journal_mode=DELETE")
@@ -244,6 +247,7 @@ class SessionStore(TableWriter):
             raise StoreError(f"{self.path}: the session store failed earlier")
         for update in updates:
             self._updates[update.agent] = self._updates.get(update.agent, 0) + 1
+        self.prepare(coordinator)  # what is not coded yet is coded in parallel
         try:
             with _transaction(self.connection):
                 self._record_keyframes(coordinator)
@@ -256,6 +260,8 @@ class SessionStore(TableWriter):
         except sqlite3.Error as exc:
             self._failed = True
             raise StoreError(f"{self.path}: cannot write the session store ({exc})") from None
+        finally:
+            self.ahead.drop()
         self.transactions += 1
         page_out(coordinator, self)
         if self.on_commit is not None:
