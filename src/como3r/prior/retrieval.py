@@ -21,14 +21,16 @@ The codebook of the official release is a pickle; :func:`load_codebook` reads it
 restricted unpickler that admits only the numpy objects an array needs
 (:mod:`como3r.prior.codebook`, which also trains one).
 
-The types a query hands around (:class:`Quantized`, :class:`Aggregated`, :class:`Hit`) and the
-word assignment live in :mod:`como3r.prior.retrieval_words`; this module re-exports them.
+A keyframe's quantised descriptors (:class:`Quantized`), a hit (:class:`Hit`) and the word
+assignment live in :mod:`como3r.prior.retrieval_words`; this module re-exports them.
+:class:`Aggregated` stays here: the wire codec names it by this module (``transport.codec``).
 """
 
 from __future__ import annotations
 
 import functools
 from collections.abc import Collection
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
@@ -42,7 +44,6 @@ from como3r.prior.codebook import as_descriptor_array
 from como3r.prior.codebook import load_codebook as load_codebook
 from como3r.prior.retrieval_words import (
     PACK_BITS,
-    Aggregated,
     Hit,
     Quantized,
     codebook_fingerprint,
@@ -50,6 +51,35 @@ from como3r.prior.retrieval_words import (
 )
 
 _CPU = torch.device("cpu")
+
+
+@dataclass(frozen=True)
+class Aggregated:
+    """A keyframe as binary ASMK stores and queries it (:meth:`RetrievalDatabase.aggregate`):
+    for each visual word its descriptors are assigned to, the sign bits of the summed
+    residuals to the word's centroid, packed as asmk packs them. Everything the database
+    reads of a keyframe: :meth:`RetrievalDatabase.query_and_add` (and :meth:`~RetrievalDatabase.add`,
+    which reads the build half) with it gives the hits and similarities of the descriptors
+    themselves, in a database of the same codebook (``codebook_id``) and configuration. At
+    the released codebook's size (d = 1024) a word is 128 bytes: about 1,500 words for a
+    query (``multiple_assignment_query`` 5) and 300 for an add
+    (``multiple_assignment_build`` 1) of 300 random descriptors, fewer where descriptors
+    share words. An agent sends its keyframes' retrieval so (issue 39): the coordinator
+    reads nothing else of them.
+
+    Attributes:
+        codebook_id: :func:`codebook_fingerprint` of the codebook the words index.
+        query_words: ``(Wq,)`` int64 ascending ids of the query's words.
+        query_bits: ``(Wq, ceil(d / 32))`` uint32 packed sign bits of the query's words.
+        build_words: ``(Wb,)`` int64 ascending ids of the stored image's words.
+        build_bits: ``(Wb, ceil(d / 32))`` uint32 packed sign bits of the stored image's.
+    """
+
+    codebook_id: str
+    query_words: np.ndarray
+    query_bits: np.ndarray
+    build_words: np.ndarray
+    build_bits: np.ndarray
 
 
 def _unquantized(descriptors: Any) -> Any:

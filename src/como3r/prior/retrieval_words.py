@@ -1,19 +1,17 @@
 """What place retrieval hands around (:mod:`como3r.prior.retrieval`, C-Sec. B.3): a
-keyframe's quantised descriptors, its aggregated binary ASMK words, a retrieved hit, and the
-two functions that name a codebook and assign descriptors to its words. The retrieval module
+keyframe's quantised descriptors, a retrieved hit, and the two functions that name a codebook and assign descriptors to its words. The retrieval module
 re-exports every name; import from there.
 """
 
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 import torch
 
-__all__ = ["PACK_BITS", "Aggregated", "Hit", "Quantized", "codebook_fingerprint", "nearest_words"]
+__all__ = ["PACK_BITS", "Hit", "Quantized", "codebook_fingerprint", "nearest_words"]
 
 #: bits per packed word of ``asmk.hamming.binarize_and_pack_2D``
 PACK_BITS = 32
@@ -34,35 +32,6 @@ class Quantized(NamedTuple):
 
     descriptors: np.ndarray
     words: np.ndarray
-
-
-@dataclass(frozen=True)
-class Aggregated:
-    """A keyframe as binary ASMK stores and queries it (:meth:`RetrievalDatabase.aggregate`):
-    for each visual word its descriptors are assigned to, the sign bits of the summed
-    residuals to the word's centroid, packed as asmk packs them. Everything the database
-    reads of a keyframe: :meth:`RetrievalDatabase.query_and_add` (and :meth:`~RetrievalDatabase.add`,
-    which reads the build half) with it gives the hits and similarities of the descriptors
-    themselves, in a database of the same codebook (``codebook_id``) and configuration. At
-    the released codebook's size (d = 1024) a word is 128 bytes: about 1,500 words for a
-    query (``multiple_assignment_query`` 5) and 300 for an add
-    (``multiple_assignment_build`` 1) of 300 random descriptors, fewer where descriptors
-    share words. An agent sends its keyframes' retrieval so (issue 39): the coordinator
-    reads nothing else of them.
-
-    Attributes:
-        codebook_id: :func:`codebook_fingerprint` of the codebook the words index.
-        query_words: ``(Wq,)`` int64 ascending ids of the query's words.
-        query_bits: ``(Wq, ceil(d / 32))`` uint32 packed sign bits of the query's words.
-        build_words: ``(Wb,)`` int64 ascending ids of the stored image's words.
-        build_bits: ``(Wb, ceil(d / 32))`` uint32 packed sign bits of the stored image's.
-    """
-
-    codebook_id: str
-    query_words: np.ndarray
-    query_bits: np.ndarray
-    build_words: np.ndarray
-    build_bits: np.ndarray
 
 
 class Hit(NamedTuple):
