@@ -158,7 +158,9 @@ def declared_start(
     folder = declaration_folder(agent)
     declared = read_odometry_kind(folder)
     start = odometry_start(declared, settings)
-    if log and declared is None:
+    if not log:
+        return start
+    if declared is None or start is None:  # the one is None where the other is
         logger.info(
             "%s: no %s, the odometry's kind is undeclared: its start scale error is "
             "decentralized.pose_graph.odom_start_scale_sigma, %g (0: metric; declare "
@@ -167,11 +169,11 @@ def declared_start(
             ODOMETRY_KIND_FILE,
             settings.pose_graph.odom_start_scale_sigma,
         )
-    elif log and start is not None:
+    else:
         logger.info(
             "%s: %s odometry (start scale error %.2f over %.1f keyframe spacings)",
             folder,
-            declared.kind if declared else "",
+            declared.kind,
             start.scale_sigma,
             start.spacings,
         )

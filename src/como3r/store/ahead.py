@@ -56,7 +56,7 @@ def state(value: Any) -> Any:
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         parts = tuple(state(getattr(value, f.name)) for f in dataclasses.fields(value))
         return None if None in parts else (id(value), parts)
-    if value is None or isinstance(value, (bool, int, float, str)):
+    if _scalar(value):
         return ("value", value)
     return None
 
