@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from como3r.decentralized.keyframes import open_robot
 from como3r.decentralized.messages import (
     DRIVER,
     EncodingReply,
@@ -314,7 +315,8 @@ def test_a_robot_stops_waiting_for_a_peer_reported_gone(scene, main_config, sett
         PriorSpec("simulated"), main_config, settings.place_method, {0: str(scene[0])}
     )
     link = _PeerLeaves()
-    robot = make_robot(0, str(scene[0]), prior, codebook, main_config, settings, link, None)
+    data = open_robot(scene[0], main_config, settings)
+    robot = make_robot(0, data, prior, codebook, main_config, settings, link, None)
     report = robot.run([RoundPlan(0, MISSION_END_S, (0, 1))])
     assert report.error == "" and report.stats["timeouts"] == 0  # no 600 s wait for robot 1
     assert report.stats["candidates"] == 0 and len(report.estimate) == 0

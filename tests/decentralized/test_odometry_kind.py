@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 from como3r.cli import app
 from como3r.config import Config
 from como3r.config_decentralized import DecentralizedConfig
+from como3r.decentralized import odometry_kind
 from como3r.decentralized.consistency import merged_graph
 from como3r.decentralized.messages import PoseEstimate, PoseGraphShare
 from como3r.decentralized.odometry_kind import (
@@ -24,8 +25,9 @@ from como3r.decentralized.odometry_kind import (
     write_odometry_kind,
 )
 from como3r.decentralized.pose_graph_problem import OdometryStart
-from como3r.decentralized.runner import open_robot
+from como3r.decentralized.runner import open_robot, run_decentralized
 from como3r.errors import InputError, MessageError
+from como3r.runtime.pipeline import PriorSpec
 from como3r.transport.codec import decode, encode
 
 
@@ -105,6 +107,24 @@ def test_a_robot_opens_with_its_declared_start_and_fails_early_on_a_bad_one(
     _declare(copy, '{"kind": "visual"}')
     with pytest.raises(InputError, match="odometry.json"):
         open_robot(copy, main_config, settings)
+
+
+def test_a_robot_s_declaration_is_read_once_per_mission(
+    scene, main_config: Config, settings_factory, tmp_path, monkeypatch
+):
+    """The driver reads each robot's ``odometry.json`` before the mission and its robot
+    thread takes that reading (open_robot's RobotData) instead of reading it again."""
+    reads: list = []
+    read = odometry_kind.read_odometry_kind
+
+    def counting(folder):
+        reads.append(folder)
+        return read(folder)
+
+    monkeypatch.setattr(odometry_kind, "read_odometry_kind", counting)
+    settings = settings_factory(keyframe_distance_ratio=0.45)
+    run_decentralized(scene[:2], tmp_path / "out", main_config, PriorSpec("simulated"), settings)
+    assert sorted(reads) == sorted(scene[:2])  # once per robot, not twice
 
 
 def _share(sender: int, **changes) -> PoseGraphShare:

@@ -7,21 +7,27 @@ distance; the first frame with odometry is always one. The decentralized mode se
 distance relative to the scene (``keyframe_distance_ratio`` times the scene depth a robot
 sees), so its keyframes are equally dense at any scene scale.
 
-:class:`RobotData` is a mission driver's view of one robot: its input, its frames' odometry
-and, after the mission, its keyframes.
+:class:`RobotData` is one robot's input as :func:`open_robot` reads it, once: its frames'
+odometry, its odometry's declared start and, after the mission, its keyframes; the mission
+driver and the robot built on it (:class:`~.robot.Robot`) share it.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from como3r.config import Config
+from como3r.config_decentralized import DecentralizedConfig
+from como3r.data.agent import open_agent
 from como3r.data.agent_input import AgentInput
 from como3r.data.input_files import associate_timestamps
+from como3r.decentralized.odometry_kind import declared_start
 from como3r.decentralized.pose_graph_problem import OdometryStart
 from como3r.errors import InputError
 from como3r.geometry.lie import sim3_compose, sim3_inverse, sim3_normalize
@@ -147,11 +153,26 @@ def frame_poses(odometry: FrameOdometry, keyframes: Keyframes, estimate: np.ndar
 
 @dataclasses.dataclass
 class RobotData:
-    """The driver's view of one robot: its input, odometry, its odometry's declared start
-    (:mod:`.odometry_kind`; None: undeclared) and (after the mission, from its report)
-    keyframes."""
+    """One robot's input, odometry, its odometry's declared start (:mod:`.odometry_kind`;
+    None: undeclared) and (the driver's, after the mission, from its report) keyframes."""
 
     agent: AgentInput
     odometry: FrameOdometry
     keyframes: Keyframes | None = None
     start: OdometryStart | None = None
+
+
+def open_robot(
+    path: str | Path, config: Config, settings: DecentralizedConfig, log: bool = True
+) -> RobotData:
+    """A robot's input, odometry and declared odometry start, checked before any work; each
+    file read once here (the robot built on it reads none of them again). With ``log``, say
+    at info level what the odometry's kind is, or that it is undeclared.
+
+    Raises:
+        InputError: a missing or malformed input, odometry or ``odometry.json``.
+    """
+    agent = open_agent(
+        path, fps=config.input.frame_rate_hz, format=config.input.format, topic=config.input.topic
+    )
+    return RobotData(agent, frame_odometry(agent), start=declared_start(agent, settings, log=log))

@@ -33,6 +33,7 @@ import torch
 from como3r.config import Config, config_from_dict, config_to_dict
 from como3r.config_decentralized import DecentralizedConfig
 from como3r.data.agent import open_agent
+from como3r.decentralized.keyframes import RobotData, open_robot
 from como3r.decentralized.messages import (
     DRIVER,
     RobotReport,
@@ -104,7 +105,7 @@ def build_prior(
 
 def make_robot(
     robot: int,
-    agent_path: str,
+    data: RobotData,
     prior: Prior,
     codebook: np.ndarray | None,
     config: Config,
@@ -112,23 +113,10 @@ def make_robot(
     link: Any,
     leave: tuple[int, str] | None,
 ) -> Robot:
-    """Robot ``robot`` on its input, with its place recognizer, over ``link``."""
+    """Robot ``robot`` on its opened input (:func:`~.keyframes.open_robot`), with its place
+    recognizer, over ``link``."""
     recognizer = PlaceRecognizer(settings.place_method, codebook, config.retrieval)
-    return Robot(
-        robot,
-        open_agent(
-            agent_path,
-            fps=config.input.frame_rate_hz,
-            format=config.input.format,
-            topic=config.input.topic,
-        ),
-        prior,
-        recognizer,
-        config,
-        settings,
-        link,
-        leave,
-    )
+    return Robot(robot, data, prior, recognizer, config, settings, link, leave)
 
 
 def _run_thread(
@@ -181,9 +169,9 @@ def _robot_process_main(robot: int, inbox: Connection, outbox: Connection) -> No
         )
         prior, codebook = build_prior(spec, config, settings.place_method, {robot: task.agent_path})
         rounds = [RoundPlan(r, t, tuple(g)) for r, t, g in task.rounds]
-        worker = make_robot(
-            robot, task.agent_path, prior, codebook, config, settings, link, task.leave
-        )
+        # The driver read the same files in its process; nothing but messages crosses.
+        data = open_robot(task.agent_path, config, settings, log=False)
+        worker = make_robot(robot, data, prior, codebook, config, settings, link, task.leave)
         link.send(worker.run(rounds))
     except Exception as exc:
         link.send(_failure(robot, exc))
@@ -214,6 +202,7 @@ def run_protocol(
     prior: Prior | None = None,
     leave: dict[int, tuple[int, str]] | None = None,
     progress: MissionProgress | None = None,
+    opened: Sequence[RobotData] | None = None,
 ) -> ProtocolResult:
     """Run every robot over the mission and collect their reports.
 
@@ -232,6 +221,10 @@ def run_protocol(
         progress: called with each robot's :class:`~.messages.RobotProgress` after every
             round it took part in and with its :class:`RobotReport` (also the one of a robot
             process that died), one at a time.
+        opened: the robots' inputs as the driver opened them (:func:`~.keyframes.open_robot`,
+            in ``agent_paths``' order), which robot threads take as they are instead of
+            reading the files again; None: each robot opens its own (as robot processes
+            always do).
 
     Raises:
         ConfigError: an unknown phase in ``leave``.
@@ -264,6 +257,7 @@ def run_protocol(
             max_bytes,
             prior,
             progress,
+            opened,
         )
     return ProtocolResult(router.reports, router.traffic, rounds, time.perf_counter() - start)
 
@@ -279,6 +273,7 @@ def _run_threads(
     max_bytes: int,
     prior: Prior | None,
     progress: MissionProgress | None,
+    opened: Sequence[RobotData] | None,
 ) -> Router:
     codebook = None
     if prior is None or settings.place_method == "asmk":
@@ -303,8 +298,9 @@ def _run_threads(
     workers: list[Robot | Exception] = []
     for r, path in enumerate(agent_paths):
         try:
+            data = opened[r] if opened else open_robot(path, config, settings, log=False)
             workers.append(
-                make_robot(r, str(path), prior, codebook, config, settings, links[r], leave.get(r))
+                make_robot(r, data, prior, codebook, config, settings, links[r], leave.get(r))
             )
         except Exception as exc:  # the robot's thread reports it like any other failure
             workers.append(exc)

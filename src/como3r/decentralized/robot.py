@@ -34,7 +34,6 @@ import numpy as np
 
 from como3r.config import Config
 from como3r.config_decentralized import DecentralizedConfig
-from como3r.data.agent_input import AgentInput
 from como3r.data.preprocess import make_view
 from como3r.decentralized.confidence import accept_loop, correspondence_ratio, loop_probability
 from como3r.decentralized.consistency import (
@@ -44,7 +43,7 @@ from como3r.decentralized.consistency import (
     loop_key,
     solve_shares,
 )
-from como3r.decentralized.keyframes import frame_odometry, select_keyframes
+from como3r.decentralized.keyframes import RobotData, select_keyframes
 from como3r.decentralized.messages import (
     DRIVER,
     EncodingReply,
@@ -55,7 +54,6 @@ from como3r.decentralized.messages import (
     RobotProgress,
     RobotReport,
 )
-from como3r.decentralized.odometry_kind import declared_start
 from como3r.decentralized.place_recognition import PlaceRecognizer, candidate_pairs
 from como3r.decentralized.pose_graph_problem import LoopClosure, OdometryStart
 from como3r.decentralized.registration import Registrar
@@ -132,7 +130,8 @@ class Robot:
 
     Args:
         robot: robot id.
-        agent: its opened agent input (needs ``odometry.txt``).
+        data: its opened input (:func:`~.keyframes.open_robot`: odometry and declared
+            start read once, by whoever opened it).
         prior: the prior (shared between threads in single-process mode).
         recognizer: place recognition.
         config: main configuration (image size, calibration use).
@@ -144,7 +143,7 @@ class Robot:
     def __init__(
         self,
         robot: int,
-        agent: AgentInput,
+        data: RobotData,
         prior: Prior,
         recognizer: PlaceRecognizer,
         config: Config,
@@ -153,15 +152,15 @@ class Robot:
         leave: tuple[int, str] | None = None,
     ) -> None:
         self.robot = robot
-        self.agent = agent
+        self.agent = data.agent
         self.settings = settings
         self.link = link
         self.leave = leave
         self._long_side = config.input.long_side
-        self._calib = agent.calib if config.calibrated else None
+        self._calib = data.agent.calib if config.calibrated else None
         self.recognizer = recognizer
         self.registrar = Registrar(prior, robot, self._view, settings.registration)
-        odometry = frame_odometry(agent)
+        odometry = data.odometry
         self._frame_times = odometry.timestamps
         #: Path length between keyframes [odometry units]: a fraction of the scene depth.
         self.keyframe_distance = settings.keyframe_distance_ratio * self.registrar.scene_depth(
@@ -171,7 +170,7 @@ class Robot:
         self.odometry = self.keyframes.T_OC.numpy()
         #: Its odometry's unconverged start, from the kind its input declares (None:
         #: undeclared); it travels with the odometry to whoever solves the graph.
-        self.start = declared_start(agent, settings)
+        self.start = data.start
         self.estimate = np.zeros((0, 8))
         self.frame = robot
         self.loops: list[LoopClosure] = []

@@ -29,7 +29,7 @@ import yaml
 
 from como3r.config import Config, config_to_dict
 from como3r.config_decentralized import check_config
-from como3r.decentralized.keyframes import RobotData
+from como3r.decentralized.keyframes import RobotData, open_robot
 from como3r.decentralized.messages import RobotHello, RobotReport
 from como3r.decentralized.outputs import (
     graph_document,
@@ -41,7 +41,7 @@ from como3r.decentralized.outputs import (
 )
 from como3r.decentralized.protocol import build_prior, make_robot
 from como3r.decentralized.robot import RoundPlan
-from como3r.decentralized.runner import RobotProgressAdapter, open_robot, reported_keyframes
+from como3r.decentralized.runner import RobotProgressAdapter, reported_keyframes
 from como3r.decentralized.schedule import Schedule, plan_rounds, read_schedule
 from como3r.decentralized.zenoh_robot import (
     RobotKeys,
@@ -132,7 +132,7 @@ def run_robot(
             certified=network.member is not None,
             max_mbps=network.max_mbps,
         )
-        worker = make_robot(robot, str(path), prior, codebook, config, settings, link, None)
+        worker = make_robot(robot, data, prior, codebook, config, settings, link, None)
         end_s = max(h.end_s for h in link.meet_team().values())
         mission = plan_rounds(schedule, range(team), end_s, settings.protocol.round_period_s)
         rounds = [plan for plan in mission if robot in plan.group]

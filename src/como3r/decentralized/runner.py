@@ -43,16 +43,14 @@ from como3r.config_decentralized import (
     DecentralizedConfig,
     check_config,
 )
-from como3r.data.agent import open_agent
 from como3r.decentralized.keyframes import (
     FrameOdometry,
     Keyframes,
     RobotData,
-    frame_odometry,
+    open_robot,
     select_keyframes,
 )
 from como3r.decentralized.messages import RobotProgress, RobotReport
-from como3r.decentralized.odometry_kind import declared_start
 from como3r.decentralized.outputs import (
     final_loop_check,
     formulation_table,
@@ -130,6 +128,7 @@ def run_decentralized(
         prior,
         leave,
         None if progress is None else RobotProgressAdapter(progress, dict(enumerate(robots))),
+        robots,
     )
     failed = {r: report.error for r, report in result.reports.items() if report.error}
     if len(failed) == len(robots):
@@ -156,19 +155,6 @@ def run_decentralized(
         )
     summary.out = Path(out)
     return summary
-
-
-def open_robot(path: str | Path, config: Config, settings: DecentralizedConfig) -> RobotData:
-    """A robot's input, odometry and declared odometry start, checked before any work
-    (saying at info level when its odometry's kind is undeclared).
-
-    Raises:
-        InputError: a missing or malformed input, odometry or ``odometry.json``.
-    """
-    agent = open_agent(
-        path, fps=config.input.frame_rate_hz, format=config.input.format, topic=config.input.topic
-    )
-    return RobotData(agent, frame_odometry(agent), start=declared_start(agent, settings, log=True))
 
 
 class RobotProgressAdapter:
