@@ -8,6 +8,12 @@ import torch
 from PIL import Image
 
 from como3r.data.agent import open_agent
+from como3r.data.odometry_declaration import (
+    ODOMETRY_KIND_FILE,
+    OdometryKind,
+    read_odometry_kind,
+    write_odometry_kind,
+)
 from como3r.data.split import MIN_FRAMES_PER_AGENT, chunk_length, chunk_ranges, split_sequence
 from como3r.errors import InputError
 
@@ -91,6 +97,39 @@ def test_split_with_stride(tmp_path):
     kept = [f"{i:04d}" for i in range(0, 13, 3)]  # 0, 3, 6, 9, 12
     stems = [open_agent(f).stems for f in folders]
     assert list(stems[0] + stems[1]) == kept
+
+
+@pytest.mark.parametrize(
+    "declared, later",
+    [
+        # a VIO's later pieces start converged: no start discount, the rest as declared
+        (OdometryKind("vio"), OdometryKind("vio", start_scale_error=0.0)),
+        (
+            OdometryKind("vio", start_scale_error=0.2, start_depths=0.5),
+            OdometryKind("vio", start_scale_error=0.0, start_depths=0.5),
+        ),
+        (OdometryKind("metric"), OdometryKind("metric")),
+    ],
+)
+def test_split_hands_each_piece_its_odometry_declaration(tmp_path, declared, later):
+    src = write_agent(tmp_path / "seq", n=12, odometry=True)
+    write_odometry_kind(src, declared)
+    folders = split_sequence(src, tmp_path / "out", agents=3, overlap=0.1)
+    assert [read_odometry_kind(f) for f in folders] == [declared, later, later]
+
+
+def test_split_of_an_undeclared_source_declares_nothing(tmp_path):
+    src = write_agent(tmp_path / "seq", n=6, odometry=True)
+    folders = split_sequence(src, tmp_path / "out", agents=2, overlap=0.0)
+    assert not any((f / ODOMETRY_KIND_FILE).exists() for f in folders)
+
+
+def test_split_of_a_bad_declaration_writes_nothing(tmp_path):
+    src = write_agent(tmp_path / "seq", n=6, odometry=True)
+    (src / ODOMETRY_KIND_FILE).write_text('{"kind": "lio"}')
+    with pytest.raises(InputError, match=ODOMETRY_KIND_FILE):
+        split_sequence(src, tmp_path / "out", agents=2, overlap=0.0)
+    assert not (tmp_path / "out").exists()
 
 
 def test_split_video(tmp_path):

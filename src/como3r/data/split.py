@@ -9,10 +9,18 @@ Here the (optionally sub-sampled) stream of M frames is covered by N chunks of l
 consecutive chunks share ``overlap * L`` frames and the last chunk ends on the last frame.
 Chunk bounds are rounded to whole frames: lengths differ by at most one frame and an
 ``overlap`` of 0 gives an exact partition.
+
+A source that declares its odometry's kind (``odometry.json``,
+:mod:`~como3r.data.odometry_declaration`) hands each piece a declaration: the first piece
+starts where the sequence starts and keeps it as it is; a later piece of a ``vio`` odometry
+is still ``vio`` but starts where the odometry's scale estimate has had the earlier pieces'
+frames to converge, so it declares ``start_scale_error`` 0 (no start discount); ``metric``
+is copied as it is. Without a declaration the pieces have none (undeclared).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -24,6 +32,12 @@ from PIL import Image
 
 from como3r.data.agent import open_agent
 from como3r.data.agent_input import DEPTH_PNG_PER_METRE, AgentInput
+from como3r.data.odometry_declaration import (
+    OdometryKind,
+    declaration_folder,
+    read_odometry_kind,
+    write_odometry_kind,
+)
 from como3r.data.poses import MAX_GAP
 from como3r.errors import InputError
 from como3r.io.tum import Trajectory, write_tum
@@ -84,7 +98,10 @@ def split_sequence(
     metres. Each agent gets a ``timestamps.txt`` of its frames, the
     ``groundtruth.txt`` / ``odometry.txt`` rows that fall within its time span (plus
     :data:`~como3r.data.poses.MAX_GAP` either side, the samples its end frames interpolate
-    between), and the source's ``calib.txt``.
+    between), and the source's ``calib.txt``. A source's odometry declaration
+    (``odometry.json``) goes to the first agent as it is and to the later ones as it is
+    too, but for a ``vio`` odometry with ``start_scale_error`` 0: their start has converged
+    (module docstring).
 
     Args:
         src: input holding the whole sequence (agent folder or video, dataset sequence
@@ -101,7 +118,7 @@ def split_sequence(
 
     Raises:
         InputError: invalid arguments, too few frames, an existing non-empty agent folder,
-            or a bad source (see :func:`open_agent`).
+            or a bad source (see :func:`open_agent`) or odometry declaration.
     """
     if isinstance(agents, bool) or not isinstance(agents, int) or agents < 1:
         raise InputError(f"agents must be an integer >= 1, got {agents!r}")
@@ -110,6 +127,7 @@ def split_sequence(
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
         raise InputError(f"stride must be an integer >= 1, got {stride!r}")
     source = open_agent(src, format=format, topic=topic)
+    declared = read_odometry_kind(declaration_folder(source))
     kept = np.arange(0, source.num_frames, stride)
     length = chunk_length(len(kept), agents, overlap)
     if length < MIN_FRAMES_PER_AGENT:
@@ -124,11 +142,22 @@ def split_sequence(
         if folder.exists() and any(folder.iterdir()):
             raise InputError(f"{folder}: already exists and is not empty")
     selections = [kept[start:stop] for start, stop in ranges]
-    for folder, frames in zip(folders, selections):
+    for a, (folder, frames) in enumerate(zip(folders, selections)):
         _write_side_files(source, frames, folder)
+        if declared is not None:
+            write_odometry_kind(folder, piece_declaration(declared, a))
     _write_images(source, selections, folders)
     logger.info("split %s (%d frames) into %d agents under %s", src, len(kept), agents, out)
     return folders
+
+
+def piece_declaration(declared: OdometryKind, piece: int) -> OdometryKind:
+    """The odometry declaration of piece ``piece`` (0: the first) of a split source that
+    declares ``declared``: a later piece of a ``vio`` odometry starts converged
+    (``start_scale_error`` 0); anything else as declared (module docstring)."""
+    if piece == 0 or declared.kind != "vio":
+        return declared
+    return dataclasses.replace(declared, start_scale_error=0.0)
 
 
 def _write_side_files(source: AgentInput, frames: np.ndarray, folder: Path) -> None:
