@@ -11,49 +11,19 @@ import pytest
 import torch
 
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh
-from como3r.frontend.pairs import DirectedMatches
 from como3r.prior.mast3r.prior import MASt3REncoding
 from como3r.runtime import ingest
 from como3r.transport import codec
 from como3r.transport.messages import FROM_AGENT, KeyframeMessage
 from como3r.transport.pipes import Channel
 
+from ..keyframe_packets import mast3r_packet
+
 H, W = 12, 16
 
 
-def _pointmap(g: torch.Generator) -> torch.Tensor:
-    """``(H, W, 3)`` points in front of the camera (the pointmap coding fits them)."""
-    return torch.rand(H, W, 3, generator=g) + torch.tensor([-0.5, -0.5, 1.0])
-
-
 def _packet() -> KeyframePacket:
-    g = torch.Generator().manual_seed(0)
-    matches = DirectedMatches(
-        torch.arange(H * W), torch.ones(H * W, dtype=torch.bool), torch.rand(H * W, generator=g)
-    )
-    return KeyframePacket(
-        agent=0,
-        kf_id=1,
-        frame_index=4,
-        timestamp=0.2,
-        T_WC=torch.tensor([0, 0, 0, 0, 0, 0, 1, 1], dtype=torch.float64),
-        X_hat=_pointmap(g),
-        C_hat=1 + torch.rand(H, W, generator=g),
-        colors=np.random.default_rng(0).integers(0, 256, (H, W, 3), dtype=np.uint8),
-        # float32 tokens float16 cannot hold: the encoding must cross exact
-        encoding=MASt3REncoding(
-            agent=0,
-            index=1,
-            shape=(H, W),
-            tokens=torch.randn(12, 8, generator=g) / 3,
-            pos=torch.zeros(12, 2, dtype=torch.int64),
-            grid=(3, 4),
-        ),
-        retrieval=(torch.randn(5, 16, generator=g), torch.rand(5, generator=g)),
-        sequential_ij=matches,
-        sequential_ji=matches,
-        previous=None,
-    )
+    return mast3r_packet(H, W)
 
 
 def _same(a: KeyframePacket, b: KeyframePacket) -> None:

@@ -24,6 +24,8 @@ from como3r.store.reader import read_session
 from como3r.store.schema import STORE_NAME
 from como3r.store.writer import SessionStore
 
+from ..keyframe_packets import random_packet
+
 H, W = 12, 16
 
 
@@ -66,29 +68,7 @@ def test_a_coding_ahead_is_taken_only_for_the_same_unchanged_inputs() -> None:
 
 
 def _packet(agent: int, kf_id: int, gen: torch.Generator) -> KeyframePacket:
-    def matches() -> DirectedMatches:
-        return DirectedMatches(
-            torch.randint(H * W, (H * W,), generator=gen),
-            torch.rand(H * W, generator=gen) > 0.3,
-            0.1 + torch.rand(H * W, generator=gen),
-        )
-
-    first = kf_id == 0
-    return KeyframePacket(
-        agent=agent,
-        kf_id=kf_id,
-        frame_index=kf_id,
-        timestamp=float(kf_id),
-        T_WC=torch.rand(8, generator=gen),
-        X_hat=torch.rand(H, W, 3, generator=gen) + torch.tensor([0.0, 0.0, 1.0]),
-        C_hat=1 + torch.rand(H, W, generator=gen),
-        colors=torch.randint(256, (H, W, 3), generator=gen, dtype=torch.uint8).numpy(),
-        encoding=None,
-        retrieval=None,
-        sequential_ij=None if first else matches(),
-        sequential_ji=None if first else matches(),
-        previous=None,
-    )
+    return random_packet(agent, kf_id, gen, H, W)
 
 
 def _session(path: Path, workers: int) -> tuple[Coordinator, Ahead]:

@@ -30,34 +30,17 @@ from como3r.store.schema import FORMAT_VERSION, STORE_NAME
 from como3r.store.writer import SessionStore
 from como3r.transport import codec_compact
 
+from ..keyframe_packets import random_matches, random_packet
+
 H, W = 12, 16
 
 
 def _matches(gen: torch.Generator) -> DirectedMatches:
-    return DirectedMatches(
-        torch.randint(H * W, (H * W,), generator=gen),
-        torch.rand(H * W, generator=gen) > 0.3,
-        0.1 + torch.rand(H * W, generator=gen),
-    )
+    return random_matches(H * W, gen)
 
 
 def _packet(agent: int, kf_id: int, gen: torch.Generator) -> KeyframePacket:
-    first = kf_id == 0
-    return KeyframePacket(
-        agent=agent,
-        kf_id=kf_id,
-        frame_index=kf_id,
-        timestamp=float(kf_id),
-        T_WC=torch.rand(8, generator=gen),
-        X_hat=torch.rand(H, W, 3, generator=gen) + torch.tensor([0.0, 0.0, 1.0]),
-        C_hat=1 + torch.rand(H, W, generator=gen),
-        colors=torch.randint(256, (H, W, 3), generator=gen, dtype=torch.uint8).numpy(),
-        encoding=None,
-        retrieval=(torch.randn(5, 8, generator=gen), torch.rand(5, generator=gen)),
-        sequential_ij=None if first else _matches(gen),
-        sequential_ji=None if first else _matches(gen),
-        previous=None,
-    )
+    return random_packet(agent, kf_id, gen, H, W, retrieval=True)
 
 
 def _session(path: Path, settles: bool) -> tuple[Coordinator, PairLink]:

@@ -6,42 +6,25 @@ import numpy as np
 import torch
 
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh
-from como3r.frontend.pairs import DirectedMatches
-from como3r.prior.mast3r.prior import MASt3REncoding
 from como3r.transport import codec
 from como3r.transport.keyframe_bytes import PARTS, PartCounter, part_of, wire_parts
 from como3r.transport.messages import KeyframeMessage
+
+from ..keyframe_packets import mast3r_packet
 
 H, W = 24, 32
 
 
 def _packet(tokens: torch.Tensor) -> KeyframePacket:
-    g = torch.Generator().manual_seed(0)
-    encoding = MASt3REncoding(
-        agent=0,
-        index=1,
-        shape=(H, W),
-        tokens=tokens,
-        pos=torch.zeros(len(tokens), 2, dtype=torch.int64),
-        grid=(3, 4),
-    )
-    matches = DirectedMatches(
-        torch.arange(H * W), torch.ones(H * W, dtype=torch.bool), torch.rand(H * W, generator=g)
-    )
-    return KeyframePacket(
-        agent=0,
-        kf_id=1,
-        frame_index=4,
-        timestamp=0.2,
-        T_WC=torch.zeros(8, dtype=torch.float64),
-        X_hat=torch.randn(H, W, 3, generator=g),
-        C_hat=1 + torch.rand(H, W, generator=g),
-        colors=np.zeros((H, W, 3), np.uint8),
-        encoding=encoding,
-        retrieval=(torch.randn(5, 16, generator=g), torch.rand(5, generator=g)),
-        sequential_ij=matches,
-        sequential_ji=matches,
-        previous=PointmapRefresh(0, torch.randn(H, W, 3, generator=g), torch.ones(H, W), 2),
+    """A keyframe with every part: ``tokens``, a refreshed previous keyframe, retrieval
+    words."""
+    g = torch.Generator().manual_seed(1)
+    previous = PointmapRefresh(0, torch.randn(H, W, 3, generator=g), torch.ones(H, W), 2)
+    return mast3r_packet(
+        H,
+        W,
+        tokens,
+        previous=previous,
         retrieval_words=np.zeros((5, 3), np.int32),
         codebook_id="c",
     )
