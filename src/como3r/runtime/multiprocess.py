@@ -37,6 +37,7 @@ from como3r.runtime.pipeline import (
 )
 from como3r.runtime.processes import _Runtime
 from como3r.runtime.results import SegmentedCoordinator, agent_results, left_out
+from como3r.runtime.runtime_metrics import runtime_metrics
 from como3r.runtime.runtime_state import restore_runtime
 from como3r.store.reader import read_session, resumable
 from como3r.store.resume import open_store
@@ -210,7 +211,7 @@ def _write(staging: Path, runtime: _Runtime, inputs: Sequence[AgentInput]) -> Ru
     metrics, components = outputs.write_run_files(
         staging, results, coordinator, config, runtime.prior.describe(), seconds, runtime.progress
     )
-    metrics["runtime"] = runtime.runtime_metrics()
+    metrics["runtime"] = runtime_metrics(runtime)
     metrics["store"] = None if runtime.store is None else store_metrics(runtime.store)
     summary = RunSummary(out=staging)
     for slot, s in zip(runtime.slots, seconds):

@@ -46,11 +46,9 @@ import heapq
 import logging
 import math
 import time
-from collections import Counter
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 import torch
 
@@ -90,7 +88,7 @@ from como3r.runtime.results import (
 )
 from como3r.store.writer import SessionStore
 from como3r.transport.keyframe_bytes import PartCounter
-from como3r.transport.links import Hub, Received, Traffic
+from como3r.transport.links import Hub, Received
 from como3r.transport.messages import (
     AgentFinished,
     AgentTask,
@@ -467,67 +465,8 @@ class _Runtime(AgentEvents):
             EdgeView(e.i, e.j, e.kind, MatchFraction(e.match_fraction)) for e in done.edges
         ]
 
-    def _segments_of(self, agent: int) -> list[MapSegment]:
-        return [segment for segment in self.segments if segment.agent == agent]
-
     def stop(self, interrupted: bool = False) -> None:
         """Stop the agents still running and release the transport. ``interrupted``
         (Ctrl-C): terminate at once instead of asking and waiting (an agent still starting
         up would only read the request after its imports)."""
         self.hub.stop([s.agent for s in self.slots if s.status in _LIVE], interrupted)
-
-    def runtime_metrics(self) -> dict[str, Any]:
-        """Per-agent status and bytes exchanged per message type (both directions)."""
-        agents = []
-        by_type: Counter[str] = Counter()
-        for slot in self.slots:
-            channel = Traffic() if slot.status == "map" else self.hub.traffic(slot.agent)
-            by_type.update(channel.bytes_sent)
-            by_type.update(channel.bytes_received)
-            segments = self._segments_of(slot.agent)
-            agents.append(
-                {
-                    "agent": slot.agent,
-                    "status": slot.status,
-                    "error": slot.error,
-                    "pid": slot.pid,
-                    "exitcode": None if slot.status == "map" else self.hub.exitcode(slot.agent),
-                    "frames_expected": slot.frames_expected,
-                    "frames_done": slot.frames_done,
-                    "keyframes_received": sum(len(s.result.keyframes) for s in segments),
-                    "pose_updates_sent": sum(s.sent_seq for s in segments),
-                    "keyframes_reanchored": sum(s.reanchored for s in segments),
-                    "times_away": slot.absences,
-                    "restarts": slot.restarts,
-                    "map_segments": [
-                        {
-                            "segment": s.index,
-                            "after_frame": s.after_frame,
-                            "keyframes": len(s.result.keyframes),
-                            "in_outputs": s.index in self.places,
-                        }
-                        for s in segments
-                    ],
-                    "bytes_to_agent": dict(channel.bytes_sent),
-                    "bytes_from_agent": dict(channel.bytes_received),
-                    "messages_to_agent": dict(channel.messages_sent),
-                    "messages_from_agent": dict(channel.messages_received),
-                    "send_backlog": None if channel.backlog is None else channel.backlog.to_json(),
-                    "keyframe_bytes_by_part": self.keyframe_parts.get(
-                        slot.agent, PartCounter()
-                    ).per_keyframe(),
-                }
-            )
-        return {
-            "mode": "multiprocess",
-            "transport": self.hub.name,
-            "lockstep": self.options.lockstep,
-            "torch_threads": self.options.torch_threads,
-            "finish_torch_threads": self.finish_threads,
-            "max_message_bytes": self.options.max_message_bytes,
-            "agents": agents,
-            "bytes_by_type": dict(by_type),
-            "bytes_total": sum(by_type.values()),
-            "failed_agents": [s.agent for s in self.slots if s.status == "failed"],
-            "backlog": self.backlog.to_json(),
-        }
