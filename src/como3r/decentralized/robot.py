@@ -28,7 +28,7 @@ import time
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
@@ -57,6 +57,8 @@ from como3r.decentralized.messages import (
 from como3r.decentralized.place_recognition import PlaceRecognizer, candidate_pairs
 from como3r.decentralized.pose_graph_problem import LoopClosure, OdometryStart
 from como3r.decentralized.registration import Registrar
+from como3r.decentralized.routing import Link, PeerLeft
+from como3r.decentralized.schedule import RoundPlan, chain_depths
 from como3r.prior.base import Prior, View
 
 logger = logging.getLogger(__name__)
@@ -66,50 +68,9 @@ logger = logging.getLogger(__name__)
 #: leaves after collecting the shares, i.e. in the middle of the optimisation).
 PHASES = ("descriptors", "registration", "optimisation")
 
-
-class Link(Protocol):
-    """A robot's radio: messages out to the router, messages in from it."""
-
-    def send(self, message: Any) -> None:
-        """Queue a message (never blocks on the other side)."""
-
-    def receive(self, timeout: float) -> Any | None:
-        """The next message, or None after ``timeout`` seconds without one."""
-
-
-@dataclass(frozen=True)
-class PeerLeft:
-    """What a link that sees its peers' processes (``como3r robot``'s, by Zenoh liveliness)
-    hands its robot when a peer is gone for good: nobody waits for it any more."""
-
-    robot: int
-
-
-@dataclass(frozen=True)
-class RoundPlan:
-    """One exchange round: its id, mission time and the robots in range."""
-
-    round: int
-    time_s: float
-    group: tuple[int, ...]
-
-
-def chain_depths(rounds: list[RoundPlan], robot: int) -> dict[int, int]:
-    """Round id -> how many rounds deep ``robot``'s peers may be busy before its round,
-    for each of its rounds: 1 plus the longest chain of rounds without it, since its peers
-    last met it, in which each round shares a robot with the next. Peers reach a round
-    after such earlier rounds, which wait in turn for theirs: in a relay of pairwise
-    meetings round a team of N robots, the last robot's first round is N rounds deep."""
-    depths: dict[int, int] = {}
-    behind: dict[int, int] = {}  # peer -> rounds it may still be in before meeting robot
-    for plan in sorted(rounds, key=lambda p: p.round):
-        depth = 1 + max((behind.get(q, 0) for q in plan.group if q != robot), default=0)
-        if robot in plan.group:
-            depths[plan.round] = depth
-            behind.update({q: 0 for q in plan.group})
-        else:
-            behind.update({q: depth for q in plan.group})
-    return depths
+#: The rounds (:mod:`.schedule`) and the radio link (:mod:`.routing`) a robot runs on stay
+#: importable from here.
+__all__ = ["PHASES", "Link", "PeerLeft", "Robot", "RoundPlan", "chain_depths"]
 
 
 @dataclass(frozen=True)

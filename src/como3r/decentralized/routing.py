@@ -3,7 +3,8 @@
 range at the message's round time (:mod:`.schedule`) and counts the bytes of every delivered
 message per robot and per message type (:class:`TrafficCounter`); a robot reaches it through
 a :class:`ThreadLink` (robots as threads, for tests) or a :class:`PipeLink` (robots as
-processes).
+processes), both a :class:`Link`, the robot's radio as it sees it (``como3r robot``'s Zenoh
+link is one too, and tells it of a peer gone for good with :class:`PeerLeft`).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
-from typing import Any
+from typing import Any, Protocol
 
 from como3r.decentralized.messages import (
     ROBOT_MESSAGES,
@@ -142,6 +143,24 @@ class Router:
                 return
             self.traffic.count(sender, recipient, kind, len(data), message.round)
         self.deliver(recipient, data)
+
+
+class Link(Protocol):
+    """A robot's radio: messages out to the router, messages in from it."""
+
+    def send(self, message: Any) -> None:
+        """Queue a message (never blocks on the other side)."""
+
+    def receive(self, timeout: float) -> Any | None:
+        """The next message, or None after ``timeout`` seconds without one."""
+
+
+@dataclass(frozen=True)
+class PeerLeft:
+    """What a link that sees its peers' processes (``como3r robot``'s, by Zenoh liveliness)
+    hands its robot when a peer is gone for good: nobody waits for it any more."""
+
+    robot: int
 
 
 class ThreadLink:

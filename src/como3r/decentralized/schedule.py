@@ -32,7 +32,6 @@ from pathlib import Path
 
 import numpy as np
 
-from como3r.decentralized.robot import RoundPlan
 from como3r.errors import InputError
 
 Windows = dict[int, list[tuple[float, float]]]
@@ -215,6 +214,33 @@ def pair_schedule(
             name = f"{a}-{b}" if lap == 1 else f"{a}-{b}.{lap}"
             points[name] = {a: [(start_s, end_s)], b: [(start_s, end_s)]}
     return Schedule(None, points)
+
+
+@dataclass(frozen=True)
+class RoundPlan:
+    """One exchange round: its id, mission time and the robots in range."""
+
+    round: int
+    time_s: float
+    group: tuple[int, ...]
+
+
+def chain_depths(rounds: list[RoundPlan], robot: int) -> dict[int, int]:
+    """Round id -> how many rounds deep ``robot``'s peers may be busy before its round,
+    for each of its rounds: 1 plus the longest chain of rounds without it, since its peers
+    last met it, in which each round shares a robot with the next. Peers reach a round
+    after such earlier rounds, which wait in turn for theirs: in a relay of pairwise
+    meetings round a team of N robots, the last robot's first round is N rounds deep."""
+    depths: dict[int, int] = {}
+    behind: dict[int, int] = {}  # peer -> rounds it may still be in before meeting robot
+    for plan in sorted(rounds, key=lambda p: p.round):
+        depth = 1 + max((behind.get(q, 0) for q in plan.group if q != robot), default=0)
+        if robot in plan.group:
+            depths[plan.round] = depth
+            behind.update({q: 0 for q in plan.group})
+        else:
+            behind.update({q: depth for q in plan.group})
+    return depths
 
 
 def elect(group: Sequence[int]) -> int:

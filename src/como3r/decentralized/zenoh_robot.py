@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from como3r.decentralized.messages import DRIVER, ROBOT_MESSAGES, RobotHello
-from como3r.decentralized.robot import PeerLeft
+from como3r.decentralized.routing import PeerLeft
 from como3r.errors import InputError, MessageError
 from como3r.transport import codec
 from como3r.transport.pacing import CONTROL_BYTES
