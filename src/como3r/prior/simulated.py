@@ -81,11 +81,8 @@ from como3r.prior import simulated_errors as errors
 from como3r.prior.base import Encoding, EncodingRecord, PairPrediction, Prior, View
 from como3r.prior.ground_truth import GroundTruth, GroundTruthSource
 from como3r.prior.simulated_confidence import (
-    confidence,
-    descriptor_confidence,
     easy_confidences,
     noisy_descriptors,
-    realistic_logits,
 )
 from como3r.prior.simulated_encoding import (
     SimulatedConstants,
@@ -98,7 +95,6 @@ from como3r.prior.simulated_encoding import (
 )
 from como3r.prior.simulated_fit import match_keys, random_pose, robust_fit
 from como3r.prior.simulated_keys import (
-    KeyMatches,
     RandomFeatureMap,
     generator,
     key_footprint,
@@ -108,7 +104,8 @@ from como3r.prior.simulated_keys import (
     stable_seed,
 )
 from como3r.prior.simulated_ood import OodConstants, v2_appearance
-from como3r.prior.simulated_overlap import OverlapConstants, v2_logits
+from como3r.prior.simulated_overlap import OverlapConstants
+from como3r.prior.simulated_pair import decode_realistic, observe
 from como3r.prior.simulated_record import (
     SimulatedTruthRecord,
     checked_record,
@@ -314,10 +311,12 @@ class SimulatedPrior(Prior):
         overlap = fitted is not None
         R, t, s = fitted if overlap else random_pose(enc_i, self.constants, gen)
         if self.realistic:
-            return self._decode_realistic(enc_i, enc_j, matches, (R, t, s), overlap, scale, gen)
+            return decode_realistic(
+                enc_i, enc_j, matches, (R, t, s), overlap, scale, gen, self.config, self.constants
+            )
         R, t = errors.perturb_pose_easy(R, t, self.config, gen)
-        X_ii, _ = self._observe(enc_i, gen)
-        X_j, _ = self._observe(enc_j, gen)
+        X_ii, _ = observe(enc_i, gen, self.config, self.constants)
+        X_j, _ = observe(enc_j, gen, self.config, self.constants)
         X_ji = scale * (s * reproducible_matmul(X_j, R.T) + t)
         C_ii, C_ji, Q_ii, Q_ji = easy_confidences(
             enc_i, enc_j, matches, overlap, self.constants, gen
@@ -333,111 +332,6 @@ class SimulatedPrior(Prior):
             Q_ii=Q_ii,
             Q_ji=Q_ji,
         )
-
-    def _decode_realistic(
-        self,
-        enc_i: SimulatedEncoding,
-        enc_j: SimulatedEncoding,
-        matches: KeyMatches,
-        pose: tuple[Tensor, Tensor, Tensor],
-        overlap: bool,
-        scale: float,
-        gen: torch.Generator,
-    ) -> PairPrediction:
-        """The realistic model's prediction from the fitted (or random) ``pose``
-        (:mod:`~como3r.prior.simulated_errors`): gross failures and confident hallucinations,
-        heavy-tailed pose error, scale drift, confidence that falls with the injected error
-        and viewpoint-dependent descriptor noise."""
-        cfg = self.config
-        extra = generator(
-            cfg.seed, "realistic pair", enc_i.agent, enc_i.index, enc_j.agent, enc_j.index
-        )
-        hallucinated = not overlap and float(torch.rand((), generator=extra)) < (
-            cfg.hallucination_rate
-        )
-        failed = overlap and float(torch.rand((), generator=extra)) < cfg.gross_failure_rate
-        R, t, s = pose
-        change = errors.viewpoint_change(R, enc_i.median_range, enc_j.median_range)
-        if failed:
-            R, t, s = random_pose(enc_i, self.constants, extra)
-        R, t = errors.perturb_pose_realistic(R, t, enc_i.median_range, cfg, extra)
-        scale *= math.exp(errors.scale_drift(cfg, enc_i.agent, enc_i.index))
-        X_ii, error_i = self._observe(enc_i, gen)
-        X_j, error_j = self._observe(enc_j, gen)
-        # view j's observed ranges on its true rays, moved by the pair's (erroneous) pose
-        # into camera i and bent as camera i is believed to be
-        on_rays_j = enc_j.rays * X_j.norm(dim=-1, keepdim=True)
-        X_j_in_i = s * reproducible_matmul(on_rays_j, R.T) + t
-        X_ji = scale * errors.in_believed_camera(X_j_in_i, enc_i.rays, enc_i.pred_rays, enc_i.K)
-        if self.appearance:  # v2: per-pair rays, the two heads apart (item 12)
-            heads = generator(
-                cfg.seed, "v2 pair rays", enc_i.agent, enc_i.index, enc_j.agent, enc_j.index
-            )
-            X_ii = appearance_model.jitter_rays(X_ii, enc_i.K, cfg, heads)
-            X_ji = appearance_model.jitter_rays(X_ji, enc_i.K, cfg, heads)
-        noise = cfg.confidence_noise
-        descriptor_noise = cfg.descriptor_noise * (1.0 + cfg.descriptor_viewpoint_gain * change)
-        if self.appearance:  # v2: confidence from what the images reveal (items 9-13)
-            pair_gen = generator(
-                cfg.seed, "v2 pair confidence", enc_i.agent, enc_i.index, enc_j.agent, enc_j.index
-            )
-            (conf_i, conf_j, q_i, q_j), (noise_i, noise_j) = v2_logits(
-                enc_i,
-                enc_j,
-                pose,
-                (error_i, error_j),
-                cfg,
-                self.constants,
-                descriptor_noise,
-                pair_gen,
-            )
-        else:
-            conf_i, conf_j, q_i, q_j = realistic_logits(
-                enc_i,
-                enc_j,
-                matches,
-                overlap or hallucinated,
-                (error_i, error_j),
-                cfg,
-                self.constants,
-            )
-            noise_i = noise_j = descriptor_noise
-        return PairPrediction(
-            X_ii=scale * X_ii,
-            X_ji=X_ji,
-            C_ii=confidence(conf_i, gen, noise),
-            C_ji=confidence(conf_j, gen, noise),
-            D_ii=noisy_descriptors(enc_i, gen, noise_i),
-            D_ji=noisy_descriptors(enc_j, gen, noise_j),
-            Q_ii=descriptor_confidence(q_i, gen, noise),
-            Q_ji=descriptor_confidence(q_j, gen, noise),
-        )
-
-    def _observe(self, enc: SimulatedEncoding, gen: torch.Generator) -> tuple[Tensor, Tensor]:
-        """One noisy prediction of the view's own camera-frame pointmap ``(H, W, 3)`` along
-        its predicted rays, and its log-range error ``(H, W)`` (0 on sky)."""
-        H, W = enc.shape
-        device = enc.rays.device
-        field = errors.fourier_field(
-            H,
-            W,
-            self.config.depth_distortion_wavelength * max(H, W),
-            self.constants.distortion_modes,
-            gen,
-        ).to(device)
-        noise = torch.randn(H, W, generator=gen).to(device)
-        log_factor = (
-            self.config.depth_distortion_amplitude * field
-            + self.config.range_noise * noise
-            + enc.log_range_error
-        )
-        low, high = (enc.sky_scale * x for x in self.constants.sky_range)
-        sky = enc.median_range * (low + (high - low) * torch.rand(H, W, generator=gen).to(device))
-        # the out-of-distribution error the confidence never sees (item 14)
-        hidden = log_factor if enc.hidden_log_error is None else log_factor + enc.hidden_log_error
-        ranges = torch.where(enc.valid, enc.ranges * torch.exp(hidden), sky)
-        log_error = torch.where(enc.valid, log_factor, torch.zeros_like(log_factor))
-        return enc.pred_rays * ranges[..., None], log_error
 
     # ------------------------------------------------------------------ retrieval
 
