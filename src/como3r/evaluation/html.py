@@ -12,38 +12,45 @@ truth, one agent, a single-process run that sent no messages, no map).
 
 from __future__ import annotations
 
-import base64
 import html
 import json
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from matplotlib.figure import Figure
-
-from como3r.evaluation.html_parts import STYLE, details, fmt, fmt_bytes, section, table
-from como3r.evaluation.plot import ate_figure, png_bytes, trajectory_figure
-from como3r.evaluation.plot_map import map_figure, sample_map
-from como3r.evaluation.plot_run import (
-    stacked_bar_figure,
-    stage_order,
-    timeline_figure,
-    traffic_columns,
+from como3r.evaluation.html_parts import (
+    STYLE,
+    details,
+    fmt,
+    image,
+    missing,
+    section,
+    table,
 )
+from como3r.evaluation.html_run import bandwidth_section, merges_section, timing_section
+from como3r.evaluation.plot import ate_figure, trajectory_figure
+from como3r.evaluation.plot_map import map_figure, sample_map
 from como3r.evaluation.report import EvalSummary
 from como3r.evaluation.report_data import (
-    MergeEvent,
     RunData,
     agent_rows,
     load_run,
-    stage_seconds,
-    timeline,
-    traffic,
 )
 from como3r.io.tum import Trajectory
 
 logger = logging.getLogger(__name__)
+
+#: ``image`` is html_parts.py's; importable from here as before
+__all__ = [
+    "REPORT_NAME",
+    "SECTIONS",
+    "image",
+    "render",
+    "run_label",
+    "write_evaluation_report",
+    "write_report",
+]
 
 REPORT_NAME = "report.html"
 #: the sections of the report, in order: (id, heading)
@@ -57,27 +64,6 @@ SECTIONS = (
     ("map", "Map"),
     ("appendix", "Appendix"),
 )
-
-
-def image(build: Callable[[], Figure], alt: str, caption: str = "") -> str:
-    """A ``<figure>`` with the built figure embedded as a base64 PNG, or a sentence saying
-    it could not be drawn (the report never fails a run)."""
-    try:
-        data = base64.b64encode(png_bytes(build())).decode("ascii")
-    except Exception as exc:  # noqa: BLE001 - any plotting failure leaves a sentence
-        logger.warning("report: the %s figure could not be drawn", alt, exc_info=True)
-        return (
-            f"<p class='missing'>The {html.escape(alt)} figure could not be drawn: "
-            f"{html.escape(str(exc))}</p>"
-        )
-    text = f"<figcaption>{caption}</figcaption>" if caption else ""
-    return (
-        f"<figure><img alt='{html.escape(alt)}' src='data:image/png;base64,{data}'>{text}</figure>"
-    )
-
-
-def _missing(sentence: str) -> str:
-    return f"<p class='missing'>{html.escape(sentence)}</p>"
 
 
 # --------------------------------------------------------------------------- sections
@@ -114,7 +100,7 @@ def _summary(data: RunData, notes: Sequence[str]) -> str:
 
 def _trajectories(data: RunData) -> str:
     if not any(len(t.positions) for t in data.tracks):
-        return _missing("No agent has an estimated trajectory.")
+        return missing("No agent has an estimated trajectory.")
     if data.has_ground_truth:
         est = [t.aligned if t.aligned is not None else t.positions for t in data.tracks]
         caption = (
@@ -135,7 +121,7 @@ def _trajectories(data: RunData) -> str:
             "The run was evaluated, but its ground truth was not handed to the "
             "report: the estimates are drawn alone, in the run's world frame."
         )
-    return _missing(sentence) + image(
+    return missing(sentence) + image(
         lambda: trajectory_figure(
             [t.positions for t in data.tracks],
             None,
@@ -153,7 +139,7 @@ def _error(data: RunData) -> str:
         if t.errors is not None and t.error_times is not None
     ]
     if not series:
-        return _missing("No ground truth: no error over time.")
+        return missing("No ground truth: no error over time.")
     caption = (
         "Distance between each estimated camera centre and its ground truth (nearest "
         "timestamp) after the agent's own Sim(3) alignment; its RMSE is the agent's "
@@ -165,7 +151,7 @@ def _error(data: RunData) -> str:
 def _agents(data: RunData) -> str:
     rows = agent_rows(data)
     if not rows:
-        return _missing("No agents.")
+        return missing("No agents.")
     note = (
         ""
         if data.ate
@@ -185,161 +171,11 @@ def _agents(data: RunData) -> str:
     return table(rows) + rpe + note
 
 
-def _timing(data: RunData) -> str:
-    columns = stage_seconds(data)
-    if not columns:
-        return _missing("This run recorded no per-stage times.")
-    stages = stage_order(columns)
-    rows = [{"stage": s, **{f"{c} [s]": columns[c].get(s) for c in columns}} for s in stages]
-    rows.append({"stage": "total", **{f"{c} [s]": sum(columns[c].values()) for c in columns}})
-    text, caption = (
-        "",
-        (
-            "Wall seconds per stage of each agent's front-end and of the "
-            "coordinator (<i>other</i>: the rest of the agent's time)."
-        ),
-    )
-    if data.decentralized:
-        text = _missing(
-            "The decentralized mode records only the prior's encoder and decoder "
-            f"time per robot; the whole mission took "
-            f"{fmt(data.metrics.get('seconds'))} s."
-        )
-        caption = "Wall seconds each robot spent in the prior's encoder and decoder."
-    return (
-        text
-        + table(rows)
-        + image(
-            lambda: stacked_bar_figure(
-                columns, "wall time [s]", "Time per stage", total_label=lambda v: f"{v:.3g} s"
-            ),
-            "timing",
-            caption,
-        )
-    )
-
-
-def _bandwidth(data: RunData) -> str:
-    found = traffic(data)
-    if found is None and data.runtime_mode == "single-process" and data.metrics:
-        return _missing(
-            "Single-process run: the agents and the coordinator shared memory and "
-            "sent no messages, so there is no bandwidth to report (run without "
-            "--single-process to measure it)."
-        )
-    if found is None:
-        return _missing("This run recorded no message bytes.")
-    rows, keyframe_counts = [], {r["agent"]: r.get("keyframes") for r in agent_rows(data)}
-    for agent, t in found.items():
-        sent, received = sum(t.sent.values()), sum(t.received.values())
-        keyframes = keyframe_counts.get(agent)
-        rows.append(
-            {
-                "agent": agent,
-                "sent": fmt_bytes(sent),
-                "received": fmt_bytes(received),
-                "sent per keyframe": fmt_bytes(sent / keyframes) if keyframes else None,
-                "largest sent type": max(t.sent, key=t.sent.get) if t.sent else None,
-            }
-        )
-    by_type = (data.metrics.get("bytes") or data.metrics.get("runtime") or {}).get(
-        "bytes_by_type"
-    ) or {}
-    types = (
-        table(
-            [
-                {"message type": k, "bytes": fmt_bytes(v)}
-                for k, v in sorted(by_type.items(), key=lambda kv: -kv[1])
-            ]
-        )
-        if by_type
-        else ""
-    )
-    return (
-        table(rows)
-        + image(
-            lambda: stacked_bar_figure(
-                traffic_columns(found),
-                "MB",
-                "Bytes per agent and message type",
-                scale=1e6,
-                total_label=fmt_bytes,
-            ),
-            "bandwidth",
-            "Encoded message bytes each agent sent and received, by message type.",
-        )
-        + types
-    )
-
-
-def _event_rows(data: RunData, events: Sequence[MergeEvent]) -> list[dict[str, Any]]:
-    rows = []
-    for i, event in enumerate(events, 1):
-        d = event.details
-        if data.decentralized:
-            rows.append(
-                {
-                    "#": i,
-                    "time [s]": event.time,
-                    "round": d.get("round"),
-                    "robots": ", ".join(map(str, d.get("group", []))),
-                }
-            )
-            continue
-        edges = "; ".join(f"{a[0]}:{a[1]} ↔ {b[0]}:{b[1]}" for a, b in d.get("edges", []))
-        rows.append(
-            {
-                "#": i,
-                "time [s]": event.time,
-                "after keyframes": d.get("keyframes"),
-                "moved agents": ", ".join(map(str, d.get("moved_agents", []))),
-                "into component": d.get("anchor_component"),
-                "edges (agent:kf)": edges,
-                "method": d.get("method"),
-                "correspondences": d.get("correspondences"),
-                "RMSE": d.get("rmse"),
-                "scale": d.get("scale"),
-                "focal factor": d.get("focal_factor"),
-            }
-        )
-    return rows
-
-
-def _merges(data: RunData) -> str:
-    if len(data.tracks) < 2:
-        return _missing("One agent: there is nothing to merge.")
-    line = timeline(data)
-    if not line.keyframes:
-        return _missing("graph.json is missing: no keyframes to place on a timeline.")
-    counts: dict[str, int] = {}
-    for link in line.links:
-        counts[link.status] = counts.get(link.status, 0) + 1
-    what = "loop closures" if data.decentralized else "verified candidates"
-    summary = ", ".join(f"{n} {s}" for s, n in sorted(counts.items())) or "none"
-    kind = "rendezvous rounds" if data.decentralized else "gauge synchronizations"
-    text = (
-        f"<p>Cross-agent {what}: {html.escape(summary)}. "
-        f"{len(line.events)} {kind} (dotted lines, numbered as in the table).</p>"
-    )
-    caption = (
-        "Each tick is a keyframe at its timestamp; a line joins the two keyframes of a "
-        "cross-agent link, green where it was admitted, red where it was rejected."
-    )
-    text += image(
-        lambda: timeline_figure(line, [t.agent for t in data.tracks]), "timeline", caption
-    )
-    if line.events:
-        text += table(_event_rows(data, line.events))
-    elif not data.decentralized:
-        text += _missing("No gauge synchronization: the agents never joined one frame.")
-    return text
-
-
 def _map(data: RunData) -> str:
     path = data.run_dir / "map.ply"
     sample = sample_map(path)
     if sample is None:
-        text = _missing(
+        text = missing(
             "No map.ply in this run (or it is empty): nothing to render."
             if not data.decentralized
             else "The decentralized mode writes no fused map."
@@ -423,7 +259,7 @@ def _appendix(data: RunData) -> str:
                 else table([{"name": k, "value": v} for k, v in value.items()])
             )
             parts.append(details(title, body))
-    return "".join(parts) or _missing("Nothing to add.")
+    return "".join(parts) or missing("Nothing to add.")
 
 
 def run_label(run_dir: Path) -> str:
@@ -441,9 +277,9 @@ def render(data: RunData, notes: Sequence[str] = ()) -> str:
         "trajectories": _trajectories,
         "error": _error,
         "agents": _agents,
-        "timing": _timing,
-        "bandwidth": _bandwidth,
-        "merges": _merges,
+        "timing": timing_section,
+        "bandwidth": bandwidth_section,
+        "merges": merges_section,
         "map": _map,
         "appendix": _appendix,
     }

@@ -1,12 +1,21 @@
-"""Small HTML pieces of ``report.html``: the style sheet, tables, number formats, sections
-and folded ``<details>`` blocks. Every text that goes into the page is escaped here."""
+"""Small HTML pieces of ``report.html``: the style sheet, tables, number formats, sections,
+embedded figures, sentences in place of what a section lacks and folded ``<details>``
+blocks. Every text that goes into the page is escaped here."""
 
 from __future__ import annotations
 
+import base64
 import html
+import logging
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
+
+from matplotlib.figure import Figure
+
+from como3r.evaluation.plot import png_bytes
+
+logger = logging.getLogger(__name__)
 
 STYLE = """
 body { font-family: -apple-system, "Segoe UI", Roboto, Helvetica, Arial, sans-serif;
@@ -77,3 +86,25 @@ def section(ident: str, heading: str, body: str) -> str:
 def details(summary: str, body: str) -> str:
     """A folded block, closed until clicked."""
     return f"<details><summary>{html.escape(summary)}</summary>{body}</details>"
+
+
+def image(build: Callable[[], Figure], alt: str, caption: str = "") -> str:
+    """A ``<figure>`` with the built figure embedded as a base64 PNG, or a sentence saying
+    it could not be drawn (the report never fails a run)."""
+    try:
+        data = base64.b64encode(png_bytes(build())).decode("ascii")
+    except Exception as exc:  # noqa: BLE001 - any plotting failure leaves a sentence
+        logger.warning("report: the %s figure could not be drawn", alt, exc_info=True)
+        return (
+            f"<p class='missing'>The {html.escape(alt)} figure could not be drawn: "
+            f"{html.escape(str(exc))}</p>"
+        )
+    text = f"<figcaption>{caption}</figcaption>" if caption else ""
+    return (
+        f"<figure><img alt='{html.escape(alt)}' src='data:image/png;base64,{data}'>{text}</figure>"
+    )
+
+
+def missing(sentence: str) -> str:
+    """A sentence saying what a section has nothing to show for."""
+    return f"<p class='missing'>{html.escape(sentence)}</p>"
