@@ -130,7 +130,7 @@ def test_the_map_is_written_a_keyframe_at_a_time_as_it_was_whole(tmp_path) -> No
 def test_first_point_per_voxel_over_pieces_of_any_extent() -> None:
     """_FirstPerVoxel over pieces (some empty, cells millions of voxels from the origin)
     keeps exactly the first point of every voxel of the whole cloud."""
-    from como3r.runtime.outputs import _FirstPerVoxel
+    from como3r.runtime.map_points import _FirstPerVoxel
 
     rng = np.random.default_rng(1)
     pieces = [
