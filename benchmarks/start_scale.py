@@ -55,6 +55,7 @@ from _start_scale import estimate_start_error, start_discount  # noqa: E402
 from robustness import FAMILIES, _scene, _with_odometry, cell_config  # noqa: E402
 
 from como3r.config_decentralized import DecentralizedConfig, ProtocolConfig  # noqa: E402
+from como3r.decentralized.keyframes import open_robot  # noqa: E402
 from como3r.decentralized.protocol import build_prior, make_robot  # noqa: E402
 from como3r.io.tum import read_tum  # noqa: E402
 from como3r.runtime.pipeline import PriorSpec  # noqa: E402
@@ -102,7 +103,8 @@ def run_cell(out: Path, family: str, seed: int, gaps: list[int]) -> tuple[list[d
     decay = settings.vio_start_depths / settings.keyframe_distance_ratio
     rows, errors = [], {g: [] for g in gaps}
     for a, path in paths.items():
-        robot = make_robot(a, path, prior, codebook, config, settings, None, None)
+        data = open_robot(path, config, settings)
+        robot = make_robot(a, data, prior, codebook, config, settings, None, None)
         pairs = robot_pairs(robot, Path(path), gaps)
         i, j, odometry, prior_d, true = pairs.T
         row = {"family": family, "seed": seed, "robot": a, "keyframes": len(robot.keyframes)}
