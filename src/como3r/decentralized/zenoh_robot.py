@@ -31,7 +31,7 @@ Drops and invalid messages are logged and counted, never fatal.
 
 A peer whose liveliness token goes (its process ended, or its link was lost for longer than
 the Zenoh lease) is reported to the robot as a
-:class:`~como3r.decentralized.robot.PeerLeft`, so it stops waiting for it. At the end
+:class:`~como3r.decentralized.routing.PeerLeft`, so it stops waiting for it. At the end
 (:meth:`ZenohRobotLink.finish`) a robot declares its ``done`` token and keeps
 its session open until every peer it met is done or gone, so its last messages (the
 elected robot's estimates) reach their recipients before it leaves.
@@ -238,7 +238,7 @@ class ZenohRobotLink:
 
     def receive(self, timeout: float) -> Any | None:
         """The next message that passes validation and the link filter (or a
-        :class:`~como3r.decentralized.robot.PeerLeft` when a peer's process is gone), or
+        :class:`~como3r.decentralized.routing.PeerLeft` when a peer's process is gone), or
         None after ``timeout`` seconds without one."""
         deadline = time.monotonic() + max(timeout, 0.0)
         while True:
