@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 import torch
@@ -31,7 +32,7 @@ from como3r.coordination.gauge import (
 )
 from como3r.coordination.stats import CoordinatorStats
 from como3r.frontend.pairs import DirectedMatches, gather_points
-from como3r.geometry.lie import sim3_act
+from como3r.geometry.lie import sim3_act_points
 
 # the coordinator's logger: its messages read as they did before this part had a module
 logger = logging.getLogger("como3r.coordination.coordinator")
@@ -46,6 +47,23 @@ class GaugeGeometry:
     gauges: GaugeComponents
     gauge_events: list[dict[str, Any]]
     stats: CoordinatorStats
+    #: lifted correspondences and transforms by candidate ids while poses hold still
+    #: (:meth:`_poses_held`); None outside
+    _held: dict[tuple[Any, ...], Any] | None = None
+
+    @contextmanager
+    def _poses_held(self) -> Iterator[None]:
+        """While no pose, pointmap or component changes, an edge's lifted correspondences
+        and a set of edges' ``T*`` are computed once: a merge decision tests the same edges
+        for agreement, for scale and for the merge itself (issue 41: at 16 agents the
+        recomputation was the largest serial part of the coordinator). Nothing may move a
+        keyframe inside the block."""
+        outer = self._held
+        self._held = {} if outer is None else outer
+        try:
+            yield
+        finally:
+            self._held = outer
 
     def _scale_supporters(self, supporters: list[Candidate]) -> list[Candidate]:
         """The supporters whose own ``T*`` scale agrees with the joint one within
@@ -77,7 +95,7 @@ class GaugeGeometry:
         anchor = candidate.i if self._moving_is_j(candidate) else candidate.j
         candidate.residual_ratio = residual_ratio(
             x_anchor,
-            sim3_act(hypothesis.T.to(x_moving)[None], x_moving),
+            sim3_act_points(hypothesis.T, x_moving),
             self.graph.keyframes[anchor].T_WC[:3],
         )
         return candidate.residual_ratio <= self.config.verification.max_residual_ratio
@@ -85,6 +103,15 @@ class GaugeGeometry:
     def _gauge_transform(self, candidates: Sequence[Candidate]) -> GaugeTransform:
         """``T*`` from the lifted correspondences of edges between the same two components
         (C-Eq. 14); the rigid snap uses the first edge's endpoints."""
+        key = ("T*", *(id(c) for c in candidates))
+        if self._held is not None and key in self._held:
+            return self._held[key]
+        transform = self._solve_transform(candidates)
+        if self._held is not None:
+            self._held[key] = transform
+        return transform
+
+    def _solve_transform(self, candidates: Sequence[Candidate]) -> GaugeTransform:
         parts = [self._oriented_correspondences(c) for c in candidates]
         first = candidates[0]
         moving, anchor = (first.j, first.i) if self._moving_is_j(first) else (first.i, first.j)
@@ -124,6 +151,15 @@ class GaugeGeometry:
         Returns:
             ``x_i (N, 3)``, ``x_j (N, 3)``, ``q (N,)``.
         """
+        key = ("lifted", id(candidate))
+        if self._held is not None and key in self._held:
+            return self._held[key]
+        lifted = self._lift_matches(candidate)
+        if self._held is not None:
+            self._held[key] = lifted
+        return lifted
+
+    def _lift_matches(self, candidate: Candidate) -> tuple[Tensor, Tensor, Tensor]:
         kf_i, kf_j = self.graph.keyframes[candidate.i], self.graph.keyframes[candidate.j]
         ij, ji = candidate.link.ij, candidate.link.ji
         x_i_ij, x_j_ij = _matched_points(ij, kf_i.X_hat, kf_j.X_hat)

@@ -31,6 +31,7 @@ from como3r.coordination.association import (
 from como3r.coordination.decode_pool import Done, Source, VerificationPool
 from como3r.coordination.encodings import KeyframeEncodings
 from como3r.coordination.gauge import (
+    GaugeTransform,
     edge_log_scale,
     residual_ratio,
     transport,
@@ -457,12 +458,14 @@ class InterAgentLinking(GaugeGeometry):
         """Merge the two components of ``candidate`` once enough waiting edges between them
         agree with its transform (``gauge.min_consistent_edges``)."""
         needed = self.config.gauge.min_consistent_edges
-        supporters = [candidate]
-        if needed > 1:
-            supporters = self._scale_supporters(self._agreeing(candidate))
-        if len(supporters) < needed:
-            return []
-        return self._merge(candidate, supporters)
+        start = time.perf_counter()
+        with self._poses_held():
+            supporters = [candidate]
+            if needed > 1:
+                supporters = self._scale_supporters(self._agreeing(candidate))
+            transform = self._gauge_transform(supporters) if len(supporters) >= needed else None
+        self.stats.add_time("gauge", time.perf_counter() - start)
+        return [] if transform is None else self._merge(candidate, supporters, transform)
 
     def _agreeing(self, candidate: Candidate) -> list[Candidate]:
         """``candidate`` and the waiting edges between the same two components that agree
@@ -497,16 +500,18 @@ class InterAgentLinking(GaugeGeometry):
             ]
             if not apart:
                 return updates
-            support = [self._agreeing(c) for c in apart]
-            best = max(range(len(apart)), key=lambda n: len(support[n]))
-            roots, chosen = self._roots(apart[best]), support[best]
-            rivals = [
-                n
-                for n, c in enumerate(apart)
-                if self._roots(c) == roots and not any(c is s for s in chosen)
-            ]
-            supporters = self._scale_supporters(chosen)
-            if not supporters or any(len(support[n]) >= len(chosen) for n in rivals):
+            with self._poses_held():
+                support = [self._agreeing(c) for c in apart]
+                best = max(range(len(apart)), key=lambda n: len(support[n]))
+                roots, chosen = self._roots(apart[best]), support[best]
+                rivals = [
+                    n
+                    for n, c in enumerate(apart)
+                    if self._roots(c) == roots and not any(c is s for s in chosen)
+                ]
+                supporters = self._scale_supporters(chosen)
+                transform = self._gauge_transform(supporters) if supporters else None
+            if transform is None or any(len(support[n]) >= len(chosen) for n in rivals):
                 ambiguous.add(roots)
                 logger.warning(
                     "coordinator: components %d and %d stay apart: their %d waiting edges "
@@ -515,14 +520,15 @@ class InterAgentLinking(GaugeGeometry):
                     len(rivals) + len(chosen),
                 )
                 continue
-            updates.extend(self._merge(apart[best], supporters))
+            updates.extend(self._merge(apart[best], supporters, transform))
 
-    def _merge(self, candidate: Candidate, supporters: list[Candidate]) -> list[PoseUpdate]:
-        """Transport the moving component of ``candidate`` by ``T*`` of ``supporters``
-        (C-Eq. 14-15), admit them, and test the other waiting edges now inside one
-        component like any such edge."""
+    def _merge(
+        self, candidate: Candidate, supporters: list[Candidate], transform: GaugeTransform
+    ) -> list[PoseUpdate]:
+        """Transport the moving component of ``candidate`` by ``transform``, the ``T*`` of
+        ``supporters`` (C-Eq. 14-15), admit them, and test the other waiting edges now
+        inside one component like any such edge."""
         start = time.perf_counter()
-        transform = self._gauge_transform(supporters)
         anchor_root, moved_root = self._roots(candidate)
         moved_agents = self.gauges.members(moved_root)
         for agent in moved_agents:
