@@ -162,11 +162,12 @@ class GaugeGeometry:
     def _lift_matches(self, candidate: Candidate) -> tuple[Tensor, Tensor, Tensor]:
         kf_i, kf_j = self.graph.keyframes[candidate.i], self.graph.keyframes[candidate.j]
         ij, ji = candidate.link.ij, candidate.link.ji
-        x_i_ij, x_j_ij = _matched_points(ij, kf_i.X_hat, kf_j.X_hat)
-        x_j_ji, x_i_ji = _matched_points(ji, kf_j.X_hat, kf_i.X_hat)
+        most = self.config.gauge.max_correspondences
+        x_i_ij, x_j_ij, q_ij = _matched_points(ij, kf_i.X_hat, kf_j.X_hat, most)
+        x_j_ji, x_i_ji, q_ji = _matched_points(ji, kf_j.X_hat, kf_i.X_hat, most)
         x_i = lift(kf_i.T_WC, torch.cat([x_i_ij, x_i_ji]))
         x_j = lift(kf_j.T_WC, torch.cat([x_j_ij, x_j_ji]))
-        return x_i, x_j, torch.cat([ij.q[ij.valid], ji.q[ji.valid]])
+        return x_i, x_j, torch.cat([q_ij, q_ji])
 
     def _record_gauge_event(
         self,
@@ -199,17 +200,26 @@ class GaugeGeometry:
 
 
 def _matched_points(
-    matches: DirectedMatches, X_target: Tensor, X_source: Tensor
-) -> tuple[Tensor, Tensor]:
-    """Valid matches of ``matches`` as point pairs ``(X_target[idx[n]], X_source[n])``.
+    matches: DirectedMatches, X_target: Tensor, X_source: Tensor, most: int = 0
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Valid matches of ``matches`` as point pairs ``(X_target[idx[n]], X_source[n])``,
+    evenly subsampled to at most ``most`` (0: all).
 
     Args:
         matches: every pixel ``n`` of the source keyframe looked up in the target.
         X_target: ``(H, W, 3)`` target canonical pointmap.
         X_source: ``(H, W, 3)`` source canonical pointmap.
+        most: ``gauge.max_correspondences``.
 
     Returns:
-        ``(M, 3)`` target points and ``(M, 3)`` source points (camera frames).
+        ``(M, 3)`` target points, ``(M, 3)`` source points (camera frames) and their match
+        confidences ``q (M,)``.
     """
-    valid = matches.valid
-    return gather_points(X_target, matches.idx[valid]), X_source.reshape(-1, 3)[valid]
+    pixels = torch.nonzero(matches.valid).flatten()
+    if 0 < most < pixels.numel():
+        pixels = pixels[torch.linspace(0, pixels.numel() - 1, most).long()]
+    return (
+        gather_points(X_target, matches.idx[pixels]),
+        X_source.reshape(-1, 3)[pixels],
+        matches.q[pixels],
+    )
