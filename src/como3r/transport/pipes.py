@@ -155,8 +155,8 @@ class PipeHub:
         target: the agent processes' entry point, ``target(agent, inbox, outbox)``.
         max_bytes: size cap of one message.
         grace_s: how long a stopping agent may take before it is terminated.
-        read_ahead: bytes of decoded messages each reader holds at most before it waits
-            for :meth:`events` (:data:`~.pipe_readers.READ_AHEAD_BYTES`).
+        read_ahead: pipe bytes of the decoded messages a reader holds before it waits for
+            :meth:`events` (:data:`~.pipe_readers.READ_AHEAD_BYTES`).
     """
 
     name = "pipes"
@@ -209,7 +209,7 @@ class PipeHub:
             return []
         with self._bell:
             self._bell.wait_for(lambda: any(r.ready() for r in self.readers.values()), timeout)
-            taken = [(agent, reader.take()) for agent, reader in sorted(self.readers.items())]
+            taken = [(a, r.take()) for a, r in sorted(self.readers.items()) if r.ready()]
         out: list[Event] = []
         for agent, items in taken:  # each agent's in order: its last words before its Left
             for item, nbytes in items:
