@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 from torch import Tensor
@@ -33,6 +33,8 @@ from como3r.coordination.gauge import (
 from como3r.coordination.stats import CoordinatorStats
 from como3r.frontend.pairs import DirectedMatches, gather_points
 from como3r.geometry.lie import sim3_act_points
+
+T = TypeVar("T")
 
 # the coordinator's logger: its messages read as they did before this part had a module
 logger = logging.getLogger("como3r.coordination.coordinator")
@@ -64,6 +66,15 @@ class GaugeGeometry:
             yield
         finally:
             self._held = outer
+
+    def _once(self, key: tuple[Any, ...], compute: Callable[[], T]) -> T:
+        """``compute()``, computed once per ``key`` while poses are held (:meth:`_poses_held`);
+        every time outside."""
+        if self._held is None:
+            return compute()
+        if key not in self._held:
+            self._held[key] = compute()
+        return self._held[key]
 
     def _scale_supporters(self, supporters: list[Candidate]) -> list[Candidate]:
         """The supporters whose own ``T*`` scale agrees with the joint one within
@@ -104,12 +115,7 @@ class GaugeGeometry:
         """``T*`` from the lifted correspondences of edges between the same two components
         (C-Eq. 14); the rigid snap uses the first edge's endpoints."""
         key = ("T*", *(id(c) for c in candidates))
-        if self._held is not None and key in self._held:
-            return self._held[key]
-        transform = self._solve_transform(candidates)
-        if self._held is not None:
-            self._held[key] = transform
-        return transform
+        return self._once(key, lambda: self._solve_transform(candidates))
 
     def _solve_transform(self, candidates: Sequence[Candidate]) -> GaugeTransform:
         parts = [self._oriented_correspondences(c) for c in candidates]
@@ -151,13 +157,7 @@ class GaugeGeometry:
         Returns:
             ``x_i (N, 3)``, ``x_j (N, 3)``, ``q (N,)``.
         """
-        key = ("lifted", id(candidate))
-        if self._held is not None and key in self._held:
-            return self._held[key]
-        lifted = self._lift_matches(candidate)
-        if self._held is not None:
-            self._held[key] = lifted
-        return lifted
+        return self._once(("lifted", id(candidate)), lambda: self._lift_matches(candidate))
 
     def _lift_matches(self, candidate: Candidate) -> tuple[Tensor, Tensor, Tensor]:
         kf_i, kf_j = self.graph.keyframes[candidate.i], self.graph.keyframes[candidate.j]
