@@ -193,6 +193,16 @@ class GaugeConfig:
     path (calibrated: 0.38 %); seed 1: 0.72 -> 0.85 % (one focal length, but the single
     edge between agents 0 and 1 leaves a 3 % scale offset the focal errors had hidden).
 
+    ``max_correspondences`` (como3r addition; issue 41): an edge's valid matches are evenly
+    subsampled to at most this many per direction for its ``T*`` (C-Eq. 14), its agreement
+    test and its scale watch; 0 takes every valid match (C-Eq. 14 as printed). At 512x384 an
+    edge has about 200,000, and the Umeyama fits over them were most of a 16-agent
+    coordinator's merge time. A captured 16-agent run's coordinator calls (batches 1 / 1 /
+    24 / 14, replayed in one thread; ``benchmarks/team_scale.py``'s scene): in-stream thread
+    CPU 533 -> 305 ms per keyframe from all to 8192, in-stream keyframe ATE 67.66 -> 67.53
+    mm, the same 15 merges and 52 edges. The prior's errors are smooth across the image, so
+    the fit is set by them, not by the number of pixels.
+
     ``scale_alarm_log`` (como3r addition): the scale watch of wrong links. An edge between
     agents that already share a gauge whose own similarity (Umeyama on its lifted points)
     would rescale the map by more than this in ``|log s|`` is held back (status
@@ -227,6 +237,7 @@ class GaugeConfig:
     """
 
     min_correspondences: int = 64
+    max_correspondences: int = 8192
     min_consistent_edges: int = 2
     align_focal: bool = True
     focal_loops: bool = False

@@ -8,6 +8,7 @@ the meetings, undo the gauges and optimize; the front-end itself is tested elsew
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
@@ -24,6 +25,7 @@ from como3r.config import Config, apply_overrides
 from como3r.coordination.association import Candidate
 from como3r.coordination.coordinator import Coordinator
 from como3r.coordination.gauge import GaugeTransform, edge_log_scale
+from como3r.coordination.gauge_geometry import GaugeGeometry
 from como3r.coordination.linking import InterAgentLinking
 from como3r.data.agent import open_agent
 from como3r.data.ground_truth import AgentFolderTruth
@@ -949,3 +951,34 @@ def test_a_resumed_coordinator_tests_again_the_edges_awaiting_their_recheck(ring
     db.close()
     with pytest.raises(StoreError, match="awaiting their recheck"):
         read_session(other)
+
+
+def test_a_merge_decision_lifts_each_edge_once_and_changes_nothing(ring, monkeypatch) -> None:
+    """gauge.min_consistent_edges 2: within one merge decision (agreement, scale watch and
+    the merge's ``T*``) an edge's correspondences are lifted once and a set of edges' ``T*``
+    solved once (GaugeGeometry._poses_held, issue 41); the maps are those of recomputing
+    everything, bit for bit."""
+    config = apply_overrides(ring.config, ["gauge.min_consistent_edges=2"])
+    order = _interleave(ring, [0, 1, 2])
+    lifts: list[dict[int, int]] = []
+    lift, try_merge = GaugeGeometry._lift_matches, InterAgentLinking._try_merge
+
+    def counted_lift(geometry, candidate):  # type: ignore[no-untyped-def]
+        if lifts:
+            lifts[-1][id(candidate)] = lifts[-1].get(id(candidate), 0) + 1
+        return lift(geometry, candidate)
+
+    def counted_try(linking, candidate):  # type: ignore[no-untyped-def]
+        lifts.append({})
+        return try_merge(linking, candidate)
+
+    monkeypatch.setattr(GaugeGeometry, "_lift_matches", counted_lift)
+    monkeypatch.setattr(InterAgentLinking, "_try_merge", counted_try)
+    held, _ = _run(ring, order, config, agents=3)
+    assert any(sum(n.values()) >= 2 for n in lifts), lifts  # decisions over 2+ edges ran
+    assert all(max(n.values(), default=0) == 1 for n in lifts), lifts
+    monkeypatch.setattr(GaugeGeometry, "_poses_held", lambda self: contextlib.nullcontext())
+    again, _ = _run(ring, order, config, agents=3)
+    assert held.components() == again.components() == [[0, 1, 2]]
+    for g in range(len(held.graph)):
+        assert torch.equal(held.graph.keyframes[g].T_WC, again.graph.keyframes[g].T_WC)

@@ -24,6 +24,7 @@ from como3r.geometry.lie import (
     se3_log,
     se3_to_matrix,
     sim3_act,
+    sim3_act_points,
     sim3_adjoint,
     sim3_compose,
     sim3_exp,
@@ -360,6 +361,14 @@ def test_sim3_act_matches_homogeneous_matrices_and_broadcasts(dtype, device, gen
     torch.testing.assert_close(
         sim3_act(sim3_compose(A, B), X), sim3_act(A, sim3_act(B, X)), **tol(dtype)
     )
+
+
+def test_sim3_act_points_agrees_with_sim3_act(dtype, device, gen):
+    T = random_sim3(1, gen)[0].to(dtype=dtype, device=device)
+    X = torch.randn(1000, 3, dtype=F64, generator=gen).to(dtype=dtype, device=device)
+    out = sim3_act_points(T.double(), X)  # T's dtype follows the points'
+    assert out.dtype == dtype and out.shape == (1000, 3)
+    torch.testing.assert_close(out, sim3_act(T, X), **tol(dtype))
 
 
 def test_sim3_matrix_round_trip(dtype, device, gen):

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import gc
+import threading
 
 import numpy as np
 import torch
@@ -105,3 +106,41 @@ def test_store_reads_keep_their_maps_only_while_the_value_read_is_held() -> None
     del held
     gc.collect()
     assert len(codec_reuse._DECODED) == before
+
+
+def test_a_value_decoded_on_another_thread_is_taken_on_this_one() -> None:
+    """The pipes' readers decode (transport/pipe_readers.py) and the coordinator's thread
+    takes: several decoding at once, every map is there for the very value."""
+    decoded: list[tuple[object, dict]] = []
+
+    def decode() -> None:
+        for _ in range(20):
+            decoded.append(_decoded("pointmap", _pointmap()))
+
+    threads = [threading.Thread(target=decode) for _ in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert len(decoded) == 80
+    assert all(codec_reuse.held("pointmap", X) for X, _ in decoded)
+    with codec_reuse.reusing() as reuse:
+        assert all(coded_to_wire("pointmap", X) is wire for X, wire in decoded)
+    assert (reuse.taken, reuse.coded) == (80, 0)
+
+
+def test_a_value_forgotten_inside_the_registrys_own_lock_does_not_deadlock() -> None:
+    """A weak reference's callback runs on the thread that drops the value's last
+    reference, which may hold the registry's lock already (a garbage collection started
+    by an allocation under it): the lock is reentrant."""
+    finished = threading.Event()
+
+    def drop_under_the_lock() -> None:
+        X, _ = _decoded("pointmap", _pointmap())
+        with codec_reuse._LOCK:
+            del X  # its callback forgets it here
+        finished.set()
+
+    thread = threading.Thread(target=drop_under_the_lock, daemon=True)
+    thread.start()
+    assert finished.wait(60.0), "deadlocked in the registry's lock"

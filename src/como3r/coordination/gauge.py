@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from como3r.errors import GeometryError
-from como3r.geometry.lie import sim3_act, sim3_compose, sim3_inverse
+from como3r.geometry.lie import sim3_act_points, sim3_compose, sim3_inverse
 from como3r.geometry.umeyama import umeyama_rmse, umeyama_sim3
 
 logger = logging.getLogger(__name__)
@@ -148,7 +148,7 @@ def _umeyama_transport(
     """Weighted Umeyama, refit once without the pairs far off the first fit."""
     src, dst, w = x_moving.double(), x_anchor.double(), weights.double()
     T = umeyama_sim3(src, dst, w)
-    residual = (sim3_act(T, src) - dst).norm(dim=-1)
+    residual = (sim3_act_points(T, src) - dst).norm(dim=-1)
     keep = residual <= OUTLIER_MEDIAN_FACTOR * residual.median()
     if int(keep.sum()) >= min_correspondences:
         src, dst, w = src[keep], dst[keep], w[keep]
@@ -202,4 +202,4 @@ def transport(T: Tensor, T_WC: Tensor) -> Tensor:
 
 def lift(T_WC: Tensor, X: Tensor) -> Tensor:
     """Camera-frame points ``X (N, 3)`` into the world frame of ``T_WC (8,)``."""
-    return sim3_act(T_WC.to(X)[None, :], X)
+    return sim3_act_points(T_WC, X)

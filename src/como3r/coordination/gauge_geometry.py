@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from typing import Any, TypeVar
 
 import torch
 from torch import Tensor
@@ -31,7 +32,9 @@ from como3r.coordination.gauge import (
 )
 from como3r.coordination.stats import CoordinatorStats
 from como3r.frontend.pairs import DirectedMatches, gather_points
-from como3r.geometry.lie import sim3_act
+from como3r.geometry.lie import sim3_act_points
+
+T = TypeVar("T")
 
 # the coordinator's logger: its messages read as they did before this part had a module
 logger = logging.getLogger("como3r.coordination.coordinator")
@@ -46,6 +49,32 @@ class GaugeGeometry:
     gauges: GaugeComponents
     gauge_events: list[dict[str, Any]]
     stats: CoordinatorStats
+    #: lifted correspondences and transforms by candidate ids while poses hold still
+    #: (:meth:`_poses_held`); None outside
+    _held: dict[tuple[Any, ...], Any] | None = None
+
+    @contextmanager
+    def _poses_held(self) -> Iterator[None]:
+        """While no pose, pointmap or component changes, an edge's lifted correspondences
+        and a set of edges' ``T*`` are computed once: a merge decision tests the same edges
+        for agreement, for scale and for the merge itself (issue 41: at 16 agents the
+        recomputation was the largest serial part of the coordinator). Nothing may move a
+        keyframe inside the block."""
+        outer = self._held
+        self._held = {} if outer is None else outer
+        try:
+            yield
+        finally:
+            self._held = outer
+
+    def _once(self, key: tuple[Any, ...], compute: Callable[[], T]) -> T:
+        """``compute()``, computed once per ``key`` while poses are held (:meth:`_poses_held`);
+        every time outside."""
+        if self._held is None:
+            return compute()
+        if key not in self._held:
+            self._held[key] = compute()
+        return self._held[key]
 
     def _scale_supporters(self, supporters: list[Candidate]) -> list[Candidate]:
         """The supporters whose own ``T*`` scale agrees with the joint one within
@@ -77,7 +106,7 @@ class GaugeGeometry:
         anchor = candidate.i if self._moving_is_j(candidate) else candidate.j
         candidate.residual_ratio = residual_ratio(
             x_anchor,
-            sim3_act(hypothesis.T.to(x_moving)[None], x_moving),
+            sim3_act_points(hypothesis.T, x_moving),
             self.graph.keyframes[anchor].T_WC[:3],
         )
         return candidate.residual_ratio <= self.config.verification.max_residual_ratio
@@ -85,6 +114,10 @@ class GaugeGeometry:
     def _gauge_transform(self, candidates: Sequence[Candidate]) -> GaugeTransform:
         """``T*`` from the lifted correspondences of edges between the same two components
         (C-Eq. 14); the rigid snap uses the first edge's endpoints."""
+        key = ("T*", *(id(c) for c in candidates))
+        return self._once(key, lambda: self._solve_transform(candidates))
+
+    def _solve_transform(self, candidates: Sequence[Candidate]) -> GaugeTransform:
         parts = [self._oriented_correspondences(c) for c in candidates]
         first = candidates[0]
         moving, anchor = (first.j, first.i) if self._moving_is_j(first) else (first.i, first.j)
@@ -124,13 +157,17 @@ class GaugeGeometry:
         Returns:
             ``x_i (N, 3)``, ``x_j (N, 3)``, ``q (N,)``.
         """
+        return self._once(("lifted", id(candidate)), lambda: self._lift_matches(candidate))
+
+    def _lift_matches(self, candidate: Candidate) -> tuple[Tensor, Tensor, Tensor]:
         kf_i, kf_j = self.graph.keyframes[candidate.i], self.graph.keyframes[candidate.j]
         ij, ji = candidate.link.ij, candidate.link.ji
-        x_i_ij, x_j_ij = _matched_points(ij, kf_i.X_hat, kf_j.X_hat)
-        x_j_ji, x_i_ji = _matched_points(ji, kf_j.X_hat, kf_i.X_hat)
+        most = self.config.gauge.max_correspondences
+        x_i_ij, x_j_ij, q_ij = _matched_points(ij, kf_i.X_hat, kf_j.X_hat, most)
+        x_j_ji, x_i_ji, q_ji = _matched_points(ji, kf_j.X_hat, kf_i.X_hat, most)
         x_i = lift(kf_i.T_WC, torch.cat([x_i_ij, x_i_ji]))
         x_j = lift(kf_j.T_WC, torch.cat([x_j_ij, x_j_ji]))
-        return x_i, x_j, torch.cat([ij.q[ij.valid], ji.q[ji.valid]])
+        return x_i, x_j, torch.cat([q_ij, q_ji])
 
     def _record_gauge_event(
         self,
@@ -163,17 +200,26 @@ class GaugeGeometry:
 
 
 def _matched_points(
-    matches: DirectedMatches, X_target: Tensor, X_source: Tensor
-) -> tuple[Tensor, Tensor]:
-    """Valid matches of ``matches`` as point pairs ``(X_target[idx[n]], X_source[n])``.
+    matches: DirectedMatches, X_target: Tensor, X_source: Tensor, most: int = 0
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Valid matches of ``matches`` as point pairs ``(X_target[idx[n]], X_source[n])``,
+    evenly subsampled to at most ``most`` (0: all).
 
     Args:
         matches: every pixel ``n`` of the source keyframe looked up in the target.
         X_target: ``(H, W, 3)`` target canonical pointmap.
         X_source: ``(H, W, 3)`` source canonical pointmap.
+        most: ``gauge.max_correspondences``.
 
     Returns:
-        ``(M, 3)`` target points and ``(M, 3)`` source points (camera frames).
+        ``(M, 3)`` target points, ``(M, 3)`` source points (camera frames) and their match
+        confidences ``q (M,)``.
     """
-    valid = matches.valid
-    return gather_points(X_target, matches.idx[valid]), X_source.reshape(-1, 3)[valid]
+    pixels = torch.nonzero(matches.valid).flatten()
+    if 0 < most < pixels.numel():
+        pixels = pixels[torch.linspace(0, pixels.numel() - 1, most).long()]
+    return (
+        gather_points(X_target, matches.idx[pixels]),
+        X_source.reshape(-1, 3)[pixels],
+        matches.q[pixels],
+    )

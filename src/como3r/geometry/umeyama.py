@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from como3r.errors import GeometryError
-from como3r.geometry.lie import matrix_to_quat, sim3_act
+from como3r.geometry.lie import matrix_to_quat, sim3_act_points
 
 __all__ = ["umeyama_sim3", "umeyama_rmse", "umeyama_sim3_batched"]
 
@@ -134,7 +134,7 @@ def umeyama_rmse(T: Tensor, src: Tensor, dst: Tensor, weights: Tensor | None = N
         src, dst: ``(N, 3)``.
         weights: optional ``(N,)`` non-negative weights.
     """
-    squared = (sim3_act(T, src) - dst).pow(2).sum(-1)
+    squared = (sim3_act_points(T, src) - dst).pow(2).sum(-1)
     if weights is None:
         return float(squared.mean().sqrt())
     return float(((weights * squared).sum() / weights.sum()).sqrt())

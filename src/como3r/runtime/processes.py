@@ -298,7 +298,9 @@ class _Runtime(AgentEvents):
 
     def _received(self, slot: AgentSlot, event: Received) -> None:
         """A message, its decode charged to the coordinator's ingest where it is a keyframe
-        or the final report (their lossy codings: :mod:`.ingest`)."""
+        or the final report (their lossy codings: :mod:`.ingest`); on pipes the CPU time of
+        the reader thread that decoded it (:mod:`como3r.transport.pipe_readers`): the
+        coordinator's process pays it, no longer its thread."""
         if isinstance(event.message, (KeyframeMessage, AgentFinished)):
             self.coordinator.stats.add_time(INGEST, event.seconds)
         super()._received(slot, event)

@@ -18,6 +18,10 @@ or a view of it) is the one it was decoded with, a read-only array, or a datacla
 (:class:`~como3r.frontend.pairs.DirectedMatches`) holding the very arrays it was decoded
 with. Anything else is coded afresh. Only the encodes inside :func:`reusing` take a map;
 every other encode (a message that leaves) codes its values as before.
+
+Threads: a value is remembered by the thread that decoded it and asked for and taken on
+another (``como3r run`` decodes on the pipes' reader threads): the registry is behind one
+lock; :func:`reusing` and :func:`unremembered` hold per thread (context variables).
 """
 
 from __future__ import annotations
@@ -36,7 +40,12 @@ from torch import Tensor
 
 #: id of a decoded value -> (a weak reference to it, its coding, its wire map, its state)
 _DECODED: dict[int, tuple[weakref.ref, str, dict[str, Any], tuple]] = {}
-_LOCK = threading.Lock()
+#: Decodes remember from any thread (the pipes' readers, :mod:`.pipe_readers`) while the
+#: coordinator's thread asks and takes: every access holds this lock. Reentrant: a weak
+#: reference's callback (``forget``) runs on whichever thread drops the value's last
+#: reference, which may be this module's own, inside its lock (a garbage collection started
+#: by an allocation there).
+_LOCK = threading.RLock()
 
 
 @dataclass

@@ -15,14 +15,14 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from multiprocessing.connection import Connection, wait
+from multiprocessing.connection import Connection
 from typing import Any
 
-from como3r.errors import MessageError
 from como3r.transport import codec
 from como3r.transport.child_signals import children_ignore_sigint
 from como3r.transport.links import Event, Left, Received, Rejected, Rejoin, Traffic
 from como3r.transport.messages import FROM_AGENT, AgentTask, Shutdown
+from como3r.transport.pipe_readers import READ_AHEAD_BYTES, Died, PipeReader
 
 logger = logging.getLogger(__name__)
 
@@ -90,15 +90,24 @@ class Channel:
         return self.receive_timed()[0]
 
     def receive_timed(self) -> tuple[Any, float]:
-        """The next message (blocking) and the seconds its decode took; raises as
-        :meth:`receive`."""
+        """The next message (blocking) and the CPU seconds its decode took on this thread;
+        raises as :meth:`receive`."""
         assert self.inbox is not None
         data = self.inbox.recv_bytes(self.max_bytes)
-        start = time.perf_counter()
-        message = codec.decode(data, max_bytes=self.max_bytes, expected=self.accepts)
-        seconds = time.perf_counter() - start
+        message, seconds = self.decode(data)
         self.traffic.received(message, len(data))
         return message, seconds
+
+    def decode(self, data: bytes) -> tuple[Any, float]:
+        """The message of ``data`` as received here (not counted in :attr:`traffic`) and
+        the CPU seconds (``time.thread_time``) its decode took on the calling thread.
+
+        Raises:
+            MessageError: the bytes are not an acceptable message.
+        """
+        start = time.thread_time()
+        message = codec.decode(data, max_bytes=self.max_bytes, expected=self.accepts)
+        return message, time.thread_time() - start
 
     def close(self, timeout: float | None = None) -> None:
         """Flush queued messages and close both ends.
@@ -137,28 +146,43 @@ def exit_reason(code: int | None) -> str:
 class PipeHub:
     """One spawned process per agent, two pipes each (``como3r run``).
 
+    Each agent's pipe is read and decoded by a :class:`~.pipe_readers.PipeReader` thread
+    as its messages arrive; :meth:`events` only collects what the readers decoded, so the
+    decode (the lossy codings of keyframes and refreshes) is off the coordinator's thread.
+    ``Received.seconds`` is that decode's CPU time on its reader's thread.
+
     Args:
         target: the agent processes' entry point, ``target(agent, inbox, outbox)``.
         max_bytes: size cap of one message.
         grace_s: how long a stopping agent may take before it is terminated.
+        read_ahead: pipe bytes of the decoded messages a reader holds before it waits for
+            :meth:`events` (:data:`~.pipe_readers.READ_AHEAD_BYTES`).
     """
 
     name = "pipes"
 
     def __init__(
-        self, target: Callable[[int, Connection, Connection], None], max_bytes: int, grace_s: float
+        self,
+        target: Callable[[int, Connection, Connection], None],
+        max_bytes: int,
+        grace_s: float,
+        read_ahead: int = READ_AHEAD_BYTES,
     ) -> None:
         self.target = target
         self.max_bytes = max_bytes
         self.grace_s = grace_s
+        self.read_ahead = read_ahead
         self.processes: dict[int, Any] = {}
         self.channels: dict[int, Channel] = {}
-        self._open: set[int] = set()  # inbox not at end of stream
+        self.readers: dict[int, PipeReader] = {}
         self._gone: set[int] = set()  # Left reported
+        self._bell = threading.Condition()
+        # closed by stop(): wakes every reader waiting on its pipe
+        self._wake, self._wake_writer = multiprocessing.Pipe(duplex=False)
 
     def start(self, tasks: Sequence[AgentTask], rejoin: Rejoin) -> None:
-        """Start one process per task and send it its task. ``rejoin`` is never asked: a
-        process this hub started that ends is gone for good."""
+        """Start one process per task, send it its task and start its pipe's reader.
+        ``rejoin`` is never asked: a process this hub started that ends is gone for good."""
         context = multiprocessing.get_context("spawn")
         for task in tasks:
             to_agent_r, to_agent_w = context.Pipe(duplex=False)
@@ -176,57 +200,40 @@ class PipeHub:
             channel = Channel(from_agent_r, to_agent_w, self.max_bytes, FROM_AGENT)
             channel.send(task)
             self.processes[task.agent], self.channels[task.agent] = process, channel
-            self._open.add(task.agent)
+            self.readers[task.agent] = PipeReader(
+                task.agent, channel, process.sentinel, self._wake, self._bell, self.read_ahead
+            )
 
     def events(self, timeout: float) -> list[Event]:
-        handles: dict[Any, int] = {}
-        for agent, process in self.processes.items():
-            if agent not in self._gone:
-                handles[process.sentinel] = agent
-                if agent in self._open:
-                    handles[self.channels[agent].inbox] = agent
-        if not handles:
+        if all(agent in self._gone for agent in self.readers):
             return []
-        ready = wait(list(handles), timeout)
+        with self._bell:
+            self._bell.wait_for(lambda: any(r.ready() for r in self.readers.values()), timeout)
+            taken = [(a, r.take()) for a, r in sorted(self.readers.items()) if r.ready()]
         out: list[Event] = []
-        for handle in ready:  # messages first: an exited agent's last words are in its pipe
-            if handle is not self.processes[handles[handle]].sentinel:
-                out.extend(self._drain(handles[handle]))
-        for handle in ready:
-            agent = handles[handle]
-            if handle is self.processes[agent].sentinel:
-                out.extend(self._drain(agent))
-                self.processes[agent].join(5.0)  # the sentinel fires just before the status
-                self._gone.add(agent)
-                out.append(
-                    Left(agent, f"process died ({exit_reason(self.processes[agent].exitcode)})")
-                )
-        return out
-
-    def _drain(self, agent: int) -> list[Event]:
-        channel = self.channels[agent]
-        out: list[Event] = []
-        while agent in self._open:
-            try:
-                if not channel.poll(0.0):
-                    break
-                message, seconds = channel.receive_timed()
-            except EOFError:
-                self._open.discard(agent)
-            except OSError as exc:  # the framing is lost: nothing after it can be read
-                self._open.discard(agent)
-                self.drop(agent)
-                out.append(
-                    Left(
-                        agent,
-                        f"protocol error: unreadable message ({exc}); cap {self.max_bytes} bytes",
+        for agent, items in taken:  # each agent's in order: its last words before its Left
+            for item, nbytes in items:
+                if isinstance(item, Received):
+                    self.channels[agent].traffic.received(item.message, nbytes)
+                    out.append(item)
+                elif isinstance(item, Rejected):
+                    out.append(item)
+                elif isinstance(item, Died):
+                    self.processes[agent].join(5.0)  # the sentinel fires just before the status
+                    self._gone.add(agent)
+                    out.append(
+                        Left(agent, f"process died ({exit_reason(self.processes[agent].exitcode)})")
                     )
-                )
-                self._gone.add(agent)
-            except MessageError as exc:
-                out.append(Rejected(agent, str(exc)))
-            else:
-                out.append(Received(agent, message, seconds=seconds))
+                else:  # Broken: its framing is lost, nothing after it can be read
+                    self.drop(agent)
+                    self._gone.add(agent)
+                    out.append(
+                        Left(
+                            agent,
+                            f"protocol error: unreadable message ({item.error}); "
+                            f"cap {self.max_bytes} bytes",
+                        )
+                    )
         return out
 
     def durable(self, held: Mapping[int, int]) -> dict[str, Any]:
@@ -248,18 +255,30 @@ class PipeHub:
             self.processes[agent].terminate()
 
     def stop(self, live: Sequence[int], interrupted: bool) -> None:
+        """Stop the agents (see :class:`~como3r.transport.links.Hub`), then end the readers
+        (what they still hold is dropped) and close the pipes."""
         for agent, process in self.processes.items():
             if process.is_alive() and interrupted:
                 process.terminate()
             elif process.is_alive() and agent in live:
                 self.channels[agent].send(Shutdown("the coordinator is stopping"))
         deadline = time.monotonic() + self.grace_s
-        for agent, process in self.processes.items():
+        for process in self.processes.values():
             process.join(max(0.0, deadline - time.monotonic()))
             if process.is_alive():
                 process.terminate()
                 process.join(self.grace_s)
-            self.channels[agent].close(timeout=self.grace_s)
+        with self._bell:
+            for reader in self.readers.values():
+                reader.stop()
+        self._wake_writer.close()
+        for reader in self.readers.values():
+            reader.thread.join(self.grace_s)
+            if reader.thread.is_alive():  # a read blocked on a pipe that some process holds
+                logger.warning("agent %d: its pipe's reader did not end", reader.agent)
+        for channel in self.channels.values():
+            channel.close(timeout=self.grace_s)
+        self._wake.close()
 
     def traffic(self, agent: int) -> Traffic:
         return self.channels[agent].traffic
