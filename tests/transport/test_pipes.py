@@ -10,18 +10,18 @@ import threading
 from collections.abc import Iterator
 from typing import Any
 
-import numpy as np
 import pytest
 import torch
 
 from como3r.frontend.packets import KeyframePacket
-from como3r.frontend.pairs import DirectedMatches
 from como3r.runtime import ingest
 from como3r.transport import codec
 from como3r.transport.links import Event, Left, Received, Rejected
 from como3r.transport.messages import FROM_AGENT, FrameDone, KeyframeMessage, Shutdown, Step
 from como3r.transport.pipe_readers import PipeReader
 from como3r.transport.pipes import Channel, PipeHub
+
+from ..keyframe_packets import mast3r_packet
 
 H, W = 12, 16
 
@@ -245,22 +245,4 @@ def test_a_second_stop_is_harmless(hub) -> None:
 
 
 def _packet() -> KeyframePacket:
-    g = torch.Generator().manual_seed(0)
-    matches = DirectedMatches(
-        torch.arange(H * W), torch.ones(H * W, dtype=torch.bool), torch.rand(H * W, generator=g)
-    )
-    return KeyframePacket(
-        agent=0,
-        kf_id=1,
-        frame_index=4,
-        timestamp=0.2,
-        T_WC=torch.tensor([0, 0, 0, 0, 0, 0, 1, 1], dtype=torch.float64),
-        X_hat=torch.rand(H, W, 3, generator=g) + torch.tensor([-0.5, -0.5, 1.0]),
-        C_hat=1 + torch.rand(H, W, generator=g),
-        colors=np.random.default_rng(0).integers(0, 256, (H, W, 3), dtype=np.uint8),
-        encoding=None,
-        retrieval=(torch.randn(5, 16, generator=g), torch.rand(5, generator=g)),
-        sequential_ij=matches,
-        sequential_ji=matches,
-        previous=None,
-    )
+    return mast3r_packet(H, W, encoding=None)
