@@ -342,6 +342,33 @@ core), the 16-agent one does not (23 keyframes, 29 s): its agents (1.05-1.89 s o
 frame, a keyframe every 3.2 frames) bring one every 0.26 s, under its serial part alone.
 Closing the gap at 16 agents needs that part cut or overlapped with the next batch, not more
 verification cores.
+
+That part, cut (session 29; commits 0afe625, 1de7378; ``coordination/merging.py``): a merge
+decision (agreement, scale watch, the merge's ``T*``) lifted an edge's correspondences and
+solved a set's Umeyama fit up to three times each, over every valid match (about 200,000
+per edge at 512x384), rotating points by quaternions. Now each is computed once per
+decision, points are moved by one matrix product (``geometry.lie.sim3_act_points``) and
+an edge's matches are evenly subsampled to ``gauge.max_correspondences`` (8192) per
+direction. A captured 16-agent run's coordinator calls replayed in one thread (the same
+packets and batches, 1 / 1 / 24 / 14): in-stream thread CPU 868 -> 305 ms per keyframe,
+in-stream keyframe ATE 67.66 -> 67.53 mm, the same 15 merges and 52 edges. The pipes'
+decode runs on a reader thread per agent (``transport/pipe_readers.py``): the
+coordinator's thread spends about 1 ms per keyframe collecting messages instead of 65-78
+(not in ``coord ms/kf``, which never held it). ``--sizes 4 16 --no-decentralized`` at
+1de7378 and at 97d402e (2 shared cores under a load of 3 to 22; one run each):
+
+    agents  coord ms/kf  pool ms/kf  work ms/kf  decodes/kf  end kf P1/P2/P4/P8  drain s P8  coord MB  ATE mm  ATE %  ATE % team
+         4      349/393   1267/1284   1616/1677         3.6     8/4/0/0, 8/4/0/0        0/0   2530/2810    3.34   0.277      0.0692
+        16      378/410   1835/2087   2213/2497         5.1  33/28/20/11, 33/28/20/12   6.8/9.2   4070/4090    15.8   1.31       0.0817
+
+16 vs 4 agents: work per keyframe 1.37x / 1.49x, peak memory 1.61x / 1.46x; merged ATE the
+same as before to 0.01 mm. With 4 coordinator cores the 4-agent team now keeps up (no
+backlog at the end; 3 keyframes before). At 16 agents the serial part is about 260-290 ms
+per keyframe, near the 0.26 s at which the keyframes arrive, but the verification is 1.8-2.1
+s per keyframe (5.1 decodes, the simulated prior's decodes and re-encodes 72 % of it, the
+matching 25 %): in the time an agent tracks 3.2 frames the team brings 16 keyframes of up
+to 6 decodes each, more than 8 cores verify (11-12 keyframes waiting, 7-9 s to drain). Keeping up there takes fewer decodes per keyframe once a team is merged, or a
+coordinator with about as many cores as agents.
 """
 
 from __future__ import annotations
