@@ -1,0 +1,214 @@
+"""The coordinator's in-stream work on recorded input: capture a run's calls once, replay them
+in one thread as often as needed (not a test; issue 41).
+
+A multi-process run's coordinator takes its keyframes in batches that depend on timing, so
+two runs of one scene differ in their batches, and the coordinator shares the cores with the
+agents. ``capture`` runs a scene (``como3r run``'s multi-process runtime, default
+configuration, simulated prior) and keeps every :meth:`Coordinator.add_keyframes` batch and
+every pointmap refresh in the order the coordinator took them, each message coded bit-exact
+in the wire codec (:mod:`como3r.transport.codec`; no pickle). ``replay`` hands the same
+calls to a fresh coordinator in one process and prints, per replay: the calls' sizes, the
+coordinator thread's CPU per keyframe (its verification pool's threads apart), the
+verification's CPU, ``stage_seconds`` (wall; in one process on an idle machine close to the
+CPU), decodes, merges, admitted edges and, with ``--scene``, the in-stream keyframe ATE
+(keyframe positions before the terminal cleanup, one similarity against the ground truth).
+The same calls replayed by two checkouts (``PYTHONPATH=<checkout>/src``) compare their
+coordinators on identical input; ``--set`` compares configurations.
+
+    python benchmarks/coordinator_replay.py capture --scene /tmp/ts/scene_a16_s0 \\
+        --out /tmp/cap_run --calls /tmp/cap16
+    OMP_NUM_THREADS=1 python benchmarks/coordinator_replay.py replay --calls /tmp/cap16 \\
+        --scene /tmp/ts/scene_a16_s0 [--set gauge.max_correspondences=0]
+
+Measured (session 29; the 16-agent scene of ``benchmarks/team_scale.py``, calls of 1 / 1 /
+24 / 14 keyframes; 2 shared cores): in-stream thread CPU 868 ms per keyframe at 90798a6,
+305 at 1de7378 (the merge decision's memo, ``sim3_act_points`` and
+``gauge.max_correspondences``), in-stream keyframe ATE 67.66 -> 67.53 mm; with
+``verification.workers=0`` 2191 ms, of which the verification 1980 (the simulated prior's
+decodes and re-encodes 72 %, the matching 25 %).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from rich.console import Console
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _tables import print_table  # noqa: E402
+
+from como3r.config import Config, apply_overrides  # noqa: E402
+from como3r.coordination.coordinator import Coordinator  # noqa: E402
+from como3r.geometry.umeyama import umeyama_rmse, umeyama_sim3  # noqa: E402
+from como3r.io.tum import read_tum  # noqa: E402
+from como3r.prior.simulated import SimulatedPrior  # noqa: E402
+from como3r.transport import codec  # noqa: E402
+
+#: the largest message a capture holds (a keyframe at the full resolution, bit-exact)
+MAX_BYTES = 1 << 30
+COLUMNS = (
+    "calls",
+    "keyframes",
+    "thread ms/kf",
+    "verification ms/kf",
+    "decodes",
+    "merges",
+    "edges",
+    "ATE mm",
+    "stages ms/kf",
+)
+
+
+@contextmanager
+def recording(folder: Path) -> Iterator[None]:
+    """While open, every coordinator of this process writes its ``add_keyframes`` batches and
+    refreshes to ``folder`` (``log.json`` lists them in order; one ``.bin`` per message)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    log: list[list[Any]] = []
+    add, refresh = Coordinator.add_keyframes, Coordinator.refresh
+
+    def recorded_add(coordinator: Coordinator, packets: Sequence[Any]) -> Any:
+        for k, packet in enumerate(packets):
+            (folder / f"{len(log):05d}_{k:04d}.bin").write_bytes(
+                codec.encode(packet, max_bytes=MAX_BYTES)
+            )
+        log.append(["batch", len(packets), coordinator.num_agents])
+        return add(coordinator, packets)
+
+    def recorded_refresh(coordinator: Coordinator, agent: int, message: Any) -> None:
+        (folder / f"{len(log):05d}_r.bin").write_bytes(codec.encode(message, max_bytes=MAX_BYTES))
+        log.append(["refresh", agent, coordinator.num_agents])
+        refresh(coordinator, agent, message)
+
+    Coordinator.add_keyframes = recorded_add  # type: ignore[method-assign]
+    Coordinator.refresh = recorded_refresh  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        Coordinator.add_keyframes, Coordinator.refresh = add, refresh  # type: ignore[method-assign]
+        (folder / "log.json").write_text(json.dumps({"calls": log}))
+
+
+def calls(folder: Path) -> Iterator[tuple[str, Any, int]]:
+    """The recorded calls in order: ``("batch", packets, agents)`` or ``("refresh", (agent,
+    refresh), agents)``."""
+    for n, (kind, what, agents) in enumerate(
+        json.loads((folder / "log.json").read_text())["calls"]
+    ):
+        if kind == "batch":
+            packets = [
+                codec.decode((folder / f"{n:05d}_{k:04d}.bin").read_bytes(), max_bytes=MAX_BYTES)
+                for k in range(what)
+            ]
+            yield kind, packets, agents
+        else:
+            data = (folder / f"{n:05d}_r.bin").read_bytes()
+            yield kind, (what, codec.decode(data, max_bytes=MAX_BYTES)), agents
+
+
+def replay(folder: Path, config: Config) -> tuple[Coordinator, list[tuple[int, float]]]:
+    """A fresh coordinator fed the recorded calls; returns it and, per batch, its size and the
+    coordinator thread's CPU seconds in it."""
+    prior = SimulatedPrior(config.simulated_prior, None)
+    coordinator: Coordinator | None = None
+    seconds: list[tuple[int, float]] = []
+    for kind, what, agents in calls(folder):
+        if coordinator is None:
+            coordinator = Coordinator(prior, config, prior.codebook(), agents)
+        while coordinator.num_agents < agents:
+            coordinator.add_agent()
+        if kind == "batch":
+            start = time.thread_time()
+            coordinator.add_keyframes(what)
+            seconds.append((len(what), time.thread_time() - start))
+        else:
+            coordinator.refresh(*what)
+    if coordinator is None:
+        raise SystemExit(f"{folder}: no calls recorded")
+    return coordinator, seconds
+
+
+def keyframe_ate(coordinator: Coordinator, scene: Path) -> float:
+    """RMSE [m] of the coordinator's keyframe positions after one similarity onto the ground
+    truth at their timestamps (``scene/agent_<id>/groundtruth.txt``)."""
+    graph, truth = coordinator.graph, {}
+    estimated, true = [], []
+    for g, kf in enumerate(graph.keyframes):
+        agent = graph.agent_of[g]
+        if agent not in truth:
+            track = read_tum(scene / f"agent_{agent}" / "groundtruth.txt")
+            truth[agent] = (np.asarray(track.timestamps), track.T_WC)
+        stamps, poses = truth[agent]
+        nearest = int(np.argmin(np.abs(stamps - float(kf.timestamp))))
+        estimated.append(kf.T_WC[:3].double())
+        true.append(torch.as_tensor(poses[nearest][:3]).double())
+    est, gt = torch.stack(estimated), torch.stack(true)
+    return umeyama_rmse(umeyama_sim3(est, gt), est, gt)
+
+
+def row(coordinator: Coordinator, seconds: list[tuple[int, float]], scene: Path | None) -> dict:
+    stats = coordinator.stats
+    keyframes = max(1, stats.keyframes)
+    return {
+        "calls": " / ".join(str(n) for n, _ in seconds),
+        "keyframes": stats.keyframes,
+        "thread ms/kf": 1e3 * sum(s for _, s in seconds) / keyframes,
+        "verification ms/kf": 1e3
+        * (stats.verification_cpu + sum(stats.pool_seconds.values()))
+        / keyframes,
+        "decodes": stats.prior_decodes,
+        "merges": stats.gauge_syncs,
+        "edges": stats.edges_accepted,
+        "ATE mm": "-" if scene is None else 1e3 * keyframe_ate(coordinator, scene),
+        "stages ms/kf": ", ".join(
+            f"{stage} {1e3 * s / keyframes:.0f}"
+            for stage, s in sorted(stats.stage_seconds.items(), key=lambda kv: -kv[1])
+        ),
+    }
+
+
+def capture(scene: Path, out: Path, folder: Path, config: Config) -> None:
+    from como3r.runtime.multiprocess import run_multiprocess
+    from como3r.runtime.pipeline import PriorSpec
+
+    agents = sorted(scene.glob("agent_*"), key=lambda p: int(p.name.split("_")[1]))
+    if not agents:
+        raise SystemExit(f"no agent_* folders in {scene}")
+    with recording(folder):
+        run_multiprocess(agents, out, config, PriorSpec("simulated"), overwrite=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    take = sub.add_parser("capture", help="run a scene and record its coordinator's calls")
+    take.add_argument("--scene", type=Path, required=True, help="folder of agent_* inputs")
+    take.add_argument("--out", type=Path, required=True, help="the run's output folder")
+    take.add_argument("--calls", type=Path, required=True, help="where the calls go")
+    again = sub.add_parser("replay", help="replay recorded calls in one thread")
+    again.add_argument("--calls", type=Path, required=True)
+    again.add_argument("--scene", type=Path, default=None, help="ground truth for the ATE")
+    for command in (take, again):
+        command.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    args = parser.parse_args()
+    config = apply_overrides(Config(), args.set)
+    if args.command == "capture":
+        capture(args.scene, args.out, args.calls, config)
+        return
+    coordinator, seconds = replay(args.calls, config)
+    title = "coordinator replay" + (f" ({', '.join(args.set)})" if args.set else "")
+    print_table(Console(width=200), [row(coordinator, seconds, args.scene)], COLUMNS, title)
+
+
+if __name__ == "__main__":
+    main()
