@@ -15,8 +15,6 @@ from como3r.coordination.gauge import (
     solve_gauge_transform,
     transport,
 )
-from como3r.coordination.gauge_geometry import _matched_points
-from como3r.frontend.pairs import DirectedMatches
 from como3r.geometry.lie import sim3_act, sim3_compose, sim3_exp, sim3_inverse, sim3_log
 
 EDGES = [(2, 3), (0, 1), (1, 3), (4, 5)]
@@ -122,28 +120,3 @@ def test_edge_log_scale_measures_how_much_a_link_would_rescale_the_map() -> None
     )
     assert edge_log_scale(x, x + 0.5, weights, 64) == pytest.approx(0.0, abs=1e-9)
     assert math.isnan(edge_log_scale(x[:10], x[:10], weights[:10], 64))
-
-
-@pytest.mark.parametrize("most", [0, 5, 64, 1000])
-def test_an_edges_matched_points_are_evenly_subsampled_to_the_cap(most) -> None:
-    """``gauge.max_correspondences``: at most ``most`` of the valid matches, spread evenly
-    over them, each point with its own match and confidence; 0 keeps all."""
-    H, W = 12, 10
-    X_source = torch.arange(H * W * 3, dtype=torch.float32).reshape(H, W, 3)
-    X_target = -X_source
-    valid = torch.arange(H * W) % 3 != 0  # 80 valid pixels
-    idx = torch.arange(H * W).flip(0)
-    q = torch.linspace(1.0, 2.0, H * W)
-    target, source, conf = _matched_points(DirectedMatches(idx, valid, q), X_target, X_source, most)
-    pixels = torch.nonzero(valid).flatten()
-    expected = pixels if most == 0 or most >= pixels.numel() else None
-    assert source.shape[0] == (pixels.numel() if expected is not None else most)
-    chosen = (source[:, 0] / 3).long()  # each source point's own pixel
-    assert valid[chosen].all() and torch.equal(conf, q[chosen])
-    assert torch.equal(target, X_target.reshape(-1, 3)[idx[chosen]])
-    if expected is not None:
-        assert torch.equal(chosen, expected)
-    else:  # first and last valid pixel kept, the rest spread over the valid ones
-        assert chosen[0] == pixels[0] and chosen[-1] == pixels[-1]
-        positions = torch.searchsorted(pixels, chosen).double()
-        assert float(positions.diff().max() - positions.diff().min()) <= 1.0

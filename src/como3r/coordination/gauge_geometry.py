@@ -31,7 +31,7 @@ from como3r.coordination.gauge import (
     solve_gauge_transform,
 )
 from como3r.coordination.stats import CoordinatorStats
-from como3r.frontend.pairs import DirectedMatches, gather_points
+from como3r.frontend.pairs import matched_points
 from como3r.geometry.lie import sim3_act_points
 
 T = TypeVar("T")
@@ -163,8 +163,8 @@ class GaugeGeometry:
         kf_i, kf_j = self.graph.keyframes[candidate.i], self.graph.keyframes[candidate.j]
         ij, ji = candidate.link.ij, candidate.link.ji
         most = self.config.gauge.max_correspondences
-        x_i_ij, x_j_ij, q_ij = _matched_points(ij, kf_i.X_hat, kf_j.X_hat, most)
-        x_j_ji, x_i_ji, q_ji = _matched_points(ji, kf_j.X_hat, kf_i.X_hat, most)
+        x_i_ij, x_j_ij, q_ij = matched_points(ij, kf_i.X_hat, kf_j.X_hat, most)
+        x_j_ji, x_i_ji, q_ji = matched_points(ji, kf_j.X_hat, kf_i.X_hat, most)
         x_i = lift(kf_i.T_WC, torch.cat([x_i_ij, x_i_ji]))
         x_j = lift(kf_j.T_WC, torch.cat([x_j_ij, x_j_ji]))
         return x_i, x_j, torch.cat([q_ij, q_ji])
@@ -197,29 +197,3 @@ class GaugeGeometry:
             len(supporters),
             transform.correspondences,
         )
-
-
-def _matched_points(
-    matches: DirectedMatches, X_target: Tensor, X_source: Tensor, most: int = 0
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Valid matches of ``matches`` as point pairs ``(X_target[idx[n]], X_source[n])``,
-    evenly subsampled to at most ``most`` (0: all).
-
-    Args:
-        matches: every pixel ``n`` of the source keyframe looked up in the target.
-        X_target: ``(H, W, 3)`` target canonical pointmap.
-        X_source: ``(H, W, 3)`` source canonical pointmap.
-        most: ``gauge.max_correspondences``.
-
-    Returns:
-        ``(M, 3)`` target points, ``(M, 3)`` source points (camera frames) and their match
-        confidences ``q (M,)``.
-    """
-    pixels = torch.nonzero(matches.valid).flatten()
-    if 0 < most < pixels.numel():
-        pixels = pixels[torch.linspace(0, pixels.numel() - 1, most).long()]
-    return (
-        gather_points(X_target, matches.idx[pixels]),
-        X_source.reshape(-1, 3)[pixels],
-        matches.q[pixels],
-    )

@@ -36,7 +36,7 @@ from torch import Tensor
 
 from como3r.config import GlobalBAConfig, TrackingConfig
 from como3r.frontend.graph import make_factors
-from como3r.frontend.pairs import DirectedMatches, gather_points
+from como3r.frontend.pairs import DirectedMatches, matched_points
 from como3r.geometry.lie import sim3_compose, sim3_identity, sim3_inverse
 from como3r.geometry.units import median_point_range
 from como3r.optim.optimizer import gauss_newton_irls
@@ -246,15 +246,13 @@ def _direction(
     rescales_j: bool,
 ) -> _Direction:
     """The edge (i, j) of a pair, its valid matches evenly subsampled to ``max_matches``."""
-    pixels = torch.nonzero(matches.valid).flatten()
-    if pixels.numel() > max_matches:
-        pixels = pixels[torch.linspace(0, pixels.numel() - 1, max_matches).long()]
+    X_i_matched, X_j_matched, q = matched_points(matches, X_i, X_j, max_matches)
     return _Direction(
         i,
         j,
-        gather_points(X_i, matches.idx[pixels]),
-        X_j.reshape(-1, 3)[pixels],
-        matches.q[pixels],
+        X_i_matched,
+        X_j_matched,
+        q,
         K_i,
         rescales_i,
         rescales_j,

@@ -240,3 +240,30 @@ def _quantiles(x: Tensor, qs: tuple[float, ...]) -> Tensor:
 def gather_points(X: Tensor, idx: Tensor) -> Tensor:
     """Rows ``idx (P,)`` of a pointmap ``X (H, W, 3)`` -> ``(P, 3)``."""
     return X.reshape(-1, 3)[idx]
+
+
+def matched_points(
+    matches: DirectedMatches, X_target: Tensor, X_source: Tensor, most: int = 0
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Valid matches of ``matches`` as point pairs ``(X_target[idx[n]], X_source[n])``,
+    evenly subsampled to at most ``most`` (0: all).
+
+    Args:
+        matches: every pixel ``n`` of the source keyframe looked up in the target.
+        X_target: ``(H, W, 3)`` target pointmap.
+        X_source: ``(H, W, 3)`` source pointmap.
+        most: the most pairs kept (a gauge edge's ``gauge.max_correspondences``, a focal
+            pair's ``max_matches``).
+
+    Returns:
+        ``(M, 3)`` target points, ``(M, 3)`` source points and their match confidences
+        ``q (M,)``.
+    """
+    pixels = torch.nonzero(matches.valid).flatten()
+    if 0 < most < pixels.numel():
+        pixels = pixels[torch.linspace(0, pixels.numel() - 1, most).long()]
+    return (
+        gather_points(X_target, matches.idx[pixels]),
+        X_source.reshape(-1, 3)[pixels],
+        matches.q[pixels],
+    )
