@@ -140,7 +140,10 @@ def replay(folder: Path, config: Config) -> tuple[Coordinator, list[tuple[int, f
 
 def keyframe_ate(coordinator: Coordinator, scene: Path) -> float:
     """RMSE [m] of the coordinator's keyframe positions after one similarity onto the ground
-    truth at their timestamps (``scene/agent_<id>/groundtruth.txt``)."""
+    truth at their timestamps (``scene/agent_<id>/groundtruth.txt``). Not
+    :func:`como3r.evaluation.trajectory.merged_errors`: its association needs 3 poses per
+    agent (``MIN_ASSOCIATED``), and a 16-agent team's coordinator holds 2 or 3 keyframes of
+    each agent in these runs."""
     graph, truth = coordinator.graph, {}
     estimated, true = [], []
     for g, kf in enumerate(graph.keyframes):
