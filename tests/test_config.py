@@ -95,6 +95,8 @@ def test_inf_turns_a_documented_gate_off(key: str, tmp_path) -> None:
         ("global_ba.linear_solver=cholmod", "global_ba.linear_solver"),
         ("session.team_resident_keyframes=-1", "session.team_resident_keyframes must be >= 0"),
         ("session.team_resident_keyframes=2.5", "session.team_resident_keyframes"),
+        ("gauge.max_correspondences=-1", "gauge.max_correspondences must be >= 0"),
+        ("gauge.max_correspondences=2.5", "gauge.max_correspondences"),
         ("tracking=1", "section"),
         ("no_equals_sign", "section.key=value"),
     ],
