@@ -960,23 +960,30 @@ def test_a_merge_decision_lifts_each_edge_once_and_changes_nothing(ring, monkeyp
     everything, bit for bit."""
     config = apply_overrides(ring.config, ["gauge.min_consistent_edges=2"])
     order = _interleave(ring, [0, 1, 2])
-    lifts: list[dict[int, int]] = []
-    lift, try_merge = GaugeGeometry._lift_matches, InterAgentLinking._try_merge
+    # lifts counted per outermost held block (one decision); the candidates are kept so that
+    # no id is reused by a later candidate within the count
+    lifts: list[dict[int, tuple[Candidate, int]]] = []
+    lift, held_block = GaugeGeometry._lift_matches, GaugeGeometry._poses_held
 
     def counted_lift(geometry, candidate):  # type: ignore[no-untyped-def]
-        if lifts:
-            lifts[-1][id(candidate)] = lifts[-1].get(id(candidate), 0) + 1
+        if geometry._held is not None:
+            _, n = lifts[-1].get(id(candidate), (candidate, 0))
+            lifts[-1][id(candidate)] = (candidate, n + 1)
         return lift(geometry, candidate)
 
-    def counted_try(linking, candidate):  # type: ignore[no-untyped-def]
-        lifts.append({})
-        return try_merge(linking, candidate)
+    @contextlib.contextmanager
+    def counted_block(geometry):  # type: ignore[no-untyped-def]
+        if geometry._held is None:
+            lifts.append({})
+        with held_block(geometry):
+            yield
 
     monkeypatch.setattr(GaugeGeometry, "_lift_matches", counted_lift)
-    monkeypatch.setattr(InterAgentLinking, "_try_merge", counted_try)
+    monkeypatch.setattr(GaugeGeometry, "_poses_held", counted_block)
     held, _ = _run(ring, order, config, agents=3)
-    assert any(sum(n.values()) >= 2 for n in lifts), lifts  # decisions over 2+ edges ran
-    assert all(max(n.values(), default=0) == 1 for n in lifts), lifts
+    counts = [[n for _, n in decision.values()] for decision in lifts]
+    assert any(sum(n) >= 2 for n in counts), counts  # decisions over 2+ edges ran
+    assert all(max(n, default=0) == 1 for n in counts), counts
     monkeypatch.setattr(GaugeGeometry, "_poses_held", lambda self: contextlib.nullcontext())
     again, _ = _run(ring, order, config, agents=3)
     assert held.components() == again.components() == [[0, 1, 2]]
