@@ -13,6 +13,7 @@ import torch
 
 from como3r.config import Config, apply_overrides
 from como3r.coordination.coordinator import Coordinator
+from como3r.coordination.decode_pool import VerificationPool
 from como3r.data.agent import open_agent
 from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.preprocess import make_view
@@ -159,7 +160,34 @@ def test_a_workers_error_is_raised_in_the_coordinators_thread(scene) -> None:
         for start in range(0, len(order), 6):
             coordinator.add_keyframes(order[start : start + 6])
     assert not coordinator.pool.active
-    assert not [t for t in threading.enumerate() if t.name.startswith("como3r-verify")]
+    coordinator.pool.shutdown()
+    assert _verifiers() == []
+
+
+def _verifiers() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name.startswith("como3r-verify")]
+
+
+def test_one_thread_serves_every_batch_until_shutdown(scene) -> None:
+    """Batches reuse the pool's threads (none is started per batch); shutdown ends them,
+    and a batch after it starts them again."""
+    prior, _ = scene
+    pool = VerificationPool(prior, workers=1)
+    config = Config()
+    seen = []
+    for batch in range(3):
+        if batch == 2:
+            pool.shutdown()
+            assert _verifiers() == []
+        pool.open([((0, 0), None)])
+        pool.submit((0, batch), prior, [], config.matching, 0.5, config.verification)
+        done = pool.take((0, batch), [])
+        assert done is not None and (done.verifications, done.decodes) == ([], 0)
+        assert pool.close() == []
+        seen.append(_verifiers())
+    assert len(seen[0]) == 1 and seen[1] == seen[0] and seen[2] != seen[0]
+    pool.shutdown()
+    assert _verifiers() == []
 
 
 def test_workers_must_not_be_negative() -> None:

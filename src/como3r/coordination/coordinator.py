@@ -292,6 +292,7 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
         Raises:
             InputError: an agent's pose count differs from the keyframes it sent.
         """
+        self.pool.shutdown()  # no batch verifies from here on: its threads end
         start = time.perf_counter()
         cleanup = Cleanup(pointmap_update=self._pointmaps)
         spill = Path(self.config.session.spill_dir) if self.config.session.spill_dir else None
