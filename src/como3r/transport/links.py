@@ -38,9 +38,9 @@ logger = logging.getLogger(__name__)
 class Received:
     """A valid message from ``agent``; ``seq`` is its number in the sending process's
     stream where the transport numbers messages (None: pipes, which lose nothing);
-    ``seconds``: its decode here (a keyframe's lossy codings: the coordinator's ingest), on
-    pipes the CPU time of the reader thread that decoded it (:mod:`.pipe_readers`), on
-    Zenoh the wall time on the coordinator's thread."""
+    ``seconds``: its decode here (a keyframe's lossy codings: the coordinator's ingest),
+    the CPU time of the thread that decoded it (pipes: :mod:`.pipe_readers`, Zenoh:
+    :mod:`.zenoh_decoding`)."""
 
     agent: int
     message: Any

@@ -29,12 +29,16 @@ came in fewer than ``limit`` bytes through the pipe (so it holds at most one mes
 that, and any one message whatever its size); past it, it waits until the hub took them: a
 slow coordinator stops its readers, and its agents' sends wait in the pipe and their own
 queues, as before there were readers (an agent's sends never block its frame loop).
+
+The Zenoh hub decodes on threads of its own the same way (:mod:`.zenoh_decoding`): the
+bound (:class:`ReadAhead`) and each message's decode (:func:`decoded`) are shared.
 """
 
 from __future__ import annotations
 
 import threading
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from typing import Any, Protocol
@@ -76,7 +80,48 @@ class Source(Protocol):
         """The message of ``data`` and its decode's CPU seconds; raises ``MessageError``."""
 
 
-class PipeReader:
+def decoded(
+    agent: int, decode: Callable[[bytes], tuple[Any, float]], data: bytes
+) -> Received | Rejected:
+    """``data`` from agent ``agent`` as the hub hands it over: the message ``decode`` makes
+    of it with the CPU seconds it says it took, or why it is not one (``decode`` raised
+    ``MessageError``)."""
+    try:
+        message, seconds = decode(data)
+    except MessageError as exc:
+        return Rejected(agent, str(exc))
+    return Received(agent, message, seconds=seconds)
+
+
+class ReadAhead:
+    """What one agent's decoding thread holds for its hub, bounded: it decodes the next
+    message only while the decoded ones the hub has not taken came in fewer than ``limit``
+    bytes (so it holds at most one message beyond that, and any one message whatever its
+    size). Its state is guarded by the hub's condition ``bell``, shared by all its
+    agents' threads: notified when one decoded something, and when the hub took something
+    or stops.
+    """
+
+    def __init__(self, bell: threading.Condition, limit: int) -> None:
+        self.limit = limit
+        self._bell = bell
+        self._held = 0  # bytes the decoded messages not yet taken came in
+        self._stopping = False
+
+    def stop(self) -> None:
+        """(Under ``bell``) stop decoding: the thread ends at its next wait."""
+        self._stopping = True
+        self._bell.notify_all()
+
+    def _room(self, waiting: Callable[[], bool] = lambda: True) -> bool:
+        """Wait until the hub took enough to decode on and ``waiting()`` (something waits
+        to be decoded); False once stopping."""
+        with self._bell:
+            self._bell.wait_for(lambda: self._stopping or (self._held < self.limit and waiting()))
+            return not self._stopping
+
+
+class PipeReader(ReadAhead):
     """Reads and decodes one agent's pipe on a thread of its own.
 
     Args:
@@ -99,17 +144,14 @@ class PipeReader:
         bell: threading.Condition,
         limit: int = READ_AHEAD_BYTES,
     ) -> None:
+        super().__init__(bell, limit)
         self.agent = agent
         self.channel = channel
-        self.limit = limit
         assert channel.inbox is not None
         self._inbox = channel.inbox
         self._sentinel = sentinel
         self._stop = stop
-        self._bell = bell
         self._items: deque[tuple[Item, int]] = deque()  # with their bytes through the pipe
-        self._held = 0
-        self._stopping = False
         self.thread = threading.Thread(
             target=self._run, name=f"como3r-pipe-reader-{agent}", daemon=True
         )
@@ -127,11 +169,6 @@ class PipeReader:
         self._held = 0
         self._bell.notify_all()
         return items
-
-    def stop(self) -> None:
-        """(Under ``bell``) stop queueing: the thread ends at its next wait."""
-        self._stopping = True
-        self._bell.notify_all()
 
     def _run(self) -> None:
         open_ = True  # the pipe is not at its end
@@ -159,19 +196,8 @@ class PipeReader:
             data = self._inbox.recv_bytes(self.channel.max_bytes)
         except EOFError:
             return False
-        try:
-            message, seconds = self.channel.decode(data)
-        except MessageError as exc:
-            self._queue(Rejected(self.agent, str(exc)), len(data))
-        else:
-            self._queue(Received(self.agent, message, seconds=seconds), len(data))
+        self._queue(decoded(self.agent, self.channel.decode, data), len(data))
         return True
-
-    def _room(self) -> bool:
-        """Wait until the hub took enough to read on; False once stopping."""
-        with self._bell:
-            self._bell.wait_for(lambda: self._stopping or self._held < self.limit)
-            return not self._stopping
 
     def _queue(self, item: Item, nbytes: int) -> None:
         with self._bell:

@@ -14,22 +14,25 @@ started with the same id by mistake); once the holder's token is gone, the runti
 fresh message sequence. Messages to an agent carry the incarnation they are meant for, so a
 superseded process never applies its successor's updates.
 
-Zenoh's callbacks only queue; decoding, answering task queries and admitting processes
-happen on the coordinator's own thread, in arrival order, and sends go through a background
-thread, so neither side ever blocks Zenoh or its own loop.
+Zenoh's callbacks only queue; answering task queries, admitting processes and deciding on
+each message happen on the coordinator's own thread, in arrival order; messages are decoded
+on a thread per agent id (:mod:`.zenoh_decoding`) and sends go through a background thread,
+so neither side ever blocks Zenoh or its own loop.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import queue
+import threading
 import time
 from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from como3r.errors import InputError, MessageError
+from como3r.errors import InputError
 from como3r.transport import codec
 from como3r.transport.links import (
     Event,
@@ -41,7 +44,9 @@ from como3r.transport.links import (
     SendBacklog,
     Traffic,
 )
-from como3r.transport.messages import FROM_AGENT, AgentTask, KeyframeMessage, Shutdown
+from como3r.transport.messages import AgentTask, Shutdown
+from como3r.transport.pipe_readers import READ_AHEAD_BYTES
+from como3r.transport.zenoh_decoding import Decoder, Decoding
 from como3r.transport.zenoh_protocol import (
     CONTROL_PRIORITY,
     INCARNATION,
@@ -94,6 +99,8 @@ class ZenohHub:
         certified: a team run: a message counts only if its key ends in the certificate
             name of the agent it claims to come from (Zenoh's access control makes that
             name its sender's, :mod:`como3r.transport.team_access`).
+        read_ahead: bytes of decoded messages an agent's decoder holds before it waits for
+            :meth:`events` (:data:`~.pipe_readers.READ_AHEAD_BYTES`).
     """
 
     name = "zenoh"
@@ -107,6 +114,7 @@ class ZenohHub:
         grace_s: float,
         certified: bool = False,
         max_mbps: float = 0.0,
+        read_ahead: int = READ_AHEAD_BYTES,
     ) -> None:
         self.session, self.keys, self.agents = session, keys, agents
         self.certified = certified
@@ -119,6 +127,11 @@ class ZenohHub:
         self._backlog: deque[tuple[Any, ...]] = deque()
         self._sender = Sender(session, priority=CONTROL_PRIORITY, express=True, max_mbps=max_mbps)
         self._pieces = Pieces(max_bytes)
+        # the decoders' condition; the inbox and a decoder are fed under it together
+        self._bell = threading.Condition()
+        self._decoders = [
+            Decoder(agent, max_bytes, self._bell, read_ahead) for agent in range(agents)
+        ]
         self._declared = [
             session.declare_subscriber(keys.up_all(), self._on_sample),
             session.liveliness().declare_subscriber(
@@ -158,7 +171,12 @@ class ZenohHub:
             if not isinstance(whole, tuple):
                 return
             attachment, data = whole
-        self._inbox.put(("message", agent, attachment, data))
+        known = self._agent_id(agent)
+        if known is None or len(attachment) != STREAM.size:  # dropped or rejected unread
+            self._inbox.put(("message", agent, attachment, None))
+            return
+        with self._bell:  # its decoder decodes in the inbox's order
+            self._inbox.put(("message", agent, attachment, self._decoders[known].feed(data)))
 
     def _on_liveliness(self, sample: Any) -> None:
         import zenoh
@@ -192,6 +210,7 @@ class ZenohHub:
         self._declared.append(self.session.liveliness().declare_token(self.keys.coordinator()))
 
     def events(self, timeout: float) -> list[Event]:
+        deadline = time.monotonic() + timeout
         if not self._backlog:
             try:
                 self._backlog.append(
@@ -208,8 +227,20 @@ class ZenohHub:
         while self._backlog:
             if out and self._asks_rejoin(self._backlog[0]):
                 break  # decided once the runtime has handled what came before it
+            wait = 0.0 if out else deadline - time.monotonic()  # for the first event only
+            if not self._decoded(self._backlog[0], wait):
+                break
             out.extend(self._event(self._backlog.popleft()))
         return out
+
+    def _decoded(self, item: tuple[Any, ...], wait: float) -> bool:
+        """Whether ``item`` is not a message still being decoded, waiting up to ``wait``
+        seconds for its decode."""
+        decoding = item[3] if item[0] == "message" else None
+        if not isinstance(decoding, Decoding):
+            return True
+        with self._bell:
+            return self._bell.wait_for(lambda: decoding.item is not None, wait)
 
     def _agent_id(self, text: str) -> int | None:
         return int(text) if text.isdigit() and int(text) < self.agents else None
@@ -308,9 +339,11 @@ class ZenohHub:
         _reply(query, holder.task)
         return [Joined(agent)] if incarnation in holder.present else []
 
-    def _message(self, agent: int, attachment: bytes, data: bytes) -> Event | None:
-        if len(attachment) != STREAM.size:
+    def _message(self, agent: int, attachment: bytes, decoding: Decoding | None) -> Event | None:
+        if decoding is None:
             return Rejected(agent, "no sequence number attached")
+        with self._bell:
+            item = self._decoders[agent].take(decoding)
         incarnation, seq, queued, rate = STREAM.unpack(attachment)
         holder = self._holders[agent]
         if incarnation == holder.incarnation:
@@ -319,11 +352,11 @@ class ZenohHub:
                 traffic.backlog = SendBacklog()
             traffic.backlog.note(queued, rate)
         if incarnation != holder.incarnation:
-            _, error = self._decode(agent, data)
+            if isinstance(item, Rejected):
+                return item
             return Rejected(
                 agent,
-                error
-                or f"from process {incarnation:016x}, which does not "
+                f"from process {incarnation:016x}, which does not "
                 f"hold agent {agent}'s id ({holder.describe()})",
             )
         if holder.dropped:
@@ -337,23 +370,10 @@ class ZenohHub:
                 agent, f"message {seq} before {holder.next_seq} (a gap: the agent re-sends)"
             )
         holder.next_seq += 1  # the holder's own: taken, or skipped, never waited for
-        start = time.perf_counter()
-        message, error = self._decode(agent, data)
-        if error is not None:
-            return Rejected(agent, error)
-        self._traffic[agent].received(message, len(data))
-        return Received(agent, message, seq, time.perf_counter() - start)
-
-    def _decode(self, agent: int, data: bytes) -> tuple[Any, str | None]:
-        """The message of ``data`` sent under agent ``agent``'s key, or why it is not one."""
-        try:
-            message = codec.decode(data, max_bytes=self.max_bytes, expected=FROM_AGENT)
-        except MessageError as exc:
-            return None, str(exc)
-        sender = message.packet.agent if isinstance(message, KeyframeMessage) else message.agent
-        if sender != agent:
-            return None, f"an {type(message).__name__} of agent {sender} under agent {agent}'s key"
-        return message, None
+        if isinstance(item, Received):
+            self._traffic[agent].received(item.message, decoding.nbytes)
+            item = dataclasses.replace(item, seq=seq)
+        return item
 
     # ------------------------------------------------------------ to the agents
 
@@ -434,6 +454,11 @@ class ZenohHub:
         self._sender.close(self.grace_s)
         for entity in reversed(self._declared):
             entity.undeclare()
+        with self._bell:  # what they still hold is dropped
+            for decoder in self._decoders:
+                decoder.stop()
+        for decoder in self._decoders:
+            decoder.thread.join(self.grace_s)
 
     def traffic(self, agent: int) -> Traffic:
         return self._traffic[agent]
