@@ -1,9 +1,9 @@
 """The Zenoh hub's decodes on a thread per agent id (transport/zenoh_decoding.py), driven
 through the callbacks a Zenoh session would call: nothing is decoded on the thread that
 takes the events; what does not decode, or comes under another agent's key, is rejected with
-the error it had on that thread; the events keep their arrival order, a message still being
-decoded holding back what came after it; a decoder holds at most its read-ahead; ``stop``
-ends the decoders."""
+the error it had on that thread; a keyframe reaches the ingest as its agent coded it; the
+events keep their arrival order, a message still being decoded holding back what came after
+it; a decoder holds at most its read-ahead; ``stop`` ends the decoders."""
 
 from __future__ import annotations
 
@@ -15,14 +15,17 @@ import pytest
 
 from como3r.config import Config, config_to_dict
 from como3r.errors import MessageError
+from como3r.runtime import ingest
 from como3r.transport import codec
 from como3r.transport.links import Event, Received, Rejected
-from como3r.transport.messages import FROM_AGENT, AgentStarted, AgentTask
+from como3r.transport.messages import FROM_AGENT, AgentStarted, AgentTask, KeyframeMessage
 from como3r.transport.zenoh_decoding import Decoder, Decoding
 from como3r.transport.zenoh_protocol import INCARNATION, STREAM, Keys
 
+from ..keyframe_packets import mast3r_packet
+
 HOLDER = 0x1234  # the incarnation that takes agent 0's task
-MAX_BYTES = 10_000
+MAX_BYTES = 100_000
 
 
 class _Bytes:
@@ -185,6 +188,18 @@ def test_messages_are_decoded_off_the_thread_taking_them_and_rejected_as_before(
     traffic = hub.hub.traffic(0)
     assert traffic.messages_received["AgentStarted"] == 2
     assert traffic.bytes_received["AgentStarted"] == 2 * len(_started())
+
+
+def test_a_keyframe_decoded_on_its_decoder_is_taken_by_the_ingest_as_coded(hub) -> None:
+    """As its agent sent it (the lossy coding): the decode's record of the coded maps
+    crosses threads, so the coordinator's ingest does not code it again."""
+    packet = mast3r_packet(12, 16, encoding=None)
+    message = KeyframeMessage(packet=packet, applied_seq=0, T_WC_previous=None)
+    hub.put(codec.encode(message, lossy=True), 0)
+    (event,) = hub.events(1)
+    assert isinstance(event, Received) and event.seconds > 0.0
+    assert ingest.coded(event.message.packet)
+    assert ingest.received(event.message.packet) is event.message.packet
 
 
 def test_a_message_being_decoded_holds_back_what_came_after_it(hub, monkeypatch) -> None:
