@@ -136,6 +136,10 @@ def test_unparsable_override_is_one_line(scene, tmp_path, only_error_line) -> No
         ("local_solve.dense_keyframes=0", "local_solve.dense_keyframes must be >= 1"),
         ("local_solve.relinearize_tol=0", "local_solve.relinearize_tol must be > 0"),
         ("decentralized.confidence_k=0", "decentralized.confidence_k must be > 0"),
+        (
+            "decentralized.registration.dense_max_shift_ratio=0",
+            "decentralized.registration.dense_max_shift_ratio must be > 0",
+        ),
         ("simulated_prior.gross_failure_rate=2", "simulated_prior.gross_failure_rate must be in"),
         ("tracking.fusion=pixels", "tracking.fusion: 'pixels' is not one of"),
     ],

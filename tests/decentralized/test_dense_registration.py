@@ -10,6 +10,8 @@ import torch
 from como3r.config_decentralized import RegistrationConfig
 from como3r.decentralized.matching import reciprocal_matches
 from como3r.decentralized.registration import (
+    RegistrationStats,
+    camera_shift,
     dense_similarity,
     ransac_similarity,
     register_predictions,
@@ -143,3 +145,46 @@ def test_register_predictions_returns_the_configured_fit(pose_fit):
     assert torch.allclose(registration.T_ij, expected)
     other = consensus[0] if pose_fit == "dense" else dense_similarity(pred_ij, pred_ji)
     assert not torch.allclose(registration.T_ij, other)
+
+
+@pytest.mark.parametrize("offset, refused", [(2.0, True), (0.3, False)])
+def test_a_dense_fit_far_from_the_consensus_is_refused(offset, refused):
+    """Both cross-view heads (``X_ji``) place the other view as if camera j were ``offset``
+    units off along x, as a prior's can where two views barely overlap (issue 37's 4-robot
+    ring: a consecutive pair's dense fit 0.49 depths from its consensus, 136 deg off in
+    direction): the dense fit, which takes every pixel of them, follows, while the
+    consensus of the views' own pointmaps does not. At 2 units (the scene's median depth is
+    about 5.5) camera j lies more than ``dense_max_shift_ratio`` of that depth from the
+    consensus's, so the consensus's pose is kept (and counted); at 0.3 the dense fit is
+    kept."""
+    truth = _true_T_ij()
+    pred_ij, pred_ji = _predictions(truth, seed=3, noise=0.01)
+    believed = truth.clone()
+    believed[0] += offset
+    origin = torch.zeros(3, dtype=torch.float64)
+    pred_ij.X_ji[..., 0] += offset  # view j in camera i, camera j believed moved
+    pred_ji.X_ji[:] += sim3_act(sim3_inverse(believed), origin) - sim3_act(
+        sim3_inverse(truth), origin
+    )
+    config = RegistrationConfig()
+    stats = RegistrationStats()
+    registration = register_predictions(pred_ij, pred_ji, config, generator(0, "pair"), stats)
+    dense = dense_similarity(pred_ij, pred_ji)
+    assert registration.T_ij is not None
+    assert torch.equal(registration.T_ij, dense) != refused
+    assert stats.dense_fits_refused == int(refused)
+    assert abs(float(dense[0] - truth[0]) - offset) < 0.1  # the dense fit followed the heads
+    assert _errors(registration.T_ij, truth)[1] < (0.1 if refused else 0.4)
+
+
+def test_camera_shift_is_in_units_of_view_is_median_depth():
+    """Camera j placed 1 unit apart by two estimates, view i's median depth 4 (invalid
+    depths left out): a shift of 0.25."""
+    T_a = torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0], dtype=torch.float64)
+    T_b = T_a.clone()
+    T_b[0] = 1.0
+    X_ii = torch.zeros(2, 3, 3, dtype=torch.float64)
+    X_ii[..., 2] = torch.tensor([[3.0, 4.0, 5.0], [4.0, -1.0, float("nan")]])
+    assert camera_shift(T_a, T_b, X_ii) == pytest.approx(0.25)
+    X_ii[..., 2] = -1.0  # no point in front of camera i: no scale to measure the shift in
+    assert camera_shift(T_a, T_b, X_ii) == math.inf

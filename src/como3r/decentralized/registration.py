@@ -82,6 +82,8 @@ class RegistrationStats:
             at another robot): what the two-stage scheme encodes for registration.
         foreign_encodes: other robots' keyframes encoded here from the colours they sent
             (their time is in ``encode_seconds``).
+        dense_fits_refused: registered pairs whose dense fit was too far from the matches'
+            consensus (``registration.dense_max_shift_ratio``), so the consensus's was kept.
     """
 
     encodes: int = 0
@@ -93,6 +95,7 @@ class RegistrationStats:
     naive_encodes: int = 0
     registration_encodes: int = 0
     foreign_encodes: int = 0
+    dense_fits_refused: int = 0
 
     def to_json(self) -> dict[str, float]:
         return {
@@ -105,6 +108,7 @@ class RegistrationStats:
             "naive_encodes": self.naive_encodes,
             "registration_encodes": self.registration_encodes,
             "foreign_encodes": self.foreign_encodes,
+            "dense_fits_refused": self.dense_fits_refused,
         }
 
 
@@ -233,10 +237,31 @@ def register_predictions(
     T, inliers = fit
     if config.pose_fit == "dense":
         try:
-            T = dense_similarity(pred_ij, pred_ji)
+            dense = dense_similarity(pred_ij, pred_ji)
         except GeometryError:
             return Registration(int(p_i.numel()), 0, None)
+        shift = camera_shift(T, dense, pred_ij.X_ii)
+        if shift <= config.dense_max_shift_ratio:
+            T = dense
+        else:
+            logger.debug("registration: dense fit %.2f depths off the consensus; kept it", shift)
+            if stats is not None:
+                stats.dense_fits_refused += 1
     return Registration(int(p_i.numel()), int(inliers.sum()), T)
+
+
+def camera_shift(T_a: Tensor, T_b: Tensor, X_ii: Tensor) -> float:
+    """How far apart two estimates ``T_ij`` place camera j, in view i's median depth.
+
+    Args:
+        T_a, T_b: ``(8,)`` Sim(3) of camera j into camera i.
+        X_ii: ``(H, W, 3)`` view i's pointmap in camera i (the units of both translations).
+    """
+    depth = X_ii.reshape(-1, 3)[:, 2].double()
+    depth = depth[torch.isfinite(depth) & (depth > 0)]
+    if depth.numel() == 0:
+        return math.inf
+    return float((T_a[:3].double() - T_b[:3].double()).norm() / depth.median())
 
 
 def colours_of(view: View) -> np.ndarray:
