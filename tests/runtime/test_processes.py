@@ -373,8 +373,9 @@ def test_a_silent_agent_is_terminated_as_hung(scene, config, tmp_path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("lockstep")  # its agent processes fill numba's cache (below)
 def test_a_coordinator_slow_to_read_costs_no_message_and_no_agent(
-    scene, config, lockstep, tmp_path, monkeypatch
+    scene, config, tmp_path, monkeypatch
 ) -> None:
     """The coordinator is busy (a global BA) for longer than the hung-agent timeout while
     the agent keeps sending: its messages wait, and once the coordinator reads again the
