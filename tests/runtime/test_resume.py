@@ -107,8 +107,8 @@ def _kill_when_stored(args: list[str], store: Path, keyframes: int) -> int:
     try:
         while process.is_alive() and time.monotonic() < deadline:
             if store.exists():
-                try:
-                    held = len(read_session(store).graph)
+                try:  # paged: a full read, every 0.2 s, takes 3.5 times the CPU
+                    held = len(read_session(store, paged=True).graph)
                 except StoreError:  # not created yet
                     held = 0
                 if held >= keyframes:

@@ -31,9 +31,11 @@ RESUMED = "coordinator resumed from"
 
 
 def _stored(store: Path) -> int:
-    """Keyframes the store holds (0 before it exists)."""
+    """Keyframes the store holds (0 before it exists). Read paged: polled every 50 ms while
+    the team works, a full read (every pointmap) takes 3.5 times the CPU (70 against 20 ms
+    for 14 keyframes)."""
     try:
-        return len(read_session(store).graph)
+        return len(read_session(store, paged=True).graph)
     except StoreError:
         return 0
 
