@@ -129,7 +129,8 @@ class RegistrationConfig:
             2.06 / 2.08 / 2.17 (mean 1.74); ``lio`` 1.23 / 0.96 / 1.13, 1.00 / 1.13 / 1.10,
             1.34 / 1.37 / 1.20 (mean 1.16); the ring 0.866 / 0.830 / 1.163. 0.4: ``vio``
             1.62 / 1.56 / 1.63, 1.08 / 1.33 / 1.35, 2.31 / 2.30 / 2.10 (mean 1.70); the ring
-            0.824 / 0.852 / 1.242. So the ring's gross failure is caught from 0.15 to 0.4
+            0.824 / 0.852 / 1.242. The 8-robot ring (seed 0), held out: 0.779 -> 0.836 at
+            0.25. So the 4-robot ring's gross failure is caught from 0.15 to 0.4
             (its mean 1.08 -> 0.95-0.97), while on the grid the pairs a bar swaps move a cell
             by up to 0.3 % of path either way with no sign common to seeds or bars (the
             ``vio`` seed 2 cells are under 2 % at 0.25 only): 0.25, the 95th percentile above,
