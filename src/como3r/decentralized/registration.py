@@ -244,7 +244,7 @@ def register_predictions(
         if shift <= config.dense_max_shift_ratio:
             T = dense
         else:
-            logger.debug("registration: dense fit %.2f depths off the consensus; kept it", shift)
+            logger.debug("registration: dense fit %.2f depths off; consensus's pose kept", shift)
             if stats is not None:
                 stats.dense_fits_refused += 1
     return Registration(int(p_i.numel()), int(inliers.sum()), T)
@@ -257,11 +257,16 @@ def camera_shift(T_a: Tensor, T_b: Tensor, X_ii: Tensor) -> float:
         T_a, T_b: ``(8,)`` Sim(3) of camera j into camera i.
         X_ii: ``(H, W, 3)`` view i's pointmap in camera i (the units of both translations).
     """
-    depth = X_ii.reshape(-1, 3)[:, 2].double()
-    depth = depth[torch.isfinite(depth) & (depth > 0)]
+    depth = front_depths(X_ii)
     if depth.numel() == 0:
         return math.inf
-    return float((T_a[:3].double() - T_b[:3].double()).norm() / depth.median())
+    return float((T_a[:3].double() - T_b[:3].double()).norm() / depth.double().median())
+
+
+def front_depths(X: Tensor) -> Tensor:
+    """The finite depths in front of the camera of a pointmap ``X (..., 3)`` -> ``(M,)``."""
+    depth = X[..., 2].reshape(-1)
+    return depth[torch.isfinite(depth) & (depth > 0)]
 
 
 def colours_of(view: View) -> np.ndarray:
@@ -323,8 +328,7 @@ class Registrar:
         self.stats.encode_seconds += time.perf_counter() - start
         self.stats.encodes += 1
         self._own[0] = encoding
-        depth = self.prior.decode(encoding, encoding).X_ii[..., 2].reshape(-1).float().cpu()
-        depth = depth[torch.isfinite(depth) & (depth > 0)]
+        depth = front_depths(self.prior.decode(encoding, encoding).X_ii.float().cpu())
         if depth.numel() == 0:
             raise GeometryError(
                 f"robot {self.robot}: the prior's pointmap of keyframe 0 has no "
