@@ -13,6 +13,7 @@ from como3r.decentralized.registration import (
     RegistrationStats,
     camera_shift,
     dense_similarity,
+    points_shift,
     ransac_similarity,
     register_predictions,
 )
@@ -173,6 +174,7 @@ def test_a_dense_fit_far_from_the_consensus_is_refused(offset, refused):
     assert registration.T_ij is not None
     assert torch.equal(registration.T_ij, dense) != refused
     assert stats.dense_fits_refused == int(refused)
+    assert stats.dense_fits_refused_points == 0  # the camera was off, not only the points
     assert abs(float(dense[0] - truth[0]) - offset) < 0.1  # the dense fit followed the heads
     assert _errors(registration.T_ij, truth)[1] < (0.1 if refused else 0.4)
 
@@ -188,3 +190,51 @@ def test_camera_shift_is_in_units_of_view_is_median_depth():
     assert camera_shift(T_a, T_b, X_ii) == pytest.approx(0.25)
     X_ii[..., 2] = -1.0  # no point in front of camera i: no scale to measure the shift in
     assert camera_shift(T_a, T_b, X_ii) == math.inf
+
+
+@pytest.mark.parametrize("turn, refused", [(0.5, True), (0.1, False)])
+def test_a_dense_fit_turned_about_camera_i_is_refused(turn, refused):
+    """Both cross-view heads place the other view as if camera j were turned by ``turn``
+    rad about camera i's centre: the dense fit follows as a rotation that leaves camera j
+    where the consensus places it (a shift under 0.05 depths, which the camera's test alone
+    keeps) but moves view j's points by about ``2 sin(turn / 2)`` of their range: at 0.5 rad
+    (0.48) beyond ``dense_max_shift_ratio``, so the consensus's pose is kept (and counted as
+    refused by the points); at 0.1 rad (0.10) the dense fit is kept."""
+    truth = _true_T_ij()
+    pred_ij, pred_ji = _predictions(truth, seed=3, noise=0.01)
+    rotation = sim3_exp(torch.tensor([0.0, 0.0, 0.0, 0.0, turn, 0.0, 0.0], dtype=torch.float64))
+    believed = sim3_compose(rotation, truth)
+    pred_ij.X_ji[:] = sim3_act(rotation, pred_ij.X_ji)  # view j in camera i, turned
+    pred_ji.X_ji[:] = sim3_act(  # view i in camera j, as the turned camera j sees it
+        sim3_compose(sim3_inverse(truth), sim3_inverse(rotation)), sim3_act(truth, pred_ji.X_ji)
+    )
+    config = RegistrationConfig()
+    stats = RegistrationStats()
+    registration = register_predictions(pred_ij, pred_ji, config, generator(0, "pair"), stats)
+    dense = dense_similarity(pred_ij, pred_ji)
+    assert _errors(dense, believed)[0] < 0.01  # the dense fit followed the heads
+    assert camera_shift(truth, dense, pred_ij.X_ii) < 0.05  # the camera barely moved
+    # a little less for points near the axis: 0.48 at 0.5 rad
+    moved = points_shift(truth, dense, pred_ji.X_ii)
+    assert moved == pytest.approx(2 * math.sin(turn / 2), abs=0.03)
+    assert registration.T_ij is not None
+    assert torch.equal(registration.T_ij, dense) != refused
+    assert stats.dense_fits_refused == stats.dense_fits_refused_points == int(refused)
+    assert _errors(registration.T_ij, truth)[0] < (0.02 if refused else 0.12)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_points_shift_is_relative_to_each_points_range(dtype):
+    """Camera j's points at depths 2, 4 and 5 on its axis (camera j = camera i), moved 1
+    unit sideways by the second estimate: 0.5, 0.25, 0.2 of their range, median 0.25; points
+    that are not finite or not in front of camera j are left out (with the two behind it,
+    at 1/0.1 and 1/0.2, the median would be 0.5)."""
+    T_a = torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0], dtype=torch.float64)
+    T_b = T_a.clone()
+    T_b[0] = 1.0
+    X_jj = torch.zeros(2, 3, 3, dtype=dtype)
+    X_jj[..., 2] = torch.tensor([[2.0, 4.0, 5.0], [-0.1, -0.2, float("nan")]], dtype=dtype)
+    assert points_shift(T_a, T_b, X_jj) == pytest.approx(0.25)
+    assert points_shift(T_a, T_a, X_jj) == 0.0
+    X_jj[..., 2] = -1.0  # no point in front of camera j
+    assert points_shift(T_a, T_b, X_jj) == math.inf

@@ -36,7 +36,7 @@ from torch import Tensor
 from como3r.config_decentralized import RegistrationConfig
 from como3r.decentralized.matching import reciprocal_matches
 from como3r.errors import GeometryError, PriorError
-from como3r.geometry.lie import matrix_to_quat, sim3_act
+from como3r.geometry.lie import matrix_to_quat, sim3_act, sim3_act_points
 from como3r.geometry.umeyama import umeyama_sim3, umeyama_sim3_batched
 from como3r.prior.base import (
     Encoding,
@@ -84,6 +84,9 @@ class RegistrationStats:
             (their time is in ``encode_seconds``).
         dense_fits_refused: registered pairs whose dense fit was too far from the matches'
             consensus (``registration.dense_max_shift_ratio``), so the consensus's was kept.
+        dense_fits_refused_points: of these, the ones whose camera j was within the bar
+            (:func:`camera_shift`) but view j's points were not (:func:`points_shift`): a fit
+            turned about camera i.
     """
 
     encodes: int = 0
@@ -96,6 +99,7 @@ class RegistrationStats:
     registration_encodes: int = 0
     foreign_encodes: int = 0
     dense_fits_refused: int = 0
+    dense_fits_refused_points: int = 0
 
     def to_json(self) -> dict[str, float]:
         return {
@@ -109,6 +113,7 @@ class RegistrationStats:
             "registration_encodes": self.registration_encodes,
             "foreign_encodes": self.foreign_encodes,
             "dense_fits_refused": self.dense_fits_refused,
+            "dense_fits_refused_points": self.dense_fits_refused_points,
         }
 
 
@@ -240,13 +245,22 @@ def register_predictions(
             dense = dense_similarity(pred_ij, pred_ji)
         except GeometryError:
             return Registration(int(p_i.numel()), 0, None)
+        # the camera alone misses a fit turned about camera i, the points alone one turned
+        # about the scene (its points stay near where they were, the camera moves)
         shift = camera_shift(T, dense, pred_ij.X_ii)
-        if shift <= config.dense_max_shift_ratio:
+        points = points_shift(T, dense, pred_ji.X_ii)
+        if max(shift, points) <= config.dense_max_shift_ratio:
             T = dense
         else:
-            logger.debug("registration: dense fit %.2f depths off; consensus's pose kept", shift)
+            logger.debug(
+                "registration: dense fit's camera %.2f depths off, points %.2f of their "
+                "range; consensus's pose kept",
+                shift,
+                points,
+            )
             if stats is not None:
                 stats.dense_fits_refused += 1
+                stats.dense_fits_refused_points += int(shift <= config.dense_max_shift_ratio)
     return Registration(int(p_i.numel()), int(inliers.sum()), T)
 
 
@@ -261,6 +275,33 @@ def camera_shift(T_a: Tensor, T_b: Tensor, X_ii: Tensor) -> float:
     if depth.numel() == 0:
         return math.inf
     return float((T_a[:3].double() - T_b[:3].double()).norm() / depth.double().median())
+
+
+def points_shift(T_a: Tensor, T_b: Tensor, X_jj: Tensor) -> float:
+    """How far apart two estimates ``T_ij`` place view j's points, in their range.
+
+    The median over view j's points ``x`` (finite, in front of camera j) of
+    ``|T_b x - T_a x| / |T_a x|``: a camera moved by ``d`` scene depths moves it by about
+    ``d`` (as :func:`camera_shift`), a turn by ``theta`` about camera i's centre, which
+    leaves camera j where it was, by up to ``2 sin(theta / 2)`` (points square to the axis;
+    0.25: 14.4 deg).
+
+    Args:
+        T_a, T_b: ``(8,)`` Sim(3) of camera j into camera i (``T_a``: the reference).
+        X_jj: ``(H, W, 3)`` view j's pointmap in camera j, float32 or float64.
+
+    Returns:
+        The median relative displacement; inf where no point is usable.
+    """
+    x = X_jj.reshape(-1, 3).double()
+    x = x[torch.isfinite(x).all(-1) & (x[:, 2] > 0)]
+    placed = sim3_act_points(T_a.double(), x)
+    rng = placed.norm(dim=-1)
+    usable = rng > 0
+    if not bool(usable.any()):
+        return math.inf
+    moved = (sim3_act_points(T_b.double(), x[usable]) - placed[usable]).norm(dim=-1)
+    return float((moved / rng[usable]).median())
 
 
 def front_depths(X: Tensor) -> Tensor:
