@@ -78,7 +78,7 @@ class RegistrationConfig:
         seed: seed of the RANSAC sampling (combined with the pair's ids).
         pose_fit: the relative pose of a registered pair (the matches' consensus decides
             whether it is registered): ``dense``, fitted to both decodes' pointmaps at every
-            pixel (:func:`~como3r.decentralized.registration.dense_similarity`), or
+            pixel (:func:`~como3r.decentralized.dense_fit.dense_similarity`), or
             ``matches``, the Umeyama fit of the consensus's inliers. Measured (issue 37,
             prior ``v2``, 160x120, 3 robots, the final graphs of ``benchmarks/robustness.py
             --mode decentralized`` runs re-solved with every loop and F-Eq. 6 pair registered
@@ -105,7 +105,7 @@ class RegistrationConfig:
             each).
         dense_max_shift_ratio: the dense fit replaces the consensus's pose only where the
             two place camera j within this fraction of view i's median depth of each other
-            (:func:`~como3r.decentralized.registration.camera_shift`); further apart, the
+            (:func:`~como3r.decentralized.dense_fit.camera_shift`); further apart, the
             dense fit has followed cross-view pointmaps (``X_ji``) that disagree with the
             views' own, as a prior's do where two views barely overlap, and the consensus's
             pose is kept (counted per robot as ``dense_fits_refused`` in ``metrics.json``).
@@ -137,7 +137,7 @@ class RegistrationConfig:
             was set before these runs and has the lowest ``vio`` mean and worst cell (1.98
             against 2.17-2.31), but the grid does not tell it from its neighbours.
             The same bar holds view j's points
-            (:func:`~como3r.decentralized.registration.points_shift`: the median over view j's
+            (:func:`~como3r.decentralized.dense_fit.points_shift`: the median over view j's
             points of how far apart the two fits place them, in their range), since the camera's
             test does not see a dense fit turned about camera i's centre: turned by theta,
             camera j stays near where it was (cross-view heads displaced by 4-8 units: shifts of

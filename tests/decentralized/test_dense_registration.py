@@ -8,12 +8,10 @@ import pytest
 import torch
 
 from como3r.config_decentralized import RegistrationConfig
+from como3r.decentralized.dense_fit import camera_shift, dense_similarity, points_shift
 from como3r.decentralized.matching import reciprocal_matches
 from como3r.decentralized.registration import (
     RegistrationStats,
-    camera_shift,
-    dense_similarity,
-    points_shift,
     ransac_similarity,
     register_predictions,
 )
