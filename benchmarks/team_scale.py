@@ -30,6 +30,12 @@ process of its own so memory peaks do not carry over. Per team size the table gi
   together, and the pool's part (its workers' thread CPU, wasted work included; not in
   ``coord ms/kf``); the decodes the pool made for a keyframe's predicted candidates that a
   merge before it then changed;
+* ``skipped``, ``deferred``, ``at end``, ``idle s``: under a batch budget
+  (``--set verification.max_decodes_per_batch=N``), keyframes whose verification a batch
+  deferred, those verified later (:mod:`como3r.coordination.deferral`), of these the ones
+  verified only when the input ended (before the terminal cleanup, so in ``cleanup s``), and
+  the CPU seconds (thread and pool) of the verifications an idle coordinator caught up on:
+  in ``coord ms/kf``, not in the replays (they ran while no keyframe waited);
 * ``end kf PP``, ``drain s PP``: the same replay for a coordinator of P cores
   (``--coordinator-cores``, default 2, 4 and 8): each call's serial CPU (its thread's
   less the verification it did in line) on one core, then all of its verification, in line
@@ -418,6 +424,10 @@ COLUMNS = (
     "verify ms/kf",
     "pool ms/kf",
     "wasted",
+    "skipped",
+    "deferred",
+    "at end",
+    "idle s",
     "end kf",
     "end s",
     "drain s",
@@ -480,7 +490,8 @@ def _children() -> list[int]:
 
 #: one call of ``add_keyframe(s)``: the coordinator thread's CPU seconds, the ``(agent,
 #: kf_id, timestamp)`` of the keyframes it took, and of its CPU the verification done in line
-#: and the pool's workers' CPU seconds during it (both 0 in runs recorded before them)
+#: and the pool's workers' CPU seconds during it (both 0 in runs recorded before them); a
+#: call without keyframes is an idle coordinator's ``verify_deferred_one``
 Call = tuple[float, list[tuple[int, int, float]], float, float]
 
 
@@ -512,8 +523,22 @@ class _Timed:
         def add_keyframe(coordinator: Coordinator, packet: Any) -> Any:
             return add_keyframes(coordinator, [packet])
 
+        one = Coordinator.verify_deferred_one
+
+        def verify_deferred_one(coordinator: Coordinator) -> Any:
+            # an idle coordinator's catch-up: a call without keyframes (the replay leaves it
+            # out: it ran while no keyframe waited)
+            start, (inline, pool) = time.thread_time(), _verification_cpu(coordinator)
+            before = coordinator.stats.verification_deferred
+            updates = one(coordinator)
+            if coordinator.stats.verification_deferred > before:
+                after = _verification_cpu(coordinator)
+                calls.append((time.thread_time() - start, [], after[0] - inline, after[1] - pool))
+            return updates
+
         Coordinator.add_keyframe = add_keyframe  # type: ignore[method-assign]
         Coordinator.add_keyframes = add_keyframes  # type: ignore[method-assign]
+        Coordinator.verify_deferred_one = verify_deferred_one  # type: ignore[method-assign]
 
 
 def run_one(
@@ -742,6 +767,10 @@ def row(
         "verify ms/kf": 1000.0 * verify / keyframes,
         "pool ms/kf": 1000.0 * pool / keyframes,
         "wasted": coordinator.get("pool_wasted_decodes", 0),
+        "skipped": coordinator.get("verification_skipped", 0),
+        "deferred": coordinator.get("verification_deferred", 0),
+        "at end": coordinator.get("verification_deferred_at_finish", 0),
+        "idle s": sum(call[0] + call[3] for call in calls if len(call) > 2 and not call[1]),
         "end kf": waiting,
         "end s": behind,
         "drain s": drain,

@@ -66,6 +66,9 @@ class Session:
         refused: the edges refused inside a gauge that await their recheck after the next
             in-stream global BA, ``(candidate index, refused by the scale watch)`` in the
             order they are tested (since version 8; none in older stores).
+        deferred: the keyframes a batch budget deferred, not verified yet, oldest first, as
+            ``(agent, kf_id, [(hit agent, hit keyframe, similarity), ...])`` (none in
+            stores written before the deferral).
         finished: the terminal cleanup ran.
         runtime: the multi-process runtime's state (:mod:`como3r.runtime.runtime_state`),
             None if no such runtime wrote the store.
@@ -85,6 +88,7 @@ class Session:
     alternation: list[dict[str, Any]] = field(default_factory=list)
     backlog: tuple[int, list[int]] = (0, [])
     refused: list[tuple[int, bool]] = field(default_factory=list)
+    deferred: list[tuple[int, int, list[tuple[int, int, float]]]] = field(default_factory=list)
     finished: bool = False
     runtime: dict[str, Any] | None = None
     reports: dict[int, AgentFinished] = field(default_factory=dict)
@@ -255,6 +259,10 @@ def _load(connection: sqlite3.Connection, path: Path, paged: bool) -> Session:
             state.get("backlog", {}).get("roots", []),
         ),
         refused=[(int(n), bool(by_scale)) for n, by_scale in state.get("refused", [])],
+        deferred=[
+            (int(agent), int(kf_id), [(int(a), int(k), float(s)) for a, k, s in hits])
+            for agent, kf_id, hits in state.get("deferred", [])
+        ],
         finished=bool(state.get("finished", False)),
         runtime=state.get("runtime"),
         reports={
