@@ -35,7 +35,8 @@ process of its own so memory peaks do not carry over. Per team size the table gi
   deferred, those verified later (:mod:`como3r.coordination.deferral`), of these the ones
   verified only when the input ended (before the terminal cleanup, so in ``cleanup s``), and
   the CPU seconds (thread and pool) of the verifications an idle coordinator caught up on:
-  in ``coord ms/kf``, not in the replays (they ran while no keyframe waited);
+  in ``coord ms/kf``, not in the replays (they ran while no keyframe waited); ``at end s``:
+  the CPU seconds (thread and pool) of the verification at the end (in ``cleanup s``, wall);
 * ``end kf PP``, ``drain s PP``: the same replay for a coordinator of P cores
   (``--coordinator-cores``, default 2, 4 and 8): each call's serial CPU (its thread's
   less the verification it did in line) on one core, then all of its verification, in line
@@ -428,6 +429,7 @@ COLUMNS = (
     "deferred",
     "at end",
     "idle s",
+    "at end s",
     "end kf",
     "end s",
     "drain s",
@@ -507,6 +509,8 @@ class _Timed:
 
     def __init__(self) -> None:
         self.calls: list[Call] = []
+        #: CPU seconds (thread and pool) of the deferred verification at the end of the input
+        self.at_end = 0.0
 
     def install(self) -> None:
         many = Coordinator.add_keyframes
@@ -539,6 +543,15 @@ class _Timed:
         Coordinator.add_keyframe = add_keyframe  # type: ignore[method-assign]
         Coordinator.add_keyframes = add_keyframes  # type: ignore[method-assign]
         Coordinator.verify_deferred_one = verify_deferred_one  # type: ignore[method-assign]
+        remaining = Coordinator._verify_all_deferred
+
+        def verify_all_deferred(coordinator: Coordinator) -> Any:
+            start, (_, pool) = time.thread_time(), _verification_cpu(coordinator)
+            updates = remaining(coordinator)
+            self.at_end += time.thread_time() - start + _verification_cpu(coordinator)[1] - pool
+            return updates
+
+        Coordinator._verify_all_deferred = verify_all_deferred  # type: ignore[method-assign]
 
 
 def run_one(
@@ -575,6 +588,7 @@ def run_one(
             cpu_per_frame[agent] = (mine[-1][1] - mine[0][1]) / (mine[-1][0] - mine[0][0])
     return {
         "calls": timed.calls,
+        "deferred_at_end_cpu": timed.at_end,
         "cpu_per_frame": cpu_per_frame,
         "coordinator_peak_mb": _proc_status("self"),
         "agent_peak_mb": max(agent_peak.values(), default=0.0),
@@ -771,6 +785,7 @@ def row(
         "deferred": coordinator.get("verification_deferred", 0),
         "at end": coordinator.get("verification_deferred_at_finish", 0),
         "idle s": sum(call[0] + call[3] for call in calls if len(call) > 2 and not call[1]),
+        "at end s": measured.get("deferred_at_end_cpu", "-"),
         "end kf": waiting,
         "end s": behind,
         "drain s": drain,

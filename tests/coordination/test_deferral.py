@@ -165,6 +165,7 @@ def test_a_later_batch_verifies_the_newest_deferred_with_its_leftover(scene) -> 
     assert _keys(coordinator) == waiting[: len(waiting) - len(later)]
     assert coordinator.stats.verification_deferred == len(later)
     assert coordinator.stats.prior_decodes - decodes <= 2 * per_keyframe
+    coordinator.pool.shutdown()
 
 
 def test_an_idle_coordinator_verifies_one_deferred_keyframe_at_a_time(scene) -> None:
@@ -179,6 +180,7 @@ def test_an_idle_coordinator_verifies_one_deferred_keyframe_at_a_time(scene) -> 
     assert coordinator.verified[verified:] == [waiting[-1]]
     assert _keys(coordinator) == waiting[:-1]
     assert coordinator.stats.verification_deferred == 1
+    coordinator.pool.shutdown()
 
 
 def test_a_resumed_coordinator_verifies_the_deferred_keyframes(scene, tmp_path) -> None:
@@ -195,6 +197,7 @@ def test_a_resumed_coordinator_verifies_the_deferred_keyframes(scene, tmp_path) 
     store = SessionStore.create(path, coordinator.config, coordinator, settles=True)
     coordinator.journal = store
     coordinator.add_keyframes(order[:9])
+    coordinator.pool.shutdown()
     store.close()
     deferred = coordinator.deferred_keyframes()
     assert deferred and all(hits for _, _, hits in deferred)
