@@ -187,6 +187,7 @@ def test_a_resumed_coordinator_verifies_the_deferred_keyframes(scene, tmp_path) 
     """The session store keeps the deferred keyframes with their hits; the resumed
     coordinator verifies them as the interrupted one would have; a store without the list
     (written before it existed) reads as none deferred."""
+    from como3r.errors import StoreError
     from como3r.store.reader import read_session
     from como3r.store.resume import restore_coordinator
     from como3r.store.writer import SessionStore
@@ -208,6 +209,12 @@ def test_a_resumed_coordinator_verifies_the_deferred_keyframes(scene, tmp_path) 
         db.execute("DELETE FROM state WHERE key = 'deferred'")
     db.close()
     assert read_session(older).deferred == []
+    # a list that names a keyframe the store does not hold is refused
+    with sqlite3.connect(older) as db:
+        db.execute("INSERT INTO state VALUES ('deferred', '[[0, 99, [[1, 0, 0.5]]]]')")
+    db.close()
+    with pytest.raises(StoreError, match="the deferred keyframes"):
+        read_session(older)
 
     session = read_session(path, paged=True)
     assert session.deferred == deferred

@@ -272,6 +272,7 @@ def _load(connection: sqlite3.Connection, path: Path, paged: bool) -> Session:
     )
     _check_agents(session)
     _check_refused(session)
+    _check_deferred(session)
     return session
 
 
@@ -292,6 +293,15 @@ def _check_agents(session: Session) -> None:
             )
     if session.stats.get("keyframes", len(graph)) != len(graph):
         raise StoreError("inconsistent session store: the coordinator's keyframe count")
+
+
+def _check_deferred(session: Session) -> None:
+    """The deferred keyframes and their hits are stored keyframes."""
+    graph, agents = session.graph, len(session.agents)
+    for agent, kf_id, hits in session.deferred:
+        for a, k in [(agent, kf_id), *((a, k) for a, k, _ in hits)]:
+            if not (0 <= a < agents and 0 <= k < len(graph.agent_keyframes(a))):
+                raise StoreError("inconsistent session store: the deferred keyframes")
 
 
 def _check_refused(session: Session) -> None:
