@@ -111,7 +111,11 @@ within the budget of 6; the coordinator falls behind from 4 agents on (each agen
 of CPU per frame here). The 16-agent merged ATE in this multi-process run (batches of up to 29
 keyframes) is 223 mm where the same scene in one process (batches of one) gives 62 mm: open.
 With ``verification.max_decodes_per_batch=12`` (d99a887's default, now 0) the 4 / 8 / 16 teams
-left 9 / 19 / 35 keyframes unverified and ended in 1 / 4 / 12 maps.
+left 9 / 19 / 35 keyframes unverified and ended in 1 / 4 / 12 maps. Since skipped keyframes
+are deferred (:mod:`como3r.coordination.deferral`; ``--set verification.max_decodes_per_batch=12``
+against the default, seed 0, load 5-27; the numbers in ``VerificationConfig``): 16 agents end kf
+34 -> 2, drain 88 -> 0.9 s, 31 of 32 deferred keyframes verified at the end (cleanup 218 ->
+274 s wall), one map either way, ATE 15.8 -> 16.2 mm.
 
 Merged ATE at 160x120, long side 512 (now the defaults), the same kind of scenes run in one
 process (``como3r synth --agents N --frames 16 --loop-frames 48 --overlap 0.5 --width 160
