@@ -109,16 +109,20 @@ class VerificationConfig:
       a load of 5-27; ``end kf`` the one-core replay's backlog at the end of the input):
       4 agents: end kf 5 -> 5 (P = 2: 1 -> 0), drain 14.1 -> 8.7 s, 7 keyframes deferred
       (5 verified at the end), decodes per keyframe 3.6 both, 1 map, merged ATE 3.33 ->
-      3.35 mm. 16 agents: end kf 34 -> 2 (P = 2 / 4 / 8: 28 / 20 / 11 -> 0 / 0 / 0), drain
+      3.35 mm. 6 agents: end kf 15 -> 7 (P = 2 / 4 / 8: 8 / 3 / 1 -> 2 / 1 / 1), drain
+      34.1 -> 14.2 s, 13 deferred (12 at the end: 21.7 s of verification CPU), 1 map, merged
+      ATE 3.31 -> 3.18 mm, but the 5 merges came at keyframes 17, 21, 25, 25, 25 of 25
+      instead of all at 17 (the older keyframes, where neighbours met, waited). 16 agents:
+      end kf 34 -> 2 (P = 2 / 4 / 8: 28 / 20 / 11 -> 0 / 0 / 0), drain
       88 -> 0.9 s, in-stream verification CPU 2238 -> 704 ms per keyframe, 32 keyframes
       deferred, 31 of them verified at the end (about 60 s of verification CPU, thread and
       pool, moved into ``finish``: cleanup 218 -> 274 s wall), the same 114 edges tried, 15
       merges and 1 map (without the budget 14 merges at keyframe 36 of 40, with it 2 at
       keyframe 26 and 13 at the end), merged ATE 15.8 -> 16.2 mm (1.31 -> 1.35 % of an
       agent's path). The backlog does not vanish: it
-      moves to the end of the input, where the map waits for it, and agents get the
-      merges' pose updates later. Not the default yet: one seed, and measured on one
-      scene.
+      moves to the end of the input, where the map waits for it, and agents may get the
+      merges' pose updates later. Not the default yet: one seed, one scene, 8 and 24 agents
+      not measured.
     * ``max_loop_candidates``: an agent's intra-agent loop edges stay in its local graph
       (C-Sec. 3.5), so the global BA (C-Eq. 5) re-bends a loop-closed chain along its
       sequential edges alone. The coordinator's retrieval also returns up to this many
