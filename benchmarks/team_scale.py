@@ -30,6 +30,13 @@ process of its own so memory peaks do not carry over. Per team size the table gi
   together, and the pool's part (its workers' thread CPU, wasted work included; not in
   ``coord ms/kf``); the decodes the pool made for a keyframe's predicted candidates that a
   merge before it then changed;
+* ``skipped``, ``deferred``, ``at end``, ``idle s``: under a batch budget
+  (``--set verification.max_decodes_per_batch=N``), keyframes whose verification a batch
+  deferred, those verified later (:mod:`como3r.coordination.deferral`), of these the ones
+  verified only when the input ended (before the terminal cleanup, so in ``cleanup s``), and
+  the CPU seconds (thread and pool) of the verifications an idle coordinator caught up on:
+  in ``coord ms/kf``, not in the replays (they ran while no keyframe waited); ``at end s``:
+  the CPU seconds (thread and pool) of the verification at the end (in ``cleanup s``, wall);
 * ``end kf PP``, ``drain s PP``: the same replay for a coordinator of P cores
   (``--coordinator-cores``, default 2, 4 and 8): each call's serial CPU (its thread's
   less the verification it did in line) on one core, then all of its verification, in line
@@ -104,7 +111,11 @@ within the budget of 6; the coordinator falls behind from 4 agents on (each agen
 of CPU per frame here). The 16-agent merged ATE in this multi-process run (batches of up to 29
 keyframes) is 223 mm where the same scene in one process (batches of one) gives 62 mm: open.
 With ``verification.max_decodes_per_batch=12`` (d99a887's default, now 0) the 4 / 8 / 16 teams
-left 9 / 19 / 35 keyframes unverified and ended in 1 / 4 / 12 maps.
+left 9 / 19 / 35 keyframes unverified and ended in 1 / 4 / 12 maps. Since skipped keyframes
+are deferred (:mod:`como3r.coordination.deferral`; ``--set verification.max_decodes_per_batch=12``
+against the default, seed 0, load 5-27; the numbers in ``VerificationConfig``): 16 agents end kf
+34 -> 2, drain 88 -> 0.9 s, 31 of 32 deferred keyframes verified at the end (cleanup 218 ->
+274 s wall), one map either way, ATE 15.8 -> 16.2 mm.
 
 Merged ATE at 160x120, long side 512 (now the defaults), the same kind of scenes run in one
 process (``como3r synth --agents N --frames 16 --loop-frames 48 --overlap 0.5 --width 160
@@ -418,6 +429,11 @@ COLUMNS = (
     "verify ms/kf",
     "pool ms/kf",
     "wasted",
+    "skipped",
+    "deferred",
+    "at end",
+    "idle s",
+    "at end s",
     "end kf",
     "end s",
     "drain s",
@@ -480,7 +496,8 @@ def _children() -> list[int]:
 
 #: one call of ``add_keyframe(s)``: the coordinator thread's CPU seconds, the ``(agent,
 #: kf_id, timestamp)`` of the keyframes it took, and of its CPU the verification done in line
-#: and the pool's workers' CPU seconds during it (both 0 in runs recorded before them)
+#: and the pool's workers' CPU seconds during it (both 0 in runs recorded before them); a
+#: call without keyframes is an idle coordinator's ``verify_deferred_one``
 Call = tuple[float, list[tuple[int, int, float]], float, float]
 
 
@@ -496,6 +513,8 @@ class _Timed:
 
     def __init__(self) -> None:
         self.calls: list[Call] = []
+        #: CPU seconds (thread and pool) of the deferred verification at the end of the input
+        self.at_end = 0.0
 
     def install(self) -> None:
         many = Coordinator.add_keyframes
@@ -512,8 +531,31 @@ class _Timed:
         def add_keyframe(coordinator: Coordinator, packet: Any) -> Any:
             return add_keyframes(coordinator, [packet])
 
+        one = Coordinator.verify_deferred_one
+
+        def verify_deferred_one(coordinator: Coordinator) -> Any:
+            # an idle coordinator's catch-up: a call without keyframes (the replay leaves it
+            # out: it ran while no keyframe waited)
+            start, (inline, pool) = time.thread_time(), _verification_cpu(coordinator)
+            before = coordinator.stats.verification_deferred
+            updates = one(coordinator)
+            if coordinator.stats.verification_deferred > before:
+                after = _verification_cpu(coordinator)
+                calls.append((time.thread_time() - start, [], after[0] - inline, after[1] - pool))
+            return updates
+
         Coordinator.add_keyframe = add_keyframe  # type: ignore[method-assign]
         Coordinator.add_keyframes = add_keyframes  # type: ignore[method-assign]
+        Coordinator.verify_deferred_one = verify_deferred_one  # type: ignore[method-assign]
+        remaining = Coordinator._verify_all_deferred
+
+        def verify_all_deferred(coordinator: Coordinator) -> Any:
+            start, (_, pool) = time.thread_time(), _verification_cpu(coordinator)
+            updates = remaining(coordinator)
+            self.at_end += time.thread_time() - start + _verification_cpu(coordinator)[1] - pool
+            return updates
+
+        Coordinator._verify_all_deferred = verify_all_deferred  # type: ignore[method-assign]
 
 
 def run_one(
@@ -550,6 +592,7 @@ def run_one(
             cpu_per_frame[agent] = (mine[-1][1] - mine[0][1]) / (mine[-1][0] - mine[0][0])
     return {
         "calls": timed.calls,
+        "deferred_at_end_cpu": timed.at_end,
         "cpu_per_frame": cpu_per_frame,
         "coordinator_peak_mb": _proc_status("self"),
         "agent_peak_mb": max(agent_peak.values(), default=0.0),
@@ -742,6 +785,11 @@ def row(
         "verify ms/kf": 1000.0 * verify / keyframes,
         "pool ms/kf": 1000.0 * pool / keyframes,
         "wasted": coordinator.get("pool_wasted_decodes", 0),
+        "skipped": coordinator.get("verification_skipped", 0),
+        "deferred": coordinator.get("verification_deferred", 0),
+        "at end": coordinator.get("verification_deferred_at_finish", 0),
+        "idle s": sum(call[0] + call[3] for call in calls if len(call) > 2 and not call[1]),
+        "at end s": measured.get("deferred_at_end_cpu", "-"),
         "end kf": waiting,
         "end s": behind,
         "drain s": drain,

@@ -44,3 +44,6 @@ def test_the_backlog_at_the_end_of_the_input() -> None:
     assert (waiting, behind, drain) == (1, pytest.approx(0.2), pytest.approx(0.75))
     # sixteen: 0.5625, 0.5625, 1.1875: the last done at 4.1875
     assert replay(CALLS, FRAMES, RATE, cores=16)[2] == pytest.approx(0.1875)
+    # an idle coordinator's catch-up (a call without keyframes) is not in the replay
+    idle = (5.0, [], 5.0, 1.0)
+    assert replay([*CALLS, idle], FRAMES, RATE) == replay(CALLS, FRAMES, RATE)

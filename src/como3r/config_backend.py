@@ -93,16 +93,34 @@ class VerificationConfig:
     * ``max_decodes_per_batch``: a coordinator that fell behind takes the waiting keyframes
       as one batch (``global_ba.max_batch_keyframes``) and verifies them newest first; a
       keyframe is verified only while the batch's decodes so far plus its own worst case
-      (``max_decodes_per_keyframe``) fit this budget, the older ones stay retrieval-only
-      (indexed: later keyframes still find them; counted in ``verification_skipped``).
-      A batch of one (``--single-process``, lockstep, a coordinator that keeps up) is
-      always verified: this only bounds the work of a backlog. 0 (default): no batch
-      budget. Measured with benchmarks/team_scale.py (160x120 -> 512, multi-process, 2
-      shared cores, seed 0) at 12: the coordinator took batches of 8 / 19 / 30 keyframes
-      at 4 / 8 / 16 agents and left 9 / 19 / 35 keyframes unverified, so the teams ended
-      in 1 / 4 / 12 maps: skipped keyframes are never verified later, and where the
-      coordinator falls far behind nearly all of them are skipped. Not a default until
-      skipped keyframes get a deferred verification.
+      (``max_decodes_per_keyframe``) fit this budget; the older ones are skipped (indexed:
+      later keyframes still find them; counted in ``verification_skipped``) and deferred,
+      not lost (:mod:`como3r.coordination.deferral`): verified later, newest first, with
+      what a later batch leaves of this budget, one at a time by a multi-process coordinator
+      with no keyframe waiting, and all that remain when the input ends, before the terminal
+      cleanup (``verification_deferred``, of those ``verification_deferred_at_finish``);
+      each keyframe with hits is verified once, and the session store keeps the deferred
+      ones for a resumed run. A batch of one (``--single-process``, lockstep, a coordinator
+      that keeps up) is always verified: this only bounds the work of a backlog. 0
+      (default): no batch budget. Before the deferral (d99a887's 12,
+      benchmarks/team_scale.py, 160x120 -> 512) the 4 / 8 / 16 teams left 9 / 19 / 35
+      keyframes unverified and ended in 1 / 4 / 12 maps. With it, measured at 12 against 0
+      (same script, multi-process, seed 0, 2 shared cores under a load of 5-27; ``end kf``
+      the one-core replay's backlog at the end of the input): 4 agents: end kf 5 -> 5 (P =
+      2: 1 -> 0), drain 14.1 -> 8.7 s, 7 keyframes deferred (5 verified at the end), decodes
+      per keyframe 3.6 both, 1 map, merged ATE 3.33 -> 3.35 mm. 6 agents: end kf 15 -> 7 (P
+      = 2 / 4 / 8: 8 / 3 / 1 -> 2 / 1 / 1), drain 34.1 -> 14.2 s, 13 deferred (12 at the
+      end: 21.7 s of verification CPU), 1 map, merged ATE 3.31 -> 3.18 mm, but the 5 merges
+      came at keyframes 17, 21, 25, 25, 25 of 25 instead of all at 17 (the older keyframes,
+      where neighbours met, waited). 16 agents: end kf 34 -> 2 (P = 2 / 4 / 8: 28 / 20 / 11
+      -> 0 / 0 / 0), drain 88 -> 0.9 s, in-stream verification CPU 2238 -> 704 ms per
+      keyframe, 32 keyframes deferred, 31 of them verified at the end (about 60 s of
+      verification CPU, thread and pool, moved into ``finish``: cleanup 218 -> 274 s wall),
+      the same 114 edges tried, 15 merges and 1 map (without the budget 14 merges at
+      keyframe 36 of 40, with it 2 at keyframe 26 and 13 at the end), merged ATE 15.8 ->
+      16.2 mm (1.31 -> 1.35 % of an agent's path). The backlog does not vanish: it moves to
+      the end of the input, where the map waits for it, and agents may get the merges' pose
+      updates later. Not the default yet: one seed, one scene, 8 and 24 agents not measured.
     * ``max_loop_candidates``: an agent's intra-agent loop edges stay in its local graph
       (C-Sec. 3.5), so the global BA (C-Eq. 5) re-bends a loop-closed chain along its
       sequential edges alone. The coordinator's retrieval also returns up to this many

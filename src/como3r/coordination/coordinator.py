@@ -45,7 +45,8 @@ coordinator's copy of their chain lacks the intra-agent loop edges their own fro
 optimizes, so the front-end's poses are the better ones.
 
 :class:`Coordinator` holds the state and the public API; steps 2 and 3 are its part
-:mod:`.linking`, the focal lengths of self-calibrated agents its part :mod:`.focal_alignment`,
+:mod:`.linking`, the keyframes a batch budget deferred its part :mod:`.deferral`, the focal
+lengths of self-calibrated agents its part :mod:`.focal_alignment`,
 the terminal cleanup's records and solvers are in :mod:`.cleanup`, its counters
 :class:`~.stats.CoordinatorStats` and its ``graph.json`` and ``metrics.json`` documents
 :mod:`.documents`.
@@ -71,11 +72,11 @@ from como3r.config import Config
 from como3r.coordination.association import Candidate, CrossAgentRetrieval
 from como3r.coordination.cleanup import Cleanup, ComponentCleanup, MapSnapshot, scoped_progress
 from como3r.coordination.decode_pool import VerificationPool
+from como3r.coordination.deferral import DeferredKeyframe, DeferredVerification
 from como3r.coordination.documents import CoordinatorDocuments
 from como3r.coordination.encodings import KeyframeEncodings
 from como3r.coordination.focal_alignment import FocalAlignment
 from como3r.coordination.gauge import GaugeComponents
-from como3r.coordination.linking import InterAgentLinking
 from como3r.coordination.stats import CoordinatorStats
 from como3r.errors import InputError
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
@@ -103,7 +104,7 @@ class Journal(Protocol):
         is now (what changes before is coded again there); quick."""
 
 
-class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
+class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
     """Cross-agent association, gauge synchronization and global BA (Level 2).
 
     Args:
@@ -141,6 +142,8 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
         #: edges refused inside one gauge since the last in-stream BA, and whether by the
         #: scale watch (tested again after it: InterAgentLinking._recheck_refused)
         self._refused: list[tuple[Candidate, bool]] = []
+        #: keyframes skipped under the batch budget, to verify later (.deferral)
+        self._deferred: list[DeferredKeyframe] = []
         self.alternation: list[dict[str, Any]] = []
         #: agent -> its keyframes as they were before the terminal depth refinement
         #: (pointmaps as streamed, poses after the pose-only cleanup passes)
@@ -190,8 +193,9 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
         (``verification.max_decodes_per_keyframe``), so each keyframe's hits are chosen by
         the gauge merges before it, as alone (:meth:`_verify` spends a merged agent's slots
         on loop candidates); under a batch budget (``verification.max_decodes_per_batch``)
-        they are verified NEWEST FIRST while it lasts, and older keyframes past it stay
-        retrieval-only: the part of the map the agents are in now is linked first. The
+        they are verified NEWEST FIRST while it lasts, and older keyframes past it are
+        deferred (the part of the map the agents are in now is linked first), verified with
+        what later batches leave of their budget or at the end (:mod:`.deferral`). The
         in-stream global BA (C-Eq. 5) runs at most once, after the whole batch, if
         ``global_ba.trigger_interval_edges`` new inter-agent edges are waiting by then; the
         journal keeps the batch's effect in one transaction. A batch of one is
@@ -211,6 +215,7 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
         """
         updates: list[PoseUpdate] = []
         fresh: list[tuple[KeyframePacket, list[Hit]]] = []
+        skipped: list[tuple[KeyframePacket, list[Hit]]] = []
         for packet in packets:
             if not 0 <= packet.agent < self.num_agents:
                 raise InputError(
@@ -235,7 +240,7 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
             for packet, hits in order:
                 found = len(updates)
                 if hits and self.stats.prior_decodes - spent + self._keyframe_budget() > budget:
-                    self.stats.verification_skipped += 1
+                    skipped.append((packet, hits))
                     continue
                 for candidate in self._verify(packet, hits):
                     updates.extend(self._admit(candidate))
@@ -247,23 +252,14 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
                 )
         finally:
             self._settle()
+        if fresh:
+            updates.extend(self._defer(skipped, self.stats.prior_decodes - spent))
         if fresh and self._new_edges >= self.config.global_ba.trigger_interval_edges:
             updates.extend(self._global_ba())
             self._recheck_refused()
         self.stats.batches += int(bool(fresh))
         self.stats.largest_batch = max(self.stats.largest_batch, len(fresh))
         return self._record(self._count(updates))
-
-    def _keyframe_budget(self) -> int:
-        return self.config.verification.max_decodes_per_keyframe
-
-    def _batch_budget(self, keyframes: int) -> float:
-        """The decodes a batch of ``keyframes`` new keyframes may spend on verification
-        (``verification.max_decodes_per_batch``; a batch of one always has its keyframe's)."""
-        per_batch = self.config.verification.max_decodes_per_batch
-        if keyframes <= 1 or per_batch == 0:
-            return math.inf
-        return max(per_batch, self._keyframe_budget())
 
     def refresh(self, agent: int, refresh: PointmapRefresh) -> None:
         """Replace the canonical pointmap of a sent keyframe by its newer fused one."""
@@ -280,7 +276,8 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
         component keeps the agent's own poses (its front-end optimised them with intra-agent
         loop edges the coordinator does not hold) and runs the depth steps alone at them.
         Every refined keyframe's pointmap is returned. The agents have stopped streaming by
-        now, so the per-round broadcast of step 2e collapses into the final updates.
+        now, so the per-round broadcast of step 2e collapses into the final updates. The
+        keyframes still deferred under a batch budget are verified first (:mod:`.deferral`).
 
         Args:
             agent_poses: each agent's final keyframe poses ``(K_a, 8)`` in keyframe order,
@@ -292,9 +289,10 @@ class Coordinator(InterAgentLinking, FocalAlignment, CoordinatorDocuments):
         Raises:
             InputError: an agent's pose count differs from the keyframes it sent.
         """
-        self.pool.shutdown()  # no batch verifies from here on: its threads end
         start = time.perf_counter()
         cleanup = Cleanup(pointmap_update=self._pointmaps)
+        cleanup.updates.extend(self._verify_all_deferred())
+        self.pool.shutdown()  # no batch verifies from here on: its threads end
         spill = Path(self.config.session.spill_dir) if self.config.session.spill_dir else None
         parking = KeyframeParking(spill)
         settings = AlternationSettings.from_config(self.config.global_ba, self.config.depth)

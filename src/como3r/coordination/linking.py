@@ -17,7 +17,9 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import replace
+from typing import Protocol
 
 from torch import Tensor
 
@@ -49,6 +51,17 @@ logger = logging.getLogger("como3r.coordination.coordinator")
 #: sequential edge the global graph holds already, as the front-end's loop query does
 #: (``frontend.keyframe_linking``; an agent of two or three keyframes still closes its loop)
 LOOP_SKIPPED_LATEST = 1
+
+
+class KeyframeKey(Protocol):
+    """What verification reads of a keyframe: its agent and index (a packet, or a deferred
+    keyframe's record: :mod:`.deferral`)."""
+
+    @property
+    def agent(self) -> int: ...
+
+    @property
+    def kf_id(self) -> int: ...
 
 
 class InterAgentLinking(GaugeMerging):
@@ -103,7 +116,7 @@ class InterAgentLinking(GaugeMerging):
         self.stats.add_time("retrieval", time.perf_counter() - start)
         return hits
 
-    def _selection(self, packet: KeyframePacket, hits: list[Hit]) -> tuple[list[Hit], list[Hit]]:
+    def _selection(self, packet: KeyframeKey, hits: list[Hit]) -> tuple[list[Hit], list[Hit]]:
         """The hits a keyframe verifies, within its decode budget and by the gauge
         components as they are now: ``(cross-agent hits, loop candidates)``."""
         root = self.gauges.find(packet.agent)
@@ -128,7 +141,7 @@ class InterAgentLinking(GaugeMerging):
         pair by pair, else all in one call (:mod:`.decode_pool`)."""
         return [[hit] for hit in chosen] if self.pool.pairwise else [chosen]
 
-    def _speculate(self, order: list[tuple[KeyframePacket, list[Hit]]]) -> None:
+    def _speculate(self, order: Sequence[tuple[KeyframeKey, list[Hit]]]) -> None:
         """Open a batch's verification pool (``verification.workers``) on the keyframes
         with hits, in the order they will be verified (:mod:`.decode_pool`)."""
         self.pool.open([((p.agent, p.kf_id), (p, hits)) for p, hits in order if hits])
@@ -145,7 +158,7 @@ class InterAgentLinking(GaugeMerging):
         for stage, value in done.seconds.items():
             seconds[stage] = seconds.get(stage, 0.0) + value
 
-    def _lookahead(self, packet: KeyframePacket) -> None:
+    def _lookahead(self, packet: KeyframeKey) -> None:
         """Submit the verifications the pool may run now: the next keyframes' predicted
         selections, and the current keyframe's but its first chunk."""
         for current, (p, hits) in self.pool.due((packet.agent, packet.kf_id)):
@@ -169,7 +182,7 @@ class InterAgentLinking(GaugeMerging):
         known = self.encodings.peek(g, kf)
         return known if known is not None else (g, self.encodings.maker(kf, agent))
 
-    def _verify(self, packet: KeyframePacket, hits: list[Hit]) -> list[Candidate]:
+    def _verify(self, packet: KeyframeKey, hits: list[Hit]) -> list[Candidate]:
         """The candidates among a keyframe's retrieval hits that its decode budget allows,
         verified densely (C-Eq. 12); returns the accepted cross-agent ones (its loop
         candidates, verified in the same budget, go to :meth:`_add_loop`). Chunks the pool
@@ -279,7 +292,7 @@ class InterAgentLinking(GaugeMerging):
         log_scale = edge_log_scale(x_j, x_i, q, self.config.gauge.min_correspondences)
         return not abs(log_scale) > self.config.gauge.scale_alarm_log
 
-    def _add_loop(self, packet: KeyframePacket, verified: list[Candidate]) -> None:
+    def _add_loop(self, packet: KeyframeKey, verified: list[Candidate]) -> None:
         """Add a keyframe's verified intra-agent loop as a ``"loop"`` link of the global graph.
 
         The agent's front-end closes the same loops in its local graph only (C-Sec. 3.5);
@@ -297,7 +310,7 @@ class InterAgentLinking(GaugeMerging):
             self.stats.loop_links += 1
 
     def _best_agreeing(
-        self, packet: KeyframePacket, candidates: list[Candidate], what: str
+        self, packet: KeyframeKey, candidates: list[Candidate], what: str
     ) -> Candidate | None:
         """Of verified pairs of ``packet``'s keyframe with keyframes of its own agent, the
         one that passed C-Eq. 12 and agrees with the agent's poses

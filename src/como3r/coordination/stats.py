@@ -38,8 +38,12 @@ class CoordinatorStats:
     # ordered pairs the prior decoded for the coordinator (verification): the prior's work
     # its keyframes caused, as the agents' decodes are theirs (benchmarks/report.py)
     prior_decodes: int = 0
-    # keyframes of a batch left retrieval-only by verification.max_decodes_per_batch
+    # keyframes of a batch whose verification verification.max_decodes_per_batch deferred,
+    # those of them verified later (.deferral; equal once the cleanup ran), and of these
+    # the ones verified only when the input ended, before the terminal cleanup
     verification_skipped: int = 0
+    verification_deferred: int = 0
+    verification_deferred_at_finish: int = 0
     # keyframes whose encoding was made again from their colours (.encodings); their
     # seconds are stage_seconds["reencode"]
     reencodes: int = 0

@@ -257,6 +257,9 @@ class _Runtime(AgentEvents):
             while any(s.expected() for s in self.slots):
                 self._pump(0.5)
                 self._process_pending()
+                if not self.pending:  # idle: one keyframe a batch budget deferred (.deferral)
+                    for update in self.coordinator.verify_deferred_one():
+                        self._send_update(update)
                 self._check_timeouts([s for s in self.slots if s.expected()])
             torch.set_num_threads(max(1, finish_threads))
         self.finish_threads = torch.get_num_threads()

@@ -66,6 +66,9 @@ class Session:
         refused: the edges refused inside a gauge that await their recheck after the next
             in-stream global BA, ``(candidate index, refused by the scale watch)`` in the
             order they are tested (since version 8; none in older stores).
+        deferred: the keyframes a batch budget deferred, not verified yet, oldest first, as
+            ``(agent, kf_id, [(hit agent, hit keyframe, similarity), ...])`` (none in
+            stores written before the deferral).
         finished: the terminal cleanup ran.
         runtime: the multi-process runtime's state (:mod:`como3r.runtime.runtime_state`),
             None if no such runtime wrote the store.
@@ -85,6 +88,7 @@ class Session:
     alternation: list[dict[str, Any]] = field(default_factory=list)
     backlog: tuple[int, list[int]] = (0, [])
     refused: list[tuple[int, bool]] = field(default_factory=list)
+    deferred: list[tuple[int, int, list[tuple[int, int, float]]]] = field(default_factory=list)
     finished: bool = False
     runtime: dict[str, Any] | None = None
     reports: dict[int, AgentFinished] = field(default_factory=dict)
@@ -255,6 +259,10 @@ def _load(connection: sqlite3.Connection, path: Path, paged: bool) -> Session:
             state.get("backlog", {}).get("roots", []),
         ),
         refused=[(int(n), bool(by_scale)) for n, by_scale in state.get("refused", [])],
+        deferred=[
+            (int(agent), int(kf_id), [(int(a), int(k), float(s)) for a, k, s in hits])
+            for agent, kf_id, hits in state.get("deferred", [])
+        ],
         finished=bool(state.get("finished", False)),
         runtime=state.get("runtime"),
         reports={
@@ -264,6 +272,7 @@ def _load(connection: sqlite3.Connection, path: Path, paged: bool) -> Session:
     )
     _check_agents(session)
     _check_refused(session)
+    _check_deferred(session)
     return session
 
 
@@ -284,6 +293,15 @@ def _check_agents(session: Session) -> None:
             )
     if session.stats.get("keyframes", len(graph)) != len(graph):
         raise StoreError("inconsistent session store: the coordinator's keyframe count")
+
+
+def _check_deferred(session: Session) -> None:
+    """The deferred keyframes and their hits are stored keyframes."""
+    graph, agents = session.graph, len(session.agents)
+    for agent, kf_id, hits in session.deferred:
+        for a, k in [(agent, kf_id), *((a, k) for a, k, _ in hits)]:
+            if not (0 <= a < agents and 0 <= k < len(graph.agent_keyframes(a))):
+                raise StoreError("inconsistent session store: the deferred keyframes")
 
 
 def _check_refused(session: Session) -> None:

@@ -16,7 +16,8 @@ needs them: :mod:`como3r.coordination.encodings`) and poses, links with their ma
 components, the retrieval database (rebuilt from the stored features in their order),
 pending candidates with their matches, counters and the BA backlog. Edges refused inside
 a gauge that await their recheck after the next global BA come back with their matches and
-wait again (issue 41: else a resumed run would not test them again). Other candidates that
+wait again (issue 41: else a resumed run would not test them again), and so do the
+keyframes a batch budget deferred, with their retrieval hits. Other candidates that
 were rejected or found inconsistent keep only their figures (:class:`StoredVerification`):
 nothing uses their matches again.
 """
@@ -114,6 +115,9 @@ def restore_coordinator(session: Session, coordinator: Coordinator) -> None:
     # seeded from a finished run starts its counters afresh,
     # :func:`como3r.runtime.map_session.seed_map`, which an admission would take below zero)
     coordinator.restore_refused(session.refused)
+    # the keyframes a batch budget deferred: their hits came from the database as it was
+    # when they were queried, which cannot be queried again as it was
+    coordinator.restore_deferred(session.deferred)
 
 
 def load_state(

@@ -53,7 +53,10 @@ coordinator's (a restarted agent process that starts a new map segment has its o
                                           roots), refused (since version 8: the edges
                                           refused inside a gauge that await their recheck
                                           after the next global BA, [candidate n, refused
-                                          by the scale watch] in test order), finished
+                                          by the scale watch] in test order), deferred
+                                          (absent before: the keyframes a batch budget
+                                          deferred, [agent, kf_id, [[agent, keyframe,
+                                          similarity] of its hits]], oldest first), finished
                                           (the terminal cleanup ran),
                                           runtime (the multi-process runtime's view of its
                                           agents and map segments, and its transport's

@@ -371,6 +371,7 @@ class TableWriter:
             "alternation": coordinator.alternation,
             "backlog": {"new_edges": new_edges, "roots": roots},
             "refused": coordinator.refused_edges(),
+            "deferred": coordinator.deferred_keyframes(),
             "finished": self._finished,
         }
         self._upsert("state", {key: (json.dumps(value),) for key, value in state.items()})

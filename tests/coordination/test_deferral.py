@@ -1,0 +1,231 @@
+"""Deferred verification (coordination/deferral.py, issue 41): keyframes a batch budget
+(``verification.max_decodes_per_batch``) skips are verified later, newest first, with what a
+later batch leaves of its budget, one at a time when the runtime is idle, and all that
+remain before the terminal cleanup; each keyframe with hits is verified exactly once; the
+session store keeps the list for a resumed run."""
+
+from __future__ import annotations
+
+import shutil
+import sqlite3
+
+import pytest
+
+from como3r.config import Config, apply_overrides
+from como3r.coordination.coordinator import Coordinator
+from como3r.data.agent import open_agent
+from como3r.data.ground_truth import AgentFolderTruth
+from como3r.data.preprocess import make_view
+from como3r.data.synth import synthesize
+from como3r.frontend.packets import KeyframePacket
+from como3r.frontend.pairs import link_pairs
+from como3r.prior.simulated import SimulatedPrior
+from como3r.runtime.pipeline import _colors
+
+WIDTH, HEIGHT = 64, 48
+OVERRIDES = [
+    f"input.long_side={WIDTH}",
+    "global_ba.max_iters_stream=5",
+    "global_ba.max_iters_cleanup=5",
+    "global_ba.cleanup_passes=1",
+    "depth.alternation_rounds=0",
+]
+AGENTS = 3
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> tuple[SimulatedPrior, list[KeyframePacket]]:
+    """Three agents on a ring, every second frame a keyframe, interleaved in time."""
+    root = tmp_path_factory.mktemp("deferral")
+    synthesize(
+        root,
+        agents=AGENTS,
+        seed=0,
+        overlap=0.5,
+        frames=8,
+        preset="default",
+        width=WIDTH,
+        height=HEIGHT,
+    )
+    config = apply_overrides(Config(), OVERRIDES)
+    agents = {a: open_agent(root / f"agent_{a}") for a in range(AGENTS)}
+    prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth(agents, WIDTH))
+    packets: dict[int, list[KeyframePacket]] = {}
+    for a, agent in agents.items():
+        packets[a], previous = [], None
+        for kf_id, index in enumerate(range(0, agent.num_frames, 2)):
+            view = make_view(agent.load_frame(index), a, WIDTH)
+            enc = prior.encode(view)
+            pred = prior.decode(enc, enc)
+            link = (
+                None
+                if previous is None
+                else link_pairs(prior, [(previous, enc)], config.matching, config.tracking.q_min)[0]
+            )
+            packets[a].append(
+                KeyframePacket(
+                    agent=a,
+                    kf_id=kf_id,
+                    frame_index=index,
+                    timestamp=agent.load_frame(index).timestamp,
+                    T_WC=agent.groundtruth.T_WC[index].clone(),
+                    X_hat=pred.X_ii,
+                    C_hat=pred.C_ii,
+                    colors=_colors(view),
+                    encoding=enc,
+                    retrieval=prior.retrieval_features(enc),
+                    sequential_ij=None if link is None else link.ij,
+                    sequential_ji=None if link is None else link.ji,
+                    previous=None,
+                )
+            )
+            previous = enc
+    order = [
+        p for k in range(len(packets[0])) for a in range(AGENTS) for p in packets[a][k : k + 1]
+    ]
+    return prior, order
+
+
+class _Watched(Coordinator):
+    """Records the keyframes retrieval found hits for and every verification's keyframe."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.with_hits: list[tuple[int, int]] = []
+        self.verified: list[tuple[int, int]] = []
+
+    def _retrieve(self, packet):
+        hits = super()._retrieve(packet)
+        if hits:
+            self.with_hits.append((packet.agent, packet.kf_id))
+        return hits
+
+    def _verify(self, packet, hits):
+        if hits:
+            self.verified.append((packet.agent, packet.kf_id))
+        return super()._verify(packet, hits)
+
+
+def _coordinator(prior: SimulatedPrior, per_batch: int) -> _Watched:
+    config = apply_overrides(
+        Config(), [*OVERRIDES, f"verification.max_decodes_per_batch={per_batch}"]
+    )
+    return _Watched(prior, config, prior.codebook(), AGENTS)
+
+
+def _keys(coordinator: Coordinator) -> list[tuple[int, int]]:
+    return [(agent, kf_id) for agent, kf_id, _ in coordinator.deferred_keyframes()]
+
+
+def test_every_keyframe_with_hits_is_verified_once_by_the_end(scene) -> None:
+    """Batches of six under a budget of one keyframe's worst case: keyframes are skipped
+    (deferred) in-stream; finish verifies every one still deferred before the cleanup, so
+    the keyframes verified are those a run without the budget verifies, each once; without
+    a budget nothing is deferred."""
+    prior, order = scene
+    per_keyframe = Config().verification.max_decodes_per_keyframe
+    bounded, free = _coordinator(prior, per_keyframe), _coordinator(prior, 0)
+    for run in (bounded, free):
+        for start in range(0, len(order), 6):
+            run.add_keyframes(order[start : start + 6])
+    stats = bounded.stats
+    waiting = _keys(bounded)
+    assert stats.verification_skipped > 0 and waiting
+    assert stats.verification_deferred == stats.verification_skipped - len(waiting)
+    assert not set(waiting) & set(bounded.verified)  # deferred: not verified yet
+    assert bounded.stats.prior_decodes < free.stats.prior_decodes
+    bounded.finish()
+    free.finish()
+    assert bounded.deferred_keyframes() == []
+    assert stats.verification_deferred == stats.verification_skipped
+    assert stats.verification_deferred_at_finish == len(waiting)
+    assert bounded.verified[-len(waiting) :] == waiting[::-1]  # newest first
+    assert len(bounded.verified) == len(set(bounded.verified))
+    assert sorted(bounded.verified) == sorted(bounded.with_hits) == sorted(free.verified)
+    assert free.stats.verification_skipped == free.stats.verification_deferred == 0
+    assert bounded.stats.edges_tried > 0
+
+
+def test_a_later_batch_verifies_the_newest_deferred_with_its_leftover(scene) -> None:
+    """A batch of one after a skipping batch: its own keyframe first, then the newest
+    deferred keyframes while the batch budget leaves one keyframe's worst case; the batch's
+    decodes stay within the budget."""
+    prior, order = scene
+    per_keyframe = Config().verification.max_decodes_per_keyframe
+    coordinator = _coordinator(prior, 2 * per_keyframe)
+    coordinator.add_keyframes(order[:9])
+    waiting = _keys(coordinator)
+    assert len(waiting) >= 2
+    verified, decodes = len(coordinator.verified), coordinator.stats.prior_decodes
+    coordinator.add_keyframes([order[9]])
+    after = coordinator.verified[verified:]
+    own = (order[9].agent, order[9].kf_id)
+    later = [k for k in after if k != own]
+    assert later and later == waiting[::-1][: len(later)]  # the newest deferred ones
+    assert _keys(coordinator) == waiting[: len(waiting) - len(later)]
+    assert coordinator.stats.verification_deferred == len(later)
+    assert coordinator.stats.prior_decodes - decodes <= 2 * per_keyframe
+    coordinator.pool.shutdown()
+
+
+def test_an_idle_coordinator_verifies_one_deferred_keyframe_at_a_time(scene) -> None:
+    prior, order = scene
+    coordinator = _coordinator(prior, Config().verification.max_decodes_per_keyframe)
+    assert coordinator.verify_deferred_one() == []  # nothing deferred: nothing happens
+    coordinator.add_keyframes(order[:9])
+    waiting = _keys(coordinator)
+    assert len(waiting) >= 2
+    verified = len(coordinator.verified)
+    coordinator.verify_deferred_one()
+    assert coordinator.verified[verified:] == [waiting[-1]]
+    assert _keys(coordinator) == waiting[:-1]
+    assert coordinator.stats.verification_deferred == 1
+    coordinator.pool.shutdown()
+
+
+def test_a_resumed_coordinator_verifies_the_deferred_keyframes(scene, tmp_path) -> None:
+    """The session store keeps the deferred keyframes with their hits; the resumed
+    coordinator verifies them as the interrupted one would have; a store without the list
+    (written before it existed) reads as none deferred."""
+    from como3r.errors import StoreError
+    from como3r.store.reader import read_session
+    from como3r.store.resume import restore_coordinator
+    from como3r.store.writer import SessionStore
+
+    prior, order = scene
+    coordinator = _coordinator(prior, Config().verification.max_decodes_per_keyframe)
+    path = tmp_path / "session.db"
+    store = SessionStore.create(path, coordinator.config, coordinator, settles=True)
+    coordinator.journal = store
+    coordinator.add_keyframes(order[:9])
+    coordinator.pool.shutdown()
+    store.close()
+    deferred = coordinator.deferred_keyframes()
+    assert deferred and all(hits for _, _, hits in deferred)
+
+    older = tmp_path / "older.db"
+    shutil.copy(path, older)
+    with sqlite3.connect(older) as db:
+        db.execute("DELETE FROM state WHERE key = 'deferred'")
+    db.close()
+    assert read_session(older).deferred == []
+    # a list that names a keyframe the store does not hold is refused
+    with sqlite3.connect(older) as db:
+        db.execute("INSERT INTO state VALUES ('deferred', '[[0, 99, [[1, 0, 0.5]]]]')")
+    db.close()
+    with pytest.raises(StoreError, match="the deferred keyframes"):
+        read_session(older)
+
+    session = read_session(path, paged=True)
+    assert session.deferred == deferred
+    resumed = _coordinator(prior, Config().verification.max_decodes_per_keyframe)
+    restore_coordinator(session, resumed)
+    assert resumed.deferred_keyframes() == deferred
+    skipped = resumed.stats.verification_skipped
+    store = SessionStore.reopen(path, resumed, settles=True)
+    resumed.journal = store
+    resumed.finish()
+    store.close()
+    assert resumed.verified == [(a, k) for a, k, _ in deferred[::-1]]
+    assert resumed.stats.verification_deferred == skipped
+    assert read_session(path).deferred == []
