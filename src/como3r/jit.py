@@ -6,17 +6,29 @@ subset numba compiles, one loop iteration per pixel or per block of matches, wit
 for the outer loop. :func:`compiled` gives a loop's machine code (compiled once per machine
 and cached on disk): serial on one PyTorch thread, parallel over ``torch.get_num_threads()``
 threads otherwise, so a kernel uses the cores the process was given and no more.
+
+A loop's first call in a process holds a lock file next to its cache: processes starting
+together on a cold cache (a run's agents, parallel test workers) would each compile the same
+loop (seconds of CPU); the later ones wait and load the first one's machine code instead.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
 
 import numba
 import torch
 from numba import njit
+
+try:
+    import fcntl
+except ImportError:  # Windows: no lock, each process compiles what its cache lacks
+    fcntl = None  # type: ignore[assignment]
 
 __all__ = ["compiled"]
 
@@ -60,4 +72,24 @@ def compiled(
     kernel = _variant(loop, threads > 1, frozenset(fastmath or ()), error_model)
     if threads > 1 and numba.get_num_threads() != threads:
         numba.set_num_threads(threads)
-    return kernel
+    return kernel if kernel.signatures else functools.partial(_first_call, kernel)
+
+
+def _first_call(kernel: Any, *args: Any) -> Any:
+    """``kernel(*args)`` compiled, or loaded from its cache, while no other process of this
+    machine compiles it: one that does compile it first, and this call then loads its code."""
+    with _compile_lock(Path(kernel._cache.cache_path) / f"{kernel.py_func.__qualname__}.lock"):
+        return kernel(*args)
+
+
+@contextlib.contextmanager
+def _compile_lock(path: Path) -> Iterator[None]:
+    """An exclusive lock on ``path`` (created; kept, as removing it would race) among
+    processes; released when the holder ends, however it ends."""
+    if fcntl is None:
+        yield
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        yield  # closing the file releases the lock

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -104,3 +106,17 @@ def test_the_task_says_whether_keyframes_carry_their_encoding(tmp_path, prior) -
     packets = [m.packet for m in sent.messages if isinstance(m, KeyframeMessage)]
     assert packets and all((p.encoding is not None) is task.send_encoding for p in packets)
     assert all(p.colors.shape[:2] == p.X_hat.shape[:2] for p in packets)
+
+
+def test_an_agent_process_imports_no_back_end() -> None:
+    """An agent's process (spawned: its entry module; ``como3r agent``: the network runtime)
+    needs no coordinator, back-end or scikit-image: importing them costs it ~0.5 s CPU."""
+    probe = (
+        "import sys, como3r.runtime.agent_worker, como3r.runtime.network; "
+        "print(sorted(m for m in sys.modules if m.startswith(('como3r.coordination', "
+        "'como3r.backend', 'skimage'))))"
+    )
+    found = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True
+    )
+    assert found.stdout.strip() == "[]", found.stdout

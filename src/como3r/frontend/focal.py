@@ -31,7 +31,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
-from scipy.optimize import minimize_scalar
 from torch import Tensor
 
 from como3r.config import GlobalBAConfig, TrackingConfig
@@ -107,6 +106,9 @@ def estimate_log_focal(
     Returns:
         The correction with the smallest energy.
     """
+    # local: scipy.optimize costs a process ~0.2 s CPU to import; only self-calibration searches
+    from scipy.optimize import minimize_scalar
+
     energy = _PairEnergy(pairs, tracking, max_matches, max_iters)
     # Brent's bounded search (golden sections and parabolic steps): on the pairs of
     # tests/frontend/test_focal.py 7-10 relative solves where a golden-section search took

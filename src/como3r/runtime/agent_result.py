@@ -8,18 +8,21 @@ agent's segments for the outputs (:mod:`.results`, which re-exports these names)
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from como3r.backend.global_graph import GlobalGraph
 from como3r.frontend.agent import AgentFrontend, FrontendStats
 from como3r.frontend.keyframes import Keyframe, apply_pose_update
 from como3r.frontend.packets import PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.frontend.paging import read_fields
 from como3r.geometry.lie import sim3_compose
 from como3r.transport.messages import AgentFinished, EdgeSummary
+
+if TYPE_CHECKING:  # an agent's process imports this module and needs no back-end (~0.5 s CPU)
+    from como3r.backend.global_graph import GlobalGraph
 
 
 @dataclass

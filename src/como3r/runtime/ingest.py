@@ -27,12 +27,14 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Sequence
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
-from como3r.coordination.coordinator import Coordinator
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.paging import read_fields
 from como3r.transport import codec, codec_reuse
+
+if TYPE_CHECKING:  # an agent's process imports this module and needs no back-end (~0.5 s CPU)
+    from como3r.coordination.coordinator import Coordinator
 
 T = TypeVar("T")
 

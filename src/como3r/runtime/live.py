@@ -17,13 +17,12 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from como3r.coordination.coordinator import Coordinator
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.packets import KeyframePacket, PoseUpdate
 from como3r.geometry.camera import estimate_focal
@@ -38,6 +37,9 @@ from como3r.live import (
     TrajectoryEvent,
 )
 from como3r.progress import tracking_state
+
+if TYPE_CHECKING:  # an agent's process imports this module and needs no back-end (~0.5 s CPU)
+    from como3r.coordination.coordinator import Coordinator
 
 
 class _PointmapKeyframe(Protocol):

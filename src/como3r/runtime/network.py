@@ -15,20 +15,21 @@ import dataclasses
 import logging
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
 from como3r.config import Config
 from como3r.errors import InputError
 from como3r.progress import ProgressCallback
-from como3r.runtime.agent_events import RuntimeOptions
 from como3r.runtime.agent_worker import prior_fields, run_agent
-from como3r.runtime.multiprocess import coordinate
 from como3r.runtime.pipeline import PriorSpec, RunSummary, open_agents
 from como3r.transport.spool import DEFAULT_MEMORY_BYTES, Spool
 from como3r.transport.zenoh_agent import SendStatus, ZenohAgentLink
-from como3r.transport.zenoh_hub import ZenohHub
 from como3r.transport.zenoh_protocol import Keys, ZenohOptions, open_session
+
+if TYPE_CHECKING:  # an agent's process (``como3r agent``) needs no coordinator (~0.5 s CPU)
+    from como3r.runtime.agent_events import RuntimeOptions
 
 logger = logging.getLogger(__name__)
 
@@ -69,6 +70,9 @@ def serve(
         InputError: bad ground truth, a network error, or every agent failed.
         StoreError: (``resume``) a store that cannot be resumed.
     """
+    from como3r.runtime.multiprocess import coordinate
+    from como3r.transport.zenoh_hub import ZenohHub
+
     if ground_truth and len(ground_truth) != agents:
         raise InputError(f"--gt: {len(ground_truth)} given for {agents} agents")
     inputs = open_agents(list(ground_truth), config) if ground_truth else []

@@ -26,12 +26,12 @@ import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from como3r.config import Config
-from como3r.coordination.coordinator import Coordinator
 from como3r.data.agent import open_agent
 from como3r.data.agent_input import AgentInput
 from como3r.data.preprocess import make_view, upsampling
@@ -49,18 +49,19 @@ from como3r.io.output import atomic_output_dir
 from como3r.live import LiveCallback
 from como3r.prior.base import Prior, View
 from como3r.progress import AgentProgress, PhaseCallback, ProgressCallback, tracking_state
-from como3r.runtime import outputs
 from como3r.runtime.agent_loop import AgentLoop
-from como3r.runtime.disk_guard import DiskGuard, store_metrics
 from como3r.runtime.ingest import hold_the_coordinators, received
 from como3r.runtime.interrupts import checkpoint, finishing, interrupts_are_checkpoints
-from como3r.runtime.live import CoordinatorLive
-from como3r.runtime.map_session import SavedMap, hold_map, map_results, seed_map
 from como3r.runtime.prefetch import prepared_frames
-from como3r.runtime.results import AgentResult
-from como3r.store.reader import resumable
-from como3r.store.resume import open_store
-from como3r.store.writer import SessionStore
+
+# the coordinator's side is imported where ``run`` uses it: an agent's process imports this
+# module for its prior and frames only, and the back-end's imports cost it ~0.5 s CPU
+if TYPE_CHECKING:
+    from como3r.coordination.coordinator import Coordinator
+    from como3r.runtime.live import CoordinatorLive
+    from como3r.runtime.map_session import SavedMap
+    from como3r.runtime.results import AgentResult
+    from como3r.store.writer import SessionStore
 
 logger = logging.getLogger(__name__)
 
@@ -300,6 +301,13 @@ def run(
             agents keep their ids, the new ones are numbered after them, the outputs hold
             them all; without ground truth for the saved agents, nothing is evaluated.
     """
+    from como3r.coordination.coordinator import Coordinator
+    from como3r.runtime.disk_guard import DiskGuard
+    from como3r.runtime.live import CoordinatorLive
+    from como3r.runtime.map_session import hold_map, map_results, seed_map
+    from como3r.store.reader import resumable
+    from como3r.store.resume import open_store
+
     agents = open_agents(agent_paths, config, cameras=True)
     first = 0 if saved_map is None else saved_map.agents  # the id of the first new agent
     prior, codebook = build_prior(
@@ -452,6 +460,9 @@ def _write(
     """The output folder; ``agents`` are the inputs of the last ``len(agents)`` results
     (the others came with a saved map: then nothing is evaluated); ``store``: the run's
     session store (``metrics.json``: the bytes written to it)."""
+    from como3r.runtime import outputs
+    from como3r.runtime.disk_guard import store_metrics
+
     metrics, components = outputs.write_run_files(
         staging, results, coordinator, config, prior.describe(), seconds, progress
     )

@@ -20,13 +20,12 @@ import time
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from como3r.coordination.coordinator import Coordinator
 from como3r.frontend.agent import FrontendStats
 from como3r.frontend.packets import PoseUpdate
 from como3r.runtime.agent_result import (
@@ -38,6 +37,9 @@ from como3r.runtime.agent_result import (
     graph_view,
     stored_views,
 )
+
+if TYPE_CHECKING:  # an agent's process imports this module and needs no back-end (~0.5 s CPU)
+    from como3r.coordination.coordinator import Coordinator
 
 # an agent's own result (agent_result.py) is part of this module's interface
 __all__ = [
