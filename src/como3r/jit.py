@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import logging
 import types
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -31,6 +32,8 @@ except ImportError:  # Windows: no lock, each process compiles what its cache la
     fcntl = None  # type: ignore[assignment]
 
 __all__ = ["compiled"]
+
+logger = logging.getLogger(__name__)
 
 
 @functools.cache
@@ -89,7 +92,15 @@ def _compile_lock(path: Path) -> Iterator[None]:
     if fcntl is None:
         yield
         return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a") as held:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        held = open(path, "a")  # closed below, after the caller's block
+    except OSError as error:  # a cache folder this process cannot write: compile unlocked
+        logger.debug("jit: no compile lock at %s (%s)", path, error)
+        held = None
+    if held is None:
+        yield
+        return
+    with held:
         fcntl.flock(held, fcntl.LOCK_EX)
         yield  # closing the file releases the lock
