@@ -31,20 +31,6 @@ logger = logging.getLogger("como3r.coordination.coordinator")
 #: ones): each costs one relative solve per evaluation of the golden-section search.
 FOCAL_REFINEMENT_PAIRS = 4
 
-#: A merge's focal search (:meth:`FocalAlignment._align_focal`) is coarser than
-#: :func:`~como3r.frontend.focal.estimate_log_focal`'s defaults (4096 matches per direction,
-#: tolerance 1e-3, 10 Gauss-Newton iterations per solve): the terminal cleanup solves every
-#: agent's focal length again on all its edges (``gauge.focal_ba``, or the re-alignment), so a
-#: merge only has to bring the moving component close. Measured on the 16-agent scene of
-#: benchmarks/team_scale.py (15 merges, calls replayed with benchmarks/coordinator_replay.py):
-#: 305 -> 175 ms of coordinator thread CPU per merge, in-stream keyframe ATE 44.4 -> 41.3 mm;
-#: final merged ATE of benchmarks/robustness.py's centralized grid (prior v2, 3 agents, 160x120,
-#: long side 160, 80 frames, tabletop / room / aerial, seeds 0 / 1, % of path) 0.236 / 0.213,
-#: 0.185 / 0.261, 0.201 / 0.260 -> 0.240 / 0.213, 0.185 / 0.261, 0.205 / 0.259
-MERGE_FOCAL_MATCHES = 1024
-MERGE_FOCAL_TOLERANCE = 3e-3
-MERGE_FOCAL_ITERS = 5
-
 
 class FocalAlignment:
     """Focal-length alignment of the :class:`~como3r.coordination.coordinator.Coordinator`
@@ -66,7 +52,7 @@ class FocalAlignment:
         pairs = [self._focal_pair(c, self._moving_is_j(c)) for c in supporters]
         if any(pair is None for pair in pairs):
             return None
-        return self._apply_focal(moved_agents, pairs, "aligned", coarse=True)
+        return self._apply_focal(moved_agents, pairs, "aligned")
 
     def _aligns_focal(self) -> bool:
         config = self.config
@@ -74,27 +60,15 @@ class FocalAlignment:
             config.gauge.align_focal and config.tracking.self_calibration and not config.calibrated
         )
 
-    def _apply_focal(
-        self, agents: list[int], pairs: Sequence[FocalPair], how: str, coarse: bool = False
-    ) -> float | None:
-        """Estimate the moving side's log focal correction on ``pairs`` (``coarse``: a
-        merge's search, :data:`MERGE_FOCAL_MATCHES`) and give it to ``agents``; returns the
-        correction (None without pairs)."""
+    def _apply_focal(self, agents: list[int], pairs: Sequence[FocalPair], how: str) -> float | None:
+        """Estimate the moving side's log focal correction on ``pairs`` and give it to
+        ``agents``; returns the correction (None without pairs)."""
         if not pairs:
             return None
         start = time.perf_counter()
-        search = self.config.gauge.focal_search
-        if coarse:
-            estimate = estimate_log_focal(
-                pairs,
-                self.config.tracking,
-                search=search,
-                max_matches=MERGE_FOCAL_MATCHES,
-                tolerance=MERGE_FOCAL_TOLERANCE,
-                max_iters=MERGE_FOCAL_ITERS,
-            )
-        else:
-            estimate = estimate_log_focal(pairs, self.config.tracking, search=search)
+        estimate = estimate_log_focal(
+            pairs, self.config.tracking, search=self.config.gauge.focal_search
+        )
         for agent in agents:
             self.graph.rescale_focal(agent, estimate.log_focal)
         self.stats.add_time("focal", time.perf_counter() - start)
