@@ -13,14 +13,10 @@ import pytest
 
 from como3r.config import Config, apply_overrides
 from como3r.coordination.coordinator import Coordinator
-from como3r.data.agent import open_agent
-from como3r.data.ground_truth import AgentFolderTruth
-from como3r.data.preprocess import make_view
-from como3r.data.synth import synthesize
 from como3r.frontend.packets import KeyframePacket
-from como3r.frontend.pairs import link_pairs
 from como3r.prior.simulated import SimulatedPrior
-from como3r.runtime.pipeline import _colors
+
+from .ring_keyframes import ring_keyframes
 
 WIDTH, HEIGHT = 64, 48
 OVERRIDES = [
@@ -36,54 +32,10 @@ AGENTS = 3
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> tuple[SimulatedPrior, list[KeyframePacket]]:
     """Three agents on a ring, every second frame a keyframe, interleaved in time."""
-    root = tmp_path_factory.mktemp("deferral")
-    synthesize(
-        root,
-        agents=AGENTS,
-        seed=0,
-        overlap=0.5,
-        frames=8,
-        preset="default",
-        width=WIDTH,
-        height=HEIGHT,
-    )
     config = apply_overrides(Config(), OVERRIDES)
-    agents = {a: open_agent(root / f"agent_{a}") for a in range(AGENTS)}
-    prior = SimulatedPrior(config.simulated_prior, AgentFolderTruth(agents, WIDTH))
-    packets: dict[int, list[KeyframePacket]] = {}
-    for a, agent in agents.items():
-        packets[a], previous = [], None
-        for kf_id, index in enumerate(range(0, agent.num_frames, 2)):
-            view = make_view(agent.load_frame(index), a, WIDTH)
-            enc = prior.encode(view)
-            pred = prior.decode(enc, enc)
-            link = (
-                None
-                if previous is None
-                else link_pairs(prior, [(previous, enc)], config.matching, config.tracking.q_min)[0]
-            )
-            packets[a].append(
-                KeyframePacket(
-                    agent=a,
-                    kf_id=kf_id,
-                    frame_index=index,
-                    timestamp=agent.load_frame(index).timestamp,
-                    T_WC=agent.groundtruth.T_WC[index].clone(),
-                    X_hat=pred.X_ii,
-                    C_hat=pred.C_ii,
-                    colors=_colors(view),
-                    encoding=enc,
-                    retrieval=prior.retrieval_features(enc),
-                    sequential_ij=None if link is None else link.ij,
-                    sequential_ji=None if link is None else link.ji,
-                    previous=None,
-                )
-            )
-            previous = enc
-    order = [
-        p for k in range(len(packets[0])) for a in range(AGENTS) for p in packets[a][k : k + 1]
-    ]
-    return prior, order
+    return ring_keyframes(
+        tmp_path_factory.mktemp("deferral"), config, AGENTS, WIDTH, HEIGHT, portable_from=None
+    )
 
 
 class _Watched(Coordinator):
