@@ -15,6 +15,17 @@ from como3r.frontend.pairs import link_pairs
 from como3r.prior.simulated import SimulatedPrior
 from como3r.runtime.pipeline import _colors
 
+WIDTH, HEIGHT = 64, 48
+AGENTS = 3
+#: a short run: few BA iterations, one cleanup pass, no depth alternation
+SHORT_RUN = [
+    f"input.long_side={WIDTH}",
+    "global_ba.max_iters_stream=5",
+    "global_ba.max_iters_cleanup=5",
+    "global_ba.cleanup_passes=1",
+    "depth.alternation_rounds=0",
+]
+
 
 def ring_keyframes(
     root: Path, config: Config, agents: int, width: int, height: int, portable_from: int | None

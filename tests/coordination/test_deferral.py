@@ -16,17 +16,9 @@ from como3r.coordination.coordinator import Coordinator
 from como3r.frontend.packets import KeyframePacket
 from como3r.prior.simulated import SimulatedPrior
 
-from .ring_keyframes import ring_keyframes
+from .ring_keyframes import AGENTS, HEIGHT, SHORT_RUN, WIDTH, ring_keyframes
 
-WIDTH, HEIGHT = 64, 48
-OVERRIDES = [
-    f"input.long_side={WIDTH}",
-    "global_ba.max_iters_stream=5",
-    "global_ba.max_iters_cleanup=5",
-    "global_ba.cleanup_passes=1",
-    "depth.alternation_rounds=0",
-]
-AGENTS = 3
+OVERRIDES = [*SHORT_RUN]
 
 
 @pytest.fixture(scope="module")
