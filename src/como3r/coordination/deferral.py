@@ -137,7 +137,8 @@ class DeferredVerification(InterAgentLinking):
         are verified. The same verifications in the same order (the pool only runs ahead),
         one solve after all of them. Measured on the 16-agent scene of
         benchmarks/team_scale.py (its calls replayed at ``max_decodes_per_batch=12``, 32
-        keyframes deferred, RSS 2.0 GB before): peak RSS 3.72 -> 3.35 GB, the same 203 decodes, thread CPU 10.2 -> 9.9 s.
+        keyframes deferred, RSS 2.0 GB before): peak RSS 3.72 -> 3.35 GB, the same 203
+        decodes, thread CPU 10.2 -> 9.9 s.
         """
         if not self._deferred:
             return []
