@@ -254,9 +254,7 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
             self._settle()
         if fresh:
             updates.extend(self._defer(skipped, self.stats.prior_decodes - spent))
-        if fresh and self._new_edges >= self.config.global_ba.trigger_interval_edges:
-            updates.extend(self._global_ba())
-            self._recheck_refused()
+            self._solve_on_trigger(updates)
         self.stats.batches += int(bool(fresh))
         self.stats.largest_batch = max(self.stats.largest_batch, len(fresh))
         return self._record(self._count(updates))

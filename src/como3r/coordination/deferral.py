@@ -93,12 +93,12 @@ class DeferredVerification(InterAgentLinking):
             return []
         return self._verify_deferred(self._deferred_budget() - spent)
 
-    def _verify_deferred(self, budget: float) -> list[PoseUpdate]:
+    def _verify_deferred(self, budget: int) -> list[PoseUpdate]:
         """Verify deferred keyframes newest first while the decodes so far plus one
         keyframe's worst case fit ``budget``; their edges are admitted as a batch's. The
         keyframes certain to fit run ahead on the pool (:mod:`.decode_pool`)."""
         worst = self._keyframe_budget()
-        certain = len(self._deferred) if math.isinf(budget) else max(0, int(budget // worst))
+        certain = max(0, budget // worst)
         self._speculate([(d, list(d.hits)) for d in self._deferred[::-1][:certain]])
         start, updates = self.stats.prior_decodes, []
         try:
@@ -111,9 +111,10 @@ class DeferredVerification(InterAgentLinking):
             self._settle()
         return updates
 
-    def _solve_deferred(self, updates: list[PoseUpdate]) -> list[PoseUpdate]:
-        """The in-stream global BA after deferred verifications, on its usual trigger
-        (``global_ba.trigger_interval_edges``), and the recheck of refused edges after it."""
+    def _solve_on_trigger(self, updates: list[PoseUpdate]) -> list[PoseUpdate]:
+        """The in-stream global BA after a batch's or deferred verifications, on its trigger
+        (``global_ba.trigger_interval_edges``), and the recheck of refused edges after it;
+        its updates are added to ``updates``, which is returned."""
         if self._new_edges >= self.config.global_ba.trigger_interval_edges:
             updates.extend(self._global_ba())
             self._recheck_refused()
@@ -125,7 +126,7 @@ class DeferredVerification(InterAgentLinking):
         For a runtime whose coordinator has no keyframe waiting; returns the updates."""
         if not self._deferred:
             return []
-        updates = self._solve_deferred(self._verify_deferred(self._keyframe_budget()))
+        updates = self._solve_on_trigger(self._verify_deferred(self._keyframe_budget()))
         return self._record(self._count(updates))
 
     def _verify_all_deferred(self) -> list[PoseUpdate]:
@@ -151,7 +152,7 @@ class DeferredVerification(InterAgentLinking):
         updates: list[PoseUpdate] = []
         while self._deferred:
             updates.extend(self._verify_deferred(chunk))
-        return self._solve_deferred(updates)
+        return self._solve_on_trigger(updates)
 
     def deferred_keyframes(self) -> list[StoredDeferred]:
         """The deferred keyframes, oldest first, as the session store keeps them."""

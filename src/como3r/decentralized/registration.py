@@ -10,8 +10,8 @@ against 1.25 MB of float16 tokens; :meth:`Registrar.reply_for_peer`), matches th
 inliers; a pose explaining fewer than :func:`required_inliers` of the matches is a failed
 registration, a test relative to the number of matches so that it holds at any image size).
 The pose of a registered pair is then fitted to the two decodes' pointmaps of every pixel
-(:func:`~.dense_fit.dense_similarity`, ``registration.pose_fit``: ``dense``), or kept from the matches'
-consensus (``matches``).
+(:func:`~.dense_fit.dense_similarity`, ``registration.pose_fit``: ``dense``), or kept from
+the matches' consensus (``matches``).
 Encodings are cached, so a keyframe in several candidates is encoded (and sent)
 once; :class:`RegistrationStats` counts what a naive pipeline that encodes both images of
 every pair would have encoded.
