@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from torch import Tensor
+
 from como3r.config import Config
 from como3r.data.agent import open_agent
 from como3r.data.ground_truth import AgentFolderTruth
@@ -12,6 +14,7 @@ from como3r.data.preprocess import make_view
 from como3r.data.synth import synthesize
 from como3r.frontend.packets import KeyframePacket
 from como3r.frontend.pairs import link_pairs
+from como3r.prior.base import Encoding, EncodingRecord, PairPrediction, Prior, View
 from como3r.prior.simulated import SimulatedPrior
 from como3r.runtime.pipeline import _colors
 
@@ -54,27 +57,19 @@ def ring_keyframes(
             frame = agent.load_frame(index)
             view = make_view(frame, a, width)
             enc = prior.encode(view)
-            pred = prior.decode(enc, enc)
-            link = (
-                None
-                if previous is None
-                else link_pairs(prior, [(previous, enc)], config.matching, config.tracking.q_min)[0]
-            )
             packets[a].append(
-                KeyframePacket(
-                    agent=a,
+                keyframe_packet(
+                    prior,
+                    config,
+                    view,
+                    enc,
+                    prior.decode(enc, enc),
+                    previous,
                     kf_id=kf_id,
                     frame_index=index,
                     timestamp=frame.timestamp,
                     T_WC=agent.groundtruth.T_WC[index].clone(),
-                    X_hat=pred.X_ii,
-                    C_hat=pred.C_ii,
-                    colors=_colors(view),
                     encoding=enc.portable() if portable else enc,
-                    retrieval=prior.retrieval_features(enc),
-                    sequential_ij=None if link is None else link.ij,
-                    sequential_ji=None if link is None else link.ji,
-                    previous=None,
                 )
             )
             previous = enc
@@ -82,3 +77,43 @@ def ring_keyframes(
         p for k in range(len(packets[0])) for a in range(agents) for p in packets[a][k : k + 1]
     ]
     return prior, order
+
+
+def keyframe_packet(
+    prior: Prior,
+    config: Config,
+    view: View,
+    enc: Encoding,
+    pred: PairPrediction,
+    previous: Encoding | None,
+    *,
+    kf_id: int,
+    frame_index: int,
+    timestamp: float,
+    T_WC: Tensor,
+    encoding: Encoding | EncodingRecord,
+) -> KeyframePacket:
+    """A keyframe of agent ``view.agent`` as its front-end sends it: its canonical pointmap
+    (``pred``, the prior's self-decode of ``enc``) and its sequential edge to the agent's
+    previous keyframe (``previous``'s encoding; None for its first), decoded and matched
+    here."""
+    link = (
+        None
+        if previous is None
+        else link_pairs(prior, [(previous, enc)], config.matching, config.tracking.q_min)[0]
+    )
+    return KeyframePacket(
+        agent=view.agent,
+        kf_id=kf_id,
+        frame_index=frame_index,
+        timestamp=timestamp,
+        T_WC=T_WC,
+        X_hat=pred.X_ii,
+        C_hat=pred.C_ii,
+        colors=_colors(view),
+        encoding=encoding,
+        retrieval=prior.retrieval_features(enc),
+        sequential_ij=None if link is None else link.ij,
+        sequential_ji=None if link is None else link.ji,
+        previous=None,
+    )

@@ -46,7 +46,8 @@ from como3r.geometry.lie import (
 from como3r.geometry.umeyama import umeyama_rmse, umeyama_sim3
 from como3r.prior.retrieval import RetrievalDatabase
 from como3r.prior.simulated import SimulatedPrior
-from como3r.runtime.pipeline import _colors
+
+from .ring_keyframes import keyframe_packet
 
 WIDTH, HEIGHT = 96, 72
 # Shorter global solves keep the module fast on CPU: in float32 the Gauss-Newton step norm
@@ -126,26 +127,19 @@ def _build(
             T_true[7] = (X_true[seen].norm(dim=-1) / pred.X_ii[seen].norm(dim=-1)).median()
             truth[(a, kf_id)] = T_true
             points[(a, kf_id)] = (X_true, seen)
-            link = (
-                None
-                if previous is None
-                else link_pairs(prior, [(previous, enc)], config.matching, config.tracking.q_min)[0]
-            )
             packets[a].append(
-                KeyframePacket(
-                    agent=a,
+                keyframe_packet(
+                    prior,
+                    config,
+                    view,
+                    enc,
+                    pred,
+                    previous,
                     kf_id=kf_id,
                     frame_index=index,
                     timestamp=frame.timestamp,
                     T_WC=sim3_compose(gauges[a], T_true),
-                    X_hat=pred.X_ii,
-                    C_hat=pred.C_ii,
-                    colors=_colors(view),
                     encoding=enc,
-                    retrieval=prior.retrieval_features(enc),
-                    sequential_ij=None if link is None else link.ij,
-                    sequential_ji=None if link is None else link.ji,
-                    previous=None,
                 )
             )
             previous = enc
