@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 # Tests never take the width of the terminal they run in: rich's consoles (cli_common's are
@@ -20,6 +21,9 @@ os.environ.setdefault("OMP_WAIT_POLICY", OMP_WAIT_POLICY)
 
 import pytest  # noqa: E402
 import torch  # noqa: E402
+
+from como3r.config import Config, apply_overrides  # noqa: E402
+from como3r.data.synth import synthesize  # noqa: E402
 
 from .io.tiny_run import OVERRIDES, tiny_run  # noqa: E402
 
@@ -89,3 +93,50 @@ def tiny_run_dir(tmp_path_factory) -> Path:
     (tests/io/tiny_run.py), made once for the tests that only read it: the exports and the
     HTML report. Its scene is the sibling folder ``scene``."""
     return tiny_run(tmp_path_factory.mktemp("tiny_run"), OVERRIDES)
+
+
+#: image width and height of :func:`v2_case`'s scenes, and the ``input.long_side`` it sets
+V2_WIDTH, V2_HEIGHT = 160, 120
+
+
+@pytest.fixture(scope="session")
+def v2_case(tmp_path_factory) -> Callable[..., tuple[list[Path], float, Config]]:
+    """``v2_case(agents, frames, scene_seed, prior_seed)``, for the accuracy tests on the
+    hardest simulated prior (tests/*/test_accuracy_v2.py): a scene of
+    benchmarks/robustness.py's ``room`` family (the ``default`` preset at scale 1, overlap
+    0.2, laid out for 100 frames of which each agent runs ``frames``) rendered at 160x120;
+    returns its agent folders, the mean ground-truth path of an agent (``scene.json``'s
+    ``path_length_m``, the benchmark's "% of path") and the configuration to run it with:
+    the default, but for ``input.long_side`` 160 (the rendered width: the default 512
+    decodes about ten times the pixels, minutes per run on a CPU) and the ``v2`` prior drawn
+    with ``prior_seed``."""
+
+    def make(
+        agents: int, frames: int, scene_seed: int, prior_seed: int
+    ) -> tuple[list[Path], float, Config]:
+        root = tmp_path_factory.mktemp(f"v2_a{agents}_f{frames}_s{scene_seed}")
+        synthesize(
+            root,
+            agents=agents,
+            seed=scene_seed,
+            overlap=0.2,
+            frames=frames,
+            preset="default",
+            width=V2_WIDTH,
+            height=V2_HEIGHT,
+            loop_frames=100,
+            progress=None,
+        )
+        info = json.loads((root / "scene.json").read_text())
+        path = sum(a["path_length_m"] for a in info["agents_info"]) / agents
+        config = apply_overrides(
+            Config(),
+            [
+                f"input.long_side={V2_WIDTH}",
+                "simulated_prior.model=v2",
+                f"simulated_prior.seed={prior_seed}",
+            ],
+        )
+        return [root / f"agent_{a}" for a in range(agents)], path, config
+
+    return make

@@ -41,7 +41,11 @@ def tracked(tmp_path_factory, process_frames):
         progress=None,
     )
     agent = open_agent(root / "agent_0")
-    # the easy simulated prior: these accuracy bounds fail under the realistic default
+    # the easy simulated prior: the tests below check the front-end's bookkeeping (keyframe
+    # count, anchors, pose updates) on a ring laid out for these 24 frames, about 30 deg per
+    # processed frame, where the realistic and v2 priors make every processed frame a
+    # keyframe and relocalize one (measured ATE 1.24 and 1.48 % of the path, easy 0.55 %).
+    # Accuracy on the v2 prior at the benchmark's motion: test_accuracy_v2.py.
     config = apply_overrides(Config(), [f"input.long_side={WIDTH}", "simulated_prior.model=easy"])
     prior = SimulatedPrior(
         config.simulated_prior, AgentFolderTruth({0: agent}, config.input.long_side)
@@ -132,7 +136,9 @@ def _run_first_frames(
     patch_track=None,
 ) -> tuple[AgentFrontend, dict[int, str]]:
     """Every other one of the first ``count`` frames through a front-end on the easy
-    simulated prior (these tests need its precision), optionally with only sky at frame
+    simulated prior (these tests need its precision: which frame is lost, relocalized or a
+    keyframe, and exact counts; accuracy on the v2 prior is test_accuracy_v2.py's),
+    optionally with only sky at frame
     ``sky_at``, the prior's decode wrapped by ``patch_decode(decode)`` and the tracker's
     ``track`` by ``patch_track(track)``."""
     config = apply_overrides(
