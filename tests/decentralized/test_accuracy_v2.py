@@ -14,13 +14,15 @@ accuracy bound on the hardest prior is here.
 Measured at commit time (scene seed 0, ATE % of a robot's mean path of ``scene.json``,
 every frame placed, one map), prior seed 0 / 1 / 2 (odometry seeds 1000 x the prior seed
 plus the robot): merged 4.92 / 2.22 / 3.87 %; each robot alone (its own alignment) 0.38,
-0.63, 0.48 / 0.81, 0.63, 1.04 / 1.33, 1.03, 1.01 %. The merged error is the ``vio``
-odometry's: its scale is 30 % off at the start and settles over 0.3 scene depths, most of
-a path this short, and the pose graph keeps each robot near its odometry's scale (the
-benchmark's 80-frame paths: 1.06-1.98 %; 1.57 % measured here for seed 0 at 80 frames, but
-at 51 s of CPU against 27 s for 40; 24 frames: 4.20 / 7.25 / 7.13 % at 22-27 s, the
-mode's cost going with its keyframes more than its frames). The bounds are about twice
-seed 0's (per robot 2.4 times, above seed 2's).
+0.63, 0.48 / 0.81, 0.63, 1.04 / 1.33, 1.03, 1.01 %. Each robot alone is placed well; the
+merged error lies between the robots, as in benchmarks/robustness.py's decomposition at 80
+frames: the ``vio`` odometry's scale is 30 % off at its start and settles over 0.3 scene
+depths, most of a path this short, and the pose graph keeps each robot near its
+odometry's scale. Longer paths cost CPU: 80 frames 1.57 % for seed 0 (the benchmark's
+1.06-1.98 %) at 51 s against 27 s for 40; 24 frames 4.20 / 7.25 / 7.13 % at 22-27 s (the
+mode's cost goes with its keyframes more than its frames); overlap 0.5 at 40 frames 3.65 /
+1.62 % (seeds 0 / 1) at 34-37 s. The bounds are about twice seed 0's (per robot 2.4 times,
+above seed 2's).
 """
 
 from __future__ import annotations
