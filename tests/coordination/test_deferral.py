@@ -10,6 +10,7 @@ import shutil
 import sqlite3
 
 import pytest
+import torch
 
 from como3r.config import Config, apply_overrides
 from como3r.coordination.coordinator import Coordinator
@@ -23,10 +24,11 @@ OVERRIDES = [*SHORT_RUN]
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> tuple[SimulatedPrior, list[KeyframePacket]]:
-    """Three agents on a ring, every second frame a keyframe, interleaved in time."""
+    """Three agents on a ring, every second frame a keyframe, interleaved in time; the agents
+    send encoding records, as in a multi-process run (the coordinator encodes again)."""
     config = apply_overrides(Config(), OVERRIDES)
     return ring_keyframes(
-        tmp_path_factory.mktemp("deferral"), config, AGENTS, WIDTH, HEIGHT, portable_from=None
+        tmp_path_factory.mktemp("deferral"), config, AGENTS, WIDTH, HEIGHT, portable_from=0
     )
 
 
@@ -125,6 +127,34 @@ def test_an_idle_coordinator_verifies_one_deferred_keyframe_at_a_time(scene) -> 
     assert _keys(coordinator) == waiting[:-1]
     assert coordinator.stats.verification_deferred == 1
     coordinator.pool.shutdown()
+
+
+def test_finish_lets_go_of_the_encodings_once_no_deferred_verification_needs_them(
+    scene, monkeypatch
+) -> None:
+    """The end's deferred verification keeps, chunk by chunk, only the re-encoded keyframes
+    the keyframes still deferred and their hits are (nothing decodes after it) and none
+    once done; it re-encodes no keyframe more than keeping all of them does, and verifies
+    the same pairs with the same outcomes."""
+    from como3r.coordination.encodings import KeyframeEncodings
+
+    prior, order = scene
+    runs = []
+    for retained in (True, False):
+        if not retained:  # the cache as it was: bounded by session.encoding_cache alone
+            monkeypatch.setattr(KeyframeEncodings, "retain", lambda self, needed: None)
+        coordinator = _coordinator(prior, Config().verification.max_decodes_per_keyframe)
+        coordinator.add_keyframes(order[:9])
+        assert coordinator.deferred_keyframes() and coordinator.encodings.cached()
+        reencodes = coordinator.stats.reencodes
+        coordinator.finish()
+        outcomes = [(c.i, c.j, c.status) for c in coordinator.candidates]
+        runs.append((coordinator, coordinator.stats.reencodes - reencodes, outcomes))
+    (kept, reencoded, outcomes), (unbounded, reencoded_all, outcomes_all) = runs
+    assert kept.encodings.cached() == [] and unbounded.encodings.cached()
+    assert reencoded == reencoded_all > 0
+    assert kept.verified == unbounded.verified and outcomes == outcomes_all
+    assert torch.equal(kept.graph.poses(range(9)), unbounded.graph.poses(range(9)))
 
 
 def test_a_resumed_coordinator_verifies_the_deferred_keyframes(scene, tmp_path) -> None:
