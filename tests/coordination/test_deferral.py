@@ -10,6 +10,7 @@ import shutil
 import sqlite3
 
 import pytest
+import torch
 
 from como3r.config import Config, apply_overrides
 from como3r.coordination.coordinator import Coordinator
@@ -23,10 +24,11 @@ OVERRIDES = [*SHORT_RUN]
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> tuple[SimulatedPrior, list[KeyframePacket]]:
-    """Three agents on a ring, every second frame a keyframe, interleaved in time."""
+    """Three agents on a ring, every second frame a keyframe, interleaved in time; the agents
+    send encoding records, as in a multi-process run (the coordinator encodes again)."""
     config = apply_overrides(Config(), OVERRIDES)
     return ring_keyframes(
-        tmp_path_factory.mktemp("deferral"), config, AGENTS, WIDTH, HEIGHT, portable_from=None
+        tmp_path_factory.mktemp("deferral"), config, AGENTS, WIDTH, HEIGHT, portable_from=0
     )
 
 
@@ -127,13 +129,42 @@ def test_an_idle_coordinator_verifies_one_deferred_keyframe_at_a_time(scene) -> 
     coordinator.pool.shutdown()
 
 
+def test_finish_lets_go_of_the_encodings_once_no_deferred_verification_needs_them(
+    scene, monkeypatch
+) -> None:
+    """The end's deferred verification keeps, chunk by chunk, only the re-encoded keyframes
+    the keyframes still deferred and their hits are (nothing decodes after it) and none
+    once done; it re-encodes no keyframe more than keeping all of them does, and verifies
+    the same pairs with the same outcomes."""
+    from como3r.coordination.encodings import KeyframeEncodings
+
+    prior, order = scene
+    runs = []
+    for retained in (True, False):
+        if not retained:  # the cache as it was: bounded by session.encoding_cache alone
+            monkeypatch.setattr(KeyframeEncodings, "retain", lambda self, needed: None)
+        coordinator = _coordinator(prior, Config().verification.max_decodes_per_keyframe)
+        coordinator.add_keyframes(order[:9])
+        assert coordinator.deferred_keyframes() and coordinator.encodings.cached()
+        reencodes = coordinator.stats.reencodes
+        coordinator.finish()
+        outcomes = [(c.i, c.j, c.status) for c in coordinator.candidates]
+        runs.append((coordinator, coordinator.stats.reencodes - reencodes, outcomes))
+    (kept, reencoded, outcomes), (unbounded, reencoded_all, outcomes_all) = runs
+    assert kept.encodings.cached() == [] and unbounded.encodings.cached()
+    assert reencoded == reencoded_all > 0
+    assert kept.verified == unbounded.verified and outcomes == outcomes_all
+    assert torch.equal(kept.graph.poses(range(9)), unbounded.graph.poses(range(9)))
+
+
 def test_a_resumed_coordinator_verifies_the_deferred_keyframes(scene, tmp_path) -> None:
-    """The session store keeps the deferred keyframes with their hits; the resumed
-    coordinator verifies them as the interrupted one would have; a store without the list
-    (written before it existed) reads as none deferred."""
+    """The session store keeps the deferred keyframes with their hits (format version 9);
+    the resumed coordinator verifies them as the interrupted one would have; a version-8
+    store (no list) resumes with none deferred and is marked version 9 once written on."""
     from como3r.errors import StoreError
     from como3r.store.reader import read_session
     from como3r.store.resume import restore_coordinator
+    from como3r.store.schema import FORMAT_VERSION
     from como3r.store.writer import SessionStore
 
     prior, order = scene
@@ -146,16 +177,32 @@ def test_a_resumed_coordinator_verifies_the_deferred_keyframes(scene, tmp_path) 
     store.close()
     deferred = coordinator.deferred_keyframes()
     assert deferred and all(hits for _, _, hits in deferred)
+    # version 9 is the first to keep the list (a reader of 8 would drop it unawares)
+    assert FORMAT_VERSION >= 9
+    assert read_session(path).meta["format_version"] == str(FORMAT_VERSION)
 
     older = tmp_path / "older.db"
     shutil.copy(path, older)
-    with sqlite3.connect(older) as db:
+    with sqlite3.connect(older) as db:  # as version 8 wrote it
         db.execute("DELETE FROM state WHERE key = 'deferred'")
+        db.execute("UPDATE meta SET value = '8' WHERE key = 'format_version'")
+        db.execute("PRAGMA user_version=8")
     db.close()
-    assert read_session(older).deferred == []
+    session = read_session(older, paged=True)
+    assert session.deferred == [] and session.meta["format_version"] == "8"
+    resumed = _coordinator(prior, Config().verification.max_decodes_per_keyframe)
+    restore_coordinator(session, resumed)
+    assert resumed.deferred_keyframes() == []
+    store = SessionStore.reopen(older, resumed, settles=True)
+    store.close()
+    resumed.pool.shutdown()
+    with sqlite3.connect(older) as db:
+        assert db.execute("PRAGMA user_version").fetchone() == (FORMAT_VERSION,)
+    db.close()
+    assert read_session(older).meta["format_version"] == str(FORMAT_VERSION)
     # a list that names a keyframe the store does not hold is refused
     with sqlite3.connect(older) as db:
-        db.execute("INSERT INTO state VALUES ('deferred', '[[0, 99, [[1, 0, 0.5]]]]')")
+        db.execute("INSERT OR REPLACE INTO state VALUES ('deferred', '[[0, 99, [[1, 0, 0.5]]]]')")
     db.close()
     with pytest.raises(StoreError, match="the deferred keyframes"):
         read_session(older)

@@ -10,7 +10,8 @@ image alone), the agent is told at the session start not to send them
 keep them: such a keyframe's ``encoding`` is None, and :class:`KeyframeEncodings` encodes
 its colours again the first time a verification decodes a pair with it
 (:mod:`.linking`), keeping the newest ``session.encoding_cache`` of them (least recently
-used first out). Encoding work is counted (``reencodes`` and ``stage_seconds["reencode"]``
+used first out; the end's deferred verification lets go of those it can no longer use:
+:mod:`.deferral`). Encoding work is counted (``reencodes`` and ``stage_seconds["reencode"]``
 of the coordinator's statistics).
 
 The simulated prior's encoding is made from the frame's ground truth as well as its image,
@@ -29,7 +30,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 
 from como3r.errors import InputError, PriorError
 from como3r.frontend.keyframes import Keyframe
@@ -121,6 +122,12 @@ class KeyframeEncodings:
                 raise InputError(f"coordinator: keyframe {kf_id} of agent {agent}: {exc}") from None
 
         return make
+
+    def retain(self, needed: Collection[int]) -> None:
+        """Let go of the re-encoded keyframes held whose global index is not in ``needed``
+        (what is left of the work can use no other; the cache's order unchanged)."""
+        for g in [g for g in self._cache if g not in needed]:
+            del self._cache[g]
 
     def cached(self) -> list[int]:
         """Global indices of the re-encoded keyframes held, least recently used first."""

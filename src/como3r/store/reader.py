@@ -67,8 +67,8 @@ class Session:
             in-stream global BA, ``(candidate index, refused by the scale watch)`` in the
             order they are tested (since version 8; none in older stores).
         deferred: the keyframes a batch budget deferred, not verified yet, oldest first, as
-            ``(agent, kf_id, [(hit agent, hit keyframe, similarity), ...])`` (none in
-            stores written before the deferral).
+            ``(agent, kf_id, [(hit agent, hit keyframe, similarity), ...])`` (since
+            version 9; none in older stores).
         finished: the terminal cleanup ran.
         runtime: the multi-process runtime's state (:mod:`como3r.runtime.runtime_state`),
             None if no such runtime wrote the store.

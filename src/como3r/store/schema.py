@@ -54,7 +54,7 @@ coordinator's (a restarted agent process that starts a new map segment has its o
                                           refused inside a gauge that await their recheck
                                           after the next global BA, [candidate n, refused
                                           by the scale watch] in test order), deferred
-                                          (absent before: the keyframes a batch budget
+                                          (since version 9: the keyframes a batch budget
                                           deferred, [agent, kf_id, [[agent, keyframe,
                                           similarity] of its hits]], oldest first), finished
                                           (the terminal cleanup ran),
@@ -71,15 +71,18 @@ from __future__ import annotations
 #: the store's file name in an output folder
 STORE_NAME = "session.db"
 #: the layout above; a reader refuses any other than :data:`READABLE_VERSIONS`
-FORMAT_VERSION = 8
+FORMAT_VERSION = 9
 #: the versions a reader reads: version 4 differs only in holding every array exact, 5 in
 #: holding the inter-agent edges' matches exact and no retrieval aggregates, which version 6
 #: reads as they are, 6 in having no ``agents.own_focal`` (read as unknown: the focal BA's
 #: prior then centres on the focal length an agent holds), 7 in keeping no edges awaiting
-#: their recheck (read as none: a resumed run does not test them again). An older store
-#: resumed is marked version 8 once written on (one before 7 gets agents.own_focal; the
-#: blobs stay as they were written)
-READABLE_VERSIONS = (4, 5, 6, 7, 8)
+#: their recheck (read as none: a resumed run does not test them again), 8 in keeping no
+#: deferred keyframes (read as none; a list written there by the como3r that added the
+#: deferral before version 9 is read). A reader of 8 would drop the list without a word
+#: and a run it resumed would never verify those keyframes, hence version 9, which it
+#: refuses. An older store resumed is marked version 9 once written on (one before 7 gets
+#: agents.own_focal; the blobs stay as they were written)
+READABLE_VERSIONS = (4, 5, 6, 7, 8, 9)
 #: SQLite page size of a new store, the largest: a keyframe writes megabytes of blobs
 #: (13 MB of simulated-prior state, 2 MB per pointmap at 512x384) as chains of overflow
 #: pages, and 15 transactions of 13 + 4 x 1.8 MB took 0.68 s at 64 KiB pages against 1.65 s
