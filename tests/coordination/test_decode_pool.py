@@ -80,7 +80,6 @@ def test_two_workers_give_the_outputs_of_verifying_in_line(scene, batch, batchin
     assert _outcome(inline) == _outcome(pooled)
     assert inline.stats.pool_seconds == {} and inline.stats.pool_wasted == 0
     assert pooled.stats.pool_seconds.get("prior_decode", 0.0) > 0
-    assert inline.stats.verification_cpu > pooled.stats.verification_cpu
     assert not [t for t in threading.enumerate() if t.name.startswith("como3r-verify")]
 
 
