@@ -111,7 +111,7 @@ class SessionConfig:
     multi-process, simulated prior, ``resident_keyframes=2``): 4 keyframes held after
     every message instead of 16, byte-identical trajectories; the coordinator's peak memory
     1.33 / 1.35 GB with / without: the arrays let go of were freed but stayed in glibc's
-    heap (given back since, :mod:`como3r.store.heap`), and the encoding cache below holds
+    heap (given back since, :mod:`como3r.heap`), and the encoding cache below holds
     up to ``encoding_cache`` encodings besides.
 
     ``spill_dir``: the folder in which each agent makes its spill folder (removed when the

@@ -1,4 +1,4 @@
-"""Freed memory goes back to the system after a page-out (store/heap.py)."""
+"""Freed memory goes back to the system after a page-out (heap.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from como3r.store.heap import give_back_freed_memory
+from como3r.heap import give_back_freed_memory
 
 
 def _rss_mb() -> float:

@@ -11,34 +11,18 @@ only where its outputs go differs.
 
 from __future__ import annotations
 
-import ctypes
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.packets import KeyframePacket
+from como3r.heap import give_back_freed_memory
 from como3r.live import FrameEvent
 from como3r.runtime.live import frame_event
 from como3r.runtime.prefetch import PreparedFrame
 from como3r.runtime.results import final_report
 from como3r.transport.messages import AgentFinished
-
-
-def _malloc_trim() -> Callable[[int], int] | None:
-    """glibc's ``malloc_trim`` (None where the C library has none)."""
-    try:
-        return getattr(ctypes.CDLL("libc.so.6"), "malloc_trim", None)
-    except OSError:
-        return None
-
-
-#: hands the heap's free pages back to the system after every frame (glibc only). The
-#: front-end pages its old keyframes out (:mod:`como3r.frontend.paging`), but every local
-#: solve reads their pointmaps and matches back and lets go of them, and glibc keeps such
-#: freed small blocks in the heap. One agent at 64x48 over 125 processed frames (95
-#: keyframes) stayed at 433-438 MB with the trim and rose from 439 MB to 513-590 MB without.
-MALLOC_TRIM = _malloc_trim()
 
 #: takes one keyframe packet as it leaves the agent
 KeyframeSink = Callable[[KeyframePacket], None]
@@ -107,8 +91,12 @@ class AgentLoop:
                 frame_event(self.frontend, frame.index, frame.timestamp, outcome, frame.colors)
             )
         self._hand_out()
-        if MALLOC_TRIM is not None:
-            MALLOC_TRIM(0)
+        # the front-end pages its old keyframes out (frontend/paging.py), but every local
+        # solve reads their pointmaps and matches back and lets go of them, and glibc keeps
+        # such freed small blocks in the heap. One agent at 64x48 over 125 processed frames
+        # (95 keyframes) stayed at 433-438 MB with the trim and rose from 439 MB to 513-590
+        # MB without
+        give_back_freed_memory()
         return FrameStep(frame.index, frame.timestamp, outcome, seconds)
 
     def end(self) -> None:

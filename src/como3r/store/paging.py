@@ -40,7 +40,7 @@ from como3r.coordination.coordinator import Coordinator
 from como3r.errors import StoreError
 from como3r.frontend.paging import KeyframePages, PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches, PairLink
-from como3r.store.heap import give_back_freed_memory
+from como3r.heap import give_back_freed_memory
 
 logger = logging.getLogger(__name__)
 
