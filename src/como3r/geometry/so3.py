@@ -43,7 +43,7 @@ def cross3(a: Tensor, b: Tensor) -> Tensor:
     ranks, and its compiled loop rounds differently). Component k is ``a_k+1 b_k+2 -
     a_k+2 b_k+1`` (indices mod 3), as three products written out, in 7 tensor operations
     instead of 12 (a solver's 2-10 poses: the dispatch is the cost)."""
-    yzx, zxy = _YZX.to(a.device), _ZXY.to(a.device)
+    yzx, zxy = (_YZX, _ZXY) if a.device.type == "cpu" else (_YZX.to(a.device), _ZXY.to(a.device))
     return a.index_select(-1, yzx) * b.index_select(-1, zxy) - a.index_select(
         -1, zxy
     ) * b.index_select(-1, yzx)

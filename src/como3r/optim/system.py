@@ -42,7 +42,9 @@ class EdgeBlocks:
 
     @staticmethod
     def cat(parts: Sequence[EdgeBlocks]) -> EdgeBlocks:
-        """Concatenate edge batches (e.g. the chunks of one factor)."""
+        """Concatenate edge batches (e.g. the chunks of one factor); one batch is itself."""
+        if len(parts) == 1:
+            return parts[0]
         return EdgeBlocks(*(torch.cat([getattr(p, name) for p in parts]) for name in _EDGE_FIELDS))
 
 
