@@ -427,3 +427,13 @@ def test_shape_errors_name_the_argument():
         sim3_exp(torch.zeros(6))
     with pytest.raises(ValueError, match="T must have shape"):
         sim3_act(torch.zeros(7), torch.zeros(3))
+
+
+def test_sim3_exp_and_log_of_a_row_do_not_depend_on_the_regimes_of_the_others(gen):
+    # the left Jacobian skips a side of a torch.where that no row of the batch takes: a row
+    # must come out bit for bit the same in a batch of its own regime as among all regimes
+    tau = torch.cat([regime_tau(gen), torch.zeros(2, 7, dtype=F64)])
+    together, logs = sim3_exp(tau), sim3_log(sim3_exp(tau))
+    for k in range(tau.shape[0]):
+        assert torch.equal(sim3_exp(tau[k : k + 1])[0], together[k])
+        assert torch.equal(sim3_log(together[k : k + 1])[0], logs[k])

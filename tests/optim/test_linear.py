@@ -11,7 +11,14 @@ import torch
 from como3r.errors import InputError
 from como3r.optim import linear
 from como3r.optim.linear import SolveStatus, solve
-from como3r.optim.system import BlockSystem, EdgeBlocks, assemble
+from como3r.optim.system import (
+    BlockSystem,
+    EdgeBlocks,
+    assemble,
+    free_dense,
+    free_triplets,
+    triplets_to_dense,
+)
 
 FACTORISATIONS = ["dense", "sparse"]
 BACKENDS = [*FACTORISATIONS, "pcg", "band"]
@@ -179,3 +186,16 @@ def test_solve_validates_its_arguments():
         solve(system, torch.ones(3, dtype=torch.bool), backend="cholmod")
     with pytest.raises(InputError, match="retries"):
         solve(system, torch.ones(3, dtype=torch.bool), retries=0)
+
+
+def test_dense_free_hessian_sums_the_same_blocks_in_the_same_order_as_the_triplets():
+    # free_dense replaces triplets_to_dense(*free_triplets(...)) in the dense solve: equal bit
+    # for bit, repeated pairs (in both orientations) and pinned poses included
+    blocks = _random_edges(5, GRAPH + [(3, 1), (1, 3), (0, 2)], seed=3)
+    system = assemble(5, [blocks])
+    for pinned in ([], [0], [0, 3], [1, 2, 4]):
+        free = torch.ones(5, dtype=torch.bool)
+        free[pinned] = False
+        assert torch.equal(
+            free_dense(system, free), triplets_to_dense(*free_triplets(system, free))
+        )

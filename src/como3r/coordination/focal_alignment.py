@@ -15,12 +15,13 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
+import torch
 
 from como3r.backend.focal_solver import optimize_focal
 from como3r.backend.global_graph import GlobalGraph
 from como3r.config import Config
 from como3r.coordination.association import Candidate
-from como3r.frontend.focal import FocalPair, estimate_log_focal, relative_pose
+from como3r.frontend.focal import FocalEstimate, FocalPair, estimate_log_focal, relative_pose
 from como3r.progress import PhaseCallback, report_phase
 
 # the coordinator's logger: its messages read as they did before this part had a module
@@ -66,9 +67,7 @@ class FocalAlignment:
         if not pairs:
             return None
         start = time.perf_counter()
-        estimate = estimate_log_focal(
-            pairs, self.config.tracking, search=self.config.gauge.focal_search
-        )
+        estimate = self._estimate_log_focal(pairs)
         for agent in agents:
             self.graph.rescale_focal(agent, estimate.log_focal)
         self.stats.add_time("focal", time.perf_counter() - start)
@@ -204,13 +203,20 @@ class FocalAlignment:
             if not known:
                 continue
             start = time.perf_counter()
-            estimate = estimate_log_focal(
-                known, self.config.tracking, search=self.config.gauge.focal_search
-            )
+            estimate = self._estimate_log_focal(known)
             self.stats.add_time("focal", time.perf_counter() - start)
             rows.append((low, high, estimate.log_focal, len(known)))
         for agent, log_focal in solve_log_focals(rows, held).items():
             self._apply_log_focal(agent, log_focal)
+
+    def _estimate_log_focal(self, pairs: Sequence[FocalPair]) -> FocalEstimate:
+        """:func:`estimate_log_focal` on ``pairs`` without autograd's bookkeeping: its
+        hundreds of small tensor operations per relative solve (of which only floats come
+        out) each cost a few microseconds less (measured: ~10 % of a merge's focal search)."""
+        with torch.inference_mode():
+            return estimate_log_focal(
+                pairs, self.config.tracking, search=self.config.gauge.focal_search
+            )
 
     def _apply_log_focal(self, agent: int, log_focal: float) -> None:
         """Move one agent onto ``f exp(log_focal)`` (a joint refinement's result)."""

@@ -39,37 +39,54 @@ def _taylor_coefficients(order: int) -> list[float]:
     ]
 
 
-_PHI_SERIES = [_taylor_coefficients(order) for order in range(3)]
+_PHI_SERIES = torch.tensor([_taylor_coefficients(order) for order in range(3)], dtype=torch.float64)
 
 
-def _horner(coefficients: list[float], x: Tensor) -> Tensor:
-    result = torch.full_like(x, coefficients[-1])
-    for c in reversed(coefficients[:-1]):
-        result = result * x + c
+def _horner(coefficients: Tensor, x: Tensor) -> Tensor:
+    """The polynomials of the rows of ``coefficients`` ``(k, T)`` at ``x``, ``(k, *x.shape)``:
+    all k in one pass, each entry the same float operations as one polynomial alone."""
+    shape = (coefficients.shape[0],) + (1,) * x.ndim
+    result = coefficients[:, -1].reshape(shape).expand(-1, *x.shape)
+    for t in range(coefficients.shape[1] - 2, -1, -1):
+        result = result * x + coefficients[:, t].reshape(shape)
     return result
 
 
-def _phi_derivatives(zeta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``phi(zeta)``, ``phi'(zeta)``, ``phi''(zeta) / 2`` for ``phi(z) = (e^z - 1) / z``.
+def _branches(mask: Tensor) -> tuple[bool, bool]:
+    """Whether any and whether every entry of ``mask`` holds, as far as it matters: off the
+    CPU ``(True, False)`` (both sides of a ``torch.where`` computed, no device sync)."""
+    if mask.device.type != "cpu":
+        return True, False
+    return bool(mask.any()), bool(mask.all())
+
+
+def _phi_derivatives(zeta: Tensor, orders: int = 3) -> tuple[Tensor, ...]:
+    """``phi(zeta)``, ``phi'(zeta)``, ``phi''(zeta) / 2`` for ``phi(z) = (e^z - 1) / z``, the
+    first ``orders`` of them.
 
     ``phi`` is ``A``; its derivatives are the ``theta -> 0`` limits of ``B`` and ``C``
     (``phi' = int_0^1 u e^(u zeta) du``, ``phi'' / 2 = int_0^1 u^2 / 2 e^(u zeta) du``).
-    Float64 in and out.
+    Float64 in and out. A side of a ``torch.where`` that no entry takes is not computed (a
+    solver's steps: every ``zeta`` in the series; the where then returns the same values).
     """
     small = zeta.abs() < _ZETA_SERIES
-    z_series = torch.where(small, zeta, torch.zeros_like(zeta))
+    any_small, all_small = _branches(small)
+    series: tuple[Tensor, ...] = ()
+    if any_small:
+        z_series = torch.where(small, zeta, torch.zeros_like(zeta))
+        series = tuple(_horner(_PHI_SERIES[:orders].to(zeta.device), z_series).unbind(0))
+    if all_small:
+        return series
     z = torch.where(small, torch.ones_like(zeta), zeta)
     exp_z, expm1_z = z.exp(), z.expm1()
     closed = (
         expm1_z / z,
         (z * exp_z - expm1_z) / (z * z),
         (z * z * exp_z - 2.0 * z * exp_z + 2.0 * expm1_z) / (2.0 * z * z * z),
-    )
-    phi, d_phi, half_dd_phi = (
-        torch.where(small, _horner(series, z_series), value)
-        for series, value in zip(_PHI_SERIES, closed)
-    )
-    return phi, d_phi, half_dd_phi
+    )[:orders]
+    if not any_small:
+        return closed
+    return tuple(torch.where(small, s, value) for s, value in zip(series, closed))
 
 
 def left_jacobian_coefficients(zeta: Tensor, theta_sq: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -77,10 +94,15 @@ def left_jacobian_coefficients(zeta: Tensor, theta_sq: Tensor) -> tuple[Tensor, 
 
     ``phi(zeta + i theta) = expm1(zeta + i theta) / (zeta + i theta)`` is evaluated with
     ``Re expm1(zeta + i theta) = expm1(zeta) cos(theta) - 2 sin^2(theta / 2)`` so that both of
-    its parts are accurate to a few ulps of ``|zeta + i theta|`` for any small argument.
+    its parts are accurate to a few ulps of ``|zeta + i theta|`` for any small argument. As
+    in :func:`_phi_derivatives`, a side of a ``torch.where`` no entry takes is skipped.
     """
-    a, b_limit, c_limit = _phi_derivatives(zeta)
     small = theta_sq < _THETA_LIMIT**2
+    any_small, all_small = _branches(small)
+    a, *limits = _phi_derivatives(zeta, 3 if any_small else 1)
+    if all_small:
+        b_limit, c_limit = limits
+        return a, torch.where(small, b_limit, b_limit), torch.where(small, c_limit, c_limit)
     theta_sq = torch.where(small, torch.ones_like(theta_sq), theta_sq)
     theta = theta_sq.sqrt()
     re_expm1 = zeta.expm1() * theta.cos() - 2.0 * (0.5 * theta).sin() ** 2
@@ -88,8 +110,9 @@ def left_jacobian_coefficients(zeta: Tensor, theta_sq: Tensor) -> tuple[Tensor, 
     abs_sq = zeta * zeta + theta_sq
     re_phi = (re_expm1 * zeta + im_expm1 * theta) / abs_sq
     im_phi = (im_expm1 * zeta - re_expm1 * theta) / abs_sq
-    b = torch.where(small, b_limit, im_phi / theta)
-    c = torch.where(small, c_limit, (a - re_phi) / theta_sq)
+    b, c = im_phi / theta, (a - re_phi) / theta_sq
+    if any_small:
+        b, c = torch.where(small, limits[0], b), torch.where(small, limits[1], c)
     return a, b, c
 
 

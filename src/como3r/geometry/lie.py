@@ -281,15 +281,13 @@ def sim3_adjoint(T: Tensor) -> Tensor:
     check_last_dim(T, 8, "T")
     t, s = T[..., :3], T[..., 7:]
     R = quat_to_matrix(T[..., 3:7])
-    zero_33 = torch.zeros_like(R)
-    zero_31 = torch.zeros_like(t)[..., None]
-    last_row = torch.cat([torch.zeros_like(T[..., :6]), torch.ones_like(s)], dim=-1)
-    rows = [
-        torch.cat([s[..., None] * R, skew(t) @ R, -t[..., None]], dim=-1),
-        torch.cat([zero_33, R, zero_31], dim=-1),
-        last_row[..., None, :],
-    ]
-    return torch.cat(rows, dim=-2)
+    Ad = T.new_zeros(*T.shape[:-1], 7, 7)  # filled block by block: fewer operations than cat
+    Ad[..., :3, :3] = s[..., None] * R
+    Ad[..., :3, 3:6] = skew(t) @ R
+    Ad[..., :3, 6] = -t
+    Ad[..., 3:6, 3:6] = R
+    Ad[..., 6, 6] = 1.0
+    return Ad
 
 
 def sim3_retract(tau: Tensor, T: Tensor) -> Tensor:

@@ -34,12 +34,19 @@ def check_last_dim(x: Tensor, size: int, name: str) -> None:
         raise ValueError(f"{name} must have shape (..., {size}), got {tuple(x.shape)}")
 
 
+#: the components (y, z, x) and (z, x, y) of a vector: ``a x b = a_yzx b_zxy - a_zxy b_yzx``
+_YZX, _ZXY = torch.tensor([1, 2, 0]), torch.tensor([2, 0, 1])
+
+
 def cross3(a: Tensor, b: Tensor) -> Tensor:
     """Cross product over the last dim with full broadcasting (``linalg.cross`` needs equal
-    ranks)."""
-    a1, a2, a3 = a.unbind(-1)
-    b1, b2, b3 = b.unbind(-1)
-    return torch.stack([a2 * b3 - a3 * b2, a3 * b1 - a1 * b3, a1 * b2 - a2 * b1], dim=-1)
+    ranks, and its compiled loop rounds differently). Component k is ``a_k+1 b_k+2 -
+    a_k+2 b_k+1`` (indices mod 3), as three products written out, in 7 tensor operations
+    instead of 12 (a solver's 2-10 poses: the dispatch is the cost)."""
+    yzx, zxy = (_YZX, _ZXY) if a.device.type == "cpu" else (_YZX.to(a.device), _ZXY.to(a.device))
+    return a.index_select(-1, yzx) * b.index_select(-1, zxy) - a.index_select(
+        -1, zxy
+    ) * b.index_select(-1, yzx)
 
 
 # --------------------------------------------------------------------------------------------

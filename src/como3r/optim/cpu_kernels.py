@@ -54,7 +54,13 @@ _TRIU = np.triu_indices(7)
 
 
 def _array(x: Tensor, dtype: torch.dtype | None = None) -> np.ndarray:
-    return x.detach().to(dtype or x.dtype).contiguous().numpy()
+    """``x.detach().to(dtype).contiguous().numpy()``, each step only where it changes
+    something (a small solve calls this a dozen times per linearization)."""
+    if x.requires_grad:
+        x = x.detach()
+    if dtype is not None and x.dtype != dtype:
+        x = x.to(dtype)
+    return (x if x.is_contiguous() else x.contiguous()).numpy()
 
 
 def _sums(

@@ -32,7 +32,7 @@ import torch
 
 from como3r.errors import InputError
 from como3r.optim.pcg import CG_RELATIVE_TOLERANCE, pcg_attempts
-from como3r.optim.system import BlockSystem, D, free_triplets, triplets_to_dense
+from como3r.optim.system import BlockSystem, D, free_dense, free_triplets
 
 logger = logging.getLogger(__name__)
 
@@ -183,7 +183,7 @@ def _dense_attempts(
     system: BlockSystem, free: torch.Tensor, lm_lambda: float, tikhonov_base: float, retries: int
 ) -> Iterator[torch.Tensor | None]:
     """Yield the free-pose step ``(F, 7)`` of each escalation attempt, or None on failure."""
-    H = triplets_to_dense(*free_triplets(system, free))
+    H = free_dense(system, free)
     rhs = -system.g[free].reshape(-1, 1)
     damping = lm_lambda * H.diagonal()
     for r in range(retries):

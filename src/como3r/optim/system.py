@@ -42,7 +42,9 @@ class EdgeBlocks:
 
     @staticmethod
     def cat(parts: Sequence[EdgeBlocks]) -> EdgeBlocks:
-        """Concatenate edge batches (e.g. the chunks of one factor)."""
+        """Concatenate edge batches (e.g. the chunks of one factor); one batch is itself."""
+        if len(parts) == 1:
+            return parts[0]
         return EdgeBlocks(*(torch.cat([getattr(p, name) for p in parts]) for name in _EDGE_FIELDS))
 
 
@@ -126,6 +128,30 @@ def free_triplets(
         cols.append(c.reshape(-1))
         values.append(blocks[keep].reshape(-1))
     return torch.cat(rows), torch.cat(cols), torch.cat(values), int(free.sum()) * D
+
+
+def free_dense(system: BlockSystem, free: torch.Tensor) -> torch.Tensor:
+    """The free-pose Hessian ``(7F, 7F)``, both triangles: ``triplets_to_dense(*free_triplets(
+    system, free))`` entry for entry (each entry sums the same blocks in the same order: the
+    diagonal blocks, the upper off-diagonal ones in edge order, then their transposes), from
+    block indices instead of scalar triplets (a small solve's cost is its tensor operations).
+    """
+    n, F = system.num_poses, int(free.sum())
+    new_index = torch.full((n,), -1, dtype=torch.int64, device=free.device)
+    new_index[free] = torch.arange(F, device=free.device)
+    entry = torch.arange(D, device=free.device)
+    rows, cols = entry[None, :, None], entry[None, None, :]
+    H = torch.zeros(F, D, F, D, dtype=system.H_diag.dtype, device=free.device)
+    diag = torch.arange(F, device=free.device)[:, None, None]
+    H.index_put_((diag, rows, diag, cols), system.H_diag[free], accumulate=True)
+    keep = free[system.off_i] & free[system.off_j]
+    if bool(keep.any()):
+        bi = new_index[system.off_i[keep]][:, None, None]
+        bj = new_index[system.off_j[keep]][:, None, None]
+        blocks = system.H_off[keep]
+        H.index_put_((bi, rows, bj, cols), blocks, accumulate=True)
+        H.index_put_((bj, rows, bi, cols), blocks.transpose(-1, -2), accumulate=True)
+    return H.reshape(F * D, F * D)
 
 
 def triplets_to_dense(
