@@ -95,40 +95,56 @@ def tiny_run_dir(tmp_path_factory) -> Path:
     return tiny_run(tmp_path_factory.mktemp("tiny_run"), OVERRIDES)
 
 
-#: image width and height of :func:`v2_case`'s scenes, and the ``input.long_side`` it sets
+#: image width and height of :func:`room_scene`'s scenes, and the ``input.long_side`` that
+#: :func:`v2_case` sets
 V2_WIDTH, V2_HEIGHT = 160, 120
 
 
 @pytest.fixture(scope="session")
-def v2_case(tmp_path_factory) -> Callable[..., tuple[list[Path], float, Config]]:
+def room_scene(tmp_path_factory) -> Callable[..., tuple[list[Path], float]]:
+    """``room_scene(agents, frames, scene_seed)``: a scene of benchmarks/robustness.py's
+    ``room`` family (the ``default`` preset at scale 1, overlap 0.2, laid out for 100 frames
+    of which each agent runs ``frames``) rendered at 160x120, made once per process; returns
+    its agent folders and the mean ground-truth path of an agent (``scene.json``'s
+    ``path_length_m``, the benchmark's "% of path")."""
+    made: dict[tuple[int, int, int], tuple[list[Path], float]] = {}
+
+    def make(agents: int, frames: int, scene_seed: int) -> tuple[list[Path], float]:
+        key = (agents, frames, scene_seed)
+        if key not in made:
+            root = tmp_path_factory.mktemp(f"room_a{agents}_f{frames}_s{scene_seed}")
+            synthesize(
+                root,
+                agents=agents,
+                seed=scene_seed,
+                overlap=0.2,
+                frames=frames,
+                preset="default",
+                width=V2_WIDTH,
+                height=V2_HEIGHT,
+                loop_frames=100,
+                progress=None,
+            )
+            info = json.loads((root / "scene.json").read_text())
+            path = sum(a["path_length_m"] for a in info["agents_info"]) / agents
+            made[key] = [root / f"agent_{a}" for a in range(agents)], path
+        return made[key]
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def v2_case(room_scene) -> Callable[..., tuple[list[Path], float, Config]]:
     """``v2_case(agents, frames, scene_seed, prior_seed)``, for the accuracy tests on the
-    hardest simulated prior (tests/*/test_accuracy_v2.py): a scene of
-    benchmarks/robustness.py's ``room`` family (the ``default`` preset at scale 1, overlap
-    0.2, laid out for 100 frames of which each agent runs ``frames``) rendered at 160x120;
-    returns its agent folders, the mean ground-truth path of an agent (``scene.json``'s
-    ``path_length_m``, the benchmark's "% of path") and the configuration to run it with:
-    the default, but for ``input.long_side`` 160 (the rendered width: the default 512
-    decodes about ten times the pixels, minutes per run on a CPU) and the ``v2`` prior drawn
-    with ``prior_seed``."""
+    hardest simulated prior (tests/*/test_accuracy_v2.py): :func:`room_scene`'s scene, its
+    mean agent path and the configuration to run it with: the default, but for
+    ``input.long_side`` 160 (the rendered width: the default 512 decodes about ten times the
+    pixels, minutes per run on a CPU) and the ``v2`` prior drawn with ``prior_seed``."""
 
     def make(
         agents: int, frames: int, scene_seed: int, prior_seed: int
     ) -> tuple[list[Path], float, Config]:
-        root = tmp_path_factory.mktemp(f"v2_a{agents}_f{frames}_s{scene_seed}")
-        synthesize(
-            root,
-            agents=agents,
-            seed=scene_seed,
-            overlap=0.2,
-            frames=frames,
-            preset="default",
-            width=V2_WIDTH,
-            height=V2_HEIGHT,
-            loop_frames=100,
-            progress=None,
-        )
-        info = json.loads((root / "scene.json").read_text())
-        path = sum(a["path_length_m"] for a in info["agents_info"]) / agents
+        folders, path = room_scene(agents, frames, scene_seed)
         config = apply_overrides(
             Config(),
             [
@@ -137,6 +153,6 @@ def v2_case(tmp_path_factory) -> Callable[..., tuple[list[Path], float, Config]]
                 f"simulated_prior.seed={prior_seed}",
             ],
         )
-        return [root / f"agent_{a}" for a in range(agents)], path, config
+        return folders, path, config
 
     return make

@@ -21,38 +21,23 @@ import json
 import pytest
 
 from como3r.config import Config, apply_overrides
-from como3r.data.synth import synthesize
 from como3r.runtime.pipeline import PriorSpec, run
 
 # no test here reads a figure of its runs' report.html (tests/conftest.py)
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("undrawn_report_figures")]
 
-WIDTH, HEIGHT = 160, 120
+#: the rendered width of room_scene's scenes (tests/conftest.py), the input.long_side set here
+WIDTH = 160
 
 
 @pytest.fixture(scope="module")
-def meeting(tmp_path_factory) -> tuple[dict, float]:
+def meeting(room_scene, tmp_path_factory) -> tuple[dict, float]:
     """``metrics.json`` of the run and the mean ground-truth path of an agent [m]."""
+    agents, path = room_scene(agents=2, frames=24, scene_seed=1)
     root = tmp_path_factory.mktemp("realistic")
-    scene = root / "scene"
-    scene.mkdir()
-    synthesize(
-        scene,
-        agents=2,
-        seed=1,
-        overlap=0.2,
-        frames=24,
-        preset="default",
-        width=WIDTH,
-        height=HEIGHT,
-        loop_frames=100,
-        progress=None,
-    )
-    info = json.loads((scene / "scene.json").read_text())
-    path = sum(a["path_length_m"] for a in info["agents_info"]) / len(info["agents_info"])
     config = apply_overrides(Config(), [f"input.long_side={WIDTH}"])
     assert config.simulated_prior.model == "realistic"
-    run([scene / "agent_0", scene / "agent_1"], root / "out", config, PriorSpec("simulated"))
+    run(agents, root / "out", config, PriorSpec("simulated"))
     return json.loads((root / "out" / "metrics.json").read_text()), path
 
 
