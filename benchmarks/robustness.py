@@ -58,6 +58,43 @@ instead (robots as threads, every robot always in range, ``--odometry`` (``vio``
 kind, ``odometry.json``: ``vio`` or ``metric``; it places every frame with odometry,
 so its ``frames`` are all frames and ``tracked`` the share of them in the trajectories).
 
+**The whole grid on the code of session 32** (issue 37; prior v2, the default ``Config()``
+but for ``--long-side 160`` except where marked; 80 frames per agent, 40
+processed; every cell fully tracked; ATE % of one agent's path, merged with several agents;
+seed 0 / seed 1; ``rotation``: RPE in degrees; 2 cores shared at a load of 2-14):
+
+=============  ===============  ===============  ===============
+family         1 agent          2 agents         3 agents
+=============  ===============  ===============  ===============
+tabletop       0.210 / 0.264    0.239 / 0.270    0.236 / 0.213
+room           0.263 / 0.375    0.156 / 0.250    0.185 / 0.261
+street         0.288 / 0.358
+aerial         0.241 / 0.306    0.183 / 0.191    0.201 / 0.260
+aliasing       0.206 / 0.365
+forward        0.264 / 0.193
+fast           0.098 / 0.155
+rotation       0.072 / 0.059
+low-texture    0.737 / 0.667 (at 512; 1.17 / 1.23 at 160)
+covered        0.120 / 0.306
+revisit        0.100 / 0.143
+=============  ===============  ===============  ===============
+
+Decentralized, 3 robots (``--mode decentralized``), tabletop / room / aerial, seeds 0 / 1 /
+2: ``vio`` 1.71 / 1.06 / 1.98, 1.57 / 1.46 / 1.97, 1.79 / 1.36 / 1.98; ``lio`` (seeds 0 /
+1) 1.11 / 1.00, 1.15 / 1.13, 1.34 / 1.07. Sizes at the default long side 512 (room, one
+agent): 320x240 0.181 %, 640x480 0.082 %, 1920x1080 0.193 % (seed 0). Commands (``--out``
+differs)::
+
+    OMP_NUM_THREADS=1 python benchmarks/robustness.py --out OUT --prior-model v2 \\
+        --long-side 160 --sizes 160x120 --frames 80 --seeds 0 1 [--agents 2|3 --families \\
+        tabletop room aerial] [--mode decentralized --odometry vio|lio --seeds 0 1 2]
+    OMP_NUM_THREADS=1 python benchmarks/robustness.py --out OUT --prior-model v2 \\
+        --frames 80 --sizes 160x120 --families low-texture --seeds 0 1
+    OMP_NUM_THREADS=1 python benchmarks/robustness.py --out OUT --prior-model v2 \\
+        --frames 80 --sizes 320x240 640x480 1920x1080 --families room --seeds 0 1
+
+The history of these figures follows.
+
 **Measured, prior v2** (issue 37; seed 0, 160x120 scenes of 80 frames per agent, 40
 processed, ``--long-side 160``: the default 512 decodes about 10 times the pixels, more
 than this grid's session had on 2 cores shared at a load of 10-18; everything else the
