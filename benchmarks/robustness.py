@@ -82,8 +82,8 @@ revisit        0.100 / 0.143
 Decentralized, 3 robots (``--mode decentralized``), tabletop / room / aerial, seeds 0 / 1 /
 2: ``vio`` 1.71 / 1.06 / 1.98, 1.57 / 1.46 / 1.97, 1.79 / 1.36 / 1.98; ``lio`` (seeds 0 /
 1) 1.11 / 1.00, 1.15 / 1.13, 1.34 / 1.07. Sizes at the default long side 512 (room, one
-agent): 320x240 0.181 %, 640x480 0.082 %, 1920x1080 0.193 % (seed 0). Commands (``--out``
-differs)::
+agent, seed 0 / seed 1): 320x240 0.181 / 0.230 %, 640x480 0.082 / 0.192 %, 1920x1080 0.193
+/ 0.194 %. Commands (``--out`` differs)::
 
     OMP_NUM_THREADS=1 python benchmarks/robustness.py --out OUT --prior-model v2 \\
         --long-side 160 --sizes 160x120 --frames 80 --seeds 0 1 [--agents 2|3 --families \\
