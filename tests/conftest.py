@@ -106,7 +106,9 @@ def room_scene(tmp_path_factory) -> Callable[..., tuple[list[Path], float]]:
     ``room`` family (the ``default`` preset at scale 1, overlap 0.2, laid out for 100 frames
     of which each agent runs ``frames``) rendered at 160x120, made once per process; returns
     its agent folders and the mean ground-truth path of an agent (``scene.json``'s
-    ``path_length_m``, the benchmark's "% of path")."""
+    ``path_length_m``, the benchmark's "% of path"). The folders are shared by every test
+    asking for the same scene: one that adds to them (tests/decentralized/
+    test_accuracy_v2.py's odometry) keeps a scene of its own."""
     made: dict[tuple[int, int, int], tuple[list[Path], float]] = {}
 
     def make(agents: int, frames: int, scene_seed: int) -> tuple[list[Path], float]:
