@@ -374,17 +374,35 @@ def run_team(
                 logs / f"agent{a}.log",
             )
         _watch(run, radio, agents)
-        code = run.processes["coordinator"].wait(LIMIT_S)
-        for a in range(agents):
-            run.processes[f"agent{a}"].wait(60)
+        code = _wait(run, "coordinator", LIMIT_S)
         if code != 0:
-            raise RuntimeError(f"{name}: the coordinator failed; see {logs}")
+            raise RuntimeError(f"{name}: the coordinator failed (exit {code}){_tails(run)}")
+        for a in range(agents):
+            _wait(run, f"agent{a}", 60)
         return run
     finally:
         for process in run.processes.values():
             process.kill()
         if radio is not None:
             radio.close()
+
+
+def _wait(run: Run, name: str, timeout: float) -> int:
+    """The exit code of ``run``'s process ``name``; a RuntimeError with every process's last
+    lines if it is still running after ``timeout`` seconds."""
+    try:
+        return run.processes[name].wait(timeout)
+    except subprocess.TimeoutExpired:
+        raise RuntimeError(f"{run.name}: {name} still runs {timeout:g} s on{_tails(run)}") from None
+
+
+def _tails(run: Run, lines: int = 15) -> str:
+    """The last ``lines`` lines of each of ``run``'s processes, to say why it failed."""
+    return "".join(
+        f"\n--- {name} ({process.log}):\n" + "\n".join(line for _, line in process.lines[-lines:])
+        for name, process in run.processes.items()
+        if not name.startswith("probe")
+    )
 
 
 def _watch(run: Run, radio: Radio | None, agents: int) -> None:

@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 from como3r.cli import app
 from como3r.transport import codec
 from como3r.transport.messages import AgentStarted
-from como3r.transport.zenoh_protocol import PIECE, STREAM, Keys, ZenohOptions, open_session
+from como3r.transport.zenoh_protocol import BYE, PIECE, STREAM, Keys, ZenohOptions, open_session
 
 # no test here reads a figure of its runs' report.html (tests/conftest.py)
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("undrawn_report_figures")]
@@ -197,6 +197,8 @@ class _Watch:
     def _on_message(self, sample) -> None:
         key = str(sample.key_expr)
         kind, agent = key.rsplit("/", 1)[-1], int(self.keys.agent_of(key))
+        if kind == BYE:  # the agent leaves: no message of its stream
+            return
         attachment = sample.attachment.to_bytes()
         incarnation, seq = struct.unpack("<QQ", attachment[:16])
         if len(attachment) == PIECE.size:  # a piece of a large message: counted at its last
@@ -391,6 +393,8 @@ def test_an_agent_under_max_mbps_stays_under_it_and_reports_its_backlog(
     lock = threading.Lock()
 
     def on_piece(sample) -> None:
+        if str(sample.key_expr).endswith(f"/{BYE}"):  # leaving, after the stream
+            return
         with lock:
             seen.append((time.monotonic(), len(sample.payload)))
 

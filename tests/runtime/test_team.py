@@ -211,6 +211,7 @@ class _Hub:
         self.running = False
         self.thread.join(5)
         self.hub.stop([], interrupted=False)
+        self.hub.close()
         self.session.close()
 
 

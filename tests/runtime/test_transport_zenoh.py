@@ -13,6 +13,7 @@ import struct
 import threading
 import time
 import uuid
+from types import SimpleNamespace
 
 import pytest
 
@@ -143,6 +144,7 @@ def test_a_second_process_with_an_id_waits_then_takes_over(caplog) -> None:
         loop.running = False
         loop.join(5)
         hub.stop([], interrupted=False)
+        hub.close()
         for session in [*sessions[1:], coordinator_session]:
             session.close()
 
@@ -296,5 +298,61 @@ def test_an_agent_under_max_mbps_stays_under_it_and_hears_back_between_its_messa
         loop.running = False
         loop.join(5)
         hub.stop([], interrupted=False)
+        hub.close()
         session.close()
         coordinator_session.close()
+
+
+class _DeafLink(ZenohAgentLink):
+    """An agent whose acknowledgements are lost (its link cut as they go out) while
+    ``deaf``."""
+
+    deaf = True
+
+    def _on_ack(self, sample) -> None:
+        if not self.deaf:
+            super()._on_ack(sample)
+
+
+@pytest.mark.slow
+def test_the_coordinator_waits_for_an_agent_that_missed_its_last_acknowledgement() -> None:
+    endpoint, keys = f"tcp/127.0.0.1:{_free_port()}", Keys(f"t{uuid.uuid4().hex[:8]}")
+    coordinator_session = open_session(ZenohOptions(listen=(endpoint,)))
+    hub = ZenohHub(coordinator_session, keys, 2, codec.DEFAULT_MAX_BYTES, 2.0)
+    tasks = [
+        AgentTask(agent=a, input_path="", config=config_to_dict(Config()), prior={"name": "x"})
+        for a in range(2)
+    ]
+    hub.start(tasks, lambda agent: tasks[agent])
+    loop = _Coordinator(hub)
+    loop.start()
+    sessions = [open_session(ZenohOptions(connect=(endpoint,))) for _ in range(2)]
+    try:
+        cut, heard = _DeafLink(sessions[0], keys, 0), ZenohAgentLink(sessions[1], keys, 1)
+        for link in (cut, heard):
+            link.fetch_task()
+            link.send(AgentStarted(agent=link.agent, pid=1, frames=2))
+        loop.wait_for(
+            lambda e: isinstance(e, Received) and e.agent == 0, "agent 0's message", limit=10
+        )
+        heard.close()  # acknowledged, and says so
+        loop.running = False
+        loop.join(5)
+        hub.stop([], interrupted=False)
+        # agent 0 waits for an acknowledgement it never hears: the coordinator waits for it
+        assert hub.linger(1.0) == [0] and len(cut.spool) == 1
+        lingering: list[list[int]] = []
+        waiting = threading.Thread(target=lambda: lingering.append(hub.linger(60.0)))
+        waiting.start()
+        # its link is back: it sees the coordinator go and come back, and re-sends
+        cut.deaf = False
+        cut._on_coordinator(SimpleNamespace(kind=zenoh.SampleKind.DELETE))
+        cut._on_coordinator(SimpleNamespace(kind=zenoh.SampleKind.PUT))
+        cut.close()  # returns once stored: the re-sent message was acknowledged
+        waiting.join(30)
+        assert lingering == [[]]  # agent 0 said Bye: no waiting out the 60 s
+    finally:
+        loop.running = False
+        hub.close()
+        for session in [*sessions, coordinator_session]:
+            session.close()

@@ -30,6 +30,7 @@ from como3r.transport.zenoh_protocol import Keys, ZenohOptions, open_session
 
 if TYPE_CHECKING:  # an agent's process (``como3r agent``) needs no coordinator (~0.5 s CPU)
     from como3r.runtime.agent_events import RuntimeOptions
+    from como3r.transport.zenoh_hub import ZenohHub
 
 logger = logging.getLogger(__name__)
 
@@ -78,6 +79,7 @@ def serve(
     inputs = open_agents(list(ground_truth), config) if ground_truth else []
     keys = Keys(network.session)
     session = open_session(network)
+    hub: ZenohHub | None = None
     try:
         hub = ZenohHub(
             session,
@@ -89,7 +91,7 @@ def serve(
             max_mbps=network.max_mbps,
         )
         logger.info("coordinator of %s: %s", keys.root, network.where())
-        return coordinate(
+        summary = coordinate(
             hub,
             [None] * agents,
             [0] * agents,
@@ -103,8 +105,28 @@ def serve(
             resume=resume,
             continuing=resume,
         )
+        _linger(hub, options.away_timeout_s)
+        return summary
     finally:
+        if hub is not None:
+            hub.close()
         session.close()
+
+
+def _linger(hub: ZenohHub, timeout_s: float) -> None:
+    """The outputs written: wait (up to ``timeout_s``, or until Ctrl-C) for the agents
+    that may not have their last acknowledgement (:meth:`ZenohHub.linger`)."""
+    try:
+        waiting = hub.linger(timeout_s)
+    except KeyboardInterrupt:
+        waiting = hub.unconfirmed()
+    if waiting:
+        logger.warning(
+            "agent(s) %s did not confirm their last acknowledgement: their processes may "
+            "still wait for it (the coordinator stored all their messages; stop them with "
+            "Ctrl-C)",
+            ", ".join(map(str, waiting)),
+        )
 
 
 def run_remote_agent(

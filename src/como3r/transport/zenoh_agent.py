@@ -37,6 +37,8 @@ from como3r.transport.messages import TO_AGENT, AgentTask, Shutdown
 from como3r.transport.pacing import TokenBucket, bytes_per_s
 from como3r.transport.spool import Spool
 from como3r.transport.zenoh_protocol import (
+    BYE,
+    CONTROL_PRIORITY,
     INCARNATION,
     PIECE,
     PIECE_BYTES,
@@ -232,8 +234,9 @@ class ZenohAgentLink:
         return message
 
     def close(self) -> None:
-        """Wait until the coordinator has stored every message (or sent a Shutdown), then
-        leave: the liveliness token goes last."""
+        """Wait until the coordinator has stored every message (or sent a Shutdown), say so
+        (``Bye``: the coordinator may wait for it), then leave: the liveliness token goes
+        last."""
         with self._cond:
             said = time.monotonic()
             while len(self.spool) and not self._discard:
@@ -248,9 +251,26 @@ class ZenohAgentLink:
             self._closed = True
             self._cond.notify_all()
         self._sender.join()
+        if not self._discard:
+            self._bye()
         for entity in reversed(self._declared):
             entity.undeclare()
         self.spool.close()
+
+    def _bye(self) -> None:
+        """Tell the coordinator this process has its last acknowledgement and leaves."""
+        import zenoh
+
+        try:
+            self.session.put(
+                self.keys.up(self.agent, BYE),
+                b"",
+                attachment=self._mine,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                priority=getattr(zenoh.Priority, CONTROL_PRIORITY),
+            )
+        except Exception as exc:  # the session is closing
+            logger.debug("bye failed: %s", exc)
 
     # ------------------------------------------------------------ threads
 

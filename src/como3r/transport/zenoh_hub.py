@@ -48,6 +48,7 @@ from como3r.transport.messages import AgentTask, Shutdown
 from como3r.transport.pipe_readers import READ_AHEAD_BYTES
 from como3r.transport.zenoh_decoding import Decoder, Decoding
 from como3r.transport.zenoh_protocol import (
+    BYE,
     CONTROL_PRIORITY,
     INCARNATION,
     PIECE,
@@ -61,6 +62,10 @@ from como3r.transport.zenoh_protocol import (
 
 logger = logging.getLogger(__name__)
 
+#: how long :meth:`ZenohHub.linger` waits quietly (agents normally say ``Bye`` during the
+#: coordinator's final solve) before it says what it waits for
+LINGER_QUIET_S = 2.0
+
 
 @dataclass
 class _Holder:
@@ -73,6 +78,8 @@ class _Holder:
     acked: int = -1  # the last seq acknowledged (every one up to it is stored)
     ack_due: bool = False  # a duplicate came: acknowledge again
     dropped: bool = False
+    acknowledged_here: bool = False  # this coordinator process acknowledged some message
+    said_bye: bool = False  # the holder has its last acknowledgement and left
     present: set[int] = field(default_factory=set)  # incarnations with a liveliness token
     superseded: set[int] = field(default_factory=set)  # earlier holders
 
@@ -139,6 +146,7 @@ class ZenohHub:
             ),
         ]
         self._stopped = False
+        self._closed = False
 
     # ------------------------------------------------------------ Zenoh's threads
 
@@ -164,6 +172,9 @@ class ZenohHub:
             )
             return
         attachment, data = _attachment(sample), sample.payload.to_bytes()
+        if self.keys.kind_of(key) == BYE:
+            self._inbox.put(("bye", agent, _incarnation(attachment)))
+            return
         if len(attachment) == PIECE.size and self._agent_id(agent) is not None:
             whole = self._pieces.add(agent, attachment, data)
             if isinstance(whole, str):
@@ -263,6 +274,10 @@ class ZenohHub:
             return self._liveliness(agent, item[2], item[3])
         if kind == "query":
             return self._query(agent, item[2], item[3])
+        if kind == "bye":
+            holder = self._holders[agent]
+            holder.said_bye |= item[2] is not None and item[2] == holder.incarnation
+            return []
         event = self._message(agent, item[2], item[3])
         return [] if event is None else [event]
 
@@ -307,6 +322,9 @@ class ZenohHub:
                 query, error="the task query carries no incarnation (a como3r of another version?)"
             )
             return []
+        if self._stopped:
+            _reply(query, error="the run is over: the coordinator has stopped taking agents")
+            return []
         decision = _decision(holder, incarnation)
         if decision == "again":
             _reply(query, holder.task)
@@ -332,7 +350,7 @@ class ZenohHub:
             )
             holder.superseded.add(holder.incarnation)
         holder.incarnation, holder.next_seq, holder.acked = incarnation, 0, -1
-        holder.ack_due, holder.dropped = False, False
+        holder.ack_due, holder.dropped, holder.said_bye = False, False, False
         holder.task = (
             answer if isinstance(answer, bytes) else codec.encode(answer, max_bytes=self.max_bytes)
         )
@@ -402,6 +420,7 @@ class ZenohHub:
                 continue
             self._sender.put(self.keys.ack(agent), SEQ.pack(holder.incarnation, upto))
             holder.acked, holder.ack_due = max(holder.acked, upto), False
+            holder.acknowledged_here = True
 
     def _storable(self, agent: int, held: Mapping[int, int]) -> int:
         """The last seq of ``agent``'s holder that is stored: every one handed over, up to
@@ -446,11 +465,53 @@ class ZenohHub:
         self.send(agent, Shutdown("the coordinator counts this agent as failed"))
 
     def stop(self, live: Sequence[int], interrupted: bool) -> None:
+        """Tell the ``live`` agents to stop; ``interrupted``: :meth:`close` at once, else
+        the hub stays open for :meth:`linger` (then :meth:`close`)."""
         if self._stopped:
             return
         self._stopped = True
         for agent in live:
             self.send(agent, Shutdown("the coordinator is stopping"))
+        if interrupted:
+            self.close()
+
+    def linger(self, timeout_s: float) -> list[int]:
+        """After :meth:`stop`: wait up to ``timeout_s`` seconds until every agent this
+        process acknowledged messages to has said ``Bye`` (it has its last acknowledgement),
+        acknowledging again what an agent re-sends once it reconnects (one whose link was
+        cut as the last acknowledgement went out). Returns the agents that did not say it
+        (they may still wait, their messages all stored)."""
+        started, said = time.monotonic(), False
+        while waiting := self.unconfirmed():
+            waited = time.monotonic() - started
+            if waited >= timeout_s:
+                return waiting
+            if not said and waited >= LINGER_QUIET_S:
+                logger.warning(
+                    "the outputs are written; waiting up to %g s for agent(s) %s to take "
+                    "their last acknowledgement (Ctrl-C stops waiting)",
+                    timeout_s,
+                    ", ".join(map(str, waiting)),
+                )
+                said = True
+            self.events(min(0.5, timeout_s - waited))  # duplicates make an ack due
+            self.acknowledge({})  # every message is stored
+        return []
+
+    def unconfirmed(self) -> list[int]:
+        """The agents :meth:`linger` still waits for."""
+        return [
+            agent
+            for agent, h in enumerate(self._holders)
+            if h.acknowledged_here and not h.said_bye and not h.dropped
+        ]
+
+    def close(self) -> None:
+        """Put what is queued (for up to ``grace_s``) and leave the session."""
+        if self._closed:
+            return
+        self._closed = True
+        self._stopped = True
         self._sender.close(self.grace_s)
         for entity in reversed(self._declared):
             entity.undeclare()

@@ -19,6 +19,9 @@ Key expressions name the session, the agent and the message kind::
                                               incarnation, seq, piece, pieces, backlog,
                                               rate; in a team run the key ends in
                                               /<sender's certificate name>
+    como3r/<session>/agent/<a>/up/Bye         agent -> coordinator, attachment <Q: its
+                                              incarnation: every message is stored and
+                                              the process leaves (:data:`BYE`)
     como3r/<session>/agent/<a>/down/<Type>    coordinator -> agent; attachment <Q: the
                                               incarnation it is meant for
     como3r/<session>/agent/<a>/ack            coordinator -> agent <QQ: incarnation, the
@@ -39,6 +42,13 @@ where its stream is) goes into the same store first
 (:meth:`~como3r.transport.zenoh_hub.ZenohHub.durable`), so a coordinator restarted with
 ``--resume`` (:meth:`~como3r.transport.zenoh_hub.ZenohHub.resume`) takes each agent's stream
 up where the store has it and the agents' re-sent messages fill in the rest.
+
+Leaving. The last acknowledgement can be lost like any other (a link cut as it goes out),
+and a coordinator that has stored everything may end its run while an agent still waits for
+it. So an agent that has its last acknowledgement says so (``Bye``) as it leaves, and the
+coordinator, its outputs written, waits for the ``Bye`` of every agent it acknowledged
+(:meth:`~como3r.transport.zenoh_hub.ZenohHub.linger`, up to ``--away-timeout``), answering
+what a reconnecting agent re-sends.
 
 Pieces. Zenoh gives one put 5 s (``block/wait_before_close``) to enter the link's queue
 and closes the link when it cannot: a keyframe of a megabyte put whole on a 1 Mbit/s link
@@ -202,6 +212,11 @@ class Keys:
         """Every agent's messages to the coordinator, team run or not."""
         return f"{self.agent('*')}/up/**"
 
+    def kind_of(self, key: str) -> str | None:
+        """The message kind of a key under ``up/`` (None: not such a key)."""
+        parts = key[len(self.root) + len("/agent/") :].split("/")
+        return parts[2] if len(parts) > 2 and parts[1] == "up" else None
+
     def sender_of(self, key: str) -> str | None:
         """The certificate name a message key under ``up/`` ends in (None: none)."""
         parts = key[len(self.root) + len("/agent/") :].split("/")
@@ -223,6 +238,9 @@ class Keys:
         """The agent field of a key under ``agent/`` (as written: not checked)."""
         return key[len(self.root) + len("/agent/") :].split("/", 1)[0]
 
+
+#: the message kind (``up/<Type>``) of an agent's last put: it has its last acknowledgement
+BYE = "Bye"
 
 #: Zenoh priority of what the coordinator sends (acknowledgements, pose updates, Shutdown)
 CONTROL_PRIORITY = "INTERACTIVE_HIGH"
