@@ -356,3 +356,37 @@ def test_the_coordinator_waits_for_an_agent_that_missed_its_last_acknowledgement
         hub.close()
         for session in [*sessions, coordinator_session]:
             session.close()
+
+
+@pytest.mark.slow
+def test_a_message_after_the_run_ended_is_neither_taken_nor_acknowledged(caplog) -> None:
+    endpoint, keys = f"tcp/127.0.0.1:{_free_port()}", Keys(f"t{uuid.uuid4().hex[:8]}")
+    coordinator_session = open_session(ZenohOptions(listen=(endpoint,)))
+    hub = ZenohHub(coordinator_session, keys, 1, codec.DEFAULT_MAX_BYTES, 2.0)
+    task = AgentTask(agent=0, input_path="", config=config_to_dict(Config()), prior={"name": "x"})
+    hub.start([task], lambda agent: task)
+    loop = _Coordinator(hub)
+    loop.start()
+    session = open_session(ZenohOptions(connect=(endpoint,)))
+    try:
+        link = ZenohAgentLink(session, keys, 0)
+        link.fetch_task()
+        link.send(AgentStarted(agent=0, pid=1, frames=2))
+        loop.wait_for(lambda e: isinstance(e, Received), "the message", limit=10)
+        deadline = time.monotonic() + 10
+        while len(link.spool):  # acknowledged: stored
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        loop.running = False
+        loop.join(5)
+        hub.stop([], interrupted=False)
+        link.send(AgentStarted(agent=0, pid=1, frames=2))  # too late: the run is over
+        with caplog.at_level(logging.WARNING):
+            assert hub.linger(1.5) == [0]  # no Bye: it still waits for an acknowledgement
+        assert len(link.spool) == 1  # never acknowledged, so never taken for stored
+        assert "message 1 came after the run ended" in caplog.text
+    finally:
+        loop.running = False
+        hub.close()
+        for each in (session, coordinator_session):
+            each.close()

@@ -383,6 +383,9 @@ class ZenohHub:
         if seq < holder.next_seq:  # re-sent after a reconnect: stored already
             holder.ack_due = True
             return None
+        if self._stopped:  # the run is over: nothing more is stored, nor acknowledged
+            logger.warning("agent %d: message %d came after the run ended: dropped", agent, seq)
+            return None
         if seq > holder.next_seq:
             return Rejected(
                 agent, f"message {seq} before {holder.next_seq} (a gap: the agent re-sends)"
