@@ -242,10 +242,17 @@ class ZenohAgentLink:
             while len(self.spool) and not self._discard:
                 self._cond.wait(1.0)
                 if time.monotonic() - said > self.wait_log_s:
+                    away = (
+                        ""
+                        if self._gone_at is None
+                        else f"; it has been gone for {time.monotonic() - self._gone_at:.0f} s "
+                        "(they are kept until it is back)"
+                    )
                     logger.warning(
-                        "agent %d: waiting for the coordinator to store %d message(s)",
+                        "agent %d: waiting for the coordinator to store %d message(s)%s",
                         self.agent,
                         len(self.spool),
+                        away,
                     )
                     said = time.monotonic()
             self._closed = True
