@@ -12,9 +12,10 @@ import como3r.backend.global_graph as global_graph
 from como3r.backend.global_graph import GlobalGraph
 from como3r.config import DepthRefinementConfig, GlobalBAConfig, TrackingConfig
 from como3r.errors import InputError
-from como3r.frontend.packets import KeyframePacket
+from como3r.frontend.packets import KeyframePacket, PointmapRefresh
 from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.geometry.lie import sim3_act, sim3_compose, sim3_exp, sim3_inverse, sim3_log
+from como3r.geometry.units import scene_depth
 from como3r.optim.optimizer import SolveReport
 from como3r.optim.values import PoseValues
 from como3r.prior.base import Encoding
@@ -218,3 +219,34 @@ def test_keyframes_must_arrive_in_order() -> None:
         graph.global_index(1, 0)
     with pytest.raises(InputError, match="two agents"):
         graph.add_inter_link(0, 0, PairLink(_identity_matches(), _identity_matches()), 0.0)
+
+
+def _uncached_depth(graph: GlobalGraph, agents: list[int]) -> float:
+    members = [graph.keyframes[g] for a in agents for g in graph.agent_keyframes(a)]
+    return scene_depth([kf.T_WC for kf in members], [kf.X_hat for kf in members])
+
+
+def test_scene_depth_keeps_median_ranges_until_a_pointmap_changes(two_agents) -> None:
+    """The graph's scene depth equals geometry.units.scene_depth bit for bit, after poses
+    move (scales are read each time) and after a refresh or a pointmap written by the depth
+    step (each makes the keyframe's median range again); a pointmap swapped without a new
+    version keeps the kept range (what the version is for)."""
+    graph, _ = two_agents
+    own = graph.agent_keyframes(1)
+    first = graph.scene_depth([1])
+    assert first == _uncached_depth(graph, [1])
+    for g in own:
+        graph.keyframes[g].T_WC = graph.keyframes[g].T_WC.clone()
+        graph.keyframes[g].T_WC[7] *= 3.0
+    assert graph.scene_depth([1]) == _uncached_depth(graph, [1]) == pytest.approx(3 * first)
+    for kf_id, g in enumerate(own):
+        kf = graph.keyframes[g]
+        graph.refresh(1, PointmapRefresh(kf_id, kf.X_hat * 4.0, kf.C_hat, 2))
+    assert graph.scene_depth([1]) == _uncached_depth(graph, [1]) == pytest.approx(12 * first)
+    assert graph.scene_depth([0, 1]) == _uncached_depth(graph, [0, 1])
+    for g in own:  # no new version: the kept ranges stay
+        graph.keyframes[g].X_hat = graph.keyframes[g].X_hat * 0.5
+    assert graph.scene_depth([1]) == pytest.approx(12 * first)
+    for g in own:
+        graph._set_pointmaps(g, {"X_hat": graph.keyframes[g].X_hat}, None)  # the depth step
+    assert graph.scene_depth([1]) == _uncached_depth(graph, [1]) == pytest.approx(6 * first)

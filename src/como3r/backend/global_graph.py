@@ -46,7 +46,7 @@ from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh
 from como3r.frontend.pairs import PairLink
 from como3r.geometry.camera import to_focal
-from como3r.geometry.units import scene_depth
+from como3r.geometry.units import median_range
 from como3r.optim.factors import Factor
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.relinearization import EdgeModels, ThresholdRelinearized
@@ -120,6 +120,9 @@ class GlobalGraph(GraphDepthSteps):
         #: the quadratic models of the links' directed edges, kept between solves
         #: (optim.relinearization), by ``(link position, direction)``
         self.edge_models = EdgeModels()
+        #: keyframe -> (its version, its pointmap's median range): what :meth:`scene_depth`
+        #: reads of a keyframe whose pointmap did not change since (one float a keyframe)
+        self._median_ranges: dict[int, tuple[int, float]] = {}
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -264,9 +267,28 @@ class GlobalGraph(GraphDepthSteps):
     def scene_depth(self, agents: Sequence[int]) -> float:
         """Median over the agents' keyframes of their median range in world units (scale
         ``s`` of ``T_WC`` times the canonical pointmap's median range): the length that the
-        relative tolerances of the global solve refer to (:mod:`como3r.geometry.units`)."""
-        members = [self.keyframes[g] for a in agents for g in self.agent_keyframes(a)]
-        return scene_depth([kf.T_WC for kf in members], [kf.X_hat for kf in members])
+        relative tolerances of the global solve refer to (:mod:`como3r.geometry.units`).
+
+        :func:`~como3r.geometry.units.scene_depth`'s arithmetic, with each keyframe's median
+        range kept while its :attr:`versions` entry holds: every in-stream solve asks this
+        of its whole component, and a median over every pixel of every keyframe (reading
+        paged-out pointmaps back) cost the 16-agent replay's two solves 0.2 s of 3.9
+        (benchmarks/coordinator_replay.py), growing with the map."""
+        depths = [
+            float(self.keyframes[g].T_WC[7]) * self._median_range(g)
+            for a in agents
+            for g in self.agent_keyframes(a)
+        ]
+        return float(torch.tensor(depths).median()) if depths else 1.0
+
+    def _median_range(self, g: int) -> float:
+        """Keyframe ``g``'s pointmap's median range (its camera's unit), made once per
+        version of its pointmap."""
+        kept = self._median_ranges.get(g)
+        if kept is None or kept[0] != self.versions[g]:
+            kept = (self.versions[g], float(median_range(self.keyframes[g].X_hat)))
+            self._median_ranges[g] = kept
+        return kept[1]
 
     def poses(self, indices: Sequence[int]) -> Tensor:
         """``(K, 8)`` poses of the given global keyframes."""
