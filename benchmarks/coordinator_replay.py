@@ -11,7 +11,8 @@ calls to a fresh coordinator in one process and prints, per replay: the calls' s
 coordinator thread's CPU per keyframe (its verification pool's threads apart), the
 verification's CPU, ``stage_seconds`` (wall; in one process on an idle machine close to the
 CPU), decodes, merges, admitted edges and, with ``--scene``, the in-stream keyframe ATE
-(keyframe positions before the terminal cleanup, one similarity against the ground truth).
+(keyframe positions before the terminal cleanup, one similarity against the ground truth),
+and then those outputs again with every digit of the ATE.
 The same calls replayed by two checkouts (``PYTHONPATH=<checkout>/src``) compare their
 coordinators on identical input; ``--set`` compares configurations.
 
@@ -210,7 +211,13 @@ def main() -> None:
         return
     coordinator, seconds = replay(args.calls, config)
     title = "coordinator replay" + (f" ({', '.join(args.set)})" if args.set else "")
-    print_table(Console(width=200), [row(coordinator, seconds, args.scene)], COLUMNS, title)
+    result = row(coordinator, seconds, args.scene)
+    print_table(Console(width=200), [result], COLUMNS, title)
+    # every digit: two checkouts that should agree bit for bit are compared on this line
+    print(
+        f"outputs: {result['merges']} merges, {result['edges']} edges, "
+        f"{result['decodes']} decodes, in-stream keyframe ATE {result['ATE mm']!r} mm"
+    )
 
 
 if __name__ == "__main__":
