@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import threading
+from collections.abc import Callable
 
 import pytest
 import torch
@@ -64,7 +65,9 @@ class _Batching(SimulatedPrior):
 
 
 @pytest.mark.parametrize(("batch", "batching"), [(1, False), (6, False), (6, True)])
-def test_two_workers_give_the_outputs_of_verifying_in_line(scene, batch, batching) -> None:
+def test_two_workers_give_the_outputs_of_verifying_in_line(
+    scene, batch, batching, verifiers
+) -> None:
     """Batches of one (a keyframe's pairs side by side) and of six (keyframes ahead, merges
     in between), pair by pair or one job per keyframe: poses, graph document and every
     counter equal; the workers did work."""
@@ -80,7 +83,7 @@ def test_two_workers_give_the_outputs_of_verifying_in_line(scene, batch, batchin
     assert _outcome(inline) == _outcome(pooled)
     assert inline.stats.pool_seconds == {} and inline.stats.pool_wasted == 0
     assert pooled.stats.pool_seconds.get("prior_decode", 0.0) > 0
-    assert not [t for t in threading.enumerate() if t.name.startswith("como3r-verify")]
+    assert not verifiers()
 
 
 class _FailingOnThreads(SimulatedPrior):
@@ -92,7 +95,7 @@ class _FailingOnThreads(SimulatedPrior):
         return super().decode(enc_i, enc_j)
 
 
-def test_a_workers_error_is_raised_in_the_coordinators_thread(scene) -> None:
+def test_a_workers_error_is_raised_in_the_coordinators_thread(scene, verifiers) -> None:
     prior, order = scene
     failing = _FailingOnThreads(prior.config, prior.truth)
     config = apply_overrides(Config(), [*OVERRIDES, "verification.workers=2"])
@@ -102,14 +105,23 @@ def test_a_workers_error_is_raised_in_the_coordinators_thread(scene) -> None:
             coordinator.add_keyframes(order[start : start + 6])
     assert not coordinator.pool.active
     coordinator.pool.shutdown()
-    assert _verifiers() == []
+    assert verifiers() == []
 
 
-def _verifiers() -> list[threading.Thread]:
-    return [t for t in threading.enumerate() if t.name.startswith("como3r-verify")]
+def _all_verifiers() -> set[threading.Thread]:
+    return {t for t in threading.enumerate() if t.name.startswith("como3r-verify")}
 
 
-def test_one_thread_serves_every_batch_until_shutdown(scene) -> None:
+@pytest.fixture
+def verifiers() -> Callable[[], list[threading.Thread]]:
+    """The verification threads started during the test: the idle ones of a coordinator
+    an earlier test in this process left behind (``benchmarks/coordinator_replay``'s,
+    ``test_coordinator``'s) do not count."""
+    before = _all_verifiers()
+    return lambda: sorted(_all_verifiers() - before, key=lambda t: t.ident or 0)
+
+
+def test_one_thread_serves_every_batch_until_shutdown(scene, verifiers) -> None:
     """Batches reuse the pool's threads (none is started per batch); shutdown ends them,
     and a batch after it starts them again."""
     prior, _ = scene
@@ -119,16 +131,16 @@ def test_one_thread_serves_every_batch_until_shutdown(scene) -> None:
     for batch in range(3):
         if batch == 2:
             pool.shutdown()
-            assert _verifiers() == []
+            assert verifiers() == []
         pool.open([((0, 0), None)])
         pool.submit((0, batch), prior, [], config.matching, 0.5, config.verification)
         done = pool.take((0, batch), [])
         assert done is not None and (done.verifications, done.decodes) == ([], 0)
         assert pool.close() == []
-        seen.append(_verifiers())
+        seen.append(verifiers())
     assert len(seen[0]) == 1 and seen[1] == seen[0] and seen[2] != seen[0]
     pool.shutdown()
-    assert _verifiers() == []
+    assert verifiers() == []
 
 
 def test_workers_must_not_be_negative() -> None:
