@@ -258,7 +258,9 @@ def coordinator(
         metavar="SECONDS",
         min=0.0,
         help="An agent whose link is lost (crash, Wi-Fi gap) is away, not failed, for this "
-        "long: it may reconnect, or be restarted with its --id (0: failed at once).",
+        "long: it may reconnect, or be restarted with its --id (0: failed at once). With the "
+        "outputs written, the coordinator also waits up to this long for an agent that may "
+        "not have its last acknowledgement.",
     ),
     max_message_mb: float = typer.Option(
         256.0,
