@@ -46,7 +46,7 @@ from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh
 from como3r.frontend.pairs import PairLink
 from como3r.geometry.camera import to_focal
-from como3r.geometry.units import median_range
+from como3r.geometry.units import median_depth, median_range
 from como3r.optim.factors import Factor
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.relinearization import EdgeModels, ThresholdRelinearized
@@ -274,12 +274,11 @@ class GlobalGraph(GraphDepthSteps):
         of its whole component, and a median over every pixel of every keyframe (reading
         paged-out pointmaps back) cost the 16-agent replay's two solves 0.2 s of 3.9
         (benchmarks/coordinator_replay.py), growing with the map."""
-        depths = [
-            float(self.keyframes[g].T_WC[7]) * self._median_range(g)
-            for a in agents
-            for g in self.agent_keyframes(a)
-        ]
-        return float(torch.tensor(depths).median()) if depths else 1.0
+        members = [g for a in agents for g in self.agent_keyframes(a)]
+        return median_depth(
+            [float(self.keyframes[g].T_WC[7]) for g in members],
+            [self._median_range(g) for g in members],
+        )
 
     def _median_range(self, g: int) -> float:
         """Keyframe ``g``'s pointmap's median range (its camera's unit), made once per

@@ -80,5 +80,11 @@ def scene_depth(T_WC: Sequence[Tensor], X: Sequence[Tensor]) -> float:
     Returns:
         The median, or 1 without keyframes (so a ratio times it stays finite).
     """
-    depths = [float(T[7]) * float(median_range(points)) for T, points in zip(T_WC, X)]
+    return median_depth([float(T[7]) for T in T_WC], [float(median_range(p)) for p in X])
+
+
+def median_depth(scales: Sequence[float], ranges: Sequence[float]) -> float:
+    """:func:`scene_depth` from each keyframe's pose scale and its pointmap's median range
+    (for a caller that keeps the ranges): the median of their products, 1 without any."""
+    depths = [scale * range_ for scale, range_ in zip(scales, ranges)]
     return float(torch.tensor(depths).median()) if depths else 1.0
