@@ -214,13 +214,17 @@ class Keys:
 
     def kind_of(self, key: str) -> str | None:
         """The message kind of a key under ``up/`` (None: not such a key)."""
-        parts = key[len(self.root) + len("/agent/") :].split("/")
+        parts = self._fields(key)
         return parts[2] if len(parts) > 2 and parts[1] == "up" else None
 
     def sender_of(self, key: str) -> str | None:
         """The certificate name a message key under ``up/`` ends in (None: none)."""
-        parts = key[len(self.root) + len("/agent/") :].split("/")
+        parts = self._fields(key)
         return parts[3] if len(parts) > 3 else None
+
+    def _fields(self, key: str) -> list[str]:
+        """The fields of a key under ``agent/``: the agent, then what follows it."""
+        return key[len(self.root) + len("/agent/") :].split("/")
 
     def down(self, agent: int | str, kind: str) -> str:
         return f"{self.agent(agent)}/down/{kind}"
@@ -236,7 +240,7 @@ class Keys:
 
     def agent_of(self, key: str) -> str:
         """The agent field of a key under ``agent/`` (as written: not checked)."""
-        return key[len(self.root) + len("/agent/") :].split("/", 1)[0]
+        return self._fields(key)[0]
 
 
 #: the message kind (``up/<Type>``) of an agent's last put: it has its last acknowledgement
