@@ -6,6 +6,7 @@ replaced process that comes back is told to stop."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import socket
@@ -13,6 +14,7 @@ import struct
 import threading
 import time
 import uuid
+from collections.abc import Iterator
 from types import SimpleNamespace
 
 import pytest
@@ -56,6 +58,14 @@ class _Coordinator(threading.Thread):
             time.sleep(0.02)
 
 
+def _until_stored(link: ZenohAgentLink, limit: float = 10.0) -> None:
+    """Wait until the coordinator has acknowledged every message ``link`` sent."""
+    deadline = time.monotonic() + limit
+    while len(link.spool):
+        assert time.monotonic() < deadline, f"{len(link.spool)} message(s) not acknowledged"
+        time.sleep(0.02)
+
+
 def _fetch(link: ZenohAgentLink, out: list) -> threading.Thread:
     thread = threading.Thread(target=lambda: out.append(link.fetch_task()), daemon=True)
     thread.start()
@@ -85,10 +95,7 @@ def test_a_second_process_with_an_id_waits_then_takes_over(caplog) -> None:
         assert first.fetch_task().resume_after == -1 and asked == []
         first.send(AgentStarted(agent=0, pid=1, frames=4))
         loop.wait_for(lambda e: isinstance(e, Received), "the first process's message")
-        deadline = time.monotonic() + 10
-        while len(first.spool):  # acknowledged: stored
-            assert time.monotonic() < deadline
-            time.sleep(0.02)
+        _until_stored(first)
 
         second = ZenohAgentLink(sessions[1], keys, 0, wait_log_s=0.2)
         got: list[AgentTask] = []
@@ -314,20 +321,42 @@ class _DeafLink(ZenohAgentLink):
             super()._on_ack(sample)
 
 
-@pytest.mark.slow
-def test_the_coordinator_waits_for_an_agent_that_missed_its_last_acknowledgement() -> None:
+@contextlib.contextmanager
+def _loopback_team(agents: int) -> Iterator[tuple[Keys, ZenohHub, _Coordinator, list]]:
+    """A hub whose agents ``0 .. agents-1`` may join (asked again: the same task), its
+    coordinator's thread running, and a Zenoh session per agent, on loopback TCP; all
+    closed afterwards."""
     endpoint, keys = f"tcp/127.0.0.1:{_free_port()}", Keys(f"t{uuid.uuid4().hex[:8]}")
     coordinator_session = open_session(ZenohOptions(listen=(endpoint,)))
-    hub = ZenohHub(coordinator_session, keys, 2, codec.DEFAULT_MAX_BYTES, 2.0)
+    hub = ZenohHub(coordinator_session, keys, agents, codec.DEFAULT_MAX_BYTES, 2.0)
     tasks = [
         AgentTask(agent=a, input_path="", config=config_to_dict(Config()), prior={"name": "x"})
-        for a in range(2)
+        for a in range(agents)
     ]
     hub.start(tasks, lambda agent: tasks[agent])
     loop = _Coordinator(hub)
     loop.start()
-    sessions = [open_session(ZenohOptions(connect=(endpoint,))) for _ in range(2)]
+    sessions = [open_session(ZenohOptions(connect=(endpoint,))) for _ in range(agents)]
     try:
+        yield keys, hub, loop, sessions
+    finally:
+        loop.running = False
+        loop.join(5)
+        hub.close()
+        for session in [*sessions, coordinator_session]:
+            session.close()
+
+
+def _stop_the_run(hub: ZenohHub, loop: _Coordinator) -> None:
+    """The runtime's end: its thread stops taking events, then the hub stops."""
+    loop.running = False
+    loop.join(5)
+    hub.stop([], interrupted=False)
+
+
+@pytest.mark.slow
+def test_the_coordinator_waits_for_an_agent_that_missed_its_last_acknowledgement() -> None:
+    with _loopback_team(2) as (keys, hub, loop, sessions):
         cut, heard = _DeafLink(sessions[0], keys, 0), ZenohAgentLink(sessions[1], keys, 1)
         for link in (cut, heard):
             link.fetch_task()
@@ -336,9 +365,7 @@ def test_the_coordinator_waits_for_an_agent_that_missed_its_last_acknowledgement
             lambda e: isinstance(e, Received) and e.agent == 0, "agent 0's message", limit=10
         )
         heard.close()  # acknowledged, and says so
-        loop.running = False
-        loop.join(5)
-        hub.stop([], interrupted=False)
+        _stop_the_run(hub, loop)
         # agent 0 waits for an acknowledgement it never hears: the coordinator waits for it
         assert hub.linger(1.0) == [0] and len(cut.spool) == 1
         lingering: list[list[int]] = []
@@ -351,42 +378,19 @@ def test_the_coordinator_waits_for_an_agent_that_missed_its_last_acknowledgement
         cut.close()  # returns once stored: the re-sent message was acknowledged
         waiting.join(30)
         assert lingering == [[]]  # agent 0 said Bye: no waiting out the 60 s
-    finally:
-        loop.running = False
-        hub.close()
-        for session in [*sessions, coordinator_session]:
-            session.close()
 
 
 @pytest.mark.slow
 def test_a_message_after_the_run_ended_is_neither_taken_nor_acknowledged(caplog) -> None:
-    endpoint, keys = f"tcp/127.0.0.1:{_free_port()}", Keys(f"t{uuid.uuid4().hex[:8]}")
-    coordinator_session = open_session(ZenohOptions(listen=(endpoint,)))
-    hub = ZenohHub(coordinator_session, keys, 1, codec.DEFAULT_MAX_BYTES, 2.0)
-    task = AgentTask(agent=0, input_path="", config=config_to_dict(Config()), prior={"name": "x"})
-    hub.start([task], lambda agent: task)
-    loop = _Coordinator(hub)
-    loop.start()
-    session = open_session(ZenohOptions(connect=(endpoint,)))
-    try:
+    with _loopback_team(1) as (keys, hub, loop, [session]):
         link = ZenohAgentLink(session, keys, 0)
         link.fetch_task()
         link.send(AgentStarted(agent=0, pid=1, frames=2))
         loop.wait_for(lambda e: isinstance(e, Received), "the message", limit=10)
-        deadline = time.monotonic() + 10
-        while len(link.spool):  # acknowledged: stored
-            assert time.monotonic() < deadline
-            time.sleep(0.02)
-        loop.running = False
-        loop.join(5)
-        hub.stop([], interrupted=False)
+        _until_stored(link)
+        _stop_the_run(hub, loop)
         link.send(AgentStarted(agent=0, pid=1, frames=2))  # too late: the run is over
         with caplog.at_level(logging.WARNING):
             assert hub.linger(1.5) == [0]  # no Bye: it still waits for an acknowledgement
         assert len(link.spool) == 1  # never acknowledged, so never taken for stored
         assert "message 1 came after the run ended" in caplog.text
-    finally:
-        loop.running = False
-        hub.close()
-        for each in (session, coordinator_session):
-            each.close()
