@@ -285,6 +285,7 @@ import platform
 import shutil
 import time
 import traceback
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -293,7 +294,7 @@ import torch
 from _tables import format_value, print_table, write_csv
 from rich.console import Console
 
-from como3r.config import Config
+from como3r.config import Config, apply_overrides
 from como3r.data.synth import synthesize
 from como3r.io.output import atomic_output_dir
 from como3r.runtime.pipeline import PriorSpec, run
@@ -418,10 +419,12 @@ def _covered_processed(scene_info: dict, agents: int) -> int:
     return agents * sum(1 for k in range(first, last + 1) if k % step == 0)
 
 
-def cell_config(seed: int, prior_model: str | None, long_side: int | None) -> Config:
-    """The default configuration with the cell's prior seed, and the prior model and input
-    long side where given (None: the configuration's default)."""
-    config = Config()
+def cell_config(
+    seed: int, prior_model: str | None, long_side: int | None, overrides: Sequence[str] = ()
+) -> Config:
+    """The default configuration with ``overrides`` (``--set``), the cell's prior seed, and
+    the prior model and input long side where given (None: the configuration's default)."""
+    config = apply_overrides(Config(), list(overrides))
     # the seed draws the scene and the simulated sensor's errors alike: with the prior's
     # default seed every scene's frame k would get the same focal error
     prior = replace(config.simulated_prior, seed=seed)
@@ -475,6 +478,7 @@ def run_cell(
     long_side: int | None = None,
     mode: str = "centralized",
     odometry: str = "vio",
+    overrides: Sequence[str] = (),
 ) -> dict:
     """Synthesize (or reuse) the cell's scene, run SLAM with the defaults, measure
     (``odometry``: the simulated odometry model of a decentralized run)."""
@@ -482,7 +486,7 @@ def run_cell(
     row: dict = {"family": family, "size": size, "seed": seed, "agents": agents, "mode": mode}
     try:
         scene = _scene(out / "scenes", family, size, seed, agents, frames)
-        config = cell_config(seed, prior_model, long_side)
+        config = cell_config(seed, prior_model, long_side, overrides)
         if mode == "decentralized":
             scene = _with_odometry(scene, seed, odometry)
             run_dir = out / "runs" / f"{name}-dec{'' if odometry == 'vio' else '-' + odometry}"
@@ -618,6 +622,13 @@ def main() -> None:
         help="--mode decentralized: the simulated odometry (como3r synth --odometry): a "
         "monocular VIO off in scale at its start, or a metric LiDAR-inertial one.",
     )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a configuration override for every cell (as como3r run --set)",
+    )
     args = parser.parse_args()
     for size in args.sizes:
         try:
@@ -635,6 +646,7 @@ def main() -> None:
         f"{args.long_side or Config().input.long_side}; "
         f"{args.agents} agent(s), {args.frames} frames each, {args.mode}"
         + (f" ({args.odometry} odometry)" if args.mode == "decentralized" else "")
+        + "".join(f"; --set {override}" for override in args.set)
     )
     console.print(header)
     rows = []
@@ -654,6 +666,7 @@ def main() -> None:
                         args.long_side,
                         args.mode,
                         args.odometry,
+                        args.set,
                     )
                 )
                 console.print(

@@ -47,6 +47,12 @@ process of its own so memory peaks do not carry over. Per team size the table gi
   (where the pool in fact verifies the next keyframes while the coordinator admits this
   one's edges): per call ``serial + verification / P``, conservative on the overlap,
   optimistic on the speculation. P = 1 is the one-core replay (``end kf``, ``drain s``);
+* ``serial ms/kf``: of the coordinator's CPU per keyframe, the part more cores do not
+  shorten (its thread's less the verification in it); ``cores for 0``: the fewest cores (1,
+  2, 4, ... 256) with which that replay keeps up, no keyframe queued at the end of the
+  input (the one in hand is not queued: a coordinator that keeps up still works on the
+  keyframe of the last moment); ``>256`` where the serial part alone falls behind the
+  keyframes' arrivals;
 * ``rt end kf``, ``rt max kf``: the runtime's own backlog (``metrics.json``
   ``runtime.backlog``) on this machine, where all processes share its cores: at the end
   of the input and the most during the run;
@@ -425,6 +431,7 @@ COLUMNS = (
     "keyframes",
     "coord ms/kf",
     "coord s/s input",
+    "serial ms/kf",
     "decodes/kf",
     "verify ms/kf",
     "pool ms/kf",
@@ -437,6 +444,7 @@ COLUMNS = (
     "end kf",
     "end s",
     "drain s",
+    "cores for 0",
     "rt end kf",
     "rt max kf",
     "batch",
@@ -688,11 +696,38 @@ def scale_rows(scene: Path, out: Path) -> tuple[list[dict], list[dict]]:
 # ------------------------------------------------------------------ the table
 
 
+def serial_seconds(call: Sequence[Any]) -> float:
+    """The CPU seconds of one recorded call that more cores do not shorten: the
+    coordinator thread's less the verification it did in line."""
+    return call[0] - (call[2] if len(call) > 2 else 0.0)
+
+
 def call_seconds(call: Sequence[Any], cores: int) -> float:
     """Seconds a coordinator with ``cores`` cores needs for one recorded call (module
     docstring): its serial CPU on one core, then its verification's spread over all."""
-    seconds, inline, pool = call[0], *(tuple(call[2:4]) or (0.0, 0.0))
-    return seconds - inline + (inline + pool) / cores
+    inline, pool = tuple(call[2:4]) or (0.0, 0.0)
+    return serial_seconds(call) + (inline + pool) / cores
+
+
+#: the most cores :func:`cores_to_keep_up` tries
+MOST_CORES = 256
+
+
+def cores_to_keep_up(
+    calls: Sequence[Sequence[Any]],
+    frame_times: dict[int, np.ndarray],
+    cpu_per_frame: dict[int, float],
+) -> int | str:
+    """The fewest cores, of 1, 2, 4, ... :data:`MOST_CORES`, with which the replayed
+    coordinator (:func:`replay`) keeps up: no keyframe queued at the end of the input (at
+    most the last one in hand); more than that (the serial part alone falls behind) is
+    reported as ``">256"``."""
+    cores = 1
+    while cores <= MOST_CORES:
+        if replay(calls, frame_times, cpu_per_frame, cores)[3] == 0:
+            return cores
+        cores *= 2
+    return f">{MOST_CORES}"
 
 
 def replay(
@@ -700,9 +735,12 @@ def replay(
     frame_times: dict[int, np.ndarray],
     cpu_per_frame: dict[int, float],
     cores: int = 1,
-) -> tuple[int, float, float]:
+) -> tuple[int, float, float, int]:
     """The backlog at the end of the input at the agents' measured frame rates (module
-    docstring): ``(keyframes waiting, seconds of input behind, seconds to drain)``.
+    docstring): ``(keyframes waiting, seconds of input behind, seconds to drain, keyframes
+    queued)``. Waiting are those arrived and not done, the one in hand included; queued
+    those of them not yet begun (a coordinator that keeps up has none: at most the
+    keyframe of the last moment in hand).
 
     Args:
         calls: the coordinator's calls (:data:`Call`; runs recorded before the
@@ -719,18 +757,20 @@ def replay(
             arrival = frames * cpu_per_frame.get(agent, 0.0)
             keyframes.append((arrival, stamp, call_seconds(call, cores) / len(keys)))
     if not keyframes:
-        return 0, 0.0, 0.0
+        return 0, 0.0, 0.0, 0
     end = max(len(t) * cpu_per_frame.get(a, 0.0) for a, t in frame_times.items())
-    free, done = 0.0, []
+    free, done, queued = 0.0, [], 0
     for arrival, stamp, service in sorted(keyframes):
-        free = max(free, arrival) + service
+        begun = max(free, arrival)
+        queued += arrival <= end < begun
+        free = begun + service
         done.append((free, arrival, stamp))
     waiting = [(f, s) for f, a, s in done if a <= end < f]
     handled = [s for f, a, s in done if f <= end]
     newest = max(s for f, a, s in done if a <= end)
     behind = newest - max(handled) if handled else newest - min(s for _, s in waiting)
     last = max(f for f, _, _ in done)
-    return len(waiting), max(0.0, behind) if waiting else 0.0, max(0.0, last - end)
+    return len(waiting), max(0.0, behind) if waiting else 0.0, max(0.0, last - end), queued
 
 
 def _path_length(groundtruth: Path) -> float:
@@ -761,11 +801,12 @@ def row(
     }
     input_seconds = max(float(t[-1] - t[0]) for t in frame_times.values() if len(t))
     agent_cpu = {int(k): v for k, v in measured["cpu_per_frame"].items()}
-    waiting, behind, drain = replay(calls, frame_times, agent_cpu)
+    waiting, behind, drain, _ = replay(calls, frame_times, agent_cpu)
     per_cores = {}
     for p in cores:
-        end, _, drained = replay(calls, frame_times, agent_cpu, p)
+        end, _, drained, _ = replay(calls, frame_times, agent_cpu, p)
         per_cores[f"end kf P{p}"], per_cores[f"drain s P{p}"] = end, drained
+    serial = sum(serial_seconds(call) for call in calls if call[1])
     paths = [_path_length(scene / f"agent_{a}" / "groundtruth.txt") for a in range(agents)]
     ate_json = metrics.get("ate", {})
     merged = ate_json.get("merged") or next(iter(ate_json.get("agents", [])), None)
@@ -781,6 +822,7 @@ def row(
         "keyframes": coordinator["keyframes"],
         "coord ms/kf": 1000.0 * cpu / keyframes,
         "coord s/s input": cpu / input_seconds if input_seconds > 0 else float("nan"),
+        "serial ms/kf": 1000.0 * serial / keyframes,
         "decodes/kf": coordinator["prior_decodes"] / keyframes,
         "verify ms/kf": 1000.0 * verify / keyframes,
         "pool ms/kf": 1000.0 * pool / keyframes,
@@ -794,6 +836,7 @@ def row(
         "end s": behind,
         "drain s": drain,
         **per_cores,
+        "cores for 0": cores_to_keep_up(calls, frame_times, agent_cpu),
         "rt end kf": backlog.get("end_keyframes", "-"),
         "rt max kf": backlog.get("max_keyframes", "-"),
         "batch": coordinator.get("largest_batch", "-"),

@@ -215,6 +215,7 @@ _NON_NEGATIVE = (
     "verification.max_decodes_per_batch",
     "verification.max_loop_candidates",
     "verification.workers",
+    "verification.link_spacing",
     "gauge.max_correspondences",
     "global_ba.lm_lambda",
     "global_ba.tikhonov_base",

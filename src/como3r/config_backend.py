@@ -90,6 +90,23 @@ class VerificationConfig:
       (fewer loop constraints cost accuracy there). One seed each, and a loss at 8 agents:
       the default is 3 (``retrieval.k_nn``'s default), the paper's behaviour, until it is
       measured over seeds and team sizes; ``k_nn`` or more is the paper.
+    * ``link_spacing``: a hit whose agent already shares the keyframe's gauge component is
+      not verified when an admitted inter-agent link already joins the two agents within
+      this many keyframes (along each agent's chain) of both the keyframe and the hit: it
+      would add a loop constraint beside one the global BA holds, for one or two decodes.
+      Agents that keep meeting (neighbours along a shared stretch) otherwise verify every
+      keyframe against the same stretch again. The budget it frees goes to the next hits. 0
+      (default): every hit within the budgets, the paper. Measured, 1 against 0 (prior v2,
+      benchmarks/robustness.py --set, 160x120, long side 160, 80 frames, seeds 0 / 1;
+      merged ATE % of path): 2 agents tabletop 0.239 / 0.270 -> 0.254 / 0.262, room 0.156 /
+      0.250 -> 0.171 / 0.260, aerial 0.183 / 0.191 -> 0.196 / 0.185, decodes 9-15 % fewer;
+      3 agents tabletop 0.236 / 0.213 -> 0.252 / 0.202, room 0.185 / 0.261 -> 0.188 / 0.260,
+      aerial 0.201 / 0.260 -> 0.216 / 0.255, decodes 10-14 % fewer, inter-agent edges 14-16
+      -> 9-12. 16 agents (benchmarks/team_scale.py's scene in one process, realistic
+      prior): decodes 185 -> 163, edges 48 -> 40, merged ATE 16.7 -> 15.6 mm; the same
+      team's captured multi-process calls replayed (benchmarks/coordinator_replay.py): 204
+      -> 182 decodes, the same 15 merges. A small loss for two or three agents, a gain of
+      decodes and no loss at sixteen: not the default, an option for large teams.
     * ``max_decodes_per_batch``: a coordinator that fell behind takes the waiting keyframes
       as one batch (``global_ba.max_batch_keyframes``) and verifies them newest first; a
       keyframe is verified only while the batch's decodes so far plus its own worst case
@@ -170,6 +187,7 @@ class VerificationConfig:
     max_decodes_per_batch: int = 0
     max_loop_candidates: int = 1
     workers: int = 2
+    link_spacing: int = 0
 
 
 @dataclass(frozen=True)

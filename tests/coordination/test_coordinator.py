@@ -355,6 +355,42 @@ def test_agents_already_merged_are_verified_less(ring) -> None:
     assert runs[0].metrics()["prior_decodes"] < runs[3].metrics()["prior_decodes"]
 
 
+def _tried(coordinator: Coordinator) -> set[tuple[tuple[int, int], tuple[int, int]]]:
+    return {(c.verification.candidate, c.verification.query) for c in coordinator.candidates}
+
+
+@pytest.mark.slow
+def test_agents_linked_nearby_are_not_verified_again(ring) -> None:
+    """verification.link_spacing 1: a hit of an agent already merged is not verified when
+    an admitted link joins the two agents within one keyframe of both its keyframes; the
+    paper (0, the default) verifies it. Every pair only the paper tried has such a link
+    (the budget it frees may go to a hit the paper's budget left out)."""
+    order = _interleave(ring, [0, 1, 2, 3])
+    spaced, _ = _run(ring, order, apply_overrides(ring.config, ["verification.link_spacing=1"]))
+    paper, _ = _run(ring, order)
+    assert paper.config.verification.link_spacing == 0
+    assert spaced.metrics()["prior_decodes"] < paper.metrics()["prior_decodes"]
+    skipped = _tried(paper) - _tried(spaced)
+    assert skipped
+    graph = spaced.graph
+    links = [
+        (
+            (graph.agent_of[g], graph.keyframes[g].kf_id),
+            (graph.agent_of[h], graph.keyframes[h].kf_id),
+        )
+        for link in graph.inter_links()
+        for g, h in ((link.i, link.j), (link.j, link.i))
+    ]
+    for (b, m), (a, k) in skipped:
+        assert any(
+            x == a and y == b and abs(kx - k) <= 1 and abs(ky - m) <= 1
+            for (x, kx), (y, ky) in links
+        ), ((b, m), (a, k))
+    for coordinator in (spaced, paper):
+        assert coordinator.components() == [[0, 1, 2, 3]]
+        assert _merged_keyframe_ate(coordinator, ring) <= 0.005 * ring.path_length
+
+
 def test_without_loop_closure_agents_stay_apart(ring) -> None:
     config = apply_overrides(ring.config, ["loop_closure=false"])
     coordinator, updates = _run(ring, _interleave(ring, [0, 1]), config, agents=2)

@@ -125,9 +125,12 @@ class InterAgentLinking(GaugeMerging):
             return self.gauges.find(agent) == root
 
         loops = [h for h in hits if h.agent == packet.agent]
-        hits = budget_candidates(
-            [h for h in hits if h.agent != packet.agent], merged, self.config.verification
-        )
+        cross = [h for h in hits if h.agent != packet.agent]
+        spacing = self.config.verification.link_spacing
+        if spacing:
+            near = self._linked_near(packet, spacing)
+            cross = [h for h in cross if not (merged(h.agent) and (h.agent, h.keyframe) in near)]
+        hits = budget_candidates(cross, merged, self.config.verification)
         # the budget's order: hits that can merge two components, the keyframe's loop
         # candidates, then hits of agents already merged (the last two only add loops)
         limit = self.config.verification.max_decodes_per_keyframe // DECODES_PER_CANDIDATE
@@ -135,6 +138,23 @@ class InterAgentLinking(GaugeMerging):
         loops = loops[: max(0, limit - len(apart))]
         within = [h for h in hits if merged(h.agent)][: limit - len(apart) - len(loops)]
         return apart + within, loops
+
+    def _linked_near(self, packet: KeyframeKey, spacing: int) -> set[tuple[int, int]]:
+        """``(agent, kf_id)`` of the other agents' keyframes within ``spacing`` keyframes
+        (on their agent's chain) of an inter-agent link that joins them to a keyframe of
+        ``packet``'s agent within ``spacing`` of it (``verification.link_spacing``)."""
+        graph, own, k = self.graph, packet.agent, packet.kf_id
+        near: set[tuple[int, int]] = set()
+        for link in graph.links:
+            if link.kind != "inter":
+                continue
+            for mine, theirs in ((link.i, link.j), (link.j, link.i)):
+                if graph.agent_of[mine] == own and abs(graph.keyframes[mine].kf_id - k) <= spacing:
+                    m = graph.keyframes[theirs].kf_id
+                    near.update(
+                        (graph.agent_of[theirs], m + d) for d in range(-spacing, spacing + 1)
+                    )
+        return near
 
     def _chunks(self, chosen: list[Hit]) -> list[list[Hit]]:
         """How a keyframe's candidates are verified: pair by pair where the prior decodes
