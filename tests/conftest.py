@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
+import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -88,11 +90,38 @@ def undrawn_report_figures() -> Iterator[None]:
 
 
 @pytest.fixture(scope="session")
-def tiny_run_dir(tmp_path_factory) -> Path:
+def made_once(tmp_path_factory) -> Callable[[str, Callable[[Path], object]], Path]:
+    """``made_once(name, make)``: the folder ``name``, filled by ``make(folder)`` once per
+    test session, for what tests in several files only read (a run of the pipeline or of a
+    team: seconds of CPU each). Under pytest-xdist the first worker to ask makes it,
+    holding a lock in the folder the session's workers share, and the others wait for it
+    and read what it made, so what ``make`` makes must not depend on the worker (a scene
+    renders byte for byte the same in each). Without workers: in this process's folder."""
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the session's; each worker's own folder is inside
+
+    def get(name: str, make: Callable[[Path], object]) -> Path:
+        folder, done = root / f"made_once_{name}", root / f"made_once_{name}.done"
+        with open(root / f"made_once_{name}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+            if not done.exists():
+                shutil.rmtree(folder, ignore_errors=True)  # what a failed attempt left
+                folder.mkdir()
+                make(folder)
+                done.touch()
+        return folder
+
+    return get
+
+
+@pytest.fixture(scope="session")
+def tiny_run_dir(made_once) -> Path:
     """A finished two-agent run of the real pipeline on a tiny synthetic scene
-    (tests/io/tiny_run.py), made once for the tests that only read it: the exports and the
-    HTML report. Its scene is the sibling folder ``scene``."""
-    return tiny_run(tmp_path_factory.mktemp("tiny_run"), OVERRIDES)
+    (tests/io/tiny_run.py), made once per session (:func:`made_once`) for the tests that
+    only read it: the exports, the HTML report and the synthetic layout's sizes. Its scene
+    is the sibling folder ``scene``."""
+    return made_once("tiny_run", lambda folder: tiny_run(folder, OVERRIDES)) / "run"
 
 
 #: image width and height of :func:`room_scene`'s scenes, and the ``input.long_side`` that

@@ -4,9 +4,6 @@ scripted hub."""
 
 from __future__ import annotations
 
-import fcntl
-import os
-import shutil
 import socket
 import subprocess
 import sys
@@ -147,37 +144,28 @@ class TeamRun:
 
 
 @pytest.fixture(scope="session")
-def free_running(tiny_scene, tmp_path_factory) -> TeamRun:
+def free_running(tiny_scene, made_once) -> TeamRun:
     """``como3r coordinator`` (``--gt`` of both agents) and two ``como3r agent`` processes
     on loopback TCP, free-running and uninterrupted, on ``tiny_scene(12, 0, 0.5)``: the
     networked run that test_network.py's TCP test compares with one process and
-    test_runtime_state.py's killed coordinator with its resumed run. Made once per test
-    session (a team run is about 18 s of CPU): under pytest-xdist the first worker to ask
-    runs it, holding a lock in the folder the workers share, and the others read its
-    outputs (the scene is rendered the same, byte for byte, in every worker)."""
+    test_runtime_state.py's killed coordinator with its resumed run, made once per session
+    (:func:`made_once`; a team run is about 16 s of CPU)."""
     scene = tiny_scene(frames=12, seed=0, overlap=0.5)
     agents = [scene / "agent_0", scene / "agent_1"]
     names = ("coordinator", "agent0", "agent1")
-    if os.environ.get("PYTEST_XDIST_WORKER"):
-        root = tmp_path_factory.getbasetemp().parent  # this session's, the workers' own inside
-    else:
-        root = tmp_path_factory.mktemp("free_running")
-    folder = root / "free_running"
-    with open(root / "free_running.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
-        if not (folder / "done").exists():
-            shutil.rmtree(folder, ignore_errors=True)  # what a failed attempt left
-            folder.mkdir()
-            team = ZenohTeam(folder)
-            try:
-                team.coordinator(folder / "out", 2, "--gt", str(agents[0]), "--gt", str(agents[1]))
-                for a, path in enumerate(agents):
-                    team.agent(a, path)
-                for name in names:
-                    team.wait(name)
-            finally:
-                team.close()
-            (folder / "done").touch()
+
+    def make(folder: Path) -> None:
+        team = ZenohTeam(folder)
+        try:
+            team.coordinator(folder / "out", 2, "--gt", str(agents[0]), "--gt", str(agents[1]))
+            for a, path in enumerate(agents):
+                team.agent(a, path)
+            for name in names:
+                team.wait(name)
+        finally:
+            team.close()
+
+    folder = made_once("free_running", make)
     return TeamRun(folder / "out", {name: (folder / f"{name}.log").read_text() for name in names})
 
 
