@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import fcntl
+import gc
 import json
 import os
 import shutil
@@ -33,6 +34,16 @@ from .io.tiny_run import OVERRIDES, tiny_run  # noqa: E402
 # shared with subprocess tests) torch's spinning workers slow the dense front-end tests
 # tenfold; results do not depend on the thread count.
 torch.set_num_threads(1)
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """What collection made (torch, the package and every test module: about 300,000 objects
+    in this process) lives until the end: frozen, the interpreter's full collections during
+    the tests and on the way out no longer walk it (tests/decentralized/test_flocc_protocol.py
+    and tests/frontend, -n 0: 4.4 s of collections against 1.0 s; collect-only exit 3.1
+    against 1.5 s). Garbage the tests make is still collected."""
+    gc.freeze()
+
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 DTYPES = [torch.float32, torch.float64]
