@@ -7,6 +7,8 @@ progress, prints a summary table, and turns every :class:`~como3r.errors.Como3rE
 
 from __future__ import annotations
 
+import atexit
+import gc
 import logging
 import os
 from pathlib import Path
@@ -469,6 +471,10 @@ OMP_WAIT_POLICY = "PASSIVE"
 def main() -> None:
     """Entry point of the console script."""
     os.environ.setdefault("OMP_WAIT_POLICY", OMP_WAIT_POLICY)
+    # The objects still alive at the exit are the interpreter's to free: its collections on
+    # the way out walked torch's 300,000 (0.2 s each) and a command that had imported it took
+    # 1.0-1.4 s of CPU to exit (0.15-0.2 s frozen). Explicit clean-ups (atexit, with) still run.
+    atexit.register(gc.freeze)
     app()
 
 

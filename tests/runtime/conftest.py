@@ -9,6 +9,7 @@ import subprocess
 import sys
 import uuid
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -132,6 +133,40 @@ def new_team(tmp_path) -> Callable[[str], ZenohTeam]:
     yield make
     for made in teams:
         made.close()
+
+
+@dataclass(frozen=True)
+class TeamRun:
+    """A finished run of a :class:`ZenohTeam`: its output folder and each process's log."""
+
+    out: Path
+    logs: dict[str, str]
+
+
+@pytest.fixture(scope="session")
+def free_running(tiny_scene, made_once) -> TeamRun:
+    """``como3r coordinator`` (``--gt`` of both agents) and two ``como3r agent`` processes
+    on loopback TCP, free-running and uninterrupted, on ``tiny_scene(12, 0, 0.5)``: the
+    networked run that test_network.py's TCP test compares with one process and
+    test_runtime_state.py's killed coordinator with its resumed run, made once per session
+    (:func:`made_once`; a team run is about 16 s of CPU)."""
+    scene = tiny_scene(frames=12, seed=0, overlap=0.5)
+    agents = [scene / "agent_0", scene / "agent_1"]
+    names = ("coordinator", "agent0", "agent1")
+
+    def make(folder: Path) -> None:
+        team = ZenohTeam(folder)
+        try:
+            team.coordinator(folder / "out", 2, "--gt", str(agents[0]), "--gt", str(agents[1]))
+            for a, path in enumerate(agents):
+                team.agent(a, path)
+            for name in names:
+                team.wait(name)
+        finally:
+            team.close()
+
+    folder = made_once("free_running", make)
+    return TeamRun(folder / "out", {name: (folder / f"{name}.log").read_text() for name in names})
 
 
 @pytest.fixture

@@ -64,12 +64,11 @@ def _merged_ate(out: Path) -> float:
 
 
 def test_coordinator_and_two_agents_over_tcp_match_the_single_process_run(
-    scene, team, tmp_path
+    scene, free_running, tmp_path
 ) -> None:
+    """The networked run is the session's ``free_running`` one (conftest.py), of this
+    module's scene."""
     agents = [scene / "agent_0", scene / "agent_1"]
-    team.coordinator(tmp_path / "net", 2, "--gt", str(agents[0]), "--gt", str(agents[1]))
-    for a, path in enumerate(agents):
-        team.agent(a, path)
     single = tmp_path / "single"
     result = CliRunner().invoke(
         app,
@@ -89,10 +88,8 @@ def test_coordinator_and_two_agents_over_tcp_match_the_single_process_run(
         ],
     )
     assert result.exit_code == 0, result.output
-    for name in ("coordinator", "agent0", "agent1"):
-        team.wait(name)
-    assert "the coordinator has every message" in team.log("agent0")
-    metrics = json.loads((tmp_path / "net" / "metrics.json").read_text())
+    assert "the coordinator has every message" in free_running.logs["agent0"]
+    metrics = json.loads((free_running.out / "metrics.json").read_text())
     runtime = metrics["runtime"]
     assert runtime["transport"] == "zenoh" and runtime["failed_agents"] == []
     assert metrics["components"] == [[0, 1]]  # the agents met
@@ -106,7 +103,7 @@ def test_coordinator_and_two_agents_over_tcp_match_the_single_process_run(
             / entry["messages_from_agent"]["KeyframeMessage"]
         )
         assert 0 < per_message - sum(row["keyframe_message_bytes_by_part"].values()) < 1000
-    reference, networked = _merged_ate(single), _merged_ate(tmp_path / "net")
+    reference, networked = _merged_ate(single), _merged_ate(free_running.out)
     # free-running, the coordinator takes the keyframes in 2-5 batches (the single process
     # in 12) and runs 1-2 in-stream global BAs (5): what an edge is judged at and what the
     # agents track on differ, which the terminal alternation absorbs. Which candidates are

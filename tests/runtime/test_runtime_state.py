@@ -89,18 +89,17 @@ def _run(team, out: Path, agents: list[Path], kills: list[int | str]) -> list[fl
 
 @pytest.mark.slow
 def test_a_coordinator_killed_at_several_points_resumes_to_the_uninterrupted_result(
-    tiny_scene, new_team, tmp_path
+    tiny_scene, free_running, new_team, tmp_path
 ) -> None:
+    """The uninterrupted run is the session's ``free_running`` one (conftest.py): the same
+    team, commands and scene."""
     scene = tiny_scene(frames=12, seed=0, overlap=0.5)  # 6 processed frames per agent
     agents = [scene / "agent_0", scene / "agent_1"]
-    uninterrupted = new_team("reference")  # runs beside the killed one
-    _start(uninterrupted, tmp_path / "reference.out", agents)
     team = new_team("killed")
     seconds = _run(team, tmp_path / "killed.out", agents, [2, 5, "left"])
-    _wait(uninterrupted)
     reference, metrics = (
-        json.loads((tmp_path / f"{name}.out" / "metrics.json").read_text())
-        for name in ("reference", "killed")
+        json.loads((out / "metrics.json").read_text())
+        for out in (free_running.out, tmp_path / "killed.out")
     )
     assert team.log("coordinator").count(RESUMED) == 3
     assert metrics["components"] == reference["components"] == [[0, 1]]
@@ -116,7 +115,7 @@ def test_a_coordinator_killed_at_several_points_resumes_to_the_uninterrupted_res
         f"restart to state restored {', '.join(f'{s:.1f}' for s in seconds)} s"
     )
     # both runs are free-running: their batches, and so when the in-stream BA runs, differ
-    # (test_network's tcp test, the same scene), which the terminal alternation absorbs;
+    # (test_network's tcp test, the same run), which the terminal alternation absorbs;
     # which candidates are verified does not: keyframes go by (timestamp, agent), a batch
     # is verified in that order, and after each restart the order waits for the agents
     # that were present, while they re-send by the latest keyframe each re-sent (ordered

@@ -15,6 +15,8 @@ traffic: they are always delivered and not counted.
 
 from __future__ import annotations
 
+import atexit
+import gc
 import logging
 import multiprocessing
 import queue
@@ -146,6 +148,7 @@ def _failure(robot: int, exc: Exception) -> RobotReport:
 
 def _robot_process_main(robot: int, inbox: Connection, outbox: Connection) -> None:
     """Entry point of a robot process: its first message is its :class:`RobotTask`."""
+    atexit.register(gc.freeze)  # a quick exit, as the command line's (como3r.cli.main)
     link = PipeLink(inbox, outbox, codec.DEFAULT_MAX_BYTES)
     try:
         task = link.receive(timeout=600.0)

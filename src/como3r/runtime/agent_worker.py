@@ -12,8 +12,10 @@ another machine (Zenoh, :mod:`como3r.runtime.network`).
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import dataclasses
+import gc
 import logging
 import os
 import time
@@ -68,6 +70,7 @@ def agent_process_main(agent: int, inbox: Connection, outbox: Connection) -> Non
     """Entry point of an agent process started by :class:`~como3r.transport.pipes.PipeHub`: its task
     is the first message on its pipe; it sends in the lossy wire codings, as across
     machines, so the coordinator only decodes (:mod:`como3r.runtime.ingest`)."""
+    atexit.register(gc.freeze)  # a quick exit, as the command line's (como3r.cli.main)
     channel = Channel(inbox, outbox, codec.DEFAULT_MAX_BYTES, TO_AGENT, coded=True)
     try:
         task = channel.receive()
