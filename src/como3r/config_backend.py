@@ -105,8 +105,11 @@ class VerificationConfig:
       -> 9-12. 16 agents (benchmarks/team_scale.py's scene in one process, realistic
       prior): decodes 185 -> 163, edges 48 -> 40, merged ATE 16.7 -> 15.6 mm; the same
       team's captured multi-process calls replayed (benchmarks/coordinator_replay.py): 204
-      -> 182 decodes, the same 15 merges. A small loss for two or three agents, a gain of
-      decodes and no loss at sixteen: not the default, an option for large teams.
+      -> 182 decodes, the same 15 merges; benchmarks/team_scale.py's 16 agents in
+      processes (one run each, load 1-7): decodes per keyframe 5.1 -> 4.55, the serial part
+      275 -> 253 ms per keyframe, cores to keep up 32 -> 16, merged ATE 15.7 -> 16.0 mm. A
+      small loss for two or three agents, fewer decodes and about the same ATE at sixteen:
+      not the default, an option for large teams.
     * ``max_decodes_per_batch``: a coordinator that fell behind takes the waiting keyframes
       as one batch (``global_ba.max_batch_keyframes``) and verifies them newest first; a
       keyframe is verified only while the batch's decodes so far plus its own worst case
