@@ -105,11 +105,13 @@ class VerificationConfig:
       -> 9-12. 16 agents (benchmarks/team_scale.py's scene in one process, realistic
       prior): decodes 185 -> 163, edges 48 -> 40, merged ATE 16.7 -> 15.6 mm; the same
       team's captured multi-process calls replayed (benchmarks/coordinator_replay.py): 204
-      -> 182 decodes, the same 15 merges; benchmarks/team_scale.py's 16 agents in
-      processes (one run each, load 1-7): decodes per keyframe 5.1 -> 4.55, the serial part
-      275 -> 253 ms per keyframe, cores to keep up 32 -> 16, merged ATE 15.7 -> 16.0 mm. A
-      small loss for two or three agents, fewer decodes and about the same ATE at sixteen:
-      not the default, an option for large teams.
+      -> 182 decodes, the same 15 merges. benchmarks/team_scale.py in processes (one run
+      each, load 1-7; decodes per keyframe, the cores it needs to keep up, merged ATE): 4
+      agents 3.6 -> 2.8, 4 -> 4, 3.33 -> 4.11 mm; 8 agents 4.36 -> 3.57, 8 -> 16, 6.95 ->
+      7.83 mm; 16 agents 5.1 -> 4.55, 32 -> 16, 15.7 -> 16.0 mm (these runs' schedules
+      differ from run to run). Always fewer decodes, an ATE a little worse in most runs and
+      no consistent change in the cores a coordinator needs: not the default; it trades
+      accuracy for decodes.
     * ``max_decodes_per_batch``: a coordinator that fell behind takes the waiting keyframes
       as one batch (``global_ba.max_batch_keyframes``) and verifies them newest first; a
       keyframe is verified only while the batch's decodes so far plus its own worst case
