@@ -406,8 +406,8 @@ over 17 s of the agents' CPU (0.42 s apart on average); that run replayed with t
 serial part scaled (verification unchanged) keeps up with 16 cores at 0.75 or 0.5 of it
 and 8 at 0.35; an earlier run under load (session 31: serial part 356 ms per keyframe,
 keyframes 0.33 s apart) with no number of cores, with 32 at 0.5 of it. Of the serial part
-in the 16-agent calls replayed in one thread (``coordinator_replay.py``, cProfile), the merges' focal
-search is about half: 15 merges, 143 relative solves, 76 of them stopped at their 10
+in the 16-agent calls replayed in one thread (``coordinator_replay.py``, cProfile), the
+merges' focal search is about half: 15 merges, 143 relative solves, 76 of them stopped at their 10
 iterations with the step still shrinking by about 0.6 per iteration (Huber IRLS converges
 linearly), then the global BA about a fifth.
 """

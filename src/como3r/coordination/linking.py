@@ -145,9 +145,7 @@ class InterAgentLinking(GaugeMerging):
         ``packet``'s agent within ``spacing`` of it (``verification.link_spacing``)."""
         graph, own, k = self.graph, packet.agent, packet.kf_id
         near: set[tuple[int, int]] = set()
-        for link in graph.links:
-            if link.kind != "inter":
-                continue
+        for link in graph.inter_links():
             for mine, theirs in ((link.i, link.j), (link.j, link.i)):
                 if graph.agent_of[mine] == own and abs(graph.keyframes[mine].kf_id - k) <= spacing:
                     m = graph.keyframes[theirs].kf_id
