@@ -214,8 +214,8 @@ class _PairProblem:
         self.length = float(median_point_range(torch.cat([d.X_i for d in directions])))
         self.factors = _factors(directions, tracking)
         # (E,) 1 where an edge's camera i (its K) or camera j (its points) takes the correction
-        self.rescales_i = torch.tensor([float(d.rescales_i) for d in directions])
-        self.rescales_j = torch.tensor([float(d.rescales_j) for d in directions])
+        self.rescales_i = torch.tensor([d.rescales_i for d in directions], dtype=torch.float64)
+        self.rescales_j = torch.tensor([d.rescales_j for d in directions], dtype=torch.float64)
 
     def at(self, log_focal: float) -> CalibratedFactors:
         """The factors at a trial correction (a shallow copy: the other per-match arrays
@@ -379,15 +379,17 @@ def _direction(
     rescales_j: bool,
 ) -> _Direction:
     """The edge (i, j) of a pair, its valid matches evenly subsampled to ``max_matches``, on
-    the CPU (the correction's column is summed by a compiled CPU loop)."""
+    the CPU (the correction's column is summed by a compiled CPU loop) in float64: the
+    energy is then smooth in the correction (float32 points, rescaled at every trial, round
+    differently each time, steps of about 1e-8 of the energy)."""
     X_i_matched, X_j_matched, q = matched_points(matches, X_i, X_j, max_matches)
     return _Direction(
         i,
         j,
-        X_i_matched.cpu(),
-        X_j_matched.cpu(),
-        q.cpu(),
-        K_i.cpu(),
+        X_i_matched.cpu().double(),
+        X_j_matched.cpu().double(),
+        q.cpu().double(),
+        K_i.cpu().double(),
         rescales_i,
         rescales_j,
     )
