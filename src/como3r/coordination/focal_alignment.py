@@ -29,7 +29,7 @@ logger = logging.getLogger("como3r.coordination.coordinator")
 
 
 #: Edges an agent's focal length is re-aligned on at the terminal cleanup (the most similar
-#: ones): each costs one relative solve per evaluation of the golden-section search.
+#: ones): each adds its matches to every iteration of the joint pose and focal solve.
 FOCAL_REFINEMENT_PAIRS = 4
 
 
