@@ -213,8 +213,17 @@ class InterAgentLinking(GaugeMerging):
             return []
         self._lookahead(packet)
         chosen = hits + loops
-        encodings = {h: self._encoding(h.agent, h.keyframe) for h in chosen}
-        query = self._encoding(packet.agent, packet.kf_id)
+        # in line, every encoding is made here now; with a pool, those of the chunks this
+        # thread verifies when it comes to them (:meth:`_shared_encoding`)
+        made: dict[tuple[int, int], Encoding] = {}
+        if not self.pool.active:
+            for key in [*((h.agent, h.keyframe) for h in chosen), (packet.agent, packet.kf_id)]:
+                made[key] = self._encoding(*key)
+
+        def encoding(agent: int, kf_id: int) -> Encoding:
+            known = made.get((agent, kf_id))
+            return known if known is not None else self._shared_encoding(agent, kf_id)
+
         decoded = self.stats.stage_seconds.get("prior_decode", 0.0)
         verifications = []
         for chunk in self._chunks(chosen):
@@ -223,8 +232,8 @@ class InterAgentLinking(GaugeMerging):
                 verifications += verify_candidates(
                     self.prior,
                     (packet.agent, packet.kf_id),
-                    query,
-                    [(h, encodings[h]) for h in chunk],
+                    encoding(packet.agent, packet.kf_id),
+                    [(h, encoding(h.agent, h.keyframe)) for h in chunk],
                     self.config.matching,
                     self.config.tracking.q_min,
                     self.config.verification,
@@ -233,6 +242,10 @@ class InterAgentLinking(GaugeMerging):
                 verifications += done.verifications
                 self.stats.prior_decodes += done.decodes
                 self._charge_pool(done)
+        if self.pool.active:  # the cache's order and counts as if made before
+            for h in chosen:
+                self._encoding(h.agent, h.keyframe)
+            self._encoding(packet.agent, packet.kf_id)
         self.pool.prune()
         decoded = self.stats.stage_seconds.get("prior_decode", 0.0) - decoded
         self.stats.add_time("verification", time.perf_counter() - middle - decoded)
@@ -373,6 +386,25 @@ class InterAgentLinking(GaugeMerging):
         if self.encodings.seconds > seconds:
             self.stats.add_time("reencode", self.encodings.seconds - seconds)
         return encoding
+
+    def _shared_encoding(self, agent: int, kf_id: int) -> Encoding:
+        """A keyframe's encoding for a verification in this thread, the coordinator's cache
+        untouched: the one held or cached, else made once with the pool's threads
+        (:meth:`_encoding` then takes it into the cache in the selection's order).
+
+        Issue 41: :meth:`_verify` made the encodings of every selected keyframe in this
+        thread before taking the pool's verifications, so a keyframe the pool was to
+        verify was encoded again here while the pool's worker waited for it; made where
+        first needed, that work stays on the pool's threads."""
+        g = self.graph.global_index(agent, kf_id)
+        kf = self.graph.keyframes[g]
+        known = self.encodings.peek(g, kf)
+        if known is not None:
+            return known
+        start = time.perf_counter()
+        made = self.pool.encoding(g, self.encodings.maker(kf, agent))
+        self.stats.add_time("reencode", time.perf_counter() - start)
+        return made
 
     def _admit(self, candidate: Candidate) -> list[PoseUpdate]:
         """Route a verified edge: into its component's graph, or towards a gauge merge."""
