@@ -17,7 +17,6 @@ import pytest
 import torch
 
 from como3r.config import Config, apply_overrides
-from como3r.coordination.coordinator import Coordinator
 from como3r.data.synth import synthesize
 from como3r.errors import InputError
 from como3r.frontend.agent import AgentFrontend
@@ -57,9 +56,10 @@ FINISH_THREADS = 2
 #: the phase that shows the coordinator's backlog while agents stream
 BACKLOG = "backlog"
 
-#: the slow-reader test's hung-agent timeout after its coordinator was busy [s], and how long
-#: the coordinator is busy (longer: the agent's messages wait unread past the timeout)
-HUNG_S, BUSY_S = 2.0, 4.0
+#: the slow-reader test's hung-agent timeout at its first check after its coordinator was
+#: busy [s], and how long the coordinator is busy at least (longer: the agent's messages
+#: wait unread past the timeout)
+HUNG_S, BUSY_S = 1.0, 2.0
 
 #: its timeout at every other check: it covers the agent's start-up (interpreter, torch,
 #: prior), which took over 8 s once in four runs at a load of 10-15 and in a CI run at a
@@ -391,17 +391,21 @@ def test_a_coordinator_slow_to_read_costs_no_message_and_no_agent(
     keyframe: the test is of the coordinator's reading, not of the agent's start-up."""
     from como3r.runtime.processes import _Runtime
 
-    add_keyframes, check_timeouts = Coordinator.add_keyframes, _Runtime._check_timeouts
+    add_keyframes, check_timeouts = _Runtime._add_keyframes, _Runtime._check_timeouts
     busy: list[int] = []
-    #: at the first check after the busy keyframe: how long the coordinator had not read the
-    #: agent, and whether it still waited for it
+    # at the first check after the busy keyframe: how long the coordinator had not read the
+    # agent, and whether it still waited for it
     seen: list[tuple[float, bool]] = []
 
-    def busy_coordinator(self, packets):
+    def busy_coordinator(self, batch) -> None:
         if not busy:
-            busy.append(packets[0].kf_id)
+            busy.append(batch[0].message.packet.kf_id)
             time.sleep(BUSY_S)
-        return add_keyframes(self, packets)
+            deadline = time.monotonic() + START_S
+            while not self.hub.readers[0].ready():  # until the agent has sent more, unread
+                assert time.monotonic() < deadline, "the agent sent nothing more"
+                time.sleep(0.01)
+        add_keyframes(self, batch)
 
     def check_after_busy(self, watched) -> None:
         if not busy or seen:
@@ -418,7 +422,7 @@ def test_a_coordinator_slow_to_read_costs_no_message_and_no_agent(
     # fresh checkout the timed agent compiles them in its first frames and stays silent
     # for long (measured at a timeout of 8 s: "no message for 8 s (hung)" every time). The
     # module's run serves as well as a run of this agent alone, which it replaced.
-    monkeypatch.setattr(Coordinator, "add_keyframes", busy_coordinator)
+    monkeypatch.setattr(_Runtime, "_add_keyframes", busy_coordinator)
     monkeypatch.setattr(_Runtime, "_check_timeouts", check_after_busy)
     options = RuntimeOptions(agent_timeout_s=START_S)
     summary = run_multiprocess(
