@@ -9,6 +9,7 @@ import shutil
 import signal
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,6 @@ import pytest
 import torch
 
 from como3r.config import Config, apply_overrides
-from como3r.coordination.coordinator import Coordinator
 from como3r.data.synth import synthesize
 from como3r.errors import InputError
 from como3r.frontend.agent import AgentFrontend
@@ -56,11 +56,15 @@ FINISH_THREADS = 2
 #: the phase that shows the coordinator's backlog while agents stream
 BACKLOG = "backlog"
 
-#: how long the coordinator of the slow-reader test is busy in one keyframe [s]; its
-#: hung-agent timeout is 4 s less, and it also covers the agent's start-up (interpreter,
-#: torch, prior): at 12 s (timeout 8) that start-up alone took longer once in four runs at a
-#: load of 10-15 and in a CI run at a load of about 20 ("no message for 8 s (hung)")
-BUSY_S = 20.0
+#: the slow-reader test's hung-agent timeout at its first check after its coordinator was
+#: busy [s], and how long the coordinator is busy at least (longer: the agent's messages
+#: wait unread past the timeout)
+HUNG_S, BUSY_S = 1.0, 2.0
+
+#: its timeout at every other check: it covers the agent's start-up (interpreter, torch,
+#: prior), which took over 8 s once in four runs at a load of 10-15 and in a CI run at a
+#: load of about 20 ("no message for 8 s (hung)"), and the agent's frames under load
+START_S = 60.0
 
 
 def _truncate(agent_dir: Path, frames: int) -> None:
@@ -383,28 +387,51 @@ def test_a_coordinator_slow_to_read_costs_no_message_and_no_agent(
     """The coordinator is busy (a global BA) for longer than the hung-agent timeout while
     the agent keeps sending: its messages wait, and once the coordinator reads again the
     agent counts as talking, not as hung (it used to be terminated as hung with its
-    messages unread)."""
-    slow = Coordinator.add_keyframes
-    busy = []
+    messages unread). The timeout is that short only at the first check after the busy
+    keyframe: the test is of the coordinator's reading, not of the agent's start-up."""
+    from como3r.runtime.processes import _Runtime
 
-    def busy_coordinator(self, packets):
+    add_keyframes, check_timeouts = _Runtime._add_keyframes, _Runtime._check_timeouts
+    busy: list[int] = []
+    # at the first check after the busy keyframe: how long the coordinator had not read the
+    # agent, and whether it still waited for it
+    seen: list[tuple[float, bool]] = []
+
+    def busy_coordinator(self, batch) -> None:
         if not busy:
-            busy.append(packets[0].kf_id)
+            busy.append(batch[0].message.packet.kf_id)
             time.sleep(BUSY_S)
-        return slow(self, packets)
+            deadline = time.monotonic() + START_S
+            while not self.hub.readers[0].ready():  # until the agent has sent more, unread
+                assert time.monotonic() < deadline, "the agent sent nothing more"
+                time.sleep(0.01)
+        add_keyframes(self, batch)
+
+    def check_after_busy(self, watched) -> None:
+        if not busy or seen:
+            check_timeouts(self, watched)
+            return
+        slot, options = self.slots[0], self.options
+        seen.append((time.monotonic() - slot.last_heard, slot in watched))
+        self.options = replace(options, agent_timeout_s=HUNG_S)
+        check_timeouts(self, watched)
+        self.options = options
 
     # A run of agent processes on this configuration first (``lockstep``, the module's own,
     # made once), so that the agent's compiled loops are in numba's cache on disk: in a
     # fresh checkout the timed agent compiles them in its first frames and stays silent
-    # for longer than the timeout (measured: "no message for 8 s (hung)" every time). The
+    # for long (measured at a timeout of 8 s: "no message for 8 s (hung)" every time). The
     # module's run serves as well as a run of this agent alone, which it replaced.
-    monkeypatch.setattr(Coordinator, "add_keyframes", busy_coordinator)
-    options = RuntimeOptions(agent_timeout_s=BUSY_S - 4.0)
+    monkeypatch.setattr(_Runtime, "_add_keyframes", busy_coordinator)
+    monkeypatch.setattr(_Runtime, "_check_timeouts", check_after_busy)
+    options = RuntimeOptions(agent_timeout_s=START_S)
     summary = run_multiprocess(
         [scene / "agent_0"], tmp_path / "out", config, PriorSpec("simulated"), options=options
     )
     runtime = _metrics(tmp_path / "out")["runtime"]
     assert busy and runtime["failed_agents"] == [], runtime["agents"][0]["error"]
+    [(silence, waited)] = seen
+    assert waited and silence > HUNG_S  # its messages waited unread past the timeout
     assert summary.agents[0]["frames"] == FRAMES // 2
     assert runtime["agents"][0]["keyframes_received"] == summary.agents[0]["keyframes"]
 
