@@ -409,7 +409,32 @@ keyframes 0.33 s apart) with no number of cores, with 32 at 0.5 of it. Of the se
 in the 16-agent calls replayed in one thread (``coordinator_replay.py``, cProfile), the
 merges' focal search is about half: 15 merges, 143 relative solves, 76 of them stopped at their 10
 iterations with the step still shrinking by about 0.6 per iteration (Huber IRLS converges
-linearly), then the global BA about a fifth.
+linearly), then the global BA about a fifth. (Session 35: that profile included the first
+call's numba compile, about 5.5 s of CPU once per machine; with warm caches the focal search
+was 19 % of the replay's thread, and it is now one joint solve, 186 -> 82 ms a merge.)
+
+Longer missions (session 35, ``--frames 48 --no-decentralized``: 24 frames processed per
+agent, 3.8 m of path each; 4 and 8 agents at bcff8c6, 16 agents at 4227e54 with 16 GiB of
+swap added, its 16 agent processes peaking at 1.4-2.0 GB each; 2 cores at a load of 2 to
+25; one run each):
+
+    agents   kf  coord ms/kf  serial ms/kf  decodes/kf  pool ms/kf  end kf  end kf P8  cores for 0  rt end kf  coord MB  agent MB  ATE mm  ATE %  ATE % team  maps
+         4   32          758           512        4.56        1435      10          1            4          0      3597      1403    6.91  0.183      0.0458     1
+         8   43          514           330        4.49        1665      17          0            4          7      4079      1382    11.9  0.314      0.0393     1
+        16  190          678           538        5.04        2035     142         49         >256         21     12344      1954    17.7  0.466      0.0291     1
+
+(The scenes make 8, 5.4 and 12 keyframes per agent.) Over a longer path the merged ATE is
+under 1 % of one agent's path at 16 agents too, and the work per keyframe 16 vs 4 agents
+is 1.24x. Two things grow with the map instead: the coordinator's peak memory (3.4x; at 16
+agents its resident memory climbed from 2 to about 9.5 GB while the agents streamed, in
+steps of up to 2 GB per batch, and peaked at 12.7 GB at the end of the input), and the
+serial part of a batch, chiefly the in-stream global BA over the whole component: the 16
+agents' calls captured and replayed in one thread (``coordinator_replay.py``, no session
+store) spend 1.1 s in it for a batch at 41 keyframes and 5.2-6.6 s for one at 130-190, a
+serial 226 ms per keyframe over the run. Replayed against the agents' arrivals, that run
+needs more than 256 cores (its serial part alone falls behind); with no verification in
+the coordinator at all one core still leaves 24 keyframes queued at the end of the input,
+and keeps up only with half of the serial part too.
 """
 
 from __future__ import annotations
