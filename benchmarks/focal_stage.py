@@ -6,7 +6,7 @@ agent's focal length moved by ``--perturb`` times -1, -1/2, 0, 1/2 or 1 (by agen
 the solve has work, and the focal stage run as the coordinator's cleanup runs it
 (:func:`~como3r.backend.focal_solver.optimize_focal`: ``global_ba.max_iters_stream``
 iterations, the prior ``gauge.focal_prior`` on the agents' own focal lengths), on a fresh
-copy per path: ``compiled`` (the CPU loop of ``backend/focal_kernels.py``) and ``pytorch``
+copy per path: ``compiled`` (the CPU loop of ``optim/focal_kernels.py``) and ``pytorch``
 (the path of every other device). Per run and path: agents, keyframes, directed edges,
 matches, iterations, CPU seconds (one thread) of building the edges' dense factors (once per
 solve), of the linearizations and of the solves (``A + 1`` pose solves of the Schur
@@ -49,7 +49,7 @@ from rich.console import Console
 
 import como3r.backend.focal_solver as focal_solver
 from como3r.backend.focal_factors import FocalEdgeFactors
-from como3r.backend.focal_kernels import focal_blocks
+from como3r.optim.focal_kernels import focal_blocks
 from como3r.store.reader import read_session
 from como3r.store.schema import STORE_NAME
 

@@ -130,7 +130,7 @@ def test_estimate_is_the_same_at_every_scene_scale(scale: float, monkeypatch) ->
 
 
 def test_the_correction_column_is_the_energy_gradient() -> None:
-    """The joint solve's focal entries (the compiled column, frontend.focal_sums): its
+    """The joint solve's focal entries (the compiled focal blocks, optim.focal_kernels): its
     gradient entry is the energy's derivative in ``delta`` at fixed poses, for a merge's
     reading (the moving side alone) and an agent's own pair (both sides), away from the
     solution (residuals past the Huber breakpoint) and at a correction. (The joint solve's

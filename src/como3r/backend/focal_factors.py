@@ -31,13 +31,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from como3r.backend.focal_kernels import focal_blocks
 from como3r.config import TrackingConfig
 from como3r.errors import InputError
 from como3r.frontend.graph import Edge, Pointmap, build_factors
 from como3r.geometry.lie import quat_to_matrix, sim3_adjoint, sim3_compose, sim3_inverse
 from como3r.geometry.residuals import huber_weight
 from como3r.optim.factors import endpoint_blocks
+from como3r.optim.focal_kernels import focal_blocks
 from como3r.optim.match_factors import CalibratedFactors
 from como3r.optim.system import BlockSystem, assemble
 from como3r.optim.values import PoseValues
@@ -235,7 +235,7 @@ def compiled_edge_blocks(
     tracking: TrackingConfig,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`edge_blocks` of all the factors' edges at trial corrections (as
-    :func:`rescaled`) by the compiled CPU loop (:mod:`como3r.backend.focal_kernels`)."""
+    :func:`rescaled`) by the compiled CPU loop (:mod:`como3r.optim.focal_kernels`)."""
     T_WC_i = poses[factors.i]
     T_ij = sim3_compose(sim3_inverse(T_WC_i), poses[factors.j])
     H, g = focal_blocks(

@@ -13,7 +13,7 @@ pointmaps and intrinsics are rescaled and compared on the calibrated factors (C-
 both directions, the first keyframe pinned), and the summed robust energy (C-Eq. 5) plus a
 weak prior ``(delta / prior_sigma)^2 / 2`` is minimised over the pairs' relative Sim(3)s
 and ``delta`` together: one Gauss-Newton solve with Huber IRLS whose normal equations
-(C-Eq. 25) have one more column, ``delta``'s (:mod:`como3r.frontend.focal_sums`). Two uses:
+(C-Eq. 25) have one more column, ``delta``'s (:mod:`como3r.optim.focal_kernels`). Two uses:
 
 * an agent's own pairs (:attr:`FocalPair.shared`: one camera, both keyframes take the
   correction): the agent's camera from its first keyframes' multi-view geometry
@@ -36,12 +36,12 @@ from torch import Tensor
 
 from como3r.config import GlobalBAConfig, TrackingConfig
 from como3r.errors import InputError
-from como3r.frontend.focal_sums import focal_column
 from como3r.frontend.graph import make_factors
 from como3r.frontend.pairs import DirectedMatches, matched_points
 from como3r.geometry.lie import sim3_adjoint, sim3_compose, sim3_identity, sim3_inverse
 from como3r.geometry.units import median_point_range
 from como3r.optim.factors import endpoint_blocks
+from como3r.optim.focal_kernels import focal_blocks
 from como3r.optim.match_factors import CalibratedFactors
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.values import PoseValues
@@ -289,27 +289,15 @@ class _PairProblem:
 
         The pose blocks are the factors' own (:meth:`~como3r.optim.factors.
         RelativePoseFactors.relative_blocks`, every edge at once in the compiled CPU loop),
-        the correction's column :func:`~como3r.frontend.focal_sums.focal_column`'s; both
-        are projected from the tangent of ``T_ij`` onto the endpoints by C-Eq. 11
+        the correction's column :meth:`correction_column`'s; both are projected from the
+        tangent of ``T_ij`` onto the endpoints by C-Eq. 11
         (``J_i = -J Ad``, ``J_j = J Ad``, ``Ad = Ad(T_WC_i^-1)``).
         """
         factors = self.at(log_focal)
         T_ij, H_rel, g_rel = factors.relative_blocks(poses, slice(None))
         T_WC_i = poses[factors.i]
         blocks = endpoint_blocks(factors.i, factors.j, H_rel, g_rel, T_WC_i)
-        H_pf, H_ff, g_f = focal_column(
-            T_ij,
-            factors.K,
-            self.rescales_i,
-            self.rescales_j,
-            factors.X_j,
-            factors.p_i,
-            factors.z_i,
-            factors.q,
-            factors.valid,
-            self.inv_sigmas,
-            self.huber_k,
-        )
+        H_pf, H_ff, g_f = self.correction_column(T_ij, log_focal)
         coupling = (sim3_adjoint(sim3_inverse(T_WC_i)).transpose(1, 2) @ H_pf[..., None])[..., 0]
         n = 7 * poses.shape[0]
         H = torch.zeros(n + 1, n + 1, dtype=torch.float64)
@@ -328,6 +316,33 @@ class _PairProblem:
         H[n, n] = H_ff.sum()
         g[n] = g_f.sum()
         return H, g
+
+    def correction_column(self, T_ij: Tensor, log_focal: float) -> tuple[Tensor, Tensor, Tensor]:
+        """The correction's column of every edge at ``T_ij (e, 8)``: ``H_pf (e, 7)`` in the
+        left tangent of ``T_ij``, ``H_ff (e,)`` and ``g_f (e,)``, float64.
+
+        The global BA's compiled focal blocks (:func:`~como3r.optim.focal_kernels.
+        focal_blocks`) give camera i's and camera j's log focal columns at the trial
+        correction of each side that takes it; ``delta`` moves both sides that do, so its
+        Jacobian is their sum weighted by :attr:`rescales_i` and :attr:`rescales_j`.
+        """
+        factors, sides = self.factors, torch.stack([self.rescales_i, self.rescales_j], dim=1)
+        H, g = focal_blocks(
+            T_ij,
+            factors.K,
+            torch.exp(log_focal * self.rescales_i),
+            torch.exp(-log_focal * self.rescales_j),
+            factors.X_j,
+            factors.p_i,
+            factors.z_i,
+            factors.q,
+            factors.valid,
+            self.inv_sigmas,
+            self.huber_k,
+        )
+        H_pf = (H[:, :7, 7:] * sides[:, None, :]).sum(-1)
+        H_ff = torch.einsum("ea,eab,eb->e", sides, H[:, 7:, 7:], sides)
+        return H_pf, H_ff, (g[:, 7:] * sides).sum(-1)
 
 
 def _damped_step(H: Tensor, g: Tensor, config: GlobalBAConfig) -> Tensor | None:

@@ -1,4 +1,6 @@
-"""Compiled CPU sums of the joint pose and focal BA (:mod:`como3r.backend.focal_factors`).
+"""Compiled CPU sums of C-Eq. 17 edges with focal rows: the joint pose and focal BA's
+(:mod:`como3r.backend.focal_factors`) and a keyframe pair's focal correction's
+(:mod:`como3r.frontend.focal`, which sums the two focal columns into one).
 
 One pass over an edge's matches gives its C-Eq. 17 residual, usable-depth mask and Huber
 weights once, and from them the whole ``9 x 9`` Gauss-Newton block in ``(T_ij, phi_i,
