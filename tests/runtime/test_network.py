@@ -270,6 +270,9 @@ def test_a_frozen_coordinator_loses_nothing(longer_scene, team, tmp_path) -> Non
         os.kill(coordinator.pid, signal.SIGCONT)
         resumed = time.monotonic()
         gone = watch.token_change(stopped, "coordinator", False)
+        # a coordinator the watcher never saw go never comes "back" either: fail now, not
+        # after the whole LIMIT_S (seen once, under load, outside CI)
+        assert gone is not None, "the watcher saw no liveliness drop while it was frozen"
         back = watch.until(
             lambda: watch.token_change(resumed, "coordinator", True),
             "the coordinator never came back",
@@ -284,7 +287,7 @@ def test_a_frozen_coordinator_loses_nothing(longer_scene, team, tmp_path) -> Non
         f"after SIGSTOP, back {back - resumed:.2f} s after SIGCONT, run finished "
         f"{done - resumed:.1f} s later"
     )
-    assert gone is not None and 0.5 * lease_s < gone - stopped < 4 * lease_s  # on the lease
+    assert 0.5 * lease_s < gone - stopped < 4 * lease_s  # on the lease
     metrics = _runtime(out)
     for agent in (0, 1):
         log = team.log(f"agent{agent}")
