@@ -42,6 +42,7 @@ from como3r.geometry.lie import sim3_adjoint, sim3_compose, sim3_identity, sim3_
 from como3r.geometry.units import median_point_range
 from como3r.optim.factors import endpoint_blocks
 from como3r.optim.focal_kernels import focal_blocks
+from como3r.optim.linear import dense_attempts
 from como3r.optim.match_factors import CalibratedFactors
 from como3r.optim.optimizer import gauss_newton_irls
 from como3r.optim.values import PoseValues
@@ -265,7 +266,10 @@ class _PairProblem:
             H, g = self.linearize(values.poses, log_focal)
             H[-1, -1] += 1.0 / prior_sigma**2
             g[-1] += log_focal / prior_sigma**2
-            step = _damped_step(H[free][:, free], g[free], config)
+            attempts = dense_attempts(
+                H[free][:, free], g[free], 0.0, config.tikhonov_base, config.tikhonov_retries
+            )
+            step = next((s for s in attempts if s is not None), None)
             if step is None:
                 break
             tau = torch.zeros(values.num_poses * 7, dtype=torch.float64)
@@ -343,19 +347,6 @@ class _PairProblem:
         H_pf = (H[:, :7, 7:] * sides[:, None, :]).sum(-1)
         H_ff = torch.einsum("ea,eab,eb->e", sides, H[:, 7:, 7:], sides)
         return H_pf, H_ff, (g[:, 7:] * sides).sum(-1)
-
-
-def _damped_step(H: Tensor, g: Tensor, config: GlobalBAConfig) -> Tensor | None:
-    """``-(H + eps I)^-1 g`` with the Tikhonov escalation of C-Sec. B.2 (``eps_r = eps_0
-    100^r``, :func:`como3r.optim.linear.solve`'s), or None when no attempt factorises."""
-    for attempt in range(config.tikhonov_retries):
-        A = H + config.tikhonov_base * 100.0**attempt * torch.eye(H.shape[0], dtype=H.dtype)
-        L, info = torch.linalg.cholesky_ex(A)
-        if int(info) == 0:
-            step = -torch.cholesky_solve(g[:, None], L)[:, 0]
-            if bool(step.isfinite().all()):
-                return step
-    return None
 
 
 def _factors(directions: Sequence[_Direction], tracking: TrackingConfig) -> CalibratedFactors:

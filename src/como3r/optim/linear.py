@@ -184,15 +184,25 @@ def _dense_attempts(
 ) -> Iterator[torch.Tensor | None]:
     """Yield the free-pose step ``(F, 7)`` of each escalation attempt, or None on failure."""
     H = free_dense(system, free)
-    rhs = -system.g[free].reshape(-1, 1)
+    for tau in dense_attempts(H, system.g[free].reshape(-1), lm_lambda, tikhonov_base, retries):
+        yield None if tau is None else tau.reshape(-1, D)
+
+
+def dense_attempts(
+    H: torch.Tensor, g: torch.Tensor, lm_lambda: float, tikhonov_base: float, retries: int
+) -> Iterator[torch.Tensor | None]:
+    """Yield ``-(H + lm_lambda diag(H) + eps_r I)^-1 g`` ``(n,)`` of each escalation attempt
+    ``eps_r = tikhonov_base 100^r`` (C-Sec. B.2) for a dense ``H (n, n)``, ``g (n,)``, or
+    None where it does not factorise or is not finite."""
+    rhs = -g.reshape(-1, 1)
     damping = lm_lambda * H.diagonal()
     for r in range(retries):
         A = H.clone()  # one working copy at a time: 7N = 14000 is 1.5 GB per matrix
         A.diagonal().add_(damping + tikhonov_base * 100.0**r)
         L, info = torch.linalg.cholesky_ex(A)
         del A
-        tau = torch.cholesky_solve(rhs, L) if int(info) == 0 else None
-        yield tau.reshape(-1, D) if tau is not None and bool(tau.isfinite().all()) else None
+        tau = torch.cholesky_solve(rhs, L)[:, 0] if int(info) == 0 else None
+        yield tau if tau is not None and bool(tau.isfinite().all()) else None
 
 
 def _sparse_attempts(
