@@ -291,17 +291,35 @@ class _PairProblem:
         pairs' energy in the poses' left tangents and the correction (its row last), with
         Huber-IRLS weights at ``poses (N, 8)`` (C-Eq. 7-8, 25).
 
-        The pose blocks are the factors' own (:meth:`~como3r.optim.factors.
-        RelativePoseFactors.relative_blocks`, every edge at once in the compiled CPU loop),
-        the correction's column :meth:`correction_column`'s; both are projected from the
-        tangent of ``T_ij`` onto the endpoints by C-Eq. 11
-        (``J_i = -J Ad``, ``J_j = J Ad``, ``Ad = Ad(T_WC_i^-1)``).
+        Every edge's blocks in the tangent of ``T_ij = T_WC_i^-1 T_WC_j`` (C-Eq. 13) come
+        from one pass of the global BA's compiled loop (:func:`~como3r.optim.focal_kernels.
+        focal_blocks`): the pose rows, and camera i's and camera j's log focal columns at
+        the trial correction of each side that takes it. ``delta`` moves both sides that
+        do, so its column is their sum weighted by :attr:`rescales_i` and
+        :attr:`rescales_j`. The pose rows and that column are projected onto the endpoints
+        by C-Eq. 11 (``J_i = -J Ad``, ``J_j = J Ad``, ``Ad = Ad(T_WC_i^-1)``).
         """
-        factors = self.at(log_focal)
-        T_ij, H_rel, g_rel = factors.relative_blocks(poses, slice(None))
+        factors = self.factors
         T_WC_i = poses[factors.i]
-        blocks = endpoint_blocks(factors.i, factors.j, H_rel, g_rel, T_WC_i)
-        H_pf, H_ff, g_f = self.correction_column(T_ij, log_focal)
+        T_ij = sim3_compose(sim3_inverse(T_WC_i), poses[factors.j])
+        H_edge, g_edge = focal_blocks(
+            T_ij,
+            factors.K,
+            torch.exp(log_focal * self.rescales_i),
+            torch.exp(-log_focal * self.rescales_j),
+            factors.X_j,
+            factors.p_i,
+            factors.z_i,
+            factors.q,
+            factors.valid,
+            self.inv_sigmas,
+            self.huber_k,
+        )
+        sides = torch.stack([self.rescales_i, self.rescales_j], dim=1)  # (e, 2)
+        H_pf = (H_edge[:, :7, 7:] * sides[:, None, :]).sum(-1)
+        H_ff = torch.einsum("ea,eab,eb->e", sides, H_edge[:, 7:, 7:], sides)
+        g_f = (g_edge[:, 7:] * sides).sum(-1)
+        blocks = endpoint_blocks(factors.i, factors.j, H_edge[:, :7, :7], g_edge[:, :7], T_WC_i)
         coupling = (sim3_adjoint(sim3_inverse(T_WC_i)).transpose(1, 2) @ H_pf[..., None])[..., 0]
         n = 7 * poses.shape[0]
         H = torch.zeros(n + 1, n + 1, dtype=torch.float64)
@@ -320,33 +338,6 @@ class _PairProblem:
         H[n, n] = H_ff.sum()
         g[n] = g_f.sum()
         return H, g
-
-    def correction_column(self, T_ij: Tensor, log_focal: float) -> tuple[Tensor, Tensor, Tensor]:
-        """The correction's column of every edge at ``T_ij (e, 8)``: ``H_pf (e, 7)`` in the
-        left tangent of ``T_ij``, ``H_ff (e,)`` and ``g_f (e,)``, float64.
-
-        The global BA's compiled focal blocks (:func:`~como3r.optim.focal_kernels.
-        focal_blocks`) give camera i's and camera j's log focal columns at the trial
-        correction of each side that takes it; ``delta`` moves both sides that do, so its
-        Jacobian is their sum weighted by :attr:`rescales_i` and :attr:`rescales_j`.
-        """
-        factors, sides = self.factors, torch.stack([self.rescales_i, self.rescales_j], dim=1)
-        H, g = focal_blocks(
-            T_ij,
-            factors.K,
-            torch.exp(log_focal * self.rescales_i),
-            torch.exp(-log_focal * self.rescales_j),
-            factors.X_j,
-            factors.p_i,
-            factors.z_i,
-            factors.q,
-            factors.valid,
-            self.inv_sigmas,
-            self.huber_k,
-        )
-        H_pf = (H[:, :7, 7:] * sides[:, None, :]).sum(-1)
-        H_ff = torch.einsum("ea,eab,eb->e", sides, H[:, 7:, 7:], sides)
-        return H_pf, H_ff, (g[:, 7:] * sides).sum(-1)
 
 
 def _factors(directions: Sequence[_Direction], tracking: TrackingConfig) -> CalibratedFactors:
