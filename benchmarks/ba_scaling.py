@@ -59,9 +59,10 @@ CG_BACKENDS = ("pcg", "band")
 
 
 def build_problem(
-    num_poses: int, seed: int = 0, loop_every: int = LOOP_EVERY
+    num_poses: int, seed: int = 0, loop_every: int = LOOP_EVERY, device: str = "cpu"
 ) -> tuple[RayRangeFactors, PoseValues]:
-    """A float32 factor batch (as the system stores pointmaps) and noisy initial poses."""
+    """A float32 factor batch (as the system stores pointmaps) and noisy initial poses, on
+    ``device`` (the same problem on every device: drawn on the CPU, then moved)."""
     generator = torch.Generator().manual_seed(seed)
     truth = chain_poses(num_poses, generator)
     i, j = chain_loop_edges(num_poses, loop_every, generator)
@@ -69,9 +70,11 @@ def build_problem(
     initial = sim3_compose(random_sim3(num_poses, 2.0, 0.2, 0.03, generator), truth)
     initial[0] = truth[0]
     factors = RayRangeFactors(
-        graph.i, graph.j, graph.X_i.float(), graph.X_j.float(), graph.q.float(), graph.valid
+        *(t.to(device) for t in (graph.i, graph.j)),
+        *(t.float().to(device) for t in (graph.X_i, graph.X_j, graph.q)),
+        graph.valid.to(device),
     )
-    return factors, PoseValues.from_poses(initial.float(), num_pinned=1)
+    return factors, PoseValues.from_poses(initial.float().to(device), num_pinned=1)
 
 
 def best_time(function, repeats: int) -> float:

@@ -38,11 +38,13 @@ import argparse
 import functools
 import platform
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Any
 
 import torch
+from torch import Tensor
 
 from como3r.config import Config, apply_overrides
 from como3r.data.agent import open_agent
@@ -51,6 +53,7 @@ from como3r.frontend import agent as agent_module
 from como3r.frontend import keyframes as keyframes_module
 from como3r.frontend import pairs as pairs_module
 from como3r.frontend import tracker as tracker_module
+from como3r.prior.base import Encoding, EncodingRecord, PairPrediction, Prior, View
 from como3r.prior.mast3r.precision import PRECISIONS
 from como3r.runtime.pipeline import PriorSpec, _colors, build_prior
 
@@ -59,13 +62,20 @@ SLAM_STAGES = ("matching", "tracking", "fusion", "keyframe", "local_solve", "cal
 
 
 class ExclusiveClock:
-    """CPU seconds per stage; entering a nested stage pauses the enclosing one."""
+    """Seconds per stage; entering a nested stage pauses the enclosing one.
 
-    def __init__(self) -> None:
+    Args:
+        timer: the clock read at every switch: this process's CPU seconds by default; a
+            CUDA run reads wall seconds after a device synchronisation (:func:`cuda_timer`),
+            as its work is the device's, not the CPU's.
+    """
+
+    def __init__(self, timer: Callable[[], float] = time.process_time) -> None:
         self.seconds: dict[str, float] = {}
         self.calls: dict[str, int] = {}
         self._stack: list[str] = []
         self._mark = 0.0
+        self._timer = timer
 
     def wrap(self, name: str, fn: Callable[..., Any]) -> Callable[..., Any]:
         """``fn`` with its calls charged to stage ``name``."""
@@ -82,7 +92,7 @@ class ExclusiveClock:
         return timed
 
     def _switch(self, entering: str | None) -> None:
-        now = time.process_time()
+        now = self._timer()
         if self._stack:
             top = self._stack[-1]
             self.seconds[top] = self.seconds.get(top, 0.0) + now - self._mark
@@ -93,16 +103,30 @@ class ExclusiveClock:
         self._mark = now
 
 
-def instrument(clock: ExclusiveClock) -> None:
-    """Wrap the front-end's work functions (class and module attributes) with ``clock``."""
-    frontend = agent_module.AgentFrontend
-    frontend.process = clock.wrap("other", frontend.process)
-    frontend._link_new_keyframe = clock.wrap("keyframe", frontend._link_new_keyframe)
-    frontend._local_solve = clock.wrap("local_solve", frontend._local_solve)
-    frontend.settle_camera = clock.wrap("calibration", frontend.settle_camera)
-    tracker_module.FrameTracker.solve = clock.wrap("tracking", tracker_module.FrameTracker.solve)
-    keyframes_module.Keyframe.fuse = clock.wrap("fusion", keyframes_module.Keyframe.fuse)
-    pairs_module.match_pointmaps = clock.wrap("matching", pairs_module.match_pointmaps)
+#: the front-end's work functions each stage is charged with: (owner, attribute, stage)
+STAGE_FUNCTIONS = (
+    (agent_module.AgentFrontend, "process", "other"),
+    (agent_module.AgentFrontend, "_link_new_keyframe", "keyframe"),
+    (agent_module.AgentFrontend, "_local_solve", "local_solve"),
+    (agent_module.AgentFrontend, "settle_camera", "calibration"),
+    (tracker_module.FrameTracker, "solve", "tracking"),
+    (keyframes_module.Keyframe, "fuse", "fusion"),
+    (pairs_module, "match_pointmaps", "matching"),
+)
+
+
+@contextmanager
+def instrumented(clock: ExclusiveClock) -> Iterator[None]:
+    """The front-end's work functions (class and module attributes) charged to ``clock``
+    while inside; the originals again after (a second run in the process is timed alone)."""
+    originals = [(owner, name, getattr(owner, name)) for owner, name, _ in STAGE_FUNCTIONS]
+    for (owner, name, stage), (_, _, function) in zip(STAGE_FUNCTIONS, originals):
+        setattr(owner, name, clock.wrap(stage, function))
+    try:
+        yield
+    finally:
+        for owner, name, function in originals:
+            setattr(owner, name, function)
 
 
 def instrument_prior(clock: ExclusiveClock, prior: Any, decodes: list[int]) -> None:
@@ -128,37 +152,93 @@ def instrument_prior(clock: ExclusiveClock, prior: Any, decodes: list[int]) -> N
 
 
 def frontend_run(
-    agent_path: Path, frames: int, overrides: list[str]
+    agent_path: Path, frames: int, overrides: list[str], device: str = "cpu"
 ) -> tuple[ExclusiveClock, dict]:
     """Stage clock over the first ``frames`` processed frames and the run's counters, after
     an untimed run over the same frames (numba compiles its kernels at their first call and
     caches them beside the sources: a new checkout's first run compiled for seconds, more
-    than its SLAM work, once per machine)."""
-    _frontend_pass(agent_path, frames, overrides, None)
-    clock = ExclusiveClock()
-    return clock, _frontend_pass(agent_path, frames, overrides, clock)
+    than its SLAM work, once per machine; CUDA sets up its kernels at their first call).
+
+    Args:
+        device: where the SLAM works: ``"cpu"``, or a CUDA device, where the simulated
+            prior's predictions are handed over (:class:`OnDevice`) as MASt3R's would be
+            made there, and the clock reads synchronised wall time (:func:`cuda_timer`).
+    """
+    _frontend_pass(agent_path, frames, overrides, None, device)
+    clock = ExclusiveClock(cuda_timer if device.startswith("cuda") else time.process_time)
+    return clock, _frontend_pass(agent_path, frames, overrides, clock, device)
+
+
+def cuda_timer() -> float:
+    """Wall seconds once the CUDA device's queued work is done."""
+    torch.cuda.synchronize()
+    return time.perf_counter()
+
+
+class OnDevice(Prior):
+    """``inner``'s predictions and retrieval features on ``device``; its encodings stay
+    where ``inner`` made them (the SLAM never reads them, only hands them back)."""
+
+    def __init__(self, inner: Prior, device: str) -> None:
+        self.inner, self.device = inner, torch.device(device)
+        self.descriptor_dim = inner.descriptor_dim
+
+    def encode(self, view: View) -> Encoding:
+        return self.inner.encode(view)
+
+    def decode(self, enc_i: Encoding, enc_j: Encoding) -> PairPrediction:
+        return self.inner.decode(enc_i, enc_j).to(self.device)
+
+    def decode_pairs(self, pairs: Sequence[tuple[Encoding, Encoding]]) -> list[PairPrediction]:
+        return [p.to(self.device) for p in self.inner.decode_pairs(pairs)]
+
+    def decode_symmetric(
+        self, pairs: Sequence[tuple[Encoding, Encoding]]
+    ) -> list[tuple[PairPrediction, PairPrediction]]:
+        return [
+            (a.to(self.device), b.to(self.device)) for a, b in self.inner.decode_symmetric(pairs)
+        ]
+
+    def retrieval_features(self, enc: Encoding) -> tuple[Tensor, Tensor]:
+        descriptors, attention = self.inner.retrieval_features(enc)
+        return descriptors.to(self.device), attention.to(self.device)
+
+    def can_reencode(self, agent: int) -> bool:
+        return self.inner.can_reencode(agent)
+
+    def encode_from_record(self, view: View, record: EncodingRecord) -> Encoding:
+        return self.inner.encode_from_record(view, record)
+
+    def describe(self) -> dict[str, object]:
+        return {**self.inner.describe(), "device": str(self.device)}
 
 
 def _frontend_pass(
-    agent_path: Path, frames: int, overrides: list[str], clock: ExclusiveClock | None
+    agent_path: Path,
+    frames: int,
+    overrides: list[str],
+    clock: ExclusiveClock | None,
+    device: str = "cpu",
 ) -> dict:
     """One front-end over the first ``frames`` processed frames, its stages on ``clock``
-    (None: not timed); returns the run's counters."""
+    (None: not timed) and the SLAM on ``device``; returns the run's counters."""
     config = apply_overrides(Config(), overrides)
     agent = open_agent(agent_path, fps=config.input.frame_rate_hz)
     prior, codebook = build_prior(PriorSpec("simulated"), config, {0: agent})
+    if device != "cpu":
+        prior = OnDevice(prior, device)
     decodes = [0]
     if clock is not None:
-        instrument(clock)
         instrument_prior(clock, prior, decodes)
     frontend = agent_module.AgentFrontend(prior, config, 0, codebook)
     indices = list(range(0, agent.num_frames, config.input.subsample))[:frames]
     shape = None
-    for index in indices:
-        frame = agent.load_frame(index)
-        view = make_view(frame, 0, config.input.long_side)
-        shape = tuple(view.image.shape[1:])
-        frontend.process(view, frame.timestamp, _colors(view))
+    with instrumented(clock) if clock is not None else nullcontext():
+        for index in indices:
+            frame = agent.load_frame(index)
+            view = make_view(frame, 0, config.input.long_side)
+            shape = tuple(view.image.shape[1:])
+            frontend.process(view, frame.timestamp, _colors(view))
     stats = frontend.stats
     counters = {
         "frames": len(indices),
@@ -168,6 +248,7 @@ def _frontend_pass(
         "loop_candidates": stats.loop_candidates,
         "decodes": decodes[0],
         "resolution": f"{shape[1]}x{shape[0]}",
+        "device": device,
     }
     return counters
 
