@@ -49,6 +49,31 @@ def test_descriptor_window_search_equals_the_vectorised_path(threads, size) -> N
     assert moved > 0.5  # the search did work: most starts were off
 
 
+def test_descriptor_window_search_on_every_device(device) -> None:
+    """The window search where the pointmaps live (a GPU: the vectorised path in its large
+    chunks) picks the compiled CPU loop's pixels; a GPU's float32 sums may order their terms
+    otherwise, so a near-tie of scores could differ (none expected in random descriptors)."""
+    D, D_query, pixel = _descriptor_problem(2, 40, 56, dim=24, flow=6, seed=11)
+    compiled = cpu_window_search.refine_windows(D, D_query, pixel, 3, 5, None)
+    on_device = matching.refine_with_descriptors(
+        D.to(device), D_query.to(device), pixel.to(device), 3, 5
+    )
+    assert on_device.device.type == device.type
+    assert (on_device.cpu() == compiled).all(-1).float().mean() >= 0.999
+    assert (compiled != pixel).any(-1).float().mean() > 0.5
+
+
+@pytest.mark.parametrize("chunk", [7, 512, 1 << 16])
+def test_descriptor_window_search_does_not_depend_on_the_chunk(chunk) -> None:
+    """The vectorised path refines its matches ``chunk`` at a time (small on a CPU, large on
+    a GPU) with the same result, also where the last chunk is partial."""
+    D, D_query, pixel = _descriptor_problem(2, 24, 32, dim=24, flow=6, seed=4)
+    active = torch.rand(pixel.shape[:2], generator=torch.Generator().manual_seed(2)) < 0.7
+    compiled = cpu_window_search.refine_windows(D, D_query, pixel, 3, 4, active)
+    vectorised = matching._refine_vectorised(D, D_query, pixel, 3, 4, active, chunk=chunk)
+    assert torch.equal(compiled, vectorised)
+
+
 @pytest.mark.parametrize(
     "dim, radius, dilation_max",
     [(12, 3, 5), (24, 4, 2), (5, 1, 3)],

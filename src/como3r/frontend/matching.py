@@ -36,6 +36,10 @@ from como3r.geometry.units import pixels_at
 #: per-chunk overhead. Whole matching call on a 512x384 pair, one thread, AMD EPYC: chunk
 #: 1024 0.99 s, 512 0.91 s, 256 0.92 s (16k was 2x slower than 1024)
 _REFINE_CHUNK = 512
+#: the same on a GPU, where a chunk's cost is its kernel launches (about 25 per chunk), not
+#: its cache: 512 took 224 ms a matching call on an H200 (384 chunks, 10k launches,
+#: benchmarks/cuda_speed.py); 65536 matches gather a 308 MB (chunk, 49, 24) float32 buffer
+_REFINE_CHUNK_CUDA = 1 << 16
 
 #: dtype of the descriptor scores of the window search. MASt3R-SLAM's refine_matches kernel
 #: scores in half precision (``D.half()``) on the GPU; on CPU, float32 with a fused dot
@@ -303,9 +307,14 @@ def _refine_vectorised(
     radius: int,
     dilation_max: int,
     active: Tensor | None,
+    chunk: int | None = None,
 ) -> Tensor:
     """:func:`refine_with_descriptors` as batched PyTorch (any device; on CPU the compiled
-    loop of :mod:`como3r.frontend.cpu_window_search` is 9x faster)."""
+    loop of :mod:`como3r.frontend.cpu_window_search` is 9x faster), ``chunk`` matches at a
+    time (default: :data:`_REFINE_CHUNK` on a CPU, :data:`_REFINE_CHUNK_CUDA` elsewhere;
+    the result does not depend on it)."""
+    if chunk is None:
+        chunk = _REFINE_CHUNK if D_search.device.type == "cpu" else _REFINE_CHUNK_CUDA
     B, H, W, d = D_search.shape
     P = pixel.shape[1]
     margin = radius * dilation_max
@@ -337,9 +346,9 @@ def _refine_vectorised(
     # offset major (K, n, d) so the product with the queries (n, d) is between operands of
     # one shape, no broadcast inside a row (1.3x over (n, K, d) on one core)
     ones = torch.ones(d, 1, dtype=_SCORE_DTYPE, device=pixel.device)
-    buffer = torch.empty(_REFINE_CHUNK * K, d, dtype=_SCORE_DTYPE, device=pixel.device)
-    for start in range(0, u_all.shape[0], _REFINE_CHUNK):
-        sl = slice(start, start + _REFINE_CHUNK)
+    buffer = torch.empty(min(chunk, u_all.shape[0]) * K, d, dtype=_SCORE_DTYPE, device=pixel.device)
+    for start in range(0, u_all.shape[0], chunk):
+        sl = slice(start, start + chunk)
         q, u, v, origin_c = query[sl], u_all[sl], v_all[sl], origin[sl]
         n = q.shape[0]
         candidates = buffer[: n * K]
