@@ -62,6 +62,7 @@ from como3r.coordination.coordinator import Coordinator  # noqa: E402
 from como3r.geometry.umeyama import umeyama_rmse, umeyama_sim3  # noqa: E402
 from como3r.heap import give_back_freed_memory  # noqa: E402
 from como3r.io.tum import read_tum  # noqa: E402
+from como3r.optim.relinearization import ThresholdRelinearized  # noqa: E402
 from como3r.prior.simulated import SimulatedPrior  # noqa: E402
 from como3r.store.resume import open_store  # noqa: E402
 from como3r.transport import codec  # noqa: E402
@@ -145,6 +146,7 @@ def replay(
     coordinator: Coordinator | None = None
     seconds: list[tuple[int, float]] = []
     with ExitStack() as stack:
+        solves = stack.enter_context(watching_solves()) if counted else {}
         for kind, what, agents in calls(folder):
             if coordinator is None:
                 coordinator = Coordinator(prior, config, prior.codebook(), agents)
@@ -160,6 +162,12 @@ def replay(
                 seconds.append((len(what), time.thread_time() - start))
                 if watch is not None:
                     print_census(coordinator, len(what), watch.stop())
+                    print(
+                        f"solves: largest dense factors held {solves['dense MB']:.0f} MB "
+                        f"({solves['edges']} directed edges)",
+                        flush=True,
+                    )
+                    solves.update({"dense MB": 0.0, "edges": 0})
             else:
                 coordinator.refresh(*what)
     if coordinator is None:
@@ -173,7 +181,7 @@ class PeakWatch:
 
     def __init__(self) -> None:
         self.peak, self.where = 0.0, ""
-        self._main = threading.main_thread().ident
+        self._main = threading.main_thread().ident or 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._watch, daemon=True)
         self._thread.start()
@@ -183,7 +191,7 @@ class PeakWatch:
             rss = resident_mb("VmRSS")
             if rss > self.peak:
                 frame = sys._current_frames().get(self._main)  # noqa: SLF001 (a sample)
-                names = []
+                names: list[str] = []
                 while frame is not None and len(names) < 4:
                     names.append(frame.f_code.co_name)
                     frame = frame.f_back
@@ -194,6 +202,35 @@ class PeakWatch:
         self._stop.set()
         self._thread.join()
         return self.peak, self.where
+
+
+class _Held:
+    """What :func:`census` walks: one solve's dense factor batches."""
+
+    def __init__(self, dense: dict) -> None:
+        self.dense = dense
+
+
+@contextmanager
+def watching_solves() -> Iterator[dict[str, float]]:
+    """While open, the largest bytes of dense factors one global-BA solve holds at once
+    (``ThresholdRelinearized``'s batches, built once per solve and kept to its end; MB) and
+    that solve's edges, since the last reset of the dictionary yielded."""
+    seen = {"dense MB": 0.0, "edges": 0}
+    cost = ThresholdRelinearized.cost
+
+    def counted_cost(self: ThresholdRelinearized, poses: torch.Tensor) -> torch.Tensor:
+        value = cost(self, poses)
+        mb = sum(census(_Held(self._dense)).values()) / 1e6
+        if mb > seen["dense MB"]:
+            seen["dense MB"], seen["edges"] = mb, self.num_edges
+        return value
+
+    ThresholdRelinearized.cost = counted_cost  # type: ignore[method-assign]
+    try:
+        yield seen
+    finally:
+        ThresholdRelinearized.cost = cost  # type: ignore[method-assign]
 
 
 def print_census(coordinator: Coordinator, batch: int, peak: tuple[float, str]) -> None:
