@@ -14,12 +14,19 @@ CPU), decodes, merges, admitted edges and, with ``--scene``, the in-stream keyfr
 (keyframe positions before the terminal cleanup, one similarity against the ground truth),
 and then those outputs again with every digit of the ATE.
 The same calls replayed by two checkouts (``PYTHONPATH=<checkout>/src``) compare their
-coordinators on identical input; ``--set`` compares configurations.
+coordinators on identical input; ``--set`` compares configurations. ``--store DIR``
+journals the coordinator to a session store there, which pages out what lies outside the
+working set as a run's does (its pointmaps then settle on their coded values, so the
+outputs differ from a replay without one); ``--census`` prints after each batch the
+process's peak resident memory in it (and where the main thread was then), its memory
+after a heap trim and the coordinator's tensors by owner
+(:func:`como3r.coordination.census.census`).
 
     python benchmarks/coordinator_replay.py capture --scene /tmp/ts/scene_a16_s0 \\
         --out /tmp/cap_run --calls /tmp/cap16
     OMP_NUM_THREADS=1 python benchmarks/coordinator_replay.py replay --calls /tmp/cap16 \\
-        --scene /tmp/ts/scene_a16_s0 [--set gauge.max_correspondences=0]
+        --scene /tmp/ts/scene_a16_s0 [--set gauge.max_correspondences=0] \\
+        [--store /tmp/replay_store --census]
 
 Measured (session 29; the 16-agent scene of ``benchmarks/team_scale.py``, calls of 1 / 1 /
 24 / 14 keyframes; 2 shared cores): in-stream thread CPU 868 ms per keyframe at 90798a6,
@@ -27,6 +34,12 @@ Measured (session 29; the 16-agent scene of ``benchmarks/team_scale.py``, calls 
 ``gauge.max_correspondences``), in-stream keyframe ATE 67.66 -> 67.53 mm; with
 ``verification.workers=0`` 2191 ms, of which the verification 1980 (the simulated prior's
 decodes and re-encodes 72 %, the matching 25 %).
+
+Measured (session 36; the long 16-agent capture of ``team_scale.py --frames 48``, 190
+keyframes, ``--store --census``): tensors held after the batch 1397 / 2117 / 2337 MB at 41 /
+100 / 190 keyframes (3185 at 190 before every edge outside the working set was paged), of
+which the encoding cache 1548 from 64 keyframes on; the batch's peak resident memory 3.2 /
+5.1 / 8.1 GB, of which the in-stream global BA's dense factors 0.09 / 0.69 / 1.99 GB.
 """
 
 from __future__ import annotations
@@ -34,9 +47,10 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import threading
 import time
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -49,10 +63,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _tables import print_table  # noqa: E402
 
 from como3r.config import Config, apply_overrides  # noqa: E402
+from como3r.coordination.census import census, megabytes  # noqa: E402
 from como3r.coordination.coordinator import Coordinator  # noqa: E402
 from como3r.geometry.umeyama import umeyama_rmse, umeyama_sim3  # noqa: E402
+from como3r.heap import give_back_freed_memory  # noqa: E402
 from como3r.io.tum import read_tum  # noqa: E402
+from como3r.optim.relinearization import ThresholdRelinearized  # noqa: E402
 from como3r.prior.simulated import SimulatedPrior  # noqa: E402
+from como3r.store.resume import open_store  # noqa: E402
 from como3r.transport import codec  # noqa: E402
 
 #: the largest message a capture holds (a keyframe at the full resolution, bit-exact)
@@ -117,26 +135,140 @@ def calls(folder: Path) -> Iterator[tuple[str, Any, int]]:
             yield kind, (what, codec.decode(data, max_bytes=MAX_BYTES)), agents
 
 
-def replay(folder: Path, config: Config) -> tuple[Coordinator, list[tuple[int, float]]]:
+def replay(
+    folder: Path, config: Config, store: Path | None = None, counted: bool = False
+) -> tuple[Coordinator, list[tuple[int, float]]]:
     """A fresh coordinator fed the recorded calls; returns it and, per batch, its size and the
-    coordinator thread's CPU seconds in it."""
+    coordinator thread's CPU seconds in it.
+
+    Args:
+        store: a folder for a session store that journals (and pages out) the coordinator
+            as a run's does (its pointmaps settle on their coded values, so the outputs
+            differ from a replay without one); None: no store, nothing paged out.
+        counted: after each batch, print the process's resident memory and the
+            coordinator's tensors by owner (:func:`como3r.coordination.census.census`).
+    """
     prior = SimulatedPrior(config.simulated_prior, None)
     coordinator: Coordinator | None = None
     seconds: list[tuple[int, float]] = []
-    for kind, what, agents in calls(folder):
-        if coordinator is None:
-            coordinator = Coordinator(prior, config, prior.codebook(), agents)
-        while coordinator.num_agents < agents:
-            coordinator.add_agent()
-        if kind == "batch":
-            start = time.thread_time()
-            coordinator.add_keyframes(what)
-            seconds.append((len(what), time.thread_time() - start))
-        else:
-            coordinator.refresh(*what)
+    with ExitStack() as stack:
+        solves = stack.enter_context(watching_solves()) if counted else {}
+        for kind, what, agents in calls(folder):
+            if coordinator is None:
+                coordinator = Coordinator(prior, config, prior.codebook(), agents)
+                if store is not None:
+                    store.mkdir(parents=True, exist_ok=True)
+                    stack.enter_context(open_store(store, config, coordinator))
+            while coordinator.num_agents < agents:
+                coordinator.add_agent()
+            if kind == "batch":
+                watch = PeakWatch() if counted else None
+                start = time.thread_time()
+                coordinator.add_keyframes(what)
+                seconds.append((len(what), time.thread_time() - start))
+                if watch is not None:
+                    print_census(coordinator, len(what), watch.stop())
+                    print(
+                        f"solves: largest dense factors held {solves['dense MB']:.0f} MB "
+                        f"({solves['edges']} directed edges)",
+                        flush=True,
+                    )
+                    solves.update({"dense MB": 0.0, "edges": 0})
+            else:
+                coordinator.refresh(*what)
     if coordinator is None:
         raise SystemExit(f"{folder}: no calls recorded")
     return coordinator, seconds
+
+
+class PeakWatch:
+    """The largest resident memory of this process while it runs (sampled every 0.1 s on a
+    thread of its own) and where the main thread was then (its innermost frames)."""
+
+    def __init__(self) -> None:
+        self.peak, self.where = 0.0, ""
+        self._main = threading.main_thread().ident or 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, daemon=True)
+        self._thread.start()
+
+    def _watch(self) -> None:
+        while not self._stop.wait(0.1):
+            rss = resident_mb("VmRSS")
+            if rss > self.peak:
+                frame = sys._current_frames().get(self._main)  # noqa: SLF001 (a sample)
+                names: list[str] = []
+                while frame is not None and len(names) < 4:
+                    names.append(frame.f_code.co_name)
+                    frame = frame.f_back
+                self.peak, self.where = rss, " < ".join(names)
+
+    def stop(self) -> tuple[float, str]:
+        """The peak (MB) and where it was."""
+        self._stop.set()
+        self._thread.join()
+        return self.peak, self.where
+
+
+class _Held:
+    """What :func:`census` walks: one solve's dense factor batches."""
+
+    def __init__(self, dense: dict) -> None:
+        self.dense = dense
+
+
+@contextmanager
+def watching_solves() -> Iterator[dict[str, float]]:
+    """While open, the largest bytes of dense factors one global-BA solve holds at once
+    (``ThresholdRelinearized``'s batches, built once per solve and kept to its end; MB) and
+    that solve's edges, since the last reset of the dictionary yielded."""
+    seen = {"dense MB": 0.0, "edges": 0}
+    methods = {name: getattr(ThresholdRelinearized, name) for name in ("cost", "linearize")}
+
+    def counted(method: Any) -> Any:
+        def call(self: ThresholdRelinearized, poses: torch.Tensor) -> torch.Tensor:
+            value = method(self, poses)
+            mb = sum(census(_Held(self._dense)).values()) / 1e6
+            if mb > seen["dense MB"]:
+                seen["dense MB"], seen["edges"] = mb, self.num_edges
+            return value
+
+        return call
+
+    for name, method in methods.items():
+        setattr(ThresholdRelinearized, name, counted(method))
+    try:
+        yield seen
+    finally:
+        for name, method in methods.items():
+            setattr(ThresholdRelinearized, name, method)
+
+
+def print_census(coordinator: Coordinator, batch: int, peak: tuple[float, str]) -> None:
+    """One line after a batch: keyframes, the process's peak resident memory in the batch
+    and where, its resident memory after a heap trim, the tensors held and their owners
+    (MB)."""
+    held = megabytes(census(coordinator))
+    give_back_freed_memory()
+    owners = ", ".join(f"{owner} {mb:.1f}" for owner, mb in held.items() if mb >= 0.5)
+    print(
+        f"census: {len(coordinator.graph.keyframes)} kf (batch {batch}), peak RSS "
+        f"{peak[0]:.0f} MB in {peak[1]}, RSS {resident_mb('VmRSS'):.0f} MB, held "
+        f"{sum(held.values()):.0f} MB: {owners}",
+        flush=True,
+    )
+
+
+def resident_mb(field: str) -> float:
+    """A memory figure of this process's ``/proc/self/status`` (``VmRSS``, ``VmHWM``), MB
+    (Linux; 0 elsewhere)."""
+    status = Path("/proc/self/status")
+    if not status.exists():
+        return 0.0
+    for line in status.read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) / 1e3
+    return 0.0
 
 
 def keyframe_ate(coordinator: Coordinator, scene: Path) -> float:
@@ -202,6 +334,12 @@ def main() -> None:
     again = sub.add_parser("replay", help="replay recorded calls in one thread")
     again.add_argument("--calls", type=Path, required=True)
     again.add_argument("--scene", type=Path, default=None, help="ground truth for the ATE")
+    again.add_argument(
+        "--store", type=Path, default=None, help="journal and page out to a store here"
+    )
+    again.add_argument(
+        "--census", action="store_true", help="print memory and tensors by owner per batch"
+    )
     for command in (take, again):
         command.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = parser.parse_args()
@@ -209,7 +347,7 @@ def main() -> None:
     if args.command == "capture":
         capture(args.scene, args.out, args.calls, config)
         return
-    coordinator, seconds = replay(args.calls, config)
+    coordinator, seconds = replay(args.calls, config, args.store, args.census)
     title = "coordinator replay" + (f" ({', '.join(args.set)})" if args.set else "")
     result = row(coordinator, seconds, args.scene)
     print_table(Console(width=200), [result], COLUMNS, title)

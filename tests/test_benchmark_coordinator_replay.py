@@ -27,7 +27,7 @@ OVERRIDES = [
 ]
 
 
-def test_a_recorded_run_replays_its_in_stream_work(tmp_path) -> None:
+def test_a_recorded_run_replays_its_in_stream_work(tmp_path, capsys) -> None:
     scene = tmp_path / "scene"
     scene.mkdir()
     synthesize(
@@ -49,3 +49,9 @@ def test_a_recorded_run_replays_its_in_stream_work(tmp_path) -> None:
     line = row(first, seconds, scene)
     assert line["keyframes"] == metrics["keyframes"] and line["decodes"] == metrics["prior_decodes"]
     assert 0.0 <= keyframe_ate(first, scene) < 1.0  # metres, the scene is a few metres wide
+    # journaled to a store (paged out as a run's coordinator is), with a census per batch
+    paged, _ = replay(tmp_path / "calls", config, tmp_path / "store", counted=True)
+    lines = [x for x in capsys.readouterr().out.splitlines() if x.startswith("census:")]
+    assert len(lines) == len(seconds) and f"{metrics['keyframes']} kf" in lines[-1]
+    assert (tmp_path / "store" / "session.db").is_file()
+    assert paged.stats.prior_decodes == metrics["prior_decodes"]

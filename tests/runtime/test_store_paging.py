@@ -263,7 +263,7 @@ def test_a_session_read_paged_reads_nothing_until_its_store_serves_it(tmp_path) 
     )
     assert [type(link.link) for link in paged.graph.links] == [PagedLink] * 4
     with pytest.raises(StoreError, match="before its store"):
-        paged.graph.links[0].link.ij  # noqa: B018 (a property read back from the store)
+        paged.graph.links[0].link.ij.idx  # noqa: B018 (a property read back from the store)
     resumed = Coordinator(None, config, None, 2)
     resumed.restore(paged.graph, paged.gauges, [], CoordinatorStats(keyframes=6), [], (0, []))
     with SessionStore.reopen(tmp_path / STORE_NAME, resumed) as store:

@@ -14,15 +14,19 @@ working set grows with the team, 8 keyframes per agent):
   pointmaps are read back from the store the first time something needs them (a
   verification decodes its encoding; a global BA, a gauge merge or the depth refinement
   reads its pointmap) and kept until the next page-out;
-* a sequential edge between two such keyframes becomes a :class:`PagedLink`, whose matches
-  are read from the store each time they are asked for (a solve builds its factors once);
+* an edge between two such keyframes (sequential, loop or inter-agent) becomes a
+  :class:`PagedLink`, whose matches are read from the store each time they are asked for
+  (a solve builds its factors once), and an admitted candidate holding that edge's matches
+  holds the paged link in their place (:class:`PagedVerification`). Issue 41: inter-agent
+  and loop edges kept in memory grew with the map (16 agents, 190 keyframes at 512x384:
+  171 inter-agent and 80 loop edges, 5.1 MB each);
 * a verified candidate that was rejected or found inconsistent keeps its figures only
   (:class:`StoredVerification`): nothing reads its matches again; one refused inside a
   gauge that the coordinator tests again after its next global BA keeps them until then.
 
 What a message needs is read while it is handled, so the results do not depend on the
-working set; only memory and time do. Inter-agent edges and admitted or pending candidates
-stay in memory: they grow with the places agents share, not with the sequence. The agents'
+working set; only memory and time do. Pending candidates stay in memory (few: the edges
+between two gauge components waiting for agreeing ones). The agents'
 front-ends page their own keyframes to spill folders of their own
 (:mod:`como3r.frontend.paging`); this pages the coordinator.
 """
@@ -34,6 +38,7 @@ from dataclasses import dataclass, replace
 from typing import Protocol
 
 import torch
+from torch import Tensor
 
 from como3r.coordination.association import Verification
 from como3r.coordination.coordinator import Coordinator
@@ -54,21 +59,39 @@ class Pages(KeyframePages, Protocol):
 
 class PagedLink(PairLink):
     """A link whose matches are read from the session store whenever they are asked for
-    (their match fractions are kept)."""
+    (their co-visible shares are kept, and their match fractions where known).
+
+    Each of :attr:`ij` and :attr:`ji` is a :class:`PagedDirection`, which reads when its
+    arrays are used and keeps nothing: a solve that lists every edge of the map holds the
+    matches of none of those paged (the dense factors it builds are another matter).
+    """
 
     _pages: Pages | None
     _n: int
+    _fractions: tuple[float, float] | None
 
     def __init__(
-        self, pages: Pages | None, n: int, covisible_ij: float | None, covisible_ji: float | None
+        self,
+        pages: Pages | None,
+        n: int,
+        covisible_ij: float | None,
+        covisible_ji: float | None,
+        fractions: tuple[float, float] | None = None,
     ) -> None:
         for name, value in (
             ("_pages", pages),
             ("_n", n),
             ("covisible_ij", covisible_ij),
             ("covisible_ji", covisible_ji),
+            ("_fractions", fractions),
         ):
             object.__setattr__(self, name, value)
+
+    @classmethod
+    def of(cls, pages: Pages, n: int, link: PairLink) -> PagedLink:
+        """Edge ``n``'s ``link`` (in memory, stored) paged: its figures kept."""
+        fractions = (link.ij.match_fraction, link.ji.match_fraction)
+        return cls(pages, n, link.covisible_ij, link.covisible_ji, fractions)
 
     def serve(self, pages: Pages) -> None:
         """Read from ``pages`` from now on (a store read back)."""
@@ -76,16 +99,55 @@ class PagedLink(PairLink):
 
     @property
     def ij(self) -> DirectedMatches:
-        return self._matches()[0]
+        return PagedDirection(self, 0)
 
     @property
     def ji(self) -> DirectedMatches:
-        return self._matches()[1]
+        return PagedDirection(self, 1)
 
-    def _matches(self) -> tuple[DirectedMatches, DirectedMatches]:
+    def fraction(self, direction: int) -> float | None:
+        """The match fraction of ``direction`` (0: ij, 1: ji) where kept, else None."""
+        return None if self._fractions is None else self._fractions[direction]
+
+    def load(self) -> tuple[DirectedMatches, DirectedMatches]:
+        """Both directions' matches, read from the store."""
         if self._pages is None:
             raise StoreError(f"the matches of edge {self._n} were asked for before its store")
         return self._pages.load_matches(self._n)
+
+
+class PagedDirection(DirectedMatches):
+    """One direction of a :class:`PagedLink`, its arrays read from the store at each use
+    (the store keeps the last few edges read: :meth:`~.writer.SessionStore.load_matches`),
+    so a solve's list of every edge holds no matches; its match fraction known without a
+    read where the link kept it."""
+
+    _link: PagedLink
+    _direction: int
+
+    def __init__(self, link: PagedLink, direction: int) -> None:
+        object.__setattr__(self, "_link", link)
+        object.__setattr__(self, "_direction", direction)
+
+    def _matches(self) -> DirectedMatches:
+        return self._link.load()[self._direction]
+
+    @property
+    def idx(self) -> Tensor:
+        return self._matches().idx
+
+    @property
+    def valid(self) -> Tensor:
+        return self._matches().valid
+
+    @property
+    def q(self) -> Tensor:
+        return self._matches().q
+
+    @property
+    def match_fraction(self) -> float:
+        kept = self._link.fraction(self._direction)
+        return self._matches().match_fraction if kept is None else kept
 
 
 @dataclass(frozen=True)
@@ -128,6 +190,27 @@ def figures_only(v: Verification) -> StoredVerification:
         None,
         None,
         None,
+        v.accepted,
+        figures=(v.nu_i, v.nu_j, v.covisible_ratio),
+    )
+
+
+@dataclass(frozen=True)
+class PagedVerification(StoredVerification):
+    """An admitted candidate's verification whose edge was paged out: its figures, and its
+    edge's :class:`PagedLink` as its link (read from the store when asked for)."""
+
+
+def paged_verification(v: Verification, link: PagedLink) -> PagedVerification:
+    """``v`` with its matches let go of: ``link`` (its edge's, paged) in their place."""
+    return PagedVerification(
+        v.candidate,
+        v.query,
+        v.similarity,
+        NO_MATCHES,
+        v.covisible_j,
+        link,
+        v.covisible_i,
         v.accepted,
         figures=(v.nu_i, v.nu_j, v.covisible_ratio),
     )
@@ -176,17 +259,17 @@ def page_out(coordinator: Coordinator, pages: Pages) -> None:
             kf = graph.keyframes[g] = PagedKeyframe.of(kf)
         kf.evict(pages, g)
         freed = True
+    paged: dict[int, PagedLink] = {}  # id of the link let go of -> its paged link
     for n, link in enumerate(graph.links):
-        if (
-            link.kind == "sequential"
-            and not isinstance(link.link, PagedLink)
-            and link.i not in kept
-            and link.j not in kept
-        ):
-            graph.links[n] = replace(
-                link, link=PagedLink(pages, n, link.link.covisible_ij, link.link.covisible_ji)
-            )
+        if not isinstance(link.link, PagedLink) and link.i not in kept and link.j not in kept:
+            paged[id(link.link)] = PagedLink.of(pages, n, link.link)
+            graph.links[n] = replace(link, link=paged[id(link.link)])
             freed = True
+    # an admitted candidate holds its edge's matches (the same link): now the paged one
+    for candidate in coordinator.candidates:
+        v = candidate.verification
+        if candidate.status == "admitted" and v.link is not None and id(v.link) in paged:
+            candidate.verification = paged_verification(v, paged[id(v.link)])
     # a refused edge the coordinator tests again after its next global BA keeps its matches
     for candidate in coordinator.candidates:
         if (

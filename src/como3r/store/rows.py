@@ -26,8 +26,8 @@ from como3r.store.paging import PagedLink
 
 STATUSES = ("rejected", "pending", "admitted", "inconsistent")
 #: the edges' matches read when their session is read paged: all but the sequential edges'
-#: (those are paged; a loop edge's, as an inter-agent edge's, stay in memory as they do in
-#: the running coordinator: :func:`~.paging.page_out`)
+#: (those are paged; a loop or inter-agent edge's is read, and the coordinator's first
+#: page-out pages it where it lies outside the working set: :func:`~.paging.page_out`)
 PAGED_MATCHES = "CASE kind WHEN 'sequential' THEN NULL ELSE matches END"
 KINDS = ("sequential", "loop", "inter")
 

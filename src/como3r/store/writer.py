@@ -25,7 +25,7 @@ import json
 import logging
 import sqlite3
 import weakref
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -51,6 +51,10 @@ from como3r.store.tables import TableWriter, Written, candidate_rows, pointmap_a
 from como3r.transport.messages import AgentFinished
 
 logger = logging.getLogger(__name__)
+
+#: edges whose matches :meth:`SessionStore.load_matches` keeps after reading them (a
+#: solve's factor batch reads 8 edges twice: their match counts, then their matches)
+RECENT_EDGES = 16
 
 
 class SessionStore(TableWriter):
@@ -85,6 +89,7 @@ class SessionStore(TableWriter):
         self._reports: dict[int, AgentFinished] = {}
         self._width = 1
         self.ahead = Ahead()
+        self._recent: OrderedDict[int, tuple[DirectedMatches, DirectedMatches]] = OrderedDict()
         #: bytes of blobs and text written, per part (:meth:`written_metrics`)
         self.written: Counter[str] = Counter()
         #: called after each :meth:`record` has committed (a disk guard)
@@ -304,11 +309,16 @@ class SessionStore(TableWriter):
         return dict(zip(POINTMAP_FIELDS, values))
 
     def load_matches(self, n: int) -> tuple[DirectedMatches, DirectedMatches]:
-        """Both directions' matches of edge ``n``, read back from the store.
+        """Both directions' matches of edge ``n``, read back from the store; the last
+        :data:`RECENT_EDGES` edges read are kept (a solve reads a paged edge's directions
+        one array at a time: :class:`~.paging.PagedDirection`).
 
         Raises:
             StoreError: the store cannot be read.
         """
+        if n in self._recent:
+            self._recent.move_to_end(n)
+            return self._recent[n]
         try:
             (blob,) = self.connection.execute(
                 "SELECT matches FROM edges WHERE n = ?", (n,)
@@ -316,7 +326,11 @@ class SessionStore(TableWriter):
         except sqlite3.Error as exc:
             raise StoreError(f"{self.path}: cannot read the session store ({exc})") from None
         arrays = unpack_matches(blob, f"edge {n} matches")
-        return DirectedMatches(*arrays[:3]), DirectedMatches(*arrays[3:])
+        matches = DirectedMatches(*arrays[:3]), DirectedMatches(*arrays[3:])
+        self._recent[n] = matches
+        while len(self._recent) > RECENT_EDGES:
+            self._recent.popitem(last=False)
+        return matches
 
     def _read_blob(self, blob_id: int) -> bytes:
         (data,) = self.connection.execute(
