@@ -10,7 +10,7 @@ from como3r.errors import InputError
 from como3r.geometry.lie import sim3_compose, sim3_exp
 from como3r.optim.match_factors import RayRangeFactors
 from como3r.optim.optimizer import gauss_newton_irls
-from como3r.optim.relinearization import EdgeModels, ThresholdRelinearized
+from como3r.optim.relinearization import KEEP_DENSE_BYTES, EdgeModels, ThresholdRelinearized
 from como3r.optim.synthetic import chain_poses, random_sim3, synthetic_graph
 from como3r.optim.values import PoseValues
 
@@ -44,6 +44,7 @@ def _lazy(
     tol: float,
     models: EdgeModels | None = None,
     stamps: list | None = None,
+    keep_bytes: int = KEEP_DENSE_BYTES,
 ) -> ThresholdRelinearized:
     """The batch's edges through a relinearization threshold, built from ``factors``
     (edge positions = their rows), keyed by position."""
@@ -63,6 +64,7 @@ def _lazy(
         build,
         tol,
         SCENE,
+        keep_bytes,
     )
     lazy.built = built
     return lazy
@@ -141,6 +143,24 @@ def test_models_are_kept_between_solves_while_their_stamps_hold(device) -> None:
     changed = _lazy(factors, 1e-3, models, stamps)
     changed.linearize(values.poses)
     assert changed.reused == 6 and changed.linearized == 1 and changed.built == [[2]]
+
+
+def test_factors_past_the_kept_bytes_are_built_again_with_the_same_result() -> None:
+    """A solve that may keep no dense factors (``keep_bytes`` 0: a large map's) builds an
+    edge's again each time it is linearized again, and ends where the keeping one does."""
+    _, factors, values = _problem()
+    config = GlobalBAConfig()
+    keeping = _lazy(factors, config.relinearize_tol)
+    thrifty = _lazy(factors, config.relinearize_tol, keep_bytes=0)
+    kept, kept_report = gauss_newton_irls([keeping], values, config, length_scale=SCENE)
+    solved, report = gauss_newton_irls([thrifty], values, config, length_scale=SCENE)
+    assert torch.equal(solved.poses, kept.poses) and report.iterations == kept_report.iterations
+    assert thrifty.linearized == keeping.linearized
+    assert len(keeping.built) == 1  # built once, kept to the end
+    # each edge built again for each of its linearizations over the matches, none kept
+    assert sum(len(b) for b in thrifty.built) == thrifty.linearized > factors.num_edges
+    assert thrifty._dense == {}
+    assert torch.equal(thrifty.cost(solved.poses), keeping.cost(solved.poses))
 
 
 @pytest.mark.parametrize("tol, length", [(-1e-3, 1.0), (1e-3, 0.0)])

@@ -292,6 +292,11 @@ class RelativePoseFactors(ABC):
         T_ij = self._relative_poses(poses, edges)[1]
         return T_ij.to(torch.float64), H.to(torch.float64), g.to(torch.float64)
 
+    def edge_costs(self, poses: torch.Tensor, edges: slice) -> torch.Tensor:
+        """Robust energy of each edge of a slice (at most a :meth:`chunks` slice) at
+        ``poses`` ``(N, 8)``, ``(e,)`` float64."""
+        return self._edge_costs(poses, edges)
+
     def _edge_costs(self, poses: torch.Tensor, edges: slice) -> torch.Tensor:
         """Robust energy of each edge of a slice, ``(e,)`` float64."""
         if self._runs_compiled(poses):

@@ -19,7 +19,7 @@ and linearizes its matches again. Not in the paper; ``tol = 0`` is its dense sol
 
 from __future__ import annotations
 
-from collections.abc import Callable, Hashable, Sequence
+from collections.abc import Callable, Hashable, Iterator, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -33,6 +33,15 @@ from como3r.optim.system import EdgeBlocks
 #: factor batches, each with the positions of its edges in batch order; each batch's pose
 #: indices are the solve's rows
 DenseBuilder = Callable[[Sequence[int]], Sequence[tuple[RelativePoseFactors, Sequence[int]]]]
+
+#: bytes of dense factors a solve keeps for its later linearizations; the edges built past
+#: them are built again when they are linearized again. Issue 41: kept for every edge, the
+#: in-stream global BA of a 16-agent map held 93 / 688 / 1988 MB of them at 41 / 100 / 190
+#: keyframes (2.4-5 MB an edge at 512x384), the peak memory of its batch growing with the map
+KEEP_DENSE_BYTES = 256 * 2**20
+#: stale edges built and linearized together: what a linearization holds beyond the kept
+#: factors (at most this many edges' dense factors)
+BUILD_GROUP = 32
 
 
 @dataclass(frozen=True)
@@ -78,6 +87,8 @@ class ThresholdRelinearized:
             units of ``length``; 0 linearizes every edge that moved.
         length: the scene's length unit (e.g. its median keyframe depth), so the
             threshold holds at every scale.
+        keep_bytes: dense factors kept between linearizations (:data:`KEEP_DENSE_BYTES`);
+            the results do not depend on it, only memory and time do.
     """
 
     def __init__(
@@ -90,6 +101,7 @@ class ThresholdRelinearized:
         build: DenseBuilder,
         tol: float,
         length: float,
+        keep_bytes: int = KEEP_DENSE_BYTES,
     ) -> None:
         if not (tol >= 0 and length > 0):
             raise InputError(
@@ -117,8 +129,10 @@ class ThresholdRelinearized:
             stacked("g", torch.zeros(7, dtype=torch.float64)),
             torch.zeros(E, dtype=torch.float64, device=device),
         )
-        # edge position -> (its dense batch, its row there); built when first needed
+        # edge position -> (its dense batch, its row there); built when first needed, kept
+        # while the kept batches' bytes stay within keep_bytes
         self._dense: dict[int, tuple[RelativePoseFactors, int]] = {}
+        self.keep_bytes, self._kept_bytes = keep_bytes, 0
         self.linearized = 0  # edge linearizations over the matches, so far
         self.reused = int(self._known.sum())  # edges that came with a model
 
@@ -141,7 +155,7 @@ class ThresholdRelinearized:
         moved = delta.abs()
         moved[:, :3] /= self.length
         stale = ~self._known | (moved > self.tol).any(1)
-        for batch, rows, positions in self._batches(torch.nonzero(stale).flatten().tolist()):
+        for batch, rows, positions in self._groups(torch.nonzero(stale).flatten().tolist()):
             for first, last in _runs(rows, batch.chunks(poses)):
                 edges = slice(rows[first], rows[last - 1] + 1)
                 at = positions[first:last]
@@ -163,31 +177,63 @@ class ThresholdRelinearized:
 
     def cost(self, poses: torch.Tensor) -> torch.Tensor:
         """The dense edges' robust energy at ``poses`` ``(N, 8)`` (no model), float64."""
-        batches = {id(b): b for b, _, _ in self._batches(list(range(self.num_edges)))}
-        return sum(
-            (b.cost(poses) for b in batches.values()),
-            torch.zeros((), dtype=torch.float64, device=poses.device),
-        )
+        total = torch.zeros((), dtype=torch.float64, device=poses.device)
+        for batch, rows, _ in self._groups(list(range(self.num_edges))):
+            # a batch (kept from an earlier linearization) may hold edges of other groups
+            for first, last in _runs(rows, batch.chunks(poses)):
+                total = (
+                    total + batch.edge_costs(poses, slice(rows[first], rows[last - 1] + 1)).sum()
+                )
+        return total
+
+    def _groups(
+        self, positions: list[int]
+    ) -> Iterator[tuple[RelativePoseFactors, list[int], list[int]]]:
+        """:meth:`_batches` of ``positions`` :data:`BUILD_GROUP` at a time, so that the
+        factors built past ``keep_bytes`` are let go of group by group."""
+        for start in range(0, len(positions), BUILD_GROUP):
+            yield from self._batches(positions[start : start + BUILD_GROUP])
 
     def _batches(
         self, positions: list[int]
     ) -> list[tuple[RelativePoseFactors, list[int], list[int]]]:
-        """``positions`` grouped by dense batch (built for those that have none), each
-        group's rows in its batch ascending: ``(batch, rows, positions)``."""
-        missing = [p for p in positions if p not in self._dense]
-        if missing:
-            for batch, built in self.build(missing):
-                for row, p in enumerate(built):
-                    self._dense[p] = (batch, row)
+        """``positions`` grouped by dense batch (built for those that have none, and kept
+        while the kept batches fit ``keep_bytes``), each group's rows in its batch
+        ascending: ``(batch, rows, positions)``."""
         groups: dict[int, tuple[RelativePoseFactors, list[tuple[int, int]]]] = {}
-        for p in positions:
-            batch, row = self._dense[p]
+
+        def add(batch: RelativePoseFactors, row: int, p: int) -> None:
             groups.setdefault(id(batch), (batch, []))[1].append((row, p))
+
+        missing = [p for p in positions if p not in self._dense]
+        for p in positions:
+            if p in self._dense:
+                add(*self._dense[p], p)
+        wanted = set(missing)
+        for batch, built in self.build(missing) if missing else ():
+            size = _tensor_bytes(batch)
+            keep = self._kept_bytes + size <= self.keep_bytes
+            self._kept_bytes += size if keep else 0
+            for row, p in enumerate(built):
+                if keep:
+                    self._dense[p] = (batch, row)
+                if p in wanted:
+                    add(batch, row, p)
         result = []
         for batch, pairs in groups.values():
             pairs.sort()
             result.append((batch, [r for r, _ in pairs], [p for _, p in pairs]))
         return result
+
+
+def _tensor_bytes(batch: RelativePoseFactors) -> int:
+    """Bytes of the tensors ``batch`` holds (each storage once)."""
+    storages = {
+        t.untyped_storage().data_ptr(): t.untyped_storage().nbytes()
+        for t in vars(batch).values()
+        if isinstance(t, torch.Tensor)
+    }
+    return sum(storages.values())
 
 
 def _runs(rows: list[int], chunks: list[slice]) -> list[tuple[int, int]]:
