@@ -435,6 +435,19 @@ serial 226 ms per keyframe over the run. Replayed against the agents' arrivals, 
 needs more than 256 cores (its serial part alone falls behind); with no verification in
 the coordinator at all one core still leaves 24 keyframes queued at the end of the input,
 and keeps up only with half of the serial part too.
+
+The same scenes again (session 36, at b89fcf4: every edge outside the working set paged,
+a global BA keeping at most 256 MB of dense factors; an idle machine, 16 GiB of swap added
+and unused; one run each):
+
+    agents   kf  coord ms/kf  serial ms/kf  decodes/kf  pool ms/kf  end kf  end kf P8  cores for 0  rt end kf  coord MB  agent MB  ATE mm  ATE %  ATE % team  maps
+         4   32          688           480        4.56        1304       9          0            4          0      3507      1513    6.87  0.182      0.0455     1
+        16  190          718           569        5.04        2203     144         59         >256         21     11350      1881    17.8  0.468      0.0293     1
+
+The coordinator's peak memory 16 vs 4 agents is 3.24x (3.4x before); replayed with a session
+store the 16 agents' calls peak at 6.8 GB (8.5 GB before), so most of the whole run's 11.4 GB
+is what the replay does not hold (the runtime's queue of pending keyframes, its readers, the
+end of the input). Work per keyframe 16 vs 4 agents: 1.47x (thread and pool).
 """
 
 from __future__ import annotations
