@@ -174,43 +174,31 @@ class StoredVerification(Verification):
         return self.figures[2]
 
 
-#: the matches of a verification that keeps its figures only
-NO_MATCHES = DirectedMatches(
-    torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.bool), torch.zeros(0)
-)
-
-
-def figures_only(v: Verification) -> StoredVerification:
-    """``v`` without its matches."""
-    return StoredVerification(
-        v.candidate,
-        v.query,
-        v.similarity,
-        NO_MATCHES,
-        None,
-        None,
-        None,
-        v.accepted,
-        figures=(v.nu_i, v.nu_j, v.covisible_ratio),
-    )
-
-
 @dataclass(frozen=True)
 class PagedVerification(StoredVerification):
     """An admitted candidate's verification whose edge was paged out: its figures, and its
     edge's :class:`PagedLink` as its link (read from the store when asked for)."""
 
 
-def paged_verification(v: Verification, link: PagedLink) -> PagedVerification:
-    """``v`` with its matches let go of: ``link`` (its edge's, paged) in their place."""
-    return PagedVerification(
+#: the matches of a verification that keeps its figures only
+NO_MATCHES = DirectedMatches(
+    torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.bool), torch.zeros(0)
+)
+
+
+def figures_only(v: Verification, link: PagedLink | None = None) -> StoredVerification:
+    """``v`` without its matches; an admitted candidate's, whose edge was paged out, keeps
+    that edge's paged ``link`` in their place and its co-visible shares
+    (:class:`PagedVerification`)."""
+    paged = link is not None
+    return (PagedVerification if paged else StoredVerification)(
         v.candidate,
         v.query,
         v.similarity,
         NO_MATCHES,
-        v.covisible_j,
+        v.covisible_j if paged else None,
         link,
-        v.covisible_i,
+        v.covisible_i if paged else None,
         v.accepted,
         figures=(v.nu_i, v.nu_j, v.covisible_ratio),
     )
@@ -265,19 +253,19 @@ def page_out(coordinator: Coordinator, pages: Pages) -> None:
             paged[id(link.link)] = PagedLink.of(pages, n, link.link)
             graph.links[n] = replace(link, link=paged[id(link.link)])
             freed = True
-    # an admitted candidate holds its edge's matches (the same link): now the paged one
     for candidate in coordinator.candidates:
         v = candidate.verification
+        # an admitted candidate holds its edge's matches (the same link): now the paged one
         if candidate.status == "admitted" and v.link is not None and id(v.link) in paged:
-            candidate.verification = paged_verification(v, paged[id(v.link)])
-    # a refused edge the coordinator tests again after its next global BA keeps its matches
-    for candidate in coordinator.candidates:
-        if (
+            candidate.verification = figures_only(v, paged[id(v.link)])
+        # a refused edge lets go of its matches, unless the coordinator tests it again after
+        # its next global BA
+        elif (
             candidate.status in ("rejected", "inconsistent")
-            and not isinstance(candidate.verification, StoredVerification)
+            and not isinstance(v, StoredVerification)
             and not coordinator.awaiting_recheck(candidate)
         ):
-            candidate.verification = figures_only(candidate.verification)
+            candidate.verification = figures_only(v)
             freed = True
     if freed:
         give_back_freed_memory()  # what was let go of leaves the process's RSS too (.heap)
