@@ -302,6 +302,11 @@ class GlobalBAConfig:
     # of one: the paper's BA after every trigger_interval_edges
     max_batch_keyframes: int = 32
     max_iters_stream: int = 50
+    # not in the paper (issue 41): the in-stream BA linearizes each edge over an even subset
+    # of at most this many of its valid matches, weighed by the share left out
+    # (backend.global_graph.thinned); the terminal cleanup takes every match. 0: every
+    # match in-stream too (C-Eq. 5)
+    stream_max_matches: int = 8192
     max_iters_cleanup: int = 100
     cleanup_passes: int = 5
     # cleanup stops when no keyframe moved more than this fraction of the component's median

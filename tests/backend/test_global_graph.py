@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import numpy as np
@@ -250,3 +251,49 @@ def test_scene_depth_keeps_median_ranges_until_a_pointmap_changes(two_agents) ->
     for g in own:
         graph._set_pointmaps(g, {"X_hat": graph.keyframes[g].X_hat}, None)  # the depth step
     assert graph.scene_depth([1]) == _uncached_depth(graph, [1]) == pytest.approx(6 * first)
+
+
+@pytest.mark.parametrize("max_matches", [0, 48, 20, 7, 1])
+def test_thinned_edges_keep_an_even_subset_and_weigh_the_rest(max_matches) -> None:
+    valid = torch.ones(H * W, dtype=torch.bool)
+    valid[::5] = False  # 38 valid matches of 48
+    edge = global_graph.Edge(0, 1, DirectedMatches(torch.arange(H * W), valid, torch.ones(H * W)))
+    kept, weight = global_graph.thinned(edge, max_matches)
+    count = int(kept.matches.valid.sum())
+    if max_matches in (0, 48):
+        assert kept is edge and weight == 1.0
+        return
+    assert count <= max_matches and bool((kept.matches.valid <= valid).all())
+    assert weight == pytest.approx(38 / count)
+    positions = torch.nonzero(kept.matches.valid).flatten()
+    assert int(positions[0]) <= 1  # from the first valid match on, spread evenly
+    if count > 1:
+        assert int(positions.diff().max()) <= 2 * 38 // count + 2
+
+
+def test_a_thinned_solve_lands_near_the_full_one_and_keeps_its_own_models(two_agents) -> None:
+    """Thinned to a third of each edge's matches (weighed back), the BA ends within a
+    small fraction of the full solve's correction; its edge models are stamped with the
+    thinning, so a full solve after it linearizes every edge over all matches again."""
+    graph, truth = two_agents
+    full = copy.deepcopy(graph)
+    before = _pose_errors(graph, truth)
+    full.optimize([0, 1], anchor=0, max_iters=30)
+    thin = graph.optimize([0, 1], anchor=0, max_iters=30, max_matches=16)
+    assert thin.moved and not thin.restored
+    after_full, after_thin = _pose_errors(full, truth), _pose_errors(graph, truth)
+    assert float(after_thin.max()) < 1e-3 < float(before.max())
+    assert float((after_thin - after_full).abs().max()) < 1e-3
+    linearized = []
+    original = global_graph.GlobalGraph._factors
+
+    def counted(self, edges, positions, row, max_matches):
+        linearized.append((len(positions), max_matches))
+        return original(self, edges, positions, row, max_matches)
+
+    global_graph.GlobalGraph._factors = counted
+    try:
+        graph.optimize([0, 1], anchor=0, max_iters=1)
+    finally:
+        global_graph.GlobalGraph._factors = original
+    assert linearized and linearized[0] == (2 * len(graph.links), 0)

@@ -66,7 +66,7 @@ def chain(dtype: torch.dtype = torch.float32):
     return keyframes, torch.stack(poses).to(dtype), edges, labels
 
 
-def chunked(keyframes, poses, edges, labels, reads=None, keep=lambda rows: False):
+def chunked(keyframes, poses, edges, labels, reads=None, keep=lambda rows: False, budget=None):
     """:func:`refine_in_chunks` over the chain; returns the written pointmaps and report."""
     ends = [(edges[n].i, edges[n].j) for n in range(0, len(edges), 2)]
 
@@ -86,6 +86,7 @@ def chunked(keyframes, poses, edges, labels, reads=None, keep=lambda rows: False
         written.__setitem__,
         pinned=[0],
         keep=keep,
+        **({} if budget is None else {"keep_bytes": budget}),
     )
     return written, report
 
@@ -212,3 +213,33 @@ def test_label_maps_of_paged_keyframes_live_in_the_parking(tmp_path) -> None:
     assert labels[4] is kept
     assert torch.equal(labels[7], parked) and labels[7] is not parked
     assert parking.writes == 1
+
+
+@pytest.mark.parametrize("budget_chunks", [0, 1, 2])
+def test_kept_problems_stay_within_the_byte_budget(monkeypatch, budget_chunks) -> None:
+    """Chunks that may keep their problems keep them only while the kept bytes fit
+    ``keep_bytes``: the first ones in chunk order, the rest spilled; the result is the same
+    bit for bit."""
+    monkeypatch.setattr(paged_refinement, "KEYFRAMES_PER_CHUNK", 2)
+    keyframes, poses, edges, labels = chain()
+    reference, reference_report = chunked(keyframes, poses, edges, labels, keep=lambda rows: True)
+    sizes = []
+    measure = paged_refinement._problem_bytes
+    monkeypatch.setattr(
+        paged_refinement, "_problem_bytes", lambda data: (sizes.append(measure(data)), sizes[-1])[1]
+    )
+    saved = []
+    save = ProblemSpill.save
+    monkeypatch.setattr(
+        ProblemSpill, "save", lambda spill, n, p: (saved.append(n), save(spill, n, p))[1]
+    )
+    chunked(keyframes, poses, edges, labels, keep=lambda rows: True)  # measure the sizes
+    assert len(sizes) == 3 and min(sizes) > 0 and saved == []
+    budget, sizes[:] = sum(sizes[:budget_chunks]), []
+    written, report = chunked(
+        keyframes, poses, edges, labels, keep=lambda rows: True, budget=budget
+    )
+    assert saved == list(range(budget_chunks, 3))
+    for k in range(1, KEYFRAMES):
+        assert torch.equal(written[k], reference[k])
+    assert report.cost_history == reference_report.cost_history

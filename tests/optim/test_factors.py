@@ -403,3 +403,28 @@ def test_quadratic_edges_match_the_dense_energy_to_first_order():
         moved = sim3_compose(sim3_exp(step * tau), poses)
         gaps.append(float((dense.cost(moved) - model.cost(moved)).abs()))
     assert 0 < gaps[1] < 0.35 * gaps[0], gaps  # 0.25 measured; a first-order gap: 0.5
+
+
+def test_edge_weights_scale_each_edges_blocks_and_energy(path):
+    """Weighed edges (a thinned edge standing for all its matches): each edge's blocks,
+    relative blocks and energy times its weight, its Huber weights unchanged."""
+    poses, graph, X_j, valid = _tiny_graph()
+    plain = RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, graph.q, valid)
+    weighed = RayRangeFactors(graph.i, graph.j, graph.X_i, X_j, graph.q, valid, chunk_matches=40)
+    weight = torch.linspace(1.0, 7.0, plain.num_edges, dtype=torch.float64)
+    weighed.weigh_edges(weight)
+    a, b = plain.linearize(poses), weighed.linearize(poses)
+    for name, shape in (("H_ii", (-1, 1, 1)), ("H_ij", (-1, 1, 1)), ("g_j", (-1, 1))):
+        expected = getattr(a, name) * weight.reshape(shape).to(getattr(a, name))
+        torch.testing.assert_close(getattr(b, name), expected, rtol=1e-10, atol=1e-12)
+    every = slice(0, plain.num_edges)
+    torch.testing.assert_close(
+        weighed.edge_costs(poses, every), plain.edge_costs(poses, every) * weight
+    )
+    torch.testing.assert_close(weighed.cost(poses), (plain.edge_costs(poses, every) * weight).sum())
+    model = weighed.quadratic_model(poses)
+    torch.testing.assert_close(model.c, plain.edge_costs(poses, every) * weight)
+    with pytest.raises(InputError, match="edge weights"):
+        plain.weigh_edges(torch.zeros(plain.num_edges))
+    with pytest.raises(InputError, match="edge weights"):
+        plain.weigh_edges(torch.ones(plain.num_edges + 1))

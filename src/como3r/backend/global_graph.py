@@ -32,7 +32,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -44,7 +44,7 @@ from como3r.errors import InputError
 from como3r.frontend.graph import Edge, build_factors
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh
-from como3r.frontend.pairs import PairLink
+from como3r.frontend.pairs import DirectedMatches, PairLink
 from como3r.geometry.camera import to_focal
 from como3r.geometry.units import median_depth, median_range
 from como3r.optim.factors import Factor
@@ -320,7 +320,9 @@ class GlobalGraph(GraphDepthSteps):
                     frontier.append(other)
         return sorted(reached)
 
-    def optimize(self, agents: Sequence[int], anchor: int, max_iters: int) -> BAResult:
+    def optimize(
+        self, agents: Sequence[int], anchor: int, max_iters: int, max_matches: int = 0
+    ) -> BAResult:
         """Global Sim(3) BA (C-Eq. 5) over ``agents``' keyframes with ``anchor`` (and the
         :attr:`fixed` keyframes) pinned.
 
@@ -328,6 +330,10 @@ class GlobalGraph(GraphDepthSteps):
             agents: agents sharing one gauge.
             anchor: global index of the pinned keyframe (one of ``agents``').
             max_iters: Gauss-Newton iterations (50 in-stream, 100 per cleanup pass).
+            max_matches: an edge with more valid matches than this is linearized over an
+                even subset of about this many, its blocks and energy weighed by the
+                share left out (:func:`thinned`; ``global_ba.stream_max_matches``); 0:
+                every match (C-Eq. 5).
         """
         nodes = self.connected(agents, anchor)
         chosen = set(nodes)
@@ -338,7 +344,7 @@ class GlobalGraph(GraphDepthSteps):
             return BAResult(tuple(nodes), 0, 0.0, "no_edges", False, 0.0)
         row = {g: r for r, g in enumerate(nodes)}
         depth = self.scene_depth(agents)
-        factors = [self._relinearized(links, row, depth)]
+        factors = [self._relinearized(links, row, depth, max_matches)]
         before = self.poses(nodes)
         pinned = torch.tensor([g == anchor or g in self.fixed for g in nodes], device=before.device)
         # float64 poses (composed and retracted in float64; the per-match work runs in the
@@ -381,14 +387,19 @@ class GlobalGraph(GraphDepthSteps):
         )
 
     def _relinearized(
-        self, links: Sequence[tuple[int, GraphLink]], row: dict[int, int], depth: float
+        self,
+        links: Sequence[tuple[int, GraphLink]],
+        row: dict[int, int],
+        depth: float,
+        max_matches: int,
     ) -> ThresholdRelinearized:
         """The solve's factor over the directed edges of ``links`` (by position in
         :attr:`links`): each edge's model kept from earlier solves while its endpoints'
-        pointmaps stay (:attr:`versions`), its dense factors built when it needs them."""
+        pointmaps stay (:attr:`versions`) and it is thinned alike, its dense factors built
+        when it needs them."""
         edges = [e for _, link in links for e in link.edges()]
         keys = [(n, d) for n, _ in links for d in (0, 1)]
-        stamps = [(self.versions[e.i], self.versions[e.j]) for e in edges]
+        stamps = [(self.versions[e.i], self.versions[e.j], max_matches) for e in edges]
         device = edges[0].matches.idx.device
         return ThresholdRelinearized(
             torch.tensor([row[e.i] for e in edges], device=device),
@@ -396,32 +407,62 @@ class GlobalGraph(GraphDepthSteps):
             keys,
             stamps,
             self.edge_models,
-            lambda positions: self._factors(edges, positions, row),
+            lambda positions: self._factors(edges, positions, row, max_matches),
             self.config.relinearize_tol,
             depth,
         )
 
     def _factors(
-        self, edges: Sequence[Edge], positions: Sequence[int], row: dict[int, int]
+        self,
+        edges: Sequence[Edge],
+        positions: Sequence[int],
+        row: dict[int, int],
+        max_matches: int,
     ) -> list[tuple[Factor, list[int]]]:
         """Factor batches over the ``edges`` at ``positions``
-        (:func:`~como3r.frontend.graph.build_factors`: their valid matches only), each with
-        the positions of its edges. A batch pads its edges to its largest match count, so
-        edges are batched by match count (:data:`EDGES_PER_BATCH` at a time) to keep the
-        padding small."""
-        order = sorted(positions, key=lambda p: int(edges[p].matches.valid.sum()))
-        return [
-            (
-                build_factors(
-                    [edges[p] for p in order[s : s + EDGES_PER_BATCH]],
-                    self.keyframes.__getitem__,
-                    row.__getitem__,
-                    self.tracking,
-                ),
-                order[s : s + EDGES_PER_BATCH],
+        (:func:`~como3r.frontend.graph.build_factors`: their valid matches only, thinned to
+        ``max_matches``), each with the positions of its edges. A batch pads its edges to
+        its largest match count, so edges are batched by match count
+        (:data:`EDGES_PER_BATCH` at a time) to keep the padding small."""
+        chosen = {p: thinned(edges[p], max_matches) for p in positions}
+        order = sorted(positions, key=lambda p: int(chosen[p][0].matches.valid.sum()))
+        batches: list[tuple[Factor, list[int]]] = []
+        for s in range(0, len(order), EDGES_PER_BATCH):
+            at = order[s : s + EDGES_PER_BATCH]
+            batch = build_factors(
+                [chosen[p][0] for p in at],
+                self.keyframes.__getitem__,
+                row.__getitem__,
+                self.tracking,
             )
-            for s in range(0, len(order), EDGES_PER_BATCH)
-        ]
+            weights = torch.tensor([chosen[p][1] for p in at], dtype=torch.float64)
+            if bool((weights != 1.0).any()):
+                batch.weigh_edges(weights)
+            batches.append((batch, at))
+        return batches
+
+
+def thinned(edge: Edge, max_matches: int) -> tuple[Edge, float]:
+    """``edge`` with its valid matches thinned to every ``k``-th in pixel order, ``k`` the
+    smallest stride leaving at most ``max_matches`` (0: all kept), and the weight of each
+    kept match: valid matches over kept ones (1 where none were dropped).
+
+    Not in the paper (issue 41): the in-stream global BA's cost is its edges' matches, 10^5
+    an edge at 512x384, and the prior's errors are smooth across the image, so an even
+    subset constrains the relative pose as all of them do, at a share of the cost.
+    """
+    matches = edge.matches
+    valid = matches.valid
+    count = int(valid.sum())
+    if max_matches <= 0 or count <= max_matches:
+        return edge, 1.0
+    stride = -(-count // max_matches)
+    rank = torch.cumsum(valid, 0) - 1
+    kept = valid & (rank % stride == 0)
+    return (
+        replace(edge, matches=DirectedMatches(matches.idx, kept, matches.q)),
+        count / int(kept.sum()),
+    )
 
 
 def _implausible(before: Tensor, after: Tensor) -> str:

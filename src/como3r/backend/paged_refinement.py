@@ -66,6 +66,12 @@ logger = logging.getLogger(__name__)
 #: Keyframes per working set of the depth step: a chunk holds the edges whose later endpoint
 #: is one of this many consecutive keyframes (the session's default resident count).
 KEYFRAMES_PER_CHUNK = 8
+#: Bytes of flattened chunk problems a depth step keeps in memory (chunks of resident
+#: keyframes, first come); the others are spilled. Issue 41: a 16-agent team keeps 8
+#: keyframes of each agent resident, 128 of its 190 at the end of a long mission, and the
+#: step kept their problems (64 bytes a match, about 11 MB a link at 512x384): the
+#: coordinator's peak memory rose 7.9 -> 12.1 GB in the terminal cleanup's depth step
+KEEP_PROBLEM_BYTES = 256 * 2**20
 
 
 @dataclass(frozen=True)
@@ -131,6 +137,17 @@ def _stream_terms(
     s: Tensor, with_blocks: bool, streams: MatchStreams, huber_k: float
 ) -> tuple[Tensor, Tensor, float]:
     return depth_normal_equations(s, streams, huber_k, with_blocks)
+
+
+def _problem_bytes(data: ChunkData) -> int:
+    """Bytes of the tensors a chunk's problem holds (each storage once)."""
+    tensors = (getattr(data, f.name) for f in fields(data))
+    storages = {
+        t.untyped_storage().data_ptr(): t.untyped_storage().nbytes()
+        for t in tensors
+        if isinstance(t, Tensor)
+    }
+    return sum(storages.values())
 
 
 class ProblemSpill:
@@ -247,6 +264,7 @@ def refine_in_chunks(
     huber_k: float = HUBER_K,
     keep: Callable[[Sequence[int]], bool] = lambda rows: False,
     spill_dir: Path | None = None,
+    keep_bytes: int = KEEP_PROBLEM_BYTES,
 ) -> DepthRefinementReport:
     """One depth step (C-Eq. 19-24) at frozen poses, its data term summed chunk by chunk.
 
@@ -263,11 +281,13 @@ def refine_in_chunks(
         huber_k: Huber breakpoint of the data term.
         keep: whether a chunk of these rows may keep its flattened problem in memory for
             the whole step (its keyframes stay in memory anyway); default: none may. The
-            others are built at the first pass and read back from a :class:`ProblemSpill`
-            at the later ones.
+            others, and those past ``keep_bytes``, are built at the first pass and read
+            back from a :class:`ProblemSpill` at the later ones.
         spill_dir: where the spill's folder is made (None: the system's temporary folder);
             it takes about 56 bytes per match of the chunks not kept on CPU (their match
             streams), 20 per pixel and 36 per match elsewhere (their problems).
+        keep_bytes: the most bytes of problems kept in memory (:data:`KEEP_PROBLEM_BYTES`);
+            the results do not depend on it, only memory and disk use do.
 
     Returns:
         The report, as :func:`~.depth_refinement.refine_depths` makes it.
@@ -308,12 +328,14 @@ def refine_in_chunks(
 
     spill = ProblemSpill(spill_dir)
     ready: dict[int, tuple[DataTerm, int]] = {}  # the kept chunks' terms, this step
+    kept_bytes = 0
 
     def chunk_terms(n: int, chunk: Chunk) -> tuple[DataTerm, int]:
         """Chunk ``n``'s data term ``(s, with_blocks) -> (H, g, cost)`` and its number of
         matches: its problem built at its first pass, then kept where ``keep`` allows, else
         read back from the spill (the working set of a paged map); on CPU as the compiled
         loop's match streams."""
+        nonlocal kept_bytes
         if n in ready:
             return ready[n]
         in_memory = False
@@ -333,7 +355,9 @@ def refine_in_chunks(
                 {position[r] for r in chunk.rows if r in pinned_rows},
                 ranges=[float(ranges[r]) for r in chunk.rows],
             )
-            in_memory = keep(chunk.rows)
+            size = _problem_bytes(data)
+            in_memory = keep(chunk.rows) and kept_bytes + size <= keep_bytes
+            kept_bytes += size if in_memory else 0
             if not in_memory and num_params and config.inner_iters > 0:  # read again later
                 spill.save(n, data)
         if isinstance(data, MatchStreams):

@@ -464,7 +464,10 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
         for root in sorted({self.gauges.find(r) for r in self._dirty_roots}):
             members = self.gauges.members(root)
             result = self.graph.optimize(
-                members, self._anchor(root), self.config.global_ba.max_iters_stream
+                members,
+                self._anchor(root),
+                self.config.global_ba.max_iters_stream,
+                self.config.global_ba.stream_max_matches,
             )
             self._count_ba(result)
             if result.moved:

@@ -126,6 +126,19 @@ class RelativePoseFactors(ABC):
             self._inv_sigmas /= sigma_scale.to(q)[:, None, :]
         self._chunk_matches = chunk_matches
         self._edges_per_chunk = max(1, chunk_matches // max(1, q.shape[1]))
+        self._edge_weight: torch.Tensor | None = None
+
+    def weigh_edges(self, weight: torch.Tensor) -> None:
+        """Multiply each edge's Gauss-Newton blocks and energy by ``weight (E,)`` (positive):
+        an edge whose matches were thinned to a share of them stands for all of them
+        (:meth:`~como3r.backend.global_graph.GlobalGraph.optimize`'s ``max_matches``). Its
+        residuals and Huber weights are those of its own matches."""
+        if weight.shape != self.i.shape or not bool((torch.isfinite(weight) & (weight > 0)).all()):
+            raise InputError(
+                f"{type(self).__name__}: edge weights must be {tuple(self.i.shape)} positive "
+                "finite numbers"
+            )
+        self._edge_weight = weight.to(device=self.q.device, dtype=torch.float64)
 
     @abstractmethod
     def _residual(
@@ -298,7 +311,11 @@ class RelativePoseFactors(ABC):
         return self._edge_costs(poses, edges)
 
     def _edge_costs(self, poses: torch.Tensor, edges: slice) -> torch.Tensor:
-        """Robust energy of each edge of a slice, ``(e,)`` float64."""
+        """Robust energy of each edge of a slice (times its weight), ``(e,)`` float64."""
+        costs = self._unweighted_costs(poses, edges)
+        return costs if self._edge_weight is None else costs * self._edge_weight[edges]
+
+    def _unweighted_costs(self, poses: torch.Tensor, edges: slice) -> torch.Tensor:
         if self._runs_compiled(poses):
             return self._compiled_costs(self._relative_poses(poses, edges)[1], edges)
         e, defined = self._error(self._relative_poses(poses, edges)[1].to(self.q.dtype), edges)
@@ -316,12 +333,17 @@ class RelativePoseFactors(ABC):
         self, poses: torch.Tensor, edges: slice
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``H = J^T W J`` ``(e, 7, 7)`` and ``g = J^T W e`` ``(e, 7)`` in the tangent of
-        ``T_ij``, and ``T_WC_i`` ``(e, 8)``, for a slice of edges: by the compiled loop on
-        CPU, else by PyTorch."""
+        ``T_ij``, and ``T_WC_i`` ``(e, 8)``, for a slice of edges (times their weights): by
+        the compiled loop on CPU, else by PyTorch."""
         if self._runs_compiled(poses):
             T_WC_i, T_ij = self._relative_poses(poses, edges)
-            return (*self._compiled_blocks(T_ij, edges), T_WC_i)
-        return self._vectorised_blocks(poses, edges)
+            H, g = self._compiled_blocks(T_ij, edges)
+        else:
+            H, g, T_WC_i = self._vectorised_blocks(poses, edges)
+        if self._edge_weight is not None:
+            weight = self._edge_weight[edges].to(H)
+            H, g = H * weight[:, None, None], g * weight[:, None]
+        return H, g, T_WC_i
 
     def _vectorised_blocks(
         self, poses: torch.Tensor, edges: slice
