@@ -73,6 +73,7 @@ from dataclasses import dataclass, field
 
 from como3r.config import DepthRefinementConfig, GlobalBAConfig
 from como3r.errors import ConfigError, SolverError
+from como3r.heap import give_back_freed_memory
 from como3r.progress import PhaseCallback, report_phase
 
 logger = logging.getLogger(__name__)
@@ -200,9 +201,12 @@ class AlternationReport:
 
 
 def _timed(fn: Callable[..., float], *args: int) -> tuple[float, float]:
-    """``(fn(*args), seconds)``, with the result checked to be a finite number."""
+    """``(fn(*args), seconds)``, with the result checked to be a finite number; what the
+    step let go of is given back to the system (:mod:`como3r.heap`), so the next step's
+    arrays do not come on top of it."""
     start = time.perf_counter()
     value = float(fn(*args))
+    give_back_freed_memory()
     seconds = time.perf_counter() - start
     if not math.isfinite(value):
         raise SolverError(

@@ -82,6 +82,7 @@ from como3r.errors import InputError
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.frontend.paging import KeyframeParking, read_fields
 from como3r.frontend.timing import StageTimer, TimedPrior
+from como3r.heap import give_back_freed_memory
 from como3r.prior.base import Prior
 from como3r.prior.retrieval import Hit
 from como3r.progress import PhaseCallback
@@ -310,6 +311,7 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
             scoped = scoped_progress(progress, members)
             if multi_agent:
                 self._refine_focals(members, scoped)
+                give_back_freed_memory()  # the focal BA's factors (.heap)
             component = ComponentCleanup(
                 self.graph, members, self._anchor(members[0]), self.config.depth, parking, spill
             )
