@@ -217,6 +217,7 @@ _NON_NEGATIVE = (
     "verification.workers",
     "verification.link_spacing",
     "gauge.max_correspondences",
+    "gauge.focal_max_matches",
     "global_ba.stream_max_matches",
     "global_ba.lm_lambda",
     "global_ba.tikhonov_base",

@@ -244,6 +244,14 @@ class GaugeConfig:
     mm, the same 15 merges and 52 edges. The prior's errors are smooth across the image, so
     the fit is set by them, not by the number of pixels.
 
+    ``focal_max_matches`` (como3r addition; issue 41): the focal BA builds each edge over
+    an even subset of at most this many of its valid matches, weighed by the share left out
+    (:func:`~como3r.frontend.graph.thinned`), as the in-stream global BA does
+    (``global_ba.stream_max_matches``); the pose passes after it take every match. 0: every
+    match. It held every edge's dense factors for its solve: the largest part of a 16-agent
+    coordinator's memory at the end of a long mission (190 keyframes, 512x384: 6.2 -> 7.6
+    GB while it ran).
+
     ``scale_alarm_log`` (como3r addition): the scale watch of wrong links. An edge between
     agents that already share a gauge whose own similarity (Umeyama on its lifted points)
     would rescale the map by more than this in ``|log s|`` is held back (status
@@ -285,6 +293,7 @@ class GaugeConfig:
     focal_search: float = 0.3
     focal_ba: bool = True
     focal_prior: float = 0.05
+    focal_max_matches: int = 8192
     scale_alarm_log: float = 0.2
 
 

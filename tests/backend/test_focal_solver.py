@@ -199,6 +199,40 @@ def test_recovers_a_camera_focal_length(held: bool) -> None:
     assert (float(solved.log_focal[0]) == 0.0) == held
 
 
+@pytest.mark.parametrize("path", ["compiled", "pytorch"])
+def test_thinned_edges_weigh_their_blocks_back_and_solve_alike(path: str) -> None:
+    """Edges built over an even third of their matches, weighed back: the joint normal
+    equations keep the full ones' scale, and the recovered focal ratio is theirs within
+    0.2 %."""
+    views, poses, edges = _scene([F, F * 1.06])
+    count = min(int(e.matches.valid.sum()) for e in edges)
+    solved, systems = [], []
+    for max_matches in (0, count // 3):
+        factors = FocalEdgeFactors(
+            edges,
+            views.__getitem__,
+            {0: 0, 1: 1, 2: 2}.__getitem__,
+            [0, 0, 1].__getitem__,
+            TrackingConfig(),
+            compiled=path == "compiled",
+            max_matches=max_matches,
+        )
+        assert (max_matches == 0) == all(b.weight is None for b in factors.batches)
+        values = FocalValues(
+            PoseValues.from_poses(poses.clone(), 1),
+            torch.zeros(2, dtype=torch.float64),
+            torch.tensor([True, False]),
+        )
+        systems.append(factors.linearize(values))
+        prior = FocalPrior(torch.zeros(2, dtype=torch.float64), 0.2)
+        solved.append(gauss_newton_focal(factors, prior, values, GlobalBAConfig(), 20, 4.0)[0])
+    full, thin = systems
+    assert float(thin.H_ff[1, 1]) == pytest.approx(float(full.H_ff[1, 1]), rel=0.2)
+    ratios = [math.exp(float(v.log_focal[1])) for v in solved]
+    assert ratios[1] == pytest.approx(ratios[0], rel=2e-3)
+    assert ratios[0] == pytest.approx(1 / 1.06, abs=0.01)
+
+
 def _graph() -> GlobalGraph:
     """The scene's three keyframes on the coordinator's graph (agents 0, 0, 1), linked."""
     views, poses, _ = _scene([F, F * 1.06])

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 import como3r.backend.global_graph as global_graph
+import como3r.frontend.graph as graph_module
 from como3r.backend.global_graph import GlobalGraph
 from como3r.config import DepthRefinementConfig, GlobalBAConfig, TrackingConfig
 from como3r.errors import InputError
@@ -257,8 +258,8 @@ def test_scene_depth_keeps_median_ranges_until_a_pointmap_changes(two_agents) ->
 def test_thinned_edges_keep_an_even_subset_and_weigh_the_rest(max_matches) -> None:
     valid = torch.ones(H * W, dtype=torch.bool)
     valid[::5] = False  # 38 valid matches of 48
-    edge = global_graph.Edge(0, 1, DirectedMatches(torch.arange(H * W), valid, torch.ones(H * W)))
-    kept, weight = global_graph.thinned(edge, max_matches)
+    edge = graph_module.Edge(0, 1, DirectedMatches(torch.arange(H * W), valid, torch.ones(H * W)))
+    kept, weight = graph_module.thinned(edge, max_matches)
     count = int(kept.matches.valid.sum())
     if max_matches in (0, 48):
         assert kept is edge and weight == 1.0

@@ -33,7 +33,7 @@ from torch import Tensor
 
 from como3r.config import TrackingConfig
 from como3r.errors import InputError
-from como3r.frontend.graph import Edge, Pointmap, build_factors
+from como3r.frontend.graph import Edge, Pointmap, build_factors, thinned
 from como3r.geometry.lie import quat_to_matrix, sim3_adjoint, sim3_compose, sim3_inverse
 from como3r.geometry.residuals import huber_weight
 from como3r.optim.factors import endpoint_blocks
@@ -120,6 +120,9 @@ class FocalEdgeFactors:
             ``sigma_z``).
         compiled: CPU factors take the compiled loop (:func:`compiled_edge_blocks`); False:
             the PyTorch path (:func:`edge_blocks`) on every device (tests, benchmarks).
+        max_matches: an edge with more valid matches is built over an even subset of about
+            this many, its blocks weighed by the share left out
+            (:func:`~como3r.frontend.graph.thinned`); 0: every match.
 
     Raises:
         InputError: no edges, or a keyframe without intrinsics.
@@ -133,6 +136,7 @@ class FocalEdgeFactors:
         camera: Callable[[int], int],
         tracking: TrackingConfig,
         compiled: bool = True,
+        max_matches: int = 0,
     ) -> None:
         if not edges:
             raise InputError("FocalEdgeFactors: no edges")
@@ -144,19 +148,24 @@ class FocalEdgeFactors:
                     f"FocalEdgeFactors: keyframe {key} has no intrinsics (a focal length is "
                     "estimated only for calibrated or self-calibrated keyframes)"
                 )
-        order = sorted(edges, key=lambda e: int(e.matches.valid.sum()))
+        chosen = [thinned(e, max_matches) for e in edges]
+        order = sorted(chosen, key=lambda pair: int(pair[0].matches.valid.sum()))
         self.batches: list[_Batch] = []
         for s in range(0, len(order), EDGES_PER_BATCH):
-            batch = order[s : s + EDGES_PER_BATCH]
+            batch = [e for e, _ in order[s : s + EDGES_PER_BATCH]]
             factors = build_factors(batch, keyframe, row, tracking)
             if not isinstance(factors, CalibratedFactors):
                 raise InputError("FocalEdgeFactors: the edges did not give C-Eq. 17 factors")
             device = factors.q.device
+            weights = [w for _, w in order[s : s + EDGES_PER_BATCH]]
             self.batches.append(
                 _Batch(
                     factors,
                     torch.tensor([camera(e.i) for e in batch], device=device),
                     torch.tensor([camera(e.j) for e in batch], device=device),
+                    None
+                    if all(w == 1.0 for w in weights)
+                    else torch.tensor(weights, dtype=torch.float64, device=device),
                 )
             )
 
@@ -184,6 +193,9 @@ class FocalEdgeFactors:
                 ]
                 parts = [edge_blocks(moved, poses, edges, self.tracking) for edges in slices]
             for edges, (H9, g9, T_WC_i) in zip(slices, parts):
+                if batch.weight is not None:
+                    H9 = H9 * batch.weight[edges, None, None].to(H9)
+                    g9 = g9 * batch.weight[edges, None].to(g9)
                 i, j = factors.i[edges], factors.j[edges]
                 blocks.append(endpoint_blocks(i, j, H9[:, :7, :7], g9[:, :7], T_WC_i))
                 c = torch.stack([batch.camera_i[edges], batch.camera_j[edges]], dim=1)  # (e, 2)
@@ -204,12 +216,13 @@ class FocalEdgeFactors:
 
 @dataclass(frozen=True)
 class _Batch:
-    """A factor batch of the solve and its edges' cameras ``(e,)`` (columns of
-    ``log_focal``)."""
+    """A factor batch of the solve, its edges' cameras ``(e,)`` (columns of
+    ``log_focal``) and weights ``(e,)`` (thinned edges; None: all 1)."""
 
     factors: CalibratedFactors
     camera_i: Tensor
     camera_j: Tensor
+    weight: Tensor | None = None
 
 
 def rescaled(factors: CalibratedFactors, scale_i: Tensor, scale_j: Tensor) -> CalibratedFactors:

@@ -154,6 +154,7 @@ def optimize_focal(
     max_iters: int,
     prior_sigma: float,
     centres: dict[int, float] | None = None,
+    max_matches: int = 0,
 ) -> FocalBAResult:
     """Poses and one focal length per agent of a component in one solve (C-Eq. 5 with the
     residual of C-Eq. 17), then every agent moved onto its focal length
@@ -167,6 +168,8 @@ def optimize_focal(
             length at its ``centres`` value (see :class:`FocalPrior`).
         centres: per agent, the focal length [px] the prior is centred on (its own
             self-calibration); missing agents: the focal length it holds now.
+        max_matches: each edge built over an even subset of about this many of its valid
+            matches, weighed by the share left out (``gauge.focal_max_matches``); 0: all.
     """
     start = time.perf_counter()
     nodes = graph.connected(agents, anchor)
@@ -183,6 +186,7 @@ def optimize_focal(
         row.__getitem__,
         lambda g: column[graph.agent_of[g]],
         graph.tracking,
+        max_matches=max_matches,
     )
     stored = graph.poses(nodes)
     before = stored.double()

@@ -32,7 +32,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -41,10 +41,10 @@ from como3r.backend.graph_depth import GraphDepthSteps
 from como3r.backend.graph_link import GraphLink
 from como3r.config import GlobalBAConfig, TrackingConfig
 from como3r.errors import InputError
-from como3r.frontend.graph import Edge, build_factors
+from como3r.frontend.graph import Edge, build_factors, thinned
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh
-from como3r.frontend.pairs import DirectedMatches, PairLink
+from como3r.frontend.pairs import PairLink
 from como3r.geometry.camera import to_focal
 from como3r.geometry.units import median_depth, median_range
 from como3r.optim.factors import Factor
@@ -332,7 +332,8 @@ class GlobalGraph(GraphDepthSteps):
             max_iters: Gauss-Newton iterations (50 in-stream, 100 per cleanup pass).
             max_matches: an edge with more valid matches than this is linearized over an
                 even subset of about this many, its blocks and energy weighed by the
-                share left out (:func:`thinned`; ``global_ba.stream_max_matches``); 0:
+                share left out (:func:`~como3r.frontend.graph.thinned`;
+                ``global_ba.stream_max_matches``); 0:
                 every match (C-Eq. 5).
         """
         nodes = self.connected(agents, anchor)
@@ -421,7 +422,8 @@ class GlobalGraph(GraphDepthSteps):
     ) -> list[tuple[Factor, list[int]]]:
         """Factor batches over the ``edges`` at ``positions``
         (:func:`~como3r.frontend.graph.build_factors`: their valid matches only, thinned to
-        ``max_matches``), each with the positions of its edges. A batch pads its edges to
+        ``max_matches``, :func:`~como3r.frontend.graph.thinned`), each with the positions of
+        its edges. A batch pads its edges to
         its largest match count, so edges are batched by match count
         (:data:`EDGES_PER_BATCH` at a time) to keep the padding small."""
         chosen = {p: thinned(edges[p], max_matches) for p in positions}
@@ -440,29 +442,6 @@ class GlobalGraph(GraphDepthSteps):
                 batch.weigh_edges(weights)
             batches.append((batch, at))
         return batches
-
-
-def thinned(edge: Edge, max_matches: int) -> tuple[Edge, float]:
-    """``edge`` with its valid matches thinned to every ``k``-th in pixel order, ``k`` the
-    smallest stride leaving at most ``max_matches`` (0: all kept), and the weight of each
-    kept match: valid matches over kept ones (1 where none were dropped).
-
-    Not in the paper (issue 41): the in-stream global BA's cost is its edges' matches, 10^5
-    an edge at 512x384, and the prior's errors are smooth across the image, so an even
-    subset constrains the relative pose as all of them do, at a share of the cost.
-    """
-    matches = edge.matches
-    valid = matches.valid
-    count = int(valid.sum())
-    if max_matches <= 0 or count <= max_matches:
-        return edge, 1.0
-    stride = -(-count // max_matches)
-    rank = torch.cumsum(valid, 0) - 1
-    kept = valid & (rank % stride == 0)
-    return (
-        replace(edge, matches=DirectedMatches(matches.idx, kept, matches.q)),
-        count / int(kept.sum()),
-    )
 
 
 def _implausible(before: Tensor, after: Tensor) -> str:

@@ -147,6 +147,7 @@ class FocalAlignment:
             self.config.global_ba.max_iters_stream,
             self.config.gauge.focal_prior,
             self.graph.own_focal,
+            self.config.gauge.focal_max_matches,
         )
         self.stats.add_time("focal", time.perf_counter() - start)
         self.stats.focal_refinements += sum(1 for v in result.log_focal.values() if v != 0.0)

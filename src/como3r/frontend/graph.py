@@ -15,7 +15,7 @@ grow with the graph (issue 14, bounded memory).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import torch
@@ -146,6 +146,29 @@ def build_factors(
         valid,
         tracking,
         K_i,
+    )
+
+
+def thinned(edge: Edge, max_matches: int) -> tuple[Edge, float]:
+    """``edge`` with its valid matches thinned to every ``k``-th in pixel order, ``k`` the
+    smallest stride leaving at most ``max_matches`` (0: all kept), and the weight of each
+    kept match: valid matches over kept ones (1 where none were dropped).
+
+    Not in the paper (issue 41): a global solve's cost is its edges' matches, 10^5 an edge
+    at 512x384, and the prior's errors are smooth across the image, so an even subset
+    constrains the relative pose as all of them do, at a share of the cost and memory.
+    """
+    matches = edge.matches
+    valid = matches.valid
+    count = int(valid.sum())
+    if max_matches <= 0 or count <= max_matches:
+        return edge, 1.0
+    stride = -(-count // max_matches)
+    rank = torch.cumsum(valid, 0) - 1
+    kept = valid & (rank % stride == 0)
+    return (
+        replace(edge, matches=DirectedMatches(matches.idx, kept, matches.q)),
+        count / int(kept.sum()),
     )
 
 
