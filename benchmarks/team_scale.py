@@ -445,9 +445,39 @@ and unused; one run each):
         16  190          718           569        5.04        2203     144         59         >256         21     11350      1881    17.8  0.468      0.0293     1
 
 The coordinator's peak memory 16 vs 4 agents is 3.24x (3.4x before); replayed with a session
-store the 16 agents' calls peak at 6.8 GB (8.5 GB before), so most of the whole run's 11.4 GB
-is what the replay does not hold (the runtime's queue of pending keyframes, its readers, the
-end of the input). Work per keyframe 16 vs 4 agents: 1.47x (thread and pool).
+store the 16 agents' calls peak at 6.8 GB (8.5 GB before). Work per keyframe 16 vs 4 agents:
+1.47x (thread and pool).
+
+Where the whole run's peak was (session 37: the 16-agent run's coordinator sampled every 4 s
+with its main thread's stack, ``py-spy dump``): not the runtime's queue but the terminal
+cleanup. Its resident memory rose 7.9 -> 12.1 GB in the depth step, which kept the flattened
+problems of every chunk of resident keyframes (a team keeps 8 of each agent's, 128 of 190),
+and 6.2 -> 7.6 GB in the focal BA, which held every edge's dense factors. Session 37 bounds
+both (the depth step keeps 256 MB of problems and spills the rest,
+``backend.paged_refinement.KEEP_PROBLEM_BYTES``; the focal BA builds an edge over an even
+8192 of its matches, weighed back, ``gauge.focal_max_matches``), gives what each cleanup
+step let go of back to the system, and thins the in-stream global BA's edges the same way
+(``global_ba.stream_max_matches``). The same command, three runs, each with one more of
+these (the in-stream thinning and the depth step's budget at 4b9e3b7; the heap given back
+at 383535f; the focal BA thinned at 4f5084e), an idle machine, no swap:
+
+    agents   kf  coord ms/kf  serial ms/kf  decodes/kf  pool ms/kf  end kf  end kf P8  cores for 0  rt end kf  coord MB  agent MB  ATE mm  ATE %  ATE % team  maps
+         4   32          451           294        4.56         923       9          1            2          0      3480      1445    6.91  0.183      0.0458     1
+        16  190          339           229        5.04        1432     143         32         >256         21      8598      1937    17.8  0.469      0.0293     1
+         4   32          450           300        4.56         927       8          0            2          0      3169      1484    6.87  0.182      0.0455     1
+        16  190          341           235        5.04        1418     142         30           64         21      7963      1905    17.8  0.468      0.0293     1
+         4   32          420           282        4.56         932       7          0            2          0      3054      1475    7.00  0.186      0.0464     1
+        16  190          338           238        5.04        1474     142         30           64         21      6596      1824    17.8  0.470      0.0294     1
+
+16 vs 4 agents, last run: peak memory 2.16x (3.24x before; 2.47x and 2.51x in the first two),
+work per keyframe 1.34x (1.28-1.34x over the three). The serial part fell 480 / 569 -> 282-300
+/ 229-238 ms per keyframe (the in-stream BA: replayed in one thread, 152 -> 41 ms per
+keyframe). The 16 agents' calls replayed against the agents' arrivals keep up with 48-64
+cores: the one keyframe queued then arrived 0.18 s after another at the very end of the
+input, and the coordinator finishes 0.5 s after it (32 cores: 2 queued, 1.65 s; the first
+run's 64-core replay also left that last one queued, hence its >256). The peak is now
+in-stream, in a batch of up to 32 keyframes (3.3-4.3 GB after a batch's page-out, up to
+6.6 GB within one); the merged ATE is the same to 0.1 mm in every run.
 """
 
 from __future__ import annotations

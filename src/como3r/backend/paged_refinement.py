@@ -16,7 +16,7 @@ about ten times the pass's sums over it (store reads and decompression, norms, r
 median ranges): rebuilding every chunk at each of the step's ``inner_iters + 1`` passes made
 a 14-keyframe map's depth steps 3.8x slower. So each chunk is built once per step, at the
 first pass: one whose keyframes are all in memory anyway keeps its problem for the step
-(``keep``), any other is written raw to a :class:`ProblemSpill` and read back whole at the
+(``keep``) while the kept problems fit :data:`KEEP_PROBLEM_BYTES`, any other is written raw to a :class:`ProblemSpill` and read back whole at the
 later passes, so that memory holds one such problem at a time. Only the log-scales
 ``s (M,)``, their warm start and the boundary pairs stay in memory for the whole step. Each
 keyframe holds a few hundred of them.
