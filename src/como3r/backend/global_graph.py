@@ -333,8 +333,7 @@ class GlobalGraph(GraphDepthSteps):
             max_matches: an edge with more valid matches than this is linearized over an
                 even subset of about this many, its blocks and energy weighed by the
                 share left out (:func:`~como3r.frontend.graph.thinned`;
-                ``global_ba.stream_max_matches``); 0:
-                every match (C-Eq. 5).
+                ``global_ba.stream_max_matches``); 0: every match (C-Eq. 5).
         """
         nodes = self.connected(agents, anchor)
         chosen = set(nodes)
@@ -422,10 +421,10 @@ class GlobalGraph(GraphDepthSteps):
     ) -> list[tuple[Factor, list[int]]]:
         """Factor batches over the ``edges`` at ``positions``
         (:func:`~como3r.frontend.graph.build_factors`: their valid matches only, thinned to
-        ``max_matches``, :func:`~como3r.frontend.graph.thinned`), each with the positions of
-        its edges. A batch pads its edges to
-        its largest match count, so edges are batched by match count
-        (:data:`EDGES_PER_BATCH` at a time) to keep the padding small."""
+        ``max_matches`` by :func:`~como3r.frontend.graph.thinned`), each with the positions
+        of its edges. A batch pads its edges to its largest match count, so edges are
+        batched by match count (:data:`EDGES_PER_BATCH` at a time) to keep the padding
+        small."""
         chosen = {p: thinned(edges[p], max_matches) for p in positions}
         order = sorted(positions, key=lambda p: int(chosen[p][0].matches.valid.sum()))
         batches: list[tuple[Factor, list[int]]] = []

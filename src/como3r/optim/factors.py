@@ -316,6 +316,7 @@ class RelativePoseFactors(ABC):
         return costs if self._edge_weight is None else costs * self._edge_weight[edges]
 
     def _unweighted_costs(self, poses: torch.Tensor, edges: slice) -> torch.Tensor:
+        """Robust energy of each edge of a slice over its own matches, ``(e,)`` float64."""
         if self._runs_compiled(poses):
             return self._compiled_costs(self._relative_poses(poses, edges)[1], edges)
         e, defined = self._error(self._relative_poses(poses, edges)[1].to(self.q.dtype), edges)
