@@ -468,14 +468,17 @@ at 383535f; the focal BA thinned at 4f5084e), an idle machine, no swap:
         16  190          341           235        5.04        1418     142         30           64         21      7963      1905    17.8  0.468      0.0293     1
          4   32          420           282        4.56         932       7          0            2          0      3054      1475    7.00  0.186      0.0464     1
         16  190          338           238        5.04        1474     142         30           64         21      6596      1824    17.8  0.470      0.0294     1
+         4   32          443           295        4.56         971       8          0            2          0      3071      1533    6.96  0.184      0.0461     1
+        16  190          359           248        5.04        1462     141         27           32         20      6940      1999    17.8  0.470      0.0294     1
 
-16 vs 4 agents, last run: peak memory 2.16x (3.24x before; 2.47x and 2.51x in the first two),
-work per keyframe 1.34x (1.28-1.34x over the three). The serial part fell 480 / 569 -> 282-300
+(the last two rows: the final code, b528bac, run again.) 16 vs 4 agents with all of it: peak
+memory 2.16-2.26x over two runs (3.24x before; 2.47x and 2.51x with the first changes only),
+work per keyframe 1.29-1.34x (1.28-1.34x over all four). The serial part fell 480 / 569 -> 282-300
 / 229-238 ms per keyframe (the in-stream BA: replayed in one thread, 152 -> 41 ms per
-keyframe). The 16 agents' calls replayed against the agents' arrivals keep up with 48-64
-cores: the one keyframe queued then arrived 0.18 s after another at the very end of the
-input, and the coordinator finishes 0.5 s after it (32 cores: 2 queued, 1.65 s; the first
-run's 64-core replay also left that last one queued, hence its >256). The peak is now
+keyframe). The 16 agents' calls replayed against the agents' arrivals keep up with 32-64
+cores (the first run's replay left one keyframe queued at 48 to 256 cores: it arrived 0.18 s
+after another at the very end of the input, and the coordinator finished 0.5 s after it;
+hence its >256). The peak is now
 in-stream, in a batch of up to 32 keyframes (3.3-4.3 GB after a batch's page-out, up to
 6.6 GB within one); the merged ATE is the same to 0.1 mm in every run.
 """
