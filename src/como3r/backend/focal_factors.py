@@ -33,7 +33,7 @@ from torch import Tensor
 
 from como3r.config import TrackingConfig
 from como3r.errors import InputError
-from como3r.frontend.graph import Edge, Pointmap, build_factors, thinned
+from como3r.frontend.graph import Edge, Pointmap, build_factors, count_batches
 from como3r.geometry.lie import quat_to_matrix, sim3_adjoint, sim3_compose, sim3_inverse
 from como3r.geometry.residuals import huber_weight
 from como3r.optim.factors import endpoint_blocks
@@ -44,9 +44,6 @@ from como3r.optim.values import PoseValues
 
 #: Matches whose focal terms are formed at once (bounds the per-match temporaries).
 CHUNK_MATCHES = 1 << 18
-
-#: Edges per factor batch (a batch pads to its largest edge; edges sorted by match count).
-EDGES_PER_BATCH = 8
 
 
 @dataclass(frozen=True, eq=False)
@@ -148,24 +145,18 @@ class FocalEdgeFactors:
                     f"FocalEdgeFactors: keyframe {key} has no intrinsics (a focal length is "
                     "estimated only for calibrated or self-calibrated keyframes)"
                 )
-        chosen = [thinned(e, max_matches) for e in edges]
-        order = sorted(chosen, key=lambda pair: int(pair[0].matches.valid.sum()))
         self.batches: list[_Batch] = []
-        for s in range(0, len(order), EDGES_PER_BATCH):
-            batch = [e for e, _ in order[s : s + EDGES_PER_BATCH]]
+        for _, batch, weights in count_batches(edges, max_matches):
             factors = build_factors(batch, keyframe, row, tracking)
             if not isinstance(factors, CalibratedFactors):
                 raise InputError("FocalEdgeFactors: the edges did not give C-Eq. 17 factors")
             device = factors.q.device
-            weights = [w for _, w in order[s : s + EDGES_PER_BATCH]]
             self.batches.append(
                 _Batch(
                     factors,
                     torch.tensor([camera(e.i) for e in batch], device=device),
                     torch.tensor([camera(e.j) for e in batch], device=device),
-                    None
-                    if all(w == 1.0 for w in weights)
-                    else torch.tensor(weights, dtype=torch.float64, device=device),
+                    None if weights is None else weights.to(device),
                 )
             )
 

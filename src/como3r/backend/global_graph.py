@@ -41,7 +41,7 @@ from como3r.backend.graph_depth import GraphDepthSteps
 from como3r.backend.graph_link import GraphLink
 from como3r.config import GlobalBAConfig, TrackingConfig
 from como3r.errors import InputError
-from como3r.frontend.graph import Edge, build_factors, thinned
+from como3r.frontend.graph import Edge, build_factors, count_batches
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh
 from como3r.frontend.pairs import PairLink
@@ -59,9 +59,6 @@ logger = logging.getLogger(__name__)
 #: the solver cannot see a slow blow-up over many iterations).
 MAX_DISPLACEMENT_EXTENTS = 10.0
 MAX_SCALE_FACTOR = 10.0
-
-#: Edges per factor batch of the global solve (batches pad to their largest edge).
-EDGES_PER_BATCH = 8
 
 
 @dataclass(frozen=True)
@@ -421,25 +418,17 @@ class GlobalGraph(GraphDepthSteps):
     ) -> list[tuple[Factor, list[int]]]:
         """Factor batches over the ``edges`` at ``positions``
         (:func:`~como3r.frontend.graph.build_factors`: their valid matches only, thinned to
-        ``max_matches`` by :func:`~como3r.frontend.graph.thinned`), each with the positions
-        of its edges. A batch pads its edges to its largest match count, so edges are
-        batched by match count (:data:`EDGES_PER_BATCH` at a time) to keep the padding
-        small."""
-        chosen = {p: thinned(edges[p], max_matches) for p in positions}
-        order = sorted(positions, key=lambda p: int(chosen[p][0].matches.valid.sum()))
+        ``max_matches`` and batched by match count:
+        :func:`~como3r.frontend.graph.count_batches`), each with the positions of its
+        edges."""
         batches: list[tuple[Factor, list[int]]] = []
-        for s in range(0, len(order), EDGES_PER_BATCH):
-            at = order[s : s + EDGES_PER_BATCH]
+        for at, chosen, weights in count_batches([edges[p] for p in positions], max_matches):
             batch = build_factors(
-                [chosen[p][0] for p in at],
-                self.keyframes.__getitem__,
-                row.__getitem__,
-                self.tracking,
+                chosen, self.keyframes.__getitem__, row.__getitem__, self.tracking
             )
-            weights = torch.tensor([chosen[p][1] for p in at], dtype=torch.float64)
-            if bool((weights != 1.0).any()):
+            if weights is not None:
                 batch.weigh_edges(weights)
-            batches.append((batch, at))
+            batches.append((batch, [positions[k] for k in at]))
         return batches
 
 

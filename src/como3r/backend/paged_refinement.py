@@ -16,8 +16,9 @@ about ten times the pass's sums over it (store reads and decompression, norms, r
 median ranges): rebuilding every chunk at each of the step's ``inner_iters + 1`` passes made
 a 14-keyframe map's depth steps 3.8x slower. So each chunk is built once per step, at the
 first pass: one whose keyframes are all in memory anyway keeps its problem for the step
-(``keep``) while the kept problems fit :data:`KEEP_PROBLEM_BYTES`, any other is written raw to a :class:`ProblemSpill` and read back whole at the
-later passes, so that memory holds one such problem at a time. Only the log-scales
+(``keep``) while the kept problems fit :data:`KEEP_PROBLEM_BYTES`, any other is written raw
+to a :class:`ProblemSpill` and read back whole at the later passes, so that memory holds one
+such problem at a time. Only the log-scales
 ``s (M,)``, their warm start and the boundary pairs stay in memory for the whole step. Each
 keyframe holds a few hundred of them.
 
@@ -60,6 +61,7 @@ from como3r.config import DepthRefinementConfig
 from como3r.frontend.graph import Edge
 from como3r.frontend.paging import KeyframeParking, KeyframeSpill
 from como3r.geometry.units import median_range
+from como3r.optim.relinearization import tensor_bytes
 
 logger = logging.getLogger(__name__)
 
@@ -141,13 +143,7 @@ def _stream_terms(
 
 def _problem_bytes(data: ChunkData) -> int:
     """Bytes of the tensors a chunk's problem holds (each storage once)."""
-    tensors = (getattr(data, f.name) for f in fields(data))
-    storages = {
-        t.untyped_storage().data_ptr(): t.untyped_storage().nbytes()
-        for t in tensors
-        if isinstance(t, Tensor)
-    }
-    return sum(storages.values())
+    return tensor_bytes(getattr(data, f.name) for f in fields(data))
 
 
 class ProblemSpill:

@@ -172,6 +172,35 @@ def thinned(edge: Edge, max_matches: int) -> tuple[Edge, float]:
     )
 
 
+#: Edges per factor batch of a global solve (a batch pads its edges to its largest match
+#: count, so edges are batched by count)
+EDGES_PER_BATCH = 8
+
+
+def count_batches(
+    edges: Sequence[Edge], max_matches: int
+) -> list[tuple[list[int], list[Edge], Tensor | None]]:
+    """``edges`` thinned (:func:`thinned`) and grouped :data:`EDGES_PER_BATCH` at a time by
+    ascending valid-match count, so a batch pads little: per group the edges' positions in
+    ``edges``, the thinned edges and their weights ``(e,)`` float64 (None where all are 1)."""
+    chosen = [thinned(e, max_matches) for e in edges]
+    order = sorted(range(len(edges)), key=lambda p: int(chosen[p][0].matches.valid.sum()))
+    groups = []
+    for s in range(0, len(order), EDGES_PER_BATCH):
+        at = order[s : s + EDGES_PER_BATCH]
+        weights = [chosen[p][1] for p in at]
+        groups.append(
+            (
+                at,
+                [chosen[p][0] for p in at],
+                None
+                if all(w == 1.0 for w in weights)
+                else torch.tensor(weights, dtype=torch.float64),
+            )
+        )
+    return groups
+
+
 def packed_matches(
     edges: Sequence[Edge], keyframe: Callable[[int], Pointmap]
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:

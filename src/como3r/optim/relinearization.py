@@ -19,7 +19,7 @@ and linearizes its matches again. Not in the paper; ``tol = 0`` is its dense sol
 
 from __future__ import annotations
 
-from collections.abc import Callable, Hashable, Iterator, Sequence
+from collections.abc import Callable, Hashable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -211,7 +211,7 @@ class ThresholdRelinearized:
                 add(*self._dense[p], p)
         wanted = set(missing)
         for batch, built in self.build(missing) if missing else ():
-            size = _tensor_bytes(batch)
+            size = tensor_bytes(vars(batch).values())
             keep = self._kept_bytes + size <= self.keep_bytes
             self._kept_bytes += size if keep else 0
             for row, p in enumerate(built):
@@ -226,11 +226,11 @@ class ThresholdRelinearized:
         return result
 
 
-def _tensor_bytes(batch: RelativePoseFactors) -> int:
-    """Bytes of the tensors ``batch`` holds (each storage once)."""
+def tensor_bytes(values: Iterable[object]) -> int:
+    """Bytes of the tensors among ``values`` (each storage once; other values ignored)."""
     storages = {
         t.untyped_storage().data_ptr(): t.untyped_storage().nbytes()
-        for t in vars(batch).values()
+        for t in values
         if isinstance(t, torch.Tensor)
     }
     return sum(storages.values())
