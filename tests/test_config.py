@@ -97,6 +97,8 @@ def test_inf_turns_a_documented_gate_off(key: str, tmp_path) -> None:
         ("session.team_resident_keyframes=2.5", "session.team_resident_keyframes"),
         ("gauge.max_correspondences=-1", "gauge.max_correspondences must be >= 0"),
         ("gauge.max_correspondences=2.5", "gauge.max_correspondences"),
+        ("global_ba.stream_max_matches=-1", "global_ba.stream_max_matches must be >= 0"),
+        ("gauge.focal_max_matches=-5", "gauge.focal_max_matches must be >= 0"),
         ("verification.link_spacing=-1", "verification.link_spacing must be >= 0"),
         ("tracking=1", "section"),
         ("no_equals_sign", "section.key=value"),
