@@ -66,7 +66,7 @@ from como3r.config import Config, apply_overrides  # noqa: E402
 from como3r.coordination.census import census, megabytes  # noqa: E402
 from como3r.coordination.coordinator import Coordinator  # noqa: E402
 from como3r.geometry.umeyama import umeyama_rmse, umeyama_sim3  # noqa: E402
-from como3r.heap import give_back_freed_memory  # noqa: E402
+from como3r.heap import give_back_freed_memory, one_heap_arena  # noqa: E402
 from como3r.io.tum import read_tum  # noqa: E402
 from como3r.optim.relinearization import ThresholdRelinearized  # noqa: E402
 from como3r.prior.simulated import SimulatedPrior  # noqa: E402
@@ -343,6 +343,7 @@ def main() -> None:
     for command in (take, again):
         command.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = parser.parse_args()
+    one_heap_arena()  # as a coordinator's process does (como3r.runtime.multiprocess)
     config = apply_overrides(Config(), args.set)
     if args.command == "capture":
         capture(args.scene, args.out, args.calls, config)

@@ -19,6 +19,7 @@ import torch
 from como3r.config import Config
 from como3r.data.agent_input import AgentInput
 from como3r.errors import InputError
+from como3r.heap import one_heap_arena
 from como3r.io.output import atomic_output_dir
 from como3r.live import LiveCallback
 from como3r.progress import ProgressCallback
@@ -146,6 +147,7 @@ def coordinate(
         InputError: every agent failed.
         StoreError: (``resume``) a store that cannot be resumed.
     """
+    one_heap_arena()  # before the verification pool's and the store's threads (.heap)
     threads = torch.get_num_threads()
     torch.set_num_threads(max(1, options.torch_threads))
     runtime: _Runtime | None = None
