@@ -291,7 +291,11 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
         start = time.perf_counter()
         cleanup = Cleanup(pointmap_update=self._pointmaps)
         cleanup.updates.extend(self._verify_all_deferred())
-        self.pool.shutdown()  # no batch verifies from here on: its threads end
+        # nothing decodes from here on (the cleanup works on pointmaps): the pool's threads
+        # end and the re-encoded keyframes go (16 agents: 1.5 GB of the simulated prior's)
+        self.pool.shutdown()
+        self.encodings.retain(())
+        give_back_freed_memory()
         spill = Path(self.config.session.spill_dir) if self.config.session.spill_dir else None
         parking = KeyframeParking(spill)
         settings = AlternationSettings.from_config(self.config.global_ba, self.config.depth)
