@@ -481,6 +481,29 @@ after another at the very end of the input, and the coordinator finished 0.5 s a
 hence its >256). The peak is now
 in-stream, in a batch of up to 32 keyframes (3.3-4.3 GB after a batch's page-out, up to
 6.6 GB within one); the merged ATE is the same to 0.1 mm in every run.
+
+Session 38 (the same command, an idle machine, the coordinator sampled every 4 s as above).
+With one malloc heap for the coordinator's threads (016433d, :func:`como3r.heap.
+one_heap_arena`: its verification pool's and session store's threads had heaps of their
+own, each keeping its own freed blocks), two runs, then with the encoding cache let go of
+before the terminal cleanup (d207140: with nothing deferred it had been held through it):
+
+    agents   kf  coord ms/kf  serial ms/kf  decodes/kf  pool ms/kf  end kf  end kf P8  cores for 0  rt end kf  coord MB  agent MB  ATE mm  ATE %  ATE % team  maps
+         4   32          460           297        4.56         966       9          1            2          0      3010      1483    7.00  0.185      0.0464     1
+        16  190          354           251        5.04        1541     143         32           64         21      5940      1825    17.9  0.472      0.0295     1
+         4   32          471           309        4.56        1009       9          1            2          0      3025      1425    6.92  0.183      0.0458     1
+        16  190          354           253        5.04        1531     144         34         >256         15      5997      1860    18.0  0.474      0.0296     1
+         4   32          450           289        4.56         948       8          0            2          0      2378      1441    6.92  0.183      0.0459     1
+        16  190          441           244        5.04        1576     142         35           64         15      5622      1871    17.8  0.469      0.0293     1
+
+One heap took the 16-agent peak 6596-6940 -> 5940-5997 MB (16 vs 4 agents 1.97-1.98x).
+In the second run the peak was the depth step's (6.0 GB), where the coordinator still held
+the 64 encodings of its cache (1.5 GB of the simulated prior's) that nothing decodes after
+the stream; the 4-agent run's peak (3.0 GB) was there too, for the same reason. Letting
+them go before the cleanup lowered both peaks, the 4-agent one more (3.0 -> 2.4 GB, 16
+agents 6.0 -> 5.6 GB, in-stream now, in a batch's verification): 2.36x. A byte budget on
+the cache (1024 MB, 42 of the simulated prior's encodings) changed neither the re-encodes
+(438) nor the peak (5631 MB against 2426) and was not kept.
 """
 
 from __future__ import annotations
