@@ -18,16 +18,18 @@ with what it measured:
   every chunk.
 
 A coordinator's process also keeps one heap for all its threads (:func:`one_heap_arena`).
-glibc gives threads that allocate at the same time heaps of their own ("arenas", up to 8
-per core), each keeping what was freed in it for its own reuse: the coordinator's
-verification pool decodes on its threads, its session store codes on others, and its own
-thread frees much of what they made. Each heap then holds its own high-water mark of freed
-blocks. Measured (the long 16-agent capture of ``benchmarks/coordinator_replay.py``, 190
-keyframes, ``--store --census``, ``OMP_NUM_THREADS=1``, 2 cores): peak resident memory 6490
--> 5430 MB with one arena, the coordinator thread's CPU 427 -> 424 ms per keyframe, the
-verification's 1550 -> 1610. A fixed mmap threshold instead (``M_MMAP_THRESHOLD``, 1 or 4
-MB) gave 5208 / 5380 MB but cost 49 / 9 % of the thread's CPU and 52 / 40 % of the
-verification's (every large array then faults its pages in anew).
+glibc gives a thread a heap of its own ("arena", up to 8 per core) when it first allocates
+while another holds the heap, and each heap keeps what was freed in it for its own reuse:
+the coordinator's verification pool decodes on its threads, its session store codes on
+others, and its own thread frees much of what they made, so each heap holds its own
+high-water mark of freed blocks. Measured (the long 16-agent capture of
+``benchmarks/coordinator_replay.py``, 190 keyframes, ``--store --census``,
+``OMP_NUM_THREADS=1``, 2 cores): peak resident memory 6490 -> 5430 MB with one arena
+(``MALLOC_ARENA_MAX=1``, what :func:`one_heap_arena` sets), the coordinator thread's CPU
+427 -> 424 ms per keyframe, the verification's 1550 -> 1610. A fixed mmap threshold
+instead (``M_MMAP_THRESHOLD``, 1 or 4 MB) gave 5208 / 5380 MB but cost 49 / 9 % of the
+thread's CPU and 52 / 40 % of the verification's (every large array then faults its pages
+in anew).
 
 On a C library without ``malloc_trim`` or ``mallopt`` (musl, macOS) nothing is done.
 """

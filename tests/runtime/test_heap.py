@@ -41,7 +41,7 @@ def test_memory_freed_below_a_live_block_leaves_the_process() -> None:
 
 #: a process whose threads each allocate, then count glibc's heaps (``malloc_info``)
 _HEAPS_SCRIPT = """
-import ctypes, ctypes.util, os, sys, tempfile, threading
+import ctypes, ctypes.util, sys, threading
 import numpy as np
 from como3r.heap import one_heap_arena
 if sys.argv[1] == "one":
@@ -58,7 +58,7 @@ libc.fopen.restype = ctypes.c_void_p
 libc.fopen.argtypes = [ctypes.c_char_p, ctypes.c_char_p]
 libc.malloc_info.argtypes = [ctypes.c_int, ctypes.c_void_p]
 libc.fclose.argtypes = [ctypes.c_void_p]
-path = os.path.join(tempfile.mkdtemp(), "info.xml")
+path = sys.argv[2]
 stream = libc.fopen(path.encode(), b"w")
 libc.malloc_info(0, stream)
 libc.fclose(stream)
@@ -70,10 +70,11 @@ print(open(path).read().count("<heap nr="))
     ctypes.util.find_library("c") is None or not hasattr(ctypes.CDLL(None), "malloc_info"),
     reason="needs glibc (malloc_info)",
 )
-def test_one_heap_arena_keeps_threads_on_one_heap() -> None:
+def test_one_heap_arena_keeps_threads_on_one_heap(tmp_path: Path) -> None:
     def heaps(mode: str) -> int:
+        info = tmp_path / f"{mode}.xml"
         run = subprocess.run(
-            [sys.executable, "-c", _HEAPS_SCRIPT, mode], capture_output=True, text=True
+            [sys.executable, "-c", _HEAPS_SCRIPT, mode, str(info)], capture_output=True, text=True
         )
         assert run.returncode == 0, run.stderr
         return int(run.stdout.split()[-1])
