@@ -44,16 +44,17 @@ from collections.abc import Callable
 M_ARENA_MAX = -8
 
 
-def _libc_function(symbol: str) -> Callable[..., int] | None:
+def _libc() -> ctypes.CDLL | None:
     name = ctypes.util.find_library("c")
     try:
-        return getattr(ctypes.CDLL(name), symbol) if name else None
-    except (OSError, AttributeError):
+        return ctypes.CDLL(name) if name else None
+    except OSError:
         return None
 
 
-_MALLOC_TRIM = _libc_function("malloc_trim")
-_MALLOPT = _libc_function("mallopt")
+_LIBC = _libc()  # looked up once at import (find_library runs ldconfig)
+_MALLOC_TRIM: Callable[[int], int] | None = getattr(_LIBC, "malloc_trim", None)
+_MALLOPT: Callable[[int, int], int] | None = getattr(_LIBC, "mallopt", None)
 
 
 def give_back_freed_memory() -> bool:
