@@ -288,9 +288,9 @@ def test_a_thinned_solve_lands_near_the_full_one_and_keeps_its_own_models(two_ag
     linearized = []
     original = global_graph.GlobalGraph._factors
 
-    def counted(self, edges, positions, row, max_matches):
+    def counted(self, edges, positions, row, max_matches, points):
         linearized.append((len(positions), max_matches))
-        return original(self, edges, positions, row, max_matches)
+        return original(self, edges, positions, row, max_matches, points)
 
     global_graph.GlobalGraph._factors = counted
     try:

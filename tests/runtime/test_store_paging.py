@@ -128,6 +128,27 @@ def test_keyframes_outside_the_working_set_are_let_go_and_read_back(tmp_path) ->
     assert torch.equal(stored.graph.keyframes[2].X_init, written[2][0])
 
 
+def test_a_global_solve_reads_paged_out_pointmaps_without_keeping_them(tmp_path) -> None:
+    """Issue 41: a global BA (and its scene depth) over a component read each paged-out
+    keyframe's pointmap for the solve only, and solve as over resident ones."""
+    config = apply_overrides(Config(), ["session.resident_keyframes=2"])
+    paged_run, resident_run = (Coordinator(None, config, None, 1) for _ in range(2))
+    gen = torch.Generator().manual_seed(1)
+    with SessionStore.create(tmp_path / STORE_NAME, config, paged_run) as store:
+        for kf_id in range(8):
+            packet = _packet(0, kf_id, gen)
+            for coordinator in (paged_run, resident_run):
+                coordinator.graph.add_keyframe(packet)
+            store.record(paged_run, [])
+        paged = [kf for kf in paged_run.graph.keyframes if isinstance(kf, PagedKeyframe)]
+        assert len(paged) == 6 and not any(kf.resident("pointmaps") for kf in paged)
+        depths = [c.graph.scene_depth([0]) for c in (paged_run, resident_run)]
+        results = [c.graph.optimize([0], anchor=0, max_iters=3) for c in (paged_run, resident_run)]
+        assert not any(kf.resident("pointmaps") for kf in paged)
+        assert depths[0] == depths[1] and results[0].iterations == results[1].iterations > 0
+        assert torch.equal(paged_run.graph.poses(range(8)), resident_run.graph.poses(range(8)))
+
+
 def test_an_agent_with_fewer_keyframes_than_the_working_set_keeps_them_all(tmp_path) -> None:
     """6 keyframes of agent 0 and 3 of agent 1 under 4 resident each: agent 0's newest 4 and
     all of agent 1's stay in memory (a slice from ``len - resident`` counted 6 - 8 = -2 from

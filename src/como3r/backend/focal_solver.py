@@ -25,6 +25,7 @@ from como3r.backend.focal_factors import FocalEdgeFactors, FocalPrior, FocalSyst
 from como3r.backend.global_graph import GlobalGraph
 from como3r.config import GlobalBAConfig
 from como3r.errors import InputError
+from como3r.frontend.paging import solve_points
 from como3r.optim.linear import Backend, SolveStatus, solve
 from como3r.optim.values import PoseValues
 
@@ -182,7 +183,7 @@ def optimize_focal(
     column = {agent: c for c, agent in enumerate(cameras)}
     factors = FocalEdgeFactors(
         [e for link in links for e in link.edges()],
-        graph.keyframes.__getitem__,
+        solve_points(graph.keyframes.__getitem__),
         row.__getitem__,
         lambda g: column[graph.agent_of[g]],
         graph.tracking,

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -44,6 +44,7 @@ from como3r.errors import InputError
 from como3r.frontend.graph import Edge, build_factors, count_batches
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh
+from como3r.frontend.paging import SolvePoints, read_fields, solve_points
 from como3r.frontend.pairs import PairLink
 from como3r.geometry.camera import to_focal
 from como3r.geometry.units import median_depth, median_range
@@ -282,7 +283,8 @@ class GlobalGraph(GraphDepthSteps):
         version of its pointmap."""
         kept = self._median_ranges.get(g)
         if kept is None or kept[0] != self.versions[g]:
-            kept = (self.versions[g], float(median_range(self.keyframes[g].X_hat)))
+            X_hat = read_fields(self.keyframes[g], "X_hat")  # a paged-out one stays out
+            kept = (self.versions[g], float(median_range(X_hat)))
             self._median_ranges[g] = kept
         return kept[1]
 
@@ -398,13 +400,14 @@ class GlobalGraph(GraphDepthSteps):
         keys = [(n, d) for n, _ in links for d in (0, 1)]
         stamps = [(self.versions[e.i], self.versions[e.j], max_matches) for e in edges]
         device = edges[0].matches.idx.device
+        points = solve_points(self.keyframes.__getitem__)
         return ThresholdRelinearized(
             torch.tensor([row[e.i] for e in edges], device=device),
             torch.tensor([row[e.j] for e in edges], device=device),
             keys,
             stamps,
             self.edge_models,
-            lambda positions: self._factors(edges, positions, row, max_matches),
+            lambda positions: self._factors(edges, positions, row, max_matches, points),
             self.config.relinearize_tol,
             depth,
         )
@@ -415,17 +418,16 @@ class GlobalGraph(GraphDepthSteps):
         positions: Sequence[int],
         row: dict[int, int],
         max_matches: int,
+        points: Callable[[int], SolvePoints],
     ) -> list[tuple[Factor, list[int]]]:
         """Factor batches over the ``edges`` at ``positions``
         (:func:`~como3r.frontend.graph.build_factors`: their valid matches only, thinned to
         ``max_matches`` and batched by match count:
         :func:`~como3r.frontend.graph.count_batches`), each with the positions of its
-        edges."""
+        edges; ``points``: what the solve reads of each keyframe."""
         batches: list[tuple[Factor, list[int]]] = []
         for at, chosen, weights in count_batches([edges[p] for p in positions], max_matches):
-            batch = build_factors(
-                chosen, self.keyframes.__getitem__, row.__getitem__, self.tracking
-            )
+            batch = build_factors(chosen, points, row.__getitem__, self.tracking)
             if weights is not None:
                 batch.weigh_edges(weights)
             batches.append((batch, [positions[k] for k in at]))

@@ -24,7 +24,7 @@ from como3r.frontend.keyframes import (
     Keyframe,
     KeyframeStore,
 )
-from como3r.frontend.paging import AgentPaging, PagedKeyframe
+from como3r.frontend.paging import AgentPaging, PagedKeyframe, solve_points
 from como3r.frontend.pairs import (
     DirectedMatches,
     PairLink,
@@ -399,14 +399,14 @@ class KeyframeLinking:
         dense = [e for e in self.edges if max(e.i, e.j) >= first_dense]
         factors: list[Factor] = []
         if dense:
-            points = self.paging.solve_points(self.keyframes.__getitem__)
+            points = solve_points(self.keyframes.__getitem__)
             factors.append(build_factors(dense, points, lambda k: k, self.config.tracking))
         if old:
             factors.append(
                 self._quadratic.factor(
                     self.edges,
                     old,
-                    lambda: self.paging.solve_points(self.keyframes.__getitem__),
+                    lambda: solve_points(self.keyframes.__getitem__),
                     lambda k: self.keyframes[k].version("pointmaps"),
                     self.config.tracking,
                     solve.relinearize_tol,

@@ -426,6 +426,26 @@ class SolvePoints:
     K: Tensor | None
 
 
+def solve_points(keyframe: Callable[[int], Keyframe]) -> Callable[[int], SolvePoints]:
+    """What one solve reads of each keyframe (:class:`SolvePoints`), read back once per
+    keyframe and kept by the solve only: a paged-out keyframe stays paged out
+    (:func:`read_fields`), so a solve over a whole map holds one pointmap per keyframe while
+    it runs and none after it.
+
+    Args:
+        keyframe: maps a solve's keyframe key to the keyframe.
+    """
+    cache: dict[int, SolvePoints] = {}
+
+    def points(k: int) -> SolvePoints:
+        if k not in cache:
+            kf = keyframe(k)
+            cache[k] = SolvePoints(read_fields(kf, "X_hat"), kf.K)
+        return cache[k]
+
+    return points
+
+
 class AgentPaging:
     """An agent front-end's keyframes and edges outside its working set, paged out to a
     :class:`KeyframeSpill`.
@@ -475,21 +495,6 @@ class AgentPaging:
                 edges[n] = replace(
                     edge, matches=PagedMatches(spill, n, edge.matches.match_fraction)
                 )
-
-    def solve_points(
-        self, keyframe: Callable[[int], PagedKeyframe]
-    ) -> Callable[[int], SolvePoints]:
-        """What a solve reads of each keyframe, read back once per keyframe and kept by the
-        solve only."""
-        cache: dict[int, SolvePoints] = {}
-
-        def points(k: int) -> SolvePoints:
-            if k not in cache:
-                kf = keyframe(k)
-                cache[k] = SolvePoints(kf.peek("X_hat"), kf.K)
-            return cache[k]
-
-        return points
 
     def _spill_folder(self) -> KeyframeSpill:
         if self._spill is None:
