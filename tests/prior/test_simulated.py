@@ -677,3 +677,25 @@ def test_descriptor_search_works_at_every_scene_scale(prior):
         for scale in (0.01, 0.1, 1.0, 40.0, 1000.0)
     }
     assert min(success.values()) > 0.8, success
+
+
+def test_the_feature_map_makes_a_large_view_block_by_block_as_whole(monkeypatch) -> None:
+    """Issue 41: features of more keys than a block (a whole view's) are made
+    ``FEATURE_ROWS`` keys at a time, each key's features as the whole call made them but for
+    the phases' float32 rounding (a matrix product's rounding depends on its row count; the
+    phases here reach 10^4 rad, so an ulp of phase is 10^-3 of a feature at most)."""
+    from como3r.prior import simulated_keys
+
+    feature_map = simulated_keys.RandomFeatureMap(24, 3, 0.01, 2.0, 0.5, 1.0, 64.0, "test")
+    gen = torch.Generator().manual_seed(0)
+    N = 3 * 1024 + 5
+    ids = torch.randint(0, 50, (N,), generator=gen)
+    ids[::7] = simulated_keys.WORLD_KEY_ID
+    coords = torch.randn(N, 3, generator=gen) * 10
+    footprint = torch.rand(N, generator=gen) * 0.05 + 1e-3
+    whole = feature_map(ids, coords, footprint)
+    monkeypatch.setattr(simulated_keys, "FEATURE_ROWS", 1024)
+    blocks = feature_map(ids, coords, footprint)
+    assert whole.shape == (N, 24) and bool(whole.abs().sum(-1).gt(0).all())
+    assert float((blocks - whole).abs().max()) < 1e-3
+    assert float((blocks == whole).float().mean()) > 0.999

@@ -282,6 +282,15 @@ def match_key_cells(
     )
 
 
+#: Keys a :class:`RandomFeatureMap` makes features of at a time (issue 41): each of its
+#: temporaries is ``(N, dim)``, and a whole 512x384 view's (N = 196608, dim 24: 19 MB each)
+#: made a simulated encoding's transient 200 MB, on each thread that re-encodes. A key's
+#: features do not depend on its block but for the float32 rounding of its phases (a matrix
+#: product's rounding depends on its row count): on 18 views of a 512x384 replay the
+#: descriptors came out bit for bit those of a whole-view call.
+FEATURE_ROWS = 16384
+
+
 class RandomFeatureMap:
     """Fixed random Fourier-feature map of appearance keys (module docstring).
 
@@ -421,7 +430,7 @@ class RandomFeatureMap:
         return torch.exp(-0.5 * exponent) * torch.cos(phase + phi)
 
     def __call__(self, ids: Tensor, coords: Tensor, footprint: Tensor) -> Tensor:
-        """Features of valid keys (not normalised).
+        """Features of valid keys (not normalised), made :data:`FEATURE_ROWS` keys at a time.
 
         Args:
             ids: ``(N,)`` int64, all >= 0.
@@ -431,6 +440,16 @@ class RandomFeatureMap:
         Returns:
             ``(N, dim)`` float32.
         """
+        if ids.shape[0] <= FEATURE_ROWS:
+            return self._features(ids, coords, footprint)
+        out = torch.empty(ids.shape[0], self.dim, device=coords.device)
+        for start in range(0, ids.shape[0], FEATURE_ROWS):
+            rows = slice(start, start + FEATURE_ROWS)
+            out[rows] = self._features(ids[rows], coords[rows], footprint[rows])
+        return out
+
+    def _features(self, ids: Tensor, coords: Tensor, footprint: Tensor) -> Tensor:
+        """:meth:`__call__` of one block of keys."""
         device = coords.device
         coords, footprint = coords.to(torch.float32), footprint.to(torch.float32)
         is_world = ids == WORLD_KEY_ID
