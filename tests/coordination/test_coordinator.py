@@ -47,6 +47,7 @@ from como3r.geometry.umeyama import umeyama_rmse, umeyama_sim3
 from como3r.prior.retrieval import RetrievalDatabase
 from como3r.prior.simulated import SimulatedPrior
 
+from ..keyframe_packets import random_packet
 from .ring_keyframes import keyframe_packet
 
 WIDTH, HEIGHT = 96, 72
@@ -790,6 +791,18 @@ def test_a_batch_is_verified_in_time_order_with_one_global_ba(ring) -> None:
         coordinator.graph.poses(range(len(order))), other.graph.poses(range(len(order)))
     )
     assert [(u.agent, u.reason) for u in updates] == [(u.agent, u.reason) for u in other_updates]
+
+
+def test_a_batch_gives_freed_memory_back_after_each_keyframe_and_before_its_journal() -> None:
+    """Issue 41: a batch checks its resident memory's growth (.heap.TrimOnGrowth) after each
+    keyframe's verification and once before the journal's transaction."""
+    coordinator = Coordinator(None, Config(), None, 2)  # no prior: nothing is decoded
+    checked: list[int] = []
+    coordinator.heap = SimpleNamespace(check=lambda: checked.append(len(coordinator.graph)))
+    gen = torch.Generator().manual_seed(0)
+    coordinator.add_keyframes([random_packet(a, 0, gen, 6, 8) for a in (0, 1)])
+    coordinator.add_keyframes([random_packet(0, 1, gen, 6, 8)])
+    assert checked == [2, 2, 2, 3, 3]
 
 
 @pytest.mark.slow

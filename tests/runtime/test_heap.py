@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from como3r.heap import give_back_freed_memory
+from como3r.heap import TrimOnGrowth, give_back_freed_memory, resident_bytes
 
 
 def _rss_mb() -> float:
@@ -82,3 +82,26 @@ def test_one_heap_arena_keeps_threads_on_one_heap(tmp_path: Path) -> None:
     # threads that allocate at once get heaps of their own by default, not after the call
     assert heaps("default") > 1
     assert heaps("one") == 1
+
+
+def test_a_trim_on_growth_trims_once_memory_grew_past_its_lowest_by_the_growth() -> None:
+    readings = iter([500, 400, 600, 656, 300, 350, 557, None])
+    trims: list[int] = []
+    watch = TrimOnGrowth(256, lambda: next(readings), lambda: trims.append(1) or True)
+    # 500, 400: the lowest so far; 600 is 200 over it; 656 is 256 over: trimmed, and the
+    # reading after the trim (300) is the new lowest; 350 is 50 over, 557 is 257 over
+    assert [watch.check() for _ in range(4)] == [False, False, False, True]
+    assert [watch.check() for _ in range(1)] == [False]
+    assert watch.check() is True and watch.trims == 2 and len(trims) == 2
+
+
+def test_a_trim_on_growth_does_nothing_where_memory_or_trimming_is_unknown() -> None:
+    assert not TrimOnGrowth(1, lambda: None, lambda: True).check()
+    watch = TrimOnGrowth(1, iter([0, 10]).__next__, lambda: False)  # no malloc_trim
+    assert not watch.check() and not watch.check() and watch.trims == 0
+
+
+@pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="needs Linux's /proc")
+def test_resident_bytes_reads_this_process() -> None:
+    resident = resident_bytes()
+    assert resident is not None and abs(resident / 2**20 - _rss_mb()) < 50

@@ -82,7 +82,7 @@ from como3r.errors import InputError
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
 from como3r.frontend.paging import KeyframeParking, read_fields
 from como3r.frontend.timing import StageTimer, TimedPrior
-from como3r.heap import give_back_freed_memory
+from como3r.heap import TrimOnGrowth, give_back_freed_memory
 from como3r.prior.base import Prior
 from como3r.prior.retrieval import Hit
 from como3r.progress import PhaseCallback
@@ -135,6 +135,8 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
         self.encodings = KeyframeEncodings(prior, config.session.encoding_cache)
         #: verifications run ahead on threads (verification.workers; .decode_pool)
         self.pool = VerificationPool(prior, config.verification.workers)
+        #: gives what a batch's verifications freed back to the system as it goes (.heap)
+        self.heap = TrimOnGrowth()
         self.candidates: list[Candidate] = []
         self.gauge_events: list[dict[str, Any]] = []
         self._waiting: list[Candidate] = []  # verified edges between two components
@@ -245,6 +247,7 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
                     continue
                 for candidate in self._verify(packet, hits):
                     updates.extend(self._admit(candidate))
+                self.heap.check()  # what the verification freed (.heap)
                 logger.debug(
                     "coordinator: agent %d kf %d: %d gauge update(s)",
                     packet.agent,
@@ -258,6 +261,7 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
             self._solve_on_trigger(updates)
         self.stats.batches += int(bool(fresh))
         self.stats.largest_batch = max(self.stats.largest_batch, len(fresh))
+        self.heap.check()  # before the journal codes what the batch changed
         return self._record(self._count(updates))
 
     def refresh(self, agent: int, refresh: PointmapRefresh) -> None:
