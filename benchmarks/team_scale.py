@@ -504,6 +504,21 @@ them go before the cleanup lowered both peaks, the 4-agent one more (3.0 -> 2.4 
 agents 6.0 -> 5.6 GB, in-stream now, in a batch's verification): 2.36x. A byte budget on
 the cache (1024 MB, 42 of the simulated prior's encodings) changed neither the re-encodes
 (438) nor the peak (5631 MB against 2426) and was not kept.
+
+Session 39 (the same command, an idle machine, one run, not sampled). The global solves
+read paged-out pointmaps for the solve only (9151181), the simulated prior's descriptor
+features are made 16384 keys at a time (b5bbd6e: a re-encode's transient 225 -> 96 MB),
+and a batch gives freed memory back once resident memory has grown by 256 MB
+(7a57baa, :class:`como3r.heap.TrimOnGrowth`):
+
+    agents   kf  coord ms/kf  serial ms/kf  decodes/kf  pool ms/kf  end kf  end kf P8  cores for 0  rt end kf  coord MB  agent MB  ATE mm  ATE %
+         4   32          428           277        4.56         990      10          1            4          0      2412      1339    6.92  0.183
+        16  190          376           273        5.04        1455     145         39         >256         20      5352      1751   17.82  0.470
+
+The 16-agent peak 5622 -> 5352 MB (2.22x the 4-agent one, which stayed at 2.4 GB); work
+per keyframe 16 vs 4 1.29x. The long 16-agent capture replayed with a store peaked at 4488
+MB with these changes (5430 before); where this run peaked (its ingest, its own batches, or
+the terminal cleanup, none of which the replay has) was not sampled: the next thing to do.
 """
 
 from __future__ import annotations

@@ -22,9 +22,9 @@ with what it measured:
   verifications free and allocate several GB of 0.1-20 MB arrays on three threads; what
   they freed stayed resident until the batch's page-out. Measured (the long 16-agent
   replay below, with the simulated prior's features made in blocks): peak resident memory
-  5076 -> 4582 MB with a ``malloc_trim`` after every keyframe's verification, which cost
-  23 ms each (7 % of the coordinator thread's CPU); trimming only after growth costs a
-  fraction of that (:class:`TrimOnGrowth`).
+  5076 MB without, 4582 MB with a ``malloc_trim`` after every keyframe's verification (23 ms
+  each), 4488 MB with :class:`TrimOnGrowth`; the coordinator thread's CPU 398, 425 and 427
+  ms per keyframe (one run each).
 
 A coordinator's process also keeps one heap for all its threads (:func:`one_heap_arena`).
 glibc gives a thread a heap of its own ("arena", up to 8 per core) when it first allocates
