@@ -399,7 +399,7 @@ def test_a_coordinator_slow_to_read_costs_no_message_and_no_agent(
 
     def busy_coordinator(self, batch) -> None:
         if not busy:
-            busy.append(batch[0].message.packet.kf_id)
+            busy.append(batch[0].message()[0].packet.kf_id)
             time.sleep(BUSY_S)
             deadline = time.monotonic() + START_S
             while not self.hub.readers[0].ready():  # until the agent has sent more, unread
@@ -639,14 +639,14 @@ def test_keyframes_an_agent_still_holds_keep_its_ordering_clock_back(scripted_hu
     runtime.progress = None
     batches: list = []
     runtime._add_keyframes = lambda batch: batches.append(
-        [(w.message.packet.agent, w.message.packet.kf_id) for w in batch]
+        [(w.message()[0].packet.agent, w.message()[0].packet.kf_id) for w in batch]
     )
 
     def done(agent: int, frame: int, waiting: int) -> Received:
         return Received(agent, FrameDone(agent, frame, frame / 30, "keyframe", 0.0, waiting))
 
     def keyframe(agent: int, kf_id: int, frame: int) -> None:  # as a KeyframeMessage queues
-        packet = SimpleNamespace(agent=agent, kf_id=kf_id, timestamp=frame / 30)
+        packet = SimpleNamespace(agent=agent, kf_id=kf_id, timestamp=frame / 30, frame_index=frame)
         runtime._queue(runtime.segments[agent], SimpleNamespace(packet=packet), None)
 
     _pump(

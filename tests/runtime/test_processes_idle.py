@@ -38,7 +38,7 @@ def test_an_idle_runtime_verifies_deferred_keyframes_and_sends_their_updates(
     config = apply_overrides(Config(), ["input.long_side=64"])
     runtime = _Runtime(hub, [0, 0], config, PriorSpec("simulated"), RuntimeOptions(), None)
     runtime.start([None, None], PriorSpec("simulated"))
-    packet = SimpleNamespace(agent=0, kf_id=0, timestamp=1.0, T_WC=IDENTITY)
+    packet = SimpleNamespace(agent=0, kf_id=0, timestamp=1.0, frame_index=30, T_WC=IDENTITY)
     turns = [  # what the transport brings at each turn of the loop
         [
             Received(0, AgentStarted(agent=0, pid=1, frames=4)),
@@ -62,7 +62,7 @@ def test_an_idle_runtime_verifies_deferred_keyframes_and_sends_their_updates(
 
     def add_keyframes(batch) -> None:  # the batch's coordinator work, a stand-in
         for waiting in batch:
-            message = waiting.message
+            message, _ = waiting.message()
             taken.append((turn, message.packet.kf_id))
             view = SimpleNamespace(T_WC=message.packet.T_WC.clone())
             waiting.segment.result.keyframes.append(view)

@@ -150,9 +150,9 @@ def test_keyframes_re_sent_after_a_restart_keep_the_order_of_an_uninterrupted_ru
     batches: list = []
 
     def taken(batch) -> None:  # what the coordinator takes, its segments' keyframes
-        batches.append([(w.message.packet.agent, w.message.packet.kf_id) for w in batch])
+        batches.append([(w.message()[0].packet.agent, w.message()[0].packet.kf_id) for w in batch])
         for waiting in batch:
-            waiting.segment.result.keyframes.append(waiting.message.packet)
+            waiting.segment.result.keyframes.append(waiting.message()[0].packet)
 
     runtime._add_keyframes = taken
     for slot in runtime.slots:  # as restore_runtime leaves a store that holds no keyframe
@@ -160,7 +160,9 @@ def test_keyframes_re_sent_after_a_restart_keep_the_order_of_an_uninterrupted_ru
         slot.resend_until, slot.away_since, slot.awaited = 5, time.monotonic(), True
 
     def keyframe(agent: int, kf_id: int, seq: int) -> Received:
-        packet = SimpleNamespace(agent=agent, kf_id=kf_id, timestamp=2 * kf_id / 30)
+        packet = SimpleNamespace(
+            agent=agent, kf_id=kf_id, timestamp=2 * kf_id / 30, frame_index=2 * kf_id
+        )
         return Received(agent, KeyframeMessage(packet, 0, None), seq)
 
     def pump(*events) -> None:

@@ -246,3 +246,26 @@ def test_a_second_stop_is_harmless(hub) -> None:
 
 def _packet() -> KeyframePacket:
     return mast3r_packet(H, W, encoding=None)
+
+
+def test_a_waiting_keyframe_is_held_as_its_bytes_and_decoded_alike(hub) -> None:
+    """Issue 41: the reader hands a keyframe's bytes on with it (no other message's); a
+    keyframe waiting for its turn is held as them, not decoded, and decoded again when its
+    turn comes into the same keyframe."""
+    from como3r.runtime.agent_events import Waiting
+
+    agent = _Agent(hub, 0)
+    packet = _packet()
+    agent.channel.send(KeyframeMessage(packet=packet, applied_seq=0, T_WC_previous=None))
+    (event,) = hub.events(5.0)
+    agent.channel.send(_done(0, 1))
+    (done,) = hub.events(5.0)
+    assert isinstance(done, Received) and done.data is None
+    assert isinstance(event, Received) and event.data is not None
+    waiting = Waiting.of(None, event.message, None, event.data, codec.DEFAULT_MAX_BYTES)
+    assert waiting.held is None and waiting.frame_index == packet.frame_index
+    message, seconds = waiting.message()
+    assert seconds > 0.0 and message is not event.message
+    for name in ("T_WC", "X_hat", "C_hat"):
+        assert torch.equal(getattr(message.packet, name), getattr(event.message.packet, name))
+    assert (message.packet.colors == event.message.packet.colors).all()

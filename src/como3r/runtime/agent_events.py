@@ -87,11 +87,45 @@ class RuntimeOptions:
 @dataclass(frozen=True)
 class Waiting:
     """A keyframe waiting for its turn, and its number in its sender's stream (None:
-    pipes)."""
+    pipes), held as the bytes it came in where the transport kept them (issue 41: a
+    512x384 keyframe is 1.2 MB on the wire and 15 MB decoded; a coordinator trailing a team
+    of 16 by 50 keyframes held 0.8 GB of them decoded), decoded again when its turn comes.
+
+    Attributes:
+        frame_index: the keyframe's frame.
+        held: the decoded message where no bytes were kept, else None.
+        data: the message's bytes, else None.
+        max_bytes: the size cap its decode checks.
+    """
 
     segment: MapSegment
-    message: KeyframeMessage
     seq: int | None
+    frame_index: int
+    held: KeyframeMessage | None
+    data: bytes | None = None
+    max_bytes: int = codec.DEFAULT_MAX_BYTES
+
+    @classmethod
+    def of(
+        cls,
+        segment: MapSegment,
+        message: KeyframeMessage,
+        seq: int | None,
+        data: bytes | None,
+        max_bytes: int,
+    ) -> Waiting:
+        """``message`` waiting, as its ``data`` where given (the message is let go of)."""
+        held = message if data is None else None
+        return cls(segment, seq, message.packet.frame_index, held, data, max_bytes)
+
+    def message(self) -> tuple[KeyframeMessage, float]:
+        """The message, and the CPU seconds decoding it took on this thread (0 if held)."""
+        if self.held is not None:
+            return self.held, 0.0
+        assert self.data is not None
+        start = time.thread_time()
+        message = codec.decode(self.data, max_bytes=self.max_bytes, expected=KeyframeMessage)
+        return message, time.thread_time() - start
 
 
 class AgentEvents:
@@ -144,13 +178,13 @@ class AgentEvents:
                 slot.resent_clock = max(slot.resent_clock, event.message.packet.timestamp)
         if event.seq is None or event.seq > slot.handled_seq:
             slot.handled_seq = slot.handled_seq if event.seq is None else event.seq
-            self._handle(slot, event.message, event.seq)
+            self._handle(slot, event.message, event.seq, event.data)
             return
         message, segment = event.message, slot.segment
         if isinstance(message, KeyframeMessage) and message.packet.kf_id == (
             len(segment.result.keyframes) + len(self._waiting(segment))
         ):
-            self._queue(segment, message, event.seq)
+            self._queue(segment, message, event.seq, event.data)
 
     def _waiting(self, segment: MapSegment) -> list[Waiting]:
         return [w for _, w in self.pending if w.segment is segment]
@@ -204,7 +238,9 @@ class AgentEvents:
                 slot.agent, PoseUpdateMessage(update=replace(update, agent=slot.agent), seq=seq)
             )
 
-    def _handle(self, slot: AgentSlot, message: Any, seq: int | None) -> None:
+    def _handle(
+        self, slot: AgentSlot, message: Any, seq: int | None, data: bytes | None = None
+    ) -> None:
         agent = message.packet.agent if isinstance(message, KeyframeMessage) else message.agent
         if agent != slot.agent:
             logger.warning(
@@ -214,7 +250,7 @@ class AgentEvents:
             slot.status, slot.pid = "running", message.pid
             slot.frames_expected = slot.frames_done + message.frames
         elif isinstance(message, KeyframeMessage):
-            self._queue(slot.segment, message, seq)
+            self._queue(slot.segment, message, seq, data)
             slot.keyframes_received += 1
             slot.segment.confirmed_seq = max(slot.segment.confirmed_seq, message.applied_seq)
         elif isinstance(message, FrameDone):
@@ -234,13 +270,20 @@ class AgentEvents:
                 logger.error("agent %d traceback:\n%s", slot.agent, message.details)
             self._fail(slot, message.error)
 
-    def _queue(self, segment: MapSegment, message: KeyframeMessage, seq: int | None) -> None:
+    def _queue(
+        self,
+        segment: MapSegment,
+        message: KeyframeMessage,
+        seq: int | None,
+        data: bytes | None = None,
+    ) -> None:
+        """Let a keyframe wait for its turn, as ``data`` (its bytes) where given."""
         packet = message.packet
         heapq.heappush(
             self.pending,
             (
                 (packet.timestamp, segment.agent, packet.kf_id, self._arrivals),
-                Waiting(segment, message, seq),
+                Waiting.of(segment, message, seq, data, self.options.max_message_bytes),
             ),
         )
         self._arrivals += 1

@@ -214,7 +214,7 @@ class _Runtime(AgentEvents):
         resume_after = max(
             [slot.last_frame]
             + [kf.frame_index for kf in old.result.keyframes]
-            + [w.message.packet.frame_index for w in self._waiting(old)]
+            + [w.frame_index for w in self._waiting(old)]
         )
         slot.handled_seq = -1  # the new process numbers its messages from 0
         if old.result.keyframes or self._waiting(old):
@@ -353,11 +353,13 @@ class _Runtime(AgentEvents):
 
     def _add_keyframes(self, batch: Sequence[Waiting]) -> None:
         """One batch of keyframes to the coordinator; its updates to the agents."""
-        packets = [
-            received(packet, self.coordinator)
-            for packet in (self._packet(w.segment, w.message) for w in batch)
-            if packet is not None
-        ]
+        packets = []
+        for waiting in batch:
+            message, seconds = waiting.message()  # decoded again if held as its bytes
+            self.coordinator.stats.add_time(INGEST, seconds)
+            packet = self._packet(waiting.segment, message)
+            if packet is not None:
+                packets.append(received(packet, self.coordinator))
         if not packets:
             return
         updates = self.coordinator.add_keyframes(packets)

@@ -45,6 +45,7 @@ from typing import Any, Protocol
 
 from como3r.errors import MessageError
 from como3r.transport.links import Received, Rejected
+from como3r.transport.messages import KeyframeMessage
 
 #: bytes through the pipe of the decoded messages a reader holds before it waits for the
 #: hub: about one keyframe message (1.08-1.17 MB in the lossy coding at 512x384, with the
@@ -90,7 +91,8 @@ def decoded(
         message, seconds = decode(data)
     except MessageError as exc:
         return Rejected(agent, str(exc))
-    return Received(agent, message, seconds=seconds)
+    kept = data if isinstance(message, KeyframeMessage) else None
+    return Received(agent, message, seconds=seconds, data=kept)
 
 
 class ReadAhead:
