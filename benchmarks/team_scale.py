@@ -517,8 +517,24 @@ and a batch gives freed memory back once resident memory has grown by 256 MB
 
 The 16-agent peak 5622 -> 5352 MB (2.22x the 4-agent one, which stayed at 2.4 GB); work
 per keyframe 16 vs 4 1.29x. The long 16-agent capture replayed with a store peaked at 4488
-MB with these changes (5430 before); where this run peaked (its ingest, its own batches, or
-the terminal cleanup, none of which the replay has) was not sampled: the next thing to do.
+MB with these changes (5430 before); a second 16-agent run, sampled, 5238 MB. A census of
+a third at each new high of its resident memory (the coordinator, its runtime and every
+thread's frames; 5086-5417 MB) found what the replay does not have: the keyframes waiting
+for their turn, decoded (15 MB each at 512x384; 0.5-0.8 GB in the runtime's pending heap,
+0.06-0.23 GB in the pipe readers' read-ahead). Held as the bytes they came in (1.2 MB) and
+decoded again when their turn comes (d30bd35, :class:`como3r.runtime.agent_events.Waiting`):
+
+    agents   kf  coord ms/kf  serial ms/kf  decodes/kf  pool ms/kf  end kf  end kf P8  cores for 0  rt end kf  coord MB  agent MB  ATE mm  ATE %
+         4   32          428           281        4.56         974       9          1            2          0      2401      1347    6.92  0.183
+        16  190          372           267        5.04        1520     144         40         >256         16      4869      1770   17.96  0.474
+
+16 vs 4 agents: peak 2.03x; work per keyframe 1.35x. The second decode (46 ms per keyframe:
+ingest 1.96 -> 3.42 s at 4 agents) runs on the coordinator's thread outside
+``add_keyframes``, so ``coord ms/kf`` leaves it out (with it: 1.34x). The 4-agent run
+overlapped another job for its first minute (its wall time 135 s against 114). Sampled
+every 4 s, the 16-agent run's last in-stream batches peaked at 4.1-4.6 GB and its terminal
+cleanup at 4.4-4.7 GB (after the focal BA, which leaves every rescaled keyframe's
+pointmaps resident until the cleanup's end).
 """
 
 from __future__ import annotations
