@@ -534,7 +534,10 @@ ingest 1.96 -> 3.42 s at 4 agents) runs on the coordinator's thread outside
 overlapped another job for its first minute (its wall time 135 s against 114). Sampled
 every 4 s, the 16-agent run's last in-stream batches peaked at 4.1-4.6 GB and its terminal
 cleanup at 4.4-4.7 GB (after the focal BA, which leaves every rescaled keyframe's
-pointmaps resident until the cleanup's end).
+pointmaps resident until the cleanup's end). Parking those of paged-out keyframes instead
+(782f300, reverted) took the cleanup to 1.4-2.7 GB and the 16-agent peak to 4593 MB (4-agent
+2262 MB: 2.03x still, the peak in-stream now), but the cleanup from 97-106 s to 252 s of
+wall time: each pose pass and depth step read the parked pointmaps back from the spill.
 """
 
 from __future__ import annotations
