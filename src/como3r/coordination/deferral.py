@@ -145,11 +145,12 @@ class DeferredVerification(InterAgentLinking):
         The encoding cache (:mod:`.encodings`) keeps, chunk by chunk, only the keyframes
         still deferred and their hits (:meth:`~.coordinator.Coordinator.finish` then lets go
         of the rest: nothing decodes after them, the terminal cleanup works on pointmaps).
-        On the same replay it had grown from 20 to 40 encodings (23 MB each, the simulated prior's at that size):
-        peak RSS 3.63 / 3.57 -> 2.77 / 2.91 GB (two runs), 2.24-2.32 -> 1.42-1.43 GB held
-        after (heap trimmed); the same decodes, re-encodes (40), edges and poses. The heap's
-        freed pages go back to the system after each chunk (:mod:`como3r.heap`): peak RSS
-        2.77 / 2.91 -> 2.44 / 2.52 GB (defer41b's script, load 10-13).
+        On the same replay it had grown from 20 to 40 encodings (23 MB each, the simulated
+        prior's at that size): peak RSS 3.63 / 3.57 -> 2.77 / 2.91 GB (two runs), 2.24-2.32
+        -> 1.42-1.43 GB held after (heap trimmed); the same decodes, re-encodes (40), edges
+        and poses. The heap's freed pages go back to the system after each chunk
+        (:mod:`como3r.heap`): peak RSS 2.77 / 2.91 -> 2.44 / 2.52 GB (defer41b's script, load
+        10-13).
         """
         if not self._deferred:
             return []

@@ -102,8 +102,8 @@ class Waiting:
     seq: int | None
     frame_index: int
     held: KeyframeMessage | None
-    data: bytes | None = None
-    max_bytes: int = codec.DEFAULT_MAX_BYTES
+    data: bytes | None
+    max_bytes: int
 
     @classmethod
     def of(
