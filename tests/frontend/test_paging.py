@@ -8,6 +8,7 @@ import os
 import socket
 import subprocess
 import sys
+import zipfile
 from dataclasses import dataclass
 
 import pytest
@@ -19,7 +20,13 @@ from como3r.data.ground_truth import AgentFolderTruth
 from como3r.data.synth import synthesize
 from como3r.frontend.agent import AgentFrontend
 from como3r.frontend.packets import PointmapUpdate, PoseUpdate
-from como3r.frontend.paging import SPILL_PREFIX, KeyframeSpill, PagedKeyframe, PagedMatches
+from como3r.frontend.paging import (
+    SPILL_PREFIX,
+    KeyframeParking,
+    KeyframeSpill,
+    PagedKeyframe,
+    PagedMatches,
+)
 from como3r.geometry.lie import sim3_compose, sim3_exp
 from como3r.prior.base import Encoding
 from como3r.prior.simulated import SimulatedPrior
@@ -204,6 +211,54 @@ def test_the_spill_gives_back_what_it_was_given(tmp_path) -> None:
     assert kf.changed() == ["encoding", "colors", "pointmaps"]
     kf.evict(spill, 4)
     assert kf.changed() == [] and not kf.resident("pointmaps")
+
+
+class _CountedPages:
+    """Pages of one keyframe's pointmaps that count their reads."""
+
+    def __init__(self, values: dict[str, torch.Tensor]) -> None:
+        self.values, self.reads = values, 0
+
+    def load_keyframe(self, key: int, group: str) -> dict[str, torch.Tensor]:
+        self.reads += 1
+        return {name: value.clone() for name, value in self.values.items()}
+
+
+def test_a_parked_keyframe_reads_its_pages_only_for_fields_not_parked(tmp_path) -> None:
+    """Issue 41: the terminal cleanup's focal rescale parks all four pointmaps of a
+    paged-out keyframe, so that each solve reads them from the parking (raw files) and not
+    the store's coded pointmaps as well. ``X_init`` parked as the very ``X_hat`` comes back as
+    one tensor, and keeps its value when ``X_hat`` alone is parked again (a depth step)."""
+    gen = torch.Generator().manual_seed(0)
+    shapes = {"X_hat": (4, 5, 3), "C_hat": (4, 5), "X_init": (4, 5, 3), "C_init": (4, 5)}
+    stored = {name: torch.rand(*shapes[name], generator=gen) for name in ARRAYS}
+    pages = _CountedPages(stored)
+    kf = PagedKeyframe(
+        kf_id=0,
+        frame_index=0,
+        timestamp=0.0,
+        encoding=None,
+        T_WC=torch.zeros(8),
+        colors=None,
+        **{name: value.clone() for name, value in stored.items()},
+    )
+    kf.evict(pages, 3)
+    parking = KeyframeParking(tmp_path)
+    parking.park(kf, {"X_hat": stored["X_hat"] + 1.0})  # as a depth step parks
+    assert torch.equal(kf.peek("X_hat"), stored["X_hat"] + 1.0) and pages.reads == 1
+    assert torch.equal(kf.peek("C_init"), stored["C_init"]) and pages.reads == 2
+    rescaled = stored["X_hat"] * 2.0
+    parking.park(kf, {"X_hat": rescaled, "C_hat": stored["C_hat"], "X_init": rescaled})
+    parking.park(kf, {"C_init": stored["C_init"]})
+    X_hat, C_hat, X_init, C_init = kf.peek(*ARRAYS)
+    assert pages.reads == 2 and X_init is X_hat and torch.equal(X_hat, rescaled)
+    assert torch.equal(C_hat, stored["C_hat"]) and torch.equal(C_init, stored["C_init"])
+    parking.park(kf, {"X_hat": rescaled + 1.0})
+    X_hat, X_init = kf.peek("X_hat", "X_init")
+    assert torch.equal(X_hat, rescaled + 1.0) and torch.equal(X_init, rescaled)
+    assert pages.reads == 2 and not kf.resident("pointmaps")
+    files = list(tmp_path.glob("*/kf3_*.npz"))
+    assert files and all(not zipfile.ZipFile(f).infolist()[0].compress_type for f in files)
 
 
 def test_a_new_spill_removes_the_folders_of_processes_that_are_gone(tmp_path) -> None:

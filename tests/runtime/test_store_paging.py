@@ -23,7 +23,7 @@ from como3r.coordination.association import Candidate, Verification
 from como3r.coordination.coordinator import Coordinator, CoordinatorStats
 from como3r.errors import StoreError
 from como3r.frontend.packets import KeyframePacket
-from como3r.frontend.paging import PagedKeyframe
+from como3r.frontend.paging import KeyframeParking, PagedKeyframe
 from como3r.frontend.pairs import DirectedMatches
 from como3r.io.packed_arrays import read_packed
 from como3r.prior.mast3r.prior import MASt3REncoding
@@ -147,6 +147,38 @@ def test_a_global_solve_reads_paged_out_pointmaps_without_keeping_them(tmp_path)
         assert not any(kf.resident("pointmaps") for kf in paged)
         assert depths[0] == depths[1] and results[0].iterations == results[1].iterations > 0
         assert torch.equal(paged_run.graph.poses(range(8)), resident_run.graph.poses(range(8)))
+
+
+def test_a_rescale_into_a_parking_leaves_paged_out_keyframes_paged_out(tmp_path) -> None:
+    """Issue 41: the terminal cleanup's focal rescale parks a paged-out keyframe's rescaled
+    pointmaps (one keyframe in memory at a time) where it had made every keyframe's
+    resident until the store wrote them: the same values, the store takes them."""
+    config = apply_overrides(Config(), ["session.resident_keyframes=2"])
+    paged_run, resident_run = (Coordinator(None, config, None, 1) for _ in range(2))
+    gen = torch.Generator().manual_seed(3)
+    K = torch.tensor([[5.0, 0.0, 4.0], [0.0, 5.0, 3.0], [0.0, 0.0, 1.0]])
+    with SessionStore.create(tmp_path / STORE_NAME, config, paged_run) as store:
+        for kf_id in range(6):
+            packet = replace(_packet(0, kf_id, gen), K=K)
+            for coordinator in (paged_run, resident_run):
+                coordinator.graph.add_keyframe(packet)
+            paged_run.stats.keyframes += 1
+            store.record(paged_run, [])
+        paged = [kf for kf in paged_run.graph.keyframes if isinstance(kf, PagedKeyframe)]
+        assert len(paged) == 4 and not any(kf.resident("pointmaps") for kf in paged)
+        parking = KeyframeParking(tmp_path / "spill")
+        focal = paged_run.graph.rescale_focal(0, 0.1, parking)
+        assert focal == resident_run.graph.rescale_focal(0, 0.1)
+        assert not any(kf.resident("pointmaps") for kf in paged)
+        assert all(kf.served_by(parking) for kf in paged)
+        assert paged_run.graph.versions == resident_run.graph.versions
+        for a, b in zip(paged_run.graph.keyframes, resident_run.graph.keyframes, strict=True):
+            assert torch.equal(a.K, b.K) and torch.equal(a.X_hat, b.X_hat)
+            assert torch.equal(a.X_init, b.X_init)
+        store.record(paged_run, [])  # the store takes the parked pointmaps
+        held = [(kf.X_hat, kf.X_init) for kf in paged_run.graph.keyframes]
+    for kf, (X_hat, X_init) in zip(read_session(tmp_path / STORE_NAME).graph.keyframes, held):
+        assert torch.equal(kf.X_hat, X_hat) and torch.equal(kf.X_init, X_init)
 
 
 def test_an_agent_with_fewer_keyframes_than_the_working_set_keeps_them_all(tmp_path) -> None:

@@ -25,7 +25,7 @@ from como3r.backend.focal_factors import FocalEdgeFactors, FocalPrior, FocalSyst
 from como3r.backend.global_graph import GlobalGraph
 from como3r.config import GlobalBAConfig
 from como3r.errors import InputError
-from como3r.frontend.paging import solve_points
+from como3r.frontend.paging import KeyframeParking, solve_points
 from como3r.optim.linear import Backend, SolveStatus, solve
 from como3r.optim.values import PoseValues
 
@@ -156,6 +156,7 @@ def optimize_focal(
     prior_sigma: float,
     centres: dict[int, float] | None = None,
     max_matches: int = 0,
+    parking: KeyframeParking | None = None,
 ) -> FocalBAResult:
     """Poses and one focal length per agent of a component in one solve (C-Eq. 5 with the
     residual of C-Eq. 17), then every agent moved onto its focal length
@@ -171,6 +172,8 @@ def optimize_focal(
             self-calibration); missing agents: the focal length it holds now.
         max_matches: each edge built over an even subset of about this many of its valid
             matches, weighed by the share left out (``gauge.focal_max_matches``); 0: all.
+        parking: where paged-out keyframes' rescaled pointmaps go
+            (:meth:`GlobalGraph.rescale_focal`; None: into the keyframes).
     """
     start = time.perf_counter()
     nodes = graph.connected(agents, anchor)
@@ -218,6 +221,6 @@ def optimize_focal(
     corrections = {a: float(solved.log_focal[column[a]]) for a in cameras}
     for agent, log_focal in corrections.items():
         if log_focal != 0.0:
-            graph.rescale_focal(agent, log_focal)
+            graph.rescale_focal(agent, log_focal, parking)
     change = float((after[:, :3] - before[:, :3]).norm(dim=-1).max())
     return FocalBAResult(corrections, iterations, time.perf_counter() - start, reason, change)

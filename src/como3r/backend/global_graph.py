@@ -44,7 +44,14 @@ from como3r.errors import InputError
 from como3r.frontend.graph import Edge, build_factors, count_batches
 from como3r.frontend.keyframes import Keyframe
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh
-from como3r.frontend.paging import SolvePoints, read_fields, solve_points
+from como3r.frontend.paging import (
+    POINTMAP_FIELDS,
+    KeyframeParking,
+    SolvePoints,
+    paged_out,
+    read_fields,
+    solve_points,
+)
 from como3r.frontend.pairs import PairLink
 from como3r.geometry.camera import to_focal
 from como3r.geometry.units import median_depth, median_range
@@ -196,10 +203,17 @@ class GlobalGraph(GraphDepthSteps):
         kf.X_hat, kf.C_hat, kf.fused_frames = X_hat, refresh.C_hat, refresh.fused_frames
         self.versions[self.global_index(agent, refresh.kf_id)] += 1
 
-    def rescale_focal(self, agent: int, log_focal: float) -> float:
+    def rescale_focal(
+        self, agent: int, log_focal: float, parking: KeyframeParking | None = None
+    ) -> float:
         """Move an agent's keyframes to the focal length ``f exp(log_focal)``
         (:mod:`como3r.frontend.focal`); returns the new focal length. Keyframes and
         refreshes still on the agent's former camera are moved on receipt.
+
+        Args:
+            parking: where a paged-out keyframe's rescaled pointmaps go, one keyframe in
+                memory at a time (the terminal cleanup's; None: into the keyframes, which
+                then hold them until the store writes them: at 16 agents, 1.2 GB of them).
 
         Raises:
             InputError: the agent sent no keyframe, or its keyframes carry no intrinsics
@@ -213,10 +227,22 @@ class GlobalGraph(GraphDepthSteps):
         focal = current * math.exp(log_focal)
         for g in self.agent_keyframes(agent):
             kf = self.keyframes[g]
-            shared = kf.X_init is kf.X_hat
-            kf.rescale_focal(focal)
-            if shared:  # one tensor still (the same values): the store codes it once
-                kf.X_init = kf.X_hat
+            if parking is not None and paged_out(kf):
+                # as Keyframe.rescale_focal does, read back for this keyframe only; the
+                # confidences are parked with the points (unchanged), so that a solve reads
+                # the keyframe from the parking alone, not the store's coded pointmaps too
+                X_hat, C_hat, X_init, C_init = read_fields(kf, *POINTMAP_FIELDS)
+                rescaled, K = to_focal(X_hat, kf.K, focal)
+                base = rescaled if X_init is X_hat else to_focal(X_init, kf.K, focal)[0]
+                parking.park(
+                    kf, {"X_hat": rescaled, "C_hat": C_hat, "X_init": base, "C_init": C_init}
+                )
+                kf.K = K
+            else:
+                shared = kf.X_init is kf.X_hat
+                kf.rescale_focal(focal)
+                if shared:  # one tensor still (the same values): the store codes it once
+                    kf.X_init = kf.X_hat
             self.versions[g] += 1
         self.focal[agent] = focal
         return focal

@@ -301,7 +301,7 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
         self.encodings.retain(())
         give_back_freed_memory()
         spill = Path(self.config.session.spill_dir) if self.config.session.spill_dir else None
-        parking = KeyframeParking(spill)
+        parking = self.cleanup_parking = KeyframeParking(spill)
         settings = AlternationSettings.from_config(self.config.global_ba, self.config.depth)
         # components that edges still wait between merge now (their poses reach the agents
         # with the cleanup's updates)
@@ -335,6 +335,7 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
             if component.depth_reports:
                 cleanup.refined.extend(members)
                 self.pre_refinement.update(component.snapshot)
+        self.cleanup_parking = None
         self.stats.add_time("cleanup", time.perf_counter() - start)
         self._record(self._count(cleanup.updates), finished=True)
         return cleanup

@@ -22,6 +22,7 @@ from como3r.backend.global_graph import GlobalGraph
 from como3r.config import Config
 from como3r.coordination.association import Candidate
 from como3r.frontend.focal import FocalEstimate, FocalPair, estimate_log_focal, relative_pose
+from como3r.frontend.paging import KeyframeParking
 from como3r.progress import PhaseCallback, report_phase
 
 # the coordinator's logger: its messages read as they did before this part had a module
@@ -41,6 +42,9 @@ class FocalAlignment:
     config: Config
     graph: GlobalGraph
     candidates: list[Candidate]
+    #: the terminal cleanup's parking while it runs (None otherwise): where a rescale puts
+    #: paged-out keyframes' pointmaps (:meth:`GlobalGraph.rescale_focal`)
+    cleanup_parking: KeyframeParking | None = None
 
     def _align_focal(
         self, supporters: Sequence[Candidate], moved_agents: list[int]
@@ -69,7 +73,7 @@ class FocalAlignment:
         start = time.perf_counter()
         estimate = self._estimate_log_focal(pairs)
         for agent in agents:
-            self.graph.rescale_focal(agent, estimate.log_focal)
+            self.graph.rescale_focal(agent, estimate.log_focal, self.cleanup_parking)
         self.stats.add_time("focal", time.perf_counter() - start)
         logger.info(
             "focal: agents %s %s on %d pair(s) (x %.4f, %d evaluations)",
@@ -148,6 +152,7 @@ class FocalAlignment:
             self.config.gauge.focal_prior,
             self.graph.own_focal,
             self.config.gauge.focal_max_matches,
+            self.cleanup_parking,
         )
         self.stats.add_time("focal", time.perf_counter() - start)
         self.stats.focal_refinements += sum(1 for v in result.log_focal.values() if v != 0.0)
@@ -221,7 +226,7 @@ class FocalAlignment:
 
     def _apply_log_focal(self, agent: int, log_focal: float) -> None:
         """Move one agent onto ``f exp(log_focal)`` (a joint refinement's result)."""
-        focal = self.graph.rescale_focal(agent, log_focal)
+        focal = self.graph.rescale_focal(agent, log_focal, self.cleanup_parking)
         self.stats.focal_refinements += 1
         logger.info(
             "focal: agent %d refined (x %.4f) to %.1f px", agent, math.exp(log_focal), focal

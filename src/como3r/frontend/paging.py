@@ -229,6 +229,9 @@ class KeyframeParking:
         self._spill: KeyframeSpill | None = None  # made when something is first parked
         self._base: dict[int, KeyframePages] = {}  # key -> the pages it was served by
         self._parked: dict[int, set[str]] = {}  # key -> its parked pointmap fields
+        # key -> {field: the parked field holding the same tensor} (X_init while it is
+        # X_hat: read back as one tensor, as the store codes it once)
+        self._aliases: dict[int, dict[str, str]] = {}
         #: arrays written to the spill (parked fields and :meth:`put`), a counter for tests
         self.writes = 0
 
@@ -242,16 +245,28 @@ class KeyframeParking:
         """
         key = kf._key
         if not kf.served_by(self):
-            self._base[key], self._parked[key] = kf._pages, set()
+            self._base[key], self._parked[key], self._aliases[key] = kf._pages, set(), {}
+        aliases = self._aliases[key]
+        for alias, name in list(aliases.items()):
+            if name in values and alias not in values:  # it keeps the value it had
+                self.put(key, alias, {alias: self.get(key, name)[name]})
+                del aliases[alias]
         for name, value in values.items():
-            self.put(key, name, {name: value})
+            same = next((n for n, v in values.items() if v is value), name)
+            if same == name:
+                self.put(key, name, {name: value})
+                aliases.pop(name, None)
+            else:
+                aliases[name] = same
             self._parked[key].add(name)
         kf.evict(self, key)
 
     def put(self, key: int, name: str, values: dict[str, Any]) -> None:
         """Keep the arrays ``values`` as ``name`` of keyframe ``key``."""
         if self._spill is None:
-            self._spill = KeyframeSpill(self._folder)
+            # uncompressed: what is parked is read back at every solve of the cleanup, and
+            # float pointmaps hardly compress (512x384: 3.15 -> 2.82 MB, writes 1.5 -> 92 ms)
+            self._spill = KeyframeSpill(self._folder, compress=False)
             logger.debug("parking keyframe arrays in %s", self._spill.folder)
         self._spill.save_keyframe(key, name, values)
         self.writes += len(values)
@@ -262,10 +277,15 @@ class KeyframeParking:
 
     def load_keyframe(self, key: int, group: str) -> dict[str, Any]:
         """The arrays of ``group`` of a parked keyframe: its parked fields, the rest from
-        its former pages (:class:`KeyframePages`)."""
-        values = self._base[key].load_keyframe(key, group)
-        for name in self._parked[key] & set(GROUPS[group]):
+        its former pages (:class:`KeyframePages`), read only where some field is not parked."""
+        names = GROUPS[group]
+        parked = self._parked[key]
+        values = {} if parked >= set(names) else self._base[key].load_keyframe(key, group)
+        aliases = self._aliases[key]
+        for name in [n for n in names if n in parked and n not in aliases]:
             values[name] = self.get(key, name)[name]
+        for name in [n for n in names if n in aliases]:
+            values[name] = values[aliases[name]]
         return values
 
 
@@ -318,7 +338,7 @@ def _remove_orphans(parent: Path) -> None:
 
 
 class KeyframeSpill:
-    """A process's private folder of compressed numpy arrays (no pickle): keyframe groups
+    """A process's private folder of numpy arrays (no pickle): keyframe groups
     and edge matches written when they are paged out, read back on demand, removed when
     the spill is garbage-collected or the process exits.
 
@@ -328,9 +348,11 @@ class KeyframeSpill:
 
     Args:
         parent: the folder to make the spill folder in (None: the system's temporary one).
+        compress: deflate the files (smaller, much slower to write and read).
     """
 
-    def __init__(self, parent: Path | None = None) -> None:
+    def __init__(self, parent: Path | None = None, compress: bool = True) -> None:
+        self._save_arrays = np.savez_compressed if compress else np.savez
         if parent is not None:
             parent.mkdir(parents=True, exist_ok=True)
         parent = Path(tempfile.gettempdir()) if parent is None else parent
@@ -380,7 +402,7 @@ class KeyframeSpill:
             else:
                 arrays[field_name] = np.asarray(value)
                 layout[field_name] = ("array",)
-        np.savez_compressed(self.folder / f"{name}.npz", **arrays)
+        self._save_arrays(self.folder / f"{name}.npz", **arrays)
         self._layout[name] = layout
 
     def _load(self, name: str) -> dict[str, Any]:
