@@ -135,6 +135,11 @@ class SessionConfig:
     tokens are 3.1 MB) at 16: re-encodes per keyframe 1.2 / 2.15 at 4 / 16 agents, the
     coordinator's CPU per keyframe 2130 / 2880 ms (16 against 4: 1.35x) and peak memory
     2350 / 4020 MB; at 64: 1.0 / 1.0, 2010 / 2450 ms (1.22x), 2390 / 4530 MB (1.90x).
+
+    ``encoding_cache_mb``: the most memory (MB) those encodings take together, least
+    recently used first out; 0: no bound but the count. A light prior's encodings never
+    reach it (MASt3R's at 512x384, 3.1 MB each: 64 take 200 MB), a heavy one's fill it
+    before the count does (the simulated prior's, 23 MB each: 44 of them).
     """
 
     resident_keyframes: int = 8
@@ -142,6 +147,7 @@ class SessionConfig:
     spill_dir: str = ""
     disk_reserve_mb: float = 0.0
     encoding_cache: int = 64
+    encoding_cache_mb: float = 1024.0
 
 
 @dataclass(frozen=True)
@@ -234,6 +240,7 @@ _NON_NEGATIVE = (
     "session.team_resident_keyframes",
     "session.disk_reserve_mb",
     "session.encoding_cache",
+    "session.encoding_cache_mb",
 )
 _AT_LEAST_ONE = (
     "input.subsample",

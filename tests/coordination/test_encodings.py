@@ -168,6 +168,34 @@ def test_the_cache_keeps_the_least_recently_used_re_encodings() -> None:
     assert prior.calls == 4 and encodings.seconds >= 0.0
 
 
+class _TokenPrior(_CountingPrior):
+    """Encodes a view as 256 float32 tokens (1024 bytes)."""
+
+    def encode(self, view: View) -> Encoding:
+        self.calls += 1
+        return SimpleNamespace(tokens=torch.zeros(256), index=view.index)
+
+
+def test_the_cache_keeps_its_encodings_within_its_bytes() -> None:
+    """``session.encoding_cache_mb``: a heavy prior's encodings fill the byte bound before
+    the count; least recently used first out, as under the count."""
+    prior = _TokenPrior()
+    encodings = KeyframeEncodings(prior, capacity=8, max_bytes=2500)
+    frames = [_keyframe(k) for k in range(4)]
+    for g in (0, 1, 0, 2):
+        encodings.get(g, frames[g], 0)
+    assert encodings.cached() == [0, 2] and encodings.held_bytes == 2048 and prior.calls == 3
+    encodings.retain({2})
+    assert encodings.cached() == [2] and encodings.held_bytes == 1024
+    too_small = KeyframeEncodings(prior, capacity=8, max_bytes=1000)
+    assert too_small.get(3, frames[3], 0).tokens.numel() == 256
+    assert too_small.cached() == [] and too_small.held_bytes == 0
+    unbounded = KeyframeEncodings(prior, capacity=8)
+    for g in range(4):
+        unbounded.get(g, frames[g], 0)
+    assert unbounded.cached() == [0, 1, 2, 3] and unbounded.held_bytes == 4096
+
+
 def test_a_keyframe_that_cannot_be_encoded_again_is_a_clear_error() -> None:
     with pytest.raises(InputError, match="cannot encode it again"):
         KeyframeEncodings(_CountingPrior(can=False), 4).get(0, _keyframe(0), 3)
@@ -176,6 +204,8 @@ def test_a_keyframe_that_cannot_be_encoded_again_is_a_clear_error() -> None:
         KeyframeEncodings(_CountingPrior(), 4).get(0, small, 3)
     with pytest.raises(InputError, match="encoding_cache"):
         KeyframeEncodings(_CountingPrior(), -1)
+    with pytest.raises(InputError, match="encoding_cache_mb"):
+        KeyframeEncodings(_CountingPrior(), 4, -1)
 
 
 class _AllOthers:

@@ -132,7 +132,9 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
         # the prior's decodes (verification) are charged to stage_seconds["prior_decode"]
         self.prior = TimedPrior(prior, StageTimer(self.stats.stage_seconds), self._decoded)
         #: keyframe encodings, remade from their colours where they were not sent
-        self.encodings = KeyframeEncodings(prior, config.session.encoding_cache)
+        self.encodings = KeyframeEncodings(
+            prior, config.session.encoding_cache, round(config.session.encoding_cache_mb * 2**20)
+        )
         #: verifications run ahead on threads (verification.workers; .decode_pool)
         self.pool = VerificationPool(prior, config.verification.workers)
         #: gives what a batch's verifications freed back to the system as it goes (.heap)

@@ -9,9 +9,9 @@ image alone), the agent is told at the session start not to send them
 (:attr:`~como3r.transport.messages.AgentTask.send_encoding`) and the session store does not
 keep them: such a keyframe's ``encoding`` is None, and :class:`KeyframeEncodings` encodes
 its colours again the first time a verification decodes a pair with it
-(:mod:`.linking`), keeping the newest ``session.encoding_cache`` of them (least recently
-used first out; the end's deferred verification lets go of those it can no longer use:
-:mod:`.deferral`). Encoding work is counted (``reencodes`` and ``stage_seconds["reencode"]``
+(:mod:`.linking`), keeping the newest ``session.encoding_cache`` of them within
+``session.encoding_cache_mb`` (least recently used first out; the end's deferred
+verification lets go of those it can no longer use: :mod:`.deferral`). Encoding work is counted (``reencodes`` and ``stage_seconds["reencode"]``
 of the coordinator's statistics).
 
 The simulated prior's encoding is made from the frame's ground truth as well as its image,
@@ -32,6 +32,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Collection
 
+from como3r.coordination.census import census
 from como3r.errors import InputError, PriorError
 from como3r.frontend.keyframes import Keyframe
 from como3r.prior.base import Encoding, EncodingRecord, Prior
@@ -46,20 +47,31 @@ class KeyframeEncodings:
         prior: the coordinator's prior (the one the agents' encodings came from); None for
             a coordinator that decodes nothing (it can remake no encoding).
         capacity: how many re-encoded keyframes are kept (0: none; every use re-encodes).
+        max_bytes: the most bytes they take together (their tensors and arrays); 0: no
+            bound but ``capacity``.
 
     Attributes:
         reencodes: keyframes encoded again so far.
         seconds: wall-clock seconds spent encoding them.
     """
 
-    def __init__(self, prior: Prior | None, capacity: int) -> None:
+    def __init__(self, prior: Prior | None, capacity: int, max_bytes: int = 0) -> None:
         if capacity < 0:
             raise InputError(f"session.encoding_cache must be >= 0, got {capacity}")
+        if max_bytes < 0:
+            raise InputError(f"session.encoding_cache_mb must be >= 0, got {max_bytes} bytes")
         self.prior = prior
         self.capacity = capacity
+        self.max_bytes = max_bytes
         self.reencodes = 0
         self.seconds = 0.0
         self._cache: OrderedDict[int, Encoding] = OrderedDict()
+        self._bytes: dict[int, int] = {}  # per cached keyframe: its encoding's bytes
+
+    @property
+    def held_bytes(self) -> int:
+        """Bytes of the re-encoded keyframes held."""
+        return sum(self._bytes.values())
 
     def can_reencode(self, agent: int) -> bool:
         """Whether ``agent``'s keyframes need not carry (nor the store keep) encodings."""
@@ -85,9 +97,11 @@ class KeyframeEncodings:
             self.seconds += time.perf_counter() - start
         self.reencodes += 1
         if self.capacity > 0:
-            self._cache[g] = made
-            while len(self._cache) > self.capacity:
-                self._cache.popitem(last=False)
+            self._cache[g], self._bytes[g] = made, sum(census(made).values())
+            while len(self._cache) > self.capacity or (
+                self.max_bytes and self.held_bytes > self.max_bytes
+            ):
+                del self._bytes[self._cache.popitem(last=False)[0]]
         return made
 
     def peek(self, g: int, kf: Keyframe) -> Encoding | None:
@@ -127,7 +141,7 @@ class KeyframeEncodings:
         """Let go of the re-encoded keyframes held whose global index is not in ``needed``
         (what is left of the work can use no other; the cache's order unchanged)."""
         for g in [g for g in self._cache if g not in needed]:
-            del self._cache[g]
+            del self._cache[g], self._bytes[g]
 
     def cached(self) -> list[int]:
         """Global indices of the re-encoded keyframes held, least recently used first."""
