@@ -96,13 +96,13 @@ def recording(folder: Path) -> Iterator[None]:
     log: list[list[Any]] = []
     add, refresh = Coordinator.add_keyframes, Coordinator.refresh
 
-    def recorded_add(coordinator: Coordinator, packets: Sequence[Any]) -> Any:
+    def recorded_add(coordinator: Coordinator, packets: Sequence[Any], solve: bool = True) -> Any:
         for k, packet in enumerate(packets):
             (folder / f"{len(log):05d}_{k:04d}.bin").write_bytes(
                 codec.encode(packet, max_bytes=MAX_BYTES)
             )
-        log.append(["batch", len(packets), coordinator.num_agents])
-        return add(coordinator, packets)
+        log.append(["batch", len(packets), coordinator.num_agents, solve])
+        return add(coordinator, packets, solve)
 
     def recorded_refresh(coordinator: Coordinator, agent: int, message: Any) -> None:
         (folder / f"{len(log):05d}_r.bin").write_bytes(codec.encode(message, max_bytes=MAX_BYTES))
@@ -119,9 +119,9 @@ def recording(folder: Path) -> Iterator[None]:
 
 
 def calls(folder: Path) -> Iterator[tuple[str, Any, int]]:
-    """The recorded calls in order: ``("batch", packets, agents)`` or ``("refresh", (agent,
-    refresh), agents)``."""
-    for n, (kind, what, agents) in enumerate(
+    """The recorded calls in order: ``("batch", (packets, solve), agents)`` or ``("refresh",
+    (agent, refresh), agents)`` (a capture made before a batch said ``solve``: True)."""
+    for n, (kind, what, agents, *solve) in enumerate(
         json.loads((folder / "log.json").read_text())["calls"]
     ):
         if kind == "batch":
@@ -129,7 +129,7 @@ def calls(folder: Path) -> Iterator[tuple[str, Any, int]]:
                 codec.decode((folder / f"{n:05d}_{k:04d}.bin").read_bytes(), max_bytes=MAX_BYTES)
                 for k in range(what)
             ]
-            yield kind, packets, agents
+            yield kind, (packets, bool(solve[0]) if solve else True), agents
         else:
             data = (folder / f"{n:05d}_r.bin").read_bytes()
             yield kind, (what, codec.decode(data, max_bytes=MAX_BYTES)), agents
@@ -164,8 +164,8 @@ def replay(
             if kind == "batch":
                 watch = PeakWatch() if counted else None
                 start = time.thread_time()
-                coordinator.add_keyframes(what)
-                seconds.append((len(what), time.thread_time() - start))
+                coordinator.add_keyframes(*what)
+                seconds.append((len(what[0]), time.thread_time() - start))
                 if watch is not None:
                     print_census(coordinator, len(what), watch.stop())
                     print(

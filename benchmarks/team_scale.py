@@ -680,9 +680,9 @@ class _Timed:
         many = Coordinator.add_keyframes
         calls = self.calls
 
-        def add_keyframes(coordinator: Coordinator, packets: Any) -> Any:
+        def add_keyframes(coordinator: Coordinator, packets: Any, solve: bool = True) -> Any:
             start, (inline, pool) = time.thread_time(), _verification_cpu(coordinator)
-            updates = many(coordinator, packets)
+            updates = many(coordinator, packets, solve)
             keys = [(p.agent, p.kf_id, p.timestamp) for p in packets]
             after = _verification_cpu(coordinator)
             calls.append((time.thread_time() - start, keys, after[0] - inline, after[1] - pool))

@@ -39,7 +39,9 @@ def test_a_recorded_run_replays_its_in_stream_work(tmp_path, capsys) -> None:
         run(agents, tmp_path / "run", config, PriorSpec("simulated"), overwrite=True)
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())["coordinator"]
     recorded = list(calls(tmp_path / "calls"))
-    assert sum(len(what) for kind, what, _ in recorded if kind == "batch") == metrics["keyframes"]
+    batches = [what for kind, what, _ in recorded if kind == "batch"]
+    assert sum(len(packets) for packets, _ in batches) == metrics["keyframes"]
+    assert all(solve for _, solve in batches)  # batches of under 16: each solves
     first, seconds = replay(tmp_path / "calls", config)
     again, _ = replay(tmp_path / "calls", config)
     assert first.stats.keyframes == metrics["keyframes"] == sum(n for n, _ in seconds)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import multiprocessing
 import os
 import shutil
@@ -397,7 +398,7 @@ def test_a_coordinator_slow_to_read_costs_no_message_and_no_agent(
     # agent, and whether it still waited for it
     seen: list[tuple[float, bool]] = []
 
-    def busy_coordinator(self, batch) -> None:
+    def busy_coordinator(self, batch, solve=True) -> None:
         if not busy:
             busy.append(batch[0].message()[0].packet.kf_id)
             time.sleep(BUSY_S)
@@ -405,7 +406,7 @@ def test_a_coordinator_slow_to_read_costs_no_message_and_no_agent(
             while not self.hub.readers[0].ready():  # until the agent has sent more, unread
                 assert time.monotonic() < deadline, "the agent sent nothing more"
                 time.sleep(0.01)
-        add_keyframes(self, batch)
+        add_keyframes(self, batch, solve)
 
     def check_after_busy(self, watched) -> None:
         if not busy or seen:
@@ -638,7 +639,7 @@ def test_keyframes_an_agent_still_holds_keep_its_ordering_clock_back(scripted_hu
     hub, runtime = _scripted_runtime(scripted_hub, 120.0, [])
     runtime.progress = None
     batches: list = []
-    runtime._add_keyframes = lambda batch: batches.append(
+    runtime._add_keyframes = lambda batch, solve=True: batches.append(
         [(w.message()[0].packet.agent, w.message()[0].packet.kf_id) for w in batch]
     )
 
@@ -667,6 +668,37 @@ def test_keyframes_an_agent_still_holds_keep_its_ordering_clock_back(scripted_hu
     assert runtime.slots[0].order_clock() == 2 / 30
     runtime._process_pending()
     assert batches == [[(0, 0), (1, 0), (0, 1)]]
+
+
+def test_a_long_backlog_goes_to_the_coordinator_in_parts_solved_after_each_batch(
+    scripted_hub,
+) -> None:
+    """Issue 41: a batch (``global_ba.max_batch_keyframes``, 32) is handed over in parts of
+    ``HANDOVER_KEYFRAMES`` (16), each a transaction and a page-out of its own (the batch's
+    keyframes are not all in memory at once), the global BA allowed after the last part only,
+    so a trailing coordinator solves as often as with whole batches."""
+    from types import SimpleNamespace
+
+    from como3r.runtime.processes import HANDOVER_KEYFRAMES
+
+    hub, runtime = _scripted_runtime(scripted_hub, 120.0, [])
+    runtime.progress = None
+    parts: list = []
+    runtime._add_keyframes = lambda batch, solve=True: parts.append(
+        ([w.message()[0].packet.kf_id for w in batch], solve)
+    )
+    for kf_id in range(40):  # agent 0 alone, both finished: everything's turn has come
+        packet = SimpleNamespace(agent=0, kf_id=kf_id, timestamp=kf_id / 30, frame_index=kf_id)
+        runtime._queue(runtime.segments[0], SimpleNamespace(packet=packet), None)
+    for slot in runtime.slots:
+        slot.status, slot.clock = "finished", math.inf
+    runtime._process_pending()
+    assert HANDOVER_KEYFRAMES == 16 == runtime.config.global_ba.max_batch_keyframes // 2
+    assert parts == [
+        (list(range(0, 16)), False),
+        (list(range(16, 32)), True),
+        (list(range(32, 40)), True),
+    ]
 
 
 def test_an_agent_away_since_the_coordinator_restarted_still_orders_the_keyframes(

@@ -60,7 +60,7 @@ def test_an_idle_runtime_verifies_deferred_keyframes_and_sends_their_updates(
     hub.events = events
     taken: list[tuple[int, int]] = []
 
-    def add_keyframes(batch) -> None:  # the batch's coordinator work, a stand-in
+    def add_keyframes(batch, solve=True) -> None:  # the batch's coordinator work, a stand-in
         for waiting in batch:
             message, _ = waiting.message()
             taken.append((turn, message.packet.kf_id))

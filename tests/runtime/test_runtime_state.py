@@ -149,7 +149,7 @@ def test_keyframes_re_sent_after_a_restart_keep_the_order_of_an_uninterrupted_ru
     runtime.start([None, None], PriorSpec("simulated"))
     batches: list = []
 
-    def taken(batch) -> None:  # what the coordinator takes, its segments' keyframes
+    def taken(batch, solve=True) -> None:  # what the coordinator takes, its segments' keyframes
         batches.append([(w.message()[0].packet.agent, w.message()[0].packet.kf_id) for w in batch])
         for waiting in batch:
             waiting.segment.result.keyframes.append(waiting.message()[0].packet)

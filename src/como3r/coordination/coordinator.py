@@ -188,7 +188,9 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
         """
         return self.add_keyframes([packet])
 
-    def add_keyframes(self, packets: Sequence[KeyframePacket]) -> list[PoseUpdate]:
+    def add_keyframes(
+        self, packets: Sequence[KeyframePacket], solve: bool = True
+    ) -> list[PoseUpdate]:
         """Take the keyframes that waited for the coordinator as one batch.
 
         In the given order (the runtimes' ``(timestamp, agent)`` order) each keyframe is
@@ -202,14 +204,17 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
         deferred (the part of the map the agents are in now is linked first), verified with
         what later batches leave of their budget or at the end (:mod:`.deferral`). The
         in-stream global BA (C-Eq. 5) runs at most once, after the whole batch, if
-        ``global_ba.trigger_interval_edges`` new inter-agent edges are waiting by then; the
-        journal keeps the batch's effect in one transaction. A batch of one is
+        ``global_ba.trigger_interval_edges`` new inter-agent edges are waiting by then (and
+        ``solve``); the journal keeps the batch's effect in one transaction. A batch of one is
         :meth:`add_keyframe`'s single keyframe, step for step. The result depends on the
         batch's content and order only, never on timing.
 
         Args:
             packets: the keyframes, oldest first; re-sent ones are answered as in
                 :meth:`add_keyframe`.
+            solve: whether the global BA may run after the batch; False: the edges it
+                admits wait for the next batch's (a runtime hands a long backlog over in
+                parts and solves after the last, :mod:`como3r.runtime.processes`).
 
         Returns:
             The pose updates of the batch in the order they were made (re-sent keyframes'
@@ -260,7 +265,8 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
             self._settle()
         if fresh:
             updates.extend(self._defer(skipped, self.stats.prior_decodes - spent))
-            self._solve_on_trigger(updates)
+            if solve:
+                self._solve_on_trigger(updates)
         self.stats.batches += int(bool(fresh))
         self.stats.largest_batch = max(self.stats.largest_batch, len(fresh))
         self.heap.check()  # before the journal codes what the batch changed

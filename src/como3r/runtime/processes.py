@@ -104,6 +104,14 @@ logger = logging.getLogger(__name__)
 
 
 _LIVE = ("starting", "running")
+#: a batch of waiting keyframes (``global_ba.max_batch_keyframes``) goes to the coordinator
+#: in parts of at most this many, each its own transaction and page-out, the global BA after
+#: the last (issue 41: while a batch is handled its keyframes are all in memory, 15 MB each
+#: at 512x384 with the simulated prior's encodings, besides the working set). Measured with
+#: benchmarks/team_scale.py (--sizes 16 --frames 48, session 40): whole batches of 16
+#: instead of 32 took the coordinator's peak 4496 -> 3942 MB, but its global BAs 18 -> 25
+#: and their time 33.8 -> 47.2 s; parts keep one BA per batch
+HANDOVER_KEYFRAMES = 16
 
 
 class _Runtime(AgentEvents):
@@ -311,7 +319,8 @@ class _Runtime(AgentEvents):
     def _process_pending(self, force: bool = False, progress: PhaseCallback | None = None) -> None:
         """Hand the waiting keyframes whose turn has come to the coordinator in batches
         (:meth:`~como3r.coordination.coordinator.Coordinator.add_keyframes`, at most
-        ``global_ba.max_batch_keyframes`` each), in ``(timestamp, agent)`` order, each once
+        ``global_ba.max_batch_keyframes`` each, in parts of :data:`HANDOVER_KEYFRAMES` with
+        the global BA after the last), in ``(timestamp, agent)`` order, each once
         no running agent present can still send an earlier one (``force``: all of them).
         The backlog is sampled first (:mod:`.backlog`) and shown as the coordinator's line
         while agents run; ``progress`` hears of each batch (the backlog once the agents
@@ -349,10 +358,13 @@ class _Runtime(AgentEvents):
                 queued - len(self.pending) - len(batch),
                 queued,
             )
-            self._add_keyframes(batch)
+            for first in range(0, len(batch), HANDOVER_KEYFRAMES):
+                last = first + HANDOVER_KEYFRAMES >= len(batch)
+                self._add_keyframes(batch[first : first + HANDOVER_KEYFRAMES], solve=last)
 
-    def _add_keyframes(self, batch: Sequence[Waiting]) -> None:
-        """One batch of keyframes to the coordinator; its updates to the agents."""
+    def _add_keyframes(self, batch: Sequence[Waiting], solve: bool = True) -> None:
+        """One batch of keyframes to the coordinator (its global BA after it if ``solve``);
+        its updates to the agents."""
         packets = []
         for waiting in batch:
             message, seconds = waiting.message()  # decoded again if held as its bytes
@@ -362,7 +374,7 @@ class _Runtime(AgentEvents):
                 packets.append(received(packet, self.coordinator))
         if not packets:
             return
-        updates = self.coordinator.add_keyframes(packets)
+        updates = self.coordinator.add_keyframes(packets, solve)
         for update in updates:
             self._send_update(update)
         self.backlog.handed(packet.timestamp for packet in packets)
