@@ -538,6 +538,32 @@ pointmaps resident until the cleanup's end). Parking those of paged-out keyframe
 (782f300, reverted) took the cleanup to 1.4-2.7 GB and the 16-agent peak to 4593 MB (4-agent
 2262 MB: 2.03x still, the peak in-stream now), but the cleanup from 97-106 s to 252 s of
 wall time: each pose pass and depth step read the parked pointmaps back from the spill.
+
+Session 40 (the same command, an idle machine, one run each; scratch ts5-ts9). The
+cleanup's focal rescale parks paged-out keyframes again, now all four pointmaps,
+uncompressed, so a parked keyframe is read from the parking alone (cb71475; the 16-agent
+cleanup re-run from its store: peak 5097 -> 4017 MB, 115-120 -> 136 s). Then, for 16
+agents only, a byte bound on the encoding cache (``session.encoding_cache_mb=1024``, kept
+as an option, off by default), whole batches of 16 (``--set
+global_ba.max_batch_keyframes=16``), and batches of 32 handed over in parts of 16 with the
+BA after the last (0fcfc9a, ``runtime.processes.HANDOVER_KEYFRAMES``):
+
+    run                        agents  coord ms/kf  serial ms/kf  pool ms/kf  end kf  rt end kf  coord MB  ATE mm  ATE %  cleanup s
+    ts5 parking                     4          435           285        1003       9          0      2310    6.96  0.184       14.4
+    ts5 parking                    16          394           286        1591     144         20      4732    18.1  0.477        107
+    ts6 + cache 1024 MB             4          441           287        1022       9          0      2244    6.96  0.184       15.1
+    ts6 + cache 1024 MB            16          451           262        1630     144         21      4496    18.0  0.475        111
+    ts7 + batches of 16            16          527           325        1662     144         20      3942    18.1  0.476        104
+    ts8 + parts of 16 (cache)       4          410           268         959       9          0      2294    6.92  0.183       13.3
+    ts8 + parts of 16 (cache)      16          471           275        1598     146         12      3883    18.1  0.477        100
+    ts9 parts of 16, no cache bound 16         413           297        1527     146         12      4221    17.9  0.472        109
+
+Decodes per keyframe 4.56 / 5.04 in every run. The kept code is ts9's (the cache unbounded
+in bytes): 16 vs 4 agents, peak 4221 against 2244-2310 MB, 1.83-1.88x; work per keyframe
+(thread + pool) 1940 against 1369-1463 ms, 1.33-1.42x. The cache bound bought 338 MB of the
+16-agent peak for 6.6 % more CPU per keyframe (re-encodes 302 -> 413): 1.68-1.73x and
+1.41-1.51x. The peak is in-stream now (ts5: the global BA of the last batches, 4.5-4.7 GB
+sampled; the cleanup stayed below it).
 """
 
 from __future__ import annotations

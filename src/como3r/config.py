@@ -137,9 +137,12 @@ class SessionConfig:
     2350 / 4020 MB; at 64: 1.0 / 1.0, 2010 / 2450 ms (1.22x), 2390 / 4530 MB (1.90x).
 
     ``encoding_cache_mb``: the most memory (MB) those encodings take together, least
-    recently used first out; 0: no bound but the count. A light prior's encodings never
-    reach it (MASt3R's at 512x384, 3.1 MB each: 64 take 200 MB), a heavy one's fill it
-    before the count does (the simulated prior's, 23 MB each: 44 of them).
+    recently used first out; 0 (default): no bound but the count. It matters for a heavy
+    prior's encodings only (MASt3R's at 512x384 are 3.1 MB: 64 take 200 MB; the simulated
+    prior's 23 MB: 1.5 GB). Measured at 1024 (44 of the simulated prior's) with
+    benchmarks/team_scale.py (``--sizes 4 16 --frames 48``, session 40): the 16-agent
+    coordinator's peak 4221 -> 3883 MB, its re-encodes 302 -> 413 and its CPU per keyframe
+    1940 -> 2069 ms; the 4-agent run's cache never reaches it.
     """
 
     resident_keyframes: int = 8
@@ -147,7 +150,7 @@ class SessionConfig:
     spill_dir: str = ""
     disk_reserve_mb: float = 0.0
     encoding_cache: int = 64
-    encoding_cache_mb: float = 1024.0
+    encoding_cache_mb: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -9,8 +9,8 @@ image alone), the agent is told at the session start not to send them
 (:attr:`~como3r.transport.messages.AgentTask.send_encoding`) and the session store does not
 keep them: such a keyframe's ``encoding`` is None, and :class:`KeyframeEncodings` encodes
 its colours again the first time a verification decodes a pair with it
-(:mod:`.linking`), keeping the newest ``session.encoding_cache`` of them within
-``session.encoding_cache_mb`` (least recently used first out; the end's deferred
+(:mod:`.linking`), keeping the newest ``session.encoding_cache`` of them (and where set
+within ``session.encoding_cache_mb``; least recently used first out; the end's deferred
 verification lets go of those it can no longer use: :mod:`.deferral`). Encoding work is counted (``reencodes`` and ``stage_seconds["reencode"]``
 of the coordinator's statistics).
 

@@ -108,9 +108,10 @@ _LIVE = ("starting", "running")
 #: in parts of at most this many, each its own transaction and page-out, the global BA after
 #: the last (issue 41: while a batch is handled its keyframes are all in memory, 15 MB each
 #: at 512x384 with the simulated prior's encodings, besides the working set). Measured with
-#: benchmarks/team_scale.py (--sizes 16 --frames 48, session 40): whole batches of 16
-#: instead of 32 took the coordinator's peak 4496 -> 3942 MB, but its global BAs 18 -> 25
-#: and their time 33.8 -> 47.2 s; parts keep one BA per batch
+#: benchmarks/team_scale.py (--sizes 4 16 --frames 48, session 40), 16 agents: whole batches
+#: of 16 instead of 32 took the coordinator's peak 4496 -> 3942 MB, but its global BAs
+#: 18 -> 25 and their time 33.8 -> 47.2 s; parts of 16 took it 4732 -> 4221 MB with the
+#: BA's time as before (39.8 / 35.8 s), the 4-agent run's batches being smaller anyway
 HANDOVER_KEYFRAMES = 16
 
 
