@@ -548,15 +548,15 @@ as an option, off by default), whole batches of 16 (``--set
 global_ba.max_batch_keyframes=16``), and batches of 32 handed over in parts of 16 with the
 BA after the last (0fcfc9a, ``runtime.processes.HANDOVER_KEYFRAMES``):
 
-    run                        agents  coord ms/kf  serial ms/kf  pool ms/kf  end kf  rt end kf  coord MB  ATE mm  ATE %  cleanup s
-    ts5 parking                     4          435           285        1003       9          0      2310    6.96  0.184       14.4
-    ts5 parking                    16          394           286        1591     144         20      4732    18.1  0.477        107
-    ts6 + cache 1024 MB             4          441           287        1022       9          0      2244    6.96  0.184       15.1
-    ts6 + cache 1024 MB            16          451           262        1630     144         21      4496    18.0  0.475        111
-    ts7 + batches of 16            16          527           325        1662     144         20      3942    18.1  0.476        104
-    ts8 + parts of 16 (cache)       4          410           268         959       9          0      2294    6.92  0.183       13.3
-    ts8 + parts of 16 (cache)      16          471           275        1598     146         12      3883    18.1  0.477        100
-    ts9 parts of 16, no cache bound 16         413           297        1527     146         12      4221    17.9  0.472        109
+    run                              agents  coord ms/kf  serial ms/kf  pool ms/kf  end kf  rt end kf  coord MB  ATE mm  ATE %  cleanup s
+    ts5 parking                           4          435           285        1003       9          0      2310    6.96  0.184       14.4
+    ts5 parking                          16          394           286        1591     144         20      4732    18.1  0.477        107
+    ts6 + cache 1024 MB                   4          441           287        1022       9          0      2244    6.96  0.184       15.1
+    ts6 + cache 1024 MB                  16          451           262        1630     144         21      4496    18.0  0.475        111
+    ts7 + batches of 16                  16          527           325        1662     144         20      3942    18.1  0.476        104
+    ts8 + parts of 16 (cache)             4          410           268         959       9          0      2294    6.92  0.183       13.3
+    ts8 + parts of 16 (cache)            16          471           275        1598     146         12      3883    18.1  0.477        100
+    ts9 parts of 16, no cache bound      16          413           297        1527     146         12      4221    17.9  0.472        109
 
 Decodes per keyframe 4.56 / 5.04 in every run. The kept code is ts9's (the cache unbounded
 in bytes): 16 vs 4 agents, peak 4221 against 2244-2310 MB, 1.83-1.88x; work per keyframe
