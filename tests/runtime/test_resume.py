@@ -195,13 +195,13 @@ def _signal_at(monkeypatch, call: int, signals: tuple[signal.Signals, ...]) -> N
 
     add_keyframes, calls = Coordinator.add_keyframes, []
 
-    def add_and_signal(self, packets):
+    def add_and_signal(self, packets, solve=True):
         calls.append(packets)  # one keyframe each: these runs set max_batch_keyframes=1
         if len(calls) == call:
             for signum in signals:
                 os.kill(os.getpid(), signum)
                 time.sleep(0.05)  # let the handler run before the next signal
-        return add_keyframes(self, packets)
+        return add_keyframes(self, packets, solve)
 
     monkeypatch.setattr(Coordinator, "add_keyframes", add_and_signal)
 
