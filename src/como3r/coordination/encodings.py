@@ -11,8 +11,8 @@ keep them: such a keyframe's ``encoding`` is None, and :class:`KeyframeEncodings
 its colours again the first time a verification decodes a pair with it
 (:mod:`.linking`), keeping the newest ``session.encoding_cache`` of them (and where set
 within ``session.encoding_cache_mb``; least recently used first out; the end's deferred
-verification lets go of those it can no longer use: :mod:`.deferral`). Encoding work is counted (``reencodes`` and ``stage_seconds["reencode"]``
-of the coordinator's statistics).
+verification lets go of those it can no longer use: :mod:`.deferral`). Encoding work is
+counted (``reencodes`` and ``stage_seconds["reencode"]`` of the coordinator's statistics).
 
 The simulated prior's encoding is made from the frame's ground truth as well as its image,
 which a coordinator does not have (a networked run's agents read their own inputs; a resume,
