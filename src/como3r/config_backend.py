@@ -181,6 +181,14 @@ class VerificationConfig:
       global BA), is itself above the 0.26 s at which 16 agents bring keyframes. 2: the two
       cores the suite and the demo run on; a coordinator on a larger machine sets its cores
       (more threads than cores only share them).
+    * ``on_agents``: the agents' processes verify the candidates the coordinator selects
+      (:mod:`como3r.coordination.remote`) instead of the coordinator: it sends each
+      selection with the keyframes' images, an agent process re-encodes, decodes and
+      matches them between its frames and returns the matches, the coordinator admits the
+      edges when they come back. Its own work per keyframe is then retrieval, admission,
+      merges and global BA (issue 41: a one-core coordinator keeps up with 16 agents).
+      The runs of ``como3r run``'s multi-process runtime only; elsewhere (one process,
+      lockstep, agents on other machines) the coordinator verifies, as with false.
     """
 
     tau_inter: float = 0.1
@@ -193,6 +201,7 @@ class VerificationConfig:
     max_loop_candidates: int = 1
     workers: int = 2
     link_spacing: int = 0
+    on_agents: bool = False
 
 
 @dataclass(frozen=True)

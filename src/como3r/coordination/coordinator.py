@@ -45,7 +45,8 @@ coordinator's copy of their chain lacks the intra-agent loop edges their own fro
 optimizes, so the front-end's poses are the better ones.
 
 :class:`Coordinator` holds the state and the public API; steps 2 and 3 are its part
-:mod:`.linking`, the keyframes a batch budget deferred its part :mod:`.deferral`, the focal
+:mod:`.linking`, the keyframes a batch budget deferred its part :mod:`.deferral`, the
+verifications it leaves to the agents (``verification.on_agents``) :mod:`.remote`, the focal
 lengths of self-calibrated agents its part :mod:`.focal_alignment`,
 the terminal cleanup's records and solvers are in :mod:`.cleanup`, its counters
 :class:`~.stats.CoordinatorStats` and its ``graph.json`` and ``metrics.json`` documents
@@ -72,11 +73,12 @@ from como3r.config import Config
 from como3r.coordination.association import Candidate, CrossAgentRetrieval
 from como3r.coordination.cleanup import Cleanup, ComponentCleanup, MapSnapshot, scoped_progress
 from como3r.coordination.decode_pool import VerificationPool
-from como3r.coordination.deferral import DeferredKeyframe, DeferredVerification
+from como3r.coordination.deferral import DeferredKeyframe
 from como3r.coordination.documents import CoordinatorDocuments
 from como3r.coordination.encodings import KeyframeEncodings
 from como3r.coordination.focal_alignment import FocalAlignment
 from como3r.coordination.gauge import GaugeComponents
+from como3r.coordination.remote import RemoteJob, RemoteVerification
 from como3r.coordination.stats import CoordinatorStats
 from como3r.errors import InputError
 from como3r.frontend.packets import KeyframePacket, PointmapRefresh, PointmapUpdate, PoseUpdate
@@ -105,7 +107,7 @@ class Journal(Protocol):
         is now (what changes before is coded again there); quick."""
 
 
-class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
+class Coordinator(RemoteVerification, FocalAlignment, CoordinatorDocuments):
     """Cross-agent association, gauge synchronization and global BA (Level 2).
 
     Args:
@@ -149,6 +151,11 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
         self._refused: list[tuple[Candidate, bool]] = []
         #: keyframes skipped under the batch budget, to verify later (.deferral)
         self._deferred: list[DeferredKeyframe] = []
+        #: verification on the agents (.remote): off until a runtime that serves it sets it
+        self.delegate = False
+        self._jobs_out: list[RemoteJob] = []
+        self._outstanding: dict[int, RemoteJob] = {}
+        self._requests = 0
         self.alternation: list[dict[str, Any]] = []
         #: agent -> its keyframes as they were before the terminal depth refinement
         #: (pointmaps as streamed, poses after the pose-only cleanup passes)
@@ -252,7 +259,7 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
                 if hits and self.stats.prior_decodes - spent + self._keyframe_budget() > budget:
                     skipped.append((packet, hits))
                     continue
-                for candidate in self._verify(packet, hits):
+                for candidate in self._verify_or_request(packet, hits):
                     updates.extend(self._admit(candidate))
                 self.heap.check()  # what the verification freed (.heap)
                 logger.debug(
@@ -302,6 +309,7 @@ class Coordinator(DeferredVerification, FocalAlignment, CoordinatorDocuments):
         """
         start = time.perf_counter()
         cleanup = Cleanup(pointmap_update=self._pointmaps)
+        self.take_back_all()  # jobs still out are verified here now (.remote)
         cleanup.updates.extend(self._verify_all_deferred())
         # nothing decodes from here on (the cleanup works on pointmaps): the pool's threads
         # end and the re-encoded keyframes go (16 agents: 1.5 GB of the simulated prior's)

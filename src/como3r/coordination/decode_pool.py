@@ -94,7 +94,7 @@ class _Worker(threading.local):
     reencode = 0.0
 
 
-class _CountingPrior:
+class CountingPrior:
     """The prior as a job calls it: its decodes counted and timed in thread CPU seconds
     (the coordinator's :class:`~como3r.frontend.timing.TimedPrior` keeps one stage stack,
     which two threads must not share). Every other attribute is the prior's."""
@@ -204,7 +204,7 @@ class VerificationPool:
         def job() -> Done:
             start = time.thread_time()
             self._local.reencode = 0.0
-            prior = _CountingPrior(self.prior)  # type: ignore[arg-type]
+            prior = CountingPrior(self.prior)  # type: ignore[arg-type]
             verifications = verify_candidates(
                 prior,  # type: ignore[arg-type]
                 query,

@@ -28,6 +28,7 @@ from como3r.coordination.association import (
     DECODES_PER_CANDIDATE,
     Candidate,
     CrossAgentRetrieval,
+    Verification,
     budget_candidates,
     verify_candidates,
 )
@@ -250,13 +251,21 @@ class InterAgentLinking(GaugeMerging):
         decoded = self.stats.stage_seconds.get("prior_decode", 0.0) - decoded
         self.stats.add_time("verification", time.perf_counter() - middle - decoded)
         self.stats.verification_cpu += time.thread_time() - cpu
+        return self._take(packet, len(hits), verifications)
+
+    def _take(
+        self, packet: KeyframeKey, cross: int, verifications: list[Verification]
+    ) -> list[Candidate]:
+        """A keyframe's verifications, its ``cross`` cross-agent candidates' first and its
+        loop candidates' after: the loops to :meth:`_add_loop`, the others kept in
+        ``candidates``; returns the accepted cross-agent ones."""
         self.stats.edges_tried += len(verifications)
         records = [
             Candidate(v, self.graph.global_index(*v.candidate), self.graph.global_index(*v.query))
             for v in verifications
         ]
-        self._add_loop(packet, records[len(hits) :])
-        records = records[: len(hits)]
+        self._add_loop(packet, records[cross:])
+        records = records[:cross]
         self.candidates.extend(records)
         verified = [c for c in records if c.verification.accepted]
         self.stats.edges_verified += len(verified)

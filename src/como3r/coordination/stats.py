@@ -65,6 +65,13 @@ class CoordinatorStats:
     # make (a merge came between), and their decodes (not in prior_decodes)
     pool_wasted: int = 0
     pool_wasted_decodes: int = 0
+    # verification on the agents (verification.on_agents, .remote): jobs the agents answered,
+    # their decodes (in prior_decodes too), the agents' thread CPU seconds by stage, and the
+    # jobs taken back to be verified here (their agent gone)
+    remote_verifications: int = 0
+    remote_decodes: int = 0
+    remote_seconds: dict[str, float] = field(default_factory=dict)
+    remote_taken_back: int = 0
     stage_seconds: dict[str, float] = field(default_factory=dict)
 
     def add_time(self, stage: str, seconds: float) -> None:

@@ -46,7 +46,7 @@ from como3r.runtime.runtime_state import snapshot
 from como3r.store.writer import SessionStore
 from como3r.transport import codec
 from como3r.transport.keyframe_bytes import PartCounter
-from como3r.transport.links import Hub, Joined, Left, Received, Rejected
+from como3r.transport.links import Event, Hub, Joined, Left, Received, Rejected
 from como3r.transport.messages import (
     AgentFailed,
     AgentFinished,
@@ -155,6 +155,8 @@ class AgentEvents:
         checkpoint()  # a first Ctrl-C or SIGTERM stops here: the store holds what was handled
         for event in self.hub.events(timeout):
             slot = self.slots[event.agent]
+            if self._verifier_event(event):  # also from an agent whose stream has ended
+                continue
             if isinstance(event, Received):
                 if slot.expected():  # a failed agent's trailing messages are ignored
                     slot.last_heard = time.monotonic()
@@ -166,6 +168,12 @@ class AgentEvents:
             elif slot.expected():  # Left before its AgentFinished (or its re-sending)
                 self._left(slot, event)
         self._acknowledge()
+
+    def _verifier_event(self, event: Event) -> bool:
+        """Whether ``event`` was a verification reply or the departure of an agent
+        process that served verification, taken here (:mod:`.remote_verification`); no
+        such event without verification on the agents."""
+        return False
 
     def _received(self, slot: AgentSlot, event: Received) -> None:
         """Handle a message, unless the stored state has it already: a coordinator resumed

@@ -37,6 +37,7 @@ from como3r.frontend.packets import KeyframePacket
 from como3r.runtime.agent_loop import AgentLoop
 from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame, run_frames
 from como3r.runtime.prefetch import PreparedFrame, prepared_frames
+from como3r.runtime.remote_verification import serve
 from como3r.transport import codec
 from como3r.transport.codec import record_parts
 from como3r.transport.keyframe_bytes import PartCounter
@@ -53,6 +54,7 @@ from como3r.transport.messages import (
     Step,
 )
 from como3r.transport.pipes import Channel
+from como3r.transport.verification_messages import VerificationRequest
 
 logger = logging.getLogger(__name__)
 
@@ -162,6 +164,7 @@ class AgentWorker:
         ]
         self.applied_seq = 0
         self.current_frame = -1
+        self.stream_ended = False  # every frame processed
         self.parts = PartCounter()  # bytes per part of the keyframe messages sent
 
     def run(self) -> bool:
@@ -185,6 +188,7 @@ class AgentWorker:
                         return False
                     self._process(index, frames)
             self.current_frame = -1
+            self.stream_ended = True
             # lockstep: the stream ends on the coordinator's turn too, with every pose update
             # made until then applied, as in one process
             if not (self._await_step(END) if self.task.lockstep else self._drain_inbox()):
@@ -200,7 +204,19 @@ class AgentWorker:
                 keyframes_measured=self.parts.keyframes,
             )
         )
+        if self.task.verify:
+            self._serve_until_shutdown()
         return True
+
+    def _serve_until_shutdown(self) -> None:
+        """After the stream: serve the coordinator's verification requests until it says
+        stop (:mod:`.remote_verification`); pose updates no longer matter here."""
+        while True:
+            message = self.channel.receive()
+            if isinstance(message, Shutdown):
+                return
+            if isinstance(message, VerificationRequest):
+                self.channel.send(serve(self.prior, self.config, message, after_stream=True))
 
     def _process(self, index: int, frames: Iterator[PreparedFrame]) -> None:
         """Frame ``index``: its live event and keyframes leave as the loop hands them out,
@@ -247,6 +263,9 @@ class AgentWorker:
         if isinstance(message, Shutdown):
             logger.info("shutdown requested: %s", message.reason)
             return False
+        if isinstance(message, VerificationRequest) and self.task.verify:
+            self.channel.send(serve(self.prior, self.config, message, self.stream_ended))
+            return True
         if isinstance(message, PoseUpdateMessage):
             if message.seq <= self.applied_seq and message.update.agent == self.task.agent:
                 return True  # sent again after a reconnect: applied already

@@ -77,6 +77,7 @@ from como3r.runtime.pipeline import (
     build_prior,
     run_frames,
 )
+from como3r.runtime.remote_verification import AgentVerifiers
 from como3r.runtime.results import (
     AgentResult,
     AgentSlot,
@@ -88,7 +89,7 @@ from como3r.runtime.results import (
 )
 from como3r.store.writer import SessionStore
 from como3r.transport.keyframe_bytes import PartCounter
-from como3r.transport.links import Hub, Received
+from como3r.transport.links import Event, Hub, Left, Received
 from como3r.transport.messages import (
     AgentFinished,
     AgentTask,
@@ -96,6 +97,7 @@ from como3r.transport.messages import (
     PoseUpdateMessage,
     Step,
 )
+from como3r.transport.verification_messages import VerificationReply
 
 logger = logging.getLogger(__name__)
 
@@ -189,6 +191,23 @@ class _Runtime(AgentEvents):
         self.finish_threads = options.torch_threads
         self.tasks: dict[int, AgentTask] = {}
         self.places: dict[int, SegmentPlace] = {}
+        #: the agents' processes verifying for the coordinator (verification.on_agents)
+        self.verifiers = self._agent_verifiers()
+
+    def _agent_verifiers(self) -> AgentVerifiers | None:
+        """Verification on the agents where the configuration asks for it and this runtime
+        serves it: agent processes of this machine, free-running."""
+        if not self.config.verification.on_agents:
+            return None
+        if self.options.lockstep or self.hub.name != "pipes":
+            logger.warning(
+                "verification.on_agents: %s; the coordinator verifies itself",
+                "a lockstep run keeps the serial schedule"
+                if self.options.lockstep
+                else "agents on other machines do not verify for the coordinator",
+            )
+            return None
+        return AgentVerifiers(self.coordinator, self.hub)
 
     def start(self, paths: Sequence[Path | None], spec: PriorSpec) -> None:
         """Hand each agent its task: its input (None: the agent brings its own) and the
@@ -205,10 +224,14 @@ class _Runtime(AgentEvents):
                 log_level=logging.getLogger().getEffectiveLevel(),
                 live=self.live is not None,
                 send_encoding=not self.coordinator.encodings.can_reencode(self.first + k),
+                verify=self.verifiers is not None,
             )
             for k, path in enumerate(paths)
         }
         self.hub.start(list(self.tasks.values()), self.rejoin)
+        if self.verifiers is not None:
+            for agent in self.tasks:
+                self.verifiers.join(agent)
 
     def rejoin(self, agent: int) -> AgentTask | str:
         """A new process takes over agent ``agent``'s id (the one before it left): its task,
@@ -273,6 +296,7 @@ class _Runtime(AgentEvents):
             torch.set_num_threads(max(1, finish_threads))
         self.finish_threads = torch.get_num_threads()
         self._process_pending(force=True, progress=self.progress)
+        self._await_verifications()
         finishing()  # every keyframe is handled: a first Ctrl-C now lets the outputs be written
         self._acknowledge()  # every keyframe is stored: finished agents may leave
         self._finish()
@@ -326,6 +350,7 @@ class _Runtime(AgentEvents):
         The backlog is sampled first (:mod:`.backlog`) and shown as the coordinator's line
         while agents run; ``progress`` hears of each batch (the backlog once the agents
         stopped: the coordinator may trail them by many)."""
+        self._hand_over_verifications()
         ended = not any(s.expected() for s in self.slots)
         self.backlog.sample((key[0] for key, _ in self.pending), ended)
         if self.progress is not None and not ended and self.pending:
@@ -378,6 +403,8 @@ class _Runtime(AgentEvents):
         updates = self.coordinator.add_keyframes(packets, solve)
         for update in updates:
             self._send_update(update)
+        if self.verifiers is not None:
+            self.verifiers.dispatch({s.segment.index: s.agent for s in self.slots})
         self.backlog.handed(packet.timestamp for packet in packets)
         if self.coordinator_live is not None:
             for k, packet in enumerate(packets):  # the map moved once, after the batch
@@ -430,6 +457,69 @@ class _Runtime(AgentEvents):
                 slot.agent,
                 PoseUpdateMessage(update=replace(update, agent=slot.agent), seq=segment.sent_seq),
             )
+
+    # ---------------------------------------------------------------- verification on agents
+
+    def _verifier_event(self, event: Event) -> bool:
+        verifiers = self.verifiers
+        if verifiers is None:
+            return False
+        if isinstance(event, Received) and isinstance(event.message, VerificationReply):
+            self.slots[event.agent].last_heard = time.monotonic()
+            self.coordinator.stats.add_time(INGEST, event.seconds)  # its matches' decode
+            verifiers.received(event.agent, event.message)
+            return True
+        if isinstance(event, Left) and event.agent in verifiers.serving:
+            verifiers.left(event.agent)
+        return False
+
+    def _fail(self, slot: AgentSlot, error: str) -> None:
+        if self.verifiers is not None:
+            self.verifiers.left(slot.agent)
+        super()._fail(slot, error)
+
+    def _hand_over_verifications(self) -> None:
+        """The agents' verifications received so far to the coordinator; the updates they
+        made to the agents."""
+        if self.verifiers is not None:
+            for update in self.verifiers.hand_over():
+                self._send_update(update)
+
+    def _await_verifications(self) -> None:
+        """After the last keyframe: wait for the verifications still out (an agent process
+        silent for ``agent_timeout_s`` has its jobs taken back: the coordinator verifies
+        them), hand them over, and release the processes whose streams ended."""
+        verifiers = self.verifiers
+        if verifiers is None:
+            return
+        total = verifiers.out
+        while verifiers.out:
+            report_phase(
+                self.progress,
+                "verification on the agents",
+                f"{verifiers.out} keyframe(s) out",
+                total - verifiers.out,
+                total,
+            )
+            self._pump(0.5)
+            now = time.monotonic()
+            for agent in sorted(verifiers.serving):
+                if now - self.slots[agent].last_heard > self.options.agent_timeout_s:
+                    logger.warning(
+                        "agent %d: no verification reply for %.0f s; the coordinator "
+                        "verifies its keyframes",
+                        agent,
+                        self.options.agent_timeout_s,
+                    )
+                    verifiers.left(agent)
+            if not verifiers.serving:
+                self.coordinator.take_back_all()
+                break
+            self._hand_over_verifications()
+        self._hand_over_verifications()
+        if total:
+            report_phase(self.progress, "verification on the agents", "done", total, total)
+        verifiers.release(s.agent for s in self.slots if s.status == "finished")
 
     # ---------------------------------------------------------------- the end
 
@@ -489,4 +579,6 @@ class _Runtime(AgentEvents):
         """Stop the agents still running and release the transport. ``interrupted``
         (Ctrl-C): terminate at once instead of asking and waiting (an agent still starting
         up would only read the request after its imports)."""
+        if self.verifiers is not None and not interrupted:
+            self.verifiers.release(s.agent for s in self.slots if s.status == "finished")
         self.hub.stop([s.agent for s in self.slots if s.status in _LIVE], interrupted)

@@ -1,6 +1,7 @@
 """The multi-process runtime's own metrics (:mod:`.processes`): ``metrics.json``'s
 ``runtime`` section, per agent (status, map segments, bytes and messages each way, keyframe
-bytes by part) and in total (bytes by message type, backlog, failed agents)."""
+bytes by part, the verification it served for the coordinator) and in total (bytes by
+message type, backlog, failed agents, whether the agents verified)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from typing import Any, Protocol
 
 from como3r.runtime.agent_events import RuntimeOptions
 from como3r.runtime.backlog import Backlog
+from como3r.runtime.remote_verification import AgentVerifiers
 from como3r.runtime.results import AgentSlot, MapSegment, SegmentPlace
 from como3r.transport.keyframe_bytes import PartCounter
 from como3r.transport.links import Hub, Traffic
@@ -25,6 +27,7 @@ class MetricsSource(Protocol):
     finish_threads: int
     backlog: Backlog
     keyframe_parts: dict[int, PartCounter]
+    verifiers: AgentVerifiers | None
 
 
 def runtime_metrics(runtime: MetricsSource) -> dict[str, Any]:
@@ -67,6 +70,9 @@ def runtime_metrics(runtime: MetricsSource) -> dict[str, Any]:
                 "keyframe_bytes_by_part": runtime.keyframe_parts.get(
                     slot.agent, PartCounter()
                 ).per_keyframe(),
+                "verification": None
+                if runtime.verifiers is None
+                else runtime.verifiers.metrics(slot.agent),
             }
         )
     return {
@@ -81,4 +87,5 @@ def runtime_metrics(runtime: MetricsSource) -> dict[str, Any]:
         "bytes_total": sum(by_type.values()),
         "failed_agents": [s.agent for s in runtime.slots if s.status == "failed"],
         "backlog": runtime.backlog.to_json(),
+        "verification_on_agents": runtime.verifiers is not None,
     }

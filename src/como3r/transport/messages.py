@@ -11,7 +11,9 @@ Coordinator -> agent (one pipe per agent):
 * :class:`AgentTask` -- the first message: what to run, with which configuration and prior;
 * :class:`PoseUpdateMessage` -- new world poses of the agent's keyframes, numbered;
 * :class:`Step` -- lockstep mode only: process your next frame;
-* :class:`Shutdown` -- stop now (the run is being aborted).
+* :class:`Shutdown` -- stop now (the run is being aborted);
+* :class:`~.verification_messages.VerificationRequest` -- verify a keyframe's candidate
+  pairs (``verification.on_agents``).
 
 Agent -> coordinator (one pipe per agent):
 
@@ -22,7 +24,8 @@ Agent -> coordinator (one pipe per agent):
   before its ``FrameDone`` only when the task asks (``AgentTask.live``: a viewer watches);
 * :class:`AgentFinished` -- the stream ended: final fused pointmap, statistics and the
   anchored trajectory (C-Sec. A.8) from which the coordinator writes the agent's outputs;
-* :class:`AgentFailed` -- the agent hit an error and is exiting.
+* :class:`AgentFailed` -- the agent hit an error and is exiting;
+* :class:`~.verification_messages.VerificationReply` -- a verification request served.
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from como3r.prior.retrieval import Aggregated
 from como3r.transport import codec, codec_registry
 from como3r.transport.codec_types import require as _require
 from como3r.transport.codec_types import require_shape as _shape
+from como3r.transport.verification_messages import VerificationReply, VerificationRequest
 
 
 @dataclass(frozen=True)
@@ -66,6 +70,9 @@ class AgentTask:
             id of an agent whose earlier process left; -1: every frame).
         send_encoding: send each keyframe's encoding; False when the coordinator encodes
             the keyframes' colours again itself (:mod:`como3r.coordination.encodings`).
+        verify: serve the :class:`~.verification_messages.VerificationRequest` messages between
+            frames and, once the stream has ended, until a :class:`Shutdown`
+            (``verification.on_agents``: :mod:`como3r.runtime.remote_verification`).
     """
 
     agent: int
@@ -79,7 +86,8 @@ class AgentTask:
     live: bool = False
     resume_after: int = -1
     send_encoding: bool = True
-    version: int = 4
+    verify: bool = False
+    version: int = 5
 
 
 @dataclass(frozen=True)
@@ -248,10 +256,18 @@ class Shutdown:
     version: int = 1
 
 
-TO_AGENT = (AgentTask, PoseUpdateMessage, Step, Shutdown)
+TO_AGENT = (AgentTask, PoseUpdateMessage, Step, Shutdown, VerificationRequest)
 """Messages an agent accepts."""
 
-FROM_AGENT = (AgentStarted, KeyframeMessage, FrameDone, FrameEvent, AgentFinished, AgentFailed)
+FROM_AGENT = (
+    AgentStarted,
+    KeyframeMessage,
+    FrameDone,
+    FrameEvent,
+    AgentFinished,
+    AgentFailed,
+    VerificationReply,
+)
 """Messages the coordinator accepts from an agent."""
 
 
@@ -405,11 +421,13 @@ def _check_update_message(m: PoseUpdateMessage) -> None:
 
 
 for _cls in (*TO_AGENT, *FROM_AGENT, EdgeSummary):
-    # AgentTask 3: resume_after, 4: send_encoding; FrameDone 2: keyframes_waiting;
-    # AgentFinished 2: the keyframe bytes per part, measured by the agent
-    codec_registry.register(
-        _cls, version={AgentTask: 4, FrameDone: 2, AgentFinished: 2}.get(_cls, 1)
-    )
+    # AgentTask 3: resume_after, 4: send_encoding, 5: verify; FrameDone 2: keyframes_waiting;
+    # AgentFinished 2: the keyframe bytes per part, measured by the agent (the verification
+    # messages register themselves: .verification_messages)
+    if _cls not in (VerificationRequest, VerificationReply):
+        codec_registry.register(
+            _cls, version={AgentTask: 5, FrameDone: 2, AgentFinished: 2}.get(_cls, 1)
+        )
 
 for _name, _check in (
     ("PoseUpdate", _check_pose_update),
