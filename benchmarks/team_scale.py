@@ -30,6 +30,13 @@ process of its own so memory peaks do not carry over. Per team size the table gi
   together, and the pool's part (its workers' thread CPU, wasted work included; not in
   ``coord ms/kf``); the decodes the pool made for a keyframe's predicted candidates that a
   merge before it then changed;
+* ``agents ms/kf``: with ``verification.on_agents`` (``--set verification.on_agents=true``,
+  :mod:`como3r.coordination.remote`), the agents' thread CPU per keyframe verifying for the
+  coordinator (re-encodes, decodes, matching); the coordinator then verifies nothing
+  itself (its ``add_verified`` calls, which admit the agents' edges, are in ``coord
+  ms/kf`` and in the replays, each keyframe's share added to its work), and each agent's
+  CPU per frame includes what it verified after its last frame, spread over its frames
+  (between frames ``/proc`` counts it);
 * ``skipped``, ``deferred``, ``at end``, ``idle s``: under a batch budget
   (``--set verification.max_decodes_per_batch=N``), keyframes whose verification a batch
   deferred, those verified later (:mod:`como3r.coordination.deferral`), of these the ones
@@ -56,6 +63,9 @@ process of its own so memory peaks do not carry over. Per team size the table gi
 * ``rt end kf``, ``rt max kf``: the runtime's own backlog (``metrics.json``
   ``runtime.backlog``) on this machine, where all processes share its cores: at the end
   of the input and the most during the run;
+* ``out at end``: with ``verification.on_agents``, the keyframes whose verification the
+  agents had not returned when the input ended (the runtime waits for them, then runs the
+  terminal cleanup);
 * ``batch``: the most keyframes the coordinator took at once;
 * ``coord MB``, ``agent MB``: peak resident memory (``VmHWM``) of the coordinator's
   process over the whole run (terminal refinement and evaluation included) and of the
@@ -570,6 +580,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import subprocess
@@ -613,6 +624,7 @@ COLUMNS = (
     "decodes/kf",
     "verify ms/kf",
     "pool ms/kf",
+    "agents ms/kf",
     "wasted",
     "skipped",
     "deferred",
@@ -625,6 +637,7 @@ COLUMNS = (
     "cores for 0",
     "rt end kf",
     "rt max kf",
+    "out at end",
     "batch",
     "cleanup s",
     "coord MB",
@@ -683,8 +696,14 @@ def _children() -> list[int]:
 #: one call of ``add_keyframe(s)``: the coordinator thread's CPU seconds, the ``(agent,
 #: kf_id, timestamp)`` of the keyframes it took, and of its CPU the verification done in line
 #: and the pool's workers' CPU seconds during it (both 0 in runs recorded before them); a
-#: call without keyframes is an idle coordinator's ``verify_deferred_one``
-Call = tuple[float, list[tuple[int, int, float]], float, float]
+#: call without keyframes is an idle coordinator's ``verify_deferred_one``. With
+#: ``verification.on_agents`` a fifth element ``"verified"`` marks a call of
+#: ``add_verified``: the agents' verifications of the keyframes it names admitted (its CPU is
+#: those keyframes' work too; runs recorded before it have four elements)
+Call = tuple[Any, ...]
+
+#: the fifth element of a :data:`Call` of ``add_verified``
+VERIFIED = "verified"
 
 
 def _verification_cpu(coordinator: Coordinator) -> tuple[float, float]:
@@ -730,6 +749,18 @@ class _Timed:
                 calls.append((time.thread_time() - start, [], after[0] - inline, after[1] - pool))
             return updates
 
+        verified = Coordinator.add_verified
+
+        def add_verified(coordinator: Coordinator, replies: Any) -> Any:
+            jobs = [coordinator._outstanding.get(r.request) for r in replies]
+            start = time.thread_time()
+            updates = verified(coordinator, replies)
+            keys = [(*job.query, math.nan) for job in jobs if job is not None]
+            if keys:
+                calls.append((time.thread_time() - start, keys, 0.0, 0.0, VERIFIED))
+            return updates
+
+        Coordinator.add_verified = add_verified  # type: ignore[method-assign]
         Coordinator.add_keyframe = add_keyframe  # type: ignore[method-assign]
         Coordinator.add_keyframes = add_keyframes  # type: ignore[method-assign]
         Coordinator.verify_deferred_one = verify_deferred_one  # type: ignore[method-assign]
@@ -770,12 +801,18 @@ def run_one(
 
     run_multiprocess(agents, out, config, PriorSpec("simulated"), overwrite=True, progress=progress)
     metrics = json.loads((out / "metrics.json").read_text())
-    pids = {entry["agent"]: entry["pid"] for entry in metrics["runtime"]["agents"]}
+    entries = {entry["agent"]: entry for entry in metrics["runtime"]["agents"]}
     cpu_per_frame = {}
-    for agent, pid in pids.items():
+    for agent, entry in entries.items():
+        pid = entry["pid"]
         mine = [(done, cpu[pid]) for a, done, cpu in samples if a == agent and pid in cpu]
         if len(mine) >= 2 and mine[-1][0] > mine[0][0]:
             cpu_per_frame[agent] = (mine[-1][1] - mine[0][1]) / (mine[-1][0] - mine[0][0])
+            # what it verified for the coordinator after its last frame is its frames' work
+            # too (verification.on_agents; between frames /proc counted it already)
+            served = entry.get("verification") or {}
+            after = served.get("cpu_seconds_after_stream", 0.0)
+            cpu_per_frame[agent] += after / max(1, entry["frames_done"])
     return {
         "calls": timed.calls,
         "deferred_at_end_cpu": timed.at_end,
@@ -927,13 +964,21 @@ def replay(
         cpu_per_frame: each agent's CPU seconds per frame.
         cores: the coordinator's cores (:func:`call_seconds`).
     """
-    keyframes = []  # (arrival [s], timestamp [s], service [s])
+    taken: dict[tuple[int, int], list[float]] = {}  # [arrival [s], timestamp [s], service [s]]
     for call in calls:
         keys = call[1]
-        for agent, _, stamp in keys:
+        if len(call) > 4 and call[4] == VERIFIED:
+            continue
+        for agent, kf_id, stamp in keys:
             frames = int(np.searchsorted(frame_times[agent], stamp + 1e-9))  # frames done
             arrival = frames * cpu_per_frame.get(agent, 0.0)
-            keyframes.append((arrival, stamp, call_seconds(call, cores) / len(keys)))
+            entry = taken.setdefault((agent, kf_id), [arrival, stamp, 0.0])
+            entry[2] += call_seconds(call, cores) / len(keys)
+    for call in calls:  # the admission of the agents' verifications: their keyframes' work
+        if len(call) > 4 and call[4] == VERIFIED:
+            for agent, kf_id, _ in call[1]:
+                taken[(agent, kf_id)][2] += call_seconds(call, cores) / len(call[1])
+    keyframes = sorted(tuple(entry) for entry in taken.values())
     if not keyframes:
         return 0, 0.0, 0.0, 0
     end = max(len(t) * cpu_per_frame.get(a, 0.0) for a, t in frame_times.items())
@@ -1004,6 +1049,7 @@ def row(
         "decodes/kf": coordinator["prior_decodes"] / keyframes,
         "verify ms/kf": 1000.0 * verify / keyframes,
         "pool ms/kf": 1000.0 * pool / keyframes,
+        "agents ms/kf": 1000.0 * sum(coordinator.get("remote_seconds", {}).values()) / keyframes,
         "wasted": coordinator.get("pool_wasted_decodes", 0),
         "skipped": coordinator.get("verification_skipped", 0),
         "deferred": coordinator.get("verification_deferred", 0),
@@ -1017,6 +1063,9 @@ def row(
         "cores for 0": cores_to_keep_up(calls, frame_times, agent_cpu),
         "rt end kf": backlog.get("end_keyframes", "-"),
         "rt max kf": backlog.get("max_keyframes", "-"),
+        "out at end": "-"
+        if runtime.get("verification_out_at_end") is None
+        else runtime["verification_out_at_end"],
         "batch": coordinator.get("largest_batch", "-"),
         "cleanup s": coordinator["stage_seconds"].get("cleanup", 0.0),
         "coord MB": measured["coordinator_peak_mb"],

@@ -293,6 +293,8 @@ class _Runtime(AgentEvents):
                     for update in self.coordinator.verify_deferred_one():
                         self._send_update(update)
                 self._check_timeouts([s for s in self.slots if s.expected()])
+            if self.verifiers is not None:
+                self.verifiers.out_at_end = self.verifiers.out
             torch.set_num_threads(max(1, finish_threads))
         self.finish_threads = torch.get_num_threads()
         self._process_pending(force=True, progress=self.progress)

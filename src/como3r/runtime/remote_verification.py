@@ -155,6 +155,8 @@ class AgentVerifiers:
         self.served: Counter[int] = Counter()
         self.seconds: Counter[int] = Counter()
         self.seconds_after_stream: Counter[int] = Counter()
+        #: jobs out when the agents' input ended (metrics.json)
+        self.out_at_end = 0
 
     def join(self, agent: int) -> None:
         """Agent process ``agent`` serves requests from now on."""

@@ -88,4 +88,8 @@ def runtime_metrics(runtime: MetricsSource) -> dict[str, Any]:
         "failed_agents": [s.agent for s in runtime.slots if s.status == "failed"],
         "backlog": runtime.backlog.to_json(),
         "verification_on_agents": runtime.verifiers is not None,
+        # keyframes whose verification the agents had not returned when their input ended
+        "verification_out_at_end": None
+        if runtime.verifiers is None
+        else runtime.verifiers.out_at_end,
     }
