@@ -187,8 +187,9 @@ class VerificationConfig:
       matches them between its frames and returns the matches, the coordinator admits the
       edges when they come back. Its own work per keyframe is then retrieval, admission,
       merges and global BA (issue 41: a one-core coordinator keeps up with 16 agents).
-      The runs of ``como3r run``'s multi-process runtime only; elsewhere (one process,
-      lockstep, agents on other machines) the coordinator verifies, as with false.
+      Runs with agent processes, on this machine (``como3r run``) or across machines
+      (``como3r coordinator`` and ``como3r agent``); in one process (``--single-process``)
+      and in lockstep the coordinator verifies, as with false.
     """
 
     tau_inter: float = 0.1

@@ -51,7 +51,7 @@ def _answered(coordinator: Coordinator, prior: SimulatedPrior, wire: bool) -> li
         request = request_message(coordinator, job)
         if wire:
             request = _wire(request, TO_AGENT, lossy=False)
-        reply = serve(prior, coordinator.config, request)
+        reply = serve(request.query[0], prior, coordinator.config, request)
         if wire:
             reply = _wire(reply, FROM_AGENT, lossy=True)
         made = verified(job, reply)

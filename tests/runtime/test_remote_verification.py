@@ -49,6 +49,26 @@ def test_a_team_whose_agents_verify_ends_in_one_map(tiny_scene, tmp_path) -> Non
     assert not multiprocessing.active_children()
 
 
+def test_agents_across_machines_verify_for_their_coordinator(tiny_scene, new_team) -> None:
+    """``como3r coordinator`` and two ``como3r agent`` processes over loopback TCP: the
+    agents serve the coordinator's requests and end once it releases them."""
+    scene = tiny_scene(frames=12, seed=0, overlap=0.5)
+    team = new_team("on_agents")
+    out = team.tmp / "out"
+    team.coordinator(out, 2, "--set", "verification.on_agents=true")
+    for agent in range(2):
+        team.agent(agent, scene / f"agent_{agent}")
+    for name in ("coordinator", "agent0", "agent1"):
+        team.wait(name)
+    metrics = json.loads((out / "metrics.json").read_text())
+    coordinator, runtime = metrics["coordinator"], metrics["runtime"]
+    assert runtime["transport"] == "zenoh" and runtime["verification_on_agents"] is True
+    served = [a["verification"]["requests"] for a in runtime["agents"]]
+    assert sum(served) == coordinator["remote_verifications"] > 0
+    assert coordinator["remote_taken_back"] == 0 and coordinator["reencodes"] == 0
+    assert len(metrics["components"]) == 1
+
+
 @pytest.fixture
 def delegating(tmp_path, scripted_hub) -> tuple[Coordinator, AgentVerifiers, SimulatedPrior]:
     """A coordinator that left its first jobs to agents 0 and 1 (scripted: nothing runs)."""
@@ -80,7 +100,7 @@ def test_replies_are_taken_from_the_agent_sent_to_and_handed_over_together(
     coordinator, verifiers, prior = delegating
     requests = [(agent, m) for agent, m in scripted_hub.sent if isinstance(m, VerificationRequest)]
     agent, request = requests[0]
-    reply = serve(prior, coordinator.config, request)
+    reply = serve(agent, prior, coordinator.config, request)
     verifiers.received(1 - agent, reply)  # not the agent it was sent to
     assert "it was not sent; dropped" in caplog.text and verifiers.out == len(requests)
     verifiers.received(agent, reply)

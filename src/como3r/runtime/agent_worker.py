@@ -216,7 +216,9 @@ class AgentWorker:
             if isinstance(message, Shutdown):
                 return
             if isinstance(message, VerificationRequest):
-                self.channel.send(serve(self.prior, self.config, message, after_stream=True))
+                self.channel.send(
+                    serve(self.task.agent, self.prior, self.config, message, after_stream=True)
+                )
 
     def _process(self, index: int, frames: Iterator[PreparedFrame]) -> None:
         """Frame ``index``: its live event and keyframes leave as the loop hands them out,
@@ -264,7 +266,9 @@ class AgentWorker:
             logger.info("shutdown requested: %s", message.reason)
             return False
         if isinstance(message, VerificationRequest) and self.task.verify:
-            self.channel.send(serve(self.prior, self.config, message, self.stream_ended))
+            self.channel.send(
+                serve(self.task.agent, self.prior, self.config, message, self.stream_ended)
+            )
             return True
         if isinstance(message, PoseUpdateMessage):
             if message.seq <= self.applied_seq and message.update.agent == self.task.agent:

@@ -89,9 +89,10 @@ from como3r.runtime.results import (
 )
 from como3r.store.writer import SessionStore
 from como3r.transport.keyframe_bytes import PartCounter
-from como3r.transport.links import Event, Hub, Left, Received
+from como3r.transport.links import Event, Hub, Joined, Left, Received
 from como3r.transport.messages import (
     AgentFinished,
+    AgentStarted,
     AgentTask,
     KeyframeMessage,
     PoseUpdateMessage,
@@ -199,12 +200,10 @@ class _Runtime(AgentEvents):
         serves it: agent processes of this machine, free-running."""
         if not self.config.verification.on_agents:
             return None
-        if self.options.lockstep or self.hub.name != "pipes":
+        if self.options.lockstep:
             logger.warning(
-                "verification.on_agents: %s; the coordinator verifies itself",
-                "a lockstep run keeps the serial schedule"
-                if self.options.lockstep
-                else "agents on other machines do not verify for the coordinator",
+                "verification.on_agents: a lockstep run keeps the serial schedule; the "
+                "coordinator verifies itself"
             )
             return None
         return AgentVerifiers(self.coordinator, self.hub)
@@ -229,9 +228,6 @@ class _Runtime(AgentEvents):
             for k, path in enumerate(paths)
         }
         self.hub.start(list(self.tasks.values()), self.rejoin)
-        if self.verifiers is not None:
-            for agent in self.tasks:
-                self.verifiers.join(agent)
 
     def rejoin(self, agent: int) -> AgentTask | str:
         """A new process takes over agent ``agent``'s id (the one before it left): its task,
@@ -471,8 +467,12 @@ class _Runtime(AgentEvents):
             self.coordinator.stats.add_time(INGEST, event.seconds)  # its matches' decode
             verifiers.received(event.agent, event.message)
             return True
-        if isinstance(event, Left) and event.agent in verifiers.serving:
-            verifiers.left(event.agent)
+        if isinstance(event, Received) and isinstance(event.message, AgentStarted):
+            verifiers.join(event.agent)  # its task said verify (a process taking over too)
+        elif isinstance(event, Joined) and self.slots[event.agent].status in _LIVE:
+            verifiers.join(event.agent)  # back after it was away
+        elif isinstance(event, Left) and event.agent in verifiers.serving:
+            verifiers.left(event.agent)  # away or gone: its jobs are verified here
         return False
 
     def _fail(self, slot: AgentSlot, error: str) -> None:

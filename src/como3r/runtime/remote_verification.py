@@ -82,9 +82,13 @@ def verified(job: RemoteJob, reply: VerificationReply) -> Verified | None:
 
 
 def serve(
-    prior: Prior, config: Config, request: VerificationRequest, after_stream: bool = False
+    agent: int,
+    prior: Prior,
+    config: Config,
+    request: VerificationRequest,
+    after_stream: bool = False,
 ) -> VerificationReply:
-    """Verify a request's pairs here (an agent's process) as the coordinator would;
+    """Verify a request's pairs in agent ``agent``'s process as the coordinator would;
     ``after_stream``: the agent's frames are done."""
     start = time.thread_time()
     encodings: dict[tuple[int, int], Encoding] = {}
@@ -113,6 +117,7 @@ def serve(
     )
     total = time.thread_time() - start
     return VerificationReply(
+        agent=agent,
         request=request.request,
         query=query,
         pairs=[
@@ -180,7 +185,7 @@ class AgentVerifiers:
     def received(self, agent: int, reply: VerificationReply) -> None:
         """An agent's reply, kept for :meth:`hand_over`."""
         sent = self._sent.get(reply.request)
-        if sent is None or sent[0] != agent:
+        if sent is None or sent[0] != agent or reply.agent != agent:
             logger.warning(
                 "agent %d: a verification reply to request %d it was not sent; dropped",
                 agent,

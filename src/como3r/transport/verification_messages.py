@@ -92,6 +92,8 @@ class VerificationReply:
     """Agent -> coordinator: a :class:`VerificationRequest` served.
 
     Attributes:
+        agent: the agent whose process served it (across machines, the key it came
+            under must be this agent's).
         request: the request's number.
         query: its keyframe.
         pairs: one per candidate, in the request's order.
@@ -101,6 +103,7 @@ class VerificationReply:
         after_stream: served after the agent's last frame (its frame rate did not pay it).
     """
 
+    agent: int
     request: int
     query: tuple[int, int]
     pairs: list[VerifiedPair]
@@ -136,7 +139,10 @@ def _check_pair(m: VerifiedPair) -> None:
 
 
 def _check_reply(m: VerificationReply) -> None:
-    _require(m.request >= 0 and m.decodes >= 0, "request and decodes must be >= 0")
+    _require(
+        m.agent >= 0 and m.request >= 0 and m.decodes >= 0,
+        "agent, request and decodes must be >= 0",
+    )
     _require(
         all(math.isfinite(v) and v >= 0 for v in m.seconds.values()),
         "seconds must be finite and >= 0",
