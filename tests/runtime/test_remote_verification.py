@@ -16,8 +16,7 @@ from como3r.prior.simulated import SimulatedPrior
 from como3r.runtime.multiprocess import run_multiprocess
 from como3r.runtime.pipeline import PriorSpec
 from como3r.runtime.remote_verification import AgentVerifiers, serve
-from como3r.transport.messages import Shutdown
-from como3r.transport.verification_messages import VerificationRequest
+from como3r.transport.verification_messages import VerificationDone, VerificationRequest
 
 from ..coordination.ring_keyframes import AGENTS, HEIGHT, SHORT_RUN, WIDTH, ring_keyframes
 
@@ -127,11 +126,11 @@ def test_an_agent_that_leaves_has_its_jobs_verified_by_the_coordinator(
     coordinator.finish()  # the taken-back keyframes verified here
     assert coordinator.stats.verification_deferred_at_finish == coordinator.stats.remote_taken_back
     verifiers.release([0, 1])
-    assert not [m for _, m in scripted_hub.sent if isinstance(m, Shutdown)]  # none serves
+    assert not [m for _, m in scripted_hub.sent if isinstance(m, VerificationDone)]  # none serves
 
 
-def test_released_agents_are_told_to_stop(delegating, scripted_hub) -> None:
+def test_released_agents_are_told_no_more_requests_come(delegating, scripted_hub) -> None:
     _, verifiers, _ = delegating
     verifiers.release([1, 2])
-    stops = [a for a, m in scripted_hub.sent if isinstance(m, Shutdown)]
+    stops = [a for a, m in scripted_hub.sent if isinstance(m, VerificationDone)]
     assert stops == [1] and verifiers.serving == {0}

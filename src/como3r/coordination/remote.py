@@ -138,9 +138,11 @@ class RemoteVerification(DeferredVerification):
             )
         return images
 
-    def add_verified(self, replies: Sequence[Verified]) -> list[PoseUpdate]:
+    def add_verified(self, replies: Sequence[Verified], solve: bool = True) -> list[PoseUpdate]:
         """Admit the edges of the agents' verifications (jobs no longer out are ignored),
-        then the in-stream global BA on its trigger, once; returns the pose updates."""
+        then, if ``solve``, the in-stream global BA on its trigger, once; returns the pose
+        updates. False: the edges wait for the next batch's BA (a runtime about to hand
+        over a batch: one BA per batch, as when the coordinator verifies)."""
         updates: list[PoseUpdate] = []
         for reply in replies:
             job = self._outstanding.pop(reply.request, None)
@@ -158,7 +160,8 @@ class RemoteVerification(DeferredVerification):
             key = DeferredKeyframe(*job.query, job.hits)
             for candidate in self._take(key, job.cross, reply.verifications):
                 updates.extend(self._admit(candidate))
-        self._solve_on_trigger(updates)
+        if solve:
+            self._solve_on_trigger(updates)
         return self._record(self._count(updates))
 
     def take_back(self, request: int) -> None:

@@ -54,7 +54,7 @@ from como3r.transport.messages import (
     Step,
 )
 from como3r.transport.pipes import Channel
-from como3r.transport.verification_messages import VerificationRequest
+from como3r.transport.verification_messages import VerificationDone, VerificationRequest
 
 logger = logging.getLogger(__name__)
 
@@ -210,10 +210,11 @@ class AgentWorker:
 
     def _serve_until_shutdown(self) -> None:
         """After the stream: serve the coordinator's verification requests until it says
-        stop (:mod:`.remote_verification`); pose updates no longer matter here."""
+        no more come (or stop: :mod:`.remote_verification`); pose updates no longer matter
+        here."""
         while True:
             message = self.channel.receive()
-            if isinstance(message, Shutdown):
+            if isinstance(message, (VerificationDone, Shutdown)):
                 return
             if isinstance(message, VerificationRequest):
                 self.channel.send(
@@ -265,6 +266,8 @@ class AgentWorker:
         if isinstance(message, Shutdown):
             logger.info("shutdown requested: %s", message.reason)
             return False
+        if isinstance(message, VerificationDone):
+            return True  # for an agent whose stream has ended: this one's goes on
         if isinstance(message, VerificationRequest) and self.task.verify:
             self.channel.send(
                 serve(self.task.agent, self.prior, self.config, message, self.stream_ended)

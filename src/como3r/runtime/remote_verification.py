@@ -5,10 +5,11 @@ Coordinator side, :class:`AgentVerifiers`: each job the coordinator makes goes t
 process of the agent that made the keyframe, or where that one no longer serves, to the
 serving process with the fewest jobs out (a request carries every image its pairs need, so
 any agent process can serve any job); the replies are handed to the coordinator together
-once per turn of the runtime's loop; the jobs of a process that left are taken back (the
-coordinator verifies them itself). An agent process whose stream has ended keeps serving
-until it is told to stop (:meth:`AgentVerifiers.release`), which the runtime does once no
-job is out, before its terminal cleanup.
+once per turn of the runtime's loop (the global BA after them only when no batch of
+keyframes follows, whose BA solves with their edges); the jobs of a process that left are
+taken back (the coordinator verifies them itself). An agent process whose stream has ended
+keeps serving until it is told that no more come (:meth:`AgentVerifiers.release`), which the
+runtime does once no job is out, before its terminal cleanup.
 
 Agent side, :func:`serve`: a request's keyframes encoded again from their images
 (:meth:`~como3r.prior.base.Prior.encode_again`), its pairs verified as the coordinator
@@ -33,9 +34,9 @@ from como3r.frontend.pairs import PairLink
 from como3r.prior.base import Encoding, EncodingRecord, Prior
 from como3r.prior.retrieval import Hit
 from como3r.transport.links import Hub
-from como3r.transport.messages import Shutdown
 from como3r.transport.verification_messages import (
     KeyframeImage,
+    VerificationDone,
     VerificationReply,
     VerificationRequest,
     VerifiedPair,
@@ -210,13 +211,14 @@ class AgentVerifiers:
             return
         self._replies.append(made)
 
-    def hand_over(self) -> list[PoseUpdate]:
-        """The replies received since the last call to the coordinator, at once; returns
-        the pose updates they made."""
+    def hand_over(self, solve: bool = True) -> list[PoseUpdate]:
+        """The replies received since the last call to the coordinator, at once (its
+        global BA on its trigger after them if ``solve``); returns the pose updates they
+        made."""
         if not self._replies:
             return []
         replies, self._replies = self._replies, []
-        return self.coordinator.add_verified(replies)
+        return self.coordinator.add_verified(replies, solve)
 
     def left(self, agent: int) -> None:
         """Agent process ``agent`` serves no more: its jobs out are taken back."""
@@ -240,7 +242,8 @@ class AgentVerifiers:
         return len(self._sent)
 
     def release(self, agents: Iterable[int]) -> None:
-        """Tell the serving processes among ``agents`` (their streams ended) to stop."""
+        """Tell the serving processes among ``agents`` (their streams ended) that no more
+        requests come: they leave as at the end of their stream."""
         for agent in sorted(set(agents) & self.serving):
             self.serving.discard(agent)
-            self.hub.send(agent, Shutdown("every verification is done"))
+            self.hub.send(agent, VerificationDone())

@@ -13,7 +13,8 @@ Coordinator -> agent (one pipe per agent):
 * :class:`Step` -- lockstep mode only: process your next frame;
 * :class:`Shutdown` -- stop now (the run is being aborted);
 * :class:`~.verification_messages.VerificationRequest` -- verify a keyframe's candidate
-  pairs (``verification.on_agents``).
+  pairs (``verification.on_agents``), and :class:`~.verification_messages.VerificationDone`
+  -- no more of them (an agent whose stream ended then leaves).
 
 Agent -> coordinator (one pipe per agent):
 
@@ -47,7 +48,11 @@ from como3r.prior.retrieval import Aggregated
 from como3r.transport import codec, codec_registry
 from como3r.transport.codec_types import require as _require
 from como3r.transport.codec_types import require_shape as _shape
-from como3r.transport.verification_messages import VerificationReply, VerificationRequest
+from como3r.transport.verification_messages import (
+    VerificationDone,
+    VerificationReply,
+    VerificationRequest,
+)
 
 
 @dataclass(frozen=True)
@@ -256,7 +261,7 @@ class Shutdown:
     version: int = 1
 
 
-TO_AGENT = (AgentTask, PoseUpdateMessage, Step, Shutdown, VerificationRequest)
+TO_AGENT = (AgentTask, PoseUpdateMessage, Step, Shutdown, VerificationRequest, VerificationDone)
 """Messages an agent accepts."""
 
 FROM_AGENT = (
@@ -424,7 +429,7 @@ for _cls in (*TO_AGENT, *FROM_AGENT, EdgeSummary):
     # AgentTask 3: resume_after, 4: send_encoding, 5: verify; FrameDone 2: keyframes_waiting;
     # AgentFinished 2: the keyframe bytes per part, measured by the agent (the verification
     # messages register themselves: .verification_messages)
-    if _cls not in (VerificationRequest, VerificationReply):
+    if _cls not in (VerificationRequest, VerificationDone, VerificationReply):
         codec_registry.register(
             _cls, version={AgentTask: 5, FrameDone: 2, AgentFinished: 2}.get(_cls, 1)
         )

@@ -5,6 +5,10 @@ Coordinator -> agent: :class:`VerificationRequest`, a keyframe's selected candid
 with every keyframe image the pairs need (the query's and its candidates', which may be of
 other agents), so any agent process can serve it whatever it holds itself.
 
+Coordinator -> agent: :class:`VerificationDone`, no more requests: an agent process whose
+stream has ended leaves as it would have at its end (across machines once the coordinator
+stored every message; a :class:`~.messages.Shutdown` would abort it instead).
+
 Agent -> coordinator: :class:`VerificationReply`, one :class:`VerifiedPair` per candidate
 in the request's order, as :func:`~como3r.coordination.association.verify_candidates`
 returned them, with the decodes and CPU seconds they cost the agent.
@@ -64,6 +68,13 @@ class VerificationRequest:
     candidates: list[tuple[int, int]]
     similarities: list[float]
     images: list[KeyframeImage]
+    version: int = 1
+
+
+@dataclass(frozen=True)
+class VerificationDone:
+    """Coordinator -> agent: no more verification requests will come."""
+
     version: int = 1
 
 
@@ -153,6 +164,7 @@ def _check_reply(m: VerificationReply) -> None:
 # inter-agent edge's in the session store (the confidences in its finer steps)
 codec_registry.register(KeyframeImage, coded={"colors": "image"})
 codec_registry.register(VerificationRequest)
+codec_registry.register(VerificationDone)
 codec_registry.register(VerifiedPair, coded={"ij": "inter_matches", "ji": "inter_matches"})
 codec_registry.register(VerificationReply)
 for _name, _check in (
