@@ -751,10 +751,10 @@ class _Timed:
 
         verified = Coordinator.add_verified
 
-        def add_verified(coordinator: Coordinator, replies: Any) -> Any:
+        def add_verified(coordinator: Coordinator, replies: Any, solve: bool = True) -> Any:
             jobs = [coordinator._outstanding.get(r.request) for r in replies]
             start = time.thread_time()
-            updates = verified(coordinator, replies)
+            updates = verified(coordinator, replies, solve)
             keys = [(*job.query, math.nan) for job in jobs if job is not None]
             if keys:
                 calls.append((time.thread_time() - start, keys, 0.0, 0.0, VERIFIED))
