@@ -5,7 +5,9 @@ leaves with jobs out)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import logging
 import multiprocessing
 
 import pytest
@@ -13,6 +15,7 @@ import pytest
 from como3r.config import Config, apply_overrides
 from como3r.coordination.coordinator import Coordinator
 from como3r.prior.simulated import SimulatedPrior
+from como3r.runtime.backlog import Backlog
 from como3r.runtime.multiprocess import run_multiprocess
 from como3r.runtime.pipeline import PriorSpec
 from como3r.runtime.remote_verification import AgentVerifiers, serve
@@ -100,8 +103,13 @@ def test_replies_are_taken_from_the_agent_sent_to_and_handed_over_together(
     requests = [(agent, m) for agent, m in scripted_hub.sent if isinstance(m, VerificationRequest)]
     agent, request = requests[0]
     reply = serve(agent, prior, coordinator.config, request)
+    caplog.set_level(logging.INFO, "como3r.runtime.remote_verification")
     verifiers.received(1 - agent, reply)  # not the agent it was sent to
     assert "it was not sent; dropped" in caplog.text and verifiers.out == len(requests)
+    # the same number for another keyframe: a request made before the coordinator resumed
+    other = dataclasses.replace(reply, query=(reply.query[0], reply.query[1] + 100))
+    verifiers.received(agent, other)
+    assert "a request not out" in caplog.text and verifiers.out == len(requests)
     verifiers.received(agent, reply)
     assert verifiers.out == len(requests) - 1 and verifiers.served[agent] == 1
     tried = coordinator.stats.edges_tried
@@ -127,6 +135,16 @@ def test_an_agent_that_leaves_has_its_jobs_verified_by_the_coordinator(
     assert coordinator.stats.verification_deferred_at_finish == coordinator.stats.remote_taken_back
     verifiers.release([0, 1])
     assert not [m for _, m in scripted_hub.sent if isinstance(m, VerificationDone)]  # none serves
+
+
+def test_a_coordinator_that_trailed_its_team_says_the_agents_can_verify() -> None:
+    """More keyframes waiting than one per agent when the input ended: a note names
+    ``verification.on_agents``; those of the last moment only, or one agent: none."""
+    backlog = Backlog()
+    backlog.sample([1.0, 1.1, 1.2], input_ended=True)
+    assert backlog.advice(2) is not None and "verification.on_agents=true" in backlog.advice(2)
+    assert backlog.advice(3) is None and backlog.advice(1) is None
+    assert Backlog().advice(16) is None  # the input has not ended
 
 
 def test_released_agents_are_told_no_more_requests_come(delegating, scripted_hub) -> None:

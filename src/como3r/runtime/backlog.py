@@ -77,6 +77,19 @@ class Backlog:
         plural = "" if self.keyframes == 1 else "s"
         return f"{self.keyframes} keyframe{plural} waiting, {self.seconds:.1f} s of input behind"
 
+    def advice(self, agents: int) -> str | None:
+        """A note for a coordinator that verified itself and trailed ``agents`` agents by
+        more keyframes than one each when their input ended (a coordinator that keeps up
+        leaves those of the last moment): the agents can verify (issue 41); else None."""
+        if agents < 2 or self.end_keyframes is None or self.end_keyframes <= agents:
+            return None
+        return (
+            f"the coordinator trailed the {agents} agents by {self.end_keyframes} keyframes "
+            f"({self.end_seconds or 0.0:.1f} s of input) when their input ended; "
+            "--set verification.on_agents=true lets the agents verify the candidates "
+            "(docs: networked.md, Large teams)"
+        )
+
     def to_json(self) -> dict[str, Any]:
         """The ``runtime.backlog`` section of ``metrics.json``."""
         return {

@@ -230,6 +230,9 @@ def _write(staging: Path, runtime: _Runtime, inputs: Sequence[AgentInput]) -> Ru
                 f"{len(results[slot.agent].keyframes)} keyframes the coordinator received"
             )
     summary.notes.extend(left_out(runtime.segments, runtime.places))
+    advice = None if runtime.verifiers is not None else runtime.backlog.advice(len(runtime.slots))
+    if advice is not None:
+        summary.notes.append(advice)
     outputs.evaluate_and_finish(
         staging,
         summary,

@@ -186,7 +186,17 @@ class AgentVerifiers:
     def received(self, agent: int, reply: VerificationReply) -> None:
         """An agent's reply, kept for :meth:`hand_over`."""
         sent = self._sent.get(reply.request)
-        if sent is None or sent[0] != agent or reply.agent != agent:
+        if sent is None or sent[1].query != tuple(reply.query):
+            # a request this coordinator did not make (one before it resumed) or no longer
+            # waits for (taken back)
+            logger.info(
+                "agent %d: a verification reply to a request not out (%d, keyframe %s); dropped",
+                agent,
+                reply.request,
+                tuple(reply.query),
+            )
+            return
+        if sent[0] != agent or reply.agent != agent:
             logger.warning(
                 "agent %d: a verification reply to request %d it was not sent; dropped",
                 agent,
