@@ -94,6 +94,9 @@ def test_jobs_go_to_their_agent_or_to_one_that_serves(delegating, scripted_hub) 
     assert len(requests) == verifiers.out == coordinator.jobs_out >= 3
     for agent, request in requests:
         assert agent == request.query[0] or (request.query[0] == 2 and agent in (0, 1))
+    # silent since they were sent their jobs: overdue past a timeout, not before
+    assert verifiers.overdue(3600.0) == []
+    assert verifiers.overdue(0.0) == sorted({agent for agent, _ in requests})
 
 
 def test_replies_are_taken_from_the_agent_sent_to_and_handed_over_together(

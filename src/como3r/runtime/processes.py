@@ -196,8 +196,8 @@ class _Runtime(AgentEvents):
         self.verifiers = self._agent_verifiers()
 
     def _agent_verifiers(self) -> AgentVerifiers | None:
-        """Verification on the agents where the configuration asks for it and this runtime
-        serves it: agent processes of this machine, free-running."""
+        """Verification on the agents where the configuration asks for it and the agents
+        run free (a lockstep run keeps the single process's schedule)."""
         if not self.config.verification.on_agents:
             return None
         if self.options.lockstep:
@@ -508,16 +508,14 @@ class _Runtime(AgentEvents):
                 total,
             )
             self._pump(0.5)
-            now = time.monotonic()
-            for agent in sorted(verifiers.serving):
-                if now - self.slots[agent].last_heard > self.options.agent_timeout_s:
-                    logger.warning(
-                        "agent %d: no verification reply for %.0f s; the coordinator "
-                        "verifies its keyframes",
-                        agent,
-                        self.options.agent_timeout_s,
-                    )
-                    verifiers.left(agent)
+            for agent in verifiers.overdue(self.options.agent_timeout_s):
+                logger.warning(
+                    "agent %d: no verification reply for %.0f s; the coordinator verifies "
+                    "its keyframes",
+                    agent,
+                    self.options.agent_timeout_s,
+                )
+                verifiers.left(agent)
             if not verifiers.serving:
                 self.coordinator.take_back_all()
                 break

@@ -156,6 +156,8 @@ class AgentVerifiers:
         #: agent processes that serve requests (their task said so), until they leave
         self.serving: set[int] = set()
         self._sent: dict[int, tuple[int, RemoteJob]] = {}  # request -> (agent, job)
+        #: per agent: when it last replied, or was sent a job while it had none out
+        self._since: dict[int, float] = {}
         self._replies: list[Verified] = []
         #: per agent process: requests served, their CPU seconds, those after its stream
         self.served: Counter[int] = Counter()
@@ -180,6 +182,8 @@ class AgentVerifiers:
                 self.coordinator.take_back(job.request)
                 continue
             self.hub.send(agent, request_message(self.coordinator, job))
+            if not load[agent]:
+                self._since[agent] = time.monotonic()
             self._sent[job.request] = (agent, job)
             load[agent] += 1
 
@@ -204,6 +208,7 @@ class AgentVerifiers:
             )
             return
         del self._sent[reply.request]
+        self._since[agent] = time.monotonic()
         seconds = sum(reply.seconds.values())
         self.served[agent] += 1
         self.seconds[agent] += seconds
@@ -245,6 +250,12 @@ class AgentVerifiers:
             "cpu_seconds": self.seconds[agent],
             "cpu_seconds_after_stream": self.seconds_after_stream[agent],
         }
+
+    def overdue(self, timeout_s: float) -> list[int]:
+        """The agent processes with jobs out that have not replied for ``timeout_s``
+        seconds since they were sent one (or replied last)."""
+        now, busy = time.monotonic(), {agent for agent, _ in self._sent.values()}
+        return sorted(a for a in busy if now - self._since.get(a, now) > timeout_s)
 
     @property
     def out(self) -> int:
