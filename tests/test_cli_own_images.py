@@ -113,7 +113,7 @@ def test_the_last_agent_failing_is_not_logged_besides_the_error_line(caplog) -> 
     the last failure is said by the run's one error line ('every agent failed: ...')."""
     runtime = processes._Runtime.__new__(processes._Runtime)
     runtime.slots, runtime.progress = [_slot(0), _slot(1)], None
-    runtime.hub = SimpleNamespace(drop=lambda agent: None)
+    runtime.hub, runtime.verifiers = SimpleNamespace(drop=lambda agent: None), None
     with caplog.at_level(logging.WARNING, logger=processes.__name__):
         runtime._fail(runtime.slots[0], "first")
         runtime._fail(runtime.slots[1], "second")

@@ -17,7 +17,8 @@ from como3r.coordination.remote import Verified
 from como3r.errors import MessageError
 from como3r.frontend.packets import KeyframePacket
 from como3r.prior.simulated import SimulatedPrior
-from como3r.runtime.remote_verification import request_message, serve, verified
+from como3r.runtime.remote_verification import request_message, verified
+from como3r.runtime.verification_service import serve
 from como3r.transport import codec
 from como3r.transport.messages import FROM_AGENT, TO_AGENT
 

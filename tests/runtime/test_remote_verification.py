@@ -18,7 +18,8 @@ from como3r.prior.simulated import SimulatedPrior
 from como3r.runtime.backlog import Backlog
 from como3r.runtime.multiprocess import run_multiprocess
 from como3r.runtime.pipeline import PriorSpec
-from como3r.runtime.remote_verification import AgentVerifiers, serve
+from como3r.runtime.remote_verification import AgentVerifiers
+from como3r.runtime.verification_service import serve
 from como3r.transport.verification_messages import VerificationDone, VerificationRequest
 
 from ..coordination.ring_keyframes import AGENTS, HEIGHT, SHORT_RUN, WIDTH, ring_keyframes

@@ -26,7 +26,7 @@ from como3r.prior.mast3r.prior import MASt3REncoding
 from como3r.prior.retrieval import Aggregated
 from como3r.prior.simulated import SimulatedEncoding
 from como3r.prior.simulated_record import SimulatedTruthRecord
-from como3r.transport import codec, codec_compact, codec_registry
+from como3r.transport import codec, codec_compact, codec_registry, verification_messages
 from como3r.transport.codec import decode, encode
 
 H, W = 6, 8
@@ -179,6 +179,20 @@ def _aggregated() -> Aggregated:
     )
 
 
+def _image(encoding: Any, key: tuple[int, int] = (1, 3)) -> verification_messages.KeyframeImage:
+    return verification_messages.KeyframeImage(
+        agent=key[0],
+        kf_id=key[1],
+        frame_index=12,
+        colors=np.random.default_rng(key[1]).integers(0, 256, (H, W, 3), dtype=np.uint8),
+        encoding=encoding,
+    )
+
+
+def _verified_pair() -> verification_messages.VerifiedPair:
+    return verification_messages.VerifiedPair(_matches(9), 0.8, _matches(10), 0.75, True)
+
+
 SAMPLES: dict[str, Callable[[], Any]] = {
     "KeyframePacket": _packet,
     "Aggregated": _aggregated,
@@ -229,6 +243,28 @@ SAMPLES: dict[str, Callable[[], Any]] = {
     "Step": lambda: messages.Step(frame_index=8),
     "Shutdown": lambda: messages.Shutdown(reason="test"),
     "EdgeSummary": lambda: messages.EdgeSummary(i=1, j=2, kind="loop", match_fraction=0.4),
+    "KeyframeImage": lambda: _image(_from_hints(SimulatedTruthRecord, 5, agent=1, index=7)),
+    "VerificationRequest": lambda: verification_messages.VerificationRequest(
+        request=4,
+        query=(1, 3),
+        candidates=[(0, 2), (1, 0)],
+        similarities=[0.03, math.nan],
+        images=[_image(None), _image(None, (0, 2)), _image(_mast3r_encoding(), (1, 0))],
+    ),
+    "VerificationDone": verification_messages.VerificationDone,
+    "VerifiedPair": _verified_pair,
+    "VerificationReply": lambda: verification_messages.VerificationReply(
+        agent=1,
+        request=4,
+        query=(1, 3),
+        pairs=[
+            _verified_pair(),
+            verification_messages.VerifiedPair(_matches(11), 0.2, None, None, False),
+        ],
+        decodes=3,
+        seconds={"reencode": 0.5, "prior_decode": 0.25, "verification": 0.125},
+        after_stream=True,
+    ),
     "tests.Probe": lambda: Probe(value=(None, [1, 2.5], {"a": True})),
     "tests.HalfProbe": lambda: HalfProbe(value=[1.5], exact=torch.ones(2)),
 }

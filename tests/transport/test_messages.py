@@ -84,8 +84,9 @@ def _packet_message(fe: AgentFrontend, kf_id: int) -> messages.KeyframeMessage:
 # ---------------------------------------------------------------------- schema
 
 
-#: messages past their first schema (AgentTask 2: live, 3: resume_after)
-VERSIONS = {"AgentTask": 4, "FrameDone": 2, "AgentFinished": 2}
+#: messages past their first schema (AgentTask 2: live, 3: resume_after, 4: send_encoding,
+#: 5: verify)
+VERSIONS = {"AgentTask": 5, "FrameDone": 2, "AgentFinished": 2}
 
 
 @pytest.mark.parametrize(

@@ -37,7 +37,6 @@ from como3r.frontend.packets import KeyframePacket
 from como3r.runtime.agent_loop import AgentLoop
 from como3r.runtime.pipeline import PriorSpec, build_prior, load_frame, run_frames
 from como3r.runtime.prefetch import PreparedFrame, prepared_frames
-from como3r.runtime.remote_verification import serve
 from como3r.transport import codec
 from como3r.transport.codec import record_parts
 from como3r.transport.keyframe_bytes import PartCounter
@@ -217,9 +216,7 @@ class AgentWorker:
             if isinstance(message, (VerificationDone, Shutdown)):
                 return
             if isinstance(message, VerificationRequest):
-                self.channel.send(
-                    serve(self.task.agent, self.prior, self.config, message, after_stream=True)
-                )
+                self._serve(message)
 
     def _process(self, index: int, frames: Iterator[PreparedFrame]) -> None:
         """Frame ``index``: its live event and keyframes leave as the loop hands them out,
@@ -269,9 +266,7 @@ class AgentWorker:
         if isinstance(message, VerificationDone):
             return True  # for an agent whose stream has ended: this one's goes on
         if isinstance(message, VerificationRequest) and self.task.verify:
-            self.channel.send(
-                serve(self.task.agent, self.prior, self.config, message, self.stream_ended)
-            )
+            self._serve(message)
             return True
         if isinstance(message, PoseUpdateMessage):
             if message.seq <= self.applied_seq and message.update.agent == self.task.agent:
@@ -284,6 +279,15 @@ class AgentWorker:
             self.applied_seq = message.seq
             return True
         raise MessageError(f"unexpected {type(message).__name__} from the coordinator")
+
+    def _serve(self, request: VerificationRequest) -> None:
+        """Verify the coordinator's request and send the reply (``verification.on_agents``)."""
+        # imported on the first request: an agent that verifies nothing imports no part of
+        # the coordinator (tests/runtime/test_agent_worker.py)
+        from como3r.runtime.verification_service import serve
+
+        reply = serve(self.task.agent, self.prior, self.config, request, self.stream_ended)
+        self.channel.send(reply)
 
     def _drain_inbox(self) -> bool:
         """Apply every waiting message without blocking; False on Shutdown."""
