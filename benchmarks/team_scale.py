@@ -577,9 +577,9 @@ sampled; the cleanup stayed below it).
 
 Session 41: verification on the agents (``--set verification.on_agents=true``,
 :mod:`como3r.coordination.remote`), the same command otherwise (an idle machine; scratch
-``/tmp/s41/ts1``-``ts3``; ts1 ran the in-stream BA after every hand-over of the agents'
-replies, ts2 and ts3 only when no batch of keyframes follows, whose BA then solves with
-their edges: the final code):
+``/tmp/s41/ts1``-``ts4``; ts1 ran the in-stream BA after every hand-over of the agents'
+replies, ts2 to ts4 only when no batch of keyframes follows, whose BA then solves with
+their edges; ts4 at the final code, b95e2f2):
 
     run  agents  coord ms/kf  agents ms/kf  end kf  cores for 0  rt end kf  out at end  coord MB  agent MB  ATE mm  ATE %  kB/robot
     ts1       4          337          1598       1            1          0           0      2197      1377    6.95  0.184     38562
@@ -588,21 +588,23 @@ their edges: the final code):
     ts2      16          350          2272       1            1         10          23      4062      1735    20.1  0.530     70179
     ts3       4          328          1581       1            1          0           0      2181      1382    6.36  0.169     38390
     ts3      16          358          2169       1            1         20          27      3967      1766    19.4  0.512     70188
+    ts4       4          315          1534       1            1          1           4      2186      1425    6.88  0.182     38559
+    ts4      16          325          2093       1            1         21          32      4075      1765    19.3  0.508     70164
 
-The coordinator verifies nothing (``pool ms/kf`` 0; decodes per keyframe 4.44-4.50 / 5.03,
-all the agents'), so its work per keyframe is what the serial part was, 16 vs 4 agents
-1.02-1.09x (ts2, ts3), and replayed against the agents' arrivals on ONE core it keeps up:
+The coordinator verifies nothing (``pool ms/kf`` 0; decodes per keyframe 4.44-4.50 /
+5.02-5.03, all the agents'), so its work per keyframe is what the serial part was, 16 vs 4
+agents 1.02-1.09x in each run (ts2-ts4; 1.14x at most across them), and replayed against the agents' arrivals on ONE core it keeps up:
 one keyframe in hand when the input ends, none queued, drained in 0.13-0.65 s (144-146
 keyframes waiting when it verified itself, session 40). Peak memory 16 vs 4 agents
-1.82-1.86x. The agents pay: 2.2-2.3 s of CPU per keyframe verifying (re-encodes 44 %,
+1.82-1.87x. The agents pay: 2.1-2.3 s of CPU per keyframe verifying (re-encodes 44 %,
 decodes 35 %, matching 21 %), their CPU per frame 3.26-3.34 s at 16 agents against 2.14 s
 when the coordinator verifies (session 39's run of this scene); the requests carry every
 keyframe image a pair needs and here the simulated prior's ground-truth records (3.9 MB a
 request, 741 MB of 1122 at 16 agents; MASt3R's carry the images alone), 70 MB per robot
-against 15. ``out at end``: 23-27 keyframes' verifications were still with the agents when
+against 15. ``out at end``: 23-32 keyframes' verifications were still with the agents when
 their input ended, on this machine where the 16 agents share its 2 cores (in the replay
 each has its own, the verification it did after its last frame spread over its frames).
-The merged ATE at 16 agents 19.4-20.1 mm against 17.9-18.1: an edge enters the graph when
+The merged ATE at 16 agents 19.3-20.1 mm against 17.9-18.1: an edge enters the graph when
 its reply comes back, after the merges of the keyframes verified before it.
 """
 

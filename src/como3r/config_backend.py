@@ -187,11 +187,11 @@ class VerificationConfig:
       matches them between its frames and returns the matches, the coordinator admits the
       edges when they come back. Its own work per keyframe is then retrieval, admission,
       merges and global BA. benchmarks/team_scale.py (16 agents, 48 frames, simulated prior
-      at 512x384, two runs): the coordinator's CPU per keyframe 1.9-2.0 s -> 350-358 ms, and
+      at 512x384, three runs): the coordinator's CPU per keyframe 1.9-2.0 s -> 325-358 ms, and
       on one core it keeps up with the agents' measured frame rates (144-146 keyframes
-      behind when the input ended -> none); each agent spends 2.2-2.3 s of CPU per keyframe
+      behind when the input ended -> none); each agent spends 2.1-2.3 s of CPU per keyframe
       verifying (its frames 2.1 -> 3.3 s), the requests carry the keyframes' images (70 MB
-      per robot against 15), merged ATE 17.9-18.1 -> 19.4-20.1 mm. Off by default: a team
+      per robot against 15), merged ATE 17.9-18.1 -> 19.3-20.1 mm. Off by default: a team
       whose coordinator keeps up (4 agents here) gains nothing and its agents slow down;
       a run whose coordinator trailed its team says so in its summary.
       Runs with agent processes, on this machine (``como3r run``) or across machines
