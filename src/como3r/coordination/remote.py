@@ -148,7 +148,8 @@ class RemoteVerification(DeferredVerification):
             job = self._outstanding.pop(reply.request, None)
             if job is None or len(reply.verifications) != len(job.hits):
                 logger.warning(
-                    "coordinator: a verification reply for request %d that is not out; ignored",
+                    "coordinator: a verification reply for request %d that is not out or "
+                    "does not verify each of its candidates; ignored",
                     reply.request,
                 )
                 continue

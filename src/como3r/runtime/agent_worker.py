@@ -204,10 +204,10 @@ class AgentWorker:
             )
         )
         if self.task.verify:
-            self._serve_until_shutdown()
+            self._serve_until_released()
         return True
 
-    def _serve_until_shutdown(self) -> None:
+    def _serve_until_released(self) -> None:
         """After the stream: serve the coordinator's verification requests until it says
         no more come (or stop: :mod:`.remote_verification`); pose updates no longer matter
         here."""

@@ -516,9 +516,6 @@ class _Runtime(AgentEvents):
                     self.options.agent_timeout_s,
                 )
                 verifiers.left(agent)
-            if not verifiers.serving:
-                self.coordinator.take_back_all()
-                break
             self._hand_over_verifications(solve=False)
         self._hand_over_verifications(solve=False)  # the terminal cleanup solves
         if total:

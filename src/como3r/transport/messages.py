@@ -75,9 +75,10 @@ class AgentTask:
             id of an agent whose earlier process left; -1: every frame).
         send_encoding: send each keyframe's encoding; False when the coordinator encodes
             the keyframes' colours again itself (:mod:`como3r.coordination.encodings`).
-        verify: serve the :class:`~.verification_messages.VerificationRequest` messages between
-            frames and, once the stream has ended, until a :class:`Shutdown`
-            (``verification.on_agents``: :mod:`como3r.runtime.remote_verification`).
+        verify: serve the :class:`~.verification_messages.VerificationRequest` messages
+            between frames and, once the stream has ended, until a
+            :class:`~.verification_messages.VerificationDone` (``verification.on_agents``:
+            :mod:`como3r.runtime.remote_verification`).
     """
 
     agent: int
